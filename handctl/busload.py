@@ -1,0 +1,146 @@
+"""Worst-case bus time of every frame and the load of a hand configuration at its loop rate.
+
+Worst case means the largest number of stuff bits the frame can carry, because a budget that
+holds only for friendly payloads fails on the robot when the torques take unlucky values.
+
+Frame model (11-bit identifiers, as every handctl frame uses):
+
+- Classic CAN, n <= 8 data bytes: ``8n + 47`` bits (SOF to the end of the 3-bit interframe space)
+  plus at most ``floor((34 + 8n - 1) / 4)`` stuff bits over the 34 + 8n bits that are stuffed.
+  A payload over 8 bytes cannot travel in one classic frame: it is counted as ceil(n/8) frames.
+- CAN-FD with bit-rate switching: the arbitration phase (SOF, id, RRS, IDE, FDF, res, BRS:
+  17 bits, plus their worst-case 4 stuff bits) and the tail (CRC delimiter, ACK slot, ACK
+  delimiter, 7-bit EOF, 3-bit IFS: 13 bits) run at the nominal rate; the data phase (ESI, 4-bit
+  DLC, the payload padded to its DLC size, the dynamic stuff bits beyond those counted in the
+  arbitration phase, the 4-bit stuff count, a 17-bit CRC (21 bits above 16 bytes) and its fixed
+  stuff bits, one per 4 bits) at the data rate. Counting the CRC delimiter at the nominal rate
+  and rounding stuff bits up keeps the figure an upper bound.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from handctl.config import HandConfig
+from handctl.protocol import Layout, Protocol
+
+#: A configuration whose worst-case load exceeds this fraction is refused.
+MAX_LOAD = 0.5
+FD_DLC_SIZES = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
+
+
+def classic_frame_bits(n_bytes: int) -> int:
+    """Worst-case bits of one classic base frame with ``n_bytes`` (0..8) of data."""
+    if not 0 <= n_bytes <= 8:
+        raise ValueError(f"classic CAN carries 0 to 8 data bytes, found {n_bytes}")
+    return 8 * n_bytes + 47 + (34 + 8 * n_bytes - 1) // 4
+
+
+def fd_dlc_size(n_bytes: int) -> int:
+    """The payload size a CAN-FD frame really carries: the next DLC size (padding included)."""
+    for size in FD_DLC_SIZES:
+        if size >= n_bytes:
+            return size
+    raise ValueError(f"CAN-FD carries at most 64 data bytes, found {n_bytes}")
+
+
+def fd_frame_bits(n_bytes: int) -> tuple[int, int]:
+    """Worst-case (nominal-rate bits, data-rate bits) of one CAN-FD base frame with BRS."""
+    size = fd_dlc_size(n_bytes)
+    arbitration = 17
+    arbitration_stuff = (arbitration - 1) // 4
+    tail = 13
+    dynamic_bits = arbitration + 5 + 8 * size
+    data_stuff = (dynamic_bits - 1) // 4 - arbitration_stuff
+    crc_bits = 17 if size <= 16 else 21
+    fixed_stuff = math.ceil((4 + crc_bits) / 4)
+    data_phase = 5 + 8 * size + data_stuff + 4 + crc_bits + fixed_stuff
+    return arbitration + arbitration_stuff + tail, data_phase
+
+
+def frame_time_s(n_bytes: int, fd: bool, bitrate: int, data_bitrate: int | None) -> float:
+    """Worst-case time on the wire of one message of ``n_bytes`` (all its frames on classic)."""
+    if fd:
+        nominal, data = fd_frame_bits(n_bytes)
+        return nominal / bitrate + data / (data_bitrate or bitrate)
+    frames = max(1, math.ceil(n_bytes / 8))
+    remaining = n_bytes
+    total = 0
+    for _ in range(frames):
+        chunk = min(8, remaining)
+        total += classic_frame_bits(chunk)
+        remaining -= chunk
+    return total / bitrate
+
+
+@dataclass(frozen=True)
+class MessageBudget:
+    name: str
+    frame_id: int
+    n_bytes: int
+    frames: int  # frames per message on this bus (more than 1 only for classic splits)
+    rate_hz: float  # 0 for event messages
+    frame_time_us: float
+    load: float  # fraction of the bus
+
+
+@dataclass(frozen=True)
+class BusBudget:
+    fd: bool
+    bitrate: int
+    data_bitrate: int | None
+    loop_rate_hz: float
+    messages: tuple[MessageBudget, ...]
+
+    @property
+    def load(self) -> float:
+        return sum(m.load for m in self.messages)
+
+    @property
+    def ok(self) -> bool:
+        return self.load <= MAX_LOAD
+
+    @property
+    def loop_time_per_tick_s(self) -> float:
+        """Bus time of everything sent once per loop period."""
+        return sum(m.frame_time_us for m in self.messages
+                   if m.rate_hz == self.loop_rate_hz) * 1e-6
+
+    def highest_loop_rate_hz(self) -> float:
+        """The loop rate at which this bus would sit exactly at ``MAX_LOAD``."""
+        fixed = sum(m.load for m in self.messages if m.rate_hz != self.loop_rate_hz)
+        per_tick = self.loop_time_per_tick_s
+        return max(0.0, (MAX_LOAD - fixed) / per_tick) if per_tick else math.inf
+
+
+def message_rate(layout: Layout, loop_rate_hz: float) -> float:
+    """Frames per second of a message: loop messages follow the loop, cyclic ones the DBC."""
+    if layout.send == "loop":
+        return loop_rate_hz
+    if layout.send == "cyclic" and layout.cycle_time_ms:
+        return 1000.0 / layout.cycle_time_ms
+    return 0.0
+
+
+def hand_budget(hand: HandConfig, protocol: Protocol, *, nodes: set[int] | None = None,
+                fd: bool | None = None, bitrate: int | None = None,
+                data_bitrate: int | None = None) -> BusBudget:
+    """The budget of the hand's messages (of ``nodes`` only, if given) on its bus or another.
+
+    The overrides let ``handctl check`` say what *would* fit: one bus per finger, or CAN-FD.
+    """
+    use_fd = hand.bus.fd if fd is None else fd
+    rate = hand.bus.bitrate if bitrate is None else bitrate
+    data_rate = hand.bus.data_bitrate if data_bitrate is None else data_bitrate
+    wanted = {f.node_id for f in hand.fingers} if nodes is None else nodes
+    rows = []
+    for layout in protocol.layouts:
+        if layout.node is not None and layout.node not in wanted:
+            continue
+        t = frame_time_s(layout.length, use_fd, rate, data_rate)
+        hz = message_rate(layout, hand.bus.loop_rate_hz)
+        frames = 1 if use_fd else max(1, math.ceil(layout.length / 8))
+        rows.append(MessageBudget(layout.name, layout.frame_id, layout.length, frames, hz,
+                                  t * 1e6, t * hz))
+    return BusBudget(use_fd, rate, data_rate, hand.bus.loop_rate_hz, tuple(rows))

@@ -1,0 +1,220 @@
+"""The hand configuration: YAML in, frozen dataclasses out, or a ``ConfigError`` that says where.
+
+The hand config is the only source of hardware limits in handctl. ``tau_max`` has no default on
+purpose: a forgotten limit must stop the program, not fall back to a number someone guessed.
+The ``sim`` section is kept as raw data here and validated by the simulated hand, because the
+online plane never needs it; it is also left out of ``config_hash``, so a recipe compiled for a
+hand stays valid whatever the simulation parameters are.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from handctl.schema import Doc, load_yaml
+
+#: Highest standard (11-bit) CAN identifier; handctl uses only standard ids.
+MAX_STANDARD_ID = 0x7FF
+#: Identifier of the e-stop frame (fixed in the DBC: the highest priority on the bus).
+ESTOP_ID = 0x000
+CAN_ID_KINDS = ("node_command", "torque_command", "feedback", "status", "heartbeat")
+
+
+@dataclass(frozen=True)
+class TdtCalibration:
+    """Maps the TDT reading on the wire to joint torque: tau = scale * reading + offset (N·m)."""
+
+    scale: float
+    offset: float
+
+
+@dataclass(frozen=True)
+class JointConfig:
+    name: str
+    link_length: float  # m
+    tau_max: float  # N·m, host limit; what safety lets through
+    device_tau_max: float  # N·m, the node's own saturation
+    rate_limit: float  # N·m/s
+    angle_min: float  # rad, soft limit
+    angle_max: float  # rad, soft limit
+    tdt: TdtCalibration
+
+
+@dataclass(frozen=True)
+class CanIds:
+    node_command: int
+    torque_command: int
+    feedback: int
+    status: int
+    heartbeat: int
+
+    def as_dict(self) -> dict[str, int]:
+        return {kind: getattr(self, kind) for kind in CAN_ID_KINDS}
+
+
+@dataclass(frozen=True)
+class FingerConfig:
+    name: str
+    node_id: int
+    can_ids: CanIds
+    base_x: float  # m
+    base_y: float  # m
+    base_angle: float  # rad
+    z: float  # m, offset along the joint axes
+    joints: tuple[JointConfig, ...]
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    interface: str
+    channel: str
+    fd: bool
+    bitrate: int  # bit/s, arbitration phase (the only phase on classic CAN)
+    data_bitrate: int | None  # bit/s, CAN-FD data phase
+    loop_rate_hz: float
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.loop_rate_hz
+
+
+@dataclass(frozen=True)
+class HandConfig:
+    name: str
+    source: str
+    bus: BusConfig
+    fingers: tuple[FingerConfig, ...]
+    config_hash: str
+    sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+    @property
+    def joints(self) -> tuple[JointConfig, ...]:
+        """All joints, finger by finger: the order of every 9-vector in handctl."""
+        return tuple(j for f in self.fingers for j in f.joints)
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(j.name for j in self.joints)
+
+    @property
+    def n_joints(self) -> int:
+        return sum(len(f.joints) for f in self.fingers)
+
+
+def load_hand(path: str | Path) -> HandConfig:
+    """Load and validate a hand config file; raises ``ConfigError`` on any problem."""
+    return parse_hand(load_yaml(path))
+
+
+def parse_hand(doc: Doc) -> HandConfig:
+    name = doc.string("name")
+    bus = _parse_bus(doc.mapping("bus"))
+    finger_docs = doc.mappings("fingers", min_len=1, max_len=8)
+    fingers = tuple(_parse_finger(f) for f in finger_docs)
+    sim_raw = doc.raw("sim", None)
+    if sim_raw is not None and not isinstance(sim_raw, dict):
+        doc.fail("sim", "a mapping", type(sim_raw).__name__)
+    doc.done()
+    _check_unique(doc, fingers)
+    hashed = {k: v for k, v in doc.data.items() if k != "sim"}
+    digest = hashlib.sha256(
+        json.dumps(hashed, sort_keys=True, separators=(",", ":")).encode()
+    ).hexdigest()
+    return HandConfig(
+        name=name,
+        source=doc.file,
+        bus=bus,
+        fingers=fingers,
+        config_hash=f"sha256:{digest[:16]}",
+        sim=MappingProxyType(dict(sim_raw or {})),
+    )
+
+
+def _parse_bus(doc: Doc) -> BusConfig:
+    interface = doc.string("interface")
+    channel = str(doc.raw("channel"))
+    fd = doc.boolean("fd")
+    bitrate = doc.integer("bitrate", min=10_000, max=1_000_000)
+    data_bitrate: int | None = None
+    if fd:
+        data_bitrate = doc.integer("data_bitrate", min=bitrate, max=10_000_000)
+    elif doc.has("data_bitrate"):
+        doc.fail("data_bitrate", "no data_bitrate on classic CAN (fd: false)",
+                 doc.raw("data_bitrate"))
+    loop_rate = doc.number("loop_rate_hz", min=1.0, max=10_000.0, unit="Hz")
+    doc.done()
+    return BusConfig(interface, channel, fd, bitrate, data_bitrate, loop_rate)
+
+
+def _parse_finger(doc: Doc) -> FingerConfig:
+    name = doc.string("name")
+    node_id = doc.integer("node_id", min=1, max=15)
+    ids_doc = doc.mapping("can_ids")
+    ids = CanIds(**{kind: ids_doc.integer(kind, min=1, max=MAX_STANDARD_ID)
+                    for kind in CAN_ID_KINDS})
+    ids_doc.done()
+    base = doc.mapping("base")
+    base_x = base.number("x", min=-1.0, max=1.0, unit="m")
+    base_y = base.number("y", min=-1.0, max=1.0, unit="m")
+    base_angle = base.number("angle", min=-2 * math.pi, max=2 * math.pi, unit="rad")
+    base.done()
+    z = doc.number("z", default=0.0, min=-1.0, max=1.0, unit="m")
+    joints = tuple(_parse_joint(j) for j in doc.mappings("joints", min_len=1, max_len=3))
+    doc.done()
+    return FingerConfig(name, node_id, ids, base_x, base_y, base_angle, z, joints)
+
+
+def _parse_joint(doc: Doc) -> JointConfig:
+    name = doc.string("name")
+    link = doc.number("link_length", min=0.0, max=1.0, min_exclusive=True, unit="m")
+    tau_max = doc.number("tau_max", min=0.0, max=100.0, min_exclusive=True, unit="N·m")
+    device = doc.number("device_tau_max", min=0.0, max=100.0, min_exclusive=True, unit="N·m")
+    if tau_max > device:
+        doc.fail("tau_max", f"a value <= device_tau_max ({device:g} N·m)", tau_max)
+    rate = doc.number("rate_limit", min=0.0, max=1e5, min_exclusive=True, unit="N·m/s")
+    lo = doc.number("angle_min", min=-2 * math.pi, max=2 * math.pi, unit="rad")
+    hi = doc.number("angle_max", min=-2 * math.pi, max=2 * math.pi, unit="rad")
+    if hi <= lo:
+        doc.fail("angle_max", f"a value > angle_min ({lo:g} rad)", hi)
+    tdt_doc = doc.mapping("tdt")
+    scale = tdt_doc.number("scale", min=0.1, max=10.0)
+    offset = tdt_doc.number("offset", min=-10.0, max=10.0, unit="N·m")
+    tdt_doc.done()
+    doc.done()
+    return JointConfig(name, link, tau_max, device, rate, lo, hi, TdtCalibration(scale, offset))
+
+
+def _check_unique(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
+    """Names, node ids and CAN ids must be unique: a clash would route frames to the wrong node."""
+    seen_names: dict[str, str] = {}
+    seen_nodes: dict[int, int] = {}
+    seen_ids: dict[int, str] = {ESTOP_ID: "the e-stop frame"}
+    for i, finger in enumerate(fingers):
+        where = f"fingers[{i}]"
+        for name, path in [(finger.name, f"{where}.name")] + [
+            (j.name, f"{where}.joints[{k}].name") for k, j in enumerate(finger.joints)
+        ]:
+            if name in seen_names:
+                _fail_at(doc, path, f"a name not used before (also {seen_names[name]})", name)
+            seen_names[name] = path
+        if finger.node_id in seen_nodes:
+            _fail_at(doc, f"{where}.node_id",
+                     f"a node id not used before (fingers[{seen_nodes[finger.node_id]}] has it)",
+                     finger.node_id)
+        seen_nodes[finger.node_id] = i
+        for kind, can_id in finger.can_ids.as_dict().items():
+            if can_id in seen_ids:
+                _fail_at(doc, f"{where}.can_ids.{kind}",
+                         f"a CAN id not used before ({seen_ids[can_id]} has it)", hex(can_id))
+            seen_ids[can_id] = f"{where}.can_ids.{kind}"
+
+
+def _fail_at(doc: Doc, path: str, expected: str, found: object) -> None:
+    Doc({}, doc.file, "").fail(path, expected, found)

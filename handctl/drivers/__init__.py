@@ -1,0 +1,1 @@
+"""Host-side drivers of the finger nodes: pure frame building and parsing, node state, hand map."""

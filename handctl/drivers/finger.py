@@ -1,0 +1,142 @@
+"""One finger node from the host's side: pure frame building and parsing, plus its state.
+
+Building a command is a pure function of the applied torques and the counter (the moteus way):
+the only side effect of a tick is the one send. Parsing a feedback frame is pure too; the node
+state object only remembers what the frames said, so it can be inspected, logged and tested
+without a bus.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from handctl.config import FingerConfig
+from handctl.drivers.receiver import CounterCheck, Reject, RejectCounts, validate
+from handctl.protocol import NODE_COMMANDS, STATE_NAMES, Layout, Protocol
+
+#: FaultBits of the device (PROTOCOL.md), by name.
+FAULT_BITS = {"TIMEOUT": 0x01, "ESTOP": 0x02, "RX_ERRORS": 0x04, "SENSOR": 0x08,
+              "SATURATED": 0x10}
+
+
+def fault_names(bits: int) -> list[str]:
+    """Names of the fault bits set in ``bits`` (unknown bits as ``BIT<n>``)."""
+    names = [name for name, mask in FAULT_BITS.items() if bits & mask]
+    names += [f"BIT{i}" for i in range(8) if bits & (1 << i)
+              and not any(mask == 1 << i for mask in FAULT_BITS.values())]
+    return names
+
+
+@dataclass(frozen=True)
+class FingerLayouts:
+    """The DBC layouts one finger node uses, looked up once."""
+
+    command: Layout
+    node_command: Layout
+    feedback: Layout
+    status: Layout
+    heartbeat: Layout
+
+    @classmethod
+    def for_node(cls, protocol: Protocol, node_id: int) -> FingerLayouts:
+        return cls(
+            command=protocol.layout("TorqueCommand", node_id),
+            node_command=protocol.layout("NodeCommand", node_id),
+            feedback=protocol.layout("Feedback", node_id),
+            status=protocol.layout("Status", node_id),
+            heartbeat=protocol.layout("Heartbeat", node_id),
+        )
+
+
+def make_command(layout: Layout, counter: int, torques: Sequence[float]) -> tuple[int, bytes]:
+    """The torque-command frame (id, payload) for one finger's applied torques in N·m."""
+    return layout.frame_id, layout.encode(counter, torques)
+
+
+def make_node_command(layout: Layout, counter: int, command: str) -> tuple[int, bytes]:
+    """An enable / disable / fault_reset frame."""
+    return layout.frame_id, layout.encode(counter, (NODE_COMMANDS[command],))
+
+
+@dataclass(frozen=True, slots=True)
+class Feedback:
+    """One decoded feedback frame, before the host's TDT calibration."""
+
+    tdt: tuple[float, float, float]  # N·m, node calibration
+    angles: tuple[float, float, float]  # rad
+    state: int
+    fault_bits: int
+
+
+def parse_feedback(values: Sequence[float]) -> Feedback:
+    """Turn the decoded signal values of a Feedback frame into named quantities."""
+    t1, t2, t3, a1, a2, a3, state, faults = values
+    return Feedback((t1, t2, t3), (a1, a2, a3), int(state), int(faults))
+
+
+class FingerNode:
+    """What the host knows of one finger node, updated only by frames that passed every check."""
+
+    def __init__(self, finger: FingerConfig, layouts: FingerLayouts) -> None:
+        self.finger = finger
+        self.node_id = finger.node_id
+        self.layouts = layouts
+        self.streams = {layout.frame_id: (layout, CounterCheck()) for layout in
+                        (layouts.feedback, layouts.status, layouts.heartbeat)}
+        self.rejects = RejectCounts()
+        self.accepted = 0
+        self.command_counter = 0
+        self.node_command_counter = 0
+        self.state = -1  # unknown until the node speaks
+        self.fault_bits = 0
+        self.feedback: Feedback | None = None
+        self.feedback_ns: int | None = None  # host time of the last good feedback
+        self.heartbeat_ns: int | None = None
+        self.uptime_ms: int | None = None
+        self.reboots = 0
+        self.status: tuple[float, ...] | None = None
+
+    @property
+    def state_name(self) -> str:
+        return STATE_NAMES.get(self.state, "UNKNOWN")
+
+    def next_command(self, torques: Sequence[float]) -> tuple[int, bytes]:
+        frame = make_command(self.layouts.command, self.command_counter, torques)
+        self.command_counter = (self.command_counter + 1) & 0xFF
+        return frame
+
+    def next_node_command(self, command: str) -> tuple[int, bytes]:
+        frame = make_node_command(self.layouts.node_command, self.node_command_counter, command)
+        self.node_command_counter = (self.node_command_counter + 1) & 0xFF
+        return frame
+
+    def receive(self, frame_id: int, data: bytes, now_ns: int) -> Reject | None:
+        """Apply one frame addressed to this node's streams; return why it was rejected, if so."""
+        layout, counters = self.streams[frame_id]
+        reason = validate(layout, data, counters)
+        if reason is not None:
+            self.rejects.add(reason)
+            return reason
+        self.accepted += 1
+        _, values = layout.decode(data)
+        if layout is self.layouts.feedback:
+            fb = parse_feedback(values)
+            self.feedback = fb
+            self.feedback_ns = now_ns
+            self.state = fb.state
+            self.fault_bits = fb.fault_bits
+        elif layout is self.layouts.heartbeat:
+            state, uptime = int(values[0]), int(values[1])
+            if self.uptime_ms is not None and uptime < self.uptime_ms:
+                # Uptime went backwards: the node rebooted (and came back DISABLED). Its
+                # counters restarted; each stream re-synchronises after one rejected frame.
+                self.reboots += 1
+            self.uptime_ms = uptime
+            self.heartbeat_ns = now_ns
+            self.state = state
+        else:
+            self.status = values
+            self.state = int(values[0])
+            self.fault_bits = int(values[1])
+        return None

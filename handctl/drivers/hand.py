@@ -1,0 +1,156 @@
+"""The hand-level driver: nine joints over three finger nodes, one drain and one send per tick.
+
+Joint vectors everywhere in handctl are in config order (finger by finger, joint by joint); this
+module is where that order meets the per-node frames. The state arrays are allocated once and
+updated in place, so a tick allocates little beyond the frames themselves.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from handctl.bus import BusEvent, HandBus
+from handctl.config import HandConfig
+from handctl.drivers.finger import FingerLayouts, FingerNode
+from handctl.drivers.receiver import Reject, RejectCounts
+from handctl.errors import ConfigError
+from handctl.protocol import Protocol
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass
+class JointState:
+    """What the host believes about the joints after the last poll (SI units, host clock)."""
+
+    angle: FloatArray  # rad
+    torque: FloatArray  # N·m, TDT after the host calibration
+    feedback_ns: npt.NDArray[np.int64]  # host time of the last good feedback, -1 if none yet
+    node_state: list[int] = field(default_factory=list)  # per finger, -1 unknown
+    node_faults: list[int] = field(default_factory=list)
+
+    def age_s(self, now_ns: int) -> FloatArray:
+        """Age of each joint's last good feedback; infinite before the first one."""
+        age = (now_ns - self.feedback_ns) * 1e-9
+        return np.where(self.feedback_ns < 0, np.inf, age)
+
+
+def check_ids(hand: HandConfig, protocol: Protocol) -> None:
+    """The hand config's CAN ids must be the DBC's: a mismatch would talk to nobody (or worse)."""
+    kinds = {"node_command": "NodeCommand", "torque_command": "TorqueCommand",
+             "feedback": "Feedback", "status": "Status", "heartbeat": "Heartbeat"}
+    for i, finger in enumerate(hand.fingers):
+        for key, kind in kinds.items():
+            name = f"{kind}_{finger.node_id}"
+            layout = protocol.by_name.get(name)
+            have = getattr(finger.can_ids, key)
+            if layout is None:
+                raise ConfigError(hand.source, f"fingers[{i}].node_id",
+                                  f"a node id with a {kind} message in {protocol.source}",
+                                  finger.node_id)
+            if layout.frame_id != have:
+                raise ConfigError(hand.source, f"fingers[{i}].can_ids.{key}",
+                                  f"0x{layout.frame_id:03X} ({name} in the DBC)", hex(have))
+
+
+class HandDriver:
+    """Host side of the hand: polls feedback into ``state`` and sends per-node commands."""
+
+    def __init__(self, hand: HandConfig, protocol: Protocol, bus: HandBus,
+                 clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        check_ids(hand, protocol)
+        self.hand = hand
+        self.bus = bus
+        self.clock_ns = clock_ns
+        self.nodes = [FingerNode(f, FingerLayouts.for_node(protocol, f.node_id))
+                      for f in hand.fingers]
+        self._dispatch = {fid: node for node in self.nodes for fid in node.streams}
+        self._slices = []
+        start = 0
+        for finger in hand.fingers:
+            self._slices.append(slice(start, start + len(finger.joints)))
+            start += len(finger.joints)
+        n = hand.n_joints
+        self._tdt_scale = np.array([j.tdt.scale for j in hand.joints])
+        self._tdt_offset = np.array([j.tdt.offset for j in hand.joints])
+        self._tdt_raw = np.zeros(n)  # N·m as the nodes report it, before calibration
+        self.state = JointState(np.zeros(n), np.zeros(n), np.full(n, -1, dtype=np.int64),
+                                [-1] * len(self.nodes), [0] * len(self.nodes))
+        self.unexpected = RejectCounts()
+        self.unexpected_ids: dict[int, int] = {}
+        self.bus_events: list[BusEvent] = []
+        self._estop_counter = 0
+        self._estop_layout = protocol.layout("EStop")
+
+    def poll(self, now_ns: int | None = None) -> JointState:
+        """Drain the bus and fold every accepted frame into ``state``."""
+        now = self.clock_ns() if now_ns is None else now_ns
+        for frame in self.bus.drain():
+            node = self._dispatch.get(frame.arbitration_id)
+            if node is None:
+                self.unexpected.add(Reject.UNEXPECTED_ID)
+                ids = self.unexpected_ids
+                if len(ids) < 64 or frame.arbitration_id in ids:
+                    ids[frame.arbitration_id] = ids.get(frame.arbitration_id, 0) + 1
+                continue
+            node.receive(frame.arbitration_id, frame.data, now)
+        self.bus_events.extend(self.bus.events())
+        state = self.state
+        for i, (node, sl) in enumerate(zip(self.nodes, self._slices, strict=True)):
+            fb = node.feedback
+            if fb is not None and node.feedback_ns is not None:
+                state.angle[sl] = fb.angles[: sl.stop - sl.start]
+                self._tdt_raw[sl] = fb.tdt[: sl.stop - sl.start]
+                state.feedback_ns[sl] = node.feedback_ns
+            state.node_state[i] = node.state
+            state.node_faults[i] = node.fault_bits
+        np.multiply(self._tdt_raw, self._tdt_scale, out=state.torque)
+        state.torque += self._tdt_offset
+        return state
+
+    def take_bus_events(self) -> list[BusEvent]:
+        events, self.bus_events = self.bus_events, []
+        return events
+
+    def send(self, torques: Sequence[float]) -> bool:
+        """Send one command frame per node; the torques must already have passed safety.
+
+        Returns False when any frame could not be sent (the bus event says why).
+        """
+        ok = True
+        for node, sl in zip(self.nodes, self._slices, strict=True):
+            values = [float(t) for t in torques[sl]]
+            values += [0.0] * (3 - len(values))
+            frame_id, data = node.next_command(values)
+            ok = self.bus.send(frame_id, data) and ok
+        return ok
+
+    def node_command(self, command: str, nodes: Iterable[int] | None = None) -> bool:
+        """Send enable / disable / fault_reset to the given node ids (all by default)."""
+        wanted = None if nodes is None else set(nodes)
+        ok = True
+        for node in self.nodes:
+            if wanted is None or node.node_id in wanted:
+                frame_id, data = node.next_node_command(command)
+                ok = self.bus.send(frame_id, data) and ok
+        return ok
+
+    def estop(self, reason: int = 2) -> bool:
+        """Broadcast the e-stop frame (reason 1 operator, 2 host safety, 3 host shutdown)."""
+        data = self._estop_layout.encode(self._estop_counter, (reason,))
+        self._estop_counter = (self._estop_counter + 1) & 0xFF
+        return self.bus.send(self._estop_layout.frame_id, data)
+
+    def reject_counts(self) -> dict[str, int]:
+        """All rejections, host side: by kind over every node, plus unexpected ids."""
+        total = RejectCounts()
+        for node in self.nodes:
+            for kind, count in enumerate(node.rejects.counts):
+                total.counts[kind] += count
+        total.counts[Reject.UNEXPECTED_ID] += self.unexpected.counts[Reject.UNEXPECTED_ID]
+        return total.as_dict()

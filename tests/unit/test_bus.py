@@ -1,0 +1,131 @@
+"""Bus specs, SocketCAN configuration paths (without the kernel) and never-raising I/O."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from handctl.bus import (
+    BusEventKind,
+    BusSpec,
+    HandBus,
+    bus_kwargs,
+    check_socketcan,
+    open_bus,
+    parse_spec,
+    socketcan_setup_command,
+)
+from handctl.config import HandConfig
+from handctl.errors import BusError, ConfigError
+
+
+def test_parse_specs(hand: HandConfig) -> None:
+    assert parse_spec("sim") == BusSpec("sim", "")
+    assert parse_spec("virtual:abc") == BusSpec("virtual", "abc")
+    assert parse_spec("socketcan:can0") == BusSpec("socketcan", "can0")
+    assert parse_spec("hand", hand.bus) == BusSpec("socketcan", "can0")
+    assert str(parse_spec("pcan:PCAN_USBBUS1")) == "pcan:PCAN_USBBUS1"
+
+
+@pytest.mark.parametrize("spec", ["can0", "socketcan:", ":can0", "nosuchiface:0"])
+def test_bad_specs_name_what_is_wrong(spec: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_spec(spec)
+    assert "--bus" in str(info.value)
+
+
+def test_socketcan_kwargs_leave_bitrates_to_the_kernel(hand: HandConfig) -> None:
+    kwargs = bus_kwargs(BusSpec("socketcan", "can0"), hand.bus)
+    assert kwargs == {"interface": "socketcan", "channel": "can0", "fd": True}
+
+
+def test_other_adapters_get_both_bitrates(hand: HandConfig) -> None:
+    kwargs = bus_kwargs(BusSpec("pcan", "PCAN_USBBUS1"), hand.bus)
+    assert kwargs["fd"] is True
+    assert kwargs["bitrate"] == 1_000_000
+    assert kwargs["data_bitrate"] == 5_000_000
+    classic = replace(hand.bus, fd=False, data_bitrate=None)
+    kwargs = bus_kwargs(BusSpec("pcan", "PCAN_USBBUS1"), classic)
+    assert kwargs["fd"] is False and "data_bitrate" not in kwargs
+
+
+def test_socketcan_setup_command(hand: HandConfig) -> None:
+    assert socketcan_setup_command("can1", hand.bus) == (
+        "sudo ip link set can1 up type can bitrate 1000000 dbitrate 5000000 fd on")
+    classic = replace(hand.bus, fd=False, data_bitrate=None)
+    assert socketcan_setup_command("can1", classic).endswith("bitrate 1000000")
+
+
+def test_socketcan_check_against_a_sysfs_tree(hand: HandConfig, tmp_path: Path) -> None:
+    with pytest.raises(BusError, match=r"no such network interface.*ip link set can0 up"):
+        check_socketcan("can0", hand.bus, sysfs=tmp_path)
+    (tmp_path / "can0").mkdir()
+    (tmp_path / "can0" / "operstate").write_text("down\n")
+    with pytest.raises(BusError, match=r"interface is down.*dbitrate 5000000 fd on"):
+        check_socketcan("can0", hand.bus, sysfs=tmp_path)
+    (tmp_path / "can0" / "operstate").write_text("up\n")
+    check_socketcan("can0", hand.bus, sysfs=tmp_path)
+
+
+def test_opening_socketcan_here_fails_with_a_hint(hand: HandConfig) -> None:
+    # This kernel has no SocketCAN; whatever the reason, the error says what to do.
+    with pytest.raises(BusError, match="socketcan:handctl-none"):
+        open_bus("socketcan:handctl-none", hand.bus)
+
+
+def test_sim_spec_is_not_opened_here(hand: HandConfig) -> None:
+    with pytest.raises(BusError, match="resolved by the caller"):
+        open_bus("sim", hand.bus)
+
+
+def test_frames_cross_the_virtual_bus(bus_pair: tuple[HandBus, HandBus]) -> None:
+    host, peer = bus_pair
+    assert host.send(0x101, bytes(range(8)))
+    assert host.send(0x181, bytes(range(16)))
+    frames = peer.drain()
+    assert [(f.arbitration_id, f.data) for f in frames] == [
+        (0x101, bytes(range(8))), (0x181, bytes(range(16)))]
+    assert all(f.is_fd for f in frames)
+    assert host.drain() == []  # own frames are not echoed
+    assert peer.drain() == []  # drained means empty, without waiting
+
+
+def test_drain_is_bounded(bus_pair: tuple[HandBus, HandBus]) -> None:
+    host, peer = bus_pair
+    for i in range(30):
+        host.send(0x100 + i, b"\x00")
+    assert len(peer.drain(limit=10)) == 10
+    assert len(peer.drain()) == 20
+
+
+def test_error_frames_become_events(bus_pair: tuple[HandBus, HandBus]) -> None:
+    host, peer = bus_pair
+    assert host.send_error_frame()
+    host.send(0x101, bytes(8))
+    frames = peer.drain()
+    assert len(frames) == 1
+    events = peer.events()
+    assert [e.kind for e in events] == [BusEventKind.ERROR_FRAME]
+    assert peer.events() == []
+
+
+def test_full_receiver_queue_is_an_event_not_an_exception(hand: HandConfig,
+                                                          channel: str) -> None:
+    with open_bus(f"virtual:{channel}", hand.bus) as host, \
+            open_bus(f"virtual:{channel}", hand.bus, {"rx_queue_size": 2}):
+        results = [host.send(0x101, bytes(8)) for _ in range(4)]
+        assert results == [True, True, False, False]
+        kinds = [e.kind for e in host.events()]
+        assert kinds == [BusEventKind.TX_FAILED, BusEventKind.TX_FAILED]
+        assert host.sent == 2
+
+
+def test_send_after_close_is_an_event(hand: HandConfig, channel: str) -> None:
+    bus = open_bus(f"virtual:{channel}", hand.bus)
+    bus.close()
+    assert bus.send(0x101, bytes(8)) is False
+    assert bus.events()[0].kind == BusEventKind.TX_FAILED
+    assert bus.drain() == []
+    assert bus.events()[0].kind == BusEventKind.RX_FAILED

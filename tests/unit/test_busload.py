@@ -1,0 +1,70 @@
+"""Worst-case frame times against figures worked out by hand from the frame formats."""
+
+from __future__ import annotations
+
+import pytest
+
+from handctl.busload import (
+    MAX_LOAD,
+    classic_frame_bits,
+    fd_dlc_size,
+    fd_frame_bits,
+    frame_time_s,
+    hand_budget,
+)
+from handctl.config import HandConfig, load_hand
+from handctl.protocol import Protocol
+
+from ..conftest import ROOT
+
+
+@pytest.mark.parametrize(("n", "bits"), [(0, 55), (1, 65), (8, 135)])
+def test_classic_worst_case_bits(n: int, bits: int) -> None:
+    # 8n + 47 frame bits plus floor((34 + 8n - 1) / 4) stuff bits: 135 for a full frame is the
+    # figure every CAN schedulability analysis quotes.
+    assert classic_frame_bits(n) == bits
+
+
+def test_classic_refuses_more_than_eight_bytes() -> None:
+    with pytest.raises(ValueError, match="0 to 8"):
+        classic_frame_bits(9)
+
+
+def test_fd_dlc_sizes() -> None:
+    assert [fd_dlc_size(n) for n in (0, 8, 9, 13, 16, 17, 33, 64)] == [0, 8, 12, 16, 16, 20, 48, 64]
+    with pytest.raises(ValueError):
+        fd_dlc_size(65)
+
+
+def test_fd_frame_bits_by_hand() -> None:
+    # 8 bytes: nominal 17 + 4 stuff + 13 tail = 34; data 5 + 64 + 17 dyn stuff + 4 + 17 + 6 = 113
+    assert fd_frame_bits(8) == (34, 113)
+    # 16 bytes: data 5 + 128 + 33 + 4 + 17 + 6 = 193
+    assert fd_frame_bits(16) == (34, 193)
+    # 20 bytes switch to the 21-bit CRC with 7 fixed stuff bits
+    _, data = fd_frame_bits(20)
+    assert data == 5 + 160 + (22 + 160 - 1) // 4 - 4 + 4 + 21 + 7
+
+
+def test_frame_time() -> None:
+    assert frame_time_s(8, False, 1_000_000, None) == pytest.approx(135e-6)
+    assert frame_time_s(16, False, 1_000_000, None) == pytest.approx(270e-6)  # split in two
+    assert frame_time_s(8, True, 1_000_000, 5_000_000) == pytest.approx(34e-6 + 113 / 5e6)
+    # Without a data rate the FD frame runs entirely at the nominal rate.
+    assert frame_time_s(8, True, 1_000_000, None) == pytest.approx(147e-6)
+
+
+def test_default_hand_fits_and_classic_does_not(hand: HandConfig, protocol: Protocol) -> None:
+    fd = hand_budget(hand, protocol)
+    assert fd.ok and fd.load == pytest.approx(0.3909, abs=1e-3)
+    classic = load_hand(ROOT / "config" / "hands" / "hiroshima_hand_classic.yaml")
+    budget = hand_budget(classic, protocol)
+    assert not budget.ok
+    assert budget.load == pytest.approx(1.2228, abs=1e-3)
+    # At the advertised highest rate the load is exactly the limit.
+    rate = budget.highest_loop_rate_hz()
+    fixed = sum(m.load for m in budget.messages if m.rate_hz != budget.loop_rate_hz)
+    assert fixed + rate * budget.loop_time_per_tick_s == pytest.approx(MAX_LOAD)
+    one_finger = hand_budget(classic, protocol, nodes={1})
+    assert one_finger.ok
+    assert {m.name for m in one_finger.messages if m.name.endswith("_2")} == set()

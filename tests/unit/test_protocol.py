@@ -1,0 +1,107 @@
+"""The DBC compiles into layouts that follow the protocol's conventions, and the CRC is the one
+PROTOCOL.md names."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from handctl.errors import ConfigError, ProtocolError
+from handctl.protocol import DEFAULT_DBC, crc8, load_protocol
+from handctl.protocol import Protocol as Proto
+
+
+def test_crc8_autosar_check_value() -> None:
+    # The catalogued check value of CRC-8/AUTOSAR over "123456789".
+    assert crc8(b"123456789") == 0xDF
+
+
+def test_every_message_has_crc_counter_and_a_unique_data_id(protocol: Proto) -> None:
+    assert len(protocol.layouts) == 16
+    ids = {layout.data_id for layout in protocol.layouts}
+    assert len(ids) == len(protocol.layouts)
+    for layout in protocol.layouts:
+        assert layout.length in (3, 7, 8, 16)
+        assert layout.send in ("event", "loop", "cyclic")
+
+
+def test_estop_has_the_highest_priority(protocol: Proto) -> None:
+    estop = protocol.layout("EStop")
+    assert estop.frame_id == 0
+    assert min(layout.frame_id for layout in protocol.layouts) == estop.frame_id
+
+
+def test_crc_covers_the_data_id(protocol: Proto) -> None:
+    """The same payload under another message's DataID must fail: no masquerading frames."""
+    cmd1 = protocol.layout("TorqueCommand", 1)
+    cmd2 = protocol.layout("TorqueCommand", 2)
+    data = cmd1.encode(7, (0.1, 0.2, 0.3))
+    assert cmd1.crc_ok(data)
+    assert not cmd2.crc_ok(data)
+
+
+def test_crc_matches_the_documented_byte_order(protocol: Proto) -> None:
+    layout = protocol.layout("Feedback", 3)
+    data = layout.encode(200, (0.01, -0.02, 0.03, 1.0, -1.0, 0.5, 1, 0))
+    covered = bytes((layout.data_id & 0xFF, layout.data_id >> 8)) + data[1:]
+    assert data[0] == crc8(covered)
+
+
+def test_every_single_bit_flip_is_detected(protocol: Proto) -> None:
+    layout = protocol.layout("Feedback", 1)
+    data = layout.encode(3, (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 1, 0))
+    for byte in range(len(data)):
+        for bit in range(8):
+            flipped = bytearray(data)
+            flipped[byte] ^= 1 << bit
+            assert not layout.crc_ok(bytes(flipped)), (byte, bit)
+
+
+def test_wrong_length_is_not_crc_ok(protocol: Proto) -> None:
+    layout = protocol.layout("TorqueCommand", 1)
+    data = layout.encode(0, (0.0, 0.0, 0.0))
+    assert not layout.crc_ok(data[:-1])
+    assert not layout.crc_ok(data + b"\x00")
+
+
+def test_rounding_is_half_to_even(protocol: Proto) -> None:
+    layout = protocol.layout("TorqueCommand", 1)
+    # 0.00025 N·m is 2.5 raw units: ties go to the even neighbour, as in cantools and C's rint.
+    _, values = layout.decode(layout.encode(0, (0.00025, 0.00035, -0.00025)))
+    assert values == pytest.approx((0.0002, 0.0004, -0.0002), abs=1e-12)
+
+
+@pytest.mark.parametrize("value", [3.3, -3.3, float("nan"), float("inf")])
+def test_out_of_range_is_refused_not_wrapped(protocol: Proto, value: float) -> None:
+    layout = protocol.layout("TorqueCommand", 2)
+    with pytest.raises(ProtocolError, match=r"TorqueCommand_2\.Torque2: expected a value in"):
+        layout.encode(0, (0.0, value, 0.0))
+
+
+def test_wrong_number_of_values(protocol: Proto) -> None:
+    with pytest.raises(ProtocolError, match="expected 3 values"):
+        protocol.layout("TorqueCommand", 1).encode(0, (0.0, 0.0))
+
+
+def test_unknown_message(protocol: Proto) -> None:
+    with pytest.raises(ProtocolError, match="no message TorqueCommand_9"):
+        protocol.layout("TorqueCommand", 9)
+
+
+def test_dbc_breaking_the_conventions_is_refused(tmp_path: Path) -> None:
+    text = DEFAULT_DBC.read_text()
+    # Move Torque1 of TorqueCommand_1 off the byte grid.
+    bad = text.replace("SG_ Torque1 : 16|16@1- (0.0001,0)", "SG_ Torque1 : 17|15@1- (0.0001,0)", 1)
+    assert bad != text
+    path = tmp_path / "bad.dbc"
+    path.write_text(bad)
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    assert info.value.key == "TorqueCommand_1.Torque1"
+    assert "byte-aligned" in info.value.expected
+
+
+def test_missing_dbc(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="no such file"):
+        load_protocol(tmp_path / "none.dbc")
