@@ -105,3 +105,10 @@ def test_dbc_breaking_the_conventions_is_refused(tmp_path: Path) -> None:
 def test_missing_dbc(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="no such file"):
         load_protocol(tmp_path / "none.dbc")
+
+
+def test_blank_buffers_are_never_valid_frames(protocol: Proto) -> None:
+    """A zeroed or erased (0xFF) buffer sent by a confused node must fail the CRC."""
+    for layout in protocol.layouts:
+        for fill in (0x00, 0xFF):
+            assert not layout.crc_ok(bytes([fill]) * layout.length), (layout.name, fill)
