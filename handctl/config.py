@@ -86,12 +86,31 @@ class BusConfig:
 
 
 @dataclass(frozen=True)
+class SafetyConfig:
+    """Host-side watchdog settings. Defaults are sane for the Hiroshima-Hand at 1 kHz; the
+    torque limits themselves live per joint and have no default."""
+
+    feedback_timeout_s: float = 0.005  # no valid feedback for this long is a fault
+    heartbeat_timeout_s: float = 0.35  # heartbeats come every 0.1 s
+    tdt_tolerance: float = 0.08  # N·m, plus the relative part below
+    tdt_tolerance_rel: float = 0.25  # of |expected torque|
+    tdt_window_s: float = 0.05  # the mismatch must hold this long
+    tdt_lag_s: float = 0.01  # first-order lag between command and TDT reading
+    tdt_stuck_window_s: float = 0.1
+    tdt_stuck_min_change: float = 0.02  # N·m the command must move for "stuck" to mean anything
+    enable_timeout_s: float = 0.1  # nodes must report ENABLED this soon after enable
+    max_consecutive_misses: int = 3
+    max_consecutive_send_failures: int = 3
+
+
+@dataclass(frozen=True)
 class HandConfig:
     name: str
     source: str
     bus: BusConfig
     fingers: tuple[FingerConfig, ...]
     config_hash: str
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
     sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
 
     @property
@@ -118,6 +137,7 @@ def parse_hand(doc: Doc) -> HandConfig:
     bus = _parse_bus(doc.mapping("bus"))
     finger_docs = doc.mappings("fingers", min_len=1, max_len=8)
     fingers = tuple(_parse_finger(f) for f in finger_docs)
+    safety = _parse_safety(doc.mapping("safety", default={}))
     sim_raw = doc.raw("sim", None)
     if sim_raw is not None and not isinstance(sim_raw, dict):
         doc.fail("sim", "a mapping", type(sim_raw).__name__)
@@ -133,8 +153,39 @@ def parse_hand(doc: Doc) -> HandConfig:
         bus=bus,
         fingers=fingers,
         config_hash=f"sha256:{digest[:16]}",
+        safety=safety,
         sim=MappingProxyType(dict(sim_raw or {})),
     )
+
+
+def _parse_safety(doc: Doc) -> SafetyConfig:
+    d = SafetyConfig()
+    s = SafetyConfig(
+        feedback_timeout_s=doc.number("feedback_timeout_s", default=d.feedback_timeout_s,
+                                      min=0.001, max=1.0, unit="s"),
+        heartbeat_timeout_s=doc.number("heartbeat_timeout_s", default=d.heartbeat_timeout_s,
+                                       min=0.01, max=10.0, unit="s"),
+        tdt_tolerance=doc.number("tdt_tolerance", default=d.tdt_tolerance, min=0.0, max=10.0,
+                                 unit="N·m"),
+        tdt_tolerance_rel=doc.number("tdt_tolerance_rel", default=d.tdt_tolerance_rel, min=0.0,
+                                     max=10.0),
+        tdt_window_s=doc.number("tdt_window_s", default=d.tdt_window_s, min=0.001, max=10.0,
+                                unit="s"),
+        tdt_lag_s=doc.number("tdt_lag_s", default=d.tdt_lag_s, min=0.0, max=1.0, unit="s"),
+        tdt_stuck_window_s=doc.number("tdt_stuck_window_s", default=d.tdt_stuck_window_s,
+                                      min=0.005, max=10.0, unit="s"),
+        tdt_stuck_min_change=doc.number("tdt_stuck_min_change", default=d.tdt_stuck_min_change,
+                                        min=0.0, max=10.0, unit="N·m"),
+        enable_timeout_s=doc.number("enable_timeout_s", default=d.enable_timeout_s, min=0.005,
+                                    max=10.0, unit="s"),
+        max_consecutive_misses=doc.integer("max_consecutive_misses",
+                                           default=d.max_consecutive_misses, min=1, max=100),
+        max_consecutive_send_failures=doc.integer(
+            "max_consecutive_send_failures", default=d.max_consecutive_send_failures,
+            min=1, max=100),
+    )
+    doc.done()
+    return s
 
 
 def _parse_bus(doc: Doc) -> BusConfig:

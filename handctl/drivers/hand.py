@@ -117,7 +117,7 @@ class HandDriver:
         events, self.bus_events = self.bus_events, []
         return events
 
-    def send(self, torques: Sequence[float]) -> bool:
+    def send(self, torques: Sequence[float] | FloatArray) -> bool:
         """Send one command frame per node; the torques must already have passed safety.
 
         Returns False when any frame could not be sent (the bus event says why).

@@ -1,0 +1,309 @@
+"""The 1 kHz tick and the run around it: start the nodes, run a recipe, stop safely.
+
+One tick, always in this order (DESIGN.md):
+
+1. ``clock.wait_tick()``: tick k, its time, the ticks missed before it;
+2. ``hand.poll()``: drain every frame that arrived, update the joint state;
+3. ``runner.step()``: the desired torques of the current phase;
+4. ``supervisor.observe()`` and ``supervisor.filter()``: faults, and the applied torques;
+5. ``hand.send()``: one command frame per node;
+6. ``recorder.push()``: the tick's record, handed over without blocking.
+
+Per-tick accounting (lateness, missed ticks, CPU time of each stage) is kept in preallocated
+arrays, so the loop's cost does not grow with the run.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from handctl.clock import Clock, Tick
+from handctl.config import HandConfig
+from handctl.drivers.hand import HandDriver
+from handctl.recipes.runner import RecipeRunner, RunStatus
+from handctl.recipes.schema import Recipe
+from handctl.safety.faults import Fault, FaultCode
+from handctl.safety.supervisor import State, Supervisor
+
+STAGES = ("poll", "recipe", "safety", "send", "record")
+#: Ticks the loop keeps sending zero after a stop before it disables the nodes: frames in
+#: flight are superseded, and the nodes see zero before they see "disable".
+ZERO_TICKS_BEFORE_DISABLE = 5
+STATUS_EVERY_TICKS = 100
+
+
+class Outcome(enum.Enum):
+    COMPLETED = "completed"
+    SAFETY_STOP = "safety_stop"
+    INTERRUPTED = "interrupted"
+    STARTUP_FAILED = "startup_failed"
+
+
+class RecordSink(Protocol):
+    def push(self, record: TickRecord) -> None: ...
+
+
+class Estimator(Protocol):
+    def __call__(self, angle: np.ndarray) -> Sequence[float]: ...
+
+
+@dataclass(slots=True)
+class TickRecord:
+    """Everything one tick saw and did; the recorder copies what it keeps."""
+
+    tick: int
+    t_ns: int
+    lateness_ns: int
+    missed: int
+    angle: np.ndarray
+    tdt: np.ndarray
+    desired: np.ndarray
+    applied: np.ndarray
+    state: str
+    phase: str
+    stage_ns: tuple[int, ...]
+    faults: list[Fault]
+
+
+@dataclass(frozen=True)
+class StatusLine:
+    t_s: float
+    phase: str
+    state: str
+    max_abs_tau: float
+    lateness_us: float
+
+
+@dataclass
+class RunResult:
+    outcome: Outcome
+    ticks: int
+    missed_ticks: int
+    lateness_ns: np.ndarray
+    stage_ns: np.ndarray  # (ticks, stages)
+    max_abs_tau: np.ndarray
+    faults: list[Fault]
+    phases: list[dict[str, Any]]
+    message: str = ""
+    node_rejects: dict[str, int] = field(default_factory=dict)
+    unexpected_ids: dict[int, int] = field(default_factory=dict)
+    bus_events: int = 0
+    supervisor_history: list[tuple[int, str, str, str]] = field(default_factory=list)
+
+
+class Runtime:
+    """Drives one recipe on one hand through one clock."""
+
+    def __init__(self, hand: HandConfig, driver: HandDriver, clock: Clock,
+                 recipe: Recipe | None, *, recorder: RecordSink | None = None,
+                 estimator: Estimator | None = None,
+                 status: Callable[[StatusLine], None] | None = None,
+                 reset_node_faults: bool = False, startup_timeout_s: float = 0.5,
+                 max_ticks: int = 10_000_000) -> None:
+        self.hand = hand
+        self.driver = driver
+        self.clock = clock
+        self.recipe = recipe
+        self.supervisor = Supervisor(hand)
+        self.runner = RecipeRunner(recipe, hand.n_joints) if recipe is not None else None
+        self.recorder = recorder
+        self.estimator = estimator
+        self.status = status
+        self.reset_node_faults = reset_node_faults
+        self.startup_ticks = max(1, round(startup_timeout_s / hand.bus.period_s))
+        self.max_ticks = max_ticks
+        self.stop_requested = ""
+        self.estop_requested = ""
+        self.tick_hooks: list[Callable[[Tick], None]] = []
+        self._capacity = 1 << 14
+        self._lateness = np.zeros(self._capacity, dtype=np.int64)
+        self._stages = np.zeros((self._capacity, len(STAGES)), dtype=np.int64)
+        self._max_abs = np.zeros(hand.n_joints)
+        self._missed = 0
+        self._ticks = 0
+        self._t0_ns: int | None = None
+        self._zero = np.zeros(hand.n_joints)
+        self._bus_events = 0
+
+    # -- requests from outside (signal handlers, tests) -----------------------------------
+    def request_stop(self, reason: str = "interrupted") -> None:
+        """A controlled stop: zero torque, nodes disabled, the run ends as INTERRUPTED."""
+        if not self.stop_requested:
+            self.stop_requested = reason
+
+    def request_estop(self, reason: str = "operator") -> None:
+        self.estop_requested = reason
+
+    # -- the run --------------------------------------------------------------------------
+    async def run(self) -> RunResult:
+        try:
+            outcome, message = await self._run()
+        finally:
+            self.clock.close()
+        return self._result(outcome, message)
+
+    async def _run(self) -> tuple[Outcome, str]:
+        sup = self.supervisor
+        # 1. Listen until every node has spoken (feedback and heartbeat); send nothing yet.
+        problem = await self._startup()
+        if problem:
+            return Outcome.STARTUP_FAILED, problem
+        # 2. Enable, with zero torque every tick from now on (the device watchdog is armed).
+        tick = self._ticks
+        sup.start(tick)
+        self.driver.node_command("enable")
+        stopping_since: int | None = None
+        while True:
+            tk = await self._tick()
+            if sup.state is State.IDLE and stopping_since is None:
+                stopping_since = tk.k
+            if sup.state is State.FAULTED and stopping_since is None:
+                stopping_since = tk.k
+            if stopping_since is not None and tk.k - stopping_since >= ZERO_TICKS_BEFORE_DISABLE:
+                break
+            if self._ticks >= self.max_ticks:
+                self.request_stop("tick budget exhausted")
+        self.driver.node_command("disable")
+        if sup.faults:
+            return Outcome.SAFETY_STOP, "; ".join(str(f) for f in sup.faults)
+        if self.stop_requested:
+            return Outcome.INTERRUPTED, self.stop_requested
+        return Outcome.COMPLETED, ""
+
+    async def _startup(self) -> str:
+        nodes = self.driver.nodes
+        reset_sent = False
+        for _ in range(self.startup_ticks):
+            tk = await self.clock.wait_tick()
+            self._account_idle(tk)
+            self.driver.poll(tk.now_ns)
+            if self.stop_requested:
+                return f"stopped during start-up ({self.stop_requested})"
+            heard = all(n.feedback_ns is not None and n.heartbeat_ns is not None for n in nodes)
+            if not heard:
+                continue
+            faulted = [n for n in nodes if n.state == 2]
+            if not faulted:
+                if all(n.state == 0 for n in nodes):
+                    return ""
+                continue
+            if not self.reset_node_faults:
+                from handctl.drivers.finger import fault_names
+
+                names = "; ".join(f"node {n.node_id} ({n.finger.name}) in FAULT "
+                                  f"({', '.join(fault_names(n.fault_bits)) or 'no bits'})"
+                                  for n in faulted)
+                self.supervisor.trip(FaultCode.STARTUP, names, tk.k)
+                return (f"{names}: check the hand, then clear the faults explicitly with "
+                        "--reset-node-faults")
+            if not reset_sent:
+                self.driver.node_command("fault_reset", [n.node_id for n in faulted])
+                reset_sent = True
+        silent = [f"node {n.node_id} ({n.finger.name}): "
+                  f"{'no feedback' if n.feedback_ns is None else 'no heartbeat'}"
+                  if n.feedback_ns is None or n.heartbeat_ns is None
+                  else f"node {n.node_id} ({n.finger.name}) is {n.state_name}"
+                  for n in nodes if n.feedback_ns is None or n.heartbeat_ns is None
+                  or n.state != 0]
+        detail = "; ".join(silent) or "nodes not ready"
+        self.supervisor.trip(FaultCode.STARTUP, detail, self._ticks)
+        return f"nodes not ready within {self.startup_ticks} ticks: {detail}"
+
+    def _account_idle(self, tk: Tick) -> None:
+        if self._t0_ns is None:
+            self._t0_ns = tk.scheduled_ns
+        self._store(tk, (0,) * len(STAGES))
+
+    async def _tick(self) -> Tick:
+        sup = self.supervisor
+        driver = self.driver
+        cpu = time.thread_time_ns
+        tk = await self.clock.wait_tick()
+        for hook in self.tick_hooks:
+            hook(tk)
+        c0 = cpu()
+        state = driver.poll(tk.now_ns)
+        events = driver.take_bus_events()
+        self._bus_events += len(events)
+        c1 = cpu()
+        t_s = (tk.scheduled_ns - (self._t0_ns or 0)) * 1e-9
+        if self.estop_requested:
+            sup.trip(FaultCode.ESTOP, self.estop_requested, tk.k)
+            driver.estop(reason=1)
+            self.estop_requested = ""
+        desired = self._desired(t_s, state.angle, state.torque)
+        c2 = cpu()
+        new_faults = sup.observe(tk.k, tk.now_ns, driver.nodes, state.angle, state.torque,
+                                 tk.missed, events)
+        if self.stop_requested and sup.state in (State.RUNNING, State.ENABLING):
+            if self.runner is not None:
+                self.runner.abort(t_s, f"stopped: {self.stop_requested}")
+            sup.stop(tk.k)
+        applied = sup.filter(tk.k, desired, tk.missed)
+        c3 = cpu()
+        ok = driver.send(applied)
+        sup.sent(ok, tk.k)
+        c4 = cpu()
+        np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)
+        if self.recorder is not None:
+            self.recorder.push(TickRecord(
+                tk.k, tk.scheduled_ns, tk.lateness_ns, tk.missed, state.angle.copy(),
+                state.torque.copy(), np.array(desired, dtype=np.float64), applied.copy(),
+                sup.state.value, self._phase_name(), (c1 - c0, c2 - c1, c3 - c2, c4 - c3, 0),
+                new_faults))
+        c5 = cpu()
+        self._store(tk, (c1 - c0, c2 - c1, c3 - c2, c4 - c3, c5 - c4))
+        if self.status is not None and tk.k % STATUS_EVERY_TICKS == 0:
+            self.status(StatusLine(t_s, self._phase_name(), sup.state.value,
+                                   float(np.max(np.abs(applied))), tk.lateness_ns / 1e3))
+        return tk
+
+    def _desired(self, t_s: float, angle: np.ndarray, tdt: np.ndarray) -> np.ndarray:
+        sup = self.supervisor
+        runner = self.runner
+        if runner is None or sup.state is not State.RUNNING:
+            return self._zero
+        if runner.done:
+            sup.stop(self._ticks)
+            return self._zero
+        estimates = self.estimator(angle) if self.estimator is not None else None
+        desired = runner.step(t_s, angle, tdt, estimates)
+        if runner.status is RunStatus.ABORTED and not self.stop_requested:
+            sup.trip(FaultCode.RECIPE_ABORT, runner.abort_reason, self._ticks)
+        return desired
+
+    def _phase_name(self) -> str:
+        return self.runner.phase_name if self.runner is not None else "-"
+
+    def _store(self, tk: Tick, stages: tuple[int, ...]) -> None:
+        i = self._ticks
+        if i >= self._capacity:
+            self._capacity *= 2
+            self._lateness = np.resize(self._lateness, self._capacity)
+            self._stages = np.resize(self._stages, (self._capacity, len(STAGES)))
+        self._lateness[i] = tk.lateness_ns
+        self._stages[i] = stages
+        self._missed += tk.missed
+        self._ticks = i + 1
+
+    def _result(self, outcome: Outcome, message: str) -> RunResult:
+        phases = []
+        if self.runner is not None:
+            phases = [{"name": r.name, "start_s": round(r.start_s, 6),
+                       "end_s": None if r.end_s is None else round(r.end_s, 6), "exit": r.exit}
+                      for r in self.runner.records]
+        n = self._ticks
+        return RunResult(
+            outcome=outcome, ticks=n, missed_ticks=self._missed,
+            lateness_ns=self._lateness[:n].copy(), stage_ns=self._stages[:n].copy(),
+            max_abs_tau=self._max_abs.copy(), faults=list(self.supervisor.faults),
+            phases=phases, message=message, node_rejects=self.driver.reject_counts(),
+            unexpected_ids=dict(self.driver.unexpected_ids), bus_events=self._bus_events,
+            supervisor_history=[(k, a.value, e.value, b.value)
+                                for k, a, e, b in self.supervisor.history])

@@ -1,0 +1,138 @@
+"""Strict loading of recipes, checked against the hand before any frame is sent.
+
+A recipe can never raise a hardware limit: every phase torque is compared with the joint's
+tau_max from the hand config, and every ramp (from zero into the first phase, between phases,
+and back to zero at the end) with the joint's rate limit. A violation is a ``ConfigError`` that
+names the phase, the joint, the value and the limit, so the fix is obvious.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.recipes.schema import Condition, Phase, Recipe, TimeoutAction, parse_condition
+from handctl.schema import Doc, load_yaml
+
+MAX_PHASES = 64
+
+
+def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
+    """Load, validate and check a recipe for ``hand``; raises ``ConfigError``."""
+    doc = load_yaml(path)
+    recipe = parse_recipe(doc, hand)
+    check_against_hand(recipe, hand)
+    return recipe
+
+
+def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
+    name = doc.string("recipe")
+    description = str(doc.raw("description", ""))
+    compiled = doc.boolean("compiled", default=False)
+    digest = doc.raw("hand_config_hash", None)
+    if digest is not None and not isinstance(digest, str):
+        doc.fail("hand_config_hash", "a string like 'sha256:...'", digest)
+    if compiled and digest is None:
+        doc.fail("hand_config_hash", "the hash of the hand config a compiled recipe was made "
+                 "for", "nothing")
+    end_ramp = doc.number("end_ramp_s", default=0.2, min=0.0, max=60.0, unit="s")
+    phases = tuple(_parse_phase(p, hand) for p in doc.mappings("phases", min_len=1,
+                                                              max_len=MAX_PHASES))
+    seen: set[str] = set()
+    for i, phase in enumerate(phases):
+        if phase.name in seen:
+            raise ConfigError(doc.file, f"phases[{i}].name", "a phase name not used before",
+                              phase.name)
+        seen.add(phase.name)
+    doc.done()
+    if digest is not None and digest != hand.config_hash:
+        raise ConfigError(doc.file, "hand_config_hash",
+                          f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
+                          "compiled for another hand config: recompile it for this one)", digest)
+    return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled)
+
+
+def _parse_phase(doc: Doc, hand: HandConfig) -> Phase:
+    name = doc.string("name")
+    torques = _parse_torques(doc, hand)
+    ramp = doc.number("ramp_s", default=0.1, min=0.0, max=60.0, unit="s")
+    max_s = doc.number("max_s", min=0.0, max=3600.0, min_exclusive=True, unit="s")
+    on_timeout = TimeoutAction(doc.string("on_timeout", default="abort",
+                                          choices=[a.value for a in TimeoutAction]))
+    exits = _parse_conditions(doc, "exit", hand)
+    aborts = _parse_conditions(doc, "abort", hand)
+    provenance = doc.raw("provenance", {})
+    if not isinstance(provenance, dict):
+        doc.fail("provenance", "a mapping", provenance)
+    doc.done()
+    return Phase(name, torques, ramp, max_s, on_timeout, exits, aborts, provenance)
+
+
+def _parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
+    names = hand.joint_names
+    raw = doc.raw("torques")
+    if isinstance(raw, list):
+        return doc.numbers("torques", length=len(names), unit="N·m")
+    if not isinstance(raw, dict):
+        doc.fail("torques", f"a mapping of joint name to N·m, or a list of {len(names)} numbers",
+                 raw)
+    sub = doc.mapping("torques")
+    values = tuple(sub.number(n, unit="N·m") for n in names)
+    sub.done()
+    return values
+
+
+def _parse_conditions(doc: Doc, key: str, hand: HandConfig) -> tuple[Condition, ...]:
+    raw = doc.raw(key, [])
+    if isinstance(raw, str):
+        raw = [raw]
+    if not isinstance(raw, list):
+        doc.fail(key, "a list of conditions", raw)
+    out = []
+    sub = Doc({}, doc.file, doc.key_path(key))
+    for i, text in enumerate(raw):
+        if not isinstance(text, str):
+            sub.fail(i, "a condition string", text)
+        parsed = parse_condition(text, hand.joint_names)
+        if isinstance(parsed, str):
+            sub.fail(i, parsed, text)
+        out.append(parsed)
+    return tuple(out)
+
+
+def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
+    """Refuse torques over tau_max and ramps faster than the rate limit, naming everything."""
+    names = hand.joint_names
+    tau_max = np.array([j.tau_max for j in hand.joints])
+    rate = np.array([j.rate_limit for j in hand.joints])
+    previous = np.zeros(len(names))
+    for i, phase in enumerate(recipe.phases):
+        torques = np.array(phase.torques)
+        for j in np.flatnonzero(np.abs(torques) > tau_max):
+            raise ConfigError(
+                recipe.source, f"phases[{i}].torques.{names[j]}",
+                f"|τ| <= {tau_max[j]:g} N·m (tau_max of {names[j]} in {hand.source}) in phase "
+                f"'{phase.name}'", float(torques[j]))
+        _check_ramp(recipe, hand, f"phases[{i}].ramp_s", f"into phase '{phase.name}'",
+                    previous, torques, phase.ramp_s, rate)
+        previous = torques
+    _check_ramp(recipe, hand, "end_ramp_s", "back to zero after the last phase", previous,
+                np.zeros(len(names)), recipe.end_ramp_s, rate)
+
+
+def _check_ramp(recipe: Recipe, hand: HandConfig, key: str, what: str, start: np.ndarray,
+                end: np.ndarray, ramp_s: float, rate: np.ndarray) -> None:
+    step = np.abs(end - start)
+    for j in range(len(step)):
+        if step[j] == 0:
+            continue
+        need = step[j] / ramp_s if ramp_s > 0 else float("inf")
+        if need > rate[j] * (1 + 1e-9):
+            name = hand.joint_names[j]
+            raise ConfigError(
+                recipe.source, key,
+                f"a ramp of at least {step[j] / rate[j]:.3g} s {what}: {name} moves "
+                f"{step[j]:.3g} N·m and its rate limit is {rate[j]:g} N·m/s", ramp_s)

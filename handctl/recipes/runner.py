@@ -1,0 +1,145 @@
+"""Runs a recipe tick by tick: the desired torques of the current phase, ramps, exits, aborts.
+
+The runner only proposes torques; the supervisor decides what is applied. It is a pure function
+of time and the observed state (no clock of its own, no I/O), which is what lets a replay feed
+logged feedback through it and get the very same torques.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from handctl.recipes.schema import Condition, Recipe, SignalKind, TimeoutAction
+from handctl.safety.limits import FloatArray
+
+
+class RunStatus(enum.Enum):
+    RUNNING = "running"
+    ENDING = "ending"  # the ramp back to zero after the last phase
+    COMPLETED = "completed"
+    ABORTED = "aborted"
+
+
+@dataclass
+class PhaseRecord:
+    name: str
+    start_s: float
+    end_s: float | None = None
+    exit: str = ""  # the condition text, "timeout", "abort: ...", or "stopped"
+
+
+class RecipeRunner:
+    """The state of one execution of a recipe."""
+
+    def __init__(self, recipe: Recipe, n_joints: int) -> None:
+        self.recipe = recipe
+        self.n = n_joints
+        self.status = RunStatus.RUNNING
+        self.index = -1
+        self.phase_start = 0.0
+        self.records: list[PhaseRecord] = []
+        self.abort_reason = ""
+        self._from = np.zeros(n_joints)
+        self._target = np.zeros(n_joints)
+        self._desired = np.zeros(n_joints)
+        self._ramp_s = 0.0
+        self._held_since: dict[int, float] = {}
+        self._started = False
+
+    @property
+    def phase_name(self) -> str:
+        if self.status is RunStatus.ENDING:
+            return "end_ramp"
+        if 0 <= self.index < len(self.recipe.phases):
+            return self.recipe.phases[self.index].name
+        return str(self.status.value)
+
+    @property
+    def done(self) -> bool:
+        return self.status in (RunStatus.COMPLETED, RunStatus.ABORTED)
+
+    def _enter(self, index: int, t: float, reason: str) -> None:
+        if self.records:
+            self.records[-1].end_s = t
+            self.records[-1].exit = reason
+        self._from = self._desired.copy()
+        self.phase_start = t
+        self._held_since.clear()
+        if index < len(self.recipe.phases):
+            phase = self.recipe.phases[index]
+            self.index = index
+            self._target = np.array(phase.torques)
+            self._ramp_s = phase.ramp_s
+            self.records.append(PhaseRecord(phase.name, t))
+        else:
+            self.index = len(self.recipe.phases)
+            self.status = RunStatus.ENDING
+            self._target = np.zeros(self.n)
+            self._ramp_s = self.recipe.end_ramp_s
+
+    def step(self, t: float, angle: FloatArray, tdt: FloatArray,
+             estimates: Sequence[float] | None = None) -> FloatArray:
+        """Desired torques at time ``t`` (s since the recipe started)."""
+        if not self._started:
+            self._started = True
+            self._enter(0, t, "")
+        if self.done:
+            self._desired[:] = 0.0
+            return self._desired
+        elapsed = t - self.phase_start
+        if self.status is RunStatus.RUNNING:
+            phase = self.recipe.phases[self.index]
+            for k, cond in enumerate(phase.aborts):
+                if self._held(1000 + k, cond, t, elapsed, angle, tdt, estimates):
+                    self.abort(t, f"abort: {cond.text}")
+                    return self._desired
+            reason = next((c.text for k, c in enumerate(phase.exits)
+                           if self._held(k, c, t, elapsed, angle, tdt, estimates)), None)
+            if reason is None and elapsed >= phase.max_s:
+                if phase.on_timeout is TimeoutAction.ABORT:
+                    self.abort(t, f"timeout: phase '{phase.name}' ran {phase.max_s:g} s")
+                    return self._desired
+                reason = "timeout"
+            if reason is not None:
+                self._enter(self.index + 1, t, reason)
+                elapsed = 0.0
+        fraction = 1.0 if self._ramp_s <= 0 else min(1.0, elapsed / self._ramp_s)
+        np.subtract(self._target, self._from, out=self._desired)
+        self._desired *= fraction
+        self._desired += self._from
+        if self.status is RunStatus.ENDING and fraction >= 1.0:
+            self.status = RunStatus.COMPLETED
+        return self._desired
+
+    def abort(self, t: float, reason: str) -> None:
+        """Stop proposing torque; the supervisor takes the hand to zero."""
+        if self.done:
+            return
+        if self.records and self.records[-1].end_s is None:
+            self.records[-1].end_s = t
+            self.records[-1].exit = reason
+        self.abort_reason = reason
+        self.status = RunStatus.ABORTED
+        self._desired[:] = 0.0
+
+    def _held(self, key: int, cond: Condition, t: float, elapsed: float, angle: FloatArray,
+              tdt: FloatArray, estimates: Sequence[float] | None) -> bool:
+        if cond.kind is SignalKind.TIME:
+            value = elapsed
+        elif cond.kind is SignalKind.ANGLE:
+            value = float(angle[cond.index])
+        elif cond.kind is SignalKind.TDT:
+            value = float(tdt[cond.index])
+        else:
+            if estimates is None:
+                return False
+            value = float(estimates[cond.index])
+        if not cond.holds(value):
+            self._held_since.pop(key, None)
+            return False
+        since = self._held_since.setdefault(key, t)
+        return t - since >= cond.hold_s - 1e-12

@@ -1,0 +1,108 @@
+"""What a recipe is: phases of joint torques with ramps, exits, aborts and a time limit.
+
+Conditions are short strings, ``SIGNAL OP NUMBER [for SECONDS]``, because that is what an
+engineer writes on a whiteboard and reads back in a log; they are parsed once at load time
+into predicates over a fixed set of signals:
+
+- ``time``: seconds since the phase began;
+- ``angle.JOINT`` (rad), ``tdt.JOINT`` (N·m): the joint state from the nodes;
+- ``estimate.NAME``: the object estimator's outputs (``ESTIMATES``);
+- ``for S`` makes the condition hold continuously for S seconds before it counts, so one noisy
+  sample cannot end a phase.
+"""
+
+from __future__ import annotations
+
+import enum
+import operator
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+#: Estimator outputs a recipe may name (rad for angles, m for positions).
+ESTIMATES = ("centre_line_angle", "centre_line_turn", "object1_x", "object1_y", "object2_x",
+             "object2_y")
+
+OPERATORS: dict[str, Callable[[float, float], bool]] = {
+    "<": operator.lt, "<=": operator.le, ">": operator.gt, ">=": operator.ge}
+
+_CONDITION = re.compile(
+    r"^\s*(?P<signal>time|(?:angle|tdt|estimate)\.[A-Za-z0-9_]+)\s*(?P<op><=|>=|<|>)\s*"
+    r"(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)"
+    r"(?:\s+for\s+(?P<hold>\d+\.?\d*|\.\d+))?\s*$")
+
+
+class SignalKind(enum.Enum):
+    TIME = "time"
+    ANGLE = "angle"
+    TDT = "tdt"
+    ESTIMATE = "estimate"
+
+
+@dataclass(frozen=True)
+class Condition:
+    text: str
+    kind: SignalKind
+    index: int  # joint index for ANGLE/TDT; index into ESTIMATES for ESTIMATE
+    op: str
+    value: float
+    hold_s: float
+
+    def holds(self, value: float) -> bool:
+        return OPERATORS[self.op](value, self.value)
+
+
+class TimeoutAction(enum.Enum):
+    NEXT = "next"
+    ABORT = "abort"
+
+
+@dataclass(frozen=True)
+class Phase:
+    name: str
+    torques: tuple[float, ...]  # N·m, config joint order
+    ramp_s: float
+    max_s: float
+    on_timeout: TimeoutAction
+    exits: tuple[Condition, ...]
+    aborts: tuple[Condition, ...]
+    provenance: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Recipe:
+    name: str
+    source: str
+    description: str
+    phases: tuple[Phase, ...]
+    end_ramp_s: float
+    hand_config_hash: str | None
+    compiled: bool
+
+    @property
+    def uses_estimates(self) -> bool:
+        return any(c.kind is SignalKind.ESTIMATE for p in self.phases
+                   for c in (*p.exits, *p.aborts))
+
+
+def parse_condition(text: str, joint_names: tuple[str, ...]) -> Condition | str:
+    """A ``Condition``, or the reason the text is not one (for the loader's message)."""
+    match = _CONDITION.match(text)
+    if match is None:
+        return "a condition 'SIGNAL OP NUMBER [for SECONDS]', e.g. 'angle.f1_j2 > 1.2 for 0.02'"
+    signal = match["signal"]
+    hold = float(match["hold"]) if match["hold"] else 0.0
+    value = float(match["value"])
+    if signal == "time":
+        return Condition(text, SignalKind.TIME, 0, match["op"], value, hold)
+    family, _, name = signal.partition(".")
+    if family == "estimate":
+        if name not in ESTIMATES:
+            return f"an estimate in {', '.join(ESTIMATES)} (in '{text}')"
+        return Condition(text, SignalKind.ESTIMATE, ESTIMATES.index(name), match["op"], value,
+                         hold)
+    if name not in joint_names:
+        return f"a joint of the hand ({', '.join(joint_names)}) in '{text}'"
+    kind = SignalKind.ANGLE if family == "angle" else SignalKind.TDT
+    return Condition(text, kind, joint_names.index(name), match["op"], value, hold)

@@ -1,0 +1,105 @@
+"""The one table of faults: what each means and how the hand is stopped when it happens.
+
+Two stop categories, as in the usual stop categories of machine safety:
+
+- ``IMMEDIATE``: zero torque in the very frames of the tick that detected the fault. For faults
+  where the host can no longer trust what it commands or measures (non-finite torques, lost
+  feedback, a node or bus in trouble, e-stop): holding any torque on bad information is worse
+  than letting the fingers go limp.
+- ``RAMP``: a linear ramp from the last applied torque to zero within ``RAMP_BOUND_S``. For
+  faults where the information is still good but the situation is not (a joint past its soft
+  limit, a torque sensor disagreeing with the command, late ticks): a ramp lets the grasped
+  objects settle instead of being dropped by a step.
+
+Every fault latches until an explicit reset; ``docs/faults.md`` is generated from this table.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+
+class StopCategory(enum.Enum):
+    IMMEDIATE = "immediate zero torque"
+    RAMP = "ramp to zero"
+
+
+#: The ramp of a RAMP stop reaches zero within this time (s), whatever the torque was.
+RAMP_BOUND_S = 0.05
+
+
+class FaultCode(enum.IntEnum):
+    NON_FINITE_TORQUE = 1
+    WRONG_SHAPE = 2
+    ANGLE_LIMIT = 3
+    FEEDBACK_TIMEOUT = 4
+    HEARTBEAT_LOST = 5
+    NODE_FAULT = 6
+    NODE_STATE = 7
+    NODE_REBOOT = 8
+    LOOP_OVERRUN = 9
+    TDT_MISMATCH = 10
+    TDT_STUCK = 11
+    BUS_ERROR = 12
+    ESTOP = 13
+    RECIPE_ABORT = 14
+    STARTUP = 15
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    code: FaultCode
+    category: StopCategory
+    meaning: str
+
+
+FAULTS: dict[FaultCode, FaultSpec] = {spec.code: spec for spec in (
+    FaultSpec(FaultCode.NON_FINITE_TORQUE, StopCategory.IMMEDIATE,
+              "a desired torque is NaN or infinite (never clamped)"),
+    FaultSpec(FaultCode.WRONG_SHAPE, StopCategory.IMMEDIATE,
+              "the desired torque vector does not have one value per joint"),
+    FaultSpec(FaultCode.ANGLE_LIMIT, StopCategory.RAMP,
+              "a joint angle is outside its soft limits"),
+    FaultSpec(FaultCode.FEEDBACK_TIMEOUT, StopCategory.IMMEDIATE,
+              "no valid feedback from a node for longer than the feedback age limit"),
+    FaultSpec(FaultCode.HEARTBEAT_LOST, StopCategory.IMMEDIATE,
+              "no valid heartbeat from a node for longer than the heartbeat limit"),
+    FaultSpec(FaultCode.NODE_FAULT, StopCategory.IMMEDIATE,
+              "a node reports FAULT (its own fault bits say why)"),
+    FaultSpec(FaultCode.NODE_STATE, StopCategory.IMMEDIATE,
+              "a node left ENABLED while the host was commanding torque"),
+    FaultSpec(FaultCode.NODE_REBOOT, StopCategory.IMMEDIATE,
+              "a node's uptime went backwards: it rebooted"),
+    FaultSpec(FaultCode.LOOP_OVERRUN, StopCategory.RAMP,
+              "three consecutive ticks missed their deadline"),
+    FaultSpec(FaultCode.TDT_MISMATCH, StopCategory.RAMP,
+              "a TDT torque disagrees with the applied command beyond the tolerance, "
+              "throughout the window"),
+    FaultSpec(FaultCode.TDT_STUCK, StopCategory.RAMP,
+              "a TDT reading did not change at all over the window while the command did"),
+    FaultSpec(FaultCode.BUS_ERROR, StopCategory.IMMEDIATE,
+              "bus-off, or command frames that could not be sent"),
+    FaultSpec(FaultCode.ESTOP, StopCategory.IMMEDIATE,
+              "an e-stop was requested (operator, signal, or a node)"),
+    FaultSpec(FaultCode.RECIPE_ABORT, StopCategory.RAMP,
+              "a recipe abort condition held, or a phase ran past its time limit"),
+    FaultSpec(FaultCode.STARTUP, StopCategory.IMMEDIATE,
+              "a node did not answer, or was not in the expected state, while starting"),
+)}
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One detected fault: the code, where (joint or node), and what was seen."""
+
+    code: FaultCode
+    detail: str
+    tick: int
+
+    @property
+    def category(self) -> StopCategory:
+        return FAULTS[self.code].category
+
+    def __str__(self) -> str:
+        return f"{self.code.name} at tick {self.tick}: {self.detail}"

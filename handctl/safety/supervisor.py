@@ -1,0 +1,231 @@
+"""The safety supervisor: a state Enum, a transition table, latched faults, and ``filter``.
+
+Every torque the runtime sends comes out of ``Supervisor.filter``; nothing else produces the
+values a command frame is built from. The state machine is a table (the canopen way) so that
+what can follow what is data that a test can enumerate, not control flow hidden in methods:
+
+- IDLE: zero torque, nodes disabled. START leads to ENABLING.
+- ENABLING: zero torque while the nodes confirm ENABLED (ENABLED event), within a deadline.
+- RUNNING: desired torques through the limiter (tau_max, rate limit).
+- STOPPING: a normal stop, rate-limited to zero, then IDLE.
+- FAULT_RAMP: a RAMP-category fault: linear to zero within ``RAMP_BOUND_S``, then FAULTED.
+- FAULTED: zero torque; faults latched. Only RESET leaves it, to IDLE, so torque can only come
+  back through a new START, with the rate limiter ramping it up from zero. A recipe never
+  resumes by itself: the runner is not told to go on by anything in here.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from handctl.bus import BusEvent, BusEventKind
+from handctl.config import HandConfig
+from handctl.drivers.finger import FingerNode
+from handctl.safety.faults import RAMP_BOUND_S, Fault, FaultCode, StopCategory
+from handctl.safety.limits import (
+    FloatArray,
+    JointLimits,
+    angle_violations,
+    check_desired,
+    limit_torque,
+)
+from handctl.safety.watchdog import NodeWatch, TdtMonitor, TickWatch
+
+
+class State(enum.Enum):
+    IDLE = "idle"
+    ENABLING = "enabling"
+    RUNNING = "running"
+    STOPPING = "stopping"
+    FAULT_RAMP = "fault_ramp"
+    FAULTED = "faulted"
+
+
+class Event(enum.Enum):
+    START = "start"
+    ENABLED = "enabled"
+    STOP = "stop"
+    AT_ZERO = "at_zero"
+    FAULT_IMMEDIATE = "fault_immediate"
+    FAULT_RAMP = "fault_ramp"
+    RESET = "reset"
+
+
+S, E = State, Event
+#: (state, event) -> next state. A pair that is not here leaves the state as it is.
+TRANSITIONS: dict[tuple[State, Event], State] = {
+    (S.IDLE, E.START): S.ENABLING,
+    (S.IDLE, E.FAULT_IMMEDIATE): S.FAULTED,
+    (S.IDLE, E.FAULT_RAMP): S.FAULTED,
+    (S.ENABLING, E.ENABLED): S.RUNNING,
+    (S.ENABLING, E.STOP): S.IDLE,
+    (S.ENABLING, E.FAULT_IMMEDIATE): S.FAULTED,
+    (S.ENABLING, E.FAULT_RAMP): S.FAULTED,  # nothing to ramp from: torque is still zero
+    (S.RUNNING, E.STOP): S.STOPPING,
+    (S.RUNNING, E.FAULT_IMMEDIATE): S.FAULTED,
+    (S.RUNNING, E.FAULT_RAMP): S.FAULT_RAMP,
+    (S.STOPPING, E.AT_ZERO): S.IDLE,
+    (S.STOPPING, E.FAULT_IMMEDIATE): S.FAULTED,
+    (S.STOPPING, E.FAULT_RAMP): S.FAULT_RAMP,
+    (S.FAULT_RAMP, E.AT_ZERO): S.FAULTED,
+    (S.FAULT_RAMP, E.FAULT_IMMEDIATE): S.FAULTED,
+    (S.FAULTED, E.RESET): S.IDLE,
+}
+
+#: States in which the nodes are expected to be ENABLED and the watchdogs are armed.
+ARMED = frozenset({S.RUNNING, S.STOPPING, S.FAULT_RAMP})
+
+
+def next_state(state: State, event: Event) -> State:
+    return TRANSITIONS.get((state, event), state)
+
+
+class Supervisor:
+    """Turns desired torques into applied torques, and node/bus/timing news into faults."""
+
+    def __init__(self, hand: HandConfig) -> None:
+        self.hand = hand
+        self.n = hand.n_joints
+        self.dt = hand.bus.period_s
+        self.limits = JointLimits.from_hand(hand)
+        self.node_watch = NodeWatch(hand.safety)
+        self.tdt = TdtMonitor(hand.safety, self.n, self.dt, self.limits.names)
+        self.ticks = TickWatch(hand.safety)
+        self.enable_deadline_ticks = max(1, math.ceil(hand.safety.enable_timeout_s / self.dt))
+        self.state = State.IDLE
+        self.faults: list[Fault] = []  # latched, in order of detection
+        self.active_codes: set[FaultCode] = set()
+        self.applied = np.zeros(self.n)
+        self.limited_joints = 0
+        self.history: list[tuple[int, State, Event, State]] = []
+        self._ramp_from = np.zeros(self.n)
+        self._ramp_ticks = max(1, math.floor(RAMP_BOUND_S / self.dt))
+        self._ramp_k = 0
+        self._enabling_since = 0
+        self._scratch = np.zeros(self.n)
+
+    # -- events ---------------------------------------------------------------------------
+    def fire(self, event: Event, tick: int) -> State:
+        new = next_state(self.state, event)
+        if new is not self.state:
+            self.history.append((tick, self.state, event, new))
+            if new is State.ENABLING:
+                self._enabling_since = tick
+            if new is State.FAULT_RAMP:
+                self._ramp_from[:] = self.applied
+                self._ramp_k = 0
+            self.state = new
+        return new
+
+    def start(self, tick: int) -> None:
+        """Operator or runtime asks for torque: enable first, torque only once confirmed."""
+        self.fire(Event.START, tick)
+
+    def stop(self, tick: int) -> None:
+        self.fire(Event.STOP, tick)
+
+    def reset(self, tick: int) -> bool:
+        """Explicit reset: clears latched faults (only from FAULTED); torque stays at zero."""
+        if self.state is not State.FAULTED:
+            return False
+        self.fire(Event.RESET, tick)
+        self.faults.clear()
+        self.active_codes.clear()
+        self.applied[:] = 0.0
+        self.tdt.reset(self.applied)
+        self.ticks.consecutive_misses = 0
+        self.ticks.consecutive_send_failures = 0
+        return True
+
+    def trip(self, code: FaultCode, detail: str, tick: int) -> Fault | None:
+        """Latch a fault and take its stop; a code already latched is not recorded twice."""
+        if code in self.active_codes:
+            return None
+        fault = Fault(code, detail, tick)
+        self.faults.append(fault)
+        self.active_codes.add(code)
+        event = (Event.FAULT_IMMEDIATE if fault.category is StopCategory.IMMEDIATE
+                 else Event.FAULT_RAMP)
+        self.fire(event, tick)
+        return fault
+
+    # -- the tick -------------------------------------------------------------------------
+    def observe(self, tick: int, now_ns: int, nodes: Sequence[FingerNode], angle: FloatArray,
+                tdt: FloatArray, missed: int, bus_events: Sequence[BusEvent] = ()
+                ) -> list[Fault]:
+        """Checks that come from the hand: run after the drain, before ``filter``."""
+        new: list[Fault] = []
+        findings = self.ticks.tick(missed)
+        for event in bus_events:
+            if event.kind is BusEventKind.BUS_OFF:
+                findings.append((FaultCode.BUS_ERROR, f"bus-off ({event.detail})"))
+        if self.state is State.ENABLING:
+            if all(node.state == 1 for node in nodes):
+                self.fire(Event.ENABLED, tick)
+                self.node_watch.arm(nodes)
+                self.tdt.reset(self.applied)
+            elif tick - self._enabling_since > self.enable_deadline_ticks:
+                states = ", ".join(f"node {n.node_id} {n.state_name}" for n in nodes)
+                findings.append((FaultCode.STARTUP, f"nodes not ENABLED in time: {states}"))
+        if self.state in ARMED:
+            findings += self.node_watch.check(now_ns, nodes, expect_enabled=True)
+            findings += self.tdt.update(self.applied, tdt)
+            if self.state is not State.FAULT_RAMP:
+                for j in angle_violations(angle, self.limits):
+                    findings.append((FaultCode.ANGLE_LIMIT,
+                                     f"{self.limits.names[j]} at {angle[j]:+.3f} rad, limits "
+                                     f"[{self.limits.angle_min[j]:+.3f}, "
+                                     f"{self.limits.angle_max[j]:+.3f}]"))
+        for code, detail in findings:
+            fault = self.trip(code, detail, tick)
+            if fault is not None:
+                new.append(fault)
+        return new
+
+    def filter(self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int = 0
+               ) -> FloatArray:
+        """The applied torques of this tick (a view the caller must not keep across ticks)."""
+        state = self.state
+        if state is State.RUNNING:
+            problem = check_desired(desired, self.n) if desired is not None else None
+            if desired is None:
+                target = self.applied  # nothing asked: hold
+            elif problem is not None:
+                self.trip(problem[0], problem[1], tick)
+                return self.filter(tick, None)
+            else:
+                target = np.asarray(desired, dtype=np.float64)
+            if missed > 0:
+                # A late tick repeats the last applied command once, rather than stepping the
+                # rate limiter over an interval it did not see.
+                return self.applied
+            self.limited_joints = limit_torque(target, self.applied, self.limits, self.dt,
+                                               self._scratch)
+            self.applied[:] = self._scratch
+        elif state is State.STOPPING:
+            limit_torque(np.zeros(self.n), self.applied, self.limits, self.dt, self._scratch)
+            self.applied[:] = self._scratch
+            if not self.applied.any():
+                self.fire(Event.AT_ZERO, tick)
+        elif state is State.FAULT_RAMP:
+            self._ramp_k += 1
+            remaining = max(0.0, 1.0 - self._ramp_k / self._ramp_ticks)
+            self.applied[:] = self._ramp_from * remaining
+            if remaining == 0.0:
+                self.fire(Event.AT_ZERO, tick)
+        else:
+            self.applied[:] = 0.0
+        return self.applied
+
+    def sent(self, ok: bool, tick: int) -> None:
+        """Tell the supervisor whether this tick's command frames went out."""
+        for code, detail in self.ticks.sent(ok):
+            self.trip(code, detail, tick)
+
+    @property
+    def torque_allowed(self) -> bool:
+        return self.state in ARMED

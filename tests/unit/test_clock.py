@@ -1,0 +1,82 @@
+"""Clocks: the timerfd counts the ticks a stalled loop slept through; lockstep steps the peer
+exactly once per tick."""
+
+from __future__ import annotations
+
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from handctl.clock import LockstepClock, RealtimeClock
+from handctl.timerfd import PeriodicTimer
+
+
+async def test_realtime_ticks_are_consecutive_and_count_missed_ones() -> None:
+    clock = RealtimeClock(0.001)
+    try:
+        first = await clock.wait_tick()
+        second = await clock.wait_tick()
+        assert (first.k, second.k) == (0, 1)
+        assert second.scheduled_ns - first.scheduled_ns == (second.missed + 1) * 1_000_000
+        time.sleep(0.006)  # stall the loop: at least five expirations pass unseen
+        late = await clock.wait_tick()
+        assert late.missed >= 4
+        assert late.lateness_ns >= 0
+        assert late.scheduled_ns >= second.scheduled_ns + (late.missed + 1) * 1_000_000
+    finally:
+        clock.close()
+
+
+async def test_lockstep_steps_the_peer_once_per_tick() -> None:
+    steps: list[int] = []
+    clock = LockstepClock(0.001, lambda: steps.append(len(steps)))
+    ticks = [await clock.wait_tick() for _ in range(5)]
+    assert len(steps) == 5
+    assert [t.k for t in ticks] == [0, 1, 2, 3, 4]
+    assert [t.scheduled_ns for t in ticks] == [1_000_000 * (k + 1) for k in range(5)]
+    assert all(t.missed == 0 and t.lateness_ns == 0 for t in ticks)
+    assert clock.now_ns() == 5_000_000
+
+
+def test_blocking_timer_reports_expirations() -> None:
+    with PeriodicTimer(1_000_000) as timer:
+        assert timer.read() >= 1
+        time.sleep(0.0035)
+        assert timer.read() >= 3
+
+
+def _unprivileged() -> None:
+    """In the child: no real-time priority and almost no lockable memory."""
+    resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
+    resource.setrlimit(resource.RLIMIT_MEMLOCK, (65536, 65536))
+
+
+# Root ignores those limits through its capabilities: the child drops them all first (capset),
+# so the refusal path is exercised whoever runs the tests.
+_CHILD = """
+import ctypes
+class Header(ctypes.Structure):
+    _fields_ = [("version", ctypes.c_uint32), ("pid", ctypes.c_int)]
+class Data(ctypes.Structure):
+    _fields_ = [("effective", ctypes.c_uint32), ("permitted", ctypes.c_uint32),
+                ("inheritable", ctypes.c_uint32)]
+libc = ctypes.CDLL(None, use_errno=True)
+libc.capset(ctypes.byref(Header(0x20080522, 0)), (Data * 2)())
+from handctl.clock import request_realtime
+for line in request_realtime():
+    print(line)
+"""
+
+
+def test_realtime_request_says_clearly_what_was_refused() -> None:
+    done = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True,
+                          timeout=60, preexec_fn=_unprivileged, check=False,
+                          cwd=Path(__file__).resolve().parents[2])
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert any(line.startswith("SCHED_FIFO priority 80 refused") and "rtprio" in line
+               for line in lines), lines
+    assert any(line.startswith("locking memory refused") and "memlock" in line
+               for line in lines), lines

@@ -1,0 +1,182 @@
+"""Recipes: strict loading, limits checked against the hand before anything is sent, and the
+runner's ramps, exits, time limits and aborts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.recipes.loader import load_recipe
+from handctl.recipes.runner import RecipeRunner, RunStatus
+from handctl.recipes.schema import ESTIMATES
+
+ZERO = np.zeros(9)
+
+
+def phase(name: str, value: float = 0.1, **extra: Any) -> dict[str, Any]:
+    joints = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
+    return {"name": name, "torques": dict.fromkeys(joints, value), "ramp_s": 0.1, "max_s": 1.0,
+            **extra}
+
+
+def write(tmp_path: Path, data: dict[str, Any]) -> Path:
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def recipe_doc(*phases: dict[str, Any], **top: Any) -> dict[str, Any]:
+    return {"recipe": "test", "phases": list(phases), **top}
+
+
+def error(tmp_path: Path, hand: HandConfig, data: dict[str, Any]) -> ConfigError:
+    path = write(tmp_path, data)
+    with pytest.raises(ConfigError) as info:
+        load_recipe(path, hand)
+    assert str(path) in str(info.value)
+    return info.value
+
+
+def test_torque_over_tau_max_is_refused_naming_phase_joint_value_limit(
+        tmp_path: Path, hand: HandConfig) -> None:
+    bad = phase("squeeze", 0.1)
+    bad["torques"]["f1_j3"] = 0.35
+    err = error(tmp_path, hand, recipe_doc(phase("a"), bad))
+    assert err.key == "phases[1].torques.f1_j3"
+    assert "0.3 N·m" in err.expected and "squeeze" in err.expected
+    assert err.found == 0.35
+
+
+def test_a_ramp_faster_than_the_rate_limit_is_refused(tmp_path: Path, hand: HandConfig) -> None:
+    fast = phase("jump", -0.25, ramp_s=0.01)
+    err = error(tmp_path, hand, recipe_doc(phase("a", 0.2), fast))
+    assert err.key == "phases[1].ramp_s"
+    assert "20 N·m/s" in err.expected and "0.45 N·m" in err.expected
+    assert err.found == 0.01
+
+
+def test_the_first_ramp_from_zero_and_the_end_ramp_are_checked(tmp_path: Path,
+                                                              hand: HandConfig) -> None:
+    err = error(tmp_path, hand, recipe_doc(phase("a", 0.2, ramp_s=0.0)))
+    assert err.key == "phases[0].ramp_s"
+    err = error(tmp_path, hand, recipe_doc(phase("a", 0.2), end_ramp_s=0.001))
+    assert err.key == "end_ramp_s"
+
+
+def test_compiled_recipe_for_another_hand_is_refused(tmp_path: Path, hand: HandConfig) -> None:
+    err = error(tmp_path, hand, recipe_doc(phase("a"), compiled=True,
+                                           hand_config_hash="sha256:0000000000000000"))
+    assert err.key == "hand_config_hash"
+    assert hand.config_hash in err.expected
+    err = error(tmp_path, hand, recipe_doc(phase("a"), compiled=True))
+    assert err.key == "hand_config_hash"
+    ok = write(tmp_path, recipe_doc(phase("a"), compiled=True,
+                                    hand_config_hash=hand.config_hash))
+    assert load_recipe(ok, hand).compiled
+
+
+@pytest.mark.parametrize(("condition", "expected"), [
+    ("angle.f9_j1 > 1", "a joint of the hand"),
+    ("speed > 1", "a condition 'SIGNAL OP NUMBER"),
+    ("time = 1", "a condition"),
+    ("estimate.colour > 1", "an estimate in"),
+])
+def test_bad_conditions(tmp_path: Path, hand: HandConfig, condition: str, expected: str) -> None:
+    err = error(tmp_path, hand, recipe_doc(phase("a", exit=["time > 0.5", condition])))
+    assert err.key == "phases[0].exit[1]"
+    assert expected in err.expected
+
+
+def test_unknown_keys_missing_joints_and_duplicates(tmp_path: Path, hand: HandConfig) -> None:
+    assert error(tmp_path, hand, recipe_doc(phase("a", ramp=0.1))).key == "phases[0].ramp"
+    short = phase("a")
+    del short["torques"]["f2_j2"]
+    assert error(tmp_path, hand, recipe_doc(short)).key == "phases[0].torques.f2_j2"
+    assert error(tmp_path, hand, recipe_doc(phase("a"), phase("a"))).key == "phases[1].name"
+    no_limit = phase("a")
+    del no_limit["max_s"]
+    assert error(tmp_path, hand, recipe_doc(no_limit)).key == "phases[0].max_s"
+
+
+def test_torques_as_a_list(tmp_path: Path, hand: HandConfig) -> None:
+    p = phase("a")
+    p["torques"] = [0.1] * 9
+    assert load_recipe(write(tmp_path, recipe_doc(p)), hand).phases[0].torques == (0.1,) * 9
+    p["torques"] = [0.1] * 8
+    assert error(tmp_path, hand, recipe_doc(p)).key == "phases[0].torques"
+
+
+def run(runner: RecipeRunner, t_end: float, dt: float = 0.001,
+        angle: np.ndarray = ZERO, est: list[float] | None = None) -> list[np.ndarray]:
+    out = []
+    t = 0.0
+    while t < t_end and not runner.done:
+        out.append(runner.step(t, angle, ZERO, est).copy())
+        t = round(t + dt, 9)
+    return out
+
+
+def test_runner_ramps_exits_and_ends(tmp_path: Path, hand: HandConfig) -> None:
+    data = recipe_doc(phase("a", 0.2, ramp_s=0.1, exit=["time >= 0.3"]),
+                      phase("b", -0.1, ramp_s=0.05, exit=["time >= 0.2"]), end_ramp_s=0.1)
+    recipe = load_recipe(write(tmp_path, data), hand)
+    runner = RecipeRunner(recipe, 9)
+    torques = run(runner, 2.0)
+    assert runner.status is RunStatus.COMPLETED
+    assert torques[50][0] == pytest.approx(0.1)  # halfway up the first ramp
+    assert torques[200][0] == pytest.approx(0.2)
+    assert torques[325][0] == pytest.approx(0.2 + (-0.3) * 0.5)  # halfway down into b
+    assert [r.name for r in runner.records] == ["a", "b"]
+    assert runner.records[0].exit == "time >= 0.3"
+    assert runner.records[1].start_s == pytest.approx(0.3)
+    assert len(torques) == pytest.approx(300 + 200 + 100, abs=2)
+
+
+def test_runner_timeout_next_or_abort(tmp_path: Path, hand: HandConfig) -> None:
+    data = recipe_doc(phase("a", max_s=0.2, on_timeout="next"), phase("b", max_s=0.1))
+    runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
+    run(runner, 2.0)
+    assert runner.status is RunStatus.ABORTED
+    assert runner.records[0].exit == "timeout"
+    assert "timeout: phase 'b'" in runner.abort_reason
+
+
+def test_runner_angle_exit_must_hold(tmp_path: Path, hand: HandConfig) -> None:
+    data = recipe_doc(phase("a", exit=["angle.f1_j2 > 0.5 for 0.01"]), phase("b"))
+    runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
+    angle = np.zeros(9)
+    t = 0.0
+    for _ in range(100):
+        runner.step(t, angle, ZERO)
+        t += 0.001
+    angle[1] = 0.6
+    runner.step(t, angle, ZERO)
+    angle[1] = 0.4  # a blip shorter than the hold time does not count
+    runner.step(t + 0.001, angle, ZERO)
+    angle[1] = 0.6
+    for k in range(2, 30):
+        runner.step(t + k * 0.001, angle, ZERO)
+        if runner.phase_name == "b":
+            break
+    assert runner.phase_name == "b"
+    assert runner.records[0].end_s == pytest.approx(t + 0.012, abs=1.5e-3)
+
+
+def test_runner_abort_condition_and_estimates(tmp_path: Path, hand: HandConfig) -> None:
+    data = recipe_doc(phase("a", exit=["estimate.centre_line_angle > 0.7"],
+                            abort=["tdt.f3_j1 < -0.5"]), phase("b"))
+    runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
+    assert runner.recipe.uses_estimates
+    est = [0.0] * len(ESTIMATES)
+    run(runner, 0.1, est=est)
+    assert runner.phase_name == "a"
+    est[0] = 0.8
+    run(runner, 0.01, est=est)
+    assert runner.phase_name == "b"
+
