@@ -1,0 +1,247 @@
+"""The ``sim:`` section of a hand config: every physical number of the simulated hand, with units.
+
+The simulation is only worth something if a recipe that works in it has a chance on the robot,
+so nothing physical is hidden in code: link radii and masses, joint friction, the tendon-drive
+lag, contact friction per pair, sensor imperfections and the scene all come from the hand config
+(SI units, written next to each key there). The section is read with the same strict ``Doc``
+discipline as the rest of the config: unknown keys are refused, and every message names the file,
+the key path (``sim.objects[1].radius``), what was expected and what was found.
+
+Geometry that the host also needs (finger bases, link lengths, limits) stays in the main part of
+the config and is not repeated here; this section only adds what the host never sees.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from handctl.config import HandConfig
+from handctl.schema import Doc
+
+#: The emulated nodes run on a 1 ms tick (the protocol's feedback period and watchdog unit).
+NODE_TICK_S = 0.001
+NODE_TICK_NS = 1_000_000
+#: The protocol's joint count per node; link parameters are given per joint level.
+JOINTS_PER_FINGER = 3
+
+
+@dataclass(frozen=True)
+class LinkParams:
+    radius: float  # m, capsule radius of the link (half the finger's thickness)
+    mass: float  # kg
+
+
+@dataclass(frozen=True)
+class ObjectParams:
+    name: str
+    radius: float  # m
+    length: float  # m, along z (the joint axes)
+    mass: float  # kg
+    x: float  # m, initial centre
+    y: float  # m
+    angle: float  # rad, initial rotation about z
+
+
+@dataclass(frozen=True)
+class FrictionParams:
+    """Coulomb friction coefficient of each contact pair kind (dimensionless)."""
+
+    finger_object: float
+    object_object: float
+    object_table: float
+    object_palm: float
+    finger_table: float
+    finger_palm: float
+
+
+@dataclass(frozen=True)
+class TdtParams:
+    noise: float  # N·m, standard deviation of white noise per sample
+    bias: float  # N·m, standard deviation of the per-sensor constant bias drawn at start
+    lag: float  # s, first-order time constant of the sensor and its filter
+    resolution: float  # N·m, ADC step
+    range: float  # N·m, a reading beyond this fails the node's self-check
+
+
+@dataclass(frozen=True)
+class EncoderParams:
+    counts_per_rev: int  # encoder counts per joint revolution
+    max_step: float  # rad, a change larger than this in one 1 ms tick fails the self-check
+
+
+@dataclass(frozen=True)
+class SimParams:
+    seed: int
+    timestep: float  # s, physics step; the 1 ms node tick is split into ``substeps`` of it
+    gravity: float  # m/s², along -y
+    table_height: float  # m, y of the table top
+    palm_half_width: float  # m, half the palm's extent along x (the palm's face is y = 0)
+    palm_thickness: float  # m, along +y above the face
+    links: tuple[LinkParams, ...]  # per joint level: proximal, middle, distal
+    damping: float  # N·m·s/rad, viscous joint damping
+    frictionloss: float  # N·m, dry joint friction
+    armature: float  # kg·m², motor and pulley inertia reflected to the joint
+    stop_margin: float  # rad, mechanical stops lie this far beyond the soft limits
+    actuator_lag: float  # s, first-order time constant of the tendon drive
+    motor_tau_max: tuple[float, ...]  # N·m, per joint level, what the motor can give at most
+    initial_angles: tuple[tuple[float, ...], ...]  # rad, per finger in config order
+    objects: tuple[ObjectParams, ...]
+    friction: FrictionParams
+    contact_timeconst: float  # s, MuJoCo solref time constant of every contact
+    contact_dampratio: float  # dimensionless, MuJoCo solref damping ratio
+    tdt: TdtParams
+    encoder: EncoderParams
+
+    @property
+    def substeps(self) -> int:
+        """Physics steps per 1 ms node tick."""
+        return round(NODE_TICK_S / self.timestep)
+
+
+def parse_sim(hand: HandConfig) -> SimParams:
+    """Validate ``hand.sim``; raises ``ConfigError`` naming ``hand.source`` and the key path."""
+    root = Doc({"sim": dict(hand.sim)} if hand.sim else {}, hand.source, "")
+    doc = root.mapping("sim")
+    seed = doc.integer("seed", min=0, max=2**32 - 1)
+    timestep = doc.number("timestep", min=1e-5, max=NODE_TICK_S, unit="s")
+    substeps = NODE_TICK_S / timestep
+    if abs(substeps - round(substeps)) > 1e-9:
+        doc.fail("timestep", "a whole fraction of the 1 ms node tick (0.001, 0.0005, ...) s",
+                 timestep)
+    gravity = doc.number("gravity", min=0.0, max=20.0, unit="m/s²")
+
+    table = doc.mapping("table")
+    table_height = table.number("height", min=-1.0, max=0.0, min_exclusive=False, unit="m")
+    table.done()
+    palm = doc.mapping("palm")
+    palm_half_width = palm.number("half_width", min=0.0, max=0.5, min_exclusive=True, unit="m")
+    palm_thickness = palm.number("thickness", min=0.0, max=0.5, min_exclusive=True, unit="m")
+    palm.done()
+
+    link_docs = doc.mappings("links", min_len=JOINTS_PER_FINGER, max_len=JOINTS_PER_FINGER)
+    links = tuple(_parse_link(d) for d in link_docs)
+
+    joints = doc.mapping("joints")
+    damping = joints.number("damping", min=0.0, max=10.0, unit="N·m·s/rad")
+    frictionloss = joints.number("frictionloss", min=0.0, max=1.0, unit="N·m")
+    armature = joints.number("armature", min=0.0, max=1.0, unit="kg·m²")
+    stop_margin = joints.number("stop_margin", min=0.0, max=1.0, unit="rad")
+    joints.done()
+
+    actuator = doc.mapping("actuator")
+    lag = actuator.number("lag", min=0.0, max=1.0, min_exclusive=True, unit="s")
+    motor_tau_max = actuator.numbers("motor_tau_max", length=JOINTS_PER_FINGER, min=0.0,
+                                     max=100.0, unit="N·m")
+    actuator.done()
+    for finger in hand.fingers:
+        for k, joint in enumerate(finger.joints):
+            if motor_tau_max[k] < joint.device_tau_max:
+                Doc({}, hand.source, "sim.actuator.motor_tau_max").fail(
+                    k, f"a value >= device_tau_max of {joint.name} ({joint.device_tau_max:g} "
+                    "N·m): the node's saturation must be the one that binds (a weak motor is "
+                    "the motor_saturation fault)", motor_tau_max[k])
+
+    initial_angles = _parse_initial_angles(doc.mapping("initial_angles"), hand)
+    objects = tuple(_parse_object(d) for d in doc.mappings("objects", min_len=1, max_len=4))
+    friction = _parse_friction(doc.mapping("friction"))
+
+    contact = doc.mapping("contact")
+    timeconst = contact.number("timeconst", min=2 * timestep, max=1.0, unit="s")
+    dampratio = contact.number("dampratio", min=0.1, max=10.0)
+    contact.done()
+
+    tdt_doc = doc.mapping("tdt")
+    tdt = TdtParams(
+        noise=tdt_doc.number("noise", min=0.0, max=1.0, unit="N·m"),
+        bias=tdt_doc.number("bias", min=0.0, max=1.0, unit="N·m"),
+        lag=tdt_doc.number("lag", min=0.0, max=1.0, unit="s"),
+        resolution=tdt_doc.number("resolution", min=0.0, max=0.1, unit="N·m"),
+        range=tdt_doc.number("range", min=0.1, max=3.2767, unit="N·m"),
+    )
+    tdt_doc.done()
+    enc_doc = doc.mapping("encoder")
+    encoder = EncoderParams(
+        counts_per_rev=enc_doc.integer("counts_per_rev", min=16, max=2**24),
+        max_step=enc_doc.number("max_step", min=0.0, max=3.0, min_exclusive=True, unit="rad"),
+    )
+    enc_doc.done()
+    doc.done()
+
+    params = SimParams(
+        seed=seed, timestep=timestep, gravity=gravity, table_height=table_height,
+        palm_half_width=palm_half_width, palm_thickness=palm_thickness, links=links,
+        damping=damping, frictionloss=frictionloss, armature=armature, stop_margin=stop_margin,
+        actuator_lag=lag, motor_tau_max=motor_tau_max, initial_angles=initial_angles,
+        objects=objects, friction=friction, contact_timeconst=timeconst,
+        contact_dampratio=dampratio, tdt=tdt, encoder=encoder)
+    _check_scene(params, Doc({}, hand.source, "sim"))
+    return params
+
+
+def _parse_link(doc: Doc) -> LinkParams:
+    link = LinkParams(
+        radius=doc.number("radius", min=0.0, max=0.05, min_exclusive=True, unit="m"),
+        mass=doc.number("mass", min=0.0, max=1.0, min_exclusive=True, unit="kg"),
+    )
+    doc.done()
+    return link
+
+
+def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...], ...]:
+    """One list per finger, by finger name, inside the soft limits: a start outside them would
+    trip the host's soft-limit check before anything happened."""
+    angles = []
+    for finger in hand.fingers:
+        values = doc.numbers(finger.name, length=len(finger.joints), min=-2 * math.pi,
+                             max=2 * math.pi, unit="rad")
+        where = Doc({}, doc.file, doc.key_path(finger.name))
+        for k, (value, joint) in enumerate(zip(values, finger.joints, strict=True)):
+            if not joint.angle_min <= value <= joint.angle_max:
+                where.fail(k, f"an angle within the soft limits of {joint.name} "
+                           f"[{joint.angle_min:g}, {joint.angle_max:g}] rad", value)
+        angles.append(values)
+    doc.done()
+    return tuple(angles)
+
+
+def _parse_object(doc: Doc) -> ObjectParams:
+    obj = ObjectParams(
+        name=doc.string("name"),
+        radius=doc.number("radius", min=0.005, max=0.1, unit="m"),
+        length=doc.number("length", min=0.01, max=0.5, unit="m"),
+        mass=doc.number("mass", min=0.001, max=2.0, unit="kg"),
+        x=doc.number("x", min=-1.0, max=1.0, unit="m"),
+        y=doc.number("y", min=-1.0, max=1.0, unit="m"),
+        angle=doc.number("angle", default=0.0, min=-2 * math.pi, max=2 * math.pi, unit="rad"),
+    )
+    doc.done()
+    return obj
+
+
+def _parse_friction(doc: Doc) -> FrictionParams:
+    values = {name: doc.number(name, min=0.0, max=3.0)
+              for name in FrictionParams.__dataclass_fields__}
+    doc.done()
+    return FrictionParams(**values)
+
+
+def _check_scene(params: SimParams, doc: Doc) -> None:
+    """Refuse a scene that starts in collision: MuJoCo would resolve it with a violent kick."""
+    names: set[str] = set()
+    for i, obj in enumerate(params.objects):
+        where = f"objects[{i}]"
+        if obj.name in names:
+            doc.fail(f"{where}.name", "a name not used by another object", obj.name)
+        names.add(obj.name)
+        if obj.y - obj.radius < params.table_height - 1e-9:
+            doc.fail(f"{where}.y", f"a centre at least one radius ({obj.radius:g} m) above the "
+                     f"table top ({params.table_height:g} m)", obj.y)
+        if obj.y + obj.radius > 1e-9:
+            doc.fail(f"{where}.y", f"a centre at least one radius ({obj.radius:g} m) below the "
+                     "palm face (y = 0)", obj.y)
+        for j, other in enumerate(params.objects[:i]):
+            gap = math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
+            if gap < -1e-9:
+                doc.fail(f"{where}.x", f"a position not overlapping objects[{j}] "
+                         f"({other.name})", obj.x)

@@ -1,0 +1,85 @@
+"""Fault scenario files: the shipped ones load, mistakes name their key, the schedule is ordered."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.schema import parse_yaml
+from handctl.sim.faults import (
+    INJECTORS,
+    Babble,
+    DropFeedback,
+    FaultSchedule,
+    TdtStuck,
+    load_scenario,
+    parse_scenario,
+)
+
+SCENARIOS = Path(__file__).resolve().parents[2] / "config" / "sim"
+
+
+def test_at_least_twelve_injectors() -> None:
+    assert len(INJECTORS) >= 12
+
+
+@pytest.mark.parametrize("path", sorted(SCENARIOS.glob("*.yaml")), ids=lambda p: p.name)
+def test_shipped_scenarios_load(path: Path, hand: HandConfig) -> None:
+    schedule = load_scenario(path, hand)
+    assert len(schedule) >= 1
+
+
+def test_reference_scenario_uses_every_injector(hand: HandConfig) -> None:
+    schedule = load_scenario(SCENARIOS / "every_injector.yaml", hand)
+    assert {entry.injector.kind for entry in schedule} == set(INJECTORS)
+
+
+def test_entries_carry_their_parameters(hand: HandConfig) -> None:
+    text = """
+faults:
+  - {kind: babble, id: 0x020, per_tick: 7, length: 12, start: 0.5, stop: 0.75}
+  - {kind: tdt_stuck, node: 3, joint: 2, start: 1.0}
+"""
+    babble, stuck = parse_scenario(parse_yaml(text, "s.yaml"), hand)
+    assert isinstance(babble.injector, Babble)
+    assert (babble.injector.id, babble.injector.per_tick, babble.injector.length) == (0x20, 7, 12)
+    assert (babble.start, babble.stop) == (0.5, 0.75)
+    assert isinstance(stuck.injector, TdtStuck)
+    assert (stuck.injector.node, stuck.injector.joint, stuck.stop) == (3, 2, None)
+
+
+@pytest.mark.parametrize(("entry", "key", "expected"), [
+    ("{kind: tdt_melt, start: 1}", "faults[0].kind", "one of"),
+    ("{kind: drop_feedback, amplitude: 1, start: 1}", "faults[0].amplitude", "unknown key"),
+    ("{kind: drop_feedback, start: 1, stop: 0.5}", "faults[0].stop", ">= 1"),
+    ("{kind: drop_feedback, start: -1}", "faults[0].start", ">= 0"),
+    ("{kind: node_silent, node: 9, start: 1}", "faults[0].node", "<= 3"),
+    ("{kind: tdt_offset, node: 1, joint: 4, start: 1}", "faults[0].joint", "<= 3"),
+    ("{kind: babble, length: 10, start: 1}", "faults[0].length", "CAN-FD payload length"),
+    ("{kind: corrupt_crc, message: commands, start: 1}", "faults[0].message", "one of"),
+    ("{kind: drop_commands, start: 1, joint: 1}", "faults[0].joint", "unknown key"),
+])
+def test_mistakes_name_the_key(hand: HandConfig, entry: str, key: str, expected: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        parse_scenario(parse_yaml(f"faults:\n  - {entry}\n", "bad.yaml"), hand)
+    assert err.value.file == "bad.yaml"
+    assert err.value.key == key
+    assert expected in err.value.expected
+
+
+def test_schedule_hands_out_switchings_in_time_order() -> None:
+    a, b, c = DropFeedback(node=1), DropFeedback(node=2), DropFeedback(node=3)
+    schedule = FaultSchedule()
+    schedule.add(a, start=0.010, stop=0.020)
+    schedule.add(b, start=0.020)  # a's stop in the same tick comes first
+    schedule.add(c, start=0.0004)  # rounds to tick 0
+    assert list(schedule.due(0)) == [(True, c)]
+    assert list(schedule.due(9)) == []
+    assert list(schedule.due(10)) == [(True, a)]
+    assert list(schedule.due(25)) == [(False, a), (True, b)]
+    assert not schedule.pending
+    with pytest.raises(ValueError, match="start <= stop"):
+        schedule.add(a, start=0.5, stop=0.4)
