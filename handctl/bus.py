@@ -12,6 +12,9 @@ Bus specs:
 - ``virtual:NAME``: python-can's in-process virtual bus (tests, lockstep runs).
 - ``socketcan:can0``: a Linux SocketCAN interface. The kernel owns its bit rates; handctl checks
   that the interface exists and says how to configure it when it does not.
+- ``unix:DIRECTORY``: handctl's own python-can interface over Unix datagram sockets, one per
+  participant in DIRECTORY: a bus that crosses processes on one machine without a kernel CAN
+  driver or any network traffic (the simulated hand in its own process, kill tests).
 - ``INTERFACE:CHANNEL``: any other python-can interface, given the config's CAN-FD bit rates.
 """
 
@@ -19,7 +22,11 @@ from __future__ import annotations
 
 import enum
 import errno
+import itertools
 import os
+import select
+import socket
+import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -90,7 +97,7 @@ def parse_spec(spec: str, bus_config: BusConfig | None = None) -> BusSpec:
     if not sep or not interface or not channel:
         raise ConfigError("--bus", "", "sim, hand, or INTERFACE:CHANNEL (e.g. socketcan:can0, "
                           "virtual:test)", spec)
-    if interface not in can.VALID_INTERFACES:
+    if interface not in can.VALID_INTERFACES and interface != "unix":
         raise ConfigError("--bus", "interface",
                           "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES))
                           + ")", interface)
@@ -100,7 +107,9 @@ def parse_spec(spec: str, bus_config: BusConfig | None = None) -> BusSpec:
 def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:
     """The python-can constructor arguments for ``spec`` under the hand's bus settings."""
     kwargs: dict[str, Any] = {"interface": spec.interface, "channel": spec.channel}
-    if spec.interface == "virtual":
+    if spec.interface == "unix":
+        kwargs["receive_own_messages"] = False
+    elif spec.interface == "virtual":
         kwargs["receive_own_messages"] = False
         kwargs["protocol"] = can.CanProtocol.CAN_FD if bus_config.fd else can.CanProtocol.CAN_20
     elif spec.interface == "socketcan":
@@ -158,6 +167,138 @@ class _Message(can.Message):
             error_state_indicator=self.error_state_indicator)
 
 
+_WIRE = struct.Struct("<dIBB")  # timestamp (s), arbitration id, flags, data length; then data
+_FD, _BRS, _ERR, _ESI = 1, 2, 4, 8
+_unix_ids = itertools.count()
+#: Frames per datagram at most; a burst beyond it goes out in several datagrams.
+_BATCH = 32
+
+
+class UnixDatagramBus(can.BusABC):
+    """A CAN bus between processes of one machine: each participant binds a datagram socket in
+    the channel directory and sends every frame to all the other sockets there.
+
+    Frames sent together (one tick's commands, one node tick's feedback) travel as one datagram:
+    Linux queues only ``net.unix.max_dgram_qlen`` datagrams per socket (often 10), so batching
+    is what gives a receiver several milliseconds of slack. ``send`` queues a frame and
+    ``flush`` sends the batch; ``HandBus`` flushes after the last frame of a burst. A receiver
+    whose queue is full makes ``flush`` fail with ENOBUFS, as a full transmit queue does on
+    SocketCAN. A socket whose owner died (SIGKILL) refuses delivery and is removed, so a killed
+    peer does not wedge the bus.
+    """
+
+    def __init__(self, channel: str, receive_own_messages: bool = False,
+                 rcvbuf: int = 1 << 22, **kwargs: Any) -> None:
+        self.directory = Path(channel)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.channel_info = f"unix:{channel}"
+        self._path = self.directory / f"{os.getpid()}-{next(_unix_ids)}.sock"
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        with _suppress_oserror():
+            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        self._sock.bind(str(self._path))
+        self._sock.setblocking(False)
+        self._own = receive_own_messages
+        self._peers: list[str] = []
+        self._peers_at = 0.0
+        self._pending: list[bytes] = []
+        self._inbox: list[can.Message] = []
+        self._can_protocol = can.CanProtocol.CAN_FD
+        super().__init__(channel=channel, **kwargs)
+
+    def _refresh_peers(self) -> None:
+        """Re-list the participants at most every 50 ms: joining is rare, sending is not."""
+        now = time.monotonic()
+        if now - self._peers_at < 0.05:
+            return
+        self._peers_at = now
+        mine = str(self._path)
+        self._peers = [str(p) for p in self.directory.glob("*.sock")
+                       if self._own or str(p) != mine]
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        flags = ((_FD if msg.is_fd else 0) | (_BRS if msg.bitrate_switch else 0)
+                 | (_ERR if msg.is_error_frame else 0)
+                 | (_ESI if msg.error_state_indicator else 0))
+        data = bytes(msg.data)
+        self._pending.append(_WIRE.pack(time.time(), msg.arbitration_id, flags, len(data))
+                             + data)
+        if len(self._pending) >= _BATCH:
+            self.flush()
+
+    def flush(self) -> None:
+        """Send the queued frames as one datagram to every other participant."""
+        if not self._pending:
+            return
+        payload = b"".join(self._pending)
+        self._pending.clear()
+        self._refresh_peers()
+        full = False
+        for peer in list(self._peers):
+            try:
+                self._sock.sendto(payload, peer)
+            except (ConnectionRefusedError, FileNotFoundError):
+                self._peers.remove(peer)  # its owner is gone
+                if peer != str(self._path):
+                    with _suppress_oserror():
+                        os.unlink(peer)
+            except (BlockingIOError, InterruptedError):
+                full = True
+        if full:
+            raise can.CanOperationError("No buffer space available: a receiver's queue is full",
+                                        error_code=errno.ENOBUFS)
+
+    def _read_datagram(self) -> bool:
+        try:
+            payload = self._sock.recv(_BATCH * (_WIRE.size + 64))
+        except (BlockingIOError, InterruptedError):
+            return False
+        offset = 0
+        while offset + _WIRE.size <= len(payload):
+            stamp, frame_id, flags, length = _WIRE.unpack_from(payload, offset)
+            offset += _WIRE.size
+            self._inbox.append(can.Message(
+                timestamp=stamp, arbitration_id=frame_id, is_extended_id=False,
+                is_fd=bool(flags & _FD), bitrate_switch=bool(flags & _BRS),
+                is_error_frame=bool(flags & _ERR), error_state_indicator=bool(flags & _ESI),
+                data=payload[offset:offset + length], channel=self.channel_info, is_rx=True,
+                check=False))
+            offset += length
+        self._inbox.reverse()  # popped from the end, in arrival order
+        return True
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self._inbox and not self._read_datagram():
+            if not timeout:
+                return None, False
+            ready, _, _ = select.select([self._sock], [], [], timeout)
+            if not ready or not self._read_datagram():
+                return None, False
+        if not self._inbox:
+            return None, False
+        return self._inbox.pop(), False
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def shutdown(self) -> None:
+        if not self._is_shutdown:
+            with _suppress_oserror():
+                self.flush()
+            self._sock.close()
+            with _suppress_oserror():
+                self._path.unlink()
+        super().shutdown()
+
+
+class _suppress_oserror:  # noqa: N801 - used like contextlib.suppress(OSError), allocation-free
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind: object, exc: object, tb: object) -> bool:
+        return isinstance(exc, OSError)
+
+
 class HandBus:
     """A python-can bus behind a small, never-raising interface for the loop."""
 
@@ -171,6 +312,7 @@ class HandBus:
         self.sent = 0
         self.received = 0
         self.closed = False
+        self._batching = isinstance(bus, UnixDatagramBus)
 
     def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]:
         """Every frame that has arrived, without waiting; error frames become events."""
@@ -192,12 +334,18 @@ class HandBus:
                                 int(msg.timestamp * 1e9), msg.is_fd))
         return frames
 
-    def send(self, arbitration_id: int, data: bytes) -> bool:
-        """Send one frame without blocking; on failure record an event and return False."""
+    def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool:
+        """Send one frame without blocking; on failure record an event and return False.
+
+        ``more=True`` says another frame of the same burst follows at once, so a batching
+        transport may hold this one until the last (``more=False``).
+        """
         msg = _Message(arbitration_id=arbitration_id, data=data, is_extended_id=False,
                        is_fd=self.fd, bitrate_switch=self.fd, check=False)
         try:
             self._bus.send(msg, timeout=0)
+            if not more and self._batching:
+                self._bus.flush()  # type: ignore[attr-defined]
         except can.CanOperationError as exc:
             full = exc.error_code == errno.ENOBUFS or "No buffer space" in str(exc)
             self._event(BusEventKind.TX_QUEUE_FULL if full else BusEventKind.TX_FAILED, str(exc))
@@ -218,6 +366,8 @@ class HandBus:
                        data=data, check=False)
         try:
             self._bus.send(msg, timeout=0)
+            if self._batching:
+                self._bus.flush()  # type: ignore[attr-defined]
         except (can.CanError, OSError, ValueError):
             return False
         return True
@@ -269,7 +419,11 @@ def open_bus(spec: str | BusSpec, bus_config: BusConfig,
     kwargs = bus_kwargs(parsed, bus_config)
     kwargs.update(options or {})
     try:
-        bus = can.Bus(**kwargs)
+        if parsed.interface == "unix":
+            del kwargs["interface"]
+            bus: can.BusABC = UnixDatagramBus(**kwargs)
+        else:
+            bus = can.Bus(**kwargs)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
         raise BusError(f"{parsed}: cannot open the bus: {type(exc).__name__}: {exc}") from None
     return HandBus(bus, parsed, bus_config.fd)

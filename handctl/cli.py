@@ -85,6 +85,91 @@ def _cmd_check(args: argparse.Namespace) -> int:
     return EXIT_BAD_INPUT
 
 
+# -- analyze -------------------------------------------------------------------------------------
+def _cmd_analyze_torque_set(args: argparse.Namespace) -> int:
+    from handctl.analysis.commands import torque_set_report
+
+    report = torque_set_report(args.scenario, (args.k[0], args.k[1]), args.json, args.plot,
+                               progress=_progress)
+    print(report)
+    return EXIT_OK
+
+
+# -- run ---------------------------------------------------------------------------------------
+def _status_printer() -> Callable[[object], None] | None:
+    """A live status line on a terminal; nothing when stderr is a file or a pipe."""
+    if not sys.stderr.isatty():
+        return None
+
+    def show(line: object) -> None:
+        from handctl.loop import StatusLine
+
+        assert isinstance(line, StatusLine)
+        print(f"\r{line.t_s:7.2f} s  {line.phase:<16} {line.state:<10} "
+              f"max|τ| {line.max_abs_tau:5.3f} N·m  late {line.lateness_us:7.1f} µs ",
+              end="", file=sys.stderr, flush=True)
+
+    return show
+
+
+def _cmd_run_recipe(args: argparse.Namespace) -> int:
+    import json
+
+    from handctl.config import load_hand
+    from handctl.loop import Outcome
+    from handctl.recipes.loader import load_recipe
+    from handctl.session import RunRequest, run_recipe
+
+    hand = load_hand(args.hand)
+    recipe = load_recipe(args.recipe, hand)
+    lockstep = True if args.lockstep else (False if args.realtime else None)
+    request = RunRequest(hand=hand, recipe=recipe, bus=args.bus, lockstep=lockstep,
+                         realtime_priority=args.rt, seed=args.seed,
+                         reset_node_faults=args.reset_node_faults, sim_faults=args.sim_faults,
+                         max_seconds=args.max_seconds)
+    status = _status_printer()
+    report = run_recipe(request, status=status)
+    if status is not None:
+        print(file=sys.stderr)
+    for warning in report.warnings:
+        print(f"handctl: warning: {warning}", file=sys.stderr)
+    summary = report.summary
+    if args.summary_json:
+        Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"recipe {summary['recipe']} on {summary['hand']} ({summary['mode']}): "
+          f"{summary['outcome']}")
+    for phase in summary["phases"]:
+        end = "-" if phase["end_s"] is None else f"{phase['end_s']:.3f}"
+        print(f"  {phase['name']:<16} {phase['start_s']:8.3f} .. {end:>8} s  {phase['exit']}")
+    for fault in summary["faults"]:
+        print(f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']}: "
+              f"{fault['detail']}")
+    late = summary["lateness_us"]
+    print(f"  {summary['ticks']} ticks, {summary['missed_ticks']} missed, lateness p50 "
+          f"{late['p50']} µs p99 {late['p99']} µs max {late['max']} µs")
+    print("  max |τ| " + ", ".join(f"{k} {v:.3f}" for k, v in summary["max_abs_tau"].items()))
+    if report.result.outcome is Outcome.COMPLETED:
+        return EXIT_OK
+    if report.result.outcome is Outcome.INTERRUPTED:
+        print(f"handctl: stopped: {report.result.message}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"handctl: safety stop: {report.result.message}", file=sys.stderr)
+    return EXIT_SAFETY_STOP
+
+
+# -- sim ---------------------------------------------------------------------------------------
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from handctl.config import load_hand
+    from handctl.sim.faults import load_scenario
+    from handctl.sim.hand import standalone
+
+    hand = load_hand(args.hand)
+    faults = load_scenario(args.faults, hand) if args.faults else None
+    print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
+                     summary_json=args.summary_json))
+    return EXIT_OK
+
+
 # -- parser --------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -104,6 +189,62 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--dbc", type=Path, help="protocol DBC (default: the packaged one)")
     check.set_defaults(func=_cmd_check)
 
+    analyze = sub.add_parser("analyze", help="offline grasp analysis (paper §3–§4)",
+                             description="Offline analysis of enveloping grasps.")
+    analyses = analyze.add_subparsers(dest="analysis", metavar="ANALYSIS", required=True)
+    tset = analyses.add_parser(
+        "torque-set", help="the torque set that moves two enveloped objects (Fig. 3)",
+        description="Compute the robust torque set over (tau_11, tau_21) with "
+                    "tau_i2 = k_i tau_i1: exactly, and on a 121x121 grid of LPs.")
+    tset.add_argument("scenario", type=Path, help="analysis scenario YAML (config/analysis/)")
+    tset.add_argument("--k", type=float, nargs=2, metavar=("K1", "K2"), required=True,
+                      help="torque ratios k_1, k_2 (tau_i2 = k_i tau_i1)")
+    tset.add_argument("--json", type=Path, help="write the region and the grid as JSON")
+    tset.add_argument("--plot", type=Path, help="write a PNG in the style of Fig. 3")
+    tset.set_defaults(func=_cmd_analyze_torque_set)
+
+    sim = sub.add_parser(
+        "sim", help="run the simulated hand as a standalone peer on a bus",
+        description="Run the simulated hand (MuJoCo plant behind emulated finger nodes) free on "
+                    "its own 1 kHz timer, as a peer on any python-can bus.")
+    sim.add_argument("--bus", required=True,
+                     help="INTERFACE:CHANNEL, e.g. virtual:test or udp_multicast:239.74.163.2")
+    sim.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                     help=f"hand config (default {DEFAULT_HAND})")
+    sim.add_argument("--seconds", type=float, help="stop after this long (default: Ctrl-C)")
+    sim.add_argument("--seed", type=int, help="sensor noise seed (default: the config's)")
+    sim.add_argument("--faults", type=Path, help="fault scenario YAML (config/sim/)")
+    sim.add_argument("--summary-json", type=Path,
+                     help="write the ground truth (object poses, node states) at the end")
+    sim.set_defaults(func=_cmd_sim)
+
+    run = sub.add_parser("run", help="drive the hand", description="Drive the hand.")
+    runs = run.add_subparsers(dest="what", metavar="WHAT", required=True)
+    rec = runs.add_parser(
+        "recipe", help="run a grasp recipe",
+        description="Run a recipe phase by phase at the hand's loop rate, every torque through "
+                    "the safety supervisor. Default bus: the simulated hand, in lockstep.",
+        epilog="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit 130.")
+    rec.add_argument("recipe", type=Path, help="recipe YAML")
+    rec.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                     help=f"hand config (default {DEFAULT_HAND})")
+    rec.add_argument("--bus", default="sim",
+                     help="sim (default), hand (the config's bus), virtual:NAME, socketcan:can0, "
+                          "INTERFACE:CHANNEL")
+    mode = rec.add_mutually_exclusive_group()
+    mode.add_argument("--lockstep", action="store_true",
+                      help="step the simulated hand once per tick (default with --bus sim)")
+    mode.add_argument("--realtime", action="store_true",
+                      help="tick from a 1 kHz timer (default on a real bus)")
+    rec.add_argument("--rt", action="store_true",
+                     help="ask for SCHED_FIFO and locked memory (says so when refused)")
+    rec.add_argument("--summary-json", type=Path, help="write the run summary as JSON")
+    rec.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
+    rec.add_argument("--sim-faults", type=Path, help="fault scenario for the simulated hand")
+    rec.add_argument("--reset-node-faults", action="store_true",
+                     help="clear faults latched in the nodes before starting (explicit reset)")
+    rec.add_argument("--max-seconds", type=float, help="stop (controlled) after this long")
+    rec.set_defaults(func=_cmd_run_recipe)
     return parser
 
 

@@ -92,8 +92,8 @@ class SafetyConfig:
 
     feedback_timeout_s: float = 0.005  # no valid feedback for this long is a fault
     heartbeat_timeout_s: float = 0.35  # heartbeats come every 0.1 s
-    tdt_tolerance: float = 0.08  # N·m, plus the relative part below
-    tdt_tolerance_rel: float = 0.25  # of |expected torque|
+    tdt_tolerance: float = 0.02  # N·m, plus the relative part below
+    tdt_tolerance_rel: float = 0.15  # of |expected torque|
     tdt_window_s: float = 0.05  # the mismatch must hold this long
     tdt_lag_s: float = 0.01  # first-order lag between command and TDT reading
     tdt_stuck_window_s: float = 0.1

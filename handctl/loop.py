@@ -120,6 +120,7 @@ class Runtime:
         self.max_ticks = max_ticks
         self.stop_requested = ""
         self.estop_requested = ""
+        self.first_send_tick = -1
         self.tick_hooks: list[Callable[[Tick], None]] = []
         self._capacity = 1 << 14
         self._lateness = np.zeros(self._capacity, dtype=np.int64)
@@ -140,6 +141,22 @@ class Runtime:
     def request_estop(self, reason: str = "operator") -> None:
         self.estop_requested = reason
 
+    def reset(self) -> bool:
+        """The explicit reset after a safety stop: clear the latched faults, host and nodes.
+
+        The recipe does not resume: the next ``run()`` starts it again from its first phase,
+        with the nodes enabled afresh and torque ramping up from zero through the rate limit.
+        """
+        if self.supervisor.state is not State.FAULTED:
+            return False
+        self.supervisor.reset(self._ticks)
+        self.driver.node_command("fault_reset")
+        if self.recipe is not None:
+            self.runner = RecipeRunner(self.recipe, self.hand.n_joints)
+        self.stop_requested = ""
+        self.estop_requested = ""
+        return True
+
     # -- the run --------------------------------------------------------------------------
     async def run(self) -> RunResult:
         try:
@@ -158,6 +175,7 @@ class Runtime:
         tick = self._ticks
         sup.start(tick)
         self.driver.node_command("enable")
+        self.first_send_tick = self._ticks  # command frame n of each node belongs to this + n
         stopping_since: int | None = None
         while True:
             tk = await self._tick()
@@ -170,6 +188,11 @@ class Runtime:
             if self._ticks >= self.max_ticks:
                 self.request_stop("tick budget exhausted")
         self.driver.node_command("disable")
+        # One more period so the disable is on its way (in lockstep: so the hand steps once
+        # more and sees it) before the bus is closed.
+        tk = await self.clock.wait_tick()
+        self._account_idle(tk)
+        self.driver.poll(tk.now_ns)
         if sup.faults:
             return Outcome.SAFETY_STOP, "; ".join(str(f) for f in sup.faults)
         if self.stop_requested:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import os
 import sys
 import time
@@ -19,6 +20,7 @@ import time
 _CLOCK_MONOTONIC = 1
 _TFD_NONBLOCK = 0o4000
 _TFD_CLOEXEC = 0o2000000
+_TFD_TIMER_ABSTIME = 1
 
 
 class _Timespec(ctypes.Structure):
@@ -42,14 +44,19 @@ class PeriodicTimer:
             raise ValueError(f"timer period must be > 0 ns, found {period_ns}")
         self.period_ns = period_ns
         flags = _TFD_CLOEXEC | (_TFD_NONBLOCK if nonblocking else 0)
-        self.start_ns = time.monotonic_ns()
         create = getattr(os, "timerfd_create", None)  # Python >= 3.13
+        if create is None:
+            _load_libc()  # before the schedule starts: finding libc can take milliseconds
+        # An absolute first expiration: expiration E is due at start_ns + E * period_ns
+        # exactly, which is what lateness is measured against.
+        self.start_ns = time.monotonic_ns()
         if create is not None:
             self._fd: int = create(time.CLOCK_MONOTONIC, flags=flags)
             os.timerfd_settime_ns(  # type: ignore[attr-defined,unused-ignore]
-                self._fd, initial=period_ns, interval=period_ns)
+                self._fd, flags=_TFD_TIMER_ABSTIME, initial=self.start_ns + period_ns,
+                interval=period_ns)
         else:
-            self._fd = _ctypes_timerfd(period_ns, flags)
+            self._fd = _ctypes_timerfd(self.start_ns + period_ns, period_ns, flags)
 
     def fileno(self) -> int:
         return self._fd
@@ -73,17 +80,22 @@ class PeriodicTimer:
         self.close()
 
 
-def _ctypes_timerfd(period_ns: int, flags: int) -> int:
+@functools.cache
+def _load_libc() -> ctypes.CDLL:
     if not sys.platform.startswith("linux"):
         raise OSError("handctl's real-time clock needs a Linux timerfd")
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+    return ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+
+
+def _ctypes_timerfd(first_ns: int, period_ns: int, flags: int) -> int:
+    libc = _load_libc()
     fd = int(libc.timerfd_create(_CLOCK_MONOTONIC, flags))
     if fd < 0:
         err = ctypes.get_errno()
         raise OSError(err, f"timerfd_create: {os.strerror(err)}")
-    sec, nsec = divmod(period_ns, 1_000_000_000)
-    spec = _Itimerspec(_Timespec(sec, nsec), _Timespec(sec, nsec))
-    if libc.timerfd_settime(fd, 0, ctypes.byref(spec), None) != 0:
+    period = _Timespec(*divmod(period_ns, 1_000_000_000))
+    spec = _Itimerspec(period, _Timespec(*divmod(first_ns, 1_000_000_000)))
+    if libc.timerfd_settime(fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None) != 0:
         err = ctypes.get_errno()
         os.close(fd)
         raise OSError(err, f"timerfd_settime: {os.strerror(err)}")

@@ -123,11 +123,12 @@ class HandDriver:
         Returns False when any frame could not be sent (the bus event says why).
         """
         ok = True
-        for node, sl in zip(self.nodes, self._slices, strict=True):
+        last = len(self.nodes) - 1
+        for i, (node, sl) in enumerate(zip(self.nodes, self._slices, strict=True)):
             values = [float(t) for t in torques[sl]]
             values += [0.0] * (3 - len(values))
             frame_id, data = node.next_command(values)
-            ok = self.bus.send(frame_id, data) and ok
+            ok = self.bus.send(frame_id, data, more=i < last) and ok
         return ok
 
     def node_command(self, command: str, nodes: Iterable[int] | None = None) -> bool:

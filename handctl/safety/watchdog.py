@@ -8,8 +8,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
-
 from handctl.config import SafetyConfig
 from handctl.drivers.finger import FingerNode, fault_names
 from handctl.safety.faults import FaultCode
@@ -60,53 +58,66 @@ class NodeWatch:
 
 class TdtMonitor:
     """TDT torque against the applied command: a tolerance held over a window, and a sensor
-    whose reading does not move at all while the command does (stuck)."""
+    whose reading does not move at all while the command does (stuck).
+
+    Plain Python over nine joints: at this size a loop of float operations costs a third of
+    the twenty-odd numpy calls the vectorised form needs, and this runs every tick.
+    """
 
     def __init__(self, safety: SafetyConfig, n_joints: int, dt: float,
                  names: Sequence[str]) -> None:
         self.names = tuple(names)
+        self.n = n_joints
         self.tol = safety.tdt_tolerance
         self.rel = safety.tdt_tolerance_rel
         self.alpha = dt / (safety.tdt_lag_s + dt)
         self.window = max(1, round(safety.tdt_window_s / dt))
         self.stuck_window = max(2, round(safety.tdt_stuck_window_s / dt))
         self.min_change = safety.tdt_stuck_min_change
-        self.expected = np.zeros(n_joints)
-        self.mismatch_ticks = np.zeros(n_joints, dtype=np.int64)
-        self.same_ticks = np.zeros(n_joints, dtype=np.int64)
-        self.last_reading = np.full(n_joints, np.nan)
-        self.cmd_lo = np.zeros(n_joints)
-        self.cmd_hi = np.zeros(n_joints)
+        self.expected = [0.0] * n_joints
+        self.mismatch_ticks = [0] * n_joints
+        self.same_ticks = [0] * n_joints
+        self.last_reading = [float("nan")] * n_joints
+        self.cmd_lo = [0.0] * n_joints
+        self.cmd_hi = [0.0] * n_joints
 
     def reset(self, applied: FloatArray) -> None:
-        self.expected[:] = applied
-        self.mismatch_ticks[:] = 0
-        self.same_ticks[:] = 0
-        self.last_reading[:] = np.nan
+        self.expected = [float(a) for a in applied]
+        self.mismatch_ticks = [0] * self.n
+        self.same_ticks = [0] * self.n
+        self.last_reading = [float("nan")] * self.n
 
     def update(self, applied: FloatArray, reading: FloatArray) -> list[Finding]:
         """Fold one tick in: ``applied`` is what the nodes were last told, ``reading`` the TDT."""
-        self.expected += (applied - self.expected) * self.alpha
-        error = np.abs(reading - self.expected)
-        over = error > self.tol + self.rel * np.abs(self.expected)
-        self.mismatch_ticks = np.where(over, self.mismatch_ticks + 1, 0)
-        same = reading == self.last_reading
-        self.same_ticks = np.where(same, self.same_ticks + 1, 0)
-        self.cmd_lo = np.where(same, np.minimum(self.cmd_lo, applied), applied)
-        self.cmd_hi = np.where(same, np.maximum(self.cmd_hi, applied), applied)
-        self.last_reading[:] = reading
         found: list[Finding] = []
-        for j in np.flatnonzero(self.mismatch_ticks >= self.window):
-            found.append((FaultCode.TDT_MISMATCH,
-                          f"{self.names[j]}: TDT {reading[j]:+.3f} N·m, expected "
-                          f"{self.expected[j]:+.3f} N·m for {self.window} ticks"))
-        stuck = (self.same_ticks >= self.stuck_window) & (
-            self.cmd_hi - self.cmd_lo >= self.min_change)
-        for j in np.flatnonzero(stuck):
-            found.append((FaultCode.TDT_STUCK,
-                          f"{self.names[j]}: TDT fixed at {reading[j]:+.4f} N·m for "
-                          f"{self.same_ticks[j]} ticks while the command moved "
-                          f"{self.cmd_hi[j] - self.cmd_lo[j]:.3f} N·m"))
+        alpha, tol, rel = self.alpha, self.tol, self.rel
+        expected, mismatch = self.expected, self.mismatch_ticks
+        same_ticks, last = self.same_ticks, self.last_reading
+        lo, hi = self.cmd_lo, self.cmd_hi
+        for j, (a, r) in enumerate(zip(applied.tolist(), reading.tolist(), strict=True)):
+            e = expected[j] + (a - expected[j]) * alpha
+            expected[j] = e
+            if abs(r - e) > tol + rel * abs(e):
+                mismatch[j] += 1
+                if mismatch[j] >= self.window:
+                    found.append((FaultCode.TDT_MISMATCH,
+                                  f"{self.names[j]}: TDT {r:+.3f} N·m, expected {e:+.3f} N·m "
+                                  f"for {mismatch[j]} ticks"))
+            else:
+                mismatch[j] = 0
+            if r == last[j]:
+                same_ticks[j] += 1
+                lo[j] = min(lo[j], a)
+                hi[j] = max(hi[j], a)
+                if same_ticks[j] >= self.stuck_window and hi[j] - lo[j] >= self.min_change:
+                    found.append((FaultCode.TDT_STUCK,
+                                  f"{self.names[j]}: TDT fixed at {r:+.4f} N·m for "
+                                  f"{same_ticks[j]} ticks while the command moved "
+                                  f"{hi[j] - lo[j]:.3f} N·m"))
+            else:
+                same_ticks[j] = 0
+                lo[j] = hi[j] = a
+                last[j] = r
         return found
 
 

@@ -27,6 +27,7 @@ their own frames and count them as unexpected, as the spec says of "a frame sent
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import threading
 import time
@@ -168,8 +169,9 @@ class SimulatedHand:
                 injector.tx(fid, data, now, filtered)
             out = filtered
         send = bus.send
-        for fid, data in out:
-            if not send(fid, data):
+        last = len(out) - 1
+        for i, (fid, data) in enumerate(out):
+            if not send(fid, data, more=i < last):  # one burst per tick
                 self.tx_failed += 1
         self.frames_out += len(out)
         for injector in self._periodic:
@@ -337,10 +339,12 @@ class SimulatedHand:
 
 def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
                progress: Callable[[str], None] | None = None, *, seed: int | None = None,
-               faults: FaultSchedule | None = None) -> str:
+               faults: FaultSchedule | None = None, summary_json: Path | None = None) -> str:
     """Run the simulated hand free on ``bus_spec`` for ``seconds`` (None: until Ctrl-C).
 
-    ``progress`` gets a status line about once a second. Returns a summary for the CLI.
+    ``progress`` gets a status line about once a second. Returns a summary for the CLI;
+    ``summary_json`` also receives the ground truth at the end (for a host that started this
+    process and wants to report where the objects ended up).
     """
     bus = open_bus(bus_spec, hand.bus)
     interrupted = False
@@ -363,6 +367,8 @@ def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
     finally:
         bus.close()
     wall = time.monotonic() - started
+    if summary_json is not None:
+        summary_json.write_text(json.dumps(sim.ground_truth_summary(), indent=2) + "\n")
     rtf = sim.time / wall if wall > 0 else 0.0
     return (f"simulated hand on {bus_spec}: {sim.time:.3f} s simulated in {wall:.3f} s "
             f"(real-time factor {rtf:.3f}){', interrupted' if interrupted else ''}; "

@@ -47,7 +47,7 @@ def test_missing_section_is_refused(hand: HandConfig) -> None:
     (lambda s: s.update(timestep=0.0003), "sim.timestep", "whole fraction"),
     (lambda s: s["objects"][0].update(y=-0.15), "sim.objects[0].y", "above the table"),
     (lambda s: s["objects"][1].update(x=-0.01), "sim.objects[1].x", "not overlapping"),
-    (lambda s: s["initial_angles"].update(f3=[0.55, 0.3, 0.1]), "sim.initial_angles.f3[1]",
+    (lambda s: s["initial_angles"].update(f3=[0.55, 1.2, 0.1]), "sim.initial_angles.f3[1]",
      "soft limits"),
     (lambda s: s["initial_angles"].pop("f2"), "sim.initial_angles.f2", "required"),
     (lambda s: s["actuator"].update(motor_tau_max=[0.5, 0.75, 0.5]),

@@ -1,0 +1,248 @@
+"""The runtime against the simulated hand, in lockstep: the default recipe completes, every
+safety check is tripped by a real fault on the bus, the wire carries zero (or the ramp) within
+two ticks, faults latch, and only an explicit reset brings torque back, from zero."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from handctl.config import HandConfig
+from handctl.loop import Outcome
+from handctl.recipes.loader import load_recipe
+from handctl.recipes.schema import Recipe
+from handctl.safety.faults import FAULTS, RAMP_BOUND_S, FaultCode, StopCategory
+from handctl.safety.supervisor import State
+from handctl.sim import faults as inj
+
+from ..conftest import ROOT
+from .rig import rig
+
+HOLD = """
+recipe: hold
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 0.4
+    on_timeout: next
+  - name: hold
+    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 1.6
+    on_timeout: next
+"""
+INJECT_AT = 1.0  # s of simulated time: well inside the hold phase
+
+
+@pytest.fixture(scope="module")
+def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
+    path = tmp_path_factory.mktemp("recipes") / "hold.yaml"
+    path.write_text(HOLD)
+    return load_recipe(path, hand)
+
+
+def test_default_recipe_completes(hand: HandConfig) -> None:
+    recipe = load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", hand)
+    with rig(hand, recipe) as r:
+        result = r.run()
+        assert result.outcome is Outcome.COMPLETED, result.message
+        assert [p["name"] for p in result.phases] == [p.name for p in recipe.phases]
+        assert not result.faults
+        assert r.runtime.supervisor.state is State.IDLE
+        wire = r.commands()
+        assert np.all(np.abs(wire[-3:]) == 0)  # ends at zero
+        tau_max = np.array([j.tau_max for j in hand.joints])
+        assert np.all(np.abs(wire) <= tau_max + 1e-4)
+        assert all(n.state == 0 for n in r.sim.nodes)  # disabled at the end
+
+
+def test_lockstep_runs_are_deterministic(hand: HandConfig, hold: Recipe) -> None:
+    wires = []
+    for _ in range(2):
+        with rig(hand, hold, seed=3) as r:
+            r.run()
+            wires.append(r.wire)
+    assert wires[0] == wires[1]
+
+
+#: Injection times other than INJECT_AT: a stuck sensor only shows while the command moves, so
+#: it is injected during the first ramp.
+INJECT_TIMES = {"tdt_stuck": 0.15}
+
+SCENARIOS = [
+    ("node_silent", lambda: inj.NodeSilent(node=2), FaultCode.FEEDBACK_TIMEOUT),
+    ("drop_feedback", lambda: inj.DropFeedback(node=1), FaultCode.FEEDBACK_TIMEOUT),
+    ("corrupt_heartbeat", lambda: inj.CorruptCrc(node=3, message="heartbeat"),
+     FaultCode.HEARTBEAT_LOST),
+    ("counter_repeat", lambda: inj.CounterRepeat(node=1, message="feedback"),
+     FaultCode.FEEDBACK_TIMEOUT),
+    ("tdt_stuck", lambda: inj.TdtStuck(node=1, joint=1), FaultCode.TDT_STUCK),
+    ("tdt_offset", lambda: inj.TdtOffset(node=3, joint=2, offset=0.3), FaultCode.TDT_MISMATCH),
+    ("tendon_slack", lambda: inj.TendonSlack(node=2, joint=1), FaultCode.TDT_MISMATCH),
+    ("motor_saturation", lambda: inj.MotorSaturation(node=1, joint=1, limit=0.01),
+     FaultCode.TDT_MISMATCH),
+    ("node_reboot", lambda: inj.NodeReboot(node=2, downtime=0.02), FaultCode.FEEDBACK_TIMEOUT),
+    ("drop_commands", lambda: inj.DropCommands(node=3, count=15), FaultCode.NODE_FAULT),
+    ("encoder_jump", lambda: inj.EncoderJump(node=1, joint=2, counts=4000), FaultCode.NODE_FAULT),
+    ("bus_off", inj.BusOff, FaultCode.BUS_ERROR),
+    ("babble_estop", lambda: inj.Babble(id=0x000, per_tick=1, length=3), FaultCode.ESTOP),
+]
+
+
+@pytest.mark.parametrize(("name", "make", "code"), SCENARIOS, ids=[s[0] for s in SCENARIOS])
+def test_fault_is_detected_stopped_and_latched(hand: HandConfig, hold: Recipe, name: str,
+                                               make: object, code: FaultCode) -> None:
+    with rig(hand, hold) as r:
+        at = INJECT_TIMES.get(name, INJECT_AT)
+        r.sim.faults.add(make(), at)  # type: ignore[operator]
+        result = r.run()
+        assert result.outcome is Outcome.SAFETY_STOP
+        first = result.faults[0]
+        assert first.code is code, [str(f) for f in result.faults]
+        inject_tick = round(at / hand.bus.period_s)
+        assert first.tick >= inject_tick - 1, "detected before it happened"
+        assert first.tick - inject_tick < 600, "detected far too late"
+        sup = r.runtime.supervisor
+        assert sup.state is State.FAULTED and sup.faults  # latched
+        wire = r.commands()
+        row = first.tick - r.runtime.first_send_tick
+        assert np.abs(wire[row - 1]).max() > 0.01  # torque was flowing before
+        if FAULTS[first.code].category is StopCategory.IMMEDIATE:
+            assert not np.any(wire[row:row + 3][-1]), "not zero within 2 ticks"
+            assert not np.any(wire[row + 2:])
+        else:
+            ramp = np.abs(wire[row:]).max(axis=1)
+            assert np.all(np.diff(ramp) <= 1e-4), "the ramp must only go down"
+            ticks_to_zero = int(np.argmax(ramp == 0))
+            assert ramp[ticks_to_zero] == 0
+            assert ticks_to_zero <= RAMP_BOUND_S / hand.bus.period_s + 2
+        # The nodes end disabled or in their own FAULT: never enabled with torque.
+        assert all(n.state != 1 or not any(n.applied) for n in r.sim.nodes)
+
+
+def test_operator_estop_then_explicit_reset_ramps_from_zero(hand: HandConfig,
+                                                           hold: Recipe) -> None:
+    with rig(hand, hold) as r:
+        r.runtime.tick_hooks.append(
+            lambda tk: r.runtime.request_estop("test") if tk.k == 900 else None)
+        result = r.run()
+        assert result.outcome is Outcome.SAFETY_STOP
+        assert result.faults[0].code is FaultCode.ESTOP
+        assert r.estops() == 1
+        assert all(n.state == 2 for n in r.sim.nodes)  # the nodes latched ESTOP too
+        # Nothing resumes by itself: the runtime is done until somebody resets.
+        assert r.runtime.supervisor.state is State.FAULTED
+        sent_before = len(r.commands())
+        assert r.runtime.reset()
+        second = r.run()
+        assert second.outcome is Outcome.COMPLETED, second.message
+        wire = r.commands()[sent_before:]
+        steps = np.array([j.rate_limit for j in hand.joints]) * hand.bus.period_s
+        assert np.all(np.abs(wire[0]) <= steps + 1e-4)  # from zero, through the rate limit
+        assert [p["name"] for p in second.phases] == ["close", "hold"]  # from the beginning
+
+
+def test_consecutive_late_ticks_are_a_fault(hand: HandConfig, hold: Recipe) -> None:
+    """The lockstep clock never runs late, so a clock that reports misses is put in its place:
+    a real clock object, late on purpose."""
+    with rig(hand, hold) as r:
+        clock = r.runtime.clock
+        original = clock.wait_tick
+
+        async def late_tick() -> object:
+            tk = await original()
+            if 800 <= tk.k < 803:
+                from dataclasses import replace
+
+                return replace(tk, missed=1)
+            return tk
+
+        clock.wait_tick = late_tick  # type: ignore[method-assign,assignment]
+        result = r.run()
+        assert result.faults[0].code is FaultCode.LOOP_OVERRUN
+        assert result.faults[0].tick == 802
+        assert result.missed_ticks == 3
+
+
+def test_angle_limit_is_a_ramp_stop(hand: HandConfig, tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    fingers = list(hand.fingers)
+    joints = list(fingers[0].joints)
+    joints[0] = replace(joints[0], angle_max=-0.5)  # the finger flexes past this while closing
+    fingers[0] = replace(fingers[0], joints=tuple(joints))
+    tight = replace(hand, fingers=tuple(fingers))
+    path = tmp_path / "hold.yaml"
+    path.write_text(HOLD)
+    with rig(tight, load_recipe(path, tight)) as r:
+        result = r.run()
+    assert result.faults[0].code is FaultCode.ANGLE_LIMIT
+    assert "f1_j1" in result.faults[0].detail
+
+
+def test_startup_refuses_nodes_in_fault_without_explicit_reset(hand: HandConfig,
+                                                              hold: Recipe) -> None:
+    with rig(hand, hold) as r:
+        # The nodes latched an e-stop before the host started (say, in an earlier session).
+        r.sim.faults.add(inj.Babble(id=0x000, per_tick=1, length=3), 0.0, 0.01)
+        for _ in range(50):
+            r.sim.step()
+        result = r.run()
+        assert result.outcome is Outcome.STARTUP_FAILED
+        assert "--reset-node-faults" in result.message
+        assert r.commands().size == 0  # not one torque frame
+    with rig(hand, hold) as r:
+        r.sim.faults.add(inj.Babble(id=0x000, per_tick=1, length=3), 0.0, 0.01)
+        for _ in range(50):
+            r.sim.step()
+        r.runtime.reset_node_faults = True
+        result = r.run()
+        assert result.outcome is Outcome.COMPLETED, result.message
+
+
+def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Recipe,
+                                                      channel: str) -> None:
+    """The runtime freezes without any clean-up while the simulated hand runs free on its own
+    timer: the nodes' 10 ms command watchdogs must zero the torque on their own."""
+    import asyncio
+    import time
+
+    from handctl.bus import open_bus
+    from handctl.clock import RealtimeClock
+    from handctl.drivers.hand import HandDriver
+    from handctl.loop import Runtime
+    from handctl.protocol import load_protocol
+    from handctl.sim.hand import SimulatedHand
+
+    seen: dict[str, object] = {}
+    with open_bus(f"virtual:{channel}", hand.bus) as peer, \
+            open_bus(f"virtual:{channel}", hand.bus) as host:
+        sim = SimulatedHand(hand, peer, seed=1)
+        clock = RealtimeClock(hand.bus.period_s)
+        runtime = Runtime(hand, HandDriver(hand, load_protocol(), host), clock, hold)
+
+        def freeze(tick: object) -> None:
+            flowing = any(any(n.applied) for n in sim.nodes)
+            if runtime.supervisor.state is not State.RUNNING or "torque" in seen or not flowing:
+                return
+            seen["torque"] = [list(n.applied) for n in sim.nodes]
+            time.sleep(0.03)  # the host is dead for 30 ms: no frame, no clean-up
+            seen["states"] = [n.state for n in sim.nodes]
+            seen["faults"] = [n.fault_bits for n in sim.nodes]
+            seen["applied"] = [list(n.applied) for n in sim.nodes]
+            runtime.request_stop("test over")
+
+        runtime.tick_hooks.append(freeze)
+        sim.start()
+        try:
+            asyncio.run(runtime.run())
+        finally:
+            sim.stop()
+    assert "states" in seen, "the runtime never got torque flowing"
+    assert any(any(t) for t in seen["torque"])  # type: ignore[attr-defined]
+    assert seen["states"] == [2, 2, 2]  # FAULT
+    assert all(bits & 0x01 for bits in seen["faults"])  # type: ignore[attr-defined]
+    assert seen["applied"] == [[0.0, 0.0, 0.0]] * 3
