@@ -86,6 +86,7 @@ class RunResult:
     ticks: int
     missed_ticks: int
     lateness_ns: np.ndarray
+    missed: np.ndarray  # ticks missed just before each tick
     stage_ns: np.ndarray  # (ticks, stages)
     max_abs_tau: np.ndarray
     faults: list[Fault]
@@ -124,6 +125,7 @@ class Runtime:
         self.tick_hooks: list[Callable[[Tick], None]] = []
         self._capacity = 1 << 14
         self._lateness = np.zeros(self._capacity, dtype=np.int64)
+        self._missed_at = np.zeros(self._capacity, dtype=np.int32)
         self._stages = np.zeros((self._capacity, len(STAGES)), dtype=np.int64)
         self._max_abs = np.zeros(hand.n_joints)
         self._missed = 0
@@ -309,8 +311,10 @@ class Runtime:
         if i >= self._capacity:
             self._capacity *= 2
             self._lateness = np.resize(self._lateness, self._capacity)
+            self._missed_at = np.resize(self._missed_at, self._capacity)
             self._stages = np.resize(self._stages, (self._capacity, len(STAGES)))
         self._lateness[i] = tk.lateness_ns
+        self._missed_at[i] = tk.missed
         self._stages[i] = stages
         self._missed += tk.missed
         self._ticks = i + 1
@@ -324,7 +328,8 @@ class Runtime:
         n = self._ticks
         return RunResult(
             outcome=outcome, ticks=n, missed_ticks=self._missed,
-            lateness_ns=self._lateness[:n].copy(), stage_ns=self._stages[:n].copy(),
+            lateness_ns=self._lateness[:n].copy(), missed=self._missed_at[:n].copy(),
+            stage_ns=self._stages[:n].copy(),
             max_abs_tau=self._max_abs.copy(), faults=list(self.supervisor.faults),
             phases=phases, message=message, node_rejects=self.driver.reject_counts(),
             unexpected_ids=dict(self.driver.unexpected_ids), bus_events=self._bus_events,

@@ -52,6 +52,7 @@ class RunReport:
     result: RunResult
     summary: dict[str, Any]
     warnings: list[str]
+    first_send_tick: int = -1  # the tick of the first torque command
 
 
 def _percentiles_us(values_ns: np.ndarray) -> dict[str, float]:
@@ -144,7 +145,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         elif sim_process is not None:
             sim_summary = sim_process.finish()
     return RunReport(result, summarise(result, req.hand, req.recipe, lockstep, sim_summary),
-                     warnings)
+                     warnings, runtime.first_send_tick)
 
 
 class SimProcess:
