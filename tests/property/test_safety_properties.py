@@ -77,6 +77,16 @@ def test_every_state_can_reach_faulted_and_faults_never_lead_to_torque() -> None
             assert after not in torque_states
 
 
+def running(torque: np.ndarray | None = None, ticks: int = 100) -> Supervisor:
+    """A supervisor through start and enable, holding ``torque`` after ``ticks`` ticks."""
+    sup = Supervisor(HAND)
+    sup.start(0)
+    sup.fire(Event.ENABLED, 0)
+    for k in range(1, ticks):
+        sup.filter(k, TAU_MAX * 0.5 if torque is None else torque)
+    return sup
+
+
 def test_ramp_stop_reaches_zero_within_the_bound() -> None:
     from handctl.safety.faults import RAMP_BOUND_S
 
@@ -102,20 +112,13 @@ def test_ramp_stop_reaches_zero_within_the_bound() -> None:
 
 
 def test_immediate_fault_zeroes_the_same_tick() -> None:
-    sup = Supervisor(HAND)
-    sup.start(0)
-    sup.fire(Event.ENABLED, 0)
-    for k in range(1, 100):
-        sup.filter(k, TAU_MAX * 0.5)
+    sup = running()
     sup.trip(FaultCode.FEEDBACK_TIMEOUT, "test", 100)
     assert not sup.filter(100, TAU_MAX * 0.5).any()
 
 
 def test_non_finite_desired_is_a_fault_not_a_clamp() -> None:
-    sup = Supervisor(HAND)
-    sup.start(0)
-    sup.fire(Event.ENABLED, 0)
-    sup.filter(1, np.full(9, 0.1))
+    sup = running(np.full(9, 0.1), ticks=2)
     bad = np.full(9, 0.1)
     bad[4] = np.nan
     out = sup.filter(2, bad)
@@ -126,11 +129,7 @@ def test_non_finite_desired_is_a_fault_not_a_clamp() -> None:
 
 
 def test_reset_restarts_from_zero_through_the_rate_limit() -> None:
-    sup = Supervisor(HAND)
-    sup.start(0)
-    sup.fire(Event.ENABLED, 0)
-    for k in range(1, 100):
-        sup.filter(k, TAU_MAX * 0.5)
+    sup = running()
     sup.trip(FaultCode.ESTOP, "test", 100)
     assert sup.reset(100)
     assert sup.state is State.IDLE and not sup.faults
@@ -139,3 +138,17 @@ def test_reset_restarts_from_zero_through_the_rate_limit() -> None:
     sup.fire(Event.ENABLED, 102)
     out = sup.filter(103, TAU_MAX)
     assert np.allclose(out, STEP)  # the first step after reset is one rate step from zero
+
+
+def test_fault_page_is_generated_from_the_table() -> None:
+    import subprocess
+    import sys
+
+    from ..conftest import ROOT
+
+    done = subprocess.run([sys.executable, "tools/gen_fault_table.py", "--check"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    page = (ROOT / "docs" / "faults.md").read_text()
+    for code in FaultCode:
+        assert f"`{code.name}`" in page
