@@ -8,8 +8,9 @@ updated in place, so a tick allocates little beyond the frames themselves.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import NewType
 
 import numpy as np
 import numpy.typing as npt
@@ -22,6 +23,10 @@ from handctl.errors import ConfigError
 from handctl.protocol import Protocol
 
 FloatArray = npt.NDArray[np.float64]
+#: Torques that came out of the safety supervisor. Only ``handctl/safety/supervisor.py`` makes
+#: one (a test checks), and ``HandDriver.send`` takes nothing else, so the type checker proves
+#: that no torque reaches a command frame without passing the limiter.
+AppliedTorques = NewType("AppliedTorques", FloatArray)
 
 
 @dataclass
@@ -117,7 +122,7 @@ class HandDriver:
         events, self.bus_events = self.bus_events, []
         return events
 
-    def send(self, torques: Sequence[float] | FloatArray) -> bool:
+    def send(self, torques: AppliedTorques) -> bool:
         """Send one command frame per node; the torques must already have passed safety.
 
         Returns False when any frame could not be sent (the bus event says why).
@@ -125,7 +130,7 @@ class HandDriver:
         ok = True
         last = len(self.nodes) - 1
         for i, (node, sl) in enumerate(zip(self.nodes, self._slices, strict=True)):
-            values = [float(t) for t in torques[sl]]
+            values = torques[sl].tolist()
             values += [0.0] * (3 - len(values))
             frame_id, data = node.next_command(values)
             ok = self.bus.send(frame_id, data, more=i < last) and ok

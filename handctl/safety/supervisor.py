@@ -25,6 +25,7 @@ import numpy as np
 from handctl.bus import BusEvent, BusEventKind
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerNode
+from handctl.drivers.hand import AppliedTorques
 from handctl.safety.faults import RAMP_BOUND_S, Fault, FaultCode, StopCategory
 from handctl.safety.limits import (
     FloatArray,
@@ -187,8 +188,12 @@ class Supervisor:
         return new
 
     def filter(self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int = 0
-               ) -> FloatArray:
+               ) -> AppliedTorques:
         """The applied torques of this tick (a view the caller must not keep across ticks)."""
+        return AppliedTorques(self._filter(tick, desired, missed))
+
+    def _filter(self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int
+                ) -> FloatArray:
         state = self.state
         if state is State.RUNNING:
             problem = check_desired(desired, self.n) if desired is not None else None
@@ -196,7 +201,7 @@ class Supervisor:
                 target = self.applied  # nothing asked: hold
             elif problem is not None:
                 self.trip(problem[0], problem[1], tick)
-                return self.filter(tick, None)
+                return self._filter(tick, None, missed)
             else:
                 target = np.asarray(desired, dtype=np.float64)
             if missed > 0:

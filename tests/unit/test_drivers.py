@@ -17,7 +17,7 @@ import pytest
 from handctl.bus import HandBus
 from handctl.config import HandConfig
 from handctl.drivers.finger import fault_names
-from handctl.drivers.hand import HandDriver, check_ids
+from handctl.drivers.hand import AppliedTorques, HandDriver, check_ids
 from handctl.errors import ConfigError
 from handctl.protocol import DEFAULT_DBC, Protocol
 
@@ -55,8 +55,8 @@ def test_sent_commands_decode_with_cantools(driver: HandDriver, bus_pair: tuple[
                                             db: cantools.database.can.Database) -> None:
     peer = bus_pair[1]
     torques = [0.1, -0.2, 0.3, 0.01, 0.02, 0.03, -0.1, -0.2, -0.25]
-    assert driver.send(torques)
-    assert driver.send([0.0] * 9)
+    assert driver.send(AppliedTorques(np.array(torques)))
+    assert driver.send(AppliedTorques(np.zeros(9)))
     frames = peer.drain()
     assert [f.arbitration_id for f in frames] == [0x101, 0x102, 0x103] * 2
     first = db.decode_message(frames[2].arbitration_id, frames[2].data)
