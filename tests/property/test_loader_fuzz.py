@@ -1,0 +1,116 @@
+"""Hypothesis: the hand-config and recipe loaders answer any input, random or a mutation of a
+good file, with a ConfigError that carries a message, or with a valid object; never with
+another exception."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from handctl.config import HandConfig, load_hand
+from handctl.errors import ConfigError
+from handctl.recipes.loader import load_recipe
+from handctl.schema import parse_yaml
+
+from ..conftest import HAND_YAML, ROOT
+
+RECIPE_YAML = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+EXAMPLES = int(os.environ.get("HANDCTL_FUZZ_EXAMPLES", "2000")) // 10
+HAND_DATA = yaml.safe_load(HAND_YAML.read_text())
+RECIPE_DATA = yaml.safe_load(RECIPE_YAML.read_text())
+
+scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6),
+                    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12))
+values = st.recursive(scalars, lambda inner: st.one_of(
+    st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=8), inner, max_size=4)),
+    max_leaves=12)
+
+
+def paths(data: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+    """Every key path in a YAML document, for choosing what to mutate."""
+    out = [prefix]
+    if isinstance(data, dict):
+        for key, value in data.items():
+            out += paths(value, (*prefix, key))
+    elif isinstance(data, list):
+        for i, value in enumerate(data):
+            out += paths(value, (*prefix, i))
+    return out
+
+
+@st.composite
+def mutated(draw: st.DrawFn, original: Any) -> Any:
+    import copy
+
+    data = copy.deepcopy(original)
+    for _ in range(draw(st.integers(1, 3))):
+        choices = [p for p in paths(data) if p]
+        if not choices:
+            break
+        path = draw(st.sampled_from(choices))
+        parent = data
+        for key in path[:-1]:
+            parent = parent[key]
+        action = draw(st.sampled_from(["replace", "delete", "add"]))
+        if action == "replace":
+            parent[path[-1]] = draw(values)
+        elif action == "delete":
+            del parent[path[-1]]
+        elif isinstance(parent, dict):
+            parent[draw(st.text(min_size=1, max_size=8))] = draw(values)
+        else:
+            parent.append(draw(values))
+    return data
+
+
+def hand_from(tmp: Path, data: Any) -> HandConfig:
+    path = tmp / "hand.yaml"
+    path.write_text(yaml.safe_dump(data) if not isinstance(data, str) else data)
+    return load_hand(path)
+
+
+def expect_config_error_or_valid(call: Any) -> None:
+    try:
+        call()
+    except ConfigError as exc:
+        assert str(exc) and exc.file
+        assert "expected" in str(exc)
+
+
+@settings(max_examples=EXAMPLES, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(mutated(HAND_DATA))
+def test_mutated_hand_configs(tmp_path: Path, data: Any) -> None:
+    expect_config_error_or_valid(lambda: hand_from(tmp_path, data))
+
+
+@settings(max_examples=EXAMPLES, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(mutated(RECIPE_DATA))
+def test_mutated_recipes(tmp_path: Path, hand: HandConfig, data: Any) -> None:
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(data))
+    expect_config_error_or_valid(lambda: load_recipe(path, hand))
+
+
+@settings(max_examples=EXAMPLES, deadline=None)
+@given(st.text(max_size=200))
+def test_random_text_as_yaml(text: str) -> None:
+    try:
+        parse_yaml(text, "fuzz.yaml")
+    except ConfigError as exc:
+        assert "fuzz.yaml" in str(exc)
+
+
+@settings(max_examples=EXAMPLES, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(values)
+def test_random_documents_as_recipes(tmp_path: Path, hand: HandConfig, data: Any) -> None:
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(data))
+    expect_config_error_or_valid(lambda: load_recipe(path, hand))
