@@ -36,6 +36,9 @@ phases:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=60.0, help="length of each loop run")
     parser.add_argument("--hand", type=Path, default=ROOT / "config/hands/hiroshima_hand.yaml")
+    parser.add_argument("--babble", type=int, default=0, metavar="FRAMES_PER_MS",
+                        help="a babbling node floods foreign ids at this rate the whole run "
+                             "(20 is about all a CAN-FD bus carries)")
     parser.add_argument("--rt", action="store_true",
                         help="ask for SCHED_FIFO and locked memory, as `handctl run --rt`")
 
@@ -59,9 +62,16 @@ def run(args: argparse.Namespace) -> dict[str, float]:
         path = Path(tmp) / "hold.yaml"
         path.write_text(HOLD.format(seconds=args.seconds))
         recipe = load_recipe(path, hand)
-    print(f"real-time loop with the simulated hand, {args.seconds:g} s ...", file=sys.stderr)
-    report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus="sim", lockstep=False,
-                                   realtime_priority=args.rt))
+        faults = None
+        if args.babble:
+            faults = Path(tmp) / "babble.yaml"
+            faults.write_text("description: a babbling node for the load benchmark\nfaults:\n"
+                              f"  - {{kind: babble, id: 0x050, per_tick: {args.babble}, "
+                              "length: 8, start: 0.0}\n")
+        print(f"real-time loop with the simulated hand, {args.seconds:g} s"
+              f"{f', babble {args.babble}/ms' if args.babble else ''} ...", file=sys.stderr)
+        report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus="sim", lockstep=False,
+                                       realtime_priority=args.rt, sim_faults=faults))
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     result = report.result
@@ -78,6 +88,8 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     naive_p99 = float(np.percentile(naive, 99)) / 1e3
     return {
         "seconds": args.seconds,
+        "babble_per_ms": args.babble,
+        "foreign_frames": result.node_rejects.get("unexpected_id", 0),
         "rt": bool(args.rt and not report.warnings),  # type: ignore[dict-item]
         "outcome": result.outcome.value,  # type: ignore[dict-item]
         "message": result.message,  # type: ignore[dict-item]
