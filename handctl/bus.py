@@ -28,7 +28,7 @@ import select
 import socket
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,6 +74,17 @@ class BusEvent:
     kind: BusEventKind
     detail: str
     timestamp_ns: int
+
+
+#: What a frame tap is told about each frame (``HandBus.tap``).
+TAP_RX = 0  # drained from the bus
+TAP_TX = 1  # handed to the bus
+TAP_TX_FAILED = 2  # refused by the bus (a bus event says why)
+#: ``tap(arbitration_id, data, direction)``: each frame ``send`` handed to the bus (or could
+#: not). Called inside the tick, so it must only copy and return.
+FrameTap = Callable[[int, bytes, int], None]
+#: ``rx_tap(frames)``: the frames one ``drain`` returns, once per drain that returned any.
+RxTap = Callable[[list[Frame]], None]
 
 
 @dataclass(frozen=True)
@@ -313,6 +324,10 @@ class HandBus:
         self.received = 0
         self.closed = False
         self._batching = isinstance(bus, UnixDatagramBus)
+        #: The recorder's taps: every frame drained or sent, and every event as it is taken.
+        self.tap: FrameTap | None = None
+        self.rx_tap: RxTap | None = None
+        self.event_tap: Callable[[BusEvent], None] | None = None
 
     def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]:
         """Every frame that has arrived, without waiting; error frames become events."""
@@ -332,6 +347,8 @@ class HandBus:
             self.received += 1
             frames.append(Frame(msg.arbitration_id, bytes(msg.data),
                                 int(msg.timestamp * 1e9), msg.is_fd))
+        if frames and self.rx_tap is not None:
+            self.rx_tap(frames)
         return frames
 
     def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool:
@@ -349,11 +366,17 @@ class HandBus:
         except can.CanOperationError as exc:
             full = exc.error_code == errno.ENOBUFS or "No buffer space" in str(exc)
             self._event(BusEventKind.TX_QUEUE_FULL if full else BusEventKind.TX_FAILED, str(exc))
+            if self.tap is not None:
+                self.tap(arbitration_id, data, TAP_TX_FAILED)
             return False
         except (can.CanError, OSError, ValueError) as exc:
             self._event(BusEventKind.TX_FAILED, f"{type(exc).__name__}: {exc}")
+            if self.tap is not None:
+                self.tap(arbitration_id, data, TAP_TX_FAILED)
             return False
         self.sent += 1
+        if self.tap is not None:
+            self.tap(arbitration_id, data, TAP_TX)
         return True
 
     def send_error_frame(self, error_class: int = _CAN_ERR_CRTL, data: bytes = bytes(8)) -> bool:
@@ -375,6 +398,9 @@ class HandBus:
     def events(self) -> list[BusEvent]:
         """Take the events since the last call."""
         events, self._events = self._events, []
+        if self.event_tap is not None:
+            for event in events:
+                self.event_tap(event)
         return events
 
     def close(self) -> None:
@@ -427,3 +453,32 @@ def open_bus(spec: str | BusSpec, bus_config: BusConfig,
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
         raise BusError(f"{parsed}: cannot open the bus: {type(exc).__name__}: {exc}") from None
     return HandBus(bus, parsed, bus_config.fd)
+
+
+#: Log formats of python-can that ``write_frames`` writes: candump -L, Vector ASC, Vector BLF.
+LOG_FORMATS = ("candump", "asc", "blf")
+
+
+def write_frames(path: str | Path, fmt: str,
+                 frames: Iterable[tuple[float, int, bytes, bool, bool]]) -> int:
+    """Write ``(timestamp_s, arbitration_id, data, is_rx, is_fd)`` frames in a python-can log
+    format, so the CAN tools people already have (candump/canplayer, CANalyzer, python-can's
+    readers) open a handctl recording. Returns the number of frames written."""
+    writer: can.io.generic.MessageWriter
+    if fmt == "candump":
+        writer = can.CanutilsLogWriter(str(path), channel="can0")
+    elif fmt == "asc":
+        writer = can.ASCWriter(str(path), channel=1)
+    elif fmt == "blf":
+        writer = can.BLFWriter(str(path), channel=1)
+    else:
+        raise ConfigError("--export", "format", "one of " + ", ".join(LOG_FORMATS), fmt)
+    count = 0
+    with writer:
+        for stamp, frame_id, data, is_rx, is_fd in frames:
+            fd = is_fd or len(data) > 8
+            writer.on_message_received(can.Message(
+                timestamp=stamp, arbitration_id=frame_id, is_extended_id=frame_id > 0x7FF,
+                data=data, is_fd=fd, bitrate_switch=fd, is_rx=is_rx, check=False))
+            count += 1
+    return count

@@ -18,6 +18,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from handctl import __version__
 from handctl.errors import BusError, ConfigError, HandctlError
@@ -126,7 +127,8 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     request = RunRequest(hand=hand, recipe=recipe, bus=args.bus, lockstep=lockstep,
                          realtime_priority=args.rt, seed=args.seed,
                          reset_node_faults=args.reset_node_faults, sim_faults=args.sim_faults,
-                         max_seconds=args.max_seconds)
+                         max_seconds=args.max_seconds, log=args.log,
+                         command_line=tuple(sys.argv), plot=args.plot)
     status = _status_printer()
     report = run_recipe(request, status=status)
     if status is not None:
@@ -148,6 +150,20 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     print(f"  {summary['ticks']} ticks, {summary['missed_ticks']} missed, lateness p50 "
           f"{late['p50']} µs p99 {late['p99']} µs max {late['max']} µs")
     print("  max |τ| " + ", ".join(f"{k} {v:.3f}" for k, v in summary["max_abs_tau"].items()))
+    if "experiment" in summary:
+        ex = summary["experiment"]
+        err = ex["estimator_error_deg"]
+        print(f"  experiment: lifted {ex['lifted']} (held {ex['held_s']:.2f} s), turn per "
+              f"phase {ex['phase_angles_deg']} deg, total {ex['total_rotation_deg']} deg, "
+              f"dropped {ex['dropped']}, estimator p95 "
+              + ("-" if err is None else f"{err} deg"))
+    if args.plot and "experiment" in summary:
+        print(f"  overview plot: {args.plot}")
+    if "recording" in summary and "error" not in summary["recording"]:
+        rec = summary["recording"]
+        dropped = rec["dropped_ticks"] + rec["dropped_frames"] + rec["dropped_events"]
+        print(f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to {rec['path']}"
+              + (f" ({dropped} records dropped: the writer fell behind)" if dropped else ""))
     if report.result.outcome is Outcome.COMPLETED:
         return EXIT_OK
     if report.result.outcome is Outcome.INTERRUPTED:
@@ -155,6 +171,43 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
     print(f"handctl: safety stop: {report.result.message}", file=sys.stderr)
     return EXIT_SAFETY_STOP
+
+
+# -- plan --------------------------------------------------------------------------------------
+def _cmd_plan(args: argparse.Namespace) -> int:
+    from handctl.config import load_hand
+    from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
+    from handctl.planning.template import load_template
+
+    if args.models is not None and args.models < 1:
+        raise ConfigError("--models", "", "at least 1 model", args.models)
+    hand = load_hand(args.hand)
+    template = load_template(args.template, hand)
+    result = plan_recipe(template, hand, progress=_progress, models=args.models,
+                         budget=quick_budget() if args.quick else None)
+    command = " ".join(["handctl plan", str(args.template), "-o", str(args.output)]
+                       + (["--hand", str(args.hand)] if args.hand != DEFAULT_HAND else [])
+                       + (["--models", str(args.models)] if args.models else [])
+                       + (["--quick"] if args.quick else []))
+    args.output.write_text(recipe_text(result, command), encoding="utf-8")
+    print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> "
+          f"{args.output}")
+    for plan in result.phases:
+        prov = plan.provenance
+        analysis = prov["analysis"]
+        ana = (f"analysis margin {analysis['margin_N']} N" if analysis.get("found")
+               else "analysis: none")
+        search = prov.get("search")
+        found = f", search score {search['score']}" if search else ""
+        held = prov["models"]
+        print(f"  {plan.phase.name:<16} {plan.spec.kind:<5} {ana}{found}; from "
+              f"{prov['chosen_from']}; {held['held']}/{held['ran']} models hold")
+    if args.plot:
+        from handctl.planning.plot import plot_plan
+
+        for path in plot_plan(result, args.plot):
+            print(f"  plot {path}")
+    return EXIT_OK
 
 
 # -- sim ---------------------------------------------------------------------------------------
@@ -168,6 +221,106 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
                      summary_json=args.summary_json))
     return EXIT_OK
+
+
+# -- replay ------------------------------------------------------------------------------------
+def _print_replay_summary(summary: dict[str, Any]) -> None:
+    state = "complete" if summary["complete"] else f"TRUNCATED: {summary['problem']}"
+    print(f"{summary['file']}: {summary['recipe'] or '?'} on {summary['hand'] or '?'} "
+          f"({summary['mode'] or '?'}), {summary['outcome']}; {summary['duration_s']:.3f} s, "
+          f"{summary['ticks']} ticks, {summary['chunks']} chunks, {state}")
+    print("  phases:")
+    for phase in summary["phases"]:
+        print(f"    {phase['name']:<16} {phase['start_s']:8.3f} .. {phase['end_s']:8.3f} s "
+              f"({phase['duration_s']:.3f} s)  {phase['exit']}")
+    print("  largest torques [N·m] (applied, when; |desired|; |TDT|):")
+    for name, t in summary["largest_torques"].items():
+        if "applied_nm" in t:
+            print(f"    {name:<8} {t['applied_nm']:+.4f} at {t['at_s']:.3f} s; "
+                  f"{t['desired_nm']:.4f}; {t.get('tdt_nm', float('nan')):.4f}")
+    for fault in summary["faults"]:
+        print(f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']} "
+              f"({fault['t_s']:.3f} s): {fault['detail']}")
+    if not summary["faults"]:
+        print("  faults: none")
+    timing = summary["timing"]
+    late = timing["lateness_us"]
+    stages = ", ".join(f"{k} {v}" for k, v in timing["stage_cpu_us_p99"].items())
+    print(f"  timing: lateness p50 {late['p50']} µs, p99 {late['p99']} µs, max {late['max']} µs;"
+          f" {timing['missed_ticks']} missed ticks; stage CPU p99 (µs) {stages}")
+    frames = summary["frames"]
+    rejected = ", ".join(f"{k} {v}" for k, v in summary["rejected_frames"].items()) or "none"
+    print(f"  frames: {frames['rx']} received, {frames['tx']} sent ({frames['tx_refused']} "
+          f"refused); {summary['bus_events']} bus events; rejected: {rejected}")
+    drops = summary["drops"]
+    print("  drops: " + (", ".join(f"{k} {v}" for k, v in drops.items() if v) or "none"))
+    for name, pose in summary.get("objects", {}).items():
+        print(f"  {name}: height {pose['start']['y_m'] * 1e3:+.1f} -> "
+              f"{pose['end']['y_m'] * 1e3:+.1f} mm, x {pose['start']['x_m'] * 1e3:+.1f} -> "
+              f"{pose['end']['x_m'] * 1e3:+.1f} mm")
+    if "objects_line_angle_rad" in summary:
+        line = summary["objects_line_angle_rad"]
+        print(f"  line through the centres: {line['start']:+.3f} -> {line['end']:+.3f} rad")
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    import json
+
+    from handctl.bus import LOG_FORMATS
+    from handctl.recording import replay
+    from handctl.recording.reader import check_format, open_recording
+
+    if args.speed is not None and not args.to_bus:
+        raise ConfigError("--speed", "", "--to-bus SPEC as well (the speed is of the replay "
+                          "onto a bus)", args.speed)
+    if args.export and args.export[0] not in LOG_FORMATS:
+        raise ConfigError("--export", "FORMAT", "one of " + ", ".join(LOG_FORMATS),
+                          args.export[0])
+    recording = open_recording(args.log)
+    check_format(recording)
+    series = replay.load_series(recording)
+    summary = replay.summarise(recording, series)
+    _print_replay_summary(summary)
+    report: dict[str, Any] = {"summary": summary}
+    status = EXIT_OK
+    if args.plot:
+        from handctl.recording.plot import plot_recording, title_of
+
+        plot_recording(series, args.plot, title_of(summary))
+        print(f"plot: {args.plot}")
+    if args.rerun:
+        result = replay.rerun(recording)
+        report["rerun"] = result.as_dict()
+        for note in result.notes:
+            print(f"rerun: note: {note}")
+        if result.ok:
+            print(f"rerun: {result.compared} ticks compared, applied torques bit-exact; "
+                  f"{result.frames_compared} command frames identical; outcome "
+                  f"{result.outcome} (logged {result.logged_outcome or '?'}); "
+                  f"{result.wall_s:.2f} s")
+        else:
+            print(f"rerun: MISMATCH in {result.mismatched_ticks} of {result.ticks} ticks, "
+                  f"{len(result.frame_mismatches)} frame mismatches; outcome {result.outcome} "
+                  f"(logged {result.logged_outcome or '?'})")
+            for m in result.mismatches[:replay.MAX_LISTED]:
+                print(f"  tick {m['tick']} {m['joint']}: logged {m['logged_nm']!r}, re-run "
+                      f"{m['rerun_nm']!r} {m['detail']}")
+            for text in result.frame_mismatches[:replay.MAX_LISTED]:
+                print(f"  {text}")
+            status = EXIT_FAILED
+    if args.export:
+        fmt, out = args.export
+        count = replay.export(recording, fmt, out)
+        print(f"export: {count} frames to {out} ({fmt})")
+    if args.to_bus:
+        _progress(f"replaying frames onto {args.to_bus} at {args.speed or 1.0:g}x ...")
+        sent = replay.to_bus(recording, args.to_bus, args.speed or 1.0, args.direction)
+        report["to_bus"] = sent
+        print(f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
+              f"worst lateness {sent['worst_late_ms']} ms)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2, default=str) + "\n")
+    return status
 
 
 # -- parser --------------------------------------------------------------------------------------
@@ -244,7 +397,53 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--reset-node-faults", action="store_true",
                      help="clear faults latched in the nodes before starting (explicit reset)")
     rec.add_argument("--max-seconds", type=float, help="stop (controlled) after this long")
+    rec.add_argument("--log", type=Path, metavar="RUN.mcap",
+                     help="record every tick, event and frame to an MCAP file "
+                          "(see docs/recording.md; read it with 'handctl replay')")
+    rec.add_argument("--plot", type=Path, metavar="OUT.png",
+                     help="overview PNG: phases, torques, object heights, centre-line angle "
+                          "(simulated hand in lockstep)")
     rec.set_defaults(func=_cmd_run_recipe)
+
+    plan = sub.add_parser(
+        "plan", help="plan a recipe's torques from a template (analysis, then search)",
+        description="Compute the torques of every phase of a recipe template: the analysis' "
+                    "torque with the largest robust margin at each phase's grasp, refined by a "
+                    "search on the simulated hand scored over perturbed models. Writes the "
+                    "compiled recipe with per-phase provenance.")
+    plan.add_argument("template", type=Path, help="recipe template YAML (config/recipes/)")
+    plan.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                      help=f"hand config (default {DEFAULT_HAND})")
+    plan.add_argument("-o", "--output", type=Path, required=True, metavar="RECIPE.yaml",
+                      help="where to write the compiled recipe")
+    plan.add_argument("--plot", type=Path, metavar="DIR",
+                      help="write each phase's torque region (chosen torque marked) as PNGs")
+    plan.add_argument("--models", type=int, help="perturbed models (default: the template's)")
+    plan.add_argument("--quick", action="store_true",
+                      help="the smallest search (smoke tests): 1 generation of 2")
+    plan.set_defaults(func=_cmd_plan)
+
+    rep = sub.add_parser(
+        "replay", help="summarise, plot, re-run or replay a recording",
+        description="Read a recording (handctl run recipe --log RUN.mcap), complete or "
+                    "truncated, and print its summary: phases, largest torques, faults, timing, "
+                    "drops. Exit 1 when --rerun finds a mismatch.")
+    rep.add_argument("log", type=Path, metavar="RUN.mcap", help="the recording")
+    rep.add_argument("--plot", type=Path, metavar="OUT.png",
+                     help="torques over time with phase bands (and object poses if simulated)")
+    rep.add_argument("--rerun", action="store_true",
+                     help="feed the logged frames through a fresh driver, recipe runner and "
+                          "safety; compare the applied torques tick by tick, bit for bit")
+    rep.add_argument("--to-bus", metavar="SPEC",
+                     help="send the logged frames onto a bus (virtual:NAME, socketcan:can0, ...) "
+                          "with their original timing")
+    rep.add_argument("--speed", type=float, help="with --to-bus: time scale (2 = twice as fast)")
+    rep.add_argument("--direction", choices=("both", "rx", "tx"), default="both",
+                     help="with --to-bus: which logged frames to send (default both)")
+    rep.add_argument("--export", nargs=2, metavar=("FORMAT", "OUT"),
+                     help="write the frames as candump, asc or blf (python-can's log formats)")
+    rep.add_argument("--json", type=Path, help="write the summary (and re-run report) as JSON")
+    rep.set_defaults(func=_cmd_replay)
     return parser
 
 

@@ -45,6 +45,10 @@ class JointConfig:
     angle_min: float  # rad, soft limit
     angle_max: float  # rad, soft limit
     tdt: TdtCalibration
+    # m, half the link's thickness in the hand plane: a grasped object's surface lies this far
+    # from the line through the joint axes (0: the paper's ideal line links). The object
+    # estimator needs it to place an enveloped object from the joint angles alone.
+    half_thickness: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -98,6 +102,9 @@ class SafetyConfig:
     tdt_lag_s: float = 0.01  # first-order lag between command and TDT reading
     tdt_stuck_window_s: float = 0.1
     tdt_stuck_min_change: float = 0.02  # N·m the command must move for "stuck" to mean anything
+    # A live TDT reading is never bit-identical this long (sensor noise spans several ADC
+    # steps), whatever the command does; 0 turns the check off for a noiseless sensor.
+    tdt_stuck_still_s: float = 0.5
     enable_timeout_s: float = 0.1  # nodes must report ENABLED this soon after enable
     max_consecutive_misses: int = 3
     max_consecutive_send_failures: int = 3
@@ -176,6 +183,8 @@ def _parse_safety(doc: Doc) -> SafetyConfig:
                                       min=0.005, max=10.0, unit="s"),
         tdt_stuck_min_change=doc.number("tdt_stuck_min_change", default=d.tdt_stuck_min_change,
                                         min=0.0, max=10.0, unit="N·m"),
+        tdt_stuck_still_s=doc.number("tdt_stuck_still_s", default=d.tdt_stuck_still_s,
+                                     min=0.0, max=60.0, unit="s"),
         enable_timeout_s=doc.number("enable_timeout_s", default=d.enable_timeout_s, min=0.005,
                                     max=10.0, unit="s"),
         max_consecutive_misses=doc.integer("max_consecutive_misses",
@@ -238,8 +247,10 @@ def _parse_joint(doc: Doc) -> JointConfig:
     scale = tdt_doc.number("scale", min=0.1, max=10.0)
     offset = tdt_doc.number("offset", min=-10.0, max=10.0, unit="N·m")
     tdt_doc.done()
+    half_thickness = doc.number("half_thickness", default=0.0, min=0.0, max=0.1, unit="m")
     doc.done()
-    return JointConfig(name, link, tau_max, device, rate, lo, hi, TdtCalibration(scale, offset))
+    return JointConfig(name, link, tau_max, device, rate, lo, hi, TdtCalibration(scale, offset),
+                       half_thickness)
 
 
 def _check_unique(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:

@@ -46,7 +46,17 @@ class Outcome(enum.Enum):
 
 
 class RecordSink(Protocol):
+    """Where the loop's records go. Every method returns at once: it copies numbers and goes."""
+
+    def begin_tick(self, tick: Tick) -> None:
+        """Tick ``tick`` has begun (start-up and shut-down ticks too), before its poll: the
+        frames drained and sent from now on belong to it."""
+
     def push(self, record: TickRecord) -> None: ...
+
+    def note(self, kind: str, detail: str, tick: int) -> None:
+        """A request from outside the tick (``stop``, ``estop``, ``reset``) that takes effect
+        at tick ``tick``: what a replay must repeat to reach the same torques."""
 
 
 class Estimator(Protocol):
@@ -55,7 +65,8 @@ class Estimator(Protocol):
 
 @dataclass(slots=True)
 class TickRecord:
-    """Everything one tick saw and did; the recorder copies what it keeps."""
+    """Everything one tick saw and did. The arrays are the loop's own buffers, valid only
+    during ``push``: the recorder copies what it keeps."""
 
     tick: int
     t_ns: int
@@ -139,9 +150,13 @@ class Runtime:
         """A controlled stop: zero torque, nodes disabled, the run ends as INTERRUPTED."""
         if not self.stop_requested:
             self.stop_requested = reason
+            if self.recorder is not None:
+                self.recorder.note("stop", reason, self._ticks)
 
     def request_estop(self, reason: str = "operator") -> None:
         self.estop_requested = reason
+        if self.recorder is not None:
+            self.recorder.note("estop", reason, self._ticks)
 
     def reset(self) -> bool:
         """The explicit reset after a safety stop: clear the latched faults, host and nodes.
@@ -152,6 +167,8 @@ class Runtime:
         if self.supervisor.state is not State.FAULTED:
             return False
         self.supervisor.reset(self._ticks)
+        if self.recorder is not None:
+            self.recorder.note("reset", "", self._ticks)
         self.driver.node_command("fault_reset")
         if self.recipe is not None:
             self.runner = RecipeRunner(self.recipe, self.hand.n_joints)
@@ -192,7 +209,7 @@ class Runtime:
         self.driver.node_command("disable")
         # One more period so the disable is on its way (in lockstep: so the hand steps once
         # more and sees it) before the bus is closed.
-        tk = await self.clock.wait_tick()
+        tk = await self._next_tick()
         self._account_idle(tk)
         self.driver.poll(tk.now_ns)
         if sup.faults:
@@ -204,13 +221,22 @@ class Runtime:
     async def _startup(self) -> str:
         nodes = self.driver.nodes
         reset_sent = False
+        since: int | None = None
+        self.driver.discard_pending()
         for _ in range(self.startup_ticks):
-            tk = await self.clock.wait_tick()
+            tk = await self._next_tick()
             self._account_idle(tk)
+            if since is None:
+                since = tk.now_ns
             self.driver.poll(tk.now_ns)
             if self.stop_requested:
                 return f"stopped during start-up ({self.stop_requested})"
-            heard = all(n.feedback_ns is not None and n.heartbeat_ns is not None for n in nodes)
+            # Judge the nodes on what they say now, not on what a previous run last heard:
+            # fresh feedback and a fresh heartbeat from every node (the heartbeat's uptime is
+            # the baseline against which a reboot during the run is recognised).
+            heard = all(n.feedback_ns is not None and n.feedback_ns >= since
+                        and n.heartbeat_ns is not None and n.heartbeat_ns >= since
+                        for n in nodes)
             if not heard:
                 continue
             faulted = [n for n in nodes if n.state == 2]
@@ -230,15 +256,25 @@ class Runtime:
             if not reset_sent:
                 self.driver.node_command("fault_reset", [n.node_id for n in faulted])
                 reset_sent = True
-        silent = [f"node {n.node_id} ({n.finger.name}): "
-                  f"{'no feedback' if n.feedback_ns is None else 'no heartbeat'}"
-                  if n.feedback_ns is None or n.heartbeat_ns is None
-                  else f"node {n.node_id} ({n.finger.name}) is {n.state_name}"
-                  for n in nodes if n.feedback_ns is None or n.heartbeat_ns is None
-                  or n.state != 0]
+        silent = []
+        for n in nodes:
+            who = f"node {n.node_id} ({n.finger.name})"
+            if n.feedback_ns is None or since is None or n.feedback_ns < since:
+                silent.append(f"{who}: no feedback")
+            elif n.heartbeat_ns is None or n.heartbeat_ns < since:
+                silent.append(f"{who}: no heartbeat")
+            elif n.state != 0:
+                silent.append(f"{who} is {n.state_name}")
         detail = "; ".join(silent) or "nodes not ready"
         self.supervisor.trip(FaultCode.STARTUP, detail, self._ticks)
         return f"nodes not ready within {self.startup_ticks} ticks: {detail}"
+
+    async def _next_tick(self) -> Tick:
+        """Every tick of the run starts here, so the recorder sees each one before its poll."""
+        tk = await self.clock.wait_tick()
+        if self.recorder is not None:
+            self.recorder.begin_tick(tk)
+        return tk
 
     def _account_idle(self, tk: Tick) -> None:
         if self._t0_ns is None:
@@ -249,7 +285,7 @@ class Runtime:
         sup = self.supervisor
         driver = self.driver
         cpu = time.thread_time_ns
-        tk = await self.clock.wait_tick()
+        tk = await self._next_tick()
         for hook in self.tick_hooks:
             hook(tk)
         c0 = cpu()
@@ -278,10 +314,9 @@ class Runtime:
         np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)
         if self.recorder is not None:
             self.recorder.push(TickRecord(
-                tk.k, tk.scheduled_ns, tk.lateness_ns, tk.missed, state.angle.copy(),
-                state.torque.copy(), np.array(desired, dtype=np.float64), applied.copy(),
-                sup.state.value, self._phase_name(), (c1 - c0, c2 - c1, c3 - c2, c4 - c3, 0),
-                new_faults))
+                tk.k, tk.scheduled_ns, tk.lateness_ns, tk.missed, state.angle, state.torque,
+                desired, applied, sup.state.value, self._phase_name(),
+                (c1 - c0, c2 - c1, c3 - c2, c4 - c3, 0), new_faults))
         c5 = cpu()
         self._store(tk, (c1 - c0, c2 - c1, c3 - c2, c4 - c3, c5 - c4))
         if self.status is not None and tk.k % STATUS_EVERY_TICKS == 0:

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,11 +27,19 @@ from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
 from handctl.clock import Clock, LockstepClock, RealtimeClock, request_realtime
 from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, HandctlError
+from handctl.estimator import ObjectEstimator
 from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS
+
+if TYPE_CHECKING:
+    from handctl.clock import Tick
+    from handctl.recording.recorder import Recorder
+
+#: Object poses of the simulated hand are recorded every this many ticks (lockstep only).
+POSE_EVERY_TICKS = 10
 
 
 @dataclass
@@ -45,6 +53,9 @@ class RunRequest:
     reset_node_faults: bool = False
     sim_faults: Path | None = None
     max_seconds: float | None = None
+    plot: Path | None = None  # write the overview PNG of the run here (lockstep sim only)
+    log: Path | None = None  # record the run to this MCAP file
+    command_line: tuple[str, ...] = ()  # for the recording's metadata
 
 
 @dataclass
@@ -105,6 +116,12 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                           "stepped", req.bus)
     startup_s = 0.5
     with ExitStack() as stack:
+        # The recording first: a log path that cannot be written is refused before anything
+        # starts, and the file is finished however the run ends.
+        recording = stack.enter_context(_recorder(req, is_sim and lockstep)) if req.log \
+            else None
+        if recording is not None:
+            recorder = recording
         sim_hand: Any = None
         sim_process: SimProcess | None = None
         if is_sim and lockstep:
@@ -137,15 +154,80 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                      else 10_000_000)
         runtime = Runtime(req.hand, driver, clock, req.recipe, recorder=recorder, status=status,
                           reset_node_faults=req.reset_node_faults, max_ticks=max_ticks,
-                          startup_timeout_s=startup_s)
+                          startup_timeout_s=startup_s,
+                          estimator=(ObjectEstimator(req.hand, req.recipe.objects)
+                                     if req.recipe.objects else None))
+        # Ground truth of the experiment, recorded every tick and never fed back.
+        tracker = None
+        if sim_hand is not None and req.recipe.objects:
+            from handctl.planning.experiment import track
+
+            tracker = track(runtime, sim_hand)
+        if recording is not None:
+            _start_recording(recording, runtime, req, spec, lockstep, sim_hand)
         result = asyncio.run(_run_with_signals(runtime))
         sim_summary = None
         if sim_hand is not None:
             sim_summary = sim_hand.ground_truth_summary()
         elif sim_process is not None:
             sim_summary = sim_process.finish()
-    return RunReport(result, summarise(result, req.hand, req.recipe, lockstep, sim_summary),
-                     warnings, runtime.first_send_tick)
+        summary = summarise(result, req.hand, req.recipe, lockstep, sim_summary)
+        if tracker is not None:
+            from handctl.planning.experiment import experiment_summary
+
+            summary["experiment"] = experiment_summary(tracker.trace)
+        if req.plot is not None:
+            if tracker is None:
+                warnings.append("--plot needs the simulated hand in lockstep and a recipe "
+                                "that declares its objects: no plot written")
+            else:
+                from handctl.planning.plot import plot_run
+
+                plot_run(tracker.trace, req.plot, req.recipe, summary.get("experiment"))
+        if recording is not None:
+            try:
+                summary["recording"] = recording.close(summary)
+            except HandctlError as exc:  # the run is over and safe; say what the log lacks
+                warnings.append(str(exc))
+                summary["recording"] = {"path": str(req.log), "error": str(exc)}
+    return RunReport(result, summary, warnings, runtime.first_send_tick)
+
+
+def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
+    from handctl.recording.metadata import start_metadata
+    from handctl.recording.recorder import Recorder
+
+    assert req.log is not None
+    objects: list[str] = []
+    if lockstep_sim:
+        from handctl.sim.params import parse_sim
+
+        objects = [o.name for o in parse_sim(req.hand).objects]
+    return Recorder(req.log, req.hand, start_metadata(req.hand, req.recipe, req.command_line),
+                    phase_names=[p.name for p in req.recipe.phases], object_names=objects)
+
+
+def _start_recording(recording: Recorder, runtime: Runtime, req: RunRequest, spec: BusSpec,
+                     lockstep: bool, sim_hand: Any) -> None:
+    """Tap the runtime, note how it is set up, and (lockstep) sample the objects' poses."""
+    from handctl.recording.channels import META_RUN
+    from handctl.recording.metadata import run_metadata
+
+    recording.attach(runtime)
+    recording.add_metadata(META_RUN, run_metadata(
+        mode="lockstep" if lockstep else "realtime", bus=f"{req.bus} ({spec})", seed=req.seed,
+        period_ns=round(req.hand.bus.period_s * 1e9), startup_ticks=runtime.startup_ticks,
+        reset_node_faults=req.reset_node_faults, estimator=runtime.estimator is not None,
+        sim_faults=str(req.sim_faults or "")))
+    if sim_hand is not None:
+        every = POSE_EVERY_TICKS
+
+        def sample_poses(tk: Tick) -> None:
+            if tk.k % every == 0:
+                recording.poses([(o.x, o.y, o.angle) for o in sim_hand.ground_truth().objects])
+
+        runtime.tick_hooks.append(sample_poses)
+    recording.wait_ready()
 
 
 class SimProcess:

@@ -15,7 +15,7 @@ from typing import NewType
 import numpy as np
 import numpy.typing as npt
 
-from handctl.bus import BusEvent, HandBus
+from handctl.bus import DRAIN_LIMIT, BusEvent, HandBus
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode
 from handctl.drivers.receiver import Reject, RejectCounts
@@ -117,6 +117,19 @@ class HandDriver:
         np.multiply(self._tdt_raw, self._tdt_scale, out=state.torque)
         state.torque += self._tdt_offset
         return state
+
+    def discard_pending(self) -> int:
+        """Drop every frame already waiting in the receive queue, unread.
+
+        At start-up, frames queued while nobody listened (a previous run's end, a reset) say
+        what the nodes were, not what they are; judging the nodes on them would be wrong.
+        """
+        dropped = 0
+        while True:
+            frames = self.bus.drain()
+            dropped += len(frames)
+            if len(frames) < DRAIN_LIMIT:
+                return dropped
 
     def take_bus_events(self) -> list[BusEvent]:
         events, self.bus_events = self.bus_events, []

@@ -14,10 +14,20 @@ import numpy as np
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.recipes.schema import Condition, Phase, Recipe, TimeoutAction, parse_condition
+from handctl.recipes.schema import (
+    Condition,
+    Phase,
+    Recipe,
+    RecipeObject,
+    SignalKind,
+    TimeoutAction,
+    parse_condition,
+)
 from handctl.schema import Doc, load_yaml
 
 MAX_PHASES = 64
+#: The estimator's outputs are those of a pair (object 1, object 2 and the line through them).
+OBJECT_COUNT = 2
 
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
@@ -39,6 +49,11 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
         doc.fail("hand_config_hash", "the hash of the hand config a compiled recipe was made "
                  "for", "nothing")
     end_ramp = doc.number("end_ramp_s", default=0.2, min=0.0, max=60.0, unit="s")
+    objects = _parse_objects(doc)
+    planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe: read, not used
+    if not isinstance(planned_from, dict):
+        doc.fail("planned_from", "a mapping (what handctl plan planned the recipe from)",
+                 planned_from)
     phases = tuple(_parse_phase(p, hand) for p in doc.mappings("phases", min_len=1,
                                                               max_len=MAX_PHASES))
     seen: set[str] = set()
@@ -47,12 +62,34 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
             raise ConfigError(doc.file, f"phases[{i}].name", "a phase name not used before",
                               phase.name)
         seen.add(phase.name)
+        uses = next((c for c in (*phase.exits, *phase.aborts)
+                     if c.kind is SignalKind.ESTIMATE), None)
+        if uses is not None and not objects:
+            raise ConfigError(doc.file, "objects", "the objects the recipe grasps ([{name, "
+                              f"radius}}, ...]): phase '{phase.name}' reads an estimate "
+                              f"('{uses.text}') and the estimator needs their radii", "nothing")
     doc.done()
     if digest is not None and digest != hand.config_hash:
         raise ConfigError(doc.file, "hand_config_hash",
                           f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
                           "compiled for another hand config: recompile it for this one)", digest)
-    return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled)
+    return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled, objects)
+
+
+def _parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
+    if not doc.has("objects"):
+        return ()
+    out: list[RecipeObject] = []
+    for i, sub in enumerate(doc.mappings("objects", min_len=OBJECT_COUNT,
+                                         max_len=OBJECT_COUNT)):
+        name = sub.string("name")
+        radius = sub.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m")
+        sub.done()
+        if any(o.name == name for o in out):
+            raise ConfigError(doc.file, f"objects[{i}].name", "a name not used by another "
+                              "object", name)
+        out.append(RecipeObject(name, radius))
+    return tuple(out)
 
 
 def _parse_phase(doc: Doc, hand: HandConfig) -> Phase:

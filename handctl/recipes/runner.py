@@ -8,6 +8,7 @@ logged feedback through it and get the very same torques.
 from __future__ import annotations
 
 import enum
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -48,6 +49,8 @@ class RecipeRunner:
         self._desired = np.zeros(n_joints)
         self._ramp_s = 0.0
         self._held_since: dict[int, float] = {}
+        # first finite value of each phase-relative estimate in the current phase, by index
+        self._phase_ref: dict[int, float] = {}
         self._started = False
 
     @property
@@ -69,6 +72,7 @@ class RecipeRunner:
         self._from = self._desired.copy()
         self.phase_start = t
         self._held_since.clear()
+        self._phase_ref.clear()
         if index < len(self.recipe.phases):
             phase = self.recipe.phases[index]
             self.index = index
@@ -138,6 +142,13 @@ class RecipeRunner:
             if estimates is None:
                 return False
             value = float(estimates[cond.index])
+            if cond.relative:
+                ref = self._phase_ref.get(cond.index)
+                if ref is None:
+                    if not math.isfinite(value):
+                        return False
+                    ref = self._phase_ref[cond.index] = value
+                value -= ref
         if not cond.holds(value):
             self._held_since.pop(key, None)
             return False

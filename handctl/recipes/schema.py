@@ -6,7 +6,8 @@ into predicates over a fixed set of signals:
 
 - ``time``: seconds since the phase began;
 - ``angle.JOINT`` (rad), ``tdt.JOINT`` (N·m): the joint state from the nodes;
-- ``estimate.NAME``: the object estimator's outputs (``ESTIMATES``);
+- ``estimate.NAME``: the object estimator's outputs (``ESTIMATES``), which a recipe may use
+  only if it declares its ``objects`` (the estimator needs their radii);
 - ``for S`` makes the condition hold continuously for S seconds before it counts, so one noisy
   sample cannot end a phase.
 """
@@ -20,9 +21,15 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-#: Estimator outputs a recipe may name (rad for angles, m for positions).
+#: Estimator outputs a recipe may name (rad for angles, m for positions). ``centre_line_angle``
+#: is the direction of the line from object 1's centre to object 2's, in (-π, π];
+#: ``centre_line_turn`` is how far that line has turned since the phase began (counter-clockwise
+#: positive, unwrapped, so a phase can ask for more than half a turn).
 ESTIMATES = ("centre_line_angle", "centre_line_turn", "object1_x", "object1_y", "object2_x",
              "object2_y")
+#: Estimates a condition reads relative to their value when the phase began. The estimator gives
+#: them as running (unwrapped) values; only the runner knows where a phase starts.
+PHASE_RELATIVE_ESTIMATES = frozenset({"centre_line_turn"})
 
 OPERATORS: dict[str, Callable[[float, float], bool]] = {
     "<": operator.lt, "<=": operator.le, ">": operator.gt, ">=": operator.ge}
@@ -48,6 +55,7 @@ class Condition:
     op: str
     value: float
     hold_s: float
+    relative: bool = False  # an estimate read relative to its value when the phase began
 
     def holds(self, value: float) -> bool:
         return OPERATORS[self.op](value, self.value)
@@ -71,6 +79,15 @@ class Phase:
 
 
 @dataclass(frozen=True)
+class RecipeObject:
+    """An object the recipe grasps, as the estimator needs it: a cylinder of nominal radius (m)
+    lying along the joint axes. The order is the estimator's: object 1, object 2."""
+
+    name: str
+    radius: float
+
+
+@dataclass(frozen=True)
 class Recipe:
     name: str
     source: str
@@ -79,6 +96,7 @@ class Recipe:
     end_ramp_s: float
     hand_config_hash: str | None
     compiled: bool
+    objects: tuple[RecipeObject, ...] = ()
 
     @property
     def uses_estimates(self) -> bool:
@@ -101,7 +119,7 @@ def parse_condition(text: str, joint_names: tuple[str, ...]) -> Condition | str:
         if name not in ESTIMATES:
             return f"an estimate in {', '.join(ESTIMATES)} (in '{text}')"
         return Condition(text, SignalKind.ESTIMATE, ESTIMATES.index(name), match["op"], value,
-                         hold)
+                         hold, relative=name in PHASE_RELATIVE_ESTIMATES)
     if name not in joint_names:
         return f"a joint of the hand ({', '.join(joint_names)}) in '{text}'"
     kind = SignalKind.ANGLE if family == "angle" else SignalKind.TDT

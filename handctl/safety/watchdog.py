@@ -74,6 +74,8 @@ class TdtMonitor:
         self.window = max(1, round(safety.tdt_window_s / dt))
         self.stuck_window = max(2, round(safety.tdt_stuck_window_s / dt))
         self.min_change = safety.tdt_stuck_min_change
+        still = round(safety.tdt_stuck_still_s / dt)
+        self.still_window = still if still > 0 else 1 << 62
         self.expected = [0.0] * n_joints
         self.mismatch_ticks = [0] * n_joints
         self.same_ticks = [0] * n_joints
@@ -109,7 +111,9 @@ class TdtMonitor:
                 same_ticks[j] += 1
                 lo[j] = min(lo[j], a)
                 hi[j] = max(hi[j], a)
-                if same_ticks[j] >= self.stuck_window and hi[j] - lo[j] >= self.min_change:
+                n = same_ticks[j]
+                if (n >= self.stuck_window and hi[j] - lo[j] >= self.min_change) or \
+                        n >= self.still_window:
                     found.append((FaultCode.TDT_STUCK,
                                   f"{self.names[j]}: TDT fixed at {r:+.4f} N·m for "
                                   f"{same_ticks[j]} ticks while the command moved "

@@ -170,7 +170,8 @@ def test_runner_angle_exit_must_hold(tmp_path: Path, hand: HandConfig) -> None:
 
 def test_runner_abort_condition_and_estimates(tmp_path: Path, hand: HandConfig) -> None:
     data = recipe_doc(phase("a", exit=["estimate.centre_line_angle > 0.7"],
-                            abort=["tdt.f3_j1 < -0.5"]), phase("b"))
+                            abort=["tdt.f3_j1 < -0.5"]), phase("b"),
+                      objects=[{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}])
     runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
     assert runner.recipe.uses_estimates
     est = [0.0] * len(ESTIMATES)

@@ -1,0 +1,325 @@
+"""Where the two enveloped objects are, from the joint angles alone (online plane).
+
+A real hand without vision knows only its joint angles. What makes that enough is the
+enveloping grasp itself: every object is caged by finger links, the palm and the other object,
+and squeezed against them, so it is tangent to the links it touches and clear of all the others.
+The estimator therefore places each object where it is *deepest inside its cage*: the centre
+``c`` that maximises the smallest clearance ``s_k(c) = dist(c, segment_k) - r - h_k`` over
+every link segment (radius ``r`` of the object, half-thickness ``h_k`` of the link), the palm
+(the segment joining the finger bases) and the other object (``|c - c'| - r - r'``). This is
+the Chebyshev centre of the free space, and it is the right estimate for three reasons:
+
+- for a squeezed object the free space shrinks to a point and the maximiser is where the
+  object really is, touching the links it touches, with no need to decide beforehand which
+  links those are (the enveloping assumption is exactly that the cage is closed);
+- the best clearance ``t`` is a free unknown, so a radius a little off the nominal one (the
+  clearance is then the same small number at every contact) or soft contacts that sink in
+  shift the fit very little, where a fit of "distance = r" would be pulled towards one link;
+- an object that is *not* caged (on the table, the hand open) has no bounded maximiser: the
+  clearance grows and the estimate is reported invalid (NaN), which no exit condition accepts.
+
+The maximisation is tracked rather than solved from scratch, because it must fit in a tick:
+each tick takes one active-set step per object from the previous estimate, with the other
+object fixed (the three tightest distinct clearances, linearised; the step that equalises them
+when they cage the object, an ascent along the two tightest when they do not), limited to
+``MAX_STEP``. Objects move far less than that per millisecond, so the track never falls
+behind; a lost track (clearance beyond ``RESET_CLEARANCE``) restarts from seeds under the palm,
+inside every cage the hand can form. Continuity keeps the names: object 1 is the one that
+started on the side of the first finger (x below the palm's middle).
+
+Pure Python on floats, no NumPy: for a dozen segments that is several times cheaper per tick
+than array calls, and it allocates little. The online plane only: no import of the analysis
+or the simulation.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from handctl.config import HandConfig
+from handctl.recipes.schema import ESTIMATES, RecipeObject
+
+NAN = float("nan")
+#: m, the most an estimate moves in one tick: a step of a linearised problem is trusted this far.
+MAX_STEP = 0.002
+#: m, an object whose best clearance is further from zero than this is not held by its cage
+#: (too loose, or the estimate sits in a pocket too small for it): its estimate is invalid. It
+#: covers the nominal radius being 10 % off and the few tenths of a millimetre soft contacts
+#: sink in.
+VALID_CLEARANCE = 0.004
+#: m, a track whose best clearance exceeds this has left every cage: restart from the seeds.
+#: (A track deep in the links is not restarted: the seeds may be in the links themselves, and
+#: the ascent takes it out of a pocket too small for it as soon as the pocket changes.)
+RESET_CLEARANCE = 0.02
+#: m, seeds sit this far below the palm (plus the object's radius), between the fingers.
+SEED_DEPTH = 0.010
+#: rad: an object counts as caged when the directions from its nearly tight contacts (within
+#: ``CAGE_BAND`` of the tightest) leave no open angle wider than half a turn less this: held
+#: on one open side only by friction and gravity, it is not located by geometry, and an exit
+#: must not fire on it.
+CAGE_GAP = 0.15
+#: m, contacts this close to the tightest one count as touching for the cage test.
+CAGE_BAND = 0.001
+#: gradients closer than this (cosine) with clearances within ``DUPLICATE_CLEARANCE`` are one
+#: constraint seen twice (fingers 1 and 2 in the same posture; two links meeting at a joint).
+DUPLICATE_COSINE = 0.995
+DUPLICATE_CLEARANCE = 0.0005
+
+Segment = tuple[float, float, float, float, float, float]
+"""``(ax, ay, ux, uy, length, half_thickness)``: start point, unit direction, extent (m)."""
+
+
+class ObjectEstimator:
+    """Estimates of two enveloped cylinders, one call per tick: ``estimator(angles)`` returns
+    the values of ``handctl.recipes.schema.ESTIMATES`` (NaN while the objects are not caged).
+
+    ``objects`` gives the nominal radii in the estimator's order (object 1, object 2); the
+    hand config gives the finger bases, link lengths and link half-thicknesses.
+    """
+
+    def __init__(self, hand: HandConfig, objects: Sequence[RecipeObject]) -> None:
+        if len(objects) != 2:
+            raise ValueError(f"the estimator tracks a pair of objects, found {len(objects)}")
+        self.names = tuple(o.name for o in objects)
+        self.radii = (float(objects[0].radius), float(objects[1].radius))
+        self._fingers = [
+            (f.base_x, f.base_y, f.base_angle,
+             tuple((j.link_length, j.half_thickness) for j in f.joints))
+            for f in hand.fingers]
+        self._n = hand.n_joints
+        bases = [(f.base_x, f.base_y) for f in hand.fingers]
+        first, last = max(((a, b) for a in bases for b in bases),
+                          key=lambda ab: math.dist(ab[0], ab[1]))
+        if first[0] > last[0]:
+            first, last = last, first
+        length = math.dist(first, last)
+        self._palm: Segment | None = None
+        if length > 0.0:
+            self._palm = (first[0], first[1], (last[0] - first[0]) / length,
+                          (last[1] - first[1]) / length, length, 0.0)
+        mid_x, mid_y = (first[0] + last[0]) / 2, (first[1] + last[1]) / 2
+        # "below the palm" is away from the palm towards the fingers' mean pointing direction
+        down_x = sum(math.cos(f.base_angle) for f in hand.fingers)
+        down_y = sum(math.sin(f.base_angle) for f in hand.fingers)
+        norm = math.hypot(down_x, down_y) or 1.0
+        down_x, down_y = down_x / norm, down_y / norm
+        side_x, side_y = (self._palm[2], self._palm[3]) if self._palm else (1.0, 0.0)
+        self._seeds = tuple(
+            (mid_x + sign * r * side_x + (r + SEED_DEPTH) * down_x,
+             mid_y + sign * r * side_y + (r + SEED_DEPTH) * down_y)
+            for sign, r in ((-1.0, self.radii[0]), (1.0, self.radii[1])))
+        reach = max(sum(j[0] for j in f[3]) for f in self._fingers) + length
+        self._centre = (mid_x, mid_y)
+        self._reach = reach
+        self.centres: list[tuple[float, float]] = list(self._seeds)
+        self.clearance = [NAN, NAN]  # m, each object's best clearance at its estimate
+        self.caged = [False, False]
+        self.valid = False
+        self._turn = NAN  # rad, the unwrapped centre-line angle (running)
+        self._last_angle = NAN
+        self.last: tuple[float, ...] = (NAN,) * len(ESTIMATES)
+
+    def reset(self) -> None:
+        """Forget the track (a new grasp): back to the seeds, the turn count restarts."""
+        self.centres = list(self._seeds)
+        self.clearance = [NAN, NAN]
+        self.caged = [False, False]
+        self.valid = False
+        self._turn = NAN
+        self._last_angle = NAN
+        self.last = (NAN,) * len(ESTIMATES)
+
+    # -- geometry ---------------------------------------------------------------------------
+    def segments(self, angles: Sequence[float] | npt.NDArray[np.float64]) -> list[Segment]:
+        """Every link as a segment (forward kinematics in the hand plane), then the palm."""
+        if isinstance(angles, np.ndarray):
+            angles = angles.tolist()
+        out: list[Segment] = []
+        i = 0
+        cos, sin = math.cos, math.sin
+        for bx, by, heading, links in self._fingers:
+            x, y = bx, by
+            for length, half in links:
+                heading += angles[i]
+                i += 1
+                ux, uy = cos(heading), sin(heading)
+                out.append((x, y, ux, uy, length, half))
+                x += ux * length
+                y += uy * length
+        if self._palm is not None:
+            out.append(self._palm)
+        return out
+
+    def clearances(self, index: int, centre: tuple[float, float],
+                   segments: Sequence[Segment]) -> list[tuple[float, float, float]]:
+        """``(clearance, gx, gy)`` of object ``index`` at ``centre`` against every segment and
+        the other object; ``(gx, gy)`` is the clearance's gradient (a unit vector)."""
+        cx, cy = centre
+        r = self.radii[index]
+        out: list[tuple[float, float, float]] = []
+        append = out.append
+        hypot = math.hypot
+        for ax, ay, ux, uy, length, half in segments:
+            vx = cx - ax
+            vy = cy - ay
+            u = vx * ux + vy * uy
+            if u < 0.0:
+                u = 0.0
+            elif u > length:
+                u = length
+            wx = vx - u * ux
+            wy = vy - u * uy
+            d = hypot(wx, wy)
+            if d < 1e-12:
+                append((-r - half, -uy, ux))
+            else:
+                append((d - r - half, wx / d, wy / d))
+        ox, oy = self.centres[1 - index]
+        wx, wy = cx - ox, cy - oy
+        d = hypot(wx, wy)
+        other_r = self.radii[1 - index]
+        if d < 1e-12:
+            append((-r - other_r, 0.0, 1.0))
+        else:
+            append((d - r - other_r, wx / d, wy / d))
+        return out
+
+    # -- the tick ---------------------------------------------------------------------------
+    def __call__(self, angle: Sequence[float] | npt.NDArray[np.float64]) -> tuple[float, ...]:
+        segs = self.segments(angle)
+        for index in (0, 1):
+            self._track(index, segs)
+        c1x, c1y = self.centres[0]
+        c2x, c2y = self.centres[1]
+        self.valid = (self.caged[0] and self.caged[1]
+                      and abs(self.clearance[0]) <= VALID_CLEARANCE
+                      and abs(self.clearance[1]) <= VALID_CLEARANCE)
+        if not self.valid:
+            self.last = (NAN,) * len(ESTIMATES)
+            return self.last
+        line = math.atan2(c2y - c1y, c2x - c1x)
+        self._turn = advance_turn(self._turn, self._last_angle, line)
+        self._last_angle = line
+        self.last = (line, self._turn, c1x, c1y, c2x, c2y)
+        return self.last
+
+    def _track(self, index: int, segs: Sequence[Segment]) -> None:
+        centre = self.centres[index]
+        found = self.clearances(index, centre, segs)
+        found.sort()
+        best = found[0][0]
+        self.clearance[index] = best
+        far = math.dist(centre, self._centre) > self._reach
+        if best > RESET_CLEARANCE or far:
+            self.centres[index] = self._seeds[index]
+            self.caged[index] = False
+            return
+        chosen = [found[0]]
+        for item in found[1:]:
+            s, gx, gy = item
+            for c in chosen:
+                if gx * c[1] + gy * c[2] >= DUPLICATE_COSINE and s - c[0] <= DUPLICATE_CLEARANCE:
+                    break
+            else:
+                chosen.append(item)
+                if len(chosen) == 4:
+                    break
+        step, worst = _chebyshev_step(chosen[:3])
+        if worst >= 0 and len(chosen) == 4:
+            # with four contacts the three tightest need not surround the object: exchange
+            # the one that does not hold it for the fourth (one active-set exchange a tick)
+            trial = [c for k, c in enumerate(chosen[:3]) if k != worst] + [chosen[3]]
+            retry, again = _chebyshev_step(trial)
+            if again < 0:
+                step = retry
+        self.caged[index] = _surrounds([c for c in chosen if c[0] - best <= CAGE_BAND])
+        dx, dy = step
+        size = math.hypot(dx, dy)
+        if size > MAX_STEP:
+            dx, dy = dx * MAX_STEP / size, dy * MAX_STEP / size
+        self.centres[index] = (centre[0] + dx, centre[1] + dy)
+
+
+def advance_turn(turn: float, last_angle: float, angle: float) -> float:
+    """The running (unwrapped) turn after the wrapped angle moved from ``last_angle`` to
+    ``angle``: the step is taken the short way round, so the count goes on past ±π. A NaN turn
+    (no valid estimate yet) starts at ``angle``."""
+    if math.isnan(turn):
+        return angle
+    delta = angle - last_angle
+    if delta > math.pi:
+        delta -= 2 * math.pi
+    elif delta < -math.pi:
+        delta += 2 * math.pi
+    return turn + delta
+
+
+def _surrounds(contacts: Sequence[tuple[float, float, float]]) -> bool:
+    """Whether the contact directions leave no open side: the widest angle between
+    neighbouring directions is less than half a turn (by ``CAGE_GAP``)."""
+    if len(contacts) < 3:
+        return False
+    angles = sorted(math.atan2(gy, gx) for _, gx, gy in contacts)
+    widest = angles[0] + 2 * math.pi - angles[-1]
+    for a, b in itertools.pairwise(angles):
+        widest = max(widest, b - a)
+    return widest < math.pi - CAGE_GAP
+
+
+def _chebyshev_step(cons: Sequence[tuple[float, float, float]]
+                    ) -> tuple[tuple[float, float], int]:
+    """One active-set step of ``max_c min_k s_k + g_k·Δ`` on the tightest constraints.
+
+    Three constraints that surround the point (non-negative multipliers of
+    ``Σ μ_k g_k = 0, Σ μ_k = 1``) have a finite maximiser, where all three are equal: the
+    Newton step goes there, and the second value is -1. Otherwise the constraint whose
+    multiplier is the most negative is not holding the object back: the second value is its
+    index (the one to exchange), and the step ascends along the other two.
+    """
+    if len(cons) == 3:
+        (s1, a1, b1), (s2, a2, b2), (s3, a3, b3) = cons
+        # A = [[a1, b1, -1], [a2, b2, -1], [a3, b3, -1]]; solve A [dx, dy, t] = -s and
+        # A^T mu = (0, 0, -1) with the adjugate (cofactors) of A.
+        c11 = -b2 + b3
+        c12 = -(-a2 + a3)
+        c13 = a2 * b3 - a3 * b2
+        c21 = -(-b1 + b3)
+        c22 = -a1 + a3
+        c23 = -(a1 * b3 - a3 * b1)
+        c31 = -b1 + b2
+        c32 = -(-a1 + a2)
+        c33 = a1 * b2 - a2 * b1
+        det = a1 * c11 + b1 * c12 - c13
+        if abs(det) > 1e-9:
+            # A^-1 = adj(A) / det with adj(A) = C^T, so A^-T = C / det: mu_i = -C_i3 / det
+            mu1, mu2, mu3 = -c13 / det, -c23 / det, -c33 / det
+            if mu1 >= 0.0 and mu2 >= 0.0 and mu3 >= 0.0:
+                r1, r2, r3 = -s1, -s2, -s3
+                dx = (c11 * r1 + c21 * r2 + c31 * r3) / det
+                dy = (c12 * r1 + c22 * r2 + c32 * r3) / det
+                return (dx, dy), -1
+            worst = 0 if mu1 <= mu2 and mu1 <= mu3 else (1 if mu2 <= mu3 else 2)
+            cons = [c for k, c in enumerate(cons) if k != worst]
+        else:
+            worst = 2
+            cons = list(cons[:2])
+    if len(cons) >= 2:
+        (s1, a1, b1), (s2, a2, b2) = cons[0], cons[1]
+        ex, ey = a1 - a2, b1 - b2
+        e2 = ex * ex + ey * ey
+        # equalise the two clearances (the least move along g1 - g2), then ascend on both
+        k = (s2 - s1) / e2 if e2 > 1e-12 else 0.0
+        dx, dy = k * ex, k * ey
+        sx, sy = a1 + a2, b1 + b2
+        norm = math.hypot(sx, sy)
+        if norm < 1e-6:  # pinched between opposite walls: the object sinks along them
+            sx, sy = (b1, -a1) if -a1 < 0.0 else (-b1, a1)
+            norm = 1.0
+        return (dx + MAX_STEP * sx / norm, dy + MAX_STEP * sy / norm), worst
+    s1, a1, b1 = cons[0]
+    return (MAX_STEP * a1, MAX_STEP * b1), 0

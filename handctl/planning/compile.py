@@ -1,0 +1,328 @@
+"""``handctl plan``: from a template and a hand config to a compiled recipe with provenance.
+
+Phase by phase, in order, because each phase's grasp is where the phases before it left the
+hand:
+
+1. the nominal model's state where the phase begins is the phase's grasp configuration;
+2. the analysis (``handctl.analysis.plan_torques``) gives, for ``lift`` and ``turn`` phases,
+   the torque within ±tau_max with the largest robust margin for the wanted motion, or says
+   why there is none;
+3. the search (``search.cem``) starts from that torque, the template's seed and the previous
+   phase's torque, and scores candidates on every perturbed model still holding the objects;
+4. every model runs the chosen phase to its exit, which gives the next phase's starting
+   states; a model that fails (drop, soft limit) is left out of the later phases and
+   counted.
+
+Everything is deterministic given the template (its seed) and the hand config, so the
+compiled recipe is reproducible with one command; the provenance of each phase records its
+inputs (kind, wanted motion, grasp contacts), the analysis' margin or reason, the search's
+score and where the chosen torque came from, and the hand-config hash.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from handctl.analysis.model import AnalysisError
+from handctl.analysis.planner import plan_torques
+from handctl.config import HandConfig
+from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
+from handctl.planning.grasp import GraspSnapshot, fixed_directions, grasp_of, turn_directions
+from handctl.planning.models import Model, model_set
+from handctl.planning.search import Budget, Candidate, cem, hold_scorer, turn_scorer
+from handctl.planning.template import Template, TemplatePhase
+from handctl.recipes.schema import Condition, Phase, TimeoutAction, parse_condition
+from handctl.sim.params import parse_sim
+
+#: decimals of N·m kept in the compiled recipe (0.1 mN·m, far below the TDT resolution)
+TORQUE_DECIMALS = 4
+
+
+@dataclass
+class AnalysisRecord:
+    """The analysis of one phase, for the provenance and the plot."""
+
+    snapshot: GraspSnapshot | None
+    directions: dict[str, list[float]]
+    found: bool
+    torques: tuple[float, ...] | None
+    margin: float
+    reason: str
+
+    def provenance(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"found": self.found}
+        if self.snapshot is not None:
+            out.update(self.snapshot.describe())
+        if self.directions:
+            out["directions"] = {k: [round(x, 4) for x in v] for k, v in self.directions.items()}
+        if self.found and self.torques is not None:
+            out["margin_N"] = round(self.margin, 4)
+            out["torques"] = _rounded(self.torques)
+        else:
+            out["reason"] = self.reason
+        return out
+
+
+@dataclass
+class PhasePlan:
+    spec: TemplatePhase
+    phase: Phase
+    analysis: AnalysisRecord | None
+    chosen: Candidate | None
+    outcomes: list[PhaseOutcome]
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class PlanResult:
+    template: Template
+    hand: HandConfig
+    phases: list[PhasePlan]
+    models: list[Model]
+    template_digest: str
+
+    def recipe_document(self) -> dict[str, Any]:
+        """The compiled recipe as a YAML-ready mapping (the loader's format)."""
+        t = self.template
+        return {
+            "recipe": t.recipe,
+            "description": t.description,
+            "compiled": True,
+            "hand_config_hash": self.hand.config_hash,
+            "planned_from": {"template": Path(t.source).name, "template_sha256":
+                             self.template_digest,
+                             "models": [{"index": m.index, **{k: round(v, 4) for k, v in
+                                                               m.scales.items()}}
+                                        for m in self.models]},
+            "objects": [{"name": o.name, "radius": o.radius} for o in t.objects],
+            "end_ramp_s": t.end_ramp_s,
+            "phases": [_phase_document(p, self.hand) for p in self.phases],
+        }
+
+
+def _rounded(values: tuple[float, ...] | list[float]) -> list[float]:
+    return [round(float(v), TORQUE_DECIMALS) + 0.0 for v in values]
+
+
+def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
+    phase = plan.phase
+    doc: dict[str, Any] = {
+        "name": phase.name,
+        "torques": dict(zip(hand.joint_names, _rounded(phase.torques), strict=True)),
+        "ramp_s": phase.ramp_s,
+        "max_s": phase.max_s,
+        "on_timeout": phase.on_timeout.value,
+    }
+    if phase.exits:
+        doc["exit"] = [c.text for c in phase.exits]
+    doc["provenance"] = plan.provenance
+    return doc
+
+
+def _analyse(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> AnalysisRecord | None:
+    if spec.kind not in ("lift", "turn"):
+        return None
+    snap = grasp_of(episode.plant, hand)
+    grasp = snap.grasp
+    if not grasp.finger_contacts:
+        return AnalysisRecord(snap, {}, False, None, -math.inf,
+                              "no finger touches an object in this configuration")
+    directions = (fixed_directions(grasp, spec.move) if spec.kind == "lift"
+                  else turn_directions(grasp, spec.turn))
+    listed = {k: [float(x) for x in v] for k, v in directions.items()}
+    try:
+        plan = plan_torques(grasp, directions, [j.tau_max for j in hand.joints])
+    except AnalysisError as exc:
+        return AnalysisRecord(snap, listed, False, None, -math.inf, str(exc))
+    if not plan.found:
+        return AnalysisRecord(snap, listed, False, None, plan.margin, plan.reason)
+    return AnalysisRecord(snap, listed, True, plan.tau, plan.margin, "")
+
+
+def _flexion_seed(hand: HandConfig, rng: np.random.Generator) -> tuple[float, ...]:
+    """A torque drawn uniformly from the flexion box: every joint between zero and its
+    tau_max in the direction that curls its finger inward (the sign of the finger's base
+    side: fingers left of the palm's middle flex counter-clockwise). Seeds that explore the
+    grasp's own family of motions, with no knowledge of the task."""
+    xs = [f.base_x for f in hand.fingers]
+    mid = (min(xs) + max(xs)) / 2
+    out: list[float] = []
+    for finger in hand.fingers:
+        sign = 1.0 if finger.base_x <= mid else -1.0
+        out += [sign * float(rng.uniform(0.0, j.tau_max)) for j in finger.joints]
+    return tuple(out)
+
+
+def _advance_to_contact(episode: Episode, phase: Phase) -> None:
+    """Run ``phase`` on ``episode`` until some finger touches an object (or it ends)."""
+
+    def touching() -> bool:
+        return bool(grasp_of(episode.plant, episode.hand).grasp.finger_contacts)
+
+    episode.run_phase(phase, stop=touching)
+
+
+def _compiled_phase(spec: TemplatePhase, torques: tuple[float, ...],
+                    hand: HandConfig) -> Phase:
+    exits: tuple[Condition, ...] = ()
+    if spec.kind == "turn":
+        parsed = parse_condition(spec.exit_condition(), hand.joint_names)
+        assert not isinstance(parsed, str), parsed
+        exits = (parsed,)
+    rounded = tuple(_rounded(torques))
+    return Phase(spec.name, rounded, spec.ramp_s, spec.max_s, TimeoutAction.NEXT, exits, ())
+
+
+def plan_recipe(template: Template, hand: HandConfig, *,
+                progress: Callable[[str], None] | None = None,
+                models: int | None = None, budget: Budget | None = None) -> PlanResult:
+    """Plan every phase of ``template`` for ``hand`` (see the module doc)."""
+    say = progress or (lambda _m: None)
+    settings = template.search
+    count = models if models is not None else settings.models
+    budget = budget or settings.budget
+    params = parse_sim(hand)
+    model_list = model_set(params, count, settings.seed, settings.spread)
+    episodes = [Episode(hand, m.params, template.objects) for m in model_list]
+    snaps: list[Snapshot] = [e.snapshot() for e in episodes]
+    alive = list(range(len(episodes)))
+    rng = np.random.default_rng(settings.seed)
+    limits = [j.tau_max for j in hand.joints]
+    previous: tuple[float, ...] = (0.0,) * hand.n_joints
+    lifted = False
+    plans: list[PhasePlan] = []
+    for spec in template.phases:
+        say(f"phase {spec.name} ({spec.kind}) on {len(alive)} model(s)")
+        if not alive:
+            raise AnalysisError(f"no model holds the objects any more when phase "
+                                f"'{spec.name}' begins: the phases before it fail (widen the "
+                                "search or change the template)")
+        nominal = episodes[alive[0]]
+        nominal.restore(snaps[alive[0]])
+        if spec.kind == "lift" and spec.seed is not None:
+            # fingertip pushing begins without contact: its grasp is where the seed's motion
+            # first touches the objects
+            _advance_to_contact(nominal, _compiled_phase(spec, spec.seed, hand))
+        analysis = _analyse(nominal, spec, hand)
+        nominal.restore(snaps[alive[0]])
+        if analysis is not None:
+            say(f"  analysis: margin {analysis.margin:.3g} N" if analysis.found
+                else f"  analysis: none ({analysis.reason})")
+        chosen: Candidate | None = None
+        search_doc: dict[str, Any] | None = None
+        if spec.kind == "free":
+            assert spec.seed is not None
+            torques = spec.seed
+            origin = "template"
+        else:
+            seeds: list[tuple[str, tuple[float, ...]]] = []
+            if analysis is not None and analysis.found and analysis.torques is not None:
+                seeds.append(("analysis", analysis.torques))
+            if spec.seed is not None:
+                seeds.append(("template", spec.seed))
+            if any(previous):
+                seeds.append(("previous phase", previous))
+            if not seeds:
+                seeds.append(("zero", previous))
+            for k in range(settings.random_seeds):
+                seeds.append((f"random flexion {k + 1}", _flexion_seed(hand, rng)))
+            scorer = (turn_scorer(spec.turn, spec.max_s) if spec.kind == "turn"
+                      else hold_scorer(spec.min_height))
+            trial = _compiled_phase(spec, seeds[0][1], hand)
+            result = cem([episodes[i] for i in alive], [snaps[i] for i in alive], trial,
+                         seeds, limits, scorer, rng, budget, lifted=lifted, progress=say)
+            chosen = result.best
+            torques = chosen.torques
+            origin = chosen.origin
+            if all(o.failed for o in chosen.outcomes) and spec.kind != "lift":
+                # nothing found keeps the objects on any model: hold on to them with the
+                # previous torques rather than compile a phase that drops them
+                torques, origin = previous, "previous phase (no candidate kept the objects)"
+            search_doc = {
+                "score": round(chosen.score, 4),
+                "seed_scores": {c.origin: round(c.score, 4) for c in result.seeds},
+                "evaluated": result.evaluated,
+                "models": len(alive),
+                "successes": chosen.successes,
+            }
+        phase = _compiled_phase(spec, torques, hand)
+        outcomes = []
+        for i in alive:
+            episodes[i].restore(snaps[i])
+            outcomes.append(episodes[i].run_phase(phase, lifted=lifted))
+            snaps[i] = episodes[i].snapshot()
+        survivors = [i for i, o in zip(alive, outcomes, strict=True)
+                     if not o.failed and o.in_hand]
+        say(f"  chosen from {origin}: " + ", ".join(
+            f"{o.exit[:28]} ({o.true_turn_deg:+.0f} deg)" if spec.kind == "turn"
+            else f"{o.exit[:28]} (up {o.end_height * 1e3:.0f} mm)" for o in outcomes))
+        provenance: dict[str, Any] = {
+            "kind": spec.kind,
+            "wanted": _wanted(spec),
+            "chosen_from": origin,
+            "hand_config_hash": hand.config_hash,
+        }
+        if analysis is not None:
+            provenance["analysis"] = analysis.provenance()
+        else:
+            provenance["analysis"] = {"found": False, "reason": (
+                "no contact to reason about (free motion)" if spec.kind == "free"
+                else "no wanted motion (hold)")}
+        if search_doc is not None:
+            provenance["search"] = search_doc
+        provenance["models"] = {
+            "ran": len(alive), "held": len(survivors),
+            "exits": _exit_counts(outcomes),
+        }
+        if spec.kind == "turn":
+            provenance["models"]["true_turn_deg"] = [round(o.true_turn_deg, 1)
+                                                     for o in outcomes]
+        plans.append(PhasePlan(spec, phase, analysis, chosen, outcomes, provenance))
+        alive = survivors
+        previous = phase.torques
+        if spec.kind == "lift":
+            lifted = True
+    digest = hashlib.sha256(Path(template.source).read_bytes()).hexdigest()[:16]
+    return PlanResult(template, hand, plans, model_list, f"sha256:{digest}")
+
+
+def _wanted(spec: TemplatePhase) -> dict[str, Any]:
+    if spec.kind == "turn":
+        return {"turn_deg": round(math.degrees(spec.turn), 3), "exit": spec.exit_condition()}
+    if spec.kind == "lift":
+        return {"move": {k: list(v) for k, v in spec.move.items()},
+                "min_height_m": spec.min_height}
+    if spec.kind == "hold":
+        return {"min_height_m": spec.min_height}
+    return {"torques": "from the template"}
+
+
+def _exit_counts(outcomes: list[PhaseOutcome]) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for o in outcomes:
+        key = "exit" if o.exit.startswith("estimate") else o.exit
+        counts[key] = counts.get(key, 0) + 1
+    return counts
+
+
+def recipe_text(result: PlanResult, command: str) -> str:
+    """The compiled recipe's YAML, with a header that says how to make it again."""
+    header = (f"# Compiled by handctl plan from {Path(result.template.source).name}: do not "
+              "edit by hand.\n"
+              f"# Change the template and plan again: {command}\n")
+    body = yaml.safe_dump(result.recipe_document(), sort_keys=False, width=100,
+                          allow_unicode=True)
+    return header + body
+
+
+def quick_budget() -> Budget:
+    """The smallest search that still exercises every step (tests, smoke runs)."""
+    return replace(Budget(), generations=1, population=2, elite=1)

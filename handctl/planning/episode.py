@@ -1,0 +1,261 @@
+"""A recipe phase on one model of the simulated hand, without the bus: what a plan is scored on.
+
+The search tries hundreds of torque vectors per phase on several models, so it runs the plant
+directly (about ten times faster than through the emulated nodes) but keeps everything that
+decides what a phase does on the hand:
+
+- the real ``RecipeRunner`` (ramps, exits, ``for`` holds, phase-relative estimates), entered
+  from the previous phase's torques through a one-tick "from" phase, so a phase is judged with
+  the ramp it will really have;
+- the real ``ObjectEstimator`` fed with encoder-quantised angles, so exits fire when the
+  estimator (not the ground truth) says the pair has turned;
+- the soft joint limits, checked every tick on the measured angles as the safety supervisor
+  does (a lift that brushes a limit for a millisecond stops the real run);
+- the bus's one-tick delay between a command and the nodes applying it.
+
+Ground truth (object poses) is read only to *score* a phase, never to decide anything in it.
+Snapshots (MuJoCo's integration state plus the estimator's track) let a phase start again from
+the same place for every candidate.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from handctl.config import HandConfig
+from handctl.estimator import ObjectEstimator
+from handctl.recipes.runner import RecipeRunner, RunStatus
+from handctl.recipes.schema import Phase, Recipe, RecipeObject, TimeoutAction
+from handctl.sim.params import NODE_TICK_S, SimParams
+from handctl.sim.plant import Plant
+
+#: m, an object this far below its resting height plus this margin counts as back on the table.
+DROP_MARGIN = 0.005
+#: m, an object centre further than this from the palm's middle (in x) has left the hand.
+HAND_HALF_SPAN = 0.06
+#: ticks between the (cheap but not free) checks of limits and object poses.
+CHECK_EVERY = 10
+_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+
+
+@dataclass
+class Snapshot:
+    state: np.ndarray
+    estimator: ObjectEstimator
+    torques: tuple[float, ...]
+    time: float
+
+
+@dataclass
+class PhaseOutcome:
+    """What one phase did on one model. Angles in degrees; heights in m above the rest
+    height of each object (its centre on the table)."""
+
+    exit: str  # the exit condition's text, "timeout", or "fail: ..." (soft limit, dropped)
+    duration_s: float
+    true_turn_deg: float
+    est_turn_deg: float
+    min_height: float
+    end_height: float
+    limit_margin: float  # rad, the closest any joint came to its soft limits
+    pair_gap: float  # m, between the two objects' surfaces at the end (0: touching)
+    pair_blocked: bool  # a finger link lies across the line between the centres at the end
+    in_hand: bool
+    est_valid: bool
+    est_error_deg: float
+    errors_deg: list[float] = field(default_factory=list)
+
+    @property
+    def failed(self) -> bool:
+        return self.exit.startswith("fail")
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+class Episode:
+    """One model of the hand, advanced phase by phase."""
+
+    def __init__(self, hand: HandConfig, params: SimParams,
+                 objects: Sequence[RecipeObject]) -> None:
+        self.hand = hand
+        self.params = params
+        self.plant = Plant(hand, params)
+        self.estimator = ObjectEstimator(hand, objects)
+        self.torques: tuple[float, ...] = (0.0,) * hand.n_joints
+        self.time = 0.0
+        counts = params.encoder.counts_per_rev
+        self._quantum = 2 * math.pi / counts
+        self._lo = [j.angle_min for j in hand.joints]
+        self._hi = [j.angle_max for j in hand.joints]
+        self._rest = [o.y for o in params.objects]
+        self._radii = [o.radius for o in params.objects]
+        xs = [f.base_x for f in hand.fingers]
+        self._mid_x = (min(xs) + max(xs)) / 2  # the palm's middle
+
+    # -- snapshots --------------------------------------------------------------------------
+    def snapshot(self) -> Snapshot:
+        m, d = self.plant.model, self.plant.data
+        size = mujoco.mj_stateSize(m, _STATE)
+        state = np.empty(size)
+        mujoco.mj_getState(m, d, state, _STATE)
+        return Snapshot(state, copy.deepcopy(self.estimator), self.torques, self.time)
+
+    def restore(self, snap: Snapshot) -> None:
+        m, d = self.plant.model, self.plant.data
+        mujoco.mj_setState(m, d, snap.state, _STATE)
+        mujoco.mj_forward(m, d)
+        self.estimator = copy.deepcopy(snap.estimator)
+        self.torques = snap.torques
+        self.time = snap.time
+
+    # -- truth (scoring only) ---------------------------------------------------------------
+    def heights(self) -> list[float]:
+        """Each object's centre above its resting height on the table (m)."""
+        return [p.y - rest for p, rest in zip(self.plant.object_poses(), self._rest,
+                                              strict=True)]
+
+    def pair_gap(self) -> float:
+        a, b = self.plant.object_poses()[:2]
+        return math.hypot(b.x - a.x, b.y - a.y) - self._radii[0] - self._radii[1]
+
+    def pair_blocked(self) -> bool:
+        """Whether a finger link lies across the segment between the two centres: a pair
+        with a link between its objects cannot turn past it."""
+        a, b = self.plant.object_poses()[:2]
+        p, q = (a.x, a.y), (b.x, b.y)
+        for ax, ay, ux, uy, length, half in self.estimator.segments(self.plant.joint_angles):
+            end = (ax + ux * length, ay + uy * length)
+            if _segment_distance(p, q, (ax, ay), end) < half:
+                return True
+        return False
+
+    def in_hand(self) -> bool:
+        return all(abs(p.x - self._mid_x) <= HAND_HALF_SPAN for p in self.plant.object_poses())
+
+    def true_angle(self) -> float:
+        a, b = self.plant.object_poses()[:2]
+        return math.atan2(b.y - a.y, b.x - a.x)
+
+    def estimate_error_deg(self) -> float:
+        """|estimated - true| centre-line angle (deg); NaN while the estimate is invalid."""
+        if not self.estimator.valid:
+            return math.nan
+        return abs(math.degrees(_wrap(self.estimator.last[0] - self.true_angle())))
+
+    # -- running ----------------------------------------------------------------------------
+    def run_phase(self, phase: Phase, *, lifted: bool = False, record_errors: bool = False,
+                  stop: Callable[[], bool] | None = None) -> PhaseOutcome:
+        """Run ``phase`` from the current state, entered from ``self.torques``.
+
+        ``lifted`` says the objects are up already, so falling back counts as a drop; ``stop``
+        (checked every few ticks) ends the phase early, with the exit "stopped".
+        """
+        start = Phase("from", self.torques, 0.0, NODE_TICK_S, TimeoutAction.NEXT, (), ())
+        recipe = Recipe("episode", "<episode>", "", (start, phase), 0.0, None, False)
+        runner = RecipeRunner(recipe, self.hand.n_joints)
+        plant, est = self.plant, self.estimator
+        quantum = self._quantum
+        t0 = self.time
+        first = self.true_angle()
+        previous = first
+        turned = 0.0
+        est_start = math.nan
+        min_height = math.inf
+        margin = math.inf
+        errors: list[float] = []
+        exit_reason = ""
+        tick = 0
+        steps = math.ceil((phase.max_s + 2 * NODE_TICK_S) / NODE_TICK_S)
+        zeros = np.zeros(self.hand.n_joints)
+        lo_list, hi_list = self._lo, self._hi
+        applied = np.array(self.torques, dtype=float)
+        for tick in range(steps):
+            raw = plant.joint_angles
+            angles = [round(float(q) / quantum) * quantum for q in raw]
+            # the soft limits every tick, on the measured angles, as the supervisor checks them
+            worst = min(min(q - lo, hi - q) for q, lo, hi in zip(angles, lo_list, hi_list,
+                                                                  strict=True))
+            margin = min(margin, worst)
+            if worst < 0.0:
+                bad = next(j for j, q in enumerate(angles) if q < lo_list[j] or q > hi_list[j])
+                exit_reason = f"fail: {self.hand.joint_names[bad]} outside its soft limits"
+                break
+            out = est(angles)
+            if runner.index == 1 and math.isnan(est_start) and est.valid:
+                est_start = out[1]
+            desired = runner.step(tick * NODE_TICK_S, np.asarray(angles), zeros, out)
+            if runner.index > 1 or runner.status is not RunStatus.RUNNING:
+                break
+            # the nodes apply a command one tick after the host computed it (the bus), so the
+            # plant gets the previous tick's torques
+            plant.set_torque_commands(applied)
+            applied[:] = desired
+            plant.step()
+            if tick % CHECK_EVERY == 0:
+                now = self.true_angle()
+                turned += _wrap(now - previous)
+                previous = now
+                heights = self.heights()
+                min_height = min(min_height, *heights)
+                if record_errors:
+                    err = self.estimate_error_deg()
+                    if not math.isnan(err):
+                        errors.append(err)
+                if lifted and min(heights) < DROP_MARGIN:
+                    exit_reason = "fail: an object fell back to the table"
+                    break
+                if not self.in_hand():
+                    exit_reason = "fail: an object left the hand"
+                    break
+                if stop is not None and stop():
+                    exit_reason = "stopped"
+                    break
+        if not exit_reason:
+            exit_reason = runner.records[1].exit if len(runner.records) > 1 else "timeout"
+        self.torques = tuple(float(x) for x in applied)
+        self.time = t0 + tick * NODE_TICK_S
+        now = self.true_angle()
+        turned += _wrap(now - previous)
+        est_turn = (est.last[1] - est_start) if est.valid and not math.isnan(est_start) \
+            else math.nan
+        return PhaseOutcome(
+            exit=exit_reason, duration_s=tick * NODE_TICK_S,
+            true_turn_deg=math.degrees(turned), est_turn_deg=math.degrees(est_turn),
+            min_height=min_height if min_height < math.inf else min(self.heights()),
+            end_height=min(self.heights()), limit_margin=margin, pair_gap=self.pair_gap(),
+            pair_blocked=self.pair_blocked(),
+            in_hand=self.in_hand(), est_valid=est.valid,
+            est_error_deg=self.estimate_error_deg(), errors_deg=errors)
+
+
+def _segment_distance(p: tuple[float, float], q: tuple[float, float],
+                      r: tuple[float, float], s: tuple[float, float]) -> float:
+    """Distance between segments pq and rs in the plane."""
+
+    def cross(o: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    if (cross(p, q, r) * cross(p, q, s) < 0) and (cross(r, s, p) * cross(r, s, q) < 0):
+        return 0.0
+
+    def point(x: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        n = dx * dx + dy * dy
+        t = 0.0 if n == 0 else max(0.0, min(1.0, ((x[0] - a[0]) * dx + (x[1] - a[1]) * dy) / n))
+        return math.hypot(x[0] - a[0] - t * dx, x[1] - a[1] - t * dy)
+
+    return min(point(p, r, s), point(q, r, s), point(r, p, q), point(s, p, q))
+
+
+def with_torques(phase: Phase, torques: Sequence[float] | np.ndarray) -> Phase:
+    """The phase with other torques (what the search varies)."""
+    return dataclasses.replace(phase, torques=tuple(float(t) for t in torques))

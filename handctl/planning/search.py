@@ -1,0 +1,177 @@
+"""The search that refines one phase's torques on the simulated hand, over perturbed models.
+
+Why a search at all: the analysis' condition is sufficient, not necessary. It holds the grasp
+at rest, leaves out the palm and the table, and asks every admissible contact force to move the
+objects the wanted way, so for many phases it is empty or it picks a torque that turns the pair
+on paper and stalls in the hand. What decides is what the hand does: each candidate runs the
+phase (ramp, exits on the *estimated* turn, soft limits) from where the previous phases left
+every model, and is scored on all of them together.
+
+The method is the cross-entropy method: a Gaussian over the nine torques, centred on the best
+seed (the analysis' torque when it has one), sampled, clipped to ±tau_max, its mean and spread
+re-fitted to the elite of each generation. It needs no gradient (contact makes the outcome a
+step function of the torques) and a few hundred episodes per phase. The score of a candidate is
+its mean score over the models minus a fraction of their spread, so a torque that works on most
+models beats one that is brilliant on one and drops the pair on another; and candidates are
+ranked by how many models they fail on first (a failure stops the hand or loses the objects),
+by score second.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from handctl.planning.episode import Episode, PhaseOutcome, Snapshot, with_torques
+from handctl.recipes.schema import Phase
+
+#: weight of the spread over models in a candidate's score (robustness over luck)
+SPREAD_WEIGHT = 0.5
+#: rad, a phase that takes a joint closer than this to its soft limits is penalised: the next
+#: phase, or another model, would cross it and stop the hand
+LIMIT_MARGIN = 0.25
+#: rad, closer than this to a soft limit on any model counts as failing there (ranking)
+LIMIT_FAIL = 0.1
+
+
+def _limit_penalty(o: PhaseOutcome) -> float:
+    return 0.5 * max(0.0, LIMIT_MARGIN - o.limit_margin) / LIMIT_MARGIN
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How much simulated work one phase may take."""
+
+    generations: int = 4
+    population: int = 16
+    elite: int = 4
+    initial_spread: float = 0.25  # of tau_max, per joint
+    min_spread: float = 0.02
+
+
+@dataclass
+class Candidate:
+    torques: tuple[float, ...]
+    score: float
+    outcomes: list[PhaseOutcome]
+    origin: str
+    scores: list[float] = field(default_factory=list)  # per model
+
+    @property
+    def failures(self) -> int:
+        """Models on which the phase failed (a drop, a soft limit, an object out of hand) or
+        came within ``LIMIT_FAIL`` of a soft limit: contact makes the motion chaotic enough
+        that a model which brushes a limit here crosses it on the real bus."""
+        return sum(1 for o in self.outcomes if o.failed or o.limit_margin < LIMIT_FAIL)
+
+    def rank(self) -> tuple[int, float]:
+        """Larger is better: fewer failures first, then the score. A failure stops the real
+        hand (the soft limits) or loses the objects, so no score makes up for one."""
+        return (-self.failures, self.score)
+
+    @property
+    def successes(self) -> int:
+        """Models on which the phase did what it is for (a score of 1 or more: the turn
+        reached by its exit, or the objects up and caged)."""
+        return sum(1 for s in self.scores if s >= 1.0)
+
+
+@dataclass
+class SearchResult:
+    best: Candidate
+    seeds: list[Candidate]
+    evaluated: int
+    history: list[float] = field(default_factory=list)  # best score after each generation
+
+
+Scorer = Callable[[PhaseOutcome], float]
+
+
+def evaluate(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase,
+             torques: Sequence[float] | np.ndarray, scorer: Scorer, *, lifted: bool) -> Candidate:
+    """Run ``phase`` with ``torques`` on every model from its snapshot; score them together."""
+    trial = with_torques(phase, torques)
+    outcomes = []
+    for episode, snap in zip(episodes, snapshots, strict=True):
+        episode.restore(snap)
+        outcomes.append(episode.run_phase(trial, lifted=lifted))
+    scores = np.array([scorer(o) for o in outcomes])
+    score = float(scores.mean() - SPREAD_WEIGHT * scores.std())
+    return Candidate(tuple(float(t) for t in torques), score, outcomes, "",
+                     [float(s) for s in scores])
+
+
+def cem(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase,
+        seeds: Sequence[tuple[str, Sequence[float]]], tau_max: Sequence[float],
+        scorer: Scorer, rng: np.random.Generator, budget: Budget, *, lifted: bool,
+        progress: Callable[[str], None] | None = None) -> SearchResult:
+    """Cross-entropy search around the seeds; returns the best candidate ever evaluated."""
+    limit = np.asarray(tau_max, dtype=float)
+    say = progress or (lambda _m: None)
+    seeded = []
+    for origin, torques in seeds:
+        cand = evaluate(episodes, snapshots, phase, np.clip(torques, -limit, limit), scorer,
+                        lifted=lifted)
+        cand.origin = origin
+        seeded.append(cand)
+        say(f"  seed {origin}: score {cand.score:+.3f} ({cand.successes}/{len(episodes)})")
+    best = max(seeded, key=Candidate.rank)
+    mean = np.array(best.torques)
+    spread = np.full(len(limit), budget.initial_spread) * limit
+    evaluated = len(seeded)
+    history = [best.score]
+    pool = list(seeded)
+    for gen in range(budget.generations):
+        population = []
+        for _ in range(budget.population):
+            torques = np.clip(mean + spread * rng.standard_normal(len(limit)), -limit, limit)
+            cand = evaluate(episodes, snapshots, phase, torques, scorer, lifted=lifted)
+            cand.origin = f"search generation {gen + 1}"
+            population.append(cand)
+        evaluated += len(population)
+        pool = sorted(pool + population, key=Candidate.rank, reverse=True)
+        elite = pool[:budget.elite]
+        if elite[0].rank() > best.rank():
+            best = elite[0]
+        stack = np.array([c.torques for c in elite])
+        mean = stack.mean(axis=0)
+        spread = np.maximum(stack.std(axis=0), budget.min_spread * limit)
+        history.append(best.score)
+        say(f"  generation {gen + 1}: best {best.score:+.3f} ({best.successes}/"
+            f"{len(episodes)})")
+    return SearchResult(best, seeded, evaluated, history)
+
+
+def turn_scorer(target_rad: float, max_s: float) -> Scorer:
+    """Score of a manipulation phase: reaching the wanted turn (by its exit) is worth 1 plus a
+    little for speed; a timeout is worth the fraction of the turn made; failing (soft limit,
+    drop, an object out of the hand) costs 1; ending with a lost estimate costs half."""
+    target_deg = math.degrees(target_rad)
+
+    def score(o: PhaseOutcome) -> float:
+        if o.failed:
+            return -1.0
+        lost = (0.0 if o.est_valid and o.in_hand else -0.5) - _limit_penalty(o)
+        if o.exit != "timeout":
+            return 1.0 + 0.25 * (1.0 - o.duration_s / max_s) + lost
+        return 0.8 * float(np.clip(o.true_turn_deg / target_deg, -1.0, 1.0)) + lost
+
+    return score
+
+
+def hold_scorer(min_height: float, open_pair: bool = False) -> Scorer:
+    """Score of a lift or hold phase: both objects up by ``min_height`` and caged (the
+    estimate valid) at its end; with ``open_pair``, no finger link between the two objects
+    (a pair with a link between them cannot turn past it)."""
+
+    def score(o: PhaseOutcome) -> float:
+        if o.failed:
+            return -1.0
+        up = 1.0 if o.end_height >= min_height else 0.5 * max(0.0, o.end_height / min_height)
+        pair = -0.5 if open_pair and o.pair_blocked else 0.0
+        return up + pair + (0.25 if o.est_valid and o.in_hand else -0.5) - _limit_penalty(o)
+
+    return score

@@ -1,0 +1,173 @@
+"""The input of ``handctl plan``: a recipe template (phases and the wanted motion of each).
+
+A template says *what* each phase must do, not the torques that do it:
+
+- ``free``: no contact to reason about (the approach); its torques are the template's own and
+  are only simulated, so the phases after it start where the hand really is;
+- ``lift``: the objects go up from the table by fingertip pushing (wanted direction ``move``
+  per object) and end ``min_height`` above it, caged;
+- ``hold``: the objects stay up and caged (no wanted motion);
+- ``turn``: the line through the two centres turns by ``turn_deg`` (counter-clockwise
+  positive); the compiled phase exits when the *estimated* turn reaches ``exit_fraction`` of
+  it, held ``exit_hold_s``, and moves on at ``max_s`` otherwise.
+
+``seed`` torques (optional) are where the search starts besides the analysis' answer and the
+previous phase's torques. ``search`` sets the budget and the perturbed models. Loading is
+strict (``handctl.schema``): unknown keys, wrong types and out-of-range values are errors that
+name the file and key path.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.planning.models import Spread
+from handctl.planning.search import Budget
+from handctl.recipes.schema import RecipeObject
+from handctl.schema import Doc, load_yaml
+
+KINDS = ("free", "lift", "hold", "turn")
+
+
+@dataclass(frozen=True)
+class TemplatePhase:
+    name: str
+    kind: str
+    ramp_s: float
+    max_s: float
+    seed: tuple[float, ...] | None  # N·m, config joint order
+    move: dict[str, tuple[float, float]] = field(default_factory=dict)
+    min_height: float = 0.0  # m
+    turn: float = 0.0  # rad
+    exit_fraction: float = 0.95
+    exit_hold_s: float = 0.02
+
+    def exit_condition(self) -> str:
+        """The compiled exit of a turn phase: on the estimated turn since the phase began."""
+        op = "<" if self.turn < 0 else ">"
+        return f"estimate.centre_line_turn {op} {self.turn * self.exit_fraction:.4f} " \
+               f"for {self.exit_hold_s:g}"
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    models: int
+    seed: int
+    spread: Spread
+    budget: Budget
+    random_seeds: int = 0  # extra seeds per phase drawn uniformly from the flexion box
+
+
+@dataclass(frozen=True)
+class Template:
+    source: str
+    recipe: str
+    description: str
+    objects: tuple[RecipeObject, ...]
+    end_ramp_s: float
+    search: SearchSettings
+    phases: tuple[TemplatePhase, ...]
+
+
+def load_template(path: str | Path, hand: HandConfig) -> Template:
+    """Read and check a template against ``hand``; every problem is a ``ConfigError``."""
+    doc = load_yaml(path)
+    doc.string("template")
+    recipe = doc.string("recipe")
+    description = str(doc.raw("description", ""))
+    objects: list[RecipeObject] = []
+    for i, sub in enumerate(doc.mappings("objects", min_len=2, max_len=2)):
+        obj = RecipeObject(sub.string("name"),
+                           sub.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m"))
+        sub.done()
+        if any(o.name == obj.name for o in objects):
+            raise ConfigError(doc.file, f"objects[{i}].name", "a name not used by another "
+                              "object", obj.name)
+        objects.append(obj)
+    end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
+    search = _search(doc.mapping("search", default={}))
+    names = [o.name for o in objects]
+    phases = tuple(_phase(p, hand, names) for p in doc.mappings("phases", min_len=1, max_len=32))
+    seen: set[str] = set()
+    for i, phase in enumerate(phases):
+        if phase.name in seen:
+            raise ConfigError(doc.file, f"phases[{i}].name", "a phase name not used before",
+                              phase.name)
+        seen.add(phase.name)
+    doc.done()
+    return Template(doc.file, recipe, description, tuple(objects), end_ramp, search, phases)
+
+
+def _search(doc: Doc) -> SearchSettings:
+    spread_doc = doc.mapping("spread", default={})
+    d = Spread()
+    spread = Spread(
+        friction=spread_doc.number("friction", default=d.friction, min=0.0, max=0.9),
+        mass=spread_doc.number("mass", default=d.mass, min=0.0, max=0.9),
+        radius=spread_doc.number("radius", default=d.radius, min=0.0, max=0.5))
+    spread_doc.done()
+    b = Budget()
+    budget = Budget(
+        generations=doc.integer("generations", default=b.generations, min=0, max=100),
+        population=doc.integer("population", default=b.population, min=1, max=1000),
+        elite=doc.integer("elite", default=b.elite, min=1, max=100),
+        initial_spread=doc.number("initial_spread", default=b.initial_spread, min=0.0,
+                                  max=2.0),
+        min_spread=doc.number("min_spread", default=b.min_spread, min=0.0, max=1.0))
+    if budget.elite > budget.population:
+        doc.fail("elite", f"at most the population ({budget.population})", budget.elite)
+    settings = SearchSettings(doc.integer("models", default=6, min=1, max=100),
+                              doc.integer("seed", default=0, min=0, max=2**32 - 1),
+                              spread, budget,
+                              doc.integer("random_seeds", default=0, min=0, max=1000))
+    doc.done()
+    return settings
+
+
+def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
+    raw = doc.raw(key)
+    if isinstance(raw, list):
+        return tuple(doc.numbers(key, length=hand.n_joints, unit="N·m"))
+    sub = doc.mapping(key)
+    values = tuple(sub.number(n, unit="N·m") for n in hand.joint_names)
+    sub.done()
+    return values
+
+
+def _phase(doc: Doc, hand: HandConfig, objects: list[str]) -> TemplatePhase:
+    name = doc.string("name")
+    kind = doc.string("kind", choices=KINDS)
+    ramp = doc.number("ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
+    max_s = doc.number("max_s", min=0.0, max=600.0, min_exclusive=True, unit="s")
+    key = "torques" if kind == "free" else "seed"
+    seed = _torques(doc, key, hand) if kind == "free" or doc.has("seed") else None
+    move: dict[str, tuple[float, float]] = {}
+    min_height = 0.0
+    turn = 0.0
+    exit_fraction = 0.95
+    exit_hold = 0.02
+    if kind == "lift":
+        sub = doc.mapping("move")
+        for obj in list(sub.keys()):
+            if obj not in objects:
+                sub.fail(obj, "an object of the template (" + ", ".join(objects) + ")", obj)
+            vec = sub.numbers(obj, length=2)
+            if math.hypot(*vec) < 1e-9:
+                sub.fail(obj, "a non-zero direction", list(vec))
+            move[obj] = (vec[0], vec[1])
+        sub.done()
+    if kind in ("lift", "hold"):
+        min_height = doc.number("min_height", min=0.0, max=0.2, unit="m")
+    if kind == "turn":
+        turn = math.radians(doc.number("turn_deg", min=-180.0, max=180.0, unit="deg"))
+        if abs(turn) < 1e-6:
+            doc.fail("turn_deg", "a non-zero turn", 0.0)
+        exit_fraction = doc.number("exit_fraction", default=0.95, min=0.1, max=1.5)
+        exit_hold = doc.number("exit_hold_s", default=0.02, min=0.0, max=1.0, unit="s")
+    doc.done()
+    return TemplatePhase(name, kind, ramp, max_s, seed, move, min_height, turn, exit_fraction,
+                         exit_hold)

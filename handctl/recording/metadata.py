@@ -1,0 +1,76 @@
+"""The metadata records of a recording: what a later reader needs to trust and re-run it.
+
+MCAP metadata maps strings to strings, so structured values are JSON text. The hand config and
+the recipe go in as the YAML text that was loaded (a re-run parses exactly that), with the
+hand's hash beside it so a reader can tell which hand a log belongs to.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import platform
+import sys
+import time
+from collections.abc import Sequence
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+
+import orjson
+
+from handctl import __version__
+from handctl.config import HandConfig
+from handctl.recipes.schema import Recipe
+from handctl.recording import channels as ch
+
+#: The packages whose versions a recording names.
+PACKAGES = ("numpy", "mujoco", "python-can", "mcap", "orjson", "cantools", "pyyaml")
+
+
+def _read(path: str) -> str:
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except OSError:
+        return ""
+
+
+def package_version(package: str) -> str:
+    try:
+        return importlib_metadata.version(package)
+    except importlib_metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def versions() -> dict[str, str]:
+    found = {"handctl": __version__, "python": platform.python_version(),
+             "platform": platform.platform()}
+    found |= {name: package_version(name) for name in PACKAGES}
+    return found
+
+
+def start_metadata(hand: HandConfig, recipe: Recipe | None,
+                   command_line: Sequence[str] = ()) -> dict[str, dict[str, str]]:
+    """The records known before the run: hand, recipe, versions, the command line."""
+    hand_text = _read(hand.source)
+    records = {
+        ch.META_HAND: {"name": hand.name, "source": hand.source, "config_hash": hand.config_hash,
+                       "sha256": hashlib.sha256(hand_text.encode()).hexdigest(),
+                       "yaml": hand_text},
+        ch.META_VERSIONS: versions(),
+    }
+    if recipe is not None:
+        records[ch.META_RECIPE] = {"name": recipe.name, "source": recipe.source,
+                                   "yaml": _read(recipe.source)}
+    records["handctl.command"] = {
+        "command_line": orjson.dumps(list(command_line or sys.argv)).decode(),
+        "started_unix_ns": str(time.time_ns()),
+        "format_version": str(ch.FORMAT_VERSION)}
+    return records
+
+
+def run_metadata(*, mode: str, bus: str, seed: int, period_ns: int, startup_ticks: int,
+                 reset_node_faults: bool, estimator: bool, sim_faults: str = ""
+                 ) -> dict[str, str]:
+    """How the runtime was set up: what a re-run must set up the same way."""
+    return {"mode": mode, "bus": bus, "seed": str(seed), "period_ns": str(period_ns),
+            "startup_ticks": str(startup_ticks), "reset_node_faults": str(reset_node_faults),
+            "estimator": str(estimator), "sim_faults": sim_faults}

@@ -1,0 +1,422 @@
+"""The writer process: copies rows out of the shared rings, encodes them as JSON, writes MCAP.
+
+Run as ``python -m handctl.recording.writer SHM_FD CTL_FD OUT_FD READY_FD`` by ``Recorder``;
+never by hand. It polls the rings every ``POLL_S``, so the control process hands over nothing
+but a counter per record, and it ends when the control pipe closes: on purpose (the recorder
+set ``CLOSED`` first) or because the control process died. Either way it copies out what is
+left in the rings and finishes the file with its summary and indexes.
+
+Chunks hold at most ``CHUNK_NS`` of log time (or ``CHUNK_WALL_S`` of wall time, whichever comes
+first) and the file is flushed after each, so even if this process is killed too, what is on
+disk is a readable MCAP prefix missing no more than the chunk in progress.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import mmap
+import os
+import select
+import signal
+import struct
+import sys
+import time
+import traceback
+from typing import IO, Any
+
+import numpy as np
+import orjson
+
+from handctl import __version__
+from handctl.bus import TAP_RX, TAP_TX
+from handctl.recording import channels as ch
+from handctl.recording.mcapfile import ChunkWriter
+from handctl.recording.metadata import package_version
+from handctl.recording.ring import (
+    CLOSED,
+    DROPPED_EVENTS,
+    DROPPED_FRAMES,
+    DROPPED_POSES,
+    DROPPED_TICKS,
+    E_KIND,
+    E_LEN,
+    E_T,
+    E_TICK,
+    EV_BUS,
+    EV_FAULT,
+    EV_INTERN,
+    EV_PHASE,
+    EV_REJECT,
+    EV_REQUEST,
+    EV_STATE,
+    EVENT_BYTES,
+    EVENT_HEAD,
+    EVENT_TAIL,
+    FRAME_BYTES,
+    FRAME_HEAD,
+    FRAME_TAIL,
+    I_FAULTS,
+    I_FEEDBACK,
+    I_PHASE,
+    I_STAGES,
+    I_STATE,
+    POSE_HEAD,
+    POSE_TAIL,
+    SEP,
+    TICK_HEAD,
+    TICK_TAIL,
+    Layout,
+    Rings,
+)
+
+POLL_S = 0.01
+CHUNK_NS = 50_000_000
+CHUNK_WALL_S = 0.05
+SYNC_EVERY_S = 1.0
+_LENGTH = struct.Struct("<I")
+
+
+class Encoder:
+    """Rings in, MCAP out: one instance per recording."""
+
+    def __init__(self, rings: Rings, out: IO[bytes], setup: dict[str, Any]) -> None:
+        self.rings = rings
+        self.layout = rings.layout
+        self.out = out
+        self.n = self.layout.n_joints
+        self.m = self.layout.n_nodes
+        self.states: list[str] = list(setup["states"])
+        self.phases: list[str] = list(setup["phases"])
+        self.objects: list[str] = list(setup["objects"])
+        self.writer = ChunkWriter(out, ch.PROFILE, f"handctl {__version__} (records by "
+                                                   f"mcap-python {package_version('mcap')})")
+        for name, data in setup["metadata"].items():
+            self.writer.add_metadata(name, {k: str(v) for k, v in data.items()})
+        self.writer.flush()
+        schema_ids: dict[str, int] = {}
+        self.channel: dict[str, int] = {}
+        for channel in ch.CHANNELS:
+            if channel.schema_name not in schema_ids:
+                schema_ids[channel.schema_name] = self.writer.register_schema(
+                    channel.schema_name, ch.SCHEMA_ENCODING,
+                    orjson.dumps(ch.schema_of(channel)))
+            meta = {"handctl.format_version": str(ch.FORMAT_VERSION)}
+            if channel.topic in (ch.JOINT_STATE, ch.TORQUE):
+                meta["joints"] = ",".join(setup["joints"])
+            if channel.topic == ch.JOINT_STATE:
+                meta["nodes"] = ",".join(setup["nodes"])
+            self.channel[channel.topic] = self.writer.register_channel(
+                channel.topic, ch.MESSAGE_ENCODING, schema_ids[channel.schema_name], meta)
+        self.sequence = dict.fromkeys(self.channel.values(), 0)
+        self.ticks = self.frames = self.events = self.poses = 0
+        self.messages = 0
+        self.chunks = 0
+        self.last_tick = -1
+        self.last_log = 0
+        self.chunk_log: int | None = None
+        self.chunk_wall = 0.0
+        self.synced = time.monotonic()
+        self.busy_s = 0.0
+        self.dropped = [0, 0, 0, 0]
+
+    def add(self, topic: str, log_time: int, payload: dict[str, Any]) -> None:
+        channel = self.channel[topic]
+        seq = self.sequence[channel]
+        self.sequence[channel] = seq + 1
+        self.writer.add_message(channel, log_time, orjson.dumps(payload), seq & 0xFFFFFFFF)
+        self.messages += 1
+        if self.chunk_log is None:
+            self.chunk_log = log_time
+            self.chunk_wall = time.monotonic()
+        self.last_log = max(self.last_log, log_time)
+
+    # -- draining -------------------------------------------------------------------------
+    def drain(self) -> bool:
+        """Copy out and encode everything published; True if there was anything.
+
+        The tick head is read first: every frame and event of a published tick was published
+        before it, so frames and events go out before the rows that follow them, and a reader
+        that meets a tick's row has already met everything that belongs to it.
+        """
+        ctl = self.rings.ctl
+        tick_head = int(ctl[TICK_HEAD])
+        frame_head = int(ctl[FRAME_HEAD])
+        event_head = int(ctl[EVENT_HEAD])
+        pose_head = int(ctl[POSE_HEAD])
+        busy = False
+        if frame_head > ctl[FRAME_TAIL]:
+            self._frames(int(ctl[FRAME_TAIL]), frame_head)
+            busy = True
+        if event_head > ctl[EVENT_TAIL]:
+            self._events(int(ctl[EVENT_TAIL]), event_head)
+            busy = True
+        if pose_head > ctl[POSE_TAIL]:
+            self._poses(int(ctl[POSE_TAIL]), pose_head)
+            busy = True
+        if tick_head > ctl[TICK_TAIL]:
+            self._ticks(int(ctl[TICK_TAIL]), tick_head)
+            busy = True
+        self._drops()
+        return busy
+
+    def _take(self, tail: int, head: int, capacity: int) -> np.ndarray:
+        return np.arange(tail, head, dtype=np.int64) & (capacity - 1)
+
+    def _frames(self, tail: int, head: int) -> None:
+        rings = self.rings
+        index = self._take(tail, head, self.layout.frame_capacity)
+        rows = rings.frame_i[index].tolist()
+        raw = rings.frame_d[index].tobytes()
+        rings.ctl[FRAME_TAIL] = head
+        add = self.add
+        for j, (t_ns, tick, frame_id, meta, bus_ns) in enumerate(rows):
+            direction, size = meta & 0xFF, min((meta >> 8) & 0xFF, FRAME_BYTES)
+            data = raw[j * FRAME_BYTES: j * FRAME_BYTES + size].hex()
+            if direction == TAP_RX:
+                add(ch.CAN_RX, t_ns, {"tick": tick, "id": frame_id, "data": data,
+                                      "bus_time_ns": bus_ns})
+            else:
+                add(ch.CAN_TX, t_ns, {"tick": tick, "id": frame_id, "data": data,
+                                      "ok": direction == TAP_TX})
+        self.frames += len(rows)
+
+    def _events(self, tail: int, head: int) -> None:
+        rings = self.rings
+        index = self._take(tail, head, self.layout.event_capacity)
+        rows = rings.event_i[index].tolist()
+        raw = rings.event_d[index].tobytes()
+        rings.ctl[EVENT_TAIL] = head
+        for j, row in enumerate(rows):
+            text = raw[j * EVENT_BYTES: j * EVENT_BYTES + row[E_LEN]].decode(errors="replace")
+            fields = text.split(SEP)
+            kind, tick, t_ns = row[E_KIND], row[E_TICK], row[E_T]
+            if kind == EV_INTERN:
+                index_, name = int(fields[0]), fields[1]
+                self.phases += [""] * (index_ + 1 - len(self.phases))
+                self.phases[index_] = name
+                continue
+            payload = _event_payload(kind, tick, fields)
+            if payload is not None:
+                self.add(ch.EVENTS, t_ns, payload)
+                self.events += 1
+
+    def _poses(self, tail: int, head: int) -> None:
+        rings = self.rings
+        index = self._take(tail, head, self.layout.pose_capacity)
+        ints = rings.pose_i[index].tolist()
+        floats = rings.pose_f[index].tolist()
+        rings.ctl[POSE_TAIL] = head
+        for (tick, t_ns), values in zip(ints, floats, strict=True):
+            objects = [{"name": name, "x_m": values[3 * i], "y_m": values[3 * i + 1],
+                        "angle_rad": values[3 * i + 2]} for i, name in enumerate(self.objects)]
+            payload: dict[str, Any] = {"tick": tick, "objects": objects}
+            if len(objects) >= 2:
+                payload["line_angle_rad"] = math.atan2(values[4] - values[1],
+                                                       values[3] - values[0])
+            self.add(ch.OBJECTS, t_ns, payload)
+            self.poses += 1
+
+    def _ticks(self, tail: int, head: int) -> None:
+        rings = self.rings
+        index = self._take(tail, head, self.layout.tick_capacity)
+        ints = rings.tick_i[index].tolist()
+        floats = rings.tick_f[index].tolist()
+        rings.ctl[TICK_TAIL] = head
+        n, m = self.n, self.m
+        states, add = self.states, self.add
+        node_at = I_FEEDBACK + n
+        for r, f in zip(ints, floats, strict=True):
+            k, scheduled, now, missed, active = r[0], r[1], r[2], r[3], r[4]
+            timing: dict[str, Any] = {"tick": k, "scheduled_ns": scheduled, "now_ns": now,
+                                      "lateness_ns": now - scheduled, "missed": missed,
+                                      "active": bool(active)}
+            if active:
+                s = I_STAGES
+                timing["stage_cpu_ns"] = {"poll": r[s], "recipe": r[s + 1],
+                                          "safety": r[s + 2], "send": r[s + 3]}
+            add(ch.TIMING, now, timing)
+            if active:
+                feedback = r[I_FEEDBACK:node_at]
+                add(ch.JOINT_STATE, now, {
+                    "tick": k, "angle_rad": f[:n], "tdt_torque_nm": f[n:2 * n],
+                    "feedback_age_ns": [now - x if x >= 0 else -1 for x in feedback],
+                    "node_state": r[node_at:node_at + m],
+                    "node_fault_bits": r[node_at + m:node_at + 2 * m]})
+                add(ch.TORQUE, now, {"tick": k, "desired_nm": f[2 * n:3 * n],
+                                     "applied_nm": f[3 * n:]})
+                state = r[I_STATE]
+                add(ch.SAFETY, now, {"tick": k, "state": states[state] if state >= 0 else "?",
+                                     "faults_latched": r[I_FAULTS]})
+                phase = r[I_PHASE]
+                add(ch.PHASE, now, {"tick": k, "phase": self.phases[phase]
+                                    if 0 <= phase < len(self.phases) else "?"})
+            self.last_tick = k
+        self.ticks += len(ints)
+
+    def _drops(self) -> None:
+        """Drops the loop counted become ``recording`` events as they grow."""
+        ctl = self.rings.ctl
+        names = ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
+        for i, word in enumerate((DROPPED_TICKS, DROPPED_FRAMES, DROPPED_EVENTS,
+                                  DROPPED_POSES)):
+            now = int(ctl[word])
+            if now != self.dropped[i]:
+                self.add(ch.EVENTS, self.last_log, {
+                    "tick": self.last_tick, "kind": "recording", "name": names[i],
+                    "detail": "the writer fell behind: records dropped",
+                    "count": now - self.dropped[i]})
+                self.dropped[i] = now
+
+    # -- chunks and the end ---------------------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        return {"tick": self.last_tick, "ticks": self.ticks, "frames": self.frames,
+                "events": self.events, "dropped_ticks": self.dropped[0],
+                "dropped_frames": self.dropped[1], "dropped_events": self.dropped[2],
+                "dropped_poses": self.dropped[3]}
+
+    def maybe_flush(self, force: bool = False) -> None:
+        """Close the chunk once it spans ``CHUNK_NS`` of log time or ``CHUNK_WALL_S`` of wall
+        time, and push it to the file, so a crash costs at most that much."""
+        if self.chunk_log is None:
+            return
+        wall = time.monotonic()
+        if not force and self.last_log - self.chunk_log < CHUNK_NS \
+                and wall - self.chunk_wall < CHUNK_WALL_S:
+            return
+        self.add(ch.STATS, self.last_log, self.stats())
+        self.writer.flush()
+        self.chunks += 1
+        self.chunk_log = None
+        if wall - self.synced >= SYNC_EVERY_S:
+            os.fdatasync(self.out.fileno())
+            self.synced = wall
+
+    def finish(self, ended: str) -> None:
+        self.maybe_flush(force=True)
+        self.writer.add_metadata(ch.META_END, {
+            "ended": ended, "ticks": str(self.ticks), "frames": str(self.frames),
+            "events": str(self.events), "poses": str(self.poses),
+            "messages": str(self.messages), "chunks": str(self.chunks),
+            "dropped_ticks": str(self.dropped[0]), "dropped_frames": str(self.dropped[1]),
+            "dropped_events": str(self.dropped[2]), "dropped_poses": str(self.dropped[3]),
+            "writer_busy_s": f"{self.busy_s:.6f}",
+            "writer_cpu_s": f"{time.process_time():.6f}"})
+        self.writer.finish()
+        self.out.flush()
+        os.fdatasync(self.out.fileno())
+
+
+def _event_payload(kind: int, tick: int, fields: list[str]) -> dict[str, Any] | None:
+    """The JSON of one event from the fields the loop joined (see ``Recorder``)."""
+    def field(i: int) -> str:
+        return fields[i] if i < len(fields) else ""
+
+    if kind == EV_FAULT:
+        return {"tick": tick, "kind": "fault", "name": field(0), "category": field(1),
+                "detail": field(2)}
+    if kind == EV_STATE:
+        return {"tick": tick, "kind": "state", "name": field(0), "previous": field(1),
+                "cause": field(2), "detail": f"{field(1)} -> {field(0)} on {field(2)}"}
+    if kind == EV_PHASE:
+        return {"tick": tick, "kind": "phase", "name": field(0), "previous": field(1),
+                "detail": field(2)}
+    if kind == EV_BUS:
+        return {"tick": tick, "kind": "bus", "name": field(0), "detail": field(1),
+                "bus_time_ns": int(field(2) or 0)}
+    if kind == EV_REJECT:
+        return {"tick": tick, "kind": "rejected_frames", "name": field(0),
+                "detail": f"{field(1)} {field(0)} reject(s)", "count": int(field(1) or 0)}
+    if kind == EV_REQUEST:
+        return {"tick": tick, "kind": "request", "name": field(0), "detail": field(1)}
+    return None
+
+
+class _Control:
+    """Length-prefixed JSON messages from the recorder on the control pipe."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.buffer = bytearray()
+        self.eof = False
+        self.pending: list[dict[str, Any]] = []
+
+    def read(self, timeout: float | None) -> list[dict[str, Any]]:
+        ready, _, _ = select.select([self.fd], [], [], timeout)
+        if ready:
+            chunk = os.read(self.fd, 1 << 16)
+            if not chunk:
+                self.eof = True
+            self.buffer += chunk
+        messages = []
+        while len(self.buffer) >= 4:
+            (size,) = _LENGTH.unpack_from(self.buffer)
+            if len(self.buffer) < 4 + size:
+                break
+            messages.append(orjson.loads(bytes(self.buffer[4:4 + size])))
+            del self.buffer[:4 + size]
+        return messages
+
+    def first(self) -> dict[str, Any]:
+        """The set-up message; any message that came with it stays in ``pending``."""
+        while not self.eof:
+            messages = self.read(None)
+            if messages:
+                self.pending = messages[1:]
+                return messages[0]
+        raise EOFError("the control pipe closed before the set-up message")
+
+
+def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
+    control = _Control(ctl_fd)
+    setup = control.first()
+    layout = Layout.from_dict(setup["layout"])
+    block = mmap.mmap(shm_fd, layout.size)
+    rings = Rings(layout, block)
+    with os.fdopen(out_fd, "wb", buffering=1 << 20) as out:
+        encoder = Encoder(rings, out, setup)
+        os.write(ready_fd, b"R")
+        os.close(ready_fd)
+        messages = control.pending
+        while True:
+            for message in messages:
+                if message.get("type") == "metadata":
+                    encoder.writer.add_metadata(message["name"], message["data"])
+            started = time.perf_counter()
+            encoder.drain()
+            encoder.maybe_flush()
+            encoder.busy_s += time.perf_counter() - started
+            if control.eof:
+                break
+            messages = control.read(POLL_S)
+        # The control process closed the pipe or died: what is published is all there is.
+        started = time.perf_counter()
+        while encoder.drain():
+            pass
+        encoder.busy_s += time.perf_counter() - started
+        closed = bool(rings.ctl[CLOSED])
+        encoder.finish("closed by the recorder" if closed
+                       else "the control process ended without closing the recorder")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    # The recorder decides when the recording ends: a terminal's Ctrl-C or a service
+    # manager's SIGTERM goes to the control process, which stops the hand and then closes us.
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
+    # Behind the loop and the simulated hand when the CPUs are contended: the rings give the
+    # writer seconds of slack, a late tick is a safety stop.
+    with contextlib.suppress(OSError):
+        os.nice(5)
+    args = sys.argv[1:] if argv is None else argv
+    try:
+        shm_fd, ctl_fd, out_fd, ready_fd = (int(a) for a in args[:4])
+        return run(shm_fd, ctl_fd, out_fd, ready_fd)
+    except Exception:
+        sys.stderr.write(traceback.format_exc())
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,433 @@
+"""Recording a run to MCAP against the simulated hand: every channel round-trips (checked
+against what the bus and the runtime really did, and against the schemas), the files read with
+the mcap library's own readers, a full ring drops and counts without blocking the loop, a
+SIGKILL of the control process loses one tick, and a truncated file gives back every complete
+chunk."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import pytest
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
+
+from handctl.clock import Tick
+from handctl.config import HandConfig
+from handctl.loop import Outcome, RunResult, TickRecord
+from handctl.recipes.loader import load_recipe
+from handctl.recipes.schema import Recipe
+from handctl.recording import channels as ch
+from handctl.recording.metadata import run_metadata, start_metadata
+from handctl.recording.reader import iter_decoded, iter_messages, open_recording
+from handctl.recording.recorder import Recorder
+from handctl.recording.ring import Layout
+from handctl.sim import faults as inj
+
+from ..conftest import ROOT
+from .rig import rig
+
+SHORT = """
+recipe: short_hold
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.15
+    max_s: 0.3
+    on_timeout: next
+  - name: hold
+    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
+    ramp_s: 0.15
+    max_s: 0.6
+    on_timeout: next
+"""
+ESTOP_TICK = 700
+
+
+@dataclass
+class Recorded:
+    path: Path
+    result: RunResult
+    wire: list[tuple[int, bytes]]  # every frame the sniffer heard, in bus order
+    poses: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
+    final_angle: list[float] = field(default_factory=list)
+    final_tdt: list[float] = field(default_factory=list)
+
+
+def short_recipe(hand: HandConfig, directory: Path) -> Recipe:
+    path = directory / "short_hold.yaml"
+    path.write_text(SHORT)
+    return load_recipe(path, hand)
+
+
+def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool = True,
+               layout: Layout | None = None, pause_writer: bool = False) -> Recorded:
+    """A lockstep run on the simulated hand, recorded the way ``run_recipe`` records it.
+
+    With ``troubles``: error frames (bus events), a babbling foreign node (unexpected ids)
+    and skipped counters (rejects), then an operator e-stop (a request and a fault).
+    """
+    with rig(hand, recipe) as r:
+        recorder = Recorder(path, hand, start_metadata(hand, recipe, ["test"]),
+                            phase_names=[p.name for p in recipe.phases],
+                            object_names=[o.name for o in r.sim.params.objects], layout=layout)
+        with recorder:
+            capture = _Capture(recorder)
+            r.runtime.recorder = capture
+            recorder.attach(r.runtime)
+            recorder.add_metadata(ch.META_RUN, run_metadata(
+                mode="lockstep", bus="virtual", seed=0, period_ns=1_000_000,
+                startup_ticks=r.runtime.startup_ticks, reset_node_faults=False,
+                estimator=False))
+            poses: dict[int, list[tuple[float, float, float]]] = {}
+
+            def sample(tk: Tick) -> None:
+                if tk.k % 10 == 0:
+                    truth = [(o.x, o.y, o.angle) for o in r.sim.ground_truth().objects]
+                    poses[tk.k] = truth
+                    recorder.poses(truth)
+                if troubles and tk.k == ESTOP_TICK:
+                    r.runtime.request_estop("test e-stop")
+
+            r.runtime.tick_hooks.append(sample)
+            if troubles:
+                r.sim.faults.add(inj.ErrorFrames(per_tick=1), 0.30, 0.303)
+                r.sim.faults.add(inj.Babble(id=0x050, per_tick=2, length=8), 0.40, 0.405)
+                r.sim.faults.add(inj.CounterSkip(node=1, message="feedback"), 0.50, 0.502)
+            recorder.wait_ready()
+            if pause_writer:
+                os.kill(recorder.process.pid, signal.SIGSTOP)
+            try:
+                result = r.run()
+            finally:
+                if pause_writer:
+                    os.kill(recorder.process.pid, signal.SIGCONT)
+            recorded = Recorded(path, result, list(r.wire), poses, capture.angle, capture.tdt)
+            recorder.close({"outcome": result.outcome.value})
+    return recorded
+
+
+class _Capture:
+    """Passes the runtime's records on to the recorder and keeps the last tick's state."""
+
+    def __init__(self, inner: Recorder) -> None:
+        self.inner = inner
+        self.angle: list[float] = []
+        self.tdt: list[float] = []
+
+    def begin_tick(self, tick: Tick) -> None:
+        self.inner.begin_tick(tick)
+
+    def push(self, record: TickRecord) -> None:
+        self.inner.push(record)
+        self.angle, self.tdt = record.angle.tolist(), record.tdt.tolist()
+
+    def note(self, kind: str, detail: str, tick: int) -> None:
+        self.inner.note(kind, detail, tick)
+
+
+@pytest.fixture(scope="module")
+def recorded(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recorded:
+    directory = tmp_path_factory.mktemp("recording")
+    return record_run(hand, short_recipe(hand, directory), directory / "run.mcap")
+
+
+def library_messages(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """Messages in file order through the mcap library's own reader, nothing of handctl's."""
+    with path.open("rb") as handle:
+        for _, channel, message in make_reader(handle).iter_messages(log_time_order=False):
+            yield channel.topic, message.log_time, json.loads(message.data)
+
+
+def test_every_channel_is_written_and_matches_its_schema(recorded: Recorded) -> None:
+    with recorded.path.open("rb") as handle:
+        reader = make_reader(handle)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        schemas = {s.id: s for s in summary.schemas.values()}
+        validators = {}
+        for channel in summary.channels.values():
+            schema = schemas[channel.schema_id]
+            assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            validators[channel.topic] = jsonschema.Draft202012Validator(json.loads(schema.data))
+        counts = {summary.channels[cid].topic: n
+                  for cid, n in summary.statistics.channel_message_counts.items()}
+    assert set(counts) == {c.topic for c in ch.CHANNELS}
+    assert all(counts[c.topic] > 0 for c in ch.CHANNELS), counts
+    assert len(summary.chunk_indexes) > 1
+    for topic, _, message in library_messages(recorded.path):
+        validators[topic].validate(message)
+    kinds = {m["kind"] for t, _, m in library_messages(recorded.path) if t == ch.EVENTS}
+    assert kinds == {"fault", "state", "phase", "bus", "rejected_frames", "request"}
+
+
+def test_frames_are_the_bus_traffic_in_order(recorded: Recorded) -> None:
+    """An independent sniffer on the same bus heard exactly the logged frames, in order."""
+    logged = [(m["id"], bytes.fromhex(m["data"])) for t, _, m in library_messages(recorded.path)
+              if t in (ch.CAN_RX, ch.CAN_TX)]
+    assert logged == recorded.wire
+
+
+def test_per_tick_records_are_what_the_runtime_did(recorded: Recorded) -> None:
+    result = recorded.result
+    messages = list(library_messages(recorded.path))
+    timing = [m for t, _, m in messages if t == ch.TIMING]
+    assert [m["tick"] for m in timing] == list(range(result.ticks))
+    assert [m["lateness_ns"] for m in timing] == result.lateness_ns.tolist()
+    assert [m["missed"] for m in timing] == result.missed.tolist()
+    active = [m for m in timing if m["active"]]
+    for m in active[:50]:
+        stages = result.stage_ns[m["tick"]]
+        assert [m["stage_cpu_ns"][k] for k in ("poll", "recipe", "safety", "send")] \
+            == stages[:4].tolist()
+    torques = [m for t, _, m in messages if t == ch.TORQUE]
+    assert [m["tick"] for m in torques] == [m["tick"] for m in active]
+    for j, peak in enumerate(result.max_abs_tau.tolist()):
+        assert max(abs(m["applied_nm"][j]) for m in torques) == peak
+    joint = [m for t, _, m in messages if t == ch.JOINT_STATE]
+    assert joint[-1]["angle_rad"] == recorded.final_angle
+    assert joint[-1]["tdt_torque_nm"] == recorded.final_tdt
+    states = [m["state"] for t, _, m in messages if t == ch.SAFETY]
+    assert states[-1] == "faulted" and "running" in states
+    faults = [(m["name"], m["tick"]) for t, _, m in messages
+              if t == ch.EVENTS and m["kind"] == "fault"]
+    assert faults == [(f.code.name, f.tick) for f in result.faults]
+    assert faults[0] == ("ESTOP", ESTOP_TICK)
+    requests = [(m["name"], m["tick"]) for t, _, m in messages
+                if t == ch.EVENTS and m["kind"] == "request"]
+    assert requests == [("estop", ESTOP_TICK)]
+    rejected: Counter[str] = Counter()
+    for t, _, m in messages:
+        if t == ch.EVENTS and m["kind"] == "rejected_frames":
+            rejected[m["name"]] += m["count"]
+    assert rejected == Counter({k: v for k, v in result.node_rejects.items() if v})
+    assert rejected["unexpected_id"] > 0 and rejected["counter_skip"] > 0
+    bus = [m for t, _, m in messages if t == ch.EVENTS and m["kind"] == "bus"]
+    assert len(bus) >= result.bus_events > 0
+    assert {m["name"] for m in bus} == {"error_frame"}
+    phases = [m["phase"] for t, _, m in messages if t == ch.PHASE]
+    assert [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]] \
+        == ["running", "close", "hold"]
+
+
+def test_object_poses_are_the_ground_truth(recorded: Recorded) -> None:
+    poses = {m["tick"]: m for t, _, m in library_messages(recorded.path) if t == ch.OBJECTS}
+    assert set(poses) == set(recorded.poses)
+    for tick, truth in recorded.poses.items():
+        objects = poses[tick]["objects"]
+        assert [(o["x_m"], o["y_m"], o["angle_rad"]) for o in objects] == truth
+        (x1, y1, _), (x2, y2, _) = truth
+        assert poses[tick]["line_angle_rad"] == math.atan2(y2 - y1, x2 - x1)
+
+
+def test_metadata_names_the_hand_the_recipe_and_the_versions(recorded: Recorded,
+                                                             hand: HandConfig) -> None:
+    with recorded.path.open("rb") as handle:
+        meta = {m.name: m.metadata for m in make_reader(handle).iter_metadata()}
+    assert meta[ch.META_HAND]["config_hash"] == hand.config_hash
+    assert meta[ch.META_HAND]["yaml"] == Path(hand.source).read_text()
+    assert "short_hold" in meta[ch.META_RECIPE]["yaml"]
+    assert {"handctl", "python", "numpy", "mujoco", "python-can", "mcap"} \
+        <= set(meta[ch.META_VERSIONS])
+    assert json.loads(meta["handctl.command"]["command_line"]) == ["test"]
+    assert meta[ch.META_RUN]["mode"] == "lockstep"
+    end = meta[ch.META_END]
+    assert end["ended"] == "closed by the recorder"
+    assert end["dropped_ticks"] == end["dropped_frames"] == "0"
+    assert json.loads(meta[ch.META_SUMMARY]["json"]) == {"outcome": "safety_stop"}
+
+
+def test_handctl_reader_agrees_with_the_library(recorded: Recorded) -> None:
+    recording = open_recording(recorded.path)
+    assert recording.complete and not recording.problem
+    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    assert ours == list(library_messages(recorded.path))
+
+
+def test_a_full_ring_drops_and_counts_and_never_blocks(hand: HandConfig, tmp_path: Path,
+                                                       recorded: Recorded) -> None:
+    """The writer is stopped (SIGSTOP) for the whole run: the rings fill, the loop goes on."""
+    tiny = Layout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
+                  event_capacity=8, pose_capacity=4)
+    run = record_run(hand, short_recipe(hand, tmp_path), tmp_path / "tiny.mcap", layout=tiny,
+                     pause_writer=True)
+    assert run.result.ticks == recorded.result.ticks  # same run, nothing held it up
+    assert run.result.outcome is Outcome.SAFETY_STOP
+    recording = open_recording(run.path)
+    end = {k: int(v) for k, v in recording.metadata[ch.META_END].items() if v.isdigit()}
+    # Every record is either in the file or counted as dropped. The rings hold their capacity;
+    # what the recorder publishes at close, after the writer was let go, may find room.
+    assert end["ticks"] + end["dropped_ticks"] == run.result.ticks
+    assert end["frames"] + end["dropped_frames"] == len(run.wire)
+    assert 16 <= end["ticks"] <= 17 and 64 <= end["frames"] <= 64 + 6
+    assert end["dropped_poses"] > 0 and end["dropped_events"] > 0
+    logged = list(iter_decoded(recording, (ch.TIMING, ch.CAN_RX, ch.CAN_TX)))
+    assert sum(t == ch.TIMING for t, _, _ in logged) == end["ticks"]
+    assert len(logged) - end["ticks"] == end["frames"]
+    drops: Counter[str] = Counter()
+    for _, _, m in iter_decoded(recording, (ch.EVENTS,)):
+        if m["kind"] == "recording":
+            drops[m["name"]] += m["count"]
+    assert drops["dropped_ticks"] == end["dropped_ticks"]
+    assert drops["dropped_frames"] == end["dropped_frames"]
+    stats = [m for _, _, m in iter_decoded(recording, (ch.STATS,))]
+    assert stats[-1]["dropped_ticks"] == end["dropped_ticks"]
+
+
+# -- durability ------------------------------------------------------------------------------
+CHILD = """
+import os, signal, sys
+from pathlib import Path
+from handctl.config import load_hand
+from handctl.recipes.loader import load_recipe
+from handctl.session import RunRequest, run_recipe
+
+hand = load_hand(sys.argv[1])
+recipe = load_recipe(sys.argv[2], hand)
+kill_at, kill_writer = int(sys.argv[4]), sys.argv[5] == "1"
+
+def children():
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == os.getpid():
+                found.append(int(entry))
+    return found
+
+def status(line):
+    tick = round(line.t_s * 1000)
+    if tick >= kill_at:
+        print(tick, flush=True)
+        if kill_writer:
+            for pid in children():
+                os.kill(pid, signal.SIGKILL)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+run_recipe(RunRequest(hand=hand, recipe=recipe, log=Path(sys.argv[3])), status=status)
+"""
+
+
+def kill_mid_run(hand: HandConfig, recipe: Recipe, path: Path, kill_at: int,
+                 kill_writer: bool) -> int:
+    """Run a recorded lockstep run in a child that SIGKILLs itself (and, if asked, the writer)
+    at the status line of tick ``kill_at``; returns the tick it died in."""
+    done = subprocess.run(
+        [sys.executable, "-c", CHILD, hand.source, recipe.source, str(path), str(kill_at),
+         "1" if kill_writer else "0"], cwd=ROOT, capture_output=True, text=True, timeout=120,
+        check=False)
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    return int(done.stdout.split()[-1])
+
+
+def wait_complete(path: Path, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not open_recording(path).complete:
+        assert time.monotonic() < deadline, "the writer did not finish the file"
+        time.sleep(0.1)
+
+
+def test_sigkill_of_the_control_process_loses_one_tick(hand: HandConfig,
+                                                      tmp_path: Path) -> None:
+    recipe = short_recipe(hand, tmp_path)
+    path = tmp_path / "killed.mcap"
+    died_in = kill_mid_run(hand, recipe, path, 600, kill_writer=False)
+    wait_complete(path)  # the orphaned writer finishes the file on its own
+    recording = open_recording(path)
+    assert recording.meta(ch.META_END, "ended") \
+        == "the control process ended without closing the recorder"
+    ticks = [m["tick"] for _, _, m in iter_decoded(recording, (ch.TIMING,))]
+    assert ticks == list(range(len(ticks)))
+    lost_ms = died_in - ticks[-1]
+    assert lost_ms <= 100
+    assert lost_ms == 1  # only the tick it died in: every row before it was published
+    with path.open("rb") as handle:  # complete and indexed, for the library too
+        summary = make_reader(handle).get_summary()
+    assert summary is not None and summary.chunk_indexes
+
+
+def test_sigkill_of_both_leaves_a_readable_prefix(hand: HandConfig, tmp_path: Path) -> None:
+    recipe = short_recipe(hand, tmp_path)
+    path = tmp_path / "both.mcap"
+    kill_mid_run(hand, recipe, path, 600, kill_writer=True)
+    recording = open_recording(path)
+    assert not recording.complete and recording.problem
+    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    assert [m for t, _, m in ours if t == ch.TIMING], "nothing of the run was on disk"
+    # The library's streaming reader reads the same prefix before it stops at the cut.
+    theirs = []
+    with path.open("rb") as handle, \
+            pytest.raises(Exception):  # noqa: B017 - whatever the library raises at the cut
+        for record in StreamReader(handle, validate_crcs=True).records:
+            if type(record).__name__ == "Message":
+                theirs.append(record)
+    assert [json.loads(m.data) for m in theirs] == [m for _, _, m in ours]
+
+
+@pytest.mark.parametrize("where", ["inside_a_chunk", "after_a_chunk", "in_the_summary",
+                                   "in_the_header"])
+def test_a_truncated_file_gives_back_every_complete_chunk(recorded: Recorded, tmp_path: Path,
+                                                          where: str) -> None:
+    data = recorded.path.read_bytes()
+    with recorded.path.open("rb") as handle:
+        reader = make_reader(handle)
+        summary = reader.get_summary()
+        assert summary is not None
+        chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+        all_messages = list(library_messages(recorded.path))
+    middle = chunks[len(chunks) // 2]
+    cut = {"inside_a_chunk": middle.chunk_start_offset + middle.chunk_length // 2,
+           "after_a_chunk": middle.chunk_start_offset + middle.chunk_length,
+           "in_the_summary": len(data) - 40,
+           "in_the_header": 30}[where]
+    truncated = tmp_path / "cut.mcap"
+    truncated.write_bytes(data[:cut])
+    recording = open_recording(truncated)
+    assert not recording.complete and recording.problem
+    whole = [c for c in chunks if c.chunk_start_offset + c.chunk_length <= cut]
+    expected = sum(_chunk_messages(recorded.path, c) for c in whole)
+    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    assert len(got) == expected
+    assert got == all_messages[:expected]
+    assert recording.chunks == len(whole)
+
+
+def _chunk_messages(path: Path, chunk: Any) -> int:
+    """How many messages one chunk holds, through the library's own chunk parser."""
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import breakup_chunk
+
+    with path.open("rb") as handle:
+        handle.seek(chunk.chunk_start_offset)
+        record = next(iter(StreamReader(handle, skip_magic=True, emit_chunks=True).records))
+    assert isinstance(record, Chunk)
+    return sum(isinstance(r, Message) for r in breakup_chunk(record))
+
+
+def test_docs_name_every_channel_schema_and_field() -> None:
+    """docs/recording.md is what a Foxglove user reads: it must not fall behind channels.py."""
+    text = (ROOT / "docs" / "recording.md").read_text()
+    for channel in ch.CHANNELS:
+        assert f"`{channel.topic}`" in text and f"`{channel.schema_name}`" in text
+        for name in ch.schema_of(channel)["properties"]:
+            assert f"`{name}" in text or name == "tick", (channel.topic, name)
+    for kind in ch.EVENT_KINDS:
+        assert f"`{kind}`" in text
+    for name in (ch.META_RUN, ch.META_HAND, ch.META_RECIPE, ch.META_VERSIONS, ch.META_SUMMARY,
+                 ch.META_END):
+        assert f"`{name}`" in text

@@ -1,0 +1,308 @@
+"""``handctl replay``: the re-run is bit-exact on real recordings (lockstep with faults and an
+e-stop, real time, a SIGTERM'd run) and catches a one-ulp difference; the summary, the plot,
+the export to python-can's formats and the replay onto a bus; bad input is exit 2."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from handctl.bus import open_bus
+from handctl.config import HandConfig
+from handctl.recording import channels as ch
+from handctl.recording.reader import iter_messages, open_recording
+from handctl.recording.replay import load_series, logged_frames, rerun, summarise, to_bus
+
+from ..conftest import ROOT
+from .test_recording import ESTOP_TICK, Recorded, record_run, short_recipe
+
+
+def handctl(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT, text=True,
+                          capture_output=True, timeout=timeout, check=False)
+
+
+@pytest.fixture(scope="module")
+def recorded(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recorded:
+    directory = tmp_path_factory.mktemp("replay")
+    return record_run(hand, short_recipe(hand, directory), directory / "run.mcap")
+
+
+def rewrite(source: Path, target: Path, change: Any) -> None:
+    """Copy a recording message by message with the mcap library, through ``change(topic,
+    message) -> message``."""
+    with source.open("rb") as handle:
+        reader = make_reader(handle)
+        summary = reader.get_summary()
+        assert summary is not None
+        messages = list(reader.iter_messages(log_time_order=False))
+        metadata = list(reader.iter_metadata())
+    with target.open("wb") as out:
+        writer = Writer(out)
+        writer.start()
+        for meta in metadata:
+            writer.add_metadata(meta.name, meta.metadata)
+        schema_ids = {s.id: writer.register_schema(s.name, s.encoding, s.data)
+                      for s in summary.schemas.values()}
+        channel_ids = {c.id: writer.register_channel(c.topic, c.message_encoding,
+                                                     schema_ids[c.schema_id], c.metadata)
+                       for c in summary.channels.values()}
+        for _, channel, message in messages:
+            data = change(channel.topic, json.loads(message.data))
+            writer.add_message(channel_ids[channel.id], message.log_time,
+                               json.dumps(data).encode(), message.publish_time)
+        writer.finish()
+
+
+# -- re-run -----------------------------------------------------------------------------------
+def test_rerun_is_bit_exact_through_faults_and_an_estop(recorded: Recorded) -> None:
+    recording = open_recording(recorded.path)
+    report = rerun(recording)
+    assert report.ok, (report.mismatches[:3], report.frame_mismatches[:3])
+    logged_ticks = sum(1 for _ in iter_messages(recording, (ch.TORQUE,)))
+    assert report.compared == logged_ticks > ESTOP_TICK
+    sent = sum(1 for *_, is_rx in logged_frames(recording) if not is_rx)
+    assert report.frames_compared == sent
+    assert report.outcome == report.logged_outcome == "safety_stop"
+
+
+def test_rerun_finds_a_one_ulp_difference(recorded: Recorded, tmp_path: Path) -> None:
+    tampered = tmp_path / "tampered.mcap"
+    target = 400
+
+    def nudge(topic: str, message: dict[str, Any]) -> dict[str, Any]:
+        if topic == ch.TORQUE and message["tick"] == target:
+            message["applied_nm"][4] = math.nextafter(message["applied_nm"][4], math.inf)
+        return message
+
+    rewrite(recorded.path, tampered, nudge)
+    report = rerun(open_recording(tampered))
+    assert not report.ok
+    assert report.mismatched_ticks == 1
+    assert [(m["tick"], m["joint"]) for m in report.mismatches] == [(target, "f2_j2")]
+    done = handctl("replay", str(tampered), "--rerun")
+    assert done.returncode == 1, done.stderr
+    assert f"tick {target} f2_j2" in done.stdout and "MISMATCH" in done.stdout
+
+
+def test_rerun_finds_a_command_frame_that_differs(recorded: Recorded, tmp_path: Path) -> None:
+    tampered = tmp_path / "frame.mcap"
+    first_command: list[int] = []
+
+    def flip(topic: str, message: dict[str, Any]) -> dict[str, Any]:
+        if topic == ch.CAN_TX and message["id"] == 0x101 and not first_command:
+            first_command.append(message["tick"])
+            data = bytearray.fromhex(message["data"])
+            data[2] ^= 0x01
+            message["data"] = data.hex()
+        return message
+
+    rewrite(recorded.path, tampered, flip)
+    report = rerun(open_recording(tampered))
+    assert report.mismatched_ticks == 0  # the torques agree ...
+    assert len(report.frame_mismatches) == 1  # ... the frame on the wire does not
+    assert f"tick {first_command[0]}" in report.frame_mismatches[0]
+
+
+def test_realtime_recording_reruns_bit_exact(tmp_path: Path) -> None:
+    """Real time, the simulated hand in its own process: frames arrive when they arrive, and
+    the log holds what each poll drained, so the re-run still matches bit for bit."""
+    log = tmp_path / "rt.mcap"
+    done = handctl("run", "recipe", str(short_recipe_path(tmp_path)), "--realtime",
+                   "--max-seconds", "0.6", "--log", str(log))
+    assert done.returncode in (0, 3, 130), done.stderr
+    recording = open_recording(log)
+    assert recording.complete
+    assert recording.meta(ch.META_RUN, "mode") == "realtime"
+    report = rerun(recording)
+    assert report.ok, (report.mismatches[:3], report.frame_mismatches[:3])
+    # On a busy machine the real-time run may end early in a loop-overrun stop; the re-run
+    # must then reach the same stop from the logged missed ticks.
+    assert report.compared > 0
+    assert report.outcome == report.logged_outcome
+
+
+def short_recipe_path(directory: Path) -> Path:
+    from .test_recording import SHORT
+
+    path = directory / "short_hold.yaml"
+    path.write_text(SHORT)
+    return path
+
+
+def test_sigterm_leaves_a_complete_file_that_reruns(tmp_path: Path) -> None:
+    log = tmp_path / "term.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "run", "recipe",
+         "config/recipes/swap_two_cylinders.yaml", "--log", str(log)],
+        cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 60
+        while not (log.exists() and log.stat().st_size > 300_000):  # chunks: ticking
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr
+    with log.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None and summary.chunk_indexes and summary.statistics
+    recording = open_recording(log)
+    assert recording.complete
+    assert (recording.json_meta(ch.META_SUMMARY) or {})["outcome"] == "interrupted"
+    done = handctl("replay", str(log), "--rerun")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "bit-exact" in done.stdout
+
+
+# -- summary and plot -------------------------------------------------------------------------
+def test_summary_and_plot(recorded: Recorded, tmp_path: Path) -> None:
+    plot, out = tmp_path / "run.png", tmp_path / "summary.json"
+    done = handctl("replay", str(recorded.path), "--plot", str(plot), "--json", str(out))
+    assert done.returncode == 0, done.stderr
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and plot.stat().st_size > 20_000
+    summary = json.loads(out.read_text())["summary"]
+    assert summary["complete"] and summary["outcome"] == "safety_stop"
+    assert [p["name"] for p in summary["phases"]] == ["close", "hold"]
+    assert summary["phases"][0]["exit"] == "timeout"
+    assert summary["phases"][0]["duration_s"] == pytest.approx(0.3, abs=0.002)
+    assert [(f["code"], f["tick"]) for f in summary["faults"]] == [("ESTOP", ESTOP_TICK)]
+    peak = recorded.result.max_abs_tau.tolist()
+    assert [abs(t["applied_nm"]) for t in summary["largest_torques"].values()] == \
+        pytest.approx(peak, abs=1e-5)
+    assert summary["drops"] == dict.fromkeys(("dropped_ticks", "dropped_frames",
+                                              "dropped_events", "dropped_poses"), 0)
+    assert summary["timing"]["missed_ticks"] == 0
+    assert summary["rejected_frames"]["unexpected_id"] > 0
+    assert set(summary["objects"]) == {"cyl1", "cyl2"}
+    assert "ESTOP" in done.stdout and "close" in done.stdout
+
+
+def test_truncated_file_is_summarised_and_rerun_as_far_as_it_goes(recorded: Recorded,
+                                                                  tmp_path: Path) -> None:
+    data = recorded.path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    recording = open_recording(cut)
+    summary = summarise(recording, load_series(recording))
+    assert not summary["complete"] and summary["ticks"] > 0
+    report = rerun(recording)
+    assert report.ok and report.compared > 0
+    assert any("log ends" in note for note in report.notes)
+    done = handctl("replay", str(cut), "--rerun")
+    assert done.returncode == 0, done.stderr
+    assert "TRUNCATED" in done.stdout
+
+
+# -- frames out -------------------------------------------------------------------------------
+@pytest.mark.parametrize(("fmt", "reader"), [("candump", can.CanutilsLogReader),
+                                             ("asc", can.ASCReader), ("blf", can.BLFReader)])
+def test_export_reads_back_with_python_can(recorded: Recorded, tmp_path: Path, fmt: str,
+                                           reader: Any) -> None:
+    out = tmp_path / f"frames.{fmt if fmt != 'candump' else 'log'}"
+    done = handctl("replay", str(recorded.path), "--export", fmt, str(out))
+    assert done.returncode == 0, done.stderr
+    logged = [(fid, data, rx) for _, fid, data, rx in logged_frames(open_recording(recorded.path))]
+    back = [(m.arbitration_id, bytes(m.data), m.is_rx) for m in reader(str(out))]
+    assert [(f, d) for f, d, _ in back] == [(f, d) for f, d, _ in logged]
+    if fmt != "candump":  # candump -L keeps no direction
+        assert [rx for *_, rx in back] == [rx for *_, rx in logged]
+
+
+def test_to_bus_sends_every_frame_with_its_spacing(recorded: Recorded, hand: HandConfig,
+                                                   channel: str) -> None:
+    recording = open_recording(recorded.path)
+    logged = list(logged_frames(recording))
+    now = [0.0]
+    waits: list[float] = []
+
+    def clock() -> float:
+        return now[0]
+
+    def sleep(seconds: float) -> None:
+        waits.append(seconds)
+        now[0] += seconds
+
+    with open_bus(f"virtual:{channel}", hand.bus) as listener:
+        sent = to_bus(recording, f"virtual:{channel}", speed=4.0, sleep=sleep, clock=clock)
+        heard = listener.drain(limit=10**7)
+    assert sent["sent"] == len(logged) and sent["failed"] == 0
+    assert [(f.arbitration_id, f.data) for f in heard] == [(fid, d) for _, fid, d, _ in logged]
+    span = (logged[-1][0] - logged[0][0]) * 1e-9
+    assert now[0] == pytest.approx(span / 4.0, rel=1e-6)
+
+
+# -- bad input --------------------------------------------------------------------------------
+def test_not_an_mcap_file_is_exit_2(tmp_path: Path) -> None:
+    bad = tmp_path / "notes.txt"
+    bad.write_text("not a recording\n")
+    done = handctl("replay", str(bad))
+    assert done.returncode == 2
+    assert str(bad) in done.stderr and "expected an MCAP file" in done.stderr
+    missing = tmp_path / "missing.mcap"
+    done = handctl("replay", str(missing))
+    assert done.returncode == 2 and str(missing) in done.stderr and "no such file" in done.stderr
+
+
+def test_rerun_of_a_log_without_the_channels_is_exit_2(tmp_path: Path) -> None:
+    foreign = tmp_path / "foreign.mcap"
+    with foreign.open("wb") as out:
+        writer = Writer(out)
+        writer.start()
+        schema = writer.register_schema("Other", "jsonschema", b"{}")
+        channel = writer.register_channel("/other", "json", schema)
+        writer.add_message(channel, 1, b"{}", 1)
+        writer.finish()
+    done = handctl("replay", str(foreign), "--rerun")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert str(foreign) in done.stderr and "/loop/timing" in done.stderr
+
+
+def test_rerun_refuses_a_log_with_drops(hand: HandConfig, tmp_path: Path) -> None:
+    from handctl.recording.ring import Layout
+
+    tiny = Layout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
+                  event_capacity=8, pose_capacity=4)
+    run = record_run(hand, short_recipe(hand, tmp_path), tmp_path / "tiny.mcap",
+                     troubles=False, layout=tiny, pause_writer=True)
+    done = handctl("replay", str(run.path), "--rerun")
+    assert done.returncode == 2
+    assert str(run.path) in done.stderr and "dropped" in done.stderr
+
+
+def test_unwritable_log_is_exit_2_before_the_run(tmp_path: Path) -> None:
+    log = tmp_path / "no" / "such" / "dir" / "run.mcap"
+    done = handctl("run", "recipe", "config/recipes/swap_two_cylinders.yaml", "--log", str(log))
+    assert done.returncode == 2
+    assert str(log) in done.stderr and "where the recording can be written" in done.stderr
+    assert "ticks" not in done.stdout  # no run happened
+
+
+def test_rerun_of_a_run_with_the_object_estimator(tmp_path: Path) -> None:
+    """A recipe with objects runs with the estimator: the re-run sets it up the same way and
+    feeds it the same angles, so even its tracking state comes out the same."""
+    from .test_recording import SHORT
+
+    recipe = tmp_path / "with_objects.yaml"
+    recipe.write_text(SHORT.replace("phases:", "objects:\n  - {name: cyl1, radius: 0.020}\n"
+                                               "  - {name: cyl2, radius: 0.020}\nphases:"))
+    log = tmp_path / "objects.mcap"
+    done = handctl("run", "recipe", str(recipe), "--log", str(log))
+    assert done.returncode in (0, 3), done.stderr
+    recording = open_recording(log)
+    assert recording.meta(ch.META_RUN, "estimator") == "True"
+    report = rerun(recording)
+    assert report.ok and report.compared > 500, report.as_dict()

@@ -1,0 +1,58 @@
+"""Recipe templates for ``handctl plan``: strict loading, and the exits they compile to."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.planning.template import load_template
+
+from ..conftest import ROOT
+
+TEMPLATE = ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml"
+
+
+def base() -> dict[str, Any]:
+    data: dict[str, Any] = yaml.safe_load(TEMPLATE.read_text())
+    return data
+
+
+def write(tmp_path: Path, data: dict[str, Any]) -> Path:
+    path = tmp_path / "t.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_the_shipped_template_loads(hand: HandConfig) -> None:
+    t = load_template(TEMPLATE, hand)
+    assert [p.kind for p in t.phases] == ["free", "lift", "hold"] + ["turn"] * 4
+    turns = [p for p in t.phases if p.kind == "turn"]
+    assert all(p.turn == pytest.approx(math.radians(-45)) for p in turns)
+    assert turns[0].exit_condition() == "estimate.centre_line_turn < -0.7461 for 0.02"
+    assert t.objects[0].name == "cyl1" and t.objects[1].radius == 0.02
+
+
+@pytest.mark.parametrize(("change", "key", "expected"), [
+    (lambda d: d["phases"][3].update(kind="spin"), "phases[3].kind", "one of"),
+    (lambda d: d["phases"][3].update(turn_deg=0), "phases[3].turn_deg", "non-zero"),
+    (lambda d: d["phases"][3].update(colour="red"), "phases[3]", "colour"),
+    (lambda d: d["phases"][1]["move"].update(cyl9=[0, 1]), "phases[1].move.cyl9", "object"),
+    (lambda d: d["phases"][0].pop("torques"), "phases[0].torques", ""),
+    (lambda d: d["search"].update(elite=99, population=4), "search.elite", "population"),
+    (lambda d: d["phases"].append(dict(d["phases"][3])), "phases[7].name", "not used"),
+])
+def test_bad_templates_are_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
+                                                  change: Any, key: str,
+                                                  expected: str) -> None:
+    data = base()
+    change(data)
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key.startswith(key)
+    assert expected in str(info.value)
