@@ -1,0 +1,74 @@
+"""The paper's experiment on the simulated hand, nominal model, lockstep (deterministic): the
+compiled recipe lifts both cylinders and holds them, turns the pair through its manipulation
+phases on exits read from the estimator, drops nothing; the estimator follows ground truth."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from handctl.config import HandConfig
+from handctl.recipes.loader import load_recipe
+from handctl.session import RunRequest, run_recipe
+
+from ..conftest import ROOT
+
+RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+#: deg: the floor this test holds the compiled recipe to on the nominal model. The recipe
+#: turns the pair 24 deg there, far short of the issue's milestones (90 deg, 135 deg): this
+#: guards what is achieved, it does not claim the experiment
+MIN_ROTATION_DEG = 15.0
+
+
+@pytest.fixture(scope="module")
+def summary(hand: HandConfig) -> dict[str, object]:
+    recipe = load_recipe(RECIPE, hand)
+    report = run_recipe(RunRequest(hand=hand, recipe=recipe))
+    return report.summary
+
+
+def test_lifted_held_turned_not_dropped(summary: dict[str, object]) -> None:
+    assert summary["completed"] is True and summary["faults"] == []
+    ex = summary["experiment"]
+    assert isinstance(ex, dict)
+    assert ex["lifted"] is True and ex["held_s"] >= 2.0
+    assert ex["dropped"] is False
+    assert len(ex["phase_angles_deg"]) == 4
+    assert ex["total_rotation_deg"] >= MIN_ROTATION_DEG
+    assert ex["total_rotation_deg"] == pytest.approx(abs(sum(ex["phase_angles_deg"])),
+                                                     abs=0.05)
+
+
+def test_the_estimator_follows_ground_truth(summary: dict[str, object]) -> None:
+    ex = summary["experiment"]
+    assert isinstance(ex, dict)
+    # over hold and manipulation (the objects settle, loosely caged, after the lift) ...
+    assert ex["estimator_error_deg"] is not None and ex["estimator_error_deg"] < 12.0
+    # ... and where the exits read it
+    assert ex["estimator_error_manipulation_deg"] < 3.0
+    assert ex["estimator_valid_fraction"] > 0.9
+
+
+def test_the_compiled_recipe_is_planned_for_this_hand(hand: HandConfig) -> None:
+    recipe = load_recipe(RECIPE, hand)
+    assert recipe.compiled and recipe.hand_config_hash == hand.config_hash
+    assert all("chosen_from" in p.provenance for p in recipe.phases)
+    turns = [p for p in recipe.phases if p.name.startswith("manipulate")]
+    assert len(turns) == 4
+    assert all(c.text.startswith("estimate.centre_line_turn") for p in turns for c in p.exits)
+
+
+def test_run_recipe_plot_writes_the_overview(tmp_path: Path) -> None:
+    plot, out = tmp_path / "run.png", tmp_path / "out.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "handctl", "run", "recipe", str(RECIPE), "--summary-json",
+         str(out), "--plot", str(plot)], cwd=ROOT, text=True, capture_output=True,
+        timeout=300, check=False)
+    assert done.returncode == 0, done.stderr
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "experiment" in json.loads(out.read_text())
+    assert "experiment: lifted True" in done.stdout
