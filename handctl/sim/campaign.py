@@ -95,16 +95,18 @@ class CaseResult:
 
 
 @contextmanager
-def _bench(hand: HandConfig, recipe: Recipe, seed: int
-           ) -> Iterator[tuple[SimulatedHand, Runtime, HandBus]]:
-    channel = f"campaign-{next(_channels)}"
+def hil_bench(hand: HandConfig, recipe: Recipe | None, seed: int = 0, max_ticks: int = 20_000
+              ) -> Iterator[tuple[SimulatedHand, Runtime, HandBus]]:
+    """The runtime and the simulated hand in lockstep on one private virtual bus, plus a
+    sniffer that hears every frame, as a CAN analyser would on a bench."""
+    channel = f"hil-{next(_channels)}"
     with open_bus(f"virtual:{channel}", hand.bus) as peer, \
             open_bus(f"virtual:{channel}", hand.bus) as host, \
             open_bus(f"virtual:{channel}", hand.bus) as sniffer:
         sim = SimulatedHand(hand, peer, seed=seed)
         clock = LockstepClock(hand.bus.period_s, sim.step)
         driver = HandDriver(hand, load_protocol(), host, clock_ns=clock.now_ns)
-        yield sim, Runtime(hand, driver, clock, recipe, max_ticks=20_000), sniffer
+        yield sim, Runtime(hand, driver, clock, recipe, max_ticks=max_ticks), sniffer
 
 
 def _commands(sniffer: HandBus, hand: HandConfig) -> np.ndarray:
@@ -152,7 +154,7 @@ def run_case(hand: HandConfig, injector: str, phase: str, seed: int = 0) -> Case
         path = Path(tmp) / "campaign.yaml"
         path.write_text(RECIPE)
         recipe = load_recipe(path, hand)
-    with _bench(hand, recipe, seed) as (sim, runtime, sniffer):
+    with hil_bench(hand, recipe, seed) as (sim, runtime, sniffer):
         # Inject in the middle of the phase, whenever the run gets there (start-up takes as
         # long as the nodes take to answer).
         on_s = ON_S.get(injector, FAULT_ON_S)

@@ -4,7 +4,6 @@ sniffer that hears every frame the host puts on the wire, the way a CAN analyser
 from __future__ import annotations
 
 import asyncio
-import itertools
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -12,16 +11,14 @@ from dataclasses import dataclass, field
 import cantools
 import numpy as np
 
-from handctl.bus import HandBus, open_bus
-from handctl.clock import LockstepClock
+from handctl.bus import HandBus
 from handctl.config import HandConfig
-from handctl.drivers.hand import HandDriver
 from handctl.loop import RunResult, Runtime
-from handctl.protocol import DEFAULT_DBC, load_protocol
+from handctl.protocol import DEFAULT_DBC
 from handctl.recipes.schema import Recipe
+from handctl.sim.campaign import hil_bench
 from handctl.sim.hand import SimulatedHand
 
-_channels = itertools.count()
 DB = cantools.database.load_file(str(DEFAULT_DBC))
 
 
@@ -57,13 +54,6 @@ class Rig:
 @contextmanager
 def rig(hand: HandConfig, recipe: Recipe | None, *, seed: int = 0,
         max_seconds: float = 30.0) -> Iterator[Rig]:
-    channel = f"rig-{next(_channels)}"
-    with open_bus(f"virtual:{channel}", hand.bus) as peer, \
-            open_bus(f"virtual:{channel}", hand.bus) as host, \
-            open_bus(f"virtual:{channel}", hand.bus) as sniffer:
-        sim = SimulatedHand(hand, peer, seed=seed)
-        clock = LockstepClock(hand.bus.period_s, sim.step)
-        driver = HandDriver(hand, load_protocol(), host, clock_ns=clock.now_ns)
-        runtime = Runtime(hand, driver, clock, recipe,
-                          max_ticks=round(max_seconds / hand.bus.period_s))
+    max_ticks = round(max_seconds / hand.bus.period_s)
+    with hil_bench(hand, recipe, seed, max_ticks) as (sim, runtime, sniffer):
         yield Rig(hand, sim, runtime, sniffer)
