@@ -60,7 +60,9 @@ def clip(poly: Array, a: Array, b: float) -> Array:
         if sp <= tol:
             out.append(p)
         if (sp <= tol) != (sq <= tol) and k > 1:
-            t = sp / (sp - sq)
+            # a vertex counted inside by the tolerance may lie a hair outside; clamping keeps
+            # the crossing on the edge instead of just beyond its end
+            t = min(1.0, max(0.0, sp / (sp - sq)))
             out.append(p + t * (q - p))
     return _dedupe(np.array(out), scale) if out else poly[:0]
 

@@ -8,7 +8,7 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from handctl.analysis.conditions import Conditions, build_conditions
@@ -90,6 +90,8 @@ planes = st.lists(st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-2, 2)
 
 @settings(max_examples=150, deadline=None)
 @given(points, planes, st.integers(0, 2**31 - 1))
+@example(pts=[(0.0, 0.0), (0.0, -1.0), (1.0, 0.0)],
+         hps=[(-1.0, -0.125, -3.8906318096990296e-13)], seed=0)  # a vertex on the line
 def test_difference_and_intersection_partition_a_polygon(
         pts: list[tuple[float, float]], hps: list[tuple[float, float, float]],
         seed: int) -> None:
