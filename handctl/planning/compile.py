@@ -37,13 +37,26 @@ from handctl.config import HandConfig
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.planning.grasp import GraspSnapshot, fixed_directions, grasp_of, turn_directions
 from handctl.planning.models import Model, model_set
-from handctl.planning.search import Budget, Candidate, cem, hold_scorer, turn_scorer
+from handctl.planning.search import (
+    GUARDED_LIMIT_FAIL,
+    GUARDED_LIMIT_MARGIN,
+    LIMIT_FAIL,
+    LIMIT_MARGIN,
+    Budget,
+    Candidate,
+    cem,
+    hold_scorer,
+    turn_scorer,
+)
 from handctl.planning.template import Template, TemplatePhase
+from handctl.recipes.guard import LimitGuard
 from handctl.recipes.schema import Condition, Phase, TimeoutAction, parse_condition
 from handctl.sim.params import parse_sim
 
 #: decimals of N·m kept in the compiled recipe (0.1 mN·m, far below the TDT resolution)
 TORQUE_DECIMALS = 4
+#: how far into extension (a fraction of tau_max) a random seed may go
+SEED_EXTENSION = 0.3
 
 
 @dataclass
@@ -104,6 +117,8 @@ class PlanResult:
                                         for m in self.models]},
             "objects": [{"name": o.name, "radius": o.radius} for o in t.objects],
             "end_ramp_s": t.end_ramp_s,
+            **({"limit_guard_band": t.limit_guard_band} if t.limit_guard_band is not None
+               else {}),
             "phases": [_phase_document(p, self.hand) for p in self.phases],
         }
 
@@ -148,16 +163,19 @@ def _analyse(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> Analysi
 
 
 def _flexion_seed(hand: HandConfig, rng: np.random.Generator) -> tuple[float, ...]:
-    """A torque drawn uniformly from the flexion box: every joint between zero and its
-    tau_max in the direction that curls its finger inward (the sign of the finger's base
-    side: fingers left of the palm's middle flex counter-clockwise). Seeds that explore the
-    grasp's own family of motions, with no knowledge of the task."""
+    """A torque drawn uniformly from the flexion box: every joint between ``-SEED_EXTENSION``
+    and 1 times its tau_max in the direction that curls its finger inward (the sign of the
+    finger's base side: fingers left of the palm's middle flex counter-clockwise). Mostly
+    flexion, because an enveloping grasp is held by flexion; some extension, because a finger
+    that gives way is how room is made for the pair to turn. Seeds that explore the grasp's
+    own family of motions, with no knowledge of the task."""
     xs = [f.base_x for f in hand.fingers]
     mid = (min(xs) + max(xs)) / 2
     out: list[float] = []
     for finger in hand.fingers:
         sign = 1.0 if finger.base_x <= mid else -1.0
-        out += [sign * float(rng.uniform(0.0, j.tau_max)) for j in finger.joints]
+        out += [sign * float(rng.uniform(-SEED_EXTENSION, 1.0)) * j.tau_max
+                for j in finger.joints]
     return tuple(out)
 
 
@@ -191,7 +209,9 @@ def plan_recipe(template: Template, hand: HandConfig, *,
     budget = budget or settings.budget
     params = parse_sim(hand)
     model_list = model_set(params, count, settings.seed, settings.spread)
-    episodes = [Episode(hand, m.params, template.objects) for m in model_list]
+    guard = (LimitGuard.for_hand(hand, template.limit_guard_band)
+             if template.limit_guard_band is not None else None)
+    episodes = [Episode(hand, m.params, template.objects, guard) for m in model_list]
     snaps: list[Snapshot] = [e.snapshot() for e in episodes]
     alive = list(range(len(episodes)))
     rng = np.random.default_rng(settings.seed)
@@ -234,11 +254,14 @@ def plan_recipe(template: Template, hand: HandConfig, *,
                 seeds.append(("zero", previous))
             for k in range(settings.random_seeds):
                 seeds.append((f"random flexion {k + 1}", _flexion_seed(hand, rng)))
-            scorer = (turn_scorer(spec.turn, spec.max_s) if spec.kind == "turn"
-                      else hold_scorer(spec.min_height))
+            margin, fail = ((GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL) if guard is not None
+                            else (LIMIT_MARGIN, LIMIT_FAIL))
+            scorer = (turn_scorer(spec.turn, spec.max_s, margin) if spec.kind == "turn"
+                      else hold_scorer(spec.min_height, open_pair=True, limit_margin=margin))
             trial = _compiled_phase(spec, seeds[0][1], hand)
             result = cem([episodes[i] for i in alive], [snaps[i] for i in alive], trial,
-                         seeds, limits, scorer, rng, budget, lifted=lifted, progress=say)
+                         seeds, limits, scorer, rng, budget, lifted=lifted, progress=say,
+                         limit_fail=fail)
             chosen = result.best
             torques = chosen.torques
             origin = chosen.origin

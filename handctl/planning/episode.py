@@ -31,6 +31,7 @@ import numpy as np
 
 from handctl.config import HandConfig
 from handctl.estimator import ObjectEstimator
+from handctl.recipes.guard import LimitGuard
 from handctl.recipes.runner import RecipeRunner, RunStatus
 from handctl.recipes.schema import Phase, Recipe, RecipeObject, TimeoutAction
 from handctl.sim.params import NODE_TICK_S, SimParams
@@ -85,8 +86,9 @@ class Episode:
     """One model of the hand, advanced phase by phase."""
 
     def __init__(self, hand: HandConfig, params: SimParams,
-                 objects: Sequence[RecipeObject]) -> None:
+                 objects: Sequence[RecipeObject], guard: LimitGuard | None = None) -> None:
         self.hand = hand
+        self.guard = guard
         self.params = params
         self.plant = Plant(hand, params)
         self.estimator = ObjectEstimator(hand, objects)
@@ -160,7 +162,8 @@ class Episode:
         (checked every few ticks) ends the phase early, with the exit "stopped".
         """
         start = Phase("from", self.torques, 0.0, NODE_TICK_S, TimeoutAction.NEXT, (), ())
-        recipe = Recipe("episode", "<episode>", "", (start, phase), 0.0, None, False)
+        recipe = Recipe("episode", "<episode>", "", (start, phase), 0.0, None, False,
+                        limit_guard=self.guard)
         runner = RecipeRunner(recipe, self.hand.n_joints)
         plant, est = self.plant, self.estimator
         quantum = self._quantum

@@ -35,10 +35,15 @@ SPREAD_WEIGHT = 0.5
 LIMIT_MARGIN = 0.25
 #: rad, closer than this to a soft limit on any model counts as failing there (ranking)
 LIMIT_FAIL = 0.1
+#: rad, the same two with the soft-limit guard on (``recipes/guard.py``): the guard makes a
+#: joint's approach to its limit a slope rather than a cliff, so a grasp may rest inside the
+#: guard's band, and only the last few hundredths of a radian are the danger
+GUARDED_LIMIT_MARGIN = 0.06
+GUARDED_LIMIT_FAIL = 0.02
 
 
-def _limit_penalty(o: PhaseOutcome) -> float:
-    return 0.5 * max(0.0, LIMIT_MARGIN - o.limit_margin) / LIMIT_MARGIN
+def _limit_penalty(o: PhaseOutcome, margin: float = LIMIT_MARGIN) -> float:
+    return 0.5 * max(0.0, margin - o.limit_margin) / margin
 
 
 @dataclass(frozen=True)
@@ -59,13 +64,14 @@ class Candidate:
     outcomes: list[PhaseOutcome]
     origin: str
     scores: list[float] = field(default_factory=list)  # per model
+    limit_fail: float = LIMIT_FAIL  # rad, see ``failures``
 
     @property
     def failures(self) -> int:
         """Models on which the phase failed (a drop, a soft limit, an object out of hand) or
         came within ``LIMIT_FAIL`` of a soft limit: contact makes the motion chaotic enough
         that a model which brushes a limit here crosses it on the real bus."""
-        return sum(1 for o in self.outcomes if o.failed or o.limit_margin < LIMIT_FAIL)
+        return sum(1 for o in self.outcomes if o.failed or o.limit_margin < self.limit_fail)
 
     def rank(self) -> tuple[int, float]:
         """Larger is better: fewer failures first, then the score. A failure stops the real
@@ -91,7 +97,8 @@ Scorer = Callable[[PhaseOutcome], float]
 
 
 def evaluate(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase,
-             torques: Sequence[float] | np.ndarray, scorer: Scorer, *, lifted: bool) -> Candidate:
+             torques: Sequence[float] | np.ndarray, scorer: Scorer, *, lifted: bool,
+             limit_fail: float = LIMIT_FAIL) -> Candidate:
     """Run ``phase`` with ``torques`` on every model from its snapshot; score them together."""
     trial = with_torques(phase, torques)
     outcomes = []
@@ -101,20 +108,21 @@ def evaluate(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: 
     scores = np.array([scorer(o) for o in outcomes])
     score = float(scores.mean() - SPREAD_WEIGHT * scores.std())
     return Candidate(tuple(float(t) for t in torques), score, outcomes, "",
-                     [float(s) for s in scores])
+                     [float(s) for s in scores], limit_fail)
 
 
 def cem(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase,
         seeds: Sequence[tuple[str, Sequence[float]]], tau_max: Sequence[float],
         scorer: Scorer, rng: np.random.Generator, budget: Budget, *, lifted: bool,
-        progress: Callable[[str], None] | None = None) -> SearchResult:
+        progress: Callable[[str], None] | None = None,
+        limit_fail: float = LIMIT_FAIL) -> SearchResult:
     """Cross-entropy search around the seeds; returns the best candidate ever evaluated."""
     limit = np.asarray(tau_max, dtype=float)
     say = progress or (lambda _m: None)
     seeded = []
     for origin, torques in seeds:
         cand = evaluate(episodes, snapshots, phase, np.clip(torques, -limit, limit), scorer,
-                        lifted=lifted)
+                        lifted=lifted, limit_fail=limit_fail)
         cand.origin = origin
         seeded.append(cand)
         say(f"  seed {origin}: score {cand.score:+.3f} ({cand.successes}/{len(episodes)})")
@@ -128,7 +136,8 @@ def cem(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase
         population = []
         for _ in range(budget.population):
             torques = np.clip(mean + spread * rng.standard_normal(len(limit)), -limit, limit)
-            cand = evaluate(episodes, snapshots, phase, torques, scorer, lifted=lifted)
+            cand = evaluate(episodes, snapshots, phase, torques, scorer, lifted=lifted,
+                            limit_fail=limit_fail)
             cand.origin = f"search generation {gen + 1}"
             population.append(cand)
         evaluated += len(population)
@@ -145,7 +154,8 @@ def cem(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase
     return SearchResult(best, seeded, evaluated, history)
 
 
-def turn_scorer(target_rad: float, max_s: float) -> Scorer:
+def turn_scorer(target_rad: float, max_s: float,
+                limit_margin: float = LIMIT_MARGIN) -> Scorer:
     """Score of a manipulation phase: reaching the wanted turn (by its exit) is worth 1 plus a
     little for speed; a timeout is worth the fraction of the turn made; failing (soft limit,
     drop, an object out of the hand) costs 1; ending with a lost estimate costs half."""
@@ -154,7 +164,7 @@ def turn_scorer(target_rad: float, max_s: float) -> Scorer:
     def score(o: PhaseOutcome) -> float:
         if o.failed:
             return -1.0
-        lost = (0.0 if o.est_valid and o.in_hand else -0.5) - _limit_penalty(o)
+        lost = (0.0 if o.est_valid and o.in_hand else -0.5) - _limit_penalty(o, limit_margin)
         if o.exit != "timeout":
             return 1.0 + 0.25 * (1.0 - o.duration_s / max_s) + lost
         return 0.8 * float(np.clip(o.true_turn_deg / target_deg, -1.0, 1.0)) + lost
@@ -162,7 +172,8 @@ def turn_scorer(target_rad: float, max_s: float) -> Scorer:
     return score
 
 
-def hold_scorer(min_height: float, open_pair: bool = False) -> Scorer:
+def hold_scorer(min_height: float, open_pair: bool = False,
+                limit_margin: float = LIMIT_MARGIN) -> Scorer:
     """Score of a lift or hold phase: both objects up by ``min_height`` and caged (the
     estimate valid) at its end; with ``open_pair``, no finger link between the two objects
     (a pair with a link between them cannot turn past it)."""
@@ -172,6 +183,7 @@ def hold_scorer(min_height: float, open_pair: bool = False) -> Scorer:
             return -1.0
         up = 1.0 if o.end_height >= min_height else 0.5 * max(0.0, o.end_height / min_height)
         pair = -0.5 if open_pair and o.pair_blocked else 0.0
-        return up + pair + (0.25 if o.est_valid and o.in_hand else -0.5) - _limit_penalty(o)
+        caged = 0.25 if o.est_valid and o.in_hand else -0.5
+        return up + pair + caged - _limit_penalty(o, limit_margin)
 
     return score

@@ -27,6 +27,7 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.planning.models import Spread
 from handctl.planning.search import Budget
+from handctl.recipes.loader import GUARD_BAND_MAX, GUARD_BAND_MIN
 from handctl.recipes.schema import RecipeObject
 from handctl.schema import Doc, load_yaml
 
@@ -71,6 +72,7 @@ class Template:
     end_ramp_s: float
     search: SearchSettings
     phases: tuple[TemplatePhase, ...]
+    limit_guard_band: float | None = None  # rad; carried into the compiled recipe
 
 
 def load_template(path: str | Path, hand: HandConfig) -> Template:
@@ -90,6 +92,8 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         objects.append(obj)
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
+    band = (doc.number("limit_guard_band", min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad")
+            if doc.has("limit_guard_band") else None)
     names = [o.name for o in objects]
     phases = tuple(_phase(p, hand, names) for p in doc.mappings("phases", min_len=1, max_len=32))
     seen: set[str] = set()
@@ -99,7 +103,8 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
                               phase.name)
         seen.add(phase.name)
     doc.done()
-    return Template(doc.file, recipe, description, tuple(objects), end_ramp, search, phases)
+    return Template(doc.file, recipe, description, tuple(objects), end_ramp, search, phases,
+                    band)
 
 
 def _search(doc: Doc) -> SearchSettings:

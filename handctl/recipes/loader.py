@@ -14,6 +14,7 @@ import numpy as np
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
+from handctl.recipes.guard import LimitGuard
 from handctl.recipes.schema import (
     Condition,
     Phase,
@@ -28,6 +29,9 @@ from handctl.schema import Doc, load_yaml
 MAX_PHASES = 64
 #: The estimator's outputs are those of a pair (object 1, object 2 and the line through them).
 OBJECT_COUNT = 2
+#: rad, the range of ``limit_guard_band``: narrower is a cliff again, wider fights the grasp
+GUARD_BAND_MIN = 0.02
+GUARD_BAND_MAX = 0.5
 
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
@@ -50,6 +54,11 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                  "for", "nothing")
     end_ramp = doc.number("end_ramp_s", default=0.2, min=0.0, max=60.0, unit="s")
     objects = _parse_objects(doc)
+    band = doc.raw("limit_guard_band", None)
+    guard = None
+    if band is not None:
+        guard = LimitGuard.for_hand(hand, doc.number(
+            "limit_guard_band", min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad"))
     planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe: read, not used
     if not isinstance(planned_from, dict):
         doc.fail("planned_from", "a mapping (what handctl plan planned the recipe from)",
@@ -73,7 +82,8 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
         raise ConfigError(doc.file, "hand_config_hash",
                           f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
                           "compiled for another hand config: recompile it for this one)", digest)
-    return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled, objects)
+    return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled, objects,
+                  guard)
 
 
 def _parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:

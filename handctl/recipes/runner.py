@@ -52,6 +52,8 @@ class RecipeRunner:
         # first finite value of each phase-relative estimate in the current phase, by index
         self._phase_ref: dict[int, float] = {}
         self._started = False
+        self._guard = recipe.limit_guard
+        self._guarded = np.zeros(n_joints)
 
     @property
     def phase_name(self) -> str:
@@ -117,7 +119,10 @@ class RecipeRunner:
         self._desired += self._from
         if self.status is RunStatus.ENDING and fraction >= 1.0:
             self.status = RunStatus.COMPLETED
-        return self._desired
+        if self._guard is None or self.done:
+            return self._desired
+        # the ramp state stays the recipe's own torque; only what is proposed is guarded
+        return self._guard.apply(angle, self._desired, self._guarded)
 
     def abort(self, t: float, reason: str) -> None:
         """Stop proposing torque; the supervisor takes the hand to zero."""

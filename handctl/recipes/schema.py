@@ -21,6 +21,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from handctl.recipes.guard import LimitGuard
+
 #: Estimator outputs a recipe may name (rad for angles, m for positions). ``centre_line_angle``
 #: is the direction of the line from object 1's centre to object 2's, in (-π, π];
 #: ``centre_line_turn`` is how far that line has turned since the phase began (counter-clockwise
@@ -97,6 +99,7 @@ class Recipe:
     hand_config_hash: str | None
     compiled: bool
     objects: tuple[RecipeObject, ...] = ()
+    limit_guard: LimitGuard | None = None  # soft-limit push-back (guard.py); None: off
 
     @property
     def uses_estimates(self) -> bool:

@@ -1,0 +1,105 @@
+"""The soft-limit guard: a joint inside the band before a soft limit is pushed back, up to its
+full tau_max at the limit; outside the band the recipe's torque passes unchanged; a recipe
+turns it on with ``limit_guard_band`` and the runner proposes the guarded torque."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.recipes.guard import LimitGuard
+from handctl.recipes.loader import load_recipe
+from handctl.recipes.runner import RecipeRunner, RunStatus
+
+JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
+
+
+def _recipe(tmp_path: Path, hand: HandConfig, **top: object) -> Path:
+    data = {"recipe": "guarded", **top,
+            "phases": [{"name": "squeeze", "torques": dict.fromkeys(JOINTS, 0.1),
+                        "ramp_s": 0.01, "max_s": 0.05,
+                        "on_timeout": "next"}]}
+    path = tmp_path / "guarded.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_outside_the_band_the_torque_is_the_recipes(hand: HandConfig) -> None:
+    guard = LimitGuard.for_hand(hand, 0.15)
+    mid = np.array([(j.angle_min + j.angle_max) / 2 for j in hand.joints])
+    desired = np.linspace(-0.2, 0.2, 9)
+    out = guard.apply(mid, desired, np.empty(9))
+    assert np.array_equal(out, desired)
+
+
+def test_inside_the_band_the_joint_is_pushed_back_and_at_the_limit_fully(
+        hand: HandConfig) -> None:
+    guard = LimitGuard.for_hand(hand, 0.2)
+    j = 2  # f1_j3
+    joint = hand.joints[j]
+    angle = np.array([(x.angle_min + x.angle_max) / 2 for x in hand.joints])
+    desired = np.zeros(9)
+    angle[j] = joint.angle_max - 0.1  # halfway into the upper band
+    out = guard.apply(angle, desired, np.empty(9))
+    assert out[j] == pytest.approx(-joint.tau_max / 2)
+    assert np.count_nonzero(out) == 1
+    angle[j] = joint.angle_min  # at the lower limit: the whole tau_max, pushing up
+    out = guard.apply(angle, desired, np.empty(9))
+    assert out[j] == pytest.approx(joint.tau_max)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.floats(-3.0, 3.0), min_size=9, max_size=9),
+       st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9),
+       st.floats(0.02, 0.5))
+def test_the_guard_never_proposes_more_than_tau_max(hand: HandConfig, angle: list[float],
+                                                    scale: list[float], band: float) -> None:
+    guard = LimitGuard.for_hand(hand, band)
+    tau_max = np.array([j.tau_max for j in hand.joints])
+    desired = np.array(scale) * tau_max
+    out = guard.apply(angle, desired, np.empty(9))
+    assert np.all(np.abs(out) <= tau_max + 1e-12)
+    # it never pushes a joint further towards the limit it is near
+    for k, joint in enumerate(hand.joints):
+        if angle[k] > joint.angle_max - band:
+            assert out[k] <= desired[k]
+        if angle[k] < joint.angle_min + band:
+            assert out[k] >= desired[k]
+
+
+def test_a_recipe_turns_the_guard_on_and_the_runner_uses_it(tmp_path: Path,
+                                                            hand: HandConfig) -> None:
+    recipe = load_recipe(_recipe(tmp_path, hand, limit_guard_band=0.15), hand)
+    assert recipe.limit_guard is not None and recipe.limit_guard.band == 0.15
+    runner = RecipeRunner(recipe, 9)
+    angle = np.array([(j.angle_min + j.angle_max) / 2 for j in hand.joints])
+    angle[8] = hand.joints[8].angle_max  # f3_j3 at its upper soft limit
+    runner.step(0.0, angle, np.zeros(9))
+    out = runner.step(0.02, angle, np.zeros(9)).copy()  # after the ramp
+    assert out[8] == pytest.approx(0.1 - hand.joints[8].tau_max)  # 0.1 plus the full push-back
+    assert np.allclose(out[:8], 0.1)
+    # after the recipe ends nothing is proposed, whatever the angles
+    t = 0.02
+    while not runner.done:
+        t += 0.001
+        out = runner.step(t, angle, np.zeros(9))
+    assert runner.status is RunStatus.COMPLETED
+    assert not np.any(out)
+    unguarded = load_recipe(_recipe(tmp_path, hand), hand)
+    assert unguarded.limit_guard is None
+
+
+def test_a_band_out_of_range_is_refused_naming_the_key(tmp_path: Path,
+                                                      hand: HandConfig) -> None:
+    path = _recipe(tmp_path, hand, limit_guard_band=2.0)
+    with pytest.raises(ConfigError) as info:
+        load_recipe(path, hand)
+    assert info.value.key == "limit_guard_band"
+    assert info.value.found == 2.0
