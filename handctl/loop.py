@@ -23,9 +23,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from handctl.bus import BusEvent
 from handctl.clock import Clock, Tick
 from handctl.config import HandConfig
-from handctl.drivers.hand import HandDriver
+from handctl.drivers.hand import AppliedTorques, HandDriver
 from handctl.recipes.runner import RecipeRunner, RunStatus
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import Fault, FaultCode
@@ -65,8 +66,9 @@ class Estimator(Protocol):
 
 @dataclass(slots=True)
 class TickRecord:
-    """Everything one tick saw and did. The arrays are the loop's own buffers, valid only
-    during ``push``: the recorder copies what it keeps."""
+    """Everything one tick saw and did. The record and its arrays are the loop's own
+    buffers, refilled every tick and valid only during ``push``: the sink copies what it
+    keeps."""
 
     tick: int
     t_ns: int
@@ -144,6 +146,13 @@ class Runtime:
         self._t0_ns: int | None = None
         self._zero = np.zeros(hand.n_joints)
         self._bus_events = 0
+        self._recipe_done_ns = 0
+        #: CPU time of the loop's thread, for the per-stage accounting (a re-run, which has no
+        #: use for it, puts a cheaper clock here).
+        self.cpu_clock: Callable[[], int] = time.thread_time_ns
+        # One record, refilled every tick: the sink copies what it keeps during ``push``.
+        self._record = TickRecord(0, 0, 0, 0, self._zero, self._zero, self._zero, self._zero,
+                                  "", "", (), [])
 
     # -- requests from outside (signal handlers, tests) -----------------------------------
     def request_stop(self, reason: str = "interrupted") -> None:
@@ -284,7 +293,7 @@ class Runtime:
     async def _tick(self) -> Tick:
         sup = self.supervisor
         driver = self.driver
-        cpu = time.thread_time_ns
+        cpu = self.cpu_clock
         tk = await self._next_tick()
         for hook in self.tick_hooks:
             hook(tk)
@@ -295,34 +304,54 @@ class Runtime:
         c1 = cpu()
         t_s = (tk.scheduled_ns - (self._t0_ns or 0)) * 1e-9
         if self.estop_requested:
-            sup.trip(FaultCode.ESTOP, self.estop_requested, tk.k)
-            driver.estop(reason=1)
-            self.estop_requested = ""
-        desired = self._desired(t_s, state.angle, state.torque)
-        c2 = cpu()
-        new_faults = sup.observe(tk.k, tk.now_ns, driver.nodes, state.angle, state.torque,
-                                 tk.missed, events)
-        if self.stop_requested and sup.state in (State.RUNNING, State.ENABLING):
-            if self.runner is not None:
-                self.runner.abort(t_s, f"stopped: {self.stop_requested}")
-            sup.stop(tk.k)
-        applied = sup.filter(tk.k, desired, tk.missed)
-        c3 = cpu()
+            driver.estop(reason=1)  # the frame first; ``decide`` latches the fault
+        desired, applied, new_faults = self.decide(tk.k, tk.now_ns, tk.missed, t_s, state.angle,
+                                                   state.torque, events)
+        c2, c3 = self._recipe_done_ns, cpu()
         ok = driver.send(applied)
         sup.sent(ok, tk.k)
         c4 = cpu()
         np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)
         if self.recorder is not None:
-            self.recorder.push(TickRecord(
-                tk.k, tk.scheduled_ns, tk.lateness_ns, tk.missed, state.angle, state.torque,
-                desired, applied, sup.state.value, self._phase_name(),
-                (c1 - c0, c2 - c1, c3 - c2, c4 - c3, 0), new_faults))
+            record = self._record
+            record.tick, record.t_ns, record.lateness_ns, record.missed = \
+                tk.k, tk.scheduled_ns, tk.lateness_ns, tk.missed
+            record.angle, record.tdt, record.desired, record.applied = \
+                state.angle, state.torque, desired, applied
+            record.state, record.phase = sup.state.value, self._phase_name()
+            record.stage_ns = (c1 - c0, c2 - c1, c3 - c2, c4 - c3, 0)
+            record.faults = new_faults
+            self.recorder.push(record)
         c5 = cpu()
         self._store(tk, (c1 - c0, c2 - c1, c3 - c2, c4 - c3, c5 - c4))
         if self.status is not None and tk.k % STATUS_EVERY_TICKS == 0:
             self.status(StatusLine(t_s, self._phase_name(), sup.state.value,
                                    float(np.max(np.abs(applied))), tk.lateness_ns / 1e3))
         return tk
+
+    def decide(self, k: int, now_ns: int, missed: int, t_s: float, angle: np.ndarray,
+               tdt: np.ndarray, events: Sequence[BusEvent] = ()
+               ) -> tuple[np.ndarray, AppliedTorques, list[Fault]]:
+        """The tick's decision from what the poll found: recipe runner (and the object
+        estimator it reads), the supervisor's checks, the limiter. No bus I/O, so that
+        ``handctl replay --rerun`` runs this very function on logged feedback.
+
+        Returns the desired torques, the applied ones (the supervisor's buffer, valid until
+        the next tick) and the faults latched in this tick. When the recipe part ended (CPU
+        time) is left in ``_recipe_done_ns`` for the stage accounting.
+        """
+        sup = self.supervisor
+        if self.estop_requested:
+            sup.trip(FaultCode.ESTOP, self.estop_requested, k)
+            self.estop_requested = ""
+        desired = self._desired(t_s, angle, tdt)
+        self._recipe_done_ns = self.cpu_clock()
+        new_faults = sup.observe(k, now_ns, self.driver.nodes, angle, tdt, missed, events)
+        if self.stop_requested and sup.state in (State.RUNNING, State.ENABLING):
+            if self.runner is not None:
+                self.runner.abort(t_s, f"stopped: {self.stop_requested}")
+            sup.stop(k)
+        return desired, sup.filter(k, desired, missed), new_faults
 
     def _desired(self, t_s: float, angle: np.ndarray, tdt: np.ndarray) -> np.ndarray:
         sup = self.supervisor

@@ -3,19 +3,31 @@
 One lockstep run of the recipe on the simulated hand, recorded through the real writer
 process, then read back:
 
-- ``loop_cost_us_p99``: what recording adds to a tick: the time spent in the recorder's calls
-  (``begin_tick``, ``push``, ``note``, the frame and bus-event taps) during each tick of the
-  run, 99th percentile over the control ticks. The time is the thread's CPU time, as in the
-  runtime's own stage accounting (time the loop sat preempted by another process is not the
-  recorder's), less the measured cost of the timer calls that wrap the recorder's. Target
-  <= 20. ``loop_cost_before_send_us_p99`` is the part before the tick's command frames are
-  sent (the taps only note references; the copying happens in ``push``, after the send).
+- ``loop_cost_us_p99``: what recording adds to a tick, 99th percentile over the control ticks.
+  Measured as a paired difference, interleaved in the same run: two runtimes of the same
+  recipe on two simulated hands tick in turn in one event loop, A recorded (recorder, its bus
+  taps, the object poses handed to it, as ``handctl run recipe --log`` sets it up), B not
+  (it computes the same poses and throws them away, so the simulation's share cancels), A
+  first on even ticks and B first on odd ones (the first after the event loop's own work is
+  the slower one in the tail, measured; a fixed order would bias the difference). Both
+  run the same deterministic lockstep trajectory, so tick k of A and tick k of B do the same
+  work but for the recording. The cost of a tick is the thread's CPU time (time the loop sat
+  preempted by another process is not the recorder's) from the moment the clock hands out
+  the tick to the moment the runtime waits for the next one, which includes ``begin_tick``,
+  the taps, the runtime's refill of its record and ``push``; the simulated hand's step is
+  outside. ``loop_cost_us_p99`` is the 99th percentile of ``A[k] - B[k]`` over the ticks
+  (the percentile of the differences, not a difference of percentiles, which would be the
+  machine's noise), ``loop_cost_us_p50`` the median. Noise that hits one tick of the pair and
+  not the other (a cache flushed by a neighbour, the writer process waking on the other
+  core) is in the figure both ways, so it is an honest upper bound, not a best case.
+  ``tick_us_p50_unrecorded`` is B's median tick, for scale. Target <= 20.
 - ``writer_rtf``: recorded seconds the writer process copies out, encodes and writes per
   second it spends doing so (its own busy time during the run). Target >= 5.
 - ``replay_rtf``: recorded seconds per wall second of ``handctl replay --rerun`` (reading the
-  log, re-running driver, runner and supervisor, comparing). Target >= 50. Also reported:
-  ``rerun_read_us_per_tick`` (the log reading alone) and ``rerun_runtime_us_per_tick`` (the
-  rest: the same Runtime tick as the live loop's, minus the bus).
+  log, re-running driver, runner, estimator and supervisor, comparing). Target >= 50. Also
+  reported, per tick: ``rerun_read_us_per_tick`` (the log reading alone),
+  ``rerun_runtime_us_per_tick`` (the rest) and ``rerun_estimator_us_per_tick`` (the object
+  estimator alone, fed the logged angles: the part of the rest a recipe with objects needs).
 - ``mb_per_min``: file size per minute of run.
 
 Each figure is the best of ``--repeat`` runs (the machine is shared). Progress goes to stderr.
@@ -25,11 +37,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import os
 import sys
 import tempfile
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -38,18 +52,21 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from handctl.bus import BusEvent, Frame, open_bus  # noqa: E402
+from handctl.bus import open_bus  # noqa: E402
 from handctl.clock import LockstepClock, Tick  # noqa: E402
-from handctl.config import load_hand  # noqa: E402
+from handctl.config import HandConfig, load_hand  # noqa: E402
 from handctl.drivers.hand import HandDriver  # noqa: E402
-from handctl.loop import Runtime, TickRecord  # noqa: E402
+from handctl.estimator import ObjectEstimator  # noqa: E402
+from handctl.loop import RunResult, Runtime  # noqa: E402
 from handctl.protocol import load_protocol  # noqa: E402
 from handctl.recipes.loader import load_recipe  # noqa: E402
+from handctl.recipes.schema import Recipe  # noqa: E402
 from handctl.recording import channels as ch  # noqa: E402
 from handctl.recording.metadata import run_metadata, start_metadata  # noqa: E402
-from handctl.recording.reader import open_recording  # noqa: E402
+from handctl.recording.reader import Recording, iter_decoded, open_recording  # noqa: E402
 from handctl.recording.recorder import Recorder  # noqa: E402
-from handctl.recording.replay import rerun, tick_inputs  # noqa: E402
+from handctl.recording.replay import _hand, _recipe, rerun, tick_inputs  # noqa: E402
+from handctl.session import POSE_EVERY_TICKS  # noqa: E402
 from handctl.sim.hand import SimulatedHand  # noqa: E402
 
 LOOP_TARGET_US = 20.0
@@ -67,149 +84,143 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeat", type=int, default=3, help="runs per figure (default 3)")
 
 
-class TimedRecorder(Recorder):
-    """The recorder with a stopwatch around every call the loop makes into it."""
+class Turns:
+    """Which of the pair runs tick k first: A on even ticks, B on odd ones. The task that
+    runs first after the event loop's own work pays for caches that work cooled (measured:
+    the first of the pair is the slower one in the tail), so a fixed order would bias the
+    difference one way."""
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.spent = 0
-        self.calls = 0
-        self.in_push = 0
-        self.per_tick: list[tuple[int, int, int]] = []  # (ns spent, calls, ns in push)
-        self.empty: list[int] = []  # ns an empty timed call took, per tick
-        self.active: list[bool] = []
+    def __init__(self) -> None:
+        self.done: dict[int, int] = {}  # tick -> how many of the pair have begun it
 
-    def attach(self, runtime: Runtime) -> None:
-        super().attach(runtime)
-        bus = runtime.driver.bus
-        frame, rx, event = bus.tap, bus.rx_tap, bus.event_tap
-        assert frame is not None and rx is not None and event is not None
-        clock = _CPU
+    def first(self, k: int) -> str:
+        return "a" if k % 2 == 0 else "b"
 
-        def timed_frame(frame_id: int, data: bytes, direction: int) -> None:
-            t0 = clock()
-            frame(frame_id, data, direction)
-            self.spent += clock() - t0
-            self.calls += 1
+    def mine(self, side: str, k: int) -> bool:
+        """Whether ``side`` may begin tick ``k`` now."""
+        begun = self.done.get(k, 0)
+        return (side == self.first(k)) == (begun == 0)
 
-        def timed_rx(frames: list[Frame]) -> None:
-            t0 = clock()
-            rx(frames)
-            self.spent += clock() - t0
-            self.calls += 1
-
-        def timed_event(ev: BusEvent) -> None:
-            t0 = clock()
-            event(ev)
-            self.spent += clock() - t0
-            self.calls += 1
-
-        bus.tap, bus.rx_tap, bus.event_tap = timed_frame, timed_rx, timed_event
-
-    def begin_tick(self, tick: Tick) -> None:
-        self.per_tick.append((self.spent, self.calls, self.in_push))
-        self.active.append(False)
-        self.spent = self.calls = self.in_push = 0
-        # The stopwatch's own cost where it runs (caches as cold as the recorder's): an empty
-        # call timed the same way, once per tick.
-        t0 = _CPU()
-        _empty()
-        self.empty.append(_CPU() - t0)
-        t0 = _CPU()
-        super().begin_tick(tick)
-        self.spent += _CPU() - t0
-        self.calls += 1
-
-    def push(self, record: TickRecord) -> None:
-        t0 = _CPU()
-        super().push(record)
-        spent = _CPU() - t0
-        self.spent += spent
-        self.in_push += spent
-        self.calls += 1
-        self.active[-1] = True
-
-    def note(self, kind: str, detail: str, tick: int) -> None:
-        t0 = _CPU()
-        super().note(kind, detail, tick)
-        self.spent += _CPU() - t0
-        self.calls += 1
+    def begin(self, k: int) -> None:
+        self.done[k] = self.done.get(k, 0) + 1
+        self.done.pop(k - 2, None)
 
 
-def _empty() -> None:
-    return None
+class TickTimer(LockstepClock):
+    """The lockstep clock, with the thread's CPU time of each tick's work noted: from when it
+    hands out a tick to when the runtime next waits. Two of them in one event loop take
+    turns (``Turns``), since each yields to the loop once per tick."""
+
+    def __init__(self, period_s: float, step_peer: Callable[[], None], side: str,
+                 turns: Turns) -> None:
+        super().__init__(period_s, step_peer)
+        self.side = side
+        self.turns = turns
+        self.work_ns: list[int] = []
+        self._started: int | None = None
+
+    async def wait_tick(self) -> Tick:
+        if self._started is not None:
+            self.work_ns.append(_CPU() - self._started)
+        tick = await super().wait_tick()
+        while not self.turns.mine(self.side, tick.k):
+            await asyncio.sleep(0)
+        self.turns.begin(tick.k)
+        self._started = _CPU()
+        return tick
 
 
-def timer_overhead_ns() -> float:
-    """What one stopwatch pair around an empty call costs, warm: the least the stopwatch
-    costs (in the run it is measured again once per tick, and the larger is subtracted)."""
-    clock = _CPU
+class _Side:
+    """One runtime of the pair: its simulated hand, bus, clock and (for A) recorder."""
 
-    def empty() -> None:
-        return None
+    def __init__(self, stack: contextlib.ExitStack, hand: HandConfig, recipe: Recipe,
+                 out: Path | None, turns: Turns) -> None:
+        channel = f"virtual:bench-rec-{uuid.uuid4().hex[:8]}"
+        peer = stack.enter_context(open_bus(channel, hand.bus))
+        host = stack.enter_context(open_bus(channel, hand.bus))
+        self.sim = sim = SimulatedHand(hand, peer)
+        self.clock = TickTimer(hand.bus.period_s, sim.step, "a" if out else "b", turns)
+        driver = HandDriver(hand, load_protocol(), host, clock_ns=self.clock.now_ns)
+        estimator = ObjectEstimator(hand, recipe.objects) if recipe.objects else None
+        self.recorder: Recorder | None = None
+        if out is not None:
+            self.recorder = Recorder(out, hand, start_metadata(hand, recipe, ["bench"]),
+                                     phase_names=[p.name for p in recipe.phases],
+                                     object_names=[o.name for o in sim.params.objects])
+        self.runtime = runtime = Runtime(hand, driver, self.clock, recipe,
+                                         recorder=self.recorder, estimator=estimator)
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.attach(runtime)
+            recorder.add_metadata(ch.META_RUN, run_metadata(
+                mode="lockstep", bus=channel, seed=0,
+                period_ns=round(hand.bus.period_s * 1e9), startup_ticks=runtime.startup_ticks,
+                reset_node_faults=False, estimator=estimator is not None))
 
-    best = float("inf")
-    for _ in range(5):
-        spent = 0
-        for _ in range(20_000):
-            t0 = clock()
-            empty()
-            spent += clock() - t0
-        best = min(best, spent / 20_000)
-    return best
+        def poses(tk: Tick) -> None:
+            if tk.k % POSE_EVERY_TICKS == 0:
+                truth = [(o.x, o.y, o.angle) for o in sim.ground_truth().objects]
+                if recorder is not None:
+                    recorder.poses(truth)
+
+        runtime.tick_hooks.append(poses)
 
 
 def record_once(hand_path: str, recipe_path: str, out: Path) -> dict[str, Any]:
     hand = load_hand(hand_path)
     recipe = load_recipe(recipe_path, hand)
-    channel = f"virtual:bench-rec-{uuid.uuid4().hex[:8]}"
-    with open_bus(channel, hand.bus) as peer, open_bus(channel, hand.bus) as host:
-        sim = SimulatedHand(hand, peer)
-        clock = LockstepClock(hand.bus.period_s, sim.step)
-        driver = HandDriver(hand, load_protocol(), host, clock_ns=clock.now_ns)
-        recorder = TimedRecorder(out, hand, start_metadata(hand, recipe, ["bench"]),
-                                 phase_names=[p.name for p in recipe.phases],
-                                 object_names=[o.name for o in sim.params.objects])
-        runtime = Runtime(hand, driver, clock, recipe, recorder=recorder)
-        recorder.attach(runtime)
-        recorder.add_metadata(ch.META_RUN, run_metadata(
-            mode="lockstep", bus=channel, seed=0, period_ns=round(hand.bus.period_s * 1e9),
-            startup_ticks=runtime.startup_ticks, reset_node_faults=False, estimator=False))
+    with contextlib.ExitStack() as stack:
+        turns = Turns()
+        a = _Side(stack, hand, recipe, out, turns)
+        b = _Side(stack, hand, recipe, None, turns)
+        assert a.recorder is not None
+        a.recorder.wait_ready()
 
-        def poses(tk: Tick) -> None:
-            if tk.k % 10 == 0:
-                recorder.poses([(o.x, o.y, o.angle) for o in sim.ground_truth().objects])
+        async def both() -> tuple[RunResult, RunResult]:
+            return await asyncio.gather(a.runtime.run(), b.runtime.run())
 
-        runtime.tick_hooks.append(poses)
-        recorder.wait_ready()
         started = time.perf_counter()
-        result = asyncio.run(runtime.run())
+        result, twin = asyncio.run(both())
         loop_wall = time.perf_counter() - started
-        recorder.per_tick.append((recorder.spent, recorder.calls, recorder.in_push))
-        stats = recorder.close({"outcome": result.outcome.value})
-    per_tick = recorder.per_tick[1:]
-    active = [pt for pt, on in zip(per_tick, recorder.active, strict=True) if on]
-    return {"per_tick": active, "ticks": result.ticks, "loop_wall_s": loop_wall,
-            "timer_ns": float(np.median(recorder.empty)),
-            "stats": stats, "period_s": hand.bus.period_s}
+        stats = a.recorder.close({"outcome": result.outcome.value})
+    if result.ticks != twin.ticks or result.outcome != twin.outcome:
+        raise RuntimeError(f"bench: the twin runs differ ({result.ticks} and {twin.ticks} "
+                           "ticks): the paired difference would compare unlike ticks")
+    # Control ticks only (start-up ticks only poll): those with a stage time for the send.
+    control = result.stage_ns[:, 3] > 0
+    n = min(len(a.clock.work_ns), len(b.clock.work_ns), len(control))
+    work_a = np.array(a.clock.work_ns[:n])[control[:n]]
+    work_b = np.array(b.clock.work_ns[:n])[control[:n]]
+    return {"added_ns": work_a - work_b, "unrecorded_ns": work_b, "ticks": result.ticks,
+            "loop_wall_s": loop_wall, "stats": stats, "period_s": hand.bus.period_s}
+
+
+def estimator_us_per_tick(recording: Recording) -> float:
+    """The object estimator alone, fed the logged angles once per tick as in the re-run."""
+    hand = _hand(recording)
+    assert hand is not None
+    recipe = _recipe(recording, hand)
+    if not recipe.objects:
+        return 0.0
+    angles = [np.array(m["angle_rad"]) for _, _, m in iter_decoded(recording, (ch.JOINT_STATE,))]
+    estimator = ObjectEstimator(hand, recipe.objects)
+    started = time.perf_counter()
+    for angle in angles:
+        estimator(angle)
+    return 1e6 * (time.perf_counter() - started) / max(len(angles), 1)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    overhead = timer_overhead_ns()
     loop_p99, loop_p50, writer, replay, sizes = [], [], [], [], []
-    read_us, runtime_us, timers, before_p99 = [], [], [], []
+    read_us, runtime_us, tick_p50, estimator_us = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
         for i in range(args.repeat):
             out = Path(directory) / f"run{i}.mcap"
             run_ = record_once(args.hand, args.recipe, out)
-            timer = max(overhead, run_["timer_ns"])
-            timers.append(timer)
-            spent = np.array([ns - calls * timer for ns, calls, _ in run_["per_tick"]])
-            before = np.array([ns - push - (calls - 1) * timer
-                               for ns, calls, push in run_["per_tick"]])
-            before_p99.append(float(np.percentile(before, 99)) / 1e3)
-            loop_p99.append(float(np.percentile(spent, 99)) / 1e3)
-            loop_p50.append(float(np.percentile(spent, 50)) / 1e3)
+            added = run_["added_ns"]
+            loop_p99.append(float(np.percentile(added, 99)) / 1e3)
+            loop_p50.append(float(np.percentile(added, 50)) / 1e3)
+            tick_p50.append(float(np.percentile(run_["unrecorded_ns"], 50)) / 1e3)
             recording = open_recording(out)
             end = recording.metadata[ch.META_END]
             recorded_s = run_["ticks"] * run_["period_s"]
@@ -227,18 +238,19 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             replay.append(recorded_s / wall)
             read_us.append(1e6 * read / max(n, 1))
             runtime_us.append(1e6 * (wall - read) / max(n, 1))
+            estimator_us.append(estimator_us_per_tick(recording))
             print(f"bench recording: run {i + 1}/{args.repeat}: loop p99 {loop_p99[-1]:.1f} us, "
                   f"writer_rtf {writer[-1]:.1f}, replay_rtf {replay[-1]:.1f}, "
                   f"{sizes[-1]:.1f} MB/min", file=sys.stderr)
     return {
         "loop_cost_us_p99": round(min(loop_p99), 2),
         "loop_cost_us_p50": round(min(loop_p50), 2),
-        "loop_cost_before_send_us_p99": round(min(before_p99), 2),
-        "timer_overhead_us_per_call": round(min(timers) / 1e3, 3),
+        "tick_us_p50_unrecorded": round(min(tick_p50), 2),
         "writer_rtf": round(max(writer), 2),
         "replay_rtf": round(max(replay), 2),
         "rerun_read_us_per_tick": round(min(read_us), 1),
         "rerun_runtime_us_per_tick": round(min(runtime_us), 1),
+        "rerun_estimator_us_per_tick": round(min(estimator_us), 1),
         "mb_per_min": round(min(sizes), 2),
         "loop_cost_runs": [round(v, 2) for v in loop_p99],
         "writer_rtf_runs": [round(v, 2) for v in writer],

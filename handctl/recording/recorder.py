@@ -65,12 +65,17 @@ from handctl.recording.ring import (
 from handctl.safety.faults import FAULTS
 from handctl.safety.supervisor import State
 
+assert TAP_RX == 0  # a received frame's meta word is its length alone (``_flush_frames``)
+
 if TYPE_CHECKING:
     from handctl.clock import Tick
     from handctl.loop import Runtime, TickRecord
 
 _TICK_HEAD = struct.Struct("<qqqqq")  # tick, scheduled, now, missed, active
-_TICK_REST = struct.Struct("<qqqqqqqq")  # active, 4 stages, state, phase, faults latched
+#: The whole fixed part of a control tick's row in one call: the head, then active, 4 stages,
+#: state, phase, faults latched.
+_TICK_ROW = struct.Struct("<qqqqqqqqqqqq")
+_POSE_INTS = struct.Struct("<qq")  # tick, t
 _FRAME = struct.Struct(f"<qqqqq{FRAME_BYTES}s")  # t, tick, id, direction | size << 8, bus time
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
 #: Runner status names a phase column can also hold.
@@ -79,6 +84,15 @@ STATE_NAMES = tuple(s.value for s in State)
 #: How long ``close`` waits for the writer to finish the file.
 CLOSE_TIMEOUT_S = 120.0
 READY_TIMEOUT_S = 30.0
+
+
+def _view(vector: Any) -> memoryview:
+    """A flat float64 view of a vector, for slice assignment into the ring's float view;
+    TypeError or ValueError when it is not a contiguous float64 vector."""
+    view = memoryview(vector)
+    if view.format != "d" or view.ndim != 1 or not view.c_contiguous:
+        raise TypeError("not a contiguous float64 vector")
+    return view
 
 
 def _shared_memory(size: int) -> int:
@@ -154,11 +168,25 @@ class Recorder:
         self._n = self.layout.n_joints
         self._buf: Any = self._mmap  # Any: numpy vectors are copied in by buffer protocol
         self._ti, self._tf = r.tick_i, r.tick_f
+        # Flat views of the tick rows for slice assignment from the runtime's own arrays.
+        block = memoryview(self._mmap)
+        at = r.offsets["tick_f"]
+        self._floats = block[at:at + r.tick_f.nbytes].cast("d")
+        at = r.offsets["tick_i"]
+        self._ints = block[at:at + r.tick_i.nbytes].cast("q")
+        block.release()
+        self._tick_ints = self.layout.tick_ints
+        self._angle: Any = None
+        self._tdt: Any = None
+        self._desired: Any = None
+        self._applied: Any = None
+        self._feedback: Any = None
+        self._angle_view = self._tdt_view = self._desired_view = self._applied_view = \
+            self._feedback_view = memoryview(b"")
+        self._scheduled = self._missed = 0
+        self._pushed = False
         self._tick_stride = self.layout.tick_ints * 8
         self._tick_base = r.offsets["tick_i"]
-        self._float_base = r.offsets["tick_f"]
-        self._float_stride = self.layout.tick_floats * 8
-        self._vector_bytes = self._n * 8
         self._nodes_pack = struct.Struct(f"<{2 * self.layout.n_nodes}q").pack_into
         self._tick_mask = self.layout.tick_capacity - 1
         self._head = self._tail = 0
@@ -172,6 +200,10 @@ class Recorder:
         self._event_mask = self.layout.event_capacity - 1
         self._ehead = self._etail = 0
         self._phead = self._ptail = 0
+        self._pose_base = r.offsets["pose_i"]
+        self._pose_f_base = r.offsets["pose_f"]
+        self._pose_stride = r.pose_f.shape[1] * 8
+        self._pose_floats = struct.Struct(f"<{3 * self.layout.n_objects}d")
         self._tick = -1  # frames drained before the first tick (discarded at start-up)
         self._now = 0
         self._runtime: Runtime | None = None
@@ -237,11 +269,17 @@ class Recorder:
             self._flush_frames()
         ctl = self._ctl_view
         if self._row >= 0:
+            if not self._pushed:  # a start-up or shut-down tick: its row is the head alone
+                _TICK_HEAD.pack_into(self._buf, self._tick_base + self._row * self._tick_stride,
+                                     self._tick, self._scheduled, self._now, self._missed, 0)
             self._head += 1
         ctl[FRAME_HEAD] = self._fhead
         ctl[TICK_HEAD] = head = self._head
         self._tick = tick.k
+        self._scheduled = tick.scheduled_ns
         self._now = tick.now_ns
+        self._missed = tick.missed
+        self._pushed = False
         mask = self._tick_mask
         if head - self._tail > mask:
             self._tail = ctl[TICK_TAIL]
@@ -249,10 +287,7 @@ class Recorder:
                 ctl[DROPPED_TICKS] += 1
                 self._row = -1
                 return
-        row = head & mask
-        self._row = row
-        _TICK_HEAD.pack_into(self._buf, self._tick_base + row * self._tick_stride, tick.k,
-                             tick.scheduled_ns, tick.now_ns, tick.missed, 0)
+        self._row = head & mask
 
     def push(self, record: TickRecord) -> None:
         if self._pending:
@@ -260,29 +295,49 @@ class Recorder:
         runtime = self._runtime
         row = self._row
         if row >= 0:
-            buf = self._buf
+            self._pushed = True
             phase = self._phases.get(record.phase)
             if phase is None:
                 phase = self._intern(record.phase)
             s = record.stage_ns
-            at = self._tick_base + row * self._tick_stride
-            _TICK_REST.pack_into(buf, at + 32, 1, s[0], s[1], s[2], s[3],
-                                 self._states.get(record.state, -1), phase,
-                                 len(runtime.supervisor.faults) if runtime is not None else 0)
-            size = self._vector_bytes
-            at = self._float_base + row * self._float_stride
+            _TICK_ROW.pack_into(self._buf, self._tick_base + row * self._tick_stride,
+                                self._tick, self._scheduled, self._now, self._missed, 1,
+                                s[0], s[1], s[2], s[3], self._states.get(record.state, -1),
+                                phase, len(runtime.supervisor.faults) if runtime is not None
+                                else 0)
+            # Four vectors by memoryview slice assignment: no numpy call, no allocation. The
+            # views of the runtime's arrays are made once (an array the runtime swaps in,
+            # the zero vector for the runner's, gets its view made when first seen).
+            floats = self._floats
+            n = self._n
+            at = row * 4 * n
             try:
-                buf[at:at + size] = record.angle
-                buf[at + size:at + 2 * size] = record.tdt
-                buf[at + 2 * size:at + 3 * size] = record.desired
-                buf[at + 3 * size:at + 4 * size] = record.applied
+                if record.angle is not self._angle:
+                    self._angle, self._angle_view = record.angle, _view(record.angle)
+                if record.tdt is not self._tdt:
+                    self._tdt, self._tdt_view = record.tdt, _view(record.tdt)
+                desired = record.desired
+                if desired is not self._desired:
+                    self._desired = desired
+                    self._desired_view = _view(desired)
+                if record.applied is not self._applied:
+                    self._applied, self._applied_view = record.applied, _view(record.applied)
+                floats[at:at + n] = self._angle_view
+                floats[at + n:at + 2 * n] = self._tdt_view
+                floats[at + 2 * n:at + 3 * n] = self._desired_view
+                floats[at + 3 * n:at + 4 * n] = self._applied_view
             except (TypeError, ValueError, BufferError):  # not a float64 vector of n
+                self._angle = self._tdt = self._desired = self._applied = None
                 self._copy_floats(row, record)
             if runtime is not None:
                 state = runtime.driver.state
-                at = self._tick_base + row * self._tick_stride + I_FEEDBACK * 8
-                buf[at:at + size] = state.feedback_ns
-                self._nodes_pack(buf, at + size, *state.node_state, *state.node_faults)
+                at = row * self._tick_ints
+                if state.feedback_ns is not self._feedback:
+                    self._feedback, self._feedback_view = state.feedback_ns, \
+                        state.feedback_ns.data.cast("B").cast("q")
+                self._ints[at + I_FEEDBACK:at + I_FEEDBACK + n] = self._feedback_view
+                self._nodes_pack(self._buf, (at + I_FEEDBACK + n) * 8 + self._tick_base,
+                                 *state.node_state, *state.node_faults)
         if runtime is not None:
             sup = runtime.supervisor
             if len(sup.history) != self._history or len(sup.faults) != self._faults \
@@ -317,26 +372,50 @@ class Recorder:
         """
         head = self._fhead
         mask = self._frame_mask
+        room = mask + 1 + self._ftail  # the head may go up to here without a look at the tail
         now, tick, buf, base = self._now, self._tick, self._buf, self._frame_base
         pack = _FRAME.pack_into
         for entry in self._pending:
             if isinstance(entry, list):
-                for i, frame in enumerate(entry):
-                    if head - self._ftail > mask and not self._frame_room(head, len(entry) - i):
-                        break
+                if head + len(entry) > room:  # the ring looks full: the careful way
+                    head = self._flush_slowly(entry, head)
+                    room = mask + 1 + self._ftail
+                    continue
+                for frame in entry:
                     data = frame.data
                     pack(buf, base + (head & mask) * FRAME_ROW, now, tick, frame.arbitration_id,
-                         TAP_RX | len(data) << 8, frame.timestamp_ns, data)
+                         len(data) << 8, frame.timestamp_ns, data)  # direction TAP_RX is 0
                     head += 1
-            else:
-                if head - self._ftail > mask and not self._frame_room(head):
+            elif isinstance(entry, tuple):
+                if head >= room:
+                    head = self._flush_slowly([entry], head)
+                    room = mask + 1 + self._ftail
                     continue
-                frame_id, data, direction = entry
+                frame_id, payload, direction = entry
                 pack(buf, base + (head & mask) * FRAME_ROW, now, tick, frame_id,
-                     direction | len(data) << 8, 0, data)
+                     direction | len(payload) << 8, 0, payload)
                 head += 1
         self._pending.clear()
         self._fhead = head
+
+    def _flush_slowly(self, entries: Sequence[Frame | tuple[int, bytes, int]], head: int
+                      ) -> int:
+        """Frames when the ring looked full: one look at the writer's tail per frame, and
+        what does not fit is dropped and counted."""
+        mask = self._frame_mask
+        for i, entry in enumerate(entries):
+            if head - self._ftail > mask and not self._frame_room(head, len(entries) - i):
+                break
+            if isinstance(entry, Frame):
+                frame_id, data, meta, stamp = (entry.arbitration_id, entry.data,
+                                               TAP_RX | len(entry.data) << 8, entry.timestamp_ns)
+            else:
+                frame_id, data, direction = entry
+                meta, stamp = direction | len(data) << 8, 0
+            _FRAME.pack_into(self._buf, self._frame_base + (head & mask) * FRAME_ROW, self._now,
+                             self._tick, frame_id, meta, stamp, data)
+            head += 1
+        return head
 
     def _frame_room(self, head: int, frames: int = 1) -> bool:
         """The frame ring looked full: look again at the writer's tail; if it is full, the
@@ -361,12 +440,17 @@ class Recorder:
                 self._ctl_view[DROPPED_POSES] += 1
                 return
         row = head & mask
-        r = self._rings
-        r.pose_i[row, 0] = self._tick
-        r.pose_i[row, 1] = self._now
-        values = r.pose_f[row]
-        for i, (x, y, angle) in enumerate(poses):
-            values[3 * i:3 * i + 3] = (x, y, angle)
+        # Two ``pack_into`` calls at fixed offsets; numpy item and slice assignments cost
+        # tens of microseconds here, on the ticks that carry poses.
+        _POSE_INTS.pack_into(self._buf, self._pose_base + row * 16, self._tick, self._now)
+        values = [v for pose in poses for v in pose]
+        if len(values) == self._pose_floats.size // 8:
+            self._pose_floats.pack_into(self._buf, self._pose_f_base + row * self._pose_stride,
+                                        *values)
+        else:  # a pose list of another length: what fits, the rest NaN
+            row_values = self._rings.pose_f[row]
+            row_values[:] = float("nan")
+            row_values[:min(len(values), len(row_values))] = values[:len(row_values)]
         self._phead = head + 1
         self._ctl_view[POSE_HEAD] = head + 1
 
@@ -452,6 +536,9 @@ class Recorder:
         ctl = self._ctl_view
         ctl[FRAME_HEAD] = self._fhead
         if self._row >= 0:
+            if not self._pushed:
+                _TICK_HEAD.pack_into(self._buf, self._tick_base + self._row * self._tick_stride,
+                                     self._tick, self._scheduled, self._now, self._missed, 0)
             self._head += 1
             self._row = -1
         ctl[TICK_HEAD] = self._head
@@ -487,6 +574,8 @@ class Recorder:
 
     def _release(self) -> None:
         self._ctl_view.release()
+        self._floats.release()
+        self._ints.release()
         self._rings.release()
         del self._ti, self._tf
         with contextlib.suppress(BufferError):  # a view still alive: the mapping goes with it

@@ -13,6 +13,7 @@ from them, must come out bit for bit the same; any difference is listed.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
 import struct
 import time
@@ -37,6 +38,7 @@ from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
 from handctl.recording.reader import (
     Recording,
+    iter_chunks,
     iter_decoded,
     iter_messages,
     require_topics,
@@ -313,68 +315,71 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
     """The frames drained before the first tick, and a stream of the logged ticks.
 
     A tick's frames and events precede its row in the file (see ``writer.Encoder.drain``), so
-    a tick is whole when the next tick's row begins.
+    a tick is whole when the next tick's row begins. One pass, one branch per message: this
+    is most of what a re-run reads.
     """
     pending: dict[int, _Pending] = {}
     kinds = {k.value: k for k in BusEventKind}
-    messages = iter_decoded(recording, ch.RERUN_TOPICS)
-    before = _Pending()
-    first: list[TickInput] = []
+    batches = iter_chunks(recording, ch.RERUN_TOPICS)
+    timing, torque, rx, tx = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX
+    fromhex = bytes.fromhex
 
-    def bucket(tick: int) -> _Pending:
-        entry = pending.get(tick)
-        if entry is None:
-            entry = pending[tick] = _Pending()
-        return entry
-
-    def stream() -> Iterator[TickInput]:
-        current: TickInput | None = first[0] if first else None
-        for topic, _, msg in messages:
-            if topic == ch.TIMING:
-                if current is not None:
-                    yield current
-                current = _start(msg)
-            elif topic == ch.TORQUE:
-                if current is not None and current.tick == msg["tick"]:
-                    current.applied = _floats(msg["applied_nm"])
-            else:
-                _route(topic, msg, bucket, kinds)
+    def ticks() -> Iterator[TickInput]:
+        current: TickInput | None = None
+        for topics, messages in batches:
+            for topic, msg in zip(topics, messages, strict=True):
+                if topic == rx:
+                    k = msg["tick"]
+                    got = pending.get(k)
+                    if got is None:
+                        got = pending[k] = _Pending()
+                    got.rx.append(Frame(msg["id"], fromhex(msg["data"]),
+                                        msg.get("bus_time_ns", 0)))
+                elif topic == tx:
+                    k = msg["tick"]
+                    got = pending.get(k)
+                    if got is None:
+                        got = pending[k] = _Pending()
+                    got.tx.append((msg["id"], fromhex(msg["data"]), msg.get("ok", True)))
+                elif topic == timing:
+                    if current is not None:
+                        yield current
+                    k = msg["tick"]
+                    got = pending.pop(k, None) or _EMPTY
+                    current = TickInput(k, msg["scheduled_ns"], msg["now_ns"], msg["missed"],
+                                        got.rx, got.tx, got.bus_events, got.requests)
+                elif topic == torque:
+                    if current is not None and current.tick == msg["tick"]:
+                        current.applied = _floats(msg["applied_nm"])
+                else:
+                    _route(topic, msg, pending, kinds)
         if current is not None:
             yield current
 
-    def _start(msg: dict[str, Any]) -> TickInput:
-        k = msg["tick"]
-        got = pending.pop(k, None) or _Pending()
-        return TickInput(k, msg["scheduled_ns"], msg["now_ns"], msg["missed"], got.rx, got.tx,
-                         got.bus_events, got.requests)
-
-    # Read up to the first row: what came before it are the frames drained before tick 0.
-    for topic, _, msg in messages:
-        if topic == ch.TIMING:
-            first.append(_start(msg))
-            break
-        _route(topic, msg, bucket, kinds)
-    early = pending.pop(-1, None)
-    if early is not None:
-        before = early
-    return before, stream()
+    stream = ticks()
+    # The frames drained before the first tick (tick -1) precede the first row.
+    first = next(stream, None)
+    before = pending.pop(-1, None) or _Pending()
+    return before, itertools.chain(() if first is None else (first,), stream)
 
 
-def _route(topic: str, msg: dict[str, Any], bucket: Callable[[int], _Pending],
+_EMPTY = _Pending()
+
+
+def _route(topic: str, msg: dict[str, Any], pending: dict[int, _Pending],
            kinds: dict[str, BusEventKind]) -> None:
-    if topic == ch.CAN_RX:
-        bucket(msg["tick"]).rx.append(Frame(msg["id"], bytes.fromhex(msg["data"]),
-                                            msg.get("bus_time_ns", 0)))
-    elif topic == ch.CAN_TX:
-        bucket(msg["tick"]).tx.append((msg["id"], bytes.fromhex(msg["data"]),
-                                       bool(msg.get("ok", True))))
-    elif topic == ch.EVENTS:
-        if msg["kind"] == "bus":
-            bucket(msg["tick"]).bus_events.append(BusEvent(
-                kinds.get(msg["name"], BusEventKind.ERROR_FRAME), msg["detail"],
-                msg.get("bus_time_ns", 0)))
-        elif msg["kind"] == "request":
-            bucket(msg["tick"]).requests.append((msg["name"], msg["detail"]))
+    """An event: bus events and operator requests are inputs of their tick."""
+    if topic != ch.EVENTS or msg["kind"] not in ("bus", "request"):
+        return
+    k = msg["tick"]
+    got = pending.get(k)
+    if got is None:
+        got = pending[k] = _Pending()
+    if msg["kind"] == "bus":
+        got.bus_events.append(BusEvent(kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
+                                       msg["detail"], msg.get("bus_time_ns", 0)))
+    else:
+        got.requests.append((msg["name"], msg["detail"]))
 
 
 class ReplayBus(HandBus):
@@ -483,6 +488,10 @@ class ReplayClock(LockstepClock):
 
 def _nothing() -> None:
     return None
+
+
+def _no_time() -> int:
+    return 0
 
 
 _PACK: dict[int, struct.Struct] = {}
@@ -598,6 +607,7 @@ def rerun(recording: Recording) -> RerunReport:
                       reset_node_faults=run.get("reset_node_faults") == "True",
                       startup_timeout_s=startup_ticks * period_s, max_ticks=1 << 62)
     clock.runtime = runtime
+    runtime.cpu_clock = _no_time  # stage times are the run's, not the re-run's
     notes: list[str] = []
     started = time.perf_counter()
     outcome = "log ended"
