@@ -88,7 +88,12 @@ def render() -> str:
             "zero, through the rate limit). *Tolerated* means no fault: the disturbance was "
             "absorbed (counted where it shows). A frame is *unsafe* if it exceeds a limit or "
             "the rate limit (other than towards zero), or carries torque after a fault that "
-            "demands zero (2 ticks of grace, or after the ramp bound).",
+            "demands zero (2 ticks of grace, or after the ramp bound). Every case is recorded "
+            "to MCAP by the real recorder (`handctl run recipe --log` records the same way) "
+            "and read back: *in the log* says whether each case's log shows the fault code and "
+            "its stop on `/events` at the tick that detected it, then the explicit reset, or, "
+            "when tolerated, the rejected frames, foreign ids and bus events exactly as the "
+            "runtime counted them, in a finished file with nothing dropped.",
             "",
             render_table(results),
             "",

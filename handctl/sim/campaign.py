@@ -6,8 +6,14 @@ the bus, the way a CAN analyser listens on a real bench. The case records whethe
 fault was detected, the stop the supervisor took, how many command frames were unsafe (over a
 limit, faster than the rate limit, or carrying torque after a fault that demands zero, allowing
 the two ticks the runtime issue grants), and whether only an explicit reset brought torque
-back, from zero. ``tools/fault_campaign.py`` writes the table into ``docs/faults.md``; a test
-runs the same cases and checks them against what each injector must cause.
+back, from zero. ``tools/gen_fault_table.py --campaign`` writes the table into
+``docs/faults.md``; a test runs the same cases and checks them against what each injector must
+cause.
+
+Every case is recorded to MCAP by the real recorder (``handctl/recording/``: shared-memory
+rings, the writer process), as ``handctl run recipe --log`` records a run, and the file is read
+back: a fault that is not in the log did not happen as far as anyone investigating it later can
+tell. ``logged`` says whether the log shows what the case showed (see ``judge_log``).
 """
 
 from __future__ import annotations
@@ -27,10 +33,14 @@ from handctl.bus import HandBus, open_bus
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
-from handctl.loop import Outcome, Runtime
+from handctl.loop import Outcome, RunResult, Runtime
 from handctl.protocol import load_protocol
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
+from handctl.recording import channels as ch
+from handctl.recording.metadata import run_metadata, start_metadata
+from handctl.recording.reader import iter_decoded, open_recording
+from handctl.recording.recorder import Recorder
 from handctl.safety.faults import FAULTS, RAMP_BOUND_S, StopCategory
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
@@ -92,6 +102,8 @@ class CaseResult:
     foreign_frames: int
     bus_events: int
     rejected_frames: int
+    fault_tick: int | None  # the tick that detected the first fault (the log's tick numbers)
+    logged: bool  # the MCAP log shows the fault (or the counted disturbance) as it happened
 
 
 @contextmanager
@@ -148,89 +160,208 @@ def unsafe_frames(wire: np.ndarray, hand: HandConfig, fault_row: int | None,
     return int(bad.sum())
 
 
-def run_case(hand: HandConfig, injector: str, phase: str, seed: int = 0) -> CaseResult:
-    """One injector switched on in the middle of one phase, then an explicit reset."""
+@dataclass(frozen=True)
+class LoggedCase:
+    """What a case's MCAP log says, read back with handctl's reader."""
+
+    complete: bool  # footer read: the writer finished the file
+    dropped: int  # records the recorder or writer dropped
+    ticks: int  # /loop/timing messages
+    faults: list[tuple[str, str, int]]  # (code, category, tick) of each fault event
+    resets: list[int]  # ticks of the explicit reset requests
+    rejects: dict[str, int]  # rejected frames by kind, summed over the events
+    bus_events: int  # bus events
+
+
+def read_case_log(path: Path) -> LoggedCase:
+    """The events of a case's log that the campaign judges, and the log's own accounts."""
+    recording = open_recording(path)
+    faults: list[tuple[str, str, int]] = []
+    resets: list[int] = []
+    rejects: dict[str, int] = {}
+    bus = ticks = 0
+    for topic, _, msg in iter_decoded(recording, [ch.EVENTS, ch.TIMING]):
+        if topic == ch.TIMING:
+            ticks += 1
+        elif msg["kind"] == "fault":
+            faults.append((msg["name"], msg.get("category", ""), msg["tick"]))
+        elif msg["kind"] == "request" and msg["name"] == "reset":
+            resets.append(msg["tick"])
+        elif msg["kind"] == "rejected_frames":
+            rejects[msg["name"]] = rejects.get(msg["name"], 0) + msg.get("count", 0)
+        elif msg["kind"] == "bus":
+            bus += 1
+    end = recording.metadata.get(ch.META_END, {})
+    dropped = sum(int(end.get(k, "0")) for k in ("dropped_ticks", "dropped_frames",
+                                                   "dropped_events", "dropped_poses"))
+    return LoggedCase(recording.complete, dropped, ticks, faults, resets, rejects, bus)
+
+
+def judge_log(log: LoggedCase, fault: tuple[str, str, int] | None, reset_tick: int | None,
+              rejects: dict[str, int], bus_events: int, ticks: int) -> bool:
+    """Whether the log shows what the case showed.
+
+    The log must be whole (finished, nothing dropped, every tick the runtime ran). A fault
+    must be its first ``fault`` event, with the code, the stop category and the tick that
+    detected it, and the explicit reset a ``request`` event after it. Without a fault, the
+    disturbance must be counted in the log as the runtime counted it: rejected frames by kind,
+    foreign ids among them, and bus events.
+    """
+    if not log.complete or log.dropped or log.ticks != ticks:
+        return False
+    if fault is not None:
+        if not log.faults or log.faults[0] != fault:
+            return False
+        if reset_tick is not None and reset_tick not in log.resets:
+            return False
+        return all(t > fault[2] for t in log.resets)
+    if log.faults or log.resets:
+        return False
+    nonzero = {k: v for k, v in rejects.items() if v}
+    return log.rejects == nonzero and log.bus_events == bus_events
+
+
+def _record(path: Path, hand: HandConfig, recipe: Recipe, runtime: Runtime,
+            injector: str, phase: str, seed: int) -> Recorder:
+    """Record the case the way ``handctl run recipe --log`` records a lockstep run."""
+    recorder = Recorder(path, hand, start_metadata(hand, recipe, ["campaign", injector, phase]),
+                        phase_names=[p.name for p in recipe.phases])
+    runtime.recorder = recorder
+    recorder.attach(runtime)
+    recorder.add_metadata(ch.META_RUN, run_metadata(
+        mode="lockstep", bus="virtual (fault campaign)", seed=seed,
+        period_ns=round(hand.bus.period_s * 1e9), startup_ticks=runtime.startup_ticks,
+        reset_node_faults=False, estimator=False, sim_faults=f"{injector} in {phase}"))
+    return recorder
+
+
+def run_case(hand: HandConfig, injector: str, phase: str, seed: int = 0,
+             log: Path | None = None) -> CaseResult:
+    """One injector switched on in the middle of one phase, then an explicit reset; recorded
+    to ``log`` (a temporary file when None) and judged on the log as well as on the wire."""
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "campaign.yaml"
+        path = Path(tmp) / "fault_campaign.yaml"
         path.write_text(RECIPE)
         recipe = load_recipe(path, hand)
+        return _run_case(hand, recipe, injector, phase, seed,
+                         log or Path(tmp) / f"{injector}-{phase}.mcap")
+
+
+def _run_case(hand: HandConfig, recipe: Recipe, injector: str, phase: str, seed: int,
+              log: Path) -> CaseResult:
     with hil_bench(hand, recipe, seed) as (sim, runtime, sniffer):
-        # Inject in the middle of the phase, whenever the run gets there (start-up takes as
-        # long as the nodes take to answer).
-        on_s = ON_S.get(injector, FAULT_ON_S)
-        half = dict(PHASES)[phase] / 2
-        entered: list[float] = []
-        injected: list[tuple[int, float]] = []  # (tick, simulated time) of the switch-on
-
-        def inject(tick: Tick) -> None:
-            runner = runtime.runner
-            if injected or runner is None or runner.phase_name != phase:
-                return
-            if not entered:
-                entered.append(sim.time)
-            elif sim.time >= entered[0] + half:
-                injected.append((tick.k, sim.time))
-                sim.faults.add(CASES[injector](), sim.time, sim.time + on_s)
-
-        runtime.tick_hooks.append(inject)
-        result = asyncio.run(runtime.run())
-        runtime.tick_hooks.remove(inject)
-        if not injected:
-            raise RuntimeError(f"{injector}: the run never reached the middle of '{phase}'")
-        inject_tick, at = injected[0]
-        wire = _commands(sniffer, hand)
+        # The writer process starts while the run goes (the rings hold far more than a case),
+        # so its start-up costs the campaign no time; ``wait_ready`` after the run still
+        # turns a writer that never started into an error.
+        recorder = _record(log, hand, recipe, runtime, injector, phase, seed)
+        with recorder:
+            result, recovered, unsafe, wire, inject_tick, ticks = _drive(
+                hand, injector, phase, sim, runtime, sniffer)
+            recorder.wait_ready()
+            recorder.close({"outcome": result.outcome.value, "injector": injector,
+                            "phase": phase})
         first = result.faults[0] if result.faults else None
         category = FAULTS[first.code].category if first else None
-        row = None if first is None else first.tick - runtime.first_send_tick
-        unsafe = unsafe_frames(wire, hand, row, category)
-        recovered: bool | None = None
-        if first is not None:
-            # Nothing comes back by itself: the runtime ended and stays down. Let the fault
-            # pass (the simulated hand runs on, the host silent), then reset explicitly.
-            while sim.time < at + on_s + 0.05:
-                sim.step()
-            sniffer.drain(limit=10**7)
-            recovered = runtime.reset()
-            if recovered:
-                runtime.tick_hooks.append(lambda tk: runtime.request_stop("case over")
-                                          if runtime.runner is not None
-                                          and runtime.runner.phase_name == "holding" else None)
-                again = asyncio.run(runtime.run())
-                more = _commands(sniffer, hand)
-                steps = np.array([j.rate_limit for j in hand.joints]) * hand.bus.period_s
-                recovered = (again.outcome in (Outcome.COMPLETED, Outcome.INTERRUPTED)
-                             and len(more) > 0 and bool(np.all(np.abs(more[0]) <= steps + 1e-4)))
-                unsafe += unsafe_frames(more, hand, None, None)
+        category_name = ("immediate" if category is StopCategory.IMMEDIATE else "ramp") \
+            if category else ""
         latency = None
         if first is not None:
             latency = round((first.tick - inject_tick) * hand.bus.period_s * 1e3, 1)
         rejects = sum(v for k, v in result.node_rejects.items() if k != "unexpected_id")
+        reset_tick = next((k for k, _, event, _ in runtime.supervisor.history
+                           if event.value == "reset"), None)
+        logged = judge_log(read_case_log(log),
+                           (first.code.name, category_name, first.tick) if first else None,
+                           reset_tick, result.node_rejects, result.bus_events, ticks)
         return CaseResult(
             injector=injector, phase=phase, fault=first.code.name if first else "",
-            category=("immediate" if category is StopCategory.IMMEDIATE else "ramp")
-            if category else "", latency_ms=latency, unsafe_frames=unsafe, frames=len(wire),
+            category=category_name, latency_ms=latency, unsafe_frames=unsafe, frames=wire,
             recovered=recovered, foreign_frames=result.node_rejects.get("unexpected_id", 0),
-            bus_events=result.bus_events, rejected_frames=rejects)
+            bus_events=result.bus_events, rejected_frames=rejects,
+            fault_tick=first.tick if first else None, logged=logged)
+
+
+def _drive(hand: HandConfig, injector: str, phase: str, sim: SimulatedHand, runtime: Runtime,
+           sniffer: HandBus) -> tuple[RunResult, bool | None, int, int, int, int]:
+    """The case itself: run, inject, judge the wire, and after a fault the explicit reset.
+
+    Returns the first run's result, whether the reset brought torque back, the unsafe frames,
+    the command rows on the wire, the tick the injector was switched on, and the ticks run in
+    all (both runs: tick numbers go on across a reset).
+    """
+    # Inject in the middle of the phase, whenever the run gets there (start-up takes as long
+    # as the nodes take to answer).
+    on_s = ON_S.get(injector, FAULT_ON_S)
+    half = dict(PHASES)[phase] / 2
+    entered: list[float] = []
+    injected: list[tuple[int, float]] = []  # (tick, simulated time) of the switch-on
+
+    def inject(tick: Tick) -> None:
+        runner = runtime.runner
+        if injected or runner is None or runner.phase_name != phase:
+            return
+        if not entered:
+            entered.append(sim.time)
+        elif sim.time >= entered[0] + half:
+            injected.append((tick.k, sim.time))
+            sim.faults.add(CASES[injector](), sim.time, sim.time + on_s)
+
+    runtime.tick_hooks.append(inject)
+    result = asyncio.run(runtime.run())
+    runtime.tick_hooks.remove(inject)
+    if not injected:
+        raise RuntimeError(f"{injector}: the run never reached the middle of '{phase}'")
+    inject_tick, at = injected[0]
+    wire = _commands(sniffer, hand)
+    first = result.faults[0] if result.faults else None
+    category = FAULTS[first.code].category if first else None
+    row = None if first is None else first.tick - runtime.first_send_tick
+    unsafe = unsafe_frames(wire, hand, row, category)
+    recovered: bool | None = None
+    ticks = result.ticks
+    if first is not None:
+        # Nothing comes back by itself: the runtime ended and stays down. Let the fault
+        # pass (the simulated hand runs on, the host silent), then reset explicitly.
+        while sim.time < at + on_s + 0.05:
+            sim.step()
+        sniffer.drain(limit=10**7)
+        recovered = runtime.reset()
+        if recovered:
+            runtime.tick_hooks.append(lambda tk: runtime.request_stop("case over")
+                                      if runtime.runner is not None
+                                      and runtime.runner.phase_name == "holding" else None)
+            again = asyncio.run(runtime.run())
+            ticks = again.ticks
+            more = _commands(sniffer, hand)
+            steps = np.array([j.rate_limit for j in hand.joints]) * hand.bus.period_s
+            recovered = (again.outcome in (Outcome.COMPLETED, Outcome.INTERRUPTED)
+                         and len(more) > 0 and bool(np.all(np.abs(more[0]) <= steps + 1e-4)))
+            unsafe += unsafe_frames(more, hand, None, None)
+    return result, recovered, unsafe, len(wire), inject_tick, ticks
 
 
 def run_campaign(hand: HandConfig, progress: Callable[[str], None] | None = None,
-                 injectors: list[str] | None = None) -> list[CaseResult]:
+                 injectors: list[str] | None = None, log_dir: Path | None = None
+                 ) -> list[CaseResult]:
+    """Every case; with ``log_dir`` each case's log is kept there as INJECTOR-PHASE.mcap."""
     results = []
     for injector in injectors or list(CASES):
         for phase, _ in PHASES:
-            results.append(run_case(hand, injector, phase))
+            log = log_dir / f"{injector}-{phase}.mcap" if log_dir is not None else None
+            results.append(run_case(hand, injector, phase, log=log))
             if progress is not None:
                 r = results[-1]
                 progress(f"{injector:<17} {phase:<13} {r.fault or 'no fault':<17} "
                          f"{r.latency_ms if r.latency_ms is not None else '-':>6} ms "
-                         f"unsafe {r.unsafe_frames}")
+                         f"unsafe {r.unsafe_frames} logged {'yes' if r.logged else 'NO'}")
     return results
 
 
 def render_table(results: list[CaseResult]) -> str:
     """The campaign's Markdown table: one row per injector, one column group per phase."""
-    lines = ["| injector | " + " | ".join(p for p, _ in PHASES) + " | unsafe frames |",
-             "|---|" + "---|" * (len(PHASES) + 1)]
+    lines = ["| injector | " + " | ".join(p for p, _ in PHASES)
+             + " | unsafe frames | in the log |",
+             "|---|" + "---|" * (len(PHASES) + 2)]
     by_injector: dict[str, list[CaseResult]] = {}
     for r in results:
         by_injector.setdefault(r.injector, []).append(r)
@@ -250,6 +381,8 @@ def render_table(results: list[CaseResult]) -> str:
                     seen.append(f"{r.bus_events} bus events")
                 cell = "tolerated" + (f" ({', '.join(seen)})" if seen else "")
             cells.append(cell)
+        missing = [r.phase for r in rows if not r.logged]
+        logged = "all" if not missing else "MISSING: " + ", ".join(missing)
         lines.append(f"| `{injector}` | " + " | ".join(cells)
-                     + f" | {sum(r.unsafe_frames for r in rows)} |")
+                     + f" | {sum(r.unsafe_frames for r in rows)} | {logged} |")
     return "\n".join(lines)

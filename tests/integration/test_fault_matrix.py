@@ -1,15 +1,21 @@
 """Issue-level check of the fault campaign: every injector in every kind of phase is caught
-(or harmlessly absorbed), takes its stop, puts no unsafe frame on the wire, and comes back only
-through an explicit reset; docs/faults.md shows exactly these results."""
+(or harmlessly absorbed), takes its stop, puts no unsafe frame on the wire, is in the MCAP log
+at the tick it was detected, and comes back only through an explicit reset; docs/faults.md
+shows exactly these results."""
 
 from __future__ import annotations
 
 import json
+import shutil
+from collections.abc import Iterator
 from dataclasses import asdict
+from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 
 from handctl.config import HandConfig
+from handctl.recording import channels as ch
 from handctl.safety.faults import FAULTS, FaultCode, StopCategory
 from handctl.sim.campaign import CASES, PHASES, CaseResult, run_campaign
 
@@ -36,8 +42,16 @@ EXPECTED: dict[str, dict[str, str | None]] = {
 
 
 @pytest.fixture(scope="module")
-def results(hand: HandConfig) -> list[CaseResult]:
-    return run_campaign(hand)
+def logs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """Where the campaign keeps each case's MCAP log (about 50 MB in all: removed after)."""
+    directory = tmp_path_factory.mktemp("campaign-logs")
+    yield directory
+    shutil.rmtree(directory, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def results(hand: HandConfig, logs: Path) -> list[CaseResult]:
+    return run_campaign(hand, log_dir=logs)
 
 
 def test_every_injector_has_an_expectation() -> None:
@@ -69,6 +83,46 @@ def test_disturbances_are_counted(results: list[CaseResult]) -> None:
     by = {(r.injector, r.phase): r for r in results}
     assert all(by["babble", p].foreign_frames >= 5000 for p in EVERY_PHASE)
     assert all(by["error_frames", p].bus_events >= 500 for p in EVERY_PHASE)
+
+
+def test_every_case_is_in_its_log(results: list[CaseResult]) -> None:
+    """The campaign's own judgement, read back with handctl's reader (``judge_log``): the
+    fault with its stop at the detecting tick and the reset after it, or the disturbance
+    counted as the runtime counted it; the file whole, nothing dropped."""
+    assert [(r.injector, r.phase) for r in results if not r.logged] == []
+    assert all((r.fault_tick is None) == (not r.fault) for r in results)
+
+
+def test_the_mcap_library_reads_each_fault_at_its_tick(hand: HandConfig,
+                                                       results: list[CaseResult],
+                                                       logs: Path) -> None:
+    """Independently of handctl's reader: the mcap library's own reader finds on /events the
+    fault code and stop, stamped with the detecting tick's number and time (tick k is at
+    (k + 1) periods in lockstep), the supervisor's move into a fault state at that tick, and
+    the explicit reset after it; a tolerated babble's foreign frames are all counted there."""
+    period_ns = round(hand.bus.period_s * 1e9)
+    for r in results:
+        case = (r.injector, r.phase)
+        events = []
+        with (logs / f"{r.injector}-{r.phase}.mcap").open("rb") as handle:
+            for _, _, message in make_reader(handle).iter_messages(topics=[ch.EVENTS]):
+                events.append((message.log_time, json.loads(message.data)))
+        faults = [(t, e) for t, e in events if e["kind"] == "fault"]
+        if not r.fault:
+            assert faults == [], case
+            foreign = sum(e["count"] for _, e in events if e["kind"] == "rejected_frames"
+                          and e["name"] == "unexpected_id")
+            assert foreign == r.foreign_frames, case
+            continue
+        log_time, first = faults[0]
+        assert (first["name"], first["category"], first["tick"]) == (
+            r.fault, r.category, r.fault_tick), case
+        assert log_time == (first["tick"] + 1) * period_ns, case
+        assert any(e["kind"] == "state" and e["tick"] == r.fault_tick
+                   and e["name"] in ("fault_ramp", "faulted") for _, e in events), case
+        resets = [e["tick"] for _, e in events if e["kind"] == "request"
+                  and e["name"] == "reset"]
+        assert len(resets) == 1 and resets[0] > first["tick"], case
 
 
 def test_fault_page_shows_this_campaign(results: list[CaseResult]) -> None:
