@@ -9,8 +9,9 @@ One tick, always in this order (DESIGN.md):
 5. ``hand.send()``: one command frame per node;
 6. ``recorder.push()``: the tick's record, handed over without blocking.
 
-Per-tick accounting (lateness, missed ticks, CPU time of each stage) is kept in preallocated
-arrays, so the loop's cost does not grow with the run.
+Per-tick accounting (lateness, missed ticks, CPU time of each stage) is kept in bounded,
+preallocated arrays (``handctl.tickstats``): the last ticks one by one, the whole run as
+histograms, so neither the loop's cost nor its memory grows with the run.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from handctl.recipes.runner import RecipeRunner, RunStatus
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import Fault, FaultCode
 from handctl.safety.supervisor import State, Supervisor
+from handctl.tickstats import TickStats, TickWindow
 
 STAGES = ("poll", "recipe", "safety", "send", "record")
 #: Ticks the loop keeps sending zero after a stop before it disables the nodes: frames in
@@ -98,9 +100,10 @@ class RunResult:
     outcome: Outcome
     ticks: int
     missed_ticks: int
-    lateness_ns: np.ndarray
-    missed: np.ndarray  # ticks missed just before each tick
+    lateness_ns: np.ndarray  # the last ``window.lateness_ns.size`` ticks (tickstats)
+    missed: np.ndarray  # ticks missed just before each of them
     stage_ns: np.ndarray  # (ticks, stages)
+    window: TickWindow  # the same, with the whole run's histograms
     max_abs_tau: np.ndarray
     faults: list[Fault]
     phases: list[dict[str, Any]]
@@ -119,7 +122,7 @@ class Runtime:
                  estimator: Estimator | None = None,
                  status: Callable[[StatusLine], None] | None = None,
                  reset_node_faults: bool = False, startup_timeout_s: float = 0.5,
-                 max_ticks: int = 10_000_000) -> None:
+                 max_ticks: int = 10_000_000, window_ticks: int = 1 << 17) -> None:
         self.hand = hand
         self.driver = driver
         self.clock = clock
@@ -135,11 +138,9 @@ class Runtime:
         self.stop_requested = ""
         self.estop_requested = ""
         self.first_send_tick = -1
+        self.startup_missed_ticks = 0
         self.tick_hooks: list[Callable[[Tick], None]] = []
-        self._capacity = 1 << 14
-        self._lateness = np.zeros(self._capacity, dtype=np.int64)
-        self._missed_at = np.zeros(self._capacity, dtype=np.int32)
-        self._stages = np.zeros((self._capacity, len(STAGES)), dtype=np.int64)
+        self._stats = TickStats(len(STAGES), window_ticks)
         self._max_abs = np.zeros(hand.n_joints)
         self._missed = 0
         self._ticks = 0
@@ -204,6 +205,7 @@ class Runtime:
         sup.start(tick)
         self.driver.node_command("enable")
         self.first_send_tick = self._ticks  # command frame n of each node belongs to this + n
+        self.startup_missed_ticks = self._missed  # before it the peer may still be starting
         stopping_since: int | None = None
         while True:
             tk = await self._tick()
@@ -371,17 +373,9 @@ class Runtime:
         return self.runner.phase_name if self.runner is not None else "-"
 
     def _store(self, tk: Tick, stages: tuple[int, ...]) -> None:
-        i = self._ticks
-        if i >= self._capacity:
-            self._capacity *= 2
-            self._lateness = np.resize(self._lateness, self._capacity)
-            self._missed_at = np.resize(self._missed_at, self._capacity)
-            self._stages = np.resize(self._stages, (self._capacity, len(STAGES)))
-        self._lateness[i] = tk.lateness_ns
-        self._missed_at[i] = tk.missed
-        self._stages[i] = stages
+        self._stats.store(tk.lateness_ns, tk.missed, stages)
         self._missed += tk.missed
-        self._ticks = i + 1
+        self._ticks += 1
 
     def _result(self, outcome: Outcome, message: str) -> RunResult:
         phases = []
@@ -389,11 +383,11 @@ class Runtime:
             phases = [{"name": r.name, "start_s": round(r.start_s, 6),
                        "end_s": None if r.end_s is None else round(r.end_s, 6), "exit": r.exit}
                       for r in self.runner.records]
-        n = self._ticks
+        window = self._stats.result()
         return RunResult(
-            outcome=outcome, ticks=n, missed_ticks=self._missed,
-            lateness_ns=self._lateness[:n].copy(), missed=self._missed_at[:n].copy(),
-            stage_ns=self._stages[:n].copy(),
+            outcome=outcome, ticks=self._ticks, missed_ticks=self._missed,
+            lateness_ns=window.lateness_ns, missed=window.missed, stage_ns=window.stage_ns,
+            window=window,
             max_abs_tau=self._max_abs.copy(), faults=list(self.supervisor.faults),
             phases=phases, message=message, node_rejects=self.driver.reject_counts(),
             unexpected_ids=dict(self.driver.unexpected_ids), bus_events=self._bus_events,

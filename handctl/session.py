@@ -21,8 +21,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
 from handctl.clock import Clock, LockstepClock, RealtimeClock, request_realtime
 from handctl.config import HandConfig
@@ -33,6 +31,7 @@ from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS
+from handctl.tickstats import TickWindow, percentile_us
 
 if TYPE_CHECKING:
     from handctl.clock import Tick
@@ -64,14 +63,14 @@ class RunReport:
     summary: dict[str, Any]
     warnings: list[str]
     first_send_tick: int = -1  # the tick of the first torque command
+    startup_missed_ticks: int = 0  # ticks missed before it
 
 
-def _percentiles_us(values_ns: np.ndarray) -> dict[str, float]:
-    if values_ns.size == 0:
-        return {"p50": 0.0, "p99": 0.0, "max": 0.0}
-    p50, p99 = np.percentile(values_ns, [50, 99])
-    return {"p50": round(float(p50) / 1e3, 2), "p99": round(float(p99) / 1e3, 2),
-            "max": round(float(values_ns.max()) / 1e3, 2)}
+def _percentiles_us(window: TickWindow) -> dict[str, float]:
+    """Over the whole run, from its histograms (1 µs bins; the maximum is exact)."""
+    hist = window.lateness_hist
+    return {"p50": percentile_us(hist, 50), "p99": percentile_us(hist, 99),
+            "max": round(window.lateness_max_ns / 1e3, 2)}
 
 
 def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool,
@@ -91,9 +90,8 @@ def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: boo
                     "tick": f.tick, "detail": f.detail} for f in result.faults],
         "ticks": result.ticks,
         "missed_ticks": result.missed_ticks,
-        "lateness_us": _percentiles_us(result.lateness_ns),
-        "stage_cpu_us_p99": {name: round(float(np.percentile(result.stage_ns[:, i], 99)) / 1e3,
-                                         2) if result.ticks else 0.0
+        "lateness_us": _percentiles_us(result.window),
+        "stage_cpu_us_p99": {name: round(percentile_us(result.window.stage_hist[i], 99), 2)
                              for i, name in enumerate(stages)},
         "max_abs_tau": {name: round(float(v), 5) for name, v in
                         zip(hand.joint_names, result.max_abs_tau, strict=True)},
@@ -190,7 +188,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             except HandctlError as exc:  # the run is over and safe; say what the log lacks
                 warnings.append(str(exc))
                 summary["recording"] = {"path": str(req.log), "error": str(exc)}
-    return RunReport(result, summary, warnings, runtime.first_send_tick)
+    return RunReport(result, summary, warnings, runtime.first_send_tick,
+                     runtime.startup_missed_ticks)
 
 
 def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:

@@ -12,10 +12,7 @@ Figures (targets from the fault, load and soak issue):
   from inside the loop's status callback, least-squares slope after the warm-up, target <= 5;
 - ``records_lost``: what the recorder and writer counted as dropped, plus ticks the runtime ran
   that the file lacks (``/loop/timing`` read back and compared tick by tick), target 0;
-- ``ticks``, ``mb_written``, lateness, and the RSS at start and end;
-- ``tick_accounting_mb_per_hour``: how fast the runtime's own per-tick accounting arrays
-  (``RunResult.lateness_ns``, ``missed``, ``stage_ns``, kept for the whole run) grow at 1 kHz,
-  for telling that growth from a leak.
+- ``ticks``, ``mb_written``, lateness (whole run), and the RSS at start and end.
 
 With ``--rt`` the simulated hand's process gets SCHED_FIFO too (just below the loop): on a
 machine shared with other jobs it would otherwise fall behind real time, and the host would
@@ -198,31 +195,24 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     # Every tick the runtime ran must be in the file once: a tick short is a record lost.
     missing = max(0, result.ticks - in_file) + gaps
     first = max(0, report.first_send_tick)
-    proper = result.lateness_ns[first:]
-    missed = int(result.missed[first:].sum())
+    proper_ticks = max(0, result.ticks - first)
+    startup_missed = report.startup_missed_ticks
+    missed = result.missed_ticks - startup_missed
     slope, samples = sampler.slope_mb_per_hour(warmup)
-    # What the runtime keeps of every tick by design (lateness, missed, stage times: for the
-    # summary's percentiles): memory that grows with the run however long it lasts.
-    per_tick = (result.lateness_ns.itemsize + result.missed.itemsize
-                + result.stage_ns.itemsize * result.stage_ns.shape[1])
-    accounting = per_tick * 3600 / hand.bus.period_s / 1e6
     rss = sampler.rss
     return {
         "minutes": args.minutes,
         "rt": bool(args.rt and not report.warnings and not refused),
         "outcome": result.outcome.value,
         "message": result.message,
-        "ticks": int(proper.size),
+        "ticks": proper_ticks,
         "missed_ticks": missed,
-        "missed_rate": round(missed / max(1, proper.size), 6),
+        "missed_rate": round(missed / max(1, proper_ticks), 6),
         "missed_rate_target": MISSED_TARGET,
-        "startup_missed_ticks": int(result.missed[:first].sum()),
-        "lateness_p99_us": round(float(np.percentile(proper, 99)) / 1e3, 1) if proper.size
-        else None,
+        "startup_missed_ticks": startup_missed,
+        "lateness_p99_us": report.summary["lateness_us"]["p99"],
         "rss_growth_mb_per_hour": round(slope, 2) if np.isfinite(slope) else None,
         "rss_growth_target": RSS_TARGET_MB_PER_HOUR,
-        "tick_accounting_bytes_per_tick": per_tick,
-        "tick_accounting_mb_per_hour": round(accounting, 1),
         "rss_samples": samples,
         "rss_warmup_s": warmup,
         "rss_start_mb": round(rss[0] / 1e6, 1) if rss else None,

@@ -1,0 +1,114 @@
+"""Per-tick accounting of the loop (lateness, missed ticks, CPU time per stage) in bounded memory.
+
+A run may last hours, at 1 kHz: keeping every tick's 52 bytes grows the control process by
+about 190 MB an hour. So the last ``window`` ticks are kept tick by tick (what a benchmark or a
+test inspects; the MCAP log has every tick anyway), and the whole run is kept as histograms of
+1 µs bins, from which the summary's percentiles come. Blocks of ``BLOCK`` ticks are folded into
+the histograms as they fill, so the work per tick stays a few array stores and no tick pays for
+more than one block's fold (tens of microseconds).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: ticks folded into the histograms at a time
+BLOCK = 1024
+#: µs, the histograms' range: a value beyond it counts in the last bin (its maximum is exact)
+HIST_RANGE_US = 20_000
+
+
+@dataclass(frozen=True)
+class TickWindow:
+    """The accounting of a run: the last ticks one by one, and the whole run as histograms."""
+
+    first_tick: int  # loop tick index of ``lateness_ns[0]``
+    lateness_ns: np.ndarray
+    missed: np.ndarray  # ticks missed just before each tick
+    stage_ns: np.ndarray  # (ticks, stages)
+    lateness_hist: np.ndarray  # counts per µs of lateness, whole run
+    stage_hist: np.ndarray  # (stages, counts per µs of CPU time), whole run
+    lateness_max_ns: int
+
+
+class TickStats:
+    """Preallocated and bounded; ``store`` is the only call on the hot path."""
+
+    def __init__(self, stages: int, window: int = 1 << 17) -> None:
+        if window % BLOCK:
+            raise ValueError(f"window must be a multiple of {BLOCK} ticks, not {window}")
+        self.window = window
+        self.ticks = 0
+        self._capacity = min(window, 1 << 14)
+        self._lateness = np.zeros(self._capacity, dtype=np.int64)
+        self._missed = np.zeros(self._capacity, dtype=np.int32)
+        self._stages = np.zeros((self._capacity, stages), dtype=np.int64)
+        self._late_hist = np.zeros(HIST_RANGE_US + 1, dtype=np.int64)
+        self._stage_hist = np.zeros((stages, HIST_RANGE_US + 1), dtype=np.int64)
+        self._late_max = 0
+        self._folded = 0  # ticks already in the histograms
+
+    def store(self, lateness_ns: int, missed: int, stages: tuple[int, ...]) -> None:
+        n = self.ticks
+        i = n % self.window
+        if i >= self._capacity:
+            self._grow()
+        self._lateness[i] = lateness_ns
+        self._missed[i] = missed
+        self._stages[i] = stages
+        self.ticks = n + 1
+        if self.ticks % BLOCK == 0:
+            self._fold(self.ticks)
+
+    def _grow(self) -> None:
+        self._capacity = min(self.window, self._capacity * 2)
+        self._lateness = np.resize(self._lateness, self._capacity)
+        self._missed = np.resize(self._missed, self._capacity)
+        self._stages = np.resize(self._stages, (self._capacity, self._stages.shape[1]))
+
+    def _fold(self, upto: int) -> None:
+        """Add ticks ``_folded .. upto`` to the histograms (they are still in the window)."""
+        if upto <= self._folded:
+            return
+        a = self._folded % self.window
+        b = a + (upto - self._folded)
+        late = self._lateness[a:b]
+        self._late_max = max(self._late_max, int(late.max()))
+        self._late_hist += _histogram(late)
+        for s in range(self._stages.shape[1]):
+            self._stage_hist[s] += _histogram(self._stages[a:b, s])
+        self._folded = upto
+
+    def result(self) -> TickWindow:
+        """The window in tick order and the histograms of the whole run (copies)."""
+        self._fold(self.ticks)
+        n = self.ticks
+        if n <= self.window:
+            order = slice(0, n)
+            lateness, missed, stages = (self._lateness[order], self._missed[order],
+                                        self._stages[order])
+        else:
+            start = n % self.window
+            lateness = np.roll(self._lateness, -start)
+            missed = np.roll(self._missed, -start)
+            stages = np.roll(self._stages, -start, axis=0)
+        return TickWindow(max(0, n - self.window), lateness.copy(), missed.copy(),
+                          stages.copy(), self._late_hist.copy(), self._stage_hist.copy(),
+                          self._late_max)
+
+
+def _histogram(values_ns: np.ndarray) -> np.ndarray:
+    bins = np.minimum(np.maximum(values_ns, 0) // 1000, HIST_RANGE_US)
+    return np.bincount(bins, minlength=HIST_RANGE_US + 1)
+
+
+def percentile_us(hist: np.ndarray, q: float) -> float:
+    """The ``q``-th percentile (0..100) of a 1 µs histogram, in µs (a bin's lower edge);
+    0 for an empty one."""
+    total = int(hist.sum())
+    if total == 0:
+        return 0.0
+    rank = max(1, int(np.ceil(q / 100.0 * total)))
+    return float(np.searchsorted(np.cumsum(hist), rank))
