@@ -37,6 +37,7 @@ import can
 
 from handctl.config import BusConfig
 from handctl.errors import BusError, ConfigError
+from handctl.taps import TAP_TX, TAP_TX_FAILED
 
 #: Frames drained per call at most: a babbling node must not keep one tick busy forever.
 DRAIN_LIMIT = 512
@@ -76,10 +77,7 @@ class BusEvent:
     timestamp_ns: int
 
 
-#: What a frame tap is told about each frame (``HandBus.tap``).
-TAP_RX = 0  # drained from the bus
-TAP_TX = 1  # handed to the bus
-TAP_TX_FAILED = 2  # refused by the bus (a bus event says why)
+#: What a frame tap is told about each frame (``HandBus.tap``): ``handctl.taps``.
 #: ``tap(arbitration_id, data, direction)``: each frame ``send`` handed to the bus (or could
 #: not). Called inside the tick, so it must only copy and return.
 FrameTap = Callable[[int, bytes, int], None]

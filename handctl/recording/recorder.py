@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 import orjson
 
-from handctl.bus import TAP_RX, BusEvent, Frame
+from handctl.bus import BusEvent, Frame
 from handctl.config import HandConfig
 from handctl.errors import ConfigError, HandctlError
 from handctl.recording.ring import (
@@ -64,6 +64,7 @@ from handctl.recording.ring import (
 )
 from handctl.safety.faults import FAULTS
 from handctl.safety.supervisor import State
+from handctl.taps import TAP_RX
 
 assert TAP_RX == 0  # a received frame's meta word is its length alone (``_flush_frames``)
 

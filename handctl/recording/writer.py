@@ -29,7 +29,6 @@ import numpy as np
 import orjson
 
 from handctl import __version__
-from handctl.bus import TAP_RX, TAP_TX
 from handctl.recording import channels as ch
 from handctl.recording.mcapfile import ChunkWriter
 from handctl.recording.metadata import package_version
@@ -69,6 +68,7 @@ from handctl.recording.ring import (
     Layout,
     Rings,
 )
+from handctl.taps import TAP_RX, TAP_TX
 
 POLL_S = 0.01
 CHUNK_NS = 50_000_000
