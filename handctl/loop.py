@@ -32,7 +32,7 @@ from handctl.recipes.runner import RecipeRunner, RunStatus
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import Fault, FaultCode
 from handctl.safety.supervisor import State, Supervisor
-from handctl.tickstats import TickStats, TickWindow
+from handctl.tickstats import DEFAULT_WINDOW, TickStats, TickWindow
 
 STAGES = ("poll", "recipe", "safety", "send", "record")
 #: Ticks the loop keeps sending zero after a stop before it disables the nodes: frames in
@@ -122,7 +122,7 @@ class Runtime:
                  estimator: Estimator | None = None,
                  status: Callable[[StatusLine], None] | None = None,
                  reset_node_faults: bool = False, startup_timeout_s: float = 0.5,
-                 max_ticks: int = 10_000_000, window_ticks: int = 1 << 17) -> None:
+                 max_ticks: int = 10_000_000, window_ticks: int = DEFAULT_WINDOW) -> None:
         self.hand = hand
         self.driver = driver
         self.clock = clock

@@ -33,6 +33,7 @@ def test_a_long_run_keeps_the_last_window_in_order_and_memory_is_bounded() -> No
     late = rng.integers(0, 400_000, size=10 * window + 123)
     _feed(stats, late[: 3 * window])
     sizes = (stats._lateness.nbytes, stats._stages.nbytes, stats._late_hist.nbytes)
+    assert sizes[0] == window * 8  # all of it from the start
     _feed(stats, late[3 * window:])  # carries on from tick 3 * window: the pattern shifts
     assert (stats._lateness.nbytes, stats._stages.nbytes, stats._late_hist.nbytes) == sizes
     w = stats.result()
