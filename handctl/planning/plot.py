@@ -54,13 +54,11 @@ def plot_run(trace: Trace, path: Path, recipe: Recipe,
     axes[1].set_ylabel("height above rest (mm)")
     axes[1].legend(fontsize=7, loc="upper left")
     true = np.degrees(a["true_angle"])
-    est = np.degrees(np.unwrap(np.nan_to_num(a["estimate"][:, 0])))
-    est_valid = np.where(a["valid"], est, np.nan)
-    # align the unwrapped estimate with the true angle's branch where both exist
-    both = a["valid"] & np.isfinite(est_valid)
-    if np.any(both):
-        shift = 360.0 * np.round(np.median(true[both] - est_valid[both]) / 360.0)
-        est_valid = est_valid + shift
+    # each estimate drawn on the true angle's branch (the estimate is an angle in
+    # (-180, 180], the truth is unwrapped): the gap between the lines is the estimator's error
+    est = np.degrees(a["estimate"][:, 0])
+    gap = (est - true + 180.0) % 360.0 - 180.0
+    est_valid = np.where(a["valid"] & np.isfinite(est), true + gap, np.nan)
     axes[2].plot(t, true, label="true (simulation)")
     axes[2].plot(t, est_valid, lw=0.8, label="estimated (joint angles)")
     axes[2].set_ylabel("centre-line angle (deg)")
