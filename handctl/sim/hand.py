@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from handctl.bus import HandBus, open_bus
+from handctl.clock import frozen_heap
 from handctl.config import HandConfig
 from handctl.protocol import load_protocol
 from handctl.sim.faults import FaultSchedule, Injector, load_scenario
@@ -351,19 +352,21 @@ def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
     try:
         sim = SimulatedHand(hand, bus, seed=seed, faults=faults)
         started = time.monotonic()
-        sim.start()
-        try:
-            deadline = None if seconds is None else started + seconds
-            while sim.running:
-                wait = 1.0 if deadline is None else min(1.0, deadline - time.monotonic())
-                if wait <= 0 or sim.wait_stopped(wait):
-                    break
-                if progress is not None:
-                    progress(sim.status_line())
-        except KeyboardInterrupt:
-            interrupted = True
-        finally:
-            sim.stop()
+        # the node timer must not wait for a full garbage collection
+        with frozen_heap():
+            sim.start()
+            try:
+                deadline = None if seconds is None else started + seconds
+                while sim.running:
+                    wait = 1.0 if deadline is None else min(1.0, deadline - time.monotonic())
+                    if wait <= 0 or sim.wait_stopped(wait):
+                        break
+                    if progress is not None:
+                        progress(sim.status_line())
+            except KeyboardInterrupt:
+                interrupted = True
+            finally:
+                sim.stop()
     finally:
         bus.close()
     wall = time.monotonic() - started
