@@ -130,22 +130,22 @@ _MCL_FUTURE = 2
 
 
 @contextlib.contextmanager
-def frozen_heap() -> Iterator[None]:
-    """Collect once, then hide every object alive now from the cyclic garbage collector, for
-    the duration of the block (they are handed back after it, so nothing leaks).
+def collector_paused() -> Iterator[None]:
+    """No automatic garbage collection for the duration of the block (one collection first).
 
-    Why: a full collection walks every tracked object, and a process that has imported
-    MuJoCo, NumPy and python-can holds a few hundred thousand of them; one such pass stalled a
-    1 kHz loop for over 5 ms, deterministically, about two minutes into every soak. After
-    ``gc.freeze`` the collector looks only at what the run itself allocates, so its passes stay
-    short. Enter it when start-up is over and the periodic work is about to begin.
+    Why: a full collection walks every tracked object, and after importing MuJoCo, NumPy and
+    python-can that takes about 11 ms. In the simulated hand's process one such pass held the
+    node timer long enough for the host's FEEDBACK_TIMEOUT, about two minutes into every soak.
+    The simulated hand is a test peer that makes little cyclic garbage, so it runs without the
+    collector. The control process needs no such thing: its loop allocates almost no container
+    objects (six minutes of soak ran one young collection every few seconds and no full one).
     """
     gc.collect()
-    gc.freeze()
+    gc.disable()
     try:
         yield
     finally:
-        gc.unfreeze()
+        gc.enable()
 
 
 def request_realtime(priority: int = 80) -> list[str]:

@@ -9,7 +9,6 @@ like any other bus. The online plane itself never imports the simulation.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import os
 import signal
@@ -23,7 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
-from handctl.clock import Clock, LockstepClock, RealtimeClock, frozen_heap, request_realtime
+from handctl.clock import Clock, LockstepClock, RealtimeClock, request_realtime
 from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError, HandctlError
@@ -164,8 +163,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             tracker = track(runtime, sim_hand)
         if recording is not None:
             _start_recording(recording, runtime, req, spec, lockstep, sim_hand)
-        with frozen_heap() if not lockstep else contextlib.nullcontext():
-            result = asyncio.run(_run_with_signals(runtime))
+        result = asyncio.run(_run_with_signals(runtime))
         sim_summary = None
         if sim_hand is not None:
             sim_summary = sim_hand.ground_truth_summary()

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from handctl.bus import HandBus, open_bus
-from handctl.clock import frozen_heap
+from handctl.clock import collector_paused
 from handctl.config import HandConfig
 from handctl.protocol import load_protocol
 from handctl.sim.faults import FaultSchedule, Injector, load_scenario
@@ -353,7 +353,7 @@ def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
         sim = SimulatedHand(hand, bus, seed=seed, faults=faults)
         started = time.monotonic()
         # the node timer must not wait for a full garbage collection
-        with frozen_heap():
+        with collector_paused():
             sim.start()
             try:
                 deadline = None if seconds is None else started + seconds
