@@ -27,7 +27,7 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.planning.models import Spread
 from handctl.planning.search import Budget
-from handctl.recipes.loader import GUARD_BAND_MAX, GUARD_BAND_MIN
+from handctl.recipes.loader import check_unique_names, parse_guard_band
 from handctl.recipes.schema import RecipeObject
 from handctl.schema import Doc, load_yaml
 
@@ -92,16 +92,10 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         objects.append(obj)
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
-    band = (doc.number("limit_guard_band", min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad")
-            if doc.has("limit_guard_band") else None)
+    band = parse_guard_band(doc)
     names = [o.name for o in objects]
     phases = tuple(_phase(p, hand, names) for p in doc.mappings("phases", min_len=1, max_len=32))
-    seen: set[str] = set()
-    for i, phase in enumerate(phases):
-        if phase.name in seen:
-            raise ConfigError(doc.file, f"phases[{i}].name", "a phase name not used before",
-                              phase.name)
-        seen.add(phase.name)
+    check_unique_names(doc, [p.name for p in phases])
     doc.done()
     return Template(doc.file, recipe, description, tuple(objects), end_ramp, search, phases,
                     band)

@@ -19,8 +19,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import numpy as np
-
 from handctl.config import HandConfig
 from handctl.safety.limits import FloatArray
 
@@ -60,5 +58,5 @@ class LimitGuard:
             else:
                 continue
             limit = self.tau_max[j]
-            out[j] = float(np.clip(desired[j] + push, -limit, limit))
+            out[j] = max(-limit, min(limit, float(desired[j]) + push))
         return out

@@ -54,23 +54,16 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                  "for", "nothing")
     end_ramp = doc.number("end_ramp_s", default=0.2, min=0.0, max=60.0, unit="s")
     objects = _parse_objects(doc)
-    band = doc.raw("limit_guard_band", None)
-    guard = None
-    if band is not None:
-        guard = LimitGuard.for_hand(hand, doc.number(
-            "limit_guard_band", min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad"))
+    band = parse_guard_band(doc)
+    guard = LimitGuard.for_hand(hand, band) if band is not None else None
     planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe: read, not used
     if not isinstance(planned_from, dict):
         doc.fail("planned_from", "a mapping (what handctl plan planned the recipe from)",
                  planned_from)
     phases = tuple(_parse_phase(p, hand) for p in doc.mappings("phases", min_len=1,
                                                               max_len=MAX_PHASES))
-    seen: set[str] = set()
-    for i, phase in enumerate(phases):
-        if phase.name in seen:
-            raise ConfigError(doc.file, f"phases[{i}].name", "a phase name not used before",
-                              phase.name)
-        seen.add(phase.name)
+    check_unique_names(doc, [p.name for p in phases])
+    for phase in phases:
         uses = next((c for c in (*phase.exits, *phase.aborts)
                      if c.kind is SignalKind.ESTIMATE), None)
         if uses is not None and not objects:
@@ -84,6 +77,23 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                           "compiled for another hand config: recompile it for this one)", digest)
     return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled, objects,
                   guard)
+
+
+def parse_guard_band(doc: Doc) -> float | None:
+    """``limit_guard_band`` (rad) of a recipe or a template, or None when it is not set."""
+    if not doc.has("limit_guard_band"):
+        return None
+    return doc.number("limit_guard_band", min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad")
+
+
+def check_unique_names(doc: Doc, names: list[str]) -> None:
+    """Phase names are how logs, exits and provenance refer to phases: no two alike."""
+    seen: set[str] = set()
+    for i, name in enumerate(names):
+        if name in seen:
+            raise ConfigError(doc.file, f"phases[{i}].name", "a phase name not used before",
+                              name)
+        seen.add(name)
 
 
 def _parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
