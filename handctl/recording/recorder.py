@@ -185,7 +185,6 @@ class Recorder:
         self._angle_view = self._tdt_view = self._desired_view = self._applied_view = \
             self._feedback_view = memoryview(b"")
         self._scheduled = self._missed = 0
-        self._pushed = False
         self._tick_stride = self.layout.tick_ints * 8
         self._tick_base = r.offsets["tick_i"]
         self._nodes_pack = struct.Struct(f"<{2 * self.layout.n_nodes}q").pack_into
@@ -263,32 +262,39 @@ class Recorder:
     # The hot path. Before the commands are sent (poll, send) the taps only note references;
     # the copying into the rings happens in ``push``, after the tick's last command frame is
     # on its way, with a few ``struct.pack_into`` and buffer copies and the attributes read
-    # into locals once. A tick's frames and its row are published together when the next tick
-    # begins (frames first), so a SIGKILL costs the tick in progress and nothing before it.
+    # into locals once. A tick's frames and its row are published together at the end of its
+    # ``push`` (frames first; a tick without a push when the next one begins), so a SIGKILL
+    # costs at most the tick in progress.
     def begin_tick(self, tick: Tick) -> None:
-        if self._pending:
+        if self._row >= 0:  # the last tick had no push (start-up, shut-down): publish it now
+            self._publish_idle()
+        elif self._pending:  # frames that came between ticks belong to the last one
             self._flush_frames()
-        ctl = self._ctl_view
-        if self._row >= 0:
-            if not self._pushed:  # a start-up or shut-down tick: its row is the head alone
-                _TICK_HEAD.pack_into(self._buf, self._tick_base + self._row * self._tick_stride,
-                                     self._tick, self._scheduled, self._now, self._missed, 0)
-            self._head += 1
-        ctl[FRAME_HEAD] = self._fhead
-        ctl[TICK_HEAD] = head = self._head
+            self._ctl_view[FRAME_HEAD] = self._fhead
         self._tick = tick.k
         self._scheduled = tick.scheduled_ns
         self._now = tick.now_ns
         self._missed = tick.missed
-        self._pushed = False
-        mask = self._tick_mask
-        if head - self._tail > mask:
-            self._tail = ctl[TICK_TAIL]
-            if head - self._tail > mask:
-                ctl[DROPPED_TICKS] += 1
+        head = self._head
+        if head - self._tail > self._tick_mask:
+            self._tail = self._ctl_view[TICK_TAIL]
+            if head - self._tail > self._tick_mask:
+                self._ctl_view[DROPPED_TICKS] += 1
                 self._row = -1
                 return
-        self._row = head & mask
+        self._row = head & self._tick_mask
+
+    def _publish_idle(self) -> None:
+        """The row of a tick that only polled is its head alone; publish it with its frames."""
+        if self._pending:
+            self._flush_frames()
+        _TICK_HEAD.pack_into(self._buf, self._tick_base + self._row * self._tick_stride,
+                             self._tick, self._scheduled, self._now, self._missed, 0)
+        self._row = -1
+        self._head += 1
+        ctl = self._ctl_view
+        ctl[FRAME_HEAD] = self._fhead
+        ctl[TICK_HEAD] = self._head
 
     def push(self, record: TickRecord) -> None:
         if self._pending:
@@ -296,7 +302,6 @@ class Recorder:
         runtime = self._runtime
         row = self._row
         if row >= 0:
-            self._pushed = True
             phase = self._phases.get(record.phase)
             if phase is None:
                 phase = self._intern(record.phase)
@@ -339,6 +344,14 @@ class Recorder:
                 self._ints[at + I_FEEDBACK:at + I_FEEDBACK + n] = self._feedback_view
                 self._nodes_pack(self._buf, (at + I_FEEDBACK + n) * 8 + self._tick_base,
                                  *state.node_state, *state.node_faults)
+            # The tick is complete: publish its frames, then its row.
+            self._row = -1
+            self._head += 1
+            ctl = self._ctl_view
+            ctl[FRAME_HEAD] = self._fhead
+            ctl[TICK_HEAD] = self._head
+        else:
+            self._ctl_view[FRAME_HEAD] = self._fhead
         if runtime is not None:
             sup = runtime.supervisor
             if len(sup.history) != self._history or len(sup.faults) != self._faults \
@@ -532,16 +545,12 @@ class Recorder:
             bus.tap = None
             bus.rx_tap = None
             bus.event_tap = None
-        if self._pending:
+        if self._row >= 0:
+            self._publish_idle()
+        elif self._pending:
             self._flush_frames()
         ctl = self._ctl_view
         ctl[FRAME_HEAD] = self._fhead
-        if self._row >= 0:
-            if not self._pushed:
-                _TICK_HEAD.pack_into(self._buf, self._tick_base + self._row * self._tick_stride,
-                                     self._tick, self._scheduled, self._now, self._missed, 0)
-            self._head += 1
-            self._row = -1
         ctl[TICK_HEAD] = self._head
         self.stats = {"path": str(self.path), "ticks": self._head, "frames": self._fhead,
                       "events": self._ehead, "dropped_ticks": ctl[DROPPED_TICKS],
