@@ -26,6 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from generated import display_path, write_or_check
+
 from handctl.protocol import (
     CRC8_INIT,
     CRC8_POLY,
@@ -666,14 +668,6 @@ def _render_by_id(messages: list[CMessage]) -> tuple[list[str], set[str]]:
     return lines, used
 
 
-def display_path(path: Path) -> str:
-    """Repository-relative, so generated text never depends on where the checkout lives."""
-    try:
-        return path.resolve().relative_to(ROOT).as_posix()
-    except ValueError:
-        return path.name
-
-
 def generate(dbc: Path) -> dict[str, str]:
     """File name -> text of the C codec for ``dbc``."""
     import cantools
@@ -693,17 +687,6 @@ def generate(dbc: Path) -> dict[str, str]:
     }
 
 
-def check(files: dict[str, str], out_dir: Path) -> list[str]:
-    """Names of the files that differ from what would be generated (line endings ignored)."""
-    stale = []
-    for name, text in files.items():
-        path = out_dir / name
-        current = path.read_text(encoding="utf-8") if path.exists() else None
-        if current is None or current.replace("\r\n", "\n") != text:
-            stale.append(display_path(path))
-    return stale
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--dbc", type=Path, default=DEFAULT_DBC, help="DBC to read")
@@ -716,17 +699,8 @@ def main(argv: list[str] | None = None) -> int:
     except (GenerationError, ValueError) as exc:
         print(f"gen_c_codec.py: {exc}", file=sys.stderr)
         return 2
-    if args.check:
-        stale = check(files, args.out)
-        for path in stale:
-            print(f"gen_c_codec.py: {path} is not what {display_path(args.dbc)} generates; "
-                  "run: python tools/gen_c_codec.py", file=sys.stderr)
-        return 1 if stale else 0
-    args.out.mkdir(parents=True, exist_ok=True)
-    for name, text in files.items():
-        (args.out / name).write_text(text, encoding="utf-8", newline="\n")
-    return 0
-
+    return write_or_check("gen_c_codec.py", {args.out / name: text for name, text in files.items()},
+                          display_path(args.dbc), "python tools/gen_c_codec.py", args.check)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -13,6 +13,8 @@ import json
 import sys
 from pathlib import Path
 
+from generated import write_or_check
+
 from handctl.config import SafetyConfig
 from handctl.safety.faults import FAULTS, RAMP_BOUND_S, StopCategory
 
@@ -121,17 +123,8 @@ def main(argv: list[str] | None = None) -> int:
         results = run_campaign(hand, progress=lambda line: print(line, file=sys.stderr))
         CAMPAIGN.write_text(json.dumps([asdict(r) for r in results], indent=1) + "\n")
     text = render()
-    if args.check:
-        current = OUT.read_text(encoding="utf-8") if OUT.exists() else ""
-        if current != text:
-            print("gen_fault_table.py: docs/faults.md is stale; run: "
-                  "python tools/gen_fault_table.py", file=sys.stderr)
-            return 1
-        return 0
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(text, encoding="utf-8")
-    return 0
-
+    return write_or_check("gen_fault_table.py", {OUT: text}, "docs/fault_campaign.json",
+                          "python tools/gen_fault_table.py", args.check)
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -25,6 +25,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from generated import display_path, write_or_check
+
 from handctl.errors import ProtocolError
 from handctl.protocol import Layout, Protocol, SignalSpec, _raw_bounds, crc8, load_protocol
 
@@ -381,14 +383,6 @@ def render(document: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def display_path(path: Path) -> str:
-    """Repository-relative, so the file never depends on where the checkout lives."""
-    try:
-        return path.resolve().relative_to(ROOT).as_posix()
-    except ValueError:
-        return path.name
-
-
 def generate(dbc: Path) -> str:
     import cantools
 
@@ -413,16 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     except (VectorError, ValueError) as exc:
         print(f"gen_vectors.py: {exc}", file=sys.stderr)
         return 2
-    if args.check:
-        current = args.out.read_text(encoding="utf-8") if args.out.exists() else None
-        if current is None or current.replace("\r\n", "\n") != text:
-            print(f"gen_vectors.py: {display_path(args.out)} is not what "
-                  f"{display_path(args.dbc)} generates; run: {COMMAND}", file=sys.stderr)
-            return 1
-        return 0
-    args.out.write_text(text, encoding="utf-8", newline="\n")
-    return 0
-
+    return write_or_check("gen_vectors.py", {args.out: text}, display_path(args.dbc), COMMAND,
+                          args.check)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,0 +1,40 @@
+"""What the generators share: repository-relative names, and ``--check`` against the files
+on disk.
+
+Generated files are committed (firmware authors and readers of the docs need them without
+running Python), so each generator has a ``--check`` mode that tests run: it must agree with
+what the generator would write, byte for byte but for line endings.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def display_path(path: Path) -> str:
+    """Repository-relative, so generated text never depends on where the checkout lives."""
+    try:
+        return path.resolve().relative_to(ROOT).as_posix()
+    except ValueError:
+        return path.name
+
+
+def write_or_check(tool: str, files: dict[Path, str], source: str, command: str,
+                   check: bool) -> int:
+    """Write ``files`` (path -> text), or with ``check`` write nothing and return 1 when one
+    on disk differs from its text, naming it, what it is generated from and how to redo it."""
+    if check:
+        stale = [path for path, text in files.items()
+                 if not path.exists()
+                 or path.read_text(encoding="utf-8").replace("\r\n", "\n") != text]
+        for path in stale:
+            print(f"{tool}: {display_path(path)} is not what {source} generates; "
+                  f"run: {command}", file=sys.stderr)
+        return 1 if stale else 0
+    for path, text in files.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text, encoding="utf-8", newline="\n")
+    return 0
