@@ -206,7 +206,11 @@ def test_startup_refuses_nodes_in_fault_without_explicit_reset(hand: HandConfig,
 def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Recipe,
                                                       channel: str) -> None:
     """The runtime freezes without any clean-up while the simulated hand runs free on its own
-    timer: the nodes' 10 ms command watchdogs must zero the torque on their own."""
+    timer: the nodes' 10 ms command watchdogs must zero the torque on their own.
+
+    Real time on a shared machine: a run that stops before torque flows (a CPU-starved loop
+    trips LOOP_OVERRUN, as it must) says nothing about the watchdogs, so it is tried again,
+    up to three times; every assertion is on a run that got there."""
     import asyncio
     import time
 
@@ -217,31 +221,46 @@ def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Re
     from handctl.protocol import load_protocol
     from handctl.sim.hand import SimulatedHand
 
-    seen: dict[str, object] = {}
-    with open_bus(f"virtual:{channel}", hand.bus) as peer, \
-            open_bus(f"virtual:{channel}", hand.bus) as host:
-        sim = SimulatedHand(hand, peer, seed=1)
-        clock = RealtimeClock(hand.bus.period_s)
-        runtime = Runtime(hand, HandDriver(hand, load_protocol(), host), clock, hold)
+    def attempt(name: str) -> tuple[dict[str, object], str]:
+        seen: dict[str, object] = {}
+        with open_bus(f"virtual:{name}", hand.bus) as peer, \
+                open_bus(f"virtual:{name}", hand.bus) as host:
+            sim = SimulatedHand(hand, peer, seed=1)
+            clock = RealtimeClock(hand.bus.period_s)
+            runtime = Runtime(hand, HandDriver(hand, load_protocol(), host), clock, hold)
 
-        def freeze(tick: object) -> None:
-            flowing = any(any(n.applied) for n in sim.nodes)
-            if runtime.supervisor.state is not State.RUNNING or "torque" in seen or not flowing:
-                return
-            seen["torque"] = [list(n.applied) for n in sim.nodes]
-            time.sleep(0.03)  # the host is dead for 30 ms: no frame, no clean-up
-            seen["states"] = [n.state for n in sim.nodes]
-            seen["faults"] = [n.fault_bits for n in sim.nodes]
-            seen["applied"] = [list(n.applied) for n in sim.nodes]
-            runtime.request_stop("test over")
+            def freeze(tick: object) -> None:
+                flowing = any(any(n.applied) for n in sim.nodes)
+                if runtime.supervisor.state is not State.RUNNING or "torque" in seen \
+                        or not flowing:
+                    return
+                seen["torque"] = [list(n.applied) for n in sim.nodes]
+                # The host is dead for 30 of the hand's own 1 ms ticks (not 30 ms of wall
+                # time, which a loaded machine may not give the hand's thread): no frame, no
+                # clean-up.
+                start, deadline = sim.ticks, time.monotonic() + 10.0
+                while sim.ticks - start < 30 and time.monotonic() < deadline:
+                    time.sleep(0.002)
+                seen["states"] = [n.state for n in sim.nodes]
+                seen["faults"] = [n.fault_bits for n in sim.nodes]
+                seen["applied"] = [list(n.applied) for n in sim.nodes]
+                runtime.request_stop("test over")
 
-        runtime.tick_hooks.append(freeze)
-        sim.start()
-        try:
-            asyncio.run(runtime.run())
-        finally:
-            sim.stop()
-    assert "states" in seen, "the runtime never got torque flowing"
+            runtime.tick_hooks.append(freeze)
+            sim.start()
+            try:
+                result = asyncio.run(runtime.run())
+            finally:
+                sim.stop()
+        return seen, f"{result.outcome.value}: {result.message}"
+
+    outcomes = []
+    for i in range(3):
+        seen, outcome = attempt(f"{channel}-{i}")
+        if "states" in seen:
+            break
+        outcomes.append(outcome)
+    assert "states" in seen, f"the runtime never got torque flowing: {outcomes}"
     assert any(any(t) for t in seen["torque"])  # type: ignore[attr-defined]
     assert seen["states"] == [2, 2, 2]  # FAULT
     assert all(bits & 0x01 for bits in seen["faults"])  # type: ignore[attr-defined]
