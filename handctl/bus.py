@@ -20,6 +20,7 @@ Bus specs:
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import errno
 import itertools
@@ -41,6 +42,8 @@ from handctl.taps import TAP_TX, TAP_TX_FAILED
 
 #: Frames drained per call at most: a babbling node must not keep one tick busy forever.
 DRAIN_LIMIT = 512
+#: Frames one burst holds at most on a batching transport before they go anyway.
+MAX_BURST = 64
 
 # Linux error-frame classes (linux/can/error.h), as python-can hands them over.
 _CAN_ERR_CRTL = 0x004
@@ -181,19 +184,41 @@ _FD, _BRS, _ERR, _ESI = 1, 2, 4, 8
 _unix_ids = itertools.count()
 #: Frames per datagram at most; a burst beyond it goes out in several datagrams.
 _BATCH = 32
+#: Frames held at most for one receiver whose queue is full (a CAN controller's transmit
+#: queue). A burst that does not fit any more is refused whole with ENOBUFS.
+TX_QUEUE_FRAMES = 256
+#: How long ``shutdown`` keeps offering held frames to receivers that are still reading.
+_SHUTDOWN_S = 0.02
+
+
+class TransmitQueueFull(can.CanOperationError):
+    """A burst refused because a receiver's transmit queue is full: ``frames`` were dropped."""
+
+    def __init__(self, frames: int, receivers: int) -> None:
+        super().__init__(f"No buffer space available: {frames} frames dropped, the transmit "
+                         f"queue to {receivers} receiver(s) is full", error_code=errno.ENOBUFS)
+        self.frames = frames
 
 
 class UnixDatagramBus(can.BusABC):
     """A CAN bus between processes of one machine: each participant binds a datagram socket in
     the channel directory and sends every frame to all the other sockets there.
 
-    Frames sent together (one tick's commands, one node tick's feedback) travel as one datagram:
-    Linux queues only ``net.unix.max_dgram_qlen`` datagrams per socket (often 10), so batching
-    is what gives a receiver several milliseconds of slack. ``send`` queues a frame and
-    ``flush`` sends the batch; ``HandBus`` flushes after the last frame of a burst. A receiver
-    whose queue is full makes ``flush`` fail with ENOBUFS, as a full transmit queue does on
-    SocketCAN. A socket whose owner died (SIGKILL) refuses delivery and is removed, so a killed
-    peer does not wedge the bus.
+    Frames sent together (one tick's commands, one node tick's frames) travel as one datagram:
+    Linux queues only ``net.unix.max_dgram_qlen`` datagrams per receiving socket (often 10),
+    whatever their size and whoever sent them, and no socket buffer size lifts that. ``send``
+    queues a frame and ``flush`` sends the batch; ``HandBus`` flushes after the last frame of
+    a burst.
+
+    A receiver whose queue is full does not lose what it was sent, as a CAN controller does
+    not drop a frame it took for transmission but retries arbitration: the frames wait in a
+    transmit queue for that receiver and go first, merged into as few datagrams as fit, at the
+    next ``flush``. Only a burst that no longer fits that queue (``TX_QUEUE_FRAMES``, a
+    receiver that stopped reading) is refused, whole, with ``TransmitQueueFull`` (ENOBUFS), as
+    a full transmit queue refuses a frame on SocketCAN. ``queue_full`` counts the times a
+    receiver's queue was found full, ``frames_dropped`` the frames refused (for one receiver
+    or more). A socket whose owner died (SIGKILL) refuses delivery and is removed with what
+    was held for it, so a killed peer does not wedge the bus.
     """
 
     def __init__(self, channel: str, receive_own_messages: bool = False,
@@ -211,9 +236,18 @@ class UnixDatagramBus(can.BusABC):
         self._peers: list[str] = []
         self._peers_at = 0.0
         self._pending: list[bytes] = []
+        self._held: dict[str, list[bytes]] = {}  # per receiver: frames its full queue refused
         self._inbox: list[can.Message] = []
         self._can_protocol = can.CanProtocol.CAN_FD
+        self.datagrams_sent = 0
+        self.queue_full = 0
+        self.frames_dropped = 0
         super().__init__(channel=channel, **kwargs)
+
+    @property
+    def held(self) -> int:
+        """Frames waiting now for receivers whose queue was full (all receivers together)."""
+        return sum(len(frames) for frames in self._held.values())
 
     def _refresh_peers(self) -> None:
         """Re-list the participants at most every 50 ms: joining is rare, sending is not."""
@@ -224,6 +258,8 @@ class UnixDatagramBus(can.BusABC):
         mine = str(self._path)
         self._peers = [str(p) for p in self.directory.glob("*.sock")
                        if self._own or str(p) != mine]
+        for gone in [p for p in self._held if p not in self._peers]:
+            del self._held[gone]
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         flags = ((_FD if msg.is_fd else 0) | (_BRS if msg.bitrate_switch else 0)
@@ -232,30 +268,58 @@ class UnixDatagramBus(can.BusABC):
         data = bytes(msg.data)
         self._pending.append(_WIRE.pack(time.time(), msg.arbitration_id, flags, len(data))
                              + data)
-        if len(self._pending) >= _BATCH:
+        if len(self._pending) >= TX_QUEUE_FRAMES:  # a caller that never flushes
             self.flush()
 
     def flush(self) -> None:
-        """Send the queued frames as one datagram to every other participant."""
-        if not self._pending:
+        """Send what is held for each receiver, then the queued frames, to every other
+        participant; raise ``TransmitQueueFull`` if a receiver's transmit queue had no room."""
+        frames = self._pending
+        if not frames and not self._held:
             return
-        payload = b"".join(self._pending)
-        self._pending.clear()
+        self._pending = []
         self._refresh_peers()
-        full = False
+        refused = 0
         for peer in list(self._peers):
+            held = self._held.get(peer)
+            if held is None:
+                if frames:
+                    self._deliver(peer, frames)
+            elif len(held) + len(frames) > TX_QUEUE_FRAMES:
+                refused += 1
+                self._deliver(peer, held)
+            else:
+                self._deliver(peer, held + frames)
+        if refused:
+            self.frames_dropped += len(frames)
+            raise TransmitQueueFull(len(frames), refused)
+
+    def _deliver(self, peer: str, frames: list[bytes]) -> None:
+        """Send ``frames`` to one receiver in datagrams of at most ``_BATCH`` frames; what its
+        full queue refuses is held for it, in order."""
+        done = 0
+        total = len(frames)
+        while done < total:
+            chunk = frames if total <= _BATCH else frames[done:done + _BATCH]
             try:
-                self._sock.sendto(payload, peer)
+                self._sock.sendto(b"".join(chunk), peer)
             except (ConnectionRefusedError, FileNotFoundError):
-                self._peers.remove(peer)  # its owner is gone
-                if peer != str(self._path):
-                    with _suppress_oserror():
-                        os.unlink(peer)
+                self._forget(peer)  # its owner is gone
+                return
             except (BlockingIOError, InterruptedError):
-                full = True
-        if full:
-            raise can.CanOperationError("No buffer space available: a receiver's queue is full",
-                                        error_code=errno.ENOBUFS)
+                self.queue_full += 1
+                self._held[peer] = frames[done:]
+                return
+            self.datagrams_sent += 1
+            done += len(chunk)
+        self._held.pop(peer, None)
+
+    def _forget(self, peer: str) -> None:
+        self._peers.remove(peer)
+        self._held.pop(peer, None)
+        if peer != str(self._path):
+            with _suppress_oserror():
+                os.unlink(peer)
 
     def _read_datagram(self) -> bool:
         try:
@@ -290,10 +354,19 @@ class UnixDatagramBus(can.BusABC):
     def fileno(self) -> int:
         return self._sock.fileno()
 
+    def _flush_quietly(self) -> None:
+        with contextlib.suppress(can.CanError, OSError):
+            self.flush()
+
     def shutdown(self) -> None:
         if not self._is_shutdown:
-            with _suppress_oserror():
-                self.flush()
+            # What is held goes out while its receivers still read (a last disable command),
+            # for a few milliseconds at most.
+            deadline = time.monotonic() + _SHUTDOWN_S
+            self._flush_quietly()
+            while self._held and time.monotonic() < deadline:
+                time.sleep(0.001)
+                self._flush_quietly()
             self._sock.close()
             with _suppress_oserror():
                 self._path.unlink()
@@ -319,9 +392,13 @@ class HandBus:
         self._clock_ns = clock_ns
         self._events: list[BusEvent] = []
         self.sent = 0
+        #: Frames that did not go: refused sends, and every frame of a burst the transport
+        #: refused at its end.
+        self.tx_failed = 0
         self.received = 0
         self.closed = False
         self._batching = isinstance(bus, UnixDatagramBus)
+        self._burst: list[tuple[int, bytes]] = []  # held by a batching transport until flush
         #: The recorder's taps: every frame drained or sent, and every event as it is taken.
         self.tap: FrameTap | None = None
         self.rx_tap: RxTap | None = None
@@ -353,45 +430,89 @@ class HandBus:
         """Send one frame without blocking; on failure record an event and return False.
 
         ``more=True`` says another frame of the same burst follows at once, so a batching
-        transport may hold this one until the last (``more=False``).
+        transport (the unix bus) holds this one until the last (``more=False``) or ``flush``
+        (at most ``MAX_BURST`` frames): ``send`` returns True for it, and it is counted and
+        tapped when the burst goes, with the burst's fate.
         """
         msg = _Message(arbitration_id=arbitration_id, data=data, is_extended_id=False,
                        is_fd=self.fd, bitrate_switch=self.fd, check=False)
         try:
             self._bus.send(msg, timeout=0)
-            if not more and self._batching:
-                self._bus.flush()  # type: ignore[attr-defined]
-        except can.CanOperationError as exc:
-            full = exc.error_code == errno.ENOBUFS or "No buffer space" in str(exc)
-            self._event(BusEventKind.TX_QUEUE_FULL if full else BusEventKind.TX_FAILED, str(exc))
-            if self.tap is not None:
-                self.tap(arbitration_id, data, TAP_TX_FAILED)
-            return False
         except (can.CanError, OSError, ValueError) as exc:
-            self._event(BusEventKind.TX_FAILED, f"{type(exc).__name__}: {exc}")
+            self._tx_error(exc)
+            self.tx_failed += 1
             if self.tap is not None:
                 self.tap(arbitration_id, data, TAP_TX_FAILED)
             return False
+        if self._batching:
+            self._burst.append((arbitration_id, data))
+            if more and len(self._burst) < MAX_BURST:
+                return True
+            return self.flush()
         self.sent += 1
         if self.tap is not None:
             self.tap(arbitration_id, data, TAP_TX)
         return True
 
+    def flush(self) -> bool:
+        """End a burst: a batching transport sends the frames ``send(..., more=True)`` held
+        (and offers again what receivers with a full queue were still owed).
+
+        False, with a TX_QUEUE_FULL (or TX_FAILED) event, if the transport refused the burst:
+        each of its frames is then counted in ``tx_failed`` and tapped as failed. Other buses
+        send at once, so there is nothing to do.
+        """
+        if not self._batching:
+            return True
+        burst, self._burst = self._burst, []
+        ok = True
+        try:
+            self._bus.flush()  # type: ignore[attr-defined]
+        except (can.CanError, OSError, ValueError) as exc:
+            self._tx_error(exc)
+            ok = False
+        if ok:
+            self.sent += len(burst)
+        else:
+            self.tx_failed += len(burst)
+        if self.tap is not None:
+            direction = TAP_TX if ok else TAP_TX_FAILED
+            for frame_id, data in burst:
+                self.tap(frame_id, data, direction)
+        return ok
+
+    def _tx_error(self, exc: Exception) -> None:
+        if isinstance(exc, can.CanOperationError):
+            full = exc.error_code == errno.ENOBUFS or "No buffer space" in str(exc)
+            self._event(BusEventKind.TX_QUEUE_FULL if full else BusEventKind.TX_FAILED, str(exc))
+        else:
+            self._event(BusEventKind.TX_FAILED, f"{type(exc).__name__}: {exc}")
+
+    def transport_counts(self) -> dict[str, int]:
+        """The transport's own delivery counters, for summaries: on the unix bus the datagrams
+        sent, the times a receiver's queue was full (its frames held and retried), the frames
+        refused because a receiver's transmit queue was full, and the frames held now.
+        Empty for buses that keep no such counts."""
+        bus = self._bus
+        if not isinstance(bus, UnixDatagramBus):
+            return {}
+        return {"datagrams_sent": bus.datagrams_sent, "queue_full": bus.queue_full,
+                "frames_dropped": bus.frames_dropped, "frames_held": bus.held}
+
     def send_error_frame(self, error_class: int = _CAN_ERR_CRTL, data: bytes = bytes(8)) -> bool:
         """Put an error frame on the bus (fault injection on virtual buses only).
 
         ``error_class`` is the Linux error class (0x004 controller, 0x040 bus-off,
-        0x100 restarted), as a SocketCAN adapter would report it.
+        0x100 restarted), as a SocketCAN adapter would report it. On a batching transport it
+        ends the burst under way.
         """
         msg = _Message(arbitration_id=error_class, is_error_frame=True, is_extended_id=False,
                        data=data, check=False)
         try:
             self._bus.send(msg, timeout=0)
-            if self._batching:
-                self._bus.flush()  # type: ignore[attr-defined]
         except (can.CanError, OSError, ValueError):
             return False
-        return True
+        return self.flush()
 
     def events(self) -> list[BusEvent]:
         """Take the events since the last call."""
@@ -403,6 +524,8 @@ class HandBus:
 
     def close(self) -> None:
         if not self.closed:
+            if self._burst:
+                self.flush()
             self.closed = True
             self._bus.shutdown()
 

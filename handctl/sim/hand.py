@@ -104,14 +104,19 @@ class SimulatedHand:
         self._period_ns = round(hand.bus.period_s * 1e9)
         self._target_ns = 0
         self.frames_in = 0
-        self.frames_out = 0
-        self.tx_failed = 0
+        self.frames_out = 0  # frames handed to the bus; those it could not send: tx_failed
+        self._in_burst = False
         self.bus_events = 0
         self.missed_ticks = 0
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._error: BaseException | None = None
+
+    @property
+    def tx_failed(self) -> int:
+        """Frames of this hand (and its injectors) that did not go: the bus's count."""
+        return self._bus.tx_failed
 
     # -- lockstep ---------------------------------------------------------------------------
     @property
@@ -169,14 +174,22 @@ class SimulatedHand:
             for fid, data in out:
                 injector.tx(fid, data, now, filtered)
             out = filtered
+        # Everything the tick puts on the bus, the nodes' frames and an injector's (a babbling
+        # node's), leaves as one burst: on the unix bus one datagram, not one per frame, so a
+        # flood cannot fill the host's queue of datagrams by itself.
         send = bus.send
-        last = len(out) - 1
-        for i, (fid, data) in enumerate(out):
-            if not send(fid, data, more=i < last):  # one burst per tick
-                self.tx_failed += 1
+        for fid, data in out:
+            send(fid, data, more=True)
         self.frames_out += len(out)
-        for injector in self._periodic:
-            injector.tick(self, now)
+        periodic = self._periodic
+        if periodic:
+            self._in_burst = True
+            try:
+                for injector in periodic:
+                    injector.tick(self, now)
+            finally:
+                self._in_burst = False
+        bus.flush()
         self.ticks += 1
 
     # -- faults -----------------------------------------------------------------------------
@@ -230,11 +243,10 @@ class SimulatedHand:
         return [n for n in self.nodes if node is None or n.node_id == node]
 
     def send_frame(self, frame_id: int, data: bytes) -> bool:
-        """Put a frame on the bus outside the nodes' schedule (injectors)."""
-        ok = self._bus.send(frame_id, data)
-        self.frames_out += ok
-        self.tx_failed += not ok
-        return ok
+        """Put a frame on the bus outside the nodes' schedule (injectors); during a tick it
+        joins the tick's burst."""
+        self.frames_out += 1
+        return self._bus.send(frame_id, data, more=self._in_burst)
 
     def send_foreign_frame(self, frame_id: int, data: bytes) -> bool:
         """Put a frame on the bus as another node would (injectors): the emulated nodes hear
@@ -284,6 +296,7 @@ class SimulatedHand:
             "frames_in": self.frames_in,
             "frames_out": self.frames_out,
             "tx_failed": self.tx_failed,
+            "transport": self._bus.transport_counts(),
             "faults": [{"fault": e.injector.describe(), "start": e.start, "stop": e.stop}
                        for e in self.faults],
         }

@@ -1,0 +1,109 @@
+"""handctl's unix datagram bus, between real sockets of one process.
+
+Linux queues ``net.unix.max_dgram_qlen`` datagrams per receiving socket (often 10), however
+small they are and whoever sent them. A receiver that falls behind must cost delay, not frames,
+as a CAN controller keeps a frame it took until arbitration lets it go; a receiver that stopped
+reading costs frames only once the transmit queue is full, and every one of them is counted.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from handctl.bus import TX_QUEUE_FRAMES, BusEventKind, Frame, HandBus, open_bus
+from handctl.config import HandConfig
+from handctl.taps import TAP_TX
+
+OpenUnix = Callable[[], HandBus]
+
+
+@pytest.fixture
+def open_unix(hand: HandConfig, tmp_path: Path) -> Iterator[OpenUnix]:
+    """Participants of one unix bus in a private directory, closed afterwards."""
+    opened: list[HandBus] = []
+
+    def participant() -> HandBus:
+        bus = open_bus(f"unix:{tmp_path / 'bus'}", hand.bus)
+        opened.append(bus)
+        return bus
+
+    yield participant
+    for bus in opened:
+        bus.close()
+
+
+def catch_up(rx: HandBus, tx: HandBus, got: list[Frame], want: int) -> None:
+    """The receiver reads and the sender flushes (its next burst would) until ``want`` frames
+    arrived or no more come."""
+    for _ in range(20):
+        got += rx.drain()
+        if len(got) >= want:
+            return
+        tx.flush()
+
+
+def test_a_receiver_that_falls_behind_gets_every_frame_in_order(open_unix: OpenUnix) -> None:
+    rx, tx = open_unix(), open_unix()
+    sent: list[bytes] = []
+    got: list[Frame] = []
+    for tick in range(5):
+        # twenty single-frame bursts between two reads: twice the datagrams the queue holds
+        for i in range(20):
+            data = bytes((tick, i, 0, 0, 0, 0, 0, 0))
+            assert tx.send(0x050, data)
+            sent.append(data)
+        got += rx.drain()
+    catch_up(rx, tx, got, len(sent))
+    assert [f.data for f in got] == sent
+    assert tx.events() == []
+    assert (tx.sent, tx.tx_failed) == (len(sent), 0)
+    counts = tx.transport_counts()
+    assert counts["queue_full"] > 0  # the queue was full, and nothing was lost for it
+    assert (counts["frames_dropped"], counts["frames_held"]) == (0, 0)
+
+
+def test_held_frames_go_first_merged_into_few_datagrams(open_unix: OpenUnix) -> None:
+    rx, tx = open_unix(), open_unix()
+    for i in range(40):
+        assert tx.send(0x050, bytes((i,)))
+    queued = tx.transport_counts()["datagrams_sent"]
+    assert tx.transport_counts()["frames_held"] == 40 - queued
+    assert len(rx.drain()) == queued
+    assert tx.send(0x181, bytes(16))  # the next burst takes what was held along, in order
+    assert tx.transport_counts()["datagrams_sent"] == queued + 1
+    frames = rx.drain()
+    assert [f.data[0] for f in frames[:-1]] == list(range(queued, 40))
+    assert frames[-1].arbitration_id == 0x181
+
+
+def test_a_receiver_that_stopped_reading_costs_counted_frames(open_unix: OpenUnix) -> None:
+    rx, tx = open_unix(), open_unix()
+    offered = TX_QUEUE_FRAMES + 100
+    accepted = [i for i in range(offered) if tx.send(0x101, i.to_bytes(2, "little"))]
+    refused = offered - len(accepted)
+    # The queue and the transmit queue full, the sender is told for every frame it loses.
+    assert refused > 0
+    assert tx.tx_failed == refused
+    assert [e.kind for e in tx.events()] == [BusEventKind.TX_QUEUE_FULL] * refused
+    assert tx.transport_counts()["frames_dropped"] == refused
+    # What was accepted arrives, all of it, in order, once the receiver reads again.
+    got: list[Frame] = []
+    catch_up(rx, tx, got, len(accepted))
+    assert [int.from_bytes(f.data, "little") for f in got] == accepted
+    assert tx.sent == len(accepted)
+
+
+def test_a_burst_is_one_datagram_and_its_frames_share_its_fate(open_unix: OpenUnix) -> None:
+    rx, tx = open_unix(), open_unix()
+    taps: list[tuple[int, int]] = []
+    tx.tap = lambda frame_id, data, direction: taps.append((frame_id, direction))
+    assert tx.send(0x181, bytes(16), more=True)
+    assert tx.send(0x182, bytes(16), more=True)
+    assert taps == [] and tx.sent == 0  # held until the burst ends
+    assert tx.send(0x183, bytes(16))
+    assert tx.transport_counts()["datagrams_sent"] == 1
+    assert taps == [(0x181, TAP_TX), (0x182, TAP_TX), (0x183, TAP_TX)] and tx.sent == 3
+    assert [f.arbitration_id for f in rx.drain()] == [0x181, 0x182, 0x183]
