@@ -219,7 +219,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     hand = load_hand(args.hand)
     faults = load_scenario(args.faults, hand) if args.faults else None
     print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
-                     summary_json=args.summary_json))
+                     summary_json=args.summary_json, realtime=args.rt))
     return EXIT_OK
 
 
@@ -369,6 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--faults", type=Path, help="fault scenario YAML (config/sim/)")
     sim.add_argument("--summary-json", type=Path,
                      help="write the ground truth (object poses, node states) at the end")
+    sim.add_argument("--rt", action="store_true",
+                     help="ask for SCHED_FIFO (below the control loop's priority) and locked "
+                          "memory for the node timer (says so when refused)")
     sim.set_defaults(func=_cmd_sim)
 
     run = sub.add_parser("run", help="drive the hand", description="Drive the hand.")

@@ -239,6 +239,10 @@ class SimProcess:
                "--summary-json", str(self.summary_path)]
         if req.sim_faults is not None:
             cmd += ["--faults", str(req.sim_faults)]
+        if req.realtime_priority:
+            # A real-time run gets a real-time hand: the real one has a controller per finger;
+            # this one shares two cores with everything else on the machine.
+            cmd.append("--rt")
         self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                      text=True)
         self.summary: dict[str, Any] | None = None

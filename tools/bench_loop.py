@@ -2,7 +2,8 @@
 and, in the same run, a naive asyncio.sleep loop at the same rate as the baseline.
 
 Figures: lateness p99 of both loops and their ratio, the missed-tick rate, and the CPU time of
-our own tick stages (poll, recipe, safety, send, record) at p99, the simulated hand excluded.
+our own tick stages (poll, recipe, safety, send, record) at p99, the simulated hand excluded;
+the simulated hand's frames that did not go and the times the host's queue was full.
 """
 
 from __future__ import annotations
@@ -82,6 +83,10 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     ours = result.lateness_ns[first:]
     missed = int(result.missed[first:].sum())
     cpu = result.stage_ns[first:].sum(axis=1)
+    # What the simulated hand's frames met on the way (its own count, from its process): frames
+    # that never went, and the times the host's socket queue was full so frames waited.
+    sim = report.summary.get("sim") or {}
+    transport = sim.get("transport") or {}
     print(f"naive asyncio.sleep loop, {args.seconds:g} s ...", file=sys.stderr)
     naive = asyncio.run(_naive(hand.bus.period_s, args.seconds))
     ours_p99 = float(np.percentile(ours, 99)) / 1e3
@@ -90,6 +95,8 @@ def run(args: argparse.Namespace) -> dict[str, float]:
         "seconds": args.seconds,
         "babble_per_ms": args.babble,
         "foreign_frames": result.node_rejects.get("unexpected_id", 0),
+        "sim_tx_failed": int(sim.get("tx_failed", -1)),
+        "sim_queue_full": int(transport.get("queue_full", -1)),
         "rt": bool(args.rt and not report.warnings),  # type: ignore[dict-item]
         "outcome": result.outcome.value,  # type: ignore[dict-item]
         "message": result.message,  # type: ignore[dict-item]

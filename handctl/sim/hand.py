@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from handctl.bus import HandBus, open_bus
-from handctl.clock import collector_paused
+from handctl.clock import collector_paused, request_realtime
 from handctl.config import HandConfig
 from handctl.protocol import load_protocol
 from handctl.sim.faults import FaultSchedule, Injector, load_scenario
@@ -50,6 +50,9 @@ from handctl.sim.plant import ObjectPose, Plant
 from handctl.sim.sensors import EncoderModel, TdtModel
 from handctl.timerfd import PeriodicTimer
 
+#: SCHED_FIFO priority of a free-running hand asked to run in real time: below the control
+#: loop's (``request_realtime``'s 80), so the loop wins where the two share a core.
+SIM_RT_PRIORITY = 70
 #: A free-running hand that fell behind catches up by at most this many ticks at once; older
 #: ones are counted as missed, so one long stall does not turn into a burst of frames.
 MAX_CATCH_UP = 5
@@ -353,17 +356,28 @@ class SimulatedHand:
 
 def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
                progress: Callable[[str], None] | None = None, *, seed: int | None = None,
-               faults: FaultSchedule | None = None, summary_json: Path | None = None) -> str:
+               faults: FaultSchedule | None = None, summary_json: Path | None = None,
+               realtime: bool = False) -> str:
     """Run the simulated hand free on ``bus_spec`` for ``seconds`` (None: until Ctrl-C).
 
     ``progress`` gets a status line about once a second. Returns a summary for the CLI;
     ``summary_json`` also receives the ground truth at the end (for a host that started this
     process and wants to report where the objects ended up).
+
+    ``realtime`` asks for SCHED_FIFO (``SIM_RT_PRIORITY``) and locked memory for the node
+    timer, as the hand's node controllers have a core each: at normal priority any other load
+    on the machine can hold the node ticks back for milliseconds, and the host, rightly, stops
+    on the feedback that did not come (what the system refuses goes to ``progress``).
     """
     bus = open_bus(bus_spec, hand.bus)
     interrupted = False
     try:
         sim = SimulatedHand(hand, bus, seed=seed, faults=faults)
+        if realtime:
+            # Asked here, by the thread that starts the timer thread, which inherits it.
+            for refused in request_realtime(SIM_RT_PRIORITY):
+                if progress is not None:
+                    progress(f"warning: {refused}")
         started = time.monotonic()
         # the node timer must not wait for a full garbage collection
         with collector_paused():
