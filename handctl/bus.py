@@ -42,8 +42,8 @@ from handctl.taps import TAP_TX, TAP_TX_FAILED
 
 #: Frames drained per call at most: a babbling node must not keep one tick busy forever.
 DRAIN_LIMIT = 512
-#: Frames one burst holds at most on a batching transport before they go anyway.
-MAX_BURST = 64
+#: Frames one burst holds at most on a batching transport before they go anyway (a datagram).
+MAX_BURST = 32
 
 # Linux error-frame classes (linux/can/error.h), as python-can hands them over.
 _CAN_ERR_CRTL = 0x004
@@ -185,8 +185,11 @@ _unix_ids = itertools.count()
 #: Frames per datagram at most; a burst beyond it goes out in several datagrams.
 _BATCH = 32
 #: Frames held at most for one receiver whose queue is full (a CAN controller's transmit
-#: queue). A burst that does not fit any more is refused whole with ENOBUFS.
-TX_QUEUE_FRAMES = 256
+#: queue). A burst that does not fit any more is refused whole with ENOBUFS. Small on purpose:
+#: a receiver's socket queue already holds ten bursts or more; this is slack for a moment,
+#: and a receiver that stopped reading must still be reported within a few dozen ticks (the
+#: host's BUS_ERROR after consecutive failed sends), not hidden behind a deep queue.
+TX_QUEUE_FRAMES = 64
 #: How long ``shutdown`` keeps offering held frames to receivers that are still reading.
 _SHUTDOWN_S = 0.02
 
@@ -213,7 +216,7 @@ class UnixDatagramBus(can.BusABC):
     A receiver whose queue is full does not lose what it was sent, as a CAN controller does
     not drop a frame it took for transmission but retries arbitration: the frames wait in a
     transmit queue for that receiver and go first, merged into as few datagrams as fit, at the
-    next ``flush``. Only a burst that no longer fits that queue (``TX_QUEUE_FRAMES``, a
+    next ``flush``. Only a burst that no longer fits that queue (``TX_QUEUE_FRAMES``: a
     receiver that stopped reading) is refused, whole, with ``TransmitQueueFull`` (ENOBUFS), as
     a full transmit queue refuses a frame on SocketCAN. ``queue_full`` counts the times a
     receiver's queue was found full, ``frames_dropped`` the frames refused (for one receiver
