@@ -169,6 +169,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             sim_summary = sim_hand.ground_truth_summary()
         elif sim_process is not None:
             sim_summary = sim_process.finish()
+            if sim_process.problem():
+                warnings.append(sim_process.problem())
         summary = summarise(result, req.hand, req.recipe, lockstep, sim_summary)
         if tracker is not None:
             from handctl.planning.experiment import experiment_summary
@@ -230,10 +232,15 @@ def _start_recording(recording: Recorder, runtime: Runtime, req: RunRequest, spe
 
 
 class SimProcess:
-    """The simulated hand as a separate process (``handctl sim``) on a unix datagram bus."""
+    """The simulated hand as a separate process (``handctl sim``) on a unix datagram bus.
+
+    Its stderr (a progress line a second) goes to ``sim.log`` beside the bus sockets, not to a
+    pipe: nobody reads a pipe during the run, and a full one (64 KiB, some ten minutes of
+    progress) would stop the hand mid-run. What it said is kept for a hand that fails."""
 
     def __init__(self, req: RunRequest, directory: str) -> None:
         self.summary_path = Path(directory) / "sim-summary.json"
+        self.log_path = Path(directory) / "sim.log"
         cmd = [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{directory}",
                "--hand", req.hand.source, "--seed", str(req.seed),
                "--summary-json", str(self.summary_path)]
@@ -243,8 +250,8 @@ class SimProcess:
             # A real-time run gets a real-time hand: the real one has a controller per finger;
             # this one shares two cores with everything else on the machine.
             cmd.append("--rt")
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                     text=True)
+        with self.log_path.open("wb") as log:
+            self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log)
         self.summary: dict[str, Any] | None = None
 
     def finish(self) -> dict[str, Any] | None:
@@ -260,13 +267,21 @@ class SimProcess:
             self.summary = json.loads(self.summary_path.read_text())
         return self.summary
 
+    def problem(self) -> str:
+        """Empty if the simulated hand ended well; else its exit and the end of its log."""
+        if self.summary is not None and self.proc.returncode == 0:
+            return ""
+        tail = self.log_path.read_text(errors="replace").strip().splitlines()[-5:] \
+            if self.log_path.exists() else []
+        return (f"the simulated hand's process ended with exit {self.proc.returncode} and "
+                f"{'its summary' if self.summary is not None else 'no summary'}"
+                + (": " + " | ".join(tail) if tail else ""))
+
     def __enter__(self) -> SimProcess:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.finish()
-        if self.proc.stderr is not None:
-            self.proc.stderr.close()
 
 
 async def _run_with_signals(runtime: Runtime) -> RunResult:

@@ -1,0 +1,51 @@
+"""The simulated hand as a process of its own (real-time runs): its output cannot stall it,
+and a hand that dies is reported with what it said."""
+
+from __future__ import annotations
+
+import signal
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from handctl.config import HandConfig
+from handctl.recipes.loader import load_recipe
+from handctl.session import RunRequest, SimProcess
+
+from ..conftest import ROOT
+
+
+def _request(hand: HandConfig) -> RunRequest:
+    recipe = load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", hand)
+    return RunRequest(hand=hand, recipe=recipe)
+
+
+def _wait_for(condition: Callable[[], bool], timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def test_its_progress_goes_to_a_log_file_not_an_unread_pipe(hand: HandConfig,
+                                                            tmp_path: Path) -> None:
+    """A pipe nobody reads fills after some ten minutes of progress lines and then blocks the
+    hand mid-run; a file never does."""
+    with SimProcess(_request(hand), str(tmp_path)) as sim:
+        assert sim.proc.stderr is None
+        _wait_for(lambda: sim.log_path.exists() and "t=" in sim.log_path.read_text())
+        summary = sim.finish()
+    assert summary is not None
+    assert sim.problem() == ""
+
+
+def test_a_hand_that_dies_is_reported_with_the_end_of_its_log(hand: HandConfig,
+                                                              tmp_path: Path) -> None:
+    with SimProcess(_request(hand), str(tmp_path)) as sim:
+        _wait_for(lambda: sim.log_path.exists() and "t=" in sim.log_path.read_text())
+        sim.proc.send_signal(signal.SIGKILL)
+        sim.proc.wait()
+        assert sim.finish() is None
+    problem = sim.problem()
+    assert f"exit {-signal.SIGKILL}" in problem and "no summary" in problem
+    assert "t=" in problem  # the last progress line it wrote
