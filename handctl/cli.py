@@ -15,6 +15,7 @@ Exit codes (the same for every subcommand):
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -218,6 +219,9 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
     hand = load_hand(args.hand)
     faults = load_scenario(args.faults, hand) if args.faults else None
+    # Ctrl-C (or the host's SIGINT) ends the hand cleanly with its summary, even when this
+    # process inherited SIGINT ignored, as a script's background jobs do.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
                      summary_json=args.summary_json, realtime=args.rt))
     return EXIT_OK

@@ -49,3 +49,21 @@ def test_a_hand_that_dies_is_reported_with_the_end_of_its_log(hand: HandConfig,
     problem = sim.problem()
     assert f"exit {-signal.SIGKILL}" in problem and "no summary" in problem
     assert "t=" in problem  # the last progress line it wrote
+
+
+def test_it_stops_on_sigint_even_when_started_with_sigint_ignored(hand: HandConfig,
+                                                                  tmp_path: Path) -> None:
+    """A host started as a background job of a script has SIGINT ignored, and its children
+    inherit that; the host stops its hand with SIGINT, so the hand must listen anyway (else it
+    is killed after 10 s and its summary is lost)."""
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        sim = SimProcess(_request(hand), str(tmp_path))
+    finally:
+        signal.signal(signal.SIGINT, before)
+    with sim:
+        _wait_for(lambda: sim.log_path.exists() and "t=" in sim.log_path.read_text())
+        summary = sim.finish()
+    assert sim.proc.returncode == 0, "it did not stop on SIGINT: it was killed"
+    assert summary is not None
+    assert sim.problem() == ""
