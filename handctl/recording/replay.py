@@ -391,6 +391,7 @@ class ReplayBus(HandBus):
         self.spec = BusSpec("replay", "")
         self.fd = fd
         self.sent = 0
+        self.tx_failed = 0
         self.received = 0
         self.closed = False
         self.tap = None
@@ -433,7 +434,15 @@ class ReplayBus(HandBus):
             self._mismatch(f"tick {self.tick}: the re-run sent 0x{arbitration_id:03X} "
                            f"{bytes(data).hex()}, the log has 0x{frame_id:03X} {logged.hex()}")
         self.sent += ok
+        self.tx_failed += not ok
         return ok
+
+    def flush(self) -> bool:
+        """Sends are compared as they come: there is no burst to end."""
+        return True
+
+    def transport_counts(self) -> dict[str, int]:
+        return {}
 
     def events(self) -> list[BusEvent]:
         events, self._events = self._events, []

@@ -306,3 +306,17 @@ def test_rerun_of_a_run_with_the_object_estimator(tmp_path: Path) -> None:
     assert recording.meta(ch.META_RUN, "estimator") == "True"
     report = rerun(recording)
     assert report.ok and report.compared > 500, report.as_dict()
+
+
+def test_the_replay_bus_has_everything_a_hand_bus_has(hand: HandConfig, channel: str) -> None:
+    """ReplayBus stands in for HandBus without its python-can set-up: every public attribute
+    a real one has, the replay one must have too, and the calls must work without a bus."""
+    from handctl.recording.replay import ReplayBus
+
+    replay = ReplayBus(fd=True)
+    with open_bus(f"virtual:{channel}", hand.bus) as real:
+        public = {name for name in vars(real) if not name.startswith("_")}
+    assert public <= set(vars(replay)), public - set(vars(replay))
+    assert replay.flush() is True
+    assert replay.transport_counts() == {}
+    assert replay.tx_failed == 0
