@@ -16,7 +16,6 @@ from mcap.reader import make_reader
 
 from handctl.config import HandConfig
 from handctl.loop import Outcome, RunResult
-from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
@@ -25,24 +24,11 @@ from handctl.recording.recorder import Recorder
 from handctl.sim import faults as inj
 
 from .rig import rig
+from .test_recording import short_recipe
 
 FOREIGN_ID = 0x050
 #: About all a CAN-FD bus carries besides the hand's own traffic (the loop benchmark's 20).
 PER_TICK = 20
-RECIPE = """
-recipe: flood_hold
-phases:
-  - name: close
-    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
-    ramp_s: 0.15
-    max_s: 0.3
-    on_timeout: next
-  - name: hold
-    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
-    ramp_s: 0.15
-    max_s: 0.5
-    on_timeout: next
-"""
 
 
 @dataclass
@@ -52,12 +38,6 @@ class FloodRun:
     heard: int  # foreign frames the sniffer heard on the bus
     sent: int  # foreign frames the babbling node sent
     log: Path
-
-
-def _recipe(hand: HandConfig, directory: Path) -> Recipe:
-    path = directory / "flood_hold.yaml"
-    path.write_text(RECIPE)
-    return load_recipe(path, hand)
 
 
 def _run(hand: HandConfig, recipe: Recipe, log: Path, flood: bool) -> FloodRun:
@@ -88,7 +68,7 @@ def _run(hand: HandConfig, recipe: Recipe, log: Path, flood: bool) -> FloodRun:
 def runs(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory
          ) -> tuple[FloodRun, FloodRun]:
     directory = tmp_path_factory.mktemp("flood")
-    recipe = _recipe(hand, directory)
+    recipe = short_recipe(hand, directory, hold_s=0.5)
     return (_run(hand, recipe, directory / "quiet.mcap", flood=False),
             _run(hand, recipe, directory / "flood.mcap", flood=True))
 

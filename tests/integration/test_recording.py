@@ -66,9 +66,10 @@ class Recorded:
     final_tdt: list[float] = field(default_factory=list)
 
 
-def short_recipe(hand: HandConfig, directory: Path) -> Recipe:
+def short_recipe(hand: HandConfig, directory: Path, hold_s: float = 0.6) -> Recipe:
+    """Close, then hold for ``hold_s``: a short run with torque flowing."""
     path = directory / "short_hold.yaml"
-    path.write_text(SHORT)
+    path.write_text(SHORT.replace("max_s: 0.6", f"max_s: {hold_s}"))
     return load_recipe(path, hand)
 
 
