@@ -271,7 +271,9 @@ class UnixDatagramBus(can.BusABC):
         data = bytes(msg.data)
         self._pending.append(_WIRE.pack(time.time(), msg.arbitration_id, flags, len(data))
                              + data)
-        if len(self._pending) >= TX_QUEUE_FRAMES:  # a caller that never flushes
+        # A caller that never flushes; HandBus ends its bursts itself at MAX_BURST (no more
+        # than this), so a burst's fate is always decided at its own flush.
+        if len(self._pending) > TX_QUEUE_FRAMES:
             self.flush()
 
     def flush(self) -> None:
