@@ -72,7 +72,6 @@ from handctl.recording.metadata import run_metadata, start_metadata  # noqa: E40
 from handctl.recording.reader import Recording, iter_decoded, open_recording  # noqa: E402
 from handctl.recording.recorder import Recorder  # noqa: E402
 from handctl.recording.replay import _hand, _recipe, rerun, tick_inputs  # noqa: E402
-from handctl.recording.ring import FRAME_HEAD, TICK_HEAD  # noqa: E402
 from handctl.session import POSE_EVERY_TICKS  # noqa: E402
 from handctl.sim.hand import SimulatedHand  # noqa: E402
 
@@ -192,17 +191,13 @@ class _Side:
 def _partial_push(recorder: Recorder, part: str) -> Callable[[Any], None]:
     """A ``push`` that does only part of the work, for ``--breakdown``: ``frames`` copies the
     tick's frames and publishes, ``none`` only publishes (the tick rows stay empty)."""
-    ctl = recorder._ctl_view
 
     def push(record: Any) -> None:
         if part == "frames":
             recorder._flush_frames()
         else:
             recorder._pending.clear()
-        recorder._row = -1
-        recorder._head += 1
-        ctl[FRAME_HEAD] = recorder._fhead
-        ctl[TICK_HEAD] = recorder._head
+        recorder._publish()
 
     return push
 

@@ -290,6 +290,10 @@ class Recorder:
             self._flush_frames()
         _TICK_HEAD.pack_into(self._buf, self._tick_base + self._row * self._tick_stride,
                              self._tick, self._scheduled, self._now, self._missed, 0)
+        self._publish()
+
+    def _publish(self) -> None:
+        """The tick is complete: publish its frames, then its row."""
         self._row = -1
         self._head += 1
         ctl = self._ctl_view
@@ -344,12 +348,7 @@ class Recorder:
                 self._ints[at + I_FEEDBACK:at + I_FEEDBACK + n] = self._feedback_view
                 self._nodes_pack(self._buf, (at + I_FEEDBACK + n) * 8 + self._tick_base,
                                  *state.node_state, *state.node_faults)
-            # The tick is complete: publish its frames, then its row.
-            self._row = -1
-            self._head += 1
-            ctl = self._ctl_view
-            ctl[FRAME_HEAD] = self._fhead
-            ctl[TICK_HEAD] = self._head
+            self._publish()
         else:
             self._ctl_view[FRAME_HEAD] = self._fhead
         if runtime is not None:
