@@ -314,46 +314,56 @@ class _Pending:
 def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
     """The frames drained before the first tick, and a stream of the logged ticks.
 
-    A tick's frames and events precede its row in the file (see ``writer.Encoder.drain``), so
-    a tick is whole when the next tick's row begins. One pass, one branch per message: this
-    is most of what a re-run reads.
+    A tick is whole when the next tick's row begins: its frames and events are published
+    before that row (``Recorder``), most of them before its own row, and the frames it sends
+    after its push (the nodes' disable after the last control tick) between the two. So the
+    stream hands out a tick only when it meets the next row, and the last row only when the
+    recorder closed the file; a gap in the ticks (a damaged chunk) ends the stream before it.
+    One pass, one branch per message: this is most of what a re-run reads.
     """
     pending: dict[int, _Pending] = {}
     kinds = {k.value: k for k in BusEventKind}
     batches = iter_chunks(recording, ch.RERUN_TOPICS)
     timing, torque, rx, tx = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX
     fromhex = bytes.fromhex
+    closed = recording.complete and \
+        recording.meta(ch.META_END, "ended") == "closed by the recorder"
+
+    def inputs_of(k: int, current: TickInput | None) -> TickInput | _Pending:
+        if current is not None and current.tick == k:
+            return current
+        got = pending.get(k)
+        if got is None:
+            got = pending[k] = _Pending()
+        return got
 
     def ticks() -> Iterator[TickInput]:
         current: TickInput | None = None
         for topics, messages in batches:
             for topic, msg in zip(topics, messages, strict=True):
                 if topic == rx:
-                    k = msg["tick"]
-                    got = pending.get(k)
-                    if got is None:
-                        got = pending[k] = _Pending()
-                    got.rx.append(Frame(msg["id"], fromhex(msg["data"]),
-                                        msg.get("bus_time_ns", 0)))
+                    inputs_of(msg["tick"], current).rx.append(
+                        Frame(msg["id"], fromhex(msg["data"]), msg.get("bus_time_ns", 0)))
                 elif topic == tx:
-                    k = msg["tick"]
-                    got = pending.get(k)
-                    if got is None:
-                        got = pending[k] = _Pending()
-                    got.tx.append((msg["id"], fromhex(msg["data"]), msg.get("ok", True)))
+                    inputs_of(msg["tick"], current).tx.append(
+                        (msg["id"], fromhex(msg["data"]), msg.get("ok", True)))
                 elif topic == timing:
-                    if current is not None:
-                        yield current
                     k = msg["tick"]
-                    got = pending.pop(k, None) or _EMPTY
-                    current = TickInput(k, msg["scheduled_ns"], msg["now_ns"], msg["missed"],
-                                        got.rx, got.tx, got.bus_events, got.requests)
+                    if current is not None:
+                        if k != current.tick + 1:
+                            return  # a gap: the tick before it may lack what followed it
+                        yield current
+                    current = TickInput(k, msg["scheduled_ns"], msg["now_ns"], msg["missed"])
+                    got = pending.pop(k, None)
+                    if got is not None:
+                        current.rx, current.tx = got.rx, got.tx
+                        current.bus_events, current.requests = got.bus_events, got.requests
                 elif topic == torque:
                     if current is not None and current.tick == msg["tick"]:
                         current.applied = _floats(msg["applied_nm"])
-                else:
-                    _route(topic, msg, pending, kinds)
-        if current is not None:
+                elif topic == ch.EVENTS and msg["kind"] in ("bus", "request"):
+                    _route(msg, inputs_of(msg["tick"], current), kinds)
+        if current is not None and closed:
             yield current
 
     stream = ticks()
@@ -363,23 +373,14 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
     return before, itertools.chain(() if first is None else (first,), stream)
 
 
-_EMPTY = _Pending()
-
-
-def _route(topic: str, msg: dict[str, Any], pending: dict[int, _Pending],
+def _route(msg: dict[str, Any], inputs: TickInput | _Pending,
            kinds: dict[str, BusEventKind]) -> None:
-    """An event: bus events and operator requests are inputs of their tick."""
-    if topic != ch.EVENTS or msg["kind"] not in ("bus", "request"):
-        return
-    k = msg["tick"]
-    got = pending.get(k)
-    if got is None:
-        got = pending[k] = _Pending()
+    """A bus event or an operator request: inputs of their tick."""
     if msg["kind"] == "bus":
-        got.bus_events.append(BusEvent(kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
-                                       msg["detail"], msg.get("bus_time_ns", 0)))
+        inputs.bus_events.append(BusEvent(kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
+                                          msg["detail"], msg.get("bus_time_ns", 0)))
     else:
-        got.requests.append((msg["name"], msg["detail"]))
+        inputs.requests.append((msg["name"], msg["detail"]))
 
 
 class ReplayBus(HandBus):

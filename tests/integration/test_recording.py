@@ -14,7 +14,7 @@ import subprocess
 import sys
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +33,8 @@ from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.recorder import Recorder
-from handctl.recording.ring import Layout
+from handctl.recording.ring import FRAME_HEAD, FRAME_TAIL, TICK_HEAD, TICK_TAIL, Layout
+from handctl.safety.supervisor import State
 from handctl.sim import faults as inj
 
 from ..conftest import ROOT
@@ -74,11 +75,15 @@ def short_recipe(hand: HandConfig, directory: Path, hold_s: float = 0.6) -> Reci
 
 
 def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool = True,
-               layout: Layout | None = None, pause_writer: bool = False) -> Recorded:
+               layout: Layout | None = None, pause_writer: bool = False,
+               writer_between_ticks: bool = False) -> Recorded:
     """A lockstep run on the simulated hand, recorded the way ``run_recipe`` records it.
 
     With ``troubles``: error frames (bus events), a babbling foreign node (unexpected ids)
     and skipped counters (rejects), then an operator e-stop (a request and a fault).
+    With ``writer_between_ticks``: once the hand is being stopped, every tick waits before it
+    begins until the writer has taken everything published, the timing a loaded machine
+    gives now and then (the loop descheduled between one tick's push and the next tick).
     """
     with rig(hand, recipe) as r:
         recorder = Recorder(path, hand, start_metadata(hand, recipe, ["test"]),
@@ -86,6 +91,10 @@ def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool =
                             object_names=[o.name for o in r.sim.params.objects], layout=layout)
         with recorder:
             capture = _Capture(recorder)
+            if writer_between_ticks:
+                runtime = r.runtime
+                capture.before_tick = lambda: runtime.first_send_tick >= 0 and \
+                    runtime.supervisor.state not in (State.ENABLING, State.RUNNING)
             r.runtime.recorder = capture
             recorder.attach(r.runtime)
             recorder.add_metadata(ch.META_RUN, run_metadata(
@@ -127,8 +136,12 @@ class _Capture:
         self.inner = inner
         self.angle: list[float] = []
         self.tdt: list[float] = []
+        #: When it says so, the tick waits for the writer to take everything published first.
+        self.before_tick: Callable[[], bool] = lambda: False
 
     def begin_tick(self, tick: Tick) -> None:
+        if self.before_tick():
+            wait_for_writer(self.inner)
         self.inner.begin_tick(tick)
 
     def push(self, record: TickRecord) -> None:
@@ -137,6 +150,15 @@ class _Capture:
 
     def note(self, kind: str, detail: str, tick: int) -> None:
         self.inner.note(kind, detail, tick)
+
+
+def wait_for_writer(recorder: Recorder, timeout_s: float = 10.0) -> None:
+    """Until the writer process has copied out every tick and frame published so far."""
+    ctl = recorder._ctl_view
+    deadline = time.monotonic() + timeout_s
+    while ctl[TICK_TAIL] != ctl[TICK_HEAD] or ctl[FRAME_TAIL] != ctl[FRAME_HEAD]:
+        assert time.monotonic() < deadline, "the writer did not catch up"
+        time.sleep(0.001)
 
 
 @pytest.fixture(scope="module")

@@ -20,8 +20,9 @@ from mcap.writer import Writer
 
 from handctl.bus import open_bus
 from handctl.config import HandConfig
+from handctl.loop import Outcome
 from handctl.recording import channels as ch
-from handctl.recording.reader import iter_messages, open_recording
+from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.replay import load_series, logged_frames, rerun, summarise, to_bus
 
 from ..conftest import ROOT
@@ -113,6 +114,26 @@ def test_rerun_finds_a_command_frame_that_differs(recorded: Recorded, tmp_path: 
     assert report.mismatched_ticks == 0  # the torques agree ...
     assert len(report.frame_mismatches) == 1  # ... the frame on the wire does not
     assert f"tick {first_command[0]}" in report.frame_mismatches[0]
+
+
+def test_the_disable_after_the_last_tick_reruns_whenever_the_writer_drains(
+        hand: HandConfig, tmp_path: Path) -> None:
+    """The nodes are disabled after the last control tick's push, and those frames belong to
+    that tick. A writer that drains between that push and the next tick (a loaded machine)
+    writes the tick's row before them; the log must still give them to the tick."""
+    run = record_run(hand, short_recipe(hand, tmp_path, hold_s=0.1), tmp_path / "late.mcap",
+                     troubles=False, writer_between_ticks=True)
+    assert run.result.outcome is Outcome.COMPLETED
+    recording = open_recording(run.path)
+    disables = [m["tick"] for t, _, m in iter_decoded(recording, (ch.CAN_TX,))
+                if 0x011 <= m["id"] <= 0x013]
+    last_control_tick = max(m["tick"] for _, _, m in iter_decoded(recording, (ch.TORQUE,)))
+    assert disables[-3:] == [last_control_tick] * 3
+    report = rerun(recording)
+    assert report.ok, (report.mismatches[:3], report.frame_mismatches[:3])
+    assert report.outcome == report.logged_outcome == "completed"
+    sent = sum(1 for *_, is_rx in logged_frames(recording) if not is_rx)
+    assert report.frames_compared == sent
 
 
 def test_realtime_recording_reruns_bit_exact(tmp_path: Path) -> None:
