@@ -154,7 +154,7 @@ CHANNELS: tuple[Channel, ...] = (
 )
 
 #: The channels ``handctl replay --rerun`` needs.
-RERUN_TOPICS = (TIMING, TORQUE, CAN_RX, CAN_TX, EVENTS)
+RERUN_TOPICS = (TIMING, TORQUE, JOINT_STATE, CAN_RX, CAN_TX, EVENTS)
 
 
 def schema_of(channel: Channel) -> dict[str, Any]:

@@ -13,6 +13,7 @@ from them, must come out bit for bit the same; any difference is listed.
 from __future__ import annotations
 
 import asyncio
+import heapq
 import itertools
 import math
 import struct
@@ -36,6 +37,7 @@ from handctl.protocol import load_protocol
 from handctl.recipes.loader import check_against_hand, parse_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
+from handctl.recording.feedback_check import FeedbackCheck
 from handctl.recording.reader import (
     Recording,
     iter_chunks,
@@ -300,7 +302,9 @@ class TickInput:
     tx: list[tuple[int, bytes, bool]] = field(default_factory=list)
     bus_events: list[BusEvent] = field(default_factory=list)
     requests: list[tuple[str, str]] = field(default_factory=list)
+    rejects: dict[str, int] | None = None  # the rejected_frames events of the tick, by kind
     applied: list[float] | None = None
+    joint_state: dict[str, Any] | None = None  # the logged /hand/joint_state message
 
 
 @dataclass
@@ -309,6 +313,7 @@ class _Pending:
     tx: list[tuple[int, bytes, bool]] = field(default_factory=list)
     bus_events: list[BusEvent] = field(default_factory=list)
     requests: list[tuple[str, str]] = field(default_factory=list)
+    rejects: dict[str, int] | None = None
 
 
 def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
@@ -324,7 +329,7 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
     pending: dict[int, _Pending] = {}
     kinds = {k.value: k for k in BusEventKind}
     batches = iter_chunks(recording, ch.RERUN_TOPICS)
-    timing, torque, rx, tx = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX
+    timing, torque, rx, tx, joint = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX, ch.JOINT_STATE
     fromhex = bytes.fromhex
     closed = recording.complete and \
         recording.meta(ch.META_END, "ended") == "closed by the recorder"
@@ -358,10 +363,14 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
                     if got is not None:
                         current.rx, current.tx = got.rx, got.tx
                         current.bus_events, current.requests = got.bus_events, got.requests
+                        current.rejects = got.rejects
                 elif topic == torque:
                     if current is not None and current.tick == msg["tick"]:
                         current.applied = _floats(msg["applied_nm"])
-                elif topic == ch.EVENTS and msg["kind"] in ("bus", "request"):
+                elif topic == joint:
+                    if current is not None and current.tick == msg["tick"]:
+                        current.joint_state = msg
+                elif topic == ch.EVENTS and msg["kind"] in ("bus", "request", "rejected_frames"):
                     _route(msg, inputs_of(msg["tick"], current), kinds)
         if current is not None and closed:
             yield current
@@ -375,12 +384,19 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
 
 def _route(msg: dict[str, Any], inputs: TickInput | _Pending,
            kinds: dict[str, BusEventKind]) -> None:
-    """A bus event or an operator request: inputs of their tick."""
-    if msg["kind"] == "bus":
+    """A bus event or an operator request (inputs of their tick), or the rejects the run
+    counted (what the re-run must count too)."""
+    kind = msg["kind"]
+    if kind == "bus":
         inputs.bus_events.append(BusEvent(kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
                                           msg["detail"], msg.get("bus_time_ns", 0)))
-    else:
+    elif kind == "request":
         inputs.requests.append((msg["name"], msg["detail"]))
+    else:
+        rejects = inputs.rejects
+        if rejects is None:
+            rejects = inputs.rejects = {}
+        rejects[msg["name"]] = rejects.get(msg["name"], 0) + int(msg.get("count", 0))
 
 
 class ReplayBus(HandBus):
@@ -474,6 +490,7 @@ class ReplayClock(LockstepClock):
         self.runtime: Runtime | None = None
         self.current: TickInput | None = None
         self.unsupported: list[str] = []
+        self.check: FeedbackCheck | None = None
 
     def now_ns(self) -> int:
         return self.current.now_ns if self.current is not None else 0
@@ -484,6 +501,8 @@ class ReplayClock(LockstepClock):
             raise _EndOfLogError
         self.current = current
         self.bus.load(current.tick, current)
+        if self.check is not None:
+            self.check.take(current.rejects)
         runtime = self.runtime
         if runtime is not None:
             for kind, detail in current.requests:
@@ -510,9 +529,10 @@ _PACK: dict[int, struct.Struct] = {}
 class _Compare:
     """The re-run's ``RecordSink``: each tick's applied torques against the logged ones."""
 
-    def __init__(self, clock: ReplayClock, joints: list[str]) -> None:
+    def __init__(self, clock: ReplayClock, joints: list[str], check: FeedbackCheck) -> None:
         self.clock = clock
         self.joints = joints
+        self.check = check
         self.compared = 0
         self.mismatches: list[dict[str, Any]] = []
         self.mismatched_ticks = 0
@@ -522,6 +542,8 @@ class _Compare:
 
     def push(self, record: TickRecord) -> None:
         current = self.clock.current
+        if current is not None:
+            self.check.tick(record.tick, current.now_ns, current.joint_state, current.rx)
         logged = current.applied if current is not None else None
         rerun = record.applied
         if logged is None:
@@ -558,7 +580,8 @@ class RerunReport:
     mismatched_ticks: int
     mismatches: list[dict[str, Any]]
     frames_compared: int
-    frame_mismatches: list[str]
+    frame_mismatches: list[str]  # sent frames, and received ones the re-run read otherwise
+    feedback_compared: int  # ticks whose received frames were compared
     outcome: str
     logged_outcome: str
     notes: list[str]
@@ -574,6 +597,7 @@ class RerunReport:
                 "mismatches": self.mismatches[:MAX_LISTED],
                 "frames_compared": self.frames_compared,
                 "frame_mismatches": self.frame_mismatches[:MAX_LISTED],
+                "feedback_compared": self.feedback_compared,
                 "outcome": self.outcome, "logged_outcome": self.logged_outcome,
                 "notes": self.notes, "wall_s": round(self.wall_s, 3)}
 
@@ -603,7 +627,9 @@ def rerun(recording: Recording) -> RerunReport:
     bus.load(-1, before)
     clock = ReplayClock(period_s, inputs, bus)
     driver = HandDriver(hand, load_protocol(), bus, clock_ns=clock.now_ns)
-    compare = _Compare(clock, list(hand.joint_names))
+    check = FeedbackCheck(hand, driver)
+    clock.check = check
+    compare = _Compare(clock, list(hand.joint_names), check)
     estimator = None
     if recipe.objects:  # as the session sets it up: the estimator is fed the same angles
         from handctl.estimator import ObjectEstimator
@@ -628,6 +654,8 @@ def rerun(recording: Recording) -> RerunReport:
         notes.append(f"the log ends at tick {clock.current.tick if clock.current else -1} "
                      f"({recording.problem or 'no more ticks'}); compared up to there")
     wall = time.perf_counter() - started
+    if clock.current is not None and outcome != "log ended":
+        check.end(clock.current.tick, clock.current.rx)
     bus.finish()
     leftover = sum(1 for _ in inputs)
     if leftover and outcome != "log ended":
@@ -635,9 +663,17 @@ def rerun(recording: Recording) -> RerunReport:
     notes += [f"not repeated: {u}" for u in clock.unsupported]
     logged = recording.json_meta(ch.META_SUMMARY) or {}
     ticks = (clock.current.tick + 1) if clock.current else 0
+    frame_mismatches = list(heapq.merge(bus.frame_mismatches, check.mismatches,
+                                        key=_tick_of))
     return RerunReport(ticks, compare.compared, compare.mismatched_ticks, compare.mismatches,
-                       bus.frames_compared, bus.frame_mismatches, outcome,
+                       bus.frames_compared, frame_mismatches, check.compared, outcome,
                        logged.get("outcome", ""), notes, wall)
+
+
+def _tick_of(text: str) -> int:
+    """The tick a mismatch's text begins with (``tick N: ...``), to list both kinds in order."""
+    head = text.split(":", 1)[0].split()
+    return int(head[1]) if len(head) == 2 and head[1].lstrip("-").isdigit() else -1
 
 
 # -- frames: back onto a bus, or out to a file ------------------------------------------------
