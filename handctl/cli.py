@@ -229,7 +229,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 # -- replay ------------------------------------------------------------------------------------
 def _print_replay_summary(summary: dict[str, Any]) -> None:
-    state = "complete" if summary["complete"] else f"TRUNCATED: {summary['problem']}"
+    state = "complete" if summary["complete"] else \
+        f"{'DAMAGED' if summary.get('damaged') else 'TRUNCATED'}: {summary['problem']}"
     print(f"{summary['file']}: {summary['recipe'] or '?'} on {summary['hand'] or '?'} "
           f"({summary['mode'] or '?'}), {summary['outcome']}; {summary['duration_s']:.3f} s, "
           f"{summary['ticks']} ticks, {summary['chunks']} chunks, {state}")

@@ -249,6 +249,7 @@ def summarise(recording: Recording, series: Series) -> dict[str, Any]:
     summary: dict[str, Any] = {
         "file": str(recording.path),
         "complete": recording.complete,
+        "damaged": recording.damaged,
         "problem": recording.problem,
         "chunks": recording.chunks,
         "recipe": recording.meta(ch.META_RECIPE, "name"),
@@ -477,7 +478,8 @@ class ReplayBus(HandBus):
 
 
 class _EndOfLogError(Exception):
-    """The log has no more ticks (a truncated recording): the re-run stops there."""
+    """The log has no more whole ticks (a truncated or damaged recording): the re-run stops
+    there."""
 
 
 class ReplayClock(LockstepClock):
@@ -651,8 +653,9 @@ def rerun(recording: Recording) -> RerunReport:
         result = asyncio.run(runtime.run())
         outcome = result.outcome.value
     except _EndOfLogError:
-        notes.append(f"the log ends at tick {clock.current.tick if clock.current else -1} "
-                     f"({recording.problem or 'no more ticks'}); compared up to there")
+        where = "before a damaged chunk" if recording.damaged else "where the log ends"
+        notes.append(f"the re-run stops after tick {clock.current.tick if clock.current else -1}"
+                     f", {where} ({recording.problem or 'no more ticks'}); compared up to there")
     wall = time.perf_counter() - started
     if clock.current is not None and outcome != "log ended":
         check.end(clock.current.tick, clock.current.rx)

@@ -432,6 +432,47 @@ def test_a_truncated_file_gives_back_every_complete_chunk(recorded: Recorded, tm
     assert recording.chunks == len(whole)
 
 
+@pytest.mark.parametrize("where", ["compressed_data", "record_header"])
+def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(recorded: Recorded,
+                                                                   tmp_path: Path,
+                                                                   where: str) -> None:
+    """Bytes overwritten inside a chunk in the middle of a finished file: the index still says
+    where every chunk is, so only that chunk's messages are lost."""
+    data = bytearray(recorded.path.read_bytes())
+    with recorded.path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    bad = len(chunks) // 2
+    middle = chunks[bad]
+    at = {"compressed_data": middle.chunk_start_offset + middle.chunk_length // 2,
+          "record_header": middle.chunk_start_offset + 1}[where]  # its length field
+    data[at:at + 8] = bytes(b ^ 0x5A for b in data[at:at + 8])
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+
+    recording = open_recording(damaged)
+    assert recording.damaged and not recording.complete and not recording.truncated
+    assert [(c.number, c.offset, c.start_ns, c.end_ns) for c in recording.bad_chunks] == \
+        [(bad, middle.chunk_start_offset, middle.message_start_time, middle.message_end_time)]
+    assert f"chunk {bad} at byte {middle.chunk_start_offset}" in recording.problem
+    assert f"{middle.message_start_time}..{middle.message_end_time} ns" in recording.problem
+    assert recording.chunks == len(chunks) - 1
+    assert recording.meta(ch.META_END, "ended") == "closed by the recorder"  # metadata read
+    counts = [_chunk_messages(recorded.path, c) for c in chunks]
+    lost_from, lost_to = sum(counts[:bad]), sum(counts[:bad + 1])
+    everything = list(library_messages(recorded.path))
+    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    assert got == everything[:lost_from] + everything[lost_to:]
+    assert counts[bad + 1:] and got[-1] == everything[-1]  # the chunks after it are kept
+
+    done = subprocess.run([sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"DAMAGED: chunk {bad} at byte {middle.chunk_start_offset}" in done.stdout
+    assert "bit-exact" in done.stdout and "before a damaged chunk" in done.stdout
+
+
 def _chunk_messages(path: Path, chunk: Any) -> int:
     """How many messages one chunk holds, through the library's own chunk parser."""
     from mcap.records import Chunk, Message

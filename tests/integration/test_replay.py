@@ -285,7 +285,7 @@ def test_truncated_file_is_summarised_and_rerun_as_far_as_it_goes(recorded: Reco
     assert not summary["complete"] and summary["ticks"] > 0
     report = rerun(recording)
     assert report.ok and report.compared > 0
-    assert any("log ends" in note for note in report.notes)
+    assert any("where the log ends" in note for note in report.notes)
     done = handctl("replay", str(cut), "--rerun")
     assert done.returncode == 0, done.stderr
     assert "TRUNCATED" in done.stdout
