@@ -324,7 +324,8 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
     before that row (``Recorder``), most of them before its own row, and the frames it sends
     after its push (the nodes' disable after the last control tick) between the two. So the
     stream hands out a tick only when it meets the next row, and the last row only when the
-    recorder closed the file; a gap in the ticks (a damaged chunk) ends the stream before it.
+    recorder closed the file; a gap in the ticks (a damaged chunk) ends the stream before it,
+    and a log whose first row is not tick 0 gives no ticks at all.
     One pass, one branch per message: this is most of what a re-run reads.
     """
     pending: dict[int, _Pending] = {}
@@ -359,6 +360,8 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
                         if k != current.tick + 1:
                             return  # a gap: the tick before it may lack what followed it
                         yield current
+                    elif k != 0:
+                        return  # the first ticks are missing: there is nothing to re-run from
                     current = TickInput(k, msg["scheduled_ns"], msg["now_ns"], msg["missed"])
                     got = pending.pop(k, None)
                     if got is not None:

@@ -473,6 +473,27 @@ def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(recorded: Rec
     assert "bit-exact" in done.stdout and "before a damaged chunk" in done.stdout
 
 
+def test_a_rerun_does_not_start_after_a_damaged_first_chunk(recorded: Recorded,
+                                                            tmp_path: Path) -> None:
+    """Without its first ticks a log has nothing a fresh runtime could follow."""
+    from handctl.recording.replay import rerun
+
+    data = bytearray(recorded.path.read_bytes())
+    with recorded.path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None
+    first = min(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    at = first.chunk_start_offset + first.chunk_length // 2
+    data[at:at + 8] = bytes(b ^ 0x5A for b in data[at:at + 8])
+    damaged = tmp_path / "first.mcap"
+    damaged.write_bytes(bytes(data))
+    recording = open_recording(damaged)
+    assert [c.number for c in recording.bad_chunks] == [0]
+    report = rerun(recording)
+    assert report.compared == 0 and report.frames_compared == 0, report.as_dict()
+    assert any("before a damaged chunk" in note for note in report.notes)
+
+
 def _chunk_messages(path: Path, chunk: Any) -> int:
     """How many messages one chunk holds, through the library's own chunk parser."""
     from mcap.records import Chunk, Message
