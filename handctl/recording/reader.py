@@ -89,11 +89,12 @@ class Recording:
     #: read front to back.
     chunk_spans: list[tuple[int, int]] | None = None
     bad_chunks: list[BadChunk] = field(default_factory=list)
+    bad_metadata: list[str] = field(default_factory=list)  # names of indexed records that fail
 
     @property
     def damaged(self) -> bool:
-        """The file has its summary, but some chunks it indexes do not read."""
-        return bool(self.bad_chunks)
+        """The file has its summary, but some chunks or metadata it indexes do not read."""
+        return bool(self.bad_chunks or self.bad_metadata)
 
     @property
     def truncated(self) -> bool:
@@ -233,6 +234,7 @@ def _open_indexed(handle: BinaryIO, recording: Recording, index: _Index) -> None
             meta = Metadata.read(_stream(_read_record(handle, meta_index.offset,
                                                       meta_index.length, Opcode.METADATA)))
         except _CUT_SHORT as exc:
+            recording.bad_metadata.append(meta_index.name)
             problems.append(f"metadata record {meta_index.name!r} at byte {meta_index.offset} "
                             f"is damaged ({_why(exc)})")
             continue

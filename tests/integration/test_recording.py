@@ -494,6 +494,27 @@ def test_a_rerun_does_not_start_after_a_damaged_first_chunk(recorded: Recorded,
     assert any("before a damaged chunk" in note for note in report.notes)
 
 
+def test_a_damaged_metadata_record_is_named(recorded: Recorded, tmp_path: Path) -> None:
+    """Metadata has no CRC, but a record that is not where and what its index says is named,
+    and a re-run that needs it is refused (exit 2) rather than run on something else."""
+    data = bytearray(recorded.path.read_bytes())
+    with recorded.path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None
+    hand_index = next(m for m in summary.metadata_indexes if m.name == ch.META_HAND)
+    data[hand_index.offset + 1] ^= 0xFF  # its length
+    damaged = tmp_path / "meta.mcap"
+    damaged.write_bytes(bytes(data))
+    recording = open_recording(damaged)
+    assert recording.damaged and recording.bad_metadata == [ch.META_HAND]
+    assert f"metadata record '{ch.META_HAND}' at byte {hand_index.offset}" in recording.problem
+    assert ch.META_RUN in recording.metadata and recording.chunks == len(summary.chunk_indexes)
+    done = subprocess.run([sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert str(damaged) in done.stderr and ch.META_HAND in done.stderr
+
+
 def _chunk_messages(path: Path, chunk: Any) -> int:
     """How many messages one chunk holds, through the library's own chunk parser."""
     from mcap.records import Chunk, Message
