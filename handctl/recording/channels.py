@@ -38,6 +38,8 @@ META_RECIPE = "handctl.recipe"
 META_VERSIONS = "handctl.versions"
 META_SUMMARY = "handctl.summary"
 META_END = "handctl.recording_end"
+#: ``ended`` of ``META_END`` when the recorder closed the file (not a dead control process).
+ENDED_CLOSED = "closed by the recorder"
 
 #: Event kinds on ``/events``.
 EVENT_KINDS = ("fault", "state", "phase", "bus", "rejected_frames", "request", "recording")

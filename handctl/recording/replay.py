@@ -334,7 +334,7 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
     timing, torque, rx, tx, joint = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX, ch.JOINT_STATE
     fromhex = bytes.fromhex
     closed = recording.complete and \
-        recording.meta(ch.META_END, "ended") == "closed by the recorder"
+        recording.meta(ch.META_END, "ended") == ch.ENDED_CLOSED
 
     def inputs_of(k: int, current: TickInput | None) -> TickInput | _Pending:
         if current is not None and current.tick == k:
