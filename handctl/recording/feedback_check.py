@@ -66,8 +66,11 @@ class FeedbackCheck:
                                          for fid in node.streams}
         self._logged: dict[str, int] = {}  # rejects the log reports, over the ticks handed out
         self._offset: dict[str, int] = {}  # differences already reported
-        self._node_seen = self._node_counts()
-        self._unexpected_seen = list(driver.unexpected.counts)
+        # The driver's own count lists (updated in place), and copies as of the last comparison.
+        self._counts = [node.rejects.counts for node in driver.nodes]
+        self._counts.append(driver.unexpected.counts)
+        self._counts_seen = [list(c) for c in self._counts]
+        self._node_seen = self._counts_seen[:-1]
         self._logged_more = False  # the log reported rejects since the last comparison
         self._pack: dict[int, struct.Struct] = {}
 
@@ -165,19 +168,16 @@ class FeedbackCheck:
         return problems
 
     def _rejects(self, k: int, rx: Sequence[Frame]) -> list[str]:
-        driver = self.driver
-        if not self._logged_more and driver.unexpected.counts == self._unexpected_seen \
-                and all(node.rejects.counts == seen
-                        for node, seen in zip(driver.nodes, self._node_seen, strict=True)):
+        if not self._logged_more and self._counts == self._counts_seen:
             # Nothing new on either side (the counts ``reject_counts`` adds up), so as equal
             # as after the last comparison; ``reject_counts`` itself costs tens of µs.
             return []
         self._logged_more = False
-        self._unexpected_seen = list(driver.unexpected.counts)
-        rerun = driver.reject_counts()
+        self._counts_seen = [list(c) for c in self._counts]
+        rerun = self.driver.reject_counts()
         logged, offset = self._logged, self._offset
         problems = []
-        node_counts = self._node_counts()
+        node_counts = self._counts_seen[:-1]
         for kind in sorted(set(rerun) | set(logged)):
             have = rerun.get(kind, 0) - offset.get(kind, 0)
             want = logged.get(kind, 0)
@@ -209,9 +209,6 @@ class FeedbackCheck:
         return ours or list(rx)
 
     # -- helpers -------------------------------------------------------------------------------
-    def _node_counts(self) -> list[list[int]]:
-        return [list(node.rejects.counts) for node in self.driver.nodes]
-
     def _node_of_joint(self, j: int) -> int:
         for i, (start, stop) in enumerate(self._slices):
             if start <= j < stop:
