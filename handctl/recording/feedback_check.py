@@ -160,8 +160,9 @@ class FeedbackCheck:
                 frames = [f for f in rx if f.arbitration_id == layout.frame_id]
                 what = f"{layout.name} 0x{layout.frame_id:03X}"
                 heard = "; ".join(_hex(f) for f in frames[:MAX_FRAMES_NAMED]) or "none"
-                problems.append(f"tick {k}: {what} (frames in this tick: {heard}) decodes "
-                                f"otherwise than logged: {'; '.join(texts)}")
+                problems.append(f"tick {k}: {what} (frames in this tick: {heard}): the "
+                                f"re-run's joint state from it is not the log's: "
+                                f"{'; '.join(texts)}")
             else:
                 problems.append(f"tick {k}: the joint state differs from the log: "
                                 f"{'; '.join(texts)}")
