@@ -302,3 +302,22 @@ def test_commands_still_go_out_as_standard_frames(driver: HandDriver,
                                                   bus_pair: tuple[HandBus, HandBus]) -> None:
     driver.send(AppliedTorques(np.zeros(9)))
     assert [f.arbitration_id for f in bus_pair[1].drain()] == [0x101, 0x102, 0x103]
+
+
+def test_reject_rate_settings_are_read_and_checked(tmp_path: Path) -> None:
+    from handctl.config import load_hand
+    from handctl.errors import ConfigError
+
+    from ..conftest import HAND_YAML
+
+    text = HAND_YAML.read_text()
+    good = tmp_path / "good.yaml"
+    good.write_text(text + "safety:\n  reject_window_s: 0.05\n  max_rejects_in_window: 4\n")
+    safety = load_hand(good).safety
+    assert (safety.reject_window_s, safety.max_rejects_in_window) == (0.05, 4)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text + "safety:\n  max_rejects_in_window: -1\n")
+    with pytest.raises(ConfigError) as info:
+        load_hand(bad)
+    assert info.value.key == "safety.max_rejects_in_window"
+    assert str(bad) in str(info.value) and "-1" in str(info.value)
