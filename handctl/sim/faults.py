@@ -512,8 +512,9 @@ class Contradict(Injector):
 class ReplayFrames(Injector):
     """A recording of a node's own ``message`` frames played back ``delay`` s late, two a tick
     (consecutive counters, valid CRCs): interleaved with the live stream, each tick the host
-    rejects the live frame and the first replayed one and accepts the second, so it hears the
-    node as it was ``delay`` ago, a FAULT since then included, unless it minds the rejects."""
+    rejects the live frame and the first replayed one and accepts the second, so what that
+    stream says (angles, torques, state) is ``delay`` old, unless the host minds the rejects.
+    ``delay`` counts frames of the message at 1 kHz: it suits ``feedback``."""
 
     kind: ClassVar[str] = "replay_frames"
     filters_tx: ClassVar[bool] = True

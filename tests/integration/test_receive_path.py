@@ -123,8 +123,9 @@ def test_a_fault_hidden_behind_an_enabled_heartbeat_is_stopped(hand: HandConfig,
 def test_a_replayed_stream_is_stopped_by_its_reject_rate(hand: HandConfig,
                                                          hold: Recipe) -> None:
     """Node 2's own feedback, replayed 0.2 s late two frames a tick: the host accepts one
-    replayed frame a tick and rejects two, and would hear the node as it was 0.2 s ago (its
-    FAULT, 50 ms after the replay starts, included) for as long as the replay lasts."""
+    replayed frame a tick and rejects two, so the angles, torques and state it hears are
+    0.2 s old. Counting rejects without bound, it noticed only when node 2 latched a FAULT of
+    its own (50 ms into the replay) and said so in a Status frame; the rate stops it first."""
     with rig(hand, hold) as r:
         replay = inj.ReplayFrames(node=2, message="feedback", delay=0.2)
         r.sim.faults.add(replay, INJECT_AT)
