@@ -321,3 +321,14 @@ def test_reject_rate_settings_are_read_and_checked(tmp_path: Path) -> None:
         load_hand(bad)
     assert info.value.key == "safety.max_rejects_in_window"
     assert str(bad) in str(info.value) and "-1" in str(info.value)
+
+
+def test_an_exported_log_keeps_29_bit_ids_extended(tmp_path: Path) -> None:
+    from handctl.bus import write_frames
+
+    out = tmp_path / "rx.log"
+    frames = [(1.0, EXTENDED_ID_FLAG | 0x181, bytes(16), True, True),
+              (1.001, 0x181, bytes(16), True, True)]
+    assert write_frames(out, "candump", frames) == 2
+    ids = [line.split()[2].split("#")[0] for line in out.read_text().splitlines()]
+    assert ids == ["00000181", "181"]
