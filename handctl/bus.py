@@ -211,7 +211,7 @@ class _Message(can.Message):
             error_state_indicator=self.error_state_indicator)
 
 
-class _ArrivalQueue(queue.Queue):  # type: ignore[type-arg]
+class _ArrivalQueue(queue.Queue[Any]):
     """A virtual-bus receive queue that stamps each message as it is put, on its owner's clock.
 
     python-can's virtual bus stamps a message with the sender's wall clock; the receiver's
