@@ -45,6 +45,9 @@ class FaultCode(enum.IntEnum):
     ESTOP = 13
     RECIPE_ABORT = 14
     STARTUP = 15
+    RX_BACKLOG = 30
+    NODE_CONTRADICTION = 31
+    REJECT_RATE = 32
 
 
 @dataclass(frozen=True)
@@ -86,6 +89,15 @@ FAULTS: dict[FaultCode, FaultSpec] = {spec.code: spec for spec in (
               "a recipe abort condition held, or a phase ran past its time limit"),
     FaultSpec(FaultCode.STARTUP, StopCategory.IMMEDIATE,
               "a node did not answer, or was not in the expected state, while starting"),
+    FaultSpec(FaultCode.RX_BACKLOG, StopCategory.IMMEDIATE,
+              "a drain left frames waiting: more arrived than the bus can carry between two "
+              "ticks (a flood), so what the host reads next is already old"),
+    FaultSpec(FaultCode.NODE_CONTRADICTION, StopCategory.IMMEDIATE,
+              "a node's reports contradict each other or the protocol: latched or reserved "
+              "fault bits outside FAULT, or ENABLED after FAULT without a fault reset"),
+    FaultSpec(FaultCode.REJECT_RATE, StopCategory.IMMEDIATE,
+              "more frames of one node rejected within the window than the safety section "
+              "allows (a replayed or corrupted stream may be hiding what the node says)"),
 )}
 
 
