@@ -122,8 +122,11 @@ class HandDriver:
         """Drop every frame already waiting in the receive queue, unread.
 
         At start-up, frames queued while nobody listened (a previous run's end, a reset) say
-        what the nodes were, not what they are; judging the nodes on them would be wrong.
+        what the nodes were, not what they are; judging the nodes on them would be wrong. For
+        the same reason each node's receive counters start afresh (PROTOCOL.md, "A new host").
         """
+        for node in self.nodes:
+            node.resynchronise()
         dropped = 0
         while True:
             frames = self.bus.drain()
