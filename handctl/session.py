@@ -116,7 +116,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                           "stepped", req.bus)
     startup_s = 0.5
     with ExitStack() as stack:
-        # First in, last out: a signal at any moment of the run is a controlled stop.
+        # First in, last out: from here to the end a signal ends the run as StopSignals says.
         signals = stack.enter_context(StopSignals())
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.

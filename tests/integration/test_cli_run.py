@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -131,6 +132,10 @@ def _alive(pid: int) -> bool:
     return stat.rpartition(")")[2].split()[0] not in ("Z", "X")
 
 
+def _gone(pid: int, directory: Path) -> bool:
+    return not _alive(pid) and not directory.exists()
+
+
 def _children(pid: int) -> list[int]:
     found = []
     for entry in Path("/proc").iterdir():
@@ -176,17 +181,20 @@ class RealtimeHost:
         assert self.sim_pid, f"the host ended first: {self.proc.communicate()}"
         self.directory = _bus_directory(self.sim_pid)
 
-    def wait_enabled(self) -> None:
-        """Until the hand's own status line says every node is ENABLED: torque is flowing."""
+    def wait_enabled(self) -> bool:
+        """Until the hand's own status line says every node is ENABLED: torque is flowing.
+        False if the host ended first."""
         assert self.directory is not None
         log = self.directory / "sim.log"
 
         def enabled() -> bool:
-            assert self.proc.poll() is None, self.proc.communicate()
+            if self.proc.poll() is not None:
+                return True
             lines = log.read_text().splitlines() if log.exists() else []
             return any(line.count("=ENABLED") == 3 for line in lines)
 
         _wait_for(enabled, "the nodes to be enabled")
+        return self.proc.poll() is None
 
     def finish(self, timeout_s: float = 120.0) -> tuple[int, str]:
         _, stderr = self.proc.communicate(timeout=timeout_s)
@@ -205,17 +213,23 @@ def test_a_killed_realtime_host_leaves_no_simulated_hand_and_no_bus_directory(
     notice on its own, stop, and remove the bus directory nobody else is left to remove."""
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD_LONG)
-    host = RealtimeHost(recipe, tmp_path / "out.json")
-    try:
-        host.find_sim()
-        host.wait_enabled()
-        os.kill(host.proc.pid, signal.SIGKILL)
-        host.proc.wait()
-        _wait_for(lambda: not _alive(host.sim_pid), "the simulated hand to end", 30)
-        assert host.directory is not None
-        _wait_for(lambda: not host.directory.exists(), "the bus directory to go", 30)
-    finally:
-        host.kill()
+    stopped = []
+    for _ in range(3):  # a run the machine's load stopped before torque flowed is tried again
+        host = RealtimeHost(recipe, tmp_path / "out.json")
+        try:
+            host.find_sim()
+            if not host.wait_enabled():
+                stopped.append(host.finish()[1])
+                continue
+            os.kill(host.proc.pid, signal.SIGKILL)
+            host.proc.wait()
+            sim_pid, directory = host.sim_pid, host.directory
+            assert directory is not None
+            _wait_for(partial(_gone, sim_pid, directory), "the hand and its directory to go", 30)
+            return
+        finally:
+            host.kill()
+    raise AssertionError(f"every attempt was stopped before torque flowed: {stopped}")
 
 
 def _controlled_stop(summary: dict[str, object], stderr: str) -> None:
@@ -242,14 +256,15 @@ def test_ctrl_c_on_a_terminal_is_the_same_controlled_stop_in_real_time(tmp_path:
         host = RealtimeHost(recipe, out)
         try:
             host.find_sim()
-            host.wait_enabled()
-            os.killpg(host.proc.pid, signal.SIGINT)
+            signalled = host.wait_enabled()
+            if signalled:
+                os.killpg(host.proc.pid, signal.SIGINT)
             code, stderr = host.finish()
         finally:
             host.kill()
         summary = json.loads(out.read_text())
         faults = [f["code"] for f in summary["faults"]]
-        if faults == ["LOOP_OVERRUN"]:
+        if not signalled or "LOOP_OVERRUN" in faults:
             outcomes.append(stderr)
             continue
         assert code == 130, stderr
