@@ -216,7 +216,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
 # -- sim ---------------------------------------------------------------------------------------
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from handctl.parent_death import parent_ends
+    from handctl.parent_death import parent_ends, remove_orphaned_bus
 
     # Ctrl-C, the host's SIGINT and SIGTERM (also the parent-death signal) end the hand
     # cleanly with its summary, even when this process inherited them ignored or blocked, as
@@ -259,18 +259,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         # going down: then wait for it to be gone.
         if args.parent_pid is not None and parent_ends(
                 args.parent_pid, ORPHAN_WAIT_S if terminated else 0.0):
-            _remove_orphaned_bus(args.bus)
+            remove_orphaned_bus(args.bus, args.summary_json)
     return EXIT_OK
-
-
-def _remove_orphaned_bus(spec: str) -> None:
-    """The unix bus directory of a host that died: this process outlived it, so it tidies up
-    (a host that ends normally removes the directory itself, after this process ended)."""
-    import shutil
-
-    interface, _, directory = spec.partition(":")
-    if interface == "unix" and directory:
-        shutil.rmtree(directory, ignore_errors=True)
 
 
 # -- replay ------------------------------------------------------------------------------------

@@ -19,8 +19,12 @@ from __future__ import annotations
 
 import ctypes
 import os
+import re
 import signal
+import stat
 import time
+from contextlib import suppress
+from pathlib import Path
 
 _PR_SET_PDEATHSIG = 1
 
@@ -52,3 +56,36 @@ def parent_ends(parent_pid: int, within_s: float) -> bool:
             return False
         time.sleep(0.01)
     return True
+
+
+def remove_orphaned_bus(spec: str, summary_json: Path | None) -> None:
+    """The unix bus directory of a host that died, removed by its simulated hand, which
+    outlived it (a host that ends normally removes the directory itself, after the hand ended).
+
+    Only what handctl put there goes: the bus's sockets (the dead host's too), the hand's
+    summary and its log, then the directory if nothing else is left in it. A directory that
+    holds anything else was not a run's private bus, and what else it holds is not ours.
+    """
+    interface, _, channel = spec.partition(":")
+    if interface != "unix" or not channel:
+        return
+    directory = Path(channel).resolve()
+    ours = [p for p in directory.glob("*.sock") if _is_bus_socket(p)]
+    if summary_json is not None:
+        ours.append(summary_json)
+    with suppress(OSError):
+        ours.append(Path(os.readlink("/proc/self/fd/2")))  # this process's log, if a file
+    for path in ours:
+        if path.resolve().parent == directory:
+            with suppress(OSError):
+                path.unlink()
+    with suppress(OSError):  # gone already, or not empty: what is left is not ours
+        directory.rmdir()
+
+
+def _is_bus_socket(path: Path) -> bool:
+    """A unix bus endpoint (``PID-N.sock``, a socket), not some other file of that name."""
+    with suppress(OSError):
+        return (re.fullmatch(r"\d+-\d+\.sock", path.name) is not None
+                and stat.S_ISSOCK(path.lstat().st_mode))
+    return False
