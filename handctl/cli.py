@@ -254,6 +254,12 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
                          summary_json=args.summary_json, realtime=args.rt,
                          keep_running=parent_alive))
+    except Exception as exc:
+        # An interrupt raised inside C code (MuJoCo's import, for one) comes out as that
+        # code's own error: it is still an interrupt.
+        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
+            raise KeyboardInterrupt(str(exc)) from exc
+        raise
     finally:
         # SIGTERM is also the parent-death signal, which can come while the host is still
         # going down: then wait for it to be gone.

@@ -316,6 +316,7 @@ class StopSignals:
     def __init__(self) -> None:
         self.runtime: Runtime | None = None
         self.finishing = False
+        self.interrupted = ""  # the signal that interrupted the run before the runtime ran
         self.ignored: list[str] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self._saved: dict[int, Any] = {}
@@ -326,9 +327,13 @@ class StopSignals:
                 self._saved[sig] = signal.signal(sig, self._handle)
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, kind: object, exc: BaseException | None, tb: object) -> None:
         for sig, handler in self._saved.items():
             signal.signal(sig, handler)
+        if self.interrupted and exc is not None and not isinstance(exc, KeyboardInterrupt):
+            # The interrupt was raised inside C code (MuJoCo's import, for one), which turned
+            # it into an error of its own: it is still the interrupt that was asked for.
+            raise KeyboardInterrupt(self.interrupted) from exc
 
     def _handle(self, signum: int, frame: object) -> None:
         name = signal.Signals(signum).name
@@ -337,7 +342,8 @@ class StopSignals:
             return
         if self.runtime is None or self._loop is None:
             self.finishing = True
-            raise KeyboardInterrupt(f"signal {name}")
+            self.interrupted = f"signal {name}"
+            raise KeyboardInterrupt(self.interrupted)
         try:
             self._loop.call_soon_threadsafe(self.runtime.request_stop, f"signal {name}")
         except RuntimeError:  # the loop has just closed: the run is over

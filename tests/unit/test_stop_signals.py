@@ -51,3 +51,18 @@ def test_a_signal_during_start_up_is_an_interrupt_with_nothing_sent(
     assert result.faults == []
     assert sig.name in result.message and "start-up" in result.message
     assert listener.drain() == []
+
+
+def test_an_interrupt_that_c_code_turned_into_its_own_error_is_still_an_interrupt() -> None:
+    """Ctrl-C while MuJoCo is being imported comes out as ``ImportError: initialization
+    failed`` (exit 1 and a traceback); it is an interrupt (exit 130)."""
+    with pytest.raises(KeyboardInterrupt), StopSignals():
+        try:
+            signal.raise_signal(signal.SIGINT)
+        except KeyboardInterrupt as exc:
+            raise ImportError("initialization failed") from exc
+
+
+def test_other_errors_pass_through() -> None:
+    with pytest.raises(ImportError), StopSignals():
+        raise ImportError("a real one")
