@@ -106,6 +106,16 @@ class FingerNode:
         self.reboots = 0
         self.status: tuple[float, ...] | None = None
 
+    def resynchronise(self) -> None:
+        """Take the node's next frame of each stream with whatever counter it carries.
+
+        For the start of a run: while no run listened, the node kept counting (or rebooted, or
+        a new simulated hand took its place), so the counters last heard say nothing about the
+        next ones, and rejecting its first frames would be the host's mistake, not the node's.
+        """
+        for _, counters in self.streams.values():
+            counters.reset()
+
     @property
     def state_name(self) -> str:
         return STATE_NAMES.get(self.state, "UNKNOWN")

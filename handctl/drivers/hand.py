@@ -148,9 +148,12 @@ class HandDriver:
 
         At start-up, frames queued while nobody listened (a previous run's end, a reset) say
         what the nodes were, not what they are; judging the nodes on them would be wrong, and
-        so would holding against them what they contradicted before. The backlog this leaves
-        behind it is no fault; the bus's other events are kept for the first tick.
+        so would holding against them what they contradicted before. For the same reason each
+        node's receive counters start afresh (PROTOCOL.md, "A new host"). The backlog this
+        leaves behind it is no fault; the bus's other events are kept for the first tick.
         """
+        for node in self.nodes:
+            node.resynchronise()
         dropped = 0
         while True:
             frames = self.bus.drain()
