@@ -214,12 +214,14 @@ _M_MMAP_MAX = -4
 
 @dataclass(frozen=True)
 class Hygiene:
-    """What ``--rt`` does besides SCHED_FIFO. Each measure can be switched off alone, so a
-    benchmark can show what each one is worth (``tools/bench.py loop --rt --hygiene``)."""
+    """What ``--rt`` does for a run besides SCHED_FIFO. Each measure can be switched off alone,
+    so a benchmark can show what each is worth (``tools/bench.py loop --rt --hygiene``)."""
 
-    cpu: int | None = None  # pin the calling thread (and threads it starts) to this CPU
+    pin: bool = True  # on >= 2 CPUs: the loop and the simulated hand on CPUs of their own
+    loop_cpu: int | None = None  # None: chosen (``handctl.hostcheck.plan_cpus``)
+    sim_cpu: int | None = None
     lock_memory: bool = True  # mlockall(MCL_CURRENT | MCL_FUTURE): no page is ever paged out
-    prefault: bool = True  # touch a stack and heap reserve now, so a tick never faults one in
+    prefault: bool = True  # touch a stack and heap reserve, so no tick faults a page in
 
 
 class _StackReserve(ctypes.Structure):
@@ -251,21 +253,20 @@ def prefault(libc: ctypes.CDLL) -> None:
     touch(_StackReserve())
 
 
-def request_realtime(priority: int = LOOP_PRIORITY, hygiene: Hygiene | None = None
-                     ) -> list[str]:
+def request_realtime(priority: int = LOOP_PRIORITY, *, cpu: int | None = None,
+                     lock_memory: bool = True, prefault_memory: bool = False) -> list[str]:
     """Ask for SCHED_FIFO, a CPU of its own, locked and prefaulted memory for the calling
     thread (and the threads it starts); returns what the system refused, in plain words.
 
     Refusals are warnings, as in ros2_control: the run goes on with what it got, and the
     timing check beside it (``handctl.hostcheck``) shows what that cost.
     """
-    hygiene = hygiene or Hygiene()
     refused: list[str] = []
-    if hygiene.cpu is not None:
+    if cpu is not None:
         try:
-            os.sched_setaffinity(0, {hygiene.cpu})
+            os.sched_setaffinity(0, {cpu})
         except (OSError, ValueError) as exc:
-            refused.append(f"pinning to CPU {hygiene.cpu} refused ({exc}); the loop runs on "
+            refused.append(f"pinning to CPU {cpu} refused ({exc}); the loop runs on "
                            f"CPUs {sorted(os.sched_getaffinity(0))}")
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
@@ -277,10 +278,10 @@ def request_realtime(priority: int = LOOP_PRIORITY, hygiene: Hygiene | None = No
     except OSError as exc:
         refused.append(f"locking memory unavailable ({exc})")
         return refused
-    if hygiene.lock_memory and libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
+    if lock_memory and libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
         err = ctypes.get_errno()
         refused.append(f"locking memory refused ({os.strerror(err)}); raise 'ulimit -l' "
                        "(memlock) or run with CAP_IPC_LOCK")
-    if hygiene.prefault:
+    if prefault_memory:
         prefault(libc)
     return refused

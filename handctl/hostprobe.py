@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from handctl.clock import Hygiene, StallLog, request_realtime
+from handctl.clock import StallLog, request_realtime
 from handctl.timerfd import PeriodicTimer
 
 #: µs: the histogram's last bin collects every wake-up later than this (the maximum is exact)
@@ -127,8 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, on_signal)
     refused: list[str] = []
     if args.priority is not None:
-        refused = request_realtime(args.priority, Hygiene(cpu=args.cpu,
-                                                          lock_memory=not args.no_lock_memory))
+        refused = request_realtime(args.priority, cpu=args.cpu,
+                                   lock_memory=not args.no_lock_memory)
     elif args.cpu is not None:
         try:
             os.sched_setaffinity(0, {args.cpu})

@@ -9,6 +9,7 @@ like any other bus. The online plane itself never imports the simulation.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -17,20 +18,38 @@ import sys
 import tempfile
 from collections.abc import Callable
 from contextlib import ExitStack
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
-from handctl.clock import Clock, LockstepClock, RealtimeClock, request_realtime
+from handctl.clock import (
+    LOOP_PRIORITY,
+    Clock,
+    Hygiene,
+    LockstepClock,
+    RealtimeClock,
+    request_realtime,
+)
 from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
+from handctl.hostcheck import (
+    PRECHECK_S,
+    Deadlines,
+    HostTimingError,
+    Probe,
+    attribute,
+    gather_facts,
+    judge,
+    plan_cpus,
+    timing_check,
+)
 from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
-from handctl.safety.faults import FAULTS
+from handctl.safety.faults import FAULTS, FaultCode
 from handctl.tickstats import TickWindow, percentile_us
 
 if TYPE_CHECKING:
@@ -55,6 +74,10 @@ class RunRequest:
     plot: Path | None = None  # write the overview PNG of the run here (lockstep sim only)
     log: Path | None = None  # record the run to this MCAP file
     command_line: tuple[str, ...] = ()  # for the recording's metadata
+    # With realtime_priority: CPUs, memory lock, prefault (docs/timing.md).
+    hygiene: Hygiene = field(default_factory=Hygiene)
+    # Run on a real bus even if the host fails the timing check (docs/timing.md).
+    accept_missed_deadlines: bool = False
 
 
 @dataclass
@@ -113,6 +136,10 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         raise ConfigError("--lockstep", "", "the simulated hand (--bus sim): only it can be "
                           "stepped", req.bus)
     startup_s = 0.5
+    loop_cpu, sim_cpu = _plan_cpus(req) if req.realtime_priority else (None, None)
+    if not is_sim:
+        # Before the bus is opened: a host that cannot hold the deadlines sends nothing.
+        warnings += _precheck(req, loop_cpu)
     with ExitStack() as stack:
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
@@ -136,17 +163,21 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             # control process would take the interpreter from the loop for a millisecond at a
             # time. The two talk over the unix datagram bus.
             directory = stack.enter_context(tempfile.TemporaryDirectory(prefix="handctl-bus-"))
-            sim_process = stack.enter_context(SimProcess(req, directory))
+            sim_process = stack.enter_context(SimProcess(req, directory, sim_cpu))
             spec = BusSpec("unix", directory)
             startup_s = 20.0  # the peer imports MuJoCo and builds its model first
         bus: HandBus = stack.enter_context(open_bus(spec, req.hand.bus))
         clock: Clock
+        probe: Probe | None = None
         if lockstep:
             clock = LockstepClock(req.hand.bus.period_s, sim_hand.step)
         else:
             clock = RealtimeClock(req.hand.bus.period_s)
+            probe = stack.enter_context(_beside_probe(req, loop_cpu))
             if req.realtime_priority:
-                warnings += request_realtime()
+                warnings += request_realtime(LOOP_PRIORITY, cpu=loop_cpu,
+                                             lock_memory=req.hygiene.lock_memory,
+                                             prefault_memory=req.hygiene.prefault)
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
         max_ticks = (round(req.max_seconds / req.hand.bus.period_s) if req.max_seconds
                      else 10_000_000)
@@ -172,6 +203,9 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             if sim_process.problem():
                 warnings.append(sim_process.problem())
         summary = summarise(result, req.hand, req.recipe, lockstep, sim_summary)
+        if probe is not None:
+            assert isinstance(clock, RealtimeClock)
+            summary["host"] = _host_summary(req, probe, clock, result, warnings)
         if tracker is not None:
             from handctl.planning.experiment import experiment_summary
 
@@ -192,6 +226,84 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                 summary["recording"] = {"path": str(req.log), "error": str(exc)}
     return RunReport(result, summary, warnings, runtime.first_send_tick,
                      runtime.startup_missed_ticks)
+
+
+def _plan_cpus(req: RunRequest) -> tuple[int | None, int | None]:
+    """The CPUs of the loop and of the simulated hand for a real-time run: the user's, or
+    ``plan_cpus``'s on a machine of two or more; (None, None) when not pinned."""
+    if not req.hygiene.pin:
+        return None, None
+    facts = gather_facts()
+    allowed = set(facts.cpus)
+    loop_cpu, sim_cpu = plan_cpus(allowed, set(facts.isolated))
+    for option, cpu in (("--loop-cpu", req.hygiene.loop_cpu), ("--sim-cpu", req.hygiene.sim_cpu)):
+        if cpu is not None and cpu not in allowed:
+            raise ConfigError(option, "", f"one of the CPUs this process may use "
+                              f"{sorted(allowed)}", cpu)
+    if req.hygiene.loop_cpu is not None:
+        loop_cpu = req.hygiene.loop_cpu
+        if sim_cpu == loop_cpu:
+            sim_cpu = min(allowed - {loop_cpu}, default=None)
+    if req.hygiene.sim_cpu is not None:
+        sim_cpu = req.hygiene.sim_cpu
+    if loop_cpu is not None and loop_cpu == sim_cpu:
+        raise ConfigError("--sim-cpu", "", f"a CPU other than the loop's ({loop_cpu})", sim_cpu)
+    return loop_cpu, sim_cpu
+
+
+def _precheck(req: RunRequest, loop_cpu: int | None) -> list[str]:
+    """The timing check before a run on anything but the simulated hand: a host that fails
+    it is refused unless the user accepts the risk by name; returns the warnings."""
+    report = timing_check(req.hand, PRECHECK_S, realtime=req.realtime_priority, cpu=loop_cpu)
+    if report.verdict.fails and not req.accept_missed_deadlines:
+        raise HostTimingError(report.text() + "\n  nothing was sent; to run anyway, pass "
+                              "--accept-missed-deadlines")
+    if report.verdict.fails:
+        return [f"running with --accept-missed-deadlines on a host that failed the timing "
+                f"check: {'; '.join(report.verdict.reasons)}"]
+    if report.verdict.level == "marginal":
+        return [f"timing check marginal: {'; '.join(report.verdict.reasons)}"]
+    return []
+
+
+def _beside_probe(req: RunRequest, loop_cpu: int | None) -> Probe:
+    """The bare timer loop beside a real-time run, on the loop's CPU one priority above it.
+
+    Above it, so the loop's own lateness never delays it; on its CPU, so it shares the loop's
+    host stalls. It ticks twice a loop period: any host stall of a whole period then shows as
+    a probe wake-up at least half a period late, which is what it keeps.
+    """
+    period = round(req.hand.bus.period_s * 1e9)
+    rt = req.realtime_priority
+    return Probe(period // 2, record_ns=period // 2,
+                 priority=LOOP_PRIORITY + 1 if rt else None, cpu=loop_cpu,
+                 lock_memory=rt and req.hygiene.lock_memory)
+
+
+def _host_summary(req: RunRequest, probe: Probe, clock: RealtimeClock, result: RunResult,
+                  warnings: list[str]) -> dict[str, Any]:
+    """What the bare loop beside the run saw, and whose the run's missed ticks were."""
+    try:
+        record = probe.stop()
+    except HandctlError as exc:
+        warnings.append(str(exc))
+        return {"error": str(exc)}
+    verdict = judge(record, Deadlines.of(req.hand))
+    shares = attribute(clock.stalls.rows(), record, clock.period_ns)
+    shares["missed_unobserved"] += clock.stalls.overflow_missed
+    stopped_on = sorted({f.code.name for f in result.faults
+                         if f.code in (FaultCode.LOOP_OVERRUN, FaultCode.FEEDBACK_TIMEOUT)})
+    if stopped_on:
+        warnings.append(
+            f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it says "
+            f"the host was {verdict.level.upper()}"
+            + "".join(f"; {r}" for r in verdict.reasons)
+            + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
+            f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's); see "
+            "'handctl check --timing' and docs/timing.md")
+    return {"verdict": verdict.level, "reasons": list(verdict.reasons), **verdict.figures,
+            **shares, "probe_period_us": record.period_ns / 1e3,
+            "scheduler": record.scheduler, "refused": list(record.refused)}
 
 
 def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
@@ -238,7 +350,7 @@ class SimProcess:
     pipe: nobody reads a pipe during the run, and a full one (64 KiB, some ten minutes of
     progress) would stop the hand mid-run. What it said is kept for a hand that fails."""
 
-    def __init__(self, req: RunRequest, directory: str) -> None:
+    def __init__(self, req: RunRequest, directory: str, cpu: int | None = None) -> None:
         self.summary_path = Path(directory) / "sim-summary.json"
         self.log_path = Path(directory) / "sim.log"
         cmd = [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{directory}",
@@ -252,6 +364,10 @@ class SimProcess:
             cmd.append("--rt")
         with self.log_path.open("wb") as log:
             self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log)
+        if cpu is not None:
+            # Now, while the child has one thread: the node timer thread it starts inherits it.
+            with contextlib.suppress(ProcessLookupError):  # gone already: problem() says why
+                os.sched_setaffinity(self.proc.pid, {cpu})
         self.summary: dict[str, Any] | None = None
 
     def finish(self) -> dict[str, Any] | None:
