@@ -1,0 +1,103 @@
+"""The timing check as a user runs it: the bare loop for a fraction of a second (structure, not
+figures), a recorded failing sequence through the documented seam, and a run on a bus other
+than the simulated hand refused before it opens the bus."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from handctl.bus import open_bus
+from handctl.config import HandConfig
+from handctl.hostcheck import INJECT_ENV
+
+from ..conftest import ROOT
+
+RECIPE = "config/recipes/swap_two_cylinders.yaml"
+#: Recorded on a two-vCPU virtual machine: `handctl check --timing --seconds 60 --json F`.
+FAILING = ROOT / "tests" / "data" / "host_stalls_failing.json"
+
+
+def handctl(*args: str, env: dict[str, str] | None = None,
+            timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT, text=True,
+                          capture_output=True, timeout=timeout, check=False,
+                          env={**os.environ, **(env or {})})
+
+
+def test_the_bare_loop_reports_every_wakeup() -> None:
+    done = subprocess.run([sys.executable, "-m", "handctl.hostprobe", "--period-ns", "1000000",
+                           "--seconds", "0.2", "--record-ns", "500000"], cwd=ROOT, text=True,
+                          capture_output=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["wakeups"] > 0
+    assert sum(out["lateness_hist_us"].values()) == out["wakeups"]
+    assert out["expirations"] >= out["wakeups"]
+    assert out["end_ns"] > out["start_ns"]
+    for index, due, wake, missed in out["stalls"]:
+        assert 0 <= index < out["wakeups"] and wake - due >= 500_000 and missed >= 0
+    assert out["scheduler"]["policy"] == "SCHED_OTHER"  # no --priority: none asked
+
+
+def test_check_timing_prints_a_verdict_and_writes_its_record(tmp_path: Path) -> None:
+    report = tmp_path / "timing.json"
+    done = handctl("check", "--timing", "--seconds", "0.3", "--json", str(report))
+    assert done.returncode in (0, 5), done.stderr  # this machine's verdict is not the test's
+    assert done.stdout.startswith("timing check: ")
+    assert "stalls longer than one period (1 ms)" in done.stdout
+    data = json.loads(report.read_text())
+    assert data["verdict"] in ("pass", "marginal", "fail")
+    assert (done.returncode == 5) == (data["verdict"] == "fail")
+    assert set(data["lateness_us"]) == {"p50", "p99", "max"}
+    for key in ("stalls_over_period", "stalls_over_overrun_tolerance",
+                "stalls_over_feedback_timeout", "loop_overrun_trips"):
+        assert isinstance(data[key], int)
+    assert (data["period_ms"], data["overrun_tolerance_ms"], data["feedback_timeout_ms"]) == \
+        (1.0, 3.0, 5.0)
+    assert data["realtime"] is True and data["scheduler"]["policy"]
+    assert {"preemption", "rtprio_limit", "isolated", "governors"} <= set(data["facts"])
+    assert data["probe"]["wakeups"] > 0
+
+
+def test_a_recorded_failing_sequence_fails_the_check() -> None:
+    done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(FAILING)})
+    assert done.returncode == 5, done.stdout + done.stderr
+    assert done.stdout.startswith("timing check: FAIL")
+    assert f"injected from {FAILING}" in done.stdout
+    assert "LOOP_OVERRUN" in done.stdout
+
+
+def test_a_bad_recorded_sequence_is_bad_input(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.json"
+    data = json.loads(FAILING.read_text())
+    data["probe"]["stalls"][0] = [1, 2, 3]
+    bad.write_text(json.dumps(data))
+    done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(bad)})
+    assert done.returncode == 2
+    assert f"{bad}: probe.stalls[0]: expected [index, due_ns, wake_ns, missed]" in done.stderr
+
+
+def test_a_run_on_a_real_bus_is_refused_on_a_failing_host(tmp_path: Path,
+                                                          hand: HandConfig) -> None:
+    directory = tmp_path / "bus"
+    with open_bus(f"unix:{directory}", hand.bus) as listener:
+        before = set(directory.iterdir())
+        done = handctl("run", "recipe", RECIPE, "--bus", f"unix:{directory}",
+                       env={INJECT_ENV: str(FAILING)})
+        assert done.returncode == 5, done.stderr
+        assert "handctl: refused: timing check: FAIL" in done.stderr
+        assert "--accept-missed-deadlines" in done.stderr
+        # The bus was never opened: no socket of the run's appeared, nothing arrived.
+        assert set(directory.iterdir()) == before
+        assert listener.drain() == []
+
+        # Accepting the risk by name gets past the check to the bus, where nobody answers.
+        done = handctl("run", "recipe", RECIPE, "--bus", f"unix:{directory}",
+                       "--accept-missed-deadlines", env={INJECT_ENV: str(FAILING)})
+        assert done.returncode == 3, done.stderr
+        assert "running with --accept-missed-deadlines on a host that failed" in done.stderr
+        assert "nodes not ready" in done.stderr
