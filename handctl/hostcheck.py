@@ -521,7 +521,7 @@ def timing_check(hand: HandConfig, seconds: float, *, realtime: bool,
 
 # -- the host's share of a run's missed ticks ----------------------------------------------------
 def attribute(loop_stalls: list[tuple[int, int, int, int]], host: ProbeRecord,
-              period_ns: int) -> dict[str, int]:
+              period_ns: int, handctls: list[int] | None = None) -> dict[str, int]:
     """Split the control loop's missed ticks between the host and handctl.
 
     A missed tick's interval runs from one period before the oldest deadline it slept through
@@ -529,10 +529,11 @@ def attribute(loop_stalls: list[tuple[int, int, int, int]], host: ProbeRecord,
     loop beside it overlaps that interval, the host held both loops: ``missed_host``. If none
     did, the host let a bare loop run at that time and handctl was late on its own:
     ``missed_handctl``. Missed ticks outside the time the probe ran are ``missed_unobserved``.
+    The ticks of handctl's own misses are appended to ``handctls`` if given.
     """
     host_stalls = sorted((due, wake) for _, due, wake, _ in host.stalls)
     counts = {"missed_host": 0, "missed_handctl": 0, "missed_unobserved": 0}
-    for _, due, wake, missed in loop_stalls:
+    for tick, due, wake, missed in loop_stalls:
         start = due - period_ns
         if wake < host.start_ns or start > host.end_ns:
             counts["missed_unobserved"] += missed
@@ -540,4 +541,6 @@ def attribute(loop_stalls: list[tuple[int, int, int, int]], host: ProbeRecord,
             counts["missed_host"] += missed
         else:
             counts["missed_handctl"] += missed
+            if handctls is not None:
+                handctls.append(tick)
     return counts

@@ -40,6 +40,7 @@ from handctl.hostcheck import (
     Deadlines,
     HostTimingError,
     Probe,
+    ProbeRecord,
     attribute,
     gather_facts,
     judge,
@@ -58,6 +59,8 @@ if TYPE_CHECKING:
 
 #: Object poses of the simulated hand are recorded every this many ticks (lockstep only).
 POSE_EVERY_TICKS = 10
+#: The summary lists the ticks of at most this many of handctl's own misses.
+MAX_LISTED_TICKS = 20
 
 
 @dataclass
@@ -87,6 +90,10 @@ class RunReport:
     warnings: list[str]
     first_send_tick: int = -1  # the tick of the first torque command
     startup_missed_ticks: int = 0  # ticks missed before it
+    # Real time: what the bare timer loop beside the run saw, and the loop's own missed ticks
+    # as (tick, due_ns, wake_ns, missed), for ``handctl.hostcheck.attribute``.
+    host: ProbeRecord | None = None
+    loop_stalls: list[tuple[int, int, int, int]] = field(default_factory=list)
 
 
 def _percentiles_us(window: TickWindow) -> dict[str, float]:
@@ -203,9 +210,10 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             if sim_process.problem():
                 warnings.append(sim_process.problem())
         summary = summarise(result, req.hand, req.recipe, lockstep, sim_summary)
+        host: ProbeRecord | None = None
         if probe is not None:
             assert isinstance(clock, RealtimeClock)
-            summary["host"] = _host_summary(req, probe, clock, result, warnings)
+            host, summary["host"] = _host_summary(req, probe, clock, result, warnings)
         if tracker is not None:
             from handctl.planning.experiment import experiment_summary
 
@@ -225,7 +233,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                 warnings.append(str(exc))
                 summary["recording"] = {"path": str(req.log), "error": str(exc)}
     return RunReport(result, summary, warnings, runtime.first_send_tick,
-                     runtime.startup_missed_ticks)
+                     runtime.startup_missed_ticks, host,
+                     clock.stalls.rows() if isinstance(clock, RealtimeClock) else [])
 
 
 def _plan_cpus(req: RunRequest) -> tuple[int | None, int | None]:
@@ -281,15 +290,16 @@ def _beside_probe(req: RunRequest, loop_cpu: int | None) -> Probe:
 
 
 def _host_summary(req: RunRequest, probe: Probe, clock: RealtimeClock, result: RunResult,
-                  warnings: list[str]) -> dict[str, Any]:
+                  warnings: list[str]) -> tuple[ProbeRecord | None, dict[str, Any]]:
     """What the bare loop beside the run saw, and whose the run's missed ticks were."""
     try:
         record = probe.stop()
     except HandctlError as exc:
         warnings.append(str(exc))
-        return {"error": str(exc)}
+        return None, {"error": str(exc)}
     verdict = judge(record, Deadlines.of(req.hand))
-    shares = attribute(clock.stalls.rows(), record, clock.period_ns)
+    own: list[int] = []
+    shares = attribute(clock.stalls.rows(), record, clock.period_ns, own)
     shares["missed_unobserved"] += clock.stalls.overflow_missed
     stopped_on = sorted({f.code.name for f in result.faults
                          if f.code in (FaultCode.LOOP_OVERRUN, FaultCode.FEEDBACK_TIMEOUT)})
@@ -301,9 +311,11 @@ def _host_summary(req: RunRequest, probe: Probe, clock: RealtimeClock, result: R
             + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
             f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's); see "
             "'handctl check --timing' and docs/timing.md")
-    return {"verdict": verdict.level, "reasons": list(verdict.reasons), **verdict.figures,
-            **shares, "probe_period_us": record.period_ns / 1e3,
-            "scheduler": record.scheduler, "refused": list(record.refused)}
+    return record, {"verdict": verdict.level, "reasons": list(verdict.reasons),
+                    **verdict.figures, **shares,
+                    "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
+                    "probe_period_us": record.period_ns / 1e3,
+                    "scheduler": record.scheduler, "refused": list(record.refused)}
 
 
 def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
