@@ -187,7 +187,7 @@ def _one(hand: HandConfig, recipe: Recipe, faults: Path | None, args: argparse.N
         "foreign_frames": result.node_rejects.get("unexpected_id", 0),
         "sim_tx_failed": int(sim.get("tx_failed", -1)),
         "sim_queue_full": int(transport.get("queue_full", -1)),
-        "rt": bool(args.rt and not report.warnings),
+        "rt": bool(args.rt and not any("refused" in w for w in report.warnings)),
         "outcome": result.outcome.value,
         "message": result.message,
         "ticks": int(ours.size),
