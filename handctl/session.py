@@ -185,6 +185,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                 warnings += request_realtime(LOOP_PRIORITY, cpu=loop_cpu,
                                              lock_memory=req.hygiene.lock_memory,
                                              prefault_memory=req.hygiene.prefault)
+            cpus = {"loop": _affinity(0),
+                    "sim": _affinity(sim_process.proc.pid) if sim_process else None}
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
         max_ticks = (round(req.max_seconds / req.hand.bus.period_s) if req.max_seconds
                      else 10_000_000)
@@ -214,6 +216,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         if probe is not None:
             assert isinstance(clock, RealtimeClock)
             host, summary["host"] = _host_summary(req, probe, clock, result, warnings)
+            summary["host"]["cpus"] = cpus
         if tracker is not None:
             from handctl.planning.experiment import experiment_summary
 
@@ -258,6 +261,14 @@ def _plan_cpus(req: RunRequest) -> tuple[int | None, int | None]:
     if loop_cpu is not None and loop_cpu == sim_cpu:
         raise ConfigError("--sim-cpu", "", f"a CPU other than the loop's ({loop_cpu})", sim_cpu)
     return loop_cpu, sim_cpu
+
+
+def _affinity(pid: int) -> list[int] | None:
+    """The CPUs a process (0: this thread) may run on; None if it is gone."""
+    try:
+        return sorted(os.sched_getaffinity(pid))
+    except ProcessLookupError:
+        return None
 
 
 def _precheck(req: RunRequest, loop_cpu: int | None) -> list[str]:

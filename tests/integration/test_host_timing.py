@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from handctl.bus import open_bus
 from handctl.config import HandConfig
 from handctl.hostcheck import INJECT_ENV
@@ -101,3 +103,48 @@ def test_a_run_on_a_real_bus_is_refused_on_a_failing_host(tmp_path: Path,
         assert done.returncode == 3, done.stderr
         assert "running with --accept-missed-deadlines on a host that failed" in done.stderr
         assert "nodes not ready" in done.stderr
+
+
+HOLD = """
+recipe: hold
+description: close the hand gently and hold it
+phases:
+  - name: hold
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.3
+    max_s: 30.0
+    on_timeout: next
+"""
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU: nothing to separate")
+def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) -> None:
+    """On the simulated hand the host's verdict is a warning beside the stop; with --rt the
+    loop and the simulated hand run on CPUs of their own."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD)
+    out = tmp_path / "out.json"
+    done = handctl("run", "recipe", str(recipe), "--realtime", "--rt", "--max-seconds", "40",
+                   "--sim-faults", "config/sim/feedback_dropout.yaml", "--summary-json",
+                   str(out))
+    summary = json.loads(out.read_text())
+    assert done.returncode == 3, done.stderr
+    assert any(f["code"] == "FEEDBACK_TIMEOUT" for f in summary["faults"])
+    assert "the run stopped on FEEDBACK_TIMEOUT; the bare timer loop beside it says the host " \
+           "was " in done.stderr
+    host = summary["host"]
+    assert host["verdict"] in ("pass", "marginal", "fail")
+    assert host["missed_host"] + host["missed_handctl"] + host["missed_unobserved"] == \
+        summary["missed_ticks"]
+    assert host["probe_period_us"] == 500.0
+    loop, sim = host["cpus"]["loop"], host["cpus"]["sim"]
+    assert len(loop) == 1 and len(sim) == 1 and loop != sim
+    if host["scheduler"]["policy"] == "SCHED_FIFO":  # root, or granted rtprio
+        assert host["scheduler"]["cpus"] == loop  # the bare loop shares the loop's CPU
+
+
+def test_cpus_outside_the_machine_are_bad_input() -> None:
+    done = handctl("run", "recipe", RECIPE, "--rt", "--loop-cpu", "4096")
+    assert done.returncode == 2
+    assert "--loop-cpu: expected one of the CPUs this process may use" in done.stderr
+    assert "found 4096" in done.stderr
