@@ -504,6 +504,9 @@ def timing_check(hand: HandConfig, seconds: float, *, realtime: bool,
     deadlines = Deadlines.of(hand)
     injected = injected_records()  # a bad file is refused before the measurement
     facts = gather_facts()
+    if cpu is not None and cpu not in facts.cpus:
+        raise ConfigError("--loop-cpu", "", f"one of the CPUs this process may use "
+                          f"{list(facts.cpus)}", cpu)
     if realtime and cpu is None:
         cpu, _ = plan_cpus(set(facts.cpus), set(facts.isolated))
     with Probe(deadlines.period_ns, record_ns=deadlines.period_ns // 2, seconds=seconds,
