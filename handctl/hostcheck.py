@@ -413,7 +413,11 @@ class Probe:
         if self.proc.returncode != 0 or not out.strip():
             raise HandctlError(f"the timing probe ended with exit {self.proc.returncode}: "
                                + " | ".join(err.strip().splitlines()[-3:]))
-        return ProbeRecord.from_json(json.loads(out), "the timing probe")
+        try:
+            data = json.loads(out)
+        except json.JSONDecodeError as exc:
+            raise HandctlError(f"the timing probe wrote no record ({exc})") from None
+        return ProbeRecord.from_json(data, "the timing probe")
 
     def close(self) -> None:
         if self.proc.poll() is None:
