@@ -92,6 +92,7 @@ def host_figures(report: RunReport, hand: HandConfig, first_tick: int,
     period = round(hand.bus.period_s * 1e9)
     own: list[int] = []
     shares = attribute(rows, host, period, own)
+    startup = attribute([r for r in report.loop_stalls if r[0] < first_tick], host, period)
     f = verdict.figures
     return {
         "host_verdict": verdict.level,
@@ -102,6 +103,7 @@ def host_figures(report: RunReport, hand: HandConfig, first_tick: int,
         "host_steal_ms": host.steal_ms,
         **shares,
         "missed_handctl_at_ticks": own[:20],
+        "startup_missed_handctl": startup["missed_handctl"],
     }
 
 
@@ -153,6 +155,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     figures["lateness_ratio"] = round(float(figures["lateness_p99_us"]) / naive_p99, 4)  # type: ignore[arg-type]
     if variants:
         keep = ("lateness_p99_us", "missed_rate", "missed_host", "missed_handctl",
+                "startup_missed_ticks", "startup_missed_handctl", "ticks",
                 "host_lateness_p99_us", "host_stalls_over_period", "host_longest_stall_ms",
                 "tick_cpu_us_p99", "outcome", "rt")
         figures["hygiene"] = {name: {k: v[k] for k in keep} for name, v in variants.items()}
