@@ -26,13 +26,15 @@ import resource
 import signal
 import subprocess
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from handctl.clock import LOOP_PRIORITY
+from handctl.clock import LOOP_PRIORITY, Hygiene, StallLog
 from handctl.config import HandConfig, SafetyConfig
 from handctl.errors import ConfigError, HandctlError
+from handctl.safety.faults import Fault, FaultCode
 from handctl.safety.watchdog import TickWatch
 from handctl.tickstats import HIST_RANGE_US
 
@@ -551,3 +553,100 @@ def attribute(loop_stalls: list[tuple[int, int, int, int]], host: ProbeRecord,
             if handctls is not None:
                 handctls.append(tick)
     return counts
+
+
+# -- a run's host: its CPUs, the check before it, the bare loop beside it -----------------------
+#: The summary lists the ticks of at most this many of handctl's own misses.
+MAX_LISTED_TICKS = 20
+
+
+def run_cpus(hygiene: Hygiene) -> tuple[int | None, int | None]:
+    """The CPUs of the loop and of the simulated hand for a real-time run: the user's, or
+    ``plan_cpus``'s on a machine of two or more; (None, None) when not pinned."""
+    if not hygiene.pin:
+        return None, None
+    facts = gather_facts()
+    allowed = set(facts.cpus)
+    loop_cpu, sim_cpu = plan_cpus(allowed, set(facts.isolated))
+    for option, cpu in (("--loop-cpu", hygiene.loop_cpu), ("--sim-cpu", hygiene.sim_cpu)):
+        if cpu is not None and cpu not in allowed:
+            raise ConfigError(option, "", f"one of the CPUs this process may use "
+                              f"{sorted(allowed)}", cpu)
+    if hygiene.loop_cpu is not None:
+        loop_cpu = hygiene.loop_cpu
+        if sim_cpu == loop_cpu:
+            sim_cpu = min(allowed - {loop_cpu}, default=None)
+    if hygiene.sim_cpu is not None:
+        sim_cpu = hygiene.sim_cpu
+    if loop_cpu is not None and loop_cpu == sim_cpu:
+        raise ConfigError("--sim-cpu", "", f"a CPU other than the loop's ({loop_cpu})", sim_cpu)
+    return loop_cpu, sim_cpu
+
+
+def affinity(pid: int) -> list[int] | None:
+    """The CPUs a process (0: this thread) may run on; None if it is gone."""
+    try:
+        return sorted(os.sched_getaffinity(pid))
+    except ProcessLookupError:
+        return None
+
+
+def precheck(hand: HandConfig, realtime: bool, loop_cpu: int | None,
+             accept_missed_deadlines: bool) -> list[str]:
+    """The timing check before a run on anything but the simulated hand: a host that fails
+    it is refused unless the user accepts the risk by name; returns the warnings."""
+    report = timing_check(hand, PRECHECK_S, realtime=realtime, cpu=loop_cpu)
+    if report.verdict.fails and not accept_missed_deadlines:
+        raise HostTimingError(report.text() + "\n  nothing was sent; to run anyway, pass "
+                              "--accept-missed-deadlines")
+    if report.verdict.fails:
+        return [f"running with --accept-missed-deadlines on a host that failed the timing "
+                f"check: {'; '.join(report.verdict.reasons)}"]
+    if report.verdict.level == "marginal":
+        return [f"timing check marginal: {'; '.join(report.verdict.reasons)}"]
+    return []
+
+
+def beside_probe(hand: HandConfig, realtime: bool, loop_cpu: int | None,
+                 lock_memory: bool) -> Probe:
+    """The bare timer loop beside a real-time run, on the loop's CPU one priority above it.
+
+    Above it, so the loop's own lateness never delays it; on its CPU, so it shares the loop's
+    host stalls. It ticks twice a loop period: any host stall of a whole period then shows as
+    a probe wake-up at least half a period late, which is what it keeps.
+    """
+    period = round(hand.bus.period_s * 1e9)
+    return Probe(period // 2, record_ns=period // 2,
+                 priority=LOOP_PRIORITY + 1 if realtime else None, cpu=loop_cpu,
+                 lock_memory=realtime and lock_memory)
+
+
+def host_summary(hand: HandConfig, probe: Probe, loop_stalls: StallLog,
+                 faults: Sequence[Fault], warnings: list[str]
+                 ) -> tuple[ProbeRecord | None, dict[str, Any]]:
+    """What the bare loop beside a run saw, and whose the run's missed ticks were; a warning
+    with the host's verdict when the run stopped on LOOP_OVERRUN or FEEDBACK_TIMEOUT."""
+    try:
+        record = probe.stop()
+    except HandctlError as exc:
+        warnings.append(str(exc))
+        return None, {"error": str(exc)}
+    verdict = judge(record, Deadlines.of(hand))
+    own: list[int] = []
+    shares = attribute(loop_stalls.rows(), record, round(hand.bus.period_s * 1e9), own)
+    shares["missed_unobserved"] += loop_stalls.overflow_missed
+    stopped_on = sorted({f.code.name for f in faults
+                         if f.code in (FaultCode.LOOP_OVERRUN, FaultCode.FEEDBACK_TIMEOUT)})
+    if stopped_on:
+        warnings.append(
+            f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it says "
+            f"the host was {verdict.level.upper()}"
+            + "".join(f"; {r}" for r in verdict.reasons)
+            + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
+            f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's); see "
+            "'handctl check --timing' and docs/timing.md")
+    return record, {"verdict": verdict.level, "reasons": list(verdict.reasons),
+                    **verdict.figures, **shares,
+                    "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
+                    "probe_period_us": record.period_ns / 1e3,
+                    "scheduler": record.scheduler, "refused": list(record.refused)}

@@ -9,7 +9,6 @@ like any other bus. The online plane itself never imports the simulation.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import os
 import signal
@@ -17,7 +16,7 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Callable
-from contextlib import ExitStack
+from contextlib import ExitStack, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -36,21 +35,18 @@ from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
 from handctl.hostcheck import (
-    PRECHECK_S,
-    Deadlines,
-    HostTimingError,
     Probe,
     ProbeRecord,
-    attribute,
-    gather_facts,
-    judge,
-    plan_cpus,
-    timing_check,
+    affinity,
+    beside_probe,
+    host_summary,
+    precheck,
+    run_cpus,
 )
 from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
-from handctl.safety.faults import FAULTS, FaultCode
+from handctl.safety.faults import FAULTS
 from handctl.tickstats import TickWindow, percentile_us
 
 if TYPE_CHECKING:
@@ -59,8 +55,6 @@ if TYPE_CHECKING:
 
 #: Object poses of the simulated hand are recorded every this many ticks (lockstep only).
 POSE_EVERY_TICKS = 10
-#: The summary lists the ticks of at most this many of handctl's own misses.
-MAX_LISTED_TICKS = 20
 
 
 @dataclass
@@ -143,10 +137,11 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         raise ConfigError("--lockstep", "", "the simulated hand (--bus sim): only it can be "
                           "stepped", req.bus)
     startup_s = 0.5
-    loop_cpu, sim_cpu = _plan_cpus(req) if req.realtime_priority else (None, None)
+    loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     if not is_sim:
         # Before the bus is opened: a host that cannot hold the deadlines sends nothing.
-        warnings += _precheck(req, loop_cpu)
+        warnings += precheck(req.hand, req.realtime_priority, loop_cpu,
+                             req.accept_missed_deadlines)
     with ExitStack() as stack:
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
@@ -180,13 +175,14 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             clock = LockstepClock(req.hand.bus.period_s, sim_hand.step)
         else:
             clock = RealtimeClock(req.hand.bus.period_s)
-            probe = stack.enter_context(_beside_probe(req, loop_cpu))
+            probe = stack.enter_context(beside_probe(req.hand, req.realtime_priority, loop_cpu,
+                                                     req.hygiene.lock_memory))
             if req.realtime_priority:
                 warnings += request_realtime(LOOP_PRIORITY, cpu=loop_cpu,
                                              lock_memory=req.hygiene.lock_memory,
                                              prefault_memory=req.hygiene.prefault)
-            cpus = {"loop": _affinity(0),
-                    "sim": _affinity(sim_process.proc.pid) if sim_process else None}
+            cpus = {"loop": affinity(0),
+                    "sim": affinity(sim_process.proc.pid) if sim_process else None}
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
         max_ticks = (round(req.max_seconds / req.hand.bus.period_s) if req.max_seconds
                      else 10_000_000)
@@ -215,7 +211,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         host: ProbeRecord | None = None
         if probe is not None:
             assert isinstance(clock, RealtimeClock)
-            host, summary["host"] = _host_summary(req, probe, clock, result, warnings)
+            host, summary["host"] = host_summary(req.hand, probe, clock.stalls, result.faults,
+                                                 warnings)
             summary["host"]["cpus"] = cpus
         if tracker is not None:
             from handctl.planning.experiment import experiment_summary
@@ -238,95 +235,6 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
     return RunReport(result, summary, warnings, runtime.first_send_tick,
                      runtime.startup_missed_ticks, host,
                      clock.stalls.rows() if isinstance(clock, RealtimeClock) else [])
-
-
-def _plan_cpus(req: RunRequest) -> tuple[int | None, int | None]:
-    """The CPUs of the loop and of the simulated hand for a real-time run: the user's, or
-    ``plan_cpus``'s on a machine of two or more; (None, None) when not pinned."""
-    if not req.hygiene.pin:
-        return None, None
-    facts = gather_facts()
-    allowed = set(facts.cpus)
-    loop_cpu, sim_cpu = plan_cpus(allowed, set(facts.isolated))
-    for option, cpu in (("--loop-cpu", req.hygiene.loop_cpu), ("--sim-cpu", req.hygiene.sim_cpu)):
-        if cpu is not None and cpu not in allowed:
-            raise ConfigError(option, "", f"one of the CPUs this process may use "
-                              f"{sorted(allowed)}", cpu)
-    if req.hygiene.loop_cpu is not None:
-        loop_cpu = req.hygiene.loop_cpu
-        if sim_cpu == loop_cpu:
-            sim_cpu = min(allowed - {loop_cpu}, default=None)
-    if req.hygiene.sim_cpu is not None:
-        sim_cpu = req.hygiene.sim_cpu
-    if loop_cpu is not None and loop_cpu == sim_cpu:
-        raise ConfigError("--sim-cpu", "", f"a CPU other than the loop's ({loop_cpu})", sim_cpu)
-    return loop_cpu, sim_cpu
-
-
-def _affinity(pid: int) -> list[int] | None:
-    """The CPUs a process (0: this thread) may run on; None if it is gone."""
-    try:
-        return sorted(os.sched_getaffinity(pid))
-    except ProcessLookupError:
-        return None
-
-
-def _precheck(req: RunRequest, loop_cpu: int | None) -> list[str]:
-    """The timing check before a run on anything but the simulated hand: a host that fails
-    it is refused unless the user accepts the risk by name; returns the warnings."""
-    report = timing_check(req.hand, PRECHECK_S, realtime=req.realtime_priority, cpu=loop_cpu)
-    if report.verdict.fails and not req.accept_missed_deadlines:
-        raise HostTimingError(report.text() + "\n  nothing was sent; to run anyway, pass "
-                              "--accept-missed-deadlines")
-    if report.verdict.fails:
-        return [f"running with --accept-missed-deadlines on a host that failed the timing "
-                f"check: {'; '.join(report.verdict.reasons)}"]
-    if report.verdict.level == "marginal":
-        return [f"timing check marginal: {'; '.join(report.verdict.reasons)}"]
-    return []
-
-
-def _beside_probe(req: RunRequest, loop_cpu: int | None) -> Probe:
-    """The bare timer loop beside a real-time run, on the loop's CPU one priority above it.
-
-    Above it, so the loop's own lateness never delays it; on its CPU, so it shares the loop's
-    host stalls. It ticks twice a loop period: any host stall of a whole period then shows as
-    a probe wake-up at least half a period late, which is what it keeps.
-    """
-    period = round(req.hand.bus.period_s * 1e9)
-    rt = req.realtime_priority
-    return Probe(period // 2, record_ns=period // 2,
-                 priority=LOOP_PRIORITY + 1 if rt else None, cpu=loop_cpu,
-                 lock_memory=rt and req.hygiene.lock_memory)
-
-
-def _host_summary(req: RunRequest, probe: Probe, clock: RealtimeClock, result: RunResult,
-                  warnings: list[str]) -> tuple[ProbeRecord | None, dict[str, Any]]:
-    """What the bare loop beside the run saw, and whose the run's missed ticks were."""
-    try:
-        record = probe.stop()
-    except HandctlError as exc:
-        warnings.append(str(exc))
-        return None, {"error": str(exc)}
-    verdict = judge(record, Deadlines.of(req.hand))
-    own: list[int] = []
-    shares = attribute(clock.stalls.rows(), record, clock.period_ns, own)
-    shares["missed_unobserved"] += clock.stalls.overflow_missed
-    stopped_on = sorted({f.code.name for f in result.faults
-                         if f.code in (FaultCode.LOOP_OVERRUN, FaultCode.FEEDBACK_TIMEOUT)})
-    if stopped_on:
-        warnings.append(
-            f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it says "
-            f"the host was {verdict.level.upper()}"
-            + "".join(f"; {r}" for r in verdict.reasons)
-            + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
-            f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's); see "
-            "'handctl check --timing' and docs/timing.md")
-    return record, {"verdict": verdict.level, "reasons": list(verdict.reasons),
-                    **verdict.figures, **shares,
-                    "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
-                    "probe_period_us": record.period_ns / 1e3,
-                    "scheduler": record.scheduler, "refused": list(record.refused)}
 
 
 def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
@@ -389,7 +297,7 @@ class SimProcess:
             self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log)
         if cpu is not None:
             # Now, while the child has one thread: the node timer thread it starts inherits it.
-            with contextlib.suppress(ProcessLookupError):  # gone already: problem() says why
+            with suppress(ProcessLookupError):  # gone already: problem() says why
                 os.sched_setaffinity(self.proc.pid, {cpu})
         self.summary: dict[str, Any] | None = None
 
