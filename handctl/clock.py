@@ -209,7 +209,7 @@ LOOP_PRIORITY = 80
 STACK_RESERVE = 256 * 1024
 HEAP_RESERVE = 16 * 1024 * 1024
 _M_TRIM_THRESHOLD = -1
-_M_MMAP_MAX = -4
+_HEAP_BLOCK = 64 * 1024  # below glibc's smallest mmap threshold (128 KiB)
 
 
 @dataclass(frozen=True)
@@ -233,20 +233,26 @@ def _libc() -> ctypes.CDLL:
 
 
 def prefault(libc: ctypes.CDLL) -> None:
-    """Make the first deep call and the first large allocation of a tick free of page faults.
+    """Make the first deep call and the first allocations of a tick free of page faults.
 
-    The heap: glibc is told never to give memory back (no trimming, no mmap for large blocks),
-    then a reserve is allocated, written and freed, so later allocations reuse resident pages.
-    The stack: Python cannot grow its own C stack on purpose, so a call passes a structure of
+    The heap: glibc is told never to give the top of the heap back (no trimming), then a
+    reserve is allocated in blocks small enough to come from the heap (below glibc's mmap
+    threshold), written and freed, so later allocations reuse resident pages. Large blocks
+    still come from mmap, which with MCL_FUTURE is populated when it is mapped. The stack:
+    Python cannot grow its own C stack on purpose, so a call passes a structure of
     ``STACK_RESERVE`` bytes by value; libffi copies it onto the stack, which touches every page
     of that depth. With the memory locked, both stay resident for the whole run.
     """
     libc.mallopt(_M_TRIM_THRESHOLD, -1)
-    libc.mallopt(_M_MMAP_MAX, 0)
     libc.malloc.restype = ctypes.c_void_p
-    block = libc.malloc(ctypes.c_size_t(HEAP_RESERVE))
-    if block:
-        ctypes.memset(block, 1, HEAP_RESERVE)
+    blocks = []
+    for _ in range(HEAP_RESERVE // _HEAP_BLOCK):
+        block = libc.malloc(ctypes.c_size_t(_HEAP_BLOCK))
+        if not block:
+            break
+        ctypes.memset(block, 1, _HEAP_BLOCK)
+        blocks.append(block)
+    for block in blocks:
         libc.free(ctypes.c_void_p(block))
     # getpid ignores the argument; the call is only there to have the copy made.
     touch = ctypes.CFUNCTYPE(ctypes.c_int, _StackReserve)(("getpid", libc))
