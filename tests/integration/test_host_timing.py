@@ -148,3 +148,18 @@ def test_cpus_outside_the_machine_are_bad_input() -> None:
     assert done.returncode == 2
     assert "--loop-cpu: expected one of the CPUs this process may use" in done.stderr
     assert "found 4096" in done.stderr
+
+
+def test_a_named_virtual_bus_counts_as_a_real_one() -> None:
+    """handctl cannot know what is at the other end of a bus: only its own simulated hand
+    runs without the check."""
+    done = handctl("run", "recipe", RECIPE, "--bus", "virtual:handctl-test-precheck",
+                   env={INJECT_ENV: str(FAILING)})
+    assert done.returncode == 5, done.stderr
+    assert "handctl: refused: timing check: FAIL" in done.stderr
+
+
+def test_a_check_of_no_length_is_bad_input() -> None:
+    done = handctl("check", "--timing", "--seconds", "0")
+    assert done.returncode == 2
+    assert "--seconds: expected a number of seconds > 0 and <= 3600, found 0.0" in done.stderr
