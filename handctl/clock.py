@@ -266,6 +266,11 @@ def request_realtime(priority: int = LOOP_PRIORITY, *, cpu: int | None = None,
 
     Refusals are warnings, as in ros2_control: the run goes on with what it got, and the
     timing check beside it (``handctl.hostcheck``) shows what that cost.
+
+    The memory is locked and prefaulted before the priority is raised: locking faults in every
+    page of the process (tens of ms for the control process), which at SCHED_FIFO would hold
+    every task of lower or equal priority on that CPU, the control loop beside a bare timer
+    loop among them.
     """
     refused: list[str] = []
     if cpu is not None:
@@ -275,19 +280,19 @@ def request_realtime(priority: int = LOOP_PRIORITY, *, cpu: int | None = None,
             refused.append(f"pinning to CPU {cpu} refused ({exc}); the loop runs on "
                            f"CPUs {sorted(os.sched_getaffinity(0))}")
     try:
+        libc: ctypes.CDLL | None = _libc()
+    except OSError as exc:
+        libc = None
+        refused.append(f"locking memory unavailable ({exc})")
+    if libc is not None and lock_memory and libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
+        err = ctypes.get_errno()
+        refused.append(f"locking memory refused ({os.strerror(err)}); raise 'ulimit -l' "
+                       "(memlock) or run with CAP_IPC_LOCK")
+    if libc is not None and prefault_memory:
+        prefault(libc)
+    try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except (OSError, AttributeError) as exc:
         refused.append(f"SCHED_FIFO priority {priority} refused ({exc}); grant it with "
                        "'ulimit -r' / limits.conf rtprio, or run with CAP_SYS_NICE")
-    try:
-        libc = _libc()
-    except OSError as exc:
-        refused.append(f"locking memory unavailable ({exc})")
-        return refused
-    if lock_memory and libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
-        err = ctypes.get_errno()
-        refused.append(f"locking memory refused ({os.strerror(err)}); raise 'ulimit -l' "
-                       "(memlock) or run with CAP_IPC_LOCK")
-    if prefault_memory:
-        prefault(libc)
     return refused

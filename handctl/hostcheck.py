@@ -537,19 +537,27 @@ def attribute(loop_stalls: list[tuple[int, int, int, int]], host: ProbeRecord,
     (the tick before it may have been the one held up) to its wake-up. If a stall of the bare
     loop beside it overlaps that interval, the host held both loops: ``missed_host``. If none
     did, the host let a bare loop run at that time and handctl was late on its own:
-    ``missed_handctl``. Missed ticks outside the time the probe ran are ``missed_unobserved``.
-    The ticks of handctl's own misses are appended to ``handctls`` if given.
+    ``missed_handctl``. Of those, ``missed_handctl_after_host`` came in the very next tick
+    after a host stall, while the loop caught up (a backlog of frames to read). Missed ticks
+    outside the time the probe ran are ``missed_unobserved``. The ticks of handctl's own
+    misses are appended to ``handctls`` if given.
     """
     host_stalls = sorted((due, wake) for _, due, wake, _ in host.stalls)
-    counts = {"missed_host": 0, "missed_handctl": 0, "missed_unobserved": 0}
+    counts = {"missed_host": 0, "missed_handctl": 0, "missed_handctl_after_host": 0,
+              "missed_unobserved": 0}
+    after_host = -2  # the last tick of a chain of misses that began with a host stall
     for tick, due, wake, missed in loop_stalls:
         start = due - period_ns
         if wake < host.start_ns or start > host.end_ns:
             counts["missed_unobserved"] += missed
         elif any(h_due < wake and h_wake > start for h_due, h_wake in host_stalls):
             counts["missed_host"] += missed
+            after_host = tick
         else:
             counts["missed_handctl"] += missed
+            if tick == after_host + 1:
+                counts["missed_handctl_after_host"] += missed
+                after_host = tick
             if handctls is not None:
                 handctls.append(tick)
     return counts

@@ -22,6 +22,7 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -51,14 +52,21 @@ def steal_ms(cpus: set[int] | None = None) -> float:
     return total * 1000 / _USER_HZ
 
 
-def probe(period_ns: int, seconds: float | None, record_ns: int, stop: list[bool]
-          ) -> dict[str, Any]:
-    """The loop itself: wait, note the lateness, nothing else, until ``seconds`` or ``stop``."""
+def probe(period_ns: int, seconds: float | None, record_ns: int, stop: list[bool],
+          become_realtime: Callable[[], list[str]]) -> dict[str, Any]:
+    """The loop itself: wait, note the lateness, nothing else, until ``seconds`` or ``stop``.
+
+    Everything is allocated, and the C library found, before ``become_realtime`` raises the
+    priority: at SCHED_FIFO above the control loop, every millisecond of set-up would be one
+    the loop beside it could not run.
+    """
     hist = [0] * (HIST_RANGE_US + 1)
     stalls = StallLog(record_ns)
     late_max = 0
     wakeups = 0
     expirations = 0
+    PeriodicTimer(period_ns).close()  # loads what the timer needs
+    refused = become_realtime()
     cpus = os.sched_getaffinity(0)
     steal_before = steal_ms(cpus)
     timer = PeriodicTimer(period_ns)
@@ -87,7 +95,7 @@ def probe(period_ns: int, seconds: float | None, record_ns: int, stop: list[bool
         "lateness_hist_us": {str(i): c for i, c in enumerate(hist) if c},
         "stalls": [list(row) for row in stalls.rows()],
         "stalls_overflow": stalls.overflow,
-        "steal_ms": round(steal_ms(cpus) - steal_before, 1),
+        "steal_ms": round(steal_ms(cpus) - steal_before, 1), "refused": refused,
     }
 
 
@@ -125,21 +133,26 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    refused: list[str] = []
-    if args.priority is not None:
-        refused = request_realtime(args.priority, cpu=args.cpu,
-                                   lock_memory=not args.no_lock_memory)
-    elif args.cpu is not None:
-        try:
-            os.sched_setaffinity(0, {args.cpu})
-        except (OSError, ValueError) as exc:
-            refused.append(f"pinning to CPU {args.cpu} refused ({exc})")
+    # Before the priority is raised: a collection, like locking memory, at SCHED_FIFO would
+    # hold the control loop on this CPU for milliseconds.
     gc.collect()
     gc.freeze()
     gc.disable()
-    result = probe(args.period_ns, args.seconds, args.record_ns or args.period_ns, stop)
+
+    def become_realtime() -> list[str]:
+        if args.priority is not None:
+            return request_realtime(args.priority, cpu=args.cpu,
+                                    lock_memory=not args.no_lock_memory)
+        if args.cpu is not None:
+            try:
+                os.sched_setaffinity(0, {args.cpu})
+            except (OSError, ValueError) as exc:
+                return [f"pinning to CPU {args.cpu} refused ({exc})"]
+        return []
+
+    result = probe(args.period_ns, args.seconds, args.record_ns or args.period_ns, stop,
+                   become_realtime)
     result["scheduler"] = scheduler()
-    result["refused"] = refused
     json.dump(result, sys.stdout)
     sys.stdout.write("\n")
     return 0

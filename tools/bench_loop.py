@@ -155,6 +155,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     figures["lateness_ratio"] = round(float(figures["lateness_p99_us"]) / naive_p99, 4)  # type: ignore[arg-type]
     if variants:
         keep = ("lateness_p99_us", "missed_rate", "missed_host", "missed_handctl",
+                "missed_handctl_after_host",
                 "startup_missed_ticks", "startup_missed_handctl", "ticks",
                 "host_lateness_p99_us", "host_stalls_over_period", "host_longest_stall_ms",
                 "tick_cpu_us_p99", "outcome", "rt")

@@ -157,8 +157,23 @@ def test_a_missed_tick_is_the_hosts_only_if_the_bare_loop_stalled_with_it() -> N
         (30, at + 800 * MS, at + 802 * MS, 2),  # the host ran fine then
         (40, at + 20_000 * MS, at + 20_002 * MS, 2),  # after the probe stopped
     ]
-    assert attribute(loop, host, MS) == {"missed_host": 3, "missed_handctl": 2,
-                                         "missed_unobserved": 2}
+    own: list[int] = []
+    assert attribute(loop, host, MS, own) == {"missed_host": 3, "missed_handctl": 2,
+                                              "missed_handctl_after_host": 0,
+                                              "missed_unobserved": 2}
+    assert own == [30]
+
+
+def test_a_miss_right_after_a_host_stall_is_handctls_catching_up() -> None:
+    host = record([(500, 500.0, 4.0)], period_ns=MS // 2)  # 500..504 ms
+    at = START
+    loop = [(10, at + 501 * MS, at + 503 * MS, 2),  # the host's
+            (11, at + 505 * MS, at + 506 * MS + 300_000, 1),  # the next tick, catching up
+            (12, at + 507 * MS, at + 508 * MS + 100_000, 1),  # and the one after
+            (20, at + 515 * MS, at + 516 * MS + 100_000, 1)]  # on-time ticks between
+    shares = attribute(loop, host, MS)
+    assert (shares["missed_host"], shares["missed_handctl"]) == (2, 3)
+    assert shares["missed_handctl_after_host"] == 2
 
 
 # -- the host -------------------------------------------------------------------------------------
