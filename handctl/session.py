@@ -34,15 +34,8 @@ from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
-from handctl.hostcheck import (
-    Probe,
-    ProbeRecord,
-    affinity,
-    beside_probe,
-    host_summary,
-    precheck,
-    run_cpus,
-)
+from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
+from handctl.hostfacts import affinity
 from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe

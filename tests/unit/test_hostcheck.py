@@ -10,17 +10,8 @@ import pytest
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.hostcheck import (
-    Deadlines,
-    HostFacts,
-    ProbeRecord,
-    advice,
-    attribute,
-    judge,
-    parse_cpu_list,
-    plan_cpus,
-    preemption_model,
-)
+from handctl.hostcheck import Deadlines, ProbeRecord, advice, attribute, judge
+from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_model
 
 MS = 1_000_000
 START = 10_000 * MS
