@@ -289,7 +289,7 @@ class Probe:
                  priority: int | None = None, cpu: int | None = None,
                  lock_memory: bool = True) -> None:
         cmd = [sys.executable, "-m", "handctl.hostprobe", "--period-ns", str(period_ns),
-               "--record-ns", str(record_ns)]
+               "--record-ns", str(record_ns), "--parent-pid", str(os.getpid())]
         if seconds is not None:
             cmd += ["--seconds", str(seconds)]
         if priority is not None:

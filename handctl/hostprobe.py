@@ -16,6 +16,8 @@ lateness as a histogram of 1 µs bins, and every stall of at least T ns with its
 from __future__ import annotations
 
 import argparse
+import ctypes
+import ctypes.util
 import gc
 import json
 import os
@@ -32,6 +34,7 @@ from handctl.timerfd import PeriodicTimer
 #: µs: the histogram's last bin collects every wake-up later than this (the maximum is exact)
 HIST_RANGE_US = 20_000
 _USER_HZ = os.sysconf("SC_CLK_TCK")
+_PR_SET_PDEATHSIG = 1
 
 
 def steal_ms(cpus: set[int] | None = None) -> float:
@@ -116,6 +119,17 @@ def scheduler() -> dict[str, Any]:
             "cpus": sorted(os.sched_getaffinity(0)), "memory_locked_kb": locked_kb}
 
 
+def _end_with_parent(parent: int) -> bool:
+    """SIGTERM when the process that started this one (``parent``) dies: a bare loop at
+    SCHED_FIFO must not outlive a run killed with SIGKILL. False if it is gone already."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass
+    return os.getppid() == parent
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m handctl.hostprobe",
                                      description=__doc__.split("\n\n")[0])
@@ -125,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--priority", type=int, help="SCHED_FIFO priority (default: none)")
     parser.add_argument("--cpu", type=int, help="pin to this CPU")
     parser.add_argument("--no-lock-memory", action="store_true")
+    parser.add_argument("--parent-pid", type=int, help="end when this process ends")
     args = parser.parse_args(argv)
     stop = [False]
 
@@ -133,6 +148,8 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    if args.parent_pid is not None and not _end_with_parent(args.parent_pid):
+        return 0
     # Before the priority is raised: a collection, like locking memory, at SCHED_FIFO would
     # hold the control loop on this CPU for milliseconds.
     gc.collect()

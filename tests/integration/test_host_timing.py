@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -163,3 +165,43 @@ def test_a_check_of_no_length_is_bad_input() -> None:
     done = handctl("check", "--timing", "--seconds", "0")
     assert done.returncode == 2
     assert "--seconds: expected a number of seconds > 0 and <= 3600, found 0.0" in done.stderr
+
+
+_ORPHANING_PARENT = """
+import os, subprocess, sys
+probe = subprocess.Popen([sys.executable, "-m", "handctl.hostprobe", "--period-ns", "1000000",
+                          "--parent-pid", str(os.getpid())], stdout=subprocess.DEVNULL)
+print(probe.pid, flush=True)
+sys.stdin.readline()  # until the test has seen the probe run
+os._exit(0)  # as SIGKILL would: no clean-up
+"""
+
+
+def test_the_bare_loop_ends_with_the_run_that_started_it() -> None:
+    """A run killed with SIGKILL must not leave a SCHED_FIFO loop behind."""
+    parent = subprocess.Popen([sys.executable, "-c", _ORPHANING_PARENT], cwd=ROOT, text=True,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    assert parent.stdout is not None and parent.stdin is not None
+    pid = int(parent.stdout.readline())
+    try:
+        for _ in range(200):  # the probe is up once it has its own command line
+            if b"hostprobe" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                break
+            time.sleep(0.05)
+        parent.communicate("go\n", timeout=30)
+        for _ in range(200):
+            if not _alive(pid):
+                break
+            time.sleep(0.05)
+        assert not _alive(pid)
+    finally:
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
