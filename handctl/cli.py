@@ -176,6 +176,12 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     late = summary["lateness_us"]
     print(f"  {summary['ticks']} ticks, {summary['missed_ticks']} missed, lateness p50 "
           f"{late['p50']} µs p99 {late['p99']} µs max {late['max']} µs")
+    host = summary.get("host")
+    if host and "error" not in host:
+        print(f"  host (bare timer loop beside the run): {host['verdict'].upper()}, lateness "
+              f"p99 {host['lateness_us']['p99']:g} µs, longest stall "
+              f"{host['longest_stall_ms']:g} ms; missed ticks: {host['missed_host']} the "
+              f"host's, {host['missed_handctl']} handctl's")
     print("  max |τ| " + ", ".join(f"{k} {v:.3f}" for k, v in summary["max_abs_tau"].items()))
     if "experiment" in summary:
         ex = summary["experiment"]

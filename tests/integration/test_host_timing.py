@@ -134,6 +134,7 @@ def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) ->
     assert any(f["code"] == "FEEDBACK_TIMEOUT" for f in summary["faults"])
     assert "the run stopped on FEEDBACK_TIMEOUT; the bare timer loop beside it says the host " \
            "was " in done.stderr
+    assert "host (bare timer loop beside the run): " in done.stdout
     host = summary["host"]
     assert host["verdict"] in ("pass", "marginal", "fail")
     assert host["missed_host"] + host["missed_handctl"] + host["missed_unobserved"] == \
