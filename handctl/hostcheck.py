@@ -96,11 +96,21 @@ class ProbeRecord:
             raise ConfigError(source, "", "a JSON object (hostprobe output or a check report)",
                               type(data).__name__)
 
-        def integer(key: str, minimum: int = 0) -> int:
-            value = data.get(key)
+        def integer(key: str, minimum: int = 0, default: int | None = None) -> int:
+            value = data.get(key, default)
             if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
                 raise ConfigError(source, prefix + key, f"an integer >= {minimum}", value)
             return value
+
+        steal = data.get("steal_ms", 0.0)
+        if not isinstance(steal, int | float) or isinstance(steal, bool) or steal < 0:
+            raise ConfigError(source, prefix + "steal_ms", "a number of ms >= 0", steal)
+        scheduler = data.get("scheduler", {})
+        refused = data.get("refused", [])
+        if not isinstance(scheduler, dict):
+            raise ConfigError(source, prefix + "scheduler", "a mapping", scheduler)
+        if not isinstance(refused, list) or not all(isinstance(r, str) for r in refused):
+            raise ConfigError(source, prefix + "refused", "a list of strings", refused)
 
         period = integer("period_ns", 1)
         hist_raw = data.get("lateness_hist_us")
@@ -124,10 +134,9 @@ class ProbeRecord:
                    wakeups=integer("wakeups"),
                    lateness_hist_us={int(k): v for k, v in hist_raw.items()},
                    lateness_max_ns=integer("lateness_max_ns"), stalls=tuple(stalls),
-                   stalls_overflow=int(data.get("stalls_overflow", 0)),
-                   steal_ms=float(data.get("steal_ms", 0.0)),
-                   scheduler=dict(data.get("scheduler", {})),
-                   refused=tuple(data.get("refused", ())), source=source)
+                   stalls_overflow=integer("stalls_overflow", default=0),
+                   steal_ms=float(steal), scheduler=dict(scheduler), refused=tuple(refused),
+                   source=source)
 
     def as_json(self) -> dict[str, Any]:
         return {"period_ns": self.period_ns, "start_ns": self.start_ns, "end_ns": self.end_ns,

@@ -127,6 +127,12 @@ def test_a_bad_record_is_refused_with_the_key_expected_and_found() -> None:
         ProbeRecord.from_json({**good, "period_ns": 0}, "old.json")
     assert info.value.key == "period_ns" and info.value.found == 0
     with pytest.raises(ConfigError) as info:
+        ProbeRecord.from_json({**good, "steal_ms": "a lot"}, "old.json")
+    assert info.value.key == "steal_ms"
+    with pytest.raises(ConfigError) as info:
+        ProbeRecord.from_json({**good, "stalls_overflow": -1}, "old.json")
+    assert info.value.key == "stalls_overflow"
+    with pytest.raises(ConfigError) as info:
         ProbeRecord.from_json([1, 2], "old.json")
     assert "JSON object" in info.value.expected
 
