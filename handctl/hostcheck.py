@@ -501,19 +501,21 @@ def run_cpus(hygiene: Hygiene) -> tuple[int | None, int | None]:
 
 
 def precheck(hand: HandConfig, realtime: bool, loop_cpu: int | None,
-             accept_missed_deadlines: bool) -> list[str]:
+             accept_missed_deadlines: bool) -> tuple[dict[str, Any], list[str]]:
     """The timing check before a run on anything but the simulated hand: a host that fails
-    it is refused unless the user accepts the risk by name; returns the warnings."""
+    it is refused unless the user accepts the risk by name. Returns the check for the run's
+    summary (its figures, not the probe's record) and the warnings."""
     report = timing_check(hand, PRECHECK_S, realtime=realtime, cpu=loop_cpu)
     if report.verdict.fails and not accept_missed_deadlines:
         raise HostTimingError(report.text() + "\n  nothing was sent; to run anyway, pass "
                               "--accept-missed-deadlines")
+    summary = {k: v for k, v in report.as_json().items() if k not in ("probe", "facts")}
     if report.verdict.fails:
-        return [f"running with --accept-missed-deadlines on a host that failed the timing "
-                f"check: {'; '.join(report.verdict.reasons)}"]
+        return summary, [f"running with --accept-missed-deadlines on a host that failed the "
+                         f"timing check: {'; '.join(report.verdict.reasons)}"]
     if report.verdict.level == "marginal":
-        return [f"timing check marginal: {'; '.join(report.verdict.reasons)}"]
-    return []
+        return summary, [f"timing check marginal: {'; '.join(report.verdict.reasons)}"]
+    return summary, []
 
 
 def beside_probe(hand: HandConfig, realtime: bool, loop_cpu: int | None,

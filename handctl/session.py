@@ -131,10 +131,12 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                           "stepped", req.bus)
     startup_s = 0.5
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
+    host_check: dict[str, Any] | None = None
     if not is_sim:
         # Before the bus is opened: a host that cannot hold the deadlines sends nothing.
-        warnings += precheck(req.hand, req.realtime_priority, loop_cpu,
-                             req.accept_missed_deadlines)
+        host_check, checked = precheck(req.hand, req.realtime_priority, loop_cpu,
+                                       req.accept_missed_deadlines)
+        warnings += checked
     with ExitStack() as stack:
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
@@ -207,6 +209,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             host, summary["host"] = host_summary(req.hand, probe, clock.stalls, result.faults,
                                                  warnings)
             summary["host"]["cpus"] = cpus
+        if host_check is not None:
+            summary["host_check"] = host_check
         if tracker is not None:
             from handctl.planning.experiment import experiment_summary
 

@@ -100,11 +100,15 @@ def test_a_run_on_a_real_bus_is_refused_on_a_failing_host(tmp_path: Path,
         assert listener.drain() == []
 
         # Accepting the risk by name gets past the check to the bus, where nobody answers.
+        out = tmp_path / "out.json"
         done = handctl("run", "recipe", RECIPE, "--bus", f"unix:{directory}",
-                       "--accept-missed-deadlines", env={INJECT_ENV: str(FAILING)})
+                       "--accept-missed-deadlines", "--summary-json", str(out),
+                       env={INJECT_ENV: str(FAILING)})
         assert done.returncode == 3, done.stderr
         assert "running with --accept-missed-deadlines on a host that failed" in done.stderr
         assert "nodes not ready" in done.stderr
+        check = json.loads(out.read_text())["host_check"]  # the run says what it accepted
+        assert check["verdict"] == "fail" and check["injected"][0]["verdict"] == "fail"
 
 
 HOLD = """
