@@ -135,9 +135,11 @@ def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) ->
                    str(out))
     summary = json.loads(out.read_text())
     assert done.returncode == 3, done.stderr
-    assert any(f["code"] == "FEEDBACK_TIMEOUT" for f in summary["faults"])
-    assert "the run stopped on FEEDBACK_TIMEOUT; the bare timer loop beside it says the host " \
-           "was " in done.stderr
+    # The dropout stops it on FEEDBACK_TIMEOUT, unless this loaded machine stopped it first.
+    stops = sorted({f["code"] for f in summary["faults"]} & {"FEEDBACK_TIMEOUT", "LOOP_OVERRUN"})
+    assert stops, summary["faults"]
+    assert f"the run stopped on {', '.join(stops)}; the bare timer loop beside it says the " \
+           "host was " in done.stderr
     assert "host (bare timer loop beside the run): " in done.stdout
     host = summary["host"]
     assert host["verdict"] in ("pass", "marginal", "fail")
