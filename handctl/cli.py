@@ -51,6 +51,8 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 
     if not 0 < args.seconds <= 3600:
         raise ConfigError("--seconds", "", "a number of seconds > 0 and <= 3600", args.seconds)
+    if args.json and not args.json.resolve().parent.is_dir():
+        raise ConfigError("--json", "", "a file in an existing directory", str(args.json))
     hand = load_hand(args.hand)
     _progress(f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for "
               f"{args.seconds:g} s ...")

@@ -168,10 +168,14 @@ def test_a_named_virtual_bus_counts_as_a_real_one() -> None:
     assert "handctl: refused: timing check: FAIL" in done.stderr
 
 
-def test_a_check_of_no_length_is_bad_input() -> None:
+def test_a_check_of_no_length_is_bad_input(tmp_path: Path) -> None:
     done = handctl("check", "--timing", "--seconds", "0")
     assert done.returncode == 2
     assert "--seconds: expected a number of seconds > 0 and <= 3600, found 0.0" in done.stderr
+    nowhere = tmp_path / "missing" / "t.json"
+    done = handctl("check", "--timing", "--json", str(nowhere))
+    assert done.returncode == 2
+    assert f"--json: expected a file in an existing directory, found '{nowhere}'" in done.stderr
 
 
 _ORPHANING_PARENT = """
