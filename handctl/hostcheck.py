@@ -518,34 +518,57 @@ def precheck(hand: HandConfig, realtime: bool, loop_cpu: int | None,
     return summary, []
 
 
-def beside_probe(hand: HandConfig, realtime: bool, loop_cpu: int | None,
-                 lock_memory: bool) -> Probe:
-    """The bare timer loop beside a real-time run, on the loop's CPU one priority above it.
+def beside_probe(hand: HandConfig, realtime: bool, cpu: int | None, lock_memory: bool,
+                 priority: int = LOOP_PRIORITY + 1) -> Probe:
+    """The bare timer loop beside a real-time run, on the loop's CPU one priority above it
+    (or on the simulated hand's CPU, above the hand).
 
     Above it, so the loop's own lateness never delays it; on its CPU, so it shares the loop's
     host stalls. It ticks twice a loop period: any host stall of a whole period then shows as
     a probe wake-up at least half a period late, which is what it keeps.
     """
     period = round(hand.bus.period_s * 1e9)
-    return Probe(period // 2, record_ns=period // 2,
-                 priority=LOOP_PRIORITY + 1 if realtime else None, cpu=loop_cpu,
-                 lock_memory=realtime and lock_memory)
+    return Probe(period // 2, record_ns=period // 2, priority=priority if realtime else None,
+                 cpu=cpu, lock_memory=realtime and lock_memory)
 
 
 def host_summary(hand: HandConfig, probe: Probe, loop_stalls: StallLog,
-                 faults: Sequence[Fault], warnings: list[str]
+                 faults: Sequence[Fault], warnings: list[str], peer_probe: Probe | None = None
                  ) -> tuple[ProbeRecord | None, dict[str, Any]]:
     """What the bare loop beside a run saw, and whose the run's missed ticks were; a warning
-    with the host's verdict when the run stopped on LOOP_OVERRUN or FEEDBACK_TIMEOUT."""
+    with the host's verdict when the run stopped on LOOP_OVERRUN or FEEDBACK_TIMEOUT.
+
+    ``peer_probe`` is a bare loop on the simulated hand's CPU: its stalls are the host's part
+    in a feedback that came late, which the loop's CPU does not see.
+    """
     try:
         record = probe.stop()
+        peer = peer_probe.stop() if peer_probe is not None else None
     except HandctlError as exc:
         warnings.append(str(exc))
         return None, {"error": str(exc)}
-    verdict = judge(record, Deadlines.of(hand))
+    deadlines = Deadlines.of(hand)
+    verdict = judge(record, deadlines)
     own: list[int] = []
-    shares = attribute(loop_stalls.rows(), record, round(hand.bus.period_s * 1e9), own)
+    shares = attribute(loop_stalls.rows(), record, deadlines.period_ns, own)
     shares["missed_unobserved"] += loop_stalls.overflow_missed
+    summary = {"verdict": verdict.level, "reasons": list(verdict.reasons),
+               **verdict.figures, **shares,
+               "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
+               "probe_period_us": record.period_ns / 1e3,
+               "scheduler": record.scheduler, "refused": list(record.refused)}
+    peer_text = ""
+    if peer is not None:
+        peer_verdict = judge(peer, deadlines)
+        f = peer_verdict.figures
+        summary["sim_cpu"] = {"cpus": peer.scheduler.get("cpus"), "verdict": peer_verdict.level,
+                              "longest_stall_ms": f["longest_stall_ms"],
+                              "stalls_over_period": f["stalls_over_period"],
+                              "stalls_over_feedback_timeout": f["stalls_over_feedback_timeout"]}
+        peer_text = (f"; on the simulated hand's CPU {peer.scheduler.get('cpus')} the host was "
+                     f"{peer_verdict.level.upper()} (longest stall {f['longest_stall_ms']:g} "
+                     f"ms, {f['stalls_over_feedback_timeout']} longer than the feedback "
+                     "timeout)")
     stopped_on = sorted({f.code.name for f in faults
                          if f.code in (FaultCode.LOOP_OVERRUN, FaultCode.FEEDBACK_TIMEOUT)})
     if stopped_on:
@@ -554,10 +577,6 @@ def host_summary(hand: HandConfig, probe: Probe, loop_stalls: StallLog,
             f"the host was {verdict.level.upper()}"
             + "".join(f"; {r}" for r in verdict.reasons)
             + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
-            f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's); see "
-            "'handctl check --timing' and docs/timing.md")
-    return record, {"verdict": verdict.level, "reasons": list(verdict.reasons),
-                    **verdict.figures, **shares,
-                    "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
-                    "probe_period_us": record.period_ns / 1e3,
-                    "scheduler": record.scheduler, "refused": list(record.refused)}
+            f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's)"
+            + peer_text + "; see 'handctl check --timing' and docs/timing.md")
+    return record, summary

@@ -166,12 +166,18 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         bus: HandBus = stack.enter_context(open_bus(spec, req.hand.bus))
         clock: Clock
         probe: Probe | None = None
+        peer_probe: Probe | None = None
         if lockstep:
             clock = LockstepClock(req.hand.bus.period_s, sim_hand.step)
         else:
             clock = RealtimeClock(req.hand.bus.period_s)
             probe = stack.enter_context(beside_probe(req.hand, req.realtime_priority, loop_cpu,
                                                      req.hygiene.lock_memory))
+            if sim_process is not None and sim_cpu is not None:
+                # On the hand's CPU the loop does not run: the loop's priority is above the hand.
+                peer_probe = stack.enter_context(beside_probe(
+                    req.hand, req.realtime_priority, sim_cpu, req.hygiene.lock_memory,
+                    LOOP_PRIORITY))
             if req.realtime_priority:
                 warnings += request_realtime(LOOP_PRIORITY, cpu=loop_cpu,
                                              lock_memory=req.hygiene.lock_memory,
@@ -207,7 +213,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         if probe is not None:
             assert isinstance(clock, RealtimeClock)
             host, summary["host"] = host_summary(req.hand, probe, clock.stalls, result.faults,
-                                                 warnings)
+                                                 warnings, peer_probe)
             summary["host"]["cpus"] = cpus
         if host_check is not None:
             summary["host_check"] = host_check

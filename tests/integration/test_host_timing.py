@@ -150,6 +150,11 @@ def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) ->
     assert len(loop) == 1 and len(sim) == 1 and loop != sim
     if host["scheduler"]["policy"] == "SCHED_FIFO":  # root, or granted rtprio
         assert host["scheduler"]["cpus"] == loop  # the bare loop shares the loop's CPU
+    # A second bare loop watches the simulated hand's CPU, for a feedback that came late.
+    assert host["sim_cpu"]["cpus"] == sim
+    assert host["sim_cpu"]["verdict"] in ("pass", "marginal", "fail")
+    if "FEEDBACK_TIMEOUT" in stops:
+        assert f"on the simulated hand's CPU {sim} the host was " in done.stderr
 
 
 def test_cpus_outside_the_machine_are_bad_input() -> None:
