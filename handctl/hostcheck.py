@@ -308,8 +308,10 @@ class Probe:
         if not lock_memory:
             cmd.append("--no-lock-memory")
         self.seconds = seconds
+        # A session of its own: a terminal's Ctrl-C (SIGINT to the foreground process group)
+        # is the host's to handle; the probe ends when the host says so, or dies with it.
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True)
+                                     text=True, start_new_session=True)
 
     def stop(self) -> ProbeRecord:
         """End the probe (if it still runs) and read what it saw."""

@@ -16,6 +16,7 @@ lateness as a histogram of 1 µs bins, and every stall of at least T ns with its
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import ctypes.util
 import gc
@@ -92,6 +93,8 @@ def probe(period_ns: int, seconds: float | None, record_ns: int, stop: list[bool
         stopped = time.monotonic_ns()
     finally:
         timer.close()
+    got = scheduler()
+    _step_down()  # what is left is bookkeeping, which must not hold the loop on this CPU
     return {
         "period_ns": period_ns, "record_ns": record_ns, "start_ns": start, "end_ns": stopped,
         "wakeups": wakeups, "expirations": expirations, "lateness_max_ns": late_max,
@@ -99,7 +102,16 @@ def probe(period_ns: int, seconds: float | None, record_ns: int, stop: list[bool
         "stalls": [list(row) for row in stalls.rows()],
         "stalls_overflow": stalls.overflow,
         "steal_ms": round(steal_ms(cpus) - steal_before, 1), "refused": refused,
+        "scheduler": got,
     }
+
+
+def _step_down() -> None:
+    """Back to the ordinary scheduler once the loop ends. At SCHED_FIFO above the control
+    loop, building and writing the record (milliseconds of Python) would be a stall of the
+    very loop it was measuring, at the moment that loop is stopping the hand."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
 def scheduler() -> dict[str, Any]:
@@ -169,7 +181,6 @@ def main(argv: list[str] | None = None) -> int:
 
     result = probe(args.period_ns, args.seconds, args.record_ns or args.period_ns, stop,
                    become_realtime)
-    result["scheduler"] = scheduler()
     json.dump(result, sys.stdout)
     sys.stdout.write("\n")
     return 0
