@@ -203,10 +203,12 @@ def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:
 
 
 def test_yaml_is_loaded_safely(tmp_path: Path) -> None:
+    marker = tmp_path / "pwned"
     evil = tmp_path / "evil.yaml"
-    evil.write_text("name: !!python/object/apply:os.system ['echo pwned']\n")
-    with pytest.raises(ConfigError, match="valid YAML"):
+    evil.write_text(f"name: !!python/object/apply:os.system ['touch {marker}']\n")
+    with pytest.raises(ConfigError, match="!!python/object/apply:os.system at line 1"):
         load_hand(evil)
+    assert not marker.exists()
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
