@@ -129,6 +129,11 @@ def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
     if mark is None:
         return "", problem
     where = f"line {mark.line + 1}, column {mark.column + 1}"
+    lines = text.splitlines()
+    start = _key_without_colon(lines, mark.line, mark.column, problem)
+    if start is not None:
+        return (f" at line {start + 1}",
+                f"{problem}: a key without its ':'? (noticed at {where})")
     context = exc.context_mark
     if context is None or not exc.context or context.line >= mark.line:
         return f" at {where}", problem
@@ -136,7 +141,6 @@ def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
     if "simple key" in exc.context or "quoted scalar" in exc.context:
         return (f" at line {context.line + 1}, column {context.column + 1}",
                 f"{problem} (noticed at {where}, {started})")
-    lines = text.splitlines()
     before = lines[mark.line][:mark.column] if mark.line < len(lines) else ""
     if "flow" in exc.context and not any(c in before for c in ":,[]{}"):
         line = mark.line - 1
@@ -144,6 +148,50 @@ def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
             line -= 1
         return f" at the end of line {line + 1}", f"{problem} (noticed at {where}, {started})"
     return f" at {where}", f"{problem} ({started})"
+
+
+def _key_without_colon(lines: list[str], line: int, column: int, problem: str) -> int | None:
+    """The earlier line of a key written without its ':', when that is what the parser saw.
+
+    Such a line is a plain scalar, and the parser complains only further on: at the ':' of
+    the next key when the scalar ran on into it (``name hand`` then ``bus:`` read as "name hand
+    bus"), or at the next key when a comment ended the scalar. Either way the text that ran on
+    has no ':' of its own, which tells it from a mistake on the line the parser names.
+    """
+    here = lines[line] if line < len(lines) else ""
+    if "mapping values are not allowed" in problem:
+        if not re.fullmatch(r"\s*[^\s:#,\[\]{}\-][^:#]*", here[:column]):
+            return None
+        start = None
+        for i in range(line - 1, -1, -1):
+            text = _uncommented(lines[i])
+            if not text:
+                if lines[i].strip():  # a comment line ends a plain scalar
+                    break
+                continue
+            if ":" in text or text[0] in "[]{},":
+                break
+            start = i
+            if text.startswith("- "):
+                break
+        return start
+    if "expected key" in problem or "expected <block end>" in problem:
+        if not re.match(r"[^\s:#,\[\]{}\-][^:#]*:(\s|$)", here[column:]):
+            return None
+        for i in range(line - 1, -1, -1):
+            text = _uncommented(lines[i])
+            if text:
+                return i if ":" not in text and text[0] not in "[]{}," else None
+    return None
+
+
+def _uncommented(line: str) -> str:
+    """The line without its comment, stripped (a '#' after a space or at the start)."""
+    stripped = line.strip()
+    if stripped.startswith("#"):
+        return ""
+    cut = stripped.find(" #")
+    return (stripped if cut < 0 else stripped[:cut]).strip()
 
 
 def _blank(line: str) -> bool:
