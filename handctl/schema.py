@@ -93,6 +93,12 @@ def parse_yaml(text: str, name: str) -> Doc:
     except yaml.MarkedYAMLError as exc:
         where, problem = _parse_error(exc, text)
         raise ConfigError(name, "", "valid YAML" + where, _Text(problem)) from None
+    except yaml.reader.ReaderError as exc:  # a character YAML does not allow
+        before = _LINE_BREAKS.split(text[:exc.position])
+        character = chr(exc.character) if isinstance(exc.character, int) else exc.character
+        raise ConfigError(name, "", f"valid YAML at line {len(before)}, column "
+                          f"{len(before[-1]) + 1}", _Text(f"{exc.reason}: {character!r}")
+                          ) from None
     except yaml.YAMLError as exc:
         raise ConfigError(name, "", "valid YAML", _Text(str(exc))) from None
     data = None if root is None else _Builder(name).build(root, "")
@@ -115,6 +121,10 @@ class _Text(str):
 
 
 # -- parse errors ----------------------------------------------------------------------------------
+#: What PyYAML and libyaml count as line breaks (str.splitlines counts more, e.g. form feeds).
+_LINE_BREAKS = re.compile("\r\n|[\r\n\x85\u2028\u2029]")
+
+
 def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
     """Where the mistake is (1-based line and column) and the parser's complaint.
 
@@ -129,7 +139,7 @@ def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
     if mark is None:
         return "", problem
     where = f"line {mark.line + 1}, column {mark.column + 1}"
-    lines = text.splitlines()
+    lines = _LINE_BREAKS.split(text)
     start = _key_without_colon(lines, mark.line, mark.column, problem)
     if start is not None:
         return (f" at line {start + 1}",

@@ -378,6 +378,12 @@ def test_a_mistake_on_line_n_is_reported_on_line_n(n_lines: int, data: st.DataOb
         ("\n".join(lines), str(err))
 
 
+def test_a_character_yaml_forbids_is_reported_at_its_line_not_its_offset() -> None:
+    err = error("a: 1\nb: x\x00y\n")
+    assert "valid YAML at line 2, column 5" in err.expected
+    assert "'\\x00'" in str(err)
+
+
 def test_lines_and_columns_count_from_one() -> None:
     assert "valid YAML at line 1, column 5" in error("a: b: c\n").expected
     assert "valid YAML at line 3, column 3" in error("a:\n  - 1\n  b: 2\n").expected
