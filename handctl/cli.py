@@ -74,8 +74,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
     from handctl.drivers.hand import check_ids
     from handctl.protocol import DEFAULT_DBC, load_protocol
 
-    hand = load_hand(args.hand)
     protocol = load_protocol(args.dbc or DEFAULT_DBC)
+    hand = load_hand(args.hand, protocol)
     check_ids(hand, protocol)
     bus = hand.bus
     kind = (f"CAN-FD {bus.bitrate / 1e6:g}/{(bus.data_bitrate or 0) / 1e6:g} Mbit/s"

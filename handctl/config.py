@@ -18,7 +18,9 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from handctl.protocol import Protocol, load_protocol
 from handctl.schema import Doc, load_yaml
+from handctl.wirelimits import check_wire_limits
 
 #: Highest standard (11-bit) CAN identifier; handctl uses only standard ids.
 MAX_STANDARD_ID = 0x7FF
@@ -138,12 +140,16 @@ class HandConfig:
         return sum(len(f.joints) for f in self.fingers)
 
 
-def load_hand(path: str | Path) -> HandConfig:
-    """Load and validate a hand config file; raises ``ConfigError`` on any problem."""
-    return parse_hand(load_yaml(path))
+def load_hand(path: str | Path, protocol: Protocol | None = None) -> HandConfig:
+    """Load and validate a hand config file; raises ``ConfigError`` on any problem.
+
+    Its limits are checked against the signals of ``protocol`` (the packaged DBC unless
+    given): a limit the wire cannot carry is refused here, not discovered mid-run.
+    """
+    return parse_hand(load_yaml(path), protocol)
 
 
-def parse_hand(doc: Doc) -> HandConfig:
+def parse_hand(doc: Doc, protocol: Protocol | None = None) -> HandConfig:
     name = doc.string("name")
     bus = _parse_bus(doc.mapping("bus"))
     finger_docs = doc.mappings("fingers", min_len=1, max_len=8)
@@ -158,7 +164,7 @@ def parse_hand(doc: Doc) -> HandConfig:
     digest = hashlib.sha256(
         json.dumps(hashed, sort_keys=True, separators=(",", ":")).encode()
     ).hexdigest()
-    return HandConfig(
+    hand = HandConfig(
         name=name,
         source=doc.file,
         bus=bus,
@@ -167,6 +173,8 @@ def parse_hand(doc: Doc) -> HandConfig:
         safety=safety,
         sim=MappingProxyType(dict(sim_raw or {})),
     )
+    check_wire_limits(hand, protocol if protocol is not None else load_protocol())
+    return hand
 
 
 def _parse_safety(doc: Doc) -> SafetyConfig:

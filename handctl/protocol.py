@@ -87,6 +87,14 @@ class SignalSpec:
         """Integer signals (scale 1, offset 0) are exchanged as ints, not floats."""
         return self.scale == 1 and self.offset == 0
 
+    def carried_range(self) -> tuple[float, float]:
+        """The physical values the signal can take on the wire (low, high): the DBC's range
+        within what its bits hold. A configured limit outside it can be neither sent nor
+        observed, so the hand config is checked against it (``handctl/wirelimits.py``)."""
+        lo, hi = _raw_bounds(self)
+        ends = (lo * self.scale + self.offset, hi * self.scale + self.offset)
+        return min(ends), max(ends)
+
 
 _STRUCT_CODES = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h",
                  (32, False): "I", (32, True): "i"}

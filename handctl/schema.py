@@ -1,14 +1,44 @@
 """Strict reading of YAML documents with messages that name file, key path, expected and found.
 
-Every loader of handctl (hand config, recipes, analysis scenarios) reads through ``Doc`` so the
-error discipline is the same everywhere: a key that is not known is an error (a typo must never
-silently fall back to a default), a value of the wrong type or out of range is an error, and the
-message says exactly where. YAML is always loaded with ``yaml.safe_load``.
+Every loader of handctl (hand config, recipes, templates, analysis and fault scenarios, recorded
+configs) reads through ``load_yaml``/``parse_yaml`` and ``Doc``, and this is the only module that
+reads YAML text, so the rules are the same everywhere: a key that is not known is an error (a
+typo must never silently fall back to a default), a value of the wrong type or out of range is
+an error, and the message says exactly where.
+
+What a file means cannot surprise:
+
+- **Values follow YAML 1.2's core schema, a little stricter.** A plain (unquoted) scalar is
+  ``null`` (``null``, ``Null``, ``NULL``, ``~`` or nothing); a boolean only when it is ``true``
+  or ``false``; an integer when it is decimal (``-12``), octal ``0o17`` (15) or hexadecimal
+  ``0x1F`` (31); a float when it is decimal with a fraction or an exponent (``1.5``, ``.5``,
+  ``1e308``, ``-2.5E-3``) or ``.inf``, ``-.inf``, ``.nan``. Anything else is a string:
+  ``yes``, ``on``, ``True``, ``1:00`` (YAML 1.1 read that as 60), ``1_000``, ``0b101`` and
+  dates are text, which a number or boolean key then refuses by name. A decimal integer with a
+  leading zero (``017``: 15 in YAML 1.1, 17 in 1.2) is refused; write ``17`` or ``0o17``.
+  Quoted and block scalars are always strings. The only tags read are the core schema's
+  (``!!str``, ``!!int``, ``!!float``, ``!!bool``, ``!!null``, ``!!seq``, ``!!map``, and ``!``);
+  any other tag is refused, so no tag can construct an object or run code.
+- **Each key once.** A key written twice in one mapping is refused, naming both lines. Merge
+  keys (``<<: *anchor`` or ``<<: [*a, *b]``) supply defaults: a key the mapping writes itself
+  overrides the merged one (that is what merges are for), but a key that two merged mappings
+  both supply is refused, naming both lines, because which one wins is easy to get wrong.
+  An anchor name is defined once per file; an alias names an anchor defined before it and
+  outside the node it is in (no recursive structures).
+- **Bounded work.** A file is at most ``MAX_BYTES``; a document at most ``MAX_NODES`` values
+  with every alias expanded (an alias bomb is refused while it is read, before anything is
+  built) and nested at most ``MAX_DEPTH`` deep; one document per file. A refused file costs
+  milliseconds and a few MB, never a ``MemoryError``, and no message shows more than 80
+  characters of a value.
+- **Line numbers are where the mistake is.** They count from 1. A parser notices some mistakes
+  only on the line after them (a missing ``:``, ``]``, ``}`` or closing quote); the message then
+  names the line the unfinished thing is on, and the line where it was noticed.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
@@ -19,35 +49,420 @@ from handctl.errors import ConfigError
 
 _MISSING: Any = object()
 
+#: bytes of a YAML file: 20 times the largest file handctl ships (a compiled recipe)
+MAX_BYTES = 256 * 1024
+#: values (scalars, lists, mappings) of one document with every alias expanded
+MAX_NODES = 50_000
+#: nesting of lists and mappings
+MAX_DEPTH = 32
+#: characters of an integer (far beyond any count or id; keeps int() conversion cheap)
+MAX_INT_DIGITS = 100
+
+# libyaml's parser when PyYAML has it (tens of times faster), PyYAML's own otherwise; only its
+# events are used, and both give the same events and marks.
+_EVENT_LOADER: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
 
 def load_yaml(path: str | Path) -> Doc:
     """Read a YAML file whose top level is a mapping; every failure is a ``ConfigError``."""
     name = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        with open(path, "rb") as file:
+            data = file.read(MAX_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(name, "", "an existing file", "no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
+        raise ConfigError(name, "", "a readable UTF-8 file", str(exc)) from None
+    if len(data) > MAX_BYTES:
+        raise ConfigError(name, "", f"a file of at most {MAX_BYTES} bytes",
+                          _Text(f"more than {MAX_BYTES} bytes"))
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
         raise ConfigError(name, "", "a readable UTF-8 file", str(exc)) from None
     return parse_yaml(text, name)
 
 
 def parse_yaml(text: str, name: str) -> Doc:
     """Parse YAML text (already read) as a document named ``name`` in messages."""
+    if len(text) > MAX_BYTES or len(text.encode("utf-8", "surrogatepass")) > MAX_BYTES:
+        raise ConfigError(name, "", f"a document of at most {MAX_BYTES} bytes",
+                          _Text(f"more than {MAX_BYTES} bytes"))
     try:
-        data = yaml.safe_load(text)
+        root = _compose(yaml.parse(text, Loader=_EVENT_LOADER), name)
     except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark
-        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "unknown place"
-        raise ConfigError(name, "", "valid YAML", f"{exc.problem} at {where}") from None
+        where, problem = _parse_error(exc, text)
+        raise ConfigError(name, "", "valid YAML" + where, _Text(problem)) from None
+    except yaml.reader.ReaderError as exc:  # a character YAML does not allow
+        before = _LINE_BREAKS.split(text[:exc.position])
+        character = chr(exc.character) if isinstance(exc.character, int) else exc.character
+        raise ConfigError(name, "", f"valid YAML at line {len(before)}, column "
+                          f"{len(before[-1]) + 1}", _Text(f"{exc.reason}: {character!r}")
+                          ) from None
     except yaml.YAMLError as exc:
-        raise ConfigError(name, "", "valid YAML", str(exc)) from None
-    except RecursionError:
-        raise ConfigError(name, "", "valid YAML", "nesting too deep") from None
+        raise ConfigError(name, "", "valid YAML", _Text(str(exc))) from None
+    data = None if root is None else _Builder(name).build(root, "")
     if not isinstance(data, dict):
         raise ConfigError(name, "", "a mapping at the top level", _type_name(data))
     return Doc(data, name, "")
 
+
+def dump_yaml(data: Any) -> str:
+    """YAML text that ``parse_yaml`` reads back as ``data`` (and YAML 1.1 readers too): a
+    string that either schema would read as something else is quoted."""
+    return yaml.dump(data, Dumper=_Dumper, sort_keys=False, width=100, allow_unicode=True)
+
+
+class _Text(str):
+    """A found value that is already a description: shown as it is, not quoted."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+# -- parse errors ----------------------------------------------------------------------------------
+#: What PyYAML and libyaml count as line breaks (str.splitlines counts more, e.g. form feeds).
+_LINE_BREAKS = re.compile("\r\n|[\r\n\x85\u2028\u2029]")
+
+
+def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
+    """Where the mistake is (1-based line and column) and the parser's complaint.
+
+    PyYAML and libyaml notice some mistakes only on a later line than the one they are on, and
+    mark where they noticed them. A key (which YAML keeps on one line) without its ':' and a
+    quoted scalar without its closing quote are on the line where they start, which the parser
+    gives as the context. A flow collection ('[...]', '{...}') that is not closed is noticed at
+    the next line's first token: the closer is missing at the end of the last line before it.
+    """
+    problem = exc.problem or exc.context or "not YAML"
+    mark = exc.problem_mark or exc.context_mark
+    if mark is None:
+        return "", problem
+    where = f"line {mark.line + 1}, column {mark.column + 1}"
+    lines = _LINE_BREAKS.split(text)
+    start = _key_without_colon(lines, mark.line, mark.column, problem)
+    if start is not None:
+        return (f" at line {start + 1}",
+                f"{problem}: a key without its ':'? (noticed at {where})")
+    context = exc.context_mark
+    if context is None or not exc.context or context.line >= mark.line:
+        return f" at {where}", problem
+    started = f"{exc.context} that starts at line {context.line + 1}, column {context.column + 1}"
+    if "simple key" in exc.context or "quoted scalar" in exc.context:
+        return (f" at line {context.line + 1}, column {context.column + 1}",
+                f"{problem} (noticed at {where}, {started})")
+    before = lines[mark.line][:mark.column] if mark.line < len(lines) else ""
+    if "flow" in exc.context and not any(c in before for c in ":,[]{}"):
+        line = mark.line - 1
+        while line > context.line and _blank(lines[line]):
+            line -= 1
+        return f" at the end of line {line + 1}", f"{problem} (noticed at {where}, {started})"
+    return f" at {where}", f"{problem} ({started})"
+
+
+def _key_without_colon(lines: list[str], line: int, column: int, problem: str) -> int | None:
+    """The earlier line of a key written without its ':', when that is what the parser saw.
+
+    Such a line is a plain scalar, and the parser complains only further on: at the ':' of
+    the next key when the scalar ran on into it (``name hand`` then ``bus:`` read as "name hand
+    bus"), or at the next key when a comment ended the scalar. Either way the text that ran on
+    has no ':' of its own, which tells it from a mistake on the line the parser names.
+    """
+    here = lines[line] if line < len(lines) else ""
+    if "mapping values are not allowed" in problem:
+        if not re.fullmatch(r"\s*[^\s:#,\[\]{}\-][^:#]*", here[:column]):
+            return None
+        start = None
+        for i in range(line - 1, -1, -1):
+            text = _uncommented(lines[i])
+            if not text:
+                if lines[i].strip():  # a comment line ends a plain scalar
+                    break
+                continue
+            if ":" in text or text[0] in "[]{},":
+                break
+            start = i
+            if text.startswith("- "):
+                break
+        return start
+    if "expected key" in problem or "expected <block end>" in problem:
+        if not re.match(r"[^\s:#,\[\]{}\-][^:#]*:(\s|$)", here[column:]):
+            return None
+        for i in range(line - 1, -1, -1):
+            text = _uncommented(lines[i])
+            if text:
+                return i if ":" not in text and text[0] not in "[]{}," else None
+    return None
+
+
+def _uncommented(line: str) -> str:
+    """The line without its comment, stripped (a '#' after a space or at the start)."""
+    stripped = line.strip()
+    if stripped.startswith("#"):
+        return ""
+    cut = stripped.find(" #")
+    return (stripped if cut < 0 else stripped[:cut]).strip()
+
+
+def _blank(line: str) -> bool:
+    stripped = line.strip()
+    return not stripped or stripped.startswith("#")
+
+
+# -- composing: events to nodes, with the bounds ---------------------------------------------------
+class _Node:
+    """One value of the document as the parser gave it, with where it starts (1-based)."""
+
+    __slots__ = ("column", "done", "items", "kind", "line", "plain", "size", "tag", "text")
+
+    def __init__(self, kind: str, tag: str | None, plain: bool, line: int, column: int,
+                 text: str) -> None:
+        self.kind = kind  # "scalar", "seq" or "map"
+        self.tag = tag  # an explicit tag, or None
+        self.plain = plain  # an untagged plain scalar: its type comes from the core schema
+        self.line = line
+        self.column = column
+        self.text = text  # a scalar's text
+        self.items: list[_Node] = []  # a list's items; a mapping's key, value, key, value...
+        self.size = 1  # values in the node with every alias expanded
+        self.done = kind == "scalar"  # read to its end (an alias inside it would recurse)
+
+
+_STARTS = {yaml.ScalarEvent: "scalar", yaml.SequenceStartEvent: "seq",
+           yaml.MappingStartEvent: "map"}
+_ENDS = (yaml.SequenceEndEvent, yaml.MappingEndEvent)
+
+
+def _compose(events: Iterator[Any], name: str) -> _Node | None:
+    """Build the node graph from the parser's events, refusing as soon as a bound is passed.
+
+    An alias is the anchored node itself (no copy), so a bomb costs nothing here; its cost is
+    counted instead: ``expanded`` grows by the whole size of each aliased node.
+    """
+    def fail(expected: str, found: str) -> NoReturn:
+        raise ConfigError(name, "", expected, _Text(found))
+
+    top = _Node("seq", None, False, 0, 0, "")  # holds the document's root
+    stack = [top]
+    anchors: dict[str, _Node] = {}
+    documents = 0
+    expanded = 0
+    for event in events:
+        kind = _STARTS.get(type(event))
+        if kind is not None:
+            mark = event.start_mark
+            node = _Node(kind, event.tag, kind == "scalar" and event.tag is None
+                         and not event.style, mark.line + 1, mark.column + 1,
+                         event.value if kind == "scalar" else "")
+            anchor = event.anchor
+            if anchor is not None:
+                if anchor in anchors:
+                    fail("each anchor name defined once", f"&{anchor} at line {node.line}, "
+                         f"already defined at line {anchors[anchor].line}")
+                anchors[anchor] = node
+            stack[-1].items.append(node)
+            expanded += 1
+            if kind != "scalar":
+                stack.append(node)
+                if len(stack) > MAX_DEPTH + 1:
+                    fail(f"lists and mappings nested at most {MAX_DEPTH} deep",
+                         f"deeper at line {node.line}")
+        elif isinstance(event, _ENDS):
+            node = stack.pop()
+            node.size = 1 + sum(item.size for item in node.items)
+            node.done = True
+        elif isinstance(event, yaml.AliasEvent):
+            line = _line(event)
+            target = anchors.get(event.anchor or "")
+            if target is None:
+                fail("an alias of an anchor defined before it",
+                     f"*{event.anchor} at line {line} with no &{event.anchor} before it")
+            if not target.done:
+                fail("an alias outside the node its anchor names (no recursive structures)",
+                     f"*{event.anchor} at line {line} inside &{event.anchor} (line "
+                     f"{target.line})")
+            stack[-1].items.append(target)
+            expanded += target.size
+        elif isinstance(event, yaml.DocumentStartEvent):
+            documents += 1
+            if documents > 1:
+                fail("one YAML document per file", f"a second document at line {_line(event)}")
+        if expanded > MAX_NODES:
+            fail(f"at most {MAX_NODES} values with every alias expanded (a bound against alias "
+                 f"bombs)", f"more by line {_line(event)}")
+    return top.items[0] if top.items else None
+
+
+def _line(event: yaml.Event) -> int:
+    return event.start_mark.line + 1 if event.start_mark is not None else 0
+
+
+# -- building: nodes to Python values ------------------------------------------------------------
+_CORE = "tag:yaml.org,2002:"
+_NULLS = frozenset({"", "~", "null", "Null", "NULL"})
+_BOOLS = {"true": True, "false": False}
+_DECIMAL = re.compile(r"[-+]?[0-9]+")
+_LEADING_ZERO = re.compile(r"[-+]?0[0-9]+")
+_OCTAL = re.compile(r"0o[0-7]+")
+_HEX = re.compile(r"0x[0-9a-fA-F]+")
+_FLOAT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?")
+_INF = re.compile(r"[-+]?\.(inf|Inf|INF)")
+_NAN = re.compile(r"\.(nan|NaN|NAN)")
+
+
+def core_type(text: str) -> str:
+    """What a plain scalar is under handctl's rule: ``null``, ``bool``, ``int``, ``float`` or
+    ``str`` (``int`` also for the leading-zero integers that are then refused)."""
+    if text in _NULLS:
+        return "null"
+    if text in _BOOLS:
+        return "bool"
+    if _DECIMAL.fullmatch(text) or _OCTAL.fullmatch(text) or _HEX.fullmatch(text):
+        return "int"
+    if _FLOAT.fullmatch(text) or _INF.fullmatch(text) or _NAN.fullmatch(text):
+        return "float"
+    return "str"
+
+
+class _Builder:
+    """Python values from the node graph: each node built once (an alias shares the value, as
+    in any YAML loader), with the key path of where it is for messages."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.built: dict[int, Any] = {}
+        self.entries_of: dict[int, dict[Any, tuple[str, Any]]] = {}
+
+    def fail(self, path: str, expected: str, found: str) -> NoReturn:
+        raise ConfigError(self.name, path, expected, _Text(found))
+
+    def build(self, node: _Node, path: str) -> Any:
+        key = id(node)
+        if key in self.built:
+            return self.built[key]
+        value: Any
+        if node.kind == "scalar":
+            value = self.scalar(node, path)
+        elif node.kind == "seq":
+            self.check_tag(node, path, ("seq",))
+            value = [self.build(item, f"{path}[{i}]") for i, item in enumerate(node.items)]
+        else:
+            self.check_tag(node, path, ("map",))
+            value = {k: v for k, (_, v) in self.entries(node, path).items()}
+        self.built[key] = value
+        return value
+
+    def check_tag(self, node: _Node, path: str, allowed: tuple[str, ...]) -> str | None:
+        """The core-schema type an explicit tag asks for (None when there is no tag)."""
+        if node.tag is None or node.tag == "!":
+            return None
+        if node.tag.startswith(_CORE) and node.tag[len(_CORE):] in allowed:
+            return node.tag[len(_CORE):]
+        shown = "!!" + node.tag[len(_CORE):] if node.tag.startswith(_CORE) else node.tag
+        self.fail(path, "a tag of YAML's core schema (here "
+                  + ", ".join(f"!!{t}" for t in allowed) + ", or none)",
+                  f"{shown:.60} at line {node.line}, column {node.column}")
+
+    def scalar(self, node: _Node, path: str) -> Any:
+        text = node.text
+        if node.plain:
+            kind = core_type(text)
+        else:
+            kind = self.check_tag(node, path, ("str", "int", "float", "bool", "null")) or "str"
+        if kind == "str":
+            return text
+        where = f"{text!r:.60} at line {node.line}, column {node.column}"
+        if kind == "null":
+            if text not in _NULLS:
+                self.fail(path, "null (null, ~ or nothing) after !!null", where)
+            return None
+        if kind == "bool":
+            if text not in _BOOLS:
+                self.fail(path, "true or false after !!bool", where)
+            return _BOOLS[text]
+        if _LEADING_ZERO.fullmatch(text):
+            self.fail(path, "a number without a leading zero (YAML 1.1 reads 017 as 15, YAML "
+                      "1.2 as 17): write 17 or 0o17, or quote it if it is text", where)
+        if _DECIMAL.fullmatch(text) or _OCTAL.fullmatch(text) or _HEX.fullmatch(text):
+            if len(text) > MAX_INT_DIGITS:
+                self.fail(path, f"an integer of at most {MAX_INT_DIGITS} digits",
+                          f"{len(text)} characters at line {node.line}, column {node.column}")
+            base = 8 if text.startswith("0o") else (16 if text.startswith("0x") else 10)
+            number = int(text[2:] if base != 10 else text, base)
+            return float(number) if kind == "float" else number
+        if kind == "int":
+            self.fail(path, "an integer (decimal, 0o octal or 0x hexadecimal) after !!int",
+                      where)
+        if _INF.fullmatch(text):
+            return -math.inf if text.startswith("-") else math.inf
+        if _NAN.fullmatch(text):
+            return math.nan
+        if not _FLOAT.fullmatch(text):
+            self.fail(path, "a number (YAML 1.2 core schema) after !!float", where)
+        return float(text)
+
+    def entries(self, node: _Node, path: str) -> dict[Any, tuple[str, Any]]:
+        """A mapping's keys with (where the key is, value), merges resolved and duplicates
+        refused; kept per node so that a mapping merged in many places is resolved once."""
+        cached = self.entries_of.get(id(node))
+        if cached is not None:
+            return cached
+        own: dict[Any, tuple[str, Any]] = {}
+        merged: dict[Any, tuple[str, Any]] = {}
+        merge_at = ""
+        for key_node, value_node in zip(node.items[0::2], node.items[1::2], strict=True):
+            if key_node.kind != "scalar":
+                self.fail(path or "(top level)", "keys that are plain values (text)",
+                          f"a {'list' if key_node.kind == 'seq' else 'mapping'} as a key at "
+                          f"line {key_node.line}, column {key_node.column}")
+            if key_node.plain and key_node.text == "<<":
+                here = f"line {key_node.line}, column {key_node.column}"
+                if merge_at:
+                    self.fail(_join(path, "<<"), "each key once in a mapping",
+                              f"<< at {merge_at} and again at {here}")
+                merge_at = here
+                self.merge(value_node, path, merged)
+                continue
+            key = self.build(key_node, path)
+            child = _join(path, key)
+            seen = own.get(key)
+            here = f"line {key_node.line}, column {key_node.column}"
+            if seen is not None:
+                self.fail(child, "each key once in a mapping",
+                          f"{key!r:.40} at {seen[0]} and again at {here}")
+            own[key] = (here, self.build(value_node, child))
+        entries = {**merged, **own}
+        self.entries_of[id(node)] = entries
+        return entries
+
+    def merge(self, value: _Node, path: str, merged: dict[Any, tuple[str, Any]]) -> None:
+        sources = value.items if value.kind == "seq" else [value]
+        for source in sources:
+            if source.kind != "map":
+                self.fail(_join(path, "<<"), "a mapping or a list of mappings to merge",
+                          f"a {'list' if source.kind == 'seq' else 'value'} at line "
+                          f"{source.line}, column {source.column}")
+            for key, (line, item) in self.entries(source, path).items():
+                if key in merged:
+                    self.fail(_join(path, key), "a key that one merged mapping supplies",
+                              f"{key!r:.40} from {merged[key][0]} and from {line}")
+                merged[key] = (line, item)
+
+
+def _join(path: str, key: Any) -> str:
+    return f"{path}.{key}" if path else str(key)
+
+
+class _Dumper(yaml.SafeDumper):
+    """PyYAML's safe dumper, quoting also the strings that handctl's rule reads as values."""
+
+    def resolve(self, kind: Any, value: Any, implicit: Any) -> Any:
+        tag = super().resolve(kind, value, implicit)  # type: ignore[no-untyped-call]
+        if kind is yaml.ScalarNode and implicit[0] and tag == _CORE + "str":
+            core = core_type(value)
+            if core != "str":
+                return _CORE + core
+        return tag
 
 def _type_name(value: object) -> str:
     if value is None:
@@ -157,6 +572,14 @@ class Doc:
             return str(value)
         if not isinstance(value, str) or not value:
             self.fail(key, "a non-empty string", _type_name(value))
+        return value
+
+    def text(self, key: str, *, default: Any = _MISSING) -> str:
+        """Free text such as a description: any string, empty too, but a string (a number or a
+        list where text belongs is a mistake, not something to print)."""
+        value = self._get(key, default)
+        if not isinstance(value, str):
+            self.fail(key, "text (a string)", _type_name(value))
         return value
 
     def boolean(self, key: str, *, default: Any = _MISSING) -> bool:

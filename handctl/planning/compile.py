@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from handctl.analysis.model import AnalysisError
 from handctl.analysis.planner import plan_torques
@@ -51,6 +50,7 @@ from handctl.planning.search import (
 from handctl.planning.template import Template, TemplatePhase
 from handctl.recipes.guard import LimitGuard
 from handctl.recipes.schema import Condition, Phase, TimeoutAction, parse_condition
+from handctl.schema import dump_yaml
 from handctl.sim.params import parse_sim
 
 #: decimals of N·m kept in the compiled recipe (0.1 mN·m, far below the TDT resolution)
@@ -341,8 +341,7 @@ def recipe_text(result: PlanResult, command: str) -> str:
     header = (f"# Compiled by handctl plan from {Path(result.template.source).name}: do not "
               "edit by hand.\n"
               f"# Change the template and plan again: {command}\n")
-    body = yaml.safe_dump(result.recipe_document(), sort_keys=False, width=100,
-                          allow_unicode=True)
+    body = dump_yaml(result.recipe_document())
     return header + body
 
 

@@ -80,7 +80,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     doc = load_yaml(path)
     doc.string("template")
     recipe = doc.string("recipe")
-    description = str(doc.raw("description", ""))
+    description = doc.text("description", default="")
     objects: list[RecipeObject] = []
     for i, sub in enumerate(doc.mappings("objects", min_len=2, max_len=2)):
         obj = RecipeObject(sub.string("name"),

@@ -44,7 +44,7 @@ def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
 
 def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     name = doc.string("recipe")
-    description = str(doc.raw("description", ""))
+    description = doc.text("description", default="")
     compiled = doc.boolean("compiled", default=False)
     digest = doc.raw("hand_config_hash", None)
     if digest is not None and not isinstance(digest, str):

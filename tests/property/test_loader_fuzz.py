@@ -114,3 +114,42 @@ def test_random_documents_as_recipes(tmp_path: Path, hand: HandConfig, data: Any
     path = tmp_path / "recipe.yaml"
     path.write_text(yaml.safe_dump(data))
     expect_config_error_or_valid(lambda: load_recipe(path, hand))
+
+
+#: The characters YAML's syntax is made of, so that random text is mostly anchors, aliases,
+#: merges, tags, flow and block collections, quotes and numbers rather than plain words.
+YAML_ALPHABET = "ab<:- \n\t[]{},&*!'\"#|>%?.0123456789exo+_~"
+
+
+@settings(max_examples=EXAMPLES * 5, deadline=None)
+@given(st.text(alphabet=YAML_ALPHABET, max_size=120))
+def test_yaml_syntax_soup_gives_a_document_or_a_config_error(text: str) -> None:
+    try:
+        doc = parse_yaml(text, "soup.yaml")
+    except ConfigError as exc:
+        assert str(exc).startswith("soup.yaml")
+        assert "expected" in str(exc)
+    else:
+        assert isinstance(doc.data, dict)
+
+
+@settings(max_examples=EXAMPLES, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(st.data())
+def test_mutated_hand_config_text(tmp_path: Path, data: st.DataObject) -> None:
+    """The hand config's own text (anchors, merges, flow mappings) with a line duplicated,
+    dropped, or a few characters changed."""
+    lines = HAND_YAML.read_text(encoding="utf-8").splitlines(keepends=True)
+    for _ in range(data.draw(st.integers(1, 3))):
+        i = data.draw(st.integers(0, len(lines) - 1))
+        action = data.draw(st.sampled_from(["duplicate", "drop", "edit"]))
+        if action == "duplicate":
+            lines.insert(i, lines[i])
+        elif action == "drop":
+            del lines[i]
+        else:
+            line = lines[i]
+            at = data.draw(st.integers(0, max(len(line) - 1, 0)))
+            new = data.draw(st.text(alphabet=YAML_ALPHABET, max_size=3))
+            lines[i] = line[:at] + new + line[at + 1:]
+    expect_config_error_or_valid(lambda: hand_from(tmp_path, "".join(lines)))

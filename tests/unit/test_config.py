@@ -11,9 +11,12 @@ from typing import Any
 
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from handctl.config import load_hand
 from handctl.errors import ConfigError
+from handctl.protocol import DEFAULT_DBC, Protocol, SignalSpec, load_protocol
 
 ROOT = Path(__file__).resolve().parents[2]
 HAND_YAML = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
@@ -200,10 +203,12 @@ def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:
 
 
 def test_yaml_is_loaded_safely(tmp_path: Path) -> None:
+    marker = tmp_path / "pwned"
     evil = tmp_path / "evil.yaml"
-    evil.write_text("name: !!python/object/apply:os.system ['echo pwned']\n")
-    with pytest.raises(ConfigError, match="valid YAML"):
+    evil.write_text(f"name: !!python/object/apply:os.system ['touch {marker}']\n")
+    with pytest.raises(ConfigError, match=r"!!python/object/apply:os\.system at line 1"):
         load_hand(evil)
+    assert not marker.exists()
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
@@ -234,3 +239,163 @@ def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
     assert "122.3 %" in result.stderr
     assert "405 Hz" in result.stderr
     assert "one bus per finger would carry 40.8 %" in result.stderr
+
+
+# -- limits against the wire (handctl/wirelimits.py) ---------------------------------------------
+def signal(protocol: Protocol, message: str, index: int) -> SignalSpec:
+    return protocol.by_name[message].signals[index]
+
+
+def joint_of(data: dict[str, Any], finger: int, joint: int) -> dict[str, Any]:
+    found: dict[str, Any] = data["fingers"][finger]["joints"][joint]
+    return found
+
+
+@pytest.mark.parametrize(("finger", "joint"), [(f, j) for f in range(3) for j in range(3)])
+def test_tau_max_the_command_signal_cannot_carry_is_refused(
+        tmp_path: Path, base: dict[str, Any], protocol: Protocol, finger: int,
+        joint: int) -> None:
+    """The issue's tau_max: 5 on a wire of ±3.2767 N·m; every joint maps to its own signal."""
+    node = base["fingers"][finger]["node_id"]
+    carried = signal(protocol, f"TorqueCommand_{node}", joint)
+    lo, hi = carried.carried_range()
+    joint_of(base, finger, joint).update(tau_max=5.0, device_tau_max=5.0)
+    err = error_for(tmp_path, base)
+    assert err.key == f"fingers[{finger}].joints[{joint}].tau_max"
+    assert err.found == 5.0
+    assert f"TorqueCommand_{node}.{carried.name} carries ({lo:g}..{hi:g} N·m)" in err.expected
+    assert "(-5..5 N·m)" in err.expected
+
+
+def test_the_largest_torque_the_wire_carries_is_accepted(
+        tmp_path: Path, base: dict[str, Any], protocol: Protocol) -> None:
+    lo, hi = signal(protocol, "TorqueCommand_1", 0).carried_range()
+    limit = min(-lo, hi)
+    joint_of(base, 0, 0).update(tau_max=limit, device_tau_max=limit)
+    hand = load_hand(write(tmp_path, base))
+    assert hand.joints[0].tau_max == limit
+
+
+def test_device_tau_max_the_command_signal_cannot_carry_is_refused(
+        tmp_path: Path, base: dict[str, Any], protocol: Protocol) -> None:
+    _, hi = signal(protocol, "TorqueCommand_2", 1).carried_range()
+    joint_of(base, 1, 1)["device_tau_max"] = hi + 0.01
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[1].joints[1].device_tau_max"
+    assert "TorqueCommand_2.Torque2" in err.expected
+
+
+def test_device_tau_max_whose_tdt_reading_saturates_is_refused(
+        tmp_path: Path, base: dict[str, Any], protocol: Protocol) -> None:
+    """With tdt scale 0.5 a torque reads as twice its value: the feedback signal would saturate
+    below the torque the node can apply, so the host could not see it."""
+    lo, hi = signal(protocol, "Feedback_3", 2).carried_range()
+    joint_of(base, 2, 2).update(tdt={"scale": 0.5, "offset": 0.0}, device_tau_max=hi * 0.75)
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[2].joints[2].device_tau_max"
+    assert f"Feedback_3.Torque3 carries ({lo:g}..{hi:g} N·m)" in err.expected
+    assert "tdt scale 0.5" in err.expected
+    joint_of(base, 2, 2)["device_tau_max"] = hi * 0.4  # reads 0.8 * hi: carried
+    load_hand(write(tmp_path, base))
+
+
+def test_a_tdt_offset_moves_the_reading_out_of_the_signal(
+        tmp_path: Path, base: dict[str, Any], protocol: Protocol) -> None:
+    _, hi = signal(protocol, "Feedback_1", 0).carried_range()
+    joint_of(base, 0, 0).update(tau_max=0.5, device_tau_max=hi - 0.1,
+                                tdt={"scale": 1.0, "offset": -0.2})
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[0].joints[0].device_tau_max"
+    assert "Feedback_1.Torque1" in err.expected
+
+
+@pytest.mark.parametrize(("key", "side"), [("angle_max", 1), ("angle_min", 0)])
+def test_an_angle_limit_the_feedback_signal_cannot_show_crossed_is_refused(
+        tmp_path: Path, base: dict[str, Any], protocol: Protocol, key: str, side: int) -> None:
+    """A limit at the signal's end is never seen crossed: the reading saturates on it."""
+    carried = signal(protocol, "Feedback_2", 3 + 2)  # Angle3 of node 2
+    end = carried.carried_range()[side]
+    joint_of(base, 1, 2)[key] = end
+    err = error_for(tmp_path, base)
+    assert err.key == f"fingers[1].joints[2].{key}"
+    assert err.found == end
+    lo, hi = carried.carried_range()
+    assert f"Feedback_2.Angle3 carries ({lo:g}..{hi:g} rad)" in err.expected
+    inside = end - carried.scale if side else end + carried.scale
+    joint_of(base, 1, 2)[key] = inside
+    assert getattr(load_hand(write(tmp_path, base)).fingers[1].joints[2], key) == inside
+
+
+@pytest.mark.parametrize(("loop_rate_hz", "rate_limit", "ok"), [
+    (1000, 0.1, True),  # one 0.0001 N·m step per tick: the resolution
+    (1000, 0.05, False),  # half a step per tick
+    (500, 0.05, True),  # the same rate at half the loop rate is one step per tick
+    (1000, 6553.5, True),  # the whole span in one tick
+    (1000, 7000.0, False),  # more than the span: limits nothing the wire can express
+])
+def test_a_rate_limit_must_be_a_step_the_command_signal_can_carry(
+        tmp_path: Path, base: dict[str, Any], protocol: Protocol, loop_rate_hz: float,
+        rate_limit: float, ok: bool) -> None:
+    carried = signal(protocol, "TorqueCommand_1", 0)
+    lo, hi = carried.carried_range()
+    assert carried.scale == pytest.approx(1e-4) and hi - lo == pytest.approx(6.5535)
+    base["bus"]["loop_rate_hz"] = loop_rate_hz
+    joint_of(base, 0, 0)["rate_limit"] = rate_limit
+    if ok:
+        assert load_hand(write(tmp_path, base)).joints[0].rate_limit == rate_limit
+        return
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[0].joints[0].rate_limit"
+    assert "TorqueCommand_1.Torque1" in err.expected
+    assert f"bus.loop_rate_hz {loop_rate_hz:g} Hz" in err.expected
+
+
+@settings(max_examples=60, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.floats(0.001, 100.0))
+def test_a_limit_loads_exactly_when_the_wire_carries_it(
+        tmp_path: Path, base: dict[str, Any], protocol: Protocol, limit: float) -> None:
+    _, hi = signal(protocol, "TorqueCommand_3", 0).carried_range()
+    data = copy.deepcopy(base)
+    joint_of(data, 2, 0).update(tau_max=limit, device_tau_max=limit)
+    path = write(tmp_path, data)
+    if limit <= hi:
+        load_hand(path)
+    else:
+        with pytest.raises(ConfigError, match=r"TorqueCommand_3\.Torque1"):
+            load_hand(path)
+
+
+def narrower_dbc(tmp_path: Path) -> Path:
+    """The packaged DBC with TorqueCommand_1's first torque at a tenth of the range."""
+    text = DEFAULT_DBC.read_text(encoding="utf-8")
+    line = ' SG_ Torque1 : 16|16@1- (0.0001,0) [-3.2768|3.2767] "N.m" FINGER1\n'
+    assert line in text
+    path = tmp_path / "narrow.dbc"
+    path.write_text(text.replace(line, line.replace("(0.0001,0) [-3.2768|3.2767]",
+                                                    "(0.00001,0) [-0.32768|0.32767]")))
+    return path
+
+
+def test_the_wire_ranges_come_from_the_dbc(tmp_path: Path) -> None:
+    narrow = load_protocol(narrower_dbc(tmp_path))
+    with pytest.raises(ConfigError, match=r"TorqueCommand_1\.Torque1 carries "
+                                          r"\(-0\.32768\.\.0\.32767 N·m\)") as info:
+        load_hand(HAND_YAML, narrow)
+    assert info.value.key == "fingers[0].joints[0].tau_max"
+    assert load_hand(HAND_YAML).joints[0].tau_max == 0.6
+
+
+def test_check_cli_refuses_a_limit_the_wire_cannot_carry(tmp_path: Path,
+                                                        base: dict[str, Any]) -> None:
+    joint_of(base, 0, 0).update(tau_max=5.0, device_tau_max=5.0)
+    path = write(tmp_path, base)
+    result = run_cli("check", str(path))
+    assert result.returncode == 2
+    assert (f"{path}: fingers[0].joints[0].tau_max: expected ±tau_max (-5..5 N·m) within what "
+            "TorqueCommand_1.Torque1 carries (-3.2768..3.2767 N·m), found 5.0") in result.stderr
+    assert "Traceback" not in result.stderr
+    narrow = run_cli("check", "config/hands/hiroshima_hand.yaml", "--dbc",
+                     str(narrower_dbc(tmp_path)))
+    assert narrow.returncode == 2
+    assert "TorqueCommand_1.Torque1 carries (-0.32768..0.32767 N·m)" in narrow.stderr

@@ -1,0 +1,125 @@
+"""The hand config's limits checked against what the DBC's signals can carry.
+
+A limit the wire cannot carry is not enforced where it matters: a torque the supervisor lets
+through but the command signal cannot hold makes ``encode`` fail in the middle of a run, and an
+angle limit beyond the feedback signal's range is never seen crossed, because the reading
+saturates first. So every loaded hand config is held against the DBC (the ranges come from
+``handctl/protocol.py``, never from numbers written here), joint by joint, in the signal order
+the driver uses (joint k of node n: ``TorqueCommand_n`` signal k; ``Feedback_n`` signal k is its
+torque reading and signal k + joints-per-node its angle):
+
+- ``tau_max`` and ``device_tau_max``: ±limit lies within the range of the command signal, so
+  every torque up to the limit can be sent and the node's own saturation is one it can be asked
+  to reach;
+- ``device_tau_max``, through the TDT calibration (reading = (τ - offset) / scale): the
+  readings of ±device_tau_max lie within the range of the feedback torque signal, so the host
+  sees every torque the node can apply instead of a saturated reading;
+- ``angle_min`` and ``angle_max``: strictly inside the range of the feedback angle signal, so a
+  joint past its soft limit reads past it before the reading saturates;
+- ``rate_limit``: one tick's step (rate_limit / bus.loop_rate_hz) is at least the command
+  signal's resolution and at most its whole span. A smaller step travels as a one-resolution
+  jump every few ticks, which is a faster change between two frames than the limit allows; a
+  step larger than the span limits nothing the wire can express.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn
+
+from handctl.errors import ConfigError
+from handctl.protocol import Layout, Protocol, SignalSpec
+
+if TYPE_CHECKING:
+    from handctl.config import FingerConfig, HandConfig, JointConfig
+
+
+def check_wire_limits(hand: HandConfig, protocol: Protocol) -> None:
+    """Raise a ``ConfigError`` naming the limit, the signal and both ranges for the first limit
+    of ``hand`` that the signals of ``protocol`` cannot carry."""
+    dbc = Path(protocol.source).name
+    for i, finger in enumerate(hand.fingers):
+        command, feedback = _layouts(hand, protocol, i, finger)
+        per_node = len(command.signals)
+        if len(finger.joints) > per_node or len(feedback.signals) < 2 * per_node:
+            raise ConfigError(hand.source, f"fingers[{i}].joints",
+                              f"at most {per_node} joints ({command.name} and {feedback.name} "
+                              f"in {dbc} carry {per_node})", f"{len(finger.joints)} joints")
+        for k, joint in enumerate(finger.joints):
+            check = _JointCheck(hand, f"fingers[{i}].joints[{k}]", joint)
+            check.torque_limits(command.name, command.signals[k])
+            check.reading(feedback.name, feedback.signals[k])
+            check.angles(feedback.name, feedback.signals[per_node + k])
+            check.rate(command.name, command.signals[k], hand.bus.loop_rate_hz)
+
+
+def _layouts(hand: HandConfig, protocol: Protocol, i: int, finger: FingerConfig
+             ) -> tuple[Layout, Layout]:
+    found = []
+    for kind in ("TorqueCommand", "Feedback"):
+        layout = protocol.by_name.get(f"{kind}_{finger.node_id}")
+        if layout is None:
+            raise ConfigError(hand.source, f"fingers[{i}].node_id",
+                              f"a node id with a {kind} message in "
+                              f"{Path(protocol.source).name}", finger.node_id)
+        found.append(layout)
+    return found[0], found[1]
+
+
+def _span(lo: float, hi: float, unit: str) -> str:
+    return f"{lo:g}..{hi:g} {unit}"
+
+
+class _JointCheck:
+    """The checks of one joint, sharing the names a message needs."""
+
+    def __init__(self, hand: HandConfig, path: str, joint: JointConfig) -> None:
+        self.hand = hand
+        self.path = path
+        self.joint = joint
+
+    def fail(self, key: str, expected: str, found: float) -> NoReturn:
+        raise ConfigError(self.hand.source, f"{self.path}.{key}", expected, found)
+
+    def torque_limits(self, message: str, signal: SignalSpec) -> None:
+        lo, hi = signal.carried_range()
+        for key in ("tau_max", "device_tau_max"):
+            limit: float = getattr(self.joint, key)
+            if -limit < lo or limit > hi:
+                self.fail(key, f"±{key} ({_span(-limit, limit, 'N·m')}) within what "
+                          f"{message}.{signal.name} carries ({_span(lo, hi, 'N·m')})", limit)
+
+    def reading(self, message: str, signal: SignalSpec) -> None:
+        lo, hi = signal.carried_range()
+        tdt = self.joint.tdt
+        limit = self.joint.device_tau_max
+        ends = sorted(((-limit - tdt.offset) / tdt.scale, (limit - tdt.offset) / tdt.scale))
+        if ends[0] < lo or ends[1] > hi:
+            self.fail("device_tau_max", f"±device_tau_max to read as TDT values "
+                      f"({_span(ends[0], ends[1], 'N·m')} through tdt scale {tdt.scale:g} and "
+                      f"offset {tdt.offset:g}) within what {message}.{signal.name} carries "
+                      f"({_span(lo, hi, 'N·m')})", limit)
+
+    def angles(self, message: str, signal: SignalSpec) -> None:
+        lo, hi = signal.carried_range()
+        q_lo, q_hi = self.joint.angle_min, self.joint.angle_max
+        inside = f"strictly inside what {message}.{signal.name} carries ({_span(lo, hi, 'rad')})"
+        if q_lo <= lo:
+            self.fail("angle_min", f"angle limits ({_span(q_lo, q_hi, 'rad')}) {inside}, so a "
+                      "joint past its limit reads past it", q_lo)
+        if q_hi >= hi:
+            self.fail("angle_max", f"angle limits ({_span(q_lo, q_hi, 'rad')}) {inside}, so a "
+                      "joint past its limit reads past it", q_hi)
+
+    def rate(self, message: str, signal: SignalSpec, loop_rate_hz: float) -> None:
+        lo, hi = signal.carried_range()
+        step = self.joint.rate_limit / loop_rate_hz
+        resolution = abs(signal.scale)
+        # A relative tolerance for the division: 0.1 N·m/s at 1 kHz is one 0.0001 N·m step.
+        if resolution * (1 - 1e-9) <= step <= hi - lo:
+            return
+        self.fail("rate_limit", f"a rate_limit of {resolution * loop_rate_hz:g}.."
+                  f"{(hi - lo) * loop_rate_hz:g} N·m/s: at bus.loop_rate_hz {loop_rate_hz:g} Hz "
+                  f"one tick's step (here {step:.6g} N·m) must lie between the resolution and "
+                  f"the span of {message}.{signal.name} ({resolution:g}..{hi - lo:g} N·m)",
+                  self.joint.rate_limit)
