@@ -464,6 +464,17 @@ class _Dumper(yaml.SafeDumper):
                 return _CORE + core
         return tag
 
+
+def _represent_str(dumper: yaml.SafeDumper, value: str) -> yaml.ScalarNode:
+    """Double quotes (which escape) for a string holding a character that a YAML 1.1 reader
+    takes for a line break: in a plain or single-quoted scalar it would be folded to a space."""
+    style = '"' if any(c in value for c in "\x85\u2028\u2029") else None
+    return dumper.represent_scalar("tag:yaml.org,2002:str", value, style=style)
+
+
+_Dumper.add_representer(str, _represent_str)
+
+
 def _type_name(value: object) -> str:
     if value is None:
         return "nothing (null)"
