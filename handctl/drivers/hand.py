@@ -20,13 +20,18 @@ from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode
 from handctl.drivers.receiver import Reject, RejectCounts
 from handctl.errors import ConfigError
-from handctl.protocol import Protocol
+from handctl.protocol import NODE_COMMANDS, Protocol
 
 FloatArray = npt.NDArray[np.float64]
 #: Torques that came out of the safety supervisor. Only ``handctl/safety/supervisor.py`` makes
 #: one (a test checks), and ``HandDriver.send`` takes nothing else, so the type checker proves
 #: that no torque reaches a command frame without passing the limiter.
 AppliedTorques = NewType("AppliedTorques", FloatArray)
+#: Every value a frame's rolling ``Counter`` takes: 8 bits (``handctl/protocol.py`` refuses a
+#: DBC with any other width).
+COUNTER_VALUES = 256
+#: The e-stop reason the prepared e-stop frames carry: host safety (PROTOCOL.md).
+ESTOP_HOST_SAFETY = 2
 
 
 @dataclass
@@ -91,6 +96,7 @@ class HandDriver:
         self.bus_events: list[BusEvent] = []
         self._estop_counter = 0
         self._estop_layout = protocol.layout("EStop")
+        self._prepare_stop_frames()
 
     def poll(self, now_ns: int | None = None) -> JointState:
         """Drain the bus and fold every accepted frame into ``state``."""
@@ -148,6 +154,62 @@ class HandDriver:
             frame_id, data = node.next_command(values)
             ok = self.bus.send(frame_id, data, more=i < last) and ok
         return ok
+
+    # -- the stop that needs no codec -----------------------------------------------------
+    def _prepare_stop_frames(self) -> None:
+        """Encode, once, every frame a stop after an exception may need: per node a zero-torque
+        command and a disable for each counter value, and the e-stop for each counter value.
+
+        A tick that raised may have raised in the codec itself (a torque the wire cannot
+        carry), so the stop must not encode anything: it picks the frame for the node's next
+        counter from these tables and hands it to the bus, so the node accepts it in sequence.
+        """
+        disable = (NODE_COMMANDS["disable"],)
+        self._zero_frames = [(n.layouts.command.frame_id,
+                              tuple(n.layouts.command.encode(c, [0.0] * len(
+                                  n.layouts.command.signals)) for c in range(COUNTER_VALUES)))
+                             for n in self.nodes]
+        self._disable_frames = [(n.layouts.node_command.frame_id,
+                                 tuple(n.layouts.node_command.encode(c, disable)
+                                       for c in range(COUNTER_VALUES)))
+                                for n in self.nodes]
+        self._estop_frames = tuple(self._estop_layout.encode(c, (ESTOP_HOST_SAFETY,))
+                                   for c in range(COUNTER_VALUES))
+
+    def send_zero(self) -> bool:
+        """Zero torque to every node from the prepared frames, without the codec.
+
+        Every node is tried whatever happens to the others; when any frame did not go (the
+        bus refused it or raised), the e-stop frame follows. Never raises; False when any
+        frame did not go.
+        """
+        return self._send_prepared(self._zero_frames, "command_counter")
+
+    def send_disable(self) -> bool:
+        """Disable every node from the prepared frames, as ``send_zero`` sends zero."""
+        return self._send_prepared(self._disable_frames, "node_command_counter")
+
+    def _send_prepared(self, table: list[tuple[int, tuple[bytes, ...]]], counter: str) -> bool:
+        ok = True
+        for node, (frame_id, frames) in zip(self.nodes, table, strict=True):
+            try:
+                value = getattr(node, counter) % COUNTER_VALUES
+                setattr(node, counter, (value + 1) % COUNTER_VALUES)
+                ok = self.bus.send(frame_id, frames[value]) and ok
+            except Exception:  # whatever it was, the stop goes on to the next node
+                ok = False
+        if not ok:
+            self.send_estop()
+        return ok
+
+    def send_estop(self) -> bool:
+        """The prepared e-stop frame (host safety), without the codec; never raises."""
+        try:
+            counter = self._estop_counter % COUNTER_VALUES
+            self._estop_counter = (counter + 1) % COUNTER_VALUES
+            return self.bus.send(self._estop_layout.frame_id, self._estop_frames[counter])
+        except Exception:  # the last resort: nothing left to fall back to
+            return False
 
     def node_command(self, command: str, nodes: Iterable[int] | None = None) -> bool:
         """Send enable / disable / fault_reset to the given node ids (all by default)."""
