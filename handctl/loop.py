@@ -123,7 +123,7 @@ class TickException:
     type: str
     message: str  # cut to EXCEPTION_TEXT_CHARS
     where: str  # the innermost frame: function (file:line)
-    traceback: str  # the last frames, for whoever fixes the cause
+    traceback: str  # the last frames and the exception, for whoever fixes the cause
 
     @property
     def detail(self) -> str:
@@ -585,7 +585,7 @@ def _describe(exc: BaseException, code: FaultCode, tick: int) -> TickException:
         if frames:
             last = frames[-1]
             where = f"{last.name} ({_short_path(last.filename)}:{last.lineno})"
-        text = "".join(traceback.format_list(frames[-12:]))
+        text = "".join(traceback.format_exception(exc, limit=-12))
     except Exception:  # the description is a courtesy; the stop does not depend on it
         pass
     return TickException(code, tick, type(exc).__name__, message, where, text)
