@@ -329,6 +329,34 @@ def test_a_node_that_cannot_be_sent_to_gets_the_estop(
     assert broken.state == 2 and not any(broken.applied)  # FAULT (e-stop), no torque
 
 
+def test_an_exception_while_enabling_is_a_controlled_stop(
+        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """Outside the tick's stages (here: the enable, which the first node got), the stop is
+    the same: RUN_EXCEPTION, zero to every node, then a disable."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        real = b.runtime.driver.node_command
+
+        def node_command(command: str, nodes: Any = None) -> bool:
+            real(command, [hand.fingers[0].node_id] if command == "enable" else nodes)
+            if command == "enable":
+                raise ForcedError("forced while enabling")
+            return True
+
+        monkeypatch.setattr(b.runtime.driver, "node_command", node_command)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        wire = hear(b.listener, hand)
+    assert result.outcome is Outcome.SAFETY_STOP
+    assert [f.code for f in result.faults] == [FaultCode.RUN_EXCEPTION]
+    assert "ForcedError: forced while enabling" in result.faults[0].detail
+    for node, rows in wire.torques.items():
+        assert len(rows) >= ZERO_TICKS_BEFORE_DISABLE
+        assert all(not np.any(values) for _, values in rows)
+        assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0]
+    assert all(not any(n.applied) and n.state == 0 for n in b.sim.nodes)
+
+
 # -- the two reproductions of the issue, through the command line ------------------------------
 TOO_MUCH = """
 recipe: too_much
