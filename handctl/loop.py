@@ -289,7 +289,7 @@ class Runtime:
         tk = self._latch_exception(exc)
         driver = self.driver
         if tk is not None and self._ticks == tk.k:  # the tick that raised was not counted
-            self._store(tk, (0,) * len(STAGES))
+            self._count_stop_tick(tk)
         driver.send_zero()
         clock_ok = recorder_ok = poll_ok = True
         for n in range(ZERO_TICKS_BEFORE_DISABLE + 1):
@@ -302,7 +302,7 @@ class Runtime:
                 except Exception:  # it gave up pacing: the frames go without it
                     clock_ok = False
             if tick is not None:
-                self._store(tick, (0,) * len(STAGES))
+                self._count_stop_tick(tick)
                 if recorder_ok and self.recorder is not None:
                     try:
                         self.recorder.begin_tick(tick)
@@ -317,6 +317,12 @@ class Runtime:
             if n < ZERO_TICKS_BEFORE_DISABLE:
                 driver.send_zero()
         return Outcome.SAFETY_STOP, "; ".join(str(f) for f in self._faults())
+
+    def _count_stop_tick(self, tk: Tick) -> None:
+        """Count a tick of the stop; the accounting may be what raised, and the stop does
+        not need it."""
+        with contextlib.suppress(Exception):
+            self._store(tk, (0,) * len(STAGES))
 
     def _latch_exception(self, exc: Exception) -> Tick | None:
         """Turn ``exc`` into the fault of its stage, latched (and kept in ``exception``);
