@@ -292,9 +292,7 @@ class Runtime:
             self._count_stop_tick(tk)
         driver.send_zero()
         clock_ok = recorder_ok = poll_ok = True
-        for n in range(ZERO_TICKS_BEFORE_DISABLE + 1):
-            if n == ZERO_TICKS_BEFORE_DISABLE:
-                driver.send_disable()
+        for n in range(1, ZERO_TICKS_BEFORE_DISABLE + 2):  # the ticks after the one that raised
             tick: Tick | None = None
             if clock_ok:
                 try:
@@ -306,7 +304,7 @@ class Runtime:
                 if recorder_ok and self.recorder is not None:
                     try:
                         self.recorder.begin_tick(tick)
-                    except Exception:  # the frames sent from now on are in no tick's row
+                    except Exception:  # later frames go with the last tick it began
                         recorder_ok = False
             if poll_ok:
                 try:
@@ -314,8 +312,10 @@ class Runtime:
                     self._bus_events += len(driver.take_bus_events())
                 except Exception:  # polling only feeds the log here: not needed to stop
                     poll_ok = False
-            if n < ZERO_TICKS_BEFORE_DISABLE:
+            if n <= ZERO_TICKS_BEFORE_DISABLE:
                 driver.send_zero()
+            if n == ZERO_TICKS_BEFORE_DISABLE:
+                driver.send_disable()
         return Outcome.SAFETY_STOP, "; ".join(str(f) for f in self._faults())
 
     def _count_stop_tick(self, tk: Tick) -> None:
