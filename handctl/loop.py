@@ -60,6 +60,14 @@ STOP_TICK_TIMEOUT_S = 0.1
 EXCEPTION_TEXT_CHARS = 300
 
 
+class EndOfTicks(Exception):  # noqa: N818 - an end, not an error
+    """A lockstep clock has no more ticks to give (a re-run reaching the end of its log): the
+    run ends where it stands, sending nothing more, and this propagates to the caller.
+
+    Only a lockstep clock may end a run this way; from a real-time clock it is an exception
+    like any other, and the hand is stopped."""
+
+
 class Outcome(enum.Enum):
     COMPLETED = "completed"
     SAFETY_STOP = "safety_stop"
@@ -230,6 +238,8 @@ class Runtime:
             try:
                 outcome, message = await self._run()
             except Exception as exc:  # any stage: a safety stop, never a crash (module doc)
+                if isinstance(exc, EndOfTicks) and self.clock.lockstep:
+                    raise
                 outcome, message = await self._stop_after_exception(exc)
             except BaseException:
                 # Ctrl-C without a signal handler, a cancelled task, SystemExit: no tick is

@@ -29,7 +29,7 @@ from handctl.bus import BusSpec, open_bus
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig, load_hand
 from handctl.drivers.hand import HandDriver
-from handctl.loop import ZERO_TICKS_BEFORE_DISABLE, Outcome, Runtime
+from handctl.loop import ZERO_TICKS_BEFORE_DISABLE, EndOfTicks, Outcome, Runtime
 from handctl.protocol import NODE_COMMANDS, load_protocol
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
@@ -381,6 +381,29 @@ def test_ctrl_c_without_a_signal_handler_zeroes_and_disables_before_it_goes_on(
         nonzero = [i for i, (_, values) in enumerate(rows) if np.any(values)]
         assert nonzero and nonzero[-1] == len(rows) - 2, f"node {node}: no zero after torque"
         assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0], f"node {node}"
+
+
+def test_only_a_lockstep_clock_may_end_a_run_without_a_stop(
+        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """A re-run ends at the end of its log with EndOfTicks, sending nothing more; the same
+    from a clock that is not lockstep (a real-time one never runs out) is a clock fault."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always=True)
+        real_wait = b.runtime.clock.wait_tick
+
+        async def wait_tick() -> Tick:
+            if due():
+                raise EndOfTicks
+            return await real_wait()
+
+        monkeypatch.setattr(b.runtime.clock, "wait_tick", wait_tick)
+        monkeypatch.setattr(b.runtime.clock, "lockstep", False)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        wire = hear(b.listener, hand)
+    assert [f.code for f in result.faults] == [FaultCode.CLOCK_EXCEPTION]
+    assert_stopped_on_the_wire(wire, result.faults[0].tick - b.runtime.first_send_tick)
 
 
 # -- the two reproductions of the issue, through the command line ------------------------------
