@@ -445,7 +445,12 @@ def _cli_run(args: list[str], monkeypatch: pytest.MonkeyPatch) -> tuple[int, can
         return bus
 
     monkeypatch.setattr(session, "open_bus", open_and_listen)
-    code = cli.main(["run", "recipe", *args])
+    try:
+        code = cli.main(["run", "recipe", *args])
+    except BaseException:
+        for listener in listeners:
+            listener.shutdown()
+        raise
     assert listeners, "the run opened no virtual channel"
     return code, listeners[0]
 
@@ -519,3 +524,40 @@ def test_a_recipe_with_more_objects_than_the_hand_ends_in_a_safety_stop(
     assert all(wire.disables.values())
     for rows in wire.torques.values():  # the hook raised before any torque flowed
         assert all(not np.any(values) for _, values in rows)
+
+
+def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
+        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """The recorder's own code raises from one tick on, in the run and again when it is
+    closed: the hand is stopped, the run ends in exit 3 with its summary, and the log is
+    finished with every tick up to the fault, the fault event and the summary."""
+    broken_from = 300
+    real_flush = Recorder._flush_frames
+
+    def flush(self: Recorder) -> None:
+        if self._tick >= broken_from:
+            raise ForcedError("forced inside the recorder")
+        real_flush(self)
+
+    monkeypatch.setattr(Recorder, "_flush_frames", flush)
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD)
+    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
+    code, listener = _cli_run([str(recipe), "--summary-json", str(out), "--log", str(log)],
+                              monkeypatch)
+    try:
+        wire = hear(listener, hand)
+    finally:
+        listener.shutdown()
+    assert code == cli.EXIT_SAFETY_STOP
+    summary = json.loads(out.read_text())
+    assert summary["faults"][0]["code"] == "RECORD_EXCEPTION"
+    assert "ForcedError" in summary["recording"]["error"]
+    _stopped_after_torque(wire)
+    complete, ticks, faults = logged_faults(log)
+    assert complete and ticks == broken_from
+    assert [(f["name"], f["tick"]) for f in faults] == [("RECORD_EXCEPTION", broken_from)]
+    logged = open_recording(log).json_meta(ch.META_SUMMARY)
+    assert logged is not None and logged["outcome"] == "safety_stop"
+
