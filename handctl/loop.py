@@ -425,6 +425,8 @@ class Runtime:
         sup = self.supervisor
         driver = self.driver
         cpu = self.cpu_clock
+        # The stage stamps c0..c5 (and ``desired``) also tell ``_stage_of`` which stage an
+        # exception came from: keep their names and order in step with it.
         tk = await self._next_tick()
         for hook in self.tick_hooks:
             hook(tk)
