@@ -183,33 +183,38 @@ class HandDriver:
         bus refused it or raised), the e-stop frame follows. Never raises; False when any
         frame did not go.
         """
-        return self._send_prepared(self._zero_frames, "command_counter")
-
-    def send_disable(self) -> bool:
-        """Disable every node from the prepared frames, as ``send_zero`` sends zero."""
-        return self._send_prepared(self._disable_frames, "node_command_counter")
-
-    def _send_prepared(self, table: list[tuple[int, tuple[bytes, ...]]], counter: str) -> bool:
         ok = True
-        for node, (frame_id, frames) in zip(self.nodes, table, strict=True):
-            try:
-                value = getattr(node, counter) % COUNTER_VALUES
-                setattr(node, counter, (value + 1) % COUNTER_VALUES)
-                ok = self.bus.send(frame_id, frames[value]) and ok
-            except Exception:  # whatever it was, the stop goes on to the next node
-                ok = False
+        for node, (frame_id, frames) in zip(self.nodes, self._zero_frames, strict=True):
+            counter = node.command_counter % COUNTER_VALUES
+            node.command_counter = (counter + 1) % COUNTER_VALUES
+            ok = self._send_quietly(frame_id, frames[counter]) and ok
         if not ok:
             self.send_estop()
         return ok
 
+    def send_disable(self) -> bool:
+        """Disable every node from the prepared frames, as ``send_zero`` sends zero."""
+        ok = True
+        for node, (frame_id, frames) in zip(self.nodes, self._disable_frames, strict=True):
+            counter = node.node_command_counter % COUNTER_VALUES
+            node.node_command_counter = (counter + 1) % COUNTER_VALUES
+            ok = self._send_quietly(frame_id, frames[counter]) and ok
+        if not ok:
+            self.send_estop()
+        return ok
+
+    def _send_quietly(self, frame_id: int, data: bytes) -> bool:
+        """One frame, whatever the bus does: False when it refused or raised."""
+        try:
+            return self.bus.send(frame_id, data)
+        except Exception:  # the stop goes on to the next frame, whatever this was
+            return False
+
     def send_estop(self) -> bool:
         """The prepared e-stop frame (host safety), without the codec; never raises."""
-        try:
-            counter = self._estop_counter % COUNTER_VALUES
-            self._estop_counter = (counter + 1) % COUNTER_VALUES
-            return self.bus.send(self._estop_layout.frame_id, self._estop_frames[counter])
-        except Exception:  # the last resort: nothing left to fall back to
-            return False
+        counter = self._estop_counter % COUNTER_VALUES
+        self._estop_counter = (counter + 1) % COUNTER_VALUES
+        return self._send_quietly(self._estop_layout.frame_id, self._estop_frames[counter])
 
     def node_command(self, command: str, nodes: Iterable[int] | None = None) -> bool:
         """Send enable / disable / fault_reset to the given node ids (all by default)."""
