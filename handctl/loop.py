@@ -56,8 +56,9 @@ STATUS_EVERY_TICKS = 100
 #: A tick of the stop after an exception waits this long at most for the clock; a clock that
 #: does not answer is given up and the rest of the stop's frames go at once, in order.
 STOP_TICK_TIMEOUT_S = 0.1
-#: An exception's message is cut to this many characters in the fault and the log.
-EXCEPTION_TEXT_CHARS = 300
+#: An exception's message is cut to this many characters, so that the fault with its place
+#: fits in one event of the log (480 bytes) and a message never carries a huge object.
+EXCEPTION_TEXT_CHARS = 200
 
 
 class EndOfTicks(Exception):  # noqa: N818 - an end, not an error

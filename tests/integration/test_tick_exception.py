@@ -29,7 +29,13 @@ from handctl.bus import BusSpec, open_bus
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig, load_hand
 from handctl.drivers.hand import HandDriver
-from handctl.loop import ZERO_TICKS_BEFORE_DISABLE, EndOfTicks, Outcome, Runtime
+from handctl.loop import (
+    EXCEPTION_TEXT_CHARS,
+    ZERO_TICKS_BEFORE_DISABLE,
+    EndOfTicks,
+    Outcome,
+    Runtime,
+)
 from handctl.protocol import NODE_COMMANDS, load_protocol
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
@@ -404,6 +410,28 @@ def test_only_a_lockstep_clock_may_end_a_run_without_a_stop(
         wire = hear(b.listener, hand)
     assert [f.code for f in result.faults] == [FaultCode.CLOCK_EXCEPTION]
     assert_stopped_on_the_wire(wire, result.faults[0].tick - b.runtime.first_send_tick)
+
+
+def test_a_huge_exception_message_is_cut_and_its_place_kept(
+        hand: HandConfig, hold: Recipe, tmp_path: Path) -> None:
+    """An exception carrying a huge object: the fault, the summary and the log get its
+    beginning, and the log's event still ends with where it was raised."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always=False)
+
+        def hook(tk: Tick) -> None:
+            if due():
+                raise ForcedError("x" * 1_000_000)
+
+        b.runtime.tick_hooks.append(hook)
+        result = asyncio.run(b.runtime.run())
+        b.recorder.close()
+    failure = result.exception
+    assert failure is not None and len(failure.message) <= EXCEPTION_TEXT_CHARS
+    assert len(result.faults[0].detail) < 2 * EXCEPTION_TEXT_CHARS
+    _, _, faults = logged_faults(tmp_path / "run.mcap")
+    assert faults[0]["detail"].endswith(f"(in hook (tests/integration/{Path(__file__).name}:"
+                                        f"{hook.__code__.co_firstlineno + 2}))")
 
 
 # -- the two reproductions of the issue, through the command line ------------------------------
