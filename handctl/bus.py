@@ -16,6 +16,25 @@ Bus specs:
   participant in DIRECTORY: a bus that crosses processes on one machine without a kernel CAN
   driver or any network traffic (the simulated hand in its own process, kill tests).
 - ``INTERFACE:CHANNEL``: any other python-can interface, given the config's CAN-FD bit rates.
+
+Receive times: every ``Frame`` carries the time it arrived, on the clock of whoever drains it
+(``HandBus.use_clock``: the driver hands over the loop's clock), never the time it was
+drained, so a frame that waited in a queue is seen as old as it is. SocketCAN stamps frames in
+the kernel and the unix bus asks the kernel for the same (``SO_TIMESTAMPNS``); both are
+wall-clock times, converted to the loop's clock when drained. The virtual bus stamps a frame
+as it is put into the receiver's queue, on the receiver's clock itself, so a lockstep run
+stays deterministic.
+
+Identifiers: handctl speaks 11-bit identifiers only. A 29-bit (extended) frame keeps its
+identity: its ``arbitration_id`` carries ``EXTENDED_ID_FLAG`` (SocketCAN's ``CAN_EFF_FLAG``),
+so 0x181 sent as an extended frame is 0x80000181 and is never taken for ``Feedback_1``.
+
+Receive budget: a real bus carries only so many frames a loop period (``frames_per_period``
+in ``handctl/busload.py``: 27 on the default 1 Mbit/s CAN-FD bus at 1 kHz, 21 on classic CAN).
+The virtual and unix buses carry any number, so the host holds every bus to that limit: its
+drain takes at most the frames the bus could have carried since the previous drain, plus one
+period's worth, and ``drain`` reports frames it had to leave in the queue as an
+``RX_BACKLOG`` event, which the supervisor treats as a fault.
 """
 
 from __future__ import annotations
@@ -25,6 +44,7 @@ import enum
 import errno
 import itertools
 import os
+import queue
 import select
 import socket
 import struct
@@ -35,6 +55,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+from can.interfaces import virtual as _virtual
 
 from handctl.config import BusConfig
 from handctl.errors import BusError, ConfigError
@@ -42,6 +63,14 @@ from handctl.taps import TAP_TX, TAP_TX_FAILED
 
 #: Frames drained per call at most: a babbling node must not keep one tick busy forever.
 DRAIN_LIMIT = 512
+#: Set in ``Frame.arbitration_id`` (and given to ``HandBus.send``) for a 29-bit identifier, as
+#: SocketCAN's ``CAN_EFF_FLAG``: an extended frame never has the id of a standard one.
+EXTENDED_ID_FLAG = 0x80000000
+_EXTENDED_ID_MASK = 0x1FFFFFFF
+#: ``SO_TIMESTAMPNS`` (Linux, asm-generic; Python's socket module does not name it): the
+#: kernel stamps each datagram as it is queued for the receiving socket.
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_TIMESPEC = struct.Struct("@qq")
 #: Frames one burst holds at most on a batching transport before they go anyway (a datagram).
 MAX_BURST = 32
 
@@ -54,7 +83,9 @@ _CAN_ERR_CRTL_PASSIVE = 0x30  # rx or tx error-passive bits in data[1]
 
 @dataclass(frozen=True, slots=True)
 class Frame:
-    """One CAN frame as the rest of handctl sees it. ``timestamp_ns`` is the bus's time."""
+    """One CAN frame as the rest of handctl sees it. ``timestamp_ns`` is when it arrived, on
+    the clock of the ``HandBus`` that drained it (see the module's "Receive times");
+    ``arbitration_id`` has ``EXTENDED_ID_FLAG`` set for a 29-bit identifier."""
 
     arbitration_id: int
     data: bytes
@@ -70,6 +101,7 @@ class BusEventKind(enum.Enum):
     TX_QUEUE_FULL = "tx_queue_full"
     TX_FAILED = "tx_failed"
     RX_FAILED = "rx_failed"
+    RX_BACKLOG = "rx_backlog"  # a drain reached its limit with frames still waiting
     FOREIGN_FRAME = "foreign_frame"  # counted by callers; kept here so one enum names them all
 
 
@@ -179,8 +211,64 @@ class _Message(can.Message):
             error_state_indicator=self.error_state_indicator)
 
 
-_WIRE = struct.Struct("<dIBB")  # timestamp (s), arbitration id, flags, data length; then data
-_FD, _BRS, _ERR, _ESI = 1, 2, 4, 8
+class _ArrivalQueue(queue.Queue[Any]):
+    """A virtual-bus receive queue that stamps each message as it is put, on its owner's clock.
+
+    python-can's virtual bus stamps a message with the sender's wall clock; the receiver's
+    loop runs on its own clock (simulated time in lockstep), so the stamp is taken here, at
+    the moment the message is queued, as ``(stamp_ns, message)``.
+    """
+
+    def __init__(self, maxsize: int, stamp: Callable[[], int]) -> None:
+        super().__init__(maxsize)
+        self.stamp = stamp
+
+    def _put(self, item: can.Message) -> None:
+        self.queue.append((self.stamp(), item))
+
+
+class ArrivalStampedVirtualBus(_virtual.VirtualBus):
+    """python-can's virtual bus whose receive queue stamps messages on arrival (see
+    ``_ArrivalQueue``); ``take`` returns them with their stamps. Other virtual buses on the
+    channel, handctl's or not, send to it as to any other."""
+
+    def __init__(self, channel: str, **kwargs: Any) -> None:
+        super().__init__(channel=channel, **kwargs)
+        self.clock_ns: Callable[[], int] = time.monotonic_ns
+        with _virtual.channels_lock:
+            old = self.queue
+            stamped = _ArrivalQueue(old.maxsize, self._stamp)
+            self.channel[self.channel.index(old)] = stamped
+            self.queue = stamped
+            while not old.empty():  # anything sent while the plain queue was registered
+                stamped.put_nowait(old.get_nowait())
+
+    def _stamp(self) -> int:
+        return self.clock_ns()
+
+    def take(self) -> tuple[int, can.Message] | None:
+        """The next ``(arrival_ns, message)``, or None when the queue is empty."""
+        if not self._open:
+            raise can.CanOperationError("Cannot operate on a closed bus")
+        try:
+            return self.queue.get_nowait()  # type: ignore[return-value]
+        except queue.Empty:
+            return None
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        self._check_if_open()
+        try:
+            item: Any = self.queue.get(block=True, timeout=timeout)  # (arrival_ns, message)
+        except queue.Empty:
+            return None, False
+        item[1].timestamp = item[0] * 1e-9
+        return item[1], False
+
+
+#: Per frame: the sender's time (s; diagnostics only: a frame is stamped on arrival by the
+#: receiver's kernel), arbitration id, flags, data length; then the data.
+_WIRE = struct.Struct("<dIBB")
+_FD, _BRS, _ERR, _ESI, _EXT = 1, 2, 4, 8, 16
 _unix_ids = itertools.count()
 #: Frames per datagram at most; a burst beyond it goes out in several datagrams.
 _BATCH = 32
@@ -233,6 +321,11 @@ class UnixDatagramBus(can.BusABC):
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         with _suppress_oserror():
             self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        # The kernel stamps each datagram as it arrives: the time a frame reached this
+        # participant, however long it then waits to be read. (A kernel without it leaves
+        # the time of reading, which makes frames look younger: Linux has it.)
+        with _suppress_oserror():
+            self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         self._sock.bind(str(self._path))
         self._sock.setblocking(False)
         self._own = receive_own_messages
@@ -267,7 +360,8 @@ class UnixDatagramBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         flags = ((_FD if msg.is_fd else 0) | (_BRS if msg.bitrate_switch else 0)
                  | (_ERR if msg.is_error_frame else 0)
-                 | (_ESI if msg.error_state_indicator else 0))
+                 | (_ESI if msg.error_state_indicator else 0)
+                 | (_EXT if msg.is_extended_id else 0))
         data = bytes(msg.data)
         self._pending.append(_WIRE.pack(time.time(), msg.arbitration_id, flags, len(data))
                              + data)
@@ -328,15 +422,17 @@ class UnixDatagramBus(can.BusABC):
 
     def _read_datagram(self) -> bool:
         try:
-            payload = self._sock.recv(_BATCH * (_WIRE.size + 64))
+            payload, ancillary, _, _ = self._sock.recvmsg(_BATCH * (_WIRE.size + 64),
+                                                          _ANCILLARY_SIZE)
         except (BlockingIOError, InterruptedError):
             return False
+        stamp = _arrival_s(ancillary)
         offset = 0
         while offset + _WIRE.size <= len(payload):
-            stamp, frame_id, flags, length = _WIRE.unpack_from(payload, offset)
+            _, frame_id, flags, length = _WIRE.unpack_from(payload, offset)
             offset += _WIRE.size
             self._inbox.append(can.Message(
-                timestamp=stamp, arbitration_id=frame_id, is_extended_id=False,
+                timestamp=stamp, arbitration_id=frame_id, is_extended_id=bool(flags & _EXT),
                 is_fd=bool(flags & _FD), bitrate_switch=bool(flags & _BRS),
                 is_error_frame=bool(flags & _ERR), error_state_indicator=bool(flags & _ESI),
                 data=payload[offset:offset + length], channel=self.channel_info, is_rx=True,
@@ -378,6 +474,19 @@ class UnixDatagramBus(can.BusABC):
         super().shutdown()
 
 
+_ANCILLARY_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
+
+
+def _arrival_s(ancillary: list[tuple[int, int, bytes]]) -> float:
+    """The kernel's arrival time of a datagram (wall clock, s), or now if it gave none."""
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS \
+                and len(data) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack_from(data)
+            return float(sec + nsec * 1e-9)
+    return time.time()
+
+
 class _suppress_oserror:  # noqa: N801 - used like contextlib.suppress(OSError), allocation-free
     def __enter__(self) -> None:
         return None
@@ -404,29 +513,70 @@ class HandBus:
         self.closed = False
         self._batching = isinstance(bus, UnixDatagramBus)
         self._burst: list[tuple[int, bytes]] = []  # held by a batching transport until flush
+        # A virtual bus stamps arrivals on this bus's clock; the others in wall-clock time.
+        self._take = bus.take if isinstance(bus, ArrivalStampedVirtualBus) else None
+        if isinstance(bus, ArrivalStampedVirtualBus):
+            bus.clock_ns = self._now_ns
+        #: The message a drain read past its limit, to tell whether frames were left: the
+        #: first of the next drain. ``(arrival_ns, message)``.
+        self._lookahead: tuple[int, can.Message] | None = None
         #: The recorder's taps: every frame drained or sent, and every event as it is taken.
         self.tap: FrameTap | None = None
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
 
+    def use_clock(self, clock_ns: Callable[[], int]) -> None:
+        """Stamp arrivals and events on ``clock_ns`` (the loop's clock) from now on."""
+        self._clock_ns = clock_ns
+
+    def _now_ns(self) -> int:
+        return self._clock_ns()
+
+    def _receive(self, wall_to_clock_ns: int) -> tuple[int, can.Message] | None:
+        """The next message and its arrival time on this bus's clock, or None."""
+        if self._take is not None:
+            return self._take()
+        msg = self._bus.recv(timeout=0)
+        if msg is None:
+            return None
+        if msg.timestamp <= 0:  # an interface that stamps nothing: the time of reading
+            return self._clock_ns(), msg
+        return round(msg.timestamp * 1e9) + wall_to_clock_ns, msg
+
     def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]:
-        """Every frame that has arrived, without waiting; error frames become events."""
+        """The frames that have arrived, ``limit`` at most, without waiting; error frames
+        become events. Frames still waiting after ``limit`` are an ``RX_BACKLOG`` event."""
         frames: list[Frame] = []
-        recv = self._bus.recv
-        for _ in range(limit):
-            try:
-                msg = recv(timeout=0)
-            except (can.CanError, OSError, ValueError) as exc:
-                self._event(BusEventKind.RX_FAILED, str(exc))
-                break
-            if msg is None:
-                break
-            if msg.is_error_frame:
-                self._error_frame(msg)
-                continue
-            self.received += 1
-            frames.append(Frame(msg.arbitration_id, bytes(msg.data),
-                                int(msg.timestamp * 1e9), msg.is_fd))
+        now = self._clock_ns()
+        # Wall-clock arrival stamps (kernel, adapter) onto this bus's clock; never later than
+        # now, so an adapter whose clock runs ahead cannot make a frame look younger.
+        wall_to_clock = now - time.time_ns()
+        item, self._lookahead = self._lookahead, None
+        count = 0
+        try:
+            while True:
+                if item is None:
+                    item = self._receive(wall_to_clock)
+                    if item is None:
+                        break
+                if count == limit:  # one more was waiting: keep it for the next drain
+                    self._lookahead = item
+                    self._event(BusEventKind.RX_BACKLOG,
+                                f"{limit} frames drained and more waiting")
+                    break
+                count += 1
+                stamp, msg = item
+                item = None
+                if msg.is_error_frame:
+                    self._error_frame(msg)
+                    continue
+                self.received += 1
+                frame_id = msg.arbitration_id
+                if msg.is_extended_id:
+                    frame_id = (frame_id & _EXTENDED_ID_MASK) | EXTENDED_ID_FLAG
+                frames.append(Frame(frame_id, bytes(msg.data), min(stamp, now), msg.is_fd))
+        except (can.CanError, OSError, ValueError) as exc:
+            self._event(BusEventKind.RX_FAILED, str(exc))
         if frames and self.rx_tap is not None:
             self.rx_tap(frames)
         return frames
@@ -439,7 +589,9 @@ class HandBus:
         (at most ``MAX_BURST`` frames): ``send`` returns True for it, and it is counted and
         tapped when the burst goes, with the burst's fate.
         """
-        msg = _Message(arbitration_id=arbitration_id, data=data, is_extended_id=False,
+        extended = bool(arbitration_id & EXTENDED_ID_FLAG)
+        msg = _Message(arbitration_id=arbitration_id & _EXTENDED_ID_MASK if extended
+                       else arbitration_id, data=data, is_extended_id=extended,
                        is_fd=self.fd, bitrate_switch=self.fd, check=False)
         try:
             self._bus.send(msg, timeout=0)
@@ -574,6 +726,9 @@ def open_bus(spec: str | BusSpec, bus_config: BusConfig,
         if parsed.interface == "unix":
             del kwargs["interface"]
             bus: can.BusABC = UnixDatagramBus(**kwargs)
+        elif parsed.interface == "virtual":
+            del kwargs["interface"]
+            bus = ArrivalStampedVirtualBus(**kwargs)
         else:
             bus = can.Bus(**kwargs)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
@@ -603,8 +758,10 @@ def write_frames(path: str | Path, fmt: str,
     with writer:
         for stamp, frame_id, data, is_rx, is_fd in frames:
             fd = is_fd or len(data) > 8
+            extended = bool(frame_id & EXTENDED_ID_FLAG) or frame_id > 0x7FF
             writer.on_message_received(can.Message(
-                timestamp=stamp, arbitration_id=frame_id, is_extended_id=frame_id > 0x7FF,
+                timestamp=stamp, arbitration_id=frame_id & _EXTENDED_ID_MASK,
+                is_extended_id=extended,
                 data=data, is_fd=fd, bitrate_switch=fd, is_rx=is_rx, check=False))
             count += 1
     return count

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from handctl.config import HandConfig
+from handctl.config import BusConfig, HandConfig
 from handctl.protocol import Layout, Protocol
 
 #: A configuration whose worst-case load exceeds this fraction is refused.
@@ -144,3 +144,25 @@ def hand_budget(hand: HandConfig, protocol: Protocol, *, nodes: set[int] | None 
         rows.append(MessageBudget(layout.name, layout.frame_id, layout.length, frames, hz,
                                   t * 1e6, t * hz))
     return BusBudget(use_fd, rate, data_rate, hand.bus.loop_rate_hz, tuple(rows))
+
+
+def shortest_frame_time_s(fd: bool, bitrate: int, data_bitrate: int | None) -> float:
+    """The least time any frame can take on the bus: no data and not one stuff bit.
+
+    A bus cannot carry more frames than this allows, whoever sends them; it is the bound the
+    host holds its drain to (``frames_per_period``). Classic: the 47 bits of an empty base
+    frame. CAN-FD with bit-rate switching: the 30 arbitration and tail bits at the nominal
+    rate, and at the data rate ESI and DLC (5), the stuff count (4), a 17-bit CRC and its 6
+    fixed stuff bits.
+    """
+    if not fd:
+        return 47 / bitrate
+    data_bits = 5 + 4 + 17 + math.ceil((4 + 17) / 4)
+    return 30 / bitrate + data_bits / (data_bitrate or bitrate)
+
+
+def frames_per_period(bus: BusConfig) -> int:
+    """The most frames the hand's bus can carry in one loop period (27 on 1 Mbit/s CAN-FD
+    with a 5 Mbit/s data phase at 1 kHz, 21 on classic CAN at 1 Mbit/s)."""
+    shortest = shortest_frame_time_s(bus.fd, bus.bitrate, bus.data_bitrate)
+    return max(1, math.floor(bus.period_s / shortest + 1e-9))

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,8 @@ EXIT_BUS = 4
 EXIT_INTERRUPTED = 130
 
 DEFAULT_HAND = Path("config/hands/hiroshima_hand.yaml")
+#: A simulated hand told to stop by SIGTERM waits this long (s) for its host to be gone.
+ORPHAN_WAIT_S = 2.0
 
 
 def _progress(message: str) -> None:
@@ -213,23 +216,63 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
 # -- sim ---------------------------------------------------------------------------------------
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from handctl.config import load_hand
-    from handctl.sim.faults import load_scenario
-    from handctl.sim.hand import standalone
+    from handctl.parent_death import parent_ends, remove_orphaned_bus
 
-    hand = load_hand(args.hand)
-    faults = load_scenario(args.faults, hand) if args.faults else None
-    # Ctrl-C (or the host's SIGINT) ends the hand cleanly with its summary, even when this
-    # process inherited SIGINT ignored, as a script's background jobs do.
+    # Ctrl-C, the host's SIGINT and SIGTERM (also the parent-death signal) end the hand
+    # cleanly with its summary, even when this process inherited them ignored or blocked, as
+    # a script's background jobs do.
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
-                     summary_json=args.summary_json, realtime=args.rt))
+    terminated: list[str] = []
+
+    def terminate(signum: int, frame: object) -> None:
+        # Only the first: a dying host can signal its hand more than once (once per thread),
+        # and a second interrupt would cut short the clean-up the first one began.
+        terminated.append(signal.Signals(signum).name)
+        if len(terminated) == 1:
+            raise KeyboardInterrupt(terminated[0])
+
+    signal.signal(signal.SIGTERM, terminate)
+    try:
+        parent_alive: Callable[[], bool] | None = None
+        if args.parent_pid is not None:
+            from functools import partial
+
+            from handctl.parent_death import die_with_parent
+            from handctl.parent_death import parent_alive as alive
+
+            if not die_with_parent(args.parent_pid):
+                raise KeyboardInterrupt(f"process {args.parent_pid} ended before its "
+                                        "simulated hand started")
+            parent_alive = partial(alive, args.parent_pid)
+        from handctl.config import load_hand
+        from handctl.sim.faults import load_scenario
+        from handctl.sim.hand import standalone
+
+        hand = load_hand(args.hand)
+        faults = load_scenario(args.faults, hand) if args.faults else None
+        print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
+                         summary_json=args.summary_json, realtime=args.rt,
+                         keep_running=parent_alive))
+    except Exception as exc:
+        # An interrupt raised inside C code (MuJoCo's import, for one) comes out as that
+        # code's own error: it is still an interrupt.
+        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
+            raise KeyboardInterrupt(str(exc)) from exc
+        raise
+    finally:
+        # SIGTERM is also the parent-death signal, which can come while the host is still
+        # going down: then wait for it to be gone.
+        if args.parent_pid is not None and parent_ends(
+                args.parent_pid, ORPHAN_WAIT_S if terminated else 0.0):
+            remove_orphaned_bus(args.bus, args.summary_json)
     return EXIT_OK
 
 
 # -- replay ------------------------------------------------------------------------------------
 def _print_replay_summary(summary: dict[str, Any]) -> None:
-    state = "complete" if summary["complete"] else f"TRUNCATED: {summary['problem']}"
+    state = "complete" if summary["complete"] else \
+        f"{'DAMAGED' if summary.get('damaged') else 'TRUNCATED'}: {summary['problem']}"
     print(f"{summary['file']}: {summary['recipe'] or '?'} on {summary['hand'] or '?'} "
           f"({summary['mode'] or '?'}), {summary['outcome']}; {summary['duration_s']:.3f} s, "
           f"{summary['ticks']} ticks, {summary['chunks']} chunks, {state}")
@@ -376,6 +419,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--rt", action="store_true",
                      help="ask for SCHED_FIFO (below the control loop's priority) and locked "
                           "memory for the node timer (says so when refused)")
+    sim.add_argument("--parent-pid", type=int, metavar="PID",
+                     help="run as the simulated hand of process PID (what handctl run "
+                          "--realtime does): stop when PID ends, and then remove the unix bus "
+                          "directory, which nobody else is left to remove")
     sim.set_defaults(func=_cmd_sim)
 
     run = sub.add_parser("run", help="drive the hand", description="Drive the hand.")
@@ -471,9 +518,26 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
         return EXIT_INTERRUPTED
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    """SIGTERM as Ctrl-C: an interrupt that unwinds what was started, then exit 130."""
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    # SIGTERM is Ctrl-C for every command, from the start: while a hand config, a recipe and
+    # their imports load (seconds on a busy machine) it too ends the command with exit 130.
+    # ``handctl run`` turns both into its controlled stop once the run begins.
+    if threading.current_thread() is not threading.main_thread():  # signals are not ours
+        return _run_args(argv)
+    before = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        return _run_args(argv)
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
+def _run_args(argv: Sequence[str] | None) -> int:
+    args = build_parser().parse_args(argv)
     return _run(args.func, args)
 
 

@@ -109,9 +109,11 @@ class LockstepClock:
         return self._now
 
     async def wait_tick(self) -> Tick:
-        self._step_peer()
+        # The peer's step ends at the new tick's time, so what it sends arrives then: the
+        # clock moves first, and frames stamped on arrival (``handctl.bus``) carry that time.
         self._k += 1
         self._now = (self._k + 1) * self.period_ns
+        self._step_peer()
         # Let the event loop run callbacks (signals, the recorder) between ticks.
         loop = asyncio.get_running_loop()
         done = loop.create_future()

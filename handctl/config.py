@@ -108,6 +108,10 @@ class SafetyConfig:
     enable_timeout_s: float = 0.1  # nodes must report ENABLED this soon after enable
     max_consecutive_misses: int = 3
     max_consecutive_send_failures: int = 3
+    # More rejected frames of one node than this within the window is a fault: a healthy bus
+    # rejects none, a lost frame costs one, a reboot one per message.
+    reject_window_s: float = 0.1
+    max_rejects_in_window: int = 10
 
 
 @dataclass(frozen=True)
@@ -192,6 +196,10 @@ def _parse_safety(doc: Doc) -> SafetyConfig:
         max_consecutive_send_failures=doc.integer(
             "max_consecutive_send_failures", default=d.max_consecutive_send_failures,
             min=1, max=100),
+        reject_window_s=doc.number("reject_window_s", default=d.reject_window_s, min=0.001,
+                                   max=10.0, unit="s"),
+        max_rejects_in_window=doc.integer("max_rejects_in_window",
+                                          default=d.max_rejects_in_window, min=0, max=100_000),
     )
     doc.done()
     return s

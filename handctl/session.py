@@ -9,12 +9,14 @@ like any other bus. The online plane itself never imports the simulation.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import os
 import signal
 import subprocess
 import sys
 import tempfile
+import threading
 from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -123,6 +125,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                           "stepped", req.bus)
     startup_s = 0.5
     with ExitStack() as stack:
+        # First in, last out: from here to the end a signal ends the run as StopSignals says.
+        signals = stack.enter_context(StopSignals())
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
         recording = stack.enter_context(_recorder(req, is_sim and lockstep)) if req.log \
@@ -172,7 +176,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             tracker = track(runtime, sim_hand)
         if recording is not None:
             _start_recording(recording, runtime, req, spec, lockstep, sim_hand)
-        result = asyncio.run(_run_with_signals(runtime))
+        result = asyncio.run(signals.run(runtime))
         if result.exception is not None:
             warnings.append(f"the run stopped on an exception ({result.exception.code.name}); "
                             "the hand was stopped.\n"
@@ -249,14 +253,20 @@ class SimProcess:
 
     Its stderr (a progress line a second) goes to ``sim.log`` beside the bus sockets, not to a
     pipe: nobody reads a pipe during the run, and a full one (64 KiB, some ten minutes of
-    progress) would stop the hand mid-run. What it said is kept for a hand that fails."""
+    progress) would stop the hand mid-run. What it said is kept for a hand that fails.
+
+    It lives and dies with this process. It runs in a session of its own, so a Ctrl-C on the
+    terminal (SIGINT to the whole foreground process group) reaches only the host, whose stop
+    ramp needs the hand's feedback; the host stops it after the ramp. ``--parent-pid`` makes it
+    end when this process ends however it ends (``kill -9`` included), and then remove the bus
+    directory, which this process can no longer do."""
 
     def __init__(self, req: RunRequest, directory: str) -> None:
         self.summary_path = Path(directory) / "sim-summary.json"
         self.log_path = Path(directory) / "sim.log"
         cmd = [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{directory}",
                "--hand", req.hand.source, "--seed", str(req.seed),
-               "--summary-json", str(self.summary_path)]
+               "--summary-json", str(self.summary_path), "--parent-pid", str(os.getpid())]
         if req.sim_faults is not None:
             cmd += ["--faults", str(req.sim_faults)]
         if req.realtime_priority:
@@ -264,7 +274,8 @@ class SimProcess:
             # this one shares two cores with everything else on the machine.
             cmd.append("--rt")
         with self.log_path.open("wb") as log:
-            self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log)
+            self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log,
+                                         start_new_session=True)
         self.summary: dict[str, Any] | None = None
 
     def finish(self) -> dict[str, Any] | None:
@@ -297,18 +308,74 @@ class SimProcess:
         self.finish()
 
 
-async def _run_with_signals(runtime: Runtime) -> RunResult:
-    """Ctrl-C and SIGTERM become a controlled stop inside the loop, never an exception."""
-    loop = asyncio.get_running_loop()
-    installed = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
+class StopSignals:
+    """SIGINT and SIGTERM over a whole run, from before anything starts to the last line of
+    the log, so that either one ends the run the same way whenever it comes, with exit 130:
+
+    - before the runtime runs (the simulated hand starting, the log opening): an interrupt
+      (``KeyboardInterrupt``), which unwinds what was started; nothing was sent;
+    - while it runs, start-up included: the runtime's controlled stop (torque to zero, nodes
+      disabled), asked for through the event loop, never by an exception inside a tick;
+    - afterwards (the hand is stopped; the log and the summary are being finished), and once
+      the first interrupt is unwinding: noted and otherwise ignored, so that they finish.
+
+    One handler throughout, rather than asyncio's own for the run: asyncio puts back the
+    default handlers when it removes its own, and a SIGTERM then would kill the process before
+    its log is finished. Outside the main thread signals cannot be handled: nothing changes.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.runtime: Runtime | None = None
+        self.finishing = False
+        self.interrupted = ""  # the signal that interrupted the run before the runtime ran
+        self.ignored: list[str] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._saved: dict[int, Any] = {}
+
+    def __enter__(self) -> StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                self._saved[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, kind: object, exc: BaseException | None, tb: object) -> None:
+        for sig, handler in self._saved.items():
+            signal.signal(sig, handler)
+        if self.interrupted and exc is not None and not isinstance(exc, KeyboardInterrupt):
+            # The interrupt was raised inside C code (MuJoCo's import, for one), which turned
+            # it into an error of its own: it is still the interrupt that was asked for.
+            raise KeyboardInterrupt(self.interrupted) from exc
+
+    def _handle(self, signum: int, frame: object) -> None:
+        name = signal.Signals(signum).name
+        if self.finishing:
+            self.ignored.append(name)
+            return
+        if self.runtime is None or self._loop is None:
+            self.finishing = True
+            self.interrupted = f"signal {name}"
+            raise KeyboardInterrupt(self.interrupted)
         try:
-            loop.add_signal_handler(sig, runtime.request_stop, f"signal {sig.name}")
-            installed.append(sig)
-        except (NotImplementedError, RuntimeError, ValueError):
-            pass
-    try:
-        return await runtime.run()
-    finally:
-        for sig in installed:
-            loop.remove_signal_handler(sig)
+            self._loop.call_soon_threadsafe(self.runtime.request_stop, f"signal {name}")
+        except RuntimeError:  # the loop has just closed: the run is over
+            self.ignored.append(name)
+
+    async def run(self, runtime: Runtime) -> RunResult:
+        """Run ``runtime`` with the signals as its controlled stop.
+
+        A stop asked for before the nodes were enabled is the same interrupt as one asked for
+        later (exit 130), not a failed start-up: nothing went wrong with the hand.
+        """
+        self._loop = asyncio.get_running_loop()
+        self.runtime = runtime
+        try:
+            result = await runtime.run()
+        finally:
+            self.finishing = True
+            self.runtime = None
+        if (result.outcome is Outcome.STARTUP_FAILED and runtime.stop_requested
+                and not result.faults):
+            result = dataclasses.replace(result, outcome=Outcome.INTERRUPTED)
+        return result

@@ -5,13 +5,14 @@ drawn exactly as CI's few thousand are.
 The frames are what a receiver can meet on a real bus: valid frames of every message the host
 hears, the same with a bit flipped (a CRC that no longer matches, or a corrupted counter
 byte), cut short or padded, replayed (a repeated counter), and anything at all on any 11-bit
-id, the hand's own and foreign ones.
+id, the hand's own and foreign ones, or on a 29-bit id (a valid frame's twin among them).
 """
 
 from __future__ import annotations
 
 from hypothesis import strategies as st
 
+from handctl.bus import EXTENDED_ID_FLAG
 from handctl.protocol import Layout, Protocol, load_protocol
 
 PROTOCOL = load_protocol()
@@ -66,7 +67,8 @@ def frames(protocol: Protocol = PROTOCOL) -> st.SearchStrategy[Frame]:
     """One frame as a receiver may meet it: random, valid, bit-flipped, or of a wrong length."""
     host_side = _host_side(protocol)
     ids = st.one_of(st.sampled_from([lay.frame_id for lay in protocol.layouts]),
-                    st.integers(0, 0x7FF))
+                    st.integers(0, 0x7FF),
+                    st.integers(0, 0x1FFFFFFF).map(lambda i: i | EXTENDED_ID_FLAG))
     random_frame = st.tuples(ids, st.binary(min_size=0, max_size=64))
 
     @st.composite
@@ -87,7 +89,12 @@ def frames(protocol: Protocol = PROTOCOL) -> st.SearchStrategy[Frame]:
         size = draw(st.integers(0, 64).filter(lambda n: n != len(data)))
         return frame_id, (data + bytes(64))[:size]
 
-    return st.one_of(random_frame, valid(), flipped(), resized())
+    @st.composite
+    def extended_twin(draw: st.DrawFn) -> Frame:
+        frame_id, data = draw(valid())
+        return frame_id | EXTENDED_ID_FLAG, data
+
+    return st.one_of(random_frame, valid(), flipped(), resized(), extended_twin())
 
 
 @st.composite

@@ -69,6 +69,11 @@ def render() -> str:
         f"| late ticks | {s.max_consecutive_misses} in a row (a single late tick repeats the "
         "last command) |",
         f"| failed sends | {s.max_consecutive_send_failures} ticks in a row |",
+        f"| rejected frames of one node | more than {s.max_rejects_in_window} within "
+        f"{s.reject_window_s * 1e3:g} ms |",
+        "| frames drained per tick | what the bus can carry since the previous tick, plus one "
+        "period's worth (27 a period on the default 1 Mbit/s CAN-FD bus; "
+        "`handctl/busload.py` `frames_per_period`); more waiting is `RX_BACKLOG` |",
         "",
         "The device side (each finger node) has its own protection, independent of the host: "
         "a 10 ms command watchdog, torque saturation at `device_tau_max`, and the e-stop "

@@ -18,6 +18,11 @@ from handctl.protocol import NODE_COMMANDS, STATE_NAMES, Layout, Protocol
 #: FaultBits of the device (PROTOCOL.md), by name.
 FAULT_BITS = {"TIMEOUT": 0x01, "ESTOP": 0x02, "RX_ERRORS": 0x04, "SENSOR": 0x08,
               "SATURATED": 0x10}
+#: Bits only a node in FAULT may report (they latch it), and bits the protocol reserves.
+LATCHED_BITS = 0x0F
+RESERVED_BITS = 0xE0
+_ENABLED = 1
+_FAULT = 2
 
 
 def fault_names(bits: int) -> list[str]:
@@ -90,12 +95,26 @@ class FingerNode:
         self.node_command_counter = 0
         self.state = -1  # unknown until the node speaks
         self.fault_bits = 0
+        #: The first report since ``clear_contradiction`` that contradicts another or the
+        #: protocol (empty if none), and how many there were in all.
+        self.contradiction = ""
+        self.contradictions = 0
         self.feedback: Feedback | None = None
-        self.feedback_ns: int | None = None  # host time of the last good feedback
+        self.feedback_ns: int | None = None  # when the last good feedback arrived (host clock)
         self.heartbeat_ns: int | None = None
         self.uptime_ms: int | None = None
         self.reboots = 0
         self.status: tuple[float, ...] | None = None
+
+    def resynchronise(self) -> None:
+        """Take the node's next frame of each stream with whatever counter it carries.
+
+        For the start of a run: while no run listened, the node kept counting (or rebooted, or
+        a new simulated hand took its place), so the counters last heard say nothing about the
+        next ones, and rejecting its first frames would be the host's mistake, not the node's.
+        """
+        for _, counters in self.streams.values():
+            counters.reset()
 
     @property
     def state_name(self) -> str:
@@ -111,8 +130,12 @@ class FingerNode:
         self.node_command_counter = (self.node_command_counter + 1) & 0xFF
         return frame
 
-    def receive(self, frame_id: int, data: bytes, now_ns: int) -> Reject | None:
-        """Apply one frame addressed to this node's streams; return why it was rejected, if so."""
+    def receive(self, frame_id: int, data: bytes, arrival_ns: int) -> Reject | None:
+        """Apply one frame addressed to this node's streams; return why it was rejected, if so.
+
+        ``arrival_ns`` is when the frame reached the host (its receive time), not when it was
+        read: the age of what the node said is measured from it.
+        """
         layout, counters = self.streams[frame_id]
         reason = validate(layout, data, counters)
         if reason is not None:
@@ -123,9 +146,8 @@ class FingerNode:
         if layout is self.layouts.feedback:
             fb = parse_feedback(values)
             self.feedback = fb
-            self.feedback_ns = now_ns
-            self.state = fb.state
-            self.fault_bits = fb.fault_bits
+            self.feedback_ns = arrival_ns
+            self._report(fb.state, fb.fault_bits, "Feedback")
         elif layout is self.layouts.heartbeat:
             state, uptime = int(values[0]), int(values[1])
             if self.uptime_ms is not None and uptime < self.uptime_ms:
@@ -133,10 +155,38 @@ class FingerNode:
                 # counters restarted; each stream re-synchronises after one rejected frame.
                 self.reboots += 1
             self.uptime_ms = uptime
-            self.heartbeat_ns = now_ns
-            self.state = state
+            self.heartbeat_ns = arrival_ns
+            self._report(state, None, "Heartbeat")
         else:
             self.status = values
-            self.state = int(values[0])
-            self.fault_bits = int(values[1])
+            self._report(int(values[0]), int(values[1]), "Status")
         return None
+
+    def _report(self, state: int, bits: int | None, message: str) -> None:
+        """Fold in what one accepted frame says of the node's state (and fault bits).
+
+        The last report does not simply win: each must agree with the protocol and with the
+        reports before it. Latched fault bits outside FAULT, reserved bits, or ENABLED after
+        FAULT without the DISABLED a fault reset leads to, is a contradiction; the host then
+        keeps believing FAULT, and the supervisor stops on the contradiction.
+        """
+        problem = ""
+        if bits is not None and bits & RESERVED_BITS:
+            problem = f"{message} sets reserved fault bits 0x{bits & RESERVED_BITS:02X}"
+        elif bits is not None and bits & LATCHED_BITS and state != _FAULT:
+            problem = (f"{message} says {STATE_NAMES.get(state, f'state {state}')} with "
+                       f"latched fault bits ({', '.join(fault_names(bits & LATCHED_BITS))})")
+        if self.state == _FAULT and state == _ENABLED:
+            problem = problem or f"{message} says ENABLED after FAULT without a fault reset"
+            state, bits = _FAULT, None  # what the FAULT report said stands
+        if problem:
+            self.contradictions += 1
+            if not self.contradiction:
+                self.contradiction = problem
+        self.state = state
+        if bits is not None:
+            self.fault_bits = bits
+
+    def clear_contradiction(self) -> None:
+        """Judge the node afresh (a new start-up): earlier contradictions are not its now."""
+        self.contradiction = ""

@@ -15,7 +15,8 @@ from typing import NewType
 import numpy as np
 import numpy.typing as npt
 
-from handctl.bus import DRAIN_LIMIT, BusEvent, HandBus
+from handctl.bus import DRAIN_LIMIT, EXTENDED_ID_FLAG, BusEvent, BusEventKind, HandBus
+from handctl.busload import frames_per_period
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode
 from handctl.drivers.receiver import Reject, RejectCounts
@@ -40,7 +41,7 @@ class JointState:
 
     angle: FloatArray  # rad
     torque: FloatArray  # N·m, TDT after the host calibration
-    feedback_ns: npt.NDArray[np.int64]  # host time of the last good feedback, -1 if none yet
+    feedback_ns: npt.NDArray[np.int64]  # arrival (host clock) of the last good feedback, or -1
     node_state: list[int] = field(default_factory=list)  # per finger, -1 unknown
     node_faults: list[int] = field(default_factory=list)
 
@@ -69,7 +70,13 @@ def check_ids(hand: HandConfig, protocol: Protocol) -> None:
 
 
 class HandDriver:
-    """Host side of the hand: polls feedback into ``state`` and sends per-node commands."""
+    """Host side of the hand: polls feedback into ``state`` and sends per-node commands.
+
+    The bus stamps frames on arrival on ``clock_ns``, the loop's clock, so the age of what a
+    node said is measured from when it arrived. A poll drains at most what the bus can carry
+    since the previous poll (``frames_per_period`` per period elapsed, plus one period's
+    worth); frames beyond it wait, and the bus reports them (``RX_BACKLOG``).
+    """
 
     def __init__(self, hand: HandConfig, protocol: Protocol, bus: HandBus,
                  clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
@@ -77,6 +84,11 @@ class HandDriver:
         self.hand = hand
         self.bus = bus
         self.clock_ns = clock_ns
+        bus.use_clock(clock_ns)
+        #: Frames the bus can carry in one loop period (``handctl/busload.py``).
+        self.frames_per_period = frames_per_period(hand.bus)
+        self._period_ns = max(1, round(hand.bus.period_s * 1e9))
+        self._last_poll_ns: int | None = None
         self.nodes = [FingerNode(f, FingerLayouts.for_node(protocol, f.node_id))
                       for f in hand.fingers]
         self._dispatch = {fid: node for node in self.nodes for fid in node.streams}
@@ -99,17 +111,20 @@ class HandDriver:
         self._prepare_stop_frames()
 
     def poll(self, now_ns: int | None = None) -> JointState:
-        """Drain the bus and fold every accepted frame into ``state``."""
+        """Drain the bus (within the receive budget) and fold every accepted frame into
+        ``state``; a frame's age counts from its arrival."""
         now = self.clock_ns() if now_ns is None else now_ns
-        for frame in self.bus.drain():
-            node = self._dispatch.get(frame.arbitration_id)
+        for frame in self.bus.drain(self.drain_budget(now)):
+            frame_id = frame.arbitration_id
+            node = self._dispatch.get(frame_id)
             if node is None:
-                self.unexpected.add(Reject.UNEXPECTED_ID)
+                self.unexpected.add(Reject.EXTENDED_ID if frame_id & EXTENDED_ID_FLAG
+                                    else Reject.UNEXPECTED_ID)
                 ids = self.unexpected_ids
-                if len(ids) < 64 or frame.arbitration_id in ids:
-                    ids[frame.arbitration_id] = ids.get(frame.arbitration_id, 0) + 1
+                if len(ids) < 64 or frame_id in ids:
+                    ids[frame_id] = ids.get(frame_id, 0) + 1
                 continue
-            node.receive(frame.arbitration_id, frame.data, now)
+            node.receive(frame_id, frame.data, frame.timestamp_ns)
         self.bus_events.extend(self.bus.events())
         state = self.state
         for i, (node, sl) in enumerate(zip(self.nodes, self._slices, strict=True)):
@@ -124,18 +139,39 @@ class HandDriver:
         state.torque += self._tdt_offset
         return state
 
+    def drain_budget(self, now_ns: int) -> int:
+        """Frames the poll at ``now_ns`` may drain: what the bus can carry since the previous
+        poll, plus one period's worth of slack (the first poll after a start: ``DRAIN_LIMIT``).
+        It depends only on the polls' times, so a re-run of a log drains as the run did."""
+        last, self._last_poll_ns = self._last_poll_ns, now_ns
+        if last is None:
+            return DRAIN_LIMIT
+        periods = max(1, -(-(now_ns - last) // self._period_ns))
+        return self.frames_per_period * (periods + 1)
+
     def discard_pending(self) -> int:
         """Drop every frame already waiting in the receive queue, unread.
 
         At start-up, frames queued while nobody listened (a previous run's end, a reset) say
-        what the nodes were, not what they are; judging the nodes on them would be wrong.
+        what the nodes were, not what they are; judging the nodes on them would be wrong, and
+        so would holding against them what they contradicted before. For the same reason each
+        node's receive counters start afresh (PROTOCOL.md, "A new host"). The backlog this
+        leaves behind it is no fault; the bus's other events are kept for the first tick.
         """
+        for node in self.nodes:
+            node.resynchronise()
         dropped = 0
         while True:
             frames = self.bus.drain()
             dropped += len(frames)
             if len(frames) < DRAIN_LIMIT:
-                return dropped
+                break
+        self.bus_events.extend(e for e in self.bus.events()
+                               if e.kind is not BusEventKind.RX_BACKLOG)
+        self._last_poll_ns = None
+        for node in self.nodes:
+            node.clear_contradiction()
+        return dropped
 
     def take_bus_events(self) -> list[BusEvent]:
         events, self.bus_events = self.bus_events, []
@@ -238,5 +274,6 @@ class HandDriver:
         for node in self.nodes:
             for kind, count in enumerate(node.rejects.counts):
                 total.counts[kind] += count
-        total.counts[Reject.UNEXPECTED_ID] += self.unexpected.counts[Reject.UNEXPECTED_ID]
+        for kind in (Reject.UNEXPECTED_ID, Reject.EXTENDED_ID):
+            total.counts[kind] += self.unexpected.counts[kind]
         return total.as_dict()

@@ -18,6 +18,7 @@ class Reject(enum.IntEnum):
     CRC = 2
     COUNTER_REPEAT = 3
     COUNTER_SKIP = 4
+    EXTENDED_ID = 5  # a 29-bit identifier: the protocol has 11-bit ones only
 
 
 REJECT_KINDS = tuple(Reject)
@@ -59,19 +60,18 @@ def validate(layout: Layout, data: bytes, counters: CounterCheck) -> Reject | No
 
 
 class RejectCounts:
-    """Rejections by kind: a fixed list indexed by ``Reject`` so counting allocates nothing."""
+    """Rejections by kind: a fixed list indexed by ``Reject`` so counting allocates nothing;
+    ``total`` is kept alongside, so a watchdog reads it every tick for nothing."""
 
-    __slots__ = ("counts",)
+    __slots__ = ("counts", "total")
 
     def __init__(self) -> None:
         self.counts = [0] * len(REJECT_KINDS)
+        self.total = 0
 
     def add(self, kind: Reject) -> None:
         self.counts[kind] += 1
-
-    @property
-    def total(self) -> int:
-        return sum(self.counts)
+        self.total += 1
 
     def as_dict(self) -> dict[str, int]:
         return {kind.name.lower(): self.counts[kind] for kind in REJECT_KINDS}

@@ -38,6 +38,8 @@ META_RECIPE = "handctl.recipe"
 META_VERSIONS = "handctl.versions"
 META_SUMMARY = "handctl.summary"
 META_END = "handctl.recording_end"
+#: ``ended`` of ``META_END`` when the recorder closed the file (not a dead control process).
+ENDED_CLOSED = "closed by the recorder"
 
 #: Event kinds on ``/events``.
 EVENT_KINDS = ("fault", "state", "phase", "bus", "rejected_frames", "request", "recording")
@@ -154,7 +156,7 @@ CHANNELS: tuple[Channel, ...] = (
 )
 
 #: The channels ``handctl replay --rerun`` needs.
-RERUN_TOPICS = (TIMING, TORQUE, CAN_RX, CAN_TX, EVENTS)
+RERUN_TOPICS = (TIMING, TORQUE, JOINT_STATE, CAN_RX, CAN_TX, EVENTS)
 
 
 def schema_of(channel: Channel) -> dict[str, Any]:

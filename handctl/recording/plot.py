@@ -103,5 +103,5 @@ def title_of(summary: dict[str, Any]) -> str:
     parts = [summary.get("recipe") or "recording", f"on {summary.get('hand') or '?'}",
              f"({summary.get('mode') or '?'})", f"— {summary.get('outcome', '')}"]
     if not summary.get("complete", True):
-        parts.append("[truncated]")
+        parts.append("[damaged]" if summary.get("damaged") else "[truncated]")
     return " ".join(p for p in parts if p)

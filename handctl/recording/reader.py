@@ -1,10 +1,15 @@
-"""Reading a recording back: streaming, and whole up to where a truncated file stops.
+"""Reading a recording back: through its index when it has one, else front to back up to
+where a truncated file stops.
 
-A recording is read front to back, record by record, so it needs no summary section: a file
-whose writer died reads as far as it goes. At the first record the end of the file cuts short
-the walk stops quietly and ``Recording.problem`` says where. A chunk is used only when it
-decompresses and matches its CRC, so a chunk cut in the middle is dropped whole, never
-half-read: what comes back is every complete chunk.
+A finished file ends in a summary section (channels, statistics, chunk and metadata indexes)
+and a footer. When the summary is there and matches its CRC, the chunks are read where the
+index says they are, so a chunk damaged in the middle of the file is named (its place, its
+log times, what is wrong with it) and skipped, and every chunk after it is still read.
+
+A file without a summary (its writer died) is read front to back, record by record: it reads
+as far as it goes. At the first record the end of the file cuts short the walk stops quietly
+and ``Recording.problem`` says where. Either way a chunk is used only when it decompresses and
+matches its CRC, so a damaged or cut chunk is dropped whole, never half-read.
 
 The record bodies (metadata, channels, statistics) are parsed by the mcap library. The walk
 itself and the slicing of messages out of a decompressed chunk are done here: the library's
@@ -28,7 +33,7 @@ import orjson
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Metadata, Statistics
+from mcap.records import Channel, ChunkIndex, Metadata, MetadataIndex, Statistics
 
 from handctl.errors import ConfigError
 from handctl.recording import channels as ch
@@ -51,6 +56,24 @@ except ImportError:  # pragma: no cover - mcap depends on it
     zstandard = None  # type: ignore[assignment]
 
 
+@dataclass(frozen=True)
+class BadChunk:
+    """A chunk the index points to that cannot be read: where it is and what it held."""
+
+    number: int  # 0 first, in file order
+    offset: int  # byte offset of the chunk record
+    length: int  # bytes
+    start_ns: int  # log times of its first and last message, from the index
+    end_ns: int
+    reason: str
+
+    def describe(self, first_ns: int) -> str:
+        return (f"chunk {self.number} at byte {self.offset} ({self.length} bytes, log time "
+                f"{self.start_ns}..{self.end_ns} ns, {(self.start_ns - first_ns) * 1e-9:.3f}.."
+                f"{(self.end_ns - first_ns) * 1e-9:.3f} s into the file) is damaged "
+                f"({self.reason})")
+
+
 @dataclass
 class Recording:
     """What a first pass over the file found: metadata, channels, and whether it is whole."""
@@ -59,13 +82,24 @@ class Recording:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     topics: dict[int, str] = field(default_factory=dict)  # channel id -> topic
     message_counts: dict[str, int] = field(default_factory=dict)  # complete files only
-    chunks: int = 0
-    complete: bool = False  # footer and closing magic read
-    problem: str = ""  # why the walk stopped early ("" when complete)
+    chunks: int = 0  # chunks that read
+    complete: bool = False  # footer and closing magic read, and every chunk read
+    problem: str = ""  # what is missing and why ("" when complete)
+    #: Read through the summary's index: ``(offset, length)`` of each chunk that reads. None:
+    #: read front to back.
+    chunk_spans: list[tuple[int, int]] | None = None
+    bad_chunks: list[BadChunk] = field(default_factory=list)
+    bad_metadata: list[str] = field(default_factory=list)  # names of indexed records that fail
+
+    @property
+    def damaged(self) -> bool:
+        """The file has its summary, but some chunks or metadata it indexes do not read."""
+        return bool(self.bad_chunks or self.bad_metadata)
 
     @property
     def truncated(self) -> bool:
-        return not self.complete
+        """The file ends before its footer (or its summary is unreadable)."""
+        return not self.complete and not self.damaged
 
     def meta(self, name: str, key: str, default: str = "") -> str:
         return self.metadata.get(name, {}).get(key, default)
@@ -82,7 +116,8 @@ def _fail(path: Path, found: str) -> ConfigError:
 
 def open_recording(path: str | Path) -> Recording:
     """First pass: metadata, channels, chunk count, completeness. Bad input is a ConfigError
-    naming the file; a truncated file is not an error, it is a ``Recording`` that says so."""
+    naming the file; a truncated or damaged file is not an error, it is a ``Recording`` that
+    says so."""
     path = Path(path)
     if not path.is_file():
         raise _fail(path, "no such file" if not path.exists() else "not a regular file")
@@ -91,45 +126,188 @@ def open_recording(path: str | Path) -> Recording:
         if head != MAGIC:
             raise _fail(path, f"a file starting with {head[:8]!r}" if head else "an empty file")
         recording = Recording(path)
-        first_chunk: bytes | None = None
-        walk = _Walk(handle)
+        unreadable = ""
         try:
-            for op, body in walk.records((Opcode.CHUNK, Opcode.METADATA, Opcode.CHANNEL,
-                                          Opcode.STATISTICS, Opcode.FOOTER)):
-                if op == Opcode.CHUNK:
-                    data = _chunk_data(body)  # a chunk cut short raises here: the walk ends
-                    recording.chunks += 1
-                    if first_chunk is None:
-                        first_chunk = data
-                elif op == Opcode.METADATA:
-                    meta = Metadata.read(_stream(body))
-                    recording.metadata[meta.name] = dict(meta.metadata)
-                elif op == Opcode.CHANNEL:
-                    channel = Channel.read(_stream(body))
-                    recording.topics[channel.id] = channel.topic
-                elif op == Opcode.STATISTICS:
-                    stats = Statistics.read(_stream(body))
-                    counts = dict(stats.channel_message_counts)
-                    recording.message_counts = {str(k): v for k, v in counts.items()}
-                elif op == Opcode.FOOTER:
-                    recording.complete = handle.read(len(MAGIC)) == MAGIC
-                    break
+            index = _read_index(handle)
         except _CUT_SHORT as exc:
-            recording.problem = (f"reading stopped at byte {walk.offset} after "
-                                 f"{recording.chunks} complete chunks "
-                                 f"({type(exc).__name__}{': ' + str(exc) if str(exc) else ''})")
-        if recording.message_counts:
-            recording.message_counts = {recording.topics.get(int(cid), cid): n
-                                        for cid, n in recording.message_counts.items()}
-        if not recording.topics and first_chunk is not None:
-            for op, body in _records(first_chunk):
-                if op == Opcode.CHANNEL:
-                    channel = Channel.read(_stream(body))
-                    recording.topics[channel.id] = channel.topic
+            index, unreadable = None, f"its summary does not read ({_why(exc)})"
+        if index is not None and index.chunks:
+            _open_indexed(handle, recording, index)
+        else:
+            _open_walk(handle, recording)
+            if unreadable:
+                recording.complete = False
+                recording.problem = f"{unreadable}, so it was read front to back: " + \
+                    (recording.problem or f"{recording.chunks} complete chunks")
+        if not recording.topics:
+            _topics_from_first_chunk(handle, recording)
+    return recording
+
+
+def _why(exc: BaseException) -> str:
+    return f"{type(exc).__name__}{': ' + str(exc) if str(exc) else ''}"
+
+
+@dataclass
+class _Index:
+    """What the summary section of a finished file holds."""
+
+    topics: dict[int, str]
+    counts: dict[int, int]
+    chunks: list[ChunkIndex]
+    metadata: list[MetadataIndex]
+
+
+_FOOTER_BODY = struct.Struct("<QQI")  # summary start, summary offset start, summary CRC
+
+
+def _read_index(handle: BinaryIO) -> _Index | None:
+    """The summary of a file that ends in a footer and the closing magic; None for a file
+    that does not (cut short) or has no summary. Raises when the summary is there but does
+    not read or does not match its CRC."""
+    size = os.fstat(handle.fileno()).st_size
+    footer_at = size - len(MAGIC) - 9 - _FOOTER_BODY.size
+    if footer_at < len(MAGIC):
+        return None
+    handle.seek(footer_at)
+    tail = handle.read(9 + _FOOTER_BODY.size + len(MAGIC))
+    if tail[-len(MAGIC):] != MAGIC:
+        return None
+    op, length = _RECORD.unpack_from(tail)
+    if op != Opcode.FOOTER or length != _FOOTER_BODY.size:
+        raise ValueError("no footer record before the closing magic")
+    summary_start, _, crc = _FOOTER_BODY.unpack_from(tail, 9)
+    if summary_start == 0:
+        return None
+    if not len(MAGIC) <= summary_start <= footer_at:
+        raise ValueError(f"the footer puts the summary at byte {summary_start}")
+    handle.seek(summary_start)
+    summary = handle.read(footer_at - summary_start)
+    if crc and zlib.crc32(tail[:9 + 16], zlib.crc32(summary)) != crc:
+        raise ValueError("summary CRC mismatch")
+    index = _Index({}, {}, [], [])
+    for op, body in _records(summary):
+        if op == Opcode.CHANNEL:
+            channel = Channel.read(_stream(body))
+            index.topics[channel.id] = channel.topic
+        elif op == Opcode.STATISTICS:
+            index.counts = dict(Statistics.read(_stream(body)).channel_message_counts)
+        elif op == Opcode.CHUNK_INDEX:
+            index.chunks.append(ChunkIndex.read(_stream(body)))
+        elif op == Opcode.METADATA_INDEX:
+            index.metadata.append(MetadataIndex.read(_stream(body)))
+    return index
+
+
+def _read_record(handle: BinaryIO, offset: int, length: int, opcode: int) -> bytes:
+    """The body of the record an index says is at ``offset`` (``length`` bytes in all)."""
+    handle.seek(offset)
+    raw = handle.read(length)
+    if len(raw) != length:
+        raise EOFError(f"the file ends inside the record ({len(raw)} of {length} bytes)")
+    op, body_length = _RECORD.unpack_from(raw)
+    if op != opcode or 9 + body_length != length:
+        raise ValueError(f"a record of opcode 0x{op:02X} and {body_length} bytes where the "
+                         f"index has opcode 0x{opcode:02X} and {length - 9} bytes")
+    return raw[9:]
+
+
+def _open_indexed(handle: BinaryIO, recording: Recording, index: _Index) -> None:
+    """The first pass through the index: every chunk checked, the bad ones named."""
+    recording.topics = dict(index.topics)
+    recording.chunk_spans = []
+    chunks = sorted(index.chunks, key=lambda c: c.chunk_start_offset)
+    for number, chunk in enumerate(chunks):
+        try:
+            _chunk_data(_read_record(handle, chunk.chunk_start_offset, chunk.chunk_length,
+                                     Opcode.CHUNK))
+        except _CUT_SHORT as exc:
+            recording.bad_chunks.append(BadChunk(
+                number, chunk.chunk_start_offset, chunk.chunk_length,
+                chunk.message_start_time, chunk.message_end_time, _why(exc)))
+            continue
+        recording.chunk_spans.append((chunk.chunk_start_offset, chunk.chunk_length))
+        recording.chunks += 1
+    problems = []
+    for meta_index in index.metadata:
+        try:
+            meta = Metadata.read(_stream(_read_record(handle, meta_index.offset,
+                                                      meta_index.length, Opcode.METADATA)))
+        except _CUT_SHORT as exc:
+            recording.bad_metadata.append(meta_index.name)
+            problems.append(f"metadata record {meta_index.name!r} at byte {meta_index.offset} "
+                            f"is damaged ({_why(exc)})")
+            continue
+        recording.metadata[meta.name] = dict(meta.metadata)
+    if recording.bad_chunks:
+        first = min(c.message_start_time for c in chunks)
+        last = recording.bad_chunks[-1].number
+        problems[:0] = [bad.describe(first) for bad in recording.bad_chunks]
+        problems.append(f"its messages are left out; {recording.chunks} of {len(chunks)} "
+                        f"chunks read, {len(chunks) - 1 - last} of them after the last "
+                        "damaged one")
+    recording.complete = not problems
+    recording.problem = "; ".join(problems)
+    if recording.complete:
+        recording.message_counts = {recording.topics.get(cid, str(cid)): n
+                                    for cid, n in index.counts.items()}
+
+
+def _open_walk(handle: BinaryIO, recording: Recording) -> None:
+    """The first pass front to back, for a file without a (readable) summary."""
+    walk = _Walk(handle)
+    try:
+        for op, body in walk.records((Opcode.CHUNK, Opcode.METADATA, Opcode.CHANNEL,
+                                      Opcode.STATISTICS, Opcode.FOOTER)):
+            if op == Opcode.CHUNK:
+                _chunk_data(body)  # a chunk cut short raises here: the walk ends
+                recording.chunks += 1
+            elif op == Opcode.METADATA:
+                meta = Metadata.read(_stream(body))
+                recording.metadata[meta.name] = dict(meta.metadata)
+            elif op == Opcode.CHANNEL:
+                channel = Channel.read(_stream(body))
+                recording.topics[channel.id] = channel.topic
+            elif op == Opcode.STATISTICS:
+                stats = Statistics.read(_stream(body))
+                counts = dict(stats.channel_message_counts)
+                recording.message_counts = {str(k): v for k, v in counts.items()}
+            elif op == Opcode.FOOTER:
+                recording.complete = handle.read(len(MAGIC)) == MAGIC
+                break
+    except _CUT_SHORT as exc:
+        recording.problem = (f"reading stopped at byte {walk.offset} after "
+                             f"{recording.chunks} complete chunks ({_why(exc)})")
+    if recording.message_counts:
+        recording.message_counts = {recording.topics.get(int(cid), cid): n
+                                    for cid, n in recording.message_counts.items()}
     if not recording.complete and not recording.problem:
         recording.problem = (f"the file ends at byte {walk.offset} after {recording.chunks} "
                              "complete chunks, without its summary")
-    return recording
+
+
+def _topics_from_first_chunk(handle: BinaryIO, recording: Recording) -> None:
+    """Channels written inside the chunks only (as the mcap library's writer does)."""
+    try:
+        for body in _chunk_bodies(handle, recording):
+            for op, record in _records(_chunk_data(body)):
+                if op == Opcode.CHANNEL:
+                    channel = Channel.read(_stream(record))
+                    recording.topics[channel.id] = channel.topic
+            return
+    except _CUT_SHORT:
+        return
+
+
+def _chunk_bodies(handle: BinaryIO, recording: Recording) -> Iterator[bytes]:
+    """The body of every chunk record to read, in file order: those the index lists and that
+    read, or every one up to where the file stops."""
+    if recording.chunk_spans is None:
+        for _, body in _Walk(handle).records((Opcode.CHUNK,)):
+            yield body
+        return
+    for offset, length in recording.chunk_spans:
+        yield _read_record(handle, offset, length, Opcode.CHUNK)
 
 
 def _stream(body: bytes) -> ReadDataStream:
@@ -211,7 +389,8 @@ def _records(data: bytes) -> Iterator[tuple[int, bytes]]:
 
 def iter_messages(recording: Recording, topics: Iterable[str] | None = None
                   ) -> Iterator[tuple[str, int, bytes]]:
-    """``(topic, log_time_ns, json_bytes)`` in file order, up to the last complete chunk.
+    """``(topic, log_time_ns, json_bytes)`` in file order: every chunk that reads (up to where
+    a truncated file stops).
 
     File order is the writer's order, which is what a replay wants: a tick's frames and events
     come before the tick's own row (see ``writer.Encoder.drain``).
@@ -224,7 +403,7 @@ def iter_messages(recording: Recording, topics: Iterable[str] | None = None
     message_op, channel_op = int(Opcode.MESSAGE), int(Opcode.CHANNEL)
     with recording.path.open("rb") as handle:
         try:
-            for _, body in _Walk(handle).records((Opcode.CHUNK,)):
+            for body in _chunk_bodies(handle, recording):
                 data = _chunk_data(body)
                 offset, end = 0, len(data)
                 while offset + 9 <= end:

@@ -262,9 +262,11 @@ class Recorder:
     # The hot path. Before the commands are sent (poll, send) the taps only note references;
     # the copying into the rings happens in ``push``, after the tick's last command frame is
     # on its way, with a few ``struct.pack_into`` and buffer copies and the attributes read
-    # into locals once. A tick's frames and its row are published together at the end of its
-    # ``push`` (frames first; a tick without a push when the next one begins), so a SIGKILL
-    # costs at most the tick in progress.
+    # into locals once. A tick's frames, events and row are published together at the end of
+    # its ``push`` (the row last; a tick without a push when the next one begins), so a SIGKILL
+    # costs at most the tick in progress. Frames sent after a tick's push (the nodes' disable
+    # after the last control tick) still belong to it: they are published when the next tick
+    # begins, after its row and before the next row, where ``replay.tick_inputs`` looks.
     def begin_tick(self, tick: Tick) -> None:
         if self._row >= 0:  # the last tick had no push (start-up, shut-down): publish it now
             self._publish_idle()
@@ -348,15 +350,17 @@ class Recorder:
                 self._ints[at + I_FEEDBACK:at + I_FEEDBACK + n] = self._feedback_view
                 self._nodes_pack(self._buf, (at + I_FEEDBACK + n) * 8 + self._tick_base,
                                  *state.node_state, *state.node_faults)
-            self._publish()
-        else:
-            self._ctl_view[FRAME_HEAD] = self._fhead
+        # The tick's events before its row, so that a reader that meets the row has met them.
         if runtime is not None:
             sup = runtime.supervisor
             if len(sup.history) != self._history or len(sup.faults) != self._faults \
                     or record.phase != self._last_phase \
                     or self._reject_lists != self._reject_seen:
                 self._sweep(runtime, record.phase)
+        if row >= 0:
+            self._publish()
+        else:
+            self._ctl_view[FRAME_HEAD] = self._fhead
 
     def _copy_floats(self, row: int, record: TickRecord) -> None:
         n = self._n

@@ -13,6 +13,7 @@ from them, must come out bit for bit the same; any difference is listed.
 from __future__ import annotations
 
 import asyncio
+import heapq
 import itertools
 import math
 import struct
@@ -36,6 +37,7 @@ from handctl.protocol import load_protocol
 from handctl.recipes.loader import check_against_hand, parse_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
+from handctl.recording.feedback_check import FeedbackCheck
 from handctl.recording.reader import (
     Recording,
     iter_chunks,
@@ -247,6 +249,7 @@ def summarise(recording: Recording, series: Series) -> dict[str, Any]:
     summary: dict[str, Any] = {
         "file": str(recording.path),
         "complete": recording.complete,
+        "damaged": recording.damaged,
         "problem": recording.problem,
         "chunks": recording.chunks,
         "recipe": recording.meta(ch.META_RECIPE, "name"),
@@ -300,7 +303,9 @@ class TickInput:
     tx: list[tuple[int, bytes, bool]] = field(default_factory=list)
     bus_events: list[BusEvent] = field(default_factory=list)
     requests: list[tuple[str, str]] = field(default_factory=list)
+    rejects: dict[str, int] | None = None  # the rejected_frames events of the tick, by kind
     applied: list[float] | None = None
+    joint_state: dict[str, Any] | None = None  # the logged /hand/joint_state message
 
 
 @dataclass
@@ -309,51 +314,69 @@ class _Pending:
     tx: list[tuple[int, bytes, bool]] = field(default_factory=list)
     bus_events: list[BusEvent] = field(default_factory=list)
     requests: list[tuple[str, str]] = field(default_factory=list)
+    rejects: dict[str, int] | None = None
 
 
 def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
     """The frames drained before the first tick, and a stream of the logged ticks.
 
-    A tick's frames and events precede its row in the file (see ``writer.Encoder.drain``), so
-    a tick is whole when the next tick's row begins. One pass, one branch per message: this
-    is most of what a re-run reads.
+    A tick is whole when the next tick's row begins: its frames and events are published
+    before that row (``Recorder``), most of them before its own row, and the frames it sends
+    after its push (the nodes' disable after the last control tick) between the two. So the
+    stream hands out a tick only when it meets the next row, and the last row only when the
+    recorder closed the file; a gap in the ticks (a damaged chunk) ends the stream before it,
+    and a log whose first row is not tick 0 gives no ticks at all.
+    One pass, one branch per message: this is most of what a re-run reads.
     """
     pending: dict[int, _Pending] = {}
     kinds = {k.value: k for k in BusEventKind}
     batches = iter_chunks(recording, ch.RERUN_TOPICS)
-    timing, torque, rx, tx = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX
+    timing, torque, rx, tx, joint = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX, ch.JOINT_STATE
     fromhex = bytes.fromhex
+    closed = recording.complete and \
+        recording.meta(ch.META_END, "ended") == ch.ENDED_CLOSED
+
+    def inputs_of(k: int, current: TickInput | None) -> TickInput | _Pending:
+        if current is not None and current.tick == k:
+            return current
+        got = pending.get(k)
+        if got is None:
+            got = pending[k] = _Pending()
+        return got
 
     def ticks() -> Iterator[TickInput]:
         current: TickInput | None = None
         for topics, messages in batches:
             for topic, msg in zip(topics, messages, strict=True):
                 if topic == rx:
-                    k = msg["tick"]
-                    got = pending.get(k)
-                    if got is None:
-                        got = pending[k] = _Pending()
-                    got.rx.append(Frame(msg["id"], fromhex(msg["data"]),
-                                        msg.get("bus_time_ns", 0)))
+                    inputs_of(msg["tick"], current).rx.append(
+                        Frame(msg["id"], fromhex(msg["data"]), msg.get("bus_time_ns", 0)))
                 elif topic == tx:
-                    k = msg["tick"]
-                    got = pending.get(k)
-                    if got is None:
-                        got = pending[k] = _Pending()
-                    got.tx.append((msg["id"], fromhex(msg["data"]), msg.get("ok", True)))
+                    inputs_of(msg["tick"], current).tx.append(
+                        (msg["id"], fromhex(msg["data"]), msg.get("ok", True)))
                 elif topic == timing:
-                    if current is not None:
-                        yield current
                     k = msg["tick"]
-                    got = pending.pop(k, None) or _EMPTY
-                    current = TickInput(k, msg["scheduled_ns"], msg["now_ns"], msg["missed"],
-                                        got.rx, got.tx, got.bus_events, got.requests)
+                    if current is not None:
+                        if k != current.tick + 1:
+                            return  # a gap: the tick before it may lack what followed it
+                        yield current
+                    elif k != 0:
+                        return  # the first ticks are missing: there is nothing to re-run from
+                    current = TickInput(k, msg["scheduled_ns"], msg["now_ns"], msg["missed"])
+                    got = pending.pop(k, None)
+                    if got is not None:
+                        current.rx, current.tx = got.rx, got.tx
+                        current.bus_events, current.requests = got.bus_events, got.requests
+                        current.rejects = got.rejects
                 elif topic == torque:
                     if current is not None and current.tick == msg["tick"]:
                         current.applied = _floats(msg["applied_nm"])
-                else:
-                    _route(topic, msg, pending, kinds)
-        if current is not None:
+                elif topic == joint:
+                    if current is not None and current.tick == msg["tick"]:
+                        current.joint_state = msg
+                elif topic == ch.EVENTS and msg["kind"] in ("bus", "request", "rejected_frames"):
+                    _route(msg, inputs_of(msg["tick"], current), kinds)
+        if current is not None and closed:
             yield current
 
     stream = ticks()
@@ -363,23 +386,21 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:
     return before, itertools.chain(() if first is None else (first,), stream)
 
 
-_EMPTY = _Pending()
-
-
-def _route(topic: str, msg: dict[str, Any], pending: dict[int, _Pending],
+def _route(msg: dict[str, Any], inputs: TickInput | _Pending,
            kinds: dict[str, BusEventKind]) -> None:
-    """An event: bus events and operator requests are inputs of their tick."""
-    if topic != ch.EVENTS or msg["kind"] not in ("bus", "request"):
-        return
-    k = msg["tick"]
-    got = pending.get(k)
-    if got is None:
-        got = pending[k] = _Pending()
-    if msg["kind"] == "bus":
-        got.bus_events.append(BusEvent(kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
-                                       msg["detail"], msg.get("bus_time_ns", 0)))
+    """A bus event or an operator request (inputs of their tick), or the rejects the run
+    counted (what the re-run must count too)."""
+    kind = msg["kind"]
+    if kind == "bus":
+        inputs.bus_events.append(BusEvent(kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
+                                          msg["detail"], msg.get("bus_time_ns", 0)))
+    elif kind == "request":
+        inputs.requests.append((msg["name"], msg["detail"]))
     else:
-        got.requests.append((msg["name"], msg["detail"]))
+        rejects = inputs.rejects
+        if rejects is None:
+            rejects = inputs.rejects = {}
+        rejects[msg["name"]] = rejects.get(msg["name"], 0) + int(msg.get("count", 0))
 
 
 class ReplayBus(HandBus):
@@ -460,7 +481,8 @@ class ReplayBus(HandBus):
 
 
 class _EndOfLogError(EndOfTicks):
-    """The log has no more ticks (a truncated recording): the re-run stops there."""
+    """The log has no more whole ticks (a truncated or damaged recording): the re-run stops
+    there."""
 
 
 class ReplayClock(LockstepClock):
@@ -473,6 +495,7 @@ class ReplayClock(LockstepClock):
         self.runtime: Runtime | None = None
         self.current: TickInput | None = None
         self.unsupported: list[str] = []
+        self.check: FeedbackCheck | None = None
 
     def now_ns(self) -> int:
         return self.current.now_ns if self.current is not None else 0
@@ -483,6 +506,8 @@ class ReplayClock(LockstepClock):
             raise _EndOfLogError
         self.current = current
         self.bus.load(current.tick, current)
+        if self.check is not None:
+            self.check.take(current.rejects)
         runtime = self.runtime
         if runtime is not None:
             for kind, detail in current.requests:
@@ -509,9 +534,10 @@ _PACK: dict[int, struct.Struct] = {}
 class _Compare:
     """The re-run's ``RecordSink``: each tick's applied torques against the logged ones."""
 
-    def __init__(self, clock: ReplayClock, joints: list[str]) -> None:
+    def __init__(self, clock: ReplayClock, joints: list[str], check: FeedbackCheck) -> None:
         self.clock = clock
         self.joints = joints
+        self.check = check
         self.compared = 0
         self.mismatches: list[dict[str, Any]] = []
         self.mismatched_ticks = 0
@@ -521,6 +547,8 @@ class _Compare:
 
     def push(self, record: TickRecord) -> None:
         current = self.clock.current
+        if current is not None:
+            self.check.tick(record.tick, current.now_ns, current.joint_state, current.rx)
         logged = current.applied if current is not None else None
         rerun = record.applied
         if logged is None:
@@ -557,7 +585,8 @@ class RerunReport:
     mismatched_ticks: int
     mismatches: list[dict[str, Any]]
     frames_compared: int
-    frame_mismatches: list[str]
+    frame_mismatches: list[str]  # sent frames, and received ones the re-run read otherwise
+    feedback_compared: int  # ticks whose received frames were compared
     outcome: str
     logged_outcome: str
     notes: list[str]
@@ -573,6 +602,7 @@ class RerunReport:
                 "mismatches": self.mismatches[:MAX_LISTED],
                 "frames_compared": self.frames_compared,
                 "frame_mismatches": self.frame_mismatches[:MAX_LISTED],
+                "feedback_compared": self.feedback_compared,
                 "outcome": self.outcome, "logged_outcome": self.logged_outcome,
                 "notes": self.notes, "wall_s": round(self.wall_s, 3)}
 
@@ -602,7 +632,9 @@ def rerun(recording: Recording) -> RerunReport:
     bus.load(-1, before)
     clock = ReplayClock(period_s, inputs, bus)
     driver = HandDriver(hand, load_protocol(), bus, clock_ns=clock.now_ns)
-    compare = _Compare(clock, list(hand.joint_names))
+    check = FeedbackCheck(hand, driver)
+    clock.check = check
+    compare = _Compare(clock, list(hand.joint_names), check)
     estimator = None
     if recipe.objects:  # as the session sets it up: the estimator is fed the same angles
         from handctl.estimator import ObjectEstimator
@@ -624,9 +656,12 @@ def rerun(recording: Recording) -> RerunReport:
         result = asyncio.run(runtime.run())
         outcome = result.outcome.value
     except _EndOfLogError:
-        notes.append(f"the log ends at tick {clock.current.tick if clock.current else -1} "
-                     f"({recording.problem or 'no more ticks'}); compared up to there")
+        where = "before a damaged chunk" if recording.damaged else "where the log ends"
+        notes.append(f"the re-run stops after tick {clock.current.tick if clock.current else -1}"
+                     f", {where} ({recording.problem or 'no more ticks'}); compared up to there")
     wall = time.perf_counter() - started
+    if clock.current is not None and outcome != "log ended":
+        check.end(clock.current.tick, clock.current.rx)
     bus.finish()
     leftover = sum(1 for _ in inputs)
     if leftover and outcome != "log ended":
@@ -634,9 +669,17 @@ def rerun(recording: Recording) -> RerunReport:
     notes += [f"not repeated: {u}" for u in clock.unsupported]
     logged = recording.json_meta(ch.META_SUMMARY) or {}
     ticks = (clock.current.tick + 1) if clock.current else 0
+    frame_mismatches = list(heapq.merge(bus.frame_mismatches, check.mismatches,
+                                        key=_tick_of))
     return RerunReport(ticks, compare.compared, compare.mismatched_ticks, compare.mismatches,
-                       bus.frames_compared, bus.frame_mismatches, outcome,
+                       bus.frames_compared, frame_mismatches, check.compared, outcome,
                        logged.get("outcome", ""), notes, wall)
+
+
+def _tick_of(text: str) -> int:
+    """The tick a mismatch's text begins with (``tick N: ...``), to list both kinds in order."""
+    head = text.split(":", 1)[0].split()
+    return int(head[1]) if len(head) == 2 and head[1].lstrip("-").isdigit() else -1
 
 
 # -- frames: back onto a bus, or out to a file ------------------------------------------------

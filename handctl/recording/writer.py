@@ -395,7 +395,7 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
             pass
         encoder.busy_s += time.perf_counter() - started
         closed = bool(rings.ctl[CLOSED])
-        encoder.finish("closed by the recorder" if closed
+        encoder.finish(ch.ENDED_CLOSED if closed
                        else "the control process ended without closing the recorder")
     return 0
 

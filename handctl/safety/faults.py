@@ -60,6 +60,9 @@ class FaultCode(enum.IntEnum):
     CLOCK_EXCEPTION = 25
     STATUS_EXCEPTION = 26
     RUN_EXCEPTION = 27
+    RX_BACKLOG = 30
+    NODE_CONTRADICTION = 31
+    REJECT_RATE = 32
 
 
 @dataclass(frozen=True)
@@ -127,6 +130,15 @@ FAULTS: dict[FaultCode, FaultSpec] = {spec.code: spec for spec in (
     FaultSpec(FaultCode.RUN_EXCEPTION, StopCategory.IMMEDIATE,
               "the run raised an exception outside a tick's stages (start-up, enabling, "
               "the final disable)"),
+    FaultSpec(FaultCode.RX_BACKLOG, StopCategory.IMMEDIATE,
+              "a drain left frames waiting: more arrived than the bus can carry between two "
+              "ticks (a flood), so what the host reads next is already old"),
+    FaultSpec(FaultCode.NODE_CONTRADICTION, StopCategory.IMMEDIATE,
+              "a node's reports contradict each other or the protocol: latched or reserved "
+              "fault bits outside FAULT, or ENABLED after FAULT without a fault reset"),
+    FaultSpec(FaultCode.REJECT_RATE, StopCategory.IMMEDIATE,
+              "more frames of one node rejected within the window than the safety section "
+              "allows (a replayed or corrupted stream may be hiding what the node says)"),
 )}
 
 

@@ -34,7 +34,7 @@ from handctl.safety.limits import (
     check_desired,
     limit_torque,
 )
-from handctl.safety.watchdog import NodeWatch, TdtMonitor, TickWatch
+from handctl.safety.watchdog import NodeWatch, ReceiveWatch, TdtMonitor, TickWatch
 
 
 class State(enum.Enum):
@@ -94,6 +94,7 @@ class Supervisor:
         self.dt = hand.bus.period_s
         self.limits = JointLimits.from_hand(hand)
         self.node_watch = NodeWatch(hand.safety)
+        self.receive_watch = ReceiveWatch(hand.safety, self.dt)
         self.tdt = TdtMonitor(hand.safety, self.n, self.dt, self.limits.names)
         self.ticks = TickWatch(hand.safety)
         self.enable_deadline_ticks = max(1, math.ceil(hand.safety.enable_timeout_s / self.dt))
@@ -164,6 +165,11 @@ class Supervisor:
         for event in bus_events:
             if event.kind is BusEventKind.BUS_OFF:
                 findings.append((FaultCode.BUS_ERROR, f"bus-off ({event.detail})"))
+            elif event.kind is BusEventKind.RX_BACKLOG:
+                findings.append((FaultCode.RX_BACKLOG, event.detail))
+        if self.state is State.ENABLING or self.state in ARMED:
+            # Before the nodes are believed ENABLED, and all the while torque flows.
+            findings += self.receive_watch.check(tick, nodes)
         if self.state is State.ENABLING:
             if all(node.state == 1 for node in nodes):
                 self.fire(Event.ENABLED, tick)

@@ -156,3 +156,48 @@ class TickWatch:
                      f"{self.consecutive_send_failures} consecutive ticks with command frames "
                      "that could not be sent")]
         return []
+
+
+class ReceiveWatch:
+    """Whether the host can still believe what a node's frames say: no contradiction among
+    its reports, and no more rejected frames within the window than the safety section allows.
+
+    Rejected frames are counted by the receiver without bound; a stream of replayed or
+    corrupted frames can keep the genuine ones from being accepted while enough of its own
+    pass to look alive (a node's FAULT then goes unseen). A rate, per node over a sliding
+    window of ticks, is what tells that from the odd lost frame. The window restarts whenever
+    the watch resumes after a pause (a gap in the ticks it is given).
+    """
+
+    def __init__(self, safety: SafetyConfig, dt: float) -> None:
+        self.window = max(1, round(safety.reject_window_s / dt))
+        self.limit = safety.max_rejects_in_window
+        self._totals: list[list[int]] = []  # per node: its reject total at each tick of the window
+        self._pos = 0
+        self._last_tick: int | None = None
+
+    def check(self, tick: int, nodes: Sequence[FingerNode]) -> list[Finding]:
+        found: list[Finding] = []
+        if self._last_tick is None or tick != self._last_tick + 1 \
+                or len(self._totals) != len(nodes):
+            self._totals = [[node.rejects.total] * self.window for node in nodes]
+            self._pos = 0
+        self._last_tick = tick
+        pos = self._pos
+        for node, totals in zip(nodes, self._totals, strict=True):
+            total = node.rejects.total
+            recent = total - totals[pos]  # rejected within the last ``window`` ticks
+            totals[pos] = total
+            if recent > self.limit:
+                found.append((FaultCode.REJECT_RATE,
+                              f"node {node.node_id} ({node.finger.name}): {recent} frames "
+                              f"rejected within {self.window} ticks (at most {self.limit}; "
+                              "so far: " + ", ".join(f"{k} {v}" for k, v in
+                                                     node.rejects.as_dict().items() if v)
+                              + ")"))
+            if node.contradiction:
+                found.append((FaultCode.NODE_CONTRADICTION,
+                              f"node {node.node_id} ({node.finger.name}): "
+                              f"{node.contradiction}"))
+        self._pos = (pos + 1) % self.window
+        return found

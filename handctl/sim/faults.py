@@ -33,11 +33,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
+from handctl.bus import EXTENDED_ID_FLAG
 from handctl.config import HandConfig
 from handctl.schema import Doc, load_yaml
 from handctl.sim.params import NODE_TICK_NS
 
 if TYPE_CHECKING:
+    from handctl.protocol import Layout
     from handctl.protocol import Protocol as CanProtocol
     from handctl.sim.firmware import EmulatedNode
     from handctl.sim.plant import Plant
@@ -428,6 +430,119 @@ class Babble(Injector):
 
 
 @dataclass(eq=False)
+class ExtendedTwin(Injector):
+    """Every frame of a node's ``message`` also goes out on the 29-bit identifier with the same
+    number (0x181 as 0x00000181), the same payload, right after it: a device that speaks the
+    protocol on extended ids (a misconfigured gateway, or an attacker). Only 11-bit ids are
+    the protocol's."""
+
+    kind: ClassVar[str] = "extended_twin"
+    filters_tx: ClassVar[bool] = True
+    keys: ClassVar[tuple[str, ...]] = ("message",)
+    message: str = "feedback"
+    sent: int = field(default=0, init=False)
+    _ids: frozenset[int] = field(default=frozenset(), init=False, repr=False)
+
+    def start(self, ctx: SimContext, now_ns: int) -> None:
+        self._ids = _node_ids(ctx, self.node, _MESSAGES[self.message])
+
+    def tx(self, frame_id: int, data: bytes, now_ns: int,
+           out: list[tuple[int, bytes]]) -> None:
+        out.append((frame_id, data))
+        if frame_id in self._ids:
+            out.append((frame_id | EXTENDED_ID_FLAG, data))
+            self.sent += 1
+
+
+@dataclass(eq=False)
+class Contradict(Injector):
+    """A node whose reports contradict each other, each frame still valid (CRC, counter):
+
+    - ``report: fault_bits``: its Feedback carries latched fault ``bits`` (TIMEOUT by
+      default) whatever its state, so an ENABLED node says it has timed out;
+    - ``report: heartbeat``: after its frames of every tick a Heartbeat saying ENABLED (its own
+      heartbeats are held back), so a node in FAULT says FAULT in its Feedback and ENABLED
+      after it, in the same tick.
+    """
+
+    kind: ClassVar[str] = "contradict"
+    filters_tx: ClassVar[bool] = True
+    periodic: ClassVar[bool] = True
+    keys: ClassVar[tuple[str, ...]] = ("report", "bits")
+    report: str = "fault_bits"
+    bits: int = 0x01
+    _feedback: dict[int, Layout] = field(default_factory=dict, init=False, repr=False)
+    _heartbeat: dict[int, Layout] = field(default_factory=dict, init=False, repr=False)
+    _nodes: list[EmulatedNode] = field(default_factory=list, init=False, repr=False)
+    _counters: dict[int, int] = field(default_factory=dict, init=False, repr=False)
+
+    def start(self, ctx: SimContext, now_ns: int) -> None:
+        self._nodes = ctx.node_list(self.node)
+        self._feedback = {ctx.protocol.layout("Feedback", n.node_id).frame_id:
+                          ctx.protocol.layout("Feedback", n.node_id) for n in self._nodes}
+        self._heartbeat = {n.node_id: ctx.protocol.layout("Heartbeat", n.node_id)
+                           for n in self._nodes}
+
+    def tx(self, frame_id: int, data: bytes, now_ns: int,
+           out: list[tuple[int, bytes]]) -> None:
+        if self.report == "fault_bits":
+            layout = self._feedback.get(frame_id)
+            if layout is not None:
+                counter, values = layout.decode(data)
+                *signals, bits = values
+                data = layout.encode(counter, (*signals, int(bits) | self.bits))
+        elif any(frame_id == hb.frame_id for hb in self._heartbeat.values()):
+            return  # the node's own heartbeat is held back; ``tick`` sends the lie
+        out.append((frame_id, data))
+
+    def tick(self, ctx: SimContext, now_ns: int) -> None:
+        if self.report != "heartbeat":
+            return
+        for node in self._nodes:
+            if node.down:
+                continue
+            layout = self._heartbeat[node.node_id]
+            counter = self._counters.get(node.node_id, 0)
+            ctx.send_frame(layout.frame_id, layout.encode(
+                counter, (1, node.uptime_ms(now_ns) & 0xFFFFFFFF)))
+            self._counters[node.node_id] = (counter + 1) & 0xFF
+
+
+@dataclass(eq=False)
+class ReplayFrames(Injector):
+    """A recording of a node's own ``message`` frames played back ``delay`` s late, two a tick
+    (consecutive counters, valid CRCs): interleaved with the live stream, each tick the host
+    rejects the live frame and the first replayed one and accepts the second, so what that
+    stream says (angles, torques, state) is ``delay`` old, unless the host minds the rejects.
+    ``delay`` counts frames of the message at 1 kHz: it suits ``feedback``."""
+
+    kind: ClassVar[str] = "replay_frames"
+    filters_tx: ClassVar[bool] = True
+    keys: ClassVar[tuple[str, ...]] = ("message", "delay")
+    message: str = "feedback"
+    delay: float = 0.2
+    replayed: int = field(default=0, init=False)
+    _ids: frozenset[int] = field(default=frozenset(), init=False, repr=False)
+    _log: dict[int, deque[bytes]] = field(default_factory=dict, init=False, repr=False)
+
+    def start(self, ctx: SimContext, now_ns: int) -> None:
+        self._ids = _node_ids(ctx, self.node, _MESSAGES[self.message])
+        self._log = {frame_id: deque() for frame_id in self._ids}
+
+    def tx(self, frame_id: int, data: bytes, now_ns: int,
+           out: list[tuple[int, bytes]]) -> None:
+        out.append((frame_id, data))
+        log = self._log.get(frame_id)
+        if log is None:
+            return
+        log.append(data)
+        if len(log) > max(1, round(self.delay * 1e9) // NODE_TICK_NS) + 1:
+            out.append((frame_id, log.popleft()))
+            out.append((frame_id, log[0]))
+            self.replayed += 2
+
+
+@dataclass(eq=False)
 class TendonSlack(_JointFault):
     """A slack tendon: the motor pulls, the joint gets no torque, the TDT reads about zero."""
 
@@ -463,7 +578,7 @@ class MotorSaturation(_JointFault):
 INJECTORS: dict[str, type[Injector]] = {cls.kind: cls for cls in (
     DropCommands, DropFeedback, DelayFeedback, CorruptCrc, CounterRepeat, CounterSkip,
     TdtStuck, TdtSpike, TdtOffset, EncoderJump, NodeReboot, NodeSilent, ErrorFrames, BusOff,
-    Babble, TendonSlack, MotorSaturation)}
+    Babble, ExtendedTwin, Contradict, ReplayFrames, TendonSlack, MotorSaturation)}
 
 
 # -- schedule ----------------------------------------------------------------------------------
@@ -576,6 +691,10 @@ def _length(doc: Doc, key: str) -> int:
     return value
 
 
+def _report(doc: Doc, key: str) -> str:
+    return doc.string(key, choices=["fault_bits", "heartbeat"])
+
+
 _FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 _READERS: dict[str, Callable[[Doc, str], object]] = {
     "count": lambda d, k: d.integer(k, min=1, max=10**9),
@@ -590,4 +709,6 @@ _READERS: dict[str, Callable[[Doc, str], object]] = {
     "id": lambda d, k: d.integer(k, min=0, max=0x7FF),
     "length": _length,
     "limit": lambda d, k: d.number(k, min=0.0, max=100.0, unit="N·m"),
+    "report": _report,
+    "bits": lambda d, k: d.integer(k, min=1, max=0xFF),
 }

@@ -26,6 +26,13 @@ Readings of the spec worth stating:
   every check) and ignored;
 - frames with ids the node does not take are counted in ``reject_unexpected``, which no frame
   carries and which does not touch the reject score: they are not addressed to the node.
+
+A new host (PROTOCOL.md, "A new host"): a host that starts counts its frames from wherever it
+likes, so a node that is DISABLED, or in FAULT and has heard nothing from any host for the
+watchdog time, takes the next intact ``NodeCommand``'s counter as its baseline. An ``enable``
+opens the ``TorqueCommand`` stream, and the first ``TorqueCommand`` of an open stream only sets
+the baseline: it is never applied. Torque thus only ever comes from a command whose counter
+follows one accepted before it, so no single stale or replayed frame moves a joint.
 """
 
 from __future__ import annotations
@@ -104,6 +111,7 @@ class EmulatedNode:
         self._rx: dict[int, Layout] = {
             layout.frame_id: layout for layout in (self._estop, self._command, self._torque)}
         self._estop_id = self._estop.frame_id
+        self._command_id = self._command.frame_id
         self._torque_id = self._torque.frame_id
         self.tx_ids = (self._feedback.frame_id, self._status.frame_id,
                        self._heartbeat.frame_id)
@@ -138,6 +146,7 @@ class EmulatedNode:
         self.score = 0
         self._last_command_ns: int | None = None
         self._watchdog_ref_ns = now_ns
+        self._host_heard_ns = now_ns  # the last accepted NodeCommand or TorqueCommand
         self._last_angles: list[float] | None = None
         self._tx_feedback = 0
         self._tx_status = 0
@@ -174,16 +183,20 @@ class EmulatedNode:
         else:
             counter = data[1]
             last = self._rx_last[frame_id]
-            if last is None or counter == (last + 1) & 0xFF:
+            if (last is None or counter == (last + 1) & 0xFF
+                    or (frame_id == self._command_id and self._new_host_possible(now_ns))):
                 self._rx_last[frame_id] = counter
                 self.accepted += 1
                 if self.score:
                     self.score -= 1
+                if frame_id != self._estop_id:
+                    self._host_heard_ns = now_ns
                 if layout is self._torque:  # the 1 kHz case first
-                    self._last_command_ns = self._watchdog_ref_ns = now_ns
-                    self.commanded = layout.decode(data)[1]
-                    if self.state == _ENABLED:
-                        self._saturate()
+                    if last is not None:  # the first of a stream is a baseline, never a torque
+                        self._last_command_ns = self._watchdog_ref_ns = now_ns
+                        self.commanded = layout.decode(data)[1]
+                        if self.state == _ENABLED:
+                            self._saturate()
                 else:
                     self._apply(layout, data, now_ns)
                 return
@@ -195,6 +208,18 @@ class EmulatedNode:
             self._fault(_RX_ERRORS)
         if frame_id == self._estop_id:  # stopping is always the safe reading of a bad e-stop
             self._fault(_ESTOP)
+
+    def _new_host_possible(self, now_ns: int) -> bool:
+        """Whether a NodeCommand may start a new counter baseline (PROTOCOL.md, "A new host").
+
+        Only where it cannot move a joint: DISABLED applies no torque and an enable opens the
+        torque stream afresh; a node in FAULT must first have heard no host frame for the
+        watchdog time, so a live host's stream is still checked and a replayed fault_reset
+        cannot slip in while it runs. Never while ENABLED.
+        """
+        state = self.state
+        return state == _DISABLED or (state == _FAULT
+                                      and now_ns - self._host_heard_ns >= WATCHDOG_NS)
 
     def _apply(self, layout: Layout, data: bytes, now_ns: int) -> None:
         if layout is self._command:
@@ -217,6 +242,8 @@ class EmulatedNode:
         self._watchdog_ref_ns = now_ns
         self.commanded = (0.0,) * JOINTS
         self.applied = [0.0] * JOINTS
+        # The torque stream starts afresh: its next frame sets the baseline and is not applied.
+        self._rx_last[self._torque_id] = None
         self._set_state(_ENABLED)
 
     def _fault_reset(self) -> None:

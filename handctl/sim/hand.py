@@ -56,6 +56,10 @@ SIM_RT_PRIORITY = 70
 #: A free-running hand that fell behind catches up by at most this many ticks at once; older
 #: ones are counted as missed, so one long stall does not turn into a burst of frames.
 MAX_CATCH_UP = 5
+#: A standalone hand prints its status this often (s) ...
+PROGRESS_PERIOD_S = 1.0
+#: ... and asks whether it should go on this often (s): its host may have died.
+WATCH_PERIOD_S = 0.1
 
 _BY_ID = itemgetter(0)
 
@@ -357,7 +361,7 @@ class SimulatedHand:
 def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
                progress: Callable[[str], None] | None = None, *, seed: int | None = None,
                faults: FaultSchedule | None = None, summary_json: Path | None = None,
-               realtime: bool = False) -> str:
+               realtime: bool = False, keep_running: Callable[[], bool] | None = None) -> str:
     """Run the simulated hand free on ``bus_spec`` for ``seconds`` (None: until Ctrl-C).
 
     ``progress`` gets a status line about once a second. Returns a summary for the CLI;
@@ -368,6 +372,9 @@ def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
     timer, as the hand's node controllers have a core each: at normal priority any other load
     on the machine can hold the node ticks back for milliseconds, and the host, rightly, stops
     on the feedback that did not come (what the system refuses goes to ``progress``).
+
+    ``keep_running``, asked every ``WATCH_PERIOD_S``, ends the run when it turns False (the
+    host that started this hand is gone), as Ctrl-C would.
     """
     bus = open_bus(bus_spec, hand.bus)
     interrupted = False
@@ -384,11 +391,18 @@ def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
             sim.start()
             try:
                 deadline = None if seconds is None else started + seconds
+                next_progress = started + PROGRESS_PERIOD_S
                 while sim.running:
-                    wait = 1.0 if deadline is None else min(1.0, deadline - time.monotonic())
+                    now = time.monotonic()
+                    wait = WATCH_PERIOD_S if deadline is None else min(WATCH_PERIOD_S,
+                                                                       deadline - now)
                     if wait <= 0 or sim.wait_stopped(wait):
                         break
-                    if progress is not None:
+                    if keep_running is not None and not keep_running():
+                        interrupted = True
+                        break
+                    if progress is not None and time.monotonic() >= next_progress:
+                        next_progress += PROGRESS_PERIOD_S
                         progress(sim.status_line())
             except KeyboardInterrupt:
                 interrupted = True

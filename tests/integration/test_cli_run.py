@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
+
+import pytest
 
 from ..conftest import ROOT
 
@@ -107,3 +112,229 @@ def test_realtime_run_on_the_simulated_hand_in_its_own_process(tmp_path: Path) -
     assert summary["ticks"] >= 1400
     nodes = summary["sim"]["nodes"]
     assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0 for n in nodes.values())
+
+
+# -- the processes of a real-time run ------------------------------------------------------------
+def _wait_for(condition: Callable[[], bool], what: str, timeout_s: float = 120.0) -> None:
+    """Poll ``condition``; the bound only keeps a broken run from hanging the suite."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+def _alive(pid: int) -> bool:
+    """Running or stopped, not gone and not a zombie nobody has reaped yet."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return stat.rpartition(")")[2].split()[0] not in ("Z", "X")
+
+
+def _gone(pid: int, directory: Path) -> bool:
+    return not _alive(pid) and not directory.exists()
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rpartition(")")[2].split()[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+def _bus_directory(sim_pid: int) -> Path:
+    args = Path(f"/proc/{sim_pid}/cmdline").read_text().split("\0")
+    spec = args[args.index("--bus") + 1]
+    assert spec.startswith("unix:"), spec
+    return Path(spec.removeprefix("unix:"))
+
+
+class RealtimeHost:
+    """``handctl run recipe --realtime --rt`` in a session of its own, as a terminal would run
+    it, with its simulated hand's process found, watched and, at the end, never left behind."""
+
+    def __init__(self, recipe: Path, summary: Path, *extra: str) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--realtime", "--rt",
+             "--summary-json", str(summary), *extra], cwd=ROOT, text=True,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+        self.sim_pid = 0
+        self.directory: Path | None = None
+
+    def find_sim(self) -> None:
+        def started() -> bool:
+            if self.proc.poll() is not None:
+                return True
+            kids = _children(self.proc.pid)
+            if kids:
+                self.sim_pid = kids[0]
+            return bool(kids)
+
+        _wait_for(started, "the simulated hand's process")
+        assert self.sim_pid, f"the host ended first: {self.proc.communicate()}"
+        self.directory = _bus_directory(self.sim_pid)
+
+    def wait_enabled(self) -> bool:
+        """Until the hand's own status line says every node is ENABLED: torque is flowing.
+        False if the host ended first."""
+        assert self.directory is not None
+        log = self.directory / "sim.log"
+
+        def enabled() -> bool:
+            if self.proc.poll() is not None:
+                return True
+            lines = log.read_text().splitlines() if log.exists() else []
+            return any(line.count("=ENABLED") == 3 for line in lines)
+
+        _wait_for(enabled, "the nodes to be enabled")
+        return self.proc.poll() is None
+
+    def finish(self, timeout_s: float = 120.0) -> tuple[int, str]:
+        _, stderr = self.proc.communicate(timeout=timeout_s)
+        return self.proc.returncode, stderr
+
+    def kill(self) -> None:
+        for pid in (self.proc.pid, self.sim_pid):
+            if pid and _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        self.proc.communicate()
+
+
+def test_a_killed_realtime_host_leaves_no_simulated_hand_and_no_bus_directory(
+        tmp_path: Path) -> None:
+    """kill -9 runs nothing in the host: its simulated hand (at SCHED_FIFO with --rt) must
+    notice on its own, stop, and remove the bus directory nobody else is left to remove."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    stopped = []
+    for _ in range(3):  # a run the machine's load stopped before torque flowed is tried again
+        host = RealtimeHost(recipe, tmp_path / "out.json")
+        try:
+            host.find_sim()
+            if not host.wait_enabled():
+                stopped.append(host.finish()[1])
+                continue
+            os.kill(host.proc.pid, signal.SIGKILL)
+            host.proc.wait()
+            sim_pid, directory = host.sim_pid, host.directory
+            assert directory is not None
+            _wait_for(partial(_gone, sim_pid, directory), "the hand and its directory to go", 30)
+            return
+        finally:
+            host.kill()
+    raise AssertionError(f"every attempt was stopped before torque flowed: {stopped}")
+
+
+def _controlled_stop(summary: dict[str, object], stderr: str) -> None:
+    """The host stopped the hand: no fault, and the nodes it left are DISABLED and clean."""
+    assert summary["outcome"] == "interrupted", stderr
+    assert summary["faults"] == [], stderr
+    nodes = summary["sim"]["nodes"]  # type: ignore[index]
+    assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0
+               for n in nodes.values()), nodes
+    assert "simulated hand's process ended" not in stderr, stderr
+
+
+def test_ctrl_c_on_a_terminal_is_the_same_controlled_stop_in_real_time(tmp_path: Path) -> None:
+    """A terminal's Ctrl-C is SIGINT to the whole foreground process group. The simulated hand
+    must not take it: the host's stop ramp needs its feedback, and the host stops it after.
+
+    Real time on a shared machine: a run that a starved loop stopped (LOOP_OVERRUN, as it must)
+    before or during the stop says nothing about the signal, so it is tried again."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    outcomes = []
+    for attempt in range(3):
+        out = tmp_path / f"out{attempt}.json"
+        host = RealtimeHost(recipe, out)
+        try:
+            host.find_sim()
+            signalled = host.wait_enabled()
+            if signalled:
+                os.killpg(host.proc.pid, signal.SIGINT)
+            code, stderr = host.finish()
+        finally:
+            host.kill()
+        summary = json.loads(out.read_text())
+        faults = [f["code"] for f in summary["faults"]]
+        if not signalled or "LOOP_OVERRUN" in faults:
+            outcomes.append(stderr)
+            continue
+        assert code == 130, stderr
+        _controlled_stop(summary, stderr)
+        assert summary["phases"][0]["exit"] == "stopped: signal SIGINT"
+        assert not _alive(host.sim_pid)
+        return
+    raise AssertionError(f"every attempt was stopped by the machine's load: {outcomes}")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_start_up_is_an_interrupt_not_a_safety_stop(
+        tmp_path: Path, sig: signal.Signals) -> None:
+    """The simulated hand's process exists but the nodes are not enabled yet (it is still
+    building its model): SIGINT or SIGTERM ends the run as an interrupt, exit 130, and leaves
+    nothing behind."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    host = RealtimeHost(recipe, tmp_path / "out.json")
+    try:
+        host.find_sim()
+        os.killpg(host.proc.pid, sig)
+        code, stderr = host.finish()
+        assert code == 130, stderr
+        assert "safety stop" not in stderr and "FAULT" not in stderr
+        _wait_for(lambda: not _alive(host.sim_pid), "the simulated hand to end", 30)
+        assert host.directory is not None and not host.directory.exists()
+    finally:
+        host.kill()
+
+
+def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -> None:
+    """The second host counts its frames from 0 again, the nodes from where the first left
+    them: each side takes the other's counters afresh (PROTOCOL.md, "A new host").
+
+    Real time on a shared machine: a run stopped by the load (a starved loop or hand) is
+    tried again; a start-up that never enables the nodes (the bug) is not load."""
+    from .test_recording import SHORT
+
+    recipe = tmp_path / "short.yaml"
+    recipe.write_text(SHORT)
+    directory = tmp_path / "bus"
+    log = tmp_path / "sim.log"
+    with log.open("wb") as err:
+        sim = subprocess.Popen(
+            [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{directory}", "--rt"],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+    try:
+        _wait_for(lambda: "t=" in log.read_text(), "the simulated hand to run")
+        for run in ("first", "second"):
+            failures = []
+            for attempt in range(3):
+                out = tmp_path / f"{run}{attempt}.json"
+                done = handctl("run", "recipe", str(recipe), "--bus", f"unix:{directory}",
+                               "--rt", "--reset-node-faults", "--summary-json", str(out))
+                summary = json.loads(out.read_text())
+                if done.returncode == 0:
+                    assert summary["completed"] is True
+                    break
+                faults = [f["code"] for f in summary["faults"]]
+                assert "STARTUP" not in faults, f"{run} run: {done.stderr}"
+                failures.append(done.stderr)
+            else:
+                raise AssertionError(f"{run} run: every attempt was stopped by the load: "
+                                     f"{failures}")
+        assert sim.poll() is None, log.read_text()
+    finally:
+        sim.send_signal(signal.SIGINT)
+        try:
+            sim.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            sim.kill()
+            sim.wait()

@@ -14,7 +14,7 @@ import subprocess
 import sys
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +33,8 @@ from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.recorder import Recorder
-from handctl.recording.ring import Layout
+from handctl.recording.ring import FRAME_HEAD, FRAME_TAIL, TICK_HEAD, TICK_TAIL, Layout
+from handctl.safety.supervisor import State
 from handctl.sim import faults as inj
 
 from ..conftest import ROOT
@@ -74,11 +75,15 @@ def short_recipe(hand: HandConfig, directory: Path, hold_s: float = 0.6) -> Reci
 
 
 def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool = True,
-               layout: Layout | None = None, pause_writer: bool = False) -> Recorded:
+               layout: Layout | None = None, pause_writer: bool = False,
+               writer_between_ticks: bool = False) -> Recorded:
     """A lockstep run on the simulated hand, recorded the way ``run_recipe`` records it.
 
     With ``troubles``: error frames (bus events), a babbling foreign node (unexpected ids)
     and skipped counters (rejects), then an operator e-stop (a request and a fault).
+    With ``writer_between_ticks``: once the hand is being stopped, every tick waits before it
+    begins until the writer has taken everything published, the timing a loaded machine
+    gives now and then (the loop descheduled between one tick's push and the next tick).
     """
     with rig(hand, recipe) as r:
         recorder = Recorder(path, hand, start_metadata(hand, recipe, ["test"]),
@@ -86,6 +91,10 @@ def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool =
                             object_names=[o.name for o in r.sim.params.objects], layout=layout)
         with recorder:
             capture = _Capture(recorder)
+            if writer_between_ticks:
+                runtime = r.runtime
+                capture.before_tick = lambda: runtime.first_send_tick >= 0 and \
+                    runtime.supervisor.state not in (State.ENABLING, State.RUNNING)
             r.runtime.recorder = capture
             recorder.attach(r.runtime)
             recorder.add_metadata(ch.META_RUN, run_metadata(
@@ -127,8 +136,12 @@ class _Capture:
         self.inner = inner
         self.angle: list[float] = []
         self.tdt: list[float] = []
+        #: When it says so, the tick waits for the writer to take everything published first.
+        self.before_tick: Callable[[], bool] = lambda: False
 
     def begin_tick(self, tick: Tick) -> None:
+        if self.before_tick():
+            wait_for_writer(self.inner)
         self.inner.begin_tick(tick)
 
     def push(self, record: TickRecord) -> None:
@@ -137,6 +150,15 @@ class _Capture:
 
     def note(self, kind: str, detail: str, tick: int) -> None:
         self.inner.note(kind, detail, tick)
+
+
+def wait_for_writer(recorder: Recorder, timeout_s: float = 10.0) -> None:
+    """Until the writer process has copied out every tick and frame published so far."""
+    ctl = recorder._ctl_view
+    deadline = time.monotonic() + timeout_s
+    while ctl[TICK_TAIL] != ctl[TICK_HEAD] or ctl[FRAME_TAIL] != ctl[FRAME_HEAD]:
+        assert time.monotonic() < deadline, "the writer did not catch up"
+        time.sleep(0.001)
 
 
 @pytest.fixture(scope="module")
@@ -408,6 +430,89 @@ def test_a_truncated_file_gives_back_every_complete_chunk(recorded: Recorded, tm
     assert len(got) == expected
     assert got == all_messages[:expected]
     assert recording.chunks == len(whole)
+
+
+@pytest.mark.parametrize("where", ["compressed_data", "record_header"])
+def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(recorded: Recorded,
+                                                                   tmp_path: Path,
+                                                                   where: str) -> None:
+    """Bytes overwritten inside a chunk in the middle of a finished file: the index still says
+    where every chunk is, so only that chunk's messages are lost."""
+    data = bytearray(recorded.path.read_bytes())
+    with recorded.path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    bad = len(chunks) // 2
+    middle = chunks[bad]
+    at = {"compressed_data": middle.chunk_start_offset + middle.chunk_length // 2,
+          "record_header": middle.chunk_start_offset + 1}[where]  # its length field
+    data[at:at + 8] = bytes(b ^ 0x5A for b in data[at:at + 8])
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+
+    recording = open_recording(damaged)
+    assert recording.damaged and not recording.complete and not recording.truncated
+    assert [(c.number, c.offset, c.start_ns, c.end_ns) for c in recording.bad_chunks] == \
+        [(bad, middle.chunk_start_offset, middle.message_start_time, middle.message_end_time)]
+    assert f"chunk {bad} at byte {middle.chunk_start_offset}" in recording.problem
+    assert f"{middle.message_start_time}..{middle.message_end_time} ns" in recording.problem
+    assert recording.chunks == len(chunks) - 1
+    assert recording.meta(ch.META_END, "ended") == "closed by the recorder"  # metadata read
+    counts = [_chunk_messages(recorded.path, c) for c in chunks]
+    lost_from, lost_to = sum(counts[:bad]), sum(counts[:bad + 1])
+    everything = list(library_messages(recorded.path))
+    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    assert got == everything[:lost_from] + everything[lost_to:]
+    assert counts[bad + 1:] and got[-1] == everything[-1]  # the chunks after it are kept
+
+    done = subprocess.run([sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"DAMAGED: chunk {bad} at byte {middle.chunk_start_offset}" in done.stdout
+    assert "bit-exact" in done.stdout and "before a damaged chunk" in done.stdout
+
+
+def test_a_rerun_does_not_start_after_a_damaged_first_chunk(recorded: Recorded,
+                                                            tmp_path: Path) -> None:
+    """Without its first ticks a log has nothing a fresh runtime could follow."""
+    from handctl.recording.replay import rerun
+
+    data = bytearray(recorded.path.read_bytes())
+    with recorded.path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None
+    first = min(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    at = first.chunk_start_offset + first.chunk_length // 2
+    data[at:at + 8] = bytes(b ^ 0x5A for b in data[at:at + 8])
+    damaged = tmp_path / "first.mcap"
+    damaged.write_bytes(bytes(data))
+    recording = open_recording(damaged)
+    assert [c.number for c in recording.bad_chunks] == [0]
+    report = rerun(recording)
+    assert report.compared == 0 and report.frames_compared == 0, report.as_dict()
+    assert any("before a damaged chunk" in note for note in report.notes)
+
+
+def test_a_damaged_metadata_record_is_named(recorded: Recorded, tmp_path: Path) -> None:
+    """Metadata has no CRC, but a record that is not where and what its index says is named,
+    and a re-run that needs it is refused (exit 2) rather than run on something else."""
+    data = bytearray(recorded.path.read_bytes())
+    with recorded.path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None
+    hand_index = next(m for m in summary.metadata_indexes if m.name == ch.META_HAND)
+    data[hand_index.offset + 1] ^= 0xFF  # its length
+    damaged = tmp_path / "meta.mcap"
+    damaged.write_bytes(bytes(data))
+    recording = open_recording(damaged)
+    assert recording.damaged and recording.bad_metadata == [ch.META_HAND]
+    assert f"metadata record '{ch.META_HAND}' at byte {hand_index.offset}" in recording.problem
+    assert ch.META_RUN in recording.metadata and recording.chunks == len(summary.chunk_indexes)
+    done = subprocess.run([sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert str(damaged) in done.stderr and ch.META_HAND in done.stderr
 
 
 def _chunk_messages(path: Path, chunk: Any) -> int:

@@ -20,8 +20,10 @@ from mcap.writer import Writer
 
 from handctl.bus import open_bus
 from handctl.config import HandConfig
+from handctl.loop import Outcome
+from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
-from handctl.recording.reader import iter_messages, open_recording
+from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.replay import load_series, logged_frames, rerun, summarise, to_bus
 
 from ..conftest import ROOT
@@ -115,6 +117,88 @@ def test_rerun_finds_a_command_frame_that_differs(recorded: Recorded, tmp_path: 
     assert f"tick {first_command[0]}" in report.frame_mismatches[0]
 
 
+def _alter_feedback(recorded: Recorded, target: Path, frame_id: int, after_tick: int,
+                    change: Any) -> int:
+    """Copy the recording with the first logged frame ``frame_id`` of a tick from
+    ``after_tick`` on replaced by ``change(data)``; returns that frame's tick."""
+    altered: list[int] = []
+
+    def alter(topic: str, message: dict[str, Any]) -> dict[str, Any]:
+        if topic == ch.CAN_RX and message["id"] == frame_id and message["tick"] >= after_tick \
+                and not altered:
+            altered.append(message["tick"])
+            message["data"] = change(bytes.fromhex(message["data"])).hex()
+        return message
+
+    rewrite(recorded.path, target, alter)
+    assert altered
+    return altered[0]
+
+
+def test_rerun_finds_one_flipped_bit_in_a_feedback_frame(recorded: Recorded,
+                                                         tmp_path: Path) -> None:
+    """The flipped frame fails its CRC in the re-run and is rejected; the open-loop torques do
+    not change, but the rejects and the joint state of that tick differ from the log."""
+    tampered = tmp_path / "flipped.mcap"
+
+    def flip(data: bytes) -> bytes:
+        flipped = bytearray(data)
+        flipped[10] ^= 0x04  # a bit of Angle2
+        return bytes(flipped)
+
+    tick = _alter_feedback(recorded, tampered, 0x182, 400, flip)
+    report = rerun(open_recording(tampered))
+    assert report.mismatched_ticks == 0  # the torques agree ...
+    assert not report.ok  # ... what the driver read does not
+    assert report.feedback_compared == report.compared
+    about = [m for m in report.frame_mismatches if m.startswith(f"tick {tick}:")]
+    assert any("crc rejects: logged 0, re-run 1" in m and "0x182" in m for m in about), about
+    assert any("Feedback_2 0x182" in m and "feedback_age_ns" in m for m in about), about
+    done = handctl("replay", str(tampered), "--rerun")
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "MISMATCH" in done.stdout and f"tick {tick}: crc rejects" in done.stdout
+
+
+def test_rerun_finds_a_feedback_frame_altered_with_a_good_crc(recorded: Recorded,
+                                                              tmp_path: Path) -> None:
+    """A frame changed and re-sealed (counter and CRC valid) is accepted by the re-run, which
+    then reads another angle than the run did: named by tick, frame id, joint and values."""
+    layout = load_protocol().layout("Feedback", 3)
+    tampered = tmp_path / "resealed.mcap"
+
+    def reseal(data: bytes) -> bytes:
+        counter, values = layout.decode(data)
+        changed = list(values)
+        changed[3] += 0.0001  # Angle1 of finger 3 (f3_j1) by one step of the wire
+        return layout.encode(counter, changed)
+
+    tick = _alter_feedback(recorded, tampered, layout.frame_id, 300, reseal)
+    report = rerun(open_recording(tampered))
+    about = [m for m in report.frame_mismatches if m.startswith(f"tick {tick}:")]
+    assert len(about) == 1 and "Feedback_3 0x183" in about[0], report.frame_mismatches[:3]
+    assert "f3_j1 angle_rad" in about[0] and "rejects" not in about[0]
+
+
+def test_the_disable_after_the_last_tick_reruns_whenever_the_writer_drains(
+        hand: HandConfig, tmp_path: Path) -> None:
+    """The nodes are disabled after the last control tick's push, and those frames belong to
+    that tick. A writer that drains between that push and the next tick (a loaded machine)
+    writes the tick's row before them; the log must still give them to the tick."""
+    run = record_run(hand, short_recipe(hand, tmp_path, hold_s=0.1), tmp_path / "late.mcap",
+                     troubles=False, writer_between_ticks=True)
+    assert run.result.outcome is Outcome.COMPLETED
+    recording = open_recording(run.path)
+    disables = [m["tick"] for t, _, m in iter_decoded(recording, (ch.CAN_TX,))
+                if 0x011 <= m["id"] <= 0x013]
+    last_control_tick = max(m["tick"] for _, _, m in iter_decoded(recording, (ch.TORQUE,)))
+    assert disables[-3:] == [last_control_tick] * 3
+    report = rerun(recording)
+    assert report.ok, (report.mismatches[:3], report.frame_mismatches[:3])
+    assert report.outcome == report.logged_outcome == "completed"
+    sent = sum(1 for *_, is_rx in logged_frames(recording) if not is_rx)
+    assert report.frames_compared == sent
+
+
 def test_realtime_recording_reruns_bit_exact(tmp_path: Path) -> None:
     """Real time, the simulated hand in its own process: frames arrive when they arrive, and
     the log holds what each poll drained, so the re-run still matches bit for bit."""
@@ -201,7 +285,7 @@ def test_truncated_file_is_summarised_and_rerun_as_far_as_it_goes(recorded: Reco
     assert not summary["complete"] and summary["ticks"] > 0
     report = rerun(recording)
     assert report.ok and report.compared > 0
-    assert any("log ends" in note for note in report.notes)
+    assert any("where the log ends" in note for note in report.notes)
     done = handctl("replay", str(cut), "--rerun")
     assert done.returncode == 0, done.stderr
     assert "TRUNCATED" in done.stdout

@@ -73,7 +73,9 @@ def decode(protocol: Protocol, frames: list[tuple[int, bytes]], kind: str,
 
 
 def enabled(node: EmulatedNode, wire: Wire, now: int = 0) -> int:
-    tick(node, now, wire.command("enable"))
+    """Enable as a host does: the enable, then its first (zero) command, the baseline of the
+    torque stream, which is never applied."""
+    tick(node, now, wire.command("enable"), wire.torque(0.0, 0.0, 0.0))
     assert node.state == NodeState.ENABLED
     return now + MS
 
@@ -148,15 +150,15 @@ def test_saturation_clips_and_reports(node: EmulatedNode, wire: Wire,
 
 def test_receiver_checks_in_order_and_never_applies_a_rejected_frame(
         node: EmulatedNode, wire: Wire) -> None:
-    now = enabled(node, wire)
-    tick(node, now, wire.torque(0.1, 0.0, 0.0, counter=10))
+    now = enabled(node, wire)  # the baseline of the torque stream: counter 0
+    tick(node, now, wire.torque(0.1, 0.0, 0.0, counter=1))
     # wrong length
-    fid, data = wire.torque(0.5, 0.0, 0.0, counter=11)
+    fid, data = wire.torque(0.5, 0.0, 0.0, counter=2)
     tick(node, now + MS, (fid, data[:-1]))
     # bad CRC
     tick(node, now + 2 * MS, (fid, bytes((data[0] ^ 0xFF,)) + data[1:]))
-    # repeated counter (10 was the last accepted)
-    tick(node, now + 3 * MS, wire.torque(0.5, 0.0, 0.0, counter=10))
+    # repeated counter (1 was the last accepted)
+    tick(node, now + 3 * MS, wire.torque(0.5, 0.0, 0.0, counter=1))
     assert node.applied == pytest.approx([0.1, 0.0, 0.0])
     assert (node.reject_length, node.reject_crc, node.reject_counter) == (1, 1, 1)
     # skipped counter: rejected, but the receiver re-synchronises to it...
@@ -168,9 +170,9 @@ def test_receiver_checks_in_order_and_never_applies_a_rejected_frame(
 
 
 def test_counter_wraps(node: EmulatedNode, wire: Wire) -> None:
-    now = enabled(node, wire)
-    tick(node, now, wire.torque(0.1, 0.0, 0.0, counter=255))
-    tick(node, now + MS, wire.torque(0.2, 0.0, 0.0, counter=0))
+    tick(node, 0, wire.command("enable"), wire.torque(0.0, 0.0, 0.0, counter=254))
+    tick(node, MS, wire.torque(0.1, 0.0, 0.0, counter=255))
+    tick(node, 2 * MS, wire.torque(0.2, 0.0, 0.0, counter=0))
     assert node.applied[0] == pytest.approx(0.2) and node.reject_counter == 0
 
 
@@ -226,9 +228,11 @@ def test_fault_needs_reset_then_enable(node: EmulatedNode, wire: Wire,
     assert node.state == NodeState.DISABLED and node.fault_bits == 0
     (_, status), = decode(protocol, out, "Status")
     assert status[:2] == (NodeState.DISABLED, 0)
-    # the receive counters restart: any counter is accepted for the first frame
+    # the receive counters restart: any counter is accepted for the first frame, which sets
+    # the baseline of its stream (a torque command is applied from the next one on)
     tick(node, now + 3 * MS, wire.command("enable"))
-    tick(node, now + 4 * MS, wire.torque(0.1, 0.0, 0.0, counter=77))
+    tick(node, now + 4 * MS, wire.torque(0.0, 0.0, 0.0, counter=77))
+    tick(node, now + 5 * MS, wire.torque(0.1, 0.0, 0.0, counter=78))
     assert node.state == NodeState.ENABLED and node.applied[0] == pytest.approx(0.1)
 
 

@@ -1,0 +1,91 @@
+"""A helper process that must not outlive the process that started it.
+
+The simulated hand of a real-time run is a process of its own; at SCHED_FIFO it would go on
+sending frames, and holding a CPU, long after its host was killed with SIGKILL, which runs no
+clean-up in the host. So the child watches for itself, on two lines, since each alone has a gap:
+
+- the kernel's parent-death signal (Linux ``prctl(PR_SET_PDEATHSIG)``): immediate, but asked for
+  by the child once it runs, so a parent that died in between is missed; and it follows the
+  parent *thread* that started the child, not the whole process;
+- the parent's pid against ``getppid()``: a child whose parent died is re-parented, so a check
+  right after the request above, and then periodically, sees it whatever the kernel did.
+
+The signal can come early: when the parent thread ends before the rest of its process (a
+process killed with SIGKILL takes its threads down one by one), the child is signalled while
+``getppid()`` still names the dying process. ``parent_ends`` waits those moments out.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import re
+import signal
+import stat
+import time
+from contextlib import suppress
+from pathlib import Path
+
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent_pid: int, sig: int = signal.SIGTERM) -> bool:
+    """Have ``sig`` sent to this process when its parent ends; False if it already has.
+
+    ``sig`` should be one the process handles (SIGTERM: a clean stop that can tidy up), not
+    SIGKILL, which would leave behind what only this process can remove.
+    """
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0)
+    except (OSError, AttributeError):  # no prctl (not Linux): the pid check alone
+        pass
+    return parent_alive(parent_pid)
+
+
+def parent_alive(parent_pid: int) -> bool:
+    """Whether ``parent_pid`` is still this process's parent (a dead one's children move)."""
+    return os.getppid() == parent_pid
+
+
+def parent_ends(parent_pid: int, within_s: float) -> bool:
+    """Whether ``parent_pid`` stops being this process's parent within ``within_s``."""
+    deadline = time.monotonic() + within_s
+    while parent_alive(parent_pid):
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def remove_orphaned_bus(spec: str, summary_json: Path | None) -> None:
+    """The unix bus directory of a host that died, removed by its simulated hand, which
+    outlived it (a host that ends normally removes the directory itself, after the hand ended).
+
+    Only what handctl put there goes: the bus's sockets (the dead host's too), the hand's
+    summary and its log, then the directory if nothing else is left in it. A directory that
+    holds anything else was not a run's private bus, and what else it holds is not ours.
+    """
+    interface, _, channel = spec.partition(":")
+    if interface != "unix" or not channel:
+        return
+    directory = Path(channel).resolve()
+    ours = [p for p in directory.glob("*.sock") if _is_bus_socket(p)]
+    if summary_json is not None:
+        ours.append(summary_json)
+    with suppress(OSError):
+        ours.append(Path(os.readlink("/proc/self/fd/2")))  # this process's log, if a file
+    for path in ours:
+        if path.resolve().parent == directory:
+            with suppress(OSError):
+                path.unlink()
+    with suppress(OSError):  # gone already, or not empty: what is left is not ours
+        directory.rmdir()
+
+
+def _is_bus_socket(path: Path) -> bool:
+    """A unix bus endpoint (``PID-N.sock``, a socket), not some other file of that name."""
+    with suppress(OSError):
+        return (re.fullmatch(r"\d+-\d+\.sock", path.name) is not None
+                and stat.S_ISSOCK(path.lstat().st_mode))
+    return False

@@ -1,0 +1,334 @@
+"""The host's receive path with real frames on real buses: a frame's age counts from its
+arrival, a drain never takes more than the bus can carry, 29-bit ids are not the protocol's,
+a node's reports must agree, and a rate of rejected frames is a fault."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from handctl.bus import EXTENDED_ID_FLAG, BusEventKind, HandBus, open_bus
+from handctl.busload import frames_per_period, shortest_frame_time_s
+from handctl.clock import LockstepClock
+from handctl.config import HandConfig
+from handctl.drivers.hand import AppliedTorques, HandDriver
+from handctl.protocol import Protocol
+from handctl.safety.faults import FaultCode
+from handctl.safety.supervisor import State, Supervisor
+from handctl.safety.watchdog import ReceiveWatch
+
+MS = 1_000_000
+
+
+class Clock:
+    """The loop's clock as a test drives it (ns)."""
+
+    def __init__(self) -> None:
+        self.now = 5_000 * MS
+
+    def __call__(self) -> int:
+        return self.now
+
+
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture
+def driver(hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus],
+           clock: Clock) -> Iterator[HandDriver]:
+    yield HandDriver(hand, protocol, bus_pair[0], clock_ns=clock)
+
+
+def feedback(protocol: Protocol, node: int, counter: int, state: int = 1, faults: int = 0,
+             angle: float = 0.1) -> bytes:
+    return protocol.layout("Feedback", node).encode(
+        counter, (0.0, 0.0, 0.0, angle, 0.0, 0.0, state, faults))
+
+
+# -- receive times ---------------------------------------------------------------------------
+def test_feedback_age_counts_from_arrival_not_from_the_drain(
+        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus],
+        clock: Clock) -> None:
+    arrived = clock.now
+    bus_pair[1].send(0x181, feedback(protocol, 1, 0))
+    clock.now += 3 * MS  # the host reads it three periods later
+    state = driver.poll()
+    assert driver.nodes[0].feedback_ns == arrived
+    assert state.age_s(clock.now)[0] == pytest.approx(0.003)
+
+
+def test_the_unix_bus_stamps_frames_when_they_arrive(hand: HandConfig, tmp_path: Path) -> None:
+    with open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as rx, \
+            open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as tx:
+        time.sleep(0.06)  # both sockets listed by each other
+        before = time.monotonic_ns()
+        assert tx.send(0x181, bytes(16))
+        after = time.monotonic_ns()
+        time.sleep(0.03)
+        frames = rx.drain()
+        drained = time.monotonic_ns()
+    assert len(frames) == 1
+    # On the host's clock, between the send and the drain, and the wait shows as age.
+    assert before <= frames[0].timestamp_ns <= after
+    assert drained - frames[0].timestamp_ns >= 25 * MS
+
+
+def test_a_lockstep_peer_steps_at_the_new_ticks_time() -> None:
+    seen: list[int] = []
+    clock = LockstepClock(0.001, lambda: seen.append(clock.now_ns()))
+
+    async def two() -> list[int]:
+        return [(await clock.wait_tick()).now_ns for _ in range(2)]
+
+    assert asyncio.run(two()) == seen == [1 * MS, 2 * MS]
+
+
+# -- the drain's budget ----------------------------------------------------------------------
+def test_the_bus_budget_is_derived_from_its_bit_rates(hand: HandConfig) -> None:
+    # 1 Mbit/s CAN-FD with a 5 Mbit/s data phase: 30 bits + 32 bits at least, 36.4 µs.
+    assert shortest_frame_time_s(True, 1_000_000, 5_000_000) == pytest.approx(36.4e-6)
+    assert shortest_frame_time_s(False, 1_000_000, None) == pytest.approx(47e-6)
+    assert frames_per_period(hand.bus) == 27
+    assert frames_per_period(replace(hand.bus, fd=False)) == 21
+    assert frames_per_period(replace(hand.bus, loop_rate_hz=500.0)) == 54
+
+
+def test_a_drain_takes_what_the_bus_can_carry_and_reports_the_rest(
+        driver: HandDriver, bus_pair: tuple[HandBus, HandBus], clock: Clock) -> None:
+    driver.poll()
+    budget = 2 * driver.frames_per_period  # one period since the last poll, plus one
+    for i in range(budget + 6):
+        bus_pair[1].send(0x050, bytes((i & 0xFF,)))
+    clock.now += MS
+    driver.poll()
+    assert driver.reject_counts()["unexpected_id"] == budget
+    events = driver.take_bus_events()
+    assert [e.kind for e in events] == [BusEventKind.RX_BACKLOG]
+    assert events[0].timestamp_ns == clock.now
+    clock.now += MS
+    driver.poll()  # the rest, in order, and nothing left behind
+    assert driver.reject_counts()["unexpected_id"] == budget + 6
+    assert driver.take_bus_events() == []
+
+
+def test_a_late_poll_may_drain_what_the_bus_carried_meanwhile(
+        driver: HandDriver, bus_pair: tuple[HandBus, HandBus], clock: Clock) -> None:
+    driver.poll()
+    frames = 4 * driver.frames_per_period
+    for _ in range(frames):
+        bus_pair[1].send(0x050, bytes(8))
+    clock.now += 3 * MS + 1  # four periods begun: four periods' worth and one more
+    driver.poll()
+    assert driver.reject_counts()["unexpected_id"] == frames
+    assert driver.take_bus_events() == []
+
+
+def test_discarding_at_start_up_is_no_backlog(driver: HandDriver,
+                                             bus_pair: tuple[HandBus, HandBus]) -> None:
+    for _ in range(1500):
+        bus_pair[1].send(0x050, bytes(8))
+    bus_pair[1].send_error_frame()
+    assert driver.discard_pending() == 1500
+    kinds = [e.kind for e in driver.take_bus_events()]
+    assert kinds == [BusEventKind.ERROR_FRAME]
+
+
+# -- identifiers -----------------------------------------------------------------------------
+def test_an_extended_id_twin_of_feedback_is_rejected_and_counted(
+        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]) -> None:
+    bus_pair[1].send(EXTENDED_ID_FLAG | 0x181, feedback(protocol, 1, 0, angle=0.3))
+    state = driver.poll()
+    assert driver.nodes[0].feedback is None and state.angle[0] == 0.0
+    assert driver.reject_counts()["extended_id"] == 1
+    assert driver.reject_counts()["unexpected_id"] == 0
+    assert driver.unexpected_ids == {EXTENDED_ID_FLAG | 0x181: 1}
+    bus_pair[1].send(0x181, feedback(protocol, 1, 0, angle=0.3))  # the real one is taken
+    assert driver.poll().angle[0] == pytest.approx(0.3)
+
+
+def test_the_unix_bus_carries_the_extended_flag(hand: HandConfig, tmp_path: Path) -> None:
+    with open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as rx, \
+            open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as tx:
+        time.sleep(0.06)
+        assert tx.send(EXTENDED_ID_FLAG | 0x181, bytes(16))
+        assert tx.send(0x181, bytes(16))
+        deadline = time.monotonic() + 2
+        frames = []
+        while len(frames) < 2 and time.monotonic() < deadline:
+            frames += rx.drain()
+    assert [f.arbitration_id for f in frames] == [EXTENDED_ID_FLAG | 0x181, 0x181]
+
+
+# -- contradictions --------------------------------------------------------------------------
+def test_enabled_with_latched_fault_bits_is_a_contradiction(
+        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]) -> None:
+    bus_pair[1].send(0x182, feedback(protocol, 2, 0, state=1, faults=0x10))  # SATURATED: fine
+    driver.poll()
+    assert driver.nodes[1].contradiction == ""
+    bus_pair[1].send(0x182, feedback(protocol, 2, 1, state=1, faults=0x01))
+    driver.poll()
+    assert "ENABLED with latched fault bits (TIMEOUT)" in driver.nodes[1].contradiction
+    bus_pair[1].send(0x183, feedback(protocol, 3, 0, state=0, faults=0x40))
+    driver.poll()
+    assert "reserved fault bits 0x40" in driver.nodes[2].contradiction
+
+
+def test_fault_then_enabled_in_one_tick_is_a_contradiction_and_fault_stands(
+        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]) -> None:
+    peer = bus_pair[1]
+    peer.send(0x181, feedback(protocol, 1, 0, state=2, faults=0x01))
+    peer.send(0x701, protocol.layout("Heartbeat", 1).encode(0, (1, 500)))
+    state = driver.poll()
+    node = driver.nodes[0]
+    assert "Heartbeat says ENABLED after FAULT" in node.contradiction
+    assert state.node_state[0] == 2 and state.node_faults[0] == 0x01  # the last did not win
+
+
+def test_a_fault_reset_sequence_is_no_contradiction(
+        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]) -> None:
+    peer = bus_pair[1]
+    status = protocol.layout("Status", 1)
+    peer.send(0x181, feedback(protocol, 1, 0, state=2, faults=0x03))
+    peer.send(0x281, status.encode(0, (0, 0, 0, 0, 0, 5)))  # fault reset: DISABLED
+    peer.send(0x181, feedback(protocol, 1, 1, state=0))
+    peer.send(0x281, status.encode(1, (1, 0, 0, 0, 0, 5)))  # enable
+    peer.send(0x181, feedback(protocol, 1, 2, state=1))
+    assert driver.poll().node_state[0] == 1
+    assert driver.nodes[0].contradiction == "" and driver.nodes[0].contradictions == 0
+
+
+def test_a_new_start_judges_the_nodes_afresh(driver: HandDriver, protocol: Protocol,
+                                            bus_pair: tuple[HandBus, HandBus]) -> None:
+    bus_pair[1].send(0x181, feedback(protocol, 1, 0, state=1, faults=0x02))
+    driver.poll()
+    assert driver.nodes[0].contradiction
+    driver.discard_pending()
+    assert driver.nodes[0].contradiction == "" and driver.nodes[0].contradictions == 1
+
+
+# -- the supervisor --------------------------------------------------------------------------
+def _armed(hand: HandConfig, driver: HandDriver, protocol: Protocol, peer: HandBus,
+           clock: Clock) -> tuple[Supervisor, int]:
+    """A supervisor that has seen every node ENABLED and is RUNNING at the tick returned."""
+    sup = Supervisor(hand)
+    sup.start(0)
+    for node in (1, 2, 3):
+        peer.send(0x180 + node, feedback(protocol, node, 0))
+        peer.send(0x700 + node, protocol.layout("Heartbeat", node).encode(0, (1, 100)))
+    driver.poll()
+    zeros = np.zeros(hand.n_joints)
+    assert sup.observe(1, clock.now, driver.nodes, zeros, zeros, 0) == []
+    assert sup.state is State.RUNNING
+    return sup, 1
+
+
+def test_a_backlog_is_a_fault_that_zeroes_torque(hand: HandConfig, driver: HandDriver,
+                                                 protocol: Protocol,
+                                                 bus_pair: tuple[HandBus, HandBus],
+                                                 clock: Clock) -> None:
+    sup, tick = _armed(hand, driver, protocol, bus_pair[1], clock)
+    for _ in range(3 * driver.frames_per_period):
+        bus_pair[1].send(0x050, bytes(8))
+    for node in (1, 2, 3):
+        bus_pair[1].send(0x180 + node, feedback(protocol, node, 1))
+    clock.now += MS
+    state = driver.poll()
+    faults = sup.observe(tick + 1, clock.now, driver.nodes, state.angle, state.torque, 0,
+                         driver.take_bus_events())
+    assert [f.code for f in faults] == [FaultCode.RX_BACKLOG]
+    assert not np.any(sup.filter(tick + 1, np.full(hand.n_joints, 0.05)))
+
+
+def test_a_contradiction_keeps_the_nodes_from_being_believed_enabled(
+        hand: HandConfig, driver: HandDriver, protocol: Protocol,
+        bus_pair: tuple[HandBus, HandBus], clock: Clock) -> None:
+    sup = Supervisor(hand)
+    sup.start(0)
+    for node in (1, 2, 3):  # ENABLED everywhere, but node 2 also says TIMEOUT
+        bus_pair[1].send(0x180 + node, feedback(protocol, node, 0, faults=0x01 if node == 2
+                                                else 0))
+        bus_pair[1].send(0x700 + node, protocol.layout("Heartbeat", node).encode(0, (1, 9)))
+    state = driver.poll()
+    faults = sup.observe(1, clock.now, driver.nodes, state.angle, state.torque, 0)
+    assert faults[0].code is FaultCode.NODE_CONTRADICTION
+    assert "node 2" in faults[0].detail
+    assert sup.state is State.FAULTED
+    assert not np.any(sup.filter(1, np.full(hand.n_joints, 0.05)))
+
+
+def test_a_rate_of_rejected_frames_is_a_fault(hand: HandConfig, driver: HandDriver,
+                                             protocol: Protocol,
+                                             bus_pair: tuple[HandBus, HandBus],
+                                             clock: Clock) -> None:
+    limit = hand.safety.max_rejects_in_window
+    watch = ReceiveWatch(hand.safety, hand.bus.period_s)
+    assert watch.window == 100 and limit == 10
+    peer = bus_pair[1]
+    bad = bytes((feedback(protocol, 3, 0)[0] ^ 0xFF,)) + feedback(protocol, 3, 0)[1:]
+
+    def tick(k: int, rejects: int) -> list[FaultCode]:
+        for _ in range(rejects):
+            peer.send(0x183, bad)
+        clock.now += MS
+        driver.poll()
+        return [code for code, _ in watch.check(k, driver.nodes)]
+
+    assert tick(0, 0) == []
+    assert all(tick(k, 1) == [] for k in range(1, 1 + limit))  # ten in the window: allowed
+    assert tick(11, 1) == [FaultCode.REJECT_RATE]  # the eleventh within 100 ticks
+    # Until a hundred ticks on, when the first of them leave the window; a pause restarts it.
+    later = {k: tick(k, 0) for k in range(12, 120)}
+    assert all(later[k] == [FaultCode.REJECT_RATE] for k in range(12, 101))
+    assert all(later[k] == [] for k in range(101, 120))
+    assert tick(500, 5) == []
+    assert driver.reject_counts()["crc"] == 16
+
+
+def test_reject_rate_settings_come_from_the_safety_section(hand: HandConfig) -> None:
+    safety = replace(hand.safety, reject_window_s=0.02, max_rejects_in_window=0)
+    watch = ReceiveWatch(safety, hand.bus.period_s)
+    assert (watch.window, watch.limit) == (20, 0)
+
+
+def test_commands_still_go_out_as_standard_frames(driver: HandDriver,
+                                                  bus_pair: tuple[HandBus, HandBus]) -> None:
+    driver.send(AppliedTorques(np.zeros(9)))
+    assert [f.arbitration_id for f in bus_pair[1].drain()] == [0x101, 0x102, 0x103]
+
+
+def test_reject_rate_settings_are_read_and_checked(tmp_path: Path) -> None:
+    from handctl.config import load_hand
+    from handctl.errors import ConfigError
+
+    from ..conftest import HAND_YAML
+
+    text = HAND_YAML.read_text()
+    good = tmp_path / "good.yaml"
+    good.write_text(text + "safety:\n  reject_window_s: 0.05\n  max_rejects_in_window: 4\n")
+    safety = load_hand(good).safety
+    assert (safety.reject_window_s, safety.max_rejects_in_window) == (0.05, 4)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text + "safety:\n  max_rejects_in_window: -1\n")
+    with pytest.raises(ConfigError) as info:
+        load_hand(bad)
+    assert info.value.key == "safety.max_rejects_in_window"
+    assert str(bad) in str(info.value) and "-1" in str(info.value)
+
+
+def test_an_exported_log_keeps_29_bit_ids_extended(tmp_path: Path) -> None:
+    from handctl.bus import write_frames
+
+    out = tmp_path / "rx.log"
+    frames = [(1.0, EXTENDED_ID_FLAG | 0x181, bytes(16), True, True),
+              (1.001, 0x181, bytes(16), True, True)]
+    assert write_frames(out, "candump", frames) == 2
+    ids = [line.split()[2].split("#")[0] for line in out.read_text().splitlines()]
+    assert ids == ["00000181", "181"]

@@ -1,0 +1,68 @@
+"""SIGINT and SIGTERM over a run (``session.StopSignals``), raised in this very process."""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+
+import pytest
+
+from handctl.bus import HandBus
+from handctl.config import HandConfig
+from handctl.drivers.hand import HandDriver
+from handctl.loop import Outcome, RunResult, Runtime
+from handctl.protocol import Protocol
+from handctl.recipes.loader import load_recipe
+from handctl.session import StopSignals
+
+from ..conftest import ROOT
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_before_the_run_a_signal_is_an_interrupt(sig: signal.Signals) -> None:
+    before = signal.getsignal(sig)
+    with StopSignals(), pytest.raises(KeyboardInterrupt):
+        signal.raise_signal(sig)
+    assert signal.getsignal(sig) is before  # put back afterwards
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_start_up_is_an_interrupt_with_nothing_sent(
+        hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus],
+        sig: signal.Signals) -> None:
+    """The nodes have not answered yet (nobody is on the bus): the start-up is still waiting
+    for them when the signal comes. That is an interrupt (exit 130), not a failed start-up
+    (exit 3): nothing went wrong with the hand, and nothing was sent to it."""
+    from handctl.clock import LockstepClock
+
+    host, listener = bus_pair
+    recipe = load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", hand)
+    runtime = Runtime(hand, HandDriver(hand, protocol, host),
+                      LockstepClock(hand.bus.period_s, lambda: None), recipe,
+                      startup_timeout_s=600.0)
+
+    async def run(signals: StopSignals) -> RunResult:
+        asyncio.get_running_loop().call_later(0.05, signal.raise_signal, sig)
+        return await signals.run(runtime)
+
+    with StopSignals() as signals:
+        result = asyncio.run(run(signals))
+    assert result.outcome is Outcome.INTERRUPTED, result.message
+    assert result.faults == []
+    assert sig.name in result.message and "start-up" in result.message
+    assert listener.drain() == []
+
+
+def test_an_interrupt_that_c_code_turned_into_its_own_error_is_still_an_interrupt() -> None:
+    """Ctrl-C while MuJoCo is being imported comes out as ``ImportError: initialization
+    failed`` (exit 1 and a traceback); it is an interrupt (exit 130)."""
+    with pytest.raises(KeyboardInterrupt), StopSignals():
+        try:
+            signal.raise_signal(signal.SIGINT)
+        except KeyboardInterrupt as exc:
+            raise ImportError("initialization failed") from exc
+
+
+def test_other_errors_pass_through() -> None:
+    with pytest.raises(ImportError), StopSignals():
+        raise ImportError("a real one")
