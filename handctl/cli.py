@@ -8,6 +8,8 @@ Exit codes (the same for every subcommand):
 2    bad input: configuration, recipe, scenario, arguments; nothing was sent
 3    safety stop: a fault stopped the hand
 4    bus unavailable or failed
+5    the host failed the timing check (``check --timing``, or before a run on a real bus);
+     nothing was sent
 130  interrupted (Ctrl-C or SIGTERM), after a controlled stop
 ==== =====================================================================
 """
@@ -30,6 +32,7 @@ EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_SAFETY_STOP = 3
 EXIT_BUS = 4
+EXIT_HOST = 5
 EXIT_INTERRUPTED = 130
 
 DEFAULT_HAND = Path("config/hands/hiroshima_hand.yaml")
@@ -43,7 +46,29 @@ def _progress(message: str) -> None:
 
 
 # -- check ---------------------------------------------------------------------------------------
+def _cmd_check_timing(args: argparse.Namespace) -> int:
+    import json
+
+    from handctl.config import load_hand
+    from handctl.hostcheck import timing_check
+
+    if not 0 < args.seconds <= 3600:
+        raise ConfigError("--seconds", "", "a number of seconds > 0 and <= 3600", args.seconds)
+    if args.json and not args.json.resolve().parent.is_dir():
+        raise ConfigError("--json", "", "a file in an existing directory", str(args.json))
+    hand = load_hand(args.hand)
+    _progress(f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for "
+              f"{args.seconds:g} s ...")
+    report = timing_check(hand, args.seconds, realtime=not args.no_rt, cpu=args.loop_cpu)
+    print(report.text())
+    if args.json:
+        Path(args.json).write_text(json.dumps(report.as_json(), indent=2) + "\n")
+    return EXIT_HOST if report.verdict.fails else EXIT_OK
+
+
 def _cmd_check(args: argparse.Namespace) -> int:
+    if args.timing:
+        return _cmd_check_timing(args)
     from handctl.busload import MAX_LOAD, hand_budget
     from handctl.config import load_hand
     from handctl.drivers.hand import check_ids
@@ -120,6 +145,7 @@ def _status_printer() -> Callable[[object], None] | None:
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
     import json
 
+    from handctl.clock import Hygiene
     from handctl.config import load_hand
     from handctl.loop import Outcome
     from handctl.recipes.loader import load_recipe
@@ -132,7 +158,9 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
                          realtime_priority=args.rt, seed=args.seed,
                          reset_node_faults=args.reset_node_faults, sim_faults=args.sim_faults,
                          max_seconds=args.max_seconds, log=args.log,
-                         command_line=tuple(sys.argv), plot=args.plot)
+                         command_line=tuple(sys.argv), plot=args.plot,
+                         hygiene=Hygiene(loop_cpu=args.loop_cpu, sim_cpu=args.sim_cpu),
+                         accept_missed_deadlines=args.accept_missed_deadlines)
     status = _status_printer()
     report = run_recipe(request, status=status)
     if status is not None:
@@ -153,6 +181,12 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     late = summary["lateness_us"]
     print(f"  {summary['ticks']} ticks, {summary['missed_ticks']} missed, lateness p50 "
           f"{late['p50']} µs p99 {late['p99']} µs max {late['max']} µs")
+    host = summary.get("host")
+    if host and "error" not in host:
+        print(f"  host (bare timer loop beside the run): {host['verdict'].upper()}, lateness "
+              f"p99 {host['lateness_us']['p99']:g} µs, longest stall "
+              f"{host['longest_stall_ms']:g} ms; missed ticks: {host['missed_host']} the "
+              f"host's, {host['missed_handctl']} handctl's")
     print("  max |τ| " + ", ".join(f"{k} {v:.3f}" for k, v in summary["max_abs_tau"].items()))
     if "experiment" in summary:
         ex = summary["experiment"]
@@ -377,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Grasp and manipulate two objects with a joint-torque-controlled "
                     "three-fingered hand over CAN.",
         epilog="Exit codes: 0 done, 1 failed result, 2 bad input, 3 safety stop, "
-               "4 bus error, 130 interrupted.")
+               "4 bus error, 5 host failed the timing check, 130 interrupted.")
     parser.add_argument("--version", action="version", version=f"handctl {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
@@ -387,6 +421,21 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("hand", type=Path, nargs="?", default=DEFAULT_HAND,
                        help=f"hand config YAML (default {DEFAULT_HAND})")
     check.add_argument("--dbc", type=Path, help="protocol DBC (default: the packaged one)")
+    timing = check.add_argument_group(
+        "timing", "can this host hold the hand's deadlines? (docs/timing.md; exit 5 if not)")
+    timing.add_argument("--timing", action="store_true",
+                        help="instead of the config: a bare timer loop at the hand's loop rate "
+                             "with the scheduling --rt asks for; wake-up lateness, stalls "
+                             "against the period, overrun tolerance and feedback timeout, a "
+                             "verdict and what would help")
+    timing.add_argument("--seconds", type=float, default=10.0,
+                        help="length of the timing check (default 10)")
+    timing.add_argument("--no-rt", action="store_true",
+                        help="check at the default scheduler, as a run without --rt")
+    timing.add_argument("--loop-cpu", type=int, help="the CPU to check (default: the one --rt "
+                                                     "gives the loop)")
+    timing.add_argument("--json", type=Path, metavar="F",
+                        help="write the report, with the probe's record, as JSON")
     check.set_defaults(func=_cmd_check)
 
     analyze = sub.add_parser("analyze", help="offline grasp analysis (paper §3–§4)",
@@ -444,7 +493,18 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--realtime", action="store_true",
                       help="tick from a 1 kHz timer (default on a real bus)")
     rec.add_argument("--rt", action="store_true",
-                     help="ask for SCHED_FIFO and locked memory (says so when refused)")
+                     help="ask for SCHED_FIFO, locked and prefaulted memory, and on >= 2 CPUs "
+                          "separate CPUs for the loop and the simulated hand (says so when "
+                          "refused)")
+    rec.add_argument("--loop-cpu", type=int, metavar="N",
+                     help="with --rt: the control loop's CPU (default: an isolated CPU, else "
+                          "the highest)")
+    rec.add_argument("--sim-cpu", type=int, metavar="N",
+                     help="with --rt: the simulated hand's CPU (default: the lowest other one)")
+    rec.add_argument("--accept-missed-deadlines", action="store_true",
+                     help="run on a real bus even if the host fails the timing check made "
+                          "before it (docs/timing.md): the hand may stop on LOOP_OVERRUN, or "
+                          "worse, get late commands")
     rec.add_argument("--summary-json", type=Path, help="write the run summary as JSON")
     rec.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
     rec.add_argument("--sim-faults", type=Path, help="fault scenario for the simulated hand")
@@ -511,6 +571,11 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
         print(f"handctl: bus error: {exc}", file=sys.stderr)
         return EXIT_BUS
     except HandctlError as exc:
+        from handctl.hostcheck import HostTimingError  # not before: it imports numpy
+
+        if isinstance(exc, HostTimingError):
+            print(f"handctl: refused: {exc}", file=sys.stderr)
+            return EXIT_HOST
         print(f"handctl: error: {exc}", file=sys.stderr)
         return EXIT_FAILED
     except KeyboardInterrupt:

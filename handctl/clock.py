@@ -15,6 +15,7 @@ import ctypes.util
 import gc
 import os
 import time
+from array import array
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -33,13 +34,63 @@ class Tick:
         return self.now_ns - self.scheduled_ns
 
 
+class StallLog:
+    """The late wake-ups of a periodic loop, each as the interval it could not run.
+
+    A wake-up that read ``n`` expirations served its newest one late and slept through the
+    ``n - 1`` before it: from the oldest of them (``due_ns``) to the wake-up (``wake_ns``) the
+    loop did not run. The log keeps those intervals, not every tick, so that the loop's misses
+    can be laid beside the host's (``handctl.hostcheck``): a missed tick of the control loop
+    that overlaps a stall of a bare timer loop beside it was the host's doing.
+
+    Only wake-ups at least ``threshold_ns`` late are kept, in arrays allocated once (``add``
+    stores four integers and allocates nothing); past ``capacity`` they are only counted.
+    ``index`` is the wake-up's number in its loop, so consecutive stalls can be told apart from
+    stalls with on-time wake-ups between them.
+    """
+
+    def __init__(self, threshold_ns: int, capacity: int = 1 << 16) -> None:
+        self.threshold_ns = threshold_ns
+        self.capacity = capacity
+        self.index = array("q", bytes(8 * capacity))
+        self.due_ns = array("q", bytes(8 * capacity))
+        self.wake_ns = array("q", bytes(8 * capacity))
+        self.missed = array("q", bytes(8 * capacity))
+        self.size = 0
+        self.overflow = 0  # stalls seen after the log was full
+        self.overflow_missed = 0  # ticks they missed
+
+    def add(self, index: int, due_ns: int, wake_ns: int, missed: int) -> None:
+        if wake_ns - due_ns < self.threshold_ns:
+            return
+        n = self.size
+        if n >= self.capacity:
+            self.overflow += 1
+            self.overflow_missed += missed
+            return
+        self.index[n], self.due_ns[n], self.wake_ns[n], self.missed[n] = \
+            index, due_ns, wake_ns, missed
+        self.size = n + 1
+
+    def rows(self) -> list[tuple[int, int, int, int]]:
+        """(index, due_ns, wake_ns, missed) of every stall kept, in order."""
+        n = self.size
+        return list(zip(self.index[:n], self.due_ns[:n], self.wake_ns[:n], self.missed[:n],
+                        strict=True))
+
+
 class RealtimeClock:
-    """Ticks from a timerfd registered with the running asyncio loop."""
+    """Ticks from a timerfd registered with the running asyncio loop.
+
+    Every tick that missed expirations is also kept in ``stalls`` with the interval the loop
+    was late for, to be laid beside the host's own stalls.
+    """
 
     lockstep = False
 
     def __init__(self, period_s: float) -> None:
         self.period_ns = round(period_s * 1e9)
+        self.stalls = StallLog(self.period_ns)
         self._timer: PeriodicTimer | None = None
         self._waiter: asyncio.Future[int] | None = None
         self._pending = 0
@@ -80,7 +131,10 @@ class RealtimeClock:
         self._expirations += n
         self._k += 1
         scheduled = self._timer.start_ns + self._expirations * self.period_ns
-        return Tick(self._k, scheduled, time.monotonic_ns(), n - 1)
+        now = time.monotonic_ns()
+        if n > 1:
+            self.stalls.add(self._k, scheduled - (n - 1) * self.period_ns, now, n - 1)
+        return Tick(self._k, scheduled, now, n - 1)
 
     def close(self) -> None:
         if self._timer is not None:
@@ -150,20 +204,97 @@ def collector_paused() -> Iterator[None]:
         gc.enable()
 
 
-def request_realtime(priority: int = 80) -> list[str]:
-    """Ask for SCHED_FIFO and locked memory; returns what the system refused, in plain words."""
+#: SCHED_FIFO priority of the control loop with ``--rt`` (the simulated hand runs below it, a
+#: host probe beside it one above).
+LOOP_PRIORITY = 80
+#: Bytes of stack and of heap touched once by ``prefault``: more than a tick ever uses.
+STACK_RESERVE = 256 * 1024
+HEAP_RESERVE = 16 * 1024 * 1024
+_M_TRIM_THRESHOLD = -1
+_HEAP_BLOCK = 64 * 1024  # below glibc's smallest mmap threshold (128 KiB)
+
+
+@dataclass(frozen=True)
+class Hygiene:
+    """What ``--rt`` does for a run besides SCHED_FIFO. Each measure can be switched off alone,
+    so a benchmark can show what each is worth (``tools/bench.py loop --rt --hygiene``)."""
+
+    pin: bool = True  # on >= 2 CPUs: the loop and the simulated hand on CPUs of their own
+    loop_cpu: int | None = None  # None: chosen (``handctl.hostcheck.plan_cpus``)
+    sim_cpu: int | None = None
+    lock_memory: bool = True  # mlockall(MCL_CURRENT | MCL_FUTURE): no page is ever paged out
+    prefault: bool = True  # touch a stack and heap reserve, so no tick faults a page in
+
+
+class _StackReserve(ctypes.Structure):
+    _fields_ = (("data", ctypes.c_char * STACK_RESERVE),)
+
+
+def _libc() -> ctypes.CDLL:
+    return ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+
+
+def prefault(libc: ctypes.CDLL) -> None:
+    """Make the first deep call and the first allocations of a tick free of page faults.
+
+    The heap: glibc is told never to give the top of the heap back (no trimming), then a
+    reserve is allocated in blocks small enough to come from the heap (below glibc's mmap
+    threshold), written and freed, so later allocations reuse resident pages. Large blocks
+    still come from mmap, which with MCL_FUTURE is populated when it is mapped. The stack:
+    Python cannot grow its own C stack on purpose, so a call passes a structure of
+    ``STACK_RESERVE`` bytes by value; libffi copies it onto the stack, which touches every page
+    of that depth. With the memory locked, both stay resident for the whole run.
+    """
+    libc.mallopt(_M_TRIM_THRESHOLD, -1)
+    libc.malloc.restype = ctypes.c_void_p
+    blocks = []
+    for _ in range(HEAP_RESERVE // _HEAP_BLOCK):
+        block = libc.malloc(ctypes.c_size_t(_HEAP_BLOCK))
+        if not block:
+            break
+        ctypes.memset(block, 1, _HEAP_BLOCK)
+        blocks.append(block)
+    for block in blocks:
+        libc.free(ctypes.c_void_p(block))
+    # getpid ignores the argument; the call is only there to have the copy made.
+    touch = ctypes.CFUNCTYPE(ctypes.c_int, _StackReserve)(("getpid", libc))
+    touch(_StackReserve())
+
+
+def request_realtime(priority: int = LOOP_PRIORITY, *, cpu: int | None = None,
+                     lock_memory: bool = True, prefault_memory: bool = False) -> list[str]:
+    """Ask for SCHED_FIFO, a CPU of its own, locked and prefaulted memory for the calling
+    thread (and the threads it starts); returns what the system refused, in plain words.
+
+    Refusals are warnings, as in ros2_control: the run goes on with what it got, and the
+    timing check beside it (``handctl.hostcheck``) shows what that cost.
+
+    The memory is locked and prefaulted before the priority is raised: locking faults in every
+    page of the process (tens of ms for the control process), which at SCHED_FIFO would hold
+    every task of lower or equal priority on that CPU, the control loop beside a bare timer
+    loop among them.
+    """
     refused: list[str] = []
+    if cpu is not None:
+        try:
+            os.sched_setaffinity(0, {cpu})
+        except (OSError, ValueError) as exc:
+            refused.append(f"pinning to CPU {cpu} refused ({exc}); the loop runs on "
+                           f"CPUs {sorted(os.sched_getaffinity(0))}")
+    try:
+        libc: ctypes.CDLL | None = _libc()
+    except OSError as exc:
+        libc = None
+        refused.append(f"locking memory unavailable ({exc})")
+    if libc is not None and lock_memory and libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
+        err = ctypes.get_errno()
+        refused.append(f"locking memory refused ({os.strerror(err)}); raise 'ulimit -l' "
+                       "(memlock) or run with CAP_IPC_LOCK")
+    if libc is not None and prefault_memory:
+        prefault(libc)
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except (OSError, AttributeError) as exc:
         refused.append(f"SCHED_FIFO priority {priority} refused ({exc}); grant it with "
                        "'ulimit -r' / limits.conf rtprio, or run with CAP_SYS_NICE")
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
-            err = ctypes.get_errno()
-            refused.append(f"locking memory refused ({os.strerror(err)}); raise 'ulimit -l' "
-                           "(memlock) or run with CAP_IPC_LOCK")
-    except OSError as exc:
-        refused.append(f"locking memory unavailable ({exc})")
     return refused

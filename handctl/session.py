@@ -18,17 +18,26 @@ import sys
 import tempfile
 import threading
 from collections.abc import Callable
-from contextlib import ExitStack
-from dataclasses import dataclass
+from contextlib import ExitStack, suppress
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
-from handctl.clock import Clock, LockstepClock, RealtimeClock, request_realtime
+from handctl.clock import (
+    LOOP_PRIORITY,
+    Clock,
+    Hygiene,
+    LockstepClock,
+    RealtimeClock,
+    request_realtime,
+)
 from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
+from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
+from handctl.hostfacts import affinity
 from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
@@ -57,6 +66,10 @@ class RunRequest:
     plot: Path | None = None  # write the overview PNG of the run here (lockstep sim only)
     log: Path | None = None  # record the run to this MCAP file
     command_line: tuple[str, ...] = ()  # for the recording's metadata
+    # With realtime_priority: CPUs, memory lock, prefault (docs/timing.md).
+    hygiene: Hygiene = field(default_factory=Hygiene)
+    # Run on a real bus even if the host fails the timing check (docs/timing.md).
+    accept_missed_deadlines: bool = False
 
 
 @dataclass
@@ -66,6 +79,10 @@ class RunReport:
     warnings: list[str]
     first_send_tick: int = -1  # the tick of the first torque command
     startup_missed_ticks: int = 0  # ticks missed before it
+    # Real time: what the bare timer loop beside the run saw, and the loop's own missed ticks
+    # as (tick, due_ns, wake_ns, missed), for ``handctl.hostcheck.attribute``.
+    host: ProbeRecord | None = None
+    loop_stalls: list[tuple[int, int, int, int]] = field(default_factory=list)
 
 
 def _percentiles_us(window: TickWindow) -> dict[str, float]:
@@ -124,6 +141,13 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         raise ConfigError("--lockstep", "", "the simulated hand (--bus sim): only it can be "
                           "stepped", req.bus)
     startup_s = 0.5
+    loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
+    host_check: dict[str, Any] | None = None
+    if not is_sim:
+        # Before the bus is opened: a host that cannot hold the deadlines sends nothing.
+        host_check, checked = precheck(req.hand, req.realtime_priority, loop_cpu,
+                                       req.accept_missed_deadlines)
+        warnings += checked
     with ExitStack() as stack:
         # First in, last out: from here to the end a signal ends the run as StopSignals says.
         signals = stack.enter_context(StopSignals())
@@ -149,17 +173,30 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             # control process would take the interpreter from the loop for a millisecond at a
             # time. The two talk over the unix datagram bus.
             directory = stack.enter_context(tempfile.TemporaryDirectory(prefix="handctl-bus-"))
-            sim_process = stack.enter_context(SimProcess(req, directory))
+            sim_process = stack.enter_context(SimProcess(req, directory, sim_cpu))
             spec = BusSpec("unix", directory)
             startup_s = 20.0  # the peer imports MuJoCo and builds its model first
         bus: HandBus = stack.enter_context(open_bus(spec, req.hand.bus))
         clock: Clock
+        probe: Probe | None = None
+        peer_probe: Probe | None = None
         if lockstep:
             clock = LockstepClock(req.hand.bus.period_s, sim_hand.step)
         else:
             clock = RealtimeClock(req.hand.bus.period_s)
+            probe = stack.enter_context(beside_probe(req.hand, req.realtime_priority, loop_cpu,
+                                                     req.hygiene.lock_memory))
+            if sim_process is not None and sim_cpu is not None:
+                # On the hand's CPU the loop does not run: the loop's priority is above the hand.
+                peer_probe = stack.enter_context(beside_probe(
+                    req.hand, req.realtime_priority, sim_cpu, req.hygiene.lock_memory,
+                    LOOP_PRIORITY))
             if req.realtime_priority:
-                warnings += request_realtime()
+                warnings += request_realtime(LOOP_PRIORITY, cpu=loop_cpu,
+                                             lock_memory=req.hygiene.lock_memory,
+                                             prefault_memory=req.hygiene.prefault)
+            cpus = {"loop": affinity(0),
+                    "sim": affinity(sim_process.proc.pid) if sim_process else None}
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
         max_ticks = (round(req.max_seconds / req.hand.bus.period_s) if req.max_seconds
                      else 10_000_000)
@@ -189,6 +226,14 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             if sim_process.problem():
                 warnings.append(sim_process.problem())
         summary = summarise(result, req.hand, req.recipe, lockstep, sim_summary)
+        host: ProbeRecord | None = None
+        if probe is not None:
+            assert isinstance(clock, RealtimeClock)
+            host, summary["host"] = host_summary(req.hand, probe, clock.stalls, result.faults,
+                                                 warnings, peer_probe)
+            summary["host"]["cpus"] = cpus
+        if host_check is not None:
+            summary["host_check"] = host_check
         if tracker is not None:
             from handctl.planning.experiment import experiment_summary
 
@@ -208,7 +253,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                 warnings.append(str(exc))
                 summary["recording"] = {"path": str(req.log), "error": str(exc)}
     return RunReport(result, summary, warnings, runtime.first_send_tick,
-                     runtime.startup_missed_ticks)
+                     runtime.startup_missed_ticks, host,
+                     clock.stalls.rows() if isinstance(clock, RealtimeClock) else [])
 
 
 def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
@@ -261,7 +307,7 @@ class SimProcess:
     end when this process ends however it ends (``kill -9`` included), and then remove the bus
     directory, which this process can no longer do."""
 
-    def __init__(self, req: RunRequest, directory: str) -> None:
+    def __init__(self, req: RunRequest, directory: str, cpu: int | None = None) -> None:
         self.summary_path = Path(directory) / "sim-summary.json"
         self.log_path = Path(directory) / "sim.log"
         cmd = [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{directory}",
@@ -276,6 +322,10 @@ class SimProcess:
         with self.log_path.open("wb") as log:
             self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log,
                                          start_new_session=True)
+        if cpu is not None:
+            # Now, while the child has one thread: the node timer thread it starts inherits it.
+            with suppress(ProcessLookupError):  # gone already: problem() says why
+                os.sched_setaffinity(self.proc.pid, {cpu})
         self.summary: dict[str, Any] | None = None
 
     def finish(self) -> dict[str, Any] | None:

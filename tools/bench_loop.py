@@ -4,12 +4,24 @@ and, in the same run, a naive asyncio.sleep loop at the same rate as the baselin
 Figures: lateness p99 of both loops and their ratio, the missed-tick rate, and the CPU time of
 our own tick stages (poll, recipe, safety, send, record) at p99, the simulated hand excluded;
 the simulated hand's frames that did not go and the times the host's queue was full.
+
+Beside the loop, on its CPU one priority above it, the bare timer loop of the timing check runs
+for the whole run (``handctl.hostcheck``): ``host_*`` is what it saw, and every missed tick of
+the run proper is the host's (``missed_host``: the bare loop stalled at the same time) or
+handctl's (``missed_handctl``: it did not). Target: ``missed_handctl`` 0.
+
+``--rt --hygiene`` runs the loop once per real-time measure added in turn (SCHED_FIFO alone,
+then separate CPUs, locked memory, prefaulted memory), each in a fresh process (a priority,
+a CPU or locked memory would otherwise carry over to the next) with the bare loop beside it,
+and reports each one's figures under ``hygiene``.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import json
+import subprocess
 import sys
 import tempfile
 import time
@@ -17,9 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
-from handctl.config import load_hand
+from handctl.clock import Hygiene
+from handctl.config import HandConfig, load_hand
+from handctl.hostcheck import Deadlines, ProbeRecord, attribute, judge
+from handctl.loop import StatusLine
 from handctl.recipes.loader import load_recipe
-from handctl.session import RunRequest, run_recipe
+from handctl.recipes.schema import Recipe
+from handctl.session import RunReport, RunRequest, run_recipe
 
 ROOT = Path(__file__).resolve().parent.parent
 HOLD = """
@@ -34,6 +50,15 @@ phases:
 """
 
 
+#: The variants of ``--hygiene``, each adding one measure to the one before.
+HYGIENE = {
+    "fifo": Hygiene(pin=False, lock_memory=False, prefault=False),
+    "fifo+cpus": Hygiene(pin=True, lock_memory=False, prefault=False),
+    "fifo+cpus+mlock": Hygiene(pin=True, lock_memory=True, prefault=False),
+    "fifo+cpus+mlock+prefault": Hygiene(),
+}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=60.0, help="length of each loop run")
     parser.add_argument("--hand", type=Path, default=ROOT / "config/hands/hiroshima_hand.yaml")
@@ -42,6 +67,59 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(20 is about all a CAN-FD bus carries)")
     parser.add_argument("--rt", action="store_true",
                         help="ask for SCHED_FIFO and locked memory, as `handctl run --rt`")
+    parser.add_argument("--hygiene", action="store_true",
+                        help="with --rt: one run per real-time measure added in turn (FIFO "
+                             "alone, +separate CPUs, +locked memory, +prefault)")
+    parser.add_argument("--variant", choices=list(HYGIENE), default=list(HYGIENE)[-1],
+                        help="with --rt: the real-time measures of the run (default: all)")
+    parser.add_argument("--no-naive", action="store_true",
+                        help="leave out the naive asyncio.sleep baseline")
+
+class RunningSince:
+    """The time the run proper began (the first status line with the hand running), so that
+    the bare loop's stalls are counted over the same span as the loop's."""
+
+    def __init__(self) -> None:
+        self.ns: int | None = None
+
+    def __call__(self, line: StatusLine) -> None:
+        if self.ns is None and line.state == "running":
+            self.ns = time.monotonic_ns()
+
+
+def host_figures(report: RunReport, hand: HandConfig, first_tick: int,
+                 since_ns: int | None) -> dict[str, object]:
+    """The bare loop's figures over the run proper and whose the missed ticks were."""
+    host = report.host
+    if host is None:
+        return {"host_verdict": "no record", "missed_host": -1, "missed_handctl": -1}
+    proper = since(host, since_ns) if since_ns is not None else host
+    verdict = judge(proper, Deadlines.of(hand))
+    rows = [r for r in report.loop_stalls if r[0] >= first_tick]
+    period = round(hand.bus.period_s * 1e9)
+    own: list[int] = []
+    shares = attribute(rows, host, period, own)
+    startup = attribute([r for r in report.loop_stalls if r[0] < first_tick], host, period)
+    f = verdict.figures
+    return {
+        "host_verdict": verdict.level,
+        "host_lateness_p99_us": f["lateness_us"]["p99"],
+        "host_stalls_over_period": f["stalls_over_period"],
+        "host_stalls_over_overrun_tolerance": f["stalls_over_overrun_tolerance"],
+        "host_longest_stall_ms": f["longest_stall_ms"],
+        "host_steal_ms": host.steal_ms,
+        **shares,
+        "missed_handctl_at_ticks": own[:20],
+        "startup_missed_handctl": startup["missed_handctl"],
+    }
+
+
+def since(record: ProbeRecord, start_ns: int) -> ProbeRecord:
+    """The record's stalls from ``start_ns`` on (the lateness histogram stays the whole run's)."""
+    import dataclasses
+
+    return dataclasses.replace(record, start_ns=max(record.start_ns, start_ns),
+                               stalls=tuple(s for s in record.stalls if s[2] >= start_ns))
 
 
 async def _naive(period_s: float, seconds: float) -> np.ndarray:
@@ -57,7 +135,7 @@ async def _naive(period_s: float, seconds: float) -> np.ndarray:
     return lateness
 
 
-def run(args: argparse.Namespace) -> dict[str, float]:
+def run(args: argparse.Namespace) -> dict[str, object]:
     hand = load_hand(args.hand)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "hold.yaml"
@@ -69,10 +147,51 @@ def run(args: argparse.Namespace) -> dict[str, float]:
             faults.write_text("description: a babbling node for the load benchmark\nfaults:\n"
                               f"  - {{kind: babble, id: 0x050, per_tick: {args.babble}, "
                               "length: 8, start: 0.0}\n")
-        print(f"real-time loop with the simulated hand, {args.seconds:g} s"
-              f"{f', babble {args.babble}/ms' if args.babble else ''} ...", file=sys.stderr)
-        report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus="sim", lockstep=False,
-                                       realtime_priority=args.rt, sim_faults=faults))
+        variants = {}
+        if args.hygiene and args.rt:
+            for name in HYGIENE:
+                print(f"hygiene {name} ...", file=sys.stderr)
+                variants[name] = _variant(name, args)
+            figures = dict(variants[list(HYGIENE)[-1]])
+        else:
+            figures = _one(hand, recipe, faults, args, HYGIENE[args.variant])
+    if not args.no_naive and "lateness_p99_us" in figures:
+        print(f"naive asyncio.sleep loop, {args.seconds:g} s ...", file=sys.stderr)
+        naive = asyncio.run(_naive(hand.bus.period_s, args.seconds))
+        naive_p99 = float(np.percentile(naive, 99)) / 1e3
+        figures["naive_lateness_p99_us"] = round(naive_p99, 1)
+        figures["lateness_ratio"] = round(float(figures["lateness_p99_us"]) / naive_p99, 4)  # type: ignore[arg-type]
+    if variants:
+        keep = ("lateness_p99_us", "missed_rate", "missed_host", "missed_handctl",
+                "missed_handctl_after_host",
+                "startup_missed_ticks", "startup_missed_handctl", "ticks",
+                "host_lateness_p99_us", "host_stalls_over_period", "host_longest_stall_ms",
+                "tick_cpu_us_p99", "outcome", "rt")
+        figures["hygiene"] = {name: {k: v.get(k) for k in keep} for name, v in variants.items()}
+    return figures
+
+
+def _variant(name: str, args: argparse.Namespace) -> dict[str, object]:
+    """One variant in a process of its own: what request_realtime did to this one (priority,
+    CPU, locked memory) cannot be undone exactly."""
+    cmd = [sys.executable, str(Path(__file__).resolve().parent / "bench.py"), "loop", "--rt",
+           "--variant", name, "--seconds", str(args.seconds), "--hand", str(args.hand),
+           "--babble", str(args.babble), "--no-naive"]
+    done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=False)
+    if done.returncode != 0:
+        return {"error": f"exit {done.returncode}"}
+    figures: dict[str, object] = json.loads(done.stdout)
+    return figures
+
+
+def _one(hand: HandConfig, recipe: Recipe, faults: Path | None, args: argparse.Namespace,
+         hygiene: Hygiene) -> dict[str, object]:
+    print(f"real-time loop with the simulated hand, {args.seconds:g} s"
+          f"{f', babble {args.babble}/ms' if args.babble else ''} ...", file=sys.stderr)
+    running = RunningSince()
+    report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus="sim", lockstep=False,
+                                   realtime_priority=args.rt, sim_faults=faults,
+                                   hygiene=hygiene), status=running)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     result = report.result
@@ -87,26 +206,22 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     # that never went, and the times the host's socket queue was full so frames waited.
     sim = report.summary.get("sim") or {}
     transport = sim.get("transport") or {}
-    print(f"naive asyncio.sleep loop, {args.seconds:g} s ...", file=sys.stderr)
-    naive = asyncio.run(_naive(hand.bus.period_s, args.seconds))
-    ours_p99 = float(np.percentile(ours, 99)) / 1e3
-    naive_p99 = float(np.percentile(naive, 99)) / 1e3
     return {
         "seconds": args.seconds,
         "babble_per_ms": args.babble,
         "foreign_frames": result.node_rejects.get("unexpected_id", 0),
         "sim_tx_failed": int(sim.get("tx_failed", -1)),
         "sim_queue_full": int(transport.get("queue_full", -1)),
-        "rt": bool(args.rt and not report.warnings),  # type: ignore[dict-item]
-        "outcome": result.outcome.value,  # type: ignore[dict-item]
-        "message": result.message,  # type: ignore[dict-item]
+        "rt": bool(args.rt and not any("refused" in w for w in report.warnings)),
+        "outcome": result.outcome.value,
+        "message": result.message,
         "ticks": int(ours.size),
-        "lateness_p99_us": round(ours_p99, 1),
+        "lateness_p99_us": round(float(np.percentile(ours, 99)) / 1e3, 1),
         "lateness_p50_us": round(float(np.percentile(ours, 50)) / 1e3, 1),
-        "naive_lateness_p99_us": round(naive_p99, 1),
-        "lateness_ratio": round(ours_p99 / naive_p99, 4),
         "missed_rate": round(missed / max(1, ours.size), 6),
+        "missed_ticks": missed,
         "startup_missed_ticks": int(result.missed[:first].sum()),
         "tick_cpu_us_p99": round(float(np.percentile(cpu, 99)) / 1e3, 1),
         "tick_cpu_us_p50": round(float(np.percentile(cpu, 50)) / 1e3, 1),
+        **host_figures(report, hand, first, running.ns),
     }

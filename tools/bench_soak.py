@@ -12,7 +12,10 @@ Figures (targets from the fault, load and soak issue):
   from inside the loop's status callback, least-squares slope after the warm-up, target <= 5;
 - ``records_lost``: what the recorder and writer counted as dropped, plus ticks the runtime ran
   that the file lacks (``/loop/timing`` read back and compared tick by tick), target 0;
-- ``ticks``, ``mb_written``, lateness (whole run), and the RSS at start and end.
+- ``ticks``, ``mb_written``, lateness (whole run), and the RSS at start and end;
+- ``missed_host`` and ``missed_handctl``: the missed ticks of the run proper, the host's (the
+  bare timer loop beside the run stalled at the same time) or handctl's (it did not), and the
+  bare loop's own figures (``host_*``), as in ``bench.py loop``. Target: ``missed_handctl`` 0.
 
 With ``--rt`` the simulated hand's process gets SCHED_FIFO too (just below the loop): on a
 machine shared with other jobs it would otherwise fall behind real time, and the host would
@@ -41,6 +44,9 @@ from handctl.recipes.loader import load_recipe  # noqa: E402
 from handctl.recording import channels as ch  # noqa: E402
 from handctl.recording.reader import iter_decoded, open_recording  # noqa: E402
 from handctl.session import RunRequest, run_recipe  # noqa: E402
+
+sys.path.insert(0, str(ROOT / "tools"))
+from bench_loop import RunningSince, host_figures  # noqa: E402
 
 HOLD = """
 recipe: soak_hold
@@ -179,9 +185,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         print(f"soak: real-time loop with the simulated hand, recording to {log}, "
               f"{args.minutes:g} min ...", file=sys.stderr)
         started = time.monotonic()
+        running = RunningSince()
+
+        def status(line: StatusLine) -> None:
+            sampler(line)
+            running(line)
+
         report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus="sim", lockstep=False,
                                        realtime_priority=args.rt, log=log,
-                                       command_line=("bench.py", "soak")), status=sampler)
+                                       command_line=("bench.py", "soak")), status=status)
         wall = time.monotonic() - started
         for warning in [*report.warnings, *refused]:
             print(f"warning: {warning}", file=sys.stderr)
@@ -202,7 +214,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rss = sampler.rss
     return {
         "minutes": args.minutes,
-        "rt": bool(args.rt and not report.warnings and not refused),
+        "rt": bool(args.rt and not refused
+                   and not any("refused" in w for w in report.warnings)),
         "outcome": result.outcome.value,
         "message": result.message,
         "ticks": proper_ticks,
@@ -225,4 +238,5 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "last_tick_in_file": last,
         "mb_written": round(mb_written, 1),
         "wall_s": round(wall, 1),
+        **host_figures(report, hand, first, running.ns),
     }

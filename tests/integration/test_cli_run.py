@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import pty
+import select
 import signal
 import subprocess
 import sys
@@ -72,20 +74,46 @@ phases:
 """
 
 
+def _read_until(fd: int, wanted: str | None, timeout_s: float = 120.0) -> str:
+    """What a terminal showed until ``wanted`` appeared (``None``: until the process closed
+    it)."""
+    seen = ""
+    deadline = time.monotonic() + timeout_s
+    while (wanted is None or wanted not in seen) and time.monotonic() < deadline:
+        ready, _, _ = select.select([fd], [], [], 0.5)
+        if not ready:
+            continue
+        try:
+            chunk = os.read(fd, 4096)
+        except OSError:  # the other end closed: the process ended
+            break
+        if not chunk:
+            break
+        seen += chunk.decode(errors="replace")
+    return seen
+
+
 def test_sigint_is_a_controlled_stop(tmp_path: Path) -> None:
-    """Lockstep, so the stop is judged on behaviour alone, whatever the machine's load."""
+    """Lockstep, so the stop is judged on behaviour alone, whatever the machine's load. The
+    signal goes when the run's status line (shown on a terminal) says the phase is under way,
+    not after a guess at how long the imports and the start-up take."""
     out = tmp_path / "out.json"
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD_LONG)
+    terminal, stderr_end = pty.openpty()
     proc = subprocess.Popen(
         [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--summary-json",
-         str(out)], cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+         str(out)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=stderr_end)
+    os.close(stderr_end)
     try:
-        time.sleep(3.0)  # imports, start-up, and into the (ten-minute) phase
+        shown = _read_until(terminal, "running")
+        assert "running" in shown, shown
         proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=60)
+        proc.wait(timeout=60)
+        stderr = shown + _read_until(terminal, None, timeout_s=10.0)
     finally:
         proc.kill()
+        os.close(terminal)
     assert proc.returncode == 130, stderr
     summary = json.loads(out.read_text())
     assert summary["outcome"] == "interrupted"

@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from handctl.clock import LockstepClock, RealtimeClock
+from handctl.clock import LockstepClock, RealtimeClock, StallLog
 from handctl.timerfd import PeriodicTimer
 
 
@@ -25,8 +25,23 @@ async def test_realtime_ticks_are_consecutive_and_count_missed_ones() -> None:
         assert late.missed >= 4
         assert late.lateness_ns >= 0
         assert late.scheduled_ns >= second.scheduled_ns + (late.missed + 1) * 1_000_000
+        # The stall is kept with the interval the loop was late for, to be laid beside the
+        # host's: from the oldest deadline it slept through to the wake-up.
+        tick, due, wake, missed = clock.stalls.rows()[-1]
+        assert (tick, missed, wake) == (late.k, late.missed, late.now_ns)
+        assert due == late.scheduled_ns - late.missed * 1_000_000
     finally:
         clock.close()
+
+
+def test_a_full_stall_log_counts_what_it_cannot_keep() -> None:
+    log = StallLog(threshold_ns=500, capacity=2)
+    log.add(1, 0, 400, 0)  # shorter than the threshold: not a stall
+    log.add(2, 0, 2_000, 1)
+    log.add(5, 10_000, 13_000, 2)
+    log.add(9, 20_000, 24_000, 3)
+    assert log.rows() == [(2, 0, 2_000, 1), (5, 10_000, 13_000, 2)]
+    assert (log.overflow, log.overflow_missed) == (1, 3)
 
 
 async def test_lockstep_steps_the_peer_once_per_tick() -> None:
@@ -92,3 +107,35 @@ def test_collector_paused_turns_automatic_collection_off_and_back_on() -> None:
     with collector_paused():
         assert not gc.isenabled()  # no full pass can hold the simulated hand's node timer
     assert gc.isenabled()
+
+
+_HYGIENE_CHILD = """
+import ctypes, os, sys
+from handctl.clock import HEAP_RESERVE, request_realtime
+class Mallinfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
+                                               "usmblks", "fsmblks", "uordblks", "fordblks",
+                                               "keepcost")]
+libc = ctypes.CDLL(None)
+libc.mallinfo2.restype = Mallinfo2
+cpu = max(os.sched_getaffinity(0))
+request_realtime(1, cpu=cpu, prefault_memory=sys.argv[1] == "1")
+# The heap kept what the prefault touched: glibc neither trimmed it nor used mmap for it.
+print(os.sched_getaffinity(0) == {cpu}, libc.mallinfo2().fordblks >= HEAP_RESERVE)
+print(request_realtime(1, cpu=4096)[0])
+"""
+
+
+def _hygiene_child(prefault: bool) -> list[str]:
+    done = subprocess.run([sys.executable, "-c", _HYGIENE_CHILD, "1" if prefault else "0"],
+                          capture_output=True, text=True, timeout=60, check=False,
+                          cwd=Path(__file__).resolve().parents[2])
+    assert done.returncode == 0, done.stderr
+    return done.stdout.splitlines()
+
+
+def test_realtime_pins_the_cpu_and_keeps_a_prefaulted_heap() -> None:
+    granted, refusal = _hygiene_child(prefault=True)
+    assert granted == "True True"  # pinned (no privilege needed), heap reserve kept
+    assert refusal.startswith("pinning to CPU 4096 refused")
+    assert _hygiene_child(prefault=False)[0] == "True False"

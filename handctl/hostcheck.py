@@ -1,0 +1,582 @@
+"""Can this host hold this hand's deadlines? The timing check, its verdict, and the host's share
+of a run's missed ticks.
+
+The measurement is a bare timer loop (``handctl.hostprobe``) in a process of its own, at the
+control loop's period, with the scheduling ``--rt`` asks for. What it records is judged against
+the hand config's deadlines (``judge``): a stall of the bare loop is a stall any loop on this
+host would have had. The verdict says what the host is (``handctl.hostfacts``: kernel, limits,
+CPUs, frequency scaling) and what would help (``advice``).
+
+The same probe runs beside every real-time run, on the control loop's CPU one priority step
+above it, so that each missed tick of the run can be attributed: to the host when the probe
+stalled at the same time, to handctl when it did not (``attribute``).
+
+A recorded probe sequence (the ``probe`` of ``handctl check --timing --json``) can be judged
+with the measurement through the environment variable ``HANDCTL_TIMING_INJECT``; the verdict
+is then the worse of the two, so the seam can make a host fail a check but never pass one
+(docs/timing.md).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from handctl.clock import LOOP_PRIORITY, Hygiene, StallLog
+from handctl.config import HandConfig, SafetyConfig
+from handctl.errors import ConfigError, HandctlError
+from handctl.hostfacts import HostFacts, gather_facts, plan_cpus
+from handctl.safety.faults import Fault, FaultCode
+from handctl.safety.watchdog import TickWatch
+from handctl.tickstats import HIST_RANGE_US
+
+#: Seconds of the check a run on a real bus makes before it opens the bus.
+PRECHECK_S = 1.5
+#: The environment variable that names a recorded probe sequence to judge with the measurement.
+INJECT_ENV = "HANDCTL_TIMING_INJECT"
+#: Verdicts, best first.
+LEVELS = ("pass", "marginal", "fail")
+#: A host whose bare loop is late by more than this share of the period at p99 is marginal:
+#: the control loop's own tick (about 100 µs) must fit in what is left.
+P99_SHARE = 0.5
+_PROBE_START_S = 30.0  # generous: the probe imports handctl on a loaded machine
+
+
+class HostTimingError(HandctlError):
+    """The host failed the timing check before a run on a real bus; nothing was sent."""
+
+
+@dataclass(frozen=True)
+class Deadlines:
+    """The deadlines of one hand, from its config."""
+
+    period_ns: int
+    overrun_tolerance_ticks: int  # safety.max_consecutive_misses: LOOP_OVERRUN at this many
+    feedback_timeout_ns: int  # safety.feedback_timeout_s
+
+    @classmethod
+    def of(cls, hand: HandConfig) -> Deadlines:
+        return cls(round(hand.bus.period_s * 1e9), hand.safety.max_consecutive_misses,
+                   round(hand.safety.feedback_timeout_s * 1e9))
+
+
+@dataclass(frozen=True)
+class ProbeRecord:
+    """What one run of the bare loop saw (the JSON ``handctl.hostprobe`` writes)."""
+
+    period_ns: int
+    start_ns: int
+    end_ns: int
+    wakeups: int
+    lateness_hist_us: dict[int, int]
+    lateness_max_ns: int
+    stalls: tuple[tuple[int, int, int, int], ...]  # (wake-up index, due_ns, wake_ns, missed)
+    stalls_overflow: int = 0
+    steal_ms: float = 0.0
+    scheduler: dict[str, Any] = field(default_factory=dict)
+    refused: tuple[str, ...] = ()
+    source: str = "measured"
+
+    @classmethod
+    def from_json(cls, data: object, source: str) -> ProbeRecord:
+        """Read a probe's output, or a check report that holds one under ``probe``; a file
+        that is neither gets a ConfigError naming the key, what was expected and found."""
+        if isinstance(data, dict) and isinstance(data.get("probe"), dict):
+            data, prefix = data["probe"], "probe."
+        else:
+            prefix = ""
+        if not isinstance(data, dict):
+            raise ConfigError(source, "", "a JSON object (hostprobe output or a check report)",
+                              type(data).__name__)
+
+        def integer(key: str, minimum: int = 0, default: int | None = None) -> int:
+            value = data.get(key, default)
+            if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+                raise ConfigError(source, prefix + key, f"an integer >= {minimum}", value)
+            return value
+
+        steal = data.get("steal_ms", 0.0)
+        if not isinstance(steal, int | float) or isinstance(steal, bool) or steal < 0:
+            raise ConfigError(source, prefix + "steal_ms", "a number of ms >= 0", steal)
+        scheduler = data.get("scheduler", {})
+        refused = data.get("refused", [])
+        if not isinstance(scheduler, dict):
+            raise ConfigError(source, prefix + "scheduler", "a mapping", scheduler)
+        if not isinstance(refused, list) or not all(isinstance(r, str) for r in refused):
+            raise ConfigError(source, prefix + "refused", "a list of strings", refused)
+
+        period = integer("period_ns", 1)
+        hist_raw = data.get("lateness_hist_us")
+        if not isinstance(hist_raw, dict) or not all(
+                str(k).isdigit() and isinstance(v, int) and v >= 0 for k, v in hist_raw.items()):
+            raise ConfigError(source, prefix + "lateness_hist_us",
+                              "a mapping of µs bins to counts", hist_raw)
+        stalls_raw = data.get("stalls")
+        if not isinstance(stalls_raw, list):
+            raise ConfigError(source, prefix + "stalls",
+                              "a list of [index, due_ns, wake_ns, missed]", stalls_raw)
+        stalls = []
+        for i, row in enumerate(stalls_raw):
+            if (not isinstance(row, list) or len(row) != 4
+                    or not all(isinstance(v, int) and not isinstance(v, bool) for v in row)
+                    or row[2] < row[1] or row[3] < 0):
+                raise ConfigError(source, f"{prefix}stalls[{i}]", "[index, due_ns, wake_ns, "
+                                  "missed] with wake_ns >= due_ns and missed >= 0", row)
+            stalls.append((row[0], row[1], row[2], row[3]))
+        return cls(period_ns=period, start_ns=integer("start_ns"), end_ns=integer("end_ns"),
+                   wakeups=integer("wakeups"),
+                   lateness_hist_us={int(k): v for k, v in hist_raw.items()},
+                   lateness_max_ns=integer("lateness_max_ns"), stalls=tuple(stalls),
+                   stalls_overflow=integer("stalls_overflow", default=0),
+                   steal_ms=float(steal), scheduler=dict(scheduler), refused=tuple(refused),
+                   source=source)
+
+    def as_json(self) -> dict[str, Any]:
+        return {"period_ns": self.period_ns, "start_ns": self.start_ns, "end_ns": self.end_ns,
+                "wakeups": self.wakeups,
+                "lateness_hist_us": {str(k): v for k, v in sorted(self.lateness_hist_us.items())},
+                "lateness_max_ns": self.lateness_max_ns,
+                "stalls": [list(s) for s in self.stalls], "stalls_overflow": self.stalls_overflow,
+                "steal_ms": self.steal_ms, "scheduler": self.scheduler,
+                "refused": list(self.refused), "source": self.source}
+
+    def lateness_us(self, q: float) -> float:
+        """The q-th percentile (0..100) of the wake-up lateness, µs (1 µs bins)."""
+        total = sum(self.lateness_hist_us.values())
+        if total == 0:
+            return 0.0
+        rank = max(1, -(-q * total // 100))
+        seen = 0
+        for b in sorted(self.lateness_hist_us):
+            seen += self.lateness_hist_us[b]
+            if seen >= rank:
+                return float(b)
+        return float(HIST_RANGE_US)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The judgement of one probe record against one hand's deadlines."""
+
+    level: str  # one of LEVELS
+    reasons: tuple[str, ...]
+    figures: dict[str, Any]
+
+    @property
+    def fails(self) -> bool:
+        return self.level == "fail"
+
+
+def judge(record: ProbeRecord, deadlines: Deadlines) -> Verdict:
+    """Would a loop that stalls as this one did keep this hand running?
+
+    A stall's length runs from the oldest deadline it slept through to the wake-up. It fails the
+    host when it alone is as long as the overrun tolerance (the control loop would stop on
+    LOOP_OVERRUN), when stalls in consecutive wake-ups add up to it (the same count the safety
+    supervisor keeps, ``TickWatch``), or when it is longer than the feedback timeout (the
+    simulated hand, a peer on this host, would be silent that long; and a real hand's command
+    watchdog is not much longer). Shorter stalls that still miss a tick, or a p99 lateness of
+    more than half a period, make it marginal.
+    """
+    period = deadlines.period_ns
+    tolerance_ns = deadlines.overrun_tolerance_ticks * period
+    lengths = [wake - due for _, due, wake, _ in record.stalls]
+    over_period = sum(1 for n in lengths if n > period)
+    over_tolerance = sum(1 for n in lengths if n >= tolerance_ns)
+    over_feedback = sum(1 for n in lengths if n > deadlines.feedback_timeout_ns)
+    # The supervisor's own count of consecutive misses, wake-up by wake-up, on the loop's period
+    # (a probe ticking faster than the loop has its misses scaled to the loop's ticks).
+    watch = TickWatch(SafetyConfig(max_consecutive_misses=deadlines.overrun_tolerance_ticks))
+    trips, last = 0, None
+    for (index, _, _, _), length in zip(record.stalls, lengths, strict=True):
+        if last is None or index != last + 1:
+            watch.tick(0)
+        if watch.tick(length // period):
+            trips += 1
+            watch.tick(0)
+        last = index
+    figures = {
+        "seconds": round((record.end_ns - record.start_ns) / 1e9, 3),
+        "wakeups": record.wakeups,
+        "lateness_us": {"p50": record.lateness_us(50), "p99": record.lateness_us(99),
+                        "max": round(record.lateness_max_ns / 1e3, 1)},
+        "longest_stall_ms": round(max(lengths, default=0) / 1e6, 3),
+        "stalls_over_period": over_period,
+        "stalls_over_overrun_tolerance": over_tolerance,
+        "stalls_over_feedback_timeout": over_feedback,
+        "loop_overrun_trips": trips,
+        "stalls_unrecorded": record.stalls_overflow,
+        "steal_ms": record.steal_ms,
+        "period_ms": period / 1e6,
+        "overrun_tolerance_ms": tolerance_ns / 1e6,
+        "feedback_timeout_ms": deadlines.feedback_timeout_ns / 1e6,
+    }
+    reasons: list[str] = []
+    if trips:
+        reasons.append(f"{trips} stall(s) as long as the overrun tolerance "
+                       f"({deadlines.overrun_tolerance_ticks} periods, {tolerance_ns / 1e6:g} "
+                       "ms, alone or in consecutive ticks): the control loop would stop on "
+                       "LOOP_OVERRUN")
+    if over_feedback:
+        reasons.append(f"{over_feedback} stall(s) longer than the feedback timeout "
+                       f"({deadlines.feedback_timeout_ns / 1e6:g} ms)")
+    if record.stalls_overflow:
+        reasons.append(f"{record.stalls_overflow} more stalls than the record holds")
+    level = "fail" if reasons else "pass"
+    if level == "pass":
+        p99 = record.lateness_us(99)
+        if over_period:
+            reasons.append(f"{over_period} stall(s) longer than a period ({period / 1e6:g} ms), "
+                           "each a missed tick, but none as long as the overrun tolerance")
+        if p99 > P99_SHARE * period / 1e3:
+            reasons.append(f"lateness p99 {p99:g} µs is more than {P99_SHARE:.0%} of the period")
+        level = "marginal" if reasons else "pass"
+    return Verdict(level, tuple(reasons), figures)
+
+
+def worse(a: Verdict, b: Verdict) -> Verdict:
+    return a if LEVELS.index(a.level) >= LEVELS.index(b.level) else b
+
+
+def advice(facts: HostFacts, record: ProbeRecord, realtime: bool) -> list[str]:
+    """What would help this host hold the deadlines, each naming what was found."""
+    tips: list[str] = []
+    if facts.preemption != "PREEMPT_RT" and facts.realtime_kernel is not True:
+        found = "/sys/kernel/realtime " + ("absent" if facts.realtime_kernel is None else "0")
+        model = facts.preemption + (f", preempt={facts.cmdline_preempt}"
+                                    if facts.cmdline_preempt else "")
+        tip = f"a PREEMPT_RT kernel (found {model}; {found})"
+        if facts.preemption == "PREEMPT_DYNAMIC" and facts.cmdline_preempt != "full":
+            tip += "; at least boot this one with preempt=full"
+        tips.append(tip)
+    got = record.scheduler.get("policy", "?")
+    if realtime and got != "SCHED_FIFO":
+        tips.append(f"real-time priority for the loop (got {got}; RLIMIT_RTPRIO is "
+                    f"{_show_limit(facts.rtprio_limit)}): 'ulimit -r {LOOP_PRIORITY + 1}' via "
+                    "rtprio in /etc/security/limits.conf, or CAP_SYS_NICE")
+    elif not realtime:
+        tips.append("run with --rt (SCHED_FIFO, a pinned CPU, locked memory); this check ran "
+                    f"at {got} like the run would")
+    if realtime and any("locking memory" in r for r in record.refused):
+        tips.append(f"locked memory (RLIMIT_MEMLOCK is {_show_limit(facts.memlock_limit_kb)} "
+                    "KiB): 'ulimit -l unlimited' via memlock in /etc/security/limits.conf, or "
+                    "CAP_IPC_LOCK")
+    if len(facts.cpus) >= 2 and not facts.isolated:
+        loop_cpu, _ = plan_cpus(set(facts.cpus), set())
+        tips.append(f"a CPU of its own for the loop (none isolated in "
+                    f"/sys/devices/system/cpu/isolated): boot with isolcpus={loop_cpu} "
+                    f"nohz_full={loop_cpu} rcu_nocbs={loop_cpu}; handctl pins the loop to an "
+                    "isolated CPU with --rt")
+    slow = sorted({g for g in facts.governors.values() if g != "performance"})
+    if slow:
+        tips.append(f"no frequency scaling (cpufreq governor {', '.join(slow)}): "
+                    "'cpupower frequency-set -g performance'")
+    if facts.virtual_machine:
+        tips.append("a real machine or a VM with dedicated, pinned vCPUs: this is a virtual "
+                    "machine, whose hypervisor can take a CPU away for milliseconds"
+                    + (f" ({record.steal_ms:g} ms stolen during the check)"
+                       if record.steal_ms else ""))
+    return tips
+
+
+def _show_limit(value: int) -> str:
+    return "unlimited" if value < 0 else str(value)
+
+
+# -- running the probe --------------------------------------------------------------------------
+class Probe:
+    """The bare loop as a child process, from ``start`` to ``stop`` (or for ``seconds``)."""
+
+    def __init__(self, period_ns: int, *, record_ns: int, seconds: float | None = None,
+                 priority: int | None = None, cpu: int | None = None,
+                 lock_memory: bool = True) -> None:
+        cmd = [sys.executable, "-m", "handctl.hostprobe", "--period-ns", str(period_ns),
+               "--record-ns", str(record_ns), "--parent-pid", str(os.getpid())]
+        if seconds is not None:
+            cmd += ["--seconds", str(seconds)]
+        if priority is not None:
+            cmd += ["--priority", str(priority)]
+        if cpu is not None:
+            cmd += ["--cpu", str(cpu)]
+        if not lock_memory:
+            cmd.append("--no-lock-memory")
+        self.seconds = seconds
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True)
+
+    def stop(self) -> ProbeRecord:
+        """End the probe (if it still runs) and read what it saw."""
+        if self.seconds is None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        timeout = _PROBE_START_S + (self.seconds or 0.0)
+        try:
+            out, err = self.proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, err = self.proc.communicate()
+        if self.proc.returncode != 0 or not out.strip():
+            raise HandctlError(f"the timing probe ended with exit {self.proc.returncode}: "
+                               + " | ".join(err.strip().splitlines()[-3:]))
+        try:
+            data = json.loads(out)
+        except json.JSONDecodeError as exc:
+            raise HandctlError(f"the timing probe wrote no record ({exc})") from None
+        return ProbeRecord.from_json(data, "the timing probe")
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+    def __enter__(self) -> Probe:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@dataclass(frozen=True)
+class CheckReport:
+    """A timing check: the verdict, each record judged, the host's facts and the advice."""
+
+    verdict: Verdict
+    records: tuple[tuple[ProbeRecord, Verdict], ...]
+    facts: HostFacts
+    advice: tuple[str, ...]
+    realtime: bool
+
+    def as_json(self) -> dict[str, Any]:
+        measured = self.records[0]
+        return {"verdict": self.verdict.level, "reasons": list(self.verdict.reasons),
+                **measured[1].figures,
+                "scheduler": measured[0].scheduler, "refused": list(measured[0].refused),
+                "realtime": self.realtime, "facts": self.facts.as_json(),
+                "advice": list(self.advice),
+                "injected": [{"source": r.source, "verdict": v.level, "reasons": list(v.reasons),
+                              **v.figures} for r, v in self.records[1:]],
+                "probe": measured[0].as_json()}
+
+    def text(self) -> str:
+        """The verdict as a user reads it: one headline, the figures, what would help."""
+        f = self.records[0][1].figures
+        late = f["lateness_us"]
+        sched = self.records[0][0].scheduler
+        lines = [
+            f"timing check: {self.verdict.level.upper()} - "
+            + ("this host held" if self.verdict.level != "fail" else "this host cannot hold")
+            + f" the hand's deadlines in {f['seconds']:g} s of a bare {1e3 / f['period_ms']:g}"
+            f" Hz timer loop at {sched.get('policy', '?')} {sched.get('priority', 0)} on "
+            f"CPU(s) {sched.get('cpus', '?')}",
+            f"  wake-up lateness p50 {late['p50']:g} us, p99 {late['p99']:g} us, max "
+            f"{late['max']:g} us; longest stall {f['longest_stall_ms']:g} ms",
+            f"  stalls longer than one period ({f['period_ms']:g} ms): "
+            f"{f['stalls_over_period']}, than the overrun tolerance "
+            f"({f['overrun_tolerance_ms']:g} ms): {f['stalls_over_overrun_tolerance']}, than "
+            f"the feedback timeout ({f['feedback_timeout_ms']:g} ms): "
+            f"{f['stalls_over_feedback_timeout']}; LOOP_OVERRUN trips: "
+            f"{f['loop_overrun_trips']}",
+        ]
+        lines += [f"  because {r}" for r in self.records[0][1].reasons]
+        for record, verdict in self.records[1:]:
+            lines.append(f"  injected from {record.source} ({INJECT_ENV}): "
+                         f"{verdict.level.upper()}"
+                         + "".join(f"; {r}" for r in verdict.reasons))
+        lines += [f"  refused: {r}" for r in self.records[0][0].refused]
+        if self.advice:
+            lines.append("  what would help:")
+            lines += [f"  - {tip}" for tip in self.advice]
+        return "\n".join(lines)
+
+
+def injected_records() -> list[ProbeRecord]:
+    """The recorded sequence named by ``HANDCTL_TIMING_INJECT``, if any."""
+    path = os.environ.get(INJECT_ENV)
+    if not path:
+        return []
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ConfigError(path, "", f"a readable JSON file ({INJECT_ENV})", str(exc)) from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(path, "", "valid JSON", str(exc)) from None
+    return [ProbeRecord.from_json(data, path)]
+
+
+def timing_check(hand: HandConfig, seconds: float, *, realtime: bool,
+                 cpu: int | None = None) -> CheckReport:
+    """Measure the host for ``seconds`` with the scheduling the run would have, and judge it.
+
+    ``realtime``: what ``--rt`` asks (SCHED_FIFO at the loop's priority, locked memory) on
+    ``cpu`` (None: what ``plan_cpus`` gives the loop); otherwise the default scheduler.
+    """
+    deadlines = Deadlines.of(hand)
+    injected = injected_records()  # a bad file is refused before the measurement
+    facts = gather_facts()
+    if cpu is not None and cpu not in facts.cpus:
+        raise ConfigError("--loop-cpu", "", f"one of the CPUs this process may use "
+                          f"{list(facts.cpus)}", cpu)
+    if realtime and cpu is None:
+        cpu, _ = plan_cpus(set(facts.cpus), set(facts.isolated))
+    with Probe(deadlines.period_ns, record_ns=deadlines.period_ns // 2, seconds=seconds,
+               priority=LOOP_PRIORITY if realtime else None, cpu=cpu if realtime else None,
+               lock_memory=realtime) as probe:
+        measured = probe.stop()
+    records = [(measured, judge(measured, deadlines))]
+    records += [(r, judge(r, deadlines)) for r in injected]
+    verdict = records[0][1]
+    for _, v in records[1:]:
+        verdict = worse(verdict, v)
+    return CheckReport(verdict, tuple(records), facts,
+                       tuple(advice(facts, measured, realtime)), realtime)
+
+
+# -- the host's share of a run's missed ticks ----------------------------------------------------
+def attribute(loop_stalls: list[tuple[int, int, int, int]], host: ProbeRecord,
+              period_ns: int, handctls: list[int] | None = None) -> dict[str, int]:
+    """Split the control loop's missed ticks between the host and handctl.
+
+    A missed tick's interval runs from one period before the oldest deadline it slept through
+    (the tick before it may have been the one held up) to its wake-up. If a stall of the bare
+    loop beside it overlaps that interval, the host held both loops: ``missed_host``. If none
+    did, the host let a bare loop run at that time and handctl was late on its own:
+    ``missed_handctl``. Of those, ``missed_handctl_after_host`` came in the very next tick
+    after a host stall, while the loop caught up (a backlog of frames to read). Missed ticks
+    outside the time the probe ran are ``missed_unobserved``. The ticks of handctl's own
+    misses are appended to ``handctls`` if given.
+    """
+    host_stalls = sorted((due, wake) for _, due, wake, _ in host.stalls)
+    counts = {"missed_host": 0, "missed_handctl": 0, "missed_handctl_after_host": 0,
+              "missed_unobserved": 0}
+    after_host = -2  # the last tick of a chain of misses that began with a host stall
+    for tick, due, wake, missed in loop_stalls:
+        start = due - period_ns
+        if wake < host.start_ns or start > host.end_ns:
+            counts["missed_unobserved"] += missed
+        elif any(h_due < wake and h_wake > start for h_due, h_wake in host_stalls):
+            counts["missed_host"] += missed
+            after_host = tick
+        else:
+            counts["missed_handctl"] += missed
+            if tick == after_host + 1:
+                counts["missed_handctl_after_host"] += missed
+                after_host = tick
+            if handctls is not None:
+                handctls.append(tick)
+    return counts
+
+
+# -- a run's host: its CPUs, the check before it, the bare loop beside it -----------------------
+#: The summary lists the ticks of at most this many of handctl's own misses.
+MAX_LISTED_TICKS = 20
+
+
+def run_cpus(hygiene: Hygiene) -> tuple[int | None, int | None]:
+    """The CPUs of the loop and of the simulated hand for a real-time run: the user's, or
+    ``plan_cpus``'s on a machine of two or more; (None, None) when not pinned."""
+    if not hygiene.pin:
+        return None, None
+    facts = gather_facts()
+    allowed = set(facts.cpus)
+    loop_cpu, sim_cpu = plan_cpus(allowed, set(facts.isolated))
+    for option, cpu in (("--loop-cpu", hygiene.loop_cpu), ("--sim-cpu", hygiene.sim_cpu)):
+        if cpu is not None and cpu not in allowed:
+            raise ConfigError(option, "", f"one of the CPUs this process may use "
+                              f"{sorted(allowed)}", cpu)
+    if hygiene.loop_cpu is not None:
+        loop_cpu = hygiene.loop_cpu
+        if sim_cpu == loop_cpu:
+            sim_cpu = min(allowed - {loop_cpu}, default=None)
+    if hygiene.sim_cpu is not None:
+        sim_cpu = hygiene.sim_cpu
+    if loop_cpu is not None and loop_cpu == sim_cpu:
+        raise ConfigError("--sim-cpu", "", f"a CPU other than the loop's ({loop_cpu})", sim_cpu)
+    return loop_cpu, sim_cpu
+
+
+def precheck(hand: HandConfig, realtime: bool, loop_cpu: int | None,
+             accept_missed_deadlines: bool) -> tuple[dict[str, Any], list[str]]:
+    """The timing check before a run on anything but the simulated hand: a host that fails
+    it is refused unless the user accepts the risk by name. Returns the check for the run's
+    summary (its figures, not the probe's record) and the warnings."""
+    report = timing_check(hand, PRECHECK_S, realtime=realtime, cpu=loop_cpu)
+    if report.verdict.fails and not accept_missed_deadlines:
+        raise HostTimingError(report.text() + "\n  nothing was sent; to run anyway, pass "
+                              "--accept-missed-deadlines")
+    summary = {k: v for k, v in report.as_json().items() if k not in ("probe", "facts")}
+    if report.verdict.fails:
+        return summary, [f"running with --accept-missed-deadlines on a host that failed the "
+                         f"timing check: {'; '.join(report.verdict.reasons)}"]
+    if report.verdict.level == "marginal":
+        return summary, [f"timing check marginal: {'; '.join(report.verdict.reasons)}"]
+    return summary, []
+
+
+def beside_probe(hand: HandConfig, realtime: bool, cpu: int | None, lock_memory: bool,
+                 priority: int = LOOP_PRIORITY + 1) -> Probe:
+    """The bare timer loop beside a real-time run, on the loop's CPU one priority above it
+    (or on the simulated hand's CPU, above the hand).
+
+    Above it, so the loop's own lateness never delays it; on its CPU, so it shares the loop's
+    host stalls. It ticks twice a loop period: any host stall of a whole period then shows as
+    a probe wake-up at least half a period late, which is what it keeps.
+    """
+    period = round(hand.bus.period_s * 1e9)
+    return Probe(period // 2, record_ns=period // 2, priority=priority if realtime else None,
+                 cpu=cpu, lock_memory=realtime and lock_memory)
+
+
+def host_summary(hand: HandConfig, probe: Probe, loop_stalls: StallLog,
+                 faults: Sequence[Fault], warnings: list[str], peer_probe: Probe | None = None
+                 ) -> tuple[ProbeRecord | None, dict[str, Any]]:
+    """What the bare loop beside a run saw, and whose the run's missed ticks were; a warning
+    with the host's verdict when the run stopped on LOOP_OVERRUN or FEEDBACK_TIMEOUT.
+
+    ``peer_probe`` is a bare loop on the simulated hand's CPU: its stalls are the host's part
+    in a feedback that came late, which the loop's CPU does not see.
+    """
+    try:
+        record = probe.stop()
+        peer = peer_probe.stop() if peer_probe is not None else None
+    except HandctlError as exc:
+        warnings.append(str(exc))
+        return None, {"error": str(exc)}
+    deadlines = Deadlines.of(hand)
+    verdict = judge(record, deadlines)
+    own: list[int] = []
+    shares = attribute(loop_stalls.rows(), record, deadlines.period_ns, own)
+    shares["missed_unobserved"] += loop_stalls.overflow_missed
+    summary = {"verdict": verdict.level, "reasons": list(verdict.reasons),
+               **verdict.figures, **shares,
+               "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
+               "probe_period_us": record.period_ns / 1e3,
+               "scheduler": record.scheduler, "refused": list(record.refused)}
+    peer_text = ""
+    if peer is not None:
+        peer_verdict = judge(peer, deadlines)
+        f = peer_verdict.figures
+        summary["sim_cpu"] = {"cpus": peer.scheduler.get("cpus"), "verdict": peer_verdict.level,
+                              "longest_stall_ms": f["longest_stall_ms"],
+                              "stalls_over_period": f["stalls_over_period"],
+                              "stalls_over_feedback_timeout": f["stalls_over_feedback_timeout"]}
+        peer_text = (f"; on the simulated hand's CPU {peer.scheduler.get('cpus')} the host was "
+                     f"{peer_verdict.level.upper()} (longest stall {f['longest_stall_ms']:g} "
+                     f"ms, {f['stalls_over_feedback_timeout']} longer than the feedback "
+                     "timeout)")
+    stopped_on = sorted({f.code.name for f in faults
+                         if f.code in (FaultCode.LOOP_OVERRUN, FaultCode.FEEDBACK_TIMEOUT)})
+    if stopped_on:
+        warnings.append(
+            f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it says "
+            f"the host was {verdict.level.upper()}"
+            + "".join(f"; {r}" for r in verdict.reasons)
+            + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
+            f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's)"
+            + peer_text + "; see 'handctl check --timing' and docs/timing.md")
+    return record, summary

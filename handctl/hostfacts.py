@@ -1,0 +1,119 @@
+"""What a host is, as far as real time goes: kernel, limits, CPUs, frequency scaling, and
+which CPUs a real-time run takes. Read once, as found; ``handctl.hostcheck`` turns it into
+advice beside the timing check's verdict.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import resource
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+@dataclass(frozen=True)
+class HostFacts:
+    """What the kernel and the limits of this process say about real time, as found."""
+
+    realtime_kernel: bool | None  # /sys/kernel/realtime == 1 (None: the file is absent)
+    preemption: str  # from uname -v: PREEMPT_RT, PREEMPT_DYNAMIC, PREEMPT, or none
+    cmdline_preempt: str  # preempt= on the kernel command line, "" if not given
+    rtprio_limit: int  # RLIMIT_RTPRIO soft limit (ulimit -r); -1 unlimited
+    memlock_limit_kb: int  # RLIMIT_MEMLOCK soft limit (ulimit -l); -1 unlimited
+    privileged: bool  # CAP_SYS_NICE in the effective set (root has it)
+    cpus: tuple[int, ...]  # CPUs this process may run on
+    isolated: tuple[int, ...]  # /sys/devices/system/cpu/isolated
+    governors: dict[int, str]  # cpufreq scaling_governor per CPU ({} if no cpufreq)
+    virtual_machine: bool  # the CPU says it runs under a hypervisor
+
+    def as_json(self) -> dict[str, Any]:
+        return {"realtime_kernel": self.realtime_kernel, "preemption": self.preemption,
+                "cmdline_preempt": self.cmdline_preempt, "rtprio_limit": self.rtprio_limit,
+                "memlock_limit_kb": self.memlock_limit_kb, "privileged": self.privileged,
+                "cpus": list(self.cpus), "isolated": list(self.isolated),
+                "governors": {str(k): v for k, v in self.governors.items()},
+                "virtual_machine": self.virtual_machine}
+
+
+def preemption_model(uname_version: str) -> str:
+    """The preemption model a kernel's version string names (``uname -v``)."""
+    words = uname_version.replace("_", " ").upper().split()
+    text = " " + " ".join(words) + " "
+    if " PREEMPT RT " in text:
+        return "PREEMPT_RT"
+    if " PREEMPT DYNAMIC " in text:
+        return "PREEMPT_DYNAMIC"
+    if " PREEMPT " in text:
+        return "PREEMPT"
+    return "none"
+
+
+def parse_cpu_list(text: str) -> tuple[int, ...]:
+    """A kernel CPU list ("0-2,5") as numbers; "" is none."""
+    cpus: list[int] = []
+    for part in text.strip().split(","):
+        if not part:
+            continue
+        lo, _, hi = part.partition("-")
+        cpus += range(int(lo), int(hi or lo) + 1)
+    return tuple(cpus)
+
+
+def _read(path: str) -> str | None:
+    try:
+        return Path(path).read_text().strip()
+    except OSError:
+        return None
+
+
+def _limit(which: int, unit: int = 1) -> int:
+    soft = resource.getrlimit(which)[0]
+    return -1 if soft == resource.RLIM_INFINITY else soft // unit
+
+
+def gather_facts() -> HostFacts:
+    realtime = _read("/sys/kernel/realtime")
+    cpus = tuple(sorted(os.sched_getaffinity(0)))
+    governors = {}
+    for cpu in cpus:
+        gov = _read(f"/sys/devices/system/cpu/cpu{cpu}/cpufreq/scaling_governor")
+        if gov:
+            governors[cpu] = gov
+    cmdline = _read("/proc/cmdline") or ""
+    preempt = next((w.partition("=")[2] for w in cmdline.split() if w.startswith("preempt=")),
+                   "")
+    status = _read("/proc/self/status") or ""
+    cap_eff = next((int(line.split()[1], 16) for line in status.splitlines()
+                    if line.startswith("CapEff:")), 0)
+    cpuinfo = _read("/proc/cpuinfo") or ""
+    return HostFacts(
+        realtime_kernel=None if realtime is None else realtime == "1",
+        preemption=preemption_model(platform.uname().version), cmdline_preempt=preempt,
+        rtprio_limit=_limit(resource.RLIMIT_RTPRIO),
+        memlock_limit_kb=_limit(resource.RLIMIT_MEMLOCK, 1024),
+        privileged=bool(cap_eff & (1 << 23)),  # CAP_SYS_NICE
+        cpus=cpus, isolated=parse_cpu_list(_read("/sys/devices/system/cpu/isolated") or ""),
+        governors=governors, virtual_machine=" hypervisor" in cpuinfo)
+
+
+def plan_cpus(allowed: set[int], isolated: set[int]) -> tuple[int | None, int | None]:
+    """The CPU of the control loop and the one of the simulated hand, on >= 2 CPUs.
+
+    The loop takes an isolated CPU if there is one, else the highest CPU (CPU 0 usually takes
+    the most interrupts and housekeeping); the simulated hand takes the lowest other one. On
+    one CPU there is nothing to separate: (None, None).
+    """
+    if len(allowed) < 2:
+        return None, None
+    loop = max(isolated & allowed) if isolated & allowed else max(allowed)
+    return loop, min(allowed - {loop})
+
+
+def affinity(pid: int) -> list[int] | None:
+    """The CPUs a process (0: this thread) may run on; None if it is gone."""
+    try:
+        return sorted(os.sched_getaffinity(pid))
+    except ProcessLookupError:
+        return None

@@ -1,0 +1,179 @@
+"""The bare timer loop of the timing check, a process of its own: it only waits for its timerfd.
+
+What it measures is what the host does to any loop of that period, priority and CPU: the same
+``PeriodicTimer`` and the same ``request_realtime`` as the control loop, and no work at all, so
+every microsecond of lateness is the kernel's, the hypervisor's or another process's (like
+cyclictest of rt-tests). It is a process and not a thread because a thread of the control
+process would wait for the interpreter lock whenever the control loop holds it, and take it
+from the loop every period.
+
+``python -m handctl.hostprobe --period-ns N [--seconds S] [--record-ns T] [--priority P]
+[--cpu C] [--no-lock-memory]`` runs until S seconds have passed or SIGTERM/SIGINT comes, then
+writes one JSON object to stdout (``handctl.hostcheck.ProbeRecord`` reads it): the wake-up
+lateness as a histogram of 1 µs bins, and every stall of at least T ns with its interval.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import ctypes.util
+import gc
+import json
+import os
+import signal
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from handctl.clock import StallLog, request_realtime
+from handctl.timerfd import PeriodicTimer
+
+#: µs: the histogram's last bin collects every wake-up later than this (the maximum is exact)
+HIST_RANGE_US = 20_000
+_USER_HZ = os.sysconf("SC_CLK_TCK")
+_PR_SET_PDEATHSIG = 1
+
+
+def steal_ms(cpus: set[int] | None = None) -> float:
+    """CPU time the hypervisor gave to someone else (``steal`` in /proc/stat), in ms, summed
+    over ``cpus`` (None: the whole machine); 0 where the kernel does not count it."""
+    total = 0
+    try:
+        lines = Path("/proc/stat").read_text().splitlines()
+    except OSError:
+        return 0.0
+    for line in lines:
+        name, *fields = line.split()
+        if not name.startswith("cpu"):
+            break
+        wanted = name == "cpu" if cpus is None else name[3:].isdigit() and int(name[3:]) in cpus
+        if wanted and len(fields) > 7:
+            total += int(fields[7])
+    return total * 1000 / _USER_HZ
+
+
+def probe(period_ns: int, seconds: float | None, record_ns: int, stop: list[bool],
+          become_realtime: Callable[[], list[str]]) -> dict[str, Any]:
+    """The loop itself: wait, note the lateness, nothing else, until ``seconds`` or ``stop``.
+
+    Everything is allocated, and the C library found, before ``become_realtime`` raises the
+    priority: at SCHED_FIFO above the control loop, every millisecond of set-up would be one
+    the loop beside it could not run.
+    """
+    hist = [0] * (HIST_RANGE_US + 1)
+    stalls = StallLog(record_ns)
+    late_max = 0
+    wakeups = 0
+    expirations = 0
+    PeriodicTimer(period_ns).close()  # loads what the timer needs
+    refused = become_realtime()
+    cpus = os.sched_getaffinity(0)
+    steal_before = steal_ms(cpus)
+    timer = PeriodicTimer(period_ns)
+    try:
+        start = timer.start_ns
+        end = None if seconds is None else start + round(seconds * 1e9)
+        while not stop[0]:
+            n = timer.read()
+            now = time.monotonic_ns()
+            expirations += n
+            due = start + expirations * period_ns
+            late = now - due
+            b = late // 1000
+            hist[b if 0 <= b < HIST_RANGE_US else (0 if b < 0 else HIST_RANGE_US)] += 1
+            late_max = max(late_max, late)
+            stalls.add(wakeups, due - (n - 1) * period_ns, now, n - 1)
+            wakeups += 1
+            if end is not None and now >= end:
+                break
+        stopped = time.monotonic_ns()
+    finally:
+        timer.close()
+    return {
+        "period_ns": period_ns, "record_ns": record_ns, "start_ns": start, "end_ns": stopped,
+        "wakeups": wakeups, "expirations": expirations, "lateness_max_ns": late_max,
+        "lateness_hist_us": {str(i): c for i, c in enumerate(hist) if c},
+        "stalls": [list(row) for row in stalls.rows()],
+        "stalls_overflow": stalls.overflow,
+        "steal_ms": round(steal_ms(cpus) - steal_before, 1), "refused": refused,
+    }
+
+
+def scheduler() -> dict[str, Any]:
+    """What the process actually got (not what it asked for)."""
+    policy = os.sched_getscheduler(0)
+    names = {getattr(os, n): n for n in ("SCHED_OTHER", "SCHED_FIFO", "SCHED_RR",
+                                         "SCHED_BATCH", "SCHED_IDLE") if hasattr(os, n)}
+    locked_kb = 0
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmLck:"):
+                locked_kb = int(line.split()[1])
+    except OSError:
+        pass
+    return {"policy": names.get(policy, str(policy)),
+            "priority": os.sched_getparam(0).sched_priority,
+            "cpus": sorted(os.sched_getaffinity(0)), "memory_locked_kb": locked_kb}
+
+
+def _end_with_parent(parent: int) -> bool:
+    """SIGTERM when the process that started this one (``parent``) dies: a bare loop at
+    SCHED_FIFO must not outlive a run killed with SIGKILL. False if it is gone already."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass
+    return os.getppid() == parent
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m handctl.hostprobe",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("--period-ns", type=int, required=True)
+    parser.add_argument("--seconds", type=float, help="default: until SIGTERM or SIGINT")
+    parser.add_argument("--record-ns", type=int, help="keep stalls this long (default: the period)")
+    parser.add_argument("--priority", type=int, help="SCHED_FIFO priority (default: none)")
+    parser.add_argument("--cpu", type=int, help="pin to this CPU")
+    parser.add_argument("--no-lock-memory", action="store_true")
+    parser.add_argument("--parent-pid", type=int, help="end when this process ends")
+    args = parser.parse_args(argv)
+    stop = [False]
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop[0] = True
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    if args.parent_pid is not None and not _end_with_parent(args.parent_pid):
+        return 0
+    # Before the priority is raised: a collection, like locking memory, at SCHED_FIFO would
+    # hold the control loop on this CPU for milliseconds.
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+
+    def become_realtime() -> list[str]:
+        if args.priority is not None:
+            return request_realtime(args.priority, cpu=args.cpu,
+                                    lock_memory=not args.no_lock_memory)
+        if args.cpu is not None:
+            try:
+                os.sched_setaffinity(0, {args.cpu})
+            except (OSError, ValueError) as exc:
+                return [f"pinning to CPU {args.cpu} refused ({exc})"]
+        return []
+
+    result = probe(args.period_ns, args.seconds, args.record_ns or args.period_ns, stop,
+                   become_realtime)
+    result["scheduler"] = scheduler()
+    json.dump(result, sys.stdout)
+    sys.stdout.write("\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

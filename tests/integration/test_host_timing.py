@@ -1,0 +1,223 @@
+"""The timing check as a user runs it: the bare loop for a fraction of a second (structure, not
+figures), a recorded failing sequence through the documented seam, and a run on a bus other
+than the simulated hand refused before it opens the bus."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from handctl.bus import open_bus
+from handctl.config import HandConfig
+from handctl.hostcheck import INJECT_ENV
+
+from ..conftest import ROOT
+
+RECIPE = "config/recipes/swap_two_cylinders.yaml"
+#: Recorded on a two-vCPU virtual machine: `handctl check --timing --seconds 60 --json F`.
+FAILING = ROOT / "tests" / "data" / "host_stalls_failing.json"
+
+
+def handctl(*args: str, env: dict[str, str] | None = None,
+            timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT, text=True,
+                          capture_output=True, timeout=timeout, check=False,
+                          env={**os.environ, **(env or {})})
+
+
+def test_the_bare_loop_reports_every_wakeup() -> None:
+    done = subprocess.run([sys.executable, "-m", "handctl.hostprobe", "--period-ns", "1000000",
+                           "--seconds", "0.2", "--record-ns", "500000"], cwd=ROOT, text=True,
+                          capture_output=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out["wakeups"] > 0
+    assert sum(out["lateness_hist_us"].values()) == out["wakeups"]
+    assert out["expirations"] >= out["wakeups"]
+    assert out["end_ns"] > out["start_ns"]
+    for index, due, wake, missed in out["stalls"]:
+        assert 0 <= index < out["wakeups"] and wake - due >= 500_000 and missed >= 0
+    assert out["scheduler"]["policy"] == "SCHED_OTHER"  # no --priority: none asked
+
+
+def test_check_timing_prints_a_verdict_and_writes_its_record(tmp_path: Path) -> None:
+    report = tmp_path / "timing.json"
+    done = handctl("check", "--timing", "--seconds", "0.3", "--json", str(report))
+    assert done.returncode in (0, 5), done.stderr  # this machine's verdict is not the test's
+    assert done.stdout.startswith("timing check: ")
+    assert "stalls longer than one period (1 ms)" in done.stdout
+    data = json.loads(report.read_text())
+    assert data["verdict"] in ("pass", "marginal", "fail")
+    assert (done.returncode == 5) == (data["verdict"] == "fail")
+    assert set(data["lateness_us"]) == {"p50", "p99", "max"}
+    for key in ("stalls_over_period", "stalls_over_overrun_tolerance",
+                "stalls_over_feedback_timeout", "loop_overrun_trips"):
+        assert isinstance(data[key], int)
+    assert (data["period_ms"], data["overrun_tolerance_ms"], data["feedback_timeout_ms"]) == \
+        (1.0, 3.0, 5.0)
+    assert data["realtime"] is True and data["scheduler"]["policy"]
+    assert {"preemption", "rtprio_limit", "isolated", "governors"} <= set(data["facts"])
+    assert data["probe"]["wakeups"] > 0
+
+
+def test_a_recorded_failing_sequence_fails_the_check() -> None:
+    done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(FAILING)})
+    assert done.returncode == 5, done.stdout + done.stderr
+    assert done.stdout.startswith("timing check: FAIL")
+    assert f"injected from {FAILING}" in done.stdout
+    assert "LOOP_OVERRUN" in done.stdout
+
+
+def test_a_bad_recorded_sequence_is_bad_input(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.json"
+    data = json.loads(FAILING.read_text())
+    data["probe"]["stalls"][0] = [1, 2, 3]
+    bad.write_text(json.dumps(data))
+    done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(bad)})
+    assert done.returncode == 2
+    assert f"{bad}: probe.stalls[0]: expected [index, due_ns, wake_ns, missed]" in done.stderr
+
+
+def test_a_run_on_a_real_bus_is_refused_on_a_failing_host(tmp_path: Path,
+                                                          hand: HandConfig) -> None:
+    directory = tmp_path / "bus"
+    with open_bus(f"unix:{directory}", hand.bus) as listener:
+        before = set(directory.iterdir())
+        done = handctl("run", "recipe", RECIPE, "--bus", f"unix:{directory}",
+                       env={INJECT_ENV: str(FAILING)})
+        assert done.returncode == 5, done.stderr
+        assert "handctl: refused: timing check: FAIL" in done.stderr
+        assert "--accept-missed-deadlines" in done.stderr
+        # The bus was never opened: no socket of the run's appeared, nothing arrived.
+        assert set(directory.iterdir()) == before
+        assert listener.drain() == []
+
+        # Accepting the risk by name gets past the check to the bus, where nobody answers.
+        out = tmp_path / "out.json"
+        done = handctl("run", "recipe", RECIPE, "--bus", f"unix:{directory}",
+                       "--accept-missed-deadlines", "--summary-json", str(out),
+                       env={INJECT_ENV: str(FAILING)})
+        assert done.returncode == 3, done.stderr
+        assert "running with --accept-missed-deadlines on a host that failed" in done.stderr
+        assert "nodes not ready" in done.stderr
+        check = json.loads(out.read_text())["host_check"]  # the run says what it accepted
+        assert check["verdict"] == "fail" and check["injected"][0]["verdict"] == "fail"
+
+
+HOLD = """
+recipe: hold
+description: close the hand gently and hold it
+phases:
+  - name: hold
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.3
+    max_s: 30.0
+    on_timeout: next
+"""
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU: nothing to separate")
+def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) -> None:
+    """On the simulated hand the host's verdict is a warning beside the stop; with --rt the
+    loop and the simulated hand run on CPUs of their own."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD)
+    out = tmp_path / "out.json"
+    done = handctl("run", "recipe", str(recipe), "--realtime", "--rt", "--max-seconds", "40",
+                   "--sim-faults", "config/sim/feedback_dropout.yaml", "--summary-json",
+                   str(out))
+    summary = json.loads(out.read_text())
+    assert done.returncode == 3, done.stderr
+    # The dropout stops it on FEEDBACK_TIMEOUT, unless this loaded machine stopped it first.
+    stops = sorted({f["code"] for f in summary["faults"]} & {"FEEDBACK_TIMEOUT", "LOOP_OVERRUN"})
+    assert stops, summary["faults"]
+    assert f"the run stopped on {', '.join(stops)}; the bare timer loop beside it says the " \
+           "host was " in done.stderr
+    assert "host (bare timer loop beside the run): " in done.stdout
+    host = summary["host"]
+    assert host["verdict"] in ("pass", "marginal", "fail")
+    assert host["missed_host"] + host["missed_handctl"] + host["missed_unobserved"] == \
+        summary["missed_ticks"]
+    assert host["probe_period_us"] == 500.0
+    loop, sim = host["cpus"]["loop"], host["cpus"]["sim"]
+    assert len(loop) == 1 and len(sim) == 1 and loop != sim
+    if host["scheduler"]["policy"] == "SCHED_FIFO":  # root, or granted rtprio
+        assert host["scheduler"]["cpus"] == loop  # the bare loop shares the loop's CPU
+    # A second bare loop watches the simulated hand's CPU, for a feedback that came late.
+    assert host["sim_cpu"]["cpus"] == sim
+    assert host["sim_cpu"]["verdict"] in ("pass", "marginal", "fail")
+    if "FEEDBACK_TIMEOUT" in stops:
+        assert f"on the simulated hand's CPU {sim} the host was " in done.stderr
+
+
+def test_cpus_outside_the_machine_are_bad_input() -> None:
+    done = handctl("run", "recipe", RECIPE, "--rt", "--loop-cpu", "4096")
+    assert done.returncode == 2
+    assert "--loop-cpu: expected one of the CPUs this process may use" in done.stderr
+    assert "found 4096" in done.stderr
+
+
+def test_a_named_virtual_bus_counts_as_a_real_one() -> None:
+    """handctl cannot know what is at the other end of a bus: only its own simulated hand
+    runs without the check."""
+    done = handctl("run", "recipe", RECIPE, "--bus", "virtual:handctl-test-precheck",
+                   env={INJECT_ENV: str(FAILING)})
+    assert done.returncode == 5, done.stderr
+    assert "handctl: refused: timing check: FAIL" in done.stderr
+
+
+def test_a_check_of_no_length_is_bad_input(tmp_path: Path) -> None:
+    done = handctl("check", "--timing", "--seconds", "0")
+    assert done.returncode == 2
+    assert "--seconds: expected a number of seconds > 0 and <= 3600, found 0.0" in done.stderr
+    nowhere = tmp_path / "missing" / "t.json"
+    done = handctl("check", "--timing", "--json", str(nowhere))
+    assert done.returncode == 2
+    assert f"--json: expected a file in an existing directory, found '{nowhere}'" in done.stderr
+
+
+_ORPHANING_PARENT = """
+import os, subprocess, sys
+probe = subprocess.Popen([sys.executable, "-m", "handctl.hostprobe", "--period-ns", "1000000",
+                          "--parent-pid", str(os.getpid())], stdout=subprocess.DEVNULL)
+print(probe.pid, flush=True)
+sys.stdin.readline()  # until the test has seen the probe run
+os._exit(0)  # as SIGKILL would: no clean-up
+"""
+
+
+def test_the_bare_loop_ends_with_the_run_that_started_it() -> None:
+    """A run killed with SIGKILL must not leave a SCHED_FIFO loop behind."""
+    parent = subprocess.Popen([sys.executable, "-c", _ORPHANING_PARENT], cwd=ROOT, text=True,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    assert parent.stdout is not None and parent.stdin is not None
+    pid = int(parent.stdout.readline())
+    try:
+        for _ in range(200):  # the probe is up once it has its own command line
+            if b"hostprobe" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                break
+            time.sleep(0.05)
+        parent.communicate("go\n", timeout=30)
+        for _ in range(200):
+            if not _alive(pid):
+                break
+            time.sleep(0.05)
+        assert not _alive(pid)
+    finally:
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"

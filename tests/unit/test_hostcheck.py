@@ -1,0 +1,225 @@
+"""The timing check's verdict, judged on recorded stall sequences (never on this machine's
+timing), the host's facts and advice, and the attribution of missed ticks."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import pytest
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.hostcheck import Deadlines, ProbeRecord, advice, attribute, judge
+from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_model
+
+MS = 1_000_000
+START = 10_000 * MS
+
+
+def record(stalls: list[tuple[int, float, float]], *, seconds: float = 10.0,
+           period_ns: int = MS, hist: dict[int, int] | None = None,
+           **extra: Any) -> ProbeRecord:
+    """A probe record of ``seconds`` whose stalls are (wake-up index, due ms, length ms),
+    times counted from the start; missed ticks follow from the length."""
+    wakeups = round(seconds * 1e9 / period_ns)
+    rows = []
+    for index, due_ms, length_ms in stalls:
+        due = START + round(due_ms * MS)
+        length = round(length_ms * MS)
+        rows.append([index, due, due + length, length // period_ns])
+    data = {"period_ns": period_ns, "start_ns": START, "end_ns": START + round(seconds * 1e9),
+            "wakeups": wakeups, "lateness_hist_us": {str(k): v for k, v in
+                                                     (hist or {20: wakeups}).items()},
+            "lateness_max_ns": max([r[2] - r[1] for r in rows], default=20_000),
+            "stalls": rows, **extra}
+    return ProbeRecord.from_json(data, "recorded")
+
+
+@pytest.fixture
+def deadlines(hand: HandConfig) -> Deadlines:
+    return Deadlines.of(hand)
+
+
+def test_the_deadlines_are_the_hand_configs(hand: HandConfig) -> None:
+    d = Deadlines.of(hand)
+    assert d.period_ns == round(hand.bus.period_s * 1e9)
+    assert d.overrun_tolerance_ticks == hand.safety.max_consecutive_misses
+    assert d.feedback_timeout_ns == round(hand.safety.feedback_timeout_s * 1e9)
+
+
+def test_a_quiet_host_passes(deadlines: Deadlines) -> None:
+    verdict = judge(record([(400, 400.0, 0.6)]), deadlines)  # half a period late, no miss
+    assert verdict.level == "pass", verdict.reasons
+    assert verdict.figures["stalls_over_period"] == 0
+    assert verdict.figures["lateness_us"] == {"p50": 20.0, "p99": 20.0, "max": 600.0}
+
+
+def test_a_missed_tick_short_of_the_tolerance_is_marginal(deadlines: Deadlines) -> None:
+    verdict = judge(record([(100, 100.0, 1.4), (5000, 5000.0, 2.5)]), deadlines)
+    assert verdict.level == "marginal"
+    assert verdict.figures["stalls_over_period"] == 2
+    assert verdict.figures["stalls_over_overrun_tolerance"] == 0
+    assert verdict.figures["loop_overrun_trips"] == 0
+    assert "none as long as the overrun tolerance" in verdict.reasons[0]
+
+
+def test_one_stall_as_long_as_the_tolerance_fails(deadlines: Deadlines) -> None:
+    tolerance_ms = deadlines.overrun_tolerance_ticks * deadlines.period_ns / MS
+    verdict = judge(record([(100, 100.0, tolerance_ms + 0.2)]), deadlines)
+    assert verdict.fails
+    assert verdict.figures["stalls_over_overrun_tolerance"] == 1
+    assert verdict.figures["loop_overrun_trips"] == 1
+    assert "LOOP_OVERRUN" in verdict.reasons[0]
+
+
+def test_short_stalls_in_consecutive_wakeups_add_up_as_the_supervisor_counts(
+        deadlines: Deadlines) -> None:
+    # Each misses one tick; in consecutive wake-ups the supervisor adds them up to a stop...
+    n = deadlines.overrun_tolerance_ticks
+    back_to_back = [(100 + i, 100.0 + 2.2 * i, 2.2) for i in range(n)]
+    assert judge(record(back_to_back), deadlines).fails
+    # ...with an on-time wake-up between them, it starts counting again.
+    apart = [(100 + 2 * i, 100.0 + 5 * i, 2.2) for i in range(n)]
+    verdict = judge(record(apart), deadlines)
+    assert verdict.level == "marginal"
+    assert verdict.figures["loop_overrun_trips"] == 0
+
+
+def test_a_stall_longer_than_the_feedback_timeout_fails(hand: HandConfig) -> None:
+    # A hand that tolerates long overruns still fails on its feedback timeout.
+    safety = dataclasses.replace(hand.safety, max_consecutive_misses=50, feedback_timeout_s=0.008)
+    tolerant = Deadlines.of(dataclasses.replace(hand, safety=safety))
+    assert judge(record([(100, 100.0, 7.5)]), tolerant).level == "marginal"
+    verdict = judge(record([(100, 100.0, 8.5)]), tolerant)
+    assert verdict.fails
+    assert verdict.figures["stalls_over_feedback_timeout"] == 1
+    assert "feedback timeout (8 ms)" in verdict.reasons[0]
+
+
+def test_the_same_stalls_are_judged_against_each_hands_deadlines(hand: HandConfig) -> None:
+    stalls = [(100, 100.0, 3.4)]
+    strict = Deadlines.of(hand)  # 3 ticks: a 3.4 ms stall stops the loop
+    loose = Deadlines.of(dataclasses.replace(
+        hand, safety=dataclasses.replace(hand.safety, max_consecutive_misses=4)))
+    assert judge(record(stalls), strict).fails
+    assert judge(record(stalls), loose).level == "marginal"
+
+
+def test_a_late_p99_is_marginal(deadlines: Deadlines) -> None:
+    verdict = judge(record([], hist={30: 900, 700: 100}), deadlines)
+    assert verdict.level == "marginal"
+    assert verdict.figures["lateness_us"]["p99"] == 700.0
+    assert "p99" in verdict.reasons[0]
+
+
+def test_a_record_too_full_to_judge_fails(deadlines: Deadlines) -> None:
+    assert judge(record([], stalls_overflow=3), deadlines).fails
+
+
+def test_a_bad_record_is_refused_with_the_key_expected_and_found() -> None:
+    good = record([(1, 1.0, 2.0)]).as_json()
+    bad = {**good, "stalls": [[1, 5, 4, 0]]}  # woke before it was due
+    with pytest.raises(ConfigError) as info:
+        ProbeRecord.from_json({"probe": bad}, "old.json")
+    assert info.value.file == "old.json" and info.value.key == "probe.stalls[0]"
+    with pytest.raises(ConfigError) as info:
+        ProbeRecord.from_json({**good, "period_ns": 0}, "old.json")
+    assert info.value.key == "period_ns" and info.value.found == 0
+    with pytest.raises(ConfigError) as info:
+        ProbeRecord.from_json({**good, "steal_ms": "a lot"}, "old.json")
+    assert info.value.key == "steal_ms"
+    with pytest.raises(ConfigError) as info:
+        ProbeRecord.from_json({**good, "stalls_overflow": -1}, "old.json")
+    assert info.value.key == "stalls_overflow"
+    with pytest.raises(ConfigError) as info:
+        ProbeRecord.from_json([1, 2], "old.json")
+    assert "JSON object" in info.value.expected
+
+
+def test_a_check_report_reads_back_as_the_record_it_holds() -> None:
+    original = record([(7, 7.0, 4.0)])
+    again = ProbeRecord.from_json({"verdict": "fail", "probe": original.as_json()}, "r.json")
+    assert again.stalls == original.stalls
+    assert again.lateness_hist_us == original.lateness_hist_us
+
+
+# -- attribution ----------------------------------------------------------------------------------
+def test_a_missed_tick_is_the_hosts_only_if_the_bare_loop_stalled_with_it() -> None:
+    host = record([(500, 500.0, 4.0)], period_ns=MS // 2)  # 500..504 ms
+    at = START
+    loop = [
+        (10, at + 501 * MS, at + 503 * MS, 2),  # inside the host's stall
+        (20, at + 504 * MS + 500_000, at + 506 * MS, 1),  # a period after its first miss
+        (30, at + 800 * MS, at + 802 * MS, 2),  # the host ran fine then
+        (40, at + 20_000 * MS, at + 20_002 * MS, 2),  # after the probe stopped
+    ]
+    own: list[int] = []
+    assert attribute(loop, host, MS, own) == {"missed_host": 3, "missed_handctl": 2,
+                                              "missed_handctl_after_host": 0,
+                                              "missed_unobserved": 2}
+    assert own == [30]
+
+
+def test_a_miss_right_after_a_host_stall_is_handctls_catching_up() -> None:
+    host = record([(500, 500.0, 4.0)], period_ns=MS // 2)  # 500..504 ms
+    at = START
+    loop = [(10, at + 501 * MS, at + 503 * MS, 2),  # the host's
+            (11, at + 505 * MS, at + 506 * MS + 300_000, 1),  # the next tick, catching up
+            (12, at + 507 * MS, at + 508 * MS + 100_000, 1),  # and the one after
+            (20, at + 515 * MS, at + 516 * MS + 100_000, 1)]  # on-time ticks between
+    shares = attribute(loop, host, MS)
+    assert (shares["missed_host"], shares["missed_handctl"]) == (2, 3)
+    assert shares["missed_handctl_after_host"] == 2
+
+
+# -- the host -------------------------------------------------------------------------------------
+@pytest.mark.parametrize(("version", "model"), [
+    ("#1 SMP PREEMPT_RT Thu Jan 1 00:00:00 UTC 2026", "PREEMPT_RT"),
+    ("#1 SMP PREEMPT RT Thu Jan 1", "PREEMPT_RT"),
+    ("#1 SMP PREEMPT_DYNAMIC @0", "PREEMPT_DYNAMIC"),
+    ("#1 SMP PREEMPT Mon", "PREEMPT"),
+    ("#1 SMP Mon Jan 1", "none"),
+])
+def test_the_preemption_model_is_read_from_uname(version: str, model: str) -> None:
+    assert preemption_model(version) == model
+
+
+def test_cpu_lists_and_the_cpus_of_loop_and_hand() -> None:
+    assert parse_cpu_list("0-2,5\n") == (0, 1, 2, 5)
+    assert parse_cpu_list("") == ()
+    assert plan_cpus({0, 1, 2, 3}, set()) == (3, 0)
+    assert plan_cpus({0, 1, 2, 3}, {1, 2}) == (2, 0)
+    assert plan_cpus({4, 6}, {9}) == (6, 4)  # an isolated CPU this process may not use
+    assert plan_cpus({0}, set()) == (None, None)
+
+
+def facts(**changes: Any) -> HostFacts:
+    base = HostFacts(realtime_kernel=None, preemption="PREEMPT_DYNAMIC", cmdline_preempt="",
+                     rtprio_limit=0, memlock_limit_kb=8192, privileged=False, cpus=(0, 1),
+                     isolated=(), governors={0: "powersave", 1: "performance"},
+                     virtual_machine=True)
+    return dataclasses.replace(base, **changes)
+
+
+def test_the_advice_names_what_it_found() -> None:
+    refused = record([], scheduler={"policy": "SCHED_OTHER", "priority": 0},
+                     refused=["locking memory refused (Cannot allocate memory); ..."],
+                     steal_ms=12.0)
+    tips = "\n".join(advice(facts(), refused, realtime=True))
+    assert "PREEMPT_RT kernel (found PREEMPT_DYNAMIC; /sys/kernel/realtime absent)" in tips
+    assert "preempt=full" in tips
+    assert "got SCHED_OTHER; RLIMIT_RTPRIO is 0" in tips
+    assert "RLIMIT_MEMLOCK is 8192 KiB" in tips
+    assert "isolcpus=1" in tips
+    assert "governor powersave" in tips
+    assert "12 ms stolen" in tips
+
+
+def test_a_real_time_host_gets_no_advice() -> None:
+    good = facts(realtime_kernel=True, preemption="PREEMPT_RT", isolated=(1,),
+                 governors={0: "performance", 1: "performance"}, virtual_machine=False,
+                 rtprio_limit=-1, memlock_limit_kb=-1)
+    got = record([], scheduler={"policy": "SCHED_FIFO", "priority": 80})
+    assert advice(good, got, realtime=True) == []
+    assert "run with --rt" in advice(good, got, realtime=False)[0]
