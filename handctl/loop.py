@@ -9,6 +9,11 @@ One tick, always in this order (DESIGN.md):
 5. ``hand.send()``: one command frame per node;
 6. ``recorder.push()``: the tick's record, handed over without blocking.
 
+An exception in any stage is a safety stop, not a crash: the stage it came from (read from
+the traceback afterwards, so the tick pays nothing for it) latches a fault of its own code,
+and the nodes get zero torque and then a disable from frames the driver encoded at start-up,
+through a path that touches none of the stages (``Runtime._stop_after_exception``).
+
 Per-tick accounting (lateness, missed ticks, CPU time of each stage) is kept in bounded,
 preallocated arrays (``handctl.tickstats``): the last ticks one by one, the whole run as
 histograms, so neither the loop's cost nor its memory grows with the run.
@@ -16,20 +21,29 @@ histograms, so neither the loop's cost nor its memory grows with the run.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import enum
+import os
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from types import FrameType
 from typing import Any, Protocol
 
 import numpy as np
 
+from handctl import protocol as wire
 from handctl.bus import BusEvent
 from handctl.clock import Clock, Tick
 from handctl.config import HandConfig
+from handctl.drivers import finger, receiver
 from handctl.drivers.hand import AppliedTorques, HandDriver
+from handctl.recipes import runner as recipe_runner
 from handctl.recipes.runner import RecipeRunner, RunStatus
 from handctl.recipes.schema import Recipe
+from handctl.safety import faults as safety_faults
 from handctl.safety.faults import Fault, FaultCode
 from handctl.safety.supervisor import State, Supervisor
 from handctl.tickstats import DEFAULT_WINDOW, TickStats, TickWindow
@@ -39,6 +53,20 @@ STAGES = ("poll", "recipe", "safety", "send", "record")
 #: flight are superseded, and the nodes see zero before they see "disable".
 ZERO_TICKS_BEFORE_DISABLE = 5
 STATUS_EVERY_TICKS = 100
+#: A tick of the stop after an exception waits this long at most for the clock; a clock that
+#: does not answer is given up and the rest of the stop's frames go at once, in order.
+STOP_TICK_TIMEOUT_S = 0.1
+#: An exception's message is cut to this many characters, so that the fault with its place
+#: fits in one event of the log (480 bytes) and a message never carries a huge object.
+EXCEPTION_TEXT_CHARS = 200
+
+
+class EndOfTicks(Exception):  # noqa: N818 - an end, not an error
+    """A lockstep clock has no more ticks to give (a re-run reaching the end of its log): the
+    run ends where it stands, sending nothing more, and this propagates to the caller.
+
+    Only a lockstep clock may end a run this way; from a real-time clock it is an exception
+    like any other, and the hand is stopped."""
 
 
 class Outcome(enum.Enum):
@@ -95,6 +123,22 @@ class StatusLine:
     lateness_us: float
 
 
+@dataclass(frozen=True)
+class TickException:
+    """An exception that ended a run, as the fault it became."""
+
+    code: FaultCode  # the stage it came from
+    tick: int
+    type: str
+    message: str  # cut to EXCEPTION_TEXT_CHARS
+    where: str  # the innermost frame: function (file:line)
+    traceback: str  # the last frames and the exception, for whoever fixes the cause
+
+    @property
+    def detail(self) -> str:
+        return f"{self.type}: {self.message} (in {self.where})"
+
+
 @dataclass
 class RunResult:
     outcome: Outcome
@@ -112,6 +156,7 @@ class RunResult:
     unexpected_ids: dict[int, int] = field(default_factory=dict)
     bus_events: int = 0
     supervisor_history: list[tuple[int, str, str, str]] = field(default_factory=list)
+    exception: TickException | None = None  # what raised, when the run ended on one
 
 
 class Runtime:
@@ -148,6 +193,7 @@ class Runtime:
         self._zero = np.zeros(hand.n_joints)
         self._bus_events = 0
         self._recipe_done_ns = 0
+        self.exception: TickException | None = None
         #: CPU time of the loop's thread, for the per-stage accounting (a re-run, which has no
         #: use for it, puts a cheaper clock here).
         self.cpu_clock: Callable[[], int] = time.thread_time_ns
@@ -184,12 +230,24 @@ class Runtime:
             self.runner = RecipeRunner(self.recipe, self.hand.n_joints)
         self.stop_requested = ""
         self.estop_requested = ""
+        self.exception = None
         return True
 
     # -- the run --------------------------------------------------------------------------
     async def run(self) -> RunResult:
         try:
-            outcome, message = await self._run()
+            try:
+                outcome, message = await self._run()
+            except Exception as exc:  # any stage: a safety stop, never a crash (module doc)
+                if isinstance(exc, EndOfTicks) and self.clock.lockstep:
+                    raise
+                outcome, message = await self._stop_after_exception(exc)
+            except BaseException:
+                # Ctrl-C without a signal handler, a cancelled task, SystemExit: no tick is
+                # left to wait for, so zero and disable at once (in this order on the bus).
+                self.driver.send_zero()
+                self.driver.send_disable()
+                raise
         finally:
             self.clock.close()
         return self._result(outcome, message)
@@ -228,6 +286,78 @@ class Runtime:
         if self.stop_requested:
             return Outcome.INTERRUPTED, self.stop_requested
         return Outcome.COMPLETED, ""
+
+    async def _stop_after_exception(self, exc: Exception) -> tuple[Outcome, str]:
+        """The stop after an exception: latch its fault, then zero torque and disable with
+        the driver's prepared frames, as the normal stop does (zero in this tick and the next
+        ZERO_TICKS_BEFORE_DISABLE, then disable, then one tick for it to go).
+
+        Nothing here uses a stage that may have raised: no codec, no runner, no supervisor
+        check. The clock, the recorder's tick boundary and the poll are tried once a tick and
+        left out from their first failure on (an exception that recurs every tick costs one
+        try each); without the clock the remaining frames go at once, in the same order.
+        """
+        tk = self._latch_exception(exc)
+        driver = self.driver
+        if tk is not None and self._ticks == tk.k:  # the tick that raised was not counted
+            self._count_stop_tick(tk)
+        driver.send_zero()
+        clock_ok = recorder_ok = poll_ok = True
+        for n in range(1, ZERO_TICKS_BEFORE_DISABLE + 2):  # the ticks after the one that raised
+            tick: Tick | None = None
+            if clock_ok:
+                try:
+                    tick = await asyncio.wait_for(self.clock.wait_tick(), STOP_TICK_TIMEOUT_S)
+                except Exception:  # it gave up pacing: the frames go without it
+                    clock_ok = False
+            if tick is not None:
+                self._count_stop_tick(tick)
+                if recorder_ok and self.recorder is not None:
+                    try:
+                        self.recorder.begin_tick(tick)
+                    except Exception:  # later frames go with the last tick it began
+                        recorder_ok = False
+            if poll_ok:
+                try:
+                    driver.poll(tick.now_ns if tick is not None else None)
+                    self._bus_events += len(driver.take_bus_events())
+                except Exception:  # polling only feeds the log here: not needed to stop
+                    poll_ok = False
+            if n <= ZERO_TICKS_BEFORE_DISABLE:
+                driver.send_zero()
+            if n == ZERO_TICKS_BEFORE_DISABLE:
+                driver.send_disable()
+        return Outcome.SAFETY_STOP, "; ".join(str(f) for f in self._faults())
+
+    def _count_stop_tick(self, tk: Tick) -> None:
+        """Count a tick of the stop; the accounting may be what raised, and the stop does
+        not need it."""
+        with contextlib.suppress(Exception):
+            self._store(tk, (0,) * len(STAGES))
+
+    def _latch_exception(self, exc: Exception) -> Tick | None:
+        """Turn ``exc`` into the fault of its stage, latched (and kept in ``exception``);
+        return the tick under way when it was raised, if known. Never raises."""
+        try:
+            code, tk = _stage_of(exc)
+        except Exception:  # a traceback that cannot be read still stops the hand
+            code, tk = FaultCode.RUN_EXCEPTION, None
+        tick = tk.k if tk is not None else self._ticks
+        failure = _describe(exc, code, tick)
+        self.exception = failure
+        # A supervisor that cannot take the fault is itself broken: ``_faults`` reports it.
+        with contextlib.suppress(Exception):
+            self.supervisor.trip(code, failure.detail, tick)
+        return tk
+
+    def _faults(self) -> list[Fault]:
+        """The latched faults, and the exception's even when the supervisor could not take
+        it."""
+        faults = list(self.supervisor.faults)
+        failure = self.exception
+        if failure is not None and all(f.code is not failure.code for f in faults):
+            faults.append(Fault(failure.code, failure.detail, failure.tick))
+        return faults
 
     async def _startup(self) -> str:
         nodes = self.driver.nodes
@@ -296,6 +426,8 @@ class Runtime:
         sup = self.supervisor
         driver = self.driver
         cpu = self.cpu_clock
+        # The stage stamps c0..c5 (and ``desired``) also tell ``_stage_of`` which stage an
+        # exception came from: keep their names and order in step with it.
         tk = await self._next_tick()
         for hook in self.tick_hooks:
             hook(tk)
@@ -388,8 +520,97 @@ class Runtime:
             outcome=outcome, ticks=self._ticks, missed_ticks=self._missed,
             lateness_ns=window.lateness_ns, missed=window.missed, stage_ns=window.stage_ns,
             window=window,
-            max_abs_tau=self._max_abs.copy(), faults=list(self.supervisor.faults),
+            max_abs_tau=self._max_abs.copy(), faults=self._faults(),
             phases=phases, message=message, node_rejects=self.driver.reject_counts(),
             unexpected_ids=dict(self.driver.unexpected_ids), bus_events=self._bus_events,
             supervisor_history=[(k, a.value, e.value, b.value)
-                                for k, a, e, b in self.supervisor.history])
+                                for k, a, e, b in self.supervisor.history],
+            exception=self.exception)
+
+
+# -- which stage raised ----------------------------------------------------------------------
+# Read after the fact from the traceback, so that the tick pays nothing for it: the innermost
+# frame of the Runtime's own tick code says which stage was under way by the local names it
+# had bound (the stage stamps c0..c5 of ``_tick``, ``desired`` and ``estimates``), and the
+# frames below it split the driver's stages by the module they reached (the codec, or the
+# safety and recipe packages). A change to those names in ``_tick``, ``_next_tick``,
+# ``decide`` or ``_desired`` must be made here too; the tests force an exception in every
+# stage and check its code.
+_CODEC_FILES = frozenset({finger.__file__, receiver.__file__, wire.__file__})
+_SAFETY_DIR = os.path.dirname(safety_faults.__file__) + os.sep
+_RECIPES_DIR = os.path.dirname(recipe_runner.__file__) + os.sep
+
+
+def _in_codec(frame: FrameType) -> bool:
+    name = frame.f_code.co_filename
+    return name in _CODEC_FILES or name.startswith("<layout ")  # compiled per DBC message
+
+
+def _stage_of(exc: BaseException) -> tuple[FaultCode, Tick | None]:
+    """The fault code of the stage ``exc`` came from, and the tick under way (if known)."""
+    frames = [frame for frame, _ in traceback.walk_tb(exc.__traceback__)]
+    tick_code, next_code = Runtime._tick.__code__, Runtime._next_tick.__code__
+    decide_code, desired_code = Runtime.decide.__code__, Runtime._desired.__code__
+    own = {tick_code, next_code, decide_code, desired_code}
+    tk = next((f.f_locals.get("tk") for f in frames if f.f_code is tick_code), None)
+    tick = tk if isinstance(tk, Tick) else None
+    at = next((i for i in range(len(frames) - 1, -1, -1) if frames[i].f_code in own), None)
+    if at is None:
+        return FaultCode.RUN_EXCEPTION, tick
+    frame, below = frames[at], frames[at + 1:]
+    bound = frame.f_locals
+    callee = below[0].f_code.co_filename if below else ""
+    code = frame.f_code
+    if code is next_code:
+        return (FaultCode.CLOCK_EXCEPTION if "tk" not in bound
+                else FaultCode.RECORD_EXCEPTION), tick
+    if code is decide_code:
+        return (FaultCode.RUNNER_EXCEPTION if callee.startswith(_RECIPES_DIR)
+                else FaultCode.SUPERVISOR_EXCEPTION), tick
+    if code is desired_code:
+        if callee.startswith(_SAFETY_DIR):
+            return FaultCode.SUPERVISOR_EXCEPTION, tick
+        return (FaultCode.ESTIMATOR_EXCEPTION if "estimates" not in bound
+                else FaultCode.RUNNER_EXCEPTION), tick
+    if "c0" not in bound:
+        return FaultCode.HOOK_EXCEPTION, tick
+    if "c1" not in bound:
+        return (FaultCode.DECODE_EXCEPTION if any(_in_codec(f) for f in below)
+                else FaultCode.POLL_EXCEPTION), tick
+    if "desired" not in bound:  # the operator's e-stop frame, sent before ``decide``
+        return FaultCode.SEND_EXCEPTION, tick
+    if "c4" not in bound:
+        if callee.startswith(_SAFETY_DIR):
+            return FaultCode.SUPERVISOR_EXCEPTION, tick
+        return (FaultCode.ENCODE_EXCEPTION if any(_in_codec(f) for f in below)
+                else FaultCode.SEND_EXCEPTION), tick
+    if "c5" not in bound:
+        return FaultCode.RECORD_EXCEPTION, tick
+    return FaultCode.STATUS_EXCEPTION, tick
+
+
+def _describe(exc: BaseException, code: FaultCode, tick: int) -> TickException:
+    """What ``exc`` said and where, bounded, whatever its ``__str__`` does."""
+    try:
+        message = str(exc)
+    except Exception:
+        message = "(its message could not be made)"
+    if len(message) > EXCEPTION_TEXT_CHARS:
+        message = message[:EXCEPTION_TEXT_CHARS - 3] + "..."
+    where = "?"
+    text = ""
+    try:
+        frames = traceback.extract_tb(exc.__traceback__)
+        if frames:
+            last = frames[-1]
+            where = f"{last.name} ({_short_path(last.filename)}:{last.lineno})"
+        text = "".join(traceback.format_exception(exc, limit=-12))
+    except Exception:  # the description is a courtesy; the stop does not depend on it
+        pass
+    return TickException(code, tick, type(exc).__name__, message, where, text)
+
+
+def _short_path(filename: str) -> str:
+    """A file of handctl relative to the package's parent, others as they are."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
+    return filename[len(root):] if filename.startswith(root) else filename

@@ -38,7 +38,7 @@ from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
 from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
 from handctl.hostfacts import affinity
-from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine
+from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS
@@ -116,8 +116,17 @@ def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: boo
                         zip(hand.joint_names, result.max_abs_tau, strict=True)},
         "rejected_frames": result.node_rejects,
         "bus_events": result.bus_events,
+        **({"exception": _exception_summary(result.exception)}
+           if result.exception is not None else {}),
         **({"sim": sim} if sim is not None else {}),
     }
+
+
+def _exception_summary(exc: TickException) -> dict[str, Any]:
+    """The exception a run stopped on: its fault (the stage), what it said, and where."""
+    return {"code": exc.code.name, "tick": exc.tick, "type": exc.type,
+            "message": exc.message, "where": exc.where,
+            "traceback": exc.traceback.splitlines()}
 
 
 def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,
@@ -205,6 +214,10 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         if recording is not None:
             _start_recording(recording, runtime, req, spec, lockstep, sim_hand)
         result = asyncio.run(signals.run(runtime))
+        if result.exception is not None:
+            warnings.append(f"the run stopped on an exception ({result.exception.code.name}); "
+                            "the hand was stopped.\n"
+                            + result.exception.traceback.rstrip())
         sim_summary = None
         if sim_hand is not None:
             sim_summary = sim_hand.ground_truth_summary()

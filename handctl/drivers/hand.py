@@ -21,13 +21,18 @@ from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode
 from handctl.drivers.receiver import Reject, RejectCounts
 from handctl.errors import ConfigError
-from handctl.protocol import Protocol
+from handctl.protocol import NODE_COMMANDS, Protocol
 
 FloatArray = npt.NDArray[np.float64]
 #: Torques that came out of the safety supervisor. Only ``handctl/safety/supervisor.py`` makes
 #: one (a test checks), and ``HandDriver.send`` takes nothing else, so the type checker proves
 #: that no torque reaches a command frame without passing the limiter.
 AppliedTorques = NewType("AppliedTorques", FloatArray)
+#: Every value a frame's rolling ``Counter`` takes: 8 bits (``handctl/protocol.py`` refuses a
+#: DBC with any other width).
+COUNTER_VALUES = 256
+#: The e-stop reason the prepared e-stop frames carry: host safety (PROTOCOL.md).
+ESTOP_HOST_SAFETY = 2
 
 
 @dataclass
@@ -103,6 +108,7 @@ class HandDriver:
         self.bus_events: list[BusEvent] = []
         self._estop_counter = 0
         self._estop_layout = protocol.layout("EStop")
+        self._prepare_stop_frames()
 
     def poll(self, now_ns: int | None = None) -> JointState:
         """Drain the bus (within the receive budget) and fold every accepted frame into
@@ -184,6 +190,67 @@ class HandDriver:
             frame_id, data = node.next_command(values)
             ok = self.bus.send(frame_id, data, more=i < last) and ok
         return ok
+
+    # -- the stop that needs no codec -----------------------------------------------------
+    def _prepare_stop_frames(self) -> None:
+        """Encode, once, every frame a stop after an exception may need: per node a zero-torque
+        command and a disable for each counter value, and the e-stop for each counter value.
+
+        A tick that raised may have raised in the codec itself (a torque the wire cannot
+        carry), so the stop must not encode anything: it picks the frame for the node's next
+        counter from these tables and hands it to the bus, so the node accepts it in sequence.
+        """
+        disable = (NODE_COMMANDS["disable"],)
+        self._zero_frames = [(n.layouts.command.frame_id,
+                              tuple(n.layouts.command.encode(c, [0.0] * len(
+                                  n.layouts.command.signals)) for c in range(COUNTER_VALUES)))
+                             for n in self.nodes]
+        self._disable_frames = [(n.layouts.node_command.frame_id,
+                                 tuple(n.layouts.node_command.encode(c, disable)
+                                       for c in range(COUNTER_VALUES)))
+                                for n in self.nodes]
+        self._estop_frames = tuple(self._estop_layout.encode(c, (ESTOP_HOST_SAFETY,))
+                                   for c in range(COUNTER_VALUES))
+
+    def send_zero(self) -> bool:
+        """Zero torque to every node from the prepared frames, without the codec.
+
+        Every node is tried whatever happens to the others; when any frame did not go (the
+        bus refused it or raised), the e-stop frame follows. Never raises; False when any
+        frame did not go.
+        """
+        ok = True
+        for node, (frame_id, frames) in zip(self.nodes, self._zero_frames, strict=True):
+            counter = node.command_counter % COUNTER_VALUES
+            node.command_counter = (counter + 1) % COUNTER_VALUES
+            ok = self._send_quietly(frame_id, frames[counter]) and ok
+        if not ok:
+            self.send_estop()
+        return ok
+
+    def send_disable(self) -> bool:
+        """Disable every node from the prepared frames, as ``send_zero`` sends zero."""
+        ok = True
+        for node, (frame_id, frames) in zip(self.nodes, self._disable_frames, strict=True):
+            counter = node.node_command_counter % COUNTER_VALUES
+            node.node_command_counter = (counter + 1) % COUNTER_VALUES
+            ok = self._send_quietly(frame_id, frames[counter]) and ok
+        if not ok:
+            self.send_estop()
+        return ok
+
+    def _send_quietly(self, frame_id: int, data: bytes) -> bool:
+        """One frame, whatever the bus does: False when it refused or raised."""
+        try:
+            return self.bus.send(frame_id, data)
+        except Exception:  # the stop goes on to the next frame, whatever this was
+            return False
+
+    def send_estop(self) -> bool:
+        """The prepared e-stop frame (host safety), without the codec; never raises."""
+        counter = self._estop_counter % COUNTER_VALUES
+        self._estop_counter = (counter + 1) % COUNTER_VALUES
+        return self._send_quietly(self._estop_layout.frame_id, self._estop_frames[counter])
 
     def node_command(self, command: str, nodes: Iterable[int] | None = None) -> bool:
         """Send enable / disable / fault_reset to the given node ids (all by default)."""

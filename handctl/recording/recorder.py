@@ -538,20 +538,33 @@ class Recorder:
     def close(self, summary: dict[str, Any] | None = None) -> dict[str, Any]:
         """Publish the last row, hand over the summary, let the writer finish the file.
 
-        Returns the recorder's accounts (ticks, frames, drops) for the run summary.
+        Returns the recorder's accounts (ticks, frames, drops) for the run summary. A recorder
+        that broke during the run (an exception in its own code, which the runtime turned into
+        a stop) may break again here: the file is finished all the same, with everything the
+        rings hold, and what could not be recorded is the ``HandctlError`` raised at the end.
         """
         if self.closed:
             return self.stats
+        problem = ""
+        try:
+            if self._runtime is not None:
+                self._sweep(self._runtime, self._last_phase)
+        except Exception as exc:  # the file is still finished with what the rings hold
+            problem = (f"the last events could not be recorded "
+                       f"({type(exc).__name__}: {str(exc)[:300]})")
         if self._runtime is not None:
-            self._sweep(self._runtime, self._last_phase)
             bus = self._runtime.driver.bus
             bus.tap = None
             bus.rx_tap = None
             bus.event_tap = None
-        if self._row >= 0:
-            self._publish_idle()
-        elif self._pending:
-            self._flush_frames()
+        try:
+            if self._row >= 0:
+                self._publish_idle()
+            elif self._pending:
+                self._flush_frames()
+        except Exception as exc:  # as above: a recorder that broke in the run, broke again
+            problem = problem or (f"the last tick could not be recorded "
+                                  f"({type(exc).__name__}: {str(exc)[:300]})")
         ctl = self._ctl_view
         ctl[FRAME_HEAD] = self._fhead
         ctl[TICK_HEAD] = self._head
@@ -562,12 +575,11 @@ class Recorder:
                       "dropped_poses": ctl[DROPPED_POSES]}
         ctl[CLOSED] = 1
         self.closed = True
-        problem = ""
         try:
             if summary is not None:
                 self.add_metadata("handctl.summary", {"json": orjson.dumps(summary).decode()})
         except HandctlError as exc:
-            problem = str(exc)
+            problem = problem or str(exc)
         os.close(self._ctl_w)
         try:
             _, err = self.process.communicate(timeout=CLOSE_TIMEOUT_S)

@@ -32,7 +32,7 @@ from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig, parse_hand
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError
-from handctl.loop import Runtime, TickRecord
+from handctl.loop import EndOfTicks, Runtime, TickRecord
 from handctl.protocol import load_protocol
 from handctl.recipes.loader import check_against_hand, parse_recipe
 from handctl.recipes.schema import Recipe
@@ -480,7 +480,7 @@ class ReplayBus(HandBus):
         self.frame_mismatches.append(text)
 
 
-class _EndOfLogError(Exception):
+class _EndOfLogError(EndOfTicks):
     """The log has no more whole ticks (a truncated or damaged recording): the re-run stops
     there."""
 

@@ -45,6 +45,21 @@ class FaultCode(enum.IntEnum):
     ESTOP = 13
     RECIPE_ABORT = 14
     STARTUP = 15
+    # An exception inside the run, one code per stage of the tick it came from (the loop reads
+    # the stage from the traceback). The stop does not use the stage that raised: zero-torque
+    # and disable frames encoded at start-up, sent without the codec (``handctl/loop.py``).
+    POLL_EXCEPTION = 16
+    DECODE_EXCEPTION = 17
+    ESTIMATOR_EXCEPTION = 18
+    RUNNER_EXCEPTION = 19
+    SUPERVISOR_EXCEPTION = 20
+    ENCODE_EXCEPTION = 21
+    SEND_EXCEPTION = 22
+    RECORD_EXCEPTION = 23
+    HOOK_EXCEPTION = 24
+    CLOCK_EXCEPTION = 25
+    STATUS_EXCEPTION = 26
+    RUN_EXCEPTION = 27
     RX_BACKLOG = 30
     NODE_CONTRADICTION = 31
     REJECT_RATE = 32
@@ -89,6 +104,32 @@ FAULTS: dict[FaultCode, FaultSpec] = {spec.code: spec for spec in (
               "a recipe abort condition held, or a phase ran past its time limit"),
     FaultSpec(FaultCode.STARTUP, StopCategory.IMMEDIATE,
               "a node did not answer, or was not in the expected state, while starting"),
+    FaultSpec(FaultCode.POLL_EXCEPTION, StopCategory.IMMEDIATE,
+              "the tick's poll (draining the bus, taking its events) raised an exception"),
+    FaultSpec(FaultCode.DECODE_EXCEPTION, StopCategory.IMMEDIATE,
+              "checking or decoding a received frame raised an exception"),
+    FaultSpec(FaultCode.ESTIMATOR_EXCEPTION, StopCategory.IMMEDIATE,
+              "the object estimator raised an exception"),
+    FaultSpec(FaultCode.RUNNER_EXCEPTION, StopCategory.IMMEDIATE,
+              "the recipe runner raised an exception"),
+    FaultSpec(FaultCode.SUPERVISOR_EXCEPTION, StopCategory.IMMEDIATE,
+              "the safety supervisor (checks, limiter, state machine) raised an exception"),
+    FaultSpec(FaultCode.ENCODE_EXCEPTION, StopCategory.IMMEDIATE,
+              "encoding a command frame raised an exception (e.g. a torque the wire cannot "
+              "carry)"),
+    FaultSpec(FaultCode.SEND_EXCEPTION, StopCategory.IMMEDIATE,
+              "sending the command frames raised an exception"),
+    FaultSpec(FaultCode.RECORD_EXCEPTION, StopCategory.IMMEDIATE,
+              "the record sink raised an exception"),
+    FaultSpec(FaultCode.HOOK_EXCEPTION, StopCategory.IMMEDIATE,
+              "a tick hook raised an exception"),
+    FaultSpec(FaultCode.CLOCK_EXCEPTION, StopCategory.IMMEDIATE,
+              "waiting for the tick raised an exception (in lockstep: stepping the peer)"),
+    FaultSpec(FaultCode.STATUS_EXCEPTION, StopCategory.IMMEDIATE,
+              "the tick's accounting or the status-line callback raised an exception"),
+    FaultSpec(FaultCode.RUN_EXCEPTION, StopCategory.IMMEDIATE,
+              "the run raised an exception outside a tick's stages (start-up, enabling, "
+              "the final disable)"),
     FaultSpec(FaultCode.RX_BACKLOG, StopCategory.IMMEDIATE,
               "a drain left frames waiting: more arrived than the bus can carry between two "
               "ticks (a flood), so what the host reads next is already old"),

@@ -1,0 +1,591 @@
+"""An exception in any stage of a tick is a controlled stop (docs/safety.md, guarantee 17).
+
+Each case runs a hold recipe in lockstep on the simulated hand, recorded by the real recorder,
+and forces an exception in one stage of the tick while torque flows, once or on every call
+from then on. A second python-can listener on the same virtual channel hears what went on the
+wire, decoded with cantools from the DBC (not with handctl's codec): from the tick after the
+faulting one every command frame carries zero, every node then gets a disable, and a node that
+cannot be sent to gets the e-stop frame. The run ends as a safety stop with the stage's own
+fault, and the log has the fault event with the exception's text.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+from handctl import cli, session
+from handctl.bus import BusSpec, open_bus
+from handctl.clock import LockstepClock, Tick
+from handctl.config import HandConfig, load_hand
+from handctl.drivers.hand import HandDriver
+from handctl.loop import (
+    EXCEPTION_TEXT_CHARS,
+    ZERO_TICKS_BEFORE_DISABLE,
+    EndOfTicks,
+    Outcome,
+    Runtime,
+)
+from handctl.protocol import NODE_COMMANDS, load_protocol
+from handctl.recipes.loader import load_recipe
+from handctl.recipes.schema import Recipe
+from handctl.recording import channels as ch
+from handctl.recording.metadata import run_metadata, start_metadata
+from handctl.recording.reader import iter_decoded, open_recording
+from handctl.recording.recorder import Recorder
+from handctl.safety import supervisor as supervisor_module
+from handctl.safety.faults import FaultCode
+from handctl.sim.hand import SimulatedHand
+
+from .rig import DB
+
+HOLD = """
+recipe: hold
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 0.3
+    on_timeout: next
+  - name: hold
+    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
+    ramp_s: 0.1
+    max_s: 0.6
+    on_timeout: next
+"""
+#: Ticks after the first command when the exception is forced: the hold torque flows by then
+#: (and the status line, every 100 ticks, is due at it).
+ARM_TICKS = 400
+DISABLE = NODE_COMMANDS["disable"]
+_channels = itertools.count()
+
+
+class ForcedError(RuntimeError):
+    """The exception a test forces, so that it cannot be mistaken for a real one."""
+
+
+@dataclass
+class Bench:
+    hand: HandConfig
+    sim: SimulatedHand
+    runtime: Runtime
+    recorder: Recorder
+    listener: can.BusABC
+    log: Path
+
+
+@contextmanager
+def bench(hand: HandConfig, recipe: Recipe, log: Path) -> Iterator[Bench]:
+    """Host, simulated hand and a plain python-can listener on one private virtual channel;
+    the run recorded the way ``handctl run recipe --log`` records one."""
+    channel = f"tick-exception-{next(_channels)}"
+    listener = can.Bus(interface="virtual", channel=channel, receive_own_messages=False,
+                       protocol=can.CanProtocol.CAN_FD)
+    try:
+        with open_bus(f"virtual:{channel}", hand.bus) as peer, \
+                open_bus(f"virtual:{channel}", hand.bus) as host:
+            sim = SimulatedHand(hand, peer, seed=0)
+            clock = LockstepClock(hand.bus.period_s, sim.step)
+            driver = HandDriver(hand, load_protocol(), host, clock_ns=clock.now_ns)
+            runtime = Runtime(hand, driver, clock, recipe, max_ticks=5000)
+            recorder = Recorder(log, hand, start_metadata(hand, recipe, ["test", "exception"]),
+                                phase_names=[p.name for p in recipe.phases])
+            with recorder:
+                runtime.recorder = recorder
+                recorder.attach(runtime)
+                recorder.add_metadata(ch.META_RUN, run_metadata(
+                    mode="lockstep", bus="virtual", seed=0, period_ns=1_000_000,
+                    startup_ticks=runtime.startup_ticks, reset_node_faults=False,
+                    estimator=False))
+                recorder.wait_ready()
+                yield Bench(hand, sim, runtime, recorder, listener, log)
+    finally:
+        listener.shutdown()
+
+
+class Trigger:
+    """When the forced exception is due: from ARM_TICKS after the first command on, at the
+    first call only (``always=False``) or at every call."""
+
+    def __init__(self, runtime: Runtime, always: bool) -> None:
+        self.runtime = runtime
+        self.always = always
+        self.k = -1
+        self.fired = 0
+        runtime.tick_hooks.insert(0, self._see)
+
+    def _see(self, tk: Tick) -> None:
+        self.k = tk.k
+
+    def __call__(self) -> bool:
+        first = self.runtime.first_send_tick
+        if first < 0 or self.k < first + ARM_TICKS - 1 or (self.fired and not self.always):
+            return False
+        self.fired += 1
+        return True
+
+
+def _wrap(due: Trigger, stage: str, real: Callable[..., Any]) -> Callable[..., Any]:
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        if due():
+            raise ForcedError(f"forced in the {stage} stage")
+        return real(*args, **kwargs)
+
+    return wrapper
+
+
+#: The node whose frames the send and encode cases break: its frame of the faulting tick
+#: comes after the first node's, which did go out.
+BROKEN_NODE = 2
+
+
+def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:
+    """Make ``stage`` raise when ``due`` says so, inside the real code of that stage."""
+    rt, protocol = b.runtime, load_protocol()
+    if stage == "poll":
+        mp.setattr(rt.driver, "poll", _wrap(due, stage, rt.driver.poll))
+    elif stage == "decode":
+        layout = protocol.layout("Feedback", 1)
+        mp.setattr(layout, "decode", _wrap(due, stage, layout.decode))
+    elif stage == "estimator":
+        rt.estimator = _wrap(due, stage, lambda angle: None)
+    elif stage == "runner":
+        assert rt.runner is not None
+        mp.setattr(rt.runner, "step", _wrap(due, stage, rt.runner.step))
+    elif stage == "supervisor":
+        mp.setattr(supervisor_module, "limit_torque",
+                   _wrap(due, stage, supervisor_module.limit_torque))
+    elif stage == "encode":
+        layout = protocol.layout("TorqueCommand", BROKEN_NODE)
+        mp.setattr(layout, "encode", _wrap(due, stage, layout.encode))
+    elif stage == "send":
+        real_send = rt.driver.bus.send
+        broken_id = protocol.layout("TorqueCommand", BROKEN_NODE).frame_id
+
+        def send(frame_id: int, data: bytes, more: bool = False) -> bool:
+            if frame_id == broken_id and due():
+                raise ForcedError("forced in the send stage")
+            return real_send(frame_id, data, more)
+
+        mp.setattr(rt.driver.bus, "send", send)
+    elif stage == "record":
+        mp.setattr(b.recorder, "push", _wrap(due, stage, b.recorder.push))
+    elif stage == "hook":
+        rt.tick_hooks.append(_wrap(due, stage, lambda tk: None))
+    elif stage == "clock":
+        real_wait = rt.clock.wait_tick
+
+        async def wait_tick() -> Tick:
+            if due():
+                raise ForcedError("forced in the clock stage")
+            return await real_wait()
+
+        mp.setattr(rt.clock, "wait_tick", wait_tick)
+    elif stage == "status":
+        rt.status = _wrap(due, stage, lambda line: None)
+    elif stage == "accounting":
+        stats = rt._stats  # the tick's own bookkeeping (tickstats), after the record
+        mp.setattr(stats, "store", _wrap(due, stage, stats.store))
+    else:  # pragma: no cover
+        raise AssertionError(stage)
+
+
+STAGES = {"poll": FaultCode.POLL_EXCEPTION, "decode": FaultCode.DECODE_EXCEPTION,
+          "estimator": FaultCode.ESTIMATOR_EXCEPTION, "runner": FaultCode.RUNNER_EXCEPTION,
+          "supervisor": FaultCode.SUPERVISOR_EXCEPTION, "encode": FaultCode.ENCODE_EXCEPTION,
+          "send": FaultCode.SEND_EXCEPTION, "record": FaultCode.RECORD_EXCEPTION,
+          "hook": FaultCode.HOOK_EXCEPTION, "clock": FaultCode.CLOCK_EXCEPTION,
+          "status": FaultCode.STATUS_EXCEPTION, "accounting": FaultCode.STATUS_EXCEPTION}
+
+
+@dataclass
+class Wire:
+    """What the listener heard, in bus order: per node its torque commands (position on the
+    wire, three N·m) and the positions of its disables; the positions of e-stops."""
+
+    torques: dict[int, list[tuple[int, np.ndarray]]]
+    disables: dict[int, list[int]]
+    estops: list[int]
+
+
+def hear(listener: can.BusABC, hand: HandConfig) -> Wire:
+    torque_ids = {f.can_ids.torque_command: f.node_id for f in hand.fingers}
+    command_ids = {f.can_ids.node_command: f.node_id for f in hand.fingers}
+    wire = Wire({f.node_id: [] for f in hand.fingers}, {f.node_id: [] for f in hand.fingers},
+                [])
+    pos = 0
+    while (msg := listener.recv(timeout=0)) is not None:
+        pos += 1
+        frame_id, data = msg.arbitration_id, bytes(msg.data)
+        if frame_id in torque_ids:
+            sig = DB.decode_message(frame_id, data)
+            wire.torques[torque_ids[frame_id]].append(
+                (pos, np.array([sig["Torque1"], sig["Torque2"], sig["Torque3"]])))
+        elif frame_id in command_ids and DB.decode_message(
+                frame_id, data, decode_choices=False)["Command"] == DISABLE:
+            wire.disables[command_ids[frame_id]].append(pos)
+        elif frame_id == 0:
+            wire.estops.append(pos)
+    return wire
+
+
+def assert_stopped_on_the_wire(wire: Wire, fault_row: int, unreachable: Sequence[int] = ()
+                               ) -> None:
+    """From the command after the faulting tick's (row ``fault_row`` of each node: command n
+    of a node belongs to tick first_send_tick + n) every torque is zero, at least
+    ZERO_TICKS_BEFORE_DISABLE of them, and then the node gets a disable; a node that could
+    not be sent to gets the e-stop frame instead."""
+    for node, rows in wire.torques.items():
+        last_torque_pos, last_torque = rows[fault_row - 1]
+        assert np.any(last_torque != 0), f"node {node}: no torque flowed before the fault"
+        after = rows[fault_row + 1:]
+        assert all(not np.any(values) for _, values in after), \
+            f"node {node}: torque after the faulting tick: {[v for _, v in after if v.any()]}"
+        if node in unreachable:
+            assert any(p > last_torque_pos for p in wire.estops), f"node {node}: no e-stop"
+        else:
+            assert len(after) >= ZERO_TICKS_BEFORE_DISABLE, f"node {node}: {len(after)} zeros"
+        disables = [p for p in wire.disables[node] if p > last_torque_pos]
+        assert disables, f"node {node}: never disabled after the fault"
+        assert disables[-1] > rows[-1][0], f"node {node}: a torque command after its disable"
+
+
+def logged_faults(log: Path) -> tuple[bool, int, list[dict[str, Any]]]:
+    """Whether the log is complete, its ticks, and its fault events."""
+    recording = open_recording(log)
+    ticks = 0
+    faults = []
+    for topic, _, msg in iter_decoded(recording, [ch.EVENTS, ch.TIMING]):
+        if topic == ch.TIMING:
+            ticks += 1
+        elif msg["kind"] == "fault":
+            faults.append(msg)
+    return recording.complete, ticks, faults
+
+
+@pytest.fixture(scope="module")
+def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
+    path = tmp_path_factory.mktemp("recipes") / "hold.yaml"
+    path.write_text(HOLD)
+    return load_recipe(path, hand)
+
+
+@pytest.mark.parametrize("always", [False, True], ids=["once", "every_call"])
+@pytest.mark.parametrize("stage", list(STAGES))
+def test_an_exception_in_any_stage_is_a_controlled_stop(
+        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        stage: str, always: bool) -> None:
+    code = STAGES[stage]
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always)
+        force(stage, b, due, monkeypatch)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        b.recorder.close(session.summarise(result, hand, hold, True, None))
+        wire = hear(b.listener, hand)
+    assert due.fired, "the forced exception never came"
+    assert result.outcome is Outcome.SAFETY_STOP, result.message
+    failure = result.exception
+    assert failure is not None and failure.code is code, failure
+    assert failure.type == "ForcedError" and failure.message == f"forced in the {stage} stage"
+    first = result.faults[0]
+    assert first.code is code and first.tick == failure.tick
+    assert "ForcedError: forced in the" in first.detail
+    # The wire: zero from the faulting tick on, then disable (the e-stop where a node could
+    # not be sent to).
+    unreachable = [BROKEN_NODE] if stage == "send" and always else []
+    assert_stopped_on_the_wire(wire, first.tick - b.runtime.first_send_tick, unreachable)
+    if not (stage == "clock" and always):  # without its clock the simulated hand stands still
+        assert all(not any(n.applied) and n.state != 1 for n in b.sim.nodes)
+    # The summary and the log.
+    summary = session.summarise(result, hand, hold, True, None)
+    assert summary["outcome"] == "safety_stop"
+    assert summary["faults"][0]["code"] == code.name
+    assert summary["faults"][0]["category"] == "immediate"
+    assert summary["exception"]["code"] == code.name
+    assert summary["exception"]["type"] == "ForcedError"
+    complete, ticks, faults = logged_faults(tmp_path / "run.mcap")
+    assert complete
+    if not (stage == "accounting" and always):  # then the run could count no tick after it
+        assert ticks == result.ticks
+    assert [(f["name"], f["category"], f["tick"]) for f in faults] == \
+        [(code.name, "immediate", first.tick)]
+    assert f"ForcedError: forced in the {stage} stage" in faults[0]["detail"]
+
+
+def test_a_node_that_cannot_be_sent_to_gets_the_estop(
+        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """Sending raises for one node on every try: the others still get zero and a disable,
+    and the e-stop frame stops the one that cannot be reached."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        force("send", b, Trigger(b.runtime, always=True), monkeypatch)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        wire = hear(b.listener, hand)
+    row = result.faults[0].tick - b.runtime.first_send_tick
+    assert len(wire.torques[BROKEN_NODE]) == row  # nothing reached it after the fault
+    assert_stopped_on_the_wire(wire, row, unreachable=[BROKEN_NODE])
+    broken = next(n for n in b.sim.nodes if n.node_id == BROKEN_NODE)
+    assert broken.state == 2 and not any(broken.applied)  # FAULT (e-stop), no torque
+
+
+def test_an_exception_while_enabling_is_a_controlled_stop(
+        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """Outside the tick's stages (here: the enable, which the first node got), the stop is
+    the same: RUN_EXCEPTION, zero to every node, then a disable."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        real = b.runtime.driver.node_command
+
+        def node_command(command: str, nodes: Any = None) -> bool:
+            real(command, [hand.fingers[0].node_id] if command == "enable" else nodes)
+            if command == "enable":
+                raise ForcedError("forced while enabling")
+            return True
+
+        monkeypatch.setattr(b.runtime.driver, "node_command", node_command)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        wire = hear(b.listener, hand)
+    assert result.outcome is Outcome.SAFETY_STOP
+    assert [f.code for f in result.faults] == [FaultCode.RUN_EXCEPTION]
+    assert "ForcedError: forced while enabling" in result.faults[0].detail
+    for node, rows in wire.torques.items():
+        assert len(rows) >= ZERO_TICKS_BEFORE_DISABLE
+        assert all(not np.any(values) for _, values in rows)
+        assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0]
+    assert all(not any(n.applied) and n.state == 0 for n in b.sim.nodes)
+
+
+def test_ctrl_c_without_a_signal_handler_zeroes_and_disables_before_it_goes_on(
+        hand: HandConfig, hold: Recipe, tmp_path: Path) -> None:
+    """A KeyboardInterrupt (or a cancelled task) inside a tick is not the runtime's to
+    swallow, but it leaves no torque on: zero and disable go out before it propagates."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always=False)
+
+        def interrupt(tk: Tick) -> None:
+            if due():
+                raise KeyboardInterrupt
+
+        b.runtime.tick_hooks.append(interrupt)
+        with pytest.raises(KeyboardInterrupt):
+            asyncio.run(b.runtime.run())
+        wire = hear(b.listener, hand)
+    for node, rows in wire.torques.items():
+        nonzero = [i for i, (_, values) in enumerate(rows) if np.any(values)]
+        assert nonzero and nonzero[-1] == len(rows) - 2, f"node {node}: no zero after torque"
+        assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0], f"node {node}"
+
+
+def test_only_a_lockstep_clock_may_end_a_run_without_a_stop(
+        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """A re-run ends at the end of its log with EndOfTicks, sending nothing more; the same
+    from a clock that is not lockstep (a real-time one never runs out) is a clock fault."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always=True)
+        real_wait = b.runtime.clock.wait_tick
+
+        async def wait_tick() -> Tick:
+            if due():
+                raise EndOfTicks
+            return await real_wait()
+
+        monkeypatch.setattr(b.runtime.clock, "wait_tick", wait_tick)
+        monkeypatch.setattr(b.runtime.clock, "lockstep", False)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        wire = hear(b.listener, hand)
+    assert [f.code for f in result.faults] == [FaultCode.CLOCK_EXCEPTION]
+    assert_stopped_on_the_wire(wire, result.faults[0].tick - b.runtime.first_send_tick)
+
+
+def test_a_huge_exception_message_is_cut_and_its_place_kept(
+        hand: HandConfig, hold: Recipe, tmp_path: Path) -> None:
+    """An exception carrying a huge object: the fault, the summary and the log get its
+    beginning, and the log's event still ends with where it was raised."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always=False)
+
+        def hook(tk: Tick) -> None:
+            if due():
+                raise ForcedError("x" * 1_000_000)
+
+        b.runtime.tick_hooks.append(hook)
+        result = asyncio.run(b.runtime.run())
+        b.recorder.close()
+    failure = result.exception
+    assert failure is not None and len(failure.message) <= EXCEPTION_TEXT_CHARS
+    assert len(result.faults[0].detail) < 2 * EXCEPTION_TEXT_CHARS
+    _, _, faults = logged_faults(tmp_path / "run.mcap")
+    assert faults[0]["detail"].endswith(f"(in hook (tests/integration/{Path(__file__).name}:"
+                                        f"{hook.__code__.co_firstlineno + 2}))")
+
+
+# -- the two reproductions of the issue, through the command line ------------------------------
+TOO_MUCH = """
+recipe: too_much
+phases:
+  - name: ramp
+    torques: [4.0, 0, 0, 0, 0, 0, 0, 0, 0]
+    ramp_s: 0.03
+    max_s: 1.0
+    on_timeout: next
+"""
+TWO_OBJECTS = """
+recipe: two_objects
+objects:
+  - {name: a, radius: 0.02}
+  - {name: b, radius: 0.02}
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 0.5
+    on_timeout: next
+"""
+
+
+def _cli_run(args: list[str], monkeypatch: pytest.MonkeyPatch) -> tuple[int, can.BusABC]:
+    """``handctl run recipe`` in this process, with a plain python-can listener joined to the
+    simulated hand's private virtual channel as soon as the run opens it."""
+    listeners: list[can.BusABC] = []
+    real_open = session.open_bus
+
+    def open_and_listen(spec: Any, *rest: Any, **kwargs: Any) -> Any:
+        bus = real_open(spec, *rest, **kwargs)
+        if isinstance(spec, BusSpec) and spec.interface == "virtual" and not listeners:
+            listeners.append(can.Bus(interface="virtual", channel=spec.channel,
+                                     receive_own_messages=False,
+                                     protocol=can.CanProtocol.CAN_FD))
+        return bus
+
+    monkeypatch.setattr(session, "open_bus", open_and_listen)
+    try:
+        code = cli.main(["run", "recipe", *args])
+    except BaseException:
+        for listener in listeners:
+            listener.shutdown()
+        raise
+    assert listeners, "the run opened no virtual channel"
+    return code, listeners[0]
+
+
+def _stopped_after_torque(wire: Wire) -> None:
+    """Judged on the wire alone: after each node's last torque, only zeros (at least
+    ZERO_TICKS_BEFORE_DISABLE), then a disable."""
+    for node, rows in wire.torques.items():
+        nonzero = [i for i, (_, values) in enumerate(rows) if np.any(values)]
+        tail = rows[nonzero[-1] + 1:] if nonzero else rows
+        assert len(tail) >= ZERO_TICKS_BEFORE_DISABLE, f"node {node}"
+        assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0], f"node {node}"
+
+
+def test_a_tau_max_the_wire_cannot_carry_ends_in_a_safety_stop(
+        hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The issue's first finding: tau_max 5 N·m (the wire carries ±3.2767) and a recipe
+    asking 4 N·m. The config is built here, past the loader (which refuses it), so this holds
+    whatever the loader checks."""
+    f1 = hand.fingers[0]
+    j1 = replace(f1.joints[0], tau_max=5.0, rate_limit=200.0)
+    strong = replace(hand, fingers=(replace(f1, joints=(j1, *f1.joints[1:])),
+                                    *hand.fingers[1:]))
+    monkeypatch.setattr("handctl.config.load_hand", lambda path: strong)
+    recipe = tmp_path / "too_much.yaml"
+    recipe.write_text(TOO_MUCH)
+    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
+    code, listener = _cli_run([str(recipe), "--summary-json", str(out), "--log", str(log)],
+                              monkeypatch)
+    try:
+        wire = hear(listener, strong)
+    finally:
+        listener.shutdown()
+    assert code == cli.EXIT_SAFETY_STOP
+    summary = json.loads(out.read_text())
+    assert summary["outcome"] == "safety_stop"
+    assert summary["faults"][0]["code"] == "ENCODE_EXCEPTION"
+    assert summary["exception"]["type"] == "ProtocolError"
+    assert "TorqueCommand_1.Torque1" in summary["exception"]["message"]
+    assert max(float(np.max(np.abs(v))) for _, v in wire.torques[1]) > 3.0  # it got close
+    _stopped_after_torque(wire)
+    _, _, faults = logged_faults(log)
+    assert [f["name"] for f in faults] == ["ENCODE_EXCEPTION"]
+    assert "ProtocolError" in faults[0]["detail"]
+
+
+def test_a_recipe_with_more_objects_than_the_hand_ends_in_a_safety_stop(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The issue's second finding: a recipe declaring two objects on a simulated hand with
+    one, whose ground-truth tick hook raised IndexError."""
+    from ..conftest import HAND_YAML
+
+    text = HAND_YAML.read_text()
+    second = [line for line in text.splitlines() if "{name: cyl2," in line]
+    assert len(second) == 1
+    one_object = tmp_path / "one_object.yaml"
+    one_object.write_text(text.replace(second[0] + "\n", ""))
+    recipe = tmp_path / "two_objects.yaml"
+    recipe.write_text(TWO_OBJECTS)
+    out = tmp_path / "out.json"
+    code, listener = _cli_run([str(recipe), "--hand", str(one_object), "--summary-json",
+                               str(out)], monkeypatch)
+    try:
+        wire = hear(listener, load_hand(one_object))
+    finally:
+        listener.shutdown()
+    assert code == cli.EXIT_SAFETY_STOP
+    summary = json.loads(out.read_text())
+    assert summary["faults"][0]["code"] == "HOOK_EXCEPTION"
+    assert summary["exception"]["type"] == "IndexError"
+    assert all(wire.disables.values())
+    for rows in wire.torques.values():  # the hook raised before any torque flowed
+        assert all(not np.any(values) for _, values in rows)
+
+
+def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
+        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """The recorder's own code raises from one tick on, in the run and again when it is
+    closed: the hand is stopped, the run ends in exit 3 with its summary, and the log is
+    finished with every tick up to the fault, the fault event and the summary."""
+    broken_from = 300
+    real_flush = Recorder._flush_frames
+
+    def flush(self: Recorder) -> None:
+        if self._tick >= broken_from:
+            raise ForcedError("forced inside the recorder")
+        real_flush(self)
+
+    monkeypatch.setattr(Recorder, "_flush_frames", flush)
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD)
+    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
+    code, listener = _cli_run([str(recipe), "--summary-json", str(out), "--log", str(log)],
+                              monkeypatch)
+    try:
+        wire = hear(listener, hand)
+    finally:
+        listener.shutdown()
+    assert code == cli.EXIT_SAFETY_STOP
+    summary = json.loads(out.read_text())
+    assert summary["faults"][0]["code"] == "RECORD_EXCEPTION"
+    assert "ForcedError" in summary["recording"]["error"]
+    _stopped_after_torque(wire)
+    complete, ticks, faults = logged_faults(log)
+    assert complete and ticks == broken_from
+    assert [(f["name"], f["tick"]) for f in faults] == [("RECORD_EXCEPTION", broken_from)]
+    logged = open_recording(log).json_meta(ch.META_SUMMARY)
+    assert logged is not None and logged["outcome"] == "safety_stop"
+
