@@ -82,6 +82,9 @@ CASES: dict[str, Callable[[], inj.Injector]] = {
     "babble": lambda: inj.Babble(id=0x050, per_tick=20, length=8),
     "tendon_slack": lambda: inj.TendonSlack(node=2, joint=1),
     "motor_saturation": lambda: inj.MotorSaturation(node=1, joint=1, limit=0.01),
+    "extended_twin": lambda: inj.ExtendedTwin(node=1, message="feedback"),
+    "contradict": lambda: inj.Contradict(node=2, report="fault_bits"),
+    "replay_frames": lambda: inj.ReplayFrames(node=3, message="feedback", delay=0.05),
 }
 FAULT_ON_S = 0.25
 #: A stuck sensor while the command holds still is only caught by the 0.5 s "still" check.

@@ -36,6 +36,9 @@ EXPECTED: dict[str, dict[str, str | None]] = {
     "tdt_spike": dict.fromkeys(EVERY_PHASE, None),  # 2 ms, inside the 50 ms window
     "error_frames": dict.fromkeys(EVERY_PHASE, None),  # counted as bus events
     "babble": dict.fromkeys(EVERY_PHASE, None),  # foreign ids, counted and dropped
+    "extended_twin": dict.fromkeys(EVERY_PHASE, None),  # 29-bit twins, counted and dropped
+    "contradict": dict.fromkeys(EVERY_PHASE, "NODE_CONTRADICTION"),  # fault bits, ENABLED
+    "replay_frames": dict.fromkeys(EVERY_PHASE, "REJECT_RATE"),  # 50 ms old, two a tick
     **{name: {"idle": None, "approach": "TDT_MISMATCH", "holding": "TDT_MISMATCH",
               "manipulating": "TDT_MISMATCH"} for name in ("tendon_slack", "motor_saturation")},
 }
