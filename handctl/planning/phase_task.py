@@ -88,6 +88,10 @@ def run_phase_task(task: PhaseTask) -> tuple[PhaseOutcome, Snapshot | None]:
 
 
 def snapshot_of(world: World) -> Snapshot:
-    """Where ``world`` starts (its configured initial state)."""
-    return episode_of(world).snapshot()
+    """Where ``world`` starts (its configured initial state): from a new episode, since a kept
+    one is wherever its last task left it."""
+    episode = world.episode()
+    _kept[world.digest] = episode
+    _kept.move_to_end(world.digest)
+    return episode.snapshot()
 
