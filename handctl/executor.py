@@ -80,6 +80,7 @@ class WorkPool:
         self.where = where
         self._close = close
         self._closed = False
+        self.tasks_run = 0  # tasks whose results came back (what a rate is counted in)
 
     def map(self, fn: Callable[[T], R], items: Sequence[T],
             progress: Progress | None = None) -> list[R]:
@@ -93,6 +94,7 @@ class WorkPool:
                 future.result()  # raises the task's exception at once
                 if progress is not None:
                     progress.advance()
+            self.tasks_run += len(futures)
             return [f.result() for f in futures]
         except BaseException:
             for f in futures:
