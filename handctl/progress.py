@@ -125,7 +125,8 @@ def say(text: str) -> None:
     if _active:
         _active[0].note(text)
     else:
-        print(text, file=sys.stderr, flush=True)
+        sys.stderr.write(text + "\n")
+        sys.stderr.flush()
 
 
 def close_active() -> None:

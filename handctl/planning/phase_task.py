@@ -10,15 +10,14 @@ restored from the task's snapshot first, so reusing it cannot change the outcome
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import pickle
 from collections import OrderedDict
 from dataclasses import dataclass
-from types import MappingProxyType
 
 from handctl.config import HandConfig
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
+from handctl.portable import local_hand, portable_hand
 from handctl.recipes.guard import LimitGuard
 from handctl.recipes.schema import Phase, RecipeObject
 from handctl.sim.params import SimParams
@@ -31,7 +30,7 @@ KEPT_EPISODES = 64
 class World:
     """One model of the hand, as data: what a worker rebuilds an ``Episode`` from."""
 
-    hand: HandConfig  # its ``sim`` a plain dict (a mapping proxy does not pickle)
+    hand: HandConfig  # a ``portable_hand``
     params: SimParams
     objects: tuple[RecipeObject, ...]
     guard_band: float | None
@@ -40,13 +39,13 @@ class World:
     @classmethod
     def of(cls, hand: HandConfig, params: SimParams, objects: tuple[RecipeObject, ...],
            guard_band: float | None) -> World:
-        portable = dataclasses.replace(hand, sim=dict(hand.sim))
+        portable = portable_hand(hand)
         digest = hashlib.sha256(pickle.dumps((portable, params, objects, guard_band))
                                 ).hexdigest()
         return cls(portable, params, objects, guard_band, digest)
 
     def episode(self) -> Episode:
-        hand = dataclasses.replace(self.hand, sim=MappingProxyType(dict(self.hand.sim)))
+        hand = local_hand(self.hand)
         guard = (LimitGuard.for_hand(hand, self.guard_band) if self.guard_band is not None
                  else None)
         return Episode(hand, self.params, self.objects, guard)
