@@ -16,7 +16,8 @@ returns the results in the order of the inputs, whatever order they finished in.
 
 Cancelling (Ctrl-C, or any error) cancels every task not yet started and stops the local
 workers, so nothing is left running: local workers ignore SIGINT (a terminal sends it to the
-whole process group) and are terminated by the pool, which is the one that knows they exist.
+whole process group) and are terminated by the pool, which is the one that knows they exist;
+a worker whose owner was killed outright ends by itself.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ import importlib
 import os
 import re
 import signal
+import threading
+import time
 from collections.abc import Callable, Sequence
 from multiprocessing import get_context
 from types import TracebackType
@@ -39,6 +42,8 @@ R = TypeVar("R")
 
 #: s, how long a terminated local worker gets to exit before it is killed
 TERMINATE_GRACE_S = 2.0
+#: s, how often a local worker checks that the process that started it is still there
+OWNER_POLL_S = 0.5
 #: s, how long connecting to a Dask scheduler may take
 CONNECT_TIMEOUT_S = 10.0
 _SCHEDULER = re.compile(r"^(tcp|tls|ws|wss|inproc)://[^\s/:]+(:\d{1,5})?$")
@@ -65,9 +70,17 @@ class InlineExecutor(cf.Executor):
         return future
 
 
-def _ignore_sigint() -> None:
-    """A local worker leaves Ctrl-C to the pool's owner, who stops it."""
+def _start_worker(owner: int) -> None:
+    """A local worker leaves Ctrl-C to the pool's owner, who stops it; and it ends when the
+    owner is gone without stopping it (killed), rather than run its task to the end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def watch() -> None:
+        while os.getppid() == owner:
+            time.sleep(OWNER_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="handctl-owner-watch", daemon=True).start()
 
 
 class WorkPool:
@@ -136,7 +149,7 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
     # spawn, not fork: a worker starts from the installed package alone, as a cluster's does,
     # and inherits no thread, lock or open file of the caller
     pool = cf.ProcessPoolExecutor(max_workers=count, mp_context=get_context("spawn"),
-                                  initializer=_ignore_sigint)
+                                  initializer=_start_worker, initargs=(os.getpid(),))
 
     def close(cancel: bool) -> None:
         if not cancel:

@@ -4,6 +4,9 @@ failing task fails the map, cancelling stops the local workers, bad options are 
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 import time
 
 import psutil
@@ -12,6 +15,23 @@ import pytest
 from handctl.errors import ConfigError
 from handctl.executor import available_cores, check_scheduler, open_pool
 from handctl.progress import Progress
+
+from ..conftest import ROOT
+
+#: a process that opens a pool of two, keeps both workers busy, says their ids and waits
+OWNER = """
+import os, sys, time
+from handctl.executor import open_pool
+from tests.unit.test_executor import sleep_long
+pool = open_pool(2)
+futures = [pool.executor.submit(sleep_long, i) for i in range(2)]
+import psutil
+me = psutil.Process()
+while len([c for c in me.children() if 'spawn_main' in ' '.join(c.cmdline())]) < 2:
+    time.sleep(0.1)
+print(' '.join(str(c.pid) for c in me.children()), flush=True)
+time.sleep(600)
+"""
 
 
 def later_first(item: tuple[int, int]) -> tuple[int, int]:
@@ -84,3 +104,20 @@ def test_an_unreachable_scheduler_is_named() -> None:
     with pytest.raises(ConfigError, match=r"--scheduler: expected a reachable Dask scheduler, "
                                           r"found 'tcp://127.0.0.1:9 \("):
         open_pool(scheduler="tcp://127.0.0.1:9")
+
+
+def test_workers_end_when_their_owner_is_killed() -> None:
+    with subprocess.Popen([sys.executable, "-c", OWNER], cwd=ROOT, stdout=subprocess.PIPE,
+                          text=True) as owner:
+        try:
+            assert owner.stdout is not None
+            pids = [int(x) for x in owner.stdout.readline().split()]
+            workers = [psutil.Process(pid) for pid in pids]
+            assert len(workers) >= 2
+            owner.send_signal(signal.SIGKILL)
+            owner.wait(timeout=30)
+            _, alive = psutil.wait_procs(workers, timeout=20.0)
+            assert alive == []
+        finally:
+            if owner.poll() is None:
+                owner.kill()
