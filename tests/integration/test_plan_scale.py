@@ -134,3 +134,21 @@ def _cmdline(process: psutil.Process) -> list[str]:
         return process.cmdline()
     except psutil.Error:
         return []
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    (["--workers", "0"], "handctl: error: --workers: expected at least 1 worker, found 0"),
+    (["--scheduler", "localhost:8786"], "handctl: error: --scheduler: expected a Dask scheduler "
+                                        "address like tcp://HOST:8786, found 'localhost:8786'"),
+    (["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"],
+     "handctl: error: --workers: expected no --workers with --scheduler"),
+])
+def test_bad_scale_options_are_named_and_exit_2(tmp_path: Path, options: list[str],
+                                                message: str,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from handctl.cli import main
+
+    out = tmp_path / "r.yaml"
+    assert main(["plan", str(TEMPLATE), "-o", str(out), *options]) == 2
+    assert capsys.readouterr().err.startswith(message)
+    assert not out.exists()
