@@ -101,6 +101,14 @@ class WorkPool:
 
         The first task to fail fails the whole map (the rest are cancelled), and its
         exception is raised here; ``progress`` advances as tasks finish, in any order."""
+        if isinstance(self.executor, InlineExecutor):  # one by one, so progress moves
+            results = []
+            for item in items:
+                results.append(fn(item))
+                self.tasks_run += 1
+                if progress is not None:
+                    progress.advance()
+            return results
         futures = [self.executor.submit(fn, item) for item in items]
         try:
             for future in cf.as_completed(futures):

@@ -121,3 +121,19 @@ def test_workers_end_when_their_owner_is_killed() -> None:
         finally:
             if owner.poll() is None:
                 owner.kill()
+
+
+def test_one_worker_advances_the_progress_task_by_task() -> None:
+    import io
+
+    bar = Progress("t", 4, stream=io.StringIO(), terminal=False)
+    seen: list[int] = []
+
+    def task(i: int) -> int:
+        seen.append(bar.done)
+        return i
+
+    with open_pool(1) as pool:
+        assert pool.map(task, [0, 1, 2, 3], bar) == [0, 1, 2, 3]
+    assert seen == [0, 1, 2, 3]
+    assert pool.tasks_run == 4
