@@ -214,15 +214,30 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
 # -- plan --------------------------------------------------------------------------------------
 def _cmd_plan(args: argparse.Namespace) -> int:
     from handctl.config import load_hand
+    from handctl.executor import check_scheduler, open_pool
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
     from handctl.planning.template import load_template
+    from handctl.progress import Progress, close_active, say
 
     if args.models is not None and args.models < 1:
         raise ConfigError("--models", "", "at least 1 model", args.models)
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError("--workers", "", "at least 1 worker", args.workers)
+    if args.scheduler is not None:
+        check_scheduler(args.scheduler)
+        if args.workers is not None:
+            raise ConfigError("--workers", "", "no --workers with --scheduler (the cluster's "
+                              "workers are started on their machines)", args.workers)
     hand = load_hand(args.hand)
     template = load_template(args.template, hand)
-    result = plan_recipe(template, hand, progress=_progress, models=args.models,
-                         budget=quick_budget() if args.quick else None)
+    with open_pool(args.workers, args.scheduler) as pool:
+        say(f"planning on {pool.where}")
+        try:
+            result = plan_recipe(template, hand, progress=say, models=args.models,
+                                 budget=quick_budget() if args.quick else None, executor=pool,
+                                 meter=Progress)
+        finally:
+            close_active()
     command = " ".join(["handctl plan", str(args.template), "-o", str(args.output)]
                        + (["--hand", str(args.hand)] if args.hand != DEFAULT_HAND else [])
                        + (["--models", str(args.models)] if args.models else [])
@@ -535,6 +550,12 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("--models", type=int, help="perturbed models (default: the template's)")
     plan.add_argument("--quick", action="store_true",
                       help="the smallest search (smoke tests): 1 generation of 2")
+    plan.add_argument("--workers", type=int, metavar="N",
+                      help="local worker processes (default: every core; 1 runs in this "
+                           "process); the recipe is the same for any N")
+    plan.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                      help="run the work on this Dask distributed cluster instead "
+                           "(pip install 'handctl[cluster]'; see docs/scale.md)")
     plan.set_defaults(func=_cmd_plan)
 
     rep = sub.add_parser(

@@ -30,6 +30,8 @@ from handctl.analysis.exact import exact_torque_set  # noqa: E402
 from handctl.analysis.model import load_scenario  # noqa: E402
 from handctl.analysis.oracle import lp_grid  # noqa: E402
 from handctl.analysis.slices import ratio_slice  # noqa: E402
+from handctl.executor import open_pool  # noqa: E402
+from handctl.progress import Progress, say  # noqa: E402
 
 PAPER_K = ((0.9, 0.1), (1.2, 0.5))
 
@@ -44,10 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeat", type=int, default=5, help="repetitions of the exact method")
     parser.add_argument("--tolerance", type=float, default=1e-6,
                         help="boundary tolerance, N·m")
-
-
-def _log(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+    parser.add_argument("--workers", type=int, default=1,
+                        help="processes for the LP grid (default 1: the speedup compares the "
+                             "two methods on one core)")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -76,9 +77,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             times.append(time.perf_counter() - start)
         exact_s += statistics.median(times)
 
-        _log(f"k = {k}: {args.grid}×{args.grid} grid of LPs ...")
+        say(f"k = {k}: {args.grid}×{args.grid} grid of LPs ...")
         start = time.perf_counter()
-        lp_real, lp_inside = lp_grid(conditions, torque_slice, xs, ys, progress=_log)
+        with open_pool(args.workers) as pool, Progress("LP grid rows", len(ys)) as bar:
+            lp_real, lp_inside = lp_grid(conditions, torque_slice, xs, ys, pool, bar)
         lp_s += time.perf_counter() - start
 
         differ_in = lp_inside.ravel() != exact_inside

@@ -12,7 +12,6 @@ machine (a benchmark figure, never a test).
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="degrees the pair must turn for a seed to count as a success")
     parser.add_argument("--nominal", action="store_true",
                         help="run the unperturbed hand once (what the CI test runs)")
+    parser.add_argument("--workers", type=int,
+                        help="local worker processes (default: every core)")
+    parser.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                        help="run the seeds on this Dask cluster (docs/scale.md)")
 
 
 def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
@@ -58,45 +61,25 @@ def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from handctl.config import load_hand
-    from handctl.planning.models import Spread, hand_with, perturb
+    from handctl.executor import open_pool
+    from handctl.portable import portable_hand
+    from handctl.progress import Progress, say
     from handctl.recipes.loader import load_recipe
-    from handctl.session import RunRequest, run_recipe
-    from handctl.sim.params import parse_sim
+    from handctl.sim.seed_run import SeedRun, run_seed
 
     hand = load_hand(args.hand)
     recipe = load_recipe(args.recipe, hand)
-    params = parse_sim(hand)
-    runs = []
     seeds = [None] if args.nominal else list(range(args.first_seed,
                                                    args.first_seed + args.seeds))
-    for seed in seeds:
-        if seed is None:
-            model_hand, scales, noise = hand, {}, 1.0
-            sensor_seed = 0
-        else:
-            rng = np.random.default_rng(seed)
-            model = perturb(params, rng, Spread())
-            noise = float(rng.uniform(0.5, 2.0))
-            model_hand = hand_with(hand, model.params, tdt_noise_scale=noise, seed=seed)
-            scales = model.scales
-            sensor_seed = seed
-        t0 = time.monotonic()
-        report = run_recipe(RunRequest(hand=model_hand, recipe=recipe, seed=sensor_seed))
-        wall = time.monotonic() - t0
-        ex = report.summary.get("experiment", {})
-        ok = bool(report.summary["completed"] and ex.get("lifted") and not ex.get("dropped")
-                  and ex.get("total_rotation_deg", 0.0) >= args.min_rotation)
-        runs.append({
-            "seed": seed, "success": ok, "outcome": report.summary["outcome"],
-            "lifted": ex.get("lifted"), "dropped": ex.get("dropped"),
-            "total_rotation_deg": ex.get("total_rotation_deg"),
-            "phase_angles_deg": ex.get("phase_angles_deg"),
-            "estimator_error_deg": ex.get("estimator_error_deg"),
-            "tdt_noise_scale": round(noise, 3),
-            "scales": {k: round(v, 3) for k, v in scales.items()}, "wall_s": round(wall, 2)})
-        print(f"seed {seed}: {'ok' if ok else 'FAIL'} lifted {ex.get('lifted')} dropped "
-              f"{ex.get('dropped')} turned {ex.get('total_rotation_deg')} deg "
-              f"({report.summary['outcome']}, {wall:.1f} s)", file=sys.stderr, flush=True)
+    tasks = [SeedRun(portable_hand(hand), recipe, seed, args.min_rotation) for seed in seeds]
+    with open_pool(args.workers, args.scheduler) as pool:
+        say(f"experiment on {pool.where}")
+        with Progress("seeds", len(tasks)) as bar:
+            runs = pool.map(run_seed, tasks, bar)
+    for r in runs:
+        say(f"seed {r['seed']}: {'ok' if r['success'] else 'FAIL'} lifted {r['lifted']} "
+            f"dropped {r['dropped']} turned {r['total_rotation_deg']} deg ({r['outcome']}, "
+            f"{r['wall_s']:.1f} s)")
     rotations = [r["total_rotation_deg"] or 0.0 for r in runs]
     errors = [r["estimator_error_deg"] for r in runs if r["estimator_error_deg"] is not None]
     p50, p99 = _estimator_cost_us(hand, recipe)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 from generated import write_or_check
@@ -117,15 +116,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--check", action="store_true", help="exit 1 if docs/faults.md is stale")
     parser.add_argument("--campaign", action="store_true",
                         help="run the fault campaign first and store its results")
+    parser.add_argument("--workers", type=int,
+                        help="with --campaign: local worker processes (default: every core)")
+    parser.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                        help="with --campaign: run the cases on this Dask cluster "
+                             "(docs/scale.md)")
     args = parser.parse_args(argv)
     if args.campaign:
         from dataclasses import asdict
 
         from handctl.config import load_hand
+        from handctl.executor import open_pool
+        from handctl.progress import Progress, say
         from handctl.sim.campaign import run_campaign
 
         hand = load_hand(ROOT / "config" / "hands" / "hiroshima_hand.yaml")
-        results = run_campaign(hand, progress=lambda line: print(line, file=sys.stderr))
+        with open_pool(args.workers, args.scheduler) as pool:
+            say(f"fault campaign on {pool.where}")
+            results = run_campaign(hand, progress=say, executor=pool, meter=Progress)
         CAMPAIGN.write_text(json.dumps([asdict(r) for r in results], indent=1) + "\n")
     text = render()
     return write_or_check("gen_fault_table.py", {OUT: text}, "docs/fault_campaign.json",

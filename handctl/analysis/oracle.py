@@ -19,7 +19,6 @@ error in the torque plane.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +28,8 @@ from handctl.analysis.conditions import Conditions
 from handctl.analysis.frames import Array, Mask
 from handctl.analysis.model import AnalysisError
 from handctl.analysis.slices import TorqueSlice
+from handctl.executor import WorkPool, open_pool
+from handctl.progress import Progress
 
 HIGHS_OPTIONS = {"primal_feasibility_tolerance": 1e-9, "dual_feasibility_tolerance": 1e-9}
 
@@ -72,19 +73,40 @@ def lp_values(conditions: Conditions, tau: Array, *, stop_early: bool = False) -
     return OracleResult(True, values)
 
 
+@dataclass(frozen=True)
+class GridRow:
+    """One row of an LP grid, as a task any worker can run (``handctl.executor``)."""
+
+    conditions: Conditions
+    torque_slice: TorqueSlice
+    xs: Array
+    y: float
+
+
+def lp_row(row: GridRow) -> tuple[Mask, Mask]:
+    """``(realisable, inside)`` along one row of the grid (see ``lp_grid``)."""
+    realisable = np.zeros(len(row.xs), dtype=bool)
+    inside = np.zeros(len(row.xs), dtype=bool)
+    for j, x in enumerate(row.xs):
+        u = np.array([x, row.y])
+        result = lp_values(row.conditions, row.torque_slice.torques(u), stop_early=True)
+        realisable[j] = result.realisable
+        inside[j] = result.inside and bool(row.torque_slice.within_limits(u)[0])
+    return realisable, inside
+
+
 def lp_grid(conditions: Conditions, torque_slice: TorqueSlice, xs: Array, ys: Array,
-            progress: Callable[[str], None] | None = None) -> tuple[Mask, Mask]:
+            executor: WorkPool | None = None, bar: Progress | None = None
+            ) -> tuple[Mask, Mask]:
     """Classify the grid ``(xs[j], ys[i])`` by LPs: ``(realisable, inside)`` masks of shape
     ``(len(ys), len(xs))``. Points beyond the torque limit are realisable-or-not as usual but
-    never inside. Stops evaluating a point at its first failed condition."""
-    realisable = np.zeros((len(ys), len(xs)), dtype=bool)
-    inside = np.zeros((len(ys), len(xs)), dtype=bool)
-    for i, y in enumerate(ys):
-        for j, x in enumerate(xs):
-            u = np.array([x, y])
-            result = lp_values(conditions, torque_slice.torques(u), stop_early=True)
-            realisable[i, j] = result.realisable
-            inside[i, j] = result.inside and bool(torque_slice.within_limits(u)[0])
-        if progress is not None and (i + 1) % 20 == 0:
-            progress(f"LP grid: {i + 1}/{len(ys)} rows")
+    never inside. Stops evaluating a point at its first failed condition. The rows are tasks
+    of ``executor`` (default: here, one after another); ``bar`` counts them."""
+    if executor is None:
+        with open_pool(workers=1) as inline:
+            return lp_grid(conditions, torque_slice, xs, ys, inline, bar)
+    rows = executor.map(lp_row, [GridRow(conditions, torque_slice, np.asarray(xs), float(y))
+                                 for y in ys], bar)
+    realisable = np.array([r for r, _ in rows], dtype=bool).reshape(len(ys), len(xs))
+    inside = np.array([i for _, i in rows], dtype=bool).reshape(len(ys), len(xs))
     return realisable, inside

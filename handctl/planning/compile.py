@@ -33,9 +33,11 @@ import numpy as np
 from handctl.analysis.model import AnalysisError
 from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
+from handctl.executor import WorkPool, open_pool
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.planning.grasp import GraspSnapshot, fixed_directions, grasp_of, turn_directions
 from handctl.planning.models import Model, model_set
+from handctl.planning.phase_task import PhaseTask, World, episode_of, run_phase_task, snapshot_of
 from handctl.planning.search import (
     GUARDED_LIMIT_FAIL,
     GUARDED_LIMIT_MARGIN,
@@ -48,7 +50,7 @@ from handctl.planning.search import (
     turn_scorer,
 )
 from handctl.planning.template import Template, TemplatePhase
-from handctl.recipes.guard import LimitGuard
+from handctl.progress import Progress
 from handctl.recipes.schema import Condition, Phase, TimeoutAction, parse_condition
 from handctl.schema import dump_yaml
 from handctl.sim.params import parse_sim
@@ -201,19 +203,27 @@ def _compiled_phase(spec: TemplatePhase, torques: tuple[float, ...],
 
 def plan_recipe(template: Template, hand: HandConfig, *,
                 progress: Callable[[str], None] | None = None,
-                models: int | None = None, budget: Budget | None = None) -> PlanResult:
-    """Plan every phase of ``template`` for ``hand`` (see the module doc)."""
+                models: int | None = None, budget: Budget | None = None,
+                executor: WorkPool | None = None,
+                meter: Callable[[str, int], Progress] | None = None) -> PlanResult:
+    """Plan every phase of ``template`` for ``hand`` (see the module doc).
+
+    The phases run on the models through ``executor`` (default: here, one after another);
+    the recipe is the same wherever they run. ``meter`` makes a progress bar per phase."""
+    if executor is None:
+        with open_pool(workers=1) as inline:
+            return plan_recipe(template, hand, progress=progress, models=models,
+                               budget=budget, executor=inline, meter=meter)
     say = progress or (lambda _m: None)
     settings = template.search
     count = models if models is not None else settings.models
     budget = budget or settings.budget
     params = parse_sim(hand)
     model_list = model_set(params, count, settings.seed, settings.spread)
-    guard = (LimitGuard.for_hand(hand, template.limit_guard_band)
-             if template.limit_guard_band is not None else None)
-    episodes = [Episode(hand, m.params, template.objects, guard) for m in model_list]
-    snaps: list[Snapshot] = [e.snapshot() for e in episodes]
-    alive = list(range(len(episodes)))
+    worlds = [World.of(hand, m.params, template.objects, template.limit_guard_band)
+              for m in model_list]
+    snaps: list[Snapshot] = [snapshot_of(w) for w in worlds]
+    alive = list(range(len(worlds)))
     rng = np.random.default_rng(settings.seed)
     limits = [j.tau_max for j in hand.joints]
     previous: tuple[float, ...] = (0.0,) * hand.n_joints
@@ -225,7 +235,7 @@ def plan_recipe(template: Template, hand: HandConfig, *,
             raise AnalysisError(f"no model holds the objects any more when phase "
                                 f"'{spec.name}' begins: the phases before it fail (widen the "
                                 "search or change the template)")
-        nominal = episodes[alive[0]]
+        nominal = episode_of(worlds[alive[0]])
         nominal.restore(snaps[alive[0]])
         if spec.kind == "lift" and spec.seed is not None:
             # fingertip pushing begins without contact: its grasp is where the seed's motion
@@ -238,7 +248,9 @@ def plan_recipe(template: Template, hand: HandConfig, *,
                 else f"  analysis: none ({analysis.reason})")
         chosen: Candidate | None = None
         search_doc: dict[str, Any] | None = None
+        bar: Progress | None = None
         if spec.kind == "free":
+            bar = meter(f"phase {spec.name}", len(alive)) if meter is not None else None
             assert spec.seed is not None
             torques = spec.seed
             origin = "template"
@@ -254,14 +266,17 @@ def plan_recipe(template: Template, hand: HandConfig, *,
                 seeds.append(("zero", previous))
             for k in range(settings.random_seeds):
                 seeds.append((f"random flexion {k + 1}", _flexion_seed(hand, rng)))
-            margin, fail = ((GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL) if guard is not None
+            margin, fail = ((GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL)
+                            if template.limit_guard_band is not None
                             else (LIMIT_MARGIN, LIMIT_FAIL))
             scorer = (turn_scorer(spec.turn, spec.max_s, margin) if spec.kind == "turn"
                       else hold_scorer(spec.min_height, open_pair=True, limit_margin=margin))
             trial = _compiled_phase(spec, seeds[0][1], hand)
-            result = cem([episodes[i] for i in alive], [snaps[i] for i in alive], trial,
-                         seeds, limits, scorer, rng, budget, lifted=lifted, progress=say,
-                         limit_fail=fail)
+            runs = (len(seeds) + budget.generations * budget.population + 1) * len(alive)
+            bar = meter(f"phase {spec.name}", runs) if meter is not None else None
+            result = cem([worlds[i] for i in alive], [snaps[i] for i in alive], trial,
+                         seeds, limits, scorer, rng, budget, executor, lifted=lifted,
+                         progress=say, limit_fail=fail, bar=bar)
             chosen = result.best
             torques = chosen.torques
             origin = chosen.origin
@@ -277,11 +292,14 @@ def plan_recipe(template: Template, hand: HandConfig, *,
                 "successes": chosen.successes,
             }
         phase = _compiled_phase(spec, torques, hand)
-        outcomes = []
-        for i in alive:
-            episodes[i].restore(snaps[i])
-            outcomes.append(episodes[i].run_phase(phase, lifted=lifted))
-            snaps[i] = episodes[i].snapshot()
+        ran = executor.map(run_phase_task, [PhaseTask(worlds[i], snaps[i], phase, lifted,
+                                                      keep_state=True) for i in alive], bar)
+        if bar is not None:
+            bar.close()
+        outcomes = [outcome for outcome, _ in ran]
+        for i, (_, snap) in zip(alive, ran, strict=True):
+            assert snap is not None
+            snaps[i] = snap
         survivors = [i for i, o in zip(alive, outcomes, strict=True)
                      if not o.failed and o.in_hand]
         say(f"  chosen from {origin}: " + ", ".join(

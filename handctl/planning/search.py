@@ -25,7 +25,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from handctl.planning.episode import Episode, PhaseOutcome, Snapshot, with_torques
+from handctl.executor import WorkPool
+from handctl.planning.episode import PhaseOutcome, Snapshot, with_torques
+from handctl.planning.phase_task import PhaseTask, World, run_phase_task
+from handctl.progress import Progress
 from handctl.recipes.schema import Phase
 
 #: weight of the spread over models in a candidate's score (robustness over luck)
@@ -96,36 +99,45 @@ class SearchResult:
 Scorer = Callable[[PhaseOutcome], float]
 
 
-def evaluate(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase,
-             torques: Sequence[float] | np.ndarray, scorer: Scorer, *, lifted: bool,
-             limit_fail: float = LIMIT_FAIL) -> Candidate:
-    """Run ``phase`` with ``torques`` on every model from its snapshot; score them together."""
-    trial = with_torques(phase, torques)
-    outcomes = []
-    for episode, snap in zip(episodes, snapshots, strict=True):
-        episode.restore(snap)
-        outcomes.append(episode.run_phase(trial, lifted=lifted))
-    scores = np.array([scorer(o) for o in outcomes])
-    score = float(scores.mean() - SPREAD_WEIGHT * scores.std())
-    return Candidate(tuple(float(t) for t in torques), score, outcomes, "",
-                     [float(s) for s in scores], limit_fail)
+def evaluate(worlds: Sequence[World], snapshots: Sequence[Snapshot], phase: Phase,
+             candidates: Sequence[Sequence[float] | np.ndarray], scorer: Scorer,
+             executor: WorkPool, *, lifted: bool, limit_fail: float = LIMIT_FAIL,
+             bar: Progress | None = None) -> list[Candidate]:
+    """Run ``phase`` with each candidate's torques on every model from its snapshot, all of
+    them as one batch of tasks for ``executor``; score each candidate over the models
+    together (the scorer runs here: it is a closure, and cheap)."""
+    tasks = [PhaseTask(world, snap, with_torques(phase, torques), lifted)
+             for torques in candidates
+             for world, snap in zip(worlds, snapshots, strict=True)]
+    results = executor.map(run_phase_task, tasks, bar)
+    out = []
+    n = len(worlds)
+    for k, torques in enumerate(candidates):
+        outcomes = [outcome for outcome, _ in results[k * n:(k + 1) * n]]
+        scores = np.array([scorer(o) for o in outcomes])
+        score = float(scores.mean() - SPREAD_WEIGHT * scores.std())
+        out.append(Candidate(tuple(float(t) for t in torques), score, outcomes, "",
+                             [float(s) for s in scores], limit_fail))
+    return out
 
 
-def cem(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase,
+def cem(worlds: Sequence[World], snapshots: Sequence[Snapshot], phase: Phase,
         seeds: Sequence[tuple[str, Sequence[float]]], tau_max: Sequence[float],
-        scorer: Scorer, rng: np.random.Generator, budget: Budget, *, lifted: bool,
-        progress: Callable[[str], None] | None = None,
-        limit_fail: float = LIMIT_FAIL) -> SearchResult:
-    """Cross-entropy search around the seeds; returns the best candidate ever evaluated."""
+        scorer: Scorer, rng: np.random.Generator, budget: Budget, executor: WorkPool, *,
+        lifted: bool, progress: Callable[[str], None] | None = None,
+        limit_fail: float = LIMIT_FAIL, bar: Progress | None = None) -> SearchResult:
+    """Cross-entropy search around the seeds; returns the best candidate ever evaluated.
+
+    A generation is drawn whole before any of it runs (the draws do not depend on the
+    outcomes within it), so its candidates run in parallel and the result is the same on
+    any executor."""
     limit = np.asarray(tau_max, dtype=float)
     say = progress or (lambda _m: None)
-    seeded = []
-    for origin, torques in seeds:
-        cand = evaluate(episodes, snapshots, phase, np.clip(torques, -limit, limit), scorer,
-                        lifted=lifted, limit_fail=limit_fail)
+    seeded = evaluate(worlds, snapshots, phase, [np.clip(t, -limit, limit) for _, t in seeds],
+                      scorer, executor, lifted=lifted, limit_fail=limit_fail, bar=bar)
+    for (origin, _), cand in zip(seeds, seeded, strict=True):
         cand.origin = origin
-        seeded.append(cand)
-        say(f"  seed {origin}: score {cand.score:+.3f} ({cand.successes}/{len(episodes)})")
+        say(f"  seed {origin}: score {cand.score:+.3f} ({cand.successes}/{len(worlds)})")
     best = max(seeded, key=Candidate.rank)
     mean = np.array(best.torques)
     spread = np.full(len(limit), budget.initial_spread) * limit
@@ -133,13 +145,12 @@ def cem(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase
     history = [best.score]
     pool = list(seeded)
     for gen in range(budget.generations):
-        population = []
-        for _ in range(budget.population):
-            torques = np.clip(mean + spread * rng.standard_normal(len(limit)), -limit, limit)
-            cand = evaluate(episodes, snapshots, phase, torques, scorer, lifted=lifted,
-                            limit_fail=limit_fail)
+        drawn = [np.clip(mean + spread * rng.standard_normal(len(limit)), -limit, limit)
+                 for _ in range(budget.population)]
+        population = evaluate(worlds, snapshots, phase, drawn, scorer, executor, lifted=lifted,
+                              limit_fail=limit_fail, bar=bar)
+        for cand in population:
             cand.origin = f"search generation {gen + 1}"
-            population.append(cand)
         evaluated += len(population)
         pool = sorted(pool + population, key=Candidate.rank, reverse=True)
         elite = pool[:budget.elite]
@@ -150,7 +161,7 @@ def cem(episodes: Sequence[Episode], snapshots: Sequence[Snapshot], phase: Phase
         spread = np.maximum(stack.std(axis=0), budget.min_spread * limit)
         history.append(best.score)
         say(f"  generation {gen + 1}: best {best.score:+.3f} ({best.successes}/"
-            f"{len(episodes)})")
+            f"{len(worlds)})")
     return SearchResult(best, seeded, evaluated, history)
 
 

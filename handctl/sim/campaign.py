@@ -33,7 +33,10 @@ from handctl.bus import HandBus, open_bus
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
+from handctl.executor import WorkPool, open_pool
 from handctl.loop import Outcome, RunResult, Runtime
+from handctl.portable import local_hand, portable_hand
+from handctl.progress import Progress
 from handctl.protocol import load_protocol
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
@@ -343,20 +346,54 @@ def _drive(hand: HandConfig, injector: str, phase: str, sim: SimulatedHand, runt
     return result, recovered, unsafe, len(wire), inject_tick, ticks
 
 
+@dataclass(frozen=True)
+class CaseTask:
+    """One case as a task any worker can run (``handctl.executor``): the hand travels as
+    data, and the log comes back as bytes when asked for, since a worker's files are not the
+    caller's."""
+
+    hand: HandConfig  # a ``portable_hand``
+    injector: str
+    phase: str
+    seed: int = 0
+    keep_log: bool = False
+
+
+def run_case_task(task: CaseTask) -> tuple[CaseResult, bytes | None]:
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / f"{task.injector}-{task.phase}.mcap"
+        result = run_case(local_hand(task.hand), task.injector, task.phase, task.seed, log=log)
+        return result, (log.read_bytes() if task.keep_log else None)
+
+
 def run_campaign(hand: HandConfig, progress: Callable[[str], None] | None = None,
-                 injectors: list[str] | None = None, log_dir: Path | None = None
-                 ) -> list[CaseResult]:
-    """Every case; with ``log_dir`` each case's log is kept there as INJECTOR-PHASE.mcap."""
+                 injectors: list[str] | None = None, log_dir: Path | None = None,
+                 executor: WorkPool | None = None,
+                 meter: Callable[[str, int], Progress] | None = None) -> list[CaseResult]:
+    """Every case; with ``log_dir`` each case's log is kept there as INJECTOR-PHASE.mcap.
+
+    The cases are independent, so they run as tasks of ``executor`` (default: here, one
+    after another); the results come in the campaign's order wherever they ran."""
+    if executor is None:
+        with open_pool(workers=1) as inline:
+            return run_campaign(hand, progress, injectors, log_dir, inline, meter)
+    tasks = [CaseTask(portable_hand(hand), injector, phase, keep_log=log_dir is not None)
+             for injector in injectors or list(CASES) for phase, _ in PHASES]
+    bar = meter("cases", len(tasks)) if meter is not None else None
+    try:
+        done = executor.map(run_case_task, tasks, bar)
+    finally:
+        if bar is not None:
+            bar.close()
     results = []
-    for injector in injectors or list(CASES):
-        for phase, _ in PHASES:
-            log = log_dir / f"{injector}-{phase}.mcap" if log_dir is not None else None
-            results.append(run_case(hand, injector, phase, log=log))
-            if progress is not None:
-                r = results[-1]
-                progress(f"{injector:<17} {phase:<13} {r.fault or 'no fault':<17} "
-                         f"{r.latency_ms if r.latency_ms is not None else '-':>6} ms "
-                         f"unsafe {r.unsafe_frames} logged {'yes' if r.logged else 'NO'}")
+    for r, data in done:
+        if log_dir is not None and data is not None:
+            (log_dir / f"{r.injector}-{r.phase}.mcap").write_bytes(data)
+        results.append(r)
+        if progress is not None:
+            progress(f"{r.injector:<17} {r.phase:<13} {r.fault or 'no fault':<17} "
+                     f"{r.latency_ms if r.latency_ms is not None else '-':>6} ms "
+                     f"unsafe {r.unsafe_frames} logged {'yes' if r.logged else 'NO'}")
     return results
 
 

@@ -1,0 +1,200 @@
+"""Where offline work runs: in this process, on a local process pool, or on a Dask cluster.
+
+The offline plane (a plan's candidate scoring, the experiment bench's seeds, the fault
+campaign's cases, the analysis' grid) is many independent tasks. ``open_pool`` gives one
+``WorkPool`` for all of them, behind the standard ``concurrent.futures.Executor``:
+
+- ``workers=1``: the tasks run here, one after another (no process, nothing to pickle);
+- ``workers=N`` (default: every core this process may use): a local process pool of N;
+- ``scheduler="tcp://HOST:PORT"``: the tasks go to a Dask distributed cluster
+  (``Client.get_executor()``). Dask is imported only then; it is the ``cluster`` extra.
+
+What makes the result independent of where and how widely the work ran is the caller's part
+of the contract: a task is a top-level function of picklable data only (no open file, no path
+a worker would have to read, no random generator shared between tasks), and ``WorkPool.map``
+returns the results in the order of the inputs, whatever order they finished in.
+
+Cancelling (Ctrl-C, or any error) cancels every task not yet started and stops the local
+workers, so nothing is left running: local workers ignore SIGINT (a terminal sends it to the
+whole process group) and are terminated by the pool, which is the one that knows they exist;
+a worker whose owner was killed outright ends by itself.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import importlib
+import os
+import re
+import signal
+import threading
+import time
+from collections.abc import Callable, Sequence
+from multiprocessing import get_context
+from types import TracebackType
+from typing import Any, TypeVar
+
+from handctl.errors import ConfigError
+from handctl.progress import Progress
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+#: s, how long a terminated local worker gets to exit before it is killed
+TERMINATE_GRACE_S = 2.0
+#: s, how often a local worker checks that the process that started it is still there
+OWNER_POLL_S = 0.5
+#: s, how long connecting to a Dask scheduler may take
+CONNECT_TIMEOUT_S = 10.0
+_SCHEDULER = re.compile(r"^(tcp|tls|ws|wss|inproc)://[^\s/:]+(:\d{1,5})?$")
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its affinity, not the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class InlineExecutor(cf.Executor):
+    """Runs each task when it is submitted: the one-worker case, and a debugger's friend."""
+
+    def submit(self, fn: Callable[..., R], /, *args: Any, **kwargs: Any) -> cf.Future[R]:
+        future: cf.Future[R] = cf.Future()
+        future.set_running_or_notify_cancel()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except Exception as exc:  # KeyboardInterrupt and SystemExit go straight up
+            future.set_exception(exc)
+        return future
+
+
+def _start_worker(owner: int) -> None:
+    """A local worker leaves Ctrl-C to the pool's owner, who stops it; and it ends when the
+    owner is gone without stopping it (killed), rather than run its task to the end."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def watch() -> None:
+        while os.getppid() == owner:
+            time.sleep(OWNER_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="handctl-owner-watch", daemon=True).start()
+
+
+class WorkPool:
+    """One executor for offline work, with an ordered, cancellable ``map``."""
+
+    def __init__(self, executor: cf.Executor, workers: int, where: str,
+                 close: Callable[[bool], None]) -> None:
+        self.executor = executor
+        self.workers = workers
+        self.where = where
+        self._close = close
+        self._closed = False
+        self.tasks_run = 0  # tasks whose results came back (what a rate is counted in)
+
+    def map(self, fn: Callable[[T], R], items: Sequence[T],
+            progress: Progress | None = None) -> list[R]:
+        """``[fn(x) for x in items]``, run by the pool; results in the order of ``items``.
+
+        The first task to fail fails the whole map (the rest are cancelled), and its
+        exception is raised here; ``progress`` advances as tasks finish, in any order."""
+        if isinstance(self.executor, InlineExecutor):  # one by one, so progress moves
+            results = []
+            for item in items:
+                results.append(fn(item))
+                self.tasks_run += 1
+                if progress is not None:
+                    progress.advance()
+            return results
+        futures = [self.executor.submit(fn, item) for item in items]
+        try:
+            for future in cf.as_completed(futures):
+                future.result()  # raises the task's exception at once
+                if progress is not None:
+                    progress.advance()
+            self.tasks_run += len(futures)
+            return [f.result() for f in futures]
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+
+    def close(self, cancel: bool = False) -> None:
+        """Release the workers; with ``cancel``, stop what is still running first."""
+        if not self._closed:
+            self._closed = True
+            self._close(cancel)
+
+    def __enter__(self) -> WorkPool:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, _exc: BaseException | None,
+                 _tb: TracebackType | None) -> None:
+        self.close(cancel=kind is not None)
+
+
+def check_scheduler(address: str) -> str:
+    """The scheduler's address as Dask takes it, or a ``ConfigError`` naming the option."""
+    if not _SCHEDULER.match(address):
+        raise ConfigError("--scheduler", "", "a Dask scheduler address like tcp://HOST:8786",
+                          address)
+    return address
+
+
+def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkPool:
+    """A pool of ``workers`` local processes (default: every core), or the Dask cluster whose
+    scheduler is at ``scheduler`` (then ``workers`` is the cluster's business)."""
+    if scheduler is not None:
+        return _dask_pool(check_scheduler(scheduler))
+    if workers is not None and workers < 1:
+        raise ConfigError("--workers", "", "at least 1 worker", workers)
+    count = workers if workers is not None else available_cores()
+    if count == 1:
+        return WorkPool(InlineExecutor(), 1, "this process", lambda _cancel: None)
+    # spawn, not fork: a worker starts from the installed package alone, as a cluster's does,
+    # and inherits no thread, lock or open file of the caller
+    pool = cf.ProcessPoolExecutor(max_workers=count, mp_context=get_context("spawn"),
+                                  initializer=_start_worker, initargs=(os.getpid(),))
+
+    def close(cancel: bool) -> None:
+        if not cancel:
+            pool.shutdown(wait=True)
+            return
+        processes = list(getattr(pool, "_processes", {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.join(TERMINATE_GRACE_S)
+            if process.is_alive():
+                process.kill()
+                process.join()
+
+    return WorkPool(pool, count, f"{count} local processes", close)
+
+
+def _dask_pool(address: str) -> WorkPool:
+    try:
+        distributed: Any = importlib.import_module("distributed")
+    except ImportError:
+        raise ConfigError("--scheduler", "", "Dask distributed installed (pip install "
+                          "'handctl[cluster]')", address) from None
+    try:
+        client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise ConfigError("--scheduler", "", "a reachable Dask scheduler",
+                          f"{address} ({exc})") from None
+    # pure=False: every submission runs (a pure task of equal inputs would be shared, which is
+    # correct but makes a repeated candidate cost nothing and the counts lie)
+    executor = client.get_executor(pure=False)
+    workers = len(client.scheduler_info().get("workers", {}))
+
+    def close(cancel: bool) -> None:
+        executor.shutdown(wait=not cancel)
+        client.close()
+
+    return WorkPool(executor, workers, f"the Dask cluster at {address} ({workers} workers)",
+                    close)

@@ -1,0 +1,96 @@
+"""A phase on one model as a task any worker can run: the unit of a plan's parallel work.
+
+A task carries everything the episode needs as data (the hand config as parsed, the model's
+simulation parameters, the objects, the guard band, the snapshot to start from), so a worker
+on another machine needs nothing but the installed package: no file, no path, no state left by
+earlier tasks that could change a result. A worker keeps the MuJoCo models it built (keyed by
+the model's digest), because building one costs more than most phases; a kept episode is always
+restored from the task's snapshot first, so reusing it cannot change the outcome.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import pickle
+from collections import OrderedDict
+from dataclasses import dataclass
+
+from handctl.config import HandConfig
+from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
+from handctl.portable import local_hand, portable_hand
+from handctl.recipes.guard import LimitGuard
+from handctl.recipes.schema import Phase, RecipeObject
+from handctl.sim.params import SimParams
+
+#: episodes one worker keeps (a plan uses one per model; more are rebuilt when needed)
+KEPT_EPISODES = 64
+
+
+@dataclass(frozen=True)
+class World:
+    """One model of the hand, as data: what a worker rebuilds an ``Episode`` from."""
+
+    hand: HandConfig  # a ``portable_hand``
+    params: SimParams
+    objects: tuple[RecipeObject, ...]
+    guard_band: float | None
+    digest: str
+
+    @classmethod
+    def of(cls, hand: HandConfig, params: SimParams, objects: tuple[RecipeObject, ...],
+           guard_band: float | None) -> World:
+        portable = portable_hand(hand)
+        digest = hashlib.sha256(pickle.dumps((portable, params, objects, guard_band))
+                                ).hexdigest()
+        return cls(portable, params, objects, guard_band, digest)
+
+    def episode(self) -> Episode:
+        hand = local_hand(self.hand)
+        guard = (LimitGuard.for_hand(hand, self.guard_band) if self.guard_band is not None
+                 else None)
+        return Episode(hand, self.params, self.objects, guard)
+
+
+@dataclass(frozen=True)
+class PhaseTask:
+    """Run ``phase`` on ``world`` from ``snapshot``; ``keep_state`` returns where it ended."""
+
+    world: World
+    snapshot: Snapshot
+    phase: Phase
+    lifted: bool
+    keep_state: bool = False
+
+
+_kept: OrderedDict[str, Episode] = OrderedDict()
+
+
+def episode_of(world: World) -> Episode:
+    """This process's episode of ``world`` (built once, kept for the next tasks)."""
+    episode = _kept.get(world.digest)
+    if episode is None:
+        episode = world.episode()
+        _kept[world.digest] = episode
+        while len(_kept) > KEPT_EPISODES:
+            _kept.popitem(last=False)
+    else:
+        _kept.move_to_end(world.digest)
+    return episode
+
+
+def run_phase_task(task: PhaseTask) -> tuple[PhaseOutcome, Snapshot | None]:
+    """The outcome of the task's phase, and the state it ended in if asked for."""
+    episode = episode_of(task.world)
+    episode.restore(task.snapshot)
+    outcome = episode.run_phase(task.phase, lifted=task.lifted)
+    return outcome, (episode.snapshot() if task.keep_state else None)
+
+
+def snapshot_of(world: World) -> Snapshot:
+    """Where ``world`` starts (its configured initial state): from a new episode, since a kept
+    one is wherever its last task left it."""
+    episode = world.episode()
+    _kept[world.digest] = episode
+    _kept.move_to_end(world.digest)
+    return episode.snapshot()
+

@@ -1,0 +1,139 @@
+"""The one executor of offline work: results in input order whatever order tasks finish in, a
+failing task fails the map, cancelling stops the local workers, bad options are named."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import psutil
+import pytest
+
+from handctl.errors import ConfigError
+from handctl.executor import available_cores, check_scheduler, open_pool
+from handctl.progress import Progress
+
+from ..conftest import ROOT
+
+#: a process that opens a pool of two, keeps both workers busy, says their ids and waits
+OWNER = """
+import os, sys, time
+from handctl.executor import open_pool
+from tests.unit.test_executor import sleep_long
+pool = open_pool(2)
+futures = [pool.executor.submit(sleep_long, i) for i in range(2)]
+import psutil
+me = psutil.Process()
+while len([c for c in me.children() if 'spawn_main' in ' '.join(c.cmdline())]) < 2:
+    time.sleep(0.1)
+print(' '.join(str(c.pid) for c in me.children()), flush=True)
+time.sleep(600)
+"""
+
+
+def later_first(item: tuple[int, int]) -> tuple[int, int]:
+    """Task ``i`` of ``n`` waits longer the earlier it is: they finish in reverse order."""
+    i, n = item
+    time.sleep(0.05 * (n - i))
+    return i, os.getpid()
+
+
+def fail_on_three(i: int) -> int:
+    if i == 3:
+        raise ValueError("task 3 cannot")
+    return i
+
+
+def sleep_long(_: int) -> int:
+    time.sleep(120.0)
+    return 0
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_results_come_in_input_order(workers: int) -> None:
+    import io
+
+    out = io.StringIO()
+    with open_pool(workers) as pool:
+        bar = Progress("t", 6, stream=out, terminal=False)
+        results = pool.map(later_first, [(i, 6) for i in range(6)], bar)
+        bar.close()
+    assert [i for i, _ in results] == list(range(6))
+    assert out.getvalue().splitlines()[-1].startswith("t: 6/6 in ")
+    pids = {pid for _, pid in results}
+    assert (pids == {os.getpid()}) if workers == 1 else (os.getpid() not in pids)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_failing_task_fails_the_map(workers: int) -> None:
+    with open_pool(workers) as pool, pytest.raises(ValueError, match="task 3 cannot"):
+        pool.map(fail_on_three, list(range(8)))
+
+
+def test_cancelling_stops_the_local_workers() -> None:
+    me = psutil.Process()
+    before = {p.pid for p in me.children(recursive=True)}
+    pool = open_pool(2)
+    futures = [pool.executor.submit(sleep_long, i) for i in range(4)]
+    workers = [p for p in me.children(recursive=True) if p.pid not in before]
+    assert len(workers) >= 2
+    pool.close(cancel=True)
+    _, alive = psutil.wait_procs(workers, timeout=10.0)
+    assert alive == []
+    assert all(f.cancelled() or f.done() for f in futures)
+
+
+def test_default_is_every_core_this_process_may_use() -> None:
+    with open_pool() as pool:
+        assert pool.workers == available_cores() == len(os.sched_getaffinity(0))
+
+
+def test_bad_options_are_named() -> None:
+    with pytest.raises(ConfigError, match=r"--workers: expected at least 1 worker, found 0"):
+        open_pool(0)
+    with pytest.raises(ConfigError, match=r"--scheduler: expected a Dask scheduler address "
+                                          r"like tcp://HOST:8786, found 'localhost:8786'"):
+        check_scheduler("localhost:8786")
+    assert check_scheduler("tcp://10.0.0.5:8786") == "tcp://10.0.0.5:8786"
+
+
+def test_an_unreachable_scheduler_is_named() -> None:
+    with pytest.raises(ConfigError, match=r"--scheduler: expected a reachable Dask scheduler, "
+                                          r"found 'tcp://127.0.0.1:9 \("):
+        open_pool(scheduler="tcp://127.0.0.1:9")
+
+
+def test_workers_end_when_their_owner_is_killed() -> None:
+    with subprocess.Popen([sys.executable, "-c", OWNER], cwd=ROOT, stdout=subprocess.PIPE,
+                          text=True) as owner:
+        try:
+            assert owner.stdout is not None
+            pids = [int(x) for x in owner.stdout.readline().split()]
+            workers = [psutil.Process(pid) for pid in pids]
+            assert len(workers) >= 2
+            owner.send_signal(signal.SIGKILL)
+            owner.wait(timeout=30)
+            _, alive = psutil.wait_procs(workers, timeout=20.0)
+            assert alive == []
+        finally:
+            if owner.poll() is None:
+                owner.kill()
+
+
+def test_one_worker_advances_the_progress_task_by_task() -> None:
+    import io
+
+    bar = Progress("t", 4, stream=io.StringIO(), terminal=False)
+    seen: list[int] = []
+
+    def task(i: int) -> int:
+        seen.append(bar.done)
+        return i
+
+    with open_pool(1) as pool:
+        assert pool.map(task, [0, 1, 2, 3], bar) == [0, 1, 2, 3]
+    assert seen == [0, 1, 2, 3]
+    assert pool.tasks_run == 4
