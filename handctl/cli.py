@@ -370,6 +370,57 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return status
 
 
+# -- bring-up ----------------------------------------------------------------------------------
+def _positive_seconds(value: float | None, default: float) -> float:
+    """``--seconds``: a positive, finite time; bad input is refused before anything starts."""
+    if value is None:
+        return default
+    if not 0 < value < 1e6:
+        raise ConfigError("--seconds", "", "a time in seconds > 0", value)
+    return value
+
+
+def _cmd_nodes(args: argparse.Namespace) -> int:
+    import json
+
+    from handctl.bringup.nodes import survey
+    from handctl.bringup.peer import listening_bus
+    from handctl.config import load_hand
+    from handctl.protocol import load_protocol
+
+    hand = load_hand(args.hand)
+    protocol = load_protocol()
+    seconds = _positive_seconds(args.seconds, 1.0)
+    with listening_bus(args.bus, hand) as bus:
+        result = survey(hand, protocol, bus, seconds)
+    if args.json:
+        print(json.dumps(result.as_dict(), indent=2))
+        return EXIT_OK if result.ok else EXIT_FAILED
+    where = (result.bus if args.bus != "sim"
+             else f"sim (a simulated hand this command started on {result.bus})")
+    print(f"{hand.name} on {where}: listened {result.seconds:.2f} s, sent nothing; "
+          f"host protocol {result.host_protocol}")
+    print(f"{'node':<9} {'state':<9} {'faults':<16} {'proto':>5} {'firmware':>8} "
+          f"{'fb Hz':>6} {'hb':>3} {'st':>3} {'uptime s':>9} {'host rejects':<14} "
+          f"{'node rejects':<13} problem")
+    for row in result.rows:
+        uptime = "-" if row.uptime_ms is None else f"{row.uptime_ms / 1e3:.1f}"
+        host = ",".join(f"{k} {v}" for k, v in row.host_rejects.items()) or "0"
+        theirs = ("-" if row.node_rejects is None
+                  else "/".join(str(v) for v in row.node_rejects.values()))
+        proto = "-" if row.protocol_version is None else str(row.protocol_version)
+        print(f"{row.node_id} {row.name:<7} {row.state:<9} {','.join(row.faults) or '-':<16} "
+              f"{proto:>5} {row.firmware:>8} {row.feedback_hz:>6.0f} {row.heartbeats:>3} "
+              f"{row.statuses:>3} {uptime:>9} {host:<14} {theirs:<13} "
+              f"{row.problem or 'ok'}")
+    for fid, (what, count) in sorted(result.foreign.items()):
+        print(f"  id 0x{fid:03X}: {count} frames, {what}")
+    if result.bus_events:
+        print("  bus events: " + ", ".join(f"{k} {v}" for k, v in result.bus_events.items()))
+    print("  (node rejects: crc/counter/length, as the node's Status reports them)")
+    return EXIT_OK if result.ok else EXIT_FAILED
+
+
 # -- parser --------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -476,6 +527,24 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("--quick", action="store_true",
                       help="the smallest search (smoke tests): 1 generation of 2")
     plan.set_defaults(func=_cmd_plan)
+
+    nodes = sub.add_parser(
+        "nodes", help="list the hand's nodes as the bus shows them (listens, never sends)",
+        description="Listen for the nodes' Feedback, Status and Heartbeat and print one row "
+                    "per configured node: present or missing, state, fault bits, protocol and "
+                    "firmware versions, feedback rate, counters, rejects; frames of nodes not "
+                    "in the hand config are flagged. Sends nothing. On --bus sim (the default) "
+                    "a simulated hand is started in this process to listen to.",
+        epilog="Exit 0 when every configured node is there, in no fault, of the host's "
+               "protocol version, and no other node is heard; 1 otherwise.")
+    nodes.add_argument("--bus", default="sim",
+                       help="sim (default), hand (the config's bus), socketcan:can0, "
+                            "unix:DIR, virtual:NAME, INTERFACE:CHANNEL")
+    nodes.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                       help=f"hand config (default {DEFAULT_HAND})")
+    nodes.add_argument("--seconds", type=float, help="how long to listen (default 1)")
+    nodes.add_argument("--json", action="store_true", help="print the result as JSON")
+    nodes.set_defaults(func=_cmd_nodes)
 
     rep = sub.add_parser(
         "replay", help="summarise, plot, re-run or replay a recording",
