@@ -421,6 +421,94 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
     return EXIT_OK if result.ok else EXIT_FAILED
 
 
+def _positive(option: str, value: float | None, default: float, unit: str) -> float:
+    if value is None:
+        return default
+    if not 0 < value < 1e6:
+        raise ConfigError(option, "", f"a value > 0 {unit}", value)
+    return value
+
+
+def _run_outcome(report: Any) -> int | None:
+    """Exit code of a bring-up run that did not complete (None if it did), said on stderr."""
+    from handctl.loop import Outcome
+
+    for warning in report.warnings:
+        print(f"handctl: warning: {warning}", file=sys.stderr)
+    result = report.result
+    if result.outcome is Outcome.COMPLETED:
+        return None
+    if result.outcome is Outcome.INTERRUPTED:
+        print(f"handctl: stopped: {result.message}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"handctl: safety stop: {result.message}", file=sys.stderr)
+    return EXIT_SAFETY_STOP
+
+
+def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
+    import json
+
+    from handctl.bringup.calibrate import CalibrationLimits, calibrate_tdt
+    from handctl.bringup.hand_edit import format_offset, with_tdt_offsets
+    from handctl.config import load_hand
+
+    hand = load_hand(args.hand)
+    if args.output is None and not args.write:
+        raise ConfigError("-o", "", "a file for the calibrated copy (or --write to overwrite "
+                          f"{args.hand})", "nothing")
+    target = args.hand if args.output is None else args.output
+    if (args.output is not None and not args.write and args.output.exists()
+            and args.output.resolve() == args.hand.resolve()):
+        raise ConfigError("-o", "", f"another file than the hand config (--write overwrites "
+                          f"{args.hand})", str(args.output))
+    if not target.parent.is_dir():
+        raise ConfigError("-o", "", "a file in an existing directory", str(target))
+    limits = CalibrationLimits(
+        max_span=_positive("--max-span", args.max_span, CalibrationLimits.max_span, "rad"),
+        max_noise=_positive("--max-noise", args.max_noise, CalibrationLimits.max_noise, "N·m"),
+        max_offset=_positive("--max-offset", args.max_offset, CalibrationLimits.max_offset,
+                             "N·m"))
+    measure = _positive_seconds(args.seconds, 1.0)
+    settle = 2.0 if args.settle is None else args.settle
+    if not 0 <= settle < 1e6:
+        raise ConfigError("--settle", "", "a time in seconds >= 0", settle)
+    text = args.hand.read_text(encoding="utf-8")
+    calibration = calibrate_tdt(hand, bus=args.bus, settle_s=settle, measure_s=measure,
+                                limits=limits, lockstep=False if args.realtime else None,
+                                seed=args.seed, sim_faults=args.sim_faults,
+                                reset_node_faults=args.reset_node_faults,
+                                realtime_priority=args.rt)
+    stopped = _run_outcome(calibration.report)
+    if stopped is not None:
+        return stopped
+    print(f"TDT offsets of {hand.name} at zero torque, {calibration.samples} samples "
+          f"({measure:g} s after {settle:g} s to settle):")
+    print(f"{'joint':<8} {'offset before':>13} {'offset after':>12} {'mean':>9} {'noise':>8} "
+          f"{'moved':>10}  problem")
+    for j in calibration.joints:
+        print(f"{j.name:<8} {j.old_offset:>+13.4f} {float(format_offset(j.new_offset)):>+12.4f} "
+              f"{j.mean:>+9.4f} {j.noise:>8.4f} {j.angle_span:>6.4f} rad  {j.problem or 'ok'}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(
+            {"samples": calibration.samples,
+             "joints": [j.as_dict() for j in calibration.joints]}, indent=2) + "\n")
+    if calibration.problems:
+        print("handctl: calibration refused, nothing written: "
+              + "; ".join(calibration.problems), file=sys.stderr)
+        return EXIT_FAILED
+    edited = with_tdt_offsets(text, hand, calibration.offsets)
+    if edited.dumped:
+        print(f"handctl: warning: {args.hand} could not be edited in place ({edited.why}); "
+              "written as a plain dump, without its comments and layout", file=sys.stderr)
+    target.write_text(edited.text, encoding="utf-8")
+    new_hash = load_hand(target).config_hash
+    print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))
+    if new_hash != hand.config_hash:
+        print(f"  the config hash changes from {hand.config_hash} to {new_hash}: recipes "
+              "compiled for the old one must be planned again (handctl plan)")
+    return EXIT_OK
+
+
 # -- parser --------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -545,6 +633,47 @@ def build_parser() -> argparse.ArgumentParser:
     nodes.add_argument("--seconds", type=float, help="how long to listen (default 1)")
     nodes.add_argument("--json", action="store_true", help="print the result as JSON")
     nodes.set_defaults(func=_cmd_nodes)
+
+    calibrate = sub.add_parser("calibrate", help="calibrate the hand's sensors",
+                               description="Calibrate the hand's sensors through the Runtime "
+                                           "and the safety supervisor.")
+    calibrations = calibrate.add_subparsers(dest="what", metavar="WHAT", required=True)
+    tdt = calibrations.add_parser(
+        "tdt", help="measure each TDT sensor's offset and noise at zero torque",
+        description="Enable every node at zero torque (through the Runtime and the supervisor), "
+                    "let the fingers settle, measure each TDT sensor's offset and noise, and "
+                    "write a copy of the hand config with the new offsets (comments and layout "
+                    "kept). Refused, naming the joint, if a joint moves or a sensor's noise or "
+                    "offset is implausible. Default bus: the simulated hand, in lockstep.",
+        epilog="Exit 0 written, 1 refused (nothing written), 2 bad input, 3 safety stop, "
+               "130 interrupted (Ctrl-C: a controlled stop).")
+    tdt.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                     help=f"hand config (default {DEFAULT_HAND})")
+    tdt.add_argument("-o", "--output", type=Path, metavar="HAND.yaml",
+                     help="where to write the calibrated copy of the hand config")
+    tdt.add_argument("--write", action="store_true",
+                     help="overwrite the hand config itself")
+    tdt.add_argument("--bus", default="sim",
+                     help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL")
+    tdt.add_argument("--seconds", type=float, help="measurement time (default 1 s)")
+    tdt.add_argument("--settle", type=float,
+                     help="time at zero torque before measuring (default 2 s)")
+    tdt.add_argument("--max-span", type=float,
+                     help="a joint that moves more than this (rad) is refused (default 0.1)")
+    tdt.add_argument("--max-noise", type=float,
+                     help="a noise (1 sigma) above this (N·m) is refused (default 0.02)")
+    tdt.add_argument("--max-offset", type=float,
+                     help="an offset above this (N·m) is refused (default 0.25)")
+    tdt.add_argument("--realtime", action="store_true",
+                     help="on the simulated hand: free-running in its own process, not lockstep")
+    tdt.add_argument("--rt", action="store_true",
+                     help="ask for SCHED_FIFO and locked memory (says so when refused)")
+    tdt.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
+    tdt.add_argument("--sim-faults", type=Path, help="fault scenario for the simulated hand")
+    tdt.add_argument("--reset-node-faults", action="store_true",
+                     help="clear faults latched in the nodes before starting (explicit reset)")
+    tdt.add_argument("--json", type=Path, help="write the measurement as JSON")
+    tdt.set_defaults(func=_cmd_calibrate_tdt)
 
     rep = sub.add_parser(
         "replay", help="summarise, plot, re-run or replay a recording",
