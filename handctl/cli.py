@@ -509,6 +509,36 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_jog(args: argparse.Namespace) -> int:
+    from handctl.bringup.jog import JogLine, jog, jog_recipe
+    from handctl.config import load_hand
+
+    hand = load_hand(args.hand)
+    seconds = _positive_seconds(args.seconds, 2.0)
+    jog_recipe(hand, args.joint, args.torque, seconds)  # refused here, before any bus opens
+    print(f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s on {args.bus}, "
+          "every other joint at zero (Ctrl-C: controlled stop)")
+    print(f"{'t s':>7} {'phase':<9} {'state':<10} {'desired':>9} {'applied':>9} "
+          f"{'angle rad':>10} {'TDT N·m':>9}")
+
+    def show(line: JogLine) -> None:
+        print(f"{line.t_s:>7.2f} {line.phase:<9} {line.state:<10} {line.desired:>+9.4f} "
+              f"{line.applied:>+9.4f} {line.angle:>+10.4f} {line.tdt:>+9.4f}", flush=True)
+
+    result = jog(hand, args.joint, args.torque, seconds=seconds, bus=args.bus,
+                 lockstep=False if args.realtime else None, realtime_priority=args.rt,
+                 seed=args.seed, sim_faults=args.sim_faults,
+                 reset_node_faults=args.reset_node_faults, show=show)
+    moved = result.moved
+    if moved is not None:
+        print(f"{args.joint}: {result.start_angle:+.4f} -> {result.end_angle:+.4f} rad "
+              f"({moved:+.4f} rad) under {args.torque:+g} N·m; largest |TDT| "
+              f"{result.max_abs_tdt:.4f} N·m; largest |applied| "
+              f"{result.report.summary['max_abs_tau'][args.joint]:.4f} N·m")
+    stopped = _run_outcome(result.report)
+    return EXIT_OK if stopped is None else stopped
+
+
 # -- parser --------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -674,6 +704,33 @@ def build_parser() -> argparse.ArgumentParser:
                      help="clear faults latched in the nodes before starting (explicit reset)")
     tdt.add_argument("--json", type=Path, help="write the measurement as JSON")
     tdt.set_defaults(func=_cmd_calibrate_tdt)
+
+    jog = sub.add_parser(
+        "jog", help="one joint under a small torque, every other at zero, through safety",
+        description="Ramp one joint to a torque (N·m) within its rate limit, hold it, ramp "
+                    "back to zero; every other joint gets zero. A one-phase recipe run by the "
+                    "normal Runtime: every torque through the supervisor with the hand's "
+                    "limits, and the soft-limit guard. A table of the joint's angle and TDT "
+                    "torque is printed as it runs. Default bus: the simulated hand, in lockstep.",
+        epilog="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
+               "130. A torque over the joint's tau_max is refused (exit 2) before anything "
+               "is sent.")
+    jog.add_argument("joint", help="joint name, as in the hand config (e.g. f1_j2)")
+    jog.add_argument("--torque", type=float, required=True, help="torque in N·m (signed)")
+    jog.add_argument("--seconds", type=float, help="how long to hold it (default 2 s)")
+    jog.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                     help=f"hand config (default {DEFAULT_HAND})")
+    jog.add_argument("--bus", default="sim",
+                     help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL")
+    jog.add_argument("--realtime", action="store_true",
+                     help="on the simulated hand: free-running in its own process, not lockstep")
+    jog.add_argument("--rt", action="store_true",
+                     help="ask for SCHED_FIFO and locked memory (says so when refused)")
+    jog.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
+    jog.add_argument("--sim-faults", type=Path, help="fault scenario for the simulated hand")
+    jog.add_argument("--reset-node-faults", action="store_true",
+                     help="clear faults latched in the nodes before starting (explicit reset)")
+    jog.set_defaults(func=_cmd_jog)
 
     rep = sub.add_parser(
         "replay", help="summarise, plot, re-run or replay a recording",
