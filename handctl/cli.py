@@ -539,6 +539,78 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     return EXIT_OK if stopped is None else stopped
 
 
+def _cmd_monitor(args: argparse.Namespace) -> int:
+    import json
+    import time
+
+    from handctl.bringup.monitor import BusView, from_log, listen, table
+    from handctl.bringup.peer import listening_bus
+    from handctl.config import load_hand
+    from handctl.protocol import load_protocol
+
+    if args.log is not None and args.bus is not None:
+        raise ConfigError("--log", "", "either --log or --bus: a log is read instead of a bus",
+                          f"--log {args.log} --bus {args.bus}")
+    hand = load_hand(args.hand)
+    seconds = None if args.seconds is None else _positive_seconds(args.seconds, 0.0)
+    every = _positive("--every", args.every, 1.0, "s")
+    view = BusView(load_protocol())
+    on_tty = sys.stdout.isatty()
+
+    def emit(snapshot: dict[str, object]) -> None:
+        print(json.dumps(snapshot), flush=True)
+
+    if args.log is not None:
+        from handctl.recording.reader import open_recording
+
+        open_recording(args.log)  # a file that is no recording is refused by name
+        step = round(every * 1e9)
+        next_ns: int | None = None
+        for frame_id, data, t_ns in from_log(args.log):
+            view.observe(frame_id, data, t_ns)
+            next_ns = t_ns + step if next_ns is None else next_ns
+            if not on_tty and t_ns >= next_ns:
+                emit(view.snapshot(t_ns))
+                next_ns += step
+        final = view.snapshot()
+        if on_tty:
+            from rich.console import Console
+
+            Console().print(table(final, f"{args.log}: {view.frames} frames"))
+        else:
+            emit(final)
+        return EXIT_OK
+    bus_text = args.bus or "sim"
+    try:
+        with listening_bus(bus_text, hand) as bus:
+            title = f"handctl monitor {bus_text} ({bus.spec}): listening, sending nothing"
+            if on_tty:
+                from rich.live import Live
+
+                with Live(table(view.snapshot(), title), screen=True, auto_refresh=False) as live:
+                    shown = time.monotonic()
+                    for batch in listen(bus, seconds):
+                        for frame_id, data, t_ns in batch:
+                            view.observe(frame_id, data, t_ns)
+                        if time.monotonic() - shown >= min(every, 0.25):
+                            shown = time.monotonic()
+                            live.update(table(view.snapshot(time.monotonic_ns()), title),
+                                        refresh=True)
+            else:
+                emitted = time.monotonic()
+                for batch in listen(bus, seconds):
+                    for frame_id, data, t_ns in batch:
+                        view.observe(frame_id, data, t_ns)
+                    if time.monotonic() - emitted >= every:
+                        emitted = time.monotonic()
+                        emit(view.snapshot(time.monotonic_ns()))
+    except KeyboardInterrupt:
+        pass  # Ctrl-C is how a monitor is ended: what was seen is still said below
+    if not on_tty:
+        emit(view.snapshot())
+    return EXIT_OK
+
+
 # -- parser --------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -731,6 +803,26 @@ def build_parser() -> argparse.ArgumentParser:
     jog.add_argument("--reset-node-faults", action="store_true",
                      help="clear faults latched in the nodes before starting (explicit reset)")
     jog.set_defaults(func=_cmd_jog)
+
+    mon = sub.add_parser(
+        "monitor", help="a live decoded view of the bus (listens, never sends)",
+        description="Decode every frame on the bus: per message its rate, last values in "
+                    "units, and the CRC, counter and length rejects a receiver would make; "
+                    "unknown ids are counted. A full-screen view on a terminal, JSON lines "
+                    "(one snapshot every --every seconds, and a last one) when piped. Sends "
+                    "nothing. On --bus sim (the default) a simulated hand is started in this "
+                    "process to listen to.",
+        epilog="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end.")
+    mon.add_argument("--bus", help="sim (default), hand, socketcan:can0, unix:DIR, "
+                                   "virtual:NAME, INTERFACE:CHANNEL")
+    mon.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                     help=f"hand config (default {DEFAULT_HAND})")
+    mon.add_argument("--log", type=Path, metavar="RUN.mcap",
+                     help="read the raw frames of a recording instead of a bus")
+    mon.add_argument("--seconds", type=float, help="stop after this long (default: Ctrl-C)")
+    mon.add_argument("--every", type=float,
+                     help="seconds between JSON snapshots (default 1; of log time with --log)")
+    mon.set_defaults(func=_cmd_monitor)
 
     rep = sub.add_parser(
         "replay", help="summarise, plot, re-run or replay a recording",
