@@ -156,3 +156,25 @@ def test_on_the_unix_bus_with_the_hand_in_its_own_process(hand: HandConfig,
             break
     assert result.returncode == cli.EXIT_OK, result.stderr
     _check_offsets(hand, out, json.loads((tmp_path / "m.json").read_text()))
+
+
+@pytest.mark.parametrize("entry, says", [
+    ("{kind: node_silent, node: 1, start: 0.0}", "node 1 (f1): no feedback"),
+    ("{kind: tdt_spike, node: 2, joint: 2, amplitude: 5.0, start: 0.0}",
+     "node 2 (f2) in FAULT (SENSOR)"),
+])
+def test_on_the_unix_bus_a_node_missing_or_in_fault(tmp_path: Path, entry: str,
+                                                    says: str) -> None:
+    out = tmp_path / "calibrated.yaml"
+    errors = []
+    for _attempt in range(3):  # a start-up the machine's load spoiled otherwise is retried
+        result = subprocess.run(
+            [sys.executable, "-m", "handctl", "calibrate", "tdt", "--realtime", "--rt", "-o",
+             str(out), "--sim-faults", str(_scenario(tmp_path, entry))],
+            capture_output=True, text=True, cwd=ROOT, timeout=300, check=False)
+        assert result.returncode == cli.EXIT_SAFETY_STOP, result.stderr
+        assert not out.exists()
+        if says in result.stderr:
+            return
+        errors.append(result.stderr)
+    raise AssertionError(f"never refused for {says!r}: {errors}")
