@@ -77,7 +77,7 @@ def _edit(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
     if not isinstance(fingers, yaml.SequenceNode):
         raise _CannotEditError("fingers is not a plain sequence")
     edits: list[tuple[int, int, str]] = []  # (start, end, replacement) in the text
-    seen: set[int] = set()
+    seen: set[int] = set()  # joint and tdt nodes met: an alias is the very node again
     for finger in fingers.value:
         joints = _scalar_value(finger, "joints") if isinstance(finger, yaml.MappingNode) \
             else None
@@ -91,6 +91,12 @@ def _edit(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
             name = name_node.value if isinstance(name_node, yaml.ScalarNode) else None
             if not isinstance(name, str) or name not in offsets:
                 raise _CannotEditError(f"joint {name!r} has no name of its own")
+            tdt = _scalar_value(joint, "tdt")
+            if tdt is not None:
+                if id(tdt) in seen:
+                    raise _CannotEditError(f"{name} shares its tdt with another joint (an "
+                                           "alias)")
+                seen.add(id(tdt))
             edits.append(_joint_edit(text, joint, name, offsets[name], hand))
     edits.sort(reverse=True)
     out = text
