@@ -35,6 +35,7 @@ def _by_name(snapshot: dict[str, Any]) -> dict[str, dict[str, Any]]:
 def _trouble(sim: SimulatedHand) -> None:
     sim.activate(inj.CorruptCrc(node=1, message="status"))
     sim.activate(inj.Babble(id=0x555, per_tick=1, length=8))
+    sim.activate(inj.Babble(id=0x702, per_tick=1, length=3))  # Heartbeat_2 is 7 bytes
 
 
 def test_it_decodes_counts_rejects_and_never_sends(hand: HandConfig, channel: str,
@@ -57,6 +58,8 @@ def test_it_decodes_counts_rejects_and_never_sends(hand: HandConfig, channel: st
     assert messages["Status_1"]["rejects"]["crc"] >= 1 and messages["Status_1"]["values"] is None
     assert messages["Status_2"]["values"]["ProtocolVersion"] == 2
     assert snapshot["unknown_ids"]["0x555"] > 10
+    heartbeat = messages["Heartbeat_2"]
+    assert heartbeat["rejects"]["length"] > 10 and heartbeat["values"]["State"] == 0
     assert heard and not [f for f in heard if f.arbitration_id in HOST_IDS]
 
 
