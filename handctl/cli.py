@@ -419,6 +419,247 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return status
 
 
+# -- bring-up ----------------------------------------------------------------------------------
+def _positive_seconds(value: float | None, default: float) -> float:
+    """``--seconds``: a positive, finite time; bad input is refused before anything starts."""
+    if value is None:
+        return default
+    if not 0 < value < 1e6:
+        raise ConfigError("--seconds", "", "a time in seconds > 0", value)
+    return value
+
+
+def _cmd_nodes(args: argparse.Namespace) -> int:
+    import json
+
+    from handctl.bringup.nodes import survey
+    from handctl.bringup.peer import listening_bus
+    from handctl.config import load_hand
+    from handctl.protocol import load_protocol
+
+    hand = load_hand(args.hand)
+    protocol = load_protocol()
+    seconds = _positive_seconds(args.seconds, 1.0)
+    with listening_bus(args.bus, hand) as bus:
+        result = survey(hand, protocol, bus, seconds)
+    if args.json:
+        print(json.dumps(result.as_dict(), indent=2))
+        return EXIT_OK if result.ok else EXIT_FAILED
+    where = (result.bus if args.bus != "sim"
+             else f"sim (a simulated hand this command started on {result.bus})")
+    print(f"{hand.name} on {where}: listened {result.seconds:.2f} s, sent nothing; "
+          f"host protocol {result.host_protocol}")
+    print(f"{'node':<9} {'state':<9} {'faults':<16} {'proto':>5} {'firmware':>8} "
+          f"{'fb Hz':>6} {'hb':>3} {'st':>3} {'uptime s':>9} {'host rejects':<14} "
+          f"{'node rejects':<13} problem")
+    for row in result.rows:
+        uptime = "-" if row.uptime_ms is None else f"{row.uptime_ms / 1e3:.1f}"
+        host = ",".join(f"{k} {v}" for k, v in row.host_rejects.items()) or "0"
+        theirs = ("-" if row.node_rejects is None
+                  else "/".join(str(v) for v in row.node_rejects.values()))
+        proto = "-" if row.protocol_version is None else str(row.protocol_version)
+        print(f"{row.node_id} {row.name:<7} {row.state:<9} {','.join(row.faults) or '-':<16} "
+              f"{proto:>5} {row.firmware:>8} {row.feedback_hz:>6.0f} {row.heartbeats:>3} "
+              f"{row.statuses:>3} {uptime:>9} {host:<14} {theirs:<13} "
+              f"{row.problem or 'ok'}")
+    for fid, (what, count) in sorted(result.foreign.items()):
+        print(f"  id 0x{fid:03X}: {count} frames, {what}")
+    if result.bus_events:
+        print("  bus events: " + ", ".join(f"{k} {v}" for k, v in result.bus_events.items()))
+    print("  (node rejects: crc/counter/length, as the node's Status reports them)")
+    return EXIT_OK if result.ok else EXIT_FAILED
+
+
+def _positive(option: str, value: float | None, default: float, unit: str) -> float:
+    if value is None:
+        return default
+    if not 0 < value < 1e6:
+        raise ConfigError(option, "", f"a value > 0 {unit}", value)
+    return value
+
+
+def _run_outcome(report: Any) -> int | None:
+    """Exit code of a bring-up run that did not complete (None if it did), said on stderr."""
+    from handctl.loop import Outcome
+
+    for warning in report.warnings:
+        print(f"handctl: warning: {warning}", file=sys.stderr)
+    result = report.result
+    if result.outcome is Outcome.COMPLETED:
+        return None
+    if result.outcome is Outcome.INTERRUPTED:
+        print(f"handctl: stopped: {result.message}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"handctl: safety stop: {result.message}", file=sys.stderr)
+    return EXIT_SAFETY_STOP
+
+
+def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
+    import json
+
+    from handctl.bringup.calibrate import CalibrationLimits, calibrate_tdt
+    from handctl.bringup.hand_edit import format_offset, with_tdt_offsets
+    from handctl.config import load_hand
+
+    hand = load_hand(args.hand)
+    if args.output is None and not args.write:
+        raise ConfigError("-o", "", "a file for the calibrated copy (or --write to overwrite "
+                          f"{args.hand})", "nothing")
+    target = args.hand if args.output is None else args.output
+    if (args.output is not None and not args.write and args.output.exists()
+            and args.output.resolve() == args.hand.resolve()):
+        raise ConfigError("-o", "", f"another file than the hand config (--write overwrites "
+                          f"{args.hand})", str(args.output))
+    if not target.parent.is_dir():
+        raise ConfigError("-o", "", "a file in an existing directory", str(target))
+    limits = CalibrationLimits(
+        max_span=_positive("--max-span", args.max_span, CalibrationLimits.max_span, "rad"),
+        max_noise=_positive("--max-noise", args.max_noise, CalibrationLimits.max_noise, "N·m"),
+        max_offset=_positive("--max-offset", args.max_offset, CalibrationLimits.max_offset,
+                             "N·m"))
+    measure = _positive_seconds(args.seconds, 1.0)
+    settle = 2.0 if args.settle is None else args.settle
+    if not 0 <= settle < 1e6:
+        raise ConfigError("--settle", "", "a time in seconds >= 0", settle)
+    text = args.hand.read_text(encoding="utf-8")
+    calibration = calibrate_tdt(hand, bus=args.bus, settle_s=settle, measure_s=measure,
+                                limits=limits, lockstep=False if args.realtime else None,
+                                seed=args.seed, sim_faults=args.sim_faults,
+                                reset_node_faults=args.reset_node_faults,
+                                realtime_priority=args.rt)
+    stopped = _run_outcome(calibration.report)
+    if stopped is not None:
+        return stopped
+    print(f"TDT offsets of {hand.name} at zero torque, {calibration.samples} samples "
+          f"({measure:g} s after {settle:g} s to settle):")
+    print(f"{'joint':<8} {'offset before':>13} {'offset after':>12} {'mean':>9} {'noise':>8} "
+          f"{'moved':>10}  problem")
+    for j in calibration.joints:
+        print(f"{j.name:<8} {j.old_offset:>+13.4f} {float(format_offset(j.new_offset)):>+12.4f} "
+              f"{j.mean:>+9.4f} {j.noise:>8.4f} {j.angle_span:>6.4f} rad  {j.problem or 'ok'}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(
+            {"samples": calibration.samples,
+             "joints": [j.as_dict() for j in calibration.joints]}, indent=2) + "\n")
+    if calibration.problems:
+        print("handctl: calibration refused, nothing written: "
+              + "; ".join(calibration.problems), file=sys.stderr)
+        return EXIT_FAILED
+    edited = with_tdt_offsets(text, hand, calibration.offsets)
+    if edited.dumped:
+        print(f"handctl: warning: {args.hand} could not be edited in place ({edited.why}); "
+              "written as a plain dump, without its comments and layout", file=sys.stderr)
+    target.write_text(edited.text, encoding="utf-8")
+    new_hash = load_hand(target).config_hash
+    print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))
+    if new_hash != hand.config_hash:
+        print(f"  the config hash changes from {hand.config_hash} to {new_hash}: recipes "
+              "compiled for the old one must be planned again (handctl plan)")
+    return EXIT_OK
+
+
+def _cmd_jog(args: argparse.Namespace) -> int:
+    from handctl.bringup.jog import JogLine, jog, jog_recipe
+    from handctl.config import load_hand
+
+    hand = load_hand(args.hand)
+    seconds = _positive_seconds(args.seconds, 2.0)
+    jog_recipe(hand, args.joint, args.torque, seconds)  # refused here, before any bus opens
+    print(f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s on {args.bus}, "
+          "every other joint at zero (Ctrl-C: controlled stop)")
+    print(f"{'t s':>7} {'phase':<9} {'state':<10} {'desired':>9} {'applied':>9} "
+          f"{'angle rad':>10} {'TDT N·m':>9}")
+
+    def show(line: JogLine) -> None:
+        print(f"{line.t_s:>7.2f} {line.phase:<9} {line.state:<10} {line.desired:>+9.4f} "
+              f"{line.applied:>+9.4f} {line.angle:>+10.4f} {line.tdt:>+9.4f}", flush=True)
+
+    result = jog(hand, args.joint, args.torque, seconds=seconds, bus=args.bus,
+                 lockstep=False if args.realtime else None, realtime_priority=args.rt,
+                 seed=args.seed, sim_faults=args.sim_faults,
+                 reset_node_faults=args.reset_node_faults, show=show)
+    moved = result.moved
+    if moved is not None:
+        print(f"{args.joint}: {result.start_angle:+.4f} -> {result.end_angle:+.4f} rad "
+              f"({moved:+.4f} rad) under {args.torque:+g} N·m; largest |TDT| "
+              f"{result.max_abs_tdt:.4f} N·m; largest |applied| "
+              f"{result.report.summary['max_abs_tau'][args.joint]:.4f} N·m")
+    stopped = _run_outcome(result.report)
+    return EXIT_OK if stopped is None else stopped
+
+
+def _cmd_monitor(args: argparse.Namespace) -> int:
+    import json
+    import time
+
+    from handctl.bringup.monitor import BusView, from_log, listen, table
+    from handctl.bringup.peer import listening_bus
+    from handctl.config import load_hand
+    from handctl.protocol import load_protocol
+
+    if args.log is not None and args.bus is not None:
+        raise ConfigError("--log", "", "either --log or --bus: a log is read instead of a bus",
+                          f"--log {args.log} --bus {args.bus}")
+    hand = load_hand(args.hand)
+    seconds = None if args.seconds is None else _positive_seconds(args.seconds, 0.0)
+    every = _positive("--every", args.every, 1.0, "s")
+    view = BusView(load_protocol())
+    on_tty = sys.stdout.isatty()
+
+    def emit(snapshot: dict[str, object]) -> None:
+        print(json.dumps(snapshot), flush=True)
+
+    if args.log is not None:
+        from handctl.recording.reader import open_recording
+
+        open_recording(args.log)  # a file that is no recording is refused by name
+        step = round(every * 1e9)
+        next_ns: int | None = None
+        for frame_id, data, t_ns in from_log(args.log):
+            view.observe(frame_id, data, t_ns)
+            next_ns = t_ns + step if next_ns is None else next_ns
+            if not on_tty and t_ns >= next_ns:
+                emit(view.snapshot(t_ns))
+                next_ns += step
+        final = view.snapshot()
+        if on_tty:
+            from rich.console import Console
+
+            Console().print(table(final, f"{args.log}: {view.frames} frames"))
+        else:
+            emit(final)
+        return EXIT_OK
+    bus_text = args.bus or "sim"
+    try:
+        with listening_bus(bus_text, hand) as bus:
+            title = f"handctl monitor {bus_text} ({bus.spec}): listening, sending nothing"
+            if on_tty:
+                from rich.live import Live
+
+                with Live(table(view.snapshot(), title), screen=True, auto_refresh=False) as live:
+                    shown = time.monotonic()
+                    for batch in listen(bus, seconds):
+                        for frame_id, data, t_ns in batch:
+                            view.observe(frame_id, data, t_ns)
+                        if time.monotonic() - shown >= min(every, 0.25):
+                            shown = time.monotonic()
+                            live.update(table(view.snapshot(time.monotonic_ns()), title),
+                                        refresh=True)
+            else:
+                emitted = time.monotonic()
+                for batch in listen(bus, seconds):
+                    for frame_id, data, t_ns in batch:
+                        view.observe(frame_id, data, t_ns)
+                    if time.monotonic() - emitted >= every:
+                        emitted = time.monotonic()
+                        emit(view.snapshot(time.monotonic_ns()))
+    except KeyboardInterrupt:
+        pass  # Ctrl-C is how a monitor is ended: what was seen is still said below
+    if not on_tty:
+        emit(view.snapshot())
+    return EXIT_OK
+
+
 # -- parser --------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -557,6 +798,112 @@ def build_parser() -> argparse.ArgumentParser:
                       help="run the work on this Dask distributed cluster instead "
                            "(pip install 'handctl[cluster]'; see docs/scale.md)")
     plan.set_defaults(func=_cmd_plan)
+
+    nodes = sub.add_parser(
+        "nodes", help="list the hand's nodes as the bus shows them (listens, never sends)",
+        description="Listen for the nodes' Feedback, Status and Heartbeat and print one row "
+                    "per configured node: present or missing, state, fault bits, protocol and "
+                    "firmware versions, feedback rate, counters, rejects; frames of nodes not "
+                    "in the hand config are flagged. Sends nothing. On --bus sim (the default) "
+                    "a simulated hand is started in this process to listen to.",
+        epilog="Exit 0 when every configured node is there, in no fault, of the host's "
+               "protocol version, and no other node is heard; 1 otherwise.")
+    nodes.add_argument("--bus", default="sim",
+                       help="sim (default), hand (the config's bus), socketcan:can0, "
+                            "unix:DIR, virtual:NAME, INTERFACE:CHANNEL")
+    nodes.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                       help=f"hand config (default {DEFAULT_HAND})")
+    nodes.add_argument("--seconds", type=float, help="how long to listen (default 1)")
+    nodes.add_argument("--json", action="store_true", help="print the result as JSON")
+    nodes.set_defaults(func=_cmd_nodes)
+
+    calibrate = sub.add_parser("calibrate", help="calibrate the hand's sensors",
+                               description="Calibrate the hand's sensors through the Runtime "
+                                           "and the safety supervisor.")
+    calibrations = calibrate.add_subparsers(dest="what", metavar="WHAT", required=True)
+    tdt = calibrations.add_parser(
+        "tdt", help="measure each TDT sensor's offset and noise at zero torque",
+        description="Enable every node at zero torque (through the Runtime and the supervisor), "
+                    "let the fingers settle, measure each TDT sensor's offset and noise, and "
+                    "write a copy of the hand config with the new offsets (comments and layout "
+                    "kept). Refused, naming the joint, if a joint moves or a sensor's noise or "
+                    "offset is implausible. Default bus: the simulated hand, in lockstep.",
+        epilog="Exit 0 written, 1 refused (nothing written), 2 bad input, 3 safety stop, "
+               "130 interrupted (Ctrl-C: a controlled stop).")
+    tdt.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                     help=f"hand config (default {DEFAULT_HAND})")
+    tdt.add_argument("-o", "--output", type=Path, metavar="HAND.yaml",
+                     help="where to write the calibrated copy of the hand config")
+    tdt.add_argument("--write", action="store_true",
+                     help="overwrite the hand config itself")
+    tdt.add_argument("--bus", default="sim",
+                     help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL")
+    tdt.add_argument("--seconds", type=float, help="measurement time (default 1 s)")
+    tdt.add_argument("--settle", type=float,
+                     help="time at zero torque before measuring (default 2 s)")
+    tdt.add_argument("--max-span", type=float,
+                     help="a joint that moves more than this (rad) is refused (default 0.1)")
+    tdt.add_argument("--max-noise", type=float,
+                     help="a noise (1 sigma) above this (N·m) is refused (default 0.02)")
+    tdt.add_argument("--max-offset", type=float,
+                     help="an offset above this (N·m) is refused (default 0.25)")
+    tdt.add_argument("--realtime", action="store_true",
+                     help="on the simulated hand: free-running in its own process, not lockstep")
+    tdt.add_argument("--rt", action="store_true",
+                     help="ask for SCHED_FIFO and locked memory (says so when refused)")
+    tdt.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
+    tdt.add_argument("--sim-faults", type=Path, help="fault scenario for the simulated hand")
+    tdt.add_argument("--reset-node-faults", action="store_true",
+                     help="clear faults latched in the nodes before starting (explicit reset)")
+    tdt.add_argument("--json", type=Path, help="write the measurement as JSON")
+    tdt.set_defaults(func=_cmd_calibrate_tdt)
+
+    jog = sub.add_parser(
+        "jog", help="one joint under a small torque, every other at zero, through safety",
+        description="Ramp one joint to a torque (N·m) within its rate limit, hold it, ramp "
+                    "back to zero; every other joint gets zero. A one-phase recipe run by the "
+                    "normal Runtime: every torque through the supervisor with the hand's "
+                    "limits, and the soft-limit guard. A table of the joint's angle and TDT "
+                    "torque is printed as it runs. Default bus: the simulated hand, in lockstep.",
+        epilog="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
+               "130. A torque over the joint's tau_max is refused (exit 2) before anything "
+               "is sent.")
+    jog.add_argument("joint", help="joint name, as in the hand config (e.g. f1_j2)")
+    jog.add_argument("--torque", type=float, required=True, help="torque in N·m (signed)")
+    jog.add_argument("--seconds", type=float, help="how long to hold it (default 2 s)")
+    jog.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                     help=f"hand config (default {DEFAULT_HAND})")
+    jog.add_argument("--bus", default="sim",
+                     help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL")
+    jog.add_argument("--realtime", action="store_true",
+                     help="on the simulated hand: free-running in its own process, not lockstep")
+    jog.add_argument("--rt", action="store_true",
+                     help="ask for SCHED_FIFO and locked memory (says so when refused)")
+    jog.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
+    jog.add_argument("--sim-faults", type=Path, help="fault scenario for the simulated hand")
+    jog.add_argument("--reset-node-faults", action="store_true",
+                     help="clear faults latched in the nodes before starting (explicit reset)")
+    jog.set_defaults(func=_cmd_jog)
+
+    mon = sub.add_parser(
+        "monitor", help="a live decoded view of the bus (listens, never sends)",
+        description="Decode every frame on the bus: per message its rate, last values in "
+                    "units, and the CRC, counter and length rejects a receiver would make; "
+                    "unknown ids are counted. A full-screen view on a terminal, JSON lines "
+                    "(one snapshot every --every seconds, and a last one) when piped. Sends "
+                    "nothing. On --bus sim (the default) a simulated hand is started in this "
+                    "process to listen to.",
+        epilog="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end.")
+    mon.add_argument("--bus", help="sim (default), hand, socketcan:can0, unix:DIR, "
+                                   "virtual:NAME, INTERFACE:CHANNEL")
+    mon.add_argument("--hand", type=Path, default=DEFAULT_HAND,
+                     help=f"hand config (default {DEFAULT_HAND})")
+    mon.add_argument("--log", type=Path, metavar="RUN.mcap",
+                     help="read the raw frames of a recording instead of a bus")
+    mon.add_argument("--seconds", type=float, help="stop after this long (default: Ctrl-C)")
+    mon.add_argument("--every", type=float,
+                     help="seconds between JSON snapshots (default 1; of log time with --log)")
+    mon.set_defaults(func=_cmd_monitor)
 
     rep = sub.add_parser(
         "replay", help="summarise, plot, re-run or replay a recording",

@@ -375,8 +375,17 @@ class Runtime:
             # Judge the nodes on what they say now, not on what a previous run last heard:
             # fresh feedback and a fresh heartbeat from every node (the heartbeat's uptime is
             # the baseline against which a reboot during the run is recognised).
+            # A node of another protocol version is refused before anything is sent to it:
+            # its frames may mean something else than this host reads into them.
+            wrong = [problem for n in nodes if n.version_ns is not None
+                     and n.version_ns >= since and (problem := n.version_problem())]
+            if wrong:
+                detail = "; ".join(wrong)
+                self.supervisor.trip(FaultCode.STARTUP, detail, tk.k)
+                return detail
             heard = all(n.feedback_ns is not None and n.feedback_ns >= since
                         and n.heartbeat_ns is not None and n.heartbeat_ns >= since
+                        and n.version_ns is not None and n.version_ns >= since
                         for n in nodes)
             if not heard:
                 continue
@@ -404,6 +413,8 @@ class Runtime:
                 silent.append(f"{who}: no feedback")
             elif n.heartbeat_ns is None or n.heartbeat_ns < since:
                 silent.append(f"{who}: no heartbeat")
+            elif n.version_ns is None or n.version_ns < since:
+                silent.append(f"{who}: no Status (its protocol version unknown)")
             elif n.state != 0:
                 silent.append(f"{who} is {n.state_name}")
         detail = "; ".join(silent) or "nodes not ready"

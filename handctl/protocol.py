@@ -19,6 +19,7 @@ them fails loudly instead of producing frames the receivers reject):
 from __future__ import annotations
 
 import math
+import re
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -36,6 +37,9 @@ CRC8_XOR_OUT = 0xFF
 
 #: Device states as they travel in ``State`` signals.
 STATE_NAMES = {0: "DISABLED", 1: "ENABLED", 2: "FAULT"}
+#: The DBC's ``VERSION`` string: "handctl protocol N", N the integer every node reports in its
+#: Status (``ProtocolVersion``) and the host compares with its own.
+_VERSION = re.compile(r"^handctl protocol (\d+)$")
 #: ``Command`` values of NodeCommand frames.
 NODE_COMMANDS = {"enable": 1, "disable": 2, "fault_reset": 3}
 
@@ -245,8 +249,10 @@ def _raw_bounds(sig: SignalSpec) -> tuple[float, float]:
 class Protocol:
     """Every layout of a DBC, by name and by CAN id."""
 
-    def __init__(self, layouts: Sequence[Layout], source: str) -> None:
+    def __init__(self, layouts: Sequence[Layout], source: str, version: int = 0) -> None:
         self.source = source
+        #: The protocol version of the DBC (its ``VERSION``), which nodes report in Status.
+        self.version = version
         self.layouts = tuple(layouts)
         self.by_name = {layout.name: layout for layout in layouts}
         self.by_id = {layout.frame_id: layout for layout in layouts}
@@ -258,6 +264,31 @@ class Protocol:
             return self.by_name[name]
         except KeyError:
             raise ProtocolError(f"{self.source}: no message {name} in the DBC") from None
+
+
+#: The protocol version whose Status had no ``ProtocolVersion`` yet (8 bytes long).
+UNVERSIONED_PROTOCOL = 1
+#: Byte of Status that carries ``ProtocolVersion`` in every version since the field came.
+STATUS_VERSION_BYTE = 8
+_UNVERSIONED_STATUS_LENGTH = 8
+
+
+def foreign_status_version(layout: Layout, data: bytes) -> int | None:
+    """The protocol version a Status frame of another length than ``layout``'s announces, or
+    None if it is no intact Status at all.
+
+    Status only ever grows and keeps ``ProtocolVersion`` at byte 8 (PROTOCOL.md, "Versions"),
+    and its CRC covers whatever length it has, so a host can name the version of a node that
+    speaks another one instead of only counting its frames as the wrong length; an intact
+    8-byte Status is a node of protocol 1, from before the field. The frame is still rejected.
+    """
+    if len(data) == layout.length or len(data) < _UNVERSIONED_STATUS_LENGTH:
+        return None
+    if crc8(data[1:], layout._crc_start) != data[0]:
+        return None
+    if len(data) == _UNVERSIONED_STATUS_LENGTH:
+        return UNVERSIONED_PROTOCOL
+    return data[STATUS_VERSION_BYTE]
 
 
 @cache
@@ -281,7 +312,17 @@ def load_protocol(path: str | Path = DEFAULT_DBC) -> Protocol:
                               f"a DataID not used by {data_ids[layout.data_id]}",
                               layout.data_id)
         data_ids[layout.data_id] = layout.name
-    return Protocol(layouts, name)
+    return Protocol(layouts, name, _protocol_version(db.version, name))
+
+
+def _protocol_version(text: str | None, source: str) -> int:
+    """The N of ``VERSION "handctl protocol N"``: what nodes and host compare, so it must be
+    there and be a number."""
+    match = _VERSION.match(text or "")
+    if match is None:
+        raise ConfigError(source, "VERSION", '"handctl protocol N" with N a whole number',
+                          text or "nothing")
+    return int(match[1])
 
 
 def _enum_choices(db: Any, attribute: str) -> list[str]:

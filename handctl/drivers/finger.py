@@ -13,7 +13,13 @@ from dataclasses import dataclass
 
 from handctl.config import FingerConfig
 from handctl.drivers.receiver import CounterCheck, Reject, RejectCounts, validate
-from handctl.protocol import NODE_COMMANDS, STATE_NAMES, Layout, Protocol
+from handctl.protocol import (
+    NODE_COMMANDS,
+    STATE_NAMES,
+    Layout,
+    Protocol,
+    foreign_status_version,
+)
 
 #: FaultBits of the device (PROTOCOL.md), by name.
 FAULT_BITS = {"TIMEOUT": 0x01, "ESTOP": 0x02, "RX_ERRORS": 0x04, "SENSOR": 0x08,
@@ -42,6 +48,8 @@ class FingerLayouts:
     feedback: Layout
     status: Layout
     heartbeat: Layout
+    #: The protocol version of the DBC these layouts come from: what the node must speak.
+    protocol_version: int = 0
 
     @classmethod
     def for_node(cls, protocol: Protocol, node_id: int) -> FingerLayouts:
@@ -51,6 +59,7 @@ class FingerLayouts:
             feedback=protocol.layout("Feedback", node_id),
             status=protocol.layout("Status", node_id),
             heartbeat=protocol.layout("Heartbeat", node_id),
+            protocol_version=protocol.version,
         )
 
 
@@ -105,6 +114,12 @@ class FingerNode:
         self.uptime_ms: int | None = None
         self.reboots = 0
         self.status: tuple[float, ...] | None = None
+        self.status_ns: int | None = None
+        #: What the node's last intact Status said of its versions (a Status of another
+        #: protocol too, which is rejected all the same), and when it arrived (host clock).
+        self.protocol_version: int | None = None
+        self.firmware_version: tuple[int, int, int] | None = None
+        self.version_ns: int | None = None
 
     def resynchronise(self) -> None:
         """Take the node's next frame of each stream with whatever counter it carries.
@@ -140,6 +155,11 @@ class FingerNode:
         reason = validate(layout, data, counters)
         if reason is not None:
             self.rejects.add(reason)
+            if reason is Reject.LENGTH and layout is self.layouts.status:
+                version = foreign_status_version(layout, data)
+                if version is not None:
+                    self.protocol_version, self.firmware_version = version, None
+                    self.version_ns = arrival_ns
             return reason
         self.accepted += 1
         _, values = layout.decode(data)
@@ -159,8 +179,30 @@ class FingerNode:
             self._report(state, None, "Heartbeat")
         else:
             self.status = values
+            self.status_ns = arrival_ns
+            self.protocol_version = int(values[6])
+            self.firmware_version = (int(values[7]), int(values[8]), int(values[9]))
+            self.version_ns = arrival_ns
             self._report(int(values[0]), int(values[1]), "Status")
         return None
+
+    @property
+    def firmware_text(self) -> str:
+        """The firmware version as major.minor.patch, or "?" when no Status said it."""
+        fw = self.firmware_version
+        return "?" if fw is None else f"{fw[0]}.{fw[1]}.{fw[2]}"
+
+    def version_problem(self, since_ns: int | None = None) -> str:
+        """Why the host must not drive this node for its protocol version ("" if it may):
+        another version than the host's, or (after ``since_ns``) no Status that said one."""
+        who = f"node {self.node_id} ({self.finger.name})"
+        if self.version_ns is None or (since_ns is not None and self.version_ns < since_ns):
+            return f"{who}: no Status, so its protocol version is unknown"
+        if self.protocol_version != self.layouts.protocol_version:
+            return (f"{who} speaks handctl protocol {self.protocol_version}, this host "
+                    f"protocol {self.layouts.protocol_version}: update the node's firmware "
+                    "or use the handctl of its protocol")
+        return ""
 
     def _report(self, state: int, bits: int | None, message: str) -> None:
         """Fold in what one accepted frame says of the node's state (and fault bits).

@@ -52,6 +52,8 @@ REJECT_LIMIT = 100
 STATUS_PERIOD_MS = 100
 HEARTBEAT_PERIOD_MS = 100
 JOINTS = 3  # Torque1..3 and Angle1..3 on the wire
+#: The firmware version the emulated nodes report (major, minor, patch) in Status.
+FIRMWARE_VERSION = (0, 2, 0)
 _SATURATING = 255
 
 _ENABLE = NODE_COMMANDS["enable"]
@@ -124,6 +126,10 @@ class EmulatedNode:
         #: How much each sent counter advances: 1 normally; 0 (repeat) or 2 (skip) under the
         #: counter injectors. Keyed by message kind: Feedback, Status, Heartbeat.
         self.counter_step = {"Feedback": 1, "Status": 1, "Heartbeat": 1}
+        #: What Status reports: the protocol version (the DBC's unless a test makes the node
+        #: speak another one, to see the host refuse it) and the firmware version.
+        self.protocol_version = protocol.version
+        self.firmware_version = FIRMWARE_VERSION
         self.reboots = 0
         self._down_until: int | None = None
         self.boot(now_ns)
@@ -350,5 +356,6 @@ class EmulatedNode:
         status = self._status
         for state, bits in snapshots:
             out.append((status.frame_id, status.encode(self._tx_status, (
-                state, bits, self.reject_crc, self.reject_counter, self.reject_length, age))))
+                state, bits, self.reject_crc, self.reject_counter, self.reject_length, age,
+                self.protocol_version, *self.firmware_version))))
             self._tx_status = (self._tx_status + self.counter_step["Status"]) & 0xFF

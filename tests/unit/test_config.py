@@ -236,9 +236,9 @@ def test_check_cli_bad_config_exits_2_with_the_message(tmp_path: Path,
 def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
     result = run_cli("check", "config/hands/hiroshima_hand_classic.yaml")
     assert result.returncode == 2
-    assert "122.3 %" in result.stderr
-    assert "405 Hz" in result.stderr
-    assert "one bus per finger would carry 40.8 %" in result.stderr
+    assert "122.6 %" in result.stderr
+    assert "403 Hz" in result.stderr
+    assert "one bus per finger would carry 40.9 %" in result.stderr
 
 
 # -- limits against the wire (handctl/wirelimits.py) ---------------------------------------------

@@ -184,7 +184,8 @@ def test_heartbeat_going_backwards_counts_a_reboot(driver: HandDriver, protocol:
 
 def test_status_frames_carry_faults(driver: HandDriver, protocol: Protocol,
                                     bus_pair: tuple[HandBus, HandBus]) -> None:
-    bus_pair[1].send(0x282, protocol.layout("Status", 2).encode(0, (2, 0x03, 0, 0, 0, 11)))
+    bus_pair[1].send(0x282, protocol.layout("Status", 2).encode(
+        0, (2, 0x03, 0, 0, 0, 11, 2, 0, 2, 0)))
     state = driver.poll()
     assert state.node_state[1] == 2
     assert fault_names(state.node_faults[1]) == ["TIMEOUT", "ESTOP"]

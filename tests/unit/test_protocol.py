@@ -22,7 +22,7 @@ def test_every_message_has_crc_counter_and_a_unique_data_id(protocol: Proto) -> 
     ids = {layout.data_id for layout in protocol.layouts}
     assert len(ids) == len(protocol.layouts)
     for layout in protocol.layouts:
-        assert layout.length in (3, 7, 8, 16)
+        assert layout.length in (3, 7, 8, 12, 16)
         assert layout.send in ("event", "loop", "cyclic")
 
 

@@ -197,9 +197,9 @@ def test_a_fault_reset_sequence_is_no_contradiction(
     peer = bus_pair[1]
     status = protocol.layout("Status", 1)
     peer.send(0x181, feedback(protocol, 1, 0, state=2, faults=0x03))
-    peer.send(0x281, status.encode(0, (0, 0, 0, 0, 0, 5)))  # fault reset: DISABLED
+    peer.send(0x281, status.encode(0, (0, 0, 0, 0, 0, 5, 2, 0, 2, 0)))  # fault reset: DISABLED
     peer.send(0x181, feedback(protocol, 1, 1, state=0))
-    peer.send(0x281, status.encode(1, (1, 0, 0, 0, 0, 5)))  # enable
+    peer.send(0x281, status.encode(1, (1, 0, 0, 0, 0, 5, 2, 0, 2, 0)))  # enable
     peer.send(0x181, feedback(protocol, 1, 2, state=1))
     assert driver.poll().node_state[0] == 1
     assert driver.nodes[0].contradiction == "" and driver.nodes[0].contradictions == 0

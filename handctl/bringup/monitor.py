@@ -1,0 +1,162 @@
+"""``handctl monitor``: the bus decoded, message by message, as it goes by.
+
+Per message of the DBC that is heard: how many frames, their rate, the last values in units,
+and what a receiver would reject (wrong length, bad CRC, repeated or skipped counter, in the
+protocol's order); frames on ids the DBC does not have are counted by id. It reads a bus and
+never sends, or reads the raw frames of an MCAP log (``handctl run recipe --log``), both
+directions of the wire, at the speed the file can be read.
+
+The view is data (``BusView``, ``snapshot``); the command turns it into a full-screen table on
+a terminal or JSON lines on a pipe.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from handctl.bus import EXTENDED_ID_FLAG, HandBus
+from handctl.drivers.finger import fault_names
+from handctl.drivers.receiver import CounterCheck, Reject
+from handctl.protocol import STATE_NAMES, Layout, Protocol
+
+
+@dataclass
+class MessageStats:
+    layout: Layout
+    frames: int = 0
+    accepted: int = 0
+    rejects: Counter[str] = field(default_factory=Counter)
+    values: tuple[float, ...] | None = None  # the last accepted frame's
+    last_ns: int | None = None
+    counters: CounterCheck = field(default_factory=CounterCheck)
+    frames_at_snapshot: int = 0
+
+
+class BusView:
+    """What the frames seen so far say, per message id. Fed one frame at a time."""
+
+    def __init__(self, protocol: Protocol) -> None:
+        self.protocol = protocol
+        self.messages: dict[int, MessageStats] = {}
+        self.unknown: Counter[int] = Counter()
+        self.frames = 0
+        self.first_ns: int | None = None
+        self.last_ns: int | None = None
+        self._snapshot_ns: int | None = None
+
+    def observe(self, frame_id: int, data: bytes, t_ns: int) -> None:
+        self.frames += 1
+        if self.first_ns is None:
+            self.first_ns = self._snapshot_ns = t_ns
+        self.last_ns = t_ns
+        layout = None if frame_id & EXTENDED_ID_FLAG else self.protocol.by_id.get(frame_id)
+        if layout is None:
+            self.unknown[frame_id] += 1
+            return
+        stats = self.messages.get(frame_id)
+        if stats is None:
+            stats = self.messages[frame_id] = MessageStats(layout)
+        stats.frames += 1
+        stats.last_ns = t_ns
+        if len(data) != layout.length:
+            stats.rejects[Reject.LENGTH.name.lower()] += 1
+        elif not layout.crc_ok(data):
+            stats.rejects[Reject.CRC.name.lower()] += 1
+        else:
+            reason = stats.counters.check(data[1])
+            if reason is not None:
+                stats.rejects[reason.name.lower()] += 1
+            else:
+                stats.accepted += 1
+                stats.values = layout.decode(data)[1]
+
+    def snapshot(self, now_ns: int | None = None) -> dict[str, Any]:
+        """The view as JSON-ready data; rates are over the time since the previous snapshot."""
+        now = self.last_ns if now_ns is None else now_ns
+        since = self._snapshot_ns
+        span_s = (now - since) * 1e-9 if now is not None and since is not None else 0.0
+        self._snapshot_ns = now
+        messages = []
+        for fid in sorted(self.messages):
+            stats = self.messages[fid]
+            new = stats.frames - stats.frames_at_snapshot
+            stats.frames_at_snapshot = stats.frames
+            layout = stats.layout
+            messages.append({
+                "id": f"0x{fid:03X}", "message": layout.name, "frames": stats.frames,
+                "rate_hz": round(new / span_s, 1) if span_s > 0 else None,
+                "rejects": dict(stats.rejects),
+                "values": None if stats.values is None else {
+                    spec.name: value if isinstance(value, int) else round(value, 9)
+                    for spec, value in zip(layout.signals, stats.values, strict=True)},
+                "units": {spec.name: spec.unit for spec in layout.signals if spec.unit}})
+        start = self.first_ns
+        return {"t_s": None if now is None or start is None else round((now - start) * 1e-9, 3),
+                "frames": self.frames, "messages": messages,
+                "unknown_ids": {f"0x{fid & ~EXTENDED_ID_FLAG:03X}"
+                                + (" (29-bit)" if fid & EXTENDED_ID_FLAG else ""): n
+                                for fid, n in sorted(self.unknown.items())}}
+
+
+def value_text(name: str, value: float, unit: str) -> str:
+    """A signal's value as an engineer reads it: states and fault bits by name, units."""
+    if name == "State":
+        return STATE_NAMES.get(int(value), str(int(value)))
+    if name == "FaultBits":
+        return ",".join(fault_names(int(value))) or "-"
+    text = str(value) if isinstance(value, int) else f"{value:+.4f}"
+    return f"{text} {unit}" if unit else text
+
+
+def table(snapshot: dict[str, Any], title: str) -> Any:
+    """The snapshot as a ``rich`` table (what the terminal view shows)."""
+    from rich.table import Table
+
+    view = Table(title=title, expand=True)
+    for name, justify in (("id", "right"), ("message", "left"), ("frames", "right"),
+                          ("Hz", "right"), ("rejects", "left"), ("last values", "left")):
+        view.add_column(name, justify=justify)  # type: ignore[arg-type]
+    for m in snapshot["messages"]:
+        values = m["values"]
+        text = "-" if values is None else "  ".join(
+            f"{k} {value_text(k, v, m['units'].get(k, ''))}" for k, v in values.items())
+        rejects = ", ".join(f"{k} {v}" for k, v in m["rejects"].items()) or "-"
+        rate = "-" if m["rate_hz"] is None else f"{m['rate_hz']:.0f}"
+        view.add_row(m["id"], m["message"], str(m["frames"]), rate,
+                     f"[red]{rejects}[/red]" if m["rejects"] else rejects, text)
+    for fid, count in snapshot["unknown_ids"].items():
+        view.add_row(fid, "[yellow]unknown id[/yellow]", str(count), "-", "-", "-")
+    return view
+
+
+def listen(bus: HandBus, seconds: float | None, keep_going: Callable[[], bool] = lambda: True,
+           clock: Callable[[], int] = time.monotonic_ns, poll_s: float = 0.005
+           ) -> Iterator[list[tuple[int, bytes, int]]]:
+    """Batches of ``(id, data, arrival_ns)`` from ``bus`` until ``seconds`` have passed (None:
+    until ``keep_going`` says no). Only drains: nothing is ever sent."""
+    bus.use_clock(clock)
+    end = None if seconds is None else clock() + round(seconds * 1e9)
+    while keep_going():
+        batch = [(f.arbitration_id, f.data, f.timestamp_ns) for f in bus.drain()]
+        bus.events()
+        yield batch
+        now = clock()
+        if end is not None and now >= end:
+            return
+        if not batch:
+            time.sleep(poll_s)
+
+
+def from_log(path: Path) -> Iterable[tuple[int, bytes, int]]:
+    """The raw frames of a recording, both directions, in wire order, on the log's clock."""
+    from handctl.recording.reader import open_recording
+    from handctl.recording.replay import logged_frames
+
+    recording = open_recording(path)
+    for log_ns, frame_id, data, _ in logged_frames(recording):
+        yield frame_id, data, log_ns

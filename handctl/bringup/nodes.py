@@ -1,0 +1,168 @@
+"""``handctl nodes``: who is on the bus, in which state, speaking which protocol.
+
+It only listens: the nodes send Feedback, Status and Heartbeat whatever their state, so a
+moment of listening says which configured nodes are there, their state and fault bits, their
+protocol and firmware versions, how often their feedback comes, what each side rejected, and
+which frames came from nodes the hand config does not know. Frames go through the host's own
+receive checks (``FingerNode``), so what this shows is what a run would believe.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from handctl.bus import EXTENDED_ID_FLAG, HandBus
+from handctl.config import HandConfig
+from handctl.drivers.finger import FingerLayouts, FingerNode, fault_names
+from handctl.drivers.hand import check_ids
+from handctl.protocol import Protocol
+
+#: Messages a finger node sends (the host's receive streams of a node).
+NODE_KINDS = ("Feedback", "Status", "Heartbeat")
+#: How long a listening loop sleeps between drains (s): short against the queues it empties.
+POLL_S = 0.005
+
+
+@dataclass
+class NodeRow:
+    """One configured node as the bus showed it."""
+
+    node_id: int
+    name: str
+    present: bool
+    state: str
+    fault_bits: int
+    protocol_version: int | None
+    firmware: str
+    uptime_ms: int | None
+    feedback_hz: float
+    heartbeats: int
+    statuses: int
+    host_rejects: dict[str, int]
+    node_rejects: dict[str, int] | None  # what its last Status said it rejected
+    command_age_ms: int | None
+    problem: str
+
+    @property
+    def faults(self) -> list[str]:
+        return fault_names(self.fault_bits)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"node_id": self.node_id, "name": self.name, "present": self.present,
+                "state": self.state, "fault_bits": self.fault_bits, "faults": self.faults,
+                "protocol_version": self.protocol_version, "firmware": self.firmware,
+                "uptime_ms": self.uptime_ms, "feedback_hz": round(self.feedback_hz, 1),
+                "heartbeats": self.heartbeats, "statuses": self.statuses,
+                "host_rejects": self.host_rejects, "node_rejects": self.node_rejects,
+                "command_age_ms": self.command_age_ms, "problem": self.problem}
+
+
+@dataclass
+class Survey:
+    bus: str
+    seconds: float
+    host_protocol: int
+    rows: list[NodeRow]
+    #: Frames on ids that are none of the configured nodes': id -> (what it is, frames).
+    foreign: dict[int, tuple[str, int]] = field(default_factory=dict)
+    bus_events: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def foreign_nodes(self) -> list[str]:
+        """Descriptions of the frames from protocol nodes the hand config does not have."""
+        return [what for what, _ in self.foreign.values() if "not in the hand config" in what]
+
+    @property
+    def ok(self) -> bool:
+        """Every configured node there, in no fault, of the host's protocol; nobody else."""
+        return all(not row.problem for row in self.rows) and not self.foreign_nodes
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"bus": self.bus, "seconds": round(self.seconds, 3),
+                "host_protocol": self.host_protocol, "ok": self.ok,
+                "nodes": [row.as_dict() for row in self.rows],
+                "foreign_ids": [{"id": f"0x{fid:03X}", "what": what, "frames": n}
+                                for fid, (what, n) in sorted(self.foreign.items())],
+                "bus_events": self.bus_events}
+
+
+def describe_id(frame_id: int, protocol: Protocol, node_ids: set[int]) -> str:
+    """What a frame on an id that no configured node uses is, as far as the DBC says."""
+    if frame_id & EXTENDED_ID_FLAG:
+        return f"29-bit id 0x{frame_id & ~EXTENDED_ID_FLAG:08X}: not handctl's"
+    layout = protocol.by_id.get(frame_id)
+    if layout is None:
+        return "not in the DBC"
+    if layout.kind in NODE_KINDS and layout.node not in node_ids:
+        return f"{layout.name}: node {layout.node}, not in the hand config"
+    return f"{layout.name}: sent by another host"
+
+
+def survey(hand: HandConfig, protocol: Protocol, bus: HandBus, seconds: float,
+           clock: Callable[[], int] = time.monotonic_ns,
+           sleep: Callable[[float], None] = time.sleep) -> Survey:
+    """Listen to ``bus`` for ``seconds`` and say what each configured node is. Sends nothing."""
+    check_ids(hand, protocol)
+    nodes = [FingerNode(f, FingerLayouts.for_node(protocol, f.node_id)) for f in hand.fingers]
+    dispatch = {fid: node for node in nodes for fid in node.streams}
+    counts: dict[int, Counter[str]] = {node.node_id: Counter() for node in nodes}
+    foreign: Counter[int] = Counter()
+    events: Counter[str] = Counter()
+    bus.use_clock(clock)
+    bus.drain(limit=10**6)  # what waited before we listened says nothing of now
+    bus.events()
+    start = clock()
+    end = start + round(seconds * 1e9)
+    while True:
+        for frame in bus.drain():
+            fid = frame.arbitration_id
+            node = dispatch.get(fid)
+            if node is None:
+                foreign[fid] += 1
+                continue
+            count = counts[node.node_id]
+            count["frames"] += 1
+            if node.receive(fid, frame.data, frame.timestamp_ns) is None:
+                count[node.streams[fid][0].kind] += 1
+        for event in bus.events():
+            events[event.kind.value] += 1
+        now = clock()
+        if now >= end:
+            break
+        sleep(min(POLL_S, (end - now) * 1e-9))
+    elapsed = max((clock() - start) * 1e-9, 1e-9)
+    node_ids = {f.node_id for f in hand.fingers}
+    rows = [_row(node, counts[node.node_id], elapsed) for node in nodes]
+    described = {fid: (describe_id(fid, protocol, node_ids), n) for fid, n in foreign.items()}
+    return Survey(str(bus.spec), elapsed, protocol.version, rows, described, dict(events))
+
+
+def _row(node: FingerNode, count: Counter[str], elapsed: float) -> NodeRow:
+    present = count["frames"] > 0
+    status = node.status
+    node_rejects = None if status is None else {
+        "crc": int(status[2]), "counter": int(status[3]), "length": int(status[4])}
+    problem = ""
+    if not present:
+        problem = f"missing: nothing heard in {elapsed:.2f} s"
+    elif node.version_ns is not None and node.version_problem():
+        problem = node.version_problem()
+    elif node.version_ns is None:
+        problem = "no Status heard: its protocol version is unknown"
+    elif node.state == 2:
+        problem = f"in FAULT ({', '.join(fault_names(node.fault_bits)) or 'no bits'})"
+    elif node.contradiction:
+        problem = f"contradicts itself: {node.contradiction}"
+    return NodeRow(
+        node_id=node.node_id, name=node.finger.name, present=present,
+        state=node.state_name if present else "-", fault_bits=node.fault_bits,
+        protocol_version=node.protocol_version, firmware=node.firmware_text,
+        uptime_ms=node.uptime_ms, feedback_hz=count["Feedback"] / elapsed,
+        heartbeats=count["Heartbeat"], statuses=count["Status"],
+        host_rejects={k: v for k, v in node.rejects.as_dict().items() if v},
+        node_rejects=node_rejects,
+        command_age_ms=None if status is None else int(status[5]), problem=problem)

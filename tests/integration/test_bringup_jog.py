@@ -1,0 +1,101 @@
+"""``handctl jog`` end to end against the simulated hand: in lockstep on the virtual bus, and
+free-running in its own process on the unix bus with Ctrl-C as its controlled stop. One joint
+gets the torque, every other zero; a torque over tau_max is refused before anything is sent."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from handctl import cli
+from handctl.bringup.jog import jog
+from handctl.bus import open_bus
+from handctl.config import HandConfig
+
+from ..conftest import ROOT
+
+
+def test_one_joint_turns_its_way_and_no_other_gets_torque(
+        hand: HandConfig, capsys: pytest.CaptureFixture[str]) -> None:
+    code = cli.main(["jog", "f1_j2", "--torque", "0.05", "--seconds", "0.3"])
+    out = capsys.readouterr().out
+    assert code == cli.EXIT_OK, out
+    rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]
+    assert len(rows) > 5 and {r[1] for r in rows} >= {"jog", "end_ramp"}
+    applied = [float(r[4]) for r in rows]
+    assert max(applied) == pytest.approx(0.05) and applied[-1] < 0.01
+    summary = out.splitlines()[-1]
+    moved = float(summary.split("(")[1].split()[0])
+    assert moved > 0.1  # counter-clockwise positive: a positive torque turns it that way
+    assert "largest |applied| 0.0500 N·m" in summary
+
+
+def test_every_other_joint_gets_exactly_zero(hand: HandConfig) -> None:
+    result = jog(hand, "f2_j3", 0.03, seconds=0.2)
+    applied = result.report.summary["max_abs_tau"]
+    assert result.report.summary["outcome"] == "completed"
+    assert applied.pop("f2_j3") == pytest.approx(0.03)
+    assert set(applied.values()) == {0.0}
+
+
+def test_a_negative_torque_turns_it_back(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["jog", "f3_j1", "--torque", "-0.05", "--seconds", "0.3"]) == cli.EXIT_OK
+    summary = capsys.readouterr().out.splitlines()[-1]
+    assert float(summary.split("(")[1].split()[0]) < -0.1
+
+
+@pytest.mark.parametrize("args, says", [
+    (["f1_j3", "--torque", "0.31"], "--torque: expected |τ| <= 0.3 N·m (tau_max of f1_j3"),
+    (["f1_j3", "--torque", "nan"], "--torque: expected |τ| <= 0.3 N·m"),
+    (["f9_j1", "--torque", "0.01"], "JOINT: expected a joint of"),
+    (["f1_j1", "--torque", "0.01", "--seconds", "-1"], "--seconds"),
+])
+def test_bad_input_is_refused_before_anything_is_sent(
+        hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str],
+        args: list[str], says: str) -> None:
+    sniffer = open_bus(f"virtual:{channel}", hand.bus)
+    try:
+        code = cli.main(["jog", *args, "--bus", f"virtual:{channel}"])
+        heard = sniffer.drain(limit=1000)
+    finally:
+        sniffer.close()
+    assert code == cli.EXIT_BAD_INPUT
+    assert says in capsys.readouterr().err
+    assert heard == []
+
+
+def test_a_missing_node_stops_it_at_start_up(tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    faults = tmp_path / "faults.yaml"
+    faults.write_text("faults:\n  - {kind: node_silent, node: 3, start: 0.0}\n")
+    code = cli.main(["jog", "f1_j1", "--torque", "0.05", "--sim-faults", str(faults)])
+    assert code == cli.EXIT_SAFETY_STOP
+    assert "node 3 (f3): no feedback" in capsys.readouterr().err
+
+
+def test_ctrl_c_is_a_controlled_stop_on_the_unix_bus() -> None:
+    outcomes = []
+    for _attempt in range(3):  # a start-up the machine's load stopped is tried again
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "handctl", "jog", "f2_j1", "--torque", "0.05", "--seconds",
+             "60", "--realtime", "--rt"], cwd=ROOT, stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE, text=True)
+        assert proc.stdout is not None
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            if " jog " in line:  # torque is flowing
+                proc.send_signal(signal.SIGINT)
+                break
+        out, err = proc.communicate(timeout=60)
+        outcomes.append((proc.returncode, err))
+        if proc.returncode == cli.EXIT_INTERRUPTED:
+            assert "stopped: signal SIGINT" in err
+            assert "f2_j1:" in out  # the summary after the stop
+            return
+        assert proc.returncode == cli.EXIT_SAFETY_STOP, (proc.returncode, err, lines)
+    raise AssertionError(f"every attempt was stopped by the machine's load: {outcomes}")

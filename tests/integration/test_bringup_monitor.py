@@ -1,0 +1,100 @@
+"""``handctl monitor`` against the simulated hand: the bus decoded per message with its rejects
+and unknown ids, JSON lines when piped, on the virtual bus (a second listener hears nothing of
+it) and on the unix bus from another process; and the raw frames of a recording."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from handctl import cli
+from handctl.bus import open_bus
+from handctl.config import HandConfig
+from handctl.sim import faults as inj
+from handctl.sim.hand import SimulatedHand
+
+from ..conftest import ROOT
+from .bringup_peer import HOST_IDS, running_hand
+
+
+def _last(out: str) -> dict[str, Any]:
+    lines = [json.loads(line) for line in out.splitlines() if line.strip()]
+    assert lines, "no JSON lines"
+    return lines[-1]
+
+
+def _by_name(snapshot: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    return {m["message"]: m for m in snapshot["messages"]}
+
+
+def _trouble(sim: SimulatedHand) -> None:
+    sim.activate(inj.CorruptCrc(node=1, message="status"))
+    sim.activate(inj.Babble(id=0x555, per_tick=1, length=8))
+    sim.activate(inj.Babble(id=0x702, per_tick=1, length=3))  # Heartbeat_2 is 7 bytes
+
+
+def test_it_decodes_counts_rejects_and_never_sends(hand: HandConfig, channel: str,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    spec = f"virtual:{channel}"
+    sniffer = open_bus(spec, hand.bus)
+    try:
+        with running_hand(hand, spec, _trouble):
+            code = cli.main(["monitor", "--bus", spec, "--seconds", "0.6", "--every", "0.2"])
+        heard = sniffer.drain(limit=10**6)
+    finally:
+        sniffer.close()
+    assert code == cli.EXIT_OK
+    snapshot = _last(capsys.readouterr().out)
+    messages = _by_name(snapshot)
+    feedback = messages["Feedback_2"]
+    assert feedback["rejects"] == {} and feedback["frames"] > 10
+    assert feedback["values"]["State"] == 0 and feedback["units"]["Angle1"] == "rad"
+    assert set(feedback["values"]) >= {"Torque1", "Angle3", "FaultBits"}
+    assert messages["Status_1"]["rejects"]["crc"] >= 1 and messages["Status_1"]["values"] is None
+    assert messages["Status_2"]["values"]["ProtocolVersion"] == 2
+    assert snapshot["unknown_ids"]["0x555"] > 10
+    heartbeat = messages["Heartbeat_2"]
+    assert heartbeat["rejects"]["length"] > 10 and heartbeat["values"]["State"] == 0
+    assert heard and not [f for f in heard if f.arbitration_id in HOST_IDS]
+
+
+def test_on_the_unix_bus_from_another_process(hand: HandConfig, tmp_path: Path) -> None:
+    spec = f"unix:{tmp_path / 'bus'}"
+    with running_hand(hand, spec, lambda sim: sim.activate(inj.CounterSkip(
+            node=3, message="feedback"))):
+        result = subprocess.run(
+            [sys.executable, "-m", "handctl", "monitor", "--bus", spec, "--seconds", "0.6"],
+            capture_output=True, text=True, cwd=ROOT, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr
+    messages = _by_name(_last(result.stdout))
+    assert messages["Feedback_3"]["rejects"]["counter_skip"] > 10
+    assert messages["Feedback_1"]["rejects"] == {}
+
+
+def test_it_reads_the_frames_of_a_recording(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text("recipe: hold\nphases:\n  - {name: hold, torques: [0.02, 0, 0, 0, 0, 0, "
+                      "0, 0, 0], ramp_s: 0.1, max_s: 0.2, on_timeout: next}\n")
+    log = tmp_path / "run.mcap"
+    assert cli.main(["run", "recipe", str(recipe), "--log", str(log)]) == cli.EXIT_OK
+    capsys.readouterr()
+    assert cli.main(["monitor", "--log", str(log), "--every", "0.1"]) == cli.EXIT_OK
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert len(lines) >= 3  # a snapshot every 0.1 s of log time, and the last
+    messages = _by_name(lines[-1])
+    command = messages["TorqueCommand_1"]
+    assert command["rejects"] == {} and command["values"]["Torque1"] == 0.0  # ends at zero
+    assert messages["Feedback_3"]["frames"] > 100 and messages["NodeCommand_2"]["frames"] >= 2
+
+
+def test_a_log_and_a_bus_at_once_are_refused(tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    code = cli.main(["monitor", "--log", str(tmp_path / "x.mcap"), "--bus", "virtual:x"])
+    assert code == cli.EXIT_BAD_INPUT and "--log" in capsys.readouterr().err
+    assert cli.main(["monitor", "--log", str(tmp_path / "x.mcap")]) == cli.EXIT_BAD_INPUT

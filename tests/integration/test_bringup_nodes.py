@@ -1,0 +1,145 @@
+"""``handctl nodes`` against the simulated hand, on the virtual bus (in this process) and on
+the unix bus (the command in a process of its own): every node there, a node missing, a node in
+FAULT, a node of another protocol version, a node the hand config does not have; and it never
+sends a frame."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from handctl import cli
+from handctl.bus import open_bus
+from handctl.config import HandConfig
+from handctl.sim import faults as inj
+from handctl.sim.hand import SimulatedHand
+
+from ..conftest import HAND_YAML, ROOT
+from .bringup_peer import HOST_IDS, running_hand
+
+SECONDS = "0.6"
+
+
+def _nodes(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, dict[str, Any]]:
+    code = cli.main(["nodes", "--json", "--seconds", SECONDS, *args])
+    return code, json.loads(capsys.readouterr().out)
+
+
+def _rows(report: dict[str, Any]) -> dict[int, dict[str, Any]]:
+    return {row["node_id"]: row for row in report["nodes"]}
+
+
+def test_every_node_is_listed_and_nothing_is_sent(hand: HandConfig, channel: str,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    spec = f"virtual:{channel}"
+    sniffer = open_bus(spec, hand.bus)
+    try:
+        with running_hand(hand, spec):
+            code, report = _nodes(capsys, "--bus", spec)
+        heard = sniffer.drain(limit=10**6)
+    finally:
+        sniffer.close()
+    assert code == cli.EXIT_OK and report["ok"]
+    for row in report["nodes"]:
+        assert row["present"] and row["state"] == "DISABLED" and row["problem"] == ""
+        assert row["protocol_version"] == 2 and row["firmware"] == "0.2.0"
+        assert row["feedback_hz"] > 0 and row["heartbeats"] > 0 and row["statuses"] > 0
+    assert heard, "the sniffer heard the hand"
+    assert not [f for f in heard if f.arbitration_id in HOST_IDS]
+
+
+def _silent_2(sim: SimulatedHand) -> None:
+    sim.activate(inj.NodeSilent(node=2))
+
+
+def _sensor_fault_3(sim: SimulatedHand) -> None:
+    sim.activate(inj.TdtSpike(node=3, joint=1, amplitude=5.0, duration=0.01))
+
+
+def _version_3_on_1(sim: SimulatedHand) -> None:
+    sim.nodes[0].protocol_version = 3
+
+
+def test_a_missing_node(hand: HandConfig, channel: str,
+                        capsys: pytest.CaptureFixture[str]) -> None:
+    with running_hand(hand, f"virtual:{channel}", _silent_2):
+        code, report = _nodes(capsys, "--bus", f"virtual:{channel}")
+    rows = _rows(report)
+    assert code == cli.EXIT_FAILED and not report["ok"]
+    assert not rows[2]["present"] and rows[2]["problem"].startswith("missing")
+    assert rows[1]["problem"] == rows[3]["problem"] == ""
+
+
+def test_a_node_in_fault(hand: HandConfig, channel: str,
+                         capsys: pytest.CaptureFixture[str]) -> None:
+    with running_hand(hand, f"virtual:{channel}", _sensor_fault_3):
+        code, report = _nodes(capsys, "--bus", f"virtual:{channel}")
+    row = _rows(report)[3]
+    assert code == cli.EXIT_FAILED
+    assert row["state"] == "FAULT" and row["faults"] == ["SENSOR"]
+    assert row["problem"] == "in FAULT (SENSOR)"
+
+
+def test_a_node_of_another_protocol_version(hand: HandConfig, channel: str,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    with running_hand(hand, f"virtual:{channel}", _version_3_on_1):
+        code, report = _nodes(capsys, "--bus", f"virtual:{channel}")
+    row = _rows(report)[1]
+    assert code == cli.EXIT_FAILED
+    assert row["protocol_version"] == 3
+    assert "node 1 (f1) speaks handctl protocol 3, this host protocol 2" in row["problem"]
+
+
+def _two_finger_hand(tmp_path: Path) -> Path:
+    data = yaml.safe_load(HAND_YAML.read_text())
+    data["fingers"] = data["fingers"][:2]
+    path = tmp_path / "two_fingers.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_a_node_not_in_the_config_is_flagged(hand: HandConfig, channel: str, tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    with running_hand(hand, f"virtual:{channel}"):
+        code, report = _nodes(capsys, "--bus", f"virtual:{channel}",
+                              "--hand", str(_two_finger_hand(tmp_path)))
+    assert code == cli.EXIT_FAILED
+    assert [row["problem"] for row in report["nodes"]] == ["", ""]
+    foreign = {f["id"]: f["what"] for f in report["foreign_ids"]}
+    assert foreign["0x183"] == "Feedback_3: node 3, not in the hand config"
+    assert foreign["0x703"] == "Heartbeat_3: node 3, not in the hand config"
+
+
+def test_bad_seconds_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["nodes", "--seconds", "0"]) == cli.EXIT_BAD_INPUT
+    assert "--seconds" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("prepare, node, problem", [
+    (None, None, ""),
+    (_silent_2, 2, "missing"),
+    (_sensor_fault_3, 3, "in FAULT (SENSOR)"),
+    (_version_3_on_1, 1, "speaks handctl protocol 3"),
+])
+def test_on_the_unix_bus_from_another_process(hand: HandConfig, tmp_path: Path, prepare: Any,
+                                              node: int | None, problem: str) -> None:
+    spec = f"unix:{tmp_path / 'bus'}"
+    with running_hand(hand, spec, prepare):
+        result = subprocess.run(
+            [sys.executable, "-m", "handctl", "nodes", "--bus", spec, "--json",
+             "--seconds", SECONDS], capture_output=True, text=True, cwd=ROOT, timeout=120,
+            check=False)
+    report = json.loads(result.stdout)
+    rows = _rows(report)
+    if node is None:
+        assert result.returncode == 0 and report["ok"], result.stdout
+        return
+    assert result.returncode == cli.EXIT_FAILED
+    assert problem in rows[node]["problem"]
+    assert all(row["problem"] == "" for n, row in rows.items() if n != node)
