@@ -93,6 +93,7 @@ class StatusLine:
     state: str
     max_abs_tau: float
     lateness_us: float
+    timed_out: tuple[str, ...] = ()  # phases so far that ended on their timeout, not an exit
 
 
 @dataclass
@@ -328,7 +329,8 @@ class Runtime:
         self._store(tk, (c1 - c0, c2 - c1, c3 - c2, c4 - c3, c5 - c4))
         if self.status is not None and tk.k % STATUS_EVERY_TICKS == 0:
             self.status(StatusLine(t_s, self._phase_name(), sup.state.value,
-                                   float(np.max(np.abs(applied))), tk.lateness_ns / 1e3))
+                                   float(np.max(np.abs(applied))), tk.lateness_ns / 1e3,
+                                   self._timed_out()))
         return tk
 
     def decide(self, k: int, now_ns: int, missed: int, t_s: float, angle: np.ndarray,
@@ -368,6 +370,11 @@ class Runtime:
         if runner.status is RunStatus.ABORTED and not self.stop_requested:
             sup.trip(FaultCode.RECIPE_ABORT, runner.abort_reason, self._ticks)
         return desired
+
+    def _timed_out(self) -> tuple[str, ...]:
+        if self.runner is None:
+            return ()
+        return tuple(r.name for r in self.runner.records if r.exit.startswith("timeout"))
 
     def _phase_name(self) -> str:
         return self.runner.phase_name if self.runner is not None else "-"

@@ -85,7 +85,9 @@ def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: boo
         "hand": hand.name,
         "hand_config_hash": hand.config_hash,
         "mode": "lockstep" if lockstep else "realtime",
-        "phases": result.phases,
+        # a phase that ran out its max_s did not do what its exits wait for: say so plainly
+        "phases": [{**p, "timed_out": p["exit"].startswith("timeout")} for p in result.phases],
+        "timed_out_phases": [p["name"] for p in result.phases if p["exit"].startswith("timeout")],
         "faults": [{"code": f.code.name, "category": FAULTS[f.code].category.name.lower(),
                     "tick": f.tick, "detail": f.detail} for f in result.faults],
         "ticks": result.ticks,
@@ -175,7 +177,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         if tracker is not None:
             from handctl.planning.experiment import experiment_summary
 
-            summary["experiment"] = experiment_summary(tracker.trace)
+            summary["experiment"] = experiment_summary(tracker.trace,
+                                                       req.recipe.min_total_turn_deg)
         if req.plot is not None:
             if tracker is None:
                 warnings.append("--plot needs the simulated hand in lockstep and a recipe "

@@ -119,6 +119,8 @@ class PlanResult:
             "end_ramp_s": t.end_ramp_s,
             **({"limit_guard_band": t.limit_guard_band} if t.limit_guard_band is not None
                else {}),
+            **({"min_total_turn_deg": t.min_total_turn_deg} if t.min_total_turn_deg > 0
+               else {}),
             "phases": [_phase_document(p, self.hand) for p in self.phases],
         }
 

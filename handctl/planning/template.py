@@ -27,7 +27,7 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.planning.models import Spread
 from handctl.planning.search import Budget
-from handctl.recipes.loader import check_unique_names, parse_guard_band
+from handctl.recipes.loader import check_unique_names, parse_guard_band, parse_min_total_turn
 from handctl.recipes.schema import RecipeObject
 from handctl.schema import Doc, load_yaml
 
@@ -73,6 +73,7 @@ class Template:
     search: SearchSettings
     phases: tuple[TemplatePhase, ...]
     limit_guard_band: float | None = None  # rad; carried into the compiled recipe
+    min_total_turn_deg: float = 0.0  # deg; carried into the compiled recipe
 
 
 def load_template(path: str | Path, hand: HandConfig) -> Template:
@@ -93,12 +94,13 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
     band = parse_guard_band(doc)
+    min_turn = parse_min_total_turn(doc)
     names = [o.name for o in objects]
     phases = tuple(_phase(p, hand, names) for p in doc.mappings("phases", min_len=1, max_len=32))
     check_unique_names(doc, [p.name for p in phases])
     doc.done()
     return Template(doc.file, recipe, description, tuple(objects), end_ramp, search, phases,
-                    band)
+                    band, min_turn)
 
 
 def _search(doc: Doc) -> SearchSettings:

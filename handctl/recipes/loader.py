@@ -32,6 +32,8 @@ OBJECT_COUNT = 2
 #: rad, the range of ``limit_guard_band``: narrower is a cliff again, wider fights the grasp
 GUARD_BAND_MIN = 0.02
 GUARD_BAND_MAX = 0.5
+#: deg, the most ``min_total_turn_deg`` may ask for (a few turns of the pair)
+MAX_TOTAL_TURN_DEG = 1440.0
 
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
@@ -56,6 +58,7 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     objects = _parse_objects(doc)
     band = parse_guard_band(doc)
     guard = LimitGuard.for_hand(hand, band) if band is not None else None
+    min_turn = parse_min_total_turn(doc)
     planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe: read, not used
     if not isinstance(planned_from, dict):
         doc.fail("planned_from", "a mapping (what handctl plan planned the recipe from)",
@@ -76,7 +79,14 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                           f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
                           "compiled for another hand config: recompile it for this one)", digest)
     return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled, objects,
-                  guard)
+                  guard, min_turn)
+
+
+def parse_min_total_turn(doc: Doc) -> float:
+    """``min_total_turn_deg`` of a recipe or a template: the least total turn of the pair for
+    the experiment to succeed (0, asking for no turn, when it is not set)."""
+    return doc.number("min_total_turn_deg", default=0.0, min=0.0, max=MAX_TOTAL_TURN_DEG,
+                      unit="deg")
 
 
 def parse_guard_band(doc: Doc) -> float | None:

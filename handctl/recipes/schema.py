@@ -100,6 +100,9 @@ class Recipe:
     compiled: bool
     objects: tuple[RecipeObject, ...] = ()
     limit_guard: LimitGuard | None = None  # soft-limit push-back (guard.py); None: off
+    #: deg, the least total turn of the pair for the experiment to count as a success (the
+    #: run's ``experiment.success``); 0 asks for none
+    min_total_turn_deg: float = 0.0
 
     @property
     def uses_estimates(self) -> bool:
