@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from handctl.recipes.schema import Condition, Recipe, SignalKind, TimeoutAction
+from handctl.recipes.velocity import JointVelocity
 from handctl.safety.limits import FloatArray
 
 
@@ -54,6 +55,8 @@ class RecipeRunner:
         self._started = False
         self._guard = recipe.limit_guard
         self._guarded = np.zeros(n_joints)
+        # from the angles it is fed, so a re-run of the logged feedback gets the same values
+        self.velocity = JointVelocity(n_joints)
 
     @property
     def phase_name(self) -> str:
@@ -96,6 +99,7 @@ class RecipeRunner:
         if self.done:
             self._desired[:] = 0.0
             return self._desired
+        velocity = self.velocity.update(t, angle)
         elapsed = t - self.phase_start
         if self.status is RunStatus.RUNNING:
             phase = self.recipe.phases[self.index]
@@ -122,7 +126,7 @@ class RecipeRunner:
         if self._guard is None or self.done:
             return self._desired
         # the ramp state stays the recipe's own torque; only what is proposed is guarded
-        return self._guard.apply(angle, self._desired, self._guarded)
+        return self._guard.apply(angle, self._desired, self._guarded, velocity)
 
     def abort(self, t: float, reason: str) -> None:
         """Stop proposing torque; the supervisor takes the hand to zero."""
