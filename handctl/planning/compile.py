@@ -210,7 +210,7 @@ def plan_recipe(template: Template, hand: HandConfig, *,
     count = models if models is not None else settings.models
     budget = budget or settings.budget
     params = parse_sim(hand)
-    model_list = model_set(params, count, settings.seed, settings.spread)
+    model_list = model_set(params, count, settings.seed, settings.spread, hand=hand)
     guard = (LimitGuard.for_hand(hand, template.limit_guard_band)
              if template.limit_guard_band is not None else None)
     episodes = [Episode(hand, m.params, template.objects, guard) for m in model_list]

@@ -104,13 +104,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
 
 
 def _search(doc: Doc) -> SearchSettings:
-    spread_doc = doc.mapping("spread", default={})
-    d = Spread()
-    spread = Spread(
-        friction=spread_doc.number("friction", default=d.friction, min=0.0, max=0.9),
-        mass=spread_doc.number("mass", default=d.mass, min=0.0, max=0.9),
-        radius=spread_doc.number("radius", default=d.radius, min=0.0, max=0.5))
-    spread_doc.done()
+    spread = _spread(doc.mapping("spread", default={}))
     b = Budget()
     budget = Budget(
         generations=doc.integer("generations", default=b.generations, min=0, max=100),
@@ -127,6 +121,38 @@ def _search(doc: Doc) -> SearchSettings:
                               doc.integer("random_seeds", default=0, min=0, max=1000))
     doc.done()
     return settings
+
+
+def _spread(doc: Doc) -> Spread:
+    """``search.spread``: any field of ``Spread`` (models.py), the others at their defaults.
+    ± fields are a number; factor ranges two positive numbers, low first."""
+    d = Spread()
+
+    def factors(key: str, default: tuple[float, float], low: float, high: float,
+                unit: str = "") -> tuple[float, float]:
+        if not doc.has(key):
+            return default
+        pair = doc.numbers(key, length=2, min=low, max=high, unit=unit)
+        if pair[0] > pair[1]:
+            doc.fail(key, "[low, high] with low <= high", list(pair))
+        return (pair[0], pair[1])
+
+    spread = Spread(
+        friction=doc.number("friction", default=d.friction, min=0.0, max=0.9),
+        mass=doc.number("mass", default=d.mass, min=0.0, max=0.9),
+        radius=doc.number("radius", default=d.radius, min=0.0, max=0.5),
+        damping=factors("damping", d.damping, 0.01, 100.0),
+        frictionloss=factors("frictionloss", d.frictionloss, 0.01, 100.0),
+        armature=factors("armature", d.armature, 0.01, 100.0),
+        actuator_lag=factors("actuator_lag", d.actuator_lag, 0.01, 100.0),
+        placement=doc.number("placement", default=d.placement, min=0.0, max=0.05, unit="m"),
+        gap=factors("gap", d.gap or (0.0, 0.0), 0.0, 0.05, "m"),
+        initial_angles=doc.number("initial_angles", default=d.initial_angles, min=0.0,
+                                  max=0.5, unit="rad"),
+        tdt_bias=factors("tdt_bias", d.tdt_bias, 0.01, 10.0),
+        tdt_noise=factors("tdt_noise", d.tdt_noise, 0.01, 10.0))
+    doc.done()
+    return spread
 
 
 def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
