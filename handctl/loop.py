@@ -34,7 +34,9 @@ from handctl.safety.faults import Fault, FaultCode
 from handctl.safety.supervisor import State, Supervisor
 from handctl.tickstats import DEFAULT_WINDOW, TickStats, TickWindow
 
-STAGES = ("poll", "recipe", "safety", "send", "record")
+#: ``feedback`` is the recipe phase's feedback and the soft-limit guard (``runner.feedback``);
+#: it comes last so that the first five keep their places in recordings and benchmarks
+STAGES = ("poll", "recipe", "safety", "send", "record", "feedback")
 #: Ticks the loop keeps sending zero after a stop before it disables the nodes: frames in
 #: flight are superseded, and the nodes see zero before they see "disable".
 ZERO_TICKS_BEFORE_DISABLE = 5
@@ -149,6 +151,7 @@ class Runtime:
         self._zero = np.zeros(hand.n_joints)
         self._bus_events = 0
         self._recipe_done_ns = 0
+        self._feedback_ns = 0  # CPU time of this tick's feedback stage (part of the recipe's)
         #: CPU time of the loop's thread, for the per-stage accounting (a re-run, which has no
         #: use for it, puts a cheaper clock here).
         self.cpu_clock: Callable[[], int] = time.thread_time_ns
@@ -322,11 +325,13 @@ class Runtime:
             record.angle, record.tdt, record.desired, record.applied = \
                 state.angle, state.torque, desired, applied
             record.state, record.phase = sup.state.value, self._phase_name()
-            record.stage_ns = (c1 - c0, c2 - c1, c3 - c2, c4 - c3, 0)
+            fb = self._feedback_ns
+            record.stage_ns = (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, 0, fb)
             record.faults = new_faults
             self.recorder.push(record)
         c5 = cpu()
-        self._store(tk, (c1 - c0, c2 - c1, c3 - c2, c4 - c3, c5 - c4))
+        fb = self._feedback_ns
+        self._store(tk, (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, c5 - c4, fb))
         if self.status is not None and tk.k % STATUS_EVERY_TICKS == 0:
             self.status(StatusLine(t_s, self._phase_name(), sup.state.value,
                                    float(np.max(np.abs(applied))), tk.lateness_ns / 1e3,
@@ -348,6 +353,7 @@ class Runtime:
         if self.estop_requested:
             sup.trip(FaultCode.ESTOP, self.estop_requested, k)
             self.estop_requested = ""
+        self._feedback_ns = 0
         desired = self._desired(t_s, angle, tdt)
         self._recipe_done_ns = self.cpu_clock()
         new_faults = sup.observe(k, now_ns, self.driver.nodes, angle, tdt, missed, events)
@@ -366,7 +372,10 @@ class Runtime:
             sup.stop(self._ticks)
             return self._zero
         estimates = self.estimator(angle) if self.estimator is not None else None
-        desired = runner.step(t_s, angle, tdt, estimates)
+        runner.advance(t_s, angle, tdt, estimates)
+        f0 = self.cpu_clock()
+        desired = runner.feedback(t_s, angle, estimates)
+        self._feedback_ns = self.cpu_clock() - f0
         if runner.status is RunStatus.ABORTED and not self.stop_requested:
             sup.trip(FaultCode.RECIPE_ABORT, runner.abort_reason, self._ticks)
         return desired

@@ -27,7 +27,7 @@ from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
-from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine
+from handctl.loop import STAGES, Outcome, RecordSink, RunResult, Runtime, StatusLine
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS
@@ -76,7 +76,7 @@ def _percentiles_us(window: TickWindow) -> dict[str, float]:
 def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool,
               sim: dict[str, Any] | None) -> dict[str, Any]:
     """The summary JSON: the fields the runtime issue names, and a few an engineer wants."""
-    stages = ("poll", "recipe", "safety", "send", "record")
+    stages = STAGES
     return {
         "completed": result.outcome is Outcome.COMPLETED,
         "outcome": result.outcome.value,

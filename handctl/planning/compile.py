@@ -50,7 +50,7 @@ from handctl.planning.search import (
 )
 from handctl.planning.template import Template, TemplatePhase
 from handctl.recipes.guard import LimitGuard
-from handctl.recipes.schema import Condition, Phase, TimeoutAction, parse_condition
+from handctl.recipes.schema import Condition, Phase, PoseHold, TimeoutAction, parse_condition
 from handctl.sim.params import parse_sim
 
 #: decimals of N·m kept in the compiled recipe (0.1 mN·m, far below the TDT resolution)
@@ -140,6 +140,14 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     }
     if phase.exits:
         doc["exit"] = [c.text for c in phase.exits]
+    if phase.turn_rate is not None:
+        loop = phase.turn_rate
+        doc["turn_rate"] = {"rate_deg_s": round(math.degrees(loop.rate), 6),
+                            "scale": [loop.scale_min, loop.scale_max], "gain": loop.gain,
+                            "integral_per_s": loop.integral}
+    if phase.pose is not None:
+        doc["pose"] = {"angles": dict(zip(hand.joint_names, phase.pose.angles, strict=True)),
+                       "stiffness": phase.pose.stiffness, "damping": phase.pose.damping}
     doc["provenance"] = plan.provenance
     return doc
 
@@ -191,14 +199,24 @@ def _advance_to_contact(episode: Episode, phase: Phase) -> None:
 
 
 def _compiled_phase(spec: TemplatePhase, torques: tuple[float, ...],
-                    hand: HandConfig) -> Phase:
+                    hand: HandConfig, pose: PoseHold | None = None) -> Phase:
     exits: tuple[Condition, ...] = ()
     if spec.kind == "turn":
         parsed = parse_condition(spec.exit_condition(), hand.joint_names)
         assert not isinstance(parsed, str), parsed
         exits = (parsed,)
     rounded = tuple(_rounded(torques))
-    return Phase(spec.name, rounded, spec.ramp_s, spec.max_s, TimeoutAction.NEXT, exits, ())
+    return Phase(spec.name, rounded, spec.ramp_s, spec.max_s, TimeoutAction.NEXT, exits, (),
+                 turn_rate=spec.turn_rate, pose=pose)
+
+
+def _pose_of(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> PoseHold:
+    """The pose a free phase with a pose hold ends in: where its torques alone leave the
+    nominal hand (rounded to 0.1 mrad), so the hold brings every hand to the nominal's pose."""
+    assert spec.seed is not None and spec.pose_stiffness is not None
+    episode.run_phase(_compiled_phase(spec, spec.seed, hand))
+    angles = tuple(round(float(q), 4) + 0.0 for q in episode.plant.joint_angles)
+    return PoseHold(angles, spec.pose_stiffness, spec.pose_damping)
 
 
 def plan_recipe(template: Template, hand: HandConfig, *,
@@ -240,10 +258,14 @@ def plan_recipe(template: Template, hand: HandConfig, *,
                 else f"  analysis: none ({analysis.reason})")
         chosen: Candidate | None = None
         search_doc: dict[str, Any] | None = None
+        pose = None
         if spec.kind == "free":
             assert spec.seed is not None
             torques = spec.seed
             origin = "template"
+            if spec.pose_stiffness is not None:
+                pose = _pose_of(nominal, spec, hand)
+                nominal.restore(snaps[alive[0]])
         else:
             seeds: list[tuple[str, tuple[float, ...]]] = []
             if analysis is not None and analysis.found and analysis.torques is not None:
@@ -278,7 +300,7 @@ def plan_recipe(template: Template, hand: HandConfig, *,
                 "models": len(alive),
                 "successes": chosen.successes,
             }
-        phase = _compiled_phase(spec, torques, hand)
+        phase = _compiled_phase(spec, torques, hand, pose)
         outcomes = []
         for i in alive:
             episodes[i].restore(snaps[i])

@@ -27,8 +27,13 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.planning.models import Spread
 from handctl.planning.search import Budget
-from handctl.recipes.loader import check_unique_names, parse_guard_band, parse_min_total_turn
-from handctl.recipes.schema import RecipeObject
+from handctl.recipes.loader import (
+    check_unique_names,
+    parse_guard_band,
+    parse_min_total_turn,
+    parse_turn_rate,
+)
+from handctl.recipes.schema import RecipeObject, TurnRate
 from handctl.schema import Doc, load_yaml
 
 KINDS = ("free", "lift", "hold", "turn")
@@ -46,6 +51,9 @@ class TemplatePhase:
     turn: float = 0.0  # rad
     exit_fraction: float = 0.95
     exit_hold_s: float = 0.02
+    turn_rate: TurnRate | None = None  # a turn phase's rate loop, carried into the recipe
+    pose_stiffness: float | None = None  # N·m/rad: a free phase ends in the nominal's pose
+    pose_damping: float = 0.0  # N·m·s/rad
 
     def exit_condition(self) -> str:
         """The compiled exit of a turn phase: on the estimated turn since the phase began."""
@@ -189,12 +197,23 @@ def _phase(doc: Doc, hand: HandConfig, objects: list[str]) -> TemplatePhase:
         sub.done()
     if kind in ("lift", "hold"):
         min_height = doc.number("min_height", min=0.0, max=0.2, unit="m")
+    turn_rate = None
     if kind == "turn":
         turn = math.radians(doc.number("turn_deg", min=-180.0, max=180.0, unit="deg"))
         if abs(turn) < 1e-6:
             doc.fail("turn_deg", "a non-zero turn", 0.0)
         exit_fraction = doc.number("exit_fraction", default=0.95, min=0.1, max=1.5)
         exit_hold = doc.number("exit_hold_s", default=0.02, min=0.0, max=1.0, unit="s")
+        if doc.has("turn_rate"):
+            turn_rate = parse_turn_rate(doc.mapping("turn_rate"), math.copysign(1.0, turn))
+    stiffness: float | None = None
+    damping = 0.0
+    if kind == "free" and doc.has("pose"):
+        pose = doc.mapping("pose")
+        stiffness = pose.number("stiffness", min=0.0, max=100.0, min_exclusive=True,
+                                unit="N·m/rad")
+        damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
+        pose.done()
     doc.done()
     return TemplatePhase(name, kind, ramp, max_s, seed, move, min_height, turn, exit_fraction,
-                         exit_hold)
+                         exit_hold, turn_rate, stiffness, damping)
