@@ -84,6 +84,7 @@ class RecipeRunner:
         self._turn_t = math.nan
         self._proposed = np.zeros(n_joints)
         self._delta = np.zeros(n_joints)
+        self._fed = False  # whether ``_proposed`` holds this phase's last proposal
 
     @property
     def phase_name(self) -> str:
@@ -101,7 +102,10 @@ class RecipeRunner:
         if self.records:
             self.records[-1].end_s = t
             self.records[-1].exit = reason
-        self._from = self._desired.copy()
+        # the next ramp starts from what was proposed, feedback included, so that leaving a
+        # phase with feedback is no step in torque
+        self._from = (self._proposed if self._fed else self._desired).copy()
+        self._fed = False
         self.phase_start = t
         self._held_since.clear()
         self._phase_ref.clear()
@@ -177,6 +181,7 @@ class RecipeRunner:
             # the ramp state stays the recipe's own torque; only what is proposed moves
             out = self._proposed
             out[:] = self._desired
+            self._fed = True
             if phase.turn_rate is not None:
                 self._turn_loop(t, estimates)
                 # from + fraction * (scale * target - from)

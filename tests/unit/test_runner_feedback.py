@@ -26,10 +26,12 @@ TURN = ESTIMATES.index("centre_line_turn")
 
 
 def _recipe(tmp_path: Path, hand: HandConfig, phase: dict[str, object],
-            objects: bool = True) -> Recipe:
+            objects: bool = True, max_s: float = 10.0) -> Recipe:
     data: dict[str, object] = {"recipe": "feedback", "phases": [
         {"name": "turn", "torques": dict(zip(JOINTS, TORQUES, strict=True)), "ramp_s": RAMP,
-         "max_s": 10.0, "on_timeout": "next", **phase}]}
+         "max_s": max_s, "on_timeout": "next", **phase},
+        {"name": "after", "torques": dict(zip(JOINTS, TORQUES, strict=True)), "ramp_s": RAMP,
+         "max_s": 10.0, "on_timeout": "next"}]}
     if objects:
         data["objects"] = [{"name": "a", "radius": 0.02}, {"name": "b", "radius": 0.02}]
     path = tmp_path / "feedback.yaml"
@@ -85,6 +87,18 @@ def test_the_wanted_rate_keeps_the_planned_torque(tmp_path: Path, hand: HandConf
     runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE), 9)
     _drive(runner, +45.0, 1.0)
     assert runner.scale == pytest.approx(1.5)
+
+
+def test_the_next_phase_ramps_from_the_scaled_torque(tmp_path: Path,
+                                                     hand: HandConfig) -> None:
+    """Leaving a phase with feedback is no step in torque: the next phase's ramp starts from
+    what was proposed, not from the phase's planned torque."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE, max_s=0.5), 9)
+    t, before, turn = _drive(runner, -400.0, 0.5)
+    assert runner.phase_name == "turn" and runner.scale == pytest.approx(0.5)
+    _, after, _ = _drive(runner, -400.0, 2 * DT, t, turn)
+    assert runner.phase_name == "after"
+    assert np.max(np.abs(after - before)) < 0.01
 
 
 def test_an_invalid_estimate_holds_the_scale(tmp_path: Path, hand: HandConfig) -> None:
