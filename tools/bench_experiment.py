@@ -33,10 +33,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, default=10, help="perturbed models per group")
     parser.add_argument("--first-seed", type=int, default=1000,
                         help="seed of the first model (models are seed, seed + 1, ...)")
-    parser.add_argument("--family", default=None,
-                        help="one family of the spread (contact, joint_dynamics, objects, "
-                        "placement, start_pose, sensors) or 'all' for all at once; default: "
-                        "each family on its own, then all at once")
+    from handctl.planning.models import FAMILIES
+
+    parser.add_argument("--family", default=None, choices=[*FAMILIES, "all"],
+                        help="one family of the spread, or 'all' for all of them at once; "
+                        "default: each family on its own, then all at once")
     parser.add_argument("--recipe", type=Path, default=DEFAULT_RECIPE)
     parser.add_argument("--hand", type=Path, default=DEFAULT_HAND)
     parser.add_argument("--swap-deg", type=float, default=170.0,
@@ -129,13 +130,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out["nominal"] = {k: nominal[k] for k in ("success", "swap", "total_rotation_deg",
                                               "phase_angles_deg", "peak_turn_rate_deg_s")}
     if not args.nominal:
-        if args.family is None:
-            groups = [*FAMILIES, "all"]
-        elif args.family in FAMILIES or args.family == "all":
-            groups = [args.family]
-        else:
-            raise SystemExit(f"bench.py experiment: --family: expected one of "
-                             f"{', '.join([*FAMILIES, 'all'])}; found {args.family}")
+        groups = [*FAMILIES, "all"] if args.family is None else [args.family]
         out["families"] = {}
         for group in groups:
             spread = Spread() if group == "all" else Spread().only(group)
