@@ -135,9 +135,10 @@ def _status_printer() -> Callable[[object], None] | None:
         from handctl.loop import StatusLine
 
         assert isinstance(line, StatusLine)
+        timed_out = (f" timed out: {', '.join(line.timed_out)} " if line.timed_out else "")
         print(f"\r{line.t_s:7.2f} s  {line.phase:<16} {line.state:<10} "
-              f"max|τ| {line.max_abs_tau:5.3f} N·m  late {line.lateness_us:7.1f} µs ",
-              end="", file=sys.stderr, flush=True)
+              f"max|τ| {line.max_abs_tau:5.3f} N·m  late {line.lateness_us:7.1f} µs "
+              + timed_out, end="", file=sys.stderr, flush=True)
 
     return show
 
@@ -174,7 +175,9 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
           f"{summary['outcome']}")
     for phase in summary["phases"]:
         end = "-" if phase["end_s"] is None else f"{phase['end_s']:.3f}"
-        print(f"  {phase['name']:<16} {phase['start_s']:8.3f} .. {end:>8} s  {phase['exit']}")
+        exit_text = (f"TIMED OUT ({phase['exit']})" if phase.get("timed_out")
+                     else phase["exit"])
+        print(f"  {phase['name']:<16} {phase['start_s']:8.3f} .. {end:>8} s  {exit_text}")
     for fault in summary["faults"]:
         print(f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']}: "
               f"{fault['detail']}")
@@ -193,8 +196,10 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
         err = ex["estimator_error_deg"]
         print(f"  experiment: lifted {ex['lifted']} (held {ex['held_s']:.2f} s), turn per "
               f"phase {ex['phase_angles_deg']} deg, total {ex['total_rotation_deg']} deg, "
-              f"dropped {ex['dropped']}, estimator p95 "
-              + ("-" if err is None else f"{err} deg"))
+              f"peak rate {ex['peak_turn_rate_deg_s']} deg/s, dropped {ex['dropped']}, "
+              "estimator p95 " + ("-" if err is None else f"{err} deg"))
+        print(f"  experiment: {'success' if ex['success'] else 'FAILED'} (lifted, held, "
+              f"nothing dropped, at least {ex['min_total_turn_deg']:g} deg turned)")
     if args.plot and "experiment" in summary:
         print(f"  overview plot: {args.plot}")
     if "recording" in summary and "error" not in summary["recording"]:
@@ -203,6 +208,11 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
         print(f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to {rec['path']}"
               + (f" ({dropped} records dropped: the writer fell behind)" if dropped else ""))
     if report.result.outcome is Outcome.COMPLETED:
+        if "experiment" in summary and not summary["experiment"]["success"]:
+            # the hand is safe, but the run did not do what it was for (README: exit codes)
+            print("handctl: the experiment failed: see 'experiment' in the summary",
+                  file=sys.stderr)
+            return EXIT_FAILED
         return EXIT_OK
     if report.result.outcome is Outcome.INTERRUPTED:
         print(f"handctl: stopped: {report.result.message}", file=sys.stderr)

@@ -48,7 +48,9 @@ from handctl.safety.faults import Fault, FaultCode
 from handctl.safety.supervisor import State, Supervisor
 from handctl.tickstats import DEFAULT_WINDOW, TickStats, TickWindow
 
-STAGES = ("poll", "recipe", "safety", "send", "record")
+#: ``feedback`` is the recipe phase's feedback and the soft-limit guard (``runner.feedback``);
+#: it comes last so that the first five keep their places in recordings and benchmarks
+STAGES = ("poll", "recipe", "safety", "send", "record", "feedback")
 #: Ticks the loop keeps sending zero after a stop before it disables the nodes: frames in
 #: flight are superseded, and the nodes see zero before they see "disable".
 ZERO_TICKS_BEFORE_DISABLE = 5
@@ -121,6 +123,7 @@ class StatusLine:
     state: str
     max_abs_tau: float
     lateness_us: float
+    timed_out: tuple[str, ...] = ()  # phases so far that ended on their timeout, not an exit
 
 
 @dataclass(frozen=True)
@@ -194,6 +197,7 @@ class Runtime:
         self._bus_events = 0
         self._recipe_done_ns = 0
         self.exception: TickException | None = None
+        self._feedback_ns = 0  # CPU time of this tick's feedback stage (part of the recipe's)
         #: CPU time of the loop's thread, for the per-stage accounting (a re-run, which has no
         #: use for it, puts a cheaper clock here).
         self.cpu_clock: Callable[[], int] = time.thread_time_ns
@@ -464,14 +468,17 @@ class Runtime:
             record.angle, record.tdt, record.desired, record.applied = \
                 state.angle, state.torque, desired, applied
             record.state, record.phase = sup.state.value, self._phase_name()
-            record.stage_ns = (c1 - c0, c2 - c1, c3 - c2, c4 - c3, 0)
+            fb = self._feedback_ns
+            record.stage_ns = (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, 0, fb)
             record.faults = new_faults
             self.recorder.push(record)
         c5 = cpu()
-        self._store(tk, (c1 - c0, c2 - c1, c3 - c2, c4 - c3, c5 - c4))
+        fb = self._feedback_ns
+        self._store(tk, (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, c5 - c4, fb))
         if self.status is not None and tk.k % STATUS_EVERY_TICKS == 0:
             self.status(StatusLine(t_s, self._phase_name(), sup.state.value,
-                                   float(np.max(np.abs(applied))), tk.lateness_ns / 1e3))
+                                   float(np.max(np.abs(applied))), tk.lateness_ns / 1e3,
+                                   self._timed_out()))
         return tk
 
     def decide(self, k: int, now_ns: int, missed: int, t_s: float, angle: np.ndarray,
@@ -489,6 +496,7 @@ class Runtime:
         if self.estop_requested:
             sup.trip(FaultCode.ESTOP, self.estop_requested, k)
             self.estop_requested = ""
+        self._feedback_ns = 0
         desired = self._desired(t_s, angle, tdt)
         self._recipe_done_ns = self.cpu_clock()
         new_faults = sup.observe(k, now_ns, self.driver.nodes, angle, tdt, missed, events)
@@ -507,10 +515,18 @@ class Runtime:
             sup.stop(self._ticks)
             return self._zero
         estimates = self.estimator(angle) if self.estimator is not None else None
-        desired = runner.step(t_s, angle, tdt, estimates)
+        runner.advance(t_s, angle, tdt, estimates)
+        f0 = self.cpu_clock()
+        desired = runner.feedback(t_s, angle, estimates)
+        self._feedback_ns = self.cpu_clock() - f0
         if runner.status is RunStatus.ABORTED and not self.stop_requested:
             sup.trip(FaultCode.RECIPE_ABORT, runner.abort_reason, self._ticks)
         return desired
+
+    def _timed_out(self) -> tuple[str, ...]:
+        if self.runner is None:
+            return ()
+        return tuple(r.name for r in self.runner.records if r.exit.startswith("timeout"))
 
     def _phase_name(self) -> str:
         return self.runner.phase_name if self.runner is not None else "-"

@@ -38,7 +38,7 @@ from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
 from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
 from handctl.hostfacts import affinity
-from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
+from handctl.loop import STAGES, Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS
@@ -95,7 +95,7 @@ def _percentiles_us(window: TickWindow) -> dict[str, float]:
 def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool,
               sim: dict[str, Any] | None) -> dict[str, Any]:
     """The summary JSON: the fields the runtime issue names, and a few an engineer wants."""
-    stages = ("poll", "recipe", "safety", "send", "record")
+    stages = STAGES
     return {
         "completed": result.outcome is Outcome.COMPLETED,
         "outcome": result.outcome.value,
@@ -104,7 +104,9 @@ def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: boo
         "hand": hand.name,
         "hand_config_hash": hand.config_hash,
         "mode": "lockstep" if lockstep else "realtime",
-        "phases": result.phases,
+        # a phase that ran out its max_s did not do what its exits wait for: say so plainly
+        "phases": [{**p, "timed_out": p["exit"].startswith("timeout")} for p in result.phases],
+        "timed_out_phases": [p["name"] for p in result.phases if p["exit"].startswith("timeout")],
         "faults": [{"code": f.code.name, "category": FAULTS[f.code].category.name.lower(),
                     "tick": f.tick, "detail": f.detail} for f in result.faults],
         "ticks": result.ticks,
@@ -237,7 +239,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         if tracker is not None:
             from handctl.planning.experiment import experiment_summary
 
-            summary["experiment"] = experiment_summary(tracker.trace)
+            summary["experiment"] = experiment_summary(tracker.trace,
+                                                       req.recipe.min_total_turn_deg)
         if req.plot is not None:
             if tracker is None:
                 warnings.append("--plot needs the simulated hand in lockstep and a recipe "

@@ -2,8 +2,10 @@
 and, in the same run, a naive asyncio.sleep loop at the same rate as the baseline.
 
 Figures: lateness p99 of both loops and their ratio, the missed-tick rate, and the CPU time of
-our own tick stages (poll, recipe, safety, send, record) at p99, the simulated hand excluded;
-the simulated hand's frames that did not go and the times the host's queue was full.
+our own tick stages (poll, recipe, safety, send, record, feedback) at p99, the simulated hand
+excluded; the simulated hand's frames that did not go and the times the host's queue was full.
+The hold recipe has the soft-limit guard and a joint-space pose hold, so the feedback stage
+does the work of a feedback phase every tick.
 
 Beside the loop, on its CPU one priority above it, the bare timer loop of the timing check runs
 for the whole run (``handctl.hostcheck``): ``host_*`` is what it saw, and every missed tick of
@@ -41,12 +43,18 @@ ROOT = Path(__file__).resolve().parent.parent
 HOLD = """
 recipe: bench_hold
 description: close the hand gently and hold, for the loop benchmark
+limit_guard_band: 0.15
 phases:
   - name: close
     torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
     ramp_s: 0.3
     max_s: {seconds}
     on_timeout: next
+    pose:
+      angles: {{f1_j1: 0.3, f1_j2: 0.3, f1_j3: 0.3, f2_j1: 0.3, f2_j2: 0.3, f2_j3: 0.3,
+               f3_j1: -0.3, f3_j2: -0.3, f3_j3: -0.3}}
+      stiffness: 0.05
+      damping: 0.002
 """
 
 
@@ -224,4 +232,5 @@ def _one(hand: HandConfig, recipe: Recipe, faults: Path | None, args: argparse.N
         "tick_cpu_us_p99": round(float(np.percentile(cpu, 99)) / 1e3, 1),
         "tick_cpu_us_p50": round(float(np.percentile(cpu, 50)) / 1e3, 1),
         **host_figures(report, hand, first, running.ns),
+        **{f"{name}_cpu_us_p99": v for name, v in report.summary["stage_cpu_us_p99"].items()},
     }

@@ -51,7 +51,7 @@ from handctl.planning.search import (
 )
 from handctl.planning.template import Template, TemplatePhase
 from handctl.progress import Progress
-from handctl.recipes.schema import Condition, Phase, TimeoutAction, parse_condition
+from handctl.recipes.schema import Condition, Phase, PoseHold, TimeoutAction, parse_condition
 from handctl.schema import dump_yaml
 from handctl.sim.params import parse_sim
 
@@ -121,6 +121,8 @@ class PlanResult:
             "end_ramp_s": t.end_ramp_s,
             **({"limit_guard_band": t.limit_guard_band} if t.limit_guard_band is not None
                else {}),
+            **({"min_total_turn_deg": t.min_total_turn_deg} if t.min_total_turn_deg > 0
+               else {}),
             "phases": [_phase_document(p, self.hand) for p in self.phases],
         }
 
@@ -140,6 +142,14 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     }
     if phase.exits:
         doc["exit"] = [c.text for c in phase.exits]
+    if phase.turn_rate is not None:
+        loop = phase.turn_rate
+        doc["turn_rate"] = {"rate_deg_s": round(math.degrees(loop.rate), 6),
+                            "scale": [loop.scale_min, loop.scale_max], "gain": loop.gain,
+                            "integral_per_s": loop.integral}
+    if phase.pose is not None:
+        doc["pose"] = {"angles": dict(zip(hand.joint_names, phase.pose.angles, strict=True)),
+                       "stiffness": phase.pose.stiffness, "damping": phase.pose.damping}
     doc["provenance"] = plan.provenance
     return doc
 
@@ -191,14 +201,24 @@ def _advance_to_contact(episode: Episode, phase: Phase) -> None:
 
 
 def _compiled_phase(spec: TemplatePhase, torques: tuple[float, ...],
-                    hand: HandConfig) -> Phase:
+                    hand: HandConfig, pose: PoseHold | None = None) -> Phase:
     exits: tuple[Condition, ...] = ()
     if spec.kind == "turn":
         parsed = parse_condition(spec.exit_condition(), hand.joint_names)
         assert not isinstance(parsed, str), parsed
         exits = (parsed,)
     rounded = tuple(_rounded(torques))
-    return Phase(spec.name, rounded, spec.ramp_s, spec.max_s, TimeoutAction.NEXT, exits, ())
+    return Phase(spec.name, rounded, spec.ramp_s, spec.max_s, TimeoutAction.NEXT, exits, (),
+                 turn_rate=spec.turn_rate, pose=pose)
+
+
+def _pose_of(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> PoseHold:
+    """The pose a free phase with a pose hold ends in: where its torques alone leave the
+    nominal hand (rounded to 0.1 mrad), so the hold brings every hand to the nominal's pose."""
+    assert spec.seed is not None and spec.pose_stiffness is not None
+    episode.run_phase(_compiled_phase(spec, spec.seed, hand))
+    angles = tuple(round(float(q), 4) + 0.0 for q in episode.plant.joint_angles)
+    return PoseHold(angles, spec.pose_stiffness, spec.pose_damping)
 
 
 def plan_recipe(template: Template, hand: HandConfig, *,
@@ -219,7 +239,7 @@ def plan_recipe(template: Template, hand: HandConfig, *,
     count = models if models is not None else settings.models
     budget = budget or settings.budget
     params = parse_sim(hand)
-    model_list = model_set(params, count, settings.seed, settings.spread)
+    model_list = model_set(params, count, settings.seed, settings.spread, hand=hand)
     worlds = [World.of(hand, m.params, template.objects, template.limit_guard_band)
               for m in model_list]
     snaps: list[Snapshot] = [snapshot_of(w) for w in worlds]
@@ -249,11 +269,15 @@ def plan_recipe(template: Template, hand: HandConfig, *,
         chosen: Candidate | None = None
         search_doc: dict[str, Any] | None = None
         bar: Progress | None = None
+        pose = None
         if spec.kind == "free":
             bar = meter(f"phase {spec.name}", len(alive)) if meter is not None else None
             assert spec.seed is not None
             torques = spec.seed
             origin = "template"
+            if spec.pose_stiffness is not None:
+                pose = _pose_of(nominal, spec, hand)
+                nominal.restore(snaps[alive[0]])
         else:
             seeds: list[tuple[str, tuple[float, ...]]] = []
             if analysis is not None and analysis.found and analysis.torques is not None:
@@ -291,7 +315,7 @@ def plan_recipe(template: Template, hand: HandConfig, *,
                 "models": len(alive),
                 "successes": chosen.successes,
             }
-        phase = _compiled_phase(spec, torques, hand)
+        phase = _compiled_phase(spec, torques, hand, pose)
         ran = executor.map(run_phase_task, [PhaseTask(worlds[i], snaps[i], phase, lifted,
                                                       keep_state=True) for i in alive], bar)
         if bar is not None:

@@ -18,7 +18,13 @@ good the estimator was. Definitions:
 - ``estimator_error_deg``: the 95th percentile of |estimated - true| centre-line angle over the
   ticks of the hold and manipulation phases where the estimate was valid (with the fraction of
   those ticks that had a valid estimate), and over the manipulation phases alone (where the
-  exits read it; the hold includes the objects settling after the lift).
+  exits read it; the hold includes the objects settling after the lift);
+- ``peak_turn_rate_deg_s``: the largest rate of the true centre line over the manipulation
+  phases, each rate taken over ``RATE_WINDOW_S`` (10 ms) so that one contact impact of a
+  physics step does not count as a turn. The analysis behind a recipe is quasi-static: a
+  pair that turns faster than some 180 °/s is tumbling, not being turned;
+- ``success``: lifted (and so held), nothing dropped, and a total rotation of at least the
+  recipe's ``min_total_turn_deg``. A run whose experiment failed is a failed run (exit 1).
 
 Only NumPy here: ``session`` imports this module for every lockstep run.
 """
@@ -37,6 +43,7 @@ HOLD_S = 2.0  # s
 DROP_HEIGHT = 0.005  # m
 HAND_HALF_SPAN = 0.06  # m
 MANIPULATE_PREFIX = "manipulate"
+RATE_WINDOW_S = 0.010  # s
 
 
 class _Pose(Protocol):
@@ -94,13 +101,27 @@ def _segments(phases: Sequence[str]) -> list[tuple[str, int, int]]:
     return out
 
 
-def experiment_summary(trace: Trace) -> dict[str, Any]:
-    """The ``experiment`` block of the run summary (see the module doc)."""
+def peak_rate_deg_s(t: np.ndarray, angle: np.ndarray, window_s: float = RATE_WINDOW_S) -> float:
+    """The largest |d angle / dt| (deg/s) over ``window_s``-long spans of the samples."""
+    if len(t) < 2:
+        return 0.0
+    span = max(1, int(np.searchsorted(t, t[0] + window_s - 1e-9)))
+    span = min(span, len(t) - 1)
+    dt = t[span:] - t[:-span]
+    rate = np.abs(angle[span:] - angle[:-span]) / np.where(dt > 0, dt, np.inf)
+    return float(np.degrees(rate.max())) if rate.size else 0.0
+
+
+def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[str, Any]:
+    """The ``experiment`` block of the run summary (see the module doc); the experiment
+    succeeds when the pair turned ``min_total_turn_deg`` or more besides being lifted, held
+    and kept."""
     a = trace.arrays()
     n = len(trace.t)
-    empty: dict[str, Any] = {"lifted": False, "held_s": 0.0, "phase_angles_deg": [],
-                             "total_rotation_deg": 0.0, "dropped": False,
-                             "estimator_error_deg": None,
+    empty: dict[str, Any] = {"success": False, "min_total_turn_deg": min_total_turn_deg,
+                             "lifted": False, "held_s": 0.0, "phase_angles_deg": [],
+                             "total_rotation_deg": 0.0, "peak_turn_rate_deg_s": 0.0,
+                             "dropped": False, "estimator_error_deg": None,
                              "estimator_error_manipulation_deg": None,
                              "estimator_valid_fraction": 0.0}
     if n == 0:
@@ -138,6 +159,8 @@ def experiment_summary(trace: Trace) -> dict[str, Any]:
     phase_angles = [round(math.degrees(float(angles[e - 1] - angles[s])), 2)
                     for _, s, e in manip]
     total = abs(sum(phase_angles))
+    peak_rate = (peak_rate_deg_s(t[first_manip:end_manip], angles[first_manip:end_manip])
+                 if manip else 0.0)
     # estimator error over hold and manipulation (from the lifted stretch on)
     start = lift_start if lift_start is not None else first_manip
     sel = slice(start, end_manip)
@@ -150,10 +173,13 @@ def experiment_summary(trace: Trace) -> dict[str, Any]:
     manip_err = err[valid & np.isfinite(err) & in_manip[sel]]
     err = err[valid & np.isfinite(err)]
     return {
+        "success": bool(lifted and not dropped and total >= min_total_turn_deg),
+        "min_total_turn_deg": min_total_turn_deg,
         "lifted": bool(lifted),
         "held_s": round(held_s, 3),
         "phase_angles_deg": phase_angles,
         "total_rotation_deg": round(total, 2),
+        "peak_turn_rate_deg_s": round(peak_rate, 1),
         "dropped": dropped,
         "estimator_error_deg": (round(float(np.degrees(np.percentile(err, 95))), 2)
                                 if err.size else None),

@@ -2,11 +2,25 @@
 
 A torque plan that works on one model only is tuned to it, not planned: the contact forces of
 an enveloping grasp are not unique (paper §4), so open-loop torques that turn the pair on one
-friction coefficient may stall on another. Each model here scales what the real hand does not
-know well: every Coulomb coefficient (independently, ±30 % by default: rubber pads age, wood
-varies), the mass of the cylinders (±20 %) and their radius (±10 %, one draw for both, as two
-cylinders cut from one rod). Cylinders that change size are put back on the table at rest and
-side by side with the same 1 mm gap, so the scene stays valid (no start in collision).
+model stall or slip on another. Each model here varies what a real tendon-driven hand does
+not know, by family (``FAMILIES``; the defaults of ``Spread`` are the ranges below):
+
+- ``contact``: every Coulomb coefficient on its own, ±50 % (rubber pads age, wood varies);
+- ``joint_dynamics``: viscous damping and dry (tendon) friction, log-uniform ×0.3..×3, the
+  range sim-to-real in-hand work randomises joint damping over, because nobody measures a
+  tendon's friction to 10 %; armature and the drive's lag ×0.5..×2. One factor for the hand,
+  and each joint a little off it (log-uniform ×0.8..×1.25, ``JOINT_SPREAD``): tendons share a
+  design but not their sheaths;
+- ``objects``: each cylinder's mass ±50 % and radius ±20 %, on its own (the recipe's nominal
+  radius is then wrong for both, differently);
+- ``placement``: the pair put down ±4 mm off its place along the table, with 0..6 mm between
+  the cylinders;
+- ``start_pose``: every initial joint angle ±0.1 rad (within the soft limits);
+- ``sensors``: the TDT's per-sensor bias and white noise ×0.5..×2 of the configured ones.
+
+Cylinders are always put back on the table at rest, side by side at the drawn gap, so the
+scene stays valid (no start in collision). ``Spread.only(family)`` varies one family and keeps
+the rest nominal, which is how a bench tells which family a recipe is fragile to.
 """
 
 from __future__ import annotations
@@ -22,20 +36,60 @@ import numpy as np
 from handctl.config import HandConfig
 from handctl.sim.params import FrictionParams, SimParams
 
-#: m, the gap left between two cylinders put back side by side on the table.
+#: m, the gap left between two cylinders put back side by side when the gap is not varied.
 SIDE_GAP = 0.002
+#: each joint's own factor around the hand's, log-uniform within [1 / this, this]
+JOINT_SPREAD = 1.25
+
+Range = tuple[float, float]
 
 
 @dataclass(frozen=True)
 class Spread:
-    """Relative half-ranges of the uniform perturbations (0.3 = ±30 %)."""
+    """What the models vary and how far. ``±`` fields are relative half-ranges (0.5 = ±50 %)
+    or absolute ones where a unit is given; ``Range`` fields are factors, drawn log-uniform
+    between the two; ``gap`` is in m, None keeping the configured one."""
 
-    friction: float = 0.3
-    mass: float = 0.2
-    radius: float = 0.1
+    friction: float = 0.5  # ± relative, each Coulomb coefficient on its own
+    mass: float = 0.5  # ± relative, each cylinder on its own
+    radius: float = 0.2  # ± relative, each cylinder on its own
+    damping: Range = (0.3, 3.0)  # factor of the joints' viscous damping
+    frictionloss: Range = (0.3, 3.0)  # factor of the joints' dry friction
+    armature: Range = (0.5, 2.0)  # factor of the reflected motor inertia
+    actuator_lag: Range = (0.5, 2.0)  # factor of the tendon drive's time constant
+    placement: float = 0.004  # m, ± shift of the pair along the table
+    gap: Range | None = (0.0, 0.006)  # m, between the two cylinders
+    initial_angles: float = 0.1  # rad, ± on every initial joint angle
+    tdt_bias: Range = (0.5, 2.0)  # factor of the TDT bias's standard deviation
+    tdt_noise: Range = (0.5, 2.0)  # factor of the TDT noise's standard deviation
 
-    def as_dict(self) -> dict[str, float]:
-        return dataclasses.asdict(self)
+    def as_dict(self) -> dict[str, Any]:
+        return {k: (list(v) if isinstance(v, tuple) else v)
+                for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def nominal(cls) -> Spread:
+        """No variation at all: every model is the configured hand."""
+        return cls(0.0, 0.0, 0.0, (1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (1.0, 1.0), 0.0, None,
+                   0.0, (1.0, 1.0), (1.0, 1.0))
+
+    def only(self, family: str) -> Spread:
+        """This spread in ``family`` (one of ``FAMILIES``), nothing elsewhere."""
+        if family not in FAMILIES:
+            raise ValueError(f"a family in {', '.join(FAMILIES)}, not {family!r}")
+        keep = {k: getattr(self, k) for k in FAMILIES[family]}
+        return dataclasses.replace(Spread.nominal(), **keep)
+
+
+#: The families of what a model varies, by the fields of ``Spread`` they draw.
+FAMILIES: dict[str, tuple[str, ...]] = {
+    "contact": ("friction",),
+    "joint_dynamics": ("damping", "frictionloss", "armature", "actuator_lag"),
+    "objects": ("mass", "radius"),
+    "placement": ("placement", "gap"),
+    "start_pose": ("initial_angles",),
+    "sensors": ("tdt_bias", "tdt_noise"),
+}
 
 
 @dataclass(frozen=True)
@@ -47,8 +101,27 @@ class Model:
     scales: dict[str, float]
 
 
-def perturb(params: SimParams, rng: np.random.Generator, spread: Spread) -> Model:
-    """Draw one model around ``params``; the factors are kept for provenance."""
+def _log_uniform(rng: np.random.Generator, bounds: Range) -> float:
+    low, high = bounds
+    if low == high:
+        return float(low)
+    return float(math.exp(rng.uniform(math.log(low), math.log(high))))
+
+
+def _per_joint(rng: np.random.Generator, values: tuple[float, ...], bounds: Range
+               ) -> tuple[float, tuple[float, ...]]:
+    """The hand's factor from ``bounds`` and each joint's value a little off it."""
+    factor = _log_uniform(rng, bounds)
+    if bounds[0] == bounds[1]:
+        return factor, tuple(v * factor for v in values)
+    own = (1 / JOINT_SPREAD, JOINT_SPREAD)
+    return factor, tuple(v * factor * _log_uniform(rng, own) for v in values)
+
+
+def perturb(params: SimParams, rng: np.random.Generator, spread: Spread,
+            hand: HandConfig | None = None) -> Model:
+    """Draw one model around ``params``; the factors are kept for provenance. ``hand`` (the
+    soft limits) bounds the drawn initial angles; without it they are not varied."""
     fr = params.friction
     scales: dict[str, float] = {}
     values = {}
@@ -56,34 +129,72 @@ def perturb(params: SimParams, rng: np.random.Generator, spread: Spread) -> Mode
         factor = float(rng.uniform(1.0 - spread.friction, 1.0 + spread.friction))
         scales[f"friction.{key}"] = factor
         values[key] = getattr(fr, key) * factor
-    mass = float(rng.uniform(1.0 - spread.mass, 1.0 + spread.mass))
-    radius = float(rng.uniform(1.0 - spread.radius, 1.0 + spread.radius))
-    scales["mass"] = mass
-    scales["radius"] = radius
-    return Model(-1, _with(params, FrictionParams(**values), mass, radius), scales)
+    masses = [float(rng.uniform(1.0 - spread.mass, 1.0 + spread.mass)) for _ in params.objects]
+    radii = [float(rng.uniform(1.0 - spread.radius, 1.0 + spread.radius))
+             for _ in params.objects]
+    for k, (m, r) in enumerate(zip(masses, radii, strict=True)):
+        scales[f"mass.{k + 1}"] = m
+        scales[f"radius.{k + 1}"] = r
+    joints: dict[str, tuple[float, ...]] = {}
+    for key in ("damping", "frictionloss", "armature", "actuator_lag"):
+        scales[key], joints[key] = _per_joint(rng, getattr(params, key), getattr(spread, key))
+    shift = float(rng.uniform(-spread.placement, spread.placement))
+    gap = float(rng.uniform(*spread.gap)) if spread.gap is not None else None
+    scales["placement_m"] = shift
+    if gap is not None:
+        scales["gap_m"] = gap
+    initial = params.initial_angles
+    if hand is not None and spread.initial_angles > 0:
+        drawn = []
+        for finger, angles in zip(hand.fingers, initial, strict=True):
+            drawn.append(tuple(
+                float(np.clip(q + rng.uniform(-spread.initial_angles, spread.initial_angles),
+                              j.angle_min, j.angle_max))
+                for q, j in zip(angles, finger.joints, strict=True)))
+        initial = tuple(drawn)
+    bias = _log_uniform(rng, spread.tdt_bias)
+    noise = _log_uniform(rng, spread.tdt_noise)
+    scales["tdt_bias"], scales["tdt_noise"] = bias, noise
+    tdt = dataclasses.replace(params.tdt, bias=params.tdt.bias * bias,
+                              noise=params.tdt.noise * noise)
+    out = _with(params, FrictionParams(**values), masses, radii, shift, gap)
+    out = dataclasses.replace(out, initial_angles=initial, tdt=tdt, damping=joints["damping"],
+                              frictionloss=joints["frictionloss"], armature=joints["armature"],
+                              actuator_lag=joints["actuator_lag"])
+    return Model(-1, out, scales)
 
 
-def _with(params: SimParams, friction: FrictionParams, mass: float, radius: float) -> SimParams:
+def _with(params: SimParams, friction: FrictionParams, mass: list[float], radius: list[float],
+          shift: float = 0.0, gap: float | None = None) -> SimParams:
+    """The scene with the objects scaled and, for a pair, put back side by side on the table
+    ``shift`` (m) along it from their configured middle, ``gap`` (m) apart."""
     objects = []
-    mid = sum(o.x for o in params.objects) / len(params.objects)
-    for obj in params.objects:
-        r = obj.radius * radius
-        side = math.copysign(1.0, obj.x - mid) if obj.x != mid else 0.0
-        x = mid + side * (r + SIDE_GAP / 2) if len(params.objects) == 2 else obj.x
-        objects.append(dataclasses.replace(obj, radius=r, mass=obj.mass * mass,
-                                           x=x, y=params.table_height + r))
+    mid = sum(o.x for o in params.objects) / len(params.objects) + shift
+    pair = len(params.objects) == 2
+    if gap is None:
+        gap = SIDE_GAP
+    for k, obj in enumerate(params.objects):
+        r = obj.radius * radius[k]
+        objects.append(dataclasses.replace(obj, radius=r, mass=obj.mass * mass[k],
+                                           y=params.table_height + r))
+    if pair:
+        a, b = objects
+        left, right = (a, b) if a.x <= b.x else (b, a)
+        left = dataclasses.replace(left, x=mid - gap / 2 - left.radius)
+        right = dataclasses.replace(right, x=mid + gap / 2 + right.radius)
+        objects = [left, right] if a.x <= b.x else [right, left]
     return dataclasses.replace(params, friction=friction, objects=tuple(objects))
 
 
 def model_set(params: SimParams, count: int, seed: int, spread: Spread,
-              nominal: bool = True) -> list[Model]:
+              nominal: bool = True, hand: HandConfig | None = None) -> list[Model]:
     """``count`` models: the nominal one first (if ``nominal``), then draws from ``seed``."""
     rng = np.random.default_rng(seed)
     out: list[Model] = []
     if nominal and count > 0:
         out.append(Model(0, params, {}))
     while len(out) < count:
-        model = perturb(params, rng, spread)
+        model = perturb(params, rng, spread, hand)
         out.append(dataclasses.replace(model, index=len(out)))
     return out
 
@@ -98,9 +209,9 @@ def sim_section(params: SimParams) -> dict[str, Any]:
         "table": {"height": p.table_height},
         "palm": {"half_width": p.palm_half_width, "thickness": p.palm_thickness},
         "links": [{"radius": link.radius, "mass": link.mass} for link in p.links],
-        "joints": {"damping": p.damping, "frictionloss": p.frictionloss,
-                   "armature": p.armature, "stop_margin": p.stop_margin},
-        "actuator": {"lag": p.actuator_lag, "motor_tau_max": list(p.motor_tau_max)},
+        "joints": {"damping": list(p.damping), "frictionloss": list(p.frictionloss),
+                   "armature": list(p.armature), "stop_margin": p.stop_margin},
+        "actuator": {"lag": list(p.actuator_lag), "motor_tau_max": list(p.motor_tau_max)},
         "initial_angles": {},  # filled by ``hand_with``: keyed by finger name
         "objects": [{"name": o.name, "radius": o.radius, "length": o.length, "mass": o.mass,
                      "x": o.x, "y": o.y, "angle": o.angle} for o in p.objects],
@@ -111,15 +222,13 @@ def sim_section(params: SimParams) -> dict[str, Any]:
     }
 
 
-def hand_with(hand: HandConfig, params: SimParams, *, tdt_noise_scale: float = 1.0,
-              seed: int | None = None) -> HandConfig:
+def hand_with(hand: HandConfig, params: SimParams, *, seed: int | None = None) -> HandConfig:
     """The same hand (same config hash: the sim section is not hashed) simulating ``params``,
-    with the TDT noise scaled (sensor noise is one of the things a bench varies)."""
+    with ``seed`` for the sensors' noise and biases if given."""
     section = sim_section(params)
     section["initial_angles"] = {f.name: list(a) for f, a in zip(hand.fingers,
                                                                   params.initial_angles,
                                                                   strict=True)}
-    section["tdt"]["noise"] = params.tdt.noise * tdt_noise_scale
     if seed is not None:
         section["seed"] = seed
     return dataclasses.replace(hand, sim=MappingProxyType(section))

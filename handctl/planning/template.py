@@ -27,8 +27,13 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.planning.models import Spread
 from handctl.planning.search import Budget
-from handctl.recipes.loader import check_unique_names, parse_guard_band
-from handctl.recipes.schema import RecipeObject
+from handctl.recipes.loader import (
+    check_unique_names,
+    parse_guard_band,
+    parse_min_total_turn,
+    parse_turn_rate,
+)
+from handctl.recipes.schema import RecipeObject, TurnRate
 from handctl.schema import Doc, load_yaml
 
 KINDS = ("free", "lift", "hold", "turn")
@@ -46,6 +51,9 @@ class TemplatePhase:
     turn: float = 0.0  # rad
     exit_fraction: float = 0.95
     exit_hold_s: float = 0.02
+    turn_rate: TurnRate | None = None  # a turn phase's rate loop, carried into the recipe
+    pose_stiffness: float | None = None  # N·m/rad: a free phase ends in the nominal's pose
+    pose_damping: float = 0.0  # N·m·s/rad
 
     def exit_condition(self) -> str:
         """The compiled exit of a turn phase: on the estimated turn since the phase began."""
@@ -73,6 +81,7 @@ class Template:
     search: SearchSettings
     phases: tuple[TemplatePhase, ...]
     limit_guard_band: float | None = None  # rad; carried into the compiled recipe
+    min_total_turn_deg: float = 0.0  # deg; carried into the compiled recipe
 
 
 def load_template(path: str | Path, hand: HandConfig) -> Template:
@@ -93,22 +102,17 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
     band = parse_guard_band(doc)
+    min_turn = parse_min_total_turn(doc)
     names = [o.name for o in objects]
     phases = tuple(_phase(p, hand, names) for p in doc.mappings("phases", min_len=1, max_len=32))
     check_unique_names(doc, [p.name for p in phases])
     doc.done()
     return Template(doc.file, recipe, description, tuple(objects), end_ramp, search, phases,
-                    band)
+                    band, min_turn)
 
 
 def _search(doc: Doc) -> SearchSettings:
-    spread_doc = doc.mapping("spread", default={})
-    d = Spread()
-    spread = Spread(
-        friction=spread_doc.number("friction", default=d.friction, min=0.0, max=0.9),
-        mass=spread_doc.number("mass", default=d.mass, min=0.0, max=0.9),
-        radius=spread_doc.number("radius", default=d.radius, min=0.0, max=0.5))
-    spread_doc.done()
+    spread = _spread(doc.mapping("spread", default={}))
     b = Budget()
     budget = Budget(
         generations=doc.integer("generations", default=b.generations, min=0, max=100),
@@ -125,6 +129,38 @@ def _search(doc: Doc) -> SearchSettings:
                               doc.integer("random_seeds", default=0, min=0, max=1000))
     doc.done()
     return settings
+
+
+def _spread(doc: Doc) -> Spread:
+    """``search.spread``: any field of ``Spread`` (models.py), the others at their defaults.
+    ± fields are a number; factor ranges two positive numbers, low first."""
+    d = Spread()
+
+    def factors(key: str, default: tuple[float, float], low: float, high: float,
+                unit: str = "") -> tuple[float, float]:
+        if not doc.has(key):
+            return default
+        pair = doc.numbers(key, length=2, min=low, max=high, unit=unit)
+        if pair[0] > pair[1]:
+            doc.fail(key, "[low, high] with low <= high", list(pair))
+        return (pair[0], pair[1])
+
+    spread = Spread(
+        friction=doc.number("friction", default=d.friction, min=0.0, max=0.9),
+        mass=doc.number("mass", default=d.mass, min=0.0, max=0.9),
+        radius=doc.number("radius", default=d.radius, min=0.0, max=0.5),
+        damping=factors("damping", d.damping, 0.01, 100.0),
+        frictionloss=factors("frictionloss", d.frictionloss, 0.01, 100.0),
+        armature=factors("armature", d.armature, 0.01, 100.0),
+        actuator_lag=factors("actuator_lag", d.actuator_lag, 0.01, 100.0),
+        placement=doc.number("placement", default=d.placement, min=0.0, max=0.05, unit="m"),
+        gap=factors("gap", d.gap or (0.0, 0.0), 0.0, 0.05, "m"),
+        initial_angles=doc.number("initial_angles", default=d.initial_angles, min=0.0,
+                                  max=0.5, unit="rad"),
+        tdt_bias=factors("tdt_bias", d.tdt_bias, 0.01, 10.0),
+        tdt_noise=factors("tdt_noise", d.tdt_noise, 0.01, 10.0))
+    doc.done()
+    return spread
 
 
 def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
@@ -161,12 +197,23 @@ def _phase(doc: Doc, hand: HandConfig, objects: list[str]) -> TemplatePhase:
         sub.done()
     if kind in ("lift", "hold"):
         min_height = doc.number("min_height", min=0.0, max=0.2, unit="m")
+    turn_rate = None
     if kind == "turn":
         turn = math.radians(doc.number("turn_deg", min=-180.0, max=180.0, unit="deg"))
         if abs(turn) < 1e-6:
             doc.fail("turn_deg", "a non-zero turn", 0.0)
         exit_fraction = doc.number("exit_fraction", default=0.95, min=0.1, max=1.5)
         exit_hold = doc.number("exit_hold_s", default=0.02, min=0.0, max=1.0, unit="s")
+        if doc.has("turn_rate"):
+            turn_rate = parse_turn_rate(doc.mapping("turn_rate"), math.copysign(1.0, turn))
+    stiffness: float | None = None
+    damping = 0.0
+    if kind == "free" and doc.has("pose"):
+        pose = doc.mapping("pose")
+        stiffness = pose.number("stiffness", min=0.0, max=100.0, min_exclusive=True,
+                                unit="N·m/rad")
+        damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
+        pose.done()
     doc.done()
     return TemplatePhase(name, kind, ramp, max_s, seed, move, min_height, turn, exit_fraction,
-                         exit_hold)
+                         exit_hold, turn_rate, stiffness, damping)

@@ -8,6 +8,7 @@ names the phase, the joint, the value and the limit, so the fix is obvious.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -18,10 +19,12 @@ from handctl.recipes.guard import LimitGuard
 from handctl.recipes.schema import (
     Condition,
     Phase,
+    PoseHold,
     Recipe,
     RecipeObject,
     SignalKind,
     TimeoutAction,
+    TurnRate,
     parse_condition,
 )
 from handctl.schema import Doc, load_yaml
@@ -32,6 +35,12 @@ OBJECT_COUNT = 2
 #: rad, the range of ``limit_guard_band``: narrower is a cliff again, wider fights the grasp
 GUARD_BAND_MIN = 0.02
 GUARD_BAND_MAX = 0.5
+#: deg, the most ``min_total_turn_deg`` may ask for (a few turns of the pair)
+MAX_TOTAL_TURN_DEG = 1440.0
+#: deg/s, the fastest turn a turn-rate loop may ask for (a quasi-static analysis covers less)
+MAX_TURN_RATE_DEG_S = 720.0
+#: the most a turn-rate loop may scale its phase's torque (tau_max still bounds it)
+MAX_SCALE = 5.0
 
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
@@ -56,6 +65,7 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     objects = _parse_objects(doc)
     band = parse_guard_band(doc)
     guard = LimitGuard.for_hand(hand, band) if band is not None else None
+    min_turn = parse_min_total_turn(doc)
     planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe: read, not used
     if not isinstance(planned_from, dict):
         doc.fail("planned_from", "a mapping (what handctl plan planned the recipe from)",
@@ -63,7 +73,11 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     phases = tuple(_parse_phase(p, hand) for p in doc.mappings("phases", min_len=1,
                                                               max_len=MAX_PHASES))
     check_unique_names(doc, [p.name for p in phases])
-    for phase in phases:
+    for i, phase in enumerate(phases):
+        if phase.turn_rate is not None and not objects:
+            raise ConfigError(doc.file, f"phases[{i}].turn_rate", "a recipe that declares its "
+                              "objects ([{name, radius}, ...]): the turn-rate loop reads the "
+                              "estimator", "no objects")
         uses = next((c for c in (*phase.exits, *phase.aborts)
                      if c.kind is SignalKind.ESTIMATE), None)
         if uses is not None and not objects:
@@ -76,7 +90,14 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                           f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
                           "compiled for another hand config: recompile it for this one)", digest)
     return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled, objects,
-                  guard)
+                  guard, min_turn)
+
+
+def parse_min_total_turn(doc: Doc) -> float:
+    """``min_total_turn_deg`` of a recipe or a template: the least total turn of the pair for
+    the experiment to succeed (0, asking for no turn, when it is not set)."""
+    return doc.number("min_total_turn_deg", default=0.0, min=0.0, max=MAX_TOTAL_TURN_DEG,
+                      unit="deg")
 
 
 def parse_guard_band(doc: Doc) -> float | None:
@@ -121,11 +142,49 @@ def _parse_phase(doc: Doc, hand: HandConfig) -> Phase:
                                           choices=[a.value for a in TimeoutAction]))
     exits = _parse_conditions(doc, "exit", hand)
     aborts = _parse_conditions(doc, "abort", hand)
+    turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
+    pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
     provenance = doc.raw("provenance", {})
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
     doc.done()
-    return Phase(name, torques, ramp, max_s, on_timeout, exits, aborts, provenance)
+    return Phase(name, torques, ramp, max_s, on_timeout, exits, aborts, provenance, turn_rate,
+                 pose)
+
+
+def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:
+    """``turn_rate`` of a phase (``schema.TurnRate``): ``rate_deg_s`` (signed, the wanted
+    direction; a template gives its magnitude and the turn's sign as ``sign``), ``scale``
+    ``[min, max]``, ``gain`` and ``integral_per_s``."""
+    if sign is None:
+        rate = doc.number("rate_deg_s", min=-MAX_TURN_RATE_DEG_S, max=MAX_TURN_RATE_DEG_S,
+                          unit="deg/s")
+        if rate == 0:
+            doc.fail("rate_deg_s", "a non-zero rate, signed as the wanted turn", rate)
+    else:
+        rate = sign * doc.number("rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S,
+                                 min_exclusive=True, unit="deg/s")
+    scale = doc.numbers("scale", length=2, min=0.0, max=MAX_SCALE)
+    if not 0 < scale[0] <= 1.0 <= scale[1]:
+        doc.fail("scale", "[min, max] with 0 < min <= 1 <= max (1 is the planned torque)",
+                 list(scale))
+    gain = doc.number("gain", default=0.5, min=0.0, max=10.0)
+    integral = doc.number("integral_per_s", default=2.0, min=0.0, max=100.0, unit="1/s")
+    doc.done()
+    return TurnRate(math.radians(rate), scale[0], scale[1], gain, integral)
+
+
+def _parse_pose(doc: Doc, hand: HandConfig) -> PoseHold:
+    sub = doc.mapping("angles")
+    angles = []
+    for joint in hand.joints:
+        angles.append(sub.number(joint.name, min=joint.angle_min, max=joint.angle_max,
+                                 unit="rad"))
+    sub.done()
+    stiffness = doc.number("stiffness", min=0.0, max=100.0, unit="N·m/rad")
+    damping = doc.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
+    doc.done()
+    return PoseHold(tuple(angles), stiffness, damping)
 
 
 def _parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:

@@ -1,8 +1,21 @@
-"""Runs a recipe tick by tick: the desired torques of the current phase, ramps, exits, aborts.
+"""Runs a recipe tick by tick: the desired torques of the current phase, ramps, exits, aborts,
+and the feedback a phase asks for.
 
 The runner only proposes torques; the supervisor decides what is applied. It is a pure function
 of time and the observed state (no clock of its own, no I/O), which is what lets a replay feed
 logged feedback through it and get the very same torques.
+
+A tick is two steps (``step`` does both): ``advance`` (exits, aborts, the phase's ramp) and
+``feedback`` (what the hand measures moves the torque within what the phase allows, then the
+soft-limit guard). The loop times them apart, so the feedback's cost shows as its own stage.
+Feedback, all of it from the angles and the estimates computed from them:
+
+- ``turn_rate``: the phase's torque times a scale in ``[scale_min, scale_max]``, set by a
+  proportional-integral loop on the estimated centre-line rate (the derivative of
+  ``centre_line_turn``, low-passed over ``RATE_TIME_CONSTANT``). While the estimate is invalid
+  the scale holds. The loop starts at the plan's own torque (scale 1).
+- ``pose``: a joint-space spring and damper towards the phase's pose, ramped in with the
+  phase's torques.
 """
 
 from __future__ import annotations
@@ -14,8 +27,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from handctl.recipes.schema import Condition, Recipe, SignalKind, TimeoutAction
+from handctl.recipes.schema import ESTIMATES, Condition, Recipe, SignalKind, TimeoutAction
+from handctl.recipes.velocity import JointVelocity
 from handctl.safety.limits import FloatArray
+
+#: s, the low-pass of the estimated centre-line rate: the estimate moves in steps of the
+#: encoder's resolution, and the rate loop must not chase them
+RATE_TIME_CONSTANT = 0.03
+_TURN = ESTIMATES.index("centre_line_turn")
 
 
 class RunStatus(enum.Enum):
@@ -54,6 +73,18 @@ class RecipeRunner:
         self._started = False
         self._guard = recipe.limit_guard
         self._guarded = np.zeros(n_joints)
+        # from the angles it is fed, so a re-run of the logged feedback gets the same values
+        self.velocity = JointVelocity(n_joints)
+        self._fraction = 1.0  # of the current ramp
+        # the turn-rate loop of the current phase: scale, its integral part, the rate
+        self.scale = 1.0
+        self._scale_i = 1.0
+        self.turn_rate = 0.0  # rad/s, estimated, low-passed
+        self._turn_last = math.nan
+        self._turn_t = math.nan
+        self._proposed = np.zeros(n_joints)
+        self._delta = np.zeros(n_joints)
+        self._fed = False  # whether ``_proposed`` holds this phase's last proposal
 
     @property
     def phase_name(self) -> str:
@@ -71,10 +102,16 @@ class RecipeRunner:
         if self.records:
             self.records[-1].end_s = t
             self.records[-1].exit = reason
-        self._from = self._desired.copy()
+        # the next ramp starts from what was proposed, feedback included, so that leaving a
+        # phase with feedback is no step in torque
+        self._from = (self._proposed if self._fed else self._desired).copy()
+        self._fed = False
         self.phase_start = t
         self._held_since.clear()
         self._phase_ref.clear()
+        self.scale = self._scale_i = 1.0
+        self.turn_rate = 0.0
+        self._turn_last = self._turn_t = math.nan
         if index < len(self.recipe.phases):
             phase = self.recipe.phases[index]
             self.index = index
@@ -89,40 +126,100 @@ class RecipeRunner:
 
     def step(self, t: float, angle: FloatArray, tdt: FloatArray,
              estimates: Sequence[float] | None = None) -> FloatArray:
-        """Desired torques at time ``t`` (s since the recipe started)."""
+        """Desired torques at time ``t`` (s since the recipe started): ``advance`` then
+        ``feedback``."""
+        self.advance(t, angle, tdt, estimates)
+        return self.feedback(t, angle, estimates)
+
+    def advance(self, t: float, angle: FloatArray, tdt: FloatArray,
+                estimates: Sequence[float] | None = None) -> None:
+        """Exits, aborts and the ramp of the current phase at ``t``: the recipe's own torque,
+        before any feedback."""
         if not self._started:
             self._started = True
             self._enter(0, t, "")
         if self.done:
             self._desired[:] = 0.0
-            return self._desired
+            return
+        self.velocity.update(t, angle)
         elapsed = t - self.phase_start
         if self.status is RunStatus.RUNNING:
             phase = self.recipe.phases[self.index]
             for k, cond in enumerate(phase.aborts):
                 if self._held(1000 + k, cond, t, elapsed, angle, tdt, estimates):
                     self.abort(t, f"abort: {cond.text}")
-                    return self._desired
+                    return
             reason = next((c.text for k, c in enumerate(phase.exits)
                            if self._held(k, c, t, elapsed, angle, tdt, estimates)), None)
             if reason is None and elapsed >= phase.max_s:
                 if phase.on_timeout is TimeoutAction.ABORT:
                     self.abort(t, f"timeout: phase '{phase.name}' ran {phase.max_s:g} s")
-                    return self._desired
+                    return
                 reason = "timeout"
             if reason is not None:
                 self._enter(self.index + 1, t, reason)
                 elapsed = 0.0
         fraction = 1.0 if self._ramp_s <= 0 else min(1.0, elapsed / self._ramp_s)
+        self._fraction = fraction
         np.subtract(self._target, self._from, out=self._desired)
         self._desired *= fraction
         self._desired += self._from
         if self.status is RunStatus.ENDING and fraction >= 1.0:
             self.status = RunStatus.COMPLETED
-        if self._guard is None or self.done:
+
+    def feedback(self, t: float, angle: FloatArray,
+                 estimates: Sequence[float] | None = None) -> FloatArray:
+        """The torque to propose: the phase's, moved by its feedback from what the hand
+        measures, then guarded. Bounded work: a few operations per joint."""
+        if self.done:
+            self._desired[:] = 0.0
             return self._desired
-        # the ramp state stays the recipe's own torque; only what is proposed is guarded
-        return self._guard.apply(angle, self._desired, self._guarded)
+        phase = (self.recipe.phases[self.index] if self.status is RunStatus.RUNNING
+                 else None)
+        out = self._desired
+        if phase is not None and (phase.turn_rate is not None or phase.pose is not None):
+            # the ramp state stays the recipe's own torque; only what is proposed moves
+            out = self._proposed
+            out[:] = self._desired
+            self._fed = True
+            if phase.turn_rate is not None:
+                self._turn_loop(t, estimates)
+                # from + fraction * (scale * target - from)
+                np.multiply(self._target, (self.scale - 1.0) * self._fraction, out=self._delta)
+                out += self._delta
+            if phase.pose is not None:
+                pose = phase.pose
+                v = self.velocity.value
+                for j, q_ref in enumerate(pose.angles):
+                    out[j] += self._fraction * (pose.stiffness * (q_ref - float(angle[j]))
+                                                - pose.damping * float(v[j]))
+        if self._guard is None:
+            return out
+        return self._guard.apply(angle, out, self._guarded, self.velocity.value)
+
+    def _turn_loop(self, t: float, estimates: Sequence[float] | None) -> None:
+        """One step of the proportional-integral loop of the scale on the turn rate."""
+        phase = self.recipe.phases[self.index]
+        loop = phase.turn_rate
+        assert loop is not None
+        turn = float(estimates[_TURN]) if estimates is not None else math.nan
+        if not math.isfinite(turn):
+            self._turn_last = math.nan  # the rate restarts from the next valid estimate
+            return
+        dt = t - self._turn_t
+        if math.isnan(self._turn_last) or not dt > 0.0:
+            self._turn_last, self._turn_t = turn, t
+            return
+        raw = (turn - self._turn_last) / dt
+        self.turn_rate += (raw - self.turn_rate) * dt / (RATE_TIME_CONSTANT + dt)
+        self._turn_last, self._turn_t = turn, t
+        wanted = abs(loop.rate)
+        along = self.turn_rate if loop.rate > 0 else -self.turn_rate
+        error = (wanted - along) / wanted
+        lo, hi = loop.scale_min, loop.scale_max
+        if self._fraction >= 1.0:  # no integral while the phase's torque still ramps in
+            self._scale_i = min(hi, max(lo, self._scale_i + loop.integral * error * dt))
+        self.scale = min(hi, max(lo, self._scale_i + loop.gain * error))
 
     def abort(self, t: float, reason: str) -> None:
         """Stop proposing torque; the supervisor takes the hand to zero."""

@@ -69,6 +69,35 @@ class TimeoutAction(enum.Enum):
 
 
 @dataclass(frozen=True)
+class TurnRate:
+    """Feedback of a turn phase (``runner.py``): the phase's torque is scaled within
+    ``[scale_min, scale_max]`` so that the estimated centre line turns at ``rate``.
+
+    Why a scale: the analysis' torque set of a quasi-static motion is a cone (its conditions
+    are homogeneous in the torques, gravity aside), so the ray through the planned torque stays
+    inside it, and along it the speed of the motion against the hand's damping grows with the
+    torque. A hand damped three times as much needs about three times the torque for the same
+    rate; a lighter one, less."""
+
+    rate: float  # rad/s, signed: the wanted direction of the turn
+    scale_min: float
+    scale_max: float
+    gain: float  # scale per unit of relative rate error (proportional)
+    integral: float  # scale per second per unit of relative rate error
+
+
+@dataclass(frozen=True)
+class PoseHold:
+    """Joint-space impedance of a phase: ``stiffness * (angle - q) - damping * velocity`` is
+    added to the phase's torques, so the fingers end in a known pose whatever pose they began
+    in and whatever their joints' friction (a start phase)."""
+
+    angles: tuple[float, ...]  # rad, config joint order
+    stiffness: float  # N·m/rad
+    damping: float  # N·m·s/rad
+
+
+@dataclass(frozen=True)
 class Phase:
     name: str
     torques: tuple[float, ...]  # N·m, config joint order
@@ -78,6 +107,8 @@ class Phase:
     exits: tuple[Condition, ...]
     aborts: tuple[Condition, ...]
     provenance: Mapping[str, Any] = field(default_factory=dict)
+    turn_rate: TurnRate | None = None
+    pose: PoseHold | None = None
 
 
 @dataclass(frozen=True)
@@ -100,11 +131,14 @@ class Recipe:
     compiled: bool
     objects: tuple[RecipeObject, ...] = ()
     limit_guard: LimitGuard | None = None  # soft-limit push-back (guard.py); None: off
+    #: deg, the least total turn of the pair for the experiment to count as a success (the
+    #: run's ``experiment.success``); 0 asks for none
+    min_total_turn_deg: float = 0.0
 
     @property
     def uses_estimates(self) -> bool:
-        return any(c.kind is SignalKind.ESTIMATE for p in self.phases
-                   for c in (*p.exits, *p.aborts))
+        return any(p.turn_rate is not None for p in self.phases) or any(
+            c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
 
 
 def parse_condition(text: str, joint_names: tuple[str, ...]) -> Condition | str:

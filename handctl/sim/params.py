@@ -79,11 +79,13 @@ class SimParams:
     palm_half_width: float  # m, half the palm's extent along x (the palm's face is y = 0)
     palm_thickness: float  # m, along +y above the face
     links: tuple[LinkParams, ...]  # per joint level: proximal, middle, distal
-    damping: float  # N·m·s/rad, viscous joint damping
-    frictionloss: float  # N·m, dry joint friction
-    armature: float  # kg·m², motor and pulley inertia reflected to the joint
+    # per joint in config order (the config may give one number for every joint): no two
+    # tendons run through the same sheaths, so no two joints have quite the same dynamics
+    damping: tuple[float, ...]  # N·m·s/rad, viscous joint damping
+    frictionloss: tuple[float, ...]  # N·m, dry joint friction
+    armature: tuple[float, ...]  # kg·m², motor and pulley inertia reflected to the joint
     stop_margin: float  # rad, mechanical stops lie this far beyond the soft limits
-    actuator_lag: float  # s, first-order time constant of the tendon drive
+    actuator_lag: tuple[float, ...]  # s, first-order time constant of each tendon drive
     motor_tau_max: tuple[float, ...]  # N·m, per joint level, what the motor can give at most
     initial_angles: tuple[tuple[float, ...], ...]  # rad, per finger in config order
     objects: tuple[ObjectParams, ...]
@@ -123,14 +125,15 @@ def parse_sim(hand: HandConfig) -> SimParams:
     links = tuple(_parse_link(d) for d in link_docs)
 
     joints = doc.mapping("joints")
-    damping = joints.number("damping", min=0.0, max=10.0, unit="N·m·s/rad")
-    frictionloss = joints.number("frictionloss", min=0.0, max=1.0, unit="N·m")
-    armature = joints.number("armature", min=0.0, max=1.0, unit="kg·m²")
+    n = hand.n_joints
+    damping = _per_joint(joints, "damping", n, min=0.0, max=10.0, unit="N·m·s/rad")
+    frictionloss = _per_joint(joints, "frictionloss", n, min=0.0, max=1.0, unit="N·m")
+    armature = _per_joint(joints, "armature", n, min=0.0, max=1.0, unit="kg·m²")
     stop_margin = joints.number("stop_margin", min=0.0, max=1.0, unit="rad")
     joints.done()
 
     actuator = doc.mapping("actuator")
-    lag = actuator.number("lag", min=0.0, max=1.0, min_exclusive=True, unit="s")
+    lag = _per_joint(actuator, "lag", n, min=0.0, max=1.0, min_exclusive=True, unit="s")
     motor_tau_max = actuator.numbers("motor_tau_max", length=JOINTS_PER_FINGER, min=0.0,
                                      max=100.0, unit="N·m")
     actuator.done()
@@ -177,6 +180,19 @@ def parse_sim(hand: HandConfig) -> SimParams:
         contact_dampratio=dampratio, tdt=tdt, encoder=encoder)
     _check_scene(params, Doc({}, hand.source, "sim"))
     return params
+
+
+def _per_joint(doc: Doc, key: str, n: int, *, min: float, max: float,
+               min_exclusive: bool = False, unit: str) -> tuple[float, ...]:
+    """One number for every joint, or a list of ``n`` (one per joint, config order)."""
+    value = doc.raw(key)
+    if not isinstance(value, list):
+        return (doc.number(key, min=min, max=max, min_exclusive=min_exclusive, unit=unit),) * n
+    if len(value) != n:
+        doc.fail(key, f"one number, or a list of {n} (one per joint)", f"{len(value)} numbers")
+    sub = Doc({}, doc.file, doc.key_path(key))
+    return tuple(sub.check_number(i, v, min=min, max=max, min_exclusive=min_exclusive,
+                                  unit=unit) for i, v in enumerate(value))
 
 
 def _parse_link(doc: Doc) -> LinkParams:

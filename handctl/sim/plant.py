@@ -79,8 +79,10 @@ def build_mjcf(hand: HandConfig, params: SimParams) -> str:
         f'size="{_f(p.palm_half_width)} {_f(p.palm_thickness / 2)} {_f(half_depth)}"/>',
         "    </body>",
     ]
+    first = 0
     for finger in hand.fingers:
-        lines += _finger_xml(finger, params)
+        lines += _finger_xml(finger, params, first)
+        first += len(finger.joints)
     for obj in p.objects:
         # A solid cylinder's inertia; the collision shape is a capsule (see the module doc).
         i_z = obj.mass * obj.radius**2 / 2
@@ -101,12 +103,15 @@ def build_mjcf(hand: HandConfig, params: SimParams) -> str:
     lines += _pair_xml(hand, params)
     lines.append("  </contact>")
     lines.append("  <actuator>")
+    index = 0
     for finger in hand.fingers:
         for k, joint in enumerate(finger.joints):
             limit = p.motor_tau_max[k]
+            lag = p.actuator_lag[index]
+            index += 1
             lines.append(
                 f"    <general name={quoteattr(joint.name)} joint={quoteattr(joint.name)} "
-                f'dyntype="filterexact" dynprm="{_f(p.actuator_lag)}" gaintype="fixed" '
+                f'dyntype="filterexact" dynprm="{_f(lag)}" gaintype="fixed" '
                 f'gainprm="1" biastype="none" forcelimited="true" '
                 f'forcerange="{_f(-limit)} {_f(limit)}"/>')
     lines.append("  </actuator>")
@@ -114,7 +119,8 @@ def build_mjcf(hand: HandConfig, params: SimParams) -> str:
     return "\n".join(lines)
 
 
-def _finger_xml(finger: FingerConfig, params: SimParams) -> list[str]:
+def _finger_xml(finger: FingerConfig, params: SimParams, first: int) -> list[str]:
+    """The finger's bodies; ``first`` is the index of its first joint in config order."""
     lines = [f"    <body name={quoteattr(finger.name + '_base')} "
              f'pos="{_f(finger.base_x)} {_f(finger.base_y)} {_f(finger.z)}" '
              f'euler="0 0 {_f(finger.base_angle)}">']
@@ -126,8 +132,9 @@ def _finger_xml(finger: FingerConfig, params: SimParams) -> list[str]:
         lines += [
             f"{indent}<body name={quoteattr(joint.name)} pos=\"{pos}\">",
             f"{indent}  <joint name={quoteattr(joint.name)} type=\"hinge\" axis=\"0 0 1\" "
-            f'range="{_f(lo)} {_f(hi)}" damping="{_f(params.damping)}" '
-            f'frictionloss="{_f(params.frictionloss)}" armature="{_f(params.armature)}"/>',
+            f'range="{_f(lo)} {_f(hi)}" damping="{_f(params.damping[first + k])}" '
+            f'frictionloss="{_f(params.frictionloss[first + k])}" '
+            f'armature="{_f(params.armature[first + k])}"/>',
             f"{indent}  <geom name={quoteattr(joint.name)} type=\"capsule\" "
             f'fromto="0 0 0 {_f(joint.link_length)} 0 0" size="{_f(link.radius)}" '
             f'mass="{_f(link.mass)}"/>',

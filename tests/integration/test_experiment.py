@@ -9,9 +9,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from handctl.config import HandConfig
+from handctl.loop import TickRecord
 from handctl.recipes.loader import load_recipe
 from handctl.session import RunRequest, run_recipe
 
@@ -24,11 +26,46 @@ RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 MIN_ROTATION_DEG = 135.0
 
 
+#: N·m, the most a joint's applied torque may change from one tick to the next at p99 over
+#: the nominal run: more is the chatter the soft-limit guard's damping is there to remove
+MAX_TORQUE_STEP_P99 = 0.005
+
+
+class AppliedTorques:
+    """A record sink that keeps the applied torques of every tick."""
+
+    def __init__(self) -> None:
+        self.rows: list[np.ndarray] = []
+
+    def begin_tick(self, tick: object) -> None:
+        pass
+
+    def push(self, record: TickRecord) -> None:
+        self.rows.append(np.array(record.applied, dtype=float))
+
+    def note(self, kind: str, detail: str, tick: int) -> None:
+        pass
+
+
 @pytest.fixture(scope="module")
-def summary(hand: HandConfig) -> dict[str, object]:
+def applied() -> AppliedTorques:
+    return AppliedTorques()
+
+
+@pytest.fixture(scope="module")
+def summary(hand: HandConfig, applied: AppliedTorques) -> dict[str, object]:
     recipe = load_recipe(RECIPE, hand)
-    report = run_recipe(RunRequest(hand=hand, recipe=recipe))
+    report = run_recipe(RunRequest(hand=hand, recipe=recipe), recorder=applied)
     return report.summary
+
+
+def test_no_joint_chatters(summary: dict[str, object], applied: AppliedTorques,
+                           hand: HandConfig) -> None:
+    steps = np.abs(np.diff(np.array(applied.rows), axis=0))
+    p99 = np.percentile(steps, 99, axis=0)
+    worst = int(np.argmax(p99))
+    assert p99[worst] <= MAX_TORQUE_STEP_P99, \
+        f"{hand.joint_names[worst]} changes by {p99[worst]:.4f} N·m a tick at p99"
 
 
 def test_lifted_held_turned_not_dropped(summary: dict[str, object]) -> None:

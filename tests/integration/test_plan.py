@@ -27,6 +27,8 @@ def short_template(tmp_path: Path) -> Path:
     phases = data["phases"]
     phases[2]["max_s"] = 0.5
     phases[3]["max_s"] = 1.0
+    phases[0]["pose"] = {"stiffness": 0.5, "damping": 0.005}
+    phases[3]["turn_rate"] = {"rate_deg_s": 45, "scale": [0.6, 1.5]}
     data["phases"] = phases[:4]
     path = tmp_path / "short.template.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
@@ -46,6 +48,16 @@ def test_plan_compiles_a_recipe_with_provenance_reproducibly(tmp_path: Path,
     assert [p.name for p in recipe.phases] == ["approach", "lift", "envelop", "manipulate_1"]
     assert [o.name for o in recipe.objects] == ["cyl1", "cyl2"]
     assert recipe.phases[3].exits[0].text.startswith("estimate.centre_line_turn <")
+    # what the template asks of the experiment and of the feedback is carried into the recipe
+    assert recipe.min_total_turn_deg == template.min_total_turn_deg > 0
+    loop = recipe.phases[3].turn_rate
+    assert loop is not None and loop.rate < 0  # signed as the clockwise turn
+    assert (loop.scale_min, loop.scale_max) == (0.6, 1.5)
+    pose = recipe.phases[0].pose
+    assert pose is not None and pose.stiffness == 0.5
+    # the pose is where the nominal hand ends the approach: the fingers flexed from the start
+    start = [q for finger in hand.sim["initial_angles"].values() for q in finger]
+    assert all(abs(q - q0) > 0.05 for q, q0 in zip(pose.angles, start, strict=True))
     for phase in recipe.phases:
         prov = phase.provenance
         assert prov["hand_config_hash"] == hand.config_hash

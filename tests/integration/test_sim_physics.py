@@ -62,7 +62,7 @@ def test_dropped_cylinder_comes_to_rest_on_the_table(hand: HandConfig,
 
 
 def test_fingers_fall_the_way_gravity_says(hand: HandConfig, params: SimParams) -> None:
-    p = _far_objects(dataclasses.replace(params, frictionloss=0.0), -0.5)
+    p = _far_objects(dataclasses.replace(params, frictionloss=(0.0,) * len(params.damping)), -0.5)
     plant = Plant(hand, p)
     q0 = plant.joint_angles.copy()
     expected = gravity_torques(hand, p, q0)
@@ -90,7 +90,7 @@ def test_tdt_follows_the_command_through_both_lags(hand: HandConfig, channel: st
         sim.plant.hold_objects(True)
         enable_all(host)
         readings = [host.tick(tau) and host.last("Feedback", 1)["Torque1"] for _ in range(60)]
-    ta, ts = clean.actuator_lag, clean.tdt.lag
+    ta, ts = clean.actuator_lag[0], clean.tdt.lag
 
     def step_response(t: float) -> float:  # two first-order lags in series, unit step
         if t <= 0:

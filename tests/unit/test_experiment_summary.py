@@ -81,3 +81,27 @@ def test_an_empty_trace_has_the_keys_and_nothing_achieved() -> None:
     ex = experiment_summary(Trace(REST, 0.0, NAMES))
     assert ex["lifted"] is False and ex["phase_angles_deg"] == []
     assert ex["estimator_error_deg"] is None
+
+
+def test_success_is_lifted_held_kept_and_turned_far_enough() -> None:
+    ex = experiment_summary(trace_of(EXPERIMENT), min_total_turn_deg=170.0)
+    assert ex["success"] is True and ex["min_total_turn_deg"] == 170.0
+    # the same run asked for more turn than it made
+    assert experiment_summary(trace_of(EXPERIMENT), min_total_turn_deg=190.0)["success"] is False
+    # a drop is a failure whatever the turn
+    assert experiment_summary(trace_of(EXPERIMENT, drop_at=5.0))["success"] is False
+    # so is a pair that was never held long enough
+    short = [s if s[0] != "envelop" else ("envelop", 1.0, 0.05, -20.0, -20.0)
+             for s in EXPERIMENT]
+    assert experiment_summary(trace_of(short))["success"] is False
+    assert experiment_summary(Trace(REST, 0.0, NAMES))["success"] is False
+
+
+def test_the_peak_turn_rate_is_the_fastest_stretch_of_the_manipulation() -> None:
+    # 45 degrees a second in every phase but the last, which turns 45 degrees in 0.1 s
+    fast = [*EXPERIMENT[:-1], ("manipulate_4", 0.1, 0.05, -155.0, -200.0)]
+    ex = experiment_summary(trace_of(fast))
+    assert ex["peak_turn_rate_deg_s"] == pytest.approx(45.0 / 0.099, rel=0.02)
+    # the lift turns the line faster still, but it is not a manipulation phase
+    assert experiment_summary(trace_of(EXPERIMENT))["peak_turn_rate_deg_s"] == pytest.approx(
+        45.0 / 0.999, rel=0.02)

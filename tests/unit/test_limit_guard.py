@@ -55,16 +55,50 @@ def test_inside_the_band_the_joint_is_pushed_back_and_at_the_limit_fully(
     assert out[j] == pytest.approx(joint.tau_max)
 
 
+def test_a_joint_heading_for_a_limit_is_damped_a_band_before_the_spring(
+        hand: HandConfig) -> None:
+    band = 0.15
+    guard = LimitGuard.for_hand(hand, band)
+    j = 4  # f2_j2
+    joint = hand.joints[j]
+    angle = np.array([(x.angle_min + x.angle_max) / 2 for x in hand.joints])
+    desired = np.full(9, 0.05)
+    velocity = np.zeros(9)
+    # half a band before the spring's band, moving towards the upper limit at 2 rad/s:
+    # half the damping, against the motion, and nothing on the other joints
+    angle[j] = joint.angle_max - 1.5 * band
+    velocity[j] = 2.0
+    out = guard.apply(angle, desired, np.empty(9), velocity)
+    damping = guard.damping[j]
+    assert damping > 0
+    assert out[j] == pytest.approx(0.05 - 0.5 * damping * 2.0)
+    assert np.array_equal(np.delete(out, j), np.delete(desired, j))
+    # moving away from the limit it is near: not held back
+    velocity[j] = -2.0
+    assert guard.apply(angle, desired, np.empty(9), velocity)[j] == 0.05
+    # further from the limit than two bands: nothing, whatever the speed
+    angle[j] = joint.angle_max - 2.5 * band
+    velocity[j] = 5.0
+    assert guard.apply(angle, desired, np.empty(9), velocity)[j] == 0.05
+    # inside the spring's band towards the lower limit: spring and full damping together
+    angle[j] = joint.angle_min + band / 2
+    velocity[j] = -1.0
+    out = guard.apply(angle, desired, np.empty(9), velocity)
+    assert out[j] == pytest.approx(0.05 + guard.gain[j] * band / 2 + damping * 1.0)
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.floats(-3.0, 3.0), min_size=9, max_size=9),
        st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9),
-       st.floats(0.02, 0.5))
+       st.floats(0.02, 0.5),
+       st.lists(st.floats(-50.0, 50.0), min_size=9, max_size=9))
 def test_the_guard_never_proposes_more_than_tau_max(hand: HandConfig, angle: list[float],
-                                                    scale: list[float], band: float) -> None:
+                                                    scale: list[float], band: float,
+                                                    velocity: list[float]) -> None:
     guard = LimitGuard.for_hand(hand, band)
     tau_max = np.array([j.tau_max for j in hand.joints])
     desired = np.array(scale) * tau_max
-    out = guard.apply(angle, desired, np.empty(9))
+    out = guard.apply(angle, desired, np.empty(9), velocity)
     assert np.all(np.abs(out) <= tau_max + 1e-12)
     # it never pushes a joint further towards the limit it is near
     for k, joint in enumerate(hand.joints):

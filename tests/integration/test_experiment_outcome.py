@@ -1,0 +1,83 @@
+"""A failed experiment is a failed run: ``handctl run recipe`` exits 1 when the summary's
+``experiment.success`` is false, and every phase that ran out its ``max_s`` says so in the
+summary, in the printed table and on the live status line."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from handctl.config import HandConfig
+from handctl.loop import StatusLine
+from handctl.recipes.loader import load_recipe
+from handctl.session import RunRequest, run_recipe
+
+from ..conftest import ROOT
+
+CLOSE = {"f1_j1": 0.05, "f1_j2": 0.0, "f1_j3": 0.0, "f2_j1": 0.05, "f2_j2": 0.0, "f2_j3": 0.0,
+         "f3_j1": -0.05, "f3_j2": 0.0, "f3_j3": 0.0}
+
+
+def _short_experiment(tmp_path: Path) -> Path:
+    """Objects declared, a turn asked for, and nothing that could lift them: it must fail."""
+    data = {
+        "recipe": "too_short",
+        "objects": [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}],
+        "min_total_turn_deg": 90,
+        "end_ramp_s": 0.05,
+        "phases": [
+            {"name": "approach", "torques": CLOSE, "ramp_s": 0.05, "max_s": 0.3,
+             "on_timeout": "next"},
+            {"name": "wait", "torques": CLOSE, "ramp_s": 0.0, "max_s": 1.0,
+             "exit": "time > 0.2"},
+        ],
+    }
+    path = tmp_path / "too_short.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_a_failed_experiment_exits_1_and_names_the_timed_out_phase(tmp_path: Path) -> None:
+    out = tmp_path / "out.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "handctl", "run", "recipe", str(_short_experiment(tmp_path)),
+         "--summary-json", str(out)], cwd=ROOT, text=True, capture_output=True, timeout=300,
+        check=False)
+    assert done.returncode == 1, done.stderr
+    summary = json.loads(out.read_text())
+    assert summary["completed"] is True  # the hand is fine; the experiment is not
+    ex = summary["experiment"]
+    assert ex["success"] is False and ex["lifted"] is False
+    assert ex["min_total_turn_deg"] == 90.0
+    assert summary["timed_out_phases"] == ["approach"]
+    assert [p["timed_out"] for p in summary["phases"]] == [True, False]
+    assert "TIMED OUT" in done.stdout and "experiment: FAILED" in done.stdout
+    assert "the experiment failed" in done.stderr
+
+
+def test_the_status_line_says_which_phases_timed_out(tmp_path: Path,
+                                                     hand: HandConfig) -> None:
+    recipe = load_recipe(_short_experiment(tmp_path), hand)
+    lines: list[StatusLine] = []
+    run_recipe(RunRequest(hand=hand, recipe=recipe), status=lines.append)
+    during = [line.timed_out for line in lines if line.phase == "approach"]
+    after = [line.timed_out for line in lines if line.phase == "wait"]
+    assert during and all(t == () for t in during)
+    assert after and all(t == ("approach",) for t in after)
+
+
+def test_min_total_turn_out_of_range_is_refused_naming_the_key(tmp_path: Path,
+                                                               hand: HandConfig) -> None:
+    path = _short_experiment(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["min_total_turn_deg"] = -5
+    path.write_text(yaml.safe_dump(data))
+    done = subprocess.run(
+        [sys.executable, "-m", "handctl", "run", "recipe", str(path)], cwd=ROOT, text=True,
+        capture_output=True, timeout=120, check=False)
+    assert done.returncode == 2
+    assert f"{path}: min_total_turn_deg" in done.stderr and "-5" in done.stderr

@@ -1,0 +1,100 @@
+"""The set of perturbed hands: every family of what a real hand does not know is varied
+within its documented range, one family at a time or all at once, and every drawn model is a
+valid scene that the simulated hand loads (per-joint dynamics included)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.planning.models import FAMILIES, Spread, hand_with, model_set, perturb
+from handctl.sim.params import SimParams, parse_sim
+from handctl.sim.plant import Plant
+
+
+@pytest.fixture(scope="module")
+def params(hand: HandConfig) -> SimParams:
+    return parse_sim(hand)
+
+
+def _gap(p: SimParams) -> float:
+    """Along the table (cylinders of two radii touch the table at two heights of centre)."""
+    a, b = p.objects
+    return abs(b.x - a.x) - a.radius - b.radius
+
+
+def test_the_default_spread_draws_within_every_range(hand: HandConfig,
+                                                     params: SimParams) -> None:
+    spread = Spread()
+    models = model_set(params, 40, 5, spread, nominal=False, hand=hand)
+    damping = np.array([m.params.damping for m in models]) / np.array(params.damping)
+    # one factor for the hand in 0.3..3, each joint within x1.25 of it
+    assert damping.min() >= 0.3 / 1.25 - 1e-9 and damping.max() <= 3.0 * 1.25 + 1e-9
+    assert damping.max() > 1.5 and damping.min() < 0.6  # the range is used, not a corner
+    assert any(len(set(np.round(row, 9))) > 1 for row in damping)  # joints differ
+    lags = np.array([m.params.actuator_lag for m in models]) / np.array(params.actuator_lag)
+    assert lags.min() >= 0.5 / 1.25 - 1e-9 and lags.max() <= 2.0 * 1.25 + 1e-9
+    mid0 = sum(o.x for o in params.objects) / 2
+    for m in models:
+        p = m.params
+        a, b = p.objects
+        # each cylinder on its own: different radii and masses
+        assert a.radius != b.radius and a.mass != b.mass
+        for obj, nominal in zip(p.objects, params.objects, strict=True):
+            assert 0.8 - 1e-9 <= obj.radius / nominal.radius <= 1.2 + 1e-9
+            assert 0.5 - 1e-9 <= obj.mass / nominal.mass <= 1.5 + 1e-9
+            assert obj.y == pytest.approx(p.table_height + obj.radius)  # resting
+        assert -1e-9 <= _gap(p) <= 0.006 + 1e-9
+        assert abs((a.x + b.x) / 2 - mid0) <= 0.004 + abs(a.radius - b.radius) / 2 + 1e-9
+        assert a.x < b.x  # object 1 stays on the first finger's side
+        for finger, angles, start in zip(hand.fingers, p.initial_angles,
+                                         params.initial_angles, strict=True):
+            for q, q0, joint in zip(angles, start, finger.joints, strict=True):
+                assert abs(q - q0) <= 0.1 + 1e-9
+                assert joint.angle_min <= q <= joint.angle_max
+        assert 0.5 - 1e-9 <= p.tdt.noise / params.tdt.noise <= 2.0 + 1e-9
+        assert 0.5 - 1e-9 <= p.tdt.bias / params.tdt.bias <= 2.0 + 1e-9
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_one_family_varies_only_its_own_parameters(hand: HandConfig, params: SimParams,
+                                                   family: str) -> None:
+    model = perturb(params, np.random.default_rng(11), Spread().only(family), hand)
+    p = model.params
+    changed = {
+        "contact": p.friction != params.friction,
+        "joint_dynamics": (p.damping, p.frictionloss, p.armature, p.actuator_lag) != (
+            params.damping, params.frictionloss, params.armature, params.actuator_lag),
+        "objects": [(o.radius, o.mass) for o in p.objects] != [
+            (o.radius, o.mass) for o in params.objects],
+        "placement": [o.x for o in p.objects] != [o.x for o in params.objects]
+        and [(o.radius, o.mass) for o in p.objects] == [(o.radius, o.mass)
+                                                        for o in params.objects],
+        "start_pose": p.initial_angles != params.initial_angles,
+        "sensors": p.tdt != params.tdt,
+    }
+    assert changed[family]
+    assert not any(v for k, v in changed.items() if k != family)
+
+
+def test_a_drawn_model_is_a_hand_config_the_simulation_loads(hand: HandConfig,
+                                                             params: SimParams) -> None:
+    model = model_set(params, 2, 3, Spread(), hand=hand)[1]
+    again = parse_sim(hand_with(hand, model.params, seed=4))
+    assert again.damping == pytest.approx(model.params.damping)
+    assert again.actuator_lag == pytest.approx(model.params.actuator_lag)
+    plant = Plant(hand, again)
+    assert plant.model.dof_damping[:9] == pytest.approx(model.params.damping)
+    assert plant.model.actuator_dynprm[:, 0] == pytest.approx(model.params.actuator_lag)
+
+
+def test_per_joint_dynamics_must_give_one_value_per_joint(hand: HandConfig) -> None:
+    section = dict(hand.sim)
+    section["joints"] = {**section["joints"], "damping": [0.01] * 8}
+    with pytest.raises(ConfigError) as info:
+        parse_sim(dataclasses.replace(hand, sim=section))
+    assert info.value.key == "sim.joints.damping" and "9" in info.value.expected

@@ -1,0 +1,168 @@
+"""Feedback inside a phase: the turn-rate loop scales the phase's torque within its range from
+the estimated centre-line rate (down when the pair turns too fast, up when it stalls, held
+while the estimate is invalid), and a pose hold adds a joint-space spring and damper. Both
+are functions of what the runner is fed, so the same feed gives the same torques."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.recipes.loader import load_recipe
+from handctl.recipes.runner import RecipeRunner
+from handctl.recipes.schema import ESTIMATES, Recipe
+
+JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
+TORQUES = [0.2, 0.1, 0.05, 0.2, 0.1, 0.05, -0.2, -0.1, -0.05]
+DT = 0.001
+RAMP = 0.05
+TURN = ESTIMATES.index("centre_line_turn")
+
+
+def _recipe(tmp_path: Path, hand: HandConfig, phase: dict[str, object],
+            objects: bool = True, max_s: float = 10.0) -> Recipe:
+    data: dict[str, object] = {"recipe": "feedback", "phases": [
+        {"name": "turn", "torques": dict(zip(JOINTS, TORQUES, strict=True)), "ramp_s": RAMP,
+         "max_s": max_s, "on_timeout": "next", **phase},
+        {"name": "after", "torques": dict(zip(JOINTS, TORQUES, strict=True)), "ramp_s": RAMP,
+         "max_s": 10.0, "on_timeout": "next"}]}
+    if objects:
+        data["objects"] = [{"name": "a", "radius": 0.02}, {"name": "b", "radius": 0.02}]
+    path = tmp_path / "feedback.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return load_recipe(path, hand)
+
+
+def _estimates(turn: float) -> list[float]:
+    out = [math.nan] * len(ESTIMATES)
+    out[TURN] = turn
+    return out
+
+
+def _drive(runner: RecipeRunner, rate_deg_s: float, seconds: float, t0: float = 0.0,
+           turn0: float = 0.0, valid: bool = True) -> tuple[float, np.ndarray, float]:
+    """Feed a pair turning at ``rate_deg_s``; returns the time, the last torques, the turn."""
+    angle = np.zeros(9)
+    out = np.zeros(9)
+    t, turn = t0, turn0
+    for _ in range(round(seconds / DT)):
+        est = _estimates(turn if valid else math.nan)
+        out = runner.step(t, angle, np.zeros(9), est).copy()
+        t += DT
+        turn += math.radians(rate_deg_s) * DT
+    return t, out, turn
+
+
+TURN_RATE = {"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 1.5]}}
+
+
+def test_too_fast_scales_the_torque_down_to_its_least(tmp_path: Path,
+                                                      hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE), 9)
+    _, out, _ = _drive(runner, -400.0, 1.0)
+    assert runner.scale == pytest.approx(0.5)
+    assert out == pytest.approx(0.5 * np.array(TORQUES))
+
+
+def test_a_stall_scales_the_torque_up_to_its_most(tmp_path: Path, hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE), 9)
+    _, out, _ = _drive(runner, 0.0, 1.0)
+    assert runner.scale == pytest.approx(1.5)
+    assert out == pytest.approx(1.5 * np.array(TORQUES))
+
+
+def test_the_wanted_rate_keeps_the_planned_torque(tmp_path: Path, hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE), 9)
+    # the rate estimate takes a few of its time constants to settle from zero
+    _drive(runner, -45.0, 1.0)
+    assert runner.turn_rate == pytest.approx(math.radians(-45.0), rel=1e-3)
+    assert 0.95 < runner.scale < 1.5
+    # a turn the wrong way is a turn too slow the right way: more torque, not less
+    runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE), 9)
+    _drive(runner, +45.0, 1.0)
+    assert runner.scale == pytest.approx(1.5)
+
+
+def test_the_next_phase_ramps_from_the_scaled_torque(tmp_path: Path,
+                                                     hand: HandConfig) -> None:
+    """Leaving a phase with feedback is no step in torque: the next phase's ramp starts from
+    what was proposed, not from the phase's planned torque."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE, max_s=0.5), 9)
+    t, before, turn = _drive(runner, -400.0, 0.5)
+    assert runner.phase_name == "turn" and runner.scale == pytest.approx(0.5)
+    _, after, _ = _drive(runner, -400.0, 2 * DT, t, turn)
+    assert runner.phase_name == "after"
+    assert np.max(np.abs(after - before)) < 0.01
+
+
+def test_an_invalid_estimate_holds_the_scale(tmp_path: Path, hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE), 9)
+    t, _, turn = _drive(runner, -400.0, 0.3)
+    held = runner.scale
+    assert held < 1.0
+    _drive(runner, -400.0, 0.5, t, turn, valid=False)
+    assert runner.scale == held
+
+
+def test_the_scale_moves_within_the_ramp_without_an_integral(tmp_path: Path,
+                                                             hand: HandConfig) -> None:
+    """While the phase's torque ramps in, the pair has not begun to turn: a stall then is no
+    reason to wind the integral up."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"turn_rate": {
+        "rate_deg_s": 45, "scale": [0.5, 3.0], "gain": 0.0, "integral_per_s": 5.0}}), 9)
+    _drive(runner, 0.0, RAMP * 0.9)
+    assert runner.scale == 1.0
+
+
+def test_a_pose_hold_adds_a_spring_and_a_damper(tmp_path: Path, hand: HandConfig) -> None:
+    pose = {"angles": dict.fromkeys(JOINTS, 0.2), "stiffness": 0.5, "damping": 0.01}
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"pose": pose}, objects=False), 9)
+    angle = np.zeros(9)
+    t = 0.0
+    out = np.zeros(9)
+    for _ in range(round(2 * RAMP / DT)):  # at rest, past the ramp
+        out = runner.step(t, angle, np.zeros(9)).copy()
+        t += DT
+    assert out == pytest.approx(np.array(TORQUES) + 0.5 * 0.2)
+    # moving towards the pose at 1 rad/s: the damper takes some back
+    for _ in range(200):
+        angle += 1.0 * DT
+        out = runner.step(t, angle, np.zeros(9)).copy()
+        t += DT
+    expected = np.array(TORQUES) + 0.5 * (0.2 - angle) - 0.01 * 1.0
+    assert out == pytest.approx(expected, abs=1e-4)
+
+
+def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
+    recipe = _recipe(tmp_path, hand, TURN_RATE)
+    rng = np.random.default_rng(1)
+    turns = np.cumsum(rng.normal(-0.001, 0.003, 800))
+    runs = []
+    for _ in range(2):
+        runner = RecipeRunner(recipe, 9)
+        runs.append(np.array([runner.step(k * DT, np.zeros(9), np.zeros(9),
+                                          _estimates(float(x))).copy()
+                              for k, x in enumerate(turns)]))
+    assert np.array_equal(runs[0], runs[1])
+
+
+@pytest.mark.parametrize(("phase", "key", "objects"), [
+    ({"turn_rate": {"rate_deg_s": -45, "scale": [1.2, 2.0]}}, "phases[0].turn_rate.scale", True),
+    ({"turn_rate": {"rate_deg_s": 0, "scale": [0.5, 2.0]}}, "phases[0].turn_rate.rate_deg_s",
+     True),
+    ({"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 2.0]}}, "phases[0].turn_rate", False),
+    ({"pose": {"angles": dict.fromkeys(JOINTS, 5.0), "stiffness": 1.0}},
+     "phases[0].pose.angles.f1_j1", False),
+])
+def test_bad_feedback_is_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
+                                                phase: dict[str, object], key: str,
+                                                objects: bool) -> None:
+    with pytest.raises(ConfigError) as info:
+        _recipe(tmp_path, hand, phase, objects=objects)
+    assert info.value.key == key
