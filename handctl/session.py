@@ -56,6 +56,7 @@ class RunRequest:
     max_seconds: float | None = None
     plot: Path | None = None  # write the overview PNG of the run here (lockstep sim only)
     log: Path | None = None  # record the run to this MCAP file
+    live_port: int | None = None  # serve the recording's channels to Foxglove on this port
     command_line: tuple[str, ...] = ()  # for the recording's metadata
 
 
@@ -209,7 +210,8 @@ def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
 
         objects = [o.name for o in parse_sim(req.hand).objects]
     return Recorder(req.log, req.hand, start_metadata(req.hand, req.recipe, req.command_line),
-                    phase_names=[p.name for p in req.recipe.phases], object_names=objects)
+                    phase_names=[p.name for p in req.recipe.phases], object_names=objects,
+                    live_port=req.live_port)
 
 
 def _start_recording(recording: Recorder, runtime: Runtime, req: RunRequest, spec: BusSpec,
