@@ -26,6 +26,7 @@ from mcap.stream_reader import StreamReader
 
 from handctl.clock import Tick
 from handctl.config import HandConfig
+from handctl.foxglove.derived import Derived
 from handctl.loop import Outcome, RunResult, TickRecord
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
@@ -55,6 +56,10 @@ phases:
     on_timeout: next
 """
 ESTOP_TICK = 700
+#: The channels the writer derives for Foxglove, beside the recorded ones.
+DERIVED = Derived.from_metadata(
+    {ch.META_HAND: {"yaml": (ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text()}},
+    lambda *_: None).channels
 
 
 @dataclass
@@ -168,10 +173,12 @@ def recorded(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Reco
 
 
 def library_messages(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """Messages in file order through the mcap library's own reader, nothing of handctl's."""
+    """The JSON messages in file order through the mcap library's own reader, nothing of
+    handctl's (the Foxglove channels in protobuf are tests/integration/test_foxglove.py's)."""
     with path.open("rb") as handle:
         for _, channel, message in make_reader(handle).iter_messages(log_time_order=False):
-            yield channel.topic, message.log_time, json.loads(message.data)
+            if channel.message_encoding == "json":
+                yield channel.topic, message.log_time, json.loads(message.data)
 
 
 def test_every_channel_is_written_and_matches_its_schema(recorded: Recorded) -> None:
@@ -183,11 +190,14 @@ def test_every_channel_is_written_and_matches_its_schema(recorded: Recorded) -> 
         validators = {}
         for channel in summary.channels.values():
             schema = schemas[channel.schema_id]
+            if schema.name.startswith("foxglove."):  # Foxglove's own, in protobuf
+                assert schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
+                continue
             assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
             validators[channel.topic] = jsonschema.Draft202012Validator(json.loads(schema.data))
         counts = {summary.channels[cid].topic: n
                   for cid, n in summary.statistics.channel_message_counts.items()}
-    assert set(counts) == {c.topic for c in ch.CHANNELS}
+    assert set(counts) == {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED}
     assert all(counts[c.topic] > 0 for c in ch.CHANNELS), counts
     assert len(summary.chunk_indexes) > 1
     for topic, _, message in library_messages(recorded.path):
@@ -275,7 +285,9 @@ def test_metadata_names_the_hand_the_recipe_and_the_versions(recorded: Recorded,
 def test_handctl_reader_agrees_with_the_library(recorded: Recorded) -> None:
     recording = open_recording(recorded.path)
     assert recording.complete and not recording.problem
-    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    json_topics = {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED
+                                                     if c.message_encoding == "json"}
+    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, json_topics)]
     assert ours == list(library_messages(recorded.path))
 
 
@@ -392,7 +404,9 @@ def test_sigkill_of_both_leaves_a_readable_prefix(hand: HandConfig, tmp_path: Pa
     kill_mid_run(hand, recipe, path, 600, kill_writer=True)
     recording = open_recording(path)
     assert not recording.complete and recording.problem
-    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    json_topics = {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED
+                                                     if c.message_encoding == "json"}
+    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, json_topics)]
     assert [m for t, _, m in ours if t == ch.TIMING], "nothing of the run was on disk"
     # The library's streaming reader reads the same prefix before it stops at the cut.
     theirs = []
