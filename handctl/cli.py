@@ -167,7 +167,7 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
         ex = summary["experiment"]
         err = ex["estimator_error_deg"]
         print(f"  experiment: lifted {ex['lifted']} (held {ex['held_s']:.2f} s), turn per "
-              f"phase {ex['phase_angles_deg']} deg, total {ex['total_rotation_deg']} deg, "
+              f"phase {ex['phase_angles_deg']} deg, turn {ex['turn_deg']:+.2f} deg (ccw +), "
               f"dropped {ex['dropped']}, estimator p95 "
               + ("-" if err is None else f"{err} deg"))
     if args.plot and "experiment" in summary:
@@ -311,12 +311,14 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
     drops = summary["drops"]
     print("  drops: " + (", ".join(f"{k} {v}" for k, v in drops.items() if v) or "none"))
     for name, pose in summary.get("objects", {}).items():
-        print(f"  {name}: height {pose['start']['y_m'] * 1e3:+.1f} -> "
-              f"{pose['end']['y_m'] * 1e3:+.1f} mm, x {pose['start']['x_m'] * 1e3:+.1f} -> "
-              f"{pose['end']['x_m'] * 1e3:+.1f} mm")
-    if "objects_line_angle_rad" in summary:
-        line = summary["objects_line_angle_rad"]
-        print(f"  line through the centres: {line['start']:+.3f} -> {line['end']:+.3f} rad")
+        start, end = pose["start"], pose["end"]
+        key = "height_above_rest_m" if "height_above_rest_m" in start else "y_m"
+        print(f"  {name}: height {'above rest ' if key != 'y_m' else ''}"
+              f"{start[key] * 1e3:+.1f} -> {end[key] * 1e3:+.1f} mm, "
+              f"x {start['x_m'] * 1e3:+.1f} -> {end['x_m'] * 1e3:+.1f} mm")
+    if "turn_deg" in summary:
+        print(f"  turn of the centre line: per phase {summary['phase_turns_deg']} deg, "
+              f"turn {summary['turn_deg']:+.2f} deg (ccw +)")
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:

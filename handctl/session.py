@@ -188,7 +188,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             else:
                 from handctl.planning.plot import plot_run
 
-                plot_run(tracker.trace, req.plot, req.recipe, summary.get("experiment"))
+                plot_run(tracker.trace, req.plot, req.recipe, summary.get("experiment"),
+                         [j.tau_max for j in req.hand.joints])
         if recording is not None:
             try:
                 summary["recording"] = recording.close(summary)

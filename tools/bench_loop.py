@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(20 is about all a CAN-FD bus carries)")
     parser.add_argument("--rt", action="store_true",
                         help="ask for SCHED_FIFO and locked memory, as `handctl run --rt`")
+    parser.add_argument("--live", action="store_true",
+                        help="two recorded runs, without and with the live Foxglove server and "
+                             "a subscribed client: what the live view adds to the tick")
 
 
 async def _naive(period_s: float, seconds: float) -> np.ndarray:
@@ -58,6 +61,12 @@ async def _naive(period_s: float, seconds: float) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> dict[str, float]:
+    if args.live:
+        from live_view_cost import compare
+
+        return compare(run, args)
+    live_port = getattr(args, "live_port", None)
+    record = getattr(args, "record", False) or live_port is not None
     hand = load_hand(args.hand)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "hold.yaml"
@@ -72,7 +81,9 @@ def run(args: argparse.Namespace) -> dict[str, float]:
         print(f"real-time loop with the simulated hand, {args.seconds:g} s"
               f"{f', babble {args.babble}/ms' if args.babble else ''} ...", file=sys.stderr)
         report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus="sim", lockstep=False,
-                                       realtime_priority=args.rt, sim_faults=faults))
+                                       realtime_priority=args.rt, sim_faults=faults,
+                                       log=Path(tmp) / "run.mcap" if record else None,
+                                       live_port=live_port))
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     result = report.result
