@@ -10,7 +10,10 @@ the same run reads the same everywhere.
 - **Turn**: the change of the centre line's angle (from the first object's centre to the
   second's) since the start, unwrapped, in degrees, counter-clockwise positive about +z (the
   hand config's sign of angles and torques: x to the right, y up). A pair turned half a turn
-  clockwise reads -180, never +180 or a wrapped +3.14 rad.
+  clockwise reads -180, never +180 or a wrapped +3.14 rad. A phase's turn is measured on the
+  poses of every ``POSE_EVERY_TICKS``-th tick, the ones a log carries, taken at the start of
+  the tick (before it runs): the run's summary and its log's measure the same samples. Such a
+  sample belongs to the phase the previous tick ran.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+#: The simulated objects' poses are logged (and a turn measured) every this many ticks.
+POSE_EVERY_TICKS = 10
 TIME_LABEL = "time since tick 0 [s]"
 HEIGHT_LABEL = "height above rest [mm]"
 TURN_LABEL = "turn of the centre line [deg, ccw +]"
@@ -56,15 +61,18 @@ def phase_turns_deg(t: npt.ArrayLike, line_angle: npt.ArrayLike,
                     phases: Sequence[tuple[str, float, float]],
                     prefix: str = "manipulate") -> list[float]:
     """The turn (deg, ccw +) in each phase named ``prefix...``: the unwrapped centre-line
-    angle at the phase's last sample before its end minus at its first sample from its start,
-    whatever the sampling (every tick in the run, every 10 ticks in a log)."""
+    angle at the first sample at or after the phase's end (the last sample if the run ends
+    first) minus at the first sample at or after its start. Consecutive phases' turns add up
+    to the turn over all of them, whatever the sampling."""
     times = np.asarray(t, dtype=float)
     turn = turn_deg(line_angle)
+    finite = np.isfinite(turn)
+    times, turn = times[finite], turn[finite]
     out = []
     for name, start, end in phases:
         if not name.startswith(prefix):
             continue
-        inside = np.flatnonzero((times >= start - 1e-9) & (times < end - 1e-9)
-                                & np.isfinite(turn))
-        out.append(round(float(turn[inside[-1]] - turn[inside[0]]), 2) if inside.size else 0.0)
+        first = int(np.searchsorted(times, start - 1e-9))
+        last = min(int(np.searchsorted(times, end - 1e-9)), len(times) - 1)
+        out.append(round(float(turn[last] - turn[first]), 2) if first < last else 0.0)
     return out

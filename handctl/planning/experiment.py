@@ -33,7 +33,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from handctl.convention import phase_turns_deg
+from handctl.convention import POSE_EVERY_TICKS, phase_turns_deg
 
 LIFT_HEIGHT = 0.010  # m
 HOLD_S = 2.0  # s
@@ -147,7 +147,10 @@ def experiment_summary(trace: Trace) -> dict[str, Any]:
     angles = a["true_angle"]
     bounds = [(name, float(t[s]), float(t[e]) if e < n else math.inf)
               for name, s, e in segments]
-    phase_angles = phase_turns_deg(t, angles, bounds, MANIPULATE_PREFIX)
+    # on the samples a log keeps (the convention's), so that its replay measures the same
+    period = float(t[1] - t[0]) if n > 1 else 1.0
+    logged = np.round(t / period).astype(np.int64) % POSE_EVERY_TICKS == 0
+    phase_angles = phase_turns_deg(t[logged], angles[logged], bounds, MANIPULATE_PREFIX)
     total = abs(sum(phase_angles))
     # estimator error over hold and manipulation (from the lifted stretch on)
     start = lift_start if lift_start is not None else first_manip

@@ -300,8 +300,12 @@ def summarise(recording: Recording, series: Series) -> dict[str, Any]:
             for i, name in enumerate(series.object_names)}
         summary["objects_line_angle_rad"] = {"start": round(float(first[1]), 5),
                                              "end": round(float(last[1]), 5)}
+        # a pose taken at the start of tick k belongs to the phase tick k - 1 ran, and the
+        # phase channel says which phase a tick ran: the bounds move one tick later
+        period = int(recording.meta(ch.META_RUN, "period_ns") or 1_000_000) * 1e-9
         turns = phase_turns_deg(series.objects[:, 0], series.objects[:, 1],
-                                [(p["name"], p["start_s"], p["end_s"]) for p in series.phases])
+                                [(p["name"], p["start_s"] + period, p["end_s"] + period)
+                                 for p in series.phases])
         summary["phase_turns_deg"] = turns
         summary["turn_deg"] = round(sum(turns), 2)
     return summary
