@@ -348,3 +348,53 @@ def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
     for topic in WANTED:
         assert len(live.received[topic]) >= 3, topic
     assert b"messages streamed" in out
+
+
+def test_live_refuses_bad_input_with_exit_2(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    from handctl.cli import main
+
+    for port in ("0", "65536", "http"):
+        with pytest.raises(SystemExit) as stop:
+            main(["run", "recipe", str(RECIPE), "--hand", str(HAND_YAML), "--live", port])
+        assert stop.value.code == 2
+        assert f"expected a TCP port 1..65535, found '{port}'" in capsys.readouterr().err
+    assert main(["run", "recipe", str(RECIPE), "--hand", str(HAND_YAML), "--live"]) == 2
+    err = capsys.readouterr().err
+    assert "--live" in err and "--log RUN.mcap" in err
+
+
+def test_a_port_in_use_fails_the_start_before_the_hand_moves(tmp_path: Path) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        done = subprocess.run(
+            [sys.executable, "-m", "handctl", "run", "recipe", str(RECIPE), "--hand",
+             str(HAND_YAML), "--log", str(tmp_path / "run.mcap"), "--live", str(port)],
+            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode != 0
+    assert "Traceback" not in done.stderr.split("handctl:")[-1]
+    assert str(port) in done.stderr or "address" in done.stderr.lower(), done.stderr
+
+
+def test_replay_live_plays_a_truncated_log_to_its_cut(run: Run, tmp_path: Path) -> None:
+    cut = tmp_path / "cut.mcap"
+    data = run.path.read_bytes()
+    cut.write_bytes(data[:len(data) // 2])
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with subprocess.Popen(
+            [sys.executable, "-m", "handctl", "replay", str(cut), "--live", str(port),
+             "--speed", "4"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE) as proc:
+        try:
+            live = asyncio.run(listen(port, proc, enough=3))
+            out, err = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, err.decode()
+    assert b"truncated" in out
+    assert len(live.received[fx.SCENE]) >= 3
