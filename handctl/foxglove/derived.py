@@ -89,7 +89,18 @@ _DECODED_SCHEMA = {"type": "object", "properties": {
 class _FrameKind:
     layout: Layout
     finger: str
-    joints: tuple[str, ...]
+    #: (signal index, joint name, key) of each per-joint signal, worked out once
+    slots: tuple[tuple[int, str, str], ...]
+
+
+def _frame_kind(layout: Layout, finger: str, joints: Sequence[str]) -> _FrameKind:
+    slots = []
+    for i, signal in enumerate(layout.signal_names):
+        stem = signal.rstrip("0123456789")
+        number = signal[len(stem):]
+        if stem in _PER_JOINT and number and 0 < int(number) <= len(joints):
+            slots.append((i, joints[int(number) - 1], _PER_JOINT[stem]))
+    return _FrameKind(layout, finger, tuple(slots))
 
 
 Emit = Callable[[str, int, bytes], None]
@@ -120,11 +131,11 @@ class Derived:
             for kind in CAN_ID_KINDS:
                 layout = protocol.by_name.get(f"{_KIND_MESSAGES[kind]}_{finger.node_id}")
                 if layout is not None:
-                    self.frames[ids[kind]] = _FrameKind(
-                        layout, finger.name, tuple(j.name for j in finger.joints))
+                    self.frames[ids[kind]] = _frame_kind(layout, finger.name,
+                                                         [j.name for j in finger.joints])
         estop = protocol.by_name.get("EStop")
         if estop is not None:
-            self.frames[ESTOP_ID] = _FrameKind(estop, "", ())
+            self.frames[ESTOP_ID] = _frame_kind(estop, "", [])
         self.true_poses: list[tuple[float, float, float]] | None = None
         self._poses: deque[tuple[int, list[tuple[float, float, float]]]] = deque()
         self.estimates: list[tuple[float, float]] | None = None
@@ -219,15 +230,17 @@ class Derived:
         kind = self.frames.get(frame_id)
         if kind is None or len(data) != kind.layout.length:
             return
-        counter, values = kind.layout.decode(data)
-        signals = dict(zip(kind.layout.signal_names, values, strict=True))
+        layout = kind.layout
+        counter, values = layout.decode(data)
         joints: dict[str, dict[str, float]] = {}
-        for signal, value in signals.items():
-            stem, number = signal.rstrip("0123456789"), signal[len(signal.rstrip("0123456789")):]
-            if stem in _PER_JOINT and number and 0 < int(number) <= len(kind.joints):
-                joints.setdefault(kind.joints[int(number) - 1], {})[_PER_JOINT[stem]] = value
-        message = {"tick": tick, "id": frame_id, "message": kind.layout.name,
-                   "finger": kind.finger, "counter": counter,
-                   "crc_ok": kind.layout.crc_ok(data), "signals": signals, "joints": joints}
+        for i, joint, key in kind.slots:
+            slot = joints.get(joint)
+            if slot is None:
+                joints[joint] = slot = {}
+            slot[key] = values[i]
+        message = {"tick": tick, "id": frame_id, "message": layout.name,
+                   "finger": kind.finger, "counter": counter, "crc_ok": layout.crc_ok(data),
+                   "signals": dict(zip(layout.signal_names, values, strict=True)),
+                   "joints": joints}
         self.emit(RX_DECODED if received else TX_DECODED, t_ns, orjson.dumps(message))
 
