@@ -91,16 +91,19 @@ class _FrameKind:
     finger: str
     #: (signal index, joint name, key) of each per-joint signal, worked out once
     slots: tuple[tuple[int, str, str], ...]
+    others: tuple[tuple[int, str], ...]  # (index, name) of the rest
 
 
 def _frame_kind(layout: Layout, finger: str, joints: Sequence[str]) -> _FrameKind:
-    slots = []
+    slots, others = [], []
     for i, signal in enumerate(layout.signal_names):
         stem = signal.rstrip("0123456789")
         number = signal[len(stem):]
         if stem in _PER_JOINT and number and 0 < int(number) <= len(joints):
             slots.append((i, joints[int(number) - 1], _PER_JOINT[stem]))
-    return _FrameKind(layout, finger, tuple(slots))
+        else:
+            others.append((i, signal))
+    return _FrameKind(layout, finger, tuple(slots), tuple(others))
 
 
 Emit = Callable[[str, int, bytes], None]
@@ -240,7 +243,7 @@ class Derived:
             slot[key] = values[i]
         message = {"tick": tick, "id": frame_id, "message": layout.name,
                    "finger": kind.finger, "counter": counter, "crc_ok": layout.crc_ok(data),
-                   "signals": dict(zip(layout.signal_names, values, strict=True)),
+                   "signals": {name: values[i] for i, name in kind.others},
                    "joints": joints}
         self.emit(RX_DECODED if received else TX_DECODED, t_ns, orjson.dumps(message))
 
