@@ -60,6 +60,8 @@ ESTOP_TICK = 700
 DERIVED = Derived.from_metadata(
     {ch.META_HAND: {"yaml": (ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text()}},
     lambda *_: None).channels
+JSON_TOPICS = {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED
+                                                if c.message_encoding == "json"}
 
 
 @dataclass
@@ -285,9 +287,7 @@ def test_metadata_names_the_hand_the_recipe_and_the_versions(recorded: Recorded,
 def test_handctl_reader_agrees_with_the_library(recorded: Recorded) -> None:
     recording = open_recording(recorded.path)
     assert recording.complete and not recording.problem
-    json_topics = {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED
-                                                     if c.message_encoding == "json"}
-    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, json_topics)]
+    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert ours == list(library_messages(recorded.path))
 
 
@@ -404,16 +404,17 @@ def test_sigkill_of_both_leaves_a_readable_prefix(hand: HandConfig, tmp_path: Pa
     kill_mid_run(hand, recipe, path, 600, kill_writer=True)
     recording = open_recording(path)
     assert not recording.complete and recording.problem
-    json_topics = {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED
-                                                     if c.message_encoding == "json"}
-    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, json_topics)]
+    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert [m for t, _, m in ours if t == ch.TIMING], "nothing of the run was on disk"
     # The library's streaming reader reads the same prefix before it stops at the cut.
     theirs = []
     with path.open("rb") as handle, \
             pytest.raises(Exception):  # noqa: B017 - whatever the library raises at the cut
+        json_channels = set()
         for record in StreamReader(handle, validate_crcs=True).records:
-            if type(record).__name__ == "Message":
+            if type(record).__name__ == "Channel" and record.message_encoding == "json":
+                json_channels.add(record.id)
+            if type(record).__name__ == "Message" and record.channel_id in json_channels:
                 theirs.append(record)
     assert [json.loads(m.data) for m in theirs] == [m for _, _, m in ours]
 
@@ -440,7 +441,7 @@ def test_a_truncated_file_gives_back_every_complete_chunk(recorded: Recorded, tm
     assert not recording.complete and recording.problem
     whole = [c for c in chunks if c.chunk_start_offset + c.chunk_length <= cut]
     expected = sum(_chunk_messages(recorded.path, c) for c in whole)
-    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert len(got) == expected
     assert got == all_messages[:expected]
     assert recording.chunks == len(whole)
@@ -476,7 +477,7 @@ def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(recorded: Rec
     counts = [_chunk_messages(recorded.path, c) for c in chunks]
     lost_from, lost_to = sum(counts[:bad]), sum(counts[:bad + 1])
     everything = list(library_messages(recorded.path))
-    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert got == everything[:lost_from] + everything[lost_to:]
     assert counts[bad + 1:] and got[-1] == everything[-1]  # the chunks after it are kept
 
