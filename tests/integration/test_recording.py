@@ -531,15 +531,19 @@ def test_a_damaged_metadata_record_is_named(recorded: Recorded, tmp_path: Path) 
 
 
 def _chunk_messages(path: Path, chunk: Any) -> int:
-    """How many messages one chunk holds, through the library's own chunk parser."""
+    """How many JSON messages one chunk holds, through the library's own chunk parser."""
     from mcap.records import Chunk, Message
     from mcap.stream_reader import breakup_chunk
 
     with path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+        assert summary is not None
+        json_ids = {c.id for c in summary.channels.values() if c.message_encoding == "json"}
         handle.seek(chunk.chunk_start_offset)
         record = next(iter(StreamReader(handle, skip_magic=True, emit_chunks=True).records))
     assert isinstance(record, Chunk)
-    return sum(isinstance(r, Message) for r in breakup_chunk(record))
+    return sum(isinstance(r, Message) and r.channel_id in json_ids
+               for r in breakup_chunk(record))
 
 
 def test_docs_name_every_channel_schema_and_field() -> None:
