@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
 from handctl.clock import Clock, LockstepClock, RealtimeClock, request_realtime
 from handctl.config import HandConfig
-from handctl.convention import POSE_EVERY_TICKS
+from handctl.convention import POSE_EVERY_TICKS  # the summaries measure the turn on these poses
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
@@ -39,9 +39,6 @@ from handctl.tickstats import TickWindow, percentile_us
 if TYPE_CHECKING:
     from handctl.clock import Tick
     from handctl.recording.recorder import Recorder
-
-#: Object poses of the simulated hand are recorded every ``POSE_EVERY_TICKS`` ticks (lockstep
-#: only): the convention's, as the summaries measure the turn on the same samples.
 
 
 @dataclass
