@@ -17,6 +17,7 @@ Exit codes (the same for every subcommand):
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
@@ -154,6 +155,9 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
 
     hand = load_hand(args.hand)
     recipe = load_recipe(args.recipe, hand)
+    if args.live is not None and args.log is None:
+        raise ConfigError("--live", "", "--log RUN.mcap as well (the recording's writer "
+                          "serves the live view)", "no --log")
     lockstep = True if args.lockstep else (False if args.realtime else None)
     request = RunRequest(hand=hand, recipe=recipe, bus=args.bus, lockstep=lockstep,
                          realtime_priority=args.rt, seed=args.seed,
@@ -161,7 +165,13 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
                          max_seconds=args.max_seconds, log=args.log,
                          command_line=tuple(sys.argv), plot=args.plot,
                          hygiene=Hygiene(loop_cpu=args.loop_cpu, sim_cpu=args.sim_cpu),
-                         accept_missed_deadlines=args.accept_missed_deadlines)
+                         accept_missed_deadlines=args.accept_missed_deadlines,
+                         live_port=args.live)
+    if args.live is not None:
+        from handctl.foxglove.live import HOST
+
+        _progress(f"live: Foxglove WebSocket on ws://{HOST}:{args.live} "
+                  "(layout: docs/foxglove/handctl_layout.json)")
     status = _status_printer()
     report = run_recipe(request, status=status)
     if status is not None:
@@ -195,7 +205,7 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
         ex = summary["experiment"]
         err = ex["estimator_error_deg"]
         print(f"  experiment: lifted {ex['lifted']} (held {ex['held_s']:.2f} s), turn per "
-              f"phase {ex['phase_angles_deg']} deg, total {ex['total_rotation_deg']} deg, "
+              f"phase {ex['phase_angles_deg']} deg, turn {ex['turn_deg']:+.2f} deg (ccw +), "
               f"peak rate {ex['peak_turn_rate_deg_s']} deg/s, dropped {ex['dropped']}, "
               "estimator p95 " + ("-" if err is None else f"{err} deg"))
         print(f"  experiment: {'success' if ex['success'] else 'FAILED'} (lifted, held, "
@@ -361,12 +371,14 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
     drops = summary["drops"]
     print("  drops: " + (", ".join(f"{k} {v}" for k, v in drops.items() if v) or "none"))
     for name, pose in summary.get("objects", {}).items():
-        print(f"  {name}: height {pose['start']['y_m'] * 1e3:+.1f} -> "
-              f"{pose['end']['y_m'] * 1e3:+.1f} mm, x {pose['start']['x_m'] * 1e3:+.1f} -> "
-              f"{pose['end']['x_m'] * 1e3:+.1f} mm")
-    if "objects_line_angle_rad" in summary:
-        line = summary["objects_line_angle_rad"]
-        print(f"  line through the centres: {line['start']:+.3f} -> {line['end']:+.3f} rad")
+        start, end = pose["start"], pose["end"]
+        key = "height_above_rest_m" if "height_above_rest_m" in start else "y_m"
+        print(f"  {name}: height {'above rest ' if key != 'y_m' else ''}"
+              f"{start[key] * 1e3:+.1f} -> {end[key] * 1e3:+.1f} mm, "
+              f"x {start['x_m'] * 1e3:+.1f} -> {end['x_m'] * 1e3:+.1f} mm")
+    if "turn_deg" in summary:
+        print(f"  turn of the centre line: per phase {summary['phase_turns_deg']} deg, "
+              f"turn {summary['turn_deg']:+.2f} deg (ccw +)")
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -376,9 +388,11 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from handctl.recording import replay
     from handctl.recording.reader import check_format, open_recording
 
-    if args.speed is not None and not args.to_bus:
-        raise ConfigError("--speed", "", "--to-bus SPEC as well (the speed is of the replay "
-                          "onto a bus)", args.speed)
+    if args.speed is not None and not (args.to_bus or args.live is not None):
+        raise ConfigError("--speed", "", "--to-bus SPEC or --live as well (the speed is of "
+                          "the replay onto a bus or to Foxglove)", args.speed)
+    if args.speed is not None and not (math.isfinite(args.speed) and args.speed > 0):
+        raise ConfigError("--speed", "", "a positive number", args.speed)
     if args.export and args.export[0] not in LOG_FORMATS:
         raise ConfigError("--export", "FORMAT", "one of " + ", ".join(LOG_FORMATS),
                           args.export[0])
@@ -426,6 +440,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
               f"worst lateness {sent['worst_late_ms']} ms)")
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=str) + "\n")
+    if args.live is not None:
+        from handctl.foxglove.live import HOST, serve_recording
+
+        _progress(f"live: streaming {args.log} at {args.speed or 1.0:g}x to Foxglove on "
+                  f"ws://{HOST}:{args.live} ...")
+        streamed = serve_recording(Path(args.log), args.live, args.speed or 1.0)
+        print(f"live: {streamed} messages streamed")
     return status
 
 
@@ -671,6 +692,20 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
 
 # -- parser --------------------------------------------------------------------------------------
+DEFAULT_LIVE_PORT = 8765
+
+
+def _port(text: str) -> int:
+    """A TCP port for ``--live``; argparse makes the error a usage error (exit 2)."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = 0
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port 1..65535, found {text!r}")
+    return port
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="handctl",
@@ -783,6 +818,10 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--plot", type=Path, metavar="OUT.png",
                      help="overview PNG: phases, torques, object heights, centre-line angle "
                           "(simulated hand in lockstep)")
+    rec.add_argument("--live", type=_port, nargs="?", const=DEFAULT_LIVE_PORT, metavar="PORT",
+                     help="serve the recorded channels to Foxglove over WebSocket on "
+                          f"127.0.0.1:PORT while the hand runs (default {DEFAULT_LIVE_PORT}; "
+                          "needs --log)")
     rec.set_defaults(func=_cmd_run_recipe)
 
     plan = sub.add_parser(
@@ -935,6 +974,10 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--export", nargs=2, metavar=("FORMAT", "OUT"),
                      help="write the frames as candump, asc or blf (python-can's log formats)")
     rep.add_argument("--json", type=Path, help="write the summary (and re-run report) as JSON")
+    rep.add_argument("--live", type=_port, nargs="?", const=DEFAULT_LIVE_PORT, metavar="PORT",
+                     help="stream the recording to Foxglove over WebSocket on 127.0.0.1:PORT "
+                          f"at its recorded speed (or --speed X; default port "
+                          f"{DEFAULT_LIVE_PORT})")
     rep.set_defaults(func=_cmd_replay)
     return parser
 

@@ -33,6 +33,7 @@ from handctl.clock import (
     request_realtime,
 )
 from handctl.config import HandConfig
+from handctl.convention import POSE_EVERY_TICKS  # the summaries measure the turn on these poses
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
@@ -48,9 +49,6 @@ if TYPE_CHECKING:
     from handctl.clock import Tick
     from handctl.recording.recorder import Recorder
 
-#: Object poses of the simulated hand are recorded every this many ticks (lockstep only).
-POSE_EVERY_TICKS = 10
-
 
 @dataclass
 class RunRequest:
@@ -65,6 +63,7 @@ class RunRequest:
     max_seconds: float | None = None
     plot: Path | None = None  # write the overview PNG of the run here (lockstep sim only)
     log: Path | None = None  # record the run to this MCAP file
+    live_port: int | None = None  # serve the recording's channels to Foxglove on this port
     command_line: tuple[str, ...] = ()  # for the recording's metadata
     # With realtime_priority: CPUs, memory lock, prefault (docs/timing.md).
     hygiene: Hygiene = field(default_factory=Hygiene)
@@ -248,7 +247,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             else:
                 from handctl.planning.plot import plot_run
 
-                plot_run(tracker.trace, req.plot, req.recipe, summary.get("experiment"))
+                plot_run(tracker.trace, req.plot, req.recipe, summary.get("experiment"),
+                         [j.tau_max for j in req.hand.joints])
         if recording is not None:
             try:
                 summary["recording"] = recording.close(summary)
@@ -271,7 +271,8 @@ def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
 
         objects = [o.name for o in parse_sim(req.hand).objects]
     return Recorder(req.log, req.hand, start_metadata(req.hand, req.recipe, req.command_line),
-                    phase_names=[p.name for p in req.recipe.phases], object_names=objects)
+                    phase_names=[p.name for p in req.recipe.phases], object_names=objects,
+                    live_port=req.live_port)
 
 
 def _start_recording(recording: Recorder, runtime: Runtime, req: RunRequest, spec: BusSpec,

@@ -82,6 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --rt: the real-time measures of the run (default: all)")
     parser.add_argument("--no-naive", action="store_true",
                         help="leave out the naive asyncio.sleep baseline")
+    parser.add_argument("--live", action="store_true",
+                        help="two recorded runs, without and with the live Foxglove server and "
+                             "a subscribed client: what the live view adds to the tick")
 
 class RunningSince:
     """The time the run proper began (the first status line with the hand running), so that
@@ -144,6 +147,10 @@ async def _naive(period_s: float, seconds: float) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> dict[str, object]:
+    if args.live:
+        from live_view_cost import compare
+
+        return compare(run, args)
     hand = load_hand(args.hand)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "hold.yaml"
@@ -162,7 +169,8 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                 variants[name] = _variant(name, args)
             figures = dict(variants[list(HYGIENE)[-1]])
         else:
-            figures = _one(hand, recipe, faults, args, HYGIENE[args.variant])
+            figures = _one(hand, recipe, faults, args, HYGIENE[args.variant],
+                           Path(tmp) / "run.mcap")
     if not args.no_naive and "lateness_p99_us" in figures:
         print(f"naive asyncio.sleep loop, {args.seconds:g} s ...", file=sys.stderr)
         naive = asyncio.run(_naive(hand.bus.period_s, args.seconds))
@@ -193,13 +201,18 @@ def _variant(name: str, args: argparse.Namespace) -> dict[str, object]:
 
 
 def _one(hand: HandConfig, recipe: Recipe, faults: Path | None, args: argparse.Namespace,
-         hygiene: Hygiene) -> dict[str, object]:
+         hygiene: Hygiene, log: Path) -> dict[str, object]:
+    """One run; recorded to ``log`` with ``args.record``, and served live with
+    ``args.live_port`` (both set by ``live_view_cost.compare``)."""
     print(f"real-time loop with the simulated hand, {args.seconds:g} s"
           f"{f', babble {args.babble}/ms' if args.babble else ''} ...", file=sys.stderr)
     running = RunningSince()
+    live_port = getattr(args, "live_port", None)
+    record = getattr(args, "record", False) or live_port is not None
     report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus="sim", lockstep=False,
                                    realtime_priority=args.rt, sim_faults=faults,
-                                   hygiene=hygiene), status=running)
+                                   hygiene=hygiene, log=log if record else None,
+                                   live_port=live_port), status=running)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     result = report.result

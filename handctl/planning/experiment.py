@@ -11,7 +11,8 @@ good the estimator was. Definitions:
 - ``phase_angles_deg``: for each manipulation phase (a phase whose name starts with
   ``manipulate``), the change of the true centre-line angle (unwrapped) from its start to its
   end;
-- ``total_rotation_deg``: the magnitude of their sum (the turn of the pair in the hand);
+- ``turn_deg``: their sum, counter-clockwise positive (``handctl.convention``, as every plot
+  and summary shows it); ``total_rotation_deg`` its magnitude (the turn of the pair in the hand);
 - ``dropped``: once lifted, an object came back within ``DROP_HEIGHT`` of the table or left the
   hand (more than ``HAND_HALF_SPAN`` from the palm's middle) before the last manipulation phase
   ended (the end ramp lets go of the objects on purpose);
@@ -37,6 +38,8 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+
+from handctl.convention import POSE_EVERY_TICKS, phase_turns_deg
 
 LIFT_HEIGHT = 0.010  # m
 HOLD_S = 2.0  # s
@@ -67,10 +70,14 @@ class Trace:
     torques: list[tuple[float, ...]] = field(default_factory=list)
     estimate: list[tuple[float, ...]] = field(default_factory=list)
     valid: list[bool] = field(default_factory=list)
+    applied: list[tuple[float, ...]] = field(default_factory=list)  # the command in force
 
     def add(self, t: float, phase: str, poses: Sequence[_Pose], torques: Sequence[float],
-            estimate: Sequence[float] | None, valid: bool) -> None:
+            estimate: Sequence[float] | None, valid: bool,
+            applied: Sequence[float] | None = None) -> None:
         a, b = poses[0], poses[1]
+        if applied is not None:
+            self.applied.append(tuple(applied))
         self.t.append(t)
         self.phase.append(phase)
         self.centres.append((a.x, a.y, b.x, b.y))
@@ -87,7 +94,10 @@ class Trace:
         heights = c[:, [1, 3]] - np.array(self.rest_y[:2]) if len(c) else np.zeros((0, 2))
         return {"t": np.array(self.t), "centres": c, "true_angle": true_angle,
                 "heights": heights, "estimate": est, "valid": np.array(self.valid, bool),
-                "torques": np.array(self.torques, dtype=float)}
+                "torques": np.array(self.torques, dtype=float),
+                "applied": (np.array(self.applied, dtype=float)
+                            if self.applied and len(self.applied) == len(self.t)
+                            else np.zeros((0, len(self.joint_names))))}
 
 
 def _segments(phases: Sequence[str]) -> list[tuple[str, int, int]]:
@@ -156,8 +166,12 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
         away = np.any(np.abs(c[after][:, [0, 2]] - trace.palm_x) > HAND_HALF_SPAN, axis=1)
         dropped = bool(np.any(low | away))
     angles = a["true_angle"]
-    phase_angles = [round(math.degrees(float(angles[e - 1] - angles[s])), 2)
-                    for _, s, e in manip]
+    bounds = [(name, float(t[s]), float(t[e]) if e < n else math.inf)
+              for name, s, e in segments]
+    # on the samples a log keeps (the convention's), so that its replay measures the same
+    period = float(t[1] - t[0]) if n > 1 else 1.0
+    logged = np.round(t / period).astype(np.int64) % POSE_EVERY_TICKS == 0
+    phase_angles = phase_turns_deg(t[logged], angles[logged], bounds, MANIPULATE_PREFIX)
     total = abs(sum(phase_angles))
     peak_rate = (peak_rate_deg_s(t[first_manip:end_manip], angles[first_manip:end_manip])
                  if manip else 0.0)
@@ -180,6 +194,7 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
         "phase_angles_deg": phase_angles,
         "total_rotation_deg": round(total, 2),
         "peak_turn_rate_deg_s": round(peak_rate, 1),
+        "turn_deg": round(sum(phase_angles), 2),
         "dropped": dropped,
         "estimator_error_deg": (round(float(np.degrees(np.percentile(err, 95))), 2)
                                 if err.size else None),
@@ -197,7 +212,9 @@ class Tracker:
     def __init__(self, truth: Callable[[], Any], phase: Callable[[], str],
                  estimate: Callable[[], tuple[Sequence[float] | None, bool]],
                  rest_y: tuple[float, ...], palm_x: float,
-                 joint_names: tuple[str, ...], period_s: float) -> None:
+                 joint_names: tuple[str, ...], period_s: float,
+                 applied: Callable[[], Sequence[float]] | None = None) -> None:
+        self._applied = applied
         self._truth = truth
         self._phase = phase
         self._estimate = estimate
@@ -208,7 +225,8 @@ class Tracker:
         truth = self._truth()
         est, valid = self._estimate()
         self.trace.add(tick.k * self._period, self._phase(), truth.objects,
-                       truth.joint_torques, est, valid)
+                       truth.joint_torques, est, valid,
+                       self._applied() if self._applied is not None else None)
 
 
 def track(runtime: Any, sim_hand: Any) -> Tracker:
@@ -227,6 +245,7 @@ def track(runtime: Any, sim_hand: Any) -> Tracker:
 
     tracker = Tracker(sim_hand.ground_truth, phase, estimate,
                       tuple(o.y for o in sim_hand.params.objects), (min(xs) + max(xs)) / 2,
-                      hand.joint_names, hand.bus.period_s)
+                      hand.joint_names, hand.bus.period_s,
+                      applied=lambda: runtime.supervisor.applied)
     runtime.tick_hooks.append(tracker.sample)
     return tracker

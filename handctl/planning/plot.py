@@ -8,70 +8,71 @@ global backend switch), as in ``handctl.analysis.plot``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from handctl.convention import TIME_LABEL
 from handctl.planning.experiment import LIFT_HEIGHT, Trace, _segments
 from handctl.recipes.schema import Recipe
 
-_PHASE_COLOURS = ("#f2f2f2", "#dde8f5")
-
 
 def plot_run(trace: Trace, path: Path, recipe: Recipe,
-             experiment: dict[str, Any] | None = None) -> Path:
-    """One PNG: phases (shaded), transmitted joint torques, object heights above the table,
-    and the centre-line angle (true and estimated)."""
+             experiment: dict[str, Any] | None = None,
+             tau_max: Sequence[float] = ()) -> Path:
+    """One PNG in the replay plot's style (``handctl.recording.plot``): a torque panel per
+    finger (applied, and measured: what the simulated tendons transmit), the objects' heights
+    above rest and the centre line's turn (true and estimated), on ``handctl.convention``'s
+    axes. The run keeps no desired torques; the replay of its log draws them too."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    from handctl.recording.plot import finger_groups, objects_panels, phase_bands, torque_panel
+
     a = trace.arrays()
     t = a["t"]
-    fig = Figure(figsize=(10.0, 9.0), dpi=110)
+    groups = finger_groups(trace.joint_names)
+    fig = Figure(figsize=(12, 2.3 * (len(groups) + 2) + 1.0), dpi=110)
     FigureCanvasAgg(fig)
-    axes = fig.subplots(3, 1, sharex=True)
-    segments = _segments(trace.phase)
+    axes = fig.subplots(len(groups) + 2, 1, sharex=True, squeeze=False)[:, 0]
     for ax in axes:
-        for k, (_name, s, e) in enumerate(segments):
-            if e > s:
-                ax.axvspan(t[s], t[e - 1], color=_PHASE_COLOURS[k % 2], zorder=0)
         ax.grid(True, lw=0.3)
-    for name, s, e in segments:
-        if e > s and name not in ("-",):
-            axes[0].text((t[s] + t[e - 1]) / 2, 1.0, name, rotation=90, ha="center",
-                         va="top", fontsize=7, transform=axes[0].get_xaxis_transform())
-    torques = a["torques"]
-    for j, name in enumerate(trace.joint_names):
-        axes[0].plot(t, torques[:, j], lw=0.8, label=name,
-                     linestyle=("-", "--", ":")[j // 3 % 3])
-    axes[0].set_ylabel("joint torque (N·m)")
-    axes[0].legend(ncol=9, fontsize=6, loc="lower left")
-    heights = a["heights"] * 1e3
-    axes[1].plot(t, heights[:, 0], label="object 1")
-    axes[1].plot(t, heights[:, 1], label="object 2")
-    axes[1].axhline(LIFT_HEIGHT * 1e3, color="k", lw=0.6, ls="--", label="10 mm")
-    axes[1].set_ylabel("height above rest (mm)")
-    axes[1].legend(fontsize=7, loc="upper left")
-    true = np.degrees(a["true_angle"])
+    torques, applied = a["torques"], a["applied"]
+    for row, group in enumerate(groups):
+        cols = np.array(group)
+        names = [trace.joint_names[j] for j in group]
+        kinds: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        if len(applied):
+            kinds["applied"] = (t, applied[:, cols])
+        kinds["measured"] = (t, torques[:, cols] if len(torques) else torques)
+        torque_panel(axes[row], names[0].split("_")[0], names,
+                     [tau_max[j] for j in group if j < len(tau_max)], kinds)
+    true = a["true_angle"]
+    turn = true - true[0] if len(true) else true
     # each estimate drawn on the true angle's branch (the estimate is an angle in
-    # (-180, 180], the truth is unwrapped): the gap between the lines is the estimator's error
-    est = np.degrees(a["estimate"][:, 0])
-    gap = (est - true + 180.0) % 360.0 - 180.0
-    est_valid = np.where(a["valid"] & np.isfinite(est), true + gap, np.nan)
-    axes[2].plot(t, true, label="true (simulation)")
-    axes[2].plot(t, est_valid, lw=0.8, label="estimated (joint angles)")
-    axes[2].set_ylabel("centre-line angle (deg)")
-    axes[2].set_xlabel("time (s)")
-    axes[2].legend(fontsize=7, loc="lower left")
+    # (-pi, pi], the truth is unwrapped): the gap between the lines is the estimator's error
+    est = a["estimate"][:, 0]
+    gap = (est - true + math.pi) % (2 * math.pi) - math.pi
+    est_turn = np.where(a["valid"] & np.isfinite(est), turn + gap, np.nan)
+    objects_panels(axes[-2], axes[-1], t, a["heights"], ["object 1", "object 2"],
+                   {"true (simulation)": (t, np.degrees(turn)),
+                    "estimated (joint angles)": (t, np.degrees(est_turn))})
+    axes[-2].axhline(LIFT_HEIGHT * 1e3, color="k", lw=0.6, ls="--")
+    phase_bands(list(axes), [(name, float(t[s]), float(t[e]) if e < len(t) else float(t[-1]))
+                       for name, s, e in _segments(trace.phase) if e > s])
+    axes[-1].set_xlabel(TIME_LABEL)
+    if len(t):
+        axes[-1].set_xlim(0.0, max(float(t[-1]), 1e-3))
     title = f"{recipe.name}"
     if experiment:
         title += (f": lifted {experiment.get('lifted')}, turned "
-                  f"{experiment.get('total_rotation_deg')} deg, dropped "
+                  f"{experiment.get('turn_deg', 0.0):+.1f} deg (ccw +), dropped "
                   f"{experiment.get('dropped')}, estimator p95 "
                   f"{experiment.get('estimator_error_deg')} deg")
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    fig.suptitle(title, fontsize=10, y=0.995)
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
     out = Path(path)
     fig.savefig(str(out))
     return out

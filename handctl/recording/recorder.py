@@ -112,7 +112,7 @@ class Recorder:
 
     def __init__(self, path: str | Path, hand: HandConfig, metadata: dict[str, dict[str, str]],
                  *, phase_names: Sequence[str] = (), object_names: Sequence[str] = (),
-                 layout: Layout | None = None) -> None:
+                 layout: Layout | None = None, live_port: int | None = None) -> None:
         self.path = Path(path)
         self.layout = layout or Layout(hand.n_joints, len(hand.fingers), len(object_names))
         try:
@@ -153,7 +153,8 @@ class Recorder:
                         "states": STATE_NAMES, "phases": names,
                         "joints": list(hand.joint_names),
                         "nodes": [f.name for f in hand.fingers], "objects": list(object_names),
-                        "path": str(self.path), "metadata": metadata})
+                        "path": str(self.path), "metadata": metadata,
+                        "live_port": live_port})
         except BaseException:
             self.process.kill()
             self.process.wait()

@@ -30,6 +30,7 @@ import orjson
 from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, BusSpec, Frame, HandBus
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig, parse_hand
+from handctl.convention import phase_turns_deg
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError
 from handctl.loop import EndOfTicks, Runtime, TickRecord
@@ -74,11 +75,13 @@ class _Rows:
 
 @dataclass
 class Series:
-    """What the summary and the plot need, as arrays over ticks (times in s from the first
-    tick)."""
+    """What the summary and the plot need, as arrays over ticks (times in s since tick 0's
+    scheduled time, ``handctl.convention``)."""
 
     joints: list[str]
-    t0_ns: int = 0
+    t0_ns: int = 0  # tick 0's scheduled time, on the log's clock
+    rest_y: list[float] = field(default_factory=list)  # m, each object's resting height
+    tau_max: list[float] = field(default_factory=list)  # N·m, each joint's host limit
     timing: FloatArray = field(default_factory=lambda: np.zeros((0, 8)))
     torque: FloatArray = field(default_factory=lambda: np.zeros((0, 1)))
     joint: FloatArray = field(default_factory=lambda: np.zeros((0, 1)))
@@ -99,6 +102,9 @@ def load_series(recording: Recording) -> Series:
     objects: _Rows | None = None
     series = Series(joints)
     t0: int | None = None
+    tick0: int | None = None  # tick 0's scheduled time (ns)
+    period_ns = int(recording.meta(ch.META_RUN, "period_ns") or 1_000_000)
+    scheduled = 0.0  # the latest tick's scheduled time, s from the first message
     phase_name, phase_start, phase_tick = "", 0.0, 0
     frames = {"rx": 0, "tx": 0, "tx_refused": 0}
     exits: dict[tuple[str, int], str] = {}
@@ -118,6 +124,9 @@ def load_series(recording: Recording) -> Series:
             t0 = log_time
         t = (log_time - t0) * 1e-9
         if topic == ch.TIMING:
+            if tick0 is None:
+                tick0 = int(msg["scheduled_ns"]) - int(msg["tick"]) * period_ns
+            scheduled = (int(msg["scheduled_ns"]) - t0) * 1e-9
             stages = msg.get("stage_cpu_ns") or {}
             timing.add((t, msg["tick"], msg.get("lateness_ns", 0), msg.get("missed", 0),
                         1.0 if msg.get("active") else 0.0, stages.get("poll", 0),
@@ -130,11 +139,11 @@ def load_series(recording: Recording) -> Series:
             joint.add([t, *_floats(msg["tdt_torque_nm"]), *_floats(msg["angle_rad"])])
         elif topic == ch.PHASE:
             name = msg["phase"]
-            if name != phase_name:
+            if name != phase_name:  # a phase starts at its first tick's scheduled time
                 if phase_name:
                     series.phases.append({"name": phase_name, "start_s": phase_start,
-                                          "end_s": t, "tick": phase_tick})
-                phase_name, phase_start, phase_tick = name, t, msg["tick"]
+                                          "end_s": scheduled, "tick": phase_tick})
+                phase_name, phase_start, phase_tick = name, scheduled, msg["tick"]
         elif topic == ch.EVENTS:
             msg["t_s"] = t
             series.events.append(msg)
@@ -156,10 +165,20 @@ def load_series(recording: Recording) -> Series:
     for phase in series.phases:
         phase["exit"] = next((v for (name, tick), v in exits.items()
                               if name == phase["name"] and tick > phase["tick"]), "")
-    series.t0_ns = t0 or 0
+    # Times were taken from the first message on; the convention's are from tick 0.
+    shift = ((tick0 - t0) * 1e-9) if tick0 is not None and t0 is not None else 0.0
+    series.t0_ns = tick0 if tick0 is not None else (t0 or 0)
+    for rows in (timing, torque, joint, *((objects,) if objects is not None else ())):
+        rows.rows[:, 0] -= shift
+    for phase in series.phases:
+        phase["start_s"] -= shift
+        phase["end_s"] -= shift
+    for event in series.events:
+        event["t_s"] -= shift
     series.timing, series.torque, series.joint = timing.rows, torque.rows, joint.rows
     if objects is not None:
         series.objects = objects.rows
+    series.rest_y = _rest_heights(recording, series)
     series.frames = frames
     return series
 
@@ -277,17 +296,49 @@ def summarise(recording: Recording, series: Series) -> dict[str, Any]:
     if len(series.objects):
         first, last = series.objects[0], series.objects[-1]
         summary["objects"] = {
-            name: {"start": _pose(first, i), "end": _pose(last, i)}
+            name: {"start": _pose(first, i, series.rest_y), "end": _pose(last, i, series.rest_y)}
             for i, name in enumerate(series.object_names)}
         summary["objects_line_angle_rad"] = {"start": round(float(first[1]), 5),
                                              "end": round(float(last[1]), 5)}
+        # a pose taken at the start of tick k belongs to the phase tick k - 1 ran, and the
+        # phase channel says which phase a tick ran: the bounds move one tick later
+        period = int(recording.meta(ch.META_RUN, "period_ns") or 1_000_000) * 1e-9
+        turns = phase_turns_deg(series.objects[:, 0], series.objects[:, 1],
+                                [(p["name"], p["start_s"] + period, p["end_s"] + period)
+                                 for p in series.phases])
+        summary["phase_turns_deg"] = turns
+        summary["turn_deg"] = round(sum(turns), 2)
     return summary
 
 
-def _pose(row: FloatArray, i: int) -> dict[str, float]:
+def _rest_heights(recording: Recording, series: Series) -> list[float]:
+    """Where the objects rested at the start: the recorded scene's initial poses (the run
+    summary's reference), or the first logged pose for a log without them. Sets the joints'
+    ``tau_max`` from the recorded hand config on the way."""
+    from handctl.sim.params import parse_sim
+
+    first = [float(series.objects[0][3 + 3 * i]) if len(series.objects) else math.nan
+             for i in range(len(series.object_names))] if series.object_names else []
+    try:
+        hand = _hand(recording, required=False)
+        params = parse_sim(hand) if hand is not None and hand.sim else None
+    except ConfigError:
+        hand, params = None, None
+    if hand is not None:
+        series.tau_max = [j.tau_max for j in hand.joints]
+    if params is None:
+        return first
+    initial = {o.name: o.y for o in params.objects}
+    return [initial.get(name, first[i]) for i, name in enumerate(series.object_names)]
+
+
+def _pose(row: FloatArray, i: int, rest_y: list[float]) -> dict[str, float]:
     x, y, angle = row[2 + 3 * i: 5 + 3 * i]
-    return {"x_m": round(float(x), 5), "y_m": round(float(y), 5),
+    pose = {"x_m": round(float(x), 5), "y_m": round(float(y), 5),
             "angle_rad": round(float(angle), 5)}
+    if i < len(rest_y):
+        pose["height_above_rest_m"] = round(float(y) - rest_y[i], 5)
+    return pose
 
 
 # -- re-run -----------------------------------------------------------------------------------

@@ -23,12 +23,13 @@ import struct
 import sys
 import time
 import traceback
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 import orjson
 
 from handctl import __version__
+from handctl.foxglove.derived import Derived
 from handctl.recording import channels as ch
 from handctl.recording.mcapfile import ChunkWriter
 from handctl.recording.metadata import package_version
@@ -70,6 +71,9 @@ from handctl.recording.ring import (
 )
 from handctl.taps import TAP_RX, TAP_TX
 
+if TYPE_CHECKING:
+    from handctl.foxglove.live import LiveServer
+
 POLL_S = 0.01
 CHUNK_NS = 50_000_000
 CHUNK_WALL_S = 0.05
@@ -80,7 +84,8 @@ _LENGTH = struct.Struct("<I")
 class Encoder:
     """Rings in, MCAP out: one instance per recording."""
 
-    def __init__(self, rings: Rings, out: IO[bytes], setup: dict[str, Any]) -> None:
+    def __init__(self, rings: Rings, out: IO[bytes], setup: dict[str, Any],
+                 live: LiveServer | None = None) -> None:
         self.rings = rings
         self.layout = rings.layout
         self.out = out
@@ -108,6 +113,28 @@ class Encoder:
                 meta["nodes"] = ",".join(setup["nodes"])
             self.channel[channel.topic] = self.writer.register_channel(
                 channel.topic, ch.MESSAGE_ENCODING, schema_ids[channel.schema_name], meta)
+        self.live = live
+        if live is not None:
+            for channel in ch.CHANNELS:
+                live.add_channel(channel.topic, channel.schema_name, ch.SCHEMA_ENCODING,
+                                 orjson.dumps(ch.schema_of(channel)), ch.MESSAGE_ENCODING)
+        self.derived: Derived | None = None
+        try:
+            self.derived = Derived.from_metadata(setup["metadata"], self.add_raw)
+        except Exception as exc:  # a view must never cost the recording
+            sys.stderr.write(f"handctl writer: no Foxglove channels: {exc}\n")
+        if self.derived is not None:
+            for derived in self.derived.channels:
+                if derived.schema_name not in schema_ids:
+                    schema_ids[derived.schema_name] = self.writer.register_schema(
+                        derived.schema_name, derived.schema_encoding, derived.schema_data)
+                self.channel[derived.topic] = self.writer.register_channel(
+                    derived.topic, derived.message_encoding, schema_ids[derived.schema_name],
+                    {"handctl.format_version": str(ch.FORMAT_VERSION)})
+                if live is not None:
+                    live.add_channel(derived.topic, derived.schema_name,
+                                     derived.schema_encoding, derived.schema_data,
+                                     derived.message_encoding)
         self.sequence = dict.fromkeys(self.channel.values(), 0)
         self.ticks = self.frames = self.events = self.poses = 0
         self.messages = 0
@@ -121,10 +148,15 @@ class Encoder:
         self.dropped = [0, 0, 0, 0]
 
     def add(self, topic: str, log_time: int, payload: dict[str, Any]) -> None:
+        self.add_raw(topic, log_time, orjson.dumps(payload))
+
+    def add_raw(self, topic: str, log_time: int, data: bytes) -> None:
         channel = self.channel[topic]
         seq = self.sequence[channel]
         self.sequence[channel] = seq + 1
-        self.writer.add_message(channel, log_time, orjson.dumps(payload), seq & 0xFFFFFFFF)
+        self.writer.add_message(channel, log_time, data, seq & 0xFFFFFFFF)
+        if self.live is not None:
+            self.live.log(topic, log_time, data)
         self.messages += 1
         if self.chunk_log is None:
             self.chunk_log = log_time
@@ -169,16 +201,19 @@ class Encoder:
         rows = rings.frame_i[index].tolist()
         raw = rings.frame_d[index].tobytes()
         rings.ctl[FRAME_TAIL] = head
-        add = self.add
+        add, derived = self.add, self.derived
         for j, (t_ns, tick, frame_id, meta, bus_ns) in enumerate(rows):
             direction, size = meta & 0xFF, min((meta >> 8) & 0xFF, FRAME_BYTES)
-            data = raw[j * FRAME_BYTES: j * FRAME_BYTES + size].hex()
+            payload = raw[j * FRAME_BYTES: j * FRAME_BYTES + size]
+            data = payload.hex()
             if direction == TAP_RX:
                 add(ch.CAN_RX, t_ns, {"tick": tick, "id": frame_id, "data": data,
                                       "bus_time_ns": bus_ns})
             else:
                 add(ch.CAN_TX, t_ns, {"tick": tick, "id": frame_id, "data": data,
                                       "ok": direction == TAP_TX})
+            if derived is not None:
+                derived.frame(t_ns, tick, direction == TAP_RX, frame_id, payload)
         self.frames += len(rows)
 
     def _events(self, tail: int, head: int) -> None:
@@ -200,6 +235,8 @@ class Encoder:
             if payload is not None:
                 self.add(ch.EVENTS, t_ns, payload)
                 self.events += 1
+                if self.derived is not None:
+                    self.derived.event(t_ns, payload)
 
     def _poses(self, tail: int, head: int) -> None:
         rings = self.rings
@@ -216,6 +253,8 @@ class Encoder:
                                                        values[3] - values[0])
             self.add(ch.OBJECTS, t_ns, payload)
             self.poses += 1
+            if self.derived is not None:
+                self.derived.poses(t_ns, values)
 
     def _ticks(self, tail: int, head: int) -> None:
         rings = self.rings
@@ -224,7 +263,7 @@ class Encoder:
         floats = rings.tick_f[index].tolist()
         rings.ctl[TICK_TAIL] = head
         n, m = self.n, self.m
-        states, add = self.states, self.add
+        states, add, derived = self.states, self.add, self.derived
         node_at = I_FEEDBACK + n
         for r, f in zip(ints, floats, strict=True):
             k, scheduled, now, missed, active = r[0], r[1], r[2], r[3], r[4]
@@ -246,11 +285,16 @@ class Encoder:
                 add(ch.TORQUE, now, {"tick": k, "desired_nm": f[2 * n:3 * n],
                                      "applied_nm": f[3 * n:]})
                 state = r[I_STATE]
-                add(ch.SAFETY, now, {"tick": k, "state": states[state] if state >= 0 else "?",
+                state_name = states[state] if state >= 0 else "?"
+                add(ch.SAFETY, now, {"tick": k, "state": state_name,
                                      "faults_latched": r[I_FAULTS]})
                 phase = r[I_PHASE]
-                add(ch.PHASE, now, {"tick": k, "phase": self.phases[phase]
-                                    if 0 <= phase < len(self.phases) else "?"})
+                phase_name = self.phases[phase] if 0 <= phase < len(self.phases) else "?"
+                add(ch.PHASE, now, {"tick": k, "phase": phase_name})
+                if derived is not None:
+                    derived.tick(now, k, f[:n], f[n:2 * n], f[2 * n:3 * n], f[3 * n:],
+                                 state_name == "running"
+                                 and phase_name not in ("completed", "aborted"))
             self.last_tick = k
         self.ticks += len(ints)
 
@@ -262,10 +306,12 @@ class Encoder:
                                   DROPPED_POSES)):
             now = int(ctl[word])
             if now != self.dropped[i]:
-                self.add(ch.EVENTS, self.last_log, {
-                    "tick": self.last_tick, "kind": "recording", "name": names[i],
-                    "detail": "the writer fell behind: records dropped",
-                    "count": now - self.dropped[i]})
+                event = {"tick": self.last_tick, "kind": "recording", "name": names[i],
+                         "detail": "the writer fell behind: records dropped",
+                         "count": now - self.dropped[i]}
+                self.add(ch.EVENTS, self.last_log, event)
+                if self.derived is not None:
+                    self.derived.event(self.last_log, event)
                 self.dropped[i] = now
 
     # -- chunks and the end ---------------------------------------------------------------
@@ -373,8 +419,14 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
     layout = Layout.from_dict(setup["layout"])
     block = mmap.mmap(shm_fd, layout.size)
     rings = Rings(layout, block)
+    live = None
+    if setup.get("live_port") is not None:
+        # Before the ready byte: a port that cannot be bound fails the start, not the run.
+        from handctl.foxglove.live import LiveServer
+
+        live = LiveServer(int(setup["live_port"]))
     with os.fdopen(out_fd, "wb", buffering=1 << 20) as out:
-        encoder = Encoder(rings, out, setup)
+        encoder = Encoder(rings, out, setup, live)
         os.write(ready_fd, b"R")
         os.close(ready_fd)
         messages = control.pending
@@ -397,6 +449,8 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
         closed = bool(rings.ctl[CLOSED])
         encoder.finish(ch.ENDED_CLOSED if closed
                        else "the control process ended without closing the recorder")
+    if live is not None:
+        live.close()
     return 0
 
 

@@ -26,6 +26,7 @@ from mcap.stream_reader import StreamReader
 
 from handctl.clock import Tick
 from handctl.config import HandConfig
+from handctl.foxglove.derived import Derived
 from handctl.loop import Outcome, RunResult, TickRecord
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
@@ -55,6 +56,12 @@ phases:
     on_timeout: next
 """
 ESTOP_TICK = 700
+#: The channels the writer derives for Foxglove, beside the recorded ones.
+DERIVED = Derived.from_metadata(
+    {ch.META_HAND: {"yaml": (ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text()}},
+    lambda *_: None).channels
+JSON_TOPICS = {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED
+                                                if c.message_encoding == "json"}
 
 
 @dataclass
@@ -168,10 +175,12 @@ def recorded(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Reco
 
 
 def library_messages(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """Messages in file order through the mcap library's own reader, nothing of handctl's."""
+    """The JSON messages in file order through the mcap library's own reader, nothing of
+    handctl's (the Foxglove channels in protobuf are tests/integration/test_foxglove.py's)."""
     with path.open("rb") as handle:
         for _, channel, message in make_reader(handle).iter_messages(log_time_order=False):
-            yield channel.topic, message.log_time, json.loads(message.data)
+            if channel.message_encoding == "json":
+                yield channel.topic, message.log_time, json.loads(message.data)
 
 
 def test_every_channel_is_written_and_matches_its_schema(recorded: Recorded) -> None:
@@ -183,11 +192,14 @@ def test_every_channel_is_written_and_matches_its_schema(recorded: Recorded) -> 
         validators = {}
         for channel in summary.channels.values():
             schema = schemas[channel.schema_id]
+            if schema.name.startswith("foxglove."):  # Foxglove's own, in protobuf
+                assert schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
+                continue
             assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
             validators[channel.topic] = jsonschema.Draft202012Validator(json.loads(schema.data))
         counts = {summary.channels[cid].topic: n
                   for cid, n in summary.statistics.channel_message_counts.items()}
-    assert set(counts) == {c.topic for c in ch.CHANNELS}
+    assert set(counts) == {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED}
     assert all(counts[c.topic] > 0 for c in ch.CHANNELS), counts
     assert len(summary.chunk_indexes) > 1
     for topic, _, message in library_messages(recorded.path):
@@ -275,7 +287,7 @@ def test_metadata_names_the_hand_the_recipe_and_the_versions(recorded: Recorded,
 def test_handctl_reader_agrees_with_the_library(recorded: Recorded) -> None:
     recording = open_recording(recorded.path)
     assert recording.complete and not recording.problem
-    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert ours == list(library_messages(recorded.path))
 
 
@@ -392,14 +404,17 @@ def test_sigkill_of_both_leaves_a_readable_prefix(hand: HandConfig, tmp_path: Pa
     kill_mid_run(hand, recipe, path, 600, kill_writer=True)
     recording = open_recording(path)
     assert not recording.complete and recording.problem
-    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert [m for t, _, m in ours if t == ch.TIMING], "nothing of the run was on disk"
     # The library's streaming reader reads the same prefix before it stops at the cut.
     theirs = []
     with path.open("rb") as handle, \
             pytest.raises(Exception):  # noqa: B017 - whatever the library raises at the cut
+        json_channels = set()
         for record in StreamReader(handle, validate_crcs=True).records:
-            if type(record).__name__ == "Message":
+            if type(record).__name__ == "Channel" and record.message_encoding == "json":
+                json_channels.add(record.id)
+            if type(record).__name__ == "Message" and record.channel_id in json_channels:
                 theirs.append(record)
     assert [json.loads(m.data) for m in theirs] == [m for _, _, m in ours]
 
@@ -426,7 +441,7 @@ def test_a_truncated_file_gives_back_every_complete_chunk(recorded: Recorded, tm
     assert not recording.complete and recording.problem
     whole = [c for c in chunks if c.chunk_start_offset + c.chunk_length <= cut]
     expected = sum(_chunk_messages(recorded.path, c) for c in whole)
-    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert len(got) == expected
     assert got == all_messages[:expected]
     assert recording.chunks == len(whole)
@@ -462,7 +477,7 @@ def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(recorded: Rec
     counts = [_chunk_messages(recorded.path, c) for c in chunks]
     lost_from, lost_to = sum(counts[:bad]), sum(counts[:bad + 1])
     everything = list(library_messages(recorded.path))
-    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
+    got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert got == everything[:lost_from] + everything[lost_to:]
     assert counts[bad + 1:] and got[-1] == everything[-1]  # the chunks after it are kept
 
@@ -516,15 +531,19 @@ def test_a_damaged_metadata_record_is_named(recorded: Recorded, tmp_path: Path) 
 
 
 def _chunk_messages(path: Path, chunk: Any) -> int:
-    """How many messages one chunk holds, through the library's own chunk parser."""
+    """How many JSON messages one chunk holds, through the library's own chunk parser."""
     from mcap.records import Chunk, Message
     from mcap.stream_reader import breakup_chunk
 
     with path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+        assert summary is not None
+        json_ids = {c.id for c in summary.channels.values() if c.message_encoding == "json"}
         handle.seek(chunk.chunk_start_offset)
         record = next(iter(StreamReader(handle, skip_magic=True, emit_chunks=True).records))
     assert isinstance(record, Chunk)
-    return sum(isinstance(r, Message) for r in breakup_chunk(record))
+    return sum(isinstance(r, Message) and r.channel_id in json_ids
+               for r in breakup_chunk(record))
 
 
 def test_docs_name_every_channel_schema_and_field() -> None:

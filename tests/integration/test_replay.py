@@ -61,9 +61,11 @@ def rewrite(source: Path, target: Path, change: Any) -> None:
                                                      schema_ids[c.schema_id], c.metadata)
                        for c in summary.channels.values()}
         for _, channel, message in messages:
-            data = change(channel.topic, json.loads(message.data))
-            writer.add_message(channel_ids[channel.id], message.log_time,
-                               json.dumps(data).encode(), message.publish_time)
+            raw = message.data
+            if channel.message_encoding == "json":  # the Foxglove protobuf ones as they are
+                raw = json.dumps(change(channel.topic, json.loads(raw))).encode()
+            writer.add_message(channel_ids[channel.id], message.log_time, raw,
+                               message.publish_time)
         writer.finish()
 
 

@@ -1,0 +1,78 @@
+"""One convention for what the run summary, the replay summary and both plots show, so that
+the same run reads the same everywhere.
+
+- **Time**: seconds since tick 0's scheduled time, the recipe runner's own clock (its phase
+  times and timeouts read it). A phase starts at the scheduled time of the first tick that
+  ran it. Start-up ticks before tick 0 do not exist; nothing is measured from a log's first
+  message.
+- **Heights**: of an object's centre above where it rested at the start (the simulated scene's
+  initial pose), in mm on the axes: 0 on the table, positive up.
+- **Turn**: the change of the centre line's angle (from the first object's centre to the
+  second's) since the start, unwrapped, in degrees, counter-clockwise positive about +z (the
+  hand config's sign of angles and torques: x to the right, y up). A pair turned half a turn
+  clockwise reads -180, never +180 or a wrapped +3.14 rad. A phase's turn is measured on the
+  poses of every ``POSE_EVERY_TICKS``-th tick, the ones a log carries, taken at the start of
+  the tick (before it runs): the run's summary and its log's measure the same samples. Such a
+  sample belongs to the phase the previous tick ran.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+#: The simulated objects' poses are logged (and a turn measured) every this many ticks.
+POSE_EVERY_TICKS = 10
+TIME_LABEL = "time since tick 0 [s]"
+HEIGHT_LABEL = "height above rest [mm]"
+TURN_LABEL = "turn of the centre line [deg, ccw +]"
+
+
+def run_time_s(scheduled_ns: int, tick0_scheduled_ns: int) -> float:
+    return (scheduled_ns - tick0_scheduled_ns) * 1e-9
+
+
+def heights_above_rest(y: npt.ArrayLike, rest_y: Sequence[float]) -> npt.NDArray[np.float64]:
+    """Rows of centre heights (m) minus each object's resting height (m)."""
+    out: npt.NDArray[np.float64] = np.asarray(y, dtype=float) - np.asarray(rest_y, dtype=float)
+    return out
+
+
+def turn_rad(line_angle: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """The turn since the first finite sample of a wrapped centre-line angle series (rad);
+    NaN where the angle is unknown."""
+    a = np.asarray(line_angle, dtype=float)
+    out = np.full(a.shape, math.nan)
+    ok = np.isfinite(a)
+    if ok.any():
+        unwrapped = np.unwrap(a[ok])
+        out[ok] = unwrapped - unwrapped[0]
+    return out
+
+
+def turn_deg(line_angle: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    return np.degrees(turn_rad(line_angle))
+
+
+def phase_turns_deg(t: npt.ArrayLike, line_angle: npt.ArrayLike,
+                    phases: Sequence[tuple[str, float, float]],
+                    prefix: str = "manipulate") -> list[float]:
+    """The turn (deg, ccw +) in each phase named ``prefix...``: the unwrapped centre-line
+    angle at the first sample at or after the phase's end (the last sample if the run ends
+    first) minus at the first sample at or after its start. Consecutive phases' turns add up
+    to the turn over all of them, whatever the sampling."""
+    times = np.asarray(t, dtype=float)
+    turn = turn_deg(line_angle)
+    finite = np.isfinite(turn)
+    times, turn = times[finite], turn[finite]
+    out = []
+    for name, start, end in phases:
+        if not name.startswith(prefix):
+            continue
+        first = int(np.searchsorted(times, start - 1e-9))
+        last = min(int(np.searchsorted(times, end - 1e-9)), len(times) - 1)
+        out.append(round(float(turn[last] - turn[first]), 2) if first < last else 0.0)
+    return out

@@ -1,0 +1,116 @@
+"""The Foxglove WebSocket server that shows a run while it goes on, or a log played back.
+
+During a run it lives in the recording's writer process (``handctl.recording.writer``), which
+hands it every message as it writes it to the MCAP file: the loop does not know it exists, and
+a slow or stalled viewer costs the writer a bounded queue (the SDK drops the oldest message
+per client), never the loop a microsecond of waiting. ``handctl replay RUN.mcap --live``
+serves a finished (or truncated) file at the speed it was recorded.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, BinaryIO
+
+import foxglove
+from foxglove import Channel, Context, Schema
+
+if TYPE_CHECKING:
+    from mcap.records import Channel as McapChannel
+    from mcap.records import Schema as McapSchema
+
+#: Bound to the loopback interface only: a live view of a robot is not for the network unless
+#: someone chooses to tunnel it.
+HOST = "127.0.0.1"
+DEFAULT_PORT = 8765
+
+
+class LiveServer:
+    """A Foxglove WebSocket server with one channel per recorded topic, fed raw payloads."""
+
+    def __init__(self, port: int, name: str = "handctl", host: str = HOST) -> None:
+        self.context = Context()
+        self.server = foxglove.start_server(name=name, host=host, port=port,
+                                            context=self.context)
+        self.channels: dict[str, Channel] = {}
+
+    @property
+    def port(self) -> int:
+        return self.server.port
+
+    def add_channel(self, topic: str, schema_name: str, schema_encoding: str,
+                    schema_data: bytes, message_encoding: str,
+                    metadata: dict[str, str] | None = None) -> None:
+        self.channels[topic] = Channel(
+            topic, schema=Schema(name=schema_name, encoding=schema_encoding, data=schema_data),
+            message_encoding=message_encoding, context=self.context, metadata=metadata)
+
+    def log(self, topic: str, log_time: int, payload: bytes) -> None:
+        channel = self.channels.get(topic)
+        if channel is not None and channel.has_sinks():
+            channel.log(payload, log_time=log_time)
+
+    def close(self) -> None:
+        self.server.stop()
+
+
+def serve_recording(path: Path, port: int, speed: float = 1.0,
+                    started: Callable[[LiveServer], None] | None = None) -> int:
+    """Stream every message of ``path`` in file order at its recorded spacing (divided by
+    ``speed``); returns the number of messages sent. The messages are read as ``handctl
+    replay`` reads them (``handctl.recording.reader``): a truncated file plays up to its last
+    complete chunk, a damaged chunk is left out."""
+    from handctl.recording.reader import iter_messages, open_recording
+
+    recording = open_recording(path)
+    server = LiveServer(port, name=f"handctl replay {path.name}")
+    try:
+        with path.open("rb") as stream:
+            for topic, (schema, channel) in _channels(stream).items():
+                server.add_channel(topic, schema.name if schema else "",
+                                   schema.encoding if schema else "",
+                                   bytes(schema.data) if schema else b"",
+                                   channel.message_encoding, dict(channel.metadata))
+        if started is not None:
+            started(server)
+        sent = 0
+        first_log: int | None = None
+        wall0 = 0.0
+        for topic, log_time, data in iter_messages(recording):
+            if first_log is None:
+                first_log, wall0 = log_time, time.monotonic()
+            delay = wall0 + (log_time - first_log) * 1e-9 / speed - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            server.log(topic, log_time, data)
+            sent += 1
+        return sent
+    finally:
+        server.close()
+
+
+def _channels(stream: BinaryIO) -> dict[str, tuple[McapSchema | None, McapChannel]]:
+    """Every channel and its schema, from the records before the first chunk (the recorder
+    writes them all there, so even a file cut short soon after has them)."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel as ChannelRecord
+    from mcap.records import Chunk
+    from mcap.records import Schema as SchemaRecord
+    from mcap.stream_reader import StreamReader
+
+    schemas: dict[int, SchemaRecord] = {}
+    out: dict[str, tuple[SchemaRecord | None, ChannelRecord]] = {}
+    try:
+        for record in StreamReader(stream).records:
+            if isinstance(record, SchemaRecord):
+                schemas[record.id] = record
+            elif isinstance(record, ChannelRecord):
+                out[record.topic] = (schemas.get(record.schema_id), record)
+            elif isinstance(record, Chunk):
+                break
+    except (McapError, EOFError, struct.error):
+        pass  # cut before the first chunk: what was read is all there is
+    return out

@@ -1,0 +1,401 @@
+"""Foxglove views of a real run: a lockstep run of the default recipe, recorded and served live
+(``handctl run recipe ... --log RUN.mcap --live PORT``) as a separate process. A WebSocket
+client speaks the Foxglove protocol to the live server; the MCAP's well-known-schema channels
+are decoded with the protobuf descriptors the file itself carries, and checked against the
+recorded numbers they were derived from."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import os
+import socket
+import struct
+import subprocess
+import sys
+from collections import defaultdict
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import pytest
+import websockets
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from google.protobuf.message import Message
+from mcap.reader import make_reader
+
+from handctl.config import HandConfig
+from handctl.foxglove import derived as fx
+from handctl.recording import channels as ch
+from handctl.sim.params import parse_sim
+
+from ..conftest import HAND_YAML, ROOT
+
+RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+#: The subprotocol foxglove-sdk 0.30 speaks (the successor of "foxglove.websocket.v1").
+SUBPROTOCOL = "foxglove.sdk.v1"
+WANTED = (fx.SCENE, fx.JOINTS, fx.TRANSFORMS, ch.JOINT_STATE)
+#: Enough of a run for the estimator to find both cylinders in the hand.
+RUN_S = "3"
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def decoder(schema_name: str, data: bytes) -> Any:
+    """The message class a protobuf schema record describes, built from its descriptors."""
+    files = descriptor_pb2.FileDescriptorSet.FromString(data)
+    pool = descriptor_pool.DescriptorPool()
+    pending = list(files.file)
+    while pending:  # add each file after the files it imports
+        added = [f for f in pending if all(pool_has(pool, d) for d in f.dependency)]
+        assert added, "the descriptor set does not close over its imports"
+        for f in added:
+            pool.Add(f)
+            pending.remove(f)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema_name))
+
+
+def pool_has(pool: descriptor_pool.DescriptorPool, name: str) -> bool:
+    try:
+        pool.FindFileByName(name)
+    except KeyError:
+        return False
+    return True
+
+
+@dataclass
+class Live:
+    advertised: dict[str, dict[str, Any]] = field(default_factory=dict)
+    received: dict[str, list[bytes]] = field(default_factory=lambda: defaultdict(list))
+
+
+async def listen(port: int, proc: subprocess.Popen[bytes], enough: int) -> Live:
+    """Connect (retrying while the run starts), subscribe to ``WANTED``, collect messages."""
+    live = Live()
+    while True:
+        try:
+            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL],
+                                          max_size=None)
+            break
+        except OSError:
+            if proc.poll() is not None:
+                _, err = proc.communicate()
+                raise AssertionError(
+                    f"ended before its live server accepted: {err.decode()}") from None
+            await asyncio.sleep(0.05)
+    async with ws:
+        assert ws.subprotocol == SUBPROTOCOL
+        topics: dict[int, str] = {}
+        while any(len(live.received[t]) < enough for t in WANTED):
+            try:
+                raw = await asyncio.wait_for(ws.recv(), 5.0)
+            except (TimeoutError, websockets.ConnectionClosed):
+                break
+            if isinstance(raw, str):
+                op = json.loads(raw)
+                if op["op"] == "advertise":
+                    subs = []
+                    for channel in op["channels"]:
+                        live.advertised[channel["topic"]] = channel
+                        if channel["topic"] in WANTED:
+                            topics[channel["id"]] = channel["topic"]
+                            subs.append({"id": channel["id"], "channelId": channel["id"]})
+                    if subs:
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                continue
+            assert raw[0] == 0x01  # message data: subscription id, log time, payload
+            sub, _log_time = struct.unpack_from("<IQ", raw, 1)
+            live.received[topics[sub]].append(bytes(raw[13:]))
+    return live
+
+
+@dataclass
+class Run:
+    path: Path
+    live: Live
+    returncode: int
+    stderr: str
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
+    directory = tmp_path_factory.mktemp("foxglove")
+    path = directory / "run.mcap"
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with subprocess.Popen(
+            [sys.executable, "-m", "handctl", "run", "recipe", str(RECIPE), "--hand",
+             str(HAND_YAML), "--lockstep", "--log", str(path), "--live", str(port),
+             "--max-seconds", RUN_S],
+            cwd=directory, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
+        try:
+            live = asyncio.run(listen(port, proc, enough=5))
+            _, err = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    yield Run(path, live, proc.returncode, err.decode(errors="replace"))
+
+
+def mcap_messages(path: Path) -> Iterator[tuple[Any, Any, Any]]:
+    with path.open("rb") as handle:
+        yield from make_reader(handle).iter_messages(log_time_order=False)
+
+
+def test_live_server_sends_scene_and_joint_messages(run: Run, hand: HandConfig) -> None:
+    assert run.returncode in (0, 130, 3, 1) and "Traceback" not in run.stderr, run.stderr
+    live = run.live
+    scene_channel = live.advertised[fx.SCENE]
+    assert scene_channel["encoding"] == "protobuf"
+    assert scene_channel["schemaName"] == "foxglove.SceneUpdate"
+    scene_type = decoder("foxglove.SceneUpdate",
+                         _schema_bytes(scene_channel))
+    assert len(live.received[fx.SCENE]) >= 5, {t: len(v) for t, v in live.received.items()}
+    scene = scene_type.FromString(live.received[fx.SCENE][-1])
+    ids = {e.id for e in scene.entities}
+    assert {f"link/{name}" for name in hand.joint_names} <= ids
+    assert len(live.received[fx.JOINTS]) >= 5
+    joints = json.loads(live.received[fx.JOINTS][-1])
+    for joint in hand.joints:
+        assert joints[joint.name]["tau_max_nm"] == joint.tau_max
+        assert math.isfinite(joints[joint.name]["angle_rad"])
+    assert len(live.received[ch.JOINT_STATE]) >= 5  # today's channels are served too
+
+
+def _schema_bytes(channel: dict[str, Any]) -> bytes:
+    """The live protocol carries a binary schema base64-encoded."""
+    import base64
+
+    return base64.b64decode(channel["schema"])
+
+
+def test_well_known_channels_decode_with_their_own_schemas(run: Run, hand: HandConfig) -> None:
+    with run.path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None
+    by_topic = {c.topic: (c, summary.schemas[c.schema_id]) for c in summary.channels.values()}
+    for topic in ch.CHANNELS:  # the recorded channels are all still there
+        assert topic.topic in by_topic
+    types: dict[str, Any] = {}
+    validators = {}
+    for topic, (channel, schema) in by_topic.items():
+        if schema.encoding == "protobuf":
+            assert channel.message_encoding == "protobuf"
+            assert schema.name.startswith("foxglove.")
+            types[topic] = decoder(schema.name, schema.data)
+        else:
+            assert (schema.encoding, channel.message_encoding) == ("jsonschema", "json")
+            validators[topic] = jsonschema.Draft202012Validator(json.loads(schema.data))
+    assert set(types) == {fx.SCENE, fx.TRANSFORMS, fx.LOG}
+    decoded: dict[str, list[tuple[int, Any]]] = defaultdict(list)
+    for _, channel, message in mcap_messages(run.path):
+        if channel.topic in types:
+            value: Message = types[channel.topic].FromString(message.data)
+        else:
+            value = json.loads(message.data)
+            validators[channel.topic].validate(value)
+        decoded[channel.topic].append((message.log_time, value))
+    check_scene(decoded, hand)
+    check_joints_and_frames(decoded, hand)
+    check_log(decoded)
+
+
+def _forward(hand: HandConfig, angles: list[float]) -> dict[str, list[tuple[float, float]]]:
+    """Each joint's axis and the link's far end, in the hand plane, from the config."""
+    out = {}
+    i = 0
+    for finger in hand.fingers:
+        x, y, heading = finger.base_x, finger.base_y, finger.base_angle
+        for joint in finger.joints:
+            heading += angles[i]
+            end = (x + joint.link_length * math.cos(heading),
+                   y + joint.link_length * math.sin(heading))
+            out[joint.name] = [(x, y), end]
+            x, y = end
+            i += 1
+    return out
+
+
+def check_scene(decoded: dict[str, list[tuple[int, Any]]], hand: HandConfig) -> None:
+    angles = {t: m["angle_rad"] for t, m in decoded[ch.JOINT_STATE]}
+    truths = sorted((t, m["objects"]) for t, m in decoded[ch.OBJECTS])
+    sim = parse_sim(hand)
+    line_errors: list[float] = []
+    assert len(decoded[fx.SCENE]) >= 50
+    for t, scene in decoded[fx.SCENE]:
+        entities = {e.id: e for e in scene.entities}
+        ends = _forward(hand, angles[t])
+        for name, (start, end) in ends.items():
+            spheres = entities[f"link/{name}"].spheres
+            got = [(s.pose.position.x, s.pose.position.y) for s in spheres]
+            assert got == pytest.approx([start, end], abs=1e-9)
+            assert spheres[0].size.x == pytest.approx(2 * sim.links[int(name[-1]) - 1].radius)
+        assert {"palm", "table"} <= set(entities)
+        truth = [objs for tt, objs in truths if tt <= t]
+        if truth:
+            centres = []
+            for obj in truth[-1]:
+                cyl = entities[f"object/{obj['name']}"].cylinders[0]
+                assert (cyl.pose.position.x, cyl.pose.position.y) == pytest.approx(
+                    (obj["x_m"], obj["y_m"]), abs=1e-12)
+                estimate = entities.get(f"estimate/{obj['name']}")
+                if estimate is not None:
+                    est = estimate.cylinders[0]
+                    assert est.color.a < 1.0  # translucent over the truth
+                    radius = est.size.x / 2
+                    # the estimate overlaps the object it stands for
+                    assert math.dist((est.pose.position.x, est.pose.position.y),
+                                     (obj["x_m"], obj["y_m"])) < radius
+                    centres.append(((est.pose.position.x, est.pose.position.y),
+                                    (obj["x_m"], obj["y_m"])))
+            if len(centres) == 2:
+                (e1, t1), (e2, t2) = centres
+                line_error = (math.atan2(e2[1] - e1[1], e2[0] - e1[0])
+                              - math.atan2(t2[1] - t1[1], t2[0] - t1[0]))
+                line_errors.append(abs(math.remainder(line_error, math.tau)))
+    # the estimated pair lies along the true pair (the run summary's estimator error is
+    # a few degrees at its 95th percentile)
+    assert len(line_errors) > 10, "the estimator never placed the objects"
+    assert sorted(line_errors)[len(line_errors) // 2] < math.radians(10)
+    # the transforms are the same chain as the scene's links
+    for t, tfs in decoded[fx.TRANSFORMS][::10]:
+        ends = _forward(hand, angles[t])
+        frames = {tf.child_frame_id: tf for tf in tfs.transforms}
+        for finger in hand.fingers:
+            x, y, heading = 0.0, 0.0, 0.0
+            chain = [f"{finger.name}_base"] + [j.name for j in finger.joints]
+            for name in chain:
+                tf = frames[name]
+                assert tf.parent_frame_id == ("world" if name.endswith("_base")
+                                              else chain[chain.index(name) - 1])
+                dx, dy = tf.translation.x, tf.translation.y
+                x, y = (x + dx * math.cos(heading) - dy * math.sin(heading),
+                        y + dx * math.sin(heading) + dy * math.cos(heading))
+                heading += 2 * math.atan2(tf.rotation.z, tf.rotation.w)
+                if name in ends:
+                    assert (x, y) == pytest.approx(ends[name][0], abs=1e-9)
+
+
+def check_joints_and_frames(decoded: dict[str, list[tuple[int, Any]]],
+                            hand: HandConfig) -> None:
+    torque = {m["tick"]: m for _, m in decoded[ch.TORQUE]}
+    state = {m["tick"]: m for _, m in decoded[ch.JOINT_STATE]}
+    assert len(decoded[fx.JOINTS]) == len(torque)
+    for _, m in decoded[fx.JOINTS]:
+        for i, name in enumerate(hand.joint_names):
+            assert m[name]["applied_nm"] == torque[m["tick"]]["applied_nm"][i]
+            assert m[name]["desired_nm"] == torque[m["tick"]]["desired_nm"][i]
+            assert m[name]["angle_rad"] == state[m["tick"]]["angle_rad"][i]
+            assert m[name]["tdt_torque_nm"] == state[m["tick"]]["tdt_torque_nm"][i]
+    # every recorded command frame has its decoded twin, with the applied torques in it
+    sent = [m for _, m in decoded[ch.CAN_TX]]
+    commands = [m for _, m in decoded[fx.TX_DECODED]]
+    assert len(commands) == len(sent)
+    ids = {f.can_ids.torque_command: f for f in hand.fingers}
+    checked = 0
+    for raw, dec in zip(sent, commands, strict=True):
+        assert (dec["id"], dec["tick"]) == (raw["id"], raw["tick"]) and dec["crc_ok"]
+        finger = ids.get(raw["id"])
+        if finger is not None and raw["tick"] in torque:
+            assert dec["message"].startswith("TorqueCommand")
+            for joint in finger.joints:
+                applied = torque[raw["tick"]]["applied_nm"][hand.joint_names.index(joint.name)]
+                assert dec["joints"][joint.name]["torque"] == pytest.approx(applied, abs=1e-3)
+            checked += 1
+    assert checked > 1000
+    feedback = [m for _, m in decoded[fx.RX_DECODED] if m["message"].startswith("Feedback")]
+    assert feedback and all(set(m["joints"]) == {j.name for f in hand.fingers
+                                                 if f.name == m["finger"] for j in f.joints}
+                            for m in feedback)
+
+
+def check_log(decoded: dict[str, list[tuple[int, Any]]]) -> None:
+    events = decoded[ch.EVENTS]
+    logs = decoded[fx.LOG]
+    assert len(logs) == len(events) > 0
+    for (t_event, event), (t_log, log) in zip(events, logs, strict=True):
+        assert t_log == t_event
+        assert log.timestamp.seconds * 1_000_000_000 + log.timestamp.nanos == t_event
+        assert f"{event['kind']} {event['name']}" in log.message
+        if event["kind"] == "fault":
+            assert log.level == 4  # ERROR
+        elif event["kind"] == "phase":
+            assert log.level == 2  # INFO
+
+
+def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
+    """``handctl replay RUN.mcap --live PORT`` serves the file's channels at its own pace
+    (the recorded pace: a client that subscribes to the 1 kHz channels keeps up with it)."""
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with subprocess.Popen(
+            [sys.executable, "-m", "handctl", "replay", str(run.path), "--live", str(port)],
+            cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE) as proc:
+        try:
+            live = asyncio.run(listen(port, proc, enough=3))
+            out, err = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, err.decode()
+    for topic in WANTED:
+        assert len(live.received[topic]) >= 3, topic
+    assert b"messages streamed" in out
+
+
+def test_live_refuses_bad_input_with_exit_2(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    from handctl.cli import main
+
+    for port in ("0", "65536", "http"):
+        with pytest.raises(SystemExit) as stop:
+            main(["run", "recipe", str(RECIPE), "--hand", str(HAND_YAML), "--live", port])
+        assert stop.value.code == 2
+        assert f"expected a TCP port 1..65535, found '{port}'" in capsys.readouterr().err
+    assert main(["run", "recipe", str(RECIPE), "--hand", str(HAND_YAML), "--live"]) == 2
+    err = capsys.readouterr().err
+    assert "--live" in err and "--log RUN.mcap" in err
+
+
+def test_a_port_in_use_fails_the_start_before_the_hand_moves(tmp_path: Path) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        done = subprocess.run(
+            [sys.executable, "-m", "handctl", "run", "recipe", str(RECIPE), "--hand",
+             str(HAND_YAML), "--log", str(tmp_path / "run.mcap"), "--live", str(port)],
+            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode != 0
+    assert "Traceback" not in done.stderr.split("handctl:")[-1]
+    assert str(port) in done.stderr or "address" in done.stderr.lower(), done.stderr
+
+
+def test_replay_live_plays_a_truncated_log_to_its_cut(run: Run, tmp_path: Path) -> None:
+    cut = tmp_path / "cut.mcap"
+    data = run.path.read_bytes()
+    cut.write_bytes(data[:len(data) // 2])
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with subprocess.Popen(
+            [sys.executable, "-m", "handctl", "replay", str(cut), "--live", str(port)],
+            cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE) as proc:
+        try:
+            live = asyncio.run(listen(port, proc, enough=3))
+            out, err = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, err.decode()
+    assert b"TRUNCATED" in out
+    assert len(live.received[fx.SCENE]) >= 3
