@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
+import math
 import os
 import signal
 import subprocess
@@ -50,6 +51,8 @@ if TYPE_CHECKING:
 
 #: Object poses of the simulated hand are recorded every this many ticks (lockstep only).
 POSE_EVERY_TICKS = 10
+#: The runtime's own tick limit when a run has no time budget: none that a run can reach.
+NO_TICK_LIMIT = 1 << 62
 
 
 @dataclass
@@ -62,7 +65,7 @@ class RunRequest:
     seed: int = 0
     reset_node_faults: bool = False
     sim_faults: Path | None = None
-    max_seconds: float | None = None
+    max_seconds: float | None = None  # the time budget (s): a controlled stop, TIME_BUDGET
     plot: Path | None = None  # write the overview PNG of the run here (lockstep sim only)
     log: Path | None = None  # record the run to this MCAP file
     command_line: tuple[str, ...] = ()  # for the recording's metadata
@@ -112,7 +115,7 @@ def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: boo
         "lateness_us": _percentiles_us(result.window),
         "stage_cpu_us_p99": {name: round(percentile_us(result.window.stage_hist[i], 99), 2)
                              for i, name in enumerate(stages)},
-        "max_abs_tau": {name: round(float(v), 5) for name, v in
+        "max_abs_tau_nm": {name: round(float(v), 5) for name, v in
                         zip(hand.joint_names, result.max_abs_tau, strict=True)},
         "rejected_frames": result.node_rejects,
         "bus_events": result.bus_events,
@@ -132,6 +135,9 @@ def _exception_summary(exc: TickException) -> dict[str, Any]:
 def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,
                recorder: RecordSink | None = None) -> RunReport:
     """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on."""
+    if req.max_seconds is not None and not 0 < req.max_seconds < math.inf:
+        raise ConfigError("max_seconds", "", "a time budget in seconds > 0 (None: no limit)",
+                          req.max_seconds)
     protocol = load_protocol()
     spec = parse_spec(req.bus, req.hand.bus)
     warnings: list[str] = []
@@ -198,10 +204,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             cpus = {"loop": affinity(0),
                     "sim": affinity(sim_process.proc.pid) if sim_process else None}
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
-        max_ticks = (round(req.max_seconds / req.hand.bus.period_s) if req.max_seconds
-                     else 10_000_000)
         runtime = Runtime(req.hand, driver, clock, req.recipe, recorder=recorder, status=status,
-                          reset_node_faults=req.reset_node_faults, max_ticks=max_ticks,
+                          reset_node_faults=req.reset_node_faults, max_ticks=NO_TICK_LIMIT,
                           startup_timeout_s=startup_s,
                           estimator=(ObjectEstimator(req.hand, req.recipe.objects)
                                      if req.recipe.objects else None))
@@ -211,9 +215,14 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             from handctl.planning.experiment import track
 
             tracker = track(runtime, sim_hand)
+        budget = _time_budget(runtime, req.max_seconds) if req.max_seconds is not None else ""
         if recording is not None:
             _start_recording(recording, runtime, req, spec, lockstep, sim_hand)
         result = asyncio.run(signals.run(runtime))
+        if (budget and result.outcome is Outcome.INTERRUPTED
+                and runtime.stop_requested == budget):
+            # Its own outcome, not an interrupt: the run stopped where it was asked to.
+            result = dataclasses.replace(result, outcome=Outcome.TIME_BUDGET)
         if result.exception is not None:
             warnings.append(f"the run stopped on an exception ({result.exception.code.name}); "
                             "the hand was stopped.\n"
@@ -255,6 +264,20 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
     return RunReport(result, summary, warnings, runtime.first_send_tick,
                      runtime.startup_missed_ticks, host,
                      clock.stalls.rows() if isinstance(clock, RealtimeClock) else [])
+
+
+def _time_budget(runtime: Runtime, max_seconds: float) -> str:
+    """Stop ``runtime`` (the controlled stop) once ``max_seconds`` of ticks have gone by,
+    start-up included; returns the stop's reason, by which the run's end is recognised."""
+    ticks = max(1, round(max_seconds / runtime.hand.bus.period_s))
+    reason = f"time budget of {max_seconds:g} s reached"
+
+    def check(tk: Tick) -> None:
+        if tk.k >= ticks:
+            runtime.request_stop(reason)
+
+    runtime.tick_hooks.append(check)
+    return reason
 
 
 def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:

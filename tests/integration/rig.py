@@ -7,6 +7,7 @@ import asyncio
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cantools
 import numpy as np
@@ -57,3 +58,37 @@ def rig(hand: HandConfig, recipe: Recipe | None, *, seed: int = 0,
     max_ticks = round(max_seconds / hand.bus.period_s)
     with hil_bench(hand, recipe, seed, max_ticks) as (sim, runtime, sniffer):
         yield Rig(hand, sim, runtime, sniffer)
+
+
+# -- recipes the integration tests share ---------------------------------------------------------
+#: One phase that holds a light grasp for ten minutes: a run that goes until it is stopped.
+HOLD_LONG = """
+recipe: hold_long
+phases:
+  - name: hold
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.3
+    max_s: 600
+"""
+
+#: Two short timed phases, the second holding until stopped: phase changes within a second.
+TWO_PHASES = """
+recipe: two_phases
+phases:
+  - name: first
+    torques: [0.04, 0.03, 0.02, 0.04, 0.03, 0.02, -0.04, -0.03, -0.02]
+    ramp_s: 0.1
+    max_s: 0.4
+    on_timeout: next
+  - name: second
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 600
+"""
+
+
+def write_recipe(directory: Path, text: str, name: str = "recipe.yaml") -> Path:
+    """A recipe written where a test may leave it (its tmp_path), for a loader or the CLI."""
+    path = directory / name
+    path.write_text(text)
+    return path

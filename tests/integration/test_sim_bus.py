@@ -158,7 +158,7 @@ def test_ground_truth_is_not_on_the_bus(hand: HandConfig, channel: str) -> None:
         truth = sim.ground_truth()
         summary = sim.ground_truth_summary()
     assert [o.name for o in truth.objects] == ["cyl1", "cyl2"]
-    assert summary["objects"]["cyl1"]["moved"] < 1e-3  # nothing touched them
+    assert summary["objects"]["cyl1"]["moved_m"] < 1e-3  # nothing touched them
     ids = {h.id for h in host.heard}
     assert ids <= {m.frame_id for m in DB.messages if m.senders[0].startswith("FINGER")}
 
