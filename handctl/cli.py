@@ -38,6 +38,7 @@ from handctl.errors import BusError, ConfigError, HandctlError
 
 if TYPE_CHECKING:
     from handctl.config import HandConfig
+    from handctl.loop import RunResult
     from handctl.protocol import Protocol
 
 EXIT_OK = 0
@@ -194,7 +195,6 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     import json
 
     from handctl.clock import Hygiene
-    from handctl.loop import Outcome
     from handctl.recipes.loader import load_recipe
     from handctl.session import RunRequest, run_recipe
 
@@ -218,6 +218,11 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     summary = report.summary
     if args.summary_json:
         Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
+    _print_run_summary(summary, args.plot)
+    return _run_exit_code(report.result)
+
+
+def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
     print(f"recipe {summary['recipe']} on {summary['hand']} ({summary['mode']}): "
           f"{summary['outcome']}")
     for phase in summary["phases"]:
@@ -244,22 +249,28 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
               f"phase {ex['phase_angles_deg']} deg, total {ex['total_rotation_deg']} deg, "
               f"dropped {ex['dropped']}, estimator p95 "
               + ("-" if err is None else f"{err} deg"))
-    if args.plot and "experiment" in summary:
-        print(f"  overview plot: {args.plot}")
+    if plot and "experiment" in summary:
+        print(f"  overview plot: {plot}")
     if "recording" in summary and "error" not in summary["recording"]:
         rec = summary["recording"]
         dropped = rec["dropped_ticks"] + rec["dropped_frames"] + rec["dropped_events"]
         print(f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to {rec['path']}"
               + (f" ({dropped} records dropped: the writer fell behind)" if dropped else ""))
-    if report.result.outcome is Outcome.COMPLETED:
+
+
+def _run_exit_code(result: RunResult) -> int:
+    """The exit code of a run's outcome (module doc), with why it stopped on stderr."""
+    from handctl.loop import Outcome
+
+    if result.outcome is Outcome.COMPLETED:
         return EXIT_OK
-    if report.result.outcome is Outcome.TIME_BUDGET:
-        print(f"handctl: stopped: {report.result.message}", file=sys.stderr)
+    if result.outcome is Outcome.TIME_BUDGET:
+        print(f"handctl: stopped: {result.message}", file=sys.stderr)
         return EXIT_OK
-    if report.result.outcome is Outcome.INTERRUPTED:
-        print(f"handctl: stopped: {report.result.message}", file=sys.stderr)
+    if result.outcome is Outcome.INTERRUPTED:
+        print(f"handctl: stopped: {result.message}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    print(f"handctl: safety stop: {report.result.message}", file=sys.stderr)
+    print(f"handctl: safety stop: {result.message}", file=sys.stderr)
     return EXIT_SAFETY_STOP
 
 

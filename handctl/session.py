@@ -132,12 +132,10 @@ def _exception_summary(exc: TickException) -> dict[str, Any]:
             "traceback": exc.traceback.splitlines()}
 
 
-def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,
+def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,  # noqa: C901 - the composition of a run; to split (issue 16)
                recorder: RecordSink | None = None) -> RunReport:
     """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on."""
-    if req.max_seconds is not None and not 0 < req.max_seconds < math.inf:
-        raise ConfigError("max_seconds", "", "a time budget in seconds > 0 (None: no limit)",
-                          req.max_seconds)
+    _check_budget(req.max_seconds)
     protocol = load_protocol()
     spec = parse_spec(req.bus, req.hand.bus)
     warnings: list[str] = []
@@ -218,11 +216,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         budget = _time_budget(runtime, req.max_seconds) if req.max_seconds is not None else ""
         if recording is not None:
             _start_recording(recording, runtime, req, spec, lockstep, sim_hand)
-        result = asyncio.run(signals.run(runtime))
-        if (budget and result.outcome is Outcome.INTERRUPTED
-                and runtime.stop_requested == budget):
-            # Its own outcome, not an interrupt: the run stopped where it was asked to.
-            result = dataclasses.replace(result, outcome=Outcome.TIME_BUDGET)
+        result = _budget_outcome(asyncio.run(signals.run(runtime)), runtime, budget)
         if result.exception is not None:
             warnings.append(f"the run stopped on an exception ({result.exception.code.name}); "
                             "the hand was stopped.\n"
@@ -264,6 +258,20 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
     return RunReport(result, summary, warnings, runtime.first_send_tick,
                      runtime.startup_missed_ticks, host,
                      clock.stalls.rows() if isinstance(clock, RealtimeClock) else [])
+
+
+def _check_budget(max_seconds: float | None) -> None:
+    if max_seconds is not None and not 0 < max_seconds < math.inf:
+        raise ConfigError("max_seconds", "", "a time budget in seconds > 0 (None: no limit)",
+                          max_seconds)
+
+
+def _budget_outcome(result: RunResult, runtime: Runtime, budget: str) -> RunResult:
+    """A run stopped by its time budget ``budget`` (the stop's reason) has an outcome of its
+    own, not an interrupt's: it stopped where it was asked to."""
+    if budget and result.outcome is Outcome.INTERRUPTED and runtime.stop_requested == budget:
+        return dataclasses.replace(result, outcome=Outcome.TIME_BUDGET)
+    return result
 
 
 def _time_budget(runtime: Runtime, max_seconds: float) -> str:

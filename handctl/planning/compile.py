@@ -199,7 +199,7 @@ def _compiled_phase(spec: TemplatePhase, torques: tuple[float, ...],
     return Phase(spec.name, rounded, spec.ramp_s, spec.max_s, TimeoutAction.NEXT, exits, ())
 
 
-def plan_recipe(template: Template, hand: HandConfig, *,
+def plan_recipe(template: Template, hand: HandConfig, *,  # noqa: C901 - the planning pipeline; to split (issue 16)
                 progress: Callable[[str], None] | None = None,
                 models: int | None = None, budget: Budget | None = None) -> PlanResult:
     """Plan every phase of ``template`` for ``hand`` (see the module doc)."""

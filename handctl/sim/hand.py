@@ -140,7 +140,7 @@ class SimulatedHand:
             while self.ticks * NODE_TICK_NS < self._target_ns:
                 self._tick()
 
-    def _tick(self) -> None:
+    def _tick(self) -> None:  # noqa: C901 - the simulated nodes' whole tick; to split
         now = self.ticks * NODE_TICK_NS
         if self.faults.pending:
             for on, injector in self.faults.due(self.ticks):

@@ -149,7 +149,7 @@ def _wrap(due: Trigger, stage: str, real: Callable[..., Any]) -> Callable[..., A
 BROKEN_NODE = 2
 
 
-def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:
+def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:  # noqa: C901 - one branch per loop stage
     """Make ``stage`` raise when ``due`` says so, inside the real code of that stage."""
     rt, protocol = b.runtime, load_protocol()
     if stage == "poll":
