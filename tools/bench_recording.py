@@ -171,9 +171,10 @@ class _Side:
                 begin(tk)
                 begin_ns.append(_CPU() - started)
 
-            recorder.begin_tick = timed_begin  # type: ignore[method-assign]
+            recorder.begin_tick = timed_begin  # type: ignore[method-assign, assignment]
             if push != "all":
-                recorder.push = _partial_push(recorder, push)  # type: ignore[method-assign]
+                recorder.push = _partial_push(  # type: ignore[method-assign, assignment]
+                    recorder, push)
             recorder.add_metadata(ch.META_RUN, run_metadata(
                 mode="lockstep", bus=channel, seed=0,
                 period_ns=round(hand.bus.period_s * 1e9), startup_ticks=runtime.startup_ticks,

@@ -9,18 +9,16 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cantools
 import numpy as np
 
 from handctl.bus import HandBus
 from handctl.config import HandConfig
 from handctl.loop import RunResult, Runtime
-from handctl.protocol import DEFAULT_DBC
 from handctl.recipes.schema import Recipe
 from handctl.sim.campaign import hil_bench
 from handctl.sim.hand import SimulatedHand
 
-DB = cantools.database.load_file(str(DEFAULT_DBC))
+from ..dbc import decode
 
 
 @dataclass
@@ -42,7 +40,7 @@ class Rig:
         per_node: dict[int, list[list[float]]] = {1: [], 2: [], 3: []}
         for frame_id, data in self.wire:
             if 0x101 <= frame_id <= 0x103:
-                sig = DB.decode_message(frame_id, data)
+                sig = decode(frame_id, data)
                 per_node[frame_id - 0x100].append([sig["Torque1"], sig["Torque2"],
                                                    sig["Torque3"]])
         n = min(len(v) for v in per_node.values())

@@ -22,6 +22,7 @@ from typing import Any
 import jsonschema
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 
 from handctl.clock import Tick
@@ -395,11 +396,11 @@ def test_sigkill_of_both_leaves_a_readable_prefix(hand: HandConfig, tmp_path: Pa
     ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording)]
     assert [m for t, _, m in ours if t == ch.TIMING], "nothing of the run was on disk"
     # The library's streaming reader reads the same prefix before it stops at the cut.
-    theirs = []
+    theirs: list[McapMessage] = []
     with path.open("rb") as handle, \
             pytest.raises(Exception):  # noqa: B017 - whatever the library raises at the cut
         for record in StreamReader(handle, validate_crcs=True).records:
-            if type(record).__name__ == "Message":
+            if isinstance(record, McapMessage):
                 theirs.append(record)
     assert [json.loads(m.data) for m in theirs] == [m for _, _, m in ours]
 

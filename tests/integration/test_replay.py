@@ -64,7 +64,7 @@ def rewrite(source: Path, target: Path, change: Any) -> None:
             data = change(channel.topic, json.loads(message.data))
             writer.add_message(channel_ids[channel.id], message.log_time,
                                json.dumps(data).encode(), message.publish_time)
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
 
 
 # -- re-run -----------------------------------------------------------------------------------
@@ -349,7 +349,7 @@ def test_rerun_of_a_log_without_the_channels_is_exit_2(tmp_path: Path) -> None:
         schema = writer.register_schema("Other", "jsonschema", b"{}")
         channel = writer.register_channel("/other", "json", schema)
         writer.add_message(channel, 1, b"{}", 1)
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
     done = handctl("replay", str(foreign), "--rerun")
     assert done.returncode == 2, done.stdout + done.stderr
     assert str(foreign) in done.stderr and "/loop/timing" in done.stderr

@@ -45,9 +45,10 @@ from handctl.recording.reader import iter_decoded, open_recording
 from handctl.recording.recorder import Recorder
 from handctl.safety import supervisor as supervisor_module
 from handctl.safety.faults import FaultCode
+from handctl.safety.limits import limit_torque
 from handctl.sim.hand import SimulatedHand
 
-from .rig import DB
+from ..dbc import decode
 
 HOLD = """
 recipe: hold
@@ -164,7 +165,7 @@ def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:  
         mp.setattr(rt.runner, "step", _wrap(due, stage, rt.runner.step))
     elif stage == "supervisor":
         mp.setattr(supervisor_module, "limit_torque",
-                   _wrap(due, stage, supervisor_module.limit_torque))
+                   _wrap(due, stage, limit_torque))
     elif stage == "encode":
         layout = protocol.layout("TorqueCommand", BROKEN_NODE)
         mp.setattr(layout, "encode", _wrap(due, stage, layout.encode))
@@ -228,11 +229,11 @@ def hear(listener: can.BusABC, hand: HandConfig) -> Wire:
         pos += 1
         frame_id, data = msg.arbitration_id, bytes(msg.data)
         if frame_id in torque_ids:
-            sig = DB.decode_message(frame_id, data)
+            sig = decode(frame_id, data)
             wire.torques[torque_ids[frame_id]].append(
                 (pos, np.array([sig["Torque1"], sig["Torque2"], sig["Torque3"]])))
-        elif frame_id in command_ids and DB.decode_message(
-                frame_id, data, decode_choices=False)["Command"] == DISABLE:
+        elif frame_id in command_ids and decode(
+                frame_id, data, choices=False)["Command"] == DISABLE:
             wire.disables[command_ids[frame_id]].append(pos)
         elif frame_id == 0:
             wire.estops.append(pos)
@@ -462,7 +463,7 @@ def _cli_run(args: list[str], monkeypatch: pytest.MonkeyPatch) -> tuple[int, can
     """``handctl run recipe`` in this process, with a plain python-can listener joined to the
     simulated hand's private virtual channel as soon as the run opens it."""
     listeners: list[can.BusABC] = []
-    real_open = session.open_bus
+    real_open = open_bus
 
     def open_and_listen(spec: Any, *rest: Any, **kwargs: Any) -> Any:
         bus = real_open(spec, *rest, **kwargs)
