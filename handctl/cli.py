@@ -67,7 +67,7 @@ def _load_hand(path: Path, option: str, protocol: Protocol | None = None) -> Han
         raise ConfigError(option, "", "an existing hand config file (HAND.yaml; "
                           + DEFAULT_HAND_HELP + ")",
                           f"{path}: {'not a file' if path.exists() else 'no such file'}")
-    return load_hand(path, protocol)
+    return load_hand(path) if protocol is None else load_hand(path, protocol)
 
 
 def _positive_seconds(option: str, value: float | None) -> None:

@@ -150,6 +150,10 @@ def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
                 f"{problem}: a key without its ':'? (noticed at {where})")
     context = exc.context_mark
     if context is None or not exc.context or context.line >= mark.line:
+        if mark.line >= len(lines):
+            # The end of a text without a final line break, which the parser counts as one
+            # more line: the mistake is at the end of the last line there is.
+            return f" at the end of line {len(lines)}", f"{problem} (at the end of the text)"
         return f" at {where}", problem
     started = f"{exc.context} that starts at line {context.line + 1}, column {context.column + 1}"
     if "simple key" in exc.context or "quoted scalar" in exc.context:
