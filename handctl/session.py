@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
-import math
 import os
 import signal
 import subprocess
@@ -24,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from handctl import timebudget
 from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
 from handctl.clock import (
     LOOP_PRIORITY,
@@ -135,7 +135,7 @@ def _exception_summary(exc: TickException) -> dict[str, Any]:
 def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,  # noqa: C901 - the composition of a run; to split (issue 16)
                recorder: RecordSink | None = None) -> RunReport:
     """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on."""
-    _check_budget(req.max_seconds)
+    timebudget.check(req.max_seconds)
     protocol = load_protocol()
     spec = parse_spec(req.bus, req.hand.bus)
     warnings: list[str] = []
@@ -213,10 +213,11 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             from handctl.planning.experiment import track
 
             tracker = track(runtime, sim_hand)
-        budget = _time_budget(runtime, req.max_seconds) if req.max_seconds is not None else ""
+        if req.max_seconds is not None:
+            timebudget.install(runtime, req.max_seconds)
         if recording is not None:
             _start_recording(recording, runtime, req, spec, lockstep, sim_hand)
-        result = _budget_outcome(asyncio.run(signals.run(runtime)), runtime, budget)
+        result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
         if result.exception is not None:
             warnings.append(f"the run stopped on an exception ({result.exception.code.name}); "
                             "the hand was stopped.\n"
@@ -258,34 +259,6 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
     return RunReport(result, summary, warnings, runtime.first_send_tick,
                      runtime.startup_missed_ticks, host,
                      clock.stalls.rows() if isinstance(clock, RealtimeClock) else [])
-
-
-def _check_budget(max_seconds: float | None) -> None:
-    if max_seconds is not None and not 0 < max_seconds < math.inf:
-        raise ConfigError("max_seconds", "", "a time budget in seconds > 0 (None: no limit)",
-                          max_seconds)
-
-
-def _budget_outcome(result: RunResult, runtime: Runtime, budget: str) -> RunResult:
-    """A run stopped by its time budget ``budget`` (the stop's reason) has an outcome of its
-    own, not an interrupt's: it stopped where it was asked to."""
-    if budget and result.outcome is Outcome.INTERRUPTED and runtime.stop_requested == budget:
-        return dataclasses.replace(result, outcome=Outcome.TIME_BUDGET)
-    return result
-
-
-def _time_budget(runtime: Runtime, max_seconds: float) -> str:
-    """Stop ``runtime`` (the controlled stop) once ``max_seconds`` of ticks have gone by,
-    start-up included; returns the stop's reason, by which the run's end is recognised."""
-    ticks = max(1, round(max_seconds / runtime.hand.bus.period_s))
-    reason = f"time budget of {max_seconds:g} s reached"
-
-    def check(tk: Tick) -> None:
-        if tk.k >= ticks:
-            runtime.request_stop(reason)
-
-    runtime.tick_hooks.append(check)
-    return reason
 
 
 def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 import orjson
 
+from handctl import timebudget
 from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, BusSpec, Frame, HandBus
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig, parse_hand
@@ -653,7 +654,7 @@ def rerun(recording: Recording) -> RerunReport:
     started = time.perf_counter()
     outcome = "log ended"
     try:
-        result = asyncio.run(runtime.run())
+        result = timebudget.outcome(asyncio.run(runtime.run()), runtime.stop_requested)
         outcome = result.outcome.value
     except _EndOfLogError:
         where = "before a damaged chunk" if recording.damaged else "where the log ends"

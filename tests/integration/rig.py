@@ -14,6 +14,7 @@ import numpy as np
 from handctl.bus import HandBus
 from handctl.config import HandConfig
 from handctl.loop import RunResult, Runtime
+from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.sim.campaign import hil_bench
 from handctl.sim.hand import SimulatedHand
@@ -83,6 +84,62 @@ phases:
     ramp_s: 0.2
     max_s: 600
 """
+
+
+#: Close, then hold: 0.4 + 1.6 s, each phase timed (the runtime's tests).
+CLOSE_AND_HOLD_2S = """
+recipe: hold
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 0.4
+    on_timeout: next
+  - name: hold
+    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 1.6
+    on_timeout: next
+"""
+
+#: Close, then hold: 0.3 + 0.6 s, each phase timed (the tick-exception tests).
+CLOSE_AND_HOLD_1S = """
+recipe: hold
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 0.3
+    on_timeout: next
+  - name: hold
+    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
+    ramp_s: 0.1
+    max_s: 0.6
+    on_timeout: next
+"""
+
+#: Close, then hold: 0.3 + 0.6 s (the recording and replay tests; ``short_recipe``).
+SHORT = """
+recipe: short_hold
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.15
+    max_s: 0.3
+    on_timeout: next
+  - name: hold
+    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
+    ramp_s: 0.15
+    max_s: 0.6
+    on_timeout: next
+"""
+
+
+def short_recipe(hand: HandConfig, directory: Path, hold_s: float = 0.6) -> Recipe:
+    """Close, then hold for ``hold_s``: a short run with torque flowing."""
+    path = directory / "short_hold.yaml"
+    path.write_text(SHORT.replace("max_s: 0.6", f"max_s: {hold_s}"))
+    return load_recipe(path, hand)
 
 
 def write_recipe(directory: Path, text: str, name: str = "recipe.yaml") -> Path:

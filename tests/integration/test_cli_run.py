@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from ..conftest import ROOT
+from .rig import HOLD_LONG
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
 
@@ -62,16 +63,6 @@ def test_bad_recipe_exits_2_before_anything_is_sent(tmp_path: Path) -> None:
     assert done.returncode == 2
     assert f"{bad}: phases[1].torques.f1_j2" in done.stderr
     assert "0.45 N·m" in done.stderr and "0.55" in done.stderr
-
-
-HOLD_LONG = """
-recipe: hold_long
-phases:
-  - name: hold
-    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
-    ramp_s: 0.3
-    max_s: 600
-"""
 
 
 def _read_until(fd: int, wanted: str | None, timeout_s: float = 120.0) -> str:
@@ -331,7 +322,7 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
 
     Real time on a shared machine: a run stopped by the load (a starved loop or hand) is
     tried again; a start-up that never enables the nodes (the bug) is not load."""
-    from .test_recording import SHORT
+    from .rig import SHORT
 
     recipe = tmp_path / "short.yaml"
     recipe.write_text(SHORT)

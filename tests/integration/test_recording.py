@@ -28,7 +28,6 @@ from mcap.stream_reader import StreamReader
 from handctl.clock import Tick
 from handctl.config import HandConfig
 from handctl.loop import Outcome, RunResult, TickRecord
-from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
@@ -39,22 +38,8 @@ from handctl.safety.supervisor import State
 from handctl.sim import faults as inj
 
 from ..conftest import ROOT
-from .rig import rig
+from .rig import rig, short_recipe
 
-SHORT = """
-recipe: short_hold
-phases:
-  - name: close
-    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
-    ramp_s: 0.15
-    max_s: 0.3
-    on_timeout: next
-  - name: hold
-    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
-    ramp_s: 0.15
-    max_s: 0.6
-    on_timeout: next
-"""
 ESTOP_TICK = 700
 
 
@@ -66,13 +51,6 @@ class Recorded:
     poses: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
     final_angle: list[float] = field(default_factory=list)
     final_tdt: list[float] = field(default_factory=list)
-
-
-def short_recipe(hand: HandConfig, directory: Path, hold_s: float = 0.6) -> Recipe:
-    """Close, then hold for ``hold_s``: a short run with torque flowing."""
-    path = directory / "short_hold.yaml"
-    path.write_text(SHORT.replace("max_s: 0.6", f"max_s: {hold_s}"))
-    return load_recipe(path, hand)
 
 
 def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool = True,

@@ -49,21 +49,8 @@ from handctl.safety.limits import limit_torque
 from handctl.sim.hand import SimulatedHand
 
 from ..dbc import decode
+from .rig import CLOSE_AND_HOLD_1S
 
-HOLD = """
-recipe: hold
-phases:
-  - name: close
-    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
-    ramp_s: 0.2
-    max_s: 0.3
-    on_timeout: next
-  - name: hold
-    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
-    ramp_s: 0.1
-    max_s: 0.6
-    on_timeout: next
-"""
 #: Ticks after the first command when the exception is forced: the hold torque flows by then
 #: (and the status line, every 100 ticks, is due at it).
 ARM_TICKS = 400
@@ -277,7 +264,7 @@ def logged_faults(log: Path) -> tuple[bool, int, list[dict[str, Any]]]:
 @pytest.fixture(scope="module")
 def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
     path = tmp_path_factory.mktemp("recipes") / "hold.yaml"
-    path.write_text(HOLD)
+    path.write_text(CLOSE_AND_HOLD_1S)
     return load_recipe(path, hand)
 
 
@@ -571,7 +558,7 @@ def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
 
     monkeypatch.setattr(Recorder, "_flush_frames", flush)
     recipe = tmp_path / "hold.yaml"
-    recipe.write_text(HOLD)
+    recipe.write_text(CLOSE_AND_HOLD_1S)
     out, log = tmp_path / "out.json", tmp_path / "run.mcap"
     code, listener = _cli_run([str(recipe), "--summary-json", str(out), "--log", str(log)],
                               monkeypatch)
