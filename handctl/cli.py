@@ -12,21 +12,34 @@ Exit codes (the same for every subcommand):
      nothing was sent
 130  interrupted (Ctrl-C or SIGTERM), after a controlled stop
 ==== =====================================================================
+
+A run that reaches its ``--max-seconds`` stops under control with the outcome ``time_budget``
+and exit 0: it did what was asked. A reader that leaves early (``handctl check | head -1``)
+does not change the exit code: the command finishes its work and says nothing more.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import math
+import os
 import signal
 import sys
+import textwrap
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, TYPE_CHECKING, Any
 
 from handctl import __version__
 from handctl.errors import BusError, ConfigError, HandctlError
+
+if TYPE_CHECKING:
+    from handctl.config import HandConfig
+    from handctl.loop import RunResult
+    from handctl.protocol import Protocol
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -36,9 +49,32 @@ EXIT_BUS = 4
 EXIT_HOST = 5
 EXIT_INTERRUPTED = 130
 
-DEFAULT_HAND = Path("config/hands/hiroshima_hand.yaml")
+#: The hand a command drives unless told otherwise: shipped inside the package, so that the
+#: default does not depend on the current directory. ``config/hands/hiroshima_hand.yaml`` is
+#: the repository's copy, kept identical by a test (tests/unit/test_cli_defaults.py).
+DEFAULT_HAND = Path(__file__).resolve().parent / "hands" / "hiroshima_hand.yaml"
+DEFAULT_HAND_HELP = "default: the Hiroshima-Hand, shipped with handctl"
 #: A simulated hand told to stop by SIGTERM waits this long (s) for its host to be gone.
 ORPHAN_WAIT_S = 2.0
+
+
+def _load_hand(path: Path, option: str, protocol: Protocol | None = None) -> HandConfig:
+    """The hand config at ``path``; a file that is not there is reported against the option
+    (or argument) that named it, the first thing to check when it is the default."""
+    from handctl.config import load_hand
+
+    if not path.is_file():
+        raise ConfigError(option, "", "an existing hand config file (HAND.yaml; "
+                          + DEFAULT_HAND_HELP + ")",
+                          f"{path}: {'not a file' if path.exists() else 'no such file'}")
+    return load_hand(path) if protocol is None else load_hand(path, protocol)
+
+
+def _positive_seconds(option: str, value: float | None) -> None:
+    """A duration option: finite and > 0. Leaving the option out is how to ask for no limit."""
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ConfigError(option, "", "a number of seconds > 0 (leave the option out for no "
+                          "limit)", value)
 
 
 def _progress(message: str) -> None:
@@ -50,14 +86,13 @@ def _progress(message: str) -> None:
 def _cmd_check_timing(args: argparse.Namespace) -> int:
     import json
 
-    from handctl.config import load_hand
     from handctl.hostcheck import timing_check
 
     if not 0 < args.seconds <= 3600:
         raise ConfigError("--seconds", "", "a number of seconds > 0 and <= 3600", args.seconds)
     if args.json and not args.json.resolve().parent.is_dir():
         raise ConfigError("--json", "", "a file in an existing directory", str(args.json))
-    hand = load_hand(args.hand)
+    hand = _load_hand(args.hand, "HAND.yaml")
     _progress(f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for "
               f"{args.seconds:g} s ...")
     report = timing_check(hand, args.seconds, realtime=not args.no_rt, cpu=args.loop_cpu)
@@ -71,12 +106,11 @@ def _cmd_check(args: argparse.Namespace) -> int:
     if args.timing:
         return _cmd_check_timing(args)
     from handctl.busload import MAX_LOAD, hand_budget
-    from handctl.config import load_hand
     from handctl.drivers.hand import check_ids
     from handctl.protocol import DEFAULT_DBC, load_protocol
 
     protocol = load_protocol(args.dbc or DEFAULT_DBC)
-    hand = load_hand(args.hand, protocol)
+    hand = _load_hand(args.hand, "HAND.yaml", protocol)
     check_ids(hand, protocol)
     bus = hand.bus
     kind = (f"CAN-FD {bus.bitrate / 1e6:g}/{(bus.data_bitrate or 0) / 1e6:g} Mbit/s"
@@ -136,24 +170,36 @@ def _status_printer() -> Callable[[object], None] | None:
         from handctl.loop import StatusLine
 
         assert isinstance(line, StatusLine)
-        timed_out = (f" timed out: {', '.join(line.timed_out)} " if line.timed_out else "")
-        print(f"\r{line.t_s:7.2f} s  {line.phase:<16} {line.state:<10} "
-              f"max|τ| {line.max_abs_tau:5.3f} N·m  late {line.lateness_us:7.1f} µs "
-              + timed_out, end="", file=sys.stderr, flush=True)
+        print("\r" + status_text(line) + " ", end="", file=sys.stderr, flush=True)
 
     return show
+
+
+def status_text(line: object) -> str:
+    """One status line: run time (marked as simulated in lockstep, which runs faster than
+    the wall clock), phase k of n and the time in it, safety state, torque and lateness."""
+    from handctl.loop import StatusLine
+
+    assert isinstance(line, StatusLine)
+    clock = "sim " if line.simulated else ""
+    if 1 <= line.phase_number <= line.phase_count:
+        where = (f"phase {line.phase_number}/{line.phase_count} {line.phase:<16} "
+                 f"{line.phase_s:6.2f} s")
+    else:
+        where = f"{line.phase:<28}"
+    return (f"{clock}{line.t_s:7.2f} s  {where}  {line.state:<10} "
+            f"max|τ| {line.max_abs_tau:5.3f} N·m  late {line.lateness_us:7.1f} µs")
 
 
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
     import json
 
     from handctl.clock import Hygiene
-    from handctl.config import load_hand
-    from handctl.loop import Outcome
     from handctl.recipes.loader import load_recipe
     from handctl.session import RunRequest, run_recipe
 
-    hand = load_hand(args.hand)
+    _positive_seconds("--max-seconds", args.max_seconds)
+    hand = _load_hand(args.hand, "--hand")
     recipe = load_recipe(args.recipe, hand)
     if args.live is not None and args.log is None:
         raise ConfigError("--live", "", "--log RUN.mcap as well (the recording's writer "
@@ -181,6 +227,11 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     summary = report.summary
     if args.summary_json:
         Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
+    _print_run_summary(summary, args.plot)
+    return _run_exit_code(report.result, summary)
+
+
+def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
     print(f"recipe {summary['recipe']} on {summary['hand']} ({summary['mode']}): "
           f"{summary['outcome']}")
     for phase in summary["phases"]:
@@ -200,7 +251,8 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
               f"p99 {host['lateness_us']['p99']:g} µs, longest stall "
               f"{host['longest_stall_ms']:g} ms; missed ticks: {host['missed_host']} the "
               f"host's, {host['missed_handctl']} handctl's")
-    print("  max |τ| " + ", ".join(f"{k} {v:.3f}" for k, v in summary["max_abs_tau"].items()))
+    print("  max |τ| [N·m] " + ", ".join(f"{k} {v:.3f}"
+                                         for k, v in summary["max_abs_tau_nm"].items()))
     if "experiment" in summary:
         ex = summary["experiment"]
         err = ex["estimator_error_deg"]
@@ -210,30 +262,38 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
               "estimator p95 " + ("-" if err is None else f"{err} deg"))
         print(f"  experiment: {'success' if ex['success'] else 'FAILED'} (lifted, held, "
               f"nothing dropped, at least {ex['min_total_turn_deg']:g} deg turned)")
-    if args.plot and "experiment" in summary:
-        print(f"  overview plot: {args.plot}")
+    if plot and "experiment" in summary:
+        print(f"  overview plot: {plot}")
     if "recording" in summary and "error" not in summary["recording"]:
         rec = summary["recording"]
         dropped = rec["dropped_ticks"] + rec["dropped_frames"] + rec["dropped_events"]
         print(f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to {rec['path']}"
               + (f" ({dropped} records dropped: the writer fell behind)" if dropped else ""))
-    if report.result.outcome is Outcome.COMPLETED:
+
+
+def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
+    """The exit code of a run's outcome (module doc), with why it stopped on stderr."""
+    from handctl.loop import Outcome
+
+    if result.outcome is Outcome.COMPLETED:
         if "experiment" in summary and not summary["experiment"]["success"]:
             # the hand is safe, but the run did not do what it was for (README: exit codes)
             print("handctl: the experiment failed: see 'experiment' in the summary",
                   file=sys.stderr)
             return EXIT_FAILED
         return EXIT_OK
-    if report.result.outcome is Outcome.INTERRUPTED:
-        print(f"handctl: stopped: {report.result.message}", file=sys.stderr)
+    if result.outcome is Outcome.TIME_BUDGET:
+        print(f"handctl: stopped: {result.message}", file=sys.stderr)
+        return EXIT_OK
+    if result.outcome is Outcome.INTERRUPTED:
+        print(f"handctl: stopped: {result.message}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    print(f"handctl: safety stop: {report.result.message}", file=sys.stderr)
+    print(f"handctl: safety stop: {result.message}", file=sys.stderr)
     return EXIT_SAFETY_STOP
 
 
 # -- plan --------------------------------------------------------------------------------------
 def _cmd_plan(args: argparse.Namespace) -> int:
-    from handctl.config import load_hand
     from handctl.executor import check_scheduler, open_pool
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
     from handctl.planning.template import load_template
@@ -248,7 +308,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         if args.workers is not None:
             raise ConfigError("--workers", "", "no --workers with --scheduler (the cluster's "
                               "workers are started on their machines)", args.workers)
-    hand = load_hand(args.hand)
+    hand = _load_hand(args.hand, "--hand")
     template = load_template(args.template, hand)
     with open_pool(args.workers, args.scheduler) as pool:
         say(f"planning on {pool.where}")
@@ -287,6 +347,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 def _cmd_sim(args: argparse.Namespace) -> int:
     from handctl.parent_death import parent_ends, remove_orphaned_bus
 
+    _positive_seconds("--seconds", args.seconds)
     # Ctrl-C, the host's SIGINT and SIGTERM (also the parent-death signal) end the hand
     # cleanly with its summary, even when this process inherited them ignored or blocked, as
     # a script's background jobs do.
@@ -314,11 +375,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
                 raise KeyboardInterrupt(f"process {args.parent_pid} ended before its "
                                         "simulated hand started")
             parent_alive = partial(alive, args.parent_pid)
-        from handctl.config import load_hand
         from handctl.sim.faults import load_scenario
         from handctl.sim.hand import standalone
 
-        hand = load_hand(args.hand)
+        hand = _load_hand(args.hand, "--hand")
         faults = load_scenario(args.faults, hand) if args.faults else None
         print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
                          summary_json=args.summary_json, realtime=args.rt,
@@ -451,8 +511,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 # -- bring-up ----------------------------------------------------------------------------------
-def _positive_seconds(value: float | None, default: float) -> float:
-    """``--seconds``: a positive, finite time; bad input is refused before anything starts."""
+def _seconds_or(value: float | None, default: float) -> float:
+    """``--seconds`` of a bring-up command (``default`` when left out): a positive, finite
+    time; bad input is refused before anything starts."""
     if value is None:
         return default
     if not 0 < value < 1e6:
@@ -470,7 +531,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
 
     hand = load_hand(args.hand)
     protocol = load_protocol()
-    seconds = _positive_seconds(args.seconds, 1.0)
+    seconds = _seconds_or(args.seconds, 1.0)
     with listening_bus(args.bus, hand) as bus:
         result = survey(hand, protocol, bus, seconds)
     if args.json:
@@ -548,7 +609,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
         max_noise=_positive("--max-noise", args.max_noise, CalibrationLimits.max_noise, "N·m"),
         max_offset=_positive("--max-offset", args.max_offset, CalibrationLimits.max_offset,
                              "N·m"))
-    measure = _positive_seconds(args.seconds, 1.0)
+    measure = _seconds_or(args.seconds, 1.0)
     settle = 2.0 if args.settle is None else args.settle
     if not 0 <= settle < 1e6:
         raise ConfigError("--settle", "", "a time in seconds >= 0", settle)
@@ -594,7 +655,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     from handctl.config import load_hand
 
     hand = load_hand(args.hand)
-    seconds = _positive_seconds(args.seconds, 2.0)
+    seconds = _seconds_or(args.seconds, 2.0)
     jog_recipe(hand, args.joint, args.torque, seconds)  # refused here, before any bus opens
     print(f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s on {args.bus}, "
           "every other joint at zero (Ctrl-C: controlled stop)")
@@ -623,7 +684,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     import json
     import time
 
-    from handctl.bringup.monitor import BusView, from_log, listen, table
+    from handctl.bringup.monitor import BusView, listen, table
     from handctl.bringup.peer import listening_bus
     from handctl.config import load_hand
     from handctl.protocol import load_protocol
@@ -632,7 +693,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
         raise ConfigError("--log", "", "either --log or --bus: a log is read instead of a bus",
                           f"--log {args.log} --bus {args.bus}")
     hand = load_hand(args.hand)
-    seconds = None if args.seconds is None else _positive_seconds(args.seconds, 0.0)
+    seconds = None if args.seconds is None else _seconds_or(args.seconds, 0.0)
     every = _positive("--every", args.every, 1.0, "s")
     view = BusView(load_protocol())
     on_tty = sys.stdout.isatty()
@@ -641,25 +702,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
         print(json.dumps(snapshot), flush=True)
 
     if args.log is not None:
-        from handctl.recording.reader import open_recording
-
-        open_recording(args.log)  # a file that is no recording is refused by name
-        step = round(every * 1e9)
-        next_ns: int | None = None
-        for frame_id, data, t_ns in from_log(args.log):
-            view.observe(frame_id, data, t_ns)
-            next_ns = t_ns + step if next_ns is None else next_ns
-            if not on_tty and t_ns >= next_ns:
-                emit(view.snapshot(t_ns))
-                next_ns += step
-        final = view.snapshot()
-        if on_tty:
-            from rich.console import Console
-
-            Console().print(table(final, f"{args.log}: {view.frames} frames"))
-        else:
-            emit(final)
-        return EXIT_OK
+        return _monitor_log(view, args.log, every, on_tty, emit)
     bus_text = args.bus or "sim"
     try:
         with listening_bus(bus_text, hand) as bus:
@@ -691,6 +734,32 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _monitor_log(view: Any, log: Path, every: float, on_tty: bool,
+                 emit: Callable[[dict[str, object]], None]) -> int:
+    """``handctl monitor --log``: a recording's raw frames through the same view, snapshots
+    every ``every`` s of log time when piped, the whole at the end."""
+    from handctl.bringup.monitor import from_log, table
+    from handctl.recording.reader import open_recording
+
+    open_recording(log)  # a file that is no recording is refused by name
+    step = round(every * 1e9)
+    next_ns: int | None = None
+    for frame_id, data, t_ns in from_log(log):
+        view.observe(frame_id, data, t_ns)
+        next_ns = t_ns + step if next_ns is None else next_ns
+        if not on_tty and t_ns >= next_ns:
+            emit(view.snapshot(t_ns))
+            next_ns += step
+    final = view.snapshot()
+    if on_tty:
+        from rich.console import Console
+
+        Console().print(table(final, f"{log}: {view.frames} frames"))
+    else:
+        emit(final)
+    return EXIT_OK
+
+
 # -- parser --------------------------------------------------------------------------------------
 DEFAULT_LIVE_PORT = 8765
 
@@ -706,22 +775,59 @@ def _port(text: str) -> int:
     return port
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions and examples as written (``_command`` wraps the prose itself), so that
+    example commands keep their lines."""
+
+
+def _command(parent: argparse._SubParsersAction[argparse.ArgumentParser], name: str, *,
+             help: str, description: str, examples: Sequence[str],
+             notes: str = "") -> argparse.ArgumentParser:
+    """A subcommand whose ``--help`` ends with examples (and notes, e.g. its exit codes).
+
+    Every subcommand is made here, so that each one's help has the same shape; a test walks
+    them all (tests/unit/test_cli_help.py), new ones included.
+    """
+    width = 88
+    epilog = "examples:\n" + "\n".join(f"  {e}" for e in examples)
+    if notes:
+        epilog = textwrap.fill(notes, width) + "\n\n" + epilog
+    return parent.add_parser(
+        name, help=help, description=textwrap.fill(description, width), epilog=epilog,
+        formatter_class=_HelpFormatter)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="handctl",
         description="Grasp and manipulate two objects with a joint-torque-controlled "
                     "three-fingered hand over CAN.",
-        epilog="Exit codes: 0 done, 1 failed result, 2 bad input, 3 safety stop, "
-               "4 bus error, 5 host failed the timing check, 130 interrupted.")
+        epilog="Exit codes: 0 done (or stopped at --max-seconds), 1 failed result, 2 bad "
+               "input, 3 safety stop, 4 bus error, 5 host failed the timing check, "
+               "130 interrupted.")
     parser.add_argument("--version", action="version", version=f"handctl {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_check(sub)
+    _add_analyze(sub)
+    _add_sim(sub)
+    _add_run(sub)
+    _add_plan(sub)
+    _add_replay(sub)
+    _add_bringup(sub)
+    return parser
 
-    check = sub.add_parser("check", help="validate a hand config and its bus-load budget",
-                           description="Validate a hand config against the protocol (DBC) and "
-                                       "print its worst-case bus-load budget; exit 2 if over 50 %.")
-    check.add_argument("hand", type=Path, nargs="?", default=DEFAULT_HAND,
-                       help=f"hand config YAML (default {DEFAULT_HAND})")
-    check.add_argument("--dbc", type=Path, help="protocol DBC (default: the packaged one)")
+
+def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    check = _command(
+        sub, "check", help="validate a hand config and its bus-load budget",
+        description="Validate a hand config against the protocol (DBC) and print its "
+                    "worst-case bus-load budget; exit 2 if over 50 %.",
+        examples=["handctl check", "handctl check config/hands/hiroshima_hand_classic.yaml",
+                  "handctl check --timing --seconds 600 --json timing.json"])
+    check.add_argument("hand", type=Path, nargs="?", default=DEFAULT_HAND, metavar="HAND.yaml",
+                       help=f"hand config ({DEFAULT_HAND_HELP})")
+    check.add_argument("--dbc", type=Path, metavar="PROTOCOL.dbc",
+                       help="protocol DBC (default: the packaged one)")
     timing = check.add_argument_group(
         "timing", "can this host hold the hand's deadlines? (docs/timing.md; exit 5 if not)")
     timing.add_argument("--timing", action="store_true",
@@ -729,42 +835,59 @@ def build_parser() -> argparse.ArgumentParser:
                              "with the scheduling --rt asks for; wake-up lateness, stalls "
                              "against the period, overrun tolerance and feedback timeout, a "
                              "verdict and what would help")
-    timing.add_argument("--seconds", type=float, default=10.0,
-                        help="length of the timing check (default 10)")
+    timing.add_argument("--seconds", type=float, default=10.0, metavar="S",
+                        help="length of the timing check [s], > 0 and <= 3600 (default 10)")
     timing.add_argument("--no-rt", action="store_true",
                         help="check at the default scheduler, as a run without --rt")
-    timing.add_argument("--loop-cpu", type=int, help="the CPU to check (default: the one --rt "
-                                                     "gives the loop)")
-    timing.add_argument("--json", type=Path, metavar="F",
+    timing.add_argument("--loop-cpu", type=int, metavar="N",
+                        help="the CPU to check (default: the one --rt gives the loop)")
+    timing.add_argument("--json", type=Path, metavar="FILE.json",
                         help="write the report, with the probe's record, as JSON")
     check.set_defaults(func=_cmd_check)
 
-    analyze = sub.add_parser("analyze", help="offline grasp analysis (paper §3–§4)",
-                             description="Offline analysis of enveloping grasps.")
+
+def _add_analyze(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    example = ("handctl analyze torque-set config/analysis/paper_fig3.yaml --k 0.9 0.1 "
+               "--plot fig3.png")
+    analyze = _command(sub, "analyze", help="offline grasp analysis (paper §3–§4)",
+                       description="Offline analysis of enveloping grasps.", examples=[example])
     analyses = analyze.add_subparsers(dest="analysis", metavar="ANALYSIS", required=True)
-    tset = analyses.add_parser(
-        "torque-set", help="the torque set that moves two enveloped objects (Fig. 3)",
+    tset = _command(
+        analyses, "torque-set", help="the torque set that moves two enveloped objects (Fig. 3)",
         description="Compute the robust torque set over (tau_11, tau_21) with "
-                    "tau_i2 = k_i tau_i1: exactly, and on a 121x121 grid of LPs.")
-    tset.add_argument("scenario", type=Path, help="analysis scenario YAML (config/analysis/)")
+                    "tau_i2 = k_i tau_i1: exactly, and on a 121x121 grid of LPs.",
+        examples=[example, "handctl analyze torque-set SCENARIO.yaml --k 1 0.5 --json "
+                           "region.json"])
+    tset.add_argument("scenario", type=Path, metavar="SCENARIO.yaml",
+                      help="analysis scenario (config/analysis/)")
     tset.add_argument("--k", type=float, nargs=2, metavar=("K1", "K2"), required=True,
-                      help="torque ratios k_1, k_2 (tau_i2 = k_i tau_i1)")
-    tset.add_argument("--json", type=Path, help="write the region and the grid as JSON")
-    tset.add_argument("--plot", type=Path, help="write a PNG in the style of Fig. 3")
+                      help="torque ratios k_1, k_2 (tau_i2 = k_i tau_i1) [N·m per N·m, "
+                           "dimensionless]")
+    tset.add_argument("--json", type=Path, metavar="FILE.json",
+                      help="write the region and the grid as JSON")
+    tset.add_argument("--plot", type=Path, metavar="OUT.png",
+                      help="write a PNG in the style of Fig. 3")
     tset.set_defaults(func=_cmd_analyze_torque_set)
 
-    sim = sub.add_parser(
-        "sim", help="run the simulated hand as a standalone peer on a bus",
-        description="Run the simulated hand (MuJoCo plant behind emulated finger nodes) free on "
-                    "its own 1 kHz timer, as a peer on any python-can bus.")
-    sim.add_argument("--bus", required=True,
-                     help="INTERFACE:CHANNEL, e.g. virtual:test or udp_multicast:239.74.163.2")
-    sim.add_argument("--hand", type=Path, default=DEFAULT_HAND,
-                     help=f"hand config (default {DEFAULT_HAND})")
-    sim.add_argument("--seconds", type=float, help="stop after this long (default: Ctrl-C)")
+
+def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    sim = _command(
+        sub, "sim", help="run the simulated hand as a standalone peer on a bus",
+        description="Run the simulated hand (MuJoCo plant behind emulated finger nodes) free "
+                    "on its own 1 kHz timer, as a peer on any python-can bus.",
+        examples=["handctl sim --bus unix:/tmp/handctl-bus --seconds 60",
+                  "handctl sim --bus virtual:test --faults config/sim/feedback_dropout.yaml"])
+    sim.add_argument("--bus", required=True, metavar="SPEC",
+                     help="INTERFACE:CHANNEL, e.g. virtual:test, unix:DIRECTORY or "
+                          "udp_multicast:239.74.163.2")
+    sim.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
+                     help=f"hand config ({DEFAULT_HAND_HELP})")
+    sim.add_argument("--seconds", type=float, metavar="S",
+                     help="stop after this long [s], > 0 (default: at Ctrl-C)")
     sim.add_argument("--seed", type=int, help="sensor noise seed (default: the config's)")
-    sim.add_argument("--faults", type=Path, help="fault scenario YAML (config/sim/)")
-    sim.add_argument("--summary-json", type=Path,
+    sim.add_argument("--faults", type=Path, metavar="FAULTS.yaml",
+                     help="fault scenario (config/sim/)")
+    sim.add_argument("--summary-json", type=Path, metavar="FILE.json",
                      help="write the ground truth (object poses, node states) at the end")
     sim.add_argument("--rt", action="store_true",
                      help="ask for SCHED_FIFO (below the control loop's priority) and locked "
@@ -775,19 +898,28 @@ def build_parser() -> argparse.ArgumentParser:
                           "directory, which nobody else is left to remove")
     sim.set_defaults(func=_cmd_sim)
 
-    run = sub.add_parser("run", help="drive the hand", description="Drive the hand.")
+
+def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    example = ("handctl run recipe config/recipes/swap_two_cylinders.yaml --summary-json "
+               "out.json")
+    run = _command(sub, "run", help="drive the hand", description="Drive the hand.",
+                   examples=[example])
     runs = run.add_subparsers(dest="what", metavar="WHAT", required=True)
-    rec = runs.add_parser(
-        "recipe", help="run a grasp recipe",
+    rec = _command(
+        runs, "recipe", help="run a grasp recipe",
         description="Run a recipe phase by phase at the hand's loop rate, every torque through "
                     "the safety supervisor. Default bus: the simulated hand, in lockstep.",
-        epilog="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit 130.")
-    rec.add_argument("recipe", type=Path, help="recipe YAML")
-    rec.add_argument("--hand", type=Path, default=DEFAULT_HAND,
-                     help=f"hand config (default {DEFAULT_HAND})")
-    rec.add_argument("--bus", default="sim",
+        notes="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
+              "130. At --max-seconds: the same stop, outcome time_budget, exit 0. A safety "
+              "stop exits 3.",
+        examples=[example,
+                  "handctl run recipe RECIPE.yaml --bus socketcan:can0 --rt --log RUN.mcap"])
+    rec.add_argument("recipe", type=Path, metavar="RECIPE.yaml", help="the recipe")
+    rec.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
+                     help=f"hand config ({DEFAULT_HAND_HELP})")
+    rec.add_argument("--bus", default="sim", metavar="SPEC",
                      help="sim (default), hand (the config's bus), virtual:NAME, socketcan:can0, "
-                          "INTERFACE:CHANNEL")
+                          "unix:DIRECTORY, INTERFACE:CHANNEL")
     mode = rec.add_mutually_exclusive_group()
     mode.add_argument("--lockstep", action="store_true",
                       help="step the simulated hand once per tick (default with --bus sim)")
@@ -806,12 +938,17 @@ def build_parser() -> argparse.ArgumentParser:
                      help="run on a real bus even if the host fails the timing check made "
                           "before it (docs/timing.md): the hand may stop on LOOP_OVERRUN, or "
                           "worse, get late commands")
-    rec.add_argument("--summary-json", type=Path, help="write the run summary as JSON")
+    rec.add_argument("--summary-json", type=Path, metavar="FILE.json",
+                     help="write the run summary as JSON (units in its key names)")
     rec.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
-    rec.add_argument("--sim-faults", type=Path, help="fault scenario for the simulated hand")
+    rec.add_argument("--sim-faults", type=Path, metavar="FAULTS.yaml",
+                     help="fault scenario for the simulated hand (config/sim/)")
     rec.add_argument("--reset-node-faults", action="store_true",
                      help="clear faults latched in the nodes before starting (explicit reset)")
-    rec.add_argument("--max-seconds", type=float, help="stop (controlled) after this long")
+    rec.add_argument("--max-seconds", type=float, metavar="S",
+                     help="time budget [s], > 0: stop (controlled) after this long, outcome "
+                          "time_budget, exit 0 (default: no limit; lockstep counts simulated "
+                          "time)")
     rec.add_argument("--log", type=Path, metavar="RUN.mcap",
                      help="record every tick, event and frame to an MCAP file "
                           "(see docs/recording.md; read it with 'handctl replay')")
@@ -824,20 +961,27 @@ def build_parser() -> argparse.ArgumentParser:
                           "needs --log)")
     rec.set_defaults(func=_cmd_run_recipe)
 
-    plan = sub.add_parser(
-        "plan", help="plan a recipe's torques from a template (analysis, then search)",
+
+def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    plan = _command(
+        sub, "plan", help="plan a recipe's torques from a template (analysis, then search)",
         description="Compute the torques of every phase of a recipe template: the analysis' "
                     "torque with the largest robust margin at each phase's grasp, refined by a "
                     "search on the simulated hand scored over perturbed models. Writes the "
-                    "compiled recipe with per-phase provenance.")
-    plan.add_argument("template", type=Path, help="recipe template YAML (config/recipes/)")
-    plan.add_argument("--hand", type=Path, default=DEFAULT_HAND,
-                      help=f"hand config (default {DEFAULT_HAND})")
+                    "compiled recipe with per-phase provenance.",
+        examples=["handctl plan config/recipes/swap_two_cylinders.template.yaml -o "
+                  "config/recipes/swap_two_cylinders.yaml --plot plan/",
+                  "handctl plan TEMPLATE.yaml -o RECIPE.yaml --quick"])
+    plan.add_argument("template", type=Path, metavar="TEMPLATE.yaml",
+                      help="recipe template (config/recipes/)")
+    plan.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
+                      help=f"hand config ({DEFAULT_HAND_HELP})")
     plan.add_argument("-o", "--output", type=Path, required=True, metavar="RECIPE.yaml",
                       help="where to write the compiled recipe")
     plan.add_argument("--plot", type=Path, metavar="DIR",
                       help="write each phase's torque region (chosen torque marked) as PNGs")
-    plan.add_argument("--models", type=int, help="perturbed models (default: the template's)")
+    plan.add_argument("--models", type=int, metavar="N",
+                      help="perturbed models (default: the template's)")
     plan.add_argument("--quick", action="store_true",
                       help="the smallest search (smoke tests): 1 generation of 2")
     plan.add_argument("--workers", type=int, metavar="N",
@@ -848,14 +992,17 @@ def build_parser() -> argparse.ArgumentParser:
                            "(pip install 'handctl[cluster]'; see docs/scale.md)")
     plan.set_defaults(func=_cmd_plan)
 
-    nodes = sub.add_parser(
-        "nodes", help="list the hand's nodes as the bus shows them (listens, never sends)",
+def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Bring-up commands (docs/bringup.md): nodes, calibrate tdt, jog, monitor."""
+    nodes = _command(
+        sub, "nodes", examples=["handctl nodes", "handctl nodes --bus socketcan:can0 --json"],
+        help="list the hand's nodes as the bus shows them (listens, never sends)",
         description="Listen for the nodes' Feedback, Status and Heartbeat and print one row "
                     "per configured node: present or missing, state, fault bits, protocol and "
                     "firmware versions, feedback rate, counters, rejects; frames of nodes not "
                     "in the hand config are flagged. Sends nothing. On --bus sim (the default) "
                     "a simulated hand is started in this process to listen to.",
-        epilog="Exit 0 when every configured node is there, in no fault, of the host's "
+        notes="Exit 0 when every configured node is there, in no fault, of the host's "
                "protocol version, and no other node is heard; 1 otherwise.")
     nodes.add_argument("--bus", default="sim",
                        help="sim (default), hand (the config's bus), socketcan:can0, "
@@ -866,18 +1013,22 @@ def build_parser() -> argparse.ArgumentParser:
     nodes.add_argument("--json", action="store_true", help="print the result as JSON")
     nodes.set_defaults(func=_cmd_nodes)
 
-    calibrate = sub.add_parser("calibrate", help="calibrate the hand's sensors",
-                               description="Calibrate the hand's sensors through the Runtime "
-                                           "and the safety supervisor.")
+    calibrate = _command(sub, "calibrate", help="calibrate the hand's sensors",
+                         description="Calibrate the hand's sensors through the Runtime and "
+                                     "the safety supervisor.",
+                         examples=["handctl calibrate tdt -o calibrated.yaml"])
     calibrations = calibrate.add_subparsers(dest="what", metavar="WHAT", required=True)
-    tdt = calibrations.add_parser(
-        "tdt", help="measure each TDT sensor's offset and noise at zero torque",
+    tdt = _command(
+        calibrations, "tdt",
+        examples=["handctl calibrate tdt -o calibrated.yaml",
+                  "handctl calibrate tdt --bus socketcan:can0 --rt --hand HAND.yaml --write"],
+        help="measure each TDT sensor's offset and noise at zero torque",
         description="Enable every node at zero torque (through the Runtime and the supervisor), "
                     "let the fingers settle, measure each TDT sensor's offset and noise, and "
                     "write a copy of the hand config with the new offsets (comments and layout "
                     "kept). Refused, naming the joint, if a joint moves or a sensor's noise or "
                     "offset is implausible. Default bus: the simulated hand, in lockstep.",
-        epilog="Exit 0 written, 1 refused (nothing written), 2 bad input, 3 safety stop, "
+        notes="Exit 0 written, 1 refused (nothing written), 2 bad input, 3 safety stop, "
                "130 interrupted (Ctrl-C: a controlled stop).")
     tdt.add_argument("--hand", type=Path, default=DEFAULT_HAND,
                      help=f"hand config (default {DEFAULT_HAND})")
@@ -907,14 +1058,16 @@ def build_parser() -> argparse.ArgumentParser:
     tdt.add_argument("--json", type=Path, help="write the measurement as JSON")
     tdt.set_defaults(func=_cmd_calibrate_tdt)
 
-    jog = sub.add_parser(
-        "jog", help="one joint under a small torque, every other at zero, through safety",
+    jog = _command(
+        sub, "jog", examples=["handctl jog f1_j2 --torque 0.05",
+                              "handctl jog f3_j1 --torque -0.05 --seconds 3 --bus socketcan:can0"],
+        help="one joint under a small torque, every other at zero, through safety",
         description="Ramp one joint to a torque (N·m) within its rate limit, hold it, ramp "
                     "back to zero; every other joint gets zero. A one-phase recipe run by the "
                     "normal Runtime: every torque through the supervisor with the hand's "
                     "limits, and the soft-limit guard. A table of the joint's angle and TDT "
                     "torque is printed as it runs. Default bus: the simulated hand, in lockstep.",
-        epilog="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
+        notes="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
                "130. A torque over the joint's tau_max is refused (exit 2) before anything "
                "is sent.")
     jog.add_argument("joint", help="joint name, as in the hand config (e.g. f1_j2)")
@@ -934,15 +1087,17 @@ def build_parser() -> argparse.ArgumentParser:
                      help="clear faults latched in the nodes before starting (explicit reset)")
     jog.set_defaults(func=_cmd_jog)
 
-    mon = sub.add_parser(
-        "monitor", help="a live decoded view of the bus (listens, never sends)",
+    mon = _command(
+        sub, "monitor", examples=["handctl monitor", "handctl monitor --bus socketcan:can0 | jq .",
+                                  "handctl monitor --log RUN.mcap"],
+        help="a live decoded view of the bus (listens, never sends)",
         description="Decode every frame on the bus: per message its rate, last values in "
                     "units, and the CRC, counter and length rejects a receiver would make; "
                     "unknown ids are counted. A full-screen view on a terminal, JSON lines "
                     "(one snapshot every --every seconds, and a last one) when piped. Sends "
                     "nothing. On --bus sim (the default) a simulated hand is started in this "
                     "process to listen to.",
-        epilog="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end.")
+        notes="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end.")
     mon.add_argument("--bus", help="sim (default), hand, socketcan:can0, unix:DIR, "
                                    "virtual:NAME, INTERFACE:CHANNEL")
     mon.add_argument("--hand", type=Path, default=DEFAULT_HAND,
@@ -954,11 +1109,17 @@ def build_parser() -> argparse.ArgumentParser:
                      help="seconds between JSON snapshots (default 1; of log time with --log)")
     mon.set_defaults(func=_cmd_monitor)
 
-    rep = sub.add_parser(
-        "replay", help="summarise, plot, re-run or replay a recording",
+
+
+
+def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    rep = _command(
+        sub, "replay", help="summarise, plot, re-run or replay a recording",
         description="Read a recording (handctl run recipe --log RUN.mcap), complete or "
                     "truncated, and print its summary: phases, largest torques, faults, timing, "
-                    "drops. Exit 1 when --rerun finds a mismatch.")
+                    "drops. Exit 1 when --rerun finds a mismatch.",
+        examples=["handctl replay RUN.mcap --rerun --plot OUT.png",
+                  "handctl replay RUN.mcap --export candump frames.log"])
     rep.add_argument("log", type=Path, metavar="RUN.mcap", help="the recording")
     rep.add_argument("--plot", type=Path, metavar="OUT.png",
                      help="torques over time with phase bands (and object poses if simulated)")
@@ -968,18 +1129,19 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--to-bus", metavar="SPEC",
                      help="send the logged frames onto a bus (virtual:NAME, socketcan:can0, ...) "
                           "with their original timing")
-    rep.add_argument("--speed", type=float, help="with --to-bus: time scale (2 = twice as fast)")
+    rep.add_argument("--speed", type=float, metavar="X",
+                     help="with --to-bus: time scale [× recorded speed] (2 = twice as fast)")
     rep.add_argument("--direction", choices=("both", "rx", "tx"), default="both",
                      help="with --to-bus: which logged frames to send (default both)")
     rep.add_argument("--export", nargs=2, metavar=("FORMAT", "OUT"),
                      help="write the frames as candump, asc or blf (python-can's log formats)")
-    rep.add_argument("--json", type=Path, help="write the summary (and re-run report) as JSON")
+    rep.add_argument("--json", type=Path, metavar="FILE.json",
+                     help="write the summary (and re-run report) as JSON")
     rep.add_argument("--live", type=_port, nargs="?", const=DEFAULT_LIVE_PORT, metavar="PORT",
                      help="stream the recording to Foxglove over WebSocket on 127.0.0.1:PORT "
                           f"at its recorded speed (or --speed X; default port "
                           f"{DEFAULT_LIVE_PORT})")
     rep.set_defaults(func=_cmd_replay)
-    return parser
 
 
 def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
@@ -1009,17 +1171,77 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    # SIGTERM is Ctrl-C for every command, from the start: while a hand config, a recipe and
-    # their imports load (seconds on a busy machine) it too ends the command with exit 130.
-    # ``handctl run`` turns both into its controlled stop once the run begins.
-    if threading.current_thread() is not threading.main_thread():  # signals are not ours
-        return _run_args(argv)
-    before = signal.signal(signal.SIGTERM, _interrupt)
+class _ReaderMayLeave(io.TextIOBase):
+    """stdout or stderr for a reader that may stop reading (``handctl check | head -1``).
+
+    Once the reader is gone, what is still written goes to /dev/null (its descriptor too, so
+    that the interpreter's last flush finds somewhere to go): the command finishes its work,
+    a run stops the hand as it would anyway, and the exit code is the command's own rather
+    than a ``BrokenPipeError`` traceback.
+    """
+
+    def __init__(self, stream: IO[str]) -> None:
+        super().__init__()
+        self.stream = stream
+        self.reader_gone = False
+
+    def write(self, text: str) -> int:
+        if not self.reader_gone:
+            self._guard(lambda: self.stream.write(text))
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.reader_gone:
+            self._guard(self.stream.flush)
+
+    def isatty(self) -> bool:
+        return not self.reader_gone and self.stream.isatty()
+
+    def fileno(self) -> int:
+        return self.stream.fileno()
+
+    @property
+    def encoding(self) -> str:  # type: ignore[override]
+        return str(getattr(self.stream, "encoding", "utf-8"))
+
+    def _guard(self, op: Callable[[], object]) -> None:
+        try:
+            op()
+        except BrokenPipeError:
+            self.reader_gone = True
+            try:
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, self.stream.fileno())
+                os.close(devnull)
+            except (OSError, ValueError):  # no descriptor (a test's capture): nothing to flush
+                pass
+
+
+@contextmanager
+def _output_for_readers_that_leave() -> Iterator[None]:
+    saved = sys.stdout, sys.stderr
+    sys.stdout = _ReaderMayLeave(sys.stdout)
+    sys.stderr = _ReaderMayLeave(sys.stderr)
     try:
-        return _run_args(argv)
+        yield
     finally:
-        signal.signal(signal.SIGTERM, before)
+        for wrapped in (sys.stdout, sys.stderr):
+            wrapped.flush()
+        sys.stdout, sys.stderr = saved
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    with _output_for_readers_that_leave():
+        # SIGTERM is Ctrl-C for every command, from the start: while a hand config, a recipe
+        # and their imports load (seconds on a busy machine) it too ends the command with exit
+        # 130. ``handctl run`` turns both into its controlled stop once the run begins.
+        if threading.current_thread() is not threading.main_thread():  # signals are not ours
+            return _run_args(argv)
+        before = signal.signal(signal.SIGTERM, _interrupt)
+        try:
+            return _run_args(argv)
+        finally:
+            signal.signal(signal.SIGTERM, before)
 
 
 def _run_args(argv: Sequence[str] | None) -> int:

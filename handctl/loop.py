@@ -75,6 +75,7 @@ class Outcome(enum.Enum):
     COMPLETED = "completed"
     SAFETY_STOP = "safety_stop"
     INTERRUPTED = "interrupted"
+    TIME_BUDGET = "time_budget"  # stopped (controlled) at the run's time budget, as asked
     STARTUP_FAILED = "startup_failed"
 
 
@@ -118,12 +119,18 @@ class TickRecord:
 
 @dataclass(frozen=True)
 class StatusLine:
-    t_s: float
+    """Where a run is, for a person watching it: a line every ``STATUS_EVERY_TICKS``."""
+
+    t_s: float  # since the run's first tick; simulated time when ``simulated``
     phase: str
     state: str
-    max_abs_tau: float
+    max_abs_tau: float  # N·m, over the joints, this tick
     lateness_us: float
     timed_out: tuple[str, ...] = ()  # phases so far that ended on their timeout, not an exit
+    phase_number: int = 0  # 1..phase_count while a phase runs; 0 before, phase_count + 1 after
+    phase_count: int = 0
+    phase_s: float = 0.0  # time in the current phase (s)
+    simulated: bool = False  # a lockstep clock: the times are the simulated hand's, not wall
 
 
 @dataclass(frozen=True)
@@ -476,9 +483,14 @@ class Runtime:
         fb = self._feedback_ns
         self._store(tk, (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, c5 - c4, fb))
         if self.status is not None and tk.k % STATUS_EVERY_TICKS == 0:
-            self.status(StatusLine(t_s, self._phase_name(), sup.state.value,
-                                   float(np.max(np.abs(applied))), tk.lateness_ns / 1e3,
-                                   self._timed_out()))
+            runner = self.runner
+            self.status(StatusLine(
+                t_s, self._phase_name(), sup.state.value, float(np.max(np.abs(applied))),
+                tk.lateness_ns / 1e3,
+                phase_number=runner.index + 1 if runner is not None else 0,
+                phase_count=len(runner.recipe.phases) if runner is not None else 0,
+                phase_s=t_s - runner.phase_start if runner is not None else 0.0,
+                simulated=self.clock.lockstep, timed_out=self._timed_out()))
         return tk
 
     def decide(self, k: int, now_ns: int, missed: int, t_s: float, angle: np.ndarray,

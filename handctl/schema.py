@@ -37,9 +37,10 @@ What a file means cannot surprise:
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -49,6 +50,9 @@ from handctl.errors import ConfigError
 
 _MISSING: Any = object()
 
+#: How alike (difflib's ratio, 0..1) a stray key must be to an expected one to be named as
+#: its likely misspelling.
+DID_YOU_MEAN_CUTOFF = 0.6
 #: bytes of a YAML file: 20 times the largest file handctl ships (a compiled recipe)
 MAX_BYTES = 256 * 1024
 #: values (scalars, lists, mappings) of one document with every alias expanded
@@ -146,6 +150,10 @@ def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
                 f"{problem}: a key without its ':'? (noticed at {where})")
     context = exc.context_mark
     if context is None or not exc.context or context.line >= mark.line:
+        if mark.line >= len(lines):
+            # The end of a text without a final line break, which the parser counts as one
+            # more line: the mistake is at the end of the last line there is.
+            return f" at the end of line {len(lines)}", f"{problem} (at the end of the text)"
         return f" at {where}", problem
     started = f"{exc.context} that starts at line {context.line + 1}, column {context.column + 1}"
     if "simple key" in exc.context or "quoted scalar" in exc.context:
@@ -500,6 +508,7 @@ class Doc:
         self.file = file
         self.path = path
         self._used: set[str] = set()
+        self._allowed: frozenset[str] | None = None
 
     # -- locating -------------------------------------------------------------------------
     def key_path(self, key: str | int) -> str:
@@ -515,13 +524,38 @@ class Doc:
     def has(self, key: str) -> bool:
         return key in self.data
 
+    def expect(self, keys: Iterable[str]) -> None:
+        """Declare every key this mapping may hold (e.g. a hand's joint names), for mappings
+        whose keys are data rather than a fixed set read one by one: an unknown key is then
+        refused at once with the nearest allowed name, and a missing one names the unknown key
+        beside it, rather than the first of many similar names that were simply not read yet."""
+        self._allowed = frozenset(keys)
+        for key in self.data:
+            if key not in self._allowed:
+                self.fail(key, "no such key here (unknown key" + _did_you_mean(
+                    key, sorted(self._allowed - self.data.keys())) + ")", self.data[key])
+
     def _get(self, key: str, default: Any) -> Any:
         self._used.add(key)
         if key in self.data:
             return self.data[key]
         if default is _MISSING:
-            self.fail(key, "this key (required)", "nothing: the key is missing")
+            self.fail(key, "this key (required)", _Text("nothing: the key is missing"
+                                                        + self._stray_near(key)))
         return default
+
+    def _stray_near(self, key: str) -> str:
+        """The key that looks like a misspelling of the missing ``key``, if one stands out.
+
+        With declared keys (``expect``) the candidates are the unknown ones; otherwise those
+        no reader has asked for yet, and only a single best match is named: of several equally
+        close ones (``f1_j2``, ``f2_j1``, ...) most are simply still to be read."""
+        if self._allowed is not None:
+            strays = [k for k in self.data if k not in self._allowed]
+        else:
+            strays = [k for k in self.data if k not in self._used]
+        best = _closest(key, strays)
+        return f"; '{best}' is here instead (a misspelling of it?)" if best else ""
 
     # -- scalars --------------------------------------------------------------------------
     def number(
@@ -646,10 +680,31 @@ class Doc:
         return iter(self.data)
 
     def done(self) -> None:
-        """Refuse keys that no reader asked for: they are typos or belong elsewhere."""
+        """Refuse keys that no reader asked for: they are typos or belong elsewhere. The keys
+        that were asked for and are absent (optional ones left at their default) are the
+        likely intended spellings."""
+        absent = sorted(k for k in self._used | (self._allowed or set()) if k not in self.data)
         for key in self.data:
             if key not in self._used:
-                self.fail(key, "no such key here (unknown key)", self.data[key])
+                self.fail(key, "no such key here (unknown key" + _did_you_mean(key, absent)
+                          + ")", self.data[key])
+
+
+def _closest(key: str, candidates: Sequence[str]) -> str | None:
+    """The one candidate nearest to ``key`` (difflib's ratio >= 0.6), or None if there is
+    none or several tie for nearest."""
+    scored = sorted(((difflib.SequenceMatcher(None, key, c).ratio(), c) for c in candidates),
+                    reverse=True)
+    if not scored or scored[0][0] < DID_YOU_MEAN_CUTOFF:
+        return None
+    if len(scored) > 1 and scored[1][0] == scored[0][0]:
+        return None
+    return scored[0][1]
+
+
+def _did_you_mean(key: str, candidates: Sequence[str]) -> str:
+    best = _closest(key, candidates)
+    return f"; did you mean '{best}'?" if best else ""
 
 
 def _bounds_text(min: float | None, max: float | None, min_exclusive: bool) -> str:

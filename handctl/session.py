@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from handctl import timebudget
 from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
 from handctl.clock import (
     LOOP_PRIORITY,
@@ -49,6 +50,9 @@ if TYPE_CHECKING:
     from handctl.clock import Tick
     from handctl.recording.recorder import Recorder
 
+#: The runtime's own tick limit when a run has no time budget: none that a run can reach.
+NO_TICK_LIMIT = 1 << 62
+
 
 @dataclass
 class RunRequest:
@@ -60,7 +64,7 @@ class RunRequest:
     seed: int = 0
     reset_node_faults: bool = False
     sim_faults: Path | None = None
-    max_seconds: float | None = None
+    max_seconds: float | None = None  # the time budget (s): a controlled stop, TIME_BUDGET
     plot: Path | None = None  # write the overview PNG of the run here (lockstep sim only)
     log: Path | None = None  # record the run to this MCAP file
     live_port: int | None = None  # serve the recording's channels to Foxglove on this port
@@ -113,7 +117,7 @@ def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: boo
         "lateness_us": _percentiles_us(result.window),
         "stage_cpu_us_p99": {name: round(percentile_us(result.window.stage_hist[i], 99), 2)
                              for i, name in enumerate(stages)},
-        "max_abs_tau": {name: round(float(v), 5) for name, v in
+        "max_abs_tau_nm": {name: round(float(v), 5) for name, v in
                         zip(hand.joint_names, result.max_abs_tau, strict=True)},
         "rejected_frames": result.node_rejects,
         "bus_events": result.bus_events,
@@ -130,9 +134,10 @@ def _exception_summary(exc: TickException) -> dict[str, Any]:
             "traceback": exc.traceback.splitlines()}
 
 
-def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,
+def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,  # noqa: C901 - the composition of a run; to split (issue 16)
                recorder: RecordSink | None = None) -> RunReport:
     """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on."""
+    timebudget.check(req.max_seconds)
     protocol = load_protocol()
     spec = parse_spec(req.bus, req.hand.bus)
     warnings: list[str] = []
@@ -199,10 +204,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             cpus = {"loop": affinity(0),
                     "sim": affinity(sim_process.proc.pid) if sim_process else None}
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
-        max_ticks = (round(req.max_seconds / req.hand.bus.period_s) if req.max_seconds
-                     else 10_000_000)
         runtime = Runtime(req.hand, driver, clock, req.recipe, recorder=recorder, status=status,
-                          reset_node_faults=req.reset_node_faults, max_ticks=max_ticks,
+                          reset_node_faults=req.reset_node_faults, max_ticks=NO_TICK_LIMIT,
                           startup_timeout_s=startup_s,
                           estimator=(ObjectEstimator(req.hand, req.recipe.objects)
                                      if req.recipe.objects else None))
@@ -212,9 +215,11 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             from handctl.planning.experiment import track
 
             tracker = track(runtime, sim_hand)
+        if req.max_seconds is not None:
+            timebudget.install(runtime, req.max_seconds)
         if recording is not None:
             _start_recording(recording, runtime, req, spec, lockstep, sim_hand)
-        result = asyncio.run(signals.run(runtime))
+        result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
         if result.exception is not None:
             warnings.append(f"the run stopped on an exception ({result.exception.code.name}); "
                             "the hand was stopped.\n"

@@ -40,7 +40,7 @@ def message_and_values(draw: st.DrawFn) -> tuple[Layout, int, tuple[float, ...]]
     layout = draw(st.sampled_from(PROTOCOL.layouts))
     raws = draw(raw_values(layout))
     # Physical values: exact raw multiples, or anywhere within half a step of one.
-    values = []
+    values: list[float] = []
     for raw, sig in zip(raws, layout.signals, strict=True):
         if sig.is_integer:
             values.append(raw)

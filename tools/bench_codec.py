@@ -35,6 +35,7 @@ def _measure(tick: Callable[[int], None], ticks: int, repeats: int) -> list[floa
 def run(args: argparse.Namespace) -> dict[str, float]:
     protocol = load_protocol()
     db = cantools.database.load_file(str(DEFAULT_DBC))
+    assert isinstance(db, cantools.database.can.Database)
     commands = [protocol.layout("TorqueCommand", n) for n in (1, 2, 3)]
     feedbacks = [protocol.layout("Feedback", n) for n in (1, 2, 3)]
     torques = [(0.1234, -0.2345, 0.3456), (0.01, 0.02, -0.03), (-0.1, 0.05, 0.2)]

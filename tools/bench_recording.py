@@ -61,6 +61,7 @@ sys.path.insert(0, str(ROOT))
 from handctl.bus import open_bus  # noqa: E402
 from handctl.clock import LockstepClock, Tick  # noqa: E402
 from handctl.config import HandConfig, load_hand  # noqa: E402
+from handctl.convention import POSE_EVERY_TICKS  # noqa: E402
 from handctl.drivers.hand import HandDriver  # noqa: E402
 from handctl.estimator import ObjectEstimator  # noqa: E402
 from handctl.loop import RunResult, Runtime  # noqa: E402
@@ -72,7 +73,6 @@ from handctl.recording.metadata import run_metadata, start_metadata  # noqa: E40
 from handctl.recording.reader import Recording, iter_decoded, open_recording  # noqa: E402
 from handctl.recording.recorder import Recorder  # noqa: E402
 from handctl.recording.replay import _hand, _recipe, rerun, tick_inputs  # noqa: E402
-from handctl.session import POSE_EVERY_TICKS  # noqa: E402
 from handctl.sim.hand import SimulatedHand  # noqa: E402
 
 LOOP_TARGET_US = 20.0
@@ -171,9 +171,10 @@ class _Side:
                 begin(tk)
                 begin_ns.append(_CPU() - started)
 
-            recorder.begin_tick = timed_begin  # type: ignore[method-assign]
+            recorder.begin_tick = timed_begin  # type: ignore[method-assign, assignment]
             if push != "all":
-                recorder.push = _partial_push(recorder, push)  # type: ignore[method-assign]
+                recorder.push = _partial_push(  # type: ignore[method-assign, assignment]
+                    recorder, push)
             recorder.add_metadata(ch.META_RUN, run_metadata(
                 mode="lockstep", bus=channel, seed=0,
                 period_ns=round(hand.bus.period_s * 1e9), startup_ticks=runtime.startup_ticks,

@@ -109,7 +109,7 @@ def _half_even(k: int) -> int:
     return k if k % 2 == 0 else k + 1
 
 
-def _cases(layout: Layout, rng: random.Random) -> Iterator[tuple[str, int, list[Value]]]:
+def _cases(layout: Layout, rng: random.Random) -> Iterator[tuple[str, int, list[Value]]]:  # noqa: C901 - every kind of test vector; to split
     """(case, counter, values) for one message, in a fixed order."""
     specs = layout.signals
     bounds = [_bounds(s) for s in specs]

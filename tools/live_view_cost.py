@@ -18,8 +18,9 @@ from collections.abc import Callable
 from typing import Any
 
 import websockets
+from websockets.typing import Subprotocol
 
-SUBPROTOCOL = "foxglove.sdk.v1"
+SUBPROTOCOL = Subprotocol("foxglove.sdk.v1")
 
 
 def free_port() -> int:

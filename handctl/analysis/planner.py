@@ -60,7 +60,7 @@ def plan_torques(grasp: Grasp, directions: Mapping[str, Vector],
     return plan_for_conditions(conditions, tau_max, ratios)
 
 
-def plan_for_conditions(conditions: Conditions, tau_max: float | Vector,
+def plan_for_conditions(conditions: Conditions, tau_max: float | Vector,  # noqa: C901 - one pass over the cases; to split (issue 16)
                         ratios: Sequence[Vector | None] | None = None) -> TorquePlan:
     """``plan_torques`` for conditions already built."""
     st = conditions.statics

@@ -221,7 +221,7 @@ def _pose_of(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> PoseHol
     return PoseHold(angles, spec.pose_stiffness, spec.pose_damping)
 
 
-def plan_recipe(template: Template, hand: HandConfig, *,
+def plan_recipe(template: Template, hand: HandConfig, *,  # noqa: C901 - the planning pipeline; to split (issue 16)
                 progress: Callable[[str], None] | None = None,
                 models: int | None = None, budget: Budget | None = None,
                 executor: WorkPool | None = None,

@@ -196,6 +196,7 @@ def _parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
         doc.fail("torques", f"a mapping of joint name to N·m, or a list of {len(names)} numbers",
                  raw)
     sub = doc.mapping("torques")
+    sub.expect(names)
     values = tuple(sub.number(n, unit="N·m") for n in names)
     sub.done()
     return values

@@ -104,7 +104,7 @@ class FeedbackCheck:
             self.mismatched_ticks += 1
             self.mismatches += problems[:max(MAX_KEPT - len(self.mismatches), 0)]
 
-    def _joint_state(self, k: int, now_ns: int, logged: dict[str, Any] | None,
+    def _joint_state(self, k: int, now_ns: int, logged: dict[str, Any] | None,  # noqa: C901 - compares every field of the state; to split
                      rx: Sequence[Frame]) -> list[str]:
         if logged is None:
             return [f"tick {k}: the re-run polled feedback where the log has no joint state"]

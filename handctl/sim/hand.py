@@ -140,7 +140,7 @@ class SimulatedHand:
             while self.ticks * NODE_TICK_NS < self._target_ns:
                 self._tick()
 
-    def _tick(self) -> None:
+    def _tick(self) -> None:  # noqa: C901 - the simulated nodes' whole tick; to split
         now = self.ticks * NODE_TICK_NS
         if self.faults.pending:
             for on, injector in self.faults.due(self.ticks):
@@ -287,9 +287,10 @@ class SimulatedHand:
         objects = {}
         for pose, start in zip(truth.objects, self.params.objects, strict=True):
             objects[pose.name] = {
-                "x": round(pose.x, 6), "y": round(pose.y, 6), "angle": round(pose.angle, 6),
-                "moved": round(math.hypot(pose.x - start.x, pose.y - start.y), 6),
-                "turned": round(pose.angle - start.angle, 6)}
+                "x_m": round(pose.x, 6), "y_m": round(pose.y, 6),
+                "angle_rad": round(pose.angle, 6),
+                "moved_m": round(math.hypot(pose.x - start.x, pose.y - start.y), 6),
+                "turned_rad": round(pose.angle - start.angle, 6)}
         return {
             "seed": self.seed,
             "time_s": round(truth.time, 6),
@@ -298,13 +299,15 @@ class SimulatedHand:
                 "state": NodeState(n.state).name, "fault_bits": n.fault_bits,
                 "accepted": n.accepted, "reject_crc": n.reject_crc,
                 "reject_counter": n.reject_counter, "reject_length": n.reject_length,
-                "reject_unexpected": n.reject_unexpected, "reboots": n.reboots}
+                # Not a rejection: the other nodes' frames (and any foreign ones), which a
+                # node sees on the shared bus and leaves alone, about 2 per tick per node.
+                "other_ids_ignored": n.reject_unexpected, "reboots": n.reboots}
                 for n in self.nodes},
             "frames_in": self.frames_in,
             "frames_out": self.frames_out,
             "tx_failed": self.tx_failed,
             "transport": self._bus.transport_counts(),
-            "faults": [{"fault": e.injector.describe(), "start": e.start, "stop": e.stop}
+            "faults": [{"fault": e.injector.describe(), "start_s": e.start, "stop_s": e.stop}
                        for e in self.faults],
         }
 

@@ -7,19 +7,19 @@ import asyncio
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 
-import cantools
 import numpy as np
 
 from handctl.bus import HandBus
 from handctl.config import HandConfig
 from handctl.loop import RunResult, Runtime
-from handctl.protocol import DEFAULT_DBC
+from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.sim.campaign import hil_bench
 from handctl.sim.hand import SimulatedHand
 
-DB = cantools.database.load_file(str(DEFAULT_DBC))
+from ..dbc import decode
 
 
 @dataclass
@@ -41,7 +41,7 @@ class Rig:
         per_node: dict[int, list[list[float]]] = {1: [], 2: [], 3: []}
         for frame_id, data in self.wire:
             if 0x101 <= frame_id <= 0x103:
-                sig = DB.decode_message(frame_id, data)
+                sig = decode(frame_id, data)
                 per_node[frame_id - 0x100].append([sig["Torque1"], sig["Torque2"],
                                                    sig["Torque3"]])
         n = min(len(v) for v in per_node.values())
@@ -57,3 +57,93 @@ def rig(hand: HandConfig, recipe: Recipe | None, *, seed: int = 0,
     max_ticks = round(max_seconds / hand.bus.period_s)
     with hil_bench(hand, recipe, seed, max_ticks) as (sim, runtime, sniffer):
         yield Rig(hand, sim, runtime, sniffer)
+
+
+# -- recipes the integration tests share ---------------------------------------------------------
+#: One phase that holds a light grasp for ten minutes: a run that goes until it is stopped.
+HOLD_LONG = """
+recipe: hold_long
+phases:
+  - name: hold
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.3
+    max_s: 600
+"""
+
+#: Two short timed phases, the second holding until stopped: phase changes within a second.
+TWO_PHASES = """
+recipe: two_phases
+phases:
+  - name: first
+    torques: [0.04, 0.03, 0.02, 0.04, 0.03, 0.02, -0.04, -0.03, -0.02]
+    ramp_s: 0.1
+    max_s: 0.4
+    on_timeout: next
+  - name: second
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 600
+"""
+
+
+#: Close, then hold: 0.4 + 1.6 s, each phase timed (the runtime's tests).
+CLOSE_AND_HOLD_2S = """
+recipe: hold
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 0.4
+    on_timeout: next
+  - name: hold
+    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 1.6
+    on_timeout: next
+"""
+
+#: Close, then hold: 0.3 + 0.6 s, each phase timed (the tick-exception tests).
+CLOSE_AND_HOLD_1S = """
+recipe: hold
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.2
+    max_s: 0.3
+    on_timeout: next
+  - name: hold
+    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
+    ramp_s: 0.1
+    max_s: 0.6
+    on_timeout: next
+"""
+
+#: Close, then hold: 0.3 + 0.6 s (the recording and replay tests; ``short_recipe``).
+SHORT = """
+recipe: short_hold
+phases:
+  - name: close
+    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.15
+    max_s: 0.3
+    on_timeout: next
+  - name: hold
+    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
+    ramp_s: 0.15
+    max_s: 0.6
+    on_timeout: next
+"""
+
+
+def short_recipe(hand: HandConfig, directory: Path, hold_s: float = 0.6) -> Recipe:
+    """Close, then hold for ``hold_s``: a short run with torque flowing."""
+    path = directory / "short_hold.yaml"
+    path.write_text(SHORT.replace("max_s: 0.6", f"max_s: {hold_s}"))
+    return load_recipe(path, hand)
+
+
+def write_recipe(directory: Path, text: str, name: str = "recipe.yaml") -> Path:
+    """A recipe written where a test may leave it (its tmp_path), for a loader or the CLI."""
+    path = directory / name
+    path.write_text(text)
+    return path

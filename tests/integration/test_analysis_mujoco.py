@@ -110,7 +110,7 @@ def _displacements(model: object, grasp: Grasp, tau: Array) -> Array:
         data.qfrc_applied[first_joint:first_joint + len(tau)] = tau
         mujoco.mj_step(model, data)
     end = np.array([data.qpos[3 * i + 1] for i in range(len(grasp.bodies))])
-    return end - start
+    return np.asarray(end - start, dtype=np.float64)
 
 
 def _sample(ts: ExactTorqueSet, count: int, seed: int) -> Array:

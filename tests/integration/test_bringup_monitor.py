@@ -25,7 +25,8 @@ from .bringup_peer import HOST_IDS, running_hand
 def _last(out: str) -> dict[str, Any]:
     lines = [json.loads(line) for line in out.splitlines() if line.strip()]
     assert lines, "no JSON lines"
-    return lines[-1]
+    last: dict[str, Any] = lines[-1]
+    return last
 
 
 def _by_name(snapshot: dict[str, Any]) -> dict[str, dict[str, Any]]:

@@ -23,8 +23,7 @@ from handctl.recording.reader import iter_decoded, open_recording
 from handctl.recording.recorder import Recorder
 from handctl.sim import faults as inj
 
-from .rig import rig
-from .test_recording import short_recipe
+from .rig import rig, short_recipe
 
 FOREIGN_ID = 0x050
 #: About all a CAN-FD bus carries besides the hand's own traffic (the loop benchmark's 20).

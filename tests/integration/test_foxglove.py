@@ -26,6 +26,7 @@ import websockets
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import Message
 from mcap.reader import make_reader
+from websockets.typing import Subprotocol
 
 from handctl.config import HandConfig
 from handctl.foxglove import derived as fx
@@ -36,7 +37,7 @@ from ..conftest import HAND_YAML, ROOT
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 #: The subprotocol foxglove-sdk 0.30 speaks (the successor of "foxglove.websocket.v1").
-SUBPROTOCOL = "foxglove.sdk.v1"
+SUBPROTOCOL = Subprotocol("foxglove.sdk.v1")
 WANTED = (fx.SCENE, fx.JOINTS, fx.TRANSFORMS, ch.JOINT_STATE)
 #: Enough of a run for the estimator to find both cylinders in the hand.
 RUN_S = "3"
@@ -181,8 +182,8 @@ def test_well_known_channels_decode_with_their_own_schemas(run: Run, hand: HandC
         summary = make_reader(handle).get_summary()
     assert summary is not None
     by_topic = {c.topic: (c, summary.schemas[c.schema_id]) for c in summary.channels.values()}
-    for topic in ch.CHANNELS:  # the recorded channels are all still there
-        assert topic.topic in by_topic
+    for recorded in ch.CHANNELS:  # the recorded channels are all still there
+        assert recorded.topic in by_topic
     types: dict[str, Any] = {}
     validators = {}
     for topic, (channel, schema) in by_topic.items():

@@ -131,9 +131,10 @@ def test_ctrl_c_stops_the_plan_and_all_its_workers(tmp_path: Path) -> None:
 
 def _cmdline(process: psutil.Process) -> list[str]:
     try:
-        return process.cmdline()
+        line: list[str] = process.cmdline()
     except psutil.Error:
         return []
+    return line
 
 
 @pytest.mark.parametrize(("options", "message"), [

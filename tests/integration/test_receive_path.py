@@ -17,8 +17,7 @@ from handctl.safety.faults import FaultCode
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
 
-from .rig import Rig, rig
-from .test_runtime import HOLD
+from .rig import CLOSE_AND_HOLD_2S, Rig, rig
 
 INJECT_AT = 1.0  # s of simulated time: inside the hold phase
 INJECT_TICK = round(INJECT_AT / 0.001)
@@ -27,7 +26,7 @@ INJECT_TICK = round(INJECT_AT / 0.001)
 @pytest.fixture(scope="module")
 def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
     path = tmp_path_factory.mktemp("recipes") / "hold.yaml"
-    path.write_text(HOLD)
+    path.write_text(CLOSE_AND_HOLD_2S)
     return load_recipe(path, hand)
 
 

@@ -22,13 +22,14 @@ from typing import Any
 import jsonschema
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Channel as McapChannel
+from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 
 from handctl.clock import Tick
 from handctl.config import HandConfig
 from handctl.foxglove.derived import Derived
 from handctl.loop import Outcome, RunResult, TickRecord
-from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
@@ -39,22 +40,8 @@ from handctl.safety.supervisor import State
 from handctl.sim import faults as inj
 
 from ..conftest import ROOT
-from .rig import rig
+from .rig import rig, short_recipe
 
-SHORT = """
-recipe: short_hold
-phases:
-  - name: close
-    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
-    ramp_s: 0.15
-    max_s: 0.3
-    on_timeout: next
-  - name: hold
-    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
-    ramp_s: 0.15
-    max_s: 0.6
-    on_timeout: next
-"""
 ESTOP_TICK = 700
 #: The channels the writer derives for Foxglove, beside the recorded ones.
 DERIVED = Derived.from_metadata(
@@ -72,13 +59,6 @@ class Recorded:
     poses: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
     final_angle: list[float] = field(default_factory=list)
     final_tdt: list[float] = field(default_factory=list)
-
-
-def short_recipe(hand: HandConfig, directory: Path, hold_s: float = 0.6) -> Recipe:
-    """Close, then hold for ``hold_s``: a short run with torque flowing."""
-    path = directory / "short_hold.yaml"
-    path.write_text(SHORT.replace("max_s: 0.6", f"max_s: {hold_s}"))
-    return load_recipe(path, hand)
 
 
 def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool = True,
@@ -407,14 +387,14 @@ def test_sigkill_of_both_leaves_a_readable_prefix(hand: HandConfig, tmp_path: Pa
     ours = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert [m for t, _, m in ours if t == ch.TIMING], "nothing of the run was on disk"
     # The library's streaming reader reads the same prefix before it stops at the cut.
-    theirs = []
+    theirs: list[McapMessage] = []
     with path.open("rb") as handle, \
             pytest.raises(Exception):  # noqa: B017 - whatever the library raises at the cut
-        json_channels = set()
+        json_channels: set[int] = set()
         for record in StreamReader(handle, validate_crcs=True).records:
-            if type(record).__name__ == "Channel" and record.message_encoding == "json":
+            if isinstance(record, McapChannel) and record.message_encoding == "json":
                 json_channels.add(record.id)
-            if type(record).__name__ == "Message" and record.channel_id in json_channels:
+            if isinstance(record, McapMessage) and record.channel_id in json_channels:
                 theirs.append(record)
     assert [json.loads(m.data) for m in theirs] == [m for _, _, m in ours]
 

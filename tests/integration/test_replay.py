@@ -27,7 +27,8 @@ from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.replay import load_series, logged_frames, rerun, summarise, to_bus
 
 from ..conftest import ROOT
-from .test_recording import ESTOP_TICK, Recorded, record_run, short_recipe
+from .rig import SHORT, short_recipe
+from .test_recording import ESTOP_TICK, Recorded, record_run
 
 
 def handctl(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
@@ -66,7 +67,7 @@ def rewrite(source: Path, target: Path, change: Any) -> None:
                 raw = json.dumps(change(channel.topic, json.loads(raw))).encode()
             writer.add_message(channel_ids[channel.id], message.log_time, raw,
                                message.publish_time)
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
 
 
 # -- re-run -----------------------------------------------------------------------------------
@@ -220,8 +221,6 @@ def test_realtime_recording_reruns_bit_exact(tmp_path: Path) -> None:
 
 
 def short_recipe_path(directory: Path) -> Path:
-    from .test_recording import SHORT
-
     path = directory / "short_hold.yaml"
     path.write_text(SHORT)
     return path
@@ -351,7 +350,7 @@ def test_rerun_of_a_log_without_the_channels_is_exit_2(tmp_path: Path) -> None:
         schema = writer.register_schema("Other", "jsonschema", b"{}")
         channel = writer.register_channel("/other", "json", schema)
         writer.add_message(channel, 1, b"{}", 1)
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
     done = handctl("replay", str(foreign), "--rerun")
     assert done.returncode == 2, done.stdout + done.stderr
     assert str(foreign) in done.stderr and "/loop/timing" in done.stderr
@@ -380,8 +379,6 @@ def test_unwritable_log_is_exit_2_before_the_run(tmp_path: Path) -> None:
 def test_rerun_of_a_run_with_the_object_estimator(tmp_path: Path) -> None:
     """A recipe with objects runs with the estimator: the re-run sets it up the same way and
     feeds it the same angles, so even its tracking state comes out the same."""
-    from .test_recording import SHORT
-
     recipe = tmp_path / "with_objects.yaml"
     recipe.write_text(SHORT.replace("phases:", "objects:\n  - {name: cyl1, radius: 0.020}\n"
                                                "  - {name: cyl2, radius: 0.020}\nphases:"))

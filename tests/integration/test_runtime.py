@@ -18,29 +18,15 @@ from handctl.safety.supervisor import State
 from handctl.sim import faults as inj
 
 from ..conftest import ROOT
-from .rig import rig
+from .rig import CLOSE_AND_HOLD_2S, rig
 
-HOLD = """
-recipe: hold
-phases:
-  - name: close
-    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
-    ramp_s: 0.2
-    max_s: 0.4
-    on_timeout: next
-  - name: hold
-    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
-    ramp_s: 0.2
-    max_s: 1.6
-    on_timeout: next
-"""
 INJECT_AT = 1.0  # s of simulated time: well inside the hold phase
 
 
 @pytest.fixture(scope="module")
 def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
     path = tmp_path_factory.mktemp("recipes") / "hold.yaml"
-    path.write_text(HOLD)
+    path.write_text(CLOSE_AND_HOLD_2S)
     return load_recipe(path, hand)
 
 
@@ -176,7 +162,7 @@ def test_angle_limit_is_a_ramp_stop(hand: HandConfig, tmp_path: Path) -> None:
     fingers[0] = replace(fingers[0], joints=tuple(joints))
     tight = replace(hand, fingers=tuple(fingers))
     path = tmp_path / "hold.yaml"
-    path.write_text(HOLD)
+    path.write_text(CLOSE_AND_HOLD_2S)
     with rig(tight, load_recipe(path, tight)) as r:
         result = r.run()
     assert result.faults[0].code is FaultCode.ANGLE_LIMIT

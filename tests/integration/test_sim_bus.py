@@ -12,7 +12,8 @@ from handctl.bus import open_bus
 from handctl.config import HandConfig
 from handctl.sim.hand import SimulatedHand, standalone
 
-from .test_sim_support import DB, SimHost, crc8_autosar, crc_ok, enable_all, sim_and_host
+from ..dbc import DB
+from .test_sim_support import SimHost, crc8_autosar, crc_ok, enable_all, sim_and_host
 
 
 def _session(host: SimHost) -> None:
@@ -62,14 +63,14 @@ def test_every_frame_conforms_to_the_dbc(hand: HandConfig, channel: str) -> None
         assert ids == sorted(ids)  # frames queued together leave by arbitration order
     counts = Counter(h.id for h in host.heard)
     for finger in hand.fingers:
-        ids = finger.can_ids
-        assert counts[ids.feedback] == ticks  # every 1 ms, in every state
-        assert counts[ids.heartbeat] == math.ceil(ticks / 100)
-        uptimes = [h.signals()["Uptime"] for h in host.heard if h.id == ids.heartbeat]
+        can_ids = finger.can_ids
+        assert counts[can_ids.feedback] == ticks  # every 1 ms, in every state
+        assert counts[can_ids.heartbeat] == math.ceil(ticks / 100)
+        uptimes = [h.signals()["Uptime"] for h in host.heard if h.id == can_ids.heartbeat]
         assert uptimes == list(range(0, ticks, 100))
         # periodic Status plus one per state change: boot 0, enable, (disable), e-stop, reset
         changes = 4 if finger.node_id == 2 else 3
-        assert counts[ids.status] == math.ceil(ticks / 100) + changes
+        assert counts[can_ids.status] == math.ceil(ticks / 100) + changes
 
 
 def test_states_seen_on_the_bus(hand: HandConfig, channel: str) -> None:
@@ -158,7 +159,7 @@ def test_ground_truth_is_not_on_the_bus(hand: HandConfig, channel: str) -> None:
         truth = sim.ground_truth()
         summary = sim.ground_truth_summary()
     assert [o.name for o in truth.objects] == ["cyl1", "cyl2"]
-    assert summary["objects"]["cyl1"]["moved"] < 1e-3  # nothing touched them
+    assert summary["objects"]["cyl1"]["moved_m"] < 1e-3  # nothing touched them
     ids = {h.id for h in host.heard}
     assert ids <= {m.frame_id for m in DB.messages if m.senders[0].startswith("FINGER")}
 

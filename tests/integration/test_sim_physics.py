@@ -89,7 +89,10 @@ def test_tdt_follows_the_command_through_both_lags(hand: HandConfig, channel: st
     with sim_and_host(hand, channel, params=clean) as (sim, host):
         sim.plant.hold_objects(True)
         enable_all(host)
-        readings = [host.tick(tau) and host.last("Feedback", 1)["Torque1"] for _ in range(60)]
+        readings: list[float] = []
+        for _ in range(60):
+            assert host.tick(tau)
+            readings.append(host.last("Feedback", 1)["Torque1"])
     ta, ts = clean.actuator_lag[0], clean.tdt.lag
 
     def step_response(t: float) -> float:  # two first-order lags in series, unit step

@@ -13,14 +13,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-import cantools
-
 from handctl.bus import BusEvent, Frame, HandBus, open_bus
 from handctl.config import HandConfig
-from handctl.protocol import DEFAULT_DBC, NODE_COMMANDS, Protocol, load_protocol
+from handctl.protocol import NODE_COMMANDS, Protocol, load_protocol
 from handctl.sim.hand import SimulatedHand
 
-DB = cantools.database.load_file(str(DEFAULT_DBC))
+from ..dbc import DB, decode
 
 
 def crc8_autosar(data: bytes) -> int:
@@ -35,6 +33,7 @@ def crc8_autosar(data: bytes) -> int:
 
 def crc_ok(frame: Frame) -> bool:
     message = DB.get_message_by_frame_id(frame.arbitration_id)
+    assert message.dbc is not None
     data_id = int(message.dbc.attributes["DataID"].value)
     return crc8_autosar(bytes((data_id & 0xFF, data_id >> 8)) + frame.data[1:]) == frame.data[0]
 
@@ -49,7 +48,7 @@ class Heard:
         return self.frame.arbitration_id
 
     def signals(self) -> dict[str, Any]:
-        return dict(DB.decode_message(self.id, self.frame.data, decode_choices=False))
+        return decode(self.id, self.frame.data, choices=False)
 
 
 class SimHost:

@@ -45,24 +45,12 @@ from handctl.recording.reader import iter_decoded, open_recording
 from handctl.recording.recorder import Recorder
 from handctl.safety import supervisor as supervisor_module
 from handctl.safety.faults import FaultCode
+from handctl.safety.limits import limit_torque
 from handctl.sim.hand import SimulatedHand
 
-from .rig import DB
+from ..dbc import decode
+from .rig import CLOSE_AND_HOLD_1S
 
-HOLD = """
-recipe: hold
-phases:
-  - name: close
-    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
-    ramp_s: 0.2
-    max_s: 0.3
-    on_timeout: next
-  - name: hold
-    torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03]
-    ramp_s: 0.1
-    max_s: 0.6
-    on_timeout: next
-"""
 #: Ticks after the first command when the exception is forced: the hold torque flows by then
 #: (and the status line, every 100 ticks, is due at it).
 ARM_TICKS = 400
@@ -149,7 +137,7 @@ def _wrap(due: Trigger, stage: str, real: Callable[..., Any]) -> Callable[..., A
 BROKEN_NODE = 2
 
 
-def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:
+def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:  # noqa: C901 - one branch per loop stage
     """Make ``stage`` raise when ``due`` says so, inside the real code of that stage."""
     rt, protocol = b.runtime, load_protocol()
     if stage == "poll":
@@ -164,7 +152,7 @@ def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:
         mp.setattr(rt.runner, "step", _wrap(due, stage, rt.runner.step))
     elif stage == "supervisor":
         mp.setattr(supervisor_module, "limit_torque",
-                   _wrap(due, stage, supervisor_module.limit_torque))
+                   _wrap(due, stage, limit_torque))
     elif stage == "encode":
         layout = protocol.layout("TorqueCommand", BROKEN_NODE)
         mp.setattr(layout, "encode", _wrap(due, stage, layout.encode))
@@ -228,11 +216,11 @@ def hear(listener: can.BusABC, hand: HandConfig) -> Wire:
         pos += 1
         frame_id, data = msg.arbitration_id, bytes(msg.data)
         if frame_id in torque_ids:
-            sig = DB.decode_message(frame_id, data)
+            sig = decode(frame_id, data)
             wire.torques[torque_ids[frame_id]].append(
                 (pos, np.array([sig["Torque1"], sig["Torque2"], sig["Torque3"]])))
-        elif frame_id in command_ids and DB.decode_message(
-                frame_id, data, decode_choices=False)["Command"] == DISABLE:
+        elif frame_id in command_ids and decode(
+                frame_id, data, choices=False)["Command"] == DISABLE:
             wire.disables[command_ids[frame_id]].append(pos)
         elif frame_id == 0:
             wire.estops.append(pos)
@@ -276,7 +264,7 @@ def logged_faults(log: Path) -> tuple[bool, int, list[dict[str, Any]]]:
 @pytest.fixture(scope="module")
 def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
     path = tmp_path_factory.mktemp("recipes") / "hold.yaml"
-    path.write_text(HOLD)
+    path.write_text(CLOSE_AND_HOLD_1S)
     return load_recipe(path, hand)
 
 
@@ -462,7 +450,7 @@ def _cli_run(args: list[str], monkeypatch: pytest.MonkeyPatch) -> tuple[int, can
     """``handctl run recipe`` in this process, with a plain python-can listener joined to the
     simulated hand's private virtual channel as soon as the run opens it."""
     listeners: list[can.BusABC] = []
-    real_open = session.open_bus
+    real_open = open_bus
 
     def open_and_listen(spec: Any, *rest: Any, **kwargs: Any) -> Any:
         bus = real_open(spec, *rest, **kwargs)
@@ -570,7 +558,7 @@ def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
 
     monkeypatch.setattr(Recorder, "_flush_frames", flush)
     recipe = tmp_path / "hold.yaml"
-    recipe.write_text(HOLD)
+    recipe.write_text(CLOSE_AND_HOLD_1S)
     out, log = tmp_path / "out.json", tmp_path / "run.mcap"
     code, listener = _cli_run([str(recipe), "--summary-json", str(out), "--log", str(log)],
                               monkeypatch)

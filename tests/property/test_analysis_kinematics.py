@@ -100,7 +100,7 @@ def test_eq9_equals_finite_difference_of_eqs_1_2(grasp: Grasp, seed: int) -> Non
     rng = np.random.default_rng(seed)
     kin = contact_kinematics(grasp)
     theta_dot = rng.normal(size=grasp.joint_count)
-    p_dot = rng.normal(size=kin.d_b.shape[1])
+    p_dot = rng.normal(size=int(kin.d_b.shape[1]))
     fd = (_mismatch(grasp, theta_dot, p_dot, STEP)
           - _mismatch(grasp, theta_dot, p_dot, -STEP)) / (2 * STEP)
     np.testing.assert_allclose(kin.d_f @ theta_dot - kin.d_b @ p_dot, fd, atol=1e-6)

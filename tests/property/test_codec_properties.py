@@ -6,17 +6,16 @@ from __future__ import annotations
 import itertools
 import os
 
-import cantools
 from hypothesis import HealthCheck, given, settings
 
 from handctl.bus import open_bus
 from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
-from handctl.protocol import DEFAULT_DBC, Layout
+from handctl.protocol import Layout
 
+from ..dbc import DB, decode
 from ..strategies import PROTOCOL, frame_batches, message_and_values
 
-DB = cantools.database.load_file(str(DEFAULT_DBC))
 #: The benchmark run sets this high (>= 100 000 frames); CI keeps it small.
 FUZZ_EXAMPLES = int(os.environ.get("HANDCTL_FUZZ_EXAMPLES", "2000"))
 _channels = itertools.count()
@@ -39,7 +38,7 @@ def test_decode_matches_cantools(case: tuple[Layout, int, tuple[float, ...]]) ->
     layout, counter, values = case
     data = layout.encode(counter, values)
     got_counter, got = layout.decode(data)
-    theirs = DB.decode_message(layout.frame_id, data, decode_choices=False)
+    theirs = decode(layout.frame_id, data, choices=False)
     assert got_counter == theirs["Counter"] == counter
     assert list(got) == [theirs[name] for name in layout.signal_names]
     assert layout.crc_ok(data)

@@ -5,6 +5,7 @@ another exception."""
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,8 @@ from handctl.schema import parse_yaml
 
 from ..conftest import HAND_YAML, ROOT
 
+#: YAML's line breaks (str.splitlines counts more, e.g. form feeds).
+YAML_LINE_BREAKS = re.compile("\r\n|[\r\n\x85\u2028\u2029]")
 RECIPE_YAML = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 EXAMPLES = int(os.environ.get("HANDCTL_FUZZ_EXAMPLES", "2000")) // 10
 HAND_DATA = yaml.safe_load(HAND_YAML.read_text())
@@ -101,10 +104,16 @@ def test_mutated_recipes(tmp_path: Path, hand: HandConfig, data: Any) -> None:
 @settings(max_examples=EXAMPLES, deadline=None)
 @given(st.text(max_size=200))
 def test_random_text_as_yaml(text: str) -> None:
+    """Any text is a mapping or a ConfigError of this file, and a line it names is in it."""
     try:
-        parse_yaml(text, "fuzz.yaml")
+        doc = parse_yaml(text, "fuzz.yaml")
     except ConfigError as exc:
-        assert "fuzz.yaml" in str(exc)
+        assert exc.file == "fuzz.yaml" and exc.expected
+        lines = len(YAML_LINE_BREAKS.split(text))
+        for named in re.findall(r"line (\d+)", exc.expected):
+            assert 1 <= int(named) <= lines, (exc.expected, lines)
+    else:
+        assert isinstance(doc.data, dict)
 
 
 @settings(max_examples=EXAMPLES, deadline=None,

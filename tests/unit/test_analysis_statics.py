@@ -64,7 +64,7 @@ def test_eq14_and_eq19_hold_for_the_force_of_eq20(reading: str) -> None:
     st = statics(grasp)
     rng = np.random.default_rng(3)
     for _ in range(20):
-        lam = rng.uniform(0.0, 5.0, size=st.v.shape[1])
+        lam = rng.uniform(0.0, 5.0, size=int(st.v.shape[1]))
         acc = st.acceleration(lam)
         # eq. 19 differentiated at rest: the contact point C does not accelerate apart
         np.testing.assert_allclose(st.d_o @ acc, 0.0, atol=1e-12)
@@ -96,7 +96,7 @@ def test_eq24_as_printed_never_holds_for_two_discs(reading: str,
     n1 = grasp.body_contacts[0].normal
     rng = np.random.default_rng(7)
     for _ in range(200):
-        lam = rng.exponential(1.0, size=st.v.shape[1]) * (rng.uniform(size=8) < 0.7)
+        lam = rng.exponential(1.0, size=int(st.v.shape[1])) * (rng.uniform(size=8) < 0.7)
         totals = st.totals(lam)
         assert float(n1 @ totals[:2]) * float(-n1 @ totals[2:]) <= 1e-9
 
@@ -109,7 +109,7 @@ def test_condition_rows_evaluate_the_physics() -> None:
                            "compression cylinder1/cylinder2")
     st = cond.statics
     rng = np.random.default_rng(11)
-    lam = rng.uniform(0.0, 2.0, size=st.v.shape[1])
+    lam = rng.uniform(0.0, 2.0, size=int(st.v.shape[1]))
     values = cond.values(lam)
     totals = st.totals(lam)
     assert values[0] == pytest.approx(totals[1])
@@ -126,7 +126,7 @@ def test_friction_rows_at_c_when_mu_is_given() -> None:
     assert cond.count == 4
     rng = np.random.default_rng(5)
     for _ in range(50):
-        lam = rng.uniform(0.0, 2.0, size=cond.statics.v.shape[1])
+        lam = rng.uniform(0.0, 2.0, size=int(cond.statics.v.shape[1]))
         f = cond.statics.f_co(lam)
         values = cond.values(lam)
         inside_cone = abs(f[1]) < 0.4 * -f[0]

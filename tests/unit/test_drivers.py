@@ -19,7 +19,9 @@ from handctl.config import HandConfig
 from handctl.drivers.finger import fault_names
 from handctl.drivers.hand import AppliedTorques, HandDriver, check_ids
 from handctl.errors import ConfigError
-from handctl.protocol import DEFAULT_DBC, Protocol
+from handctl.protocol import Protocol
+
+from ..dbc import decode, load_dbc
 
 
 class Clock:
@@ -43,7 +45,7 @@ def driver(hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBu
 
 @pytest.fixture(scope="module")
 def db() -> cantools.database.can.Database:
-    return cantools.database.load_file(str(DEFAULT_DBC))
+    return load_dbc()
 
 
 def feedback(protocol: Protocol, node: int, counter: int, tdt: tuple[float, float, float],
@@ -59,10 +61,10 @@ def test_sent_commands_decode_with_cantools(driver: HandDriver, bus_pair: tuple[
     assert driver.send(AppliedTorques(np.zeros(9)))
     frames = peer.drain()
     assert [f.arbitration_id for f in frames] == [0x101, 0x102, 0x103] * 2
-    first = db.decode_message(frames[2].arbitration_id, frames[2].data)
+    first = decode(frames[2].arbitration_id, frames[2].data)
     assert first["Counter"] == 0
     assert [first[f"Torque{k}"] for k in (1, 2, 3)] == pytest.approx([-0.1, -0.2, -0.25])
-    assert db.decode_message(frames[5].arbitration_id, frames[5].data)["Counter"] == 1
+    assert decode(frames[5].arbitration_id, frames[5].data)["Counter"] == 1
 
 
 def test_node_commands_and_estop(driver: HandDriver, bus_pair: tuple[HandBus, HandBus],
@@ -74,9 +76,9 @@ def test_node_commands_and_estop(driver: HandDriver, bus_pair: tuple[HandBus, Ha
     frames = peer.drain()
     names = [db.get_message_by_frame_id(f.arbitration_id).name for f in frames]
     assert names == ["NodeCommand_2", "NodeCommand_1", "NodeCommand_2", "NodeCommand_3", "EStop"]
-    assert str(db.decode_message(0x12, frames[0].data)["Command"]) == "enable"
-    assert str(db.decode_message(0x12, frames[2].data)["Command"]) == "fault_reset"
-    assert str(db.decode_message(0, frames[4].data)["Reason"]) == "operator"
+    assert str(decode(0x12, frames[0].data)["Command"]) == "enable"
+    assert str(decode(0x12, frames[2].data)["Command"]) == "fault_reset"
+    assert str(decode(0, frames[4].data)["Reason"]) == "operator"
 
 
 def test_good_feedback_updates_the_joint_state(driver: HandDriver, protocol: Protocol,

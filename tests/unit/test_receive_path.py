@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from handctl.bus import EXTENDED_ID_FLAG, BusEventKind, HandBus, open_bus
+from handctl.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
 from handctl.busload import frames_per_period, shortest_frame_time_s
 from handctl.clock import LockstepClock
 from handctl.config import HandConfig
@@ -83,10 +83,10 @@ def test_the_unix_bus_stamps_frames_when_they_arrive(hand: HandConfig, tmp_path:
 
 def test_a_lockstep_peer_steps_at_the_new_ticks_time() -> None:
     seen: list[int] = []
-    clock = LockstepClock(0.001, lambda: seen.append(clock.now_ns()))
+    lockstep = LockstepClock(0.001, lambda: seen.append(lockstep.now_ns()))
 
     async def two() -> list[int]:
-        return [(await clock.wait_tick()).now_ns for _ in range(2)]
+        return [(await lockstep.wait_tick()).now_ns for _ in range(2)]
 
     assert asyncio.run(two()) == seen == [1 * MS, 2 * MS]
 
@@ -161,7 +161,7 @@ def test_the_unix_bus_carries_the_extended_flag(hand: HandConfig, tmp_path: Path
         assert tx.send(EXTENDED_ID_FLAG | 0x181, bytes(16))
         assert tx.send(0x181, bytes(16))
         deadline = time.monotonic() + 2
-        frames = []
+        frames: list[Frame] = []
         while len(frames) < 2 and time.monotonic() < deadline:
             frames += rx.drain()
     assert [f.arbitration_id for f in frames] == [EXTENDED_ID_FLAG | 0x181, 0x181]

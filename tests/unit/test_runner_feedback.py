@@ -59,7 +59,7 @@ def _drive(runner: RecipeRunner, rate_deg_s: float, seconds: float, t0: float = 
     return t, out, turn
 
 
-TURN_RATE = {"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 1.5]}}
+TURN_RATE: dict[str, object] = {"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 1.5]}}
 
 
 def test_too_fast_scales_the_torque_down_to_its_least(tmp_path: Path,

@@ -22,14 +22,26 @@ from handctl.sim.faults import (
 SCENARIOS = Path(__file__).resolve().parents[2] / "config" / "sim"
 
 
-def test_at_least_twelve_injectors() -> None:
-    assert len(INJECTORS) >= 12
+#: Injectors the fault campaign (handctl/sim/campaign.py CASES, and so the table of
+#: docs/faults.md) does not run yet. A known gap: shrink it, never grow it.
+NOT_IN_THE_CAMPAIGN = {"extended_twin", "contradict", "replay_frames"}
 
 
-@pytest.mark.parametrize("path", sorted(SCENARIOS.glob("*.yaml")), ids=lambda p: p.name)
-def test_shipped_scenarios_load(path: Path, hand: HandConfig) -> None:
-    schedule = load_scenario(path, hand)
-    assert len(schedule) >= 1
+def test_every_injector_is_in_the_fault_table_of_the_docs() -> None:
+    """docs/faults.md lists what each injector does to a run: a new one needs its row."""
+    table = (SCENARIOS.parents[1] / "docs" / "faults.md").read_text()
+    assert {kind for kind in INJECTORS if f"| `{kind}` |" not in table} == NOT_IN_THE_CAMPAIGN
+
+
+def test_shipped_scenarios_load_and_switch_within_their_runs(hand: HandConfig) -> None:
+    """Every shipped scenario (none may be missing from the folder) loads for the default
+    hand, and every entry starts at or after 0 s and stops after it starts."""
+    shipped = sorted(SCENARIOS.glob("*.yaml"))
+    assert {p.name for p in shipped} >= {"every_injector.yaml", "feedback_dropout.yaml"}
+    for path in shipped:
+        for entry in load_scenario(path, hand):
+            assert entry.start >= 0.0, (path.name, entry)
+            assert entry.stop is None or entry.stop > entry.start, (path.name, entry)
 
 
 def test_reference_scenario_uses_every_injector(hand: HandConfig) -> None:

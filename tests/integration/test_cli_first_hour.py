@@ -1,0 +1,126 @@
+"""The command line as a newcomer meets it: from any directory, with exit codes that mean
+what the README says, output that may be cut short, and a summary that names its units."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from handctl.cli import DEFAULT_HAND, status_text
+from handctl.config import load_hand
+from handctl.loop import Outcome, StatusLine
+from handctl.recipes.loader import load_recipe
+from handctl.session import RunRequest, run_recipe
+
+from ..conftest import HAND_YAML, ROOT
+from .rig import TWO_PHASES, write_recipe
+
+RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+#: A unit (or "this is a fraction") in a key: ``held_s``, ``lateness_us``, ``stage_cpu_us_p99``.
+UNIT_IN_KEY = re.compile(r"_(s|ms|us|ns|m|mm|rad|deg|nm|n|hz|mb|fraction|ratio)(_|$)", re.I)
+
+
+def handctl(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=cwd, text=True,
+                          capture_output=True, timeout=600, check=False)
+
+
+def test_the_packaged_default_hand_is_the_repository_copy() -> None:
+    assert DEFAULT_HAND.read_bytes() == HAND_YAML.read_bytes()
+
+
+def test_defaults_do_not_depend_on_the_current_directory(tmp_path: Path) -> None:
+    done = handctl(tmp_path, "check")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[-1] == "ok"
+
+
+def test_a_missing_hand_is_reported_against_the_option_that_named_it(tmp_path: Path) -> None:
+    done = handctl(tmp_path, "run", "recipe", str(RECIPE), "--hand", "nothere.yaml")
+    assert done.returncode == 2
+    assert "handctl: error: --hand: expected an existing hand config file" in done.stderr
+    assert "nothere.yaml: no such file" in done.stderr
+    done = handctl(tmp_path, "check", "nothere.yaml")
+    assert done.returncode == 2
+    assert "HAND.yaml: expected an existing hand config file" in done.stderr
+
+
+@pytest.mark.parametrize("seconds", ["-1", "0", "nan", "inf"])
+def test_a_time_budget_that_is_not_a_duration_is_bad_input(tmp_path: Path,
+                                                           seconds: str) -> None:
+    out = tmp_path / "out.json"
+    done = handctl(tmp_path, "run", "recipe", str(RECIPE), "--max-seconds", seconds,
+                   "--summary-json", str(out))
+    assert done.returncode == 2, done.stderr
+    assert "--max-seconds: expected a number of seconds > 0" in done.stderr
+    assert not out.exists()  # refused before the run: nothing was sent
+
+
+def test_a_run_that_ends_on_its_time_budget_has_its_own_outcome(tmp_path: Path) -> None:
+    out = tmp_path / "out.json"
+    done = handctl(tmp_path, "run", "recipe", str(RECIPE), "--max-seconds", "0.5",
+                   "--summary-json", str(out))
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(out.read_text())
+    assert summary["outcome"] == "time_budget"
+    assert summary["completed"] is False
+    assert summary["faults"] == []
+    assert "time budget of 0.5 s reached" in summary["message"]
+    assert all(n["state"] == "DISABLED" for n in summary["sim"]["nodes"].values())
+
+
+def test_a_reader_that_leaves_early_ends_no_command_with_a_traceback(tmp_path: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "handctl", "check"], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # as `| head -0` would: every line the command writes has no reader
+    stderr = proc.stderr.read().decode()
+    proc.stderr.close()
+    assert proc.wait(timeout=300) == 0, stderr
+    assert "Traceback" not in stderr and "BrokenPipeError" not in stderr, stderr
+
+
+def _floats_without_units(value: Any, path: tuple[str, ...] = ()) -> list[str]:
+    if isinstance(value, dict):
+        return [p for k, v in value.items() for p in _floats_without_units(v, (*path, str(k)))]
+    if isinstance(value, list):
+        return [p for v in value for p in _floats_without_units(v, path)]
+    if isinstance(value, float) and math.isfinite(value) \
+            and not any(UNIT_IN_KEY.search(key) for key in path):
+        return [".".join(path)]
+    return []
+
+
+def test_the_summary_names_its_units_and_the_other_nodes_frames_are_no_rejects(
+        hand_config: Any) -> None:
+    hand, recipe = hand_config
+    lines: list[StatusLine] = []
+    report = run_recipe(RunRequest(hand=hand, recipe=recipe, max_seconds=1.2),
+                        status=lines.append)
+    assert report.result.outcome is Outcome.TIME_BUDGET
+    summary = json.loads(json.dumps(report.summary))
+    assert _floats_without_units(summary) == []
+    for node in summary["sim"]["nodes"].values():
+        assert not [k for k, v in node.items() if k.startswith("reject") and v], node
+        assert node["other_ids_ignored"] > 0  # the other nodes' command frames, seen and left
+    # The status line: phase k of n, time in it, and that lockstep time is simulated.
+    assert all(line.simulated for line in lines)
+    numbers = [line.phase_number for line in lines]
+    assert numbers == sorted(numbers) and {1, 2} <= set(numbers)
+    assert all(line.phase_count == 2 for line in lines)
+    second = [line for line in lines if line.phase_number == 2]
+    assert second[0].phase_s < second[-1].phase_s < second[-1].t_s
+    assert "sim " in status_text(second[-1]) and "phase 2/2 second" in status_text(second[-1])
+
+
+@pytest.fixture
+def hand_config(tmp_path: Path) -> tuple[Any, Any]:
+    hand = load_hand(HAND_YAML)
+    return hand, load_recipe(write_recipe(tmp_path, TWO_PHASES), hand)

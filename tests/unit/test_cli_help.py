@@ -1,0 +1,64 @@
+"""Every subcommand's help, new ones included: examples at the end, units on quantities,
+placeholders that say what a file is."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from handctl.cli import build_parser
+
+#: A quantity's unit in brackets, e.g. ``[s]``, ``[N·m per N·m, dimensionless]``.
+UNIT = re.compile(r"\[[^\]]+\]")
+#: A file placeholder: NAME.ext (``RUN.mcap``, ``OUT.png``, ``HAND.yaml``) or DIR.
+FILE_PLACEHOLDER = re.compile(r"^([A-Z]+\.[a-z]+|DIR)$")
+
+
+def commands(parser: argparse.ArgumentParser, path: str = "handctl"
+             ) -> Iterator[tuple[str, argparse.ArgumentParser]]:
+    """Every parser below ``parser`` (itself excluded), with its command line."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                yield f"{path} {name}", child
+                yield from commands(child, f"{path} {name}")
+
+
+ALL = list(commands(build_parser()))
+
+
+def test_the_walk_finds_the_commands() -> None:
+    names = {path for path, _ in ALL}
+    assert {"handctl check", "handctl run recipe", "handctl analyze torque-set",
+            "handctl replay", "handctl sim", "handctl plan"} <= names
+
+
+@pytest.mark.parametrize(("path", "parser"), ALL, ids=[p for p, _ in ALL])
+def test_help_ends_with_examples_of_this_command(path: str,
+                                                 parser: argparse.ArgumentParser) -> None:
+    text = parser.format_help()
+    assert "\nexamples:\n" in text, path
+    examples = text.rsplit("\nexamples:\n", 1)[1].strip().splitlines()
+    assert 1 <= len(examples) <= 3, examples
+    for line in examples:
+        assert line.strip().startswith(path), (path, line)
+
+
+@pytest.mark.parametrize(("path", "parser"), ALL, ids=[p for p, _ in ALL])
+def test_every_quantity_has_a_unit(path: str, parser: argparse.ArgumentParser) -> None:
+    for action in parser._actions:
+        if action.type is float:
+            assert action.help and UNIT.search(action.help), (path, action.option_strings)
+
+
+@pytest.mark.parametrize(("path", "parser"), ALL, ids=[p for p, _ in ALL])
+def test_file_arguments_have_placeholders_that_say_what_the_file_is(
+        path: str, parser: argparse.ArgumentParser) -> None:
+    for action in parser._actions:
+        if action.type is Path:
+            assert isinstance(action.metavar, str), (path, action.dest)
+            assert FILE_PLACEHOLDER.match(action.metavar), (path, action.dest, action.metavar)
