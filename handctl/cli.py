@@ -675,7 +675,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         print(f"{args.joint}: {result.start_angle:+.4f} -> {result.end_angle:+.4f} rad "
               f"({moved:+.4f} rad) under {args.torque:+g} N·m; largest |TDT| "
               f"{result.max_abs_tdt:.4f} N·m; largest |applied| "
-              f"{result.report.summary['max_abs_tau'][args.joint]:.4f} N·m")
+              f"{result.report.summary['max_abs_tau_nm'][args.joint]:.4f} N·m")
     stopped = _run_outcome(result.report)
     return EXIT_OK if stopped is None else stopped
 

@@ -53,4 +53,4 @@ def test_a_hard_hand_ends_safely_and_says_how_it_went(tmp_path: Path, corner: st
     # whatever happened, no torque beyond a joint's tau_max was ever applied
     limits = {j["name"]: j["tau_max"] for f in yaml.safe_load(HAND_YAML.read_text())["fingers"]
               for j in f["joints"]}
-    assert all(abs(v) <= limits[k] + 1e-9 for k, v in summary["max_abs_tau"].items())
+    assert all(abs(v) <= limits[k] + 1e-9 for k, v in summary["max_abs_tau_nm"].items())
