@@ -148,6 +148,26 @@ def test_what_is_not_numbers_is_refused_as_such(hand: HandConfig) -> None:
         FaultCode.WRONG_SHAPE, f"desired torques are not numbers: {desired!r:.60}")
 
 
+@pytest.mark.parametrize("dtype", [str, object])
+def test_an_array_of_what_is_not_numbers_is_refused_as_such(hand: HandConfig,
+                                                            dtype: type) -> None:
+    desired = np.array(["a"] * hand.n_joints, dtype=dtype)
+    assert check_desired(desired, hand.n_joints) == (
+        FaultCode.WRONG_SHAPE, f"desired torques are not numbers: {desired!r:.60}")
+
+
+def test_vectors_of_another_length_are_never_truncated(hand: HandConfig,
+                                                       limits: JointLimits) -> None:
+    """The limiter and the angle check take one value per joint, or refuse to work: zipping
+    a short vector would silently leave joints out."""
+    n = hand.n_joints
+    for desired, last in ((np.zeros(n - 1), np.zeros(n)), (np.zeros(n), np.zeros(n - 1))):
+        with pytest.raises(ValueError, match="zip"):
+            limit_torque(desired, last, limits, hand.bus.period_s, np.zeros(n))
+    with pytest.raises(ValueError, match="zip"):
+        angle_violations(np.zeros(n - 1), limits)
+
+
 def test_usable_torques_pass_in_any_numeric_form(hand: HandConfig) -> None:
     top = tau_max(hand)
     for desired in (top, top.tolist(), (-top).astype(np.float32), np.arange(hand.n_joints)):

@@ -9,7 +9,7 @@ expected torques are derived from the config's limits (tau_max, rate limit, peri
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -69,6 +69,8 @@ def running(hand: HandConfig, protocol: Protocol) -> Running:
     assert not sup.filter(0, tau_max(hand)).any()  # nothing before the nodes confirm
     assert sup.observe(1, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0) == []
     assert sup.state is State.RUNNING
+    assert sup.history == [(0, State.IDLE, Event.START, State.ENABLING),
+                           (1, State.ENABLING, Event.ENABLED, State.RUNNING)]
     return Running(sup, link, 1)
 
 
@@ -122,8 +124,9 @@ def test_a_ramp_fault_ramps_linearly_from_the_applied_torque_to_zero_at_the_boun
     sup = running.sup
     start = hold(running, signed_torque(hand))
     tick = running.tick + 1
-    assert sup.trip(code, "test", tick) is not None
+    assert sup.trip(code, "test", tick) == Fault(code, "test", tick)
     assert sup.state is State.FAULT_RAMP
+    assert sup.history[-1] == (tick, State.RUNNING, Event.FAULT_RAMP, State.FAULT_RAMP)
     assert sup.torque_allowed  # the nodes stay enabled through the ramp
     n = ramp_ticks(hand)
     for k in range(1, n):
@@ -140,6 +143,19 @@ def test_a_ramp_fault_ramps_linearly_from_the_applied_torque_to_zero_at_the_boun
 def test_the_ramp_fits_the_bound(hand: HandConfig) -> None:
     assert ramp_ticks(hand) * hand.bus.period_s <= RAMP_BOUND_S + 1e-12
     assert ramp_ticks(hand) > 1
+
+
+def test_a_loop_slower_than_the_ramp_bound_ramps_in_one_tick(hand: HandConfig) -> None:
+    slow = replace(hand, bus=replace(hand.bus, loop_rate_hz=0.5 / RAMP_BOUND_S))
+    sup = Supervisor(slow)
+    sup.start(0)
+    sup.fire(Event.ENABLED, 0)
+    torque = sup.filter(1, tau_max(slow)).copy()
+    assert torque.all()
+    sup.trip(FaultCode.ANGLE_LIMIT, "test", 2)
+    assert sup.state is State.FAULT_RAMP
+    assert not sup.filter(2, None).any()
+    assert sup.state is State.FAULTED
 
 
 def test_a_fault_during_a_stop_ramps_from_where_the_stop_had_got(hand: HandConfig,
@@ -231,6 +247,7 @@ def test_a_fault_latches_once_and_only_reset_leaves_faulted(hand: HandConfig,
         assert sup.state is State.FAULTED
     assert sup.reset(13)
     assert sup.state is State.IDLE
+    assert sup.history[-1] == (13, State.FAULTED, Event.RESET, State.IDLE)
     assert sup.faults == [] and sup.active_codes == set()
     assert sup.applied.tolist() == [0.0] * hand.n_joints
     # The same fault can latch again after the reset.
@@ -255,6 +272,19 @@ def test_after_a_reset_torque_comes_back_only_through_start_from_zero(
     assert sup.filter(running.tick + 3, tau_max(hand)).tolist() == rate_step(hand).tolist()
 
 
+def test_a_torque_that_must_be_refused_is_a_fault_at_its_tick(hand: HandConfig,
+                                                               running: Running) -> None:
+    sup = running.sup
+    hold(running, signed_torque(hand))
+    bad = signed_torque(hand)
+    bad[3] = np.inf
+    assert not sup.filter(running.tick + 1, bad).any()
+    assert sup.state is State.FAULTED
+    [fault] = sup.faults
+    assert (fault.code, fault.tick) == (FaultCode.NON_FINITE_TORQUE, running.tick + 1)
+    assert fault.detail.startswith("joint 3: ") and "inf" in fault.detail
+
+
 @pytest.mark.parametrize("code", RAMP_CODES)
 def test_a_ramp_fault_before_torque_flows_is_faulted_at_once(hand: HandConfig,
                                                              code: FaultCode) -> None:
@@ -266,11 +296,15 @@ def test_a_ramp_fault_before_torque_flows_is_faulted_at_once(hand: HandConfig,
         assert sup.state is State.FAULTED
 
 
+@pytest.mark.parametrize("timeout", [None, 0.0], ids=["hand", "zero"])
 def test_nodes_not_enabled_within_the_deadline_are_a_startup_fault(
-        hand: HandConfig, protocol: Protocol) -> None:
+        hand: HandConfig, protocol: Protocol, timeout: float | None) -> None:
+    if timeout is not None:
+        hand = replace(hand, safety=replace(hand.safety, enable_timeout_s=timeout))
     sup = Supervisor(hand)
     link = Link(hand, protocol)  # the nodes are never told to enable
-    deadline = math.ceil(hand.safety.enable_timeout_s / hand.bus.period_s)
+    # A deadline shorter than a tick is one tick: the nodes get one tick to answer.
+    deadline = max(1, math.ceil(hand.safety.enable_timeout_s / hand.bus.period_s))
     sup.start(5)
     for tick in range(5, 5 + deadline + 1):
         assert sup.observe(tick, link.tick(), link.hosts, np.zeros(sup.n),
@@ -278,7 +312,7 @@ def test_nodes_not_enabled_within_the_deadline_are_a_startup_fault(
         assert sup.state is State.ENABLING
     found = sup.observe(6 + deadline, link.tick(), link.hosts, np.zeros(sup.n),
                         np.zeros(sup.n), 0)
-    assert [f.code for f in found] == [FaultCode.STARTUP]
+    assert [(f.code, f.tick) for f in found] == [(FaultCode.STARTUP, 6 + deadline)]
     assert found[0].detail == ("nodes not ENABLED in time: "
                                + ", ".join(f"node {f.node_id} DISABLED" for f in hand.fingers))
     assert sup.state is State.FAULTED
@@ -302,7 +336,7 @@ def test_a_joint_past_its_soft_limit_ramps(hand: HandConfig, running: Running) -
     angle = np.zeros(hand.n_joints)
     angle[7] = hand.joints[7].angle_max + 0.01
     found = running.observe(angle=angle)
-    assert [f.code for f in found] == [FaultCode.ANGLE_LIMIT]
+    assert [(f.code, f.tick) for f in found] == [(FaultCode.ANGLE_LIMIT, running.tick)]
     j = hand.joints[7]
     assert found[0].detail == (f"{j.name} at {angle[7]:+.3f} rad, limits "
                                f"[{j.angle_min:+.3f}, {j.angle_max:+.3f}]")
@@ -315,6 +349,18 @@ def test_during_a_fault_ramp_the_angle_limit_is_not_checked(hand: HandConfig,
     angle = np.array([j.angle_min - 0.01 for j in hand.joints])
     assert running.observe(angle=angle) == []
     assert [f.code for f in running.sup.faults] == [FaultCode.RECIPE_ABORT]
+
+
+def test_a_node_that_leaves_enabled_while_running_is_a_fault(hand: HandConfig,
+                                                             running: Running) -> None:
+    running.link.pairs[1].command("disable", running.link.now_ns)
+    found = running.observe()
+    assert [f.code for f in found] == [FaultCode.NODE_STATE]
+    assert running.sup.state is State.FAULTED
+
+
+def test_nothing_is_limited_before_anything_is_asked(hand: HandConfig) -> None:
+    assert Supervisor(hand).limited_joints == 0
 
 
 def test_bus_off_is_a_bus_error(hand: HandConfig, running: Running) -> None:
@@ -341,5 +387,6 @@ def test_failed_sends_are_counted_through_sent(hand: HandConfig, running: Runnin
         sup.sent(False, k)
         assert sup.state is State.RUNNING
     sup.sent(False, 99)
-    assert [(f.code, f.tick) for f in sup.faults] == [(FaultCode.BUS_ERROR, 99)]
+    assert sup.faults == [Fault(FaultCode.BUS_ERROR, f"{limit} consecutive ticks with command "
+                                "frames that could not be sent", 99)]
     assert sup.state is State.FAULTED

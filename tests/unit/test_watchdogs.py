@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 
 from handctl.config import HandConfig, SafetyConfig
+from handctl.drivers.finger import FingerLayouts, FingerNode
 from handctl.protocol import Protocol
 from handctl.safety.faults import FaultCode
 from handctl.safety.watchdog import NodeWatch, TdtMonitor, TickWatch
-from handctl.sim.params import NODE_TICK_NS, parse_sim
+from handctl.sim.params import parse_sim
 
 from .node_pair import MS, Link
 
@@ -76,12 +77,16 @@ def test_a_heartbeat_older_than_the_timeout_by_one_ns_is_a_fault(
         hand: HandConfig, protocol: Protocol, safety: dict[str, float]) -> None:
     hand = with_safety(hand, **safety)
     link = Link(hand, protocol)
-    heard = link.enable() - NODE_TICK_NS  # the nodes' first heartbeat, at boot
-    heartbeats = {link.pairs[1].host.layouts.heartbeat.frame_id}
+    link.enable()
+    host = link.pairs[1].host
+    while host.uptime_ms in (None, 0):  # the heartbeat after the one at boot
+        link.tick()
+    heard = host.heartbeat_ns
+    assert heard is not None and heard > 0
+    heartbeats = {host.layouts.heartbeat.frame_id}
     watch = NodeWatch(hand.safety)
     watch.arm(link.hosts)
     timeout_ns = round(hand.safety.heartbeat_timeout_s * 1e9)
-    assert link.pairs[1].host.heartbeat_ns == heard
     while link.now_ns <= heard + timeout_ns:
         link.tick(lose=heartbeats)  # only node 2's heartbeats are lost; feedback flows
     assert watch.check(heard + timeout_ns, link.hosts, expect_enabled=True) == []
@@ -90,6 +95,46 @@ def test_a_heartbeat_older_than_the_timeout_by_one_ns_is_a_fault(
     assert found == [(FaultCode.HEARTBEAT_LOST,
                       f"node {f.node_id} ({f.name}): last heartbeat "
                       f"{(timeout_ns + 1) / 1e6:.0f} ms ago")]
+
+
+def test_at_exactly_its_timeout_a_message_is_fresh_even_beside_another_fault(
+        link: Link, hand: HandConfig) -> None:
+    watch = NodeWatch(hand.safety)
+    watch.arm(link.hosts)
+    pair = link.pairs[2]
+    pair.command("disable", link.now_ns)
+    link.tick()
+    f = hand.fingers[2]
+    state = (FaultCode.NODE_STATE, f"node {f.node_id} ({f.name}) is DISABLED, expected ENABLED")
+    assert pair.host.feedback_ns is not None and pair.host.heartbeat_ns is not None
+    at_feedback_timeout = pair.host.feedback_ns + round(hand.safety.feedback_timeout_s * 1e9)
+    assert watch.check(at_feedback_timeout, [pair.host], expect_enabled=True) == [state]
+    at_heartbeat_timeout = pair.host.heartbeat_ns + round(hand.safety.heartbeat_timeout_s * 1e9)
+    found = watch.check(at_heartbeat_timeout, [pair.host], expect_enabled=True)
+    assert codes(found) == [FaultCode.FEEDBACK_TIMEOUT, FaultCode.NODE_STATE]
+
+
+def test_a_long_silence_is_reported_in_milliseconds(link: Link, hand: HandConfig) -> None:
+    host = link.pairs[0].host
+    assert host.feedback_ns is not None and host.heartbeat_ns is not None
+    silence = 1000 * 10**9  # ns
+    f = hand.fingers[0]
+    found = NodeWatch(hand.safety).check(host.feedback_ns + silence, [host], expect_enabled=True)
+    assert found[0] == (FaultCode.FEEDBACK_TIMEOUT,
+                        f"node {f.node_id} ({f.name}): last valid feedback 1000000.0 ms ago")
+    found = NodeWatch(hand.safety).check(host.heartbeat_ns + silence, [host],
+                                         expect_enabled=True)
+    assert found[1] == (FaultCode.HEARTBEAT_LOST,
+                        f"node {f.node_id} ({f.name}): last heartbeat 1000000 ms ago")
+
+
+def test_an_unarmed_watch_checks_all_but_reboots(link: Link, hand: HandConfig) -> None:
+    watch = NodeWatch(hand.safety)
+    now = link.tick()
+    assert watch.check(now, link.hosts, expect_enabled=True) == []
+    link.pairs[1].command("disable", link.now_ns)
+    now = link.tick()
+    assert codes(watch.check(now, link.hosts, expect_enabled=True)) == [FaultCode.NODE_STATE]
 
 
 def test_nodes_never_heard_are_reported_as_never(hand: HandConfig, protocol: Protocol) -> None:
@@ -126,6 +171,31 @@ def test_a_node_in_fault_is_a_node_fault_named_by_its_bits(link: Link,
     for expect_enabled in (True, False):
         assert watch.check(link.now_ns, link.hosts, expect_enabled=expect_enabled) == [
             (FaultCode.NODE_FAULT, f"node {f.node_id} ({f.name}) in FAULT (SENSOR)")]
+
+
+def test_every_fault_bit_is_named(link: Link, hand: HandConfig) -> None:
+    watch = NodeWatch(hand.safety)
+    watch.arm(link.hosts)
+    pair = link.pairs[0]
+    pair.estop(link.now_ns)
+    link.tick()  # the node reports FAULT(ESTOP), in its feedback and a Status
+    pair.tick(link.now_ns, tdt=[parse_sim(hand).tdt.range + 0.1, 0.0, 0.0])
+    f = hand.fingers[0]
+    assert watch.check(link.now_ns, link.hosts, expect_enabled=True) == [
+        (FaultCode.ESTOP, f"node {f.node_id} ({f.name}) in FAULT (ESTOP, SENSOR)")]
+
+
+def test_a_node_in_fault_without_a_bit_is_a_node_fault(hand: HandConfig,
+                                                      protocol: Protocol) -> None:
+    """Firmware that reports FAULT and names no reason still stops the hand."""
+    f = hand.fingers[1]
+    layouts = FingerLayouts.for_node(protocol, f.node_id)
+    node = FingerNode(f, layouts)
+    node.receive(layouts.heartbeat.frame_id, layouts.heartbeat.encode(0, (2, 10)), 0)
+    fault = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2, 0)
+    node.receive(layouts.feedback.frame_id, layouts.feedback.encode(0, fault), 0)
+    assert NodeWatch(hand.safety).check(0, [node], expect_enabled=False) == [
+        (FaultCode.NODE_FAULT, f"node {f.node_id} ({f.name}) in FAULT (no bits)")]
 
 
 def test_a_node_in_fault_by_estop_is_an_estop(link: Link, hand: HandConfig) -> None:
@@ -190,6 +260,19 @@ def window(hand: HandConfig) -> int:
     return round(hand.safety.tdt_window_s / hand.bus.period_s)
 
 
+def test_a_new_monitor_expects_zero_torque(hand: HandConfig) -> None:
+    zero = np.zeros(hand.n_joints)
+    mon = monitor(hand)  # no reset: what a monitor expects before it is told anything
+    for _ in range(window(hand) - 1):
+        assert mon.update(zero, zero) == []
+    off = np.full(hand.n_joints, 1.01 * hand.safety.tdt_tolerance)
+    for _ in range(window(hand) - 1):
+        assert mon.update(zero, off) == []
+    assert codes(mon.update(zero, off)) == [FaultCode.TDT_MISMATCH] * hand.n_joints
+    quick = monitor(hand, tdt_window_s=hand.bus.period_s)
+    assert quick.update(zero, zero) == []
+
+
 def test_a_mismatch_is_a_fault_once_it_has_held_for_the_window(hand: HandConfig) -> None:
     mon = monitor(hand)
     applied = np.full(hand.n_joints, 0.2)
@@ -205,6 +288,26 @@ def test_a_mismatch_is_a_fault_once_it_has_held_for_the_window(hand: HandConfig)
                       f"{name}: TDT {reading[4]:+.3f} N·m, expected +0.200 N·m "
                       f"for {window(hand)} ticks")]
     assert mon.update(applied, reading) != []  # it goes on while it holds
+
+
+def test_a_reading_exactly_at_the_tolerance_is_within_it(hand: HandConfig) -> None:
+    mon = monitor(hand, tdt_window_s=hand.bus.period_s)  # a window of one tick
+    zero = np.zeros(hand.n_joints)
+    mon.reset(zero)  # the expectation stays exactly 0: the tolerance is the absolute one
+    edge = np.full(hand.n_joints, hand.safety.tdt_tolerance)
+    for reading in (edge, -edge):
+        assert mon.update(zero, reading) == []
+    beyond = np.nextafter(edge, np.inf)
+    assert len(mon.update(zero, beyond)) == hand.n_joints
+
+
+def test_vectors_of_another_length_are_refused(hand: HandConfig) -> None:
+    mon = monitor(hand)
+    n = hand.n_joints
+    with pytest.raises(ValueError, match="zip"):
+        mon.update(np.zeros(n), np.zeros(n - 1))
+    with pytest.raises(ValueError, match="zip"):
+        mon.update(np.zeros(n - 1), np.zeros(n))
 
 
 def test_one_good_reading_restarts_the_mismatch_window(hand: HandConfig) -> None:
@@ -270,6 +373,10 @@ def test_a_window_shorter_than_a_tick_is_one_tick(hand: HandConfig) -> None:
     assert mon2.update(zero, still) == []
     assert mon2.update(moving, still) == []  # one repeat: not yet two ticks the same
     assert codes(mon2.update(zero, still)) == [FaultCode.TDT_STUCK] * hand.n_joints
+    mon3 = monitor(hand, tdt_stuck_still_s=hand.bus.period_s)  # still for one tick: stuck
+    mon3.reset(zero)
+    assert mon3.update(zero, still) == []
+    assert codes(mon3.update(zero, still)) == [FaultCode.TDT_STUCK] * hand.n_joints
 
 
 def stuck_run(hand: HandConfig, swing: float, ticks: int, **safety: float
@@ -299,6 +406,20 @@ def test_a_reading_that_never_moves_while_the_command_does_is_stuck(hand: HandCo
                               f"{hand.joint_names[0]}: TDT fixed at +0.1000 N·m for {n} ticks "
                               f"while the command moved {swing:.3f} N·m")
     assert codes(found[0][1]) == [FaultCode.TDT_STUCK] * hand.n_joints
+
+
+def test_a_command_moving_exactly_the_minimum_change_is_enough(hand: HandConfig) -> None:
+    n = round(hand.safety.tdt_stuck_window_s / hand.bus.period_s)
+    change = hand.safety.tdt_stuck_min_change
+    mon = monitor(hand)
+    mon.reset(np.zeros(hand.n_joints))
+    reading = np.full(hand.n_joints, change / 2)  # within the tolerance of either command
+    found = []
+    for k in range(1, n + 2):
+        applied = np.full(hand.n_joints, change if k % 2 else 0.0)
+        found = mon.update(applied, reading)
+        assert bool(found) is (k == n + 1), f"tick {k}"
+    assert codes(found) == [FaultCode.TDT_STUCK] * hand.n_joints
 
 
 def test_a_still_reading_under_a_command_that_barely_moves_is_stuck_only_after_the_still_time(
@@ -355,10 +476,13 @@ def test_late_ticks_fault_when_consecutive_misses_reach_the_limit(hand: HandConf
     for _ in range(limit - 1):
         assert watch.tick(1) == []
     assert watch.tick(0) == []  # an on-time tick starts the count again
-    assert watch.tick(-1) == []
     for _ in range(limit - 1):
         assert watch.tick(1) == []
     assert watch.tick(1) == [(FaultCode.LOOP_OVERRUN, f"{limit} consecutive ticks missed")]
+    watch = TickWatch(hand.safety)
+    watch.tick(limit - 1)
+    assert watch.tick(-1) == []  # a clock that went back is no late tick either
+    assert watch.tick(1) == []
     assert TickWatch(hand.safety).tick(limit) == [
         (FaultCode.LOOP_OVERRUN, f"{limit} consecutive ticks missed")]
     assert TickWatch(hand.safety).tick(limit - 1) == []
