@@ -258,16 +258,21 @@ def test_after_a_reset_torque_comes_back_only_through_start_from_zero(
         hand: HandConfig, running: Running) -> None:
     sup = running.sup
     hold(running, tau_max(hand))
-    sup.trip(FaultCode.BUS_ERROR, "test", running.tick)
-    sup.ticks.consecutive_misses = 5
-    sup.ticks.consecutive_send_failures = 2
+    misses = hand.safety.max_consecutive_misses
+    failures = hand.safety.max_consecutive_send_failures
+    assert running.observe(missed=misses - 1) == []  # late ticks, one short of a fault
+    for _ in range(failures):
+        sup.sent(False, running.tick)  # the last of these is a BUS_ERROR
+    assert sup.state is State.FAULTED
     assert sup.reset(running.tick)
-    assert (sup.ticks.consecutive_misses, sup.ticks.consecutive_send_failures) == (0, 0)
-    assert sup.tdt.expected == [0.0] * hand.n_joints
-    assert not sup.filter(running.tick + 1, tau_max(hand)).any()
+    assert not sup.filter(running.tick + 1, tau_max(hand)).any()  # IDLE: nothing until START
     sup.start(running.tick + 2)
+    # The counts of late ticks and failed sends started again at the reset.
     assert sup.observe(running.tick + 2, running.link.tick(), running.link.hosts,
-                       np.zeros(sup.n), np.zeros(sup.n), 0) == []
+                       np.zeros(sup.n), np.zeros(sup.n), 1) == []
+    assert sup.state is State.RUNNING
+    for _ in range(failures - 1):
+        sup.sent(False, running.tick + 2)
     assert sup.state is State.RUNNING
     assert sup.filter(running.tick + 3, tau_max(hand)).tolist() == rate_step(hand).tolist()
 
