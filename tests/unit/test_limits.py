@@ -107,14 +107,16 @@ def test_a_change_within_both_limits_is_applied_as_asked(hand: HandConfig,
 def test_the_count_is_the_joints_that_were_limited(hand: HandConfig,
                                                    limits: JointLimits) -> None:
     top, rate_step = tau_max(hand), step(hand)
-    last = np.zeros(hand.n_joints)
-    desired = np.zeros(hand.n_joints)
-    desired[1] = top[1]  # rate-limited
-    desired[4] = -0.5 * rate_step[4]  # within both limits
-    desired[8] = -top[8]  # rate-limited downwards
+    n = hand.n_joints
+    a, b, c = 1, n // 2, n - 1
+    last = np.zeros(n)
+    desired = np.zeros(n)
+    desired[a] = top[a]  # rate-limited
+    desired[b] = -0.5 * rate_step[b]  # within both limits
+    desired[c] = -top[c]  # rate-limited downwards
     out, count = limit(desired, last, limits, hand)
     assert count == 2
-    assert out[[1, 4, 8]].tolist() == [rate_step[1], desired[4], -rate_step[8]]
+    assert out[[a, b, c]].tolist() == [rate_step[a], desired[b], -rate_step[c]]
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
@@ -181,9 +183,10 @@ def test_soft_angle_limits_include_the_limit_itself(hand: HandConfig,
     assert angle_violations(lo, limits) == []
     assert angle_violations(hi, limits) == []
     assert angle_violations((lo + hi) / 2, limits) == []
+    n = hand.n_joints
     below = lo.copy()
-    below[[2, 7]] = np.nextafter(lo[[2, 7]], -np.inf)
-    assert angle_violations(below, limits) == [2, 7]
+    below[[2, n - 2]] = np.nextafter(lo[[2, n - 2]], -np.inf)
+    assert angle_violations(below, limits) == [2, n - 2]
     above = hi.copy()
-    above[[0, 8]] = np.nextafter(hi[[0, 8]], np.inf)
-    assert angle_violations(above, limits) == [0, 8]
+    above[[0, n - 1]] = np.nextafter(hi[[0, n - 1]], np.inf)
+    assert angle_violations(above, limits) == [0, n - 1]

@@ -55,8 +55,8 @@ def rate_step(hand: HandConfig) -> np.ndarray:
 
 
 def ramp_ticks(hand: HandConfig) -> int:
-    """The fault ramp's length: as many whole ticks as fit in RAMP_BOUND_S."""
-    return round(RAMP_BOUND_S / hand.bus.period_s)
+    """The fault ramp's length: as many whole ticks as fit in RAMP_BOUND_S, and at least one."""
+    return max(1, math.floor(RAMP_BOUND_S / hand.bus.period_s + 1e-9))
 
 
 @pytest.fixture
@@ -86,7 +86,7 @@ def hold(run: Running, torque: np.ndarray) -> np.ndarray:
 
 def signed_torque(hand: HandConfig) -> np.ndarray:
     """Torques of both signs and different sizes, each within its joint's tau_max."""
-    signs = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0])[: hand.n_joints]
+    signs = np.where(np.arange(hand.n_joints) % 2 == 0, 1.0, -1.0)
     return tau_max(hand) * signs * np.linspace(0.9, 0.5, hand.n_joints)
 
 
@@ -338,12 +338,13 @@ def test_one_node_short_of_enabled_keeps_the_supervisor_enabling(
 
 
 def test_a_joint_past_its_soft_limit_ramps(hand: HandConfig, running: Running) -> None:
+    last = hand.n_joints - 1
     angle = np.zeros(hand.n_joints)
-    angle[7] = hand.joints[7].angle_max + 0.01
+    angle[last] = hand.joints[last].angle_max + 0.01
     found = running.observe(angle=angle)
     assert [(f.code, f.tick) for f in found] == [(FaultCode.ANGLE_LIMIT, running.tick)]
-    j = hand.joints[7]
-    assert found[0].detail == (f"{j.name} at {angle[7]:+.3f} rad, limits "
+    j = hand.joints[last]
+    assert found[0].detail == (f"{j.name} at {angle[last]:+.3f} rad, limits "
                                f"[{j.angle_min:+.3f}, {j.angle_max:+.3f}]")
     assert running.sup.state is State.FAULT_RAMP
 
