@@ -267,9 +267,9 @@ def test_after_a_reset_torque_comes_back_only_through_start_from_zero(
     assert sup.reset(running.tick)
     assert not sup.filter(running.tick + 1, tau_max(hand)).any()  # IDLE: nothing until START
     sup.start(running.tick + 2)
-    # The counts of late ticks and failed sends started again at the reset.
+    # The counts of late ticks and failed sends start again from zero at the reset.
     assert sup.observe(running.tick + 2, running.link.tick(), running.link.hosts,
-                       np.zeros(sup.n), np.zeros(sup.n), 1) == []
+                       np.zeros(sup.n), np.zeros(sup.n), misses - 1) == []
     assert sup.state is State.RUNNING
     for _ in range(failures - 1):
         sup.sent(False, running.tick + 2)
