@@ -176,8 +176,8 @@ def test_a_replayed_frame_changes_nothing(node: FingerNode, sender: Sender) -> N
     assert node.receive(*old, 4 * MS) is Reject.COUNTER_SKIP
     assert node.feedback == Feedback((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 2, 0x01)
     assert (node.state, node.fault_bits, node.feedback_ns, node.accepted) == (2, 0x01, 2 * MS, 2)
-    assert node.rejects.as_dict() == {"unexpected_id": 0, "length": 0, "crc": 0,
-                                      "counter_repeat": 1, "counter_skip": 1}
+    counts = node.rejects.as_dict()
+    assert (counts["counter_repeat"], counts["counter_skip"], node.rejects.total) == (1, 1, 2)
 
 
 def test_state_names_are_the_protocols(node: FingerNode, sender: Sender) -> None:
