@@ -99,9 +99,3 @@ def angle_violations(angle: FloatArray, limits: JointLimits) -> list[int]:
                                                   limits.angle_max_list, strict=True))
             if q < lo or q > hi]
 
-
-def max_rate_needed(start: FloatArray, end: FloatArray, ramp_s: float) -> FloatArray:
-    """The torque rate (N·m/s) a linear ramp from ``start`` to ``end`` over ``ramp_s`` needs."""
-    if ramp_s <= 0:
-        return np.where(start == end, 0.0, np.inf)
-    return np.abs(end - start) / ramp_s

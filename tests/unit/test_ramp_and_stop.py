@@ -1,0 +1,398 @@
+"""The supervisor's torque paths one at a time: start, the fault ramp, the stop, the reset.
+
+The supervisor is built from the hand config and brought to RUNNING the way the runtime does
+it: the host enables the simulated nodes, and ``observe`` sees every one report ENABLED. The
+expected torques are derived from the config's limits (tau_max, rate limit, period) and from
+``RAMP_BOUND_S``, tick by tick.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pytest
+
+from handctl.bus import BusEvent, BusEventKind
+from handctl.config import HandConfig
+from handctl.protocol import Protocol
+from handctl.safety.faults import FAULTS, RAMP_BOUND_S, Fault, FaultCode, StopCategory
+from handctl.safety.supervisor import Event, State, Supervisor
+
+from .node_pair import Link
+
+RAMP_CODES = [code for code, spec in FAULTS.items() if spec.category is StopCategory.RAMP]
+IMMEDIATE_CODES = [code for code, spec in FAULTS.items()
+                   if spec.category is StopCategory.IMMEDIATE]
+
+
+@dataclass
+class Running:
+    """A supervisor in RUNNING over live simulated nodes, and the tick it got there."""
+
+    sup: Supervisor
+    link: Link
+    tick: int
+
+    def observe(self, angle: np.ndarray | None = None, tdt: np.ndarray | None = None,
+                missed: int = 0, events: tuple[BusEvent, ...] = ()) -> list[Fault]:
+        """One more tick of the nodes, and the supervisor's checks of what they said."""
+        n = self.sup.n
+        self.tick += 1
+        now = self.link.tick()
+        return self.sup.observe(self.tick, now, self.link.hosts,
+                                np.zeros(n) if angle is None else angle,
+                                np.zeros(n) if tdt is None else tdt, missed, events)
+
+
+def tau_max(hand: HandConfig) -> np.ndarray:
+    return np.array([j.tau_max for j in hand.joints])
+
+
+def rate_step(hand: HandConfig) -> np.ndarray:
+    return np.array([j.rate_limit for j in hand.joints]) * hand.bus.period_s
+
+
+def ramp_ticks(hand: HandConfig) -> int:
+    """The fault ramp's length: as many whole ticks as fit in RAMP_BOUND_S, and at least one."""
+    return max(1, math.floor(RAMP_BOUND_S / hand.bus.period_s + 1e-9))
+
+
+@pytest.fixture
+def running(hand: HandConfig, protocol: Protocol) -> Running:
+    sup = Supervisor(hand)
+    link = Link(hand, protocol)
+    link.enable()
+    sup.start(0)
+    assert sup.state is State.ENABLING
+    assert not sup.filter(0, tau_max(hand)).any()  # nothing before the nodes confirm
+    assert sup.observe(1, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0) == []
+    assert sup.state is State.RUNNING
+    assert sup.history == [(0, State.IDLE, Event.START, State.ENABLING),
+                           (1, State.ENABLING, Event.ENABLED, State.RUNNING)]
+    return Running(sup, link, 1)
+
+
+def hold(run: Running, torque: np.ndarray) -> np.ndarray:
+    """Ask for ``torque`` until the rate limiter has delivered it; returns the applied torque."""
+    for _ in range(1000):
+        run.tick += 1
+        applied = run.sup.filter(run.tick, torque).copy()
+        if np.array_equal(applied, torque):
+            return applied
+    raise AssertionError(f"never reached {torque}")
+
+
+def signed_torque(hand: HandConfig) -> np.ndarray:
+    """Torques of both signs and different sizes, each within its joint's tau_max."""
+    signs = np.where(np.arange(hand.n_joints) % 2 == 0, 1.0, -1.0)
+    return tau_max(hand) * signs * np.linspace(0.9, 0.5, hand.n_joints)
+
+
+def test_start_ramps_up_by_one_rate_step_a_tick_to_the_clamp(hand: HandConfig,
+                                                             running: Running) -> None:
+    sup, top, step = running.sup, tau_max(hand), rate_step(hand)
+    expected = np.zeros(hand.n_joints)
+    for k in range(1, math.ceil(float(np.max(top / step))) + 3):
+        applied = sup.filter(running.tick + k, 2 * top)
+        expected = np.minimum(expected + step, top)
+        assert applied == pytest.approx(expected, abs=1e-12), f"tick {k}"
+        assert sup.limited_joints == hand.n_joints
+    assert applied.tolist() == top.tolist()
+
+
+def test_holding_torque_is_not_limited(hand: HandConfig, running: Running) -> None:
+    target = hold(running, signed_torque(hand))
+    assert running.sup.filter(running.tick + 1, target).tolist() == target.tolist()
+    assert running.sup.limited_joints == 0
+    # Nothing asked (None) holds the last applied torque.
+    assert running.sup.filter(running.tick + 2, None).tolist() == target.tolist()
+
+
+def test_a_late_tick_repeats_the_last_command_without_a_rate_step(hand: HandConfig,
+                                                                  running: Running) -> None:
+    sup = running.sup
+    first = sup.filter(running.tick + 1, tau_max(hand)).copy()
+    assert sup.filter(running.tick + 2, tau_max(hand), missed=1).tolist() == first.tolist()
+    assert sup.filter(running.tick + 3, tau_max(hand)) == pytest.approx(2 * first)
+
+
+@pytest.mark.parametrize("code", RAMP_CODES)
+def test_a_ramp_fault_ramps_linearly_from_the_applied_torque_to_zero_at_the_bound(
+        hand: HandConfig, running: Running, code: FaultCode) -> None:
+    sup = running.sup
+    start = hold(running, signed_torque(hand))
+    tick = running.tick + 1
+    assert sup.trip(code, "test", tick) == Fault(code, "test", tick)
+    assert sup.state is State.FAULT_RAMP
+    assert sup.history[-1] == (tick, State.RUNNING, Event.FAULT_RAMP, State.FAULT_RAMP)
+    assert sup.torque_allowed  # the nodes stay enabled through the ramp
+    n = ramp_ticks(hand)
+    for k in range(1, n):
+        out = sup.filter(tick + k, 2 * tau_max(hand))  # what is asked no longer matters
+        assert out == pytest.approx(start * (1 - k / n), abs=1e-12), f"ramp tick {k}"
+        assert out.all(), f"zero before the end of the ramp, at tick {k}"
+        assert sup.state is State.FAULT_RAMP
+    assert sup.filter(tick + n, 2 * tau_max(hand)).tolist() == [0.0] * hand.n_joints
+    assert sup.state is State.FAULTED
+    assert sup.history[-1] == (tick + n, State.FAULT_RAMP, Event.AT_ZERO, State.FAULTED)
+    assert not sup.filter(tick + n + 1, tau_max(hand)).any()
+
+
+def test_the_ramp_fits_the_bound(hand: HandConfig) -> None:
+    assert ramp_ticks(hand) * hand.bus.period_s <= RAMP_BOUND_S + 1e-12
+    assert ramp_ticks(hand) > 1
+
+
+def test_a_loop_slower_than_the_ramp_bound_ramps_in_one_tick(hand: HandConfig) -> None:
+    slow = replace(hand, bus=replace(hand.bus, loop_rate_hz=0.5 / RAMP_BOUND_S))
+    sup = Supervisor(slow)
+    sup.start(0)
+    sup.fire(Event.ENABLED, 0)
+    torque = sup.filter(1, tau_max(slow)).copy()
+    assert torque.all()
+    sup.trip(FaultCode.ANGLE_LIMIT, "test", 2)
+    assert sup.state is State.FAULT_RAMP
+    assert not sup.filter(2, None).any()
+    assert sup.state is State.FAULTED
+
+
+def test_a_fault_during_a_stop_ramps_from_where_the_stop_had_got(hand: HandConfig,
+                                                                  running: Running) -> None:
+    sup = running.sup
+    hold(running, tau_max(hand))
+    tick = running.tick + 1
+    sup.stop(tick)
+    partly = sup.filter(tick + 1, None).copy()
+    assert partly == pytest.approx(tau_max(hand) - rate_step(hand))
+    sup.trip(FaultCode.TDT_MISMATCH, "test", tick + 2)
+    assert sup.state is State.FAULT_RAMP
+    n = ramp_ticks(hand)
+    assert sup.filter(tick + 3, None) == pytest.approx(partly * (1 - 1 / n))
+
+
+@pytest.mark.parametrize("code", IMMEDIATE_CODES)
+def test_an_immediate_fault_zeroes_the_same_tick_even_mid_ramp(hand: HandConfig,
+                                                              running: Running,
+                                                              code: FaultCode) -> None:
+    sup = running.sup
+    hold(running, signed_torque(hand))
+    tick = running.tick + 1
+    sup.trip(FaultCode.ANGLE_LIMIT, "test", tick)
+    assert sup.filter(tick, None).any()
+    sup.trip(code, "test", tick + 1)
+    assert sup.state is State.FAULTED
+    assert not sup.filter(tick + 1, signed_torque(hand)).any()
+    assert [f.code for f in sup.faults] == [FaultCode.ANGLE_LIMIT, code]
+
+
+def test_a_stop_rate_limits_to_zero_and_is_idle_exactly_when_torque_is_zero(
+        hand: HandConfig, running: Running) -> None:
+    sup, step = running.sup, rate_step(hand)
+    previous = hold(running, signed_torque(hand))
+    tick = running.tick + 1
+    sup.stop(tick)
+    assert sup.state is State.STOPPING
+    longest = math.ceil(float(np.max(np.abs(previous) / step))) + 1
+    k = 0
+    while sup.state is State.STOPPING:
+        k += 1
+        assert k <= longest, "the stop never ends"
+        out = sup.filter(tick + k, 2 * tau_max(hand)).copy()  # a stop ignores what is asked
+        expected = np.sign(previous) * np.maximum(np.abs(previous) - step, 0.0)
+        assert out == pytest.approx(expected, abs=1e-12), f"stop tick {k}"
+        if out.any():
+            assert sup.state is State.STOPPING, f"idle with torque {out} at tick {k}"
+        previous = out
+    assert sup.state is State.IDLE
+    assert previous.tolist() == [0.0] * hand.n_joints
+    assert sup.history[-1] == (tick + k, State.STOPPING, Event.AT_ZERO, State.IDLE)
+    assert not sup.torque_allowed
+    assert not sup.filter(tick + k + 1, tau_max(hand)).any()
+
+
+def test_a_stop_at_zero_torque_is_idle_on_its_first_tick(hand: HandConfig,
+                                                          running: Running) -> None:
+    sup = running.sup
+    sup.stop(2)
+    assert sup.state is State.STOPPING
+    assert not sup.filter(3, tau_max(hand)).any()
+    assert sup.state is State.IDLE
+
+
+def test_a_stop_while_enabling_is_idle_at_once(hand: HandConfig) -> None:
+    sup = Supervisor(hand)
+    sup.start(0)
+    sup.stop(1)
+    assert sup.state is State.IDLE
+    assert sup.history == [(0, State.IDLE, Event.START, State.ENABLING),
+                           (1, State.ENABLING, Event.STOP, State.IDLE)]
+
+
+def test_a_fault_latches_once_and_only_reset_leaves_faulted(hand: HandConfig,
+                                                            running: Running) -> None:
+    sup = running.sup
+    hold(running, signed_torque(hand))
+    assert not sup.reset(running.tick)  # nothing to reset while running
+    assert sup.state is State.RUNNING
+    first = sup.trip(FaultCode.NODE_STATE, "first", 10)
+    assert first == Fault(FaultCode.NODE_STATE, "first", 10)
+    assert sup.trip(FaultCode.NODE_STATE, "again", 11) is None
+    assert sup.faults == [first]
+    assert sup.active_codes == {FaultCode.NODE_STATE}
+    for _ in range(3):
+        sup.start(12)
+        sup.stop(12)
+        assert sup.state is State.FAULTED
+    assert sup.reset(13)
+    assert sup.state is State.IDLE
+    assert sup.history[-1] == (13, State.FAULTED, Event.RESET, State.IDLE)
+    assert sup.faults == [] and sup.active_codes == set()
+    assert sup.applied.tolist() == [0.0] * hand.n_joints
+    # The same fault can latch again after the reset.
+    assert sup.trip(FaultCode.NODE_STATE, "after reset", 14) is not None
+
+
+def test_after_a_reset_torque_comes_back_only_through_start_from_zero(
+        hand: HandConfig, running: Running) -> None:
+    sup = running.sup
+    hold(running, tau_max(hand))
+    misses = hand.safety.max_consecutive_misses
+    failures = hand.safety.max_consecutive_send_failures
+    assert running.observe(missed=misses - 1) == []  # late ticks, one short of a fault
+    for _ in range(failures):
+        sup.sent(False, running.tick)  # the last of these is a BUS_ERROR
+    assert sup.state is State.FAULTED
+    assert sup.reset(running.tick)
+    assert not sup.filter(running.tick + 1, tau_max(hand)).any()  # IDLE: nothing until START
+    sup.start(running.tick + 2)
+    # The counts of late ticks and failed sends start again from zero at the reset.
+    assert sup.observe(running.tick + 2, running.link.tick(), running.link.hosts,
+                       np.zeros(sup.n), np.zeros(sup.n), misses - 1) == []
+    assert sup.state is State.RUNNING
+    for _ in range(failures - 1):
+        sup.sent(False, running.tick + 2)
+    assert sup.state is State.RUNNING
+    assert sup.filter(running.tick + 3, tau_max(hand)).tolist() == rate_step(hand).tolist()
+
+
+def test_a_torque_that_must_be_refused_is_a_fault_at_its_tick(hand: HandConfig,
+                                                               running: Running) -> None:
+    sup = running.sup
+    hold(running, signed_torque(hand))
+    bad = signed_torque(hand)
+    bad[3] = np.inf
+    assert not sup.filter(running.tick + 1, bad).any()
+    assert sup.state is State.FAULTED
+    [fault] = sup.faults
+    assert (fault.code, fault.tick) == (FaultCode.NON_FINITE_TORQUE, running.tick + 1)
+    assert fault.detail.startswith("joint 3: ") and "inf" in fault.detail
+
+
+@pytest.mark.parametrize("code", RAMP_CODES)
+def test_a_ramp_fault_before_torque_flows_is_faulted_at_once(hand: HandConfig,
+                                                             code: FaultCode) -> None:
+    for started in (False, True):
+        sup = Supervisor(hand)
+        if started:
+            sup.start(0)
+        sup.trip(code, "test", 1)
+        assert sup.state is State.FAULTED
+
+
+@pytest.mark.parametrize("timeout", [None, 0.0], ids=["hand", "zero"])
+def test_nodes_not_enabled_within_the_deadline_are_a_startup_fault(
+        hand: HandConfig, protocol: Protocol, timeout: float | None) -> None:
+    if timeout is not None:
+        hand = replace(hand, safety=replace(hand.safety, enable_timeout_s=timeout))
+    sup = Supervisor(hand)
+    link = Link(hand, protocol)  # the nodes are never told to enable
+    # A deadline shorter than a tick is one tick: the nodes get one tick to answer.
+    deadline = max(1, math.ceil(hand.safety.enable_timeout_s / hand.bus.period_s))
+    sup.start(5)
+    for tick in range(5, 5 + deadline + 1):
+        assert sup.observe(tick, link.tick(), link.hosts, np.zeros(sup.n),
+                           np.zeros(sup.n), 0) == [], f"tick {tick}"
+        assert sup.state is State.ENABLING
+    found = sup.observe(6 + deadline, link.tick(), link.hosts, np.zeros(sup.n),
+                        np.zeros(sup.n), 0)
+    assert [(f.code, f.tick) for f in found] == [(FaultCode.STARTUP, 6 + deadline)]
+    assert found[0].detail == ("nodes not ENABLED in time: "
+                               + ", ".join(f"node {f.node_id} DISABLED" for f in hand.fingers))
+    assert sup.state is State.FAULTED
+
+
+def test_one_node_short_of_enabled_keeps_the_supervisor_enabling(
+        hand: HandConfig, protocol: Protocol) -> None:
+    sup = Supervisor(hand)
+    link = Link(hand, protocol)
+    link.tick()
+    for pair in link.pairs[:-1]:
+        pair.command("enable", link.now_ns)
+    sup.start(0)
+    for tick in range(1, 5):
+        sup.observe(tick, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0)
+        assert sup.state is State.ENABLING
+    assert not sup.torque_allowed
+
+
+def test_a_joint_past_its_soft_limit_ramps(hand: HandConfig, running: Running) -> None:
+    last = hand.n_joints - 1
+    angle = np.zeros(hand.n_joints)
+    angle[last] = hand.joints[last].angle_max + 0.01
+    found = running.observe(angle=angle)
+    assert [(f.code, f.tick) for f in found] == [(FaultCode.ANGLE_LIMIT, running.tick)]
+    j = hand.joints[last]
+    assert found[0].detail == (f"{j.name} at {angle[last]:+.3f} rad, limits "
+                               f"[{j.angle_min:+.3f}, {j.angle_max:+.3f}]")
+    assert running.sup.state is State.FAULT_RAMP
+
+
+def test_during_a_fault_ramp_the_angle_limit_is_not_checked(hand: HandConfig,
+                                                           running: Running) -> None:
+    running.sup.trip(FaultCode.RECIPE_ABORT, "test", running.tick)
+    angle = np.array([j.angle_min - 0.01 for j in hand.joints])
+    assert running.observe(angle=angle) == []
+    assert [f.code for f in running.sup.faults] == [FaultCode.RECIPE_ABORT]
+
+
+def test_a_node_that_leaves_enabled_while_running_is_a_fault(hand: HandConfig,
+                                                             running: Running) -> None:
+    running.link.pairs[1].command("disable", running.link.now_ns)
+    found = running.observe()
+    assert [f.code for f in found] == [FaultCode.NODE_STATE]
+    assert running.sup.state is State.FAULTED
+
+
+def test_nothing_is_limited_before_anything_is_asked(hand: HandConfig) -> None:
+    assert Supervisor(hand).limited_joints == 0
+
+
+def test_bus_off_is_a_bus_error(hand: HandConfig, running: Running) -> None:
+    other = BusEvent(BusEventKind.ERROR_PASSIVE, "passive", 0)
+    assert running.observe(events=(other,)) == []
+    found = running.observe(events=(other, BusEvent(BusEventKind.BUS_OFF, "can0 off", 0)))
+    assert [(f.code, f.detail) for f in found] == [(FaultCode.BUS_ERROR, "bus-off (can0 off)")]
+    assert running.sup.state is State.FAULTED
+
+
+def test_late_ticks_are_counted_through_observe(hand: HandConfig, running: Running) -> None:
+    limit = hand.safety.max_consecutive_misses
+    assert running.observe(missed=limit - 1) == []
+    assert [f.code for f in running.observe(missed=1)] == [FaultCode.LOOP_OVERRUN]
+
+
+def test_failed_sends_are_counted_through_sent(hand: HandConfig, running: Running) -> None:
+    sup = running.sup
+    limit = hand.safety.max_consecutive_send_failures
+    for k in range(limit - 1):
+        sup.sent(False, k)
+    sup.sent(True, limit)
+    for k in range(limit - 1):
+        sup.sent(False, k)
+        assert sup.state is State.RUNNING
+    sup.sent(False, 99)
+    assert sup.faults == [Fault(FaultCode.BUS_ERROR, f"{limit} consecutive ticks with command "
+                                "frames that could not be sent", 99)]
+    assert sup.state is State.FAULTED
