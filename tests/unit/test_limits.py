@@ -8,6 +8,8 @@ comparison or a flipped sign changes a value the test checks exactly.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -153,7 +155,7 @@ def test_what_is_not_numbers_is_refused_as_such(hand: HandConfig) -> None:
 @pytest.mark.parametrize("dtype", [str, object])
 def test_an_array_of_what_is_not_numbers_is_refused_as_such(hand: HandConfig,
                                                             dtype: type) -> None:
-    desired = np.array(["a"] * hand.n_joints, dtype=dtype)
+    desired: np.ndarray = np.array(["a"] * hand.n_joints, dtype=dtype)
     assert check_desired(desired, hand.n_joints) == (
         FaultCode.WRONG_SHAPE, f"desired torques are not numbers: {desired!r:.60}")
 
@@ -172,7 +174,9 @@ def test_vectors_of_another_length_are_never_truncated(hand: HandConfig,
 
 def test_usable_torques_pass_in_any_numeric_form(hand: HandConfig) -> None:
     top = tau_max(hand)
-    for desired in (top, top.tolist(), (-top).astype(np.float32), np.arange(hand.n_joints)):
+    forms: tuple[Any, ...] = (top, top.tolist(), (-top).astype(np.float32),
+                              np.arange(hand.n_joints))
+    for desired in forms:
         assert check_desired(desired, hand.n_joints) is None
 
 

@@ -1,3 +1,6 @@
+# mypy: disable-error-code="comparison-overlap"
+# (each assert reads the supervisor's state anew after a call; mypy keeps the narrowing of the
+# assert before it)
 """The supervisor's torque paths one at a time: start, the fault ramp, the stop, the reset.
 
 The supervisor is built from the hand config and brought to RUNNING the way the runtime does

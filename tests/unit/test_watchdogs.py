@@ -10,6 +10,7 @@ config of longer timeouts too, so that the conversion to integer ns is exact in 
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -26,7 +27,7 @@ from .node_pair import MS, Link
 LONG = {"feedback_timeout_s": 1.5, "heartbeat_timeout_s": 2.5}
 
 
-def with_safety(hand: HandConfig, **changes: float) -> HandConfig:
+def with_safety(hand: HandConfig, **changes: Any) -> HandConfig:
     return replace(hand, safety=replace(hand.safety, **changes))
 
 
