@@ -31,6 +31,7 @@ class Sender:
 
     def __init__(self, protocol: Protocol, node_id: int) -> None:
         self.layouts = FingerLayouts.for_node(protocol, node_id)
+        self.version = protocol.version
         self.counters = {"feedback": 0, "status": 0, "heartbeat": 0}
 
     def frame(self, kind: str, values: tuple[float, ...],
@@ -51,8 +52,10 @@ class Sender:
         return self.frame("heartbeat", (state, uptime_ms), counter)
 
     def status(self, state: int, faults: int, rejects: tuple[int, int, int] = (0, 0, 0),
-               age_ms: int = 0) -> tuple[int, bytes]:
-        return self.frame("status", (state, faults, *rejects, age_ms))
+               age_ms: int = 0, firmware: tuple[int, int, int] = (1, 0, 0)
+               ) -> tuple[int, bytes]:
+        """A Status of the host's own protocol version (and firmware ``firmware``)."""
+        return self.frame("status", (state, faults, *rejects, age_ms, self.version, *firmware))
 
 
 @pytest.fixture(params=[0, 2], ids=["f1", "f3"])
@@ -114,7 +117,7 @@ def test_a_heartbeat_sets_state_uptime_and_its_time(node: FingerNode, sender: Se
 
 def test_a_status_sets_state_and_fault_bits(node: FingerNode, sender: Sender) -> None:
     assert node.receive(*sender.status(2, 0x0A, (1, 2, 3), 11), 5 * MS) is None
-    assert node.status == (2, 0x0A, 1, 2, 3, 11)
+    assert node.status == (2, 0x0A, 1, 2, 3, 11, sender.version, 1, 0, 0)
     assert (node.state, node.fault_bits) == (2, 0x0A)
     assert (node.feedback_ns, node.heartbeat_ns) == (None, None)
     assert node.receive(*sender.status(0, 0), 6 * MS) is None
