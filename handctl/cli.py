@@ -1007,9 +1007,10 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     nodes.add_argument("--bus", default="sim",
                        help="sim (default), hand (the config's bus), socketcan:can0, "
                             "unix:DIR, virtual:NAME, INTERFACE:CHANNEL")
-    nodes.add_argument("--hand", type=Path, default=DEFAULT_HAND,
-                       help=f"hand config (default {DEFAULT_HAND})")
-    nodes.add_argument("--seconds", type=float, help="how long to listen (default 1)")
+    nodes.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
+                       help=f"hand config ({DEFAULT_HAND_HELP})")
+    nodes.add_argument("--seconds", type=float, metavar="S",
+                       help="how long to listen [s] (default 1)")
     nodes.add_argument("--json", action="store_true", help="print the result as JSON")
     nodes.set_defaults(func=_cmd_nodes)
 
@@ -1030,32 +1031,38 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
                     "offset is implausible. Default bus: the simulated hand, in lockstep.",
         notes="Exit 0 written, 1 refused (nothing written), 2 bad input, 3 safety stop, "
                "130 interrupted (Ctrl-C: a controlled stop).")
-    tdt.add_argument("--hand", type=Path, default=DEFAULT_HAND,
-                     help=f"hand config (default {DEFAULT_HAND})")
+    tdt.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
+                     help=f"hand config ({DEFAULT_HAND_HELP})")
     tdt.add_argument("-o", "--output", type=Path, metavar="HAND.yaml",
                      help="where to write the calibrated copy of the hand config")
     tdt.add_argument("--write", action="store_true",
                      help="overwrite the hand config itself")
     tdt.add_argument("--bus", default="sim",
                      help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL")
-    tdt.add_argument("--seconds", type=float, help="measurement time (default 1 s)")
+    tdt.add_argument("--seconds", type=float, metavar="S",
+                     help="measurement time [s] (default 1)")
     tdt.add_argument("--settle", type=float,
-                     help="time at zero torque before measuring (default 2 s)")
+                     metavar="S", help="time at zero torque before measuring [s] (default 2)")
     tdt.add_argument("--max-span", type=float,
-                     help="a joint that moves more than this (rad) is refused (default 0.1)")
+                     metavar="RAD",
+                     help="a joint that moves more than this [rad] is refused (default 0.1)")
     tdt.add_argument("--max-noise", type=float,
-                     help="a noise (1 sigma) above this (N·m) is refused (default 0.02)")
+                     metavar="NM",
+                     help="a noise (1 sigma) above this [N·m] is refused (default 0.02)")
     tdt.add_argument("--max-offset", type=float,
-                     help="an offset above this (N·m) is refused (default 0.25)")
+                     metavar="NM",
+                     help="an offset above this [N·m] is refused (default 0.25)")
     tdt.add_argument("--realtime", action="store_true",
                      help="on the simulated hand: free-running in its own process, not lockstep")
     tdt.add_argument("--rt", action="store_true",
                      help="ask for SCHED_FIFO and locked memory (says so when refused)")
     tdt.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
-    tdt.add_argument("--sim-faults", type=Path, help="fault scenario for the simulated hand")
+    tdt.add_argument("--sim-faults", type=Path, metavar="FAULTS.yaml",
+                     help="fault scenario for the simulated hand (config/sim/)")
     tdt.add_argument("--reset-node-faults", action="store_true",
                      help="clear faults latched in the nodes before starting (explicit reset)")
-    tdt.add_argument("--json", type=Path, help="write the measurement as JSON")
+    tdt.add_argument("--json", type=Path, metavar="FILE.json",
+                     help="write the measurement as JSON")
     tdt.set_defaults(func=_cmd_calibrate_tdt)
 
     jog = _command(
@@ -1071,10 +1078,12 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
                "130. A torque over the joint's tau_max is refused (exit 2) before anything "
                "is sent.")
     jog.add_argument("joint", help="joint name, as in the hand config (e.g. f1_j2)")
-    jog.add_argument("--torque", type=float, required=True, help="torque in N·m (signed)")
-    jog.add_argument("--seconds", type=float, help="how long to hold it (default 2 s)")
-    jog.add_argument("--hand", type=Path, default=DEFAULT_HAND,
-                     help=f"hand config (default {DEFAULT_HAND})")
+    jog.add_argument("--torque", type=float, required=True, metavar="X",
+                     help="torque [N·m], signed")
+    jog.add_argument("--seconds", type=float, metavar="S",
+                     help="how long to hold it [s] (default 2)")
+    jog.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
+                     help=f"hand config ({DEFAULT_HAND_HELP})")
     jog.add_argument("--bus", default="sim",
                      help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL")
     jog.add_argument("--realtime", action="store_true",
@@ -1082,7 +1091,8 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     jog.add_argument("--rt", action="store_true",
                      help="ask for SCHED_FIFO and locked memory (says so when refused)")
     jog.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
-    jog.add_argument("--sim-faults", type=Path, help="fault scenario for the simulated hand")
+    jog.add_argument("--sim-faults", type=Path, metavar="FAULTS.yaml",
+                     help="fault scenario for the simulated hand (config/sim/)")
     jog.add_argument("--reset-node-faults", action="store_true",
                      help="clear faults latched in the nodes before starting (explicit reset)")
     jog.set_defaults(func=_cmd_jog)
@@ -1100,13 +1110,15 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         notes="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end.")
     mon.add_argument("--bus", help="sim (default), hand, socketcan:can0, unix:DIR, "
                                    "virtual:NAME, INTERFACE:CHANNEL")
-    mon.add_argument("--hand", type=Path, default=DEFAULT_HAND,
-                     help=f"hand config (default {DEFAULT_HAND})")
+    mon.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
+                     help=f"hand config ({DEFAULT_HAND_HELP})")
     mon.add_argument("--log", type=Path, metavar="RUN.mcap",
                      help="read the raw frames of a recording instead of a bus")
-    mon.add_argument("--seconds", type=float, help="stop after this long (default: Ctrl-C)")
+    mon.add_argument("--seconds", type=float, metavar="S",
+                     help="stop after this long [s] (default: at Ctrl-C)")
     mon.add_argument("--every", type=float,
-                     help="seconds between JSON snapshots (default 1; of log time with --log)")
+                     metavar="S",
+                     help="time between JSON snapshots [s] (default 1; of log time with --log)")
     mon.set_defaults(func=_cmd_monitor)
 
 
