@@ -46,6 +46,12 @@ from typing import Any, NoReturn
 
 import yaml
 
+# The node types of ``compose_yaml``'s tree, re-exported: this is the one module that imports yaml.
+from yaml import MappingNode as MappingNode  # noqa: PLC0414 - re-exported
+from yaml import Node as Node  # noqa: PLC0414 - re-exported
+from yaml import ScalarNode as ScalarNode  # noqa: PLC0414 - re-exported
+from yaml import SequenceNode as SequenceNode  # noqa: PLC0414 - re-exported
+
 from handctl.errors import ConfigError
 
 _MISSING: Any = object()
@@ -109,6 +115,20 @@ def parse_yaml(text: str, name: str) -> Doc:
     if not isinstance(data, dict):
         raise ConfigError(name, "", "a mapping at the top level", _type_name(data))
     return Doc(data, name, "")
+
+
+def compose_yaml(text: str) -> yaml.Node:
+    """The node tree of ``text`` (positions, no values constructed), for a file that
+    ``parse_yaml`` has already read within its bounds: where each value sits, so that a number
+    can be edited in place without rewriting the file's comments and layout. ValueError if it
+    cannot be composed."""
+    try:
+        node: yaml.Node | None = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as exc:
+        raise ValueError(str(exc)) from None
+    if node is None:
+        raise ValueError("an empty document")
+    return node
 
 
 def dump_yaml(data: Any) -> str:

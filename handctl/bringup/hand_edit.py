@@ -19,11 +19,17 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-import yaml
-
 from handctl.config import HandConfig, parse_hand
 from handctl.errors import ConfigError
-from handctl.schema import parse_yaml
+from handctl.schema import (
+    MappingNode,
+    Node,
+    ScalarNode,
+    SequenceNode,
+    compose_yaml,
+    dump_yaml,
+    parse_yaml,
+)
 
 #: Decimals of an offset written to the file: the wire's TDT resolution is 0.0001 N·m.
 DECIMALS = 4
@@ -59,36 +65,36 @@ class _CannotEditError(Exception):
     pass
 
 
-def _scalar_value(node: yaml.MappingNode, key: str) -> yaml.Node | None:
+def _scalar_value(node: MappingNode, key: str) -> Node | None:
     for k, v in node.value:
-        if isinstance(k, yaml.ScalarNode) and k.value == key:
+        if isinstance(k, ScalarNode) and k.value == key:
             return v  # type: ignore[no-any-return]
     return None
 
 
 def _edit(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError as exc:  # it was read before, so this is not expected
+        root = compose_yaml(text)
+    except ValueError as exc:  # it was read before, so this is not expected
         raise _CannotEditError(f"the YAML cannot be composed: {exc}") from None
-    if not isinstance(root, yaml.MappingNode):
+    if not isinstance(root, MappingNode):
         raise _CannotEditError("the top level is not a mapping")
     fingers = _scalar_value(root, "fingers")
-    if not isinstance(fingers, yaml.SequenceNode):
+    if not isinstance(fingers, SequenceNode):
         raise _CannotEditError("fingers is not a plain sequence")
     edits: list[tuple[int, int, str]] = []  # (start, end, replacement) in the text
     seen: set[int] = set()  # joint and tdt nodes met: an alias is the very node again
     for finger in fingers.value:
-        joints = _scalar_value(finger, "joints") if isinstance(finger, yaml.MappingNode) \
+        joints = _scalar_value(finger, "joints") if isinstance(finger, MappingNode) \
             else None
-        if not isinstance(joints, yaml.SequenceNode):
+        if not isinstance(joints, SequenceNode):
             raise _CannotEditError("a finger's joints are not a plain sequence")
         for joint in joints.value:
-            if not isinstance(joint, yaml.MappingNode) or id(joint) in seen:
+            if not isinstance(joint, MappingNode) or id(joint) in seen:
                 raise _CannotEditError("a joint is an alias of another one")
             seen.add(id(joint))
             name_node = _scalar_value(joint, "name")
-            name = name_node.value if isinstance(name_node, yaml.ScalarNode) else None
+            name = name_node.value if isinstance(name_node, ScalarNode) else None
             if not isinstance(name, str) or name not in offsets:
                 raise _CannotEditError(f"joint {name!r} has no name of its own")
             tdt = _scalar_value(joint, "tdt")
@@ -105,13 +111,13 @@ def _edit(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
     return out
 
 
-def _joint_edit(text: str, joint: yaml.MappingNode, name: str, offset: float,
+def _joint_edit(text: str, joint: MappingNode, name: str, offset: float,
                 hand: HandConfig) -> tuple[int, int, str]:
     tdt = _scalar_value(joint, "tdt")
     number = format_offset(offset)
-    if isinstance(tdt, yaml.MappingNode):
+    if isinstance(tdt, MappingNode):
         value = _scalar_value(tdt, "offset")
-        if isinstance(value, yaml.ScalarNode) and value.style is None:
+        if isinstance(value, ScalarNode) and value.style is None:
             return value.start_mark.index, value.end_mark.index, number
         raise _CannotEditError(f"{name}: tdt.offset is not a plain number")
     if tdt is not None:
@@ -139,14 +145,14 @@ def _joint_edit(text: str, joint: yaml.MappingNode, name: str, offset: float,
 
 
 def _dump(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
-    data = yaml.safe_load(text)
+    data = parse_yaml(text, "the hand config").data
     for finger in data["fingers"]:
         finger["joints"] = [dict(joint) for joint in finger["joints"]]
         for joint in finger["joints"]:
             joint["tdt"] = {**joint["tdt"], "offset": offsets[joint["name"]]}
     header = (f"# {hand.name}: written by handctl calibrate tdt as a plain dump (the original's "
               "layout could not be edited in place)\n")
-    return header + yaml.safe_dump(data, sort_keys=False)
+    return header + dump_yaml(data)
 
 
 def _verify(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> None:
