@@ -992,6 +992,20 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                            "(pip install 'handctl[cluster]'; see docs/scale.md)")
     plan.set_defaults(func=_cmd_plan)
 
+def _add_bringup_run_options(p: argparse.ArgumentParser) -> None:
+    """The options of a bring-up command that runs the hand through the Runtime (calibrate
+    tdt, jog): how it runs, as ``run recipe`` has them."""
+    p.add_argument("--realtime", action="store_true",
+                   help="on the simulated hand: free-running in its own process, not lockstep")
+    p.add_argument("--rt", action="store_true",
+                   help="ask for SCHED_FIFO and locked memory (says so when refused)")
+    p.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
+    p.add_argument("--sim-faults", type=Path, metavar="FAULTS.yaml",
+                   help="fault scenario for the simulated hand (config/sim/)")
+    p.add_argument("--reset-node-faults", action="store_true",
+                   help="clear faults latched in the nodes before starting (explicit reset)")
+
+
 def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Bring-up commands (docs/bringup.md): nodes, calibrate tdt, jog, monitor."""
     nodes = _command(
@@ -1052,15 +1066,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     tdt.add_argument("--max-offset", type=float,
                      metavar="NM",
                      help="an offset above this [N·m] is refused (default 0.25)")
-    tdt.add_argument("--realtime", action="store_true",
-                     help="on the simulated hand: free-running in its own process, not lockstep")
-    tdt.add_argument("--rt", action="store_true",
-                     help="ask for SCHED_FIFO and locked memory (says so when refused)")
-    tdt.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
-    tdt.add_argument("--sim-faults", type=Path, metavar="FAULTS.yaml",
-                     help="fault scenario for the simulated hand (config/sim/)")
-    tdt.add_argument("--reset-node-faults", action="store_true",
-                     help="clear faults latched in the nodes before starting (explicit reset)")
+    _add_bringup_run_options(tdt)
     tdt.add_argument("--json", type=Path, metavar="FILE.json",
                      help="write the measurement as JSON")
     tdt.set_defaults(func=_cmd_calibrate_tdt)
@@ -1086,15 +1092,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
                      help=f"hand config ({DEFAULT_HAND_HELP})")
     jog.add_argument("--bus", default="sim",
                      help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL")
-    jog.add_argument("--realtime", action="store_true",
-                     help="on the simulated hand: free-running in its own process, not lockstep")
-    jog.add_argument("--rt", action="store_true",
-                     help="ask for SCHED_FIFO and locked memory (says so when refused)")
-    jog.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
-    jog.add_argument("--sim-faults", type=Path, metavar="FAULTS.yaml",
-                     help="fault scenario for the simulated hand (config/sim/)")
-    jog.add_argument("--reset-node-faults", action="store_true",
-                     help="clear faults latched in the nodes before starting (explicit reset)")
+    _add_bringup_run_options(jog)
     jog.set_defaults(func=_cmd_jog)
 
     mon = _command(

@@ -219,21 +219,20 @@ class HandDriver:
         bus refused it or raised), the e-stop frame follows. Never raises; False when any
         frame did not go.
         """
-        ok = True
-        for node, (frame_id, frames) in zip(self.nodes, self._zero_frames, strict=True):
-            counter = node.command_counter % COUNTER_VALUES
-            node.command_counter = (counter + 1) % COUNTER_VALUES
-            ok = self._send_quietly(frame_id, frames[counter]) and ok
-        if not ok:
-            self.send_estop()
-        return ok
+        return self._send_prepared(self._zero_frames, "command_counter")
 
     def send_disable(self) -> bool:
         """Disable every node from the prepared frames, as ``send_zero`` sends zero."""
+        return self._send_prepared(self._disable_frames, "node_command_counter")
+
+    def _send_prepared(self, prepared: list[tuple[int, tuple[bytes, ...]]], counter_name: str
+                       ) -> bool:
+        """One prepared frame per node, at the node's next counter (``counter_name``);
+        every node tried, then the e-stop frame if any did not go."""
         ok = True
-        for node, (frame_id, frames) in zip(self.nodes, self._disable_frames, strict=True):
-            counter = node.node_command_counter % COUNTER_VALUES
-            node.node_command_counter = (counter + 1) % COUNTER_VALUES
+        for node, (frame_id, frames) in zip(self.nodes, prepared, strict=True):
+            counter = getattr(node, counter_name) % COUNTER_VALUES
+            setattr(node, counter_name, (counter + 1) % COUNTER_VALUES)
             ok = self._send_quietly(frame_id, frames[counter]) and ok
         if not ok:
             self.send_estop()

@@ -130,7 +130,8 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
     n = len(trace.t)
     empty: dict[str, Any] = {"success": False, "min_total_turn_deg": min_total_turn_deg,
                              "lifted": False, "held_s": 0.0, "phase_angles_deg": [],
-                             "total_rotation_deg": 0.0, "peak_turn_rate_deg_s": 0.0,
+                             "turn_deg": 0.0, "total_rotation_deg": 0.0,
+                             "peak_turn_rate_deg_s": 0.0,
                              "dropped": False, "estimator_error_deg": None,
                              "estimator_error_manipulation_deg": None,
                              "estimator_valid_fraction": 0.0}

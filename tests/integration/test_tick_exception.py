@@ -149,7 +149,7 @@ def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:  
         rt.estimator = _wrap(due, stage, lambda angle: None)
     elif stage == "runner":
         assert rt.runner is not None
-        mp.setattr(rt.runner, "step", _wrap(due, stage, rt.runner.step))
+        mp.setattr(rt.runner, "advance", _wrap(due, stage, rt.runner.advance))
     elif stage == "supervisor":
         mp.setattr(supervisor_module, "limit_torque",
                    _wrap(due, stage, limit_torque))
