@@ -424,7 +424,12 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
         # Before the ready byte: a port that cannot be bound fails the start, not the run.
         from handctl.foxglove.live import LiveServer
 
-        live = LiveServer(int(setup["live_port"]))
+        try:
+            live = LiveServer(int(setup["live_port"]))
+        except Exception as exc:  # foxglove's own error type: say what, not where
+            sys.stderr.write(f"the live view cannot serve on 127.0.0.1:{setup['live_port']} "
+                             f"({exc})\n")
+            return 1
     with os.fdopen(out_fd, "wb", buffering=1 << 20) as out:
         encoder = Encoder(rings, out, setup, live)
         os.write(ready_fd, b"R")

@@ -118,13 +118,25 @@ def test_sigint_is_a_controlled_stop(tmp_path: Path) -> None:
 def test_realtime_run_on_the_simulated_hand_in_its_own_process(tmp_path: Path) -> None:
     """The real-time path: timerfd ticks, the simulated hand as a separate process on the unix
     datagram bus. --rt asks for SCHED_FIFO so other load cannot starve the loop (where the
-    system refuses, the run says so and goes on)."""
-    out = tmp_path / "out.json"
+    system refuses, the run says so and goes on).
+
+    Real time on a shared machine: a run that the host's stalls stopped (LOOP_OVERRUN or
+    FEEDBACK_TIMEOUT, as they must) says nothing about this path, so it is tried again."""
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD_LONG)
-    done = handctl("run", "recipe", str(recipe), "--realtime", "--rt", "--max-seconds", "1.5",
-                   "--summary-json", str(out))
-    summary = json.loads(out.read_text())
+    stopped = []
+    for attempt in range(3):
+        out = tmp_path / f"out{attempt}.json"
+        done = handctl("run", "recipe", str(recipe), "--realtime", "--rt", "--max-seconds",
+                       "1.5", "--summary-json", str(out))
+        summary = json.loads(out.read_text())
+        faults = {f["code"] for f in summary["faults"]}
+        if done.returncode == 3 and faults <= {"LOOP_OVERRUN", "FEEDBACK_TIMEOUT"}:
+            stopped.append(done.stderr)
+            continue
+        break
+    else:
+        raise AssertionError(f"every attempt was stopped by the machine's load: {stopped}")
     # Ended by its time budget: a controlled stop with an outcome of its own, not an interrupt.
     assert done.returncode == 0, done.stderr
     assert summary["mode"] == "realtime"
@@ -338,8 +350,11 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
             failures = []
             for attempt in range(3):
                 out = tmp_path / f"{run}{attempt}.json"
+                # --accept-missed-deadlines: a named bus is checked for the host's timing
+                # first (docs/timing.md), which is not what this test is about
                 done = handctl("run", "recipe", str(recipe), "--bus", f"unix:{directory}",
-                               "--rt", "--reset-node-faults", "--summary-json", str(out))
+                               "--rt", "--reset-node-faults", "--accept-missed-deadlines",
+                               "--summary-json", str(out))
                 summary = json.loads(out.read_text())
                 if done.returncode == 0:
                     assert summary["completed"] is True
