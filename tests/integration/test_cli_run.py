@@ -328,6 +328,11 @@ def test_a_signal_during_start_up_is_an_interrupt_not_a_safety_stop(
         host.kill()
 
 
+#: Two real-time runs of two free-running processes on a machine that stalls by itself for
+#: 3-28 ms at times: each is tried this often before the load is blamed.
+ATTEMPTS_UNDER_LOAD = 5
+
+
 def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -> None:
     """The second host counts its frames from 0 again, the nodes from where the first left
     them: each side takes the other's counters afresh (PROTOCOL.md, "A new host").
@@ -348,7 +353,7 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
         _wait_for(lambda: "t=" in log.read_text(), "the simulated hand to run")
         for run in ("first", "second"):
             failures = []
-            for attempt in range(3):
+            for attempt in range(ATTEMPTS_UNDER_LOAD):
                 out = tmp_path / f"{run}{attempt}.json"
                 # --accept-missed-deadlines: a named bus is checked for the host's timing
                 # first (docs/timing.md), which is not what this test is about
