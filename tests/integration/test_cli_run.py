@@ -21,6 +21,11 @@ from .rig import HOLD_LONG
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
 
+#: A real-time run of two free-running processes, on a machine that stalls by itself for
+#: 3-28 ms at times, is tried this often before the machine's load is blamed (a stop on
+#: LOOP_OVERRUN or FEEDBACK_TIMEOUT is the specified behaviour then, not this test's subject).
+ATTEMPTS_UNDER_LOAD = 5
+
 
 def handctl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT, text=True,
@@ -125,7 +130,7 @@ def test_realtime_run_on_the_simulated_hand_in_its_own_process(tmp_path: Path) -
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD_LONG)
     stopped = []
-    for attempt in range(3):
+    for attempt in range(ATTEMPTS_UNDER_LOAD):
         out = tmp_path / f"out{attempt}.json"
         done = handctl("run", "recipe", str(recipe), "--realtime", "--rt", "--max-seconds",
                        "1.5", "--summary-json", str(out))
@@ -246,7 +251,7 @@ def test_a_killed_realtime_host_leaves_no_simulated_hand_and_no_bus_directory(
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD_LONG)
     stopped = []
-    for _ in range(3):  # a run the machine's load stopped before torque flowed is tried again
+    for _ in range(ATTEMPTS_UNDER_LOAD):  # a run the load stopped before torque flowed
         host = RealtimeHost(recipe, tmp_path / "out.json")
         try:
             host.find_sim()
@@ -283,7 +288,7 @@ def test_ctrl_c_on_a_terminal_is_the_same_controlled_stop_in_real_time(tmp_path:
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD_LONG)
     outcomes = []
-    for attempt in range(3):
+    for attempt in range(ATTEMPTS_UNDER_LOAD):
         out = tmp_path / f"out{attempt}.json"
         host = RealtimeHost(recipe, out)
         try:
@@ -326,11 +331,6 @@ def test_a_signal_during_start_up_is_an_interrupt_not_a_safety_stop(
         assert host.directory is not None and not host.directory.exists()
     finally:
         host.kill()
-
-
-#: Two real-time runs of two free-running processes on a machine that stalls by itself for
-#: 3-28 ms at times: each is tried this often before the load is blamed.
-ATTEMPTS_UNDER_LOAD = 5
 
 
 def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -> None:
