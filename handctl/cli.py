@@ -576,14 +576,9 @@ def _run_outcome(report: Any) -> int | None:
 
     for warning in report.warnings:
         print(f"handctl: warning: {warning}", file=sys.stderr)
-    result = report.result
-    if result.outcome is Outcome.COMPLETED:
+    if report.result.outcome is Outcome.COMPLETED:
         return None
-    if result.outcome is Outcome.INTERRUPTED:
-        print(f"handctl: stopped: {result.message}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    print(f"handctl: safety stop: {result.message}", file=sys.stderr)
-    return EXIT_SAFETY_STOP
+    return _run_exit_code(report.result, {})
 
 
 def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
