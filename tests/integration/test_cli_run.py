@@ -186,6 +186,14 @@ def _children(pid: int) -> list[int]:
     return found
 
 
+def _is_simulated_hand(pid: int) -> bool:
+    try:
+        args = Path(f"/proc/{pid}/cmdline").read_text().split("\0")
+    except OSError:  # gone already
+        return False
+    return "sim" in args and "--bus" in args
+
+
 def _bus_directory(sim_pid: int) -> Path:
     args = Path(f"/proc/{sim_pid}/cmdline").read_text().split("\0")
     spec = args[args.index("--bus") + 1]
@@ -209,10 +217,12 @@ class RealtimeHost:
         def started() -> bool:
             if self.proc.poll() is not None:
                 return True
-            kids = _children(self.proc.pid)
-            if kids:
-                self.sim_pid = kids[0]
-            return bool(kids)
+            # The host has other children too (the timing probe beside a real-time run):
+            # the hand is the one started as ``handctl sim --bus ...``.
+            hands = [k for k in _children(self.proc.pid) if _is_simulated_hand(k)]
+            if hands:
+                self.sim_pid = hands[0]
+            return bool(hands)
 
         _wait_for(started, "the simulated hand's process")
         assert self.sim_pid, f"the host ended first: {self.proc.communicate()}"
