@@ -15,6 +15,7 @@ import pytest
 from mcap.reader import make_reader
 
 from handctl.config import HandConfig
+from handctl.executor import open_pool
 from handctl.recording import channels as ch
 from handctl.safety.faults import FAULTS, FaultCode, StopCategory
 from handctl.sim.campaign import CASES, PHASES, CaseResult, run_campaign
@@ -54,7 +55,10 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
 
 @pytest.fixture(scope="module")
 def results(hand: HandConfig, logs: Path) -> list[CaseResult]:
-    return run_campaign(hand, log_dir=logs)
+    # Every case is a lockstep run, so it gives the same result in a worker process as here
+    # (test_campaign_pool.py holds that); two workers halve the suite's longest set-up.
+    with open_pool(2) as pool:
+        return run_campaign(hand, log_dir=logs, executor=pool)
 
 
 def test_every_injector_has_an_expectation() -> None:
