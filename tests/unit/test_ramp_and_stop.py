@@ -399,3 +399,39 @@ def test_failed_sends_are_counted_through_sent(hand: HandConfig, running: Runnin
     assert sup.faults == [Fault(FaultCode.BUS_ERROR, f"{limit} consecutive ticks with command "
                                 "frames that could not be sent", 99)]
     assert sup.state is State.FAULTED
+
+
+def _corrupt_feedback(run: Running, finger: int) -> None:
+    """One feedback frame with a broken CRC reaches the host's view of ``finger``."""
+    host = run.link.hosts[finger]
+    layout = host.layouts.feedback
+    joints = (len(layout.signals) - 2) // 2
+    good = layout.encode(0, [0.0] * (2 * joints) + [1, 0])
+    host.receive(layout.frame_id, bytes((good[0] ^ 0xFF,)) + good[1:], run.link.now_ns)
+
+
+def test_rejected_frames_at_a_rate_are_a_fault_while_torque_flows(hand: HandConfig,
+                                                                  running: Running) -> None:
+    limit = hand.safety.max_rejects_in_window
+    window = round(hand.safety.reject_window_s / hand.bus.period_s)
+    for _ in range(limit):
+        _corrupt_feedback(running, 0)
+        assert running.observe() == []
+    _corrupt_feedback(running, 0)
+    finger = hand.fingers[0]
+    assert [(f.code, f.detail) for f in running.observe()] == [(
+        FaultCode.REJECT_RATE,
+        f"node {finger.node_id} ({finger.name}): {limit + 1} frames rejected within {window} "
+        f"ticks (at most {limit}; so far: crc {limit + 1})")]
+
+
+def test_rejected_frames_before_start_are_no_fault(hand: HandConfig,
+                                                   protocol: Protocol) -> None:
+    """An idle supervisor commands no torque, so it does not judge the frames either: a
+    bring-up tool may listen to a hand whose bus is noisy."""
+    sup = Supervisor(hand)
+    run = Running(sup, Link(hand, protocol), 0)
+    for _ in range(3 * hand.safety.max_rejects_in_window):
+        _corrupt_feedback(run, 0)
+        assert run.observe() == []
+    assert sup.state is State.IDLE

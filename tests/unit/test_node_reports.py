@@ -1,0 +1,75 @@
+"""What one node's frames tell the host, frame by frame: the versions and times a Status
+carries, and the exact words of a contradiction, which the operator reads in the fault.
+
+The frames are encoded with the hand's own layouts and handed to ``FingerNode.receive`` one
+by one, so each test says exactly what arrived and when.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from handctl.config import HandConfig
+from handctl.drivers.finger import FingerLayouts, FingerNode
+from handctl.protocol import Protocol
+
+DISABLED, ENABLED, FAULT = 0, 1, 2
+TIMEOUT, ESTOP = 0x01, 0x02
+
+
+@pytest.fixture
+def node(hand: HandConfig, protocol: Protocol) -> FingerNode:
+    finger = hand.fingers[0]
+    return FingerNode(finger, FingerLayouts.for_node(protocol, finger.node_id))
+
+
+def _feedback(node: FingerNode, counter: int, state: int, bits: int) -> bytes:
+    layout = node.layouts.feedback
+    joints = (len(layout.signals) - 2) // 2
+    return layout.encode(counter, [0.0] * (2 * joints) + [state, bits])
+
+
+def _status(node: FingerNode, counter: int, state: int, bits: int,
+            version: int, firmware: tuple[int, int, int]) -> bytes:
+    return node.layouts.status.encode(counter, (state, bits, 0, 0, 0, 7, version, *firmware))
+
+
+def test_a_status_gives_the_versions_and_when_they_were_heard(node: FingerNode) -> None:
+    assert node.firmware_text == "?" and "no Status" in node.version_problem()
+    version = node.layouts.protocol_version
+    data = _status(node, 0, DISABLED, 0, version, (4, 5, 6))
+    assert node.receive(node.layouts.status.frame_id, data, 123_000) is None
+    assert node.status_ns == 123_000 and node.version_ns == 123_000
+    assert node.protocol_version == version
+    assert node.firmware_version == (4, 5, 6) and node.firmware_text == "4.5.6"
+    assert node.version_problem(since_ns=100_000) == ""
+    assert "no Status" in node.version_problem(since_ns=124_000)
+
+
+def test_a_status_of_another_version_is_named(node: FingerNode) -> None:
+    other = node.layouts.protocol_version + 1
+    node.receive(node.layouts.status.frame_id, _status(node, 0, DISABLED, 0, other, (1, 0, 0)),
+                 5)
+    problem = node.version_problem()
+    assert f"speaks handctl protocol {other}" in problem
+    assert f"this host protocol {node.layouts.protocol_version}" in problem
+
+
+def test_a_contradiction_names_the_frame_the_state_and_every_latched_bit(
+        node: FingerNode) -> None:
+    node.receive(node.layouts.feedback.frame_id, _feedback(node, 0, ENABLED, TIMEOUT | ESTOP), 1)
+    assert node.contradiction == (
+        "Feedback says ENABLED with latched fault bits (TIMEOUT, ESTOP)")
+    assert node.contradictions == 1
+    version = node.layouts.protocol_version
+    node.receive(node.layouts.status.frame_id,
+                 _status(node, 0, 7, TIMEOUT, version, (1, 0, 0)), 2)
+    assert node.contradictions == 2
+    assert node.contradiction.startswith("Feedback")  # the first one is kept
+
+
+def test_a_state_the_protocol_does_not_know_is_named_by_its_number(node: FingerNode) -> None:
+    version = node.layouts.protocol_version
+    node.receive(node.layouts.status.frame_id,
+                 _status(node, 0, 7, TIMEOUT, version, (1, 0, 0)), 2)
+    assert node.contradiction == "Status says state 7 with latched fault bits (TIMEOUT)"
