@@ -40,6 +40,7 @@ from handctl.clock import Clock, Tick
 from handctl.config import HandConfig
 from handctl.drivers import finger, receiver
 from handctl.drivers.hand import AppliedTorques, HandDriver
+from handctl.protocol import NodeState
 from handctl.recipes import runner as recipe_runner
 from handctl.recipes.runner import RecipeRunner, RunStatus
 from handctl.recipes.schema import Recipe
@@ -400,9 +401,9 @@ class Runtime:
                         for n in nodes)
             if not heard:
                 continue
-            faulted = [n for n in nodes if n.state == 2]
+            faulted = [n for n in nodes if n.state == NodeState.FAULT]
             if not faulted:
-                if all(n.state == 0 for n in nodes):
+                if all(n.state == NodeState.DISABLED for n in nodes):
                     return ""
                 continue
             if not self.reset_node_faults:
@@ -426,7 +427,7 @@ class Runtime:
                 silent.append(f"{who}: no heartbeat")
             elif n.version_ns is None or n.version_ns < since:
                 silent.append(f"{who}: no Status (its protocol version unknown)")
-            elif n.state != 0:
+            elif n.state != NodeState.DISABLED:
                 silent.append(f"{who} is {n.state_name}")
         detail = "; ".join(silent) or "nodes not ready"
         self.supervisor.trip(FaultCode.STARTUP, detail, self._ticks)

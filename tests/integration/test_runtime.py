@@ -11,6 +11,7 @@ import pytest
 
 from handctl.config import HandConfig
 from handctl.loop import Outcome
+from handctl.protocol import NodeState
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS, RAMP_BOUND_S, FaultCode, StopCategory
@@ -248,6 +249,6 @@ def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Re
         outcomes.append(outcome)
     assert "states" in seen, f"the runtime never got torque flowing: {outcomes}"
     assert any(any(t) for t in seen["torque"])  # type: ignore[attr-defined]
-    assert seen["states"] == [2, 2, 2]  # FAULT
+    assert seen["states"] == [NodeState.FAULT] * 3
     assert all(bits & 0x01 for bits in seen["faults"])  # type: ignore[attr-defined]
     assert seen["applied"] == [[0.0, 0.0, 0.0]] * 3
