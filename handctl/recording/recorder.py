@@ -32,6 +32,7 @@ import orjson
 from handctl.bus import BusEvent, Frame
 from handctl.config import HandConfig
 from handctl.errors import ConfigError, HandctlError
+from handctl.recipes.runner import RunStatus
 from handctl.recording.ring import (
     CLOSED,
     CTL_WORDS,
@@ -80,7 +81,7 @@ _POSE_INTS = struct.Struct("<qq")  # tick, t
 _FRAME = struct.Struct(f"<qqqqq{FRAME_BYTES}s")  # t, tick, id, direction | size << 8, bus time
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
 #: Runner status names a phase column can also hold.
-RUNNER_NAMES = ("-", "running", "end_ramp", "completed", "aborted")
+RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
 STATE_NAMES = tuple(s.value for s in State)
 #: How long ``close`` waits for the writer to finish the file.
 CLOSE_TIMEOUT_S = 120.0
