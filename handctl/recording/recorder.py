@@ -60,7 +60,7 @@ from handctl.recording.ring import (
     SEP,
     TICK_HEAD,
     TICK_TAIL,
-    Layout,
+    RingLayout,
     Rings,
 )
 from handctl.safety.faults import FAULTS
@@ -113,9 +113,9 @@ class Recorder:
 
     def __init__(self, path: str | Path, hand: HandConfig, metadata: dict[str, dict[str, str]],
                  *, phase_names: Sequence[str] = (), object_names: Sequence[str] = (),
-                 layout: Layout | None = None, live_port: int | None = None) -> None:
+                 layout: RingLayout | None = None, live_port: int | None = None) -> None:
         self.path = Path(path)
-        self.layout = layout or Layout(hand.n_joints, len(hand.fingers), len(object_names))
+        self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
         try:
             out_fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC,
                              0o644)

@@ -70,7 +70,7 @@ ByteArray = npt.NDArray[np.uint8]
 
 
 @dataclass(frozen=True)
-class Layout:
+class RingLayout:
     """Sizes of the rings; capacities are powers of two so an index is a mask away."""
 
     n_joints: int
@@ -115,7 +115,7 @@ class Layout:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Layout:
+    def from_dict(cls, data: dict[str, Any]) -> RingLayout:
         return cls(**{k: int(v) for k, v in data.items()})
 
 
@@ -126,7 +126,7 @@ def _nbytes(shape: tuple[int, ...], dtype: type) -> int:
 class Rings:
     """Numpy views of every part of the block; both sides build the same views."""
 
-    def __init__(self, layout: Layout, buffer: mmap.mmap) -> None:
+    def __init__(self, layout: RingLayout, buffer: mmap.mmap) -> None:
         self.layout = layout
         self.buffer = buffer
         views: dict[str, Any] = {}

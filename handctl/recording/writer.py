@@ -66,7 +66,7 @@ from handctl.recording.ring import (
     SEP,
     TICK_HEAD,
     TICK_TAIL,
-    Layout,
+    RingLayout,
     Rings,
 )
 from handctl.taps import TAP_RX, TAP_TX
@@ -416,7 +416,7 @@ class _Control:
 def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
     control = _Control(ctl_fd)
     setup = control.first()
-    layout = Layout.from_dict(setup["layout"])
+    layout = RingLayout.from_dict(setup["layout"])
     block = mmap.mmap(shm_fd, layout.size)
     rings = Rings(layout, block)
     live = None

@@ -357,10 +357,10 @@ def test_rerun_of_a_log_without_the_channels_is_exit_2(tmp_path: Path) -> None:
 
 
 def test_rerun_refuses_a_log_with_drops(hand: HandConfig, tmp_path: Path) -> None:
-    from handctl.recording.ring import Layout
+    from handctl.recording.ring import RingLayout
 
-    tiny = Layout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
-                  event_capacity=8, pose_capacity=4)
+    tiny = RingLayout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
+                      event_capacity=8, pose_capacity=4)
     run = record_run(hand, short_recipe(hand, tmp_path), tmp_path / "tiny.mcap",
                      troubles=False, layout=tiny, pause_writer=True)
     done = handctl("replay", str(run.path), "--rerun")
