@@ -82,7 +82,7 @@ _FRAME = struct.Struct(f"<qqqqq{FRAME_BYTES}s")  # t, tick, id, direction | size
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
 #: Runner status names a phase column can also hold.
 RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
-STATE_NAMES = tuple(s.value for s in State)
+SUPERVISOR_STATE_NAMES = tuple(s.value for s in State)
 #: How long ``close`` waits for the writer to finish the file.
 CLOSE_TIMEOUT_S = 120.0
 READY_TIMEOUT_S = 30.0
@@ -146,12 +146,12 @@ class Recorder:
         finally:
             for fd in (shm_fd, ctl_r, out_fd, ready_w):
                 os.close(fd)
-        self._states = {name: i for i, name in enumerate(STATE_NAMES)}
+        self._states = {name: i for i, name in enumerate(SUPERVISOR_STATE_NAMES)}
         names = list(dict.fromkeys([*RUNNER_NAMES, *phase_names]))
         self._phases = {name: i for i, name in enumerate(names)}
         try:
             self._send({"type": "setup", "layout": self.layout.as_dict(),
-                        "states": STATE_NAMES, "phases": names,
+                        "states": SUPERVISOR_STATE_NAMES, "phases": names,
                         "joints": list(hand.joint_names),
                         "nodes": [f.name for f in hand.fingers], "objects": list(object_names),
                         "path": str(self.path), "metadata": metadata,
