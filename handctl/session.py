@@ -95,8 +95,8 @@ def _percentiles_us(window: TickWindow) -> dict[str, float]:
             "max": round(window.lateness_max_ns / 1e3, 2)}
 
 
-def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool,
-              sim: dict[str, Any] | None) -> dict[str, Any]:
+def summarise_run(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool,
+                  sim: dict[str, Any] | None) -> dict[str, Any]:
     """The summary JSON: the fields the runtime issue names, and a few an engineer wants."""
     stages = STAGES
     return {
@@ -231,7 +231,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             sim_summary = sim_process.finish()
             if sim_process.problem():
                 warnings.append(sim_process.problem())
-        summary = summarise(result, req.hand, req.recipe, lockstep, sim_summary)
+        summary = summarise_run(result, req.hand, req.recipe, lockstep, sim_summary)
         host: ProbeRecord | None = None
         if probe is not None:
             assert isinstance(clock, RealtimeClock)

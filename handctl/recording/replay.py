@@ -234,7 +234,7 @@ def _percentiles(values: FloatArray, scale: float) -> dict[str, float]:
             "max": round(float(values.max()) * scale, 2)}
 
 
-def summarise(recording: Recording, series: Series) -> dict[str, Any]:
+def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
     """Phases and their durations, the largest torques, faults, timing, drops."""
     n = len(series.joints)
     run_summary = recording.json_meta(ch.META_SUMMARY) or {}

@@ -24,7 +24,13 @@ from handctl.loop import Outcome
 from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
-from handctl.recording.replay import load_series, logged_frames, rerun, summarise, to_bus
+from handctl.recording.replay import (
+    load_series,
+    logged_frames,
+    rerun,
+    summarise_recording,
+    to_bus,
+)
 
 from ..conftest import ROOT
 from .rig import SHORT, short_recipe
@@ -282,7 +288,7 @@ def test_truncated_file_is_summarised_and_rerun_as_far_as_it_goes(recorded: Reco
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) * 2 // 3])
     recording = open_recording(cut)
-    summary = summarise(recording, load_series(recording))
+    summary = summarise_recording(recording, load_series(recording))
     assert not summary["complete"] and summary["ticks"] > 0
     report = rerun(recording)
     assert report.ok and report.compared > 0

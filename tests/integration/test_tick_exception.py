@@ -279,7 +279,7 @@ def test_an_exception_in_any_stage_is_a_controlled_stop(
         force(stage, b, due, monkeypatch)
         result = asyncio.run(b.runtime.run())
         monkeypatch.undo()
-        b.recorder.close(session.summarise(result, hand, hold, True, None))
+        b.recorder.close(session.summarise_run(result, hand, hold, True, None))
         wire = hear(b.listener, hand)
     assert due.fired, "the forced exception never came"
     assert result.outcome is Outcome.SAFETY_STOP, result.message
@@ -296,7 +296,7 @@ def test_an_exception_in_any_stage_is_a_controlled_stop(
     if not (stage == "clock" and always):  # without its clock the simulated hand stands still
         assert all(not any(n.applied) and n.state != 1 for n in b.sim.nodes)
     # The summary and the log.
-    summary = session.summarise(result, hand, hold, True, None)
+    summary = session.summarise_run(result, hand, hold, True, None)
     assert summary["outcome"] == "safety_stop"
     assert summary["faults"][0]["code"] == code.name
     assert summary["faults"][0]["category"] == "immediate"
