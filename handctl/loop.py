@@ -463,7 +463,7 @@ class Runtime:
         if self.estop_requested:
             driver.estop(reason=1)  # the frame first; ``decide`` latches the fault
         desired, applied, new_faults = self.decide(tk.k, tk.now_ns, tk.missed, t_s, state.angle,
-                                                   state.torque, events)
+                                                   state.tdt, events)
         c2, c3 = self._recipe_done_ns, cpu()
         ok = driver.send(applied)
         sup.sent(ok, tk.k)
@@ -474,7 +474,7 @@ class Runtime:
             record.tick, record.t_ns, record.lateness_ns, record.missed = \
                 tk.k, tk.scheduled_ns, tk.lateness_ns, tk.missed
             record.angle, record.tdt, record.desired, record.applied = \
-                state.angle, state.torque, desired, applied
+                state.angle, state.tdt, desired, applied
             record.state, record.phase = sup.state.value, self._phase_name()
             fb = self._feedback_ns
             record.stage_ns = (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, 0, fb)
