@@ -296,7 +296,7 @@ def _start_recording(recording: Recorder, runtime: Runtime, req: RunRequest, spe
         every = POSE_EVERY_TICKS
 
         def sample_poses(tk: Tick) -> None:
-            if tk.k % every == 0:
+            if tk.tick % every == 0:
                 recording.poses([(o.x, o.y, o.angle) for o in sim_hand.ground_truth().objects])
 
         runtime.tick_hooks.append(sample_poses)

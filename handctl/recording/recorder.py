@@ -275,7 +275,7 @@ class Recorder:
         elif self._pending:  # frames that came between ticks belong to the last one
             self._flush_frames()
             self._ctl_view[FRAME_HEAD] = self._fhead
-        self._tick = tick.k
+        self._tick = tick.tick
         self._scheduled = tick.scheduled_ns
         self._now = tick.now_ns
         self._missed = tick.missed

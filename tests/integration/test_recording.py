@@ -91,11 +91,11 @@ def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool =
             poses: dict[int, list[tuple[float, float, float]]] = {}
 
             def sample(tk: Tick) -> None:
-                if tk.k % 10 == 0:
+                if tk.tick % 10 == 0:
                     truth = [(o.x, o.y, o.angle) for o in r.sim.ground_truth().objects]
-                    poses[tk.k] = truth
+                    poses[tk.tick] = truth
                     recorder.poses(truth)
-                if troubles and tk.k == ESTOP_TICK:
+                if troubles and tk.tick == ESTOP_TICK:
                     r.runtime.request_estop("test e-stop")
 
             r.runtime.tick_hooks.append(sample)

@@ -114,7 +114,7 @@ def test_operator_estop_then_explicit_reset_ramps_from_zero(hand: HandConfig,
                                                            hold: Recipe) -> None:
     with rig(hand, hold) as r:
         r.runtime.tick_hooks.append(
-            lambda tk: r.runtime.request_estop("test") if tk.k == 900 else None)
+            lambda tk: r.runtime.request_estop("test") if tk.tick == 900 else None)
         result = r.run()
         assert result.outcome is Outcome.SAFETY_STOP
         assert result.faults[0].code is FaultCode.ESTOP
@@ -141,7 +141,7 @@ def test_consecutive_late_ticks_are_a_fault(hand: HandConfig, hold: Recipe) -> N
 
         async def late_tick() -> object:
             tk = await original()
-            if 800 <= tk.k < 803:
+            if 800 <= tk.tick < 803:
                 from dataclasses import replace
 
                 return replace(tk, missed=1)

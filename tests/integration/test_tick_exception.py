@@ -108,16 +108,16 @@ class Trigger:
     def __init__(self, runtime: Runtime, always: bool) -> None:
         self.runtime = runtime
         self.always = always
-        self.k = -1
+        self.tick = -1
         self.fired = 0
         runtime.tick_hooks.insert(0, self._see)
 
     def _see(self, tk: Tick) -> None:
-        self.k = tk.k
+        self.tick = tk.tick
 
     def __call__(self) -> bool:
         first = self.runtime.first_send_tick
-        if first < 0 or self.k < first + ARM_TICKS - 1 or (self.fired and not self.always):
+        if first < 0 or self.tick < first + ARM_TICKS - 1 or (self.fired and not self.always):
             return False
         self.fired += 1
         return True
