@@ -15,6 +15,7 @@ from typing import NewType
 import numpy as np
 import numpy.typing as npt
 
+from handctl.arrays import FloatArray
 from handctl.bus import DRAIN_LIMIT, EXTENDED_ID_FLAG, BusEvent, BusEventKind, HandBus
 from handctl.busload import frames_per_period
 from handctl.config import HandConfig
@@ -23,7 +24,6 @@ from handctl.drivers.receiver import Reject, RejectCounts
 from handctl.errors import ConfigError
 from handctl.protocol import NODE_COMMANDS, Protocol
 
-FloatArray = npt.NDArray[np.float64]
 #: Torques that came out of the safety supervisor. Only ``handctl/safety/supervisor.py`` makes
 #: one (a test checks), and ``HandDriver.send`` takes nothing else, so the type checker proves
 #: that no torque reaches a command frame without passing the limiter.

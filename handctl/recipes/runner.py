@@ -27,9 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from handctl.arrays import FloatArray
 from handctl.recipes.schema import ESTIMATES, Condition, Recipe, SignalKind, TimeoutAction
 from handctl.recipes.velocity import JointVelocity
-from handctl.safety.limits import FloatArray
 
 #: s, the low-pass of the estimated centre-line rate: the estimate moves in steps of the
 #: encoder's resolution, and the rate loop must not chase them

@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 import orjson
 
 from handctl import timebudget
+from handctl.arrays import FloatArray
 from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, BusSpec, Frame, HandBus
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig, parse_hand
@@ -49,7 +49,6 @@ from handctl.recording.reader import (
 )
 from handctl.schema import parse_yaml
 
-FloatArray = npt.NDArray[np.float64]
 #: Phase names that are the runner's status rather than a phase of the recipe.
 NOT_PHASES = frozenset({"-", "running", "completed", "aborted", "?"})
 MAX_LISTED = 20

@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from handctl.arrays import FloatArray
+
 # Control words (int64).
 TICK_HEAD, TICK_TAIL = 0, 1
 FRAME_HEAD, FRAME_TAIL = 2, 3
@@ -65,7 +67,6 @@ RING_EVENT_KINDS = {EV_FAULT: "fault", EV_STATE: "state", EV_PHASE: "phase", EV_
 POSE_INTS = 2
 
 IntArray = npt.NDArray[np.int64]
-FloatArray = npt.NDArray[np.float64]
 ByteArray = npt.NDArray[np.uint8]
 
 

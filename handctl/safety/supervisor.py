@@ -22,6 +22,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from handctl.arrays import FloatArray
 from handctl.bus import BusEvent, BusEventKind
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerNode
@@ -29,7 +30,6 @@ from handctl.drivers.hand import AppliedTorques
 from handctl.protocol import NodeState
 from handctl.safety.faults import RAMP_BOUND_S, Fault, FaultCode, StopCategory
 from handctl.safety.limits import (
-    FloatArray,
     JointLimits,
     angle_violations,
     check_desired,
