@@ -47,11 +47,8 @@ from handctl.recipes.schema import Recipe
 from handctl.safety import faults as safety_faults
 from handctl.safety.faults import Fault, FaultCode
 from handctl.safety.supervisor import State, Supervisor
-from handctl.tickstats import DEFAULT_WINDOW, TickStats, TickWindow
+from handctl.tickstats import DEFAULT_WINDOW, STAGES, TickStats, TickWindow
 
-#: ``feedback`` is the recipe phase's feedback and the soft-limit guard (``runner.feedback``);
-#: it comes last so that the first five keep their places in recordings and benchmarks
-STAGES = ("poll", "recipe", "safety", "send", "record", "feedback")
 #: Ticks the loop keeps sending zero after a stop before it disables the nodes: frames in
 #: flight are superseded, and the nodes see zero before they see "disable".
 ZERO_TICKS_BEFORE_DISABLE = 5

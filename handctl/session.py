@@ -40,11 +40,11 @@ from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
 from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
 from handctl.hostfacts import affinity
-from handctl.loop import STAGES, Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
+from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS
-from handctl.tickstats import TickWindow, percentile_us
+from handctl.tickstats import STAGES, TickWindow, percentile_us
 
 if TYPE_CHECKING:
     from handctl.clock import Tick

@@ -47,6 +47,7 @@ from handctl.recording.reader import (
     iter_messages,
     require_topics,
 )
+from handctl.recording.ring import RECORDED_STAGES
 from handctl.schema import parse_yaml
 
 #: Phase names that are the runner's status rather than a phase of the recipe.
@@ -129,9 +130,8 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             scheduled = (int(msg["scheduled_ns"]) - t0) * 1e-9
             stages = msg.get("stage_cpu_ns") or {}
             timing.add((t, msg["tick"], msg.get("lateness_ns", 0), msg.get("missed", 0),
-                        1.0 if msg.get("active") else 0.0, stages.get("poll", 0),
-                        stages.get("recipe", 0), stages.get("safety", 0),
-                        stages.get("send", 0)))
+                        1.0 if msg.get("active") else 0.0,
+                        *(stages.get(name, 0) for name in RECORDED_STAGES)))
             last_t = t
         elif topic == ch.TORQUE:
             torque.add([t, *_floats(msg["desired_nm"]), *_floats(msg["applied_nm"])])
@@ -287,7 +287,7 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
                    "stage_cpu_us_p99": {
                        name: round(float(np.percentile(active[:, 5 + i], 99)) / 1e3, 2)
                        if len(active) else 0.0
-                       for i, name in enumerate(("poll", "recipe", "safety", "send"))}},
+                       for i, name in enumerate(RECORDED_STAGES)}},
         "drops": drops,
         "frames": series.frames,
         "bus_events": sum(1 for e in series.events if e["kind"] == "bus"),

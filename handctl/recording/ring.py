@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from handctl.arrays import FloatArray
+from handctl.tickstats import STAGES
 
 # Control words (int64).
 TICK_HEAD, TICK_TAIL = 0, 1
@@ -40,6 +41,8 @@ CTL_WORDS = 16
 I_TICK, I_SCHEDULED, I_NOW, I_MISSED, I_ACTIVE = 0, 1, 2, 3, 4
 I_STAGES = 5  # poll, recipe, safety, send
 N_STAGES = 4
+#: The names of those columns: the first loop stages, whose places never change.
+RECORDED_STAGES = STAGES[:N_STAGES]
 I_STATE, I_PHASE, I_FAULTS = 9, 10, 11
 I_FEEDBACK = 12
 # Tick row, float part: angle, tdt, desired, applied, n_joints each.

@@ -61,8 +61,10 @@ from handctl.recording.ring import (
     I_PHASE,
     I_STAGES,
     I_STATE,
+    N_STAGES,
     POSE_HEAD,
     POSE_TAIL,
+    RECORDED_STAGES,
     SEP,
     TICK_HEAD,
     TICK_TAIL,
@@ -272,8 +274,8 @@ class Encoder:
                                       "active": bool(active)}
             if active:
                 s = I_STAGES
-                timing["stage_cpu_ns"] = {"poll": r[s], "recipe": r[s + 1],
-                                          "safety": r[s + 2], "send": r[s + 3]}
+                timing["stage_cpu_ns"] = dict(zip(RECORDED_STAGES, r[s:s + N_STAGES],
+                                                  strict=True))
             add(ch.TIMING, now, timing)
             if active:
                 feedback = r[I_FEEDBACK:node_at]

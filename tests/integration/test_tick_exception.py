@@ -188,7 +188,7 @@ def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:  
         raise AssertionError(stage)
 
 
-STAGES = {"poll": FaultCode.POLL_EXCEPTION, "decode": FaultCode.DECODE_EXCEPTION,
+STAGE_FAULTS = {"poll": FaultCode.POLL_EXCEPTION, "decode": FaultCode.DECODE_EXCEPTION,
           "estimator": FaultCode.ESTIMATOR_EXCEPTION, "runner": FaultCode.RUNNER_EXCEPTION,
           "supervisor": FaultCode.SUPERVISOR_EXCEPTION, "encode": FaultCode.ENCODE_EXCEPTION,
           "send": FaultCode.SEND_EXCEPTION, "record": FaultCode.RECORD_EXCEPTION,
@@ -269,11 +269,11 @@ def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
 
 
 @pytest.mark.parametrize("always", [False, True], ids=["once", "every_call"])
-@pytest.mark.parametrize("stage", list(STAGES))
+@pytest.mark.parametrize("stage", list(STAGE_FAULTS))
 def test_an_exception_in_any_stage_is_a_controlled_stop(
         hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         stage: str, always: bool) -> None:
-    code = STAGES[stage]
+    code = STAGE_FAULTS[stage]
     with bench(hand, hold, tmp_path / "run.mcap") as b:
         due = Trigger(b.runtime, always)
         force(stage, b, due, monkeypatch)
