@@ -43,7 +43,7 @@ def test_default_recipe_completes(hand: HandConfig) -> None:
         assert np.all(np.abs(wire[-3:]) == 0)  # ends at zero
         tau_max = np.array([j.tau_max for j in hand.joints])
         assert np.all(np.abs(wire) <= tau_max + 1e-4)
-        assert all(n.state == 0 for n in r.sim.nodes)  # disabled at the end
+        assert all(n.state == NodeState.DISABLED for n in r.sim.nodes)  # at the end
 
 
 def test_lockstep_runs_are_deterministic(hand: HandConfig, hold: Recipe) -> None:
@@ -107,7 +107,7 @@ def test_fault_is_detected_stopped_and_latched(hand: HandConfig, hold: Recipe, n
             assert ramp[ticks_to_zero] == 0
             assert ticks_to_zero <= RAMP_BOUND_S / hand.bus.period_s + 2
         # The nodes end disabled or in their own FAULT: never enabled with torque.
-        assert all(n.state != 1 or not any(n.applied) for n in r.sim.nodes)
+        assert all(n.state != NodeState.ENABLED or not any(n.applied) for n in r.sim.nodes)
 
 
 def test_operator_estop_then_explicit_reset_ramps_from_zero(hand: HandConfig,
@@ -119,7 +119,7 @@ def test_operator_estop_then_explicit_reset_ramps_from_zero(hand: HandConfig,
         assert result.outcome is Outcome.SAFETY_STOP
         assert result.faults[0].code is FaultCode.ESTOP
         assert r.estops() == 1
-        assert all(n.state == 2 for n in r.sim.nodes)  # the nodes latched ESTOP too
+        assert all(n.state == NodeState.FAULT for n in r.sim.nodes)  # they latched ESTOP too
         # Nothing resumes by itself: the runtime is done until somebody resets.
         assert r.runtime.supervisor.state is State.FAULTED
         sent_before = len(r.commands())

@@ -36,7 +36,7 @@ from handctl.loop import (
     Outcome,
     Runtime,
 )
-from handctl.protocol import NODE_COMMANDS, load_protocol
+from handctl.protocol import NODE_COMMANDS, NodeState, load_protocol
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
@@ -294,7 +294,7 @@ def test_an_exception_in_any_stage_is_a_controlled_stop(
     unreachable = [BROKEN_NODE] if stage == "send" and always else []
     assert_stopped_on_the_wire(wire, first.tick - b.runtime.first_send_tick, unreachable)
     if not (stage == "clock" and always):  # without its clock the simulated hand stands still
-        assert all(not any(n.applied) and n.state != 1 for n in b.sim.nodes)
+        assert all(not any(n.applied) and n.state != NodeState.ENABLED for n in b.sim.nodes)
     # The summary and the log.
     summary = session.summarise_run(result, hand, hold, True, None)
     assert summary["outcome"] == "safety_stop"
@@ -325,7 +325,7 @@ def test_a_node_that_cannot_be_sent_to_gets_the_estop(
     assert len(wire.torques[BROKEN_NODE]) == row  # nothing reached it after the fault
     assert_stopped_on_the_wire(wire, row, unreachable=[BROKEN_NODE])
     broken = next(n for n in b.sim.nodes if n.node_id == BROKEN_NODE)
-    assert broken.state == 2 and not any(broken.applied)  # FAULT (e-stop), no torque
+    assert broken.state == NodeState.FAULT and not any(broken.applied)  # e-stop, no torque
 
 
 def test_an_exception_while_enabling_is_a_controlled_stop(
@@ -353,7 +353,7 @@ def test_an_exception_while_enabling_is_a_controlled_stop(
         assert len(rows) >= ZERO_TICKS_BEFORE_DISABLE
         assert all(not np.any(values) for _, values in rows)
         assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0]
-    assert all(not any(n.applied) and n.state == 0 for n in b.sim.nodes)
+    assert all(not any(n.applied) and n.state == NodeState.DISABLED for n in b.sim.nodes)
 
 
 def test_ctrl_c_without_a_signal_handler_zeroes_and_disables_before_it_goes_on(
