@@ -459,7 +459,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     recording = open_recording(args.log)
     check_format(recording)
     series = replay.load_series(recording)
-    summary = replay.summarise(recording, series)
+    summary = replay.summarise_recording(recording, series)
     _print_replay_summary(summary)
     report: dict[str, Any] = {"summary": summary}
     status = EXIT_OK

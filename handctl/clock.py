@@ -24,7 +24,7 @@ from handctl.timerfd import PeriodicTimer
 
 @dataclass(frozen=True, slots=True)
 class Tick:
-    k: int  # tick number, 0 first
+    tick: int  # the tick's number, 0 first
     scheduled_ns: int  # when it was due, on the clock's time base
     now_ns: int  # when the loop got it
     missed: int  # ticks skipped just before this one
@@ -95,7 +95,7 @@ class RealtimeClock:
         self._waiter: asyncio.Future[int] | None = None
         self._pending = 0
         self._expirations = 0
-        self._k = -1
+        self._tick = -1
         self._loop: asyncio.AbstractEventLoop | None = None
 
     def now_ns(self) -> int:
@@ -129,12 +129,12 @@ class RealtimeClock:
             n = await self._waiter
             self._waiter = None
         self._expirations += n
-        self._k += 1
+        self._tick += 1
         scheduled = self._timer.start_ns + self._expirations * self.period_ns
         now = time.monotonic_ns()
         if n > 1:
-            self.stalls.add(self._k, scheduled - (n - 1) * self.period_ns, now, n - 1)
-        return Tick(self._k, scheduled, now, n - 1)
+            self.stalls.add(self._tick, scheduled - (n - 1) * self.period_ns, now, n - 1)
+        return Tick(self._tick, scheduled, now, n - 1)
 
     def close(self) -> None:
         if self._timer is not None:
@@ -156,7 +156,7 @@ class LockstepClock:
     def __init__(self, period_s: float, step_peer: Callable[[], None]) -> None:
         self.period_ns = round(period_s * 1e9)
         self._step_peer = step_peer
-        self._k = -1
+        self._tick = -1
         self._now = 0
 
     def now_ns(self) -> int:
@@ -165,15 +165,15 @@ class LockstepClock:
     async def wait_tick(self) -> Tick:
         # The peer's step ends at the new tick's time, so what it sends arrives then: the
         # clock moves first, and frames stamped on arrival (``handctl.bus``) carry that time.
-        self._k += 1
-        self._now = (self._k + 1) * self.period_ns
+        self._tick += 1
+        self._now = (self._tick + 1) * self.period_ns
         self._step_peer()
         # Let the event loop run callbacks (signals, the recorder) between ticks.
         loop = asyncio.get_running_loop()
         done = loop.create_future()
         loop.call_soon(done.set_result, None)
         await done
-        return Tick(self._k, self._now, self._now, 0)
+        return Tick(self._tick, self._now, self._now, 0)
 
     def close(self) -> None:
         pass

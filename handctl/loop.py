@@ -2,7 +2,7 @@
 
 One tick, always in this order (DESIGN.md):
 
-1. ``clock.wait_tick()``: tick k, its time, the ticks missed before it;
+1. ``clock.wait_tick()``: the tick's number, its time, the ticks missed before it;
 2. ``hand.poll()``: drain every frame that arrived, update the joint state;
 3. ``runner.step()``: the desired torques of the current phase;
 4. ``supervisor.observe()`` and ``supervisor.filter()``: faults, and the applied torques;
@@ -40,17 +40,15 @@ from handctl.clock import Clock, Tick
 from handctl.config import HandConfig
 from handctl.drivers import finger, receiver
 from handctl.drivers.hand import AppliedTorques, HandDriver
+from handctl.protocol import NodeState
 from handctl.recipes import runner as recipe_runner
 from handctl.recipes.runner import RecipeRunner, RunStatus
 from handctl.recipes.schema import Recipe
 from handctl.safety import faults as safety_faults
 from handctl.safety.faults import Fault, FaultCode
 from handctl.safety.supervisor import State, Supervisor
-from handctl.tickstats import DEFAULT_WINDOW, TickStats, TickWindow
+from handctl.tickstats import DEFAULT_WINDOW, STAGES, TickStats, TickWindow
 
-#: ``feedback`` is the recipe phase's feedback and the soft-limit guard (``runner.feedback``);
-#: it comes last so that the first five keep their places in recordings and benchmarks
-STAGES = ("poll", "recipe", "safety", "send", "record", "feedback")
 #: Ticks the loop keeps sending zero after a stop before it disables the nodes: frames in
 #: flight are superseded, and the nodes see zero before they see "disable".
 ZERO_TICKS_BEFORE_DISABLE = 5
@@ -198,7 +196,7 @@ class Runtime:
         self._stats = TickStats(len(STAGES), window_ticks)
         self._max_abs = np.zeros(hand.n_joints)
         self._missed = 0
-        self._ticks = 0
+        self.tick = 0  # the number of the tick under way (or next): as many have run before it
         self._t0_ns: int | None = None
         self._zero = np.zeros(hand.n_joints)
         self._bus_events = 0
@@ -218,12 +216,12 @@ class Runtime:
         if not self.stop_requested:
             self.stop_requested = reason
             if self.recorder is not None:
-                self.recorder.note("stop", reason, self._ticks)
+                self.recorder.note("stop", reason, self.tick)
 
     def request_estop(self, reason: str = "operator") -> None:
         self.estop_requested = reason
         if self.recorder is not None:
-            self.recorder.note("estop", reason, self._ticks)
+            self.recorder.note("estop", reason, self.tick)
 
     def reset(self) -> bool:
         """The explicit reset after a safety stop: clear the latched faults, host and nodes.
@@ -233,9 +231,9 @@ class Runtime:
         """
         if self.supervisor.state is not State.FAULTED:
             return False
-        self.supervisor.reset(self._ticks)
+        self.supervisor.reset(self.tick)
         if self.recorder is not None:
-            self.recorder.note("reset", "", self._ticks)
+            self.recorder.note("reset", "", self.tick)
         self.driver.node_command("fault_reset")
         if self.recipe is not None:
             self.runner = RecipeRunner(self.recipe, self.hand.n_joints)
@@ -270,21 +268,21 @@ class Runtime:
         if problem:
             return Outcome.STARTUP_FAILED, problem
         # 2. Enable, with zero torque every tick from now on (the device watchdog is armed).
-        tick = self._ticks
+        tick = self.tick
         sup.start(tick)
         self.driver.node_command("enable")
-        self.first_send_tick = self._ticks  # command frame n of each node belongs to this + n
+        self.first_send_tick = self.tick  # command frame n of each node belongs to this + n
         self.startup_missed_ticks = self._missed  # before it the peer may still be starting
         stopping_since: int | None = None
         while True:
             tk = await self._tick()
             if sup.state is State.IDLE and stopping_since is None:
-                stopping_since = tk.k
+                stopping_since = tk.tick
             if sup.state is State.FAULTED and stopping_since is None:
-                stopping_since = tk.k
-            if stopping_since is not None and tk.k - stopping_since >= ZERO_TICKS_BEFORE_DISABLE:
+                stopping_since = tk.tick
+            if stopping_since is not None and tk.tick - stopping_since >= ZERO_TICKS_BEFORE_DISABLE:
                 break
-            if self._ticks >= self.max_ticks:
+            if self.tick >= self.max_ticks:
                 self.request_stop("tick budget exhausted")
         self.driver.node_command("disable")
         # One more period so the disable is on its way (in lockstep: so the hand steps once
@@ -310,27 +308,27 @@ class Runtime:
         """
         tk = self._latch_exception(exc)
         driver = self.driver
-        if tk is not None and self._ticks == tk.k:  # the tick that raised was not counted
+        if tk is not None and self.tick == tk.tick:  # the tick that raised was not counted
             self._count_stop_tick(tk)
         driver.send_zero()
         clock_ok = recorder_ok = poll_ok = True
         for n in range(1, ZERO_TICKS_BEFORE_DISABLE + 2):  # the ticks after the one that raised
-            tick: Tick | None = None
+            tk = None
             if clock_ok:
                 try:
-                    tick = await asyncio.wait_for(self.clock.wait_tick(), STOP_TICK_TIMEOUT_S)
+                    tk = await asyncio.wait_for(self.clock.wait_tick(), STOP_TICK_TIMEOUT_S)
                 except Exception:  # it gave up pacing: the frames go without it
                     clock_ok = False
-            if tick is not None:
-                self._count_stop_tick(tick)
+            if tk is not None:
+                self._count_stop_tick(tk)
                 if recorder_ok and self.recorder is not None:
                     try:
-                        self.recorder.begin_tick(tick)
+                        self.recorder.begin_tick(tk)
                     except Exception:  # later frames go with the last tick it began
                         recorder_ok = False
             if poll_ok:
                 try:
-                    driver.poll(tick.now_ns if tick is not None else None)
+                    driver.poll(tk.now_ns if tk is not None else None)
                     self._bus_events += len(driver.take_bus_events())
                 except Exception:  # polling only feeds the log here: not needed to stop
                     poll_ok = False
@@ -353,7 +351,7 @@ class Runtime:
             code, tk = _stage_of(exc)
         except Exception:  # a traceback that cannot be read still stops the hand
             code, tk = FaultCode.RUN_EXCEPTION, None
-        tick = tk.k if tk is not None else self._ticks
+        tick = tk.tick if tk is not None else self.tick
         failure = _describe(exc, code, tick)
         self.exception = failure
         # A supervisor that cannot take the fault is itself broken: ``_faults`` reports it.
@@ -392,7 +390,7 @@ class Runtime:
                      and n.version_ns >= since and (problem := n.version_problem())]
             if wrong:
                 detail = "; ".join(wrong)
-                self.supervisor.trip(FaultCode.STARTUP, detail, tk.k)
+                self.supervisor.trip(FaultCode.STARTUP, detail, tk.tick)
                 return detail
             heard = all(n.feedback_ns is not None and n.feedback_ns >= since
                         and n.heartbeat_ns is not None and n.heartbeat_ns >= since
@@ -400,9 +398,9 @@ class Runtime:
                         for n in nodes)
             if not heard:
                 continue
-            faulted = [n for n in nodes if n.state == 2]
+            faulted = [n for n in nodes if n.state == NodeState.FAULT]
             if not faulted:
-                if all(n.state == 0 for n in nodes):
+                if all(n.state == NodeState.DISABLED for n in nodes):
                     return ""
                 continue
             if not self.reset_node_faults:
@@ -411,7 +409,7 @@ class Runtime:
                 names = "; ".join(f"node {n.node_id} ({n.finger.name}) in FAULT "
                                   f"({', '.join(fault_names(n.fault_bits)) or 'no bits'})"
                                   for n in faulted)
-                self.supervisor.trip(FaultCode.STARTUP, names, tk.k)
+                self.supervisor.trip(FaultCode.STARTUP, names, tk.tick)
                 return (f"{names}: check the hand, then clear the faults explicitly with "
                         "--reset-node-faults")
             if not reset_sent:
@@ -426,10 +424,10 @@ class Runtime:
                 silent.append(f"{who}: no heartbeat")
             elif n.version_ns is None or n.version_ns < since:
                 silent.append(f"{who}: no Status (its protocol version unknown)")
-            elif n.state != 0:
+            elif n.state != NodeState.DISABLED:
                 silent.append(f"{who} is {n.state_name}")
         detail = "; ".join(silent) or "nodes not ready"
-        self.supervisor.trip(FaultCode.STARTUP, detail, self._ticks)
+        self.supervisor.trip(FaultCode.STARTUP, detail, self.tick)
         return f"nodes not ready within {self.startup_ticks} ticks: {detail}"
 
     async def _next_tick(self) -> Tick:
@@ -461,19 +459,19 @@ class Runtime:
         t_s = (tk.scheduled_ns - (self._t0_ns or 0)) * 1e-9
         if self.estop_requested:
             driver.estop(reason=1)  # the frame first; ``decide`` latches the fault
-        desired, applied, new_faults = self.decide(tk.k, tk.now_ns, tk.missed, t_s, state.angle,
-                                                   state.torque, events)
+        desired, applied, new_faults = self.decide(tk.tick, tk.now_ns, tk.missed, t_s, state.angle,
+                                                   state.tdt, events)
         c2, c3 = self._recipe_done_ns, cpu()
         ok = driver.send(applied)
-        sup.sent(ok, tk.k)
+        sup.sent(ok, tk.tick)
         np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)
         c4 = cpu()  # the record stage is the recording alone
         if self.recorder is not None:
             record = self._record
             record.tick, record.t_ns, record.lateness_ns, record.missed = \
-                tk.k, tk.scheduled_ns, tk.lateness_ns, tk.missed
+                tk.tick, tk.scheduled_ns, tk.lateness_ns, tk.missed
             record.angle, record.tdt, record.desired, record.applied = \
-                state.angle, state.torque, desired, applied
+                state.angle, state.tdt, desired, applied
             record.state, record.phase = sup.state.value, self._phase_name()
             fb = self._feedback_ns
             record.stage_ns = (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, 0, fb)
@@ -482,7 +480,7 @@ class Runtime:
         c5 = cpu()
         fb = self._feedback_ns
         self._store(tk, (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, c5 - c4, fb))
-        if self.status is not None and tk.k % STATUS_EVERY_TICKS == 0:
+        if self.status is not None and tk.tick % STATUS_EVERY_TICKS == 0:
             runner = self.runner
             self.status(StatusLine(
                 t_s, self._phase_name(), sup.state.value, float(np.max(np.abs(applied))),
@@ -493,7 +491,7 @@ class Runtime:
                 simulated=self.clock.lockstep, timed_out=self._timed_out()))
         return tk
 
-    def decide(self, k: int, now_ns: int, missed: int, t_s: float, angle: np.ndarray,
+    def decide(self, tick: int, now_ns: int, missed: int, t_s: float, angle: np.ndarray,
                tdt: np.ndarray, events: Sequence[BusEvent] = ()
                ) -> tuple[np.ndarray, AppliedTorques, list[Fault]]:
         """The tick's decision from what the poll found: recipe runner (and the object
@@ -506,17 +504,17 @@ class Runtime:
         """
         sup = self.supervisor
         if self.estop_requested:
-            sup.trip(FaultCode.ESTOP, self.estop_requested, k)
+            sup.trip(FaultCode.ESTOP, self.estop_requested, tick)
             self.estop_requested = ""
         self._feedback_ns = 0
         desired = self._desired(t_s, angle, tdt)
         self._recipe_done_ns = self.cpu_clock()
-        new_faults = sup.observe(k, now_ns, self.driver.nodes, angle, tdt, missed, events)
+        new_faults = sup.observe(tick, now_ns, self.driver.nodes, angle, tdt, missed, events)
         if self.stop_requested and sup.state in (State.RUNNING, State.ENABLING):
             if self.runner is not None:
                 self.runner.abort(t_s, f"stopped: {self.stop_requested}")
-            sup.stop(k)
-        return desired, sup.filter(k, desired, missed), new_faults
+            sup.stop(tick)
+        return desired, sup.filter(tick, desired, missed), new_faults
 
     def _desired(self, t_s: float, angle: np.ndarray, tdt: np.ndarray) -> np.ndarray:
         sup = self.supervisor
@@ -524,7 +522,7 @@ class Runtime:
         if runner is None or sup.state is not State.RUNNING:
             return self._zero
         if runner.done:
-            sup.stop(self._ticks)
+            sup.stop(self.tick)
             return self._zero
         estimates = self.estimator(angle) if self.estimator is not None else None
         runner.advance(t_s, angle, tdt, estimates)
@@ -532,7 +530,7 @@ class Runtime:
         desired = runner.feedback(t_s, angle, estimates)
         self._feedback_ns = self.cpu_clock() - f0
         if runner.status is RunStatus.ABORTED and not self.stop_requested:
-            sup.trip(FaultCode.RECIPE_ABORT, runner.abort_reason, self._ticks)
+            sup.trip(FaultCode.RECIPE_ABORT, runner.abort_reason, self.tick)
         return desired
 
     def _timed_out(self) -> tuple[str, ...]:
@@ -546,7 +544,7 @@ class Runtime:
     def _store(self, tk: Tick, stages: tuple[int, ...]) -> None:
         self._stats.store(tk.lateness_ns, tk.missed, stages)
         self._missed += tk.missed
-        self._ticks += 1
+        self.tick += 1
 
     def _result(self, outcome: Outcome, message: str) -> RunResult:
         phases = []
@@ -556,14 +554,14 @@ class Runtime:
                       for r in self.runner.records]
         window = self._stats.result()
         return RunResult(
-            outcome=outcome, ticks=self._ticks, missed_ticks=self._missed,
+            outcome=outcome, ticks=self.tick, missed_ticks=self._missed,
             lateness_ns=window.lateness_ns, missed=window.missed, stage_ns=window.stage_ns,
             window=window,
             max_abs_tau=self._max_abs.copy(), faults=self._faults(),
             phases=phases, message=message, node_rejects=self.driver.reject_counts(),
             unexpected_ids=dict(self.driver.unexpected_ids), bus_events=self._bus_events,
-            supervisor_history=[(k, a.value, e.value, b.value)
-                                for k, a, e, b in self.supervisor.history],
+            supervisor_history=[(tick, a.value, e.value, b.value)
+                                for tick, a, e, b in self.supervisor.history],
             exception=self.exception)
 
 

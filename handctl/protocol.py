@@ -18,6 +18,7 @@ them fails loudly instead of producing frames the receivers reject):
 
 from __future__ import annotations
 
+import enum
 import math
 import re
 import struct
@@ -35,8 +36,29 @@ CRC8_POLY = 0x2F
 CRC8_INIT = 0xFF
 CRC8_XOR_OUT = 0xFF
 
-#: Device states as they travel in ``State`` signals.
-STATE_NAMES = {0: "DISABLED", 1: "ENABLED", 2: "FAULT"}
+
+class NodeState(enum.IntEnum):
+    """A node's device state, as it travels in every ``State`` signal (the DBC's value table).
+
+    One state model for both ends: the host driver, the safety checks and the bring-up tools
+    read it, the simulated nodes send it. A frame may carry a value outside it (the signal has
+    eight bits) and a node not yet heard has none, so the host keeps the state as a plain int
+    and names it with ``node_state_name``.
+    """
+
+    DISABLED = 0
+    ENABLED = 1
+    FAULT = 2
+
+
+def node_state_name(value: int, unknown: str = "UNKNOWN") -> str:
+    """The name of a ``State`` value, or ``unknown`` for a value the protocol does not define."""
+    try:
+        return NodeState(value).name
+    except ValueError:
+        return unknown
+
+
 #: The DBC's ``VERSION`` string: "handctl protocol N", N the integer every node reports in its
 #: Status (``ProtocolVersion``) and the host compares with its own.
 _VERSION = re.compile(r"^handctl protocol (\d+)$")

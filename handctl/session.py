@@ -40,11 +40,11 @@ from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
 from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
 from handctl.hostfacts import affinity
-from handctl.loop import STAGES, Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
+from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
 from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS
-from handctl.tickstats import TickWindow, percentile_us
+from handctl.tickstats import STAGES, TickWindow, percentile_us
 
 if TYPE_CHECKING:
     from handctl.clock import Tick
@@ -95,8 +95,8 @@ def _percentiles_us(window: TickWindow) -> dict[str, float]:
             "max": round(window.lateness_max_ns / 1e3, 2)}
 
 
-def summarise(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool,
-              sim: dict[str, Any] | None) -> dict[str, Any]:
+def summarise_run(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool,
+                  sim: dict[str, Any] | None) -> dict[str, Any]:
     """The summary JSON: the fields the runtime issue names, and a few an engineer wants."""
     stages = STAGES
     return {
@@ -231,7 +231,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             sim_summary = sim_process.finish()
             if sim_process.problem():
                 warnings.append(sim_process.problem())
-        summary = summarise(result, req.hand, req.recipe, lockstep, sim_summary)
+        summary = summarise_run(result, req.hand, req.recipe, lockstep, sim_summary)
         host: ProbeRecord | None = None
         if probe is not None:
             assert isinstance(clock, RealtimeClock)
@@ -296,7 +296,7 @@ def _start_recording(recording: Recorder, runtime: Runtime, req: RunRequest, spe
         every = POSE_EVERY_TICKS
 
         def sample_poses(tk: Tick) -> None:
-            if tk.k % every == 0:
+            if tk.tick % every == 0:
                 recording.poses([(o.x, o.y, o.angle) for o in sim_hand.ground_truth().objects])
 
         runtime.tick_hooks.append(sample_poses)

@@ -15,6 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: The stages of a control tick, in the order the loop times them (``handctl.loop``).
+#: ``feedback`` is the recipe phase's feedback and the soft-limit guard (``runner.feedback``);
+#: it comes last so that the first five keep their places in recordings and benchmarks
+STAGES = ("poll", "recipe", "safety", "send", "record", "feedback")
 #: ticks folded into the histograms at a time
 BLOCK = 1024
 #: ticks kept one by one: 65 s at 1 kHz, 3.4 MB

@@ -34,7 +34,7 @@ def install(runtime: Runtime, max_seconds: float) -> None:
     reason = f"{REASON_PREFIX}{max_seconds:g} s reached"
 
     def spent(tk: Tick) -> None:
-        if tk.k >= ticks:
+        if tk.tick >= ticks:
             runtime.request_stop(reason)
 
     runtime.tick_hooks.append(spent)

@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if handled() - before != len(batch):
                 tally.miscounted += abs(handled() - before - len(batch))
                 tally.problem(f"{handled() - before} of {len(batch)} frames counted")
-            bad = [a for a in state.angle.tolist() + state.torque.tolist()
+            bad = [a for a in state.angle.tolist() + state.tdt.tolist()
                    if not math.isfinite(a)] + [a for a in state.angle.tolist()
                                                 if abs(a) > angle_limit]
             if bad:

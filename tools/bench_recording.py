@@ -132,9 +132,9 @@ class TickTimer(LockstepClock):
         if self._started is not None:
             self.work_ns.append(_CPU() - self._started)
         tick = await super().wait_tick()
-        while not self.turns.mine(self.side, tick.k):
+        while not self.turns.mine(self.side, tick.tick):
             await asyncio.sleep(0)
-        self.turns.begin(tick.k)
+        self.turns.begin(tick.tick)
         self._started = _CPU()
         return tick
 
@@ -181,7 +181,7 @@ class _Side:
                 reset_node_faults=False, estimator=estimator is not None))
 
         def poses(tk: Tick) -> None:
-            if tk.k % POSE_EVERY_TICKS == 0:
+            if tk.tick % POSE_EVERY_TICKS == 0:
                 truth = [(o.x, o.y, o.angle) for o in sim.ground_truth().objects]
                 if recorder is not None:
                     recorder.poses(truth)

@@ -22,7 +22,7 @@ from typing import Any
 from handctl.bus import EXTENDED_ID_FLAG, HandBus
 from handctl.drivers.finger import fault_names
 from handctl.drivers.receiver import CounterCheck, Reject
-from handctl.protocol import STATE_NAMES, Layout, Protocol
+from handctl.protocol import Layout, Protocol, node_state_name
 
 
 @dataclass
@@ -106,7 +106,7 @@ class BusView:
 def value_text(name: str, value: float, unit: str) -> str:
     """A signal's value as an engineer reads it: states and fault bits by name, units."""
     if name == "State":
-        return STATE_NAMES.get(int(value), str(int(value)))
+        return node_state_name(int(value), str(int(value)))
     if name == "FaultBits":
         return ",".join(fault_names(int(value))) or "-"
     text = str(value) if isinstance(value, int) else f"{value:+.4f}"

@@ -19,7 +19,7 @@ from handctl.bus import EXTENDED_ID_FLAG, HandBus
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode, fault_names
 from handctl.drivers.hand import check_ids
-from handctl.protocol import Protocol
+from handctl.protocol import NodeState, Protocol
 
 #: Messages a finger node sends (the host's receive streams of a node).
 NODE_KINDS = ("Feedback", "Status", "Heartbeat")
@@ -153,7 +153,7 @@ def _row(node: FingerNode, count: Counter[str], elapsed: float) -> NodeRow:
         problem = node.version_problem()
     elif node.version_ns is None:
         problem = "no Status heard: its protocol version is unknown"
-    elif node.state == 2:
+    elif node.state == NodeState.FAULT:
         problem = f"in FAULT ({', '.join(fault_names(node.fault_bits)) or 'no bits'})"
     elif node.contradiction:
         problem = f"contradicts itself: {node.contradiction}"

@@ -15,10 +15,11 @@ from handctl.config import FingerConfig
 from handctl.drivers.receiver import CounterCheck, Reject, RejectCounts, validate
 from handctl.protocol import (
     NODE_COMMANDS,
-    STATE_NAMES,
     Layout,
+    NodeState,
     Protocol,
     foreign_status_version,
+    node_state_name,
 )
 
 #: FaultBits of the device (PROTOCOL.md), by name.
@@ -27,8 +28,8 @@ FAULT_BITS = {"TIMEOUT": 0x01, "ESTOP": 0x02, "RX_ERRORS": 0x04, "SENSOR": 0x08,
 #: Bits only a node in FAULT may report (they latch it), and bits the protocol reserves.
 LATCHED_BITS = 0x0F
 RESERVED_BITS = 0xE0
-_ENABLED = 1
-_FAULT = 2
+_ENABLED = int(NodeState.ENABLED)  # plain ints on the hot path
+_FAULT = int(NodeState.FAULT)
 
 
 def fault_names(bits: int) -> list[str]:
@@ -133,7 +134,7 @@ class FingerNode:
 
     @property
     def state_name(self) -> str:
-        return STATE_NAMES.get(self.state, "UNKNOWN")
+        return node_state_name(self.state)
 
     def next_command(self, torques: Sequence[float]) -> tuple[int, bytes]:
         frame = make_command(self.layouts.command, self.command_counter, torques)
@@ -216,7 +217,7 @@ class FingerNode:
         if bits is not None and bits & RESERVED_BITS:
             problem = f"{message} sets reserved fault bits 0x{bits & RESERVED_BITS:02X}"
         elif bits is not None and bits & LATCHED_BITS and state != _FAULT:
-            problem = (f"{message} says {STATE_NAMES.get(state, f'state {state}')} with "
+            problem = (f"{message} says {node_state_name(state, f'state {state}')} with "
                        f"latched fault bits ({', '.join(fault_names(bits & LATCHED_BITS))})")
         if self.state == _FAULT and state == _ENABLED:
             problem = problem or f"{message} says ENABLED after FAULT without a fault reset"

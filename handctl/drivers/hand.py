@@ -15,6 +15,7 @@ from typing import NewType
 import numpy as np
 import numpy.typing as npt
 
+from handctl.arrays import FloatArray
 from handctl.bus import DRAIN_LIMIT, EXTENDED_ID_FLAG, BusEvent, BusEventKind, HandBus
 from handctl.busload import frames_per_period
 from handctl.config import HandConfig
@@ -23,7 +24,6 @@ from handctl.drivers.receiver import Reject, RejectCounts
 from handctl.errors import ConfigError
 from handctl.protocol import NODE_COMMANDS, Protocol
 
-FloatArray = npt.NDArray[np.float64]
 #: Torques that came out of the safety supervisor. Only ``handctl/safety/supervisor.py`` makes
 #: one (a test checks), and ``HandDriver.send`` takes nothing else, so the type checker proves
 #: that no torque reaches a command frame without passing the limiter.
@@ -40,7 +40,7 @@ class JointState:
     """What the host believes about the joints after the last poll (SI units, host clock)."""
 
     angle: FloatArray  # rad
-    torque: FloatArray  # N·m, TDT after the host calibration
+    tdt: FloatArray  # N·m, the transmitted torque the TDTs measure, after the host calibration
     feedback_ns: npt.NDArray[np.int64]  # arrival (host clock) of the last good feedback, or -1
     node_state: list[int] = field(default_factory=list)  # per finger, -1 unknown
     node_faults: list[int] = field(default_factory=list)
@@ -135,8 +135,8 @@ class HandDriver:
                 state.feedback_ns[sl] = node.feedback_ns
             state.node_state[i] = node.state
             state.node_faults[i] = node.fault_bits
-        np.multiply(self._tdt_raw, self._tdt_scale, out=state.torque)
-        state.torque += self._tdt_offset
+        np.multiply(self._tdt_raw, self._tdt_scale, out=state.tdt)
+        state.tdt += self._tdt_offset
         return state
 
     def drain_budget(self, now_ns: int) -> int:

@@ -225,7 +225,7 @@ class Tracker:
     def sample(self, tick: Any) -> None:
         truth = self._truth()
         est, valid = self._estimate()
-        self.trace.add(tick.k * self._period, self._phase(), truth.objects,
+        self.trace.add(tick.tick * self._period, self._phase(), truth.objects,
                        truth.joint_torques, est, valid,
                        self._applied() if self._applied is not None else None)
 

@@ -28,8 +28,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from handctl.arrays import FloatArray
 from handctl.config import HandConfig
-from handctl.safety.limits import FloatArray
 
 #: s, the damper against the spring (damping = gain * this): over a nominal run, half of it
 #: leaves the joints' bounces off their bands, twice as much chatters through the drive's lag

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from handctl.arrays import FloatArray
 from handctl.recipes.schema import ESTIMATES, Condition, Recipe, SignalKind, TimeoutAction
 from handctl.recipes.velocity import JointVelocity
-from handctl.safety.limits import FloatArray
 
 #: s, the low-pass of the estimated centre-line rate: the estimate moves in steps of the
 #: encoder's resolution, and the rate loop must not chase them
@@ -39,7 +39,7 @@ _TURN = ESTIMATES.index("centre_line_turn")
 
 class RunStatus(enum.Enum):
     RUNNING = "running"
-    ENDING = "ending"  # the ramp back to zero after the last phase
+    END_RAMP = "end_ramp"  # the ramp back to zero after the last phase (recipe: end_ramp_s)
     COMPLETED = "completed"
     ABORTED = "aborted"
 
@@ -88,8 +88,8 @@ class RecipeRunner:
 
     @property
     def phase_name(self) -> str:
-        if self.status is RunStatus.ENDING:
-            return "end_ramp"
+        """The current phase, or else the runner's status (``end_ramp`` during the final ramp):
+        what the log records as the phase."""
         if 0 <= self.index < len(self.recipe.phases):
             return self.recipe.phases[self.index].name
         return str(self.status.value)
@@ -120,7 +120,7 @@ class RecipeRunner:
             self.records.append(PhaseRecord(phase.name, t))
         else:
             self.index = len(self.recipe.phases)
-            self.status = RunStatus.ENDING
+            self.status = RunStatus.END_RAMP
             self._target = np.zeros(self.n)
             self._ramp_s = self.recipe.end_ramp_s
 
@@ -164,7 +164,7 @@ class RecipeRunner:
         np.subtract(self._target, self._from, out=self._desired)
         self._desired *= fraction
         self._desired += self._from
-        if self.status is RunStatus.ENDING and fraction >= 1.0:
+        if self.status is RunStatus.END_RAMP and fraction >= 1.0:
             self.status = RunStatus.COMPLETED
 
     def feedback(self, t: float, angle: FloatArray,

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from handctl.safety.limits import FloatArray
+from handctl.arrays import FloatArray
 
 #: s, the default smoothing: long against one tick, short against how fast a grasp changes
 VELOCITY_TIME_CONSTANT = 0.010

@@ -14,6 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from handctl.protocol import NodeState
+
 #: Bumped when a channel changes incompatibly; replay refuses a recording of another version.
 FORMAT_VERSION = 1
 PROFILE = ""  # no ROS profile: plain JSON channels
@@ -81,8 +83,9 @@ CHANNELS: tuple[Channel, ...] = (
          "tdt_torque_nm": _array(_NUM, "TDT joint torques after calibration (N·m)"),
          "feedback_age_ns": _array(_INT, "age of each joint's last valid feedback (ns), -1 "
                                          "before the first"),
-         "node_state": _array(_INT, "device state per finger node: 0 DISABLED, 1 ENABLED, "
-                                    "2 FAULT, -1 unknown"),
+         "node_state": _array(_INT, "device state per finger node: "
+                                    + "".join(f"{s.value} {s.name}, " for s in NodeState)
+                                    + "-1 unknown"),
          "node_fault_bits": _array(_INT, "device fault bits per finger node")},
         ["tick", "angle_rad", "tdt_torque_nm", "feedback_age_ns"]), "every control tick"),
     Channel(TORQUE, "handctl.Torque", _object(

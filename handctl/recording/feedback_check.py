@@ -118,7 +118,7 @@ class FeedbackCheck:
         node_state, node_faults = logged.get("node_state"), logged.get("node_fault_bits")
         try:
             same = (state.angle.tobytes() == pack.pack(*angle)
-                    and state.torque.tobytes() == pack.pack(*tdt))
+                    and state.tdt.tobytes() == pack.pack(*tdt))
         except (struct.error, TypeError):  # a wrong length, or null for NaN
             same = False
         if same and ages == logged.get("feedback_age_ns") \
@@ -132,7 +132,7 @@ class FeedbackCheck:
             differ.setdefault(node, []).append(text)
 
         for field, values, rerun in (("angle_rad", angle, state.angle.tolist()),
-                                     ("tdt_torque_nm", tdt, state.torque.tolist())):
+                                     ("tdt_torque_nm", tdt, state.tdt.tolist())):
             for j in _same_floats(values, rerun):
                 add(self._node_of_joint(j), f"{self._joint(j)} {field}: logged "
                     f"{values[j] if j < len(values) else 'nothing'}, re-run "

@@ -32,6 +32,7 @@ import orjson
 from handctl.bus import BusEvent, Frame
 from handctl.config import HandConfig
 from handctl.errors import ConfigError, HandctlError
+from handctl.recipes.runner import RunStatus
 from handctl.recording.ring import (
     CLOSED,
     CTL_WORDS,
@@ -59,7 +60,7 @@ from handctl.recording.ring import (
     SEP,
     TICK_HEAD,
     TICK_TAIL,
-    Layout,
+    RingLayout,
     Rings,
 )
 from handctl.safety.faults import FAULTS
@@ -80,8 +81,8 @@ _POSE_INTS = struct.Struct("<qq")  # tick, t
 _FRAME = struct.Struct(f"<qqqqq{FRAME_BYTES}s")  # t, tick, id, direction | size << 8, bus time
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
 #: Runner status names a phase column can also hold.
-RUNNER_NAMES = ("-", "running", "end_ramp", "completed", "aborted")
-STATE_NAMES = tuple(s.value for s in State)
+RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
+SUPERVISOR_STATE_NAMES = tuple(s.value for s in State)
 #: How long ``close`` waits for the writer to finish the file.
 CLOSE_TIMEOUT_S = 120.0
 READY_TIMEOUT_S = 30.0
@@ -112,9 +113,9 @@ class Recorder:
 
     def __init__(self, path: str | Path, hand: HandConfig, metadata: dict[str, dict[str, str]],
                  *, phase_names: Sequence[str] = (), object_names: Sequence[str] = (),
-                 layout: Layout | None = None, live_port: int | None = None) -> None:
+                 layout: RingLayout | None = None, live_port: int | None = None) -> None:
         self.path = Path(path)
-        self.layout = layout or Layout(hand.n_joints, len(hand.fingers), len(object_names))
+        self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
         try:
             out_fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC,
                              0o644)
@@ -145,12 +146,12 @@ class Recorder:
         finally:
             for fd in (shm_fd, ctl_r, out_fd, ready_w):
                 os.close(fd)
-        self._states = {name: i for i, name in enumerate(STATE_NAMES)}
+        self._states = {name: i for i, name in enumerate(SUPERVISOR_STATE_NAMES)}
         names = list(dict.fromkeys([*RUNNER_NAMES, *phase_names]))
         self._phases = {name: i for i, name in enumerate(names)}
         try:
             self._send({"type": "setup", "layout": self.layout.as_dict(),
-                        "states": STATE_NAMES, "phases": names,
+                        "states": SUPERVISOR_STATE_NAMES, "phases": names,
                         "joints": list(hand.joint_names),
                         "nodes": [f.name for f in hand.fingers], "objects": list(object_names),
                         "path": str(self.path), "metadata": metadata,
@@ -274,7 +275,7 @@ class Recorder:
         elif self._pending:  # frames that came between ticks belong to the last one
             self._flush_frames()
             self._ctl_view[FRAME_HEAD] = self._fhead
-        self._tick = tick.k
+        self._tick = tick.tick
         self._scheduled = tick.scheduled_ns
         self._now = tick.now_ns
         self._missed = tick.missed

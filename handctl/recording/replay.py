@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 import orjson
 
 from handctl import timebudget
+from handctl.arrays import FloatArray
 from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, BusSpec, Frame, HandBus
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig, parse_hand
@@ -47,9 +47,9 @@ from handctl.recording.reader import (
     iter_messages,
     require_topics,
 )
+from handctl.recording.ring import RECORDED_STAGES
 from handctl.schema import parse_yaml
 
-FloatArray = npt.NDArray[np.float64]
 #: Phase names that are the runner's status rather than a phase of the recipe.
 NOT_PHASES = frozenset({"-", "running", "completed", "aborted", "?"})
 MAX_LISTED = 20
@@ -130,9 +130,8 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             scheduled = (int(msg["scheduled_ns"]) - t0) * 1e-9
             stages = msg.get("stage_cpu_ns") or {}
             timing.add((t, msg["tick"], msg.get("lateness_ns", 0), msg.get("missed", 0),
-                        1.0 if msg.get("active") else 0.0, stages.get("poll", 0),
-                        stages.get("recipe", 0), stages.get("safety", 0),
-                        stages.get("send", 0)))
+                        1.0 if msg.get("active") else 0.0,
+                        *(stages.get(name, 0) for name in RECORDED_STAGES)))
             last_t = t
         elif topic == ch.TORQUE:
             torque.add([t, *_floats(msg["desired_nm"]), *_floats(msg["applied_nm"])])
@@ -234,7 +233,7 @@ def _percentiles(values: FloatArray, scale: float) -> dict[str, float]:
             "max": round(float(values.max()) * scale, 2)}
 
 
-def summarise(recording: Recording, series: Series) -> dict[str, Any]:
+def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
     """Phases and their durations, the largest torques, faults, timing, drops."""
     n = len(series.joints)
     run_summary = recording.json_meta(ch.META_SUMMARY) or {}
@@ -288,7 +287,7 @@ def summarise(recording: Recording, series: Series) -> dict[str, Any]:
                    "stage_cpu_us_p99": {
                        name: round(float(np.percentile(active[:, 5 + i], 99)) / 1e3, 2)
                        if len(active) else 0.0
-                       for i, name in enumerate(("poll", "recipe", "safety", "send"))}},
+                       for i, name in enumerate(RECORDED_STAGES)}},
         "drops": drops,
         "frames": series.frames,
         "bus_events": sum(1 for e in series.events if e["kind"] == "bus"),

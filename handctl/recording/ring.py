@@ -24,6 +24,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from handctl.arrays import FloatArray
+from handctl.tickstats import STAGES
+
 # Control words (int64).
 TICK_HEAD, TICK_TAIL = 0, 1
 FRAME_HEAD, FRAME_TAIL = 2, 3
@@ -38,6 +41,8 @@ CTL_WORDS = 16
 I_TICK, I_SCHEDULED, I_NOW, I_MISSED, I_ACTIVE = 0, 1, 2, 3, 4
 I_STAGES = 5  # poll, recipe, safety, send
 N_STAGES = 4
+#: The names of those columns: the first loop stages, whose places never change.
+RECORDED_STAGES = STAGES[:N_STAGES]
 I_STATE, I_PHASE, I_FAULTS = 9, 10, 11
 I_FEEDBACK = 12
 # Tick row, float part: angle, tdt, desired, applied, n_joints each.
@@ -65,12 +70,11 @@ RING_EVENT_KINDS = {EV_FAULT: "fault", EV_STATE: "state", EV_PHASE: "phase", EV_
 POSE_INTS = 2
 
 IntArray = npt.NDArray[np.int64]
-FloatArray = npt.NDArray[np.float64]
 ByteArray = npt.NDArray[np.uint8]
 
 
 @dataclass(frozen=True)
-class Layout:
+class RingLayout:
     """Sizes of the rings; capacities are powers of two so an index is a mask away."""
 
     n_joints: int
@@ -115,7 +119,7 @@ class Layout:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Layout:
+    def from_dict(cls, data: dict[str, Any]) -> RingLayout:
         return cls(**{k: int(v) for k, v in data.items()})
 
 
@@ -126,7 +130,7 @@ def _nbytes(shape: tuple[int, ...], dtype: type) -> int:
 class Rings:
     """Numpy views of every part of the block; both sides build the same views."""
 
-    def __init__(self, layout: Layout, buffer: mmap.mmap) -> None:
+    def __init__(self, layout: RingLayout, buffer: mmap.mmap) -> None:
         self.layout = layout
         self.buffer = buffer
         views: dict[str, Any] = {}

@@ -61,12 +61,14 @@ from handctl.recording.ring import (
     I_PHASE,
     I_STAGES,
     I_STATE,
+    N_STAGES,
     POSE_HEAD,
     POSE_TAIL,
+    RECORDED_STAGES,
     SEP,
     TICK_HEAD,
     TICK_TAIL,
-    Layout,
+    RingLayout,
     Rings,
 )
 from handctl.taps import TAP_RX, TAP_TX
@@ -272,8 +274,8 @@ class Encoder:
                                       "active": bool(active)}
             if active:
                 s = I_STAGES
-                timing["stage_cpu_ns"] = {"poll": r[s], "recipe": r[s + 1],
-                                          "safety": r[s + 2], "send": r[s + 3]}
+                timing["stage_cpu_ns"] = dict(zip(RECORDED_STAGES, r[s:s + N_STAGES],
+                                                  strict=True))
             add(ch.TIMING, now, timing)
             if active:
                 feedback = r[I_FEEDBACK:node_at]
@@ -416,7 +418,7 @@ class _Control:
 def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
     control = _Control(ctl_fd)
     setup = control.first()
-    layout = Layout.from_dict(setup["layout"])
+    layout = RingLayout.from_dict(setup["layout"])
     block = mmap.mmap(shm_fd, layout.size)
     rings = Rings(layout, block)
     live = None

@@ -12,12 +12,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
+from handctl.arrays import FloatArray
 from handctl.config import HandConfig
 from handctl.safety.faults import FaultCode
-
-FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -22,13 +22,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from handctl.arrays import FloatArray
 from handctl.bus import BusEvent, BusEventKind
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerNode
 from handctl.drivers.hand import AppliedTorques
+from handctl.protocol import NodeState
 from handctl.safety.faults import RAMP_BOUND_S, Fault, FaultCode, StopCategory
 from handctl.safety.limits import (
-    FloatArray,
     JointLimits,
     angle_violations,
     check_desired,
@@ -171,7 +172,7 @@ class Supervisor:
             # Before the nodes are believed ENABLED, and all the while torque flows.
             findings += self.receive_watch.check(tick, nodes)
         if self.state is State.ENABLING:
-            if all(node.state == 1 for node in nodes):
+            if all(node.state == NodeState.ENABLED for node in nodes):
                 self.fire(Event.ENABLED, tick)
                 self.node_watch.arm(nodes)
                 self.tdt.reset(self.applied)

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from handctl.arrays import FloatArray
 from handctl.config import SafetyConfig
 from handctl.drivers.finger import FingerNode, fault_names
+from handctl.protocol import NodeState
 from handctl.safety.faults import FaultCode
-from handctl.safety.limits import FloatArray
 
-ENABLED = 1
-FAULT = 2
+ENABLED = int(NodeState.ENABLED)  # plain ints: compared for every node every tick
+FAULT = int(NodeState.FAULT)
 Finding = tuple[FaultCode, str]
 
 

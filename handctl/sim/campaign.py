@@ -309,7 +309,7 @@ def _drive(hand: HandConfig, injector: str, phase: str, sim: SimulatedHand, runt
         if not entered:
             entered.append(sim.time)
         elif sim.time >= entered[0] + half:
-            injected.append((tick.k, sim.time))
+            injected.append((tick.tick, sim.time))
             sim.faults.add(CASES[injector](), sim.time, sim.time + on_s)
 
     runtime.tick_hooks.append(inject)

@@ -42,7 +42,7 @@ from collections.abc import Sequence
 
 from handctl.config import FingerConfig
 from handctl.errors import ConfigError
-from handctl.protocol import NODE_COMMANDS, Layout, Protocol
+from handctl.protocol import NODE_COMMANDS, Layout, NodeState, Protocol
 from handctl.sim.params import NODE_TICK_NS
 
 #: No accepted TorqueCommand for this long while ENABLED latches TIMEOUT.
@@ -59,12 +59,6 @@ _SATURATING = 255
 _ENABLE = NODE_COMMANDS["enable"]
 _DISABLE = NODE_COMMANDS["disable"]
 _FAULT_RESET = NODE_COMMANDS["fault_reset"]
-
-
-class NodeState(enum.IntEnum):
-    DISABLED = 0
-    ENABLED = 1
-    FAULT = 2
 
 
 class FaultBits(enum.IntFlag):

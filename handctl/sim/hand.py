@@ -42,9 +42,9 @@ import numpy as np
 from handctl.bus import HandBus, open_bus
 from handctl.clock import collector_paused, request_realtime
 from handctl.config import HandConfig
-from handctl.protocol import load_protocol
+from handctl.protocol import NodeState, load_protocol
 from handctl.sim.faults import FaultSchedule, Injector, load_scenario
-from handctl.sim.firmware import EmulatedNode, NodeState
+from handctl.sim.firmware import EmulatedNode
 from handctl.sim.params import NODE_TICK_NS, NODE_TICK_S, SimParams, parse_sim
 from handctl.sim.plant import ObjectPose, Plant
 from handctl.sim.sensors import EncoderModel, TdtModel

@@ -30,12 +30,10 @@ from xml.sax.saxutils import quoteattr
 
 import mujoco
 import numpy as np
-import numpy.typing as npt
 
+from handctl.arrays import FloatArray
 from handctl.config import FingerConfig, HandConfig, JointConfig
 from handctl.sim.params import SimParams
-
-FloatArray = npt.NDArray[np.float64]
 
 #: Along z, the palm reaches this far beyond the fingers and the cylinders it must stop (m).
 _PALM_MARGIN = 0.005

@@ -35,7 +35,7 @@ from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.recorder import Recorder
-from handctl.recording.ring import FRAME_HEAD, FRAME_TAIL, TICK_HEAD, TICK_TAIL, Layout
+from handctl.recording.ring import FRAME_HEAD, FRAME_TAIL, TICK_HEAD, TICK_TAIL, RingLayout
 from handctl.safety.supervisor import State
 from handctl.sim import faults as inj
 
@@ -62,7 +62,7 @@ class Recorded:
 
 
 def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool = True,
-               layout: Layout | None = None, pause_writer: bool = False,
+               layout: RingLayout | None = None, pause_writer: bool = False,
                writer_between_ticks: bool = False) -> Recorded:
     """A lockstep run on the simulated hand, recorded the way ``run_recipe`` records it.
 
@@ -91,11 +91,11 @@ def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool =
             poses: dict[int, list[tuple[float, float, float]]] = {}
 
             def sample(tk: Tick) -> None:
-                if tk.k % 10 == 0:
+                if tk.tick % 10 == 0:
                     truth = [(o.x, o.y, o.angle) for o in r.sim.ground_truth().objects]
-                    poses[tk.k] = truth
+                    poses[tk.tick] = truth
                     recorder.poses(truth)
-                if troubles and tk.k == ESTOP_TICK:
+                if troubles and tk.tick == ESTOP_TICK:
                     r.runtime.request_estop("test e-stop")
 
             r.runtime.tick_hooks.append(sample)
@@ -274,8 +274,8 @@ def test_handctl_reader_agrees_with_the_library(recorded: Recorded) -> None:
 def test_a_full_ring_drops_and_counts_and_never_blocks(hand: HandConfig, tmp_path: Path,
                                                        recorded: Recorded) -> None:
     """The writer is stopped (SIGSTOP) for the whole run: the rings fill, the loop goes on."""
-    tiny = Layout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
-                  event_capacity=8, pose_capacity=4)
+    tiny = RingLayout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
+                      event_capacity=8, pose_capacity=4)
     run = record_run(hand, short_recipe(hand, tmp_path), tmp_path / "tiny.mcap", layout=tiny,
                      pause_writer=True)
     assert run.result.ticks == recorded.result.ticks  # same run, nothing held it up

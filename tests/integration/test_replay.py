@@ -24,7 +24,13 @@ from handctl.loop import Outcome
 from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
-from handctl.recording.replay import load_series, logged_frames, rerun, summarise, to_bus
+from handctl.recording.replay import (
+    load_series,
+    logged_frames,
+    rerun,
+    summarise_recording,
+    to_bus,
+)
 
 from ..conftest import ROOT
 from .rig import SHORT, short_recipe
@@ -282,7 +288,7 @@ def test_truncated_file_is_summarised_and_rerun_as_far_as_it_goes(recorded: Reco
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) * 2 // 3])
     recording = open_recording(cut)
-    summary = summarise(recording, load_series(recording))
+    summary = summarise_recording(recording, load_series(recording))
     assert not summary["complete"] and summary["ticks"] > 0
     report = rerun(recording)
     assert report.ok and report.compared > 0
@@ -357,10 +363,10 @@ def test_rerun_of_a_log_without_the_channels_is_exit_2(tmp_path: Path) -> None:
 
 
 def test_rerun_refuses_a_log_with_drops(hand: HandConfig, tmp_path: Path) -> None:
-    from handctl.recording.ring import Layout
+    from handctl.recording.ring import RingLayout
 
-    tiny = Layout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
-                  event_capacity=8, pose_capacity=4)
+    tiny = RingLayout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
+                      event_capacity=8, pose_capacity=4)
     run = record_run(hand, short_recipe(hand, tmp_path), tmp_path / "tiny.mcap",
                      troubles=False, layout=tiny, pause_writer=True)
     done = handctl("replay", str(run.path), "--rerun")

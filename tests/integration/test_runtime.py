@@ -11,6 +11,7 @@ import pytest
 
 from handctl.config import HandConfig
 from handctl.loop import Outcome
+from handctl.protocol import NodeState
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS, RAMP_BOUND_S, FaultCode, StopCategory
@@ -42,7 +43,7 @@ def test_default_recipe_completes(hand: HandConfig) -> None:
         assert np.all(np.abs(wire[-3:]) == 0)  # ends at zero
         tau_max = np.array([j.tau_max for j in hand.joints])
         assert np.all(np.abs(wire) <= tau_max + 1e-4)
-        assert all(n.state == 0 for n in r.sim.nodes)  # disabled at the end
+        assert all(n.state == NodeState.DISABLED for n in r.sim.nodes)  # at the end
 
 
 def test_lockstep_runs_are_deterministic(hand: HandConfig, hold: Recipe) -> None:
@@ -106,19 +107,19 @@ def test_fault_is_detected_stopped_and_latched(hand: HandConfig, hold: Recipe, n
             assert ramp[ticks_to_zero] == 0
             assert ticks_to_zero <= RAMP_BOUND_S / hand.bus.period_s + 2
         # The nodes end disabled or in their own FAULT: never enabled with torque.
-        assert all(n.state != 1 or not any(n.applied) for n in r.sim.nodes)
+        assert all(n.state != NodeState.ENABLED or not any(n.applied) for n in r.sim.nodes)
 
 
 def test_operator_estop_then_explicit_reset_ramps_from_zero(hand: HandConfig,
                                                            hold: Recipe) -> None:
     with rig(hand, hold) as r:
         r.runtime.tick_hooks.append(
-            lambda tk: r.runtime.request_estop("test") if tk.k == 900 else None)
+            lambda tk: r.runtime.request_estop("test") if tk.tick == 900 else None)
         result = r.run()
         assert result.outcome is Outcome.SAFETY_STOP
         assert result.faults[0].code is FaultCode.ESTOP
         assert r.estops() == 1
-        assert all(n.state == 2 for n in r.sim.nodes)  # the nodes latched ESTOP too
+        assert all(n.state == NodeState.FAULT for n in r.sim.nodes)  # they latched ESTOP too
         # Nothing resumes by itself: the runtime is done until somebody resets.
         assert r.runtime.supervisor.state is State.FAULTED
         sent_before = len(r.commands())
@@ -140,7 +141,7 @@ def test_consecutive_late_ticks_are_a_fault(hand: HandConfig, hold: Recipe) -> N
 
         async def late_tick() -> object:
             tk = await original()
-            if 800 <= tk.k < 803:
+            if 800 <= tk.tick < 803:
                 from dataclasses import replace
 
                 return replace(tk, missed=1)
@@ -248,6 +249,6 @@ def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Re
         outcomes.append(outcome)
     assert "states" in seen, f"the runtime never got torque flowing: {outcomes}"
     assert any(any(t) for t in seen["torque"])  # type: ignore[attr-defined]
-    assert seen["states"] == [2, 2, 2]  # FAULT
+    assert seen["states"] == [NodeState.FAULT] * 3
     assert all(bits & 0x01 for bits in seen["faults"])  # type: ignore[attr-defined]
     assert seen["applied"] == [[0.0, 0.0, 0.0]] * 3

@@ -12,6 +12,7 @@ import pytest
 
 from handctl.bus import BusEventKind
 from handctl.config import HandConfig
+from handctl.protocol import NodeState
 from handctl.sim.faults import (
     Babble,
     BusOff,
@@ -84,7 +85,7 @@ def test_a_few_dropped_commands_cost_one_counter_reject(
     sim, host = running
     window(host, DropCommands(node=2, count=3), during=5)
     node = sim.nodes[1]
-    assert node.state == 1  # 3 ms without commands is within the watchdog
+    assert node.state == NodeState.ENABLED  # 3 ms without commands is within the watchdog
     assert (node.reject_counter, node.reject_crc) == (1, 0)  # the frame after the gap
 
 
@@ -153,7 +154,7 @@ def test_tdt_spike(running: tuple[SimulatedHand, SimHost]) -> None:
     base = torque(host.of("Feedback", 2, pre), 1)[-1]
     during = torque(host.of("Feedback", 2, mid), 1)
     assert [abs(v - base) > 0.4 for v in during] == [True, True] + [False] * 8
-    assert sim.nodes[1].state == 1  # within the sensor's range: the node does not notice
+    assert sim.nodes[1].state == NodeState.ENABLED  # within the sensor's range: not noticed
     window(host, TdtSpike(node=2, joint=1, amplitude=5.0), during=2)
     assert host.last("Feedback", 2)["FaultBits"] & 0x08  # out of range: SENSOR
 
@@ -175,7 +176,7 @@ def test_encoder_jump(running: tuple[SimulatedHand, SimHost]) -> None:
     reading = host.last("Feedback", 1)["Angle1"]
     true = sim.ground_truth().joint_angles[0]
     assert reading - true == pytest.approx(counts * step, abs=step)
-    assert sim.nodes[0].state == 1  # small enough to pass the node's self-check
+    assert sim.nodes[0].state == NodeState.ENABLED  # small enough to pass the node's self-check
     sim.activate(EncoderJump(node=2, joint=3, counts=sim.params.encoder.counts_per_rev // 4))
     host.tick(TAU)
     assert host.last("Feedback", 2)["FaultBits"] & 0x08
@@ -228,14 +229,14 @@ def test_babble(running: tuple[SimulatedHand, SimHost]) -> None:
     # every node heard the 50 frames, besides the other nodes' TorqueCommands (2 per tick)
     grown = [n.reject_unexpected - b for n, b in zip(sim.nodes, before, strict=True)]
     assert grown == [50 + 2 * (sim.ticks - start)] * 3
-    assert all(n.state == 1 for n in sim.nodes)
+    assert all(n.state == NodeState.ENABLED for n in sim.nodes)
 
 
 def test_babble_on_the_estop_id_stops_every_node(
         running: tuple[SimulatedHand, SimHost]) -> None:
     sim, host = running
     window(host, Babble(id=0x000, per_tick=1, length=8), during=1, after=2)
-    assert all(n.state == 2 and n.fault_bits & 0x02 for n in sim.nodes)
+    assert all(n.state == NodeState.FAULT and n.fault_bits & 0x02 for n in sim.nodes)
     assert host.last("Feedback", 3)["FaultBits"] & 0x02
 
 

@@ -36,7 +36,7 @@ from handctl.loop import (
     Outcome,
     Runtime,
 )
-from handctl.protocol import NODE_COMMANDS, load_protocol
+from handctl.protocol import NODE_COMMANDS, NodeState, load_protocol
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
@@ -108,16 +108,16 @@ class Trigger:
     def __init__(self, runtime: Runtime, always: bool) -> None:
         self.runtime = runtime
         self.always = always
-        self.k = -1
+        self.tick = -1
         self.fired = 0
         runtime.tick_hooks.insert(0, self._see)
 
     def _see(self, tk: Tick) -> None:
-        self.k = tk.k
+        self.tick = tk.tick
 
     def __call__(self) -> bool:
         first = self.runtime.first_send_tick
-        if first < 0 or self.k < first + ARM_TICKS - 1 or (self.fired and not self.always):
+        if first < 0 or self.tick < first + ARM_TICKS - 1 or (self.fired and not self.always):
             return False
         self.fired += 1
         return True
@@ -188,7 +188,7 @@ def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:  
         raise AssertionError(stage)
 
 
-STAGES = {"poll": FaultCode.POLL_EXCEPTION, "decode": FaultCode.DECODE_EXCEPTION,
+STAGE_FAULTS = {"poll": FaultCode.POLL_EXCEPTION, "decode": FaultCode.DECODE_EXCEPTION,
           "estimator": FaultCode.ESTIMATOR_EXCEPTION, "runner": FaultCode.RUNNER_EXCEPTION,
           "supervisor": FaultCode.SUPERVISOR_EXCEPTION, "encode": FaultCode.ENCODE_EXCEPTION,
           "send": FaultCode.SEND_EXCEPTION, "record": FaultCode.RECORD_EXCEPTION,
@@ -269,17 +269,17 @@ def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
 
 
 @pytest.mark.parametrize("always", [False, True], ids=["once", "every_call"])
-@pytest.mark.parametrize("stage", list(STAGES))
+@pytest.mark.parametrize("stage", list(STAGE_FAULTS))
 def test_an_exception_in_any_stage_is_a_controlled_stop(
         hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         stage: str, always: bool) -> None:
-    code = STAGES[stage]
+    code = STAGE_FAULTS[stage]
     with bench(hand, hold, tmp_path / "run.mcap") as b:
         due = Trigger(b.runtime, always)
         force(stage, b, due, monkeypatch)
         result = asyncio.run(b.runtime.run())
         monkeypatch.undo()
-        b.recorder.close(session.summarise(result, hand, hold, True, None))
+        b.recorder.close(session.summarise_run(result, hand, hold, True, None))
         wire = hear(b.listener, hand)
     assert due.fired, "the forced exception never came"
     assert result.outcome is Outcome.SAFETY_STOP, result.message
@@ -294,9 +294,9 @@ def test_an_exception_in_any_stage_is_a_controlled_stop(
     unreachable = [BROKEN_NODE] if stage == "send" and always else []
     assert_stopped_on_the_wire(wire, first.tick - b.runtime.first_send_tick, unreachable)
     if not (stage == "clock" and always):  # without its clock the simulated hand stands still
-        assert all(not any(n.applied) and n.state != 1 for n in b.sim.nodes)
+        assert all(not any(n.applied) and n.state != NodeState.ENABLED for n in b.sim.nodes)
     # The summary and the log.
-    summary = session.summarise(result, hand, hold, True, None)
+    summary = session.summarise_run(result, hand, hold, True, None)
     assert summary["outcome"] == "safety_stop"
     assert summary["faults"][0]["code"] == code.name
     assert summary["faults"][0]["category"] == "immediate"
@@ -325,7 +325,7 @@ def test_a_node_that_cannot_be_sent_to_gets_the_estop(
     assert len(wire.torques[BROKEN_NODE]) == row  # nothing reached it after the fault
     assert_stopped_on_the_wire(wire, row, unreachable=[BROKEN_NODE])
     broken = next(n for n in b.sim.nodes if n.node_id == BROKEN_NODE)
-    assert broken.state == 2 and not any(broken.applied)  # FAULT (e-stop), no torque
+    assert broken.state == NodeState.FAULT and not any(broken.applied)  # e-stop, no torque
 
 
 def test_an_exception_while_enabling_is_a_controlled_stop(
@@ -353,7 +353,7 @@ def test_an_exception_while_enabling_is_a_controlled_stop(
         assert len(rows) >= ZERO_TICKS_BEFORE_DISABLE
         assert all(not np.any(values) for _, values in rows)
         assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0]
-    assert all(not any(n.applied) and n.state == 0 for n in b.sim.nodes)
+    assert all(not any(n.applied) and n.state == NodeState.DISABLED for n in b.sim.nodes)
 
 
 def test_ctrl_c_without_a_signal_handler_zeroes_and_disables_before_it_goes_on(

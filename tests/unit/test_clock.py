@@ -18,7 +18,7 @@ async def test_realtime_ticks_are_consecutive_and_count_missed_ones() -> None:
     try:
         first = await clock.wait_tick()
         second = await clock.wait_tick()
-        assert (first.k, second.k) == (0, 1)
+        assert (first.tick, second.tick) == (0, 1)
         assert second.scheduled_ns - first.scheduled_ns == (second.missed + 1) * 1_000_000
         time.sleep(0.006)  # stall the loop: at least five expirations pass unseen
         late = await clock.wait_tick()
@@ -28,7 +28,7 @@ async def test_realtime_ticks_are_consecutive_and_count_missed_ones() -> None:
         # The stall is kept with the interval the loop was late for, to be laid beside the
         # host's: from the oldest deadline it slept through to the wake-up.
         tick, due, wake, missed = clock.stalls.rows()[-1]
-        assert (tick, missed, wake) == (late.k, late.missed, late.now_ns)
+        assert (tick, missed, wake) == (late.tick, late.missed, late.now_ns)
         assert due == late.scheduled_ns - late.missed * 1_000_000
     finally:
         clock.close()
@@ -49,7 +49,7 @@ async def test_lockstep_steps_the_peer_once_per_tick() -> None:
     clock = LockstepClock(0.001, lambda: steps.append(len(steps)))
     ticks = [await clock.wait_tick() for _ in range(5)]
     assert len(steps) == 5
-    assert [t.k for t in ticks] == [0, 1, 2, 3, 4]
+    assert [t.tick for t in ticks] == [0, 1, 2, 3, 4]
     assert [t.scheduled_ns for t in ticks] == [1_000_000 * (k + 1) for k in range(5)]
     assert all(t.missed == 0 and t.lateness_ns == 0 for t in ticks)
     assert clock.now_ns() == 5_000_000

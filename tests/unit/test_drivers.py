@@ -88,7 +88,7 @@ def test_good_feedback_updates_the_joint_state(driver: HandDriver, protocol: Pro
     peer.send(0x182, feedback(protocol, 2, 0, (0.1, 0.2, 0.3), (0.4, 0.5, 0.6)))
     state = driver.poll()
     assert state.angle[3:6] == pytest.approx([0.4, 0.5, 0.6])
-    assert state.torque[3:6] == pytest.approx([0.1, 0.2, 0.3])
+    assert state.tdt[3:6] == pytest.approx([0.1, 0.2, 0.3])
     assert np.all(state.feedback_ns[3:6] == clock.now)
     assert np.all(state.feedback_ns[[0, 1, 2, 6, 7, 8]] == -1)
     clock.now += 3_000_000
@@ -109,7 +109,7 @@ def test_tdt_calibration_is_applied_once(hand: HandConfig, protocol: Protocol,
     bus_pair[1].send(0x181, feedback(protocol, 1, 0, (0.1, 0.1, 0.1), (0.0, 0.0, 0.0)))
     for _ in range(3):  # polls without new frames must not compound the calibration
         state = driver.poll()
-    assert state.torque[:3] == pytest.approx([0.1, 0.21, 0.1])
+    assert state.tdt[:3] == pytest.approx([0.1, 0.21, 0.1])
 
 
 @pytest.mark.parametrize(("mutate", "kind"), [

@@ -21,7 +21,7 @@ from handctl.drivers.finger import (
     parse_feedback,
 )
 from handctl.drivers.receiver import Reject
-from handctl.protocol import NODE_COMMANDS, STATE_NAMES, Protocol
+from handctl.protocol import NODE_COMMANDS, NodeState, Protocol
 
 MS = 1_000_000
 
@@ -184,9 +184,9 @@ def test_a_replayed_frame_changes_nothing(node: FingerNode, sender: Sender) -> N
 
 
 def test_state_names_are_the_protocols(node: FingerNode, sender: Sender) -> None:
-    for state, name in STATE_NAMES.items():
+    for state in NodeState:
         node.receive(*sender.heartbeat(state, 1), 0)
-        assert node.state_name == name
+        assert node.state_name == state.name
     node.receive(*sender.heartbeat(9, 1), 0)
     assert node.state_name == "UNKNOWN"
 

@@ -12,8 +12,8 @@ import pytest
 from handctl.bus import HandBus
 from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
-from handctl.protocol import Protocol
-from handctl.sim.firmware import EmulatedNode, FaultBits, NodeState
+from handctl.protocol import NodeState, Protocol
+from handctl.sim.firmware import EmulatedNode, FaultBits
 
 from .test_sim_firmware import MAX_STEP, MS, TDT_RANGE, WATCHDOG_NS, Wire, enabled, tick
 

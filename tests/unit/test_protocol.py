@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from handctl.errors import ConfigError, ProtocolError
-from handctl.protocol import DEFAULT_DBC, crc8, load_protocol
+from handctl.protocol import DEFAULT_DBC, NodeState, crc8, load_protocol
 from handctl.protocol import Protocol as Proto
 
 
@@ -112,3 +112,17 @@ def test_blank_buffers_are_never_valid_frames(protocol: Proto) -> None:
     for layout in protocol.layouts:
         for fill in (0x00, 0xFF):
             assert not layout.crc_ok(bytes([fill]) * layout.length), (layout.name, fill)
+
+
+def test_node_states_are_the_dbcs_value_table() -> None:
+    """Host and nodes share ``NodeState``; the DBC's ``State`` value table is what the
+    firmware and any CAN tool read, so the two must say the same."""
+    import cantools
+
+    db = cantools.database.load_file(str(DEFAULT_DBC))
+    tables = [{int(value): str(name) for value, name in signal.choices.items()}
+              for message in db.messages for signal in message.signals
+              if signal.name == "State" and signal.choices]
+    assert tables, "no State signal of the DBC has a value table"
+    for table in tables:
+        assert table == {state.value: state.name for state in NodeState}

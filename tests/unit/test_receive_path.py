@@ -241,7 +241,7 @@ def test_a_backlog_is_a_fault_that_zeroes_torque(hand: HandConfig, driver: HandD
         bus_pair[1].send(0x180 + node, feedback(protocol, node, 1))
     clock.now += MS
     state = driver.poll()
-    faults = sup.observe(tick + 1, clock.now, driver.nodes, state.angle, state.torque, 0,
+    faults = sup.observe(tick + 1, clock.now, driver.nodes, state.angle, state.tdt, 0,
                          driver.take_bus_events())
     assert [f.code for f in faults] == [FaultCode.RX_BACKLOG]
     assert not np.any(sup.filter(tick + 1, np.full(hand.n_joints, 0.05)))
@@ -257,7 +257,7 @@ def test_a_contradiction_keeps_the_nodes_from_being_believed_enabled(
                                                 else 0))
         bus_pair[1].send(0x700 + node, protocol.layout("Heartbeat", node).encode(0, (1, 9)))
     state = driver.poll()
-    faults = sup.observe(1, clock.now, driver.nodes, state.angle, state.torque, 0)
+    faults = sup.observe(1, clock.now, driver.nodes, state.angle, state.tdt, 0)
     assert faults[0].code is FaultCode.NODE_CONTRADICTION
     assert "node 2" in faults[0].detail
     assert sup.state is State.FAULTED

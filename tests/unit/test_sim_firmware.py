@@ -9,8 +9,8 @@ from __future__ import annotations
 import pytest
 
 from handctl.config import HandConfig
-from handctl.protocol import NODE_COMMANDS, Protocol
-from handctl.sim.firmware import EmulatedNode, FaultBits, NodeState
+from handctl.protocol import NODE_COMMANDS, NodeState, Protocol
+from handctl.sim.firmware import EmulatedNode, FaultBits
 
 MS = 1_000_000
 WATCHDOG_NS = 10 * MS  # PROTOCOL.md: no accepted TorqueCommand for 10 ms
