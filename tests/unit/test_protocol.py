@@ -120,6 +120,7 @@ def test_node_states_are_the_dbcs_value_table() -> None:
     import cantools
 
     db = cantools.database.load_file(str(DEFAULT_DBC))
+    assert isinstance(db, cantools.database.can.Database)
     tables = [{int(value): str(name) for value, name in signal.choices.items()}
               for message in db.messages for signal in message.signals
               if signal.name == "State" and signal.choices]
