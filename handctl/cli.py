@@ -444,7 +444,7 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
 def _cmd_replay(args: argparse.Namespace) -> int:
     import json
 
-    from handctl.bus import LOG_FORMATS
+    from handctl.canlog import LOG_FORMATS
     from handctl.recording import replay
     from handctl.recording.reader import check_format, open_recording
 

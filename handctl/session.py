@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from handctl import timebudget
-from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
+from handctl.bus import HandBus, open_bus
+from handctl.busspec import BusSpec, parse_spec
 from handctl.clock import (
     LOOP_PRIORITY,
     Clock,

@@ -28,7 +28,8 @@ import numpy.typing as npt
 import orjson
 
 from handctl import timebudget
-from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, BusSpec, Frame, HandBus
+from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, HandBus
+from handctl.busspec import BusSpec
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig, parse_hand
 from handctl.convention import phase_turns_deg
@@ -785,7 +786,7 @@ def to_bus(recording: Recording, spec: str, speed: float = 1.0, direction: str =
 
 def export(recording: Recording, fmt: str, out: str) -> int:
     """Write the logged frames in a python-can log format (candump, asc, blf)."""
-    from handctl.bus import LOG_FORMATS, write_frames
+    from handctl.canlog import LOG_FORMATS, write_frames
 
     if fmt not in LOG_FORMATS:
         raise ConfigError("--export", "", "one of " + ", ".join(LOG_FORMATS), fmt)

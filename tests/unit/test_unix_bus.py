@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from handctl.bus import TX_QUEUE_FRAMES, BusEventKind, Frame, HandBus, open_bus
+from handctl.bus import BusEventKind, Frame, HandBus, open_bus
 from handctl.config import HandConfig
 from handctl.taps import TAP_TX
+from handctl.unixcan import TX_QUEUE_FRAMES
 
 OpenUnix = Callable[[], HandBus]
 
