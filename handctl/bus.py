@@ -34,9 +34,9 @@ import errno
 import os
 import queue
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import can
 from can.interfaces import virtual as _virtual
@@ -45,7 +45,6 @@ from handctl.busspec import BusSpec, bus_kwargs, check_socketcan, parse_spec
 from handctl.config import BusConfig
 from handctl.errors import BusError
 from handctl.taps import TAP_TX, TAP_TX_FAILED
-from handctl.unixcan import UnixDatagramBus
 
 #: Frames drained per call at most: a babbling node must not keep one tick busy forever.
 DRAIN_LIMIT = 512
@@ -61,6 +60,23 @@ _CAN_ERR_CRTL = 0x004
 _CAN_ERR_BUSOFF = 0x040
 _CAN_ERR_RESTARTED = 0x100
 _CAN_ERR_CRTL_PASSIVE = 0x30  # rx or tx error-passive bits in data[1]
+
+
+@runtime_checkable
+class BurstTransport(Protocol):
+    """A python-can bus that sends frames together at less cost than one by one (the unix
+    bus: one datagram a burst). ``HandBus`` holds the frames sent with ``more=True`` and hands
+    the burst over after the last; ``send_burst`` raises as ``send`` would if the transport
+    refused the burst, and with no messages offers again what it still holds, if anything."""
+
+    def send_burst(self, messages: Sequence[can.Message]) -> None: ...
+
+
+@runtime_checkable
+class CountingTransport(Protocol):
+    """A python-can bus that keeps delivery counters of its own, for summaries."""
+
+    def transport_counts(self) -> dict[str, int]: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -195,8 +211,11 @@ class HandBus:
         self.tx_failed = 0
         self.received = 0
         self.closed = False
-        self._batching = isinstance(bus, UnixDatagramBus)
-        self._burst: list[tuple[int, bytes]] = []  # held by a batching transport until flush
+        self._bursts = bus if isinstance(bus, BurstTransport) else None
+        # The burst under way on a BurstTransport, held until flush: its frames for the counts
+        # and the taps, and the messages for the transport (error frames too).
+        self._burst: list[tuple[int, bytes]] = []
+        self._burst_messages: list[can.Message] = []
         # A virtual bus stamps arrivals on this bus's clock; the others in wall-clock time.
         self._take = bus.take if isinstance(bus, ArrivalStampedVirtualBus) else None
         if isinstance(bus, ArrivalStampedVirtualBus):
@@ -268,8 +287,8 @@ class HandBus:
     def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool:
         """Send one frame without blocking; on failure record an event and return False.
 
-        ``more=True`` says another frame of the same burst follows at once, so a batching
-        transport (the unix bus) holds this one until the last (``more=False``) or ``flush``
+        ``more=True`` says another frame of the same burst follows at once, so for a batching
+        transport (``BurstTransport``) this one is held until the last (``more=False``) or ``flush``
         (at most ``MAX_BURST`` frames): ``send`` returns True for it, and it is counted and
         tapped when the burst goes, with the burst's fate.
         """
@@ -277,6 +296,12 @@ class HandBus:
         msg = _Message(arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended
                        else arbitration_id, data=data, is_extended_id=extended,
                        is_fd=self.fd, bitrate_switch=self.fd, check=False)
+        if self._bursts is not None:
+            self._burst.append((arbitration_id, data))
+            self._burst_messages.append(msg)
+            if more and len(self._burst_messages) < MAX_BURST:
+                return True
+            return self.flush()
         try:
             self._bus.send(msg, timeout=0)
         except (can.CanError, OSError, ValueError) as exc:
@@ -285,11 +310,6 @@ class HandBus:
             if self.tap is not None:
                 self.tap(arbitration_id, data, TAP_TX_FAILED)
             return False
-        if self._batching:
-            self._burst.append((arbitration_id, data))
-            if more and len(self._burst) < MAX_BURST:
-                return True
-            return self.flush()
         self.sent += 1
         if self.tap is not None:
             self.tap(arbitration_id, data, TAP_TX)
@@ -303,12 +323,13 @@ class HandBus:
         each of its frames is then counted in ``tx_failed`` and tapped as failed. Other buses
         send at once, so there is nothing to do.
         """
-        if not self._batching:
+        if self._bursts is None:
             return True
         burst, self._burst = self._burst, []
+        messages, self._burst_messages = self._burst_messages, []
         ok = True
         try:
-            self._bus.flush()  # type: ignore[attr-defined]
+            self._bursts.send_burst(messages)
         except (can.CanError, OSError, ValueError) as exc:
             self._tx_error(exc)
             ok = False
@@ -330,15 +351,10 @@ class HandBus:
             self._event(BusEventKind.TX_FAILED, f"{type(exc).__name__}: {exc}")
 
     def transport_counts(self) -> dict[str, int]:
-        """The transport's own delivery counters, for summaries: on the unix bus the datagrams
-        sent, the times a receiver's queue was full (its frames held and retried), the frames
-        refused because a receiver's transmit queue was full, and the frames held now.
-        Empty for buses that keep no such counts."""
+        """The transport's own delivery counters, for summaries (``CountingTransport``; the
+        unix bus's datagrams, full queues and held frames). Empty for buses that keep none."""
         bus = self._bus
-        if not isinstance(bus, UnixDatagramBus):
-            return {}
-        return {"datagrams_sent": bus.datagrams_sent, "queue_full": bus.queue_full,
-                "frames_dropped": bus.frames_dropped, "frames_held": bus.held}
+        return bus.transport_counts() if isinstance(bus, CountingTransport) else {}
 
     def send_error_frame(self, error_class: int = _CAN_ERR_CRTL, data: bytes = bytes(8)) -> bool:
         """Put an error frame on the bus (fault injection on virtual buses only).
@@ -349,11 +365,14 @@ class HandBus:
         """
         msg = _Message(arbitration_id=error_class, is_error_frame=True, is_extended_id=False,
                        data=data, check=False)
+        if self._bursts is not None:
+            self._burst_messages.append(msg)
+            return self.flush()
         try:
             self._bus.send(msg, timeout=0)
         except (can.CanError, OSError, ValueError):
             return False
-        return self.flush()
+        return True
 
     def events(self) -> list[BusEvent]:
         """Take the events since the last call."""
@@ -365,7 +384,7 @@ class HandBus:
 
     def close(self) -> None:
         if not self.closed:
-            if self._burst:
+            if self._burst_messages:
                 self.flush()
             self.closed = True
             self._bus.shutdown()
@@ -407,12 +426,9 @@ def open_bus(spec: str | BusSpec, bus_config: BusConfig,
     kwargs = bus_kwargs(parsed, bus_config)
     kwargs.update(options or {})
     try:
-        if parsed.interface == "unix":
+        if parsed.interface == "virtual":
             del kwargs["interface"]
-            bus: can.BusABC = UnixDatagramBus(**kwargs)
-        elif parsed.interface == "virtual":
-            del kwargs["interface"]
-            bus = ArrivalStampedVirtualBus(**kwargs)
+            bus: can.BusABC = ArrivalStampedVirtualBus(**kwargs)
         else:
             bus = can.Bus(**kwargs)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:

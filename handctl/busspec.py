@@ -46,7 +46,7 @@ def parse_spec(spec: str, bus_config: BusConfig | None = None) -> BusSpec:
     if not sep or not interface or not channel:
         raise ConfigError("--bus", "", "sim, hand, or INTERFACE:CHANNEL (e.g. socketcan:can0, "
                           "virtual:test)", spec)
-    if interface not in can.VALID_INTERFACES and interface != "unix":
+    if interface not in can.VALID_INTERFACES:
         raise ConfigError("--bus", "interface",
                           "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES))
                           + ")", interface)
@@ -56,9 +56,7 @@ def parse_spec(spec: str, bus_config: BusConfig | None = None) -> BusSpec:
 def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:
     """The python-can constructor arguments for ``spec`` under the hand's bus settings."""
     kwargs: dict[str, Any] = {"interface": spec.interface, "channel": spec.channel}
-    if spec.interface == "unix":
-        kwargs["receive_own_messages"] = False
-    elif spec.interface == "virtual":
+    if spec.interface == "virtual":
         kwargs["receive_own_messages"] = False
         kwargs["protocol"] = can.CanProtocol.CAN_FD if bus_config.fd else can.CanProtocol.CAN_20
     elif spec.interface == "socketcan":

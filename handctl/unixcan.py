@@ -1,6 +1,10 @@
 """handctl's unix bus: a python-can interface over Unix datagram sockets between processes of
 one machine, without a kernel CAN driver or any network traffic (the simulated hand in its own
 process, kill tests). ``--bus unix:DIRECTORY``: one socket per participant in DIRECTORY.
+
+It is registered with python-can as the interface ``unix`` (the ``can.interface`` entry point
+in pyproject.toml), so ``can.Bus(interface="unix", channel=DIRECTORY)`` opens it as any other
+interface, and nothing in handctl names it but that entry point.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import select
 import socket
 import struct
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -56,13 +61,13 @@ class UnixDatagramBus(can.BusABC):
     Frames sent together (one tick's commands, one node tick's frames) travel as one datagram:
     Linux queues only ``net.unix.max_dgram_qlen`` datagrams per receiving socket (often 10),
     whatever their size and whoever sent them, and no socket buffer size lifts that. ``send``
-    queues a frame and ``flush`` sends the batch; ``HandBus`` flushes after the last frame of
-    a burst.
+    queues a frame and ``send_burst`` sends the batch; ``HandBus`` calls it after the last
+    frame of a burst.
 
     A receiver whose queue is full does not lose what it was sent, as a CAN controller does
     not drop a frame it took for transmission but retries arbitration: the frames wait in a
     transmit queue for that receiver and go first, merged into as few datagrams as fit, at the
-    next ``flush``. Only a burst that no longer fits that queue (``TX_QUEUE_FRAMES``: a
+    next ``send_burst``. Only a burst that no longer fits that queue (``TX_QUEUE_FRAMES``: a
     receiver that stopped reading) is refused, whole, with ``TransmitQueueFull`` (ENOBUFS), as
     a full transmit queue refuses a frame on SocketCAN. ``queue_full`` counts the times a
     receiver's queue was found full, ``frames_dropped`` the frames refused (for one receiver
@@ -89,7 +94,6 @@ class UnixDatagramBus(can.BusABC):
         self._own = receive_own_messages
         self._peers: list[str] = []
         self._peers_at = 0.0
-        self._pending: list[bytes] = []
         self._held: dict[str, list[bytes]] = {}  # per receiver: frames its full queue refused
         self._inbox: list[can.Message] = []
         self._can_protocol = can.CanProtocol.CAN_FD
@@ -102,6 +106,13 @@ class UnixDatagramBus(can.BusABC):
     def held(self) -> int:
         """Frames waiting now for receivers whose queue was full (all receivers together)."""
         return sum(len(frames) for frames in self._held.values())
+
+    def transport_counts(self) -> dict[str, int]:
+        """The datagrams sent, the times a receiver's queue was full (its frames held and
+        retried), the frames refused because a receiver's transmit queue was full, and the
+        frames held now."""
+        return {"datagrams_sent": self.datagrams_sent, "queue_full": self.queue_full,
+                "frames_dropped": self.frames_dropped, "frames_held": self.held}
 
     def _refresh_peers(self) -> None:
         """Re-list the participants at most every 50 ms: joining is rare, sending is not."""
@@ -116,25 +127,18 @@ class UnixDatagramBus(can.BusABC):
             del self._held[gone]
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        flags = ((_FD if msg.is_fd else 0) | (_BRS if msg.bitrate_switch else 0)
-                 | (_ERR if msg.is_error_frame else 0)
-                 | (_ESI if msg.error_state_indicator else 0)
-                 | (_EXT if msg.is_extended_id else 0))
-        data = bytes(msg.data)
-        self._pending.append(_WIRE.pack(time.time(), msg.arbitration_id, flags, len(data))
-                             + data)
-        # A caller that never flushes; HandBus ends its bursts itself at MAX_BURST (no more
-        # than this), so a burst's fate is always decided at its own flush.
-        if len(self._pending) > TX_QUEUE_FRAMES:
-            self.flush()
+        """Send one frame now, as a burst of its own: what python-can's ``send`` promises
+        any user of the interface. ``HandBus`` sends a tick's frames with ``send_burst``."""
+        self.send_burst((msg,))
 
-    def flush(self) -> None:
-        """Send what is held for each receiver, then the queued frames, to every other
-        participant; raise ``TransmitQueueFull`` if a receiver's transmit queue had no room."""
-        frames = self._pending
+    def send_burst(self, messages: Sequence[can.Message]) -> None:
+        """Send what is held for each receiver, then ``messages`` together, to every other
+        participant; raise ``TransmitQueueFull`` if a receiver's transmit queue had no room.
+        No messages: only what is held is offered again."""
+        now = time.time()
+        frames = [_encode(msg, now) for msg in messages]
         if not frames and not self._held:
             return
-        self._pending = []
         self._refresh_peers()
         refused = 0
         for peer in list(self._peers):
@@ -215,7 +219,7 @@ class UnixDatagramBus(can.BusABC):
 
     def _flush_quietly(self) -> None:
         with contextlib.suppress(can.CanError, OSError):
-            self.flush()
+            self.send_burst(())
 
     def shutdown(self) -> None:
         if not self._is_shutdown:
@@ -233,6 +237,16 @@ class UnixDatagramBus(can.BusABC):
 
 
 _ANCILLARY_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
+
+
+def _encode(msg: can.Message, sent_s: float) -> bytes:
+    """One frame on the wire: ``_WIRE``'s header, then the data."""
+    flags = ((_FD if msg.is_fd else 0) | (_BRS if msg.bitrate_switch else 0)
+             | (_ERR if msg.is_error_frame else 0)
+             | (_ESI if msg.error_state_indicator else 0)
+             | (_EXT if msg.is_extended_id else 0))
+    data = bytes(msg.data)
+    return _WIRE.pack(sent_s, msg.arbitration_id, flags, len(data)) + data
 
 
 def _arrival_s(ancillary: list[tuple[int, int, bytes]]) -> float:
