@@ -282,7 +282,7 @@ class Recorder:
     # its ``push`` (the row last; a tick without a push when the next one begins), so a SIGKILL
     # costs at most the tick in progress. Frames sent after a tick's push (the nodes' disable
     # after the last control tick) still belong to it: they are published when the next tick
-    # begins, after its row and before the next row, where ``replay.tick_inputs`` looks.
+    # begins, after its row and before the next row, where ``rerun.tick_inputs`` looks.
     def begin_tick(self, tick: Tick) -> None:
         if self._row >= 0:  # the last tick had no push (start-up, shut-down): publish it now
             self._publish_idle()

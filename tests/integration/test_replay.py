@@ -23,8 +23,11 @@ from handctl.config import HandConfig
 from handctl.loop import Outcome
 from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
+from handctl.recording.frames import logged_frames, to_bus
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
-from handctl.recording.replay import load_series, logged_frames, rerun, summarise, to_bus
+from handctl.recording.replay import summarise
+from handctl.recording.rerun import rerun
+from handctl.recording.series import load_series
 
 from ..conftest import ROOT
 from .rig import SHORT, short_recipe
@@ -395,7 +398,7 @@ def test_rerun_of_a_run_with_the_object_estimator(tmp_path: Path) -> None:
 def test_the_replay_bus_has_everything_a_hand_bus_has(hand: HandConfig, channel: str) -> None:
     """ReplayBus stands in for HandBus without its python-can set-up: every public attribute
     a real one has, the replay one must have too, and the calls must work without a bus."""
-    from handctl.recording.replay import ReplayBus
+    from handctl.recording.rerun import ReplayBus
 
     replay = ReplayBus(fd=True)
     with open_bus(f"virtual:{channel}", hand.bus) as real:
