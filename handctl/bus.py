@@ -195,8 +195,32 @@ class ArrivalStampedVirtualBus(_virtual.VirtualBus):
 
 
 
+@runtime_checkable
+class FrameBus(Protocol):
+    """What the driver and the recorder ask of a bus: the frames that arrived, one frame sent,
+    the events since the last call, and the recorder's taps. ``HandBus`` implements it over
+    python-can; the re-run's ``ReplayBus`` over a recording. None of it raises: a failure is a
+    False or an event."""
+
+    tap: FrameTap | None
+    rx_tap: RxTap | None
+    event_tap: Callable[[BusEvent], None] | None
+
+    def use_clock(self, clock_ns: Callable[[], int]) -> None: ...
+
+    def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]: ...
+
+    def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool: ...
+
+    def flush(self) -> bool: ...
+
+    def events(self) -> list[BusEvent]: ...
+
+    def close(self) -> None: ...
+
+
 class HandBus:
-    """A python-can bus behind a small, never-raising interface for the loop."""
+    """A python-can bus behind a small, never-raising interface for the loop (``FrameBus``)."""
 
     def __init__(self, bus: can.BusABC, spec: BusSpec, fd: bool,
                  clock_ns: Callable[[], int] = time.monotonic_ns) -> None:

@@ -19,16 +19,15 @@ import math
 import struct
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from handctl import timebudget
-from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, HandBus
-from handctl.busspec import BusSpec
-from handctl.clock import LockstepClock, Tick
+from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, FrameTap, RxTap
+from handctl.clock import Tick
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError
 from handctl.loop import EndOfTicks, Runtime, TickRecord
@@ -38,6 +37,7 @@ from handctl.recording.feedback_check import FeedbackCheck
 from handctl.recording.metadata import recorded_hand, recorded_recipe
 from handctl.recording.reader import Recording, iter_chunks, require_topics
 from handctl.recording.series import json_floats
+from handctl.taps import TAP_TX, TAP_TX_FAILED
 
 MAX_LISTED = 20
 
@@ -154,21 +154,20 @@ def _route(msg: dict[str, Any], inputs: TickInput | _Pending,
         rejects[msg["name"]] = rejects.get(msg["name"], 0) + int(msg.get("count", 0))
 
 
-class ReplayBus(HandBus):
-    """A ``HandBus`` with the log behind it: ``drain`` returns what the original drain
+class ReplayBus:
+    """A ``FrameBus`` with the log behind it: ``drain`` returns what the original drain
     returned in this tick, ``send`` checks the frame against the one the original sent (and
-    answers as the bus did), ``events`` returns the events the original poll took."""
+    answers as the bus did), ``events`` returns the events the original poll took. Taps are
+    told what a ``HandBus`` would tell them."""
 
-    def __init__(self, fd: bool) -> None:  # no python-can bus: nothing of the parent's state
-        self.spec = BusSpec("replay", "")
-        self.fd = fd
+    def __init__(self) -> None:
+        self.tap: FrameTap | None = None
+        self.rx_tap: RxTap | None = None
+        self.event_tap: Callable[[BusEvent], None] | None = None
         self.sent = 0
         self.tx_failed = 0
         self.received = 0
         self.closed = False
-        self.tap = None
-        self.rx_tap = None
-        self.event_tap = None
         self.tick = -1
         self._rx: deque[Frame] = deque()
         self._tx: deque[tuple[int, bytes, bool]] = deque()
@@ -185,6 +184,9 @@ class ReplayBus(HandBus):
         self._tx = deque(inputs.tx)
         self._events = list(inputs.bus_events)
 
+    def use_clock(self, clock_ns: Callable[[], int]) -> None:
+        """The logged frames carry the times they arrived at in the run: no clock to use."""
+
     def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]:
         rx = self._rx
         if len(rx) <= limit:
@@ -193,6 +195,8 @@ class ReplayBus(HandBus):
         else:
             frames = [rx.popleft() for _ in range(limit)]
         self.received += len(frames)
+        if frames and self.rx_tap is not None:
+            self.rx_tap(frames)
         return frames
 
     def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool:
@@ -200,24 +204,28 @@ class ReplayBus(HandBus):
         if not self._tx:
             self._mismatch(f"tick {self.tick}: the re-run sent frame 0x{arbitration_id:03X} "
                            f"{bytes(data).hex()}, the log has no more frames in this tick")
-            return True
-        frame_id, logged, ok = self._tx.popleft()
-        if frame_id != arbitration_id or logged != data:
-            self._mismatch(f"tick {self.tick}: the re-run sent 0x{arbitration_id:03X} "
-                           f"{bytes(data).hex()}, the log has 0x{frame_id:03X} {logged.hex()}")
-        self.sent += ok
-        self.tx_failed += not ok
+            ok = True
+        else:
+            frame_id, logged, ok = self._tx.popleft()
+            if frame_id != arbitration_id or logged != data:
+                self._mismatch(f"tick {self.tick}: the re-run sent 0x{arbitration_id:03X} "
+                               f"{bytes(data).hex()}, the log has 0x{frame_id:03X} "
+                               f"{logged.hex()}")
+            self.sent += ok
+            self.tx_failed += not ok
+        if self.tap is not None:
+            self.tap(arbitration_id, data, TAP_TX if ok else TAP_TX_FAILED)
         return ok
 
     def flush(self) -> bool:
         """Sends are compared as they come: there is no burst to end."""
         return True
 
-    def transport_counts(self) -> dict[str, int]:
-        return {}
-
     def events(self) -> list[BusEvent]:
         events, self._events = self._events, []
+        if self.event_tap is not None:
+            for event in events:
+                self.event_tap(event)
         return events
 
     def close(self) -> None:
@@ -236,11 +244,13 @@ class _EndOfLogError(EndOfTicks):
     there."""
 
 
-class ReplayClock(LockstepClock):
-    """Hands out the logged ticks, and the operator's requests at the ticks they took effect."""
+class ReplayClock:
+    """A ``Clock`` that hands out the logged ticks, and the operator's requests at the ticks
+    they took effect. Stepped, as the lockstep clock: the log ends the run when it ends."""
 
-    def __init__(self, period_s: float, inputs: Iterator[TickInput], bus: ReplayBus) -> None:
-        super().__init__(period_s, _nothing)
+    lockstep = True
+
+    def __init__(self, inputs: Iterator[TickInput], bus: ReplayBus) -> None:
         self.inputs = inputs
         self.bus = bus
         self.runtime: Runtime | None = None
@@ -270,9 +280,8 @@ class ReplayClock(LockstepClock):
                     self.unsupported.append(f"tick {current.tick}: {kind}")
         return Tick(current.tick, current.scheduled_ns, current.now_ns, current.missed)
 
-
-def _nothing() -> None:
-    return None
+    def close(self) -> None:
+        pass
 
 
 def _no_time() -> int:
@@ -378,10 +387,10 @@ def rerun(recording: Recording) -> RerunReport:
     recipe = recorded_recipe(recording, hand)
     period_s = int(run.get("period_ns", round(hand.bus.period_s * 1e9))) * 1e-9
     startup_ticks = int(run.get("startup_ticks", "500"))
-    bus = ReplayBus(hand.bus.fd)
+    bus = ReplayBus()
     before, inputs = tick_inputs(recording)
     bus.load(-1, before)
-    clock = ReplayClock(period_s, inputs, bus)
+    clock = ReplayClock(inputs, bus)
     driver = HandDriver(hand, load_protocol(), bus, clock_ns=clock.now_ns)
     check = FeedbackCheck(hand, driver)
     clock.check = check
