@@ -1,21 +1,12 @@
-"""The only module that imports python-can: open a bus from a spec, drain it, send on it.
+"""The bus as the loop sees it: open one from a spec, drain it, send on it.
 
 Everything above this module sees ``Frame`` and ``BusEvent`` values, never python-can objects,
 so the loop cannot be surprised by a python-can exception: a full transmit queue, an error frame
 or a bus-off comes out as a typed event that safety can act on, and the tick goes on.
 
-Bus specs:
-- ``sim``: the simulated hand. Resolved by the caller (the CLI starts the simulated hand as a
-  peer on a private virtual channel and opens ``virtual:<that channel>`` here), because the
-  online plane never imports the simulation.
-- ``hand``: the interface and channel written in the hand config's ``bus`` section.
-- ``virtual:NAME``: python-can's in-process virtual bus (tests, lockstep runs).
-- ``socketcan:can0``: a Linux SocketCAN interface. The kernel owns its bit rates; handctl checks
-  that the interface exists and says how to configure it when it does not.
-- ``unix:DIRECTORY``: handctl's own python-can interface over Unix datagram sockets, one per
-  participant in DIRECTORY: a bus that crosses processes on one machine without a kernel CAN
-  driver or any network traffic (the simulated hand in its own process, kill tests).
-- ``INTERFACE:CHANNEL``: any other python-can interface, given the config's CAN-FD bit rates.
+Bus specs (``--bus``) are parsed in ``handctl.busspec``; handctl's own unix bus is the
+python-can interface in ``handctl.unixcan``; the virtual bus that stamps arrivals on the
+receiver's clock is ``handctl.virtualcan``; log export is ``handctl.canlog``.
 
 Receive times: every ``Frame`` carries the time it arrived, on the clock of whoever drains it
 (``HandBus.use_clock``: the driver hands over the loop's clock), never the time it was
@@ -39,38 +30,28 @@ period's worth, and ``drain`` reports frames it had to leave in the queue as an
 
 from __future__ import annotations
 
-import contextlib
 import enum
 import errno
-import itertools
 import os
-import queue
-import select
-import socket
-import struct
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import can
-from can.interfaces import virtual as _virtual
 
+from handctl.busspec import BusSpec, bus_kwargs, check_socketcan, parse_spec
 from handctl.config import BusConfig
-from handctl.errors import BusError, ConfigError
+from handctl.errors import BusError
 from handctl.taps import TAP_TX, TAP_TX_FAILED
+from handctl.virtualcan import ArrivalStampedVirtualBus
 
 #: Frames drained per call at most: a babbling node must not keep one tick busy forever.
 DRAIN_LIMIT = 512
 #: Set in ``Frame.arbitration_id`` (and given to ``HandBus.send``) for a 29-bit identifier, as
 #: SocketCAN's ``CAN_EFF_FLAG``: an extended frame never has the id of a standard one.
 EXTENDED_ID_FLAG = 0x80000000
-_EXTENDED_ID_MASK = 0x1FFFFFFF
-#: ``SO_TIMESTAMPNS`` (Linux, asm-generic; Python's socket module does not name it): the
-#: kernel stamps each datagram as it is queued for the receiving socket.
-_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
-_TIMESPEC = struct.Struct("@qq")
+EXTENDED_ID_MASK = 0x1FFFFFFF
 #: Frames one burst holds at most on a batching transport before they go anyway (a datagram).
 MAX_BURST = 32
 
@@ -79,6 +60,23 @@ _CAN_ERR_CRTL = 0x004
 _CAN_ERR_BUSOFF = 0x040
 _CAN_ERR_RESTARTED = 0x100
 _CAN_ERR_CRTL_PASSIVE = 0x30  # rx or tx error-passive bits in data[1]
+
+
+@runtime_checkable
+class BurstTransport(Protocol):
+    """A python-can bus that sends frames together at less cost than one by one (the unix
+    bus: one datagram a burst). ``HandBus`` holds the frames sent with ``more=True`` and hands
+    the burst over after the last; ``send_burst`` raises as ``send`` would if the transport
+    refused the burst, and with no messages offers again what it still holds, if anything."""
+
+    def send_burst(self, messages: Sequence[can.Message]) -> None: ...
+
+
+@runtime_checkable
+class CountingTransport(Protocol):
+    """A python-can bus that keeps delivery counters of its own, for summaries."""
+
+    def transport_counts(self) -> dict[str, int]: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,76 +118,6 @@ FrameTap = Callable[[int, bytes, int], None]
 RxTap = Callable[[list[Frame]], None]
 
 
-@dataclass(frozen=True)
-class BusSpec:
-    interface: str
-    channel: str
-
-    def __str__(self) -> str:
-        return f"{self.interface}:{self.channel}" if self.channel else self.interface
-
-
-def parse_spec(spec: str, bus_config: BusConfig | None = None) -> BusSpec:
-    """Split ``INTERFACE:CHANNEL``; ``hand`` takes both from the hand config."""
-    if spec == "sim":
-        return BusSpec("sim", "")
-    if spec == "hand":
-        if bus_config is None:
-            raise BusError("bus spec 'hand' needs a hand config")
-        return BusSpec(bus_config.interface, bus_config.channel)
-    interface, sep, channel = spec.partition(":")
-    if not sep or not interface or not channel:
-        raise ConfigError("--bus", "", "sim, hand, or INTERFACE:CHANNEL (e.g. socketcan:can0, "
-                          "virtual:test)", spec)
-    if interface not in can.VALID_INTERFACES and interface != "unix":
-        raise ConfigError("--bus", "interface",
-                          "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES))
-                          + ")", interface)
-    return BusSpec(interface, channel)
-
-
-def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:
-    """The python-can constructor arguments for ``spec`` under the hand's bus settings."""
-    kwargs: dict[str, Any] = {"interface": spec.interface, "channel": spec.channel}
-    if spec.interface == "unix":
-        kwargs["receive_own_messages"] = False
-    elif spec.interface == "virtual":
-        kwargs["receive_own_messages"] = False
-        kwargs["protocol"] = can.CanProtocol.CAN_FD if bus_config.fd else can.CanProtocol.CAN_20
-    elif spec.interface == "socketcan":
-        # Bit rates of a SocketCAN interface are set with `ip link`, not by the process.
-        kwargs["fd"] = bus_config.fd
-    elif spec.interface == "udp_multicast":
-        kwargs["fd"] = bus_config.fd
-        kwargs["receive_own_messages"] = False
-    else:
-        kwargs["fd"] = bus_config.fd
-        kwargs["bitrate"] = bus_config.bitrate
-        if bus_config.fd and bus_config.data_bitrate:
-            kwargs["data_bitrate"] = bus_config.data_bitrate
-    return kwargs
-
-
-def socketcan_setup_command(channel: str, bus_config: BusConfig) -> str:
-    """The `ip link` command that brings a SocketCAN interface up with the hand's bit rates."""
-    cmd = f"sudo ip link set {channel} up type can bitrate {bus_config.bitrate}"
-    if bus_config.fd:
-        cmd += f" dbitrate {bus_config.data_bitrate} fd on"
-    return cmd
-
-
-def check_socketcan(channel: str, bus_config: BusConfig, sysfs: Path = Path("/sys/class/net"),
-                    ) -> None:
-    """Refuse a SocketCAN channel that is missing or down, with the command that fixes it."""
-    node = sysfs / channel
-    hint = socketcan_setup_command(channel, bus_config)
-    if not node.exists():
-        raise BusError(f"socketcan:{channel}: no such network interface; load the driver and "
-                       f"configure it with: {hint}")
-    operstate = (node / "operstate").read_text().strip() if (node / "operstate").exists() else ""
-    if operstate == "down":
-        raise BusError(f"socketcan:{channel}: interface is down; bring it up with: {hint}")
-
 
 class _Message(can.Message):
     """A python-can message whose deep copy costs a constructor call, not the copy machinery.
@@ -211,292 +139,32 @@ class _Message(can.Message):
             error_state_indicator=self.error_state_indicator)
 
 
-class _ArrivalQueue(queue.Queue[Any]):
-    """A virtual-bus receive queue that stamps each message as it is put, on its owner's clock.
+@runtime_checkable
+class FrameBus(Protocol):
+    """What the driver and the recorder ask of a bus: the frames that arrived, one frame sent,
+    the events since the last call, and the recorder's taps. ``HandBus`` implements it over
+    python-can; the re-run's ``ReplayBus`` over a recording. None of it raises: a failure is a
+    False or an event."""
 
-    python-can's virtual bus stamps a message with the sender's wall clock; the receiver's
-    loop runs on its own clock (simulated time in lockstep), so the stamp is taken here, at
-    the moment the message is queued, as ``(stamp_ns, message)``.
-    """
+    tap: FrameTap | None
+    rx_tap: RxTap | None
+    event_tap: Callable[[BusEvent], None] | None
 
-    def __init__(self, maxsize: int, stamp: Callable[[], int]) -> None:
-        super().__init__(maxsize)
-        self.stamp = stamp
+    def use_clock(self, clock_ns: Callable[[], int]) -> None: ...
 
-    def _put(self, item: can.Message) -> None:
-        self.queue.append((self.stamp(), item))
+    def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]: ...
 
+    def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool: ...
 
-class ArrivalStampedVirtualBus(_virtual.VirtualBus):
-    """python-can's virtual bus whose receive queue stamps messages on arrival (see
-    ``_ArrivalQueue``); ``take`` returns them with their stamps. Other virtual buses on the
-    channel, handctl's or not, send to it as to any other."""
+    def flush(self) -> bool: ...
 
-    def __init__(self, channel: str, **kwargs: Any) -> None:
-        super().__init__(channel=channel, **kwargs)
-        self.clock_ns: Callable[[], int] = time.monotonic_ns
-        with _virtual.channels_lock:
-            old = self.queue
-            stamped = _ArrivalQueue(old.maxsize, self._stamp)
-            self.channel[self.channel.index(old)] = stamped
-            self.queue = stamped
-            while not old.empty():  # anything sent while the plain queue was registered
-                stamped.put_nowait(old.get_nowait())
+    def events(self) -> list[BusEvent]: ...
 
-    def _stamp(self) -> int:
-        return self.clock_ns()
-
-    def take(self) -> tuple[int, can.Message] | None:
-        """The next ``(arrival_ns, message)``, or None when the queue is empty."""
-        if not self._open:
-            raise can.CanOperationError("Cannot operate on a closed bus")
-        try:
-            return self.queue.get_nowait()  # type: ignore[return-value]
-        except queue.Empty:
-            return None
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        self._check_if_open()
-        try:
-            item: Any = self.queue.get(block=True, timeout=timeout)  # (arrival_ns, message)
-        except queue.Empty:
-            return None, False
-        item[1].timestamp = item[0] * 1e-9
-        return item[1], False
-
-
-#: Per frame: the sender's time (s; diagnostics only: a frame is stamped on arrival by the
-#: receiver's kernel), arbitration id, flags, data length; then the data.
-_WIRE = struct.Struct("<dIBB")
-_FD, _BRS, _ERR, _ESI, _EXT = 1, 2, 4, 8, 16
-_unix_ids = itertools.count()
-#: Frames per datagram at most; a burst beyond it goes out in several datagrams.
-_BATCH = 32
-#: Frames held at most for one receiver whose queue is full (a CAN controller's transmit
-#: queue). A burst that does not fit any more is refused whole with ENOBUFS. Small on purpose:
-#: a receiver's socket queue already holds ten bursts or more; this is slack for a moment,
-#: and a receiver that stopped reading must still be reported within a few dozen ticks (the
-#: host's BUS_ERROR after consecutive failed sends), not hidden behind a deep queue.
-TX_QUEUE_FRAMES = 64
-#: How long ``shutdown`` keeps offering held frames to receivers that are still reading.
-_SHUTDOWN_S = 0.02
-
-
-class TransmitQueueFull(can.CanOperationError):
-    """A burst refused because a receiver's transmit queue is full: ``frames`` were dropped."""
-
-    def __init__(self, frames: int, receivers: int) -> None:
-        super().__init__(f"No buffer space available: {frames} frames dropped, the transmit "
-                         f"queue to {receivers} receiver(s) is full", error_code=errno.ENOBUFS)
-        self.frames = frames
-
-
-class UnixDatagramBus(can.BusABC):
-    """A CAN bus between processes of one machine: each participant binds a datagram socket in
-    the channel directory and sends every frame to all the other sockets there.
-
-    Frames sent together (one tick's commands, one node tick's frames) travel as one datagram:
-    Linux queues only ``net.unix.max_dgram_qlen`` datagrams per receiving socket (often 10),
-    whatever their size and whoever sent them, and no socket buffer size lifts that. ``send``
-    queues a frame and ``flush`` sends the batch; ``HandBus`` flushes after the last frame of
-    a burst.
-
-    A receiver whose queue is full does not lose what it was sent, as a CAN controller does
-    not drop a frame it took for transmission but retries arbitration: the frames wait in a
-    transmit queue for that receiver and go first, merged into as few datagrams as fit, at the
-    next ``flush``. Only a burst that no longer fits that queue (``TX_QUEUE_FRAMES``: a
-    receiver that stopped reading) is refused, whole, with ``TransmitQueueFull`` (ENOBUFS), as
-    a full transmit queue refuses a frame on SocketCAN. ``queue_full`` counts the times a
-    receiver's queue was found full, ``frames_dropped`` the frames refused (for one receiver
-    or more). A socket whose owner died (SIGKILL) refuses delivery and is removed with what
-    was held for it, so a killed peer does not wedge the bus.
-    """
-
-    def __init__(self, channel: str, receive_own_messages: bool = False,
-                 rcvbuf: int = 1 << 22, **kwargs: Any) -> None:
-        self.directory = Path(channel)
-        self.directory.mkdir(parents=True, exist_ok=True)
-        self.channel_info = f"unix:{channel}"
-        self._path = self.directory / f"{os.getpid()}-{next(_unix_ids)}.sock"
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        with _suppress_oserror():
-            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-        # The kernel stamps each datagram as it arrives: the time a frame reached this
-        # participant, however long it then waits to be read. (A kernel without it leaves
-        # the time of reading, which makes frames look younger: Linux has it.)
-        with _suppress_oserror():
-            self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
-        self._sock.bind(str(self._path))
-        self._sock.setblocking(False)
-        self._own = receive_own_messages
-        self._peers: list[str] = []
-        self._peers_at = 0.0
-        self._pending: list[bytes] = []
-        self._held: dict[str, list[bytes]] = {}  # per receiver: frames its full queue refused
-        self._inbox: list[can.Message] = []
-        self._can_protocol = can.CanProtocol.CAN_FD
-        self.datagrams_sent = 0
-        self.queue_full = 0
-        self.frames_dropped = 0
-        super().__init__(channel=channel, **kwargs)
-
-    @property
-    def held(self) -> int:
-        """Frames waiting now for receivers whose queue was full (all receivers together)."""
-        return sum(len(frames) for frames in self._held.values())
-
-    def _refresh_peers(self) -> None:
-        """Re-list the participants at most every 50 ms: joining is rare, sending is not."""
-        now = time.monotonic()
-        if now - self._peers_at < 0.05:
-            return
-        self._peers_at = now
-        mine = str(self._path)
-        self._peers = [str(p) for p in self.directory.glob("*.sock")
-                       if self._own or str(p) != mine]
-        for gone in [p for p in self._held if p not in self._peers]:
-            del self._held[gone]
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        flags = ((_FD if msg.is_fd else 0) | (_BRS if msg.bitrate_switch else 0)
-                 | (_ERR if msg.is_error_frame else 0)
-                 | (_ESI if msg.error_state_indicator else 0)
-                 | (_EXT if msg.is_extended_id else 0))
-        data = bytes(msg.data)
-        self._pending.append(_WIRE.pack(time.time(), msg.arbitration_id, flags, len(data))
-                             + data)
-        # A caller that never flushes; HandBus ends its bursts itself at MAX_BURST (no more
-        # than this), so a burst's fate is always decided at its own flush.
-        if len(self._pending) > TX_QUEUE_FRAMES:
-            self.flush()
-
-    def flush(self) -> None:
-        """Send what is held for each receiver, then the queued frames, to every other
-        participant; raise ``TransmitQueueFull`` if a receiver's transmit queue had no room."""
-        frames = self._pending
-        if not frames and not self._held:
-            return
-        self._pending = []
-        self._refresh_peers()
-        refused = 0
-        for peer in list(self._peers):
-            held = self._held.get(peer)
-            if held is None:
-                if frames:
-                    self._deliver(peer, frames)
-            elif len(held) + len(frames) > TX_QUEUE_FRAMES:
-                refused += 1
-                self._deliver(peer, held)
-            else:
-                self._deliver(peer, held + frames)
-        if refused:
-            self.frames_dropped += len(frames)
-            raise TransmitQueueFull(len(frames), refused)
-
-    def _deliver(self, peer: str, frames: list[bytes]) -> None:
-        """Send ``frames`` to one receiver in datagrams of at most ``_BATCH`` frames; what its
-        full queue refuses is held for it, in order."""
-        done = 0
-        total = len(frames)
-        while done < total:
-            chunk = frames if total <= _BATCH else frames[done:done + _BATCH]
-            try:
-                self._sock.sendto(b"".join(chunk), peer)
-            except (ConnectionRefusedError, FileNotFoundError):
-                self._forget(peer)  # its owner is gone
-                return
-            except (BlockingIOError, InterruptedError):
-                self.queue_full += 1
-                self._held[peer] = frames[done:]
-                return
-            self.datagrams_sent += 1
-            done += len(chunk)
-        self._held.pop(peer, None)
-
-    def _forget(self, peer: str) -> None:
-        self._peers.remove(peer)
-        self._held.pop(peer, None)
-        if peer != str(self._path):
-            with _suppress_oserror():
-                os.unlink(peer)
-
-    def _read_datagram(self) -> bool:
-        try:
-            payload, ancillary, _, _ = self._sock.recvmsg(_BATCH * (_WIRE.size + 64),
-                                                          _ANCILLARY_SIZE)
-        except (BlockingIOError, InterruptedError):
-            return False
-        stamp = _arrival_s(ancillary)
-        offset = 0
-        while offset + _WIRE.size <= len(payload):
-            _, frame_id, flags, length = _WIRE.unpack_from(payload, offset)
-            offset += _WIRE.size
-            self._inbox.append(can.Message(
-                timestamp=stamp, arbitration_id=frame_id, is_extended_id=bool(flags & _EXT),
-                is_fd=bool(flags & _FD), bitrate_switch=bool(flags & _BRS),
-                is_error_frame=bool(flags & _ERR), error_state_indicator=bool(flags & _ESI),
-                data=payload[offset:offset + length], channel=self.channel_info, is_rx=True,
-                check=False))
-            offset += length
-        self._inbox.reverse()  # popped from the end, in arrival order
-        return True
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        if not self._inbox and not self._read_datagram():
-            if not timeout:
-                return None, False
-            ready, _, _ = select.select([self._sock], [], [], timeout)
-            if not ready or not self._read_datagram():
-                return None, False
-        if not self._inbox:
-            return None, False
-        return self._inbox.pop(), False
-
-    def fileno(self) -> int:
-        return self._sock.fileno()
-
-    def _flush_quietly(self) -> None:
-        with contextlib.suppress(can.CanError, OSError):
-            self.flush()
-
-    def shutdown(self) -> None:
-        if not self._is_shutdown:
-            # What is held goes out while its receivers still read (a last disable command),
-            # for a few milliseconds at most.
-            deadline = time.monotonic() + _SHUTDOWN_S
-            self._flush_quietly()
-            while self._held and time.monotonic() < deadline:
-                time.sleep(0.001)
-                self._flush_quietly()
-            self._sock.close()
-            with _suppress_oserror():
-                self._path.unlink()
-        super().shutdown()
-
-
-_ANCILLARY_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
-
-
-def _arrival_s(ancillary: list[tuple[int, int, bytes]]) -> float:
-    """The kernel's arrival time of a datagram (wall clock, s), or now if it gave none."""
-    for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS \
-                and len(data) >= _TIMESPEC.size:
-            sec, nsec = _TIMESPEC.unpack_from(data)
-            return float(sec + nsec * 1e-9)
-    return time.time()
-
-
-class _suppress_oserror:  # noqa: N801 - used like contextlib.suppress(OSError), allocation-free
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, kind: object, exc: object, tb: object) -> bool:
-        return isinstance(exc, OSError)
+    def close(self) -> None: ...
 
 
 class HandBus:
-    """A python-can bus behind a small, never-raising interface for the loop."""
+    """A python-can bus behind a small, never-raising interface for the loop (``FrameBus``)."""
 
     def __init__(self, bus: can.BusABC, spec: BusSpec, fd: bool,
                  clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
@@ -511,8 +179,11 @@ class HandBus:
         self.tx_failed = 0
         self.received = 0
         self.closed = False
-        self._batching = isinstance(bus, UnixDatagramBus)
-        self._burst: list[tuple[int, bytes]] = []  # held by a batching transport until flush
+        self._bursts = bus if isinstance(bus, BurstTransport) else None
+        # The burst under way on a BurstTransport, held until flush: its frames for the counts
+        # and the taps, and the messages for the transport (error frames too).
+        self._burst: list[tuple[int, bytes]] = []
+        self._burst_messages: list[can.Message] = []
         # A virtual bus stamps arrivals on this bus's clock; the others in wall-clock time.
         self._take = bus.take if isinstance(bus, ArrivalStampedVirtualBus) else None
         if isinstance(bus, ArrivalStampedVirtualBus):
@@ -573,7 +244,7 @@ class HandBus:
                 self.received += 1
                 frame_id = msg.arbitration_id
                 if msg.is_extended_id:
-                    frame_id = (frame_id & _EXTENDED_ID_MASK) | EXTENDED_ID_FLAG
+                    frame_id = (frame_id & EXTENDED_ID_MASK) | EXTENDED_ID_FLAG
                 frames.append(Frame(frame_id, bytes(msg.data), min(stamp, now), msg.is_fd))
         except (can.CanError, OSError, ValueError) as exc:
             self._event(BusEventKind.RX_FAILED, str(exc))
@@ -584,15 +255,21 @@ class HandBus:
     def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool:
         """Send one frame without blocking; on failure record an event and return False.
 
-        ``more=True`` says another frame of the same burst follows at once, so a batching
-        transport (the unix bus) holds this one until the last (``more=False``) or ``flush``
+        ``more=True`` says another frame of the same burst follows at once, so for a batching
+        transport (``BurstTransport``) this one is held until the last (``more=False``) or ``flush``
         (at most ``MAX_BURST`` frames): ``send`` returns True for it, and it is counted and
         tapped when the burst goes, with the burst's fate.
         """
         extended = bool(arbitration_id & EXTENDED_ID_FLAG)
-        msg = _Message(arbitration_id=arbitration_id & _EXTENDED_ID_MASK if extended
+        msg = _Message(arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended
                        else arbitration_id, data=data, is_extended_id=extended,
                        is_fd=self.fd, bitrate_switch=self.fd, check=False)
+        if self._bursts is not None:
+            self._burst.append((arbitration_id, data))
+            self._burst_messages.append(msg)
+            if more and len(self._burst_messages) < MAX_BURST:
+                return True
+            return self.flush()
         try:
             self._bus.send(msg, timeout=0)
         except (can.CanError, OSError, ValueError) as exc:
@@ -601,11 +278,6 @@ class HandBus:
             if self.tap is not None:
                 self.tap(arbitration_id, data, TAP_TX_FAILED)
             return False
-        if self._batching:
-            self._burst.append((arbitration_id, data))
-            if more and len(self._burst) < MAX_BURST:
-                return True
-            return self.flush()
         self.sent += 1
         if self.tap is not None:
             self.tap(arbitration_id, data, TAP_TX)
@@ -619,12 +291,13 @@ class HandBus:
         each of its frames is then counted in ``tx_failed`` and tapped as failed. Other buses
         send at once, so there is nothing to do.
         """
-        if not self._batching:
+        if self._bursts is None:
             return True
         burst, self._burst = self._burst, []
+        messages, self._burst_messages = self._burst_messages, []
         ok = True
         try:
-            self._bus.flush()  # type: ignore[attr-defined]
+            self._bursts.send_burst(messages)
         except (can.CanError, OSError, ValueError) as exc:
             self._tx_error(exc)
             ok = False
@@ -646,15 +319,10 @@ class HandBus:
             self._event(BusEventKind.TX_FAILED, f"{type(exc).__name__}: {exc}")
 
     def transport_counts(self) -> dict[str, int]:
-        """The transport's own delivery counters, for summaries: on the unix bus the datagrams
-        sent, the times a receiver's queue was full (its frames held and retried), the frames
-        refused because a receiver's transmit queue was full, and the frames held now.
-        Empty for buses that keep no such counts."""
+        """The transport's own delivery counters, for summaries (``CountingTransport``; the
+        unix bus's datagrams, full queues and held frames). Empty for buses that keep none."""
         bus = self._bus
-        if not isinstance(bus, UnixDatagramBus):
-            return {}
-        return {"datagrams_sent": bus.datagrams_sent, "queue_full": bus.queue_full,
-                "frames_dropped": bus.frames_dropped, "frames_held": bus.held}
+        return bus.transport_counts() if isinstance(bus, CountingTransport) else {}
 
     def send_error_frame(self, error_class: int = _CAN_ERR_CRTL, data: bytes = bytes(8)) -> bool:
         """Put an error frame on the bus (fault injection on virtual buses only).
@@ -665,11 +333,14 @@ class HandBus:
         """
         msg = _Message(arbitration_id=error_class, is_error_frame=True, is_extended_id=False,
                        data=data, check=False)
+        if self._bursts is not None:
+            self._burst_messages.append(msg)
+            return self.flush()
         try:
             self._bus.send(msg, timeout=0)
         except (can.CanError, OSError, ValueError):
             return False
-        return self.flush()
+        return True
 
     def events(self) -> list[BusEvent]:
         """Take the events since the last call."""
@@ -681,7 +352,7 @@ class HandBus:
 
     def close(self) -> None:
         if not self.closed:
-            if self._burst:
+            if self._burst_messages:
                 self.flush()
             self.closed = True
             self._bus.shutdown()
@@ -723,45 +394,11 @@ def open_bus(spec: str | BusSpec, bus_config: BusConfig,
     kwargs = bus_kwargs(parsed, bus_config)
     kwargs.update(options or {})
     try:
-        if parsed.interface == "unix":
+        if parsed.interface == "virtual":
             del kwargs["interface"]
-            bus: can.BusABC = UnixDatagramBus(**kwargs)
-        elif parsed.interface == "virtual":
-            del kwargs["interface"]
-            bus = ArrivalStampedVirtualBus(**kwargs)
+            bus: can.BusABC = ArrivalStampedVirtualBus(**kwargs)
         else:
             bus = can.Bus(**kwargs)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
         raise BusError(f"{parsed}: cannot open the bus: {type(exc).__name__}: {exc}") from None
     return HandBus(bus, parsed, bus_config.fd)
-
-
-#: Log formats of python-can that ``write_frames`` writes: candump -L, Vector ASC, Vector BLF.
-LOG_FORMATS = ("candump", "asc", "blf")
-
-
-def write_frames(path: str | Path, fmt: str,
-                 frames: Iterable[tuple[float, int, bytes, bool, bool]]) -> int:
-    """Write ``(timestamp_s, arbitration_id, data, is_rx, is_fd)`` frames in a python-can log
-    format, so the CAN tools people already have (candump/canplayer, CANalyzer, python-can's
-    readers) open a handctl recording. Returns the number of frames written."""
-    writer: can.io.generic.MessageWriter
-    if fmt == "candump":
-        writer = can.CanutilsLogWriter(str(path), channel="can0")
-    elif fmt == "asc":
-        writer = can.ASCWriter(str(path), channel=1)
-    elif fmt == "blf":
-        writer = can.BLFWriter(str(path), channel=1)
-    else:
-        raise ConfigError("--export", "format", "one of " + ", ".join(LOG_FORMATS), fmt)
-    count = 0
-    with writer:
-        for stamp, frame_id, data, is_rx, is_fd in frames:
-            fd = is_fd or len(data) > 8
-            extended = bool(frame_id & EXTENDED_ID_FLAG) or frame_id > 0x7FF
-            writer.on_message_received(can.Message(
-                timestamp=stamp, arbitration_id=frame_id & _EXTENDED_ID_MASK,
-                is_extended_id=extended,
-                data=data, is_fd=fd, bitrate_switch=fd, is_rx=is_rx, check=False))
-            count += 1
-    return count

@@ -444,9 +444,10 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
 def _cmd_replay(args: argparse.Namespace) -> int:
     import json
 
-    from handctl.bus import LOG_FORMATS
-    from handctl.recording import replay
+    from handctl.canlog import LOG_FORMATS
+    from handctl.recording import frames, replay, rerun
     from handctl.recording.reader import check_format, open_recording
+    from handctl.recording.series import load_series
 
     if args.speed is not None and not (args.to_bus or args.live is not None):
         raise ConfigError("--speed", "", "--to-bus SPEC or --live as well (the speed is of "
@@ -458,7 +459,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
                           args.export[0])
     recording = open_recording(args.log)
     check_format(recording)
-    series = replay.load_series(recording)
+    series = load_series(recording)
     summary = replay.summarise_recording(recording, series)
     _print_replay_summary(summary)
     report: dict[str, Any] = {"summary": summary}
@@ -469,7 +470,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         plot_recording(series, args.plot, title_of(summary))
         print(f"plot: {args.plot}")
     if args.rerun:
-        result = replay.rerun(recording)
+        result = rerun.rerun(recording)
         report["rerun"] = result.as_dict()
         for note in result.notes:
             print(f"rerun: note: {note}")
@@ -482,19 +483,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             print(f"rerun: MISMATCH in {result.mismatched_ticks} of {result.ticks} ticks, "
                   f"{len(result.frame_mismatches)} frame mismatches; outcome {result.outcome} "
                   f"(logged {result.logged_outcome or '?'})")
-            for m in result.mismatches[:replay.MAX_LISTED]:
+            for m in result.mismatches[:rerun.MAX_LISTED]:
                 print(f"  tick {m['tick']} {m['joint']}: logged {m['logged_nm']!r}, re-run "
                       f"{m['rerun_nm']!r} {m['detail']}")
-            for text in result.frame_mismatches[:replay.MAX_LISTED]:
+            for text in result.frame_mismatches[:rerun.MAX_LISTED]:
                 print(f"  {text}")
             status = EXIT_FAILED
     if args.export:
         fmt, out = args.export
-        count = replay.export(recording, fmt, out)
+        count = frames.export(recording, fmt, out)
         print(f"export: {count} frames to {out} ({fmt})")
     if args.to_bus:
         _progress(f"replaying frames onto {args.to_bus} at {args.speed or 1.0:g}x ...")
-        sent = replay.to_bus(recording, args.to_bus, args.speed or 1.0, args.direction)
+        sent = frames.to_bus(recording, args.to_bus, args.speed or 1.0, args.direction)
         report["to_bus"] = sent
         print(f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
               f"worst lateness {sent['worst_late_ms']} ms)")

@@ -1,9 +1,10 @@
 """The two clocks of the loop: real time from a timerfd, and lockstep with the simulated hand.
 
-Both hand out ``Tick`` values with the tick number, its scheduled time and how many ticks were
-missed before it, so the loop and the safety supervisor treat both alike. Missed ticks are
-counted, never hidden: a real-time tick that wakes up late reports the expirations it slept
-through.
+The loop types against ``Clock``, the protocol both implement (as does the re-run's clock,
+which hands out the ticks of a recording). Both hand out ``Tick`` values with the tick number,
+its scheduled time and how many ticks were missed before it, so the loop and the safety
+supervisor treat both alike. Missed ticks are counted, never hidden: a real-time tick that
+wakes up late reports the expirations it slept through.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import time
 from array import array
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Protocol
 
 from handctl.timerfd import PeriodicTimer
 
@@ -179,7 +181,20 @@ class LockstepClock:
         pass
 
 
-Clock = RealtimeClock | LockstepClock
+class Clock(Protocol):
+    """What the loop asks of a clock: the next tick, the time now on the clock's time base
+    (which stamps frames as they arrive), and whether it is stepped with its peer rather than
+    ticked by real time (a stepped clock may end a run by having no more ticks: ``EndOfTicks``).
+    """
+
+    @property
+    def lockstep(self) -> bool: ...
+
+    def now_ns(self) -> int: ...
+
+    async def wait_tick(self) -> Tick: ...
+
+    def close(self) -> None: ...
 
 _MCL_CURRENT = 1
 _MCL_FUTURE = 2

@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from handctl import timebudget
-from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
+from handctl.bus import HandBus, open_bus
+from handctl.busspec import BusSpec, parse_spec
 from handctl.clock import (
     LOOP_PRIORITY,
     Clock,
@@ -134,7 +135,7 @@ def _exception_summary(exc: TickException) -> dict[str, Any]:
             "traceback": exc.traceback.splitlines()}
 
 
-def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,  # noqa: C901 - the composition of a run; to split (issue 16)
+def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,
                recorder: RecordSink | None = None) -> RunReport:
     """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on."""
     timebudget.check(req.max_seconds)
@@ -142,11 +143,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
     spec = parse_spec(req.bus, req.hand.bus)
     warnings: list[str] = []
     is_sim = spec.interface == "sim"
-    lockstep = is_sim if req.lockstep is None else req.lockstep
-    if lockstep and not is_sim:
-        raise ConfigError("--lockstep", "", "the simulated hand (--bus sim): only it can be "
-                          "stepped", req.bus)
-    startup_s = 0.5
+    lockstep = _lockstep(req, is_sim)
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
     if not is_sim:
@@ -163,106 +160,178 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             else None
         if recording is not None:
             recorder = recording
-        sim_hand: Any = None
-        sim_process: SimProcess | None = None
-        if is_sim and lockstep:
-            from handctl.sim.hand import SimulatedHand
-
-            channel = f"handctl-sim-{os.getpid()}-{id(req)}"
-            peer_bus = stack.enter_context(open_bus(BusSpec("virtual", channel), req.hand.bus))
-            sim_hand = SimulatedHand(req.hand, peer_bus, seed=req.seed)
-            if req.sim_faults is not None:
-                sim_hand.load_faults(req.sim_faults)
-            spec = BusSpec("virtual", channel)
-        elif is_sim:
-            # Free-running, the simulated hand gets a process of its own: a busy thread in the
-            # control process would take the interpreter from the loop for a millisecond at a
-            # time. The two talk over the unix datagram bus.
-            directory = stack.enter_context(tempfile.TemporaryDirectory(prefix="handctl-bus-"))
-            sim_process = stack.enter_context(SimProcess(req, directory, sim_cpu))
-            spec = BusSpec("unix", directory)
-            startup_s = 20.0  # the peer imports MuJoCo and builds its model first
-        bus: HandBus = stack.enter_context(open_bus(spec, req.hand.bus))
-        clock: Clock
-        probe: Probe | None = None
-        peer_probe: Probe | None = None
-        if lockstep:
-            clock = LockstepClock(req.hand.bus.period_s, sim_hand.step)
-        else:
-            clock = RealtimeClock(req.hand.bus.period_s)
-            probe = stack.enter_context(beside_probe(req.hand, req.realtime_priority, loop_cpu,
-                                                     req.hygiene.lock_memory))
-            if sim_process is not None and sim_cpu is not None:
-                # On the hand's CPU the loop does not run: the loop's priority is above the hand.
-                peer_probe = stack.enter_context(beside_probe(
-                    req.hand, req.realtime_priority, sim_cpu, req.hygiene.lock_memory,
-                    LOOP_PRIORITY))
-            if req.realtime_priority:
-                warnings += request_realtime(LOOP_PRIORITY, cpu=loop_cpu,
-                                             lock_memory=req.hygiene.lock_memory,
-                                             prefault_memory=req.hygiene.prefault)
-            cpus = {"loop": affinity(0),
-                    "sim": affinity(sim_process.proc.pid) if sim_process else None}
+        peer = _start_peer(stack, req, spec, lockstep, sim_cpu)
+        bus: HandBus = stack.enter_context(open_bus(peer.spec, req.hand.bus))
+        timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu, warnings)
+        clock = timing.clock
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
         runtime = Runtime(req.hand, driver, clock, req.recipe, recorder=recorder, status=status,
                           reset_node_faults=req.reset_node_faults, max_ticks=NO_TICK_LIMIT,
-                          startup_timeout_s=startup_s,
+                          startup_timeout_s=peer.startup_s,
                           estimator=(ObjectEstimator(req.hand, req.recipe.objects)
                                      if req.recipe.objects else None))
         # Ground truth of the experiment, recorded every tick and never fed back.
         tracker = None
-        if sim_hand is not None and req.recipe.objects:
+        if peer.sim_hand is not None and req.recipe.objects:
             from handctl.planning.experiment import track
 
-            tracker = track(runtime, sim_hand)
+            tracker = track(runtime, peer.sim_hand)
         if req.max_seconds is not None:
             timebudget.install(runtime, req.max_seconds)
         if recording is not None:
-            _start_recording(recording, runtime, req, spec, lockstep, sim_hand)
+            _start_recording(recording, runtime, req, peer.spec, lockstep, peer.sim_hand)
         result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
         if result.exception is not None:
             warnings.append(f"the run stopped on an exception ({result.exception.code.name}); "
                             "the hand was stopped.\n"
                             + result.exception.traceback.rstrip())
-        sim_summary = None
-        if sim_hand is not None:
-            sim_summary = sim_hand.ground_truth_summary()
-        elif sim_process is not None:
-            sim_summary = sim_process.finish()
-            if sim_process.problem():
-                warnings.append(sim_process.problem())
-        summary = summarise_run(result, req.hand, req.recipe, lockstep, sim_summary)
-        host: ProbeRecord | None = None
-        if probe is not None:
-            assert isinstance(clock, RealtimeClock)
-            host, summary["host"] = host_summary(req.hand, probe, clock.stalls, result.faults,
-                                                 warnings, peer_probe)
-            summary["host"]["cpus"] = cpus
-        if host_check is not None:
-            summary["host_check"] = host_check
-        if tracker is not None:
-            from handctl.planning.experiment import experiment_summary
-
-            summary["experiment"] = experiment_summary(tracker.trace,
-                                                       req.recipe.min_total_turn_deg)
-        if req.plot is not None:
-            if tracker is None:
-                warnings.append("--plot needs the simulated hand in lockstep and a recipe "
-                                "that declares its objects: no plot written")
-            else:
-                from handctl.planning.plot import plot_run
-
-                plot_run(tracker.trace, req.plot, req.recipe, summary.get("experiment"),
-                         [j.tau_max for j in req.hand.joints])
+        summary = summarise_run(result, req.hand, req.recipe, lockstep,
+                                _peer_summary(peer, warnings))
+        host = _host_summary(summary, req, timing, result, host_check, warnings)
+        _experiment_summary(summary, req, tracker, warnings)
         if recording is not None:
-            try:
-                summary["recording"] = recording.close(summary)
-            except HandctlError as exc:  # the run is over and safe; say what the log lacks
-                warnings.append(str(exc))
-                summary["recording"] = {"path": str(req.log), "error": str(exc)}
+            _close_recording(recording, summary, req, warnings)
     return RunReport(result, summary, warnings, runtime.first_send_tick,
                      runtime.startup_missed_ticks, host,
                      clock.stalls.rows() if isinstance(clock, RealtimeClock) else [])
+
+
+def _lockstep(req: RunRequest, is_sim: bool) -> bool:
+    """Whether the run is stepped with the simulated hand: by default on it, and only on it."""
+    lockstep = is_sim if req.lockstep is None else req.lockstep
+    if lockstep and not is_sim:
+        raise ConfigError("--lockstep", "", "the simulated hand (--bus sim): only it can be "
+                          "stepped", req.bus)
+    return lockstep
+
+
+@dataclass
+class _Peer:
+    """What the run's bus leads to: the bus to open and, on the simulated hand, the hand, in
+    this process (lockstep) or in a process of its own (free-running)."""
+
+    spec: BusSpec
+    sim_hand: Any = None
+    sim_process: SimProcess | None = None
+    startup_s: float = 0.5  # how long the nodes may take to answer
+
+
+def _start_peer(stack: ExitStack, req: RunRequest, spec: BusSpec, lockstep: bool,
+                sim_cpu: int | None) -> _Peer:
+    """On ``--bus sim``, start the simulated hand and name the bus it is on; any other bus is
+    opened as it is named."""
+    if spec.interface != "sim":
+        return _Peer(spec)
+    if lockstep:
+        from handctl.sim.hand import SimulatedHand
+
+        channel = f"handctl-sim-{os.getpid()}-{id(req)}"
+        peer_bus = stack.enter_context(open_bus(BusSpec("virtual", channel), req.hand.bus))
+        sim_hand = SimulatedHand(req.hand, peer_bus, seed=req.seed)
+        if req.sim_faults is not None:
+            sim_hand.load_faults(req.sim_faults)
+        return _Peer(BusSpec("virtual", channel), sim_hand=sim_hand)
+    # Free-running, the simulated hand gets a process of its own: a busy thread in the
+    # control process would take the interpreter from the loop for a millisecond at a
+    # time. The two talk over the unix datagram bus.
+    directory = stack.enter_context(tempfile.TemporaryDirectory(prefix="handctl-bus-"))
+    sim_process = stack.enter_context(SimProcess(req, directory, sim_cpu))
+    # The peer imports MuJoCo and builds its model first.
+    return _Peer(BusSpec("unix", directory), sim_process=sim_process, startup_s=20.0)
+
+
+@dataclass
+class _Timing:
+    """The run's clock and, in real time, the bare timer loops beside the run (one on the
+    simulated hand's CPU if it has one) and the CPUs the two processes ran on."""
+
+    clock: Clock
+    probe: Probe | None = None
+    peer_probe: Probe | None = None
+    cpus: dict[str, Any] = field(default_factory=dict)
+
+
+def _start_clock(stack: ExitStack, req: RunRequest, peer: _Peer, lockstep: bool,
+                 loop_cpu: int | None, sim_cpu: int | None, warnings: list[str]) -> _Timing:
+    """The simulated hand's steps in lockstep; in real time a timer clock, the probes beside
+    it and, with ``--rt``, the scheduling asked for (what could not be had is a warning)."""
+    if lockstep:
+        return _Timing(LockstepClock(req.hand.bus.period_s, peer.sim_hand.step))
+    timing = _Timing(RealtimeClock(req.hand.bus.period_s))
+    timing.probe = stack.enter_context(beside_probe(req.hand, req.realtime_priority, loop_cpu,
+                                                    req.hygiene.lock_memory))
+    if peer.sim_process is not None and sim_cpu is not None:
+        # On the hand's CPU the loop does not run: the loop's priority is above the hand.
+        timing.peer_probe = stack.enter_context(beside_probe(
+            req.hand, req.realtime_priority, sim_cpu, req.hygiene.lock_memory,
+            LOOP_PRIORITY))
+    if req.realtime_priority:
+        warnings += request_realtime(LOOP_PRIORITY, cpu=loop_cpu,
+                                     lock_memory=req.hygiene.lock_memory,
+                                     prefault_memory=req.hygiene.prefault)
+    timing.cpus = {"loop": affinity(0),
+                   "sim": affinity(peer.sim_process.proc.pid) if peer.sim_process else None}
+    return timing
+
+
+def _peer_summary(peer: _Peer, warnings: list[str]) -> dict[str, Any] | None:
+    """The simulated hand's own account of the run, wherever it ran; None on a real hand."""
+    if peer.sim_hand is not None:
+        summary: dict[str, Any] = peer.sim_hand.ground_truth_summary()
+        return summary
+    if peer.sim_process is not None:
+        finished = peer.sim_process.finish()
+        if peer.sim_process.problem():
+            warnings.append(peer.sim_process.problem())
+        return finished
+    return None
+
+
+def _host_summary(summary: dict[str, Any], req: RunRequest, timing: _Timing, result: RunResult,
+                  host_check: dict[str, Any] | None, warnings: list[str]
+                  ) -> ProbeRecord | None:
+    """Into ``summary``: in real time, whose the missed ticks were (the host's or handctl's)
+    and the CPUs; the timing check made before the bus was opened. The probe's record."""
+    host: ProbeRecord | None = None
+    if timing.probe is not None:
+        assert isinstance(timing.clock, RealtimeClock)
+        host, summary["host"] = host_summary(req.hand, timing.probe, timing.clock.stalls,
+                                             result.faults, warnings, timing.peer_probe)
+        summary["host"]["cpus"] = timing.cpus
+    if host_check is not None:
+        summary["host_check"] = host_check
+    return host
+
+
+def _experiment_summary(summary: dict[str, Any], req: RunRequest, tracker: Any,
+                        warnings: list[str]) -> None:
+    """Into ``summary``: how the objects moved (the simulated hand's ground truth); and the
+    plot, which needs that ground truth."""
+    if tracker is not None:
+        from handctl.planning.experiment import experiment_summary
+
+        summary["experiment"] = experiment_summary(tracker.trace,
+                                                   req.recipe.min_total_turn_deg)
+    if req.plot is not None:
+        if tracker is None:
+            warnings.append("--plot needs the simulated hand in lockstep and a recipe "
+                            "that declares its objects: no plot written")
+        else:
+            from handctl.planning.plot import plot_run
+
+            plot_run(tracker.trace, req.plot, req.recipe, summary.get("experiment"),
+                     [j.tau_max for j in req.hand.joints])
+
+
+def _close_recording(recording: Recorder, summary: dict[str, Any], req: RunRequest,
+                     warnings: list[str]) -> None:
+    """Finish the file with the summary; a log that could not be finished is said, not
+    raised: the run is over and the hand is safe."""
+    try:
+        summary["recording"] = recording.close(summary)
+    except HandctlError as exc:
+        warnings.append(str(exc))
+        summary["recording"] = {"path": str(req.log), "error": str(exc)}
 
 
 def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:

@@ -69,10 +69,15 @@ from handctl.protocol import load_protocol  # noqa: E402
 from handctl.recipes.loader import load_recipe  # noqa: E402
 from handctl.recipes.schema import Recipe  # noqa: E402
 from handctl.recording import channels as ch  # noqa: E402
-from handctl.recording.metadata import run_metadata, start_metadata  # noqa: E402
+from handctl.recording.metadata import (  # noqa: E402
+    recorded_hand,
+    recorded_recipe,
+    run_metadata,
+    start_metadata,
+)
 from handctl.recording.reader import Recording, iter_decoded, open_recording  # noqa: E402
 from handctl.recording.recorder import Recorder  # noqa: E402
-from handctl.recording.replay import _hand, _recipe, rerun, tick_inputs  # noqa: E402
+from handctl.recording.rerun import rerun, tick_inputs  # noqa: E402
 from handctl.sim.hand import SimulatedHand  # noqa: E402
 
 LOOP_TARGET_US = 20.0
@@ -264,9 +269,9 @@ def noise_floor_us_p99(hand_path: str, recipe_path: str) -> float:
 
 def estimator_us_per_tick(recording: Recording) -> float:
     """The object estimator alone, fed the logged angles once per tick as in the re-run."""
-    hand = _hand(recording)
+    hand = recorded_hand(recording)
     assert hand is not None
-    recipe = _recipe(recording, hand)
+    recipe = recorded_recipe(recording, hand)
     if not recipe.objects:
         return 0.0
     angles = [np.array(m["angle_rad"]) for _, _, m in iter_decoded(recording, (ch.JOINT_STATE,))]

@@ -20,7 +20,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import Bounds, LinearConstraint, milp
+from scipy.optimize import Bounds, LinearConstraint, OptimizeResult, milp
 
 from handctl.analysis.conditions import Conditions, build_conditions
 from handctl.analysis.exact import dual_polyhedron
@@ -60,7 +60,7 @@ def plan_torques(grasp: Grasp, directions: Mapping[str, Vector],
     return plan_for_conditions(conditions, tau_max, ratios)
 
 
-def plan_for_conditions(conditions: Conditions, tau_max: float | Vector,  # noqa: C901 - one pass over the cases; to split (issue 16)
+def plan_for_conditions(conditions: Conditions, tau_max: float | Vector,
                         ratios: Sequence[Vector | None] | None = None) -> TorquePlan:
     """``plan_torques`` for conditions already built."""
     st = conditions.statics
@@ -72,11 +72,38 @@ def plan_for_conditions(conditions: Conditions, tau_max: float | Vector,  # noqa
     if ratios is not None and len(ratios) != fingers:
         raise AnalysisError(f"expected {fingers} ratio vectors (or None), found {len(ratios)}")
     nothing = TorquePlan(False, tuple(0.0 for _ in range(s)), -np.inf, {}, "")
+    duals = _duals(conditions)
+    if isinstance(duals, str):
+        return _replace(nothing, reason=duals)
+    program = _Program(s, conditions.count, fingers, duals.vertices)
+    _add_margin_rows(program, conditions)
+    z_bound = _add_vertex_rows(program, conditions, duals.vertices, limits)
+    _add_realisable_rows(program, conditions, duals)
+    if ratios is not None:
+        _add_ratio_rows(program, conditions, ratios)
+    result = program.solve(limits, z_bound)
+    if result.status != 0 or result.x is None:
+        return _replace(nothing, reason=f"the planning MILP ended with status {result.status}: "
+                        f"{result.message}")
+    return _evaluate(conditions, np.clip(result.x[:s], -limits, limits), nothing)
 
-    # per (q, j): the vertices of the dual polyhedron; realisability from its recession cone
-    vertices: list[list[Array]] = []
-    domain_rows: list[tuple[int, Array]] = []
-    equality_rows: list[tuple[int, Array]] = []
+
+@dataclass
+class _Duals:
+    """Per condition q and finger j, the vertices of the dual polyhedron; and the rays and
+    lines of its recession cone (one cone for every q), which say which torques are
+    realisable at all."""
+
+    vertices: list[list[Array]]
+    domain_rows: list[tuple[int, Array]]
+    equality_rows: list[tuple[int, Array]]
+
+
+def _duals(conditions: Conditions) -> _Duals | str:
+    """The dual polyhedra of every (q, j), or why there is no plan: a condition that a
+    finger's internal forces drive to -inf, whatever the torque."""
+    st = conditions.statics
+    duals = _Duals([], [], [])
     for q in range(conditions.count):
         row: list[Array] = []
         for j, (lam_block, joint_block) in enumerate(zip(st.lambda_blocks, st.joint_blocks,
@@ -84,91 +111,124 @@ def plan_for_conditions(conditions: Conditions, tau_max: float | Vector,  # noqa
             dual = dual_polyhedron(st.torque_map[joint_block, lam_block],
                                    conditions.matrix[q, lam_block])
             if dual.empty:
-                return _replace(nothing, reason=f"condition {conditions.labels[q]!r} can be "
-                                f"driven to -inf by internal forces of finger {j + 1}")
+                return (f"condition {conditions.labels[q]!r} can be driven to -inf by internal "
+                        f"forces of finger {j + 1}")
             if q == 0:
-                domain_rows += [(j, r) for r in dual.rays]
-                equality_rows += [(j, line) for line in dual.lineality]
+                duals.domain_rows += [(j, r) for r in dual.rays]
+                duals.equality_rows += [(j, line) for line in dual.lineality]
             row.append(dual.vertices)
-        vertices.append(row)
+        duals.vertices.append(row)
+    return duals
 
-    # variables: tau (s) | t | z (Q*n) | b (one per vertex of every (q, j) with >1 vertex)
-    q_count = conditions.count
-    z0 = s + 1
-    b0 = z0 + q_count * fingers
-    binaries: list[tuple[int, int, int]] = []
-    for q in range(q_count):
-        for j in range(fingers):
-            if len(vertices[q][j]) > 1:
-                binaries += [(q, j, v) for v in range(len(vertices[q][j]))]
-    n_var = b0 + len(binaries)
-    rows: list[Array] = []
-    lower: list[float] = []
-    upper: list[float] = []
 
-    def add(coeffs: dict[int, float], lo: float, hi: float) -> None:
-        line = np.zeros(n_var)
+class _Program:
+    """The planning MILP as it is built: the variables are tau (s) | t | z (Q*n) | b (one per
+    vertex of every (q, j) with more than one vertex), and the rows are added in order."""
+
+    def __init__(self, s: int, q_count: int, fingers: int, vertices: list[list[Array]]) -> None:
+        self.s = s
+        self.q_count = q_count
+        self.fingers = fingers
+        self.z0 = s + 1
+        self.b0 = self.z0 + q_count * fingers
+        self.binaries = [(q, j, v) for q in range(q_count) for j in range(fingers)
+                         if len(vertices[q][j]) > 1 for v in range(len(vertices[q][j]))]
+        self.b_index = {key: self.b0 + i for i, key in enumerate(self.binaries)}
+        self.n_var = self.b0 + len(self.binaries)
+        self.rows: list[Array] = []
+        self.lower: list[float] = []
+        self.upper: list[float] = []
+
+    def z(self, q: int, j: int) -> int:
+        """The index of z_qj."""
+        return self.z0 + q * self.fingers + j
+
+    def add(self, coeffs: dict[int, float], lo: float, hi: float) -> None:
+        line = np.zeros(self.n_var)
         for k, value in coeffs.items():
             line[k] += value
-        rows.append(line)
-        lower.append(lo)
-        upper.append(hi)
+        self.rows.append(line)
+        self.lower.append(lo)
+        self.upper.append(hi)
 
-    for q in range(q_count):  # t - Σ_j z_qj ≤ d_q
-        coeffs = {s: 1.0}
-        coeffs.update({z0 + q * fingers + j: -1.0 for j in range(fingers)})
-        add(coeffs, -np.inf, float(conditions.offset[q]))
-    b_index = {key: b0 + i for i, key in enumerate(binaries)}
+    def solve(self, limits: Array, z_bound: float) -> OptimizeResult:
+        """Maximise t within the torque limits; each z within the bound its vertices allow."""
+        z_count = self.q_count * self.fingers
+        lb = np.concatenate([-limits, [-np.inf], np.full(z_count, -z_bound - 1.0),
+                             np.zeros(len(self.binaries))])
+        ub = np.concatenate([limits, [np.inf], np.full(z_count, z_bound + 1.0),
+                             np.ones(len(self.binaries))])
+        cost = np.zeros(self.n_var)
+        cost[self.s] = -1.0
+        integrality = np.concatenate([np.zeros(self.b0), np.ones(len(self.binaries))])
+        return milp(cost, integrality=integrality, bounds=Bounds(lb, ub),
+                    constraints=LinearConstraint(np.array(self.rows), np.array(self.lower),
+                                                 np.array(self.upper)))
+
+
+def _add_margin_rows(program: _Program, conditions: Conditions) -> None:
+    """t - Σ_j z_qj ≤ d_q for every condition q: t is at most the smallest value."""
+    for q in range(program.q_count):
+        coeffs = {program.s: 1.0}
+        coeffs.update({program.z(q, j): -1.0 for j in range(program.fingers)})
+        program.add(coeffs, -np.inf, float(conditions.offset[q]))
+
+
+def _add_vertex_rows(program: _Program, conditions: Conditions, vertices: list[list[Array]],
+                     limits: Array) -> float:
+    """z_qj ≤ τ_jᵀy for one vertex y of (q, j), chosen by binaries with a big-M bound when
+    there are several. Returns the bound of every |z_qj| the torque limits allow."""
     z_bound = 0.0
-    for q in range(q_count):
-        for j, joint_block in enumerate(st.joint_blocks):
+    for q in range(program.q_count):
+        for j, joint_block in enumerate(conditions.statics.joint_blocks):
             ys = vertices[q][j]
             lim = limits[joint_block]
             z_bound = max(z_bound, float(np.max(np.abs(ys) @ lim)))
             for v, y in enumerate(ys):
-                coeffs = {z0 + q * fingers + j: 1.0}
+                coeffs = {program.z(q, j): 1.0}
                 coeffs.update({joint_block.start + i: -float(y[i]) for i in range(len(y))})
                 if len(ys) == 1:
-                    add(coeffs, -np.inf, 0.0)
+                    program.add(coeffs, -np.inf, 0.0)
                     continue
                 big_m = float(np.max(np.abs(ys - y), axis=0) @ lim) + 1.0
-                coeffs[b_index[(q, j, v)]] = big_m
-                add(coeffs, -np.inf, big_m)
+                coeffs[program.b_index[(q, j, v)]] = big_m
+                program.add(coeffs, -np.inf, big_m)
             if len(ys) > 1:
-                add({b_index[(q, j, v)]: 1.0 for v in range(len(ys))}, 1.0, 1.0)
-    for j, r in domain_rows:
-        block = st.joint_blocks[j]
-        add({block.start + i: float(r[i]) for i in range(len(r))}, -np.inf, 0.0)
-    for j, line in equality_rows:
-        block = st.joint_blocks[j]
-        add({block.start + i: float(line[i]) for i in range(len(line))}, 0.0, 0.0)
-    if ratios is not None:
-        for j, kappa in enumerate(ratios):
-            if kappa is None:
-                continue
-            block = st.joint_blocks[j]
-            k = np.asarray(kappa, dtype=float)
-            if k.shape != (block.stop - block.start,) or float(np.linalg.norm(k)) == 0.0:
-                raise AnalysisError(f"ratio vector of finger {j + 1} must have "
-                                    f"{block.stop - block.start} components, not all zero; "
-                                    f"found {list(kappa)}")
-            projector = np.eye(len(k)) - np.outer(k, k) / float(k @ k)
-            for prow in projector:
-                add({block.start + i: float(prow[i]) for i in range(len(k))}, 0.0, 0.0)
+                program.add({program.b_index[(q, j, v)]: 1.0 for v in range(len(ys))}, 1.0, 1.0)
+    return z_bound
 
-    lb = np.concatenate([-limits, [-np.inf], np.full(q_count * fingers, -z_bound - 1.0),
-                         np.zeros(len(binaries))])
-    ub = np.concatenate([limits, [np.inf], np.full(q_count * fingers, z_bound + 1.0),
-                         np.ones(len(binaries))])
-    cost = np.zeros(n_var)
-    cost[s] = -1.0
-    integrality = np.concatenate([np.zeros(b0), np.ones(len(binaries))])
-    result = milp(cost, integrality=integrality, bounds=Bounds(lb, ub),
-                  constraints=LinearConstraint(np.array(rows), np.array(lower), np.array(upper)))
-    if result.status != 0 or result.x is None:
-        return _replace(nothing, reason=f"the planning MILP ended with status {result.status}: "
-                        f"{result.message}")
-    tau = np.clip(result.x[:s], -limits, limits)
+
+def _add_realisable_rows(program: _Program, conditions: Conditions, duals: _Duals) -> None:
+    """Each finger's torque within the dual cone's rays (≤ 0) and on its lines (= 0)."""
+    blocks = conditions.statics.joint_blocks
+    for j, r in duals.domain_rows:
+        block = blocks[j]
+        program.add({block.start + i: float(r[i]) for i in range(len(r))}, -np.inf, 0.0)
+    for j, line in duals.equality_rows:
+        block = blocks[j]
+        program.add({block.start + i: float(line[i]) for i in range(len(line))}, 0.0, 0.0)
+
+
+def _add_ratio_rows(program: _Program, conditions: Conditions,
+                    ratios: Sequence[Vector | None]) -> None:
+    """τ_j proportional to κ_j: its projection off κ_j is zero."""
+    for j, kappa in enumerate(ratios):
+        if kappa is None:
+            continue
+        block = conditions.statics.joint_blocks[j]
+        k = np.asarray(kappa, dtype=float)
+        if k.shape != (block.stop - block.start,) or float(np.linalg.norm(k)) == 0.0:
+            raise AnalysisError(f"ratio vector of finger {j + 1} must have "
+                                f"{block.stop - block.start} components, not all zero; "
+                                f"found {list(kappa)}")
+        projector = np.eye(len(k)) - np.outer(k, k) / float(k @ k)
+        for prow in projector:
+            program.add({block.start + i: float(prow[i]) for i in range(len(k))}, 0.0, 0.0)
+
+
+def _evaluate(conditions: Conditions, tau: Array, nothing: TorquePlan) -> TorquePlan:
+    """The MILP's torque as the LP oracle values it: the margin reported never rests on the
+    reformulation alone."""
     check = lp_values(conditions, tau)
     values = {label: float(v) for label, v in zip(conditions.labels, check.values, strict=True)}
     if not check.realisable:
@@ -176,7 +236,7 @@ def plan_for_conditions(conditions: Conditions, tau_max: float | Vector,  # noqa
     margin = check.margin
     if margin <= MARGIN_TOLERANCE:
         worst = conditions.labels[int(np.argmin(check.values))]
-        return TorquePlan(False, tuple(0.0 for _ in range(s)), margin, values,
+        return TorquePlan(False, nothing.tau, margin, values,
                           f"no torque within the limits satisfies every condition robustly; "
                           f"the best margin is {margin:.3g} N, limited by {worst!r}")
     return TorquePlan(True, tuple(float(x) for x in tau), margin, values)

@@ -154,8 +154,8 @@ def listen(bus: HandBus, seconds: float | None, keep_going: Callable[[], bool] =
 
 def from_log(path: Path) -> Iterable[tuple[int, bytes, int]]:
     """The raw frames of a recording, both directions, in wire order, on the log's clock."""
+    from handctl.recording.frames import logged_frames
     from handctl.recording.reader import open_recording
-    from handctl.recording.replay import logged_frames
 
     recording = open_recording(path)
     for log_ns, frame_id, data, _ in logged_frames(recording):

@@ -13,7 +13,8 @@ import os
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 
-from handctl.bus import BusSpec, HandBus, open_bus, parse_spec
+from handctl.bus import HandBus, open_bus
+from handctl.busspec import BusSpec, parse_spec
 from handctl.config import HandConfig
 
 _channels = itertools.count()

@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from handctl.arrays import FloatArray
-from handctl.bus import DRAIN_LIMIT, EXTENDED_ID_FLAG, BusEvent, BusEventKind, HandBus
+from handctl.bus import DRAIN_LIMIT, EXTENDED_ID_FLAG, BusEvent, BusEventKind, FrameBus
 from handctl.busload import frames_per_period
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode
@@ -78,7 +78,7 @@ class HandDriver:
     worth); frames beyond it wait, and the bus reports them (``RX_BACKLOG``).
     """
 
-    def __init__(self, hand: HandConfig, protocol: Protocol, bus: HandBus,
+    def __init__(self, hand: HandConfig, protocol: Protocol, bus: FrameBus,
                  clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
         check_ids(hand, protocol)
         self.hand = hand

@@ -1,4 +1,5 @@
-"""The metadata records of a recording: what a later reader needs to trust and re-run it.
+"""The metadata records of a recording: what a later reader needs to trust and re-run it, and
+the hand config and recipe read back out of them.
 
 MCAP metadata maps strings to strings, so structured values are JSON text. The hand config and
 the recipe go in as the YAML text that was loaded (a re-run parses exactly that), with the
@@ -18,9 +19,13 @@ from pathlib import Path
 import orjson
 
 from handctl import __version__
-from handctl.config import HandConfig
+from handctl.config import HandConfig, parse_hand
+from handctl.errors import ConfigError
+from handctl.recipes.loader import check_against_hand, parse_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
+from handctl.recording.reader import Recording
+from handctl.schema import parse_yaml
 
 #: The packages whose versions a recording names.
 PACKAGES = ("numpy", "mujoco", "python-can", "mcap", "orjson", "cantools", "pyyaml")
@@ -74,3 +79,25 @@ def run_metadata(*, mode: str, bus: str, seed: int, period_ns: int, startup_tick
     return {"mode": mode, "bus": bus, "seed": str(seed), "period_ns": str(period_ns),
             "startup_ticks": str(startup_ticks), "reset_node_faults": str(reset_node_faults),
             "estimator": str(estimator), "sim_faults": sim_faults}
+
+
+def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | None:
+    """The hand config a recording's run used, as it was loaded then."""
+    text = recording.meta(ch.META_HAND, "yaml")
+    if not text:
+        if required:
+            raise ConfigError(str(recording.path), f"metadata {ch.META_HAND}.yaml",
+                              "the hand config the run used (recorded by handctl)", "nothing")
+        return None
+    return parse_hand(parse_yaml(text, f"{recording.path} (its recorded hand config)"))
+
+
+def recorded_recipe(recording: Recording, hand: HandConfig) -> Recipe:
+    """The recipe a recording's run used, checked against its hand as it was then."""
+    text = recording.meta(ch.META_RECIPE, "yaml")
+    if not text:
+        raise ConfigError(str(recording.path), f"metadata {ch.META_RECIPE}.yaml",
+                          "the recipe the run used (recorded by handctl)", "nothing")
+    recipe = parse_recipe(parse_yaml(text, f"{recording.path} (its recorded recipe)"), hand)
+    check_against_hand(recipe, hand)
+    return recipe

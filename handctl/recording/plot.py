@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 
 from handctl.convention import HEIGHT_LABEL, TIME_LABEL, TURN_LABEL, turn_deg
-from handctl.recording.replay import NOT_PHASES, Series
+from handctl.recording.replay import NOT_PHASES
+from handctl.recording.series import Series
 
 JOINT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 #: (line style, width, opacity, z-order): applied wide and pale underneath, so that the desired

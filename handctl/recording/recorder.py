@@ -25,7 +25,7 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import orjson
 
@@ -86,6 +86,21 @@ SUPERVISOR_STATE_NAMES = tuple(s.value for s in State)
 #: How long ``close`` waits for the writer to finish the file.
 CLOSE_TIMEOUT_S = 120.0
 READY_TIMEOUT_S = 30.0
+
+
+class _Ring(NamedTuple):
+    """Where one ring keeps what ``Recorder._ring_full`` needs: the attribute holding the
+    tail this side last read, and the control words of the writer's tail and drop count."""
+
+    tail_attribute: str
+    tail_slot: int
+    dropped_slot: int
+
+
+_TICKS = _Ring("_tail", TICK_TAIL, DROPPED_TICKS)
+_FRAMES = _Ring("_ftail", FRAME_TAIL, DROPPED_FRAMES)
+_EVENTS = _Ring("_etail", EVENT_TAIL, DROPPED_EVENTS)
+_POSES = _Ring("_ptail", POSE_TAIL, DROPPED_POSES)
 
 
 def _view(vector: Any) -> memoryview:
@@ -268,7 +283,7 @@ class Recorder:
     # its ``push`` (the row last; a tick without a push when the next one begins), so a SIGKILL
     # costs at most the tick in progress. Frames sent after a tick's push (the nodes' disable
     # after the last control tick) still belong to it: they are published when the next tick
-    # begins, after its row and before the next row, where ``replay.tick_inputs`` looks.
+    # begins, after its row and before the next row, where ``rerun.tick_inputs`` looks.
     def begin_tick(self, tick: Tick) -> None:
         if self._row >= 0:  # the last tick had no push (start-up, shut-down): publish it now
             self._publish_idle()
@@ -280,12 +295,10 @@ class Recorder:
         self._now = tick.now_ns
         self._missed = tick.missed
         head = self._head
-        if head - self._tail > self._tick_mask:
-            self._tail = self._ctl_view[TICK_TAIL]
-            if head - self._tail > self._tick_mask:
-                self._ctl_view[DROPPED_TICKS] += 1
-                self._row = -1
-                return
+        if head - self._tail > self._tick_mask and self._ring_full(_TICKS, head,
+                                                                   self._tick_mask):
+            self._row = -1
+            return
         self._row = head & self._tick_mask
 
     def _publish_idle(self) -> None:
@@ -423,7 +436,8 @@ class Recorder:
         what does not fit is dropped and counted."""
         mask = self._frame_mask
         for i, entry in enumerate(entries):
-            if head - self._ftail > mask and not self._frame_room(head, len(entries) - i):
+            if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask,
+                                                             len(entries) - i):
                 break
             if isinstance(entry, Frame):
                 frame_id, data, meta, stamp = (entry.arbitration_id, entry.data,
@@ -436,15 +450,18 @@ class Recorder:
             head += 1
         return head
 
-    def _frame_room(self, head: int, frames: int = 1) -> bool:
-        """The frame ring looked full: look again at the writer's tail; if it is full, the
-        ``frames`` about to be written are dropped and counted."""
+    def _ring_full(self, ring: _Ring, head: int, mask: int, records: int = 1) -> bool:
+        """A ring looked full by the tail this side last read: read the writer's tail again
+        (and keep it); if the ring is still full, the ``records`` about to be written are
+        dropped, and counted where the writer reports them. The caller compares first, so
+        that a ring with room costs one subtraction."""
         ctl = self._ctl_view
-        self._ftail = ctl[FRAME_TAIL]
-        if head - self._ftail > self._frame_mask:
-            ctl[DROPPED_FRAMES] += frames
-            return False
-        return True
+        tail = ctl[ring.tail_slot]
+        setattr(self, ring.tail_attribute, tail)
+        if head - tail > mask:
+            ctl[ring.dropped_slot] += records
+            return True
+        return False
 
     def _bus_event(self, event: BusEvent) -> None:
         self._event(EV_BUS, self._tick, event.kind.value, event.detail, str(event.timestamp_ns))
@@ -453,11 +470,8 @@ class Recorder:
         """Ground truth of the simulated objects at the current tick: (x, y, angle) each."""
         head = self._phead
         mask = self.layout.pose_capacity - 1
-        if head - self._ptail > mask:
-            self._ptail = self._ctl_view[POSE_TAIL]
-            if head - self._ptail > mask:
-                self._ctl_view[DROPPED_POSES] += 1
-                return
+        if head - self._ptail > mask and self._ring_full(_POSES, head, mask):
+            return
         row = head & mask
         # Two ``pack_into`` calls at fixed offsets; numpy item and slice assignments cost
         # tens of microseconds here, on the ticks that carry poses.
@@ -478,11 +492,9 @@ class Recorder:
         if self.closed:
             return
         head = self._ehead
-        if head - self._etail > self._event_mask:
-            self._etail = self._ctl_view[EVENT_TAIL]
-            if head - self._etail > self._event_mask:
-                self._ctl_view[DROPPED_EVENTS] += 1
-                return
+        if head - self._etail > self._event_mask and self._ring_full(_EVENTS, head,
+                                                                     self._event_mask):
+            return
         row = head & self._event_mask
         text = SEP.join(fields).encode()[:EVENT_BYTES]
         _EVENT.pack_into(self._buf, self._event_base + row * 32, self._now, tick, kind,

@@ -471,7 +471,7 @@ def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(recorded: Rec
 def test_a_rerun_does_not_start_after_a_damaged_first_chunk(recorded: Recorded,
                                                             tmp_path: Path) -> None:
     """Without its first ticks a log has nothing a fresh runtime could follow."""
-    from handctl.recording.replay import rerun
+    from handctl.recording.rerun import rerun
 
     data = bytearray(recorded.path.read_bytes())
     with recorded.path.open("rb") as handle:

@@ -18,19 +18,17 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from handctl.bus import open_bus
+from handctl.bus import BusEvent, BusEventKind, Frame, FrameBus, open_bus
 from handctl.config import HandConfig
 from handctl.loop import Outcome
 from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
+from handctl.recording.frames import logged_frames, to_bus
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
-from handctl.recording.replay import (
-    load_series,
-    logged_frames,
-    rerun,
-    summarise_recording,
-    to_bus,
-)
+from handctl.recording.replay import summarise_recording
+from handctl.recording.rerun import rerun
+from handctl.recording.series import load_series
+from handctl.taps import TAP_TX, TAP_TX_FAILED
 
 from ..conftest import ROOT
 from .rig import SHORT, short_recipe
@@ -398,15 +396,29 @@ def test_rerun_of_a_run_with_the_object_estimator(tmp_path: Path) -> None:
     assert report.ok and report.compared > 500, report.as_dict()
 
 
-def test_the_replay_bus_has_everything_a_hand_bus_has(hand: HandConfig, channel: str) -> None:
-    """ReplayBus stands in for HandBus without its python-can set-up: every public attribute
-    a real one has, the replay one must have too, and the calls must work without a bus."""
-    from handctl.recording.replay import ReplayBus
+def test_the_replay_bus_is_a_frame_bus_whose_taps_hear_the_run(hand: HandConfig,
+                                                                channel: str) -> None:
+    """ReplayBus stands in for HandBus through the protocol the driver types against
+    (``FrameBus``; mypy checks the signatures), without python-can, and a recorder's taps
+    hear from it what they would hear from a HandBus."""
+    from handctl.recording.rerun import ReplayBus, TickInput
 
-    replay = ReplayBus(fd=True)
+    replay = ReplayBus()
     with open_bus(f"virtual:{channel}", hand.bus) as real:
-        public = {name for name in vars(real) if not name.startswith("_")}
-    assert public <= set(vars(replay)), public - set(vars(replay))
+        assert isinstance(real, FrameBus)
+    assert isinstance(replay, FrameBus)
+    heard: list[tuple[Any, ...]] = []
+    replay.tap = lambda frame_id, data, direction: heard.append(("tx", frame_id, direction))
+    replay.rx_tap = lambda frames: heard.append(("rx", [f.arbitration_id for f in frames]))
+    replay.event_tap = lambda event: heard.append(("event", event.kind))
+    replay.load(0, TickInput(0, 0, 0, 0, rx=[Frame(0x181, bytes(8))],
+                             tx=[(0x201, b"\x01", True), (0x202, b"\x02", False)],
+                             bus_events=[BusEvent(BusEventKind.TX_QUEUE_FULL, "full", 0)]))
+    assert [f.arbitration_id for f in replay.drain()] == [0x181]
+    assert replay.send(0x201, b"\x01") is True
+    assert replay.send(0x202, b"\x02") is False  # as the bus answered in the run
+    assert [e.kind for e in replay.events()] == [BusEventKind.TX_QUEUE_FULL]
+    assert heard == [("rx", [0x181]), ("tx", 0x201, TAP_TX), ("tx", 0x202, TAP_TX_FAILED),
+                     ("event", BusEventKind.TX_QUEUE_FULL)]
     assert replay.flush() is True
-    assert replay.transport_counts() == {}
-    assert replay.tx_failed == 0
+    assert (replay.sent, replay.tx_failed, replay.frame_mismatches) == (1, 1, [])

@@ -25,7 +25,8 @@ import numpy as np
 import pytest
 
 from handctl import cli, session
-from handctl.bus import BusSpec, open_bus
+from handctl.bus import open_bus
+from handctl.busspec import BusSpec
 from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig, load_hand
 from handctl.drivers.hand import HandDriver

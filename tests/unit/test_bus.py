@@ -7,13 +7,11 @@ from pathlib import Path
 
 import pytest
 
-from handctl.bus import (
-    BusEventKind,
+from handctl.bus import BusEventKind, HandBus, open_bus
+from handctl.busspec import (
     BusSpec,
-    HandBus,
     bus_kwargs,
     check_socketcan,
-    open_bus,
     parse_spec,
     socketcan_setup_command,
 )

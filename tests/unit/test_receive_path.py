@@ -324,7 +324,7 @@ def test_reject_rate_settings_are_read_and_checked(tmp_path: Path) -> None:
 
 
 def test_an_exported_log_keeps_29_bit_ids_extended(tmp_path: Path) -> None:
-    from handctl.bus import write_frames
+    from handctl.canlog import write_frames
 
     out = tmp_path / "rx.log"
     frames = [(1.0, EXTENDED_ID_FLAG | 0x181, bytes(16), True, True),

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from handctl.bus import BusSpec, parse_spec
+from handctl.busspec import BusSpec, parse_spec
 from handctl.cli import build_parser
 from handctl.config import HandConfig
 from handctl.errors import ConfigError

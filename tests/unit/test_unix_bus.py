@@ -11,11 +11,13 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import can
 import pytest
 
-from handctl.bus import TX_QUEUE_FRAMES, BusEventKind, Frame, HandBus, open_bus
+from handctl.bus import BusEventKind, Frame, HandBus, open_bus
 from handctl.config import HandConfig
 from handctl.taps import TAP_TX
+from handctl.unixcan import TX_QUEUE_FRAMES
 
 OpenUnix = Callable[[], HandBus]
 
@@ -107,3 +109,24 @@ def test_a_burst_is_one_datagram_and_its_frames_share_its_fate(open_unix: OpenUn
     assert tx.transport_counts()["datagrams_sent"] == 1
     assert taps == [(0x181, TAP_TX), (0x182, TAP_TX), (0x183, TAP_TX)] and tx.sent == 3
     assert [f.arbitration_id for f in rx.drain()] == [0x181, 0x182, 0x183]
+
+
+def test_python_can_opens_the_unix_bus_by_its_interface_name(tmp_path: Path) -> None:
+    """The unix bus is a python-can interface (the ``can.interface`` entry point of the
+    installed package), so any python-can program opens it by name, and its ``send`` sends
+    at once, as python-can promises: no handctl code in between."""
+    channel = str(tmp_path / "bus")
+    sent = [can.Message(arbitration_id=0x123, data=bytes(range(12)), is_fd=True,
+                        bitrate_switch=True, is_extended_id=False),
+            can.Message(arbitration_id=0x1ABCDEF, data=b"\x01\x02", is_fd=False,
+                        is_extended_id=True)]
+    with can.Bus(interface="unix", channel=channel) as rx, \
+            can.Bus(interface="unix", channel=channel) as tx:
+        for msg in sent:
+            tx.send(msg)
+        got = [rx.recv(timeout=5.0) for _ in sent]
+        assert rx.recv(timeout=0) is None  # its own frames do not come back to the sender
+    assert [(m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch, m.is_extended_id)
+            for m in got if m is not None] == \
+        [(m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch, m.is_extended_id)
+         for m in sent]

@@ -1,0 +1,442 @@
+"""``handctl replay --rerun``: a bit-exact re-run of a recording through the recipe runner and
+safety.
+
+It builds a fresh ``Runtime`` (driver, recipe runner, supervisor) from the hand config and
+recipe stored in the log, and drives it with the log itself: a clock that hands out the logged
+ticks (time, missed ticks) and a bus that hands out, tick by tick, the very frames the original
+drain returned and the bus events it reported, with the operator's stop and e-stop requests at
+the ticks they took effect. Everything the original tick consumed is thus the same, so its
+applied torques, and the command frames built from them, must come out bit for bit the same;
+any difference is listed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+import math
+import struct
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from handctl import timebudget
+from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, FrameTap, RxTap
+from handctl.clock import Tick
+from handctl.drivers.hand import HandDriver
+from handctl.errors import ConfigError
+from handctl.loop import EndOfTicks, Runtime, TickRecord
+from handctl.protocol import load_protocol
+from handctl.recording import channels as ch
+from handctl.recording.feedback_check import FeedbackCheck
+from handctl.recording.metadata import recorded_hand, recorded_recipe
+from handctl.recording.reader import Recording, iter_chunks, require_topics
+from handctl.recording.series import json_floats
+from handctl.taps import TAP_TX, TAP_TX_FAILED
+
+MAX_LISTED = 20
+
+
+@dataclass
+class TickInput:
+    """Everything one logged tick consumed, and what it applied."""
+
+    tick: int
+    scheduled_ns: int
+    now_ns: int
+    missed: int
+    rx: list[Frame] = field(default_factory=list)
+    tx: list[tuple[int, bytes, bool]] = field(default_factory=list)
+    bus_events: list[BusEvent] = field(default_factory=list)
+    requests: list[tuple[str, str]] = field(default_factory=list)
+    rejects: dict[str, int] | None = None  # the rejected_frames events of the tick, by kind
+    applied: list[float] | None = None
+    joint_state: dict[str, Any] | None = None  # the logged /hand/joint_state message
+
+
+@dataclass
+class _Pending:
+    rx: list[Frame] = field(default_factory=list)
+    tx: list[tuple[int, bytes, bool]] = field(default_factory=list)
+    bus_events: list[BusEvent] = field(default_factory=list)
+    requests: list[tuple[str, str]] = field(default_factory=list)
+    rejects: dict[str, int] | None = None
+
+
+def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:  # noqa: C901 - one branch per channel; bus/replay split (issue 16)
+    """The frames drained before the first tick, and a stream of the logged ticks.
+
+    A tick is whole when the next tick's row begins: its frames and events are published
+    before that row (``Recorder``), most of them before its own row, and the frames it sends
+    after its push (the nodes' disable after the last control tick) between the two. So the
+    stream hands out a tick only when it meets the next row, and the last row only when the
+    recorder closed the file; a gap in the ticks (a damaged chunk) ends the stream before it,
+    and a log whose first row is not tick 0 gives no ticks at all.
+    One pass, one branch per message: this is most of what a re-run reads.
+    """
+    pending: dict[int, _Pending] = {}
+    kinds = {k.value: k for k in BusEventKind}
+    batches = iter_chunks(recording, ch.RERUN_TOPICS)
+    timing, torque, rx, tx, joint = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX, ch.JOINT_STATE
+    fromhex = bytes.fromhex
+    closed = recording.complete and \
+        recording.meta(ch.META_END, "ended") == ch.ENDED_CLOSED
+
+    def inputs_of(k: int, current: TickInput | None) -> TickInput | _Pending:
+        if current is not None and current.tick == k:
+            return current
+        got = pending.get(k)
+        if got is None:
+            got = pending[k] = _Pending()
+        return got
+
+    def ticks() -> Iterator[TickInput]:  # noqa: C901 - one branch per channel; bus/replay split (issue 16)
+        current: TickInput | None = None
+        for topics, messages in batches:
+            for topic, msg in zip(topics, messages, strict=True):
+                if topic == rx:
+                    inputs_of(msg["tick"], current).rx.append(
+                        Frame(msg["id"], fromhex(msg["data"]), msg.get("bus_time_ns", 0)))
+                elif topic == tx:
+                    inputs_of(msg["tick"], current).tx.append(
+                        (msg["id"], fromhex(msg["data"]), msg.get("ok", True)))
+                elif topic == timing:
+                    k = msg["tick"]
+                    if current is not None:
+                        if k != current.tick + 1:
+                            return  # a gap: the tick before it may lack what followed it
+                        yield current
+                    elif k != 0:
+                        return  # the first ticks are missing: there is nothing to re-run from
+                    current = TickInput(k, msg["scheduled_ns"], msg["now_ns"], msg["missed"])
+                    got = pending.pop(k, None)
+                    if got is not None:
+                        current.rx, current.tx = got.rx, got.tx
+                        current.bus_events, current.requests = got.bus_events, got.requests
+                        current.rejects = got.rejects
+                elif topic == torque:
+                    if current is not None and current.tick == msg["tick"]:
+                        current.applied = json_floats(msg["applied_nm"])
+                elif topic == joint:
+                    if current is not None and current.tick == msg["tick"]:
+                        current.joint_state = msg
+                elif topic == ch.EVENTS and msg["kind"] in ("bus", "request", "rejected_frames"):
+                    _route(msg, inputs_of(msg["tick"], current), kinds)
+        if current is not None and closed:
+            yield current
+
+    stream = ticks()
+    # The frames drained before the first tick (tick -1) precede the first row.
+    first = next(stream, None)
+    before = pending.pop(-1, None) or _Pending()
+    return before, itertools.chain(() if first is None else (first,), stream)
+
+
+def _route(msg: dict[str, Any], inputs: TickInput | _Pending,
+           kinds: dict[str, BusEventKind]) -> None:
+    """A bus event or an operator request (inputs of their tick), or the rejects the run
+    counted (what the re-run must count too)."""
+    kind = msg["kind"]
+    if kind == "bus":
+        inputs.bus_events.append(BusEvent(kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
+                                          msg["detail"], msg.get("bus_time_ns", 0)))
+    elif kind == "request":
+        inputs.requests.append((msg["name"], msg["detail"]))
+    else:
+        rejects = inputs.rejects
+        if rejects is None:
+            rejects = inputs.rejects = {}
+        rejects[msg["name"]] = rejects.get(msg["name"], 0) + int(msg.get("count", 0))
+
+
+class ReplayBus:
+    """A ``FrameBus`` with the log behind it: ``drain`` returns what the original drain
+    returned in this tick, ``send`` checks the frame against the one the original sent (and
+    answers as the bus did), ``events`` returns the events the original poll took. Taps are
+    told what a ``HandBus`` would tell them."""
+
+    def __init__(self) -> None:
+        self.tap: FrameTap | None = None
+        self.rx_tap: RxTap | None = None
+        self.event_tap: Callable[[BusEvent], None] | None = None
+        self.sent = 0
+        self.tx_failed = 0
+        self.received = 0
+        self.closed = False
+        self.tick = -1
+        self._rx: deque[Frame] = deque()
+        self._tx: deque[tuple[int, bytes, bool]] = deque()
+        self._events: list[BusEvent] = []
+        self.frame_mismatches: list[str] = []
+        self.frames_compared = 0
+
+    def load(self, tick: int, inputs: TickInput | _Pending) -> None:
+        for frame_id, data, _ in self._tx:
+            self._mismatch(f"tick {self.tick}: the log has frame 0x{frame_id:03X} "
+                           f"{data.hex()} that the re-run did not send")
+        self.tick = tick
+        self._rx = deque(inputs.rx)
+        self._tx = deque(inputs.tx)
+        self._events = list(inputs.bus_events)
+
+    def use_clock(self, clock_ns: Callable[[], int]) -> None:
+        """The logged frames carry the times they arrived at in the run: no clock to use."""
+
+    def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]:
+        rx = self._rx
+        if len(rx) <= limit:
+            frames = list(rx)
+            rx.clear()
+        else:
+            frames = [rx.popleft() for _ in range(limit)]
+        self.received += len(frames)
+        if frames and self.rx_tap is not None:
+            self.rx_tap(frames)
+        return frames
+
+    def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool:
+        self.frames_compared += 1
+        if not self._tx:
+            self._mismatch(f"tick {self.tick}: the re-run sent frame 0x{arbitration_id:03X} "
+                           f"{bytes(data).hex()}, the log has no more frames in this tick")
+            ok = True
+        else:
+            frame_id, logged, ok = self._tx.popleft()
+            if frame_id != arbitration_id or logged != data:
+                self._mismatch(f"tick {self.tick}: the re-run sent 0x{arbitration_id:03X} "
+                               f"{bytes(data).hex()}, the log has 0x{frame_id:03X} "
+                               f"{logged.hex()}")
+            self.sent += ok
+            self.tx_failed += not ok
+        if self.tap is not None:
+            self.tap(arbitration_id, data, TAP_TX if ok else TAP_TX_FAILED)
+        return ok
+
+    def flush(self) -> bool:
+        """Sends are compared as they come: there is no burst to end."""
+        return True
+
+    def events(self) -> list[BusEvent]:
+        events, self._events = self._events, []
+        if self.event_tap is not None:
+            for event in events:
+                self.event_tap(event)
+        return events
+
+    def close(self) -> None:
+        self.closed = True
+
+    def finish(self) -> None:
+        """After the last tick: a logged frame the re-run never sent is a mismatch too."""
+        self.load(self.tick + 1, _Pending())
+
+    def _mismatch(self, text: str) -> None:
+        self.frame_mismatches.append(text)
+
+
+class _EndOfLogError(EndOfTicks):
+    """The log has no more whole ticks (a truncated or damaged recording): the re-run stops
+    there."""
+
+
+class ReplayClock:
+    """A ``Clock`` that hands out the logged ticks, and the operator's requests at the ticks
+    they took effect. Stepped, as the lockstep clock: the log ends the run when it ends."""
+
+    lockstep = True
+
+    def __init__(self, inputs: Iterator[TickInput], bus: ReplayBus) -> None:
+        self.inputs = inputs
+        self.bus = bus
+        self.runtime: Runtime | None = None
+        self.current: TickInput | None = None
+        self.unsupported: list[str] = []
+        self.check: FeedbackCheck | None = None
+
+    def now_ns(self) -> int:
+        return self.current.now_ns if self.current is not None else 0
+
+    async def wait_tick(self) -> Tick:
+        current = next(self.inputs, None)
+        if current is None:
+            raise _EndOfLogError
+        self.current = current
+        self.bus.load(current.tick, current)
+        if self.check is not None:
+            self.check.take(current.rejects)
+        runtime = self.runtime
+        if runtime is not None:
+            for kind, detail in current.requests:
+                if kind == "stop":
+                    runtime.request_stop(detail)
+                elif kind == "estop":
+                    runtime.request_estop(detail)
+                else:
+                    self.unsupported.append(f"tick {current.tick}: {kind}")
+        return Tick(current.tick, current.scheduled_ns, current.now_ns, current.missed)
+
+    def close(self) -> None:
+        pass
+
+
+def _no_time() -> int:
+    return 0
+
+
+_PACK: dict[int, struct.Struct] = {}
+
+
+class _Compare:
+    """The re-run's ``RecordSink``: each tick's applied torques against the logged ones."""
+
+    def __init__(self, clock: ReplayClock, joints: list[str], check: FeedbackCheck) -> None:
+        self.clock = clock
+        self.joints = joints
+        self.check = check
+        self.compared = 0
+        self.mismatches: list[dict[str, Any]] = []
+        self.mismatched_ticks = 0
+
+    def begin_tick(self, tick: Tick) -> None:
+        return None
+
+    def push(self, record: TickRecord) -> None:
+        current = self.clock.current
+        if current is not None:
+            self.check.tick(record.tick, current.now_ns, current.joint_state, current.rx)
+        logged = current.applied if current is not None else None
+        rerun = record.applied
+        if logged is None:
+            self.mismatched_ticks += 1
+            self._add(record.tick, "-", math.nan, float(np.max(np.abs(rerun))),
+                      "the re-run ran a control step where the log has no torques")
+            return
+        n = len(logged)
+        pack = _PACK.get(n)
+        if pack is None:
+            pack = _PACK[n] = struct.Struct(f"<{n}d")
+        self.compared += 1
+        if len(rerun) == n and rerun.tobytes() == pack.pack(*logged):
+            return
+        self.mismatched_ticks += 1
+        for j, (a, b) in enumerate(zip(logged, rerun.tolist(), strict=False)):
+            if struct.pack("<d", a) != struct.pack("<d", b):
+                name = self.joints[j] if j < len(self.joints) else str(j)
+                self._add(record.tick, name, a, b, "")
+
+    def note(self, kind: str, detail: str, tick: int) -> None:
+        return None
+
+    def _add(self, tick: int, joint: str, logged: float, rerun: float, detail: str) -> None:
+        if len(self.mismatches) < 1000:
+            self.mismatches.append({"tick": tick, "joint": joint, "logged_nm": logged,
+                                    "rerun_nm": rerun, "detail": detail})
+
+
+@dataclass
+class RerunReport:
+    ticks: int
+    compared: int
+    mismatched_ticks: int
+    mismatches: list[dict[str, Any]]
+    frames_compared: int
+    frame_mismatches: list[str]  # sent frames, and received ones the re-run read otherwise
+    feedback_compared: int  # ticks whose received frames were compared
+    outcome: str
+    logged_outcome: str
+    notes: list[str]
+    wall_s: float
+
+    @property
+    def ok(self) -> bool:
+        return not self.mismatched_ticks and not self.frame_mismatches
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"ok": self.ok, "ticks": self.ticks, "compared": self.compared,
+                "mismatched_ticks": self.mismatched_ticks,
+                "mismatches": self.mismatches[:MAX_LISTED],
+                "frames_compared": self.frames_compared,
+                "frame_mismatches": self.frame_mismatches[:MAX_LISTED],
+                "feedback_compared": self.feedback_compared,
+                "outcome": self.outcome, "logged_outcome": self.logged_outcome,
+                "notes": self.notes, "wall_s": round(self.wall_s, 3)}
+
+
+def rerun(recording: Recording) -> RerunReport:
+    """Feed the logged feedback through a fresh driver, runner and supervisor; compare."""
+    require_topics(recording, ch.RERUN_TOPICS, "--rerun")
+    path = str(recording.path)
+    run = recording.metadata.get(ch.META_RUN)
+    if not run:
+        raise ConfigError(path, f"metadata {ch.META_RUN}",
+                          "how the runtime was set up (recorded by handctl run recipe --log)",
+                          "nothing")
+    end = recording.metadata.get(ch.META_END, {})
+    dropped = {k: int(end.get(k, "0")) for k in ("dropped_ticks", "dropped_frames",
+                                                  "dropped_events")}
+    if any(dropped.values()):
+        raise ConfigError(path, "", "a recording without dropped records (the re-run needs "
+                          "every frame)", ", ".join(f"{k} {v}" for k, v in dropped.items()))
+    hand = recorded_hand(recording)
+    assert hand is not None
+    recipe = recorded_recipe(recording, hand)
+    period_s = int(run.get("period_ns", round(hand.bus.period_s * 1e9))) * 1e-9
+    startup_ticks = int(run.get("startup_ticks", "500"))
+    bus = ReplayBus()
+    before, inputs = tick_inputs(recording)
+    bus.load(-1, before)
+    clock = ReplayClock(inputs, bus)
+    driver = HandDriver(hand, load_protocol(), bus, clock_ns=clock.now_ns)
+    check = FeedbackCheck(hand, driver)
+    clock.check = check
+    compare = _Compare(clock, list(hand.joint_names), check)
+    estimator = None
+    if recipe.objects:  # as the session sets it up: the estimator is fed the same angles
+        from handctl.estimator import ObjectEstimator
+
+        estimator = ObjectEstimator(hand, recipe.objects)
+    if (estimator is not None) != (run.get("estimator", "False") == "True"):
+        raise ConfigError(path, f"metadata {ch.META_RUN}.estimator",
+                          f"{estimator is not None} (what the recorded recipe implies)",
+                          run.get("estimator", "nothing"))
+    runtime = Runtime(hand, driver, clock, recipe, recorder=compare, estimator=estimator,
+                      reset_node_faults=run.get("reset_node_faults") == "True",
+                      startup_timeout_s=startup_ticks * period_s, max_ticks=1 << 62)
+    clock.runtime = runtime
+    runtime.cpu_clock = _no_time  # stage times are the run's, not the re-run's
+    notes: list[str] = []
+    started = time.perf_counter()
+    outcome = "log ended"
+    try:
+        result = timebudget.outcome(asyncio.run(runtime.run()), runtime.stop_requested)
+        outcome = result.outcome.value
+    except _EndOfLogError:
+        where = "before a damaged chunk" if recording.damaged else "where the log ends"
+        notes.append(f"the re-run stops after tick {clock.current.tick if clock.current else -1}"
+                     f", {where} ({recording.problem or 'no more ticks'}); compared up to there")
+    wall = time.perf_counter() - started
+    if clock.current is not None and outcome != "log ended":
+        check.end(clock.current.tick, clock.current.rx)
+    bus.finish()
+    leftover = sum(1 for _ in inputs)
+    if leftover and outcome != "log ended":
+        notes.append(f"the log goes on for {leftover} ticks after the re-run ended")
+    notes += [f"not repeated: {u}" for u in clock.unsupported]
+    logged = recording.json_meta(ch.META_SUMMARY) or {}
+    ticks = (clock.current.tick + 1) if clock.current else 0
+    frame_mismatches = list(heapq.merge(bus.frame_mismatches, check.mismatches,
+                                        key=_tick_of))
+    return RerunReport(ticks, compare.compared, compare.mismatched_ticks, compare.mismatches,
+                       bus.frames_compared, frame_mismatches, check.compared, outcome,
+                       logged.get("outcome", ""), notes, wall)
+
+
+def _tick_of(text: str) -> int:
+    """The tick a mismatch's text begins with (``tick N: ...``), to list both kinds in order."""
+    head = text.split(":", 1)[0].split()
+    return int(head[1]) if len(head) == 2 and head[1].lstrip("-").isdigit() else -1

@@ -1,0 +1,186 @@
+"""A recording as time series: what the summary and the plot of ``handctl replay`` read."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import orjson
+
+from handctl.arrays import FloatArray
+from handctl.errors import ConfigError
+from handctl.recording import channels as ch
+from handctl.recording.metadata import recorded_hand
+from handctl.recording.reader import Recording, iter_decoded, iter_messages
+from handctl.recording.ring import RECORDED_STAGES
+
+
+class _Rows:
+    """A growing 2-D float array: one row per message, without a Python list per row."""
+
+    def __init__(self, width: int) -> None:
+        self.data = np.zeros((1024, width))
+        self.size = 0
+
+    def add(self, row: list[float] | tuple[float, ...]) -> None:
+        if self.size == len(self.data):
+            self.data = np.resize(self.data, (2 * len(self.data), self.data.shape[1]))
+        self.data[self.size] = row
+        self.size += 1
+
+    @property
+    def rows(self) -> FloatArray:
+        return self.data[:self.size]
+
+
+@dataclass
+class Series:
+    """What the summary and the plot need, as arrays over ticks (times in s since tick 0's
+    scheduled time, ``handctl.convention``)."""
+
+    joints: list[str]
+    t0_ns: int = 0  # tick 0's scheduled time, on the log's clock
+    rest_y: list[float] = field(default_factory=list)  # m, each object's resting height
+    tau_max: list[float] = field(default_factory=list)  # N·m, each joint's host limit
+    timing: FloatArray = field(default_factory=lambda: np.zeros((0, 8)))
+    torque: FloatArray = field(default_factory=lambda: np.zeros((0, 1)))
+    joint: FloatArray = field(default_factory=lambda: np.zeros((0, 1)))
+    objects: FloatArray = field(default_factory=lambda: np.zeros((0, 1)))
+    object_names: list[str] = field(default_factory=list)
+    phases: list[dict[str, Any]] = field(default_factory=list)
+    events: list[dict[str, Any]] = field(default_factory=list)
+    frames: dict[str, int] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per channel; bus/replay split (issue 16)
+    """One pass over the recording into arrays: timing (t, tick, lateness, missed, active,
+    4 stages), torques (t, desired, applied), joints (t, TDT, angle), object poses."""
+    joints = _joint_names(recording)
+    n = len(joints)
+    timing, torque, joint = _Rows(9), _Rows(1 + 2 * n), _Rows(1 + 2 * n)
+    objects: _Rows | None = None
+    series = Series(joints)
+    t0: int | None = None
+    tick0: int | None = None  # tick 0's scheduled time (ns)
+    period_ns = int(recording.meta(ch.META_RUN, "period_ns") or 1_000_000)
+    scheduled = 0.0  # the latest tick's scheduled time, s from the first message
+    phase_name, phase_start, phase_tick = "", 0.0, 0
+    frames = {"rx": 0, "tx": 0, "tx_refused": 0}
+    exits: dict[tuple[str, int], str] = {}
+    last_t = 0.0
+    topics = (ch.TIMING, ch.TORQUE, ch.JOINT_STATE, ch.PHASE, ch.EVENTS, ch.OBJECTS, ch.STATS)
+    for topic, log_time, raw in iter_messages(recording, (*topics, ch.CAN_RX, ch.CAN_TX)):
+        if topic == ch.CAN_RX:
+            frames["rx"] += 1
+            continue
+        if topic == ch.CAN_TX:
+            frames["tx"] += 1
+            if b'"ok":false' in raw:
+                frames["tx_refused"] += 1
+            continue
+        msg = _loads(raw)
+        if t0 is None:
+            t0 = log_time
+        t = (log_time - t0) * 1e-9
+        if topic == ch.TIMING:
+            if tick0 is None:
+                tick0 = int(msg["scheduled_ns"]) - int(msg["tick"]) * period_ns
+            scheduled = (int(msg["scheduled_ns"]) - t0) * 1e-9
+            stages = msg.get("stage_cpu_ns") or {}
+            timing.add((t, msg["tick"], msg.get("lateness_ns", 0), msg.get("missed", 0),
+                        1.0 if msg.get("active") else 0.0,
+                        *(stages.get(name, 0) for name in RECORDED_STAGES)))
+            last_t = t
+        elif topic == ch.TORQUE:
+            torque.add([t, *json_floats(msg["desired_nm"]), *json_floats(msg["applied_nm"])])
+        elif topic == ch.JOINT_STATE:
+            joint.add([t, *json_floats(msg["tdt_torque_nm"]), *json_floats(msg["angle_rad"])])
+        elif topic == ch.PHASE:
+            name = msg["phase"]
+            if name != phase_name:  # a phase starts at its first tick's scheduled time
+                if phase_name:
+                    series.phases.append({"name": phase_name, "start_s": phase_start,
+                                          "end_s": scheduled, "tick": phase_tick})
+                phase_name, phase_start, phase_tick = name, scheduled, msg["tick"]
+        elif topic == ch.EVENTS:
+            msg["t_s"] = t
+            series.events.append(msg)
+            if msg["kind"] == "phase":
+                exits[(msg.get("previous", ""), msg["tick"])] = msg.get("detail", "")
+        elif topic == ch.OBJECTS:
+            if objects is None:
+                series.object_names = [o["name"] for o in msg["objects"]]
+                objects = _Rows(2 + 3 * len(series.object_names))
+            values = [t, msg.get("line_angle_rad", math.nan)]
+            for o in msg["objects"]:
+                values += [o["x_m"], o["y_m"], o["angle_rad"]]
+            objects.add(values)
+        elif topic == ch.STATS:
+            series.stats = msg
+    if phase_name:
+        series.phases.append({"name": phase_name, "start_s": phase_start, "end_s": last_t,
+                              "tick": phase_tick})
+    for phase in series.phases:
+        phase["exit"] = next((v for (name, tick), v in exits.items()
+                              if name == phase["name"] and tick > phase["tick"]), "")
+    # Times were taken from the first message on; the convention's are from tick 0.
+    shift = ((tick0 - t0) * 1e-9) if tick0 is not None and t0 is not None else 0.0
+    series.t0_ns = tick0 if tick0 is not None else (t0 or 0)
+    for rows in (timing, torque, joint, *((objects,) if objects is not None else ())):
+        rows.rows[:, 0] -= shift
+    for phase in series.phases:
+        phase["start_s"] -= shift
+        phase["end_s"] -= shift
+    for event in series.events:
+        event["t_s"] -= shift
+    series.timing, series.torque, series.joint = timing.rows, torque.rows, joint.rows
+    if objects is not None:
+        series.objects = objects.rows
+    series.rest_y = _rest_heights(recording, series)
+    series.frames = frames
+    return series
+
+
+def _loads(raw: bytes) -> dict[str, Any]:
+    value = orjson.loads(raw)
+    if not isinstance(value, dict):
+        raise ValueError("a message that is not a JSON object")
+    return value
+
+
+def json_floats(values: list[float | None]) -> list[float]:
+    """JSON has no NaN: the writer wrote a non-finite number as null."""
+    return [math.nan if v is None else v for v in values]
+
+
+def _joint_names(recording: Recording) -> list[str]:
+    hand = recorded_hand(recording, required=False)
+    if hand is not None:
+        return list(hand.joint_names)
+    for _, _, msg in iter_decoded(recording, (ch.TORQUE,)):
+        return [f"j{i}" for i in range(len(msg["applied_nm"]))]
+    return []
+
+
+def _rest_heights(recording: Recording, series: Series) -> list[float]:
+    """Where the objects rested at the start: the recorded scene's initial poses (the run
+    summary's reference), or the first logged pose for a log without them. Sets the joints'
+    ``tau_max`` from the recorded hand config on the way."""
+    from handctl.sim.params import parse_sim
+
+    first = [float(series.objects[0][3 + 3 * i]) if len(series.objects) else math.nan
+             for i in range(len(series.object_names))] if series.object_names else []
+    try:
+        hand = recorded_hand(recording, required=False)
+        params = parse_sim(hand) if hand is not None and hand.sim else None
+    except ConfigError:
+        hand, params = None, None
+    if hand is not None:
+        series.tau_max = [j.tau_max for j in hand.joints]
+    if params is None:
+        return first
+    initial = {o.name: o.y for o in params.objects}
+    return [initial.get(name, first[i]) for i, name in enumerate(series.object_names)]

@@ -1,0 +1,267 @@
+"""handctl's unix bus: a python-can interface over Unix datagram sockets between processes of
+one machine, without a kernel CAN driver or any network traffic (the simulated hand in its own
+process, kill tests). ``--bus unix:DIRECTORY``: one socket per participant in DIRECTORY.
+
+It is registered with python-can as the interface ``unix`` (the ``can.interface`` entry point
+in pyproject.toml), so ``can.Bus(interface="unix", channel=DIRECTORY)`` opens it as any other
+interface, and nothing in handctl names it but that entry point.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import itertools
+import os
+import select
+import socket
+import struct
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import can
+
+#: ``SO_TIMESTAMPNS`` (Linux, asm-generic; Python's socket module does not name it): the
+#: kernel stamps each datagram as it is queued for the receiving socket.
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_TIMESPEC = struct.Struct("@qq")
+
+#: Per frame: the sender's time (s; diagnostics only: a frame is stamped on arrival by the
+#: receiver's kernel), arbitration id, flags, data length; then the data.
+_WIRE = struct.Struct("<dIBB")
+_FD, _BRS, _ERR, _ESI, _EXT = 1, 2, 4, 8, 16
+_unix_ids = itertools.count()
+#: Frames per datagram at most; a burst beyond it goes out in several datagrams.
+_BATCH = 32
+#: Frames held at most for one receiver whose queue is full (a CAN controller's transmit
+#: queue). A burst that does not fit any more is refused whole with ENOBUFS. Small on purpose:
+#: a receiver's socket queue already holds ten bursts or more; this is slack for a moment,
+#: and a receiver that stopped reading must still be reported within a few dozen ticks (the
+#: host's BUS_ERROR after consecutive failed sends), not hidden behind a deep queue.
+TX_QUEUE_FRAMES = 64
+#: How long ``shutdown`` keeps offering held frames to receivers that are still reading.
+_SHUTDOWN_S = 0.02
+
+
+class TransmitQueueFull(can.CanOperationError):
+    """A burst refused because a receiver's transmit queue is full: ``frames`` were dropped."""
+
+    def __init__(self, frames: int, receivers: int) -> None:
+        super().__init__(f"No buffer space available: {frames} frames dropped, the transmit "
+                         f"queue to {receivers} receiver(s) is full", error_code=errno.ENOBUFS)
+        self.frames = frames
+
+
+class UnixDatagramBus(can.BusABC):
+    """A CAN bus between processes of one machine: each participant binds a datagram socket in
+    the channel directory and sends every frame to all the other sockets there.
+
+    Frames sent together (one tick's commands, one node tick's frames) travel as one datagram:
+    Linux queues only ``net.unix.max_dgram_qlen`` datagrams per receiving socket (often 10),
+    whatever their size and whoever sent them, and no socket buffer size lifts that. ``send``
+    queues a frame and ``send_burst`` sends the batch; ``HandBus`` calls it after the last
+    frame of a burst.
+
+    A receiver whose queue is full does not lose what it was sent, as a CAN controller does
+    not drop a frame it took for transmission but retries arbitration: the frames wait in a
+    transmit queue for that receiver and go first, merged into as few datagrams as fit, at the
+    next ``send_burst``. Only a burst that no longer fits that queue (``TX_QUEUE_FRAMES``: a
+    receiver that stopped reading) is refused, whole, with ``TransmitQueueFull`` (ENOBUFS), as
+    a full transmit queue refuses a frame on SocketCAN. ``queue_full`` counts the times a
+    receiver's queue was found full, ``frames_dropped`` the frames refused (for one receiver
+    or more). A socket whose owner died (SIGKILL) refuses delivery and is removed with what
+    was held for it, so a killed peer does not wedge the bus.
+    """
+
+    def __init__(self, channel: str, receive_own_messages: bool = False,
+                 rcvbuf: int = 1 << 22, **kwargs: Any) -> None:
+        self.directory = Path(channel)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.channel_info = f"unix:{channel}"
+        self._path = self.directory / f"{os.getpid()}-{next(_unix_ids)}.sock"
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        with _suppress_oserror():
+            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        # The kernel stamps each datagram as it arrives: the time a frame reached this
+        # participant, however long it then waits to be read. (A kernel without it leaves
+        # the time of reading, which makes frames look younger: Linux has it.)
+        with _suppress_oserror():
+            self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        self._sock.bind(str(self._path))
+        self._sock.setblocking(False)
+        self._own = receive_own_messages
+        self._peers: list[str] = []
+        self._peers_at = 0.0
+        self._held: dict[str, list[bytes]] = {}  # per receiver: frames its full queue refused
+        self._inbox: list[can.Message] = []
+        self._can_protocol = can.CanProtocol.CAN_FD
+        self.datagrams_sent = 0
+        self.queue_full = 0
+        self.frames_dropped = 0
+        super().__init__(channel=channel, **kwargs)
+
+    @property
+    def held(self) -> int:
+        """Frames waiting now for receivers whose queue was full (all receivers together)."""
+        return sum(len(frames) for frames in self._held.values())
+
+    def transport_counts(self) -> dict[str, int]:
+        """The datagrams sent, the times a receiver's queue was full (its frames held and
+        retried), the frames refused because a receiver's transmit queue was full, and the
+        frames held now."""
+        return {"datagrams_sent": self.datagrams_sent, "queue_full": self.queue_full,
+                "frames_dropped": self.frames_dropped, "frames_held": self.held}
+
+    def _refresh_peers(self) -> None:
+        """Re-list the participants at most every 50 ms: joining is rare, sending is not."""
+        now = time.monotonic()
+        if now - self._peers_at < 0.05:
+            return
+        self._peers_at = now
+        mine = str(self._path)
+        self._peers = [str(p) for p in self.directory.glob("*.sock")
+                       if self._own or str(p) != mine]
+        for gone in [p for p in self._held if p not in self._peers]:
+            del self._held[gone]
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Send one frame now, as a burst of its own: what python-can's ``send`` promises
+        any user of the interface. ``HandBus`` sends a tick's frames with ``send_burst``."""
+        self.send_burst((msg,))
+
+    def send_burst(self, messages: Sequence[can.Message]) -> None:
+        """Send what is held for each receiver, then ``messages`` together, to every other
+        participant; raise ``TransmitQueueFull`` if a receiver's transmit queue had no room.
+        No messages: only what is held is offered again."""
+        now = time.time()
+        frames = [_encode(msg, now) for msg in messages]
+        if not frames and not self._held:
+            return
+        self._refresh_peers()
+        refused = 0
+        for peer in list(self._peers):
+            held = self._held.get(peer)
+            if held is None:
+                if frames:
+                    self._deliver(peer, frames)
+            elif len(held) + len(frames) > TX_QUEUE_FRAMES:
+                refused += 1
+                self._deliver(peer, held)
+            else:
+                self._deliver(peer, held + frames)
+        if refused:
+            self.frames_dropped += len(frames)
+            raise TransmitQueueFull(len(frames), refused)
+
+    def _deliver(self, peer: str, frames: list[bytes]) -> None:
+        """Send ``frames`` to one receiver in datagrams of at most ``_BATCH`` frames; what its
+        full queue refuses is held for it, in order."""
+        done = 0
+        total = len(frames)
+        while done < total:
+            chunk = frames if total <= _BATCH else frames[done:done + _BATCH]
+            try:
+                self._sock.sendto(b"".join(chunk), peer)
+            except (ConnectionRefusedError, FileNotFoundError):
+                self._forget(peer)  # its owner is gone
+                return
+            except (BlockingIOError, InterruptedError):
+                self.queue_full += 1
+                self._held[peer] = frames[done:]
+                return
+            self.datagrams_sent += 1
+            done += len(chunk)
+        self._held.pop(peer, None)
+
+    def _forget(self, peer: str) -> None:
+        self._peers.remove(peer)
+        self._held.pop(peer, None)
+        if peer != str(self._path):
+            with _suppress_oserror():
+                os.unlink(peer)
+
+    def _read_datagram(self) -> bool:
+        try:
+            payload, ancillary, _, _ = self._sock.recvmsg(_BATCH * (_WIRE.size + 64),
+                                                          _ANCILLARY_SIZE)
+        except (BlockingIOError, InterruptedError):
+            return False
+        stamp = _arrival_s(ancillary)
+        offset = 0
+        while offset + _WIRE.size <= len(payload):
+            _, frame_id, flags, length = _WIRE.unpack_from(payload, offset)
+            offset += _WIRE.size
+            self._inbox.append(can.Message(
+                timestamp=stamp, arbitration_id=frame_id, is_extended_id=bool(flags & _EXT),
+                is_fd=bool(flags & _FD), bitrate_switch=bool(flags & _BRS),
+                is_error_frame=bool(flags & _ERR), error_state_indicator=bool(flags & _ESI),
+                data=payload[offset:offset + length], channel=self.channel_info, is_rx=True,
+                check=False))
+            offset += length
+        self._inbox.reverse()  # popped from the end, in arrival order
+        return True
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self._inbox and not self._read_datagram():
+            if not timeout:
+                return None, False
+            ready, _, _ = select.select([self._sock], [], [], timeout)
+            if not ready or not self._read_datagram():
+                return None, False
+        if not self._inbox:
+            return None, False
+        return self._inbox.pop(), False
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def _flush_quietly(self) -> None:
+        with contextlib.suppress(can.CanError, OSError):
+            self.send_burst(())
+
+    def shutdown(self) -> None:
+        if not self._is_shutdown:
+            # What is held goes out while its receivers still read (a last disable command),
+            # for a few milliseconds at most.
+            deadline = time.monotonic() + _SHUTDOWN_S
+            self._flush_quietly()
+            while self._held and time.monotonic() < deadline:
+                time.sleep(0.001)
+                self._flush_quietly()
+            self._sock.close()
+            with _suppress_oserror():
+                self._path.unlink()
+        super().shutdown()
+
+
+_ANCILLARY_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
+
+
+def _encode(msg: can.Message, sent_s: float) -> bytes:
+    """One frame on the wire: ``_WIRE``'s header, then the data."""
+    flags = ((_FD if msg.is_fd else 0) | (_BRS if msg.bitrate_switch else 0)
+             | (_ERR if msg.is_error_frame else 0)
+             | (_ESI if msg.error_state_indicator else 0)
+             | (_EXT if msg.is_extended_id else 0))
+    data = bytes(msg.data)
+    return _WIRE.pack(sent_s, msg.arbitration_id, flags, len(data)) + data
+
+
+def _arrival_s(ancillary: list[tuple[int, int, bytes]]) -> float:
+    """The kernel's arrival time of a datagram (wall clock, s), or now if it gave none."""
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS \
+                and len(data) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack_from(data)
+            return float(sec + nsec * 1e-9)
+    return time.time()
+
+
+class _suppress_oserror:  # noqa: N801 - used like contextlib.suppress(OSError), allocation-free
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind: object, exc: object, tb: object) -> bool:
+        return isinstance(exc, OSError)
