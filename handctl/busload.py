@@ -21,9 +21,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from handctl.config import BusConfig, HandConfig
 from handctl.protocol import Layout, Protocol
+
+if TYPE_CHECKING:  # the hand config's protocol is generated with the DLC sizes below
+    from handctl.config import BusConfig, HandConfig
 
 #: A configuration whose worst-case load exceeds this fraction is refused.
 MAX_LOAD = 0.5

@@ -18,7 +18,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from handctl.protocol import Protocol, load_protocol
+from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids
+from handctl.protocol import Protocol
 from handctl.schema import Doc, load_yaml
 from handctl.wirelimits import check_wire_limits
 
@@ -143,8 +144,9 @@ class HandConfig:
 def load_hand(path: str | Path, protocol: Protocol | None = None) -> HandConfig:
     """Load and validate a hand config file; raises ``ConfigError`` on any problem.
 
-    Its limits are checked against the signals of ``protocol`` (the packaged DBC unless
-    given): a limit the wire cannot carry is refused here, not discovered mid-run.
+    Its fingers and limits are checked against ``protocol`` (the DBC generated for the hand
+    unless given, e.g. by ``--dbc``): a node the DBC has no frames for, another joint count,
+    or a limit the wire cannot carry is refused here, not discovered mid-run.
     """
     return parse_hand(load_yaml(path), protocol)
 
@@ -152,7 +154,7 @@ def load_hand(path: str | Path, protocol: Protocol | None = None) -> HandConfig:
 def parse_hand(doc: Doc, protocol: Protocol | None = None) -> HandConfig:
     name = doc.string("name")
     bus = _parse_bus(doc.mapping("bus"))
-    finger_docs = doc.mappings("fingers", min_len=1, max_len=8)
+    finger_docs = doc.mappings("fingers", min_len=1, max_len=len(NODE_IDS))
     fingers = tuple(_parse_finger(f) for f in finger_docs)
     safety = _parse_safety(doc.mapping("safety", default={}))
     sim_raw = doc.raw("sim", None)
@@ -173,7 +175,12 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None) -> HandConfig:
         safety=safety,
         sim=MappingProxyType(dict(sim_raw or {})),
     )
-    check_wire_limits(hand, protocol if protocol is not None else load_protocol())
+    if protocol is None:
+        from handctl.hand_protocol import generated_protocol
+
+        protocol = generated_protocol(hand)
+    check_protocol(hand, protocol)
+    check_wire_limits(hand, protocol)
     return hand
 
 
@@ -231,9 +238,13 @@ def _parse_bus(doc: Doc) -> BusConfig:
 
 def _parse_finger(doc: Doc) -> FingerConfig:
     name = doc.string("name")
-    node_id = doc.integer("node_id", min=1, max=15)
-    ids_doc = doc.mapping("can_ids")
-    ids = CanIds(**{kind: ids_doc.integer(kind, min=1, max=MAX_STANDARD_ID)
+    node_id = doc.integer("node_id", min=NODE_IDS.start, max=NODE_IDS.stop - 1)
+    # The ids follow from the node id (PROTOCOL.md); ids written here are checked against the
+    # protocol's (``check_protocol``), for a DBC given with --dbc that numbers them otherwise.
+    derived = frame_ids(node_id)
+    ids_doc = doc.mapping("can_ids", default={})
+    ids = CanIds(**{kind: ids_doc.integer(kind, default=derived[kind], min=1,
+                                          max=MAX_STANDARD_ID)
                     for kind in CAN_ID_KINDS})
     ids_doc.done()
     base = doc.mapping("base")
@@ -242,7 +253,8 @@ def _parse_finger(doc: Doc) -> FingerConfig:
     base_angle = base.number("angle", min=-2 * math.pi, max=2 * math.pi, unit="rad")
     base.done()
     z = doc.number("z", default=0.0, min=-1.0, max=1.0, unit="m")
-    joints = tuple(_parse_joint(j) for j in doc.mappings("joints", min_len=1, max_len=3))
+    joints = tuple(_parse_joint(j) for j in doc.mappings("joints", min_len=1,
+                                                                 max_len=MAX_JOINTS))
     doc.done()
     return FingerConfig(name, node_id, ids, base_x, base_y, base_angle, z, joints)
 
