@@ -1,4 +1,4 @@
-"""The hand-level driver: nine joints over three finger nodes, one drain and one send per tick.
+"""The hand-level driver: every joint over its finger's node, one drain and one send per tick.
 
 Joint vectors everywhere in handctl are in config order (finger by finger, joint by joint); this
 module is where that order meets the per-node frames. The state arrays are allocated once and
@@ -97,6 +97,9 @@ class HandDriver:
         for finger in hand.fingers:
             self._slices.append(slice(start, start + len(finger.joints)))
             start += len(finger.joints)
+        #: Zeros after each finger's torques, up to what its TorqueCommand carries.
+        self._pads = [[0.0] * (len(node.layouts.command.signals) - (sl.stop - sl.start))
+                      for node, sl in zip(self.nodes, self._slices, strict=True)]
         n = hand.n_joints
         self._tdt_scale = np.array([j.tdt.scale for j in hand.joints])
         self._tdt_offset = np.array([j.tdt.offset for j in hand.joints])
@@ -184,9 +187,11 @@ class HandDriver:
         """
         ok = True
         last = len(self.nodes) - 1
-        for i, (node, sl) in enumerate(zip(self.nodes, self._slices, strict=True)):
+        for i, (node, sl, pad) in enumerate(zip(self.nodes, self._slices, self._pads,
+                                                strict=True)):
             values = torques[sl].tolist()
-            values += [0.0] * (3 - len(values))
+            if pad:
+                values += pad
             frame_id, data = node.next_command(values)
             ok = self.bus.send(frame_id, data, more=i < last) and ok
         return ok

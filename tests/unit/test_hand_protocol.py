@@ -9,7 +9,6 @@ from typing import Any
 
 import cantools
 import pytest
-import yaml
 
 from handctl.busload import FD_DLC_SIZES
 from handctl.config import HandConfig, load_hand
@@ -18,32 +17,9 @@ from handctl.hand_protocol import generate_dbc, generated_protocol, protocol_for
 from handctl.protocol import DEFAULT_DBC, Protocol, load_protocol
 
 from ..conftest import ROOT
+from ..shapes import shaped_hand
 
-DEFAULT_HAND = ROOT / "handctl" / "hands" / "hiroshima_hand.yaml"
 VECTORS = ROOT / "firmware_protocol" / "vectors.json"
-
-
-def shaped_hand(tmp_path: Path, joints: list[int], node_ids: list[int] | None = None,
-                edit: Any = None) -> Path:
-    """A hand config file of the default hand's joints, reshaped: finger i gets ``joints[i]``
-    joints (copies of the default first finger's) and node id ``node_ids[i]``."""
-    doc = yaml.safe_load(DEFAULT_HAND.read_text(encoding="utf-8"))
-    doc.pop("sim")
-    template = doc["fingers"][0]
-    nodes = node_ids or list(range(1, len(joints) + 1))
-    fingers = []
-    for i, (k, node) in enumerate(zip(joints, nodes, strict=True)):
-        finger = dict(template, name=f"finger{i}", node_id=node)
-        finger.pop("can_ids")
-        finger["joints"] = [dict(template["joints"][min(j, 2)], name=f"finger{i}_joint{j}")
-                            for j in range(k)]
-        fingers.append(finger)
-    doc["fingers"] = fingers
-    if edit is not None:
-        edit(doc)
-    path = tmp_path / f"hand_{'x'.join(map(str, joints))}.yaml"
-    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
-    return path
 
 
 def db_of(text: str) -> Any:
