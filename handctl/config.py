@@ -18,7 +18,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids
+from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids, protocol_for
 from handctl.protocol import Protocol
 from handctl.schema import Doc, load_yaml
 from handctl.wirelimits import check_wire_limits
@@ -126,6 +126,9 @@ class HandConfig:
     config_hash: str
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    #: The DBC file given for this hand (``--dbc``), or None: its protocol is the one generated
+    #: from its fingers (``handctl.hand_protocol.protocol_for`` decides, for every command).
+    dbc: str | None = None
 
     @property
     def joints(self) -> tuple[JointConfig, ...]:
@@ -141,17 +144,21 @@ class HandConfig:
         return sum(len(f.joints) for f in self.fingers)
 
 
-def load_hand(path: str | Path, protocol: Protocol | None = None) -> HandConfig:
+def load_hand(path: str | Path, dbc: str | Path | None = None) -> HandConfig:
     """Load and validate a hand config file; raises ``ConfigError`` on any problem.
 
-    Its fingers and limits are checked against ``protocol`` (the DBC generated for the hand
-    unless given, e.g. by ``--dbc``): a node the DBC has no frames for, another joint count,
-    or a limit the wire cannot carry is refused here, not discovered mid-run.
+    Its fingers and limits are checked against its protocol: the DBC file ``dbc`` (``--dbc``),
+    which the hand then keeps, or the one generated from its fingers. A node the DBC has no
+    frames for, another joint count, or a limit the wire cannot carry is refused here, not
+    discovered mid-run.
     """
-    return parse_hand(load_yaml(path), protocol)
+    return parse_hand(load_yaml(path), dbc=None if dbc is None else str(dbc))
 
 
-def parse_hand(doc: Doc, protocol: Protocol | None = None) -> HandConfig:
+def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = None
+               ) -> HandConfig:
+    """The hand config in ``doc``, checked against ``protocol`` if given (a recording's), else
+    against the protocol of the hand and ``dbc`` (``protocol_for``)."""
     name = doc.string("name")
     bus = _parse_bus(doc.mapping("bus"))
     finger_docs = doc.mappings("fingers", min_len=1, max_len=len(NODE_IDS))
@@ -174,12 +181,12 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None) -> HandConfig:
         config_hash=f"sha256:{digest[:16]}",
         safety=safety,
         sim=MappingProxyType(dict(sim_raw or {})),
+        dbc=dbc,
     )
     if protocol is None:
-        from handctl.hand_protocol import generated_protocol
-
-        protocol = generated_protocol(hand)
-    check_protocol(hand, protocol)
+        protocol = protocol_for(hand)
+    else:
+        check_protocol(hand, protocol)
     check_wire_limits(hand, protocol)
     return hand
 

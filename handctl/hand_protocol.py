@@ -191,9 +191,11 @@ def generated_protocol(hand: HandConfig) -> Protocol:
 
 
 def protocol_for(hand: HandConfig, dbc: str | Path | None = None) -> Protocol:
-    """The protocol every command of ``hand`` speaks: generated from the hand, or the DBC file
-    ``dbc`` (``--dbc``), which must then carry every finger's frames (``check_protocol``)."""
-    protocol = generated_protocol(hand) if dbc is None else load_protocol(Path(dbc))
+    """The protocol every command of ``hand`` speaks: the DBC file ``dbc``, else the one the
+    hand was loaded with (``hand.dbc``, from ``--dbc``), else the one generated from its
+    fingers. A DBC file must carry every finger's frames (``check_protocol``)."""
+    path = dbc if dbc is not None else hand.dbc
+    protocol = generated_protocol(hand) if path is None else load_protocol(Path(path))
     check_protocol(hand, protocol)
     return protocol
 

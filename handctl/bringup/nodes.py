@@ -18,7 +18,7 @@ from typing import Any
 from handctl.bus import EXTENDED_ID_FLAG, HandBus
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode, fault_names
-from handctl.drivers.hand import check_ids
+from handctl.hand_protocol import check_protocol
 from handctl.protocol import Protocol
 
 #: Messages a finger node sends (the host's receive streams of a node).
@@ -106,7 +106,7 @@ def survey(hand: HandConfig, protocol: Protocol, bus: HandBus, seconds: float,
            clock: Callable[[], int] = time.monotonic_ns,
            sleep: Callable[[float], None] = time.sleep) -> Survey:
     """Listen to ``bus`` for ``seconds`` and say what each configured node is. Sends nothing."""
-    check_ids(hand, protocol)
+    check_protocol(hand, protocol)
     nodes = [FingerNode(f, FingerLayouts.for_node(protocol, f.node_id)) for f in hand.fingers]
     dispatch = {fid: node for node in nodes for fid in node.streams}
     counts: dict[int, Counter[str]] = {node.node_id: Counter() for node in nodes}

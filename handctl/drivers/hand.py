@@ -20,7 +20,7 @@ from handctl.busload import frames_per_period
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode
 from handctl.drivers.receiver import Reject, RejectCounts
-from handctl.errors import ConfigError
+from handctl.hand_protocol import check_protocol
 from handctl.protocol import NODE_COMMANDS, Protocol
 
 FloatArray = npt.NDArray[np.float64]
@@ -51,24 +51,6 @@ class JointState:
         return np.where(self.feedback_ns < 0, np.inf, age)
 
 
-def check_ids(hand: HandConfig, protocol: Protocol) -> None:
-    """The hand config's CAN ids must be the DBC's: a mismatch would talk to nobody (or worse)."""
-    kinds = {"node_command": "NodeCommand", "torque_command": "TorqueCommand",
-             "feedback": "Feedback", "status": "Status", "heartbeat": "Heartbeat"}
-    for i, finger in enumerate(hand.fingers):
-        for key, kind in kinds.items():
-            name = f"{kind}_{finger.node_id}"
-            layout = protocol.by_name.get(name)
-            have = getattr(finger.can_ids, key)
-            if layout is None:
-                raise ConfigError(hand.source, f"fingers[{i}].node_id",
-                                  f"a node id with a {kind} message in {protocol.source}",
-                                  finger.node_id)
-            if layout.frame_id != have:
-                raise ConfigError(hand.source, f"fingers[{i}].can_ids.{key}",
-                                  f"0x{layout.frame_id:03X} ({name} in the DBC)", hex(have))
-
-
 class HandDriver:
     """Host side of the hand: polls feedback into ``state`` and sends per-node commands.
 
@@ -80,7 +62,7 @@ class HandDriver:
 
     def __init__(self, hand: HandConfig, protocol: Protocol, bus: HandBus,
                  clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
-        check_ids(hand, protocol)
+        check_protocol(hand, protocol)
         self.hand = hand
         self.bus = bus
         self.clock_ns = clock_ns

@@ -19,6 +19,7 @@ import orjson
 
 from handctl import __version__
 from handctl.config import HandConfig
+from handctl.hand_protocol import protocol_for
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
 
@@ -51,10 +52,14 @@ def start_metadata(hand: HandConfig, recipe: Recipe | None,
                    command_line: Sequence[str] = ()) -> dict[str, dict[str, str]]:
     """The records known before the run: hand, recipe, versions, the command line."""
     hand_text = _read(hand.source)
+    # The protocol the run speaks goes with the hand, as text: a re-run decodes and encodes
+    # with it, whatever DBC (given or generated) the handctl of the re-run would choose.
+    dbc = protocol_for(hand).text
     records = {
         ch.META_HAND: {"name": hand.name, "source": hand.source, "config_hash": hand.config_hash,
                        "sha256": hashlib.sha256(hand_text.encode()).hexdigest(),
-                       "yaml": hand_text},
+                       "yaml": hand_text, "dbc": dbc,
+                       "dbc_sha256": hashlib.sha256(dbc.encode()).hexdigest()},
         ch.META_VERSIONS: versions(),
     }
     if recipe is not None:

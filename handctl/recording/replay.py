@@ -34,8 +34,9 @@ from handctl.config import HandConfig, parse_hand
 from handctl.convention import phase_turns_deg
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError
+from handctl.hand_protocol import protocol_for
 from handctl.loop import EndOfTicks, Runtime, TickRecord
-from handctl.protocol import load_protocol
+from handctl.protocol import Protocol, parse_protocol
 from handctl.recipes.loader import check_against_hand, parse_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
@@ -212,7 +213,15 @@ def _hand(recording: Recording, required: bool = True) -> HandConfig | None:
             raise ConfigError(str(recording.path), f"metadata {ch.META_HAND}.yaml",
                               "the hand config the run used (recorded by handctl)", "nothing")
         return None
-    return parse_hand(parse_yaml(text, f"{recording.path} (its recorded hand config)"))
+    return parse_hand(parse_yaml(text, f"{recording.path} (its recorded hand config)"),
+                      _recorded_protocol(recording))
+
+
+def _recorded_protocol(recording: Recording) -> Protocol | None:
+    """The protocol the run spoke, as it recorded it (None in a recording from before the
+    protocol was recorded: then it was the packaged DBC, which the hand generates)."""
+    text = recording.meta(ch.META_HAND, "dbc")
+    return parse_protocol(text, f"{recording.path} (its recorded DBC)") if text else None
 
 
 def _recipe(recording: Recording, hand: HandConfig) -> Recipe:
@@ -683,7 +692,8 @@ def rerun(recording: Recording) -> RerunReport:
     before, inputs = tick_inputs(recording)
     bus.load(-1, before)
     clock = ReplayClock(period_s, inputs, bus)
-    driver = HandDriver(hand, load_protocol(), bus, clock_ns=clock.now_ns)
+    driver = HandDriver(hand, _recorded_protocol(recording) or protocol_for(hand), bus,
+                        clock_ns=clock.now_ns)
     check = FeedbackCheck(hand, driver)
     clock.check = check
     compare = _Compare(clock, list(hand.joint_names), check)

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from handctl.config import load_hand
 from handctl.errors import ConfigError
-from handctl.protocol import DEFAULT_DBC, Protocol, SignalSpec, load_protocol
+from handctl.protocol import DEFAULT_DBC, Protocol, SignalSpec
 
 ROOT = Path(__file__).resolve().parents[2]
 HAND_YAML = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
@@ -378,10 +378,9 @@ def narrower_dbc(tmp_path: Path) -> Path:
 
 
 def test_the_wire_ranges_come_from_the_dbc(tmp_path: Path) -> None:
-    narrow = load_protocol(narrower_dbc(tmp_path))
     with pytest.raises(ConfigError, match=r"TorqueCommand_1\.Torque1 carries "
                                           r"\(-0\.32768\.\.0\.32767 N·m\)") as info:
-        load_hand(HAND_YAML, narrow)
+        load_hand(HAND_YAML, narrower_dbc(tmp_path))
     assert info.value.key == "fingers[0].joints[0].tau_max"
     assert load_hand(HAND_YAML).joints[0].tau_max == 0.6
 
