@@ -108,7 +108,12 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 def _cmd_check(args: argparse.Namespace) -> int:
     if args.timing:
         return _cmd_check_timing(args)
-    from handctl.busload import MAX_LOAD, hand_budget
+    from handctl.busload import (
+        MAX_LOAD,
+        hand_budget,
+        too_long_for_classic,
+        what_would_fit,
+    )
     from handctl.hand_protocol import protocol_for
 
     hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
@@ -136,18 +141,19 @@ def _cmd_check(args: argparse.Namespace) -> int:
         print(f"{m.name:<17} 0x{m.frame_id:03X} {m.n_bytes:>5} {m.frames:>6} {rate:>8} "
               f"{m.frame_time_us:>7.1f}us {m.load * 100:>6.2f}%")
     print(f"total {budget.load * 100:.1f} % (limit {MAX_LOAD * 100:.0f} %)")
-    if budget.ok:
+    too_long = [] if bus.fd else too_long_for_classic(hand, protocol)
+    if budget.ok and not too_long:
         print("ok")
         return EXIT_OK
-    hints = [f"the highest loop rate that fits is {budget.highest_loop_rate_hz():.0f} Hz"]
-    per_finger = max(hand_budget(hand, protocol, nodes={f.node_id}).load for f in hand.fingers)
-    hints.append(f"one bus per finger would carry {per_finger * 100:.1f} %")
-    if not bus.fd:
-        fd = hand_budget(hand, protocol, fd=True, bitrate=1_000_000, data_bitrate=5_000_000)
-        hints.append(f"CAN-FD 1/5 Mbit/s would carry {fd.load * 100:.1f} %")
-    print(f"handctl: error: {args.hand}: bus: expected a worst-case load <= "
-          f"{MAX_LOAD * 100:.0f} %, found {budget.load * 100:.1f} % at "
-          f"{bus.loop_rate_hz:g} Hz; " + "; ".join(hints), file=sys.stderr)
+    if too_long:
+        print(f"handctl: error: {args.hand}: bus.fd: expected true (CAN-FD): "
+              f"{', '.join(too_long)} are longer than the 8 bytes of a classic CAN frame, and "
+              "handctl sends every message in one frame; found false", file=sys.stderr)
+    if not budget.ok:
+        print(f"handctl: error: {args.hand}: bus: expected a worst-case load <= "
+              f"{MAX_LOAD * 100:.0f} %, found {budget.load * 100:.1f} % at "
+              f"{bus.loop_rate_hz:g} Hz; " + "; ".join(what_would_fit(hand, protocol)),
+              file=sys.stderr)
     return EXIT_BAD_INPUT
 
 

@@ -236,9 +236,11 @@ def test_check_cli_bad_config_exits_2_with_the_message(tmp_path: Path,
 def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
     result = run_cli("check", "config/hands/hiroshima_hand_classic.yaml")
     assert result.returncode == 2
-    assert "122.6 %" in result.stderr
-    assert "403 Hz" in result.stderr
-    assert "one bus per finger would carry 40.9 %" in result.stderr
+    assert ("hiroshima_hand_classic.yaml: bus.fd: expected true (CAN-FD): Feedback_1 (16 bytes)"
+            in result.stderr)
+    assert "Status_3 (12 bytes) are longer than the 8 bytes of a classic CAN frame" in (
+        result.stderr)
+    assert "found 122.6 % at 1000 Hz; CAN-FD 1/5 Mbit/s would carry 39.1 %" in result.stderr
 
 
 # -- limits against the wire (handctl/wirelimits.py) ---------------------------------------------
