@@ -65,6 +65,15 @@ def frame_ids(node_id: int) -> dict[str, int]:
     return {CAN_ID_KEYS[kind]: base + node_id for kind, base in ID_BASES.items()}
 
 
+def node_message(frame_id: int) -> tuple[str, int] | None:
+    """(message kind, node id) of a node's frame id by the id rule above, or None: how a frame
+    of a node the hand does not have (whose frames its DBC therefore lacks) is still named."""
+    for kind, base in ID_BASES.items():
+        if frame_id - base in NODE_IDS:
+            return kind, frame_id - base
+    return None
+
+
 def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
     """The DBC text of a hand whose nodes are ``(node_id, joints)``, in the order given."""
     nodes = list(shape)
