@@ -70,7 +70,7 @@ def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
     if dbc is not None and not dbc.is_file():
         raise ConfigError("--dbc", "", "an existing DBC file (PROTOCOL.dbc)",
                           f"{dbc}: {'not a file' if dbc.exists() else 'no such file'}")
-    return load_hand(path, dbc)
+    return load_hand(path) if dbc is None else load_hand(path, dbc)
 
 
 def _positive_seconds(option: str, value: float | None) -> None:
