@@ -157,6 +157,14 @@ def _node_message(kind: str, n: int, joints: int) -> list[str]:
     """One message of node ``n`` with ``joints`` joints."""
     sender, receiver = ("HOST", f"FINGER{n}") if kind in ("NodeCommand", "TorqueCommand") \
         else (f"FINGER{n}", "HOST")
+    signals = _node_signals(kind, joints)
+    used = max(start + bits for _, start, bits, _, _ in signals) // 8
+    return _message(ID_BASES[kind] + n, f"{kind}_{n}", fd_dlc_size(used), sender, receiver,
+                    signals)
+
+
+def _node_signals(kind: str, joints: int) -> list[Signal]:
+    """The signals after Crc and Counter of a node's message ``kind``, for ``joints`` joints."""
     signals: list[Signal]
     if kind == "NodeCommand":
         signals = [("Command", 16, 8, False, _BYTE)]
@@ -174,9 +182,7 @@ def _node_message(kind: str, n: int, joints: int) -> list[str]:
     else:
         signals = [("State", 16, 8, False, _BYTE),
                    ("Uptime", 24, 32, False, '(1,0) [0|4294967295] "ms"')]
-    used = max(start + bits for _, start, bits, _, _ in signals) // 8
-    return _message(ID_BASES[kind] + n, f"{kind}_{n}", fd_dlc_size(used), sender, receiver,
-                    signals)
+    return signals
 
 
 def _message(frame_id: int, name: str, length: int, sender: str, receivers: str,
@@ -211,7 +217,13 @@ def protocol_for(hand: HandConfig, dbc: str | Path | None = None) -> Protocol:
 
 def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
     """Raise a ``ConfigError`` naming the first thing in which ``protocol`` and ``hand``
-    disagree: a node without its messages, a joint count, or a configured CAN id."""
+    disagree: a node without its messages, a configured CAN id, a joint count, or a message
+    whose signals are not the ones host and nodes read, in that order (scales and ranges may
+    differ: ``handctl/wirelimits.py`` holds the limits against them)."""
+    estop = protocol.by_name.get("EStop")
+    if estop is None or estop.signal_names != ("Reason",):
+        raise ConfigError(protocol.source, "EStop", "an EStop message of one signal, Reason",
+                          "none" if estop is None else ", ".join(estop.signal_names))
     for i, finger in enumerate(hand.fingers):
         where = f"fingers[{i}]"
         for kind, key in CAN_ID_KEYS.items():
@@ -238,6 +250,14 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
                               f"{finger.node_id} ({command.name}: {carried} torques, "
                               f"{feedback.name}: {read[0]} torques and {read[1]} angles)",
                               f"{n} joints")
+        for kind in ID_BASES:
+            layout = protocol.by_name[f"{kind}_{finger.node_id}"]
+            wanted = tuple(s[0] for s in _node_signals(kind, n))
+            if layout.signal_names != wanted:
+                raise ConfigError(protocol.source, layout.name,
+                                  f"the signals {', '.join(wanted)} after Crc and Counter, in "
+                                  f"that order (what host and node read; {finger.name} has "
+                                  f"{n} joints)", ", ".join(layout.signal_names))
 
 
 def wire_joints(signal_names: Iterable[str], prefix: str) -> int:

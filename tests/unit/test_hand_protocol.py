@@ -153,3 +153,24 @@ def test_the_packaged_dbc_as_dbc_gives_the_generated_layouts(hand: HandConfig) -
     assert [(x.name, x.frame_id, x.length, x.data_id) for x in given.layouts] == [
         (x.name, x.frame_id, x.length, x.data_id) for x in generated.layouts]
     assert load_protocol(DEFAULT_DBC).text == generated.text
+
+
+def test_a_given_dbc_must_have_the_signals_host_and_nodes_read(hand: HandConfig,
+                                                              tmp_path: Path) -> None:
+    """Right counts are not enough: a Feedback with a signal more would shift State and
+    FaultBits, so the signal list itself is held against the hand's."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    line = ' SG_ FaultBits : 120|8@1+ (1,0) [0|255] "" HOST\n'
+    anchor = "BO_ 386 Feedback_2: 16 FINGER2\n"
+    start = text.index(anchor)
+    at = text.index(line, start) + len(line)
+    extra = text[:at] + ' SG_ Temperature : 128|8@1+ (1,0) [0|255] "" HOST\n' + text[at:]
+    dbc = tmp_path / "extra.dbc"
+    dbc.write_text(extra.replace(anchor, "BO_ 386 Feedback_2: 20 FINGER2\n"),
+                   encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, dbc)
+    assert err.value.file == str(dbc) and err.value.key == "Feedback_2"
+    assert "Torque1, Torque2, Torque3, Angle1, Angle2, Angle3, State, FaultBits" in (
+        err.value.expected)
+    assert str(err.value.found).endswith("FaultBits, Temperature")
