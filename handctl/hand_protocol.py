@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 from handctl.busload import fd_dlc_size
 from handctl.errors import ConfigError
-from handctl.protocol import Protocol, load_protocol, parse_protocol
+from handctl.protocol import Protocol, crc8, load_protocol, parse_protocol
 
 if TYPE_CHECKING:
     from handctl.config import HandConfig
@@ -159,8 +159,24 @@ def _node_message(kind: str, n: int, joints: int) -> list[str]:
         else (f"FINGER{n}", "HOST")
     signals = _node_signals(kind, joints)
     used = max(start + bits for _, start, bits, _, _ in signals) // 8
-    return _message(ID_BASES[kind] + n, f"{kind}_{n}", fd_dlc_size(used), sender, receiver,
-                    signals)
+    return _message(ID_BASES[kind] + n, f"{kind}_{n}",
+                    frame_length(DATA_ID_BASES[kind] + n, used), sender, receiver, signals)
+
+
+def frame_length(data_id: int, used: int) -> int:
+    """The length of a message of ``used`` bytes: the smallest CAN-FD size that holds them and
+    at which no frame of all 0x00 or all 0xFF bytes passes the CRC of ``data_id`` (so that a
+    zeroed or erased buffer is never a valid frame; PROTOCOL.md). Of every message of nodes
+    1..15 with 1..6 joints, only Feedback_1 of five joints needs the next size (32, not 24)."""
+    size = fd_dlc_size(used)
+    while _erased_buffer_passes(data_id, size):
+        size = fd_dlc_size(size + 1)
+    return size
+
+
+def _erased_buffer_passes(data_id: int, length: int) -> bool:
+    start = bytes((data_id & 0xFF, data_id >> 8))
+    return any(crc8(start + bytes([fill]) * (length - 1)) == fill for fill in (0x00, 0xFF))
 
 
 def _node_signals(kind: str, joints: int) -> list[Signal]:

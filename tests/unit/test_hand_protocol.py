@@ -10,7 +10,7 @@ from typing import Any
 import cantools
 import pytest
 
-from handctl.busload import FD_DLC_SIZES
+from handctl.busload import FD_DLC_SIZES, fd_dlc_size
 from handctl.config import HandConfig, load_hand
 from handctl.errors import ConfigError
 from handctl.hand_protocol import generate_dbc, generated_protocol, protocol_for
@@ -89,12 +89,16 @@ def Protocol_of(shape: list[tuple[int, int]]) -> Protocol:  # noqa: N802 - reads
     return parse_protocol(generate_dbc(shape), "test shape")
 
 
-def test_no_erased_buffer_is_a_valid_frame_of_any_node() -> None:
-    """PROTOCOL.md's promise about the DataIDs, for every node id and length there can be."""
-    protocol = Protocol_of([(n, 1 + n % 6) for n in range(1, 16)])
+@pytest.mark.parametrize("joints", range(1, 7))
+def test_no_erased_buffer_is_a_valid_frame_of_any_node(joints: int) -> None:
+    """PROTOCOL.md's promise about the DataIDs, for every node id and joint count: all-0x00
+    and all-0xFF frames of Feedback_1 of five joints would pass at 24 bytes, so it is 32."""
+    protocol = Protocol_of([(n, joints) for n in range(1, 16)])
     for layout in protocol.layouts:
         for fill in (0x00, 0xFF):
             assert not layout.crc_ok(bytes([fill]) * layout.length), (layout.name, fill)
+    lengths = {protocol.layout("Feedback", n).length for n in range(1, 16)}
+    assert lengths == ({24, 32} if joints == 5 else {fd_dlc_size(4 + 4 * joints)})
 
 
 @pytest.mark.parametrize(("joints", "nodes", "key", "found"), [
