@@ -13,8 +13,9 @@ Per node n (1..15) with k joints (1..6):
 - ids ``0x010+n`` NodeCommand, ``0x100+n`` TorqueCommand, ``0x180+n`` Feedback, ``0x280+n``
   Status, ``0x700+n`` Heartbeat; DataIDs ``0x1010+n`` .. ``0x1050+n`` (``EStop``: id 0, 0x0F00);
 - ``TorqueCommand_n``: ``Torque1..k``; ``Feedback_n``: ``Torque1..k``, ``Angle1..k``, ``State``,
-  ``FaultBits``; each payload is padded with zero bytes up to the next CAN-FD DLC size, which
-  the CRC covers like any other byte.
+  ``FaultBits``; each payload is padded with zero bytes up to the next CAN-FD DLC size (one
+  size more where an erased buffer would pass the CRC: ``frame_length``), which the CRC covers
+  like any other byte.
 
 ``protocol_for`` is what every command calls: the hand's generated protocol, or a DBC given
 with ``--dbc``, checked against the hand so that a firmware of other frames is named before a
