@@ -7,7 +7,10 @@ Frame model (11-bit identifiers, as every handctl frame uses):
 
 - Classic CAN, n <= 8 data bytes: ``8n + 47`` bits (SOF to the end of the 3-bit interframe space)
   plus at most ``floor((34 + 8n - 1) / 4)`` stuff bits over the 34 + 8n bits that are stuffed.
-  A payload over 8 bytes cannot travel in one classic frame: it is counted as ceil(n/8) frames.
+  A payload over 8 bytes cannot travel in one classic frame: it is counted as ceil(n/8) frames,
+  to show what the traffic would take; handctl itself sends every message as one frame and
+  does not split, so ``handctl check`` refuses a classic-CAN hand with such a message
+  (``too_long_for_classic``).
 - CAN-FD with bit-rate switching: the arbitration phase (SOF, id, RRS, IDE, FDF, res, BRS:
   17 bits, plus their worst-case 4 stuff bits) and the tail (CRC delimiter, ACK slot, ACK
   delimiter, 7-bit EOF, 3-bit IFS: 13 bits) run at the nominal rate; the data phase (ESI, 4-bit
@@ -21,9 +24,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from handctl.config import BusConfig, HandConfig
 from handctl.protocol import Layout, Protocol
+
+if TYPE_CHECKING:  # the hand config's protocol is generated with the DLC sizes below
+    from handctl.config import BusConfig, HandConfig
 
 #: A configuration whose worst-case load exceeds this fraction is refused.
 MAX_LOAD = 0.5
@@ -144,6 +150,52 @@ def hand_budget(hand: HandConfig, protocol: Protocol, *, nodes: set[int] | None 
         rows.append(MessageBudget(layout.name, layout.frame_id, layout.length, frames, hz,
                                   t * 1e6, t * hz))
     return BusBudget(use_fd, rate, data_rate, hand.bus.loop_rate_hz, tuple(rows))
+
+
+#: Classic CAN carries at most this many data bytes in one frame.
+CLASSIC_MAX_BYTES = 8
+#: CAN-FD data-phase rates (bit/s) ``what_would_fit`` tries: common transceiver settings.
+FD_DATA_BITRATES = (2_000_000, 4_000_000, 5_000_000, 8_000_000, 10_000_000)
+
+
+def too_long_for_classic(hand: HandConfig, protocol: Protocol) -> list[str]:
+    """The hand's messages (``Name (n bytes)``) that one classic CAN frame cannot carry."""
+    nodes = {f.node_id for f in hand.fingers}
+    return [f"{layout.name} ({layout.length} bytes)" for layout in protocol.layouts
+            if layout.length > CLASSIC_MAX_BYTES and (layout.node is None or layout.node in nodes)]
+
+
+def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
+    """What would bring an over-budget hand within ``MAX_LOAD``, each with its figure.
+
+    On CAN-FD: the highest loop rate on this bus, the fewest buses that fit (the fingers
+    shared out evenly, in config order), and the lowest data-phase rate that fits. On classic
+    CAN only CAN-FD 1/5 Mbit/s: the Feedback and Status frames are longer than a classic frame
+    (``too_long_for_classic``), so no rate or number of classic buses would carry them.
+    """
+    if not hand.bus.fd:
+        fd = hand_budget(hand, protocol, fd=True, bitrate=1_000_000, data_bitrate=5_000_000)
+        return [f"CAN-FD 1/5 Mbit/s would carry {fd.load * 100:.1f} %"]
+    budget = hand_budget(hand, protocol)
+    hints = [f"the highest loop rate that fits is {budget.highest_loop_rate_hz():.0f} Hz"]
+    nodes = [f.node_id for f in hand.fingers]
+    for buses in range(2, len(nodes) + 1):
+        size = -(-len(nodes) // buses)
+        worst = max(hand_budget(hand, protocol, nodes=set(nodes[i:i + size])).load
+                    for i in range(0, len(nodes), size))
+        if worst <= MAX_LOAD:
+            who = "one bus per finger" if size == 1 else (
+                f"{-(-len(nodes) // size)} buses of at most {size} fingers")
+            hints.append(f"{who} would carry {worst * 100:.1f} % at most")
+            break
+    for rate in FD_DATA_BITRATES:
+        if rate > (hand.bus.data_bitrate or 0):
+            fd = hand_budget(hand, protocol, data_bitrate=rate)
+            if fd.ok:
+                hints.append(f"a data phase of {rate / 1e6:g} Mbit/s would carry "
+                             f"{fd.load * 100:.1f} %")
+                break
+    return hints
 
 
 def shortest_frame_time_s(fd: bool, bitrate: int, data_bitrate: int | None) -> float:

@@ -39,7 +39,6 @@ from handctl.errors import BusError, ConfigError, HandctlError
 if TYPE_CHECKING:
     from handctl.config import HandConfig
     from handctl.loop import RunResult
-    from handctl.protocol import Protocol
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -58,16 +57,20 @@ DEFAULT_HAND_HELP = "default: the Hiroshima-Hand, shipped with handctl"
 ORPHAN_WAIT_S = 2.0
 
 
-def _load_hand(path: Path, option: str, protocol: Protocol | None = None) -> HandConfig:
-    """The hand config at ``path``; a file that is not there is reported against the option
-    (or argument) that named it, the first thing to check when it is the default."""
+def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
+    """The hand config at ``path``, speaking the protocol of ``dbc`` (``--dbc``) or the one
+    generated from it; a file that is not there is reported against the option (or
+    argument) that named it, the first thing to check when it is the default."""
     from handctl.config import load_hand
 
     if not path.is_file():
         raise ConfigError(option, "", "an existing hand config file (HAND.yaml; "
                           + DEFAULT_HAND_HELP + ")",
                           f"{path}: {'not a file' if path.exists() else 'no such file'}")
-    return load_hand(path) if protocol is None else load_hand(path, protocol)
+    if dbc is not None and not dbc.is_file():
+        raise ConfigError("--dbc", "", "an existing DBC file (PROTOCOL.dbc)",
+                          f"{dbc}: {'not a file' if dbc.exists() else 'no such file'}")
+    return load_hand(path) if dbc is None else load_hand(path, dbc)
 
 
 def _positive_seconds(option: str, value: float | None) -> None:
@@ -105,13 +108,16 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 def _cmd_check(args: argparse.Namespace) -> int:
     if args.timing:
         return _cmd_check_timing(args)
-    from handctl.busload import MAX_LOAD, hand_budget
-    from handctl.drivers.hand import check_ids
-    from handctl.protocol import DEFAULT_DBC, load_protocol
+    from handctl.busload import (
+        MAX_LOAD,
+        hand_budget,
+        too_long_for_classic,
+        what_would_fit,
+    )
+    from handctl.hand_protocol import protocol_for
 
-    protocol = load_protocol(args.dbc or DEFAULT_DBC)
-    hand = _load_hand(args.hand, "HAND.yaml", protocol)
-    check_ids(hand, protocol)
+    hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
+    protocol = protocol_for(hand)
     bus = hand.bus
     kind = (f"CAN-FD {bus.bitrate / 1e6:g}/{(bus.data_bitrate or 0) / 1e6:g} Mbit/s"
             if bus.fd else f"classic CAN {bus.bitrate / 1e6:g} Mbit/s")
@@ -135,18 +141,19 @@ def _cmd_check(args: argparse.Namespace) -> int:
         print(f"{m.name:<17} 0x{m.frame_id:03X} {m.n_bytes:>5} {m.frames:>6} {rate:>8} "
               f"{m.frame_time_us:>7.1f}us {m.load * 100:>6.2f}%")
     print(f"total {budget.load * 100:.1f} % (limit {MAX_LOAD * 100:.0f} %)")
-    if budget.ok:
+    too_long = [] if bus.fd else too_long_for_classic(hand, protocol)
+    if budget.ok and not too_long:
         print("ok")
         return EXIT_OK
-    hints = [f"the highest loop rate that fits is {budget.highest_loop_rate_hz():.0f} Hz"]
-    per_finger = max(hand_budget(hand, protocol, nodes={f.node_id}).load for f in hand.fingers)
-    hints.append(f"one bus per finger would carry {per_finger * 100:.1f} %")
-    if not bus.fd:
-        fd = hand_budget(hand, protocol, fd=True, bitrate=1_000_000, data_bitrate=5_000_000)
-        hints.append(f"CAN-FD 1/5 Mbit/s would carry {fd.load * 100:.1f} %")
-    print(f"handctl: error: {args.hand}: bus: expected a worst-case load <= "
-          f"{MAX_LOAD * 100:.0f} %, found {budget.load * 100:.1f} % at "
-          f"{bus.loop_rate_hz:g} Hz; " + "; ".join(hints), file=sys.stderr)
+    if too_long:
+        print(f"handctl: error: {args.hand}: bus.fd: expected true (CAN-FD): "
+              f"{', '.join(too_long)} are longer than the 8 bytes of a classic CAN frame, and "
+              "handctl sends every message in one frame; found false", file=sys.stderr)
+    if not budget.ok:
+        print(f"handctl: error: {args.hand}: bus: expected a worst-case load <= "
+              f"{MAX_LOAD * 100:.0f} %, found {budget.load * 100:.1f} % at "
+              f"{bus.loop_rate_hz:g} Hz; " + "; ".join(what_would_fit(hand, protocol)),
+              file=sys.stderr)
     return EXIT_BAD_INPUT
 
 
@@ -199,7 +206,7 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     from handctl.session import RunRequest, run_recipe
 
     _positive_seconds("--max-seconds", args.max_seconds)
-    hand = _load_hand(args.hand, "--hand")
+    hand = _load_hand(args.hand, "--hand", args.dbc)
     recipe = load_recipe(args.recipe, hand)
     if args.live is not None and args.log is None:
         raise ConfigError("--live", "", "--log RUN.mcap as well (the recording's writer "
@@ -378,7 +385,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         from handctl.sim.faults import load_scenario
         from handctl.sim.hand import standalone
 
-        hand = _load_hand(args.hand, "--hand")
+        hand = _load_hand(args.hand, "--hand", args.dbc)
         faults = load_scenario(args.faults, hand) if args.faults else None
         print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
                          summary_json=args.summary_json, realtime=args.rt,
@@ -527,11 +534,10 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
 
     from handctl.bringup.nodes import survey
     from handctl.bringup.peer import listening_bus
-    from handctl.config import load_hand
-    from handctl.protocol import load_protocol
+    from handctl.hand_protocol import protocol_for
 
-    hand = load_hand(args.hand)
-    protocol = load_protocol()
+    hand = _load_hand(args.hand, "--hand", args.dbc)
+    protocol = protocol_for(hand)
     seconds = _seconds_or(args.seconds, 1.0)
     with listening_bus(args.bus, hand) as bus:
         result = survey(hand, protocol, bus, seconds)
@@ -589,7 +595,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     from handctl.bringup.hand_edit import format_offset, with_tdt_offsets
     from handctl.config import load_hand
 
-    hand = load_hand(args.hand)
+    hand = _load_hand(args.hand, "--hand", args.dbc)
     if args.output is None and not args.write:
         raise ConfigError("-o", "", "a file for the calibrated copy (or --write to overwrite "
                           f"{args.hand})", "nothing")
@@ -638,7 +644,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
         print(f"handctl: warning: {args.hand} could not be edited in place ({edited.why}); "
               "written as a plain dump, without its comments and layout", file=sys.stderr)
     target.write_text(edited.text, encoding="utf-8")
-    new_hash = load_hand(target).config_hash
+    new_hash = load_hand(target, args.dbc).config_hash
     print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))
     if new_hash != hand.config_hash:
         print(f"  the config hash changes from {hand.config_hash} to {new_hash}: recipes "
@@ -648,9 +654,8 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
 
 def _cmd_jog(args: argparse.Namespace) -> int:
     from handctl.bringup.jog import JogLine, jog, jog_recipe
-    from handctl.config import load_hand
 
-    hand = load_hand(args.hand)
+    hand = _load_hand(args.hand, "--hand", args.dbc)
     seconds = _seconds_or(args.seconds, 2.0)
     jog_recipe(hand, args.joint, args.torque, seconds)  # refused here, before any bus opens
     print(f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s on {args.bus}, "
@@ -682,16 +687,15 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
     from handctl.bringup.monitor import BusView, listen, table
     from handctl.bringup.peer import listening_bus
-    from handctl.config import load_hand
-    from handctl.protocol import load_protocol
+    from handctl.hand_protocol import protocol_for
 
     if args.log is not None and args.bus is not None:
         raise ConfigError("--log", "", "either --log or --bus: a log is read instead of a bus",
                           f"--log {args.log} --bus {args.bus}")
-    hand = load_hand(args.hand)
+    hand = _load_hand(args.hand, "--hand", args.dbc)
     seconds = None if args.seconds is None else _seconds_or(args.seconds, 0.0)
     every = _positive("--every", args.every, 1.0, "s")
-    view = BusView(load_protocol())
+    view = BusView(protocol_for(hand))
     on_tty = sys.stdout.isatty()
 
     def emit(snapshot: dict[str, object]) -> None:
@@ -813,6 +817,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _add_dbc(command: argparse.ArgumentParser) -> None:
+    """``--dbc``, on every command whose frames go on a bus."""
+    command.add_argument("--dbc", type=Path, metavar="PROTOCOL.dbc",
+                         help="the CAN protocol (a DBC file) instead of the one generated from "
+                              "the hand config; checked against the hand's nodes, joints and "
+                              "can_ids")
+
+
 def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     check = _command(
         sub, "check", help="validate a hand config and its bus-load budget",
@@ -822,8 +834,7 @@ def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                   "handctl check --timing --seconds 600 --json timing.json"])
     check.add_argument("hand", type=Path, nargs="?", default=DEFAULT_HAND, metavar="HAND.yaml",
                        help=f"hand config ({DEFAULT_HAND_HELP})")
-    check.add_argument("--dbc", type=Path, metavar="PROTOCOL.dbc",
-                       help="protocol DBC (default: the packaged one)")
+    _add_dbc(check)
     timing = check.add_argument_group(
         "timing", "can this host hold the hand's deadlines? (docs/timing.md; exit 5 if not)")
     timing.add_argument("--timing", action="store_true",
@@ -876,6 +887,7 @@ def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     sim.add_argument("--bus", required=True, metavar="SPEC",
                      help="INTERFACE:CHANNEL, e.g. virtual:test, unix:DIRECTORY or "
                           "udp_multicast:239.74.163.2")
+    _add_dbc(sim)
     sim.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
                      help=f"hand config ({DEFAULT_HAND_HELP})")
     sim.add_argument("--seconds", type=float, metavar="S",
@@ -911,6 +923,7 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         examples=[example,
                   "handctl run recipe RECIPE.yaml --bus socketcan:can0 --rt --log RUN.mcap"])
     rec.add_argument("recipe", type=Path, metavar="RECIPE.yaml", help="the recipe")
+    _add_dbc(rec)
     rec.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
                      help=f"hand config ({DEFAULT_HAND_HELP})")
     rec.add_argument("--bus", default="sim", metavar="SPEC",
@@ -1017,6 +1030,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     nodes.add_argument("--bus", default="sim",
                        help="sim (default), hand (the config's bus), socketcan:can0, "
                             "unix:DIR, virtual:NAME, INTERFACE:CHANNEL")
+    _add_dbc(nodes)
     nodes.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
                        help=f"hand config ({DEFAULT_HAND_HELP})")
     nodes.add_argument("--seconds", type=float, metavar="S",
@@ -1041,6 +1055,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
                     "offset is implausible. Default bus: the simulated hand, in lockstep.",
         notes="Exit 0 written, 1 refused (nothing written), 2 bad input, 3 safety stop, "
                "130 interrupted (Ctrl-C: a controlled stop).")
+    _add_dbc(tdt)
     tdt.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
                      help=f"hand config ({DEFAULT_HAND_HELP})")
     tdt.add_argument("-o", "--output", type=Path, metavar="HAND.yaml",
@@ -1084,6 +1099,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
                      help="torque [N·m], signed")
     jog.add_argument("--seconds", type=float, metavar="S",
                      help="how long to hold it [s] (default 2)")
+    _add_dbc(jog)
     jog.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
                      help=f"hand config ({DEFAULT_HAND_HELP})")
     jog.add_argument("--bus", default="sim",
@@ -1104,6 +1120,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         notes="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end.")
     mon.add_argument("--bus", help="sim (default), hand, socketcan:can0, unix:DIR, "
                                    "virtual:NAME, INTERFACE:CHANNEL")
+    _add_dbc(mon)
     mon.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
                      help=f"hand config ({DEFAULT_HAND_HELP})")
     mon.add_argument("--log", type=Path, metavar="RUN.mcap",

@@ -18,7 +18,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from handctl.protocol import Protocol, load_protocol
+from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids, protocol_for
+from handctl.protocol import Protocol
 from handctl.schema import Doc, load_yaml
 from handctl.wirelimits import check_wire_limits
 
@@ -125,6 +126,9 @@ class HandConfig:
     config_hash: str
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    #: The DBC file given for this hand (``--dbc``), or None: its protocol is the one generated
+    #: from its fingers (``handctl.hand_protocol.protocol_for`` decides, for every command).
+    dbc: str | None = None
 
     @property
     def joints(self) -> tuple[JointConfig, ...]:
@@ -140,19 +144,24 @@ class HandConfig:
         return sum(len(f.joints) for f in self.fingers)
 
 
-def load_hand(path: str | Path, protocol: Protocol | None = None) -> HandConfig:
+def load_hand(path: str | Path, dbc: str | Path | None = None) -> HandConfig:
     """Load and validate a hand config file; raises ``ConfigError`` on any problem.
 
-    Its limits are checked against the signals of ``protocol`` (the packaged DBC unless
-    given): a limit the wire cannot carry is refused here, not discovered mid-run.
+    Its fingers and limits are checked against its protocol: the DBC file ``dbc`` (``--dbc``),
+    which the hand then keeps, or the one generated from its fingers. A node the DBC has no
+    frames for, another joint count, or a limit the wire cannot carry is refused here, not
+    discovered mid-run.
     """
-    return parse_hand(load_yaml(path), protocol)
+    return parse_hand(load_yaml(path), dbc=None if dbc is None else str(dbc))
 
 
-def parse_hand(doc: Doc, protocol: Protocol | None = None) -> HandConfig:
+def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = None
+               ) -> HandConfig:
+    """The hand config in ``doc``, checked against ``protocol`` if given (a recording's), else
+    against the protocol of the hand and ``dbc`` (``protocol_for``)."""
     name = doc.string("name")
     bus = _parse_bus(doc.mapping("bus"))
-    finger_docs = doc.mappings("fingers", min_len=1, max_len=8)
+    finger_docs = doc.mappings("fingers", min_len=1, max_len=len(NODE_IDS))
     fingers = tuple(_parse_finger(f) for f in finger_docs)
     safety = _parse_safety(doc.mapping("safety", default={}))
     sim_raw = doc.raw("sim", None)
@@ -172,8 +181,13 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None) -> HandConfig:
         config_hash=f"sha256:{digest[:16]}",
         safety=safety,
         sim=MappingProxyType(dict(sim_raw or {})),
+        dbc=dbc,
     )
-    check_wire_limits(hand, protocol if protocol is not None else load_protocol())
+    if protocol is None:
+        protocol = protocol_for(hand)
+    else:
+        check_protocol(hand, protocol)
+    check_wire_limits(hand, protocol)
     return hand
 
 
@@ -231,9 +245,13 @@ def _parse_bus(doc: Doc) -> BusConfig:
 
 def _parse_finger(doc: Doc) -> FingerConfig:
     name = doc.string("name")
-    node_id = doc.integer("node_id", min=1, max=15)
-    ids_doc = doc.mapping("can_ids")
-    ids = CanIds(**{kind: ids_doc.integer(kind, min=1, max=MAX_STANDARD_ID)
+    node_id = doc.integer("node_id", min=NODE_IDS.start, max=NODE_IDS.stop - 1)
+    # The ids follow from the node id (PROTOCOL.md); ids written here are checked against the
+    # protocol's (``check_protocol``), for a DBC given with --dbc that numbers them otherwise.
+    derived = frame_ids(node_id)
+    ids_doc = doc.mapping("can_ids", default={})
+    ids = CanIds(**{kind: ids_doc.integer(kind, default=derived[kind], min=1,
+                                          max=MAX_STANDARD_ID)
                     for kind in CAN_ID_KINDS})
     ids_doc.done()
     base = doc.mapping("base")
@@ -242,7 +260,8 @@ def _parse_finger(doc: Doc) -> FingerConfig:
     base_angle = base.number("angle", min=-2 * math.pi, max=2 * math.pi, unit="rad")
     base.done()
     z = doc.number("z", default=0.0, min=-1.0, max=1.0, unit="m")
-    joints = tuple(_parse_joint(j) for j in doc.mappings("joints", min_len=1, max_len=3))
+    joints = tuple(_parse_joint(j) for j in doc.mappings("joints", min_len=1,
+                                                                 max_len=MAX_JOINTS))
     doc.done()
     return FingerConfig(name, node_id, ids, base_x, base_y, base_angle, z, joints)
 

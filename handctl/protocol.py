@@ -271,8 +271,12 @@ def _raw_bounds(sig: SignalSpec) -> tuple[float, float]:
 class Protocol:
     """Every layout of a DBC, by name and by CAN id."""
 
-    def __init__(self, layouts: Sequence[Layout], source: str, version: int = 0) -> None:
+    def __init__(self, layouts: Sequence[Layout], source: str, version: int = 0,
+                 text: str = "") -> None:
         self.source = source
+        #: The DBC text the layouts were compiled from: what a recording keeps, so that a
+        #: replay speaks the very protocol the run spoke.
+        self.text = text
         #: The protocol version of the DBC (its ``VERSION``), which nodes report in Status.
         self.version = version
         self.layouts = tuple(layouts)
@@ -315,26 +319,40 @@ def foreign_status_version(layout: Layout, data: bytes) -> int | None:
 
 @cache
 def load_protocol(path: str | Path = DEFAULT_DBC) -> Protocol:
-    """Compile a DBC into layouts; cached, since the DBC does not change while we run."""
-    import cantools  # only here: the hot path never touches cantools
+    """Compile a DBC file into layouts; cached, since the DBC does not change while we run.
 
+    DBC files are Windows-1252 text by convention (cantools reads them so too)."""
     name = str(path)
     try:
-        db: Any = cantools.database.load_file(str(path), strict=True)
+        text = Path(path).read_text(encoding="cp1252")
     except FileNotFoundError:
         raise ConfigError(name, "", "an existing DBC file", "no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(name, "", "a readable DBC file", f"{type(exc).__name__}: {exc}"
+                          ) from None
+    return parse_protocol(text, name)
+
+
+@cache
+def parse_protocol(text: str, source: str) -> Protocol:
+    """Compile DBC ``text`` (named ``source`` in messages) into layouts; cached by text, so a
+    hand's generated DBC is parsed once however many commands ask for it."""
+    import cantools  # only here: the hot path never touches cantools
+
+    try:
+        db: Any = cantools.database.load_string(text, database_format="dbc", strict=True)
     except Exception as exc:  # cantools raises many kinds of parse errors
-        raise ConfigError(name, "", "a valid DBC", f"{type(exc).__name__}: {exc}") from None
+        raise ConfigError(source, "", "a valid DBC", f"{type(exc).__name__}: {exc}") from None
     send_choices = _enum_choices(db, "HandctlSend")
-    layouts = [_compile(message, name, send_choices) for message in db.messages]
+    layouts = [_compile(message, source, send_choices) for message in db.messages]
     data_ids: dict[int, str] = {}
     for layout in layouts:
         if layout.data_id in data_ids:
-            raise ConfigError(name, f"{layout.name}.DataID",
+            raise ConfigError(source, f"{layout.name}.DataID",
                               f"a DataID not used by {data_ids[layout.data_id]}",
                               layout.data_id)
         data_ids[layout.data_id] = layout.name
-    return Protocol(layouts, name, _protocol_version(db.version, name))
+    return Protocol(layouts, source, _protocol_version(db.version, source), text)
 
 
 def _protocol_version(text: str | None, source: str) -> int:

@@ -39,10 +39,10 @@ from handctl.convention import POSE_EVERY_TICKS  # the summaries measure the tur
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError, HandctlError
 from handctl.estimator import ObjectEstimator
+from handctl.hand_protocol import protocol_for
 from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
 from handctl.hostfacts import affinity
 from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
-from handctl.protocol import load_protocol
 from handctl.recipes.schema import Recipe
 from handctl.safety.faults import FAULTS
 from handctl.tickstats import STAGES, TickWindow, percentile_us
@@ -139,7 +139,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
                recorder: RecordSink | None = None) -> RunReport:
     """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on."""
     timebudget.check(req.max_seconds)
-    protocol = load_protocol()
+    protocol = protocol_for(req.hand)
     spec = parse_spec(req.bus, req.hand.bus)
     warnings: list[str] = []
     is_sim = spec.interface == "sim"
@@ -391,6 +391,8 @@ class SimProcess:
         cmd = [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{directory}",
                "--hand", req.hand.source, "--seed", str(req.seed),
                "--summary-json", str(self.summary_path), "--parent-pid", str(os.getpid())]
+        if req.hand.dbc is not None:
+            cmd += ["--dbc", req.hand.dbc]
         if req.sim_faults is not None:
             cmd += ["--faults", str(req.sim_faults)]
         if req.realtime_priority:

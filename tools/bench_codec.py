@@ -1,5 +1,6 @@
-"""Codec cost of one 1 kHz tick: encode the three command frames and check and decode the three
-feedback frames of nine joints, with handctl's compiled layouts and with cantools (same run)."""
+"""Codec cost of one 1 kHz tick: encode every finger's command frame and check and decode every
+finger's feedback frame, with handctl's compiled layouts and with cantools (same run), for the
+hand's own protocol (the default hand's: three fingers of three joints)."""
 
 from __future__ import annotations
 
@@ -11,12 +12,15 @@ from collections.abc import Callable
 
 import cantools
 
-from handctl.protocol import DEFAULT_DBC, load_protocol
+from handctl.cli import DEFAULT_HAND
+from handctl.config import load_hand
+from handctl.hand_protocol import protocol_for
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ticks", type=int, default=20_000, help="ticks per measurement")
     parser.add_argument("--repeats", type=int, default=5, help="measurements per codec")
+    parser.add_argument("--hand", default=str(DEFAULT_HAND), help="hand config (HAND.yaml)")
 
 
 def _measure(tick: Callable[[int], None], ticks: int, repeats: int) -> list[float]:
@@ -33,13 +37,16 @@ def _measure(tick: Callable[[int], None], ticks: int, repeats: int) -> list[floa
 
 
 def run(args: argparse.Namespace) -> dict[str, float]:
-    protocol = load_protocol()
-    db = cantools.database.load_file(str(DEFAULT_DBC))
+    hand = load_hand(args.hand)
+    protocol = protocol_for(hand)
+    db = cantools.database.load_string(protocol.text, database_format="dbc")
     assert isinstance(db, cantools.database.can.Database)
-    commands = [protocol.layout("TorqueCommand", n) for n in (1, 2, 3)]
-    feedbacks = [protocol.layout("Feedback", n) for n in (1, 2, 3)]
-    torques = [(0.1234, -0.2345, 0.3456), (0.01, 0.02, -0.03), (-0.1, 0.05, 0.2)]
-    fb_frames = [lay.encode(k, (0.1, 0.2, 0.3, 1.0, 1.1, 1.2, 1, 0))
+    nodes = [f.node_id for f in hand.fingers]
+    commands = [protocol.layout("TorqueCommand", n) for n in nodes]
+    feedbacks = [protocol.layout("Feedback", n) for n in nodes]
+    torques = [tuple(0.1234 * (-1) ** j / (i + 1) for j in range(len(lay.signals)))
+               for i, lay in enumerate(commands)]
+    fb_frames = [lay.encode(k, [0.1 * (j + 1) for j in range(len(lay.signals) - 2)] + [1, 0])
                  for k, lay in enumerate(feedbacks)]
     cmd_msgs = [db.get_message_by_frame_id(lay.frame_id) for lay in commands]
     fb_msgs = [db.get_message_by_frame_id(lay.frame_id) for lay in feedbacks]
@@ -54,8 +61,8 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     def theirs(k: int) -> None:
         # cantools has no CRC of its own; it gets ours, which favours cantools slightly.
         for lay, msg, tau in zip(commands, cmd_msgs, torques, strict=True):
-            body = msg.encode({"Crc": 0, "Counter": k & 0xFF, "Torque1": tau[0],
-                               "Torque2": tau[1], "Torque3": tau[2]})
+            body = msg.encode({"Crc": 0, "Counter": k & 0xFF,
+                               **{f"Torque{j + 1}": t for j, t in enumerate(tau)}})
             lay.crc_ok(body)
         for lay, msg, data in zip(feedbacks, fb_msgs, fb_frames, strict=True):
             if lay.crc_ok(data):

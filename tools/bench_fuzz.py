@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from handctl.bus import open_bus  # noqa: E402
 from handctl.config import load_hand  # noqa: E402
 from handctl.drivers.hand import HandDriver  # noqa: E402
-from handctl.protocol import load_protocol  # noqa: E402
+from handctl.hand_protocol import protocol_for  # noqa: E402
 from tests.strategies import Frame, frame_batches  # noqa: E402
 
 #: Examples per Hypothesis run at most; runs repeat with the next seed until enough frames are
@@ -64,7 +64,7 @@ class Tally:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     hand = load_hand(args.hand)
-    protocol = load_protocol()
+    protocol = protocol_for(hand)
     angle_limit = 3.2768  # rad: the largest angle the Feedback encoding can carry
     tally = Tally()
     started = time.perf_counter()

@@ -64,8 +64,8 @@ from handctl.config import HandConfig, load_hand  # noqa: E402
 from handctl.convention import POSE_EVERY_TICKS  # noqa: E402
 from handctl.drivers.hand import HandDriver  # noqa: E402
 from handctl.estimator import ObjectEstimator  # noqa: E402
+from handctl.hand_protocol import protocol_for  # noqa: E402
 from handctl.loop import RunResult, Runtime  # noqa: E402
-from handctl.protocol import load_protocol  # noqa: E402
 from handctl.recipes.loader import load_recipe  # noqa: E402
 from handctl.recipes.schema import Recipe  # noqa: E402
 from handctl.recording import channels as ch  # noqa: E402
@@ -154,7 +154,7 @@ class _Side:
         host = stack.enter_context(open_bus(channel, hand.bus))
         self.sim = sim = SimulatedHand(hand, peer)
         self.clock = TickTimer(hand.bus.period_s, sim.step, side, turns)
-        driver = HandDriver(hand, load_protocol(), host, clock_ns=self.clock.now_ns)
+        driver = HandDriver(hand, protocol_for(hand), host, clock_ns=self.clock.now_ns)
         estimator = ObjectEstimator(hand, recipe.objects) if recipe.objects else None
         self.recorder: Recorder | None = None
         if out is not None:

@@ -32,7 +32,8 @@ sys.path.insert(0, str(ROOT))
 
 from handctl.bus import open_bus  # noqa: E402
 from handctl.config import HandConfig, load_hand  # noqa: E402
-from handctl.protocol import NODE_COMMANDS, load_protocol  # noqa: E402
+from handctl.hand_protocol import protocol_for  # noqa: E402
+from handctl.protocol import NODE_COMMANDS  # noqa: E402
 from handctl.sim.hand import SimulatedHand  # noqa: E402
 from handctl.sim.params import NODE_TICK_S, parse_sim  # noqa: E402
 from handctl.sim.plant import Plant  # noqa: E402
@@ -72,7 +73,7 @@ def bench_plant(hand: HandConfig, ticks: int) -> float:
 
 def bench_bus(hand: HandConfig, ticks: int) -> tuple[float, float, float]:
     """Returns (real-time factor, feedback frames the host got per tick, µs in ``step``)."""
-    protocol = load_protocol()
+    protocol = protocol_for(hand)
     channel = f"virtual:bench-{uuid.uuid4().hex[:8]}"
     host = open_bus(channel, hand.bus)
     peer = open_bus(channel, hand.bus)

@@ -24,9 +24,8 @@ import textwrap
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-from generated import display_path, write_or_check
+from generated import DEFAULT_DBC, display_path, read_protocol, write_or_check
 
 from handctl.protocol import (
     CRC8_INIT,
@@ -35,11 +34,9 @@ from handctl.protocol import (
     Layout,
     SignalSpec,
     _raw_bounds,
-    load_protocol,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_DBC = ROOT / "firmware_protocol" / "handctl.dbc"
 DEFAULT_OUT = ROOT / "firmware_protocol" / "c"
 HEADER_NAME = "handctl_protocol.h"
 SOURCE_NAME = "handctl_protocol.c"
@@ -668,18 +665,12 @@ def _render_by_id(messages: list[CMessage]) -> tuple[list[str], set[str]]:
     return lines, used
 
 
-def generate(dbc: Path) -> dict[str, str]:
-    """File name -> text of the C codec for ``dbc``."""
-    import cantools
-
-    protocol = load_protocol(dbc)
-    db: Any = cantools.database.load_file(str(dbc), strict=True)
+def generate(dbc: Path, hand: Path | None = None) -> dict[str, str]:
+    """File name -> text of the C codec for ``dbc``, or for the protocol of ``hand``."""
+    protocol, db, dbc_name, option = read_protocol(dbc, hand)
     senders = {msg.name: tuple(msg.senders) for msg in db.messages}
     messages = build_messages(protocol.layouts, senders)
-    dbc_name = display_path(dbc)
-    command = "python tools/gen_c_codec.py"
-    if dbc.resolve() != DEFAULT_DBC.resolve():
-        command += f" --dbc {dbc_name}"
+    command = "python tools/gen_c_codec.py" + option
     version = db.version or ""
     return {
         HEADER_NAME: render_header(messages, command, dbc_name, version),
@@ -689,18 +680,22 @@ def generate(dbc: Path) -> dict[str, str]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
-    parser.add_argument("--dbc", type=Path, default=DEFAULT_DBC, help="DBC to read")
+    inputs = parser.add_mutually_exclusive_group()
+    inputs.add_argument("--dbc", type=Path, default=DEFAULT_DBC, help="DBC to read")
+    inputs.add_argument("--hand", type=Path, help="hand config (HAND.yaml) whose generated "
+                        "protocol to read, instead of a DBC")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="directory to write to")
     parser.add_argument("--check", action="store_true",
                         help="write nothing; exit 1 if the files on disk are not up to date")
     args = parser.parse_args(argv)
     try:
-        files = generate(args.dbc)
-    except (GenerationError, ValueError) as exc:
+        files = generate(args.dbc, args.hand)
+    except (GenerationError, ValueError) as exc:  # ConfigError is a ValueError
         print(f"gen_c_codec.py: {exc}", file=sys.stderr)
         return 2
+    source = display_path(args.hand if args.hand is not None else args.dbc)
     return write_or_check("gen_c_codec.py", {args.out / name: text for name, text in files.items()},
-                          display_path(args.dbc), "python tools/gen_c_codec.py", args.check)
+                          source, "python tools/gen_c_codec.py", args.check)
 
 if __name__ == "__main__":
     sys.exit(main())

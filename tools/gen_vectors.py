@@ -25,13 +25,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from generated import display_path, write_or_check
+from generated import DEFAULT_DBC, display_path, read_protocol, write_or_check
 
 from handctl.errors import ProtocolError
-from handctl.protocol import Layout, Protocol, SignalSpec, _raw_bounds, crc8, load_protocol
+from handctl.protocol import Layout, Protocol, SignalSpec, _raw_bounds, crc8
 
 ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_DBC = ROOT / "firmware_protocol" / "handctl.dbc"
 DEFAULT_OUT = ROOT / "firmware_protocol" / "vectors.json"
 COMMAND = "python tools/gen_vectors.py"
 SEED = 0x4A4E44  # fixed: the file must not change unless the DBC does
@@ -253,7 +252,7 @@ def _cross_check(db: Any, layout: Layout, counter: int, values: list[Value], dat
     return decoded
 
 
-def build(protocol: Protocol, db: Any, dbc_name: str) -> dict[str, Any]:
+def build(protocol: Protocol, db: Any, dbc_name: str, command: str = COMMAND) -> dict[str, Any]:
     """The whole document, as plain data."""
     if crc8(CRC_CHECK_INPUT) != CRC_CHECK_VALUE:
         raise VectorError(f"handctl.protocol.crc8 gives 0x{crc8(CRC_CHECK_INPUT):02X} for "
@@ -277,7 +276,7 @@ def build(protocol: Protocol, db: Any, dbc_name: str) -> dict[str, Any]:
                             "bytes": data.hex(), "decoded": _named(layout, decoded)})
     return {
         "format": 1,
-        "generated_by": COMMAND,
+        "generated_by": command,
         "dbc": dbc_name,
         "dbc_version": db.version or "",
         "crc": "CRC-8/AUTOSAR (poly 0x2F, init 0xFF, xorout 0xFF) over DataID (low byte, high "
@@ -383,12 +382,10 @@ def render(document: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def generate(dbc: Path) -> str:
-    import cantools
-
-    protocol = load_protocol(dbc)
-    db = cantools.database.load_file(str(dbc), strict=True)
-    document = build(protocol, db, display_path(dbc))
+def generate(dbc: Path, hand: Path | None = None) -> str:
+    """The vectors of ``dbc``, or of the protocol of ``hand``."""
+    protocol, db, dbc_name, option = read_protocol(dbc, hand)
+    document = build(protocol, db, dbc_name, COMMAND + option)
     text = render(document)
     if json.loads(text) != json.loads(json.dumps(document)):
         raise VectorError("the rendered JSON does not read back as the document")
@@ -397,18 +394,21 @@ def generate(dbc: Path) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
-    parser.add_argument("--dbc", type=Path, default=DEFAULT_DBC, help="DBC to read")
+    inputs = parser.add_mutually_exclusive_group()
+    inputs.add_argument("--dbc", type=Path, default=DEFAULT_DBC, help="DBC to read")
+    inputs.add_argument("--hand", type=Path, help="hand config (HAND.yaml) whose generated "
+                        "protocol to read, instead of a DBC")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON file to write")
     parser.add_argument("--check", action="store_true",
                         help="write nothing; exit 1 if the file on disk is not up to date")
     args = parser.parse_args(argv)
     try:
-        text = generate(args.dbc)
-    except (VectorError, ValueError) as exc:
+        text = generate(args.dbc, args.hand)
+    except (VectorError, ValueError) as exc:  # ConfigError is a ValueError
         print(f"gen_vectors.py: {exc}", file=sys.stderr)
         return 2
-    return write_or_check("gen_vectors.py", {args.out: text}, display_path(args.dbc), COMMAND,
-                          args.check)
+    source = display_path(args.hand if args.hand is not None else args.dbc)
+    return write_or_check("gen_vectors.py", {args.out: text}, source, COMMAND, args.check)
 
 if __name__ == "__main__":
     sys.exit(main())

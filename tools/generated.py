@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
+
+from handctl.protocol import Protocol, load_protocol
 
 ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_DBC = ROOT / "firmware_protocol" / "handctl.dbc"
 
 
 def display_path(path: Path) -> str:
@@ -20,6 +24,27 @@ def display_path(path: Path) -> str:
         return path.resolve().relative_to(ROOT).as_posix()
     except ValueError:
         return path.name
+
+
+def read_protocol(dbc: Path, hand: Path | None) -> tuple[Protocol, Any, str, str]:
+    """What a generator generates from: the protocol of the hand config ``hand`` (``--hand``,
+    the DBC generated for it) or of the DBC file ``dbc``; with its cantools database, its name
+    in the generated text and the options that redo it (empty for the packaged DBC)."""
+    import cantools
+
+    if hand is not None:
+        from handctl.config import load_hand
+        from handctl.hand_protocol import generated_protocol
+
+        protocol = generated_protocol(load_hand(hand))
+        name = f"the DBC generated for {display_path(hand)}"
+        option = f" --hand {display_path(hand)}"
+    else:
+        protocol = load_protocol(dbc)
+        name = display_path(dbc)
+        option = "" if dbc.resolve() == DEFAULT_DBC.resolve() else f" --dbc {name}"
+    db = cantools.database.load_string(protocol.text, database_format="dbc", strict=True)
+    return protocol, db, name, option
 
 
 def write_or_check(tool: str, files: dict[Path, str], source: str, command: str,

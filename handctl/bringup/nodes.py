@@ -18,7 +18,7 @@ from typing import Any
 from handctl.bus import EXTENDED_ID_FLAG, HandBus
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode, fault_names
-from handctl.drivers.hand import check_ids
+from handctl.hand_protocol import check_protocol, node_message
 from handctl.protocol import NodeState, Protocol
 
 #: Messages a finger node sends (the host's receive streams of a node).
@@ -96,7 +96,12 @@ def describe_id(frame_id: int, protocol: Protocol, node_ids: set[int]) -> str:
         return f"29-bit id 0x{frame_id & ~EXTENDED_ID_FLAG:08X}: not handctl's"
     layout = protocol.by_id.get(frame_id)
     if layout is None:
-        return "not in the DBC"
+        # The hand's DBC has frames for its own nodes only: another node is named by the id
+        # rule of every generated DBC.
+        found = node_message(frame_id)
+        if found is None or found[1] in node_ids:
+            return "not in the DBC"
+        return f"{found[0]}_{found[1]}: node {found[1]}, not in the hand config"
     if layout.kind in NODE_KINDS and layout.node not in node_ids:
         return f"{layout.name}: node {layout.node}, not in the hand config"
     return f"{layout.name}: sent by another host"
@@ -106,7 +111,7 @@ def survey(hand: HandConfig, protocol: Protocol, bus: HandBus, seconds: float,
            clock: Callable[[], int] = time.monotonic_ns,
            sleep: Callable[[float], None] = time.sleep) -> Survey:
     """Listen to ``bus`` for ``seconds`` and say what each configured node is. Sends nothing."""
-    check_ids(hand, protocol)
+    check_protocol(hand, protocol)
     nodes = [FingerNode(f, FingerLayouts.for_node(protocol, f.node_id)) for f in hand.fingers]
     dispatch = {fid: node for node in nodes for fid in node.streams}
     counts: dict[int, Counter[str]] = {node.node_id: Counter() for node in nodes}

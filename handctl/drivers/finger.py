@@ -78,16 +78,18 @@ def make_node_command(layout: Layout, counter: int, command: str) -> tuple[int, 
 class Feedback:
     """One decoded feedback frame, before the host's TDT calibration."""
 
-    tdt: tuple[float, float, float]  # N·m, node calibration
-    angles: tuple[float, float, float]  # rad
+    tdt: tuple[float, ...]  # N·m, node calibration, one per joint on the wire
+    angles: tuple[float, ...]  # rad
     state: int
     fault_bits: int
 
 
 def parse_feedback(values: Sequence[float]) -> Feedback:
-    """Turn the decoded signal values of a Feedback frame into named quantities."""
-    t1, t2, t3, a1, a2, a3, state, faults = values
-    return Feedback((t1, t2, t3), (a1, a2, a3), int(state), int(faults))
+    """Turn the decoded signal values of a Feedback frame (``Torque1..k``, ``Angle1..k``,
+    ``State``, ``FaultBits``; k the node's joints) into named quantities."""
+    k = (len(values) - 2) // 2
+    return Feedback(tuple(values[:k]), tuple(values[k:2 * k]), int(values[2 * k]),
+                    int(values[2 * k + 1]))
 
 
 class FingerNode:

@@ -1,4 +1,4 @@
-"""The hand-level driver: nine joints over three finger nodes, one drain and one send per tick.
+"""The hand-level driver: every joint over its finger's node, one drain and one send per tick.
 
 Joint vectors everywhere in handctl are in config order (finger by finger, joint by joint); this
 module is where that order meets the per-node frames. The state arrays are allocated once and
@@ -21,7 +21,7 @@ from handctl.busload import frames_per_period
 from handctl.config import HandConfig
 from handctl.drivers.finger import FingerLayouts, FingerNode
 from handctl.drivers.receiver import Reject, RejectCounts
-from handctl.errors import ConfigError
+from handctl.hand_protocol import check_protocol
 from handctl.protocol import NODE_COMMANDS, Protocol
 
 #: Torques that came out of the safety supervisor. Only ``handctl/safety/supervisor.py`` makes
@@ -51,24 +51,6 @@ class JointState:
         return np.where(self.feedback_ns < 0, np.inf, age)
 
 
-def check_ids(hand: HandConfig, protocol: Protocol) -> None:
-    """The hand config's CAN ids must be the DBC's: a mismatch would talk to nobody (or worse)."""
-    kinds = {"node_command": "NodeCommand", "torque_command": "TorqueCommand",
-             "feedback": "Feedback", "status": "Status", "heartbeat": "Heartbeat"}
-    for i, finger in enumerate(hand.fingers):
-        for key, kind in kinds.items():
-            name = f"{kind}_{finger.node_id}"
-            layout = protocol.by_name.get(name)
-            have = getattr(finger.can_ids, key)
-            if layout is None:
-                raise ConfigError(hand.source, f"fingers[{i}].node_id",
-                                  f"a node id with a {kind} message in {protocol.source}",
-                                  finger.node_id)
-            if layout.frame_id != have:
-                raise ConfigError(hand.source, f"fingers[{i}].can_ids.{key}",
-                                  f"0x{layout.frame_id:03X} ({name} in the DBC)", hex(have))
-
-
 class HandDriver:
     """Host side of the hand: polls feedback into ``state`` and sends per-node commands.
 
@@ -80,7 +62,7 @@ class HandDriver:
 
     def __init__(self, hand: HandConfig, protocol: Protocol, bus: FrameBus,
                  clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
-        check_ids(hand, protocol)
+        check_protocol(hand, protocol)
         self.hand = hand
         self.bus = bus
         self.clock_ns = clock_ns
@@ -97,6 +79,9 @@ class HandDriver:
         for finger in hand.fingers:
             self._slices.append(slice(start, start + len(finger.joints)))
             start += len(finger.joints)
+        #: Zeros after each finger's torques, up to what its TorqueCommand carries.
+        self._pads = [[0.0] * (len(node.layouts.command.signals) - (sl.stop - sl.start))
+                      for node, sl in zip(self.nodes, self._slices, strict=True)]
         n = hand.n_joints
         self._tdt_scale = np.array([j.tdt.scale for j in hand.joints])
         self._tdt_offset = np.array([j.tdt.offset for j in hand.joints])
@@ -184,9 +169,11 @@ class HandDriver:
         """
         ok = True
         last = len(self.nodes) - 1
-        for i, (node, sl) in enumerate(zip(self.nodes, self._slices, strict=True)):
+        for i, (node, sl, pad) in enumerate(zip(self.nodes, self._slices, self._pads,
+                                                strict=True)):
             values = torques[sl].tolist()
-            values += [0.0] * (3 - len(values))
+            if pad:
+                values += pad
             frame_id, data = node.next_command(values)
             ok = self.bus.send(frame_id, data, more=i < last) and ok
         return ok

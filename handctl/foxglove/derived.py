@@ -25,7 +25,8 @@ from foxglove.messages import FrameTransforms, Log, LogLevel, SceneUpdate
 from handctl.config import CAN_ID_KINDS, ESTOP_ID, HandConfig, parse_hand
 from handctl.estimator import ObjectEstimator
 from handctl.foxglove.scene import DEFAULT_OBJECT_LENGTH, HandScene, ObjectShape, timestamp
-from handctl.protocol import Layout, load_protocol
+from handctl.hand_protocol import protocol_for
+from handctl.protocol import Layout
 from handctl.recording import channels as ch
 from handctl.schema import parse_yaml
 
@@ -127,7 +128,7 @@ class Derived:
             _json(JOINTS, "handctl.Joints", joints_schema(self.joints)),
             _json(RX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA),
             _json(TX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA)]
-        protocol = load_protocol()
+        protocol = protocol_for(hand)
         self.frames: dict[int, _FrameKind] = {}
         for finger in hand.fingers:
             ids = finger.can_ids.as_dict()

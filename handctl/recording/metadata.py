@@ -21,6 +21,8 @@ import orjson
 from handctl import __version__
 from handctl.config import HandConfig, parse_hand
 from handctl.errors import ConfigError
+from handctl.hand_protocol import protocol_for
+from handctl.protocol import Protocol, parse_protocol
 from handctl.recipes.loader import check_against_hand, parse_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
@@ -56,10 +58,14 @@ def start_metadata(hand: HandConfig, recipe: Recipe | None,
                    command_line: Sequence[str] = ()) -> dict[str, dict[str, str]]:
     """The records known before the run: hand, recipe, versions, the command line."""
     hand_text = _read(hand.source)
+    # The protocol the run speaks goes with the hand, as text: a re-run decodes and encodes
+    # with it, whatever DBC (given or generated) the handctl of the re-run would choose.
+    dbc = protocol_for(hand).text
     records = {
         ch.META_HAND: {"name": hand.name, "source": hand.source, "config_hash": hand.config_hash,
                        "sha256": hashlib.sha256(hand_text.encode()).hexdigest(),
-                       "yaml": hand_text},
+                       "yaml": hand_text, "dbc": dbc,
+                       "dbc_sha256": hashlib.sha256(dbc.encode()).hexdigest()},
         ch.META_VERSIONS: versions(),
     }
     if recipe is not None:
@@ -89,7 +95,15 @@ def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | N
             raise ConfigError(str(recording.path), f"metadata {ch.META_HAND}.yaml",
                               "the hand config the run used (recorded by handctl)", "nothing")
         return None
-    return parse_hand(parse_yaml(text, f"{recording.path} (its recorded hand config)"))
+    return parse_hand(parse_yaml(text, f"{recording.path} (its recorded hand config)"),
+                      recorded_protocol(recording))
+
+
+def recorded_protocol(recording: Recording) -> Protocol | None:
+    """The protocol the run spoke, as it recorded it (None in a recording from before the
+    protocol was recorded: then it was the packaged DBC, which the hand generates)."""
+    text = recording.meta(ch.META_HAND, "dbc")
+    return parse_protocol(text, f"{recording.path} (its recorded DBC)") if text else None
 
 
 def recorded_recipe(recording: Recording, hand: HandConfig) -> Recipe:

@@ -30,11 +30,11 @@ from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, FrameTap, Rx
 from handctl.clock import Tick
 from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError
+from handctl.hand_protocol import protocol_for
 from handctl.loop import EndOfTicks, Runtime, TickRecord
-from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
 from handctl.recording.feedback_check import FeedbackCheck
-from handctl.recording.metadata import recorded_hand, recorded_recipe
+from handctl.recording.metadata import recorded_hand, recorded_protocol, recorded_recipe
 from handctl.recording.reader import Recording, iter_chunks, require_topics
 from handctl.recording.series import json_floats
 from handctl.taps import TAP_TX, TAP_TX_FAILED
@@ -391,7 +391,8 @@ def rerun(recording: Recording) -> RerunReport:
     before, inputs = tick_inputs(recording)
     bus.load(-1, before)
     clock = ReplayClock(inputs, bus)
-    driver = HandDriver(hand, load_protocol(), bus, clock_ns=clock.now_ns)
+    driver = HandDriver(hand, recorded_protocol(recording) or protocol_for(hand), bus,
+                        clock_ns=clock.now_ns)
     check = FeedbackCheck(hand, driver)
     clock.check = check
     compare = _Compare(clock, list(hand.joint_names), check)

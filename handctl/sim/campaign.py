@@ -34,10 +34,10 @@ from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
 from handctl.executor import WorkPool, open_pool
+from handctl.hand_protocol import protocol_for
 from handctl.loop import Outcome, RunResult, Runtime
 from handctl.portable import local_hand, portable_hand
 from handctl.progress import Progress
-from handctl.protocol import load_protocol
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
@@ -123,13 +123,13 @@ def hil_bench(hand: HandConfig, recipe: Recipe | None, seed: int = 0, max_ticks:
             open_bus(f"virtual:{channel}", hand.bus) as sniffer:
         sim = SimulatedHand(hand, peer, seed=seed)
         clock = LockstepClock(hand.bus.period_s, sim.step)
-        driver = HandDriver(hand, load_protocol(), host, clock_ns=clock.now_ns)
+        driver = HandDriver(hand, protocol_for(hand), host, clock_ns=clock.now_ns)
         yield sim, Runtime(hand, driver, clock, recipe, max_ticks=max_ticks), sniffer
 
 
 def _commands(sniffer: HandBus, hand: HandConfig) -> np.ndarray:
     """The torque commands on the wire, one row per tick (decoded with the DBC layouts)."""
-    protocol = load_protocol()
+    protocol = protocol_for(hand)
     rows: dict[int, list[tuple[float, ...]]] = {f.node_id: [] for f in hand.fingers}
     layouts = {protocol.layout("TorqueCommand", n).frame_id: (n, protocol.layout(
         "TorqueCommand", n)) for n in rows}

@@ -51,7 +51,6 @@ REJECT_PENALTY = 10
 REJECT_LIMIT = 100
 STATUS_PERIOD_MS = 100
 HEARTBEAT_PERIOD_MS = 100
-JOINTS = 3  # Torque1..3 and Angle1..3 on the wire
 #: The firmware version the emulated nodes report (major, minor, patch) in Status.
 FIRMWARE_VERSION = (0, 2, 0)
 _SATURATING = 255
@@ -82,7 +81,8 @@ _FAULT = int(NodeState.FAULT)
 
 
 class EmulatedNode:
-    """The controller of one finger: three joints, three TDT sensors, three encoders."""
+    """The controller of one finger: per joint a motor, a TDT sensor and an encoder, as many
+    as its ``TorqueCommand`` carries torques (``Torque1..k``)."""
 
     def __init__(self, finger: FingerConfig, protocol: Protocol, *, tdt_range: float,
                  encoder_max_step: float, now_ns: int = 0) -> None:
@@ -112,9 +112,16 @@ class EmulatedNode:
         self.tx_ids = (self._feedback.frame_id, self._status.frame_id,
                        self._heartbeat.frame_id)
         self._n = len(finger.joints)
+        #: Joints on the wire: the command's torques. A finger of fewer joints than its frames
+        #: carry leaves the rest at zero, both ways.
+        self._wire = len(self._torque.signals)
+        if self._n > self._wire:
+            raise ConfigError(protocol.source, self._torque.name,
+                              f"a torque per joint of {finger.name} ({self._n})",
+                              f"{self._wire} torques")
         self._limit_items = tuple(enumerate(j.device_tau_max for j in finger.joints))
-        self._absent = tuple(range(self._n, JOINTS))
-        self._pad_zeros = [0.0] * (JOINTS - self._n)
+        self._absent = tuple(range(self._n, self._wire))
+        self._pad_zeros = [0.0] * (self._wire - self._n)
         self.tdt_range = tdt_range
         self.encoder_max_step = encoder_max_step
         #: How much each sent counter advances: 1 normally; 0 (repeat) or 2 (skip) under the
@@ -135,8 +142,8 @@ class EmulatedNode:
         self._down_until = None
         self.state = _DISABLED  # a NodeState value, kept as int for speed
         self.fault_bits = 0
-        self.applied = [0.0] * JOINTS
-        self.commanded: Sequence[float] = (0.0,) * JOINTS  # last accepted command, unclipped
+        self.applied = [0.0] * self._wire
+        self.commanded: Sequence[float] = (0.0,) * self._wire  # last accepted command, unclipped
         self._rx_last: dict[int, int | None] = dict.fromkeys(self._rx)
         self.reject_crc = 0
         self.reject_counter = 0
@@ -157,7 +164,7 @@ class EmulatedNode:
         """Lose power now and boot again after ``downtime_ns``; silent and torque-free meanwhile."""
         self.reboots += 1
         self._down_until = now_ns + max(downtime_ns, 0)
-        self.applied = [0.0] * JOINTS
+        self.applied = [0.0] * self._wire
 
     @property
     def down(self) -> bool:
@@ -228,7 +235,7 @@ class EmulatedNode:
                 self._enable(now_ns)
             elif command == _DISABLE:
                 if self.state == _ENABLED:
-                    self.applied = [0.0] * JOINTS
+                    self.applied = [0.0] * self._wire
                     self._set_state(_DISABLED)
             elif command == _FAULT_RESET:
                 self._fault_reset()
@@ -240,8 +247,8 @@ class EmulatedNode:
         if self.state != _DISABLED:
             return  # ENABLED stays; FAULT refuses until a fault reset
         self._watchdog_ref_ns = now_ns
-        self.commanded = (0.0,) * JOINTS
-        self.applied = [0.0] * JOINTS
+        self.commanded = (0.0,) * self._wire
+        self.applied = [0.0] * self._wire
         # The torque stream starts afresh: its next frame sets the baseline and is not applied.
         self._rx_last[self._torque_id] = None
         self._set_state(_ENABLED)
@@ -277,7 +284,7 @@ class EmulatedNode:
 
     def _fault(self, bits: int) -> None:
         self.fault_bits |= bits
-        self.applied = [0.0] * JOINTS
+        self.applied = [0.0] * self._wire
         if self.state != _FAULT:
             self._set_state(_FAULT)
 
@@ -306,8 +313,9 @@ class EmulatedNode:
         """Self-check the readings and append this tick's frames to ``out``.
 
         ``tdt`` (N·m, factory calibration) and ``angles`` (rad) hold one value per joint; a
-        finger with fewer than three joints sends zeros in the unused signals. The node keeps
-        ``angles`` for the next tick's encoder check: the caller must pass a fresh list.
+        finger with fewer joints than its Feedback carries sends zeros in the unused signals.
+        The node keeps ``angles`` for the next tick's encoder check: the caller must pass a
+        fresh list.
         """
         if self._down_until is not None:
             return

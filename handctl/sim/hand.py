@@ -42,7 +42,8 @@ import numpy as np
 from handctl.bus import HandBus, open_bus
 from handctl.clock import collector_paused, request_realtime
 from handctl.config import HandConfig
-from handctl.protocol import NodeState, load_protocol
+from handctl.hand_protocol import protocol_for
+from handctl.protocol import NodeState
 from handctl.sim.faults import FaultSchedule, Injector, load_scenario
 from handctl.sim.firmware import EmulatedNode
 from handctl.sim.params import NODE_TICK_NS, NODE_TICK_S, SimParams, parse_sim
@@ -82,7 +83,7 @@ class SimulatedHand:
         self.hand = hand
         self.params = params if params is not None else parse_sim(hand)
         self.seed = self.params.seed if seed is None else seed
-        self.protocol = load_protocol()
+        self.protocol = protocol_for(hand)
         self.plant = Plant(hand, self.params)
         rng = np.random.default_rng(self.seed)
         self.tdt = TdtModel(hand, self.params.tdt, rng)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from handctl.busload import (
@@ -13,9 +17,11 @@ from handctl.busload import (
     hand_budget,
 )
 from handctl.config import HandConfig, load_hand
+from handctl.hand_protocol import protocol_for
 from handctl.protocol import Protocol
 
 from ..conftest import ROOT
+from ..shapes import shaped_hand
 
 
 @pytest.mark.parametrize(("n", "bits"), [(0, 55), (1, 65), (8, 135)])
@@ -68,3 +74,43 @@ def test_default_hand_fits_and_classic_does_not(hand: HandConfig, protocol: Prot
     one_finger = hand_budget(classic, protocol, nodes={1})
     assert one_finger.ok
     assert {m.name for m in one_finger.messages if m.name.endswith("_2")} == set()
+
+
+def test_four_fingers_of_four_joints_on_can_fd_are_refused_with_the_figures(
+        tmp_path: Path) -> None:
+    """The issue's 4 x 4 hand on CAN-FD 1/5 Mbit/s at 1 kHz, worked out from the frame sizes:
+    per node a 12-byte TorqueCommand (2 + 8 bytes padded) and a 20-byte Feedback (4 + 16) each
+    tick, a 12-byte Status and a 7-byte Heartbeat every 100 ms."""
+    path = shaped_hand(tmp_path, [4, 4, 4, 4])
+    hand = load_hand(path)
+    protocol = protocol_for(hand)
+
+    def fd_s(n_bytes: int, data_rate: float = 5e6) -> float:
+        nominal, data = fd_frame_bits(n_bytes)
+        return nominal / 1e6 + data / data_rate
+
+    per_node = 1000 * (fd_s(12) + fd_s(20)) + 10 * (fd_s(12) + fd_s(7))
+    budget = hand_budget(hand, protocol)
+    assert budget.load == pytest.approx(4 * per_node)
+    assert not budget.ok and round(budget.load * 100, 1) == 59.0
+    two = hand_budget(hand, protocol, nodes={1, 2})
+    assert two.load == pytest.approx(2 * per_node)
+    result = subprocess.run([sys.executable, "-m", "handctl", "check", str(path)], cwd=ROOT,
+                            capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 2
+    assert (f"{path}: bus: expected a worst-case load <= 50 %, found 59.0 % at 1000 Hz; "
+            f"the highest loop rate that fits is {budget.highest_loop_rate_hz():.0f} Hz; "
+            f"2 buses of at most 2 fingers would carry {two.load * 100:.1f} % at most; "
+            "a data phase of 8 Mbit/s would carry "
+            f"{hand_budget(hand, protocol, data_bitrate=8_000_000).load * 100:.1f} %"
+            ) in result.stderr
+
+
+def test_a_hand_within_the_budget_passes_check(tmp_path: Path) -> None:
+    path = shaped_hand(tmp_path, [2, 2])
+    result = subprocess.run([sys.executable, "-m", "handctl", "check", str(path)], cwd=ROOT,
+                            capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines()[-1] == "ok"
+    assert "TorqueCommand_2   0x102     6" in result.stdout  # 2 + 2 x 2 bytes
+    assert "Feedback_2        0x182    12" in result.stdout  # 2 + 4 x 2 + 2 bytes

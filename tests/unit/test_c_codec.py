@@ -104,7 +104,7 @@ def parse_decoded(answer: str, python_values: tuple[Value, ...]) -> tuple[int, l
 
 # --- the generated files are what the DBC yields -------------------------------------------------
 
-@pytest.mark.parametrize("tool", ["gen_c_codec.py", "gen_vectors.py"])
+@pytest.mark.parametrize("tool", ["gen_c_codec.py", "gen_vectors.py", "gen_dbc.py"])
 def test_generated_files_are_up_to_date(tool: str) -> None:
     result = subprocess.run([sys.executable, str(TOOLS / tool), "--check"], capture_output=True,
                             text=True, cwd=ROOT, timeout=120, check=False)

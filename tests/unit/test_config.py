@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from handctl.config import load_hand
 from handctl.errors import ConfigError
-from handctl.protocol import DEFAULT_DBC, Protocol, SignalSpec, load_protocol
+from handctl.protocol import DEFAULT_DBC, Protocol, SignalSpec
 
 ROOT = Path(__file__).resolve().parents[2]
 HAND_YAML = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
@@ -236,9 +236,11 @@ def test_check_cli_bad_config_exits_2_with_the_message(tmp_path: Path,
 def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
     result = run_cli("check", "config/hands/hiroshima_hand_classic.yaml")
     assert result.returncode == 2
-    assert "122.6 %" in result.stderr
-    assert "403 Hz" in result.stderr
-    assert "one bus per finger would carry 40.9 %" in result.stderr
+    assert ("hiroshima_hand_classic.yaml: bus.fd: expected true (CAN-FD): Feedback_1 (16 bytes)"
+            in result.stderr)
+    assert "Status_3 (12 bytes) are longer than the 8 bytes of a classic CAN frame" in (
+        result.stderr)
+    assert "found 122.6 % at 1000 Hz; CAN-FD 1/5 Mbit/s would carry 39.1 %" in result.stderr
 
 
 # -- limits against the wire (handctl/wirelimits.py) ---------------------------------------------
@@ -378,10 +380,9 @@ def narrower_dbc(tmp_path: Path) -> Path:
 
 
 def test_the_wire_ranges_come_from_the_dbc(tmp_path: Path) -> None:
-    narrow = load_protocol(narrower_dbc(tmp_path))
     with pytest.raises(ConfigError, match=r"TorqueCommand_1\.Torque1 carries "
                                           r"\(-0\.32768\.\.0\.32767 N·m\)") as info:
-        load_hand(HAND_YAML, narrow)
+        load_hand(HAND_YAML, narrower_dbc(tmp_path))
     assert info.value.key == "fingers[0].joints[0].tau_max"
     assert load_hand(HAND_YAML).joints[0].tau_max == 0.6
 

@@ -17,8 +17,9 @@ import pytest
 from handctl.bus import HandBus
 from handctl.config import HandConfig
 from handctl.drivers.finger import fault_names
-from handctl.drivers.hand import AppliedTorques, HandDriver, check_ids
+from handctl.drivers.hand import AppliedTorques, HandDriver
 from handctl.errors import ConfigError
+from handctl.hand_protocol import check_protocol
 from handctl.protocol import Protocol
 
 from ..dbc import decode, load_dbc
@@ -195,10 +196,10 @@ def test_status_frames_carry_faults(driver: HandDriver, protocol: Protocol,
 
 
 def test_config_ids_must_match_the_dbc(hand: HandConfig, protocol: Protocol) -> None:
-    check_ids(hand, protocol)
+    check_protocol(hand, protocol)
     fingers = list(hand.fingers)
     fingers[1] = replace(fingers[1], can_ids=replace(fingers[1].can_ids, feedback=0x190))
     with pytest.raises(ConfigError) as info:
-        check_ids(replace(hand, fingers=tuple(fingers)), protocol)
+        check_protocol(replace(hand, fingers=tuple(fingers)), protocol)
     assert info.value.key == "fingers[1].can_ids.feedback"
     assert "0x182 (Feedback_2" in info.value.expected

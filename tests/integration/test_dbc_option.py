@@ -1,0 +1,83 @@
+"""``--dbc``: every command that puts frames on a bus speaks the given DBC, refuses one that
+does not carry the hand before anything is sent, and a recording keeps the DBC it spoke so
+that its re-run speaks it too."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from handctl.config import load_hand
+from handctl.hand_protocol import protocol_for
+from handctl.protocol import DEFAULT_DBC
+from handctl.recording import channels as ch
+from handctl.recording.reader import open_recording
+
+from ..shapes import shaped_hand
+
+ROOT = Path(__file__).resolve().parents[2]
+RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+HAND = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
+
+
+def handctl(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300, check=False)
+
+
+@pytest.mark.parametrize("command", [
+    ["check", "{hand}"],
+    ["run", "recipe", str(RECIPE), "--hand", "{hand}"],
+    ["sim", "--bus", "virtual:dbc-option", "--hand", "{hand}", "--seconds", "0.1"],
+    ["nodes", "--hand", "{hand}"],
+    ["jog", "finger0_joint0", "--torque", "0.01", "--hand", "{hand}"],
+    ["calibrate", "tdt", "--hand", "{hand}", "-o", "{out}"],
+    ["monitor", "--hand", "{hand}", "--seconds", "0.1"],
+])
+def test_a_dbc_without_the_hands_nodes_is_refused_before_anything_is_sent(
+        tmp_path: Path, command: list[str]) -> None:
+    hand = shaped_hand(tmp_path, [3, 3, 3, 3])
+    out = tmp_path / "calibrated.yaml"
+    args = [part.format(hand=hand, out=out) for part in command]
+    done = handctl(*args, "--dbc", str(DEFAULT_DBC))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert (f"{hand}: fingers[3].node_id: expected a node with a NodeCommand_4 message in "
+            f"{DEFAULT_DBC}") in done.stderr
+    assert "Traceback" not in done.stderr
+    assert not out.exists()
+
+
+def test_a_missing_dbc_is_named_against_the_option(tmp_path: Path) -> None:
+    done = handctl("check", str(HAND), "--dbc", str(tmp_path / "none.dbc"))
+    assert done.returncode == 2
+    assert "--dbc: expected an existing DBC file" in done.stderr
+
+
+def other_data_ids(tmp_path: Path) -> Path:
+    """The packaged DBC with other DataIDs for the torque commands: frames of the same layout
+    whose CRC only a host and nodes of this very DBC agree on."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    for node in (1, 2, 3):
+        line = f'BA_ "DataID" BO_ {0x100 + node} {0x1020 + node};'
+        assert line in text
+        text = text.replace(line, f'BA_ "DataID" BO_ {0x100 + node} {0x1120 + node};')
+    path = tmp_path / "other.dbc"
+    path.write_text(text, encoding="cp1252")
+    return path
+
+
+def test_a_run_on_a_given_dbc_records_it_and_reruns_on_it(tmp_path: Path) -> None:
+    dbc = other_data_ids(tmp_path)
+    log = tmp_path / "run.mcap"
+    run = handctl("run", "recipe", str(RECIPE), "--hand", str(HAND), "--dbc", str(dbc),
+                  "--max-seconds", "0.3", "--log", str(log))
+    assert run.returncode == 0, run.stderr  # the simulated nodes spoke the same DBC
+    recorded = open_recording(log).meta(ch.META_HAND, "dbc")
+    assert recorded == dbc.read_text(encoding="cp1252")
+    assert recorded != protocol_for(load_hand(HAND)).text  # not the generated one
+    rerun = handctl("replay", str(log), "--rerun")
+    assert rerun.returncode == 0, rerun.stdout + rerun.stderr
+    assert "command frames identical" in rerun.stdout

@@ -1,0 +1,180 @@
+"""The protocol follows from the hand: the default hand's generated DBC is today's packaged one,
+other shapes get frames by the same rules, and a DBC given instead is held against the hand."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import cantools
+import pytest
+
+from handctl.busload import FD_DLC_SIZES, fd_dlc_size
+from handctl.config import HandConfig, load_hand
+from handctl.errors import ConfigError
+from handctl.hand_protocol import generate_dbc, generated_protocol, protocol_for
+from handctl.protocol import DEFAULT_DBC, Protocol, load_protocol
+
+from ..conftest import ROOT
+from ..shapes import shaped_hand
+
+VECTORS = ROOT / "firmware_protocol" / "vectors.json"
+
+
+def db_of(text: str) -> Any:
+    return cantools.database.load_string(text, database_format="dbc", strict=True)
+
+
+def test_default_hand_generates_the_packaged_dbc(hand: HandConfig) -> None:
+    generated = generated_protocol(hand)
+    assert generated.text == DEFAULT_DBC.read_text(encoding="cp1252")
+
+
+def test_default_hand_frames_are_the_packaged_ones_message_by_message(hand: HandConfig) -> None:
+    """The same through cantools, field by field, so that a harmless text change of either
+    side could not hide a frame change."""
+    generated = db_of(generated_protocol(hand).text)
+    packaged = cantools.database.load_file(str(DEFAULT_DBC), strict=True)
+    assert isinstance(packaged, cantools.database.can.Database)
+    assert [m.name for m in generated.messages] == [m.name for m in packaged.messages]
+    for mine, theirs in zip(generated.messages, packaged.messages, strict=True):
+        assert (mine.frame_id, mine.length, mine.senders, mine.cycle_time) == (
+            theirs.frame_id, theirs.length, theirs.senders, theirs.cycle_time)
+        assert mine.dbc is not None and theirs.dbc is not None
+        assert mine.dbc.attributes["DataID"].value == theirs.dbc.attributes["DataID"].value
+        assert [(s.name, s.start, s.length, s.is_signed, s.scale, s.offset, s.minimum,
+                 s.maximum, s.unit, s.receivers) for s in mine.signals] == [
+            (s.name, s.start, s.length, s.is_signed, s.scale, s.offset, s.minimum, s.maximum,
+             s.unit, s.receivers) for s in theirs.signals]
+
+
+def test_default_hand_encodes_every_golden_vector_to_the_same_bytes(hand: HandConfig) -> None:
+    protocol = generated_protocol(hand)
+    document = json.loads(VECTORS.read_text(encoding="utf-8"))
+    for vector in document["vectors"]:
+        layout = protocol.by_name[vector["message"]]
+        assert layout.frame_id == vector["frame_id"]
+        values = [vector["signals"][name] for name in layout.signal_names]
+        assert layout.encode(vector["counter"], values).hex() == vector["bytes"], vector["case"]
+
+
+@pytest.mark.parametrize("shape", [[2, 2], [4, 4, 4, 4], [6], [1, 2, 3, 4, 5, 6]])
+def test_other_shapes_follow_the_same_rules(shape: list[int]) -> None:
+    nodes = [15 - i for i in range(len(shape))]  # the highest ids, out of order
+    protocol = Protocol_of(list(zip(nodes, shape, strict=True)))
+    for node, k in zip(nodes, shape, strict=True):
+        command = protocol.layout("TorqueCommand", node)
+        feedback = protocol.layout("Feedback", node)
+        assert command.frame_id == 0x100 + node and feedback.frame_id == 0x180 + node
+        assert protocol.layout("Status", node).frame_id == 0x280 + node
+        assert protocol.layout("Heartbeat", node).frame_id == 0x700 + node
+        assert protocol.layout("NodeCommand", node).frame_id == 0x010 + node
+        assert command.signal_names == tuple(f"Torque{j + 1}" for j in range(k))
+        assert feedback.signal_names == (*(f"Torque{j + 1}" for j in range(k)),
+                                         *(f"Angle{j + 1}" for j in range(k)),
+                                         "State", "FaultBits")
+        assert command.length in FD_DLC_SIZES and command.length >= 2 + 2 * k
+        assert feedback.length in FD_DLC_SIZES and feedback.length >= 4 + 4 * k
+        assert command.data_id == 0x1020 + node and feedback.data_id == 0x1030 + node
+        # Padding travels as zeros and round-trips.
+        data = command.encode(5, [0.25] * k)
+        assert data[2 + 2 * k:] == bytes(command.length - 2 - 2 * k)
+        assert command.decode(data) == (5, tuple([0.25] * k))
+
+
+def Protocol_of(shape: list[tuple[int, int]]) -> Protocol:  # noqa: N802 - reads as a type
+    from handctl.protocol import parse_protocol
+
+    return parse_protocol(generate_dbc(shape), "test shape")
+
+
+@pytest.mark.parametrize("joints", range(1, 7))
+def test_no_erased_buffer_is_a_valid_frame_of_any_node(joints: int) -> None:
+    """PROTOCOL.md's promise about the DataIDs, for every node id and joint count: all-0x00
+    and all-0xFF frames of Feedback_1 of five joints would pass at 24 bytes, so it is 32."""
+    protocol = Protocol_of([(n, joints) for n in range(1, 16)])
+    for layout in protocol.layouts:
+        for fill in (0x00, 0xFF):
+            assert not layout.crc_ok(bytes([fill]) * layout.length), (layout.name, fill)
+    lengths = {protocol.layout("Feedback", n).length for n in range(1, 16)}
+    assert lengths == ({24, 32} if joints == 5 else {fd_dlc_size(4 + 4 * joints)})
+
+
+@pytest.mark.parametrize(("joints", "nodes", "key", "found"), [
+    ([3, 7], None, "fingers[1].joints", "7 entries"),
+    ([3], [16], "fingers[0].node_id", "16"),
+    ([3], [0], "fingers[0].node_id", "0"),
+])
+def test_the_schema_refuses_shapes_the_protocol_cannot_carry(
+        tmp_path: Path, joints: list[int], nodes: list[int] | None, key: str, found: str) -> None:
+    path = shaped_hand(tmp_path, joints, nodes)
+    with pytest.raises(ConfigError) as err:
+        load_hand(path)
+    assert err.value.file == str(path)
+    assert err.value.key == key
+    assert found in str(err.value)
+
+
+def test_can_ids_follow_the_node_and_a_wrong_one_is_named(tmp_path: Path) -> None:
+    hand = load_hand(shaped_hand(tmp_path, [4, 2], [7, 9]))
+    assert hand.fingers[0].can_ids.feedback == 0x187
+    assert hand.fingers[1].can_ids.heartbeat == 0x709
+
+    def wrong(doc: dict[str, Any]) -> None:
+        doc["fingers"][1]["can_ids"] = {"feedback": 0x188}
+
+    path = shaped_hand(tmp_path, [4, 2], [7, 9], wrong)
+    with pytest.raises(ConfigError) as err:
+        load_hand(path)
+    assert err.value.key == "fingers[1].can_ids.feedback"
+    assert "0x189" in err.value.expected and "0x188" in str(err.value)
+
+
+def test_a_given_dbc_must_carry_the_hand(tmp_path: Path) -> None:
+    four = load_hand(shaped_hand(tmp_path, [3, 3, 3, 3]))
+    with pytest.raises(ConfigError) as err:
+        protocol_for(four, DEFAULT_DBC)
+    assert err.value.key == "fingers[3].node_id"
+    assert "NodeCommand_4" in str(err.value) and "handctl.dbc" in str(err.value)
+
+    short = load_hand(shaped_hand(tmp_path, [3, 2, 3]))
+    with pytest.raises(ConfigError) as err:
+        protocol_for(short, DEFAULT_DBC)
+    assert err.value.key == "fingers[1].joints"
+    assert "3 torques" in str(err.value) and "2 joints" in str(err.value)
+
+    # The hand's own generated DBC, written to a file, is accepted as --dbc.
+    dbc = tmp_path / "short.dbc"
+    dbc.write_text(generate_dbc([(1, 3), (2, 2), (3, 3)]), encoding="cp1252")
+    assert protocol_for(short, dbc).layout("TorqueCommand", 2).signal_names == (
+        "Torque1", "Torque2")
+
+
+def test_the_packaged_dbc_as_dbc_gives_the_generated_layouts(hand: HandConfig) -> None:
+    given = protocol_for(hand, DEFAULT_DBC)
+    generated = protocol_for(hand)
+    assert [(x.name, x.frame_id, x.length, x.data_id) for x in given.layouts] == [
+        (x.name, x.frame_id, x.length, x.data_id) for x in generated.layouts]
+    assert load_protocol(DEFAULT_DBC).text == generated.text
+
+
+def test_a_given_dbc_must_have_the_signals_host_and_nodes_read(hand: HandConfig,
+                                                              tmp_path: Path) -> None:
+    """Right counts are not enough: a Feedback with a signal more would shift State and
+    FaultBits, so the signal list itself is held against the hand's."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    line = ' SG_ FaultBits : 120|8@1+ (1,0) [0|255] "" HOST\n'
+    anchor = "BO_ 386 Feedback_2: 16 FINGER2\n"
+    start = text.index(anchor)
+    at = text.index(line, start) + len(line)
+    extra = text[:at] + ' SG_ Temperature : 128|8@1+ (1,0) [0|255] "" HOST\n' + text[at:]
+    dbc = tmp_path / "extra.dbc"
+    dbc.write_text(extra.replace(anchor, "BO_ 386 Feedback_2: 20 FINGER2\n"),
+                   encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, dbc)
+    assert err.value.file == str(dbc) and err.value.key == "Feedback_2"
+    assert "Torque1, Torque2, Torque3, Angle1, Angle2, Angle3, State, FaultBits" in (
+        err.value.expected)
+    assert str(err.value.found).endswith("FaultBits, Temperature")
