@@ -242,7 +242,7 @@ def _parse_finger(doc: Doc) -> FingerConfig:
     base_angle = base.number("angle", min=-2 * math.pi, max=2 * math.pi, unit="rad")
     base.done()
     z = doc.number("z", default=0.0, min=-1.0, max=1.0, unit="m")
-    joints = tuple(_parse_joint(j) for j in doc.mappings("joints", min_len=1, max_len=3))
+    joints = tuple(_parse_joint(j) for j in doc.mappings("joints", min_len=1, max_len=6))
     doc.done()
     return FingerConfig(name, node_id, ids, base_x, base_y, base_angle, z, joints)
 
