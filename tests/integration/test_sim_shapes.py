@@ -24,8 +24,9 @@ import handctl.config
 from handctl.config import HandConfig, load_hand, parse_hand
 from handctl.schema import Doc
 from handctl.sim.params import SimParams, parse_sim
+from handctl.sim.placement import link_segments
 from handctl.sim.plant import Plant, gravity_torques
-from handctl.sim.render import draw_scene
+from handctl.sim.render import draw_scene, scene_half_width
 
 from ..conftest import ROOT
 
@@ -304,3 +305,30 @@ def test_planar_hand_runs_as_handctl_sim_and_answers_as_two_nodes(
     assert proc.returncode in (0, 130), err
     ground = json.loads(truth.read_text())
     assert set(ground["objects"]) == {"cyl1", "cyl2"} and set(ground["nodes"]) == {"left", "right"}
+
+
+def test_a_scene_out_of_reach_is_bad_input_before_anything_runs(tmp_path: Path) -> None:
+    bad = tmp_path / "far.yaml"
+    bad.write_text(PLANAR.read_text().replace("x: 0.0455, y: -0.105}", "x: 0.6, y: -0.105}"))
+    recipe = tmp_path / "close.yaml"
+    recipe.write_text(CLOSE)
+    for args in (["sim", "--bus", "virtual:far", "--seconds", "0.1"],
+                 ["run", "recipe", str(recipe)]):
+        done = _handctl(*args, "--hand", str(bad), timeout=120)
+        assert done.returncode == 2, done.stderr
+        assert f"{bad}: sim.objects[1].x: expected a place within reach of a finger" in done.stderr
+        assert "found 0.6" in done.stderr
+
+
+def test_the_drawing_holds_every_finger_stretched_out(without_wire_check: None) -> None:
+    hand = _load(_odd_hand((6, 1, 6)))
+    params = parse_sim(hand)
+    straight = tuple((0.0,) * len(f.joints) for f in hand.fingers)
+    stretched = dataclasses.replace(params, initial_angles=straight)
+    for base_angle in (0.0, math.pi):  # every finger pointing sideways, out or in
+        turned = dataclasses.replace(hand, fingers=tuple(
+            dataclasses.replace(f, base_angle=base_angle) for f in hand.fingers))
+        ends = [abs(x) + link.radius for link in link_segments(turned, stretched)
+                for x in (link.x0, link.x1)]
+        assert max(ends) > 0.2  # wider than a fixed frame would show
+        assert scene_half_width(Plant(turned, stretched)) >= max(ends)
