@@ -22,6 +22,7 @@ import pytest
 
 import handctl.config
 from handctl.config import HandConfig, load_hand, parse_hand
+from handctl.foxglove.scene import HandScene
 from handctl.schema import Doc
 from handctl.sim.params import SimParams, parse_sim
 from handctl.sim.placement import link_segments
@@ -144,7 +145,8 @@ def _odd_hand(counts: tuple[int, ...], between_fingers: bool = False) -> dict[st
                                     "heartbeat": 0x700 + n_id},
                         "base": {"x": -0.06 + 0.04 * i, "y": 0.0, "angle": -math.pi / 2},
                         "z": 0.03 * (i % 2) - 0.015, "joints": joints})
-        sim_links[name] = [{"radius": 0.004 + 0.001 * k, "mass": 0.01 + 0.005 * (k + i)}
+        sim_links[name] = [{"radius": 0.004 + 0.001 * k + 0.0005 * i,
+                            "mass": 0.01 + 0.005 * (k + i)}
                            for k in range(n)]
         motors[name] = [1.0] * n
         initial[name] = [0.3 * (-1) ** i] + [0.05 * (-1) ** i] * (n - 1)
@@ -332,3 +334,12 @@ def test_the_drawing_holds_every_finger_stretched_out(without_wire_check: None) 
                 for x in (link.x0, link.x1)]
         assert max(ends) > 0.2  # wider than a fixed frame would show
         assert scene_half_width(Plant(turned, stretched)) >= max(ends)
+
+
+def test_the_foxglove_scene_draws_each_link_with_its_own_radius(without_wire_check: None) -> None:
+    hand = _load(_odd_hand((2, 5, 3)))
+    radii = [link.radius for link in parse_sim(hand).links]
+    assert len(set(radii)) > 5  # fingers differ, not only joint levels
+    drawn = HandScene(hand).link_radius
+    assert [len(r) for r in drawn] == [2, 5, 3]
+    assert [r for finger in drawn for r in finger] == pytest.approx(radii)
