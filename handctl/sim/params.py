@@ -85,7 +85,7 @@ class SimParams:
     armature: tuple[float, ...]  # kg·m², motor and pulley inertia reflected to the joint
     stop_margin: float  # rad, mechanical stops lie this far beyond the soft limits
     actuator_lag: tuple[float, ...]  # s, first-order time constant of each tendon drive
-    motor_tau_max: tuple[float, ...]  # N·m, per joint in config order: the motor's most
+    motor_tau_max: tuple[float, ...]  # N·m, per joint in config order: the most a motor gives
     initial_angles: tuple[tuple[float, ...], ...]  # rad, per finger in config order
     objects: tuple[ObjectParams, ...]
     friction: FrictionParams
@@ -209,7 +209,7 @@ def _parse_links(doc: Doc, hand: HandConfig) -> tuple[LinkParams, ...]:
     estimator believes would fool every test of the estimator."""
     doc.expect(f.name for f in hand.fingers)
     links = []
-    for finger in hand.fingers:
+    for i, finger in enumerate(hand.fingers):
         n = len(finger.joints)
         for k, (link_doc, joint) in enumerate(zip(
                 doc.mappings(finger.name, min_len=n, max_len=n), finger.joints, strict=True)):
@@ -221,7 +221,7 @@ def _parse_links(doc: Doc, hand: HandConfig) -> tuple[LinkParams, ...]:
             link_doc.done()
             if joint.half_thickness > 0 and abs(link.radius - joint.half_thickness) > 1e-12:
                 link_doc.fail("radius", f"the half_thickness of {joint.name} "
-                              f"({joint.half_thickness:g} m, fingers[].joints[{k}]): the "
+                              f"({joint.half_thickness:g} m, fingers[{i}].joints[{k}]): the "
                               "estimator and the simulation must see one link", link.radius)
             links.append(link)
     doc.done()
