@@ -92,9 +92,9 @@ def build_mjcf(hand: HandConfig, params: SimParams) -> str:
         i_xy = obj.mass * (3 * obj.radius**2 + obj.length**2) / 12
         lines += [
             f"    <body name={quoteattr(obj.name)}>",
-            f'      <joint name="{obj.name}_x" type="slide" axis="1 0 0"/>',
-            f'      <joint name="{obj.name}_y" type="slide" axis="0 1 0"/>',
-            f'      <joint name="{obj.name}_rz" type="hinge" axis="0 0 1"/>',
+            f'      <joint name={quoteattr(obj.name + "_x")} type="slide" axis="1 0 0"/>',
+            f'      <joint name={quoteattr(obj.name + "_y")} type="slide" axis="0 1 0"/>',
+            f'      <joint name={quoteattr(obj.name + "_rz")} type="hinge" axis="0 0 1"/>',
             f'      <inertial pos="0 0 0" mass="{_f(obj.mass)}" '
             f'diaginertia="{_f(i_xy)} {_f(i_xy)} {_f(i_z)}"/>',
             f"      <geom name={quoteattr(obj.name)} type=\"capsule\" "

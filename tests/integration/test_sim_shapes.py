@@ -343,3 +343,14 @@ def test_the_foxglove_scene_draws_each_link_with_its_own_radius(without_wire_che
     drawn = HandScene(hand).link_radius
     assert [len(r) for r in drawn] == [2, 5, 3]
     assert [r for finger in drawn for r in finger] == pytest.approx(radii)
+
+
+def test_objects_of_any_name_are_simulated_under_it(hand: HandConfig) -> None:
+    names = ['a "quoted" <cylinder> & co', "zylinder 2"]
+    raw = copy.deepcopy(dict(hand.sim))
+    for obj, name in zip(raw["objects"], names, strict=True):
+        obj["name"] = name
+    plant = Plant(hand, parse_sim(dataclasses.replace(hand, sim=raw)))
+    plant.step()
+    assert [pose.name for pose in plant.object_poses()] == names
+    assert names[0] in {_geom(plant, int(g)) for g in plant.model.pair_geom1}
