@@ -310,13 +310,17 @@ def test_planar_hand_runs_as_handctl_sim_and_answers_as_two_nodes(
 
 
 def test_a_scene_out_of_reach_is_bad_input_before_anything_runs(tmp_path: Path) -> None:
+    done = _handctl("check", str(PLANAR), timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "simulated hand: cyl1 (r 0.045 m), cyl2 (r 0.045 m); fingers collide" in done.stdout
     bad = tmp_path / "far.yaml"
     bad.write_text(PLANAR.read_text().replace("x: 0.0455, y: -0.105}", "x: 0.6, y: -0.105}"))
     recipe = tmp_path / "close.yaml"
     recipe.write_text(CLOSE)
-    for args in (["sim", "--bus", "virtual:far", "--seconds", "0.1"],
-                 ["run", "recipe", str(recipe)]):
-        done = _handctl(*args, "--hand", str(bad), timeout=120)
+    for args in (["check", str(bad)],
+                 ["sim", "--bus", "virtual:far", "--seconds", "0.1", "--hand", str(bad)],
+                 ["run", "recipe", str(recipe), "--hand", str(bad)]):
+        done = _handctl(*args, timeout=120)
         assert done.returncode == 2, done.stderr
         assert f"{bad}: sim.objects[1].x: expected a place within reach of a finger" in done.stderr
         assert "found 0.6" in done.stderr
