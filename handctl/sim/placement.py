@@ -6,6 +6,7 @@ checked once, when the section is read, and refused with the key to change:
 
 - every object's name is its own: MuJoCo names each body, geom and joint, and an object called
   like a link (or ``palm``) would be a model that does not build, or a contact on the wrong body;
+  for the same reason no joint may be called ``palm``, ``table`` or ``<finger>_base``;
 - objects lie between the table and the palm face, clear of one another;
 - each object is within reach of at least one finger (its surface nearer to the finger's base
   than the finger is long, and the finger beside it along z);
@@ -110,10 +111,15 @@ def check_placement(hand: HandConfig, params: SimParams, doc: Doc) -> None:
 
 
 def _check_names(hand: HandConfig, params: SimParams, doc: Doc) -> None:
-    taken = {name: f"a link of {f.name}" for f in hand.fingers for name in
-             (j.name for j in f.joints)}
-    taken |= {f"{f.name}_base": f"the base of {f.name}" for f in hand.fingers}
+    taken = {f"{f.name}_base": f"the base of {f.name}" for f in hand.fingers}
     taken |= {name: "the scene" for name in _SCENE_NAMES}
+    top = Doc({}, doc.file, "")
+    for i, finger in enumerate(hand.fingers):
+        for k, joint in enumerate(finger.joints):
+            if joint.name in taken:  # the simulation names a link's body and geom after it
+                top.fail(f"fingers[{i}].joints[{k}].name", f"a name the simulated hand does "
+                         f"not use ({joint.name!r} is {taken[joint.name]})", joint.name)
+    taken |= {j.name: f"a link of {f.name}" for f in hand.fingers for j in f.joints}
     for i, obj in enumerate(params.objects):
         for name in (obj.name, *(obj.name + s for s in OBJECT_JOINT_SUFFIXES)):
             if name in taken:

@@ -185,3 +185,14 @@ def test_every_model_the_planning_draws_is_a_scene_that_can_start(hand: HandConf
         assert again.initial_angles == model.params.initial_angles
         assert again.links == model.params.links
         assert again.motor_tau_max == model.params.motor_tau_max
+
+
+def test_a_joint_named_like_the_scene_is_refused(hand: HandConfig) -> None:
+    fingers = list(hand.fingers)
+    joints = list(fingers[1].joints)
+    joints[2] = dataclasses.replace(joints[2], name="f1_base")
+    fingers[1] = dataclasses.replace(fingers[1], joints=tuple(joints))
+    with pytest.raises(ConfigError) as err:
+        parse_sim(dataclasses.replace(hand, fingers=tuple(fingers)))
+    assert err.value.key == "fingers[1].joints[2].name"
+    assert "the base of f1" in err.value.expected
