@@ -358,3 +358,21 @@ def test_objects_of_any_name_are_simulated_under_it(hand: HandConfig) -> None:
     plant.step()
     assert [pose.name for pose in plant.object_poses()] == names
     assert names[0] in {_geom(plant, int(g)) for g in plant.model.pair_geom1}
+
+
+def test_planar_hand_envelops_and_lifts_its_two_cylinders() -> None:
+    """The shipped planar hand can do what the paper's hand does: curled in with the distal
+    joints leading, the fingers scoop both cylinders off the table into an enveloping grasp
+    (distal links under the pair, near the paper's q_2 = 1.84 rad)."""
+    hand = load_hand(PLANAR)
+    params = parse_sim(hand)
+    plant = Plant(hand, params)
+    plant.set_torque_commands([0.1, 0.3, -0.1, -0.3])
+    for _ in range(2000):
+        plant.step()
+    for pose, start in zip(plant.object_poses(), params.objects, strict=True):
+        assert pose.y - start.y > 0.03, pose
+    assert plant.joint_angles[1] > 1.5 and plant.joint_angles[3] < -1.5
+    touching = {frozenset(p) for p in plant.contact_pairs()}
+    assert frozenset(("left_j2", "cyl1")) in touching
+    assert frozenset(("right_j2", "cyl2")) in touching
