@@ -117,7 +117,7 @@ def parse_sim(hand: HandConfig) -> SimParams:
     gravity = doc.number("gravity", min=0.0, max=20.0, unit="m/s²")
 
     table = doc.mapping("table")
-    table_height = table.number("height", min=-1.0, max=0.0, min_exclusive=False, unit="m")
+    table_height = table.number("height", min=-5.0, max=0.0, min_exclusive=False, unit="m")
     table.done()
     palm = doc.mapping("palm")
     palm_half_width = palm.number("half_width", min=0.0, max=0.5, min_exclusive=True, unit="m")
@@ -214,9 +214,9 @@ def _parse_links(doc: Doc, hand: HandConfig) -> tuple[LinkParams, ...]:
         for k, (link_doc, joint) in enumerate(zip(
                 doc.mappings(finger.name, min_len=n, max_len=n), finger.joints, strict=True)):
             link = LinkParams(
-                radius=link_doc.number("radius", min=0.0, max=0.05, min_exclusive=True,
+                radius=link_doc.number("radius", min=0.0, max=0.2, min_exclusive=True,
                                        unit="m"),
-                mass=link_doc.number("mass", min=0.0, max=1.0, min_exclusive=True, unit="kg"),
+                mass=link_doc.number("mass", min=0.0, max=10.0, min_exclusive=True, unit="kg"),
             )
             link_doc.done()
             if joint.half_thickness > 0 and abs(link.radius - joint.half_thickness) > 1e-12:
@@ -270,11 +270,11 @@ def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...]
 def _parse_object(doc: Doc) -> ObjectParams:
     obj = ObjectParams(
         name=doc.string("name"),
-        radius=doc.number("radius", min=0.005, max=0.1, unit="m"),
-        length=doc.number("length", min=0.01, max=0.5, unit="m"),
-        mass=doc.number("mass", min=0.001, max=2.0, unit="kg"),
-        x=doc.number("x", min=-1.0, max=1.0, unit="m"),
-        y=doc.number("y", min=-1.0, max=1.0, unit="m"),
+        radius=doc.number("radius", min=0.005, max=1.0, unit="m"),
+        length=doc.number("length", min=0.01, max=2.0, unit="m"),
+        mass=doc.number("mass", min=0.001, max=20.0, unit="kg"),
+        x=doc.number("x", min=-5.0, max=5.0, unit="m"),
+        y=doc.number("y", min=-5.0, max=5.0, unit="m"),
         angle=doc.number("angle", default=0.0, min=-2 * math.pi, max=2 * math.pi, unit="rad"),
     )
     doc.done()

@@ -23,7 +23,7 @@ import pytest
 import handctl.config
 from handctl.config import HandConfig, load_hand, parse_hand
 from handctl.foxglove.scene import HandScene
-from handctl.schema import Doc
+from handctl.schema import Doc, load_yaml
 from handctl.sim.params import SimParams, parse_sim
 from handctl.sim.placement import link_segments
 from handctl.sim.plant import Plant, gravity_torques
@@ -376,3 +376,32 @@ def test_planar_hand_envelops_and_lifts_its_two_cylinders() -> None:
     touching = {frozenset(p) for p in plant.contact_pairs()}
     assert frozenset(("left_j2", "cyl1")) in touching
     assert frozenset(("right_j2", "cyl2")) in touching
+
+
+def test_the_papers_hand_at_its_own_scale_is_a_scene_too() -> None:
+    """Objects of any radius: the paper's §4 example at its own size (links of 1 m, bases at
+    -+0.5 m, cylinders of 0.45 m and 1 kg) in a horizontal plane, as its Fig. 3 has it."""
+    data = copy.deepcopy(load_yaml(PLANAR).data)
+    for finger in data["fingers"]:
+        finger["base"] = {**finger["base"], "x": math.copysign(0.5, finger["base"]["x"])}
+        finger["joints"] = [{**joint, "link_length": 1.0, "half_thickness": 0.08}
+                            for joint in finger["joints"]]
+    sim = data["sim"]
+    sim.update(gravity=0.0, table={"height": -1.5}, palm={"half_width": 0.4, "thickness": 0.2})
+    sim["links"] = {f["name"]: [{"radius": 0.08, "mass": 0.5}] * 2 for f in data["fingers"]}
+    sim["objects"] = [{"name": name, "radius": 0.45, "length": 0.8, "mass": 1.0, "x": x,
+                       "y": -1.05} for name, x in (("cylinder1", -0.455), ("cylinder2", 0.455))]
+    hand = parse_hand(Doc(data, "paper_scale.yaml", ""))
+    params = parse_sim(hand)
+    plant = Plant(hand, params)
+    radii = {_geom(plant, g): plant.model.geom_size[g][0] for g in range(plant.model.ngeom)}
+    assert radii["cylinder1"] == radii["cylinder2"] == pytest.approx(0.45)
+    # the fingers close on the cylinders, each on its own
+    plant.set_torque_commands([0.5, 0.5, -0.5, -0.5])
+    touching: set[frozenset[str]] = set()
+    for _ in range(1500):
+        plant.step()
+        touching |= {frozenset(p) for p in plant.contact_pairs()}
+    assert any({"cylinder1", "left_j2"} <= p or {"cylinder1", "left_j1"} <= p for p in touching)
+    assert any({"cylinder2", "right_j2"} <= p or {"cylinder2", "right_j1"} <= p
+               for p in touching)
