@@ -196,3 +196,13 @@ def test_a_joint_named_like_the_scene_is_refused(hand: HandConfig) -> None:
         parse_sim(dataclasses.replace(hand, fingers=tuple(fingers)))
     assert err.value.key == "fingers[1].joints[2].name"
     assert "the base of f1" in err.value.expected
+
+
+def test_a_model_of_a_hand_whose_fingers_collide_keeps_its_finger_contact() -> None:
+    """``hand_with`` writes the section back for a run on the bus: finger contact and its
+    friction survive, as do the per-finger links and motor limits."""
+    planar = load_hand(PLANAR)
+    params = parse_sim(planar)
+    again = parse_sim(hand_with(planar, params))
+    assert again == params
+    assert again.between_fingers and again.finger_finger_friction == 0.5
