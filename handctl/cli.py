@@ -115,9 +115,14 @@ def _cmd_check(args: argparse.Namespace) -> int:
         what_would_fit,
     )
     from handctl.hand_protocol import protocol_for
+    from handctl.sim.params import parse_sim
 
     hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
     protocol = protocol_for(hand)
+
+    # The simulated hand's section is in the same file: a mistake there is found here, before
+    # `sim` or `run` meets it (the robot never reads it, so a config without one is fine).
+    scene = parse_sim(hand) if hand.sim else None
     bus = hand.bus
     kind = (f"CAN-FD {bus.bitrate / 1e6:g}/{(bus.data_bitrate or 0) / 1e6:g} Mbit/s"
             if bus.fd else f"classic CAN {bus.bitrate / 1e6:g} Mbit/s")
@@ -132,6 +137,10 @@ def _cmd_check(args: argparse.Namespace) -> int:
     for finger in hand.fingers:
         ids = ", ".join(f"{k} 0x{v:03X}" for k, v in finger.can_ids.as_dict().items())
         print(f"node {finger.node_id} ({finger.name}): {ids}")
+    if scene is not None:
+        objects = ", ".join(f"{o.name} (r {o.radius:g} m)" for o in scene.objects)
+        print(f"simulated hand: {objects}; "
+              f"fingers {'collide' if scene.between_fingers else 'pass through each other'}")
     budget = hand_budget(hand, protocol)
     print(f"\nworst-case bus budget ({kind}, {bus.loop_rate_hz:g} Hz loop):")
     print(f"{'message':<17} {'id':>6} {'bytes':>5} {'frames':>6} {'rate':>8} {'time':>9} "

@@ -97,7 +97,7 @@ class HandScene:
         self.objects = tuple(objects)
         self.estimated = tuple(estimated)
         self.scenery: Scenery | None = None
-        sim_radii: list[float] = []
+        sim_radii: tuple[float, ...] = ()
         params = None
         if hand.sim:
             from handctl.sim.params import parse_sim
@@ -107,10 +107,13 @@ class HandScene:
             except ConfigError:  # a view is no place to refuse a config: drawn without it
                 params = None
         if params is not None:
-            sim_radii = [link.radius for link in params.links]
-        self.link_radius = [
-            [sim_radii[k] if k < len(sim_radii) else (j.half_thickness or DEFAULT_LINK_RADIUS)
-             for k, j in enumerate(f.joints)] for f in hand.fingers]
+            sim_radii = tuple(link.radius for link in params.links)  # config order
+        flat = [sim_radii[i] if sim_radii else (j.half_thickness or DEFAULT_LINK_RADIUS)
+                for i, j in enumerate(hand.joints)]
+        self.link_radius: list[list[float]] = []
+        for f in hand.fingers:
+            self.link_radius.append(flat[:len(f.joints)])
+            flat = flat[len(f.joints):]
         if params is not None:
             widest = max((r for radii in self.link_radius for r in radii), default=0.0)
             half_depth = max([abs(f.z) + widest for f in hand.fingers]

@@ -208,15 +208,17 @@ def sim_section(params: SimParams) -> dict[str, Any]:
         "gravity": p.gravity,
         "table": {"height": p.table_height},
         "palm": {"half_width": p.palm_half_width, "thickness": p.palm_thickness},
-        "links": [{"radius": link.radius, "mass": link.mass} for link in p.links],
+        "links": {},  # filled by ``hand_with``: keyed by finger name
         "joints": {"damping": list(p.damping), "frictionloss": list(p.frictionloss),
                    "armature": list(p.armature), "stop_margin": p.stop_margin},
-        "actuator": {"lag": list(p.actuator_lag), "motor_tau_max": list(p.motor_tau_max)},
+        "actuator": {"lag": list(p.actuator_lag), "motor_tau_max": {}},  # as links
         "initial_angles": {},  # filled by ``hand_with``: keyed by finger name
         "objects": [{"name": o.name, "radius": o.radius, "length": o.length, "mass": o.mass,
                      "x": o.x, "y": o.y, "angle": o.angle} for o in p.objects],
-        "friction": dataclasses.asdict(p.friction),
-        "contact": {"timeconst": p.contact_timeconst, "dampratio": p.contact_dampratio},
+        "friction": dataclasses.asdict(p.friction) | (
+            {"finger_finger": p.finger_finger_friction} if p.between_fingers else {}),
+        "contact": {"timeconst": p.contact_timeconst, "dampratio": p.contact_dampratio,
+                    "between_fingers": p.between_fingers},
         "tdt": dataclasses.asdict(p.tdt),
         "encoder": dataclasses.asdict(p.encoder),
     }
@@ -229,6 +231,13 @@ def hand_with(hand: HandConfig, params: SimParams, *, seed: int | None = None) -
     section["initial_angles"] = {f.name: list(a) for f, a in zip(hand.fingers,
                                                                   params.initial_angles,
                                                                   strict=True)}
+    first = 0
+    for finger in hand.fingers:
+        last = first + len(finger.joints)
+        section["links"][finger.name] = [{"radius": link.radius, "mass": link.mass}
+                                         for link in params.links[first:last]]
+        section["actuator"]["motor_tau_max"][finger.name] = list(params.motor_tau_max[first:last])
+        first = last
     if seed is not None:
         section["seed"] = seed
     return dataclasses.replace(hand, sim=MappingProxyType(section))

@@ -1,9 +1,11 @@
-"""The simulated hand: a MuJoCo hand and two cylinders behind emulated CAN nodes.
+"""The simulated hand: a MuJoCo hand of the config's shape and its objects behind emulated CAN
+nodes.
 
 It is a peer on the bus and nothing more: the online plane never imports this package, and the
 host cannot tell it from the real hand by its frames. Modules, each depending only on those
 before it:
 
+- ``placement``: whether the scene can start (names, reach, nothing inside anything else);
 - ``params``: the ``sim:`` section of the hand config (every physical number, SI units);
 - ``plant``: the MuJoCo model built from the config, stepped one 1 ms node tick at a time;
 - ``sensors``: TDT torque sensors and encoders with noise, bias, lag and quantisation;

@@ -1,4 +1,4 @@
-"""The simulated hand: the plant, its sensors and three emulated nodes, as one peer on a bus.
+"""The simulated hand: the plant, its sensors and one emulated node per finger, as one bus peer.
 
 The host cannot tell it from the real hand by its frames: it hears and speaks only through a
 ``HandBus``, with the ids, layouts, rates and rules of ``firmware_protocol/``. It runs in two
@@ -236,7 +236,8 @@ class SimulatedHand:
         self._periodic = [i for i in self.active if i.periodic]
 
     def joint_indices(self, node: int | None, joint: int | None) -> list[int]:
-        """Indices into the 9-vectors of ``joint`` (1-based) of node ``node`` (None: all)."""
+        """Indices into the joint vectors (config order) of ``joint`` (1-based) of node
+        ``node`` (None: all)."""
         out: list[int] = []
         for finger, (a, b) in zip(self.hand.fingers, self._slices, strict=True):
             if node is not None and finger.node_id != node:

@@ -18,12 +18,11 @@ from dataclasses import dataclass
 
 from handctl.config import HandConfig
 from handctl.schema import Doc
+from handctl.sim.placement import check_placement
 
 #: The emulated nodes run on a 1 ms tick (the protocol's feedback period and watchdog unit).
 NODE_TICK_S = 0.001
 NODE_TICK_NS = 1_000_000
-#: The protocol's joint count per node; link parameters are given per joint level.
-JOINTS_PER_FINGER = 3
 
 
 @dataclass(frozen=True)
@@ -78,7 +77,7 @@ class SimParams:
     table_height: float  # m, y of the table top
     palm_half_width: float  # m, half the palm's extent along x (the palm's face is y = 0)
     palm_thickness: float  # m, along +y above the face
-    links: tuple[LinkParams, ...]  # per joint level: proximal, middle, distal
+    links: tuple[LinkParams, ...]  # per joint in config order (finger by finger)
     # per joint in config order (the config may give one number for every joint): no two
     # tendons run through the same sheaths, so no two joints have quite the same dynamics
     damping: tuple[float, ...]  # N·m·s/rad, viscous joint damping
@@ -86,12 +85,16 @@ class SimParams:
     armature: tuple[float, ...]  # kg·m², motor and pulley inertia reflected to the joint
     stop_margin: float  # rad, mechanical stops lie this far beyond the soft limits
     actuator_lag: tuple[float, ...]  # s, first-order time constant of each tendon drive
-    motor_tau_max: tuple[float, ...]  # N·m, per joint level, what the motor can give at most
+    motor_tau_max: tuple[float, ...]  # N·m, per joint in config order: the most a motor gives
     initial_angles: tuple[tuple[float, ...], ...]  # rad, per finger in config order
     objects: tuple[ObjectParams, ...]
     friction: FrictionParams
     contact_timeconst: float  # s, MuJoCo solref time constant of every contact
     contact_dampratio: float  # dimensionless, MuJoCo solref damping ratio
+    # Links of different fingers collide (with this friction coefficient) when True; when
+    # False they pass through one another, as fingers that cannot meet need no contact test.
+    between_fingers: bool
+    finger_finger_friction: float  # 0 when between_fingers is False
     tdt: TdtParams
     encoder: EncoderParams
 
@@ -114,15 +117,14 @@ def parse_sim(hand: HandConfig) -> SimParams:
     gravity = doc.number("gravity", min=0.0, max=20.0, unit="m/s²")
 
     table = doc.mapping("table")
-    table_height = table.number("height", min=-1.0, max=0.0, min_exclusive=False, unit="m")
+    table_height = table.number("height", min=-5.0, max=0.0, min_exclusive=False, unit="m")
     table.done()
     palm = doc.mapping("palm")
     palm_half_width = palm.number("half_width", min=0.0, max=0.5, min_exclusive=True, unit="m")
     palm_thickness = palm.number("thickness", min=0.0, max=0.5, min_exclusive=True, unit="m")
     palm.done()
 
-    link_docs = doc.mappings("links", min_len=JOINTS_PER_FINGER, max_len=JOINTS_PER_FINGER)
-    links = tuple(_parse_link(d) for d in link_docs)
+    links = _parse_links(doc.mapping("links"), hand)
 
     joints = doc.mapping("joints")
     n = hand.n_joints
@@ -134,25 +136,27 @@ def parse_sim(hand: HandConfig) -> SimParams:
 
     actuator = doc.mapping("actuator")
     lag = _per_joint(actuator, "lag", n, min=0.0, max=1.0, min_exclusive=True, unit="s")
-    motor_tau_max = actuator.numbers("motor_tau_max", length=JOINTS_PER_FINGER, min=0.0,
-                                     max=100.0, unit="N·m")
+    motor_tau_max = _parse_motor_tau_max(actuator.mapping("motor_tau_max"), hand)
     actuator.done()
-    for finger in hand.fingers:
-        for k, joint in enumerate(finger.joints):
-            if motor_tau_max[k] < joint.device_tau_max:
-                Doc({}, hand.source, "sim.actuator.motor_tau_max").fail(
-                    k, f"a value >= device_tau_max of {joint.name} ({joint.device_tau_max:g} "
-                    "N·m): the node's saturation must be the one that binds (a weak motor is "
-                    "the motor_saturation fault)", motor_tau_max[k])
 
     initial_angles = _parse_initial_angles(doc.mapping("initial_angles"), hand)
     objects = tuple(_parse_object(d) for d in doc.mappings("objects", min_len=1, max_len=4))
-    friction = _parse_friction(doc.mapping("friction"))
+    friction_doc = doc.mapping("friction")
+    friction = _parse_friction(friction_doc)
 
     contact = doc.mapping("contact")
     timeconst = contact.number("timeconst", min=2 * timestep, max=1.0, unit="s")
     dampratio = contact.number("dampratio", min=0.1, max=10.0)
+    between_fingers = contact.boolean("between_fingers", default=False)
     contact.done()
+    finger_finger = 0.0
+    if between_fingers:
+        finger_finger = friction_doc.number("finger_finger", min=0.0, max=3.0)
+    elif friction_doc.has("finger_finger"):
+        friction_doc.fail("finger_finger", "no finger_finger friction while "
+                          "sim.contact.between_fingers is false (fingers do not touch)",
+                          friction_doc.raw("finger_finger"))
+    friction_doc.done()
 
     tdt_doc = doc.mapping("tdt")
     tdt = TdtParams(
@@ -177,8 +181,9 @@ def parse_sim(hand: HandConfig) -> SimParams:
         damping=damping, frictionloss=frictionloss, armature=armature, stop_margin=stop_margin,
         actuator_lag=lag, motor_tau_max=motor_tau_max, initial_angles=initial_angles,
         objects=objects, friction=friction, contact_timeconst=timeconst,
-        contact_dampratio=dampratio, tdt=tdt, encoder=encoder)
-    _check_scene(params, Doc({}, hand.source, "sim"))
+        contact_dampratio=dampratio, between_fingers=between_fingers,
+        finger_finger_friction=finger_finger, tdt=tdt, encoder=encoder)
+    check_placement(hand, params, Doc({}, hand.source, "sim"))
     return params
 
 
@@ -195,18 +200,59 @@ def _per_joint(doc: Doc, key: str, n: int, *, min: float, max: float,
                                   unit=unit) for i, v in enumerate(value))
 
 
-def _parse_link(doc: Doc) -> LinkParams:
-    link = LinkParams(
-        radius=doc.number("radius", min=0.0, max=0.05, min_exclusive=True, unit="m"),
-        mass=doc.number("mass", min=0.0, max=1.0, min_exclusive=True, unit="kg"),
-    )
+def _parse_links(doc: Doc, hand: HandConfig) -> tuple[LinkParams, ...]:
+    """One list per finger, by finger name, of one ``{radius, mass}`` per joint (proximal
+    first), flattened into config order.
+
+    A joint that gives ``half_thickness`` (the estimator's link thickness) must be simulated
+    with that radius: the two are one fact, and a simulation thicker or thinner than the
+    estimator believes would fool every test of the estimator."""
+    doc.expect(f.name for f in hand.fingers)
+    links = []
+    for i, finger in enumerate(hand.fingers):
+        n = len(finger.joints)
+        for k, (link_doc, joint) in enumerate(zip(
+                doc.mappings(finger.name, min_len=n, max_len=n), finger.joints, strict=True)):
+            link = LinkParams(
+                radius=link_doc.number("radius", min=0.0, max=0.2, min_exclusive=True,
+                                       unit="m"),
+                mass=link_doc.number("mass", min=0.0, max=10.0, min_exclusive=True, unit="kg"),
+            )
+            link_doc.done()
+            if joint.half_thickness > 0 and abs(link.radius - joint.half_thickness) > 1e-12:
+                link_doc.fail("radius", f"the half_thickness of {joint.name} "
+                              f"({joint.half_thickness:g} m, fingers[{i}].joints[{k}]): the "
+                              "estimator and the simulation must see one link", link.radius)
+            links.append(link)
     doc.done()
-    return link
+    return tuple(links)
+
+
+def _parse_motor_tau_max(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
+    """One list per finger, by finger name, of one limit per joint, flattened into config
+    order; none below the joint's ``device_tau_max``: the node's saturation must be the one
+    that binds (a weak motor is the motor_saturation fault)."""
+    doc.expect(f.name for f in hand.fingers)
+    limits: list[float] = []
+    for finger in hand.fingers:
+        values = doc.numbers(finger.name, length=len(finger.joints), min=0.0, max=100.0,
+                             unit="N·m")
+        where = Doc({}, doc.file, doc.key_path(finger.name))
+        for k, (value, joint) in enumerate(zip(values, finger.joints, strict=True)):
+            if value < joint.device_tau_max:
+                where.fail(k, f"a value >= device_tau_max of {joint.name} "
+                           f"({joint.device_tau_max:g} N·m): the node's saturation must be "
+                           "the one that binds (a weak motor is the motor_saturation fault)",
+                           value)
+        limits += values
+    doc.done()
+    return tuple(limits)
 
 
 def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...], ...]:
     """One list per finger, by finger name, inside the soft limits: a start outside them would
     trip the host's soft-limit check before anything happened."""
+    doc.expect(f.name for f in hand.fingers)
     angles = []
     for finger in hand.fingers:
         values = doc.numbers(finger.name, length=len(finger.joints), min=-2 * math.pi,
@@ -224,11 +270,11 @@ def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...]
 def _parse_object(doc: Doc) -> ObjectParams:
     obj = ObjectParams(
         name=doc.string("name"),
-        radius=doc.number("radius", min=0.005, max=0.1, unit="m"),
-        length=doc.number("length", min=0.01, max=0.5, unit="m"),
-        mass=doc.number("mass", min=0.001, max=2.0, unit="kg"),
-        x=doc.number("x", min=-1.0, max=1.0, unit="m"),
-        y=doc.number("y", min=-1.0, max=1.0, unit="m"),
+        radius=doc.number("radius", min=0.005, max=1.0, unit="m"),
+        length=doc.number("length", min=0.01, max=2.0, unit="m"),
+        mass=doc.number("mass", min=0.001, max=20.0, unit="kg"),
+        x=doc.number("x", min=-5.0, max=5.0, unit="m"),
+        y=doc.number("y", min=-5.0, max=5.0, unit="m"),
         angle=doc.number("angle", default=0.0, min=-2 * math.pi, max=2 * math.pi, unit="rad"),
     )
     doc.done()
@@ -238,26 +284,4 @@ def _parse_object(doc: Doc) -> ObjectParams:
 def _parse_friction(doc: Doc) -> FrictionParams:
     values = {name: doc.number(name, min=0.0, max=3.0)
               for name in FrictionParams.__dataclass_fields__}
-    doc.done()
     return FrictionParams(**values)
-
-
-def _check_scene(params: SimParams, doc: Doc) -> None:
-    """Refuse a scene that starts in collision: MuJoCo would resolve it with a violent kick."""
-    names: set[str] = set()
-    for i, obj in enumerate(params.objects):
-        where = f"objects[{i}]"
-        if obj.name in names:
-            doc.fail(f"{where}.name", "a name not used by another object", obj.name)
-        names.add(obj.name)
-        if obj.y - obj.radius < params.table_height - 1e-9:
-            doc.fail(f"{where}.y", f"a centre at least one radius ({obj.radius:g} m) above the "
-                     f"table top ({params.table_height:g} m)", obj.y)
-        if obj.y + obj.radius > 1e-9:
-            doc.fail(f"{where}.y", f"a centre at least one radius ({obj.radius:g} m) below the "
-                     "palm face (y = 0)", obj.y)
-        for j, other in enumerate(params.objects[:i]):
-            gap = math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
-            if gap < -1e-9:
-                doc.fail(f"{where}.x", f"a position not overlapping objects[{j}] "
-                         f"({other.name})", obj.x)

@@ -8,8 +8,10 @@ Choices that matter for what a recipe sees:
 - The tendon drive is a torque actuator behind a first-order lag (MuJoCo's exact filter
   dynamics), clipped to the motor's own limit. The force MuJoCo applies through it is the torque
   the tendon transmits to the joint, which is what a TDT sensor measures.
-- Contacts are explicit pairs, each with the friction of its kind from the config. There are no
-  finger-finger pairs: the two side-by-side fingers and the opposing one never collide.
+- Contacts are explicit pairs, each with the friction of its kind from the config. Links of
+  different fingers collide only when ``sim.contact.between_fingers`` asks for it (fingers side
+  by side, or opposing ones that never meet, need no contact test); links of one finger never
+  do: neighbours share a joint, and a finger folding onto itself is beyond its stops.
 - A cylinder collides as a capsule whose straight part is the cylinder's length, and has a solid
   cylinder's mass and inertia. In this planar scene the two give the same contacts (every finger
   and the palm lie within the straight part; on the table both rest on a line), and MuJoCo
@@ -33,7 +35,7 @@ import numpy as np
 
 from handctl.arrays import FloatArray
 from handctl.config import FingerConfig, HandConfig, JointConfig
-from handctl.sim.params import SimParams
+from handctl.sim.params import LinkParams, SimParams
 
 #: Along z, the palm reaches this far beyond the fingers and the cylinders it must stop (m).
 _PALM_MARGIN = 0.005
@@ -61,7 +63,8 @@ def stop_range(joint: JointConfig, margin: float) -> tuple[float, float]:
 def build_mjcf(hand: HandConfig, params: SimParams) -> str:
     """The MJCF text of the scene; kept separate from ``Plant`` so it can be inspected."""
     p = params
-    half_depth = max([abs(f.z) + p.links[0].radius for f in hand.fingers]
+    half_depth = max([abs(f.z) + max(link.radius for link in links)
+                      for f, links in zip(hand.fingers, finger_links(hand, p), strict=True)]
                      + [o.length / 2 for o in p.objects]) + _PALM_MARGIN
     lines = [
         '<mujoco model="handctl_sim">',
@@ -87,9 +90,9 @@ def build_mjcf(hand: HandConfig, params: SimParams) -> str:
         i_xy = obj.mass * (3 * obj.radius**2 + obj.length**2) / 12
         lines += [
             f"    <body name={quoteattr(obj.name)}>",
-            f'      <joint name="{obj.name}_x" type="slide" axis="1 0 0"/>',
-            f'      <joint name="{obj.name}_y" type="slide" axis="0 1 0"/>',
-            f'      <joint name="{obj.name}_rz" type="hinge" axis="0 0 1"/>',
+            f'      <joint name={quoteattr(obj.name + "_x")} type="slide" axis="1 0 0"/>',
+            f'      <joint name={quoteattr(obj.name + "_y")} type="slide" axis="0 1 0"/>',
+            f'      <joint name={quoteattr(obj.name + "_rz")} type="hinge" axis="0 0 1"/>',
             f'      <inertial pos="0 0 0" mass="{_f(obj.mass)}" '
             f'diaginertia="{_f(i_xy)} {_f(i_xy)} {_f(i_z)}"/>',
             f"      <geom name={quoteattr(obj.name)} type=\"capsule\" "
@@ -101,17 +104,14 @@ def build_mjcf(hand: HandConfig, params: SimParams) -> str:
     lines += _pair_xml(hand, params)
     lines.append("  </contact>")
     lines.append("  <actuator>")
-    index = 0
-    for finger in hand.fingers:
-        for k, joint in enumerate(finger.joints):
-            limit = p.motor_tau_max[k]
-            lag = p.actuator_lag[index]
-            index += 1
-            lines.append(
-                f"    <general name={quoteattr(joint.name)} joint={quoteattr(joint.name)} "
-                f'dyntype="filterexact" dynprm="{_f(lag)}" gaintype="fixed" '
-                f'gainprm="1" biastype="none" forcelimited="true" '
-                f'forcerange="{_f(-limit)} {_f(limit)}"/>')
+    for index, joint in enumerate(hand.joints):
+        limit = p.motor_tau_max[index]
+        lag = p.actuator_lag[index]
+        lines.append(
+            f"    <general name={quoteattr(joint.name)} joint={quoteattr(joint.name)} "
+            f'dyntype="filterexact" dynprm="{_f(lag)}" gaintype="fixed" '
+            f'gainprm="1" biastype="none" forcelimited="true" '
+            f'forcerange="{_f(-limit)} {_f(limit)}"/>')
     lines.append("  </actuator>")
     lines.append("</mujoco>")
     return "\n".join(lines)
@@ -124,7 +124,7 @@ def _finger_xml(finger: FingerConfig, params: SimParams, first: int) -> list[str
              f'euler="0 0 {_f(finger.base_angle)}">']
     indent = "      "
     for k, joint in enumerate(finger.joints):
-        link = params.links[k]
+        link = params.links[first + k]
         lo, hi = stop_range(joint, params.stop_margin)
         pos = "0 0 0" if k == 0 else f"{_f(finger.joints[k - 1].link_length)} 0 0"
         lines += [
@@ -165,7 +165,22 @@ def _pair_xml(hand: HandConfig, params: SimParams) -> list[str]:
         lines.append(pair(obj, "palm", fr.object_palm))
     lines += [pair(link, "table", fr.finger_table) for link in links]
     lines += [pair(link, "palm", fr.finger_palm) for link in links]
+    if params.between_fingers:
+        for f, finger in enumerate(hand.fingers):
+            lines += [pair(a.name, b.name, params.finger_finger_friction)
+                      for a in finger.joints for other in hand.fingers[f + 1:]
+                      for b in other.joints]
     return lines
+
+
+def finger_links(hand: HandConfig, params: SimParams) -> list[tuple[LinkParams, ...]]:
+    """``params.links`` (config order) split finger by finger."""
+    out = []
+    first = 0
+    for finger in hand.fingers:
+        out.append(params.links[first: first + len(finger.joints)])
+        first += len(finger.joints)
+    return out
 
 
 class Plant:
@@ -224,7 +239,7 @@ class Plant:
         return float(self.data.time)
 
     def set_torque_commands(self, tau: FloatArray | list[float]) -> None:
-        """The torque each motor is asked for (N·m, 9 joints in config order)."""
+        """The torque each motor is asked for (N·m, one per joint in config order)."""
         self._ctrl[:] = tau
 
     def step(self) -> None:
@@ -309,7 +324,7 @@ def gravity_torques(hand: HandConfig, params: SimParams,
             joints_xy.append((x, y))
             cx = x + math.cos(heading) * joint.link_length / 2
             cy = y + math.sin(heading) * joint.link_length / 2
-            centres.append((cx, cy, params.links[k].mass))
+            centres.append((cx, cy, params.links[offset + k].mass))
             x += math.cos(heading) * joint.link_length
             y += math.sin(heading) * joint.link_length
         for k in range(len(finger.joints)):

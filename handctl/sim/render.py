@@ -27,6 +27,13 @@ def _stadium(x0: float, y0: float, x1: float, y1: float, r: float) -> list[tuple
     return points
 
 
+def scene_half_width(plant: Plant) -> float:
+    """Half the width (m) that shows every finger stretched out and every object."""
+    reach = [abs(f.base_x) + sum(j.link_length for j in f.joints) for f in plant.hand.fingers]
+    objects = [abs(o.x) + o.radius for o in plant.params.objects]
+    return max(reach + objects + [plant.params.palm_half_width]) + 0.02
+
+
 def draw_scene(plant: Plant, path: str | Path, title: str = "") -> Path:
     """Draw the current state of ``plant`` to a PNG at ``path``; returns the path."""
     import matplotlib
@@ -39,10 +46,12 @@ def draw_scene(plant: Plant, path: str | Path, title: str = "") -> Path:
     fig, ax = plt.subplots(figsize=(7.5, 4.6), dpi=120)
     params = plant.params
     ax.axhline(params.table_height, color="saddlebrown", lw=2)
-    ax.add_patch(Rectangle((-0.2, params.table_height - 0.01), 0.4, 0.01, color="burlywood"))
+    width = 2 * scene_half_width(plant)
+    ax.add_patch(Rectangle((-width / 2, params.table_height - 0.01), width, 0.01,
+                           color="burlywood"))
     ax.add_patch(Rectangle((-params.palm_half_width, 0.0), 2 * params.palm_half_width,
                            params.palm_thickness, color="grey", alpha=0.7))
-    colours = {0: "tab:blue", 1: "tab:green", 2: "tab:red"}
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for f_index, finger in enumerate(plant.hand.fingers):
         for joint in finger.joints:
             bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, joint.name)
@@ -53,15 +62,16 @@ def draw_scene(plant: Plant, path: str | Path, title: str = "") -> Path:
             y1 = y0 + axis[1] * joint.link_length
             r = float(model.geom_size[gid][0])
             ax.add_patch(Polygon(_stadium(x0, y0, x1, y1, r), closed=True,
-                                 color=colours.get(f_index, "k"), alpha=0.45))
+                                 color=colours[f_index % len(colours)], alpha=0.45))
             ax.plot([x0], [y0], "k.", ms=3)
     for pose, obj in zip(plant.object_poses(), params.objects, strict=True):
         ax.add_patch(Circle((pose.x, pose.y), obj.radius, color="orange", alpha=0.6))
         ax.plot([pose.x, pose.x + obj.radius * math.cos(pose.angle)],
                 [pose.y, pose.y + obj.radius * math.sin(pose.angle)], "k-", lw=1)
     ax.set_aspect("equal")
-    ax.set_xlim(-0.2, 0.2)
-    ax.set_ylim(params.table_height - 0.03, 0.05)
+    half_width = scene_half_width(plant)
+    ax.set_xlim(-half_width, half_width)
+    ax.set_ylim(params.table_height - 0.03, max(0.05, params.palm_thickness + 0.02))
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(True, lw=0.3)

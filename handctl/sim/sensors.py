@@ -7,10 +7,11 @@ node's factory calibration, which the host undoes with the hand config's ``tdt.s
 ``tdt.offset``. Encoders quantise to their counts. Both saturate at the range of the wire
 signals, as an ADC or a counter register would, rather than let the encoder refuse the frame.
 
-Both models work on all nine joints in one call per 1 ms tick, on plain lists: for nine values a
-Python loop costs less than a dozen small NumPy calls, and the readings go straight into the
-frame encoder as floats. Noise (with the bias folded in) comes from a seeded generator in blocks
-of a thousand ticks, so a given seed always produces the same readings.
+Both models work on every joint of the hand in one call per 1 ms tick, on plain lists: for the
+default hand's nine values a Python loop costs less than a dozen small NumPy calls, and the
+readings go straight into the frame encoder as floats. Noise (with the bias folded in) comes
+from a seeded generator in blocks of a thousand ticks, so a given seed always produces the same
+readings.
 """
 
 from __future__ import annotations

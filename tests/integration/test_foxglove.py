@@ -237,7 +237,8 @@ def check_scene(decoded: dict[str, list[tuple[int, Any]]], hand: HandConfig) -> 
             spheres = entities[f"link/{name}"].spheres
             got = [(s.pose.position.x, s.pose.position.y) for s in spheres]
             assert got == pytest.approx([start, end], abs=1e-9)
-            assert spheres[0].size.x == pytest.approx(2 * sim.links[int(name[-1]) - 1].radius)
+            radius = sim.links[hand.joint_names.index(name)].radius
+            assert spheres[0].size.x == pytest.approx(2 * radius)
         assert {"palm", "table"} <= set(entities)
         truth = [objs for tt, objs in truths if tt <= t]
         if truth:

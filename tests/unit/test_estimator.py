@@ -104,7 +104,7 @@ def test_half_thickness_agrees_with_the_simulated_links(hand: HandConfig) -> Non
     links = hand.sim["links"]
     for finger in hand.fingers:
         for k, joint in enumerate(finger.joints):
-            assert joint.half_thickness == pytest.approx(links[k]["radius"])
+            assert joint.half_thickness == pytest.approx(links[finger.name][k]["radius"])
 
 
 # -- the recipe's objects ------------------------------------------------------------------
