@@ -146,6 +146,12 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
     if lockstep and not is_sim:
         raise ConfigError("--lockstep", "", "the simulated hand (--bus sim): only it can be "
                           "stepped", req.bus)
+    if is_sim and req.recipe.objects:
+        from handctl.planning.experiment import check_objects_in_sim
+        from handctl.sim.params import parse_sim
+
+        check_objects_in_sim(req.recipe, [o.name for o in parse_sim(req.hand).objects],
+                             req.hand.source)
     startup_s = 0.5
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
@@ -207,7 +213,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         runtime = Runtime(req.hand, driver, clock, req.recipe, recorder=recorder, status=status,
                           reset_node_faults=req.reset_node_faults, max_ticks=NO_TICK_LIMIT,
                           startup_timeout_s=startup_s,
-                          estimator=(ObjectEstimator(req.hand, req.recipe.objects)
+                          estimator=(ObjectEstimator(req.hand, req.recipe.objects,
+                                                     req.recipe.pairs)
                                      if req.recipe.objects else None))
         # Ground truth of the experiment, recorded every tick and never fed back.
         tracker = None
@@ -252,8 +259,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             else:
                 from handctl.planning.plot import plot_run
 
-                plot_run(tracker.trace, req.plot, req.recipe, summary.get("experiment"),
-                         [j.tau_max for j in req.hand.joints])
+                plot_run(tracker.trace, req.plot, req.recipe, req.hand, summary.get("experiment"))
         if recording is not None:
             try:
                 summary["recording"] = recording.close(summary)
