@@ -14,7 +14,10 @@ figures exist where the recipe has a pair. Definitions:
   purpose). An object has left the hand when no part of it is between the outermost finger
   bases any more: its centre is further along the palm from the palm's middle than the
   farthest finger base plus its own radius (``hand_span``);
-- ``objects``: each object's ``lifted``, ``held_s``, ``dropped`` and final pose;
+- ``objects``: each object's ``lifted``, ``held_s``, ``dropped``, final pose and, for an object
+  of the recipe, ``estimator_error_m``: the 95th percentile of the distance between its
+  estimated and true centres over the ticks of the hold and manipulation phases where the
+  estimate was valid;
 - the pair figures, of the recipe's first pair (the centre line from its first object's
   centre to its second's; every pair's turn is also under ``pairs``):
   ``phase_angles_deg``: for each manipulation phase (a phase whose name starts with
@@ -91,8 +94,10 @@ class Trace:
     transmitted joint torques, the estimator's outputs and validity.
 
     ``objects`` names the simulated objects (``rest_y`` and ``radii`` per object, in m);
-    ``pairs`` are the recipe's pairs as indices into them, in the estimator's order (pair k's
-    estimated line angle is output ``2 k``); ``palm_x`` and ``half_span`` are ``hand_span``'s.
+    ``pairs`` are the recipe's pairs and ``estimated`` the recipe's objects, as indices into
+    them in the estimator's order (pair k's estimated line angle is output ``2 k``, estimated
+    object i's centre outputs ``2 P + 2 i`` and the next, for P pairs); ``palm_x`` and
+    ``half_span`` are ``hand_span``'s.
     """
 
     rest_y: tuple[float, ...]
@@ -102,6 +107,7 @@ class Trace:
     radii: tuple[float, ...]
     half_span: float
     pairs: tuple[Pair, ...] = ()
+    estimated: tuple[int, ...] = ()
     t: list[float] = field(default_factory=list)
     phase: list[str] = field(default_factory=list)
     poses: list[tuple[float, ...]] = field(default_factory=list)  # x, y, angle per object
@@ -119,10 +125,13 @@ class Trace:
         self.phase.append(phase)
         self.poses.append(tuple(v for p in poses for v in (p.x, p.y, p.angle)))
         self.torques.append(tuple(torques))
-        width = 2 * len(self.pairs)  # the pairs' line angles and turns come first
-        self.estimate.append(tuple(estimate[:width]) if estimate is not None
-                             else (math.nan,) * width)
+        self.estimate.append(tuple(estimate) if estimate is not None
+                             else (math.nan,) * self.estimate_width)
         self.valid.append(valid)
+
+    @property
+    def estimate_width(self) -> int:
+        return 2 * len(self.pairs) + 2 * len(self.estimated)
 
     # -- derived series ---------------------------------------------------------------------
     def line_angle(self, pair: Pair, poses: np.ndarray) -> np.ndarray:
@@ -136,7 +145,7 @@ class Trace:
     def arrays(self) -> dict[str, np.ndarray]:
         m = len(self.objects)
         poses = np.array(self.poses, dtype=float).reshape(-1, 3 * m)
-        est = np.array(self.estimate, dtype=float).reshape(len(self.t), 2 * len(self.pairs))
+        est = np.array(self.estimate, dtype=float).reshape(len(self.t), self.estimate_width)
         true_angle = self.line_angle(self.pairs[0], poses) if self.pairs else np.zeros(0)
         heights = poses[:, 1::3] - np.array(self.rest_y[:m])
         return {"t": np.array(self.t), "poses": poses, "true_angle": true_angle,
@@ -207,7 +216,8 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
     empty: dict[str, Any] = {"success": False, "min_total_turn_deg": min_total_turn_deg,
                              "lifted": False, "held_s": 0.0, "dropped": False,
                              "objects": {name: {"lifted": False, "held_s": 0.0,
-                                                "dropped": False} for name in trace.objects},
+                                                "dropped": False, "estimator_error_m": None}
+                                         for name in trace.objects},
                              **(pair_keys if trace.pairs else {})}
     if n == 0:
         return empty
@@ -228,6 +238,10 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
             trace.half_span + np.array(trace.radii)
         gone[after] = low | away
     dropped = bool(np.any(gone))
+    # the estimator is judged from the lifted stretch on (hold and manipulation)
+    start = lift_start if lift_start is not None else first_manip
+    sel = slice(start, end_manip)
+    valid = a["valid"][sel]
     objects: dict[str, Any] = {}
     last = poses[-1]
     for i, name in enumerate(trace.objects):
@@ -237,7 +251,15 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
             "dropped": bool(np.any(gone[:, i])),
             "final": {"x_m": round(float(last[3 * i]), 5), "y_m": round(float(last[3 * i + 1]), 5),
                       "angle_rad": round(float(last[3 * i + 2]), 5),
-                      "height_above_rest_m": round(float(heights[-1, i]), 5)}}
+                      "height_above_rest_m": round(float(heights[-1, i]), 5)},
+            "estimator_error_m": None}
+    for k, i in enumerate(trace.estimated):
+        col = 2 * len(trace.pairs) + 2 * k
+        miss = np.hypot(a["estimate"][sel, col] - poses[sel, 3 * i],
+                        a["estimate"][sel, col + 1] - poses[sel, 3 * i + 1])
+        miss = miss[valid & np.isfinite(miss)]
+        objects[trace.objects[i]]["estimator_error_m"] = (
+            round(float(np.percentile(miss, 95)), 5) if miss.size else None)
     out: dict[str, Any] = {"min_total_turn_deg": min_total_turn_deg, "lifted": bool(lifted),
                            "held_s": round(held_s, 3), "dropped": dropped, "objects": objects}
     total = 0.0
@@ -247,9 +269,6 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
         # on the samples a log keeps (the convention's), so that its replay measures the same
         period = float(t[1] - t[0]) if n > 1 else 1.0
         logged = np.round(t / period).astype(np.int64) % POSE_EVERY_TICKS == 0
-        start = lift_start if lift_start is not None else first_manip
-        sel = slice(start, end_manip)
-        valid = a["valid"][sel]
         in_manip = np.zeros(n, dtype=bool)
         for _, s, e in manip:
             in_manip[s:e] = True
@@ -322,7 +341,7 @@ def track(runtime: Any, sim_hand: Any) -> Tracker:
 
     middle, half_span = hand_span(hand)
     trace = Trace(tuple(o.y for o in sim_objects), middle, hand.joint_names, names,
-                  tuple(o.radius for o in sim_objects), half_span, pairs)
+                  tuple(o.radius for o in sim_objects), half_span, pairs, tuple(index))
     tracker = Tracker(sim_hand.ground_truth, phase, estimate, trace, hand.bus.period_s,
                       applied=lambda: runtime.supervisor.applied)
     runtime.tick_hooks.append(tracker.sample)

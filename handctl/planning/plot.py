@@ -8,6 +8,7 @@ global backend switch), as in ``handctl.analysis.plot``.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -65,8 +66,15 @@ def plot_run(trace: Trace, path: Path, recipe: Recipe, hand: HandConfig,
             gap = (est - true + math.pi) % (2 * math.pi) - math.pi
             est_turn = np.where(a["valid"] & np.isfinite(est), turn + gap, np.nan)
             turns[f"{label} estimated (joint angles)"] = (t, np.degrees(est_turn))
-    objects_panels(axes[-2], axes[-1], t, a["heights"], list(trace.objects), turns)
-    axes[-2].axhline(LIFT_HEIGHT * 1e3, color="k", lw=0.6, ls="--")
+    heights_ax = axes[len(groups)]
+    with warnings.catch_warnings():  # an empty turn panel has no legend to draw
+        warnings.simplefilter("ignore", UserWarning)
+        objects_panels(heights_ax, axes[-1], t, a["heights"], list(trace.objects), turns)
+    if not trace.pairs:  # nothing turns: no turn panel
+        fig.delaxes(axes[-1])
+        axes = axes[:-1]
+        axes[-1].tick_params(labelbottom=True)
+    heights_ax.axhline(LIFT_HEIGHT * 1e3, color="k", lw=0.6, ls="--")
     phase_bands(list(axes), [(name, float(t[s]), float(t[e]) if e < len(t) else float(t[-1]))
                        for name, s, e in _segments(trace.phase) if e > s])
     axes[-1].set_xlabel(TIME_LABEL)
@@ -74,10 +82,11 @@ def plot_run(trace: Trace, path: Path, recipe: Recipe, hand: HandConfig,
         axes[-1].set_xlim(0.0, max(float(t[-1]), 1e-3))
     title = f"{recipe.name}"
     if experiment:
-        title += (f": lifted {experiment.get('lifted')}, turned "
-                  f"{experiment.get('turn_deg', 0.0):+.1f} deg (ccw +), dropped "
-                  f"{experiment.get('dropped')}, estimator p95 "
-                  f"{experiment.get('estimator_error_deg')} deg")
+        title += f": lifted {experiment.get('lifted')}, "
+        if "turn_deg" in experiment:
+            title += (f"turned {experiment['turn_deg']:+.1f} deg (ccw +), estimator p95 "
+                      f"{experiment.get('estimator_error_deg')} deg, ")
+        title += f"dropped {experiment.get('dropped')}"
     fig.suptitle(title, fontsize=10, y=0.995)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
     out = Path(path)

@@ -23,9 +23,10 @@ class Pose:
     angle: float = 0.0
 
 
-def empty_trace(objects: int = 2, pairs: tuple[tuple[int, int], ...] = ((0, 1),)) -> Trace:
+def empty_trace(objects: int = 2, pairs: tuple[tuple[int, int], ...] = ((0, 1),),
+                estimated: tuple[int, ...] = (0, 1)) -> Trace:
     return Trace((REST[0],) * objects, 0.0, NAMES, tuple(f"o{i}" for i in range(objects)),
-                 (RADIUS,) * objects, HALF_SPAN, pairs)
+                 (RADIUS,) * objects, HALF_SPAN, pairs, estimated)
 
 
 def trace_of(segments: list[tuple[str, float, float, float, float]],
@@ -46,7 +47,8 @@ def trace_of(segments: list[tuple[str, float, float, float, float]],
             est = angle + math.radians(est_offset_deg)
             valid = phase != "approach"
             tr.add(t, phase, poses, [0.0] * 9,
-                   (math.atan2(math.sin(est), math.cos(est)), est, 0, 0, 0, 0), valid)
+                   (math.atan2(math.sin(est), math.cos(est)), est,
+                    *(v for p in poses for v in (p.x, p.y))), valid)
             t += 0.001
     return tr
 
@@ -122,6 +124,7 @@ def test_the_peak_turn_rate_is_the_fastest_stretch_of_the_manipulation() -> None
 def test_every_object_is_reported_with_its_final_pose() -> None:
     ex = experiment_summary(trace_of(EXPERIMENT, drop_at=5.0))
     assert set(ex["objects"]) == {"o0", "o1"}
+    assert ex["objects"]["o0"]["estimator_error_m"] == pytest.approx(0.0)
     for name in ("o0", "o1"):
         assert ex["objects"][name]["lifted"] is True
         assert ex["objects"][name]["dropped"] is True
@@ -133,27 +136,35 @@ def test_every_object_is_reported_with_its_final_pose() -> None:
 
 
 def line_of(count: int, heights: list[float], xs: list[float], seconds: float = 3.0,
-            pairs: tuple[tuple[int, int], ...] = ()) -> Trace:
+            pairs: tuple[tuple[int, int], ...] = (), estimate_off: float | None = None
+            ) -> Trace:
     """``count`` objects side by side at ``xs`` (m), each at its height (m) above rest from
-    the first second on, held for ``seconds`` in a phase 'hold', then 'manipulate_1' of 1 s."""
-    tr = empty_trace(count, pairs)
+    the first second on, held for ``seconds`` in a phase 'hold', then 'manipulate_1' of 1 s.
+    With ``estimate_off`` (m), the first object is estimated that far off in x, valid while
+    it is up."""
+    estimated = (0,) if estimate_off is not None else ()
+    tr = empty_trace(count, pairs, estimated)
     t = 0.0
     for phase, span in (("lift", 1.0), ("hold", seconds), ("manipulate_1", 1.0)):
         for _ in range(round(span / 0.001)):
             up = phase != "lift"
             poses = [Pose(x, REST[0] + (h if up else 0.0)) for x, h in zip(xs, heights,
                                                                              strict=True)]
-            tr.add(t, phase, poses, [0.0] * 9, None, False)
+            est = None
+            if estimate_off is not None:
+                est = (poses[0].x + estimate_off, poses[0].y) if up else (math.nan, math.nan)
+            tr.add(t, phase, poses, [0.0] * 9, est, up and est is not None)
             t += 0.001
     return tr
 
 
 def test_one_object_lifted_and_held_succeeds_without_pair_figures() -> None:
-    ex = experiment_summary(line_of(1, [0.03], [0.0]))
+    ex = experiment_summary(line_of(1, [0.03], [0.0], estimate_off=0.001))
     assert ex["success"] is True and ex["lifted"] is True
     assert ex["objects"]["o0"]["held_s"] >= 2.0
+    assert ex["objects"]["o0"]["estimator_error_m"] == pytest.approx(0.001)
     assert "turn_deg" not in ex and "pairs" not in ex
-    empty = experiment_summary(empty_trace(1, ()))
+    empty = experiment_summary(empty_trace(1, (), (0,)))
     assert "turn_deg" not in empty and empty["objects"]["o0"]["lifted"] is False
 
 
