@@ -1080,7 +1080,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         notes="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
                "130. A torque over the joint's tau_max is refused (exit 2) before anything "
                "is sent.")
-    jog.add_argument("joint", help="joint name, as in the hand config (e.g. f1_j2)")
+    jog.add_argument("joint", help="joint name, as the hand config names it")
     jog.add_argument("--torque", type=float, required=True, metavar="X",
                      help="torque [N·m], signed")
     jog.add_argument("--seconds", type=float, metavar="S",

@@ -31,7 +31,7 @@ import numpy as np
 
 from handctl.config import HandConfig
 from handctl.estimator import ObjectEstimator
-from handctl.planning.experiment import hand_span
+from handctl.handshape import hand_span
 from handctl.recipes.guard import LimitGuard
 from handctl.recipes.runner import RecipeRunner, RunStatus
 from handctl.recipes.schema import Phase, Recipe, RecipeObject, TimeoutAction
@@ -100,7 +100,7 @@ class Episode:
         self._rest = [o.y for o in params.objects]
         self._radii = [o.radius for o in params.objects]
         # the palm's middle and the farthest finger base from it: out of the hand, as the
-        # experiment summary judges it (``experiment.hand_span``)
+        # experiment summary judges it (``handshape.hand_span``)
         self._mid_x, self._half_span = hand_span(hand)
 
     # -- snapshots --------------------------------------------------------------------------

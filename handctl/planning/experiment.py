@@ -48,9 +48,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from handctl.config import HandConfig
 from handctl.convention import POSE_EVERY_TICKS, phase_turns_deg
 from handctl.errors import ConfigError
+from handctl.handshape import hand_span
 from handctl.recipes.schema import Pair, Recipe
 
 LIFT_HEIGHT = 0.010  # m
@@ -67,15 +67,6 @@ class _Pose(Protocol):
     def y(self) -> float: ...
     @property
     def angle(self) -> float: ...
-
-
-def hand_span(hand: HandConfig) -> tuple[float, float]:
-    """``(middle, half_span)`` (m, along the palm's x): the palm's middle between the
-    outermost finger bases, and how far from it the farthest base is. The two judge whether
-    an object is still in the hand, from the hand config alone."""
-    xs = [f.base_x for f in hand.fingers]
-    middle = (min(xs) + max(xs)) / 2
-    return middle, max(abs(x - middle) for x in xs)
 
 
 def check_objects_in_sim(recipe: Recipe, sim_objects: Sequence[str], hand_source: str) -> None:

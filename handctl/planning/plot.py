@@ -17,7 +17,8 @@ import numpy as np
 
 from handctl.config import FingerConfig, HandConfig
 from handctl.convention import TIME_LABEL
-from handctl.planning.experiment import LIFT_HEIGHT, Trace, _segments, hand_span
+from handctl.handshape import hand_span
+from handctl.planning.experiment import LIFT_HEIGHT, Trace, _segments
 from handctl.recipes.schema import Recipe
 
 
@@ -211,7 +212,7 @@ def plot_plan(result: Any, directory: Path) -> list[Path]:
 
 
 def _fingers(fingers: Sequence[FingerConfig]) -> str:
-    """'finger f3', 'fingers f1, f2', or 'no finger'."""
+    """'finger NAME', 'fingers NAME, NAME', or 'no finger'."""
     if not fingers:
         return "no finger"
     return ("finger " if len(fingers) == 1 else "fingers ") + ", ".join(f.name for f in fingers)
