@@ -48,7 +48,16 @@ def run(tmp_path: Path, objects: list[dict[str, Any]], recipe: str) -> dict[str,
 
 
 def test_one_cylinder_is_lifted_held_and_located(tmp_path: Path) -> None:
-    summary = run(tmp_path, DRUM, "hold_one_cylinder.yaml")
+    """Through the command line: the summary JSON, the plot, and the printed experiment, which
+    gives the object's estimator error and no turn (there is no pair)."""
+    out, plot = tmp_path / "out.json", tmp_path / "run.png"
+    done = subprocess.run([sys.executable, "-m", "handctl", "run", "recipe",
+                           str(RECIPES / "hold_one_cylinder.yaml"), "--hand",
+                           str(hand_with(tmp_path, DRUM)), "--summary-json", str(out),
+                           "--plot", str(plot)], cwd=tmp_path, text=True,
+                          capture_output=True, timeout=600, check=False)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(out.read_text())
     assert summary["completed"] is True and summary["faults"] == []
     ex = summary["experiment"]
     assert ex["success"] is True and ex["lifted"] is True and ex["dropped"] is False
@@ -57,6 +66,8 @@ def test_one_cylinder_is_lifted_held_and_located(tmp_path: Path) -> None:
     assert drum["final"]["height_above_rest_m"] > 0.01
     assert drum["estimator_error_m"] <= ONE_OBJECT_ESTIMATE_M
     assert "turn_deg" not in ex and "pairs" not in ex  # one object: no pair, no turn
+    assert plot.stat().st_size > 0
+    assert "estimator p95 drum " in done.stdout and "turn per phase" not in done.stdout
 
 
 def test_three_cylinders_are_lifted_held_and_each_reported(tmp_path: Path) -> None:
