@@ -271,11 +271,19 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
                                          for k, v in summary["max_abs_tau_nm"].items()))
     if "experiment" in summary:
         ex = summary["experiment"]
-        err = ex["estimator_error_deg"]
-        print(f"  experiment: lifted {ex['lifted']} (held {ex['held_s']:.2f} s), turn per "
-              f"phase {ex['phase_angles_deg']} deg, turn {ex['turn_deg']:+.2f} deg (ccw +), "
-              f"peak rate {ex['peak_turn_rate_deg_s']} deg/s, dropped {ex['dropped']}, "
-              "estimator p95 " + ("-" if err is None else f"{err} deg"))
+        if "turn_deg" in ex:  # the first pair's figures
+            err = ex["estimator_error_deg"]
+            turned = (f"turn per phase {ex['phase_angles_deg']} deg, turn "
+                      f"{ex['turn_deg']:+.2f} deg (ccw +), peak rate "
+                      f"{ex['peak_turn_rate_deg_s']} deg/s, ")
+            estimated = "-" if err is None else f"{err} deg"
+        else:  # no pair: how far off each object's estimated centre was
+            turned = ""
+            estimated = ", ".join(f"{name} {o['estimator_error_m'] * 1e3:.1f} mm"
+                                  for name, o in ex["objects"].items()
+                                  if o.get("estimator_error_m") is not None) or "-"
+        print(f"  experiment: lifted {ex['lifted']} (held {ex['held_s']:.2f} s), {turned}"
+              f"dropped {ex['dropped']}, estimator p95 {estimated}")
         print(f"  experiment: {'success' if ex['success'] else 'FAILED'} (lifted, held, "
               f"nothing dropped, at least {ex['min_total_turn_deg']:g} deg turned)")
     if plot and "experiment" in summary:
@@ -1103,7 +1111,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         notes="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
                "130. A torque over the joint's tau_max is refused (exit 2) before anything "
                "is sent.")
-    jog.add_argument("joint", help="joint name, as in the hand config (e.g. f1_j2)")
+    jog.add_argument("joint", help="joint name, as the hand config names it")
     jog.add_argument("--torque", type=float, required=True, metavar="X",
                      help="torque [N·m], signed")
     jog.add_argument("--seconds", type=float, metavar="S",

@@ -1,4 +1,4 @@
-"""Where the two enveloped objects are, from the joint angles alone (online plane).
+"""Where the enveloped objects are, from the joint angles alone (online plane).
 
 A real hand without vision knows only its joint angles. What makes that enough is the
 enveloping grasp itself: every object is caged by finger links, the palm and the other object,
@@ -6,7 +6,7 @@ and squeezed against them, so it is tangent to the links it touches and clear of
 The estimator therefore places each object where it is *deepest inside its cage*: the centre
 ``c`` that maximises the smallest clearance ``s_k(c) = dist(c, segment_k) - r - h_k`` over
 every link segment (radius ``r`` of the object, half-thickness ``h_k`` of the link), the palm
-(the segment joining the finger bases) and the other object (``|c - c'| - r - r'``). This is
+(the segment joining the finger bases) and every other object (``|c - c'| - r - r'``). This is
 the Chebyshev centre of the free space, and it is the right estimate for three reasons:
 
 - for a squeezed object the free space shrinks to a point and the maximiser is where the
@@ -20,12 +20,19 @@ the Chebyshev centre of the free space, and it is the right estimate for three r
 
 The maximisation is tracked rather than solved from scratch, because it must fit in a tick:
 each tick takes one active-set step per object from the previous estimate, with the other
-object fixed (the three tightest distinct clearances, linearised; the step that equalises them
+objects fixed (the three tightest distinct clearances, linearised; the step that equalises them
 when they cage the object, an ascent along the two tightest when they do not), limited to
 ``MAX_STEP``. Objects move far less than that per millisecond, so the track never falls
 behind; a lost track (clearance beyond ``RESET_CLEARANCE``) restarts from seeds under the palm,
-inside every cage the hand can form. Continuity keeps the names: object 1 is the one that
-started on the side of the first finger (x below the palm's middle).
+inside every cage the hand can form: side by side and touching, in the recipe's order along
+the palm from its end nearer the first finger, centred on the palm's middle. Continuity keeps
+the names: the recipe's first object is the one that started nearest that end.
+
+One to four objects (the recipe's), and for each pair the recipe names (each object with the
+next by default) the angle of the line from the first centre to the second and its running
+turn (``handctl.recipes.schema.estimate_names``). The estimates are valid together or not at
+all: every object is a wall of the others' cages, so one object off its track puts the others'
+fits in doubt.
 
 Pure Python on floats, no NumPy: for a dozen segments that is several times cheaper per tick
 than array calls, and it allocates little. The online plane only: no import of the analysis
@@ -42,7 +49,13 @@ import numpy as np
 import numpy.typing as npt
 
 from handctl.config import HandConfig
-from handctl.recipes.schema import ESTIMATES, RecipeObject
+from handctl.recipes.schema import (
+    MAX_OBJECTS,
+    Pair,
+    RecipeObject,
+    consecutive_pairs,
+    estimate_names,
+)
 
 NAN = float("nan")
 #: m, the most an estimate moves in one tick: a step of a linearised problem is trusted this far.
@@ -75,18 +88,24 @@ Segment = tuple[float, float, float, float, float, float]
 
 
 class ObjectEstimator:
-    """Estimates of two enveloped cylinders, one call per tick: ``estimator(angles)`` returns
-    the values of ``handctl.recipes.schema.ESTIMATES`` (NaN while the objects are not caged).
+    """Estimates of 1..4 enveloped cylinders, one call per tick: ``estimator(angles)`` returns
+    the values named by ``estimates`` (NaN while the objects are not caged).
 
-    ``objects`` gives the nominal radii in the estimator's order (object 1, object 2); the
-    hand config gives the finger bases, link lengths and link half-thicknesses.
+    ``objects`` gives the nominal radii in the recipe's order, ``pairs`` the pairs whose centre
+    line is reported (``consecutive_pairs`` when None); the hand config gives the finger bases,
+    link lengths and link half-thicknesses.
     """
 
-    def __init__(self, hand: HandConfig, objects: Sequence[RecipeObject]) -> None:
-        if len(objects) != 2:
-            raise ValueError(f"the estimator tracks a pair of objects, found {len(objects)}")
+    def __init__(self, hand: HandConfig, objects: Sequence[RecipeObject],
+                 pairs: Sequence[Pair] | None = None) -> None:
+        if not 1 <= len(objects) <= MAX_OBJECTS:
+            raise ValueError(f"the estimator tracks 1 to {MAX_OBJECTS} objects, "
+                             f"found {len(objects)}")
         self.names = tuple(o.name for o in objects)
-        self.radii = (float(objects[0].radius), float(objects[1].radius))
+        self.radii = tuple(float(o.radius) for o in objects)
+        self.pairs: tuple[Pair, ...] = (tuple(pairs) if pairs is not None
+                                         else consecutive_pairs(len(objects)))
+        self.estimates = estimate_names(objects, self.pairs)
         self._fingers = [
             (f.base_x, f.base_y, f.base_angle,
              tuple((j.link_length, j.half_thickness) for j in f.joints))
@@ -110,29 +129,30 @@ class ObjectEstimator:
         down_x, down_y = down_x / norm, down_y / norm
         side_x, side_y = (self._palm[2], self._palm[3]) if self._palm else (1.0, 0.0)
         self._seeds = tuple(
-            (mid_x + sign * r * side_x + (r + SEED_DEPTH) * down_x,
-             mid_y + sign * r * side_y + (r + SEED_DEPTH) * down_y)
-            for sign, r in ((-1.0, self.radii[0]), (1.0, self.radii[1])))
+            (mid_x + offset * side_x + (r + SEED_DEPTH) * down_x,
+             mid_y + offset * side_y + (r + SEED_DEPTH) * down_y)
+            for offset, r in zip(_seed_offsets(self.radii), self.radii, strict=True))
         reach = max(sum(j[0] for j in f[3]) for f in self._fingers) + length
         self._centre = (mid_x, mid_y)
         self._reach = reach
-        self.centres: list[tuple[float, float]] = list(self._seeds)
-        self.clearance = [NAN, NAN]  # m, each object's best clearance at its estimate
-        self.caged = [False, False]
-        self.valid = False
-        self._turn = NAN  # rad, the unwrapped centre-line angle (running)
-        self._last_angle = NAN
-        self.last: tuple[float, ...] = (NAN,) * len(ESTIMATES)
+        self.reset()
 
     def reset(self) -> None:
-        """Forget the track (a new grasp): back to the seeds, the turn count restarts."""
-        self.centres = list(self._seeds)
-        self.clearance = [NAN, NAN]
-        self.caged = [False, False]
+        """Forget the track (a new grasp): back to the seeds, the turn counts restart."""
+        m, p = len(self.radii), len(self.pairs)
+        self.centres: list[tuple[float, float]] = list(self._seeds)
+        self.clearance = [NAN] * m  # m, each object's best clearance at its estimate
+        self.caged = [False] * m
         self.valid = False
-        self._turn = NAN
-        self._last_angle = NAN
-        self.last = (NAN,) * len(ESTIMATES)
+        self._turn = [NAN] * p  # rad, each pair's unwrapped centre-line angle (running)
+        self._last_angle = [NAN] * p
+        self.last: tuple[float, ...] = (NAN,) * len(self.estimates)
+
+    def positions(self, values: Sequence[float]) -> list[tuple[float, float]]:
+        """Each object's estimated centre ``(x, y)`` (m) in an output of this estimator."""
+        start = 2 * len(self.pairs)
+        return [(values[start + 2 * i], values[start + 2 * i + 1])
+                for i in range(len(self.radii))]
 
     # -- geometry ---------------------------------------------------------------------------
     def segments(self, angles: Sequence[float] | npt.NDArray[np.float64]) -> list[Segment]:
@@ -158,7 +178,7 @@ class ObjectEstimator:
     def clearances(self, index: int, centre: tuple[float, float],
                    segments: Sequence[Segment]) -> list[tuple[float, float, float]]:
         """``(clearance, gx, gy)`` of object ``index`` at ``centre`` against every segment and
-        the other object; ``(gx, gy)`` is the clearance's gradient (a unit vector)."""
+        every other object; ``(gx, gy)`` is the clearance's gradient (a unit vector)."""
         cx, cy = centre
         r = self.radii[index]
         out: list[tuple[float, float, float]] = []
@@ -179,33 +199,38 @@ class ObjectEstimator:
                 append((-r - half, -uy, ux))
             else:
                 append((d - r - half, wx / d, wy / d))
-        ox, oy = self.centres[1 - index]
-        wx, wy = cx - ox, cy - oy
-        d = hypot(wx, wy)
-        other_r = self.radii[1 - index]
-        if d < 1e-12:
-            append((-r - other_r, 0.0, 1.0))
-        else:
-            append((d - r - other_r, wx / d, wy / d))
+        for other, (ox, oy) in enumerate(self.centres):
+            if other == index:
+                continue
+            wx, wy = cx - ox, cy - oy
+            d = hypot(wx, wy)
+            other_r = self.radii[other]
+            if d < 1e-12:
+                append((-r - other_r, 0.0, 1.0))
+            else:
+                append((d - r - other_r, wx / d, wy / d))
         return out
 
     # -- the tick ---------------------------------------------------------------------------
     def __call__(self, angle: Sequence[float] | npt.NDArray[np.float64]) -> tuple[float, ...]:
         segs = self.segments(angle)
-        for index in (0, 1):
+        m = len(self.radii)
+        for index in range(m):
             self._track(index, segs)
-        c1x, c1y = self.centres[0]
-        c2x, c2y = self.centres[1]
-        self.valid = (self.caged[0] and self.caged[1]
-                      and abs(self.clearance[0]) <= VALID_CLEARANCE
-                      and abs(self.clearance[1]) <= VALID_CLEARANCE)
+        self.valid = all(self.caged) and all(abs(c) <= VALID_CLEARANCE for c in self.clearance)
         if not self.valid:
-            self.last = (NAN,) * len(ESTIMATES)
+            self.last = (NAN,) * len(self.estimates)
             return self.last
-        line = math.atan2(c2y - c1y, c2x - c1x)
-        self._turn = advance_turn(self._turn, self._last_angle, line)
-        self._last_angle = line
-        self.last = (line, self._turn, c1x, c1y, c2x, c2y)
+        out: list[float] = []
+        centres = self.centres
+        for k, (a, b) in enumerate(self.pairs):
+            line = math.atan2(centres[b][1] - centres[a][1], centres[b][0] - centres[a][0])
+            self._turn[k] = advance_turn(self._turn[k], self._last_angle[k], line)
+            self._last_angle[k] = line
+            out += (line, self._turn[k])
+        for x, y in centres:
+            out += (x, y)
+        self.last = tuple(out)
         return self.last
 
     def _track(self, index: int, segs: Sequence[Segment]) -> None:
@@ -243,6 +268,22 @@ class ObjectEstimator:
         if size > MAX_STEP:
             dx, dy = dx * MAX_STEP / size, dy * MAX_STEP / size
         self.centres[index] = (centre[0] + dx, centre[1] + dy)
+
+
+def _seed_offsets(radii: Sequence[float]) -> list[float]:
+    """Where along the palm (m from its middle) each object's seed sits: side by side and
+    touching, in order, with the middle object (odd count) or the middle contact (even count)
+    at the palm's middle."""
+    m = len(radii)
+    k = m // 2
+    offsets = [0.0] * m
+    if m % 2 == 0:
+        offsets[k - 1], offsets[k] = -radii[k - 1], radii[k]
+    for i in range(k + 1, m):
+        offsets[i] = offsets[i - 1] + radii[i - 1] + radii[i]
+    for i in range(k - 2 + m % 2, -1, -1):
+        offsets[i] = offsets[i + 1] - radii[i + 1] - radii[i]
+    return offsets
 
 
 def advance_turn(turn: float, last_angle: float, angle: float) -> float:

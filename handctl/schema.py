@@ -569,7 +569,7 @@ class Doc:
 
         With declared keys (``expect``) the candidates are the unknown ones; otherwise those
         no reader has asked for yet, and only a single best match is named: of several equally
-        close ones (``f1_j2``, ``f2_j1``, ...) most are simply still to be read."""
+        close ones (joint names that differ in one digit) most are simply still to be read."""
         if self._allowed is not None:
             strays = [k for k in self.data if k not in self._allowed]
         else:

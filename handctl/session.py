@@ -144,6 +144,12 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
     warnings: list[str] = []
     is_sim = spec.interface == "sim"
     lockstep = _lockstep(req, is_sim)
+    if is_sim and req.recipe.objects:
+        from handctl.planning.experiment import check_objects_in_sim
+        from handctl.sim.params import parse_sim
+
+        check_objects_in_sim(req.recipe, [o.name for o in parse_sim(req.hand).objects],
+                             req.hand.source)
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
     if not is_sim:
@@ -168,7 +174,8 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         runtime = Runtime(req.hand, driver, clock, req.recipe, recorder=recorder, status=status,
                           reset_node_faults=req.reset_node_faults, max_ticks=NO_TICK_LIMIT,
                           startup_timeout_s=peer.startup_s,
-                          estimator=(ObjectEstimator(req.hand, req.recipe.objects)
+                          estimator=(ObjectEstimator(req.hand, req.recipe.objects,
+                                                     req.recipe.pairs)
                                      if req.recipe.objects else None))
         # Ground truth of the experiment, recorded every tick and never fed back.
         tracker = None
@@ -319,8 +326,7 @@ def _experiment_summary(summary: dict[str, Any], req: RunRequest, tracker: Any,
         else:
             from handctl.planning.plot import plot_run
 
-            plot_run(tracker.trace, req.plot, req.recipe, summary.get("experiment"),
-                     [j.tau_max for j in req.hand.joints])
+            plot_run(tracker.trace, req.plot, req.recipe, req.hand, summary.get("experiment"))
 
 
 def _close_recording(recording: Recorder, summary: dict[str, Any], req: RunRequest,

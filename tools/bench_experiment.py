@@ -54,7 +54,7 @@ def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
     open poses), on this machine."""
     from handctl.estimator import ObjectEstimator
 
-    est = ObjectEstimator(hand, recipe.objects)
+    est = ObjectEstimator(hand, recipe.objects, recipe.pairs)
     rng = np.random.default_rng(0)
     base = np.array([0.24, 1.46, 1.53, 0.24, 1.46, 1.53, 0.47, -1.57, -1.38])
     poses = [(base + rng.normal(0.0, 0.02, 9)).tolist() for _ in range(2000)]

@@ -33,6 +33,7 @@ import numpy as np
 
 from handctl.clock import Hygiene
 from handctl.config import HandConfig, load_hand
+from handctl.handshape import flexion_sign
 from handctl.hostcheck import Deadlines, ProbeRecord, attribute, judge
 from handctl.loop import StatusLine
 from handctl.recipes.loader import load_recipe
@@ -40,22 +41,33 @@ from handctl.recipes.schema import Recipe
 from handctl.session import RunReport, RunRequest, run_recipe
 
 ROOT = Path(__file__).resolve().parent.parent
-HOLD = """
-recipe: bench_hold
-description: close the hand gently and hold, for the loop benchmark
-limit_guard_band: 0.15
-phases:
-  - name: close
-    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
-    ramp_s: 0.3
-    max_s: {seconds}
-    on_timeout: next
-    pose:
-      angles: {{f1_j1: 0.3, f1_j2: 0.3, f1_j3: 0.3, f2_j1: 0.3, f2_j2: 0.3, f2_j3: 0.3,
-               f3_j1: -0.3, f3_j2: -0.3, f3_j3: -0.3}}
-      stiffness: 0.05
-      damping: 0.002
-"""
+#: N·m per N·m of tau_max and rad: how hard and how far the benchmarks' hold closes each
+#: joint (its flexion's way), gently, well inside every limit
+HOLD_TORQUE_FRACTION = 0.1
+HOLD_POSE_RAD = 0.3
+
+
+def hold_recipe(hand: HandConfig, name: str, seconds: float, pose: bool = True) -> str:
+    """A one-phase recipe for ``hand`` that closes it gently and holds for ``seconds``: each
+    joint flexed at ``HOLD_TORQUE_FRACTION`` of its tau_max and, with ``pose``, sprung towards
+    ``HOLD_POSE_RAD`` of flexion (for the loop and soak benchmarks: the hand busy, nothing
+    grasped); with ``pose`` the soft-limit guard is on too (the loop's whole feedback)."""
+    torques: dict[str, float] = {}
+    angles: dict[str, float] = {}
+    for finger in hand.fingers:
+        sign = flexion_sign(hand, finger)
+        for joint in finger.joints:
+            torques[joint.name] = round(sign * HOLD_TORQUE_FRACTION * joint.tau_max, 4)
+            angles[joint.name] = sign * HOLD_POSE_RAD
+    phase: dict[str, object] = {"name": "close", "torques": torques, "ramp_s": 0.3,
+                                "max_s": seconds, "on_timeout": "next"}
+    doc: dict[str, object] = {"recipe": name,
+                              "description": "close the hand gently and hold, for a benchmark"}
+    if pose:
+        phase["pose"] = {"angles": angles, "stiffness": 0.05, "damping": 0.002}
+        doc["limit_guard_band"] = 0.15
+    doc["phases"] = [phase]
+    return json.dumps(doc)  # JSON is YAML
 
 
 #: The variants of ``--hygiene``, each adding one measure to the one before.
@@ -154,7 +166,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     hand = load_hand(args.hand)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "hold.yaml"
-        path.write_text(HOLD.format(seconds=args.seconds))
+        path.write_text(hold_recipe(hand, "bench_hold", args.seconds))
         recipe = load_recipe(path, hand)
         faults = None
         if args.babble:

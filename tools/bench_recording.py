@@ -155,7 +155,7 @@ class _Side:
         self.sim = sim = SimulatedHand(hand, peer)
         self.clock = TickTimer(hand.bus.period_s, sim.step, side, turns)
         driver = HandDriver(hand, protocol_for(hand), host, clock_ns=self.clock.now_ns)
-        estimator = ObjectEstimator(hand, recipe.objects) if recipe.objects else None
+        estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs) if recipe.objects else None
         self.recorder: Recorder | None = None
         if out is not None:
             self.recorder = Recorder(out, hand, start_metadata(hand, recipe, ["bench"]),
@@ -275,7 +275,7 @@ def estimator_us_per_tick(recording: Recording) -> float:
     if not recipe.objects:
         return 0.0
     angles = [np.array(m["angle_rad"]) for _, _, m in iter_decoded(recording, (ch.JOINT_STATE,))]
-    estimator = ObjectEstimator(hand, recipe.objects)
+    estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs)
     started = time.perf_counter()
     for angle in angles:
         estimator(angle)

@@ -46,18 +46,8 @@ from handctl.recording.reader import iter_decoded, open_recording  # noqa: E402
 from handctl.session import RunRequest, run_recipe  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "tools"))
-from bench_loop import RunningSince, host_figures  # noqa: E402
+from bench_loop import RunningSince, hold_recipe, host_figures  # noqa: E402
 
-HOLD = """
-recipe: soak_hold
-description: close the hand gently and hold it, for the soak benchmark
-phases:
-  - name: hold
-    torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
-    ramp_s: 0.3
-    max_s: {seconds}
-    on_timeout: next
-"""
 MISSED_TARGET = 0.001
 RSS_TARGET_MB_PER_HOUR = 5.0
 #: SCHED_FIFO priority of the simulated hand with ``--rt``: just below the loop's (80).
@@ -179,7 +169,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     sampler = RssSampler(peer_priority if args.rt else None)
     with tempfile.TemporaryDirectory(prefix="handctl-soak-") as tmp:
         recipe_path = Path(tmp) / "soak_hold.yaml"
-        recipe_path.write_text(HOLD.format(seconds=seconds))
+        recipe_path.write_text(hold_recipe(hand, "soak_hold", seconds, pose=False))
         recipe = load_recipe(recipe_path, hand)
         log = args.log or Path(tmp) / "soak.mcap"
         print(f"soak: real-time loop with the simulated hand, recording to {log}, "

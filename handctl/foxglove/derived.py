@@ -176,11 +176,11 @@ class Derived:
         estimated = [ObjectShape(o.name, o.radius, lengths.get(o.name, DEFAULT_OBJECT_LENGTH))
                      for o in recipe_objects]
         estimator = None
-        if len(recipe_objects) == 2:
+        if recipe_objects:
             # As the session sets one up for such a recipe. The estimator is a function of
             # the angles it was fed, tick by tick (the re-run relies on it): fed the same
             # recorded angles here, it gives the loop's estimates without the loop's cost.
-            estimator = ObjectEstimator(hand, recipe_objects)
+            estimator = ObjectEstimator(hand, recipe_objects, recipe.pairs)
         return cls(hand, estimated, true_objects, estimator, emit)
 
     # -- what the writer feeds --------------------------------------------------------------
@@ -196,7 +196,7 @@ class Derived:
         self.emit(JOINTS, t_ns, orjson.dumps(message))
         if self.estimator is not None and estimating:
             est = self.estimator(angle)
-            self.estimates = [(est[2], est[3]), (est[4], est[5])]
+            self.estimates = self.estimator.positions(est)
         if self.control_ticks % SCENE_EVERY == 0:
             self.emit(SCENE, t_ns, self.scene.update(t_ns, angle, self._truth_at(t_ns),
                                                      self.estimates).encode())

@@ -4,7 +4,7 @@ Everything handctl drives is planar (joint axes along +z, see ``handctl.sim.plan
 scene is the hand plane seen in 3D: frame ``world`` has x to the right, y up and z out of the
 hand plane, the palm's face at y = 0. A link is drawn as a capsule (a cylinder with a sphere at
 each end) from its joint to the next; ``FrameTransforms`` give the same chain as a tree
-(``world`` -> ``f1_base`` -> ``f1_j1`` -> ...), each joint's frame at its axis with x along
+(``world`` -> ``<finger>_base`` -> ``<joint>`` -> ...), each joint's frame at its axis with x along
 its link, as RViz's TF tree would. The geometry comes from the hand config (and its ``sim:``
 section when there is one), so any hand handctl can drive is drawn, not one built in.
 """

@@ -204,7 +204,7 @@ def _compiled_phase(spec: TemplatePhase, torques: tuple[float, ...],
                     hand: HandConfig, pose: PoseHold | None = None) -> Phase:
     exits: tuple[Condition, ...] = ()
     if spec.kind == "turn":
-        parsed = parse_condition(spec.exit_condition(), hand.joint_names)
+        parsed = parse_condition(spec.exit_condition(), hand.joint_names, spec.estimates)
         assert not isinstance(parsed, str), parsed
         exits = (parsed,)
     rounded = tuple(_rounded(torques))

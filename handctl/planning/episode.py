@@ -31,6 +31,7 @@ import numpy as np
 
 from handctl.config import HandConfig
 from handctl.estimator import ObjectEstimator
+from handctl.handshape import hand_span
 from handctl.recipes.guard import LimitGuard
 from handctl.recipes.runner import RecipeRunner, RunStatus
 from handctl.recipes.schema import Phase, Recipe, RecipeObject, TimeoutAction
@@ -39,8 +40,6 @@ from handctl.sim.plant import Plant
 
 #: m, an object this far below its resting height plus this margin counts as back on the table.
 DROP_MARGIN = 0.005
-#: m, an object centre further than this from the palm's middle (in x) has left the hand.
-HAND_HALF_SPAN = 0.06
 #: ticks between the (cheap but not free) checks of limits and object poses.
 CHECK_EVERY = 10
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
@@ -100,8 +99,9 @@ class Episode:
         self._hi = [j.angle_max for j in hand.joints]
         self._rest = [o.y for o in params.objects]
         self._radii = [o.radius for o in params.objects]
-        xs = [f.base_x for f in hand.fingers]
-        self._mid_x = (min(xs) + max(xs)) / 2  # the palm's middle
+        # the palm's middle and the farthest finger base from it: out of the hand, as the
+        # experiment summary judges it (``handshape.hand_span``)
+        self._mid_x, self._half_span = hand_span(hand)
 
     # -- snapshots --------------------------------------------------------------------------
     def snapshot(self) -> Snapshot:
@@ -126,6 +126,9 @@ class Episode:
                                               strict=True)]
 
     def pair_gap(self) -> float:
+        """m, between the surfaces of the first pair (the first two objects); 0 for one."""
+        if len(self._radii) < 2:
+            return 0.0
         a, b = self.plant.object_poses()[:2]
         return math.hypot(b.x - a.x, b.y - a.y) - self._radii[0] - self._radii[1]
 
@@ -141,15 +144,19 @@ class Episode:
         return False
 
     def in_hand(self) -> bool:
-        return all(abs(p.x - self._mid_x) <= HAND_HALF_SPAN for p in self.plant.object_poses())
+        return all(abs(p.x - self._mid_x) <= self._half_span + r
+                   for p, r in zip(self.plant.object_poses(), self._radii, strict=True))
 
     def true_angle(self) -> float:
+        """rad, the first pair's centre line (0 with one object: nothing turns)."""
+        if len(self._radii) < 2:
+            return 0.0
         a, b = self.plant.object_poses()[:2]
         return math.atan2(b.y - a.y, b.x - a.x)
 
     def estimate_error_deg(self) -> float:
         """|estimated - true| centre-line angle (deg); NaN while the estimate is invalid."""
-        if not self.estimator.valid:
+        if not self.estimator.valid or not self.estimator.pairs:
             return math.nan
         return abs(math.degrees(_wrap(self.estimator.last[0] - self.true_angle())))
 
@@ -193,7 +200,7 @@ class Episode:
                 exit_reason = f"fail: {self.hand.joint_names[bad]} outside its soft limits"
                 break
             out = est(angles)
-            if runner.index == 1 and math.isnan(est_start) and est.valid:
+            if runner.index == 1 and math.isnan(est_start) and est.valid and est.pairs:
                 est_start = out[1]
             desired = runner.step(tick * NODE_TICK_S, np.asarray(angles), zeros, out)
             if runner.index > 1 or runner.status is not RunStatus.RUNNING:

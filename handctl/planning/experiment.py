@@ -1,31 +1,40 @@
 """The paper's figures of merit for a run on the simulated hand, from recorded ground truth.
 
 The run never uses ground truth: the recipe's exits read the estimator. Ground truth is
-*recorded* here, every tick in lockstep, to measure what happened (did the pair leave the
-table, how far did the centre line turn in each manipulation phase, did anything drop) and how
-good the estimator was. Definitions:
+*recorded* here, every tick in lockstep, to measure what happened (did the objects leave the
+table, how far did a pair's centre line turn in each manipulation phase, did anything drop)
+and how good the estimator was. Every object of the simulated hand is reported; the pair
+figures exist where the recipe has a pair. Definitions:
 
-- ``lifted``: both objects' centres ``LIFT_HEIGHT`` (10 mm) or more above where they rested on
+- ``lifted``: every object's centre ``LIFT_HEIGHT`` (10 mm) or more above where it rested on
   the table, continuously for ``HOLD_S`` (2 s) or more before the first manipulation phase
-  ("lifted and held");
-- ``phase_angles_deg``: for each manipulation phase (a phase whose name starts with
-  ``manipulate``), the change of the true centre-line angle (unwrapped) from its start to its
-  end;
-- ``turn_deg``: their sum, counter-clockwise positive (``handctl.convention``, as every plot
-  and summary shows it); ``total_rotation_deg`` its magnitude (the turn of the pair in the hand);
+  ("lifted and held"); per object under ``objects``, the same for that object alone;
 - ``dropped``: once lifted, an object came back within ``DROP_HEIGHT`` of the table or left the
-  hand (more than ``HAND_HALF_SPAN`` from the palm's middle) before the last manipulation phase
-  ended (the end ramp lets go of the objects on purpose);
-- ``estimator_error_deg``: the 95th percentile of |estimated - true| centre-line angle over the
-  ticks of the hold and manipulation phases where the estimate was valid (with the fraction of
-  those ticks that had a valid estimate), and over the manipulation phases alone (where the
-  exits read it; the hold includes the objects settling after the lift);
-- ``peak_turn_rate_deg_s``: the largest rate of the true centre line over the manipulation
+  hand before the last manipulation phase ended (the end ramp lets go of the objects on
+  purpose). An object has left the hand when no part of it is between the outermost finger
+  bases any more: its centre is further along the palm from the palm's middle than the
+  farthest finger base plus its own radius (``hand_span``);
+- ``objects``: each object's ``lifted``, ``held_s``, ``dropped``, final pose and, for an object
+  of the recipe, ``estimator_error_m``: the 95th percentile of the distance between its
+  estimated and true centres over the ticks of the hold and manipulation phases where the
+  estimate was valid;
+- the pair figures, of the recipe's first pair (the centre line from its first object's
+  centre to its second's; every pair's turn is also under ``pairs``):
+  ``phase_angles_deg``: for each manipulation phase (a phase whose name starts with
+  ``manipulate``), the change of the true centre-line angle (unwrapped) from its start to its
+  end; ``turn_deg``: their sum, counter-clockwise positive (``handctl.convention``, as every
+  plot and summary shows it); ``total_rotation_deg`` its magnitude;
+  ``estimator_error_deg``: the 95th percentile of |estimated - true| centre-line angle over
+  the ticks of the hold and manipulation phases where the estimate was valid (with the
+  fraction of those ticks that had a valid estimate), and over the manipulation phases alone
+  (where the exits read it; the hold includes the objects settling after the lift);
+  ``peak_turn_rate_deg_s``: the largest rate of the true centre line over the manipulation
   phases, each rate taken over ``RATE_WINDOW_S`` (10 ms) so that one contact impact of a
   physics step does not count as a turn. The analysis behind a recipe is quasi-static: a
   pair that turns faster than some 180 °/s is tumbling, not being turned;
 - ``success``: lifted (and so held), nothing dropped, and a total rotation of at least the
-  recipe's ``min_total_turn_deg``. A run whose experiment failed is a failed run (exit 1).
+  recipe's ``min_total_turn_deg`` (0 without a pair). A run whose experiment failed is a
+  failed run (exit 1).
 
 Only NumPy here: ``session`` imports this module for every lockstep run.
 """
@@ -40,11 +49,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from handctl.convention import POSE_EVERY_TICKS, phase_turns_deg
+from handctl.errors import ConfigError
+from handctl.handshape import hand_span
+from handctl.recipes.schema import Pair, Recipe
 
 LIFT_HEIGHT = 0.010  # m
 HOLD_S = 2.0  # s
 DROP_HEIGHT = 0.005  # m
-HAND_HALF_SPAN = 0.06  # m
 MANIPULATE_PREFIX = "manipulate"
 RATE_WINDOW_S = 0.010  # s
 
@@ -54,19 +65,43 @@ class _Pose(Protocol):
     def x(self) -> float: ...
     @property
     def y(self) -> float: ...
+    @property
+    def angle(self) -> float: ...
+
+
+def check_objects_in_sim(recipe: Recipe, sim_objects: Sequence[str], hand_source: str) -> None:
+    """Refuse, before the run, a recipe whose objects the simulated hand does not have: the
+    experiment is measured on the simulated objects of the same names."""
+    for i, obj in enumerate(recipe.objects):
+        if obj.name not in sim_objects:
+            raise ConfigError(recipe.source, f"objects[{i}].name", "an object of the "
+                              f"simulated hand ({', '.join(sim_objects)}: sim.objects in "
+                              f"{hand_source})", obj.name)
 
 
 @dataclass
 class Trace:
-    """Per-tick samples of a run: time (s), phase, true object centres, transmitted joint
-    torques, the estimator's outputs and validity."""
+    """Per-tick samples of a run: time (s), phase, the true poses of every simulated object,
+    transmitted joint torques, the estimator's outputs and validity.
+
+    ``objects`` names the simulated objects (``rest_y`` and ``radii`` per object, in m);
+    ``pairs`` are the recipe's pairs and ``estimated`` the recipe's objects, as indices into
+    them in the estimator's order (pair k's estimated line angle is output ``2 k``, estimated
+    object i's centre outputs ``2 P + 2 i`` and the next, for P pairs); ``palm_x`` and
+    ``half_span`` are ``hand_span``'s.
+    """
 
     rest_y: tuple[float, ...]
     palm_x: float
     joint_names: tuple[str, ...]
+    objects: tuple[str, ...]
+    radii: tuple[float, ...]
+    half_span: float
+    pairs: tuple[Pair, ...] = ()
+    estimated: tuple[int, ...] = ()
     t: list[float] = field(default_factory=list)
     phase: list[str] = field(default_factory=list)
-    centres: list[tuple[float, float, float, float]] = field(default_factory=list)
+    poses: list[tuple[float, ...]] = field(default_factory=list)  # x, y, angle per object
     torques: list[tuple[float, ...]] = field(default_factory=list)
     estimate: list[tuple[float, ...]] = field(default_factory=list)
     valid: list[bool] = field(default_factory=list)
@@ -75,24 +110,36 @@ class Trace:
     def add(self, t: float, phase: str, poses: Sequence[_Pose], torques: Sequence[float],
             estimate: Sequence[float] | None, valid: bool,
             applied: Sequence[float] | None = None) -> None:
-        a, b = poses[0], poses[1]
         if applied is not None:
             self.applied.append(tuple(applied))
         self.t.append(t)
         self.phase.append(phase)
-        self.centres.append((a.x, a.y, b.x, b.y))
+        self.poses.append(tuple(v for p in poses for v in (p.x, p.y, p.angle)))
         self.torques.append(tuple(torques))
-        self.estimate.append(tuple(estimate) if estimate is not None else (math.nan,) * 6)
+        self.estimate.append(tuple(estimate) if estimate is not None
+                             else (math.nan,) * self.estimate_width)
         self.valid.append(valid)
 
+    @property
+    def estimate_width(self) -> int:
+        return 2 * len(self.pairs) + 2 * len(self.estimated)
+
     # -- derived series ---------------------------------------------------------------------
+    def line_angle(self, pair: Pair, poses: np.ndarray) -> np.ndarray:
+        """The true centre-line angle of ``pair`` (unwrapped, rad) over rows of poses."""
+        a, b = pair
+        if not len(poses):
+            return np.zeros(0)
+        return np.unwrap(np.arctan2(poses[:, 3 * b + 1] - poses[:, 3 * a + 1],
+                                    poses[:, 3 * b] - poses[:, 3 * a]))
+
     def arrays(self) -> dict[str, np.ndarray]:
-        c = np.array(self.centres, dtype=float).reshape(-1, 4)
-        est = np.array(self.estimate, dtype=float).reshape(-1, 6)
-        true_angle = np.unwrap(np.arctan2(c[:, 3] - c[:, 1], c[:, 2] - c[:, 0])) \
-            if len(c) else np.zeros(0)
-        heights = c[:, [1, 3]] - np.array(self.rest_y[:2]) if len(c) else np.zeros((0, 2))
-        return {"t": np.array(self.t), "centres": c, "true_angle": true_angle,
+        m = len(self.objects)
+        poses = np.array(self.poses, dtype=float).reshape(-1, 3 * m)
+        est = np.array(self.estimate, dtype=float).reshape(len(self.t), self.estimate_width)
+        true_angle = self.line_angle(self.pairs[0], poses) if self.pairs else np.zeros(0)
+        heights = poses[:, 1::3] - np.array(self.rest_y[:m])
+        return {"t": np.array(self.t), "poses": poses, "true_angle": true_angle,
                 "heights": heights, "estimate": est, "valid": np.array(self.valid, bool),
                 "torques": np.array(self.torques, dtype=float),
                 "applied": (np.array(self.applied, dtype=float)
@@ -122,88 +169,123 @@ def peak_rate_deg_s(t: np.ndarray, angle: np.ndarray, window_s: float = RATE_WIN
     return float(np.degrees(rate.max())) if rate.size else 0.0
 
 
+def _held(up: np.ndarray, t: np.ndarray, until: int) -> tuple[float, int | None]:
+    """The longest stretch of ``up`` before ``until`` (the later one of equal length, so the
+    one that reaches the first manipulation phase): its length (s) and first sample."""
+    held_s = 0.0
+    start = None
+    i = 0
+    while i < until:
+        if up[i]:
+            j = i
+            while j < until and up[j]:
+                j += 1
+            span = float(t[j - 1] - t[i]) if j > i else 0.0
+            if span >= held_s:
+                held_s, start = span, i
+            i = j
+        else:
+            i += 1
+    return held_s, start
+
+
+def _p95_deg(err: np.ndarray) -> float | None:
+    return round(float(np.degrees(np.percentile(err, 95))), 2) if err.size else None
+
+
 def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[str, Any]:
     """The ``experiment`` block of the run summary (see the module doc); the experiment
-    succeeds when the pair turned ``min_total_turn_deg`` or more besides being lifted, held
-    and kept."""
+    succeeds when the first pair turned ``min_total_turn_deg`` or more besides the objects
+    being lifted, held and kept."""
     a = trace.arrays()
     n = len(trace.t)
+    pair_keys: dict[str, Any] = {"phase_angles_deg": [], "turn_deg": 0.0,
+                                 "total_rotation_deg": 0.0, "peak_turn_rate_deg_s": 0.0,
+                                 "estimator_error_deg": None,
+                                 "estimator_error_manipulation_deg": None,
+                                 "estimator_valid_fraction": 0.0}
     empty: dict[str, Any] = {"success": False, "min_total_turn_deg": min_total_turn_deg,
-                             "lifted": False, "held_s": 0.0, "phase_angles_deg": [],
-                             "turn_deg": 0.0, "total_rotation_deg": 0.0,
-                             "peak_turn_rate_deg_s": 0.0,
-                             "dropped": False, "estimator_error_deg": None,
-                             "estimator_error_manipulation_deg": None,
-                             "estimator_valid_fraction": 0.0}
+                             "lifted": False, "held_s": 0.0, "dropped": False,
+                             "objects": {name: {"lifted": False, "held_s": 0.0,
+                                                "dropped": False, "estimator_error_m": None}
+                                         for name in trace.objects},
+                             **(pair_keys if trace.pairs else {})}
     if n == 0:
         return empty
-    t, heights = a["t"], a["heights"]
+    t, heights, poses = a["t"], a["heights"], a["poses"]
     segments = _segments(trace.phase)
     manip = [s for s in segments if s[0].startswith(MANIPULATE_PREFIX)]
     first_manip = manip[0][1] if manip else n
     end_manip = manip[-1][2] if manip else n
-    up = np.all(heights >= LIFT_HEIGHT, axis=1)
-    # the lifted stretch that reaches the first manipulation phase (or the longest one)
-    held_s = 0.0
-    lift_start = None
-    i = 0
-    while i < first_manip:
-        if up[i]:
-            j = i
-            while j < first_manip and up[j]:
-                j += 1
-            span = float(t[j - 1] - t[i]) if j > i else 0.0
-            if span >= held_s:
-                held_s, lift_start = span, i
-            i = j
-        else:
-            i += 1
+    up = heights >= LIFT_HEIGHT
+    held_s, lift_start = _held(np.all(up, axis=1), t, first_manip)
     lifted = held_s >= HOLD_S - 1e-9
-    dropped = False
+    # each object's lows and departures, from the lift of all of them on
+    gone = np.zeros(heights.shape, dtype=bool)
     if lift_start is not None:
-        c = a["centres"]
         after = slice(lift_start, end_manip)
-        low = np.any(heights[after] < DROP_HEIGHT, axis=1)
-        away = np.any(np.abs(c[after][:, [0, 2]] - trace.palm_x) > HAND_HALF_SPAN, axis=1)
-        dropped = bool(np.any(low | away))
-    angles = a["true_angle"]
-    bounds = [(name, float(t[s]), float(t[e]) if e < n else math.inf)
-              for name, s, e in segments]
-    # on the samples a log keeps (the convention's), so that its replay measures the same
-    period = float(t[1] - t[0]) if n > 1 else 1.0
-    logged = np.round(t / period).astype(np.int64) % POSE_EVERY_TICKS == 0
-    phase_angles = phase_turns_deg(t[logged], angles[logged], bounds, MANIPULATE_PREFIX)
-    total = abs(sum(phase_angles))
-    peak_rate = (peak_rate_deg_s(t[first_manip:end_manip], angles[first_manip:end_manip])
-                 if manip else 0.0)
-    # estimator error over hold and manipulation (from the lifted stretch on)
+        low = heights[after] < DROP_HEIGHT
+        away = np.abs(poses[after][:, 0::3] - trace.palm_x) > \
+            trace.half_span + np.array(trace.radii)
+        gone[after] = low | away
+    dropped = bool(np.any(gone))
+    # the estimator is judged from the lifted stretch on (hold and manipulation)
     start = lift_start if lift_start is not None else first_manip
     sel = slice(start, end_manip)
     valid = a["valid"][sel]
-    err = np.abs((a["estimate"][sel, 0] - np.angle(np.exp(1j * angles[sel])) + math.pi)
-                 % (2 * math.pi) - math.pi)
-    in_manip = np.zeros(n, dtype=bool)
-    for _, s, e in manip:
-        in_manip[s:e] = True
-    manip_err = err[valid & np.isfinite(err) & in_manip[sel]]
-    err = err[valid & np.isfinite(err)]
-    return {
-        "success": bool(lifted and not dropped and total >= min_total_turn_deg),
-        "min_total_turn_deg": min_total_turn_deg,
-        "lifted": bool(lifted),
-        "held_s": round(held_s, 3),
-        "phase_angles_deg": phase_angles,
-        "total_rotation_deg": round(total, 2),
-        "peak_turn_rate_deg_s": round(peak_rate, 1),
-        "turn_deg": round(sum(phase_angles), 2),
-        "dropped": dropped,
-        "estimator_error_deg": (round(float(np.degrees(np.percentile(err, 95))), 2)
-                                if err.size else None),
-        "estimator_error_manipulation_deg": (
-            round(float(np.degrees(np.percentile(manip_err, 95))), 2) if manip_err.size
-            else None),
-        "estimator_valid_fraction": round(float(valid.mean()) if valid.size else 0.0, 3),
-    }
+    objects: dict[str, Any] = {}
+    last = poses[-1]
+    for i, name in enumerate(trace.objects):
+        own_s, _ = _held(up[:, i], t, first_manip)
+        objects[name] = {
+            "lifted": bool(own_s >= HOLD_S - 1e-9), "held_s": round(own_s, 3),
+            "dropped": bool(np.any(gone[:, i])),
+            "final": {"x_m": round(float(last[3 * i]), 5), "y_m": round(float(last[3 * i + 1]), 5),
+                      "angle_rad": round(float(last[3 * i + 2]), 5),
+                      "height_above_rest_m": round(float(heights[-1, i]), 5)},
+            "estimator_error_m": None}
+    for k, i in enumerate(trace.estimated):
+        col = 2 * len(trace.pairs) + 2 * k
+        miss = np.hypot(a["estimate"][sel, col] - poses[sel, 3 * i],
+                        a["estimate"][sel, col + 1] - poses[sel, 3 * i + 1])
+        miss = miss[valid & np.isfinite(miss)]
+        objects[trace.objects[i]]["estimator_error_m"] = (
+            round(float(np.percentile(miss, 95)), 5) if miss.size else None)
+    out: dict[str, Any] = {"min_total_turn_deg": min_total_turn_deg, "lifted": bool(lifted),
+                           "held_s": round(held_s, 3), "dropped": dropped, "objects": objects}
+    total = 0.0
+    if trace.pairs:
+        bounds = [(name, float(t[s]), float(t[e]) if e < n else math.inf)
+                  for name, s, e in segments]
+        # on the samples a log keeps (the convention's), so that its replay measures the same
+        period = float(t[1] - t[0]) if n > 1 else 1.0
+        logged = np.round(t / period).astype(np.int64) % POSE_EVERY_TICKS == 0
+        in_manip = np.zeros(n, dtype=bool)
+        for _, s, e in manip:
+            in_manip[s:e] = True
+        pairs: dict[str, Any] = {}
+        for k, pair in enumerate(trace.pairs):
+            angles = trace.line_angle(pair, poses)
+            turns = phase_turns_deg(t[logged], angles[logged], bounds, MANIPULATE_PREFIX)
+            err = np.abs((a["estimate"][sel, 2 * k] - np.angle(np.exp(1j * angles[sel]))
+                          + math.pi) % (2 * math.pi) - math.pi)
+            ok = valid & np.isfinite(err)
+            figures: dict[str, Any] = {
+                "phase_angles_deg": turns, "turn_deg": round(sum(turns), 2),
+                "total_rotation_deg": round(abs(sum(turns)), 2),
+                "peak_turn_rate_deg_s": round(peak_rate_deg_s(
+                    t[first_manip:end_manip], angles[first_manip:end_manip]), 1)
+                if manip else 0.0,
+                "estimator_error_deg": _p95_deg(err[ok]),
+                "estimator_error_manipulation_deg": _p95_deg(err[ok & in_manip[sel]])}
+            pairs["/".join(trace.objects[i] for i in pair)] = figures
+            if k == 0:
+                out.update(figures)
+                out["estimator_valid_fraction"] = round(float(valid.mean()) if valid.size
+                                                        else 0.0, 3)
+                total = figures["total_rotation_deg"]
+        out["pairs"] = pairs
+    return {"success": bool(lifted and not dropped and total >= min_total_turn_deg), **out}
 
 
 class Tracker:
@@ -212,15 +294,14 @@ class Tracker:
 
     def __init__(self, truth: Callable[[], Any], phase: Callable[[], str],
                  estimate: Callable[[], tuple[Sequence[float] | None, bool]],
-                 rest_y: tuple[float, ...], palm_x: float,
-                 joint_names: tuple[str, ...], period_s: float,
+                 trace: Trace, period_s: float,
                  applied: Callable[[], Sequence[float]] | None = None) -> None:
         self._applied = applied
         self._truth = truth
         self._phase = phase
         self._estimate = estimate
         self._period = period_s
-        self.trace = Trace(rest_y, palm_x, joint_names)
+        self.trace = trace
 
     def sample(self, tick: Any) -> None:
         truth = self._truth()
@@ -231,10 +312,15 @@ class Tracker:
 
 
 def track(runtime: Any, sim_hand: Any) -> Tracker:
-    """A tracker of ``runtime`` on the lockstep ``sim_hand``, hooked into its ticks."""
+    """A tracker of ``runtime`` on the lockstep ``sim_hand``, hooked into its ticks. The
+    recipe's objects are the simulated ones of the same names (``check_objects_in_sim``)."""
     hand = runtime.hand
     estimator = runtime.estimator
-    xs = [f.base_x for f in hand.fingers]
+    recipe: Recipe = runtime.recipe
+    sim_objects = sim_hand.params.objects
+    names = tuple(o.name for o in sim_objects)
+    index = [names.index(o.name) for o in recipe.objects]
+    pairs = tuple((index[a], index[b]) for a, b in recipe.pairs)
 
     def phase() -> str:
         return str(runtime.runner.phase_name) if runtime.runner is not None else "-"
@@ -244,9 +330,10 @@ def track(runtime: Any, sim_hand: Any) -> Tracker:
             return None, False
         return estimator.last, bool(estimator.valid)
 
-    tracker = Tracker(sim_hand.ground_truth, phase, estimate,
-                      tuple(o.y for o in sim_hand.params.objects), (min(xs) + max(xs)) / 2,
-                      hand.joint_names, hand.bus.period_s,
+    middle, half_span = hand_span(hand)
+    trace = Trace(tuple(o.y for o in sim_objects), middle, hand.joint_names, names,
+                  tuple(o.radius for o in sim_objects), half_span, pairs, tuple(index))
+    tracker = Tracker(sim_hand.ground_truth, phase, estimate, trace, hand.bus.period_s,
                       applied=lambda: runtime.supervisor.applied)
     runtime.tick_hooks.append(tracker.sample)
     return tracker

@@ -42,7 +42,7 @@ class GraspSnapshot:
 
     grasp: Grasp
     environment: tuple[str, ...]  # contacts with the palm or the table, left out
-    contacts: tuple[str, ...]  # "f1_j2/cyl1" and "cyl1/cyl2": what the grasp has
+    contacts: tuple[str, ...]  # "JOINT/OBJECT" and "OBJECT/OBJECT": what the grasp has
 
     def describe(self) -> dict[str, object]:
         return {"contacts": list(self.contacts), "left_out": list(self.environment)}

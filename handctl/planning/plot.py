@@ -8,58 +8,74 @@ global backend switch), as in ``handctl.analysis.plot``.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from handctl.config import FingerConfig, HandConfig
 from handctl.convention import TIME_LABEL
+from handctl.handshape import hand_span
 from handctl.planning.experiment import LIFT_HEIGHT, Trace, _segments
 from handctl.recipes.schema import Recipe
 
 
-def plot_run(trace: Trace, path: Path, recipe: Recipe,
-             experiment: dict[str, Any] | None = None,
-             tau_max: Sequence[float] = ()) -> Path:
+def plot_run(trace: Trace, path: Path, recipe: Recipe, hand: HandConfig,
+             experiment: dict[str, Any] | None = None) -> Path:
     """One PNG in the replay plot's style (``handctl.recording.plot``): a torque panel per
-    finger (applied, and measured: what the simulated tendons transmit), the objects' heights
-    above rest and the centre line's turn (true and estimated), on ``handctl.convention``'s
-    axes. The run keeps no desired torques; the replay of its log draws them too."""
+    finger of ``hand`` (applied, and measured: what the simulated tendons transmit), every
+    object's height above rest and each pair's centre-line turn (true, and estimated for the
+    first pair), on ``handctl.convention``'s axes. The run keeps no desired torques; the
+    replay of its log draws them too."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from handctl.recording.plot import finger_groups, objects_panels, phase_bands, torque_panel
+    from handctl.recording.plot import objects_panels, phase_bands, torque_panel
 
     a = trace.arrays()
     t = a["t"]
-    groups = finger_groups(trace.joint_names)
+    groups: list[tuple[str, list[int]]] = []
+    for finger in hand.fingers:
+        groups.append((finger.name, [hand.joint_names.index(j.name) for j in finger.joints]))
+    tau_max = [j.tau_max for j in hand.joints]
     fig = Figure(figsize=(12, 2.3 * (len(groups) + 2) + 1.0), dpi=110)
     FigureCanvasAgg(fig)
     axes = fig.subplots(len(groups) + 2, 1, sharex=True, squeeze=False)[:, 0]
     for ax in axes:
         ax.grid(True, lw=0.3)
     torques, applied = a["torques"], a["applied"]
-    for row, group in enumerate(groups):
+    for row, (finger_name, group) in enumerate(groups):
         cols = np.array(group)
         names = [trace.joint_names[j] for j in group]
         kinds: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         if len(applied):
             kinds["applied"] = (t, applied[:, cols])
         kinds["measured"] = (t, torques[:, cols] if len(torques) else torques)
-        torque_panel(axes[row], names[0].split("_")[0], names,
-                     [tau_max[j] for j in group if j < len(tau_max)], kinds)
-    true = a["true_angle"]
-    turn = true - true[0] if len(true) else true
-    # each estimate drawn on the true angle's branch (the estimate is an angle in
-    # (-pi, pi], the truth is unwrapped): the gap between the lines is the estimator's error
-    est = a["estimate"][:, 0]
-    gap = (est - true + math.pi) % (2 * math.pi) - math.pi
-    est_turn = np.where(a["valid"] & np.isfinite(est), turn + gap, np.nan)
-    objects_panels(axes[-2], axes[-1], t, a["heights"], ["object 1", "object 2"],
-                   {"true (simulation)": (t, np.degrees(turn)),
-                    "estimated (joint angles)": (t, np.degrees(est_turn))})
-    axes[-2].axhline(LIFT_HEIGHT * 1e3, color="k", lw=0.6, ls="--")
+        torque_panel(axes[row], finger_name, names, [tau_max[j] for j in group], kinds)
+    turns: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for k, pair in enumerate(trace.pairs):
+        label = "/".join(trace.objects[i] for i in pair)
+        true = trace.line_angle(pair, a["poses"])
+        turn = true - true[0] if len(true) else true
+        turns[f"{label} true (simulation)"] = (t, np.degrees(turn))
+        if k == 0:
+            # each estimate drawn on the true angle's branch (the estimate is an angle in
+            # (-pi, pi], the truth is unwrapped): the gap between the lines is the error
+            est = a["estimate"][:, 0]
+            gap = (est - true + math.pi) % (2 * math.pi) - math.pi
+            est_turn = np.where(a["valid"] & np.isfinite(est), turn + gap, np.nan)
+            turns[f"{label} estimated (joint angles)"] = (t, np.degrees(est_turn))
+    heights_ax = axes[len(groups)]
+    with warnings.catch_warnings():  # an empty turn panel has no legend to draw
+        warnings.simplefilter("ignore", UserWarning)
+        objects_panels(heights_ax, axes[-1], t, a["heights"], list(trace.objects), turns)
+    if not trace.pairs:  # nothing turns: no turn panel
+        fig.delaxes(axes[-1])
+        axes = axes[:-1]
+        axes[-1].tick_params(labelbottom=True)
+    heights_ax.axhline(LIFT_HEIGHT * 1e3, color="k", lw=0.6, ls="--")
     phase_bands(list(axes), [(name, float(t[s]), float(t[e]) if e < len(t) else float(t[-1]))
                        for name, s, e in _segments(trace.phase) if e > s])
     axes[-1].set_xlabel(TIME_LABEL)
@@ -67,10 +83,11 @@ def plot_run(trace: Trace, path: Path, recipe: Recipe,
         axes[-1].set_xlim(0.0, max(float(t[-1]), 1e-3))
     title = f"{recipe.name}"
     if experiment:
-        title += (f": lifted {experiment.get('lifted')}, turned "
-                  f"{experiment.get('turn_deg', 0.0):+.1f} deg (ccw +), dropped "
-                  f"{experiment.get('dropped')}, estimator p95 "
-                  f"{experiment.get('estimator_error_deg')} deg")
+        title += f": lifted {experiment.get('lifted')}, "
+        if "turn_deg" in experiment:
+            title += (f"turned {experiment['turn_deg']:+.1f} deg (ccw +), estimator p95 "
+                      f"{experiment.get('estimator_error_deg')} deg, ")
+        title += f"dropped {experiment.get('dropped')}"
     fig.suptitle(title, fontsize=10, y=0.995)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
     out = Path(path)
@@ -79,12 +96,13 @@ def plot_run(trace: Trace, path: Path, recipe: Recipe,
 
 
 def plot_phase_region(path: Path, title: str, analysis: Any, torques: tuple[float, ...],
-                      tau_max: tuple[float, ...], joint_names: tuple[str, ...]) -> Path:
+                      hand: HandConfig) -> Path:
     """A phase's robust torque region, Fig. 3 style, with the chosen torque marked.
 
-    The nine torques are cut to a plane as eq. 25 does, keeping ratios fixed: here within each
-    side of the hand, ``τ = u₁ τ°₁₂ + u₂ τ°₃`` with ``τ°`` the analysis' torque (the one with
-    the largest margin), split into its finger-1-and-2 part and its finger-3 part. Each part
+    The hand's torques are cut to a plane as eq. 25 does, keeping ratios fixed: here within
+    each side of the hand, ``τ = u₁ τ°_left + u₂ τ°_right`` with ``τ°`` the analysis' torque
+    (the one with the largest margin), split into the part of the fingers based left of the
+    palm's middle (or on it) and the part of those based right of it. Each part
     is realisable on its own (the statics are block diagonal by finger), so the plane holds a
     true 2D region and ``τ°`` is ``(1, 1)``. The chosen torque is marked where it projects on
     the plane, with its distance from it: the search moves off the analysis' plane when the
@@ -103,8 +121,12 @@ def plot_phase_region(path: Path, title: str, analysis: Any, torques: tuple[floa
     chosen = np.asarray(torques, dtype=float)
     found = analysis is not None and analysis.found and analysis.torques is not None
     ref = np.asarray(analysis.torques, dtype=float) if found else chosen
-    limits = np.asarray(tau_max, dtype=float)
-    left = np.array([not name.startswith("f3") for name in joint_names])
+    limits = np.asarray([j.tau_max for j in hand.joints], dtype=float)
+    middle, _ = hand_span(hand)
+    left_fingers = [f for f in hand.fingers if f.base_x <= middle]
+    right_fingers = [f for f in hand.fingers if f.base_x > middle]
+    left_joints = {j.name for f in left_fingers for j in f.joints}
+    left = np.array([j.name in left_joints for j in hand.joints])
     basis = np.zeros((len(ref), 2))
     basis[left, 0] = ref[left]
     basis[~left, 1] = ref[~left]
@@ -159,8 +181,8 @@ def plot_phase_region(path: Path, title: str, analysis: Any, torques: tuple[floa
     ax.axhline(0.0, color="black", lw=0.6)
     ax.axvline(0.0, color="black", lw=0.6)
     which = "analysis'" if found else "chosen"
-    ax.set_xlabel(f"u₁: scale of the {which} torques of fingers 1 and 2")
-    ax.set_ylabel(f"u₂: scale of the {which} torques of finger 3")
+    ax.set_xlabel(f"u₁: scale of the {which} torques of {_fingers(left_fingers)}")
+    ax.set_ylabel(f"u₂: scale of the {which} torques of {_fingers(right_fingers)}")
     ax.set_title(title + (f"\n{note}" if note else ""), fontsize=8)
     ax.legend(loc="upper left", fontsize=7)
     ax.grid(True, lw=0.3)
@@ -185,6 +207,12 @@ def plot_plan(result: Any, directory: Path) -> list[Path]:
         if plan.spec.kind == "turn":
             title += f", wanted turn {math.degrees(plan.spec.turn):+.0f} deg"
         out.append(plot_phase_region(directory / f"{k + 1:02d}_{plan.phase.name}.png", title,
-                                     plan.analysis, plan.phase.torques,
-                                     tuple(j.tau_max for j in hand.joints), hand.joint_names))
+                                     plan.analysis, plan.phase.torques, hand))
     return out
+
+
+def _fingers(fingers: Sequence[FingerConfig]) -> str:
+    """'finger NAME', 'fingers NAME, NAME', or 'no finger'."""
+    if not fingers:
+        return "no finger"
+    return ("finger " if len(fingers) == 1 else "fingers ") + ", ".join(f.name for f in fingers)

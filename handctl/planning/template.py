@@ -24,16 +24,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from handctl.config import HandConfig
-from handctl.errors import ConfigError
 from handctl.planning.models import Spread
 from handctl.planning.search import Budget
 from handctl.recipes.loader import (
     check_unique_names,
     parse_guard_band,
     parse_min_total_turn,
+    parse_objects,
     parse_turn_rate,
 )
-from handctl.recipes.schema import RecipeObject, TurnRate
+from handctl.recipes.schema import (
+    FIRST_PAIR_TURN,
+    RecipeObject,
+    TurnRate,
+    consecutive_pairs,
+    estimate_names,
+)
 from handctl.schema import Doc, load_yaml
 
 KINDS = ("free", "lift", "hold", "turn")
@@ -54,12 +60,15 @@ class TemplatePhase:
     turn_rate: TurnRate | None = None  # a turn phase's rate loop, carried into the recipe
     pose_stiffness: float | None = None  # N·m/rad: a free phase ends in the nominal's pose
     pose_damping: float = 0.0  # N·m·s/rad
+    #: the names of the estimates of the template's objects (``schema.estimate_names``)
+    estimates: tuple[str, ...] = ()
 
     def exit_condition(self) -> str:
-        """The compiled exit of a turn phase: on the estimated turn since the phase began."""
+        """The compiled exit of a turn phase: on the estimated turn of the first pair since
+        the phase began."""
         op = "<" if self.turn < 0 else ">"
-        return f"estimate.centre_line_turn {op} {self.turn * self.exit_fraction:.4f} " \
-               f"for {self.exit_hold_s:g}"
+        return f"estimate.{self.estimates[FIRST_PAIR_TURN]} {op} " \
+               f"{self.turn * self.exit_fraction:.4f} for {self.exit_hold_s:g}"
 
 
 @dataclass(frozen=True)
@@ -90,21 +99,18 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     doc.string("template")
     recipe = doc.string("recipe")
     description = doc.text("description", default="")
-    objects: list[RecipeObject] = []
-    for i, sub in enumerate(doc.mappings("objects", min_len=2, max_len=2)):
-        obj = RecipeObject(sub.string("name"),
-                           sub.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m"))
-        sub.done()
-        if any(o.name == obj.name for o in objects):
-            raise ConfigError(doc.file, f"objects[{i}].name", "a name not used by another "
-                              "object", obj.name)
-        objects.append(obj)
+    if not doc.has("objects"):
+        doc.fail("objects", "the objects the template grasps ([{name, radius}, ...])",
+                 "nothing")
+    objects = list(parse_objects(doc))
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
     band = parse_guard_band(doc)
-    min_turn = parse_min_total_turn(doc)
+    min_turn = parse_min_total_turn(doc, len(objects) > 1)
     names = [o.name for o in objects]
-    phases = tuple(_phase(p, hand, names) for p in doc.mappings("phases", min_len=1, max_len=32))
+    estimates = estimate_names(objects, consecutive_pairs(len(objects)))
+    phases = tuple(_phase(p, hand, names, estimates)
+                   for p in doc.mappings("phases", min_len=1, max_len=32))
     check_unique_names(doc, [p.name for p in phases])
     doc.done()
     return Template(doc.file, recipe, description, tuple(objects), end_ramp, search, phases,
@@ -173,7 +179,8 @@ def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
     return values
 
 
-def _phase(doc: Doc, hand: HandConfig, objects: list[str]) -> TemplatePhase:
+def _phase(doc: Doc, hand: HandConfig, objects: list[str],
+           estimates: tuple[str, ...]) -> TemplatePhase:
     name = doc.string("name")
     kind = doc.string("kind", choices=KINDS)
     ramp = doc.number("ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
@@ -199,6 +206,9 @@ def _phase(doc: Doc, hand: HandConfig, objects: list[str]) -> TemplatePhase:
         min_height = doc.number("min_height", min=0.0, max=0.2, unit="m")
     turn_rate = None
     if kind == "turn":
+        if len(objects) < 2:
+            doc.fail("kind", "lift, hold or free: a turn is that of a pair of objects, and the "
+                     "template has one", kind)
         turn = math.radians(doc.number("turn_deg", min=-180.0, max=180.0, unit="deg"))
         if abs(turn) < 1e-6:
             doc.fail("turn_deg", "a non-zero turn", 0.0)
@@ -216,4 +226,4 @@ def _phase(doc: Doc, hand: HandConfig, objects: list[str]) -> TemplatePhase:
         pose.done()
     doc.done()
     return TemplatePhase(name, kind, ramp, max_s, seed, move, min_height, turn, exit_fraction,
-                         exit_hold, turn_rate, stiffness, damping)
+                         exit_hold, turn_rate, stiffness, damping, estimates)

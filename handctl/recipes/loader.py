@@ -9,6 +9,7 @@ names the phase, the joint, the value and the limit, so the fix is obvious.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -17,21 +18,24 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.recipes.guard import LimitGuard
 from handctl.recipes.schema import (
+    MAX_OBJECTS,
     Condition,
+    Pair,
     Phase,
     PoseHold,
     Recipe,
     RecipeObject,
-    SignalKind,
     TimeoutAction,
     TurnRate,
+    consecutive_pairs,
+    estimate_names,
     parse_condition,
 )
 from handctl.schema import Doc, load_yaml
 
 MAX_PHASES = 64
-#: The estimator's outputs are those of a pair (object 1, object 2 and the line through them).
-OBJECT_COUNT = 2
+#: An object's name is the prefix of its estimates in conditions (``estimate.<name>_x``).
+OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]*$")
 #: rad, the range of ``limit_guard_band``: narrower is a cliff again, wider fights the grasp
 GUARD_BAND_MIN = 0.02
 GUARD_BAND_MAX = 0.5
@@ -62,42 +66,43 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
         doc.fail("hand_config_hash", "the hash of the hand config a compiled recipe was made "
                  "for", "nothing")
     end_ramp = doc.number("end_ramp_s", default=0.2, min=0.0, max=60.0, unit="s")
-    objects = _parse_objects(doc)
+    objects = parse_objects(doc)
+    pairs = parse_pairs(doc, objects)
+    estimates = estimate_names(objects, pairs)
     band = parse_guard_band(doc)
     guard = LimitGuard.for_hand(hand, band) if band is not None else None
-    min_turn = parse_min_total_turn(doc)
+    min_turn = parse_min_total_turn(doc, bool(pairs))
     planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe: read, not used
     if not isinstance(planned_from, dict):
         doc.fail("planned_from", "a mapping (what handctl plan planned the recipe from)",
                  planned_from)
-    phases = tuple(_parse_phase(p, hand) for p in doc.mappings("phases", min_len=1,
-                                                              max_len=MAX_PHASES))
+    phases = tuple(_parse_phase(p, hand, estimates)
+                   for p in doc.mappings("phases", min_len=1, max_len=MAX_PHASES))
     check_unique_names(doc, [p.name for p in phases])
     for i, phase in enumerate(phases):
-        if phase.turn_rate is not None and not objects:
-            raise ConfigError(doc.file, f"phases[{i}].turn_rate", "a recipe that declares its "
-                              "objects ([{name, radius}, ...]): the turn-rate loop reads the "
-                              "estimator", "no objects")
-        uses = next((c for c in (*phase.exits, *phase.aborts)
-                     if c.kind is SignalKind.ESTIMATE), None)
-        if uses is not None and not objects:
-            raise ConfigError(doc.file, "objects", "the objects the recipe grasps ([{name, "
-                              f"radius}}, ...]): phase '{phase.name}' reads an estimate "
-                              f"('{uses.text}') and the estimator needs their radii", "nothing")
+        if phase.turn_rate is not None and not pairs:
+            raise ConfigError(doc.file, f"phases[{i}].turn_rate", "a recipe that declares two "
+                              "objects or more ([{name, radius}, ...]): the turn-rate loop "
+                              "holds the turn of the first pair", f"{len(objects)} objects")
     doc.done()
     if digest is not None and digest != hand.config_hash:
         raise ConfigError(doc.file, "hand_config_hash",
                           f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
                           "compiled for another hand config: recompile it for this one)", digest)
     return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled, objects,
-                  guard, min_turn)
+                  guard, min_turn, pairs)
 
 
-def parse_min_total_turn(doc: Doc) -> float:
-    """``min_total_turn_deg`` of a recipe or a template: the least total turn of the pair for
-    the experiment to succeed (0, asking for no turn, when it is not set)."""
-    return doc.number("min_total_turn_deg", default=0.0, min=0.0, max=MAX_TOTAL_TURN_DEG,
+def parse_min_total_turn(doc: Doc, has_pair: bool) -> float:
+    """``min_total_turn_deg`` of a recipe or a template: the least total turn of the first
+    pair for the experiment to succeed (0, asking for no turn, when it is not set; only 0
+    without a pair)."""
+    turn = doc.number("min_total_turn_deg", default=0.0, min=0.0, max=MAX_TOTAL_TURN_DEG,
                       unit="deg")
+    if turn > 0 and not has_pair:
+        doc.fail("min_total_turn_deg", "0 (a turn is that of a pair of objects, and there is "
+                 "no pair)", turn)
+    return turn
 
 
 def parse_guard_band(doc: Doc) -> float | None:
@@ -117,13 +122,18 @@ def check_unique_names(doc: Doc, names: list[str]) -> None:
         seen.add(name)
 
 
-def _parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
+def parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
+    """``objects`` of a recipe or a template: 1..4 ``{name, radius}`` with distinct names that
+    can prefix an estimate (letters and digits); none when the key is absent."""
     if not doc.has("objects"):
         return ()
     out: list[RecipeObject] = []
-    for i, sub in enumerate(doc.mappings("objects", min_len=OBJECT_COUNT,
-                                         max_len=OBJECT_COUNT)):
+    for i, sub in enumerate(doc.mappings("objects", min_len=1,
+                                         max_len=MAX_OBJECTS)):
         name = sub.string("name")
+        if not OBJECT_NAME.match(name):
+            sub.fail("name", "a name of letters and digits, starting with a letter (it "
+                     "prefixes the object's estimates, e.g. estimate.NAME_x)", name)
         radius = sub.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m")
         sub.done()
         if any(o.name == name for o in out):
@@ -133,15 +143,41 @@ def _parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
     return tuple(out)
 
 
-def _parse_phase(doc: Doc, hand: HandConfig) -> Phase:
+def parse_pairs(doc: Doc, objects: tuple[RecipeObject, ...]) -> tuple[Pair, ...]:
+    """``pairs`` of a recipe or a template: ``[[a, b], ...]``, the pairs of objects (by name)
+    whose centre line the estimator reports; each object with the next when absent. The first
+    pair is the one a turn phase turns and the experiment's turn is measured on."""
+    if not doc.has("pairs"):
+        return consecutive_pairs(len(objects))
+    names = [o.name for o in objects]
+    raw = doc.raw("pairs")
+    if not isinstance(raw, list) or not raw:
+        doc.fail("pairs", "a non-empty list of [object, object] (names from objects)", raw)
+    out: list[Pair] = []
+    for i, item in enumerate(raw):
+        key = f"pairs[{i}]"
+        if (not isinstance(item, list) or len(item) != 2
+                or not all(isinstance(n, str) and n in names for n in item)):
+            raise ConfigError(doc.file, key, f"two names of the recipe's objects "
+                              f"({', '.join(names) or 'none declared'})", item)
+        pair = (names.index(item[0]), names.index(item[1]))
+        if pair[0] == pair[1]:
+            raise ConfigError(doc.file, key, "two different objects", item)
+        if pair in out or pair[::-1] in out:
+            raise ConfigError(doc.file, key, "a pair not listed before", item)
+        out.append(pair)
+    return tuple(out)
+
+
+def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phase:
     name = doc.string("name")
     torques = _parse_torques(doc, hand)
     ramp = doc.number("ramp_s", default=0.1, min=0.0, max=60.0, unit="s")
     max_s = doc.number("max_s", min=0.0, max=3600.0, min_exclusive=True, unit="s")
     on_timeout = TimeoutAction(doc.string("on_timeout", default="abort",
                                           choices=[a.value for a in TimeoutAction]))
-    exits = _parse_conditions(doc, "exit", hand)
-    aborts = _parse_conditions(doc, "abort", hand)
+    exits = _parse_conditions(doc, "exit", hand, estimates)
+    aborts = _parse_conditions(doc, "abort", hand, estimates)
     turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
     pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
     provenance = doc.raw("provenance", {})
@@ -202,7 +238,8 @@ def _parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
     return values
 
 
-def _parse_conditions(doc: Doc, key: str, hand: HandConfig) -> tuple[Condition, ...]:
+def _parse_conditions(doc: Doc, key: str, hand: HandConfig,
+                      estimates: tuple[str, ...]) -> tuple[Condition, ...]:
     raw = doc.raw(key, [])
     if isinstance(raw, str):
         raw = [raw]
@@ -213,7 +250,7 @@ def _parse_conditions(doc: Doc, key: str, hand: HandConfig) -> tuple[Condition, 
     for i, text in enumerate(raw):
         if not isinstance(text, str):
             sub.fail(i, "a condition string", text)
-        parsed = parse_condition(text, hand.joint_names)
+        parsed = parse_condition(text, hand.joint_names, estimates)
         if isinstance(parsed, str):
             sub.fail(i, parsed, text)
         out.append(parsed)

@@ -11,8 +11,8 @@ soft-limit guard). The loop times them apart, so the feedback's cost shows as it
 Feedback, all of it from the angles and the estimates computed from them:
 
 - ``turn_rate``: the phase's torque times a scale in ``[scale_min, scale_max]``, set by a
-  proportional-integral loop on the estimated centre-line rate (the derivative of
-  ``centre_line_turn``, low-passed over ``RATE_TIME_CONSTANT``). While the estimate is invalid
+  proportional-integral loop on the estimated centre-line rate (the derivative of the first
+  pair's ``line_turn``, low-passed over ``RATE_TIME_CONSTANT``). While the estimate is invalid
   the scale holds. The loop starts at the plan's own torque (scale 1).
 - ``pose``: a joint-space spring and damper towards the phase's pose, ramped in with the
   phase's torques.
@@ -28,13 +28,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from handctl.arrays import FloatArray
-from handctl.recipes.schema import ESTIMATES, Condition, Recipe, SignalKind, TimeoutAction
+from handctl.recipes.schema import FIRST_PAIR_TURN, Condition, Recipe, SignalKind, TimeoutAction
 from handctl.recipes.velocity import JointVelocity
 
 #: s, the low-pass of the estimated centre-line rate: the estimate moves in steps of the
 #: encoder's resolution, and the rate loop must not chase them
 RATE_TIME_CONSTANT = 0.03
-_TURN = ESTIMATES.index("centre_line_turn")
+_TURN = FIRST_PAIR_TURN
 
 
 class RunStatus(enum.Enum):

@@ -6,8 +6,9 @@ into predicates over a fixed set of signals:
 
 - ``time``: seconds since the phase began;
 - ``angle.JOINT`` (rad), ``tdt.JOINT`` (N·m): the joint state from the nodes;
-- ``estimate.NAME``: the object estimator's outputs (``ESTIMATES``), which a recipe may use
-  only if it declares its ``objects`` (the estimator needs their radii);
+- ``estimate.NAME``: the object estimator's outputs, named by the recipe's own objects
+  (``estimate_names``), which a recipe may use only if it declares its ``objects`` (the
+  estimator needs their radii);
 - ``for S`` makes the condition hold continuously for S seconds before it counts, so one noisy
   sample cannot end a phase.
 """
@@ -17,21 +18,32 @@ from __future__ import annotations
 import enum
 import operator
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from handctl.recipes.guard import LimitGuard
 
-#: Estimator outputs a recipe may name (rad for angles, m for positions). ``centre_line_angle``
-#: is the direction of the line from object 1's centre to object 2's, in (-π, π];
-#: ``centre_line_turn`` is how far that line has turned since the phase began (counter-clockwise
-#: positive, unwrapped, so a phase can ask for more than half a turn).
-ESTIMATES = ("centre_line_angle", "centre_line_turn", "object1_x", "object1_y", "object2_x",
-             "object2_y")
-#: Estimates a condition reads relative to their value when the phase began. The estimator gives
-#: them as running (unwrapped) values; only the runner knows where a phase starts.
-PHASE_RELATIVE_ESTIMATES = frozenset({"centre_line_turn"})
+#: The most objects a recipe may grasp and the estimator tracks (the simulated hand's most).
+MAX_OBJECTS = 4
+#: What the estimator gives per object, as ``<object>_<suffix>``: its centre (m).
+OBJECT_ESTIMATES = ("x", "y")
+#: What it gives per pair of objects, as ``<a>_<b>_<suffix>``: ``line_angle`` is the direction
+#: of the line from a's centre to b's, in (-π, π]; ``line_turn`` is how far that line has
+#: turned since the phase began (counter-clockwise positive, unwrapped, so a phase can ask for
+#: more than half a turn).
+PAIR_ESTIMATES = ("line_angle", "line_turn")
+#: The pair suffix a condition reads relative to its value when the phase began. The estimator
+#: gives the turn as a running (unwrapped) value; only the runner knows where a phase starts.
+PHASE_RELATIVE_SUFFIX = "_line_turn"
+#: The index of the first pair's ``line_turn`` among the estimates (pairs come first): the
+#: turn the turn-rate loop holds at its rate.
+FIRST_PAIR_TURN = 1
+#: The names estimates had when the estimator knew exactly two objects and no names. Recipes
+#: written then (and the logs that carry them, which replay re-runs) say these; they read as
+#: the first pair's and the first two objects' estimates.
+LEGACY_ESTIMATES = {"centre_line_angle": 0, "centre_line_turn": 1, "object1_x": 2,
+                    "object1_y": 3, "object2_x": 4, "object2_y": 5}
 
 OPERATORS: dict[str, Callable[[float, float], bool]] = {
     "<": operator.lt, "<=": operator.le, ">": operator.gt, ">=": operator.ge}
@@ -53,7 +65,7 @@ class SignalKind(enum.Enum):
 class Condition:
     text: str
     kind: SignalKind
-    index: int  # joint index for ANGLE/TDT; index into ESTIMATES for ESTIMATE
+    index: int  # joint index for ANGLE/TDT; index into the recipe's estimates for ESTIMATE
     op: str
     value: float
     hold_s: float
@@ -114,10 +126,32 @@ class Phase:
 @dataclass(frozen=True)
 class RecipeObject:
     """An object the recipe grasps, as the estimator needs it: a cylinder of nominal radius (m)
-    lying along the joint axes. The order is the estimator's: object 1, object 2."""
+    lying along the joint axes. Its name is the simulated hand's name for it and the prefix of
+    its estimates."""
 
     name: str
     radius: float
+
+
+Pair = tuple[int, int]
+"""Two objects by index in the recipe's ``objects``: the line from the first to the second."""
+
+
+def consecutive_pairs(count: int) -> tuple[Pair, ...]:
+    """The pairs a recipe gets when it names none: each object with the next (none for one)."""
+    return tuple((i, i + 1) for i in range(count - 1))
+
+
+def estimate_names(objects: Sequence[RecipeObject], pairs: Sequence[Pair]) -> tuple[str, ...]:
+    """The estimator's outputs in its order: each pair's (``PAIR_ESTIMATES``), then each
+    object's (``OBJECT_ESTIMATES``). Pairs come first so that the first pair's turn sits at
+    ``FIRST_PAIR_TURN`` whatever the number of objects."""
+    out: list[str] = []
+    for a, b in pairs:
+        out += [f"{objects[a].name}_{objects[b].name}_{s}" for s in PAIR_ESTIMATES]
+    for o in objects:
+        out += [f"{o.name}_{s}" for s in OBJECT_ESTIMATES]
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -131,9 +165,16 @@ class Recipe:
     compiled: bool
     objects: tuple[RecipeObject, ...] = ()
     limit_guard: LimitGuard | None = None  # soft-limit push-back (guard.py); None: off
-    #: deg, the least total turn of the pair for the experiment to count as a success (the
-    #: run's ``experiment.success``); 0 asks for none
+    #: deg, the least total turn of the first pair for the experiment to count as a success
+    #: (the run's ``experiment.success``); 0 asks for none
     min_total_turn_deg: float = 0.0
+    #: the pairs whose centre line the estimator reports (``consecutive_pairs`` by default)
+    pairs: tuple[Pair, ...] = ()
+
+    @property
+    def estimates(self) -> tuple[str, ...]:
+        """The names of the estimator's outputs for this recipe, in its order."""
+        return estimate_names(self.objects, self.pairs)
 
     @property
     def uses_estimates(self) -> bool:
@@ -141,11 +182,14 @@ class Recipe:
             c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
 
 
-def parse_condition(text: str, joint_names: tuple[str, ...]) -> Condition | str:
-    """A ``Condition``, or the reason the text is not one (for the loader's message)."""
+def parse_condition(text: str, joint_names: tuple[str, ...],
+                    estimates: Sequence[str] = ()) -> Condition | str:
+    """A ``Condition``, or the reason the text is not one (for the loader's message).
+    ``estimates``: the names of the recipe's estimates (``estimate_names``), in their order."""
     match = _CONDITION.match(text)
     if match is None:
-        return "a condition 'SIGNAL OP NUMBER [for SECONDS]', e.g. 'angle.f1_j2 > 1.2 for 0.02'"
+        example = f"angle.{joint_names[0]} > 1.2 for 0.02" if joint_names else "time > 1.0"
+        return f"a condition 'SIGNAL OP NUMBER [for SECONDS]', e.g. '{example}'"
     signal = match["signal"]
     hold = float(match["hold"]) if match["hold"] else 0.0
     value = float(match["value"])
@@ -153,11 +197,23 @@ def parse_condition(text: str, joint_names: tuple[str, ...]) -> Condition | str:
         return Condition(text, SignalKind.TIME, 0, match["op"], value, hold)
     family, _, name = signal.partition(".")
     if family == "estimate":
-        if name not in ESTIMATES:
-            return f"an estimate in {', '.join(ESTIMATES)} (in '{text}')"
-        return Condition(text, SignalKind.ESTIMATE, ESTIMATES.index(name), match["op"], value,
-                         hold, relative=name in PHASE_RELATIVE_ESTIMATES)
+        if name in estimates:
+            index = estimates.index(name)
+        elif name in LEGACY_ESTIMATES and _legacy_layout(estimates):
+            index = LEGACY_ESTIMATES[name]
+        else:
+            known = ", ".join(estimates) if estimates else "none: the recipe declares no objects"
+            return f"an estimate of the recipe's objects ({known}) (in '{text}')"
+        return Condition(text, SignalKind.ESTIMATE, index, match["op"], value, hold,
+                         relative=estimates[index].endswith(PHASE_RELATIVE_SUFFIX))
     if name not in joint_names:
         return f"a joint of the hand ({', '.join(joint_names)}) in '{text}'"
     kind = SignalKind.ANGLE if family == "angle" else SignalKind.TDT
     return Condition(text, kind, joint_names.index(name), match["op"], value, hold)
+
+
+def _legacy_layout(estimates: Sequence[str]) -> bool:
+    """Whether the estimates are those of two objects and their one pair: the only layout the
+    legacy names described."""
+    return len(estimates) == len(LEGACY_ESTIMATES) and estimates[1].endswith(
+        PHASE_RELATIVE_SUFFIX)

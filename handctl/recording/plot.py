@@ -30,12 +30,17 @@ _OUTSIDE: dict[str, Any] = {"loc": "upper left", "bbox_to_anchor": (1.005, 1.0),
                             "fontsize": 7, "framealpha": 0.9, "borderaxespad": 0.0}
 
 
-def finger_groups(joints: Sequence[str]) -> list[list[int]]:
-    """Joint indices grouped by finger, from names like ``f1_j2`` (one group if unnamed)."""
-    groups: dict[str, list[int]] = {}
-    for i, name in enumerate(joints):
-        groups.setdefault(name.split("_")[0] if "_" in name else "all", []).append(i)
-    return list(groups.values())
+def finger_groups(fingers: Sequence[tuple[str, int]], n_joints: int
+                  ) -> list[tuple[str, list[int]]]:
+    """Joint indices grouped by finger, as the recorded hand config has them (name, joint
+    count); one group, "hand", when the log has no hand config."""
+    if sum(count for _, count in fingers) != n_joints or not fingers:
+        return [("hand", list(range(n_joints)))]
+    groups, start = [], 0
+    for name, count in fingers:
+        groups.append((name, list(range(start, start + count))))
+        start += count
+    return groups
 
 
 def phase_bands(axes: Sequence[Any], phases: Sequence[tuple[str, float, float]]) -> None:
@@ -96,7 +101,7 @@ def plot_recording(series: Series, path: Path, title: str) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    groups = finger_groups(series.joints)
+    groups = finger_groups(series.fingers, len(series.joints))
     has_objects = len(series.objects) > 0
     rows = len(groups) + (2 if has_objects else 0)
     fig = Figure(figsize=(12, 2.3 * rows + 1.0), dpi=110)
@@ -104,9 +109,8 @@ def plot_recording(series: Series, path: Path, title: str) -> None:
     axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
     n = len(series.joints)
     tq, js = series.torque, series.joint
-    for row, group in enumerate(groups):
+    for row, (finger, group) in enumerate(groups):
         names = [series.joints[j] for j in group]
-        finger = names[0].split("_")[0] if "_" in names[0] else "hand"
         cols = np.array(group)
         torque_panel(axes[row], finger, names, [series.tau_max[j] for j in group
                                                 if j < len(series.tau_max)], {

@@ -93,6 +93,9 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
         summary["objects"] = {
             name: {"start": _pose(first, i, series.rest_y), "end": _pose(last, i, series.rest_y)}
             for i, name in enumerate(series.object_names)}
+    if len(series.objects) and len(series.object_names) >= 2:
+        # the line between the first two objects, as the log carries it: one object has none
+        first, last = series.objects[0], series.objects[-1]
         summary["objects_line_angle_rad"] = {"start": round(float(first[1]), 5),
                                              "end": round(float(last[1]), 5)}
         # a pose taken at the start of tick k belongs to the phase tick k - 1 ran, and the

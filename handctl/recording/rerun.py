@@ -400,7 +400,7 @@ def rerun(recording: Recording) -> RerunReport:
     if recipe.objects:  # as the session sets it up: the estimator is fed the same angles
         from handctl.estimator import ObjectEstimator
 
-        estimator = ObjectEstimator(hand, recipe.objects)
+        estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs)
     if (estimator is not None) != (run.get("estimator", "False") == "True"):
         raise ConfigError(path, f"metadata {ch.META_RUN}.estimator",
                           f"{estimator is not None} (what the recorded recipe implies)",

@@ -44,6 +44,9 @@ class Series:
     t0_ns: int = 0  # tick 0's scheduled time, on the log's clock
     rest_y: list[float] = field(default_factory=list)  # m, each object's resting height
     tau_max: list[float] = field(default_factory=list)  # N·m, each joint's host limit
+    #: Each finger's name and joint count, in joint order, from the recorded hand config
+    #: (empty for a log without one: then the joints are one group)
+    fingers: list[tuple[str, int]] = field(default_factory=list)
     timing: FloatArray = field(default_factory=lambda: np.zeros((0, 8)))
     torque: FloatArray = field(default_factory=lambda: np.zeros((0, 1)))
     joint: FloatArray = field(default_factory=lambda: np.zeros((0, 1)))
@@ -180,6 +183,7 @@ def _rest_heights(recording: Recording, series: Series) -> list[float]:
         hand, params = None, None
     if hand is not None:
         series.tau_max = [j.tau_max for j in hand.joints]
+        series.fingers = [(f.name, len(f.joints)) for f in hand.fingers]
     if params is None:
         return first
     initial = {o.name: o.y for o in params.objects}

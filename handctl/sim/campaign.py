@@ -65,29 +65,58 @@ phases:
   - {name: manipulating, torques: [0.08, 0.05, 0.03, 0.08, 0.05, 0.03, -0.06, -0.05, -0.03],
      ramp_s: 0.1, max_s: 0.6, on_timeout: next}
 """
+
+
+@dataclass(frozen=True)
+class Targets:
+    """What the injectors aim at, taken from the hand: its first, middle and last node (by id;
+    all one node on a one-finger hand), and a joint number of each (1-based, within the node):
+    the first, and the second where the node has one. Spread over the nodes, so that a fault
+    is not always on the same finger."""
+
+    first: int
+    middle: int
+    last: int
+
+    @classmethod
+    def of(cls, hand: HandConfig) -> Targets:
+        nodes = sorted(f.node_id for f in hand.fingers)
+        return cls(nodes[0], nodes[len(nodes) // 2], nodes[-1])
+
+
+def _second_joint(hand: HandConfig, node: int) -> int:
+    """Joint 2 of ``node``, or its only joint."""
+    finger = next(f for f in hand.fingers if f.node_id == node)
+    return min(2, len(finger.joints))
+
+
 #: Injectors with the settings the campaign uses: each severe enough to matter, as a robot
-#: would meet it. Kept on for FAULT_ON_S.
-CASES: dict[str, Callable[[], inj.Injector]] = {
-    "drop_commands": lambda: inj.DropCommands(node=3, count=15),
-    "drop_feedback": lambda: inj.DropFeedback(node=1),
-    "delay_feedback": lambda: inj.DelayFeedback(node=2, delay=0.02),
-    "corrupt_crc": lambda: inj.CorruptCrc(node=1, message="feedback"),
-    "counter_repeat": lambda: inj.CounterRepeat(node=2, message="feedback"),
-    "counter_skip": lambda: inj.CounterSkip(node=3, message="all"),
-    "tdt_stuck": lambda: inj.TdtStuck(node=1, joint=1),
-    "tdt_spike": lambda: inj.TdtSpike(node=2, joint=1, amplitude=0.3, duration=0.002),
-    "tdt_offset": lambda: inj.TdtOffset(node=3, joint=2, offset=0.3),
-    "encoder_jump": lambda: inj.EncoderJump(node=1, joint=2, counts=4000),
-    "node_reboot": lambda: inj.NodeReboot(node=2, downtime=0.02),
-    "node_silent": lambda: inj.NodeSilent(node=3),
-    "error_frames": lambda: inj.ErrorFrames(per_tick=2),
-    "bus_off": inj.BusOff,
-    "babble": lambda: inj.Babble(id=0x050, per_tick=20, length=8),
-    "tendon_slack": lambda: inj.TendonSlack(node=2, joint=1),
-    "motor_saturation": lambda: inj.MotorSaturation(node=1, joint=1, limit=0.01),
-    "extended_twin": lambda: inj.ExtendedTwin(node=1, message="feedback"),
-    "contradict": lambda: inj.Contradict(node=2, report="fault_bits"),
-    "replay_frames": lambda: inj.ReplayFrames(node=3, message="feedback", delay=0.05),
+#: would meet it, aimed at the hand's ``Targets``. Kept on for FAULT_ON_S.
+CASES: dict[str, Callable[[HandConfig, Targets], inj.Injector]] = {
+    "drop_commands": lambda h, t: inj.DropCommands(node=t.last, count=15),
+    "drop_feedback": lambda h, t: inj.DropFeedback(node=t.first),
+    "delay_feedback": lambda h, t: inj.DelayFeedback(node=t.middle, delay=0.02),
+    "corrupt_crc": lambda h, t: inj.CorruptCrc(node=t.first, message="feedback"),
+    "counter_repeat": lambda h, t: inj.CounterRepeat(node=t.middle, message="feedback"),
+    "counter_skip": lambda h, t: inj.CounterSkip(node=t.last, message="all"),
+    "tdt_stuck": lambda h, t: inj.TdtStuck(node=t.first, joint=1),
+    "tdt_spike": lambda h, t: inj.TdtSpike(node=t.middle, joint=1, amplitude=0.3,
+                                           duration=0.002),
+    "tdt_offset": lambda h, t: inj.TdtOffset(node=t.last, joint=_second_joint(h, t.last),
+                                             offset=0.3),
+    "encoder_jump": lambda h, t: inj.EncoderJump(node=t.first, joint=_second_joint(h, t.first),
+                                                 counts=4000),
+    "node_reboot": lambda h, t: inj.NodeReboot(node=t.middle, downtime=0.02),
+    "node_silent": lambda h, t: inj.NodeSilent(node=t.last),
+    "error_frames": lambda h, t: inj.ErrorFrames(per_tick=2),
+    "bus_off": lambda h, t: inj.BusOff(),
+    "babble": lambda h, t: inj.Babble(id=0x050, per_tick=20, length=8),
+    "tendon_slack": lambda h, t: inj.TendonSlack(node=t.middle, joint=1),
+    "motor_saturation": lambda h, t: inj.MotorSaturation(node=t.first, joint=1, limit=0.01),
+    "extended_twin": lambda h, t: inj.ExtendedTwin(node=t.first, message="feedback"),
+    "contradict": lambda h, t: inj.Contradict(node=t.middle, report="fault_bits"),
+    "replay_frames": lambda h, t: inj.ReplayFrames(node=t.last, message="feedback",
+                                                   delay=0.05),
 }
 FAULT_ON_S = 0.25
 #: A stuck sensor while the command holds still is only caught by the 0.5 s "still" check.
@@ -138,7 +167,9 @@ def _commands(sniffer: HandBus, hand: HandConfig) -> np.ndarray:
         if hit is not None:
             rows[hit[0]].append(hit[1].decode(frame.data)[1])
     n = min(len(r) for r in rows.values())
-    return np.hstack([np.array(rows[k][:n]).reshape(n, 3) for k in sorted(rows)])
+    # columns in the hand config's joint order, as the limits they are judged against
+    return np.hstack([np.array(rows[f.node_id][:n]).reshape(n, len(f.joints))
+                      for f in hand.fingers])
 
 
 def unsafe_frames(wire: np.ndarray, hand: HandConfig, fault_row: int | None,
@@ -310,7 +341,8 @@ def _drive(hand: HandConfig, injector: str, phase: str, sim: SimulatedHand, runt
             entered.append(sim.time)
         elif sim.time >= entered[0] + half:
             injected.append((tick.tick, sim.time))
-            sim.faults.add(CASES[injector](), sim.time, sim.time + on_s)
+            sim.faults.add(CASES[injector](hand, Targets.of(hand)), sim.time,
+                           sim.time + on_s)
 
     runtime.tick_hooks.append(inject)
     result = asyncio.run(runtime.run())

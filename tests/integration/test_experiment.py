@@ -96,7 +96,7 @@ def test_the_compiled_recipe_is_planned_for_this_hand(hand: HandConfig) -> None:
     assert all("chosen_from" in p.provenance for p in recipe.phases)
     turns = [p for p in recipe.phases if p.name.startswith("manipulate")]
     assert len(turns) == 4
-    assert all(c.text.startswith("estimate.centre_line_turn") for p in turns for c in p.exits)
+    assert all(c.text.startswith("estimate.cyl1_cyl2_line_turn") for p in turns for c in p.exits)
 
 
 def test_run_recipe_plot_writes_the_overview(tmp_path: Path) -> None:

@@ -47,7 +47,7 @@ def test_plan_compiles_a_recipe_with_provenance_reproducibly(tmp_path: Path,
     assert recipe.compiled and recipe.hand_config_hash == hand.config_hash
     assert [p.name for p in recipe.phases] == ["approach", "lift", "envelop", "manipulate_1"]
     assert [o.name for o in recipe.objects] == ["cyl1", "cyl2"]
-    assert recipe.phases[3].exits[0].text.startswith("estimate.centre_line_turn <")
+    assert recipe.phases[3].exits[0].text.startswith("estimate.cyl1_cyl2_line_turn <")
     # what the template asks of the experiment and of the feedback is carried into the recipe
     assert recipe.min_total_turn_deg == template.min_total_turn_deg > 0
     loop = recipe.phases[3].turn_rate

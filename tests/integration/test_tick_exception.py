@@ -28,7 +28,7 @@ from handctl import cli, session
 from handctl.bus import open_bus
 from handctl.busspec import BusSpec
 from handctl.clock import LockstepClock, Tick
-from handctl.config import HandConfig, load_hand
+from handctl.config import HandConfig
 from handctl.drivers.hand import HandDriver
 from handctl.loop import (
     EXCEPTION_TEXT_CHARS,
@@ -436,8 +436,8 @@ phases:
 TWO_OBJECTS = """
 recipe: two_objects
 objects:
-  - {name: a, radius: 0.02}
-  - {name: b, radius: 0.02}
+  - {name: cyl1, radius: 0.02}
+  - {name: cyl2, radius: 0.02}
 phases:
   - name: close
     torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
@@ -514,10 +514,12 @@ def test_a_tau_max_the_wire_cannot_carry_ends_in_a_safety_stop(
     assert "ProtocolError" in faults[0]["detail"]
 
 
-def test_a_recipe_with_more_objects_than_the_hand_ends_in_a_safety_stop(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_recipe_with_more_objects_than_the_hand_is_refused_before_any_bus_opens(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
     """The issue's second finding: a recipe declaring two objects on a simulated hand with
-    one, whose ground-truth tick hook raised IndexError."""
+    one, whose ground-truth tick hook raised IndexError mid-run. It is now bad input (exit 2),
+    named by the recipe's key, and no bus is opened, so nothing is sent."""
     from ..conftest import HAND_YAML
 
     text = HAND_YAML.read_text()
@@ -527,20 +529,14 @@ def test_a_recipe_with_more_objects_than_the_hand_ends_in_a_safety_stop(
     one_object.write_text(text.replace(second[0] + "\n", ""))
     recipe = tmp_path / "two_objects.yaml"
     recipe.write_text(TWO_OBJECTS)
-    out = tmp_path / "out.json"
-    code, listener = _cli_run([str(recipe), "--hand", str(one_object), "--summary-json",
-                               str(out)], monkeypatch)
-    try:
-        wire = hear(listener, load_hand(one_object))
-    finally:
-        listener.shutdown()
-    assert code == cli.EXIT_SAFETY_STOP
-    summary = json.loads(out.read_text())
-    assert summary["faults"][0]["code"] == "HOOK_EXCEPTION"
-    assert summary["exception"]["type"] == "IndexError"
-    assert all(wire.disables.values())
-    for rows in wire.torques.values():  # the hook raised before any torque flowed
-        assert all(not np.any(values) for _, values in rows)
+    opened: list[Any] = []
+    monkeypatch.setattr(session, "open_bus", lambda *args, **kwargs: opened.append(args))
+    code = cli.main(["run", "recipe", str(recipe), "--hand", str(one_object),
+                     "--summary-json", str(tmp_path / "out.json")])
+    assert code == cli.EXIT_BAD_INPUT
+    assert opened == []
+    err = capsys.readouterr().err
+    assert "two_objects.yaml: objects[1].name" in err and "found 'cyl2'" in err
 
 
 def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(

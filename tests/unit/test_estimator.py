@@ -17,7 +17,7 @@ from handctl.errors import ConfigError
 from handctl.estimator import NAN, ObjectEstimator, advance_turn
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.runner import RecipeRunner
-from handctl.recipes.schema import ESTIMATES, RecipeObject
+from handctl.recipes.schema import FIRST_PAIR_TURN, RecipeObject
 
 R = 0.0175  # m: the object that fits the square cage below exactly
 H = (0.008, 0.0075, 0.007)  # m: half-thicknesses of the default hand's links
@@ -93,9 +93,73 @@ def test_turn_is_unwrapped_across_half_a_turn() -> None:
     assert np.all(np.diff(turns) < 0)
 
 
-def test_the_estimator_needs_a_pair(hand: HandConfig) -> None:
-    with pytest.raises(ValueError, match="pair"):
-        ObjectEstimator(hand, (RecipeObject("cyl1", 0.02),))
+@pytest.mark.parametrize("count", [0, 5])
+def test_the_estimator_tracks_one_to_four_objects(hand: HandConfig, count: int) -> None:
+    with pytest.raises(ValueError, match="1 to 4 objects"):
+        ObjectEstimator(hand, tuple(RecipeObject(f"c{i}", 0.02) for i in range(count)))
+
+
+def row_hand(hand: HandConfig) -> tuple[HandConfig, list[float]]:
+    """Four fingers in a row under the palm, ``ROW_SPACING`` apart, and the angles at which
+    the first three box a cage each to their right (as ``boxed_hand``'s left side), the
+    fourth hanging straight down as the last cage's wall."""
+    boxed = boxed_hand(hand)
+    finger = boxed.fingers[0]
+    fingers = tuple(dataclasses.replace(finger, base_x=(k - 1.5) * ROW_SPACING)
+                    for k in range(4))
+    angles = [0.0, math.pi / 2, math.pi / 2] * 3 + [0.0, 0.0, 0.0]
+    return dataclasses.replace(boxed, fingers=fingers), angles
+
+
+#: m: a finger's distal link, boxing its cage, is the next finger's proximal link
+ROW_SPACING = (2 * R + H[0] + H[2]) + H[0] - H[2]
+
+
+def cage_centre(k: int) -> tuple[float, float]:
+    """The centre of the ``row_hand`` cage right of finger ``k``."""
+    return (k - 1.5) * ROW_SPACING + H[0] + R, -R
+
+
+def test_one_object_has_its_centre_and_no_pair(hand: HandConfig) -> None:
+    shape, angles = row_hand(hand)
+    est = ObjectEstimator(shape, (RecipeObject("ball", R),))
+    assert est.estimates == ("ball_x", "ball_y")
+    out = settle(est, angles)
+    assert est.valid
+    assert out == pytest.approx(cage_centre(1), abs=1e-6)
+
+
+def test_three_objects_each_in_its_cage_with_the_pairs_asked_for(hand: HandConfig) -> None:
+    shape, angles = row_hand(hand)
+    objects = (RecipeObject("a", R), RecipeObject("b", R), RecipeObject("c", R))
+    est = ObjectEstimator(shape, objects)
+    assert est.estimates == ("a_b_line_angle", "a_b_line_turn", "b_c_line_angle",
+                             "b_c_line_turn", "a_x", "a_y", "b_x", "b_y", "c_x", "c_y")
+    out = settle(est, angles, 400)
+    assert est.valid
+    for k in range(3):
+        assert est.positions(out)[k] == pytest.approx(cage_centre(k), abs=1e-6)
+    assert out[0] == pytest.approx(0.0, abs=1e-6)  # a to b: +x
+    assert out[2] == pytest.approx(0.0, abs=1e-6)  # b to c: +x
+    # a pair the recipe names itself, the other way round: c to a points along -x
+    est = ObjectEstimator(shape, objects, pairs=((2, 0),))
+    assert est.estimates[:2] == ("c_a_line_angle", "c_a_line_turn")
+    out = settle(est, angles, 400)
+    assert abs(out[0]) == pytest.approx(math.pi, abs=1e-6)
+
+
+def test_an_object_out_of_its_cage_invalidates_them_all(hand: HandConfig) -> None:
+    """Every object is a wall of the others' cages: with the first cage opened, no estimate
+    is given, not even of the objects still caged."""
+    shape, angles = row_hand(hand)
+    objects = (RecipeObject("a", R), RecipeObject("b", R), RecipeObject("c", R))
+    est = ObjectEstimator(shape, objects)
+    settle(est, angles, 400)
+    assert est.valid
+    opened = [-0.6, -0.1, -0.1, *angles[3:]]
+    out = settle(est, opened, 400)
+    assert not est.valid
+    assert all(math.isnan(v) for v in out)
 
 
 def test_half_thickness_agrees_with_the_simulated_links(hand: HandConfig) -> None:
@@ -131,7 +195,9 @@ def test_objects_are_loaded_in_order(tmp_path: Path, hand: HandConfig) -> None:
 
 
 @pytest.mark.parametrize(("objects", "key", "expected"), [
-    ([OBJECTS[0]], "objects", "a list of 2 mappings"),
+    ([{"name": f"c{i}", "radius": 0.01} for i in range(5)], "objects", "1 to 4 mappings"),
+    ([{"name": "cyl_1", "radius": 0.02}], "objects[0].name", "letters and digits"),
+    ([], "objects", "1 to 4 mappings"),
     ([OBJECTS[0], OBJECTS[0]], "objects[1].name", "a name not used"),
     ([OBJECTS[0], {"name": "cyl2", "radius": -0.01}], "objects[1].radius", "> 0"),
     ([OBJECTS[0], {"name": "cyl2", "radius": 0.02, "colour": "red"}], "objects[1]", "colour"),
@@ -147,25 +213,76 @@ def test_bad_objects_are_refused_naming_the_key(tmp_path: Path, hand: HandConfig
     assert expected in str(info.value)
 
 
+@pytest.mark.parametrize(("pairs", "key", "expected"), [
+    ([["cyl1", "cyl3"]], "pairs[0]", "two names of the recipe's objects (cyl1, cyl2)"),
+    ([["cyl1", "cyl1"]], "pairs[0]", "two different objects"),
+    ([["cyl1", "cyl2"], ["cyl2", "cyl1"]], "pairs[1]", "a pair not listed before"),
+    ([], "pairs", "a non-empty list"),
+])
+def test_bad_pairs_are_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
+                                              pairs: list[Any], key: str, expected: str) -> None:
+    path = write(tmp_path, {"recipe": "r", "objects": OBJECTS, "pairs": pairs,
+                            "phases": [phase("a")]})
+    with pytest.raises(ConfigError) as info:
+        load_recipe(path, hand)
+    assert info.value.key == key
+    assert expected in info.value.expected
+
+
+def test_estimates_are_named_by_the_recipe_objects(tmp_path: Path, hand: HandConfig) -> None:
+    """Conditions name an object's or a pair's estimate by the recipe's own names; the
+    unnamed ones of two-object recipes written before still read the same values."""
+    three = [*OBJECTS, {"name": "peg", "radius": 0.01}]
+    recipe = load_recipe(write(tmp_path, {"recipe": "r", "objects": three,
+                                          "pairs": [["peg", "cyl1"]], "phases": [phase(
+                                              "a", exit=["estimate.peg_cyl1_line_turn > 0.1",
+                                                         "estimate.peg_y > -0.05"])]}), hand)
+    assert recipe.estimates[:2] == ("peg_cyl1_line_angle", "peg_cyl1_line_turn")
+    turn, height = recipe.phases[0].exits
+    assert (turn.index, turn.relative) == (1, True)
+    assert (recipe.estimates[height.index], height.relative) == ("peg_y", False)
+    legacy = load_recipe(write(tmp_path, {"recipe": "r", "objects": OBJECTS, "phases": [phase(
+        "a", exit=["estimate.centre_line_turn < -0.7", "estimate.object2_x > 0"])]}), hand)
+    new = ("cyl1_cyl2_line_turn", "cyl2_x")
+    assert [legacy.estimates[c.index] for c in legacy.phases[0].exits] == list(new)
+    assert legacy.phases[0].exits[0].relative
+    with pytest.raises(ConfigError) as info:  # the old names meant two objects, one pair
+        load_recipe(write(tmp_path, {"recipe": "r", "objects": three, "phases": [phase(
+            "a", exit=["estimate.centre_line_turn < -0.7"])]}), hand)
+    assert "cyl2_peg_line_turn" in info.value.expected
+
+
+def test_a_turn_needs_a_pair(tmp_path: Path, hand: HandConfig) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_recipe(write(tmp_path, {"recipe": "r", "objects": OBJECTS[:1],
+                                     "min_total_turn_deg": 90, "phases": [phase("a")]}), hand)
+    assert info.value.key == "min_total_turn_deg"
+    turning = phase("a", turn_rate={"rate_deg_s": 30, "scale": [0.5, 2.0]})
+    with pytest.raises(ConfigError) as info:
+        load_recipe(write(tmp_path, {"recipe": "r", "objects": OBJECTS[:1],
+                                     "phases": [turning]}), hand)
+    assert info.value.key == "phases[0].turn_rate"
+
+
 def test_estimates_without_objects_are_refused(tmp_path: Path, hand: HandConfig) -> None:
     path = write(tmp_path, {"recipe": "r", "phases": [
         phase("a", exit=["estimate.centre_line_turn < -0.7"])]})
     with pytest.raises(ConfigError) as info:
         load_recipe(path, hand)
-    assert info.value.key == "objects"
-    assert "centre_line_turn" in info.value.expected
+    assert info.value.key == "phases[0].exit[0]"
+    assert "the recipe declares no objects" in info.value.expected
 
 
 def test_turn_exits_count_from_the_phase_start(tmp_path: Path, hand: HandConfig) -> None:
-    """``centre_line_turn`` is a running value; a condition on it reads it relative to the
+    """A pair's ``line_turn`` is a running value; a condition on it reads it relative to the
     first valid value of the phase, so each phase asks for its own 45 degrees."""
     data = {"recipe": "r", "objects": OBJECTS, "phases": [
-        phase("a", exit=["estimate.centre_line_turn < -0.5"]),
-        phase("b", exit=["estimate.centre_line_turn < -0.5"]), phase("c")]}
+        phase("a", exit=["estimate.cyl1_cyl2_line_turn < -0.5"]),
+        phase("b", exit=["estimate.cyl1_cyl2_line_turn < -0.5"]), phase("c")]}
     runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
     zero = np.zeros(9)
-    est = [NAN] * len(ESTIMATES)
-    turn_index = ESTIMATES.index("centre_line_turn")
+    est = [NAN] * 6  # one pair, two objects
+    turn_index = FIRST_PAIR_TURN
     t = 0.0
     names = []
     for value in [NAN, NAN, 2.0, 1.8, 1.4, 1.4, 1.2, 1.0, 0.8]:

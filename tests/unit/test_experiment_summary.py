@@ -12,19 +12,28 @@ from handctl.planning.experiment import Trace, experiment_summary
 
 REST = (-0.12, -0.12)
 NAMES = tuple(f"j{k}" for k in range(9))
+RADIUS = 0.02  # m, of every object here
+HALF_SPAN = 0.05  # m, the farthest finger base from the palm's middle
 
 
 @dataclass
 class Pose:
     x: float
     y: float
+    angle: float = 0.0
+
+
+def empty_trace(objects: int = 2, pairs: tuple[tuple[int, int], ...] = ((0, 1),),
+                estimated: tuple[int, ...] = (0, 1)) -> Trace:
+    return Trace((REST[0],) * objects, 0.0, NAMES, tuple(f"o{i}" for i in range(objects)),
+                 (RADIUS,) * objects, HALF_SPAN, pairs, estimated)
 
 
 def trace_of(segments: list[tuple[str, float, float, float, float]],
              est_offset_deg: float = 0.0, drop_at: float | None = None) -> Trace:
     """``segments``: (phase, seconds, height (m), line angle at start, at end (deg)); 1 ms
     samples, the pair's midpoint fixed, the line turning linearly within a segment."""
-    tr = Trace(REST, 0.0, NAMES)
+    tr = empty_trace()
     t = 0.0
     for phase, seconds, height, a0, a1 in segments:
         n = round(seconds / 0.001)
@@ -38,7 +47,8 @@ def trace_of(segments: list[tuple[str, float, float, float, float]],
             est = angle + math.radians(est_offset_deg)
             valid = phase != "approach"
             tr.add(t, phase, poses, [0.0] * 9,
-                   (math.atan2(math.sin(est), math.cos(est)), est, 0, 0, 0, 0), valid)
+                   (math.atan2(math.sin(est), math.cos(est)), est,
+                    *(v for p in poses for v in (p.x, p.y))), valid)
             t += 0.001
     return tr
 
@@ -82,7 +92,7 @@ def test_falling_back_to_the_table_is_a_drop() -> None:
 
 
 def test_an_empty_trace_has_the_keys_and_nothing_achieved() -> None:
-    ex = experiment_summary(Trace(REST, 0.0, NAMES))
+    ex = experiment_summary(empty_trace())
     assert ex["lifted"] is False and ex["phase_angles_deg"] == []
     assert ex["estimator_error_deg"] is None
 
@@ -98,7 +108,7 @@ def test_success_is_lifted_held_kept_and_turned_far_enough() -> None:
     short = [s if s[0] != "envelop" else ("envelop", 1.0, 0.05, -20.0, -20.0)
              for s in EXPERIMENT]
     assert experiment_summary(trace_of(short))["success"] is False
-    assert experiment_summary(Trace(REST, 0.0, NAMES))["success"] is False
+    assert experiment_summary(empty_trace())["success"] is False
 
 
 def test_the_peak_turn_rate_is_the_fastest_stretch_of_the_manipulation() -> None:
@@ -109,3 +119,69 @@ def test_the_peak_turn_rate_is_the_fastest_stretch_of_the_manipulation() -> None
     # the lift turns the line faster still, but it is not a manipulation phase
     assert experiment_summary(trace_of(EXPERIMENT))["peak_turn_rate_deg_s"] == pytest.approx(
         45.0 / 0.999, rel=0.02)
+
+
+def test_every_object_is_reported_with_its_final_pose() -> None:
+    ex = experiment_summary(trace_of(EXPERIMENT, drop_at=5.0))
+    assert set(ex["objects"]) == {"o0", "o1"}
+    assert ex["objects"]["o0"]["estimator_error_m"] == pytest.approx(0.0)
+    for name in ("o0", "o1"):
+        assert ex["objects"][name]["lifted"] is True
+        assert ex["objects"][name]["dropped"] is True
+        final = ex["objects"][name]["final"]
+        # back on the table: the centre at rest height, but for the pair's tilt (±0.02 m)
+        assert final["height_above_rest_m"] == pytest.approx(final["y_m"] - REST[0], abs=1e-5)
+        assert abs(final["height_above_rest_m"]) < 0.021
+    assert ex["pairs"]["o0/o1"]["turn_deg"] == ex["turn_deg"]
+
+
+def line_of(count: int, heights: list[float], xs: list[float], seconds: float = 3.0,
+            pairs: tuple[tuple[int, int], ...] = (), estimate_off: float | None = None
+            ) -> Trace:
+    """``count`` objects side by side at ``xs`` (m), each at its height (m) above rest from
+    the first second on, held for ``seconds`` in a phase 'hold', then 'manipulate_1' of 1 s.
+    With ``estimate_off`` (m), the first object is estimated that far off in x, valid while
+    it is up."""
+    estimated = (0,) if estimate_off is not None else ()
+    tr = empty_trace(count, pairs, estimated)
+    t = 0.0
+    for phase, span in (("lift", 1.0), ("hold", seconds), ("manipulate_1", 1.0)):
+        for _ in range(round(span / 0.001)):
+            up = phase != "lift"
+            poses = [Pose(x, REST[0] + (h if up else 0.0)) for x, h in zip(xs, heights,
+                                                                             strict=True)]
+            est = None
+            if estimate_off is not None:
+                est = (poses[0].x + estimate_off, poses[0].y) if up else (math.nan, math.nan)
+            tr.add(t, phase, poses, [0.0] * 9, est, up and est is not None)
+            t += 0.001
+    return tr
+
+
+def test_one_object_lifted_and_held_succeeds_without_pair_figures() -> None:
+    ex = experiment_summary(line_of(1, [0.03], [0.0], estimate_off=0.001))
+    assert ex["success"] is True and ex["lifted"] is True
+    assert ex["objects"]["o0"]["held_s"] >= 2.0
+    assert ex["objects"]["o0"]["estimator_error_m"] == pytest.approx(0.001)
+    assert "turn_deg" not in ex and "pairs" not in ex
+    empty = experiment_summary(empty_trace(1, (), (0,)))
+    assert "turn_deg" not in empty and empty["objects"]["o0"]["lifted"] is False
+
+
+def test_three_objects_are_lifted_only_all_together() -> None:
+    ex = experiment_summary(line_of(3, [0.03, 0.03, 0.002], [-0.04, 0.0, 0.04],
+                                    pairs=((0, 1), (1, 2))))
+    assert ex["lifted"] is False and ex["success"] is False
+    assert [ex["objects"][f"o{i}"]["lifted"] for i in range(3)] == [True, True, False]
+    assert set(ex["pairs"]) == {"o0/o1", "o1/o2"}
+
+
+def test_an_object_beyond_the_outermost_finger_base_has_left_the_hand() -> None:
+    """Out of the hand: the centre further from the palm's middle than the farthest finger
+    base plus the object's radius; an object still overlapping the base line is in."""
+    inside = HALF_SPAN + RADIUS - 0.001
+    ex = experiment_summary(line_of(2, [0.03, 0.03], [-0.02, inside], pairs=((0, 1),)))
+    assert ex["dropped"] is False and ex["success"] is True
+    ex = experiment_summary(line_of(2, [0.03, 0.03], [-0.02, inside + 0.002], pairs=((0, 1),)))
+    assert ex["dropped"] is True
+    assert [ex["objects"][n]["dropped"] for n in ("o0", "o1")] == [False, True]

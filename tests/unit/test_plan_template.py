@@ -34,7 +34,7 @@ def test_the_shipped_template_loads(hand: HandConfig) -> None:
     assert [p.kind for p in t.phases] == ["free", "lift", "hold"] + ["turn"] * 4
     turns = [p for p in t.phases if p.kind == "turn"]
     assert all(p.turn == pytest.approx(math.radians(-45)) for p in turns)
-    assert turns[0].exit_condition() == "estimate.centre_line_turn < -0.7461 for 0.02"
+    assert turns[0].exit_condition() == "estimate.cyl1_cyl2_line_turn < -0.7461 for 0.02"
     assert t.objects[0].name == "cyl1" and t.objects[1].radius == 0.02
 
 
@@ -56,3 +56,40 @@ def test_bad_templates_are_refused_naming_the_key(tmp_path: Path, hand: HandConf
         load_template(write(tmp_path, data), hand)
     assert info.value.key.startswith(key)
     assert expected in str(info.value)
+
+
+def one_object(data: dict[str, Any]) -> None:
+    data["objects"] = data["objects"][:1]
+    data["phases"][1]["move"].pop("cyl2")
+    data.pop("min_total_turn_deg")
+
+
+def one_object_turning(data: dict[str, Any]) -> None:
+    one_object(data)
+    del data["phases"][4:]
+
+
+@pytest.mark.parametrize(("change", "key", "expected"), [
+    (one_object_turning, "phases[3].kind", "a turn is that of a pair"),
+    (lambda d: d.update(objects=d["objects"][:1]), "min_total_turn_deg", "there is no pair"),
+    (lambda d: d.update(objects=[{"name": f"c{i}", "radius": 0.01} for i in range(5)]),
+     "objects", "1 to 4"),
+])
+def test_a_turn_needs_two_objects_and_there_are_four_at_most(tmp_path: Path, hand: HandConfig,
+                                                              change: Any, key: str,
+                                                              expected: str) -> None:
+    data = base()
+    change(data)
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key == key
+    assert expected in str(info.value)
+
+
+def test_a_template_of_one_object_lifts_and_holds(tmp_path: Path, hand: HandConfig) -> None:
+    data = base()
+    one_object(data)
+    data["phases"] = data["phases"][:3]
+    t = load_template(write(tmp_path, data), hand)
+    assert [o.name for o in t.objects] == ["cyl1"]
+    assert [p.kind for p in t.phases] == ["free", "lift", "hold"]

@@ -14,7 +14,7 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.runner import RecipeRunner, RunStatus
-from handctl.recipes.schema import ESTIMATES
+from handctl.recipes.schema import RecipeObject, estimate_names
 
 ZERO = np.zeros(9)
 
@@ -85,7 +85,7 @@ def test_compiled_recipe_for_another_hand_is_refused(tmp_path: Path, hand: HandC
     ("angle.f9_j1 > 1", "a joint of the hand"),
     ("speed > 1", "a condition 'SIGNAL OP NUMBER"),
     ("time = 1", "a condition"),
-    ("estimate.colour > 1", "an estimate in"),
+    ("estimate.colour > 1", "an estimate of the recipe's objects"),
 ])
 def test_bad_conditions(tmp_path: Path, hand: HandConfig, condition: str, expected: str) -> None:
     err = error(tmp_path, hand, recipe_doc(phase("a", exit=["time > 0.5", condition])))
@@ -169,12 +169,13 @@ def test_runner_angle_exit_must_hold(tmp_path: Path, hand: HandConfig) -> None:
 
 
 def test_runner_abort_condition_and_estimates(tmp_path: Path, hand: HandConfig) -> None:
-    data = recipe_doc(phase("a", exit=["estimate.centre_line_angle > 0.7"],
+    data = recipe_doc(phase("a", exit=["estimate.cyl1_cyl2_line_angle > 0.7"],
                             abort=["tdt.f3_j1 < -0.5"]), phase("b"),
                       objects=[{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}])
     runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
     assert runner.recipe.uses_estimates
-    est = [0.0] * len(ESTIMATES)
+    est = [0.0] * len(estimate_names((RecipeObject("cyl1", 0.02), RecipeObject("cyl2", 0.02)),
+                                     ((0, 1),)))
     run(runner, 0.1, est=est)
     assert runner.phase_name == "a"
     est[0] = 0.8

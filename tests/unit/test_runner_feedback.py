@@ -16,13 +16,15 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.recipes.loader import load_recipe
 from handctl.recipes.runner import RecipeRunner
-from handctl.recipes.schema import ESTIMATES, Recipe
+from handctl.recipes.schema import FIRST_PAIR_TURN, Recipe, RecipeObject, estimate_names
 
 JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
 TORQUES = [0.2, 0.1, 0.05, 0.2, 0.1, 0.05, -0.2, -0.1, -0.05]
 DT = 0.001
 RAMP = 0.05
-TURN = ESTIMATES.index("centre_line_turn")
+#: the estimates of the recipe's two objects a and b (one pair)
+ESTIMATES = estimate_names((RecipeObject("a", 0.02), RecipeObject("b", 0.02)), ((0, 1),))
+TURN = FIRST_PAIR_TURN
 
 
 def _recipe(tmp_path: Path, hand: HandConfig, phase: dict[str, object],
