@@ -40,7 +40,8 @@ PLANES = {"online": ONLINE, "foundation": FOUNDATION, "offline": OFFLINE,
           "simulated hand": SIMULATED_HAND, "recording": RECORDING, "composition": COMPOSITION}
 #: What the simulated hand may use of the host's side: the bus and the timer. A peer that
 #: shared the host's drivers, safety or loop would share their mistakes, and hide them.
-SIM_MAY_USE = ("handctl.bus", "handctl.taps", "handctl.clock", "handctl.timerfd")
+SIM_MAY_USE = ("handctl.bus", "handctl.taps",
+               "handctl.clock", "handctl.timerfd")
 
 
 def module_of(path: Path) -> str:
