@@ -118,6 +118,15 @@ def test_the_simulated_hand_uses_only_the_bus_and_the_timer_of_the_host_side() -
     assert offenders == []
 
 
+def test_only_composition_imports_composition() -> None:
+    """A command, a run, bring-up, the timing check, the experiment and the harness put the
+    planes together; nothing they put together may reach back up to them."""
+    offenders = [(str(p.relative_to(ROOT)), m) for p in sources()
+                 if plane_of(module_of(p)) != "composition"
+                 for m in handctl_imports(p) if plane_of(m) == "composition"]
+    assert offenders == []
+
+
 def test_only_bus_imports_python_can() -> None:
     offenders = [p.relative_to(ROOT) for p in sources() if p.name != "bus.py"
                  and any(m == "can" or m.startswith("can.") for m in imported_modules(p))]
