@@ -1,6 +1,6 @@
 """The 1 kHz tick and the run around it: start the nodes, run a recipe, stop safely.
 
-One tick, always in this order (DESIGN.md):
+One tick, always in this order (docs/architecture.md, "One tick"):
 
 1. ``clock.wait_tick()``: the tick's number, its time, the ticks missed before it;
 2. ``hand.poll()``: drain every frame that arrived, update the joint state;
@@ -34,6 +34,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+import handctl
 from handctl import protocol as wire
 from handctl.bus import BusEvent
 from handctl.clock import Clock, Tick
@@ -648,6 +649,7 @@ def _describe(exc: BaseException, code: FaultCode, tick: int) -> TickException:
 
 
 def _short_path(filename: str) -> str:
-    """A file of handctl relative to the package's parent, others as they are."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
+    """A file of handctl relative to the package's parent, others as they are (the parent
+    found from the package, not from this module's place in it)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(handctl.__file__))) + os.sep
     return filename[len(root):] if filename.startswith(root) else filename
