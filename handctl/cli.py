@@ -38,7 +38,7 @@ from handctl.errors import BusError, ConfigError, HandctlError
 
 if TYPE_CHECKING:
     from handctl.config import HandConfig
-    from handctl.loop import RunResult
+    from handctl.online.loop import RunResult
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -183,7 +183,7 @@ def _status_printer() -> Callable[[object], None] | None:
         return None
 
     def show(line: object) -> None:
-        from handctl.loop import StatusLine
+        from handctl.online.loop import StatusLine
 
         assert isinstance(line, StatusLine)
         print("\r" + status_text(line) + " ", end="", file=sys.stderr, flush=True)
@@ -194,7 +194,7 @@ def _status_printer() -> Callable[[object], None] | None:
 def status_text(line: object) -> str:
     """One status line: run time (marked as simulated in lockstep, which runs faster than
     the wall clock), phase k of n and the time in it, safety state, torque and lateness."""
-    from handctl.loop import StatusLine
+    from handctl.online.loop import StatusLine
 
     assert isinstance(line, StatusLine)
     clock = "sim " if line.simulated else ""
@@ -210,8 +210,8 @@ def status_text(line: object) -> str:
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
     import json
 
-    from handctl.clock import Hygiene
-    from handctl.recipes.loader import load_recipe
+    from handctl.online.clock import Hygiene
+    from handctl.online.recipes.loader import load_recipe
     from handctl.session import RunRequest, run_recipe
 
     _positive_seconds("--max-seconds", args.max_seconds)
@@ -297,7 +297,7 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
 
 def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
     """The exit code of a run's outcome (module doc), with why it stopped on stderr."""
-    from handctl.loop import Outcome
+    from handctl.online.loop import Outcome
 
     if result.outcome is Outcome.COMPLETED:
         if "experiment" in summary and not summary["experiment"]["success"]:
@@ -360,7 +360,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         print(f"  {plan.phase.name:<16} {plan.spec.kind:<5} {ana}{found}; from "
               f"{prov['chosen_from']}; {held['held']}/{held['ran']} models hold")
     if args.plot:
-        from handctl.planning.plot import plot_plan
+        from handctl.experiment.plot import plot_plan
 
         for path in plot_plan(result, args.plot):
             print(f"  plot {path}")
@@ -468,8 +468,8 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
 def _cmd_replay(args: argparse.Namespace) -> int:
     import json
 
-    from handctl.canlog import LOG_FORMATS
     from handctl.recording import frames, replay, rerun
+    from handctl.recording.canlog import LOG_FORMATS
     from handctl.recording.reader import check_format, open_recording
     from handctl.recording.series import load_series
 
@@ -596,7 +596,7 @@ def _positive(option: str, value: float | None, default: float, unit: str) -> fl
 
 def _run_outcome(report: Any) -> int | None:
     """Exit code of a bring-up run that did not complete (None if it did), said on stderr."""
-    from handctl.loop import Outcome
+    from handctl.online.loop import Outcome
 
     for warning in report.warnings:
         print(f"handctl: warning: {warning}", file=sys.stderr)

@@ -29,13 +29,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from handctl.clock import LOOP_PRIORITY, Hygiene, StallLog
 from handctl.config import HandConfig, SafetyConfig
 from handctl.errors import ConfigError, HandctlError
 from handctl.hostfacts import HostFacts, gather_facts, plan_cpus
-from handctl.safety.faults import Fault, FaultCode
-from handctl.safety.watchdog import TickWatch
-from handctl.tickstats import HIST_RANGE_US
+from handctl.online.clock import LOOP_PRIORITY, Hygiene, StallLog
+from handctl.online.safety.faults import Fault, FaultCode
+from handctl.online.safety.watchdog import TickWatch
+from handctl.online.tickstats import HIST_RANGE_US
 
 #: Seconds of the check a run on a real bus makes before it opens the bus.
 PRECHECK_S = 1.5

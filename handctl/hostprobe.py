@@ -29,8 +29,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from handctl.clock import StallLog, request_realtime
-from handctl.timerfd import PeriodicTimer
+from handctl.online.clock import StallLog, request_realtime
+from handctl.online.timerfd import PeriodicTimer
 
 #: µs: the histogram's last bin collects every wake-up later than this (the maximum is exact)
 HIST_RANGE_US = 20_000

@@ -23,10 +23,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from handctl import timebudget
-from handctl.bus import HandBus, open_bus
-from handctl.busspec import BusSpec, parse_spec
-from handctl.clock import (
+from handctl.config import HandConfig
+from handctl.convention import POSE_EVERY_TICKS  # the summaries measure the turn on these poses
+from handctl.errors import ConfigError, HandctlError
+from handctl.hand_protocol import protocol_for
+from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
+from handctl.hostfacts import affinity
+from handctl.online import timebudget
+from handctl.online.bus import HandBus, open_bus
+from handctl.online.busspec import BusSpec, parse_spec
+from handctl.online.clock import (
     LOOP_PRIORITY,
     Clock,
     Hygiene,
@@ -34,21 +40,15 @@ from handctl.clock import (
     RealtimeClock,
     request_realtime,
 )
-from handctl.config import HandConfig
-from handctl.convention import POSE_EVERY_TICKS  # the summaries measure the turn on these poses
-from handctl.drivers.hand import HandDriver
-from handctl.errors import ConfigError, HandctlError
-from handctl.estimator import ObjectEstimator
-from handctl.hand_protocol import protocol_for
-from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
-from handctl.hostfacts import affinity
-from handctl.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
-from handctl.recipes.schema import Recipe
-from handctl.safety.faults import FAULTS
-from handctl.tickstats import STAGES, TickWindow, percentile_us
+from handctl.online.drivers.hand import HandDriver
+from handctl.online.estimator import ObjectEstimator
+from handctl.online.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
+from handctl.online.recipes.schema import Recipe
+from handctl.online.safety.faults import FAULTS
+from handctl.online.tickstats import STAGES, TickWindow, percentile_us
 
 if TYPE_CHECKING:
-    from handctl.clock import Tick
+    from handctl.online.clock import Tick
     from handctl.recording.recorder import Recorder
 
 #: The runtime's own tick limit when a run has no time budget: none that a run can reach.
@@ -145,7 +145,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
     is_sim = spec.interface == "sim"
     lockstep = _lockstep(req, is_sim)
     if is_sim and req.recipe.objects:
-        from handctl.planning.experiment import check_objects_in_sim
+        from handctl.experiment.merit import check_objects_in_sim
         from handctl.sim.params import parse_sim
 
         check_objects_in_sim(req.recipe, [o.name for o in parse_sim(req.hand).objects],
@@ -180,7 +180,7 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         # Ground truth of the experiment, recorded every tick and never fed back.
         tracker = None
         if peer.sim_hand is not None and req.recipe.objects:
-            from handctl.planning.experiment import track
+            from handctl.experiment.merit import track
 
             tracker = track(runtime, peer.sim_hand)
         if req.max_seconds is not None:
@@ -315,7 +315,7 @@ def _experiment_summary(summary: dict[str, Any], req: RunRequest, tracker: Any,
     """Into ``summary``: how the objects moved (the simulated hand's ground truth); and the
     plot, which needs that ground truth."""
     if tracker is not None:
-        from handctl.planning.experiment import experiment_summary
+        from handctl.experiment.merit import experiment_summary
 
         summary["experiment"] = experiment_summary(tracker.trace,
                                                    req.recipe.min_total_turn_deg)
@@ -324,7 +324,7 @@ def _experiment_summary(summary: dict[str, Any], req: RunRequest, tracker: Any,
             warnings.append("--plot needs the simulated hand in lockstep and a recipe "
                             "that declares its objects: no plot written")
         else:
-            from handctl.planning.plot import plot_run
+            from handctl.experiment.plot import plot_run
 
             plot_run(tracker.trace, req.plot, req.recipe, req.hand, summary.get("experiment"))
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from handctl.bus import HandBus, open_bus
 from handctl.config import HandConfig, load_hand
+from handctl.online.bus import HandBus, open_bus
 from handctl.protocol import Protocol, load_protocol
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from hypothesis import strategies as st
 
-from handctl.bus import EXTENDED_ID_FLAG
+from handctl.online.bus import EXTENDED_ID_FLAG
 from handctl.protocol import Layout, Protocol, load_protocol
 
 PROTOCOL = load_protocol()

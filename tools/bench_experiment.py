@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
     """p50 and p99 of one estimator call over a stored sequence of angles (enveloping and
     open poses), on this machine."""
-    from handctl.estimator import ObjectEstimator
+    from handctl.online.estimator import ObjectEstimator
 
     est = ObjectEstimator(hand, recipe.objects, recipe.pairs)
     rng = np.random.default_rng(0)
@@ -98,11 +98,11 @@ def _figures(runs: list[dict[str, Any]]) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from handctl.config import load_hand
     from handctl.executor import open_pool
+    from handctl.harness.seed_run import SeedRun, run_seed
+    from handctl.online.recipes.loader import load_recipe
     from handctl.planning.models import FAMILIES, Spread
     from handctl.portable import portable_hand
     from handctl.progress import Progress, say
-    from handctl.recipes.loader import load_recipe
-    from handctl.sim.seed_run import SeedRun, run_seed
 
     hand = load_hand(args.hand)
     recipe = load_recipe(args.recipe, hand)

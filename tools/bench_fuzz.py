@@ -28,10 +28,10 @@ from hypothesis import HealthCheck, Phase, given, seed, settings
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from handctl.bus import open_bus  # noqa: E402
 from handctl.config import load_hand  # noqa: E402
-from handctl.drivers.hand import HandDriver  # noqa: E402
 from handctl.hand_protocol import protocol_for  # noqa: E402
+from handctl.online.bus import open_bus  # noqa: E402
+from handctl.online.drivers.hand import HandDriver  # noqa: E402
 from tests.strategies import Frame, frame_batches  # noqa: E402
 
 #: Examples per Hypothesis run at most; runs repeat with the next seed until enough frames are

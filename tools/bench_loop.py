@@ -31,13 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from handctl.clock import Hygiene
 from handctl.config import HandConfig, load_hand
 from handctl.handshape import flexion_sign
 from handctl.hostcheck import Deadlines, ProbeRecord, attribute, judge
-from handctl.loop import StatusLine
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.schema import Recipe
+from handctl.online.clock import Hygiene
+from handctl.online.loop import StatusLine
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.schema import Recipe
 from handctl.session import RunReport, RunRequest, run_recipe
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -58,16 +58,16 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from handctl.bus import open_bus  # noqa: E402
-from handctl.clock import LockstepClock, Tick  # noqa: E402
 from handctl.config import HandConfig, load_hand  # noqa: E402
 from handctl.convention import POSE_EVERY_TICKS  # noqa: E402
-from handctl.drivers.hand import HandDriver  # noqa: E402
-from handctl.estimator import ObjectEstimator  # noqa: E402
 from handctl.hand_protocol import protocol_for  # noqa: E402
-from handctl.loop import RunResult, Runtime  # noqa: E402
-from handctl.recipes.loader import load_recipe  # noqa: E402
-from handctl.recipes.schema import Recipe  # noqa: E402
+from handctl.online.bus import open_bus  # noqa: E402
+from handctl.online.clock import LockstepClock, Tick  # noqa: E402
+from handctl.online.drivers.hand import HandDriver  # noqa: E402
+from handctl.online.estimator import ObjectEstimator  # noqa: E402
+from handctl.online.loop import RunResult, Runtime  # noqa: E402
+from handctl.online.recipes.loader import load_recipe  # noqa: E402
+from handctl.online.recipes.schema import Recipe  # noqa: E402
 from handctl.recording import channels as ch  # noqa: E402
 from handctl.recording.metadata import (  # noqa: E402
     recorded_hand,

@@ -30,9 +30,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from handctl.bus import open_bus  # noqa: E402
 from handctl.config import HandConfig, load_hand  # noqa: E402
 from handctl.hand_protocol import protocol_for  # noqa: E402
+from handctl.online.bus import open_bus  # noqa: E402
 from handctl.protocol import NODE_COMMANDS  # noqa: E402
 from handctl.sim.hand import SimulatedHand  # noqa: E402
 from handctl.sim.params import NODE_TICK_S, parse_sim  # noqa: E402

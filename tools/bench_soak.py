@@ -39,8 +39,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from handctl.config import load_hand  # noqa: E402
-from handctl.loop import StatusLine  # noqa: E402
-from handctl.recipes.loader import load_recipe  # noqa: E402
+from handctl.online.loop import StatusLine  # noqa: E402
+from handctl.online.recipes.loader import load_recipe  # noqa: E402
 from handctl.recording import channels as ch  # noqa: E402
 from handctl.recording.reader import iter_decoded, open_recording  # noqa: E402
 from handctl.session import RunRequest, run_recipe  # noqa: E402

@@ -26,10 +26,10 @@ from typing import Any
 import numpy as np
 
 from handctl.bringup.zero_recipe import in_memory_recipe, phase
-from handctl.clock import Tick
 from handctl.config import HandConfig
-from handctl.loop import TickRecord
-from handctl.recipes.schema import Recipe
+from handctl.online.clock import Tick
+from handctl.online.loop import TickRecord
+from handctl.online.recipes.schema import Recipe
 from handctl.session import RunReport, RunRequest, run_recipe
 
 SETTLE = "settle"

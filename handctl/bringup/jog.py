@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from handctl.bringup.zero_recipe import in_memory_recipe, phase
-from handctl.clock import Tick
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.loop import TickRecord
-from handctl.recipes.schema import Recipe
+from handctl.online.clock import Tick
+from handctl.online.loop import TickRecord
+from handctl.online.recipes.schema import Recipe
 from handctl.session import RunReport, RunRequest, run_recipe
 
 #: The shortest ramp to and from the jog torque (s), however high the rate limit.

@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from handctl.bus import EXTENDED_ID_FLAG, HandBus
-from handctl.drivers.finger import fault_names
-from handctl.drivers.receiver import CounterCheck, Reject
+from handctl.online.bus import EXTENDED_ID_FLAG, HandBus
+from handctl.online.drivers.finger import fault_names
+from handctl.online.drivers.receiver import CounterCheck, Reject
 from handctl.protocol import Layout, Protocol, node_state_name
 
 

@@ -15,10 +15,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from handctl.bus import EXTENDED_ID_FLAG, HandBus
 from handctl.config import HandConfig
-from handctl.drivers.finger import FingerLayouts, FingerNode, fault_names
 from handctl.hand_protocol import check_protocol, node_message
+from handctl.online.bus import EXTENDED_ID_FLAG, HandBus
+from handctl.online.drivers.finger import FingerLayouts, FingerNode, fault_names
 from handctl.protocol import NodeState, Protocol
 
 #: Messages a finger node sends (the host's receive streams of a node).

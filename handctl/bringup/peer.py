@@ -13,9 +13,9 @@ import os
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 
-from handctl.bus import HandBus, open_bus
-from handctl.busspec import BusSpec, parse_spec
 from handctl.config import HandConfig
+from handctl.online.bus import HandBus, open_bus
+from handctl.online.busspec import BusSpec, parse_spec
 
 _channels = itertools.count()
 

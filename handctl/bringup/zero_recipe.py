@@ -10,9 +10,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from handctl.config import HandConfig
-from handctl.recipes.guard import LimitGuard
-from handctl.recipes.loader import check_against_hand
-from handctl.recipes.schema import Phase, Recipe, TimeoutAction
+from handctl.online.recipes.guard import LimitGuard
+from handctl.online.recipes.loader import check_against_hand
+from handctl.online.recipes.schema import Phase, Recipe, TimeoutAction
 
 
 def phase(name: str, torques: Sequence[float], ramp_s: float, max_s: float) -> Phase:

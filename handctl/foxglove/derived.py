@@ -23,9 +23,9 @@ import orjson
 from foxglove.messages import FrameTransforms, Log, LogLevel, SceneUpdate
 
 from handctl.config import CAN_ID_KINDS, ESTOP_ID, HandConfig, parse_hand
-from handctl.estimator import ObjectEstimator
 from handctl.foxglove.scene import DEFAULT_OBJECT_LENGTH, HandScene, ObjectShape, timestamp
 from handctl.hand_protocol import protocol_for
+from handctl.online.estimator import ObjectEstimator
 from handctl.protocol import Layout
 from handctl.recording import channels as ch
 from handctl.schema import parse_yaml
@@ -148,7 +148,7 @@ class Derived:
     @classmethod
     def from_metadata(cls, metadata: dict[str, dict[str, Any]], emit: Emit) -> Derived:
         """From the recording's metadata records: the hand config, the recipe, the run."""
-        from handctl.recipes.loader import parse_recipe
+        from handctl.online.recipes.loader import parse_recipe
 
         hand_doc = metadata.get(ch.META_HAND, {}).get("yaml")
         if not hand_doc:

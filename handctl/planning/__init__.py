@@ -8,9 +8,9 @@ or too conservative, scored over perturbed models, and the compiled recipe with 
 
 Modules: ``models`` (perturbed models), ``episode`` (a phase on one model, no bus), ``grasp``
 (the analysis' ``Grasp`` from a simulated configuration), ``template`` (the plan's input),
-``search`` (the per-phase search), ``compile`` (the whole plan and the recipe it writes),
-``experiment`` (the paper's figures of merit from recorded ground truth), ``plot``.
+``search`` (the per-phase search), ``compile`` (the whole plan and the recipe it writes).
+A plan's pictures (``plan --plot``) are drawn by ``handctl.experiment.plot``.
 
 The offline plane: it imports the simulation and the analysis, and the online plane never
-imports it. Nothing is imported here, so ``handctl.planning.experiment`` stays light.
+imports it.
 """

@@ -34,6 +34,7 @@ from handctl.analysis.model import AnalysisError
 from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
 from handctl.executor import WorkPool, open_pool
+from handctl.online.recipes.schema import Condition, Phase, PoseHold, TimeoutAction, parse_condition
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.planning.grasp import GraspSnapshot, fixed_directions, grasp_of, turn_directions
 from handctl.planning.models import Model, model_set
@@ -51,7 +52,6 @@ from handctl.planning.search import (
 )
 from handctl.planning.template import Template, TemplatePhase
 from handctl.progress import Progress
-from handctl.recipes.schema import Condition, Phase, PoseHold, TimeoutAction, parse_condition
 from handctl.schema import dump_yaml
 from handctl.sim.params import parse_sim
 

@@ -30,11 +30,11 @@ import mujoco
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.estimator import ObjectEstimator
 from handctl.handshape import hand_span
-from handctl.recipes.guard import LimitGuard
-from handctl.recipes.runner import RecipeRunner, RunStatus
-from handctl.recipes.schema import Phase, Recipe, RecipeObject, TimeoutAction
+from handctl.online.estimator import ObjectEstimator
+from handctl.online.recipes.guard import LimitGuard
+from handctl.online.recipes.runner import RecipeRunner, RunStatus
+from handctl.online.recipes.schema import Phase, Recipe, RecipeObject, TimeoutAction
 from handctl.sim.params import NODE_TICK_S, SimParams
 from handctl.sim.plant import Plant
 

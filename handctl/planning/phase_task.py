@@ -16,10 +16,10 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 from handctl.config import HandConfig
+from handctl.online.recipes.guard import LimitGuard
+from handctl.online.recipes.schema import Phase, RecipeObject
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.portable import local_hand, portable_hand
-from handctl.recipes.guard import LimitGuard
-from handctl.recipes.schema import Phase, RecipeObject
 from handctl.sim.params import SimParams
 
 #: episodes one worker keeps (a plan uses one per model; more are rebuilt when needed)

@@ -26,10 +26,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from handctl.executor import WorkPool
+from handctl.online.recipes.schema import Phase
 from handctl.planning.episode import PhaseOutcome, Snapshot, with_torques
 from handctl.planning.phase_task import PhaseTask, World, run_phase_task
 from handctl.progress import Progress
-from handctl.recipes.schema import Phase
 
 #: weight of the spread over models in a candidate's score (robustness over luck)
 SPREAD_WEIGHT = 0.5

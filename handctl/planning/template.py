@@ -24,22 +24,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from handctl.config import HandConfig
-from handctl.planning.models import Spread
-from handctl.planning.search import Budget
-from handctl.recipes.loader import (
+from handctl.online.recipes.loader import (
     check_unique_names,
     parse_guard_band,
     parse_min_total_turn,
     parse_objects,
     parse_turn_rate,
 )
-from handctl.recipes.schema import (
+from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
     RecipeObject,
     TurnRate,
     consecutive_pairs,
     estimate_names,
 )
+from handctl.planning.models import Spread
+from handctl.planning.search import Budget
 from handctl.schema import Doc, load_yaml
 
 KINDS = ("free", "lift", "hold", "turn")

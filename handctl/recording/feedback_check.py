@@ -16,10 +16,10 @@ import struct
 from collections.abc import Sequence
 from typing import Any
 
-from handctl.bus import Frame
 from handctl.config import HandConfig
-from handctl.drivers.hand import HandDriver
-from handctl.drivers.receiver import Reject
+from handctl.online.bus import Frame
+from handctl.online.drivers.hand import HandDriver
+from handctl.online.drivers.receiver import Reject
 from handctl.protocol import Layout
 
 #: Differences kept (the report lists the first few); a tampered log can differ every tick.

@@ -32,7 +32,7 @@ def to_bus(recording: Recording, spec: str, speed: float = 1.0, direction: str =
 
     Frames are paced against their due times (not slept frame to frame), so the time spent
     sending does not add up into drift."""
-    from handctl.bus import open_bus
+    from handctl.online.bus import open_bus
 
     if not speed > 0 or not math.isfinite(speed):
         raise ConfigError("--speed", "", "a speed factor > 0 (1 = as recorded)", speed)
@@ -63,7 +63,7 @@ def to_bus(recording: Recording, spec: str, speed: float = 1.0, direction: str =
 
 def export(recording: Recording, fmt: str, out: str) -> int:
     """Write the logged frames in a python-can log format (candump, asc, blf)."""
-    from handctl.canlog import LOG_FORMATS, write_frames
+    from handctl.recording.canlog import LOG_FORMATS, write_frames
 
     if fmt not in LOG_FORMATS:
         raise ConfigError("--export", "", "one of " + ", ".join(LOG_FORMATS), fmt)

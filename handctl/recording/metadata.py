@@ -22,9 +22,9 @@ from handctl import __version__
 from handctl.config import HandConfig, parse_hand
 from handctl.errors import ConfigError
 from handctl.hand_protocol import protocol_for
+from handctl.online.recipes.loader import check_against_hand, parse_recipe
+from handctl.online.recipes.schema import Recipe
 from handctl.protocol import Protocol, parse_protocol
-from handctl.recipes.loader import check_against_hand, parse_recipe
-from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
 from handctl.recording.reader import Recording
 from handctl.schema import parse_yaml

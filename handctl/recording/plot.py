@@ -1,5 +1,5 @@
 """PNGs of a run: ``replay --plot`` from a recording, and the panels it shares with ``run recipe
---plot`` (``handctl.planning.plot``), so that both draw the same things the same way.
+--plot`` (``handctl.experiment.plot``), so that both draw the same things the same way.
 
 One panel per finger; a joint has the same colour in every finger (proximal, middle, distal),
 and the line style says what the value is: desired dashed, applied solid, measured dotted, with

@@ -29,10 +29,13 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import orjson
 
-from handctl.bus import BusEvent, Frame
 from handctl.config import HandConfig
 from handctl.errors import ConfigError, HandctlError
-from handctl.recipes.runner import RunStatus
+from handctl.online.bus import BusEvent, Frame
+from handctl.online.recipes.runner import RunStatus
+from handctl.online.safety.faults import FAULTS
+from handctl.online.safety.supervisor import State
+from handctl.online.taps import TAP_RX
 from handctl.recording.ring import (
     CLOSED,
     CTL_WORDS,
@@ -63,15 +66,12 @@ from handctl.recording.ring import (
     RingLayout,
     Rings,
 )
-from handctl.safety.faults import FAULTS
-from handctl.safety.supervisor import State
-from handctl.taps import TAP_RX
 
 assert TAP_RX == 0  # a received frame's meta word is its length alone (``_flush_frames``)
 
 if TYPE_CHECKING:
-    from handctl.clock import Tick
-    from handctl.loop import Runtime, TickRecord
+    from handctl.online.clock import Tick
+    from handctl.online.loop import Runtime, TickRecord
 
 _TICK_HEAD = struct.Struct("<qqqqq")  # tick, scheduled, now, missed, active
 #: The whole fixed part of a control tick's row in one call: the head, then active, 4 stages,
@@ -539,7 +539,7 @@ class Recorder:
             self._event(EV_PHASE, self._tick, phase, self._last_phase, exit_reason)
             self._last_phase = phase
         if self._reject_lists != self._reject_seen:
-            from handctl.drivers.receiver import REJECT_KINDS
+            from handctl.online.drivers.receiver import REJECT_KINDS
 
             for kind in REJECT_KINDS:
                 count = sum(c[kind] for c in self._reject_lists)

@@ -25,19 +25,19 @@ from typing import Any
 
 import numpy as np
 
-from handctl import timebudget
-from handctl.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, FrameTap, RxTap
-from handctl.clock import Tick
-from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError
 from handctl.hand_protocol import protocol_for
-from handctl.loop import EndOfTicks, Runtime, TickRecord
+from handctl.online import timebudget
+from handctl.online.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, FrameTap, RxTap
+from handctl.online.clock import Tick
+from handctl.online.drivers.hand import HandDriver
+from handctl.online.loop import EndOfTicks, Runtime, TickRecord
+from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.recording import channels as ch
 from handctl.recording.feedback_check import FeedbackCheck
 from handctl.recording.metadata import recorded_hand, recorded_protocol, recorded_recipe
 from handctl.recording.reader import Recording, iter_chunks, require_topics
 from handctl.recording.series import json_floats
-from handctl.taps import TAP_TX, TAP_TX_FAILED
 
 MAX_LISTED = 20
 
@@ -398,7 +398,7 @@ def rerun(recording: Recording) -> RerunReport:
     compare = _Compare(clock, list(hand.joint_names), check)
     estimator = None
     if recipe.objects:  # as the session sets it up: the estimator is fed the same angles
-        from handctl.estimator import ObjectEstimator
+        from handctl.online.estimator import ObjectEstimator
 
         estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs)
     if (estimator is not None) != (run.get("estimator", "False") == "True"):

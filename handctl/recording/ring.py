@@ -25,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from handctl.arrays import FloatArray
-from handctl.tickstats import STAGES
+from handctl.online.tickstats import STAGES
 
 # Control words (int64).
 TICK_HEAD, TICK_TAIL = 0, 1

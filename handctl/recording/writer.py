@@ -30,6 +30,7 @@ import orjson
 
 from handctl import __version__
 from handctl.foxglove.derived import Derived
+from handctl.online.taps import TAP_RX, TAP_TX
 from handctl.recording import channels as ch
 from handctl.recording.mcapfile import ChunkWriter
 from handctl.recording.metadata import package_version
@@ -71,7 +72,6 @@ from handctl.recording.ring import (
     RingLayout,
     Rings,
 )
-from handctl.taps import TAP_RX, TAP_TX
 
 if TYPE_CHECKING:
     from handctl.foxglove.live import LiveServer

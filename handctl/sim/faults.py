@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
-from handctl.bus import EXTENDED_ID_FLAG
 from handctl.config import HandConfig
+from handctl.online.bus import EXTENDED_ID_FLAG
 from handctl.schema import Doc, load_yaml
 from handctl.sim.params import NODE_TICK_NS
 

@@ -39,17 +39,17 @@ from typing import Any
 
 import numpy as np
 
-from handctl.bus import HandBus, open_bus
-from handctl.clock import collector_paused, request_realtime
 from handctl.config import HandConfig
 from handctl.hand_protocol import protocol_for
+from handctl.online.bus import HandBus, open_bus
+from handctl.online.clock import collector_paused, request_realtime
+from handctl.online.timerfd import PeriodicTimer
 from handctl.protocol import NodeState
 from handctl.sim.faults import FaultSchedule, Injector, load_scenario
 from handctl.sim.firmware import EmulatedNode
 from handctl.sim.params import NODE_TICK_NS, NODE_TICK_S, SimParams, parse_sim
 from handctl.sim.plant import ObjectPose, Plant
 from handctl.sim.sensors import EncoderModel, TdtModel
-from handctl.timerfd import PeriodicTimer
 
 #: SCHED_FIFO priority of a free-running hand asked to run in real time: below the control
 #: loop's (``request_realtime``'s 80), so the loop wins where the two share a core.

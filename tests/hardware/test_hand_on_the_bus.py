@@ -17,13 +17,13 @@ from pathlib import Path
 
 import pytest
 
-from handctl.bus import open_bus
 from handctl.cli import DEFAULT_HAND
 from handctl.config import HandConfig, load_hand
-from handctl.drivers.hand import HandDriver
-from handctl.loop import Outcome
+from handctl.online.bus import open_bus
+from handctl.online.drivers.hand import HandDriver
+from handctl.online.loop import Outcome
+from handctl.online.recipes.loader import load_recipe
 from handctl.protocol import load_protocol
-from handctl.recipes.loader import load_recipe
 from handctl.session import RunRequest, run_recipe
 
 BUS = os.environ.get("HANDCTL_HARDWARE_BUS", "")

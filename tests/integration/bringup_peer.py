@@ -5,8 +5,8 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from handctl.bus import open_bus
 from handctl.config import HandConfig
+from handctl.online.bus import open_bus
 from handctl.sim.hand import SimulatedHand
 
 #: Ids only a host sends: e-stop, node commands, torque commands.

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from handctl.bus import HandBus
 from handctl.config import HandConfig
-from handctl.loop import RunResult, Runtime
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.schema import Recipe
-from handctl.sim.campaign import hil_bench
+from handctl.harness.campaign import hil_bench
+from handctl.online.bus import HandBus
+from handctl.online.loop import RunResult, Runtime
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.schema import Recipe
 from handctl.sim.hand import SimulatedHand
 
 from ..dbc import decode

@@ -13,8 +13,8 @@ import pytest
 
 from handctl import cli
 from handctl.bringup.jog import jog
-from handctl.bus import open_bus
 from handctl.config import HandConfig
+from handctl.online.bus import open_bus
 
 from ..conftest import ROOT
 

@@ -13,8 +13,8 @@ from typing import Any
 import pytest
 
 from handctl import cli
-from handctl.bus import open_bus
 from handctl.config import HandConfig
+from handctl.online.bus import open_bus
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
 

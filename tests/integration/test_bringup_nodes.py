@@ -15,8 +15,8 @@ import pytest
 import yaml
 
 from handctl import cli
-from handctl.bus import open_bus
 from handctl.config import HandConfig
+from handctl.online.bus import open_bus
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from handctl.config import HandConfig
 from handctl.executor import open_pool
-from handctl.sim.campaign import PHASES, read_case_log, run_campaign
+from handctl.harness.campaign import PHASES, read_case_log, run_campaign
 
 
 def test_cases_on_a_pool_equal_the_cases_here(hand: HandConfig, tmp_path: Path) -> None:

@@ -15,8 +15,8 @@ import pytest
 
 from handctl.cli import DEFAULT_HAND, status_text
 from handctl.config import load_hand
-from handctl.loop import Outcome, StatusLine
-from handctl.recipes.loader import load_recipe
+from handctl.online.loop import Outcome, StatusLine
+from handctl.online.recipes.loader import load_recipe
 from handctl.session import RunRequest, run_recipe
 
 from ..conftest import HAND_YAML, ROOT

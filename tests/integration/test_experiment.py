@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from handctl.config import HandConfig
-from handctl.loop import TickRecord
-from handctl.recipes.loader import load_recipe
+from handctl.online.loop import TickRecord
+from handctl.online.recipes.loader import load_recipe
 from handctl.session import RunRequest, run_recipe
 
 from ..conftest import ROOT

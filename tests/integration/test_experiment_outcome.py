@@ -12,8 +12,8 @@ from pathlib import Path
 import yaml
 
 from handctl.config import HandConfig
-from handctl.loop import StatusLine
-from handctl.recipes.loader import load_recipe
+from handctl.online.loop import StatusLine
+from handctl.online.recipes.loader import load_recipe
 from handctl.session import RunRequest, run_recipe
 
 from ..conftest import ROOT

@@ -16,9 +16,9 @@ from mcap.reader import make_reader
 
 from handctl.config import HandConfig
 from handctl.executor import open_pool
+from handctl.harness.campaign import CASES, PHASES, CaseResult, run_campaign
+from handctl.online.safety.faults import FAULTS, FaultCode, StopCategory
 from handctl.recording import channels as ch
-from handctl.safety.faults import FAULTS, FaultCode, StopCategory
-from handctl.sim.campaign import CASES, PHASES, CaseResult, run_campaign
 
 from ..conftest import ROOT
 

@@ -15,8 +15,8 @@ import pytest
 from mcap.reader import make_reader
 
 from handctl.config import HandConfig
-from handctl.loop import Outcome, RunResult
-from handctl.recipes.schema import Recipe
+from handctl.online.loop import Outcome, RunResult
+from handctl.online.recipes.schema import Recipe
 from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
 from handctl.recording.reader import iter_decoded, open_recording

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from handctl.bus import open_bus
 from handctl.config import HandConfig
 from handctl.hostcheck import INJECT_ENV
+from handctl.online.bus import open_bus
 
 from ..conftest import ROOT
 

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from handctl.config import load_hand
-from handctl.recipes.loader import load_recipe
+from handctl.online.recipes.loader import load_recipe
 from handctl.session import RunRequest, run_recipe
 
 from ..conftest import HAND_YAML, ROOT

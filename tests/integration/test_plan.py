@@ -11,9 +11,9 @@ from typing import Any
 import yaml
 
 from handctl.config import HandConfig
+from handctl.online.recipes.loader import load_recipe
 from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
 from handctl.planning.template import load_template
-from handctl.recipes.loader import load_recipe
 
 from ..conftest import ROOT
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from handctl.bus import EXTENDED_ID_FLAG, open_bus
 from handctl.config import HandConfig
-from handctl.loop import Outcome, RunResult
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.schema import Recipe
-from handctl.safety.faults import FaultCode
+from handctl.online.bus import EXTENDED_ID_FLAG, open_bus
+from handctl.online.loop import Outcome, RunResult
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.schema import Recipe
+from handctl.online.safety.faults import FaultCode
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
 

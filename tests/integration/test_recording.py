@@ -26,17 +26,17 @@ from mcap.records import Channel as McapChannel
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 
-from handctl.clock import Tick
 from handctl.config import HandConfig
 from handctl.foxglove.derived import Derived
-from handctl.loop import Outcome, RunResult, TickRecord
-from handctl.recipes.schema import Recipe
+from handctl.online.clock import Tick
+from handctl.online.loop import Outcome, RunResult, TickRecord
+from handctl.online.recipes.schema import Recipe
+from handctl.online.safety.supervisor import State
 from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.recorder import Recorder
 from handctl.recording.ring import FRAME_HEAD, FRAME_TAIL, TICK_HEAD, TICK_TAIL, RingLayout
-from handctl.safety.supervisor import State
 from handctl.sim import faults as inj
 
 from ..conftest import ROOT
@@ -306,7 +306,7 @@ CHILD = """
 import os, signal, sys
 from pathlib import Path
 from handctl.config import load_hand
-from handctl.recipes.loader import load_recipe
+from handctl.online.recipes.loader import load_recipe
 from handctl.session import RunRequest, run_recipe
 
 hand = load_hand(sys.argv[1])

@@ -18,9 +18,10 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from handctl.bus import BusEvent, BusEventKind, Frame, FrameBus, open_bus
 from handctl.config import HandConfig
-from handctl.loop import Outcome
+from handctl.online.bus import BusEvent, BusEventKind, Frame, FrameBus, open_bus
+from handctl.online.loop import Outcome
+from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
 from handctl.recording.frames import logged_frames, to_bus
@@ -28,7 +29,6 @@ from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.replay import summarise_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
-from handctl.taps import TAP_TX, TAP_TX_FAILED
 
 from ..conftest import ROOT
 from .rig import SHORT, short_recipe

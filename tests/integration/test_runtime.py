@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from handctl.config import HandConfig
-from handctl.loop import Outcome
+from handctl.online.loop import Outcome
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.schema import Recipe
+from handctl.online.safety.faults import FAULTS, RAMP_BOUND_S, FaultCode, StopCategory
+from handctl.online.safety.supervisor import State
 from handctl.protocol import NodeState
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.schema import Recipe
-from handctl.safety.faults import FAULTS, RAMP_BOUND_S, FaultCode, StopCategory
-from handctl.safety.supervisor import State
 from handctl.sim import faults as inj
 
 from ..conftest import ROOT
@@ -201,10 +201,10 @@ def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Re
     import asyncio
     import time
 
-    from handctl.bus import open_bus
-    from handctl.clock import RealtimeClock
-    from handctl.drivers.hand import HandDriver
-    from handctl.loop import Runtime
+    from handctl.online.bus import open_bus
+    from handctl.online.clock import RealtimeClock
+    from handctl.online.drivers.hand import HandDriver
+    from handctl.online.loop import Runtime
     from handctl.protocol import load_protocol
     from handctl.sim.hand import SimulatedHand
 

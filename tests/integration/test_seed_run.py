@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from handctl.config import HandConfig
 from handctl.executor import open_pool
+from handctl.harness.seed_run import SeedRun, run_seed
+from handctl.online.recipes.loader import load_recipe
 from handctl.portable import portable_hand
-from handctl.recipes.loader import load_recipe
-from handctl.sim.seed_run import SeedRun, run_seed
 
 from ..conftest import ROOT
 

@@ -8,8 +8,8 @@ import threading
 import time
 from collections import Counter
 
-from handctl.bus import open_bus
 from handctl.config import HandConfig
+from handctl.online.bus import open_bus
 from handctl.sim.hand import SimulatedHand, standalone
 
 from ..dbc import DB

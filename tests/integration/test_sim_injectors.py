@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from handctl.bus import BusEventKind
 from handctl.config import HandConfig
+from handctl.online.bus import BusEventKind
 from handctl.protocol import NodeState
 from handctl.sim.faults import (
     Babble,

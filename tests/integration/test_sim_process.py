@@ -9,7 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from handctl.config import HandConfig
-from handctl.recipes.loader import load_recipe
+from handctl.online.recipes.loader import load_recipe
 from handctl.session import RunRequest, SimProcess
 
 from ..conftest import ROOT

@@ -13,8 +13,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from handctl.bus import BusEvent, Frame, HandBus, open_bus
 from handctl.config import HandConfig
+from handctl.online.bus import BusEvent, Frame, HandBus, open_bus
 from handctl.protocol import NODE_COMMANDS, Protocol, load_protocol
 from handctl.sim.hand import SimulatedHand
 

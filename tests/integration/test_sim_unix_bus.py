@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from handctl.bus import HandBus, open_bus
 from handctl.config import HandConfig
+from handctl.online.bus import HandBus, open_bus
 from handctl.protocol import Protocol
 from handctl.sim.faults import Babble
 from handctl.sim.hand import MAX_CATCH_UP, SimulatedHand

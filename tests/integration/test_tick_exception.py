@@ -25,28 +25,28 @@ import numpy as np
 import pytest
 
 from handctl import cli, session
-from handctl.bus import open_bus
-from handctl.busspec import BusSpec
-from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig
-from handctl.drivers.hand import HandDriver
-from handctl.loop import (
+from handctl.online.bus import open_bus
+from handctl.online.busspec import BusSpec
+from handctl.online.clock import LockstepClock, Tick
+from handctl.online.drivers.hand import HandDriver
+from handctl.online.loop import (
     EXCEPTION_TEXT_CHARS,
     ZERO_TICKS_BEFORE_DISABLE,
     EndOfTicks,
     Outcome,
     Runtime,
 )
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.schema import Recipe
+from handctl.online.safety import supervisor as supervisor_module
+from handctl.online.safety.faults import FaultCode
+from handctl.online.safety.limits import limit_torque
 from handctl.protocol import NODE_COMMANDS, NodeState, load_protocol
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
 from handctl.recording.reader import iter_decoded, open_recording
 from handctl.recording.recorder import Recorder
-from handctl.safety import supervisor as supervisor_module
-from handctl.safety.faults import FaultCode
-from handctl.safety.limits import limit_torque
 from handctl.sim.hand import SimulatedHand
 
 from ..dbc import decode

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from handctl.config import HandConfig
-from handctl.loop import Outcome
-from handctl.safety.faults import FaultCode
+from handctl.online.loop import Outcome
+from handctl.online.safety.faults import FaultCode
 
 from .rig import rig
 

@@ -8,9 +8,9 @@ import os
 
 from hypothesis import HealthCheck, given, settings
 
-from handctl.bus import open_bus
 from handctl.config import HandConfig
-from handctl.drivers.hand import HandDriver
+from handctl.online.bus import open_bus
+from handctl.online.drivers.hand import HandDriver
 from handctl.protocol import Layout
 
 from ..dbc import DB, decode

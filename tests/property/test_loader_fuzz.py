@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from handctl.config import HandConfig, load_hand
 from handctl.errors import ConfigError
-from handctl.recipes.loader import load_recipe
+from handctl.online.recipes.loader import load_recipe
 from handctl.schema import parse_yaml
 
 from ..conftest import HAND_YAML, ROOT

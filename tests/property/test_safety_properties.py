@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from handctl.config import HandConfig, load_hand
-from handctl.safety.faults import FaultCode
-from handctl.safety.supervisor import TRANSITIONS, Event, State, Supervisor, next_state
+from handctl.online.safety.faults import FaultCode
+from handctl.online.safety.supervisor import TRANSITIONS, Event, State, Supervisor, next_state
 
 from ..conftest import HAND_YAML
 
@@ -88,7 +88,7 @@ def running(torque: np.ndarray | None = None, ticks: int = 100) -> Supervisor:
 
 
 def test_ramp_stop_reaches_zero_within_the_bound() -> None:
-    from handctl.safety.faults import RAMP_BOUND_S
+    from handctl.online.safety.faults import RAMP_BOUND_S
 
     sup = Supervisor(HAND)
     sup.start(0)

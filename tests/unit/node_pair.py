@@ -11,8 +11,8 @@ from __future__ import annotations
 from collections.abc import Collection, Sequence
 
 from handctl.config import HandConfig
-from handctl.drivers.finger import FingerLayouts, FingerNode
-from handctl.drivers.receiver import Reject
+from handctl.online.drivers.finger import FingerLayouts, FingerNode
+from handctl.online.drivers.receiver import Reject
 from handctl.protocol import Protocol
 from handctl.sim.firmware import EmulatedNode
 from handctl.sim.params import NODE_TICK_NS, parse_sim

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from handctl.bus import open_bus
 from handctl.config import load_hand
-from handctl.drivers.hand import AppliedTorques, HandDriver
 from handctl.hand_protocol import protocol_for
+from handctl.online.bus import open_bus
+from handctl.online.drivers.hand import AppliedTorques, HandDriver
 from handctl.sim.firmware import EmulatedNode
 
 from ..shapes import shaped_hand

@@ -17,14 +17,13 @@ PACKAGE = ROOT / "handctl"
 # a plane, so a new one must be given its plane here (and in the document) before it passes.
 
 #: What the control process runs every tick, and the bus it runs on.
-ONLINE = ("handctl.bus", "handctl.taps", "handctl.timerfd", "handctl.clock",
-          "handctl.tickstats", "handctl.loop", "handctl.timebudget", "handctl.estimator",
-          "handctl.drivers", "handctl.safety", "handctl.recipes")
+ONLINE = ("handctl.online",)
 #: What every plane may import: errors, the one YAML reader, the hand config, the protocol and
 #: what a config is checked against, and the convention the summaries and plots share.
 #: (``handctl`` itself, which holds only the version, is the foundation too.)
 FOUNDATION = ("handctl.errors", "handctl.schema", "handctl.config", "handctl.protocol",
-              "handctl.busload", "handctl.wirelimits", "handctl.convention")
+              "handctl.busload", "handctl.wirelimits", "handctl.convention",
+              "handctl.hand_protocol", "handctl.handshape", "handctl.arrays")
 OFFLINE = ("handctl.analysis", "handctl.planning", "handctl.executor", "handctl.progress",
            "handctl.portable")
 SIMULATED_HAND = ("handctl.sim",)
@@ -34,14 +33,13 @@ RECORDING = ("handctl.recording", "handctl.foxglove")
 #: the experiment bench (the real runtime against the simulated hand).
 COMPOSITION = ("handctl.__main__", "handctl.cli", "handctl.session", "handctl.bringup",
                "handctl.hostcheck", "handctl.hostprobe", "handctl.hostfacts",
-               "handctl.parent_death", "handctl.planning.experiment", "handctl.planning.plot",
-               "handctl.sim.campaign", "handctl.sim.seed_run")
+               "handctl.parent_death", "handctl.experiment", "handctl.harness")
 PLANES = {"online": ONLINE, "foundation": FOUNDATION, "offline": OFFLINE,
           "simulated hand": SIMULATED_HAND, "recording": RECORDING, "composition": COMPOSITION}
 #: What the simulated hand may use of the host's side: the bus and the timer. A peer that
 #: shared the host's drivers, safety or loop would share their mistakes, and hide them.
-SIM_MAY_USE = ("handctl.bus", "handctl.taps",
-               "handctl.clock", "handctl.timerfd")
+SIM_MAY_USE = ("handctl.online.bus", "handctl.online.taps",
+               "handctl.online.clock", "handctl.online.timerfd")
 
 
 def module_of(path: Path) -> str:
@@ -78,7 +76,7 @@ def imported_modules(path: Path) -> set[str]:
                 parts = path.relative_to(ROOT).with_suffix("").parts[:-node.level]
                 base = ".".join([*parts, base] if base else parts)
             found.add(base)
-            # ``from handctl import loop`` imports the module handctl.loop
+            # ``from handctl import loop`` imports the module handctl.online.loop
             found |= {f"{base}.{alias.name}" for alias in node.names
                       if f"{base}.{alias.name}" in MODULES}
     return found
@@ -158,7 +156,7 @@ def test_no_asyncio_sleep_on_the_online_plane() -> None:
 @pytest.mark.parametrize("path", sources(), ids=lambda p: str(p.relative_to(PACKAGE)))
 def test_applied_torques_are_made_only_by_the_supervisor(path: Path) -> None:
     """``HandDriver.send`` takes ``AppliedTorques``; only the supervisor may make them."""
-    if module_of(path) in ("handctl.safety.supervisor", "handctl.drivers.hand"):
+    if module_of(path) in ("handctl.online.safety.supervisor", "handctl.online.drivers.hand"):
         return
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
         if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "AppliedTorques":

@@ -7,16 +7,16 @@ from pathlib import Path
 
 import pytest
 
-from handctl.bus import BusEventKind, HandBus, open_bus
-from handctl.busspec import (
+from handctl.config import HandConfig
+from handctl.errors import BusError, ConfigError
+from handctl.online.bus import BusEventKind, HandBus, open_bus
+from handctl.online.busspec import (
     BusSpec,
     bus_kwargs,
     check_socketcan,
     parse_spec,
     socketcan_setup_command,
 )
-from handctl.config import HandConfig
-from handctl.errors import BusError, ConfigError
 
 
 def test_parse_specs(hand: HandConfig) -> None:

@@ -6,8 +6,8 @@ from __future__ import annotations
 import dataclasses
 
 from handctl.config import HandConfig
+from handctl.harness.campaign import CASES, Targets, run_case
 from handctl.sim import faults as inj
-from handctl.sim.campaign import CASES, Targets, run_case
 
 
 def renumbered(hand: HandConfig, ids: tuple[int, ...]) -> HandConfig:

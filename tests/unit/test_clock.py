@@ -9,8 +9,8 @@ import sys
 import time
 from pathlib import Path
 
-from handctl.clock import LockstepClock, RealtimeClock, StallLog
-from handctl.timerfd import PeriodicTimer
+from handctl.online.clock import LockstepClock, RealtimeClock, StallLog
+from handctl.online.timerfd import PeriodicTimer
 
 
 async def test_realtime_ticks_are_consecutive_and_count_missed_ones() -> None:
@@ -79,7 +79,7 @@ class Data(ctypes.Structure):
                 ("inheritable", ctypes.c_uint32)]
 libc = ctypes.CDLL(None, use_errno=True)
 libc.capset(ctypes.byref(Header(0x20080522, 0)), (Data * 2)())
-from handctl.clock import request_realtime
+from handctl.online.clock import request_realtime
 for line in request_realtime():
     print(line)
 """
@@ -101,7 +101,7 @@ def test_realtime_request_says_clearly_what_was_refused() -> None:
 def test_collector_paused_turns_automatic_collection_off_and_back_on() -> None:
     import gc
 
-    from handctl.clock import collector_paused
+    from handctl.online.clock import collector_paused
 
     assert gc.isenabled()
     with collector_paused():
@@ -111,7 +111,7 @@ def test_collector_paused_turns_automatic_collection_off_and_back_on() -> None:
 
 _HYGIENE_CHILD = """
 import ctypes, os, sys
-from handctl.clock import HEAP_RESERVE, request_realtime
+from handctl.online.clock import HEAP_RESERVE, request_realtime
 class Mallinfo2(ctypes.Structure):
     _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
                                                "usmblks", "fsmblks", "uordblks", "fordblks",

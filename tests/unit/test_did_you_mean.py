@@ -10,7 +10,7 @@ import yaml
 
 from handctl.config import HandConfig, load_hand
 from handctl.errors import ConfigError
-from handctl.recipes.loader import load_recipe
+from handctl.online.recipes.loader import load_recipe
 from handctl.schema import Doc
 from tests.conftest import HAND_YAML
 

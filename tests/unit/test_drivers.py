@@ -14,12 +14,12 @@ import cantools
 import numpy as np
 import pytest
 
-from handctl.bus import HandBus
 from handctl.config import HandConfig
-from handctl.drivers.finger import fault_names
-from handctl.drivers.hand import AppliedTorques, HandDriver
 from handctl.errors import ConfigError
 from handctl.hand_protocol import check_protocol
+from handctl.online.bus import HandBus
+from handctl.online.drivers.finger import fault_names
+from handctl.online.drivers.hand import AppliedTorques, HandDriver
 from handctl.protocol import Protocol
 
 from ..dbc import decode, load_dbc

@@ -14,10 +14,10 @@ import yaml
 
 from handctl.config import FingerConfig, HandConfig
 from handctl.errors import ConfigError
-from handctl.estimator import NAN, ObjectEstimator, advance_turn
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.runner import RecipeRunner
-from handctl.recipes.schema import FIRST_PAIR_TURN, RecipeObject
+from handctl.online.estimator import NAN, ObjectEstimator, advance_turn
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.runner import RecipeRunner
+from handctl.online.recipes.schema import FIRST_PAIR_TURN, RecipeObject
 
 R = 0.0175  # m: the object that fits the square cage below exactly
 H = (0.008, 0.0075, 0.007)  # m: half-thicknesses of the default hand's links

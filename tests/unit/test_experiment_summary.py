@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from handctl.planning.experiment import Trace, experiment_summary
+from handctl.experiment.merit import Trace, experiment_summary
 
 REST = (-0.12, -0.12)
 NAMES = tuple(f"j{k}" for k in range(9))

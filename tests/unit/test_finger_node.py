@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from handctl.config import HandConfig
-from handctl.drivers.finger import (
+from handctl.online.drivers.finger import (
     FAULT_BITS,
     Feedback,
     FingerLayouts,
@@ -20,7 +20,7 @@ from handctl.drivers.finger import (
     make_node_command,
     parse_feedback,
 )
-from handctl.drivers.receiver import Reject
+from handctl.online.drivers.receiver import Reject
 from handctl.protocol import NODE_COMMANDS, NodeState, Protocol
 
 MS = 1_000_000

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from handctl.recipes.velocity import JointVelocity
+from handctl.online.recipes.velocity import JointVelocity
 
 COUNT = 2 * math.pi / 16384  # rad, one count of a 14-bit encoder
 DT = 0.001

@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.recipes.guard import LimitGuard
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.runner import RecipeRunner, RunStatus
+from handctl.online.recipes.guard import LimitGuard
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.runner import RecipeRunner, RunStatus
 
 JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
 

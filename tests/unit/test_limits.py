@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from handctl.config import HandConfig
-from handctl.safety.faults import FaultCode
-from handctl.safety.limits import JointLimits, angle_violations, check_desired, limit_torque
+from handctl.online.safety.faults import FaultCode
+from handctl.online.safety.limits import JointLimits, angle_violations, check_desired, limit_torque
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from handctl.config import HandConfig
-from handctl.drivers.finger import FingerLayouts, FingerNode
+from handctl.online.drivers.finger import FingerLayouts, FingerNode
 from handctl.protocol import Protocol
 
 DISABLED, ENABLED, FAULT = 0, 1, 2

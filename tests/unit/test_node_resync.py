@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import pytest
 
-from handctl.bus import HandBus
 from handctl.config import HandConfig
-from handctl.drivers.hand import HandDriver
+from handctl.online.bus import HandBus
+from handctl.online.drivers.hand import HandDriver
 from handctl.protocol import NodeState, Protocol
 from handctl.sim.firmware import EmulatedNode, FaultBits
 

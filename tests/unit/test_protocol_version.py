@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from handctl.bus import HandBus
 from handctl.config import HandConfig
-from handctl.drivers.hand import HandDriver
 from handctl.errors import ConfigError
+from handctl.online.bus import HandBus
+from handctl.online.drivers.hand import HandDriver
 from handctl.protocol import (
     DEFAULT_DBC,
     Protocol,

@@ -17,11 +17,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from handctl.bus import BusEvent, BusEventKind
 from handctl.config import HandConfig
+from handctl.online.bus import BusEvent, BusEventKind
+from handctl.online.safety.faults import FAULTS, RAMP_BOUND_S, Fault, FaultCode, StopCategory
+from handctl.online.safety.supervisor import Event, State, Supervisor
 from handctl.protocol import Protocol
-from handctl.safety.faults import FAULTS, RAMP_BOUND_S, Fault, FaultCode, StopCategory
-from handctl.safety.supervisor import Event, State, Supervisor
 
 from .node_pair import Link
 

@@ -13,15 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from handctl.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
 from handctl.busload import frames_per_period, shortest_frame_time_s
-from handctl.clock import LockstepClock
 from handctl.config import HandConfig
-from handctl.drivers.hand import AppliedTorques, HandDriver
+from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
+from handctl.online.clock import LockstepClock
+from handctl.online.drivers.hand import AppliedTorques, HandDriver
+from handctl.online.safety.faults import FaultCode
+from handctl.online.safety.supervisor import State, Supervisor
+from handctl.online.safety.watchdog import ReceiveWatch
 from handctl.protocol import Protocol
-from handctl.safety.faults import FaultCode
-from handctl.safety.supervisor import State, Supervisor
-from handctl.safety.watchdog import ReceiveWatch
 
 MS = 1_000_000
 
@@ -324,7 +324,7 @@ def test_reject_rate_settings_are_read_and_checked(tmp_path: Path) -> None:
 
 
 def test_an_exported_log_keeps_29_bit_ids_extended(tmp_path: Path) -> None:
-    from handctl.canlog import write_frames
+    from handctl.recording.canlog import write_frames
 
     out = tmp_path / "rx.log"
     frames = [(1.0, EXTENDED_ID_FLAG | 0x181, bytes(16), True, True),

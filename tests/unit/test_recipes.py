@@ -12,9 +12,9 @@ import yaml
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.runner import RecipeRunner, RunStatus
-from handctl.recipes.schema import RecipeObject, estimate_names
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.runner import RecipeRunner, RunStatus
+from handctl.online.recipes.schema import RecipeObject, estimate_names
 
 ZERO = np.zeros(9)
 

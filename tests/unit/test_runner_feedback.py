@@ -14,9 +14,9 @@ import yaml
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.runner import RecipeRunner
-from handctl.recipes.schema import FIRST_PAIR_TURN, Recipe, RecipeObject, estimate_names
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.runner import RecipeRunner
+from handctl.online.recipes.schema import FIRST_PAIR_TURN, Recipe, RecipeObject, estimate_names
 
 JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
 TORQUES = [0.2, 0.1, 0.05, 0.2, 0.1, 0.05, -0.2, -0.1, -0.05]

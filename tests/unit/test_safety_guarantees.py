@@ -7,11 +7,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from handctl.busspec import BusSpec, parse_spec
 from handctl.cli import build_parser
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.recipes.loader import load_recipe
+from handctl.online.busspec import BusSpec, parse_spec
+from handctl.online.recipes.loader import load_recipe
 
 from ..conftest import ROOT
 

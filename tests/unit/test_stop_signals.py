@@ -7,12 +7,12 @@ import signal
 
 import pytest
 
-from handctl.bus import HandBus
 from handctl.config import HandConfig
-from handctl.drivers.hand import HandDriver
-from handctl.loop import Outcome, RunResult, Runtime
+from handctl.online.bus import HandBus
+from handctl.online.drivers.hand import HandDriver
+from handctl.online.loop import Outcome, RunResult, Runtime
+from handctl.online.recipes.loader import load_recipe
 from handctl.protocol import Protocol
-from handctl.recipes.loader import load_recipe
 from handctl.session import StopSignals
 
 from ..conftest import ROOT
@@ -33,7 +33,7 @@ def test_a_signal_during_start_up_is_an_interrupt_with_nothing_sent(
     """The nodes have not answered yet (nobody is on the bus): the start-up is still waiting
     for them when the signal comes. That is an interrupt (exit 130), not a failed start-up
     (exit 3): nothing went wrong with the hand, and nothing was sent to it."""
-    from handctl.clock import LockstepClock
+    from handctl.online.clock import LockstepClock
 
     host, listener = bus_pair
     recipe = load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", hand)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from handctl.tickstats import BLOCK, TickStats, percentile_us
+from handctl.online.tickstats import BLOCK, TickStats, percentile_us
 
 
 def _feed(stats: TickStats, lateness_ns: np.ndarray) -> None:

@@ -14,10 +14,10 @@ from pathlib import Path
 import can
 import pytest
 
-from handctl.bus import BusEventKind, Frame, HandBus, open_bus
 from handctl.config import HandConfig
-from handctl.taps import TAP_TX
-from handctl.unixcan import TX_QUEUE_FRAMES
+from handctl.online.bus import BusEventKind, Frame, HandBus, open_bus
+from handctl.online.taps import TAP_TX
+from handctl.online.unixcan import TX_QUEUE_FRAMES
 
 OpenUnix = Callable[[], HandBus]
 

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from handctl.config import HandConfig, SafetyConfig
-from handctl.drivers.finger import FingerLayouts, FingerNode
+from handctl.online.drivers.finger import FingerLayouts, FingerNode
+from handctl.online.safety.faults import FaultCode
+from handctl.online.safety.watchdog import NodeWatch, TdtMonitor, TickWatch
 from handctl.protocol import Protocol
-from handctl.safety.faults import FaultCode
-from handctl.safety.watchdog import NodeWatch, TdtMonitor, TickWatch
 from handctl.sim.params import parse_sim
 
 from .node_pair import MS, Link

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from handctl.config import HandConfig, load_hand
 from handctl.errors import ConfigError
-from handctl.recipes.loader import load_recipe
+from handctl.online.recipes.loader import load_recipe
 from handctl.schema import MAX_BYTES, MAX_DEPTH, MAX_NODES, dump_yaml, load_yaml, parse_yaml
 
 from ..conftest import HAND_YAML, ROOT

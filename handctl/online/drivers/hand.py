@@ -16,16 +16,16 @@ import numpy as np
 import numpy.typing as npt
 
 from handctl.arrays import FloatArray
-from handctl.bus import DRAIN_LIMIT, EXTENDED_ID_FLAG, BusEvent, BusEventKind, FrameBus
 from handctl.busload import frames_per_period
 from handctl.config import HandConfig
-from handctl.drivers.finger import FingerLayouts, FingerNode
-from handctl.drivers.receiver import Reject, RejectCounts
 from handctl.hand_protocol import check_protocol
+from handctl.online.bus import DRAIN_LIMIT, EXTENDED_ID_FLAG, BusEvent, BusEventKind, FrameBus
+from handctl.online.drivers.finger import FingerLayouts, FingerNode
+from handctl.online.drivers.receiver import Reject, RejectCounts
 from handctl.protocol import NODE_COMMANDS, Protocol
 
-#: Torques that came out of the safety supervisor. Only ``handctl/safety/supervisor.py`` makes
-#: one (a test checks), and ``HandDriver.send`` takes nothing else, so the type checker proves
+#: Torques that came out of the safety supervisor. Only ``handctl/online/safety/supervisor.py``
+#: makes one (a test checks), and ``HandDriver.send`` takes nothing else, so the type checker proves
 #: that no torque reaches a command frame without passing the limiter.
 AppliedTorques = NewType("AppliedTorques", FloatArray)
 #: Every value a frame's rolling ``Counter`` takes: 8 bits (``handctl/protocol.py`` refuses a

@@ -28,8 +28,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from handctl.arrays import FloatArray
-from handctl.recipes.schema import FIRST_PAIR_TURN, Condition, Recipe, SignalKind, TimeoutAction
-from handctl.recipes.velocity import JointVelocity
+from handctl.online.recipes.schema import (
+    FIRST_PAIR_TURN,
+    Condition,
+    Recipe,
+    SignalKind,
+    TimeoutAction,
+)
+from handctl.online.recipes.velocity import JointVelocity
 
 #: s, the low-pass of the estimated centre-line rate: the estimate moves in steps of the
 #: encoder's resolution, and the rate loop must not chase them

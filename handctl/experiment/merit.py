@@ -51,7 +51,7 @@ import numpy as np
 from handctl.convention import POSE_EVERY_TICKS, phase_turns_deg
 from handctl.errors import ConfigError
 from handctl.handshape import hand_span
-from handctl.recipes.schema import Pair, Recipe
+from handctl.online.recipes.schema import Pair, Recipe
 
 LIFT_HEIGHT = 0.010  # m
 HOLD_S = 2.0  # s

@@ -11,9 +11,9 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from handctl.clock import Tick
 from handctl.errors import ConfigError
-from handctl.loop import Outcome, RunResult, Runtime
+from handctl.online.clock import Tick
+from handctl.online.loop import Outcome, RunResult, Runtime
 
 #: The start of the stop's reason; what follows is the budget.
 REASON_PREFIX = "time budget of "

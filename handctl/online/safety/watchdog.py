@@ -10,9 +10,9 @@ from collections.abc import Sequence
 
 from handctl.arrays import FloatArray
 from handctl.config import SafetyConfig
-from handctl.drivers.finger import FingerNode, fault_names
+from handctl.online.drivers.finger import FingerNode, fault_names
+from handctl.online.safety.faults import FaultCode
 from handctl.protocol import NodeState
-from handctl.safety.faults import FaultCode
 
 ENABLED = int(NodeState.ENABLED)  # plain ints: compared for every node every tick
 FAULT = int(NodeState.FAULT)

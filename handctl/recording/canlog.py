@@ -7,8 +7,8 @@ from pathlib import Path
 
 import can
 
-from handctl.bus import EXTENDED_ID_FLAG, EXTENDED_ID_MASK
 from handctl.errors import ConfigError
+from handctl.online.bus import EXTENDED_ID_FLAG, EXTENDED_ID_MASK
 
 #: Log formats of python-can that ``write_frames`` writes: candump -L, Vector ASC, Vector BLF.
 LOG_FORMATS = ("candump", "asc", "blf")

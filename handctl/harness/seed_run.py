@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from handctl.config import HandConfig
+from handctl.online.recipes.schema import Recipe
 from handctl.portable import local_hand
-from handctl.recipes.schema import Recipe
 
 
 @dataclass(frozen=True)

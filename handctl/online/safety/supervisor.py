@@ -23,19 +23,19 @@ from collections.abc import Sequence
 import numpy as np
 
 from handctl.arrays import FloatArray
-from handctl.bus import BusEvent, BusEventKind
 from handctl.config import HandConfig
-from handctl.drivers.finger import FingerNode
-from handctl.drivers.hand import AppliedTorques
-from handctl.protocol import NodeState
-from handctl.safety.faults import RAMP_BOUND_S, Fault, FaultCode, StopCategory
-from handctl.safety.limits import (
+from handctl.online.bus import BusEvent, BusEventKind
+from handctl.online.drivers.finger import FingerNode
+from handctl.online.drivers.hand import AppliedTorques
+from handctl.online.safety.faults import RAMP_BOUND_S, Fault, FaultCode, StopCategory
+from handctl.online.safety.limits import (
     JointLimits,
     angle_violations,
     check_desired,
     limit_torque,
 )
-from handctl.safety.watchdog import NodeWatch, ReceiveWatch, TdtMonitor, TickWatch
+from handctl.online.safety.watchdog import NodeWatch, ReceiveWatch, TdtMonitor, TickWatch
+from handctl.protocol import NodeState
 
 
 class State(enum.Enum):

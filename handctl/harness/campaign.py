@@ -29,22 +29,22 @@ from pathlib import Path
 
 import numpy as np
 
-from handctl.bus import HandBus, open_bus
-from handctl.clock import LockstepClock, Tick
 from handctl.config import HandConfig
-from handctl.drivers.hand import HandDriver
 from handctl.executor import WorkPool, open_pool
 from handctl.hand_protocol import protocol_for
-from handctl.loop import Outcome, RunResult, Runtime
+from handctl.online.bus import HandBus, open_bus
+from handctl.online.clock import LockstepClock, Tick
+from handctl.online.drivers.hand import HandDriver
+from handctl.online.loop import Outcome, RunResult, Runtime
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.schema import Recipe
+from handctl.online.safety.faults import FAULTS, RAMP_BOUND_S, StopCategory
 from handctl.portable import local_hand, portable_hand
 from handctl.progress import Progress
-from handctl.recipes.loader import load_recipe
-from handctl.recipes.schema import Recipe
 from handctl.recording import channels as ch
 from handctl.recording.metadata import run_metadata, start_metadata
 from handctl.recording.reader import iter_decoded, open_recording
 from handctl.recording.recorder import Recorder
-from handctl.safety.faults import FAULTS, RAMP_BOUND_S, StopCategory
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
 

@@ -30,7 +30,7 @@ the names: the recipe's first object is the one that started nearest that end.
 
 One to four objects (the recipe's), and for each pair the recipe names (each object with the
 next by default) the angle of the line from the first centre to the second and its running
-turn (``handctl.recipes.schema.estimate_names``). The estimates are valid together or not at
+turn (``handctl.online.recipes.schema.estimate_names``). The estimates are valid together or not at
 all: every object is a wall of the others' cages, so one object off its track puts the others'
 fits in doubt.
 
@@ -49,7 +49,7 @@ import numpy as np
 import numpy.typing as npt
 
 from handctl.config import HandConfig
-from handctl.recipes.schema import (
+from handctl.online.recipes.schema import (
     MAX_OBJECTS,
     Pair,
     RecipeObject,

@@ -15,7 +15,7 @@ and the nodes get zero torque and then a disable from frames the driver encoded 
 through a path that touches none of the stages (``Runtime._stop_after_exception``).
 
 Per-tick accounting (lateness, missed ticks, CPU time of each stage) is kept in bounded,
-preallocated arrays (``handctl.tickstats``): the last ticks one by one, the whole run as
+preallocated arrays (``handctl.online.tickstats``): the last ticks one by one, the whole run as
 histograms, so neither the loop's cost nor its memory grows with the run.
 """
 
@@ -36,19 +36,19 @@ import numpy as np
 
 import handctl
 from handctl import protocol as wire
-from handctl.bus import BusEvent
-from handctl.clock import Clock, Tick
 from handctl.config import HandConfig
-from handctl.drivers import finger, receiver
-from handctl.drivers.hand import AppliedTorques, HandDriver
+from handctl.online.bus import BusEvent
+from handctl.online.clock import Clock, Tick
+from handctl.online.drivers import finger, receiver
+from handctl.online.drivers.hand import AppliedTorques, HandDriver
+from handctl.online.recipes import runner as recipe_runner
+from handctl.online.recipes.runner import RecipeRunner, RunStatus
+from handctl.online.recipes.schema import Recipe
+from handctl.online.safety import faults as safety_faults
+from handctl.online.safety.faults import Fault, FaultCode
+from handctl.online.safety.supervisor import State, Supervisor
+from handctl.online.tickstats import DEFAULT_WINDOW, STAGES, TickStats, TickWindow
 from handctl.protocol import NodeState
-from handctl.recipes import runner as recipe_runner
-from handctl.recipes.runner import RecipeRunner, RunStatus
-from handctl.recipes.schema import Recipe
-from handctl.safety import faults as safety_faults
-from handctl.safety.faults import Fault, FaultCode
-from handctl.safety.supervisor import State, Supervisor
-from handctl.tickstats import DEFAULT_WINDOW, STAGES, TickStats, TickWindow
 
 #: Ticks the loop keeps sending zero after a stop before it disables the nodes: frames in
 #: flight are superseded, and the nodes see zero before they see "disable".
@@ -405,7 +405,7 @@ class Runtime:
                     return ""
                 continue
             if not self.reset_node_faults:
-                from handctl.drivers.finger import fault_names
+                from handctl.online.drivers.finger import fault_names
 
                 names = "; ".join(f"node {n.node_id} ({n.finger.name}) in FAULT "
                                   f"({', '.join(fault_names(n.fault_bits)) or 'no bits'})"

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: The stages of a control tick, in the order the loop times them (``handctl.loop``).
+#: The stages of a control tick, in the order the loop times them (``handctl.online.loop``).
 #: ``feedback`` is the recipe phase's feedback and the soft-limit guard (``runner.feedback``);
 #: it comes last so that the first five keep their places in recordings and benchmarks
 STAGES = ("poll", "recipe", "safety", "send", "record", "feedback")

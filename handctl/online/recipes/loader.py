@@ -16,8 +16,8 @@ import numpy as np
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.recipes.guard import LimitGuard
-from handctl.recipes.schema import (
+from handctl.online.recipes.guard import LimitGuard
+from handctl.online.recipes.schema import (
     MAX_OBJECTS,
     Condition,
     Pair,

@@ -4,9 +4,9 @@ Everything above this module sees ``Frame`` and ``BusEvent`` values, never pytho
 so the loop cannot be surprised by a python-can exception: a full transmit queue, an error frame
 or a bus-off comes out as a typed event that safety can act on, and the tick goes on.
 
-Bus specs (``--bus``) are parsed in ``handctl.busspec``; handctl's own unix bus is the
-python-can interface in ``handctl.unixcan``; the virtual bus that stamps arrivals on the
-receiver's clock is ``handctl.virtualcan``; log export is ``handctl.canlog``.
+Bus specs (``--bus``) are parsed in ``handctl.online.busspec``; handctl's own unix bus is the
+python-can interface in ``handctl.online.unixcan``; the virtual bus that stamps arrivals on the
+receiver's clock is ``handctl.online.virtualcan``; log export is ``handctl.recording.canlog``.
 
 Receive times: every ``Frame`` carries the time it arrived, on the clock of whoever drains it
 (``HandBus.use_clock``: the driver hands over the loop's clock), never the time it was
@@ -40,11 +40,11 @@ from typing import Any, Protocol, runtime_checkable
 
 import can
 
-from handctl.busspec import BusSpec, bus_kwargs, check_socketcan, parse_spec
 from handctl.config import BusConfig
 from handctl.errors import BusError
-from handctl.taps import TAP_TX, TAP_TX_FAILED
-from handctl.virtualcan import ArrivalStampedVirtualBus
+from handctl.online.busspec import BusSpec, bus_kwargs, check_socketcan, parse_spec
+from handctl.online.taps import TAP_TX, TAP_TX_FAILED
+from handctl.online.virtualcan import ArrivalStampedVirtualBus
 
 #: Frames drained per call at most: a babbling node must not keep one tick busy forever.
 DRAIN_LIMIT = 512
@@ -110,7 +110,7 @@ class BusEvent:
     timestamp_ns: int
 
 
-#: What a frame tap is told about each frame (``HandBus.tap``): ``handctl.taps``.
+#: What a frame tap is told about each frame (``HandBus.tap``): ``handctl.online.taps``.
 #: ``tap(arbitration_id, data, direction)``: each frame ``send`` handed to the bus (or could
 #: not). Called inside the tick, so it must only copy and return.
 FrameTap = Callable[[int, bytes, int], None]

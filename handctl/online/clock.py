@@ -21,7 +21,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Protocol
 
-from handctl.timerfd import PeriodicTimer
+from handctl.online.timerfd import PeriodicTimer
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,7 +166,7 @@ class LockstepClock:
 
     async def wait_tick(self) -> Tick:
         # The peer's step ends at the new tick's time, so what it sends arrives then: the
-        # clock moves first, and frames stamped on arrival (``handctl.bus``) carry that time.
+        # clock moves first, and frames stamped on arrival (``handctl.online.bus``) carry that time.
         self._tick += 1
         self._now = (self._tick + 1) * self.period_ns
         self._step_peer()

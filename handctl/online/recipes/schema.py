@@ -22,7 +22,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from handctl.recipes.guard import LimitGuard
+from handctl.online.recipes.guard import LimitGuard
 
 #: The most objects a recipe may grasp and the estimator tracks (the simulated hand's most).
 MAX_OBJECTS = 4

@@ -47,7 +47,7 @@ class FaultCode(enum.IntEnum):
     STARTUP = 15
     # An exception inside the run, one code per stage of the tick it came from (the loop reads
     # the stage from the traceback). The stop does not use the stage that raised: zero-torque
-    # and disable frames encoded at start-up, sent without the codec (``handctl/loop.py``).
+    # and disable frames encoded at start-up, sent without the codec (``handctl/online/loop.py``).
     POLL_EXCEPTION = 16
     DECODE_EXCEPTION = 17
     ESTIMATOR_EXCEPTION = 18

@@ -15,7 +15,7 @@ import numpy as np
 
 from handctl.arrays import FloatArray
 from handctl.config import HandConfig
-from handctl.safety.faults import FaultCode
+from handctl.online.safety.faults import FaultCode
 
 
 @dataclass(frozen=True)

@@ -17,9 +17,9 @@ import numpy as np
 
 from handctl.config import FingerConfig, HandConfig
 from handctl.convention import TIME_LABEL
+from handctl.experiment.merit import LIFT_HEIGHT, Trace, _segments
 from handctl.handshape import hand_span
-from handctl.planning.experiment import LIFT_HEIGHT, Trace, _segments
-from handctl.recipes.schema import Recipe
+from handctl.online.recipes.schema import Recipe
 
 
 def plot_run(trace: Trace, path: Path, recipe: Recipe, hand: HandConfig,

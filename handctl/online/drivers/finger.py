@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from handctl.config import FingerConfig
-from handctl.drivers.receiver import CounterCheck, Reject, RejectCounts, validate
+from handctl.online.drivers.receiver import CounterCheck, Reject, RejectCounts, validate
 from handctl.protocol import (
     NODE_COMMANDS,
     Layout,

@@ -1,5 +1,5 @@
 """The directions a frame tap reports (``HandBus.tap``), in a module of their own so that the
-recording writer process can read its rings without importing python-can (``handctl.bus``):
+recording writer process can read its rings without importing python-can (``handctl.online.bus``):
 that import is a tenth of a second of every writer's start-up."""
 
 from __future__ import annotations
