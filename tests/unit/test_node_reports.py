@@ -43,6 +43,7 @@ def test_a_status_gives_the_versions_and_when_they_were_heard(node: FingerNode) 
     assert node.protocol_version == version
     assert node.firmware_version == (4, 5, 6) and node.firmware_text == "4.5.6"
     assert node.version_problem(since_ns=100_000) == ""
+    assert node.version_problem(since_ns=123_000) == ""  # heard at that very time: current
     assert "no Status" in node.version_problem(since_ns=124_000)
 
 
@@ -52,7 +53,8 @@ def test_a_status_of_another_version_is_named(node: FingerNode) -> None:
                  5)
     problem = node.version_problem()
     assert f"speaks handctl protocol {other}" in problem
-    assert f"this host protocol {node.layouts.protocol_version}" in problem
+    assert problem.endswith(f"this host protocol {node.layouts.protocol_version}: update the "
+                            "node's firmware or use the handctl of its protocol")
 
 
 def test_a_contradiction_names_the_frame_the_state_and_every_latched_bit(

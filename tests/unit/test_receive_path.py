@@ -296,6 +296,8 @@ def test_reject_rate_settings_come_from_the_safety_section(hand: HandConfig) -> 
     safety = replace(hand.safety, reject_window_s=0.02, max_rejects_in_window=0)
     watch = ReceiveWatch(safety, hand.bus.period_s)
     assert (watch.window, watch.limit) == (20, 0)
+    one_tick = ReceiveWatch(replace(safety, reject_window_s=hand.bus.period_s), hand.bus.period_s)
+    assert one_tick.window == 1  # the shortest window the loader takes: one tick, not two
 
 
 def test_commands_still_go_out_as_standard_frames(driver: HandDriver,
