@@ -150,6 +150,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     if phase.pose is not None:
         doc["pose"] = {"angles": dict(zip(hand.joint_names, phase.pose.angles, strict=True)),
                        "stiffness": phase.pose.stiffness, "damping": phase.pose.damping}
+    if phase.joint_damping > 0.0:
+        doc["joint_damping"] = phase.joint_damping
     doc["provenance"] = plan.provenance
     return doc
 
@@ -209,7 +211,7 @@ def _compiled_phase(spec: TemplatePhase, torques: tuple[float, ...],
         exits = (parsed,)
     rounded = tuple(_rounded(torques))
     return Phase(spec.name, rounded, spec.ramp_s, spec.max_s, TimeoutAction.NEXT, exits, (),
-                 turn_rate=spec.turn_rate, pose=pose)
+                 turn_rate=spec.turn_rate, pose=pose, joint_damping=spec.joint_damping)
 
 
 def _pose_of(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> PoseHold:

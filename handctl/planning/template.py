@@ -30,6 +30,7 @@ from handctl.planning.search import Budget
 from handctl.recipes.loader import (
     check_unique_names,
     parse_guard_band,
+    parse_joint_damping,
     parse_min_total_turn,
     parse_turn_rate,
 )
@@ -54,6 +55,7 @@ class TemplatePhase:
     turn_rate: TurnRate | None = None  # a turn phase's rate loop, carried into the recipe
     pose_stiffness: float | None = None  # N·m/rad: a free phase ends in the nominal's pose
     pose_damping: float = 0.0  # N·m·s/rad
+    joint_damping: float = 0.0  # N·m·s/rad, injected on every joint, carried into the recipe
 
     def exit_condition(self) -> str:
         """The compiled exit of a turn phase: on the estimated turn since the phase began."""
@@ -214,6 +216,7 @@ def _phase(doc: Doc, hand: HandConfig, objects: list[str]) -> TemplatePhase:
                                 unit="N·m/rad")
         damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
         pose.done()
+    joint_damping = parse_joint_damping(doc)
     doc.done()
     return TemplatePhase(name, kind, ramp, max_s, seed, move, min_height, turn, exit_fraction,
-                         exit_hold, turn_rate, stiffness, damping)
+                         exit_hold, turn_rate, stiffness, damping, joint_damping)

@@ -39,6 +39,10 @@ GUARD_BAND_MAX = 0.5
 MAX_TOTAL_TURN_DEG = 1440.0
 #: deg/s, the fastest turn a turn-rate loop may ask for (a quasi-static analysis covers less)
 MAX_TURN_RATE_DEG_S = 720.0
+#: N·m·s/rad, the most damping a phase may inject: the drive's lag and the velocity filter
+#: delay the damper by about 15 ms, and a damper much stiffer than the joints' inertia over
+#: that delay oscillates instead of damping
+MAX_JOINT_DAMPING = 0.2
 #: the most a turn-rate loop may scale its phase's torque (tau_max still bounds it)
 MAX_SCALE = 5.0
 
@@ -144,12 +148,20 @@ def _parse_phase(doc: Doc, hand: HandConfig) -> Phase:
     aborts = _parse_conditions(doc, "abort", hand)
     turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
     pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
+    joint_damping = parse_joint_damping(doc)
     provenance = doc.raw("provenance", {})
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
     doc.done()
     return Phase(name, torques, ramp, max_s, on_timeout, exits, aborts, provenance, turn_rate,
-                 pose)
+                 pose, joint_damping)
+
+
+def parse_joint_damping(doc: Doc) -> float:
+    """``joint_damping`` (N·m·s/rad) of a recipe's or a template's phase: the damping the
+    runner injects on every joint (0 when it is not set)."""
+    return doc.number("joint_damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING,
+                      unit="N·m·s/rad")
 
 
 def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:

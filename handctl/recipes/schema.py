@@ -109,6 +109,10 @@ class Phase:
     provenance: Mapping[str, Any] = field(default_factory=dict)
     turn_rate: TurnRate | None = None
     pose: PoseHold | None = None
+    #: N·m·s/rad, joint-velocity damping the runner adds to every joint (runner.py): the
+    #: hand's own damping is the least known of its dynamics, and an added term it cannot
+    #: change makes the motion's pace less its own; 0: none
+    joint_damping: float = 0.0
 
 
 @dataclass(frozen=True)

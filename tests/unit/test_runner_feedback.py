@@ -1,7 +1,8 @@
 """Feedback inside a phase: the turn-rate loop scales the phase's torque within its range from
 the estimated centre-line rate (down when the pair turns too fast, up when it stalls, held
-while the estimate is invalid), and a pose hold adds a joint-space spring and damper. Both
-are functions of what the runner is fed, so the same feed gives the same torques."""
+while the estimate is invalid), a pose hold adds a joint-space spring and damper, and a
+phase's ``joint_damping`` opposes every joint's velocity. All are functions of what the
+runner is fed, so the same feed gives the same torques."""
 
 from __future__ import annotations
 
@@ -139,6 +140,46 @@ def test_a_pose_hold_adds_a_spring_and_a_damper(tmp_path: Path, hand: HandConfig
     assert out == pytest.approx(expected, abs=1e-4)
 
 
+def _move(runner: RecipeRunner, speed: float, seconds: float, t: float = 0.0,
+          angle: np.ndarray | None = None) -> tuple[float, np.ndarray, np.ndarray]:
+    """Feed every joint moving at ``speed`` (rad/s); returns the time, the angles, the last
+    torques."""
+    angle = np.zeros(9) if angle is None else angle
+    out = np.zeros(9)
+    for _ in range(round(seconds / DT)):
+        out = runner.step(t, angle, np.zeros(9)).copy()
+        angle = angle + speed * DT
+        t += DT
+    return t, angle, out
+
+
+def test_injected_damping_opposes_every_joint_s_velocity(tmp_path: Path,
+                                                         hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"joint_damping": 0.03}, objects=False), 9)
+    _, _, out = _move(runner, 0.0, 2 * RAMP)
+    assert out == pytest.approx(np.array(TORQUES))  # at rest: the planned torque
+    _, _, out = _move(runner, 2.0, 0.2, 2 * RAMP)  # past ten of the velocity's time constants
+    assert out == pytest.approx(np.array(TORQUES) - 0.03 * 2.0, abs=1e-4)
+    assert runner.damping == 0.03
+
+
+def test_injected_damping_fades_with_the_next_phase_s_ramp(tmp_path: Path,
+                                                           hand: HandConfig) -> None:
+    """Leaving a damped phase for one without is no step in torque: the coefficient follows
+    the ramp down to the next phase's."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"joint_damping": 0.05}, objects=False,
+                                  max_s=0.3), 9)
+    t, angle, before = _move(runner, 2.0, 0.3)
+    assert runner.phase_name == "turn"
+    t, angle, after = _move(runner, 2.0, 2 * DT, t, angle)
+    assert runner.phase_name == "after"
+    assert np.max(np.abs(after - before)) < 0.01
+    assert 0.0 < runner.damping < 0.05
+    _, _, out = _move(runner, 2.0, RAMP, t, angle)
+    assert runner.damping == 0.0
+    assert out == pytest.approx(np.array(TORQUES))
+
+
 def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
     recipe = _recipe(tmp_path, hand, TURN_RATE)
     rng = np.random.default_rng(1)
@@ -159,6 +200,8 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
     ({"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 2.0]}}, "phases[0].turn_rate", False),
     ({"pose": {"angles": dict.fromkeys(JOINTS, 5.0), "stiffness": 1.0}},
      "phases[0].pose.angles.f1_j1", False),
+    ({"joint_damping": -0.01}, "phases[0].joint_damping", False),
+    ({"joint_damping": 1.0}, "phases[0].joint_damping", False),
 ])
 def test_bad_feedback_is_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
                                                 phase: dict[str, object], key: str,
