@@ -29,12 +29,13 @@ from handctl.planning.models import Spread
 from handctl.planning.search import Budget
 from handctl.recipes.loader import (
     check_unique_names,
+    parse_brake,
     parse_guard_band,
     parse_joint_damping,
     parse_min_total_turn,
     parse_turn_rate,
 )
-from handctl.recipes.schema import RecipeObject, TurnRate
+from handctl.recipes.schema import RecipeObject, TurnBrake, TurnRate
 from handctl.schema import Doc, load_yaml
 
 KINDS = ("free", "lift", "hold", "turn")
@@ -56,6 +57,7 @@ class TemplatePhase:
     pose_stiffness: float | None = None  # N·m/rad: a free phase ends in the nominal's pose
     pose_damping: float = 0.0  # N·m·s/rad
     joint_damping: float = 0.0  # N·m·s/rad, injected on every joint, carried into the recipe
+    brake: TurnBrake | None = None  # more damping while the pair tumbles, carried likewise
 
     def exit_condition(self) -> str:
         """The compiled exit of a turn phase: on the estimated turn since the phase began."""
@@ -217,6 +219,7 @@ def _phase(doc: Doc, hand: HandConfig, objects: list[str]) -> TemplatePhase:
         damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
         pose.done()
     joint_damping = parse_joint_damping(doc)
+    brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     doc.done()
     return TemplatePhase(name, kind, ramp, max_s, seed, move, min_height, turn, exit_fraction,
-                         exit_hold, turn_rate, stiffness, damping, joint_damping)
+                         exit_hold, turn_rate, stiffness, damping, joint_damping, brake)

@@ -24,6 +24,7 @@ from handctl.recipes.schema import (
     RecipeObject,
     SignalKind,
     TimeoutAction,
+    TurnBrake,
     TurnRate,
     parse_condition,
 )
@@ -78,10 +79,11 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                                                               max_len=MAX_PHASES))
     check_unique_names(doc, [p.name for p in phases])
     for i, phase in enumerate(phases):
-        if phase.turn_rate is not None and not objects:
-            raise ConfigError(doc.file, f"phases[{i}].turn_rate", "a recipe that declares its "
-                              "objects ([{name, radius}, ...]): the turn-rate loop reads the "
-                              "estimator", "no objects")
+        for key, loop in (("turn_rate", phase.turn_rate), ("brake", phase.brake)):
+            if loop is not None and not objects:
+                raise ConfigError(doc.file, f"phases[{i}].{key}", "a recipe that declares its "
+                                  "objects ([{name, radius}, ...]): the " + key + " reads the "
+                                  "estimator", "no objects")
         uses = next((c for c in (*phase.exits, *phase.aborts)
                      if c.kind is SignalKind.ESTIMATE), None)
         if uses is not None and not objects:
@@ -149,12 +151,13 @@ def _parse_phase(doc: Doc, hand: HandConfig) -> Phase:
     turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
     pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
     joint_damping = parse_joint_damping(doc)
+    brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     provenance = doc.raw("provenance", {})
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
     doc.done()
     return Phase(name, torques, ramp, max_s, on_timeout, exits, aborts, provenance, turn_rate,
-                 pose, joint_damping)
+                 pose, joint_damping, brake)
 
 
 def parse_joint_damping(doc: Doc) -> float:
@@ -162,6 +165,18 @@ def parse_joint_damping(doc: Doc) -> float:
     runner injects on every joint (0 when it is not set)."""
     return doc.number("joint_damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING,
                       unit="N·m·s/rad")
+
+
+def parse_brake(doc: Doc) -> TurnBrake:
+    """``brake`` of a recipe's or a template's phase (``schema.TurnBrake``): ``rate_deg_s``,
+    the turn rate above which it acts, and ``joint_damping`` (N·m·s/rad), reached at twice
+    that rate."""
+    rate = doc.number("rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True,
+                      unit="deg/s")
+    damping = doc.number("joint_damping", min=0.0, max=MAX_JOINT_DAMPING, min_exclusive=True,
+                         unit="N·m·s/rad")
+    doc.done()
+    return TurnBrake(math.radians(rate), damping)
 
 
 def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:

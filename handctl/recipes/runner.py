@@ -16,6 +16,11 @@ Feedback, all of it from the angles and the estimates computed from them:
   the scale holds. The loop starts at the plan's own torque (scale 1).
 - ``pose``: a joint-space spring and damper towards the phase's pose, ramped in with the
   phase's torques.
+- ``brake``: more injected damping while the pair tumbles: none while the estimated
+  centre-line rate is at most the brake's rate, rising to its ``joint_damping`` at twice
+  that rate, on top of the phase's own ``joint_damping``. A damper that acts only on a
+  tumble slows the roll-over of a lightly damped hand and leaves alone a heavily damped one,
+  whose pair a fixed damper would let fall back.
 - ``joint_damping``: ``-joint_damping * velocity`` on every joint (the velocities filtered
   from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
   least (a tendon's losses are not measured to a factor of three), and in a turn it sets how
@@ -89,6 +94,7 @@ class RecipeRunner:
         self.turn_rate = 0.0  # rad/s, estimated, low-passed
         self._turn_last = math.nan
         self._turn_t = math.nan
+        self._turn_dt = 0.0
         self._proposed = np.zeros(n_joints)
         self._delta = np.zeros(n_joints)
         self._fed = False  # whether ``_proposed`` holds this phase's last proposal
@@ -194,13 +200,21 @@ class RecipeRunner:
         phase = (self.recipe.phases[self.index] if self.status is RunStatus.RUNNING
                  else None)
         out = self._desired
+        fresh = False  # whether the turn-rate estimate took a new sample this tick
+        if phase is not None and (phase.turn_rate is not None or phase.brake is not None):
+            fresh = self._follow_turn(t, estimates)
+        if phase is not None and phase.brake is not None:
+            brake = phase.brake
+            over = (abs(self.turn_rate) - brake.rate) / brake.rate
+            self.damping += self._fraction * brake.damping * min(1.0, max(0.0, over))
         if phase is not None and (phase.turn_rate is not None or phase.pose is not None):
             # the ramp state stays the recipe's own torque; only what is proposed moves
             out = self._proposed
             out[:] = self._desired
             self._fed = True
             if phase.turn_rate is not None:
-                self._turn_loop(t, estimates)
+                if fresh:
+                    self._turn_loop()
                 # from + fraction * (scale * target - from)
                 np.multiply(self._target, (self.scale - 1.0) * self._fraction, out=self._delta)
                 out += self._delta
@@ -220,22 +234,28 @@ class RecipeRunner:
             return out
         return self._guard.apply(angle, out, self._guarded, self.velocity.value)
 
-    def _turn_loop(self, t: float, estimates: Sequence[float] | None) -> None:
-        """One step of the proportional-integral loop of the scale on the turn rate."""
-        phase = self.recipe.phases[self.index]
-        loop = phase.turn_rate
-        assert loop is not None
+    def _follow_turn(self, t: float, estimates: Sequence[float] | None) -> bool:
+        """One step of the estimated centre-line rate (``turn_rate``, rad/s); False when there
+        was no new valid sample to take."""
         turn = float(estimates[_TURN]) if estimates is not None else math.nan
         if not math.isfinite(turn):
             self._turn_last = math.nan  # the rate restarts from the next valid estimate
-            return
+            return False
         dt = t - self._turn_t
         if math.isnan(self._turn_last) or not dt > 0.0:
             self._turn_last, self._turn_t = turn, t
-            return
+            return False
         raw = (turn - self._turn_last) / dt
         self.turn_rate += (raw - self.turn_rate) * dt / (RATE_TIME_CONSTANT + dt)
         self._turn_last, self._turn_t = turn, t
+        self._turn_dt = dt
+        return True
+
+    def _turn_loop(self) -> None:
+        """One step of the proportional-integral loop of the scale on the turn rate."""
+        loop = self.recipe.phases[self.index].turn_rate
+        assert loop is not None
+        dt = self._turn_dt
         wanted = abs(loop.rate)
         along = self.turn_rate if loop.rate > 0 else -self.turn_rate
         error = (wanted - along) / wanted

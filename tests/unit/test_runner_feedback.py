@@ -180,6 +180,40 @@ def test_injected_damping_fades_with_the_next_phase_s_ramp(tmp_path: Path,
     assert out == pytest.approx(np.array(TORQUES))
 
 
+BRAKE: dict[str, object] = {"brake": {"rate_deg_s": 90, "joint_damping": 0.04}}
+
+
+def _tumble(runner: RecipeRunner, rate_deg_s: float, speed: float,
+            seconds: float) -> np.ndarray:
+    """Feed a pair turning at ``rate_deg_s`` while every joint moves at ``speed`` (rad/s);
+    returns the last torques."""
+    angle, out, turn = np.zeros(9), np.zeros(9), 0.0
+    for k in range(round(seconds / DT)):
+        out = runner.step(k * DT, angle, np.zeros(9), _estimates(turn)).copy()
+        angle = angle + speed * DT
+        turn += math.radians(rate_deg_s) * DT
+    return out
+
+
+@pytest.mark.parametrize(("rate_deg_s", "damping"), [
+    (0.0, 0.0), (-60.0, 0.0), (-135.0, 0.02), (-400.0, 0.04), (400.0, 0.04)])
+def test_the_brake_damps_the_joints_as_the_pair_turns_faster(
+        tmp_path: Path, hand: HandConfig, rate_deg_s: float, damping: float) -> None:
+    """None at or below the brake's rate, its full damping from twice that rate, either way
+    round: a tumble the wrong way is a tumble too."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)
+    out = _tumble(runner, rate_deg_s, 2.0, 0.5)
+    assert runner.damping == pytest.approx(damping, abs=1e-6)
+    assert out == pytest.approx(np.array(TORQUES) - damping * 2.0, abs=1e-4)
+
+
+def test_the_brake_holds_no_damping_while_the_estimate_is_invalid(
+        tmp_path: Path, hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)
+    _drive(runner, -400.0, 0.5, valid=False)
+    assert runner.damping == 0.0
+
+
 def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
     recipe = _recipe(tmp_path, hand, TURN_RATE)
     rng = np.random.default_rng(1)
@@ -201,6 +235,10 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
     ({"pose": {"angles": dict.fromkeys(JOINTS, 5.0), "stiffness": 1.0}},
      "phases[0].pose.angles.f1_j1", False),
     ({"joint_damping": -0.01}, "phases[0].joint_damping", False),
+    ({"brake": {"rate_deg_s": 90, "joint_damping": 0.03}}, "phases[0].brake", False),
+    ({"brake": {"rate_deg_s": 0, "joint_damping": 0.03}}, "phases[0].brake.rate_deg_s", True),
+    ({"brake": {"rate_deg_s": 90, "joint_damping": 0.5}}, "phases[0].brake.joint_damping",
+     True),
     ({"joint_damping": 1.0}, "phases[0].joint_damping", False),
 ])
 def test_bad_feedback_is_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
