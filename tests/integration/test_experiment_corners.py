@@ -27,7 +27,8 @@ CORNERS = {
     "armature_lag_x0.5": {"armature": 0.5, "lag": 0.5},
 }
 #: the corners the shipped recipe does the experiment on
-DOES_THE_EXPERIMENT = {"damping_x1.1", "armature_lag_x2", "armature_lag_x0.5"}
+DOES_THE_EXPERIMENT = {"damping_x1.1", "joint_dynamics_x3", "armature_lag_x2",
+                       "armature_lag_x0.5"}
 #: deg: each manipulation phase's turn, and how far from it a phase may end
 PHASE_TURN_DEG, PHASE_TURN_TOLERANCE_DEG = 45.0, 10.0
 
