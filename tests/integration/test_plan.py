@@ -29,6 +29,7 @@ def short_template(tmp_path: Path) -> Path:
     phases[3]["max_s"] = 1.0
     phases[0]["pose"] = {"stiffness": 0.5, "damping": 0.005}
     phases[3]["turn_rate"] = {"rate_deg_s": 45, "scale": [0.6, 1.5]}
+    phases[3]["brake"] = {"rate_deg_s": 90, "joint_damping": 0.03}
     data["phases"] = phases[:4]
     path = tmp_path / "short.template.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
