@@ -4,8 +4,8 @@ and, in the same run, a naive asyncio.sleep loop at the same rate as the baselin
 Figures: lateness p99 of both loops and their ratio, the missed-tick rate, and the CPU time of
 our own tick stages (poll, recipe, safety, send, record, feedback) at p99, the simulated hand
 excluded; the simulated hand's frames that did not go and the times the host's queue was full.
-The hold recipe has the soft-limit guard and a joint-space pose hold, so the feedback stage
-does the work of a feedback phase every tick.
+The hold recipe has the soft-limit guard, a joint-space pose hold and injected joint damping,
+so the feedback stage does the work of a feedback phase every tick.
 
 Beside the loop, on its CPU one priority above it, the bare timer loop of the timing check runs
 for the whole run (``handctl.hostcheck``): ``host_*`` is what it saw, and every missed tick of
@@ -65,6 +65,7 @@ def hold_recipe(hand: HandConfig, name: str, seconds: float, pose: bool = True) 
                               "description": "close the hand gently and hold, for a benchmark"}
     if pose:
         phase["pose"] = {"angles": angles, "stiffness": 0.05, "damping": 0.002}
+        phase["joint_damping"] = 0.03  # the damping injection a braked phase adds
         doc["limit_guard_band"] = 0.15
     doc["phases"] = [phase]
     return json.dumps(doc)  # JSON is YAML

@@ -150,6 +150,11 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     if phase.pose is not None:
         doc["pose"] = {"angles": dict(zip(hand.joint_names, phase.pose.angles, strict=True)),
                        "stiffness": phase.pose.stiffness, "damping": phase.pose.damping}
+    if phase.joint_damping > 0.0:
+        doc["joint_damping"] = phase.joint_damping
+    if phase.brake is not None:
+        doc["brake"] = {"rate_deg_s": round(math.degrees(phase.brake.rate), 6),
+                        "joint_damping": phase.brake.damping}
     doc["provenance"] = plan.provenance
     return doc
 
@@ -209,7 +214,8 @@ def _compiled_phase(spec: TemplatePhase, torques: tuple[float, ...],
         exits = (parsed,)
     rounded = tuple(_rounded(torques))
     return Phase(spec.name, rounded, spec.ramp_s, spec.max_s, TimeoutAction.NEXT, exits, (),
-                 turn_rate=spec.turn_rate, pose=pose)
+                 turn_rate=spec.turn_rate, pose=pose, joint_damping=spec.joint_damping,
+                 brake=spec.brake)
 
 
 def _pose_of(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> PoseHold:

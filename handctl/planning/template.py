@@ -26,7 +26,9 @@ from pathlib import Path
 from handctl.config import HandConfig
 from handctl.online.recipes.loader import (
     check_unique_names,
+    parse_brake,
     parse_guard_band,
+    parse_joint_damping,
     parse_min_total_turn,
     parse_objects,
     parse_turn_rate,
@@ -34,6 +36,7 @@ from handctl.online.recipes.loader import (
 from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
     RecipeObject,
+    TurnBrake,
     TurnRate,
     consecutive_pairs,
     estimate_names,
@@ -62,6 +65,8 @@ class TemplatePhase:
     pose_damping: float = 0.0  # N·m·s/rad
     #: the names of the estimates of the template's objects (``schema.estimate_names``)
     estimates: tuple[str, ...] = ()
+    joint_damping: float = 0.0  # N·m·s/rad, injected on every joint, carried into the recipe
+    brake: TurnBrake | None = None  # more damping while the pair tumbles, carried likewise
 
     def exit_condition(self) -> str:
         """The compiled exit of a turn phase: on the estimated turn of the first pair since
@@ -224,6 +229,9 @@ def _phase(doc: Doc, hand: HandConfig, objects: list[str],
                                 unit="N·m/rad")
         damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
         pose.done()
+    joint_damping = parse_joint_damping(doc)
+    brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     doc.done()
     return TemplatePhase(name, kind, ramp, max_s, seed, move, min_height, turn, exit_fraction,
-                         exit_hold, turn_rate, stiffness, damping, estimates)
+                         exit_hold, turn_rate, stiffness, damping, estimates, joint_damping,
+                         brake)

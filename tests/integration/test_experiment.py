@@ -1,6 +1,7 @@
 """The paper's experiment on the simulated hand, nominal model, lockstep (deterministic): the
 compiled recipe lifts both cylinders and holds them, turns the pair through its manipulation
-phases on exits read from the estimator, drops nothing; the estimator follows ground truth."""
+phases on exits read from the estimator, about 45° a phase, drops nothing; the estimator
+follows ground truth."""
 
 from __future__ import annotations
 
@@ -24,6 +25,12 @@ RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 #: on the nominal model (the cylinders trade places), so this fails on a real regression, not
 #: on a degree of noise
 MIN_ROTATION_DEG = 135.0
+
+
+#: deg: each manipulation phase turns the pair 45° within this, as the paper's steps do; a
+#: phase that turns much more is the pair tumbling past where its exit could catch it
+PHASE_TURN_DEG = 45.0
+PHASE_TURN_TOLERANCE_DEG = 10.0
 
 
 #: N·m, the most a joint's applied torque may change from one tick to the next at p99 over
@@ -78,6 +85,14 @@ def test_lifted_held_turned_not_dropped(summary: dict[str, object]) -> None:
     assert ex["total_rotation_deg"] >= MIN_ROTATION_DEG
     assert ex["total_rotation_deg"] == pytest.approx(abs(sum(ex["phase_angles_deg"])),
                                                      abs=0.05)
+
+
+def test_each_manipulation_phase_turns_about_45_deg(summary: dict[str, object]) -> None:
+    ex = summary["experiment"]
+    assert isinstance(ex, dict)
+    for k, angle in enumerate(ex["phase_angles_deg"], 1):
+        assert abs(abs(angle) - PHASE_TURN_DEG) <= PHASE_TURN_TOLERANCE_DEG, \
+            f"manipulate_{k} turned {angle}°: {ex['phase_angles_deg']}"
 
 
 def test_the_estimator_follows_ground_truth(summary: dict[str, object]) -> None:

@@ -1,5 +1,5 @@
 """Feedback keeps a run reproducible: a lockstep run of the experiment's first phases with a
-pose hold, the soft-limit guard and a turn-rate loop is recorded, and ``handctl replay
+pose hold, the soft-limit guard, a turn-rate loop and a brake is recorded, and ``handctl replay
 --rerun`` computes the very same torques from the logged angles (bit-exact), because the
 feedback reads only the angles and the estimates made from them."""
 
@@ -25,6 +25,7 @@ def _with_feedback(tmp_path: Path) -> Path:
     phases[2]["max_s"] = 0.8  # envelop: long enough for the estimate to be valid
     phases[3]["max_s"] = 0.5
     phases[3]["turn_rate"] = {"rate_deg_s": -45, "scale": [0.5, 1.5]}
+    phases[3]["brake"] = {"rate_deg_s": 30, "joint_damping": 0.03}
     data["phases"] = phases
     path = tmp_path / "feedback.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))

@@ -29,6 +29,7 @@ def short_template(tmp_path: Path) -> Path:
     phases[3]["max_s"] = 1.0
     phases[0]["pose"] = {"stiffness": 0.5, "damping": 0.005}
     phases[3]["turn_rate"] = {"rate_deg_s": 45, "scale": [0.6, 1.5]}
+    phases[3]["brake"] = {"rate_deg_s": 90, "joint_damping": 0.03}
     data["phases"] = phases[:4]
     path = tmp_path / "short.template.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
@@ -53,6 +54,8 @@ def test_plan_compiles_a_recipe_with_provenance_reproducibly(tmp_path: Path,
     loop = recipe.phases[3].turn_rate
     assert loop is not None and loop.rate < 0  # signed as the clockwise turn
     assert (loop.scale_min, loop.scale_max) == (0.6, 1.5)
+    assert template.phases[3].brake is not None
+    assert recipe.phases[3].brake == template.phases[3].brake
     pose = recipe.phases[0].pose
     assert pose is not None and pose.stiffness == 0.5
     # the pose is where the nominal hand ends the approach: the fingers flexed from the start

@@ -1,7 +1,8 @@
 """Feedback inside a phase: the turn-rate loop scales the phase's torque within its range from
 the estimated centre-line rate (down when the pair turns too fast, up when it stalls, held
-while the estimate is invalid), and a pose hold adds a joint-space spring and damper. Both
-are functions of what the runner is fed, so the same feed gives the same torques."""
+while the estimate is invalid), a pose hold adds a joint-space spring and damper, and a
+phase's ``joint_damping`` opposes every joint's velocity. All are functions of what the
+runner is fed, so the same feed gives the same torques."""
 
 from __future__ import annotations
 
@@ -141,6 +142,80 @@ def test_a_pose_hold_adds_a_spring_and_a_damper(tmp_path: Path, hand: HandConfig
     assert out == pytest.approx(expected, abs=1e-4)
 
 
+def _move(runner: RecipeRunner, speed: float, seconds: float, t: float = 0.0,
+          angle: np.ndarray | None = None) -> tuple[float, np.ndarray, np.ndarray]:
+    """Feed every joint moving at ``speed`` (rad/s); returns the time, the angles, the last
+    torques."""
+    angle = np.zeros(9) if angle is None else angle
+    out = np.zeros(9)
+    for _ in range(round(seconds / DT)):
+        out = runner.step(t, angle, np.zeros(9)).copy()
+        angle = angle + speed * DT
+        t += DT
+    return t, angle, out
+
+
+def test_injected_damping_opposes_every_joint_s_velocity(tmp_path: Path,
+                                                         hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"joint_damping": 0.03}, objects=False), 9)
+    _, _, out = _move(runner, 0.0, 2 * RAMP)
+    assert out == pytest.approx(np.array(TORQUES))  # at rest: the planned torque
+    _, _, out = _move(runner, 2.0, 0.2, 2 * RAMP)  # past ten of the velocity's time constants
+    assert out == pytest.approx(np.array(TORQUES) - 0.03 * 2.0, abs=1e-4)
+    assert runner.damping == 0.03
+
+
+def test_injected_damping_fades_with_the_next_phase_s_ramp(tmp_path: Path,
+                                                           hand: HandConfig) -> None:
+    """Leaving a damped phase for one without is no step in torque: the coefficient follows
+    the ramp down to the next phase's."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"joint_damping": 0.05}, objects=False,
+                                  max_s=0.3), 9)
+    t, angle, before = _move(runner, 2.0, 0.3)
+    assert runner.phase_name == "turn"
+    t, angle, after = _move(runner, 2.0, 2 * DT, t, angle)
+    assert runner.phase_name == "after"
+    assert np.max(np.abs(after - before)) < 0.01
+    assert 0.0 < runner.damping < 0.05
+    _, _, out = _move(runner, 2.0, RAMP, t, angle)
+    assert runner.damping == 0.0
+    assert out == pytest.approx(np.array(TORQUES))
+
+
+BRAKE: dict[str, object] = {"brake": {"rate_deg_s": 90, "joint_damping": 0.04}}
+
+
+def _tumble(runner: RecipeRunner, rate_deg_s: float, speed: float,
+            seconds: float) -> np.ndarray:
+    """Feed a pair turning at ``rate_deg_s`` while every joint moves at ``speed`` (rad/s);
+    returns the last torques."""
+    angle, out, turn = np.zeros(9), np.zeros(9), 0.0
+    for k in range(round(seconds / DT)):
+        out = runner.step(k * DT, angle, np.zeros(9), _estimates(turn)).copy()
+        angle = angle + speed * DT
+        turn += math.radians(rate_deg_s) * DT
+    return out
+
+
+@pytest.mark.parametrize(("rate_deg_s", "damping"), [
+    (0.0, 0.0), (-60.0, 0.0), (-135.0, 0.02), (-400.0, 0.04), (400.0, 0.04)])
+def test_the_brake_damps_the_joints_as_the_pair_turns_faster(
+        tmp_path: Path, hand: HandConfig, rate_deg_s: float, damping: float) -> None:
+    """None at or below the brake's rate, its full damping from twice that rate, either way
+    round: a tumble the wrong way is a tumble too."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)
+    out = _tumble(runner, rate_deg_s, 2.0, 0.5)
+    assert runner.damping == pytest.approx(damping, abs=1e-6)
+    assert out == pytest.approx(np.array(TORQUES) - damping * 2.0, abs=1e-4)
+
+
+def test_the_brake_holds_no_damping_while_the_estimate_is_invalid(
+        tmp_path: Path, hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)
+    _drive(runner, -400.0, 0.5, valid=False)
+    assert runner.damping == 0.0
+
+
 def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
     recipe = _recipe(tmp_path, hand, TURN_RATE)
     rng = np.random.default_rng(1)
@@ -161,6 +236,12 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
     ({"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 2.0]}}, "phases[0].turn_rate", False),
     ({"pose": {"angles": dict.fromkeys(JOINTS, 5.0), "stiffness": 1.0}},
      "phases[0].pose.angles.f1_j1", False),
+    ({"joint_damping": -0.01}, "phases[0].joint_damping", False),
+    ({"brake": {"rate_deg_s": 90, "joint_damping": 0.03}}, "phases[0].brake", False),
+    ({"brake": {"rate_deg_s": 0, "joint_damping": 0.03}}, "phases[0].brake.rate_deg_s", True),
+    ({"brake": {"rate_deg_s": 90, "joint_damping": 0.5}}, "phases[0].brake.joint_damping",
+     True),
+    ({"joint_damping": 1.0}, "phases[0].joint_damping", False),
 ])
 def test_bad_feedback_is_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
                                                 phase: dict[str, object], key: str,

@@ -26,6 +26,7 @@ from handctl.online.recipes.schema import (
     Recipe,
     RecipeObject,
     TimeoutAction,
+    TurnBrake,
     TurnRate,
     consecutive_pairs,
     estimate_names,
@@ -43,6 +44,10 @@ GUARD_BAND_MAX = 0.5
 MAX_TOTAL_TURN_DEG = 1440.0
 #: deg/s, the fastest turn a turn-rate loop may ask for (a quasi-static analysis covers less)
 MAX_TURN_RATE_DEG_S = 720.0
+#: N·m·s/rad, the most damping a phase may inject: the drive's lag and the velocity filter
+#: delay the damper by about 15 ms, and a damper much stiffer than the joints' inertia over
+#: that delay oscillates instead of damping
+MAX_JOINT_DAMPING = 0.2
 #: the most a turn-rate loop may scale its phase's torque (tau_max still bounds it)
 MAX_SCALE = 5.0
 
@@ -80,10 +85,11 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                    for p in doc.mappings("phases", min_len=1, max_len=MAX_PHASES))
     check_unique_names(doc, [p.name for p in phases])
     for i, phase in enumerate(phases):
-        if phase.turn_rate is not None and not pairs:
-            raise ConfigError(doc.file, f"phases[{i}].turn_rate", "a recipe that declares two "
-                              "objects or more ([{name, radius}, ...]): the turn-rate loop "
-                              "holds the turn of the first pair", f"{len(objects)} objects")
+        for key, loop in (("turn_rate", phase.turn_rate), ("brake", phase.brake)):
+            if loop is not None and not pairs:
+                raise ConfigError(doc.file, f"phases[{i}].{key}", "a recipe that declares two "
+                                  "objects or more ([{name, radius}, ...]): the " + key + " reads "
+                                  "the turn of the first pair", f"{len(objects)} objects")
     doc.done()
     if digest is not None and digest != hand.config_hash:
         raise ConfigError(doc.file, "hand_config_hash",
@@ -180,12 +186,33 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
     aborts = _parse_conditions(doc, "abort", hand, estimates)
     turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
     pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
+    joint_damping = parse_joint_damping(doc)
+    brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     provenance = doc.raw("provenance", {})
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
     doc.done()
     return Phase(name, torques, ramp, max_s, on_timeout, exits, aborts, provenance, turn_rate,
-                 pose)
+                 pose, joint_damping, brake)
+
+
+def parse_joint_damping(doc: Doc) -> float:
+    """``joint_damping`` (N·m·s/rad) of a recipe's or a template's phase: the damping the
+    runner injects on every joint (0 when it is not set)."""
+    return doc.number("joint_damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING,
+                      unit="N·m·s/rad")
+
+
+def parse_brake(doc: Doc) -> TurnBrake:
+    """``brake`` of a recipe's or a template's phase (``schema.TurnBrake``): ``rate_deg_s``,
+    the turn rate above which it acts, and ``joint_damping`` (N·m·s/rad), reached at twice
+    that rate."""
+    rate = doc.number("rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True,
+                      unit="deg/s")
+    damping = doc.number("joint_damping", min=0.0, max=MAX_JOINT_DAMPING, min_exclusive=True,
+                         unit="N·m·s/rad")
+    doc.done()
+    return TurnBrake(math.radians(rate), damping)
 
 
 def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:

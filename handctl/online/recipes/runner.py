@@ -16,6 +16,18 @@ Feedback, all of it from the angles and the estimates computed from them:
   the scale holds. The loop starts at the plan's own torque (scale 1).
 - ``pose``: a joint-space spring and damper towards the phase's pose, ramped in with the
   phase's torques.
+- ``brake``: more injected damping while the pair tumbles: none while the estimated
+  centre-line rate is at most the brake's rate, rising to its ``joint_damping`` at twice
+  that rate, on top of the phase's own ``joint_damping``. A damper that acts only on a
+  tumble slows the roll-over of a lightly damped hand and leaves alone a heavily damped one,
+  whose pair a fixed damper would let fall back.
+- ``joint_damping``: ``-joint_damping * velocity`` on every joint (the velocities filtered
+  from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
+  least (a tendon's losses are not measured to a factor of three), and in a turn it sets how
+  fast the grasp rolls over; an injected term larger than that uncertainty makes the pace of
+  the motion the recipe's, and slows the roll-over of a pair past its balance to where the
+  exits on the measured turn can catch it. The coefficient moves from the previous phase's
+  to this one's with the ramp, so a change of damping is no step in torque.
 """
 
 from __future__ import annotations
@@ -88,9 +100,16 @@ class RecipeRunner:
         self.turn_rate = 0.0  # rad/s, estimated, low-passed
         self._turn_last = math.nan
         self._turn_t = math.nan
+        self._turn_dt = 0.0
         self._proposed = np.zeros(n_joints)
         self._delta = np.zeros(n_joints)
         self._fed = False  # whether ``_proposed`` holds this phase's last proposal
+        # injected joint damping (N·m·s/rad): the previous phase's, this one's, and between
+        # them as the ramp goes, so a change of damping is no step in torque
+        self._damping_from = 0.0
+        self._damping_to = 0.0
+        self.damping = 0.0
+        self._damped = np.zeros(n_joints)
 
     @property
     def phase_name(self) -> str:
@@ -113,6 +132,7 @@ class RecipeRunner:
         self._from = (self._proposed if self._fed else self._desired).copy()
         self._fed = False
         self.phase_start = t
+        self._damping_from = self.damping
         self._held_since.clear()
         self._phase_ref.clear()
         self.scale = self._scale_i = 1.0
@@ -123,12 +143,14 @@ class RecipeRunner:
             self.index = index
             self._target = np.array(phase.torques)
             self._ramp_s = phase.ramp_s
+            self._damping_to = phase.joint_damping
             self.records.append(PhaseRecord(phase.name, t))
         else:
             self.index = len(self.recipe.phases)
             self.status = RunStatus.END_RAMP
             self._target = np.zeros(self.n)
             self._ramp_s = self.recipe.end_ramp_s
+            self._damping_to = 0.0
 
     def step(self, t: float, angle: FloatArray, tdt: FloatArray,
              estimates: Sequence[float] | None = None) -> FloatArray:
@@ -167,6 +189,7 @@ class RecipeRunner:
                 elapsed = 0.0
         fraction = 1.0 if self._ramp_s <= 0 else min(1.0, elapsed / self._ramp_s)
         self._fraction = fraction
+        self.damping = self._damping_from + fraction * (self._damping_to - self._damping_from)
         np.subtract(self._target, self._from, out=self._desired)
         self._desired *= fraction
         self._desired += self._from
@@ -183,13 +206,21 @@ class RecipeRunner:
         phase = (self.recipe.phases[self.index] if self.status is RunStatus.RUNNING
                  else None)
         out = self._desired
+        fresh = False  # whether the turn-rate estimate took a new sample this tick
+        if phase is not None and (phase.turn_rate is not None or phase.brake is not None):
+            fresh = self._follow_turn(t, estimates)
+        if phase is not None and phase.brake is not None:
+            brake = phase.brake
+            over = (abs(self.turn_rate) - brake.rate) / brake.rate
+            self.damping += self._fraction * brake.damping * min(1.0, max(0.0, over))
         if phase is not None and (phase.turn_rate is not None or phase.pose is not None):
             # the ramp state stays the recipe's own torque; only what is proposed moves
             out = self._proposed
             out[:] = self._desired
             self._fed = True
             if phase.turn_rate is not None:
-                self._turn_loop(t, estimates)
+                if fresh:
+                    self._turn_loop()
                 # from + fraction * (scale * target - from)
                 np.multiply(self._target, (self.scale - 1.0) * self._fraction, out=self._delta)
                 out += self._delta
@@ -199,26 +230,38 @@ class RecipeRunner:
                 for j, q_ref in enumerate(pose.angles):
                     out[j] += self._fraction * (pose.stiffness * (q_ref - float(angle[j]))
                                                 - pose.damping * float(v[j]))
+        if self.damping > 0.0:
+            # apart from ``_proposed``, which the next phase's ramp starts from: the damping
+            # carries over through ``self.damping`` instead
+            np.multiply(self.velocity.value, -self.damping, out=self._damped)
+            self._damped += out
+            out = self._damped
         if self._guard is None:
             return out
         return self._guard.apply(angle, out, self._guarded, self.velocity.value)
 
-    def _turn_loop(self, t: float, estimates: Sequence[float] | None) -> None:
-        """One step of the proportional-integral loop of the scale on the turn rate."""
-        phase = self.recipe.phases[self.index]
-        loop = phase.turn_rate
-        assert loop is not None
+    def _follow_turn(self, t: float, estimates: Sequence[float] | None) -> bool:
+        """One step of the estimated centre-line rate (``turn_rate``, rad/s); False when there
+        was no new valid sample to take."""
         turn = float(estimates[_TURN]) if estimates is not None else math.nan
         if not math.isfinite(turn):
             self._turn_last = math.nan  # the rate restarts from the next valid estimate
-            return
+            return False
         dt = t - self._turn_t
         if math.isnan(self._turn_last) or not dt > 0.0:
             self._turn_last, self._turn_t = turn, t
-            return
+            return False
         raw = (turn - self._turn_last) / dt
         self.turn_rate += (raw - self.turn_rate) * dt / (RATE_TIME_CONSTANT + dt)
         self._turn_last, self._turn_t = turn, t
+        self._turn_dt = dt
+        return True
+
+    def _turn_loop(self) -> None:
+        """One step of the proportional-integral loop of the scale on the turn rate."""
+        loop = self.recipe.phases[self.index].turn_rate
+        assert loop is not None
+        dt = self._turn_dt
         wanted = abs(loop.rate)
         along = self.turn_rate if loop.rate > 0 else -self.turn_rate
         error = (wanted - along) / wanted

@@ -99,6 +99,21 @@ class TurnRate:
 
 
 @dataclass(frozen=True)
+class TurnBrake:
+    """Joint damping a phase injects when the pair tumbles (``runner.py``): none while the
+    estimated centre line turns at ``rate`` or slower (either way), rising to ``damping`` at
+    twice that rate.
+
+    Why on the rate and not always: a hand damped more than the plan's lets the pair fall
+    back where a phase turns it by rolling it over its balance, and a hand damped less lets
+    it tumble past the exit; a damper that acts only on the tumble slows the second and
+    leaves the first alone."""
+
+    rate: float  # rad/s, > 0
+    damping: float  # N·m·s/rad, at twice ``rate``
+
+
+@dataclass(frozen=True)
 class PoseHold:
     """Joint-space impedance of a phase: ``stiffness * (angle - q) - damping * velocity`` is
     added to the phase's torques, so the fingers end in a known pose whatever pose they began
@@ -121,6 +136,11 @@ class Phase:
     provenance: Mapping[str, Any] = field(default_factory=dict)
     turn_rate: TurnRate | None = None
     pose: PoseHold | None = None
+    #: N·m·s/rad, joint-velocity damping the runner adds to every joint (runner.py): the
+    #: hand's own damping is the least known of its dynamics, and an added term it cannot
+    #: change makes the motion's pace less its own; 0: none
+    joint_damping: float = 0.0
+    brake: TurnBrake | None = None
 
 
 @dataclass(frozen=True)
@@ -178,7 +198,8 @@ class Recipe:
 
     @property
     def uses_estimates(self) -> bool:
-        return any(p.turn_rate is not None for p in self.phases) or any(
+        return any(p.turn_rate is not None or p.brake is not None
+                   for p in self.phases) or any(
             c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
 
 
