@@ -16,9 +16,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 
 from handctl.analysis.model import load_scenario
 from handctl.config import load_hand
+from handctl.online.recipes.loader import load_recipe
 from handctl.sim.params import parse_sim
 
 from ..conftest import HAND_YAML, ROOT
@@ -94,6 +96,32 @@ def test_the_planar_template_plans_the_committed_recipe(tmp_path: Path) -> None:
     assert planned == committed
     for phase in ("approach", "lift", "envelop", "turn"):
         assert phase in done.stdout
+
+
+def test_a_one_object_template_plans_on_the_four_by_four_hand(tmp_path: Path) -> None:
+    """The planner takes sixteen joints and one object: the four-by-four recipe's closing
+    torques as a free phase, then a lift and a hold it plans (the smallest search)."""
+    recipe = yaml.safe_load(FOUR_BY_FOUR_RECIPE.read_text())
+    template = {
+        "template": "close_and_lift", "recipe": "close_and_lift",
+        "objects": recipe["objects"], "limit_guard_band": recipe["limit_guard_band"],
+        "phases": [
+            {"name": "close", "kind": "free", "torques": recipe["phases"][0]["torques"],
+             "max_s": 1.0},
+            {"name": "lift", "kind": "lift", "move": {"cylinder": [0.0, 1.0]},
+             "min_height": 0.02, "max_s": 1.5},
+            {"name": "hold", "kind": "hold", "min_height": 0.02, "max_s": 1.0}]}
+    path = tmp_path / "close_and_lift.template.yaml"
+    path.write_text(yaml.safe_dump(template, sort_keys=False))
+    out = tmp_path / "planned.yaml"
+    done = _handctl("plan", str(path), "--hand", str(FOUR_BY_FOUR), "-o", str(out), "--quick",
+                    "--models", "1", "--workers", "1")
+    assert done.returncode == 0, done.stderr
+    hand = load_hand(FOUR_BY_FOUR)
+    planned = load_recipe(out, hand)
+    assert planned.compiled and planned.hand_config_hash == hand.config_hash
+    assert [p.name for p in planned.phases] == ["close", "lift", "hold"]
+    assert all(len(p.torques) == hand.n_joints == 16 for p in planned.phases)
 
 
 # -- lockstep runs of the shipped shapes, their logs re-run ---------------------------------
