@@ -79,6 +79,10 @@ def test_the_planar_analysis_runs_on_its_own_geometry(tmp_path: Path) -> None:
     assert region["conditions"] == ["move cyl1", "move cyl2", "compression cyl1/cyl2"]
     assert region["box"]["tau11"] == pytest.approx([-0.45, 0.45])
     assert region["realisable_area"] > 0  # contact forces realise torques in that box
+    # against gravity, within the hand's torques, some turn the pair as Fig. 3 asks
+    assert region["region"]["area"] > 0 and region["best"]["margin"] > 0
+    assert all(abs(tau) <= 0.45 for tau in region["best"]["tau"])
+    assert "largest robust margin" in done.stdout
     assert (tmp_path / "region.png").stat().st_size > 0
 
 
