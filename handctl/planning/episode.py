@@ -134,7 +134,10 @@ class Episode:
 
     def pair_blocked(self) -> bool:
         """Whether a finger link lies across the segment between the two centres: a pair
-        with a link between its objects cannot turn past it."""
+        with a link between its objects cannot turn past it. One object is no pair, so
+        nothing blocks it (the hold of a one-object recipe asks for an open pair too)."""
+        if len(self._radii) < 2:
+            return False
         a, b = self.plant.object_poses()[:2]
         p, q = (a.x, a.y), (b.x, b.y)
         for ax, ay, ux, uy, length, half in self.estimator.segments(self.plant.joint_angles):
