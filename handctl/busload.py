@@ -110,8 +110,7 @@ class BusBudget:
     @property
     def loop_time_per_tick_s(self) -> float:
         """Bus time of everything sent once per loop period."""
-        return sum(m.frame_time_us for m in self.messages
-                   if m.rate_hz == self.loop_rate_hz) * 1e-6
+        return sum(m.frame_time_us for m in self.messages if m.rate_hz == self.loop_rate_hz) * 1e-6
 
     def highest_loop_rate_hz(self) -> float:
         """The loop rate at which this bus would sit exactly at ``MAX_LOAD``."""
@@ -129,9 +128,15 @@ def message_rate(layout: Layout, loop_rate_hz: float) -> float:
     return 0.0
 
 
-def hand_budget(hand: HandConfig, protocol: Protocol, *, nodes: set[int] | None = None,
-                fd: bool | None = None, bitrate: int | None = None,
-                data_bitrate: int | None = None) -> BusBudget:
+def hand_budget(
+    hand: HandConfig,
+    protocol: Protocol,
+    *,
+    nodes: set[int] | None = None,
+    fd: bool | None = None,
+    bitrate: int | None = None,
+    data_bitrate: int | None = None,
+) -> BusBudget:
     """The budget of the hand's messages (of ``nodes`` only, if given) on its bus or another.
 
     The overrides let ``handctl check`` say what *would* fit: one bus per finger, or CAN-FD.
@@ -147,8 +152,9 @@ def hand_budget(hand: HandConfig, protocol: Protocol, *, nodes: set[int] | None 
         t = frame_time_s(layout.length, use_fd, rate, data_rate)
         hz = message_rate(layout, hand.bus.loop_rate_hz)
         frames = 1 if use_fd else max(1, math.ceil(layout.length / 8))
-        rows.append(MessageBudget(layout.name, layout.frame_id, layout.length, frames, hz,
-                                  t * 1e6, t * hz))
+        rows.append(
+            MessageBudget(layout.name, layout.frame_id, layout.length, frames, hz, t * 1e6, t * hz)
+        )
     return BusBudget(use_fd, rate, data_rate, hand.bus.loop_rate_hz, tuple(rows))
 
 
@@ -161,8 +167,11 @@ FD_DATA_BITRATES = (2_000_000, 4_000_000, 5_000_000, 8_000_000, 10_000_000)
 def too_long_for_classic(hand: HandConfig, protocol: Protocol) -> list[str]:
     """The hand's messages (``Name (n bytes)``) that one classic CAN frame cannot carry."""
     nodes = {f.node_id for f in hand.fingers}
-    return [f"{layout.name} ({layout.length} bytes)" for layout in protocol.layouts
-            if layout.length > CLASSIC_MAX_BYTES and (layout.node is None or layout.node in nodes)]
+    return [
+        f"{layout.name} ({layout.length} bytes)"
+        for layout in protocol.layouts
+        if layout.length > CLASSIC_MAX_BYTES and (layout.node is None or layout.node in nodes)
+    ]
 
 
 def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
@@ -181,19 +190,25 @@ def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
     nodes = [f.node_id for f in hand.fingers]
     for buses in range(2, len(nodes) + 1):
         size = -(-len(nodes) // buses)
-        worst = max(hand_budget(hand, protocol, nodes=set(nodes[i:i + size])).load
-                    for i in range(0, len(nodes), size))
+        worst = max(
+            hand_budget(hand, protocol, nodes=set(nodes[i : i + size])).load
+            for i in range(0, len(nodes), size)
+        )
         if worst <= MAX_LOAD:
-            who = "one bus per finger" if size == 1 else (
-                f"{-(-len(nodes) // size)} buses of at most {size} fingers")
+            who = (
+                "one bus per finger"
+                if size == 1
+                else (f"{-(-len(nodes) // size)} buses of at most {size} fingers")
+            )
             hints.append(f"{who} would carry {worst * 100:.1f} % at most")
             break
     for rate in FD_DATA_BITRATES:
         if rate > (hand.bus.data_bitrate or 0):
             fd = hand_budget(hand, protocol, data_bitrate=rate)
             if fd.ok:
-                hints.append(f"a data phase of {rate / 1e6:g} Mbit/s would carry "
-                             f"{fd.load * 100:.1f} %")
+                hints.append(
+                    f"a data phase of {rate / 1e6:g} Mbit/s would carry {fd.load * 100:.1f} %"
+                )
                 break
     return hints
 

@@ -64,20 +64,28 @@ def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
     from handctl.config import load_hand
 
     if not path.is_file():
-        raise ConfigError(option, "", "an existing hand config file (HAND.yaml; "
-                          + DEFAULT_HAND_HELP + ")",
-                          f"{path}: {'not a file' if path.exists() else 'no such file'}")
+        raise ConfigError(
+            option,
+            "",
+            "an existing hand config file (HAND.yaml; " + DEFAULT_HAND_HELP + ")",
+            f"{path}: {'not a file' if path.exists() else 'no such file'}",
+        )
     if dbc is not None and not dbc.is_file():
-        raise ConfigError("--dbc", "", "an existing DBC file (PROTOCOL.dbc)",
-                          f"{dbc}: {'not a file' if dbc.exists() else 'no such file'}")
+        raise ConfigError(
+            "--dbc",
+            "",
+            "an existing DBC file (PROTOCOL.dbc)",
+            f"{dbc}: {'not a file' if dbc.exists() else 'no such file'}",
+        )
     return load_hand(path) if dbc is None else load_hand(path, dbc)
 
 
 def _positive_seconds(option: str, value: float | None) -> None:
     """A duration option: finite and > 0. Leaving the option out is how to ask for no limit."""
     if value is not None and not (math.isfinite(value) and value > 0):
-        raise ConfigError(option, "", "a number of seconds > 0 (leave the option out for no "
-                          "limit)", value)
+        raise ConfigError(
+            option, "", "a number of seconds > 0 (leave the option out for no limit)", value
+        )
 
 
 def _progress(message: str) -> None:
@@ -96,8 +104,10 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
     if args.json and not args.json.resolve().parent.is_dir():
         raise ConfigError("--json", "", "a file in an existing directory", str(args.json))
     hand = _load_hand(args.hand, "HAND.yaml")
-    _progress(f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for "
-              f"{args.seconds:g} s ...")
+    _progress(
+        f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for "
+        f"{args.seconds:g} s ..."
+    )
     report = timing_check(hand, args.seconds, realtime=not args.no_rt, cpu=args.loop_cpu)
     print(report.text())
     if args.json:
@@ -124,45 +134,60 @@ def _cmd_check(args: argparse.Namespace) -> int:
     # `sim` or `run` meets it (the robot never reads it, so a config without one is fine).
     scene = parse_sim(hand) if hand.sim else None
     bus = hand.bus
-    kind = (f"CAN-FD {bus.bitrate / 1e6:g}/{(bus.data_bitrate or 0) / 1e6:g} Mbit/s"
-            if bus.fd else f"classic CAN {bus.bitrate / 1e6:g} Mbit/s")
+    kind = (
+        f"CAN-FD {bus.bitrate / 1e6:g}/{(bus.data_bitrate or 0) / 1e6:g} Mbit/s"
+        if bus.fd
+        else f"classic CAN {bus.bitrate / 1e6:g} Mbit/s"
+    )
     print(f"hand {hand.name} ({args.hand}), config hash {hand.config_hash}")
     print(f"bus {bus.interface}:{bus.channel}, {kind}, loop {bus.loop_rate_hz:g} Hz")
     print(f"{'joint':<8} {'tau_max':>8} {'device':>8} {'rate':>9} {'angle range':>17}")
     for finger in hand.fingers:
         for joint in finger.joints:
             limits = f"[{joint.angle_min:+.2f}, {joint.angle_max:+.2f}] rad"
-            print(f"{joint.name:<8} {joint.tau_max:>6.3f}Nm {joint.device_tau_max:>6.3f}Nm "
-                  f"{joint.rate_limit:>6.1f}N·m/s {limits}")
+            print(
+                f"{joint.name:<8} {joint.tau_max:>6.3f}Nm {joint.device_tau_max:>6.3f}Nm "
+                f"{joint.rate_limit:>6.1f}N·m/s {limits}"
+            )
     for finger in hand.fingers:
         ids = ", ".join(f"{k} 0x{v:03X}" for k, v in finger.can_ids.as_dict().items())
         print(f"node {finger.node_id} ({finger.name}): {ids}")
     if scene is not None:
         objects = ", ".join(f"{o.name} (r {o.radius:g} m)" for o in scene.objects)
-        print(f"simulated hand: {objects}; "
-              f"fingers {'collide' if scene.between_fingers else 'pass through each other'}")
+        print(
+            f"simulated hand: {objects}; "
+            f"fingers {'collide' if scene.between_fingers else 'pass through each other'}"
+        )
     budget = hand_budget(hand, protocol)
     print(f"\nworst-case bus budget ({kind}, {bus.loop_rate_hz:g} Hz loop):")
-    print(f"{'message':<17} {'id':>6} {'bytes':>5} {'frames':>6} {'rate':>8} {'time':>9} "
-          f"{'load':>7}")
+    print(
+        f"{'message':<17} {'id':>6} {'bytes':>5} {'frames':>6} {'rate':>8} {'time':>9} {'load':>7}"
+    )
     for m in budget.messages:
         rate = f"{m.rate_hz:g} Hz" if m.rate_hz else "event"
-        print(f"{m.name:<17} 0x{m.frame_id:03X} {m.n_bytes:>5} {m.frames:>6} {rate:>8} "
-              f"{m.frame_time_us:>7.1f}us {m.load * 100:>6.2f}%")
+        print(
+            f"{m.name:<17} 0x{m.frame_id:03X} {m.n_bytes:>5} {m.frames:>6} {rate:>8} "
+            f"{m.frame_time_us:>7.1f}us {m.load * 100:>6.2f}%"
+        )
     print(f"total {budget.load * 100:.1f} % (limit {MAX_LOAD * 100:.0f} %)")
     too_long = [] if bus.fd else too_long_for_classic(hand, protocol)
     if budget.ok and not too_long:
         print("ok")
         return EXIT_OK
     if too_long:
-        print(f"handctl: error: {args.hand}: bus.fd: expected true (CAN-FD): "
-              f"{', '.join(too_long)} are longer than the 8 bytes of a classic CAN frame, and "
-              "handctl sends every message in one frame; found false", file=sys.stderr)
+        print(
+            f"handctl: error: {args.hand}: bus.fd: expected true (CAN-FD): "
+            f"{', '.join(too_long)} are longer than the 8 bytes of a classic CAN frame, and "
+            "handctl sends every message in one frame; found false",
+            file=sys.stderr,
+        )
     if not budget.ok:
-        print(f"handctl: error: {args.hand}: bus: expected a worst-case load <= "
-              f"{MAX_LOAD * 100:.0f} %, found {budget.load * 100:.1f} % at "
-              f"{bus.loop_rate_hz:g} Hz; " + "; ".join(what_would_fit(hand, protocol)),
-              file=sys.stderr)
+        print(
+            f"handctl: error: {args.hand}: bus: expected a worst-case load <= "
+            f"{MAX_LOAD * 100:.0f} %, found {budget.load * 100:.1f} % at "
+            f"{bus.loop_rate_hz:g} Hz; " + "; ".join(what_would_fit(hand, protocol)),
+            file=sys.stderr,
+        )
     return EXIT_BAD_INPUT
 
 
@@ -170,8 +195,9 @@ def _cmd_check(args: argparse.Namespace) -> int:
 def _cmd_analyze_torque_set(args: argparse.Namespace) -> int:
     from handctl.analysis.commands import torque_set_report
 
-    report = torque_set_report(args.scenario, (args.k[0], args.k[1]), args.json, args.plot,
-                               progress=_progress)
+    report = torque_set_report(
+        args.scenario, (args.k[0], args.k[1]), args.json, args.plot, progress=_progress
+    )
     print(report)
     return EXIT_OK
 
@@ -199,12 +225,15 @@ def status_text(line: object) -> str:
     assert isinstance(line, StatusLine)
     clock = "sim " if line.simulated else ""
     if 1 <= line.phase_number <= line.phase_count:
-        where = (f"phase {line.phase_number}/{line.phase_count} {line.phase:<16} "
-                 f"{line.phase_s:6.2f} s")
+        where = (
+            f"phase {line.phase_number}/{line.phase_count} {line.phase:<16} {line.phase_s:6.2f} s"
+        )
     else:
         where = f"{line.phase:<28}"
-    return (f"{clock}{line.t_s:7.2f} s  {where}  {line.state:<10} "
-            f"max|τ| {line.max_abs_tau:5.3f} N·m  late {line.lateness_us:7.1f} µs")
+    return (
+        f"{clock}{line.t_s:7.2f} s  {where}  {line.state:<10} "
+        f"max|τ| {line.max_abs_tau:5.3f} N·m  late {line.lateness_us:7.1f} µs"
+    )
 
 
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
@@ -218,22 +247,37 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     hand = _load_hand(args.hand, "--hand", args.dbc)
     recipe = load_recipe(args.recipe, hand)
     if args.live is not None and args.log is None:
-        raise ConfigError("--live", "", "--log RUN.mcap as well (the recording's writer "
-                          "serves the live view)", "no --log")
+        raise ConfigError(
+            "--live",
+            "",
+            "--log RUN.mcap as well (the recording's writer serves the live view)",
+            "no --log",
+        )
     lockstep = True if args.lockstep else (False if args.realtime else None)
-    request = RunRequest(hand=hand, recipe=recipe, bus=args.bus, lockstep=lockstep,
-                         realtime_priority=args.rt, seed=args.seed,
-                         reset_node_faults=args.reset_node_faults, sim_faults=args.sim_faults,
-                         max_seconds=args.max_seconds, log=args.log,
-                         command_line=tuple(sys.argv), plot=args.plot,
-                         hygiene=Hygiene(loop_cpu=args.loop_cpu, sim_cpu=args.sim_cpu),
-                         accept_missed_deadlines=args.accept_missed_deadlines,
-                         live_port=args.live)
+    request = RunRequest(
+        hand=hand,
+        recipe=recipe,
+        bus=args.bus,
+        lockstep=lockstep,
+        realtime_priority=args.rt,
+        seed=args.seed,
+        reset_node_faults=args.reset_node_faults,
+        sim_faults=args.sim_faults,
+        max_seconds=args.max_seconds,
+        log=args.log,
+        command_line=tuple(sys.argv),
+        plot=args.plot,
+        hygiene=Hygiene(loop_cpu=args.loop_cpu, sim_cpu=args.sim_cpu),
+        accept_missed_deadlines=args.accept_missed_deadlines,
+        live_port=args.live,
+    )
     if args.live is not None:
         from handctl.foxglove.live import HOST
 
-        _progress(f"live: Foxglove WebSocket on ws://{HOST}:{args.live} "
-                  "(layout: docs/foxglove/handctl_layout.json)")
+        _progress(
+            f"live: Foxglove WebSocket on ws://{HOST}:{args.live} "
+            "(layout: docs/foxglove/handctl_layout.json)"
+        )
     status = _status_printer()
     report = run_recipe(request, status=status)
     if status is not None:
@@ -248,51 +292,71 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
 
 
 def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
-    print(f"recipe {summary['recipe']} on {summary['hand']} ({summary['mode']}): "
-          f"{summary['outcome']}")
+    print(
+        f"recipe {summary['recipe']} on {summary['hand']} ({summary['mode']}): {summary['outcome']}"
+    )
     for phase in summary["phases"]:
         end = "-" if phase["end_s"] is None else f"{phase['end_s']:.3f}"
-        exit_text = (f"TIMED OUT ({phase['exit']})" if phase.get("timed_out")
-                     else phase["exit"])
+        exit_text = f"TIMED OUT ({phase['exit']})" if phase.get("timed_out") else phase["exit"]
         print(f"  {phase['name']:<16} {phase['start_s']:8.3f} .. {end:>8} s  {exit_text}")
     for fault in summary["faults"]:
-        print(f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']}: "
-              f"{fault['detail']}")
+        print(
+            f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']}: "
+            f"{fault['detail']}"
+        )
     late = summary["lateness_us"]
-    print(f"  {summary['ticks']} ticks, {summary['missed_ticks']} missed, lateness p50 "
-          f"{late['p50']} µs p99 {late['p99']} µs max {late['max']} µs")
+    print(
+        f"  {summary['ticks']} ticks, {summary['missed_ticks']} missed, lateness p50 "
+        f"{late['p50']} µs p99 {late['p99']} µs max {late['max']} µs"
+    )
     host = summary.get("host")
     if host and "error" not in host:
-        print(f"  host (bare timer loop beside the run): {host['verdict'].upper()}, lateness "
-              f"p99 {host['lateness_us']['p99']:g} µs, longest stall "
-              f"{host['longest_stall_ms']:g} ms; missed ticks: {host['missed_host']} the "
-              f"host's, {host['missed_handctl']} handctl's")
-    print("  max |τ| [N·m] " + ", ".join(f"{k} {v:.3f}"
-                                         for k, v in summary["max_abs_tau_nm"].items()))
+        print(
+            f"  host (bare timer loop beside the run): {host['verdict'].upper()}, lateness "
+            f"p99 {host['lateness_us']['p99']:g} µs, longest stall "
+            f"{host['longest_stall_ms']:g} ms; missed ticks: {host['missed_host']} the "
+            f"host's, {host['missed_handctl']} handctl's"
+        )
+    print(
+        "  max |τ| [N·m] " + ", ".join(f"{k} {v:.3f}" for k, v in summary["max_abs_tau_nm"].items())
+    )
     if "experiment" in summary:
         ex = summary["experiment"]
         if "turn_deg" in ex:  # the first pair's figures
             err = ex["estimator_error_deg"]
-            turned = (f"turn per phase {ex['phase_angles_deg']} deg, turn "
-                      f"{ex['turn_deg']:+.2f} deg (ccw +), peak rate "
-                      f"{ex['peak_turn_rate_deg_s']} deg/s, ")
+            turned = (
+                f"turn per phase {ex['phase_angles_deg']} deg, turn "
+                f"{ex['turn_deg']:+.2f} deg (ccw +), peak rate "
+                f"{ex['peak_turn_rate_deg_s']} deg/s, "
+            )
             estimated = "-" if err is None else f"{err} deg"
         else:  # no pair: how far off each object's estimated centre was
             turned = ""
-            estimated = ", ".join(f"{name} {o['estimator_error_m'] * 1e3:.1f} mm"
-                                  for name, o in ex["objects"].items()
-                                  if o.get("estimator_error_m") is not None) or "-"
-        print(f"  experiment: lifted {ex['lifted']} (held {ex['held_s']:.2f} s), {turned}"
-              f"dropped {ex['dropped']}, estimator p95 {estimated}")
-        print(f"  experiment: {'success' if ex['success'] else 'FAILED'} (lifted, held, "
-              f"nothing dropped, at least {ex['min_total_turn_deg']:g} deg turned)")
+            estimated = (
+                ", ".join(
+                    f"{name} {o['estimator_error_m'] * 1e3:.1f} mm"
+                    for name, o in ex["objects"].items()
+                    if o.get("estimator_error_m") is not None
+                )
+                or "-"
+            )
+        print(
+            f"  experiment: lifted {ex['lifted']} (held {ex['held_s']:.2f} s), {turned}"
+            f"dropped {ex['dropped']}, estimator p95 {estimated}"
+        )
+        print(
+            f"  experiment: {'success' if ex['success'] else 'FAILED'} (lifted, held, "
+            f"nothing dropped, at least {ex['min_total_turn_deg']:g} deg turned)"
+        )
     if plot and "experiment" in summary:
         print(f"  overview plot: {plot}")
     if "recording" in summary and "error" not in summary["recording"]:
         rec = summary["recording"]
         dropped = rec["dropped_ticks"] + rec["dropped_frames"] + rec["dropped_events"]
-        print(f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to {rec['path']}"
-              + (f" ({dropped} records dropped: the writer fell behind)" if dropped else ""))
+        print(
+            f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to {rec['path']}"
+            + (f" ({dropped} records dropped: the writer fell behind)" if dropped else "")
+        )
 
 
 def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
@@ -302,8 +366,9 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
     if result.outcome is Outcome.COMPLETED:
         if "experiment" in summary and not summary["experiment"]["success"]:
             # the hand is safe, but the run did not do what it was for (README: exit codes)
-            print("handctl: the experiment failed: see 'experiment' in the summary",
-                  file=sys.stderr)
+            print(
+                "handctl: the experiment failed: see 'experiment' in the summary", file=sys.stderr
+            )
             return EXIT_FAILED
         return EXIT_OK
     if result.outcome is Outcome.TIME_BUDGET:
@@ -330,35 +395,52 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     if args.scheduler is not None:
         check_scheduler(args.scheduler)
         if args.workers is not None:
-            raise ConfigError("--workers", "", "no --workers with --scheduler (the cluster's "
-                              "workers are started on their machines)", args.workers)
+            raise ConfigError(
+                "--workers",
+                "",
+                "no --workers with --scheduler (the cluster's "
+                "workers are started on their machines)",
+                args.workers,
+            )
     hand = _load_hand(args.hand, "--hand")
     template = load_template(args.template, hand)
     with open_pool(args.workers, args.scheduler) as pool:
         say(f"planning on {pool.where}")
         try:
-            result = plan_recipe(template, hand, progress=say, models=args.models,
-                                 budget=quick_budget() if args.quick else None, executor=pool,
-                                 meter=Progress)
+            result = plan_recipe(
+                template,
+                hand,
+                progress=say,
+                models=args.models,
+                budget=quick_budget() if args.quick else None,
+                executor=pool,
+                meter=Progress,
+            )
         finally:
             close_active()
-    command = " ".join(["handctl plan", str(args.template), "-o", str(args.output)]
-                       + (["--hand", str(args.hand)] if args.hand != DEFAULT_HAND else [])
-                       + (["--models", str(args.models)] if args.models else [])
-                       + (["--quick"] if args.quick else []))
+    command = " ".join(
+        ["handctl plan", str(args.template), "-o", str(args.output)]
+        + (["--hand", str(args.hand)] if args.hand != DEFAULT_HAND else [])
+        + (["--models", str(args.models)] if args.models else [])
+        + (["--quick"] if args.quick else [])
+    )
     args.output.write_text(recipe_text(result, command), encoding="utf-8")
-    print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> "
-          f"{args.output}")
+    print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {args.output}")
     for plan in result.phases:
         prov = plan.provenance
         analysis = prov["analysis"]
-        ana = (f"analysis margin {analysis['margin_N']} N" if analysis.get("found")
-               else "analysis: none")
+        ana = (
+            f"analysis margin {analysis['margin_N']} N"
+            if analysis.get("found")
+            else "analysis: none"
+        )
         search = prov.get("search")
         found = f", search score {search['score']}" if search else ""
         held = prov["models"]
-        print(f"  {plan.phase.name:<16} {plan.spec.kind:<5} {ana}{found}; from "
-              f"{prov['chosen_from']}; {held['held']}/{held['ran']} models hold")
+        print(
+            f"  {plan.phase.name:<16} {plan.spec.kind:<5} {ana}{found}; from "
+            f"{prov['chosen_from']}; {held['held']}/{held['ran']} models hold"
+        )
     if args.plot:
         from handctl.experiment.plot import plot_plan
 
@@ -396,17 +478,28 @@ def _cmd_sim(args: argparse.Namespace) -> int:
             from handctl.parent_death import parent_alive as alive
 
             if not die_with_parent(args.parent_pid):
-                raise KeyboardInterrupt(f"process {args.parent_pid} ended before its "
-                                        "simulated hand started")
+                raise KeyboardInterrupt(
+                    f"process {args.parent_pid} ended before its simulated hand started"
+                )
             parent_alive = partial(alive, args.parent_pid)
         from handctl.sim.faults import load_scenario
         from handctl.sim.hand import standalone
 
         hand = _load_hand(args.hand, "--hand", args.dbc)
         faults = load_scenario(args.faults, hand) if args.faults else None
-        print(standalone(hand, args.bus, args.seconds, _progress, seed=args.seed, faults=faults,
-                         summary_json=args.summary_json, realtime=args.rt,
-                         keep_running=parent_alive))
+        print(
+            standalone(
+                hand,
+                args.bus,
+                args.seconds,
+                _progress,
+                seed=args.seed,
+                faults=faults,
+                summary_json=args.summary_json,
+                realtime=args.rt,
+                keep_running=parent_alive,
+            )
+        )
     except Exception as exc:
         # An interrupt raised inside C code (MuJoCo's import, for one) comes out as that
         # code's own error: it is still an interrupt.
@@ -417,52 +510,72 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         # SIGTERM is also the parent-death signal, which can come while the host is still
         # going down: then wait for it to be gone.
         if args.parent_pid is not None and parent_ends(
-                args.parent_pid, ORPHAN_WAIT_S if terminated else 0.0):
+            args.parent_pid, ORPHAN_WAIT_S if terminated else 0.0
+        ):
             remove_orphaned_bus(args.bus, args.summary_json)
     return EXIT_OK
 
 
 # -- replay ------------------------------------------------------------------------------------
 def _print_replay_summary(summary: dict[str, Any]) -> None:
-    state = "complete" if summary["complete"] else \
-        f"{'DAMAGED' if summary.get('damaged') else 'TRUNCATED'}: {summary['problem']}"
-    print(f"{summary['file']}: {summary['recipe'] or '?'} on {summary['hand'] or '?'} "
-          f"({summary['mode'] or '?'}), {summary['outcome']}; {summary['duration_s']:.3f} s, "
-          f"{summary['ticks']} ticks, {summary['chunks']} chunks, {state}")
+    state = (
+        "complete"
+        if summary["complete"]
+        else f"{'DAMAGED' if summary.get('damaged') else 'TRUNCATED'}: {summary['problem']}"
+    )
+    print(
+        f"{summary['file']}: {summary['recipe'] or '?'} on {summary['hand'] or '?'} "
+        f"({summary['mode'] or '?'}), {summary['outcome']}; {summary['duration_s']:.3f} s, "
+        f"{summary['ticks']} ticks, {summary['chunks']} chunks, {state}"
+    )
     print("  phases:")
     for phase in summary["phases"]:
-        print(f"    {phase['name']:<16} {phase['start_s']:8.3f} .. {phase['end_s']:8.3f} s "
-              f"({phase['duration_s']:.3f} s)  {phase['exit']}")
+        print(
+            f"    {phase['name']:<16} {phase['start_s']:8.3f} .. {phase['end_s']:8.3f} s "
+            f"({phase['duration_s']:.3f} s)  {phase['exit']}"
+        )
     print("  largest torques [N·m] (applied, when; |desired|; |TDT|):")
     for name, t in summary["largest_torques"].items():
         if "applied_nm" in t:
-            print(f"    {name:<8} {t['applied_nm']:+.4f} at {t['at_s']:.3f} s; "
-                  f"{t['desired_nm']:.4f}; {t.get('tdt_nm', float('nan')):.4f}")
+            print(
+                f"    {name:<8} {t['applied_nm']:+.4f} at {t['at_s']:.3f} s; "
+                f"{t['desired_nm']:.4f}; {t.get('tdt_nm', float('nan')):.4f}"
+            )
     for fault in summary["faults"]:
-        print(f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']} "
-              f"({fault['t_s']:.3f} s): {fault['detail']}")
+        print(
+            f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']} "
+            f"({fault['t_s']:.3f} s): {fault['detail']}"
+        )
     if not summary["faults"]:
         print("  faults: none")
     timing = summary["timing"]
     late = timing["lateness_us"]
     stages = ", ".join(f"{k} {v}" for k, v in timing["stage_cpu_us_p99"].items())
-    print(f"  timing: lateness p50 {late['p50']} µs, p99 {late['p99']} µs, max {late['max']} µs;"
-          f" {timing['missed_ticks']} missed ticks; stage CPU p99 (µs) {stages}")
+    print(
+        f"  timing: lateness p50 {late['p50']} µs, p99 {late['p99']} µs, max {late['max']} µs;"
+        f" {timing['missed_ticks']} missed ticks; stage CPU p99 (µs) {stages}"
+    )
     frames = summary["frames"]
     rejected = ", ".join(f"{k} {v}" for k, v in summary["rejected_frames"].items()) or "none"
-    print(f"  frames: {frames['rx']} received, {frames['tx']} sent ({frames['tx_refused']} "
-          f"refused); {summary['bus_events']} bus events; rejected: {rejected}")
+    print(
+        f"  frames: {frames['rx']} received, {frames['tx']} sent ({frames['tx_refused']} "
+        f"refused); {summary['bus_events']} bus events; rejected: {rejected}"
+    )
     drops = summary["drops"]
     print("  drops: " + (", ".join(f"{k} {v}" for k, v in drops.items() if v) or "none"))
     for name, pose in summary.get("objects", {}).items():
         start, end = pose["start"], pose["end"]
         key = "height_above_rest_m" if "height_above_rest_m" in start else "y_m"
-        print(f"  {name}: height {'above rest ' if key != 'y_m' else ''}"
-              f"{start[key] * 1e3:+.1f} -> {end[key] * 1e3:+.1f} mm, "
-              f"x {start['x_m'] * 1e3:+.1f} -> {end['x_m'] * 1e3:+.1f} mm")
+        print(
+            f"  {name}: height {'above rest ' if key != 'y_m' else ''}"
+            f"{start[key] * 1e3:+.1f} -> {end[key] * 1e3:+.1f} mm, "
+            f"x {start['x_m'] * 1e3:+.1f} -> {end['x_m'] * 1e3:+.1f} mm"
+        )
     if "turn_deg" in summary:
-        print(f"  turn of the centre line: per phase {summary['phase_turns_deg']} deg, "
-              f"turn {summary['turn_deg']:+.2f} deg (ccw +)")
+        print(
+            f"  turn of the centre line: per phase {summary['phase_turns_deg']} deg, "
+            f"turn {summary['turn_deg']:+.2f} deg (ccw +)"
+        )
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -474,13 +587,17 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from handctl.recording.series import load_series
 
     if args.speed is not None and not (args.to_bus or args.live is not None):
-        raise ConfigError("--speed", "", "--to-bus SPEC or --live as well (the speed is of "
-                          "the replay onto a bus or to Foxglove)", args.speed)
+        raise ConfigError(
+            "--speed",
+            "",
+            "--to-bus SPEC or --live as well (the speed is of "
+            "the replay onto a bus or to Foxglove)",
+            args.speed,
+        )
     if args.speed is not None and not (math.isfinite(args.speed) and args.speed > 0):
         raise ConfigError("--speed", "", "a positive number", args.speed)
     if args.export and args.export[0] not in LOG_FORMATS:
-        raise ConfigError("--export", "FORMAT", "one of " + ", ".join(LOG_FORMATS),
-                          args.export[0])
+        raise ConfigError("--export", "FORMAT", "one of " + ", ".join(LOG_FORMATS), args.export[0])
     recording = open_recording(args.log)
     check_format(recording)
     series = load_series(recording)
@@ -499,18 +616,24 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         for note in result.notes:
             print(f"rerun: note: {note}")
         if result.ok:
-            print(f"rerun: {result.compared} ticks compared, applied torques bit-exact; "
-                  f"{result.frames_compared} command frames identical; outcome "
-                  f"{result.outcome} (logged {result.logged_outcome or '?'}); "
-                  f"{result.wall_s:.2f} s")
+            print(
+                f"rerun: {result.compared} ticks compared, applied torques bit-exact; "
+                f"{result.frames_compared} command frames identical; outcome "
+                f"{result.outcome} (logged {result.logged_outcome or '?'}); "
+                f"{result.wall_s:.2f} s"
+            )
         else:
-            print(f"rerun: MISMATCH in {result.mismatched_ticks} of {result.ticks} ticks, "
-                  f"{len(result.frame_mismatches)} frame mismatches; outcome {result.outcome} "
-                  f"(logged {result.logged_outcome or '?'})")
-            for m in result.mismatches[:rerun.MAX_LISTED]:
-                print(f"  tick {m['tick']} {m['joint']}: logged {m['logged_nm']!r}, re-run "
-                      f"{m['rerun_nm']!r} {m['detail']}")
-            for text in result.frame_mismatches[:rerun.MAX_LISTED]:
+            print(
+                f"rerun: MISMATCH in {result.mismatched_ticks} of {result.ticks} ticks, "
+                f"{len(result.frame_mismatches)} frame mismatches; outcome {result.outcome} "
+                f"(logged {result.logged_outcome or '?'})"
+            )
+            for m in result.mismatches[: rerun.MAX_LISTED]:
+                print(
+                    f"  tick {m['tick']} {m['joint']}: logged {m['logged_nm']!r}, re-run "
+                    f"{m['rerun_nm']!r} {m['detail']}"
+                )
+            for text in result.frame_mismatches[: rerun.MAX_LISTED]:
                 print(f"  {text}")
             status = EXIT_FAILED
     if args.export:
@@ -521,15 +644,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         _progress(f"replaying frames onto {args.to_bus} at {args.speed or 1.0:g}x ...")
         sent = frames.to_bus(recording, args.to_bus, args.speed or 1.0, args.direction)
         report["to_bus"] = sent
-        print(f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
-              f"worst lateness {sent['worst_late_ms']} ms)")
+        print(
+            f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
+            f"worst lateness {sent['worst_late_ms']} ms)"
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=str) + "\n")
     if args.live is not None:
         from handctl.foxglove.live import HOST, serve_recording
 
-        _progress(f"live: streaming {args.log} at {args.speed or 1.0:g}x to Foxglove on "
-                  f"ws://{HOST}:{args.live} ...")
+        _progress(
+            f"live: streaming {args.log} at {args.speed or 1.0:g}x to Foxglove on "
+            f"ws://{HOST}:{args.live} ..."
+        )
         streamed = serve_recording(Path(args.log), args.live, args.speed or 1.0)
         print(f"live: {streamed} messages streamed")
     return status
@@ -561,23 +688,33 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result.as_dict(), indent=2))
         return EXIT_OK if result.ok else EXIT_FAILED
-    where = (result.bus if args.bus != "sim"
-             else f"sim (a simulated hand this command started on {result.bus})")
-    print(f"{hand.name} on {where}: listened {result.seconds:.2f} s, sent nothing; "
-          f"host protocol {result.host_protocol}")
-    print(f"{'node':<9} {'state':<9} {'faults':<16} {'proto':>5} {'firmware':>8} "
-          f"{'fb Hz':>6} {'hb':>3} {'st':>3} {'uptime s':>9} {'host rejects':<14} "
-          f"{'node rejects':<13} problem")
+    where = (
+        result.bus
+        if args.bus != "sim"
+        else f"sim (a simulated hand this command started on {result.bus})"
+    )
+    print(
+        f"{hand.name} on {where}: listened {result.seconds:.2f} s, sent nothing; "
+        f"host protocol {result.host_protocol}"
+    )
+    print(
+        f"{'node':<9} {'state':<9} {'faults':<16} {'proto':>5} {'firmware':>8} "
+        f"{'fb Hz':>6} {'hb':>3} {'st':>3} {'uptime s':>9} {'host rejects':<14} "
+        f"{'node rejects':<13} problem"
+    )
     for row in result.rows:
         uptime = "-" if row.uptime_ms is None else f"{row.uptime_ms / 1e3:.1f}"
         host = ",".join(f"{k} {v}" for k, v in row.host_rejects.items()) or "0"
-        theirs = ("-" if row.node_rejects is None
-                  else "/".join(str(v) for v in row.node_rejects.values()))
+        theirs = (
+            "-" if row.node_rejects is None else "/".join(str(v) for v in row.node_rejects.values())
+        )
         proto = "-" if row.protocol_version is None else str(row.protocol_version)
-        print(f"{row.node_id} {row.name:<7} {row.state:<9} {','.join(row.faults) or '-':<16} "
-              f"{proto:>5} {row.firmware:>8} {row.feedback_hz:>6.0f} {row.heartbeats:>3} "
-              f"{row.statuses:>3} {uptime:>9} {host:<14} {theirs:<13} "
-              f"{row.problem or 'ok'}")
+        print(
+            f"{row.node_id} {row.name:<7} {row.state:<9} {','.join(row.faults) or '-':<16} "
+            f"{proto:>5} {row.firmware:>8} {row.feedback_hz:>6.0f} {row.heartbeats:>3} "
+            f"{row.statuses:>3} {uptime:>9} {host:<14} {theirs:<13} "
+            f"{row.problem or 'ok'}"
+        )
     for fid, (what, count) in sorted(result.foreign.items()):
         print(f"  id 0x{fid:03X}: {count} frames, {what}")
     if result.bus_events:
@@ -614,58 +751,97 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
 
     hand = _load_hand(args.hand, "--hand", args.dbc)
     if args.output is None and not args.write:
-        raise ConfigError("-o", "", "a file for the calibrated copy (or --write to overwrite "
-                          f"{args.hand})", "nothing")
+        raise ConfigError(
+            "-o",
+            "",
+            f"a file for the calibrated copy (or --write to overwrite {args.hand})",
+            "nothing",
+        )
     target = args.hand if args.output is None else args.output
-    if (args.output is not None and not args.write and args.output.exists()
-            and args.output.resolve() == args.hand.resolve()):
-        raise ConfigError("-o", "", f"another file than the hand config (--write overwrites "
-                          f"{args.hand})", str(args.output))
+    if (
+        args.output is not None
+        and not args.write
+        and args.output.exists()
+        and args.output.resolve() == args.hand.resolve()
+    ):
+        raise ConfigError(
+            "-o",
+            "",
+            f"another file than the hand config (--write overwrites {args.hand})",
+            str(args.output),
+        )
     if not target.parent.is_dir():
         raise ConfigError("-o", "", "a file in an existing directory", str(target))
     limits = CalibrationLimits(
         max_span=_positive("--max-span", args.max_span, CalibrationLimits.max_span, "rad"),
         max_noise=_positive("--max-noise", args.max_noise, CalibrationLimits.max_noise, "N·m"),
-        max_offset=_positive("--max-offset", args.max_offset, CalibrationLimits.max_offset,
-                             "N·m"))
+        max_offset=_positive("--max-offset", args.max_offset, CalibrationLimits.max_offset, "N·m"),
+    )
     measure = _seconds_or(args.seconds, 1.0)
     settle = 2.0 if args.settle is None else args.settle
     if not 0 <= settle < 1e6:
         raise ConfigError("--settle", "", "a time in seconds >= 0", settle)
     text = args.hand.read_text(encoding="utf-8")
-    calibration = calibrate_tdt(hand, bus=args.bus, settle_s=settle, measure_s=measure,
-                                limits=limits, lockstep=False if args.realtime else None,
-                                seed=args.seed, sim_faults=args.sim_faults,
-                                reset_node_faults=args.reset_node_faults,
-                                realtime_priority=args.rt)
+    calibration = calibrate_tdt(
+        hand,
+        bus=args.bus,
+        settle_s=settle,
+        measure_s=measure,
+        limits=limits,
+        lockstep=False if args.realtime else None,
+        seed=args.seed,
+        sim_faults=args.sim_faults,
+        reset_node_faults=args.reset_node_faults,
+        realtime_priority=args.rt,
+    )
     stopped = _run_outcome(calibration.report)
     if stopped is not None:
         return stopped
-    print(f"TDT offsets of {hand.name} at zero torque, {calibration.samples} samples "
-          f"({measure:g} s after {settle:g} s to settle):")
-    print(f"{'joint':<8} {'offset before':>13} {'offset after':>12} {'mean':>9} {'noise':>8} "
-          f"{'moved':>10}  problem")
+    print(
+        f"TDT offsets of {hand.name} at zero torque, {calibration.samples} samples "
+        f"({measure:g} s after {settle:g} s to settle):"
+    )
+    print(
+        f"{'joint':<8} {'offset before':>13} {'offset after':>12} {'mean':>9} {'noise':>8} "
+        f"{'moved':>10}  problem"
+    )
     for j in calibration.joints:
-        print(f"{j.name:<8} {j.old_offset:>+13.4f} {float(format_offset(j.new_offset)):>+12.4f} "
-              f"{j.mean:>+9.4f} {j.noise:>8.4f} {j.angle_span:>6.4f} rad  {j.problem or 'ok'}")
+        print(
+            f"{j.name:<8} {j.old_offset:>+13.4f} {float(format_offset(j.new_offset)):>+12.4f} "
+            f"{j.mean:>+9.4f} {j.noise:>8.4f} {j.angle_span:>6.4f} rad  {j.problem or 'ok'}"
+        )
     if args.json:
-        Path(args.json).write_text(json.dumps(
-            {"samples": calibration.samples,
-             "joints": [j.as_dict() for j in calibration.joints]}, indent=2) + "\n")
+        Path(args.json).write_text(
+            json.dumps(
+                {
+                    "samples": calibration.samples,
+                    "joints": [j.as_dict() for j in calibration.joints],
+                },
+                indent=2,
+            )
+            + "\n"
+        )
     if calibration.problems:
-        print("handctl: calibration refused, nothing written: "
-              + "; ".join(calibration.problems), file=sys.stderr)
+        print(
+            "handctl: calibration refused, nothing written: " + "; ".join(calibration.problems),
+            file=sys.stderr,
+        )
         return EXIT_FAILED
     edited = with_tdt_offsets(text, hand, calibration.offsets)
     if edited.dumped:
-        print(f"handctl: warning: {args.hand} could not be edited in place ({edited.why}); "
-              "written as a plain dump, without its comments and layout", file=sys.stderr)
+        print(
+            f"handctl: warning: {args.hand} could not be edited in place ({edited.why}); "
+            "written as a plain dump, without its comments and layout",
+            file=sys.stderr,
+        )
     target.write_text(edited.text, encoding="utf-8")
     new_hash = load_hand(target, args.dbc).config_hash
     print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))
     if new_hash != hand.config_hash:
-        print(f"  the config hash changes from {hand.config_hash} to {new_hash}: recipes "
-              "compiled for the old one must be planned again (handctl plan)")
+        print(
+            f"  the config hash changes from {hand.config_hash} to {new_hash}: recipes "
+            "compiled for the old one must be planned again (handctl plan)"
+        )
     return EXIT_OK
 
 
@@ -675,25 +851,43 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     hand = _load_hand(args.hand, "--hand", args.dbc)
     seconds = _seconds_or(args.seconds, 2.0)
     jog_recipe(hand, args.joint, args.torque, seconds)  # refused here, before any bus opens
-    print(f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s on {args.bus}, "
-          "every other joint at zero (Ctrl-C: controlled stop)")
-    print(f"{'t s':>7} {'phase':<9} {'state':<10} {'desired':>9} {'applied':>9} "
-          f"{'angle rad':>10} {'TDT N·m':>9}")
+    print(
+        f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s on {args.bus}, "
+        "every other joint at zero (Ctrl-C: controlled stop)"
+    )
+    print(
+        f"{'t s':>7} {'phase':<9} {'state':<10} {'desired':>9} {'applied':>9} "
+        f"{'angle rad':>10} {'TDT N·m':>9}"
+    )
 
     def show(line: JogLine) -> None:
-        print(f"{line.t_s:>7.2f} {line.phase:<9} {line.state:<10} {line.desired:>+9.4f} "
-              f"{line.applied:>+9.4f} {line.angle:>+10.4f} {line.tdt:>+9.4f}", flush=True)
+        print(
+            f"{line.t_s:>7.2f} {line.phase:<9} {line.state:<10} {line.desired:>+9.4f} "
+            f"{line.applied:>+9.4f} {line.angle:>+10.4f} {line.tdt:>+9.4f}",
+            flush=True,
+        )
 
-    result = jog(hand, args.joint, args.torque, seconds=seconds, bus=args.bus,
-                 lockstep=False if args.realtime else None, realtime_priority=args.rt,
-                 seed=args.seed, sim_faults=args.sim_faults,
-                 reset_node_faults=args.reset_node_faults, show=show)
+    result = jog(
+        hand,
+        args.joint,
+        args.torque,
+        seconds=seconds,
+        bus=args.bus,
+        lockstep=False if args.realtime else None,
+        realtime_priority=args.rt,
+        seed=args.seed,
+        sim_faults=args.sim_faults,
+        reset_node_faults=args.reset_node_faults,
+        show=show,
+    )
     moved = result.moved
     if moved is not None:
-        print(f"{args.joint}: {result.start_angle:+.4f} -> {result.end_angle:+.4f} rad "
-              f"({moved:+.4f} rad) under {args.torque:+g} N·m; largest |TDT| "
-              f"{result.max_abs_tdt:.4f} N·m; largest |applied| "
-              f"{result.report.summary['max_abs_tau_nm'][args.joint]:.4f} N·m")
+        print(
+            f"{args.joint}: {result.start_angle:+.4f} -> {result.end_angle:+.4f} rad "
+            f"({moved:+.4f} rad) under {args.torque:+g} N·m; largest |TDT| "
+            f"{result.max_abs_tdt:.4f} N·m; largest |applied| "
+            f"{result.report.summary['max_abs_tau_nm'][args.joint]:.4f} N·m"
+        )
     stopped = _run_outcome(result.report)
     return EXIT_OK if stopped is None else stopped
 
@@ -707,8 +901,12 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     from handctl.hand_protocol import protocol_for
 
     if args.log is not None and args.bus is not None:
-        raise ConfigError("--log", "", "either --log or --bus: a log is read instead of a bus",
-                          f"--log {args.log} --bus {args.bus}")
+        raise ConfigError(
+            "--log",
+            "",
+            "either --log or --bus: a log is read instead of a bus",
+            f"--log {args.log} --bus {args.bus}",
+        )
     hand = _load_hand(args.hand, "--hand", args.dbc)
     seconds = None if args.seconds is None else _seconds_or(args.seconds, 0.0)
     every = _positive("--every", args.every, 1.0, "s")
@@ -734,8 +932,9 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
                             view.observe(frame_id, data, t_ns)
                         if time.monotonic() - shown >= min(every, 0.25):
                             shown = time.monotonic()
-                            live.update(table(view.snapshot(time.monotonic_ns()), title),
-                                        refresh=True)
+                            live.update(
+                                table(view.snapshot(time.monotonic_ns()), title), refresh=True
+                            )
             else:
                 emitted = time.monotonic()
                 for batch in listen(bus, seconds):
@@ -751,8 +950,9 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _monitor_log(view: Any, log: Path, every: float, on_tty: bool,
-                 emit: Callable[[dict[str, object]], None]) -> int:
+def _monitor_log(
+    view: Any, log: Path, every: float, on_tty: bool, emit: Callable[[dict[str, object]], None]
+) -> int:
     """``handctl monitor --log``: a recording's raw frames through the same view, snapshots
     every ``every`` s of log time when piped, the whole at the end."""
     from handctl.bringup.monitor import from_log, table
@@ -797,9 +997,15 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
     example commands keep their lines."""
 
 
-def _command(parent: argparse._SubParsersAction[argparse.ArgumentParser], name: str, *,
-             help: str, description: str, examples: Sequence[str],
-             notes: str = "") -> argparse.ArgumentParser:
+def _command(
+    parent: argparse._SubParsersAction[argparse.ArgumentParser],
+    name: str,
+    *,
+    help: str,
+    description: str,
+    examples: Sequence[str],
+    notes: str = "",
+) -> argparse.ArgumentParser:
     """A subcommand whose ``--help`` ends with examples (and notes, e.g. its exit codes).
 
     Every subcommand is made here, so that each one's help has the same shape; a test walks
@@ -810,18 +1016,23 @@ def _command(parent: argparse._SubParsersAction[argparse.ArgumentParser], name: 
     if notes:
         epilog = textwrap.fill(notes, width) + "\n\n" + epilog
     return parent.add_parser(
-        name, help=help, description=textwrap.fill(description, width), epilog=epilog,
-        formatter_class=_HelpFormatter)
+        name,
+        help=help,
+        description=textwrap.fill(description, width),
+        epilog=epilog,
+        formatter_class=_HelpFormatter,
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="handctl",
         description="Grasp and manipulate two objects with a joint-torque-controlled "
-                    "three-fingered hand over CAN.",
+        "three-fingered hand over CAN.",
         epilog="Exit codes: 0 done (or stopped at --max-seconds), 1 failed result, 2 bad "
-               "input, 3 safety stop, 4 bus error, 5 host failed the timing check, "
-               "130 interrupted.")
+        "input, 3 safety stop, 4 bus error, 5 host failed the timing check, "
+        "130 interrupted.",
+    )
     parser.add_argument("--version", action="version", version=f"handctl {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_check(sub)
@@ -836,351 +1047,647 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_dbc(command: argparse.ArgumentParser) -> None:
     """``--dbc``, on every command whose frames go on a bus."""
-    command.add_argument("--dbc", type=Path, metavar="PROTOCOL.dbc",
-                         help="the CAN protocol (a DBC file) instead of the one generated from "
-                              "the hand config; checked against the hand's nodes, joints and "
-                              "can_ids")
+    command.add_argument(
+        "--dbc",
+        type=Path,
+        metavar="PROTOCOL.dbc",
+        help="the CAN protocol (a DBC file) instead of the one generated from "
+        "the hand config; checked against the hand's nodes, joints and "
+        "can_ids",
+    )
 
 
 def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     check = _command(
-        sub, "check", help="validate a hand config and its bus-load budget",
+        sub,
+        "check",
+        help="validate a hand config and its bus-load budget",
         description="Validate a hand config against the protocol (DBC) and print its "
-                    "worst-case bus-load budget; exit 2 if over 50 %.",
-        examples=["handctl check", "handctl check config/hands/hiroshima_hand_classic.yaml",
-                  "handctl check --timing --seconds 600 --json timing.json"])
-    check.add_argument("hand", type=Path, nargs="?", default=DEFAULT_HAND, metavar="HAND.yaml",
-                       help=f"hand config ({DEFAULT_HAND_HELP})")
+        "worst-case bus-load budget; exit 2 if over 50 %.",
+        examples=[
+            "handctl check",
+            "handctl check config/hands/hiroshima_hand_classic.yaml",
+            "handctl check --timing --seconds 600 --json timing.json",
+        ],
+    )
+    check.add_argument(
+        "hand",
+        type=Path,
+        nargs="?",
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
     _add_dbc(check)
     timing = check.add_argument_group(
-        "timing", "can this host hold the hand's deadlines? (docs/timing.md; exit 5 if not)")
-    timing.add_argument("--timing", action="store_true",
-                        help="instead of the config: a bare timer loop at the hand's loop rate "
-                             "with the scheduling --rt asks for; wake-up lateness, stalls "
-                             "against the period, overrun tolerance and feedback timeout, a "
-                             "verdict and what would help")
-    timing.add_argument("--seconds", type=float, default=10.0, metavar="S",
-                        help="length of the timing check [s], > 0 and <= 3600 (default 10)")
-    timing.add_argument("--no-rt", action="store_true",
-                        help="check at the default scheduler, as a run without --rt")
-    timing.add_argument("--loop-cpu", type=int, metavar="N",
-                        help="the CPU to check (default: the one --rt gives the loop)")
-    timing.add_argument("--json", type=Path, metavar="FILE.json",
-                        help="write the report, with the probe's record, as JSON")
+        "timing", "can this host hold the hand's deadlines? (docs/timing.md; exit 5 if not)"
+    )
+    timing.add_argument(
+        "--timing",
+        action="store_true",
+        help="instead of the config: a bare timer loop at the hand's loop rate "
+        "with the scheduling --rt asks for; wake-up lateness, stalls "
+        "against the period, overrun tolerance and feedback timeout, a "
+        "verdict and what would help",
+    )
+    timing.add_argument(
+        "--seconds",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="length of the timing check [s], > 0 and <= 3600 (default 10)",
+    )
+    timing.add_argument(
+        "--no-rt", action="store_true", help="check at the default scheduler, as a run without --rt"
+    )
+    timing.add_argument(
+        "--loop-cpu",
+        type=int,
+        metavar="N",
+        help="the CPU to check (default: the one --rt gives the loop)",
+    )
+    timing.add_argument(
+        "--json",
+        type=Path,
+        metavar="FILE.json",
+        help="write the report, with the probe's record, as JSON",
+    )
     check.set_defaults(func=_cmd_check)
 
 
 def _add_analyze(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    example = ("handctl analyze torque-set config/analysis/paper_fig3.yaml --k 0.9 0.1 "
-               "--plot fig3.png")
-    analyze = _command(sub, "analyze", help="offline grasp analysis (paper §3–§4)",
-                       description="Offline analysis of enveloping grasps.", examples=[example])
+    example = (
+        "handctl analyze torque-set config/analysis/paper_fig3.yaml --k 0.9 0.1 --plot fig3.png"
+    )
+    analyze = _command(
+        sub,
+        "analyze",
+        help="offline grasp analysis (paper §3–§4)",
+        description="Offline analysis of enveloping grasps.",
+        examples=[example],
+    )
     analyses = analyze.add_subparsers(dest="analysis", metavar="ANALYSIS", required=True)
     tset = _command(
-        analyses, "torque-set", help="the torque set that moves two enveloped objects (Fig. 3)",
+        analyses,
+        "torque-set",
+        help="the torque set that moves two enveloped objects (Fig. 3)",
         description="Compute the robust torque set over (tau_11, tau_21) with "
-                    "tau_i2 = k_i tau_i1: exactly, and on a 121x121 grid of LPs.",
-        examples=[example, "handctl analyze torque-set SCENARIO.yaml --k 1 0.5 --json "
-                           "region.json"])
-    tset.add_argument("scenario", type=Path, metavar="SCENARIO.yaml",
-                      help="analysis scenario (config/analysis/)")
-    tset.add_argument("--k", type=float, nargs=2, metavar=("K1", "K2"), required=True,
-                      help="torque ratios k_1, k_2 (tau_i2 = k_i tau_i1) [N·m per N·m, "
-                           "dimensionless]")
-    tset.add_argument("--json", type=Path, metavar="FILE.json",
-                      help="write the region and the grid as JSON")
-    tset.add_argument("--plot", type=Path, metavar="OUT.png",
-                      help="write a PNG in the style of Fig. 3")
+        "tau_i2 = k_i tau_i1: exactly, and on a 121x121 grid of LPs.",
+        examples=[example, "handctl analyze torque-set SCENARIO.yaml --k 1 0.5 --json region.json"],
+    )
+    tset.add_argument(
+        "scenario", type=Path, metavar="SCENARIO.yaml", help="analysis scenario (config/analysis/)"
+    )
+    tset.add_argument(
+        "--k",
+        type=float,
+        nargs=2,
+        metavar=("K1", "K2"),
+        required=True,
+        help="torque ratios k_1, k_2 (tau_i2 = k_i tau_i1) [N·m per N·m, dimensionless]",
+    )
+    tset.add_argument(
+        "--json", type=Path, metavar="FILE.json", help="write the region and the grid as JSON"
+    )
+    tset.add_argument(
+        "--plot", type=Path, metavar="OUT.png", help="write a PNG in the style of Fig. 3"
+    )
     tset.set_defaults(func=_cmd_analyze_torque_set)
 
 
 def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     sim = _command(
-        sub, "sim", help="run the simulated hand as a standalone peer on a bus",
+        sub,
+        "sim",
+        help="run the simulated hand as a standalone peer on a bus",
         description="Run the simulated hand (MuJoCo plant behind emulated finger nodes) free "
-                    "on its own 1 kHz timer, as a peer on any python-can bus.",
-        examples=["handctl sim --bus unix:/tmp/handctl-bus --seconds 60",
-                  "handctl sim --bus virtual:test --faults config/sim/feedback_dropout.yaml"])
-    sim.add_argument("--bus", required=True, metavar="SPEC",
-                     help="INTERFACE:CHANNEL, e.g. virtual:test, unix:DIRECTORY or "
-                          "udp_multicast:239.74.163.2")
+        "on its own 1 kHz timer, as a peer on any python-can bus.",
+        examples=[
+            "handctl sim --bus unix:/tmp/handctl-bus --seconds 60",
+            "handctl sim --bus virtual:test --faults config/sim/feedback_dropout.yaml",
+        ],
+    )
+    sim.add_argument(
+        "--bus",
+        required=True,
+        metavar="SPEC",
+        help="INTERFACE:CHANNEL, e.g. virtual:test, unix:DIRECTORY or udp_multicast:239.74.163.2",
+    )
     _add_dbc(sim)
-    sim.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
-                     help=f"hand config ({DEFAULT_HAND_HELP})")
-    sim.add_argument("--seconds", type=float, metavar="S",
-                     help="stop after this long [s], > 0 (default: at Ctrl-C)")
+    sim.add_argument(
+        "--hand",
+        type=Path,
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
+    sim.add_argument(
+        "--seconds",
+        type=float,
+        metavar="S",
+        help="stop after this long [s], > 0 (default: at Ctrl-C)",
+    )
     sim.add_argument("--seed", type=int, help="sensor noise seed (default: the config's)")
-    sim.add_argument("--faults", type=Path, metavar="FAULTS.yaml",
-                     help="fault scenario (config/sim/)")
-    sim.add_argument("--summary-json", type=Path, metavar="FILE.json",
-                     help="write the ground truth (object poses, node states) at the end")
-    sim.add_argument("--rt", action="store_true",
-                     help="ask for SCHED_FIFO (below the control loop's priority) and locked "
-                          "memory for the node timer (says so when refused)")
-    sim.add_argument("--parent-pid", type=int, metavar="PID",
-                     help="run as the simulated hand of process PID (what handctl run "
-                          "--realtime does): stop when PID ends, and then remove the unix bus "
-                          "directory, which nobody else is left to remove")
+    sim.add_argument(
+        "--faults", type=Path, metavar="FAULTS.yaml", help="fault scenario (config/sim/)"
+    )
+    sim.add_argument(
+        "--summary-json",
+        type=Path,
+        metavar="FILE.json",
+        help="write the ground truth (object poses, node states) at the end",
+    )
+    sim.add_argument(
+        "--rt",
+        action="store_true",
+        help="ask for SCHED_FIFO (below the control loop's priority) and locked "
+        "memory for the node timer (says so when refused)",
+    )
+    sim.add_argument(
+        "--parent-pid",
+        type=int,
+        metavar="PID",
+        help="run as the simulated hand of process PID (what handctl run "
+        "--realtime does): stop when PID ends, and then remove the unix bus "
+        "directory, which nobody else is left to remove",
+    )
     sim.set_defaults(func=_cmd_sim)
 
 
 def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    example = ("handctl run recipe config/recipes/swap_two_cylinders.yaml --summary-json "
-               "out.json")
-    run = _command(sub, "run", help="drive the hand", description="Drive the hand.",
-                   examples=[example])
+    example = "handctl run recipe config/recipes/swap_two_cylinders.yaml --summary-json out.json"
+    run = _command(
+        sub, "run", help="drive the hand", description="Drive the hand.", examples=[example]
+    )
     runs = run.add_subparsers(dest="what", metavar="WHAT", required=True)
     rec = _command(
-        runs, "recipe", help="run a grasp recipe",
+        runs,
+        "recipe",
+        help="run a grasp recipe",
         description="Run a recipe phase by phase at the hand's loop rate, every torque through "
-                    "the safety supervisor. Default bus: the simulated hand, in lockstep.",
+        "the safety supervisor. Default bus: the simulated hand, in lockstep.",
         notes="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
-              "130. At --max-seconds: the same stop, outcome time_budget, exit 0. A safety "
-              "stop exits 3.",
-        examples=[example,
-                  "handctl run recipe RECIPE.yaml --bus socketcan:can0 --rt --log RUN.mcap"])
+        "130. At --max-seconds: the same stop, outcome time_budget, exit 0. A safety "
+        "stop exits 3.",
+        examples=[
+            example,
+            "handctl run recipe RECIPE.yaml --bus socketcan:can0 --rt --log RUN.mcap",
+        ],
+    )
     rec.add_argument("recipe", type=Path, metavar="RECIPE.yaml", help="the recipe")
     _add_dbc(rec)
-    rec.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
-                     help=f"hand config ({DEFAULT_HAND_HELP})")
-    rec.add_argument("--bus", default="sim", metavar="SPEC",
-                     help="sim (default), hand (the config's bus), virtual:NAME, socketcan:can0, "
-                          "unix:DIRECTORY, INTERFACE:CHANNEL")
+    rec.add_argument(
+        "--hand",
+        type=Path,
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
+    rec.add_argument(
+        "--bus",
+        default="sim",
+        metavar="SPEC",
+        help="sim (default), hand (the config's bus), virtual:NAME, socketcan:can0, "
+        "unix:DIRECTORY, INTERFACE:CHANNEL",
+    )
     mode = rec.add_mutually_exclusive_group()
-    mode.add_argument("--lockstep", action="store_true",
-                      help="step the simulated hand once per tick (default with --bus sim)")
-    mode.add_argument("--realtime", action="store_true",
-                      help="tick from a 1 kHz timer (default on a real bus)")
-    rec.add_argument("--rt", action="store_true",
-                     help="ask for SCHED_FIFO, locked and prefaulted memory, and on >= 2 CPUs "
-                          "separate CPUs for the loop and the simulated hand (says so when "
-                          "refused)")
-    rec.add_argument("--loop-cpu", type=int, metavar="N",
-                     help="with --rt: the control loop's CPU (default: an isolated CPU, else "
-                          "the highest)")
-    rec.add_argument("--sim-cpu", type=int, metavar="N",
-                     help="with --rt: the simulated hand's CPU (default: the lowest other one)")
-    rec.add_argument("--accept-missed-deadlines", action="store_true",
-                     help="run on a real bus even if the host fails the timing check made "
-                          "before it (docs/timing.md): the hand may stop on LOOP_OVERRUN, or "
-                          "worse, get late commands")
-    rec.add_argument("--summary-json", type=Path, metavar="FILE.json",
-                     help="write the run summary as JSON (units in its key names)")
+    mode.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="step the simulated hand once per tick (default with --bus sim)",
+    )
+    mode.add_argument(
+        "--realtime", action="store_true", help="tick from a 1 kHz timer (default on a real bus)"
+    )
+    rec.add_argument(
+        "--rt",
+        action="store_true",
+        help="ask for SCHED_FIFO, locked and prefaulted memory, and on >= 2 CPUs "
+        "separate CPUs for the loop and the simulated hand (says so when "
+        "refused)",
+    )
+    rec.add_argument(
+        "--loop-cpu",
+        type=int,
+        metavar="N",
+        help="with --rt: the control loop's CPU (default: an isolated CPU, else the highest)",
+    )
+    rec.add_argument(
+        "--sim-cpu",
+        type=int,
+        metavar="N",
+        help="with --rt: the simulated hand's CPU (default: the lowest other one)",
+    )
+    rec.add_argument(
+        "--accept-missed-deadlines",
+        action="store_true",
+        help="run on a real bus even if the host fails the timing check made "
+        "before it (docs/timing.md): the hand may stop on LOOP_OVERRUN, or "
+        "worse, get late commands",
+    )
+    rec.add_argument(
+        "--summary-json",
+        type=Path,
+        metavar="FILE.json",
+        help="write the run summary as JSON (units in its key names)",
+    )
     rec.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
-    rec.add_argument("--sim-faults", type=Path, metavar="FAULTS.yaml",
-                     help="fault scenario for the simulated hand (config/sim/)")
-    rec.add_argument("--reset-node-faults", action="store_true",
-                     help="clear faults latched in the nodes before starting (explicit reset)")
-    rec.add_argument("--max-seconds", type=float, metavar="S",
-                     help="time budget [s], > 0: stop (controlled) after this long, outcome "
-                          "time_budget, exit 0 (default: no limit; lockstep counts simulated "
-                          "time)")
-    rec.add_argument("--log", type=Path, metavar="RUN.mcap",
-                     help="record every tick, event and frame to an MCAP file "
-                          "(see docs/recording.md; read it with 'handctl replay')")
-    rec.add_argument("--plot", type=Path, metavar="OUT.png",
-                     help="overview PNG: phases, torques, object heights, centre-line angle "
-                          "(simulated hand in lockstep)")
-    rec.add_argument("--live", type=_port, nargs="?", const=DEFAULT_LIVE_PORT, metavar="PORT",
-                     help="serve the recorded channels to Foxglove over WebSocket on "
-                          f"127.0.0.1:PORT while the hand runs (default {DEFAULT_LIVE_PORT}; "
-                          "needs --log)")
+    rec.add_argument(
+        "--sim-faults",
+        type=Path,
+        metavar="FAULTS.yaml",
+        help="fault scenario for the simulated hand (config/sim/)",
+    )
+    rec.add_argument(
+        "--reset-node-faults",
+        action="store_true",
+        help="clear faults latched in the nodes before starting (explicit reset)",
+    )
+    rec.add_argument(
+        "--max-seconds",
+        type=float,
+        metavar="S",
+        help="time budget [s], > 0: stop (controlled) after this long, outcome "
+        "time_budget, exit 0 (default: no limit; lockstep counts simulated "
+        "time)",
+    )
+    rec.add_argument(
+        "--log",
+        type=Path,
+        metavar="RUN.mcap",
+        help="record every tick, event and frame to an MCAP file "
+        "(see docs/recording.md; read it with 'handctl replay')",
+    )
+    rec.add_argument(
+        "--plot",
+        type=Path,
+        metavar="OUT.png",
+        help="overview PNG: phases, torques, object heights, centre-line angle "
+        "(simulated hand in lockstep)",
+    )
+    rec.add_argument(
+        "--live",
+        type=_port,
+        nargs="?",
+        const=DEFAULT_LIVE_PORT,
+        metavar="PORT",
+        help="serve the recorded channels to Foxglove over WebSocket on "
+        f"127.0.0.1:PORT while the hand runs (default {DEFAULT_LIVE_PORT}; "
+        "needs --log)",
+    )
     rec.set_defaults(func=_cmd_run_recipe)
 
 
 def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     plan = _command(
-        sub, "plan", help="plan a recipe's torques from a template (analysis, then search)",
+        sub,
+        "plan",
+        help="plan a recipe's torques from a template (analysis, then search)",
         description="Compute the torques of every phase of a recipe template: the analysis' "
-                    "torque with the largest robust margin at each phase's grasp, refined by a "
-                    "search on the simulated hand scored over perturbed models. Writes the "
-                    "compiled recipe with per-phase provenance.",
-        examples=["handctl plan config/recipes/swap_two_cylinders.template.yaml -o "
-                  "config/recipes/swap_two_cylinders.yaml --plot plan/",
-                  "handctl plan TEMPLATE.yaml -o RECIPE.yaml --quick"])
-    plan.add_argument("template", type=Path, metavar="TEMPLATE.yaml",
-                      help="recipe template (config/recipes/)")
-    plan.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
-                      help=f"hand config ({DEFAULT_HAND_HELP})")
-    plan.add_argument("-o", "--output", type=Path, required=True, metavar="RECIPE.yaml",
-                      help="where to write the compiled recipe")
-    plan.add_argument("--plot", type=Path, metavar="DIR",
-                      help="write each phase's torque region (chosen torque marked) as PNGs")
-    plan.add_argument("--models", type=int, metavar="N",
-                      help="perturbed models (default: the template's)")
-    plan.add_argument("--quick", action="store_true",
-                      help="the smallest search (smoke tests): 1 generation of 2")
-    plan.add_argument("--workers", type=int, metavar="N",
-                      help="local worker processes (default: every core; 1 runs in this "
-                           "process); the recipe is the same for any N")
-    plan.add_argument("--scheduler", metavar="tcp://HOST:PORT",
-                      help="run the work on this Dask distributed cluster instead "
-                           "(pip install 'handctl[cluster]'; see docs/scale.md)")
+        "torque with the largest robust margin at each phase's grasp, refined by a "
+        "search on the simulated hand scored over perturbed models. Writes the "
+        "compiled recipe with per-phase provenance.",
+        examples=[
+            "handctl plan config/recipes/swap_two_cylinders.template.yaml -o "
+            "config/recipes/swap_two_cylinders.yaml --plot plan/",
+            "handctl plan TEMPLATE.yaml -o RECIPE.yaml --quick",
+        ],
+    )
+    plan.add_argument(
+        "template", type=Path, metavar="TEMPLATE.yaml", help="recipe template (config/recipes/)"
+    )
+    plan.add_argument(
+        "--hand",
+        type=Path,
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
+    plan.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        metavar="RECIPE.yaml",
+        help="where to write the compiled recipe",
+    )
+    plan.add_argument(
+        "--plot",
+        type=Path,
+        metavar="DIR",
+        help="write each phase's torque region (chosen torque marked) as PNGs",
+    )
+    plan.add_argument(
+        "--models", type=int, metavar="N", help="perturbed models (default: the template's)"
+    )
+    plan.add_argument(
+        "--quick", action="store_true", help="the smallest search (smoke tests): 1 generation of 2"
+    )
+    plan.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="local worker processes (default: every core; 1 runs in this "
+        "process); the recipe is the same for any N",
+    )
+    plan.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:PORT",
+        help="run the work on this Dask distributed cluster instead "
+        "(pip install 'handctl[cluster]'; see docs/scale.md)",
+    )
     plan.set_defaults(func=_cmd_plan)
+
 
 def _add_bringup_run_options(p: argparse.ArgumentParser) -> None:
     """The options of a bring-up command that runs the hand through the Runtime (calibrate
     tdt, jog): how it runs, as ``run recipe`` has them."""
-    p.add_argument("--realtime", action="store_true",
-                   help="on the simulated hand: free-running in its own process, not lockstep")
-    p.add_argument("--rt", action="store_true",
-                   help="ask for SCHED_FIFO and locked memory (says so when refused)")
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="on the simulated hand: free-running in its own process, not lockstep",
+    )
+    p.add_argument(
+        "--rt",
+        action="store_true",
+        help="ask for SCHED_FIFO and locked memory (says so when refused)",
+    )
     p.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
-    p.add_argument("--sim-faults", type=Path, metavar="FAULTS.yaml",
-                   help="fault scenario for the simulated hand (config/sim/)")
-    p.add_argument("--reset-node-faults", action="store_true",
-                   help="clear faults latched in the nodes before starting (explicit reset)")
+    p.add_argument(
+        "--sim-faults",
+        type=Path,
+        metavar="FAULTS.yaml",
+        help="fault scenario for the simulated hand (config/sim/)",
+    )
+    p.add_argument(
+        "--reset-node-faults",
+        action="store_true",
+        help="clear faults latched in the nodes before starting (explicit reset)",
+    )
 
 
 def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Bring-up commands (docs/bringup.md): nodes, calibrate tdt, jog, monitor."""
     nodes = _command(
-        sub, "nodes", examples=["handctl nodes", "handctl nodes --bus socketcan:can0 --json"],
+        sub,
+        "nodes",
+        examples=["handctl nodes", "handctl nodes --bus socketcan:can0 --json"],
         help="list the hand's nodes as the bus shows them (listens, never sends)",
         description="Listen for the nodes' Feedback, Status and Heartbeat and print one row "
-                    "per configured node: present or missing, state, fault bits, protocol and "
-                    "firmware versions, feedback rate, counters, rejects; frames of nodes not "
-                    "in the hand config are flagged. Sends nothing. On --bus sim (the default) "
-                    "a simulated hand is started in this process to listen to.",
+        "per configured node: present or missing, state, fault bits, protocol and "
+        "firmware versions, feedback rate, counters, rejects; frames of nodes not "
+        "in the hand config are flagged. Sends nothing. On --bus sim (the default) "
+        "a simulated hand is started in this process to listen to.",
         notes="Exit 0 when every configured node is there, in no fault, of the host's "
-               "protocol version, and no other node is heard; 1 otherwise.")
-    nodes.add_argument("--bus", default="sim",
-                       help="sim (default), hand (the config's bus), socketcan:can0, "
-                            "unix:DIR, virtual:NAME, INTERFACE:CHANNEL")
+        "protocol version, and no other node is heard; 1 otherwise.",
+    )
+    nodes.add_argument(
+        "--bus",
+        default="sim",
+        help="sim (default), hand (the config's bus), socketcan:can0, "
+        "unix:DIR, virtual:NAME, INTERFACE:CHANNEL",
+    )
     _add_dbc(nodes)
-    nodes.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
-                       help=f"hand config ({DEFAULT_HAND_HELP})")
-    nodes.add_argument("--seconds", type=float, metavar="S",
-                       help="how long to listen [s] (default 1)")
+    nodes.add_argument(
+        "--hand",
+        type=Path,
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
+    nodes.add_argument(
+        "--seconds", type=float, metavar="S", help="how long to listen [s] (default 1)"
+    )
     nodes.add_argument("--json", action="store_true", help="print the result as JSON")
     nodes.set_defaults(func=_cmd_nodes)
 
-    calibrate = _command(sub, "calibrate", help="calibrate the hand's sensors",
-                         description="Calibrate the hand's sensors through the Runtime and "
-                                     "the safety supervisor.",
-                         examples=["handctl calibrate tdt -o calibrated.yaml"])
+    calibrate = _command(
+        sub,
+        "calibrate",
+        help="calibrate the hand's sensors",
+        description="Calibrate the hand's sensors through the Runtime and the safety supervisor.",
+        examples=["handctl calibrate tdt -o calibrated.yaml"],
+    )
     calibrations = calibrate.add_subparsers(dest="what", metavar="WHAT", required=True)
     tdt = _command(
-        calibrations, "tdt",
-        examples=["handctl calibrate tdt -o calibrated.yaml",
-                  "handctl calibrate tdt --bus socketcan:can0 --rt --hand HAND.yaml --write"],
+        calibrations,
+        "tdt",
+        examples=[
+            "handctl calibrate tdt -o calibrated.yaml",
+            "handctl calibrate tdt --bus socketcan:can0 --rt --hand HAND.yaml --write",
+        ],
         help="measure each TDT sensor's offset and noise at zero torque",
         description="Enable every node at zero torque (through the Runtime and the supervisor), "
-                    "let the fingers settle, measure each TDT sensor's offset and noise, and "
-                    "write a copy of the hand config with the new offsets (comments and layout "
-                    "kept). Refused, naming the joint, if a joint moves or a sensor's noise or "
-                    "offset is implausible. Default bus: the simulated hand, in lockstep.",
+        "let the fingers settle, measure each TDT sensor's offset and noise, and "
+        "write a copy of the hand config with the new offsets (comments and layout "
+        "kept). Refused, naming the joint, if a joint moves or a sensor's noise or "
+        "offset is implausible. Default bus: the simulated hand, in lockstep.",
         notes="Exit 0 written, 1 refused (nothing written), 2 bad input, 3 safety stop, "
-               "130 interrupted (Ctrl-C: a controlled stop).")
+        "130 interrupted (Ctrl-C: a controlled stop).",
+    )
     _add_dbc(tdt)
-    tdt.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
-                     help=f"hand config ({DEFAULT_HAND_HELP})")
-    tdt.add_argument("-o", "--output", type=Path, metavar="HAND.yaml",
-                     help="where to write the calibrated copy of the hand config")
-    tdt.add_argument("--write", action="store_true",
-                     help="overwrite the hand config itself")
-    tdt.add_argument("--bus", default="sim",
-                     help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL")
-    tdt.add_argument("--seconds", type=float, metavar="S",
-                     help="measurement time [s] (default 1)")
-    tdt.add_argument("--settle", type=float,
-                     metavar="S", help="time at zero torque before measuring [s] (default 2)")
-    tdt.add_argument("--max-span", type=float,
-                     metavar="RAD",
-                     help="a joint that moves more than this [rad] is refused (default 0.1)")
-    tdt.add_argument("--max-noise", type=float,
-                     metavar="NM",
-                     help="a noise (1 sigma) above this [N·m] is refused (default 0.02)")
-    tdt.add_argument("--max-offset", type=float,
-                     metavar="NM",
-                     help="an offset above this [N·m] is refused (default 0.25)")
+    tdt.add_argument(
+        "--hand",
+        type=Path,
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
+    tdt.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        metavar="HAND.yaml",
+        help="where to write the calibrated copy of the hand config",
+    )
+    tdt.add_argument("--write", action="store_true", help="overwrite the hand config itself")
+    tdt.add_argument(
+        "--bus",
+        default="sim",
+        help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL",
+    )
+    tdt.add_argument("--seconds", type=float, metavar="S", help="measurement time [s] (default 1)")
+    tdt.add_argument(
+        "--settle",
+        type=float,
+        metavar="S",
+        help="time at zero torque before measuring [s] (default 2)",
+    )
+    tdt.add_argument(
+        "--max-span",
+        type=float,
+        metavar="RAD",
+        help="a joint that moves more than this [rad] is refused (default 0.1)",
+    )
+    tdt.add_argument(
+        "--max-noise",
+        type=float,
+        metavar="NM",
+        help="a noise (1 sigma) above this [N·m] is refused (default 0.02)",
+    )
+    tdt.add_argument(
+        "--max-offset",
+        type=float,
+        metavar="NM",
+        help="an offset above this [N·m] is refused (default 0.25)",
+    )
     _add_bringup_run_options(tdt)
-    tdt.add_argument("--json", type=Path, metavar="FILE.json",
-                     help="write the measurement as JSON")
+    tdt.add_argument("--json", type=Path, metavar="FILE.json", help="write the measurement as JSON")
     tdt.set_defaults(func=_cmd_calibrate_tdt)
 
     jog = _command(
-        sub, "jog", examples=["handctl jog f1_j2 --torque 0.05",
-                              "handctl jog f3_j1 --torque -0.05 --seconds 3 --bus socketcan:can0"],
+        sub,
+        "jog",
+        examples=[
+            "handctl jog f1_j2 --torque 0.05",
+            "handctl jog f3_j1 --torque -0.05 --seconds 3 --bus socketcan:can0",
+        ],
         help="one joint under a small torque, every other at zero, through safety",
         description="Ramp one joint to a torque (N·m) within its rate limit, hold it, ramp "
-                    "back to zero; every other joint gets zero. A one-phase recipe run by the "
-                    "normal Runtime: every torque through the supervisor with the hand's "
-                    "limits, and the soft-limit guard. A table of the joint's angle and TDT "
-                    "torque is printed as it runs. Default bus: the simulated hand, in lockstep.",
+        "back to zero; every other joint gets zero. A one-phase recipe run by the "
+        "normal Runtime: every torque through the supervisor with the hand's "
+        "limits, and the soft-limit guard. A table of the joint's angle and TDT "
+        "torque is printed as it runs. Default bus: the simulated hand, in lockstep.",
         notes="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
-               "130. A torque over the joint's tau_max is refused (exit 2) before anything "
-               "is sent.")
+        "130. A torque over the joint's tau_max is refused (exit 2) before anything "
+        "is sent.",
+    )
     jog.add_argument("joint", help="joint name, as the hand config names it")
-    jog.add_argument("--torque", type=float, required=True, metavar="X",
-                     help="torque [N·m], signed")
-    jog.add_argument("--seconds", type=float, metavar="S",
-                     help="how long to hold it [s] (default 2)")
+    jog.add_argument(
+        "--torque", type=float, required=True, metavar="X", help="torque [N·m], signed"
+    )
+    jog.add_argument(
+        "--seconds", type=float, metavar="S", help="how long to hold it [s] (default 2)"
+    )
     _add_dbc(jog)
-    jog.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
-                     help=f"hand config ({DEFAULT_HAND_HELP})")
-    jog.add_argument("--bus", default="sim",
-                     help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL")
+    jog.add_argument(
+        "--hand",
+        type=Path,
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
+    jog.add_argument(
+        "--bus",
+        default="sim",
+        help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL",
+    )
     _add_bringup_run_options(jog)
     jog.set_defaults(func=_cmd_jog)
 
     mon = _command(
-        sub, "monitor", examples=["handctl monitor", "handctl monitor --bus socketcan:can0 | jq .",
-                                  "handctl monitor --log RUN.mcap"],
+        sub,
+        "monitor",
+        examples=[
+            "handctl monitor",
+            "handctl monitor --bus socketcan:can0 | jq .",
+            "handctl monitor --log RUN.mcap",
+        ],
         help="a live decoded view of the bus (listens, never sends)",
         description="Decode every frame on the bus: per message its rate, last values in "
-                    "units, and the CRC, counter and length rejects a receiver would make; "
-                    "unknown ids are counted. A full-screen view on a terminal, JSON lines "
-                    "(one snapshot every --every seconds, and a last one) when piped. Sends "
-                    "nothing. On --bus sim (the default) a simulated hand is started in this "
-                    "process to listen to.",
-        notes="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end.")
-    mon.add_argument("--bus", help="sim (default), hand, socketcan:can0, unix:DIR, "
-                                   "virtual:NAME, INTERFACE:CHANNEL")
+        "units, and the CRC, counter and length rejects a receiver would make; "
+        "unknown ids are counted. A full-screen view on a terminal, JSON lines "
+        "(one snapshot every --every seconds, and a last one) when piped. Sends "
+        "nothing. On --bus sim (the default) a simulated hand is started in this "
+        "process to listen to.",
+        notes="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end.",
+    )
+    mon.add_argument(
+        "--bus",
+        help="sim (default), hand, socketcan:can0, unix:DIR, virtual:NAME, INTERFACE:CHANNEL",
+    )
     _add_dbc(mon)
-    mon.add_argument("--hand", type=Path, default=DEFAULT_HAND, metavar="HAND.yaml",
-                     help=f"hand config ({DEFAULT_HAND_HELP})")
-    mon.add_argument("--log", type=Path, metavar="RUN.mcap",
-                     help="read the raw frames of a recording instead of a bus")
-    mon.add_argument("--seconds", type=float, metavar="S",
-                     help="stop after this long [s] (default: at Ctrl-C)")
-    mon.add_argument("--every", type=float,
-                     metavar="S",
-                     help="time between JSON snapshots [s] (default 1; of log time with --log)")
+    mon.add_argument(
+        "--hand",
+        type=Path,
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
+    mon.add_argument(
+        "--log",
+        type=Path,
+        metavar="RUN.mcap",
+        help="read the raw frames of a recording instead of a bus",
+    )
+    mon.add_argument(
+        "--seconds", type=float, metavar="S", help="stop after this long [s] (default: at Ctrl-C)"
+    )
+    mon.add_argument(
+        "--every",
+        type=float,
+        metavar="S",
+        help="time between JSON snapshots [s] (default 1; of log time with --log)",
+    )
     mon.set_defaults(func=_cmd_monitor)
-
-
 
 
 def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     rep = _command(
-        sub, "replay", help="summarise, plot, re-run or replay a recording",
+        sub,
+        "replay",
+        help="summarise, plot, re-run or replay a recording",
         description="Read a recording (handctl run recipe --log RUN.mcap), complete or "
-                    "truncated, and print its summary: phases, largest torques, faults, timing, "
-                    "drops. Exit 1 when --rerun finds a mismatch.",
-        examples=["handctl replay RUN.mcap --rerun --plot OUT.png",
-                  "handctl replay RUN.mcap --export candump frames.log"])
+        "truncated, and print its summary: phases, largest torques, faults, timing, "
+        "drops. Exit 1 when --rerun finds a mismatch.",
+        examples=[
+            "handctl replay RUN.mcap --rerun --plot OUT.png",
+            "handctl replay RUN.mcap --export candump frames.log",
+        ],
+    )
     rep.add_argument("log", type=Path, metavar="RUN.mcap", help="the recording")
-    rep.add_argument("--plot", type=Path, metavar="OUT.png",
-                     help="torques over time with phase bands (and object poses if simulated)")
-    rep.add_argument("--rerun", action="store_true",
-                     help="feed the logged frames through a fresh driver, recipe runner and "
-                          "safety; compare the applied torques tick by tick, bit for bit")
-    rep.add_argument("--to-bus", metavar="SPEC",
-                     help="send the logged frames onto a bus (virtual:NAME, socketcan:can0, ...) "
-                          "with their original timing")
-    rep.add_argument("--speed", type=float, metavar="X",
-                     help="with --to-bus: time scale [× recorded speed] (2 = twice as fast)")
-    rep.add_argument("--direction", choices=("both", "rx", "tx"), default="both",
-                     help="with --to-bus: which logged frames to send (default both)")
-    rep.add_argument("--export", nargs=2, metavar=("FORMAT", "OUT"),
-                     help="write the frames as candump, asc or blf (python-can's log formats)")
-    rep.add_argument("--json", type=Path, metavar="FILE.json",
-                     help="write the summary (and re-run report) as JSON")
-    rep.add_argument("--live", type=_port, nargs="?", const=DEFAULT_LIVE_PORT, metavar="PORT",
-                     help="stream the recording to Foxglove over WebSocket on 127.0.0.1:PORT "
-                          f"at its recorded speed (or --speed X; default port "
-                          f"{DEFAULT_LIVE_PORT})")
+    rep.add_argument(
+        "--plot",
+        type=Path,
+        metavar="OUT.png",
+        help="torques over time with phase bands (and object poses if simulated)",
+    )
+    rep.add_argument(
+        "--rerun",
+        action="store_true",
+        help="feed the logged frames through a fresh driver, recipe runner and "
+        "safety; compare the applied torques tick by tick, bit for bit",
+    )
+    rep.add_argument(
+        "--to-bus",
+        metavar="SPEC",
+        help="send the logged frames onto a bus (virtual:NAME, socketcan:can0, ...) "
+        "with their original timing",
+    )
+    rep.add_argument(
+        "--speed",
+        type=float,
+        metavar="X",
+        help="with --to-bus: time scale [× recorded speed] (2 = twice as fast)",
+    )
+    rep.add_argument(
+        "--direction",
+        choices=("both", "rx", "tx"),
+        default="both",
+        help="with --to-bus: which logged frames to send (default both)",
+    )
+    rep.add_argument(
+        "--export",
+        nargs=2,
+        metavar=("FORMAT", "OUT"),
+        help="write the frames as candump, asc or blf (python-can's log formats)",
+    )
+    rep.add_argument(
+        "--json",
+        type=Path,
+        metavar="FILE.json",
+        help="write the summary (and re-run report) as JSON",
+    )
+    rep.add_argument(
+        "--live",
+        type=_port,
+        nargs="?",
+        const=DEFAULT_LIVE_PORT,
+        metavar="PORT",
+        help="stream the recording to Foxglove over WebSocket on 127.0.0.1:PORT "
+        f"at its recorded speed (or --speed X; default port "
+        f"{DEFAULT_LIVE_PORT})",
+    )
     rep.set_defaults(func=_cmd_replay)
 
 

@@ -155,8 +155,7 @@ def load_hand(path: str | Path, dbc: str | Path | None = None) -> HandConfig:
     return parse_hand(load_yaml(path), dbc=None if dbc is None else str(dbc))
 
 
-def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = None
-               ) -> HandConfig:
+def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = None) -> HandConfig:
     """The hand config in ``doc``, checked against ``protocol`` if given (a recording's), else
     against the protocol of the hand and ``dbc`` (``protocol_for``)."""
     name = doc.string("name")
@@ -194,34 +193,46 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
 def _parse_safety(doc: Doc) -> SafetyConfig:
     d = SafetyConfig()
     s = SafetyConfig(
-        feedback_timeout_s=doc.number("feedback_timeout_s", default=d.feedback_timeout_s,
-                                      min=0.001, max=1.0, unit="s"),
-        heartbeat_timeout_s=doc.number("heartbeat_timeout_s", default=d.heartbeat_timeout_s,
-                                       min=0.01, max=10.0, unit="s"),
-        tdt_tolerance=doc.number("tdt_tolerance", default=d.tdt_tolerance, min=0.0, max=10.0,
-                                 unit="N·m"),
-        tdt_tolerance_rel=doc.number("tdt_tolerance_rel", default=d.tdt_tolerance_rel, min=0.0,
-                                     max=10.0),
-        tdt_window_s=doc.number("tdt_window_s", default=d.tdt_window_s, min=0.001, max=10.0,
-                                unit="s"),
+        feedback_timeout_s=doc.number(
+            "feedback_timeout_s", default=d.feedback_timeout_s, min=0.001, max=1.0, unit="s"
+        ),
+        heartbeat_timeout_s=doc.number(
+            "heartbeat_timeout_s", default=d.heartbeat_timeout_s, min=0.01, max=10.0, unit="s"
+        ),
+        tdt_tolerance=doc.number(
+            "tdt_tolerance", default=d.tdt_tolerance, min=0.0, max=10.0, unit="N·m"
+        ),
+        tdt_tolerance_rel=doc.number(
+            "tdt_tolerance_rel", default=d.tdt_tolerance_rel, min=0.0, max=10.0
+        ),
+        tdt_window_s=doc.number(
+            "tdt_window_s", default=d.tdt_window_s, min=0.001, max=10.0, unit="s"
+        ),
         tdt_lag_s=doc.number("tdt_lag_s", default=d.tdt_lag_s, min=0.0, max=1.0, unit="s"),
-        tdt_stuck_window_s=doc.number("tdt_stuck_window_s", default=d.tdt_stuck_window_s,
-                                      min=0.005, max=10.0, unit="s"),
-        tdt_stuck_min_change=doc.number("tdt_stuck_min_change", default=d.tdt_stuck_min_change,
-                                        min=0.0, max=10.0, unit="N·m"),
-        tdt_stuck_still_s=doc.number("tdt_stuck_still_s", default=d.tdt_stuck_still_s,
-                                     min=0.0, max=60.0, unit="s"),
-        enable_timeout_s=doc.number("enable_timeout_s", default=d.enable_timeout_s, min=0.005,
-                                    max=10.0, unit="s"),
-        max_consecutive_misses=doc.integer("max_consecutive_misses",
-                                           default=d.max_consecutive_misses, min=1, max=100),
+        tdt_stuck_window_s=doc.number(
+            "tdt_stuck_window_s", default=d.tdt_stuck_window_s, min=0.005, max=10.0, unit="s"
+        ),
+        tdt_stuck_min_change=doc.number(
+            "tdt_stuck_min_change", default=d.tdt_stuck_min_change, min=0.0, max=10.0, unit="N·m"
+        ),
+        tdt_stuck_still_s=doc.number(
+            "tdt_stuck_still_s", default=d.tdt_stuck_still_s, min=0.0, max=60.0, unit="s"
+        ),
+        enable_timeout_s=doc.number(
+            "enable_timeout_s", default=d.enable_timeout_s, min=0.005, max=10.0, unit="s"
+        ),
+        max_consecutive_misses=doc.integer(
+            "max_consecutive_misses", default=d.max_consecutive_misses, min=1, max=100
+        ),
         max_consecutive_send_failures=doc.integer(
-            "max_consecutive_send_failures", default=d.max_consecutive_send_failures,
-            min=1, max=100),
-        reject_window_s=doc.number("reject_window_s", default=d.reject_window_s, min=0.001,
-                                   max=10.0, unit="s"),
-        max_rejects_in_window=doc.integer("max_rejects_in_window",
-                                          default=d.max_rejects_in_window, min=0, max=100_000),
+            "max_consecutive_send_failures", default=d.max_consecutive_send_failures, min=1, max=100
+        ),
+        reject_window_s=doc.number(
+            "reject_window_s", default=d.reject_window_s, min=0.001, max=10.0, unit="s"
+        ),
+        max_rejects_in_window=doc.integer(
+            "max_rejects_in_window", default=d.max_rejects_in_window, min=0, max=100_000
+        ),
     )
     doc.done()
     return s
@@ -236,8 +247,9 @@ def _parse_bus(doc: Doc) -> BusConfig:
     if fd:
         data_bitrate = doc.integer("data_bitrate", min=bitrate, max=10_000_000)
     elif doc.has("data_bitrate"):
-        doc.fail("data_bitrate", "no data_bitrate on classic CAN (fd: false)",
-                 doc.raw("data_bitrate"))
+        doc.fail(
+            "data_bitrate", "no data_bitrate on classic CAN (fd: false)", doc.raw("data_bitrate")
+        )
     loop_rate = doc.number("loop_rate_hz", min=1.0, max=10_000.0, unit="Hz")
     doc.done()
     return BusConfig(interface, channel, fd, bitrate, data_bitrate, loop_rate)
@@ -250,9 +262,12 @@ def _parse_finger(doc: Doc) -> FingerConfig:
     # protocol's (``check_protocol``), for a DBC given with --dbc that numbers them otherwise.
     derived = frame_ids(node_id)
     ids_doc = doc.mapping("can_ids", default={})
-    ids = CanIds(**{kind: ids_doc.integer(kind, default=derived[kind], min=1,
-                                          max=MAX_STANDARD_ID)
-                    for kind in CAN_ID_KINDS})
+    ids = CanIds(
+        **{
+            kind: ids_doc.integer(kind, default=derived[kind], min=1, max=MAX_STANDARD_ID)
+            for kind in CAN_ID_KINDS
+        }
+    )
     ids_doc.done()
     base = doc.mapping("base")
     base_x = base.number("x", min=-1.0, max=1.0, unit="m")
@@ -260,8 +275,7 @@ def _parse_finger(doc: Doc) -> FingerConfig:
     base_angle = base.number("angle", min=-2 * math.pi, max=2 * math.pi, unit="rad")
     base.done()
     z = doc.number("z", default=0.0, min=-1.0, max=1.0, unit="m")
-    joints = tuple(_parse_joint(j) for j in doc.mappings("joints", min_len=1,
-                                                                 max_len=MAX_JOINTS))
+    joints = tuple(_parse_joint(j) for j in doc.mappings("joints", min_len=1, max_len=MAX_JOINTS))
     doc.done()
     return FingerConfig(name, node_id, ids, base_x, base_y, base_angle, z, joints)
 
@@ -284,8 +298,9 @@ def _parse_joint(doc: Doc) -> JointConfig:
     tdt_doc.done()
     half_thickness = doc.number("half_thickness", default=0.0, min=0.0, max=0.1, unit="m")
     doc.done()
-    return JointConfig(name, link, tau_max, device, rate, lo, hi, TdtCalibration(scale, offset),
-                       half_thickness)
+    return JointConfig(
+        name, link, tau_max, device, rate, lo, hi, TdtCalibration(scale, offset), half_thickness
+    )
 
 
 def _check_unique(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
@@ -302,14 +317,21 @@ def _check_unique(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
                 _fail_at(doc, path, f"a name not used before (also {seen_names[name]})", name)
             seen_names[name] = path
         if finger.node_id in seen_nodes:
-            _fail_at(doc, f"{where}.node_id",
-                     f"a node id not used before (fingers[{seen_nodes[finger.node_id]}] has it)",
-                     finger.node_id)
+            _fail_at(
+                doc,
+                f"{where}.node_id",
+                f"a node id not used before (fingers[{seen_nodes[finger.node_id]}] has it)",
+                finger.node_id,
+            )
         seen_nodes[finger.node_id] = i
         for kind, can_id in finger.can_ids.as_dict().items():
             if can_id in seen_ids:
-                _fail_at(doc, f"{where}.can_ids.{kind}",
-                         f"a CAN id not used before ({seen_ids[can_id]} has it)", hex(can_id))
+                _fail_at(
+                    doc,
+                    f"{where}.can_ids.{kind}",
+                    f"a CAN id not used before ({seen_ids[can_id]} has it)",
+                    hex(can_id),
+                )
             seen_ids[can_id] = f"{where}.can_ids.{kind}"
 
 

@@ -57,9 +57,12 @@ def turn_deg(line_angle: npt.ArrayLike) -> npt.NDArray[np.float64]:
     return np.degrees(turn_rad(line_angle))
 
 
-def phase_turns_deg(t: npt.ArrayLike, line_angle: npt.ArrayLike,
-                    phases: Sequence[tuple[str, float, float]],
-                    prefix: str = "manipulate") -> list[float]:
+def phase_turns_deg(
+    t: npt.ArrayLike,
+    line_angle: npt.ArrayLike,
+    phases: Sequence[tuple[str, float, float]],
+    prefix: str = "manipulate",
+) -> list[float]:
     """The turn (deg, ccw +) in each phase named ``prefix...``: the unwrapped centre-line
     angle at the first sample at or after the phase's end (the last sample if the run ends
     first) minus at the first sample at or after its start. Consecutive phases' turns add up

@@ -86,8 +86,9 @@ def _start_worker(owner: int) -> None:
 class WorkPool:
     """One executor for offline work, with an ordered, cancellable ``map``."""
 
-    def __init__(self, executor: cf.Executor, workers: int, where: str,
-                 close: Callable[[bool], None]) -> None:
+    def __init__(
+        self, executor: cf.Executor, workers: int, where: str, close: Callable[[bool], None]
+    ) -> None:
         self.executor = executor
         self.workers = workers
         self.where = where
@@ -95,8 +96,9 @@ class WorkPool:
         self._closed = False
         self.tasks_run = 0  # tasks whose results came back (what a rate is counted in)
 
-    def map(self, fn: Callable[[T], R], items: Sequence[T],
-            progress: Progress | None = None) -> list[R]:
+    def map(
+        self, fn: Callable[[T], R], items: Sequence[T], progress: Progress | None = None
+    ) -> list[R]:
         """``[fn(x) for x in items]``, run by the pool; results in the order of ``items``.
 
         The first task to fail fails the whole map (the rest are cancelled), and its
@@ -131,16 +133,21 @@ class WorkPool:
     def __enter__(self) -> WorkPool:
         return self
 
-    def __exit__(self, kind: type[BaseException] | None, _exc: BaseException | None,
-                 _tb: TracebackType | None) -> None:
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        _exc: BaseException | None,
+        _tb: TracebackType | None,
+    ) -> None:
         self.close(cancel=kind is not None)
 
 
 def check_scheduler(address: str) -> str:
     """The scheduler's address as Dask takes it, or a ``ConfigError`` naming the option."""
     if not _SCHEDULER.match(address):
-        raise ConfigError("--scheduler", "", "a Dask scheduler address like tcp://HOST:8786",
-                          address)
+        raise ConfigError(
+            "--scheduler", "", "a Dask scheduler address like tcp://HOST:8786", address
+        )
     return address
 
 
@@ -156,8 +163,12 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
         return WorkPool(InlineExecutor(), 1, "this process", lambda _cancel: None)
     # spawn, not fork: a worker starts from the installed package alone, as a cluster's does,
     # and inherits no thread, lock or open file of the caller
-    pool = cf.ProcessPoolExecutor(max_workers=count, mp_context=get_context("spawn"),
-                                  initializer=_start_worker, initargs=(os.getpid(),))
+    pool = cf.ProcessPoolExecutor(
+        max_workers=count,
+        mp_context=get_context("spawn"),
+        initializer=_start_worker,
+        initargs=(os.getpid(),),
+    )
 
     def close(cancel: bool) -> None:
         if not cancel:
@@ -180,13 +191,18 @@ def _dask_pool(address: str) -> WorkPool:
     try:
         distributed: Any = importlib.import_module("distributed")
     except ImportError:
-        raise ConfigError("--scheduler", "", "Dask distributed installed (pip install "
-                          "'handctl[cluster]')", address) from None
+        raise ConfigError(
+            "--scheduler",
+            "",
+            "Dask distributed installed (pip install 'handctl[cluster]')",
+            address,
+        ) from None
     try:
         client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
     except (OSError, TimeoutError) as exc:
-        raise ConfigError("--scheduler", "", "a reachable Dask scheduler",
-                          f"{address} ({exc})") from None
+        raise ConfigError(
+            "--scheduler", "", "a reachable Dask scheduler", f"{address} ({exc})"
+        ) from None
     # pure=False: every submission runs (a pure task of equal inputs would be shared, which is
     # correct but makes a repeated candidate cost nothing and the counts lie)
     executor = client.get_executor(pure=False)
@@ -196,5 +212,4 @@ def _dask_pool(address: str) -> WorkPool:
         executor.shutdown(wait=not cancel)
         client.close()
 
-    return WorkPool(executor, workers, f"the Dask cluster at {address} ({workers} workers)",
-                    close)
+    return WorkPool(executor, workers, f"the Dask cluster at {address} ({workers} workers)", close)

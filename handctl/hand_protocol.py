@@ -42,23 +42,46 @@ PROTOCOL_VERSION = 2
 NODE_IDS = range(1, 16)
 MAX_JOINTS = 6
 #: Per message kind: the base CAN id (plus the node id) and the base DataID (plus the node id).
-ID_BASES = {"NodeCommand": 0x010, "TorqueCommand": 0x100, "Feedback": 0x180, "Status": 0x280,
-            "Heartbeat": 0x700}
-DATA_ID_BASES = {"NodeCommand": 0x1010, "TorqueCommand": 0x1020, "Feedback": 0x1030,
-                 "Status": 0x1040, "Heartbeat": 0x1050}
+ID_BASES = {
+    "NodeCommand": 0x010,
+    "TorqueCommand": 0x100,
+    "Feedback": 0x180,
+    "Status": 0x280,
+    "Heartbeat": 0x700,
+}
+DATA_ID_BASES = {
+    "NodeCommand": 0x1010,
+    "TorqueCommand": 0x1020,
+    "Feedback": 0x1030,
+    "Status": 0x1040,
+    "Heartbeat": 0x1050,
+}
 #: The hand config's ``can_ids`` keys, by message kind.
-CAN_ID_KEYS = {"NodeCommand": "node_command", "TorqueCommand": "torque_command",
-               "Feedback": "feedback", "Status": "status", "Heartbeat": "heartbeat"}
+CAN_ID_KEYS = {
+    "NodeCommand": "node_command",
+    "TorqueCommand": "torque_command",
+    "Feedback": "feedback",
+    "Status": "status",
+    "Heartbeat": "heartbeat",
+}
 ESTOP_DATA_ID = 0x0F00
 _NUMBERS = ("one", "two", "three", "four", "five", "six")
 _TORQUE = '(0.0001,0) [-3.2768|3.2767] "N.m"'
 _ANGLE = '(0.0001,0) [-3.2768|3.2767] "rad"'
 _BYTE = '(1,0) [0|255] ""'
 _STATE_CHOICES = '0 "DISABLED" 1 "ENABLED" 2 "FAULT"'
-_STATUS_SIGNALS = (("State", '""'), ("FaultBits", '""'), ("RejectCrc", '"frames"'),
-                   ("RejectCounter", '"frames"'), ("RejectLength", '"frames"'),
-                   ("CommandAge", '"ms"'), ("ProtocolVersion", '""'), ("FirmwareMajor", '""'),
-                   ("FirmwareMinor", '""'), ("FirmwarePatch", '""'))
+_STATUS_SIGNALS = (
+    ("State", '""'),
+    ("FaultBits", '""'),
+    ("RejectCrc", '"frames"'),
+    ("RejectCounter", '"frames"'),
+    ("RejectLength", '"frames"'),
+    ("CommandAge", '"ms"'),
+    ("ProtocolVersion", '""'),
+    ("FirmwareMajor", '""'),
+    ("FirmwareMinor", '""'),
+    ("FirmwarePatch", '""'),
+)
 
 
 def frame_ids(node_id: int) -> dict[str, int]:
@@ -80,36 +103,55 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
     nodes = list(shape)
     for node_id, joints in nodes:
         if node_id not in NODE_IDS or not 1 <= joints <= MAX_JOINTS:
-            raise ValueError(f"a node id 1..15 with 1..{MAX_JOINTS} joints, found node "
-                             f"{node_id} with {joints}")
+            raise ValueError(
+                f"a node id 1..15 with 1..{MAX_JOINTS} joints, found node {node_id} with {joints}"
+            )
     fingers = [f"FINGER{n}" for n, _ in nodes]
     everyone = ",".join(fingers)
-    out = [f'VERSION "handctl protocol {PROTOCOL_VERSION}"', "", "NS_ :", "\tBA_DEF_", "\tBA_",
-           "\tVAL_", "\tCM_", "", "BS_:", "", f"BU_: HOST {' '.join(fingers)}", ""]
+    out = [
+        f'VERSION "handctl protocol {PROTOCOL_VERSION}"',
+        "",
+        "NS_ :",
+        "\tBA_DEF_",
+        "\tBA_",
+        "\tVAL_",
+        "\tCM_",
+        "",
+        "BS_:",
+        "",
+        f"BU_: HOST {' '.join(fingers)}",
+        "",
+    ]
     out += _message(0, "EStop", 3, "HOST", everyone, [("Reason", 16, 8, False, _BYTE)])
     for kind in ("NodeCommand", "TorqueCommand", "Feedback", "Status", "Heartbeat"):
         for node_id, joints in nodes:
             out += _node_message(kind, node_id, joints)
     status_1 = ID_BASES["Status"] + nodes[0][0] if nodes else None
     if status_1 is not None:
-        out.append(f'CM_ SG_ {status_1} ProtocolVersion "The protocol version the node speaks: '
-                   "the number in this DBC's VERSION. Stays at byte 8 of Status in every "
-                   'version.";')
+        out.append(
+            f'CM_ SG_ {status_1} ProtocolVersion "The protocol version the node speaks: '
+            "the number in this DBC's VERSION. Stays at byte 8 of Status in every "
+            'version.";'
+        )
     out.append('CM_ BU_ HOST "The host computer running handctl.";')
     for node_id, joints in nodes:
         k = _NUMBERS[joints - 1]
-        out.append(f'CM_ BU_ FINGER{node_id} "Finger {node_id} controller: {k} tendon-driven '
-                   f'joint{"s" if joints > 1 else ""}, {k} TDT torque sensor'
-                   f'{"s" if joints > 1 else ""}, {k} encoder{"s" if joints > 1 else ""}.";')
-    out.append('CM_ BO_ 0 "Emergency stop: every node zeroes torque and latches FAULT(ESTOP). '
-               'Honoured even with a bad CRC or counter.";')
+        out.append(
+            f'CM_ BU_ FINGER{node_id} "Finger {node_id} controller: {k} tendon-driven '
+            f"joint{'s' if joints > 1 else ''}, {k} TDT torque sensor"
+            f'{"s" if joints > 1 else ""}, {k} encoder{"s" if joints > 1 else ""}.";'
+        )
+    out.append(
+        'CM_ BO_ 0 "Emergency stop: every node zeroes torque and latches FAULT(ESTOP). '
+        'Honoured even with a bad CRC or counter.";'
+    )
     comments = {
         "NodeCommand": "Node management for finger {n}: enable, disable, fault reset.",
         "TorqueCommand": "Joint torque command for finger {n}, every loop period.",
         "Feedback": "TDT joint torques, joint angles and node state of finger {n}, every loop "
-                    "period.",
+        "period.",
         "Status": "Node state, fault bits, receive-error counts, protocol and firmware version "
-                  "of finger {n}: on change and every 100 ms.",
+        "of finger {n}: on change and every 100 ms.",
         "Heartbeat": "Liveness of finger {n}: state and uptime, every 100 ms.",
     }
     for node_id, _ in nodes:
@@ -134,20 +176,27 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
     cycle = {"TorqueCommand": 1, "Feedback": 1, "Status": 100, "Heartbeat": 100}
     send = {"TorqueCommand": 1, "Feedback": 1, "Status": 2, "Heartbeat": 2}
     for node_id, _ in nodes:
-        out += [f'BA_ "DataID" BO_ {ID_BASES[k] + node_id} {DATA_ID_BASES[k] + node_id};'
-                for k in ID_BASES]
+        out += [
+            f'BA_ "DataID" BO_ {ID_BASES[k] + node_id} {DATA_ID_BASES[k] + node_id};'
+            for k in ID_BASES
+        ]
         out += [f'BA_ "VFrameFormat" BO_ {ID_BASES[k] + node_id} 14;' for k in ID_BASES]
-        out += [f'BA_ "GenMsgCycleTime" BO_ {ID_BASES[k] + node_id} {ms};'
-                for k, ms in cycle.items()]
+        out += [
+            f'BA_ "GenMsgCycleTime" BO_ {ID_BASES[k] + node_id} {ms};' for k, ms in cycle.items()
+        ]
     out.append('BA_ "VFrameFormat" BO_ 0 14;')
     for node_id, _ in nodes:
         out += [f'BA_ "HandctlSend" BO_ {ID_BASES[k] + node_id} {v};' for k, v in send.items()]
     out.append('VAL_ 0 Reason 1 "operator" 2 "host_safety" 3 "host_shutdown" ;')
     for node_id, _ in nodes:
-        out.append(f'VAL_ {ID_BASES["NodeCommand"] + node_id} Command 1 "enable" 2 "disable" '
-                   '3 "fault_reset" ;')
-        out += [f"VAL_ {ID_BASES[k] + node_id} State {_STATE_CHOICES} ;"
-                for k in ("Feedback", "Status", "Heartbeat")]
+        out.append(
+            f'VAL_ {ID_BASES["NodeCommand"] + node_id} Command 1 "enable" 2 "disable" '
+            '3 "fault_reset" ;'
+        )
+        out += [
+            f"VAL_ {ID_BASES[k] + node_id} State {_STATE_CHOICES} ;"
+            for k in ("Feedback", "Status", "Heartbeat")
+        ]
     return "\n".join(out) + "\n"
 
 
@@ -156,12 +205,21 @@ Signal = tuple[str, int, int, bool, str]  # name, start bit, bits, signed, "(sca
 
 def _node_message(kind: str, n: int, joints: int) -> list[str]:
     """One message of node ``n`` with ``joints`` joints."""
-    sender, receiver = ("HOST", f"FINGER{n}") if kind in ("NodeCommand", "TorqueCommand") \
+    sender, receiver = (
+        ("HOST", f"FINGER{n}")
+        if kind in ("NodeCommand", "TorqueCommand")
         else (f"FINGER{n}", "HOST")
+    )
     signals = _node_signals(kind, joints)
     used = max(start + bits for _, start, bits, _, _ in signals) // 8
-    return _message(ID_BASES[kind] + n, f"{kind}_{n}",
-                    frame_length(DATA_ID_BASES[kind] + n, used), sender, receiver, signals)
+    return _message(
+        ID_BASES[kind] + n,
+        f"{kind}_{n}",
+        frame_length(DATA_ID_BASES[kind] + n, used),
+        sender,
+        receiver,
+        signals,
+    )
 
 
 def frame_length(data_id: int, used: int) -> int:
@@ -189,26 +247,38 @@ def _node_signals(kind: str, joints: int) -> list[Signal]:
         signals = [(f"Torque{k + 1}", 16 + 16 * k, 16, True, _TORQUE) for k in range(joints)]
     elif kind == "Feedback":
         signals = [(f"Torque{k + 1}", 16 + 16 * k, 16, True, _TORQUE) for k in range(joints)]
-        signals += [(f"Angle{k + 1}", 16 + 16 * (joints + k), 16, True, _ANGLE)
-                    for k in range(joints)]
-        signals += [("State", 16 + 32 * joints, 8, False, _BYTE),
-                    ("FaultBits", 24 + 32 * joints, 8, False, _BYTE)]
+        signals += [
+            (f"Angle{k + 1}", 16 + 16 * (joints + k), 16, True, _ANGLE) for k in range(joints)
+        ]
+        signals += [
+            ("State", 16 + 32 * joints, 8, False, _BYTE),
+            ("FaultBits", 24 + 32 * joints, 8, False, _BYTE),
+        ]
     elif kind == "Status":
-        signals = [(name, 16 + 8 * i, 8, False, f"(1,0) [0|255] {unit}")
-                   for i, (name, unit) in enumerate(_STATUS_SIGNALS)]
+        signals = [
+            (name, 16 + 8 * i, 8, False, f"(1,0) [0|255] {unit}")
+            for i, (name, unit) in enumerate(_STATUS_SIGNALS)
+        ]
     else:
-        signals = [("State", 16, 8, False, _BYTE),
-                   ("Uptime", 24, 32, False, '(1,0) [0|4294967295] "ms"')]
+        signals = [
+            ("State", 16, 8, False, _BYTE),
+            ("Uptime", 24, 32, False, '(1,0) [0|4294967295] "ms"'),
+        ]
     return signals
 
 
-def _message(frame_id: int, name: str, length: int, sender: str, receivers: str,
-             signals: list[Signal]) -> list[str]:
-    lines = [f"BO_ {frame_id} {name}: {length} {sender}",
-             f' SG_ Crc : 0|8@1+ {_BYTE} {receivers}',
-             f' SG_ Counter : 8|8@1+ {_BYTE} {receivers}']
-    lines += [f" SG_ {sig} : {start}|{bits}@1{'-' if signed else '+'} {rest} {receivers}"
-              for sig, start, bits, signed, rest in signals]
+def _message(
+    frame_id: int, name: str, length: int, sender: str, receivers: str, signals: list[Signal]
+) -> list[str]:
+    lines = [
+        f"BO_ {frame_id} {name}: {length} {sender}",
+        f" SG_ Crc : 0|8@1+ {_BYTE} {receivers}",
+        f" SG_ Counter : 8|8@1+ {_BYTE} {receivers}",
+    ]
+    lines += [
+        f" SG_ {sig} : {start}|{bits}@1{'-' if signed else '+'} {rest} {receivers}"
+        for sig, start, bits, signed, rest in signals
+    ]
     return [*lines, ""]
 
 
@@ -239,42 +309,61 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
     differ: ``handctl/wirelimits.py`` holds the limits against them)."""
     estop = protocol.by_name.get("EStop")
     if estop is None or estop.signal_names != ("Reason",):
-        raise ConfigError(protocol.source, "EStop", "an EStop message of one signal, Reason",
-                          "none" if estop is None else ", ".join(estop.signal_names))
+        raise ConfigError(
+            protocol.source,
+            "EStop",
+            "an EStop message of one signal, Reason",
+            "none" if estop is None else ", ".join(estop.signal_names),
+        )
     for i, finger in enumerate(hand.fingers):
         where = f"fingers[{i}]"
         for kind, key in CAN_ID_KEYS.items():
             name = f"{kind}_{finger.node_id}"
             layout = protocol.by_name.get(name)
             if layout is None:
-                raise ConfigError(hand.source, f"{where}.node_id",
-                                  f"a node with a {name} message in {protocol.source}",
-                                  f"node {finger.node_id}, which it has no {name} for")
+                raise ConfigError(
+                    hand.source,
+                    f"{where}.node_id",
+                    f"a node with a {name} message in {protocol.source}",
+                    f"node {finger.node_id}, which it has no {name} for",
+                )
             configured = getattr(finger.can_ids, key)
             if layout.frame_id != configured:
-                raise ConfigError(hand.source, f"{where}.can_ids.{key}",
-                                  f"0x{layout.frame_id:03X} ({name} in {protocol.source})",
-                                  f"0x{configured:03X}")
+                raise ConfigError(
+                    hand.source,
+                    f"{where}.can_ids.{key}",
+                    f"0x{layout.frame_id:03X} ({name} in {protocol.source})",
+                    f"0x{configured:03X}",
+                )
         n = len(finger.joints)
         command = protocol.by_name[f"TorqueCommand_{finger.node_id}"]
         feedback = protocol.by_name[f"Feedback_{finger.node_id}"]
         carried = wire_joints(command.signal_names, "Torque")
-        read = (wire_joints(feedback.signal_names, "Torque"),
-                wire_joints(feedback.signal_names, "Angle"))
+        read = (
+            wire_joints(feedback.signal_names, "Torque"),
+            wire_joints(feedback.signal_names, "Angle"),
+        )
         if carried != n or read != (n, n):
-            raise ConfigError(hand.source, f"{where}.joints",
-                              f"as many joints as {protocol.source} carries for node "
-                              f"{finger.node_id} ({command.name}: {carried} torques, "
-                              f"{feedback.name}: {read[0]} torques and {read[1]} angles)",
-                              f"{n} joints")
+            raise ConfigError(
+                hand.source,
+                f"{where}.joints",
+                f"as many joints as {protocol.source} carries for node "
+                f"{finger.node_id} ({command.name}: {carried} torques, "
+                f"{feedback.name}: {read[0]} torques and {read[1]} angles)",
+                f"{n} joints",
+            )
         for kind in ID_BASES:
             layout = protocol.by_name[f"{kind}_{finger.node_id}"]
             wanted = tuple(s[0] for s in _node_signals(kind, n))
             if layout.signal_names != wanted:
-                raise ConfigError(protocol.source, layout.name,
-                                  f"the signals {', '.join(wanted)} after Crc and Counter, in "
-                                  f"that order (what host and node read; {finger.name} has "
-                                  f"{n} joints)", ", ".join(layout.signal_names))
+                raise ConfigError(
+                    protocol.source,
+                    layout.name,
+                    f"the signals {', '.join(wanted)} after Crc and Counter, in "
+                    f"that order (what host and node read; {finger.name} has "
+                    f"{n} joints)",
+                    ", ".join(layout.signal_names),
+                )
 
 
 def wire_joints(signal_names: Iterable[str], prefix: str) -> int:

@@ -63,8 +63,11 @@ class Deadlines:
 
     @classmethod
     def of(cls, hand: HandConfig) -> Deadlines:
-        return cls(round(hand.bus.period_s * 1e9), hand.safety.max_consecutive_misses,
-                   round(hand.safety.feedback_timeout_s * 1e9))
+        return cls(
+            round(hand.bus.period_s * 1e9),
+            hand.safety.max_consecutive_misses,
+            round(hand.safety.feedback_timeout_s * 1e9),
+        )
 
 
 @dataclass(frozen=True)
@@ -93,8 +96,12 @@ class ProbeRecord:
         else:
             prefix = ""
         if not isinstance(data, dict):
-            raise ConfigError(source, "", "a JSON object (hostprobe output or a check report)",
-                              type(data).__name__)
+            raise ConfigError(
+                source,
+                "",
+                "a JSON object (hostprobe output or a check report)",
+                type(data).__name__,
+            )
 
         def integer(key: str, minimum: int = 0, default: int | None = None) -> int:
             value = data.get(key, default)
@@ -115,37 +122,62 @@ class ProbeRecord:
         period = integer("period_ns", 1)
         hist_raw = data.get("lateness_hist_us")
         if not isinstance(hist_raw, dict) or not all(
-                str(k).isdigit() and isinstance(v, int) and v >= 0 for k, v in hist_raw.items()):
-            raise ConfigError(source, prefix + "lateness_hist_us",
-                              "a mapping of µs bins to counts", hist_raw)
+            str(k).isdigit() and isinstance(v, int) and v >= 0 for k, v in hist_raw.items()
+        ):
+            raise ConfigError(
+                source, prefix + "lateness_hist_us", "a mapping of µs bins to counts", hist_raw
+            )
         stalls_raw = data.get("stalls")
         if not isinstance(stalls_raw, list):
-            raise ConfigError(source, prefix + "stalls",
-                              "a list of [index, due_ns, wake_ns, missed]", stalls_raw)
+            raise ConfigError(
+                source, prefix + "stalls", "a list of [index, due_ns, wake_ns, missed]", stalls_raw
+            )
         stalls = []
         for i, row in enumerate(stalls_raw):
-            if (not isinstance(row, list) or len(row) != 4
-                    or not all(isinstance(v, int) and not isinstance(v, bool) for v in row)
-                    or row[2] < row[1] or row[3] < 0):
-                raise ConfigError(source, f"{prefix}stalls[{i}]", "[index, due_ns, wake_ns, "
-                                  "missed] with wake_ns >= due_ns and missed >= 0", row)
+            if (
+                not isinstance(row, list)
+                or len(row) != 4
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in row)
+                or row[2] < row[1]
+                or row[3] < 0
+            ):
+                raise ConfigError(
+                    source,
+                    f"{prefix}stalls[{i}]",
+                    "[index, due_ns, wake_ns, missed] with wake_ns >= due_ns and missed >= 0",
+                    row,
+                )
             stalls.append((row[0], row[1], row[2], row[3]))
-        return cls(period_ns=period, start_ns=integer("start_ns"), end_ns=integer("end_ns"),
-                   wakeups=integer("wakeups"),
-                   lateness_hist_us={int(k): v for k, v in hist_raw.items()},
-                   lateness_max_ns=integer("lateness_max_ns"), stalls=tuple(stalls),
-                   stalls_overflow=integer("stalls_overflow", default=0),
-                   steal_ms=float(steal), scheduler=dict(scheduler), refused=tuple(refused),
-                   source=source)
+        return cls(
+            period_ns=period,
+            start_ns=integer("start_ns"),
+            end_ns=integer("end_ns"),
+            wakeups=integer("wakeups"),
+            lateness_hist_us={int(k): v for k, v in hist_raw.items()},
+            lateness_max_ns=integer("lateness_max_ns"),
+            stalls=tuple(stalls),
+            stalls_overflow=integer("stalls_overflow", default=0),
+            steal_ms=float(steal),
+            scheduler=dict(scheduler),
+            refused=tuple(refused),
+            source=source,
+        )
 
     def as_json(self) -> dict[str, Any]:
-        return {"period_ns": self.period_ns, "start_ns": self.start_ns, "end_ns": self.end_ns,
-                "wakeups": self.wakeups,
-                "lateness_hist_us": {str(k): v for k, v in sorted(self.lateness_hist_us.items())},
-                "lateness_max_ns": self.lateness_max_ns,
-                "stalls": [list(s) for s in self.stalls], "stalls_overflow": self.stalls_overflow,
-                "steal_ms": self.steal_ms, "scheduler": self.scheduler,
-                "refused": list(self.refused), "source": self.source}
+        return {
+            "period_ns": self.period_ns,
+            "start_ns": self.start_ns,
+            "end_ns": self.end_ns,
+            "wakeups": self.wakeups,
+            "lateness_hist_us": {str(k): v for k, v in sorted(self.lateness_hist_us.items())},
+            "lateness_max_ns": self.lateness_max_ns,
+            "stalls": [list(s) for s in self.stalls],
+            "stalls_overflow": self.stalls_overflow,
+            "steal_ms": self.steal_ms,
+            "scheduler": self.scheduler,
+            "refused": list(self.refused),
+            "source": self.source,
+        }
 
     def lateness_us(self, q: float) -> float:
         """The q-th percentile (0..100) of the wake-up lateness, µs (1 µs bins)."""
@@ -205,8 +237,11 @@ def judge(record: ProbeRecord, deadlines: Deadlines) -> Verdict:
     figures = {
         "seconds": round((record.end_ns - record.start_ns) / 1e9, 3),
         "wakeups": record.wakeups,
-        "lateness_us": {"p50": record.lateness_us(50), "p99": record.lateness_us(99),
-                        "max": round(record.lateness_max_ns / 1e3, 1)},
+        "lateness_us": {
+            "p50": record.lateness_us(50),
+            "p99": record.lateness_us(99),
+            "max": round(record.lateness_max_ns / 1e3, 1),
+        },
         "longest_stall_ms": round(max(lengths, default=0) / 1e6, 3),
         "stalls_over_period": over_period,
         "stalls_over_overrun_tolerance": over_tolerance,
@@ -220,21 +255,27 @@ def judge(record: ProbeRecord, deadlines: Deadlines) -> Verdict:
     }
     reasons: list[str] = []
     if trips:
-        reasons.append(f"{trips} stall(s) as long as the overrun tolerance "
-                       f"({deadlines.overrun_tolerance_ticks} periods, {tolerance_ns / 1e6:g} "
-                       "ms, alone or in consecutive ticks): the control loop would stop on "
-                       "LOOP_OVERRUN")
+        reasons.append(
+            f"{trips} stall(s) as long as the overrun tolerance "
+            f"({deadlines.overrun_tolerance_ticks} periods, {tolerance_ns / 1e6:g} "
+            "ms, alone or in consecutive ticks): the control loop would stop on "
+            "LOOP_OVERRUN"
+        )
     if over_feedback:
-        reasons.append(f"{over_feedback} stall(s) longer than the feedback timeout "
-                       f"({deadlines.feedback_timeout_ns / 1e6:g} ms)")
+        reasons.append(
+            f"{over_feedback} stall(s) longer than the feedback timeout "
+            f"({deadlines.feedback_timeout_ns / 1e6:g} ms)"
+        )
     if record.stalls_overflow:
         reasons.append(f"{record.stalls_overflow} more stalls than the record holds")
     level = "fail" if reasons else "pass"
     if level == "pass":
         p99 = record.lateness_us(99)
         if over_period:
-            reasons.append(f"{over_period} stall(s) longer than a period ({period / 1e6:g} ms), "
-                           "each a missed tick, but none as long as the overrun tolerance")
+            reasons.append(
+                f"{over_period} stall(s) longer than a period ({period / 1e6:g} ms), "
+                "each a missed tick, but none as long as the overrun tolerance"
+            )
         if p99 > P99_SHARE * period / 1e3:
             reasons.append(f"lateness p99 {p99:g} µs is more than {P99_SHARE:.0%} of the period")
         level = "marginal" if reasons else "pass"
@@ -250,39 +291,51 @@ def advice(facts: HostFacts, record: ProbeRecord, realtime: bool) -> list[str]:
     tips: list[str] = []
     if facts.preemption != "PREEMPT_RT" and facts.realtime_kernel is not True:
         found = "/sys/kernel/realtime " + ("absent" if facts.realtime_kernel is None else "0")
-        model = facts.preemption + (f", preempt={facts.cmdline_preempt}"
-                                    if facts.cmdline_preempt else "")
+        model = facts.preemption + (
+            f", preempt={facts.cmdline_preempt}" if facts.cmdline_preempt else ""
+        )
         tip = f"a PREEMPT_RT kernel (found {model}; {found})"
         if facts.preemption == "PREEMPT_DYNAMIC" and facts.cmdline_preempt != "full":
             tip += "; at least boot this one with preempt=full"
         tips.append(tip)
     got = record.scheduler.get("policy", "?")
     if realtime and got != "SCHED_FIFO":
-        tips.append(f"real-time priority for the loop (got {got}; RLIMIT_RTPRIO is "
-                    f"{_show_limit(facts.rtprio_limit)}): 'ulimit -r {LOOP_PRIORITY + 1}' via "
-                    "rtprio in /etc/security/limits.conf, or CAP_SYS_NICE")
+        tips.append(
+            f"real-time priority for the loop (got {got}; RLIMIT_RTPRIO is "
+            f"{_show_limit(facts.rtprio_limit)}): 'ulimit -r {LOOP_PRIORITY + 1}' via "
+            "rtprio in /etc/security/limits.conf, or CAP_SYS_NICE"
+        )
     elif not realtime:
-        tips.append("run with --rt (SCHED_FIFO, a pinned CPU, locked memory); this check ran "
-                    f"at {got} like the run would")
+        tips.append(
+            "run with --rt (SCHED_FIFO, a pinned CPU, locked memory); this check ran "
+            f"at {got} like the run would"
+        )
     if realtime and any("locking memory" in r for r in record.refused):
-        tips.append(f"locked memory (RLIMIT_MEMLOCK is {_show_limit(facts.memlock_limit_kb)} "
-                    "KiB): 'ulimit -l unlimited' via memlock in /etc/security/limits.conf, or "
-                    "CAP_IPC_LOCK")
+        tips.append(
+            f"locked memory (RLIMIT_MEMLOCK is {_show_limit(facts.memlock_limit_kb)} "
+            "KiB): 'ulimit -l unlimited' via memlock in /etc/security/limits.conf, or "
+            "CAP_IPC_LOCK"
+        )
     if len(facts.cpus) >= 2 and not facts.isolated:
         loop_cpu, _ = plan_cpus(set(facts.cpus), set())
-        tips.append(f"a CPU of its own for the loop (none isolated in "
-                    f"/sys/devices/system/cpu/isolated): boot with isolcpus={loop_cpu} "
-                    f"nohz_full={loop_cpu} rcu_nocbs={loop_cpu}; handctl pins the loop to an "
-                    "isolated CPU with --rt")
+        tips.append(
+            f"a CPU of its own for the loop (none isolated in "
+            f"/sys/devices/system/cpu/isolated): boot with isolcpus={loop_cpu} "
+            f"nohz_full={loop_cpu} rcu_nocbs={loop_cpu}; handctl pins the loop to an "
+            "isolated CPU with --rt"
+        )
     slow = sorted({g for g in facts.governors.values() if g != "performance"})
     if slow:
-        tips.append(f"no frequency scaling (cpufreq governor {', '.join(slow)}): "
-                    "'cpupower frequency-set -g performance'")
+        tips.append(
+            f"no frequency scaling (cpufreq governor {', '.join(slow)}): "
+            "'cpupower frequency-set -g performance'"
+        )
     if facts.virtual_machine:
-        tips.append("a real machine or a VM with dedicated, pinned vCPUs: this is a virtual "
-                    "machine, whose hypervisor can take a CPU away for milliseconds"
-                    + (f" ({record.steal_ms:g} ms stolen during the check)"
-                       if record.steal_ms else ""))
+        tips.append(
+            "a real machine or a VM with dedicated, pinned vCPUs: this is a virtual "
+            "machine, whose hypervisor can take a CPU away for milliseconds"
+            + (f" ({record.steal_ms:g} ms stolen during the check)" if record.steal_ms else "")
+        )
     return tips
 
 
@@ -294,11 +347,27 @@ def _show_limit(value: int) -> str:
 class Probe:
     """The bare loop as a child process, from ``start`` to ``stop`` (or for ``seconds``)."""
 
-    def __init__(self, period_ns: int, *, record_ns: int, seconds: float | None = None,
-                 priority: int | None = None, cpu: int | None = None,
-                 lock_memory: bool = True) -> None:
-        cmd = [sys.executable, "-m", "handctl.hostprobe", "--period-ns", str(period_ns),
-               "--record-ns", str(record_ns), "--parent-pid", str(os.getpid())]
+    def __init__(
+        self,
+        period_ns: int,
+        *,
+        record_ns: int,
+        seconds: float | None = None,
+        priority: int | None = None,
+        cpu: int | None = None,
+        lock_memory: bool = True,
+    ) -> None:
+        cmd = [
+            sys.executable,
+            "-m",
+            "handctl.hostprobe",
+            "--period-ns",
+            str(period_ns),
+            "--record-ns",
+            str(record_ns),
+            "--parent-pid",
+            str(os.getpid()),
+        ]
         if seconds is not None:
             cmd += ["--seconds", str(seconds)]
         if priority is not None:
@@ -310,8 +379,9 @@ class Probe:
         self.seconds = seconds
         # A session of its own: a terminal's Ctrl-C (SIGINT to the foreground process group)
         # is the host's to handle; the probe ends when the host says so, or dies with it.
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True, start_new_session=True)
+        self.proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+        )
 
     def stop(self) -> ProbeRecord:
         """End the probe (if it still runs) and read what it saw."""
@@ -324,8 +394,10 @@ class Probe:
             self.proc.kill()
             out, err = self.proc.communicate()
         if self.proc.returncode != 0 or not out.strip():
-            raise HandctlError(f"the timing probe ended with exit {self.proc.returncode}: "
-                               + " | ".join(err.strip().splitlines()[-3:]))
+            raise HandctlError(
+                f"the timing probe ended with exit {self.proc.returncode}: "
+                + " | ".join(err.strip().splitlines()[-3:])
+            )
         try:
             data = json.loads(out)
         except json.JSONDecodeError as exc:
@@ -356,14 +428,21 @@ class CheckReport:
 
     def as_json(self) -> dict[str, Any]:
         measured = self.records[0]
-        return {"verdict": self.verdict.level, "reasons": list(self.verdict.reasons),
-                **measured[1].figures,
-                "scheduler": measured[0].scheduler, "refused": list(measured[0].refused),
-                "realtime": self.realtime, "facts": self.facts.as_json(),
-                "advice": list(self.advice),
-                "injected": [{"source": r.source, "verdict": v.level, "reasons": list(v.reasons),
-                              **v.figures} for r, v in self.records[1:]],
-                "probe": measured[0].as_json()}
+        return {
+            "verdict": self.verdict.level,
+            "reasons": list(self.verdict.reasons),
+            **measured[1].figures,
+            "scheduler": measured[0].scheduler,
+            "refused": list(measured[0].refused),
+            "realtime": self.realtime,
+            "facts": self.facts.as_json(),
+            "advice": list(self.advice),
+            "injected": [
+                {"source": r.source, "verdict": v.level, "reasons": list(v.reasons), **v.figures}
+                for r, v in self.records[1:]
+            ],
+            "probe": measured[0].as_json(),
+        }
 
     def text(self) -> str:
         """The verdict as a user reads it: one headline, the figures, what would help."""
@@ -387,9 +466,10 @@ class CheckReport:
         ]
         lines += [f"  because {r}" for r in self.records[0][1].reasons]
         for record, verdict in self.records[1:]:
-            lines.append(f"  injected from {record.source} ({INJECT_ENV}): "
-                         f"{verdict.level.upper()}"
-                         + "".join(f"; {r}" for r in verdict.reasons))
+            lines.append(
+                f"  injected from {record.source} ({INJECT_ENV}): "
+                f"{verdict.level.upper()}" + "".join(f"; {r}" for r in verdict.reasons)
+            )
         lines += [f"  refused: {r}" for r in self.records[0][0].refused]
         if self.advice:
             lines.append("  what would help:")
@@ -411,8 +491,9 @@ def injected_records() -> list[ProbeRecord]:
     return [ProbeRecord.from_json(data, path)]
 
 
-def timing_check(hand: HandConfig, seconds: float, *, realtime: bool,
-                 cpu: int | None = None) -> CheckReport:
+def timing_check(
+    hand: HandConfig, seconds: float, *, realtime: bool, cpu: int | None = None
+) -> CheckReport:
     """Measure the host for ``seconds`` with the scheduling the run would have, and judge it.
 
     ``realtime``: what ``--rt`` asks (SCHED_FIFO at the loop's priority, locked memory) on
@@ -422,26 +503,37 @@ def timing_check(hand: HandConfig, seconds: float, *, realtime: bool,
     injected = injected_records()  # a bad file is refused before the measurement
     facts = gather_facts()
     if cpu is not None and cpu not in facts.cpus:
-        raise ConfigError("--loop-cpu", "", f"one of the CPUs this process may use "
-                          f"{list(facts.cpus)}", cpu)
+        raise ConfigError(
+            "--loop-cpu", "", f"one of the CPUs this process may use {list(facts.cpus)}", cpu
+        )
     if realtime and cpu is None:
         cpu, _ = plan_cpus(set(facts.cpus), set(facts.isolated))
-    with Probe(deadlines.period_ns, record_ns=deadlines.period_ns // 2, seconds=seconds,
-               priority=LOOP_PRIORITY if realtime else None, cpu=cpu if realtime else None,
-               lock_memory=realtime) as probe:
+    with Probe(
+        deadlines.period_ns,
+        record_ns=deadlines.period_ns // 2,
+        seconds=seconds,
+        priority=LOOP_PRIORITY if realtime else None,
+        cpu=cpu if realtime else None,
+        lock_memory=realtime,
+    ) as probe:
         measured = probe.stop()
     records = [(measured, judge(measured, deadlines))]
     records += [(r, judge(r, deadlines)) for r in injected]
     verdict = records[0][1]
     for _, v in records[1:]:
         verdict = worse(verdict, v)
-    return CheckReport(verdict, tuple(records), facts,
-                       tuple(advice(facts, measured, realtime)), realtime)
+    return CheckReport(
+        verdict, tuple(records), facts, tuple(advice(facts, measured, realtime)), realtime
+    )
 
 
 # -- the host's share of a run's missed ticks ----------------------------------------------------
-def attribute(loop_stalls: list[tuple[int, int, int, int]], host: ProbeRecord,
-              period_ns: int, handctls: list[int] | None = None) -> dict[str, int]:
+def attribute(
+    loop_stalls: list[tuple[int, int, int, int]],
+    host: ProbeRecord,
+    period_ns: int,
+    handctls: list[int] | None = None,
+) -> dict[str, int]:
     """Split the control loop's missed ticks between the host and handctl.
 
     A missed tick's interval runs from one period before the oldest deadline it slept through
@@ -454,8 +546,12 @@ def attribute(loop_stalls: list[tuple[int, int, int, int]], host: ProbeRecord,
     misses are appended to ``handctls`` if given.
     """
     host_stalls = sorted((due, wake) for _, due, wake, _ in host.stalls)
-    counts = {"missed_host": 0, "missed_handctl": 0, "missed_handctl_after_host": 0,
-              "missed_unobserved": 0}
+    counts = {
+        "missed_host": 0,
+        "missed_handctl": 0,
+        "missed_handctl_after_host": 0,
+        "missed_unobserved": 0,
+    }
     after_host = -2  # the last tick of a chain of misses that began with a host stall
     for tick, due, wake, missed in loop_stalls:
         start = due - period_ns
@@ -489,8 +585,9 @@ def run_cpus(hygiene: Hygiene) -> tuple[int | None, int | None]:
     loop_cpu, sim_cpu = plan_cpus(allowed, set(facts.isolated))
     for option, cpu in (("--loop-cpu", hygiene.loop_cpu), ("--sim-cpu", hygiene.sim_cpu)):
         if cpu is not None and cpu not in allowed:
-            raise ConfigError(option, "", f"one of the CPUs this process may use "
-                              f"{sorted(allowed)}", cpu)
+            raise ConfigError(
+                option, "", f"one of the CPUs this process may use {sorted(allowed)}", cpu
+            )
     if hygiene.loop_cpu is not None:
         loop_cpu = hygiene.loop_cpu
         if sim_cpu == loop_cpu:
@@ -502,26 +599,35 @@ def run_cpus(hygiene: Hygiene) -> tuple[int | None, int | None]:
     return loop_cpu, sim_cpu
 
 
-def precheck(hand: HandConfig, realtime: bool, loop_cpu: int | None,
-             accept_missed_deadlines: bool) -> tuple[dict[str, Any], list[str]]:
+def precheck(
+    hand: HandConfig, realtime: bool, loop_cpu: int | None, accept_missed_deadlines: bool
+) -> tuple[dict[str, Any], list[str]]:
     """The timing check before a run on anything but the simulated hand: a host that fails
     it is refused unless the user accepts the risk by name. Returns the check for the run's
     summary (its figures, not the probe's record) and the warnings."""
     report = timing_check(hand, PRECHECK_S, realtime=realtime, cpu=loop_cpu)
     if report.verdict.fails and not accept_missed_deadlines:
-        raise HostTimingError(report.text() + "\n  nothing was sent; to run anyway, pass "
-                              "--accept-missed-deadlines")
+        raise HostTimingError(
+            report.text() + "\n  nothing was sent; to run anyway, pass --accept-missed-deadlines"
+        )
     summary = {k: v for k, v in report.as_json().items() if k not in ("probe", "facts")}
     if report.verdict.fails:
-        return summary, [f"running with --accept-missed-deadlines on a host that failed the "
-                         f"timing check: {'; '.join(report.verdict.reasons)}"]
+        return summary, [
+            f"running with --accept-missed-deadlines on a host that failed the "
+            f"timing check: {'; '.join(report.verdict.reasons)}"
+        ]
     if report.verdict.level == "marginal":
         return summary, [f"timing check marginal: {'; '.join(report.verdict.reasons)}"]
     return summary, []
 
 
-def beside_probe(hand: HandConfig, realtime: bool, cpu: int | None, lock_memory: bool,
-                 priority: int = LOOP_PRIORITY + 1) -> Probe:
+def beside_probe(
+    hand: HandConfig,
+    realtime: bool,
+    cpu: int | None,
+    lock_memory: bool,
+    priority: int = LOOP_PRIORITY + 1,
+) -> Probe:
     """The bare timer loop beside a real-time run, on the loop's CPU one priority above it
     (or on the simulated hand's CPU, above the hand).
 
@@ -530,13 +636,23 @@ def beside_probe(hand: HandConfig, realtime: bool, cpu: int | None, lock_memory:
     a probe wake-up at least half a period late, which is what it keeps.
     """
     period = round(hand.bus.period_s * 1e9)
-    return Probe(period // 2, record_ns=period // 2, priority=priority if realtime else None,
-                 cpu=cpu, lock_memory=realtime and lock_memory)
+    return Probe(
+        period // 2,
+        record_ns=period // 2,
+        priority=priority if realtime else None,
+        cpu=cpu,
+        lock_memory=realtime and lock_memory,
+    )
 
 
-def host_summary(hand: HandConfig, probe: Probe, loop_stalls: StallLog,
-                 faults: Sequence[Fault], warnings: list[str], peer_probe: Probe | None = None
-                 ) -> tuple[ProbeRecord | None, dict[str, Any]]:
+def host_summary(
+    hand: HandConfig,
+    probe: Probe,
+    loop_stalls: StallLog,
+    faults: Sequence[Fault],
+    warnings: list[str],
+    peer_probe: Probe | None = None,
+) -> tuple[ProbeRecord | None, dict[str, Any]]:
     """What the bare loop beside a run saw, and whose the run's missed ticks were; a warning
     with the host's verdict when the run stopped on LOOP_OVERRUN or FEEDBACK_TIMEOUT.
 
@@ -554,25 +670,40 @@ def host_summary(hand: HandConfig, probe: Probe, loop_stalls: StallLog,
     own: list[int] = []
     shares = attribute(loop_stalls.rows(), record, deadlines.period_ns, own)
     shares["missed_unobserved"] += loop_stalls.overflow_missed
-    summary = {"verdict": verdict.level, "reasons": list(verdict.reasons),
-               **verdict.figures, **shares,
-               "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
-               "probe_period_us": record.period_ns / 1e3,
-               "scheduler": record.scheduler, "refused": list(record.refused)}
+    summary = {
+        "verdict": verdict.level,
+        "reasons": list(verdict.reasons),
+        **verdict.figures,
+        **shares,
+        "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
+        "probe_period_us": record.period_ns / 1e3,
+        "scheduler": record.scheduler,
+        "refused": list(record.refused),
+    }
     peer_text = ""
     if peer is not None:
         peer_verdict = judge(peer, deadlines)
         f = peer_verdict.figures
-        summary["sim_cpu"] = {"cpus": peer.scheduler.get("cpus"), "verdict": peer_verdict.level,
-                              "longest_stall_ms": f["longest_stall_ms"],
-                              "stalls_over_period": f["stalls_over_period"],
-                              "stalls_over_feedback_timeout": f["stalls_over_feedback_timeout"]}
-        peer_text = (f"; on the simulated hand's CPU {peer.scheduler.get('cpus')} the host was "
-                     f"{peer_verdict.level.upper()} (longest stall {f['longest_stall_ms']:g} "
-                     f"ms, {f['stalls_over_feedback_timeout']} longer than the feedback "
-                     "timeout)")
-    stopped_on = sorted({f.code.name for f in faults
-                         if f.code in (FaultCode.LOOP_OVERRUN, FaultCode.FEEDBACK_TIMEOUT)})
+        summary["sim_cpu"] = {
+            "cpus": peer.scheduler.get("cpus"),
+            "verdict": peer_verdict.level,
+            "longest_stall_ms": f["longest_stall_ms"],
+            "stalls_over_period": f["stalls_over_period"],
+            "stalls_over_feedback_timeout": f["stalls_over_feedback_timeout"],
+        }
+        peer_text = (
+            f"; on the simulated hand's CPU {peer.scheduler.get('cpus')} the host was "
+            f"{peer_verdict.level.upper()} (longest stall {f['longest_stall_ms']:g} "
+            f"ms, {f['stalls_over_feedback_timeout']} longer than the feedback "
+            "timeout)"
+        )
+    stopped_on = sorted(
+        {
+            f.code.name
+            for f in faults
+            if f.code in (FaultCode.LOOP_OVERRUN, FaultCode.FEEDBACK_TIMEOUT)
+        }
+    )
     if stopped_on:
         warnings.append(
             f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it says "
@@ -580,5 +711,7 @@ def host_summary(hand: HandConfig, probe: Probe, loop_stalls: StallLog,
             + "".join(f"; {r}" for r in verdict.reasons)
             + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
             f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's)"
-            + peer_text + "; see 'handctl check --timing' and docs/timing.md")
+            + peer_text
+            + "; see 'handctl check --timing' and docs/timing.md"
+        )
     return record, summary

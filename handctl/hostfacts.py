@@ -29,12 +29,18 @@ class HostFacts:
     virtual_machine: bool  # the CPU says it runs under a hypervisor
 
     def as_json(self) -> dict[str, Any]:
-        return {"realtime_kernel": self.realtime_kernel, "preemption": self.preemption,
-                "cmdline_preempt": self.cmdline_preempt, "rtprio_limit": self.rtprio_limit,
-                "memlock_limit_kb": self.memlock_limit_kb, "privileged": self.privileged,
-                "cpus": list(self.cpus), "isolated": list(self.isolated),
-                "governors": {str(k): v for k, v in self.governors.items()},
-                "virtual_machine": self.virtual_machine}
+        return {
+            "realtime_kernel": self.realtime_kernel,
+            "preemption": self.preemption,
+            "cmdline_preempt": self.cmdline_preempt,
+            "rtprio_limit": self.rtprio_limit,
+            "memlock_limit_kb": self.memlock_limit_kb,
+            "privileged": self.privileged,
+            "cpus": list(self.cpus),
+            "isolated": list(self.isolated),
+            "governors": {str(k): v for k, v in self.governors.items()},
+            "virtual_machine": self.virtual_machine,
+        }
 
 
 def preemption_model(uname_version: str) -> str:
@@ -82,20 +88,24 @@ def gather_facts() -> HostFacts:
         if gov:
             governors[cpu] = gov
     cmdline = _read("/proc/cmdline") or ""
-    preempt = next((w.partition("=")[2] for w in cmdline.split() if w.startswith("preempt=")),
-                   "")
+    preempt = next((w.partition("=")[2] for w in cmdline.split() if w.startswith("preempt=")), "")
     status = _read("/proc/self/status") or ""
-    cap_eff = next((int(line.split()[1], 16) for line in status.splitlines()
-                    if line.startswith("CapEff:")), 0)
+    cap_eff = next(
+        (int(line.split()[1], 16) for line in status.splitlines() if line.startswith("CapEff:")), 0
+    )
     cpuinfo = _read("/proc/cpuinfo") or ""
     return HostFacts(
         realtime_kernel=None if realtime is None else realtime == "1",
-        preemption=preemption_model(platform.uname().version), cmdline_preempt=preempt,
+        preemption=preemption_model(platform.uname().version),
+        cmdline_preempt=preempt,
         rtprio_limit=_limit(resource.RLIMIT_RTPRIO),
         memlock_limit_kb=_limit(resource.RLIMIT_MEMLOCK, 1024),
         privileged=bool(cap_eff & (1 << 23)),  # CAP_SYS_NICE
-        cpus=cpus, isolated=parse_cpu_list(_read("/sys/devices/system/cpu/isolated") or ""),
-        governors=governors, virtual_machine=" hypervisor" in cpuinfo)
+        cpus=cpus,
+        isolated=parse_cpu_list(_read("/sys/devices/system/cpu/isolated") or ""),
+        governors=governors,
+        virtual_machine=" hypervisor" in cpuinfo,
+    )
 
 
 def plan_cpus(allowed: set[int], isolated: set[int]) -> tuple[int | None, int | None]:

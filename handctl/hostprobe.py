@@ -56,8 +56,13 @@ def steal_ms(cpus: set[int] | None = None) -> float:
     return total * 1000 / _USER_HZ
 
 
-def probe(period_ns: int, seconds: float | None, record_ns: int, stop: list[bool],
-          become_realtime: Callable[[], list[str]]) -> dict[str, Any]:
+def probe(
+    period_ns: int,
+    seconds: float | None,
+    record_ns: int,
+    stop: list[bool],
+    become_realtime: Callable[[], list[str]],
+) -> dict[str, Any]:
     """The loop itself: wait, note the lateness, nothing else, until ``seconds`` or ``stop``.
 
     Everything is allocated, and the C library found, before ``become_realtime`` raises the
@@ -96,12 +101,18 @@ def probe(period_ns: int, seconds: float | None, record_ns: int, stop: list[bool
     got = scheduler()
     _step_down()  # what is left is bookkeeping, which must not hold the loop on this CPU
     return {
-        "period_ns": period_ns, "record_ns": record_ns, "start_ns": start, "end_ns": stopped,
-        "wakeups": wakeups, "expirations": expirations, "lateness_max_ns": late_max,
+        "period_ns": period_ns,
+        "record_ns": record_ns,
+        "start_ns": start,
+        "end_ns": stopped,
+        "wakeups": wakeups,
+        "expirations": expirations,
+        "lateness_max_ns": late_max,
         "lateness_hist_us": {str(i): c for i, c in enumerate(hist) if c},
         "stalls": [list(row) for row in stalls.rows()],
         "stalls_overflow": stalls.overflow,
-        "steal_ms": round(steal_ms(cpus) - steal_before, 1), "refused": refused,
+        "steal_ms": round(steal_ms(cpus) - steal_before, 1),
+        "refused": refused,
         "scheduler": got,
     }
 
@@ -117,8 +128,11 @@ def _step_down() -> None:
 def scheduler() -> dict[str, Any]:
     """What the process actually got (not what it asked for)."""
     policy = os.sched_getscheduler(0)
-    names = {getattr(os, n): n for n in ("SCHED_OTHER", "SCHED_FIFO", "SCHED_RR",
-                                         "SCHED_BATCH", "SCHED_IDLE") if hasattr(os, n)}
+    names = {
+        getattr(os, n): n
+        for n in ("SCHED_OTHER", "SCHED_FIFO", "SCHED_RR", "SCHED_BATCH", "SCHED_IDLE")
+        if hasattr(os, n)
+    }
     locked_kb = 0
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
@@ -126,9 +140,12 @@ def scheduler() -> dict[str, Any]:
                 locked_kb = int(line.split()[1])
     except OSError:
         pass
-    return {"policy": names.get(policy, str(policy)),
-            "priority": os.sched_getparam(0).sched_priority,
-            "cpus": sorted(os.sched_getaffinity(0)), "memory_locked_kb": locked_kb}
+    return {
+        "policy": names.get(policy, str(policy)),
+        "priority": os.sched_getparam(0).sched_priority,
+        "cpus": sorted(os.sched_getaffinity(0)),
+        "memory_locked_kb": locked_kb,
+    }
 
 
 def _end_with_parent(parent: int) -> bool:
@@ -143,8 +160,9 @@ def _end_with_parent(parent: int) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m handctl.hostprobe",
-                                     description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m handctl.hostprobe", description=__doc__.split("\n\n")[0]
+    )
     parser.add_argument("--period-ns", type=int, required=True)
     parser.add_argument("--seconds", type=float, help="default: until SIGTERM or SIGINT")
     parser.add_argument("--record-ns", type=int, help="keep stalls this long (default: the period)")
@@ -170,8 +188,9 @@ def main(argv: list[str] | None = None) -> int:
 
     def become_realtime() -> list[str]:
         if args.priority is not None:
-            return request_realtime(args.priority, cpu=args.cpu,
-                                    lock_memory=not args.no_lock_memory)
+            return request_realtime(
+                args.priority, cpu=args.cpu, lock_memory=not args.no_lock_memory
+            )
         if args.cpu is not None:
             try:
                 os.sched_setaffinity(0, {args.cpu})
@@ -179,8 +198,9 @@ def main(argv: list[str] | None = None) -> int:
                 return [f"pinning to CPU {args.cpu} refused ({exc})"]
         return []
 
-    result = probe(args.period_ns, args.seconds, args.record_ns or args.period_ns, stop,
-                   become_realtime)
+    result = probe(
+        args.period_ns, args.seconds, args.record_ns or args.period_ns, stop, become_realtime
+    )
     json.dump(result, sys.stdout)
     sys.stdout.write("\n")
     return 0

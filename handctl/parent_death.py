@@ -86,6 +86,7 @@ def remove_orphaned_bus(spec: str, summary_json: Path | None) -> None:
 def _is_bus_socket(path: Path) -> bool:
     """A unix bus endpoint (``PID-N.sock``, a socket), not some other file of that name."""
     with suppress(OSError):
-        return (re.fullmatch(r"\d+-\d+\.sock", path.name) is not None
-                and stat.S_ISSOCK(path.lstat().st_mode))
+        return re.fullmatch(r"\d+-\d+\.sock", path.name) is not None and stat.S_ISSOCK(
+            path.lstat().st_mode
+        )
     return False

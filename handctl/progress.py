@@ -36,15 +36,24 @@ def _duration(seconds: float) -> str:
 class Progress:
     """Counts finished tasks out of ``total`` and shows it; ``close`` ends the line."""
 
-    def __init__(self, label: str, total: int, *, stream: TextIO | None = None,
-                 terminal: bool | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        label: str,
+        total: int,
+        *,
+        stream: TextIO | None = None,
+        terminal: bool | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.label = label
         self.total = max(0, total)
         self.done = 0
         self._stream = stream if stream is not None else sys.stderr
-        self._terminal = (terminal if terminal is not None
-                          else bool(getattr(self._stream, "isatty", lambda: False)()))
+        self._terminal = (
+            terminal
+            if terminal is not None
+            else bool(getattr(self._stream, "isatty", lambda: False)())
+        )
         self._clock = clock
         self._start = clock()
         self._shown = -math.inf
@@ -63,8 +72,10 @@ class Progress:
         rate = self.rate
         left = (self.total - self.done) / rate if rate > 0 else math.inf
         share = 100 * self.done / self.total if self.total else 100.0
-        return (f"{self.label}: {self.done}/{self.total} ({share:.0f} %), {rate:.3g}/s, "
-                f"{_duration(left)} left")
+        return (
+            f"{self.label}: {self.done}/{self.total} ({share:.0f} %), {rate:.3g}/s, "
+            f"{_duration(left)} left"
+        )
 
     def advance(self, count: int = 1) -> None:
         self.done = min(self.total, self.done + count)

@@ -122,8 +122,14 @@ class SignalSpec:
         return min(ends), max(ends)
 
 
-_STRUCT_CODES = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h",
-                 (32, False): "I", (32, True): "i"}
+_STRUCT_CODES = {
+    (8, False): "B",
+    (8, True): "b",
+    (16, False): "H",
+    (16, True): "h",
+    (32, False): "I",
+    (32, True): "i",
+}
 
 
 class Layout:
@@ -134,8 +140,17 @@ class Layout:
     (range on encode, length and CRC on ``crc_ok``): the receiver decides what a bad frame means.
     """
 
-    def __init__(self, name: str, frame_id: int, length: int, data_id: int, send: str,
-                 cycle_time_ms: int | None, signals: tuple[SignalSpec, ...], comment: str) -> None:
+    def __init__(
+        self,
+        name: str,
+        frame_id: int,
+        length: int,
+        data_id: int,
+        send: str,
+        cycle_time_ms: int | None,
+        signals: tuple[SignalSpec, ...],
+        comment: str,
+    ) -> None:
         self.name = name
         self.frame_id = frame_id
         self.length = length
@@ -184,19 +199,24 @@ class Layout:
         if len(values) != len(self.signals):
             raise ProtocolError(
                 f"{self.name}: expected {len(self.signals)} values "
-                f"({', '.join(self.signal_names)}), found {len(values)}")
+                f"({', '.join(self.signal_names)}), found {len(values)}"
+            )
         for value, spec in zip(values, self.signals, strict=True):
             lo, hi = _raw_bounds(spec)
             try:
-                raw = (value if spec.is_integer and isinstance(value, int)
-                       else round((value - spec.offset) / spec.scale))
+                raw = (
+                    value
+                    if spec.is_integer and isinstance(value, int)
+                    else round((value - spec.offset) / spec.scale)
+                )
                 ok = lo <= raw <= hi
             except (ValueError, OverflowError, TypeError):  # NaN, infinity, not a number
                 ok = False
             if not ok:
                 raise ProtocolError(
                     f"{self.name}.{spec.name}: expected a value in "
-                    f"[{spec.minimum:g}, {spec.maximum:g}] {spec.unit}, found {value!r}")
+                    f"[{spec.minimum:g}, {spec.maximum:g}] {spec.unit}, found {value!r}"
+                )
         raise ProtocolError(f"{self.name}: cannot encode {values!r}")  # pragma: no cover
 
     def _compile_fast_paths(self) -> None:
@@ -226,28 +246,34 @@ class Layout:
             return f"({expr} ^ {CRC8_XOR_OUT})"
 
         unpack_names = ", ".join(["_", "c", *[f"a{i}" for i in range(n)]])
-        source = "\n".join([
-            "def encode(counter, values):",
-            "    try:",
-            f"        {', '.join(vs)}{',' if n == 1 else ''} = values",
-            *conv,
-            "    except (ValueError, OverflowError, TypeError):",
-            "        return slow(counter, values)",
-            f"    if not ({' and '.join(checks) or 'True'}):",
-            "        return slow(counter, values)",
-            "    c = counter & 255",
-            f"    body = pack(0, c, {', '.join(rs)})",
-            f"    return pack({crc_expr('body')}, c, {', '.join(rs)})",
-            "",
-            "def crc_ok(data):",
-            f"    return len(data) == {self.length} and {crc_expr('data')} == data[0]",
-            "",
-            "def decode(data):",
-            f"    {unpack_names} = unpack(data)",
-            f"    return c, ({', '.join(scaled)}{',' if n == 1 else ''})",
-        ])
-        namespace: dict[str, Any] = {"T": CRC8_TABLE, "pack": self._struct.pack,
-                                     "unpack": self._struct.unpack, "slow": self._encode_checked}
+        source = "\n".join(
+            [
+                "def encode(counter, values):",
+                "    try:",
+                f"        {', '.join(vs)}{',' if n == 1 else ''} = values",
+                *conv,
+                "    except (ValueError, OverflowError, TypeError):",
+                "        return slow(counter, values)",
+                f"    if not ({' and '.join(checks) or 'True'}):",
+                "        return slow(counter, values)",
+                "    c = counter & 255",
+                f"    body = pack(0, c, {', '.join(rs)})",
+                f"    return pack({crc_expr('body')}, c, {', '.join(rs)})",
+                "",
+                "def crc_ok(data):",
+                f"    return len(data) == {self.length} and {crc_expr('data')} == data[0]",
+                "",
+                "def decode(data):",
+                f"    {unpack_names} = unpack(data)",
+                f"    return c, ({', '.join(scaled)}{',' if n == 1 else ''})",
+            ]
+        )
+        namespace: dict[str, Any] = {
+            "T": CRC8_TABLE,
+            "pack": self._struct.pack,
+            "unpack": self._struct.unpack,
+            "slow": self._encode_checked,
+        }
         exec(compile(source, f"<layout {self.name}>", "exec"), namespace)
         # Bound straight onto the instance: one call layer less on the hot path.
         self.encode = namespace["encode"]  # type: ignore[method-assign]
@@ -259,8 +285,9 @@ class Layout:
 def _raw_bounds(sig: SignalSpec) -> tuple[float, float]:
     """The raw range a value may take: the DBC's physical range within what the bits hold."""
     bits = sig.size_bits
-    lo_bits, hi_bits = ((-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if sig.signed
-                        else (0, (1 << bits) - 1))
+    lo_bits, hi_bits = (
+        (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if sig.signed else (0, (1 << bits) - 1)
+    )
     if sig.minimum == sig.maximum == 0:  # no range given in the DBC: the bits decide
         return lo_bits, hi_bits
     lo = math.ceil(round((sig.minimum - sig.offset) / sig.scale, 6))
@@ -271,8 +298,9 @@ def _raw_bounds(sig: SignalSpec) -> tuple[float, float]:
 class Protocol:
     """Every layout of a DBC, by name and by CAN id."""
 
-    def __init__(self, layouts: Sequence[Layout], source: str, version: int = 0,
-                 text: str = "") -> None:
+    def __init__(
+        self, layouts: Sequence[Layout], source: str, version: int = 0, text: str = ""
+    ) -> None:
         self.source = source
         #: The DBC text the layouts were compiled from: what a recording keeps, so that a
         #: replay speaks the very protocol the run spoke.
@@ -328,8 +356,7 @@ def load_protocol(path: str | Path = DEFAULT_DBC) -> Protocol:
     except FileNotFoundError:
         raise ConfigError(name, "", "an existing DBC file", "no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(name, "", "a readable DBC file", f"{type(exc).__name__}: {exc}"
-                          ) from None
+        raise ConfigError(name, "", "a readable DBC file", f"{type(exc).__name__}: {exc}") from None
     return parse_protocol(text, name)
 
 
@@ -348,9 +375,12 @@ def parse_protocol(text: str, source: str) -> Protocol:
     data_ids: dict[int, str] = {}
     for layout in layouts:
         if layout.data_id in data_ids:
-            raise ConfigError(source, f"{layout.name}.DataID",
-                              f"a DataID not used by {data_ids[layout.data_id]}",
-                              layout.data_id)
+            raise ConfigError(
+                source,
+                f"{layout.name}.DataID",
+                f"a DataID not used by {data_ids[layout.data_id]}",
+                layout.data_id,
+            )
         data_ids[layout.data_id] = layout.name
     return Protocol(layouts, source, _protocol_version(db.version, source), text)
 
@@ -360,8 +390,9 @@ def _protocol_version(text: str | None, source: str) -> int:
     there and be a number."""
     match = _VERSION.match(text or "")
     if match is None:
-        raise ConfigError(source, "VERSION", '"handctl protocol N" with N a whole number',
-                          text or "nothing")
+        raise ConfigError(
+            source, "VERSION", '"handctl protocol N" with N a whole number', text or "nothing"
+        )
     return int(match[1])
 
 
@@ -378,21 +409,43 @@ def _compile(message: Any, source: str, send_choices: list[str]) -> Layout:
         raise ConfigError(source, where, "Crc (byte 0) and Counter (byte 1) of 8 bits", names)
     specs = []
     for sig in signals[2:]:
-        if (sig.byte_order != "little_endian" or sig.start % 8 or sig.length not in (8, 16, 32)
-                or sig.is_float):
-            raise ConfigError(source, f"{where}.{sig.name}",
-                              "a byte-aligned little-endian integer of 8, 16 or 32 bits",
-                              f"start {sig.start}, {sig.length} bits, {sig.byte_order}")
-        specs.append(SignalSpec(
-            name=sig.name, offset_byte=sig.start // 8, size_bits=sig.length,
-            signed=sig.is_signed, scale=float(sig.scale), offset=float(sig.offset),
-            minimum=float(sig.minimum if sig.minimum is not None else 0.0),
-            maximum=float(sig.maximum if sig.maximum is not None else 0.0),
-            unit=sig.unit or ""))
+        if (
+            sig.byte_order != "little_endian"
+            or sig.start % 8
+            or sig.length not in (8, 16, 32)
+            or sig.is_float
+        ):
+            raise ConfigError(
+                source,
+                f"{where}.{sig.name}",
+                "a byte-aligned little-endian integer of 8, 16 or 32 bits",
+                f"start {sig.start}, {sig.length} bits, {sig.byte_order}",
+            )
+        specs.append(
+            SignalSpec(
+                name=sig.name,
+                offset_byte=sig.start // 8,
+                size_bits=sig.length,
+                signed=sig.is_signed,
+                scale=float(sig.scale),
+                offset=float(sig.offset),
+                minimum=float(sig.minimum if sig.minimum is not None else 0.0),
+                maximum=float(sig.maximum if sig.maximum is not None else 0.0),
+                unit=sig.unit or "",
+            )
+        )
     attrs = message.dbc.attributes if message.dbc else {}
     if "DataID" not in attrs:
         raise ConfigError(source, f"{where}.DataID", "a DataID attribute", "none")
     send_attr = attrs.get("HandctlSend")
     send = send_choices[send_attr.value] if send_attr is not None else "event"
-    return Layout(message.name, message.frame_id, message.length, int(attrs["DataID"].value),
-                  send, message.cycle_time, tuple(specs), message.comment or "")
+    return Layout(
+        message.name,
+        message.frame_id,
+        message.length,
+        int(attrs["DataID"].value),
+        send,
+        message.cycle_time,
+        tuple(specs),
+        message.comment or "",
+    )

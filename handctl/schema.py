@@ -84,8 +84,9 @@ def load_yaml(path: str | Path) -> Doc:
     except OSError as exc:
         raise ConfigError(name, "", "a readable UTF-8 file", str(exc)) from None
     if len(data) > MAX_BYTES:
-        raise ConfigError(name, "", f"a file of at most {MAX_BYTES} bytes",
-                          _Text(f"more than {MAX_BYTES} bytes"))
+        raise ConfigError(
+            name, "", f"a file of at most {MAX_BYTES} bytes", _Text(f"more than {MAX_BYTES} bytes")
+        )
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -96,19 +97,26 @@ def load_yaml(path: str | Path) -> Doc:
 def parse_yaml(text: str, name: str) -> Doc:
     """Parse YAML text (already read) as a document named ``name`` in messages."""
     if len(text) > MAX_BYTES or len(text.encode("utf-8", "surrogatepass")) > MAX_BYTES:
-        raise ConfigError(name, "", f"a document of at most {MAX_BYTES} bytes",
-                          _Text(f"more than {MAX_BYTES} bytes"))
+        raise ConfigError(
+            name,
+            "",
+            f"a document of at most {MAX_BYTES} bytes",
+            _Text(f"more than {MAX_BYTES} bytes"),
+        )
     try:
         root = _compose(yaml.parse(text, Loader=_EVENT_LOADER), name)
     except yaml.MarkedYAMLError as exc:
         where, problem = _parse_error(exc, text)
         raise ConfigError(name, "", "valid YAML" + where, _Text(problem)) from None
     except yaml.reader.ReaderError as exc:  # a character YAML does not allow
-        before = _LINE_BREAKS.split(text[:exc.position])
+        before = _LINE_BREAKS.split(text[: exc.position])
         character = chr(exc.character) if isinstance(exc.character, int) else exc.character
-        raise ConfigError(name, "", f"valid YAML at line {len(before)}, column "
-                          f"{len(before[-1]) + 1}", _Text(f"{exc.reason}: {character!r}")
-                          ) from None
+        raise ConfigError(
+            name,
+            "",
+            f"valid YAML at line {len(before)}, column {len(before[-1]) + 1}",
+            _Text(f"{exc.reason}: {character!r}"),
+        ) from None
     except yaml.YAMLError as exc:
         raise ConfigError(name, "", "valid YAML", _Text(str(exc))) from None
     data = None if root is None else _Builder(name).build(root, "")
@@ -166,8 +174,7 @@ def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
     lines = _LINE_BREAKS.split(text)
     start = _key_without_colon(lines, mark.line, mark.column, problem)
     if start is not None:
-        return (f" at line {start + 1}",
-                f"{problem}: a key without its ':'? (noticed at {where})")
+        return (f" at line {start + 1}", f"{problem}: a key without its ':'? (noticed at {where})")
     context = exc.context_mark
     if context is None or not exc.context or context.line >= mark.line:
         if mark.line >= len(lines):
@@ -177,9 +184,11 @@ def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
         return f" at {where}", problem
     started = f"{exc.context} that starts at line {context.line + 1}, column {context.column + 1}"
     if "simple key" in exc.context or "quoted scalar" in exc.context:
-        return (f" at line {context.line + 1}, column {context.column + 1}",
-                f"{problem} (noticed at {where}, {started})")
-    before = lines[mark.line][:mark.column] if mark.line < len(lines) else ""
+        return (
+            f" at line {context.line + 1}, column {context.column + 1}",
+            f"{problem} (noticed at {where}, {started})",
+        )
+    before = lines[mark.line][: mark.column] if mark.line < len(lines) else ""
     if "flow" in exc.context and not any(c in before for c in ":,[]{}"):
         line = mark.line - 1
         while line > context.line and _blank(lines[line]):
@@ -243,8 +252,9 @@ class _Node:
 
     __slots__ = ("column", "done", "items", "kind", "line", "plain", "size", "tag", "text")
 
-    def __init__(self, kind: str, tag: str | None, plain: bool, line: int, column: int,
-                 text: str) -> None:
+    def __init__(
+        self, kind: str, tag: str | None, plain: bool, line: int, column: int, text: str
+    ) -> None:
         self.kind = kind  # "scalar", "seq" or "map"
         self.tag = tag  # an explicit tag, or None
         self.plain = plain  # an untagged plain scalar: its type comes from the core schema
@@ -256,8 +266,11 @@ class _Node:
         self.done = kind == "scalar"  # read to its end (an alias inside it would recurse)
 
 
-_STARTS = {yaml.ScalarEvent: "scalar", yaml.SequenceStartEvent: "seq",
-           yaml.MappingStartEvent: "map"}
+_STARTS = {
+    yaml.ScalarEvent: "scalar",
+    yaml.SequenceStartEvent: "seq",
+    yaml.MappingStartEvent: "map",
+}
 _ENDS = (yaml.SequenceEndEvent, yaml.MappingEndEvent)
 
 
@@ -267,6 +280,7 @@ def _compose(events: Iterator[Any], name: str) -> _Node | None:
     An alias is the anchored node itself (no copy), so a bomb costs nothing here; its cost is
     counted instead: ``expanded`` grows by the whole size of each aliased node.
     """
+
     def fail(expected: str, found: str) -> NoReturn:
         raise ConfigError(name, "", expected, _Text(found))
 
@@ -279,22 +293,32 @@ def _compose(events: Iterator[Any], name: str) -> _Node | None:
         kind = _STARTS.get(type(event))
         if kind is not None:
             mark = event.start_mark
-            node = _Node(kind, event.tag, kind == "scalar" and event.tag is None
-                         and not event.style, mark.line + 1, mark.column + 1,
-                         event.value if kind == "scalar" else "")
+            node = _Node(
+                kind,
+                event.tag,
+                kind == "scalar" and event.tag is None and not event.style,
+                mark.line + 1,
+                mark.column + 1,
+                event.value if kind == "scalar" else "",
+            )
             anchor = event.anchor
             if anchor is not None:
                 if anchor in anchors:
-                    fail("each anchor name defined once", f"&{anchor} at line {node.line}, "
-                         f"already defined at line {anchors[anchor].line}")
+                    fail(
+                        "each anchor name defined once",
+                        f"&{anchor} at line {node.line}, "
+                        f"already defined at line {anchors[anchor].line}",
+                    )
                 anchors[anchor] = node
             stack[-1].items.append(node)
             expanded += 1
             if kind != "scalar":
                 stack.append(node)
                 if len(stack) > MAX_DEPTH + 1:
-                    fail(f"lists and mappings nested at most {MAX_DEPTH} deep",
-                         f"deeper at line {node.line}")
+                    fail(
+                        f"lists and mappings nested at most {MAX_DEPTH} deep",
+                        f"deeper at line {node.line}",
+                    )
         elif isinstance(event, _ENDS):
             node = stack.pop()
             node.size = 1 + sum(item.size for item in node.items)
@@ -303,12 +327,15 @@ def _compose(events: Iterator[Any], name: str) -> _Node | None:
             line = _line(event)
             target = anchors.get(event.anchor or "")
             if target is None:
-                fail("an alias of an anchor defined before it",
-                     f"*{event.anchor} at line {line} with no &{event.anchor} before it")
+                fail(
+                    "an alias of an anchor defined before it",
+                    f"*{event.anchor} at line {line} with no &{event.anchor} before it",
+                )
             if not target.done:
-                fail("an alias outside the node its anchor names (no recursive structures)",
-                     f"*{event.anchor} at line {line} inside &{event.anchor} (line "
-                     f"{target.line})")
+                fail(
+                    "an alias outside the node its anchor names (no recursive structures)",
+                    f"*{event.anchor} at line {line} inside &{event.anchor} (line {target.line})",
+                )
             stack[-1].items.append(target)
             expanded += target.size
         elif isinstance(event, yaml.DocumentStartEvent):
@@ -316,8 +343,11 @@ def _compose(events: Iterator[Any], name: str) -> _Node | None:
             if documents > 1:
                 fail("one YAML document per file", f"a second document at line {_line(event)}")
         if expanded > MAX_NODES:
-            fail(f"at most {MAX_NODES} values with every alias expanded (a bound against alias "
-                 f"bombs)", f"more by line {_line(event)}")
+            fail(
+                f"at most {MAX_NODES} values with every alias expanded (a bound against alias "
+                f"bombs)",
+                f"more by line {_line(event)}",
+            )
     return top.items[0] if top.items else None
 
 
@@ -384,12 +414,16 @@ class _Builder:
         """The core-schema type an explicit tag asks for (None when there is no tag)."""
         if node.tag is None or node.tag == "!":
             return None
-        if node.tag.startswith(_CORE) and node.tag[len(_CORE):] in allowed:
-            return node.tag[len(_CORE):]
-        shown = "!!" + node.tag[len(_CORE):] if node.tag.startswith(_CORE) else node.tag
-        self.fail(path, "a tag of YAML's core schema (here "
-                  + ", ".join(f"!!{t}" for t in allowed) + ", or none)",
-                  f"{shown:.60} at line {node.line}, column {node.column}")
+        if node.tag.startswith(_CORE) and node.tag[len(_CORE) :] in allowed:
+            return node.tag[len(_CORE) :]
+        shown = "!!" + node.tag[len(_CORE) :] if node.tag.startswith(_CORE) else node.tag
+        self.fail(
+            path,
+            "a tag of YAML's core schema (here "
+            + ", ".join(f"!!{t}" for t in allowed)
+            + ", or none)",
+            f"{shown:.60} at line {node.line}, column {node.column}",
+        )
 
     def scalar(self, node: _Node, path: str) -> Any:
         text = node.text
@@ -409,18 +443,24 @@ class _Builder:
                 self.fail(path, "true or false after !!bool", where)
             return _BOOLS[text]
         if _LEADING_ZERO.fullmatch(text):
-            self.fail(path, "a number without a leading zero (YAML 1.1 reads 017 as 15, YAML "
-                      "1.2 as 17): write 17 or 0o17, or quote it if it is text", where)
+            self.fail(
+                path,
+                "a number without a leading zero (YAML 1.1 reads 017 as 15, YAML "
+                "1.2 as 17): write 17 or 0o17, or quote it if it is text",
+                where,
+            )
         if _DECIMAL.fullmatch(text) or _OCTAL.fullmatch(text) or _HEX.fullmatch(text):
             if len(text) > MAX_INT_DIGITS:
-                self.fail(path, f"an integer of at most {MAX_INT_DIGITS} digits",
-                          f"{len(text)} characters at line {node.line}, column {node.column}")
+                self.fail(
+                    path,
+                    f"an integer of at most {MAX_INT_DIGITS} digits",
+                    f"{len(text)} characters at line {node.line}, column {node.column}",
+                )
             base = 8 if text.startswith("0o") else (16 if text.startswith("0x") else 10)
             number = int(text[2:] if base != 10 else text, base)
             return float(number) if kind == "float" else number
         if kind == "int":
-            self.fail(path, "an integer (decimal, 0o octal or 0x hexadecimal) after !!int",
-                      where)
+            self.fail(path, "an integer (decimal, 0o octal or 0x hexadecimal) after !!int", where)
         if _INF.fullmatch(text):
             return -math.inf if text.startswith("-") else math.inf
         if _NAN.fullmatch(text):
@@ -440,14 +480,20 @@ class _Builder:
         merge_at = ""
         for key_node, value_node in zip(node.items[0::2], node.items[1::2], strict=True):
             if key_node.kind != "scalar":
-                self.fail(path or "(top level)", "keys that are plain values (text)",
-                          f"a {'list' if key_node.kind == 'seq' else 'mapping'} as a key at "
-                          f"line {key_node.line}, column {key_node.column}")
+                self.fail(
+                    path or "(top level)",
+                    "keys that are plain values (text)",
+                    f"a {'list' if key_node.kind == 'seq' else 'mapping'} as a key at "
+                    f"line {key_node.line}, column {key_node.column}",
+                )
             if key_node.plain and key_node.text == "<<":
                 here = f"line {key_node.line}, column {key_node.column}"
                 if merge_at:
-                    self.fail(_join(path, "<<"), "each key once in a mapping",
-                              f"<< at {merge_at} and again at {here}")
+                    self.fail(
+                        _join(path, "<<"),
+                        "each key once in a mapping",
+                        f"<< at {merge_at} and again at {here}",
+                    )
                 merge_at = here
                 self.merge(value_node, path, merged)
                 continue
@@ -456,8 +502,11 @@ class _Builder:
             seen = own.get(key)
             here = f"line {key_node.line}, column {key_node.column}"
             if seen is not None:
-                self.fail(child, "each key once in a mapping",
-                          f"{key!r:.40} at {seen[0]} and again at {here}")
+                self.fail(
+                    child,
+                    "each key once in a mapping",
+                    f"{key!r:.40} at {seen[0]} and again at {here}",
+                )
             own[key] = (here, self.build(value_node, child))
         entries = {**merged, **own}
         self.entries_of[id(node)] = entries
@@ -467,13 +516,19 @@ class _Builder:
         sources = value.items if value.kind == "seq" else [value]
         for source in sources:
             if source.kind != "map":
-                self.fail(_join(path, "<<"), "a mapping or a list of mappings to merge",
-                          f"a {'list' if source.kind == 'seq' else 'value'} at line "
-                          f"{source.line}, column {source.column}")
+                self.fail(
+                    _join(path, "<<"),
+                    "a mapping or a list of mappings to merge",
+                    f"a {'list' if source.kind == 'seq' else 'value'} at line "
+                    f"{source.line}, column {source.column}",
+                )
             for key, (line, item) in self.entries(source, path).items():
                 if key in merged:
-                    self.fail(_join(path, key), "a key that one merged mapping supplies",
-                              f"{key!r:.40} from {merged[key][0]} and from {line}")
+                    self.fail(
+                        _join(path, key),
+                        "a key that one merged mapping supplies",
+                        f"{key!r:.40} from {merged[key][0]} and from {line}",
+                    )
                 merged[key] = (line, item)
 
 
@@ -552,16 +607,24 @@ class Doc:
         self._allowed = frozenset(keys)
         for key in self.data:
             if key not in self._allowed:
-                self.fail(key, "no such key here (unknown key" + _did_you_mean(
-                    key, sorted(self._allowed - self.data.keys())) + ")", self.data[key])
+                self.fail(
+                    key,
+                    "no such key here (unknown key"
+                    + _did_you_mean(key, sorted(self._allowed - self.data.keys()))
+                    + ")",
+                    self.data[key],
+                )
 
     def _get(self, key: str, default: Any) -> Any:
         self._used.add(key)
         if key in self.data:
             return self.data[key]
         if default is _MISSING:
-            self.fail(key, "this key (required)", _Text("nothing: the key is missing"
-                                                        + self._stray_near(key)))
+            self.fail(
+                key,
+                "this key (required)",
+                _Text("nothing: the key is missing" + self._stray_near(key)),
+            )
         return default
 
     def _stray_near(self, key: str) -> str:
@@ -590,8 +653,9 @@ class Doc:
     ) -> float:
         """A finite real number; bounds are inclusive unless ``min_exclusive``."""
         value = self._get(key, default)
-        return self.check_number(key, value, min=min, max=max, min_exclusive=min_exclusive,
-                                 unit=unit)
+        return self.check_number(
+            key, value, min=min, max=max, min_exclusive=min_exclusive, unit=unit
+        )
 
     def check_number(
         self,
@@ -617,8 +681,9 @@ class Doc:
             self.fail(key, what, value)
         return number
 
-    def integer(self, key: str, *, default: Any = _MISSING, min: int | None = None,
-                max: int | None = None) -> int:
+    def integer(
+        self, key: str, *, default: Any = _MISSING, min: int | None = None, max: int | None = None
+    ) -> int:
         """An integer (YAML hex like ``0x101`` is fine); floats and booleans are refused."""
         value = self._get(key, default)
         what = "an integer" + _bounds_text(min, max, False)
@@ -628,8 +693,9 @@ class Doc:
             self.fail(key, what, value)
         return value
 
-    def string(self, key: str, *, default: Any = _MISSING,
-               choices: Sequence[str] | None = None) -> str:
+    def string(
+        self, key: str, *, default: Any = _MISSING, choices: Sequence[str] | None = None
+    ) -> str:
         value = self._get(key, default)
         if choices is not None:
             if value not in choices:
@@ -653,17 +719,25 @@ class Doc:
             self.fail(key, "true or false", _type_name(value))
         return value
 
-    def numbers(self, key: str, *, length: int | None = None, default: Any = _MISSING,
-                min: float | None = None, max: float | None = None,
-                unit: str = "") -> tuple[float, ...]:
+    def numbers(
+        self,
+        key: str,
+        *,
+        length: int | None = None,
+        default: Any = _MISSING,
+        min: float | None = None,
+        max: float | None = None,
+        unit: str = "",
+    ) -> tuple[float, ...]:
         """A list of finite numbers, optionally of a fixed length."""
         value = self._get(key, default)
         what = f"a list of {length} numbers" if length is not None else "a list of numbers"
         if not isinstance(value, list) or (length is not None and len(value) != length):
             self.fail(key, what, value if _is_scalar(value) else _type_name(value))
         sub = Doc({}, self.file, self.key_path(key))
-        return tuple(sub.check_number(i, v, min=min, max=max, unit=unit)
-                     for i, v in enumerate(value))
+        return tuple(
+            sub.check_number(i, v, min=min, max=max, unit=unit) for i, v in enumerate(value)
+        )
 
     # -- structure ------------------------------------------------------------------------
     def mapping(self, key: str, *, default: Any = _MISSING) -> Doc:
@@ -673,12 +747,16 @@ class Doc:
             self.fail(key, "a mapping", _type_name(value))
         return Doc(value, self.file, self.key_path(key))
 
-    def mappings(self, key: str, *, min_len: int = 0, max_len: int | None = None,
-                 default: Any = _MISSING) -> list[Doc]:
+    def mappings(
+        self, key: str, *, min_len: int = 0, max_len: int | None = None, default: Any = _MISSING
+    ) -> list[Doc]:
         """A list of mappings, e.g. ``fingers`` or ``phases``."""
         value = self._get(key, default)
-        bound = f"at least {min_len}" if max_len is None else (
-            f"{min_len}" if min_len == max_len else f"{min_len} to {max_len}")
+        bound = (
+            f"at least {min_len}"
+            if max_len is None
+            else (f"{min_len}" if min_len == max_len else f"{min_len} to {max_len}")
+        )
         what = f"a list of {bound} mappings"
         if not isinstance(value, list):
             self.fail(key, what, _type_name(value))
@@ -706,15 +784,19 @@ class Doc:
         absent = sorted(k for k in self._used | (self._allowed or set()) if k not in self.data)
         for key in self.data:
             if key not in self._used:
-                self.fail(key, "no such key here (unknown key" + _did_you_mean(key, absent)
-                          + ")", self.data[key])
+                self.fail(
+                    key,
+                    "no such key here (unknown key" + _did_you_mean(key, absent) + ")",
+                    self.data[key],
+                )
 
 
 def _closest(key: str, candidates: Sequence[str]) -> str | None:
     """The one candidate nearest to ``key`` (difflib's ratio >= 0.6), or None if there is
     none or several tie for nearest."""
-    scored = sorted(((difflib.SequenceMatcher(None, key, c).ratio(), c) for c in candidates),
-                    reverse=True)
+    scored = sorted(
+        ((difflib.SequenceMatcher(None, key, c).ratio(), c) for c in candidates), reverse=True
+    )
     if not scored or scored[0][0] < DID_YOU_MEAN_CUTOFF:
         return None
     if len(scored) > 1 and scored[1][0] == scored[0][0]:

@@ -92,12 +92,16 @@ class RunReport:
 def _percentiles_us(window: TickWindow) -> dict[str, float]:
     """Over the whole run, from its histograms (1 µs bins; the maximum is exact)."""
     hist = window.lateness_hist
-    return {"p50": percentile_us(hist, 50), "p99": percentile_us(hist, 99),
-            "max": round(window.lateness_max_ns / 1e3, 2)}
+    return {
+        "p50": percentile_us(hist, 50),
+        "p99": percentile_us(hist, 99),
+        "max": round(window.lateness_max_ns / 1e3, 2),
+    }
 
 
-def summarise_run(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool,
-                  sim: dict[str, Any] | None) -> dict[str, Any]:
+def summarise_run(
+    result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool, sim: dict[str, Any] | None
+) -> dict[str, Any]:
     """The summary JSON: the fields the runtime issue names, and a few an engineer wants."""
     stages = STAGES
     return {
@@ -111,32 +115,54 @@ def summarise_run(result: RunResult, hand: HandConfig, recipe: Recipe, lockstep:
         # a phase that ran out its max_s did not do what its exits wait for: say so plainly
         "phases": [{**p, "timed_out": p["exit"].startswith("timeout")} for p in result.phases],
         "timed_out_phases": [p["name"] for p in result.phases if p["exit"].startswith("timeout")],
-        "faults": [{"code": f.code.name, "category": FAULTS[f.code].category.name.lower(),
-                    "tick": f.tick, "detail": f.detail} for f in result.faults],
+        "faults": [
+            {
+                "code": f.code.name,
+                "category": FAULTS[f.code].category.name.lower(),
+                "tick": f.tick,
+                "detail": f.detail,
+            }
+            for f in result.faults
+        ],
         "ticks": result.ticks,
         "missed_ticks": result.missed_ticks,
         "lateness_us": _percentiles_us(result.window),
-        "stage_cpu_us_p99": {name: round(percentile_us(result.window.stage_hist[i], 99), 2)
-                             for i, name in enumerate(stages)},
-        "max_abs_tau_nm": {name: round(float(v), 5) for name, v in
-                        zip(hand.joint_names, result.max_abs_tau, strict=True)},
+        "stage_cpu_us_p99": {
+            name: round(percentile_us(result.window.stage_hist[i], 99), 2)
+            for i, name in enumerate(stages)
+        },
+        "max_abs_tau_nm": {
+            name: round(float(v), 5)
+            for name, v in zip(hand.joint_names, result.max_abs_tau, strict=True)
+        },
         "rejected_frames": result.node_rejects,
         "bus_events": result.bus_events,
-        **({"exception": _exception_summary(result.exception)}
-           if result.exception is not None else {}),
+        **(
+            {"exception": _exception_summary(result.exception)}
+            if result.exception is not None
+            else {}
+        ),
         **({"sim": sim} if sim is not None else {}),
     }
 
 
 def _exception_summary(exc: TickException) -> dict[str, Any]:
     """The exception a run stopped on: its fault (the stage), what it said, and where."""
-    return {"code": exc.code.name, "tick": exc.tick, "type": exc.type,
-            "message": exc.message, "where": exc.where,
-            "traceback": exc.traceback.splitlines()}
+    return {
+        "code": exc.code.name,
+        "tick": exc.tick,
+        "type": exc.type,
+        "message": exc.message,
+        "where": exc.where,
+        "traceback": exc.traceback.splitlines(),
+    }
 
 
-def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = None,
-               recorder: RecordSink | None = None) -> RunReport:
+def run_recipe(
+    req: RunRequest,
+    status: Callable[[StatusLine], None] | None = None,
+    recorder: RecordSink | None = None,
+) -> RunReport:
     """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on."""
     timebudget.check(req.max_seconds)
     protocol = protocol_for(req.hand)
@@ -148,22 +174,23 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         from handctl.experiment.merit import check_objects_in_sim
         from handctl.sim.params import parse_sim
 
-        check_objects_in_sim(req.recipe, [o.name for o in parse_sim(req.hand).objects],
-                             req.hand.source)
+        check_objects_in_sim(
+            req.recipe, [o.name for o in parse_sim(req.hand).objects], req.hand.source
+        )
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
     if not is_sim:
         # Before the bus is opened: a host that cannot hold the deadlines sends nothing.
-        host_check, checked = precheck(req.hand, req.realtime_priority, loop_cpu,
-                                       req.accept_missed_deadlines)
+        host_check, checked = precheck(
+            req.hand, req.realtime_priority, loop_cpu, req.accept_missed_deadlines
+        )
         warnings += checked
     with ExitStack() as stack:
         # First in, last out: from here to the end a signal ends the run as StopSignals says.
         signals = stack.enter_context(StopSignals())
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
-        recording = stack.enter_context(_recorder(req, is_sim and lockstep)) if req.log \
-            else None
+        recording = stack.enter_context(_recorder(req, is_sim and lockstep)) if req.log else None
         if recording is not None:
             recorder = recording
         peer = _start_peer(stack, req, spec, lockstep, sim_cpu)
@@ -171,12 +198,22 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
         timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu, warnings)
         clock = timing.clock
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
-        runtime = Runtime(req.hand, driver, clock, req.recipe, recorder=recorder, status=status,
-                          reset_node_faults=req.reset_node_faults, max_ticks=NO_TICK_LIMIT,
-                          startup_timeout_s=peer.startup_s,
-                          estimator=(ObjectEstimator(req.hand, req.recipe.objects,
-                                                     req.recipe.pairs)
-                                     if req.recipe.objects else None))
+        runtime = Runtime(
+            req.hand,
+            driver,
+            clock,
+            req.recipe,
+            recorder=recorder,
+            status=status,
+            reset_node_faults=req.reset_node_faults,
+            max_ticks=NO_TICK_LIMIT,
+            startup_timeout_s=peer.startup_s,
+            estimator=(
+                ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
+                if req.recipe.objects
+                else None
+            ),
+        )
         # Ground truth of the experiment, recorded every tick and never fed back.
         tracker = None
         if peer.sim_hand is not None and req.recipe.objects:
@@ -189,26 +226,35 @@ def run_recipe(req: RunRequest, status: Callable[[StatusLine], None] | None = No
             _start_recording(recording, runtime, req, peer.spec, lockstep, peer.sim_hand)
         result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
         if result.exception is not None:
-            warnings.append(f"the run stopped on an exception ({result.exception.code.name}); "
-                            "the hand was stopped.\n"
-                            + result.exception.traceback.rstrip())
-        summary = summarise_run(result, req.hand, req.recipe, lockstep,
-                                _peer_summary(peer, warnings))
+            warnings.append(
+                f"the run stopped on an exception ({result.exception.code.name}); "
+                "the hand was stopped.\n" + result.exception.traceback.rstrip()
+            )
+        summary = summarise_run(
+            result, req.hand, req.recipe, lockstep, _peer_summary(peer, warnings)
+        )
         host = _host_summary(summary, req, timing, result, host_check, warnings)
         _experiment_summary(summary, req, tracker, warnings)
         if recording is not None:
             _close_recording(recording, summary, req, warnings)
-    return RunReport(result, summary, warnings, runtime.first_send_tick,
-                     runtime.startup_missed_ticks, host,
-                     clock.stalls.rows() if isinstance(clock, RealtimeClock) else [])
+    return RunReport(
+        result,
+        summary,
+        warnings,
+        runtime.first_send_tick,
+        runtime.startup_missed_ticks,
+        host,
+        clock.stalls.rows() if isinstance(clock, RealtimeClock) else [],
+    )
 
 
 def _lockstep(req: RunRequest, is_sim: bool) -> bool:
     """Whether the run is stepped with the simulated hand: by default on it, and only on it."""
     lockstep = is_sim if req.lockstep is None else req.lockstep
     if lockstep and not is_sim:
-        raise ConfigError("--lockstep", "", "the simulated hand (--bus sim): only it can be "
-                          "stepped", req.bus)
+        raise ConfigError(
+            "--lockstep", "", "the simulated hand (--bus sim): only it can be stepped", req.bus
+        )
     return lockstep
 
 
@@ -223,8 +269,9 @@ class _Peer:
     startup_s: float = 0.5  # how long the nodes may take to answer
 
 
-def _start_peer(stack: ExitStack, req: RunRequest, spec: BusSpec, lockstep: bool,
-                sim_cpu: int | None) -> _Peer:
+def _start_peer(
+    stack: ExitStack, req: RunRequest, spec: BusSpec, lockstep: bool, sim_cpu: int | None
+) -> _Peer:
     """On ``--bus sim``, start the simulated hand and name the bus it is on; any other bus is
     opened as it is named."""
     if spec.interface != "sim":
@@ -258,26 +305,41 @@ class _Timing:
     cpus: dict[str, Any] = field(default_factory=dict)
 
 
-def _start_clock(stack: ExitStack, req: RunRequest, peer: _Peer, lockstep: bool,
-                 loop_cpu: int | None, sim_cpu: int | None, warnings: list[str]) -> _Timing:
+def _start_clock(
+    stack: ExitStack,
+    req: RunRequest,
+    peer: _Peer,
+    lockstep: bool,
+    loop_cpu: int | None,
+    sim_cpu: int | None,
+    warnings: list[str],
+) -> _Timing:
     """The simulated hand's steps in lockstep; in real time a timer clock, the probes beside
     it and, with ``--rt``, the scheduling asked for (what could not be had is a warning)."""
     if lockstep:
         return _Timing(LockstepClock(req.hand.bus.period_s, peer.sim_hand.step))
     timing = _Timing(RealtimeClock(req.hand.bus.period_s))
-    timing.probe = stack.enter_context(beside_probe(req.hand, req.realtime_priority, loop_cpu,
-                                                    req.hygiene.lock_memory))
+    timing.probe = stack.enter_context(
+        beside_probe(req.hand, req.realtime_priority, loop_cpu, req.hygiene.lock_memory)
+    )
     if peer.sim_process is not None and sim_cpu is not None:
         # On the hand's CPU the loop does not run: the loop's priority is above the hand.
-        timing.peer_probe = stack.enter_context(beside_probe(
-            req.hand, req.realtime_priority, sim_cpu, req.hygiene.lock_memory,
-            LOOP_PRIORITY))
+        timing.peer_probe = stack.enter_context(
+            beside_probe(
+                req.hand, req.realtime_priority, sim_cpu, req.hygiene.lock_memory, LOOP_PRIORITY
+            )
+        )
     if req.realtime_priority:
-        warnings += request_realtime(LOOP_PRIORITY, cpu=loop_cpu,
-                                     lock_memory=req.hygiene.lock_memory,
-                                     prefault_memory=req.hygiene.prefault)
-    timing.cpus = {"loop": affinity(0),
-                   "sim": affinity(peer.sim_process.proc.pid) if peer.sim_process else None}
+        warnings += request_realtime(
+            LOOP_PRIORITY,
+            cpu=loop_cpu,
+            lock_memory=req.hygiene.lock_memory,
+            prefault_memory=req.hygiene.prefault,
+        )
+    timing.cpus = {
+        "loop": affinity(0),
+        "sim": affinity(peer.sim_process.proc.pid) if peer.sim_process else None,
+    }
     return timing
 
 
@@ -294,43 +356,52 @@ def _peer_summary(peer: _Peer, warnings: list[str]) -> dict[str, Any] | None:
     return None
 
 
-def _host_summary(summary: dict[str, Any], req: RunRequest, timing: _Timing, result: RunResult,
-                  host_check: dict[str, Any] | None, warnings: list[str]
-                  ) -> ProbeRecord | None:
+def _host_summary(
+    summary: dict[str, Any],
+    req: RunRequest,
+    timing: _Timing,
+    result: RunResult,
+    host_check: dict[str, Any] | None,
+    warnings: list[str],
+) -> ProbeRecord | None:
     """Into ``summary``: in real time, whose the missed ticks were (the host's or handctl's)
     and the CPUs; the timing check made before the bus was opened. The probe's record."""
     host: ProbeRecord | None = None
     if timing.probe is not None:
         assert isinstance(timing.clock, RealtimeClock)
-        host, summary["host"] = host_summary(req.hand, timing.probe, timing.clock.stalls,
-                                             result.faults, warnings, timing.peer_probe)
+        host, summary["host"] = host_summary(
+            req.hand, timing.probe, timing.clock.stalls, result.faults, warnings, timing.peer_probe
+        )
         summary["host"]["cpus"] = timing.cpus
     if host_check is not None:
         summary["host_check"] = host_check
     return host
 
 
-def _experiment_summary(summary: dict[str, Any], req: RunRequest, tracker: Any,
-                        warnings: list[str]) -> None:
+def _experiment_summary(
+    summary: dict[str, Any], req: RunRequest, tracker: Any, warnings: list[str]
+) -> None:
     """Into ``summary``: how the objects moved (the simulated hand's ground truth); and the
     plot, which needs that ground truth."""
     if tracker is not None:
         from handctl.experiment.merit import experiment_summary
 
-        summary["experiment"] = experiment_summary(tracker.trace,
-                                                   req.recipe.min_total_turn_deg)
+        summary["experiment"] = experiment_summary(tracker.trace, req.recipe.min_total_turn_deg)
     if req.plot is not None:
         if tracker is None:
-            warnings.append("--plot needs the simulated hand in lockstep and a recipe "
-                            "that declares its objects: no plot written")
+            warnings.append(
+                "--plot needs the simulated hand in lockstep and a recipe "
+                "that declares its objects: no plot written"
+            )
         else:
             from handctl.experiment.plot import plot_run
 
             plot_run(tracker.trace, req.plot, req.recipe, req.hand, summary.get("experiment"))
 
 
-def _close_recording(recording: Recorder, summary: dict[str, Any], req: RunRequest,
-                     warnings: list[str]) -> None:
+def _close_recording(
+    recording: Recorder, summary: dict[str, Any], req: RunRequest, warnings: list[str]
+) -> None:
     """Finish the file with the summary; a log that could not be finished is said, not
     raised: the run is over and the hand is safe."""
     try:
@@ -350,23 +421,42 @@ def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
         from handctl.sim.params import parse_sim
 
         objects = [o.name for o in parse_sim(req.hand).objects]
-    return Recorder(req.log, req.hand, start_metadata(req.hand, req.recipe, req.command_line),
-                    phase_names=[p.name for p in req.recipe.phases], object_names=objects,
-                    live_port=req.live_port)
+    return Recorder(
+        req.log,
+        req.hand,
+        start_metadata(req.hand, req.recipe, req.command_line),
+        phase_names=[p.name for p in req.recipe.phases],
+        object_names=objects,
+        live_port=req.live_port,
+    )
 
 
-def _start_recording(recording: Recorder, runtime: Runtime, req: RunRequest, spec: BusSpec,
-                     lockstep: bool, sim_hand: Any) -> None:
+def _start_recording(
+    recording: Recorder,
+    runtime: Runtime,
+    req: RunRequest,
+    spec: BusSpec,
+    lockstep: bool,
+    sim_hand: Any,
+) -> None:
     """Tap the runtime, note how it is set up, and (lockstep) sample the objects' poses."""
     from handctl.recording.channels import META_RUN
     from handctl.recording.metadata import run_metadata
 
     recording.attach(runtime)
-    recording.add_metadata(META_RUN, run_metadata(
-        mode="lockstep" if lockstep else "realtime", bus=f"{req.bus} ({spec})", seed=req.seed,
-        period_ns=round(req.hand.bus.period_s * 1e9), startup_ticks=runtime.startup_ticks,
-        reset_node_faults=req.reset_node_faults, estimator=runtime.estimator is not None,
-        sim_faults=str(req.sim_faults or "")))
+    recording.add_metadata(
+        META_RUN,
+        run_metadata(
+            mode="lockstep" if lockstep else "realtime",
+            bus=f"{req.bus} ({spec})",
+            seed=req.seed,
+            period_ns=round(req.hand.bus.period_s * 1e9),
+            startup_ticks=runtime.startup_ticks,
+            reset_node_faults=req.reset_node_faults,
+            estimator=runtime.estimator is not None,
+            sim_faults=str(req.sim_faults or ""),
+        ),
+    )
     if sim_hand is not None:
         every = POSE_EVERY_TICKS
 
@@ -394,9 +484,22 @@ class SimProcess:
     def __init__(self, req: RunRequest, directory: str, cpu: int | None = None) -> None:
         self.summary_path = Path(directory) / "sim-summary.json"
         self.log_path = Path(directory) / "sim.log"
-        cmd = [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{directory}",
-               "--hand", req.hand.source, "--seed", str(req.seed),
-               "--summary-json", str(self.summary_path), "--parent-pid", str(os.getpid())]
+        cmd = [
+            sys.executable,
+            "-m",
+            "handctl",
+            "sim",
+            "--bus",
+            f"unix:{directory}",
+            "--hand",
+            req.hand.source,
+            "--seed",
+            str(req.seed),
+            "--summary-json",
+            str(self.summary_path),
+            "--parent-pid",
+            str(os.getpid()),
+        ]
         if req.hand.dbc is not None:
             cmd += ["--dbc", req.hand.dbc]
         if req.sim_faults is not None:
@@ -406,8 +509,9 @@ class SimProcess:
             # this one shares two cores with everything else on the machine.
             cmd.append("--rt")
         with self.log_path.open("wb") as log:
-            self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log,
-                                         start_new_session=True)
+            self.proc = subprocess.Popen(
+                cmd, stdout=subprocess.DEVNULL, stderr=log, start_new_session=True
+            )
         if cpu is not None:
             # Now, while the child has one thread: the node timer thread it starts inherits it.
             with suppress(ProcessLookupError):  # gone already: problem() says why
@@ -431,11 +535,16 @@ class SimProcess:
         """Empty if the simulated hand ended well; else its exit and the end of its log."""
         if self.summary is not None and self.proc.returncode == 0:
             return ""
-        tail = self.log_path.read_text(errors="replace").strip().splitlines()[-5:] \
-            if self.log_path.exists() else []
-        return (f"the simulated hand's process ended with exit {self.proc.returncode} and "
-                f"{'its summary' if self.summary is not None else 'no summary'}"
-                + (": " + " | ".join(tail) if tail else ""))
+        tail = (
+            self.log_path.read_text(errors="replace").strip().splitlines()[-5:]
+            if self.log_path.exists()
+            else []
+        )
+        return (
+            f"the simulated hand's process ended with exit {self.proc.returncode} and "
+            f"{'its summary' if self.summary is not None else 'no summary'}"
+            + (": " + " | ".join(tail) if tail else "")
+        )
 
     def __enter__(self) -> SimProcess:
         return self
@@ -511,7 +620,10 @@ class StopSignals:
         finally:
             self.finishing = True
             self.runtime = None
-        if (result.outcome is Outcome.STARTUP_FAILED and runtime.stop_requested
-                and not result.faults):
+        if (
+            result.outcome is Outcome.STARTUP_FAILED
+            and runtime.stop_requested
+            and not result.faults
+        ):
             result = dataclasses.replace(result, outcome=Outcome.INTERRUPTED)
         return result

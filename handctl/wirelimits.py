@@ -42,9 +42,13 @@ def check_wire_limits(hand: HandConfig, protocol: Protocol) -> None:
         command, feedback = _layouts(hand, protocol, i, finger)
         per_node = len(command.signals)
         if len(finger.joints) > per_node or len(feedback.signals) < 2 * per_node:
-            raise ConfigError(hand.source, f"fingers[{i}].joints",
-                              f"at most {per_node} joints ({command.name} and {feedback.name} "
-                              f"in {dbc} carry {per_node})", f"{len(finger.joints)} joints")
+            raise ConfigError(
+                hand.source,
+                f"fingers[{i}].joints",
+                f"at most {per_node} joints ({command.name} and {feedback.name} "
+                f"in {dbc} carry {per_node})",
+                f"{len(finger.joints)} joints",
+            )
         for k, joint in enumerate(finger.joints):
             check = _JointCheck(hand, f"fingers[{i}].joints[{k}]", joint)
             check.torque_limits(command.name, command.signals[k])
@@ -53,15 +57,19 @@ def check_wire_limits(hand: HandConfig, protocol: Protocol) -> None:
             check.rate(command.name, command.signals[k], hand.bus.loop_rate_hz)
 
 
-def _layouts(hand: HandConfig, protocol: Protocol, i: int, finger: FingerConfig
-             ) -> tuple[Layout, Layout]:
+def _layouts(
+    hand: HandConfig, protocol: Protocol, i: int, finger: FingerConfig
+) -> tuple[Layout, Layout]:
     found = []
     for kind in ("TorqueCommand", "Feedback"):
         layout = protocol.by_name.get(f"{kind}_{finger.node_id}")
         if layout is None:
-            raise ConfigError(hand.source, f"fingers[{i}].node_id",
-                              f"a node id with a {kind} message in "
-                              f"{Path(protocol.source).name}", finger.node_id)
+            raise ConfigError(
+                hand.source,
+                f"fingers[{i}].node_id",
+                f"a node id with a {kind} message in {Path(protocol.source).name}",
+                finger.node_id,
+            )
         found.append(layout)
     return found[0], found[1]
 
@@ -86,8 +94,12 @@ class _JointCheck:
         for key in ("tau_max", "device_tau_max"):
             limit: float = getattr(self.joint, key)
             if -limit < lo or limit > hi:
-                self.fail(key, f"±{key} ({_span(-limit, limit, 'N·m')}) within what "
-                          f"{message}.{signal.name} carries ({_span(lo, hi, 'N·m')})", limit)
+                self.fail(
+                    key,
+                    f"±{key} ({_span(-limit, limit, 'N·m')}) within what "
+                    f"{message}.{signal.name} carries ({_span(lo, hi, 'N·m')})",
+                    limit,
+                )
 
     def reading(self, message: str, signal: SignalSpec) -> None:
         lo, hi = signal.carried_range()
@@ -95,21 +107,33 @@ class _JointCheck:
         limit = self.joint.device_tau_max
         ends = sorted(((-limit - tdt.offset) / tdt.scale, (limit - tdt.offset) / tdt.scale))
         if ends[0] < lo or ends[1] > hi:
-            self.fail("device_tau_max", f"±device_tau_max to read as TDT values "
-                      f"({_span(ends[0], ends[1], 'N·m')} through tdt scale {tdt.scale:g} and "
-                      f"offset {tdt.offset:g}) within what {message}.{signal.name} carries "
-                      f"({_span(lo, hi, 'N·m')})", limit)
+            self.fail(
+                "device_tau_max",
+                f"±device_tau_max to read as TDT values "
+                f"({_span(ends[0], ends[1], 'N·m')} through tdt scale {tdt.scale:g} and "
+                f"offset {tdt.offset:g}) within what {message}.{signal.name} carries "
+                f"({_span(lo, hi, 'N·m')})",
+                limit,
+            )
 
     def angles(self, message: str, signal: SignalSpec) -> None:
         lo, hi = signal.carried_range()
         q_lo, q_hi = self.joint.angle_min, self.joint.angle_max
         inside = f"strictly inside what {message}.{signal.name} carries ({_span(lo, hi, 'rad')})"
         if q_lo <= lo:
-            self.fail("angle_min", f"angle limits ({_span(q_lo, q_hi, 'rad')}) {inside}, so a "
-                      "joint past its limit reads past it", q_lo)
+            self.fail(
+                "angle_min",
+                f"angle limits ({_span(q_lo, q_hi, 'rad')}) {inside}, so a "
+                "joint past its limit reads past it",
+                q_lo,
+            )
         if q_hi >= hi:
-            self.fail("angle_max", f"angle limits ({_span(q_lo, q_hi, 'rad')}) {inside}, so a "
-                      "joint past its limit reads past it", q_hi)
+            self.fail(
+                "angle_max",
+                f"angle limits ({_span(q_lo, q_hi, 'rad')}) {inside}, so a "
+                "joint past its limit reads past it",
+                q_hi,
+            )
 
     def rate(self, message: str, signal: SignalSpec, loop_rate_hz: float) -> None:
         lo, hi = signal.carried_range()
@@ -118,8 +142,11 @@ class _JointCheck:
         # A relative tolerance for the division: 0.1 N·m/s at 1 kHz is one 0.0001 N·m step.
         if resolution * (1 - 1e-9) <= step <= hi - lo:
             return
-        self.fail("rate_limit", f"a rate_limit of {resolution * loop_rate_hz:g}.."
-                  f"{(hi - lo) * loop_rate_hz:g} N·m/s: at bus.loop_rate_hz {loop_rate_hz:g} Hz "
-                  f"one tick's step (here {step:.6g} N·m) must lie between the resolution and "
-                  f"the span of {message}.{signal.name} ({resolution:g}..{hi - lo:g} N·m)",
-                  self.joint.rate_limit)
+        self.fail(
+            "rate_limit",
+            f"a rate_limit of {resolution * loop_rate_hz:g}.."
+            f"{(hi - lo) * loop_rate_hz:g} N·m/s: at bus.loop_rate_hz {loop_rate_hz:g} Hz "
+            f"one tick's step (here {step:.6g} N·m) must lie between the resolution and "
+            f"the span of {message}.{signal.name} ({resolution:g}..{hi - lo:g} N·m)",
+            self.joint.rate_limit,
+        )

@@ -11,8 +11,12 @@ import yaml
 DEFAULT_HAND = Path(__file__).resolve().parent.parent / "handctl" / "hands" / "hiroshima_hand.yaml"
 
 
-def shaped_hand(tmp_path: Path, joints: list[int], node_ids: list[int] | None = None,
-                edit: Callable[[dict[str, Any]], None] | None = None) -> Path:
+def shaped_hand(
+    tmp_path: Path,
+    joints: list[int],
+    node_ids: list[int] | None = None,
+    edit: Callable[[dict[str, Any]], None] | None = None,
+) -> Path:
     """A hand config file of the default hand's joints, reshaped and without its sim section:
     finger i gets ``joints[i]`` joints (copies of the default first finger's) and node id
     ``node_ids[i]``; ``edit`` may change the document before it is written."""
@@ -24,8 +28,9 @@ def shaped_hand(tmp_path: Path, joints: list[int], node_ids: list[int] | None = 
     for i, (k, node) in enumerate(zip(joints, nodes, strict=True)):
         finger = dict(template, name=f"finger{i}", node_id=node)
         finger.pop("can_ids")
-        finger["joints"] = [dict(template["joints"][min(j, 2)], name=f"finger{i}_joint{j}")
-                            for j in range(k)]
+        finger["joints"] = [
+            dict(template["joints"][min(j, 2)], name=f"finger{i}_joint{j}") for j in range(k)
+        ]
         fingers.append(finger)
     doc["fingers"] = fingers
     if edit is not None:

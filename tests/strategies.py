@@ -28,8 +28,9 @@ def raw_values(layout: Layout) -> st.SearchStrategy[tuple[int, ...]]:
         hi = round((sig.maximum - sig.offset) / sig.scale)
         if sig.minimum == sig.maximum == 0:
             bits = sig.size_bits
-            lo, hi = ((-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if sig.signed
-                      else (0, (1 << bits) - 1))
+            lo, hi = (
+                (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if sig.signed else (0, (1 << bits) - 1)
+            )
         parts.append(st.integers(lo, hi))
     return st.tuples(*parts)
 
@@ -59,16 +60,20 @@ def _host_side(protocol: Protocol) -> list[Layout]:
 
 def _values(draw: st.DrawFn, layout: Layout) -> list[float]:
     raws = draw(raw_values(layout))
-    return [r if s.is_integer else r * s.scale + s.offset
-            for r, s in zip(raws, layout.signals, strict=True)]
+    return [
+        r if s.is_integer else r * s.scale + s.offset
+        for r, s in zip(raws, layout.signals, strict=True)
+    ]
 
 
 def frames(protocol: Protocol = PROTOCOL) -> st.SearchStrategy[Frame]:
     """One frame as a receiver may meet it: random, valid, bit-flipped, or of a wrong length."""
     host_side = _host_side(protocol)
-    ids = st.one_of(st.sampled_from([lay.frame_id for lay in protocol.layouts]),
-                    st.integers(0, 0x7FF),
-                    st.integers(0, 0x1FFFFFFF).map(lambda i: i | EXTENDED_ID_FLAG))
+    ids = st.one_of(
+        st.sampled_from([lay.frame_id for lay in protocol.layouts]),
+        st.integers(0, 0x7FF),
+        st.integers(0, 0x1FFFFFFF).map(lambda i: i | EXTENDED_ID_FLAG),
+    )
     random_frame = st.tuples(ids, st.binary(min_size=0, max_size=64))
 
     @st.composite
@@ -81,7 +86,7 @@ def frames(protocol: Protocol = PROTOCOL) -> st.SearchStrategy[Frame]:
         frame_id, data = draw(valid())
         pos = draw(st.integers(0, len(data) - 1))
         bit = draw(st.integers(0, 7))
-        return frame_id, data[:pos] + bytes((data[pos] ^ (1 << bit),)) + data[pos + 1:]
+        return frame_id, data[:pos] + bytes((data[pos] ^ (1 << bit),)) + data[pos + 1 :]
 
     @st.composite
     def resized(draw: st.DrawFn) -> Frame:
@@ -103,17 +108,25 @@ def stream(draw: st.DrawFn, protocol: Protocol = PROTOCOL) -> list[Frame]:
     after the first (which may not follow what the receiver last saw) each is acceptable."""
     layout = draw(st.sampled_from(_host_side(protocol)))
     start = draw(st.integers(0, 255))
-    return [(layout.frame_id, layout.encode((start + k) & 0xFF, _values(draw, layout)))
-            for k in range(draw(st.integers(1, 6)))]
+    return [
+        (layout.frame_id, layout.encode((start + k) & 0xFF, _values(draw, layout)))
+        for k in range(draw(st.integers(1, 6)))
+    ]
 
 
 @st.composite
-def frame_batches(draw: st.DrawFn, protocol: Protocol = PROTOCOL, min_size: int = 1,
-                  max_size: int = 40) -> list[Frame]:
+def frame_batches(
+    draw: st.DrawFn, protocol: Protocol = PROTOCOL, min_size: int = 1, max_size: int = 40
+) -> list[Frame]:
     """What one poll may drain: single frames of any kind mixed with runs of valid frames,
     some sent twice in a row (a replayed frame, whose counter repeats)."""
-    parts = draw(st.lists(st.one_of(frames(protocol).map(lambda f: [f]), stream(protocol)),
-                          min_size=min_size, max_size=max_size))
+    parts = draw(
+        st.lists(
+            st.one_of(frames(protocol).map(lambda f: [f]), stream(protocol)),
+            min_size=min_size,
+            max_size=max_size,
+        )
+    )
     batch = [frame for part in parts for frame in part]
     repeats = draw(st.lists(st.integers(0, len(batch) - 1), max_size=3))
     for i in sorted(repeats, reverse=True):

@@ -26,8 +26,10 @@ def main(argv: list[str] | None = None) -> int:
     names = available()
     if not argv or argv[0] not in names:
         given = argv[0] if argv else "nothing"
-        print(f"bench.py: expected a benchmark name, one of {', '.join(names)}; found {given}",
-              file=sys.stderr)
+        print(
+            f"bench.py: expected a benchmark name, one of {', '.join(names)}; found {given}",
+            file=sys.stderr,
+        )
         return 2
     name = argv[0]
     sys.path.insert(0, str(HERE))

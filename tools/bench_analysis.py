@@ -37,18 +37,28 @@ PAPER_K = ((0.9, 0.1), (1.2, 0.5))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scenario", type=Path,
-                        default=ROOT / "config" / "analysis" / "paper_fig3.yaml")
-    parser.add_argument("--k", type=float, nargs=2, action="append", default=None,
-                        metavar=("K1", "K2"), help="torque ratios (repeatable; default: "
-                        "the paper's two settings)")
+    parser.add_argument(
+        "--scenario", type=Path, default=ROOT / "config" / "analysis" / "paper_fig3.yaml"
+    )
+    parser.add_argument(
+        "--k",
+        type=float,
+        nargs=2,
+        action="append",
+        default=None,
+        metavar=("K1", "K2"),
+        help="torque ratios (repeatable; default: the paper's two settings)",
+    )
     parser.add_argument("--grid", type=int, default=121, help="points per axis")
     parser.add_argument("--repeat", type=int, default=5, help="repetitions of the exact method")
-    parser.add_argument("--tolerance", type=float, default=1e-6,
-                        help="boundary tolerance, N·m")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="processes for the LP grid (default 1: the speedup compares the "
-                             "two methods on one core)")
+    parser.add_argument("--tolerance", type=float, default=1e-6, help="boundary tolerance, N·m")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes for the LP grid (default 1: the speedup compares the "
+        "two methods on one core)",
+    )
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -87,15 +97,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         differ_real = lp_real.ravel() != exact_real
         dist_in = ts.boundary_distance(points)
         dist_real = ts.realisable_boundary_distance(points)
-        bad = (differ_in & (dist_in > args.tolerance)) | (differ_real
-                                                          & (dist_real > args.tolerance))
+        bad = (differ_in & (dist_in > args.tolerance)) | (
+            differ_real & (dist_real > args.tolerance)
+        )
         near = (differ_in | differ_real) & ~bad
         disagreements += int(bad.sum())
         boundary_points += int(near.sum())
-        details.append({"k": list(k), "area": ts.area, "realisable_area": ts.realisable_area,
-                        "inside_points": int(exact_inside.sum()),
-                        "disagreements": int(bad.sum()),
-                        "boundary_differences": int(near.sum())})
+        details.append(
+            {
+                "k": list(k),
+                "area": ts.area,
+                "realisable_area": ts.realisable_area,
+                "inside_points": int(exact_inside.sum()),
+                "disagreements": int(bad.sum()),
+                "boundary_differences": int(near.sum()),
+            }
+        )
     return {
         "exact_ms": round(exact_s * 1e3, 3),
         "lp_grid_ms": round(lp_s * 1e3, 1),

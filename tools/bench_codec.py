@@ -44,10 +44,14 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     nodes = [f.node_id for f in hand.fingers]
     commands = [protocol.layout("TorqueCommand", n) for n in nodes]
     feedbacks = [protocol.layout("Feedback", n) for n in nodes]
-    torques = [tuple(0.1234 * (-1) ** j / (i + 1) for j in range(len(lay.signals)))
-               for i, lay in enumerate(commands)]
-    fb_frames = [lay.encode(k, [0.1 * (j + 1) for j in range(len(lay.signals) - 2)] + [1, 0])
-                 for k, lay in enumerate(feedbacks)]
+    torques = [
+        tuple(0.1234 * (-1) ** j / (i + 1) for j in range(len(lay.signals)))
+        for i, lay in enumerate(commands)
+    ]
+    fb_frames = [
+        lay.encode(k, [0.1 * (j + 1) for j in range(len(lay.signals) - 2)] + [1, 0])
+        for k, lay in enumerate(feedbacks)
+    ]
     cmd_msgs = [db.get_message_by_frame_id(lay.frame_id) for lay in commands]
     fb_msgs = [db.get_message_by_frame_id(lay.frame_id) for lay in feedbacks]
 
@@ -61,8 +65,9 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     def theirs(k: int) -> None:
         # cantools has no CRC of its own; it gets ours, which favours cantools slightly.
         for lay, msg, tau in zip(commands, cmd_msgs, torques, strict=True):
-            body = msg.encode({"Crc": 0, "Counter": k & 0xFF,
-                               **{f"Torque{j + 1}": t for j, t in enumerate(tau)}})
+            body = msg.encode(
+                {"Crc": 0, "Counter": k & 0xFF, **{f"Torque{j + 1}": t for j, t in enumerate(tau)}}
+            )
             lay.crc_ok(body)
         for lay, msg, data in zip(feedbacks, fb_msgs, fb_frames, strict=True):
             if lay.crc_ok(data):
@@ -74,5 +79,8 @@ def run(args: argparse.Namespace) -> dict[str, float]:
     theirs_us = _measure(theirs, max(1, args.ticks // 4), args.repeats)
     p50 = statistics.median(ours_us)
     base = statistics.median(theirs_us)
-    return {"tick_us_p50": round(p50, 2), "cantools_tick_us_p50": round(base, 2),
-            "speedup_vs_cantools": round(base / p50, 2)}
+    return {
+        "tick_us_p50": round(p50, 2),
+        "cantools_tick_us_p50": round(base, 2),
+        "speedup_vs_cantools": round(base / p50, 2),
+    }

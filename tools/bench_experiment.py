@@ -30,23 +30,38 @@ DEFAULT_HAND = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, default=10, help="perturbed models per group")
-    parser.add_argument("--first-seed", type=int, default=1000,
-                        help="seed of the first model (models are seed, seed + 1, ...)")
+    parser.add_argument(
+        "--first-seed",
+        type=int,
+        default=1000,
+        help="seed of the first model (models are seed, seed + 1, ...)",
+    )
     from handctl.planning.models import FAMILIES
 
-    parser.add_argument("--family", default=None, choices=[*FAMILIES, "all"],
-                        help="one family of the spread, or 'all' for all of them at once; "
-                        "default: each family on its own, then all at once")
+    parser.add_argument(
+        "--family",
+        default=None,
+        choices=[*FAMILIES, "all"],
+        help="one family of the spread, or 'all' for all of them at once; "
+        "default: each family on its own, then all at once",
+    )
     parser.add_argument("--recipe", type=Path, default=DEFAULT_RECIPE)
     parser.add_argument("--hand", type=Path, default=DEFAULT_HAND)
-    parser.add_argument("--swap-deg", type=float, default=170.0,
-                        help="degrees the pair must turn for a run to count as a swap")
-    parser.add_argument("--nominal", action="store_true",
-                        help="run only the unperturbed hand, once")
-    parser.add_argument("--workers", type=int,
-                        help="local worker processes (default: every core)")
-    parser.add_argument("--scheduler", metavar="tcp://HOST:PORT",
-                        help="run the seeds on this Dask cluster (docs/scale.md)")
+    parser.add_argument(
+        "--swap-deg",
+        type=float,
+        default=170.0,
+        help="degrees the pair must turn for a run to count as a swap",
+    )
+    parser.add_argument(
+        "--nominal", action="store_true", help="run only the unperturbed hand, once"
+    )
+    parser.add_argument("--workers", type=int, help="local worker processes (default: every core)")
+    parser.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:PORT",
+        help="run the seeds on this Dask cluster (docs/scale.md)",
+    )
 
 
 def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
@@ -72,10 +87,12 @@ def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
 def _say(run: dict[str, Any]) -> None:
     from handctl.progress import say
 
-    say(f"{run['family']} seed {run['seed']}: {'ok' if run['success'] else 'FAIL'} lifted "
+    say(
+        f"{run['family']} seed {run['seed']}: {'ok' if run['success'] else 'FAIL'} lifted "
         f"{run['lifted']} dropped {run['dropped']} turned {run['total_rotation_deg']} deg "
         f"{run['phase_angles_deg']} peak {run['peak_turn_rate_deg_s']} deg/s "
-        f"({run['outcome']}, {run['wall_s']:.1f} s)")
+        f"({run['outcome']}, {run['wall_s']:.1f} s)"
+    )
 
 
 def _figures(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -87,8 +104,9 @@ def _figures(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "swap_rate": round(sum(r["swap"] for r in runs) / n, 3),
         "drop_rate": round(sum(bool(r["dropped"]) for r in runs) / n, 3),
         "safety_stop_rate": round(sum(r["outcome"] == "safety_stop" for r in runs) / n, 3),
-        "mean_total_rotation_deg": round(float(np.mean([r["total_rotation_deg"]
-                                                        for r in runs])), 2),
+        "mean_total_rotation_deg": round(
+            float(np.mean([r["total_rotation_deg"] for r in runs])), 2
+        ),
         "peak_turn_rate_deg_s_max": round(float(np.max(peaks)), 1),
         "peak_turn_rate_deg_s_median": round(float(np.median(peaks)), 1),
         "runs": runs,
@@ -107,16 +125,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     hand = load_hand(args.hand)
     recipe = load_recipe(args.recipe, hand)
     portable = portable_hand(hand)
-    out: dict[str, Any] = {"benchmark": "experiment", "recipe": str(args.recipe.name),
-                           "swap_deg": args.swap_deg,
-                           "min_total_turn_deg": recipe.min_total_turn_deg,
-                           "spread": Spread().as_dict()}
-    groups = [] if args.nominal else ([*FAMILIES, "all"] if args.family is None
-                                      else [args.family])
+    out: dict[str, Any] = {
+        "benchmark": "experiment",
+        "recipe": str(args.recipe.name),
+        "swap_deg": args.swap_deg,
+        "min_total_turn_deg": recipe.min_total_turn_deg,
+        "spread": Spread().as_dict(),
+    }
+    groups = [] if args.nominal else ([*FAMILIES, "all"] if args.family is None else [args.family])
     # One pool for every run, the nominal first: results come back in this order.
     tasks = [SeedRun(portable, recipe, None, "nominal", args.swap_deg)]
-    tasks += [SeedRun(portable, recipe, seed, group, args.swap_deg) for group in groups
-              for seed in range(args.first_seed, args.first_seed + args.seeds)]
+    tasks += [
+        SeedRun(portable, recipe, seed, group, args.swap_deg)
+        for group in groups
+        for seed in range(args.first_seed, args.first_seed + args.seeds)
+    ]
     with open_pool(args.workers, args.scheduler) as pool:
         say(f"experiment on {pool.where}")
         with Progress("runs", len(tasks)) as bar:
@@ -124,17 +147,27 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for r in runs:
         _say(r)
     nominal = runs[0]
-    out["nominal"] = {k: nominal[k] for k in ("success", "swap", "total_rotation_deg",
-                                              "phase_angles_deg", "peak_turn_rate_deg_s")}
+    out["nominal"] = {
+        k: nominal[k]
+        for k in (
+            "success",
+            "swap",
+            "total_rotation_deg",
+            "phase_angles_deg",
+            "peak_turn_rate_deg_s",
+        )
+    }
     if groups:
-        out["families"] = {group: _figures([r for r in runs[1:] if r["family"] == group])
-                           for group in groups}
+        out["families"] = {
+            group: _figures([r for r in runs[1:] if r["family"] == group]) for group in groups
+        }
         last = out["families"]["all" if "all" in out["families"] else groups[-1]]
         out["success_rate"] = last["success_rate"]
         out["swap_rate"] = last["swap_rate"]
         out["worst_success_rate"] = min(f["success_rate"] for f in out["families"].values())
-        out["peak_turn_rate_deg_s_max"] = max(f["peak_turn_rate_deg_s_max"]
-                                              for f in out["families"].values())
+        out["peak_turn_rate_deg_s_max"] = max(
+            f["peak_turn_rate_deg_s_max"] for f in out["families"].values()
+        )
     p50, p99 = _estimator_cost_us(hand, recipe)
     out["estimator_us_p50"] = round(p50, 2)
     out["estimator_us_p99"] = round(p99, 2)

@@ -41,8 +41,12 @@ FRAMES_PER_EXAMPLE = 25
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--frames", type=int, default=100_000,
-                        help="frames to decode at least (the issue asks for >= 100 000)")
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=100_000,
+        help="frames to decode at least (the issue asks for >= 100 000)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="Hypothesis seed of the first run")
     parser.add_argument("--hand", type=Path, default=ROOT / "config/hands/hiroshima_hand.yaml")
 
@@ -68,8 +72,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     angle_limit = 3.2768  # rad: the largest angle the Feedback encoding can carry
     tally = Tally()
     started = time.perf_counter()
-    with open_bus("virtual:handctl-bench-fuzz", hand.bus) as host, \
-            open_bus("virtual:handctl-bench-fuzz", hand.bus) as peer:
+    with (
+        open_bus("virtual:handctl-bench-fuzz", hand.bus) as host,
+        open_bus("virtual:handctl-bench-fuzz", hand.bus) as peer,
+    ):
         # One driver for the whole run, as on a bus that stays up: the counter checks see
         # long streams, not only the first frame after a start. Each batch arrives over a
         # second of bus time, so one poll may take all of it: the drain's budget (what a
@@ -101,9 +107,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if handled() - before != len(batch):
                 tally.miscounted += abs(handled() - before - len(batch))
                 tally.problem(f"{handled() - before} of {len(batch)} frames counted")
-            bad = [a for a in state.angle.tolist() + state.tdt.tolist()
-                   if not math.isfinite(a)] + [a for a in state.angle.tolist()
-                                                if abs(a) > angle_limit]
+            bad = [a for a in state.angle.tolist() + state.tdt.tolist() if not math.isfinite(a)] + [
+                a for a in state.angle.tolist() if abs(a) > angle_limit
+            ]
             if bad:
                 tally.out_of_range += 1
                 tally.problem(f"state out of range: {bad[:3]}")
@@ -111,12 +117,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         for n in itertools.count():
             if tally.frames >= args.frames:
                 break
-            examples = min(EXAMPLES_PER_RUN,
-                           1 + (args.frames - tally.frames) // FRAMES_PER_EXAMPLE)
+            examples = min(EXAMPLES_PER_RUN, 1 + (args.frames - tally.frames) // FRAMES_PER_EXAMPLE)
             drawn = given(frame_batches(protocol, min_size=10, max_size=40))(decode)
-            fuzz = settings(max_examples=examples, database=None, deadline=None,
-                            phases=[Phase.generate], suppress_health_check=list(HealthCheck))(
-                seed(args.seed + n)(drawn))
+            fuzz = settings(
+                max_examples=examples,
+                database=None,
+                deadline=None,
+                phases=[Phase.generate],
+                suppress_health_check=list(HealthCheck),
+            )(seed(args.seed + n)(drawn))
             fuzz()
             print(f"  {tally.frames} frames, {tally.exceptions} exceptions", file=sys.stderr)
     wall = time.perf_counter() - started

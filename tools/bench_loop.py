@@ -59,10 +59,17 @@ def hold_recipe(hand: HandConfig, name: str, seconds: float, pose: bool = True) 
         for joint in finger.joints:
             torques[joint.name] = round(sign * HOLD_TORQUE_FRACTION * joint.tau_max, 4)
             angles[joint.name] = sign * HOLD_POSE_RAD
-    phase: dict[str, object] = {"name": "close", "torques": torques, "ramp_s": 0.3,
-                                "max_s": seconds, "on_timeout": "next"}
-    doc: dict[str, object] = {"recipe": name,
-                              "description": "close the hand gently and hold, for a benchmark"}
+    phase: dict[str, object] = {
+        "name": "close",
+        "torques": torques,
+        "ramp_s": 0.3,
+        "max_s": seconds,
+        "on_timeout": "next",
+    }
+    doc: dict[str, object] = {
+        "recipe": name,
+        "description": "close the hand gently and hold, for a benchmark",
+    }
     if pose:
         phase["pose"] = {"angles": angles, "stiffness": 0.05, "damping": 0.002}
         phase["joint_damping"] = 0.03  # the damping injection a braked phase adds
@@ -83,21 +90,41 @@ HYGIENE = {
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=60.0, help="length of each loop run")
     parser.add_argument("--hand", type=Path, default=ROOT / "config/hands/hiroshima_hand.yaml")
-    parser.add_argument("--babble", type=int, default=0, metavar="FRAMES_PER_MS",
-                        help="a babbling node floods foreign ids at this rate the whole run "
-                             "(20 is about all a CAN-FD bus carries)")
-    parser.add_argument("--rt", action="store_true",
-                        help="ask for SCHED_FIFO and locked memory, as `handctl run --rt`")
-    parser.add_argument("--hygiene", action="store_true",
-                        help="with --rt: one run per real-time measure added in turn (FIFO "
-                             "alone, +separate CPUs, +locked memory, +prefault)")
-    parser.add_argument("--variant", choices=list(HYGIENE), default=list(HYGIENE)[-1],
-                        help="with --rt: the real-time measures of the run (default: all)")
-    parser.add_argument("--no-naive", action="store_true",
-                        help="leave out the naive asyncio.sleep baseline")
-    parser.add_argument("--live", action="store_true",
-                        help="two recorded runs, without and with the live Foxglove server and "
-                             "a subscribed client: what the live view adds to the tick")
+    parser.add_argument(
+        "--babble",
+        type=int,
+        default=0,
+        metavar="FRAMES_PER_MS",
+        help="a babbling node floods foreign ids at this rate the whole run "
+        "(20 is about all a CAN-FD bus carries)",
+    )
+    parser.add_argument(
+        "--rt",
+        action="store_true",
+        help="ask for SCHED_FIFO and locked memory, as `handctl run --rt`",
+    )
+    parser.add_argument(
+        "--hygiene",
+        action="store_true",
+        help="with --rt: one run per real-time measure added in turn (FIFO "
+        "alone, +separate CPUs, +locked memory, +prefault)",
+    )
+    parser.add_argument(
+        "--variant",
+        choices=list(HYGIENE),
+        default=list(HYGIENE)[-1],
+        help="with --rt: the real-time measures of the run (default: all)",
+    )
+    parser.add_argument(
+        "--no-naive", action="store_true", help="leave out the naive asyncio.sleep baseline"
+    )
+    parser.add_argument(
+        "--live",
+        action="store_true",
+        help="two recorded runs, without and with the live Foxglove server and "
+        "a subscribed client: what the live view adds to the tick",
+    )
+
 
 class RunningSince:
     """The time the run proper began (the first status line with the hand running), so that
@@ -111,8 +138,9 @@ class RunningSince:
             self.ns = time.monotonic_ns()
 
 
-def host_figures(report: RunReport, hand: HandConfig, first_tick: int,
-                 since_ns: int | None) -> dict[str, object]:
+def host_figures(
+    report: RunReport, hand: HandConfig, first_tick: int, since_ns: int | None
+) -> dict[str, object]:
     """The bare loop's figures over the run proper and whose the missed ticks were."""
     host = report.host
     if host is None:
@@ -142,8 +170,11 @@ def since(record: ProbeRecord, start_ns: int) -> ProbeRecord:
     """The record's stalls from ``start_ns`` on (the lateness histogram stays the whole run's)."""
     import dataclasses
 
-    return dataclasses.replace(record, start_ns=max(record.start_ns, start_ns),
-                               stalls=tuple(s for s in record.stalls if s[2] >= start_ns))
+    return dataclasses.replace(
+        record,
+        start_ns=max(record.start_ns, start_ns),
+        stalls=tuple(s for s in record.stalls if s[2] >= start_ns),
+    )
 
 
 async def _naive(period_s: float, seconds: float) -> np.ndarray:
@@ -172,9 +203,11 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         faults = None
         if args.babble:
             faults = Path(tmp) / "babble.yaml"
-            faults.write_text("description: a babbling node for the load benchmark\nfaults:\n"
-                              f"  - {{kind: babble, id: 0x050, per_tick: {args.babble}, "
-                              "length: 8, start: 0.0}\n")
+            faults.write_text(
+                "description: a babbling node for the load benchmark\nfaults:\n"
+                f"  - {{kind: babble, id: 0x050, per_tick: {args.babble}, "
+                "length: 8, start: 0.0}\n"
+            )
         variants = {}
         if args.hygiene and args.rt:
             for name in HYGIENE:
@@ -182,8 +215,9 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                 variants[name] = _variant(name, args)
             figures = dict(variants[list(HYGIENE)[-1]])
         else:
-            figures = _one(hand, recipe, faults, args, HYGIENE[args.variant],
-                           Path(tmp) / "run.mcap")
+            figures = _one(
+                hand, recipe, faults, args, HYGIENE[args.variant], Path(tmp) / "run.mcap"
+            )
     if not args.no_naive and "lateness_p99_us" in figures:
         print(f"naive asyncio.sleep loop, {args.seconds:g} s ...", file=sys.stderr)
         naive = asyncio.run(_naive(hand.bus.period_s, args.seconds))
@@ -191,11 +225,22 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         figures["naive_lateness_p99_us"] = round(naive_p99, 1)
         figures["lateness_ratio"] = round(float(figures["lateness_p99_us"]) / naive_p99, 4)  # type: ignore[arg-type]
     if variants:
-        keep = ("lateness_p99_us", "missed_rate", "missed_host", "missed_handctl",
-                "missed_handctl_after_host",
-                "startup_missed_ticks", "startup_missed_handctl", "ticks",
-                "host_lateness_p99_us", "host_stalls_over_period", "host_longest_stall_ms",
-                "tick_cpu_us_p99", "outcome", "rt")
+        keep = (
+            "lateness_p99_us",
+            "missed_rate",
+            "missed_host",
+            "missed_handctl",
+            "missed_handctl_after_host",
+            "startup_missed_ticks",
+            "startup_missed_handctl",
+            "ticks",
+            "host_lateness_p99_us",
+            "host_stalls_over_period",
+            "host_longest_stall_ms",
+            "tick_cpu_us_p99",
+            "outcome",
+            "rt",
+        )
         figures["hygiene"] = {name: {k: v.get(k) for k in keep} for name, v in variants.items()}
     return figures
 
@@ -203,9 +248,21 @@ def run(args: argparse.Namespace) -> dict[str, object]:
 def _variant(name: str, args: argparse.Namespace) -> dict[str, object]:
     """One variant in a process of its own: what request_realtime did to this one (priority,
     CPU, locked memory) cannot be undone exactly."""
-    cmd = [sys.executable, str(Path(__file__).resolve().parent / "bench.py"), "loop", "--rt",
-           "--variant", name, "--seconds", str(args.seconds), "--hand", str(args.hand),
-           "--babble", str(args.babble), "--no-naive"]
+    cmd = [
+        sys.executable,
+        str(Path(__file__).resolve().parent / "bench.py"),
+        "loop",
+        "--rt",
+        "--variant",
+        name,
+        "--seconds",
+        str(args.seconds),
+        "--hand",
+        str(args.hand),
+        "--babble",
+        str(args.babble),
+        "--no-naive",
+    ]
     done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=False)
     if done.returncode != 0:
         return {"error": f"exit {done.returncode}"}
@@ -213,19 +270,38 @@ def _variant(name: str, args: argparse.Namespace) -> dict[str, object]:
     return figures
 
 
-def _one(hand: HandConfig, recipe: Recipe, faults: Path | None, args: argparse.Namespace,
-         hygiene: Hygiene, log: Path) -> dict[str, object]:
+def _one(
+    hand: HandConfig,
+    recipe: Recipe,
+    faults: Path | None,
+    args: argparse.Namespace,
+    hygiene: Hygiene,
+    log: Path,
+) -> dict[str, object]:
     """One run; recorded to ``log`` with ``args.record``, and served live with
     ``args.live_port`` (both set by ``live_view_cost.compare``)."""
-    print(f"real-time loop with the simulated hand, {args.seconds:g} s"
-          f"{f', babble {args.babble}/ms' if args.babble else ''} ...", file=sys.stderr)
+    print(
+        f"real-time loop with the simulated hand, {args.seconds:g} s"
+        f"{f', babble {args.babble}/ms' if args.babble else ''} ...",
+        file=sys.stderr,
+    )
     running = RunningSince()
     live_port = getattr(args, "live_port", None)
     record = getattr(args, "record", False) or live_port is not None
-    report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus="sim", lockstep=False,
-                                   realtime_priority=args.rt, sim_faults=faults,
-                                   hygiene=hygiene, log=log if record else None,
-                                   live_port=live_port), status=running)
+    report = run_recipe(
+        RunRequest(
+            hand=hand,
+            recipe=recipe,
+            bus="sim",
+            lockstep=False,
+            realtime_priority=args.rt,
+            sim_faults=faults,
+            hygiene=hygiene,
+            log=log if record else None,
+            live_port=live_port,
+        ),
+        status=running,
+    )
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     result = report.result

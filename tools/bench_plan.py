@@ -35,8 +35,9 @@ HAND = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--workers", type=int, default=2,
-                        help="the pool compared with one worker (default 2)")
+    parser.add_argument(
+        "--workers", type=int, default=2, help="the pool compared with one worker (default 2)"
+    )
     parser.add_argument("--models", type=int, default=4, help="perturbed models (default 4)")
     parser.add_argument("--generations", type=int, default=1)
     parser.add_argument("--population", type=int, default=8)
@@ -56,8 +57,9 @@ def small_template(folder: Path) -> Path:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     hand = load_hand(HAND)
-    budget = Budget(generations=args.generations, population=args.population,
-                    elite=min(4, args.population))
+    budget = Budget(
+        generations=args.generations, population=args.population, elite=min(4, args.population)
+    )
     with tempfile.TemporaryDirectory() as folder:
         template = load_template(small_template(Path(folder)), hand)
         walls: dict[int, float] = {}
@@ -68,8 +70,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             t0 = time.perf_counter()
             try:
                 with open_pool(workers) as pool:
-                    result = plan_recipe(template, hand, models=args.models, budget=budget,
-                                         executor=pool, meter=Progress)
+                    result = plan_recipe(
+                        template,
+                        hand,
+                        models=args.models,
+                        budget=budget,
+                        executor=pool,
+                        meter=Progress,
+                    )
                     runs[workers] = pool.tasks_run
             finally:
                 close_active()

@@ -90,12 +90,16 @@ REPLAY_TARGET = 50.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hand", default=str(ROOT / "config" / "hands" / "hiroshima_hand.yaml"))
-    parser.add_argument("--recipe",
-                        default=str(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"))
+    parser.add_argument(
+        "--recipe", default=str(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")
+    )
     parser.add_argument("--repeat", type=int, default=3, help="runs per figure (default 3)")
-    parser.add_argument("--breakdown", action="store_true",
-                        help="also split the direct cost: two more runs in which push copies "
-                             "only the frames, or nothing (breakdown_us_p50)")
+    parser.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="also split the direct cost: two more runs in which push copies "
+        "only the frames, or nothing (breakdown_us_p50)",
+    )
 
 
 class Turns:
@@ -125,8 +129,9 @@ class TickTimer(LockstepClock):
     hands out a tick to when the runtime next waits. Two of them in one event loop take
     turns (``Turns``), since each yields to the loop once per tick."""
 
-    def __init__(self, period_s: float, step_peer: Callable[[], None], side: str,
-                 turns: Turns) -> None:
+    def __init__(
+        self, period_s: float, step_peer: Callable[[], None], side: str, turns: Turns
+    ) -> None:
         super().__init__(period_s, step_peer)
         self.side = side
         self.turns = turns
@@ -147,8 +152,16 @@ class TickTimer(LockstepClock):
 class _Side:
     """One runtime of the pair: its simulated hand, bus, clock and (for A) recorder."""
 
-    def __init__(self, stack: contextlib.ExitStack, hand: HandConfig, recipe: Recipe,
-                 out: Path | None, turns: Turns, side: str, push: str = "all") -> None:
+    def __init__(
+        self,
+        stack: contextlib.ExitStack,
+        hand: HandConfig,
+        recipe: Recipe,
+        out: Path | None,
+        turns: Turns,
+        side: str,
+        push: str = "all",
+    ) -> None:
         channel = f"virtual:bench-rec-{uuid.uuid4().hex[:8]}"
         peer = stack.enter_context(open_bus(channel, hand.bus))
         host = stack.enter_context(open_bus(channel, hand.bus))
@@ -158,11 +171,16 @@ class _Side:
         estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs) if recipe.objects else None
         self.recorder: Recorder | None = None
         if out is not None:
-            self.recorder = Recorder(out, hand, start_metadata(hand, recipe, ["bench"]),
-                                     phase_names=[p.name for p in recipe.phases],
-                                     object_names=[o.name for o in sim.params.objects])
-        self.runtime = runtime = Runtime(hand, driver, self.clock, recipe,
-                                         recorder=self.recorder, estimator=estimator)
+            self.recorder = Recorder(
+                out,
+                hand,
+                start_metadata(hand, recipe, ["bench"]),
+                phase_names=[p.name for p in recipe.phases],
+                object_names=[o.name for o in sim.params.objects],
+            )
+        self.runtime = runtime = Runtime(
+            hand, driver, self.clock, recipe, recorder=self.recorder, estimator=estimator
+        )
         recorder = self.recorder
         #: CPU time of each ``begin_tick`` (the part of the recording before the tick's poll)
         self.begin_ns: list[int] = []
@@ -179,11 +197,20 @@ class _Side:
             recorder.begin_tick = timed_begin  # type: ignore[method-assign, assignment]
             if push != "all":
                 recorder.push = _partial_push(  # type: ignore[method-assign, assignment]
-                    recorder, push)
-            recorder.add_metadata(ch.META_RUN, run_metadata(
-                mode="lockstep", bus=channel, seed=0,
-                period_ns=round(hand.bus.period_s * 1e9), startup_ticks=runtime.startup_ticks,
-                reset_node_faults=False, estimator=estimator is not None))
+                    recorder, push
+                )
+            recorder.add_metadata(
+                ch.META_RUN,
+                run_metadata(
+                    mode="lockstep",
+                    bus=channel,
+                    seed=0,
+                    period_ns=round(hand.bus.period_s * 1e9),
+                    startup_ticks=runtime.startup_ticks,
+                    reset_node_faults=False,
+                    estimator=estimator is not None,
+                ),
+            )
 
         def poses(tk: Tick) -> None:
             if tk.tick % POSE_EVERY_TICKS == 0:
@@ -208,8 +235,9 @@ def _partial_push(recorder: Recorder, part: str) -> Callable[[Any], None]:
     return push
 
 
-def _pair(hand: HandConfig, recipe: Recipe, out: Path | None, push: str = "all"
-          ) -> tuple[_Side, _Side, RunResult, float, dict[str, Any]]:
+def _pair(
+    hand: HandConfig, recipe: Recipe, out: Path | None, push: str = "all"
+) -> tuple[_Side, _Side, RunResult, float, dict[str, Any]]:
     """Run A (recorded to ``out``, or not when ``out`` is None) and B (never) in turn."""
     with contextlib.ExitStack() as stack:
         turns = Turns()
@@ -226,8 +254,10 @@ def _pair(hand: HandConfig, recipe: Recipe, out: Path | None, push: str = "all"
         loop_wall = time.perf_counter() - started
         stats = a.recorder.close({"outcome": result.outcome.value}) if a.recorder else {}
     if result.ticks != twin.ticks or result.outcome != twin.outcome:
-        raise RuntimeError(f"bench: the twin runs differ ({result.ticks} and {twin.ticks} "
-                           "ticks): the paired difference would compare unlike ticks")
+        raise RuntimeError(
+            f"bench: the twin runs differ ({result.ticks} and {twin.ticks} "
+            "ticks): the paired difference would compare unlike ticks"
+        )
     return a, b, result, loop_wall, stats
 
 
@@ -239,8 +269,7 @@ def _paired(a: _Side, b: _Side, control: np.ndarray) -> tuple[np.ndarray, np.nda
     return work_a - work_b, work_b
 
 
-def record_once(hand_path: str, recipe_path: str, out: Path, push: str = "all"
-                ) -> dict[str, Any]:
+def record_once(hand_path: str, recipe_path: str, out: Path, push: str = "all") -> dict[str, Any]:
     hand = load_hand(hand_path)
     recipe = load_recipe(recipe_path, hand)
     a, b, result, loop_wall, stats = _pair(hand, recipe, out, push)
@@ -252,9 +281,15 @@ def record_once(hand_path: str, recipe_path: str, out: Path, push: str = "all"
     # record and ``push``, timed by the runtime itself). Tick k's stage row is tick k.
     n = min(len(a.begin_ns), len(control))
     direct = (np.array(a.begin_ns[:n]) + result.stage_ns[:n, 4])[control[:n]]
-    return {"direct_ns": direct, "added_ns": added, "unrecorded_ns": unrecorded,
-            "ticks": result.ticks, "loop_wall_s": loop_wall, "stats": stats,
-            "period_s": hand.bus.period_s}
+    return {
+        "direct_ns": direct,
+        "added_ns": added,
+        "unrecorded_ns": unrecorded,
+        "ticks": result.ticks,
+        "loop_wall_s": loop_wall,
+        "stats": stats,
+        "period_s": hand.bus.period_s,
+    }
 
 
 def noise_floor_us_p99(hand_path: str, recipe_path: str) -> float:
@@ -318,13 +353,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             read_us.append(1e6 * read / max(n, 1))
             runtime_us.append(1e6 * (wall - read) / max(n, 1))
             estimator_us.append(estimator_us_per_tick(recording))
-            print(f"bench recording: run {i + 1}/{args.repeat}: loop p99 {loop_p99[-1]:.1f} us "
-                  f"(p50 {loop_p50[-1]:.1f}, mean {loop_mean[-1]:.1f}; paired mean "
-                  f"{paired_mean[-1]:.1f} +- {paired_sem[-1]:.1f}), writer_rtf "
-                  f"{writer[-1]:.1f}, replay_rtf {replay[-1]:.1f}, {sizes[-1]:.1f} MB/min",
-                  file=sys.stderr)
-    print("bench recording: the same pair with neither recording (the noise floor)",
-          file=sys.stderr)
+            print(
+                f"bench recording: run {i + 1}/{args.repeat}: loop p99 {loop_p99[-1]:.1f} us "
+                f"(p50 {loop_p50[-1]:.1f}, mean {loop_mean[-1]:.1f}; paired mean "
+                f"{paired_mean[-1]:.1f} +- {paired_sem[-1]:.1f}), writer_rtf "
+                f"{writer[-1]:.1f}, replay_rtf {replay[-1]:.1f}, {sizes[-1]:.1f} MB/min",
+                file=sys.stderr,
+            )
+    print(
+        "bench recording: the same pair with neither recording (the noise floor)", file=sys.stderr
+    )
     noise = noise_floor_us_p99(args.hand, args.recipe)
     best = int(np.argmin(loop_p99))
     breakdown: dict[str, float] = {}
@@ -333,12 +371,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             part_p50 = {}
             for part in ("none", "frames"):
                 print(f"bench recording: breakdown, push copying {part}", file=sys.stderr)
-                direct = record_once(args.hand, args.recipe, Path(directory) / f"{part}.mcap",
-                                     part)["direct_ns"]
+                direct = record_once(
+                    args.hand, args.recipe, Path(directory) / f"{part}.mcap", part
+                )["direct_ns"]
                 part_p50[part] = float(np.percentile(direct, 50)) / 1e3
-        breakdown = {"begin_refill_publish": round(part_p50["none"], 2),
-                     "frames": round(part_p50["frames"] - part_p50["none"], 2),
-                     "tick_row": round(loop_p50[best] - part_p50["frames"], 2)}
+        breakdown = {
+            "begin_refill_publish": round(part_p50["none"], 2),
+            "frames": round(part_p50["frames"] - part_p50["none"], 2),
+            "tick_row": round(loop_p50[best] - part_p50["frames"], 2),
+        }
     return {
         **({"breakdown_us_p50": breakdown} if breakdown else {}),
         "loop_cost_us_p99": round(loop_p99[best], 2),

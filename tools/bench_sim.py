@@ -43,10 +43,14 @@ BUS_TARGET = 5.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--hand", default=str(ROOT / "config" / "hands" / "hiroshima_hand.yaml"),
-                        help="hand config (default: the Hiroshima-Hand)")
-    parser.add_argument("--seconds", type=float, default=3.0,
-                        help="simulated seconds per run (default 3)")
+    parser.add_argument(
+        "--hand",
+        default=str(ROOT / "config" / "hands" / "hiroshima_hand.yaml"),
+        help="hand config (default: the Hiroshima-Hand)",
+    )
+    parser.add_argument(
+        "--seconds", type=float, default=3.0, help="simulated seconds per run (default 3)"
+    )
     parser.add_argument("--repeat", type=int, default=3, help="runs per figure (default 3)")
 
 
@@ -87,7 +91,7 @@ def bench_bus(hand: HandConfig, ticks: int) -> tuple[float, float, float]:
         per_finger = []
         offset = 0
         for finger in hand.fingers:
-            values = tau[offset: offset + len(finger.joints)]
+            values = tau[offset : offset + len(finger.joints)]
             per_finger.append(tuple(values + [0.0] * (3 - len(values))))
             offset += len(finger.joints)
         received = 0
@@ -150,8 +154,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         bus_runs.append(rtf)
         step_us.append(in_step)
         floor_us.append(bench_floor(hand, ticks))
-        print(f"bench sim: run {i + 1}/{args.repeat}: plant_rtf {plant_runs[-1]:.1f}, "
-              f"bus_rtf {bus_runs[-1]:.2f}", file=sys.stderr)
+        print(
+            f"bench sim: run {i + 1}/{args.repeat}: plant_rtf {plant_runs[-1]:.1f}, "
+            f"bus_rtf {bus_runs[-1]:.2f}",
+            file=sys.stderr,
+        )
     plant_rtf = max(plant_runs)
     bus_rtf = max(bus_runs)
     return {

@@ -58,17 +58,32 @@ _PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--minutes", type=float, default=10.0,
-                        help="length of the soak (fractions allowed: 0.5 for a quick check)")
-    parser.add_argument("--warmup-s", type=float, default=None,
-                        help="seconds of the run proper left out of the RSS slope (default: "
-                             "a fifth of the soak, at most 60)")
+    parser.add_argument(
+        "--minutes",
+        type=float,
+        default=10.0,
+        help="length of the soak (fractions allowed: 0.5 for a quick check)",
+    )
+    parser.add_argument(
+        "--warmup-s",
+        type=float,
+        default=None,
+        help="seconds of the run proper left out of the RSS slope (default: "
+        "a fifth of the soak, at most 60)",
+    )
     parser.add_argument("--hand", type=Path, default=ROOT / "config/hands/hiroshima_hand.yaml")
-    parser.add_argument("--log", type=Path, default=None,
-                        help="keep the recording here (default: a temporary file, removed)")
-    parser.add_argument("--rt", action="store_true",
-                        help="ask for SCHED_FIFO and locked memory, as `handctl run --rt`, "
-                             "and SCHED_FIFO one step lower for the simulated hand's process")
+    parser.add_argument(
+        "--log",
+        type=Path,
+        default=None,
+        help="keep the recording here (default: a temporary file, removed)",
+    )
+    parser.add_argument(
+        "--rt",
+        action="store_true",
+        help="ask for SCHED_FIFO and locked memory, as `handctl run --rt`, "
+        "and SCHED_FIFO one step lower for the simulated hand's process",
+    )
 
 
 def _children() -> list[int]:
@@ -97,8 +112,7 @@ def prioritise_peer(priority: int) -> str:
         if b"handctl" in argv and b"sim" in argv:
             try:  # every thread of it: the policy is per thread
                 for task in Path(f"/proc/{pid}/task").iterdir():
-                    os.sched_setscheduler(int(task.name), os.SCHED_FIFO,
-                                          os.sched_param(priority))
+                    os.sched_setscheduler(int(task.name), os.SCHED_FIFO, os.sched_param(priority))
             except OSError as exc:
                 return f"SCHED_FIFO for the simulated hand refused ({exc})"
             return ""
@@ -172,8 +186,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         recipe_path.write_text(hold_recipe(hand, "soak_hold", seconds, pose=False))
         recipe = load_recipe(recipe_path, hand)
         log = args.log or Path(tmp) / "soak.mcap"
-        print(f"soak: real-time loop with the simulated hand, recording to {log}, "
-              f"{args.minutes:g} min ...", file=sys.stderr)
+        print(
+            f"soak: real-time loop with the simulated hand, recording to {log}, "
+            f"{args.minutes:g} min ...",
+            file=sys.stderr,
+        )
         started = time.monotonic()
         running = RunningSince()
 
@@ -181,9 +198,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             sampler(line)
             running(line)
 
-        report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus="sim", lockstep=False,
-                                       realtime_priority=args.rt, log=log,
-                                       command_line=("bench.py", "soak")), status=status)
+        report = run_recipe(
+            RunRequest(
+                hand=hand,
+                recipe=recipe,
+                bus="sim",
+                lockstep=False,
+                realtime_priority=args.rt,
+                log=log,
+                command_line=("bench.py", "soak"),
+            ),
+            status=status,
+        )
         wall = time.monotonic() - started
         for warning in [*report.warnings, *refused]:
             print(f"warning: {warning}", file=sys.stderr)
@@ -192,8 +218,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         mb_written = log.stat().st_size / 1e6
     result = report.result
     stats = report.summary.get("recording", {})
-    dropped = sum(int(stats.get(k, 0)) for k in ("dropped_ticks", "dropped_frames",
-                                                   "dropped_events", "dropped_poses"))
+    dropped = sum(
+        int(stats.get(k, 0))
+        for k in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
+    )
     # Every tick the runtime ran must be in the file once: a tick short is a record lost.
     missing = max(0, result.ticks - in_file) + gaps
     first = max(0, report.first_send_tick)
@@ -204,8 +232,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rss = sampler.rss
     return {
         "minutes": args.minutes,
-        "rt": bool(args.rt and not refused
-                   and not any("refused" in w for w in report.warnings)),
+        "rt": bool(args.rt and not refused and not any("refused" in w for w in report.warnings)),
         "outcome": result.outcome.value,
         "message": result.message,
         "ticks": proper_ticks,

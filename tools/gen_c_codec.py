@@ -52,13 +52,50 @@ _C_TYPES: dict[tuple[int, bool], tuple[str, int, int]] = {
     (32, True): ("int32_t", -0x8000_0000, 0x7FFF_FFFF),
 }
 
-_C_RESERVED = frozenset((
-    "auto", "break", "case", "char", "const", "continue", "default", "do", "double", "else",
-    "enum", "extern", "float", "for", "goto", "if", "inline", "int", "long", "register",
-    "restrict", "return", "short", "signed", "sizeof", "static", "struct", "switch", "typedef",
-    "union", "unsigned", "void", "volatile", "while", "_Bool", "_Complex", "_Imaginary", "bool",
-    "true", "false",
-))
+_C_RESERVED = frozenset(
+    (
+        "auto",
+        "break",
+        "case",
+        "char",
+        "const",
+        "continue",
+        "default",
+        "do",
+        "double",
+        "else",
+        "enum",
+        "extern",
+        "float",
+        "for",
+        "goto",
+        "if",
+        "inline",
+        "int",
+        "long",
+        "register",
+        "restrict",
+        "return",
+        "short",
+        "signed",
+        "sizeof",
+        "static",
+        "struct",
+        "switch",
+        "typedef",
+        "union",
+        "unsigned",
+        "void",
+        "volatile",
+        "while",
+        "_Bool",
+        "_Complex",
+        "_Imaginary",
+        "bool",
+        "true",
+        "false",
+    )
+)
 
 _ERRORS = (
     ("OK", 0, "success"),
@@ -137,14 +174,18 @@ def _comment(text: str) -> str:
 
 
 def _identifier(name: str, where: str) -> str:
-    if not re.fullmatch(r"[a-z_][a-z0-9_]*", name) or name in _C_RESERVED or keyword.iskeyword(
-            name):
+    if (
+        not re.fullmatch(r"[a-z_][a-z0-9_]*", name)
+        or name in _C_RESERVED
+        or keyword.iskeyword(name)
+    ):
         raise GenerationError(f"{where}: expected a name usable as a C identifier, found {name!r}")
     return name
 
 
-def build_messages(layouts: Iterable[Layout], senders: dict[str, tuple[str, ...]]
-                   ) -> list[CMessage]:
+def build_messages(
+    layouts: Iterable[Layout], senders: dict[str, tuple[str, ...]]
+) -> list[CMessage]:
     """Turn compiled layouts into what the templates need, refusing what C cannot mirror."""
     messages = []
     seen: dict[str, str] = {}
@@ -154,8 +195,10 @@ def build_messages(layouts: Iterable[Layout], senders: dict[str, tuple[str, ...]
             raise GenerationError(f"{layout.name}: C name {ident} already used by {seen[ident]}")
         seen[ident] = layout.name
         if not layout.signals:
-            raise GenerationError(f"{layout.name}: expected at least one signal after Crc and "
-                                  "Counter (a C struct cannot be empty), found none")
+            raise GenerationError(
+                f"{layout.name}: expected at least one signal after Crc and "
+                "Counter (a C struct cannot be empty), found none"
+            )
         covered = [False] * layout.length
         covered[0] = covered[1] = True
         fields: dict[str, str] = {}
@@ -168,21 +211,27 @@ def build_messages(layouts: Iterable[Layout], senders: dict[str, tuple[str, ...]
             fields[field] = spec.name
             span = range(spec.offset_byte, spec.offset_byte + spec.size_bits // 8)
             if span.stop > layout.length or any(covered[i] for i in span):
-                raise GenerationError(f"{where}: expected bytes {span.start}..{span.stop - 1} "
-                                      f"free inside {layout.length} bytes, found them taken")
+                raise GenerationError(
+                    f"{where}: expected bytes {span.start}..{span.stop - 1} "
+                    f"free inside {layout.length} bytes, found them taken"
+                )
             for i in span:
                 covered[i] = True
             if not (math.isfinite(spec.scale) and spec.scale != 0 and math.isfinite(spec.offset)):
-                raise GenerationError(f"{where}: expected a finite non-zero scale and a finite "
-                                      f"offset, found ({spec.scale!r}, {spec.offset!r})")
+                raise GenerationError(
+                    f"{where}: expected a finite non-zero scale and a finite "
+                    f"offset, found ({spec.scale!r}, {spec.offset!r})"
+                )
             raw_type, type_lo, type_hi = _C_TYPES[(spec.size_bits, spec.signed)]
             lo, hi = _raw_bounds(spec)
             if lo > hi:
-                raise GenerationError(f"{where}: the DBC range [{spec.minimum}, {spec.maximum}] "
-                                      "holds no raw value")
+                raise GenerationError(
+                    f"{where}: the DBC range [{spec.minimum}, {spec.maximum}] holds no raw value"
+                )
             signals.append(CSignal(spec, field, raw_type, type_lo, type_hi, int(lo), int(hi)))
-        messages.append(CMessage(layout, ident, ident.upper(), senders.get(layout.name, ()),
-                                 tuple(signals)))
+        messages.append(
+            CMessage(layout, ident, ident.upper(), senders.get(layout.name, ()), tuple(signals))
+        )
     return messages
 
 
@@ -229,7 +278,7 @@ def _banner(file_name: str, command: str, dbc_name: str, version: str) -> list[s
         f"/* {file_name}: the handctl CAN-FD protocol codec for C99 firmware.",
         " *",
         f" * GENERATED by `{command}` from {dbc_name}",
-        f" * (DBC VERSION \"{_comment(version)}\"). Do not edit: change the DBC and regenerate;",
+        f' * (DBC VERSION "{_comment(version)}"). Do not edit: change the DBC and regenerate;',
         f" * `{command} --check` fails while this file is stale.",
         " */",
     ]
@@ -322,12 +371,32 @@ def render_header(messages: list[CMessage], command: str, dbc_name: str, version
         " */",
         "int handctl_frame_length(uint32_t frame_id);",
         "int handctl_signal_count(uint32_t frame_id);",
-        *_prototype("int", "handctl_encode_by_id",
-                    ["uint32_t frame_id", "uint8_t *out", "size_t out_len", "uint8_t counter",
-                     "const double *values", "size_t n_values"], ";"),
-        *_prototype("int", "handctl_decode_by_id",
-                    ["uint32_t frame_id", "const uint8_t *in", "size_t len", "uint8_t *counter",
-                     "double *values", "size_t n_values"], ";"),
+        *_prototype(
+            "int",
+            "handctl_encode_by_id",
+            [
+                "uint32_t frame_id",
+                "uint8_t *out",
+                "size_t out_len",
+                "uint8_t counter",
+                "const double *values",
+                "size_t n_values",
+            ],
+            ";",
+        ),
+        *_prototype(
+            "int",
+            "handctl_decode_by_id",
+            [
+                "uint32_t frame_id",
+                "const uint8_t *in",
+                "size_t len",
+                "uint8_t *counter",
+                "double *values",
+                "size_t n_values",
+            ],
+            ";",
+        ),
         "",
         "#ifdef __cplusplus",
         "}",
@@ -524,8 +593,11 @@ def _render_encode(m: CMessage) -> tuple[list[str], set[str]]:
             if s.raw_hi < s.type_hi:
                 conds.append(f"msg->{s.field} > {c_int(s.raw_hi, unsigned)}")
             if conds:
-                lines += [f"    if ({' || '.join(conds)}) {{", "        return HANDCTL_ERR_RANGE;",
-                          "    }"]
+                lines += [
+                    f"    if ({' || '.join(conds)}) {{",
+                    "        return HANDCTL_ERR_RANGE;",
+                    "    }",
+                ]
             continue
         quotient = f"msg->{s.field}"
         if s.spec.offset != 0:  # x - 0.0 == x for every double, so the host's subtraction is
@@ -590,8 +662,10 @@ def _render_decode(m: CMessage) -> tuple[list[str], set[str]]:
         if s.spec.offset == 0:
             lines.append(f"    msg->{s.field} = {product};")
         else:
-            lines += [f"    product_{s.field} = {product};",
-                      f"    msg->{s.field} = product_{s.field} + {c_double(s.spec.offset)};"]
+            lines += [
+                f"    product_{s.field} = {product};",
+                f"    msg->{s.field} = product_{s.field} + {c_double(s.spec.offset)};",
+            ]
     lines += ["    return HANDCTL_OK;", "}"]
     return lines, used
 
@@ -600,8 +674,10 @@ def _render_by_id(messages: list[CMessage]) -> tuple[list[str], set[str]]:
     used: set[str] = set()
     lines = ["", "int handctl_frame_length(uint32_t frame_id)", "{", "    switch (frame_id) {"]
     for m in messages:
-        lines += [f"    case HANDCTL_{m.macro}_FRAME_ID:",
-                  f"        return (int)HANDCTL_{m.macro}_LENGTH;"]
+        lines += [
+            f"    case HANDCTL_{m.macro}_FRAME_ID:",
+            f"        return (int)HANDCTL_{m.macro}_LENGTH;",
+        ]
     lines += ["    default:", "        return HANDCTL_ERR_ID;", "    }", "}"]
 
     lines += ["", "int handctl_signal_count(uint32_t frame_id)", "{", "    switch (frame_id) {"]
@@ -610,19 +686,37 @@ def _render_by_id(messages: list[CMessage]) -> tuple[list[str], set[str]]:
     lines += ["    default:", "        return HANDCTL_ERR_ID;", "    }", "}"]
 
     lines += [""]
-    lines += _prototype("int", "handctl_encode_by_id",
-                        ["uint32_t frame_id", "uint8_t *out", "size_t out_len", "uint8_t counter",
-                         "const double *values", "size_t n_values"], "")
-    lines += ["{", "    if (values == NULL) {", "        return HANDCTL_ERR_ARG;", "    }",
-              "    switch (frame_id) {"]
+    lines += _prototype(
+        "int",
+        "handctl_encode_by_id",
+        [
+            "uint32_t frame_id",
+            "uint8_t *out",
+            "size_t out_len",
+            "uint8_t counter",
+            "const double *values",
+            "size_t n_values",
+        ],
+        "",
+    )
+    lines += [
+        "{",
+        "    if (values == NULL) {",
+        "        return HANDCTL_ERR_ARG;",
+        "    }",
+        "    switch (frame_id) {",
+    ]
     for m in messages:
         integers = [s for s in m.signals if s.integer]
         lines += [f"    case HANDCTL_{m.macro}_FRAME_ID: {{", f"        {m.struct} msg;"]
         if integers:
             lines.append("        double raw;")
             used.add("whole")
-        lines += [f"        if (n_values != {len(m.signals)}u) {{",
-                  "            return HANDCTL_ERR_ARG;", "        }"]
+        lines += [
+            f"        if (n_values != {len(m.signals)}u) {{",
+            "            return HANDCTL_ERR_ARG;",
+            "        }",
+        ]
         for i, s in enumerate(m.signals):
             if s.integer:
                 lines += [
@@ -634,16 +728,33 @@ def _render_by_id(messages: list[CMessage]) -> tuple[list[str], set[str]]:
                 ]
             else:
                 lines.append(f"        msg.{s.field} = values[{i}];")
-        lines += [f"        return {PREFIX}_{m.ident}_encode(out, out_len, counter, &msg);",
-                  "    }"]
+        lines += [
+            f"        return {PREFIX}_{m.ident}_encode(out, out_len, counter, &msg);",
+            "    }",
+        ]
     lines += ["    default:", "        return HANDCTL_ERR_ID;", "    }", "}"]
 
     lines += [""]
-    lines += _prototype("int", "handctl_decode_by_id",
-                        ["uint32_t frame_id", "const uint8_t *in", "size_t len",
-                         "uint8_t *counter", "double *values", "size_t n_values"], "")
-    lines += ["{", "    if (values == NULL) {", "        return HANDCTL_ERR_ARG;", "    }",
-              "    switch (frame_id) {"]
+    lines += _prototype(
+        "int",
+        "handctl_decode_by_id",
+        [
+            "uint32_t frame_id",
+            "const uint8_t *in",
+            "size_t len",
+            "uint8_t *counter",
+            "double *values",
+            "size_t n_values",
+        ],
+        "",
+    )
+    lines += [
+        "{",
+        "    if (values == NULL) {",
+        "        return HANDCTL_ERR_ARG;",
+        "    }",
+        "    switch (frame_id) {",
+    ]
     for m in messages:
         lines += [
             f"    case HANDCTL_{m.macro}_FRAME_ID: {{",
@@ -682,11 +793,17 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     inputs = parser.add_mutually_exclusive_group()
     inputs.add_argument("--dbc", type=Path, default=DEFAULT_DBC, help="DBC to read")
-    inputs.add_argument("--hand", type=Path, help="hand config (HAND.yaml) whose generated "
-                        "protocol to read, instead of a DBC")
+    inputs.add_argument(
+        "--hand",
+        type=Path,
+        help="hand config (HAND.yaml) whose generated protocol to read, instead of a DBC",
+    )
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="directory to write to")
-    parser.add_argument("--check", action="store_true",
-                        help="write nothing; exit 1 if the files on disk are not up to date")
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="write nothing; exit 1 if the files on disk are not up to date",
+    )
     args = parser.parse_args(argv)
     try:
         files = generate(args.dbc, args.hand)
@@ -694,8 +811,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"gen_c_codec.py: {exc}", file=sys.stderr)
         return 2
     source = display_path(args.hand if args.hand is not None else args.dbc)
-    return write_or_check("gen_c_codec.py", {args.out / name: text for name, text in files.items()},
-                          source, "python tools/gen_c_codec.py", args.check)
+    return write_or_check(
+        "gen_c_codec.py",
+        {args.out / name: text for name, text in files.items()},
+        source,
+        "python tools/gen_c_codec.py",
+        args.check,
+    )
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -24,8 +24,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--hand", type=Path, default=DEFAULT_HAND, help="hand config to read")
     parser.add_argument("--out", type=Path, default=DEFAULT_DBC, help="DBC file to write")
-    parser.add_argument("--check", action="store_true",
-                        help="write nothing; exit 1 if the file on disk is not up to date")
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="write nothing; exit 1 if the file on disk is not up to date",
+    )
     args = parser.parse_args(argv)
     try:
         text = generate_dbc(hand_shape(load_hand(args.hand)))
@@ -35,8 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     command = "python tools/gen_dbc.py"
     if args.hand.resolve() != DEFAULT_HAND.resolve():
         command += f" --hand {display_path(args.hand)}"
-    return write_or_check("gen_dbc.py", {args.out: text}, display_path(args.hand), command,
-                          args.check)
+    return write_or_check(
+        "gen_dbc.py", {args.out: text}, display_path(args.hand), command, args.check
+    )
 
 
 if __name__ == "__main__":

@@ -114,13 +114,17 @@ def render() -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--check", action="store_true", help="exit 1 if docs/faults.md is stale")
-    parser.add_argument("--campaign", action="store_true",
-                        help="run the fault campaign first and store its results")
-    parser.add_argument("--workers", type=int,
-                        help="with --campaign: local worker processes (default: every core)")
-    parser.add_argument("--scheduler", metavar="tcp://HOST:PORT",
-                        help="with --campaign: run the cases on this Dask cluster "
-                             "(docs/scale.md)")
+    parser.add_argument(
+        "--campaign", action="store_true", help="run the fault campaign first and store its results"
+    )
+    parser.add_argument(
+        "--workers", type=int, help="with --campaign: local worker processes (default: every core)"
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:PORT",
+        help="with --campaign: run the cases on this Dask cluster (docs/scale.md)",
+    )
     args = parser.parse_args(argv)
     if args.campaign:
         from dataclasses import asdict
@@ -136,8 +140,14 @@ def main(argv: list[str] | None = None) -> int:
             results = run_campaign(hand, progress=say, executor=pool, meter=Progress)
         CAMPAIGN.write_text(json.dumps([asdict(r) for r in results], indent=1) + "\n")
     text = render()
-    return write_or_check("gen_fault_table.py", {OUT: text}, "docs/fault_campaign.json",
-                          "python tools/gen_fault_table.py", args.check)
+    return write_or_check(
+        "gen_fault_table.py",
+        {OUT: text},
+        "docs/fault_campaign.json",
+        "python tools/gen_fault_table.py",
+        args.check,
+    )
+
 
 if __name__ == "__main__":
     raise SystemExit(main())

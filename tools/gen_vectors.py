@@ -88,8 +88,7 @@ def find_tie(spec: SignalSpec, k: int) -> float | None:
     return None
 
 
-def _tie_in(spec: SignalSpec, k_lo: int, k_hi: int, fraction: float, parity: int
-            ) -> float | None:
+def _tie_in(spec: SignalSpec, k_lo: int, k_hi: int, fraction: float, parity: int) -> float | None:
     """An exact tie k + 0.5 with k of the given parity in [k_lo, k_hi], near ``fraction``."""
     if k_lo > k_hi:
         return None
@@ -143,22 +142,32 @@ def _cases(layout: Layout, rng: random.Random) -> Iterator[tuple[str, int, list[
         picks: list[Value] = []
         for n, i in enumerate(signed):
             s, (lo, _) = specs[i], bounds[i]
-            options: list[Value] = [_physical(s, -1), -1 if s.is_integer else -1.2345,
-                                    _physical(s, lo // 3), _physical(s, lo + 1)]
+            options: list[Value] = [
+                _physical(s, -1),
+                -1 if s.is_integer else -1.2345,
+                _physical(s, lo // 3),
+                _physical(s, lo + 1),
+            ]
             picks.append(options[n % len(options)])
         values = [mid(i) for i in range(len(specs))]
         for i, v in zip(signed, picks, strict=True):
             values[i] = v if _accepts(layout, i, v) else _physical(specs[i], -1)
         yield "negative", 5, values
         if any(scaled[i] for i in signed):
-            yield "negative_zero", 6, [-0.0 if scaled[i] and i in signed else mid(i)
-                                       for i in range(len(specs))]
+            yield (
+                "negative_zero",
+                6,
+                [-0.0 if scaled[i] and i in signed else mid(i) for i in range(len(specs))],
+            )
 
     if any(scaled):
         # Ties: even k rounds down (half-away would round up), odd k rounds up; both signs.
-        for case, counter, negative, parity in (("tie_even", 7, False, 0), ("tie_odd", 8, False, 1),
-                                                ("tie_negative_even", 9, True, 0),
-                                                ("tie_negative_odd", 10, True, 1)):
+        for case, counter, negative, parity in (
+            ("tie_even", 7, False, 0),
+            ("tie_odd", 8, False, 1),
+            ("tie_negative_even", 9, True, 0),
+            ("tie_negative_odd", 10, True, 1),
+        ):
             values = [mid(i) for i in range(len(specs))]
             found = False
             for i, s in enumerate(specs):
@@ -181,8 +190,9 @@ def _cases(layout: Layout, rng: random.Random) -> Iterator[tuple[str, int, list[
     yield "counter_wrap", 255, _random_values(specs, bounds, rng)
 
 
-def _random_values(specs: tuple[SignalSpec, ...], bounds: list[tuple[int, int]],
-                   rng: random.Random) -> list[Value]:
+def _random_values(
+    specs: tuple[SignalSpec, ...], bounds: list[tuple[int, int]], rng: random.Random
+) -> list[Value]:
     values: list[Value] = []
     for s, (lo, hi) in zip(specs, bounds, strict=True):
         if s.is_integer:
@@ -227,12 +237,15 @@ def _named(layout: Layout, values: list[Value] | tuple[Value, ...]) -> dict[str,
     return dict(zip(layout.signal_names, values, strict=True))
 
 
-def _cross_check(db: Any, layout: Layout, counter: int, values: list[Value], data: bytes,
-                 where: str) -> tuple[Value, ...]:
+def _cross_check(
+    db: Any, layout: Layout, counter: int, values: list[Value], data: bytes, where: str
+) -> tuple[Value, ...]:
     """Bytes and decoded values must agree between handctl.protocol and cantools."""
     signals: dict[str, Value] = {"Crc": data[0], "Counter": counter, **_named(layout, values)}
-    in_range = all(s.minimum <= v <= s.maximum or s.minimum == s.maximum == 0
-                   for s, v in zip(layout.signals, values, strict=True))
+    in_range = all(
+        s.minimum <= v <= s.maximum or s.minimum == s.maximum == 0
+        for s, v in zip(layout.signals, values, strict=True)
+    )
     # cantools' strict mode checks the physical range before rounding; handctl checks the raw
     # value after it, so a value that rounds into the range is only comparable unstrict.
     theirs = db.encode_message(layout.name, signals, strict=in_range)
@@ -247,16 +260,19 @@ def _cross_check(db: Any, layout: Layout, counter: int, values: list[Value], dat
     for name, value in zip(layout.signal_names, decoded, strict=True):
         other = decoded_cantools[name]
         if other != value or isinstance(other, float) != isinstance(value, float):
-            raise VectorError(f"{where}: {name} decodes as {value!r} in handctl, "
-                              f"{other!r} in cantools")
+            raise VectorError(
+                f"{where}: {name} decodes as {value!r} in handctl, {other!r} in cantools"
+            )
     return decoded
 
 
 def build(protocol: Protocol, db: Any, dbc_name: str, command: str = COMMAND) -> dict[str, Any]:
     """The whole document, as plain data."""
     if crc8(CRC_CHECK_INPUT) != CRC_CHECK_VALUE:
-        raise VectorError(f"handctl.protocol.crc8 gives 0x{crc8(CRC_CHECK_INPUT):02X} for "
-                          f"'123456789', CRC-8/AUTOSAR is 0x{CRC_CHECK_VALUE:02X}")
+        raise VectorError(
+            f"handctl.protocol.crc8 gives 0x{crc8(CRC_CHECK_INPUT):02X} for "
+            f"'123456789', CRC-8/AUTOSAR is 0x{CRC_CHECK_VALUE:02X}"
+        )
     rng = random.Random(SEED)
     vectors: list[dict[str, Any]] = []
     first_bytes: dict[str, bytes] = {}
@@ -266,21 +282,30 @@ def build(protocol: Protocol, db: Any, dbc_name: str, command: str = COMMAND) ->
             try:
                 data = layout.encode(counter, values)
             except ProtocolError as exc:
-                raise VectorError(f"{where}: handctl refuses a vector meant to be valid: {exc}"
-                                  ) from None
+                raise VectorError(
+                    f"{where}: handctl refuses a vector meant to be valid: {exc}"
+                ) from None
             decoded = _cross_check(db, layout, counter, values, data, where)
             _check_ties(layout, case, values, data, where)
             first_bytes.setdefault(layout.name, data)
-            vectors.append({"case": case, "message": layout.name, "frame_id": layout.frame_id,
-                            "counter": counter, "signals": _named(layout, values),
-                            "bytes": data.hex(), "decoded": _named(layout, decoded)})
+            vectors.append(
+                {
+                    "case": case,
+                    "message": layout.name,
+                    "frame_id": layout.frame_id,
+                    "counter": counter,
+                    "signals": _named(layout, values),
+                    "bytes": data.hex(),
+                    "decoded": _named(layout, decoded),
+                }
+            )
     return {
         "format": 1,
         "generated_by": command,
         "dbc": dbc_name,
         "dbc_version": db.version or "",
         "crc": "CRC-8/AUTOSAR (poly 0x2F, init 0xFF, xorout 0xFF) over DataID (low byte, high "
-               "byte) then bytes 1..n-1",
+        "byte) then bytes 1..n-1",
         "crc_check": {"bytes": CRC_CHECK_INPUT.hex(), "crc8": CRC_CHECK_VALUE},
         "rounding": "raw = round-half-even((value - offset) / scale) in IEEE-754 double",
         "vectors": vectors,
@@ -291,7 +316,7 @@ def build(protocol: Protocol, db: Any, dbc_name: str, command: str = COMMAND) ->
 
 def _raw_at(spec: SignalSpec, data: bytes) -> int:
     start = spec.offset_byte
-    return int.from_bytes(data[start:start + spec.size_bits // 8], "little", signed=spec.signed)
+    return int.from_bytes(data[start : start + spec.size_bits // 8], "little", signed=spec.signed)
 
 
 def _check_ties(layout: Layout, case: str, values: list[Value], data: bytes, where: str) -> None:
@@ -307,8 +332,10 @@ def _check_ties(layout: Layout, case: str, values: list[Value], data: bytes, whe
             ties += 1
             want, raw = _half_even(math.floor(q)), _raw_at(spec, data)
             if raw != want:
-                raise VectorError(f"{where}: {spec.name}={value!r} is the tie {q!r}, "
-                                  f"encoded as raw {raw}, half-even gives {want}")
+                raise VectorError(
+                    f"{where}: {spec.name}={value!r} is the tie {q!r}, "
+                    f"encoded as raw {raw}, half-even gives {want}"
+                )
     if ties == 0:
         raise VectorError(f"{where}: no value of the vector is an exact rounding tie")
 
@@ -332,9 +359,16 @@ def _encode_rejects(protocol: Protocol) -> list[dict[str, Any]]:
             try:
                 data = layout.encode(0, values)
             except ProtocolError:
-                rejects.append({"case": case, "message": layout.name,
-                                "frame_id": layout.frame_id, "counter": 0,
-                                "signals": _named(layout, values), "error": "range"})
+                rejects.append(
+                    {
+                        "case": case,
+                        "message": layout.name,
+                        "frame_id": layout.frame_id,
+                        "counter": 0,
+                        "signals": _named(layout, values),
+                        "error": "range",
+                    }
+                )
                 continue
             raise VectorError(f"{layout.name}/{case}: handctl accepts {values!r} as {data.hex()}")
     return rejects
@@ -352,16 +386,24 @@ def _decode_rejects(protocol: Protocol, first_bytes: dict[str, bytes]) -> list[d
             ("one_byte_long", layout, good + b"\x00", "length"),
         ]
         # The DataID is in the CRC: the same bytes under another id of the same length fail.
-        other = next((o for o in protocol.layouts
-                      if o.length == layout.length and o is not layout), None)
+        other = next(
+            (o for o in protocol.layouts if o.length == layout.length and o is not layout), None
+        )
         if other is not None and not other.crc_ok(good):
             frames.append((f"bytes_of_{layout.name}", other, good, "crc"))
         for case, target, data, error in frames:
             ok = target.crc_ok(data)
             if ok:
                 raise VectorError(f"{target.name}/{case}: handctl accepts {data.hex()}")
-            rejects.append({"case": case, "message": target.name, "frame_id": target.frame_id,
-                            "bytes": data.hex(), "error": error})
+            rejects.append(
+                {
+                    "case": case,
+                    "message": target.name,
+                    "frame_id": target.frame_id,
+                    "bytes": data.hex(),
+                    "error": error,
+                }
+            )
     return rejects
 
 
@@ -373,8 +415,10 @@ def render(document: dict[str, Any]) -> str:
         comma = "," if n < len(items) - 1 else ""
         if isinstance(value, list):
             lines.append(f"  {json.dumps(key)}: [")
-            lines += [f"    {json.dumps(item, allow_nan=False)}"
-                      f"{',' if m < len(value) - 1 else ''}" for m, item in enumerate(value)]
+            lines += [
+                f"    {json.dumps(item, allow_nan=False)}{',' if m < len(value) - 1 else ''}"
+                for m, item in enumerate(value)
+            ]
             lines.append(f"  ]{comma}")
         else:
             lines.append(f"  {json.dumps(key)}: {json.dumps(value, allow_nan=False)}{comma}")
@@ -396,11 +440,17 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     inputs = parser.add_mutually_exclusive_group()
     inputs.add_argument("--dbc", type=Path, default=DEFAULT_DBC, help="DBC to read")
-    inputs.add_argument("--hand", type=Path, help="hand config (HAND.yaml) whose generated "
-                        "protocol to read, instead of a DBC")
+    inputs.add_argument(
+        "--hand",
+        type=Path,
+        help="hand config (HAND.yaml) whose generated protocol to read, instead of a DBC",
+    )
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON file to write")
-    parser.add_argument("--check", action="store_true",
-                        help="write nothing; exit 1 if the file on disk is not up to date")
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="write nothing; exit 1 if the file on disk is not up to date",
+    )
     args = parser.parse_args(argv)
     try:
         text = generate(args.dbc, args.hand)
@@ -409,6 +459,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     source = display_path(args.hand if args.hand is not None else args.dbc)
     return write_or_check("gen_vectors.py", {args.out: text}, source, COMMAND, args.check)
+
 
 if __name__ == "__main__":
     sys.exit(main())

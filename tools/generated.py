@@ -47,17 +47,22 @@ def read_protocol(dbc: Path, hand: Path | None) -> tuple[Protocol, Any, str, str
     return protocol, db, name, option
 
 
-def write_or_check(tool: str, files: dict[Path, str], source: str, command: str,
-                   check: bool) -> int:
+def write_or_check(
+    tool: str, files: dict[Path, str], source: str, command: str, check: bool
+) -> int:
     """Write ``files`` (path -> text), or with ``check`` write nothing and return 1 when one
     on disk differs from its text, naming it, what it is generated from and how to redo it."""
     if check:
-        stale = [path for path, text in files.items()
-                 if not path.exists()
-                 or path.read_text(encoding="utf-8").replace("\r\n", "\n") != text]
+        stale = [
+            path
+            for path, text in files.items()
+            if not path.exists() or path.read_text(encoding="utf-8").replace("\r\n", "\n") != text
+        ]
         for path in stale:
-            print(f"{tool}: {display_path(path)} is not what {source} generates; "
-                  f"run: {command}", file=sys.stderr)
+            print(
+                f"{tool}: {display_path(path)} is not what {source} generates; run: {command}",
+                file=sys.stderr,
+            )
         return 1 if stale else 0
     for path, text in files.items():
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -33,8 +33,9 @@ async def _client(port: int, stop: threading.Event, counts: dict[str, int]) -> N
     """Connect as Foxglove would, subscribe to every advertised channel, count messages."""
     while not stop.is_set():
         try:
-            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL],
-                                          max_size=None)
+            ws = await websockets.connect(
+                f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None
+            )
             break
         except OSError:
             await asyncio.sleep(0.1)
@@ -51,22 +52,30 @@ async def _client(port: int, stop: threading.Event, counts: dict[str, int]) -> N
             if isinstance(raw, str):
                 op = json.loads(raw)
                 if op.get("op") == "advertise":
-                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                        {"id": c["id"], "channelId": c["id"]} for c in op["channels"]]}))
+                    await ws.send(
+                        json.dumps(
+                            {
+                                "op": "subscribe",
+                                "subscriptions": [
+                                    {"id": c["id"], "channelId": c["id"]} for c in op["channels"]
+                                ],
+                            }
+                        )
+                    )
             else:
                 counts["messages"] += 1
 
 
-def compare(run: Callable[[argparse.Namespace], dict[str, Any]],
-            args: argparse.Namespace) -> dict[str, Any]:
+def compare(
+    run: Callable[[argparse.Namespace], dict[str, Any]], args: argparse.Namespace
+) -> dict[str, Any]:
     base = argparse.Namespace(**{**vars(args), "live": False, "record": True, "live_port": None})
     print("recorded, no live view:", file=sys.stderr)
     recorded = run(base)
     port = free_port()
     counts = {"messages": 0}
     stop = threading.Event()
-    client = threading.Thread(target=lambda: asyncio.run(_client(port, stop, counts)),
-                              daemon=True)
+    client = threading.Thread(target=lambda: asyncio.run(_client(port, stop, counts)), daemon=True)
     client.start()
     print(f"recorded and live on port {port} with a subscribed client:", file=sys.stderr)
     try:

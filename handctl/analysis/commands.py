@@ -24,9 +24,13 @@ from handctl.analysis.slices import ratio_slice
 GRID_POINTS = 121
 
 
-def torque_set_report(scenario: Path, k: tuple[float, float], json_path: Path | None,
-                      plot_path: Path | None,
-                      progress: Callable[[str], None] | None = None) -> str:
+def torque_set_report(
+    scenario: Path,
+    k: tuple[float, float],
+    json_path: Path | None,
+    plot_path: Path | None,
+    progress: Callable[[str], None] | None = None,
+) -> str:
     """Compute the torque set of ``scenario`` for ``τ_i2 = k_i τ_i1`` (eq. 25); write the JSON
     and the PNG if asked; return a short summary for a person.
 
@@ -53,7 +57,8 @@ def torque_set_report(scenario: Path, k: tuple[float, float], json_path: Path | 
     inside = ts.inside_mask(points).reshape(gx.shape)
     grid_inside: list[list[bool | None]] = [
         [bool(inside[i, j]) if realisable[i, j] else None for j in range(len(xs))]
-        for i in range(len(ys))]
+        for i in range(len(ys))
+    ]
 
     written: list[str] = []
     if json_path is not None:
@@ -64,17 +69,27 @@ def torque_set_report(scenario: Path, k: tuple[float, float], json_path: Path | 
             "reading": grasp.reading,
             "tau_max": sc.tau_max,
             "conditions": list(conditions.labels),
-            "box": {"tau11": [float(lo[0]), float(hi[0])],
-                    "tau21": [float(lo[1]), float(hi[1])]},
+            "box": {"tau11": [float(lo[0]), float(hi[0])], "tau21": [float(lo[1]), float(hi[1])]},
             "region": {"polygons": [_rounded(p) for p in ts.region], "area": ts.area},
             "realisable_area": ts.realisable_area,
             "realisable": {"polygons": [_rounded(p) for p in ts.realisable]},
-            "best": ({"tau11": plan.tau[0], "tau21": plan.tau[2], "tau": list(plan.tau),
-                      "margin": plan.margin} if plan.found else None),
-            "grid": {"tau11": [float(x) for x in xs], "tau21": [float(y) for y in ys],
-                     "inside": grid_inside,
-                     "layout": "inside[i][j] is the point (tau11[j], tau21[i]); null where "
-                               "no contact forces realise the torques"},
+            "best": (
+                {
+                    "tau11": plan.tau[0],
+                    "tau21": plan.tau[2],
+                    "tau": list(plan.tau),
+                    "margin": plan.margin,
+                }
+                if plan.found
+                else None
+            ),
+            "grid": {
+                "tau11": [float(x) for x in xs],
+                "tau21": [float(y) for y in ys],
+                "inside": grid_inside,
+                "layout": "inside[i][j] is the point (tau11[j], tau21[i]); null where "
+                "no contact forces realise the torques",
+            },
             "units": {"tau": "N·m", "area": "(N·m)²", "margin": "N"},
         }
         json_path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
@@ -83,8 +98,12 @@ def torque_set_report(scenario: Path, k: tuple[float, float], json_path: Path | 
         say(f"drawing {plot_path}")
         from handctl.analysis.plot import plot_torque_set
 
-        plot_torque_set(ts, plot_path, f"{Path(scenario).name}: k1 = {k[0]:g}, k2 = {k[1]:g}"
-                        f" ({grasp.reading} reading)", best)
+        plot_torque_set(
+            ts,
+            plot_path,
+            f"{Path(scenario).name}: k1 = {k[0]:g}, k2 = {k[1]:g} ({grasp.reading} reading)",
+            best,
+        )
         written.append(str(plot_path))
 
     lines = [
@@ -97,8 +116,10 @@ def torque_set_report(scenario: Path, k: tuple[float, float], json_path: Path | 
         f"{int((~realisable).sum())} not realisable",
     ]
     if plan.found:
-        lines.append(f"  largest robust margin {plan.margin:.4g} N at tau11 = {plan.tau[0]:.4g}, "
-                     f"tau21 = {plan.tau[2]:.4g} N·m")
+        lines.append(
+            f"  largest robust margin {plan.margin:.4g} N at tau11 = {plan.tau[0]:.4g}, "
+            f"tau21 = {plan.tau[2]:.4g} N·m"
+        )
     else:
         margin = "none" if math.isinf(plan.margin) else f"{plan.margin:.4g} N"
         lines.append(f"  no torque moves the objects as wanted (best margin {margin})")

@@ -68,8 +68,9 @@ class Conditions:
         return len(self.labels)
 
 
-def build_conditions(grasp: Grasp, directions: Mapping[str, Vector],
-                     friction_directions: int = 8) -> Conditions:
+def build_conditions(
+    grasp: Grasp, directions: Mapping[str, Vector], friction_directions: int = 8
+) -> Conditions:
     """Conditions for moving each named object along its direction (unit vectors by name)."""
     st = statics(grasp)
     dim = grasp.dim
@@ -84,14 +85,14 @@ def build_conditions(grasp: Grasp, directions: Mapping[str, Vector],
         if a.shape != (dim,):
             raise AnalysisError(f"direction of {name!r} must have {dim} components")
         i = names.index(name)
-        rows.append(a @ st.total_map[dim * i:dim * (i + 1)])
-        offsets.append(float(a @ st.total_offset[dim * i:dim * (i + 1)]))
+        rows.append(a @ st.total_map[dim * i : dim * (i + 1)])
+        offsets.append(float(a @ st.total_offset[dim * i : dim * (i + 1)]))
         labels.append(f"move {name}")
     if not rows:
         raise AnalysisError("no wanted motion: give a direction for at least one object")
     for t, contact in enumerate(grasp.body_contacts):
-        block = st.f_co_map[dim * t:dim * (t + 1)]
-        shift = st.f_co_offset[dim * t:dim * (t + 1)]
+        block = st.f_co_map[dim * t : dim * (t + 1)]
+        shift = st.f_co_offset[dim * t : dim * (t + 1)]
         pair = f"{names[contact.first]}/{names[contact.second]}"
         n = contact.normal
         rows.append(-n @ block)

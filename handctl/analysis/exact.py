@@ -92,8 +92,9 @@ def dual_polyhedron(a: Array, c: Array) -> DualPolyhedron:
     scale = 1.0 + float(np.max(np.abs(c))) if n else 1.0
     tol = 1e-9 * scale
     if math.comb(n, rank) > MAX_COMBINATIONS:
-        raise AnalysisError(f"dual polyhedron too large to enumerate ({n} constraints in "
-                            f"{rank} dimensions)")
+        raise AnalysisError(
+            f"dual polyhedron too large to enumerate ({n} constraints in {rank} dimensions)"
+        )
     if rank == 0:
         feasible = n == 0 or bool(np.all(c >= -tol))
         vertices = np.zeros((1 if feasible else 0, s))
@@ -190,8 +191,11 @@ class ExactTorqueSet:
 
     def inside_mask(self, points: Array) -> Mask:
         pts = np.atleast_2d(points)
-        return np.asarray(self.realisable_mask(pts) & self.torque_slice.within_limits(pts)
-                          & np.all(self.margins(pts) > 0.0, axis=1))
+        return np.asarray(
+            self.realisable_mask(pts)
+            & self.torque_slice.within_limits(pts)
+            & np.all(self.margins(pts) > 0.0, axis=1)
+        )
 
     def boundary_distance(self, points: Array) -> Array:
         """Distance of each point to the boundary between the set and the rest of the limit
@@ -199,13 +203,15 @@ class ExactTorqueSet:
         this is the larger of the distances to the two sides."""
         pts = np.atleast_2d(points)
         outside = list(self.complement) + list(self.unrealisable)
-        return np.maximum(union_distance(list(self.region_pieces), pts),
-                          union_distance(outside, pts))
+        return np.maximum(
+            union_distance(list(self.region_pieces), pts), union_distance(outside, pts)
+        )
 
     def realisable_boundary_distance(self, points: Array) -> Array:
         pts = np.atleast_2d(points)
-        return np.maximum(union_distance(list(self.realisable), pts),
-                          union_distance(list(self.unrealisable), pts))
+        return np.maximum(
+            union_distance(list(self.realisable), pts), union_distance(list(self.unrealisable), pts)
+        )
 
 
 def exact_torque_set(conditions: Conditions, torque_slice: TorqueSlice) -> ExactTorqueSet:
@@ -213,8 +219,7 @@ def exact_torque_set(conditions: Conditions, torque_slice: TorqueSlice) -> Exact
     st = conditions.statics
     basis = torque_slice.basis
     if basis.shape != (st.torque_map.shape[0], 2):
-        raise AnalysisError(f"slice basis must be {st.torque_map.shape[0]}×2, found "
-                            f"{basis.shape}")
+        raise AnalysisError(f"slice basis must be {st.torque_map.shape[0]}×2, found {basis.shape}")
     domain: list[HalfPlane] = []
     per_condition: list[list[Array] | None] = [[] for _ in range(conditions.count)]
     for lam_block, joint_block in zip(st.lambda_blocks, st.joint_blocks, strict=True):
@@ -250,8 +255,9 @@ def exact_torque_set(conditions: Conditions, torque_slice: TorqueSlice) -> Exact
     pieces = [realisable] if len(realisable) else []
     complement: list[Array] = []
     for q, grads in enumerate(gradients):
-        bad: list[HalfPlane] = ([] if grads is None else
-                                [(w, -float(conditions.offset[q])) for w in grads])
+        bad: list[HalfPlane] = (
+            [] if grads is None else [(w, -float(conditions.offset[q])) for w in grads]
+        )
         inside_bad = intersect(realisable, bad) if len(realisable) else realisable
         if len(inside_bad):
             complement.append(inside_bad)

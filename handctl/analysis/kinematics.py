@@ -61,8 +61,10 @@ def body_contact_blocks(grasp: Grasp, contact: BodyContact) -> tuple[Array, Arra
     """``(D_Oit, D_Olt)`` of eqs. 4 and 7 for the common point of objects i and l."""
     first = grasp.bodies[contact.first]
     second = grasp.bodies[contact.second]
-    return (point_velocity_map(contact.point - first.position),
-            point_velocity_map(contact.point - second.position))
+    return (
+        point_velocity_map(contact.point - first.position),
+        point_velocity_map(contact.point - second.position),
+    )
 
 
 @dataclass(frozen=True)
@@ -88,7 +90,7 @@ class ContactKinematics:
 
     @property
     def d_o(self) -> Array:
-        return self.d_b[self.finger_rows:]
+        return self.d_b[self.finger_rows :]
 
 
 def contact_kinematics(grasp: Grasp) -> ContactKinematics:
@@ -103,13 +105,13 @@ def contact_kinematics(grasp: Grasp) -> ContactKinematics:
     for contact in grasp.finger_contacts:
         block_f, block_b = finger_contact_blocks(grasp, contact)
         j0 = offsets[contact.finger]
-        d_f[row:row + dim, j0:j0 + block_f.shape[1]] = block_f
-        d_b[row:row + dim, tw * contact.body:tw * (contact.body + 1)] = block_b
+        d_f[row : row + dim, j0 : j0 + block_f.shape[1]] = block_f
+        d_b[row : row + dim, tw * contact.body : tw * (contact.body + 1)] = block_b
         row += dim
     finger_rows = row
     for body_contact in grasp.body_contacts:
         d_first, d_second = body_contact_blocks(grasp, body_contact)
-        d_b[row:row + dim, tw * body_contact.first:tw * (body_contact.first + 1)] = d_first
-        d_b[row:row + dim, tw * body_contact.second:tw * (body_contact.second + 1)] = -d_second
+        d_b[row : row + dim, tw * body_contact.first : tw * (body_contact.first + 1)] = d_first
+        d_b[row : row + dim, tw * body_contact.second : tw * (body_contact.second + 1)] = -d_second
         row += dim
     return ContactKinematics(d_f, d_b, finger_rows)

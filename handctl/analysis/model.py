@@ -94,8 +94,14 @@ class Finger:
 
     def with_angles(self, angles: Sequence[float] | Array) -> Finger:
         """The same finger at other joint angles (for finite differences and sweeps)."""
-        return Finger(self.name, self.base, self.base_rotation, self.lengths,
-                      tuple(float(a) for a in angles), self.axes)
+        return Finger(
+            self.name,
+            self.base,
+            self.base_rotation,
+            self.lengths,
+            tuple(float(a) for a in angles),
+            self.axes,
+        )
 
     def frames(self) -> list[tuple[Array, Array]]:
         """``(p_F, R_F)`` of every link, base first."""
@@ -224,8 +230,16 @@ def closest_points(a: Core, b: Core) -> tuple[Array, Array]:
     return pa + da * s, pb + db * t
 
 
-def _finger_contact(grasp_bodies: Sequence[Body], fingers: Sequence[Finger], finger: int,
-                    link: int, body: int, mu: float, tol: float, doc: Doc) -> FingerContact:
+def _finger_contact(
+    grasp_bodies: Sequence[Body],
+    fingers: Sequence[Finger],
+    finger: int,
+    link: int,
+    body: int,
+    mu: float,
+    tol: float,
+    doc: Doc,
+) -> FingerContact:
     start, end = fingers[finger].link_segment(link)
     length = fingers[finger].lengths[link]
     direction = (end - start) / length
@@ -233,29 +247,41 @@ def _finger_contact(grasp_bodies: Sequence[Body], fingers: Sequence[Finger], fin
     on_link, on_core = closest_points((start, direction), (obj.position, obj.axis()))
     along = float(direction @ (on_link - start))
     if along < -tol or along > length + tol:
-        doc.fail("link", f"the contact point within the link (0 to {length:g} m)",
-                 f"{along:.9g} m along the link")
+        doc.fail(
+            "link",
+            f"the contact point within the link (0 to {length:g} m)",
+            f"{along:.9g} m along the link",
+        )
     gap = float(np.linalg.norm(on_core - on_link))
     if abs(gap - obj.radius) > tol:
-        doc.fail("object", f"the link tangent to {obj.name} (distance {obj.radius:g} m "
-                 f"to its {'axis' if obj.shape == 'cylinder' else 'centre'}, "
-                 f"within {tol:g} m)", f"{gap:.12g} m")
+        doc.fail(
+            "object",
+            f"the link tangent to {obj.name} (distance {obj.radius:g} m "
+            f"to its {'axis' if obj.shape == 'cylinder' else 'centre'}, "
+            f"within {tol:g} m)",
+            f"{gap:.12g} m",
+        )
     return FingerContact(finger, link, body, mu, on_link, unit(on_core - on_link))
 
 
-def _body_contact(bodies: Sequence[Body], first: int, second: int, mu: float | None,
-                  tol: float, doc: Doc) -> BodyContact:
+def _body_contact(
+    bodies: Sequence[Body], first: int, second: int, mu: float | None, tol: float, doc: Doc
+) -> BodyContact:
     a, b = bodies[first], bodies[second]
     pa, pb = closest_points((a.position, a.axis()), (b.position, b.axis()))
     gap = float(np.linalg.norm(pb - pa))
     if abs(gap - a.radius - b.radius) > tol or gap < 1e-12:
-        doc.fail("objects", f"touching objects (core distance {a.radius + b.radius:g} m within "
-                 f"{tol:g} m)", f"{gap:.12g} m")
+        doc.fail(
+            "objects",
+            f"touching objects (core distance {a.radius + b.radius:g} m within {tol:g} m)",
+            f"{gap:.12g} m",
+        )
     normal = unit(pb - pa)
     return BodyContact(first, second, pa + normal * a.radius, normal, mu)
 
 
 # -- YAML ------------------------------------------------------------------------------------
+
 
 def load_scenario(path: str | Path) -> Scenario:
     """Read and check a scenario file; every problem is a ``ConfigError``."""
@@ -284,8 +310,12 @@ def load_scenario(path: str | Path) -> Scenario:
     seen: set[tuple[int, int]] = set()
     for d in contacts.mappings("objects", default=[]):
         pair = d.raw("objects")
-        if (not isinstance(pair, list) or len(pair) != 2 or pair[0] == pair[1]
-                or any(p not in names for p in pair)):
+        if (
+            not isinstance(pair, list)
+            or len(pair) != 2
+            or pair[0] == pair[1]
+            or any(p not in names for p in pair)
+        ):
             d.fail("objects", "two different object names out of " + ", ".join(names), pair)
         first, second = names.index(pair[0]), names.index(pair[1])
         if (min(first, second), max(first, second)) in seen:
@@ -313,8 +343,16 @@ def load_scenario(path: str | Path) -> Scenario:
     move.done()
     task.done()
     doc.done()
-    grasp = Grasp(dim, bodies, fingers, tuple(finger_contacts), tuple(body_contacts), gravity,
-                  reading, cone_edges)
+    grasp = Grasp(
+        dim,
+        bodies,
+        fingers,
+        tuple(finger_contacts),
+        tuple(body_contacts),
+        gravity,
+        reading,
+        cone_edges,
+    )
     return Scenario(str(path), grasp, directions, tau_max)
 
 
@@ -332,8 +370,9 @@ def _choose(d: Doc, key: str, names: list[str]) -> int:
 def _rotation(d: Doc, dim: int, key2: str, key3: str) -> Array:
     if dim == 2:
         return rotation_2d(d.number(key2, default=0.0, unit="rad"))
-    return rotation_from_vector(np.array(d.numbers(key3, length=3, default=[0.0, 0.0, 0.0],
-                                                   unit="rad")))
+    return rotation_from_vector(
+        np.array(d.numbers(key3, length=3, default=[0.0, 0.0, 0.0], unit="rad"))
+    )
 
 
 def _read_body(d: Doc, dim: int) -> Body:

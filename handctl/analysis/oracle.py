@@ -57,8 +57,14 @@ def lp_values(conditions: Conditions, tau: Array, *, stop_early: bool = False) -
     a_eq = conditions.statics.torque_map
     values = np.full(conditions.count, np.nan)
     for q in range(conditions.count):
-        res = linprog(conditions.matrix[q], A_eq=a_eq, b_eq=np.asarray(tau, dtype=float),
-                      bounds=(0.0, None), method="highs", options=HIGHS_OPTIONS)
+        res = linprog(
+            conditions.matrix[q],
+            A_eq=a_eq,
+            b_eq=np.asarray(tau, dtype=float),
+            bounds=(0.0, None),
+            method="highs",
+            options=HIGHS_OPTIONS,
+        )
         if res.status == 2:
             return OracleResult(False, np.full(conditions.count, np.nan))
         if res.status == 3:
@@ -66,8 +72,10 @@ def lp_values(conditions: Conditions, tau: Array, *, stop_early: bool = False) -
         elif res.status == 0:
             values[q] = float(res.fun) + float(conditions.offset[q])
         else:
-            raise AnalysisError(f"LP for condition {conditions.labels[q]!r} at tau={tau!r} "
-                                f"ended with status {res.status}: {res.message}")
+            raise AnalysisError(
+                f"LP for condition {conditions.labels[q]!r} at tau={tau!r} "
+                f"ended with status {res.status}: {res.message}"
+            )
         if stop_early and values[q] <= 0.0:
             break
     return OracleResult(True, values)
@@ -95,9 +103,14 @@ def lp_row(row: GridRow) -> tuple[Mask, Mask]:
     return realisable, inside
 
 
-def lp_grid(conditions: Conditions, torque_slice: TorqueSlice, xs: Array, ys: Array,
-            executor: WorkPool | None = None, bar: Progress | None = None
-            ) -> tuple[Mask, Mask]:
+def lp_grid(
+    conditions: Conditions,
+    torque_slice: TorqueSlice,
+    xs: Array,
+    ys: Array,
+    executor: WorkPool | None = None,
+    bar: Progress | None = None,
+) -> tuple[Mask, Mask]:
     """Classify the grid ``(xs[j], ys[i])`` by LPs: ``(realisable, inside)`` masks of shape
     ``(len(ys), len(xs))``. Points beyond the torque limit are realisable-or-not as usual but
     never inside. Stops evaluating a point at its first failed condition. The rows are tasks
@@ -105,8 +118,9 @@ def lp_grid(conditions: Conditions, torque_slice: TorqueSlice, xs: Array, ys: Ar
     if executor is None:
         with open_pool(workers=1) as inline:
             return lp_grid(conditions, torque_slice, xs, ys, inline, bar)
-    rows = executor.map(lp_row, [GridRow(conditions, torque_slice, np.asarray(xs), float(y))
-                                 for y in ys], bar)
+    rows = executor.map(
+        lp_row, [GridRow(conditions, torque_slice, np.asarray(xs), float(y)) for y in ys], bar
+    )
     realisable = np.array([r for r, _ in rows], dtype=bool).reshape(len(ys), len(xs))
     inside = np.array([i for _, i in rows], dtype=bool).reshape(len(ys), len(xs))
     return realisable, inside

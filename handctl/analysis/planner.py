@@ -46,22 +46,27 @@ class TorquePlan:
     reason: str = ""
 
 
-def plan_torques(grasp: Grasp, directions: Mapping[str, Vector],
-                 tau_max: float | Vector,
-                 ratios: Sequence[Vector | None] | None = None) -> TorquePlan:
+def plan_torques(
+    grasp: Grasp,
+    directions: Mapping[str, Vector],
+    tau_max: float | Vector,
+    ratios: Sequence[Vector | None] | None = None,
+) -> TorquePlan:
     """Torques with the largest robust margin for moving each named object along its direction.
 
     ``tau_max`` is one limit for all joints or one per joint (N·m). ``ratios[j]``, if given, is
     a vector ``κ_j`` that finger j's torques must be proportional to (``τ_j = u_j κ_j`` for some
     real ``u_j``, either sign); eq. 25 is ``κ_j = (1, k_j)``.
     """
-    conditions = build_conditions(grasp, {k: np.asarray(v, dtype=float)
-                                          for k, v in directions.items()})
+    conditions = build_conditions(
+        grasp, {k: np.asarray(v, dtype=float) for k, v in directions.items()}
+    )
     return plan_for_conditions(conditions, tau_max, ratios)
 
 
-def plan_for_conditions(conditions: Conditions, tau_max: float | Vector,
-                        ratios: Sequence[Vector | None] | None = None) -> TorquePlan:
+def plan_for_conditions(
+    conditions: Conditions, tau_max: float | Vector, ratios: Sequence[Vector | None] | None = None
+) -> TorquePlan:
     """``plan_torques`` for conditions already built."""
     st = conditions.statics
     s = st.torque_map.shape[0]
@@ -83,8 +88,9 @@ def plan_for_conditions(conditions: Conditions, tau_max: float | Vector,
         _add_ratio_rows(program, conditions, ratios)
     result = program.solve(limits, z_bound)
     if result.status != 0 or result.x is None:
-        return _replace(nothing, reason=f"the planning MILP ended with status {result.status}: "
-                        f"{result.message}")
+        return _replace(
+            nothing, reason=f"the planning MILP ended with status {result.status}: {result.message}"
+        )
     return _evaluate(conditions, np.clip(result.x[:s], -limits, limits), nothing)
 
 
@@ -106,13 +112,17 @@ def _duals(conditions: Conditions) -> _Duals | str:
     duals = _Duals([], [], [])
     for q in range(conditions.count):
         row: list[Array] = []
-        for j, (lam_block, joint_block) in enumerate(zip(st.lambda_blocks, st.joint_blocks,
-                                                         strict=True)):
-            dual = dual_polyhedron(st.torque_map[joint_block, lam_block],
-                                   conditions.matrix[q, lam_block])
+        for j, (lam_block, joint_block) in enumerate(
+            zip(st.lambda_blocks, st.joint_blocks, strict=True)
+        ):
+            dual = dual_polyhedron(
+                st.torque_map[joint_block, lam_block], conditions.matrix[q, lam_block]
+            )
             if dual.empty:
-                return (f"condition {conditions.labels[q]!r} can be driven to -inf by internal "
-                        f"forces of finger {j + 1}")
+                return (
+                    f"condition {conditions.labels[q]!r} can be driven to -inf by internal "
+                    f"forces of finger {j + 1}"
+                )
             if q == 0:
                 duals.domain_rows += [(j, r) for r in dual.rays]
                 duals.equality_rows += [(j, line) for line in dual.lineality]
@@ -131,8 +141,13 @@ class _Program:
         self.fingers = fingers
         self.z0 = s + 1
         self.b0 = self.z0 + q_count * fingers
-        self.binaries = [(q, j, v) for q in range(q_count) for j in range(fingers)
-                         if len(vertices[q][j]) > 1 for v in range(len(vertices[q][j]))]
+        self.binaries = [
+            (q, j, v)
+            for q in range(q_count)
+            for j in range(fingers)
+            if len(vertices[q][j]) > 1
+            for v in range(len(vertices[q][j]))
+        ]
         self.b_index = {key: self.b0 + i for i, key in enumerate(self.binaries)}
         self.n_var = self.b0 + len(self.binaries)
         self.rows: list[Array] = []
@@ -154,16 +169,23 @@ class _Program:
     def solve(self, limits: Array, z_bound: float) -> OptimizeResult:
         """Maximise t within the torque limits; each z within the bound its vertices allow."""
         z_count = self.q_count * self.fingers
-        lb = np.concatenate([-limits, [-np.inf], np.full(z_count, -z_bound - 1.0),
-                             np.zeros(len(self.binaries))])
-        ub = np.concatenate([limits, [np.inf], np.full(z_count, z_bound + 1.0),
-                             np.ones(len(self.binaries))])
+        lb = np.concatenate(
+            [-limits, [-np.inf], np.full(z_count, -z_bound - 1.0), np.zeros(len(self.binaries))]
+        )
+        ub = np.concatenate(
+            [limits, [np.inf], np.full(z_count, z_bound + 1.0), np.ones(len(self.binaries))]
+        )
         cost = np.zeros(self.n_var)
         cost[self.s] = -1.0
         integrality = np.concatenate([np.zeros(self.b0), np.ones(len(self.binaries))])
-        return milp(cost, integrality=integrality, bounds=Bounds(lb, ub),
-                    constraints=LinearConstraint(np.array(self.rows), np.array(self.lower),
-                                                 np.array(self.upper)))
+        return milp(
+            cost,
+            integrality=integrality,
+            bounds=Bounds(lb, ub),
+            constraints=LinearConstraint(
+                np.array(self.rows), np.array(self.lower), np.array(self.upper)
+            ),
+        )
 
 
 def _add_margin_rows(program: _Program, conditions: Conditions) -> None:
@@ -174,8 +196,9 @@ def _add_margin_rows(program: _Program, conditions: Conditions) -> None:
         program.add(coeffs, -np.inf, float(conditions.offset[q]))
 
 
-def _add_vertex_rows(program: _Program, conditions: Conditions, vertices: list[list[Array]],
-                     limits: Array) -> float:
+def _add_vertex_rows(
+    program: _Program, conditions: Conditions, vertices: list[list[Array]], limits: Array
+) -> float:
     """z_qj ≤ τ_jᵀy for one vertex y of (q, j), chosen by binaries with a big-M bound when
     there are several. Returns the bound of every |z_qj| the torque limits allow."""
     z_bound = 0.0
@@ -209,8 +232,9 @@ def _add_realisable_rows(program: _Program, conditions: Conditions, duals: _Dual
         program.add({block.start + i: float(line[i]) for i in range(len(line))}, 0.0, 0.0)
 
 
-def _add_ratio_rows(program: _Program, conditions: Conditions,
-                    ratios: Sequence[Vector | None]) -> None:
+def _add_ratio_rows(
+    program: _Program, conditions: Conditions, ratios: Sequence[Vector | None]
+) -> None:
     """τ_j proportional to κ_j: its projection off κ_j is zero."""
     for j, kappa in enumerate(ratios):
         if kappa is None:
@@ -218,9 +242,11 @@ def _add_ratio_rows(program: _Program, conditions: Conditions,
         block = conditions.statics.joint_blocks[j]
         k = np.asarray(kappa, dtype=float)
         if k.shape != (block.stop - block.start,) or float(np.linalg.norm(k)) == 0.0:
-            raise AnalysisError(f"ratio vector of finger {j + 1} must have "
-                                f"{block.stop - block.start} components, not all zero; "
-                                f"found {list(kappa)}")
+            raise AnalysisError(
+                f"ratio vector of finger {j + 1} must have "
+                f"{block.stop - block.start} components, not all zero; "
+                f"found {list(kappa)}"
+            )
         projector = np.eye(len(k)) - np.outer(k, k) / float(k @ k)
         for prow in projector:
             program.add({block.start + i: float(prow[i]) for i in range(len(k))}, 0.0, 0.0)
@@ -236,9 +262,14 @@ def _evaluate(conditions: Conditions, tau: Array, nothing: TorquePlan) -> Torque
     margin = check.margin
     if margin <= MARGIN_TOLERANCE:
         worst = conditions.labels[int(np.argmin(check.values))]
-        return TorquePlan(False, nothing.tau, margin, values,
-                          f"no torque within the limits satisfies every condition robustly; "
-                          f"the best margin is {margin:.3g} N, limited by {worst!r}")
+        return TorquePlan(
+            False,
+            nothing.tau,
+            margin,
+            values,
+            f"no torque within the limits satisfies every condition robustly; "
+            f"the best margin is {margin:.3g} N, limited by {worst!r}",
+        )
     return TorquePlan(True, tuple(float(x) for x in tau), margin, values)
 
 

@@ -13,8 +13,9 @@ from handctl.analysis.exact import ExactTorqueSet
 from handctl.analysis.frames import Array
 
 
-def plot_torque_set(torque_set: ExactTorqueSet, path: Path, title: str,
-                    best: Array | None = None) -> None:
+def plot_torque_set(
+    torque_set: ExactTorqueSet, path: Path, title: str, best: Array | None = None
+) -> None:
     """Write the region (hatched), the realisable torques (light) and the torque limit."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -25,18 +26,35 @@ def plot_torque_set(torque_set: ExactTorqueSet, path: Path, title: str,
     ax = fig.add_subplot(1, 1, 1)
     for poly in torque_set.realisable:
         if len(poly) >= 3:
-            ax.add_patch(PolygonPatch(poly, closed=True, facecolor="0.92", edgecolor="none",
-                                      label="realisable"))
+            ax.add_patch(
+                PolygonPatch(
+                    poly, closed=True, facecolor="0.92", edgecolor="none", label="realisable"
+                )
+            )
     for i, poly in enumerate(torque_set.region):
-        ax.add_patch(PolygonPatch(poly, closed=True, facecolor="0.55", edgecolor="black",
-                                  hatch="////", linewidth=1.0,
-                                  label="torque set" if i == 0 else None))
+        ax.add_patch(
+            PolygonPatch(
+                poly,
+                closed=True,
+                facecolor="0.55",
+                edgecolor="black",
+                hatch="////",
+                linewidth=1.0,
+                label="torque set" if i == 0 else None,
+            )
+        )
     limit = torque_set.limit
-    ax.add_patch(PolygonPatch(limit, closed=True, fill=False, edgecolor="black",
-                              linewidth=1.2))
+    ax.add_patch(PolygonPatch(limit, closed=True, fill=False, edgecolor="black", linewidth=1.2))
     if best is not None:
-        ax.plot([best[0]], [best[1]], marker="o", color="black", markersize=5,
-                linestyle="none", label="largest margin")
+        ax.plot(
+            [best[0]],
+            [best[1]],
+            marker="o",
+            color="black",
+            markersize=5,
+            linestyle="none",
+            label="largest margin",
+        )
     lo, hi = limit.min(axis=0), limit.max(axis=0)
     pad = 0.06 * float(max(hi - lo))
     ax.set_xlim(float(lo[0]) - pad, float(hi[0]) + pad)

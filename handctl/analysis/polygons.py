@@ -165,8 +165,7 @@ def distance(poly: Array, pts: Array) -> Array:
     if len(poly) == 1:
         return np.asarray(np.linalg.norm(pts - poly[0], axis=1))
     k = len(poly)
-    edges = np.min([_segment_distance(poly[i], poly[(i + 1) % k], pts) for i in range(k)],
-                   axis=0)
+    edges = np.min([_segment_distance(poly[i], poly[(i + 1) % k], pts) for i in range(k)], axis=0)
     if k >= 3 and area(poly) > 0.0:
         rel = pts[:, None, :] - poly[None, :, :]
         step = np.roll(poly, -1, axis=0) - poly

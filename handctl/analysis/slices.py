@@ -58,8 +58,10 @@ class TorqueSlice:
 def ratio_slice(grasp: Grasp, ratios: Sequence[float], tau_max: float) -> TorqueSlice:
     """Eq. 25: ``τ_j2 = k_j τ_j1`` for two two-joint fingers; ``u = (τ_11, τ_21)``."""
     if len(grasp.fingers) != 2 or any(f.joints != 2 for f in grasp.fingers):
-        raise AnalysisError("eq. 25 needs two fingers of two joints each; this grasp has "
-                            + ", ".join(f"{f.name}: {f.joints}" for f in grasp.fingers))
+        raise AnalysisError(
+            "eq. 25 needs two fingers of two joints each; this grasp has "
+            + ", ".join(f"{f.name}: {f.joints}" for f in grasp.fingers)
+        )
     if len(ratios) != 2 or not all(np.isfinite(ratios)):
         raise AnalysisError(f"expected two finite ratios k_1, k_2; found {list(ratios)}")
     basis = np.zeros((grasp.joint_count, 2))

@@ -40,8 +40,9 @@ def cone_edges(contact: FingerContact, edges: int) -> Array:
         return np.column_stack([n + contact.mu * t[:, 0], n - contact.mu * t[:, 0]])
     spread = contact.mu / math.cos(math.pi / edges)
     phis = 2.0 * math.pi * np.arange(edges) / edges
-    return np.column_stack([n + spread * (math.cos(p) * t[:, 0] + math.sin(p) * t[:, 1])
-                            for p in phis])
+    return np.column_stack(
+        [n + spread * (math.cos(p) * t[:, 0] + math.sin(p) * t[:, 1]) for p in phis]
+    )
 
 
 def block_diag(blocks: list[Array]) -> Array:
@@ -51,7 +52,7 @@ def block_diag(blocks: list[Array]) -> Array:
     out = np.zeros((rows, cols))
     r = c = 0
     for b in blocks:
-        out[r:r + b.shape[0], c:c + b.shape[1]] = b
+        out[r : r + b.shape[0], c : c + b.shape[1]] = b
         r += b.shape[0]
         c += b.shape[1]
     return out
@@ -116,7 +117,7 @@ def gravity_term(grasp: Grasp) -> Array:
     tw = twist_size(grasp.dim)
     h = np.zeros(tw * len(grasp.bodies))
     for i, body in enumerate(grasp.bodies):
-        h[tw * i:tw * i + grasp.dim] = -body.mass * grasp.gravity
+        h[tw * i : tw * i + grasp.dim] = -body.mass * grasp.gravity
     return h
 
 
@@ -140,8 +141,10 @@ def statics(grasp: Grasp) -> Statics:
     if d_o.shape[0]:
         s = d_o @ m_inv @ d_o.T
         if np.linalg.matrix_rank(s) < s.shape[0]:
-            raise AnalysisError("the object–object contacts are not independent "
-                                "(D_O M_B⁻¹ D_Oᵀ of eq. 20 is singular)")
+            raise AnalysisError(
+                "the object–object contacts are not independent "
+                "(D_O M_B⁻¹ D_Oᵀ of eq. 20 is singular)"
+            )
         f_co_map = np.asarray(-np.linalg.solve(s, d_o @ m_inv @ wrench_map), dtype=np.float64)
         f_co_offset = np.asarray(np.linalg.solve(s, d_o @ m_inv @ h_b), dtype=np.float64)
     else:
@@ -151,12 +154,11 @@ def statics(grasp: Grasp) -> Statics:
     wrench_offset = d_o.T @ f_co_offset
     select = np.zeros((dim * len(grasp.bodies), tw * len(grasp.bodies)))
     for i in range(len(grasp.bodies)):
-        select[dim * i:dim * (i + 1), tw * i:tw * i + dim] = np.eye(dim)
+        select[dim * i : dim * (i + 1), tw * i : tw * i + dim] = np.eye(dim)
     total_map = select @ wrench_total
     total_offset = select @ wrench_offset
     if grasp.reading == "net":
-        total_offset = total_offset + np.concatenate([b.mass * grasp.gravity
-                                                      for b in grasp.bodies])
+        total_offset = total_offset + np.concatenate([b.mass * grasp.gravity for b in grasp.bodies])
     accel_map = m_inv @ wrench_total
     accel_offset = m_inv @ (wrench_offset - h_b)
 
@@ -165,11 +167,24 @@ def statics(grasp: Grasp) -> Statics:
     lam_start = 0
     offsets = grasp.joint_offsets()
     for j, finger in enumerate(grasp.fingers):
-        count = sum(cones[k].shape[1] for k, c in enumerate(grasp.finger_contacts)
-                    if c.finger == j)
+        count = sum(cones[k].shape[1] for k, c in enumerate(grasp.finger_contacts) if c.finger == j)
         lam_blocks.append(slice(lam_start, lam_start + count))
         joint_blocks.append(slice(offsets[j], offsets[j] + finger.joints))
         lam_start += count
-    return Statics(v, jac, kin.d_cb, d_o, m_b, h_b, torque_map, f_co_map, f_co_offset,
-                   total_map, total_offset, accel_map, accel_offset, tuple(lam_blocks),
-                   tuple(joint_blocks))
+    return Statics(
+        v,
+        jac,
+        kin.d_cb,
+        d_o,
+        m_b,
+        h_b,
+        torque_map,
+        f_co_map,
+        f_co_offset,
+        total_map,
+        total_offset,
+        accel_map,
+        accel_offset,
+        tuple(lam_blocks),
+        tuple(joint_blocks),
+    )

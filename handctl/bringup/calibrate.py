@@ -100,9 +100,15 @@ class JointResult:
     problem: str
 
     def as_dict(self) -> dict[str, Any]:
-        return {"joint": self.name, "old_offset": self.old_offset,
-                "new_offset": self.new_offset, "mean_nm": self.mean, "noise_nm": self.noise,
-                "angle_span_rad": self.angle_span, "problem": self.problem}
+        return {
+            "joint": self.name,
+            "old_offset": self.old_offset,
+            "new_offset": self.new_offset,
+            "mean_nm": self.mean,
+            "noise_nm": self.noise,
+            "angle_span_rad": self.angle_span,
+            "problem": self.problem,
+        }
 
 
 @dataclass
@@ -123,20 +129,24 @@ class Calibration:
 def calibration_recipe(hand: HandConfig, settle_s: float, measure_s: float) -> Recipe:
     zero = [0.0] * hand.n_joints
     return in_memory_recipe(
-        "calibrate_tdt", "zero torque on every joint: settle, then measure the TDT offsets",
-        hand, [phase(SETTLE, zero, 0.0, settle_s), phase(MEASURE, zero, 0.0, measure_s)], 0.0)
+        "calibrate_tdt",
+        "zero torque on every joint: settle, then measure the TDT offsets",
+        hand,
+        [phase(SETTLE, zero, 0.0, settle_s), phase(MEASURE, zero, 0.0, measure_s)],
+        0.0,
+    )
 
 
 def calibration_hand(hand: HandConfig, limits: CalibrationLimits) -> HandConfig:
     """The hand as the calibration run sees it: the TDT tolerance widened to ``max_offset``
     (module docstring), nothing else changed."""
     tolerance = max(hand.safety.tdt_tolerance, limits.max_offset)
-    return dataclasses.replace(hand, safety=dataclasses.replace(hand.safety,
-                                                                tdt_tolerance=tolerance))
+    return dataclasses.replace(
+        hand, safety=dataclasses.replace(hand.safety, tdt_tolerance=tolerance)
+    )
 
 
-def judge(hand: HandConfig, sampler: TdtSampler, limits: CalibrationLimits
-          ) -> list[JointResult]:
+def judge(hand: HandConfig, sampler: TdtSampler, limits: CalibrationLimits) -> list[JointResult]:
     """Each joint's new offset and what, if anything, makes the measurement unusable."""
     mean, std = sampler.mean(), sampler.std()
     span = sampler.angle_max - sampler.angle_min
@@ -147,33 +157,56 @@ def judge(hand: HandConfig, sampler: TdtSampler, limits: CalibrationLimits
         if sampler.count < 2 or not math.isfinite(a):
             problem = "no measurement (the run measured nothing)"
         elif a > limits.max_span:
-            problem = (f"moved {a:.4f} rad during the measurement (at most "
-                       f"{limits.max_span:g}): keep the hand still and clear of anything")
+            problem = (
+                f"moved {a:.4f} rad during the measurement (at most "
+                f"{limits.max_span:g}): keep the hand still and clear of anything"
+            )
         elif s > limits.max_noise:
-            problem = (f"noise {s:.4f} N·m is implausible (at most {limits.max_noise:g} N·m): "
-                       "check the sensor, its cable and its filter")
+            problem = (
+                f"noise {s:.4f} N·m is implausible (at most {limits.max_noise:g} N·m): "
+                "check the sensor, its cable and its filter"
+            )
         elif s == 0.0:
             problem = "the reading did not change at all: a live sensor is never so still"
         elif abs(m) > limits.max_offset:
-            problem = (f"offset {m:+.4f} N·m is implausible (at most {limits.max_offset:g} "
-                       "N·m): check the sensor's mounting and its factory calibration")
-        out.append(JointResult(joint.name, joint.tdt.offset, joint.tdt.offset - m, m, s, a,
-                               problem))
+            problem = (
+                f"offset {m:+.4f} N·m is implausible (at most {limits.max_offset:g} "
+                "N·m): check the sensor's mounting and its factory calibration"
+            )
+        out.append(
+            JointResult(joint.name, joint.tdt.offset, joint.tdt.offset - m, m, s, a, problem)
+        )
     return out
 
 
-def calibrate_tdt(hand: HandConfig, *, bus: str = "sim", settle_s: float = 2.0,
-                  measure_s: float = 1.0, limits: CalibrationLimits = CalibrationLimits(),
-                  lockstep: bool | None = None, seed: int = 0,
-                  sim_faults: Path | None = None, reset_node_faults: bool = False,
-                  realtime_priority: bool = False) -> Calibration:
+def calibrate_tdt(
+    hand: HandConfig,
+    *,
+    bus: str = "sim",
+    settle_s: float = 2.0,
+    measure_s: float = 1.0,
+    limits: CalibrationLimits = CalibrationLimits(),
+    lockstep: bool | None = None,
+    seed: int = 0,
+    sim_faults: Path | None = None,
+    reset_node_faults: bool = False,
+    realtime_priority: bool = False,
+) -> Calibration:
     """Run the zero-torque measurement on ``bus`` and judge it; writes nothing."""
     run_hand = calibration_hand(hand, limits)
     recipe = calibration_recipe(run_hand, settle_s, measure_s)
     sampler = TdtSampler(hand.n_joints)
-    report = run_recipe(RunRequest(hand=run_hand, recipe=recipe, bus=bus, lockstep=lockstep,
-                                   seed=seed, sim_faults=sim_faults,
-                                   reset_node_faults=reset_node_faults,
-                                   realtime_priority=realtime_priority),
-                        recorder=sampler)
+    report = run_recipe(
+        RunRequest(
+            hand=run_hand,
+            recipe=recipe,
+            bus=bus,
+            lockstep=lockstep,
+            seed=seed,
+            sim_faults=sim_faults,
+            reset_node_faults=reset_node_faults,
+            realtime_priority=realtime_priority,
+        ),
+        recorder=sampler,
+    )
     return Calibration(report, sampler.count, judge(hand, sampler, limits))

@@ -85,8 +85,7 @@ def _edit(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
     edits: list[tuple[int, int, str]] = []  # (start, end, replacement) in the text
     seen: set[int] = set()  # joint and tdt nodes met: an alias is the very node again
     for finger in fingers.value:
-        joints = _scalar_value(finger, "joints") if isinstance(finger, MappingNode) \
-            else None
+        joints = _scalar_value(finger, "joints") if isinstance(finger, MappingNode) else None
         if not isinstance(joints, SequenceNode):
             raise _CannotEditError("a finger's joints are not a plain sequence")
         for joint in joints.value:
@@ -100,8 +99,7 @@ def _edit(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
             tdt = _scalar_value(joint, "tdt")
             if tdt is not None:
                 if id(tdt) in seen:
-                    raise _CannotEditError(f"{name} shares its tdt with another joint (an "
-                                           "alias)")
+                    raise _CannotEditError(f"{name} shares its tdt with another joint (an alias)")
                 seen.add(id(tdt))
             edits.append(_joint_edit(text, joint, name, offsets[name], hand))
     edits.sort(reverse=True)
@@ -111,8 +109,9 @@ def _edit(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
     return out
 
 
-def _joint_edit(text: str, joint: MappingNode, name: str, offset: float,
-                hand: HandConfig) -> tuple[int, int, str]:
+def _joint_edit(
+    text: str, joint: MappingNode, name: str, offset: float, hand: HandConfig
+) -> tuple[int, int, str]:
     tdt = _scalar_value(joint, "tdt")
     number = format_offset(offset)
     if isinstance(tdt, MappingNode):
@@ -132,13 +131,13 @@ def _joint_edit(text: str, joint: MappingNode, name: str, offset: float,
         before = close
         while before > 0 and text[before - 1] in " \t":
             before -= 1
-        if "\n" in text[before - 1:close]:
+        if "\n" in text[before - 1 : close]:
             raise _CannotEditError(f"{name}: its flow mapping ends on a line of its own")
         return before, before, f", {entry}"
     first_key = joint.value[0][0]
     last_value = joint.value[-1][1]
     line_end = text.find("\n", last_value.end_mark.index)
-    if line_end < 0 or "\n" in text[last_value.start_mark.index:last_value.end_mark.index]:
+    if line_end < 0 or "\n" in text[last_value.start_mark.index : last_value.end_mark.index]:
         raise _CannotEditError(f"{name}: its last key does not end its line")
     indent = " " * first_key.start_mark.column
     return line_end + 1, line_end + 1, f"{indent}{entry}\n"
@@ -150,8 +149,10 @@ def _dump(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
         finger["joints"] = [dict(joint) for joint in finger["joints"]]
         for joint in finger["joints"]:
             joint["tdt"] = {**joint["tdt"], "offset": offsets[joint["name"]]}
-    header = (f"# {hand.name}: written by handctl calibrate tdt as a plain dump (the original's "
-              "layout could not be edited in place)\n")
+    header = (
+        f"# {hand.name}: written by handctl calibrate tdt as a plain dump (the original's "
+        "layout could not be edited in place)\n"
+    )
     return header + dump_yaml(data)
 
 
@@ -162,10 +163,13 @@ def _verify(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> None:
     except ConfigError as exc:
         raise _CannotEditError(f"the edited text does not read back: {exc}") from None
     for old, new in zip(hand.joints, got.joints, strict=True):
-        want = dataclasses.replace(old, tdt=dataclasses.replace(old.tdt,
-                                                                offset=offsets[old.name]))
+        want = dataclasses.replace(old, tdt=dataclasses.replace(old.tdt, offset=offsets[old.name]))
         if new != want:
             raise _CannotEditError(f"{old.name} reads back as {new}, not {want}")
-    if (got.bus, got.safety, got.name, len(got.fingers)) != \
-            (hand.bus, hand.safety, hand.name, len(hand.fingers)):
+    if (got.bus, got.safety, got.name, len(got.fingers)) != (
+        hand.bus,
+        hand.safety,
+        hand.name,
+        len(hand.fingers),
+    ):
         raise _CannotEditError("the edited text reads back as another hand")

@@ -65,8 +65,13 @@ class JogSink:
     """A ``RecordSink`` that keeps the jogged joint's line every ``every`` ticks for ``show``
     and the angles a summary needs."""
 
-    def __init__(self, index: int, show: Callable[[JogLine], None] | None,
-                 period_s: float, every: int = TABLE_EVERY_TICKS) -> None:
+    def __init__(
+        self,
+        index: int,
+        show: Callable[[JogLine], None] | None,
+        period_s: float,
+        every: int = TABLE_EVERY_TICKS,
+    ) -> None:
         self.index = index
         self.show = show
         self.period_s = period_s
@@ -92,9 +97,17 @@ class JogSink:
         if np.isfinite(tdt):
             self.max_abs_tdt = max(self.max_abs_tdt, abs(tdt))
         if self.show is not None and (record.tick - self._first_tick) % self.every == 0:
-            self.show(JogLine((record.tick - self._first_tick) * self.period_s, record.phase,
-                              record.state, float(record.desired[j]),
-                              float(record.applied[j]), angle, tdt))
+            self.show(
+                JogLine(
+                    (record.tick - self._first_tick) * self.period_s,
+                    record.phase,
+                    record.state,
+                    float(record.desired[j]),
+                    float(record.applied[j]),
+                    angle,
+                    tdt,
+                )
+            )
 
 
 def joint_index(hand: HandConfig, joint: str) -> int:
@@ -109,25 +122,53 @@ def jog_recipe(hand: HandConfig, joint: str, torque: float, seconds: float) -> R
     j = joint_index(hand, joint)
     spec = hand.joints[j]
     if not abs(torque) <= spec.tau_max:  # NaN too
-        raise ConfigError("--torque", "", f"|τ| <= {spec.tau_max:g} N·m (tau_max of {joint} "
-                          f"in {hand.source})", torque)
+        raise ConfigError(
+            "--torque",
+            "",
+            f"|τ| <= {spec.tau_max:g} N·m (tau_max of {joint} in {hand.source})",
+            torque,
+        )
     ramp = max(MIN_RAMP_S, abs(torque) / spec.rate_limit)
     torques = [0.0] * hand.n_joints
     torques[j] = torque
-    return in_memory_recipe(f"jog_{joint}", f"{torque:+g} N·m on {joint}, zero elsewhere",
-                            hand, [phase("jog", torques, ramp, ramp + seconds)], ramp,
-                            guard_band=GUARD_BAND)
+    return in_memory_recipe(
+        f"jog_{joint}",
+        f"{torque:+g} N·m on {joint}, zero elsewhere",
+        hand,
+        [phase("jog", torques, ramp, ramp + seconds)],
+        ramp,
+        guard_band=GUARD_BAND,
+    )
 
 
-def jog(hand: HandConfig, joint: str, torque: float, *, seconds: float = 2.0,
-        bus: str = "sim", lockstep: bool | None = None, realtime_priority: bool = False,
-        seed: int = 0, sim_faults: Path | None = None, reset_node_faults: bool = False,
-        show: Callable[[JogLine], None] | None = None) -> JogReport:
+def jog(
+    hand: HandConfig,
+    joint: str,
+    torque: float,
+    *,
+    seconds: float = 2.0,
+    bus: str = "sim",
+    lockstep: bool | None = None,
+    realtime_priority: bool = False,
+    seed: int = 0,
+    sim_faults: Path | None = None,
+    reset_node_faults: bool = False,
+    show: Callable[[JogLine], None] | None = None,
+) -> JogReport:
     """Jog ``joint`` with ``torque`` N·m for ``seconds`` after the ramp, on ``bus``."""
     recipe = jog_recipe(hand, joint, torque, seconds)
     sink = JogSink(joint_index(hand, joint), show, hand.bus.period_s)
-    report = run_recipe(RunRequest(hand=hand, recipe=recipe, bus=bus, lockstep=lockstep,
-                                   realtime_priority=realtime_priority, seed=seed,
-                                   sim_faults=sim_faults, reset_node_faults=reset_node_faults),
-                        recorder=sink)
+    report = run_recipe(
+        RunRequest(
+            hand=hand,
+            recipe=recipe,
+            bus=bus,
+            lockstep=lockstep,
+            realtime_priority=realtime_priority,
+            seed=seed,
+            sim_faults=sim_faults,
+            reset_node_faults=reset_node_faults,
+        ),
+        recorder=sink,
+    )
     return JogReport(report, joint, torque, sink.start_angle, sink.end_angle, sink.max_abs_tdt)

@@ -87,20 +87,33 @@ class BusView:
             new = stats.frames - stats.frames_at_snapshot
             stats.frames_at_snapshot = stats.frames
             layout = stats.layout
-            messages.append({
-                "id": f"0x{fid:03X}", "message": layout.name, "frames": stats.frames,
-                "rate_hz": round(new / span_s, 1) if span_s > 0 else None,
-                "rejects": dict(stats.rejects),
-                "values": None if stats.values is None else {
-                    spec.name: value if isinstance(value, int) else round(value, 9)
-                    for spec, value in zip(layout.signals, stats.values, strict=True)},
-                "units": {spec.name: spec.unit for spec in layout.signals if spec.unit}})
+            messages.append(
+                {
+                    "id": f"0x{fid:03X}",
+                    "message": layout.name,
+                    "frames": stats.frames,
+                    "rate_hz": round(new / span_s, 1) if span_s > 0 else None,
+                    "rejects": dict(stats.rejects),
+                    "values": None
+                    if stats.values is None
+                    else {
+                        spec.name: value if isinstance(value, int) else round(value, 9)
+                        for spec, value in zip(layout.signals, stats.values, strict=True)
+                    },
+                    "units": {spec.name: spec.unit for spec in layout.signals if spec.unit},
+                }
+            )
         start = self.first_ns
-        return {"t_s": None if now is None or start is None else round((now - start) * 1e-9, 3),
-                "frames": self.frames, "messages": messages,
-                "unknown_ids": {f"0x{fid & ~EXTENDED_ID_FLAG:03X}"
-                                + (" (29-bit)" if fid & EXTENDED_ID_FLAG else ""): n
-                                for fid, n in sorted(self.unknown.items())}}
+        return {
+            "t_s": None if now is None or start is None else round((now - start) * 1e-9, 3),
+            "frames": self.frames,
+            "messages": messages,
+            "unknown_ids": {
+                f"0x{fid & ~EXTENDED_ID_FLAG:03X}"
+                + (" (29-bit)" if fid & EXTENDED_ID_FLAG else ""): n
+                for fid, n in sorted(self.unknown.items())
+            },
+        }
 
 
 def value_text(name: str, value: float, unit: str) -> str:
@@ -118,25 +131,46 @@ def table(snapshot: dict[str, Any], title: str) -> Any:
     from rich.table import Table
 
     view = Table(title=title, expand=True)
-    for name, justify in (("id", "right"), ("message", "left"), ("frames", "right"),
-                          ("Hz", "right"), ("rejects", "left"), ("last values", "left")):
+    for name, justify in (
+        ("id", "right"),
+        ("message", "left"),
+        ("frames", "right"),
+        ("Hz", "right"),
+        ("rejects", "left"),
+        ("last values", "left"),
+    ):
         view.add_column(name, justify=justify)  # type: ignore[arg-type]
     for m in snapshot["messages"]:
         values = m["values"]
-        text = "-" if values is None else "  ".join(
-            f"{k} {value_text(k, v, m['units'].get(k, ''))}" for k, v in values.items())
+        text = (
+            "-"
+            if values is None
+            else "  ".join(
+                f"{k} {value_text(k, v, m['units'].get(k, ''))}" for k, v in values.items()
+            )
+        )
         rejects = ", ".join(f"{k} {v}" for k, v in m["rejects"].items()) or "-"
         rate = "-" if m["rate_hz"] is None else f"{m['rate_hz']:.0f}"
-        view.add_row(m["id"], m["message"], str(m["frames"]), rate,
-                     f"[red]{rejects}[/red]" if m["rejects"] else rejects, text)
+        view.add_row(
+            m["id"],
+            m["message"],
+            str(m["frames"]),
+            rate,
+            f"[red]{rejects}[/red]" if m["rejects"] else rejects,
+            text,
+        )
     for fid, count in snapshot["unknown_ids"].items():
         view.add_row(fid, "[yellow]unknown id[/yellow]", str(count), "-", "-", "-")
     return view
 
 
-def listen(bus: HandBus, seconds: float | None, keep_going: Callable[[], bool] = lambda: True,
-           clock: Callable[[], int] = time.monotonic_ns, poll_s: float = 0.005
-           ) -> Iterator[list[tuple[int, bytes, int]]]:
+def listen(
+    bus: HandBus,
+    seconds: float | None,
+    keep_going: Callable[[], bool] = lambda: True,
+    clock: Callable[[], int] = time.monotonic_ns,
+    poll_s: float = 0.005,
+) -> Iterator[list[tuple[int, bytes, int]]]:
     """Batches of ``(id, data, arrival_ns)`` from ``bus`` until ``seconds`` have passed (None:
     until ``keep_going`` says no). Only drains: nothing is ever sent."""
     bus.use_clock(clock)

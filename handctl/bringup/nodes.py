@@ -52,13 +52,24 @@ class NodeRow:
         return fault_names(self.fault_bits)
 
     def as_dict(self) -> dict[str, Any]:
-        return {"node_id": self.node_id, "name": self.name, "present": self.present,
-                "state": self.state, "fault_bits": self.fault_bits, "faults": self.faults,
-                "protocol_version": self.protocol_version, "firmware": self.firmware,
-                "uptime_ms": self.uptime_ms, "feedback_hz": round(self.feedback_hz, 1),
-                "heartbeats": self.heartbeats, "statuses": self.statuses,
-                "host_rejects": self.host_rejects, "node_rejects": self.node_rejects,
-                "command_age_ms": self.command_age_ms, "problem": self.problem}
+        return {
+            "node_id": self.node_id,
+            "name": self.name,
+            "present": self.present,
+            "state": self.state,
+            "fault_bits": self.fault_bits,
+            "faults": self.faults,
+            "protocol_version": self.protocol_version,
+            "firmware": self.firmware,
+            "uptime_ms": self.uptime_ms,
+            "feedback_hz": round(self.feedback_hz, 1),
+            "heartbeats": self.heartbeats,
+            "statuses": self.statuses,
+            "host_rejects": self.host_rejects,
+            "node_rejects": self.node_rejects,
+            "command_age_ms": self.command_age_ms,
+            "problem": self.problem,
+        }
 
 
 @dataclass
@@ -82,12 +93,18 @@ class Survey:
         return all(not row.problem for row in self.rows) and not self.foreign_nodes
 
     def as_dict(self) -> dict[str, Any]:
-        return {"bus": self.bus, "seconds": round(self.seconds, 3),
-                "host_protocol": self.host_protocol, "ok": self.ok,
-                "nodes": [row.as_dict() for row in self.rows],
-                "foreign_ids": [{"id": f"0x{fid:03X}", "what": what, "frames": n}
-                                for fid, (what, n) in sorted(self.foreign.items())],
-                "bus_events": self.bus_events}
+        return {
+            "bus": self.bus,
+            "seconds": round(self.seconds, 3),
+            "host_protocol": self.host_protocol,
+            "ok": self.ok,
+            "nodes": [row.as_dict() for row in self.rows],
+            "foreign_ids": [
+                {"id": f"0x{fid:03X}", "what": what, "frames": n}
+                for fid, (what, n) in sorted(self.foreign.items())
+            ],
+            "bus_events": self.bus_events,
+        }
 
 
 def describe_id(frame_id: int, protocol: Protocol, node_ids: set[int]) -> str:
@@ -107,9 +124,14 @@ def describe_id(frame_id: int, protocol: Protocol, node_ids: set[int]) -> str:
     return f"{layout.name}: sent by another host"
 
 
-def survey(hand: HandConfig, protocol: Protocol, bus: HandBus, seconds: float,
-           clock: Callable[[], int] = time.monotonic_ns,
-           sleep: Callable[[float], None] = time.sleep) -> Survey:
+def survey(
+    hand: HandConfig,
+    protocol: Protocol,
+    bus: HandBus,
+    seconds: float,
+    clock: Callable[[], int] = time.monotonic_ns,
+    sleep: Callable[[float], None] = time.sleep,
+) -> Survey:
     """Listen to ``bus`` for ``seconds`` and say what each configured node is. Sends nothing."""
     check_protocol(hand, protocol)
     nodes = [FingerNode(f, FingerLayouts.for_node(protocol, f.node_id)) for f in hand.fingers]
@@ -149,8 +171,11 @@ def survey(hand: HandConfig, protocol: Protocol, bus: HandBus, seconds: float,
 def _row(node: FingerNode, count: Counter[str], elapsed: float) -> NodeRow:
     present = count["frames"] > 0
     status = node.status
-    node_rejects = None if status is None else {
-        "crc": int(status[2]), "counter": int(status[3]), "length": int(status[4])}
+    node_rejects = (
+        None
+        if status is None
+        else {"crc": int(status[2]), "counter": int(status[3]), "length": int(status[4])}
+    )
     problem = ""
     if not present:
         problem = f"missing: nothing heard in {elapsed:.2f} s"
@@ -163,11 +188,19 @@ def _row(node: FingerNode, count: Counter[str], elapsed: float) -> NodeRow:
     elif node.contradiction:
         problem = f"contradicts itself: {node.contradiction}"
     return NodeRow(
-        node_id=node.node_id, name=node.finger.name, present=present,
-        state=node.state_name if present else "-", fault_bits=node.fault_bits,
-        protocol_version=node.protocol_version, firmware=node.firmware_text,
-        uptime_ms=node.uptime_ms, feedback_hz=count["Feedback"] / elapsed,
-        heartbeats=count["Heartbeat"], statuses=count["Status"],
+        node_id=node.node_id,
+        name=node.finger.name,
+        present=present,
+        state=node.state_name if present else "-",
+        fault_bits=node.fault_bits,
+        protocol_version=node.protocol_version,
+        firmware=node.firmware_text,
+        uptime_ms=node.uptime_ms,
+        feedback_hz=count["Feedback"] / elapsed,
+        heartbeats=count["Heartbeat"],
+        statuses=count["Status"],
         host_rejects={k: v for k, v in node.rejects.as_dict().items() if v},
         node_rejects=node_rejects,
-        command_age_ms=None if status is None else int(status[5]), problem=problem)
+        command_age_ms=None if status is None else int(status[5]),
+        problem=problem,
+    )

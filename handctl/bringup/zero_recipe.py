@@ -17,15 +17,21 @@ from handctl.online.recipes.schema import Phase, Recipe, TimeoutAction
 
 def phase(name: str, torques: Sequence[float], ramp_s: float, max_s: float) -> Phase:
     """A phase that holds ``torques`` (N·m) for ``max_s`` and then hands over to the next."""
-    return Phase(name, tuple(float(t) for t in torques), ramp_s, max_s, TimeoutAction.NEXT,
-                 (), ())
+    return Phase(name, tuple(float(t) for t in torques), ramp_s, max_s, TimeoutAction.NEXT, (), ())
 
 
-def in_memory_recipe(name: str, description: str, hand: HandConfig, phases: Sequence[Phase],
-                     end_ramp_s: float, guard_band: float | None = None) -> Recipe:
+def in_memory_recipe(
+    name: str,
+    description: str,
+    hand: HandConfig,
+    phases: Sequence[Phase],
+    end_ramp_s: float,
+    guard_band: float | None = None,
+) -> Recipe:
     """A recipe for ``hand``, refused (``ConfigError``) where a file's would be."""
     guard = LimitGuard.for_hand(hand, guard_band) if guard_band is not None else None
-    recipe = Recipe(name, f"<{name}>", description, tuple(phases), end_ramp_s, None, False,
-                    (), guard)
+    recipe = Recipe(
+        name, f"<{name}>", description, tuple(phases), end_ramp_s, None, False, (), guard
+    )
     check_against_hand(recipe, hand)
     return recipe

@@ -74,9 +74,14 @@ def check_objects_in_sim(recipe: Recipe, sim_objects: Sequence[str], hand_source
     experiment is measured on the simulated objects of the same names."""
     for i, obj in enumerate(recipe.objects):
         if obj.name not in sim_objects:
-            raise ConfigError(recipe.source, f"objects[{i}].name", "an object of the "
-                              f"simulated hand ({', '.join(sim_objects)}: sim.objects in "
-                              f"{hand_source})", obj.name)
+            raise ConfigError(
+                recipe.source,
+                f"objects[{i}].name",
+                "an object of the "
+                f"simulated hand ({', '.join(sim_objects)}: sim.objects in "
+                f"{hand_source})",
+                obj.name,
+            )
 
 
 @dataclass
@@ -107,17 +112,25 @@ class Trace:
     valid: list[bool] = field(default_factory=list)
     applied: list[tuple[float, ...]] = field(default_factory=list)  # the command in force
 
-    def add(self, t: float, phase: str, poses: Sequence[_Pose], torques: Sequence[float],
-            estimate: Sequence[float] | None, valid: bool,
-            applied: Sequence[float] | None = None) -> None:
+    def add(
+        self,
+        t: float,
+        phase: str,
+        poses: Sequence[_Pose],
+        torques: Sequence[float],
+        estimate: Sequence[float] | None,
+        valid: bool,
+        applied: Sequence[float] | None = None,
+    ) -> None:
         if applied is not None:
             self.applied.append(tuple(applied))
         self.t.append(t)
         self.phase.append(phase)
         self.poses.append(tuple(v for p in poses for v in (p.x, p.y, p.angle)))
         self.torques.append(tuple(torques))
-        self.estimate.append(tuple(estimate) if estimate is not None
-                             else (math.nan,) * self.estimate_width)
+        self.estimate.append(
+            tuple(estimate) if estimate is not None else (math.nan,) * self.estimate_width
+        )
         self.valid.append(valid)
 
     @property
@@ -130,8 +143,9 @@ class Trace:
         a, b = pair
         if not len(poses):
             return np.zeros(0)
-        return np.unwrap(np.arctan2(poses[:, 3 * b + 1] - poses[:, 3 * a + 1],
-                                    poses[:, 3 * b] - poses[:, 3 * a]))
+        return np.unwrap(
+            np.arctan2(poses[:, 3 * b + 1] - poses[:, 3 * a + 1], poses[:, 3 * b] - poses[:, 3 * a])
+        )
 
     def arrays(self) -> dict[str, np.ndarray]:
         m = len(self.objects)
@@ -139,12 +153,20 @@ class Trace:
         est = np.array(self.estimate, dtype=float).reshape(len(self.t), self.estimate_width)
         true_angle = self.line_angle(self.pairs[0], poses) if self.pairs else np.zeros(0)
         heights = poses[:, 1::3] - np.array(self.rest_y[:m])
-        return {"t": np.array(self.t), "poses": poses, "true_angle": true_angle,
-                "heights": heights, "estimate": est, "valid": np.array(self.valid, bool),
-                "torques": np.array(self.torques, dtype=float),
-                "applied": (np.array(self.applied, dtype=float)
-                            if self.applied and len(self.applied) == len(self.t)
-                            else np.zeros((0, len(self.joint_names))))}
+        return {
+            "t": np.array(self.t),
+            "poses": poses,
+            "true_angle": true_angle,
+            "heights": heights,
+            "estimate": est,
+            "valid": np.array(self.valid, bool),
+            "torques": np.array(self.torques, dtype=float),
+            "applied": (
+                np.array(self.applied, dtype=float)
+                if self.applied and len(self.applied) == len(self.t)
+                else np.zeros((0, len(self.joint_names)))
+            ),
+        }
 
 
 def _segments(phases: Sequence[str]) -> list[tuple[str, int, int]]:
@@ -199,17 +221,27 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
     being lifted, held and kept."""
     a = trace.arrays()
     n = len(trace.t)
-    pair_keys: dict[str, Any] = {"phase_angles_deg": [], "turn_deg": 0.0,
-                                 "total_rotation_deg": 0.0, "peak_turn_rate_deg_s": 0.0,
-                                 "estimator_error_deg": None,
-                                 "estimator_error_manipulation_deg": None,
-                                 "estimator_valid_fraction": 0.0}
-    empty: dict[str, Any] = {"success": False, "min_total_turn_deg": min_total_turn_deg,
-                             "lifted": False, "held_s": 0.0, "dropped": False,
-                             "objects": {name: {"lifted": False, "held_s": 0.0,
-                                                "dropped": False, "estimator_error_m": None}
-                                         for name in trace.objects},
-                             **(pair_keys if trace.pairs else {})}
+    pair_keys: dict[str, Any] = {
+        "phase_angles_deg": [],
+        "turn_deg": 0.0,
+        "total_rotation_deg": 0.0,
+        "peak_turn_rate_deg_s": 0.0,
+        "estimator_error_deg": None,
+        "estimator_error_manipulation_deg": None,
+        "estimator_valid_fraction": 0.0,
+    }
+    empty: dict[str, Any] = {
+        "success": False,
+        "min_total_turn_deg": min_total_turn_deg,
+        "lifted": False,
+        "held_s": 0.0,
+        "dropped": False,
+        "objects": {
+            name: {"lifted": False, "held_s": 0.0, "dropped": False, "estimator_error_m": None}
+            for name in trace.objects
+        },
+        **(pair_keys if trace.pairs else {}),
+    }
     if n == 0:
         return empty
     t, heights, poses = a["t"], a["heights"], a["poses"]
@@ -225,8 +257,9 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
     if lift_start is not None:
         after = slice(lift_start, end_manip)
         low = heights[after] < DROP_HEIGHT
-        away = np.abs(poses[after][:, 0::3] - trace.palm_x) > \
-            trace.half_span + np.array(trace.radii)
+        away = np.abs(poses[after][:, 0::3] - trace.palm_x) > trace.half_span + np.array(
+            trace.radii
+        )
         gone[after] = low | away
     dropped = bool(np.any(gone))
     # the estimator is judged from the lifted stretch on (hold and manipulation)
@@ -238,25 +271,39 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
     for i, name in enumerate(trace.objects):
         own_s, _ = _held(up[:, i], t, first_manip)
         objects[name] = {
-            "lifted": bool(own_s >= HOLD_S - 1e-9), "held_s": round(own_s, 3),
+            "lifted": bool(own_s >= HOLD_S - 1e-9),
+            "held_s": round(own_s, 3),
             "dropped": bool(np.any(gone[:, i])),
-            "final": {"x_m": round(float(last[3 * i]), 5), "y_m": round(float(last[3 * i + 1]), 5),
-                      "angle_rad": round(float(last[3 * i + 2]), 5),
-                      "height_above_rest_m": round(float(heights[-1, i]), 5)},
-            "estimator_error_m": None}
+            "final": {
+                "x_m": round(float(last[3 * i]), 5),
+                "y_m": round(float(last[3 * i + 1]), 5),
+                "angle_rad": round(float(last[3 * i + 2]), 5),
+                "height_above_rest_m": round(float(heights[-1, i]), 5),
+            },
+            "estimator_error_m": None,
+        }
     for k, i in enumerate(trace.estimated):
         col = 2 * len(trace.pairs) + 2 * k
-        miss = np.hypot(a["estimate"][sel, col] - poses[sel, 3 * i],
-                        a["estimate"][sel, col + 1] - poses[sel, 3 * i + 1])
+        miss = np.hypot(
+            a["estimate"][sel, col] - poses[sel, 3 * i],
+            a["estimate"][sel, col + 1] - poses[sel, 3 * i + 1],
+        )
         miss = miss[valid & np.isfinite(miss)]
         objects[trace.objects[i]]["estimator_error_m"] = (
-            round(float(np.percentile(miss, 95)), 5) if miss.size else None)
-    out: dict[str, Any] = {"min_total_turn_deg": min_total_turn_deg, "lifted": bool(lifted),
-                           "held_s": round(held_s, 3), "dropped": dropped, "objects": objects}
+            round(float(np.percentile(miss, 95)), 5) if miss.size else None
+        )
+    out: dict[str, Any] = {
+        "min_total_turn_deg": min_total_turn_deg,
+        "lifted": bool(lifted),
+        "held_s": round(held_s, 3),
+        "dropped": dropped,
+        "objects": objects,
+    }
     total = 0.0
     if trace.pairs:
-        bounds = [(name, float(t[s]), float(t[e]) if e < n else math.inf)
-                  for name, s, e in segments]
+        bounds = [
+            (name, float(t[s]), float(t[e]) if e < n else math.inf) for name, s, e in segments
+        ]
         # on the samples a log keeps (the convention's), so that its replay measures the same
         period = float(t[1] - t[0]) if n > 1 else 1.0
         logged = np.round(t / period).astype(np.int64) % POSE_EVERY_TICKS == 0
@@ -267,22 +314,30 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
         for k, pair in enumerate(trace.pairs):
             angles = trace.line_angle(pair, poses)
             turns = phase_turns_deg(t[logged], angles[logged], bounds, MANIPULATE_PREFIX)
-            err = np.abs((a["estimate"][sel, 2 * k] - np.angle(np.exp(1j * angles[sel]))
-                          + math.pi) % (2 * math.pi) - math.pi)
+            err = np.abs(
+                (a["estimate"][sel, 2 * k] - np.angle(np.exp(1j * angles[sel])) + math.pi)
+                % (2 * math.pi)
+                - math.pi
+            )
             ok = valid & np.isfinite(err)
             figures: dict[str, Any] = {
-                "phase_angles_deg": turns, "turn_deg": round(sum(turns), 2),
+                "phase_angles_deg": turns,
+                "turn_deg": round(sum(turns), 2),
                 "total_rotation_deg": round(abs(sum(turns)), 2),
-                "peak_turn_rate_deg_s": round(peak_rate_deg_s(
-                    t[first_manip:end_manip], angles[first_manip:end_manip]), 1)
-                if manip else 0.0,
+                "peak_turn_rate_deg_s": round(
+                    peak_rate_deg_s(t[first_manip:end_manip], angles[first_manip:end_manip]), 1
+                )
+                if manip
+                else 0.0,
                 "estimator_error_deg": _p95_deg(err[ok]),
-                "estimator_error_manipulation_deg": _p95_deg(err[ok & in_manip[sel]])}
+                "estimator_error_manipulation_deg": _p95_deg(err[ok & in_manip[sel]]),
+            }
             pairs["/".join(trace.objects[i] for i in pair)] = figures
             if k == 0:
                 out.update(figures)
-                out["estimator_valid_fraction"] = round(float(valid.mean()) if valid.size
-                                                        else 0.0, 3)
+                out["estimator_valid_fraction"] = round(
+                    float(valid.mean()) if valid.size else 0.0, 3
+                )
                 total = figures["total_rotation_deg"]
         out["pairs"] = pairs
     return {"success": bool(lifted and not dropped and total >= min_total_turn_deg), **out}
@@ -292,10 +347,15 @@ class Tracker:
     """Samples a lockstep run every tick (a runtime tick hook): ground truth from the simulated
     hand, the estimator's latest outputs. Recorded, never fed back."""
 
-    def __init__(self, truth: Callable[[], Any], phase: Callable[[], str],
-                 estimate: Callable[[], tuple[Sequence[float] | None, bool]],
-                 trace: Trace, period_s: float,
-                 applied: Callable[[], Sequence[float]] | None = None) -> None:
+    def __init__(
+        self,
+        truth: Callable[[], Any],
+        phase: Callable[[], str],
+        estimate: Callable[[], tuple[Sequence[float] | None, bool]],
+        trace: Trace,
+        period_s: float,
+        applied: Callable[[], Sequence[float]] | None = None,
+    ) -> None:
         self._applied = applied
         self._truth = truth
         self._phase = phase
@@ -306,9 +366,15 @@ class Tracker:
     def sample(self, tick: Any) -> None:
         truth = self._truth()
         est, valid = self._estimate()
-        self.trace.add(tick.tick * self._period, self._phase(), truth.objects,
-                       truth.joint_torques, est, valid,
-                       self._applied() if self._applied is not None else None)
+        self.trace.add(
+            tick.tick * self._period,
+            self._phase(),
+            truth.objects,
+            truth.joint_torques,
+            est,
+            valid,
+            self._applied() if self._applied is not None else None,
+        )
 
 
 def track(runtime: Any, sim_hand: Any) -> Tracker:
@@ -331,9 +397,23 @@ def track(runtime: Any, sim_hand: Any) -> Tracker:
         return estimator.last, bool(estimator.valid)
 
     middle, half_span = hand_span(hand)
-    trace = Trace(tuple(o.y for o in sim_objects), middle, hand.joint_names, names,
-                  tuple(o.radius for o in sim_objects), half_span, pairs, tuple(index))
-    tracker = Tracker(sim_hand.ground_truth, phase, estimate, trace, hand.bus.period_s,
-                      applied=lambda: runtime.supervisor.applied)
+    trace = Trace(
+        tuple(o.y for o in sim_objects),
+        middle,
+        hand.joint_names,
+        names,
+        tuple(o.radius for o in sim_objects),
+        half_span,
+        pairs,
+        tuple(index),
+    )
+    tracker = Tracker(
+        sim_hand.ground_truth,
+        phase,
+        estimate,
+        trace,
+        hand.bus.period_s,
+        applied=lambda: runtime.supervisor.applied,
+    )
     runtime.tick_hooks.append(tracker.sample)
     return tracker

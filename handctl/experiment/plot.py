@@ -22,8 +22,13 @@ from handctl.handshape import hand_span
 from handctl.online.recipes.schema import Recipe
 
 
-def plot_run(trace: Trace, path: Path, recipe: Recipe, hand: HandConfig,
-             experiment: dict[str, Any] | None = None) -> Path:
+def plot_run(
+    trace: Trace,
+    path: Path,
+    recipe: Recipe,
+    hand: HandConfig,
+    experiment: dict[str, Any] | None = None,
+) -> Path:
     """One PNG in the replay plot's style (``handctl.recording.plot``): a torque panel per
     finger of ``hand`` (applied, and measured: what the simulated tendons transmit), every
     object's height above rest and each pair's centre-line turn (true, and estimated for the
@@ -76,8 +81,14 @@ def plot_run(trace: Trace, path: Path, recipe: Recipe, hand: HandConfig,
         axes = axes[:-1]
         axes[-1].tick_params(labelbottom=True)
     heights_ax.axhline(LIFT_HEIGHT * 1e3, color="k", lw=0.6, ls="--")
-    phase_bands(list(axes), [(name, float(t[s]), float(t[e]) if e < len(t) else float(t[-1]))
-                       for name, s, e in _segments(trace.phase) if e > s])
+    phase_bands(
+        list(axes),
+        [
+            (name, float(t[s]), float(t[e]) if e < len(t) else float(t[-1]))
+            for name, s, e in _segments(trace.phase)
+            if e > s
+        ],
+    )
     axes[-1].set_xlabel(TIME_LABEL)
     if len(t):
         axes[-1].set_xlim(0.0, max(float(t[-1]), 1e-3))
@@ -85,8 +96,10 @@ def plot_run(trace: Trace, path: Path, recipe: Recipe, hand: HandConfig,
     if experiment:
         title += f": lifted {experiment.get('lifted')}, "
         if "turn_deg" in experiment:
-            title += (f"turned {experiment['turn_deg']:+.1f} deg (ccw +), estimator p95 "
-                      f"{experiment.get('estimator_error_deg')} deg, ")
+            title += (
+                f"turned {experiment['turn_deg']:+.1f} deg (ccw +), estimator p95 "
+                f"{experiment.get('estimator_error_deg')} deg, "
+            )
         title += f"dropped {experiment.get('dropped')}"
     fig.suptitle(title, fontsize=10, y=0.995)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
@@ -95,8 +108,9 @@ def plot_run(trace: Trace, path: Path, recipe: Recipe, hand: HandConfig,
     return out
 
 
-def plot_phase_region(path: Path, title: str, analysis: Any, torques: tuple[float, ...],
-                      hand: HandConfig) -> Path:
+def plot_phase_region(
+    path: Path, title: str, analysis: Any, torques: tuple[float, ...], hand: HandConfig
+) -> Path:
     """A phase's robust torque region, Fig. 3 style, with the chosen torque marked.
 
     The hand's torques are cut to a plane as eq. 25 does, keeping ratios fixed: here within
@@ -147,15 +161,14 @@ def plot_phase_region(path: Path, title: str, analysis: Any, torques: tuple[floa
         note = f"the analysis has no torque: {analysis.reason}"[:110]
     else:
         try:
-            conditions = build_conditions(analysis.snapshot.grasp,
-                                          {k: np.array(v) for k, v in
-                                           analysis.directions.items()})
+            conditions = build_conditions(
+                analysis.snapshot.grasp, {k: np.array(v) for k, v in analysis.directions.items()}
+            )
             ts = exact_torque_set(conditions, TorqueSlice(basis, float(np.max(limits))))
             # the exact set is cut by one scalar limit; cut it again by the per-joint ones
             halves = limit_slice.limit_halfplanes()
             region = [q for q in (intersect(p, halves) for p in ts.region) if len(q) >= 3]
-            realisable = [q for q in (intersect(p, halves) for p in ts.realisable)
-                          if len(q) >= 3]
+            realisable = [q for q in (intersect(p, halves) for p in ts.realisable) if len(q) >= 3]
         except AnalysisError as exc:
             note = f"no region: {exc}"[:110]
     fig = Figure(figsize=(5.8, 5.4), dpi=110)
@@ -164,16 +177,41 @@ def plot_phase_region(path: Path, title: str, analysis: Any, torques: tuple[floa
     for poly in realisable:
         ax.add_patch(PolygonPatch(poly, closed=True, facecolor="0.92", edgecolor="none"))
     for i, poly in enumerate(region):
-        ax.add_patch(PolygonPatch(poly, closed=True, facecolor="0.6", edgecolor="black",
-                                  hatch="////", lw=0.8, label="robust region" if i == 0
-                                  else None))
-    ax.add_patch(PolygonPatch(limit_poly, closed=True, fill=False, edgecolor="black", lw=1.2,
-                              label="|τ| ≤ tau_max"))
+        ax.add_patch(
+            PolygonPatch(
+                poly,
+                closed=True,
+                facecolor="0.6",
+                edgecolor="black",
+                hatch="////",
+                lw=0.8,
+                label="robust region" if i == 0 else None,
+            )
+        )
+    ax.add_patch(
+        PolygonPatch(
+            limit_poly, closed=True, fill=False, edgecolor="black", lw=1.2, label="|τ| ≤ tau_max"
+        )
+    )
     if found:
-        ax.plot([1.0], [1.0], marker="o", color="black", markersize=6, linestyle="none",
-                label="analysis: largest margin")
-    ax.plot([u_chosen[0]], [u_chosen[1]], marker="*", color="tab:red", markersize=13,
-            linestyle="none", label=f"chosen torque ({off:.3f} N·m off the plane)")
+        ax.plot(
+            [1.0],
+            [1.0],
+            marker="o",
+            color="black",
+            markersize=6,
+            linestyle="none",
+            label="analysis: largest margin",
+        )
+    ax.plot(
+        [u_chosen[0]],
+        [u_chosen[1]],
+        marker="*",
+        color="tab:red",
+        markersize=13,
+        linestyle="none",
+        label=f"chosen torque ({off:.3f} N·m off the plane)",
+    )
     lo, hi = limit_poly.min(axis=0), limit_poly.max(axis=0)
     pad = 0.08 * float(max(hi - lo))
     ax.set_xlim(float(lo[0]) - pad, float(hi[0]) + pad)
@@ -201,13 +239,22 @@ def plot_plan(result: Any, directory: Path) -> list[Path]:
         prov = plan.provenance
         score = prov.get("search", {}).get("score")
         margin = prov.get("analysis", {}).get("margin_N")
-        title = (f"{plan.phase.name} ({plan.spec.kind})"
-                 + (f", analysis margin {margin} N" if margin is not None else "")
-                 + (f", search score {score}" if score is not None else ""))
+        title = (
+            f"{plan.phase.name} ({plan.spec.kind})"
+            + (f", analysis margin {margin} N" if margin is not None else "")
+            + (f", search score {score}" if score is not None else "")
+        )
         if plan.spec.kind == "turn":
             title += f", wanted turn {math.degrees(plan.spec.turn):+.0f} deg"
-        out.append(plot_phase_region(directory / f"{k + 1:02d}_{plan.phase.name}.png", title,
-                                     plan.analysis, plan.phase.torques, hand))
+        out.append(
+            plot_phase_region(
+                directory / f"{k + 1:02d}_{plan.phase.name}.png",
+                title,
+                plan.analysis,
+                plan.phase.torques,
+                hand,
+            )
+        )
     return out
 
 

@@ -40,8 +40,13 @@ TX_DECODED = "/can/tx/decoded"
 #: and a scene is some 3 kB.
 SCENE_EVERY = 20
 
-_KIND_MESSAGES = {"node_command": "NodeCommand", "torque_command": "TorqueCommand",
-                  "feedback": "Feedback", "status": "Status", "heartbeat": "Heartbeat"}
+_KIND_MESSAGES = {
+    "node_command": "NodeCommand",
+    "torque_command": "TorqueCommand",
+    "feedback": "Feedback",
+    "status": "Status",
+    "heartbeat": "Heartbeat",
+}
 #: Signals that carry one value per joint of the finger, numbered from 1, and the key they
 #: get under the joint's name.
 _PER_JOINT = {"Torque": "torque", "Angle": "angle"}
@@ -56,34 +61,57 @@ class DerivedChannel:
     message_encoding: str  # "protobuf" or "json"
 
 
-def _well_known(topic: str, message: type[SceneUpdate | FrameTransforms | Log]
-                ) -> DerivedChannel:
+def _well_known(topic: str, message: type[SceneUpdate | FrameTransforms | Log]) -> DerivedChannel:
     schema = message.get_schema()
     return DerivedChannel(topic, schema.name, schema.encoding, bytes(schema.data), "protobuf")
 
 
 def _json(topic: str, name: str, schema: dict[str, Any]) -> DerivedChannel:
-    return DerivedChannel(topic, name, ch.SCHEMA_ENCODING,
-                          orjson.dumps({"title": name, **schema}), ch.MESSAGE_ENCODING)
+    return DerivedChannel(
+        topic,
+        name,
+        ch.SCHEMA_ENCODING,
+        orjson.dumps({"title": name, **schema}),
+        ch.MESSAGE_ENCODING,
+    )
 
 
 _NUMBER = {"type": ["number", "null"]}
 
 
 def joints_schema(joints: Sequence[str]) -> dict[str, Any]:
-    per_joint = {"type": "object", "properties": {
-        "angle_rad": _NUMBER, "tdt_torque_nm": _NUMBER, "desired_nm": _NUMBER,
-        "applied_nm": _NUMBER, "tau_max_nm": _NUMBER}}
-    return {"type": "object", "properties": {"tick": {"type": "integer"},
-                                             **{name: per_joint for name in joints}}}
+    per_joint = {
+        "type": "object",
+        "properties": {
+            "angle_rad": _NUMBER,
+            "tdt_torque_nm": _NUMBER,
+            "desired_nm": _NUMBER,
+            "applied_nm": _NUMBER,
+            "tau_max_nm": _NUMBER,
+        },
+    }
+    return {
+        "type": "object",
+        "properties": {"tick": {"type": "integer"}, **{name: per_joint for name in joints}},
+    }
 
 
-_DECODED_SCHEMA = {"type": "object", "properties": {
-    "tick": {"type": "integer"}, "id": {"type": "integer"}, "message": {"type": "string"},
-    "finger": {"type": "string"}, "counter": {"type": "integer"}, "crc_ok": {"type": "boolean"},
-    "signals": {"type": "object", "additionalProperties": _NUMBER},
-    "joints": {"type": "object", "additionalProperties": {
-        "type": "object", "additionalProperties": _NUMBER}}}}
+_DECODED_SCHEMA = {
+    "type": "object",
+    "properties": {
+        "tick": {"type": "integer"},
+        "id": {"type": "integer"},
+        "message": {"type": "string"},
+        "finger": {"type": "string"},
+        "counter": {"type": "integer"},
+        "crc_ok": {"type": "boolean"},
+        "signals": {"type": "object", "additionalProperties": _NUMBER},
+        "joints": {
+            "type": "object",
+            "additionalProperties": {"type": "object", "additionalProperties": _NUMBER},
+        },
+    },
+}
 
 
 @dataclass(frozen=True)
@@ -99,7 +127,7 @@ def _frame_kind(layout: Layout, finger: str, joints: Sequence[str]) -> _FrameKin
     slots, others = [], []
     for i, signal in enumerate(layout.signal_names):
         stem = signal.rstrip("0123456789")
-        number = signal[len(stem):]
+        number = signal[len(stem) :]
         if stem in _PER_JOINT and number and 0 < int(number) <= len(joints):
             slots.append((i, joints[int(number) - 1], _PER_JOINT[stem]))
         else:
@@ -113,9 +141,14 @@ Emit = Callable[[str, int, bytes], None]
 class Derived:
     """Fed by the writer as it drains the rings; calls ``emit(topic, log_time, payload)``."""
 
-    def __init__(self, hand: HandConfig, estimated: Sequence[ObjectShape],
-                 true_objects: Sequence[ObjectShape], estimator: ObjectEstimator | None,
-                 emit: Emit) -> None:
+    def __init__(
+        self,
+        hand: HandConfig,
+        estimated: Sequence[ObjectShape],
+        true_objects: Sequence[ObjectShape],
+        estimator: ObjectEstimator | None,
+        emit: Emit,
+    ) -> None:
         self.hand = hand
         self.joints = hand.joint_names
         self.tau_max = [j.tau_max for j in hand.joints]
@@ -123,11 +156,13 @@ class Derived:
         self.estimator = estimator
         self.emit = emit
         self.channels = [
-            _well_known(SCENE, SceneUpdate), _well_known(TRANSFORMS, FrameTransforms),
+            _well_known(SCENE, SceneUpdate),
+            _well_known(TRANSFORMS, FrameTransforms),
             _well_known(LOG, Log),
             _json(JOINTS, "handctl.Joints", joints_schema(self.joints)),
             _json(RX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA),
-            _json(TX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA)]
+            _json(TX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA),
+        ]
         protocol = protocol_for(hand)
         self.frames: dict[int, _FrameKind] = {}
         for finger in hand.fingers:
@@ -135,8 +170,9 @@ class Derived:
             for kind in CAN_ID_KINDS:
                 layout = protocol.by_name.get(f"{_KIND_MESSAGES[kind]}_{finger.node_id}")
                 if layout is not None:
-                    self.frames[ids[kind]] = _frame_kind(layout, finger.name,
-                                                         [j.name for j in finger.joints])
+                    self.frames[ids[kind]] = _frame_kind(
+                        layout, finger.name, [j.name for j in finger.joints]
+                    )
         estop = protocol.by_name.get("EStop")
         if estop is not None:
             self.frames[ESTOP_ID] = _frame_kind(estop, "", [])
@@ -152,8 +188,9 @@ class Derived:
 
         hand_doc = metadata.get(ch.META_HAND, {}).get("yaml")
         if not hand_doc:
-            raise ValueError(f"metadata {ch.META_HAND}.yaml: expected the hand config, "
-                             "found nothing")
+            raise ValueError(
+                f"metadata {ch.META_HAND}.yaml: expected the hand config, found nothing"
+            )
         hand = parse_hand(parse_yaml(str(hand_doc), "the recorded hand config"))
         recipe_doc = metadata.get(ch.META_RECIPE, {}).get("yaml")
         recipe_objects = []
@@ -173,8 +210,10 @@ class Derived:
             if params is not None:
                 true_objects = [ObjectShape(o.name, o.radius, o.length) for o in params.objects]
                 lengths = {o.name: o.length for o in params.objects}
-        estimated = [ObjectShape(o.name, o.radius, lengths.get(o.name, DEFAULT_OBJECT_LENGTH))
-                     for o in recipe_objects]
+        estimated = [
+            ObjectShape(o.name, o.radius, lengths.get(o.name, DEFAULT_OBJECT_LENGTH))
+            for o in recipe_objects
+        ]
         estimator = None
         if recipe_objects:
             # As the session sets one up for such a recipe. The estimator is a function of
@@ -184,30 +223,49 @@ class Derived:
         return cls(hand, estimated, true_objects, estimator, emit)
 
     # -- what the writer feeds --------------------------------------------------------------
-    def tick(self, t_ns: int, tick: int, angle: Sequence[float], tdt: Sequence[float],
-             desired: Sequence[float], applied: Sequence[float], estimating: bool) -> None:
+    def tick(
+        self,
+        t_ns: int,
+        tick: int,
+        angle: Sequence[float],
+        tdt: Sequence[float],
+        desired: Sequence[float],
+        applied: Sequence[float],
+        estimating: bool,
+    ) -> None:
         """One control tick's numbers; ``estimating``: the loop ran its estimator this tick
         (the supervisor running and the recipe not done)."""
         message: dict[str, Any] = {"tick": tick}
         for i, name in enumerate(self.joints):
-            message[name] = {"angle_rad": angle[i], "tdt_torque_nm": tdt[i],
-                             "desired_nm": desired[i], "applied_nm": applied[i],
-                             "tau_max_nm": self.tau_max[i]}
+            message[name] = {
+                "angle_rad": angle[i],
+                "tdt_torque_nm": tdt[i],
+                "desired_nm": desired[i],
+                "applied_nm": applied[i],
+                "tau_max_nm": self.tau_max[i],
+            }
         self.emit(JOINTS, t_ns, orjson.dumps(message))
         if self.estimator is not None and estimating:
             est = self.estimator(angle)
             self.estimates = self.estimator.positions(est)
         if self.control_ticks % SCENE_EVERY == 0:
-            self.emit(SCENE, t_ns, self.scene.update(t_ns, angle, self._truth_at(t_ns),
-                                                     self.estimates).encode())
+            self.emit(
+                SCENE,
+                t_ns,
+                self.scene.update(t_ns, angle, self._truth_at(t_ns), self.estimates).encode(),
+            )
             self.emit(TRANSFORMS, t_ns, self.scene.transforms(t_ns, angle).encode())
         self.control_ticks += 1
 
     def poses(self, t_ns: int, values: Sequence[float]) -> None:
         """The simulated objects' true poses, ``(x, y, angle)`` flattened. The writer may
         drain poses a few ticks ahead of the ticks' rows: they wait here for their tick."""
-        self._poses.append((t_ns, [(values[i], values[i + 1], values[i + 2])
-                                   for i in range(0, len(values) - 2, 3)]))
+        self._poses.append(
+            (
+                t_ns,
+                [(values[i], values[i + 1], values[i + 2]) for i in range(0, len(values) - 2, 3)],
+            )
+        )
 
     def _truth_at(self, t_ns: int) -> list[tuple[float, float, float]] | None:
         """The newest true poses not after ``t_ns``."""
@@ -222,13 +280,20 @@ class Derived:
         level = LogLevel.Info
         if kind == "fault":
             level = LogLevel.Error
-        elif kind in ("bus", "rejected_frames", "recording") or (
-                kind == "state" and name in ("fault_ramp", "faulted")) or (
-                kind == "request" and name == "estop"):
+        elif (
+            kind in ("bus", "rejected_frames", "recording")
+            or (kind == "state" and name in ("fault_ramp", "faulted"))
+            or (kind == "request" and name == "estop")
+        ):
             level = LogLevel.Warning
         text = f"tick {payload.get('tick')}: {kind} {name}" + (f": {detail}" if detail else "")
-        self.emit(LOG, t_ns, Log(timestamp=timestamp(t_ns), level=level, message=text,
-                                 name=f"handctl.{kind}").encode())
+        self.emit(
+            LOG,
+            t_ns,
+            Log(
+                timestamp=timestamp(t_ns), level=level, message=text, name=f"handctl.{kind}"
+            ).encode(),
+        )
 
     def frame(self, t_ns: int, tick: int, received: bool, frame_id: int, data: bytes) -> None:
         kind = self.frames.get(frame_id)
@@ -242,9 +307,14 @@ class Derived:
             if slot is None:
                 joints[joint] = slot = {}
             slot[key] = values[i]
-        message = {"tick": tick, "id": frame_id, "message": layout.name,
-                   "finger": kind.finger, "counter": counter, "crc_ok": layout.crc_ok(data),
-                   "signals": {name: values[i] for i, name in kind.others},
-                   "joints": joints}
+        message = {
+            "tick": tick,
+            "id": frame_id,
+            "message": layout.name,
+            "finger": kind.finger,
+            "counter": counter,
+            "crc_ok": layout.crc_ok(data),
+            "signals": {name: values[i] for i, name in kind.others},
+            "joints": joints,
+        }
         self.emit(RX_DECODED if received else TX_DECODED, t_ns, orjson.dumps(message))
-

@@ -29,40 +29,86 @@ def _finger_plot(finger: FingerConfig) -> fl.PlotPanel:
         colour = JOINT_COLOURS[k % len(JOINT_COLOURS)]
         base = f"{JOINTS}.{joint.name}"
         series += [
-            fl.PlotSeries(value=f"{base}.desired_nm", label=f"{joint.name} desired",
-                          color=colour, line_style="dashed", line_size=1.0),
-            fl.PlotSeries(value=f"{base}.applied_nm", label=f"{joint.name} applied",
-                          color=colour, line_style="solid", line_size=1.5),
-            fl.PlotSeries(value=f"{base}.tdt_torque_nm", label=f"{joint.name} measured",
-                          color=colour, line_style="dotted", line_size=1.0),
-            fl.PlotSeries(value=f"{base}.tau_max_nm", label=f"{joint.name} +tau_max",
-                          color=colour, line_style="solid", line_size=0.5),
-            fl.PlotSeries(value=f"{base}.tau_max_nm.@negative", label=f"{joint.name} -tau_max",
-                          color=colour, line_style="solid", line_size=0.5)]
-    return fl.PlotPanel(title=f"{finger.name} torque (N·m)", config=fl.PlotConfig(
-        paths=series, show_legend=True, legend_display="top", is_synced=True))
+            fl.PlotSeries(
+                value=f"{base}.desired_nm",
+                label=f"{joint.name} desired",
+                color=colour,
+                line_style="dashed",
+                line_size=1.0,
+            ),
+            fl.PlotSeries(
+                value=f"{base}.applied_nm",
+                label=f"{joint.name} applied",
+                color=colour,
+                line_style="solid",
+                line_size=1.5,
+            ),
+            fl.PlotSeries(
+                value=f"{base}.tdt_torque_nm",
+                label=f"{joint.name} measured",
+                color=colour,
+                line_style="dotted",
+                line_size=1.0,
+            ),
+            fl.PlotSeries(
+                value=f"{base}.tau_max_nm",
+                label=f"{joint.name} +tau_max",
+                color=colour,
+                line_style="solid",
+                line_size=0.5,
+            ),
+            fl.PlotSeries(
+                value=f"{base}.tau_max_nm.@negative",
+                label=f"{joint.name} -tau_max",
+                color=colour,
+                line_style="solid",
+                line_size=0.5,
+            ),
+        ]
+    return fl.PlotPanel(
+        title=f"{finger.name} torque (N·m)",
+        config=fl.PlotConfig(paths=series, show_legend=True, legend_display="top", is_synced=True),
+    )
 
 
 def build_layout(hand: HandConfig) -> fl.Layout:
-    scene = fl.ThreeDeePanel(title="hand (hand plane: x right, y up)",
-                             config=fl.ThreeDeeConfig(
-        follow_tf=WORLD,
-        topics={SCENE: fl.BaseRendererSceneUpdateTopicSettings(visible=True)}))
-    state = fl.StateTransitionsPanel(title="phase and safety state",
-                                     config=fl.StateTransitionsConfig(
-        paths=[fl.StateTransitionsSeries(value=f"{ch.PHASE}.phase", label="phase"),
-               fl.StateTransitionsSeries(value=f"{ch.SAFETY}.state", label="safety")],
-        is_synced=True))
+    scene = fl.ThreeDeePanel(
+        title="hand (hand plane: x right, y up)",
+        config=fl.ThreeDeeConfig(
+            follow_tf=WORLD, topics={SCENE: fl.BaseRendererSceneUpdateTopicSettings(visible=True)}
+        ),
+    )
+    state = fl.StateTransitionsPanel(
+        title="phase and safety state",
+        config=fl.StateTransitionsConfig(
+            paths=[
+                fl.StateTransitionsSeries(value=f"{ch.PHASE}.phase", label="phase"),
+                fl.StateTransitionsSeries(value=f"{ch.SAFETY}.state", label="safety"),
+            ],
+            is_synced=True,
+        ),
+    )
     log = fl.LogPanel(title="events and faults", config=fl.LogConfig(topic_to_render=LOG))
     plots = [fl.SplitItem(content=_finger_plot(f)) for f in hand.fingers]
-    left = fl.SplitContainer(direction="column", items=[
-        fl.SplitItem(proportion=3, content=scene),
-        fl.SplitItem(proportion=1, content=state),
-        fl.SplitItem(proportion=1, content=log)])
-    return fl.Layout(content=fl.SplitContainer(direction="row", items=[
-        fl.SplitItem(proportion=1, content=left),
-        fl.SplitItem(proportion=1, content=fl.SplitContainer(direction="column",
-                                                              items=plots))]))
+    left = fl.SplitContainer(
+        direction="column",
+        items=[
+            fl.SplitItem(proportion=3, content=scene),
+            fl.SplitItem(proportion=1, content=state),
+            fl.SplitItem(proportion=1, content=log),
+        ],
+    )
+    return fl.Layout(
+        content=fl.SplitContainer(
+            direction="row",
+            items=[
+                fl.SplitItem(proportion=1, content=left),
+                fl.SplitItem(
+                    proportion=1, content=fl.SplitContainer(direction="column", items=plots)
+                ),
+            ],
+        )
+    )
 
 
 def layout_json(hand: HandConfig) -> str:

@@ -33,20 +33,29 @@ class LiveServer:
 
     def __init__(self, port: int, name: str = "handctl", host: str = HOST) -> None:
         self.context = Context()
-        self.server = foxglove.start_server(name=name, host=host, port=port,
-                                            context=self.context)
+        self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context)
         self.channels: dict[str, Channel] = {}
 
     @property
     def port(self) -> int:
         return self.server.port
 
-    def add_channel(self, topic: str, schema_name: str, schema_encoding: str,
-                    schema_data: bytes, message_encoding: str,
-                    metadata: dict[str, str] | None = None) -> None:
+    def add_channel(
+        self,
+        topic: str,
+        schema_name: str,
+        schema_encoding: str,
+        schema_data: bytes,
+        message_encoding: str,
+        metadata: dict[str, str] | None = None,
+    ) -> None:
         self.channels[topic] = Channel(
-            topic, schema=Schema(name=schema_name, encoding=schema_encoding, data=schema_data),
-            message_encoding=message_encoding, context=self.context, metadata=metadata)
+            topic,
+            schema=Schema(name=schema_name, encoding=schema_encoding, data=schema_data),
+            message_encoding=message_encoding,
+            context=self.context,
+            metadata=metadata,
+        )
 
     def log(self, topic: str, log_time: int, payload: bytes) -> None:
         channel = self.channels.get(topic)
@@ -57,8 +66,9 @@ class LiveServer:
         self.server.stop()
 
 
-def serve_recording(path: Path, port: int, speed: float = 1.0,
-                    started: Callable[[LiveServer], None] | None = None) -> int:
+def serve_recording(
+    path: Path, port: int, speed: float = 1.0, started: Callable[[LiveServer], None] | None = None
+) -> int:
     """Stream every message of ``path`` in file order at its recorded spacing (divided by
     ``speed``); returns the number of messages sent. The messages are read as ``handctl
     replay`` reads them (``handctl.recording.reader``): a truncated file plays up to its last
@@ -70,10 +80,14 @@ def serve_recording(path: Path, port: int, speed: float = 1.0,
     try:
         with path.open("rb") as stream:
             for topic, (schema, channel) in _channels(stream).items():
-                server.add_channel(topic, schema.name if schema else "",
-                                   schema.encoding if schema else "",
-                                   bytes(schema.data) if schema else b"",
-                                   channel.message_encoding, dict(channel.metadata))
+                server.add_channel(
+                    topic,
+                    schema.name if schema else "",
+                    schema.encoding if schema else "",
+                    bytes(schema.data) if schema else b"",
+                    channel.message_encoding,
+                    dict(channel.metadata),
+                )
         if started is not None:
             started(server)
         sent = 0

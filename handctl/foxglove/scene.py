@@ -84,15 +84,21 @@ def _along(angle: float) -> Quaternion:
 
 
 def _pose(x: float, y: float, z: float, orientation: Quaternion | None = None) -> Pose:
-    return Pose(position=Vector3(x=x, y=y, z=z),
-                orientation=orientation or Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+    return Pose(
+        position=Vector3(x=x, y=y, z=z),
+        orientation=orientation or Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+    )
 
 
 class HandScene:
     """Builds the scene and the transforms of one hand from joint angles and object poses."""
 
-    def __init__(self, hand: HandConfig, objects: Sequence[ObjectShape] = (),
-                 estimated: Sequence[ObjectShape] = ()) -> None:
+    def __init__(
+        self,
+        hand: HandConfig,
+        objects: Sequence[ObjectShape] = (),
+        estimated: Sequence[ObjectShape] = (),
+    ) -> None:
         self.hand = hand
         self.objects = tuple(objects)
         self.estimated = tuple(estimated)
@@ -108,22 +114,31 @@ class HandScene:
                 params = None
         if params is not None:
             sim_radii = tuple(link.radius for link in params.links)  # config order
-        flat = [sim_radii[i] if sim_radii else (j.half_thickness or DEFAULT_LINK_RADIUS)
-                for i, j in enumerate(hand.joints)]
+        flat = [
+            sim_radii[i] if sim_radii else (j.half_thickness or DEFAULT_LINK_RADIUS)
+            for i, j in enumerate(hand.joints)
+        ]
         self.link_radius: list[list[float]] = []
         for f in hand.fingers:
-            self.link_radius.append(flat[:len(f.joints)])
-            flat = flat[len(f.joints):]
+            self.link_radius.append(flat[: len(f.joints)])
+            flat = flat[len(f.joints) :]
         if params is not None:
             widest = max((r for radii in self.link_radius for r in radii), default=0.0)
-            half_depth = max([abs(f.z) + widest for f in hand.fingers]
-                             + [o.length / 2 for o in params.objects]) + 0.005
-            self.scenery = Scenery(params.palm_half_width, params.palm_thickness,
-                                   half_depth, params.table_height)
+            half_depth = (
+                max(
+                    [abs(f.z) + widest for f in hand.fingers]
+                    + [o.length / 2 for o in params.objects]
+                )
+                + 0.005
+            )
+            self.scenery = Scenery(
+                params.palm_half_width, params.palm_thickness, half_depth, params.table_height
+            )
 
     # -- kinematics -----------------------------------------------------------------------
-    def links(self, angles: Sequence[float]) -> list[tuple[str, float, float, float, float,
-                                                             float, float]]:
+    def links(
+        self, angles: Sequence[float]
+    ) -> list[tuple[str, float, float, float, float, float, float]]:
         """Each link as ``(joint name, x, y, z, direction, length, radius)``: its joint axis
         in the hand plane and the direction it points (rad)."""
         out = []
@@ -132,8 +147,9 @@ class HandScene:
             x, y, heading = finger.base_x, finger.base_y, finger.base_angle
             for k, joint in enumerate(finger.joints):
                 heading += angles[i] if math.isfinite(angles[i]) else 0.0
-                out.append((joint.name, x, y, finger.z, heading, joint.link_length,
-                            self.link_radius[f][k]))
+                out.append(
+                    (joint.name, x, y, finger.z, heading, joint.link_length, self.link_radius[f][k])
+                )
                 x += joint.link_length * math.cos(heading)
                 y += joint.link_length * math.sin(heading)
                 i += 1
@@ -145,24 +161,39 @@ class HandScene:
         i = 0
         for finger in self.hand.fingers:
             base = f"{finger.name}_base"
-            out.append(FrameTransform(
-                timestamp=stamp, parent_frame_id=WORLD, child_frame_id=base,
-                translation=Vector3(x=finger.base_x, y=finger.base_y, z=finger.z),
-                rotation=_yaw(finger.base_angle)))
+            out.append(
+                FrameTransform(
+                    timestamp=stamp,
+                    parent_frame_id=WORLD,
+                    child_frame_id=base,
+                    translation=Vector3(x=finger.base_x, y=finger.base_y, z=finger.z),
+                    rotation=_yaw(finger.base_angle),
+                )
+            )
             parent, offset = base, 0.0
             for joint in finger.joints:
                 q = angles[i] if math.isfinite(angles[i]) else 0.0
-                out.append(FrameTransform(
-                    timestamp=stamp, parent_frame_id=parent, child_frame_id=joint.name,
-                    translation=Vector3(x=offset, y=0.0, z=0.0), rotation=_yaw(q)))
+                out.append(
+                    FrameTransform(
+                        timestamp=stamp,
+                        parent_frame_id=parent,
+                        child_frame_id=joint.name,
+                        translation=Vector3(x=offset, y=0.0, z=0.0),
+                        rotation=_yaw(q),
+                    )
+                )
                 parent, offset = joint.name, joint.link_length
                 i += 1
         return FrameTransforms(transforms=out)
 
     # -- the scene ------------------------------------------------------------------------
-    def update(self, t_ns: int, angles: Sequence[float],
-               true_poses: Sequence[tuple[float, float, float]] | None,
-               estimates: Sequence[tuple[float, float]] | None) -> SceneUpdate:
+    def update(
+        self,
+        t_ns: int,
+        angles: Sequence[float],
+        true_poses: Sequence[tuple[float, float, float]] | None,
+        estimates: Sequence[tuple[float, float]] | None,
+    ) -> SceneUpdate:
         """The whole scene at ``t_ns``; an estimate that is not valid (NaN) is deleted, so a
         lost track disappears instead of staying where it was last seen."""
         stamp = timestamp(t_ns)
@@ -173,56 +204,138 @@ class HandScene:
         if true_poses is not None:
             for shape, (x, y, angle) in zip(self.objects, true_poses, strict=False):
                 if math.isfinite(x) and math.isfinite(y):
-                    entities.append(self._object(stamp, f"object/{shape.name}", shape, x, y,
-                                                 angle, _TRUE, "simulated (true)"))
+                    entities.append(
+                        self._object(
+                            stamp,
+                            f"object/{shape.name}",
+                            shape,
+                            x,
+                            y,
+                            angle,
+                            _TRUE,
+                            "simulated (true)",
+                        )
+                    )
         if estimates is not None:
             for shape, (x, y) in zip(self.estimated, estimates, strict=False):
                 ident = f"estimate/{shape.name}"
                 if math.isfinite(x) and math.isfinite(y):
-                    entities.append(self._object(stamp, ident, shape, x, y, 0.0, _ESTIMATE,
-                                                 "estimated from the joint angles"))
+                    entities.append(
+                        self._object(
+                            stamp,
+                            ident,
+                            shape,
+                            x,
+                            y,
+                            0.0,
+                            _ESTIMATE,
+                            "estimated from the joint angles",
+                        )
+                    )
                 else:
-                    deletions.append(SceneEntityDeletion(
-                        timestamp=stamp, type=SceneEntityDeletionType.MatchingId, id=ident))
+                    deletions.append(
+                        SceneEntityDeletion(
+                            timestamp=stamp, type=SceneEntityDeletionType.MatchingId, id=ident
+                        )
+                    )
         return SceneUpdate(deletions=deletions, entities=entities)
 
-    def _link(self, stamp: Timestamp, name: str, x: float, y: float, z: float,
-              heading: float, length: float, radius: float) -> SceneEntity:
+    def _link(
+        self,
+        stamp: Timestamp,
+        name: str,
+        x: float,
+        y: float,
+        z: float,
+        heading: float,
+        length: float,
+        radius: float,
+    ) -> SceneEntity:
         c, s = math.cos(heading), math.sin(heading)
         d = 2 * radius
         mid = _pose(x + c * length / 2, y + s * length / 2, z, _along(heading))
         return SceneEntity(
-            timestamp=stamp, frame_id=WORLD, id=f"link/{name}",
-            cylinders=[CylinderPrimitive(pose=mid, size=Vector3(x=d, y=d, z=length),
-                                         bottom_scale=1.0, top_scale=1.0, color=_LINK)],
-            spheres=[SpherePrimitive(pose=_pose(px, py, z), size=Vector3(x=d, y=d, z=d),
-                                     color=_LINK)
-                     for px, py in ((x, y), (x + c * length, y + s * length))],
-            metadata=[KeyValuePair(key="joint", value=name)])
+            timestamp=stamp,
+            frame_id=WORLD,
+            id=f"link/{name}",
+            cylinders=[
+                CylinderPrimitive(
+                    pose=mid,
+                    size=Vector3(x=d, y=d, z=length),
+                    bottom_scale=1.0,
+                    top_scale=1.0,
+                    color=_LINK,
+                )
+            ],
+            spheres=[
+                SpherePrimitive(pose=_pose(px, py, z), size=Vector3(x=d, y=d, z=d), color=_LINK)
+                for px, py in ((x, y), (x + c * length, y + s * length))
+            ],
+            metadata=[KeyValuePair(key="joint", value=name)],
+        )
 
     def _scenery(self, stamp: Timestamp, sc: Scenery) -> list[SceneEntity]:
-        out = [SceneEntity(
-            timestamp=stamp, frame_id=WORLD, id="palm",
-            cubes=[CubePrimitive(
-                pose=_pose(0.0, sc.palm_thickness / 2, 0.0),
-                size=Vector3(x=2 * sc.palm_half_width, y=sc.palm_thickness,
-                             z=2 * sc.palm_half_depth), color=_PALM)])]
+        out = [
+            SceneEntity(
+                timestamp=stamp,
+                frame_id=WORLD,
+                id="palm",
+                cubes=[
+                    CubePrimitive(
+                        pose=_pose(0.0, sc.palm_thickness / 2, 0.0),
+                        size=Vector3(
+                            x=2 * sc.palm_half_width, y=sc.palm_thickness, z=2 * sc.palm_half_depth
+                        ),
+                        color=_PALM,
+                    )
+                ],
+            )
+        ]
         if sc.table_height is not None:
             thickness = 0.005
-            out.append(SceneEntity(
-                timestamp=stamp, frame_id=WORLD, id="table",
-                cubes=[CubePrimitive(pose=_pose(0.0, sc.table_height - thickness / 2, 0.0),
-                                     size=Vector3(x=0.4, y=thickness, z=0.4),
-                                     color=_TABLE)]))
+            out.append(
+                SceneEntity(
+                    timestamp=stamp,
+                    frame_id=WORLD,
+                    id="table",
+                    cubes=[
+                        CubePrimitive(
+                            pose=_pose(0.0, sc.table_height - thickness / 2, 0.0),
+                            size=Vector3(x=0.4, y=thickness, z=0.4),
+                            color=_TABLE,
+                        )
+                    ],
+                )
+            )
         return out
 
-    def _object(self, stamp: Timestamp, ident: str, shape: ObjectShape, x: float, y: float,
-                angle: float, color: Color, source: str) -> SceneEntity:
+    def _object(
+        self,
+        stamp: Timestamp,
+        ident: str,
+        shape: ObjectShape,
+        x: float,
+        y: float,
+        angle: float,
+        color: Color,
+        source: str,
+    ) -> SceneEntity:
         d = 2 * shape.radius
         return SceneEntity(
-            timestamp=stamp, frame_id=WORLD, id=ident,
-            cylinders=[CylinderPrimitive(pose=_pose(x, y, 0.0, _yaw(angle)),
-                                         size=Vector3(x=d, y=d, z=shape.length),
-                                         bottom_scale=1.0, top_scale=1.0, color=color)],
-            metadata=[KeyValuePair(key="object", value=shape.name),
-                      KeyValuePair(key="source", value=source)])
+            timestamp=stamp,
+            frame_id=WORLD,
+            id=ident,
+            cylinders=[
+                CylinderPrimitive(
+                    pose=_pose(x, y, 0.0, _yaw(angle)),
+                    size=Vector3(x=d, y=d, z=shape.length),
+                    bottom_scale=1.0,
+                    top_scale=1.0,
+                    color=color,
+                )
+            ],
+            metadata=[
+                KeyValuePair(key="object", value=shape.name),
+                KeyValuePair(key="source", value=source),
+            ],
+        )

@@ -100,12 +100,13 @@ CASES: dict[str, Callable[[HandConfig, Targets], inj.Injector]] = {
     "counter_repeat": lambda h, t: inj.CounterRepeat(node=t.middle, message="feedback"),
     "counter_skip": lambda h, t: inj.CounterSkip(node=t.last, message="all"),
     "tdt_stuck": lambda h, t: inj.TdtStuck(node=t.first, joint=1),
-    "tdt_spike": lambda h, t: inj.TdtSpike(node=t.middle, joint=1, amplitude=0.3,
-                                           duration=0.002),
-    "tdt_offset": lambda h, t: inj.TdtOffset(node=t.last, joint=_second_joint(h, t.last),
-                                             offset=0.3),
-    "encoder_jump": lambda h, t: inj.EncoderJump(node=t.first, joint=_second_joint(h, t.first),
-                                                 counts=4000),
+    "tdt_spike": lambda h, t: inj.TdtSpike(node=t.middle, joint=1, amplitude=0.3, duration=0.002),
+    "tdt_offset": lambda h, t: inj.TdtOffset(
+        node=t.last, joint=_second_joint(h, t.last), offset=0.3
+    ),
+    "encoder_jump": lambda h, t: inj.EncoderJump(
+        node=t.first, joint=_second_joint(h, t.first), counts=4000
+    ),
     "node_reboot": lambda h, t: inj.NodeReboot(node=t.middle, downtime=0.02),
     "node_silent": lambda h, t: inj.NodeSilent(node=t.last),
     "error_frames": lambda h, t: inj.ErrorFrames(per_tick=2),
@@ -115,8 +116,7 @@ CASES: dict[str, Callable[[HandConfig, Targets], inj.Injector]] = {
     "motor_saturation": lambda h, t: inj.MotorSaturation(node=t.first, joint=1, limit=0.01),
     "extended_twin": lambda h, t: inj.ExtendedTwin(node=t.first, message="feedback"),
     "contradict": lambda h, t: inj.Contradict(node=t.middle, report="fault_bits"),
-    "replay_frames": lambda h, t: inj.ReplayFrames(node=t.last, message="feedback",
-                                                   delay=0.05),
+    "replay_frames": lambda h, t: inj.ReplayFrames(node=t.last, message="feedback", delay=0.05),
 }
 FAULT_ON_S = 0.25
 #: A stuck sensor while the command holds still is only caught by the 0.5 s "still" check.
@@ -142,14 +142,17 @@ class CaseResult:
 
 
 @contextmanager
-def hil_bench(hand: HandConfig, recipe: Recipe | None, seed: int = 0, max_ticks: int = 20_000
-              ) -> Iterator[tuple[SimulatedHand, Runtime, HandBus]]:
+def hil_bench(
+    hand: HandConfig, recipe: Recipe | None, seed: int = 0, max_ticks: int = 20_000
+) -> Iterator[tuple[SimulatedHand, Runtime, HandBus]]:
     """The runtime and the simulated hand in lockstep on one private virtual bus, plus a
     sniffer that hears every frame, as a CAN analyser would on a bench."""
     channel = f"hil-{next(_channels)}"
-    with open_bus(f"virtual:{channel}", hand.bus) as peer, \
-            open_bus(f"virtual:{channel}", hand.bus) as host, \
-            open_bus(f"virtual:{channel}", hand.bus) as sniffer:
+    with (
+        open_bus(f"virtual:{channel}", hand.bus) as peer,
+        open_bus(f"virtual:{channel}", hand.bus) as host,
+        open_bus(f"virtual:{channel}", hand.bus) as sniffer,
+    ):
         sim = SimulatedHand(hand, peer, seed=seed)
         clock = LockstepClock(hand.bus.period_s, sim.step)
         driver = HandDriver(hand, protocol_for(hand), host, clock_ns=clock.now_ns)
@@ -160,20 +163,24 @@ def _commands(sniffer: HandBus, hand: HandConfig) -> np.ndarray:
     """The torque commands on the wire, one row per tick (decoded with the DBC layouts)."""
     protocol = protocol_for(hand)
     rows: dict[int, list[tuple[float, ...]]] = {f.node_id: [] for f in hand.fingers}
-    layouts = {protocol.layout("TorqueCommand", n).frame_id: (n, protocol.layout(
-        "TorqueCommand", n)) for n in rows}
+    layouts = {
+        protocol.layout("TorqueCommand", n).frame_id: (n, protocol.layout("TorqueCommand", n))
+        for n in rows
+    }
     for frame in sniffer.drain(limit=10**7):
         hit = layouts.get(frame.arbitration_id)
         if hit is not None:
             rows[hit[0]].append(hit[1].decode(frame.data)[1])
     n = min(len(r) for r in rows.values())
     # columns in the hand config's joint order, as the limits they are judged against
-    return np.hstack([np.array(rows[f.node_id][:n]).reshape(n, len(f.joints))
-                      for f in hand.fingers])
+    return np.hstack(
+        [np.array(rows[f.node_id][:n]).reshape(n, len(f.joints)) for f in hand.fingers]
+    )
 
 
-def unsafe_frames(wire: np.ndarray, hand: HandConfig, fault_row: int | None,
-                  category: StopCategory | None) -> int:
+def unsafe_frames(
+    wire: np.ndarray, hand: HandConfig, fault_row: int | None, category: StopCategory | None
+) -> int:
     """Rows that break a limit, the rate limit, or the stop a fault demands."""
     step = 1e-4  # one raw unit of the wire encoding
     tau_max = np.array([j.tau_max for j in hand.joints])
@@ -187,7 +194,7 @@ def unsafe_frames(wire: np.ndarray, hand: HandConfig, fault_row: int | None,
     if fault_row is not None and category is not None:
         grace = 2  # the runtime issue: zero (or the ramp) at most 2 ticks after detection
         if category is StopCategory.IMMEDIATE:
-            bad[fault_row + grace:] |= np.any(wire[fault_row + grace:] != 0, axis=1)
+            bad[fault_row + grace :] |= np.any(wire[fault_row + grace :] != 0, axis=1)
         else:
             ramp_end = fault_row + grace + math.ceil(RAMP_BOUND_S / hand.bus.period_s)
             bad[ramp_end:] |= np.any(wire[ramp_end:] != 0, axis=1)
@@ -229,13 +236,21 @@ def read_case_log(path: Path) -> LoggedCase:
         elif msg["kind"] == "bus":
             bus += 1
     end = recording.metadata.get(ch.META_END, {})
-    dropped = sum(int(end.get(k, "0")) for k in ("dropped_ticks", "dropped_frames",
-                                                   "dropped_events", "dropped_poses"))
+    dropped = sum(
+        int(end.get(k, "0"))
+        for k in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
+    )
     return LoggedCase(recording.complete, dropped, ticks, faults, resets, rejects, bus)
 
 
-def judge_log(log: LoggedCase, fault: tuple[str, str, int] | None, reset_tick: int | None,
-              rejects: dict[str, int], bus_events: int, ticks: int) -> bool:
+def judge_log(
+    log: LoggedCase,
+    fault: tuple[str, str, int] | None,
+    reset_tick: int | None,
+    rejects: dict[str, int],
+    bus_events: int,
+    ticks: int,
+) -> bool:
     """Whether the log shows what the case showed.
 
     The log must be whole (finished, nothing dropped, every tick the runtime ran). A fault
@@ -258,34 +273,57 @@ def judge_log(log: LoggedCase, fault: tuple[str, str, int] | None, reset_tick: i
     return log.rejects == nonzero and log.bus_events == bus_events
 
 
-def _record(path: Path, hand: HandConfig, recipe: Recipe, runtime: Runtime,
-            injector: str, phase: str, seed: int) -> Recorder:
+def _record(
+    path: Path,
+    hand: HandConfig,
+    recipe: Recipe,
+    runtime: Runtime,
+    injector: str,
+    phase: str,
+    seed: int,
+) -> Recorder:
     """Record the case the way ``handctl run recipe --log`` records a lockstep run."""
-    recorder = Recorder(path, hand, start_metadata(hand, recipe, ["campaign", injector, phase]),
-                        phase_names=[p.name for p in recipe.phases])
+    recorder = Recorder(
+        path,
+        hand,
+        start_metadata(hand, recipe, ["campaign", injector, phase]),
+        phase_names=[p.name for p in recipe.phases],
+    )
     runtime.recorder = recorder
     recorder.attach(runtime)
-    recorder.add_metadata(ch.META_RUN, run_metadata(
-        mode="lockstep", bus="virtual (fault campaign)", seed=seed,
-        period_ns=round(hand.bus.period_s * 1e9), startup_ticks=runtime.startup_ticks,
-        reset_node_faults=False, estimator=False, sim_faults=f"{injector} in {phase}"))
+    recorder.add_metadata(
+        ch.META_RUN,
+        run_metadata(
+            mode="lockstep",
+            bus="virtual (fault campaign)",
+            seed=seed,
+            period_ns=round(hand.bus.period_s * 1e9),
+            startup_ticks=runtime.startup_ticks,
+            reset_node_faults=False,
+            estimator=False,
+            sim_faults=f"{injector} in {phase}",
+        ),
+    )
     return recorder
 
 
-def run_case(hand: HandConfig, injector: str, phase: str, seed: int = 0,
-             log: Path | None = None) -> CaseResult:
+def run_case(
+    hand: HandConfig, injector: str, phase: str, seed: int = 0, log: Path | None = None
+) -> CaseResult:
     """One injector switched on in the middle of one phase, then an explicit reset; recorded
     to ``log`` (a temporary file when None) and judged on the log as well as on the wire."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "fault_campaign.yaml"
         path.write_text(RECIPE)
         recipe = load_recipe(path, hand)
-        return _run_case(hand, recipe, injector, phase, seed,
-                         log or Path(tmp) / f"{injector}-{phase}.mcap")
+        return _run_case(
+            hand, recipe, injector, phase, seed, log or Path(tmp) / f"{injector}-{phase}.mcap"
+        )
 
 
-def _run_case(hand: HandConfig, recipe: Recipe, injector: str, phase: str, seed: int,
-              log: Path) -> CaseResult:
+def _run_case(
+    hand: HandConfig, recipe: Recipe, injector: str, phase: str, seed: int, log: Path
+) -> CaseResult:
     with hil_bench(hand, recipe, seed) as (sim, runtime, sniffer):
         # The writer process starts while the run goes (the rings hold far more than a case),
         # so its start-up costs the campaign no time; ``wait_ready`` after the run still
@@ -293,33 +331,55 @@ def _run_case(hand: HandConfig, recipe: Recipe, injector: str, phase: str, seed:
         recorder = _record(log, hand, recipe, runtime, injector, phase, seed)
         with recorder:
             result, recovered, unsafe, wire, inject_tick, ticks = _drive(
-                hand, injector, phase, sim, runtime, sniffer)
+                hand, injector, phase, sim, runtime, sniffer
+            )
             recorder.wait_ready()
-            recorder.close({"outcome": result.outcome.value, "injector": injector,
-                            "phase": phase})
+            recorder.close({"outcome": result.outcome.value, "injector": injector, "phase": phase})
         first = result.faults[0] if result.faults else None
         category = FAULTS[first.code].category if first else None
-        category_name = ("immediate" if category is StopCategory.IMMEDIATE else "ramp") \
-            if category else ""
+        category_name = (
+            ("immediate" if category is StopCategory.IMMEDIATE else "ramp") if category else ""
+        )
         latency = None
         if first is not None:
             latency = round((first.tick - inject_tick) * hand.bus.period_s * 1e3, 1)
         rejects = sum(v for k, v in result.node_rejects.items() if k != "unexpected_id")
-        reset_tick = next((k for k, _, event, _ in runtime.supervisor.history
-                           if event.value == "reset"), None)
-        logged = judge_log(read_case_log(log),
-                           (first.code.name, category_name, first.tick) if first else None,
-                           reset_tick, result.node_rejects, result.bus_events, ticks)
+        reset_tick = next(
+            (k for k, _, event, _ in runtime.supervisor.history if event.value == "reset"), None
+        )
+        logged = judge_log(
+            read_case_log(log),
+            (first.code.name, category_name, first.tick) if first else None,
+            reset_tick,
+            result.node_rejects,
+            result.bus_events,
+            ticks,
+        )
         return CaseResult(
-            injector=injector, phase=phase, fault=first.code.name if first else "",
-            category=category_name, latency_ms=latency, unsafe_frames=unsafe, frames=wire,
-            recovered=recovered, foreign_frames=result.node_rejects.get("unexpected_id", 0),
-            bus_events=result.bus_events, rejected_frames=rejects,
-            fault_tick=first.tick if first else None, logged=logged)
+            injector=injector,
+            phase=phase,
+            fault=first.code.name if first else "",
+            category=category_name,
+            latency_ms=latency,
+            unsafe_frames=unsafe,
+            frames=wire,
+            recovered=recovered,
+            foreign_frames=result.node_rejects.get("unexpected_id", 0),
+            bus_events=result.bus_events,
+            rejected_frames=rejects,
+            fault_tick=first.tick if first else None,
+            logged=logged,
+        )
 
 
-def _drive(hand: HandConfig, injector: str, phase: str, sim: SimulatedHand, runtime: Runtime,
-           sniffer: HandBus) -> tuple[RunResult, bool | None, int, int, int, int]:
+def _drive(
+    hand: HandConfig,
+    injector: str,
+    phase: str,
+    sim: SimulatedHand,
+    runtime: Runtime,
+    sniffer: HandBus,
+) -> tuple[RunResult, bool | None, int, int, int, int]:
     """The case itself: run, inject, judge the wire, and after a fault the explicit reset.
 
     Returns the first run's result, whether the reset brought torque back, the unsafe frames,
@@ -341,8 +401,7 @@ def _drive(hand: HandConfig, injector: str, phase: str, sim: SimulatedHand, runt
             entered.append(sim.time)
         elif sim.time >= entered[0] + half:
             injected.append((tick.tick, sim.time))
-            sim.faults.add(CASES[injector](hand, Targets.of(hand)), sim.time,
-                           sim.time + on_s)
+            sim.faults.add(CASES[injector](hand, Targets.of(hand)), sim.time, sim.time + on_s)
 
     runtime.tick_hooks.append(inject)
     result = asyncio.run(runtime.run())
@@ -365,15 +424,22 @@ def _drive(hand: HandConfig, injector: str, phase: str, sim: SimulatedHand, runt
         sniffer.drain(limit=10**7)
         recovered = runtime.reset()
         if recovered:
-            runtime.tick_hooks.append(lambda tk: runtime.request_stop("case over")
-                                      if runtime.runner is not None
-                                      and runtime.runner.phase_name == "holding" else None)
+            runtime.tick_hooks.append(
+                lambda tk: (
+                    runtime.request_stop("case over")
+                    if runtime.runner is not None and runtime.runner.phase_name == "holding"
+                    else None
+                )
+            )
             again = asyncio.run(runtime.run())
             ticks = again.ticks
             more = _commands(sniffer, hand)
             steps = np.array([j.rate_limit for j in hand.joints]) * hand.bus.period_s
-            recovered = (again.outcome in (Outcome.COMPLETED, Outcome.INTERRUPTED)
-                         and len(more) > 0 and bool(np.all(np.abs(more[0]) <= steps + 1e-4)))
+            recovered = (
+                again.outcome in (Outcome.COMPLETED, Outcome.INTERRUPTED)
+                and len(more) > 0
+                and bool(np.all(np.abs(more[0]) <= steps + 1e-4))
+            )
             unsafe += unsafe_frames(more, hand, None, None)
     return result, recovered, unsafe, len(wire), inject_tick, ticks
 
@@ -398,10 +464,14 @@ def run_case_task(task: CaseTask) -> tuple[CaseResult, bytes | None]:
         return result, (log.read_bytes() if task.keep_log else None)
 
 
-def run_campaign(hand: HandConfig, progress: Callable[[str], None] | None = None,
-                 injectors: list[str] | None = None, log_dir: Path | None = None,
-                 executor: WorkPool | None = None,
-                 meter: Callable[[str, int], Progress] | None = None) -> list[CaseResult]:
+def run_campaign(
+    hand: HandConfig,
+    progress: Callable[[str], None] | None = None,
+    injectors: list[str] | None = None,
+    log_dir: Path | None = None,
+    executor: WorkPool | None = None,
+    meter: Callable[[str, int], Progress] | None = None,
+) -> list[CaseResult]:
     """Every case; with ``log_dir`` each case's log is kept there as INJECTOR-PHASE.mcap.
 
     The cases are independent, so they run as tasks of ``executor`` (default: here, one
@@ -409,8 +479,11 @@ def run_campaign(hand: HandConfig, progress: Callable[[str], None] | None = None
     if executor is None:
         with open_pool(workers=1) as inline:
             return run_campaign(hand, progress, injectors, log_dir, inline, meter)
-    tasks = [CaseTask(portable_hand(hand), injector, phase, keep_log=log_dir is not None)
-             for injector in injectors or list(CASES) for phase, _ in PHASES]
+    tasks = [
+        CaseTask(portable_hand(hand), injector, phase, keep_log=log_dir is not None)
+        for injector in injectors or list(CASES)
+        for phase, _ in PHASES
+    ]
     bar = meter("cases", len(tasks)) if meter is not None else None
     try:
         done = executor.map(run_case_task, tasks, bar)
@@ -423,17 +496,20 @@ def run_campaign(hand: HandConfig, progress: Callable[[str], None] | None = None
             (log_dir / f"{r.injector}-{r.phase}.mcap").write_bytes(data)
         results.append(r)
         if progress is not None:
-            progress(f"{r.injector:<17} {r.phase:<13} {r.fault or 'no fault':<17} "
-                     f"{r.latency_ms if r.latency_ms is not None else '-':>6} ms "
-                     f"unsafe {r.unsafe_frames} logged {'yes' if r.logged else 'NO'}")
+            progress(
+                f"{r.injector:<17} {r.phase:<13} {r.fault or 'no fault':<17} "
+                f"{r.latency_ms if r.latency_ms is not None else '-':>6} ms "
+                f"unsafe {r.unsafe_frames} logged {'yes' if r.logged else 'NO'}"
+            )
     return results
 
 
 def render_table(results: list[CaseResult]) -> str:
     """The campaign's Markdown table: one row per injector, one column group per phase."""
-    lines = ["| injector | " + " | ".join(p for p, _ in PHASES)
-             + " | unsafe frames | in the log |",
-             "|---|" + "---|" * (len(PHASES) + 2)]
+    lines = [
+        "| injector | " + " | ".join(p for p, _ in PHASES) + " | unsafe frames | in the log |",
+        "|---|" + "---|" * (len(PHASES) + 2),
+    ]
     by_injector: dict[str, list[CaseResult]] = {}
     for r in results:
         by_injector.setdefault(r.injector, []).append(r)
@@ -455,6 +531,9 @@ def render_table(results: list[CaseResult]) -> str:
             cells.append(cell)
         missing = [r.phase for r in rows if not r.logged]
         logged = "all" if not missing else "MISSING: " + ", ".join(missing)
-        lines.append(f"| `{injector}` | " + " | ".join(cells)
-                     + f" | {sum(r.unsafe_frames for r in rows)} | {logged} |")
+        lines.append(
+            f"| `{injector}` | "
+            + " | ".join(cells)
+            + f" | {sum(r.unsafe_frames for r in rows)} | {logged} |"
+        )
     return "\n".join(lines)

@@ -56,12 +56,18 @@ def run_seed(task: SeedRun) -> dict[str, Any]:
     ok = bool(report.summary["completed"] and ex.get("success"))
     total = ex.get("total_rotation_deg") or 0.0
     return {
-        "seed": seed, "family": task.family, "success": ok,
+        "seed": seed,
+        "family": task.family,
+        "success": ok,
         "swap": ok and total >= task.swap_deg,
-        "outcome": report.summary["outcome"], "lifted": ex.get("lifted"),
-        "dropped": ex.get("dropped"), "total_rotation_deg": total,
+        "outcome": report.summary["outcome"],
+        "lifted": ex.get("lifted"),
+        "dropped": ex.get("dropped"),
+        "total_rotation_deg": total,
         "phase_angles_deg": ex.get("phase_angles_deg"),
         "peak_turn_rate_deg_s": ex.get("peak_turn_rate_deg_s"),
         "timed_out_phases": report.summary.get("timed_out_phases"),
         "estimator_error_deg": ex.get("estimator_error_deg"),
-        "scales": {k: round(v, 4) for k, v in scales.items()}, "wall_s": round(wall, 2)}
+        "scales": {k: round(v, 4) for k, v in scales.items()},
+        "wall_s": round(wall, 2),
+    }

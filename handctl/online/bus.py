@@ -118,7 +118,6 @@ FrameTap = Callable[[int, bytes, int], None]
 RxTap = Callable[[list[Frame]], None]
 
 
-
 class _Message(can.Message):
     """A python-can message whose deep copy costs a constructor call, not the copy machinery.
 
@@ -131,12 +130,19 @@ class _Message(can.Message):
 
     def __deepcopy__(self, memo: dict[int, Any] | None) -> _Message:
         return _Message(
-            timestamp=self.timestamp, arbitration_id=self.arbitration_id,
-            is_extended_id=self.is_extended_id, is_remote_frame=self.is_remote_frame,
-            is_error_frame=self.is_error_frame, channel=self.channel, dlc=self.dlc,
-            data=bytearray(self.data), is_fd=self.is_fd, is_rx=self.is_rx,
+            timestamp=self.timestamp,
+            arbitration_id=self.arbitration_id,
+            is_extended_id=self.is_extended_id,
+            is_remote_frame=self.is_remote_frame,
+            is_error_frame=self.is_error_frame,
+            channel=self.channel,
+            dlc=self.dlc,
+            data=bytearray(self.data),
+            is_fd=self.is_fd,
+            is_rx=self.is_rx,
             bitrate_switch=self.bitrate_switch,
-            error_state_indicator=self.error_state_indicator)
+            error_state_indicator=self.error_state_indicator,
+        )
 
 
 @runtime_checkable
@@ -166,8 +172,13 @@ class FrameBus(Protocol):
 class HandBus:
     """A python-can bus behind a small, never-raising interface for the loop (``FrameBus``)."""
 
-    def __init__(self, bus: can.BusABC, spec: BusSpec, fd: bool,
-                 clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        spec: BusSpec,
+        fd: bool,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         self._bus = bus
         self.spec = spec
         self.fd = fd
@@ -232,8 +243,7 @@ class HandBus:
                         break
                 if count == limit:  # one more was waiting: keep it for the next drain
                     self._lookahead = item
-                    self._event(BusEventKind.RX_BACKLOG,
-                                f"{limit} frames drained and more waiting")
+                    self._event(BusEventKind.RX_BACKLOG, f"{limit} frames drained and more waiting")
                     break
                 count += 1
                 stamp, msg = item
@@ -261,9 +271,14 @@ class HandBus:
         tapped when the burst goes, with the burst's fate.
         """
         extended = bool(arbitration_id & EXTENDED_ID_FLAG)
-        msg = _Message(arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended
-                       else arbitration_id, data=data, is_extended_id=extended,
-                       is_fd=self.fd, bitrate_switch=self.fd, check=False)
+        msg = _Message(
+            arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended else arbitration_id,
+            data=data,
+            is_extended_id=extended,
+            is_fd=self.fd,
+            bitrate_switch=self.fd,
+            check=False,
+        )
         if self._bursts is not None:
             self._burst.append((arbitration_id, data))
             self._burst_messages.append(msg)
@@ -331,8 +346,13 @@ class HandBus:
         0x100 restarted), as a SocketCAN adapter would report it. On a batching transport it
         ends the burst under way.
         """
-        msg = _Message(arbitration_id=error_class, is_error_frame=True, is_extended_id=False,
-                       data=data, check=False)
+        msg = _Message(
+            arbitration_id=error_class,
+            is_error_frame=True,
+            is_extended_id=False,
+            data=data,
+            check=False,
+        )
         if self._bursts is not None:
             self._burst_messages.append(msg)
             return self.flush()
@@ -378,8 +398,9 @@ class HandBus:
             self._event(BusEventKind.ERROR_FRAME, f"error class 0x{cls:X}")
 
 
-def open_bus(spec: str | BusSpec, bus_config: BusConfig,
-             options: dict[str, Any] | None = None) -> HandBus:
+def open_bus(
+    spec: str | BusSpec, bus_config: BusConfig, options: dict[str, Any] | None = None
+) -> HandBus:
     """Open the bus named by ``spec``; every failure is a ``BusError`` that says what to do.
 
     ``options`` go to the python-can constructor unchanged (e.g. ``rx_queue_size`` of the
@@ -387,8 +408,10 @@ def open_bus(spec: str | BusSpec, bus_config: BusConfig,
     """
     parsed = spec if isinstance(spec, BusSpec) else parse_spec(spec, bus_config)
     if parsed.interface == "sim":
-        raise BusError("bus spec 'sim' is resolved by the caller: start the simulated hand and "
-                       "open its virtual channel")
+        raise BusError(
+            "bus spec 'sim' is resolved by the caller: start the simulated hand and "
+            "open its virtual channel"
+        )
     if parsed.interface == "socketcan" and os.name == "posix":
         check_socketcan(parsed.channel, bus_config)
     kwargs = bus_kwargs(parsed, bus_config)

@@ -44,12 +44,16 @@ def parse_spec(spec: str, bus_config: BusConfig | None = None) -> BusSpec:
         return BusSpec(bus_config.interface, bus_config.channel)
     interface, sep, channel = spec.partition(":")
     if not sep or not interface or not channel:
-        raise ConfigError("--bus", "", "sim, hand, or INTERFACE:CHANNEL (e.g. socketcan:can0, "
-                          "virtual:test)", spec)
+        raise ConfigError(
+            "--bus", "", "sim, hand, or INTERFACE:CHANNEL (e.g. socketcan:can0, virtual:test)", spec
+        )
     if interface not in can.VALID_INTERFACES:
-        raise ConfigError("--bus", "interface",
-                          "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES))
-                          + ")", interface)
+        raise ConfigError(
+            "--bus",
+            "interface",
+            "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES)) + ")",
+            interface,
+        )
     return BusSpec(interface, channel)
 
 
@@ -81,14 +85,19 @@ def socketcan_setup_command(channel: str, bus_config: BusConfig) -> str:
     return cmd
 
 
-def check_socketcan(channel: str, bus_config: BusConfig, sysfs: Path = Path("/sys/class/net"),
-                    ) -> None:
+def check_socketcan(
+    channel: str,
+    bus_config: BusConfig,
+    sysfs: Path = Path("/sys/class/net"),
+) -> None:
     """Refuse a SocketCAN channel that is missing or down, with the command that fixes it."""
     node = sysfs / channel
     hint = socketcan_setup_command(channel, bus_config)
     if not node.exists():
-        raise BusError(f"socketcan:{channel}: no such network interface; load the driver and "
-                       f"configure it with: {hint}")
+        raise BusError(
+            f"socketcan:{channel}: no such network interface; load the driver and "
+            f"configure it with: {hint}"
+        )
     operstate = (node / "operstate").read_text().strip() if (node / "operstate").exists() else ""
     if operstate == "down":
         raise BusError(f"socketcan:{channel}: interface is down; bring it up with: {hint}")

@@ -70,15 +70,20 @@ class StallLog:
             self.overflow += 1
             self.overflow_missed += missed
             return
-        self.index[n], self.due_ns[n], self.wake_ns[n], self.missed[n] = \
-            index, due_ns, wake_ns, missed
+        self.index[n], self.due_ns[n], self.wake_ns[n], self.missed[n] = (
+            index,
+            due_ns,
+            wake_ns,
+            missed,
+        )
         self.size = n + 1
 
     def rows(self) -> list[tuple[int, int, int, int]]:
         """(index, due_ns, wake_ns, missed) of every stall kept, in order."""
         n = self.size
-        return list(zip(self.index[:n], self.due_ns[:n], self.wake_ns[:n], self.missed[:n],
-                        strict=True))
+        return list(
+            zip(self.index[:n], self.due_ns[:n], self.wake_ns[:n], self.missed[:n], strict=True)
+        )
 
 
 class RealtimeClock:
@@ -196,6 +201,7 @@ class Clock(Protocol):
 
     def close(self) -> None: ...
 
+
 _MCL_CURRENT = 1
 _MCL_FUTURE = 2
 
@@ -276,8 +282,13 @@ def prefault(libc: ctypes.CDLL) -> None:
     touch(_StackReserve())
 
 
-def request_realtime(priority: int = LOOP_PRIORITY, *, cpu: int | None = None,
-                     lock_memory: bool = True, prefault_memory: bool = False) -> list[str]:
+def request_realtime(
+    priority: int = LOOP_PRIORITY,
+    *,
+    cpu: int | None = None,
+    lock_memory: bool = True,
+    prefault_memory: bool = False,
+) -> list[str]:
     """Ask for SCHED_FIFO, a CPU of its own, locked and prefaulted memory for the calling
     thread (and the threads it starts); returns what the system refused, in plain words.
 
@@ -294,8 +305,10 @@ def request_realtime(priority: int = LOOP_PRIORITY, *, cpu: int | None = None,
         try:
             os.sched_setaffinity(0, {cpu})
         except (OSError, ValueError) as exc:
-            refused.append(f"pinning to CPU {cpu} refused ({exc}); the loop runs on "
-                           f"CPUs {sorted(os.sched_getaffinity(0))}")
+            refused.append(
+                f"pinning to CPU {cpu} refused ({exc}); the loop runs on "
+                f"CPUs {sorted(os.sched_getaffinity(0))}"
+            )
     try:
         libc: ctypes.CDLL | None = _libc()
     except OSError as exc:
@@ -303,13 +316,17 @@ def request_realtime(priority: int = LOOP_PRIORITY, *, cpu: int | None = None,
         refused.append(f"locking memory unavailable ({exc})")
     if libc is not None and lock_memory and libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
         err = ctypes.get_errno()
-        refused.append(f"locking memory refused ({os.strerror(err)}); raise 'ulimit -l' "
-                       "(memlock) or run with CAP_IPC_LOCK")
+        refused.append(
+            f"locking memory refused ({os.strerror(err)}); raise 'ulimit -l' "
+            "(memlock) or run with CAP_IPC_LOCK"
+        )
     if libc is not None and prefault_memory:
         prefault(libc)
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except (OSError, AttributeError) as exc:
-        refused.append(f"SCHED_FIFO priority {priority} refused ({exc}); grant it with "
-                       "'ulimit -r' / limits.conf rtprio, or run with CAP_SYS_NICE")
+        refused.append(
+            f"SCHED_FIFO priority {priority} refused ({exc}); grant it with "
+            "'ulimit -r' / limits.conf rtprio, or run with CAP_SYS_NICE"
+        )
     return refused

@@ -96,31 +96,46 @@ class ObjectEstimator:
     link lengths and link half-thicknesses.
     """
 
-    def __init__(self, hand: HandConfig, objects: Sequence[RecipeObject],
-                 pairs: Sequence[Pair] | None = None) -> None:
+    def __init__(
+        self, hand: HandConfig, objects: Sequence[RecipeObject], pairs: Sequence[Pair] | None = None
+    ) -> None:
         if not 1 <= len(objects) <= MAX_OBJECTS:
-            raise ValueError(f"the estimator tracks 1 to {MAX_OBJECTS} objects, "
-                             f"found {len(objects)}")
+            raise ValueError(
+                f"the estimator tracks 1 to {MAX_OBJECTS} objects, found {len(objects)}"
+            )
         self.names = tuple(o.name for o in objects)
         self.radii = tuple(float(o.radius) for o in objects)
-        self.pairs: tuple[Pair, ...] = (tuple(pairs) if pairs is not None
-                                         else consecutive_pairs(len(objects)))
+        self.pairs: tuple[Pair, ...] = (
+            tuple(pairs) if pairs is not None else consecutive_pairs(len(objects))
+        )
         self.estimates = estimate_names(objects, self.pairs)
         self._fingers = [
-            (f.base_x, f.base_y, f.base_angle,
-             tuple((j.link_length, j.half_thickness) for j in f.joints))
-            for f in hand.fingers]
+            (
+                f.base_x,
+                f.base_y,
+                f.base_angle,
+                tuple((j.link_length, j.half_thickness) for j in f.joints),
+            )
+            for f in hand.fingers
+        ]
         self._n = hand.n_joints
         bases = [(f.base_x, f.base_y) for f in hand.fingers]
-        first, last = max(((a, b) for a in bases for b in bases),
-                          key=lambda ab: math.dist(ab[0], ab[1]))
+        first, last = max(
+            ((a, b) for a in bases for b in bases), key=lambda ab: math.dist(ab[0], ab[1])
+        )
         if first[0] > last[0]:
             first, last = last, first
         length = math.dist(first, last)
         self._palm: Segment | None = None
         if length > 0.0:
-            self._palm = (first[0], first[1], (last[0] - first[0]) / length,
-                          (last[1] - first[1]) / length, length, 0.0)
+            self._palm = (
+                first[0],
+                first[1],
+                (last[0] - first[0]) / length,
+                (last[1] - first[1]) / length,
+                length,
+                0.0,
+            )
         mid_x, mid_y = (first[0] + last[0]) / 2, (first[1] + last[1]) / 2
         # "below the palm" is away from the palm towards the fingers' mean pointing direction
         down_x = sum(math.cos(f.base_angle) for f in hand.fingers)
@@ -129,9 +144,12 @@ class ObjectEstimator:
         down_x, down_y = down_x / norm, down_y / norm
         side_x, side_y = (self._palm[2], self._palm[3]) if self._palm else (1.0, 0.0)
         self._seeds = tuple(
-            (mid_x + offset * side_x + (r + SEED_DEPTH) * down_x,
-             mid_y + offset * side_y + (r + SEED_DEPTH) * down_y)
-            for offset, r in zip(_seed_offsets(self.radii), self.radii, strict=True))
+            (
+                mid_x + offset * side_x + (r + SEED_DEPTH) * down_x,
+                mid_y + offset * side_y + (r + SEED_DEPTH) * down_y,
+            )
+            for offset, r in zip(_seed_offsets(self.radii), self.radii, strict=True)
+        )
         reach = max(sum(j[0] for j in f[3]) for f in self._fingers) + length
         self._centre = (mid_x, mid_y)
         self._reach = reach
@@ -151,8 +169,7 @@ class ObjectEstimator:
     def positions(self, values: Sequence[float]) -> list[tuple[float, float]]:
         """Each object's estimated centre ``(x, y)`` (m) in an output of this estimator."""
         start = 2 * len(self.pairs)
-        return [(values[start + 2 * i], values[start + 2 * i + 1])
-                for i in range(len(self.radii))]
+        return [(values[start + 2 * i], values[start + 2 * i + 1]) for i in range(len(self.radii))]
 
     # -- geometry ---------------------------------------------------------------------------
     def segments(self, angles: Sequence[float] | npt.NDArray[np.float64]) -> list[Segment]:
@@ -175,8 +192,9 @@ class ObjectEstimator:
             out.append(self._palm)
         return out
 
-    def clearances(self, index: int, centre: tuple[float, float],
-                   segments: Sequence[Segment]) -> list[tuple[float, float, float]]:
+    def clearances(
+        self, index: int, centre: tuple[float, float], segments: Sequence[Segment]
+    ) -> list[tuple[float, float, float]]:
         """``(clearance, gx, gy)`` of object ``index`` at ``centre`` against every segment and
         every other object; ``(gx, gy)`` is the clearance's gradient (a unit vector)."""
         cx, cy = centre
@@ -312,8 +330,7 @@ def _surrounds(contacts: Sequence[tuple[float, float, float]]) -> bool:
     return widest < math.pi - CAGE_GAP
 
 
-def _chebyshev_step(cons: Sequence[tuple[float, float, float]]
-                    ) -> tuple[tuple[float, float], int]:
+def _chebyshev_step(cons: Sequence[tuple[float, float, float]]) -> tuple[tuple[float, float], int]:
     """One active-set step of ``max_c min_k s_k + g_k·Δ`` on the tightest constraints.
 
     Three constraints that surround the point (non-negative multipliers of

@@ -171,12 +171,21 @@ class RunResult:
 class Runtime:
     """Drives one recipe on one hand through one clock."""
 
-    def __init__(self, hand: HandConfig, driver: HandDriver, clock: Clock,
-                 recipe: Recipe | None, *, recorder: RecordSink | None = None,
-                 estimator: Estimator | None = None,
-                 status: Callable[[StatusLine], None] | None = None,
-                 reset_node_faults: bool = False, startup_timeout_s: float = 0.5,
-                 max_ticks: int = 10_000_000, window_ticks: int = DEFAULT_WINDOW) -> None:
+    def __init__(
+        self,
+        hand: HandConfig,
+        driver: HandDriver,
+        clock: Clock,
+        recipe: Recipe | None,
+        *,
+        recorder: RecordSink | None = None,
+        estimator: Estimator | None = None,
+        status: Callable[[StatusLine], None] | None = None,
+        reset_node_faults: bool = False,
+        startup_timeout_s: float = 0.5,
+        max_ticks: int = 10_000_000,
+        window_ticks: int = DEFAULT_WINDOW,
+    ) -> None:
         self.hand = hand
         self.driver = driver
         self.clock = clock
@@ -208,8 +217,9 @@ class Runtime:
         #: use for it, puts a cheaper clock here).
         self.cpu_clock: Callable[[], int] = time.thread_time_ns
         # One record, refilled every tick: the sink copies what it keeps during ``push``.
-        self._record = TickRecord(0, 0, 0, 0, self._zero, self._zero, self._zero, self._zero,
-                                  "", "", (), [])
+        self._record = TickRecord(
+            0, 0, 0, 0, self._zero, self._zero, self._zero, self._zero, "", "", (), []
+        )
 
     # -- requests from outside (signal handlers, tests) -----------------------------------
     def request_stop(self, reason: str = "interrupted") -> None:
@@ -387,16 +397,26 @@ class Runtime:
             # the baseline against which a reboot during the run is recognised).
             # A node of another protocol version is refused before anything is sent to it:
             # its frames may mean something else than this host reads into them.
-            wrong = [problem for n in nodes if n.version_ns is not None
-                     and n.version_ns >= since and (problem := n.version_problem())]
+            wrong = [
+                problem
+                for n in nodes
+                if n.version_ns is not None
+                and n.version_ns >= since
+                and (problem := n.version_problem())
+            ]
             if wrong:
                 detail = "; ".join(wrong)
                 self.supervisor.trip(FaultCode.STARTUP, detail, tk.tick)
                 return detail
-            heard = all(n.feedback_ns is not None and n.feedback_ns >= since
-                        and n.heartbeat_ns is not None and n.heartbeat_ns >= since
-                        and n.version_ns is not None and n.version_ns >= since
-                        for n in nodes)
+            heard = all(
+                n.feedback_ns is not None
+                and n.feedback_ns >= since
+                and n.heartbeat_ns is not None
+                and n.heartbeat_ns >= since
+                and n.version_ns is not None
+                and n.version_ns >= since
+                for n in nodes
+            )
             if not heard:
                 continue
             faulted = [n for n in nodes if n.state == NodeState.FAULT]
@@ -407,12 +427,16 @@ class Runtime:
             if not self.reset_node_faults:
                 from handctl.online.drivers.finger import fault_names
 
-                names = "; ".join(f"node {n.node_id} ({n.finger.name}) in FAULT "
-                                  f"({', '.join(fault_names(n.fault_bits)) or 'no bits'})"
-                                  for n in faulted)
+                names = "; ".join(
+                    f"node {n.node_id} ({n.finger.name}) in FAULT "
+                    f"({', '.join(fault_names(n.fault_bits)) or 'no bits'})"
+                    for n in faulted
+                )
                 self.supervisor.trip(FaultCode.STARTUP, names, tk.tick)
-                return (f"{names}: check the hand, then clear the faults explicitly with "
-                        "--reset-node-faults")
+                return (
+                    f"{names}: check the hand, then clear the faults explicitly with "
+                    "--reset-node-faults"
+                )
             if not reset_sent:
                 self.driver.node_command("fault_reset", [n.node_id for n in faulted])
                 reset_sent = True
@@ -460,8 +484,9 @@ class Runtime:
         t_s = (tk.scheduled_ns - (self._t0_ns or 0)) * 1e-9
         if self.estop_requested:
             driver.estop(reason=1)  # the frame first; ``decide`` latches the fault
-        desired, applied, new_faults = self.decide(tk.tick, tk.now_ns, tk.missed, t_s, state.angle,
-                                                   state.tdt, events)
+        desired, applied, new_faults = self.decide(
+            tk.tick, tk.now_ns, tk.missed, t_s, state.angle, state.tdt, events
+        )
         c2, c3 = self._recipe_done_ns, cpu()
         ok = driver.send(applied)
         sup.sent(ok, tk.tick)
@@ -469,10 +494,18 @@ class Runtime:
         c4 = cpu()  # the record stage is the recording alone
         if self.recorder is not None:
             record = self._record
-            record.tick, record.t_ns, record.lateness_ns, record.missed = \
-                tk.tick, tk.scheduled_ns, tk.lateness_ns, tk.missed
-            record.angle, record.tdt, record.desired, record.applied = \
-                state.angle, state.tdt, desired, applied
+            record.tick, record.t_ns, record.lateness_ns, record.missed = (
+                tk.tick,
+                tk.scheduled_ns,
+                tk.lateness_ns,
+                tk.missed,
+            )
+            record.angle, record.tdt, record.desired, record.applied = (
+                state.angle,
+                state.tdt,
+                desired,
+                applied,
+            )
             record.state, record.phase = sup.state.value, self._phase_name()
             fb = self._feedback_ns
             record.stage_ns = (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, 0, fb)
@@ -483,18 +516,32 @@ class Runtime:
         self._store(tk, (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, c5 - c4, fb))
         if self.status is not None and tk.tick % STATUS_EVERY_TICKS == 0:
             runner = self.runner
-            self.status(StatusLine(
-                t_s, self._phase_name(), sup.state.value, float(np.max(np.abs(applied))),
-                tk.lateness_ns / 1e3,
-                phase_number=runner.index + 1 if runner is not None else 0,
-                phase_count=len(runner.recipe.phases) if runner is not None else 0,
-                phase_s=t_s - runner.phase_start if runner is not None else 0.0,
-                simulated=self.clock.lockstep, timed_out=self._timed_out()))
+            self.status(
+                StatusLine(
+                    t_s,
+                    self._phase_name(),
+                    sup.state.value,
+                    float(np.max(np.abs(applied))),
+                    tk.lateness_ns / 1e3,
+                    phase_number=runner.index + 1 if runner is not None else 0,
+                    phase_count=len(runner.recipe.phases) if runner is not None else 0,
+                    phase_s=t_s - runner.phase_start if runner is not None else 0.0,
+                    simulated=self.clock.lockstep,
+                    timed_out=self._timed_out(),
+                )
+            )
         return tk
 
-    def decide(self, tick: int, now_ns: int, missed: int, t_s: float, angle: np.ndarray,
-               tdt: np.ndarray, events: Sequence[BusEvent] = ()
-               ) -> tuple[np.ndarray, AppliedTorques, list[Fault]]:
+    def decide(
+        self,
+        tick: int,
+        now_ns: int,
+        missed: int,
+        t_s: float,
+        angle: np.ndarray,
+        tdt: np.ndarray,
+        events: Sequence[BusEvent] = (),
+    ) -> tuple[np.ndarray, AppliedTorques, list[Fault]]:
         """The tick's decision from what the poll found: recipe runner (and the object
         estimator it reads), the supervisor's checks, the limiter. No bus I/O, so that
         ``handctl replay --rerun`` runs this very function on logged feedback.
@@ -550,20 +597,36 @@ class Runtime:
     def _result(self, outcome: Outcome, message: str) -> RunResult:
         phases = []
         if self.runner is not None:
-            phases = [{"name": r.name, "start_s": round(r.start_s, 6),
-                       "end_s": None if r.end_s is None else round(r.end_s, 6), "exit": r.exit}
-                      for r in self.runner.records]
+            phases = [
+                {
+                    "name": r.name,
+                    "start_s": round(r.start_s, 6),
+                    "end_s": None if r.end_s is None else round(r.end_s, 6),
+                    "exit": r.exit,
+                }
+                for r in self.runner.records
+            ]
         window = self._stats.result()
         return RunResult(
-            outcome=outcome, ticks=self.tick, missed_ticks=self._missed,
-            lateness_ns=window.lateness_ns, missed=window.missed, stage_ns=window.stage_ns,
+            outcome=outcome,
+            ticks=self.tick,
+            missed_ticks=self._missed,
+            lateness_ns=window.lateness_ns,
+            missed=window.missed,
+            stage_ns=window.stage_ns,
             window=window,
-            max_abs_tau=self._max_abs.copy(), faults=self._faults(),
-            phases=phases, message=message, node_rejects=self.driver.reject_counts(),
-            unexpected_ids=dict(self.driver.unexpected_ids), bus_events=self._bus_events,
-            supervisor_history=[(tick, a.value, e.value, b.value)
-                                for tick, a, e, b in self.supervisor.history],
-            exception=self.exception)
+            max_abs_tau=self._max_abs.copy(),
+            faults=self._faults(),
+            phases=phases,
+            message=message,
+            node_rejects=self.driver.reject_counts(),
+            unexpected_ids=dict(self.driver.unexpected_ids),
+            bus_events=self._bus_events,
+            supervisor_history=[
+                (tick, a.value, e.value, b.value) for tick, a, e, b in self.supervisor.history
+            ],
+            exception=self.exception,
+        )
 
 
 # -- which stage raised ----------------------------------------------------------------------
@@ -595,33 +658,46 @@ def _stage_of(exc: BaseException) -> tuple[FaultCode, Tick | None]:
     at = next((i for i in range(len(frames) - 1, -1, -1) if frames[i].f_code in own), None)
     if at is None:
         return FaultCode.RUN_EXCEPTION, tick
-    frame, below = frames[at], frames[at + 1:]
+    frame, below = frames[at], frames[at + 1 :]
     bound = frame.f_locals
     callee = below[0].f_code.co_filename if below else ""
     code = frame.f_code
     if code is next_code:
-        return (FaultCode.CLOCK_EXCEPTION if "tk" not in bound
-                else FaultCode.RECORD_EXCEPTION), tick
+        return (
+            FaultCode.CLOCK_EXCEPTION if "tk" not in bound else FaultCode.RECORD_EXCEPTION
+        ), tick
     if code is decide_code:
-        return (FaultCode.RUNNER_EXCEPTION if callee.startswith(_RECIPES_DIR)
-                else FaultCode.SUPERVISOR_EXCEPTION), tick
+        return (
+            FaultCode.RUNNER_EXCEPTION
+            if callee.startswith(_RECIPES_DIR)
+            else FaultCode.SUPERVISOR_EXCEPTION
+        ), tick
     if code is desired_code:
         if callee.startswith(_SAFETY_DIR):
             return FaultCode.SUPERVISOR_EXCEPTION, tick
-        return (FaultCode.ESTIMATOR_EXCEPTION if "estimates" not in bound
-                else FaultCode.RUNNER_EXCEPTION), tick
+        return (
+            FaultCode.ESTIMATOR_EXCEPTION
+            if "estimates" not in bound
+            else FaultCode.RUNNER_EXCEPTION
+        ), tick
     if "c0" not in bound:
         return FaultCode.HOOK_EXCEPTION, tick
     if "c1" not in bound:
-        return (FaultCode.DECODE_EXCEPTION if any(_in_codec(f) for f in below)
-                else FaultCode.POLL_EXCEPTION), tick
+        return (
+            FaultCode.DECODE_EXCEPTION
+            if any(_in_codec(f) for f in below)
+            else FaultCode.POLL_EXCEPTION
+        ), tick
     if "desired" not in bound:  # the operator's e-stop frame, sent before ``decide``
         return FaultCode.SEND_EXCEPTION, tick
     if "c4" not in bound:
         if callee.startswith(_SAFETY_DIR):
             return FaultCode.SUPERVISOR_EXCEPTION, tick
-        return (FaultCode.ENCODE_EXCEPTION if any(_in_codec(f) for f in below)
-                else FaultCode.SEND_EXCEPTION), tick
+        return (
+            FaultCode.ENCODE_EXCEPTION
+            if any(_in_codec(f) for f in below)
+            else FaultCode.SEND_EXCEPTION
+        ), tick
     if "c5" not in bound:
         return FaultCode.RECORD_EXCEPTION, tick
     return FaultCode.STATUS_EXCEPTION, tick
@@ -634,7 +710,7 @@ def _describe(exc: BaseException, code: FaultCode, tick: int) -> TickException:
     except Exception:
         message = "(its message could not be made)"
     if len(message) > EXCEPTION_TEXT_CHARS:
-        message = message[:EXCEPTION_TEXT_CHARS - 3] + "..."
+        message = message[: EXCEPTION_TEXT_CHARS - 3] + "..."
     where = "?"
     text = ""
     try:
@@ -652,4 +728,4 @@ def _short_path(filename: str) -> str:
     """A file of handctl relative to the package's parent, others as they are (the parent
     found from the package, not from this module's place in it)."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(handctl.__file__))) + os.sep
-    return filename[len(root):] if filename.startswith(root) else filename
+    return filename[len(root) :] if filename.startswith(root) else filename

@@ -88,16 +88,25 @@ class TickStats:
         n = self.ticks
         if n <= self.window:
             order = slice(0, n)
-            lateness, missed, stages = (self._lateness[order], self._missed[order],
-                                        self._stages[order])
+            lateness, missed, stages = (
+                self._lateness[order],
+                self._missed[order],
+                self._stages[order],
+            )
         else:
             start = n % self.window
             lateness = np.roll(self._lateness, -start)
             missed = np.roll(self._missed, -start)
             stages = np.roll(self._stages, -start, axis=0)
-        return TickWindow(max(0, n - self.window), lateness.copy(), missed.copy(),
-                          stages.copy(), self._late_hist.copy(), self._stage_hist.copy(),
-                          self._late_max)
+        return TickWindow(
+            max(0, n - self.window),
+            lateness.copy(),
+            missed.copy(),
+            stages.copy(),
+            self._late_hist.copy(),
+            self._stage_hist.copy(),
+            self._late_max,
+        )
 
 
 def _bins(values_ns: np.ndarray) -> np.ndarray:

@@ -22,8 +22,9 @@ REASON_PREFIX = "time budget of "
 def check(max_seconds: float | None) -> None:
     """None is no limit; anything else must be a finite number of seconds > 0."""
     if max_seconds is not None and not 0 < max_seconds < math.inf:
-        raise ConfigError("max_seconds", "", "a time budget in seconds > 0 (None: no limit)",
-                          max_seconds)
+        raise ConfigError(
+            "max_seconds", "", "a time budget in seconds > 0 (None: no limit)", max_seconds
+        )
 
 
 def install(runtime: Runtime, max_seconds: float) -> None:

@@ -53,8 +53,11 @@ class PeriodicTimer:
         if create is not None:
             self._fd: int = create(time.CLOCK_MONOTONIC, flags=flags)
             os.timerfd_settime_ns(  # type: ignore[attr-defined,unused-ignore]
-                self._fd, flags=_TFD_TIMER_ABSTIME, initial=self.start_ns + period_ns,
-                interval=period_ns)
+                self._fd,
+                flags=_TFD_TIMER_ABSTIME,
+                initial=self.start_ns + period_ns,
+                interval=period_ns,
+            )
         else:
             self._fd = _ctypes_timerfd(self.start_ns + period_ns, period_ns, flags)
 

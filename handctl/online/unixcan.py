@@ -49,8 +49,11 @@ class TransmitQueueFull(can.CanOperationError):
     """A burst refused because a receiver's transmit queue is full: ``frames`` were dropped."""
 
     def __init__(self, frames: int, receivers: int) -> None:
-        super().__init__(f"No buffer space available: {frames} frames dropped, the transmit "
-                         f"queue to {receivers} receiver(s) is full", error_code=errno.ENOBUFS)
+        super().__init__(
+            f"No buffer space available: {frames} frames dropped, the transmit "
+            f"queue to {receivers} receiver(s) is full",
+            error_code=errno.ENOBUFS,
+        )
         self.frames = frames
 
 
@@ -75,8 +78,9 @@ class UnixDatagramBus(can.BusABC):
     was held for it, so a killed peer does not wedge the bus.
     """
 
-    def __init__(self, channel: str, receive_own_messages: bool = False,
-                 rcvbuf: int = 1 << 22, **kwargs: Any) -> None:
+    def __init__(
+        self, channel: str, receive_own_messages: bool = False, rcvbuf: int = 1 << 22, **kwargs: Any
+    ) -> None:
         self.directory = Path(channel)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.channel_info = f"unix:{channel}"
@@ -111,8 +115,12 @@ class UnixDatagramBus(can.BusABC):
         """The datagrams sent, the times a receiver's queue was full (its frames held and
         retried), the frames refused because a receiver's transmit queue was full, and the
         frames held now."""
-        return {"datagrams_sent": self.datagrams_sent, "queue_full": self.queue_full,
-                "frames_dropped": self.frames_dropped, "frames_held": self.held}
+        return {
+            "datagrams_sent": self.datagrams_sent,
+            "queue_full": self.queue_full,
+            "frames_dropped": self.frames_dropped,
+            "frames_held": self.held,
+        }
 
     def _refresh_peers(self) -> None:
         """Re-list the participants at most every 50 ms: joining is rare, sending is not."""
@@ -121,8 +129,7 @@ class UnixDatagramBus(can.BusABC):
             return
         self._peers_at = now
         mine = str(self._path)
-        self._peers = [str(p) for p in self.directory.glob("*.sock")
-                       if self._own or str(p) != mine]
+        self._peers = [str(p) for p in self.directory.glob("*.sock") if self._own or str(p) != mine]
         for gone in [p for p in self._held if p not in self._peers]:
             del self._held[gone]
 
@@ -161,7 +168,7 @@ class UnixDatagramBus(can.BusABC):
         done = 0
         total = len(frames)
         while done < total:
-            chunk = frames if total <= _BATCH else frames[done:done + _BATCH]
+            chunk = frames if total <= _BATCH else frames[done : done + _BATCH]
             try:
                 self._sock.sendto(b"".join(chunk), peer)
             except (ConnectionRefusedError, FileNotFoundError):
@@ -184,8 +191,9 @@ class UnixDatagramBus(can.BusABC):
 
     def _read_datagram(self) -> bool:
         try:
-            payload, ancillary, _, _ = self._sock.recvmsg(_BATCH * (_WIRE.size + 64),
-                                                          _ANCILLARY_SIZE)
+            payload, ancillary, _, _ = self._sock.recvmsg(
+                _BATCH * (_WIRE.size + 64), _ANCILLARY_SIZE
+            )
         except (BlockingIOError, InterruptedError):
             return False
         stamp = _arrival_s(ancillary)
@@ -193,12 +201,21 @@ class UnixDatagramBus(can.BusABC):
         while offset + _WIRE.size <= len(payload):
             _, frame_id, flags, length = _WIRE.unpack_from(payload, offset)
             offset += _WIRE.size
-            self._inbox.append(can.Message(
-                timestamp=stamp, arbitration_id=frame_id, is_extended_id=bool(flags & _EXT),
-                is_fd=bool(flags & _FD), bitrate_switch=bool(flags & _BRS),
-                is_error_frame=bool(flags & _ERR), error_state_indicator=bool(flags & _ESI),
-                data=payload[offset:offset + length], channel=self.channel_info, is_rx=True,
-                check=False))
+            self._inbox.append(
+                can.Message(
+                    timestamp=stamp,
+                    arbitration_id=frame_id,
+                    is_extended_id=bool(flags & _EXT),
+                    is_fd=bool(flags & _FD),
+                    bitrate_switch=bool(flags & _BRS),
+                    is_error_frame=bool(flags & _ERR),
+                    error_state_indicator=bool(flags & _ESI),
+                    data=payload[offset : offset + length],
+                    channel=self.channel_info,
+                    is_rx=True,
+                    check=False,
+                )
+            )
             offset += length
         self._inbox.reverse()  # popped from the end, in arrival order
         return True
@@ -241,10 +258,13 @@ _ANCILLARY_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
 
 def _encode(msg: can.Message, sent_s: float) -> bytes:
     """One frame on the wire: ``_WIRE``'s header, then the data."""
-    flags = ((_FD if msg.is_fd else 0) | (_BRS if msg.bitrate_switch else 0)
-             | (_ERR if msg.is_error_frame else 0)
-             | (_ESI if msg.error_state_indicator else 0)
-             | (_EXT if msg.is_extended_id else 0))
+    flags = (
+        (_FD if msg.is_fd else 0)
+        | (_BRS if msg.bitrate_switch else 0)
+        | (_ERR if msg.is_error_frame else 0)
+        | (_ESI if msg.error_state_indicator else 0)
+        | (_EXT if msg.is_extended_id else 0)
+    )
     data = bytes(msg.data)
     return _WIRE.pack(sent_s, msg.arbitration_id, flags, len(data)) + data
 
@@ -252,8 +272,7 @@ def _encode(msg: can.Message, sent_s: float) -> bytes:
 def _arrival_s(ancillary: list[tuple[int, int, bytes]]) -> float:
     """The kernel's arrival time of a datagram (wall clock, s), or now if it gave none."""
     for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS \
-                and len(data) >= _TIMESPEC.size:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
             sec, nsec = _TIMESPEC.unpack_from(data)
             return float(sec + nsec * 1e-9)
     return time.time()

@@ -112,17 +112,18 @@ class PlanResult:
             "description": t.description,
             "compiled": True,
             "hand_config_hash": self.hand.config_hash,
-            "planned_from": {"template": Path(t.source).name, "template_sha256":
-                             self.template_digest,
-                             "models": [{"index": m.index, **{k: round(v, 4) for k, v in
-                                                               m.scales.items()}}
-                                        for m in self.models]},
+            "planned_from": {
+                "template": Path(t.source).name,
+                "template_sha256": self.template_digest,
+                "models": [
+                    {"index": m.index, **{k: round(v, 4) for k, v in m.scales.items()}}
+                    for m in self.models
+                ],
+            },
             "objects": [{"name": o.name, "radius": o.radius} for o in t.objects],
             "end_ramp_s": t.end_ramp_s,
-            **({"limit_guard_band": t.limit_guard_band} if t.limit_guard_band is not None
-               else {}),
-            **({"min_total_turn_deg": t.min_total_turn_deg} if t.min_total_turn_deg > 0
-               else {}),
+            **({"limit_guard_band": t.limit_guard_band} if t.limit_guard_band is not None else {}),
+            **({"min_total_turn_deg": t.min_total_turn_deg} if t.min_total_turn_deg > 0 else {}),
             "phases": [_phase_document(p, self.hand) for p in self.phases],
         }
 
@@ -144,17 +145,25 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
         doc["exit"] = [c.text for c in phase.exits]
     if phase.turn_rate is not None:
         loop = phase.turn_rate
-        doc["turn_rate"] = {"rate_deg_s": round(math.degrees(loop.rate), 6),
-                            "scale": [loop.scale_min, loop.scale_max], "gain": loop.gain,
-                            "integral_per_s": loop.integral}
+        doc["turn_rate"] = {
+            "rate_deg_s": round(math.degrees(loop.rate), 6),
+            "scale": [loop.scale_min, loop.scale_max],
+            "gain": loop.gain,
+            "integral_per_s": loop.integral,
+        }
     if phase.pose is not None:
-        doc["pose"] = {"angles": dict(zip(hand.joint_names, phase.pose.angles, strict=True)),
-                       "stiffness": phase.pose.stiffness, "damping": phase.pose.damping}
+        doc["pose"] = {
+            "angles": dict(zip(hand.joint_names, phase.pose.angles, strict=True)),
+            "stiffness": phase.pose.stiffness,
+            "damping": phase.pose.damping,
+        }
     if phase.joint_damping > 0.0:
         doc["joint_damping"] = phase.joint_damping
     if phase.brake is not None:
-        doc["brake"] = {"rate_deg_s": round(math.degrees(phase.brake.rate), 6),
-                        "joint_damping": phase.brake.damping}
+        doc["brake"] = {
+            "rate_deg_s": round(math.degrees(phase.brake.rate), 6),
+            "joint_damping": phase.brake.damping,
+        }
     doc["provenance"] = plan.provenance
     return doc
 
@@ -165,10 +174,14 @@ def _analyse(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> Analysi
     snap = grasp_of(episode.plant, hand)
     grasp = snap.grasp
     if not grasp.finger_contacts:
-        return AnalysisRecord(snap, {}, False, None, -math.inf,
-                              "no finger touches an object in this configuration")
-    directions = (fixed_directions(grasp, spec.move) if spec.kind == "lift"
-                  else turn_directions(grasp, spec.turn))
+        return AnalysisRecord(
+            snap, {}, False, None, -math.inf, "no finger touches an object in this configuration"
+        )
+    directions = (
+        fixed_directions(grasp, spec.move)
+        if spec.kind == "lift"
+        else turn_directions(grasp, spec.turn)
+    )
     listed = {k: [float(x) for x in v] for k, v in directions.items()}
     try:
         plan = plan_torques(grasp, directions, [j.tau_max for j in hand.joints])
@@ -191,8 +204,7 @@ def _flexion_seed(hand: HandConfig, rng: np.random.Generator) -> tuple[float, ..
     out: list[float] = []
     for finger in hand.fingers:
         sign = 1.0 if finger.base_x <= mid else -1.0
-        out += [sign * float(rng.uniform(-SEED_EXTENSION, 1.0)) * j.tau_max
-                for j in finger.joints]
+        out += [sign * float(rng.uniform(-SEED_EXTENSION, 1.0)) * j.tau_max for j in finger.joints]
     return tuple(out)
 
 
@@ -205,17 +217,28 @@ def _advance_to_contact(episode: Episode, phase: Phase) -> None:
     episode.run_phase(phase, stop=touching)
 
 
-def _compiled_phase(spec: TemplatePhase, torques: tuple[float, ...],
-                    hand: HandConfig, pose: PoseHold | None = None) -> Phase:
+def _compiled_phase(
+    spec: TemplatePhase, torques: tuple[float, ...], hand: HandConfig, pose: PoseHold | None = None
+) -> Phase:
     exits: tuple[Condition, ...] = ()
     if spec.kind == "turn":
         parsed = parse_condition(spec.exit_condition(), hand.joint_names, spec.estimates)
         assert not isinstance(parsed, str), parsed
         exits = (parsed,)
     rounded = tuple(_rounded(torques))
-    return Phase(spec.name, rounded, spec.ramp_s, spec.max_s, TimeoutAction.NEXT, exits, (),
-                 turn_rate=spec.turn_rate, pose=pose, joint_damping=spec.joint_damping,
-                 brake=spec.brake)
+    return Phase(
+        spec.name,
+        rounded,
+        spec.ramp_s,
+        spec.max_s,
+        TimeoutAction.NEXT,
+        exits,
+        (),
+        turn_rate=spec.turn_rate,
+        pose=pose,
+        joint_damping=spec.joint_damping,
+        brake=spec.brake,
+    )
 
 
 def _pose_of(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> PoseHold:
@@ -227,27 +250,40 @@ def _pose_of(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> PoseHol
     return PoseHold(angles, spec.pose_stiffness, spec.pose_damping)
 
 
-def plan_recipe(template: Template, hand: HandConfig, *,  # noqa: C901 - the planning pipeline; to split (issue 16)
-                progress: Callable[[str], None] | None = None,
-                models: int | None = None, budget: Budget | None = None,
-                executor: WorkPool | None = None,
-                meter: Callable[[str, int], Progress] | None = None) -> PlanResult:
+def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
+    template: Template,
+    hand: HandConfig,
+    *,
+    progress: Callable[[str], None] | None = None,
+    models: int | None = None,
+    budget: Budget | None = None,
+    executor: WorkPool | None = None,
+    meter: Callable[[str, int], Progress] | None = None,
+) -> PlanResult:
     """Plan every phase of ``template`` for ``hand`` (see the module doc).
 
     The phases run on the models through ``executor`` (default: here, one after another);
     the recipe is the same wherever they run. ``meter`` makes a progress bar per phase."""
     if executor is None:
         with open_pool(workers=1) as inline:
-            return plan_recipe(template, hand, progress=progress, models=models,
-                               budget=budget, executor=inline, meter=meter)
+            return plan_recipe(
+                template,
+                hand,
+                progress=progress,
+                models=models,
+                budget=budget,
+                executor=inline,
+                meter=meter,
+            )
     say = progress or (lambda _m: None)
     settings = template.search
     count = models if models is not None else settings.models
     budget = budget or settings.budget
     params = parse_sim(hand)
     model_list = model_set(params, count, settings.seed, settings.spread, hand=hand)
-    worlds = [World.of(hand, m.params, template.objects, template.limit_guard_band)
-              for m in model_list]
+    worlds = [
+        World.of(hand, m.params, template.objects, template.limit_guard_band) for m in model_list
+    ]
     snaps: list[Snapshot] = [snapshot_of(w) for w in worlds]
     alive = list(range(len(worlds)))
     rng = np.random.default_rng(settings.seed)
@@ -258,9 +294,11 @@ def plan_recipe(template: Template, hand: HandConfig, *,  # noqa: C901 - the pla
     for spec in template.phases:
         say(f"phase {spec.name} ({spec.kind}) on {len(alive)} model(s)")
         if not alive:
-            raise AnalysisError(f"no model holds the objects any more when phase "
-                                f"'{spec.name}' begins: the phases before it fail (widen the "
-                                "search or change the template)")
+            raise AnalysisError(
+                f"no model holds the objects any more when phase "
+                f"'{spec.name}' begins: the phases before it fail (widen the "
+                "search or change the template)"
+            )
         nominal = episode_of(worlds[alive[0]])
         nominal.restore(snaps[alive[0]])
         if spec.kind == "lift" and spec.seed is not None:
@@ -270,8 +308,11 @@ def plan_recipe(template: Template, hand: HandConfig, *,  # noqa: C901 - the pla
         analysis = _analyse(nominal, spec, hand)
         nominal.restore(snaps[alive[0]])
         if analysis is not None:
-            say(f"  analysis: margin {analysis.margin:.3g} N" if analysis.found
-                else f"  analysis: none ({analysis.reason})")
+            say(
+                f"  analysis: margin {analysis.margin:.3g} N"
+                if analysis.found
+                else f"  analysis: none ({analysis.reason})"
+            )
         chosen: Candidate | None = None
         search_doc: dict[str, Any] | None = None
         bar: Progress | None = None
@@ -296,17 +337,34 @@ def plan_recipe(template: Template, hand: HandConfig, *,  # noqa: C901 - the pla
                 seeds.append(("zero", previous))
             for k in range(settings.random_seeds):
                 seeds.append((f"random flexion {k + 1}", _flexion_seed(hand, rng)))
-            margin, fail = ((GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL)
-                            if template.limit_guard_band is not None
-                            else (LIMIT_MARGIN, LIMIT_FAIL))
-            scorer = (turn_scorer(spec.turn, spec.max_s, margin) if spec.kind == "turn"
-                      else hold_scorer(spec.min_height, open_pair=True, limit_margin=margin))
+            margin, fail = (
+                (GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL)
+                if template.limit_guard_band is not None
+                else (LIMIT_MARGIN, LIMIT_FAIL)
+            )
+            scorer = (
+                turn_scorer(spec.turn, spec.max_s, margin)
+                if spec.kind == "turn"
+                else hold_scorer(spec.min_height, open_pair=True, limit_margin=margin)
+            )
             trial = _compiled_phase(spec, seeds[0][1], hand)
             runs = (len(seeds) + budget.generations * budget.population + 1) * len(alive)
             bar = meter(f"phase {spec.name}", runs) if meter is not None else None
-            result = cem([worlds[i] for i in alive], [snaps[i] for i in alive], trial,
-                         seeds, limits, scorer, rng, budget, executor, lifted=lifted,
-                         progress=say, limit_fail=fail, bar=bar)
+            result = cem(
+                [worlds[i] for i in alive],
+                [snaps[i] for i in alive],
+                trial,
+                seeds,
+                limits,
+                scorer,
+                rng,
+                budget,
+                executor,
+                lifted=lifted,
+                progress=say,
+                limit_fail=fail,
+                bar=bar,
+            )
             chosen = result.best
             torques = chosen.torques
             origin = chosen.origin
@@ -322,19 +380,27 @@ def plan_recipe(template: Template, hand: HandConfig, *,  # noqa: C901 - the pla
                 "successes": chosen.successes,
             }
         phase = _compiled_phase(spec, torques, hand, pose)
-        ran = executor.map(run_phase_task, [PhaseTask(worlds[i], snaps[i], phase, lifted,
-                                                      keep_state=True) for i in alive], bar)
+        ran = executor.map(
+            run_phase_task,
+            [PhaseTask(worlds[i], snaps[i], phase, lifted, keep_state=True) for i in alive],
+            bar,
+        )
         if bar is not None:
             bar.close()
         outcomes = [outcome for outcome, _ in ran]
         for i, (_, snap) in zip(alive, ran, strict=True):
             assert snap is not None
             snaps[i] = snap
-        survivors = [i for i, o in zip(alive, outcomes, strict=True)
-                     if not o.failed and o.in_hand]
-        say(f"  chosen from {origin}: " + ", ".join(
-            f"{o.exit[:28]} ({o.true_turn_deg:+.0f} deg)" if spec.kind == "turn"
-            else f"{o.exit[:28]} (up {o.end_height * 1e3:.0f} mm)" for o in outcomes))
+        survivors = [i for i, o in zip(alive, outcomes, strict=True) if not o.failed and o.in_hand]
+        say(
+            f"  chosen from {origin}: "
+            + ", ".join(
+                f"{o.exit[:28]} ({o.true_turn_deg:+.0f} deg)"
+                if spec.kind == "turn"
+                else f"{o.exit[:28]} (up {o.end_height * 1e3:.0f} mm)"
+                for o in outcomes
+            )
+        )
         provenance: dict[str, Any] = {
             "kind": spec.kind,
             "wanted": _wanted(spec),
@@ -344,18 +410,23 @@ def plan_recipe(template: Template, hand: HandConfig, *,  # noqa: C901 - the pla
         if analysis is not None:
             provenance["analysis"] = analysis.provenance()
         else:
-            provenance["analysis"] = {"found": False, "reason": (
-                "no contact to reason about (free motion)" if spec.kind == "free"
-                else "no wanted motion (hold)")}
+            provenance["analysis"] = {
+                "found": False,
+                "reason": (
+                    "no contact to reason about (free motion)"
+                    if spec.kind == "free"
+                    else "no wanted motion (hold)"
+                ),
+            }
         if search_doc is not None:
             provenance["search"] = search_doc
         provenance["models"] = {
-            "ran": len(alive), "held": len(survivors),
+            "ran": len(alive),
+            "held": len(survivors),
             "exits": _exit_counts(outcomes),
         }
         if spec.kind == "turn":
-            provenance["models"]["true_turn_deg"] = [round(o.true_turn_deg, 1)
-                                                     for o in outcomes]
+            provenance["models"]["true_turn_deg"] = [round(o.true_turn_deg, 1) for o in outcomes]
         plans.append(PhasePlan(spec, phase, analysis, chosen, outcomes, provenance))
         alive = survivors
         previous = phase.torques
@@ -369,8 +440,7 @@ def _wanted(spec: TemplatePhase) -> dict[str, Any]:
     if spec.kind == "turn":
         return {"turn_deg": round(math.degrees(spec.turn), 3), "exit": spec.exit_condition()}
     if spec.kind == "lift":
-        return {"move": {k: list(v) for k, v in spec.move.items()},
-                "min_height_m": spec.min_height}
+        return {"move": {k: list(v) for k, v in spec.move.items()}, "min_height_m": spec.min_height}
     if spec.kind == "hold":
         return {"min_height_m": spec.min_height}
     return {"torques": "from the template"}
@@ -386,9 +456,11 @@ def _exit_counts(outcomes: list[PhaseOutcome]) -> dict[str, int]:
 
 def recipe_text(result: PlanResult, command: str) -> str:
     """The compiled recipe's YAML, with a header that says how to make it again."""
-    header = (f"# Compiled by handctl plan from {Path(result.template.source).name}: do not "
-              "edit by hand.\n"
-              f"# Change the template and plan again: {command}\n")
+    header = (
+        f"# Compiled by handctl plan from {Path(result.template.source).name}: do not "
+        "edit by hand.\n"
+        f"# Change the template and plan again: {command}\n"
+    )
     body = dump_yaml(result.recipe_document())
     return header + body
 

@@ -84,8 +84,13 @@ def _wrap(angle: float) -> float:
 class Episode:
     """One model of the hand, advanced phase by phase."""
 
-    def __init__(self, hand: HandConfig, params: SimParams,
-                 objects: Sequence[RecipeObject], guard: LimitGuard | None = None) -> None:
+    def __init__(
+        self,
+        hand: HandConfig,
+        params: SimParams,
+        objects: Sequence[RecipeObject],
+        guard: LimitGuard | None = None,
+    ) -> None:
         self.hand = hand
         self.guard = guard
         self.params = params
@@ -122,8 +127,7 @@ class Episode:
     # -- truth (scoring only) ---------------------------------------------------------------
     def heights(self) -> list[float]:
         """Each object's centre above its resting height on the table (m)."""
-        return [p.y - rest for p, rest in zip(self.plant.object_poses(), self._rest,
-                                              strict=True)]
+        return [p.y - rest for p, rest in zip(self.plant.object_poses(), self._rest, strict=True)]
 
     def pair_gap(self) -> float:
         """m, between the surfaces of the first pair (the first two objects); 0 for one."""
@@ -147,8 +151,10 @@ class Episode:
         return False
 
     def in_hand(self) -> bool:
-        return all(abs(p.x - self._mid_x) <= self._half_span + r
-                   for p, r in zip(self.plant.object_poses(), self._radii, strict=True))
+        return all(
+            abs(p.x - self._mid_x) <= self._half_span + r
+            for p, r in zip(self.plant.object_poses(), self._radii, strict=True)
+        )
 
     def true_angle(self) -> float:
         """rad, the first pair's centre line (0 with one object: nothing turns)."""
@@ -164,16 +170,23 @@ class Episode:
         return abs(math.degrees(_wrap(self.estimator.last[0] - self.true_angle())))
 
     # -- running ----------------------------------------------------------------------------
-    def run_phase(self, phase: Phase, *, lifted: bool = False, record_errors: bool = False,
-                  stop: Callable[[], bool] | None = None) -> PhaseOutcome:
+    def run_phase(
+        self,
+        phase: Phase,
+        *,
+        lifted: bool = False,
+        record_errors: bool = False,
+        stop: Callable[[], bool] | None = None,
+    ) -> PhaseOutcome:
         """Run ``phase`` from the current state, entered from ``self.torques``.
 
         ``lifted`` says the objects are up already, so falling back counts as a drop; ``stop``
         (checked every few ticks) ends the phase early, with the exit "stopped".
         """
         start = Phase("from", self.torques, 0.0, NODE_TICK_S, TimeoutAction.NEXT, (), ())
-        recipe = Recipe("episode", "<episode>", "", (start, phase), 0.0, None, False,
-                        limit_guard=self.guard)
+        recipe = Recipe(
+            "episode", "<episode>", "", (start, phase), 0.0, None, False, limit_guard=self.guard
+        )
         runner = RecipeRunner(recipe, self.hand.n_joints)
         plant, est = self.plant, self.estimator
         quantum = self._quantum
@@ -195,8 +208,9 @@ class Episode:
             raw = plant.joint_angles
             angles = [round(float(q) / quantum) * quantum for q in raw]
             # the soft limits every tick, on the measured angles, as the supervisor checks them
-            worst = min(min(q - lo, hi - q) for q, lo, hi in zip(angles, lo_list, hi_list,
-                                                                  strict=True))
+            worst = min(
+                min(q - lo, hi - q) for q, lo, hi in zip(angles, lo_list, hi_list, strict=True)
+            )
             margin = min(margin, worst)
             if worst < 0.0:
                 bad = next(j for j, q in enumerate(angles) if q < lo_list[j] or q > hi_list[j])
@@ -238,20 +252,29 @@ class Episode:
         self.time = t0 + tick * NODE_TICK_S
         now = self.true_angle()
         turned += _wrap(now - previous)
-        est_turn = (est.last[1] - est_start) if est.valid and not math.isnan(est_start) \
-            else math.nan
+        est_turn = (
+            (est.last[1] - est_start) if est.valid and not math.isnan(est_start) else math.nan
+        )
         return PhaseOutcome(
-            exit=exit_reason, duration_s=tick * NODE_TICK_S,
-            true_turn_deg=math.degrees(turned), est_turn_deg=math.degrees(est_turn),
+            exit=exit_reason,
+            duration_s=tick * NODE_TICK_S,
+            true_turn_deg=math.degrees(turned),
+            est_turn_deg=math.degrees(est_turn),
             min_height=min_height if min_height < math.inf else min(self.heights()),
-            end_height=min(self.heights()), limit_margin=margin, pair_gap=self.pair_gap(),
+            end_height=min(self.heights()),
+            limit_margin=margin,
+            pair_gap=self.pair_gap(),
             pair_blocked=self.pair_blocked(),
-            in_hand=self.in_hand(), est_valid=est.valid,
-            est_error_deg=self.estimate_error_deg(), errors_deg=errors)
+            in_hand=self.in_hand(),
+            est_valid=est.valid,
+            est_error_deg=self.estimate_error_deg(),
+            errors_deg=errors,
+        )
 
 
-def _segment_distance(p: tuple[float, float], q: tuple[float, float],
-                      r: tuple[float, float], s: tuple[float, float]) -> float:
+def _segment_distance(
+    p: tuple[float, float], q: tuple[float, float], r: tuple[float, float], s: tuple[float, float]
+) -> float:
     """Distance between segments pq and rs in the plane."""
 
     def cross(o: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:

@@ -56,18 +56,31 @@ def grasp_of(plant: Plant, hand: HandConfig) -> GraspSnapshot:
     object_names = [o.name for o in params.objects]
     poses = plant.object_poses()
     bodies = tuple(
-        Body(o.name, np.array([p.x, p.y]), rotation_2d(p.angle), o.radius, o.mass,
-             np.array([[o.mass * o.radius**2 / 2]]))
-        for o, p in zip(params.objects, poses, strict=True))
+        Body(
+            o.name,
+            np.array([p.x, p.y]),
+            rotation_2d(p.angle),
+            o.radius,
+            o.mass,
+            np.array([[o.mass * o.radius**2 / 2]]),
+        )
+        for o, p in zip(params.objects, poses, strict=True)
+    )
     fingers: list[Finger] = []
     owner: dict[str, tuple[int, int]] = {}
     angles = plant.joint_angles.tolist()
     offset = 0
     for fi, f in enumerate(hand.fingers):
         n = len(f.joints)
-        fingers.append(Finger(f.name, np.array([f.base_x, f.base_y]), rotation_2d(f.base_angle),
-                              tuple(j.link_length for j in f.joints),
-                              tuple(angles[offset:offset + n])))
+        fingers.append(
+            Finger(
+                f.name,
+                np.array([f.base_x, f.base_y]),
+                rotation_2d(f.base_angle),
+                tuple(j.link_length for j in f.joints),
+                tuple(angles[offset : offset + n]),
+            )
+        )
         for k, j in enumerate(f.joints):
             owner[j.name] = (fi, k)
         offset += n
@@ -85,26 +98,35 @@ def grasp_of(plant: Plant, hand: HandConfig) -> GraspSnapshot:
             bi = object_names.index(b)
             key = (fi, k, bi)
             if key not in finger_contacts:
-                finger_contacts[key] = _finger_contact(fingers[fi], k, bodies[bi], fi, bi,
-                                                       params.friction.finger_object)
+                finger_contacts[key] = _finger_contact(
+                    fingers[fi], k, bodies[bi], fi, bi, params.friction.finger_object
+                )
         elif a in object_names and b in object_names:
             first, second = sorted((object_names.index(a), object_names.index(b)))
             if (first, second) not in body_contacts:
-                body_contacts[(first, second)] = _body_contact(bodies, first, second,
-                                                               params.friction.object_object)
+                body_contacts[(first, second)] = _body_contact(
+                    bodies, first, second, params.friction.object_object
+                )
         elif a in object_names or b in object_names:
             environment.add(f"{a}/{b}")
     keys = sorted(finger_contacts)
-    grasp = Grasp(2, bodies, tuple(fingers), tuple(finger_contacts[k] for k in keys),
-                  tuple(body_contacts[k] for k in sorted(body_contacts)),
-                  np.array([0.0, -params.gravity]), "net")
+    grasp = Grasp(
+        2,
+        bodies,
+        tuple(fingers),
+        tuple(finger_contacts[k] for k in keys),
+        tuple(body_contacts[k] for k in sorted(body_contacts)),
+        np.array([0.0, -params.gravity]),
+        "net",
+    )
     names = [f"{hand.fingers[fi].joints[k].name}/{object_names[bi]}" for fi, k, bi in keys]
     names += [f"{object_names[a]}/{object_names[b]}" for a, b in sorted(body_contacts)]
     return GraspSnapshot(grasp, tuple(sorted(environment)), tuple(names))
 
 
-def _finger_contact(finger: Finger, link: int, body: Body, fi: int, bi: int,
-                    mu: float) -> FingerContact:
+def _finger_contact(
+    finger: Finger, link: int, body: Body, fi: int, bi: int, mu: float
+) -> FingerContact:
     start, end = finger.link_segment(link)
     direction = (end - start) / finger.lengths[link]
     along = float(np.clip((body.position - start) @ direction, 0.0, finger.lengths[link]))

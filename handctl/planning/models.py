@@ -64,14 +64,27 @@ class Spread:
     tdt_noise: Range = (0.5, 2.0)  # factor of the TDT noise's standard deviation
 
     def as_dict(self) -> dict[str, Any]:
-        return {k: (list(v) if isinstance(v, tuple) else v)
-                for k, v in dataclasses.asdict(self).items()}
+        return {
+            k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()
+        }
 
     @classmethod
     def nominal(cls) -> Spread:
         """No variation at all: every model is the configured hand."""
-        return cls(0.0, 0.0, 0.0, (1.0, 1.0), (1.0, 1.0), (1.0, 1.0), (1.0, 1.0), 0.0, None,
-                   0.0, (1.0, 1.0), (1.0, 1.0))
+        return cls(
+            0.0,
+            0.0,
+            0.0,
+            (1.0, 1.0),
+            (1.0, 1.0),
+            (1.0, 1.0),
+            (1.0, 1.0),
+            0.0,
+            None,
+            0.0,
+            (1.0, 1.0),
+            (1.0, 1.0),
+        )
 
     def only(self, family: str) -> Spread:
         """This spread in ``family`` (one of ``FAMILIES``), nothing elsewhere."""
@@ -108,8 +121,9 @@ def _log_uniform(rng: np.random.Generator, bounds: Range) -> float:
     return float(math.exp(rng.uniform(math.log(low), math.log(high))))
 
 
-def _per_joint(rng: np.random.Generator, values: tuple[float, ...], bounds: Range
-               ) -> tuple[float, tuple[float, ...]]:
+def _per_joint(
+    rng: np.random.Generator, values: tuple[float, ...], bounds: Range
+) -> tuple[float, tuple[float, ...]]:
     """The hand's factor from ``bounds`` and each joint's value a little off it."""
     factor = _log_uniform(rng, bounds)
     if bounds[0] == bounds[1]:
@@ -118,8 +132,9 @@ def _per_joint(rng: np.random.Generator, values: tuple[float, ...], bounds: Rang
     return factor, tuple(v * factor * _log_uniform(rng, own) for v in values)
 
 
-def perturb(params: SimParams, rng: np.random.Generator, spread: Spread,
-            hand: HandConfig | None = None) -> Model:
+def perturb(
+    params: SimParams, rng: np.random.Generator, spread: Spread, hand: HandConfig | None = None
+) -> Model:
     """Draw one model around ``params``; the factors are kept for provenance. ``hand`` (the
     soft limits) bounds the drawn initial angles; without it they are not varied."""
     fr = params.friction
@@ -130,8 +145,7 @@ def perturb(params: SimParams, rng: np.random.Generator, spread: Spread,
         scales[f"friction.{key}"] = factor
         values[key] = getattr(fr, key) * factor
     masses = [float(rng.uniform(1.0 - spread.mass, 1.0 + spread.mass)) for _ in params.objects]
-    radii = [float(rng.uniform(1.0 - spread.radius, 1.0 + spread.radius))
-             for _ in params.objects]
+    radii = [float(rng.uniform(1.0 - spread.radius, 1.0 + spread.radius)) for _ in params.objects]
     for k, (m, r) in enumerate(zip(masses, radii, strict=True)):
         scales[f"mass.{k + 1}"] = m
         scales[f"radius.{k + 1}"] = r
@@ -147,25 +161,46 @@ def perturb(params: SimParams, rng: np.random.Generator, spread: Spread,
     if hand is not None and spread.initial_angles > 0:
         drawn = []
         for finger, angles in zip(hand.fingers, initial, strict=True):
-            drawn.append(tuple(
-                float(np.clip(q + rng.uniform(-spread.initial_angles, spread.initial_angles),
-                              j.angle_min, j.angle_max))
-                for q, j in zip(angles, finger.joints, strict=True)))
+            drawn.append(
+                tuple(
+                    float(
+                        np.clip(
+                            q + rng.uniform(-spread.initial_angles, spread.initial_angles),
+                            j.angle_min,
+                            j.angle_max,
+                        )
+                    )
+                    for q, j in zip(angles, finger.joints, strict=True)
+                )
+            )
         initial = tuple(drawn)
     bias = _log_uniform(rng, spread.tdt_bias)
     noise = _log_uniform(rng, spread.tdt_noise)
     scales["tdt_bias"], scales["tdt_noise"] = bias, noise
-    tdt = dataclasses.replace(params.tdt, bias=params.tdt.bias * bias,
-                              noise=params.tdt.noise * noise)
+    tdt = dataclasses.replace(
+        params.tdt, bias=params.tdt.bias * bias, noise=params.tdt.noise * noise
+    )
     out = _with(params, FrictionParams(**values), masses, radii, shift, gap)
-    out = dataclasses.replace(out, initial_angles=initial, tdt=tdt, damping=joints["damping"],
-                              frictionloss=joints["frictionloss"], armature=joints["armature"],
-                              actuator_lag=joints["actuator_lag"])
+    out = dataclasses.replace(
+        out,
+        initial_angles=initial,
+        tdt=tdt,
+        damping=joints["damping"],
+        frictionloss=joints["frictionloss"],
+        armature=joints["armature"],
+        actuator_lag=joints["actuator_lag"],
+    )
     return Model(-1, out, scales)
 
 
-def _with(params: SimParams, friction: FrictionParams, mass: list[float], radius: list[float],
-          shift: float = 0.0, gap: float | None = None) -> SimParams:
+def _with(
+    params: SimParams,
+    friction: FrictionParams,
+    mass: list[float],
+    radius: list[float],
+    shift: float = 0.0,
+    gap: float | None = None,
+) -> SimParams:
     """The scene with the objects scaled and, for a pair, put back side by side on the table
     ``shift`` (m) along it from their configured middle, ``gap`` (m) apart."""
     objects = []
@@ -175,8 +210,9 @@ def _with(params: SimParams, friction: FrictionParams, mass: list[float], radius
         gap = SIDE_GAP
     for k, obj in enumerate(params.objects):
         r = obj.radius * radius[k]
-        objects.append(dataclasses.replace(obj, radius=r, mass=obj.mass * mass[k],
-                                           y=params.table_height + r))
+        objects.append(
+            dataclasses.replace(obj, radius=r, mass=obj.mass * mass[k], y=params.table_height + r)
+        )
     if pair:
         a, b = objects
         left, right = (a, b) if a.x <= b.x else (b, a)
@@ -186,8 +222,14 @@ def _with(params: SimParams, friction: FrictionParams, mass: list[float], radius
     return dataclasses.replace(params, friction=friction, objects=tuple(objects))
 
 
-def model_set(params: SimParams, count: int, seed: int, spread: Spread,
-              nominal: bool = True, hand: HandConfig | None = None) -> list[Model]:
+def model_set(
+    params: SimParams,
+    count: int,
+    seed: int,
+    spread: Spread,
+    nominal: bool = True,
+    hand: HandConfig | None = None,
+) -> list[Model]:
     """``count`` models: the nominal one first (if ``nominal``), then draws from ``seed``."""
     rng = np.random.default_rng(seed)
     out: list[Model] = []
@@ -209,16 +251,33 @@ def sim_section(params: SimParams) -> dict[str, Any]:
         "table": {"height": p.table_height},
         "palm": {"half_width": p.palm_half_width, "thickness": p.palm_thickness},
         "links": {},  # filled by ``hand_with``: keyed by finger name
-        "joints": {"damping": list(p.damping), "frictionloss": list(p.frictionloss),
-                   "armature": list(p.armature), "stop_margin": p.stop_margin},
+        "joints": {
+            "damping": list(p.damping),
+            "frictionloss": list(p.frictionloss),
+            "armature": list(p.armature),
+            "stop_margin": p.stop_margin,
+        },
         "actuator": {"lag": list(p.actuator_lag), "motor_tau_max": {}},  # as links
         "initial_angles": {},  # filled by ``hand_with``: keyed by finger name
-        "objects": [{"name": o.name, "radius": o.radius, "length": o.length, "mass": o.mass,
-                     "x": o.x, "y": o.y, "angle": o.angle} for o in p.objects],
-        "friction": dataclasses.asdict(p.friction) | (
-            {"finger_finger": p.finger_finger_friction} if p.between_fingers else {}),
-        "contact": {"timeconst": p.contact_timeconst, "dampratio": p.contact_dampratio,
-                    "between_fingers": p.between_fingers},
+        "objects": [
+            {
+                "name": o.name,
+                "radius": o.radius,
+                "length": o.length,
+                "mass": o.mass,
+                "x": o.x,
+                "y": o.y,
+                "angle": o.angle,
+            }
+            for o in p.objects
+        ],
+        "friction": dataclasses.asdict(p.friction)
+        | ({"finger_finger": p.finger_finger_friction} if p.between_fingers else {}),
+        "contact": {
+            "timeconst": p.contact_timeconst,
+            "dampratio": p.contact_dampratio,
+            "between_fingers": p.between_fingers,
+        },
         "tdt": dataclasses.asdict(p.tdt),
         "encoder": dataclasses.asdict(p.encoder),
     }
@@ -228,14 +287,15 @@ def hand_with(hand: HandConfig, params: SimParams, *, seed: int | None = None) -
     """The same hand (same config hash: the sim section is not hashed) simulating ``params``,
     with ``seed`` for the sensors' noise and biases if given."""
     section = sim_section(params)
-    section["initial_angles"] = {f.name: list(a) for f, a in zip(hand.fingers,
-                                                                  params.initial_angles,
-                                                                  strict=True)}
+    section["initial_angles"] = {
+        f.name: list(a) for f, a in zip(hand.fingers, params.initial_angles, strict=True)
+    }
     first = 0
     for finger in hand.fingers:
         last = first + len(finger.joints)
-        section["links"][finger.name] = [{"radius": link.radius, "mass": link.mass}
-                                         for link in params.links[first:last]]
+        section["links"][finger.name] = [
+            {"radius": link.radius, "mass": link.mass} for link in params.links[first:last]
+        ]
         section["actuator"]["motor_tau_max"][finger.name] = list(params.motor_tau_max[first:last])
         first = last
     if seed is not None:

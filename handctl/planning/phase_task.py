@@ -37,17 +37,20 @@ class World:
     digest: str
 
     @classmethod
-    def of(cls, hand: HandConfig, params: SimParams, objects: tuple[RecipeObject, ...],
-           guard_band: float | None) -> World:
+    def of(
+        cls,
+        hand: HandConfig,
+        params: SimParams,
+        objects: tuple[RecipeObject, ...],
+        guard_band: float | None,
+    ) -> World:
         portable = portable_hand(hand)
-        digest = hashlib.sha256(pickle.dumps((portable, params, objects, guard_band))
-                                ).hexdigest()
+        digest = hashlib.sha256(pickle.dumps((portable, params, objects, guard_band))).hexdigest()
         return cls(portable, params, objects, guard_band, digest)
 
     def episode(self) -> Episode:
         hand = local_hand(self.hand)
-        guard = (LimitGuard.for_hand(hand, self.guard_band) if self.guard_band is not None
-                 else None)
+        guard = LimitGuard.for_hand(hand, self.guard_band) if self.guard_band is not None else None
         return Episode(hand, self.params, self.objects, guard)
 
 
@@ -93,4 +96,3 @@ def snapshot_of(world: World) -> Snapshot:
     _kept[world.digest] = episode
     _kept.move_to_end(world.digest)
     return episode.snapshot()
-

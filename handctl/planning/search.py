@@ -99,33 +99,62 @@ class SearchResult:
 Scorer = Callable[[PhaseOutcome], float]
 
 
-def evaluate(worlds: Sequence[World], snapshots: Sequence[Snapshot], phase: Phase,
-             candidates: Sequence[Sequence[float] | np.ndarray], scorer: Scorer,
-             executor: WorkPool, *, lifted: bool, limit_fail: float = LIMIT_FAIL,
-             bar: Progress | None = None) -> list[Candidate]:
+def evaluate(
+    worlds: Sequence[World],
+    snapshots: Sequence[Snapshot],
+    phase: Phase,
+    candidates: Sequence[Sequence[float] | np.ndarray],
+    scorer: Scorer,
+    executor: WorkPool,
+    *,
+    lifted: bool,
+    limit_fail: float = LIMIT_FAIL,
+    bar: Progress | None = None,
+) -> list[Candidate]:
     """Run ``phase`` with each candidate's torques on every model from its snapshot, all of
     them as one batch of tasks for ``executor``; score each candidate over the models
     together (the scorer runs here: it is a closure, and cheap)."""
-    tasks = [PhaseTask(world, snap, with_torques(phase, torques), lifted)
-             for torques in candidates
-             for world, snap in zip(worlds, snapshots, strict=True)]
+    tasks = [
+        PhaseTask(world, snap, with_torques(phase, torques), lifted)
+        for torques in candidates
+        for world, snap in zip(worlds, snapshots, strict=True)
+    ]
     results = executor.map(run_phase_task, tasks, bar)
     out = []
     n = len(worlds)
     for k, torques in enumerate(candidates):
-        outcomes = [outcome for outcome, _ in results[k * n:(k + 1) * n]]
+        outcomes = [outcome for outcome, _ in results[k * n : (k + 1) * n]]
         scores = np.array([scorer(o) for o in outcomes])
         score = float(scores.mean() - SPREAD_WEIGHT * scores.std())
-        out.append(Candidate(tuple(float(t) for t in torques), score, outcomes, "",
-                             [float(s) for s in scores], limit_fail))
+        out.append(
+            Candidate(
+                tuple(float(t) for t in torques),
+                score,
+                outcomes,
+                "",
+                [float(s) for s in scores],
+                limit_fail,
+            )
+        )
     return out
 
 
-def cem(worlds: Sequence[World], snapshots: Sequence[Snapshot], phase: Phase,
-        seeds: Sequence[tuple[str, Sequence[float]]], tau_max: Sequence[float],
-        scorer: Scorer, rng: np.random.Generator, budget: Budget, executor: WorkPool, *,
-        lifted: bool, progress: Callable[[str], None] | None = None,
-        limit_fail: float = LIMIT_FAIL, bar: Progress | None = None) -> SearchResult:
+def cem(
+    worlds: Sequence[World],
+    snapshots: Sequence[Snapshot],
+    phase: Phase,
+    seeds: Sequence[tuple[str, Sequence[float]]],
+    tau_max: Sequence[float],
+    scorer: Scorer,
+    rng: np.random.Generator,
+    budget: Budget,
+    executor: WorkPool,
+    *,
+    lifted: bool,
+    progress: Callable[[str], None] | None = None,
+    limit_fail: float = LIMIT_FAIL,
+    bar: Progress | None = None,
+) -> SearchResult:
     """Cross-entropy search around the seeds; returns the best candidate ever evaluated.
 
     A generation is drawn whole before any of it runs (the draws do not depend on the
@@ -133,8 +162,17 @@ def cem(worlds: Sequence[World], snapshots: Sequence[Snapshot], phase: Phase,
     any executor."""
     limit = np.asarray(tau_max, dtype=float)
     say = progress or (lambda _m: None)
-    seeded = evaluate(worlds, snapshots, phase, [np.clip(t, -limit, limit) for _, t in seeds],
-                      scorer, executor, lifted=lifted, limit_fail=limit_fail, bar=bar)
+    seeded = evaluate(
+        worlds,
+        snapshots,
+        phase,
+        [np.clip(t, -limit, limit) for _, t in seeds],
+        scorer,
+        executor,
+        lifted=lifted,
+        limit_fail=limit_fail,
+        bar=bar,
+    )
     for (origin, _), cand in zip(seeds, seeded, strict=True):
         cand.origin = origin
         say(f"  seed {origin}: score {cand.score:+.3f} ({cand.successes}/{len(worlds)})")
@@ -145,28 +183,37 @@ def cem(worlds: Sequence[World], snapshots: Sequence[Snapshot], phase: Phase,
     history = [best.score]
     pool = list(seeded)
     for gen in range(budget.generations):
-        drawn = [np.clip(mean + spread * rng.standard_normal(len(limit)), -limit, limit)
-                 for _ in range(budget.population)]
-        population = evaluate(worlds, snapshots, phase, drawn, scorer, executor, lifted=lifted,
-                              limit_fail=limit_fail, bar=bar)
+        drawn = [
+            np.clip(mean + spread * rng.standard_normal(len(limit)), -limit, limit)
+            for _ in range(budget.population)
+        ]
+        population = evaluate(
+            worlds,
+            snapshots,
+            phase,
+            drawn,
+            scorer,
+            executor,
+            lifted=lifted,
+            limit_fail=limit_fail,
+            bar=bar,
+        )
         for cand in population:
             cand.origin = f"search generation {gen + 1}"
         evaluated += len(population)
         pool = sorted(pool + population, key=Candidate.rank, reverse=True)
-        elite = pool[:budget.elite]
+        elite = pool[: budget.elite]
         if elite[0].rank() > best.rank():
             best = elite[0]
         stack = np.array([c.torques for c in elite])
         mean = stack.mean(axis=0)
         spread = np.maximum(stack.std(axis=0), budget.min_spread * limit)
         history.append(best.score)
-        say(f"  generation {gen + 1}: best {best.score:+.3f} ({best.successes}/"
-            f"{len(worlds)})")
+        say(f"  generation {gen + 1}: best {best.score:+.3f} ({best.successes}/{len(worlds)})")
     return SearchResult(best, seeded, evaluated, history)
 
 
-def turn_scorer(target_rad: float, max_s: float,
-                limit_margin: float = LIMIT_MARGIN) -> Scorer:
+def turn_scorer(target_rad: float, max_s: float, limit_margin: float = LIMIT_MARGIN) -> Scorer:
     """Score of a manipulation phase: reaching the wanted turn (by its exit) is worth 1 plus a
     little for speed; a timeout is worth the fraction of the turn made; failing (soft limit,
     drop, an object out of the hand) costs 1; ending with a lost estimate costs half."""
@@ -183,8 +230,9 @@ def turn_scorer(target_rad: float, max_s: float,
     return score
 
 
-def hold_scorer(min_height: float, open_pair: bool = False,
-                limit_margin: float = LIMIT_MARGIN) -> Scorer:
+def hold_scorer(
+    min_height: float, open_pair: bool = False, limit_margin: float = LIMIT_MARGIN
+) -> Scorer:
     """Score of a lift or hold phase: both objects up by ``min_height`` and caged (the
     estimate valid) at its end; with ``open_pair``, no finger link between the two objects
     (a pair with a link between them cannot turn past it)."""

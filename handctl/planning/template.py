@@ -72,8 +72,10 @@ class TemplatePhase:
         """The compiled exit of a turn phase: on the estimated turn of the first pair since
         the phase began."""
         op = "<" if self.turn < 0 else ">"
-        return f"estimate.{self.estimates[FIRST_PAIR_TURN]} {op} " \
-               f"{self.turn * self.exit_fraction:.4f} for {self.exit_hold_s:g}"
+        return (
+            f"estimate.{self.estimates[FIRST_PAIR_TURN]} {op} "
+            f"{self.turn * self.exit_fraction:.4f} for {self.exit_hold_s:g}"
+        )
 
 
 @dataclass(frozen=True)
@@ -105,8 +107,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     recipe = doc.string("recipe")
     description = doc.text("description", default="")
     if not doc.has("objects"):
-        doc.fail("objects", "the objects the template grasps ([{name, radius}, ...])",
-                 "nothing")
+        doc.fail("objects", "the objects the template grasps ([{name, radius}, ...])", "nothing")
     objects = list(parse_objects(doc))
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
@@ -114,12 +115,14 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     min_turn = parse_min_total_turn(doc, len(objects) > 1)
     names = [o.name for o in objects]
     estimates = estimate_names(objects, consecutive_pairs(len(objects)))
-    phases = tuple(_phase(p, hand, names, estimates)
-                   for p in doc.mappings("phases", min_len=1, max_len=32))
+    phases = tuple(
+        _phase(p, hand, names, estimates) for p in doc.mappings("phases", min_len=1, max_len=32)
+    )
     check_unique_names(doc, [p.name for p in phases])
     doc.done()
-    return Template(doc.file, recipe, description, tuple(objects), end_ramp, search, phases,
-                    band, min_turn)
+    return Template(
+        doc.file, recipe, description, tuple(objects), end_ramp, search, phases, band, min_turn
+    )
 
 
 def _search(doc: Doc) -> SearchSettings:
@@ -129,15 +132,18 @@ def _search(doc: Doc) -> SearchSettings:
         generations=doc.integer("generations", default=b.generations, min=0, max=100),
         population=doc.integer("population", default=b.population, min=1, max=1000),
         elite=doc.integer("elite", default=b.elite, min=1, max=100),
-        initial_spread=doc.number("initial_spread", default=b.initial_spread, min=0.0,
-                                  max=2.0),
-        min_spread=doc.number("min_spread", default=b.min_spread, min=0.0, max=1.0))
+        initial_spread=doc.number("initial_spread", default=b.initial_spread, min=0.0, max=2.0),
+        min_spread=doc.number("min_spread", default=b.min_spread, min=0.0, max=1.0),
+    )
     if budget.elite > budget.population:
         doc.fail("elite", f"at most the population ({budget.population})", budget.elite)
-    settings = SearchSettings(doc.integer("models", default=6, min=1, max=100),
-                              doc.integer("seed", default=0, min=0, max=2**32 - 1),
-                              spread, budget,
-                              doc.integer("random_seeds", default=0, min=0, max=1000))
+    settings = SearchSettings(
+        doc.integer("models", default=6, min=1, max=100),
+        doc.integer("seed", default=0, min=0, max=2**32 - 1),
+        spread,
+        budget,
+        doc.integer("random_seeds", default=0, min=0, max=1000),
+    )
     doc.done()
     return settings
 
@@ -147,8 +153,9 @@ def _spread(doc: Doc) -> Spread:
     ± fields are a number; factor ranges two positive numbers, low first."""
     d = Spread()
 
-    def factors(key: str, default: tuple[float, float], low: float, high: float,
-                unit: str = "") -> tuple[float, float]:
+    def factors(
+        key: str, default: tuple[float, float], low: float, high: float, unit: str = ""
+    ) -> tuple[float, float]:
         if not doc.has(key):
             return default
         pair = doc.numbers(key, length=2, min=low, max=high, unit=unit)
@@ -166,10 +173,12 @@ def _spread(doc: Doc) -> Spread:
         actuator_lag=factors("actuator_lag", d.actuator_lag, 0.01, 100.0),
         placement=doc.number("placement", default=d.placement, min=0.0, max=0.05, unit="m"),
         gap=factors("gap", d.gap or (0.0, 0.0), 0.0, 0.05, "m"),
-        initial_angles=doc.number("initial_angles", default=d.initial_angles, min=0.0,
-                                  max=0.5, unit="rad"),
+        initial_angles=doc.number(
+            "initial_angles", default=d.initial_angles, min=0.0, max=0.5, unit="rad"
+        ),
         tdt_bias=factors("tdt_bias", d.tdt_bias, 0.01, 10.0),
-        tdt_noise=factors("tdt_noise", d.tdt_noise, 0.01, 10.0))
+        tdt_noise=factors("tdt_noise", d.tdt_noise, 0.01, 10.0),
+    )
     doc.done()
     return spread
 
@@ -184,8 +193,9 @@ def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
     return values
 
 
-def _phase(doc: Doc, hand: HandConfig, objects: list[str],
-           estimates: tuple[str, ...]) -> TemplatePhase:
+def _phase(
+    doc: Doc, hand: HandConfig, objects: list[str], estimates: tuple[str, ...]
+) -> TemplatePhase:
     name = doc.string("name")
     kind = doc.string("kind", choices=KINDS)
     ramp = doc.number("ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
@@ -212,8 +222,11 @@ def _phase(doc: Doc, hand: HandConfig, objects: list[str],
     turn_rate = None
     if kind == "turn":
         if len(objects) < 2:
-            doc.fail("kind", "lift, hold or free: a turn is that of a pair of objects, and the "
-                     "template has one", kind)
+            doc.fail(
+                "kind",
+                "lift, hold or free: a turn is that of a pair of objects, and the template has one",
+                kind,
+            )
         turn = math.radians(doc.number("turn_deg", min=-180.0, max=180.0, unit="deg"))
         if abs(turn) < 1e-6:
             doc.fail("turn_deg", "a non-zero turn", 0.0)
@@ -225,13 +238,27 @@ def _phase(doc: Doc, hand: HandConfig, objects: list[str],
     damping = 0.0
     if kind == "free" and doc.has("pose"):
         pose = doc.mapping("pose")
-        stiffness = pose.number("stiffness", min=0.0, max=100.0, min_exclusive=True,
-                                unit="N·m/rad")
+        stiffness = pose.number("stiffness", min=0.0, max=100.0, min_exclusive=True, unit="N·m/rad")
         damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
         pose.done()
     joint_damping = parse_joint_damping(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     doc.done()
-    return TemplatePhase(name, kind, ramp, max_s, seed, move, min_height, turn, exit_fraction,
-                         exit_hold, turn_rate, stiffness, damping, estimates, joint_damping,
-                         brake)
+    return TemplatePhase(
+        name,
+        kind,
+        ramp,
+        max_s,
+        seed,
+        move,
+        min_height,
+        turn,
+        exit_fraction,
+        exit_hold,
+        turn_rate,
+        stiffness,
+        damping,
+        estimates,
+        joint_damping,
+        brake,
+    )

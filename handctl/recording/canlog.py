@@ -14,8 +14,9 @@ from handctl.online.bus import EXTENDED_ID_FLAG, EXTENDED_ID_MASK
 LOG_FORMATS = ("candump", "asc", "blf")
 
 
-def write_frames(path: str | Path, fmt: str,
-                 frames: Iterable[tuple[float, int, bytes, bool, bool]]) -> int:
+def write_frames(
+    path: str | Path, fmt: str, frames: Iterable[tuple[float, int, bytes, bool, bool]]
+) -> int:
     """Write ``(timestamp_s, arbitration_id, data, is_rx, is_fd)`` frames in a python-can log
     format, so the CAN tools people already have (candump/canplayer, CANalyzer, python-can's
     readers) open a handctl recording. Returns the number of frames written."""
@@ -33,9 +34,17 @@ def write_frames(path: str | Path, fmt: str,
         for stamp, frame_id, data, is_rx, is_fd in frames:
             fd = is_fd or len(data) > 8
             extended = bool(frame_id & EXTENDED_ID_FLAG) or frame_id > 0x7FF
-            writer.on_message_received(can.Message(
-                timestamp=stamp, arbitration_id=frame_id & EXTENDED_ID_MASK,
-                is_extended_id=extended,
-                data=data, is_fd=fd, bitrate_switch=fd, is_rx=is_rx, check=False))
+            writer.on_message_received(
+                can.Message(
+                    timestamp=stamp,
+                    arbitration_id=frame_id & EXTENDED_ID_MASK,
+                    is_extended_id=extended,
+                    data=data,
+                    is_fd=fd,
+                    bitrate_switch=fd,
+                    is_rx=is_rx,
+                    check=False,
+                )
+            )
             count += 1
     return count

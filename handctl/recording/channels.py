@@ -60,11 +60,17 @@ def _tick() -> dict[str, Any]:
     return {"type": "integer", "description": "tick number, 0 first (start-up ticks included)"}
 
 
-def _object(title: str, description: str, properties: dict[str, Any],
-            required: list[str]) -> dict[str, Any]:
-    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": title,
-            "description": description, "type": "object", "properties": properties,
-            "required": required}
+def _object(
+    title: str, description: str, properties: dict[str, Any], required: list[str]
+) -> dict[str, Any]:
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": title,
+        "description": description,
+        "type": "object",
+        "properties": properties,
+        "required": required,
+    }
 
 
 @dataclass(frozen=True)
@@ -76,86 +82,201 @@ class Channel:
 
 
 CHANNELS: tuple[Channel, ...] = (
-    Channel(JOINT_STATE, "handctl.JointState", _object(
-        "handctl.JointState", "What the host believed about the joints after the tick's poll.",
-        {"tick": _tick(),
-         "angle_rad": _array(_NUM, "joint angles, config order (rad)"),
-         "tdt_torque_nm": _array(_NUM, "TDT joint torques after calibration (N·m)"),
-         "feedback_age_ns": _array(_INT, "age of each joint's last valid feedback (ns), -1 "
-                                         "before the first"),
-         "node_state": _array(_INT, "device state per finger node: "
-                                    + "".join(f"{s.value} {s.name}, " for s in NodeState)
-                                    + "-1 unknown"),
-         "node_fault_bits": _array(_INT, "device fault bits per finger node")},
-        ["tick", "angle_rad", "tdt_torque_nm", "feedback_age_ns"]), "every control tick"),
-    Channel(TORQUE, "handctl.Torque", _object(
-        "handctl.Torque", "Torques of one tick: what the recipe asked, what safety let through.",
-        {"tick": _tick(),
-         "desired_nm": _array(_NUM, "recipe runner output (N·m)"),
-         "applied_nm": _array(_NUM, "supervisor output, encoded into the command frames (N·m)")},
-        ["tick", "desired_nm", "applied_nm"]), "every control tick"),
-    Channel(SAFETY, "handctl.SafetyState", _object(
-        "handctl.SafetyState", "The safety supervisor's state after the tick.",
-        {"tick": _tick(), "state": {**_STR, "description": "idle, enabling, running, stopping, "
-                                                            "fault_ramp or faulted"},
-         "faults_latched": {**_INT, "description": "faults latched so far"}},
-        ["tick", "state"]), "every control tick"),
-    Channel(PHASE, "handctl.RecipePhase", _object(
-        "handctl.RecipePhase", "The recipe phase the tick's desired torques came from.",
-        {"tick": _tick(), "phase": {**_STR, "description": "phase name, end_ramp, or the "
-                                                            "runner's status"}},
-        ["tick", "phase"]), "every control tick"),
-    Channel(TIMING, "handctl.LoopTiming", _object(
-        "handctl.LoopTiming", "When the tick was due and ran, and what its stages cost.",
-        {"tick": _tick(),
-         "scheduled_ns": {**_INT, "description": "when the tick was due (ns)"},
-         "now_ns": {**_INT, "description": "when the loop got it (ns)"},
-         "lateness_ns": _INT, "missed": {**_INT, "description": "ticks missed just before it"},
-         "active": {**_BOOL, "description": "false for start-up and shut-down ticks, which only "
-                                            "poll"},
-         "stage_cpu_ns": {"type": "object", "description": "CPU time of each stage (ns)",
-                          "properties": {"poll": _INT, "recipe": _INT, "safety": _INT,
-                                         "send": _INT}}},
-        ["tick", "scheduled_ns", "now_ns", "missed", "active"]), "every tick"),
-    Channel(EVENTS, "handctl.Event", _object(
-        "handctl.Event", "Something that happened: a fault, a state or phase change, a bus "
-                         "event, rejected frames, an operator request, recording drops.",
-        {"tick": _tick(), "kind": {**_STR, "enum": list(EVENT_KINDS)},
-         "name": {**_STR, "description": "fault code, new state, new phase, bus event kind, "
-                                         "reject kind, request (stop, estop, reset)"},
-         "detail": _STR,
-         "category": {**_STR, "description": "fault stop category"},
-         "previous": {**_STR, "description": "state or phase before the change"},
-         "cause": {**_STR, "description": "supervisor event behind a state change"},
-         "count": {**_INT, "description": "rejected or dropped records since the last event"},
-         "bus_time_ns": {**_INT, "description": "when the bus layer saw a bus event (ns)"}},
-        ["tick", "kind", "name", "detail"]), "when something happens"),
-    Channel(CAN_RX, "handctl.CanFrame", _object(
-        "handctl.CanFrame", "One CAN frame, as drained from or handed to the bus.",
-        {"tick": {**_INT, "description": "the tick whose poll drained it or which sent it"},
-         "id": {**_INT, "description": "arbitration id"},
-         "data": {**_STR, "description": "payload, lower-case hex"},
-         "bus_time_ns": {**_INT, "description": "received: the adapter's time stamp (its own "
-                                                "clock)"},
-         "ok": {**_BOOL, "description": "sent: false when the bus refused the frame"}},
-        ["tick", "id", "data"]), "every frame received"),
+    Channel(
+        JOINT_STATE,
+        "handctl.JointState",
+        _object(
+            "handctl.JointState",
+            "What the host believed about the joints after the tick's poll.",
+            {
+                "tick": _tick(),
+                "angle_rad": _array(_NUM, "joint angles, config order (rad)"),
+                "tdt_torque_nm": _array(_NUM, "TDT joint torques after calibration (N·m)"),
+                "feedback_age_ns": _array(
+                    _INT, "age of each joint's last valid feedback (ns), -1 before the first"
+                ),
+                "node_state": _array(
+                    _INT,
+                    "device state per finger node: "
+                    + "".join(f"{s.value} {s.name}, " for s in NodeState)
+                    + "-1 unknown",
+                ),
+                "node_fault_bits": _array(_INT, "device fault bits per finger node"),
+            },
+            ["tick", "angle_rad", "tdt_torque_nm", "feedback_age_ns"],
+        ),
+        "every control tick",
+    ),
+    Channel(
+        TORQUE,
+        "handctl.Torque",
+        _object(
+            "handctl.Torque",
+            "Torques of one tick: what the recipe asked, what safety let through.",
+            {
+                "tick": _tick(),
+                "desired_nm": _array(_NUM, "recipe runner output (N·m)"),
+                "applied_nm": _array(
+                    _NUM, "supervisor output, encoded into the command frames (N·m)"
+                ),
+            },
+            ["tick", "desired_nm", "applied_nm"],
+        ),
+        "every control tick",
+    ),
+    Channel(
+        SAFETY,
+        "handctl.SafetyState",
+        _object(
+            "handctl.SafetyState",
+            "The safety supervisor's state after the tick.",
+            {
+                "tick": _tick(),
+                "state": {
+                    **_STR,
+                    "description": "idle, enabling, running, stopping, fault_ramp or faulted",
+                },
+                "faults_latched": {**_INT, "description": "faults latched so far"},
+            },
+            ["tick", "state"],
+        ),
+        "every control tick",
+    ),
+    Channel(
+        PHASE,
+        "handctl.RecipePhase",
+        _object(
+            "handctl.RecipePhase",
+            "The recipe phase the tick's desired torques came from.",
+            {
+                "tick": _tick(),
+                "phase": {**_STR, "description": "phase name, end_ramp, or the runner's status"},
+            },
+            ["tick", "phase"],
+        ),
+        "every control tick",
+    ),
+    Channel(
+        TIMING,
+        "handctl.LoopTiming",
+        _object(
+            "handctl.LoopTiming",
+            "When the tick was due and ran, and what its stages cost.",
+            {
+                "tick": _tick(),
+                "scheduled_ns": {**_INT, "description": "when the tick was due (ns)"},
+                "now_ns": {**_INT, "description": "when the loop got it (ns)"},
+                "lateness_ns": _INT,
+                "missed": {**_INT, "description": "ticks missed just before it"},
+                "active": {
+                    **_BOOL,
+                    "description": "false for start-up and shut-down ticks, which only poll",
+                },
+                "stage_cpu_ns": {
+                    "type": "object",
+                    "description": "CPU time of each stage (ns)",
+                    "properties": {"poll": _INT, "recipe": _INT, "safety": _INT, "send": _INT},
+                },
+            },
+            ["tick", "scheduled_ns", "now_ns", "missed", "active"],
+        ),
+        "every tick",
+    ),
+    Channel(
+        EVENTS,
+        "handctl.Event",
+        _object(
+            "handctl.Event",
+            "Something that happened: a fault, a state or phase change, a bus "
+            "event, rejected frames, an operator request, recording drops.",
+            {
+                "tick": _tick(),
+                "kind": {**_STR, "enum": list(EVENT_KINDS)},
+                "name": {
+                    **_STR,
+                    "description": "fault code, new state, new phase, bus event kind, "
+                    "reject kind, request (stop, estop, reset)",
+                },
+                "detail": _STR,
+                "category": {**_STR, "description": "fault stop category"},
+                "previous": {**_STR, "description": "state or phase before the change"},
+                "cause": {**_STR, "description": "supervisor event behind a state change"},
+                "count": {
+                    **_INT,
+                    "description": "rejected or dropped records since the last event",
+                },
+                "bus_time_ns": {**_INT, "description": "when the bus layer saw a bus event (ns)"},
+            },
+            ["tick", "kind", "name", "detail"],
+        ),
+        "when something happens",
+    ),
+    Channel(
+        CAN_RX,
+        "handctl.CanFrame",
+        _object(
+            "handctl.CanFrame",
+            "One CAN frame, as drained from or handed to the bus.",
+            {
+                "tick": {**_INT, "description": "the tick whose poll drained it or which sent it"},
+                "id": {**_INT, "description": "arbitration id"},
+                "data": {**_STR, "description": "payload, lower-case hex"},
+                "bus_time_ns": {
+                    **_INT,
+                    "description": "received: the adapter's time stamp (its own clock)",
+                },
+                "ok": {**_BOOL, "description": "sent: false when the bus refused the frame"},
+            },
+            ["tick", "id", "data"],
+        ),
+        "every frame received",
+    ),
     Channel(CAN_TX, "handctl.CanFrame", {}, "every frame sent (or refused)"),
-    Channel(OBJECTS, "handctl.ObjectPoses", _object(
-        "handctl.ObjectPoses", "Ground truth of the simulated objects (never seen by control).",
-        {"tick": _tick(),
-         "objects": {"type": "array", "items": {
-             "type": "object", "properties": {"name": _STR, "x_m": _NUM, "y_m": _NUM,
-                                              "angle_rad": _NUM}}},
-         "line_angle_rad": {**_NUM, "description": "angle of the line from the first object's "
-                                                   "centre to the second's"}},
-        ["tick", "objects"]), "every 10 ticks, lockstep simulation only"),
-    Channel(STATS, "handctl.RecordingStats", _object(
-        "handctl.RecordingStats", "The recorder's own accounts: what it wrote and dropped.",
-        {"tick": {**_INT, "description": "the last tick written"},
-         "ticks": _INT, "frames": _INT, "events": _INT,
-         "dropped_ticks": _INT, "dropped_frames": _INT, "dropped_events": _INT,
-         "dropped_poses": _INT},
-        ["tick", "dropped_ticks", "dropped_frames", "dropped_events"]), "every chunk (≤ 50 ms)"),
+    Channel(
+        OBJECTS,
+        "handctl.ObjectPoses",
+        _object(
+            "handctl.ObjectPoses",
+            "Ground truth of the simulated objects (never seen by control).",
+            {
+                "tick": _tick(),
+                "objects": {
+                    "type": "array",
+                    "items": {
+                        "type": "object",
+                        "properties": {"name": _STR, "x_m": _NUM, "y_m": _NUM, "angle_rad": _NUM},
+                    },
+                },
+                "line_angle_rad": {
+                    **_NUM,
+                    "description": "angle of the line from the first object's "
+                    "centre to the second's",
+                },
+            },
+            ["tick", "objects"],
+        ),
+        "every 10 ticks, lockstep simulation only",
+    ),
+    Channel(
+        STATS,
+        "handctl.RecordingStats",
+        _object(
+            "handctl.RecordingStats",
+            "The recorder's own accounts: what it wrote and dropped.",
+            {
+                "tick": {**_INT, "description": "the last tick written"},
+                "ticks": _INT,
+                "frames": _INT,
+                "events": _INT,
+                "dropped_ticks": _INT,
+                "dropped_frames": _INT,
+                "dropped_events": _INT,
+                "dropped_poses": _INT,
+            },
+            ["tick", "dropped_ticks", "dropped_frames", "dropped_events"],
+        ),
+        "every chunk (≤ 50 ms)",
+    ),
 )
 
 #: The channels ``handctl replay --rerun`` needs.

@@ -60,10 +60,12 @@ class FeedbackCheck:
         for finger in hand.fingers:
             self._slices.append((start, start + len(finger.joints)))
             start += len(finger.joints)
-        self._layouts: dict[int, Layout] = {fid: layout for node in driver.nodes
-                                             for fid, (layout, _) in node.streams.items()}
-        self._node_of: dict[int, int] = {fid: i for i, node in enumerate(driver.nodes)
-                                         for fid in node.streams}
+        self._layouts: dict[int, Layout] = {
+            fid: layout for node in driver.nodes for fid, (layout, _) in node.streams.items()
+        }
+        self._node_of: dict[int, int] = {
+            fid: i for i, node in enumerate(driver.nodes) for fid in node.streams
+        }
         self._logged: dict[str, int] = {}  # rejects the log reports, over the ticks handed out
         self._offset: dict[str, int] = {}  # differences already reported
         # The driver's own count lists (updated in place), and copies as of the last comparison.
@@ -86,8 +88,9 @@ class FeedbackCheck:
             self._logged_more = True
 
     # -- checks --------------------------------------------------------------------------------
-    def tick(self, k: int, now_ns: int, joint_state: dict[str, Any] | None,
-             rx: Sequence[Frame]) -> None:
+    def tick(
+        self, k: int, now_ns: int, joint_state: dict[str, Any] | None, rx: Sequence[Frame]
+    ) -> None:
         """After control tick ``k``'s poll: the joint state and the rejects so far."""
         self.compared += 1
         problems = self._joint_state(k, now_ns, joint_state, rx)
@@ -95,17 +98,22 @@ class FeedbackCheck:
         if problems:
             self.mismatched_ticks += 1
             room = MAX_KEPT - len(self.mismatches)
-            self.mismatches += problems[:max(room, 0)]
+            self.mismatches += problems[: max(room, 0)]
 
     def end(self, k: int, rx: Sequence[Frame]) -> None:
         """After the run's last tick: the rejects of the ticks that only polled."""
         problems = self._rejects(k, rx)
         if problems:
             self.mismatched_ticks += 1
-            self.mismatches += problems[:max(MAX_KEPT - len(self.mismatches), 0)]
+            self.mismatches += problems[: max(MAX_KEPT - len(self.mismatches), 0)]
 
-    def _joint_state(self, k: int, now_ns: int, logged: dict[str, Any] | None,  # noqa: C901 - compares every field of the state; to split
-                     rx: Sequence[Frame]) -> list[str]:
+    def _joint_state(  # noqa: C901 - compares every field of the state; to split
+        self,
+        k: int,
+        now_ns: int,
+        logged: dict[str, Any] | None,
+        rx: Sequence[Frame],
+    ) -> list[str]:
         if logged is None:
             return [f"tick {k}: the re-run polled feedback where the log has no joint state"]
         state = self.driver.state
@@ -117,13 +125,17 @@ class FeedbackCheck:
         ages = [now_ns - x if x >= 0 else -1 for x in state.feedback_ns.tolist()]
         node_state, node_faults = logged.get("node_state"), logged.get("node_fault_bits")
         try:
-            same = (state.angle.tobytes() == pack.pack(*angle)
-                    and state.tdt.tobytes() == pack.pack(*tdt))
+            same = state.angle.tobytes() == pack.pack(*angle) and state.tdt.tobytes() == pack.pack(
+                *tdt
+            )
         except (struct.error, TypeError):  # a wrong length, or null for NaN
             same = False
-        if same and ages == logged.get("feedback_age_ns") \
-                and (node_state is None or node_state == state.node_state) \
-                and (node_faults is None or node_faults == state.node_faults):
+        if (
+            same
+            and ages == logged.get("feedback_age_ns")
+            and (node_state is None or node_state == state.node_state)
+            and (node_faults is None or node_faults == state.node_faults)
+        ):
             return []
         # Something differs: say what, node by node, with the node's feedback frames.
         differ: dict[int, list[str]] = {}
@@ -131,21 +143,30 @@ class FeedbackCheck:
         def add(node: int, text: str) -> None:
             differ.setdefault(node, []).append(text)
 
-        for field, values, rerun in (("angle_rad", angle, state.angle.tolist()),
-                                     ("tdt_torque_nm", tdt, state.tdt.tolist())):
+        for field, values, rerun in (
+            ("angle_rad", angle, state.angle.tolist()),
+            ("tdt_torque_nm", tdt, state.tdt.tolist()),
+        ):
             for j in _same_floats(values, rerun):
-                add(self._node_of_joint(j), f"{self._joint(j)} {field}: logged "
+                add(
+                    self._node_of_joint(j),
+                    f"{self._joint(j)} {field}: logged "
                     f"{values[j] if j < len(values) else 'nothing'}, re-run "
-                    f"{rerun[j] if j < len(rerun) else 'nothing'}")
+                    f"{rerun[j] if j < len(rerun) else 'nothing'}",
+                )
         logged_ages = logged.get("feedback_age_ns") or []
         for j in range(max(len(ages), len(logged_ages))):
             a = logged_ages[j] if j < len(logged_ages) else None
             b = ages[j] if j < len(ages) else None
             if a != b:
-                add(self._node_of_joint(j), f"{self._joint(j)} feedback_age_ns: logged {a}, "
-                                            f"re-run {b}")
-        for field, values, rerun_ints in (("node_state", node_state, state.node_state),
-                                          ("node_fault_bits", node_faults, state.node_faults)):
+                add(
+                    self._node_of_joint(j),
+                    f"{self._joint(j)} feedback_age_ns: logged {a}, re-run {b}",
+                )
+        for field, values, rerun_ints in (
+            ("node_state", node_state, state.node_state),
+            ("node_fault_bits", node_faults, state.node_faults),
+        ):
             if values is not None and values != rerun_ints:
                 for i in range(max(len(values), len(rerun_ints))):
                     a = values[i] if i < len(values) else None
@@ -160,12 +181,15 @@ class FeedbackCheck:
                 frames = [f for f in rx if f.arbitration_id == layout.frame_id]
                 what = f"{layout.name} 0x{layout.frame_id:03X}"
                 heard = "; ".join(_hex(f) for f in frames[:MAX_FRAMES_NAMED]) or "none"
-                problems.append(f"tick {k}: {what} (frames in this tick: {heard}): the "
-                                f"re-run's joint state from it is not the log's: "
-                                f"{'; '.join(texts)}")
+                problems.append(
+                    f"tick {k}: {what} (frames in this tick: {heard}): the "
+                    f"re-run's joint state from it is not the log's: "
+                    f"{'; '.join(texts)}"
+                )
             else:
-                problems.append(f"tick {k}: the joint state differs from the log: "
-                                f"{'; '.join(texts)}")
+                problems.append(
+                    f"tick {k}: the joint state differs from the log: {'; '.join(texts)}"
+                )
         return problems
 
     def _rejects(self, k: int, rx: Sequence[Frame]) -> list[str]:
@@ -186,26 +210,39 @@ class FeedbackCheck:
                 offset[kind] = offset.get(kind, 0) + have - want  # reported once, not again
                 frames = self._suspects(kind, node_counts, rx)
                 named = "; ".join(_hex(f) for f in frames[:MAX_FRAMES_NAMED]) or "none"
-                problems.append(f"tick {k}: {kind} rejects: logged {want}, re-run {have} "
-                                f"(frames in this tick: {named})")
+                problems.append(
+                    f"tick {k}: {kind} rejects: logged {want}, re-run {have} "
+                    f"(frames in this tick: {named})"
+                )
         self._node_seen = node_counts
         return problems
 
-    def _suspects(self, kind: str, node_counts: list[list[int]], rx: Sequence[Frame]
-                  ) -> list[Frame]:
+    def _suspects(
+        self, kind: str, node_counts: list[list[int]], rx: Sequence[Frame]
+    ) -> list[Frame]:
         """The tick's frames that can account for a difference in ``kind`` rejects."""
         layouts = self._layouts
         if kind == Reject.UNEXPECTED_ID.name.lower():
             return [f for f in rx if f.arbitration_id not in layouts]
         if kind == Reject.LENGTH.name.lower():
-            return [f for f in rx if f.arbitration_id in layouts
-                    and len(f.data) != layouts[f.arbitration_id].length]
+            return [
+                f
+                for f in rx
+                if f.arbitration_id in layouts and len(f.data) != layouts[f.arbitration_id].length
+            ]
         if kind == Reject.CRC.name.lower():
-            return [f for f in rx if f.arbitration_id in layouts
-                    and len(f.data) == layouts[f.arbitration_id].length
-                    and not layouts[f.arbitration_id].crc_ok(f.data)]
-        changed = {i for i, (now, seen) in enumerate(zip(node_counts, self._node_seen,
-                                                          strict=True)) if now != seen}
+            return [
+                f
+                for f in rx
+                if f.arbitration_id in layouts
+                and len(f.data) == layouts[f.arbitration_id].length
+                and not layouts[f.arbitration_id].crc_ok(f.data)
+            ]
+        changed = {
+            i
+            for i, (now, seen) in enumerate(zip(node_counts, self._node_seen, strict=True))
+            if now != seen
+        }
         ours = [f for f in rx if self._node_of.get(f.arbitration_id) in changed]
         return ours or list(rx)
 

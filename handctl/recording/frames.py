@@ -13,8 +13,9 @@ from handctl.recording.metadata import recorded_hand
 from handctl.recording.reader import Recording, iter_decoded, require_topics
 
 
-def logged_frames(recording: Recording, direction: str = "both"
-                  ) -> Iterator[tuple[int, int, bytes, bool]]:
+def logged_frames(
+    recording: Recording, direction: str = "both"
+) -> Iterator[tuple[int, int, bytes, bool]]:
     """``(log_time_ns, arbitration_id, data, is_rx)`` in the order they were on the wire."""
     topics = {"both": (ch.CAN_RX, ch.CAN_TX), "rx": (ch.CAN_RX,), "tx": (ch.CAN_TX,)}
     if direction not in topics:
@@ -25,9 +26,14 @@ def logged_frames(recording: Recording, direction: str = "both"
         yield log_time, msg["id"], bytes.fromhex(msg["data"]), topic == ch.CAN_RX
 
 
-def to_bus(recording: Recording, spec: str, speed: float = 1.0, direction: str = "both",
-           sleep: Callable[[float], None] = time.sleep,
-           clock: Callable[[], float] = time.perf_counter) -> dict[str, Any]:
+def to_bus(
+    recording: Recording,
+    spec: str,
+    speed: float = 1.0,
+    direction: str = "both",
+    sleep: Callable[[float], None] = time.sleep,
+    clock: Callable[[], float] = time.perf_counter,
+) -> dict[str, Any]:
     """Send the logged frames onto the bus ``spec`` with their original spacing / ``speed``.
 
     Frames are paced against their due times (not slept frame to frame), so the time spent
@@ -57,8 +63,14 @@ def to_bus(recording: Recording, spec: str, speed: float = 1.0, direction: str =
                 sent += 1
             else:
                 failed += 1
-    return {"sent": sent, "failed": failed, "worst_late_ms": round(worst_late * 1e3, 3),
-            "bus": spec, "speed": speed, "direction": direction}
+    return {
+        "sent": sent,
+        "failed": failed,
+        "worst_late_ms": round(worst_late * 1e3, 3),
+        "bus": spec,
+        "speed": speed,
+        "direction": direction,
+    }
 
 
 def export(recording: Recording, fmt: str, out: str) -> int:
@@ -83,5 +95,6 @@ def export(recording: Recording, fmt: str, out: str) -> int:
     try:
         return write_frames(out, fmt, stamped())
     except OSError as exc:
-        raise ConfigError(out, "", "a path where the export can be written",
-                          exc.strerror or str(exc)) from None
+        raise ConfigError(
+            out, "", "a path where the export can be written", exc.strerror or str(exc)
+        ) from None

@@ -89,8 +89,9 @@ class ChunkWriter:
         self._write(_bytes(schema))
         return schema.id
 
-    def register_channel(self, topic: str, message_encoding: str, schema_id: int,
-                         metadata: dict[str, str]) -> int:
+    def register_channel(
+        self, topic: str, message_encoding: str, schema_id: int, metadata: dict[str, str]
+    ) -> int:
         channel = Channel(len(self.channels) + 1, topic, message_encoding, metadata, schema_id)
         self.channels[channel.id] = channel
         self._write(_bytes(channel))
@@ -102,8 +103,9 @@ class ChunkWriter:
         if entries is None:
             entries = self._index[channel_id] = []
         entries += (log_time, len(chunk))
-        chunk += _MESSAGE.pack(Opcode.MESSAGE, _MESSAGE_FIELDS + len(data), channel_id, sequence,
-                               log_time, log_time)
+        chunk += _MESSAGE.pack(
+            Opcode.MESSAGE, _MESSAGE_FIELDS + len(data), channel_id, sequence, log_time, log_time
+        )
         chunk += data
         if self._chunk_first is None or log_time < self._chunk_first:
             self._chunk_first = log_time
@@ -123,9 +125,16 @@ class ChunkWriter:
         first = self._chunk_first or 0
         last = self._chunk_last
         start = self.offset
-        record = _bytes(Chunk(compression="zstd", data=packed, message_end_time=last,
-                              message_start_time=first, uncompressed_crc=zlib.crc32(raw),
-                              uncompressed_size=len(raw)))
+        record = _bytes(
+            Chunk(
+                compression="zstd",
+                data=packed,
+                message_end_time=last,
+                message_start_time=first,
+                uncompressed_crc=zlib.crc32(raw),
+                uncompressed_size=len(raw),
+            )
+        )
         self._write(record)
         index_start = self.offset
         offsets: dict[int, int] = {}
@@ -135,13 +144,22 @@ class ChunkWriter:
             self.counts[channel_id] += count
             self.messages += count
             body = struct.pack(f"<{len(entries)}Q", *entries)
-            self._write(_INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + len(body), channel_id,
-                                         len(body)) + body)
-        self.chunk_indexes.append(ChunkIndex(
-            chunk_length=len(record), chunk_start_offset=start, compression="zstd",
-            compressed_size=len(packed), message_end_time=last,
-            message_index_length=self.offset - index_start, message_index_offsets=offsets,
-            message_start_time=first, uncompressed_size=len(raw)))
+            self._write(
+                _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + len(body), channel_id, len(body)) + body
+            )
+        self.chunk_indexes.append(
+            ChunkIndex(
+                chunk_length=len(record),
+                chunk_start_offset=start,
+                compression="zstd",
+                compressed_size=len(packed),
+                message_end_time=last,
+                message_index_length=self.offset - index_start,
+                message_index_offsets=offsets,
+                message_start_time=first,
+                uncompressed_size=len(raw),
+            )
+        )
         if self.first_time is None or first < self.first_time:
             self.first_time = first
         self.last_time = max(self.last_time, last)
@@ -160,12 +178,22 @@ class ChunkWriter:
         groups: list[tuple[int, list[McapRecord]]] = [
             (Opcode.SCHEMA, list(self.schemas.values())),
             (Opcode.CHANNEL, list(self.channels.values())),
-            (Opcode.STATISTICS, [Statistics(
-                attachment_count=0, channel_count=len(self.channels),
-                channel_message_counts=dict(self.counts), chunk_count=len(self.chunk_indexes),
-                message_count=self.messages, message_end_time=self.last_time,
-                message_start_time=self.first_time or 0,
-                metadata_count=len(self.metadata_indexes), schema_count=len(self.schemas))]),
+            (
+                Opcode.STATISTICS,
+                [
+                    Statistics(
+                        attachment_count=0,
+                        channel_count=len(self.channels),
+                        channel_message_counts=dict(self.counts),
+                        chunk_count=len(self.chunk_indexes),
+                        message_count=self.messages,
+                        message_end_time=self.last_time,
+                        message_start_time=self.first_time or 0,
+                        metadata_count=len(self.metadata_indexes),
+                        schema_count=len(self.schemas),
+                    )
+                ],
+            ),
             (Opcode.CHUNK_INDEX, list(self.chunk_indexes)),
             (Opcode.METADATA_INDEX, list(self.metadata_indexes)),
         ]
@@ -175,16 +203,17 @@ class ChunkWriter:
             group_start = summary_start + len(summary)
             for record in records:
                 summary += _bytes(record)
-            offsets.append(SummaryOffset(opcode, group_start,
-                                         summary_start + len(summary) - group_start))
+            offsets.append(
+                SummaryOffset(opcode, group_start, summary_start + len(summary) - group_start)
+            )
         offset_start = summary_start + len(summary)
         for offset in offsets:
             summary += _bytes(offset)
         crc = zlib.crc32(summary)
-        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 8 + 8 + 4, summary_start,
-                                     offset_start), crc)
+        crc = zlib.crc32(
+            struct.pack("<BQQQ", Opcode.FOOTER, 8 + 8 + 4, summary_start, offset_start), crc
+        )
         self._write(summary)
         self._write(_bytes(Footer(summary_start, offset_start, crc)))
         self._write(MAGIC)
         self.out.flush()
-

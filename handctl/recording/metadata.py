@@ -48,43 +48,71 @@ def package_version(package: str) -> str:
 
 
 def versions() -> dict[str, str]:
-    found = {"handctl": __version__, "python": platform.python_version(),
-             "platform": platform.platform()}
+    found = {
+        "handctl": __version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+    }
     found |= {name: package_version(name) for name in PACKAGES}
     return found
 
 
-def start_metadata(hand: HandConfig, recipe: Recipe | None,
-                   command_line: Sequence[str] = ()) -> dict[str, dict[str, str]]:
+def start_metadata(
+    hand: HandConfig, recipe: Recipe | None, command_line: Sequence[str] = ()
+) -> dict[str, dict[str, str]]:
     """The records known before the run: hand, recipe, versions, the command line."""
     hand_text = _read(hand.source)
     # The protocol the run speaks goes with the hand, as text: a re-run decodes and encodes
     # with it, whatever DBC (given or generated) the handctl of the re-run would choose.
     dbc = protocol_for(hand).text
     records = {
-        ch.META_HAND: {"name": hand.name, "source": hand.source, "config_hash": hand.config_hash,
-                       "sha256": hashlib.sha256(hand_text.encode()).hexdigest(),
-                       "yaml": hand_text, "dbc": dbc,
-                       "dbc_sha256": hashlib.sha256(dbc.encode()).hexdigest()},
+        ch.META_HAND: {
+            "name": hand.name,
+            "source": hand.source,
+            "config_hash": hand.config_hash,
+            "sha256": hashlib.sha256(hand_text.encode()).hexdigest(),
+            "yaml": hand_text,
+            "dbc": dbc,
+            "dbc_sha256": hashlib.sha256(dbc.encode()).hexdigest(),
+        },
         ch.META_VERSIONS: versions(),
     }
     if recipe is not None:
-        records[ch.META_RECIPE] = {"name": recipe.name, "source": recipe.source,
-                                   "yaml": _read(recipe.source)}
+        records[ch.META_RECIPE] = {
+            "name": recipe.name,
+            "source": recipe.source,
+            "yaml": _read(recipe.source),
+        }
     records["handctl.command"] = {
         "command_line": orjson.dumps(list(command_line or sys.argv)).decode(),
         "started_unix_ns": str(time.time_ns()),
-        "format_version": str(ch.FORMAT_VERSION)}
+        "format_version": str(ch.FORMAT_VERSION),
+    }
     return records
 
 
-def run_metadata(*, mode: str, bus: str, seed: int, period_ns: int, startup_ticks: int,
-                 reset_node_faults: bool, estimator: bool, sim_faults: str = ""
-                 ) -> dict[str, str]:
+def run_metadata(
+    *,
+    mode: str,
+    bus: str,
+    seed: int,
+    period_ns: int,
+    startup_ticks: int,
+    reset_node_faults: bool,
+    estimator: bool,
+    sim_faults: str = "",
+) -> dict[str, str]:
     """How the runtime was set up: what a re-run must set up the same way."""
-    return {"mode": mode, "bus": bus, "seed": str(seed), "period_ns": str(period_ns),
-            "startup_ticks": str(startup_ticks), "reset_node_faults": str(reset_node_faults),
-            "estimator": str(estimator), "sim_faults": sim_faults}
+    return {
+        "mode": mode,
+        "bus": bus,
+        "seed": str(seed),
+        "period_ns": str(period_ns),
+        "startup_ticks": str(startup_ticks),
+        "reset_node_faults": str(reset_node_faults),
+        "estimator": str(estimator),
+        "sim_faults": sim_faults,
+    }
 
 
 def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | None:
@@ -92,11 +120,17 @@ def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | N
     text = recording.meta(ch.META_HAND, "yaml")
     if not text:
         if required:
-            raise ConfigError(str(recording.path), f"metadata {ch.META_HAND}.yaml",
-                              "the hand config the run used (recorded by handctl)", "nothing")
+            raise ConfigError(
+                str(recording.path),
+                f"metadata {ch.META_HAND}.yaml",
+                "the hand config the run used (recorded by handctl)",
+                "nothing",
+            )
         return None
-    return parse_hand(parse_yaml(text, f"{recording.path} (its recorded hand config)"),
-                      recorded_protocol(recording))
+    return parse_hand(
+        parse_yaml(text, f"{recording.path} (its recorded hand config)"),
+        recorded_protocol(recording),
+    )
 
 
 def recorded_protocol(recording: Recording) -> Protocol | None:
@@ -110,8 +144,12 @@ def recorded_recipe(recording: Recording, hand: HandConfig) -> Recipe:
     """The recipe a recording's run used, checked against its hand as it was then."""
     text = recording.meta(ch.META_RECIPE, "yaml")
     if not text:
-        raise ConfigError(str(recording.path), f"metadata {ch.META_RECIPE}.yaml",
-                          "the recipe the run used (recorded by handctl)", "nothing")
+        raise ConfigError(
+            str(recording.path),
+            f"metadata {ch.META_RECIPE}.yaml",
+            "the recipe the run used (recorded by handctl)",
+            "nothing",
+        )
     recipe = parse_recipe(parse_yaml(text, f"{recording.path} (its recorded recipe)"), hand)
     check_against_hand(recipe, hand)
     return recipe

@@ -24,14 +24,21 @@ from handctl.recording.series import Series
 JOINT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 #: (line style, width, opacity, z-order): applied wide and pale underneath, so that the desired
 #: (dashed) and measured (dotted) lines stay visible where they coincide with it.
-STYLES = {"desired": ("--", 1.0, 1.0, 3), "applied": ("-", 3.0, 0.4, 2),
-          "measured": (":", 1.2, 1.0, 4)}
-_OUTSIDE: dict[str, Any] = {"loc": "upper left", "bbox_to_anchor": (1.005, 1.0),
-                            "fontsize": 7, "framealpha": 0.9, "borderaxespad": 0.0}
+STYLES = {
+    "desired": ("--", 1.0, 1.0, 3),
+    "applied": ("-", 3.0, 0.4, 2),
+    "measured": (":", 1.2, 1.0, 4),
+}
+_OUTSIDE: dict[str, Any] = {
+    "loc": "upper left",
+    "bbox_to_anchor": (1.005, 1.0),
+    "fontsize": 7,
+    "framealpha": 0.9,
+    "borderaxespad": 0.0,
+}
 
 
-def finger_groups(fingers: Sequence[tuple[str, int]], n_joints: int
-                  ) -> list[tuple[str, list[int]]]:
+def finger_groups(fingers: Sequence[tuple[str, int]], n_joints: int) -> list[tuple[str, list[int]]]:
     """Joint indices grouped by finger, as the recorded hand config has them (name, joint
     count); one group, "hand", when the log has no hand config."""
     if sum(count for _, count in fingers) != n_joints or not fingers:
@@ -52,13 +59,25 @@ def phase_bands(axes: Sequence[Any], phases: Sequence[tuple[str, float, float]])
             ax.axvspan(start, end, color="0.93" if i % 2 else "0.86", zorder=0, linewidth=0)
     top = axes[0]
     for i, (name, start, end) in enumerate(shown):
-        top.text((start + end) / 2, 1.03 + 0.13 * (i % 2), name,
-                 transform=top.get_xaxis_transform(), ha="center", va="bottom", fontsize=7,
-                 clip_on=False)
+        top.text(
+            (start + end) / 2,
+            1.03 + 0.13 * (i % 2),
+            name,
+            transform=top.get_xaxis_transform(),
+            ha="center",
+            va="bottom",
+            fontsize=7,
+            clip_on=False,
+        )
 
 
-def torque_panel(ax: Any, finger: str, names: Sequence[str], tau_max: Sequence[float],
-                 series: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+def torque_panel(
+    ax: Any,
+    finger: str,
+    names: Sequence[str],
+    tau_max: Sequence[float],
+    series: dict[str, tuple[np.ndarray, np.ndarray]],
+) -> None:
     """One finger: ``series`` maps desired/applied/measured to ``(t, values[:, joint])`` with
     the finger's joints as columns; a kind that is missing is left out."""
     for c, name in enumerate(names):
@@ -66,8 +85,15 @@ def torque_panel(ax: Any, finger: str, names: Sequence[str], tau_max: Sequence[f
         for kind, (t, values) in series.items():
             style, width, alpha, z = STYLES[kind]
             if len(t):
-                ax.plot(t, values[:, c], color=colour, linestyle=style, linewidth=width,
-                        alpha=alpha, zorder=z)
+                ax.plot(
+                    t,
+                    values[:, c],
+                    color=colour,
+                    linestyle=style,
+                    linewidth=width,
+                    alpha=alpha,
+                    zorder=z,
+                )
         if c < len(tau_max):
             for sign in (1.0, -1.0):
                 ax.axhline(sign * tau_max[c], color=colour, linewidth=0.6, alpha=0.7)
@@ -76,19 +102,24 @@ def torque_panel(ax: Any, finger: str, names: Sequence[str], tau_max: Sequence[f
     ax.set_ylabel(f"{finger} torque [N·m]")
     for kind in series:
         style, width, alpha, _ = STYLES[kind]
-        ax.plot([], [], color="black", linestyle=style, linewidth=width, alpha=alpha,
-                label=kind)
+        ax.plot([], [], color="black", linestyle=style, linewidth=width, alpha=alpha, label=kind)
     ax.plot([], [], color="0.4", linewidth=0.6, label="±tau_max")
     ax.legend(**_OUTSIDE)
 
 
-def objects_panels(ax_height: Any, ax_turn: Any, t: np.ndarray, heights: np.ndarray,
-                   names: Sequence[str], turns: dict[str, tuple[np.ndarray, np.ndarray]]
-                   ) -> None:
+def objects_panels(
+    ax_height: Any,
+    ax_turn: Any,
+    t: np.ndarray,
+    heights: np.ndarray,
+    names: Sequence[str],
+    turns: dict[str, tuple[np.ndarray, np.ndarray]],
+) -> None:
     """Heights above rest (m in, mm drawn) and the centre line's turn (deg, ccw +)."""
     for i, name in enumerate(names):
-        ax_height.plot(t, heights[:, i] * 1e3, label=name,
-                       color=JOINT_COLOURS[(i + 3) % len(JOINT_COLOURS)])
+        ax_height.plot(
+            t, heights[:, i] * 1e3, label=name, color=JOINT_COLOURS[(i + 3) % len(JOINT_COLOURS)]
+        )
     ax_height.set_ylabel(HEIGHT_LABEL)
     ax_height.legend(**_OUTSIDE)
     for label, (tt, values) in turns.items():
@@ -112,22 +143,40 @@ def plot_recording(series: Series, path: Path, title: str) -> None:
     for row, (finger, group) in enumerate(groups):
         names = [series.joints[j] for j in group]
         cols = np.array(group)
-        torque_panel(axes[row], finger, names, [series.tau_max[j] for j in group
-                                                if j < len(series.tau_max)], {
-            "desired": (tq[:, 0], tq[:, 1 + cols]) if len(tq) else (np.zeros(0), tq),
-            "applied": (tq[:, 0], tq[:, 1 + n + cols]) if len(tq) else (np.zeros(0), tq),
-            "measured": (js[:, 0], js[:, 1 + cols]) if len(js) else (np.zeros(0), js)})
+        torque_panel(
+            axes[row],
+            finger,
+            names,
+            [series.tau_max[j] for j in group if j < len(series.tau_max)],
+            {
+                "desired": (tq[:, 0], tq[:, 1 + cols]) if len(tq) else (np.zeros(0), tq),
+                "applied": (tq[:, 0], tq[:, 1 + n + cols]) if len(tq) else (np.zeros(0), tq),
+                "measured": (js[:, 0], js[:, 1 + cols]) if len(js) else (np.zeros(0), js),
+            },
+        )
     for fault in (e for e in series.events if e["kind"] == "fault"):
         for ax in axes:
             ax.axvline(fault["t_s"], color="red", linewidth=1.0)
-        axes[-1].text(fault["t_s"], 0.02, f" {fault['name']}", color="red", fontsize=7,
-                      transform=axes[-1].get_xaxis_transform())
+        axes[-1].text(
+            fault["t_s"],
+            0.02,
+            f" {fault['name']}",
+            color="red",
+            fontsize=7,
+            transform=axes[-1].get_xaxis_transform(),
+        )
     if has_objects:
         ob = series.objects
         k = len(series.object_names)
-        heights = ob[:, 3:3 + 3 * k:3] - np.asarray(series.rest_y[:k], dtype=float)
-        objects_panels(axes[len(groups)], axes[len(groups) + 1], ob[:, 0], heights,
-                       series.object_names, {"true (simulation)": (ob[:, 0], turn_deg(ob[:, 1]))})
+        heights = ob[:, 3 : 3 + 3 * k : 3] - np.asarray(series.rest_y[:k], dtype=float)
+        objects_panels(
+            axes[len(groups)],
+            axes[len(groups) + 1],
+            ob[:, 0],
+            heights,
+            series.object_names,
+            {"true (simulation)": (ob[:, 0], turn_deg(ob[:, 1]))},
+        )
     phase_bands(list(axes), [(p["name"], p["start_s"], p["end_s"]) for p in series.phases])
     axes[-1].set_xlabel(TIME_LABEL)
     if len(series.timing):
@@ -138,8 +187,12 @@ def plot_recording(series: Series, path: Path, title: str) -> None:
 
 
 def title_of(summary: dict[str, Any]) -> str:
-    parts = [summary.get("recipe") or "recording", f"on {summary.get('hand') or '?'}",
-             f"({summary.get('mode') or '?'})", f"— {summary.get('outcome', '')}"]
+    parts = [
+        summary.get("recipe") or "recording",
+        f"on {summary.get('hand') or '?'}",
+        f"({summary.get('mode') or '?'})",
+        f"— {summary.get('outcome', '')}",
+    ]
     if "turn_deg" in summary:
         parts.append(f"— turned {summary['turn_deg']:+.1f} deg (ccw +)")
     if not summary.get("complete", True):

@@ -46,8 +46,14 @@ _CHUNK = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, compress
 #: Larger than any record handctl writes: a length beyond it is garbage, not a record.
 _RECORD_LIMIT = 1 << 32
 #: Errors that mean "the file ends (or goes bad) here", not "handctl is broken".
-_CUT_SHORT: tuple[type[BaseException], ...] = (McapError, struct.error, ValueError, EOFError,
-                                               RuntimeError, UnicodeDecodeError)
+_CUT_SHORT: tuple[type[BaseException], ...] = (
+    McapError,
+    struct.error,
+    ValueError,
+    EOFError,
+    RuntimeError,
+    UnicodeDecodeError,
+)
 try:
     import zstandard
 
@@ -68,10 +74,12 @@ class BadChunk:
     reason: str
 
     def describe(self, first_ns: int) -> str:
-        return (f"chunk {self.number} at byte {self.offset} ({self.length} bytes, log time "
-                f"{self.start_ns}..{self.end_ns} ns, {(self.start_ns - first_ns) * 1e-9:.3f}.."
-                f"{(self.end_ns - first_ns) * 1e-9:.3f} s into the file) is damaged "
-                f"({self.reason})")
+        return (
+            f"chunk {self.number} at byte {self.offset} ({self.length} bytes, log time "
+            f"{self.start_ns}..{self.end_ns} ns, {(self.start_ns - first_ns) * 1e-9:.3f}.."
+            f"{(self.end_ns - first_ns) * 1e-9:.3f} s into the file) is damaged "
+            f"({self.reason})"
+        )
 
 
 @dataclass
@@ -110,8 +118,12 @@ class Recording:
 
 
 def _fail(path: Path, found: str) -> ConfigError:
-    return ConfigError(str(path), "", "an MCAP file (a handctl recording, e.g. from "
-                                      "'handctl run recipe --log RUN.mcap')", found)
+    return ConfigError(
+        str(path),
+        "",
+        "an MCAP file (a handctl recording, e.g. from 'handctl run recipe --log RUN.mcap')",
+        found,
+    )
 
 
 def open_recording(path: str | Path) -> Recording:
@@ -137,8 +149,9 @@ def open_recording(path: str | Path) -> Recording:
             _open_walk(handle, recording)
             if unreadable:
                 recording.complete = False
-                recording.problem = f"{unreadable}, so it was read front to back: " + \
-                    (recording.problem or f"{recording.chunks} complete chunks")
+                recording.problem = f"{unreadable}, so it was read front to back: " + (
+                    recording.problem or f"{recording.chunks} complete chunks"
+                )
         if not recording.topics:
             _topics_from_first_chunk(handle, recording)
     return recording
@@ -171,7 +184,7 @@ def _read_index(handle: BinaryIO) -> _Index | None:
         return None
     handle.seek(footer_at)
     tail = handle.read(9 + _FOOTER_BODY.size + len(MAGIC))
-    if tail[-len(MAGIC):] != MAGIC:
+    if tail[-len(MAGIC) :] != MAGIC:
         return None
     op, length = _RECORD.unpack_from(tail)
     if op != Opcode.FOOTER or length != _FOOTER_BODY.size:
@@ -183,7 +196,7 @@ def _read_index(handle: BinaryIO) -> _Index | None:
         raise ValueError(f"the footer puts the summary at byte {summary_start}")
     handle.seek(summary_start)
     summary = handle.read(footer_at - summary_start)
-    if crc and zlib.crc32(tail[:9 + 16], zlib.crc32(summary)) != crc:
+    if crc and zlib.crc32(tail[: 9 + 16], zlib.crc32(summary)) != crc:
         raise ValueError("summary CRC mismatch")
     index = _Index({}, {}, [], [])
     for op, body in _records(summary):
@@ -207,8 +220,10 @@ def _read_record(handle: BinaryIO, offset: int, length: int, opcode: int) -> byt
         raise EOFError(f"the file ends inside the record ({len(raw)} of {length} bytes)")
     op, body_length = _RECORD.unpack_from(raw)
     if op != opcode or 9 + body_length != length:
-        raise ValueError(f"a record of opcode 0x{op:02X} and {body_length} bytes where the "
-                         f"index has opcode 0x{opcode:02X} and {length - 9} bytes")
+        raise ValueError(
+            f"a record of opcode 0x{op:02X} and {body_length} bytes where the "
+            f"index has opcode 0x{opcode:02X} and {length - 9} bytes"
+        )
     return raw[9:]
 
 
@@ -219,46 +234,61 @@ def _open_indexed(handle: BinaryIO, recording: Recording, index: _Index) -> None
     chunks = sorted(index.chunks, key=lambda c: c.chunk_start_offset)
     for number, chunk in enumerate(chunks):
         try:
-            _chunk_data(_read_record(handle, chunk.chunk_start_offset, chunk.chunk_length,
-                                     Opcode.CHUNK))
+            _chunk_data(
+                _read_record(handle, chunk.chunk_start_offset, chunk.chunk_length, Opcode.CHUNK)
+            )
         except _CUT_SHORT as exc:
-            recording.bad_chunks.append(BadChunk(
-                number, chunk.chunk_start_offset, chunk.chunk_length,
-                chunk.message_start_time, chunk.message_end_time, _why(exc)))
+            recording.bad_chunks.append(
+                BadChunk(
+                    number,
+                    chunk.chunk_start_offset,
+                    chunk.chunk_length,
+                    chunk.message_start_time,
+                    chunk.message_end_time,
+                    _why(exc),
+                )
+            )
             continue
         recording.chunk_spans.append((chunk.chunk_start_offset, chunk.chunk_length))
         recording.chunks += 1
     problems = []
     for meta_index in index.metadata:
         try:
-            meta = Metadata.read(_stream(_read_record(handle, meta_index.offset,
-                                                      meta_index.length, Opcode.METADATA)))
+            meta = Metadata.read(
+                _stream(_read_record(handle, meta_index.offset, meta_index.length, Opcode.METADATA))
+            )
         except _CUT_SHORT as exc:
             recording.bad_metadata.append(meta_index.name)
-            problems.append(f"metadata record {meta_index.name!r} at byte {meta_index.offset} "
-                            f"is damaged ({_why(exc)})")
+            problems.append(
+                f"metadata record {meta_index.name!r} at byte {meta_index.offset} "
+                f"is damaged ({_why(exc)})"
+            )
             continue
         recording.metadata[meta.name] = dict(meta.metadata)
     if recording.bad_chunks:
         first = min(c.message_start_time for c in chunks)
         last = recording.bad_chunks[-1].number
         problems[:0] = [bad.describe(first) for bad in recording.bad_chunks]
-        problems.append(f"its messages are left out; {recording.chunks} of {len(chunks)} "
-                        f"chunks read, {len(chunks) - 1 - last} of them after the last "
-                        "damaged one")
+        problems.append(
+            f"its messages are left out; {recording.chunks} of {len(chunks)} "
+            f"chunks read, {len(chunks) - 1 - last} of them after the last "
+            "damaged one"
+        )
     recording.complete = not problems
     recording.problem = "; ".join(problems)
     if recording.complete:
-        recording.message_counts = {recording.topics.get(cid, str(cid)): n
-                                    for cid, n in index.counts.items()}
+        recording.message_counts = {
+            recording.topics.get(cid, str(cid)): n for cid, n in index.counts.items()
+        }
 
 
 def _open_walk(handle: BinaryIO, recording: Recording) -> None:
     """The first pass front to back, for a file without a (readable) summary."""
     walk = _Walk(handle)
     try:
-        for op, body in walk.records((Opcode.CHUNK, Opcode.METADATA, Opcode.CHANNEL,
-                                      Opcode.STATISTICS, Opcode.FOOTER)):
+        for op, body in walk.records(
+            (Opcode.CHUNK, Opcode.METADATA, Opcode.CHANNEL, Opcode.STATISTICS, Opcode.FOOTER)
+        ):
             if op == Opcode.CHUNK:
                 _chunk_data(body)  # a chunk cut short raises here: the walk ends
                 recording.chunks += 1
@@ -276,14 +306,19 @@ def _open_walk(handle: BinaryIO, recording: Recording) -> None:
                 recording.complete = handle.read(len(MAGIC)) == MAGIC
                 break
     except _CUT_SHORT as exc:
-        recording.problem = (f"reading stopped at byte {walk.offset} after "
-                             f"{recording.chunks} complete chunks ({_why(exc)})")
+        recording.problem = (
+            f"reading stopped at byte {walk.offset} after "
+            f"{recording.chunks} complete chunks ({_why(exc)})"
+        )
     if recording.message_counts:
-        recording.message_counts = {recording.topics.get(int(cid), cid): n
-                                    for cid, n in recording.message_counts.items()}
+        recording.message_counts = {
+            recording.topics.get(int(cid), cid): n for cid, n in recording.message_counts.items()
+        }
     if not recording.complete and not recording.problem:
-        recording.problem = (f"the file ends at byte {walk.offset} after {recording.chunks} "
-                             "complete chunks, without its summary")
+        recording.problem = (
+            f"the file ends at byte {walk.offset} after {recording.chunks} "
+            "complete chunks, without its summary"
+        )
 
 
 def _topics_from_first_chunk(handle: BinaryIO, recording: Recording) -> None:
@@ -340,8 +375,7 @@ class _Walk:
             if op in keep:
                 body = handle.read(length)
                 if len(body) < length:
-                    raise EOFError(f"the file ends inside a record ({len(body)} of {length} "
-                                   "bytes)")
+                    raise EOFError(f"the file ends inside a record ({len(body)} of {length} bytes)")
                 yield op, body
             else:
                 if self.offset + 9 + length > self.size:
@@ -353,10 +387,10 @@ class _Walk:
 def _chunk_data(body: bytes) -> bytes:
     """The records of a chunk record's body, decompressed and checked against its CRC."""
     _, _, size, crc, name_length = _CHUNK.unpack_from(body)
-    compression = body[_CHUNK.size:_CHUNK.size + name_length].decode()
+    compression = body[_CHUNK.size : _CHUNK.size + name_length].decode()
     at = _CHUNK.size + name_length
     (data_length,) = struct.unpack_from("<Q", body, at)
-    packed = body[at + 8:at + 8 + data_length]
+    packed = body[at + 8 : at + 8 + data_length]
     if len(packed) != data_length:
         raise EOFError("a chunk cut short")
     if compression == "zstd":
@@ -383,12 +417,13 @@ def _records(data: bytes) -> Iterator[tuple[int, bytes]]:
     while offset + 9 <= end:
         op, length = _RECORD.unpack_from(data, offset)
         start = offset + 9
-        yield op, data[start:start + length]
+        yield op, data[start : start + length]
         offset = start + length
 
 
-def iter_messages(recording: Recording, topics: Iterable[str] | None = None
-                  ) -> Iterator[tuple[str, int, bytes]]:
+def iter_messages(
+    recording: Recording, topics: Iterable[str] | None = None
+) -> Iterator[tuple[str, int, bytes]]:
     """``(topic, log_time_ns, json_bytes)`` in file order: every chunk that reads (up to where
     a truncated file stops).
 
@@ -413,7 +448,7 @@ def iter_messages(recording: Recording, topics: Iterable[str] | None = None
                     if op == message_op:
                         cid, _, log_time, _ = unpack_message(data, start)
                         if cid in keep:
-                            yield names[cid], log_time, data[start + _MESSAGE_HEADER:offset]
+                            yield names[cid], log_time, data[start + _MESSAGE_HEADER : offset]
                     elif op == channel_op:
                         channel = Channel.read(_stream(data[start:offset]))
                         if channel.id not in names:
@@ -424,8 +459,9 @@ def iter_messages(recording: Recording, topics: Iterable[str] | None = None
             return  # open_recording has said where and why
 
 
-def iter_chunks(recording: Recording, topics: Iterable[str]
-                ) -> Iterator[tuple[list[str], list[Any]]]:
+def iter_chunks(
+    recording: Recording, topics: Iterable[str]
+) -> Iterator[tuple[list[str], list[Any]]]:
     """The topics and decoded messages of the wanted channels in file order, in batches of
     a few thousand, each batch decoded by one ``orjson.loads`` of a JSON array made of its
     messages: a re-run reads a dozen small messages per tick, and a call per message costs
@@ -442,8 +478,9 @@ def iter_chunks(recording: Recording, topics: Iterable[str]
         yield topics_, orjson.loads(b"[" + b",".join(raw) + b"]")
 
 
-def iter_decoded(recording: Recording, topics: Iterable[str] | None = None
-                 ) -> Iterator[tuple[str, int, dict[str, Any]]]:
+def iter_decoded(
+    recording: Recording, topics: Iterable[str] | None = None
+) -> Iterator[tuple[str, int, dict[str, Any]]]:
     loads = orjson.loads
     for topic, log_time, data in iter_messages(recording, topics):
         yield topic, log_time, loads(data)
@@ -454,10 +491,13 @@ def require_topics(recording: Recording, topics: Iterable[str], what: str) -> No
     have = set(recording.topics.values())
     missing = [t for t in topics if t not in have]
     if missing:
-        raise ConfigError(str(recording.path), "channels",
-                          f"the channels {', '.join(missing)} for {what} (a recording made by "
-                          "'handctl run recipe --log')",
-                          ", ".join(sorted(have)) or "no channels")
+        raise ConfigError(
+            str(recording.path),
+            "channels",
+            f"the channels {', '.join(missing)} for {what} (a recording made by "
+            "'handctl run recipe --log')",
+            ", ".join(sorted(have)) or "no channels",
+        )
 
 
 def check_format(recording: Recording) -> None:
@@ -465,5 +505,9 @@ def check_format(recording: Recording) -> None:
     version, and the channel checks say what it lacks)."""
     version = recording.meta("handctl.command", "format_version")
     if version and version != str(ch.FORMAT_VERSION):
-        raise ConfigError(str(recording.path), "metadata handctl.command.format_version",
-                          f"format version {ch.FORMAT_VERSION}", version)
+        raise ConfigError(
+            str(recording.path),
+            "metadata handctl.command.format_version",
+            f"format version {ch.FORMAT_VERSION}",
+            version,
+        )

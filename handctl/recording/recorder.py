@@ -126,17 +126,25 @@ def _shared_memory(size: int) -> int:
 class Recorder:
     """Records one run to ``path``; see the module docstring for how."""
 
-    def __init__(self, path: str | Path, hand: HandConfig, metadata: dict[str, dict[str, str]],
-                 *, phase_names: Sequence[str] = (), object_names: Sequence[str] = (),
-                 layout: RingLayout | None = None, live_port: int | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        hand: HandConfig,
+        metadata: dict[str, dict[str, str]],
+        *,
+        phase_names: Sequence[str] = (),
+        object_names: Sequence[str] = (),
+        layout: RingLayout | None = None,
+        live_port: int | None = None,
+    ) -> None:
         self.path = Path(path)
         self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
         try:
-            out_fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC,
-                             0o644)
+            out_fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
         except OSError as exc:
-            raise ConfigError(str(path), "", "a path where the recording can be written",
-                              exc.strerror or str(exc)) from None
+            raise ConfigError(
+                str(path), "", "a path where the recording can be written", exc.strerror or str(exc)
+            ) from None
         shm_fd = _shared_memory(self.layout.size)
         self._mmap = mmap.mmap(shm_fd, self.layout.size)
         # Touch every page now: a page's first write is a page fault, microseconds each (more
@@ -149,15 +157,25 @@ class Recorder:
         self._ready_r, ready_w = os.pipe()
         package_root = str(Path(__file__).resolve().parents[2])
         env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH"))
-                                            if p)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
         try:
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "handctl.recording.writer", str(shm_fd), str(ctl_r),
-                 str(out_fd), str(ready_w)],
-                pass_fds=(shm_fd, ctl_r, out_fd, ready_w), stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
-                start_new_session=True)
+                [
+                    sys.executable,
+                    "-m",
+                    "handctl.recording.writer",
+                    str(shm_fd),
+                    str(ctl_r),
+                    str(out_fd),
+                    str(ready_w),
+                ],
+                pass_fds=(shm_fd, ctl_r, out_fd, ready_w),
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+                env=env,
+                start_new_session=True,
+            )
         finally:
             for fd in (shm_fd, ctl_r, out_fd, ready_w):
                 os.close(fd)
@@ -165,12 +183,20 @@ class Recorder:
         names = list(dict.fromkeys([*RUNNER_NAMES, *phase_names]))
         self._phases = {name: i for i, name in enumerate(names)}
         try:
-            self._send({"type": "setup", "layout": self.layout.as_dict(),
-                        "states": SUPERVISOR_STATE_NAMES, "phases": names,
-                        "joints": list(hand.joint_names),
-                        "nodes": [f.name for f in hand.fingers], "objects": list(object_names),
-                        "path": str(self.path), "metadata": metadata,
-                        "live_port": live_port})
+            self._send(
+                {
+                    "type": "setup",
+                    "layout": self.layout.as_dict(),
+                    "states": SUPERVISOR_STATE_NAMES,
+                    "phases": names,
+                    "joints": list(hand.joint_names),
+                    "nodes": [f.name for f in hand.fingers],
+                    "objects": list(object_names),
+                    "path": str(self.path),
+                    "metadata": metadata,
+                    "live_port": live_port,
+                }
+            )
         except BaseException:
             self.process.kill()
             self.process.wait()
@@ -189,9 +215,9 @@ class Recorder:
         # Flat views of the tick rows for slice assignment from the runtime's own arrays.
         block = memoryview(self._mmap)
         at = r.offsets["tick_f"]
-        self._floats = block[at:at + r.tick_f.nbytes].cast("d")
+        self._floats = block[at : at + r.tick_f.nbytes].cast("d")
         at = r.offsets["tick_i"]
-        self._ints = block[at:at + r.tick_i.nbytes].cast("q")
+        self._ints = block[at : at + r.tick_i.nbytes].cast("q")
         block.release()
         self._tick_ints = self.layout.tick_ints
         self._angle: Any = None
@@ -199,8 +225,9 @@ class Recorder:
         self._desired: Any = None
         self._applied: Any = None
         self._feedback: Any = None
-        self._angle_view = self._tdt_view = self._desired_view = self._applied_view = \
-            self._feedback_view = memoryview(b"")
+        self._angle_view = self._tdt_view = self._desired_view = self._applied_view = (
+            self._feedback_view
+        ) = memoryview(b"")
         self._scheduled = self._missed = 0
         self._tick_stride = self.layout.tick_ints * 8
         self._tick_base = r.offsets["tick_i"]
@@ -257,8 +284,10 @@ class Recorder:
         if answer != b"R":
             self.process.kill()
             _, err = self.process.communicate(timeout=10)
-            raise HandctlError(f"{self.path}: the recording writer did not start: "
-                               f"{err.decode(errors='replace').strip() or 'no answer'}")
+            raise HandctlError(
+                f"{self.path}: the recording writer did not start: "
+                f"{err.decode(errors='replace').strip() or 'no answer'}"
+            )
         self._ready = True
 
     def _send(self, message: dict[str, Any]) -> None:
@@ -267,7 +296,7 @@ class Recorder:
             os.write(self._ctl_w, struct.pack("<I", len(payload)))
             view = memoryview(payload)
             while view:
-                view = view[os.write(self._ctl_w, view):]
+                view = view[os.write(self._ctl_w, view) :]
         except BrokenPipeError:
             raise HandctlError(f"{self.path}: the recording writer is gone") from None
 
@@ -295,8 +324,7 @@ class Recorder:
         self._now = tick.now_ns
         self._missed = tick.missed
         head = self._head
-        if head - self._tail > self._tick_mask and self._ring_full(_TICKS, head,
-                                                                   self._tick_mask):
+        if head - self._tail > self._tick_mask and self._ring_full(_TICKS, head, self._tick_mask):
             self._row = -1
             return
         self._row = head & self._tick_mask
@@ -305,8 +333,15 @@ class Recorder:
         """The row of a tick that only polled is its head alone; publish it with its frames."""
         if self._pending:
             self._flush_frames()
-        _TICK_HEAD.pack_into(self._buf, self._tick_base + self._row * self._tick_stride,
-                             self._tick, self._scheduled, self._now, self._missed, 0)
+        _TICK_HEAD.pack_into(
+            self._buf,
+            self._tick_base + self._row * self._tick_stride,
+            self._tick,
+            self._scheduled,
+            self._now,
+            self._missed,
+            0,
+        )
         self._publish()
 
     def _publish(self) -> None:
@@ -327,11 +362,22 @@ class Recorder:
             if phase is None:
                 phase = self._intern(record.phase)
             s = record.stage_ns
-            _TICK_ROW.pack_into(self._buf, self._tick_base + row * self._tick_stride,
-                                self._tick, self._scheduled, self._now, self._missed, 1,
-                                s[0], s[1], s[2], s[3], self._states.get(record.state, -1),
-                                phase, len(runtime.supervisor.faults) if runtime is not None
-                                else 0)
+            _TICK_ROW.pack_into(
+                self._buf,
+                self._tick_base + row * self._tick_stride,
+                self._tick,
+                self._scheduled,
+                self._now,
+                self._missed,
+                1,
+                s[0],
+                s[1],
+                s[2],
+                s[3],
+                self._states.get(record.state, -1),
+                phase,
+                len(runtime.supervisor.faults) if runtime is not None else 0,
+            )
             # Four vectors by memoryview slice assignment: no numpy call, no allocation. The
             # views of the runtime's arrays are made once (an array the runtime swaps in,
             # the zero vector for the runner's, gets its view made when first seen).
@@ -349,10 +395,10 @@ class Recorder:
                     self._desired_view = _view(desired)
                 if record.applied is not self._applied:
                     self._applied, self._applied_view = record.applied, _view(record.applied)
-                floats[at:at + n] = self._angle_view
-                floats[at + n:at + 2 * n] = self._tdt_view
-                floats[at + 2 * n:at + 3 * n] = self._desired_view
-                floats[at + 3 * n:at + 4 * n] = self._applied_view
+                floats[at : at + n] = self._angle_view
+                floats[at + n : at + 2 * n] = self._tdt_view
+                floats[at + 2 * n : at + 3 * n] = self._desired_view
+                floats[at + 3 * n : at + 4 * n] = self._applied_view
             except (TypeError, ValueError, BufferError):  # not a float64 vector of n
                 self._angle = self._tdt = self._desired = self._applied = None
                 self._copy_floats(row, record)
@@ -360,17 +406,26 @@ class Recorder:
                 state = runtime.driver.state
                 at = row * self._tick_ints
                 if state.feedback_ns is not self._feedback:
-                    self._feedback, self._feedback_view = state.feedback_ns, \
-                        state.feedback_ns.data.cast("B").cast("q")
-                self._ints[at + I_FEEDBACK:at + I_FEEDBACK + n] = self._feedback_view
-                self._nodes_pack(self._buf, (at + I_FEEDBACK + n) * 8 + self._tick_base,
-                                 *state.node_state, *state.node_faults)
+                    self._feedback, self._feedback_view = (
+                        state.feedback_ns,
+                        state.feedback_ns.data.cast("B").cast("q"),
+                    )
+                self._ints[at + I_FEEDBACK : at + I_FEEDBACK + n] = self._feedback_view
+                self._nodes_pack(
+                    self._buf,
+                    (at + I_FEEDBACK + n) * 8 + self._tick_base,
+                    *state.node_state,
+                    *state.node_faults,
+                )
         # The tick's events before its row, so that a reader that meets the row has met them.
         if runtime is not None:
             sup = runtime.supervisor
-            if len(sup.history) != self._history or len(sup.faults) != self._faults \
-                    or record.phase != self._last_phase \
-                    or self._reject_lists != self._reject_seen:
+            if (
+                len(sup.history) != self._history
+                or len(sup.faults) != self._faults
+                or record.phase != self._last_phase
+                or self._reject_lists != self._reject_seen
+            ):
                 self._sweep(runtime, record.phase)
         if row >= 0:
             self._publish()
@@ -381,9 +436,9 @@ class Recorder:
         n = self._n
         values = self._tf[row]
         values[:n] = record.angle
-        values[n:2 * n] = record.tdt
-        values[2 * n:3 * n] = record.desired
-        values[3 * n:] = record.applied
+        values[n : 2 * n] = record.tdt
+        values[2 * n : 3 * n] = record.desired
+        values[3 * n :] = record.applied
 
     def note(self, kind: str, detail: str, tick: int) -> None:
         self._event(EV_REQUEST, tick, kind, detail)
@@ -415,8 +470,16 @@ class Recorder:
                     continue
                 for frame in entry:
                     data = frame.data
-                    pack(buf, base + (head & mask) * FRAME_ROW, now, tick, frame.arbitration_id,
-                         len(data) << 8, frame.timestamp_ns, data)  # direction TAP_RX is 0
+                    pack(
+                        buf,
+                        base + (head & mask) * FRAME_ROW,
+                        now,
+                        tick,
+                        frame.arbitration_id,
+                        len(data) << 8,
+                        frame.timestamp_ns,
+                        data,
+                    )  # direction TAP_RX is 0
                     head += 1
             elif isinstance(entry, tuple):
                 if head >= room:
@@ -424,29 +487,47 @@ class Recorder:
                     room = mask + 1 + self._ftail
                     continue
                 frame_id, payload, direction = entry
-                pack(buf, base + (head & mask) * FRAME_ROW, now, tick, frame_id,
-                     direction | len(payload) << 8, 0, payload)
+                pack(
+                    buf,
+                    base + (head & mask) * FRAME_ROW,
+                    now,
+                    tick,
+                    frame_id,
+                    direction | len(payload) << 8,
+                    0,
+                    payload,
+                )
                 head += 1
         self._pending.clear()
         self._fhead = head
 
-    def _flush_slowly(self, entries: Sequence[Frame | tuple[int, bytes, int]], head: int
-                      ) -> int:
+    def _flush_slowly(self, entries: Sequence[Frame | tuple[int, bytes, int]], head: int) -> int:
         """Frames when the ring looked full: one look at the writer's tail per frame, and
         what does not fit is dropped and counted."""
         mask = self._frame_mask
         for i, entry in enumerate(entries):
-            if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask,
-                                                             len(entries) - i):
+            if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask, len(entries) - i):
                 break
             if isinstance(entry, Frame):
-                frame_id, data, meta, stamp = (entry.arbitration_id, entry.data,
-                                               TAP_RX | len(entry.data) << 8, entry.timestamp_ns)
+                frame_id, data, meta, stamp = (
+                    entry.arbitration_id,
+                    entry.data,
+                    TAP_RX | len(entry.data) << 8,
+                    entry.timestamp_ns,
+                )
             else:
                 frame_id, data, direction = entry
                 meta, stamp = direction | len(data) << 8, 0
-            _FRAME.pack_into(self._buf, self._frame_base + (head & mask) * FRAME_ROW, self._now,
-                             self._tick, frame_id, meta, stamp, data)
+            _FRAME.pack_into(
+                self._buf,
+                self._frame_base + (head & mask) * FRAME_ROW,
+                self._now,
+                self._tick,
+                frame_id,
+                meta,
+                stamp,
+                data,
+            )
             head += 1
         return head
 
@@ -478,12 +559,13 @@ class Recorder:
         _POSE_INTS.pack_into(self._buf, self._pose_base + row * 16, self._tick, self._now)
         values = [v for pose in poses for v in pose]
         if len(values) == self._pose_floats.size // 8:
-            self._pose_floats.pack_into(self._buf, self._pose_f_base + row * self._pose_stride,
-                                        *values)
+            self._pose_floats.pack_into(
+                self._buf, self._pose_f_base + row * self._pose_stride, *values
+            )
         else:  # a pose list of another length: what fits, the rest NaN
             row_values = self._rings.pose_f[row]
             row_values[:] = float("nan")
-            row_values[:min(len(values), len(row_values))] = values[:len(row_values)]
+            row_values[: min(len(values), len(row_values))] = values[: len(row_values)]
         self._phead = head + 1
         self._ctl_view[POSE_HEAD] = head + 1
 
@@ -492,15 +574,15 @@ class Recorder:
         if self.closed:
             return
         head = self._ehead
-        if head - self._etail > self._event_mask and self._ring_full(_EVENTS, head,
-                                                                     self._event_mask):
+        if head - self._etail > self._event_mask and self._ring_full(
+            _EVENTS, head, self._event_mask
+        ):
             return
         row = head & self._event_mask
         text = SEP.join(fields).encode()[:EVENT_BYTES]
-        _EVENT.pack_into(self._buf, self._event_base + row * 32, self._now, tick, kind,
-                         len(text))
+        _EVENT.pack_into(self._buf, self._event_base + row * 32, self._now, tick, kind, len(text))
         start = self._event_data + row * EVENT_BYTES
-        self._buf[start:start + len(text)] = text
+        self._buf[start : start + len(text)] = text
         self._ehead = head + 1
         self._ctl_view[EVENT_HEAD] = head + 1
 
@@ -518,15 +600,20 @@ class Recorder:
         if len(sup.history) != self._history:
             if len(sup.history) < self._history:
                 self._history = 0
-            for tick, before, event, after in sup.history[self._history:]:
+            for tick, before, event, after in sup.history[self._history :]:
                 self._event(EV_STATE, tick, after.value, before.value, event.value)
             self._history = len(sup.history)
         if len(sup.faults) != self._faults:
             if len(sup.faults) < self._faults:  # an explicit reset cleared them
                 self._faults = 0
-            for fault in sup.faults[self._faults:]:
-                self._event(EV_FAULT, fault.tick, fault.code.name,
-                            FAULTS[fault.code].category.name.lower(), fault.detail)
+            for fault in sup.faults[self._faults :]:
+                self._event(
+                    EV_FAULT,
+                    fault.tick,
+                    fault.code.name,
+                    FAULTS[fault.code].category.name.lower(),
+                    fault.detail,
+                )
             self._faults = len(sup.faults)
         if phase != self._last_phase:
             exit_reason = ""
@@ -564,8 +651,9 @@ class Recorder:
             if self._runtime is not None:
                 self._sweep(self._runtime, self._last_phase)
         except Exception as exc:  # the file is still finished with what the rings hold
-            problem = (f"the last events could not be recorded "
-                       f"({type(exc).__name__}: {str(exc)[:300]})")
+            problem = (
+                f"the last events could not be recorded ({type(exc).__name__}: {str(exc)[:300]})"
+            )
         if self._runtime is not None:
             bus = self._runtime.driver.bus
             bus.tap = None
@@ -577,16 +665,22 @@ class Recorder:
             elif self._pending:
                 self._flush_frames()
         except Exception as exc:  # as above: a recorder that broke in the run, broke again
-            problem = problem or (f"the last tick could not be recorded "
-                                  f"({type(exc).__name__}: {str(exc)[:300]})")
+            problem = problem or (
+                f"the last tick could not be recorded ({type(exc).__name__}: {str(exc)[:300]})"
+            )
         ctl = self._ctl_view
         ctl[FRAME_HEAD] = self._fhead
         ctl[TICK_HEAD] = self._head
-        self.stats = {"path": str(self.path), "ticks": self._head, "frames": self._fhead,
-                      "events": self._ehead, "dropped_ticks": ctl[DROPPED_TICKS],
-                      "dropped_frames": ctl[DROPPED_FRAMES],
-                      "dropped_events": ctl[DROPPED_EVENTS],
-                      "dropped_poses": ctl[DROPPED_POSES]}
+        self.stats = {
+            "path": str(self.path),
+            "ticks": self._head,
+            "frames": self._fhead,
+            "events": self._ehead,
+            "dropped_ticks": ctl[DROPPED_TICKS],
+            "dropped_frames": ctl[DROPPED_FRAMES],
+            "dropped_events": ctl[DROPPED_EVENTS],
+            "dropped_poses": ctl[DROPPED_POSES],
+        }
         ctl[CLOSED] = 1
         self.closed = True
         try:
@@ -603,8 +697,10 @@ class Recorder:
             problem = problem or f"the writer did not finish within {CLOSE_TIMEOUT_S:g} s"
         os.close(self._ready_r)
         if self.process.returncode != 0 and not problem:
-            problem = (f"the writer failed (exit {self.process.returncode}): "
-                       f"{err.decode(errors='replace').strip()[-2000:]}")
+            problem = (
+                f"the writer failed (exit {self.process.returncode}): "
+                f"{err.decode(errors='replace').strip()[-2000:]}"
+            )
         self.stats["writer_exit"] = self.process.returncode
         self._release()
         if problem:

@@ -24,8 +24,11 @@ def _percentiles(values: FloatArray, scale: float) -> dict[str, float]:
     if values.size == 0:
         return {"p50": 0.0, "p99": 0.0, "max": 0.0}
     p50, p99 = np.percentile(values, [50, 99])
-    return {"p50": round(float(p50) * scale, 2), "p99": round(float(p99) * scale, 2),
-            "max": round(float(values.max()) * scale, 2)}
+    return {
+        "p50": round(float(p50) * scale, 2),
+        "p99": round(float(p99) * scale, 2),
+        "max": round(float(values.max()) * scale, 2),
+    }
 
 
 def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
@@ -41,25 +44,44 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
         entry: dict[str, float] = {}
         if len(tq):
             i = int(np.nanargmax(np.abs(tq[:, 1 + n + j])))
-            entry |= {"applied_nm": round(float(tq[i, 1 + n + j]), 5),
-                      "at_s": round(float(tq[i, 0]), 3),
-                      "desired_nm": round(float(np.nanmax(np.abs(tq[:, 1 + j]))), 5)}
+            entry |= {
+                "applied_nm": round(float(tq[i, 1 + n + j]), 5),
+                "at_s": round(float(tq[i, 0]), 3),
+                "desired_nm": round(float(np.nanmax(np.abs(tq[:, 1 + j]))), 5),
+            }
         if len(js):
             entry["tdt_nm"] = round(float(np.nanmax(np.abs(js[:, 1 + j]))), 5)
         largest[name] = entry
-    phases = [{"name": p["name"], "start_s": round(p["start_s"], 3),
-               "end_s": round(p["end_s"], 3), "duration_s": round(p["end_s"] - p["start_s"], 3),
-               "exit": p["exit"]}
-              for p in series.phases if p["name"] not in NOT_PHASES]
-    faults = [{"code": e["name"], "category": e.get("category", ""), "tick": e["tick"],
-               "t_s": round(e["t_s"], 3), "detail": e["detail"]}
-              for e in series.events if e["kind"] == "fault"]
+    phases = [
+        {
+            "name": p["name"],
+            "start_s": round(p["start_s"], 3),
+            "end_s": round(p["end_s"], 3),
+            "duration_s": round(p["end_s"] - p["start_s"], 3),
+            "exit": p["exit"],
+        }
+        for p in series.phases
+        if p["name"] not in NOT_PHASES
+    ]
+    faults = [
+        {
+            "code": e["name"],
+            "category": e.get("category", ""),
+            "tick": e["tick"],
+            "t_s": round(e["t_s"], 3),
+            "detail": e["detail"],
+        }
+        for e in series.events
+        if e["kind"] == "fault"
+    ]
     rejected: dict[str, int] = {}
     for e in series.events:
         if e["kind"] == "rejected_frames":
             rejected[e["name"]] = rejected.get(e["name"], 0) + int(e.get("count", 0))
-    drops = {key: int(end.get(key, series.stats.get(key, 0))) for key in
-             ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")}
+    drops = {
+        key: int(end.get(key, series.stats.get(key, 0)))
+        for key in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
+    }
     summary: dict[str, Any] = {
         "file": str(recording.path),
         "complete": recording.complete,
@@ -77,12 +99,16 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
         "phases": phases,
         "largest_torques": largest,
         "faults": faults,
-        "timing": {"lateness_us": _percentiles(timing[:, 2] if len(timing) else timing, 1e-3),
-                   "missed_ticks": int(timing[:, 3].sum()) if len(timing) else 0,
-                   "stage_cpu_us_p99": {
-                       name: round(float(np.percentile(active[:, 5 + i], 99)) / 1e3, 2)
-                       if len(active) else 0.0
-                       for i, name in enumerate(RECORDED_STAGES)}},
+        "timing": {
+            "lateness_us": _percentiles(timing[:, 2] if len(timing) else timing, 1e-3),
+            "missed_ticks": int(timing[:, 3].sum()) if len(timing) else 0,
+            "stage_cpu_us_p99": {
+                name: round(float(np.percentile(active[:, 5 + i], 99)) / 1e3, 2)
+                if len(active)
+                else 0.0
+                for i, name in enumerate(RECORDED_STAGES)
+            },
+        },
         "drops": drops,
         "frames": series.frames,
         "bus_events": sum(1 for e in series.events if e["kind"] == "bus"),
@@ -92,27 +118,35 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
         first, last = series.objects[0], series.objects[-1]
         summary["objects"] = {
             name: {"start": _pose(first, i, series.rest_y), "end": _pose(last, i, series.rest_y)}
-            for i, name in enumerate(series.object_names)}
+            for i, name in enumerate(series.object_names)
+        }
     if len(series.objects) and len(series.object_names) >= 2:
         # the line between the first two objects, as the log carries it: one object has none
         first, last = series.objects[0], series.objects[-1]
-        summary["objects_line_angle_rad"] = {"start": round(float(first[1]), 5),
-                                             "end": round(float(last[1]), 5)}
+        summary["objects_line_angle_rad"] = {
+            "start": round(float(first[1]), 5),
+            "end": round(float(last[1]), 5),
+        }
         # a pose taken at the start of tick k belongs to the phase tick k - 1 ran, and the
         # phase channel says which phase a tick ran: the bounds move one tick later
         period = int(recording.meta(ch.META_RUN, "period_ns") or 1_000_000) * 1e-9
-        turns = phase_turns_deg(series.objects[:, 0], series.objects[:, 1],
-                                [(p["name"], p["start_s"] + period, p["end_s"] + period)
-                                 for p in series.phases])
+        turns = phase_turns_deg(
+            series.objects[:, 0],
+            series.objects[:, 1],
+            [(p["name"], p["start_s"] + period, p["end_s"] + period) for p in series.phases],
+        )
         summary["phase_turns_deg"] = turns
         summary["turn_deg"] = round(sum(turns), 2)
     return summary
 
 
 def _pose(row: FloatArray, i: int, rest_y: list[float]) -> dict[str, float]:
-    x, y, angle = row[2 + 3 * i: 5 + 3 * i]
-    pose = {"x_m": round(float(x), 5), "y_m": round(float(y), 5),
-            "angle_rad": round(float(angle), 5)}
+    x, y, angle = row[2 + 3 * i : 5 + 3 * i]
+    pose = {
+        "x_m": round(float(x), 5),
+        "y_m": round(float(y), 5),
+        "angle_rad": round(float(angle), 5),
+    }
     if i < len(rest_y):
         pose["height_above_rest_m"] = round(float(y) - rest_y[i], 5)
     return pose

@@ -84,8 +84,7 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:  
     batches = iter_chunks(recording, ch.RERUN_TOPICS)
     timing, torque, rx, tx, joint = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX, ch.JOINT_STATE
     fromhex = bytes.fromhex
-    closed = recording.complete and \
-        recording.meta(ch.META_END, "ended") == ch.ENDED_CLOSED
+    closed = recording.complete and recording.meta(ch.META_END, "ended") == ch.ENDED_CLOSED
 
     def inputs_of(k: int, current: TickInput | None) -> TickInput | _Pending:
         if current is not None and current.tick == k:
@@ -101,10 +100,12 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:  
             for topic, msg in zip(topics, messages, strict=True):
                 if topic == rx:
                     inputs_of(msg["tick"], current).rx.append(
-                        Frame(msg["id"], fromhex(msg["data"]), msg.get("bus_time_ns", 0)))
+                        Frame(msg["id"], fromhex(msg["data"]), msg.get("bus_time_ns", 0))
+                    )
                 elif topic == tx:
                     inputs_of(msg["tick"], current).tx.append(
-                        (msg["id"], fromhex(msg["data"]), msg.get("ok", True)))
+                        (msg["id"], fromhex(msg["data"]), msg.get("ok", True))
+                    )
                 elif topic == timing:
                     k = msg["tick"]
                     if current is not None:
@@ -137,14 +138,20 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:  
     return before, itertools.chain(() if first is None else (first,), stream)
 
 
-def _route(msg: dict[str, Any], inputs: TickInput | _Pending,
-           kinds: dict[str, BusEventKind]) -> None:
+def _route(
+    msg: dict[str, Any], inputs: TickInput | _Pending, kinds: dict[str, BusEventKind]
+) -> None:
     """A bus event or an operator request (inputs of their tick), or the rejects the run
     counted (what the re-run must count too)."""
     kind = msg["kind"]
     if kind == "bus":
-        inputs.bus_events.append(BusEvent(kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
-                                          msg["detail"], msg.get("bus_time_ns", 0)))
+        inputs.bus_events.append(
+            BusEvent(
+                kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
+                msg["detail"],
+                msg.get("bus_time_ns", 0),
+            )
+        )
     elif kind == "request":
         inputs.requests.append((msg["name"], msg["detail"]))
     else:
@@ -177,8 +184,10 @@ class ReplayBus:
 
     def load(self, tick: int, inputs: TickInput | _Pending) -> None:
         for frame_id, data, _ in self._tx:
-            self._mismatch(f"tick {self.tick}: the log has frame 0x{frame_id:03X} "
-                           f"{data.hex()} that the re-run did not send")
+            self._mismatch(
+                f"tick {self.tick}: the log has frame 0x{frame_id:03X} "
+                f"{data.hex()} that the re-run did not send"
+            )
         self.tick = tick
         self._rx = deque(inputs.rx)
         self._tx = deque(inputs.tx)
@@ -202,15 +211,19 @@ class ReplayBus:
     def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool:
         self.frames_compared += 1
         if not self._tx:
-            self._mismatch(f"tick {self.tick}: the re-run sent frame 0x{arbitration_id:03X} "
-                           f"{bytes(data).hex()}, the log has no more frames in this tick")
+            self._mismatch(
+                f"tick {self.tick}: the re-run sent frame 0x{arbitration_id:03X} "
+                f"{bytes(data).hex()}, the log has no more frames in this tick"
+            )
             ok = True
         else:
             frame_id, logged, ok = self._tx.popleft()
             if frame_id != arbitration_id or logged != data:
-                self._mismatch(f"tick {self.tick}: the re-run sent 0x{arbitration_id:03X} "
-                               f"{bytes(data).hex()}, the log has 0x{frame_id:03X} "
-                               f"{logged.hex()}")
+                self._mismatch(
+                    f"tick {self.tick}: the re-run sent 0x{arbitration_id:03X} "
+                    f"{bytes(data).hex()}, the log has 0x{frame_id:03X} "
+                    f"{logged.hex()}"
+                )
             self.sent += ok
             self.tx_failed += not ok
         if self.tap is not None:
@@ -313,8 +326,13 @@ class _Compare:
         rerun = record.applied
         if logged is None:
             self.mismatched_ticks += 1
-            self._add(record.tick, "-", math.nan, float(np.max(np.abs(rerun))),
-                      "the re-run ran a control step where the log has no torques")
+            self._add(
+                record.tick,
+                "-",
+                math.nan,
+                float(np.max(np.abs(rerun))),
+                "the re-run ran a control step where the log has no torques",
+            )
             return
         n = len(logged)
         pack = _PACK.get(n)
@@ -334,8 +352,15 @@ class _Compare:
 
     def _add(self, tick: int, joint: str, logged: float, rerun: float, detail: str) -> None:
         if len(self.mismatches) < 1000:
-            self.mismatches.append({"tick": tick, "joint": joint, "logged_nm": logged,
-                                    "rerun_nm": rerun, "detail": detail})
+            self.mismatches.append(
+                {
+                    "tick": tick,
+                    "joint": joint,
+                    "logged_nm": logged,
+                    "rerun_nm": rerun,
+                    "detail": detail,
+                }
+            )
 
 
 @dataclass
@@ -357,14 +382,20 @@ class RerunReport:
         return not self.mismatched_ticks and not self.frame_mismatches
 
     def as_dict(self) -> dict[str, Any]:
-        return {"ok": self.ok, "ticks": self.ticks, "compared": self.compared,
-                "mismatched_ticks": self.mismatched_ticks,
-                "mismatches": self.mismatches[:MAX_LISTED],
-                "frames_compared": self.frames_compared,
-                "frame_mismatches": self.frame_mismatches[:MAX_LISTED],
-                "feedback_compared": self.feedback_compared,
-                "outcome": self.outcome, "logged_outcome": self.logged_outcome,
-                "notes": self.notes, "wall_s": round(self.wall_s, 3)}
+        return {
+            "ok": self.ok,
+            "ticks": self.ticks,
+            "compared": self.compared,
+            "mismatched_ticks": self.mismatched_ticks,
+            "mismatches": self.mismatches[:MAX_LISTED],
+            "frames_compared": self.frames_compared,
+            "frame_mismatches": self.frame_mismatches[:MAX_LISTED],
+            "feedback_compared": self.feedback_compared,
+            "outcome": self.outcome,
+            "logged_outcome": self.logged_outcome,
+            "notes": self.notes,
+            "wall_s": round(self.wall_s, 3),
+        }
 
 
 def rerun(recording: Recording) -> RerunReport:
@@ -373,15 +404,23 @@ def rerun(recording: Recording) -> RerunReport:
     path = str(recording.path)
     run = recording.metadata.get(ch.META_RUN)
     if not run:
-        raise ConfigError(path, f"metadata {ch.META_RUN}",
-                          "how the runtime was set up (recorded by handctl run recipe --log)",
-                          "nothing")
+        raise ConfigError(
+            path,
+            f"metadata {ch.META_RUN}",
+            "how the runtime was set up (recorded by handctl run recipe --log)",
+            "nothing",
+        )
     end = recording.metadata.get(ch.META_END, {})
-    dropped = {k: int(end.get(k, "0")) for k in ("dropped_ticks", "dropped_frames",
-                                                  "dropped_events")}
+    dropped = {
+        k: int(end.get(k, "0")) for k in ("dropped_ticks", "dropped_frames", "dropped_events")
+    }
     if any(dropped.values()):
-        raise ConfigError(path, "", "a recording without dropped records (the re-run needs "
-                          "every frame)", ", ".join(f"{k} {v}" for k, v in dropped.items()))
+        raise ConfigError(
+            path,
+            "",
+            "a recording without dropped records (the re-run needs every frame)",
+            ", ".join(f"{k} {v}" for k, v in dropped.items()),
+        )
     hand = recorded_hand(recording)
     assert hand is not None
     recipe = recorded_recipe(recording, hand)
@@ -391,8 +430,9 @@ def rerun(recording: Recording) -> RerunReport:
     before, inputs = tick_inputs(recording)
     bus.load(-1, before)
     clock = ReplayClock(inputs, bus)
-    driver = HandDriver(hand, recorded_protocol(recording) or protocol_for(hand), bus,
-                        clock_ns=clock.now_ns)
+    driver = HandDriver(
+        hand, recorded_protocol(recording) or protocol_for(hand), bus, clock_ns=clock.now_ns
+    )
     check = FeedbackCheck(hand, driver)
     clock.check = check
     compare = _Compare(clock, list(hand.joint_names), check)
@@ -402,12 +442,23 @@ def rerun(recording: Recording) -> RerunReport:
 
         estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs)
     if (estimator is not None) != (run.get("estimator", "False") == "True"):
-        raise ConfigError(path, f"metadata {ch.META_RUN}.estimator",
-                          f"{estimator is not None} (what the recorded recipe implies)",
-                          run.get("estimator", "nothing"))
-    runtime = Runtime(hand, driver, clock, recipe, recorder=compare, estimator=estimator,
-                      reset_node_faults=run.get("reset_node_faults") == "True",
-                      startup_timeout_s=startup_ticks * period_s, max_ticks=1 << 62)
+        raise ConfigError(
+            path,
+            f"metadata {ch.META_RUN}.estimator",
+            f"{estimator is not None} (what the recorded recipe implies)",
+            run.get("estimator", "nothing"),
+        )
+    runtime = Runtime(
+        hand,
+        driver,
+        clock,
+        recipe,
+        recorder=compare,
+        estimator=estimator,
+        reset_node_faults=run.get("reset_node_faults") == "True",
+        startup_timeout_s=startup_ticks * period_s,
+        max_ticks=1 << 62,
+    )
     clock.runtime = runtime
     runtime.cpu_clock = _no_time  # stage times are the run's, not the re-run's
     notes: list[str] = []
@@ -418,8 +469,10 @@ def rerun(recording: Recording) -> RerunReport:
         outcome = result.outcome.value
     except _EndOfLogError:
         where = "before a damaged chunk" if recording.damaged else "where the log ends"
-        notes.append(f"the re-run stops after tick {clock.current.tick if clock.current else -1}"
-                     f", {where} ({recording.problem or 'no more ticks'}); compared up to there")
+        notes.append(
+            f"the re-run stops after tick {clock.current.tick if clock.current else -1}"
+            f", {where} ({recording.problem or 'no more ticks'}); compared up to there"
+        )
     wall = time.perf_counter() - started
     if clock.current is not None and outcome != "log ended":
         check.end(clock.current.tick, clock.current.rx)
@@ -430,11 +483,20 @@ def rerun(recording: Recording) -> RerunReport:
     notes += [f"not repeated: {u}" for u in clock.unsupported]
     logged = recording.json_meta(ch.META_SUMMARY) or {}
     ticks = (clock.current.tick + 1) if clock.current else 0
-    frame_mismatches = list(heapq.merge(bus.frame_mismatches, check.mismatches,
-                                        key=_tick_of))
-    return RerunReport(ticks, compare.compared, compare.mismatched_ticks, compare.mismatches,
-                       bus.frames_compared, frame_mismatches, check.compared, outcome,
-                       logged.get("outcome", ""), notes, wall)
+    frame_mismatches = list(heapq.merge(bus.frame_mismatches, check.mismatches, key=_tick_of))
+    return RerunReport(
+        ticks,
+        compare.compared,
+        compare.mismatched_ticks,
+        compare.mismatches,
+        bus.frames_compared,
+        frame_mismatches,
+        check.compared,
+        outcome,
+        logged.get("outcome", ""),
+        notes,
+        wall,
+    )
 
 
 def _tick_of(text: str) -> int:

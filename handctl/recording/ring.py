@@ -63,8 +63,14 @@ SEP = "\x1f"
 
 # Event kinds in the ring; INTERN tells the writer a new string id (phase names).
 EV_FAULT, EV_STATE, EV_PHASE, EV_BUS, EV_REJECT, EV_REQUEST, EV_INTERN = 1, 2, 3, 4, 5, 6, 7
-RING_EVENT_KINDS = {EV_FAULT: "fault", EV_STATE: "state", EV_PHASE: "phase", EV_BUS: "bus",
-                    EV_REJECT: "rejected_frames", EV_REQUEST: "request"}
+RING_EVENT_KINDS = {
+    EV_FAULT: "fault",
+    EV_STATE: "state",
+    EV_PHASE: "phase",
+    EV_BUS: "bus",
+    EV_REJECT: "rejected_frames",
+    EV_REQUEST: "request",
+}
 
 # Pose row: tick, t_ns; then x, y, angle per object.
 POSE_INTS = 2
@@ -145,10 +151,16 @@ class Rings:
         self.tick_i: IntArray = views["tick_i"]
         self.tick_f: FloatArray = views["tick_f"]
         frames = self.offsets["frame"]
-        self.frame_i: IntArray = np.ndarray((layout.frame_capacity, FRAME_INTS), np.int64,
-                                            buffer, frames, (FRAME_ROW, 8))
-        self.frame_d: ByteArray = np.ndarray((layout.frame_capacity, FRAME_BYTES), np.uint8,
-                                             buffer, frames + FRAME_INTS * 8, (FRAME_ROW, 1))
+        self.frame_i: IntArray = np.ndarray(
+            (layout.frame_capacity, FRAME_INTS), np.int64, buffer, frames, (FRAME_ROW, 8)
+        )
+        self.frame_d: ByteArray = np.ndarray(
+            (layout.frame_capacity, FRAME_BYTES),
+            np.uint8,
+            buffer,
+            frames + FRAME_INTS * 8,
+            (FRAME_ROW, 1),
+        )
         self.event_i: IntArray = views["event_i"]
         self.event_d: ByteArray = views["event_d"]
         self.pose_i: IntArray = views["pose_i"]
@@ -156,7 +168,15 @@ class Rings:
 
     def release(self) -> None:
         """Drop the views so the mapping can be closed."""
-        for name in ("ctl", "tick_i", "tick_f", "frame_i", "frame_d", "event_i", "event_d",
-                     "pose_i", "pose_f"):
+        for name in (
+            "ctl",
+            "tick_i",
+            "tick_f",
+            "frame_i",
+            "frame_d",
+            "event_i",
+            "event_d",
+            "pose_i",
+            "pose_f",
+        ):
             setattr(self, name, None)
-

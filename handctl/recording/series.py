@@ -32,7 +32,7 @@ class _Rows:
 
     @property
     def rows(self) -> FloatArray:
-        return self.data[:self.size]
+        return self.data[: self.size]
 
 
 @dataclass
@@ -93,9 +93,16 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
                 tick0 = int(msg["scheduled_ns"]) - int(msg["tick"]) * period_ns
             scheduled = (int(msg["scheduled_ns"]) - t0) * 1e-9
             stages = msg.get("stage_cpu_ns") or {}
-            timing.add((t, msg["tick"], msg.get("lateness_ns", 0), msg.get("missed", 0),
-                        1.0 if msg.get("active") else 0.0,
-                        *(stages.get(name, 0) for name in RECORDED_STAGES)))
+            timing.add(
+                (
+                    t,
+                    msg["tick"],
+                    msg.get("lateness_ns", 0),
+                    msg.get("missed", 0),
+                    1.0 if msg.get("active") else 0.0,
+                    *(stages.get(name, 0) for name in RECORDED_STAGES),
+                )
+            )
             last_t = t
         elif topic == ch.TORQUE:
             torque.add([t, *json_floats(msg["desired_nm"]), *json_floats(msg["applied_nm"])])
@@ -105,8 +112,14 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             name = msg["phase"]
             if name != phase_name:  # a phase starts at its first tick's scheduled time
                 if phase_name:
-                    series.phases.append({"name": phase_name, "start_s": phase_start,
-                                          "end_s": scheduled, "tick": phase_tick})
+                    series.phases.append(
+                        {
+                            "name": phase_name,
+                            "start_s": phase_start,
+                            "end_s": scheduled,
+                            "tick": phase_tick,
+                        }
+                    )
                 phase_name, phase_start, phase_tick = name, scheduled, msg["tick"]
         elif topic == ch.EVENTS:
             msg["t_s"] = t
@@ -124,11 +137,18 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
         elif topic == ch.STATS:
             series.stats = msg
     if phase_name:
-        series.phases.append({"name": phase_name, "start_s": phase_start, "end_s": last_t,
-                              "tick": phase_tick})
+        series.phases.append(
+            {"name": phase_name, "start_s": phase_start, "end_s": last_t, "tick": phase_tick}
+        )
     for phase in series.phases:
-        phase["exit"] = next((v for (name, tick), v in exits.items()
-                              if name == phase["name"] and tick > phase["tick"]), "")
+        phase["exit"] = next(
+            (
+                v
+                for (name, tick), v in exits.items()
+                if name == phase["name"] and tick > phase["tick"]
+            ),
+            "",
+        )
     # Times were taken from the first message on; the convention's are from tick 0.
     shift = ((tick0 - t0) * 1e-9) if tick0 is not None and t0 is not None else 0.0
     series.t0_ns = tick0 if tick0 is not None else (t0 or 0)
@@ -174,8 +194,14 @@ def _rest_heights(recording: Recording, series: Series) -> list[float]:
     ``tau_max`` from the recorded hand config on the way."""
     from handctl.sim.params import parse_sim
 
-    first = [float(series.objects[0][3 + 3 * i]) if len(series.objects) else math.nan
-             for i in range(len(series.object_names))] if series.object_names else []
+    first = (
+        [
+            float(series.objects[0][3 + 3 * i]) if len(series.objects) else math.nan
+            for i in range(len(series.object_names))
+        ]
+        if series.object_names
+        else []
+    )
     try:
         hand = recorded_hand(recording, required=False)
         params = parse_sim(hand) if hand is not None and hand.sim else None

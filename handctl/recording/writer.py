@@ -86,8 +86,9 @@ _LENGTH = struct.Struct("<I")
 class Encoder:
     """Rings in, MCAP out: one instance per recording."""
 
-    def __init__(self, rings: Rings, out: IO[bytes], setup: dict[str, Any],
-                 live: LiveServer | None = None) -> None:
+    def __init__(
+        self, rings: Rings, out: IO[bytes], setup: dict[str, Any], live: LiveServer | None = None
+    ) -> None:
         self.rings = rings
         self.layout = rings.layout
         self.out = out
@@ -96,8 +97,11 @@ class Encoder:
         self.states: list[str] = list(setup["states"])
         self.phases: list[str] = list(setup["phases"])
         self.objects: list[str] = list(setup["objects"])
-        self.writer = ChunkWriter(out, ch.PROFILE, f"handctl {__version__} (records by "
-                                                   f"mcap-python {package_version('mcap')})")
+        self.writer = ChunkWriter(
+            out,
+            ch.PROFILE,
+            f"handctl {__version__} (records by mcap-python {package_version('mcap')})",
+        )
         for name, data in setup["metadata"].items():
             self.writer.add_metadata(name, {k: str(v) for k, v in data.items()})
         self.writer.flush()
@@ -106,20 +110,26 @@ class Encoder:
         for channel in ch.CHANNELS:
             if channel.schema_name not in schema_ids:
                 schema_ids[channel.schema_name] = self.writer.register_schema(
-                    channel.schema_name, ch.SCHEMA_ENCODING,
-                    orjson.dumps(ch.schema_of(channel)))
+                    channel.schema_name, ch.SCHEMA_ENCODING, orjson.dumps(ch.schema_of(channel))
+                )
             meta = {"handctl.format_version": str(ch.FORMAT_VERSION)}
             if channel.topic in (ch.JOINT_STATE, ch.TORQUE):
                 meta["joints"] = ",".join(setup["joints"])
             if channel.topic == ch.JOINT_STATE:
                 meta["nodes"] = ",".join(setup["nodes"])
             self.channel[channel.topic] = self.writer.register_channel(
-                channel.topic, ch.MESSAGE_ENCODING, schema_ids[channel.schema_name], meta)
+                channel.topic, ch.MESSAGE_ENCODING, schema_ids[channel.schema_name], meta
+            )
         self.live = live
         if live is not None:
             for channel in ch.CHANNELS:
-                live.add_channel(channel.topic, channel.schema_name, ch.SCHEMA_ENCODING,
-                                 orjson.dumps(ch.schema_of(channel)), ch.MESSAGE_ENCODING)
+                live.add_channel(
+                    channel.topic,
+                    channel.schema_name,
+                    ch.SCHEMA_ENCODING,
+                    orjson.dumps(ch.schema_of(channel)),
+                    ch.MESSAGE_ENCODING,
+                )
         self.derived: Derived | None = None
         try:
             self.derived = Derived.from_metadata(setup["metadata"], self.add_raw)
@@ -129,14 +139,22 @@ class Encoder:
             for derived in self.derived.channels:
                 if derived.schema_name not in schema_ids:
                     schema_ids[derived.schema_name] = self.writer.register_schema(
-                        derived.schema_name, derived.schema_encoding, derived.schema_data)
+                        derived.schema_name, derived.schema_encoding, derived.schema_data
+                    )
                 self.channel[derived.topic] = self.writer.register_channel(
-                    derived.topic, derived.message_encoding, schema_ids[derived.schema_name],
-                    {"handctl.format_version": str(ch.FORMAT_VERSION)})
+                    derived.topic,
+                    derived.message_encoding,
+                    schema_ids[derived.schema_name],
+                    {"handctl.format_version": str(ch.FORMAT_VERSION)},
+                )
                 if live is not None:
-                    live.add_channel(derived.topic, derived.schema_name,
-                                     derived.schema_encoding, derived.schema_data,
-                                     derived.message_encoding)
+                    live.add_channel(
+                        derived.topic,
+                        derived.schema_name,
+                        derived.schema_encoding,
+                        derived.schema_data,
+                        derived.message_encoding,
+                    )
         self.sequence = dict.fromkeys(self.channel.values(), 0)
         self.ticks = self.frames = self.events = self.poses = 0
         self.messages = 0
@@ -206,14 +224,20 @@ class Encoder:
         add, derived = self.add, self.derived
         for j, (t_ns, tick, frame_id, meta, bus_ns) in enumerate(rows):
             direction, size = meta & 0xFF, min((meta >> 8) & 0xFF, FRAME_BYTES)
-            payload = raw[j * FRAME_BYTES: j * FRAME_BYTES + size]
+            payload = raw[j * FRAME_BYTES : j * FRAME_BYTES + size]
             data = payload.hex()
             if direction == TAP_RX:
-                add(ch.CAN_RX, t_ns, {"tick": tick, "id": frame_id, "data": data,
-                                      "bus_time_ns": bus_ns})
+                add(
+                    ch.CAN_RX,
+                    t_ns,
+                    {"tick": tick, "id": frame_id, "data": data, "bus_time_ns": bus_ns},
+                )
             else:
-                add(ch.CAN_TX, t_ns, {"tick": tick, "id": frame_id, "data": data,
-                                      "ok": direction == TAP_TX})
+                add(
+                    ch.CAN_TX,
+                    t_ns,
+                    {"tick": tick, "id": frame_id, "data": data, "ok": direction == TAP_TX},
+                )
             if derived is not None:
                 derived.frame(t_ns, tick, direction == TAP_RX, frame_id, payload)
         self.frames += len(rows)
@@ -225,7 +249,7 @@ class Encoder:
         raw = rings.event_d[index].tobytes()
         rings.ctl[EVENT_TAIL] = head
         for j, row in enumerate(rows):
-            text = raw[j * EVENT_BYTES: j * EVENT_BYTES + row[E_LEN]].decode(errors="replace")
+            text = raw[j * EVENT_BYTES : j * EVENT_BYTES + row[E_LEN]].decode(errors="replace")
             fields = text.split(SEP)
             kind, tick, t_ns = row[E_KIND], row[E_TICK], row[E_T]
             if kind == EV_INTERN:
@@ -247,12 +271,18 @@ class Encoder:
         floats = rings.pose_f[index].tolist()
         rings.ctl[POSE_TAIL] = head
         for (tick, t_ns), values in zip(ints, floats, strict=True):
-            objects = [{"name": name, "x_m": values[3 * i], "y_m": values[3 * i + 1],
-                        "angle_rad": values[3 * i + 2]} for i, name in enumerate(self.objects)]
+            objects = [
+                {
+                    "name": name,
+                    "x_m": values[3 * i],
+                    "y_m": values[3 * i + 1],
+                    "angle_rad": values[3 * i + 2],
+                }
+                for i, name in enumerate(self.objects)
+            ]
             payload: dict[str, Any] = {"tick": tick, "objects": objects}
             if len(objects) >= 2:
-                payload["line_angle_rad"] = math.atan2(values[4] - values[1],
-                                                       values[3] - values[0])
+                payload["line_angle_rad"] = math.atan2(values[4] - values[1], values[3] - values[0])
             self.add(ch.OBJECTS, t_ns, payload)
             self.poses += 1
             if self.derived is not None:
@@ -269,34 +299,55 @@ class Encoder:
         node_at = I_FEEDBACK + n
         for r, f in zip(ints, floats, strict=True):
             k, scheduled, now, missed, active = r[0], r[1], r[2], r[3], r[4]
-            timing: dict[str, Any] = {"tick": k, "scheduled_ns": scheduled, "now_ns": now,
-                                      "lateness_ns": now - scheduled, "missed": missed,
-                                      "active": bool(active)}
+            timing: dict[str, Any] = {
+                "tick": k,
+                "scheduled_ns": scheduled,
+                "now_ns": now,
+                "lateness_ns": now - scheduled,
+                "missed": missed,
+                "active": bool(active),
+            }
             if active:
                 s = I_STAGES
-                timing["stage_cpu_ns"] = dict(zip(RECORDED_STAGES, r[s:s + N_STAGES],
-                                                  strict=True))
+                timing["stage_cpu_ns"] = dict(
+                    zip(RECORDED_STAGES, r[s : s + N_STAGES], strict=True)
+                )
             add(ch.TIMING, now, timing)
             if active:
                 feedback = r[I_FEEDBACK:node_at]
-                add(ch.JOINT_STATE, now, {
-                    "tick": k, "angle_rad": f[:n], "tdt_torque_nm": f[n:2 * n],
-                    "feedback_age_ns": [now - x if x >= 0 else -1 for x in feedback],
-                    "node_state": r[node_at:node_at + m],
-                    "node_fault_bits": r[node_at + m:node_at + 2 * m]})
-                add(ch.TORQUE, now, {"tick": k, "desired_nm": f[2 * n:3 * n],
-                                     "applied_nm": f[3 * n:]})
+                add(
+                    ch.JOINT_STATE,
+                    now,
+                    {
+                        "tick": k,
+                        "angle_rad": f[:n],
+                        "tdt_torque_nm": f[n : 2 * n],
+                        "feedback_age_ns": [now - x if x >= 0 else -1 for x in feedback],
+                        "node_state": r[node_at : node_at + m],
+                        "node_fault_bits": r[node_at + m : node_at + 2 * m],
+                    },
+                )
+                add(
+                    ch.TORQUE,
+                    now,
+                    {"tick": k, "desired_nm": f[2 * n : 3 * n], "applied_nm": f[3 * n :]},
+                )
                 state = r[I_STATE]
                 state_name = states[state] if state >= 0 else "?"
-                add(ch.SAFETY, now, {"tick": k, "state": state_name,
-                                     "faults_latched": r[I_FAULTS]})
+                add(ch.SAFETY, now, {"tick": k, "state": state_name, "faults_latched": r[I_FAULTS]})
                 phase = r[I_PHASE]
                 phase_name = self.phases[phase] if 0 <= phase < len(self.phases) else "?"
                 add(ch.PHASE, now, {"tick": k, "phase": phase_name})
                 if derived is not None:
-                    derived.tick(now, k, f[:n], f[n:2 * n], f[2 * n:3 * n], f[3 * n:],
-                                 state_name == "running"
-                                 and phase_name not in ("completed", "aborted"))
+                    derived.tick(
+                        now,
+                        k,
+                        f[:n],
+                        f[n : 2 * n],
+                        f[2 * n : 3 * n],
+                        f[3 * n :],
+                        state_name == "running" and phase_name not in ("completed", "aborted"),
+                    )
             self.last_tick = k
         self.ticks += len(ints)
 
@@ -304,13 +355,16 @@ class Encoder:
         """Drops the loop counted become ``recording`` events as they grow."""
         ctl = self.rings.ctl
         names = ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
-        for i, word in enumerate((DROPPED_TICKS, DROPPED_FRAMES, DROPPED_EVENTS,
-                                  DROPPED_POSES)):
+        for i, word in enumerate((DROPPED_TICKS, DROPPED_FRAMES, DROPPED_EVENTS, DROPPED_POSES)):
             now = int(ctl[word])
             if now != self.dropped[i]:
-                event = {"tick": self.last_tick, "kind": "recording", "name": names[i],
-                         "detail": "the writer fell behind: records dropped",
-                         "count": now - self.dropped[i]}
+                event = {
+                    "tick": self.last_tick,
+                    "kind": "recording",
+                    "name": names[i],
+                    "detail": "the writer fell behind: records dropped",
+                    "count": now - self.dropped[i],
+                }
                 self.add(ch.EVENTS, self.last_log, event)
                 if self.derived is not None:
                     self.derived.event(self.last_log, event)
@@ -318,10 +372,16 @@ class Encoder:
 
     # -- chunks and the end ---------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
-        return {"tick": self.last_tick, "ticks": self.ticks, "frames": self.frames,
-                "events": self.events, "dropped_ticks": self.dropped[0],
-                "dropped_frames": self.dropped[1], "dropped_events": self.dropped[2],
-                "dropped_poses": self.dropped[3]}
+        return {
+            "tick": self.last_tick,
+            "ticks": self.ticks,
+            "frames": self.frames,
+            "events": self.events,
+            "dropped_ticks": self.dropped[0],
+            "dropped_frames": self.dropped[1],
+            "dropped_events": self.dropped[2],
+            "dropped_poses": self.dropped[3],
+        }
 
     def maybe_flush(self, force: bool = False) -> None:
         """Close the chunk once it spans ``CHUNK_NS`` of log time or ``CHUNK_WALL_S`` of wall
@@ -329,8 +389,11 @@ class Encoder:
         if self.chunk_log is None:
             return
         wall = time.monotonic()
-        if not force and self.last_log - self.chunk_log < CHUNK_NS \
-                and wall - self.chunk_wall < CHUNK_WALL_S:
+        if (
+            not force
+            and self.last_log - self.chunk_log < CHUNK_NS
+            and wall - self.chunk_wall < CHUNK_WALL_S
+        ):
             return
         self.add(ch.STATS, self.last_log, self.stats())
         self.writer.flush()
@@ -342,14 +405,24 @@ class Encoder:
 
     def finish(self, ended: str) -> None:
         self.maybe_flush(force=True)
-        self.writer.add_metadata(ch.META_END, {
-            "ended": ended, "ticks": str(self.ticks), "frames": str(self.frames),
-            "events": str(self.events), "poses": str(self.poses),
-            "messages": str(self.messages), "chunks": str(self.chunks),
-            "dropped_ticks": str(self.dropped[0]), "dropped_frames": str(self.dropped[1]),
-            "dropped_events": str(self.dropped[2]), "dropped_poses": str(self.dropped[3]),
-            "writer_busy_s": f"{self.busy_s:.6f}",
-            "writer_cpu_s": f"{time.process_time():.6f}"})
+        self.writer.add_metadata(
+            ch.META_END,
+            {
+                "ended": ended,
+                "ticks": str(self.ticks),
+                "frames": str(self.frames),
+                "events": str(self.events),
+                "poses": str(self.poses),
+                "messages": str(self.messages),
+                "chunks": str(self.chunks),
+                "dropped_ticks": str(self.dropped[0]),
+                "dropped_frames": str(self.dropped[1]),
+                "dropped_events": str(self.dropped[2]),
+                "dropped_poses": str(self.dropped[3]),
+                "writer_busy_s": f"{self.busy_s:.6f}",
+                "writer_cpu_s": f"{time.process_time():.6f}",
+            },
+        )
         self.writer.finish()
         self.out.flush()
         os.fdatasync(self.out.fileno())
@@ -357,24 +430,51 @@ class Encoder:
 
 def _event_payload(kind: int, tick: int, fields: list[str]) -> dict[str, Any] | None:
     """The JSON of one event from the fields the loop joined (see ``Recorder``)."""
+
     def field(i: int) -> str:
         return fields[i] if i < len(fields) else ""
 
     if kind == EV_FAULT:
-        return {"tick": tick, "kind": "fault", "name": field(0), "category": field(1),
-                "detail": field(2)}
+        return {
+            "tick": tick,
+            "kind": "fault",
+            "name": field(0),
+            "category": field(1),
+            "detail": field(2),
+        }
     if kind == EV_STATE:
-        return {"tick": tick, "kind": "state", "name": field(0), "previous": field(1),
-                "cause": field(2), "detail": f"{field(1)} -> {field(0)} on {field(2)}"}
+        return {
+            "tick": tick,
+            "kind": "state",
+            "name": field(0),
+            "previous": field(1),
+            "cause": field(2),
+            "detail": f"{field(1)} -> {field(0)} on {field(2)}",
+        }
     if kind == EV_PHASE:
-        return {"tick": tick, "kind": "phase", "name": field(0), "previous": field(1),
-                "detail": field(2)}
+        return {
+            "tick": tick,
+            "kind": "phase",
+            "name": field(0),
+            "previous": field(1),
+            "detail": field(2),
+        }
     if kind == EV_BUS:
-        return {"tick": tick, "kind": "bus", "name": field(0), "detail": field(1),
-                "bus_time_ns": int(field(2) or 0)}
+        return {
+            "tick": tick,
+            "kind": "bus",
+            "name": field(0),
+            "detail": field(1),
+            "bus_time_ns": int(field(2) or 0),
+        }
     if kind == EV_REJECT:
-        return {"tick": tick, "kind": "rejected_frames", "name": field(0),
-                "detail": f"{field(1)} {field(0)} reject(s)", "count": int(field(1) or 0)}
+        return {
+            "tick": tick,
+            "kind": "rejected_frames",
+            "name": field(0),
+            "detail": f"{field(1)} {field(0)} reject(s)",
+            "count": int(field(1) or 0),
+        }
     if kind == EV_REQUEST:
         return {"tick": tick, "kind": "request", "name": field(0), "detail": field(1)}
     return None
@@ -401,8 +501,8 @@ class _Control:
             (size,) = _LENGTH.unpack_from(self.buffer)
             if len(self.buffer) < 4 + size:
                 break
-            messages.append(orjson.loads(bytes(self.buffer[4:4 + size])))
-            del self.buffer[:4 + size]
+            messages.append(orjson.loads(bytes(self.buffer[4 : 4 + size])))
+            del self.buffer[: 4 + size]
         return messages
 
     def first(self) -> dict[str, Any]:
@@ -429,8 +529,9 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
         try:
             live = LiveServer(int(setup["live_port"]))
         except Exception as exc:  # foxglove's own error type: say what, not where
-            sys.stderr.write(f"the live view cannot serve on 127.0.0.1:{setup['live_port']} "
-                             f"({exc})\n")
+            sys.stderr.write(
+                f"the live view cannot serve on 127.0.0.1:{setup['live_port']} ({exc})\n"
+            )
             return 1
     with os.fdopen(out_fd, "wb", buffering=1 << 20) as out:
         encoder = Encoder(rings, out, setup, live)
@@ -454,8 +555,9 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
             pass
         encoder.busy_s += time.perf_counter() - started
         closed = bool(rings.ctl[CLOSED])
-        encoder.finish(ch.ENDED_CLOSED if closed
-                       else "the control process ended without closing the recorder")
+        encoder.finish(
+            ch.ENDED_CLOSED if closed else "the control process ended without closing the recorder"
+        )
     if live is not None:
         live.close()
     return 0

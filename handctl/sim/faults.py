@@ -93,8 +93,7 @@ class Injector:
         """True to let a received frame through to the nodes."""
         return True
 
-    def tx(self, frame_id: int, data: bytes, now_ns: int,
-           out: list[tuple[int, bytes]]) -> None:
+    def tx(self, frame_id: int, data: bytes, now_ns: int, out: list[tuple[int, bytes]]) -> None:
         """Append what goes on the bus in place of a node's frame (nothing drops it)."""
         out.append((frame_id, data))
 
@@ -103,19 +102,27 @@ class Injector:
 
     def describe(self) -> str:
         """The injector as a scenario would name it, for summaries and messages."""
-        fields = ", ".join(f"{k}={getattr(self, k)!r}" for k in ("node", "joint", *self.keys)
-                           if getattr(self, k, None) is not None)
+        fields = ", ".join(
+            f"{k}={getattr(self, k)!r}"
+            for k in ("node", "joint", *self.keys)
+            if getattr(self, k, None) is not None
+        )
         return f"{self.kind}({fields})"
 
 
 def _node_ids(ctx: SimContext, node: int | None, kinds: tuple[str, ...]) -> frozenset[int]:
     """CAN ids of the messages ``kinds`` of ``node`` (or of every node)."""
-    return frozenset(ctx.protocol.layout(kind, n.node_id).frame_id
-                     for n in ctx.node_list(node) for kind in kinds)
+    return frozenset(
+        ctx.protocol.layout(kind, n.node_id).frame_id for n in ctx.node_list(node) for kind in kinds
+    )
 
 
-_MESSAGES = {"feedback": ("Feedback",), "status": ("Status",), "heartbeat": ("Heartbeat",),
-             "all": ("Feedback", "Status", "Heartbeat")}
+_MESSAGES = {
+    "feedback": ("Feedback",),
+    "status": ("Status",),
+    "heartbeat": ("Heartbeat",),
+    "all": ("Feedback", "Status", "Heartbeat"),
+}
 
 
 @dataclass(eq=False)
@@ -151,8 +158,7 @@ class DropFeedback(Injector):
     def start(self, ctx: SimContext, now_ns: int) -> None:
         self._ids = _node_ids(ctx, self.node, ("Feedback",))
 
-    def tx(self, frame_id: int, data: bytes, now_ns: int,
-           out: list[tuple[int, bytes]]) -> None:
+    def tx(self, frame_id: int, data: bytes, now_ns: int, out: list[tuple[int, bytes]]) -> None:
         if frame_id not in self._ids:
             out.append((frame_id, data))
 
@@ -173,8 +179,7 @@ class DelayFeedback(Injector):
         self._ids = _node_ids(ctx, self.node, ("Feedback",))
         self._held.clear()
 
-    def tx(self, frame_id: int, data: bytes, now_ns: int,
-           out: list[tuple[int, bytes]]) -> None:
+    def tx(self, frame_id: int, data: bytes, now_ns: int, out: list[tuple[int, bytes]]) -> None:
         if frame_id in self._ids:
             self._held.append((now_ns + round(self.delay * 1e9), frame_id, data))
         else:
@@ -205,8 +210,7 @@ class CorruptCrc(Injector):
     def start(self, ctx: SimContext, now_ns: int) -> None:
         self._ids = _node_ids(ctx, self.node, _MESSAGES[self.message])
 
-    def tx(self, frame_id: int, data: bytes, now_ns: int,
-           out: list[tuple[int, bytes]]) -> None:
+    def tx(self, frame_id: int, data: bytes, now_ns: int, out: list[tuple[int, bytes]]) -> None:
         if frame_id in self._ids:
             data = bytes((data[0] ^ 0x5A,)) + data[1:]
         out.append((frame_id, data))
@@ -367,8 +371,7 @@ class NodeSilent(Injector):
     def start(self, ctx: SimContext, now_ns: int) -> None:
         self._ids = _node_ids(ctx, self.node, _MESSAGES["all"])
 
-    def tx(self, frame_id: int, data: bytes, now_ns: int,
-           out: list[tuple[int, bytes]]) -> None:
+    def tx(self, frame_id: int, data: bytes, now_ns: int, out: list[tuple[int, bytes]]) -> None:
         if frame_id not in self._ids:
             out.append((frame_id, data))
 
@@ -404,8 +407,7 @@ class BusOff(Injector):
     def stop(self, ctx: SimContext, now_ns: int) -> None:
         ctx.send_error_frame(0x100)
 
-    def tx(self, frame_id: int, data: bytes, now_ns: int,
-           out: list[tuple[int, bytes]]) -> None:
+    def tx(self, frame_id: int, data: bytes, now_ns: int, out: list[tuple[int, bytes]]) -> None:
         return
 
 
@@ -446,8 +448,7 @@ class ExtendedTwin(Injector):
     def start(self, ctx: SimContext, now_ns: int) -> None:
         self._ids = _node_ids(ctx, self.node, _MESSAGES[self.message])
 
-    def tx(self, frame_id: int, data: bytes, now_ns: int,
-           out: list[tuple[int, bytes]]) -> None:
+    def tx(self, frame_id: int, data: bytes, now_ns: int, out: list[tuple[int, bytes]]) -> None:
         out.append((frame_id, data))
         if frame_id in self._ids:
             out.append((frame_id | EXTENDED_ID_FLAG, data))
@@ -478,13 +479,17 @@ class Contradict(Injector):
 
     def start(self, ctx: SimContext, now_ns: int) -> None:
         self._nodes = ctx.node_list(self.node)
-        self._feedback = {ctx.protocol.layout("Feedback", n.node_id).frame_id:
-                          ctx.protocol.layout("Feedback", n.node_id) for n in self._nodes}
-        self._heartbeat = {n.node_id: ctx.protocol.layout("Heartbeat", n.node_id)
-                           for n in self._nodes}
+        self._feedback = {
+            ctx.protocol.layout("Feedback", n.node_id).frame_id: ctx.protocol.layout(
+                "Feedback", n.node_id
+            )
+            for n in self._nodes
+        }
+        self._heartbeat = {
+            n.node_id: ctx.protocol.layout("Heartbeat", n.node_id) for n in self._nodes
+        }
 
-    def tx(self, frame_id: int, data: bytes, now_ns: int,
-           out: list[tuple[int, bytes]]) -> None:
+    def tx(self, frame_id: int, data: bytes, now_ns: int, out: list[tuple[int, bytes]]) -> None:
         if self.report == "fault_bits":
             layout = self._feedback.get(frame_id)
             if layout is not None:
@@ -503,8 +508,9 @@ class Contradict(Injector):
                 continue
             layout = self._heartbeat[node.node_id]
             counter = self._counters.get(node.node_id, 0)
-            ctx.send_frame(layout.frame_id, layout.encode(
-                counter, (1, node.uptime_ms(now_ns) & 0xFFFFFFFF)))
+            ctx.send_frame(
+                layout.frame_id, layout.encode(counter, (1, node.uptime_ms(now_ns) & 0xFFFFFFFF))
+            )
             self._counters[node.node_id] = (counter + 1) & 0xFF
 
 
@@ -529,8 +535,7 @@ class ReplayFrames(Injector):
         self._ids = _node_ids(ctx, self.node, _MESSAGES[self.message])
         self._log = {frame_id: deque() for frame_id in self._ids}
 
-    def tx(self, frame_id: int, data: bytes, now_ns: int,
-           out: list[tuple[int, bytes]]) -> None:
+    def tx(self, frame_id: int, data: bytes, now_ns: int, out: list[tuple[int, bytes]]) -> None:
         out.append((frame_id, data))
         log = self._log.get(frame_id)
         if log is None:
@@ -575,10 +580,31 @@ class MotorSaturation(_JointFault):
             ctx.plant.set_motor_limit(i, None)
 
 
-INJECTORS: dict[str, type[Injector]] = {cls.kind: cls for cls in (
-    DropCommands, DropFeedback, DelayFeedback, CorruptCrc, CounterRepeat, CounterSkip,
-    TdtStuck, TdtSpike, TdtOffset, EncoderJump, NodeReboot, NodeSilent, ErrorFrames, BusOff,
-    Babble, ExtendedTwin, Contradict, ReplayFrames, TendonSlack, MotorSaturation)}
+INJECTORS: dict[str, type[Injector]] = {
+    cls.kind: cls
+    for cls in (
+        DropCommands,
+        DropFeedback,
+        DelayFeedback,
+        CorruptCrc,
+        CounterRepeat,
+        CounterSkip,
+        TdtStuck,
+        TdtSpike,
+        TdtOffset,
+        EncoderJump,
+        NodeReboot,
+        NodeSilent,
+        ErrorFrames,
+        BusOff,
+        Babble,
+        ExtendedTwin,
+        Contradict,
+        ReplayFrames,
+        TendonSlack,
+        MotorSaturation,
+    )
+}
 
 
 # -- schedule ----------------------------------------------------------------------------------
@@ -615,8 +641,10 @@ class FaultSchedule:
         next tick.
         """
         if start < 0 or (stop is not None and stop < start):
-            raise ValueError(f"{injector.describe()}: expected 0 <= start <= stop, found "
-                             f"start={start!r}, stop={stop!r}")
+            raise ValueError(
+                f"{injector.describe()}: expected 0 <= start <= stop, found "
+                f"start={start!r}, stop={stop!r}"
+            )
         self.entries.append(Scheduled(injector, start, stop))
         self._insert(round(start * 1e9) // NODE_TICK_NS, 1, injector)
         if stop is not None:
@@ -628,7 +656,7 @@ class FaultSchedule:
         # handed out stay where they are.
         self._order += 1
         self._events.append((tick, on, self._order, injector))
-        self._events[self._next:] = sorted(self._events[self._next:], key=lambda e: e[:3])
+        self._events[self._next :] = sorted(self._events[self._next :], key=lambda e: e[:3])
 
     def due(self, tick: int) -> Iterator[tuple[bool, Injector]]:
         """The switchings that are due at ``tick`` (each returned once), in order."""
@@ -667,8 +695,7 @@ def _parse_entry(doc: Doc, hand: HandConfig) -> Scheduled:
     if doc.has("node"):
         node = doc.integer("node", min=min(node_ids), max=max(node_ids))
         if node not in node_ids:
-            doc.fail("node", "a node id of the hand (" + ", ".join(map(str, node_ids)) + ")",
-                     node)
+            doc.fail("node", "a node id of the hand (" + ", ".join(map(str, node_ids)) + ")", node)
         kwargs["node"] = node
     if issubclass(cls, _JointFault) and doc.has("joint"):
         fingers = [f for f in hand.fingers if f.node_id == kwargs.get("node")] or hand.fingers

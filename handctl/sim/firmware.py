@@ -84,8 +84,15 @@ class EmulatedNode:
     """The controller of one finger: per joint a motor, a TDT sensor and an encoder, as many
     as its ``TorqueCommand`` carries torques (``Torque1..k``)."""
 
-    def __init__(self, finger: FingerConfig, protocol: Protocol, *, tdt_range: float,
-                 encoder_max_step: float, now_ns: int = 0) -> None:
+    def __init__(
+        self,
+        finger: FingerConfig,
+        protocol: Protocol,
+        *,
+        tdt_range: float,
+        encoder_max_step: float,
+        now_ns: int = 0,
+    ) -> None:
         self.finger = finger
         self.node_id = finger.node_id
         n = finger.node_id
@@ -95,30 +102,40 @@ class EmulatedNode:
         self._feedback = protocol.layout("Feedback", n)
         self._status = protocol.layout("Status", n)
         self._heartbeat = protocol.layout("Heartbeat", n)
-        for kind, layout in (("node_command", self._command), ("torque_command", self._torque),
-                             ("feedback", self._feedback), ("status", self._status),
-                             ("heartbeat", self._heartbeat)):
+        for kind, layout in (
+            ("node_command", self._command),
+            ("torque_command", self._torque),
+            ("feedback", self._feedback),
+            ("status", self._status),
+            ("heartbeat", self._heartbeat),
+        ):
             configured = getattr(finger.can_ids, kind)
             if configured != layout.frame_id:
-                raise ConfigError(protocol.source, f"{layout.name}",
-                                  f"the id of {finger.name}.can_ids.{kind} "
-                                  f"(0x{configured:03X}) in the hand config",
-                                  f"0x{layout.frame_id:03X}")
+                raise ConfigError(
+                    protocol.source,
+                    f"{layout.name}",
+                    f"the id of {finger.name}.can_ids.{kind} "
+                    f"(0x{configured:03X}) in the hand config",
+                    f"0x{layout.frame_id:03X}",
+                )
         self._rx: dict[int, Layout] = {
-            layout.frame_id: layout for layout in (self._estop, self._command, self._torque)}
+            layout.frame_id: layout for layout in (self._estop, self._command, self._torque)
+        }
         self._estop_id = self._estop.frame_id
         self._command_id = self._command.frame_id
         self._torque_id = self._torque.frame_id
-        self.tx_ids = (self._feedback.frame_id, self._status.frame_id,
-                       self._heartbeat.frame_id)
+        self.tx_ids = (self._feedback.frame_id, self._status.frame_id, self._heartbeat.frame_id)
         self._n = len(finger.joints)
         #: Joints on the wire: the command's torques. A finger of fewer joints than its frames
         #: carry leaves the rest at zero, both ways.
         self._wire = len(self._torque.signals)
         if self._n > self._wire:
-            raise ConfigError(protocol.source, self._torque.name,
-                              f"a torque per joint of {finger.name} ({self._n})",
-                              f"{self._wire} torques")
+            raise ConfigError(
+                protocol.source,
+                self._torque.name,
+                f"a torque per joint of {finger.name} ({self._n})",
+                f"{self._wire} torques",
+            )
         self._limit_items = tuple(enumerate(j.device_tau_max for j in finger.joints))
         self._absent = tuple(range(self._n, self._wire))
         self._pad_zeros = [0.0] * (self._wire - self._n)
@@ -190,8 +207,11 @@ class EmulatedNode:
         else:
             counter = data[1]
             last = self._rx_last[frame_id]
-            if (last is None or counter == (last + 1) & 0xFF
-                    or (frame_id == self._command_id and self._new_host_possible(now_ns))):
+            if (
+                last is None
+                or counter == (last + 1) & 0xFF
+                or (frame_id == self._command_id and self._new_host_possible(now_ns))
+            ):
                 self._rx_last[frame_id] = counter
                 self.accepted += 1
                 if self.score:
@@ -225,8 +245,9 @@ class EmulatedNode:
         cannot slip in while it runs. Never while ENABLED.
         """
         state = self.state
-        return state == _DISABLED or (state == _FAULT
-                                      and now_ns - self._host_heard_ns >= WATCHDOG_NS)
+        return state == _DISABLED or (
+            state == _FAULT and now_ns - self._host_heard_ns >= WATCHDOG_NS
+        )
 
     def _apply(self, layout: Layout, data: bytes, now_ns: int) -> None:
         if layout is self._command:
@@ -299,8 +320,7 @@ class EmulatedNode:
             if now_ns >= self._down_until:
                 self.boot(now_ns)
             return
-        if (self.state == _ENABLED
-                and now_ns - self._watchdog_ref_ns >= WATCHDOG_NS):
+        if self.state == _ENABLED and now_ns - self._watchdog_ref_ns >= WATCHDOG_NS:
             self._fault(_TIMEOUT)
 
     def command_age_ms(self, now_ns: int) -> int:
@@ -308,8 +328,9 @@ class EmulatedNode:
             return _SATURATING
         return min((now_ns - self._last_command_ns) // NODE_TICK_NS, _SATURATING)
 
-    def publish(self, now_ns: int, tdt: list[float], angles: list[float],
-                out: list[tuple[int, bytes]]) -> None:
+    def publish(
+        self, now_ns: int, tdt: list[float], angles: list[float], out: list[tuple[int, bytes]]
+    ) -> None:
         """Self-check the readings and append this tick's frames to ``out``.
 
         ``tdt`` (N·m, factory calibration) and ``angles`` (rad) hold one value per joint; a
@@ -339,16 +360,21 @@ class EmulatedNode:
             tdt = tdt + self._pad_zeros
             angles = angles + self._pad_zeros
         feedback = self._feedback
-        out.append((feedback.frame_id,
-                    feedback.encode(self._tx_feedback, (*tdt, *angles, state, bits))))
+        out.append(
+            (feedback.frame_id, feedback.encode(self._tx_feedback, (*tdt, *angles, state, bits)))
+        )
         self._tx_feedback = (self._tx_feedback + self.counter_step["Feedback"]) & 0xFF
         uptime = (now_ns - self._boot_ns) // NODE_TICK_NS
         if self._pending_status or uptime % STATUS_PERIOD_MS == 0:
             self._publish_status(now_ns, out)
         if uptime % HEARTBEAT_PERIOD_MS == 0:
             heartbeat = self._heartbeat
-            out.append((heartbeat.frame_id, heartbeat.encode(
-                self._tx_heartbeat, (state, uptime & 0xFFFFFFFF))))
+            out.append(
+                (
+                    heartbeat.frame_id,
+                    heartbeat.encode(self._tx_heartbeat, (state, uptime & 0xFFFFFFFF)),
+                )
+            )
             self._tx_heartbeat = (self._tx_heartbeat + self.counter_step["Heartbeat"]) & 0xFF
 
     def _publish_status(self, now_ns: int, out: list[tuple[int, bytes]]) -> None:
@@ -357,7 +383,22 @@ class EmulatedNode:
         age = self.command_age_ms(now_ns)
         status = self._status
         for state, bits in snapshots:
-            out.append((status.frame_id, status.encode(self._tx_status, (
-                state, bits, self.reject_crc, self.reject_counter, self.reject_length, age,
-                self.protocol_version, *self.firmware_version))))
+            out.append(
+                (
+                    status.frame_id,
+                    status.encode(
+                        self._tx_status,
+                        (
+                            state,
+                            bits,
+                            self.reject_crc,
+                            self.reject_counter,
+                            self.reject_length,
+                            age,
+                            self.protocol_version,
+                            *self.firmware_version,
+                        ),
+                    ),
+                )
+            )
             self._tx_status = (self._tx_status + self.counter_step["Status"]) & 0xFF

@@ -78,8 +78,14 @@ class GroundTruth:
 class SimulatedHand:
     """A MuJoCo hand behind emulated CAN nodes. ``seed=None`` takes the config's ``sim.seed``."""
 
-    def __init__(self, hand: HandConfig, bus: HandBus, seed: int | None = None,
-                 faults: FaultSchedule | None = None, params: SimParams | None = None) -> None:
+    def __init__(
+        self,
+        hand: HandConfig,
+        bus: HandBus,
+        seed: int | None = None,
+        faults: FaultSchedule | None = None,
+        params: SimParams | None = None,
+    ) -> None:
         self.hand = hand
         self.params = params if params is not None else parse_sim(hand)
         self.seed = self.params.seed if seed is None else seed
@@ -89,13 +95,19 @@ class SimulatedHand:
         self.tdt = TdtModel(hand, self.params.tdt, rng)
         self.encoders = EncoderModel(hand, self.params.encoder)
         self.nodes: tuple[EmulatedNode, ...] = tuple(
-            EmulatedNode(f, self.protocol, tdt_range=self.params.tdt.range,
-                         encoder_max_step=self.params.encoder.max_step)
-            for f in hand.fingers)
+            EmulatedNode(
+                f,
+                self.protocol,
+                tdt_range=self.params.tdt.range,
+                encoder_max_step=self.params.encoder.max_step,
+            )
+            for f in hand.fingers
+        )
         starts = itertools.accumulate((len(f.joints) for f in hand.fingers), initial=0)
         self._slices: list[tuple[int, int]] = list(itertools.pairwise(starts))
-        self._node_slices = [(node, a, b) for node, (a, b) in zip(self.nodes, self._slices,
-                                                                    strict=True)]
+        self._node_slices = [
+            (node, a, b) for node, (a, b) in zip(self.nodes, self._slices, strict=True)
+        ]
         self.faults = faults if faults is not None else FaultSchedule()
         self.active: list[Injector] = []
         self._rx_filters: list[Injector] = []
@@ -278,9 +290,11 @@ class SimulatedHand:
         with self._lock:
             plant = self.plant
             return GroundTruth(
-                time=self.time, objects=plant.object_poses(),
+                time=self.time,
+                objects=plant.object_poses(),
                 joint_angles=tuple(plant.joint_angles.tolist()),
-                joint_torques=tuple(plant.transmitted_torques.tolist()))
+                joint_torques=tuple(plant.transmitted_torques.tolist()),
+            )
 
     def ground_truth_summary(self) -> dict[str, Any]:
         """A JSON-ready account of the run for a summary: where the objects ended up (and how
@@ -289,36 +303,51 @@ class SimulatedHand:
         objects = {}
         for pose, start in zip(truth.objects, self.params.objects, strict=True):
             objects[pose.name] = {
-                "x_m": round(pose.x, 6), "y_m": round(pose.y, 6),
+                "x_m": round(pose.x, 6),
+                "y_m": round(pose.y, 6),
                 "angle_rad": round(pose.angle, 6),
                 "moved_m": round(math.hypot(pose.x - start.x, pose.y - start.y), 6),
-                "turned_rad": round(pose.angle - start.angle, 6)}
+                "turned_rad": round(pose.angle - start.angle, 6),
+            }
         return {
             "seed": self.seed,
             "time_s": round(truth.time, 6),
             "objects": objects,
-            "nodes": {n.finger.name: {
-                "state": NodeState(n.state).name, "fault_bits": n.fault_bits,
-                "accepted": n.accepted, "reject_crc": n.reject_crc,
-                "reject_counter": n.reject_counter, "reject_length": n.reject_length,
-                # Not a rejection: the other nodes' frames (and any foreign ones), which a
-                # node sees on the shared bus and leaves alone, about 2 per tick per node.
-                "other_ids_ignored": n.reject_unexpected, "reboots": n.reboots}
-                for n in self.nodes},
+            "nodes": {
+                n.finger.name: {
+                    "state": NodeState(n.state).name,
+                    "fault_bits": n.fault_bits,
+                    "accepted": n.accepted,
+                    "reject_crc": n.reject_crc,
+                    "reject_counter": n.reject_counter,
+                    "reject_length": n.reject_length,
+                    # Not a rejection: the other nodes' frames (and any foreign ones), which a
+                    # node sees on the shared bus and leaves alone, about 2 per tick per node.
+                    "other_ids_ignored": n.reject_unexpected,
+                    "reboots": n.reboots,
+                }
+                for n in self.nodes
+            },
             "frames_in": self.frames_in,
             "frames_out": self.frames_out,
             "tx_failed": self.tx_failed,
             "transport": self._bus.transport_counts(),
-            "faults": [{"fault": e.injector.describe(), "start_s": e.start, "stop_s": e.stop}
-                       for e in self.faults],
+            "faults": [
+                {"fault": e.injector.describe(), "start_s": e.start, "stop_s": e.stop}
+                for e in self.faults
+            ],
         }
 
     def status_line(self) -> str:
-        states = " ".join(f"{n.finger.name}={NodeState(n.state).name}"
-                          + (f"(0x{n.fault_bits:02X})" if n.fault_bits else "")
-                          for n in self.nodes)
-        return (f"t={self.time:.3f} s  {states}  rx={self.frames_in} tx={self.frames_out} "
-                f"missed={self.missed_ticks}")
+        states = " ".join(
+            f"{n.finger.name}={NodeState(n.state).name}"
+            + (f"(0x{n.fault_bits:02X})" if n.fault_bits else "")
+            for n in self.nodes
+        )
+        return (
+            f"t={self.time:.3f} s  {states}  rx={self.frames_in} tx={self.frames_out} "
+            f"missed={self.missed_ticks}"
+        )
 
     # -- free-running -----------------------------------------------------------------------
     @property
@@ -363,10 +392,18 @@ class SimulatedHand:
             self._error = exc
 
 
-def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
-               progress: Callable[[str], None] | None = None, *, seed: int | None = None,
-               faults: FaultSchedule | None = None, summary_json: Path | None = None,
-               realtime: bool = False, keep_running: Callable[[], bool] | None = None) -> str:
+def standalone(
+    hand: HandConfig,
+    bus_spec: str,
+    seconds: float | None = None,
+    progress: Callable[[str], None] | None = None,
+    *,
+    seed: int | None = None,
+    faults: FaultSchedule | None = None,
+    summary_json: Path | None = None,
+    realtime: bool = False,
+    keep_running: Callable[[], bool] | None = None,
+) -> str:
     """Run the simulated hand free on ``bus_spec`` for ``seconds`` (None: until Ctrl-C).
 
     ``progress`` gets a status line about once a second. Returns a summary for the CLI;
@@ -399,8 +436,9 @@ def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
                 next_progress = started + PROGRESS_PERIOD_S
                 while sim.running:
                     now = time.monotonic()
-                    wait = WATCH_PERIOD_S if deadline is None else min(WATCH_PERIOD_S,
-                                                                       deadline - now)
+                    wait = (
+                        WATCH_PERIOD_S if deadline is None else min(WATCH_PERIOD_S, deadline - now)
+                    )
                     if wait <= 0 or sim.wait_stopped(wait):
                         break
                     if keep_running is not None and not keep_running():
@@ -419,8 +457,9 @@ def standalone(hand: HandConfig, bus_spec: str, seconds: float | None = None,
     if summary_json is not None:
         summary_json.write_text(json.dumps(sim.ground_truth_summary(), indent=2) + "\n")
     rtf = sim.time / wall if wall > 0 else 0.0
-    return (f"simulated hand on {bus_spec}: {sim.time:.3f} s simulated in {wall:.3f} s "
-            f"(real-time factor {rtf:.3f}){', interrupted' if interrupted else ''}; "
-            f"{sim.frames_in} frames in, {sim.frames_out} out, {sim.tx_failed} failed sends, "
-            f"{sim.bus_events} bus events, {sim.missed_ticks} missed ticks; "
-            + sim.status_line())
+    return (
+        f"simulated hand on {bus_spec}: {sim.time:.3f} s simulated in {wall:.3f} s "
+        f"(real-time factor {rtf:.3f}){', interrupted' if interrupted else ''}; "
+        f"{sim.frames_in} frames in, {sim.frames_out} out, {sim.tx_failed} failed sends, "
+        f"{sim.bus_events} bus events, {sim.missed_ticks} missed ticks; " + sim.status_line()
+    )

@@ -112,8 +112,9 @@ def parse_sim(hand: HandConfig) -> SimParams:
     timestep = doc.number("timestep", min=1e-5, max=NODE_TICK_S, unit="s")
     substeps = NODE_TICK_S / timestep
     if abs(substeps - round(substeps)) > 1e-9:
-        doc.fail("timestep", "a whole fraction of the 1 ms node tick (0.001, 0.0005, ...) s",
-                 timestep)
+        doc.fail(
+            "timestep", "a whole fraction of the 1 ms node tick (0.001, 0.0005, ...) s", timestep
+        )
     gravity = doc.number("gravity", min=0.0, max=20.0, unit="m/s²")
 
     table = doc.mapping("table")
@@ -153,9 +154,12 @@ def parse_sim(hand: HandConfig) -> SimParams:
     if between_fingers:
         finger_finger = friction_doc.number("finger_finger", min=0.0, max=3.0)
     elif friction_doc.has("finger_finger"):
-        friction_doc.fail("finger_finger", "no finger_finger friction while "
-                          "sim.contact.between_fingers is false (fingers do not touch)",
-                          friction_doc.raw("finger_finger"))
+        friction_doc.fail(
+            "finger_finger",
+            "no finger_finger friction while "
+            "sim.contact.between_fingers is false (fingers do not touch)",
+            friction_doc.raw("finger_finger"),
+        )
     friction_doc.done()
 
     tdt_doc = doc.mapping("tdt")
@@ -176,19 +180,36 @@ def parse_sim(hand: HandConfig) -> SimParams:
     doc.done()
 
     params = SimParams(
-        seed=seed, timestep=timestep, gravity=gravity, table_height=table_height,
-        palm_half_width=palm_half_width, palm_thickness=palm_thickness, links=links,
-        damping=damping, frictionloss=frictionloss, armature=armature, stop_margin=stop_margin,
-        actuator_lag=lag, motor_tau_max=motor_tau_max, initial_angles=initial_angles,
-        objects=objects, friction=friction, contact_timeconst=timeconst,
-        contact_dampratio=dampratio, between_fingers=between_fingers,
-        finger_finger_friction=finger_finger, tdt=tdt, encoder=encoder)
+        seed=seed,
+        timestep=timestep,
+        gravity=gravity,
+        table_height=table_height,
+        palm_half_width=palm_half_width,
+        palm_thickness=palm_thickness,
+        links=links,
+        damping=damping,
+        frictionloss=frictionloss,
+        armature=armature,
+        stop_margin=stop_margin,
+        actuator_lag=lag,
+        motor_tau_max=motor_tau_max,
+        initial_angles=initial_angles,
+        objects=objects,
+        friction=friction,
+        contact_timeconst=timeconst,
+        contact_dampratio=dampratio,
+        between_fingers=between_fingers,
+        finger_finger_friction=finger_finger,
+        tdt=tdt,
+        encoder=encoder,
+    )
     check_placement(hand, params, Doc({}, hand.source, "sim"))
     return params
 
 
-def _per_joint(doc: Doc, key: str, n: int, *, min: float, max: float,
-               min_exclusive: bool = False, unit: str) -> tuple[float, ...]:
+def _per_joint(
+    doc: Doc, key: str, n: int, *, min: float, max: float, min_exclusive: bool = False, unit: str
+) -> tuple[float, ...]:
     """One number for every joint, or a list of ``n`` (one per joint, config order)."""
     value = doc.raw(key)
     if not isinstance(value, list):
@@ -196,8 +217,10 @@ def _per_joint(doc: Doc, key: str, n: int, *, min: float, max: float,
     if len(value) != n:
         doc.fail(key, f"one number, or a list of {n} (one per joint)", f"{len(value)} numbers")
     sub = Doc({}, doc.file, doc.key_path(key))
-    return tuple(sub.check_number(i, v, min=min, max=max, min_exclusive=min_exclusive,
-                                  unit=unit) for i, v in enumerate(value))
+    return tuple(
+        sub.check_number(i, v, min=min, max=max, min_exclusive=min_exclusive, unit=unit)
+        for i, v in enumerate(value)
+    )
 
 
 def _parse_links(doc: Doc, hand: HandConfig) -> tuple[LinkParams, ...]:
@@ -211,18 +234,22 @@ def _parse_links(doc: Doc, hand: HandConfig) -> tuple[LinkParams, ...]:
     links = []
     for i, finger in enumerate(hand.fingers):
         n = len(finger.joints)
-        for k, (link_doc, joint) in enumerate(zip(
-                doc.mappings(finger.name, min_len=n, max_len=n), finger.joints, strict=True)):
+        for k, (link_doc, joint) in enumerate(
+            zip(doc.mappings(finger.name, min_len=n, max_len=n), finger.joints, strict=True)
+        ):
             link = LinkParams(
-                radius=link_doc.number("radius", min=0.0, max=0.2, min_exclusive=True,
-                                       unit="m"),
+                radius=link_doc.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m"),
                 mass=link_doc.number("mass", min=0.0, max=10.0, min_exclusive=True, unit="kg"),
             )
             link_doc.done()
             if joint.half_thickness > 0 and abs(link.radius - joint.half_thickness) > 1e-12:
-                link_doc.fail("radius", f"the half_thickness of {joint.name} "
-                              f"({joint.half_thickness:g} m, fingers[{i}].joints[{k}]): the "
-                              "estimator and the simulation must see one link", link.radius)
+                link_doc.fail(
+                    "radius",
+                    f"the half_thickness of {joint.name} "
+                    f"({joint.half_thickness:g} m, fingers[{i}].joints[{k}]): the "
+                    "estimator and the simulation must see one link",
+                    link.radius,
+                )
             links.append(link)
     doc.done()
     return tuple(links)
@@ -235,15 +262,17 @@ def _parse_motor_tau_max(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
     doc.expect(f.name for f in hand.fingers)
     limits: list[float] = []
     for finger in hand.fingers:
-        values = doc.numbers(finger.name, length=len(finger.joints), min=0.0, max=100.0,
-                             unit="N·m")
+        values = doc.numbers(finger.name, length=len(finger.joints), min=0.0, max=100.0, unit="N·m")
         where = Doc({}, doc.file, doc.key_path(finger.name))
         for k, (value, joint) in enumerate(zip(values, finger.joints, strict=True)):
             if value < joint.device_tau_max:
-                where.fail(k, f"a value >= device_tau_max of {joint.name} "
-                           f"({joint.device_tau_max:g} N·m): the node's saturation must be "
-                           "the one that binds (a weak motor is the motor_saturation fault)",
-                           value)
+                where.fail(
+                    k,
+                    f"a value >= device_tau_max of {joint.name} "
+                    f"({joint.device_tau_max:g} N·m): the node's saturation must be "
+                    "the one that binds (a weak motor is the motor_saturation fault)",
+                    value,
+                )
         limits += values
     doc.done()
     return tuple(limits)
@@ -255,13 +284,18 @@ def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...]
     doc.expect(f.name for f in hand.fingers)
     angles = []
     for finger in hand.fingers:
-        values = doc.numbers(finger.name, length=len(finger.joints), min=-2 * math.pi,
-                             max=2 * math.pi, unit="rad")
+        values = doc.numbers(
+            finger.name, length=len(finger.joints), min=-2 * math.pi, max=2 * math.pi, unit="rad"
+        )
         where = Doc({}, doc.file, doc.key_path(finger.name))
         for k, (value, joint) in enumerate(zip(values, finger.joints, strict=True)):
             if not joint.angle_min <= value <= joint.angle_max:
-                where.fail(k, f"an angle within the soft limits of {joint.name} "
-                           f"[{joint.angle_min:g}, {joint.angle_max:g}] rad", value)
+                where.fail(
+                    k,
+                    f"an angle within the soft limits of {joint.name} "
+                    f"[{joint.angle_min:g}, {joint.angle_max:g}] rad",
+                    value,
+                )
         angles.append(values)
     doc.done()
     return tuple(angles)
@@ -282,6 +316,7 @@ def _parse_object(doc: Doc) -> ObjectParams:
 
 
 def _parse_friction(doc: Doc) -> FrictionParams:
-    values = {name: doc.number(name, min=0.0, max=3.0)
-              for name in FrictionParams.__dataclass_fields__}
+    values = {
+        name: doc.number(name, min=0.0, max=3.0) for name in FrictionParams.__dataclass_fields__
+    }
     return FrictionParams(**values)

@@ -62,8 +62,7 @@ class LinkSegment:
 def link_segments(hand: HandConfig, params: SimParams) -> Iterator[LinkSegment]:
     """Every link at ``params.initial_angles``, finger by finger (planar forward kinematics)."""
     index = 0
-    for f, (finger, angles) in enumerate(zip(hand.fingers, params.initial_angles,
-                                             strict=True)):
+    for f, (finger, angles) in enumerate(zip(hand.fingers, params.initial_angles, strict=True)):
         x, y, heading = finger.base_x, finger.base_y, finger.base_angle
         for joint, q in zip(finger.joints, angles, strict=True):
             heading += q
@@ -81,31 +80,50 @@ def check_placement(hand: HandConfig, params: SimParams, doc: Doc) -> None:
     for i, obj in enumerate(params.objects):
         where = f"objects[{i}]"
         if obj.y - obj.radius < params.table_height - _TOUCH:
-            doc.fail(f"{where}.y", f"a centre at least one radius ({obj.radius:g} m) above the "
-                     f"table top ({params.table_height:g} m)", obj.y)
+            doc.fail(
+                f"{where}.y",
+                f"a centre at least one radius ({obj.radius:g} m) above the "
+                f"table top ({params.table_height:g} m)",
+                obj.y,
+            )
         if obj.y + obj.radius > _TOUCH:
-            doc.fail(f"{where}.y", f"a centre at least one radius ({obj.radius:g} m) below the "
-                     "palm face (y = 0)", obj.y)
+            doc.fail(
+                f"{where}.y",
+                f"a centre at least one radius ({obj.radius:g} m) below the palm face (y = 0)",
+                obj.y,
+            )
         for j, other in enumerate(params.objects[:i]):
             gap = math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
             if gap < -_TOUCH:
-                doc.fail(f"{where}.x", f"a position not overlapping objects[{j}] "
-                         f"({other.name}): {-gap:.4g} m too close", obj.x)
+                doc.fail(
+                    f"{where}.x",
+                    f"a position not overlapping objects[{j}] "
+                    f"({other.name}): {-gap:.4g} m too close",
+                    obj.x,
+                )
         _check_reach(hand, params, obj, doc, where)
         for link in links:
             gap = _object_link_distance(obj, link) - obj.radius - link.radius
             if gap < -_TOUCH:
-                doc.fail(f"{where}.x", f"a position clear of link {link.name} at the initial "
-                         f"angles: they overlap by {-gap:.4g} m", obj.x)
+                doc.fail(
+                    f"{where}.x",
+                    f"a position clear of link {link.name} at the initial "
+                    f"angles: they overlap by {-gap:.4g} m",
+                    obj.x,
+                )
     for link in links:
         where = f"initial_angles.{hand.fingers[link.finger].name}"
-        inside = link.radius - _segment_box_distance(link, params.palm_half_width,
-                                                     params.palm_thickness)
+        inside = link.radius - _segment_box_distance(
+            link, params.palm_half_width, params.palm_thickness
+        )
         if inside > _TOUCH:
-            doc.fail(where, f"angles that keep every link out of the palm (x within "
-                     f"±{params.palm_half_width:g} m, y 0..{params.palm_thickness:g} m): "
-                     f"{link.name} is {inside:.4g} m inside it",
-                     list(params.initial_angles[link.finger]))
+            doc.fail(
+                where,
+                f"angles that keep every link out of the palm (x within "
+                f"±{params.palm_half_width:g} m, y 0..{params.palm_thickness:g} m): "
+                f"{link.name} is {inside:.4g} m inside it",
+                list(params.initial_angles[link.finger]),
+            )
     if params.between_fingers:
         _check_fingers_apart(hand, params, links, doc)
 
@@ -117,20 +135,26 @@ def _check_names(hand: HandConfig, params: SimParams, doc: Doc) -> None:
     for i, finger in enumerate(hand.fingers):
         for k, joint in enumerate(finger.joints):
             if joint.name in taken:  # the simulation names a link's body and geom after it
-                top.fail(f"fingers[{i}].joints[{k}].name", f"a name the simulated hand does "
-                         f"not use ({joint.name!r} is {taken[joint.name]})", joint.name)
+                top.fail(
+                    f"fingers[{i}].joints[{k}].name",
+                    f"a name the simulated hand does "
+                    f"not use ({joint.name!r} is {taken[joint.name]})",
+                    joint.name,
+                )
     taken |= {j.name: f"a link of {f.name}" for f in hand.fingers for j in f.joints}
     for i, obj in enumerate(params.objects):
         for name in (obj.name, *(obj.name + s for s in OBJECT_JOINT_SUFFIXES)):
             if name in taken:
-                doc.fail(f"objects[{i}].name", f"a name of its own ({name!r} is {taken[name]})",
-                         obj.name)
+                doc.fail(
+                    f"objects[{i}].name", f"a name of its own ({name!r} is {taken[name]})", obj.name
+                )
         taken[obj.name] = f"objects[{i}]"
         taken |= {obj.name + s: f"a joint of objects[{i}]" for s in OBJECT_JOINT_SUFFIXES}
 
 
-def _check_reach(hand: HandConfig, params: SimParams, obj: ObjectParams, doc: Doc,
-                 where: str) -> None:
+def _check_reach(
+    hand: HandConfig, params: SimParams, obj: ObjectParams, doc: Doc, where: str
+) -> None:
     """Some finger beside the object along z must reach its surface when stretched out."""
     best: tuple[float, str] | None = None
     index = 0
@@ -146,24 +170,30 @@ def _check_reach(hand: HandConfig, params: SimParams, obj: ObjectParams, doc: Do
         short = surface - reach
         if best is None or short < best[0]:
             best = (short, finger.name)
-    nearest = (f"the nearest finger, {best[1]}, is {best[0]:.4g} m short of its surface"
-               if best is not None else "no finger lies within its length along z")
+    nearest = (
+        f"the nearest finger, {best[1]}, is {best[0]:.4g} m short of its surface"
+        if best is not None
+        else "no finger lies within its length along z"
+    )
     doc.fail(f"{where}.x", f"a place within reach of a finger ({nearest})", obj.x)
 
 
-def _check_fingers_apart(hand: HandConfig, params: SimParams, links: list[LinkSegment],
-                         doc: Doc) -> None:
+def _check_fingers_apart(
+    hand: HandConfig, params: SimParams, links: list[LinkSegment], doc: Doc
+) -> None:
     for i, a in enumerate(links):
-        for b in links[i + 1:]:
+        for b in links[i + 1 :]:
             if a.finger == b.finger:
                 continue
             planar = _segment_distance(a, b)
             gap = math.hypot(planar, a.z - b.z) - a.radius - b.radius
             if gap < -_TOUCH:
-                doc.fail(f"initial_angles.{hand.fingers[b.finger].name}",
-                         f"angles that keep the fingers apart (contact.between_fingers is "
-                         f"true): {b.name} overlaps {a.name} by {-gap:.4g} m",
-                         list(params.initial_angles[b.finger]))
+                doc.fail(
+                    f"initial_angles.{hand.fingers[b.finger].name}",
+                    f"angles that keep the fingers apart (contact.between_fingers is "
+                    f"true): {b.name} overlaps {a.name} by {-gap:.4g} m",
+                    list(params.initial_angles[b.finger]),
+                )
 
 
 def _point_segment(px: float, py: float, x0: float, y0: float, x1: float, y1: float) -> float:
@@ -177,8 +207,9 @@ def _cross(ax: float, ay: float, bx: float, by: float, cx: float, cy: float) -> 
     return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
 
 
-def _segments_cross(a: tuple[float, float, float, float],
-                    b: tuple[float, float, float, float]) -> bool:
+def _segments_cross(
+    a: tuple[float, float, float, float], b: tuple[float, float, float, float]
+) -> bool:
     d1 = _cross(*b[:2], *b[2:], *a[:2])
     d2 = _cross(*b[:2], *b[2:], *a[2:])
     d3 = _cross(*a[:2], *a[2:], *b[:2])
@@ -186,13 +217,18 @@ def _segments_cross(a: tuple[float, float, float, float],
     return d1 * d2 < 0 and d3 * d4 < 0
 
 
-def _planar_distance(a: tuple[float, float, float, float],
-                     b: tuple[float, float, float, float]) -> float:
+def _planar_distance(
+    a: tuple[float, float, float, float], b: tuple[float, float, float, float]
+) -> float:
     """Distance of two segments ``(x0, y0, x1, y1)`` in the plane (0 where they cross)."""
     if _segments_cross(a, b):
         return 0.0
-    return min(_point_segment(*a[:2], *b), _point_segment(*a[2:], *b),
-               _point_segment(*b[:2], *a), _point_segment(*b[2:], *a))
+    return min(
+        _point_segment(*a[:2], *b),
+        _point_segment(*a[2:], *b),
+        _point_segment(*b[:2], *a),
+        _point_segment(*b[2:], *a),
+    )
 
 
 def _segment_distance(a: LinkSegment, b: LinkSegment) -> float:
@@ -208,12 +244,18 @@ def _object_link_distance(obj: ObjectParams, link: LinkSegment) -> float:
 
 def _segment_box_distance(link: LinkSegment, half_width: float, thickness: float) -> float:
     """Distance of the link's axis from the palm's cross-section (0 where it enters it)."""
-    inside = [abs(x) <= half_width and 0.0 <= y <= thickness
-              for x, y in ((link.x0, link.y0), (link.x1, link.y1))]
+    inside = [
+        abs(x) <= half_width and 0.0 <= y <= thickness
+        for x, y in ((link.x0, link.y0), (link.x1, link.y1))
+    ]
     if any(inside):
         return 0.0
     seg = (link.x0, link.y0, link.x1, link.y1)
-    corners = ((-half_width, 0.0), (half_width, 0.0), (half_width, thickness),
-               (-half_width, thickness))
+    corners = (
+        (-half_width, 0.0),
+        (half_width, 0.0),
+        (half_width, thickness),
+        (-half_width, thickness),
+    )
     edges = [(*corners[k], *corners[(k + 1) % 4]) for k in range(4)]
     return min(_planar_distance(seg, edge) for edge in edges)

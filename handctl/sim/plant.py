@@ -63,9 +63,16 @@ def stop_range(joint: JointConfig, margin: float) -> tuple[float, float]:
 def build_mjcf(hand: HandConfig, params: SimParams) -> str:
     """The MJCF text of the scene; kept separate from ``Plant`` so it can be inspected."""
     p = params
-    half_depth = max([abs(f.z) + max(link.radius for link in links)
-                      for f, links in zip(hand.fingers, finger_links(hand, p), strict=True)]
-                     + [o.length / 2 for o in p.objects]) + _PALM_MARGIN
+    half_depth = (
+        max(
+            [
+                abs(f.z) + max(link.radius for link in links)
+                for f, links in zip(hand.fingers, finger_links(hand, p), strict=True)
+            ]
+            + [o.length / 2 for o in p.objects]
+        )
+        + _PALM_MARGIN
+    )
     lines = [
         '<mujoco model="handctl_sim">',
         '  <compiler angle="radian" autolimits="true"/>',
@@ -95,7 +102,7 @@ def build_mjcf(hand: HandConfig, params: SimParams) -> str:
             f'      <joint name={quoteattr(obj.name + "_rz")} type="hinge" axis="0 0 1"/>',
             f'      <inertial pos="0 0 0" mass="{_f(obj.mass)}" '
             f'diaginertia="{_f(i_xy)} {_f(i_xy)} {_f(i_z)}"/>',
-            f"      <geom name={quoteattr(obj.name)} type=\"capsule\" "
+            f'      <geom name={quoteattr(obj.name)} type="capsule" '
             f'size="{_f(obj.radius)} {_f(obj.length / 2)}"/>',
             "    </body>",
         ]
@@ -111,7 +118,8 @@ def build_mjcf(hand: HandConfig, params: SimParams) -> str:
             f"    <general name={quoteattr(joint.name)} joint={quoteattr(joint.name)} "
             f'dyntype="filterexact" dynprm="{_f(lag)}" gaintype="fixed" '
             f'gainprm="1" biastype="none" forcelimited="true" '
-            f'forcerange="{_f(-limit)} {_f(limit)}"/>')
+            f'forcerange="{_f(-limit)} {_f(limit)}"/>'
+        )
     lines.append("  </actuator>")
     lines.append("</mujoco>")
     return "\n".join(lines)
@@ -119,21 +127,23 @@ def build_mjcf(hand: HandConfig, params: SimParams) -> str:
 
 def _finger_xml(finger: FingerConfig, params: SimParams, first: int) -> list[str]:
     """The finger's bodies; ``first`` is the index of its first joint in config order."""
-    lines = [f"    <body name={quoteattr(finger.name + '_base')} "
-             f'pos="{_f(finger.base_x)} {_f(finger.base_y)} {_f(finger.z)}" '
-             f'euler="0 0 {_f(finger.base_angle)}">']
+    lines = [
+        f"    <body name={quoteattr(finger.name + '_base')} "
+        f'pos="{_f(finger.base_x)} {_f(finger.base_y)} {_f(finger.z)}" '
+        f'euler="0 0 {_f(finger.base_angle)}">'
+    ]
     indent = "      "
     for k, joint in enumerate(finger.joints):
         link = params.links[first + k]
         lo, hi = stop_range(joint, params.stop_margin)
         pos = "0 0 0" if k == 0 else f"{_f(finger.joints[k - 1].link_length)} 0 0"
         lines += [
-            f"{indent}<body name={quoteattr(joint.name)} pos=\"{pos}\">",
-            f"{indent}  <joint name={quoteattr(joint.name)} type=\"hinge\" axis=\"0 0 1\" "
+            f'{indent}<body name={quoteattr(joint.name)} pos="{pos}">',
+            f'{indent}  <joint name={quoteattr(joint.name)} type="hinge" axis="0 0 1" '
             f'range="{_f(lo)} {_f(hi)}" damping="{_f(params.damping[first + k])}" '
             f'frictionloss="{_f(params.frictionloss[first + k])}" '
             f'armature="{_f(params.armature[first + k])}"/>',
-            f"{indent}  <geom name={quoteattr(joint.name)} type=\"capsule\" "
+            f'{indent}  <geom name={quoteattr(joint.name)} type="capsule" '
             f'fromto="0 0 0 {_f(joint.link_length)} 0 0" size="{_f(link.radius)}" '
             f'mass="{_f(link.mass)}"/>',
         ]
@@ -152,24 +162,29 @@ def _pair_xml(hand: HandConfig, params: SimParams) -> list[str]:
     def pair(a: str, b: str, mu: float) -> str:
         # condim 3: Coulomb friction in the contact plane only; in a planar scene there is no
         # spin about the normal to resist, and rolling is free, as the paper's model has it.
-        return (f"    <pair geom1={quoteattr(a)} geom2={quoteattr(b)} condim=\"3\" "
-                f'friction="{_f(mu)} {_f(mu)} 0 0 0" {solref}/>')
+        return (
+            f'    <pair geom1={quoteattr(a)} geom2={quoteattr(b)} condim="3" '
+            f'friction="{_f(mu)} {_f(mu)} 0 0 0" {solref}/>'
+        )
 
     links = [j.name for j in hand.joints]
     objects = [o.name for o in params.objects]
     lines = []
     for i, obj in enumerate(objects):
         lines += [pair(link, obj, fr.finger_object) for link in links]
-        lines += [pair(obj, other, fr.object_object) for other in objects[i + 1:]]
+        lines += [pair(obj, other, fr.object_object) for other in objects[i + 1 :]]
         lines.append(pair(obj, "table", fr.object_table))
         lines.append(pair(obj, "palm", fr.object_palm))
     lines += [pair(link, "table", fr.finger_table) for link in links]
     lines += [pair(link, "palm", fr.finger_palm) for link in links]
     if params.between_fingers:
         for f, finger in enumerate(hand.fingers):
-            lines += [pair(a.name, b.name, params.finger_finger_friction)
-                      for a in finger.joints for other in hand.fingers[f + 1:]
-                      for b in other.joints]
+            lines += [
+                pair(a.name, b.name, params.finger_finger_friction)
+                for a in finger.joints
+                for other in hand.fingers[f + 1 :]
+                for b in other.joints
+            ]
     return lines
 
 
@@ -178,7 +193,7 @@ def finger_links(hand: HandConfig, params: SimParams) -> list[tuple[LinkParams, 
     out = []
     first = 0
     for finger in hand.fingers:
-        out.append(params.links[first: first + len(finger.joints)])
+        out.append(params.links[first : first + len(finger.joints)])
         first += len(finger.joints)
     return out
 
@@ -209,7 +224,8 @@ class Plant:
             raise RuntimeError("finger joints are expected first in the MuJoCo state")
         self._obj_qadr = [
             int(m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{o.name}_x")])
-            for o in params.objects]
+            for o in params.objects
+        ]
         self._gain_nominal = m.actuator_gainprm[:, 0].copy()
         self._range_nominal = m.actuator_forcerange.copy()
         self._hold: FloatArray | None = None
@@ -223,7 +239,7 @@ class Plant:
         angles = [a for finger in self.params.initial_angles for a in finger]
         q[: self.n_joints] = angles
         for adr, obj in zip(self._obj_qadr, self.params.objects, strict=True):
-            q[adr: adr + 3] = (obj.x, obj.y, obj.angle)
+            q[adr : adr + 3] = (obj.x, obj.y, obj.angle)
         self.model.actuator_gainprm[:, 0] = self._gain_nominal
         self.model.actuator_forcerange[:] = self._range_nominal
         self._hold = None
@@ -252,22 +268,24 @@ class Plant:
     def object_poses(self) -> tuple[ObjectPose, ...]:
         """Ground truth: where each cylinder is. For evaluation and logs only."""
         q = self.data.qpos
-        return tuple(ObjectPose(o.name, float(q[a]), float(q[a + 1]), float(q[a + 2]))
-                     for o, a in zip(self.params.objects, self._obj_qadr, strict=True))
+        return tuple(
+            ObjectPose(o.name, float(q[a]), float(q[a + 1]), float(q[a + 2]))
+            for o, a in zip(self.params.objects, self._obj_qadr, strict=True)
+        )
 
     def hold_objects(self, hold: bool) -> None:
         """Pin the cylinders where they are (a fixture for tests), or release them."""
         if not hold:
             self._hold = None
             return
-        self._hold = np.array([self.data.qpos[a: a + 3] for a in self._obj_qadr])
+        self._hold = np.array([self.data.qpos[a : a + 3] for a in self._obj_qadr])
         self._restore_objects()
 
     def _restore_objects(self) -> None:
         assert self._hold is not None
         for row, adr in enumerate(self._obj_qadr):
-            self.data.qpos[adr: adr + 3] = self._hold[row]
-            self.data.qvel[adr: adr + 3] = 0.0
+            self.data.qpos[adr : adr + 3] = self._hold[row]
+            self.data.qvel[adr : adr + 3] = 0.0
 
     # -- drive faults -----------------------------------------------------------------------
     def set_tendon_slack(self, joint: int, slack: bool) -> None:
@@ -288,8 +306,10 @@ class Plant:
         bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, last.name)
         origin = self.data.xpos[bid]
         axis = self.data.xmat[bid].reshape(3, 3)[:, 0]
-        return (float(origin[0] + axis[0] * last.link_length),
-                float(origin[1] + axis[1] * last.link_length))
+        return (
+            float(origin[0] + axis[0] * last.link_length),
+            float(origin[1] + axis[1] * last.link_length),
+        )
 
     def contact_pairs(self) -> list[tuple[str, str]]:
         """Names of the geoms in contact now (active contacts only)."""
@@ -302,8 +322,7 @@ class Plant:
         return pairs
 
 
-def gravity_torques(hand: HandConfig, params: SimParams,
-                    angles: FloatArray) -> FloatArray:
+def gravity_torques(hand: HandConfig, params: SimParams, angles: FloatArray) -> FloatArray:
     """Joint torques gravity exerts on the free-hanging fingers (N·m), from planar statics.
 
     Written independently of MuJoCo (point masses at the link centres) so that a test can
@@ -313,7 +332,7 @@ def gravity_torques(hand: HandConfig, params: SimParams,
     g = params.gravity
     offset = 0
     for finger in hand.fingers:
-        q = angles[offset: offset + len(finger.joints)]
+        q = angles[offset : offset + len(finger.joints)]
         # positions of joints and link centres in the plane
         heading = finger.base_angle
         x, y = finger.base_x, finger.base_y

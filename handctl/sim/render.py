@@ -47,10 +47,18 @@ def draw_scene(plant: Plant, path: str | Path, title: str = "") -> Path:
     params = plant.params
     ax.axhline(params.table_height, color="saddlebrown", lw=2)
     width = 2 * scene_half_width(plant)
-    ax.add_patch(Rectangle((-width / 2, params.table_height - 0.01), width, 0.01,
-                           color="burlywood"))
-    ax.add_patch(Rectangle((-params.palm_half_width, 0.0), 2 * params.palm_half_width,
-                           params.palm_thickness, color="grey", alpha=0.7))
+    ax.add_patch(
+        Rectangle((-width / 2, params.table_height - 0.01), width, 0.01, color="burlywood")
+    )
+    ax.add_patch(
+        Rectangle(
+            (-params.palm_half_width, 0.0),
+            2 * params.palm_half_width,
+            params.palm_thickness,
+            color="grey",
+            alpha=0.7,
+        )
+    )
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for f_index, finger in enumerate(plant.hand.fingers):
         for joint in finger.joints:
@@ -61,13 +69,23 @@ def draw_scene(plant: Plant, path: str | Path, title: str = "") -> Path:
             x1 = x0 + axis[0] * joint.link_length
             y1 = y0 + axis[1] * joint.link_length
             r = float(model.geom_size[gid][0])
-            ax.add_patch(Polygon(_stadium(x0, y0, x1, y1, r), closed=True,
-                                 color=colours[f_index % len(colours)], alpha=0.45))
+            ax.add_patch(
+                Polygon(
+                    _stadium(x0, y0, x1, y1, r),
+                    closed=True,
+                    color=colours[f_index % len(colours)],
+                    alpha=0.45,
+                )
+            )
             ax.plot([x0], [y0], "k.", ms=3)
     for pose, obj in zip(plant.object_poses(), params.objects, strict=True):
         ax.add_patch(Circle((pose.x, pose.y), obj.radius, color="orange", alpha=0.6))
-        ax.plot([pose.x, pose.x + obj.radius * math.cos(pose.angle)],
-                [pose.y, pose.y + obj.radius * math.sin(pose.angle)], "k-", lw=1)
+        ax.plot(
+            [pose.x, pose.x + obj.radius * math.cos(pose.angle)],
+            [pose.y, pose.y + obj.radius * math.sin(pose.angle)],
+            "k-",
+            lw=1,
+        )
     ax.set_aspect("equal")
     half_width = scene_half_width(plant)
     ax.set_xlim(-half_width, half_width)

@@ -37,8 +37,9 @@ class TdtModel:
         self.params = params
         self._rng = rng
         self._alpha = 1.0 - math.exp(-NODE_TICK_S / params.lag) if params.lag > 0 else 1.0
-        self.bias: list[float] = (rng.normal(0.0, params.bias, n).tolist() if params.bias > 0
-                                  else [0.0] * n)
+        self.bias: list[float] = (
+            rng.normal(0.0, params.bias, n).tolist() if params.bias > 0 else [0.0] * n
+        )
         self._cal_offset = [j.tdt.offset for j in hand.joints]
         self._cal_inv_scale = [1.0 / j.tdt.scale for j in hand.joints]
         self._res = params.resolution

@@ -47,7 +47,8 @@ def test_every_node_answers_while_the_host_only_listens(hand: HandConfig) -> Non
         deadline = time.monotonic() + LISTEN_S
         state = driver.poll()
         while time.monotonic() < deadline and (
-                (state.feedback_ns < 0).any() or -1 in state.node_state):
+            (state.feedback_ns < 0).any() or -1 in state.node_state
+        ):
             time.sleep(hand.bus.period_s)
             state = driver.poll()
     silent = [f.name for f, s in zip(hand.fingers, state.node_state, strict=True) if s == -1]
@@ -60,12 +61,20 @@ def test_every_node_answers_while_the_host_only_listens(hand: HandConfig) -> Non
 def test_a_zero_torque_hold_ends_clean(hand: HandConfig, tmp_path: Path) -> None:
     recipe_path = tmp_path / "zero_hold.yaml"
     zeros = ", ".join(["0.0"] * hand.n_joints)
-    recipe_path.write_text(f"recipe: zero_hold\nphases:\n  - name: hold\n"
-                           f"    torques: [{zeros}]\n    ramp_s: 0.1\n    max_s: 2.0\n"
-                           f"    on_timeout: next\n")
+    recipe_path.write_text(
+        f"recipe: zero_hold\nphases:\n  - name: hold\n"
+        f"    torques: [{zeros}]\n    ramp_s: 0.1\n    max_s: 2.0\n"
+        f"    on_timeout: next\n"
+    )
     accept = os.environ.get("HANDCTL_HARDWARE_ACCEPT_MISSED_DEADLINES") == "1"
-    report = run_recipe(RunRequest(hand=hand, recipe=load_recipe(recipe_path, hand), bus=BUS,
-                                   accept_missed_deadlines=accept))
+    report = run_recipe(
+        RunRequest(
+            hand=hand,
+            recipe=load_recipe(recipe_path, hand),
+            bus=BUS,
+            accept_missed_deadlines=accept,
+        )
+    )
     assert report.result.outcome is Outcome.COMPLETED, report.result.message
     assert report.result.faults == []
     assert report.summary["max_abs_tau_nm"] == dict.fromkeys(hand.joint_names, 0.0)

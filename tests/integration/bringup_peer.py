@@ -14,9 +14,9 @@ HOST_IDS = frozenset({0x000, 0x011, 0x012, 0x013, 0x101, 0x102, 0x103})
 
 
 @contextmanager
-def running_hand(hand: HandConfig, spec: str,
-                 prepare: Callable[[SimulatedHand], None] | None = None
-                 ) -> Iterator[SimulatedHand]:
+def running_hand(
+    hand: HandConfig, spec: str, prepare: Callable[[SimulatedHand], None] | None = None
+) -> Iterator[SimulatedHand]:
     """The simulated hand on ``spec``, ticking on its own timer until the block ends."""
     bus = open_bus(spec, hand.bus)
     try:

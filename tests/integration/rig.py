@@ -42,8 +42,7 @@ class Rig:
         for frame_id, data in self.wire:
             if 0x101 <= frame_id <= 0x103:
                 sig = decode(frame_id, data)
-                per_node[frame_id - 0x100].append([sig["Torque1"], sig["Torque2"],
-                                                   sig["Torque3"]])
+                per_node[frame_id - 0x100].append([sig["Torque1"], sig["Torque2"], sig["Torque3"]])
         n = min(len(v) for v in per_node.values())
         return np.hstack([np.array(per_node[k][:n]).reshape(n, 3) for k in (1, 2, 3)])
 
@@ -52,8 +51,9 @@ class Rig:
 
 
 @contextmanager
-def rig(hand: HandConfig, recipe: Recipe | None, *, seed: int = 0,
-        max_seconds: float = 30.0) -> Iterator[Rig]:
+def rig(
+    hand: HandConfig, recipe: Recipe | None, *, seed: int = 0, max_seconds: float = 30.0
+) -> Iterator[Rig]:
     max_ticks = round(max_seconds / hand.bus.period_s)
     with hil_bench(hand, recipe, seed, max_ticks) as (sim, runtime, sniffer):
         yield Rig(hand, sim, runtime, sniffer)

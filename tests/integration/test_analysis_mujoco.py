@@ -67,7 +67,8 @@ def _mjcf(grasp: Grasp) -> str:
             f'<inertial pos="0 0 0" mass="{f(body.mass)}" '
             f'diaginertia="{f(inertia)} {f(inertia)} {f(inertia)}"/>'
             f'<geom name="touch{i}" type="cylinder" size="{f(body.radius - RC)} 0.05"/>'
-            f'<geom name="side{i}" type="cylinder" size="{f(body.radius)} 0.05"/></body>')
+            f'<geom name="side{i}" type="cylinder" size="{f(body.radius)} 0.05"/></body>'
+        )
     fingers = []
     for j, finger in enumerate(grasp.fingers):
         xml = ""
@@ -77,26 +78,34 @@ def _mjcf(grasp: Grasp) -> str:
                 pos = f"{f(bx)} {f(by)} 0"
             else:
                 pos = f"{f(finger.lengths[k - 1])} 0 0"
-            xml += (f'<body pos="{pos}" euler="0 0 {f(angle)}">'
-                    f'<joint name="j{j}_{k}" type="hinge" axis="0 0 1"/>'
-                    f'<geom name="link{j}_{k}" type="capsule" fromto="0 0 0 {f(length)} 0 0" '
-                    f'size="{RC}" mass="{LINK_MASS}"/>')
+            xml += (
+                f'<body pos="{pos}" euler="0 0 {f(angle)}">'
+                f'<joint name="j{j}_{k}" type="hinge" axis="0 0 1"/>'
+                f'<geom name="link{j}_{k}" type="capsule" fromto="0 0 0 {f(length)} 0 0" '
+                f'size="{RC}" mass="{LINK_MASS}"/>'
+            )
         fingers.append(xml + "</body>" * finger.joints)
-    pairs = [f'<pair geom1="link{c.finger}_{c.link}" geom2="touch{c.body}" condim="3" '
-             f'friction="{f(c.mu)} {f(c.mu)} 0.0001 0.0001 0.0001"/>'
-             for c in grasp.finger_contacts]
-    pairs += [f'<pair geom1="side{c.first}" geom2="side{c.second}" condim="3" '
-              f'friction="{MU_ROLLING} {MU_ROLLING} 0.0001 0.0001 0.0001"/>'
-              for c in grasp.body_contacts]
+    pairs = [
+        f'<pair geom1="link{c.finger}_{c.link}" geom2="touch{c.body}" condim="3" '
+        f'friction="{f(c.mu)} {f(c.mu)} 0.0001 0.0001 0.0001"/>'
+        for c in grasp.finger_contacts
+    ]
+    pairs += [
+        f'<pair geom1="side{c.first}" geom2="side{c.second}" condim="3" '
+        f'friction="{MU_ROLLING} {MU_ROLLING} 0.0001 0.0001 0.0001"/>'
+        for c in grasp.body_contacts
+    ]
     gx, gy = grasp.gravity
-    return (f'<mujoco><compiler angle="radian"/>'
-            f'<option timestep="{TIMESTEP}" gravity="{f(gx)} {f(gy)} 0" cone="elliptic" '
-            f'impratio="10"/>'
-            f'<default><geom contype="0" conaffinity="0" solref="0.002 1" '
-            f'solimp="0.95 0.99 0.0001"/>'
-            f'<pair solref="0.002 1" solimp="0.95 0.99 0.0001"/></default>'
-            f'<worldbody>{"".join(bodies)}{"".join(fingers)}</worldbody>'
-            f'<contact>{"".join(pairs)}</contact></mujoco>')
+    return (
+        f'<mujoco><compiler angle="radian"/>'
+        f'<option timestep="{TIMESTEP}" gravity="{f(gx)} {f(gy)} 0" cone="elliptic" '
+        f'impratio="10"/>'
+        f'<default><geom contype="0" conaffinity="0" solref="0.002 1" '
+        f'solimp="0.95 0.99 0.0001"/>'
+        f'<pair solref="0.002 1" solimp="0.95 0.99 0.0001"/></default>'
+        f"<worldbody>{''.join(bodies)}{''.join(fingers)}</worldbody>"
+        f"<contact>{''.join(pairs)}</contact></mujoco>"
+    )
 
 
 def _displacements(model: object, grasp: Grasp, tau: Array) -> Array:
@@ -107,7 +116,7 @@ def _displacements(model: object, grasp: Grasp, tau: Array) -> Array:
     first_joint = 3 * len(grasp.bodies)
     for _ in range(round(DURATION / TIMESTEP)):
         data.qfrc_applied[:] = 0.0
-        data.qfrc_applied[first_joint:first_joint + len(tau)] = tau
+        data.qfrc_applied[first_joint : first_joint + len(tau)] = tau
         mujoco.mj_step(model, data)
     end = np.array([data.qpos[3 * i + 1] for i in range(len(grasp.bodies))])
     return np.asarray(end - start, dtype=np.float64)
@@ -116,20 +125,29 @@ def _displacements(model: object, grasp: Grasp, tau: Array) -> Array:
 def _sample(ts: ExactTorqueSet, count: int, seed: int) -> Array:
     """Uniform points in the exact region (fan triangulation of its convex polygons)."""
     rng = np.random.default_rng(seed)
-    triangles = [np.array([p[0], p[i], p[i + 1]]) for p in ts.region
-                 for i in range(1, len(p) - 1)]
+    triangles = [np.array([p[0], p[i], p[i + 1]]) for p in ts.region for i in range(1, len(p) - 1)]
     weights = np.array([abs(area(t)) for t in triangles])
     picks = rng.choice(len(triangles), size=count, p=weights / weights.sum())
     r1, r2 = rng.uniform(size=count), rng.uniform(size=count)
     s = np.sqrt(r1)
-    out = np.array([(1 - a) * t[0] + a * (1 - b) * t[1] + a * b * t[2]
-                    for t, a, b in zip((triangles[i] for i in picks), s, r2, strict=True)])
+    out = np.array(
+        [
+            (1 - a) * t[0] + a * (1 - b) * t[1] + a * b * t[2]
+            for t, a, b in zip((triangles[i] for i in picks), s, r2, strict=True)
+        ]
+    )
     assert np.all(ts.inside_mask(out))
     return out
 
 
-def _agreement(grasp: Grasp, directions: dict[str, Array], k: tuple[float, float],
-               tau_max: float, want: tuple[float, float], seed: int) -> float:
+def _agreement(
+    grasp: Grasp,
+    directions: dict[str, Array],
+    k: tuple[float, float],
+    tau_max: float,
+    want: tuple[float, float],
+    seed: int,
+) -> float:
     cond = build_conditions(grasp, directions)
     sl = ratio_slice(grasp, k, tau_max)
     ts = exact_torque_set(cond, sl)
@@ -173,8 +191,7 @@ def test_vertical_plane_needs_the_net_reading() -> None:
     sl = ratio_slice(paper, k, sc.tau_max)
     net_set = exact_torque_set(build_conditions(sc.grasp, sc.directions), sl)
     paper_set = exact_torque_set(build_conditions(paper, sc.directions), sl)
-    only_paper = [u for u in _sample(paper_set, 200, seed=4)
-                  if not net_set.inside_mask(u)[0]][:10]
+    only_paper = [u for u in _sample(paper_set, 200, seed=4) if not net_set.inside_mask(u)[0]][:10]
     assert only_paper
     model = mujoco.MjModel.from_xml_string(_mjcf(sc.grasp))
     falls = [_displacements(model, sc.grasp, sl.torques(u))[0] < 0.0 for u in only_paper]

@@ -52,13 +52,25 @@ def _check_offsets(hand: HandConfig, written: Path, report: dict[str, Any]) -> N
         assert abs(joint.tdt.offset + bias[joint.name]) <= within, (joint.name, within)
 
 
-def test_a_tdt_bias_comes_out_within_its_noise(hand: HandConfig, tmp_path: Path,
-                                               capsys: pytest.CaptureFixture[str]) -> None:
-    faults = _scenario(tmp_path, f"{{kind: tdt_offset, node: 2, joint: 3, offset: {ADDED}, "
-                                 "start: 0.0}")
+def test_a_tdt_bias_comes_out_within_its_noise(
+    hand: HandConfig, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    faults = _scenario(
+        tmp_path, f"{{kind: tdt_offset, node: 2, joint: 3, offset: {ADDED}, start: 0.0}}"
+    )
     out = tmp_path / "calibrated.yaml"
-    code = cli.main(["calibrate", "tdt", "-o", str(out), "--sim-faults", str(faults),
-                     "--json", str(tmp_path / "m.json")])
+    code = cli.main(
+        [
+            "calibrate",
+            "tdt",
+            "-o",
+            str(out),
+            "--sim-faults",
+            str(faults),
+            "--json",
+            str(tmp_path / "m.json"),
+        ]
+    )
     printed = capsys.readouterr().out
     assert code == cli.EXIT_OK, printed
     report = json.loads((tmp_path / "m.json").read_text())
@@ -70,25 +82,30 @@ def test_a_tdt_bias_comes_out_within_its_noise(hand: HandConfig, tmp_path: Path,
     assert "f2_j3          +0.0000" in printed  # before and after, per joint
 
 
-def test_write_overwrites_the_hand_config_itself(hand: HandConfig, tmp_path: Path,
-                                                 capsys: pytest.CaptureFixture[str]) -> None:
+def test_write_overwrites_the_hand_config_itself(
+    hand: HandConfig, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     copy = tmp_path / "hand.yaml"
     shutil.copy(HAND_YAML, copy)
     before = copy.read_text()
-    assert cli.main(["calibrate", "tdt", "--hand", str(copy), "-o", str(copy),
-                     "--seconds", "0.2"]) == cli.EXIT_BAD_INPUT
+    assert (
+        cli.main(["calibrate", "tdt", "--hand", str(copy), "-o", str(copy), "--seconds", "0.2"])
+        == cli.EXIT_BAD_INPUT
+    )
     assert copy.read_text() == before and "--write" in capsys.readouterr().err
-    assert cli.main(["calibrate", "tdt", "--hand", str(copy), "--write",
-                     "--seconds", "0.2"]) == cli.EXIT_OK
+    assert (
+        cli.main(["calibrate", "tdt", "--hand", str(copy), "--write", "--seconds", "0.2"])
+        == cli.EXIT_OK
+    )
     assert copy.read_text() != before
     assert load_hand(copy).joints[0].tdt.offset != 0.0
 
 
-def test_a_joint_that_moves_is_refused_by_name(tmp_path: Path,
-                                               capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_joint_that_moves_is_refused_by_name(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     # 400 counts of a 14-bit encoder: 0.15 rad, during the measurement (settle is 2 s)
-    faults = _scenario(tmp_path, "{kind: encoder_jump, node: 2, joint: 2, counts: 400, "
-                                 "start: 2.5}")
+    faults = _scenario(tmp_path, "{kind: encoder_jump, node: 2, joint: 2, counts: 400, start: 2.5}")
     out = tmp_path / "calibrated.yaml"
     code = cli.main(["calibrate", "tdt", "-o", str(out), "--sim-faults", str(faults)])
     err = capsys.readouterr().err
@@ -98,8 +115,9 @@ def test_a_joint_that_moves_is_refused_by_name(tmp_path: Path,
     assert not out.exists()
 
 
-def test_fingers_that_have_not_settled_are_refused(tmp_path: Path,
-                                                   capsys: pytest.CaptureFixture[str]) -> None:
+def test_fingers_that_have_not_settled_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "calibrated.yaml"
     code = cli.main(["calibrate", "tdt", "-o", str(out), "--settle", "0"])
     assert code == cli.EXIT_FAILED
@@ -107,16 +125,23 @@ def test_fingers_that_have_not_settled_are_refused(tmp_path: Path,
     assert not out.exists()
 
 
-@pytest.mark.parametrize("entry, says", [
-    ("{kind: node_silent, node: 2, start: 0.0}", "node 2 (f2): no feedback"),
-    ("{kind: tdt_spike, node: 3, joint: 1, amplitude: 5.0, start: 0.0}",
-     "node 3 (f3) in FAULT (SENSOR)"),
-])
+@pytest.mark.parametrize(
+    "entry, says",
+    [
+        ("{kind: node_silent, node: 2, start: 0.0}", "node 2 (f2): no feedback"),
+        (
+            "{kind: tdt_spike, node: 3, joint: 1, amplitude: 5.0, start: 0.0}",
+            "node 3 (f3) in FAULT (SENSOR)",
+        ),
+    ],
+)
 def test_a_node_missing_or_in_fault_stops_it_before_torque(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str], entry: str, says: str) -> None:
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], entry: str, says: str
+) -> None:
     out = tmp_path / "calibrated.yaml"
-    code = cli.main(["calibrate", "tdt", "-o", str(out),
-                     "--sim-faults", str(_scenario(tmp_path, entry))])
+    code = cli.main(
+        ["calibrate", "tdt", "-o", str(out), "--sim-faults", str(_scenario(tmp_path, entry))]
+    )
     assert code == cli.EXIT_SAFETY_STOP
     assert says in capsys.readouterr().err
     assert not out.exists()
@@ -125,7 +150,8 @@ def test_a_node_missing_or_in_fault_stops_it_before_torque(
 def test_a_layout_it_cannot_edit_is_dumped_and_still_right(hand: HandConfig) -> None:
     offsets = {j.name: 0.001 * k for k, j in enumerate(hand.joints)}
     text = HAND_YAML.read_text().replace(
-        "      - {<<: *flexor, name: f2_j1}", "      - {<<: *flexor, name: f2_j1}  # same")
+        "      - {<<: *flexor, name: f2_j1}", "      - {<<: *flexor, name: f2_j1}  # same"
+    )
     tagged = text.replace("offset: 0.0}}", "offset: !!float 0.0}}")
     edited = with_tdt_offsets(tagged, hand, offsets)
     assert not edited.dumped and "# same" in edited.text
@@ -138,40 +164,82 @@ def test_a_layout_it_cannot_edit_is_dumped_and_still_right(hand: HandConfig) -> 
     assert [j.tdt.offset for j in back.joints] == pytest.approx(list(offsets.values()))
 
 
-def test_on_the_unix_bus_with_the_hand_in_its_own_process(hand: HandConfig,
-                                                          tmp_path: Path) -> None:
-    faults = _scenario(tmp_path, f"{{kind: tdt_offset, node: 2, joint: 3, offset: {ADDED}, "
-                                 "start: 0.0}")
+def test_on_the_unix_bus_with_the_hand_in_its_own_process(hand: HandConfig, tmp_path: Path) -> None:
+    faults = _scenario(
+        tmp_path, f"{{kind: tdt_offset, node: 2, joint: 3, offset: {ADDED}, start: 0.0}}"
+    )
     out = tmp_path / "calibrated.yaml"
     # Short, and with the fingers still sagging (the joints' span is not what this tests):
     # a loaded machine can starve a free-running hand, so a safety stop is retried.
     for _attempt in range(5):
         result = subprocess.run(
-            [sys.executable, "-m", "handctl", "calibrate", "tdt", "--realtime", "--rt", "-o",
-             str(out),
-             "--settle", "0.3", "--seconds", "0.5", "--max-span", "1.0",
-             "--sim-faults", str(faults), "--json", str(tmp_path / "m.json")],
-            capture_output=True, text=True, cwd=ROOT, timeout=300, check=False)
+            [
+                sys.executable,
+                "-m",
+                "handctl",
+                "calibrate",
+                "tdt",
+                "--realtime",
+                "--rt",
+                "-o",
+                str(out),
+                "--settle",
+                "0.3",
+                "--seconds",
+                "0.5",
+                "--max-span",
+                "1.0",
+                "--sim-faults",
+                str(faults),
+                "--json",
+                str(tmp_path / "m.json"),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=300,
+            check=False,
+        )
         if result.returncode != cli.EXIT_SAFETY_STOP:
             break
     assert result.returncode == cli.EXIT_OK, result.stderr
     _check_offsets(hand, out, json.loads((tmp_path / "m.json").read_text()))
 
 
-@pytest.mark.parametrize("entry, says", [
-    ("{kind: node_silent, node: 1, start: 0.0}", "node 1 (f1): no feedback"),
-    ("{kind: tdt_spike, node: 2, joint: 2, amplitude: 5.0, start: 0.0}",
-     "node 2 (f2) in FAULT (SENSOR)"),
-])
-def test_on_the_unix_bus_a_node_missing_or_in_fault(tmp_path: Path, entry: str,
-                                                    says: str) -> None:
+@pytest.mark.parametrize(
+    "entry, says",
+    [
+        ("{kind: node_silent, node: 1, start: 0.0}", "node 1 (f1): no feedback"),
+        (
+            "{kind: tdt_spike, node: 2, joint: 2, amplitude: 5.0, start: 0.0}",
+            "node 2 (f2) in FAULT (SENSOR)",
+        ),
+    ],
+)
+def test_on_the_unix_bus_a_node_missing_or_in_fault(tmp_path: Path, entry: str, says: str) -> None:
     out = tmp_path / "calibrated.yaml"
     errors = []
     for _attempt in range(3):  # a start-up the machine's load spoiled otherwise is retried
         result = subprocess.run(
-            [sys.executable, "-m", "handctl", "calibrate", "tdt", "--realtime", "--rt", "-o",
-             str(out), "--sim-faults", str(_scenario(tmp_path, entry))],
-            capture_output=True, text=True, cwd=ROOT, timeout=300, check=False)
+            [
+                sys.executable,
+                "-m",
+                "handctl",
+                "calibrate",
+                "tdt",
+                "--realtime",
+                "--rt",
+                "-o",
+                str(out),
+                "--sim-faults",
+                str(_scenario(tmp_path, entry)),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=300,
+            check=False,
+        )
         assert result.returncode == cli.EXIT_SAFETY_STOP, result.stderr
         assert not out.exists()
         if says in result.stderr:

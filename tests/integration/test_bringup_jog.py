@@ -20,7 +20,8 @@ from ..conftest import ROOT
 
 
 def test_one_joint_turns_its_way_and_no_other_gets_torque(
-        hand: HandConfig, capsys: pytest.CaptureFixture[str]) -> None:
+    hand: HandConfig, capsys: pytest.CaptureFixture[str]
+) -> None:
     code = cli.main(["jog", "f1_j2", "--torque", "0.05", "--seconds", "0.3"])
     out = capsys.readouterr().out
     assert code == cli.EXIT_OK, out
@@ -48,15 +49,18 @@ def test_a_negative_torque_turns_it_back(capsys: pytest.CaptureFixture[str]) -> 
     assert float(summary.split("(")[1].split()[0]) < -0.1
 
 
-@pytest.mark.parametrize("args, says", [
-    (["f1_j3", "--torque", "0.31"], "--torque: expected |τ| <= 0.3 N·m (tau_max of f1_j3"),
-    (["f1_j3", "--torque", "nan"], "--torque: expected |τ| <= 0.3 N·m"),
-    (["f9_j1", "--torque", "0.01"], "JOINT: expected a joint of"),
-    (["f1_j1", "--torque", "0.01", "--seconds", "-1"], "--seconds"),
-])
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (["f1_j3", "--torque", "0.31"], "--torque: expected |τ| <= 0.3 N·m (tau_max of f1_j3"),
+        (["f1_j3", "--torque", "nan"], "--torque: expected |τ| <= 0.3 N·m"),
+        (["f9_j1", "--torque", "0.01"], "JOINT: expected a joint of"),
+        (["f1_j1", "--torque", "0.01", "--seconds", "-1"], "--seconds"),
+    ],
+)
 def test_bad_input_is_refused_before_anything_is_sent(
-        hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str],
-        args: list[str], says: str) -> None:
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str], args: list[str], says: str
+) -> None:
     sniffer = open_bus(f"virtual:{channel}", hand.bus)
     try:
         code = cli.main(["jog", *args, "--bus", f"virtual:{channel}"])
@@ -68,8 +72,9 @@ def test_bad_input_is_refused_before_anything_is_sent(
     assert heard == []
 
 
-def test_a_missing_node_stops_it_at_start_up(tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_missing_node_stops_it_at_start_up(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     faults = tmp_path / "faults.yaml"
     faults.write_text("faults:\n  - {kind: node_silent, node: 3, start: 0.0}\n")
     code = cli.main(["jog", "f1_j1", "--torque", "0.05", "--sim-faults", str(faults)])
@@ -81,9 +86,24 @@ def test_ctrl_c_is_a_controlled_stop_on_the_unix_bus() -> None:
     outcomes = []
     for _attempt in range(3):  # a start-up the machine's load stopped is tried again
         proc = subprocess.Popen(
-            [sys.executable, "-m", "handctl", "jog", "f2_j1", "--torque", "0.05", "--seconds",
-             "60", "--realtime", "--rt"], cwd=ROOT, stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE, text=True)
+            [
+                sys.executable,
+                "-m",
+                "handctl",
+                "jog",
+                "f2_j1",
+                "--torque",
+                "0.05",
+                "--seconds",
+                "60",
+                "--realtime",
+                "--rt",
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         assert proc.stdout is not None
         lines = []
         for line in proc.stdout:

@@ -39,8 +39,9 @@ def _trouble(sim: SimulatedHand) -> None:
     sim.activate(inj.Babble(id=0x702, per_tick=1, length=3))  # Heartbeat_2 is 7 bytes
 
 
-def test_it_decodes_counts_rejects_and_never_sends(hand: HandConfig, channel: str,
-                                                   capsys: pytest.CaptureFixture[str]) -> None:
+def test_it_decodes_counts_rejects_and_never_sends(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     spec = f"virtual:{channel}"
     sniffer = open_bus(spec, hand.bus)
     try:
@@ -66,22 +67,31 @@ def test_it_decodes_counts_rejects_and_never_sends(hand: HandConfig, channel: st
 
 def test_on_the_unix_bus_from_another_process(hand: HandConfig, tmp_path: Path) -> None:
     spec = f"unix:{tmp_path / 'bus'}"
-    with running_hand(hand, spec, lambda sim: sim.activate(inj.CounterSkip(
-            node=3, message="feedback"))):
+    with running_hand(
+        hand, spec, lambda sim: sim.activate(inj.CounterSkip(node=3, message="feedback"))
+    ):
         result = subprocess.run(
             [sys.executable, "-m", "handctl", "monitor", "--bus", spec, "--seconds", "0.6"],
-            capture_output=True, text=True, cwd=ROOT, timeout=120, check=False)
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=120,
+            check=False,
+        )
     assert result.returncode == 0, result.stderr
     messages = _by_name(_last(result.stdout))
     assert messages["Feedback_3"]["rejects"]["counter_skip"] > 10
     assert messages["Feedback_1"]["rejects"] == {}
 
 
-def test_it_reads_the_frames_of_a_recording(tmp_path: Path,
-                                            capsys: pytest.CaptureFixture[str]) -> None:
+def test_it_reads_the_frames_of_a_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     recipe = tmp_path / "hold.yaml"
-    recipe.write_text("recipe: hold\nphases:\n  - {name: hold, torques: [0.02, 0, 0, 0, 0, 0, "
-                      "0, 0, 0], ramp_s: 0.1, max_s: 0.2, on_timeout: next}\n")
+    recipe.write_text(
+        "recipe: hold\nphases:\n  - {name: hold, torques: [0.02, 0, 0, 0, 0, 0, "
+        "0, 0, 0], ramp_s: 0.1, max_s: 0.2, on_timeout: next}\n"
+    )
     log = tmp_path / "run.mcap"
     assert cli.main(["run", "recipe", str(recipe), "--log", str(log)]) == cli.EXIT_OK
     capsys.readouterr()
@@ -94,8 +104,9 @@ def test_it_reads_the_frames_of_a_recording(tmp_path: Path,
     assert messages["Feedback_3"]["frames"] > 100 and messages["NodeCommand_2"]["frames"] >= 2
 
 
-def test_a_log_and_a_bus_at_once_are_refused(tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_log_and_a_bus_at_once_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     code = cli.main(["monitor", "--log", str(tmp_path / "x.mcap"), "--bus", "virtual:x"])
     assert code == cli.EXIT_BAD_INPUT and "--log" in capsys.readouterr().err
     assert cli.main(["monitor", "--log", str(tmp_path / "x.mcap")]) == cli.EXIT_BAD_INPUT

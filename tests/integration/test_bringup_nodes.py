@@ -35,8 +35,9 @@ def _rows(report: dict[str, Any]) -> dict[int, dict[str, Any]]:
     return {row["node_id"]: row for row in report["nodes"]}
 
 
-def test_every_node_is_listed_and_nothing_is_sent(hand: HandConfig, channel: str,
-                                                   capsys: pytest.CaptureFixture[str]) -> None:
+def test_every_node_is_listed_and_nothing_is_sent(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     spec = f"virtual:{channel}"
     sniffer = open_bus(spec, hand.bus)
     try:
@@ -66,8 +67,7 @@ def _version_3_on_1(sim: SimulatedHand) -> None:
     sim.nodes[0].protocol_version = 3
 
 
-def test_a_missing_node(hand: HandConfig, channel: str,
-                        capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_missing_node(hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]) -> None:
     with running_hand(hand, f"virtual:{channel}", _silent_2):
         code, report = _nodes(capsys, "--bus", f"virtual:{channel}")
     rows = _rows(report)
@@ -76,8 +76,9 @@ def test_a_missing_node(hand: HandConfig, channel: str,
     assert rows[1]["problem"] == rows[3]["problem"] == ""
 
 
-def test_a_node_in_fault(hand: HandConfig, channel: str,
-                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_node_in_fault(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     with running_hand(hand, f"virtual:{channel}", _sensor_fault_3):
         code, report = _nodes(capsys, "--bus", f"virtual:{channel}")
     row = _rows(report)[3]
@@ -86,8 +87,9 @@ def test_a_node_in_fault(hand: HandConfig, channel: str,
     assert row["problem"] == "in FAULT (SENSOR)"
 
 
-def test_a_node_of_another_protocol_version(hand: HandConfig, channel: str,
-                                            capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_node_of_another_protocol_version(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     with running_hand(hand, f"virtual:{channel}", _version_3_on_1):
         code, report = _nodes(capsys, "--bus", f"virtual:{channel}")
     row = _rows(report)[1]
@@ -104,11 +106,13 @@ def _two_finger_hand(tmp_path: Path) -> Path:
     return path
 
 
-def test_a_node_not_in_the_config_is_flagged(hand: HandConfig, channel: str, tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_node_not_in_the_config_is_flagged(
+    hand: HandConfig, channel: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     with running_hand(hand, f"virtual:{channel}"):
-        code, report = _nodes(capsys, "--bus", f"virtual:{channel}",
-                              "--hand", str(_two_finger_hand(tmp_path)))
+        code, report = _nodes(
+            capsys, "--bus", f"virtual:{channel}", "--hand", str(_two_finger_hand(tmp_path))
+        )
     assert code == cli.EXIT_FAILED
     assert [row["problem"] for row in report["nodes"]] == ["", ""]
     foreign = {f["id"]: f["what"] for f in report["foreign_ids"]}
@@ -121,20 +125,38 @@ def test_bad_seconds_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert "--seconds" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("prepare, node, problem", [
-    (None, None, ""),
-    (_silent_2, 2, "missing"),
-    (_sensor_fault_3, 3, "in FAULT (SENSOR)"),
-    (_version_3_on_1, 1, "speaks handctl protocol 3"),
-])
-def test_on_the_unix_bus_from_another_process(hand: HandConfig, tmp_path: Path, prepare: Any,
-                                              node: int | None, problem: str) -> None:
+@pytest.mark.parametrize(
+    "prepare, node, problem",
+    [
+        (None, None, ""),
+        (_silent_2, 2, "missing"),
+        (_sensor_fault_3, 3, "in FAULT (SENSOR)"),
+        (_version_3_on_1, 1, "speaks handctl protocol 3"),
+    ],
+)
+def test_on_the_unix_bus_from_another_process(
+    hand: HandConfig, tmp_path: Path, prepare: Any, node: int | None, problem: str
+) -> None:
     spec = f"unix:{tmp_path / 'bus'}"
     with running_hand(hand, spec, prepare):
         result = subprocess.run(
-            [sys.executable, "-m", "handctl", "nodes", "--bus", spec, "--json",
-             "--seconds", SECONDS], capture_output=True, text=True, cwd=ROOT, timeout=120,
-            check=False)
+            [
+                sys.executable,
+                "-m",
+                "handctl",
+                "nodes",
+                "--bus",
+                spec,
+                "--json",
+                "--seconds",
+                SECONDS,
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=120,
+            check=False,
+        )
     report = json.loads(result.stdout)
     rows = _rows(report)
     if node is None:

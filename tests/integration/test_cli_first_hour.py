@@ -28,8 +28,14 @@ UNIT_IN_KEY = re.compile(r"_(s|ms|us|ns|m|mm|rad|deg|nm|n|hz|mb|fraction|ratio)(
 
 
 def handctl(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=cwd, text=True,
-                          capture_output=True, timeout=600, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=cwd,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        check=False,
+    )
 
 
 def test_the_packaged_default_hand_is_the_repository_copy() -> None:
@@ -53,11 +59,11 @@ def test_a_missing_hand_is_reported_against_the_option_that_named_it(tmp_path: P
 
 
 @pytest.mark.parametrize("seconds", ["-1", "0", "nan", "inf"])
-def test_a_time_budget_that_is_not_a_duration_is_bad_input(tmp_path: Path,
-                                                           seconds: str) -> None:
+def test_a_time_budget_that_is_not_a_duration_is_bad_input(tmp_path: Path, seconds: str) -> None:
     out = tmp_path / "out.json"
-    done = handctl(tmp_path, "run", "recipe", str(RECIPE), "--max-seconds", seconds,
-                   "--summary-json", str(out))
+    done = handctl(
+        tmp_path, "run", "recipe", str(RECIPE), "--max-seconds", seconds, "--summary-json", str(out)
+    )
     assert done.returncode == 2, done.stderr
     assert "--max-seconds: expected a number of seconds > 0" in done.stderr
     assert not out.exists()  # refused before the run: nothing was sent
@@ -65,8 +71,9 @@ def test_a_time_budget_that_is_not_a_duration_is_bad_input(tmp_path: Path,
 
 def test_a_run_that_ends_on_its_time_budget_has_its_own_outcome(tmp_path: Path) -> None:
     out = tmp_path / "out.json"
-    done = handctl(tmp_path, "run", "recipe", str(RECIPE), "--max-seconds", "0.5",
-                   "--summary-json", str(out))
+    done = handctl(
+        tmp_path, "run", "recipe", str(RECIPE), "--max-seconds", "0.5", "--summary-json", str(out)
+    )
     assert done.returncode == 0, done.stderr
     summary = json.loads(out.read_text())
     assert summary["outcome"] == "time_budget"
@@ -77,8 +84,12 @@ def test_a_run_that_ends_on_its_time_budget_has_its_own_outcome(tmp_path: Path) 
 
 
 def test_a_reader_that_leaves_early_ends_no_command_with_a_traceback(tmp_path: Path) -> None:
-    proc = subprocess.Popen([sys.executable, "-m", "handctl", "check"], cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "check"],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     assert proc.stdout is not None and proc.stderr is not None
     proc.stdout.close()  # as `| head -0` would: every line the command writes has no reader
     stderr = proc.stderr.read().decode()
@@ -92,18 +103,21 @@ def _floats_without_units(value: Any, path: tuple[str, ...] = ()) -> list[str]:
         return [p for k, v in value.items() for p in _floats_without_units(v, (*path, str(k)))]
     if isinstance(value, list):
         return [p for v in value for p in _floats_without_units(v, path)]
-    if isinstance(value, float) and math.isfinite(value) \
-            and not any(UNIT_IN_KEY.search(key) for key in path):
+    if (
+        isinstance(value, float)
+        and math.isfinite(value)
+        and not any(UNIT_IN_KEY.search(key) for key in path)
+    ):
         return [".".join(path)]
     return []
 
 
 def test_the_summary_names_its_units_and_the_other_nodes_frames_are_no_rejects(
-        hand_config: Any) -> None:
+    hand_config: Any,
+) -> None:
     hand, recipe = hand_config
     lines: list[StatusLine] = []
-    report = run_recipe(RunRequest(hand=hand, recipe=recipe, max_seconds=1.2),
-                        status=lines.append)
+    report = run_recipe(RunRequest(hand=hand, recipe=recipe, max_seconds=1.2), status=lines.append)
     assert report.result.outcome is Outcome.TIME_BUDGET
     summary = json.loads(json.dumps(report.summary))
     assert _floats_without_units(summary) == []

@@ -28,8 +28,14 @@ ATTEMPTS_UNDER_LOAD = 5
 
 
 def handctl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT, text=True,
-                          capture_output=True, timeout=timeout, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=timeout,
+        check=False,
+    )
 
 
 def test_main_job_completes_with_a_summary(tmp_path: Path) -> None:
@@ -98,8 +104,11 @@ def test_sigint_is_a_controlled_stop(tmp_path: Path) -> None:
     recipe.write_text(HOLD_LONG)
     terminal, stderr_end = pty.openpty()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--summary-json",
-         str(out)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=stderr_end)
+        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--summary-json", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=stderr_end,
+    )
     os.close(stderr_end)
     try:
         shown = _read_until(terminal, "running")
@@ -132,8 +141,17 @@ def test_realtime_run_on_the_simulated_hand_in_its_own_process(tmp_path: Path) -
     stopped = []
     for attempt in range(ATTEMPTS_UNDER_LOAD):
         out = tmp_path / f"out{attempt}.json"
-        done = handctl("run", "recipe", str(recipe), "--realtime", "--rt", "--max-seconds",
-                       "1.5", "--summary-json", str(out))
+        done = handctl(
+            "run",
+            "recipe",
+            str(recipe),
+            "--realtime",
+            "--rt",
+            "--max-seconds",
+            "1.5",
+            "--summary-json",
+            str(out),
+        )
         summary = json.loads(out.read_text())
         faults = {f["code"] for f in summary["faults"]}
         if done.returncode == 3 and faults <= {"LOOP_OVERRUN", "FEEDBACK_TIMEOUT"}:
@@ -207,9 +225,25 @@ class RealtimeHost:
 
     def __init__(self, recipe: Path, summary: Path, *extra: str) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--realtime", "--rt",
-             "--summary-json", str(summary), *extra], cwd=ROOT, text=True,
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+            [
+                sys.executable,
+                "-m",
+                "handctl",
+                "run",
+                "recipe",
+                str(recipe),
+                "--realtime",
+                "--rt",
+                "--summary-json",
+                str(summary),
+                *extra,
+            ],
+            cwd=ROOT,
+            text=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            start_new_session=True,
+        )
         self.sim_pid = 0
         self.directory: Path | None = None
 
@@ -255,7 +289,8 @@ class RealtimeHost:
 
 
 def test_a_killed_realtime_host_leaves_no_simulated_hand_and_no_bus_directory(
-        tmp_path: Path) -> None:
+    tmp_path: Path,
+) -> None:
     """kill -9 runs nothing in the host: its simulated hand (at SCHED_FIFO with --rt) must
     notice on its own, stop, and remove the bus directory nobody else is left to remove."""
     recipe = tmp_path / "hold.yaml"
@@ -284,8 +319,7 @@ def _controlled_stop(summary: dict[str, object], stderr: str) -> None:
     assert summary["outcome"] == "interrupted", stderr
     assert summary["faults"] == [], stderr
     nodes = summary["sim"]["nodes"]  # type: ignore[index]
-    assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0
-               for n in nodes.values()), nodes
+    assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0 for n in nodes.values()), nodes
     assert "simulated hand's process ended" not in stderr, stderr
 
 
@@ -324,7 +358,8 @@ def test_ctrl_c_on_a_terminal_is_the_same_controlled_stop_in_real_time(tmp_path:
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_during_start_up_is_an_interrupt_not_a_safety_stop(
-        tmp_path: Path, sig: signal.Signals) -> None:
+    tmp_path: Path, sig: signal.Signals
+) -> None:
     """The simulated hand's process exists but the nodes are not enabled yet (it is still
     building its model): SIGINT or SIGTERM ends the run as an interrupt, exit 130, and leaves
     nothing behind."""
@@ -358,7 +393,11 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
     with log.open("wb") as err:
         sim = subprocess.Popen(
             [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{directory}", "--rt"],
-            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            start_new_session=True,
+        )
     try:
         _wait_for(lambda: "t=" in log.read_text(), "the simulated hand to run")
         for run in ("first", "second"):
@@ -367,9 +406,18 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
                 out = tmp_path / f"{run}{attempt}.json"
                 # --accept-missed-deadlines: a named bus is checked for the host's timing
                 # first (docs/timing.md), which is not what this test is about
-                done = handctl("run", "recipe", str(recipe), "--bus", f"unix:{directory}",
-                               "--rt", "--reset-node-faults", "--accept-missed-deadlines",
-                               "--summary-json", str(out))
+                done = handctl(
+                    "run",
+                    "recipe",
+                    str(recipe),
+                    "--bus",
+                    f"unix:{directory}",
+                    "--rt",
+                    "--reset-node-faults",
+                    "--accept-missed-deadlines",
+                    "--summary-json",
+                    str(out),
+                )
                 summary = json.loads(out.read_text())
                 if done.returncode == 0:
                     assert summary["completed"] is True
@@ -378,8 +426,9 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
                 assert "STARTUP" not in faults, f"{run} run: {done.stderr}"
                 failures.append(done.stderr)
             else:
-                raise AssertionError(f"{run} run: every attempt was stopped by the load: "
-                                     f"{failures}")
+                raise AssertionError(
+                    f"{run} run: every attempt was stopped by the load: {failures}"
+                )
         assert sim.poll() is None, log.read_text()
     finally:
         sim.send_signal(signal.SIGINT)

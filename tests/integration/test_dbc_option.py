@@ -24,28 +24,39 @@ HAND = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
 
 
 def handctl(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=300, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
 
 
-@pytest.mark.parametrize("command", [
-    ["check", "{hand}"],
-    ["run", "recipe", str(RECIPE), "--hand", "{hand}"],
-    ["sim", "--bus", "virtual:dbc-option", "--hand", "{hand}", "--seconds", "0.1"],
-    ["nodes", "--hand", "{hand}"],
-    ["jog", "finger0_joint0", "--torque", "0.01", "--hand", "{hand}"],
-    ["calibrate", "tdt", "--hand", "{hand}", "-o", "{out}"],
-    ["monitor", "--hand", "{hand}", "--seconds", "0.1"],
-])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["check", "{hand}"],
+        ["run", "recipe", str(RECIPE), "--hand", "{hand}"],
+        ["sim", "--bus", "virtual:dbc-option", "--hand", "{hand}", "--seconds", "0.1"],
+        ["nodes", "--hand", "{hand}"],
+        ["jog", "finger0_joint0", "--torque", "0.01", "--hand", "{hand}"],
+        ["calibrate", "tdt", "--hand", "{hand}", "-o", "{out}"],
+        ["monitor", "--hand", "{hand}", "--seconds", "0.1"],
+    ],
+)
 def test_a_dbc_without_the_hands_nodes_is_refused_before_anything_is_sent(
-        tmp_path: Path, command: list[str]) -> None:
+    tmp_path: Path, command: list[str]
+) -> None:
     hand = shaped_hand(tmp_path, [3, 3, 3, 3])
     out = tmp_path / "calibrated.yaml"
     args = [part.format(hand=hand, out=out) for part in command]
     done = handctl(*args, "--dbc", str(DEFAULT_DBC))
     assert done.returncode == 2, done.stdout + done.stderr
-    assert (f"{hand}: fingers[3].node_id: expected a node with a NodeCommand_4 message in "
-            f"{DEFAULT_DBC}") in done.stderr
+    assert (
+        f"{hand}: fingers[3].node_id: expected a node with a NodeCommand_4 message in {DEFAULT_DBC}"
+    ) in done.stderr
     assert "Traceback" not in done.stderr
     assert not out.exists()
 
@@ -72,8 +83,19 @@ def other_data_ids(tmp_path: Path) -> Path:
 def test_a_run_on_a_given_dbc_records_it_and_reruns_on_it(tmp_path: Path) -> None:
     dbc = other_data_ids(tmp_path)
     log = tmp_path / "run.mcap"
-    run = handctl("run", "recipe", str(RECIPE), "--hand", str(HAND), "--dbc", str(dbc),
-                  "--max-seconds", "0.3", "--log", str(log))
+    run = handctl(
+        "run",
+        "recipe",
+        str(RECIPE),
+        "--hand",
+        str(HAND),
+        "--dbc",
+        str(dbc),
+        "--max-seconds",
+        "0.3",
+        "--log",
+        str(log),
+    )
     assert run.returncode == 0, run.stderr  # the simulated nodes spoke the same DBC
     recorded = open_recording(log).meta(ch.META_HAND, "dbc")
     assert recorded == dbc.read_text(encoding="cp1252")

@@ -66,13 +66,15 @@ def summary(hand: HandConfig, applied: AppliedTorques) -> dict[str, object]:
     return report.summary
 
 
-def test_no_joint_chatters(summary: dict[str, object], applied: AppliedTorques,
-                           hand: HandConfig) -> None:
+def test_no_joint_chatters(
+    summary: dict[str, object], applied: AppliedTorques, hand: HandConfig
+) -> None:
     steps = np.abs(np.diff(np.array(applied.rows), axis=0))
     p99 = np.percentile(steps, 99, axis=0)
     worst = int(np.argmax(p99))
-    assert p99[worst] <= MAX_TORQUE_STEP_P99, \
+    assert p99[worst] <= MAX_TORQUE_STEP_P99, (
         f"{hand.joint_names[worst]} changes by {p99[worst]:.4f} N·m a tick at p99"
+    )
 
 
 def test_lifted_held_turned_not_dropped(summary: dict[str, object]) -> None:
@@ -83,16 +85,16 @@ def test_lifted_held_turned_not_dropped(summary: dict[str, object]) -> None:
     assert ex["dropped"] is False
     assert len(ex["phase_angles_deg"]) == 4
     assert ex["total_rotation_deg"] >= MIN_ROTATION_DEG
-    assert ex["total_rotation_deg"] == pytest.approx(abs(sum(ex["phase_angles_deg"])),
-                                                     abs=0.05)
+    assert ex["total_rotation_deg"] == pytest.approx(abs(sum(ex["phase_angles_deg"])), abs=0.05)
 
 
 def test_each_manipulation_phase_turns_about_45_deg(summary: dict[str, object]) -> None:
     ex = summary["experiment"]
     assert isinstance(ex, dict)
     for k, angle in enumerate(ex["phase_angles_deg"], 1):
-        assert abs(abs(angle) - PHASE_TURN_DEG) <= PHASE_TURN_TOLERANCE_DEG, \
+        assert abs(abs(angle) - PHASE_TURN_DEG) <= PHASE_TURN_TOLERANCE_DEG, (
             f"manipulate_{k} turned {angle}°: {ex['phase_angles_deg']}"
+        )
 
 
 def test_the_estimator_follows_ground_truth(summary: dict[str, object]) -> None:
@@ -117,9 +119,24 @@ def test_the_compiled_recipe_is_planned_for_this_hand(hand: HandConfig) -> None:
 def test_run_recipe_plot_writes_the_overview(tmp_path: Path) -> None:
     plot, out = tmp_path / "run.png", tmp_path / "out.json"
     done = subprocess.run(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(RECIPE), "--summary-json",
-         str(out), "--plot", str(plot)], cwd=ROOT, text=True, capture_output=True,
-        timeout=300, check=False)
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            str(RECIPE),
+            "--summary-json",
+            str(out),
+            "--plot",
+            str(plot),
+        ],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=300,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "experiment" in json.loads(out.read_text())

@@ -27,8 +27,7 @@ CORNERS = {
     "armature_lag_x0.5": {"armature": 0.5, "lag": 0.5},
 }
 #: the corners the shipped recipe does the experiment on
-DOES_THE_EXPERIMENT = {"damping_x1.1", "joint_dynamics_x3", "armature_lag_x2",
-                       "armature_lag_x0.5"}
+DOES_THE_EXPERIMENT = {"damping_x1.1", "joint_dynamics_x3", "armature_lag_x2", "armature_lag_x0.5"}
 #: deg: each manipulation phase's turn, and how far from it a phase may end
 PHASE_TURN_DEG, PHASE_TURN_TOLERANCE_DEG = 45.0, 10.0
 
@@ -50,21 +49,43 @@ def _hand(tmp_path: Path, factors: dict[str, float]) -> Path:
 def test_a_hard_hand_ends_safely_and_says_how_it_went(tmp_path: Path, corner: str) -> None:
     out = tmp_path / "out.json"
     done = subprocess.run(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(RECIPE), "--hand",
-         str(_hand(tmp_path, CORNERS[corner])), "--summary-json", str(out)], cwd=ROOT,
-        text=True, capture_output=True, timeout=600, check=False)
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            str(RECIPE),
+            "--hand",
+            str(_hand(tmp_path, CORNERS[corner])),
+            "--summary-json",
+            str(out),
+        ],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        check=False,
+    )
     summary = json.loads(out.read_text())
     ex = summary["experiment"]
     assert done.returncode in (0, 1, 3), done.stderr
     assert (done.returncode == 0) == (summary["completed"] and ex["success"]), (
-        done.returncode, summary["outcome"], ex)
+        done.returncode,
+        summary["outcome"],
+        ex,
+    )
     if not ex["success"]:
         assert "experiment: FAILED" in done.stdout
     if corner in DOES_THE_EXPERIMENT:
         assert done.returncode == 0, (summary["outcome"], ex)
-        assert all(abs(abs(a) - PHASE_TURN_DEG) <= PHASE_TURN_TOLERANCE_DEG
-                   for a in ex["phase_angles_deg"]), ex["phase_angles_deg"]
+        assert all(
+            abs(abs(a) - PHASE_TURN_DEG) <= PHASE_TURN_TOLERANCE_DEG for a in ex["phase_angles_deg"]
+        ), ex["phase_angles_deg"]
     # whatever happened, no torque beyond a joint's tau_max was ever applied
-    limits = {j["name"]: j["tau_max"] for f in yaml.safe_load(HAND_YAML.read_text())["fingers"]
-              for j in f["joints"]}
+    limits = {
+        j["name"]: j["tau_max"]
+        for f in yaml.safe_load(HAND_YAML.read_text())["fingers"]
+        for j in f["joints"]
+    }
     assert all(abs(v) <= limits[k] + 1e-9 for k, v in summary["max_abs_tau_nm"].items())

@@ -18,8 +18,17 @@ from handctl.session import RunRequest, run_recipe
 
 from ..conftest import ROOT
 
-CLOSE = {"f1_j1": 0.05, "f1_j2": 0.0, "f1_j3": 0.0, "f2_j1": 0.05, "f2_j2": 0.0, "f2_j3": 0.0,
-         "f3_j1": -0.05, "f3_j2": 0.0, "f3_j3": 0.0}
+CLOSE = {
+    "f1_j1": 0.05,
+    "f1_j2": 0.0,
+    "f1_j3": 0.0,
+    "f2_j1": 0.05,
+    "f2_j2": 0.0,
+    "f2_j3": 0.0,
+    "f3_j1": -0.05,
+    "f3_j2": 0.0,
+    "f3_j3": 0.0,
+}
 
 
 def _short_experiment(tmp_path: Path) -> Path:
@@ -30,10 +39,14 @@ def _short_experiment(tmp_path: Path) -> Path:
         "min_total_turn_deg": 90,
         "end_ramp_s": 0.05,
         "phases": [
-            {"name": "approach", "torques": CLOSE, "ramp_s": 0.05, "max_s": 0.3,
-             "on_timeout": "next"},
-            {"name": "wait", "torques": CLOSE, "ramp_s": 0.0, "max_s": 1.0,
-             "exit": "time > 0.2"},
+            {
+                "name": "approach",
+                "torques": CLOSE,
+                "ramp_s": 0.05,
+                "max_s": 0.3,
+                "on_timeout": "next",
+            },
+            {"name": "wait", "torques": CLOSE, "ramp_s": 0.0, "max_s": 1.0, "exit": "time > 0.2"},
         ],
     }
     path = tmp_path / "too_short.yaml"
@@ -44,9 +57,22 @@ def _short_experiment(tmp_path: Path) -> Path:
 def test_a_failed_experiment_exits_1_and_names_the_timed_out_phase(tmp_path: Path) -> None:
     out = tmp_path / "out.json"
     done = subprocess.run(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(_short_experiment(tmp_path)),
-         "--summary-json", str(out)], cwd=ROOT, text=True, capture_output=True, timeout=300,
-        check=False)
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            str(_short_experiment(tmp_path)),
+            "--summary-json",
+            str(out),
+        ],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=300,
+        check=False,
+    )
     assert done.returncode == 1, done.stderr
     summary = json.loads(out.read_text())
     assert summary["completed"] is True  # the hand is fine; the experiment is not
@@ -59,8 +85,7 @@ def test_a_failed_experiment_exits_1_and_names_the_timed_out_phase(tmp_path: Pat
     assert "the experiment failed" in done.stderr
 
 
-def test_the_status_line_says_which_phases_timed_out(tmp_path: Path,
-                                                     hand: HandConfig) -> None:
+def test_the_status_line_says_which_phases_timed_out(tmp_path: Path, hand: HandConfig) -> None:
     recipe = load_recipe(_short_experiment(tmp_path), hand)
     lines: list[StatusLine] = []
     run_recipe(RunRequest(hand=hand, recipe=recipe), status=lines.append)
@@ -70,14 +95,20 @@ def test_the_status_line_says_which_phases_timed_out(tmp_path: Path,
     assert after and all(t == ("approach",) for t in after)
 
 
-def test_min_total_turn_out_of_range_is_refused_naming_the_key(tmp_path: Path,
-                                                               hand: HandConfig) -> None:
+def test_min_total_turn_out_of_range_is_refused_naming_the_key(
+    tmp_path: Path, hand: HandConfig
+) -> None:
     path = _short_experiment(tmp_path)
     data = yaml.safe_load(path.read_text())
     data["min_total_turn_deg"] = -5
     path.write_text(yaml.safe_dump(data))
     done = subprocess.run(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(path)], cwd=ROOT, text=True,
-        capture_output=True, timeout=120, check=False)
+        [sys.executable, "-m", "handctl", "run", "recipe", str(path)],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=120,
+        check=False,
+    )
     assert done.returncode == 2
     assert f"{path}: min_total_turn_deg" in done.stderr and "-5" in done.stderr

@@ -26,9 +26,18 @@ EVERY_PHASE = [p for p, _ in PHASES]
 TIMEOUT = "FEEDBACK_TIMEOUT"
 #: What each injector must cause, per phase (None: tolerated, no fault).
 EXPECTED: dict[str, dict[str, str | None]] = {
-    **{name: dict.fromkeys(EVERY_PHASE, TIMEOUT) for name in (
-        "drop_feedback", "delay_feedback", "corrupt_crc", "counter_repeat", "counter_skip",
-        "node_reboot", "node_silent")},
+    **{
+        name: dict.fromkeys(EVERY_PHASE, TIMEOUT)
+        for name in (
+            "drop_feedback",
+            "delay_feedback",
+            "corrupt_crc",
+            "counter_repeat",
+            "counter_skip",
+            "node_reboot",
+            "node_silent",
+        )
+    },
     "drop_commands": dict.fromkeys(EVERY_PHASE, "NODE_FAULT"),  # the node's own watchdog
     "encoder_jump": dict.fromkeys(EVERY_PHASE, "NODE_FAULT"),  # the node's self-check
     "tdt_stuck": dict.fromkeys(EVERY_PHASE, "TDT_STUCK"),
@@ -40,8 +49,15 @@ EXPECTED: dict[str, dict[str, str | None]] = {
     "extended_twin": dict.fromkeys(EVERY_PHASE, None),  # 29-bit twins, counted and dropped
     "contradict": dict.fromkeys(EVERY_PHASE, "NODE_CONTRADICTION"),  # fault bits, ENABLED
     "replay_frames": dict.fromkeys(EVERY_PHASE, "REJECT_RATE"),  # 50 ms old, two a tick
-    **{name: {"idle": None, "approach": "TDT_MISMATCH", "holding": "TDT_MISMATCH",
-              "manipulating": "TDT_MISMATCH"} for name in ("tendon_slack", "motor_saturation")},
+    **{
+        name: {
+            "idle": None,
+            "approach": "TDT_MISMATCH",
+            "holding": "TDT_MISMATCH",
+            "manipulating": "TDT_MISMATCH",
+        }
+        for name in ("tendon_slack", "motor_saturation")
+    },
 }
 
 
@@ -72,8 +88,7 @@ def test_detection_and_stop(results: list[CaseResult]) -> None:
     for r in results:
         if r.fault:
             category = FAULTS[FaultCode[r.fault]].category
-            assert r.category == ("immediate" if category is StopCategory.IMMEDIATE
-                                  else "ramp")
+            assert r.category == ("immediate" if category is StopCategory.IMMEDIATE else "ramp")
             assert r.latency_ms is not None and -1 <= r.latency_ms < 600
 
 
@@ -100,9 +115,9 @@ def test_every_case_is_in_its_log(results: list[CaseResult]) -> None:
     assert all((r.fault_tick is None) == (not r.fault) for r in results)
 
 
-def test_the_mcap_library_reads_each_fault_at_its_tick(hand: HandConfig,
-                                                       results: list[CaseResult],
-                                                       logs: Path) -> None:
+def test_the_mcap_library_reads_each_fault_at_its_tick(
+    hand: HandConfig, results: list[CaseResult], logs: Path
+) -> None:
     """Independently of handctl's reader: the mcap library's own reader finds on /events the
     fault code and stop, stamped with the detecting tick's number and time (tick k is at
     (k + 1) periods in lockstep), the supervisor's move into a fault state at that tick, and
@@ -117,22 +132,32 @@ def test_the_mcap_library_reads_each_fault_at_its_tick(hand: HandConfig,
         faults = [(t, e) for t, e in events if e["kind"] == "fault"]
         if not r.fault:
             assert faults == [], case
-            foreign = sum(e["count"] for _, e in events if e["kind"] == "rejected_frames"
-                          and e["name"] == "unexpected_id")
+            foreign = sum(
+                e["count"]
+                for _, e in events
+                if e["kind"] == "rejected_frames" and e["name"] == "unexpected_id"
+            )
             assert foreign == r.foreign_frames, case
             continue
         log_time, first = faults[0]
         assert (first["name"], first["category"], first["tick"]) == (
-            r.fault, r.category, r.fault_tick), case
+            r.fault,
+            r.category,
+            r.fault_tick,
+        ), case
         assert log_time == (first["tick"] + 1) * period_ns, case
-        assert any(e["kind"] == "state" and e["tick"] == r.fault_tick
-                   and e["name"] in ("fault_ramp", "faulted") for _, e in events), case
-        resets = [e["tick"] for _, e in events if e["kind"] == "request"
-                  and e["name"] == "reset"]
+        assert any(
+            e["kind"] == "state"
+            and e["tick"] == r.fault_tick
+            and e["name"] in ("fault_ramp", "faulted")
+            for _, e in events
+        ), case
+        resets = [e["tick"] for _, e in events if e["kind"] == "request" and e["name"] == "reset"]
         assert len(resets) == 1 and resets[0] > first["tick"], case
 
 
 def test_fault_page_shows_this_campaign(results: list[CaseResult]) -> None:
     stored = json.loads((ROOT / "docs" / "fault_campaign.json").read_text())
     assert stored == [asdict(r) for r in results], (
-        "docs/fault_campaign.json is stale: run python tools/gen_fault_table.py --campaign")
+        "docs/fault_campaign.json is stale: run python tools/gen_fault_table.py --campaign"
+    )

@@ -14,8 +14,17 @@ import yaml
 from ..conftest import ROOT
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
-POSE = {"f1_j1": -0.26, "f1_j2": -0.58, "f1_j3": 1.24, "f2_j1": -0.26, "f2_j2": -0.58,
-        "f2_j3": 1.24, "f3_j1": 0.26, "f3_j2": 0.58, "f3_j3": -1.24}
+POSE = {
+    "f1_j1": -0.26,
+    "f1_j2": -0.58,
+    "f1_j3": 1.24,
+    "f2_j1": -0.26,
+    "f2_j2": -0.58,
+    "f2_j3": 1.24,
+    "f3_j1": 0.26,
+    "f3_j2": 0.58,
+    "f3_j3": -1.24,
+}
 
 
 def _with_feedback(tmp_path: Path) -> Path:
@@ -35,13 +44,32 @@ def _with_feedback(tmp_path: Path) -> Path:
 def test_a_run_with_feedback_reruns_bit_exact(tmp_path: Path) -> None:
     log = tmp_path / "run.mcap"
     run = subprocess.run(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(_with_feedback(tmp_path)),
-         "--log", str(log)], cwd=ROOT, text=True, capture_output=True, timeout=600,
-        check=False)
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            str(_with_feedback(tmp_path)),
+            "--log",
+            str(log),
+        ],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        check=False,
+    )
     # the experiment is cut short, so it fails (exit 1); the hand is fine
     assert run.returncode == 1, run.stderr
     assert "completed" in run.stdout
-    done = subprocess.run([sys.executable, "-m", "handctl", "replay", str(log), "--rerun"],
-                          cwd=ROOT, text=True, capture_output=True, timeout=600, check=False)
+    done = subprocess.run(
+        [sys.executable, "-m", "handctl", "replay", str(log), "--rerun"],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        check=False,
+    )
     assert done.returncode == 0, done.stdout + done.stderr
     assert "bit-exact" in done.stdout

@@ -45,15 +45,28 @@ def _run(hand: HandConfig, recipe: Recipe, log: Path, flood: bool) -> FloodRun:
         babble = inj.Babble(id=FOREIGN_ID, per_tick=PER_TICK, length=8)
         if flood:
             r.sim.faults.add(babble, 0.0, 1e9)
-        recorder = Recorder(log, hand, start_metadata(hand, recipe, ["test", "flood"]),
-                            phase_names=[p.name for p in recipe.phases])
+        recorder = Recorder(
+            log,
+            hand,
+            start_metadata(hand, recipe, ["test", "flood"]),
+            phase_names=[p.name for p in recipe.phases],
+        )
         with recorder:
             r.runtime.recorder = recorder
             recorder.attach(r.runtime)
-            recorder.add_metadata(ch.META_RUN, run_metadata(
-                mode="lockstep", bus="virtual", seed=0, period_ns=1_000_000,
-                startup_ticks=r.runtime.startup_ticks, reset_node_faults=False,
-                estimator=False, sim_faults="babble" if flood else ""))
+            recorder.add_metadata(
+                ch.META_RUN,
+                run_metadata(
+                    mode="lockstep",
+                    bus="virtual",
+                    seed=0,
+                    period_ns=1_000_000,
+                    startup_ticks=r.runtime.startup_ticks,
+                    reset_node_faults=False,
+                    estimator=False,
+                    sim_faults="babble" if flood else "",
+                ),
+            )
             recorder.wait_ready()
             result = r.run()
             recorder.close({"outcome": result.outcome.value})
@@ -64,12 +77,13 @@ def _run(hand: HandConfig, recipe: Recipe, log: Path, flood: bool) -> FloodRun:
 
 
 @pytest.fixture(scope="module")
-def runs(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory
-         ) -> tuple[FloodRun, FloodRun]:
+def runs(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> tuple[FloodRun, FloodRun]:
     directory = tmp_path_factory.mktemp("flood")
     recipe = short_recipe(hand, directory, hold_s=0.5)
-    return (_run(hand, recipe, directory / "quiet.mcap", flood=False),
-            _run(hand, recipe, directory / "flood.mcap", flood=True))
+    return (
+        _run(hand, recipe, directory / "quiet.mcap", flood=False),
+        _run(hand, recipe, directory / "flood.mcap", flood=True),
+    )
 
 
 def test_the_run_succeeds_unchanged_under_the_flood(runs: tuple[FloodRun, FloodRun]) -> None:

@@ -82,14 +82,16 @@ async def listen(port: int, proc: subprocess.Popen[bytes], enough: int) -> Live:
     live = Live()
     while True:
         try:
-            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL],
-                                          max_size=None)
+            ws = await websockets.connect(
+                f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None
+            )
             break
         except OSError:
             if proc.poll() is not None:
                 _, err = proc.communicate()
                 raise AssertionError(
-                    f"ended before its live server accepted: {err.decode()}") from None
+                    f"ended before its live server accepted: {err.decode()}"
+                ) from None
             await asyncio.sleep(0.05)
     async with ws:
         assert ws.subprotocol == SUBPROTOCOL
@@ -132,10 +134,28 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with subprocess.Popen(
-            [sys.executable, "-m", "handctl", "run", "recipe", str(RECIPE), "--hand",
-             str(HAND_YAML), "--lockstep", "--log", str(path), "--live", str(port),
-             "--max-seconds", RUN_S],
-            cwd=directory, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            str(RECIPE),
+            "--hand",
+            str(HAND_YAML),
+            "--lockstep",
+            "--log",
+            str(path),
+            "--live",
+            str(port),
+            "--max-seconds",
+            RUN_S,
+        ],
+        cwd=directory,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    ) as proc:
         try:
             live = asyncio.run(listen(port, proc, enough=5))
             _, err = proc.communicate(timeout=300)
@@ -156,8 +176,7 @@ def test_live_server_sends_scene_and_joint_messages(run: Run, hand: HandConfig) 
     scene_channel = live.advertised[fx.SCENE]
     assert scene_channel["encoding"] == "protobuf"
     assert scene_channel["schemaName"] == "foxglove.SceneUpdate"
-    scene_type = decoder("foxglove.SceneUpdate",
-                         _schema_bytes(scene_channel))
+    scene_type = decoder("foxglove.SceneUpdate", _schema_bytes(scene_channel))
     assert len(live.received[fx.SCENE]) >= 5, {t: len(v) for t, v in live.received.items()}
     scene = scene_type.FromString(live.received[fx.SCENE][-1])
     ids = {e.id for e in scene.entities}
@@ -216,8 +235,10 @@ def _forward(hand: HandConfig, angles: list[float]) -> dict[str, list[tuple[floa
         x, y, heading = finger.base_x, finger.base_y, finger.base_angle
         for joint in finger.joints:
             heading += angles[i]
-            end = (x + joint.link_length * math.cos(heading),
-                   y + joint.link_length * math.sin(heading))
+            end = (
+                x + joint.link_length * math.cos(heading),
+                y + joint.link_length * math.sin(heading),
+            )
             out[joint.name] = [(x, y), end]
             x, y = end
             i += 1
@@ -246,21 +267,28 @@ def check_scene(decoded: dict[str, list[tuple[int, Any]]], hand: HandConfig) -> 
             for obj in truth[-1]:
                 cyl = entities[f"object/{obj['name']}"].cylinders[0]
                 assert (cyl.pose.position.x, cyl.pose.position.y) == pytest.approx(
-                    (obj["x_m"], obj["y_m"]), abs=1e-12)
+                    (obj["x_m"], obj["y_m"]), abs=1e-12
+                )
                 estimate = entities.get(f"estimate/{obj['name']}")
                 if estimate is not None:
                     est = estimate.cylinders[0]
                     assert est.color.a < 1.0  # translucent over the truth
                     radius = est.size.x / 2
                     # the estimate overlaps the object it stands for
-                    assert math.dist((est.pose.position.x, est.pose.position.y),
-                                     (obj["x_m"], obj["y_m"])) < radius
-                    centres.append(((est.pose.position.x, est.pose.position.y),
-                                    (obj["x_m"], obj["y_m"])))
+                    assert (
+                        math.dist(
+                            (est.pose.position.x, est.pose.position.y), (obj["x_m"], obj["y_m"])
+                        )
+                        < radius
+                    )
+                    centres.append(
+                        ((est.pose.position.x, est.pose.position.y), (obj["x_m"], obj["y_m"]))
+                    )
             if len(centres) == 2:
                 (e1, t1), (e2, t2) = centres
-                line_error = (math.atan2(e2[1] - e1[1], e2[0] - e1[0])
-                              - math.atan2(t2[1] - t1[1], t2[0] - t1[0]))
+                line_error = math.atan2(e2[1] - e1[1], e2[0] - e1[0]) - math.atan2(
+                    t2[1] - t1[1], t2[0] - t1[0]
+                )
                 line_errors.append(abs(math.remainder(line_error, math.tau)))
     # the estimated pair lies along the true pair (the run summary's estimator error is
     # a few degrees at its 95th percentile)
@@ -275,18 +303,20 @@ def check_scene(decoded: dict[str, list[tuple[int, Any]]], hand: HandConfig) -> 
             chain = [f"{finger.name}_base"] + [j.name for j in finger.joints]
             for name in chain:
                 tf = frames[name]
-                assert tf.parent_frame_id == ("world" if name.endswith("_base")
-                                              else chain[chain.index(name) - 1])
+                assert tf.parent_frame_id == (
+                    "world" if name.endswith("_base") else chain[chain.index(name) - 1]
+                )
                 dx, dy = tf.translation.x, tf.translation.y
-                x, y = (x + dx * math.cos(heading) - dy * math.sin(heading),
-                        y + dx * math.sin(heading) + dy * math.cos(heading))
+                x, y = (
+                    x + dx * math.cos(heading) - dy * math.sin(heading),
+                    y + dx * math.sin(heading) + dy * math.cos(heading),
+                )
                 heading += 2 * math.atan2(tf.rotation.z, tf.rotation.w)
                 if name in ends:
                     assert (x, y) == pytest.approx(ends[name][0], abs=1e-9)
 
 
-def check_joints_and_frames(decoded: dict[str, list[tuple[int, Any]]],
-                            hand: HandConfig) -> None:
+def check_joints_and_frames(decoded: dict[str, list[tuple[int, Any]]], hand: HandConfig) -> None:
     torque = {m["tick"]: m for _, m in decoded[ch.TORQUE]}
     state = {m["tick"]: m for _, m in decoded[ch.JOINT_STATE]}
     assert len(decoded[fx.JOINTS]) == len(torque)
@@ -313,9 +343,11 @@ def check_joints_and_frames(decoded: dict[str, list[tuple[int, Any]]],
             checked += 1
     assert checked > 1000
     feedback = [m for _, m in decoded[fx.RX_DECODED] if m["message"].startswith("Feedback")]
-    assert feedback and all(set(m["joints"]) == {j.name for f in hand.fingers
-                                                 if f.name == m["finger"] for j in f.joints}
-                            for m in feedback)
+    assert feedback and all(
+        set(m["joints"])
+        == {j.name for f in hand.fingers if f.name == m["finger"] for j in f.joints}
+        for m in feedback
+    )
 
 
 def check_log(decoded: dict[str, list[tuple[int, Any]]]) -> None:
@@ -338,9 +370,12 @@ def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with subprocess.Popen(
-            [sys.executable, "-m", "handctl", "replay", str(run.path), "--live", str(port)],
-            cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE) as proc:
+        [sys.executable, "-m", "handctl", "replay", str(run.path), "--live", str(port)],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    ) as proc:
         try:
             live = asyncio.run(listen(port, proc, enough=3))
             out, err = proc.communicate(timeout=300)
@@ -353,8 +388,9 @@ def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
     assert b"messages streamed" in out
 
 
-def test_live_refuses_bad_input_with_exit_2(tmp_path: Path,
-                                            capsys: pytest.CaptureFixture[str]) -> None:
+def test_live_refuses_bad_input_with_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     from handctl.cli import main
 
     for port in ("0", "65536", "http"):
@@ -374,9 +410,27 @@ def test_a_port_in_use_fails_the_start_before_the_hand_moves(tmp_path: Path) -> 
         port = taken.getsockname()[1]
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
         done = subprocess.run(
-            [sys.executable, "-m", "handctl", "run", "recipe", str(RECIPE), "--hand",
-             str(HAND_YAML), "--log", str(tmp_path / "run.mcap"), "--live", str(port)],
-            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
+            [
+                sys.executable,
+                "-m",
+                "handctl",
+                "run",
+                "recipe",
+                str(RECIPE),
+                "--hand",
+                str(HAND_YAML),
+                "--log",
+                str(tmp_path / "run.mcap"),
+                "--live",
+                str(port),
+            ],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=False,
+        )
     assert done.returncode != 0
     assert "Traceback" not in done.stderr.split("handctl:")[-1]
     assert str(port) in done.stderr or "address" in done.stderr.lower(), done.stderr
@@ -385,13 +439,16 @@ def test_a_port_in_use_fails_the_start_before_the_hand_moves(tmp_path: Path) -> 
 def test_replay_live_plays_a_truncated_log_to_its_cut(run: Run, tmp_path: Path) -> None:
     cut = tmp_path / "cut.mcap"
     data = run.path.read_bytes()
-    cut.write_bytes(data[:len(data) // 2])
+    cut.write_bytes(data[: len(data) // 2])
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with subprocess.Popen(
-            [sys.executable, "-m", "handctl", "replay", str(cut), "--live", str(port)],
-            cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE) as proc:
+        [sys.executable, "-m", "handctl", "replay", str(cut), "--live", str(port)],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    ) as proc:
         try:
             live = asyncio.run(listen(port, proc, enough=3))
             out, err = proc.communicate(timeout=300)

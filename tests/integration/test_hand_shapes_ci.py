@@ -38,13 +38,21 @@ FOUR_BY_FOUR_RECIPE = RECIPES / "four_by_four_close.yaml"
 GRASP_ABOVE_REST_M = 0.05
 
 
-def _handctl(*args: str, cwd: Path = ROOT,
-             timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=cwd, text=True,
-                          capture_output=True, timeout=timeout, check=False)
+def _handctl(
+    *args: str, cwd: Path = ROOT, timeout: float = 300
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=cwd,
+        text=True,
+        capture_output=True,
+        timeout=timeout,
+        check=False,
+    )
 
 
 # -- the paper's planar hand: analysis and planning on its own geometry ---------------------
+
 
 def test_the_planar_analysis_is_the_hand_configs_geometry() -> None:
     """The scenario's fingers and cylinders are the hand config's: bases, link lengths, radii
@@ -72,8 +80,18 @@ def test_the_planar_analysis_is_the_hand_configs_geometry() -> None:
 
 def test_the_planar_analysis_runs_on_its_own_geometry(tmp_path: Path) -> None:
     out = tmp_path / "region.json"
-    done = _handctl("analyze", "torque-set", str(PLANAR_ANALYSIS), "--k", "0.9", "0.1",
-                    "--json", str(out), "--plot", str(tmp_path / "region.png"))
+    done = _handctl(
+        "analyze",
+        "torque-set",
+        str(PLANAR_ANALYSIS),
+        "--k",
+        "0.9",
+        "0.1",
+        "--json",
+        str(out),
+        "--plot",
+        str(tmp_path / "region.png"),
+    )
     assert done.returncode == 0, done.stderr
     region = json.loads(out.read_text())
     assert region["conditions"] == ["move cyl1", "move cyl2", "compression cyl1/cyl2"]
@@ -91,8 +109,16 @@ def test_the_planar_template_plans_the_committed_recipe(tmp_path: Path) -> None:
     that is committed, byte for byte after its header: that recipe is what the template asks
     for on this hand, and planning it stays small enough for CI."""
     out = tmp_path / "planned.yaml"
-    done = _handctl("plan", str(PLANAR_TEMPLATE.relative_to(ROOT)), "--hand",
-                    str(PLANAR.relative_to(ROOT)), "-o", str(out), "--workers", "2")
+    done = _handctl(
+        "plan",
+        str(PLANAR_TEMPLATE.relative_to(ROOT)),
+        "--hand",
+        str(PLANAR.relative_to(ROOT)),
+        "-o",
+        str(out),
+        "--workers",
+        "2",
+    )
     assert done.returncode == 0, done.stderr
     header = 2  # "compiled by" and the command, which names the output file
     planned = out.read_text().splitlines()[header:]
@@ -107,19 +133,43 @@ def test_a_one_object_template_plans_on_the_four_by_four_hand(tmp_path: Path) ->
     torques as a free phase, then a lift and a hold it plans (the smallest search)."""
     recipe = yaml.safe_load(FOUR_BY_FOUR_RECIPE.read_text())
     template = {
-        "template": "close_and_lift", "recipe": "close_and_lift",
-        "objects": recipe["objects"], "limit_guard_band": recipe["limit_guard_band"],
+        "template": "close_and_lift",
+        "recipe": "close_and_lift",
+        "objects": recipe["objects"],
+        "limit_guard_band": recipe["limit_guard_band"],
         "phases": [
-            {"name": "close", "kind": "free", "torques": recipe["phases"][0]["torques"],
-             "max_s": 1.0},
-            {"name": "lift", "kind": "lift", "move": {"cylinder": [0.0, 1.0]},
-             "min_height": 0.02, "max_s": 1.5},
-            {"name": "hold", "kind": "hold", "min_height": 0.02, "max_s": 1.0}]}
+            {
+                "name": "close",
+                "kind": "free",
+                "torques": recipe["phases"][0]["torques"],
+                "max_s": 1.0,
+            },
+            {
+                "name": "lift",
+                "kind": "lift",
+                "move": {"cylinder": [0.0, 1.0]},
+                "min_height": 0.02,
+                "max_s": 1.5,
+            },
+            {"name": "hold", "kind": "hold", "min_height": 0.02, "max_s": 1.0},
+        ],
+    }
     path = tmp_path / "close_and_lift.template.yaml"
     path.write_text(yaml.safe_dump(template, sort_keys=False))
     out = tmp_path / "planned.yaml"
-    done = _handctl("plan", str(path), "--hand", str(FOUR_BY_FOUR), "-o", str(out), "--quick",
-                    "--models", "1", "--workers", "1")
+    done = _handctl(
+        "plan",
+        str(path),
+        "--hand",
+        str(FOUR_BY_FOUR),
+        "-o",
+        str(out),
+        "--quick",
+        "--models",
+        "1",
+        "--workers",
+        "1",
+    )
     assert done.returncode == 0, done.stderr
     hand = load_hand(FOUR_BY_FOUR)
     planned = load_recipe(out, hand)
@@ -139,12 +189,24 @@ RUNS = {
 
 @pytest.mark.parametrize("shape", list(RUNS))
 def test_the_shapes_recipe_lifts_its_objects_and_its_log_reruns_bit_exact(
-        shape: str, tmp_path: Path) -> None:
+    shape: str, tmp_path: Path
+) -> None:
     hand_path, recipe, objects = RUNS[shape]
     hand = load_hand(hand_path)
     out = tmp_path / "out.json"
-    done = _handctl("run", "recipe", str(recipe), "--hand", str(hand_path), "--lockstep",
-                    "--summary-json", str(out), "--log", "run.mcap", cwd=tmp_path)
+    done = _handctl(
+        "run",
+        "recipe",
+        str(recipe),
+        "--hand",
+        str(hand_path),
+        "--lockstep",
+        "--summary-json",
+        str(out),
+        "--log",
+        "run.mcap",
+        cwd=tmp_path,
+    )
     assert done.returncode == 0, done.stderr
     summary = json.loads(out.read_text())
     assert summary["completed"] is True and summary["faults"] == []
@@ -167,22 +229,50 @@ def test_the_shapes_recipe_lifts_its_objects_and_its_log_reruns_bit_exact(
 
 # -- every shipped hand as `handctl sim`, answering `handctl nodes` --------------------------
 
+
 @pytest.mark.parametrize("hand_path", [HAND_YAML, PLANAR, FOUR_BY_FOUR], ids=lambda p: p.stem)
 def test_the_shape_runs_as_handctl_sim_and_answers_as_its_nodes(
-        hand_path: Path, tmp_path: Path) -> None:
+    hand_path: Path, tmp_path: Path
+) -> None:
     hand = load_hand(hand_path)
     spec = f"unix:{tmp_path / 'bus'}"
     truth = tmp_path / "truth.json"
-    proc = subprocess.Popen([sys.executable, "-m", "handctl", "sim", "--hand", str(hand_path),
-                             "--bus", spec, "--seconds", "60", "--summary-json", str(truth)],
-                            cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "sim",
+            "--hand",
+            str(hand_path),
+            "--bus",
+            spec,
+            "--seconds",
+            "60",
+            "--summary-json",
+            str(truth),
+        ],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         report: dict[str, Any] = {}
         # The simulated hand takes a moment to start, and a loaded machine may hold its timer
         # back for longer than a listening window: ask again rather than blame the hand.
         for _ in range(20):
-            done = _handctl("nodes", "--bus", spec, "--hand", str(hand_path), "--json",
-                            "--seconds", "0.6", timeout=120)
+            done = _handctl(
+                "nodes",
+                "--bus",
+                spec,
+                "--hand",
+                str(hand_path),
+                "--json",
+                "--seconds",
+                "0.6",
+                timeout=120,
+            )
             report = json.loads(done.stdout) if done.stdout else {}
             if done.returncode == 0 and report.get("ok"):
                 break

@@ -25,17 +25,39 @@ RECIPE = "config/recipes/swap_two_cylinders.yaml"
 FAILING = ROOT / "tests" / "data" / "host_stalls_failing.json"
 
 
-def handctl(*args: str, env: dict[str, str] | None = None,
-            timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT, text=True,
-                          capture_output=True, timeout=timeout, check=False,
-                          env={**os.environ, **(env or {})})
+def handctl(
+    *args: str, env: dict[str, str] | None = None, timeout: float = 120
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=timeout,
+        check=False,
+        env={**os.environ, **(env or {})},
+    )
 
 
 def test_the_bare_loop_reports_every_wakeup() -> None:
-    done = subprocess.run([sys.executable, "-m", "handctl.hostprobe", "--period-ns", "1000000",
-                           "--seconds", "0.2", "--record-ns", "500000"], cwd=ROOT, text=True,
-                          capture_output=True, timeout=60, check=False)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "handctl.hostprobe",
+            "--period-ns",
+            "1000000",
+            "--seconds",
+            "0.2",
+            "--record-ns",
+            "500000",
+        ],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=60,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
     assert out["wakeups"] > 0
@@ -57,11 +79,18 @@ def test_check_timing_prints_a_verdict_and_writes_its_record(tmp_path: Path) -> 
     assert data["verdict"] in ("pass", "marginal", "fail")
     assert (done.returncode == 5) == (data["verdict"] == "fail")
     assert set(data["lateness_us"]) == {"p50", "p99", "max"}
-    for key in ("stalls_over_period", "stalls_over_overrun_tolerance",
-                "stalls_over_feedback_timeout", "loop_overrun_trips"):
+    for key in (
+        "stalls_over_period",
+        "stalls_over_overrun_tolerance",
+        "stalls_over_feedback_timeout",
+        "loop_overrun_trips",
+    ):
         assert isinstance(data[key], int)
-    assert (data["period_ms"], data["overrun_tolerance_ms"], data["feedback_timeout_ms"]) == \
-        (1.0, 3.0, 5.0)
+    assert (data["period_ms"], data["overrun_tolerance_ms"], data["feedback_timeout_ms"]) == (
+        1.0,
+        3.0,
+        5.0,
+    )
     assert data["realtime"] is True and data["scheduler"]["policy"]
     assert {"preemption", "rtprio_limit", "isolated", "governors"} <= set(data["facts"])
     assert data["probe"]["wakeups"] > 0
@@ -85,13 +114,13 @@ def test_a_bad_recorded_sequence_is_bad_input(tmp_path: Path) -> None:
     assert f"{bad}: probe.stalls[0]: expected [index, due_ns, wake_ns, missed]" in done.stderr
 
 
-def test_a_run_on_a_real_bus_is_refused_on_a_failing_host(tmp_path: Path,
-                                                          hand: HandConfig) -> None:
+def test_a_run_on_a_real_bus_is_refused_on_a_failing_host(tmp_path: Path, hand: HandConfig) -> None:
     directory = tmp_path / "bus"
     with open_bus(f"unix:{directory}", hand.bus) as listener:
         before = set(directory.iterdir())
-        done = handctl("run", "recipe", RECIPE, "--bus", f"unix:{directory}",
-                       env={INJECT_ENV: str(FAILING)})
+        done = handctl(
+            "run", "recipe", RECIPE, "--bus", f"unix:{directory}", env={INJECT_ENV: str(FAILING)}
+        )
         assert done.returncode == 5, done.stderr
         assert "handctl: refused: timing check: FAIL" in done.stderr
         assert "--accept-missed-deadlines" in done.stderr
@@ -101,9 +130,17 @@ def test_a_run_on_a_real_bus_is_refused_on_a_failing_host(tmp_path: Path,
 
         # Accepting the risk by name gets past the check to the bus, where nobody answers.
         out = tmp_path / "out.json"
-        done = handctl("run", "recipe", RECIPE, "--bus", f"unix:{directory}",
-                       "--accept-missed-deadlines", "--summary-json", str(out),
-                       env={INJECT_ENV: str(FAILING)})
+        done = handctl(
+            "run",
+            "recipe",
+            RECIPE,
+            "--bus",
+            f"unix:{directory}",
+            "--accept-missed-deadlines",
+            "--summary-json",
+            str(out),
+            env={INJECT_ENV: str(FAILING)},
+        )
         assert done.returncode == 3, done.stderr
         assert "running with --accept-missed-deadlines on a host that failed" in done.stderr
         assert "nodes not ready" in done.stderr
@@ -130,21 +167,35 @@ def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) ->
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD)
     out = tmp_path / "out.json"
-    done = handctl("run", "recipe", str(recipe), "--realtime", "--rt", "--max-seconds", "40",
-                   "--sim-faults", "config/sim/feedback_dropout.yaml", "--summary-json",
-                   str(out))
+    done = handctl(
+        "run",
+        "recipe",
+        str(recipe),
+        "--realtime",
+        "--rt",
+        "--max-seconds",
+        "40",
+        "--sim-faults",
+        "config/sim/feedback_dropout.yaml",
+        "--summary-json",
+        str(out),
+    )
     summary = json.loads(out.read_text())
     assert done.returncode == 3, done.stderr
     # The dropout stops it on FEEDBACK_TIMEOUT, unless this loaded machine stopped it first.
     stops = sorted({f["code"] for f in summary["faults"]} & {"FEEDBACK_TIMEOUT", "LOOP_OVERRUN"})
     assert stops, summary["faults"]
-    assert f"the run stopped on {', '.join(stops)}; the bare timer loop beside it says the " \
-           "host was " in done.stderr
+    assert (
+        f"the run stopped on {', '.join(stops)}; the bare timer loop beside it says the "
+        "host was " in done.stderr
+    )
     assert "host (bare timer loop beside the run): " in done.stdout
     host = summary["host"]
     assert host["verdict"] in ("pass", "marginal", "fail")
-    assert host["missed_host"] + host["missed_handctl"] + host["missed_unobserved"] == \
-        summary["missed_ticks"]
+    assert (
+        host["missed_host"] + host["missed_handctl"] + host["missed_unobserved"]
+        == summary["missed_ticks"]
+    )
     assert host["probe_period_us"] == 500.0
     loop, sim = host["cpus"]["loop"], host["cpus"]["sim"]
     assert len(loop) == 1 and len(sim) == 1 and loop != sim
@@ -167,8 +218,14 @@ def test_cpus_outside_the_machine_are_bad_input() -> None:
 def test_a_named_virtual_bus_counts_as_a_real_one() -> None:
     """handctl cannot know what is at the other end of a bus: only its own simulated hand
     runs without the check."""
-    done = handctl("run", "recipe", RECIPE, "--bus", "virtual:handctl-test-precheck",
-                   env={INJECT_ENV: str(FAILING)})
+    done = handctl(
+        "run",
+        "recipe",
+        RECIPE,
+        "--bus",
+        "virtual:handctl-test-precheck",
+        env={INJECT_ENV: str(FAILING)},
+    )
     assert done.returncode == 5, done.stderr
     assert "handctl: refused: timing check: FAIL" in done.stderr
 
@@ -195,8 +252,13 @@ os._exit(0)  # as SIGKILL would: no clean-up
 
 def test_the_bare_loop_ends_with_the_run_that_started_it() -> None:
     """A run killed with SIGKILL must not leave a SCHED_FIFO loop behind."""
-    parent = subprocess.Popen([sys.executable, "-c", _ORPHANING_PARENT], cwd=ROOT, text=True,
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    parent = subprocess.Popen(
+        [sys.executable, "-c", _ORPHANING_PARENT],
+        cwd=ROOT,
+        text=True,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+    )
     assert parent.stdout is not None and parent.stdin is not None
     pid = int(parent.stdout.readline())
     try:

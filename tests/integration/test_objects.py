@@ -22,10 +22,29 @@ from ..conftest import HAND_YAML, ROOT
 
 RECIPES = ROOT / "tests" / "data" / "recipes"
 #: the scenes: cylinders along z on the table (y = table + r), between the fingers
-DRUM = [{"name": "drum", "radius": 0.030, "length": 0.080, "mass": 0.050, "x": 0.0,
-         "y": -0.110, "angle": 0.0}]
-THREE = [{"name": name, "radius": 0.012, "length": 0.080, "mass": 0.020, "x": x, "y": -0.128,
-          "angle": 0.0} for name, x in (("left", -0.025), ("middle", 0.0), ("right", 0.025))]
+DRUM = [
+    {
+        "name": "drum",
+        "radius": 0.030,
+        "length": 0.080,
+        "mass": 0.050,
+        "x": 0.0,
+        "y": -0.110,
+        "angle": 0.0,
+    }
+]
+THREE = [
+    {
+        "name": name,
+        "radius": 0.012,
+        "length": 0.080,
+        "mass": 0.020,
+        "x": x,
+        "y": -0.128,
+        "angle": 0.0,
+    }
+    for name, x in (("left", -0.025), ("middle", 0.0), ("right", 0.025))
+]
 #: m: the estimator places a single enveloped cylinder this well (p95), from the angles alone
 ONE_OBJECT_ESTIMATE_M = 0.002
 
@@ -41,8 +60,9 @@ def hand_with(tmp_path: Path, objects: list[dict[str, Any]]) -> Path:
 
 def run(tmp_path: Path, objects: list[dict[str, Any]], recipe: str) -> dict[str, Any]:
     hand = load_hand(hand_with(tmp_path, objects))
-    report = run_recipe(RunRequest(hand=hand, recipe=load_recipe(RECIPES / recipe, hand),
-                                   plot=tmp_path / "run.png"))
+    report = run_recipe(
+        RunRequest(hand=hand, recipe=load_recipe(RECIPES / recipe, hand), plot=tmp_path / "run.png")
+    )
     assert (tmp_path / "run.png").stat().st_size > 0
     return report.summary
 
@@ -51,11 +71,29 @@ def test_one_cylinder_is_lifted_held_and_located(tmp_path: Path) -> None:
     """Through the command line: the summary JSON, the plot, and the printed experiment, which
     gives the object's estimator error and no turn (there is no pair)."""
     out, plot = tmp_path / "out.json", tmp_path / "run.png"
-    done = subprocess.run([sys.executable, "-m", "handctl", "run", "recipe",
-                           str(RECIPES / "hold_one_cylinder.yaml"), "--hand",
-                           str(hand_with(tmp_path, DRUM)), "--summary-json", str(out),
-                           "--plot", str(plot), "--log", "run.mcap"], cwd=tmp_path, text=True,
-                          capture_output=True, timeout=600, check=False)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            str(RECIPES / "hold_one_cylinder.yaml"),
+            "--hand",
+            str(hand_with(tmp_path, DRUM)),
+            "--summary-json",
+            str(out),
+            "--plot",
+            str(plot),
+            "--log",
+            "run.mcap",
+        ],
+        cwd=tmp_path,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr
     summary = json.loads(out.read_text())
     assert summary["completed"] is True and summary["faults"] == []
@@ -71,9 +109,25 @@ def test_one_cylinder_is_lifted_held_and_located(tmp_path: Path) -> None:
     # The log says the same: one object, no line to turn, a plot of the hand's one group per
     # finger, and a re-run bit-exact with the recorded pairs (none).
     replayed = tmp_path / "replay.json"
-    done = subprocess.run([sys.executable, "-m", "handctl", "replay", "run.mcap", "--rerun",
-                           "--plot", "replay.png", "--json", str(replayed)], cwd=tmp_path,
-                          text=True, capture_output=True, timeout=600, check=False)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "replay",
+            "run.mcap",
+            "--rerun",
+            "--plot",
+            "replay.png",
+            "--json",
+            str(replayed),
+        ],
+        cwd=tmp_path,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr
     logged = json.loads(replayed.read_text())
     assert list(logged["summary"]["objects"]) == ["drum"]
@@ -96,15 +150,29 @@ def test_three_cylinders_are_lifted_held_and_each_reported(tmp_path: Path) -> No
 def test_a_recipe_of_objects_the_simulated_hand_lacks_is_refused(tmp_path: Path) -> None:
     """The default hand's scene has cyl1 and cyl2: a recipe for 'drum' exits 2 naming the
     recipe's key and the scene's objects, before the simulated hand is started."""
-    done = subprocess.run([sys.executable, "-m", "handctl", "run", "recipe",
-                           str(RECIPES / "hold_one_cylinder.yaml"), "--summary-json",
-                           str(tmp_path / "out.json")], cwd=tmp_path, text=True,
-                          capture_output=True, timeout=600, check=False)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            str(RECIPES / "hold_one_cylinder.yaml"),
+            "--summary-json",
+            str(tmp_path / "out.json"),
+        ],
+        cwd=tmp_path,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        check=False,
+    )
     assert done.returncode == 2, done.stderr
     assert "hold_one_cylinder.yaml: objects[0].name" in done.stderr
     assert "cyl1, cyl2" in done.stderr and "drum" in done.stderr
     assert not (tmp_path / "out.json").exists() or "ticks" not in json.loads(
-        (tmp_path / "out.json").read_text())
+        (tmp_path / "out.json").read_text()
+    )
 
 
 @pytest.mark.parametrize("recipe", ["hold_one_cylinder.yaml", "hold_three_cylinders.yaml"])

@@ -36,8 +36,9 @@ def short_template(tmp_path: Path) -> Path:
     return path
 
 
-def test_plan_compiles_a_recipe_with_provenance_reproducibly(tmp_path: Path,
-                                                             hand: HandConfig) -> None:
+def test_plan_compiles_a_recipe_with_provenance_reproducibly(
+    tmp_path: Path, hand: HandConfig
+) -> None:
     template = load_template(short_template(tmp_path), hand)
     first = recipe_text(plan_recipe(template, hand, models=1, budget=quick_budget()), "cmd")
     second = recipe_text(plan_recipe(template, hand, models=1, budget=quick_budget()), "cmd")
@@ -77,11 +78,32 @@ def test_plan_command_writes_the_recipe_and_the_region_plots(tmp_path: Path) -> 
     out = tmp_path / "r.yaml"
     plots = tmp_path / "plots"
     done = subprocess.run(
-        [sys.executable, "-m", "handctl", "plan", str(short_template(tmp_path)), "-o", str(out),
-         "--quick", "--models", "1", "--plot", str(plots)],
-        cwd=ROOT, text=True, capture_output=True, timeout=300, check=False)
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "plan",
+            str(short_template(tmp_path)),
+            "-o",
+            str(out),
+            "--quick",
+            "--models",
+            "1",
+            "--plot",
+            str(plots),
+        ],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=300,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr
     assert out.read_text().startswith("# Compiled by handctl plan")
     assert sorted(p.name for p in plots.glob("*.png")) == [
-        "01_approach.png", "02_lift.png", "03_envelop.png", "04_manipulate_1.png"]
+        "01_approach.png",
+        "02_lift.png",
+        "03_envelop.png",
+        "04_manipulate_1.png",
+    ]
     assert "manipulate_1" in done.stdout

@@ -39,8 +39,19 @@ def tiny_template(tmp_path: Path) -> Path:
 
 
 def plan_command(template: Path, out: Path, *options: str) -> list[str]:
-    return [sys.executable, "-m", "handctl", "plan", str(template), "-o", str(out), "--quick",
-            "--models", "2", *options]
+    return [
+        sys.executable,
+        "-m",
+        "handctl",
+        "plan",
+        str(template),
+        "-o",
+        str(out),
+        "--quick",
+        "--models",
+        "2",
+        *options,
+    ]
 
 
 def body(path: Path) -> str:
@@ -48,14 +59,14 @@ def body(path: Path) -> str:
     return "".join(path.read_text().splitlines(keepends=True)[2:])
 
 
-def test_the_recipe_is_the_same_with_one_worker_and_with_two(tmp_path: Path,
-                                                            hand: HandConfig) -> None:
+def test_the_recipe_is_the_same_with_one_worker_and_with_two(
+    tmp_path: Path, hand: HandConfig
+) -> None:
     template = load_template(tiny_template(tmp_path), hand)
     texts = []
     for workers in (1, 2):
         with open_pool(workers) as pool:
-            result = plan_recipe(template, hand, models=2, budget=quick_budget(),
-                                 executor=pool)
+            result = plan_recipe(template, hand, models=2, budget=quick_budget(), executor=pool)
         texts.append(recipe_text(result, "cmd"))
     assert texts[0] == texts[1]
     search = yaml.safe_load(texts[0])["phases"][1]["provenance"]["search"]
@@ -63,17 +74,21 @@ def test_the_recipe_is_the_same_with_one_worker_and_with_two(tmp_path: Path,
     assert search["evaluated"] == len(search["seed_scores"]) + 2  # 1 generation of 2
 
 
-def test_a_plan_on_a_dask_cluster_equals_the_local_pools(tmp_path: Path,
-                                                         hand: HandConfig) -> None:
+def test_a_plan_on_a_dask_cluster_equals_the_local_pools(tmp_path: Path, hand: HandConfig) -> None:
     distributed = pytest.importorskip("distributed")
     template = tiny_template(tmp_path)
     remote = tmp_path / "remote.yaml"
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None, scheduler_port=0) as cluster:
-        done = subprocess.run(plan_command(template, remote, "--scheduler",
-                                           cluster.scheduler_address),
-                              cwd=ROOT, text=True, capture_output=True, timeout=300,
-                              check=False)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, scheduler_port=0
+    ) as cluster:
+        done = subprocess.run(
+            plan_command(template, remote, "--scheduler", cluster.scheduler_address),
+            cwd=ROOT,
+            text=True,
+            capture_output=True,
+            timeout=300,
+            check=False,
+        )
         assert done.returncode == 0, done.stderr
         assert "planning on the Dask cluster at tcp://" in done.stderr
         assert "(2 workers)" in done.stderr
@@ -82,8 +97,9 @@ def test_a_plan_on_a_dask_cluster_equals_the_local_pools(tmp_path: Path,
             kept = client.run(_kept_models)
         assert sum(kept.values()) >= 2, kept
     with open_pool(2) as pool:
-        local = plan_recipe(load_template(template, hand), hand, models=2,
-                            budget=quick_budget(), executor=pool)
+        local = plan_recipe(
+            load_template(template, hand), hand, models=2, budget=quick_budget(), executor=pool
+        )
     assert body(remote) == recipe_text(local, "cmd").split("\n", 2)[2]
 
 
@@ -96,9 +112,24 @@ def _kept_models() -> int:
 def test_ctrl_c_stops_the_plan_and_all_its_workers(tmp_path: Path) -> None:
     out = tmp_path / "r.yaml"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "plan", str(TEMPLATE), "-o", str(out), "--models",
-         "2", "--workers", "2"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True)
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "plan",
+            str(TEMPLATE),
+            "-o",
+            str(out),
+            "--models",
+            "2",
+            "--workers",
+            "2",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         parent = psutil.Process(proc.pid)
         children: list[psutil.Process] = []
@@ -106,8 +137,12 @@ def test_ctrl_c_stops_the_plan_and_all_its_workers(tmp_path: Path) -> None:
         while time.monotonic() < deadline and proc.poll() is None:
             # the workers exist once the first phase has been submitted to them
             children = [c for c in parent.children(recursive=True) if c.is_running()]
-            workers = [c for c in children if "multiprocessing" in " ".join(_cmdline(c))
-                       and "resource_tracker" not in " ".join(_cmdline(c))]
+            workers = [
+                c
+                for c in children
+                if "multiprocessing" in " ".join(_cmdline(c))
+                and "resource_tracker" not in " ".join(_cmdline(c))
+            ]
             if len(workers) >= 2:
                 break
             time.sleep(0.2)
@@ -137,16 +172,24 @@ def _cmdline(process: psutil.Process) -> list[str]:
     return line
 
 
-@pytest.mark.parametrize(("options", "message"), [
-    (["--workers", "0"], "handctl: error: --workers: expected at least 1 worker, found 0"),
-    (["--scheduler", "localhost:8786"], "handctl: error: --scheduler: expected a Dask scheduler "
-                                        "address like tcp://HOST:8786, found 'localhost:8786'"),
-    (["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"],
-     "handctl: error: --workers: expected no --workers with --scheduler"),
-])
-def test_bad_scale_options_are_named_and_exit_2(tmp_path: Path, options: list[str],
-                                                message: str,
-                                                capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--workers", "0"], "handctl: error: --workers: expected at least 1 worker, found 0"),
+        (
+            ["--scheduler", "localhost:8786"],
+            "handctl: error: --scheduler: expected a Dask scheduler "
+            "address like tcp://HOST:8786, found 'localhost:8786'",
+        ),
+        (
+            ["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"],
+            "handctl: error: --workers: expected no --workers with --scheduler",
+        ),
+    ],
+)
+def test_bad_scale_options_are_named_and_exit_2(
+    tmp_path: Path, options: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     from handctl.cli import main
 
     out = tmp_path / "r.yaml"

@@ -19,27 +19,57 @@ RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 
 def handctl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=900, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+    )
 
 
 def test_run_and_replay_agree(tmp_path: Path) -> None:
-    log, run_json, replay_json = tmp_path / "run.mcap", tmp_path / "run.json", \
-        tmp_path / "replay.json"
-    run = handctl("run", "recipe", str(RECIPE), "--hand", str(HAND_YAML), "--lockstep",
-                  "--log", str(log), "--summary-json", str(run_json),
-                  "--plot", str(tmp_path / "run.png"), cwd=tmp_path)
+    log, run_json, replay_json = (
+        tmp_path / "run.mcap",
+        tmp_path / "run.json",
+        tmp_path / "replay.json",
+    )
+    run = handctl(
+        "run",
+        "recipe",
+        str(RECIPE),
+        "--hand",
+        str(HAND_YAML),
+        "--lockstep",
+        "--log",
+        str(log),
+        "--summary-json",
+        str(run_json),
+        "--plot",
+        str(tmp_path / "run.png"),
+        cwd=tmp_path,
+    )
     assert run.returncode == 0, run.stderr
-    rep = handctl("replay", str(log), "--json", str(replay_json),
-                  "--plot", str(tmp_path / "replay.png"), cwd=tmp_path)
+    rep = handctl(
+        "replay",
+        str(log),
+        "--json",
+        str(replay_json),
+        "--plot",
+        str(tmp_path / "replay.png"),
+        cwd=tmp_path,
+    )
     assert rep.returncode == 0, rep.stderr
     ran = json.loads(run_json.read_text())
     replayed = json.loads(replay_json.read_text())["summary"]
     # phase times: the same clock, to the tick
     run_phases = [(p["name"], p["start_s"]) for p in ran["phases"]]
     # (the replay also lists the end ramp, which the run's recipe runner does not)
-    replay_phases = [(p["name"], p["start_s"]) for p in replayed["phases"]
-                     if p["name"] != "end_ramp"]
+    replay_phases = [
+        (p["name"], p["start_s"]) for p in replayed["phases"] if p["name"] != "end_ramp"
+    ]
     assert [n for n, _ in replay_phases] == [n for n, _ in run_phases]
     for (_, a), (_, b) in zip(run_phases, replay_phases, strict=True):
         assert b == pytest.approx(a, abs=1e-6)

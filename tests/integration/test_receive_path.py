@@ -39,12 +39,11 @@ def _stopped_at_once(r: Rig, result: RunResult, code: FaultCode) -> int:
     wire = r.commands()
     row = first.tick - r.runtime.first_send_tick
     assert np.abs(wire[row - 1]).max() > 0.01
-    assert not np.any(wire[row + 2:])
+    assert not np.any(wire[row + 2 :])
     return first.tick
 
 
-def test_a_flood_the_bus_cannot_carry_is_stopped_at_once(hand: HandConfig,
-                                                         hold: Recipe) -> None:
+def test_a_flood_the_bus_cannot_carry_is_stopped_at_once(hand: HandConfig, hold: Recipe) -> None:
     """1000 foreign frames a tick (a CAN-FD bus carries 27): before, the host drained 512 a
     tick and judged ever older feedback as fresh."""
     with rig(hand, hold) as r:
@@ -68,8 +67,7 @@ def test_feedback_held_back_is_as_old_as_it_is(hand: HandConfig, hold: Recipe) -
         assert tick - INJECT_TICK <= 12
 
 
-def test_extended_id_twins_change_nothing_and_are_counted(hand: HandConfig,
-                                                          hold: Recipe) -> None:
+def test_extended_id_twins_change_nothing_and_are_counted(hand: HandConfig, hold: Recipe) -> None:
     with rig(hand, hold) as r:
         twin = inj.ExtendedTwin(message="all")
         r.sim.faults.add(twin, 0.0)
@@ -82,8 +80,10 @@ def test_extended_id_twins_change_nothing_and_are_counted(hand: HandConfig,
 
 
 def test_the_nodes_do_not_take_an_extended_id_estop(hand: HandConfig, channel: str) -> None:
-    with open_bus(f"virtual:{channel}", hand.bus) as host, \
-            open_bus(f"virtual:{channel}", hand.bus) as peer:
+    with (
+        open_bus(f"virtual:{channel}", hand.bus) as host,
+        open_bus(f"virtual:{channel}", hand.bus) as peer,
+    ):
         sim = SimulatedHand(hand, peer)
         sim.step()
         assert host.send(EXTENDED_ID_FLAG | 0x000, bytes(3))
@@ -105,8 +105,9 @@ def test_enabled_with_fault_bits_is_stopped(hand: HandConfig, hold: Recipe) -> N
         assert "latched fault bits (TIMEOUT)" in result.faults[0].detail
 
 
-def test_a_fault_hidden_behind_an_enabled_heartbeat_is_stopped(hand: HandConfig,
-                                                               hold: Recipe) -> None:
+def test_a_fault_hidden_behind_an_enabled_heartbeat_is_stopped(
+    hand: HandConfig, hold: Recipe
+) -> None:
     """Node 3 latches FAULT (its watchdog: 15 commands lost), and after each Feedback saying
     so a Heartbeat says ENABLED in the same tick. The last report used to win."""
     with rig(hand, hold) as r:
@@ -119,8 +120,7 @@ def test_a_fault_hidden_behind_an_enabled_heartbeat_is_stopped(hand: HandConfig,
         assert FaultCode.NODE_FAULT in {f.code for f in result.faults}
 
 
-def test_a_replayed_stream_is_stopped_by_its_reject_rate(hand: HandConfig,
-                                                         hold: Recipe) -> None:
+def test_a_replayed_stream_is_stopped_by_its_reject_rate(hand: HandConfig, hold: Recipe) -> None:
     """Node 2's own feedback, replayed 0.2 s late two frames a tick: the host accepts one
     replayed frame a tick and rejects two, so the angles, torques and state it hears are
     0.2 s old. Counting rejects without bound, it noticed only when node 2 latched a FAULT of

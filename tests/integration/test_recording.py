@@ -46,9 +46,11 @@ ESTOP_TICK = 700
 #: The channels the writer derives for Foxglove, beside the recorded ones.
 DERIVED = Derived.from_metadata(
     {ch.META_HAND: {"yaml": (ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text()}},
-    lambda *_: None).channels
-JSON_TOPICS = {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED
-                                                if c.message_encoding == "json"}
+    lambda *_: None,
+).channels
+JSON_TOPICS = {c.topic for c in ch.CHANNELS} | {
+    c.topic for c in DERIVED if c.message_encoding == "json"
+}
 
 
 @dataclass
@@ -61,9 +63,16 @@ class Recorded:
     final_tdt: list[float] = field(default_factory=list)
 
 
-def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool = True,
-               layout: RingLayout | None = None, pause_writer: bool = False,
-               writer_between_ticks: bool = False) -> Recorded:
+def record_run(
+    hand: HandConfig,
+    recipe: Recipe,
+    path: Path,
+    *,
+    troubles: bool = True,
+    layout: RingLayout | None = None,
+    pause_writer: bool = False,
+    writer_between_ticks: bool = False,
+) -> Recorded:
     """A lockstep run on the simulated hand, recorded the way ``run_recipe`` records it.
 
     With ``troubles``: error frames (bus events), a babbling foreign node (unexpected ids)
@@ -73,21 +82,36 @@ def record_run(hand: HandConfig, recipe: Recipe, path: Path, *, troubles: bool =
     gives now and then (the loop descheduled between one tick's push and the next tick).
     """
     with rig(hand, recipe) as r:
-        recorder = Recorder(path, hand, start_metadata(hand, recipe, ["test"]),
-                            phase_names=[p.name for p in recipe.phases],
-                            object_names=[o.name for o in r.sim.params.objects], layout=layout)
+        recorder = Recorder(
+            path,
+            hand,
+            start_metadata(hand, recipe, ["test"]),
+            phase_names=[p.name for p in recipe.phases],
+            object_names=[o.name for o in r.sim.params.objects],
+            layout=layout,
+        )
         with recorder:
             capture = _Capture(recorder)
             if writer_between_ticks:
                 runtime = r.runtime
-                capture.before_tick = lambda: runtime.first_send_tick >= 0 and \
-                    runtime.supervisor.state not in (State.ENABLING, State.RUNNING)
+                capture.before_tick = lambda: (
+                    runtime.first_send_tick >= 0
+                    and runtime.supervisor.state not in (State.ENABLING, State.RUNNING)
+                )
             r.runtime.recorder = capture
             recorder.attach(r.runtime)
-            recorder.add_metadata(ch.META_RUN, run_metadata(
-                mode="lockstep", bus="virtual", seed=0, period_ns=1_000_000,
-                startup_ticks=r.runtime.startup_ticks, reset_node_faults=False,
-                estimator=False))
+            recorder.add_metadata(
+                ch.META_RUN,
+                run_metadata(
+                    mode="lockstep",
+                    bus="virtual",
+                    seed=0,
+                    period_ns=1_000_000,
+                    startup_ticks=r.runtime.startup_ticks,
+                    reset_node_faults=False,
+                    estimator=False,
+                ),
+            )
             poses: dict[int, list[tuple[float, float, float]]] = {}
 
             def sample(tk: Tick) -> None:
@@ -177,8 +201,10 @@ def test_every_channel_is_written_and_matches_its_schema(recorded: Recorded) -> 
                 continue
             assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
             validators[channel.topic] = jsonschema.Draft202012Validator(json.loads(schema.data))
-        counts = {summary.channels[cid].topic: n
-                  for cid, n in summary.statistics.channel_message_counts.items()}
+        counts = {
+            summary.channels[cid].topic: n
+            for cid, n in summary.statistics.channel_message_counts.items()
+        }
     assert set(counts) == {c.topic for c in ch.CHANNELS} | {c.topic for c in DERIVED}
     assert all(counts[c.topic] > 0 for c in ch.CHANNELS), counts
     assert len(summary.chunk_indexes) > 1
@@ -190,8 +216,11 @@ def test_every_channel_is_written_and_matches_its_schema(recorded: Recorded) -> 
 
 def test_frames_are_the_bus_traffic_in_order(recorded: Recorded) -> None:
     """An independent sniffer on the same bus heard exactly the logged frames, in order."""
-    logged = [(m["id"], bytes.fromhex(m["data"])) for t, _, m in library_messages(recorded.path)
-              if t in (ch.CAN_RX, ch.CAN_TX)]
+    logged = [
+        (m["id"], bytes.fromhex(m["data"]))
+        for t, _, m in library_messages(recorded.path)
+        if t in (ch.CAN_RX, ch.CAN_TX)
+    ]
     assert logged == recorded.wire
 
 
@@ -205,8 +234,9 @@ def test_per_tick_records_are_what_the_runtime_did(recorded: Recorded) -> None:
     active = [m for m in timing if m["active"]]
     for m in active[:50]:
         stages = result.stage_ns[m["tick"]]
-        assert [m["stage_cpu_ns"][k] for k in ("poll", "recipe", "safety", "send")] \
-            == stages[:4].tolist()
+        assert [m["stage_cpu_ns"][k] for k in ("poll", "recipe", "safety", "send")] == stages[
+            :4
+        ].tolist()
     torques = [m for t, _, m in messages if t == ch.TORQUE]
     assert [m["tick"] for m in torques] == [m["tick"] for m in active]
     for j, peak in enumerate(result.max_abs_tau.tolist()):
@@ -216,12 +246,14 @@ def test_per_tick_records_are_what_the_runtime_did(recorded: Recorded) -> None:
     assert joint[-1]["tdt_torque_nm"] == recorded.final_tdt
     states = [m["state"] for t, _, m in messages if t == ch.SAFETY]
     assert states[-1] == "faulted" and "running" in states
-    faults = [(m["name"], m["tick"]) for t, _, m in messages
-              if t == ch.EVENTS and m["kind"] == "fault"]
+    faults = [
+        (m["name"], m["tick"]) for t, _, m in messages if t == ch.EVENTS and m["kind"] == "fault"
+    ]
     assert faults == [(f.code.name, f.tick) for f in result.faults]
     assert faults[0] == ("ESTOP", ESTOP_TICK)
-    requests = [(m["name"], m["tick"]) for t, _, m in messages
-                if t == ch.EVENTS and m["kind"] == "request"]
+    requests = [
+        (m["name"], m["tick"]) for t, _, m in messages if t == ch.EVENTS and m["kind"] == "request"
+    ]
     assert requests == [("estop", ESTOP_TICK)]
     rejected: Counter[str] = Counter()
     for t, _, m in messages:
@@ -233,8 +265,11 @@ def test_per_tick_records_are_what_the_runtime_did(recorded: Recorded) -> None:
     assert len(bus) >= result.bus_events > 0
     assert {m["name"] for m in bus} == {"error_frame"}
     phases = [m["phase"] for t, _, m in messages if t == ch.PHASE]
-    assert [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]] \
-        == ["running", "close", "hold"]
+    assert [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]] == [
+        "running",
+        "close",
+        "hold",
+    ]
 
 
 def test_object_poses_are_the_ground_truth(recorded: Recorded) -> None:
@@ -247,15 +282,17 @@ def test_object_poses_are_the_ground_truth(recorded: Recorded) -> None:
         assert poses[tick]["line_angle_rad"] == math.atan2(y2 - y1, x2 - x1)
 
 
-def test_metadata_names_the_hand_the_recipe_and_the_versions(recorded: Recorded,
-                                                             hand: HandConfig) -> None:
+def test_metadata_names_the_hand_the_recipe_and_the_versions(
+    recorded: Recorded, hand: HandConfig
+) -> None:
     with recorded.path.open("rb") as handle:
         meta = {m.name: m.metadata for m in make_reader(handle).iter_metadata()}
     assert meta[ch.META_HAND]["config_hash"] == hand.config_hash
     assert meta[ch.META_HAND]["yaml"] == Path(hand.source).read_text()
     assert "short_hold" in meta[ch.META_RECIPE]["yaml"]
-    assert {"handctl", "python", "numpy", "mujoco", "python-can", "mcap"} \
-        <= set(meta[ch.META_VERSIONS])
+    assert {"handctl", "python", "numpy", "mujoco", "python-can", "mcap"} <= set(
+        meta[ch.META_VERSIONS]
+    )
     assert json.loads(meta["handctl.command"]["command_line"]) == ["test"]
     assert meta[ch.META_RUN]["mode"] == "lockstep"
     end = meta[ch.META_END]
@@ -271,13 +308,22 @@ def test_handctl_reader_agrees_with_the_library(recorded: Recorded) -> None:
     assert ours == list(library_messages(recorded.path))
 
 
-def test_a_full_ring_drops_and_counts_and_never_blocks(hand: HandConfig, tmp_path: Path,
-                                                       recorded: Recorded) -> None:
+def test_a_full_ring_drops_and_counts_and_never_blocks(
+    hand: HandConfig, tmp_path: Path, recorded: Recorded
+) -> None:
     """The writer is stopped (SIGSTOP) for the whole run: the rings fill, the loop goes on."""
-    tiny = RingLayout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
-                      event_capacity=8, pose_capacity=4)
-    run = record_run(hand, short_recipe(hand, tmp_path), tmp_path / "tiny.mcap", layout=tiny,
-                     pause_writer=True)
+    tiny = RingLayout(
+        hand.n_joints,
+        len(hand.fingers),
+        2,
+        tick_capacity=16,
+        frame_capacity=64,
+        event_capacity=8,
+        pose_capacity=4,
+    )
+    run = record_run(
+        hand, short_recipe(hand, tmp_path), tmp_path / "tiny.mcap", layout=tiny, pause_writer=True
+    )
     assert run.result.ticks == recorded.result.ticks  # same run, nothing held it up
     assert run.result.outcome is Outcome.SAFETY_STOP
     recording = open_recording(run.path)
@@ -338,14 +384,28 @@ run_recipe(RunRequest(hand=hand, recipe=recipe, log=Path(sys.argv[3])), status=s
 """
 
 
-def kill_mid_run(hand: HandConfig, recipe: Recipe, path: Path, kill_at: int,
-                 kill_writer: bool) -> int:
+def kill_mid_run(
+    hand: HandConfig, recipe: Recipe, path: Path, kill_at: int, kill_writer: bool
+) -> int:
     """Run a recorded lockstep run in a child that SIGKILLs itself (and, if asked, the writer)
     at the status line of tick ``kill_at``; returns the tick it died in."""
     done = subprocess.run(
-        [sys.executable, "-c", CHILD, hand.source, recipe.source, str(path), str(kill_at),
-         "1" if kill_writer else "0"], cwd=ROOT, capture_output=True, text=True, timeout=120,
-        check=False)
+        [
+            sys.executable,
+            "-c",
+            CHILD,
+            hand.source,
+            recipe.source,
+            str(path),
+            str(kill_at),
+            "1" if kill_writer else "0",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert done.returncode == -signal.SIGKILL, done.stderr
     return int(done.stdout.split()[-1])
 
@@ -357,15 +417,18 @@ def wait_complete(path: Path, timeout_s: float = 60.0) -> None:
         time.sleep(0.1)
 
 
-def test_sigkill_of_the_control_process_loses_no_finished_tick(hand: HandConfig,
-                                                      tmp_path: Path) -> None:
+def test_sigkill_of_the_control_process_loses_no_finished_tick(
+    hand: HandConfig, tmp_path: Path
+) -> None:
     recipe = short_recipe(hand, tmp_path)
     path = tmp_path / "killed.mcap"
     died_in = kill_mid_run(hand, recipe, path, 600, kill_writer=False)
     wait_complete(path)  # the orphaned writer finishes the file on its own
     recording = open_recording(path)
-    assert recording.meta(ch.META_END, "ended") \
+    assert (
+        recording.meta(ch.META_END, "ended")
         == "the control process ended without closing the recorder"
+    )
     ticks = [m["tick"] for _, _, m in iter_decoded(recording, (ch.TIMING,))]
     assert ticks == list(range(len(ticks)))
     lost_ms = died_in - ticks[-1]
@@ -388,8 +451,7 @@ def test_sigkill_of_both_leaves_a_readable_prefix(hand: HandConfig, tmp_path: Pa
     assert [m for t, _, m in ours if t == ch.TIMING], "nothing of the run was on disk"
     # The library's streaming reader reads the same prefix before it stops at the cut.
     theirs: list[McapMessage] = []
-    with path.open("rb") as handle, \
-            pytest.raises(Exception):  # noqa: B017 - whatever the library raises at the cut
+    with path.open("rb") as handle, pytest.raises(Exception):  # noqa: B017 - whatever the library raises at the cut
         json_channels: set[int] = set()
         for record in StreamReader(handle, validate_crcs=True).records:
             if isinstance(record, McapChannel) and record.message_encoding == "json":
@@ -399,10 +461,12 @@ def test_sigkill_of_both_leaves_a_readable_prefix(hand: HandConfig, tmp_path: Pa
     assert [json.loads(m.data) for m in theirs] == [m for _, _, m in ours]
 
 
-@pytest.mark.parametrize("where", ["inside_a_chunk", "after_a_chunk", "in_the_summary",
-                                   "in_the_header"])
-def test_a_truncated_file_gives_back_every_complete_chunk(recorded: Recorded, tmp_path: Path,
-                                                          where: str) -> None:
+@pytest.mark.parametrize(
+    "where", ["inside_a_chunk", "after_a_chunk", "in_the_summary", "in_the_header"]
+)
+def test_a_truncated_file_gives_back_every_complete_chunk(
+    recorded: Recorded, tmp_path: Path, where: str
+) -> None:
     data = recorded.path.read_bytes()
     with recorded.path.open("rb") as handle:
         reader = make_reader(handle)
@@ -411,10 +475,12 @@ def test_a_truncated_file_gives_back_every_complete_chunk(recorded: Recorded, tm
         chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
         all_messages = list(library_messages(recorded.path))
     middle = chunks[len(chunks) // 2]
-    cut = {"inside_a_chunk": middle.chunk_start_offset + middle.chunk_length // 2,
-           "after_a_chunk": middle.chunk_start_offset + middle.chunk_length,
-           "in_the_summary": len(data) - 40,
-           "in_the_header": 30}[where]
+    cut = {
+        "inside_a_chunk": middle.chunk_start_offset + middle.chunk_length // 2,
+        "after_a_chunk": middle.chunk_start_offset + middle.chunk_length,
+        "in_the_summary": len(data) - 40,
+        "in_the_header": 30,
+    }[where]
     truncated = tmp_path / "cut.mcap"
     truncated.write_bytes(data[:cut])
     recording = open_recording(truncated)
@@ -428,9 +494,9 @@ def test_a_truncated_file_gives_back_every_complete_chunk(recorded: Recorded, tm
 
 
 @pytest.mark.parametrize("where", ["compressed_data", "record_header"])
-def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(recorded: Recorded,
-                                                                   tmp_path: Path,
-                                                                   where: str) -> None:
+def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(
+    recorded: Recorded, tmp_path: Path, where: str
+) -> None:
     """Bytes overwritten inside a chunk in the middle of a finished file: the index still says
     where every chunk is, so only that chunk's messages are lost."""
     data = bytearray(recorded.path.read_bytes())
@@ -440,36 +506,46 @@ def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(recorded: Rec
     chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
     bad = len(chunks) // 2
     middle = chunks[bad]
-    at = {"compressed_data": middle.chunk_start_offset + middle.chunk_length // 2,
-          "record_header": middle.chunk_start_offset + 1}[where]  # its length field
-    data[at:at + 8] = bytes(b ^ 0x5A for b in data[at:at + 8])
+    at = {
+        "compressed_data": middle.chunk_start_offset + middle.chunk_length // 2,
+        "record_header": middle.chunk_start_offset + 1,
+    }[where]  # its length field
+    data[at : at + 8] = bytes(b ^ 0x5A for b in data[at : at + 8])
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(bytes(data))
 
     recording = open_recording(damaged)
     assert recording.damaged and not recording.complete and not recording.truncated
-    assert [(c.number, c.offset, c.start_ns, c.end_ns) for c in recording.bad_chunks] == \
-        [(bad, middle.chunk_start_offset, middle.message_start_time, middle.message_end_time)]
+    assert [(c.number, c.offset, c.start_ns, c.end_ns) for c in recording.bad_chunks] == [
+        (bad, middle.chunk_start_offset, middle.message_start_time, middle.message_end_time)
+    ]
     assert f"chunk {bad} at byte {middle.chunk_start_offset}" in recording.problem
     assert f"{middle.message_start_time}..{middle.message_end_time} ns" in recording.problem
     assert recording.chunks == len(chunks) - 1
     assert recording.meta(ch.META_END, "ended") == "closed by the recorder"  # metadata read
     counts = [_chunk_messages(recorded.path, c) for c in chunks]
-    lost_from, lost_to = sum(counts[:bad]), sum(counts[:bad + 1])
+    lost_from, lost_to = sum(counts[:bad]), sum(counts[: bad + 1])
     everything = list(library_messages(recorded.path))
     got = [(t, lt, json.loads(d)) for t, lt, d in iter_messages(recording, JSON_TOPICS)]
     assert got == everything[:lost_from] + everything[lost_to:]
-    assert counts[bad + 1:] and got[-1] == everything[-1]  # the chunks after it are kept
+    assert counts[bad + 1 :] and got[-1] == everything[-1]  # the chunks after it are kept
 
-    done = subprocess.run([sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
+    done = subprocess.run(
+        [sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert done.returncode == 0, done.stdout + done.stderr
     assert f"DAMAGED: chunk {bad} at byte {middle.chunk_start_offset}" in done.stdout
     assert "bit-exact" in done.stdout and "before a damaged chunk" in done.stdout
 
 
-def test_a_rerun_does_not_start_after_a_damaged_first_chunk(recorded: Recorded,
-                                                            tmp_path: Path) -> None:
+def test_a_rerun_does_not_start_after_a_damaged_first_chunk(
+    recorded: Recorded, tmp_path: Path
+) -> None:
     """Without its first ticks a log has nothing a fresh runtime could follow."""
     from handctl.recording.rerun import rerun
 
@@ -479,7 +555,7 @@ def test_a_rerun_does_not_start_after_a_damaged_first_chunk(recorded: Recorded,
     assert summary is not None
     first = min(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
     at = first.chunk_start_offset + first.chunk_length // 2
-    data[at:at + 8] = bytes(b ^ 0x5A for b in data[at:at + 8])
+    data[at : at + 8] = bytes(b ^ 0x5A for b in data[at : at + 8])
     damaged = tmp_path / "first.mcap"
     damaged.write_bytes(bytes(data))
     recording = open_recording(damaged)
@@ -504,8 +580,14 @@ def test_a_damaged_metadata_record_is_named(recorded: Recorded, tmp_path: Path) 
     assert recording.damaged and recording.bad_metadata == [ch.META_HAND]
     assert f"metadata record '{ch.META_HAND}' at byte {hand_index.offset}" in recording.problem
     assert ch.META_RUN in recording.metadata and recording.chunks == len(summary.chunk_indexes)
-    done = subprocess.run([sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
+    done = subprocess.run(
+        [sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert done.returncode == 2, done.stdout + done.stderr
     assert str(damaged) in done.stderr and ch.META_HAND in done.stderr
 
@@ -522,8 +604,7 @@ def _chunk_messages(path: Path, chunk: Any) -> int:
         handle.seek(chunk.chunk_start_offset)
         record = next(iter(StreamReader(handle, skip_magic=True, emit_chunks=True).records))
     assert isinstance(record, Chunk)
-    return sum(isinstance(r, Message) and r.channel_id in json_ids
-               for r in breakup_chunk(record))
+    return sum(isinstance(r, Message) and r.channel_id in json_ids for r in breakup_chunk(record))
 
 
 def test_docs_name_every_channel_schema_and_field() -> None:
@@ -535,6 +616,12 @@ def test_docs_name_every_channel_schema_and_field() -> None:
             assert f"`{name}" in text or name == "tick", (channel.topic, name)
     for kind in ch.EVENT_KINDS:
         assert f"`{kind}`" in text
-    for name in (ch.META_RUN, ch.META_HAND, ch.META_RECIPE, ch.META_VERSIONS, ch.META_SUMMARY,
-                 ch.META_END):
+    for name in (
+        ch.META_RUN,
+        ch.META_HAND,
+        ch.META_RECIPE,
+        ch.META_VERSIONS,
+        ch.META_SUMMARY,
+        ch.META_END,
+    ):
         assert f"`{name}`" in text

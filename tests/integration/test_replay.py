@@ -36,8 +36,14 @@ from .test_recording import ESTOP_TICK, Recorded, record_run
 
 
 def handctl(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT, text=True,
-                          capture_output=True, timeout=timeout, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=timeout,
+        check=False,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -60,17 +66,21 @@ def rewrite(source: Path, target: Path, change: Any) -> None:
         writer.start()
         for meta in metadata:
             writer.add_metadata(meta.name, meta.metadata)
-        schema_ids = {s.id: writer.register_schema(s.name, s.encoding, s.data)
-                      for s in summary.schemas.values()}
-        channel_ids = {c.id: writer.register_channel(c.topic, c.message_encoding,
-                                                     schema_ids[c.schema_id], c.metadata)
-                       for c in summary.channels.values()}
+        schema_ids = {
+            s.id: writer.register_schema(s.name, s.encoding, s.data)
+            for s in summary.schemas.values()
+        }
+        channel_ids = {
+            c.id: writer.register_channel(
+                c.topic, c.message_encoding, schema_ids[c.schema_id], c.metadata
+            )
+            for c in summary.channels.values()
+        }
         for _, channel, message in messages:
             raw = message.data
             if channel.message_encoding == "json":  # the Foxglove protobuf ones as they are
                 raw = json.dumps(change(channel.topic, json.loads(raw))).encode()
-            writer.add_message(channel_ids[channel.id], message.log_time, raw,
-                               message.publish_time)
+            writer.add_message(channel_ids[channel.id], message.log_time, raw, message.publish_time)
         writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
 
 
@@ -124,15 +134,20 @@ def test_rerun_finds_a_command_frame_that_differs(recorded: Recorded, tmp_path: 
     assert f"tick {first_command[0]}" in report.frame_mismatches[0]
 
 
-def _alter_feedback(recorded: Recorded, target: Path, frame_id: int, after_tick: int,
-                    change: Any) -> int:
+def _alter_feedback(
+    recorded: Recorded, target: Path, frame_id: int, after_tick: int, change: Any
+) -> int:
     """Copy the recording with the first logged frame ``frame_id`` of a tick from
     ``after_tick`` on replaced by ``change(data)``; returns that frame's tick."""
     altered: list[int] = []
 
     def alter(topic: str, message: dict[str, Any]) -> dict[str, Any]:
-        if topic == ch.CAN_RX and message["id"] == frame_id and message["tick"] >= after_tick \
-                and not altered:
+        if (
+            topic == ch.CAN_RX
+            and message["id"] == frame_id
+            and message["tick"] >= after_tick
+            and not altered
+        ):
             altered.append(message["tick"])
             message["data"] = change(bytes.fromhex(message["data"])).hex()
         return message
@@ -142,8 +157,9 @@ def _alter_feedback(recorded: Recorded, target: Path, frame_id: int, after_tick:
     return altered[0]
 
 
-def test_rerun_finds_one_flipped_bit_in_a_feedback_frame(recorded: Recorded,
-                                                         tmp_path: Path) -> None:
+def test_rerun_finds_one_flipped_bit_in_a_feedback_frame(
+    recorded: Recorded, tmp_path: Path
+) -> None:
     """The flipped frame fails its CRC in the re-run and is rejected; the open-loop torques do
     not change, but the rejects and the joint state of that tick differ from the log."""
     tampered = tmp_path / "flipped.mcap"
@@ -166,8 +182,9 @@ def test_rerun_finds_one_flipped_bit_in_a_feedback_frame(recorded: Recorded,
     assert "MISMATCH" in done.stdout and f"tick {tick}: crc rejects" in done.stdout
 
 
-def test_rerun_finds_a_feedback_frame_altered_with_a_good_crc(recorded: Recorded,
-                                                              tmp_path: Path) -> None:
+def test_rerun_finds_a_feedback_frame_altered_with_a_good_crc(
+    recorded: Recorded, tmp_path: Path
+) -> None:
     """A frame changed and re-sealed (counter and CRC valid) is accepted by the re-run, which
     then reads another angle than the run did: named by tick, frame id, joint and values."""
     layout = load_protocol().layout("Feedback", 3)
@@ -187,16 +204,23 @@ def test_rerun_finds_a_feedback_frame_altered_with_a_good_crc(recorded: Recorded
 
 
 def test_the_disable_after_the_last_tick_reruns_whenever_the_writer_drains(
-        hand: HandConfig, tmp_path: Path) -> None:
+    hand: HandConfig, tmp_path: Path
+) -> None:
     """The nodes are disabled after the last control tick's push, and those frames belong to
     that tick. A writer that drains between that push and the next tick (a loaded machine)
     writes the tick's row before them; the log must still give them to the tick."""
-    run = record_run(hand, short_recipe(hand, tmp_path, hold_s=0.1), tmp_path / "late.mcap",
-                     troubles=False, writer_between_ticks=True)
+    run = record_run(
+        hand,
+        short_recipe(hand, tmp_path, hold_s=0.1),
+        tmp_path / "late.mcap",
+        troubles=False,
+        writer_between_ticks=True,
+    )
     assert run.result.outcome is Outcome.COMPLETED
     recording = open_recording(run.path)
-    disables = [m["tick"] for t, _, m in iter_decoded(recording, (ch.CAN_TX,))
-                if 0x011 <= m["id"] <= 0x013]
+    disables = [
+        m["tick"] for t, _, m in iter_decoded(recording, (ch.CAN_TX,)) if 0x011 <= m["id"] <= 0x013
+    ]
     last_control_tick = max(m["tick"] for _, _, m in iter_decoded(recording, (ch.TORQUE,)))
     assert disables[-3:] == [last_control_tick] * 3
     report = rerun(recording)
@@ -210,8 +234,16 @@ def test_realtime_recording_reruns_bit_exact(tmp_path: Path) -> None:
     """Real time, the simulated hand in its own process: frames arrive when they arrive, and
     the log holds what each poll drained, so the re-run still matches bit for bit."""
     log = tmp_path / "rt.mcap"
-    done = handctl("run", "recipe", str(short_recipe_path(tmp_path)), "--realtime",
-                   "--max-seconds", "0.6", "--log", str(log))
+    done = handctl(
+        "run",
+        "recipe",
+        str(short_recipe_path(tmp_path)),
+        "--realtime",
+        "--max-seconds",
+        "0.6",
+        "--log",
+        str(log),
+    )
     assert done.returncode in (0, 3, 130), done.stderr
     recording = open_recording(log)
     assert recording.complete
@@ -233,9 +265,21 @@ def short_recipe_path(directory: Path) -> Path:
 def test_sigterm_leaves_a_complete_file_that_reruns(tmp_path: Path) -> None:
     log = tmp_path / "term.mcap"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "run", "recipe",
-         "config/recipes/swap_two_cylinders.yaml", "--log", str(log)],
-        cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            "config/recipes/swap_two_cylinders.yaml",
+            "--log",
+            str(log),
+        ],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         deadline = time.monotonic() + 60
         while not (log.exists() and log.stat().st_size > 300_000):  # chunks: ticking
@@ -270,18 +314,21 @@ def test_summary_and_plot(recorded: Recorded, tmp_path: Path) -> None:
     assert summary["phases"][0]["duration_s"] == pytest.approx(0.3, abs=0.002)
     assert [(f["code"], f["tick"]) for f in summary["faults"]] == [("ESTOP", ESTOP_TICK)]
     peak = recorded.result.max_abs_tau.tolist()
-    assert [abs(t["applied_nm"]) for t in summary["largest_torques"].values()] == \
-        pytest.approx(peak, abs=1e-5)
-    assert summary["drops"] == dict.fromkeys(("dropped_ticks", "dropped_frames",
-                                              "dropped_events", "dropped_poses"), 0)
+    assert [abs(t["applied_nm"]) for t in summary["largest_torques"].values()] == pytest.approx(
+        peak, abs=1e-5
+    )
+    assert summary["drops"] == dict.fromkeys(
+        ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses"), 0
+    )
     assert summary["timing"]["missed_ticks"] == 0
     assert summary["rejected_frames"]["unexpected_id"] > 0
     assert set(summary["objects"]) == {"cyl1", "cyl2"}
     assert "ESTOP" in done.stdout and "close" in done.stdout
 
 
-def test_truncated_file_is_summarised_and_rerun_as_far_as_it_goes(recorded: Recorded,
-                                                                  tmp_path: Path) -> None:
+def test_truncated_file_is_summarised_and_rerun_as_far_as_it_goes(
+    recorded: Recorded, tmp_path: Path
+) -> None:
     data = recorded.path.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) * 2 // 3])
@@ -297,10 +344,13 @@ def test_truncated_file_is_summarised_and_rerun_as_far_as_it_goes(recorded: Reco
 
 
 # -- frames out -------------------------------------------------------------------------------
-@pytest.mark.parametrize(("fmt", "reader"), [("candump", can.CanutilsLogReader),
-                                             ("asc", can.ASCReader), ("blf", can.BLFReader)])
-def test_export_reads_back_with_python_can(recorded: Recorded, tmp_path: Path, fmt: str,
-                                           reader: Any) -> None:
+@pytest.mark.parametrize(
+    ("fmt", "reader"),
+    [("candump", can.CanutilsLogReader), ("asc", can.ASCReader), ("blf", can.BLFReader)],
+)
+def test_export_reads_back_with_python_can(
+    recorded: Recorded, tmp_path: Path, fmt: str, reader: Any
+) -> None:
     out = tmp_path / f"frames.{fmt if fmt != 'candump' else 'log'}"
     done = handctl("replay", str(recorded.path), "--export", fmt, str(out))
     assert done.returncode == 0, done.stderr
@@ -311,8 +361,9 @@ def test_export_reads_back_with_python_can(recorded: Recorded, tmp_path: Path, f
         assert [rx for *_, rx in back] == [rx for *_, rx in logged]
 
 
-def test_to_bus_sends_every_frame_with_its_spacing(recorded: Recorded, hand: HandConfig,
-                                                   channel: str) -> None:
+def test_to_bus_sends_every_frame_with_its_spacing(
+    recorded: Recorded, hand: HandConfig, channel: str
+) -> None:
     recording = open_recording(recorded.path)
     logged = list(logged_frames(recording))
     now = [0.0]
@@ -363,10 +414,23 @@ def test_rerun_of_a_log_without_the_channels_is_exit_2(tmp_path: Path) -> None:
 def test_rerun_refuses_a_log_with_drops(hand: HandConfig, tmp_path: Path) -> None:
     from handctl.recording.ring import RingLayout
 
-    tiny = RingLayout(hand.n_joints, len(hand.fingers), 2, tick_capacity=16, frame_capacity=64,
-                      event_capacity=8, pose_capacity=4)
-    run = record_run(hand, short_recipe(hand, tmp_path), tmp_path / "tiny.mcap",
-                     troubles=False, layout=tiny, pause_writer=True)
+    tiny = RingLayout(
+        hand.n_joints,
+        len(hand.fingers),
+        2,
+        tick_capacity=16,
+        frame_capacity=64,
+        event_capacity=8,
+        pose_capacity=4,
+    )
+    run = record_run(
+        hand,
+        short_recipe(hand, tmp_path),
+        tmp_path / "tiny.mcap",
+        troubles=False,
+        layout=tiny,
+        pause_writer=True,
+    )
     done = handctl("replay", str(run.path), "--rerun")
     assert done.returncode == 2
     assert str(run.path) in done.stderr and "dropped" in done.stderr
@@ -384,8 +448,12 @@ def test_rerun_of_a_run_with_the_object_estimator(tmp_path: Path) -> None:
     """A recipe with objects runs with the estimator: the re-run sets it up the same way and
     feeds it the same angles, so even its tracking state comes out the same."""
     recipe = tmp_path / "with_objects.yaml"
-    recipe.write_text(SHORT.replace("phases:", "objects:\n  - {name: cyl1, radius: 0.020}\n"
-                                               "  - {name: cyl2, radius: 0.020}\nphases:"))
+    recipe.write_text(
+        SHORT.replace(
+            "phases:",
+            "objects:\n  - {name: cyl1, radius: 0.020}\n  - {name: cyl2, radius: 0.020}\nphases:",
+        )
+    )
     log = tmp_path / "objects.mcap"
     done = handctl("run", "recipe", str(recipe), "--log", str(log))
     # a short hold lifts nothing: with objects declared, that is a failed experiment (exit 1)
@@ -396,8 +464,9 @@ def test_rerun_of_a_run_with_the_object_estimator(tmp_path: Path) -> None:
     assert report.ok and report.compared > 500, report.as_dict()
 
 
-def test_the_replay_bus_is_a_frame_bus_whose_taps_hear_the_run(hand: HandConfig,
-                                                                channel: str) -> None:
+def test_the_replay_bus_is_a_frame_bus_whose_taps_hear_the_run(
+    hand: HandConfig, channel: str
+) -> None:
     """ReplayBus stands in for HandBus through the protocol the driver types against
     (``FrameBus``; mypy checks the signatures), without python-can, and a recorder's taps
     hear from it what they would hear from a HandBus."""
@@ -411,14 +480,27 @@ def test_the_replay_bus_is_a_frame_bus_whose_taps_hear_the_run(hand: HandConfig,
     replay.tap = lambda frame_id, data, direction: heard.append(("tx", frame_id, direction))
     replay.rx_tap = lambda frames: heard.append(("rx", [f.arbitration_id for f in frames]))
     replay.event_tap = lambda event: heard.append(("event", event.kind))
-    replay.load(0, TickInput(0, 0, 0, 0, rx=[Frame(0x181, bytes(8))],
-                             tx=[(0x201, b"\x01", True), (0x202, b"\x02", False)],
-                             bus_events=[BusEvent(BusEventKind.TX_QUEUE_FULL, "full", 0)]))
+    replay.load(
+        0,
+        TickInput(
+            0,
+            0,
+            0,
+            0,
+            rx=[Frame(0x181, bytes(8))],
+            tx=[(0x201, b"\x01", True), (0x202, b"\x02", False)],
+            bus_events=[BusEvent(BusEventKind.TX_QUEUE_FULL, "full", 0)],
+        ),
+    )
     assert [f.arbitration_id for f in replay.drain()] == [0x181]
     assert replay.send(0x201, b"\x01") is True
     assert replay.send(0x202, b"\x02") is False  # as the bus answered in the run
     assert [e.kind for e in replay.events()] == [BusEventKind.TX_QUEUE_FULL]
-    assert heard == [("rx", [0x181]), ("tx", 0x201, TAP_TX), ("tx", 0x202, TAP_TX_FAILED),
-                     ("event", BusEventKind.TX_QUEUE_FULL)]
+    assert heard == [
+        ("rx", [0x181]),
+        ("tx", 0x201, TAP_TX),
+        ("tx", 0x202, TAP_TX_FAILED),
+        ("event", BusEventKind.TX_QUEUE_FULL),
+    ]
     assert replay.flush() is True
     assert (replay.sent, replay.tx_failed, replay.frame_mismatches) == (1, 1, [])

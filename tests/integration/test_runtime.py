@@ -62,15 +62,24 @@ INJECT_TIMES = {"tdt_stuck": 0.15}
 SCENARIOS = [
     ("node_silent", lambda: inj.NodeSilent(node=2), FaultCode.FEEDBACK_TIMEOUT),
     ("drop_feedback", lambda: inj.DropFeedback(node=1), FaultCode.FEEDBACK_TIMEOUT),
-    ("corrupt_heartbeat", lambda: inj.CorruptCrc(node=3, message="heartbeat"),
-     FaultCode.HEARTBEAT_LOST),
-    ("counter_repeat", lambda: inj.CounterRepeat(node=1, message="feedback"),
-     FaultCode.FEEDBACK_TIMEOUT),
+    (
+        "corrupt_heartbeat",
+        lambda: inj.CorruptCrc(node=3, message="heartbeat"),
+        FaultCode.HEARTBEAT_LOST,
+    ),
+    (
+        "counter_repeat",
+        lambda: inj.CounterRepeat(node=1, message="feedback"),
+        FaultCode.FEEDBACK_TIMEOUT,
+    ),
     ("tdt_stuck", lambda: inj.TdtStuck(node=1, joint=1), FaultCode.TDT_STUCK),
     ("tdt_offset", lambda: inj.TdtOffset(node=3, joint=2, offset=0.3), FaultCode.TDT_MISMATCH),
     ("tendon_slack", lambda: inj.TendonSlack(node=2, joint=1), FaultCode.TDT_MISMATCH),
-    ("motor_saturation", lambda: inj.MotorSaturation(node=1, joint=1, limit=0.01),
-     FaultCode.TDT_MISMATCH),
+    (
+        "motor_saturation",
+        lambda: inj.MotorSaturation(node=1, joint=1, limit=0.01),
+        FaultCode.TDT_MISMATCH,
+    ),
     ("node_reboot", lambda: inj.NodeReboot(node=2, downtime=0.02), FaultCode.FEEDBACK_TIMEOUT),
     ("drop_commands", lambda: inj.DropCommands(node=3, count=15), FaultCode.NODE_FAULT),
     ("encoder_jump", lambda: inj.EncoderJump(node=1, joint=2, counts=4000), FaultCode.NODE_FAULT),
@@ -80,8 +89,9 @@ SCENARIOS = [
 
 
 @pytest.mark.parametrize(("name", "make", "code"), SCENARIOS, ids=[s[0] for s in SCENARIOS])
-def test_fault_is_detected_stopped_and_latched(hand: HandConfig, hold: Recipe, name: str,
-                                               make: object, code: FaultCode) -> None:
+def test_fault_is_detected_stopped_and_latched(
+    hand: HandConfig, hold: Recipe, name: str, make: object, code: FaultCode
+) -> None:
     with rig(hand, hold) as r:
         at = INJECT_TIMES.get(name, INJECT_AT)
         r.sim.faults.add(make(), at)  # type: ignore[operator]
@@ -98,8 +108,8 @@ def test_fault_is_detected_stopped_and_latched(hand: HandConfig, hold: Recipe, n
         row = first.tick - r.runtime.first_send_tick
         assert np.abs(wire[row - 1]).max() > 0.01  # torque was flowing before
         if FAULTS[first.code].category is StopCategory.IMMEDIATE:
-            assert not np.any(wire[row:row + 3][-1]), "not zero within 2 ticks"
-            assert not np.any(wire[row + 2:])
+            assert not np.any(wire[row : row + 3][-1]), "not zero within 2 ticks"
+            assert not np.any(wire[row + 2 :])
         else:
             ramp = np.abs(wire[row:]).max(axis=1)
             assert np.all(np.diff(ramp) <= 1e-4), "the ramp must only go down"
@@ -110,11 +120,11 @@ def test_fault_is_detected_stopped_and_latched(hand: HandConfig, hold: Recipe, n
         assert all(n.state != NodeState.ENABLED or not any(n.applied) for n in r.sim.nodes)
 
 
-def test_operator_estop_then_explicit_reset_ramps_from_zero(hand: HandConfig,
-                                                           hold: Recipe) -> None:
+def test_operator_estop_then_explicit_reset_ramps_from_zero(hand: HandConfig, hold: Recipe) -> None:
     with rig(hand, hold) as r:
         r.runtime.tick_hooks.append(
-            lambda tk: r.runtime.request_estop("test") if tk.tick == 900 else None)
+            lambda tk: r.runtime.request_estop("test") if tk.tick == 900 else None
+        )
         result = r.run()
         assert result.outcome is Outcome.SAFETY_STOP
         assert result.faults[0].code is FaultCode.ESTOP
@@ -170,8 +180,9 @@ def test_angle_limit_is_a_ramp_stop(hand: HandConfig, tmp_path: Path) -> None:
     assert "f1_j1" in result.faults[0].detail
 
 
-def test_startup_refuses_nodes_in_fault_without_explicit_reset(hand: HandConfig,
-                                                              hold: Recipe) -> None:
+def test_startup_refuses_nodes_in_fault_without_explicit_reset(
+    hand: HandConfig, hold: Recipe
+) -> None:
     with rig(hand, hold) as r:
         # The nodes latched an e-stop before the host started (say, in an earlier session).
         r.sim.faults.add(inj.Babble(id=0x000, per_tick=1, length=3), 0.0, 0.01)
@@ -190,8 +201,9 @@ def test_startup_refuses_nodes_in_fault_without_explicit_reset(hand: HandConfig,
         assert result.outcome is Outcome.COMPLETED, result.message
 
 
-def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Recipe,
-                                                      channel: str) -> None:
+def test_a_dead_host_is_stopped_by_the_node_watchdogs(
+    hand: HandConfig, hold: Recipe, channel: str
+) -> None:
     """The runtime freezes without any clean-up while the simulated hand runs free on its own
     timer: the nodes' 10 ms command watchdogs must zero the torque on their own.
 
@@ -210,16 +222,17 @@ def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Re
 
     def attempt(name: str) -> tuple[dict[str, object], str]:
         seen: dict[str, object] = {}
-        with open_bus(f"virtual:{name}", hand.bus) as peer, \
-                open_bus(f"virtual:{name}", hand.bus) as host:
+        with (
+            open_bus(f"virtual:{name}", hand.bus) as peer,
+            open_bus(f"virtual:{name}", hand.bus) as host,
+        ):
             sim = SimulatedHand(hand, peer, seed=1)
             clock = RealtimeClock(hand.bus.period_s)
             runtime = Runtime(hand, HandDriver(hand, load_protocol(), host), clock, hold)
 
             def freeze(tick: object) -> None:
                 flowing = any(any(n.applied) for n in sim.nodes)
-                if runtime.supervisor.state is not State.RUNNING or "torque" in seen \
-                        or not flowing:
+                if runtime.supervisor.state is not State.RUNNING or "torque" in seen or not flowing:
                     return
                 seen["torque"] = [list(n.applied) for n in sim.nodes]
                 # The host is dead for 30 of the hand's own 1 ms ticks (not 30 ms of wall

@@ -52,16 +52,24 @@ def running(hand: HandConfig, channel: str) -> Iterator[tuple[SimulatedHand, Sim
         yield sim, host
 
 
-def window(host: SimHost, injector: Injector, before: int = 10, during: int = 20,
-           after: int = 20, tau: list[float] | None = TAU) -> Window:
+def window(
+    host: SimHost,
+    injector: Injector,
+    before: int = 10,
+    during: int = 20,
+    after: int = 20,
+    tau: list[float] | None = TAU,
+) -> Window:
     """Schedule ``injector`` for ``during`` ticks starting ``before`` ticks from now; return
     what the host heard before, during and after."""
     k0 = host.sim.ticks + before
     host.sim.faults.add(injector, start=k0 / 1000, stop=(k0 + during) / 1000)
     heard = host.run(before + during + after, tau)
-    return ([h for h in heard if h.tick <= k0],
-            [h for h in heard if k0 < h.tick <= k0 + during],
-            [h for h in heard if h.tick > k0 + during])
+    return (
+        [h for h in heard if h.tick <= k0],
+        [h for h in heard if k0 < h.tick <= k0 + during],
+        [h for h in heard if h.tick > k0 + during],
+    )
 
 
 def counters(frames: list[Heard]) -> list[int]:
@@ -81,7 +89,8 @@ def test_drop_commands_starves_the_watchdog(running: tuple[SimulatedHand, SimHos
 
 
 def test_a_few_dropped_commands_cost_one_counter_reject(
-        running: tuple[SimulatedHand, SimHost]) -> None:
+    running: tuple[SimulatedHand, SimHost],
+) -> None:
     sim, host = running
     window(host, DropCommands(node=2, count=3), during=5)
     node = sim.nodes[1]
@@ -94,7 +103,7 @@ def test_drop_feedback(running: tuple[SimulatedHand, SimHost]) -> None:
     pre, mid, post = window(host, DropFeedback(node=2))
     assert host.of("Feedback", 2, mid) == []
     assert len(host.of("Feedback", 1, mid)) == 20
-    gap = (counters(host.of("Feedback", 2, post))[0] - counters(host.of("Feedback", 2, pre))[-1])
+    gap = counters(host.of("Feedback", 2, post))[0] - counters(host.of("Feedback", 2, pre))[-1]
     assert gap & 0xFF == 21  # the node went on counting: the host sees a skip
 
 
@@ -149,8 +158,7 @@ def test_tdt_stuck(running: tuple[SimulatedHand, SimHost]) -> None:
 
 def test_tdt_spike(running: tuple[SimulatedHand, SimHost]) -> None:
     sim, host = running
-    pre, mid, _ = window(host, TdtSpike(node=2, joint=1, amplitude=0.5, duration=0.002),
-                         during=10)
+    pre, mid, _ = window(host, TdtSpike(node=2, joint=1, amplitude=0.5, duration=0.002), during=10)
     base = torque(host.of("Feedback", 2, pre), 1)[-1]
     during = torque(host.of("Feedback", 2, mid), 1)
     assert [abs(v - base) > 0.4 for v in during] == [True, True] + [False] * 8
@@ -232,8 +240,7 @@ def test_babble(running: tuple[SimulatedHand, SimHost]) -> None:
     assert all(n.state == NodeState.ENABLED for n in sim.nodes)
 
 
-def test_babble_on_the_estop_id_stops_every_node(
-        running: tuple[SimulatedHand, SimHost]) -> None:
+def test_babble_on_the_estop_id_stops_every_node(running: tuple[SimulatedHand, SimHost]) -> None:
     sim, host = running
     window(host, Babble(id=0x000, per_tick=1, length=8), during=1, after=2)
     assert all(n.state == NodeState.FAULT and n.fault_bits & 0x02 for n in sim.nodes)

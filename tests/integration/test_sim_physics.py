@@ -23,8 +23,10 @@ def params(hand: HandConfig) -> SimParams:
 
 def _far_objects(params: SimParams, table: float) -> SimParams:
     """The cylinders moved aside onto a table at ``table``, out of the fingers' reach."""
-    objects = tuple(dataclasses.replace(o, x=math.copysign(0.3, o.x), y=table + o.radius)
-                    for o in params.objects)
+    objects = tuple(
+        dataclasses.replace(o, x=math.copysign(0.3, o.x), y=table + o.radius)
+        for o in params.objects
+    )
     return dataclasses.replace(params, table_height=table, objects=objects)
 
 
@@ -33,21 +35,23 @@ def test_scene_starts_without_finger_contact(hand: HandConfig, params: SimParams
     links = set(hand.joint_names)
     assert all(not links & set(pair) for pair in plant.contact_pairs())
     # no contact pair between two finger links exists at all: fingers never collide
-    names = [(mujoco.mj_id2name(plant.model, mujoco.mjtObj.mjOBJ_GEOM, int(a)),
-              mujoco.mj_id2name(plant.model, mujoco.mjtObj.mjOBJ_GEOM, int(b)))
-             for a, b in zip(plant.model.pair_geom1, plant.model.pair_geom2, strict=True)]
+    names = [
+        (
+            mujoco.mj_id2name(plant.model, mujoco.mjtObj.mjOBJ_GEOM, int(a)),
+            mujoco.mj_id2name(plant.model, mujoco.mjtObj.mjOBJ_GEOM, int(b)),
+        )
+        for a, b in zip(plant.model.pair_geom1, plant.model.pair_geom2, strict=True)
+    ]
     assert not [p for p in names if p[0] in links and p[1] in links]
     # each pair carries the friction of its kind
-    mu = {frozenset(p): float(f[0])
-          for p, f in zip(names, plant.model.pair_friction, strict=True)}
+    mu = {frozenset(p): float(f[0]) for p, f in zip(names, plant.model.pair_friction, strict=True)}
     assert mu[frozenset(("f1_j3", "cyl1"))] == params.friction.finger_object
     assert mu[frozenset(("cyl1", "cyl2"))] == params.friction.object_object
     assert mu[frozenset(("cyl2", "table"))] == params.friction.object_table
     assert mu[frozenset(("f3_j1", "palm"))] == params.friction.finger_palm
 
 
-def test_dropped_cylinder_comes_to_rest_on_the_table(hand: HandConfig,
-                                                     params: SimParams) -> None:
+def test_dropped_cylinder_comes_to_rest_on_the_table(hand: HandConfig, params: SimParams) -> None:
     p = _far_objects(params, params.table_height)
     dropped = dataclasses.replace(p.objects[0], y=p.objects[0].y + 0.03)
     plant = Plant(hand, dataclasses.replace(p, objects=(dropped, *p.objects[1:])))
@@ -56,9 +60,10 @@ def test_dropped_cylinder_comes_to_rest_on_the_table(hand: HandConfig,
     pose = plant.object_poses()[0]
     assert pose.y == pytest.approx(p.table_height + dropped.radius, abs=1e-3)
     assert abs(pose.x - dropped.x) < 1e-3
-    adr = plant.model.jnt_dofadr[mujoco.mj_name2id(plant.model, mujoco.mjtObj.mjOBJ_JOINT,
-                                                   "cyl1_x")]
-    assert np.abs(plant.data.qvel[adr: adr + 3]).max() < 1e-3
+    adr = plant.model.jnt_dofadr[
+        mujoco.mj_name2id(plant.model, mujoco.mjtObj.mjOBJ_JOINT, "cyl1_x")
+    ]
+    assert np.abs(plant.data.qvel[adr : adr + 3]).max() < 1e-3
 
 
 def test_fingers_fall_the_way_gravity_says(hand: HandConfig, params: SimParams) -> None:
@@ -81,10 +86,12 @@ def test_fingers_fall_the_way_gravity_says(hand: HandConfig, params: SimParams) 
     assert np.abs(gravity_torques(hand, p, plant.joint_angles)).max() < 5e-4
 
 
-def test_tdt_follows_the_command_through_both_lags(hand: HandConfig, channel: str,
-                                                   params: SimParams) -> None:
-    clean = dataclasses.replace(params, tdt=dataclasses.replace(
-        params.tdt, noise=0.0, bias=0.0, resolution=0.0))
+def test_tdt_follows_the_command_through_both_lags(
+    hand: HandConfig, channel: str, params: SimParams
+) -> None:
+    clean = dataclasses.replace(
+        params, tdt=dataclasses.replace(params.tdt, noise=0.0, bias=0.0, resolution=0.0)
+    )
     tau = [0.2, 0.12, 0.06, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     with sim_and_host(hand, channel, params=clean) as (sim, host):
         sim.plant.hold_objects(True)
@@ -108,8 +115,9 @@ def test_tdt_follows_the_command_through_both_lags(hand: HandConfig, channel: st
     assert readings[-1] == pytest.approx(tau[0], abs=2e-4)  # ...and it settles on the torque
 
 
-def test_noisy_tdt_matches_the_applied_torque(hand: HandConfig, channel: str,
-                                              params: SimParams) -> None:
+def test_noisy_tdt_matches_the_applied_torque(
+    hand: HandConfig, channel: str, params: SimParams
+) -> None:
     tau = [0.15, -0.1, 0.08, 0.1, 0.1, 0.1, -0.2, -0.1, -0.05]
     with sim_and_host(hand, channel) as (sim, host):
         sim.plant.hold_objects(True)

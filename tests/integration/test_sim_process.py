@@ -27,8 +27,9 @@ def _wait_for(condition: Callable[[], bool], timeout_s: float = 60.0) -> None:
         time.sleep(0.05)
 
 
-def test_its_progress_goes_to_a_log_file_not_an_unread_pipe(hand: HandConfig,
-                                                            tmp_path: Path) -> None:
+def test_its_progress_goes_to_a_log_file_not_an_unread_pipe(
+    hand: HandConfig, tmp_path: Path
+) -> None:
     """A pipe nobody reads fills after some ten minutes of progress lines and then blocks the
     hand mid-run; a file never does."""
     with SimProcess(_request(hand), str(tmp_path)) as sim:
@@ -39,8 +40,9 @@ def test_its_progress_goes_to_a_log_file_not_an_unread_pipe(hand: HandConfig,
     assert sim.problem() == ""
 
 
-def test_a_hand_that_dies_is_reported_with_the_end_of_its_log(hand: HandConfig,
-                                                              tmp_path: Path) -> None:
+def test_a_hand_that_dies_is_reported_with_the_end_of_its_log(
+    hand: HandConfig, tmp_path: Path
+) -> None:
     with SimProcess(_request(hand), str(tmp_path)) as sim:
         _wait_for(lambda: sim.log_path.exists() and "t=" in sim.log_path.read_text())
         sim.proc.send_signal(signal.SIGKILL)
@@ -51,8 +53,9 @@ def test_a_hand_that_dies_is_reported_with_the_end_of_its_log(hand: HandConfig,
     assert "t=" in problem  # the last progress line it wrote
 
 
-def test_it_stops_on_sigint_even_when_started_with_sigint_ignored(hand: HandConfig,
-                                                                  tmp_path: Path) -> None:
+def test_it_stops_on_sigint_even_when_started_with_sigint_ignored(
+    hand: HandConfig, tmp_path: Path
+) -> None:
     """A host started as a background job of a script has SIGINT ignored, and its children
     inherit that; the host stops its hand with SIGINT, so the hand must listen anyway (else it
     is killed after 10 s and its summary is lost)."""

@@ -46,6 +46,7 @@ def _geom(plant: Plant, gid: int) -> str:
 
 # -- four fingers of four joints ------------------------------------------------------------
 
+
 @pytest.fixture
 def four() -> HandConfig:
     return load_hand(FOUR_BY_FOUR)
@@ -63,8 +64,9 @@ def test_four_by_four_hand_is_built_from_its_config(four: HandConfig) -> None:
             assert plant.model.geom_size[gid][0] == pytest.approx(joint.half_thickness)
             # the capsule spans its own link length: the next body sits at its end
             if k + 1 < len(finger.joints):
-                bid = mujoco.mj_name2id(plant.model, mujoco.mjtObj.mjOBJ_BODY,
-                                        finger.joints[k + 1].name)
+                bid = mujoco.mj_name2id(
+                    plant.model, mujoco.mjtObj.mjOBJ_BODY, finger.joints[k + 1].name
+                )
                 assert plant.model.body_pos[bid][0] == pytest.approx(joint.link_length)
     limits = plant.model.actuator_forcerange[:, 1]
     assert list(limits) == pytest.approx(params.motor_tau_max)
@@ -90,7 +92,8 @@ def test_each_joint_of_the_four_by_four_hand_turns_with_its_torque(four: HandCon
 
 
 def test_four_by_four_cylinder_rests_then_is_closed_on_by_every_finger(
-        four: HandConfig, tmp_path: Path) -> None:
+    four: HandConfig, tmp_path: Path
+) -> None:
     params = parse_sim(four)
     plant = Plant(four, params)
     for _ in range(300):
@@ -105,14 +108,16 @@ def test_four_by_four_cylinder_rests_then_is_closed_on_by_every_finger(
     touching: set[str] = set()
     for _ in range(1500):
         plant.step()
-        touching |= {a if b == start.name else b for a, b in plant.contact_pairs()
-                     if start.name in (a, b)}
+        touching |= {
+            a if b == start.name else b for a, b in plant.contact_pairs() if start.name in (a, b)
+        }
     fingers = {f.name for f in four.fingers if touching & {j.name for j in f.joints}}
     assert fingers == {f.name for f in four.fingers}
     assert draw_scene(plant, tmp_path / "four.png").stat().st_size > 0
 
 
 # -- fingers of any joint count and length --------------------------------------------------
+
 
 def _odd_hand(counts: tuple[int, ...], between_fingers: bool = False) -> dict[str, Any]:
     """A hand config (as loaded YAML) with one finger per entry of ``counts`` joints, each
@@ -125,20 +130,39 @@ def _odd_hand(counts: tuple[int, ...], between_fingers: bool = False) -> dict[st
         name = f"finger{i}"
         joints = []
         for k in range(n):
-            joints.append({"name": f"{name}_joint{k}", "link_length": 0.06 - 0.007 * k + 0.004 * i,
-                           "tau_max": 0.5, "device_tau_max": 0.6, "rate_limit": 20.0,
-                           "angle_min": -1.5, "angle_max": 1.5,
-                           "tdt": {"scale": 1.0, "offset": 0.0}})
+            joints.append(
+                {
+                    "name": f"{name}_joint{k}",
+                    "link_length": 0.06 - 0.007 * k + 0.004 * i,
+                    "tau_max": 0.5,
+                    "device_tau_max": 0.6,
+                    "rate_limit": 20.0,
+                    "angle_min": -1.5,
+                    "angle_max": 1.5,
+                    "tdt": {"scale": 1.0, "offset": 0.0},
+                }
+            )
         n_id = i + 1
-        fingers.append({"name": name, "node_id": n_id,
-                        "can_ids": {"node_command": 0x010 + n_id, "torque_command": 0x100 + n_id,
-                                    "feedback": 0x180 + n_id, "status": 0x280 + n_id,
-                                    "heartbeat": 0x700 + n_id},
-                        "base": {"x": -0.06 + 0.04 * i, "y": 0.0, "angle": -math.pi / 2},
-                        "z": 0.03 * (i % 2) - 0.015, "joints": joints})
-        sim_links[name] = [{"radius": 0.004 + 0.001 * k + 0.0005 * i,
-                            "mass": 0.01 + 0.005 * (k + i)}
-                           for k in range(n)]
+        fingers.append(
+            {
+                "name": name,
+                "node_id": n_id,
+                "can_ids": {
+                    "node_command": 0x010 + n_id,
+                    "torque_command": 0x100 + n_id,
+                    "feedback": 0x180 + n_id,
+                    "status": 0x280 + n_id,
+                    "heartbeat": 0x700 + n_id,
+                },
+                "base": {"x": -0.06 + 0.04 * i, "y": 0.0, "angle": -math.pi / 2},
+                "z": 0.03 * (i % 2) - 0.015,
+                "joints": joints,
+            }
+        )
+        sim_links[name] = [
+            {"radius": 0.004 + 0.001 * k + 0.0005 * i, "mass": 0.01 + 0.005 * (k + i)}
+            for k in range(n)
+        ]
         motors[name] = [1.0] * n
         initial[name] = [0.3 * (-1) ** i] + [0.05 * (-1) ** i] * (n - 1)
     sim = copy.deepcopy(_SIM)
@@ -150,21 +174,38 @@ def _odd_hand(counts: tuple[int, ...], between_fingers: bool = False) -> dict[st
     sim["contact"]["between_fingers"] = between_fingers
     if between_fingers:
         sim["friction"]["finger_finger"] = 0.6
-    return {"name": "odd", "bus": {"interface": "virtual", "channel": "odd", "fd": True,
-                                   "bitrate": 1_000_000, "data_bitrate": 5_000_000,
-                                   "loop_rate_hz": 1000},
-            "fingers": fingers, "sim": sim}
+    return {
+        "name": "odd",
+        "bus": {
+            "interface": "virtual",
+            "channel": "odd",
+            "fd": True,
+            "bitrate": 1_000_000,
+            "data_bitrate": 5_000_000,
+            "loop_rate_hz": 1000,
+        },
+        "fingers": fingers,
+        "sim": sim,
+    }
 
 
 _SIM: dict[str, Any] = {
-    "seed": 0, "timestep": 0.001, "gravity": 9.81, "table": {"height": -0.5},
+    "seed": 0,
+    "timestep": 0.001,
+    "gravity": 9.81,
+    "table": {"height": -0.5},
     "palm": {"half_width": 0.01, "thickness": 0.02},
     "joints": {"damping": 0.01, "frictionloss": 0.0, "armature": 5e-5, "stop_margin": 0.1},
     "actuator": {"lag": 0.005},
-    "objects": [{"name": "ball", "radius": 0.03, "length": 0.1, "mass": 0.05,
-                 "x": 0.0, "y": -0.1}],
-    "friction": {"finger_object": 0.8, "object_object": 0.3, "object_table": 0.4,
-                 "object_palm": 0.5, "finger_table": 0.5, "finger_palm": 0.5},
+    "objects": [{"name": "ball", "radius": 0.03, "length": 0.1, "mass": 0.05, "x": 0.0, "y": -0.1}],
+    "friction": {
+        "finger_object": 0.8,
+        "object_object": 0.3,
+        "object_table": 0.4,
+        "object_palm": 0.5,
+        "finger_table": 0.5,
+        "finger_palm": 0.5,
+    },
     "contact": {"timeconst": 0.004, "dampratio": 1.0},
     "tdt": {"noise": 0.0, "bias": 0.0, "lag": 0.002, "resolution": 0.0005, "range": 3.0},
     "encoder": {"counts_per_rev": 16384, "max_step": 0.2},
@@ -176,8 +217,7 @@ def _load(data: dict[str, Any]) -> HandConfig:
 
 
 @pytest.mark.parametrize("counts", [(1, 6), (2, 5, 3), (4, 1, 2, 6)])
-def test_fingers_of_any_joint_count_hang_as_their_own_links_weigh(
-        counts: tuple[int, ...]) -> None:
+def test_fingers_of_any_joint_count_hang_as_their_own_links_weigh(counts: tuple[int, ...]) -> None:
     """MuJoCo's gravity torques agree with planar statics written independently, link by link:
     each link's own mass and length reach the model, whatever the finger's joint count."""
     hand = _load(_odd_hand(counts))
@@ -193,6 +233,7 @@ def test_fingers_of_any_joint_count_hang_as_their_own_links_weigh(
 
 # -- finger-finger contact ------------------------------------------------------------------
 
+
 def _aside(params: SimParams) -> SimParams:
     """The objects moved far along the table, out of the fingers' way (past the checks)."""
     objects = tuple(dataclasses.replace(o, x=math.copysign(0.5, o.x)) for o in params.objects)
@@ -202,13 +243,18 @@ def _aside(params: SimParams) -> SimParams:
 @pytest.mark.parametrize("between_fingers", [True, False])
 def test_opposing_fingers_meet_only_where_contact_is_asked_for(between_fingers: bool) -> None:
     hand = load_hand(PLANAR)
-    params = _aside(dataclasses.replace(parse_sim(hand), between_fingers=between_fingers,
-                                        finger_finger_friction=0.5))
+    params = _aside(
+        dataclasses.replace(
+            parse_sim(hand), between_fingers=between_fingers, finger_finger_friction=0.5
+        )
+    )
     plant = Plant(hand, params)
     left = {j.name for j in hand.fingers[0].joints}
     right = {j.name for j in hand.fingers[1].joints}
-    pairs = {frozenset((_geom(plant, int(a)), _geom(plant, int(b))))
-             for a, b in zip(plant.model.pair_geom1, plant.model.pair_geom2, strict=True)}
+    pairs = {
+        frozenset((_geom(plant, int(a)), _geom(plant, int(b))))
+        for a, b in zip(plant.model.pair_geom1, plant.model.pair_geom2, strict=True)
+    }
     between = {p for p in pairs if p & left and p & right}
     assert len(between) == (len(left) * len(right) if between_fingers else 0)
     # both fingers curl in hard: their distal links reach the middle together
@@ -217,8 +263,7 @@ def test_opposing_fingers_meet_only_where_contact_is_asked_for(between_fingers: 
     crossed = False
     for _ in range(1500):
         plant.step()
-        met |= any(bool({a, b} & left and {a, b} & right)
-                   for a, b in plant.contact_pairs())
+        met |= any(bool({a, b} & left and {a, b} & right) for a, b in plant.contact_pairs())
         crossed |= plant.fingertip(0)[0] > plant.fingertip(1)[0]
     assert met is between_fingers
     assert crossed is not between_fingers  # without contact the fingers pass through
@@ -239,16 +284,21 @@ phases:
 
 
 def _handctl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT, text=True,
-                          capture_output=True, timeout=timeout, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=timeout,
+        check=False,
+    )
 
 
 def test_planar_hand_closes_on_its_two_cylinders_in_lockstep(tmp_path: Path) -> None:
     recipe = tmp_path / "close.yaml"
     recipe.write_text(CLOSE)
     out = tmp_path / "out.json"
-    done = _handctl("run", "recipe", str(recipe), "--hand", str(PLANAR), "--summary-json",
-                    str(out))
+    done = _handctl("run", "recipe", str(recipe), "--hand", str(PLANAR), "--summary-json", str(out))
     assert done.returncode == 0, done.stderr
     summary = json.loads(out.read_text())
     assert summary["completed"] is True and summary["hand"] == "planar_2f2j"
@@ -265,9 +315,26 @@ def planar_sim(tmp_path: Path) -> Iterator[tuple[str, subprocess.Popen[str], Pat
     """``handctl sim`` of the planar hand on a unix bus, in a process of its own."""
     spec = f"unix:{tmp_path / 'bus'}"
     truth = tmp_path / "truth.json"
-    proc = subprocess.Popen([sys.executable, "-m", "handctl", "sim", "--hand", str(PLANAR),
-                             "--bus", spec, "--seconds", "60", "--summary-json", str(truth)],
-                            cwd=ROOT, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "sim",
+            "--hand",
+            str(PLANAR),
+            "--bus",
+            spec,
+            "--seconds",
+            "60",
+            "--summary-json",
+            str(truth),
+        ],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         yield spec, proc, truth
     finally:
@@ -277,14 +344,16 @@ def planar_sim(tmp_path: Path) -> Iterator[tuple[str, subprocess.Popen[str], Pat
 
 
 def test_planar_hand_runs_as_handctl_sim_and_answers_as_two_nodes(
-        planar_sim: tuple[str, subprocess.Popen[str], Path]) -> None:
+    planar_sim: tuple[str, subprocess.Popen[str], Path],
+) -> None:
     spec, proc, truth = planar_sim
     report: dict[str, Any] = {}
     # The simulated hand takes a moment to start; a loaded machine may also hold its timer
     # back for longer than a listening window: ask again rather than blame the hand.
     for _ in range(20):
-        done = _handctl("nodes", "--bus", spec, "--hand", str(PLANAR), "--json",
-                        "--seconds", "0.6", timeout=120)
+        done = _handctl(
+            "nodes", "--bus", spec, "--hand", str(PLANAR), "--json", "--seconds", "0.6", timeout=120
+        )
         report = json.loads(done.stdout) if done.stdout else {}
         if done.returncode == 0 and report.get("ok"):
             break
@@ -308,9 +377,11 @@ def test_a_scene_out_of_reach_is_bad_input_before_anything_runs(tmp_path: Path) 
     bad.write_text(PLANAR.read_text().replace("x: 0.0455, y: -0.105}", "x: 0.6, y: -0.105}"))
     recipe = tmp_path / "close.yaml"
     recipe.write_text(CLOSE)
-    for args in (["check", str(bad)],
-                 ["sim", "--bus", "virtual:far", "--seconds", "0.1", "--hand", str(bad)],
-                 ["run", "recipe", str(recipe), "--hand", str(bad)]):
+    for args in (
+        ["check", str(bad)],
+        ["sim", "--bus", "virtual:far", "--seconds", "0.1", "--hand", str(bad)],
+        ["run", "recipe", str(recipe), "--hand", str(bad)],
+    ):
         done = _handctl(*args, timeout=120)
         assert done.returncode == 2, done.stderr
         assert f"{bad}: sim.objects[1].x: expected a place within reach of a finger" in done.stderr
@@ -323,10 +394,14 @@ def test_the_drawing_holds_every_finger_stretched_out() -> None:
     straight = tuple((0.0,) * len(f.joints) for f in hand.fingers)
     stretched = dataclasses.replace(params, initial_angles=straight)
     for base_angle in (0.0, math.pi):  # every finger pointing sideways, out or in
-        turned = dataclasses.replace(hand, fingers=tuple(
-            dataclasses.replace(f, base_angle=base_angle) for f in hand.fingers))
-        ends = [abs(x) + link.radius for link in link_segments(turned, stretched)
-                for x in (link.x0, link.x1)]
+        turned = dataclasses.replace(
+            hand, fingers=tuple(dataclasses.replace(f, base_angle=base_angle) for f in hand.fingers)
+        )
+        ends = [
+            abs(x) + link.radius
+            for link in link_segments(turned, stretched)
+            for x in (link.x0, link.x1)
+        ]
         assert max(ends) > 0.2  # wider than a fixed frame would show
         assert scene_half_width(Plant(turned, stretched)) >= max(ends)
 
@@ -375,13 +450,16 @@ def test_the_papers_hand_at_its_own_scale_is_a_scene_too() -> None:
     data = copy.deepcopy(load_yaml(PLANAR).data)
     for finger in data["fingers"]:
         finger["base"] = {**finger["base"], "x": math.copysign(0.5, finger["base"]["x"])}
-        finger["joints"] = [{**joint, "link_length": 1.0, "half_thickness": 0.08}
-                            for joint in finger["joints"]]
+        finger["joints"] = [
+            {**joint, "link_length": 1.0, "half_thickness": 0.08} for joint in finger["joints"]
+        ]
     sim = data["sim"]
     sim.update(gravity=0.0, table={"height": -1.5}, palm={"half_width": 0.4, "thickness": 0.2})
     sim["links"] = {f["name"]: [{"radius": 0.08, "mass": 0.5}] * 2 for f in data["fingers"]}
-    sim["objects"] = [{"name": name, "radius": 0.45, "length": 0.8, "mass": 1.0, "x": x,
-                       "y": -1.05} for name, x in (("cylinder1", -0.455), ("cylinder2", 0.455))]
+    sim["objects"] = [
+        {"name": name, "radius": 0.45, "length": 0.8, "mass": 1.0, "x": x, "y": -1.05}
+        for name, x in (("cylinder1", -0.455), ("cylinder2", 0.455))
+    ]
     hand = parse_hand(Doc(data, "paper_scale.yaml", ""))
     params = parse_sim(hand)
     plant = Plant(hand, params)
@@ -394,5 +472,4 @@ def test_the_papers_hand_at_its_own_scale_is_a_scene_too() -> None:
         plant.step()
         touching |= {frozenset(p) for p in plant.contact_pairs()}
     assert any({"cylinder1", "left_j2"} <= p or {"cylinder1", "left_j1"} <= p for p in touching)
-    assert any({"cylinder2", "right_j2"} <= p or {"cylinder2", "right_j1"} <= p
-               for p in touching)
+    assert any({"cylinder2", "right_j2"} <= p or {"cylinder2", "right_j1"} <= p for p in touching)

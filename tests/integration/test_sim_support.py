@@ -52,8 +52,9 @@ class Heard:
 
 
 class SimHost:
-    def __init__(self, hand: HandConfig, bus: HandBus, sim: SimulatedHand,
-                 protocol: Protocol | None = None) -> None:
+    def __init__(
+        self, hand: HandConfig, bus: HandBus, sim: SimulatedHand, protocol: Protocol | None = None
+    ) -> None:
         self.hand = hand
         self.bus = bus
         self.sim = sim
@@ -78,7 +79,7 @@ class SimHost:
         offset = 0
         for finger in self.hand.fingers:
             n = len(finger.joints)
-            values = list(tau[offset: offset + n]) + [0.0] * (3 - n)
+            values = list(tau[offset : offset + n]) + [0.0] * (3 - n)
             self.send("TorqueCommand", finger.node_id, values)
             offset += n
 
@@ -113,8 +114,9 @@ class SimHost:
 
 
 @contextmanager
-def sim_and_host(hand: HandConfig, channel: str, seed: int | None = None,
-                 **kwargs: Any) -> Iterator[tuple[SimulatedHand, SimHost]]:
+def sim_and_host(
+    hand: HandConfig, channel: str, seed: int | None = None, **kwargs: Any
+) -> Iterator[tuple[SimulatedHand, SimHost]]:
     """A simulated hand and a host on a fresh virtual channel, closed afterwards."""
     host_bus = open_bus(f"virtual:{channel}", hand.bus)
     peer_bus = open_bus(f"virtual:{channel}", hand.bus)

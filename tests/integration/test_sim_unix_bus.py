@@ -38,8 +38,8 @@ def on_unix_bus(hand: HandConfig, tmp_path: Path) -> Iterator[tuple[SimulatedHan
 
 @pytest.mark.parametrize("ticks_per_read", [1, 2, MAX_CATCH_UP])
 def test_no_frame_of_the_hand_is_lost_to_a_babbling_node(
-        on_unix_bus: tuple[SimulatedHand, HandBus], protocol: Protocol,
-        ticks_per_read: int) -> None:
+    on_unix_bus: tuple[SimulatedHand, HandBus], protocol: Protocol, ticks_per_read: int
+) -> None:
     sim, host = on_unix_bus
     babble = Babble(id=0x050, per_tick=PER_TICK, length=8)
     sim.activate(babble)
@@ -54,5 +54,9 @@ def test_no_frame_of_the_hand_is_lost_to_a_babbling_node(
     assert sim.tx_failed == 0
     # every tick's frames, the babble's with the nodes', left as one datagram
     counts = sim.ground_truth_summary()["transport"]
-    assert counts == {"datagrams_sent": TICKS, "queue_full": 0, "frames_dropped": 0,
-                      "frames_held": 0}
+    assert counts == {
+        "datagrams_sent": TICKS,
+        "queue_full": 0,
+        "frames_dropped": 0,
+        "frames_held": 0,
+    }

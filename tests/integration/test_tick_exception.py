@@ -78,24 +78,42 @@ def bench(hand: HandConfig, recipe: Recipe, log: Path) -> Iterator[Bench]:
     """Host, simulated hand and a plain python-can listener on one private virtual channel;
     the run recorded the way ``handctl run recipe --log`` records one."""
     channel = f"tick-exception-{next(_channels)}"
-    listener = can.Bus(interface="virtual", channel=channel, receive_own_messages=False,
-                       protocol=can.CanProtocol.CAN_FD)
+    listener = can.Bus(
+        interface="virtual",
+        channel=channel,
+        receive_own_messages=False,
+        protocol=can.CanProtocol.CAN_FD,
+    )
     try:
-        with open_bus(f"virtual:{channel}", hand.bus) as peer, \
-                open_bus(f"virtual:{channel}", hand.bus) as host:
+        with (
+            open_bus(f"virtual:{channel}", hand.bus) as peer,
+            open_bus(f"virtual:{channel}", hand.bus) as host,
+        ):
             sim = SimulatedHand(hand, peer, seed=0)
             clock = LockstepClock(hand.bus.period_s, sim.step)
             driver = HandDriver(hand, load_protocol(), host, clock_ns=clock.now_ns)
             runtime = Runtime(hand, driver, clock, recipe, max_ticks=5000)
-            recorder = Recorder(log, hand, start_metadata(hand, recipe, ["test", "exception"]),
-                                phase_names=[p.name for p in recipe.phases])
+            recorder = Recorder(
+                log,
+                hand,
+                start_metadata(hand, recipe, ["test", "exception"]),
+                phase_names=[p.name for p in recipe.phases],
+            )
             with recorder:
                 runtime.recorder = recorder
                 recorder.attach(runtime)
-                recorder.add_metadata(ch.META_RUN, run_metadata(
-                    mode="lockstep", bus="virtual", seed=0, period_ns=1_000_000,
-                    startup_ticks=runtime.startup_ticks, reset_node_faults=False,
-                    estimator=False))
+                recorder.add_metadata(
+                    ch.META_RUN,
+                    run_metadata(
+                        mode="lockstep",
+                        bus="virtual",
+                        seed=0,
+                        period_ns=1_000_000,
+                        startup_ticks=runtime.startup_ticks,
+                        reset_node_faults=False,
+                        estimator=False,
+                    ),
+                )
                 recorder.wait_ready()
                 yield Bench(hand, sim, runtime, recorder, listener, log)
     finally:
@@ -152,8 +170,7 @@ def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:  
         assert rt.runner is not None
         mp.setattr(rt.runner, "advance", _wrap(due, stage, rt.runner.advance))
     elif stage == "supervisor":
-        mp.setattr(supervisor_module, "limit_torque",
-                   _wrap(due, stage, limit_torque))
+        mp.setattr(supervisor_module, "limit_torque", _wrap(due, stage, limit_torque))
     elif stage == "encode":
         layout = protocol.layout("TorqueCommand", BROKEN_NODE)
         mp.setattr(layout, "encode", _wrap(due, stage, layout.encode))
@@ -189,12 +206,20 @@ def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:  
         raise AssertionError(stage)
 
 
-STAGE_FAULTS = {"poll": FaultCode.POLL_EXCEPTION, "decode": FaultCode.DECODE_EXCEPTION,
-          "estimator": FaultCode.ESTIMATOR_EXCEPTION, "runner": FaultCode.RUNNER_EXCEPTION,
-          "supervisor": FaultCode.SUPERVISOR_EXCEPTION, "encode": FaultCode.ENCODE_EXCEPTION,
-          "send": FaultCode.SEND_EXCEPTION, "record": FaultCode.RECORD_EXCEPTION,
-          "hook": FaultCode.HOOK_EXCEPTION, "clock": FaultCode.CLOCK_EXCEPTION,
-          "status": FaultCode.STATUS_EXCEPTION, "accounting": FaultCode.STATUS_EXCEPTION}
+STAGE_FAULTS = {
+    "poll": FaultCode.POLL_EXCEPTION,
+    "decode": FaultCode.DECODE_EXCEPTION,
+    "estimator": FaultCode.ESTIMATOR_EXCEPTION,
+    "runner": FaultCode.RUNNER_EXCEPTION,
+    "supervisor": FaultCode.SUPERVISOR_EXCEPTION,
+    "encode": FaultCode.ENCODE_EXCEPTION,
+    "send": FaultCode.SEND_EXCEPTION,
+    "record": FaultCode.RECORD_EXCEPTION,
+    "hook": FaultCode.HOOK_EXCEPTION,
+    "clock": FaultCode.CLOCK_EXCEPTION,
+    "status": FaultCode.STATUS_EXCEPTION,
+    "accounting": FaultCode.STATUS_EXCEPTION,
+}
 
 
 @dataclass
@@ -210,8 +235,7 @@ class Wire:
 def hear(listener: can.BusABC, hand: HandConfig) -> Wire:
     torque_ids = {f.can_ids.torque_command: f.node_id for f in hand.fingers}
     command_ids = {f.can_ids.node_command: f.node_id for f in hand.fingers}
-    wire = Wire({f.node_id: [] for f in hand.fingers}, {f.node_id: [] for f in hand.fingers},
-                [])
+    wire = Wire({f.node_id: [] for f in hand.fingers}, {f.node_id: [] for f in hand.fingers}, [])
     pos = 0
     while (msg := listener.recv(timeout=0)) is not None:
         pos += 1
@@ -219,17 +243,18 @@ def hear(listener: can.BusABC, hand: HandConfig) -> Wire:
         if frame_id in torque_ids:
             sig = decode(frame_id, data)
             wire.torques[torque_ids[frame_id]].append(
-                (pos, np.array([sig["Torque1"], sig["Torque2"], sig["Torque3"]])))
-        elif frame_id in command_ids and decode(
-                frame_id, data, choices=False)["Command"] == DISABLE:
+                (pos, np.array([sig["Torque1"], sig["Torque2"], sig["Torque3"]]))
+            )
+        elif (
+            frame_id in command_ids and decode(frame_id, data, choices=False)["Command"] == DISABLE
+        ):
             wire.disables[command_ids[frame_id]].append(pos)
         elif frame_id == 0:
             wire.estops.append(pos)
     return wire
 
 
-def assert_stopped_on_the_wire(wire: Wire, fault_row: int, unreachable: Sequence[int] = ()
-                               ) -> None:
+def assert_stopped_on_the_wire(wire: Wire, fault_row: int, unreachable: Sequence[int] = ()) -> None:
     """From the command after the faulting tick's (row ``fault_row`` of each node: command n
     of a node belongs to tick first_send_tick + n) every torque is zero, at least
     ZERO_TICKS_BEFORE_DISABLE of them, and then the node gets a disable; a node that could
@@ -237,9 +262,10 @@ def assert_stopped_on_the_wire(wire: Wire, fault_row: int, unreachable: Sequence
     for node, rows in wire.torques.items():
         last_torque_pos, last_torque = rows[fault_row - 1]
         assert np.any(last_torque != 0), f"node {node}: no torque flowed before the fault"
-        after = rows[fault_row + 1:]
-        assert all(not np.any(values) for _, values in after), \
+        after = rows[fault_row + 1 :]
+        assert all(not np.any(values) for _, values in after), (
             f"node {node}: torque after the faulting tick: {[v for _, v in after if v.any()]}"
+        )
         if node in unreachable:
             assert any(p > last_torque_pos for p in wire.estops), f"node {node}: no e-stop"
         else:
@@ -272,8 +298,13 @@ def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
 @pytest.mark.parametrize("always", [False, True], ids=["once", "every_call"])
 @pytest.mark.parametrize("stage", list(STAGE_FAULTS))
 def test_an_exception_in_any_stage_is_a_controlled_stop(
-        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-        stage: str, always: bool) -> None:
+    hand: HandConfig,
+    hold: Recipe,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    stage: str,
+    always: bool,
+) -> None:
     code = STAGE_FAULTS[stage]
     with bench(hand, hold, tmp_path / "run.mcap") as b:
         due = Trigger(b.runtime, always)
@@ -307,14 +338,15 @@ def test_an_exception_in_any_stage_is_a_controlled_stop(
     assert complete
     if not (stage == "accounting" and always):  # then the run could count no tick after it
         assert ticks == result.ticks
-    assert [(f["name"], f["category"], f["tick"]) for f in faults] == \
-        [(code.name, "immediate", first.tick)]
+    assert [(f["name"], f["category"], f["tick"]) for f in faults] == [
+        (code.name, "immediate", first.tick)
+    ]
     assert f"ForcedError: forced in the {stage} stage" in faults[0]["detail"]
 
 
 def test_a_node_that_cannot_be_sent_to_gets_the_estop(
-        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-        ) -> None:
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Sending raises for one node on every try: the others still get zero and a disable,
     and the e-stop frame stops the one that cannot be reached."""
     with bench(hand, hold, tmp_path / "run.mcap") as b:
@@ -330,8 +362,8 @@ def test_a_node_that_cannot_be_sent_to_gets_the_estop(
 
 
 def test_an_exception_while_enabling_is_a_controlled_stop(
-        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-        ) -> None:
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Outside the tick's stages (here: the enable, which the first node got), the stop is
     the same: RUN_EXCEPTION, zero to every node, then a disable."""
     with bench(hand, hold, tmp_path / "run.mcap") as b:
@@ -358,7 +390,8 @@ def test_an_exception_while_enabling_is_a_controlled_stop(
 
 
 def test_ctrl_c_without_a_signal_handler_zeroes_and_disables_before_it_goes_on(
-        hand: HandConfig, hold: Recipe, tmp_path: Path) -> None:
+    hand: HandConfig, hold: Recipe, tmp_path: Path
+) -> None:
     """A KeyboardInterrupt (or a cancelled task) inside a tick is not the runtime's to
     swallow, but it leaves no torque on: zero and disable go out before it propagates."""
     with bench(hand, hold, tmp_path / "run.mcap") as b:
@@ -379,8 +412,8 @@ def test_ctrl_c_without_a_signal_handler_zeroes_and_disables_before_it_goes_on(
 
 
 def test_only_a_lockstep_clock_may_end_a_run_without_a_stop(
-        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-        ) -> None:
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A re-run ends at the end of its log with EndOfTicks, sending nothing more; the same
     from a clock that is not lockstep (a real-time one never runs out) is a clock fault."""
     with bench(hand, hold, tmp_path / "run.mcap") as b:
@@ -402,7 +435,8 @@ def test_only_a_lockstep_clock_may_end_a_run_without_a_stop(
 
 
 def test_a_huge_exception_message_is_cut_and_its_place_kept(
-        hand: HandConfig, hold: Recipe, tmp_path: Path) -> None:
+    hand: HandConfig, hold: Recipe, tmp_path: Path
+) -> None:
     """An exception carrying a huge object: the fault, the summary and the log get its
     beginning, and the log's event still ends with where it was raised."""
     with bench(hand, hold, tmp_path / "run.mcap") as b:
@@ -419,8 +453,9 @@ def test_a_huge_exception_message_is_cut_and_its_place_kept(
     assert failure is not None and len(failure.message) <= EXCEPTION_TEXT_CHARS
     assert len(result.faults[0].detail) < 2 * EXCEPTION_TEXT_CHARS
     _, _, faults = logged_faults(tmp_path / "run.mcap")
-    assert faults[0]["detail"].endswith(f"(in hook (tests/integration/{Path(__file__).name}:"
-                                        f"{hook.__code__.co_firstlineno + 2}))")
+    assert faults[0]["detail"].endswith(
+        f"(in hook (tests/integration/{Path(__file__).name}:{hook.__code__.co_firstlineno + 2}))"
+    )
 
 
 # -- the two reproductions of the issue, through the command line ------------------------------
@@ -456,9 +491,14 @@ def _cli_run(args: list[str], monkeypatch: pytest.MonkeyPatch) -> tuple[int, can
     def open_and_listen(spec: Any, *rest: Any, **kwargs: Any) -> Any:
         bus = real_open(spec, *rest, **kwargs)
         if isinstance(spec, BusSpec) and spec.interface == "virtual" and not listeners:
-            listeners.append(can.Bus(interface="virtual", channel=spec.channel,
-                                     receive_own_messages=False,
-                                     protocol=can.CanProtocol.CAN_FD))
+            listeners.append(
+                can.Bus(
+                    interface="virtual",
+                    channel=spec.channel,
+                    receive_own_messages=False,
+                    protocol=can.CanProtocol.CAN_FD,
+                )
+            )
         return bus
 
     monkeypatch.setattr(session, "open_bus", open_and_listen)
@@ -477,26 +517,27 @@ def _stopped_after_torque(wire: Wire) -> None:
     ZERO_TICKS_BEFORE_DISABLE), then a disable."""
     for node, rows in wire.torques.items():
         nonzero = [i for i, (_, values) in enumerate(rows) if np.any(values)]
-        tail = rows[nonzero[-1] + 1:] if nonzero else rows
+        tail = rows[nonzero[-1] + 1 :] if nonzero else rows
         assert len(tail) >= ZERO_TICKS_BEFORE_DISABLE, f"node {node}"
         assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0], f"node {node}"
 
 
 def test_a_tau_max_the_wire_cannot_carry_ends_in_a_safety_stop(
-        hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The issue's first finding: tau_max 5 N·m (the wire carries ±3.2767) and a recipe
     asking 4 N·m. The config is built here, past the loader (which refuses it), so this holds
     whatever the loader checks."""
     f1 = hand.fingers[0]
     j1 = replace(f1.joints[0], tau_max=5.0, rate_limit=200.0)
-    strong = replace(hand, fingers=(replace(f1, joints=(j1, *f1.joints[1:])),
-                                    *hand.fingers[1:]))
+    strong = replace(hand, fingers=(replace(f1, joints=(j1, *f1.joints[1:])), *hand.fingers[1:]))
     monkeypatch.setattr("handctl.config.load_hand", lambda path: strong)
     recipe = tmp_path / "too_much.yaml"
     recipe.write_text(TOO_MUCH)
     out, log = tmp_path / "out.json", tmp_path / "run.mcap"
-    code, listener = _cli_run([str(recipe), "--summary-json", str(out), "--log", str(log)],
-                              monkeypatch)
+    code, listener = _cli_run(
+        [str(recipe), "--summary-json", str(out), "--log", str(log)], monkeypatch
+    )
     try:
         wire = hear(listener, strong)
     finally:
@@ -515,8 +556,8 @@ def test_a_tau_max_the_wire_cannot_carry_ends_in_a_safety_stop(
 
 
 def test_a_recipe_with_more_objects_than_the_hand_is_refused_before_any_bus_opens(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-        capsys: pytest.CaptureFixture[str]) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The issue's second finding: a recipe declaring two objects on a simulated hand with
     one, whose ground-truth tick hook raised IndexError mid-run. It is now bad input (exit 2),
     named by the recipe's key, and no bus is opened, so nothing is sent."""
@@ -531,8 +572,17 @@ def test_a_recipe_with_more_objects_than_the_hand_is_refused_before_any_bus_open
     recipe.write_text(TWO_OBJECTS)
     opened: list[Any] = []
     monkeypatch.setattr(session, "open_bus", lambda *args, **kwargs: opened.append(args))
-    code = cli.main(["run", "recipe", str(recipe), "--hand", str(one_object),
-                     "--summary-json", str(tmp_path / "out.json")])
+    code = cli.main(
+        [
+            "run",
+            "recipe",
+            str(recipe),
+            "--hand",
+            str(one_object),
+            "--summary-json",
+            str(tmp_path / "out.json"),
+        ]
+    )
     assert code == cli.EXIT_BAD_INPUT
     assert opened == []
     err = capsys.readouterr().err
@@ -540,8 +590,8 @@ def test_a_recipe_with_more_objects_than_the_hand_is_refused_before_any_bus_open
 
 
 def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
-        hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-        ) -> None:
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The recorder's own code raises from one tick on, in the run and again when it is
     closed: the hand is stopped, the run ends in exit 3 with its summary, and the log is
     finished with every tick up to the fault, the fault event and the summary."""
@@ -557,8 +607,9 @@ def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(CLOSE_AND_HOLD_1S)
     out, log = tmp_path / "out.json", tmp_path / "run.mcap"
-    code, listener = _cli_run([str(recipe), "--summary-json", str(out), "--log", str(log)],
-                              monkeypatch)
+    code, listener = _cli_run(
+        [str(recipe), "--summary-json", str(out), "--log", str(log)], monkeypatch
+    )
     try:
         wire = hear(listener, hand)
     finally:
@@ -573,4 +624,3 @@ def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
     assert [(f["name"], f["tick"]) for f in faults] == [("RECORD_EXCEPTION", broken_from)]
     logged = open_recording(log).json_meta(ch.META_SUMMARY)
     assert logged is not None and logged["outcome"] == "safety_stop"
-

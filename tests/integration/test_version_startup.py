@@ -17,8 +17,7 @@ def test_a_node_of_another_version_fails_the_start_up(hand: HandConfig, version:
         r.sim.nodes[1].protocol_version = version
         result = r.run()
     assert result.outcome is Outcome.STARTUP_FAILED
-    assert f"node 2 (f2) speaks handctl protocol {version}, this host protocol 2" \
-        in result.message
+    assert f"node 2 (f2) speaks handctl protocol {version}, this host protocol 2" in result.message
     assert [f.code for f in result.faults] == [FaultCode.STARTUP]
     host_ids = {0x000, 0x011, 0x012, 0x013, 0x101, 0x102, 0x103}
     assert not [fid for fid, _ in r.wire if fid in host_ids]  # the host sent nothing

@@ -28,8 +28,13 @@ SOLVER_TOL = 1e-7  # N·m or N: ties closer than this are for the LP solver's to
 def _conditions(angle1: float, angle2: float, reading: str, g: float) -> Conditions:
     grasp = load_scenario(FIG3).grasp
     grasp = dataclasses.replace(grasp, reading=reading, gravity=np.array([0.0, -g]))
-    return build_conditions(grasp, {"cylinder1": np.array([np.cos(angle1), np.sin(angle1)]),
-                                    "cylinder2": np.array([np.cos(angle2), np.sin(angle2)])})
+    return build_conditions(
+        grasp,
+        {
+            "cylinder1": np.array([np.cos(angle1), np.sin(angle1)]),
+            "cylinder2": np.array([np.cos(angle2), np.sin(angle2)]),
+        },
+    )
 
 
 def _check_point(cond: Conditions, sl: TorqueSlice, ts: ExactTorqueSet, u: np.ndarray) -> None:
@@ -50,12 +55,18 @@ def _check_point(cond: Conditions, sl: TorqueSlice, ts: ExactTorqueSet, u: np.nd
 
 
 @settings(max_examples=30, deadline=None)
-@given(k1=st.floats(-2.0, 2.0), k2=st.floats(-2.0, 2.0),
-       a1=st.sampled_from([np.pi / 2, 0.0, 2.0]), a2=st.sampled_from([-np.pi / 2, np.pi, -1.0]),
-       reading=st.sampled_from(["paper", "net"]), g=st.sampled_from([0.0, 0.5]),
-       seed=st.integers(0, 2**31 - 1))
-def test_exact_matches_lp_at_random_points(k1: float, k2: float, a1: float, a2: float,
-                                           reading: str, g: float, seed: int) -> None:
+@given(
+    k1=st.floats(-2.0, 2.0),
+    k2=st.floats(-2.0, 2.0),
+    a1=st.sampled_from([np.pi / 2, 0.0, 2.0]),
+    a2=st.sampled_from([-np.pi / 2, np.pi, -1.0]),
+    reading=st.sampled_from(["paper", "net"]),
+    g=st.sampled_from([0.0, 0.5]),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_exact_matches_lp_at_random_points(
+    k1: float, k2: float, a1: float, a2: float, reading: str, g: float, seed: int
+) -> None:
     cond = _conditions(a1, a2, reading, g)
     grasp = load_scenario(FIG3).grasp
     sl = ratio_slice(grasp, (k1, k2), 3.0)
@@ -84,17 +95,19 @@ def test_general_plane_of_torques(seed: int) -> None:
 
 
 points = st.lists(st.tuples(st.floats(-5, 5), st.floats(-5, 5)), min_size=3, max_size=12)
-planes = st.lists(st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-2, 2)),
-                  min_size=0, max_size=5)
+planes = st.lists(
+    st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-2, 2)), min_size=0, max_size=5
+)
 
 
 @settings(max_examples=150, deadline=None)
 @given(points, planes, st.integers(0, 2**31 - 1))
-@example(pts=[(0.0, 0.0), (0.0, -1.0), (1.0, 0.0)],
-         hps=[(-1.0, -0.125, -3.8906318096990296e-13)], seed=0)  # a vertex on the line
+@example(
+    pts=[(0.0, 0.0), (0.0, -1.0), (1.0, 0.0)], hps=[(-1.0, -0.125, -3.8906318096990296e-13)], seed=0
+)  # a vertex on the line
 def test_difference_and_intersection_partition_a_polygon(
-        pts: list[tuple[float, float]], hps: list[tuple[float, float, float]],
-        seed: int) -> None:
+    pts: list[tuple[float, float]], hps: list[tuple[float, float, float]], seed: int
+) -> None:
     poly = hull(np.array(pts))
     halfplanes = [(np.array([a, b]), c) for a, b, c in hps]
     pieces = difference(poly, halfplanes)
@@ -124,8 +137,9 @@ def test_difference_and_intersection_partition_a_polygon(
 
 @settings(max_examples=100, deadline=None)
 @given(points, st.floats(-1, 1), st.floats(-1, 1), st.floats(-3, 3))
-def test_clip_keeps_exactly_the_half_plane(pts: list[tuple[float, float]], a0: float,
-                                           a1: float, b: float) -> None:
+def test_clip_keeps_exactly_the_half_plane(
+    pts: list[tuple[float, float]], a0: float, a1: float, b: float
+) -> None:
     poly = hull(np.array(pts))
     a = np.array([a0, a1])
     out = clip(poly, a, b)

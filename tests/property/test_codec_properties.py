@@ -54,14 +54,20 @@ def test_round_trip_within_half_a_step(case: tuple[Layout, int, tuple[float, ...
 
 
 # -- decoder fuzz (tools/bench.py fuzz draws from the same strategies, 100 000 frames) ----
-@settings(max_examples=max(1, FUZZ_EXAMPLES // 20), deadline=None,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@settings(
+    max_examples=max(1, FUZZ_EXAMPLES // 20),
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
 @given(frame_batches())
-def test_decoder_fuzz_every_frame_accepted_or_rejected(hand: HandConfig,
-                                                       frames: list[tuple[int, bytes]]) -> None:
+def test_decoder_fuzz_every_frame_accepted_or_rejected(
+    hand: HandConfig, frames: list[tuple[int, bytes]]
+) -> None:
     name = f"fuzz-{next(_channels)}"
-    with open_bus(f"virtual:{name}", hand.bus) as host_bus, \
-            open_bus(f"virtual:{name}", hand.bus) as peer:
+    with (
+        open_bus(f"virtual:{name}", hand.bus) as host_bus,
+        open_bus(f"virtual:{name}", hand.bus) as peer,
+    ):
         driver = HandDriver(hand, PROTOCOL, host_bus)
         for frame_id, data in frames:
             assert peer.send(frame_id, data)

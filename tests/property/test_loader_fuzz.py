@@ -27,11 +27,20 @@ EXAMPLES = int(os.environ.get("HANDCTL_FUZZ_EXAMPLES", "2000")) // 10
 HAND_DATA = yaml.safe_load(HAND_YAML.read_text())
 RECIPE_DATA = yaml.safe_load(RECIPE_YAML.read_text())
 
-scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6),
-                    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12))
-values = st.recursive(scalars, lambda inner: st.one_of(
-    st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=8), inner, max_size=4)),
-    max_leaves=12)
+scalars = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(10**6), 10**6),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12),
+)
+values = st.recursive(
+    scalars,
+    lambda inner: st.one_of(
+        st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=8), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
 
 
 def paths(data: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
@@ -85,15 +94,21 @@ def expect_config_error_or_valid(call: Any) -> None:
         assert "expected" in str(exc)
 
 
-@settings(max_examples=EXAMPLES, deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 @given(mutated(HAND_DATA))
 def test_mutated_hand_configs(tmp_path: Path, data: Any) -> None:
     expect_config_error_or_valid(lambda: hand_from(tmp_path, data))
 
 
-@settings(max_examples=EXAMPLES, deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 @given(mutated(RECIPE_DATA))
 def test_mutated_recipes(tmp_path: Path, hand: HandConfig, data: Any) -> None:
     path = tmp_path / "recipe.yaml"
@@ -116,8 +131,11 @@ def test_random_text_as_yaml(text: str) -> None:
         assert isinstance(doc.data, dict)
 
 
-@settings(max_examples=EXAMPLES, deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 @given(values)
 def test_random_documents_as_recipes(tmp_path: Path, hand: HandConfig, data: Any) -> None:
     path = tmp_path / "recipe.yaml"
@@ -142,8 +160,11 @@ def test_yaml_syntax_soup_gives_a_document_or_a_config_error(text: str) -> None:
         assert isinstance(doc.data, dict)
 
 
-@settings(max_examples=EXAMPLES, deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 @given(st.data())
 def test_mutated_hand_config_text(tmp_path: Path, data: st.DataObject) -> None:
     """The hand config's own text (anchors, merges, flow mappings) with a line duplicated,
@@ -160,5 +181,5 @@ def test_mutated_hand_config_text(tmp_path: Path, data: st.DataObject) -> None:
             line = lines[i]
             at = data.draw(st.integers(0, max(len(line) - 1, 0)))
             new = data.draw(st.text(alphabet=YAML_ALPHABET, max_size=3))
-            lines[i] = line[:at] + new + line[at + 1:]
+            lines[i] = line[:at] + new + line[at + 1 :]
     expect_config_error_or_valid(lambda: hand_from(tmp_path, "".join(lines)))

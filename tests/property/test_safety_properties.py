@@ -19,13 +19,19 @@ TAU_MAX = np.array([j.tau_max for j in HAND.joints])
 STEP = np.array([j.rate_limit for j in HAND.joints]) * HAND.bus.period_s
 
 torque = st.one_of(st.floats(-10, 10), st.sampled_from([np.nan, np.inf, -np.inf, 0.0]))
-desired = st.one_of(st.lists(torque, min_size=9, max_size=9),
-                    st.lists(st.floats(-1, 1), min_size=0, max_size=12), st.none())
+desired = st.one_of(
+    st.lists(torque, min_size=9, max_size=9),
+    st.lists(st.floats(-1, 1), min_size=0, max_size=12),
+    st.none(),
+)
 action = st.one_of(
     st.tuples(st.just("tick"), desired, st.integers(0, 2)),
-    st.tuples(st.just("start")), st.tuples(st.just("stop")), st.tuples(st.just("reset")),
+    st.tuples(st.just("start")),
+    st.tuples(st.just("stop")),
+    st.tuples(st.just("reset")),
     st.tuples(st.just("enabled")),
-    st.tuples(st.just("fault"), st.sampled_from(list(FaultCode))))
+    st.tuples(st.just("fault"), st.sampled_from(list(FaultCode))),
+)
 
 
 @settings(max_examples=300, deadline=None)
@@ -146,8 +152,14 @@ def test_fault_page_is_generated_from_the_table() -> None:
 
     from ..conftest import ROOT
 
-    done = subprocess.run([sys.executable, "tools/gen_fault_table.py", "--check"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=60, check=False)
+    done = subprocess.run(
+        [sys.executable, "tools/gen_fault_table.py", "--check"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr
     page = (ROOT / "docs" / "faults.md").read_text()
     for code in FaultCode:

@@ -23,12 +23,16 @@ MS = 1_000_000  # ns
 class NodePair:
     """One finger: the node's firmware on one side, the host's view of it on the other."""
 
-    def __init__(self, hand: HandConfig, protocol: Protocol, finger: int,
-                 now_ns: int = 0) -> None:
+    def __init__(self, hand: HandConfig, protocol: Protocol, finger: int, now_ns: int = 0) -> None:
         config = hand.fingers[finger]
         params = parse_sim(hand)
-        self.node = EmulatedNode(config, protocol, tdt_range=params.tdt.range,
-                                 encoder_max_step=params.encoder.max_step, now_ns=now_ns)
+        self.node = EmulatedNode(
+            config,
+            protocol,
+            tdt_range=params.tdt.range,
+            encoder_max_step=params.encoder.max_step,
+            now_ns=now_ns,
+        )
         self.host = FingerNode(config, FingerLayouts.for_node(protocol, config.node_id))
         self.protocol = protocol
         self.n = len(config.joints)
@@ -43,16 +47,20 @@ class NodePair:
         layout = self.protocol.layout("EStop")
         self.node.receive(layout.frame_id, layout.encode(0, (1,)), now_ns)
 
-    def tick(self, now_ns: int, torques: Sequence[float] | None = None,
-             tdt: Sequence[float] | None = None, angles: Sequence[float] | None = None,
-             lose: Collection[int] = ()) -> None:
+    def tick(
+        self,
+        now_ns: int,
+        torques: Sequence[float] | None = None,
+        tdt: Sequence[float] | None = None,
+        angles: Sequence[float] | None = None,
+        lose: Collection[int] = (),
+    ) -> None:
         """One 1 ms tick: the host's torque command in, the node's frames out to the host,
         except those whose id is in ``lose``: they are lost on the way."""
         self.node.receive(*self.host.next_command(torques or [0.0] * self.n), now_ns)
         self.node.update(now_ns)
         out: list[tuple[int, bytes]] = []
-        self.node.publish(now_ns, list(tdt or [0.0] * self.n), list(angles or [0.0] * self.n),
-                          out)
+        self.node.publish(now_ns, list(tdt or [0.0] * self.n), list(angles or [0.0] * self.n), out)
         for frame_id, data in out:
             if frame_id not in lose:
                 reason = self.host.receive(frame_id, data, now_ns)

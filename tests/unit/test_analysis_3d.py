@@ -54,8 +54,10 @@ def test_outer_pyramids_contain_the_planar_cone() -> None:
     projects exactly onto the planar cone's edges (6 edges: tangents at ±60° from z, with
     μ / cos 30° · sin 60° = μ), and approaches it as the edges get many."""
     planar = load_scenario(PLANAR)
-    reference = exact_torque_set(build_conditions(planar.grasp, planar.directions),
-                                 ratio_slice(planar.grasp, (0.9, 0.1), 3.0)).area
+    reference = exact_torque_set(
+        build_conditions(planar.grasp, planar.directions),
+        ratio_slice(planar.grasp, (0.9, 0.1), 3.0),
+    ).area
     spatial = load_scenario(SPATIAL)
     areas = {}
     for edges in (5, 6, 8, 16, 64):

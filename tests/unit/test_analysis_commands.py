@@ -48,8 +48,9 @@ def test_json_and_png(tmp_path: Path, k: tuple[float, float]) -> None:
             if inside[i][j]:
                 assert in_poly
     best = doc["best"]
-    assert best is not None and any(_contains(p, np.array([best["tau11"], best["tau21"]]))
-                                    for p in polys)
+    assert best is not None and any(
+        _contains(p, np.array([best["tau11"], best["tau21"]])) for p in polys
+    )
 
 
 def _contains(poly: np.ndarray, point: np.ndarray) -> bool:

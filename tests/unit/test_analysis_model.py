@@ -82,24 +82,39 @@ def test_fig3_contacts_lie_on_links_and_normals_point_into_objects() -> None:
         (lambda d: d["objects"][0].update(radius=-1.0), "objects[0].radius", "> 0"),
         (lambda d: d["objects"][1].pop("mass"), "objects[1].mass", "required"),
         (lambda d: d["fingers"][0].update(joints=[0.1]), "fingers[0].joints", "2 numbers"),
-        (lambda d: d["fingers"][0]["joints"].__setitem__(1, 1.7),
-         "contacts.fingers[1].object", "tangent"),
-        (lambda d: d["objects"][1]["position"].__setitem__(0, 0.5),
-         "contacts.fingers[2].object", "tangent"),
-        (lambda d: d["contacts"]["fingers"][0].update(object="cup"),
-         "contacts.fingers[0].object", "one of"),
-        (lambda d: d["contacts"]["fingers"][0].update(link=3), "contacts.fingers[0].link",
-         "<= 2"),
-        (lambda d: d["contacts"]["objects"][0].update(objects=["cylinder1", "cylinder1"]),
-         "contacts.objects[0].objects", "two different"),
-        (lambda d: d["task"]["move"].update(cylinder1=[0.0, 0.0]), "task.move.cylinder1",
-         "non-zero"),
+        (
+            lambda d: d["fingers"][0]["joints"].__setitem__(1, 1.7),
+            "contacts.fingers[1].object",
+            "tangent",
+        ),
+        (
+            lambda d: d["objects"][1]["position"].__setitem__(0, 0.5),
+            "contacts.fingers[2].object",
+            "tangent",
+        ),
+        (
+            lambda d: d["contacts"]["fingers"][0].update(object="cup"),
+            "contacts.fingers[0].object",
+            "one of",
+        ),
+        (lambda d: d["contacts"]["fingers"][0].update(link=3), "contacts.fingers[0].link", "<= 2"),
+        (
+            lambda d: d["contacts"]["objects"][0].update(objects=["cylinder1", "cylinder1"]),
+            "contacts.objects[0].objects",
+            "two different",
+        ),
+        (
+            lambda d: d["task"]["move"].update(cylinder1=[0.0, 0.0]),
+            "task.move.cylinder1",
+            "non-zero",
+        ),
         (lambda d: d["task"]["move"].update(cup=[0.0, 1.0]), "task.move.cup", "object name"),
         (lambda d: d.update(gravity=[0.0, "down"]), "gravity[1]", "number"),
     ],
 )
-def test_errors_name_file_key_expected_found(tmp_path: Path, change: object, key: str,
-                                             expected_part: str) -> None:
+def test_errors_name_file_key_expected_found(
+    tmp_path: Path, change: object, key: str, expected_part: str
+) -> None:
     data = _fig3()
     assert callable(change)
     change(data)
@@ -148,16 +163,39 @@ def _scenario_3d() -> dict[str, object]:
         "reading": "net",
         "gravity": [0.0, 0.0, -9.81],
         "cone_edges": 6,
-        "objects": [{"name": "ball", "shape": "sphere", "position": [0.5, 0.0, -r],
-                     "rotation": [0.0, 0.0, 0.3], "radius": r, "mass": 0.5,
-                     "inertia": [0.008, 0.008, 0.008]},
-                    {"name": "can", "shape": "cylinder", "position": [0.5, 2 * r, -r],
-                     "rotation": [0.0, math.pi / 2, 0.0], "radius": r, "mass": 0.5,
-                     "inertia": [0.01, 0.01, 0.01]}],
-        "fingers": [{"name": "f", "base": [0.0, 0.0, 0.0], "links": [1.0, 0.5],
-                     "joints": [0.0, 0.4], "axes": [[0, 0, 1], [0, 1, 0]]}],
-        "contacts": {"fingers": [{"finger": "f", "link": 1, "object": "ball", "mu": 0.3}],
-                     "objects": [{"objects": ["ball", "can"], "mu": 0.5}]},
+        "objects": [
+            {
+                "name": "ball",
+                "shape": "sphere",
+                "position": [0.5, 0.0, -r],
+                "rotation": [0.0, 0.0, 0.3],
+                "radius": r,
+                "mass": 0.5,
+                "inertia": [0.008, 0.008, 0.008],
+            },
+            {
+                "name": "can",
+                "shape": "cylinder",
+                "position": [0.5, 2 * r, -r],
+                "rotation": [0.0, math.pi / 2, 0.0],
+                "radius": r,
+                "mass": 0.5,
+                "inertia": [0.01, 0.01, 0.01],
+            },
+        ],
+        "fingers": [
+            {
+                "name": "f",
+                "base": [0.0, 0.0, 0.0],
+                "links": [1.0, 0.5],
+                "joints": [0.0, 0.4],
+                "axes": [[0, 0, 1], [0, 1, 0]],
+            }
+        ],
+        "contacts": {
+            "fingers": [{"finger": "f", "link": 1, "object": "ball", "mu": 0.3}],
+            "objects": [{"objects": ["ball", "can"], "mu": 0.5}],
+        },
         "task": {"move": {"ball": [0.0, 0.0, 1.0]}, "tau_max": 2.0},
     }
 

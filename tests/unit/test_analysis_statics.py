@@ -41,7 +41,7 @@ def test_cone_edges_are_at_the_friction_angle() -> None:
     grasp = _grasp()
     st = statics(grasp)
     for k, contact in enumerate(grasp.finger_contacts):
-        for edge in st.v[2 * k:2 * k + 2, 2 * k:2 * k + 2].T:
+        for edge in st.v[2 * k : 2 * k + 2, 2 * k : 2 * k + 2].T:
             angle = math.acos(edge @ contact.normal / np.linalg.norm(edge))
             assert angle == pytest.approx(math.atan(0.1))
 
@@ -75,21 +75,20 @@ def test_eq14_and_eq19_hold_for_the_force_of_eq20(reading: str) -> None:
         # eqs. 21-22: finger forces on object i plus/minus f_CO (plus m g in the net reading)
         f = st.f_cb(lam)
         weight = np.array([0.0, -9.81]) if reading == "net" else np.zeros(2)
-        np.testing.assert_allclose(totals[:2], f[0:2] + f[2:4] + st.f_co(lam) + weight,
-                                   atol=1e-12)
-        np.testing.assert_allclose(totals[2:], f[4:6] + f[6:8] - st.f_co(lam) + weight,
-                                   atol=1e-12)
+        np.testing.assert_allclose(totals[:2], f[0:2] + f[2:4] + st.f_co(lam) + weight, atol=1e-12)
+        np.testing.assert_allclose(totals[2:], f[4:6] + f[6:8] - st.f_co(lam) + weight, atol=1e-12)
         # the net reading is m p̈; the paper's reading leaves out gravity
         net = np.concatenate([acc[0:2], acc[3:5]])
         expected = net if reading == "net" else net - np.tile([0.0, -9.81], 2)
         np.testing.assert_allclose(totals, expected, atol=1e-12)
 
 
-@pytest.mark.parametrize(("reading", "gravity"), [("paper", (0.0, 0.0)),
-                                                  ("paper", (0.0, -9.81)),
-                                                  ("net", (0.0, -9.81))])
-def test_eq24_as_printed_never_holds_for_two_discs(reading: str,
-                                                   gravity: tuple[float, float]) -> None:
+@pytest.mark.parametrize(
+    ("reading", "gravity"), [("paper", (0.0, 0.0)), ("paper", (0.0, -9.81)), ("net", (0.0, -9.81))]
+)
+def test_eq24_as_printed_never_holds_for_two_discs(
+    reading: str, gravity: tuple[float, float]
+) -> None:
     """n_1ᵀf_t1 and n_2ᵀf_t2 (outward normals at C) have opposite signs for every λ."""
     grasp = _grasp(reading, gravity)
     st = statics(grasp)
@@ -105,8 +104,7 @@ def test_condition_rows_evaluate_the_physics() -> None:
     grasp = _grasp()
     sc = load_scenario(FIG3)
     cond = build_conditions(grasp, sc.directions)
-    assert cond.labels == ("move cylinder1", "move cylinder2",
-                           "compression cylinder1/cylinder2")
+    assert cond.labels == ("move cylinder1", "move cylinder2", "compression cylinder1/cylinder2")
     st = cond.statics
     rng = np.random.default_rng(11)
     lam = rng.uniform(0.0, 2.0, size=int(st.v.shape[1]))

@@ -34,8 +34,9 @@ def test_exact_set_agrees_with_the_lp_oracle_on_a_grid(k: tuple[float, float]) -
     pts = np.column_stack([gx.ravel(), gy.ravel()])
     differ = (inside.ravel() != ts.inside_mask(pts)) & (ts.boundary_distance(pts) > TOL)
     assert not differ.any(), pts[differ]
-    differ = ((real.ravel() != ts.realisable_mask(pts))
-              & (ts.realisable_boundary_distance(pts) > TOL))
+    differ = (real.ravel() != ts.realisable_mask(pts)) & (
+        ts.realisable_boundary_distance(pts) > TOL
+    )
     assert not differ.any(), pts[differ]
     assert inside.any() and (~real).any() and (real & ~inside).any()  # all three kinds occur
 
@@ -86,10 +87,14 @@ def _squeeze_grasp() -> Grasp:
     can push them apart with any force at zero torque, so the λ-set is unbounded."""
     r = 0.3
     finger = Finger("f", np.zeros(2), rotation_2d(0.0), (2.0, 0.5), (0.0, 0.5))
-    bodies = (Body("a", np.array([0.5, r]), np.eye(2), r, 1.0, np.array([[0.045]])),
-              Body("b", np.array([1.5, -r]), np.eye(2), r, 1.0, np.array([[0.045]])))
-    contacts = (FingerContact(0, 0, 0, 0.2, np.array([0.5, 0.0]), np.array([0.0, 1.0])),
-                FingerContact(0, 0, 1, 0.2, np.array([1.5, 0.0]), np.array([0.0, -1.0])))
+    bodies = (
+        Body("a", np.array([0.5, r]), np.eye(2), r, 1.0, np.array([[0.045]])),
+        Body("b", np.array([1.5, -r]), np.eye(2), r, 1.0, np.array([[0.045]])),
+    )
+    contacts = (
+        FingerContact(0, 0, 0, 0.2, np.array([0.5, 0.0]), np.array([0.0, 1.0])),
+        FingerContact(0, 0, 1, 0.2, np.array([1.5, 0.0]), np.array([0.0, -1.0])),
+    )
     return Grasp(2, bodies, (finger,), contacts, (), np.zeros(2))
 
 
@@ -120,8 +125,12 @@ def test_unbounded_lambda_set_is_handled() -> None:
 def test_dual_polyhedron_of_a_square() -> None:
     a = np.array([[1.0, -1.0, 0.0, 0.0], [0.0, 0.0, 1.0, -1.0]])
     dual = dual_polyhedron(a, np.ones(4))
-    assert sorted(map(tuple, np.round(dual.vertices, 12))) == [(-1.0, -1.0), (-1.0, 1.0),
-                                                               (1.0, -1.0), (1.0, 1.0)]
+    assert sorted(map(tuple, np.round(dual.vertices, 12))) == [
+        (-1.0, -1.0),
+        (-1.0, 1.0),
+        (1.0, -1.0),
+        (1.0, 1.0),
+    ]
     assert len(dual.rays) == 0 and len(dual.lineality) == 0
     assert dual_polyhedron(a, np.array([1.0, -2.0, 1.0, 1.0])).empty  # y ≤ 1 and y ≥ 2
     cone = dual_polyhedron(np.array([[1.0, 0.0], [0.0, 1.0]]), np.zeros(2))
@@ -132,8 +141,9 @@ def test_mirror_symmetry_of_the_both_down_task() -> None:
     """The grasp is mirror-symmetric; mirroring swaps the fingers and flips torque signs, so
     for 'both cylinders down' with k_1 = k_2 the set is invariant under (u1, u2) -> (-u2, -u1)."""
     sc = load_scenario(FIG3)
-    cond = build_conditions(sc.grasp, {"cylinder1": np.array([0.0, -1.0]),
-                                       "cylinder2": np.array([0.0, -1.0])})
+    cond = build_conditions(
+        sc.grasp, {"cylinder1": np.array([0.0, -1.0]), "cylinder2": np.array([0.0, -1.0])}
+    )
     sl = ratio_slice(sc.grasp, (0.5, 0.5), sc.tau_max)
     ts = exact_torque_set(cond, sl)
     assert 0.0 < ts.area < ts.realisable_area
@@ -157,7 +167,7 @@ def test_full_121_grid_agreement(k: tuple[float, float]) -> None:
     real, inside = lp_grid(cond, sl, xs, ys)
     gx, gy = np.meshgrid(xs, ys)
     pts = np.column_stack([gx.ravel(), gy.ravel()])
-    assert not ((inside.ravel() != ts.inside_mask(pts))
-                & (ts.boundary_distance(pts) > TOL)).any()
-    assert not ((real.ravel() != ts.realisable_mask(pts))
-                & (ts.realisable_boundary_distance(pts) > TOL)).any()
+    assert not ((inside.ravel() != ts.inside_mask(pts)) & (ts.boundary_distance(pts) > TOL)).any()
+    assert not (
+        (real.ravel() != ts.realisable_mask(pts)) & (ts.realisable_boundary_distance(pts) > TOL)
+    ).any()

@@ -27,8 +27,9 @@ def test_mixed_fingers_carry_every_joint_both_ways(tmp_path: Path, channel: str)
     try:
         now = [0]
         driver = HandDriver(hand, protocol, host_bus, clock_ns=lambda: now[0])
-        nodes = [EmulatedNode(f, protocol, tdt_range=3.0, encoder_max_step=10.0)
-                 for f in hand.fingers]
+        nodes = [
+            EmulatedNode(f, protocol, tdt_range=3.0, encoder_max_step=10.0) for f in hand.fingers
+        ]
 
         def deliver() -> None:
             for frame in peer_bus.drain():
@@ -52,8 +53,9 @@ def test_mixed_fingers_carry_every_joint_both_ways(tmp_path: Path, channel: str)
         start = 0
         for node, finger in zip(nodes, hand.fingers, strict=True):
             k = len(finger.joints)
-            node.publish(now[0], tdt[start:start + k].tolist(), angles[start:start + k].tolist(),
-                         out)
+            node.publish(
+                now[0], tdt[start : start + k].tolist(), angles[start : start + k].tolist(), out
+            )
             start += k
         for frame_id, data in out:
             assert peer_bus.send(frame_id, data)

@@ -51,7 +51,8 @@ def test_other_adapters_get_both_bitrates(hand: HandConfig) -> None:
 
 def test_socketcan_setup_command(hand: HandConfig) -> None:
     assert socketcan_setup_command("can1", hand.bus) == (
-        "sudo ip link set can1 up type can bitrate 1000000 dbitrate 5000000 fd on")
+        "sudo ip link set can1 up type can bitrate 1000000 dbitrate 5000000 fd on"
+    )
     classic = replace(hand.bus, fd=False, data_bitrate=None)
     assert socketcan_setup_command("can1", classic).endswith("bitrate 1000000")
 
@@ -84,7 +85,9 @@ def test_frames_cross_the_virtual_bus(bus_pair: tuple[HandBus, HandBus]) -> None
     assert host.send(0x181, bytes(range(16)))
     frames = peer.drain()
     assert [(f.arbitration_id, f.data) for f in frames] == [
-        (0x101, bytes(range(8))), (0x181, bytes(range(16)))]
+        (0x101, bytes(range(8))),
+        (0x181, bytes(range(16))),
+    ]
     assert all(f.is_fd for f in frames)
     assert host.drain() == []  # own frames are not echoed
     assert peer.drain() == []  # drained means empty, without waiting
@@ -109,10 +112,11 @@ def test_error_frames_become_events(bus_pair: tuple[HandBus, HandBus]) -> None:
     assert peer.events() == []
 
 
-def test_full_receiver_queue_is_an_event_not_an_exception(hand: HandConfig,
-                                                          channel: str) -> None:
-    with open_bus(f"virtual:{channel}", hand.bus) as host, \
-            open_bus(f"virtual:{channel}", hand.bus, {"rx_queue_size": 2}):
+def test_full_receiver_queue_is_an_event_not_an_exception(hand: HandConfig, channel: str) -> None:
+    with (
+        open_bus(f"virtual:{channel}", hand.bus) as host,
+        open_bus(f"virtual:{channel}", hand.bus, {"rx_queue_size": 2}),
+    ):
         results = [host.send(0x101, bytes(8)) for _ in range(4)]
         assert results == [True, True, False, False]
         kinds = [e.kind for e in host.events()]

@@ -76,8 +76,7 @@ def test_default_hand_fits_and_classic_does_not(hand: HandConfig, protocol: Prot
     assert {m.name for m in one_finger.messages if m.name.endswith("_2")} == set()
 
 
-def test_four_fingers_of_four_joints_on_can_fd_are_refused_with_the_figures(
-        tmp_path: Path) -> None:
+def test_four_fingers_of_four_joints_on_can_fd_are_refused_with_the_figures(tmp_path: Path) -> None:
     """The issue's 4 x 4 hand on CAN-FD 1/5 Mbit/s at 1 kHz, worked out from the frame sizes:
     per node a 12-byte TorqueCommand (2 + 8 bytes padded) and a 20-byte Feedback (4 + 16) each
     tick, a 12-byte Status and a 7-byte Heartbeat every 100 ms."""
@@ -95,21 +94,34 @@ def test_four_fingers_of_four_joints_on_can_fd_are_refused_with_the_figures(
     assert not budget.ok and round(budget.load * 100, 1) == 59.0
     two = hand_budget(hand, protocol, nodes={1, 2})
     assert two.load == pytest.approx(2 * per_node)
-    result = subprocess.run([sys.executable, "-m", "handctl", "check", str(path)], cwd=ROOT,
-                            capture_output=True, text=True, timeout=120, check=False)
+    result = subprocess.run(
+        [sys.executable, "-m", "handctl", "check", str(path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert result.returncode == 2
-    assert (f"{path}: bus: expected a worst-case load <= 50 %, found 59.0 % at 1000 Hz; "
-            f"the highest loop rate that fits is {budget.highest_loop_rate_hz():.0f} Hz; "
-            f"2 buses of at most 2 fingers would carry {two.load * 100:.1f} % at most; "
-            "a data phase of 8 Mbit/s would carry "
-            f"{hand_budget(hand, protocol, data_bitrate=8_000_000).load * 100:.1f} %"
-            ) in result.stderr
+    assert (
+        f"{path}: bus: expected a worst-case load <= 50 %, found 59.0 % at 1000 Hz; "
+        f"the highest loop rate that fits is {budget.highest_loop_rate_hz():.0f} Hz; "
+        f"2 buses of at most 2 fingers would carry {two.load * 100:.1f} % at most; "
+        "a data phase of 8 Mbit/s would carry "
+        f"{hand_budget(hand, protocol, data_bitrate=8_000_000).load * 100:.1f} %"
+    ) in result.stderr
 
 
 def test_a_hand_within_the_budget_passes_check(tmp_path: Path) -> None:
     path = shaped_hand(tmp_path, [2, 2])
-    result = subprocess.run([sys.executable, "-m", "handctl", "check", str(path)], cwd=ROOT,
-                            capture_output=True, text=True, timeout=120, check=False)
+    result = subprocess.run(
+        [sys.executable, "-m", "handctl", "check", str(path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert result.returncode == 0, result.stderr
     assert result.stdout.splitlines()[-1] == "ok"
     assert "TorqueCommand_2   0x102     6" in result.stdout  # 2 + 2 x 2 bytes

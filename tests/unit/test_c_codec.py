@@ -50,12 +50,23 @@ def harness(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The generated codec and the hand-written harness, compiled as strictly as the brief asks."""
     compiler = shutil.which("gcc") or shutil.which("cc")
     if compiler is None:
-        pytest.skip("no C compiler: neither gcc nor cc is on PATH, so the generated C codec "
-                    "cannot be compiled and compared with the Python codec here")
-    exe = tmp_path_factory.mktemp("c_codec") / ("vector_harness.exe" if os.name == "nt"
-                                                 else "vector_harness")
-    command = [compiler, *CFLAGS, f"-I{C_DIR}", str(C_DIR / "handctl_protocol.c"),
-               str(C_DIR / "vector_harness.c"), "-o", str(exe), "-lm"]
+        pytest.skip(
+            "no C compiler: neither gcc nor cc is on PATH, so the generated C codec "
+            "cannot be compiled and compared with the Python codec here"
+        )
+    exe = tmp_path_factory.mktemp("c_codec") / (
+        "vector_harness.exe" if os.name == "nt" else "vector_harness"
+    )
+    command = [
+        compiler,
+        *CFLAGS,
+        f"-I{C_DIR}",
+        str(C_DIR / "handctl_protocol.c"),
+        str(C_DIR / "vector_harness.c"),
+        "-o",
+        str(exe),
+        "-lm",
+    ]
     built = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
     assert built.returncode == 0, f"{' '.join(command)}\n{built.stdout}{built.stderr}"
     return exe
@@ -63,8 +74,14 @@ def harness(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def run_harness(exe: Path, lines: list[str]) -> list[str]:
     """One harness process for a whole batch: answers come back in order, one per line."""
-    result = subprocess.run([str(exe)], input="\n".join(lines) + "\n", capture_output=True,
-                            text=True, timeout=60, check=False)
+    result = subprocess.run(
+        [str(exe)],
+        input="\n".join(lines) + "\n",
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
     answers = result.stdout.splitlines()
     assert result.returncode == 0, "\n".join(a for a in answers if a.startswith("BAD"))
     assert len(answers) == len(lines)
@@ -97,44 +114,63 @@ def parse_decoded(answer: str, python_values: tuple[Value, ...]) -> tuple[int, l
     status, counter, *tokens = answer.split()
     assert status == "OK", answer
     assert len(tokens) == len(python_values), answer
-    values: list[Value] = [int(t) if isinstance(p, int) else float(t)
-                           for t, p in zip(tokens, python_values, strict=True)]
+    values: list[Value] = [
+        int(t) if isinstance(p, int) else float(t)
+        for t, p in zip(tokens, python_values, strict=True)
+    ]
     return int(counter), values
 
 
 # --- the generated files are what the DBC yields -------------------------------------------------
 
+
 @pytest.mark.parametrize("tool", ["gen_c_codec.py", "gen_vectors.py", "gen_dbc.py"])
 def test_generated_files_are_up_to_date(tool: str) -> None:
-    result = subprocess.run([sys.executable, str(TOOLS / tool), "--check"], capture_output=True,
-                            text=True, cwd=ROOT, timeout=120, check=False)
+    result = subprocess.run(
+        [sys.executable, str(TOOLS / tool), "--check"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+        check=False,
+    )
     assert result.returncode == 0, result.stderr
 
 
-@pytest.mark.parametrize(("tool", "target"), [("gen_c_codec.py", "c"),
-                                              ("gen_vectors.py", "vectors.json")])
+@pytest.mark.parametrize(
+    ("tool", "target"), [("gen_c_codec.py", "c"), ("gen_vectors.py", "vectors.json")]
+)
 def test_check_mode_notices_stale_files(tool: str, target: str, tmp_path: Path) -> None:
     """The up-to-date test is only worth something if --check can fail."""
     out = tmp_path / target
     if target == "c":
         out.mkdir()
         for name in ("handctl_protocol.h", "handctl_protocol.c"):
-            (out / name).write_text((C_DIR / name).read_text(encoding="utf-8")
-                                    .replace("nearbyint(", "round("), encoding="utf-8")
+            (out / name).write_text(
+                (C_DIR / name).read_text(encoding="utf-8").replace("nearbyint(", "round("),
+                encoding="utf-8",
+            )
     else:
-        out.write_text(VECTORS.read_text(encoding="utf-8").replace('"counter": 255',
-                                                                   '"counter": 0'),
-                       encoding="utf-8")
-    result = subprocess.run([sys.executable, str(TOOLS / tool), "--check", "--out", str(out)],
-                            capture_output=True, text=True, cwd=ROOT, timeout=120, check=False)
+        out.write_text(
+            VECTORS.read_text(encoding="utf-8").replace('"counter": 255', '"counter": 0'),
+            encoding="utf-8",
+        )
+    result = subprocess.run(
+        [sys.executable, str(TOOLS / tool), "--check", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+        check=False,
+    )
     assert result.returncode == 1, result.stderr
     assert "run: python tools/" in result.stderr
 
 
 # --- golden bytes against the Python codec -------------------------------------------------------
 
-def test_every_dbc_message_has_golden_vectors(document: dict[str, Any],
-                                              protocol: Protocol) -> None:
+
+def test_every_dbc_message_has_golden_vectors(document: dict[str, Any], protocol: Protocol) -> None:
     cases: dict[str, set[str]] = {layout.name: set() for layout in protocol.layouts}
     for vector in document["vectors"]:
         layout = protocol.by_name[vector["message"]]
@@ -148,8 +184,7 @@ def test_every_dbc_message_has_golden_vectors(document: dict[str, Any],
     assert any(v["counter"] == 255 for v in document["vectors"])
 
 
-def test_golden_bytes_are_what_python_encodes(document: dict[str, Any],
-                                              protocol: Protocol) -> None:
+def test_golden_bytes_are_what_python_encodes(document: dict[str, Any], protocol: Protocol) -> None:
     for vector in document["vectors"]:
         layout = protocol.by_name[vector["message"]]
         where = f"{layout.name}/{vector['case']}"
@@ -175,8 +210,9 @@ def test_tie_vectors_sit_exactly_on_ties(document: dict[str, Any], protocol: Pro
             q = (vector["signals"][spec.name] - spec.offset) / spec.scale
             if q - math.floor(q) == 0.5 and math.floor(q) % 2 == 0 and q > 0:
                 even_ties += 1
-    assert even_ties >= len([lay for lay in protocol.layouts
-                             if any(not s.is_integer for s in lay.signals)])
+    assert even_ties >= len(
+        [lay for lay in protocol.layouts if any(not s.is_integer for s in lay.signals)]
+    )
 
 
 def test_python_refuses_the_rejects(document: dict[str, Any], protocol: Protocol) -> None:
@@ -196,21 +232,30 @@ def test_python_crc_is_crc8_autosar(document: dict[str, Any]) -> None:
 
 # --- the compiled C codec against vectors and Python ---------------------------------------------
 
-def test_c_encodes_every_vector_like_python(harness: Path, document: dict[str, Any],
-                                            protocol: Protocol) -> None:
+
+def test_c_encodes_every_vector_like_python(
+    harness: Path, document: dict[str, Any], protocol: Protocol
+) -> None:
     vectors = document["vectors"]
-    lines = [encode_line(protocol.by_name[v["message"]], v["counter"],
-                         ordered(protocol.by_name[v["message"]], v["signals"])) for v in vectors]
+    lines = [
+        encode_line(
+            protocol.by_name[v["message"]],
+            v["counter"],
+            ordered(protocol.by_name[v["message"]], v["signals"]),
+        )
+        for v in vectors
+    ]
     for vector, answer in zip(vectors, run_harness(harness, lines), strict=True):
         layout = protocol.by_name[vector["message"]]
         python = layout.encode(vector["counter"], ordered(layout, vector["signals"])).hex()
         assert answer == f"OK {vector['bytes']}" == f"OK {python}", (
-            f"{layout.name}/{vector['case']}: C {answer}, vector {vector['bytes']}, "
-            f"Python {python}")
+            f"{layout.name}/{vector['case']}: C {answer}, vector {vector['bytes']}, Python {python}"
+        )
 
 
-def test_c_decodes_every_vector_like_python(harness: Path, document: dict[str, Any],
-                                            protocol: Protocol) -> None:
+def test_c_decodes_every_vector_like_python(
+    harness: Path, document: dict[str, Any], protocol: Protocol
+) -> None:
     vectors = document["vectors"]
     lines = [f"D {v['frame_id']} {v['bytes']}" for v in vectors]
     for vector, answer in zip(vectors, run_harness(harness, lines), strict=True):
@@ -222,8 +267,9 @@ def test_c_decodes_every_vector_like_python(harness: Path, document: dict[str, A
         assert all(same(c, p) for c, p in zip(c_values, py_values, strict=True)), where
 
 
-def test_c_refuses_what_python_refuses(harness: Path, document: dict[str, Any],
-                                       protocol: Protocol) -> None:
+def test_c_refuses_what_python_refuses(
+    harness: Path, document: dict[str, Any], protocol: Protocol
+) -> None:
     lines, expected = [], []
     for reject in document["encode_rejects"]:
         layout = protocol.by_name[reject["message"]]
@@ -234,8 +280,11 @@ def test_c_refuses_what_python_refuses(harness: Path, document: dict[str, Any],
         expected.append(f"ERR {ERROR_NAMES[reject['error']]}")
     assert {r["error"] for r in document["decode_rejects"]} == {"crc", "length"}
     answers = run_harness(harness, lines)
-    mismatches = [(line, want, got) for line, want, got in zip(lines, expected, answers,
-                                                                strict=True) if want != got]
+    mismatches = [
+        (line, want, got)
+        for line, want, got in zip(lines, expected, answers, strict=True)
+        if want != got
+    ]
     assert not mismatches, mismatches[:5]
 
 
@@ -251,13 +300,20 @@ def test_c_refuses_non_finite_values(harness: Path, protocol: Protocol) -> None:
     assert set(run_harness(harness, lines)) == {"ERR RANGE"}
 
 
-def test_c_by_id_api_refuses_unknown_ids_and_wrong_counts(harness: Path,
-                                                          protocol: Protocol) -> None:
+def test_c_by_id_api_refuses_unknown_ids_and_wrong_counts(
+    harness: Path, protocol: Protocol
+) -> None:
     unknown = max(layout.frame_id for layout in protocol.layouts) + 1
     torque = protocol.by_name["TorqueCommand_1"]
-    answers = run_harness(harness, [f"D {unknown} 000000", f"E {unknown} 0 0",
-                                    f"E {torque.frame_id} 0 0 0",
-                                    f"E {torque.frame_id} 0 0 0 0 0"])
+    answers = run_harness(
+        harness,
+        [
+            f"D {unknown} 000000",
+            f"E {unknown} 0 0",
+            f"E {torque.frame_id} 0 0 0",
+            f"E {torque.frame_id} 0 0 0 0 0",
+        ],
+    )
     assert answers == ["ERR ID", "ERR ID", "ERR ARG", "ERR ARG"]
 
 
@@ -299,8 +355,9 @@ def test_c_matches_python_off_the_vectors(harness: Path, protocol: Protocol) -> 
             decode_lines.append(f"D {layout.frame_id} {python[3:]}")
             decode_of.append(layout.decode(bytes.fromhex(python[3:])))
     assert len(decode_lines) > len(cases) // 4
-    for answer, (counter, decoded) in zip(run_harness(harness, decode_lines), decode_of,
-                                          strict=True):
+    for answer, (counter, decoded) in zip(
+        run_harness(harness, decode_lines), decode_of, strict=True
+    ):
         c_counter, c_values = parse_decoded(answer, decoded)
         assert c_counter == counter
         assert all(same(c, p) for c, p in zip(c_values, decoded, strict=True)), answer

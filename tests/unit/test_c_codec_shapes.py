@@ -34,14 +34,18 @@ from .test_c_codec import (
     same,
 )
 
-SHAPES = {"3x3": [3, 3, 3], "2x2": [2, 2], "4x4": [4, 4, 4, 4], "1x6": [6],
-          "mixed": [1, 5, 2]}
+SHAPES = {"3x3": [3, 3, 3], "2x2": [2, 2], "4x4": [4, 4, 4, 4], "1x6": [6], "mixed": [1, 5, 2]}
 
 
 def generate(tool: str, hand: Path, out: Path) -> None:
-    done = subprocess.run([sys.executable, str(TOOLS / tool), "--hand", str(hand), "--out",
-                           str(out)], capture_output=True, text=True, cwd=ROOT, timeout=120,
-                          check=False)
+    done = subprocess.run(
+        [sys.executable, str(TOOLS / tool), "--hand", str(hand), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr
 
 
@@ -60,8 +64,16 @@ def test_the_c_codec_of_a_hand_matches_its_vectors(shape: str, tmp_path: Path) -
     # which for the packaged harness is the default hand's header.
     shutil.copy(C_DIR / "vector_harness.c", c_dir)
     exe = tmp_path / "vector_harness"
-    command = [compiler, *CFLAGS, f"-I{c_dir}", str(c_dir / "handctl_protocol.c"),
-               str(c_dir / "vector_harness.c"), "-o", str(exe), "-lm"]
+    command = [
+        compiler,
+        *CFLAGS,
+        f"-I{c_dir}",
+        str(c_dir / "handctl_protocol.c"),
+        str(c_dir / "vector_harness.c"),
+        "-o",
+        str(exe),
+        "-lm",
+    ]
     built = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
     assert built.returncode == 0, f"{' '.join(command)}\n{built.stdout}{built.stderr}"
 
@@ -69,9 +81,17 @@ def test_the_c_codec_of_a_hand_matches_its_vectors(shape: str, tmp_path: Path) -
     names = {v["message"] for v in document["vectors"]}
     assert names == {layout.name for layout in protocol.layouts}
     good = document["vectors"]
-    encoded = run_harness(exe, [encode_line(protocol.by_name[v["message"]], v["counter"],
-                                            ordered(protocol.by_name[v["message"]],
-                                                    v["signals"])) for v in good])
+    encoded = run_harness(
+        exe,
+        [
+            encode_line(
+                protocol.by_name[v["message"]],
+                v["counter"],
+                ordered(protocol.by_name[v["message"]], v["signals"]),
+            )
+            for v in good
+        ],
+    )
     for vector, answer in zip(good, encoded, strict=True):
         assert answer == f"OK {vector['bytes']}", (vector["message"], vector["case"])
     decoded = run_harness(exe, [f"D {v['frame_id']} {v['bytes']}" for v in good])

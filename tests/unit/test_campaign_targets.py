@@ -11,8 +11,12 @@ from handctl.sim import faults as inj
 
 
 def renumbered(hand: HandConfig, ids: tuple[int, ...]) -> HandConfig:
-    return dataclasses.replace(hand, fingers=tuple(
-        dataclasses.replace(f, node_id=n) for f, n in zip(hand.fingers, ids, strict=True)))
+    return dataclasses.replace(
+        hand,
+        fingers=tuple(
+            dataclasses.replace(f, node_id=n) for f, n in zip(hand.fingers, ids, strict=True)
+        ),
+    )
 
 
 def test_targets_are_the_hands_first_middle_and_last_node(hand: HandConfig) -> None:
@@ -29,8 +33,9 @@ def test_targets_are_the_hands_first_middle_and_last_node(hand: HandConfig) -> N
 
 def test_a_node_of_one_joint_is_aimed_at_that_joint(hand: HandConfig) -> None:
     last = hand.fingers[-1]
-    short = dataclasses.replace(hand, fingers=(*hand.fingers[:-1], dataclasses.replace(
-        last, joints=last.joints[:1])))
+    short = dataclasses.replace(
+        hand, fingers=(*hand.fingers[:-1], dataclasses.replace(last, joints=last.joints[:1]))
+    )
     offset = CASES["tdt_offset"](short, Targets.of(short))
     assert isinstance(offset, inj.TdtOffset) and (offset.node, offset.joint) == (3, 1)
 

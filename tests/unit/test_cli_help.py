@@ -18,8 +18,9 @@ UNIT = re.compile(r"\[[^\]]+\]")
 FILE_PLACEHOLDER = re.compile(r"^([A-Z]+\.[a-z]+|DIR)$")
 
 
-def commands(parser: argparse.ArgumentParser, path: str = "handctl"
-             ) -> Iterator[tuple[str, argparse.ArgumentParser]]:
+def commands(
+    parser: argparse.ArgumentParser, path: str = "handctl"
+) -> Iterator[tuple[str, argparse.ArgumentParser]]:
     """Every parser below ``parser`` (itself excluded), with its command line."""
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
@@ -33,13 +34,20 @@ ALL = list(commands(build_parser()))
 
 def test_the_walk_finds_the_commands() -> None:
     names = {path for path, _ in ALL}
-    assert {"handctl check", "handctl run recipe", "handctl analyze torque-set",
-            "handctl replay", "handctl sim", "handctl plan"} <= names
+    assert {
+        "handctl check",
+        "handctl run recipe",
+        "handctl analyze torque-set",
+        "handctl replay",
+        "handctl sim",
+        "handctl plan",
+    } <= names
 
 
 @pytest.mark.parametrize(("path", "parser"), ALL, ids=[p for p, _ in ALL])
-def test_help_ends_with_examples_of_this_command(path: str,
-                                                 parser: argparse.ArgumentParser) -> None:
+def test_help_ends_with_examples_of_this_command(
+    path: str, parser: argparse.ArgumentParser
+) -> None:
     text = parser.format_help()
     assert "\nexamples:\n" in text, path
     examples = text.rsplit("\nexamples:\n", 1)[1].strip().splitlines()
@@ -57,7 +65,8 @@ def test_every_quantity_has_a_unit(path: str, parser: argparse.ArgumentParser) -
 
 @pytest.mark.parametrize(("path", "parser"), ALL, ids=[p for p, _ in ALL])
 def test_file_arguments_have_placeholders_that_say_what_the_file_is(
-        path: str, parser: argparse.ArgumentParser) -> None:
+    path: str, parser: argparse.ArgumentParser
+) -> None:
     for action in parser._actions:
         if action.type is Path:
             assert isinstance(action.metavar, str), (path, action.dest)

@@ -86,16 +86,23 @@ for line in request_realtime():
 
 
 def test_realtime_request_says_clearly_what_was_refused() -> None:
-    done = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True,
-                          timeout=60, preexec_fn=_unprivileged, check=False,
-                          cwd=Path(__file__).resolve().parents[2])
+    done = subprocess.run(
+        [sys.executable, "-c", _CHILD],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        preexec_fn=_unprivileged,
+        check=False,
+        cwd=Path(__file__).resolve().parents[2],
+    )
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
-    assert any(line.startswith("SCHED_FIFO priority 80 refused") and "rtprio" in line
-               for line in lines), lines
-    assert any(line.startswith("locking memory refused") and "memlock" in line
-               for line in lines), lines
-
+    assert any(
+        line.startswith("SCHED_FIFO priority 80 refused") and "rtprio" in line for line in lines
+    ), lines
+    assert any(line.startswith("locking memory refused") and "memlock" in line for line in lines), (
+        lines
+    )
 
 
 def test_collector_paused_turns_automatic_collection_off_and_back_on() -> None:
@@ -127,9 +134,14 @@ print(request_realtime(1, cpu=4096)[0])
 
 
 def _hygiene_child(prefault: bool) -> list[str]:
-    done = subprocess.run([sys.executable, "-c", _HYGIENE_CHILD, "1" if prefault else "0"],
-                          capture_output=True, text=True, timeout=60, check=False,
-                          cwd=Path(__file__).resolve().parents[2])
+    done = subprocess.run(
+        [sys.executable, "-c", _HYGIENE_CHILD, "1" if prefault else "0"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=Path(__file__).resolve().parents[2],
+    )
     assert done.returncode == 0, done.stderr
     return done.stdout.splitlines()
 

@@ -59,8 +59,7 @@ def test_config_is_immutable() -> None:
         hand.fingers[0].joints[0].tau_max = 10.0  # type: ignore[misc]
 
 
-def test_hash_ignores_comments_and_sim_but_not_limits(tmp_path: Path,
-                                                      base: dict[str, Any]) -> None:
+def test_hash_ignores_comments_and_sim_but_not_limits(tmp_path: Path, base: dict[str, Any]) -> None:
     original = load_hand(write(tmp_path, base)).config_hash
     with_sim = copy.deepcopy(base)
     with_sim["sim"] = {"anything": 1}
@@ -97,17 +96,21 @@ def key_path(path: tuple[Any, ...]) -> str:
     return out
 
 
-@pytest.mark.parametrize(("path", "value", "expected"), [
-    (("fingers", 0, "joints", 0, "tau_max"), "lots", "a number"),
-    (("fingers", 0, "joints", 0, "tau_max"), True, "a number"),
-    (("fingers", 2, "node_id"), 1.5, "an integer"),
-    (("bus", "fd"), "yes", "true or false"),
-    (("fingers", 0, "base"), [0, 0], "a mapping"),
-    (("fingers", 1, "joints"), {"a": 1}, "a list"),
-    (("name",), None, "a non-empty string"),
-])
-def test_wrong_types(tmp_path: Path, base: dict[str, Any], path: tuple[Any, ...], value: Any,
-                     expected: str) -> None:
+@pytest.mark.parametrize(
+    ("path", "value", "expected"),
+    [
+        (("fingers", 0, "joints", 0, "tau_max"), "lots", "a number"),
+        (("fingers", 0, "joints", 0, "tau_max"), True, "a number"),
+        (("fingers", 2, "node_id"), 1.5, "an integer"),
+        (("bus", "fd"), "yes", "true or false"),
+        (("fingers", 0, "base"), [0, 0], "a mapping"),
+        (("fingers", 1, "joints"), {"a": 1}, "a list"),
+        (("name",), None, "a non-empty string"),
+    ],
+)
+def test_wrong_types(
+    tmp_path: Path, base: dict[str, Any], path: tuple[Any, ...], value: Any, expected: str
+) -> None:
     target = base
     for key in path[:-1]:
         target = target[key]
@@ -117,19 +120,23 @@ def test_wrong_types(tmp_path: Path, base: dict[str, Any], path: tuple[Any, ...]
     assert expected in err.expected
 
 
-@pytest.mark.parametrize(("path", "value"), [
-    (("fingers", 0, "joints", 0, "tau_max"), -0.1),
-    (("fingers", 0, "joints", 0, "tau_max"), 0.0),
-    (("fingers", 0, "joints", 0, "rate_limit"), 0),
-    (("fingers", 0, "joints", 0, "link_length"), 2.5),
-    (("fingers", 2, "node_id"), 16),
-    (("fingers", 2, "can_ids", "feedback"), 0x800),
-    (("bus", "bitrate"), 2_000_000),
-    (("bus", "data_bitrate"), 500_000),
-    (("bus", "loop_rate_hz"), 0),
-])
-def test_out_of_range(tmp_path: Path, base: dict[str, Any], path: tuple[Any, ...],
-                      value: Any) -> None:
+@pytest.mark.parametrize(
+    ("path", "value"),
+    [
+        (("fingers", 0, "joints", 0, "tau_max"), -0.1),
+        (("fingers", 0, "joints", 0, "tau_max"), 0.0),
+        (("fingers", 0, "joints", 0, "rate_limit"), 0),
+        (("fingers", 0, "joints", 0, "link_length"), 2.5),
+        (("fingers", 2, "node_id"), 16),
+        (("fingers", 2, "can_ids", "feedback"), 0x800),
+        (("bus", "bitrate"), 2_000_000),
+        (("bus", "data_bitrate"), 500_000),
+        (("bus", "loop_rate_hz"), 0),
+    ],
+)
+def test_out_of_range(
+    tmp_path: Path, base: dict[str, Any], path: tuple[Any, ...], value: Any
+) -> None:
     target = base
     for key in path[:-1]:
         target = target[key]
@@ -212,8 +219,14 @@ def test_yaml_is_loaded_safely(tmp_path: Path) -> None:
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "handctl", *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=120, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
 
 
 def test_check_cli_accepts_default_hand() -> None:
@@ -223,8 +236,9 @@ def test_check_cli_accepts_default_hand() -> None:
     assert result.stdout.rstrip().endswith("ok")
 
 
-def test_check_cli_bad_config_exits_2_with_the_message(tmp_path: Path,
-                                                       base: dict[str, Any]) -> None:
+def test_check_cli_bad_config_exits_2_with_the_message(
+    tmp_path: Path, base: dict[str, Any]
+) -> None:
     del base["fingers"][0]["joints"][0]["tau_max"]
     path = write(tmp_path, base)
     result = run_cli("check", str(path))
@@ -236,10 +250,13 @@ def test_check_cli_bad_config_exits_2_with_the_message(tmp_path: Path,
 def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
     result = run_cli("check", "config/hands/hiroshima_hand_classic.yaml")
     assert result.returncode == 2
-    assert ("hiroshima_hand_classic.yaml: bus.fd: expected true (CAN-FD): Feedback_1 (16 bytes)"
-            in result.stderr)
+    assert (
+        "hiroshima_hand_classic.yaml: bus.fd: expected true (CAN-FD): Feedback_1 (16 bytes)"
+        in result.stderr
+    )
     assert "Status_3 (12 bytes) are longer than the 8 bytes of a classic CAN frame" in (
-        result.stderr)
+        result.stderr
+    )
     assert "found 122.6 % at 1000 Hz; CAN-FD 1/5 Mbit/s would carry 39.1 %" in result.stderr
 
 
@@ -255,8 +272,8 @@ def joint_of(data: dict[str, Any], finger: int, joint: int) -> dict[str, Any]:
 
 @pytest.mark.parametrize(("finger", "joint"), [(f, j) for f in range(3) for j in range(3)])
 def test_tau_max_the_command_signal_cannot_carry_is_refused(
-        tmp_path: Path, base: dict[str, Any], protocol: Protocol, finger: int,
-        joint: int) -> None:
+    tmp_path: Path, base: dict[str, Any], protocol: Protocol, finger: int, joint: int
+) -> None:
     """The issue's tau_max: 5 on a wire of ±3.2767 N·m; every joint maps to its own signal."""
     node = base["fingers"][finger]["node_id"]
     carried = signal(protocol, f"TorqueCommand_{node}", joint)
@@ -270,7 +287,8 @@ def test_tau_max_the_command_signal_cannot_carry_is_refused(
 
 
 def test_the_largest_torque_the_wire_carries_is_accepted(
-        tmp_path: Path, base: dict[str, Any], protocol: Protocol) -> None:
+    tmp_path: Path, base: dict[str, Any], protocol: Protocol
+) -> None:
     lo, hi = signal(protocol, "TorqueCommand_1", 0).carried_range()
     limit = min(-lo, hi)
     joint_of(base, 0, 0).update(tau_max=limit, device_tau_max=limit)
@@ -279,7 +297,8 @@ def test_the_largest_torque_the_wire_carries_is_accepted(
 
 
 def test_device_tau_max_the_command_signal_cannot_carry_is_refused(
-        tmp_path: Path, base: dict[str, Any], protocol: Protocol) -> None:
+    tmp_path: Path, base: dict[str, Any], protocol: Protocol
+) -> None:
     _, hi = signal(protocol, "TorqueCommand_2", 1).carried_range()
     joint_of(base, 1, 1)["device_tau_max"] = hi + 0.01
     err = error_for(tmp_path, base)
@@ -288,7 +307,8 @@ def test_device_tau_max_the_command_signal_cannot_carry_is_refused(
 
 
 def test_device_tau_max_whose_tdt_reading_saturates_is_refused(
-        tmp_path: Path, base: dict[str, Any], protocol: Protocol) -> None:
+    tmp_path: Path, base: dict[str, Any], protocol: Protocol
+) -> None:
     """With tdt scale 0.5 a torque reads as twice its value: the feedback signal would saturate
     below the torque the node can apply, so the host could not see it."""
     lo, hi = signal(protocol, "Feedback_3", 2).carried_range()
@@ -302,10 +322,12 @@ def test_device_tau_max_whose_tdt_reading_saturates_is_refused(
 
 
 def test_a_tdt_offset_moves_the_reading_out_of_the_signal(
-        tmp_path: Path, base: dict[str, Any], protocol: Protocol) -> None:
+    tmp_path: Path, base: dict[str, Any], protocol: Protocol
+) -> None:
     _, hi = signal(protocol, "Feedback_1", 0).carried_range()
-    joint_of(base, 0, 0).update(tau_max=0.5, device_tau_max=hi - 0.1,
-                                tdt={"scale": 1.0, "offset": -0.2})
+    joint_of(base, 0, 0).update(
+        tau_max=0.5, device_tau_max=hi - 0.1, tdt={"scale": 1.0, "offset": -0.2}
+    )
     err = error_for(tmp_path, base)
     assert err.key == "fingers[0].joints[0].device_tau_max"
     assert "Feedback_1.Torque1" in err.expected
@@ -313,7 +335,8 @@ def test_a_tdt_offset_moves_the_reading_out_of_the_signal(
 
 @pytest.mark.parametrize(("key", "side"), [("angle_max", 1), ("angle_min", 0)])
 def test_an_angle_limit_the_feedback_signal_cannot_show_crossed_is_refused(
-        tmp_path: Path, base: dict[str, Any], protocol: Protocol, key: str, side: int) -> None:
+    tmp_path: Path, base: dict[str, Any], protocol: Protocol, key: str, side: int
+) -> None:
     """A limit at the signal's end is never seen crossed: the reading saturates on it."""
     carried = signal(protocol, "Feedback_2", 3 + 2)  # Angle3 of node 2
     end = carried.carried_range()[side]
@@ -328,16 +351,24 @@ def test_an_angle_limit_the_feedback_signal_cannot_show_crossed_is_refused(
     assert getattr(load_hand(write(tmp_path, base)).fingers[1].joints[2], key) == inside
 
 
-@pytest.mark.parametrize(("loop_rate_hz", "rate_limit", "ok"), [
-    (1000, 0.1, True),  # one 0.0001 N·m step per tick: the resolution
-    (1000, 0.05, False),  # half a step per tick
-    (500, 0.05, True),  # the same rate at half the loop rate is one step per tick
-    (1000, 6553.5, True),  # the whole span in one tick
-    (1000, 7000.0, False),  # more than the span: limits nothing the wire can express
-])
+@pytest.mark.parametrize(
+    ("loop_rate_hz", "rate_limit", "ok"),
+    [
+        (1000, 0.1, True),  # one 0.0001 N·m step per tick: the resolution
+        (1000, 0.05, False),  # half a step per tick
+        (500, 0.05, True),  # the same rate at half the loop rate is one step per tick
+        (1000, 6553.5, True),  # the whole span in one tick
+        (1000, 7000.0, False),  # more than the span: limits nothing the wire can express
+    ],
+)
 def test_a_rate_limit_must_be_a_step_the_command_signal_can_carry(
-        tmp_path: Path, base: dict[str, Any], protocol: Protocol, loop_rate_hz: float,
-        rate_limit: float, ok: bool) -> None:
+    tmp_path: Path,
+    base: dict[str, Any],
+    protocol: Protocol,
+    loop_rate_hz: float,
+    rate_limit: float,
+    ok: bool,
+) -> None:
     carried = signal(protocol, "TorqueCommand_1", 0)
     lo, hi = carried.carried_range()
     assert carried.scale == pytest.approx(1e-4) and hi - lo == pytest.approx(6.5535)
@@ -352,11 +383,13 @@ def test_a_rate_limit_must_be_a_step_the_command_signal_can_carry(
     assert f"bus.loop_rate_hz {loop_rate_hz:g} Hz" in err.expected
 
 
-@settings(max_examples=60, deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(st.floats(0.001, 100.0))
 def test_a_limit_loads_exactly_when_the_wire_carries_it(
-        tmp_path: Path, base: dict[str, Any], protocol: Protocol, limit: float) -> None:
+    tmp_path: Path, base: dict[str, Any], protocol: Protocol, limit: float
+) -> None:
     _, hi = signal(protocol, "TorqueCommand_3", 0).carried_range()
     data = copy.deepcopy(base)
     joint_of(data, 2, 0).update(tau_max=limit, device_tau_max=limit)
@@ -374,29 +407,39 @@ def narrower_dbc(tmp_path: Path) -> Path:
     line = ' SG_ Torque1 : 16|16@1- (0.0001,0) [-3.2768|3.2767] "N.m" FINGER1\n'
     assert line in text
     path = tmp_path / "narrow.dbc"
-    path.write_text(text.replace(line, line.replace("(0.0001,0) [-3.2768|3.2767]",
-                                                    "(0.00001,0) [-0.32768|0.32767]")))
+    path.write_text(
+        text.replace(
+            line, line.replace("(0.0001,0) [-3.2768|3.2767]", "(0.00001,0) [-0.32768|0.32767]")
+        )
+    )
     return path
 
 
 def test_the_wire_ranges_come_from_the_dbc(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match=r"TorqueCommand_1\.Torque1 carries "
-                                          r"\(-0\.32768\.\.0\.32767 N·m\)") as info:
+    with pytest.raises(
+        ConfigError,
+        match=r"TorqueCommand_1\.Torque1 carries "
+        r"\(-0\.32768\.\.0\.32767 N·m\)",
+    ) as info:
         load_hand(HAND_YAML, narrower_dbc(tmp_path))
     assert info.value.key == "fingers[0].joints[0].tau_max"
     assert load_hand(HAND_YAML).joints[0].tau_max == 0.6
 
 
-def test_check_cli_refuses_a_limit_the_wire_cannot_carry(tmp_path: Path,
-                                                        base: dict[str, Any]) -> None:
+def test_check_cli_refuses_a_limit_the_wire_cannot_carry(
+    tmp_path: Path, base: dict[str, Any]
+) -> None:
     joint_of(base, 0, 0).update(tau_max=5.0, device_tau_max=5.0)
     path = write(tmp_path, base)
     result = run_cli("check", str(path))
     assert result.returncode == 2
-    assert (f"{path}: fingers[0].joints[0].tau_max: expected ±tau_max (-5..5 N·m) within what "
-            "TorqueCommand_1.Torque1 carries (-3.2768..3.2767 N·m), found 5.0") in result.stderr
+    assert (
+        f"{path}: fingers[0].joints[0].tau_max: expected ±tau_max (-5..5 N·m) within what "
+        "TorqueCommand_1.Torque1 carries (-3.2768..3.2767 N·m), found 5.0"
+    ) in result.stderr
     assert "Traceback" not in result.stderr
-    narrow = run_cli("check", "config/hands/hiroshima_hand.yaml", "--dbc",
-                     str(narrower_dbc(tmp_path)))
+    narrow = run_cli(
+        "check", "config/hands/hiroshima_hand.yaml", "--dbc", str(narrower_dbc(tmp_path))
+    )
     assert narrow.returncode == 2
     assert "TorqueCommand_1.Torque1 carries (-0.32768..0.32767 N·m)" in narrow.stderr

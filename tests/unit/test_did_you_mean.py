@@ -42,7 +42,8 @@ def test_a_renamed_required_key_names_the_stray_one(tmp_path: Path, hand: HandCo
 
 
 def test_a_renamed_joint_names_the_stray_one_among_similar_joints(
-        tmp_path: Path, hand: HandConfig) -> None:
+    tmp_path: Path, hand: HandConfig
+) -> None:
     torques = dict.fromkeys(JOINTS, 0.1)
     torques["f4_j1"] = torques.pop("f1_j1")
     err = recipe_error(tmp_path, hand, recipe(torques=torques))

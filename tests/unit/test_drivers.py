@@ -39,8 +39,9 @@ def clock() -> Clock:
 
 
 @pytest.fixture
-def driver(hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus],
-           clock: Clock) -> Iterator[HandDriver]:
+def driver(
+    hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus], clock: Clock
+) -> Iterator[HandDriver]:
     yield HandDriver(hand, protocol, bus_pair[0], clock_ns=clock)
 
 
@@ -49,13 +50,21 @@ def db() -> cantools.database.can.Database:
     return load_dbc()
 
 
-def feedback(protocol: Protocol, node: int, counter: int, tdt: tuple[float, float, float],
-             angles: tuple[float, float, float], state: int = 1, faults: int = 0) -> bytes:
+def feedback(
+    protocol: Protocol,
+    node: int,
+    counter: int,
+    tdt: tuple[float, float, float],
+    angles: tuple[float, float, float],
+    state: int = 1,
+    faults: int = 0,
+) -> bytes:
     return protocol.layout("Feedback", node).encode(counter, (*tdt, *angles, state, faults))
 
 
-def test_sent_commands_decode_with_cantools(driver: HandDriver, bus_pair: tuple[HandBus, HandBus],
-                                            db: cantools.database.can.Database) -> None:
+def test_sent_commands_decode_with_cantools(
+    driver: HandDriver, bus_pair: tuple[HandBus, HandBus], db: cantools.database.can.Database
+) -> None:
     peer = bus_pair[1]
     torques = [0.1, -0.2, 0.3, 0.01, 0.02, 0.03, -0.1, -0.2, -0.25]
     assert driver.send(AppliedTorques(np.array(torques)))
@@ -68,8 +77,9 @@ def test_sent_commands_decode_with_cantools(driver: HandDriver, bus_pair: tuple[
     assert decode(frames[5].arbitration_id, frames[5].data)["Counter"] == 1
 
 
-def test_node_commands_and_estop(driver: HandDriver, bus_pair: tuple[HandBus, HandBus],
-                                 db: cantools.database.can.Database) -> None:
+def test_node_commands_and_estop(
+    driver: HandDriver, bus_pair: tuple[HandBus, HandBus], db: cantools.database.can.Database
+) -> None:
     peer = bus_pair[1]
     driver.node_command("enable", nodes=[2])
     driver.node_command("fault_reset")
@@ -82,9 +92,9 @@ def test_node_commands_and_estop(driver: HandDriver, bus_pair: tuple[HandBus, Ha
     assert str(decode(0, frames[4].data)["Reason"]) == "operator"
 
 
-def test_good_feedback_updates_the_joint_state(driver: HandDriver, protocol: Protocol,
-                                               bus_pair: tuple[HandBus, HandBus],
-                                               clock: Clock) -> None:
+def test_good_feedback_updates_the_joint_state(
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus], clock: Clock
+) -> None:
     peer = bus_pair[1]
     peer.send(0x182, feedback(protocol, 2, 0, (0.1, 0.2, 0.3), (0.4, 0.5, 0.6)))
     state = driver.poll()
@@ -99,29 +109,38 @@ def test_good_feedback_updates_the_joint_state(driver: HandDriver, protocol: Pro
     assert state.node_state == [-1, 1, -1]
 
 
-def test_tdt_calibration_is_applied_once(hand: HandConfig, protocol: Protocol,
-                                         bus_pair: tuple[HandBus, HandBus], clock: Clock) -> None:
+def test_tdt_calibration_is_applied_once(
+    hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus], clock: Clock
+) -> None:
     fingers = list(hand.fingers)
     joints = list(fingers[0].joints)
     joints[1] = replace(joints[1], tdt=replace(joints[1].tdt, scale=2.0, offset=0.01))
     fingers[0] = replace(fingers[0], joints=tuple(joints))
-    driver = HandDriver(replace(hand, fingers=tuple(fingers)), protocol, bus_pair[0],
-                        clock_ns=clock)
+    driver = HandDriver(
+        replace(hand, fingers=tuple(fingers)), protocol, bus_pair[0], clock_ns=clock
+    )
     bus_pair[1].send(0x181, feedback(protocol, 1, 0, (0.1, 0.1, 0.1), (0.0, 0.0, 0.0)))
     for _ in range(3):  # polls without new frames must not compound the calibration
         state = driver.poll()
     assert state.tdt[:3] == pytest.approx([0.1, 0.21, 0.1])
 
 
-@pytest.mark.parametrize(("mutate", "kind"), [
-    (lambda d: bytes((d[0] ^ 0x01,)) + d[1:], "crc"),
-    (lambda d: d[:8], "length"),
-    (lambda d: d + b"\x00", "length"),
-    (lambda d: d[:5] + bytes((d[5] ^ 0x80,)) + d[6:], "crc"),
-])
+@pytest.mark.parametrize(
+    ("mutate", "kind"),
+    [
+        (lambda d: bytes((d[0] ^ 0x01,)) + d[1:], "crc"),
+        (lambda d: d[:8], "length"),
+        (lambda d: d + b"\x00", "length"),
+        (lambda d: d[:5] + bytes((d[5] ^ 0x80,)) + d[6:], "crc"),
+    ],
+)
 def test_corrupt_frames_are_rejected_and_never_applied(
-        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus],
-        mutate: object, kind: str) -> None:
+    driver: HandDriver,
+    protocol: Protocol,
+    bus_pair: tuple[HandBus, HandBus],
+    mutate: object,
+    kind: str,
+) -> None:
     peer = bus_pair[1]
     peer.send(0x181, feedback(protocol, 1, 0, (0.1, 0.1, 0.1), (0.2, 0.2, 0.2)))
     driver.poll()
@@ -133,8 +152,9 @@ def test_corrupt_frames_are_rejected_and_never_applied(
     assert sum(driver.reject_counts().values()) == 1
 
 
-def test_counter_rules(driver: HandDriver, protocol: Protocol,
-                       bus_pair: tuple[HandBus, HandBus]) -> None:
+def test_counter_rules(
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     peer = bus_pair[1]
 
     def send(counter: int, angle: float) -> float:
@@ -153,8 +173,9 @@ def test_counter_rules(driver: HandDriver, protocol: Protocol,
     assert counts["counter_skip"] == 1
 
 
-def test_unexpected_ids_are_counted_and_dropped(driver: HandDriver, protocol: Protocol,
-                                                bus_pair: tuple[HandBus, HandBus]) -> None:
+def test_unexpected_ids_are_counted_and_dropped(
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     peer = bus_pair[1]
     peer.send(0x555, bytes(8))
     peer.send(0x101, protocol.layout("TorqueCommand", 1).encode(0, (0.1, 0.1, 0.1)))
@@ -165,8 +186,9 @@ def test_unexpected_ids_are_counted_and_dropped(driver: HandDriver, protocol: Pr
     assert driver.state.node_state == [-1, -1, -1]
 
 
-def test_heartbeat_going_backwards_counts_a_reboot(driver: HandDriver, protocol: Protocol,
-                                                  bus_pair: tuple[HandBus, HandBus]) -> None:
+def test_heartbeat_going_backwards_counts_a_reboot(
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     peer = bus_pair[1]
     hb = protocol.layout("Heartbeat", 1)
     peer.send(0x701, hb.encode(0, (1, 5000)))
@@ -185,10 +207,12 @@ def test_heartbeat_going_backwards_counts_a_reboot(driver: HandDriver, protocol:
     assert driver.nodes[0].state_name == "DISABLED"
 
 
-def test_status_frames_carry_faults(driver: HandDriver, protocol: Protocol,
-                                    bus_pair: tuple[HandBus, HandBus]) -> None:
-    bus_pair[1].send(0x282, protocol.layout("Status", 2).encode(
-        0, (2, 0x03, 0, 0, 0, 11, 2, 0, 2, 0)))
+def test_status_frames_carry_faults(
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
+    bus_pair[1].send(
+        0x282, protocol.layout("Status", 2).encode(0, (2, 0x03, 0, 0, 0, 11, 2, 0, 2, 0))
+    )
     state = driver.poll()
     assert state.node_state[1] == 2
     assert fault_names(state.node_faults[1]) == ["TIMEOUT", "ESTOP"]

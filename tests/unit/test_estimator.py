@@ -30,8 +30,10 @@ def boxed_hand(hand: HandConfig) -> HandConfig:
     lengths = (2 * R + H[1], 2 * R + H[0] + H[2], 2 * R + H[1])
 
     def fix(finger: FingerConfig) -> FingerConfig:
-        joints = tuple(dataclasses.replace(j, link_length=length, half_thickness=h)
-                       for j, length, h in zip(finger.joints, lengths, H, strict=True))
+        joints = tuple(
+            dataclasses.replace(j, link_length=length, half_thickness=h)
+            for j, length, h in zip(finger.joints, lengths, H, strict=True)
+        )
         return dataclasses.replace(finger, joints=joints)
 
     return dataclasses.replace(hand, fingers=tuple(fix(f) for f in hand.fingers))
@@ -105,8 +107,7 @@ def row_hand(hand: HandConfig) -> tuple[HandConfig, list[float]]:
     fourth hanging straight down as the last cage's wall."""
     boxed = boxed_hand(hand)
     finger = boxed.fingers[0]
-    fingers = tuple(dataclasses.replace(finger, base_x=(k - 1.5) * ROW_SPACING)
-                    for k in range(4))
+    fingers = tuple(dataclasses.replace(finger, base_x=(k - 1.5) * ROW_SPACING) for k in range(4))
     angles = [0.0, math.pi / 2, math.pi / 2] * 3 + [0.0, 0.0, 0.0]
     return dataclasses.replace(boxed, fingers=fingers), angles
 
@@ -133,8 +134,18 @@ def test_three_objects_each_in_its_cage_with_the_pairs_asked_for(hand: HandConfi
     shape, angles = row_hand(hand)
     objects = (RecipeObject("a", R), RecipeObject("b", R), RecipeObject("c", R))
     est = ObjectEstimator(shape, objects)
-    assert est.estimates == ("a_b_line_angle", "a_b_line_turn", "b_c_line_angle",
-                             "b_c_line_turn", "a_x", "a_y", "b_x", "b_y", "c_x", "c_y")
+    assert est.estimates == (
+        "a_b_line_angle",
+        "a_b_line_turn",
+        "b_c_line_angle",
+        "b_c_line_turn",
+        "a_x",
+        "a_y",
+        "b_x",
+        "b_y",
+        "c_x",
+        "c_y",
+    )
     out = settle(est, angles, 400)
     assert est.valid
     for k in range(3):
@@ -173,6 +184,7 @@ def test_half_thickness_agrees_with_the_simulated_links(hand: HandConfig) -> Non
 
 # -- the recipe's objects ------------------------------------------------------------------
 
+
 def write(tmp_path: Path, data: dict[str, Any]) -> Path:
     path = tmp_path / "recipe.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
@@ -181,31 +193,40 @@ def write(tmp_path: Path, data: dict[str, Any]) -> Path:
 
 def phase(name: str, **extra: Any) -> dict[str, Any]:
     joints = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
-    return {"name": name, "torques": dict.fromkeys(joints, 0.1), "ramp_s": 0.1, "max_s": 1.0,
-            **extra}
+    return {
+        "name": name,
+        "torques": dict.fromkeys(joints, 0.1),
+        "ramp_s": 0.1,
+        "max_s": 1.0,
+        **extra,
+    }
 
 
 OBJECTS = [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}]
 
 
 def test_objects_are_loaded_in_order(tmp_path: Path, hand: HandConfig) -> None:
-    recipe = load_recipe(write(tmp_path, {"recipe": "r", "objects": OBJECTS,
-                                          "phases": [phase("a")]}), hand)
+    recipe = load_recipe(
+        write(tmp_path, {"recipe": "r", "objects": OBJECTS, "phases": [phase("a")]}), hand
+    )
     assert recipe.objects == (RecipeObject("cyl1", 0.02), RecipeObject("cyl2", 0.02))
 
 
-@pytest.mark.parametrize(("objects", "key", "expected"), [
-    ([{"name": f"c{i}", "radius": 0.01} for i in range(5)], "objects", "1 to 4 mappings"),
-    ([{"name": "cyl_1", "radius": 0.02}], "objects[0].name", "letters and digits"),
-    ([], "objects", "1 to 4 mappings"),
-    ([OBJECTS[0], OBJECTS[0]], "objects[1].name", "a name not used"),
-    ([OBJECTS[0], {"name": "cyl2", "radius": -0.01}], "objects[1].radius", "> 0"),
-    ([OBJECTS[0], {"name": "cyl2", "radius": 0.02, "colour": "red"}], "objects[1]", "colour"),
-    ([OBJECTS[0], {"name": "cyl2"}], "objects[1].radius", ""),
-])
-def test_bad_objects_are_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
-                                                objects: list[Any], key: str,
-                                                expected: str) -> None:
+@pytest.mark.parametrize(
+    ("objects", "key", "expected"),
+    [
+        ([{"name": f"c{i}", "radius": 0.01} for i in range(5)], "objects", "1 to 4 mappings"),
+        ([{"name": "cyl_1", "radius": 0.02}], "objects[0].name", "letters and digits"),
+        ([], "objects", "1 to 4 mappings"),
+        ([OBJECTS[0], OBJECTS[0]], "objects[1].name", "a name not used"),
+        ([OBJECTS[0], {"name": "cyl2", "radius": -0.01}], "objects[1].radius", "> 0"),
+        ([OBJECTS[0], {"name": "cyl2", "radius": 0.02, "colour": "red"}], "objects[1]", "colour"),
+        ([OBJECTS[0], {"name": "cyl2"}], "objects[1].radius", ""),
+    ],
+)
+def test_bad_objects_are_refused_naming_the_key(
+    tmp_path: Path, hand: HandConfig, objects: list[Any], key: str, expected: str
+) -> None:
     path = write(tmp_path, {"recipe": "r", "objects": objects, "phases": [phase("a")]})
     with pytest.raises(ConfigError) as info:
         load_recipe(path, hand)
@@ -213,16 +234,21 @@ def test_bad_objects_are_refused_naming_the_key(tmp_path: Path, hand: HandConfig
     assert expected in str(info.value)
 
 
-@pytest.mark.parametrize(("pairs", "key", "expected"), [
-    ([["cyl1", "cyl3"]], "pairs[0]", "two names of the recipe's objects (cyl1, cyl2)"),
-    ([["cyl1", "cyl1"]], "pairs[0]", "two different objects"),
-    ([["cyl1", "cyl2"], ["cyl2", "cyl1"]], "pairs[1]", "a pair not listed before"),
-    ([], "pairs", "a non-empty list"),
-])
-def test_bad_pairs_are_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
-                                              pairs: list[Any], key: str, expected: str) -> None:
-    path = write(tmp_path, {"recipe": "r", "objects": OBJECTS, "pairs": pairs,
-                            "phases": [phase("a")]})
+@pytest.mark.parametrize(
+    ("pairs", "key", "expected"),
+    [
+        ([["cyl1", "cyl3"]], "pairs[0]", "two names of the recipe's objects (cyl1, cyl2)"),
+        ([["cyl1", "cyl1"]], "pairs[0]", "two different objects"),
+        ([["cyl1", "cyl2"], ["cyl2", "cyl1"]], "pairs[1]", "a pair not listed before"),
+        ([], "pairs", "a non-empty list"),
+    ],
+)
+def test_bad_pairs_are_refused_naming_the_key(
+    tmp_path: Path, hand: HandConfig, pairs: list[Any], key: str, expected: str
+) -> None:
+    path = write(
+        tmp_path, {"recipe": "r", "objects": OBJECTS, "pairs": pairs, "phases": [phase("a")]}
+    )
     with pytest.raises(ConfigError) as info:
         load_recipe(path, hand)
     assert info.value.key == key
@@ -233,40 +259,82 @@ def test_estimates_are_named_by_the_recipe_objects(tmp_path: Path, hand: HandCon
     """Conditions name an object's or a pair's estimate by the recipe's own names; the
     unnamed ones of two-object recipes written before still read the same values."""
     three = [*OBJECTS, {"name": "peg", "radius": 0.01}]
-    recipe = load_recipe(write(tmp_path, {"recipe": "r", "objects": three,
-                                          "pairs": [["peg", "cyl1"]], "phases": [phase(
-                                              "a", exit=["estimate.peg_cyl1_line_turn > 0.1",
-                                                         "estimate.peg_y > -0.05"])]}), hand)
+    recipe = load_recipe(
+        write(
+            tmp_path,
+            {
+                "recipe": "r",
+                "objects": three,
+                "pairs": [["peg", "cyl1"]],
+                "phases": [
+                    phase("a", exit=["estimate.peg_cyl1_line_turn > 0.1", "estimate.peg_y > -0.05"])
+                ],
+            },
+        ),
+        hand,
+    )
     assert recipe.estimates[:2] == ("peg_cyl1_line_angle", "peg_cyl1_line_turn")
     turn, height = recipe.phases[0].exits
     assert (turn.index, turn.relative) == (1, True)
     assert (recipe.estimates[height.index], height.relative) == ("peg_y", False)
-    legacy = load_recipe(write(tmp_path, {"recipe": "r", "objects": OBJECTS, "phases": [phase(
-        "a", exit=["estimate.centre_line_turn < -0.7", "estimate.object2_x > 0"])]}), hand)
+    legacy = load_recipe(
+        write(
+            tmp_path,
+            {
+                "recipe": "r",
+                "objects": OBJECTS,
+                "phases": [
+                    phase("a", exit=["estimate.centre_line_turn < -0.7", "estimate.object2_x > 0"])
+                ],
+            },
+        ),
+        hand,
+    )
     new = ("cyl1_cyl2_line_turn", "cyl2_x")
     assert [legacy.estimates[c.index] for c in legacy.phases[0].exits] == list(new)
     assert legacy.phases[0].exits[0].relative
     with pytest.raises(ConfigError) as info:  # the old names meant two objects, one pair
-        load_recipe(write(tmp_path, {"recipe": "r", "objects": three, "phases": [phase(
-            "a", exit=["estimate.centre_line_turn < -0.7"])]}), hand)
+        load_recipe(
+            write(
+                tmp_path,
+                {
+                    "recipe": "r",
+                    "objects": three,
+                    "phases": [phase("a", exit=["estimate.centre_line_turn < -0.7"])],
+                },
+            ),
+            hand,
+        )
     assert "cyl2_peg_line_turn" in info.value.expected
 
 
 def test_a_turn_needs_a_pair(tmp_path: Path, hand: HandConfig) -> None:
     with pytest.raises(ConfigError) as info:
-        load_recipe(write(tmp_path, {"recipe": "r", "objects": OBJECTS[:1],
-                                     "min_total_turn_deg": 90, "phases": [phase("a")]}), hand)
+        load_recipe(
+            write(
+                tmp_path,
+                {
+                    "recipe": "r",
+                    "objects": OBJECTS[:1],
+                    "min_total_turn_deg": 90,
+                    "phases": [phase("a")],
+                },
+            ),
+            hand,
+        )
     assert info.value.key == "min_total_turn_deg"
     turning = phase("a", turn_rate={"rate_deg_s": 30, "scale": [0.5, 2.0]})
     with pytest.raises(ConfigError) as info:
-        load_recipe(write(tmp_path, {"recipe": "r", "objects": OBJECTS[:1],
-                                     "phases": [turning]}), hand)
+        load_recipe(
+            write(tmp_path, {"recipe": "r", "objects": OBJECTS[:1], "phases": [turning]}), hand
+        )
     assert info.value.key == "phases[0].turn_rate"
 
 
 def test_estimates_without_objects_are_refused(tmp_path: Path, hand: HandConfig) -> None:
-    path = write(tmp_path, {"recipe": "r", "phases": [
-        phase("a", exit=["estimate.centre_line_turn < -0.7"])]})
+    path = write(
+        tmp_path, {"recipe": "r", "phases": [phase("a", exit=["estimate.centre_line_turn < -0.7"])]}
+    )
     with pytest.raises(ConfigError) as info:
         load_recipe(path, hand)
     assert info.value.key == "phases[0].exit[0]"
@@ -276,9 +344,15 @@ def test_estimates_without_objects_are_refused(tmp_path: Path, hand: HandConfig)
 def test_turn_exits_count_from_the_phase_start(tmp_path: Path, hand: HandConfig) -> None:
     """A pair's ``line_turn`` is a running value; a condition on it reads it relative to the
     first valid value of the phase, so each phase asks for its own 45 degrees."""
-    data = {"recipe": "r", "objects": OBJECTS, "phases": [
-        phase("a", exit=["estimate.cyl1_cyl2_line_turn < -0.5"]),
-        phase("b", exit=["estimate.cyl1_cyl2_line_turn < -0.5"]), phase("c")]}
+    data = {
+        "recipe": "r",
+        "objects": OBJECTS,
+        "phases": [
+            phase("a", exit=["estimate.cyl1_cyl2_line_turn < -0.5"]),
+            phase("b", exit=["estimate.cyl1_cyl2_line_turn < -0.5"]),
+            phase("c"),
+        ],
+    }
     runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
     zero = np.zeros(9)
     est = [NAN] * 6  # one pair, two objects

@@ -94,21 +94,28 @@ def test_default_is_every_core_this_process_may_use() -> None:
 def test_bad_options_are_named() -> None:
     with pytest.raises(ConfigError, match=r"--workers: expected at least 1 worker, found 0"):
         open_pool(0)
-    with pytest.raises(ConfigError, match=r"--scheduler: expected a Dask scheduler address "
-                                          r"like tcp://HOST:8786, found 'localhost:8786'"):
+    with pytest.raises(
+        ConfigError,
+        match=r"--scheduler: expected a Dask scheduler address "
+        r"like tcp://HOST:8786, found 'localhost:8786'",
+    ):
         check_scheduler("localhost:8786")
     assert check_scheduler("tcp://10.0.0.5:8786") == "tcp://10.0.0.5:8786"
 
 
 def test_an_unreachable_scheduler_is_named() -> None:
-    with pytest.raises(ConfigError, match=r"--scheduler: expected a reachable Dask scheduler, "
-                                          r"found 'tcp://127.0.0.1:9 \("):
+    with pytest.raises(
+        ConfigError,
+        match=r"--scheduler: expected a reachable Dask scheduler, "
+        r"found 'tcp://127.0.0.1:9 \(",
+    ):
         open_pool(scheduler="tcp://127.0.0.1:9")
 
 
 def test_workers_end_when_their_owner_is_killed() -> None:
-    with subprocess.Popen([sys.executable, "-c", OWNER], cwd=ROOT, stdout=subprocess.PIPE,
-                          text=True) as owner:
+    with subprocess.Popen(
+        [sys.executable, "-c", OWNER], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    ) as owner:
         try:
             assert owner.stdout is not None
             pids = [int(x) for x in owner.stdout.readline().split()]

@@ -23,14 +23,28 @@ class Pose:
     angle: float = 0.0
 
 
-def empty_trace(objects: int = 2, pairs: tuple[tuple[int, int], ...] = ((0, 1),),
-                estimated: tuple[int, ...] = (0, 1)) -> Trace:
-    return Trace((REST[0],) * objects, 0.0, NAMES, tuple(f"o{i}" for i in range(objects)),
-                 (RADIUS,) * objects, HALF_SPAN, pairs, estimated)
+def empty_trace(
+    objects: int = 2,
+    pairs: tuple[tuple[int, int], ...] = ((0, 1),),
+    estimated: tuple[int, ...] = (0, 1),
+) -> Trace:
+    return Trace(
+        (REST[0],) * objects,
+        0.0,
+        NAMES,
+        tuple(f"o{i}" for i in range(objects)),
+        (RADIUS,) * objects,
+        HALF_SPAN,
+        pairs,
+        estimated,
+    )
 
 
-def trace_of(segments: list[tuple[str, float, float, float, float]],
-             est_offset_deg: float = 0.0, drop_at: float | None = None) -> Trace:
+def trace_of(
+    segments: list[tuple[str, float, float, float, float]],
+    est_offset_deg: float = 0.0,
+    drop_at: float | None = None,
+) -> Trace:
     """``segments``: (phase, seconds, height (m), line angle at start, at end (deg)); 1 ms
     samples, the pair's midpoint fixed, the line turning linearly within a segment."""
     tr = empty_trace()
@@ -46,19 +60,31 @@ def trace_of(segments: list[tuple[str, float, float, float, float]],
             poses = [Pose(-dx, y - dy), Pose(dx, y + dy)]
             est = angle + math.radians(est_offset_deg)
             valid = phase != "approach"
-            tr.add(t, phase, poses, [0.0] * 9,
-                   (math.atan2(math.sin(est), math.cos(est)), est,
-                    *(v for p in poses for v in (p.x, p.y))), valid)
+            tr.add(
+                t,
+                phase,
+                poses,
+                [0.0] * 9,
+                (
+                    math.atan2(math.sin(est), math.cos(est)),
+                    est,
+                    *(v for p in poses for v in (p.x, p.y)),
+                ),
+                valid,
+            )
             t += 0.001
     return tr
 
 
-EXPERIMENT = [("approach", 1.0, 0.0, 0.0, 0.0), ("lift", 0.5, 0.05, 0.0, -20.0),
-              ("envelop", 2.0, 0.05, -20.0, -20.0),
-              ("manipulate_1", 1.0, 0.05, -20.0, -65.0),
-              ("manipulate_2", 1.0, 0.05, -65.0, -110.0),
-              ("manipulate_3", 1.0, 0.05, -110.0, -155.0),
-              ("manipulate_4", 1.0, 0.05, -155.0, -200.0)]
+EXPERIMENT = [
+    ("approach", 1.0, 0.0, 0.0, 0.0),
+    ("lift", 0.5, 0.05, 0.0, -20.0),
+    ("envelop", 2.0, 0.05, -20.0, -20.0),
+    ("manipulate_1", 1.0, 0.05, -20.0, -65.0),
+    ("manipulate_2", 1.0, 0.05, -65.0, -110.0),
+    ("manipulate_3", 1.0, 0.05, -110.0, -155.0),
+    ("manipulate_4", 1.0, 0.05, -155.0, -200.0),
+]
 
 
 def test_a_full_swap_is_four_phases_of_45_degrees() -> None:
@@ -78,8 +104,7 @@ def test_a_full_swap_is_four_phases_of_45_degrees() -> None:
 
 
 def test_held_for_less_than_two_seconds_is_not_lifted() -> None:
-    short = [s if s[0] != "envelop" else ("envelop", 1.0, 0.05, -20.0, -20.0)
-             for s in EXPERIMENT]
+    short = [s if s[0] != "envelop" else ("envelop", 1.0, 0.05, -20.0, -20.0) for s in EXPERIMENT]
     ex = experiment_summary(trace_of(short))
     assert ex["lifted"] is False
     assert 1.4 < ex["held_s"] < 2.0
@@ -105,8 +130,7 @@ def test_success_is_lifted_held_kept_and_turned_far_enough() -> None:
     # a drop is a failure whatever the turn
     assert experiment_summary(trace_of(EXPERIMENT, drop_at=5.0))["success"] is False
     # so is a pair that was never held long enough
-    short = [s if s[0] != "envelop" else ("envelop", 1.0, 0.05, -20.0, -20.0)
-             for s in EXPERIMENT]
+    short = [s if s[0] != "envelop" else ("envelop", 1.0, 0.05, -20.0, -20.0) for s in EXPERIMENT]
     assert experiment_summary(trace_of(short))["success"] is False
     assert experiment_summary(empty_trace())["success"] is False
 
@@ -118,7 +142,8 @@ def test_the_peak_turn_rate_is_the_fastest_stretch_of_the_manipulation() -> None
     assert ex["peak_turn_rate_deg_s"] == pytest.approx(45.0 / 0.099, rel=0.02)
     # the lift turns the line faster still, but it is not a manipulation phase
     assert experiment_summary(trace_of(EXPERIMENT))["peak_turn_rate_deg_s"] == pytest.approx(
-        45.0 / 0.999, rel=0.02)
+        45.0 / 0.999, rel=0.02
+    )
 
 
 def test_every_object_is_reported_with_its_final_pose() -> None:
@@ -135,9 +160,14 @@ def test_every_object_is_reported_with_its_final_pose() -> None:
     assert ex["pairs"]["o0/o1"]["turn_deg"] == ex["turn_deg"]
 
 
-def line_of(count: int, heights: list[float], xs: list[float], seconds: float = 3.0,
-            pairs: tuple[tuple[int, int], ...] = (), estimate_off: float | None = None
-            ) -> Trace:
+def line_of(
+    count: int,
+    heights: list[float],
+    xs: list[float],
+    seconds: float = 3.0,
+    pairs: tuple[tuple[int, int], ...] = (),
+    estimate_off: float | None = None,
+) -> Trace:
     """``count`` objects side by side at ``xs`` (m), each at its height (m) above rest from
     the first second on, held for ``seconds`` in a phase 'hold', then 'manipulate_1' of 1 s.
     With ``estimate_off`` (m), the first object is estimated that far off in x, valid while
@@ -148,8 +178,9 @@ def line_of(count: int, heights: list[float], xs: list[float], seconds: float = 
     for phase, span in (("lift", 1.0), ("hold", seconds), ("manipulate_1", 1.0)):
         for _ in range(round(span / 0.001)):
             up = phase != "lift"
-            poses = [Pose(x, REST[0] + (h if up else 0.0)) for x, h in zip(xs, heights,
-                                                                             strict=True)]
+            poses = [
+                Pose(x, REST[0] + (h if up else 0.0)) for x, h in zip(xs, heights, strict=True)
+            ]
             est = None
             if estimate_off is not None:
                 est = (poses[0].x + estimate_off, poses[0].y) if up else (math.nan, math.nan)
@@ -169,8 +200,9 @@ def test_one_object_lifted_and_held_succeeds_without_pair_figures() -> None:
 
 
 def test_three_objects_are_lifted_only_all_together() -> None:
-    ex = experiment_summary(line_of(3, [0.03, 0.03, 0.002], [-0.04, 0.0, 0.04],
-                                    pairs=((0, 1), (1, 2))))
+    ex = experiment_summary(
+        line_of(3, [0.03, 0.03, 0.002], [-0.04, 0.0, 0.04], pairs=((0, 1), (1, 2)))
+    )
     assert ex["lifted"] is False and ex["success"] is False
     assert [ex["objects"][f"o{i}"]["lifted"] for i in range(3)] == [True, True, False]
     assert set(ex["pairs"]) == {"o0/o1", "o1/o2"}

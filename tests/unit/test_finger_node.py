@@ -34,26 +34,37 @@ class Sender:
         self.version = protocol.version
         self.counters = {"feedback": 0, "status": 0, "heartbeat": 0}
 
-    def frame(self, kind: str, values: tuple[float, ...],
-              counter: int | None = None) -> tuple[int, bytes]:
+    def frame(
+        self, kind: str, values: tuple[float, ...], counter: int | None = None
+    ) -> tuple[int, bytes]:
         layout = getattr(self.layouts, kind)
         if counter is None:
             counter = self.counters[kind]
             self.counters[kind] = (counter + 1) & 0xFF
         return layout.frame_id, layout.encode(counter, values)
 
-    def feedback(self, tdt: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                 angles: tuple[float, float, float] = (0.0, 0.0, 0.0), state: int = 1,
-                 faults: int = 0) -> tuple[int, bytes]:
+    def feedback(
+        self,
+        tdt: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        angles: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        state: int = 1,
+        faults: int = 0,
+    ) -> tuple[int, bytes]:
         return self.frame("feedback", (*tdt, *angles, state, faults))
 
-    def heartbeat(self, state: int, uptime_ms: int, counter: int | None = None
-                  ) -> tuple[int, bytes]:
+    def heartbeat(
+        self, state: int, uptime_ms: int, counter: int | None = None
+    ) -> tuple[int, bytes]:
         return self.frame("heartbeat", (state, uptime_ms), counter)
 
-    def status(self, state: int, faults: int, rejects: tuple[int, int, int] = (0, 0, 0),
-               age_ms: int = 0, firmware: tuple[int, int, int] = (1, 0, 0)
-               ) -> tuple[int, bytes]:
+    def status(
+        self,
+        state: int,
+        faults: int,
+        rejects: tuple[int, int, int] = (0, 0, 0),
+        age_ms: int = 0,
+        firmware: tuple[int, int, int] = (1, 0, 0),
+    ) -> tuple[int, bytes]:
         """A Status of the host's own protocol version (and firmware ``firmware``)."""
         return self.frame("status", (state, faults, *rejects, age_ms, self.version, *firmware))
 
@@ -78,34 +89,45 @@ def test_the_layouts_are_the_configured_ids(hand: HandConfig, protocol: Protocol
     for finger in hand.fingers:
         layouts = FingerLayouts.for_node(protocol, finger.node_id)
         ids = finger.can_ids
-        assert (layouts.command.frame_id, layouts.node_command.frame_id,
-                layouts.feedback.frame_id, layouts.status.frame_id,
-                layouts.heartbeat.frame_id) == (ids.torque_command, ids.node_command,
-                                                ids.feedback, ids.status, ids.heartbeat)
+        assert (
+            layouts.command.frame_id,
+            layouts.node_command.frame_id,
+            layouts.feedback.frame_id,
+            layouts.status.frame_id,
+            layouts.heartbeat.frame_id,
+        ) == (ids.torque_command, ids.node_command, ids.feedback, ids.status, ids.heartbeat)
 
 
-def test_a_node_says_nothing_until_it_is_heard(node: FingerNode, hand: HandConfig,
-                                               finger: int) -> None:
+def test_a_node_says_nothing_until_it_is_heard(
+    node: FingerNode, hand: HandConfig, finger: int
+) -> None:
     assert node.node_id == hand.fingers[finger].node_id
     assert node.finger is hand.fingers[finger]
     assert (node.state, node.state_name, node.fault_bits) == (-1, "UNKNOWN", 0)
     assert (node.feedback, node.feedback_ns, node.heartbeat_ns) == (None, None, None)
     assert (node.uptime_ms, node.reboots, node.status, node.accepted) == (None, 0, None, 0)
     assert node.rejects.total == 0
-    assert set(node.streams) == {node.layouts.feedback.frame_id, node.layouts.status.frame_id,
-                                 node.layouts.heartbeat.frame_id}
+    assert set(node.streams) == {
+        node.layouts.feedback.frame_id,
+        node.layouts.status.frame_id,
+        node.layouts.heartbeat.frame_id,
+    }
 
 
-def test_feedback_lands_with_the_time_it_was_received(node: FingerNode,
-                                                      sender: Sender) -> None:
-    assert node.receive(*sender.feedback((0.1, -0.2, 0.3), (0.4, -0.5, 0.6), 1, 0x10),
-                        7 * MS) is None
+def test_feedback_lands_with_the_time_it_was_received(node: FingerNode, sender: Sender) -> None:
+    assert (
+        node.receive(*sender.feedback((0.1, -0.2, 0.3), (0.4, -0.5, 0.6), 1, 0x10), 7 * MS) is None
+    )
     assert node.feedback == Feedback((0.1, -0.2, 0.3), (0.4, -0.5, 0.6), 1, 0x10)
     assert (node.feedback_ns, node.state, node.fault_bits, node.accepted) == (7 * MS, 1, 0x10, 1)
     assert node.heartbeat_ns is None  # feedback is not a heartbeat
     assert node.receive(*sender.feedback(state=2, faults=0x02), 8 * MS) is None
     assert (node.feedback_ns, node.state_name, node.fault_bits, node.accepted) == (
-        8 * MS, "FAULT", 0x02, 2)
+        8 * MS,
+        "FAULT",
+        0x02,
+        2,
+    )
 
 
 def test_a_heartbeat_sets_state_uptime_and_its_time(node: FingerNode, sender: Sender) -> None:
@@ -126,6 +148,7 @@ def test_a_status_sets_state_and_fault_bits(node: FingerNode, sender: Sender) ->
 
 def test_every_reboot_is_counted(node: FingerNode, sender: Sender) -> None:
     """The uptime going back is a reboot, each time; the same uptime again is not."""
+
     def heartbeat(uptime: int, counter: int | None = None) -> Reject | None:
         return node.receive(*sender.heartbeat(1, uptime, counter), uptime * MS)
 
@@ -149,22 +172,33 @@ def test_every_reboot_is_counted(node: FingerNode, sender: Sender) -> None:
     assert node.uptime_ms == 100
 
 
-@pytest.mark.parametrize(("damage", "reason"), [
-    (lambda d: bytes((d[0] ^ 0xFF,)) + d[1:], Reject.CRC),
-    (lambda d: d[:-1], Reject.LENGTH),
-    (lambda d: d + b"\x00", Reject.LENGTH),
-])
-def test_a_damaged_frame_changes_nothing_and_is_counted(node: FingerNode, sender: Sender,
-                                                        damage: object, reason: Reject) -> None:
+@pytest.mark.parametrize(
+    ("damage", "reason"),
+    [
+        (lambda d: bytes((d[0] ^ 0xFF,)) + d[1:], Reject.CRC),
+        (lambda d: d[:-1], Reject.LENGTH),
+        (lambda d: d + b"\x00", Reject.LENGTH),
+    ],
+)
+def test_a_damaged_frame_changes_nothing_and_is_counted(
+    node: FingerNode, sender: Sender, damage: object, reason: Reject
+) -> None:
     assert node.receive(*sender.feedback((0.1, 0.1, 0.1), state=1), 1 * MS) is None
     assert node.receive(*sender.heartbeat(1, 500), 1 * MS) is None
-    for frame_id, data in (sender.feedback((0.9, 0.9, 0.9), state=2, faults=0x08),
-                           sender.heartbeat(0, 10), sender.status(2, 0x08)):
+    for frame_id, data in (
+        sender.feedback((0.9, 0.9, 0.9), state=2, faults=0x08),
+        sender.heartbeat(0, 10),
+        sender.status(2, 0x08),
+    ):
         bad = damage(data)  # type: ignore[operator]
         assert node.receive(frame_id, bad, 2 * MS) is reason
     assert node.feedback is not None and node.feedback.tdt == (0.1, 0.1, 0.1)
     assert (node.state, node.fault_bits, node.feedback_ns, node.heartbeat_ns) == (
-        1, 0, 1 * MS, 1 * MS)
+        1,
+        0,
+        1 * MS,
+        1 * MS,
+    )
     assert (node.uptime_ms, node.reboots, node.status, node.accepted) == (500, 0, None, 2)
     assert node.rejects.as_dict()[reason.name.lower()] == 3
     assert node.rejects.total == 3
@@ -202,19 +236,22 @@ def test_command_frames_count_and_wrap(node: FingerNode, protocol: Protocol) -> 
     for expected in [*range(256), 0]:
         frame_id, data = node.next_node_command("fault_reset")
         assert frame_id == layouts.node_command.frame_id
-        assert layouts.node_command.decode(data) == (expected,
-                                                     (NODE_COMMANDS["fault_reset"],))
+        assert layouts.node_command.decode(data) == (expected, (NODE_COMMANDS["fault_reset"],))
     assert node.command_counter == 2 and node.node_command_counter == 1
 
 
 def test_frame_builders_are_pure(protocol: Protocol) -> None:
     layout = protocol.layout("TorqueCommand", 2)
-    assert make_command(layout, 7, (0.5, 0.0, -0.5)) == (layout.frame_id, layout.encode(
-        7, (0.5, 0.0, -0.5)))
+    assert make_command(layout, 7, (0.5, 0.0, -0.5)) == (
+        layout.frame_id,
+        layout.encode(7, (0.5, 0.0, -0.5)),
+    )
     node_layout = protocol.layout("NodeCommand", 2)
     for name, value in NODE_COMMANDS.items():
-        assert make_node_command(node_layout, 3, name) == (node_layout.frame_id,
-                                                           node_layout.encode(3, (value,)))
+        assert make_node_command(node_layout, 3, name) == (
+            node_layout.frame_id,
+            node_layout.encode(3, (value,)),
+        )
 
 
 def test_parse_feedback_names_the_signals() -> None:
@@ -230,5 +267,10 @@ def test_fault_names_of_every_bit() -> None:
     assert fault_names(0xFF) == [*FAULT_BITS, "BIT5", "BIT6", "BIT7"]
     assert fault_names(0x22) == ["ESTOP", "BIT5"]
     assert fault_names(0x100) == []  # one byte on the wire
-    assert FAULT_BITS == {"TIMEOUT": 0x01, "ESTOP": 0x02, "RX_ERRORS": 0x04, "SENSOR": 0x08,
-                          "SATURATED": 0x10}  # PROTOCOL.md's FaultBits
+    assert FAULT_BITS == {
+        "TIMEOUT": 0x01,
+        "ESTOP": 0x02,
+        "RX_ERRORS": 0x04,
+        "SENSOR": 0x08,
+        "SATURATED": 0x10,
+    }  # PROTOCOL.md's FaultBits

@@ -32,8 +32,9 @@ def _reads_back(text: str, hand: HandConfig, offsets: dict[str, float]) -> None:
 
 
 def test_block_mappings_are_edited_in_place(hand: HandConfig) -> None:
-    text = "# my hand\n" + yaml.dump(yaml.safe_load(HAND_YAML.read_text()), Dumper=_NoAliases,
-                                     sort_keys=False)
+    text = "# my hand\n" + yaml.dump(
+        yaml.safe_load(HAND_YAML.read_text()), Dumper=_NoAliases, sort_keys=False
+    )
     offsets = _offsets(hand)
     edited = with_tdt_offsets(text, hand, offsets)
     assert not edited.dumped and edited.text.startswith("# my hand\n")

@@ -40,13 +40,42 @@ def test_default_hand_frames_are_the_packaged_ones_message_by_message(hand: Hand
     assert [m.name for m in generated.messages] == [m.name for m in packaged.messages]
     for mine, theirs in zip(generated.messages, packaged.messages, strict=True):
         assert (mine.frame_id, mine.length, mine.senders, mine.cycle_time) == (
-            theirs.frame_id, theirs.length, theirs.senders, theirs.cycle_time)
+            theirs.frame_id,
+            theirs.length,
+            theirs.senders,
+            theirs.cycle_time,
+        )
         assert mine.dbc is not None and theirs.dbc is not None
         assert mine.dbc.attributes["DataID"].value == theirs.dbc.attributes["DataID"].value
-        assert [(s.name, s.start, s.length, s.is_signed, s.scale, s.offset, s.minimum,
-                 s.maximum, s.unit, s.receivers) for s in mine.signals] == [
-            (s.name, s.start, s.length, s.is_signed, s.scale, s.offset, s.minimum, s.maximum,
-             s.unit, s.receivers) for s in theirs.signals]
+        assert [
+            (
+                s.name,
+                s.start,
+                s.length,
+                s.is_signed,
+                s.scale,
+                s.offset,
+                s.minimum,
+                s.maximum,
+                s.unit,
+                s.receivers,
+            )
+            for s in mine.signals
+        ] == [
+            (
+                s.name,
+                s.start,
+                s.length,
+                s.is_signed,
+                s.scale,
+                s.offset,
+                s.minimum,
+                s.maximum,
+                s.unit,
+                s.receivers,
+            )
+            for s in theirs.signals
+        ]
 
 
 def test_default_hand_encodes_every_golden_vector_to_the_same_bytes(hand: HandConfig) -> None:
@@ -71,15 +100,18 @@ def test_other_shapes_follow_the_same_rules(shape: list[int]) -> None:
         assert protocol.layout("Heartbeat", node).frame_id == 0x700 + node
         assert protocol.layout("NodeCommand", node).frame_id == 0x010 + node
         assert command.signal_names == tuple(f"Torque{j + 1}" for j in range(k))
-        assert feedback.signal_names == (*(f"Torque{j + 1}" for j in range(k)),
-                                         *(f"Angle{j + 1}" for j in range(k)),
-                                         "State", "FaultBits")
+        assert feedback.signal_names == (
+            *(f"Torque{j + 1}" for j in range(k)),
+            *(f"Angle{j + 1}" for j in range(k)),
+            "State",
+            "FaultBits",
+        )
         assert command.length in FD_DLC_SIZES and command.length >= 2 + 2 * k
         assert feedback.length in FD_DLC_SIZES and feedback.length >= 4 + 4 * k
         assert command.data_id == 0x1020 + node and feedback.data_id == 0x1030 + node
         # Padding travels as zeros and round-trips.
         data = command.encode(5, [0.25] * k)
-        assert data[2 + 2 * k:] == bytes(command.length - 2 - 2 * k)
+        assert data[2 + 2 * k :] == bytes(command.length - 2 - 2 * k)
         assert command.decode(data) == (5, tuple([0.25] * k))
 
 
@@ -101,13 +133,17 @@ def test_no_erased_buffer_is_a_valid_frame_of_any_node(joints: int) -> None:
     assert lengths == ({24, 32} if joints == 5 else {fd_dlc_size(4 + 4 * joints)})
 
 
-@pytest.mark.parametrize(("joints", "nodes", "key", "found"), [
-    ([3, 7], None, "fingers[1].joints", "7 entries"),
-    ([3], [16], "fingers[0].node_id", "16"),
-    ([3], [0], "fingers[0].node_id", "0"),
-])
+@pytest.mark.parametrize(
+    ("joints", "nodes", "key", "found"),
+    [
+        ([3, 7], None, "fingers[1].joints", "7 entries"),
+        ([3], [16], "fingers[0].node_id", "16"),
+        ([3], [0], "fingers[0].node_id", "0"),
+    ],
+)
 def test_the_schema_refuses_shapes_the_protocol_cannot_carry(
-        tmp_path: Path, joints: list[int], nodes: list[int] | None, key: str, found: str) -> None:
+    tmp_path: Path, joints: list[int], nodes: list[int] | None, key: str, found: str
+) -> None:
     path = shaped_hand(tmp_path, joints, nodes)
     with pytest.raises(ConfigError) as err:
         load_hand(path)
@@ -148,19 +184,23 @@ def test_a_given_dbc_must_carry_the_hand(tmp_path: Path) -> None:
     dbc = tmp_path / "short.dbc"
     dbc.write_text(generate_dbc([(1, 3), (2, 2), (3, 3)]), encoding="cp1252")
     assert protocol_for(short, dbc).layout("TorqueCommand", 2).signal_names == (
-        "Torque1", "Torque2")
+        "Torque1",
+        "Torque2",
+    )
 
 
 def test_the_packaged_dbc_as_dbc_gives_the_generated_layouts(hand: HandConfig) -> None:
     given = protocol_for(hand, DEFAULT_DBC)
     generated = protocol_for(hand)
     assert [(x.name, x.frame_id, x.length, x.data_id) for x in given.layouts] == [
-        (x.name, x.frame_id, x.length, x.data_id) for x in generated.layouts]
+        (x.name, x.frame_id, x.length, x.data_id) for x in generated.layouts
+    ]
     assert load_protocol(DEFAULT_DBC).text == generated.text
 
 
-def test_a_given_dbc_must_have_the_signals_host_and_nodes_read(hand: HandConfig,
-                                                              tmp_path: Path) -> None:
+def test_a_given_dbc_must_have_the_signals_host_and_nodes_read(
+    hand: HandConfig, tmp_path: Path
+) -> None:
     """Right counts are not enough: a Feedback with a signal more would shift State and
     FaultBits, so the signal list itself is held against the hand's."""
     text = DEFAULT_DBC.read_text(encoding="cp1252")
@@ -170,11 +210,11 @@ def test_a_given_dbc_must_have_the_signals_host_and_nodes_read(hand: HandConfig,
     at = text.index(line, start) + len(line)
     extra = text[:at] + ' SG_ Temperature : 128|8@1+ (1,0) [0|255] "" HOST\n' + text[at:]
     dbc = tmp_path / "extra.dbc"
-    dbc.write_text(extra.replace(anchor, "BO_ 386 Feedback_2: 20 FINGER2\n"),
-                   encoding="cp1252")
+    dbc.write_text(extra.replace(anchor, "BO_ 386 Feedback_2: 20 FINGER2\n"), encoding="cp1252")
     with pytest.raises(ConfigError) as err:
         protocol_for(hand, dbc)
     assert err.value.file == str(dbc) and err.value.key == "Feedback_2"
     assert "Torque1, Torque2, Torque3, Angle1, Angle2, Angle3, State, FaultBits" in (
-        err.value.expected)
+        err.value.expected
+    )
     assert str(err.value.found).endswith("FaultBits, Temperature")

@@ -21,8 +21,12 @@ def test_the_default_hand(hand: HandConfig) -> None:
 def test_a_hand_moved_along_and_turned_upside_down(hand: HandConfig) -> None:
     """Bases shifted by 0.1 m and spread wider, fingers pointing up: the middle and span
     follow the bases, and every flexion sign turns over."""
-    shifted = dataclasses.replace(hand, fingers=tuple(
-        dataclasses.replace(f, base_x=0.1 + 2 * f.base_x, base_angle=math.pi / 2)
-        for f in hand.fingers))
+    shifted = dataclasses.replace(
+        hand,
+        fingers=tuple(
+            dataclasses.replace(f, base_x=0.1 + 2 * f.base_x, base_angle=math.pi / 2)
+            for f in hand.fingers
+        ),
+    )
     assert hand_span(shifted) == pytest.approx((0.1, 0.1))
     assert [flexion_sign(shifted, f) for f in shifted.fingers] == [-1.0, -1.0, 1.0]

@@ -17,9 +17,14 @@ MS = 1_000_000
 START = 10_000 * MS
 
 
-def record(stalls: list[tuple[int, float, float]], *, seconds: float = 10.0,
-           period_ns: int = MS, hist: dict[int, int] | None = None,
-           **extra: Any) -> ProbeRecord:
+def record(
+    stalls: list[tuple[int, float, float]],
+    *,
+    seconds: float = 10.0,
+    period_ns: int = MS,
+    hist: dict[int, int] | None = None,
+    **extra: Any,
+) -> ProbeRecord:
     """A probe record of ``seconds`` whose stalls are (wake-up index, due ms, length ms),
     times counted from the start; missed ticks follow from the length."""
     wakeups = round(seconds * 1e9 / period_ns)
@@ -28,11 +33,16 @@ def record(stalls: list[tuple[int, float, float]], *, seconds: float = 10.0,
         due = START + round(due_ms * MS)
         length = round(length_ms * MS)
         rows.append([index, due, due + length, length // period_ns])
-    data = {"period_ns": period_ns, "start_ns": START, "end_ns": START + round(seconds * 1e9),
-            "wakeups": wakeups, "lateness_hist_us": {str(k): v for k, v in
-                                                     (hist or {20: wakeups}).items()},
-            "lateness_max_ns": max([r[2] - r[1] for r in rows], default=20_000),
-            "stalls": rows, **extra}
+    data = {
+        "period_ns": period_ns,
+        "start_ns": START,
+        "end_ns": START + round(seconds * 1e9),
+        "wakeups": wakeups,
+        "lateness_hist_us": {str(k): v for k, v in (hist or {20: wakeups}).items()},
+        "lateness_max_ns": max([r[2] - r[1] for r in rows], default=20_000),
+        "stalls": rows,
+        **extra,
+    }
     return ProbeRecord.from_json(data, "recorded")
 
 
@@ -74,7 +84,8 @@ def test_one_stall_as_long_as_the_tolerance_fails(deadlines: Deadlines) -> None:
 
 
 def test_short_stalls_in_consecutive_wakeups_add_up_as_the_supervisor_counts(
-        deadlines: Deadlines) -> None:
+    deadlines: Deadlines,
+) -> None:
     # Each misses one tick; in consecutive wake-ups the supervisor adds them up to a stop...
     n = deadlines.overrun_tolerance_ticks
     back_to_back = [(100 + i, 100.0 + 2.2 * i, 2.2) for i in range(n)]
@@ -100,8 +111,9 @@ def test_a_stall_longer_than_the_feedback_timeout_fails(hand: HandConfig) -> Non
 def test_the_same_stalls_are_judged_against_each_hands_deadlines(hand: HandConfig) -> None:
     stalls = [(100, 100.0, 3.4)]
     strict = Deadlines.of(hand)  # 3 ticks: a 3.4 ms stall stops the loop
-    loose = Deadlines.of(dataclasses.replace(
-        hand, safety=dataclasses.replace(hand.safety, max_consecutive_misses=4)))
+    loose = Deadlines.of(
+        dataclasses.replace(hand, safety=dataclasses.replace(hand.safety, max_consecutive_misses=4))
+    )
     assert judge(record(stalls), strict).fails
     assert judge(record(stalls), loose).level == "marginal"
 
@@ -155,32 +167,40 @@ def test_a_missed_tick_is_the_hosts_only_if_the_bare_loop_stalled_with_it() -> N
         (40, at + 20_000 * MS, at + 20_002 * MS, 2),  # after the probe stopped
     ]
     own: list[int] = []
-    assert attribute(loop, host, MS, own) == {"missed_host": 3, "missed_handctl": 2,
-                                              "missed_handctl_after_host": 0,
-                                              "missed_unobserved": 2}
+    assert attribute(loop, host, MS, own) == {
+        "missed_host": 3,
+        "missed_handctl": 2,
+        "missed_handctl_after_host": 0,
+        "missed_unobserved": 2,
+    }
     assert own == [30]
 
 
 def test_a_miss_right_after_a_host_stall_is_handctls_catching_up() -> None:
     host = record([(500, 500.0, 4.0)], period_ns=MS // 2)  # 500..504 ms
     at = START
-    loop = [(10, at + 501 * MS, at + 503 * MS, 2),  # the host's
-            (11, at + 505 * MS, at + 506 * MS + 300_000, 1),  # the next tick, catching up
-            (12, at + 507 * MS, at + 508 * MS + 100_000, 1),  # and the one after
-            (20, at + 515 * MS, at + 516 * MS + 100_000, 1)]  # on-time ticks between
+    loop = [
+        (10, at + 501 * MS, at + 503 * MS, 2),  # the host's
+        (11, at + 505 * MS, at + 506 * MS + 300_000, 1),  # the next tick, catching up
+        (12, at + 507 * MS, at + 508 * MS + 100_000, 1),  # and the one after
+        (20, at + 515 * MS, at + 516 * MS + 100_000, 1),
+    ]  # on-time ticks between
     shares = attribute(loop, host, MS)
     assert (shares["missed_host"], shares["missed_handctl"]) == (2, 3)
     assert shares["missed_handctl_after_host"] == 2
 
 
 # -- the host -------------------------------------------------------------------------------------
-@pytest.mark.parametrize(("version", "model"), [
-    ("#1 SMP PREEMPT_RT Thu Jan 1 00:00:00 UTC 2026", "PREEMPT_RT"),
-    ("#1 SMP PREEMPT RT Thu Jan 1", "PREEMPT_RT"),
-    ("#1 SMP PREEMPT_DYNAMIC @0", "PREEMPT_DYNAMIC"),
-    ("#1 SMP PREEMPT Mon", "PREEMPT"),
-    ("#1 SMP Mon Jan 1", "none"),
-])
+@pytest.mark.parametrize(
+    ("version", "model"),
+    [
+        ("#1 SMP PREEMPT_RT Thu Jan 1 00:00:00 UTC 2026", "PREEMPT_RT"),
+        ("#1 SMP PREEMPT RT Thu Jan 1", "PREEMPT_RT"),
+        ("#1 SMP PREEMPT_DYNAMIC @0", "PREEMPT_DYNAMIC"),
+        ("#1 SMP PREEMPT Mon", "PREEMPT"),
+        ("#1 SMP Mon Jan 1", "none"),
+    ],
+)
 def test_the_preemption_model_is_read_from_uname(version: str, model: str) -> None:
     assert preemption_model(version) == model
 
@@ -195,17 +215,28 @@ def test_cpu_lists_and_the_cpus_of_loop_and_hand() -> None:
 
 
 def facts(**changes: Any) -> HostFacts:
-    base = HostFacts(realtime_kernel=None, preemption="PREEMPT_DYNAMIC", cmdline_preempt="",
-                     rtprio_limit=0, memlock_limit_kb=8192, privileged=False, cpus=(0, 1),
-                     isolated=(), governors={0: "powersave", 1: "performance"},
-                     virtual_machine=True)
+    base = HostFacts(
+        realtime_kernel=None,
+        preemption="PREEMPT_DYNAMIC",
+        cmdline_preempt="",
+        rtprio_limit=0,
+        memlock_limit_kb=8192,
+        privileged=False,
+        cpus=(0, 1),
+        isolated=(),
+        governors={0: "powersave", 1: "performance"},
+        virtual_machine=True,
+    )
     return dataclasses.replace(base, **changes)
 
 
 def test_the_advice_names_what_it_found() -> None:
-    refused = record([], scheduler={"policy": "SCHED_OTHER", "priority": 0},
-                     refused=["locking memory refused (Cannot allocate memory); ..."],
-                     steal_ms=12.0)
+    refused = record(
+        [],
+        scheduler={"policy": "SCHED_OTHER", "priority": 0},
+        refused=["locking memory refused (Cannot allocate memory); ..."],
+        steal_ms=12.0,
+    )
     tips = "\n".join(advice(facts(), refused, realtime=True))
     assert "PREEMPT_RT kernel (found PREEMPT_DYNAMIC; /sys/kernel/realtime absent)" in tips
     assert "preempt=full" in tips
@@ -217,9 +248,15 @@ def test_the_advice_names_what_it_found() -> None:
 
 
 def test_a_real_time_host_gets_no_advice() -> None:
-    good = facts(realtime_kernel=True, preemption="PREEMPT_RT", isolated=(1,),
-                 governors={0: "performance", 1: "performance"}, virtual_machine=False,
-                 rtprio_limit=-1, memlock_limit_kb=-1)
+    good = facts(
+        realtime_kernel=True,
+        preemption="PREEMPT_RT",
+        isolated=(1,),
+        governors={0: "performance", 1: "performance"},
+        virtual_machine=False,
+        rtprio_limit=-1,
+        memlock_limit_kb=-1,
+    )
     got = record([], scheduler={"policy": "SCHED_FIFO", "priority": 80})
     assert advice(good, got, realtime=True) == []
     assert "run with --rt" in advice(good, got, realtime=False)[0]

@@ -22,10 +22,19 @@ JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2"
 
 
 def _recipe(tmp_path: Path, hand: HandConfig, **top: object) -> Path:
-    data = {"recipe": "guarded", **top,
-            "phases": [{"name": "squeeze", "torques": dict.fromkeys(JOINTS, 0.1),
-                        "ramp_s": 0.01, "max_s": 0.05,
-                        "on_timeout": "next"}]}
+    data = {
+        "recipe": "guarded",
+        **top,
+        "phases": [
+            {
+                "name": "squeeze",
+                "torques": dict.fromkeys(JOINTS, 0.1),
+                "ramp_s": 0.01,
+                "max_s": 0.05,
+                "on_timeout": "next",
+            }
+        ],
+    }
     path = tmp_path / "guarded.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
@@ -39,8 +48,7 @@ def test_outside_the_band_the_torque_is_the_recipes(hand: HandConfig) -> None:
     assert np.array_equal(out, desired)
 
 
-def test_inside_the_band_the_joint_is_pushed_back_and_at_the_limit_fully(
-        hand: HandConfig) -> None:
+def test_inside_the_band_the_joint_is_pushed_back_and_at_the_limit_fully(hand: HandConfig) -> None:
     guard = LimitGuard.for_hand(hand, 0.2)
     j = 2  # f1_j3
     joint = hand.joints[j]
@@ -55,8 +63,7 @@ def test_inside_the_band_the_joint_is_pushed_back_and_at_the_limit_fully(
     assert out[j] == pytest.approx(joint.tau_max)
 
 
-def test_a_joint_heading_for_a_limit_is_damped_a_band_before_the_spring(
-        hand: HandConfig) -> None:
+def test_a_joint_heading_for_a_limit_is_damped_a_band_before_the_spring(hand: HandConfig) -> None:
     band = 0.15
     guard = LimitGuard.for_hand(hand, band)
     j = 4  # f2_j2
@@ -88,13 +95,15 @@ def test_a_joint_heading_for_a_limit_is_damped_a_band_before_the_spring(
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.lists(st.floats(-3.0, 3.0), min_size=9, max_size=9),
-       st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9),
-       st.floats(0.02, 0.5),
-       st.lists(st.floats(-50.0, 50.0), min_size=9, max_size=9))
-def test_the_guard_never_proposes_more_than_tau_max(hand: HandConfig, angle: list[float],
-                                                    scale: list[float], band: float,
-                                                    velocity: list[float]) -> None:
+@given(
+    st.lists(st.floats(-3.0, 3.0), min_size=9, max_size=9),
+    st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9),
+    st.floats(0.02, 0.5),
+    st.lists(st.floats(-50.0, 50.0), min_size=9, max_size=9),
+)
+def test_the_guard_never_proposes_more_than_tau_max(
+    hand: HandConfig, angle: list[float], scale: list[float], band: float, velocity: list[float]
+) -> None:
     guard = LimitGuard.for_hand(hand, band)
     tau_max = np.array([j.tau_max for j in hand.joints])
     desired = np.array(scale) * tau_max
@@ -108,8 +117,9 @@ def test_the_guard_never_proposes_more_than_tau_max(hand: HandConfig, angle: lis
             assert out[k] >= desired[k]
 
 
-def test_a_recipe_turns_the_guard_on_and_the_runner_uses_it(tmp_path: Path,
-                                                            hand: HandConfig) -> None:
+def test_a_recipe_turns_the_guard_on_and_the_runner_uses_it(
+    tmp_path: Path, hand: HandConfig
+) -> None:
     recipe = load_recipe(_recipe(tmp_path, hand, limit_guard_band=0.15), hand)
     assert recipe.limit_guard is not None and recipe.limit_guard.band == 0.15
     runner = RecipeRunner(recipe, 9)
@@ -130,8 +140,7 @@ def test_a_recipe_turns_the_guard_on_and_the_runner_uses_it(tmp_path: Path,
     assert unguarded.limit_guard is None
 
 
-def test_a_band_out_of_range_is_refused_naming_the_key(tmp_path: Path,
-                                                      hand: HandConfig) -> None:
+def test_a_band_out_of_range_is_refused_naming_the_key(tmp_path: Path, hand: HandConfig) -> None:
     path = _recipe(tmp_path, hand, limit_guard_band=2.0)
     with pytest.raises(ConfigError) as info:
         load_recipe(path, hand)

@@ -32,21 +32,23 @@ def step(hand: HandConfig) -> np.ndarray:
     return np.array([j.rate_limit for j in hand.joints]) * hand.bus.period_s
 
 
-def limit(desired: np.ndarray, last: np.ndarray, limits: JointLimits, hand: HandConfig
-          ) -> tuple[np.ndarray, int]:
+def limit(
+    desired: np.ndarray, last: np.ndarray, limits: JointLimits, hand: HandConfig
+) -> tuple[np.ndarray, int]:
     out = np.full(hand.n_joints, np.nan)
     count = limit_torque(desired, last, limits, hand.bus.period_s, out)
     return out, count
 
 
-def test_limits_are_the_hand_configs_joint_by_joint(hand: HandConfig,
-                                                    limits: JointLimits) -> None:
+def test_limits_are_the_hand_configs_joint_by_joint(hand: HandConfig, limits: JointLimits) -> None:
     joints = hand.joints
     assert limits.names == tuple(j.name for j in joints)
-    for array, listed, key in ((limits.tau_max, limits.tau_max_list, "tau_max"),
-                               (limits.rate_limit, limits.rate_list, "rate_limit"),
-                               (limits.angle_min, limits.angle_min_list, "angle_min"),
-                               (limits.angle_max, limits.angle_max_list, "angle_max")):
+    for array, listed, key in (
+        (limits.tau_max, limits.tau_max_list, "tau_max"),
+        (limits.rate_limit, limits.rate_list, "rate_limit"),
+        (limits.angle_min, limits.angle_min_list, "angle_min"),
+        (limits.angle_max, limits.angle_max_list, "angle_max"),
+    ):
         expected = [getattr(j, key) for j in joints]
         assert array.tolist() == expected, key
         assert list(listed) == expected, key
@@ -59,8 +61,9 @@ def test_above_tau_max_is_clamped_to_tau_max(hand: HandConfig, limits: JointLimi
     assert count == hand.n_joints
 
 
-def test_below_minus_tau_max_is_clamped_to_minus_tau_max(hand: HandConfig,
-                                                         limits: JointLimits) -> None:
+def test_below_minus_tau_max_is_clamped_to_minus_tau_max(
+    hand: HandConfig, limits: JointLimits
+) -> None:
     top = tau_max(hand)
     out, count = limit(-2 * top, -top, limits, hand)
     assert out.tolist() == (-top).tolist()
@@ -75,8 +78,7 @@ def test_exactly_tau_max_passes_unlimited(hand: HandConfig, limits: JointLimits)
         assert count == 0
 
 
-def test_the_rate_limit_holds_upwards_and_downwards(hand: HandConfig,
-                                                    limits: JointLimits) -> None:
+def test_the_rate_limit_holds_upwards_and_downwards(hand: HandConfig, limits: JointLimits) -> None:
     top, rate_step = tau_max(hand), step(hand)
     zero = np.zeros(hand.n_joints)
     up, count = limit(top, zero, limits, hand)
@@ -96,8 +98,9 @@ def test_the_clamp_comes_before_the_rate_limit(hand: HandConfig, limits: JointLi
     assert out == pytest.approx(-top + rate_step, abs=1e-15)
 
 
-def test_a_change_within_both_limits_is_applied_as_asked(hand: HandConfig,
-                                                         limits: JointLimits) -> None:
+def test_a_change_within_both_limits_is_applied_as_asked(
+    hand: HandConfig, limits: JointLimits
+) -> None:
     top, rate_step = tau_max(hand), step(hand)
     last = 0.5 * top
     for desired in (last + 0.5 * rate_step, last - 0.5 * rate_step, last):
@@ -106,8 +109,7 @@ def test_a_change_within_both_limits_is_applied_as_asked(hand: HandConfig,
         assert count == 0
 
 
-def test_the_count_is_the_joints_that_were_limited(hand: HandConfig,
-                                                   limits: JointLimits) -> None:
+def test_the_count_is_the_joints_that_were_limited(hand: HandConfig, limits: JointLimits) -> None:
     top, rate_step = tau_max(hand), step(hand)
     n = hand.n_joints
     a, b, c = 1, n // 2, n - 1
@@ -137,31 +139,39 @@ def test_a_non_finite_torque_is_refused_naming_the_joint(hand: HandConfig, bad: 
 @pytest.mark.parametrize("n", [0, 8, 10])
 def test_a_wrong_number_of_torques_is_refused(hand: HandConfig, n: int) -> None:
     assert check_desired(np.zeros(n), hand.n_joints) == (
-        FaultCode.WRONG_SHAPE, f"expected {hand.n_joints} torques, found shape ({n},)")
+        FaultCode.WRONG_SHAPE,
+        f"expected {hand.n_joints} torques, found shape ({n},)",
+    )
 
 
 def test_a_matrix_of_the_right_size_is_refused(hand: HandConfig) -> None:
     found = check_desired(np.zeros((1, hand.n_joints)), hand.n_joints)
-    assert found == (FaultCode.WRONG_SHAPE,
-                     f"expected {hand.n_joints} torques, found shape (1, {hand.n_joints})")
+    assert found == (
+        FaultCode.WRONG_SHAPE,
+        f"expected {hand.n_joints} torques, found shape (1, {hand.n_joints})",
+    )
 
 
 def test_what_is_not_numbers_is_refused_as_such(hand: HandConfig) -> None:
     desired = ["a"] * hand.n_joints
     assert check_desired(desired, hand.n_joints) == (  # type: ignore[arg-type]
-        FaultCode.WRONG_SHAPE, f"desired torques are not numbers: {desired!r:.60}")
+        FaultCode.WRONG_SHAPE,
+        f"desired torques are not numbers: {desired!r:.60}",
+    )
 
 
 @pytest.mark.parametrize("dtype", [str, object])
-def test_an_array_of_what_is_not_numbers_is_refused_as_such(hand: HandConfig,
-                                                            dtype: type) -> None:
+def test_an_array_of_what_is_not_numbers_is_refused_as_such(hand: HandConfig, dtype: type) -> None:
     desired: np.ndarray = np.array(["a"] * hand.n_joints, dtype=dtype)
     assert check_desired(desired, hand.n_joints) == (
-        FaultCode.WRONG_SHAPE, f"desired torques are not numbers: {desired!r:.60}")
+        FaultCode.WRONG_SHAPE,
+        f"desired torques are not numbers: {desired!r:.60}",
+    )
 
 
-def test_vectors_of_another_length_are_never_truncated(hand: HandConfig,
-                                                       limits: JointLimits) -> None:
+def test_vectors_of_another_length_are_never_truncated(
+    hand: HandConfig, limits: JointLimits
+) -> None:
     """The limiter and the angle check take one value per joint, or refuse to work: zipping
     a short vector would silently leave joints out."""
     n = hand.n_joints
@@ -174,14 +184,17 @@ def test_vectors_of_another_length_are_never_truncated(hand: HandConfig,
 
 def test_usable_torques_pass_in_any_numeric_form(hand: HandConfig) -> None:
     top = tau_max(hand)
-    forms: tuple[Any, ...] = (top, top.tolist(), (-top).astype(np.float32),
-                              np.arange(hand.n_joints))
+    forms: tuple[Any, ...] = (
+        top,
+        top.tolist(),
+        (-top).astype(np.float32),
+        np.arange(hand.n_joints),
+    )
     for desired in forms:
         assert check_desired(desired, hand.n_joints) is None
 
 
-def test_soft_angle_limits_include_the_limit_itself(hand: HandConfig,
-                                                    limits: JointLimits) -> None:
+def test_soft_angle_limits_include_the_limit_itself(hand: HandConfig, limits: JointLimits) -> None:
     lo = np.array([j.angle_min for j in hand.joints])
     hi = np.array([j.angle_max for j in hand.joints])
     assert angle_violations(lo, limits) == []

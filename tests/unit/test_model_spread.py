@@ -27,8 +27,7 @@ def _gap(p: SimParams) -> float:
     return abs(b.x - a.x) - a.radius - b.radius
 
 
-def test_the_default_spread_draws_within_every_range(hand: HandConfig,
-                                                     params: SimParams) -> None:
+def test_the_default_spread_draws_within_every_range(hand: HandConfig, params: SimParams) -> None:
     spread = Spread()
     models = model_set(params, 40, 5, spread, nominal=False, hand=hand)
     damping = np.array([m.params.damping for m in models]) / np.array(params.damping)
@@ -51,8 +50,9 @@ def test_the_default_spread_draws_within_every_range(hand: HandConfig,
         assert -1e-9 <= _gap(p) <= 0.006 + 1e-9
         assert abs((a.x + b.x) / 2 - mid0) <= 0.004 + abs(a.radius - b.radius) / 2 + 1e-9
         assert a.x < b.x  # object 1 stays on the first finger's side
-        for finger, angles, start in zip(hand.fingers, p.initial_angles,
-                                         params.initial_angles, strict=True):
+        for finger, angles, start in zip(
+            hand.fingers, p.initial_angles, params.initial_angles, strict=True
+        ):
             for q, q0, joint in zip(angles, start, finger.joints, strict=True):
                 assert abs(q - q0) <= 0.1 + 1e-9
                 assert joint.angle_min <= q <= joint.angle_max
@@ -61,19 +61,19 @@ def test_the_default_spread_draws_within_every_range(hand: HandConfig,
 
 
 @pytest.mark.parametrize("family", sorted(FAMILIES))
-def test_one_family_varies_only_its_own_parameters(hand: HandConfig, params: SimParams,
-                                                   family: str) -> None:
+def test_one_family_varies_only_its_own_parameters(
+    hand: HandConfig, params: SimParams, family: str
+) -> None:
     model = perturb(params, np.random.default_rng(11), Spread().only(family), hand)
     p = model.params
     changed = {
         "contact": p.friction != params.friction,
-        "joint_dynamics": (p.damping, p.frictionloss, p.armature, p.actuator_lag) != (
-            params.damping, params.frictionloss, params.armature, params.actuator_lag),
-        "objects": [(o.radius, o.mass) for o in p.objects] != [
-            (o.radius, o.mass) for o in params.objects],
+        "joint_dynamics": (p.damping, p.frictionloss, p.armature, p.actuator_lag)
+        != (params.damping, params.frictionloss, params.armature, params.actuator_lag),
+        "objects": [(o.radius, o.mass) for o in p.objects]
+        != [(o.radius, o.mass) for o in params.objects],
         "placement": [o.x for o in p.objects] != [o.x for o in params.objects]
-        and [(o.radius, o.mass) for o in p.objects] == [(o.radius, o.mass)
-                                                        for o in params.objects],
+        and [(o.radius, o.mass) for o in p.objects] == [(o.radius, o.mass) for o in params.objects],
         "start_pose": p.initial_angles != params.initial_angles,
         "sensors": p.tdt != params.tdt,
     }
@@ -81,8 +81,9 @@ def test_one_family_varies_only_its_own_parameters(hand: HandConfig, params: Sim
     assert not any(v for k, v in changed.items() if k != family)
 
 
-def test_a_drawn_model_is_a_hand_config_the_simulation_loads(hand: HandConfig,
-                                                             params: SimParams) -> None:
+def test_a_drawn_model_is_a_hand_config_the_simulation_loads(
+    hand: HandConfig, params: SimParams
+) -> None:
     model = model_set(params, 2, 3, Spread(), hand=hand)[1]
     again = parse_sim(hand_with(hand, model.params, seed=4))
     assert again.damping == pytest.approx(model.params.damping)

@@ -16,8 +16,11 @@ SEARCHED = ("handctl", "tools")
 CONFIGS = ("handctl/hands/",)
 #: (file, line fragment, why): where a name is genuinely not a shape. Keep it short.
 ALLOWED = (
-    ("handctl/cli.py", "handctl jog f", "jog's help examples run against the packaged default "
-     "hand, whose joints they name"),
+    (
+        "handctl/cli.py",
+        "handctl jog f",
+        "jog's help examples run against the packaged default hand, whose joints they name",
+    ),
 )
 SUFFIXES = {".py", ".md", ".yaml", ".yml", ".json", ".txt", ".toml", ".dbc", ".h", ".c"}
 
@@ -35,8 +38,12 @@ def hits(names: set[str]) -> list[str]:
     for top in SEARCHED:
         for path in sorted((ROOT / top).rglob("*")):
             rel = path.relative_to(ROOT).as_posix()
-            if not path.is_file() or path.suffix not in SUFFIXES or "__pycache__" in rel \
-                    or rel.startswith(CONFIGS):
+            if (
+                not path.is_file()
+                or path.suffix not in SUFFIXES
+                or "__pycache__" in rel
+                or rel.startswith(CONFIGS)
+            ):
                 continue
             for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
                 match = pattern.search(line)

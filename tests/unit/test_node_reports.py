@@ -29,8 +29,14 @@ def _feedback(node: FingerNode, counter: int, state: int, bits: int) -> bytes:
     return layout.encode(counter, [0.0] * (2 * joints) + [state, bits])
 
 
-def _status(node: FingerNode, counter: int, state: int, bits: int,
-            version: int, firmware: tuple[int, int, int]) -> bytes:
+def _status(
+    node: FingerNode,
+    counter: int,
+    state: int,
+    bits: int,
+    version: int,
+    firmware: tuple[int, int, int],
+) -> bytes:
     return node.layouts.status.encode(counter, (state, bits, 0, 0, 0, 7, version, *firmware))
 
 
@@ -49,29 +55,26 @@ def test_a_status_gives_the_versions_and_when_they_were_heard(node: FingerNode) 
 
 def test_a_status_of_another_version_is_named(node: FingerNode) -> None:
     other = node.layouts.protocol_version + 1
-    node.receive(node.layouts.status.frame_id, _status(node, 0, DISABLED, 0, other, (1, 0, 0)),
-                 5)
+    node.receive(node.layouts.status.frame_id, _status(node, 0, DISABLED, 0, other, (1, 0, 0)), 5)
     problem = node.version_problem()
     assert f"speaks handctl protocol {other}" in problem
-    assert problem.endswith(f"this host protocol {node.layouts.protocol_version}: update the "
-                            "node's firmware or use the handctl of its protocol")
+    assert problem.endswith(
+        f"this host protocol {node.layouts.protocol_version}: update the "
+        "node's firmware or use the handctl of its protocol"
+    )
 
 
-def test_a_contradiction_names_the_frame_the_state_and_every_latched_bit(
-        node: FingerNode) -> None:
+def test_a_contradiction_names_the_frame_the_state_and_every_latched_bit(node: FingerNode) -> None:
     node.receive(node.layouts.feedback.frame_id, _feedback(node, 0, ENABLED, TIMEOUT | ESTOP), 1)
-    assert node.contradiction == (
-        "Feedback says ENABLED with latched fault bits (TIMEOUT, ESTOP)")
+    assert node.contradiction == ("Feedback says ENABLED with latched fault bits (TIMEOUT, ESTOP)")
     assert node.contradictions == 1
     version = node.layouts.protocol_version
-    node.receive(node.layouts.status.frame_id,
-                 _status(node, 0, 7, TIMEOUT, version, (1, 0, 0)), 2)
+    node.receive(node.layouts.status.frame_id, _status(node, 0, 7, TIMEOUT, version, (1, 0, 0)), 2)
     assert node.contradictions == 2
     assert node.contradiction.startswith("Feedback")  # the first one is kept
 
 
 def test_a_state_the_protocol_does_not_know_is_named_by_its_number(node: FingerNode) -> None:
     version = node.layouts.protocol_version
-    node.receive(node.layouts.status.frame_id,
-                 _status(node, 0, 7, TIMEOUT, version, (1, 0, 0)), 2)
+    node.receive(node.layouts.status.frame_id, _status(node, 0, 7, TIMEOUT, version, (1, 0, 0)), 2)
     assert node.contradiction == "Status says state 7 with latched fault bits (TIMEOUT)"

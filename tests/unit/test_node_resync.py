@@ -20,8 +20,7 @@ from .test_sim_firmware import MAX_STEP, MS, TDT_RANGE, WATCHDOG_NS, Wire, enabl
 
 @pytest.fixture
 def node(hand: HandConfig, protocol: Protocol) -> EmulatedNode:
-    return EmulatedNode(hand.fingers[0], protocol, tdt_range=TDT_RANGE,
-                        encoder_max_step=MAX_STEP)
+    return EmulatedNode(hand.fingers[0], protocol, tdt_range=TDT_RANGE, encoder_max_step=MAX_STEP)
 
 
 @pytest.fixture
@@ -42,7 +41,8 @@ def _first_host_ran(node: EmulatedNode, protocol: Protocol, commands: int = 37) 
 
 
 def test_a_new_host_enables_a_disabled_node_from_its_own_counters(
-        node: EmulatedNode, protocol: Protocol) -> None:
+    node: EmulatedNode, protocol: Protocol
+) -> None:
     now = _first_host_ran(node, protocol)
     rejects = (node.reject_counter, node.reject_crc, node.reject_length)
     second = Wire(protocol, 1)  # a new process: every counter from 0 again
@@ -53,8 +53,9 @@ def test_a_new_host_enables_a_disabled_node_from_its_own_counters(
     assert (node.reject_counter, node.reject_crc, node.reject_length) == rejects
 
 
-def test_the_first_command_after_enable_is_never_applied(node: EmulatedNode,
-                                                         protocol: Protocol) -> None:
+def test_the_first_command_after_enable_is_never_applied(
+    node: EmulatedNode, protocol: Protocol
+) -> None:
     """A stale command arriving between an enable and the host's first command (a replay of
     the previous host's stream) only sets the baseline; the host's own next command, which
     does not follow it, is rejected once; the one after applies."""
@@ -70,8 +71,9 @@ def test_the_first_command_after_enable_is_never_applied(node: EmulatedNode,
     assert node.applied[0] == pytest.approx(0.05)
 
 
-def test_a_baseline_does_not_feed_the_command_watchdog(node: EmulatedNode,
-                                                       protocol: Protocol) -> None:
+def test_a_baseline_does_not_feed_the_command_watchdog(
+    node: EmulatedNode, protocol: Protocol
+) -> None:
     """An enable and a single frame (a replayed pair, no host behind them): the node times out
     from the enable, with no torque at any moment."""
     now = _first_host_ran(node, protocol)
@@ -98,7 +100,8 @@ def test_no_resync_while_enabled(node: EmulatedNode, wire: Wire) -> None:
 
 
 def test_a_faulted_node_takes_a_new_host_only_after_the_old_one_fell_silent(
-        node: EmulatedNode, protocol: Protocol) -> None:
+    node: EmulatedNode, protocol: Protocol
+) -> None:
     """The first host dies mid-run: the watchdog latches TIMEOUT. A fault_reset out of the
     dead host's sequence is still refused while hosts were heard within the watchdog time; once
     no host frame has come for that long, a new host's fault_reset is taken."""
@@ -129,7 +132,8 @@ def test_a_faulted_node_takes_a_new_host_only_after_the_old_one_fell_silent(
 
 
 def test_the_host_takes_each_nodes_counters_afresh_at_start_up(
-        hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]) -> None:
+    hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     """A driver that heard a node once, then nothing while it was not running, takes the node's
     next frames with whatever counters they carry when the next run starts: the node did not
     misbehave, the host was away."""

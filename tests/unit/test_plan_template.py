@@ -38,18 +38,21 @@ def test_the_shipped_template_loads(hand: HandConfig) -> None:
     assert t.objects[0].name == "cyl1" and t.objects[1].radius == 0.02
 
 
-@pytest.mark.parametrize(("change", "key", "expected"), [
-    (lambda d: d["phases"][3].update(kind="spin"), "phases[3].kind", "one of"),
-    (lambda d: d["phases"][3].update(turn_deg=0), "phases[3].turn_deg", "non-zero"),
-    (lambda d: d["phases"][3].update(colour="red"), "phases[3]", "colour"),
-    (lambda d: d["phases"][1]["move"].update(cyl9=[0, 1]), "phases[1].move.cyl9", "object"),
-    (lambda d: d["phases"][0].pop("torques"), "phases[0].torques", ""),
-    (lambda d: d["search"].update(elite=99, population=4), "search.elite", "population"),
-    (lambda d: d["phases"].append(dict(d["phases"][3])), "phases[7].name", "not used"),
-])
-def test_bad_templates_are_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
-                                                  change: Any, key: str,
-                                                  expected: str) -> None:
+@pytest.mark.parametrize(
+    ("change", "key", "expected"),
+    [
+        (lambda d: d["phases"][3].update(kind="spin"), "phases[3].kind", "one of"),
+        (lambda d: d["phases"][3].update(turn_deg=0), "phases[3].turn_deg", "non-zero"),
+        (lambda d: d["phases"][3].update(colour="red"), "phases[3]", "colour"),
+        (lambda d: d["phases"][1]["move"].update(cyl9=[0, 1]), "phases[1].move.cyl9", "object"),
+        (lambda d: d["phases"][0].pop("torques"), "phases[0].torques", ""),
+        (lambda d: d["search"].update(elite=99, population=4), "search.elite", "population"),
+        (lambda d: d["phases"].append(dict(d["phases"][3])), "phases[7].name", "not used"),
+    ],
+)
+def test_bad_templates_are_refused_naming_the_key(
+    tmp_path: Path, hand: HandConfig, change: Any, key: str, expected: str
+) -> None:
     data = base()
     change(data)
     with pytest.raises(ConfigError) as info:
@@ -69,15 +72,21 @@ def one_object_turning(data: dict[str, Any]) -> None:
     del data["phases"][4:]
 
 
-@pytest.mark.parametrize(("change", "key", "expected"), [
-    (one_object_turning, "phases[3].kind", "a turn is that of a pair"),
-    (lambda d: d.update(objects=d["objects"][:1]), "min_total_turn_deg", "there is no pair"),
-    (lambda d: d.update(objects=[{"name": f"c{i}", "radius": 0.01} for i in range(5)]),
-     "objects", "1 to 4"),
-])
-def test_a_turn_needs_two_objects_and_there_are_four_at_most(tmp_path: Path, hand: HandConfig,
-                                                              change: Any, key: str,
-                                                              expected: str) -> None:
+@pytest.mark.parametrize(
+    ("change", "key", "expected"),
+    [
+        (one_object_turning, "phases[3].kind", "a turn is that of a pair"),
+        (lambda d: d.update(objects=d["objects"][:1]), "min_total_turn_deg", "there is no pair"),
+        (
+            lambda d: d.update(objects=[{"name": f"c{i}", "radius": 0.01} for i in range(5)]),
+            "objects",
+            "1 to 4",
+        ),
+    ],
+)
+def test_a_turn_needs_two_objects_and_there_are_four_at_most(
+    tmp_path: Path, hand: HandConfig, change: Any, key: str, expected: str
+) -> None:
     data = base()
     change(data)
     with pytest.raises(ConfigError) as info:

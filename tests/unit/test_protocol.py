@@ -121,9 +121,12 @@ def test_node_states_are_the_dbcs_value_table() -> None:
 
     db = cantools.database.load_file(str(DEFAULT_DBC))
     assert isinstance(db, cantools.database.can.Database)
-    tables = [{int(value): str(name) for value, name in signal.choices.items()}
-              for message in db.messages for signal in message.signals
-              if signal.name == "State" and signal.choices]
+    tables = [
+        {int(value): str(name) for value, name in signal.choices.items()}
+        for message in db.messages
+        for signal in message.signals
+        if signal.name == "State" and signal.choices
+    ]
     assert tables, "no State signal of the DBC has a value table"
     for table in tables:
         assert table == {state.value: state.name for state in NodeState}

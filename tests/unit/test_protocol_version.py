@@ -50,8 +50,10 @@ def test_a_status_of_another_length_says_its_version(protocol: Protocol) -> None
     v2 = _status(protocol, 2, 7, 2)
     assert foreign_status_version(layout, v2) is None  # our own length: decoded normally
     assert foreign_status_version(layout, _recrc(protocol, 2, v2[:8])) == 1
-    assert foreign_status_version(layout, _recrc(protocol, 2, v2[:8] + bytes([9]) + v2[9:]
-                                                 + bytes(4))) == 9
+    assert (
+        foreign_status_version(layout, _recrc(protocol, 2, v2[:8] + bytes([9]) + v2[9:] + bytes(4)))
+        == 9
+    )
     broken = bytearray(_recrc(protocol, 2, v2[:8]))
     broken[3] ^= 1
     assert foreign_status_version(layout, bytes(broken)) is None
@@ -59,8 +61,9 @@ def test_a_status_of_another_length_says_its_version(protocol: Protocol) -> None
     assert foreign_status_version(layout, _recrc(protocol, 1, v2[:8])) is None
 
 
-def test_the_host_names_both_versions(hand: HandConfig, protocol: Protocol,
-                                      bus_pair: tuple[HandBus, HandBus]) -> None:
+def test_the_host_names_both_versions(
+    hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     driver = HandDriver(hand, protocol, bus_pair[0])
     peer = bus_pair[1]
     peer.send(0x281, _status(protocol, 1, 0, 2))

@@ -26,8 +26,7 @@ from handctl.protocol import Protocol
 from .node_pair import Link
 
 RAMP_CODES = [code for code, spec in FAULTS.items() if spec.category is StopCategory.RAMP]
-IMMEDIATE_CODES = [code for code, spec in FAULTS.items()
-                   if spec.category is StopCategory.IMMEDIATE]
+IMMEDIATE_CODES = [code for code, spec in FAULTS.items() if spec.category is StopCategory.IMMEDIATE]
 
 
 @dataclass
@@ -38,15 +37,26 @@ class Running:
     link: Link
     tick: int
 
-    def observe(self, angle: np.ndarray | None = None, tdt: np.ndarray | None = None,
-                missed: int = 0, events: tuple[BusEvent, ...] = ()) -> list[Fault]:
+    def observe(
+        self,
+        angle: np.ndarray | None = None,
+        tdt: np.ndarray | None = None,
+        missed: int = 0,
+        events: tuple[BusEvent, ...] = (),
+    ) -> list[Fault]:
         """One more tick of the nodes, and the supervisor's checks of what they said."""
         n = self.sup.n
         self.tick += 1
         now = self.link.tick()
-        return self.sup.observe(self.tick, now, self.link.hosts,
-                                np.zeros(n) if angle is None else angle,
-                                np.zeros(n) if tdt is None else tdt, missed, events)
+        return self.sup.observe(
+            self.tick,
+            now,
+            self.link.hosts,
+            np.zeros(n) if angle is None else angle,
+            np.zeros(n) if tdt is None else tdt,
+            missed,
+            events,
+        )
 
 
 def tau_max(hand: HandConfig) -> np.ndarray:
@@ -72,8 +82,10 @@ def running(hand: HandConfig, protocol: Protocol) -> Running:
     assert not sup.filter(0, tau_max(hand)).any()  # nothing before the nodes confirm
     assert sup.observe(1, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0) == []
     assert sup.state is State.RUNNING
-    assert sup.history == [(0, State.IDLE, Event.START, State.ENABLING),
-                           (1, State.ENABLING, Event.ENABLED, State.RUNNING)]
+    assert sup.history == [
+        (0, State.IDLE, Event.START, State.ENABLING),
+        (1, State.ENABLING, Event.ENABLED, State.RUNNING),
+    ]
     return Running(sup, link, 1)
 
 
@@ -93,8 +105,9 @@ def signed_torque(hand: HandConfig) -> np.ndarray:
     return tau_max(hand) * signs * np.linspace(0.9, 0.5, hand.n_joints)
 
 
-def test_start_ramps_up_by_one_rate_step_a_tick_to_the_clamp(hand: HandConfig,
-                                                             running: Running) -> None:
+def test_start_ramps_up_by_one_rate_step_a_tick_to_the_clamp(
+    hand: HandConfig, running: Running
+) -> None:
     sup, top, step = running.sup, tau_max(hand), rate_step(hand)
     expected = np.zeros(hand.n_joints)
     for k in range(1, math.ceil(float(np.max(top / step))) + 3):
@@ -113,8 +126,9 @@ def test_holding_torque_is_not_limited(hand: HandConfig, running: Running) -> No
     assert running.sup.filter(running.tick + 2, None).tolist() == target.tolist()
 
 
-def test_a_late_tick_repeats_the_last_command_without_a_rate_step(hand: HandConfig,
-                                                                  running: Running) -> None:
+def test_a_late_tick_repeats_the_last_command_without_a_rate_step(
+    hand: HandConfig, running: Running
+) -> None:
     sup = running.sup
     first = sup.filter(running.tick + 1, tau_max(hand)).copy()
     assert sup.filter(running.tick + 2, tau_max(hand), missed=1).tolist() == first.tolist()
@@ -123,7 +137,8 @@ def test_a_late_tick_repeats_the_last_command_without_a_rate_step(hand: HandConf
 
 @pytest.mark.parametrize("code", RAMP_CODES)
 def test_a_ramp_fault_ramps_linearly_from_the_applied_torque_to_zero_at_the_bound(
-        hand: HandConfig, running: Running, code: FaultCode) -> None:
+    hand: HandConfig, running: Running, code: FaultCode
+) -> None:
     sup = running.sup
     start = hold(running, signed_torque(hand))
     tick = running.tick + 1
@@ -161,8 +176,9 @@ def test_a_loop_slower_than_the_ramp_bound_ramps_in_one_tick(hand: HandConfig) -
     assert sup.state is State.FAULTED
 
 
-def test_a_fault_during_a_stop_ramps_from_where_the_stop_had_got(hand: HandConfig,
-                                                                  running: Running) -> None:
+def test_a_fault_during_a_stop_ramps_from_where_the_stop_had_got(
+    hand: HandConfig, running: Running
+) -> None:
     sup = running.sup
     hold(running, tau_max(hand))
     tick = running.tick + 1
@@ -176,9 +192,9 @@ def test_a_fault_during_a_stop_ramps_from_where_the_stop_had_got(hand: HandConfi
 
 
 @pytest.mark.parametrize("code", IMMEDIATE_CODES)
-def test_an_immediate_fault_zeroes_the_same_tick_even_mid_ramp(hand: HandConfig,
-                                                              running: Running,
-                                                              code: FaultCode) -> None:
+def test_an_immediate_fault_zeroes_the_same_tick_even_mid_ramp(
+    hand: HandConfig, running: Running, code: FaultCode
+) -> None:
     sup = running.sup
     hold(running, signed_torque(hand))
     tick = running.tick + 1
@@ -191,7 +207,8 @@ def test_an_immediate_fault_zeroes_the_same_tick_even_mid_ramp(hand: HandConfig,
 
 
 def test_a_stop_rate_limits_to_zero_and_is_idle_exactly_when_torque_is_zero(
-        hand: HandConfig, running: Running) -> None:
+    hand: HandConfig, running: Running
+) -> None:
     sup, step = running.sup, rate_step(hand)
     previous = hold(running, signed_torque(hand))
     tick = running.tick + 1
@@ -215,8 +232,9 @@ def test_a_stop_rate_limits_to_zero_and_is_idle_exactly_when_torque_is_zero(
     assert not sup.filter(tick + k + 1, tau_max(hand)).any()
 
 
-def test_a_stop_at_zero_torque_is_idle_on_its_first_tick(hand: HandConfig,
-                                                          running: Running) -> None:
+def test_a_stop_at_zero_torque_is_idle_on_its_first_tick(
+    hand: HandConfig, running: Running
+) -> None:
     sup = running.sup
     sup.stop(2)
     assert sup.state is State.STOPPING
@@ -229,12 +247,15 @@ def test_a_stop_while_enabling_is_idle_at_once(hand: HandConfig) -> None:
     sup.start(0)
     sup.stop(1)
     assert sup.state is State.IDLE
-    assert sup.history == [(0, State.IDLE, Event.START, State.ENABLING),
-                           (1, State.ENABLING, Event.STOP, State.IDLE)]
+    assert sup.history == [
+        (0, State.IDLE, Event.START, State.ENABLING),
+        (1, State.ENABLING, Event.STOP, State.IDLE),
+    ]
 
 
-def test_a_fault_latches_once_and_only_reset_leaves_faulted(hand: HandConfig,
-                                                            running: Running) -> None:
+def test_a_fault_latches_once_and_only_reset_leaves_faulted(
+    hand: HandConfig, running: Running
+) -> None:
     sup = running.sup
     hold(running, signed_torque(hand))
     assert not sup.reset(running.tick)  # nothing to reset while running
@@ -258,7 +279,8 @@ def test_a_fault_latches_once_and_only_reset_leaves_faulted(hand: HandConfig,
 
 
 def test_after_a_reset_torque_comes_back_only_through_start_from_zero(
-        hand: HandConfig, running: Running) -> None:
+    hand: HandConfig, running: Running
+) -> None:
     sup = running.sup
     hold(running, tau_max(hand))
     misses = hand.safety.max_consecutive_misses
@@ -271,8 +293,17 @@ def test_after_a_reset_torque_comes_back_only_through_start_from_zero(
     assert not sup.filter(running.tick + 1, tau_max(hand)).any()  # IDLE: nothing until START
     sup.start(running.tick + 2)
     # The counts of late ticks and failed sends start again from zero at the reset.
-    assert sup.observe(running.tick + 2, running.link.tick(), running.link.hosts,
-                       np.zeros(sup.n), np.zeros(sup.n), misses - 1) == []
+    assert (
+        sup.observe(
+            running.tick + 2,
+            running.link.tick(),
+            running.link.hosts,
+            np.zeros(sup.n),
+            np.zeros(sup.n),
+            misses - 1,
+        )
+        == []
+    )
     assert sup.state is State.RUNNING
     for _ in range(failures - 1):
         sup.sent(False, running.tick + 2)
@@ -280,8 +311,9 @@ def test_after_a_reset_torque_comes_back_only_through_start_from_zero(
     assert sup.filter(running.tick + 3, tau_max(hand)).tolist() == rate_step(hand).tolist()
 
 
-def test_a_torque_that_must_be_refused_is_a_fault_at_its_tick(hand: HandConfig,
-                                                               running: Running) -> None:
+def test_a_torque_that_must_be_refused_is_a_fault_at_its_tick(
+    hand: HandConfig, running: Running
+) -> None:
     sup = running.sup
     hold(running, signed_torque(hand))
     bad = signed_torque(hand)
@@ -294,8 +326,9 @@ def test_a_torque_that_must_be_refused_is_a_fault_at_its_tick(hand: HandConfig,
 
 
 @pytest.mark.parametrize("code", RAMP_CODES)
-def test_a_ramp_fault_before_torque_flows_is_faulted_at_once(hand: HandConfig,
-                                                             code: FaultCode) -> None:
+def test_a_ramp_fault_before_torque_flows_is_faulted_at_once(
+    hand: HandConfig, code: FaultCode
+) -> None:
     for started in (False, True):
         sup = Supervisor(hand)
         if started:
@@ -306,7 +339,8 @@ def test_a_ramp_fault_before_torque_flows_is_faulted_at_once(hand: HandConfig,
 
 @pytest.mark.parametrize("timeout", [None, 0.0], ids=["hand", "zero"])
 def test_nodes_not_enabled_within_the_deadline_are_a_startup_fault(
-        hand: HandConfig, protocol: Protocol, timeout: float | None) -> None:
+    hand: HandConfig, protocol: Protocol, timeout: float | None
+) -> None:
     if timeout is not None:
         hand = replace(hand, safety=replace(hand.safety, enable_timeout_s=timeout))
     sup = Supervisor(hand)
@@ -315,19 +349,22 @@ def test_nodes_not_enabled_within_the_deadline_are_a_startup_fault(
     deadline = max(1, math.ceil(hand.safety.enable_timeout_s / hand.bus.period_s))
     sup.start(5)
     for tick in range(5, 5 + deadline + 1):
-        assert sup.observe(tick, link.tick(), link.hosts, np.zeros(sup.n),
-                           np.zeros(sup.n), 0) == [], f"tick {tick}"
+        assert (
+            sup.observe(tick, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0) == []
+        ), f"tick {tick}"
         assert sup.state is State.ENABLING
-    found = sup.observe(6 + deadline, link.tick(), link.hosts, np.zeros(sup.n),
-                        np.zeros(sup.n), 0)
+    found = sup.observe(6 + deadline, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0)
     assert [(f.code, f.tick) for f in found] == [(FaultCode.STARTUP, 6 + deadline)]
-    assert found[0].detail == ("nodes not ENABLED in time: "
-                               + ", ".join(f"node {f.node_id} DISABLED" for f in hand.fingers))
+    assert found[0].detail == (
+        "nodes not ENABLED in time: "
+        + ", ".join(f"node {f.node_id} DISABLED" for f in hand.fingers)
+    )
     assert sup.state is State.FAULTED
 
 
 def test_one_node_short_of_enabled_keeps_the_supervisor_enabling(
-        hand: HandConfig, protocol: Protocol) -> None:
+    hand: HandConfig, protocol: Protocol
+) -> None:
     sup = Supervisor(hand)
     link = Link(hand, protocol)
     link.tick()
@@ -347,21 +384,24 @@ def test_a_joint_past_its_soft_limit_ramps(hand: HandConfig, running: Running) -
     found = running.observe(angle=angle)
     assert [(f.code, f.tick) for f in found] == [(FaultCode.ANGLE_LIMIT, running.tick)]
     j = hand.joints[last]
-    assert found[0].detail == (f"{j.name} at {angle[last]:+.3f} rad, limits "
-                               f"[{j.angle_min:+.3f}, {j.angle_max:+.3f}]")
+    assert found[0].detail == (
+        f"{j.name} at {angle[last]:+.3f} rad, limits [{j.angle_min:+.3f}, {j.angle_max:+.3f}]"
+    )
     assert running.sup.state is State.FAULT_RAMP
 
 
-def test_during_a_fault_ramp_the_angle_limit_is_not_checked(hand: HandConfig,
-                                                           running: Running) -> None:
+def test_during_a_fault_ramp_the_angle_limit_is_not_checked(
+    hand: HandConfig, running: Running
+) -> None:
     running.sup.trip(FaultCode.RECIPE_ABORT, "test", running.tick)
     angle = np.array([j.angle_min - 0.01 for j in hand.joints])
     assert running.observe(angle=angle) == []
     assert [f.code for f in running.sup.faults] == [FaultCode.RECIPE_ABORT]
 
 
-def test_a_node_that_leaves_enabled_while_running_is_a_fault(hand: HandConfig,
-                                                             running: Running) -> None:
+def test_a_node_that_leaves_enabled_while_running_is_a_fault(
+    hand: HandConfig, running: Running
+) -> None:
     running.link.pairs[1].command("disable", running.link.now_ns)
     found = running.observe()
     assert [f.code for f in found] == [FaultCode.NODE_STATE]
@@ -396,8 +436,13 @@ def test_failed_sends_are_counted_through_sent(hand: HandConfig, running: Runnin
         sup.sent(False, k)
         assert sup.state is State.RUNNING
     sup.sent(False, 99)
-    assert sup.faults == [Fault(FaultCode.BUS_ERROR, f"{limit} consecutive ticks with command "
-                                "frames that could not be sent", 99)]
+    assert sup.faults == [
+        Fault(
+            FaultCode.BUS_ERROR,
+            f"{limit} consecutive ticks with command frames that could not be sent",
+            99,
+        )
+    ]
     assert sup.state is State.FAULTED
 
 
@@ -410,8 +455,9 @@ def _corrupt_feedback(run: Running, finger: int) -> None:
     host.receive(layout.frame_id, bytes((good[0] ^ 0xFF,)) + good[1:], run.link.now_ns)
 
 
-def test_rejected_frames_at_a_rate_are_a_fault_while_torque_flows(hand: HandConfig,
-                                                                  running: Running) -> None:
+def test_rejected_frames_at_a_rate_are_a_fault_while_torque_flows(
+    hand: HandConfig, running: Running
+) -> None:
     limit = hand.safety.max_rejects_in_window
     window = round(hand.safety.reject_window_s / hand.bus.period_s)
     for _ in range(limit):
@@ -419,14 +465,16 @@ def test_rejected_frames_at_a_rate_are_a_fault_while_torque_flows(hand: HandConf
         assert running.observe() == []
     _corrupt_feedback(running, 0)
     finger = hand.fingers[0]
-    assert [(f.code, f.detail) for f in running.observe()] == [(
-        FaultCode.REJECT_RATE,
-        f"node {finger.node_id} ({finger.name}): {limit + 1} frames rejected within {window} "
-        f"ticks (at most {limit}; so far: crc {limit + 1})")]
+    assert [(f.code, f.detail) for f in running.observe()] == [
+        (
+            FaultCode.REJECT_RATE,
+            f"node {finger.node_id} ({finger.name}): {limit + 1} frames rejected within {window} "
+            f"ticks (at most {limit}; so far: crc {limit + 1})",
+        )
+    ]
 
 
-def test_rejected_frames_before_start_are_no_fault(hand: HandConfig,
-                                                   protocol: Protocol) -> None:
+def test_rejected_frames_before_start_are_no_fault(hand: HandConfig, protocol: Protocol) -> None:
     """An idle supervisor commands no torque, so it does not judge the frames either: a
     bring-up tool may listen to a hand whose bus is noisy."""
     sup = Supervisor(hand)

@@ -42,21 +42,24 @@ def clock() -> Clock:
 
 
 @pytest.fixture
-def driver(hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus],
-           clock: Clock) -> Iterator[HandDriver]:
+def driver(
+    hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus], clock: Clock
+) -> Iterator[HandDriver]:
     yield HandDriver(hand, protocol, bus_pair[0], clock_ns=clock)
 
 
-def feedback(protocol: Protocol, node: int, counter: int, state: int = 1, faults: int = 0,
-             angle: float = 0.1) -> bytes:
+def feedback(
+    protocol: Protocol, node: int, counter: int, state: int = 1, faults: int = 0, angle: float = 0.1
+) -> bytes:
     return protocol.layout("Feedback", node).encode(
-        counter, (0.0, 0.0, 0.0, angle, 0.0, 0.0, state, faults))
+        counter, (0.0, 0.0, 0.0, angle, 0.0, 0.0, state, faults)
+    )
 
 
 # -- receive times ---------------------------------------------------------------------------
 def test_feedback_age_counts_from_arrival_not_from_the_drain(
-        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus],
-        clock: Clock) -> None:
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus], clock: Clock
+) -> None:
     arrived = clock.now
     bus_pair[1].send(0x181, feedback(protocol, 1, 0))
     clock.now += 3 * MS  # the host reads it three periods later
@@ -66,8 +69,10 @@ def test_feedback_age_counts_from_arrival_not_from_the_drain(
 
 
 def test_the_unix_bus_stamps_frames_when_they_arrive(hand: HandConfig, tmp_path: Path) -> None:
-    with open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as rx, \
-            open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as tx:
+    with (
+        open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as rx,
+        open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as tx,
+    ):
         time.sleep(0.06)  # both sockets listed by each other
         before = time.monotonic_ns()
         assert tx.send(0x181, bytes(16))
@@ -102,7 +107,8 @@ def test_the_bus_budget_is_derived_from_its_bit_rates(hand: HandConfig) -> None:
 
 
 def test_a_drain_takes_what_the_bus_can_carry_and_reports_the_rest(
-        driver: HandDriver, bus_pair: tuple[HandBus, HandBus], clock: Clock) -> None:
+    driver: HandDriver, bus_pair: tuple[HandBus, HandBus], clock: Clock
+) -> None:
     driver.poll()
     budget = 2 * driver.frames_per_period  # one period since the last poll, plus one
     for i in range(budget + 6):
@@ -120,7 +126,8 @@ def test_a_drain_takes_what_the_bus_can_carry_and_reports_the_rest(
 
 
 def test_a_late_poll_may_drain_what_the_bus_carried_meanwhile(
-        driver: HandDriver, bus_pair: tuple[HandBus, HandBus], clock: Clock) -> None:
+    driver: HandDriver, bus_pair: tuple[HandBus, HandBus], clock: Clock
+) -> None:
     driver.poll()
     frames = 4 * driver.frames_per_period
     for _ in range(frames):
@@ -131,8 +138,9 @@ def test_a_late_poll_may_drain_what_the_bus_carried_meanwhile(
     assert driver.take_bus_events() == []
 
 
-def test_discarding_at_start_up_is_no_backlog(driver: HandDriver,
-                                             bus_pair: tuple[HandBus, HandBus]) -> None:
+def test_discarding_at_start_up_is_no_backlog(
+    driver: HandDriver, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     for _ in range(1500):
         bus_pair[1].send(0x050, bytes(8))
     bus_pair[1].send_error_frame()
@@ -143,7 +151,8 @@ def test_discarding_at_start_up_is_no_backlog(driver: HandDriver,
 
 # -- identifiers -----------------------------------------------------------------------------
 def test_an_extended_id_twin_of_feedback_is_rejected_and_counted(
-        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]) -> None:
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     bus_pair[1].send(EXTENDED_ID_FLAG | 0x181, feedback(protocol, 1, 0, angle=0.3))
     state = driver.poll()
     assert driver.nodes[0].feedback is None and state.angle[0] == 0.0
@@ -155,8 +164,10 @@ def test_an_extended_id_twin_of_feedback_is_rejected_and_counted(
 
 
 def test_the_unix_bus_carries_the_extended_flag(hand: HandConfig, tmp_path: Path) -> None:
-    with open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as rx, \
-            open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as tx:
+    with (
+        open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as rx,
+        open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as tx,
+    ):
         time.sleep(0.06)
         assert tx.send(EXTENDED_ID_FLAG | 0x181, bytes(16))
         assert tx.send(0x181, bytes(16))
@@ -169,7 +180,8 @@ def test_the_unix_bus_carries_the_extended_flag(hand: HandConfig, tmp_path: Path
 
 # -- contradictions --------------------------------------------------------------------------
 def test_enabled_with_latched_fault_bits_is_a_contradiction(
-        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]) -> None:
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     bus_pair[1].send(0x182, feedback(protocol, 2, 0, state=1, faults=0x10))  # SATURATED: fine
     driver.poll()
     assert driver.nodes[1].contradiction == ""
@@ -182,7 +194,8 @@ def test_enabled_with_latched_fault_bits_is_a_contradiction(
 
 
 def test_fault_then_enabled_in_one_tick_is_a_contradiction_and_fault_stands(
-        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]) -> None:
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     peer = bus_pair[1]
     peer.send(0x181, feedback(protocol, 1, 0, state=2, faults=0x01))
     peer.send(0x701, protocol.layout("Heartbeat", 1).encode(0, (1, 500)))
@@ -193,7 +206,8 @@ def test_fault_then_enabled_in_one_tick_is_a_contradiction_and_fault_stands(
 
 
 def test_a_fault_reset_sequence_is_no_contradiction(
-        driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]) -> None:
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     peer = bus_pair[1]
     status = protocol.layout("Status", 1)
     peer.send(0x181, feedback(protocol, 1, 0, state=2, faults=0x03))
@@ -205,8 +219,9 @@ def test_a_fault_reset_sequence_is_no_contradiction(
     assert driver.nodes[0].contradiction == "" and driver.nodes[0].contradictions == 0
 
 
-def test_a_new_start_judges_the_nodes_afresh(driver: HandDriver, protocol: Protocol,
-                                            bus_pair: tuple[HandBus, HandBus]) -> None:
+def test_a_new_start_judges_the_nodes_afresh(
+    driver: HandDriver, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     bus_pair[1].send(0x181, feedback(protocol, 1, 0, state=1, faults=0x02))
     driver.poll()
     assert driver.nodes[0].contradiction
@@ -215,8 +230,9 @@ def test_a_new_start_judges_the_nodes_afresh(driver: HandDriver, protocol: Proto
 
 
 # -- the supervisor --------------------------------------------------------------------------
-def _armed(hand: HandConfig, driver: HandDriver, protocol: Protocol, peer: HandBus,
-           clock: Clock) -> tuple[Supervisor, int]:
+def _armed(
+    hand: HandConfig, driver: HandDriver, protocol: Protocol, peer: HandBus, clock: Clock
+) -> tuple[Supervisor, int]:
     """A supervisor that has seen every node ENABLED and is RUNNING at the tick returned."""
     sup = Supervisor(hand)
     sup.start(0)
@@ -230,10 +246,13 @@ def _armed(hand: HandConfig, driver: HandDriver, protocol: Protocol, peer: HandB
     return sup, 1
 
 
-def test_a_backlog_is_a_fault_that_zeroes_torque(hand: HandConfig, driver: HandDriver,
-                                                 protocol: Protocol,
-                                                 bus_pair: tuple[HandBus, HandBus],
-                                                 clock: Clock) -> None:
+def test_a_backlog_is_a_fault_that_zeroes_torque(
+    hand: HandConfig,
+    driver: HandDriver,
+    protocol: Protocol,
+    bus_pair: tuple[HandBus, HandBus],
+    clock: Clock,
+) -> None:
     sup, tick = _armed(hand, driver, protocol, bus_pair[1], clock)
     for _ in range(3 * driver.frames_per_period):
         bus_pair[1].send(0x050, bytes(8))
@@ -241,20 +260,24 @@ def test_a_backlog_is_a_fault_that_zeroes_torque(hand: HandConfig, driver: HandD
         bus_pair[1].send(0x180 + node, feedback(protocol, node, 1))
     clock.now += MS
     state = driver.poll()
-    faults = sup.observe(tick + 1, clock.now, driver.nodes, state.angle, state.tdt, 0,
-                         driver.take_bus_events())
+    faults = sup.observe(
+        tick + 1, clock.now, driver.nodes, state.angle, state.tdt, 0, driver.take_bus_events()
+    )
     assert [f.code for f in faults] == [FaultCode.RX_BACKLOG]
     assert not np.any(sup.filter(tick + 1, np.full(hand.n_joints, 0.05)))
 
 
 def test_a_contradiction_keeps_the_nodes_from_being_believed_enabled(
-        hand: HandConfig, driver: HandDriver, protocol: Protocol,
-        bus_pair: tuple[HandBus, HandBus], clock: Clock) -> None:
+    hand: HandConfig,
+    driver: HandDriver,
+    protocol: Protocol,
+    bus_pair: tuple[HandBus, HandBus],
+    clock: Clock,
+) -> None:
     sup = Supervisor(hand)
     sup.start(0)
     for node in (1, 2, 3):  # ENABLED everywhere, but node 2 also says TIMEOUT
-        bus_pair[1].send(0x180 + node, feedback(protocol, node, 0, faults=0x01 if node == 2
-                                                else 0))
+        bus_pair[1].send(0x180 + node, feedback(protocol, node, 0, faults=0x01 if node == 2 else 0))
         bus_pair[1].send(0x700 + node, protocol.layout("Heartbeat", node).encode(0, (1, 9)))
     state = driver.poll()
     faults = sup.observe(1, clock.now, driver.nodes, state.angle, state.tdt, 0)
@@ -264,10 +287,13 @@ def test_a_contradiction_keeps_the_nodes_from_being_believed_enabled(
     assert not np.any(sup.filter(1, np.full(hand.n_joints, 0.05)))
 
 
-def test_a_rate_of_rejected_frames_is_a_fault(hand: HandConfig, driver: HandDriver,
-                                             protocol: Protocol,
-                                             bus_pair: tuple[HandBus, HandBus],
-                                             clock: Clock) -> None:
+def test_a_rate_of_rejected_frames_is_a_fault(
+    hand: HandConfig,
+    driver: HandDriver,
+    protocol: Protocol,
+    bus_pair: tuple[HandBus, HandBus],
+    clock: Clock,
+) -> None:
     limit = hand.safety.max_rejects_in_window
     watch = ReceiveWatch(hand.safety, hand.bus.period_s)
     assert watch.window == 100 and limit == 10
@@ -300,8 +326,9 @@ def test_reject_rate_settings_come_from_the_safety_section(hand: HandConfig) -> 
     assert one_tick.window == 1  # the shortest window the loader takes: one tick, not two
 
 
-def test_commands_still_go_out_as_standard_frames(driver: HandDriver,
-                                                  bus_pair: tuple[HandBus, HandBus]) -> None:
+def test_commands_still_go_out_as_standard_frames(
+    driver: HandDriver, bus_pair: tuple[HandBus, HandBus]
+) -> None:
     driver.send(AppliedTorques(np.zeros(9)))
     assert [f.arbitration_id for f in bus_pair[1].drain()] == [0x101, 0x102, 0x103]
 
@@ -329,8 +356,10 @@ def test_an_exported_log_keeps_29_bit_ids_extended(tmp_path: Path) -> None:
     from handctl.recording.canlog import write_frames
 
     out = tmp_path / "rx.log"
-    frames = [(1.0, EXTENDED_ID_FLAG | 0x181, bytes(16), True, True),
-              (1.001, 0x181, bytes(16), True, True)]
+    frames = [
+        (1.0, EXTENDED_ID_FLAG | 0x181, bytes(16), True, True),
+        (1.001, 0x181, bytes(16), True, True),
+    ]
     assert write_frames(out, "candump", frames) == 2
     ids = [line.split()[2].split("#")[0] for line in out.read_text().splitlines()]
     assert ids == ["00000181", "181"]

@@ -21,8 +21,13 @@ ZERO = np.zeros(9)
 
 def phase(name: str, value: float = 0.1, **extra: Any) -> dict[str, Any]:
     joints = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
-    return {"name": name, "torques": dict.fromkeys(joints, value), "ramp_s": 0.1, "max_s": 1.0,
-            **extra}
+    return {
+        "name": name,
+        "torques": dict.fromkeys(joints, value),
+        "ramp_s": 0.1,
+        "max_s": 1.0,
+        **extra,
+    }
 
 
 def write(tmp_path: Path, data: dict[str, Any]) -> Path:
@@ -44,7 +49,8 @@ def error(tmp_path: Path, hand: HandConfig, data: dict[str, Any]) -> ConfigError
 
 
 def test_torque_over_tau_max_is_refused_naming_phase_joint_value_limit(
-        tmp_path: Path, hand: HandConfig) -> None:
+    tmp_path: Path, hand: HandConfig
+) -> None:
     bad = phase("squeeze", 0.1)
     bad["torques"]["f1_j3"] = 0.35
     err = error(tmp_path, hand, recipe_doc(phase("a"), bad))
@@ -61,8 +67,9 @@ def test_a_ramp_faster_than_the_rate_limit_is_refused(tmp_path: Path, hand: Hand
     assert err.found == 0.01
 
 
-def test_the_first_ramp_from_zero_and_the_end_ramp_are_checked(tmp_path: Path,
-                                                              hand: HandConfig) -> None:
+def test_the_first_ramp_from_zero_and_the_end_ramp_are_checked(
+    tmp_path: Path, hand: HandConfig
+) -> None:
     err = error(tmp_path, hand, recipe_doc(phase("a", 0.2, ramp_s=0.0)))
     assert err.key == "phases[0].ramp_s"
     err = error(tmp_path, hand, recipe_doc(phase("a", 0.2), end_ramp_s=0.001))
@@ -70,23 +77,28 @@ def test_the_first_ramp_from_zero_and_the_end_ramp_are_checked(tmp_path: Path,
 
 
 def test_compiled_recipe_for_another_hand_is_refused(tmp_path: Path, hand: HandConfig) -> None:
-    err = error(tmp_path, hand, recipe_doc(phase("a"), compiled=True,
-                                           hand_config_hash="sha256:0000000000000000"))
+    err = error(
+        tmp_path,
+        hand,
+        recipe_doc(phase("a"), compiled=True, hand_config_hash="sha256:0000000000000000"),
+    )
     assert err.key == "hand_config_hash"
     assert hand.config_hash in err.expected
     err = error(tmp_path, hand, recipe_doc(phase("a"), compiled=True))
     assert err.key == "hand_config_hash"
-    ok = write(tmp_path, recipe_doc(phase("a"), compiled=True,
-                                    hand_config_hash=hand.config_hash))
+    ok = write(tmp_path, recipe_doc(phase("a"), compiled=True, hand_config_hash=hand.config_hash))
     assert load_recipe(ok, hand).compiled
 
 
-@pytest.mark.parametrize(("condition", "expected"), [
-    ("angle.f9_j1 > 1", "a joint of the hand"),
-    ("speed > 1", "a condition 'SIGNAL OP NUMBER"),
-    ("time = 1", "a condition"),
-    ("estimate.colour > 1", "an estimate of the recipe's objects"),
-])
+@pytest.mark.parametrize(
+    ("condition", "expected"),
+    [
+        ("angle.f9_j1 > 1", "a joint of the hand"),
+        ("speed > 1", "a condition 'SIGNAL OP NUMBER"),
+        ("time = 1", "a condition"),
+        ("estimate.colour > 1", "an estimate of the recipe's objects"),
+    ],
+)
 def test_bad_conditions(tmp_path: Path, hand: HandConfig, condition: str, expected: str) -> None:
     err = error(tmp_path, hand, recipe_doc(phase("a", exit=["time > 0.5", condition])))
     assert err.key == "phases[0].exit[1]"
@@ -112,8 +124,13 @@ def test_torques_as_a_list(tmp_path: Path, hand: HandConfig) -> None:
     assert error(tmp_path, hand, recipe_doc(p)).key == "phases[0].torques"
 
 
-def run(runner: RecipeRunner, t_end: float, dt: float = 0.001,
-        angle: np.ndarray = ZERO, est: list[float] | None = None) -> list[np.ndarray]:
+def run(
+    runner: RecipeRunner,
+    t_end: float,
+    dt: float = 0.001,
+    angle: np.ndarray = ZERO,
+    est: list[float] | None = None,
+) -> list[np.ndarray]:
     out = []
     t = 0.0
     while t < t_end and not runner.done:
@@ -123,8 +140,11 @@ def run(runner: RecipeRunner, t_end: float, dt: float = 0.001,
 
 
 def test_runner_ramps_exits_and_ends(tmp_path: Path, hand: HandConfig) -> None:
-    data = recipe_doc(phase("a", 0.2, ramp_s=0.1, exit=["time >= 0.3"]),
-                      phase("b", -0.1, ramp_s=0.05, exit=["time >= 0.2"]), end_ramp_s=0.1)
+    data = recipe_doc(
+        phase("a", 0.2, ramp_s=0.1, exit=["time >= 0.3"]),
+        phase("b", -0.1, ramp_s=0.05, exit=["time >= 0.2"]),
+        end_ramp_s=0.1,
+    )
     recipe = load_recipe(write(tmp_path, data), hand)
     runner = RecipeRunner(recipe, 9)
     torques = run(runner, 2.0)
@@ -169,16 +189,18 @@ def test_runner_angle_exit_must_hold(tmp_path: Path, hand: HandConfig) -> None:
 
 
 def test_runner_abort_condition_and_estimates(tmp_path: Path, hand: HandConfig) -> None:
-    data = recipe_doc(phase("a", exit=["estimate.cyl1_cyl2_line_angle > 0.7"],
-                            abort=["tdt.f3_j1 < -0.5"]), phase("b"),
-                      objects=[{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}])
+    data = recipe_doc(
+        phase("a", exit=["estimate.cyl1_cyl2_line_angle > 0.7"], abort=["tdt.f3_j1 < -0.5"]),
+        phase("b"),
+        objects=[{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}],
+    )
     runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
     assert runner.recipe.uses_estimates
-    est = [0.0] * len(estimate_names((RecipeObject("cyl1", 0.02), RecipeObject("cyl2", 0.02)),
-                                     ((0, 1),)))
+    est = [0.0] * len(
+        estimate_names((RecipeObject("cyl1", 0.02), RecipeObject("cyl2", 0.02)), ((0, 1),))
+    )
     run(runner, 0.1, est=est)
     assert runner.phase_name == "a"
     est[0] = 0.8
     run(runner, 0.01, est=est)
     assert runner.phase_name == "b"
-

@@ -28,13 +28,33 @@ ESTIMATES = estimate_names((RecipeObject("a", 0.02), RecipeObject("b", 0.02)), (
 TURN = FIRST_PAIR_TURN
 
 
-def _recipe(tmp_path: Path, hand: HandConfig, phase: dict[str, object],
-            objects: bool = True, max_s: float = 10.0) -> Recipe:
-    data: dict[str, object] = {"recipe": "feedback", "phases": [
-        {"name": "turn", "torques": dict(zip(JOINTS, TORQUES, strict=True)), "ramp_s": RAMP,
-         "max_s": max_s, "on_timeout": "next", **phase},
-        {"name": "after", "torques": dict(zip(JOINTS, TORQUES, strict=True)), "ramp_s": RAMP,
-         "max_s": 10.0, "on_timeout": "next"}]}
+def _recipe(
+    tmp_path: Path,
+    hand: HandConfig,
+    phase: dict[str, object],
+    objects: bool = True,
+    max_s: float = 10.0,
+) -> Recipe:
+    data: dict[str, object] = {
+        "recipe": "feedback",
+        "phases": [
+            {
+                "name": "turn",
+                "torques": dict(zip(JOINTS, TORQUES, strict=True)),
+                "ramp_s": RAMP,
+                "max_s": max_s,
+                "on_timeout": "next",
+                **phase,
+            },
+            {
+                "name": "after",
+                "torques": dict(zip(JOINTS, TORQUES, strict=True)),
+                "ramp_s": RAMP,
+                "max_s": 10.0,
+                "on_timeout": "next",
+            },
+        ],
+    }
     if objects:
         data["objects"] = [{"name": "a", "radius": 0.02}, {"name": "b", "radius": 0.02}]
     path = tmp_path / "feedback.yaml"
@@ -48,8 +68,14 @@ def _estimates(turn: float) -> list[float]:
     return out
 
 
-def _drive(runner: RecipeRunner, rate_deg_s: float, seconds: float, t0: float = 0.0,
-           turn0: float = 0.0, valid: bool = True) -> tuple[float, np.ndarray, float]:
+def _drive(
+    runner: RecipeRunner,
+    rate_deg_s: float,
+    seconds: float,
+    t0: float = 0.0,
+    turn0: float = 0.0,
+    valid: bool = True,
+) -> tuple[float, np.ndarray, float]:
     """Feed a pair turning at ``rate_deg_s``; returns the time, the last torques, the turn."""
     angle = np.zeros(9)
     out = np.zeros(9)
@@ -65,8 +91,7 @@ def _drive(runner: RecipeRunner, rate_deg_s: float, seconds: float, t0: float = 
 TURN_RATE: dict[str, object] = {"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 1.5]}}
 
 
-def test_too_fast_scales_the_torque_down_to_its_least(tmp_path: Path,
-                                                      hand: HandConfig) -> None:
+def test_too_fast_scales_the_torque_down_to_its_least(tmp_path: Path, hand: HandConfig) -> None:
     runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE), 9)
     _, out, _ = _drive(runner, -400.0, 1.0)
     assert runner.scale == pytest.approx(0.5)
@@ -92,8 +117,7 @@ def test_the_wanted_rate_keeps_the_planned_torque(tmp_path: Path, hand: HandConf
     assert runner.scale == pytest.approx(1.5)
 
 
-def test_the_next_phase_ramps_from_the_scaled_torque(tmp_path: Path,
-                                                     hand: HandConfig) -> None:
+def test_the_next_phase_ramps_from_the_scaled_torque(tmp_path: Path, hand: HandConfig) -> None:
     """Leaving a phase with feedback is no step in torque: the next phase's ramp starts from
     what was proposed, not from the phase's planned torque."""
     runner = RecipeRunner(_recipe(tmp_path, hand, TURN_RATE, max_s=0.5), 9)
@@ -113,12 +137,26 @@ def test_an_invalid_estimate_holds_the_scale(tmp_path: Path, hand: HandConfig) -
     assert runner.scale == held
 
 
-def test_the_scale_moves_within_the_ramp_without_an_integral(tmp_path: Path,
-                                                             hand: HandConfig) -> None:
+def test_the_scale_moves_within_the_ramp_without_an_integral(
+    tmp_path: Path, hand: HandConfig
+) -> None:
     """While the phase's torque ramps in, the pair has not begun to turn: a stall then is no
     reason to wind the integral up."""
-    runner = RecipeRunner(_recipe(tmp_path, hand, {"turn_rate": {
-        "rate_deg_s": 45, "scale": [0.5, 3.0], "gain": 0.0, "integral_per_s": 5.0}}), 9)
+    runner = RecipeRunner(
+        _recipe(
+            tmp_path,
+            hand,
+            {
+                "turn_rate": {
+                    "rate_deg_s": 45,
+                    "scale": [0.5, 3.0],
+                    "gain": 0.0,
+                    "integral_per_s": 5.0,
+                }
+            },
+        ),
+        9,
+    )
     _drive(runner, 0.0, RAMP * 0.9)
     assert runner.scale == 1.0
 
@@ -142,8 +180,13 @@ def test_a_pose_hold_adds_a_spring_and_a_damper(tmp_path: Path, hand: HandConfig
     assert out == pytest.approx(expected, abs=1e-4)
 
 
-def _move(runner: RecipeRunner, speed: float, seconds: float, t: float = 0.0,
-          angle: np.ndarray | None = None) -> tuple[float, np.ndarray, np.ndarray]:
+def _move(
+    runner: RecipeRunner,
+    speed: float,
+    seconds: float,
+    t: float = 0.0,
+    angle: np.ndarray | None = None,
+) -> tuple[float, np.ndarray, np.ndarray]:
     """Feed every joint moving at ``speed`` (rad/s); returns the time, the angles, the last
     torques."""
     angle = np.zeros(9) if angle is None else angle
@@ -155,8 +198,7 @@ def _move(runner: RecipeRunner, speed: float, seconds: float, t: float = 0.0,
     return t, angle, out
 
 
-def test_injected_damping_opposes_every_joint_s_velocity(tmp_path: Path,
-                                                         hand: HandConfig) -> None:
+def test_injected_damping_opposes_every_joint_s_velocity(tmp_path: Path, hand: HandConfig) -> None:
     runner = RecipeRunner(_recipe(tmp_path, hand, {"joint_damping": 0.03}, objects=False), 9)
     _, _, out = _move(runner, 0.0, 2 * RAMP)
     assert out == pytest.approx(np.array(TORQUES))  # at rest: the planned torque
@@ -165,12 +207,14 @@ def test_injected_damping_opposes_every_joint_s_velocity(tmp_path: Path,
     assert runner.damping == 0.03
 
 
-def test_injected_damping_fades_with_the_next_phase_s_ramp(tmp_path: Path,
-                                                           hand: HandConfig) -> None:
+def test_injected_damping_fades_with_the_next_phase_s_ramp(
+    tmp_path: Path, hand: HandConfig
+) -> None:
     """Leaving a damped phase for one without is no step in torque: the coefficient follows
     the ramp down to the next phase's."""
-    runner = RecipeRunner(_recipe(tmp_path, hand, {"joint_damping": 0.05}, objects=False,
-                                  max_s=0.3), 9)
+    runner = RecipeRunner(
+        _recipe(tmp_path, hand, {"joint_damping": 0.05}, objects=False, max_s=0.3), 9
+    )
     t, angle, before = _move(runner, 2.0, 0.3)
     assert runner.phase_name == "turn"
     t, angle, after = _move(runner, 2.0, 2 * DT, t, angle)
@@ -185,8 +229,7 @@ def test_injected_damping_fades_with_the_next_phase_s_ramp(tmp_path: Path,
 BRAKE: dict[str, object] = {"brake": {"rate_deg_s": 90, "joint_damping": 0.04}}
 
 
-def _tumble(runner: RecipeRunner, rate_deg_s: float, speed: float,
-            seconds: float) -> np.ndarray:
+def _tumble(runner: RecipeRunner, rate_deg_s: float, speed: float, seconds: float) -> np.ndarray:
     """Feed a pair turning at ``rate_deg_s`` while every joint moves at ``speed`` (rad/s);
     returns the last torques."""
     angle, out, turn = np.zeros(9), np.zeros(9), 0.0
@@ -197,10 +240,13 @@ def _tumble(runner: RecipeRunner, rate_deg_s: float, speed: float,
     return out
 
 
-@pytest.mark.parametrize(("rate_deg_s", "damping"), [
-    (0.0, 0.0), (-60.0, 0.0), (-135.0, 0.02), (-400.0, 0.04), (400.0, 0.04)])
+@pytest.mark.parametrize(
+    ("rate_deg_s", "damping"),
+    [(0.0, 0.0), (-60.0, 0.0), (-135.0, 0.02), (-400.0, 0.04), (400.0, 0.04)],
+)
 def test_the_brake_damps_the_joints_as_the_pair_turns_faster(
-        tmp_path: Path, hand: HandConfig, rate_deg_s: float, damping: float) -> None:
+    tmp_path: Path, hand: HandConfig, rate_deg_s: float, damping: float
+) -> None:
     """None at or below the brake's rate, its full damping from twice that rate, either way
     round: a tumble the wrong way is a tumble too."""
     runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)
@@ -210,7 +256,8 @@ def test_the_brake_damps_the_joints_as_the_pair_turns_faster(
 
 
 def test_the_brake_holds_no_damping_while_the_estimate_is_invalid(
-        tmp_path: Path, hand: HandConfig) -> None:
+    tmp_path: Path, hand: HandConfig
+) -> None:
     runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)
     _drive(runner, -400.0, 0.5, valid=False)
     assert runner.damping == 0.0
@@ -223,29 +270,50 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
     runs = []
     for _ in range(2):
         runner = RecipeRunner(recipe, 9)
-        runs.append(np.array([runner.step(k * DT, np.zeros(9), np.zeros(9),
-                                          _estimates(float(x))).copy()
-                              for k, x in enumerate(turns)]))
+        runs.append(
+            np.array(
+                [
+                    runner.step(k * DT, np.zeros(9), np.zeros(9), _estimates(float(x))).copy()
+                    for k, x in enumerate(turns)
+                ]
+            )
+        )
     assert np.array_equal(runs[0], runs[1])
 
 
-@pytest.mark.parametrize(("phase", "key", "objects"), [
-    ({"turn_rate": {"rate_deg_s": -45, "scale": [1.2, 2.0]}}, "phases[0].turn_rate.scale", True),
-    ({"turn_rate": {"rate_deg_s": 0, "scale": [0.5, 2.0]}}, "phases[0].turn_rate.rate_deg_s",
-     True),
-    ({"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 2.0]}}, "phases[0].turn_rate", False),
-    ({"pose": {"angles": dict.fromkeys(JOINTS, 5.0), "stiffness": 1.0}},
-     "phases[0].pose.angles.f1_j1", False),
-    ({"joint_damping": -0.01}, "phases[0].joint_damping", False),
-    ({"brake": {"rate_deg_s": 90, "joint_damping": 0.03}}, "phases[0].brake", False),
-    ({"brake": {"rate_deg_s": 0, "joint_damping": 0.03}}, "phases[0].brake.rate_deg_s", True),
-    ({"brake": {"rate_deg_s": 90, "joint_damping": 0.5}}, "phases[0].brake.joint_damping",
-     True),
-    ({"joint_damping": 1.0}, "phases[0].joint_damping", False),
-])
-def test_bad_feedback_is_refused_naming_the_key(tmp_path: Path, hand: HandConfig,
-                                                phase: dict[str, object], key: str,
-                                                objects: bool) -> None:
+@pytest.mark.parametrize(
+    ("phase", "key", "objects"),
+    [
+        (
+            {"turn_rate": {"rate_deg_s": -45, "scale": [1.2, 2.0]}},
+            "phases[0].turn_rate.scale",
+            True,
+        ),
+        (
+            {"turn_rate": {"rate_deg_s": 0, "scale": [0.5, 2.0]}},
+            "phases[0].turn_rate.rate_deg_s",
+            True,
+        ),
+        ({"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 2.0]}}, "phases[0].turn_rate", False),
+        (
+            {"pose": {"angles": dict.fromkeys(JOINTS, 5.0), "stiffness": 1.0}},
+            "phases[0].pose.angles.f1_j1",
+            False,
+        ),
+        ({"joint_damping": -0.01}, "phases[0].joint_damping", False),
+        ({"brake": {"rate_deg_s": 90, "joint_damping": 0.03}}, "phases[0].brake", False),
+        ({"brake": {"rate_deg_s": 0, "joint_damping": 0.03}}, "phases[0].brake.rate_deg_s", True),
+        (
+            {"brake": {"rate_deg_s": 90, "joint_damping": 0.5}},
+            "phases[0].brake.joint_damping",
+            True,
+        ),
+        ({"joint_damping": 1.0}, "phases[0].joint_damping", False),
+    ],
+)
+def test_bad_feedback_is_refused_naming_the_key(
+    tmp_path: Path, hand: HandConfig, phase: dict[str, object], key: str, objects: bool
+) -> None:
     with pytest.raises(ConfigError) as info:
         _recipe(tmp_path, hand, phase, objects=objects)
     assert info.value.key == key

@@ -58,17 +58,20 @@ faults:
     assert (stuck.injector.node, stuck.injector.joint, stuck.stop) == (3, 2, None)
 
 
-@pytest.mark.parametrize(("entry", "key", "expected"), [
-    ("{kind: tdt_melt, start: 1}", "faults[0].kind", "one of"),
-    ("{kind: drop_feedback, amplitude: 1, start: 1}", "faults[0].amplitude", "unknown key"),
-    ("{kind: drop_feedback, start: 1, stop: 0.5}", "faults[0].stop", ">= 1"),
-    ("{kind: drop_feedback, start: -1}", "faults[0].start", ">= 0"),
-    ("{kind: node_silent, node: 9, start: 1}", "faults[0].node", "<= 3"),
-    ("{kind: tdt_offset, node: 1, joint: 4, start: 1}", "faults[0].joint", "<= 3"),
-    ("{kind: babble, length: 10, start: 1}", "faults[0].length", "CAN-FD payload length"),
-    ("{kind: corrupt_crc, message: commands, start: 1}", "faults[0].message", "one of"),
-    ("{kind: drop_commands, start: 1, joint: 1}", "faults[0].joint", "unknown key"),
-])
+@pytest.mark.parametrize(
+    ("entry", "key", "expected"),
+    [
+        ("{kind: tdt_melt, start: 1}", "faults[0].kind", "one of"),
+        ("{kind: drop_feedback, amplitude: 1, start: 1}", "faults[0].amplitude", "unknown key"),
+        ("{kind: drop_feedback, start: 1, stop: 0.5}", "faults[0].stop", ">= 1"),
+        ("{kind: drop_feedback, start: -1}", "faults[0].start", ">= 0"),
+        ("{kind: node_silent, node: 9, start: 1}", "faults[0].node", "<= 3"),
+        ("{kind: tdt_offset, node: 1, joint: 4, start: 1}", "faults[0].joint", "<= 3"),
+        ("{kind: babble, length: 10, start: 1}", "faults[0].length", "CAN-FD payload length"),
+        ("{kind: corrupt_crc, message: commands, start: 1}", "faults[0].message", "one of"),
+        ("{kind: drop_commands, start: 1, joint: 1}", "faults[0].joint", "unknown key"),
+    ],
+)
 def test_mistakes_name_the_key(hand: HandConfig, entry: str, key: str, expected: str) -> None:
     with pytest.raises(ConfigError) as err:
         parse_scenario(parse_yaml(f"faults:\n  - {entry}\n", "bad.yaml"), hand)

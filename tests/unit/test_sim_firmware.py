@@ -27,10 +27,19 @@ class Wire:
         self.node = node
         self.counters: dict[str, int] = {}
 
-    def frame(self, kind: str, values: tuple[float, ...], *, node: int | None = None,
-              counter: int | None = None) -> tuple[int, bytes]:
-        layout = (self.protocol.layout(kind) if kind == "EStop"
-                  else self.protocol.layout(kind, node or self.node))
+    def frame(
+        self,
+        kind: str,
+        values: tuple[float, ...],
+        *,
+        node: int | None = None,
+        counter: int | None = None,
+    ) -> tuple[int, bytes]:
+        layout = (
+            self.protocol.layout(kind)
+            if kind == "EStop"
+            else self.protocol.layout(kind, node or self.node)
+        )
         if counter is None:
             counter = self.counters.get(layout.name, 0)
             self.counters[layout.name] = (counter + 1) & 0xFF
@@ -45,8 +54,7 @@ class Wire:
 
 @pytest.fixture
 def node(hand: HandConfig, protocol: Protocol) -> EmulatedNode:
-    return EmulatedNode(hand.fingers[0], protocol, tdt_range=TDT_RANGE,
-                        encoder_max_step=MAX_STEP)
+    return EmulatedNode(hand.fingers[0], protocol, tdt_range=TDT_RANGE, encoder_max_step=MAX_STEP)
 
 
 @pytest.fixture
@@ -54,9 +62,13 @@ def wire(protocol: Protocol) -> Wire:
     return Wire(protocol, 1)
 
 
-def tick(node: EmulatedNode, now: int, *frames: tuple[int, bytes],
-         angles: list[float] | None = None,
-         tdt: list[float] | None = None) -> list[tuple[int, bytes]]:
+def tick(
+    node: EmulatedNode,
+    now: int,
+    *frames: tuple[int, bytes],
+    angles: list[float] | None = None,
+    tdt: list[float] | None = None,
+) -> list[tuple[int, bytes]]:
     """One node tick at ``now`` ns, as the simulated hand runs it; returns the frames sent."""
     for fid, data in frames:
         node.receive(fid, data, now)
@@ -66,8 +78,9 @@ def tick(node: EmulatedNode, now: int, *frames: tuple[int, bytes],
     return out
 
 
-def decode(protocol: Protocol, frames: list[tuple[int, bytes]], kind: str,
-           node: int = 1) -> list[tuple[int, tuple[float, ...]]]:
+def decode(
+    protocol: Protocol, frames: list[tuple[int, bytes]], kind: str, node: int = 1
+) -> list[tuple[int, tuple[float, ...]]]:
     layout = protocol.layout(kind, node)
     return [layout.decode(data) for fid, data in frames if fid == layout.frame_id]
 
@@ -80,15 +93,14 @@ def enabled(node: EmulatedNode, wire: Wire, now: int = 0) -> int:
     return now + MS
 
 
-def test_boots_disabled_and_enables(node: EmulatedNode, wire: Wire,
-                                    protocol: Protocol) -> None:
+def test_boots_disabled_and_enables(node: EmulatedNode, wire: Wire, protocol: Protocol) -> None:
     out = tick(node, 0)
     assert node.state == NodeState.DISABLED
     # at boot (uptime 0) the node announces itself: Feedback, Status, Heartbeat
     assert [fid for fid, _ in out] == [0x181, 0x281, 0x701]
     out = tick(node, MS, wire.command("enable"))
     assert node.state == NodeState.ENABLED
-    (_, status), = decode(protocol, out, "Status")
+    ((_, status),) = decode(protocol, out, "Status")
     assert status[0] == NodeState.ENABLED  # sent at once on the state change
 
 
@@ -102,8 +114,7 @@ def test_commands_are_applied_only_when_enabled(node: EmulatedNode, wire: Wire) 
     assert node.state == NodeState.DISABLED and node.applied == [0.0, 0.0, 0.0]
 
 
-def test_watchdog_trips_at_10_ms_without_accepted_commands(node: EmulatedNode,
-                                                           wire: Wire) -> None:
+def test_watchdog_trips_at_10_ms_without_accepted_commands(node: EmulatedNode, wire: Wire) -> None:
     now = enabled(node, wire)  # armed at t = 0 by the enable
     tick(node, now, wire.torque(0.1, 0.0, 0.0))  # last accepted command at 1 ms
     last = now
@@ -136,8 +147,7 @@ def test_rejected_commands_do_not_feed_the_watchdog(node: EmulatedNode, wire: Wi
     assert node.reject_crc == 5
 
 
-def test_saturation_clips_and_reports(node: EmulatedNode, wire: Wire,
-                                      hand: HandConfig) -> None:
+def test_saturation_clips_and_reports(node: EmulatedNode, wire: Wire, hand: HandConfig) -> None:
     limits = [j.device_tau_max for j in hand.fingers[0].joints]
     now = enabled(node, wire)
     tick(node, now, wire.torque(limits[0] + 0.2, -(limits[1] + 0.1), 0.01))
@@ -149,7 +159,8 @@ def test_saturation_clips_and_reports(node: EmulatedNode, wire: Wire,
 
 
 def test_receiver_checks_in_order_and_never_applies_a_rejected_frame(
-        node: EmulatedNode, wire: Wire) -> None:
+    node: EmulatedNode, wire: Wire
+) -> None:
     now = enabled(node, wire)  # the baseline of the torque stream: counter 0
     tick(node, now, wire.torque(0.1, 0.0, 0.0, counter=1))
     # wrong length
@@ -176,8 +187,9 @@ def test_counter_wraps(node: EmulatedNode, wire: Wire) -> None:
     assert node.applied[0] == pytest.approx(0.2) and node.reject_counter == 0
 
 
-def test_other_ids_are_counted_not_applied(node: EmulatedNode, wire: Wire,
-                                           protocol: Protocol) -> None:
+def test_other_ids_are_counted_not_applied(
+    node: EmulatedNode, wire: Wire, protocol: Protocol
+) -> None:
     now = enabled(node, wire)
     tick(node, now, wire.frame("TorqueCommand", (0.3, 0.3, 0.3), node=2), (0x555, b"\x00"))
     assert node.applied == [0.0, 0.0, 0.0]
@@ -218,15 +230,14 @@ def test_estop_is_honoured_even_malformed(node: EmulatedNode, wire: Wire) -> Non
     assert node.reject_crc == 1  # honoured, and still counted as rejected
 
 
-def test_fault_needs_reset_then_enable(node: EmulatedNode, wire: Wire,
-                                       protocol: Protocol) -> None:
+def test_fault_needs_reset_then_enable(node: EmulatedNode, wire: Wire, protocol: Protocol) -> None:
     now = enabled(node, wire)
     tick(node, now, wire.frame("EStop", (2,)))
     tick(node, now + MS, wire.command("enable"))
     assert node.state == NodeState.FAULT  # enable is refused in FAULT
     out = tick(node, now + 2 * MS, wire.command("fault_reset"))
     assert node.state == NodeState.DISABLED and node.fault_bits == 0
-    (_, status), = decode(protocol, out, "Status")
+    ((_, status),) = decode(protocol, out, "Status")
     assert status[:2] == (NodeState.DISABLED, 0)
     # the receive counters restart: any counter is accepted for the first frame, which sets
     # the baseline of its stream (a torque command is applied from the next one on)
@@ -259,14 +270,12 @@ def test_self_check_latches_sensor(node: EmulatedNode, wire: Wire) -> None:
     tick(node, now + 2 * MS, angles=[MAX_STEP, 2 * MAX_STEP, -MAX_STEP / 2])
     assert node.fault_bits & FaultBits.SENSOR and node.state == NodeState.FAULT
 
-    other = EmulatedNode(node.finger, wire.protocol, tdt_range=TDT_RANGE,
-                         encoder_max_step=MAX_STEP)
+    other = EmulatedNode(node.finger, wire.protocol, tdt_range=TDT_RANGE, encoder_max_step=MAX_STEP)
     tick(other, 0, tdt=[0.0, TDT_RANGE + 0.1, 0.0])
     assert other.fault_bits & FaultBits.SENSOR
 
 
-def test_reboot_is_silent_then_fresh(node: EmulatedNode, wire: Wire,
-                                     protocol: Protocol) -> None:
+def test_reboot_is_silent_then_fresh(node: EmulatedNode, wire: Wire, protocol: Protocol) -> None:
     now = enabled(node, wire)
     for k in range(150):
         tick(node, now + k * MS, wire.torque(0.1, 0.0, 0.0))
@@ -278,5 +287,5 @@ def test_reboot_is_silent_then_fresh(node: EmulatedNode, wire: Wire,
     out = tick(node, t + 20 * MS)
     assert node.state == NodeState.DISABLED
     assert [c for c, _ in decode(protocol, out, "Feedback")] == [0]
-    (_, hb), = decode(protocol, out, "Heartbeat")
+    ((_, hb),) = decode(protocol, out, "Heartbeat")
     assert hb[1] == 0  # uptime restarted: the host sees the reboot

@@ -47,34 +47,63 @@ def test_missing_section_is_refused(hand: HandConfig) -> None:
     assert err.value.file == hand.source
 
 
-@pytest.mark.parametrize(("edit", "key", "expected"), [
-    (lambda s: s["objects"][1].update(radiuss=0.02), "sim.objects[1].radiuss", "unknown key"),
-    (lambda s: s["tdt"].update(noise="much"), "sim.tdt.noise", "a number"),
-    (lambda s: s.update(timestep=0.0003), "sim.timestep", "whole fraction"),
-    (lambda s: s["objects"][0].update(y=-0.15), "sim.objects[0].y", "above the table"),
-    (lambda s: s["objects"][1].update(x=-0.01), "sim.objects[1].x", "not overlapping"),
-    (lambda s: s["initial_angles"].update(f3=[0.55, 1.2, 0.1]), "sim.initial_angles.f3[1]",
-     "soft limits"),
-    (lambda s: s["initial_angles"].pop("f2"), "sim.initial_angles.f2", "required"),
-    (lambda s: s["actuator"]["motor_tau_max"].update(f2=[0.5, 0.75, 0.5]),
-     "sim.actuator.motor_tau_max.f2[0]", "device_tau_max"),
-    (lambda s: s["actuator"]["motor_tau_max"].update(f3=[1.0, 0.75]),
-     "sim.actuator.motor_tau_max.f3", "a list of 3 numbers"),
-    (lambda s: s["actuator"].update(motor_tau_max=[1.0, 0.75, 0.5]),
-     "sim.actuator.motor_tau_max", "a mapping"),
-    (lambda s: s["links"].update(f2=s["links"]["f2"][:2]), "sim.links.f2", "3 mappings"),
-    (lambda s: s["links"].update(f4=s["links"]["f1"]), "sim.links.f4", "unknown key"),
-    (lambda s: s["links"].pop("f3"), "sim.links.f3", "required"),
-    (lambda s: s["links"].update(f1=[*s["links"]["f1"][:2], {"radius": 0.006, "mass": 0.015}]),
-     "sim.links.f1[2].radius", "half_thickness of f1_j3"),
-    (lambda s: s["friction"].update(object_object=-0.1), "sim.friction.object_object", ">= 0"),
-    (lambda s: s["friction"].update(finger_finger=0.5), "sim.friction.finger_finger",
-     "between_fingers is false"),
-    (lambda s: s["contact"].update(between_fingers=True), "sim.friction.finger_finger",
-     "required"),
-    (lambda s: s["contact"].update(between_fingers="yes"), "sim.contact.between_fingers",
-     "true or false"),
-])
+@pytest.mark.parametrize(
+    ("edit", "key", "expected"),
+    [
+        (lambda s: s["objects"][1].update(radiuss=0.02), "sim.objects[1].radiuss", "unknown key"),
+        (lambda s: s["tdt"].update(noise="much"), "sim.tdt.noise", "a number"),
+        (lambda s: s.update(timestep=0.0003), "sim.timestep", "whole fraction"),
+        (lambda s: s["objects"][0].update(y=-0.15), "sim.objects[0].y", "above the table"),
+        (lambda s: s["objects"][1].update(x=-0.01), "sim.objects[1].x", "not overlapping"),
+        (
+            lambda s: s["initial_angles"].update(f3=[0.55, 1.2, 0.1]),
+            "sim.initial_angles.f3[1]",
+            "soft limits",
+        ),
+        (lambda s: s["initial_angles"].pop("f2"), "sim.initial_angles.f2", "required"),
+        (
+            lambda s: s["actuator"]["motor_tau_max"].update(f2=[0.5, 0.75, 0.5]),
+            "sim.actuator.motor_tau_max.f2[0]",
+            "device_tau_max",
+        ),
+        (
+            lambda s: s["actuator"]["motor_tau_max"].update(f3=[1.0, 0.75]),
+            "sim.actuator.motor_tau_max.f3",
+            "a list of 3 numbers",
+        ),
+        (
+            lambda s: s["actuator"].update(motor_tau_max=[1.0, 0.75, 0.5]),
+            "sim.actuator.motor_tau_max",
+            "a mapping",
+        ),
+        (lambda s: s["links"].update(f2=s["links"]["f2"][:2]), "sim.links.f2", "3 mappings"),
+        (lambda s: s["links"].update(f4=s["links"]["f1"]), "sim.links.f4", "unknown key"),
+        (lambda s: s["links"].pop("f3"), "sim.links.f3", "required"),
+        (
+            lambda s: s["links"].update(
+                f1=[*s["links"]["f1"][:2], {"radius": 0.006, "mass": 0.015}]
+            ),
+            "sim.links.f1[2].radius",
+            "half_thickness of f1_j3",
+        ),
+        (lambda s: s["friction"].update(object_object=-0.1), "sim.friction.object_object", ">= 0"),
+        (
+            lambda s: s["friction"].update(finger_finger=0.5),
+            "sim.friction.finger_finger",
+            "between_fingers is false",
+        ),
+        (
+            lambda s: s["contact"].update(between_fingers=True),
+            "sim.friction.finger_finger",
+            "required",
+        ),
+        (
+            lambda s: s["contact"].update(between_fingers="yes"),
+            "sim.contact.between_fingers",
+            "true or false",
+        ),
+    ],
+)
 def test_mistakes_name_the_key(hand: HandConfig, edit: Any, key: str, expected: str) -> None:
     with pytest.raises(ConfigError) as err:
         parse_sim(_with_sim(hand, edit))
@@ -85,20 +114,34 @@ def test_mistakes_name_the_key(hand: HandConfig, edit: Any, key: str, expected: 
 
 # -- the scene: names, reach and overlaps ---------------------------------------------------
 
-@pytest.mark.parametrize(("edit", "key", "expected"), [
-    (lambda s: s["objects"][1].update(name="palm"), "sim.objects[1].name", "a name of its own"),
-    (lambda s: s["objects"][0].update(name="f2_j3"), "sim.objects[0].name", "a link of f2"),
-    (lambda s: s["objects"][0].update(name="f1_base"), "sim.objects[0].name", "base of f1"),
-    (lambda s: s["objects"][1].update(name="cyl1_x"), "sim.objects[1].name",
-     "a joint of objects[0]"),
-    (lambda s: s["objects"][1].update(x=0.6), "sim.objects[1].x", "within reach of a finger"),
-    (lambda s: s["objects"][0].update(x=-0.075, y=-0.05, radius=0.01), "sim.objects[0].x",
-     "clear of link f1_j1"),
-    (lambda s: s["initial_angles"].update(f1=[1.5, 0.0, 0.0]), "sim.initial_angles.f1",
-     "out of the palm"),
-])
-def test_a_scene_that_cannot_start_is_refused(hand: HandConfig, edit: Any, key: str,
-                                              expected: str) -> None:
+
+@pytest.mark.parametrize(
+    ("edit", "key", "expected"),
+    [
+        (lambda s: s["objects"][1].update(name="palm"), "sim.objects[1].name", "a name of its own"),
+        (lambda s: s["objects"][0].update(name="f2_j3"), "sim.objects[0].name", "a link of f2"),
+        (lambda s: s["objects"][0].update(name="f1_base"), "sim.objects[0].name", "base of f1"),
+        (
+            lambda s: s["objects"][1].update(name="cyl1_x"),
+            "sim.objects[1].name",
+            "a joint of objects[0]",
+        ),
+        (lambda s: s["objects"][1].update(x=0.6), "sim.objects[1].x", "within reach of a finger"),
+        (
+            lambda s: s["objects"][0].update(x=-0.075, y=-0.05, radius=0.01),
+            "sim.objects[0].x",
+            "clear of link f1_j1",
+        ),
+        (
+            lambda s: s["initial_angles"].update(f1=[1.5, 0.0, 0.0]),
+            "sim.initial_angles.f1",
+            "out of the palm",
+        ),
+    ],
+)
+def test_a_scene_that_cannot_start_is_refused(
+    hand: HandConfig, edit: Any, key: str, expected: str
+) -> None:
     with pytest.raises(ConfigError) as err:
         parse_sim(_with_sim(hand, edit))
     assert err.value.key == key
@@ -108,19 +151,29 @@ def test_a_scene_that_cannot_start_is_refused(hand: HandConfig, edit: Any, key: 
 
 def _objects(*specs: tuple[str, float, float, float]) -> Any:
     def edit(s: dict[str, Any]) -> None:
-        s["objects"] = [{"name": n, "radius": r, "length": 0.08, "mass": 0.03, "x": x, "y": y}
-                        for n, r, x, y in specs]
+        s["objects"] = [
+            {"name": n, "radius": r, "length": 0.08, "mass": 0.03, "x": x, "y": y}
+            for n, r, x, y in specs
+        ]
+
     return edit
 
 
-@pytest.mark.parametrize("specs", [
-    [("the one", 0.03, 0.0, -0.11)],
-    [("a", 0.01, -0.033, -0.13), ("b", 0.012, -0.011, -0.128), ("c", 0.01, 0.011, -0.13),
-     ("d", 0.008, 0.030, -0.132)],
-])
-def test_one_to_four_objects_of_any_radius_and_name(hand: HandConfig,
-                                                    specs: list[tuple[str, float, float, float]]
-                                                    ) -> None:
+@pytest.mark.parametrize(
+    "specs",
+    [
+        [("the one", 0.03, 0.0, -0.11)],
+        [
+            ("a", 0.01, -0.033, -0.13),
+            ("b", 0.012, -0.011, -0.128),
+            ("c", 0.01, 0.011, -0.13),
+            ("d", 0.008, 0.030, -0.132),
+        ],
+    ],
+)
+def test_one_to_four_objects_of_any_radius_and_name(
+    hand: HandConfig, specs: list[tuple[str, float, float, float]]
+) -> None:
     p = parse_sim(_with_sim(hand, _objects(*specs)))
     assert [(o.name, o.radius) for o in p.objects] == [(n, r) for n, r, _, _ in specs]
 
@@ -132,31 +185,36 @@ def test_five_objects_are_refused(hand: HandConfig) -> None:
     assert err.value.key == "sim.objects" and "1 to 4" in err.value.expected
 
 
-def test_fingers_side_by_side_may_collide_without_touching_at_the_start(
-        hand: HandConfig) -> None:
+def test_fingers_side_by_side_may_collide_without_touching_at_the_start(hand: HandConfig) -> None:
     """f1 and f2 share their plane position but not their z: asking for finger contact is
     accepted (their links are 44 mm apart along z), with a friction of its own."""
+
     def edit(s: dict[str, Any]) -> None:
         s["contact"]["between_fingers"] = True
         s["friction"]["finger_finger"] = 0.7
+
     p = parse_sim(_with_sim(hand, edit))
     assert p.between_fingers and p.finger_finger_friction == 0.7
 
 
 def test_crossed_fingers_are_refused_where_fingers_collide() -> None:
     planar = load_hand(PLANAR)
+
     def cross(s: dict[str, Any]) -> None:
         s["initial_angles"].update(left=[0.95, 0.0], right=[-0.95, 0.0])
         s["objects"][0].update(x=-0.18)  # out of the crossed fingers' way
         s["objects"][1].update(x=0.18)
+
     crossed = _with_sim(planar, cross)
     with pytest.raises(ConfigError) as err:
         parse_sim(crossed)
     assert err.value.key == "sim.initial_angles.right"
     assert "keep the fingers apart" in err.value.expected and "left_j" in err.value.expected
     # without finger contact the same start is one the fingers pass through
-    apart = _with_sim(crossed, lambda s: (s["contact"].update(between_fingers=False),
-                                          s["friction"].pop("finger_finger")))
+    apart = _with_sim(
+        crossed,
+        lambda s: (s["contact"].update(between_fingers=False), s["friction"].pop("finger_finger")),
+    )
     assert parse_sim(apart).initial_angles == ((0.95, 0.0), (-0.95, 0.0))
 
 
@@ -171,8 +229,12 @@ def test_shipped_planar_hand_is_the_papers_shape() -> None:
     for finger in planar.fingers:
         n = finger.node_id
         assert finger.can_ids.as_dict() == {
-            "node_command": 0x010 + n, "torque_command": 0x100 + n, "feedback": 0x180 + n,
-            "status": 0x280 + n, "heartbeat": 0x700 + n}
+            "node_command": 0x010 + n,
+            "torque_command": 0x100 + n,
+            "feedback": 0x180 + n,
+            "status": 0x280 + n,
+            "heartbeat": 0x700 + n,
+        }
 
 
 def test_every_model_the_planning_draws_is_a_scene_that_can_start(hand: HandConfig) -> None:

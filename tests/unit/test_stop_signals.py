@@ -28,8 +28,8 @@ def test_before_the_run_a_signal_is_an_interrupt(sig: signal.Signals) -> None:
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_during_start_up_is_an_interrupt_with_nothing_sent(
-        hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus],
-        sig: signal.Signals) -> None:
+    hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus], sig: signal.Signals
+) -> None:
     """The nodes have not answered yet (nobody is on the bus): the start-up is still waiting
     for them when the signal comes. That is an interrupt (exit 130), not a failed start-up
     (exit 3): nothing went wrong with the hand, and nothing was sent to it."""
@@ -37,9 +37,13 @@ def test_a_signal_during_start_up_is_an_interrupt_with_nothing_sent(
 
     host, listener = bus_pair
     recipe = load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", hand)
-    runtime = Runtime(hand, HandDriver(hand, protocol, host),
-                      LockstepClock(hand.bus.period_s, lambda: None), recipe,
-                      startup_timeout_s=600.0)
+    runtime = Runtime(
+        hand,
+        HandDriver(hand, protocol, host),
+        LockstepClock(hand.bus.period_s, lambda: None),
+        recipe,
+        startup_timeout_s=600.0,
+    )
 
     async def run(signals: StopSignals) -> RunResult:
         asyncio.get_running_loop().call_later(0.05, signal.raise_signal, sig)

@@ -34,7 +34,7 @@ def test_a_long_run_keeps_the_last_window_in_order_and_memory_is_bounded() -> No
     _feed(stats, late[: 3 * window])
     sizes = (stats._lateness.nbytes, stats._stages.nbytes, stats._late_hist.nbytes)
     assert sizes[0] == window * 8  # all of it from the start
-    _feed(stats, late[3 * window:])  # carries on from tick 3 * window: the pattern shifts
+    _feed(stats, late[3 * window :])  # carries on from tick 3 * window: the pattern shifts
     assert (stats._lateness.nbytes, stats._stages.nbytes, stats._late_hist.nbytes) == sizes
     w = stats.result()
     assert w.first_tick == late.size - window
@@ -55,8 +55,9 @@ def test_the_result_can_be_taken_twice_and_storing_goes_on() -> None:
     second = stats.result()
     assert int(first.lateness_hist.sum()) == BLOCK // 2 + 5
     assert int(second.lateness_hist.sum()) == BLOCK // 2 + 5 + 2 * BLOCK
-    assert int(second.lateness_hist[7]) == BLOCK // 2 + 5 and int(second.lateness_hist[9]) \
-        == 2 * BLOCK
+    assert (
+        int(second.lateness_hist[7]) == BLOCK // 2 + 5 and int(second.lateness_hist[9]) == 2 * BLOCK
+    )
 
 
 def test_a_window_not_made_of_blocks_is_refused() -> None:

@@ -116,17 +116,28 @@ def test_python_can_opens_the_unix_bus_by_its_interface_name(tmp_path: Path) -> 
     installed package), so any python-can program opens it by name, and its ``send`` sends
     at once, as python-can promises: no handctl code in between."""
     channel = str(tmp_path / "bus")
-    sent = [can.Message(arbitration_id=0x123, data=bytes(range(12)), is_fd=True,
-                        bitrate_switch=True, is_extended_id=False),
-            can.Message(arbitration_id=0x1ABCDEF, data=b"\x01\x02", is_fd=False,
-                        is_extended_id=True)]
-    with can.Bus(interface="unix", channel=channel) as rx, \
-            can.Bus(interface="unix", channel=channel) as tx:
+    sent = [
+        can.Message(
+            arbitration_id=0x123,
+            data=bytes(range(12)),
+            is_fd=True,
+            bitrate_switch=True,
+            is_extended_id=False,
+        ),
+        can.Message(arbitration_id=0x1ABCDEF, data=b"\x01\x02", is_fd=False, is_extended_id=True),
+    ]
+    with (
+        can.Bus(interface="unix", channel=channel) as rx,
+        can.Bus(interface="unix", channel=channel) as tx,
+    ):
         for msg in sent:
             tx.send(msg)
         got = [rx.recv(timeout=5.0) for _ in sent]
         assert rx.recv(timeout=0) is None  # its own frames do not come back to the sender
-    assert [(m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch, m.is_extended_id)
-            for m in got if m is not None] == \
-        [(m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch, m.is_extended_id)
-         for m in sent]
+    assert [
+        (m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch, m.is_extended_id)
+        for m in got
+        if m is not None
+    ] == [
+        (m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch, m.is_extended_id) for m in sent
+    ]

@@ -44,6 +44,7 @@ def codes(found: list[tuple[FaultCode, str]]) -> list[FaultCode]:
 
 # -- NodeWatch ---------------------------------------------------------------------------------
 
+
 def test_live_enabled_nodes_raise_nothing(link: Link, hand: HandConfig) -> None:
     watch = NodeWatch(hand.safety)
     watch.arm(link.hosts)
@@ -53,7 +54,8 @@ def test_live_enabled_nodes_raise_nothing(link: Link, hand: HandConfig) -> None:
 
 @pytest.mark.parametrize("safety", [{}, LONG], ids=["hand", "long"])
 def test_feedback_older_than_the_timeout_by_one_ns_is_a_fault(
-        hand: HandConfig, protocol: Protocol, safety: dict[str, float]) -> None:
+    hand: HandConfig, protocol: Protocol, safety: dict[str, float]
+) -> None:
     hand = with_safety(hand, **safety)
     link = Link(hand, protocol)
     link.enable()
@@ -68,14 +70,16 @@ def test_feedback_older_than_the_timeout_by_one_ns_is_a_fault(
     assert watch.check(last + timeout_ns, link.hosts, expect_enabled=True) == []
     found = watch.check(last + timeout_ns + 1, link.hosts, expect_enabled=True)
     age = f"{(timeout_ns + 1) / 1e6:.1f} ms ago"
-    assert found == [(FaultCode.FEEDBACK_TIMEOUT,
-                      f"node {f.node_id} ({f.name}): last valid feedback {age}")
-                     for f in hand.fingers]
+    assert found == [
+        (FaultCode.FEEDBACK_TIMEOUT, f"node {f.node_id} ({f.name}): last valid feedback {age}")
+        for f in hand.fingers
+    ]
 
 
 @pytest.mark.parametrize("safety", [{}, LONG], ids=["hand", "long"])
 def test_a_heartbeat_older_than_the_timeout_by_one_ns_is_a_fault(
-        hand: HandConfig, protocol: Protocol, safety: dict[str, float]) -> None:
+    hand: HandConfig, protocol: Protocol, safety: dict[str, float]
+) -> None:
     hand = with_safety(hand, **safety)
     link = Link(hand, protocol)
     link.enable()
@@ -93,13 +97,17 @@ def test_a_heartbeat_older_than_the_timeout_by_one_ns_is_a_fault(
     assert watch.check(heard + timeout_ns, link.hosts, expect_enabled=True) == []
     found = watch.check(heard + timeout_ns + 1, link.hosts, expect_enabled=True)
     f = hand.fingers[1]
-    assert found == [(FaultCode.HEARTBEAT_LOST,
-                      f"node {f.node_id} ({f.name}): last heartbeat "
-                      f"{(timeout_ns + 1) / 1e6:.0f} ms ago")]
+    assert found == [
+        (
+            FaultCode.HEARTBEAT_LOST,
+            f"node {f.node_id} ({f.name}): last heartbeat {(timeout_ns + 1) / 1e6:.0f} ms ago",
+        )
+    ]
 
 
 def test_at_exactly_its_timeout_a_message_is_fresh_even_beside_another_fault(
-        link: Link, hand: HandConfig) -> None:
+    link: Link, hand: HandConfig
+) -> None:
     watch = NodeWatch(hand.safety)
     watch.arm(link.hosts)
     pair = link.pairs[2]
@@ -121,12 +129,15 @@ def test_a_long_silence_is_reported_in_milliseconds(link: Link, hand: HandConfig
     silence = 1000 * 10**9  # ns
     f = hand.fingers[0]
     found = NodeWatch(hand.safety).check(host.feedback_ns + silence, [host], expect_enabled=True)
-    assert found[0] == (FaultCode.FEEDBACK_TIMEOUT,
-                        f"node {f.node_id} ({f.name}): last valid feedback 1000000.0 ms ago")
-    found = NodeWatch(hand.safety).check(host.heartbeat_ns + silence, [host],
-                                         expect_enabled=True)
-    assert found[1] == (FaultCode.HEARTBEAT_LOST,
-                        f"node {f.node_id} ({f.name}): last heartbeat 1000000 ms ago")
+    assert found[0] == (
+        FaultCode.FEEDBACK_TIMEOUT,
+        f"node {f.node_id} ({f.name}): last valid feedback 1000000.0 ms ago",
+    )
+    found = NodeWatch(hand.safety).check(host.heartbeat_ns + silence, [host], expect_enabled=True)
+    assert found[1] == (
+        FaultCode.HEARTBEAT_LOST,
+        f"node {f.node_id} ({f.name}): last heartbeat 1000000 ms ago",
+    )
 
 
 def test_an_unarmed_watch_checks_all_but_reboots(link: Link, hand: HandConfig) -> None:
@@ -144,25 +155,28 @@ def test_nodes_never_heard_are_reported_as_never(hand: HandConfig, protocol: Pro
     expected = []
     for f in hand.fingers:
         who = f"node {f.node_id} ({f.name})"
-        expected += [(FaultCode.FEEDBACK_TIMEOUT, f"{who}: last valid feedback never"),
-                     (FaultCode.HEARTBEAT_LOST, f"{who}: last heartbeat never")]
+        expected += [
+            (FaultCode.FEEDBACK_TIMEOUT, f"{who}: last valid feedback never"),
+            (FaultCode.HEARTBEAT_LOST, f"{who}: last heartbeat never"),
+        ]
     assert found == expected
 
 
-def test_a_node_disabled_while_torque_flows_is_a_node_state_fault(link: Link,
-                                                                  hand: HandConfig) -> None:
+def test_a_node_disabled_while_torque_flows_is_a_node_state_fault(
+    link: Link, hand: HandConfig
+) -> None:
     watch = NodeWatch(hand.safety)
     watch.arm(link.hosts)
     link.pairs[2].command("disable", link.now_ns)
     now = link.tick()
     f = hand.fingers[2]
     assert watch.check(now, link.hosts, expect_enabled=True) == [
-        (FaultCode.NODE_STATE, f"node {f.node_id} ({f.name}) is DISABLED, expected ENABLED")]
+        (FaultCode.NODE_STATE, f"node {f.node_id} ({f.name}) is DISABLED, expected ENABLED")
+    ]
     assert watch.check(now, link.hosts, expect_enabled=False) == []
 
 
-def test_a_node_in_fault_is_a_node_fault_named_by_its_bits(link: Link,
-                                                           hand: HandConfig) -> None:
+def test_a_node_in_fault_is_a_node_fault_named_by_its_bits(link: Link, hand: HandConfig) -> None:
     watch = NodeWatch(hand.safety)
     watch.arm(link.hosts)
     pair = link.pairs[0]
@@ -171,7 +185,8 @@ def test_a_node_in_fault_is_a_node_fault_named_by_its_bits(link: Link,
     f = hand.fingers[0]
     for expect_enabled in (True, False):
         assert watch.check(link.now_ns, link.hosts, expect_enabled=expect_enabled) == [
-            (FaultCode.NODE_FAULT, f"node {f.node_id} ({f.name}) in FAULT (SENSOR)")]
+            (FaultCode.NODE_FAULT, f"node {f.node_id} ({f.name}) in FAULT (SENSOR)")
+        ]
 
 
 def test_every_fault_bit_is_named(link: Link, hand: HandConfig) -> None:
@@ -183,11 +198,13 @@ def test_every_fault_bit_is_named(link: Link, hand: HandConfig) -> None:
     pair.tick(link.now_ns, tdt=[parse_sim(hand).tdt.range + 0.1, 0.0, 0.0])
     f = hand.fingers[0]
     assert watch.check(link.now_ns, link.hosts, expect_enabled=True) == [
-        (FaultCode.ESTOP, f"node {f.node_id} ({f.name}) in FAULT (ESTOP, SENSOR)")]
+        (FaultCode.ESTOP, f"node {f.node_id} ({f.name}) in FAULT (ESTOP, SENSOR)")
+    ]
 
 
-def test_a_node_in_fault_without_a_bit_is_a_node_fault(hand: HandConfig,
-                                                      protocol: Protocol) -> None:
+def test_a_node_in_fault_without_a_bit_is_a_node_fault(
+    hand: HandConfig, protocol: Protocol
+) -> None:
     """Firmware that reports FAULT and names no reason still stops the hand."""
     f = hand.fingers[1]
     layouts = FingerLayouts.for_node(protocol, f.node_id)
@@ -196,7 +213,8 @@ def test_a_node_in_fault_without_a_bit_is_a_node_fault(hand: HandConfig,
     fault = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2, 0)
     node.receive(layouts.feedback.frame_id, layouts.feedback.encode(0, fault), 0)
     assert NodeWatch(hand.safety).check(0, [node], expect_enabled=False) == [
-        (FaultCode.NODE_FAULT, f"node {f.node_id} ({f.name}) in FAULT (no bits)")]
+        (FaultCode.NODE_FAULT, f"node {f.node_id} ({f.name}) in FAULT (no bits)")
+    ]
 
 
 def test_a_node_in_fault_by_estop_is_an_estop(link: Link, hand: HandConfig) -> None:
@@ -206,7 +224,8 @@ def test_a_node_in_fault_by_estop_is_an_estop(link: Link, hand: HandConfig) -> N
     now = link.tick()
     f = hand.fingers[1]
     assert watch.check(now, link.hosts, expect_enabled=True) == [
-        (FaultCode.ESTOP, f"node {f.node_id} ({f.name}) in FAULT (ESTOP)")]
+        (FaultCode.ESTOP, f"node {f.node_id} ({f.name}) in FAULT (ESTOP)")
+    ]
 
 
 def reboot_and_wait(link: Link, finger: int) -> None:
@@ -252,6 +271,7 @@ def test_an_unarmed_watch_reports_no_reboot(link: Link, hand: HandConfig) -> Non
 
 # -- TdtMonitor --------------------------------------------------------------------------------
 
+
 def monitor(hand: HandConfig, **safety: float) -> TdtMonitor:
     hand = with_safety(hand, **safety)
     return TdtMonitor(hand.safety, hand.n_joints, hand.bus.period_s, hand.joint_names)
@@ -283,9 +303,12 @@ def test_a_mismatch_is_a_fault_once_it_has_held_for_the_window(hand: HandConfig)
         assert mon.update(applied, reading) == [], f"tick {k}"
     found = mon.update(applied, reading)
     name = hand.joint_names[4]
-    assert found == [(FaultCode.TDT_MISMATCH,
-                      f"{name}: TDT {reading[4]:+.3f} N·m, expected +0.200 N·m "
-                      f"for {window(hand)} ticks")]
+    assert found == [
+        (
+            FaultCode.TDT_MISMATCH,
+            f"{name}: TDT {reading[4]:+.3f} N·m, expected +0.200 N·m for {window(hand)} ticks",
+        )
+    ]
     assert mon.update(applied, reading) != []  # it goes on while it holds
 
 
@@ -324,7 +347,8 @@ def test_one_good_reading_restarts_the_mismatch_window(hand: HandConfig) -> None
 
 @pytest.mark.parametrize("torque", [0.3, -0.3, 0.0])
 def test_the_tolerance_is_absolute_plus_relative_to_the_expected_torque(
-        hand: HandConfig, torque: float) -> None:
+    hand: HandConfig, torque: float
+) -> None:
     tolerance = hand.safety.tdt_tolerance + hand.safety.tdt_tolerance_rel * abs(torque)
     for margin, faults in ((0.99, False), (1.01, True)):
         for sign in (1.0, -1.0):
@@ -339,16 +363,20 @@ def test_the_tolerance_is_absolute_plus_relative_to_the_expected_torque(
 
 
 def test_the_expected_torque_lags_the_command_by_the_configured_time_constant(
-        hand: HandConfig) -> None:
+    hand: HandConfig,
+) -> None:
     """After a step of the command, a reading that follows the step at once is a mismatch
     from the first tick the lagged expectation leaves the tolerance."""
     dt, lag = hand.bus.period_s, hand.safety.tdt_lag_s
     tol, rel = hand.safety.tdt_tolerance, hand.safety.tdt_tolerance_rel
     step = 2.0 * tol  # small, so the lag decides when the reading is off
     # Implicit Euler of lag · de/dt = a - e, from e = 0: e_k = step · (1 - (lag/(lag+dt))^k).
-    first_off = next(k for k in range(1, 10_000)
-                     if abs(step - step * (1 - (lag / (lag + dt)) ** k)) <= tol
-                     + rel * step * (1 - (lag / (lag + dt)) ** k))
+    first_off = next(
+        k
+        for k in range(1, 10_000)
+        if abs(step - step * (1 - (lag / (lag + dt)) ** k))
+        <= tol + rel * step * (1 - (lag / (lag + dt)) ** k)
+    )
     assert first_off > 2  # the lag matters for this step
     mon = monitor(hand, tdt_window_s=dt)  # a window of one tick: a fault as soon as it is off
     mon.reset(np.zeros(hand.n_joints))
@@ -378,8 +406,9 @@ def test_a_window_shorter_than_a_tick_is_one_tick(hand: HandConfig) -> None:
     assert codes(mon3.update(zero, still)) == [FaultCode.TDT_STUCK] * hand.n_joints
 
 
-def stuck_run(hand: HandConfig, swing: float, ticks: int, **safety: float
-              ) -> list[tuple[int, list[tuple[FaultCode, str]]]]:
+def stuck_run(
+    hand: HandConfig, swing: float, ticks: int, **safety: float
+) -> list[tuple[int, list[tuple[FaultCode, str]]]]:
     """A reading fixed at 0.1 N·m while the command swings by ``swing`` around it; the
     findings of each tick that had any."""
     mon = monitor(hand, **safety)
@@ -401,9 +430,11 @@ def test_a_reading_that_never_moves_while_the_command_does_is_stuck(hand: HandCo
     found = stuck_run(hand, swing, n + 1)
     # The first reading is the reference; each of the next n that repeats it counts.
     assert [k for k, _ in found] == [n + 1]
-    assert found[0][1][0] == (FaultCode.TDT_STUCK,
-                              f"{hand.joint_names[0]}: TDT fixed at +0.1000 N·m for {n} ticks "
-                              f"while the command moved {swing:.3f} N·m")
+    assert found[0][1][0] == (
+        FaultCode.TDT_STUCK,
+        f"{hand.joint_names[0]}: TDT fixed at +0.1000 N·m for {n} ticks "
+        f"while the command moved {swing:.3f} N·m",
+    )
     assert codes(found[0][1]) == [FaultCode.TDT_STUCK] * hand.n_joints
 
 
@@ -422,7 +453,8 @@ def test_a_command_moving_exactly_the_minimum_change_is_enough(hand: HandConfig)
 
 
 def test_a_still_reading_under_a_command_that_barely_moves_is_stuck_only_after_the_still_time(
-        hand: HandConfig) -> None:
+    hand: HandConfig,
+) -> None:
     still = round(hand.safety.tdt_stuck_still_s / hand.bus.period_s)
     found = stuck_run(hand, 0.75 * hand.safety.tdt_stuck_min_change, still + 1)
     assert [k for k, _ in found] == [still + 1]
@@ -469,6 +501,7 @@ def test_a_reset_forgets_the_last_reading(hand: HandConfig) -> None:
 
 # -- TickWatch ---------------------------------------------------------------------------------
 
+
 def test_late_ticks_fault_when_consecutive_misses_reach_the_limit(hand: HandConfig) -> None:
     limit = hand.safety.max_consecutive_misses
     watch = TickWatch(hand.safety)
@@ -483,7 +516,8 @@ def test_late_ticks_fault_when_consecutive_misses_reach_the_limit(hand: HandConf
     assert watch.tick(-1) == []  # a clock that went back is no late tick either
     assert watch.tick(1) == []
     assert TickWatch(hand.safety).tick(limit) == [
-        (FaultCode.LOOP_OVERRUN, f"{limit} consecutive ticks missed")]
+        (FaultCode.LOOP_OVERRUN, f"{limit} consecutive ticks missed")
+    ]
     assert TickWatch(hand.safety).tick(limit - 1) == []
 
 
@@ -496,8 +530,11 @@ def test_failed_sends_fault_when_consecutive_failures_reach_the_limit(hand: Hand
     for _ in range(limit - 1):
         assert watch.sent(False) == []
     assert watch.sent(False) == [
-        (FaultCode.BUS_ERROR,
-         f"{limit} consecutive ticks with command frames that could not be sent")]
+        (
+            FaultCode.BUS_ERROR,
+            f"{limit} consecutive ticks with command frames that could not be sent",
+        )
+    ]
 
 
 def test_the_limits_are_the_configs(hand: HandConfig) -> None:

@@ -54,8 +54,7 @@ def hand_file(tmp_path: Path, text: str) -> Path:
 
 
 # -- each key once ------------------------------------------------------------------------------
-def test_two_tau_max_in_the_anchored_joint_are_refused_naming_both_places(
-        tmp_path: Path) -> None:
+def test_two_tau_max_in_the_anchored_joint_are_refused_naming_both_places(tmp_path: Path) -> None:
     """The finding: a second tau_max in f1_j1 became the limit of all three first joints."""
     line = line_of(HAND_TEXT, "&flexor")
     text = replace_on(HAND_TEXT, line, "tau_max: 0.60,", "tau_max: 0.60, tau_max: 0.80,")
@@ -66,8 +65,9 @@ def test_two_tau_max_in_the_anchored_joint_are_refused_naming_both_places(
     assert "each key once" in err.expected
     first = text.splitlines()[line - 1].index("tau_max: 0.60") + 1
     second = text.splitlines()[line - 1].index("tau_max: 0.80") + 1
-    assert str(err.found) == (f"'tau_max' at line {line}, column {first} and again at line "
-                              f"{line}, column {second}")
+    assert str(err.found) == (
+        f"'tau_max' at line {line}, column {first} and again at line {line}, column {second}"
+    )
 
 
 def test_a_key_repeated_on_another_line_is_refused_naming_both_lines() -> None:
@@ -106,8 +106,9 @@ keys = st.text(alphabet="abcdefghij_", min_size=1, max_size=6)
 
 @settings(max_examples=200, deadline=None)
 @given(st.lists(keys, min_size=2, max_size=12, unique=True), st.data())
-def test_any_key_written_twice_is_refused_with_both_lines(names: list[str],
-                                                          data: st.DataObject) -> None:
+def test_any_key_written_twice_is_refused_with_both_lines(
+    names: list[str], data: st.DataObject
+) -> None:
     twice = data.draw(st.sampled_from(names))
     lines = [f"{name}: {i}" for i, name in enumerate(names)]
     at = data.draw(st.integers(0, len(lines)))
@@ -117,8 +118,9 @@ def test_any_key_written_twice_is_refused_with_both_lines(names: list[str],
     err = error(text)
     assert err.key == twice
     assert f"at line {numbers[0]}, column 1 and again at line {numbers[1]}, column 1" in str(err)
-    assert parse_yaml("\n".join(lines[:at] + lines[at + 1:]), "d").data == {
-        name: i for i, name in enumerate(names)}
+    assert parse_yaml("\n".join(lines[:at] + lines[at + 1 :]), "d").data == {
+        name: i for i, name in enumerate(names)
+    }
 
 
 def test_anchors_are_defined_once_and_aliases_do_not_recurse() -> None:
@@ -159,15 +161,17 @@ def test_an_alias_bomb_in_a_hand_config_is_refused_cheaply(tmp_path: Path, where
         path = hand_file(tmp_path, HAND_TEXT + bomb + "surprise: *l8\n")
     else:
         line = line_of(HAND_TEXT, "&flexor")
-        path = hand_file(tmp_path, bomb + replace_on(HAND_TEXT, line, "tau_max: 0.60",
-                                                     "tau_max: *l8"))
+        path = hand_file(
+            tmp_path, bomb + replace_on(HAND_TEXT, line, "tau_max: 0.60", "tau_max: *l8")
+        )
     err = refused_cheaply(lambda: load_hand(path))
     assert f"at most {MAX_NODES} values with every alias expanded" in err.expected
 
 
 @pytest.mark.parametrize("key", ["description", "recipe", "surprise", "planned_from"])
-def test_an_alias_bomb_in_a_recipe_is_refused_cheaply(tmp_path: Path, hand: HandConfig,
-                                                      key: str) -> None:
+def test_an_alias_bomb_in_a_recipe_is_refused_cheaply(
+    tmp_path: Path, hand: HandConfig, key: str
+) -> None:
     """The finding: a bomb in ``description`` was accepted."""
     data: dict[str, Any] = yaml.safe_load(RECIPE_YAML.read_text(encoding="utf-8"))
     data.pop(key, None)
@@ -196,14 +200,13 @@ def expanded_size(depth: int, fan_out: int) -> int:
 
 @settings(max_examples=60, deadline=None)
 @given(st.integers(1, 8), st.integers(2, 12))
-def test_aliases_are_expanded_up_to_the_bound_and_refused_beyond(depth: int,
-                                                                 fan_out: int) -> None:
+def test_aliases_are_expanded_up_to_the_bound_and_refused_beyond(depth: int, fan_out: int) -> None:
     text = laughs(depth, fan_out) + f"top: *l{depth - 1}\n"
     if expanded_size(depth, fan_out) <= MAX_NODES:
         leaves = parse_yaml(text, "d").data["top"]
         for _ in range(depth - 1):
             leaves = [leaf for item in leaves for leaf in item]
-        assert leaves == ["lol"] * fan_out ** depth
+        assert leaves == ["lol"] * fan_out**depth
     else:
         assert "alias" in error(text).expected
 
@@ -231,50 +234,56 @@ def test_a_huge_integer_is_refused_not_converted() -> None:
 
 
 # -- one number rule ----------------------------------------------------------------------------
-@pytest.mark.parametrize(("text", "value"), [
-    ("1:00", "1:00"),  # YAML 1.1: 60
-    ("1e308", 1e308),  # YAML 1.1: a string
-    ("-2.5E-3", -2.5e-3),
-    (".5", 0.5),
-    ("1.", 1.0),
-    ("0o17", 15),
-    ("0x1F", 31),
-    ("-12", -12),
-    ("+5", 5),
-    ("0", 0),
-    (".inf", math.inf),
-    ("-.Inf", -math.inf),
-    ("true", True),
-    ("false", False),
-    ("True", "True"),  # only true and false are booleans
-    ("yes", "yes"),
-    ("on", "on"),
-    ("1_000", "1_000"),
-    ("0b101", "0b101"),
-    ("2001-12-14", "2001-12-14"),  # YAML 1.1: a date
-    ("~", None),
-    ("null", None),
-    ("'017'", "017"),
-    ("!!float 1", 1.0),
-    ("!!str 1.5", "1.5"),
-    ("!!int 0x10", 16),
-])
+@pytest.mark.parametrize(
+    ("text", "value"),
+    [
+        ("1:00", "1:00"),  # YAML 1.1: 60
+        ("1e308", 1e308),  # YAML 1.1: a string
+        ("-2.5E-3", -2.5e-3),
+        (".5", 0.5),
+        ("1.", 1.0),
+        ("0o17", 15),
+        ("0x1F", 31),
+        ("-12", -12),
+        ("+5", 5),
+        ("0", 0),
+        (".inf", math.inf),
+        ("-.Inf", -math.inf),
+        ("true", True),
+        ("false", False),
+        ("True", "True"),  # only true and false are booleans
+        ("yes", "yes"),
+        ("on", "on"),
+        ("1_000", "1_000"),
+        ("0b101", "0b101"),
+        ("2001-12-14", "2001-12-14"),  # YAML 1.1: a date
+        ("~", None),
+        ("null", None),
+        ("'017'", "017"),
+        ("!!float 1", 1.0),
+        ("!!str 1.5", "1.5"),
+        ("!!int 0x10", 16),
+    ],
+)
 def test_the_number_rule(text: str, value: object) -> None:
     assert parse_yaml(f"v: {text}\n", "d").data["v"] == value
     assert type(parse_yaml(f"v: {text}\n", "d").data["v"]) is type(value)
 
 
-@pytest.mark.parametrize(("text", "expected"), [
-    ("017", "leading zero"),  # 15 in YAML 1.1, 17 in YAML 1.2
-    ("-00", "leading zero"),
-    ("!!int 1.5", "an integer"),
-    ("!!float x", "a number"),
-    ("!!bool yes", "true or false"),
-    ("!!binary aGk=", "a tag of YAML's core schema"),
-    ("!!timestamp 2001-12-14", "a tag of YAML's core schema"),
-    ("!!python/name:os.system", "a tag of YAML's core schema"),
-    ("!custom 1", "a tag of YAML's core schema"),
-])
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("017", "leading zero"),  # 15 in YAML 1.1, 17 in YAML 1.2
+        ("-00", "leading zero"),
+        ("!!int 1.5", "an integer"),
+        ("!!float x", "a number"),
+        ("!!bool yes", "true or false"),
+        ("!!binary aGk=", "a tag of YAML's core schema"),
+        ("!!timestamp 2001-12-14", "a tag of YAML's core schema"),
+        ("!!python/name:os.system", "a tag of YAML's core schema"),
+        ("!custom 1", "a tag of YAML's core schema"),
+    ],
+)
 def test_what_the_number_rule_refuses(text: str, expected: str) -> None:
     err = error(f"x:\n  v: {text}\n")
     assert err.key == "x.v"
@@ -302,7 +311,7 @@ def test_every_float_reads_as_itself(x: float) -> None:
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.integers(-10**30, 10**30))
+@given(st.integers(-(10**30), 10**30))
 def test_every_integer_reads_as_itself_in_each_base(n: int) -> None:
     assert parse_yaml(f"v: {n}\n", "d").data["v"] == n
     if n >= 0:
@@ -311,9 +320,14 @@ def test_every_integer_reads_as_itself_in_each_base(n: int) -> None:
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.text(max_size=20) | st.from_regex(r"[-+]?[0-9]{1,3}(:[0-5][0-9]){1,2}|[0-9._eE+-]{1,8}"
-                                             r"|0[xob][0-9a-fA-F_]{1,5}|[TtYyNnOo][a-zA-Z]{0,4}",
-                                             fullmatch=True))
+@given(
+    st.text(max_size=20)
+    | st.from_regex(
+        r"[-+]?[0-9]{1,3}(:[0-5][0-9]){1,2}|[0-9._eE+-]{1,8}"
+        r"|0[xob][0-9a-fA-F_]{1,5}|[TtYyNnOo][a-zA-Z]{0,4}",
+        fullmatch=True,
+    )
+)
 @example("\x85")  # a line break to YAML 1.1: folded to a space unless escaped
 @example("a\u2028b")
 def test_a_written_string_reads_back_as_that_string(s: str) -> None:
@@ -330,8 +344,11 @@ def test_sexagesimal_is_text(s: str) -> None:
 
 
 # -- line numbers -------------------------------------------------------------------------------
-FLOW_LINES = [i for i, line in enumerate(HAND_TEXT.splitlines(), 1)
-              if line.rstrip().endswith("}") and not line.lstrip().startswith("#")]
+FLOW_LINES = [
+    i
+    for i, line in enumerate(HAND_TEXT.splitlines(), 1)
+    if line.rstrip().endswith("}") and not line.lstrip().startswith("#")
+]
 
 
 @pytest.mark.parametrize("line", FLOW_LINES)
@@ -341,17 +358,22 @@ def test_a_missing_closing_brace_is_reported_on_its_line(tmp_path: Path, line: i
     lines[line - 1] = lines[line - 1].rstrip()[:-1] + "\n"
     with pytest.raises(ConfigError) as info:
         load_hand(hand_file(tmp_path, "".join(lines)))
-    assert re.search(rf"valid YAML at (the end of line|line) {line}\b", info.value.expected), \
-        str(info.value)
+    assert re.search(rf"valid YAML at (the end of line|line) {line}\b", info.value.expected), str(
+        info.value
+    )
 
 
 # Lines "key: value" of block mappings (not inside a flow mapping), except the first key of a
 # nested mapping: without its ':' that line is the parent's (valid) scalar value, not a mistake
 # YAML can see.
 _LINES = HAND_TEXT.splitlines()
-KEY_LINES = [i for i, line in enumerate(_LINES, 1)
-             if re.match(r"\s*[a-z_]+: [^{\[]", line) and "," not in line.split("#")[0]
-             and not _LINES[i - 2].endswith(":")]
+KEY_LINES = [
+    i
+    for i, line in enumerate(_LINES, 1)
+    if re.match(r"\s*[a-z_]+: [^{\[]", line)
+    and "," not in line.split("#")[0]
+    and not _LINES[i - 2].endswith(":")
+]
 
 
 @pytest.mark.parametrize("line", KEY_LINES)
@@ -359,8 +381,9 @@ def test_a_key_without_its_colon_is_reported_on_its_line(tmp_path: Path, line: i
     text = replace_on(HAND_TEXT, line, ": ", " ")
     with pytest.raises(ConfigError) as info:
         load_hand(hand_file(tmp_path, text))
-    assert re.search(rf"valid YAML at (the end of line|line) {line}\b", info.value.expected), \
-        str(info.value)
+    assert re.search(rf"valid YAML at (the end of line|line) {line}\b", info.value.expected), str(
+        info.value
+    )
 
 
 @settings(max_examples=200, deadline=None)
@@ -376,8 +399,10 @@ def test_a_mistake_on_line_n_is_reported_on_line_n(n_lines: int, data: st.DataOb
     else:
         lines[bad] = lines[bad].replace("[", "'[", 1)
     err = error("\n".join(lines) + "\n")
-    assert re.search(rf"valid YAML at (the end of line|line) {bad + 1}\b", err.expected), \
-        ("\n".join(lines), str(err))
+    assert re.search(rf"valid YAML at (the end of line|line) {bad + 1}\b", err.expected), (
+        "\n".join(lines),
+        str(err),
+    )
 
 
 def test_a_character_yaml_forbids_is_reported_at_its_line_not_its_offset() -> None:
@@ -396,8 +421,13 @@ def test_only_the_schema_module_imports_yaml() -> None:
     offenders = []
     for path in sorted((ROOT / "handctl").rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
-                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module or ""]
+                if isinstance(node, ast.ImportFrom)
+                else []
+            )
             if any(n == "yaml" or n.startswith("yaml.") for n in names):
                 offenders.append(str(path.relative_to(ROOT)))
     assert sorted(set(offenders)) == ["handctl/schema.py"]
@@ -405,24 +435,30 @@ def test_only_the_schema_module_imports_yaml() -> None:
 
 # -- the CLI ------------------------------------------------------------------------------------
 def run_check(path: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "handctl", "check", str(path)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=60, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", "check", str(path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
 
 
 def test_check_refuses_an_alias_bomb_with_exit_2(tmp_path: Path) -> None:
     path = hand_file(tmp_path, HAND_TEXT + laughs(9, key="x_") + "surprise: *l8\n")
     result = run_check(path)
     assert result.returncode == 2, result.stderr
-    assert f"{path}: expected at most {MAX_NODES} values with every alias expanded" \
-        in result.stderr
+    assert f"{path}: expected at most {MAX_NODES} values with every alias expanded" in result.stderr
     assert "Traceback" not in result.stderr and "MemoryError" not in result.stderr
     assert len(result.stderr) < 500
 
 
 def test_check_refuses_a_duplicate_key_with_exit_2(tmp_path: Path) -> None:
     line = line_of(HAND_TEXT, "&flexor")
-    path = hand_file(tmp_path, replace_on(HAND_TEXT, line, "tau_max: 0.60,",
-                                          "tau_max: 0.60, tau_max: 0.80,"))
+    path = hand_file(
+        tmp_path, replace_on(HAND_TEXT, line, "tau_max: 0.60,", "tau_max: 0.60, tau_max: 0.80,")
+    )
     result = run_check(path)
     assert result.returncode == 2
     assert f"{path}: fingers[0].joints[0].tau_max: expected each key once" in result.stderr

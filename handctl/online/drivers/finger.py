@@ -23,8 +23,7 @@ from handctl.protocol import (
 )
 
 #: FaultBits of the device (PROTOCOL.md), by name.
-FAULT_BITS = {"TIMEOUT": 0x01, "ESTOP": 0x02, "RX_ERRORS": 0x04, "SENSOR": 0x08,
-              "SATURATED": 0x10}
+FAULT_BITS = {"TIMEOUT": 0x01, "ESTOP": 0x02, "RX_ERRORS": 0x04, "SENSOR": 0x08, "SATURATED": 0x10}
 #: Bits only a node in FAULT may report (they latch it), and bits the protocol reserves.
 LATCHED_BITS = 0x0F
 RESERVED_BITS = 0xE0
@@ -35,8 +34,11 @@ _FAULT = int(NodeState.FAULT)
 def fault_names(bits: int) -> list[str]:
     """Names of the fault bits set in ``bits`` (unknown bits as ``BIT<n>``)."""
     names = [name for name, mask in FAULT_BITS.items() if bits & mask]
-    names += [f"BIT{i}" for i in range(8) if bits & (1 << i)
-              and not any(mask == 1 << i for mask in FAULT_BITS.values())]
+    names += [
+        f"BIT{i}"
+        for i in range(8)
+        if bits & (1 << i) and not any(mask == 1 << i for mask in FAULT_BITS.values())
+    ]
     return names
 
 
@@ -88,8 +90,9 @@ def parse_feedback(values: Sequence[float]) -> Feedback:
     """Turn the decoded signal values of a Feedback frame (``Torque1..k``, ``Angle1..k``,
     ``State``, ``FaultBits``; k the node's joints) into named quantities."""
     k = (len(values) - 2) // 2
-    return Feedback(tuple(values[:k]), tuple(values[k:2 * k]), int(values[2 * k]),
-                    int(values[2 * k + 1]))
+    return Feedback(
+        tuple(values[:k]), tuple(values[k : 2 * k]), int(values[2 * k]), int(values[2 * k + 1])
+    )
 
 
 class FingerNode:
@@ -99,8 +102,10 @@ class FingerNode:
         self.finger = finger
         self.node_id = finger.node_id
         self.layouts = layouts
-        self.streams = {layout.frame_id: (layout, CounterCheck()) for layout in
-                        (layouts.feedback, layouts.status, layouts.heartbeat)}
+        self.streams = {
+            layout.frame_id: (layout, CounterCheck())
+            for layout in (layouts.feedback, layouts.status, layouts.heartbeat)
+        }
         self.rejects = RejectCounts()
         self.accepted = 0
         self.command_counter = 0
@@ -202,9 +207,11 @@ class FingerNode:
         if self.version_ns is None or (since_ns is not None and self.version_ns < since_ns):
             return f"{who}: no Status, so its protocol version is unknown"
         if self.protocol_version != self.layouts.protocol_version:
-            return (f"{who} speaks handctl protocol {self.protocol_version}, this host "
-                    f"protocol {self.layouts.protocol_version}: update the node's firmware "
-                    "or use the handctl of its protocol")
+            return (
+                f"{who} speaks handctl protocol {self.protocol_version}, this host "
+                f"protocol {self.layouts.protocol_version}: update the node's firmware "
+                "or use the handctl of its protocol"
+            )
         return ""
 
     def _report(self, state: int, bits: int | None, message: str) -> None:
@@ -219,8 +226,10 @@ class FingerNode:
         if bits is not None and bits & RESERVED_BITS:
             problem = f"{message} sets reserved fault bits 0x{bits & RESERVED_BITS:02X}"
         elif bits is not None and bits & LATCHED_BITS and state != _FAULT:
-            problem = (f"{message} says {node_state_name(state, f'state {state}')} with "
-                       f"latched fault bits ({', '.join(fault_names(bits & LATCHED_BITS))})")
+            problem = (
+                f"{message} says {node_state_name(state, f'state {state}')} with "
+                f"latched fault bits ({', '.join(fault_names(bits & LATCHED_BITS))})"
+            )
         if self.state == _FAULT and state == _ENABLED:
             problem = problem or f"{message} says ENABLED after FAULT without a fault reset"
             state, bits = _FAULT, None  # what the FAULT report said stands

@@ -60,8 +60,13 @@ class HandDriver:
     worth); frames beyond it wait, and the bus reports them (``RX_BACKLOG``).
     """
 
-    def __init__(self, hand: HandConfig, protocol: Protocol, bus: FrameBus,
-                 clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+    def __init__(
+        self,
+        hand: HandConfig,
+        protocol: Protocol,
+        bus: FrameBus,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         check_protocol(hand, protocol)
         self.hand = hand
         self.bus = bus
@@ -71,8 +76,9 @@ class HandDriver:
         self.frames_per_period = frames_per_period(hand.bus)
         self._period_ns = max(1, round(hand.bus.period_s * 1e9))
         self._last_poll_ns: int | None = None
-        self.nodes = [FingerNode(f, FingerLayouts.for_node(protocol, f.node_id))
-                      for f in hand.fingers]
+        self.nodes = [
+            FingerNode(f, FingerLayouts.for_node(protocol, f.node_id)) for f in hand.fingers
+        ]
         self._dispatch = {fid: node for node in self.nodes for fid in node.streams}
         self._slices = []
         start = 0
@@ -80,14 +86,21 @@ class HandDriver:
             self._slices.append(slice(start, start + len(finger.joints)))
             start += len(finger.joints)
         #: Zeros after each finger's torques, up to what its TorqueCommand carries.
-        self._pads = [[0.0] * (len(node.layouts.command.signals) - (sl.stop - sl.start))
-                      for node, sl in zip(self.nodes, self._slices, strict=True)]
+        self._pads = [
+            [0.0] * (len(node.layouts.command.signals) - (sl.stop - sl.start))
+            for node, sl in zip(self.nodes, self._slices, strict=True)
+        ]
         n = hand.n_joints
         self._tdt_scale = np.array([j.tdt.scale for j in hand.joints])
         self._tdt_offset = np.array([j.tdt.offset for j in hand.joints])
         self._tdt_raw = np.zeros(n)  # N·m as the nodes report it, before calibration
-        self.state = JointState(np.zeros(n), np.zeros(n), np.full(n, -1, dtype=np.int64),
-                                [-1] * len(self.nodes), [0] * len(self.nodes))
+        self.state = JointState(
+            np.zeros(n),
+            np.zeros(n),
+            np.full(n, -1, dtype=np.int64),
+            [-1] * len(self.nodes),
+            [0] * len(self.nodes),
+        )
         self.unexpected = RejectCounts()
         self.unexpected_ids: dict[int, int] = {}
         self.bus_events: list[BusEvent] = []
@@ -103,8 +116,9 @@ class HandDriver:
             frame_id = frame.arbitration_id
             node = self._dispatch.get(frame_id)
             if node is None:
-                self.unexpected.add(Reject.EXTENDED_ID if frame_id & EXTENDED_ID_FLAG
-                                    else Reject.UNEXPECTED_ID)
+                self.unexpected.add(
+                    Reject.EXTENDED_ID if frame_id & EXTENDED_ID_FLAG else Reject.UNEXPECTED_ID
+                )
                 ids = self.unexpected_ids
                 if len(ids) < 64 or frame_id in ids:
                     ids[frame_id] = ids.get(frame_id, 0) + 1
@@ -151,8 +165,9 @@ class HandDriver:
             dropped += len(frames)
             if len(frames) < DRAIN_LIMIT:
                 break
-        self.bus_events.extend(e for e in self.bus.events()
-                               if e.kind is not BusEventKind.RX_BACKLOG)
+        self.bus_events.extend(
+            e for e in self.bus.events() if e.kind is not BusEventKind.RX_BACKLOG
+        )
         self._last_poll_ns = None
         for node in self.nodes:
             node.clear_contradiction()
@@ -169,8 +184,7 @@ class HandDriver:
         """
         ok = True
         last = len(self.nodes) - 1
-        for i, (node, sl, pad) in enumerate(zip(self.nodes, self._slices, self._pads,
-                                                strict=True)):
+        for i, (node, sl, pad) in enumerate(zip(self.nodes, self._slices, self._pads, strict=True)):
             values = torques[sl].tolist()
             if pad:
                 values += pad
@@ -188,16 +202,26 @@ class HandDriver:
         counter from these tables and hands it to the bus, so the node accepts it in sequence.
         """
         disable = (NODE_COMMANDS["disable"],)
-        self._zero_frames = [(n.layouts.command.frame_id,
-                              tuple(n.layouts.command.encode(c, [0.0] * len(
-                                  n.layouts.command.signals)) for c in range(COUNTER_VALUES)))
-                             for n in self.nodes]
-        self._disable_frames = [(n.layouts.node_command.frame_id,
-                                 tuple(n.layouts.node_command.encode(c, disable)
-                                       for c in range(COUNTER_VALUES)))
-                                for n in self.nodes]
-        self._estop_frames = tuple(self._estop_layout.encode(c, (ESTOP_HOST_SAFETY,))
-                                   for c in range(COUNTER_VALUES))
+        self._zero_frames = [
+            (
+                n.layouts.command.frame_id,
+                tuple(
+                    n.layouts.command.encode(c, [0.0] * len(n.layouts.command.signals))
+                    for c in range(COUNTER_VALUES)
+                ),
+            )
+            for n in self.nodes
+        ]
+        self._disable_frames = [
+            (
+                n.layouts.node_command.frame_id,
+                tuple(n.layouts.node_command.encode(c, disable) for c in range(COUNTER_VALUES)),
+            )
+            for n in self.nodes
+        ]
+        self._estop_frames = tuple(
+            self._estop_layout.encode(c, (ESTOP_HOST_SAFETY,)) for c in range(COUNTER_VALUES)
+        )
 
     def send_zero(self) -> bool:
         """Zero torque to every node from the prepared frames, without the codec.
@@ -212,8 +236,9 @@ class HandDriver:
         """Disable every node from the prepared frames, as ``send_zero`` sends zero."""
         return self._send_prepared(self._disable_frames, "node_command_counter")
 
-    def _send_prepared(self, prepared: list[tuple[int, tuple[bytes, ...]]], counter_name: str
-                       ) -> bool:
+    def _send_prepared(
+        self, prepared: list[tuple[int, tuple[bytes, ...]]], counter_name: str
+    ) -> bool:
         """One prepared frame per node, at the node's next counter (``counter_name``);
         every node tried, then the e-stop frame if any did not go."""
         ok = True

@@ -48,21 +48,28 @@ class LimitGuard:
     damping: tuple[float, ...] = ()  # N·m·s/rad, at full strength inside the band; (): none
 
     @classmethod
-    def for_hand(cls, hand: HandConfig, band: float,
-                 damping_s: float = GUARD_DAMPING_S) -> LimitGuard:
+    def for_hand(
+        cls, hand: HandConfig, band: float, damping_s: float = GUARD_DAMPING_S
+    ) -> LimitGuard:
         """The guard with ``band`` (rad) for every joint of ``hand``, from its soft limits,
         with a damping of ``damping_s`` (s) times the spring's gain."""
         joints = hand.joints
-        return cls(band,
-                   tuple(j.angle_min + band for j in joints),
-                   tuple(j.angle_max - band for j in joints),
-                   tuple(j.tau_max / band for j in joints),
-                   tuple(j.tau_max for j in joints),
-                   tuple(j.tau_max / band * damping_s for j in joints))
+        return cls(
+            band,
+            tuple(j.angle_min + band for j in joints),
+            tuple(j.angle_max - band for j in joints),
+            tuple(j.tau_max / band for j in joints),
+            tuple(j.tau_max for j in joints),
+            tuple(j.tau_max / band * damping_s for j in joints),
+        )
 
-    def apply(self, angle: Sequence[float] | FloatArray, desired: FloatArray,
-              out: FloatArray, velocity: Sequence[float] | FloatArray | None = None
-              ) -> FloatArray:
+    def apply(
+        self,
+        angle: Sequence[float] | FloatArray,
+        desired: FloatArray,
+        out: FloatArray,
+        velocity: Sequence[float] | FloatArray | None = None,
+    ) -> FloatArray:
         """``desired`` plus the push-back for ``angle`` (rad) and, given the joints'
         ``velocity`` (rad/s), the damping of a motion towards a limit, clipped to ±tau_max,
         in ``out``.

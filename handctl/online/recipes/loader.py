@@ -68,8 +68,11 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     if digest is not None and not isinstance(digest, str):
         doc.fail("hand_config_hash", "a string like 'sha256:...'", digest)
     if compiled and digest is None:
-        doc.fail("hand_config_hash", "the hash of the hand config a compiled recipe was made "
-                 "for", "nothing")
+        doc.fail(
+            "hand_config_hash",
+            "the hash of the hand config a compiled recipe was made for",
+            "nothing",
+        )
     end_ramp = doc.number("end_ramp_s", default=0.2, min=0.0, max=60.0, unit="s")
     objects = parse_objects(doc)
     pairs = parse_pairs(doc, objects)
@@ -79,35 +82,62 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     min_turn = parse_min_total_turn(doc, bool(pairs))
     planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe: read, not used
     if not isinstance(planned_from, dict):
-        doc.fail("planned_from", "a mapping (what handctl plan planned the recipe from)",
-                 planned_from)
-    phases = tuple(_parse_phase(p, hand, estimates)
-                   for p in doc.mappings("phases", min_len=1, max_len=MAX_PHASES))
+        doc.fail(
+            "planned_from", "a mapping (what handctl plan planned the recipe from)", planned_from
+        )
+    phases = tuple(
+        _parse_phase(p, hand, estimates)
+        for p in doc.mappings("phases", min_len=1, max_len=MAX_PHASES)
+    )
     check_unique_names(doc, [p.name for p in phases])
     for i, phase in enumerate(phases):
         for key, loop in (("turn_rate", phase.turn_rate), ("brake", phase.brake)):
             if loop is not None and not pairs:
-                raise ConfigError(doc.file, f"phases[{i}].{key}", "a recipe that declares two "
-                                  "objects or more ([{name, radius}, ...]): the " + key + " reads "
-                                  "the turn of the first pair", f"{len(objects)} objects")
+                raise ConfigError(
+                    doc.file,
+                    f"phases[{i}].{key}",
+                    "a recipe that declares two "
+                    "objects or more ([{name, radius}, ...]): the " + key + " reads "
+                    "the turn of the first pair",
+                    f"{len(objects)} objects",
+                )
     doc.done()
     if digest is not None and digest != hand.config_hash:
-        raise ConfigError(doc.file, "hand_config_hash",
-                          f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
-                          "compiled for another hand config: recompile it for this one)", digest)
-    return Recipe(name, doc.file, description, phases, end_ramp, digest, compiled, objects,
-                  guard, min_turn, pairs)
+        raise ConfigError(
+            doc.file,
+            "hand_config_hash",
+            f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
+            "compiled for another hand config: recompile it for this one)",
+            digest,
+        )
+    return Recipe(
+        name,
+        doc.file,
+        description,
+        phases,
+        end_ramp,
+        digest,
+        compiled,
+        objects,
+        guard,
+        min_turn,
+        pairs,
+    )
 
 
 def parse_min_total_turn(doc: Doc, has_pair: bool) -> float:
     """``min_total_turn_deg`` of a recipe or a template: the least total turn of the first
     pair for the experiment to succeed (0, asking for no turn, when it is not set; only 0
     without a pair)."""
-    turn = doc.number("min_total_turn_deg", default=0.0, min=0.0, max=MAX_TOTAL_TURN_DEG,
-                      unit="deg")
+    turn = doc.number(
+        "min_total_turn_deg", default=0.0, min=0.0, max=MAX_TOTAL_TURN_DEG, unit="deg"
+    )
     if turn > 0 and not has_pair:
-        doc.fail("min_total_turn_deg", "0 (a turn is that of a pair of objects, and there is "
-                 "no pair)", turn)
+        doc.fail(
+            "min_total_turn_deg",
+            "0 (a turn is that of a pair of objects, and there is no pair)",
+            turn,
+        )
     return turn
 
 
@@ -123,8 +153,7 @@ def check_unique_names(doc: Doc, names: list[str]) -> None:
     seen: set[str] = set()
     for i, name in enumerate(names):
         if name in seen:
-            raise ConfigError(doc.file, f"phases[{i}].name", "a phase name not used before",
-                              name)
+            raise ConfigError(doc.file, f"phases[{i}].name", "a phase name not used before", name)
         seen.add(name)
 
 
@@ -134,17 +163,21 @@ def parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
     if not doc.has("objects"):
         return ()
     out: list[RecipeObject] = []
-    for i, sub in enumerate(doc.mappings("objects", min_len=1,
-                                         max_len=MAX_OBJECTS)):
+    for i, sub in enumerate(doc.mappings("objects", min_len=1, max_len=MAX_OBJECTS)):
         name = sub.string("name")
         if not OBJECT_NAME.match(name):
-            sub.fail("name", "a name of letters and digits, starting with a letter (it "
-                     "prefixes the object's estimates, e.g. estimate.NAME_x)", name)
+            sub.fail(
+                "name",
+                "a name of letters and digits, starting with a letter (it "
+                "prefixes the object's estimates, e.g. estimate.NAME_x)",
+                name,
+            )
         radius = sub.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m")
         sub.done()
         if any(o.name == name for o in out):
-            raise ConfigError(doc.file, f"objects[{i}].name", "a name not used by another "
-                              "object", name)
+            raise ConfigError(
+                doc.file, f"objects[{i}].name", "a name not used by another object", name
+            )
         out.append(RecipeObject(name, radius))
     return tuple(out)
 
@@ -162,10 +195,17 @@ def parse_pairs(doc: Doc, objects: tuple[RecipeObject, ...]) -> tuple[Pair, ...]
     out: list[Pair] = []
     for i, item in enumerate(raw):
         key = f"pairs[{i}]"
-        if (not isinstance(item, list) or len(item) != 2
-                or not all(isinstance(n, str) and n in names for n in item)):
-            raise ConfigError(doc.file, key, f"two names of the recipe's objects "
-                              f"({', '.join(names) or 'none declared'})", item)
+        if (
+            not isinstance(item, list)
+            or len(item) != 2
+            or not all(isinstance(n, str) and n in names for n in item)
+        ):
+            raise ConfigError(
+                doc.file,
+                key,
+                f"two names of the recipe's objects ({', '.join(names) or 'none declared'})",
+                item,
+            )
         pair = (names.index(item[0]), names.index(item[1]))
         if pair[0] == pair[1]:
             raise ConfigError(doc.file, key, "two different objects", item)
@@ -180,8 +220,9 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
     torques = _parse_torques(doc, hand)
     ramp = doc.number("ramp_s", default=0.1, min=0.0, max=60.0, unit="s")
     max_s = doc.number("max_s", min=0.0, max=3600.0, min_exclusive=True, unit="s")
-    on_timeout = TimeoutAction(doc.string("on_timeout", default="abort",
-                                          choices=[a.value for a in TimeoutAction]))
+    on_timeout = TimeoutAction(
+        doc.string("on_timeout", default="abort", choices=[a.value for a in TimeoutAction])
+    )
     exits = _parse_conditions(doc, "exit", hand, estimates)
     aborts = _parse_conditions(doc, "abort", hand, estimates)
     turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
@@ -192,25 +233,40 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
     doc.done()
-    return Phase(name, torques, ramp, max_s, on_timeout, exits, aborts, provenance, turn_rate,
-                 pose, joint_damping, brake)
+    return Phase(
+        name,
+        torques,
+        ramp,
+        max_s,
+        on_timeout,
+        exits,
+        aborts,
+        provenance,
+        turn_rate,
+        pose,
+        joint_damping,
+        brake,
+    )
 
 
 def parse_joint_damping(doc: Doc) -> float:
     """``joint_damping`` (N·m·s/rad) of a recipe's or a template's phase: the damping the
     runner injects on every joint (0 when it is not set)."""
-    return doc.number("joint_damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING,
-                      unit="N·m·s/rad")
+    return doc.number(
+        "joint_damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING, unit="N·m·s/rad"
+    )
 
 
 def parse_brake(doc: Doc) -> TurnBrake:
     """``brake`` of a recipe's or a template's phase (``schema.TurnBrake``): ``rate_deg_s``,
     the turn rate above which it acts, and ``joint_damping`` (N·m·s/rad), reached at twice
     that rate."""
-    rate = doc.number("rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True,
-                      unit="deg/s")
-    damping = doc.number("joint_damping", min=0.0, max=MAX_JOINT_DAMPING, min_exclusive=True,
-                         unit="N·m·s/rad")
+    rate = doc.number(
+        "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
+    )
+    damping = doc.number(
+        "joint_damping", min=0.0, max=MAX_JOINT_DAMPING, min_exclusive=True, unit="N·m·s/rad"
+    )
     doc.done()
     return TurnBrake(math.radians(rate), damping)
 
@@ -220,17 +276,20 @@ def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:
     direction; a template gives its magnitude and the turn's sign as ``sign``), ``scale``
     ``[min, max]``, ``gain`` and ``integral_per_s``."""
     if sign is None:
-        rate = doc.number("rate_deg_s", min=-MAX_TURN_RATE_DEG_S, max=MAX_TURN_RATE_DEG_S,
-                          unit="deg/s")
+        rate = doc.number(
+            "rate_deg_s", min=-MAX_TURN_RATE_DEG_S, max=MAX_TURN_RATE_DEG_S, unit="deg/s"
+        )
         if rate == 0:
             doc.fail("rate_deg_s", "a non-zero rate, signed as the wanted turn", rate)
     else:
-        rate = sign * doc.number("rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S,
-                                 min_exclusive=True, unit="deg/s")
+        rate = sign * doc.number(
+            "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
+        )
     scale = doc.numbers("scale", length=2, min=0.0, max=MAX_SCALE)
     if not 0 < scale[0] <= 1.0 <= scale[1]:
-        doc.fail("scale", "[min, max] with 0 < min <= 1 <= max (1 is the planned torque)",
-                 list(scale))
+        doc.fail(
+            "scale", "[min, max] with 0 < min <= 1 <= max (1 is the planned torque)", list(scale)
+        )
     gain = doc.number("gain", default=0.5, min=0.0, max=10.0)
     integral = doc.number("integral_per_s", default=2.0, min=0.0, max=100.0, unit="1/s")
     doc.done()
@@ -241,8 +300,7 @@ def _parse_pose(doc: Doc, hand: HandConfig) -> PoseHold:
     sub = doc.mapping("angles")
     angles = []
     for joint in hand.joints:
-        angles.append(sub.number(joint.name, min=joint.angle_min, max=joint.angle_max,
-                                 unit="rad"))
+        angles.append(sub.number(joint.name, min=joint.angle_min, max=joint.angle_max, unit="rad"))
     sub.done()
     stiffness = doc.number("stiffness", min=0.0, max=100.0, unit="N·m/rad")
     damping = doc.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
@@ -256,8 +314,9 @@ def _parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
     if isinstance(raw, list):
         return doc.numbers("torques", length=len(names), unit="N·m")
     if not isinstance(raw, dict):
-        doc.fail("torques", f"a mapping of joint name to N·m, or a list of {len(names)} numbers",
-                 raw)
+        doc.fail(
+            "torques", f"a mapping of joint name to N·m, or a list of {len(names)} numbers", raw
+        )
     sub = doc.mapping("torques")
     sub.expect(names)
     values = tuple(sub.number(n, unit="N·m") for n in names)
@@ -265,8 +324,9 @@ def _parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
     return values
 
 
-def _parse_conditions(doc: Doc, key: str, hand: HandConfig,
-                      estimates: tuple[str, ...]) -> tuple[Condition, ...]:
+def _parse_conditions(
+    doc: Doc, key: str, hand: HandConfig, estimates: tuple[str, ...]
+) -> tuple[Condition, ...]:
     raw = doc.raw(key, [])
     if isinstance(raw, str):
         raw = [raw]
@@ -294,18 +354,45 @@ def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
         torques = np.array(phase.torques)
         for j in np.flatnonzero(np.abs(torques) > tau_max):
             raise ConfigError(
-                recipe.source, f"phases[{i}].torques.{names[j]}",
+                recipe.source,
+                f"phases[{i}].torques.{names[j]}",
                 f"|τ| <= {tau_max[j]:g} N·m (tau_max of {names[j]} in {hand.source}) in phase "
-                f"'{phase.name}'", float(torques[j]))
-        _check_ramp(recipe, hand, f"phases[{i}].ramp_s", f"into phase '{phase.name}'",
-                    previous, torques, phase.ramp_s, rate)
+                f"'{phase.name}'",
+                float(torques[j]),
+            )
+        _check_ramp(
+            recipe,
+            hand,
+            f"phases[{i}].ramp_s",
+            f"into phase '{phase.name}'",
+            previous,
+            torques,
+            phase.ramp_s,
+            rate,
+        )
         previous = torques
-    _check_ramp(recipe, hand, "end_ramp_s", "back to zero after the last phase", previous,
-                np.zeros(len(names)), recipe.end_ramp_s, rate)
+    _check_ramp(
+        recipe,
+        hand,
+        "end_ramp_s",
+        "back to zero after the last phase",
+        previous,
+        np.zeros(len(names)),
+        recipe.end_ramp_s,
+        rate,
+    )
 
 
-def _check_ramp(recipe: Recipe, hand: HandConfig, key: str, what: str, start: np.ndarray,
-                end: np.ndarray, ramp_s: float, rate: np.ndarray) -> None:
+def _check_ramp(
+    recipe: Recipe,
+    hand: HandConfig,
+    key: str,
+    what: str,
+    start: np.ndarray,
+    end: np.ndarray,
+    ramp_s: float,
+    rate: np.ndarray,
+) -> None:
     step = np.abs(end - start)
     for j in range(len(step)):
         if step[j] == 0:
@@ -314,6 +401,9 @@ def _check_ramp(recipe: Recipe, hand: HandConfig, key: str, what: str, start: np
         if need > rate[j] * (1 + 1e-9):
             name = hand.joint_names[j]
             raise ConfigError(
-                recipe.source, key,
+                recipe.source,
+                key,
                 f"a ramp of at least {step[j] / rate[j]:.3g} s {what}: {name} moves "
-                f"{step[j]:.3g} N·m and its rate limit is {rate[j]:g} N·m/s", ramp_s)
+                f"{step[j]:.3g} N·m and its rate limit is {rate[j]:g} N·m/s",
+                ramp_s,
+            )

@@ -152,15 +152,17 @@ class RecipeRunner:
             self._ramp_s = self.recipe.end_ramp_s
             self._damping_to = 0.0
 
-    def step(self, t: float, angle: FloatArray, tdt: FloatArray,
-             estimates: Sequence[float] | None = None) -> FloatArray:
+    def step(
+        self, t: float, angle: FloatArray, tdt: FloatArray, estimates: Sequence[float] | None = None
+    ) -> FloatArray:
         """Desired torques at time ``t`` (s since the recipe started): ``advance`` then
         ``feedback``."""
         self.advance(t, angle, tdt, estimates)
         return self.feedback(t, angle, estimates)
 
-    def advance(self, t: float, angle: FloatArray, tdt: FloatArray,
-                estimates: Sequence[float] | None = None) -> None:
+    def advance(
+        self, t: float, angle: FloatArray, tdt: FloatArray, estimates: Sequence[float] | None = None
+    ) -> None:
         """Exits, aborts and the ramp of the current phase at ``t``: the recipe's own torque,
         before any feedback."""
         if not self._started:
@@ -177,8 +179,14 @@ class RecipeRunner:
                 if self._held(1000 + k, cond, t, elapsed, angle, tdt, estimates):
                     self.abort(t, f"abort: {cond.text}")
                     return
-            reason = next((c.text for k, c in enumerate(phase.exits)
-                           if self._held(k, c, t, elapsed, angle, tdt, estimates)), None)
+            reason = next(
+                (
+                    c.text
+                    for k, c in enumerate(phase.exits)
+                    if self._held(k, c, t, elapsed, angle, tdt, estimates)
+                ),
+                None,
+            )
             if reason is None and elapsed >= phase.max_s:
                 if phase.on_timeout is TimeoutAction.ABORT:
                     self.abort(t, f"timeout: phase '{phase.name}' ran {phase.max_s:g} s")
@@ -196,15 +204,15 @@ class RecipeRunner:
         if self.status is RunStatus.END_RAMP and fraction >= 1.0:
             self.status = RunStatus.COMPLETED
 
-    def feedback(self, t: float, angle: FloatArray,
-                 estimates: Sequence[float] | None = None) -> FloatArray:
+    def feedback(
+        self, t: float, angle: FloatArray, estimates: Sequence[float] | None = None
+    ) -> FloatArray:
         """The torque to propose: the phase's, moved by its feedback from what the hand
         measures, then guarded. Bounded work: a few operations per joint."""
         if self.done:
             self._desired[:] = 0.0
             return self._desired
-        phase = (self.recipe.phases[self.index] if self.status is RunStatus.RUNNING
-                 else None)
+        phase = self.recipe.phases[self.index] if self.status is RunStatus.RUNNING else None
         out = self._desired
         fresh = False  # whether the turn-rate estimate took a new sample this tick
         if phase is not None and (phase.turn_rate is not None or phase.brake is not None):
@@ -228,8 +236,9 @@ class RecipeRunner:
                 pose = phase.pose
                 v = self.velocity.value
                 for j, q_ref in enumerate(pose.angles):
-                    out[j] += self._fraction * (pose.stiffness * (q_ref - float(angle[j]))
-                                                - pose.damping * float(v[j]))
+                    out[j] += self._fraction * (
+                        pose.stiffness * (q_ref - float(angle[j])) - pose.damping * float(v[j])
+                    )
         if self.damping > 0.0:
             # apart from ``_proposed``, which the next phase's ramp starts from: the damping
             # carries over through ``self.damping`` instead
@@ -281,8 +290,16 @@ class RecipeRunner:
         self.status = RunStatus.ABORTED
         self._desired[:] = 0.0
 
-    def _held(self, key: int, cond: Condition, t: float, elapsed: float, angle: FloatArray,
-              tdt: FloatArray, estimates: Sequence[float] | None) -> bool:
+    def _held(
+        self,
+        key: int,
+        cond: Condition,
+        t: float,
+        elapsed: float,
+        angle: FloatArray,
+        tdt: FloatArray,
+        estimates: Sequence[float] | None,
+    ) -> bool:
         if cond.kind is SignalKind.TIME:
             value = elapsed
         elif cond.kind is SignalKind.ANGLE:

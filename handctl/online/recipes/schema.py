@@ -42,16 +42,27 @@ FIRST_PAIR_TURN = 1
 #: The names estimates had when the estimator knew exactly two objects and no names. Recipes
 #: written then (and the logs that carry them, which replay re-runs) say these; they read as
 #: the first pair's and the first two objects' estimates.
-LEGACY_ESTIMATES = {"centre_line_angle": 0, "centre_line_turn": 1, "object1_x": 2,
-                    "object1_y": 3, "object2_x": 4, "object2_y": 5}
+LEGACY_ESTIMATES = {
+    "centre_line_angle": 0,
+    "centre_line_turn": 1,
+    "object1_x": 2,
+    "object1_y": 3,
+    "object2_x": 4,
+    "object2_y": 5,
+}
 
 OPERATORS: dict[str, Callable[[float, float], bool]] = {
-    "<": operator.lt, "<=": operator.le, ">": operator.gt, ">=": operator.ge}
+    "<": operator.lt,
+    "<=": operator.le,
+    ">": operator.gt,
+    ">=": operator.ge,
+}
 
 _CONDITION = re.compile(
     r"^\s*(?P<signal>time|(?:angle|tdt|estimate)\.[A-Za-z0-9_]+)\s*(?P<op><=|>=|<|>)\s*"
     r"(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)"
-    r"(?:\s+for\s+(?P<hold>\d+\.?\d*|\.\d+))?\s*$")
+    r"(?:\s+for\s+(?P<hold>\d+\.?\d*|\.\d+))?\s*$"
+)
 
 
 class SignalKind(enum.Enum):
@@ -198,13 +209,14 @@ class Recipe:
 
     @property
     def uses_estimates(self) -> bool:
-        return any(p.turn_rate is not None or p.brake is not None
-                   for p in self.phases) or any(
-            c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
+        return any(p.turn_rate is not None or p.brake is not None for p in self.phases) or any(
+            c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts)
+        )
 
 
-def parse_condition(text: str, joint_names: tuple[str, ...],
-                    estimates: Sequence[str] = ()) -> Condition | str:
+def parse_condition(
+    text: str, joint_names: tuple[str, ...], estimates: Sequence[str] = ()
+) -> Condition | str:
     """A ``Condition``, or the reason the text is not one (for the loader's message).
     ``estimates``: the names of the recipe's estimates (``estimate_names``), in their order."""
     match = _CONDITION.match(text)
@@ -225,8 +237,15 @@ def parse_condition(text: str, joint_names: tuple[str, ...],
         else:
             known = ", ".join(estimates) if estimates else "none: the recipe declares no objects"
             return f"an estimate of the recipe's objects ({known}) (in '{text}')"
-        return Condition(text, SignalKind.ESTIMATE, index, match["op"], value, hold,
-                         relative=estimates[index].endswith(PHASE_RELATIVE_SUFFIX))
+        return Condition(
+            text,
+            SignalKind.ESTIMATE,
+            index,
+            match["op"],
+            value,
+            hold,
+            relative=estimates[index].endswith(PHASE_RELATIVE_SUFFIX),
+        )
     if name not in joint_names:
         return f"a joint of the hand ({', '.join(joint_names)}) in '{text}'"
     kind = SignalKind.ANGLE if family == "angle" else SignalKind.TDT
@@ -236,5 +255,4 @@ def parse_condition(text: str, joint_names: tuple[str, ...],
 def _legacy_layout(estimates: Sequence[str]) -> bool:
     """Whether the estimates are those of two objects and their one pair: the only layout the
     legacy names described."""
-    return len(estimates) == len(LEGACY_ESTIMATES) and estimates[1].endswith(
-        PHASE_RELATIVE_SUFFIX)
+    return len(estimates) == len(LEGACY_ESTIMATES) and estimates[1].endswith(PHASE_RELATIVE_SUFFIX)

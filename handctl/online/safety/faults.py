@@ -72,74 +72,162 @@ class FaultSpec:
     meaning: str
 
 
-FAULTS: dict[FaultCode, FaultSpec] = {spec.code: spec for spec in (
-    FaultSpec(FaultCode.NON_FINITE_TORQUE, StopCategory.IMMEDIATE,
-              "a desired torque is NaN or infinite (never clamped)"),
-    FaultSpec(FaultCode.WRONG_SHAPE, StopCategory.IMMEDIATE,
-              "the desired torque vector does not have one value per joint"),
-    FaultSpec(FaultCode.ANGLE_LIMIT, StopCategory.RAMP,
-              "a joint angle is outside its soft limits"),
-    FaultSpec(FaultCode.FEEDBACK_TIMEOUT, StopCategory.IMMEDIATE,
-              "no valid feedback from a node for longer than the feedback age limit"),
-    FaultSpec(FaultCode.HEARTBEAT_LOST, StopCategory.IMMEDIATE,
-              "no valid heartbeat from a node for longer than the heartbeat limit"),
-    FaultSpec(FaultCode.NODE_FAULT, StopCategory.IMMEDIATE,
-              "a node reports FAULT (its own fault bits say why)"),
-    FaultSpec(FaultCode.NODE_STATE, StopCategory.IMMEDIATE,
-              "a node left ENABLED while the host was commanding torque"),
-    FaultSpec(FaultCode.NODE_REBOOT, StopCategory.IMMEDIATE,
-              "a node's uptime went backwards: it rebooted"),
-    FaultSpec(FaultCode.LOOP_OVERRUN, StopCategory.RAMP,
-              "three consecutive ticks missed their deadline"),
-    FaultSpec(FaultCode.TDT_MISMATCH, StopCategory.RAMP,
-              "a TDT torque disagrees with the applied command beyond the tolerance, "
-              "throughout the window"),
-    FaultSpec(FaultCode.TDT_STUCK, StopCategory.RAMP,
-              "a TDT reading did not change at all over the window while the command did"),
-    FaultSpec(FaultCode.BUS_ERROR, StopCategory.IMMEDIATE,
-              "bus-off, or command frames that could not be sent"),
-    FaultSpec(FaultCode.ESTOP, StopCategory.IMMEDIATE,
-              "an e-stop was requested (operator, signal, or a node)"),
-    FaultSpec(FaultCode.RECIPE_ABORT, StopCategory.RAMP,
-              "a recipe abort condition held, or a phase ran past its time limit"),
-    FaultSpec(FaultCode.STARTUP, StopCategory.IMMEDIATE,
-              "a node did not answer, or was not in the expected state, while starting"),
-    FaultSpec(FaultCode.POLL_EXCEPTION, StopCategory.IMMEDIATE,
-              "the tick's poll (draining the bus, taking its events) raised an exception"),
-    FaultSpec(FaultCode.DECODE_EXCEPTION, StopCategory.IMMEDIATE,
-              "checking or decoding a received frame raised an exception"),
-    FaultSpec(FaultCode.ESTIMATOR_EXCEPTION, StopCategory.IMMEDIATE,
-              "the object estimator raised an exception"),
-    FaultSpec(FaultCode.RUNNER_EXCEPTION, StopCategory.IMMEDIATE,
-              "the recipe runner raised an exception"),
-    FaultSpec(FaultCode.SUPERVISOR_EXCEPTION, StopCategory.IMMEDIATE,
-              "the safety supervisor (checks, limiter, state machine) raised an exception"),
-    FaultSpec(FaultCode.ENCODE_EXCEPTION, StopCategory.IMMEDIATE,
-              "encoding a command frame raised an exception (e.g. a torque the wire cannot "
-              "carry)"),
-    FaultSpec(FaultCode.SEND_EXCEPTION, StopCategory.IMMEDIATE,
-              "sending the command frames raised an exception"),
-    FaultSpec(FaultCode.RECORD_EXCEPTION, StopCategory.IMMEDIATE,
-              "the record sink raised an exception"),
-    FaultSpec(FaultCode.HOOK_EXCEPTION, StopCategory.IMMEDIATE,
-              "a tick hook raised an exception"),
-    FaultSpec(FaultCode.CLOCK_EXCEPTION, StopCategory.IMMEDIATE,
-              "waiting for the tick raised an exception (in lockstep: stepping the peer)"),
-    FaultSpec(FaultCode.STATUS_EXCEPTION, StopCategory.IMMEDIATE,
-              "the tick's accounting or the status-line callback raised an exception"),
-    FaultSpec(FaultCode.RUN_EXCEPTION, StopCategory.IMMEDIATE,
-              "the run raised an exception outside a tick's stages (start-up, enabling, "
-              "the final disable)"),
-    FaultSpec(FaultCode.RX_BACKLOG, StopCategory.IMMEDIATE,
-              "a drain left frames waiting: more arrived than the bus can carry between two "
-              "ticks (a flood), so what the host reads next is already old"),
-    FaultSpec(FaultCode.NODE_CONTRADICTION, StopCategory.IMMEDIATE,
-              "a node's reports contradict each other or the protocol: latched or reserved "
-              "fault bits outside FAULT, or ENABLED after FAULT without a fault reset"),
-    FaultSpec(FaultCode.REJECT_RATE, StopCategory.IMMEDIATE,
-              "more frames of one node rejected within the window than the safety section "
-              "allows (a replayed or corrupted stream may be hiding what the node says)"),
-)}
+FAULTS: dict[FaultCode, FaultSpec] = {
+    spec.code: spec
+    for spec in (
+        FaultSpec(
+            FaultCode.NON_FINITE_TORQUE,
+            StopCategory.IMMEDIATE,
+            "a desired torque is NaN or infinite (never clamped)",
+        ),
+        FaultSpec(
+            FaultCode.WRONG_SHAPE,
+            StopCategory.IMMEDIATE,
+            "the desired torque vector does not have one value per joint",
+        ),
+        FaultSpec(
+            FaultCode.ANGLE_LIMIT, StopCategory.RAMP, "a joint angle is outside its soft limits"
+        ),
+        FaultSpec(
+            FaultCode.FEEDBACK_TIMEOUT,
+            StopCategory.IMMEDIATE,
+            "no valid feedback from a node for longer than the feedback age limit",
+        ),
+        FaultSpec(
+            FaultCode.HEARTBEAT_LOST,
+            StopCategory.IMMEDIATE,
+            "no valid heartbeat from a node for longer than the heartbeat limit",
+        ),
+        FaultSpec(
+            FaultCode.NODE_FAULT,
+            StopCategory.IMMEDIATE,
+            "a node reports FAULT (its own fault bits say why)",
+        ),
+        FaultSpec(
+            FaultCode.NODE_STATE,
+            StopCategory.IMMEDIATE,
+            "a node left ENABLED while the host was commanding torque",
+        ),
+        FaultSpec(
+            FaultCode.NODE_REBOOT,
+            StopCategory.IMMEDIATE,
+            "a node's uptime went backwards: it rebooted",
+        ),
+        FaultSpec(
+            FaultCode.LOOP_OVERRUN,
+            StopCategory.RAMP,
+            "three consecutive ticks missed their deadline",
+        ),
+        FaultSpec(
+            FaultCode.TDT_MISMATCH,
+            StopCategory.RAMP,
+            "a TDT torque disagrees with the applied command beyond the tolerance, "
+            "throughout the window",
+        ),
+        FaultSpec(
+            FaultCode.TDT_STUCK,
+            StopCategory.RAMP,
+            "a TDT reading did not change at all over the window while the command did",
+        ),
+        FaultSpec(
+            FaultCode.BUS_ERROR,
+            StopCategory.IMMEDIATE,
+            "bus-off, or command frames that could not be sent",
+        ),
+        FaultSpec(
+            FaultCode.ESTOP,
+            StopCategory.IMMEDIATE,
+            "an e-stop was requested (operator, signal, or a node)",
+        ),
+        FaultSpec(
+            FaultCode.RECIPE_ABORT,
+            StopCategory.RAMP,
+            "a recipe abort condition held, or a phase ran past its time limit",
+        ),
+        FaultSpec(
+            FaultCode.STARTUP,
+            StopCategory.IMMEDIATE,
+            "a node did not answer, or was not in the expected state, while starting",
+        ),
+        FaultSpec(
+            FaultCode.POLL_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "the tick's poll (draining the bus, taking its events) raised an exception",
+        ),
+        FaultSpec(
+            FaultCode.DECODE_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "checking or decoding a received frame raised an exception",
+        ),
+        FaultSpec(
+            FaultCode.ESTIMATOR_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "the object estimator raised an exception",
+        ),
+        FaultSpec(
+            FaultCode.RUNNER_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "the recipe runner raised an exception",
+        ),
+        FaultSpec(
+            FaultCode.SUPERVISOR_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "the safety supervisor (checks, limiter, state machine) raised an exception",
+        ),
+        FaultSpec(
+            FaultCode.ENCODE_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "encoding a command frame raised an exception (e.g. a torque the wire cannot carry)",
+        ),
+        FaultSpec(
+            FaultCode.SEND_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "sending the command frames raised an exception",
+        ),
+        FaultSpec(
+            FaultCode.RECORD_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "the record sink raised an exception",
+        ),
+        FaultSpec(
+            FaultCode.HOOK_EXCEPTION, StopCategory.IMMEDIATE, "a tick hook raised an exception"
+        ),
+        FaultSpec(
+            FaultCode.CLOCK_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "waiting for the tick raised an exception (in lockstep: stepping the peer)",
+        ),
+        FaultSpec(
+            FaultCode.STATUS_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "the tick's accounting or the status-line callback raised an exception",
+        ),
+        FaultSpec(
+            FaultCode.RUN_EXCEPTION,
+            StopCategory.IMMEDIATE,
+            "the run raised an exception outside a tick's stages (start-up, enabling, "
+            "the final disable)",
+        ),
+        FaultSpec(
+            FaultCode.RX_BACKLOG,
+            StopCategory.IMMEDIATE,
+            "a drain left frames waiting: more arrived than the bus can carry between two "
+            "ticks (a flood), so what the host reads next is already old",
+        ),
+        FaultSpec(
+            FaultCode.NODE_CONTRADICTION,
+            StopCategory.IMMEDIATE,
+            "a node's reports contradict each other or the protocol: latched or reserved "
+            "fault bits outside FAULT, or ENABLED after FAULT without a fault reset",
+        ),
+        FaultSpec(
+            FaultCode.REJECT_RATE,
+            StopCategory.IMMEDIATE,
+            "more frames of one node rejected within the window than the safety section "
+            "allows (a replayed or corrupted stream may be hiding what the node says)",
+        ),
+    )
+}
 
 
 @dataclass(frozen=True)

@@ -48,8 +48,9 @@ class JointLimits:
         )
 
 
-def check_desired(desired: Sequence[float] | FloatArray, n_joints: int
-                  ) -> tuple[FaultCode, str] | None:
+def check_desired(
+    desired: Sequence[float] | FloatArray, n_joints: int
+) -> tuple[FaultCode, str] | None:
     """A fault for desired torques that must not be limited but refused; None when usable."""
     if isinstance(desired, np.ndarray) and desired.dtype == np.float64:
         arr = desired
@@ -66,8 +67,9 @@ def check_desired(desired: Sequence[float] | FloatArray, n_joints: int
     return None
 
 
-def limit_torque(desired: FloatArray, last_applied: FloatArray, limits: JointLimits,
-                 dt: float, out: FloatArray) -> int:
+def limit_torque(
+    desired: FloatArray, last_applied: FloatArray, limits: JointLimits, dt: float, out: FloatArray
+) -> int:
     """Clamp to ±tau_max, then to last ± rate·dt, into ``out``; returns how many joints were
     limited (a count for the record, not an error: limiting is the limiter's job).
 
@@ -76,8 +78,9 @@ def limit_torque(desired: FloatArray, last_applied: FloatArray, limits: JointLim
     """
     limited = 0
     result = []
-    for d, last, tau, rate in zip(desired.tolist(), last_applied.tolist(), limits.tau_max_list,
-                                  limits.rate_list, strict=True):
+    for d, last, tau, rate in zip(
+        desired.tolist(), last_applied.tolist(), limits.tau_max_list, limits.rate_list, strict=True
+    ):
         v = tau if d > tau else (-tau if d < -tau else d)
         step = rate * dt
         if v > last + step:
@@ -93,7 +96,10 @@ def limit_torque(desired: FloatArray, last_applied: FloatArray, limits: JointLim
 
 def angle_violations(angle: FloatArray, limits: JointLimits) -> list[int]:
     """Joints outside their soft limits."""
-    return [j for j, (q, lo, hi) in enumerate(zip(angle.tolist(), limits.angle_min_list,
-                                                  limits.angle_max_list, strict=True))
-            if q < lo or q > hi]
-
+    return [
+        j
+        for j, (q, lo, hi) in enumerate(
+            zip(angle.tolist(), limits.angle_min_list, limits.angle_max_list, strict=True)
+        )
+        if q < lo or q > hi
+    ]

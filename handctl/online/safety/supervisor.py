@@ -151,15 +151,23 @@ class Supervisor:
         fault = Fault(code, detail, tick)
         self.faults.append(fault)
         self.active_codes.add(code)
-        event = (Event.FAULT_IMMEDIATE if fault.category is StopCategory.IMMEDIATE
-                 else Event.FAULT_RAMP)
+        event = (
+            Event.FAULT_IMMEDIATE if fault.category is StopCategory.IMMEDIATE else Event.FAULT_RAMP
+        )
         self.fire(event, tick)
         return fault
 
     # -- the tick -------------------------------------------------------------------------
-    def observe(self, tick: int, now_ns: int, nodes: Sequence[FingerNode], angle: FloatArray,
-                tdt: FloatArray, missed: int, bus_events: Sequence[BusEvent] = ()
-                ) -> list[Fault]:
+    def observe(
+        self,
+        tick: int,
+        now_ns: int,
+        nodes: Sequence[FingerNode],
+        angle: FloatArray,
+        tdt: FloatArray,
+        missed: int,
+        bus_events: Sequence[BusEvent] = (),
+    ) -> list[Fault]:
         """Checks that come from the hand: run after the drain, before ``filter``."""
         new: list[Fault] = []
         findings = self.ticks.tick(missed)
@@ -184,23 +192,29 @@ class Supervisor:
             findings += self.tdt.update(self.applied, tdt)
             if self.state is not State.FAULT_RAMP:
                 for j in angle_violations(angle, self.limits):
-                    findings.append((FaultCode.ANGLE_LIMIT,
-                                     f"{self.limits.names[j]} at {angle[j]:+.3f} rad, limits "
-                                     f"[{self.limits.angle_min[j]:+.3f}, "
-                                     f"{self.limits.angle_max[j]:+.3f}]"))
+                    findings.append(
+                        (
+                            FaultCode.ANGLE_LIMIT,
+                            f"{self.limits.names[j]} at {angle[j]:+.3f} rad, limits "
+                            f"[{self.limits.angle_min[j]:+.3f}, "
+                            f"{self.limits.angle_max[j]:+.3f}]",
+                        )
+                    )
         for code, detail in findings:
             fault = self.trip(code, detail, tick)
             if fault is not None:
                 new.append(fault)
         return new
 
-    def filter(self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int = 0
-               ) -> AppliedTorques:
+    def filter(
+        self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int = 0
+    ) -> AppliedTorques:
         """The applied torques of this tick (a view the caller must not keep across ticks)."""
         return AppliedTorques(self._filter(tick, desired, missed))
 
-    def _filter(self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int
-                ) -> FloatArray:
+    def _filter(
+        self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int
+    ) -> FloatArray:
         state = self.state
         if state is State.RUNNING:
             problem = check_desired(desired, self.n) if desired is not None else None
@@ -215,8 +229,9 @@ class Supervisor:
                 # A late tick repeats the last applied command once, rather than stepping the
                 # rate limiter over an interval it did not see.
                 return self.applied
-            self.limited_joints = limit_torque(target, self.applied, self.limits, self.dt,
-                                               self._scratch)
+            self.limited_joints = limit_torque(
+                target, self.applied, self.limits, self.dt, self._scratch
+            )
             self.applied[:] = self._scratch
         elif state is State.STOPPING:
             limit_torque(np.zeros(self.n), self.applied, self.limits, self.dt, self._scratch)

@@ -31,16 +31,22 @@ class NodeWatch:
         """Remember the reboot counts at the moment torque starts to flow."""
         self._reboots = [node.reboots for node in nodes]
 
-    def check(self, now_ns: int, nodes: Sequence[FingerNode], expect_enabled: bool
-              ) -> list[Finding]:
+    def check(
+        self, now_ns: int, nodes: Sequence[FingerNode], expect_enabled: bool
+    ) -> list[Finding]:
         found: list[Finding] = []
         feedback_timeout, heartbeat_timeout = self.feedback_timeout_ns, self.heartbeat_timeout_ns
         for i, node in enumerate(nodes):
             # The common tick finds nothing: compare numbers, build no text.
             fb, hb = node.feedback_ns, node.heartbeat_ns
-            if fb is not None and now_ns - fb <= feedback_timeout and hb is not None \
-                    and now_ns - hb <= heartbeat_timeout and node.state == ENABLED \
-                    and (i >= len(self._reboots) or node.reboots <= self._reboots[i]):
+            if (
+                fb is not None
+                and now_ns - fb <= feedback_timeout
+                and hb is not None
+                and now_ns - hb <= heartbeat_timeout
+                and node.state == ENABLED
+                and (i >= len(self._reboots) or node.reboots <= self._reboots[i])
+            ):
                 continue
             who = f"node {node.node_id} ({node.finger.name})"
             if fb is None or now_ns - fb > feedback_timeout:
@@ -56,8 +62,9 @@ class NodeWatch:
                 code = FaultCode.ESTOP if "ESTOP" in names else FaultCode.NODE_FAULT
                 found.append((code, f"{who} in FAULT ({', '.join(names) or 'no bits'})"))
             elif expect_enabled and node.state != ENABLED:
-                found.append((FaultCode.NODE_STATE, f"{who} is {node.state_name}, "
-                                                    "expected ENABLED"))
+                found.append(
+                    (FaultCode.NODE_STATE, f"{who} is {node.state_name}, expected ENABLED")
+                )
         return found
 
 
@@ -69,8 +76,9 @@ class TdtMonitor:
     the twenty-odd numpy calls the vectorised form needs, and this runs every tick.
     """
 
-    def __init__(self, safety: SafetyConfig, n_joints: int, dt: float,
-                 names: Sequence[str]) -> None:
+    def __init__(
+        self, safety: SafetyConfig, n_joints: int, dt: float, names: Sequence[str]
+    ) -> None:
         self.names = tuple(names)
         self.n = n_joints
         self.tol = safety.tdt_tolerance
@@ -107,9 +115,13 @@ class TdtMonitor:
             if abs(r - e) > tol + rel * abs(e):
                 mismatch[j] += 1
                 if mismatch[j] >= self.window:
-                    found.append((FaultCode.TDT_MISMATCH,
-                                  f"{self.names[j]}: TDT {r:+.3f} N·m, expected {e:+.3f} N·m "
-                                  f"for {mismatch[j]} ticks"))
+                    found.append(
+                        (
+                            FaultCode.TDT_MISMATCH,
+                            f"{self.names[j]}: TDT {r:+.3f} N·m, expected {e:+.3f} N·m "
+                            f"for {mismatch[j]} ticks",
+                        )
+                    )
             else:
                 mismatch[j] = 0
             if r == last[j]:
@@ -117,12 +129,17 @@ class TdtMonitor:
                 lo[j] = min(lo[j], a)
                 hi[j] = max(hi[j], a)
                 n = same_ticks[j]
-                if (n >= self.stuck_window and hi[j] - lo[j] >= self.min_change) or \
-                        n >= self.still_window:
-                    found.append((FaultCode.TDT_STUCK,
-                                  f"{self.names[j]}: TDT fixed at {r:+.4f} N·m for "
-                                  f"{same_ticks[j]} ticks while the command moved "
-                                  f"{hi[j] - lo[j]:.3f} N·m"))
+                if (
+                    n >= self.stuck_window and hi[j] - lo[j] >= self.min_change
+                ) or n >= self.still_window:
+                    found.append(
+                        (
+                            FaultCode.TDT_STUCK,
+                            f"{self.names[j]}: TDT fixed at {r:+.4f} N·m for "
+                            f"{same_ticks[j]} ticks while the command moved "
+                            f"{hi[j] - lo[j]:.3f} N·m",
+                        )
+                    )
             else:
                 same_ticks[j] = 0
                 lo[j] = hi[j] = a
@@ -146,16 +163,19 @@ class TickWatch:
             return []
         self.consecutive_misses += missed
         if self.consecutive_misses >= self.max_misses:
-            return [(FaultCode.LOOP_OVERRUN,
-                     f"{self.consecutive_misses} consecutive ticks missed")]
+            return [(FaultCode.LOOP_OVERRUN, f"{self.consecutive_misses} consecutive ticks missed")]
         return []
 
     def sent(self, ok: bool) -> list[Finding]:
         self.consecutive_send_failures = 0 if ok else self.consecutive_send_failures + 1
         if self.consecutive_send_failures >= self.max_send_failures:
-            return [(FaultCode.BUS_ERROR,
-                     f"{self.consecutive_send_failures} consecutive ticks with command frames "
-                     "that could not be sent")]
+            return [
+                (
+                    FaultCode.BUS_ERROR,
+                    f"{self.consecutive_send_failures} consecutive ticks with command frames "
+                    "that could not be sent",
+                )
+            ]
         return []
 
 
@@ -179,8 +199,11 @@ class ReceiveWatch:
 
     def check(self, tick: int, nodes: Sequence[FingerNode]) -> list[Finding]:
         found: list[Finding] = []
-        if self._last_tick is None or tick != self._last_tick + 1 \
-                or len(self._totals) != len(nodes):
+        if (
+            self._last_tick is None
+            or tick != self._last_tick + 1
+            or len(self._totals) != len(nodes)
+        ):
             self._totals = [[node.rejects.total] * self.window for node in nodes]
             self._pos = 0
         self._last_tick = tick
@@ -190,15 +213,22 @@ class ReceiveWatch:
             recent = total - totals[pos]  # rejected within the last ``window`` ticks
             totals[pos] = total
             if recent > self.limit:
-                found.append((FaultCode.REJECT_RATE,
-                              f"node {node.node_id} ({node.finger.name}): {recent} frames "
-                              f"rejected within {self.window} ticks (at most {self.limit}; "
-                              "so far: " + ", ".join(f"{k} {v}" for k, v in
-                                                     node.rejects.as_dict().items() if v)
-                              + ")"))
+                found.append(
+                    (
+                        FaultCode.REJECT_RATE,
+                        f"node {node.node_id} ({node.finger.name}): {recent} frames "
+                        f"rejected within {self.window} ticks (at most {self.limit}; "
+                        "so far: "
+                        + ", ".join(f"{k} {v}" for k, v in node.rejects.as_dict().items() if v)
+                        + ")",
+                    )
+                )
             if node.contradiction:
-                found.append((FaultCode.NODE_CONTRADICTION,
-                              f"node {node.node_id} ({node.finger.name}): "
-                              f"{node.contradiction}"))
+                found.append(
+                    (
+                        FaultCode.NODE_CONTRADICTION,
+                        f"node {node.node_id} ({node.finger.name}): {node.contradiction}",
+                    )
+                )
         self._pos = (pos + 1) % self.window
         return found
