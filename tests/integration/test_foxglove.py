@@ -77,9 +77,24 @@ class Live:
     received: dict[str, list[bytes]] = field(default_factory=lambda: defaultdict(list))
 
 
+#: The topics a client subscribes to together. The server drops a slow client's oldest
+#: messages (the writer never waits for a viewer), so one client of every topic, on a busy
+#: machine, may lose each scene under a thousand joint messages a second; a viewer that shows
+#: the scene takes only what it draws, and so do these clients.
+CLIENTS = ((fx.SCENE, fx.TRANSFORMS), (fx.JOINTS, ch.JOINT_STATE))
+
+
 async def listen(port: int, proc: subprocess.Popen[bytes], enough: int) -> Live:
-    """Connect (retrying while the run starts), subscribe to ``WANTED``, collect messages."""
+    """One client per group of ``CLIENTS`` at once, their messages in one ``Live``."""
     live = Live()
+    await asyncio.gather(*(_client(port, proc, enough, topics, live) for topics in CLIENTS))
+    return live
+
+
+async def _client(
+    port: int, proc: subprocess.Popen[bytes], enough: int, wanted: tuple[str, ...], live: Live
+) -> None:
+    """Connect (retrying while the run starts), subscribe to ``wanted``, collect messages."""
     while True:
         try:
             ws = await websockets.connect(
@@ -96,7 +111,7 @@ async def listen(port: int, proc: subprocess.Popen[bytes], enough: int) -> Live:
     async with ws:
         assert ws.subprotocol == SUBPROTOCOL
         topics: dict[int, str] = {}
-        while any(len(live.received[t]) < enough for t in WANTED):
+        while any(len(live.received[t]) < enough for t in wanted):
             try:
                 raw = await asyncio.wait_for(ws.recv(), 5.0)
             except (TimeoutError, websockets.ConnectionClosed):
@@ -107,7 +122,7 @@ async def listen(port: int, proc: subprocess.Popen[bytes], enough: int) -> Live:
                     subs = []
                     for channel in op["channels"]:
                         live.advertised[channel["topic"]] = channel
-                        if channel["topic"] in WANTED:
+                        if channel["topic"] in wanted:
                             topics[channel["id"]] = channel["topic"]
                             subs.append({"id": channel["id"], "channelId": channel["id"]})
                     if subs:
@@ -116,7 +131,6 @@ async def listen(port: int, proc: subprocess.Popen[bytes], enough: int) -> Live:
             assert raw[0] == 0x01  # message data: subscription id, log time, payload
             sub, _log_time = struct.unpack_from("<IQ", raw, 1)
             live.received[topics[sub]].append(bytes(raw[13:]))
-    return live
 
 
 @dataclass
