@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import threading
 import time
 from collections import Counter
@@ -140,16 +141,24 @@ def test_free_running_is_an_independent_peer(hand: HandConfig, channel: str) -> 
 
 
 def test_standalone_runs_for_the_given_time(hand: HandConfig, channel: str) -> None:
-    listener = open_bus(f"virtual:{channel}", hand.bus)
-    try:
-        lines: list[str] = []
-        summary = standalone(hand, f"virtual:{channel}", seconds=0.3, progress=lines.append)
-        frames = listener.drain(limit=100_000)
-    finally:
-        listener.close()
-    assert summary.startswith(f"simulated hand on virtual:{channel}")
-    feedback = [f for f in frames if f.arbitration_id == 0x181]
-    assert len(feedback) > 10
+    """It runs for the wall time asked and puts every tick it simulated on the bus, node 1's
+    feedback with consecutive counters. How many ticks fit in 0.3 s is the machine's business:
+    a loaded machine may hold the timer thread back for most of it, so a run that simulated
+    no tick at all is tried again."""
+    for _ in range(5):
+        listener = open_bus(f"virtual:{channel}", hand.bus)
+        try:
+            summary = standalone(hand, f"virtual:{channel}", seconds=0.3)
+            frames = listener.drain(limit=100_000)
+        finally:
+            listener.close()
+        assert summary.startswith(f"simulated hand on virtual:{channel}")
+        simulated, wall = (float(v) for v in re.findall(r"([0-9.]+) s", summary)[:2])
+        assert wall >= 0.3
+        feedback = [f for f in frames if f.arbitration_id == 0x181]
+        if simulated > 0:
+            break
+    assert len(feedback) == round(simulated / hand.bus.period_s) > 0
     assert all(f.data[1] == k & 0xFF for k, f in enumerate(feedback))
 
 
