@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import json
 import math
 import tempfile
 from collections.abc import Callable, Iterator
@@ -32,6 +33,7 @@ import numpy as np
 from handctl.config import HandConfig
 from handctl.executor import WorkPool, open_pool
 from handctl.hand_protocol import protocol_for
+from handctl.handshape import flexion_sign
 from handctl.online.bus import HandBus, open_bus
 from handctl.online.clock import LockstepClock, Tick
 from handctl.online.drivers.hand import HandDriver
@@ -51,20 +53,59 @@ from handctl.sim.hand import SimulatedHand
 #: The campaign recipe: one phase of each kind, torques that keep every joint well inside its
 #: soft limits on the default hand. Times in s.
 PHASES = (("idle", 0.4), ("approach", 0.4), ("holding", 0.6), ("manipulating", 0.6))
-RECIPE = """
-recipe: fault_campaign
-description: one phase of each kind, for the fault campaign
-end_ramp_s: 0.1
-phases:
-  - {name: idle, torques: [0, 0, 0, 0, 0, 0, 0, 0, 0], ramp_s: 0.0, max_s: 0.4,
-     on_timeout: next}
-  - {name: approach, torques: [0.06, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03],
-     ramp_s: 0.3, max_s: 0.4, on_timeout: next}
-  - {name: holding, torques: [0.07, 0.05, 0.03, 0.07, 0.05, 0.03, -0.07, -0.05, -0.03],
-     ramp_s: 0.1, max_s: 0.6, on_timeout: next}
-  - {name: manipulating, torques: [0.08, 0.05, 0.03, 0.08, 0.05, 0.03, -0.06, -0.05, -0.03],
-     ramp_s: 0.1, max_s: 0.6, on_timeout: next}
-"""
+#: N·m per joint level (proximal first; deeper levels take the last): the campaign's gentle
+#: closing torques, each phase's own, signed by each finger's flexion. The manipulation phase
+#: pushes the fingers of the flexing-positive side harder than the others, so the hand moves.
+CAMPAIGN_TORQUES = {
+    "approach": (0.06, 0.05, 0.03),
+    "holding": (0.07, 0.05, 0.03),
+    "manipulating": (0.08, 0.05, 0.03),
+}
+MANIPULATING_OTHER_SIDE_J1 = 0.06  # N·m, the first joint of the fingers that flex negative
+#: (name, ramp_s, max_s) of the campaign's phases, one of each kind
+CAMPAIGN_PHASES = (
+    ("idle", 0.0, 0.4),
+    ("approach", 0.3, 0.4),
+    ("holding", 0.1, 0.6),
+    ("manipulating", 0.1, 0.6),
+)
+
+
+def campaign_recipe(hand: HandConfig) -> str:
+    """The campaign's recipe for ``hand``: one phase of each kind, each joint's torque from its
+    level in ``CAMPAIGN_TORQUES``, signed by its finger's flexion and never above half its
+    tau_max (a small hand's joints are not pushed to their limits by a fault test)."""
+    phases: list[dict[str, object]] = []
+    for name, ramp_s, max_s in CAMPAIGN_PHASES:
+        torques: list[float] = []
+        for finger in hand.fingers:
+            sign = flexion_sign(hand, finger)
+            for level, joint in enumerate(finger.joints):
+                if name == "idle":
+                    torques.append(0.0)
+                    continue
+                levels = CAMPAIGN_TORQUES[name]
+                size = levels[min(level, len(levels) - 1)]
+                if name == "manipulating" and level == 0 and sign < 0:
+                    size = MANIPULATING_OTHER_SIDE_J1
+                torques.append(sign * min(size, 0.5 * joint.tau_max))
+        phases.append(
+            {
+                "name": name,
+                "torques": torques,
+                "ramp_s": ramp_s,
+                "max_s": max_s,
+                "on_timeout": "next",
+            }
+        )
+    return json.dumps(
+        {
+            "recipe": "fault_campaign",
+            "description": "one phase of each kind, for the fault campaign",
+            "end_ramp_s": 0.1,
+            "phases": phases,
+        }
+    )  # JSON is YAML
 
 
 @dataclass(frozen=True)
@@ -314,7 +355,7 @@ def run_case(
     to ``log`` (a temporary file when None) and judged on the log as well as on the wire."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "fault_campaign.yaml"
-        path.write_text(RECIPE)
+        path.write_text(campaign_recipe(hand))
         recipe = load_recipe(path, hand)
         return _run_case(
             hand, recipe, injector, phase, seed, log or Path(tmp) / f"{injector}-{phase}.mcap"

@@ -5,9 +5,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from handctl.config import HandConfig
+import pytest
+
+from handctl.config import HandConfig, load_hand
 from handctl.executor import open_pool
-from handctl.harness.campaign import PHASES, read_case_log, run_campaign
+from handctl.harness.campaign import PHASES, read_case_log, run_campaign, run_case
+
+from ..conftest import ROOT
 
 
 def test_cases_on_a_pool_equal_the_cases_here(hand: HandConfig, tmp_path: Path) -> None:
@@ -25,3 +29,13 @@ def test_cases_on_a_pool_equal_the_cases_here(hand: HandConfig, tmp_path: Path) 
         log = read_case_log(tmp_path / f"{r.injector}-{r.phase}.mcap")
         assert r.logged
         assert log.complete and bool(log.faults) == bool(r.fault)
+
+
+@pytest.mark.parametrize("name", ["planar_2f2j", "four_fingers_four_joints"])
+def test_a_case_on_another_shape_of_hand_is_caught(name: str) -> None:
+    """The campaign's recipe, targets and wire decoding come from the hand: on the planar
+    hand and on four fingers of four joints a case runs, and its fault is caught and logged."""
+    hand = load_hand(ROOT / "config" / "hands" / f"{name}.yaml")
+    result = run_case(hand, "tdt_offset", "holding")
+    assert result.fault == "TDT_MISMATCH" and result.unsafe_frames == 0
+    assert result.logged and result.recovered
