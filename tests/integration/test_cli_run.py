@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
+from typing import NoReturn
 
 import pytest
 
@@ -27,6 +28,21 @@ RECIPE = "config/recipes/swap_two_cylinders.yaml"
 #: 3-28 ms at times, is tried this often before the machine's load is blamed (a stop on
 #: LOOP_OVERRUN or FEEDBACK_TIMEOUT is the specified behaviour then, not this test's subject).
 ATTEMPTS_UNDER_LOAD = 5
+#: What a run prints when the bare timer loop beside it stalled as long as the overrun
+#: tolerance: the host itself could not hold the deadlines (``handctl.hostcheck``).
+HOST_FAILED = "the bare timer loop beside it says the host was FAIL"
+
+
+def give_up(what: str, stopped: list[str]) -> NoReturn:
+    """After every attempt was stopped: when the run's own timing probe judged the host FAIL
+    each time, the host cannot show real-time behaviour at all and the test is skipped with
+    its verdict; otherwise the stops were handctl's, and that is a failure."""
+    if stopped and all(HOST_FAILED in text for text in stopped):
+        pytest.skip(
+            f"the host failed its own timing check on all {len(stopped)} attempts: "
+            f"{stopped[-1].strip()}"
+        )
+    raise AssertionError(f"{what}: {stopped}")
 
 
 def handctl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
@@ -165,7 +181,7 @@ def test_realtime_run_on_the_simulated_hand_in_its_own_process(tmp_path: Path) -
             continue
         break
     else:
-        raise AssertionError(f"every attempt was stopped by the machine's load: {stopped}")
+        give_up("every attempt was stopped by the machine's load", stopped)
     # Ended by its time budget: a controlled stop with an outcome of its own, not an interrupt.
     assert done.returncode == 0, done.stderr
     assert summary["mode"] == "realtime"
@@ -317,7 +333,7 @@ def test_a_killed_realtime_host_leaves_no_simulated_hand_and_no_bus_directory(
             return
         finally:
             host.kill()
-    raise AssertionError(f"every attempt was stopped before torque flowed: {stopped}")
+    give_up("every attempt was stopped before torque flowed", stopped)
 
 
 def _controlled_stop(summary: dict[str, object], stderr: str) -> None:
@@ -359,7 +375,7 @@ def test_ctrl_c_on_a_terminal_is_the_same_controlled_stop_in_real_time(tmp_path:
         assert summary["phases"][0]["exit"] == "stopped: signal SIGINT"
         assert not _alive(host.sim_pid)
         return
-    raise AssertionError(f"every attempt was stopped by the machine's load: {outcomes}")
+    give_up("every attempt was stopped by the machine's load", outcomes)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -432,9 +448,7 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
                 assert "STARTUP" not in faults, f"{run} run: {done.stderr}"
                 failures.append(done.stderr)
             else:
-                raise AssertionError(
-                    f"{run} run: every attempt was stopped by the load: {failures}"
-                )
+                give_up(f"{run} run: every attempt was stopped by the load", failures)
         assert sim.poll() is None, log.read_text()
     finally:
         sim.send_signal(signal.SIGINT)
