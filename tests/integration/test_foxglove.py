@@ -378,14 +378,14 @@ def check_log(decoded: dict[str, list[tuple[int, Any]]]) -> None:
             assert log.level == 2  # INFO
 
 
-def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
-    """``handctl replay RUN.mcap --live PORT`` serves the file's channels at its own pace
-    (the recorded pace: a client that subscribes to the 1 kHz channels keeps up with it)."""
+def replay_live(log: Path, cwd: Path) -> tuple[Live, bytes]:
+    """``handctl replay LOG --live PORT`` with the viewer-like clients listening; what they
+    received and what the command printed, once it exited 0."""
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with subprocess.Popen(
-        [sys.executable, "-m", "handctl", "replay", str(run.path), "--live", str(port)],
-        cwd=tmp_path,
+        [sys.executable, "-m", "handctl", "replay", str(log), "--live", str(port)],
+        cwd=cwd,
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -397,6 +397,13 @@ def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
             if proc.poll() is None:
                 proc.kill()
     assert proc.returncode == 0, err.decode()
+    return live, out
+
+
+def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
+    """``handctl replay RUN.mcap --live PORT`` serves the file's channels at its own pace
+    (the recorded pace: a client that subscribes to the 1 kHz channels keeps up with it)."""
+    live, out = replay_live(run.path, tmp_path)
     for topic in WANTED:
         assert len(live.received[topic]) >= 3, topic
     assert b"messages streamed" in out
@@ -454,21 +461,6 @@ def test_replay_live_plays_a_truncated_log_to_its_cut(run: Run, tmp_path: Path) 
     cut = tmp_path / "cut.mcap"
     data = run.path.read_bytes()
     cut.write_bytes(data[: len(data) // 2])
-    port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    with subprocess.Popen(
-        [sys.executable, "-m", "handctl", "replay", str(cut), "--live", str(port)],
-        cwd=tmp_path,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    ) as proc:
-        try:
-            live = asyncio.run(listen(port, proc, enough=3))
-            out, err = proc.communicate(timeout=300)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-    assert proc.returncode == 0, err.decode()
+    live, out = replay_live(cut, tmp_path)
     assert b"TRUNCATED" in out
     assert len(live.received[fx.SCENE]) >= 3
