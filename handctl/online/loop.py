@@ -39,6 +39,7 @@ from handctl import protocol as wire
 from handctl.config import HandConfig
 from handctl.online.bus import BusEvent
 from handctl.online.clock import Clock, Tick
+from handctl.online.collector import LoopCollector
 from handctl.online.drivers import finger, receiver
 from handctl.online.drivers.hand import AppliedTorques, HandDriver
 from handctl.online.recipes import runner as recipe_runner
@@ -203,6 +204,8 @@ class Runtime:
         self.first_send_tick = -1
         self.startup_missed_ticks = 0
         self.tick_hooks: list[Callable[[Tick], None]] = []
+        #: Garbage collection between ticks only, for the length of ``run`` (collector.py).
+        self.collector = LoopCollector()
         self._stats = TickStats(len(STAGES), window_ticks)
         self._max_abs = np.zeros(hand.n_joints)
         self._missed = 0
@@ -256,18 +259,19 @@ class Runtime:
     # -- the run --------------------------------------------------------------------------
     async def run(self) -> RunResult:
         try:
-            try:
-                outcome, message = await self._run()
-            except Exception as exc:  # any stage: a safety stop, never a crash (module doc)
-                if isinstance(exc, EndOfTicks) and self.clock.lockstep:
+            with self.collector.running():  # the stop's ticks too
+                try:
+                    outcome, message = await self._run()
+                except Exception as exc:  # any stage: a safety stop, never a crash (module doc)
+                    if isinstance(exc, EndOfTicks) and self.clock.lockstep:
+                        raise
+                    outcome, message = await self._stop_after_exception(exc)
+                except BaseException:
+                    # Ctrl-C without a signal handler, a cancelled task, SystemExit: no tick is
+                    # left to wait for, so zero and disable at once (in this order on the bus).
+                    self.driver.send_zero()
+                    self.driver.send_disable()
                     raise
-                outcome, message = await self._stop_after_exception(exc)
-            except BaseException:
-                # Ctrl-C without a signal handler, a cancelled task, SystemExit: no tick is
-                # left to wait for, so zero and disable at once (in this order on the bus).
-                self.driver.send_zero()
-                self.driver.send_disable()
-                raise
         finally:
             self.clock.close()
         return self._result(outcome, message)
@@ -456,7 +460,9 @@ class Runtime:
         return f"nodes not ready within {self.startup_ticks} ticks: {detail}"
 
     async def _next_tick(self) -> Tick:
-        """Every tick of the run starts here, so the recorder sees each one before its poll."""
+        """Every tick of the run starts here, so the recorder sees each one before its poll;
+        the garbage the ticks before it left is collected here too, if it is time to."""
+        self.collector.after_tick()
         tk = await self.clock.wait_tick()
         if self.recorder is not None:
             self.recorder.begin_tick(tk)
