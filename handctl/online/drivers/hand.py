@@ -91,9 +91,15 @@ class HandDriver:
             for node, sl in zip(self.nodes, self._slices, strict=True)
         ]
         n = hand.n_joints
-        self._tdt_scale = np.array([j.tdt.scale for j in hand.joints])
-        self._tdt_offset = np.array([j.tdt.offset for j in hand.joints])
-        self._tdt_raw = np.zeros(n)  # N·m as the nodes report it, before calibration
+        # The poll's working copies, plain floats (nine joints: a list is cheaper to fill
+        # than an array), written into ``state``'s arrays once a poll.
+        self._calibration = [(j.tdt.scale, j.tdt.offset) for j in hand.joints]
+        self._angle = [0.0] * n
+        self._tdt_raw = [0.0] * n  # N·m as the nodes report it, before calibration
+        self._feedback_ns = [-1] * n
+        #: Per node: where its joints start, how many, and the feedback last folded in.
+        self._spans = [(sl.start, sl.stop - sl.start) for sl in self._slices]
+        self._folded: list[object] = [None] * len(self.nodes)
         self.state = JointState(
             np.zeros(n),
             np.zeros(n),
@@ -124,18 +130,33 @@ class HandDriver:
                     ids[frame_id] = ids.get(frame_id, 0) + 1
                 continue
             node.receive(frame_id, frame.data, frame.timestamp_ns)
-        self.bus_events.extend(self.bus.events())
+        events = self.bus.events()
+        if events:
+            self.bus_events.extend(events)
         state = self.state
-        for i, (node, sl) in enumerate(zip(self.nodes, self._slices, strict=True)):
+        angle, tdt_raw, feedback_ns, folded = (
+            self._angle,
+            self._tdt_raw,
+            self._feedback_ns,
+            self._folded,
+        )
+        node_state, node_faults = state.node_state, state.node_faults
+        for i, node in enumerate(self.nodes):
             fb = node.feedback
-            if fb is not None and node.feedback_ns is not None:
-                state.angle[sl] = fb.angles[: sl.stop - sl.start]
-                self._tdt_raw[sl] = fb.tdt[: sl.stop - sl.start]
-                state.feedback_ns[sl] = node.feedback_ns
-            state.node_state[i] = node.state
-            state.node_faults[i] = node.fault_bits
-        np.multiply(self._tdt_raw, self._tdt_scale, out=state.tdt)
-        state.tdt += self._tdt_offset
+            if fb is not None and node.feedback_ns is not None and fb is not folded[i]:
+                folded[i] = fb  # a node's Feedback is a new object per accepted frame
+                start, k = self._spans[i]
+                stop = start + k
+                angle[start:stop] = fb.angles[:k]
+                tdt_raw[start:stop] = fb.tdt[:k]
+                feedback_ns[start:stop] = [node.feedback_ns] * k
+            node_state[i] = node.state
+            node_faults[i] = node.fault_bits
+        # Every poll, as before: whatever the arrays were made to hold, they hold the poll's.
+        state.angle[:] = angle
+        state.feedback_ns[:] = feedback_ns
+        # raw * scale + offset, rounded as the arrays' multiply and add round it
+        state.tdt[:] = [r * c[0] + c[1] for r, c in zip(tdt_raw, self._calibration, strict=True)]
         return state
 
     def drain_budget(self, now_ns: int) -> int:
@@ -183,13 +204,17 @@ class HandDriver:
         Returns False when any frame could not be sent (the bus event says why).
         """
         ok = True
+        values = torques.tolist()  # one conversion for every node, plain floats after
+        bus = self.bus
         last = len(self.nodes) - 1
-        for i, (node, sl, pad) in enumerate(zip(self.nodes, self._slices, self._pads, strict=True)):
-            values = torques[sl].tolist()
+        for i, (node, (start, k), pad) in enumerate(
+            zip(self.nodes, self._spans, self._pads, strict=True)
+        ):
+            mine = values[start : start + k]
             if pad:
-                values += pad
-            frame_id, data = node.next_command(values)
-            ok = self.bus.send(frame_id, data, more=i < last) and ok
+                mine += pad
+            frame_id, data = node.next_command(mine)
+            ok = bus.send(frame_id, data, more=i < last) and ok
         return ok
 
     # -- the stop that needs no codec -----------------------------------------------------
