@@ -42,6 +42,7 @@ import can
 
 from handctl.config import BusConfig
 from handctl.errors import BusError
+from handctl.online import frameflags as ff
 from handctl.online.busspec import BusSpec, bus_kwargs, check_socketcan, parse_spec
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.online.virtualcan import ArrivalStampedVirtualBus
@@ -70,6 +71,19 @@ class BurstTransport(Protocol):
     refused the burst, and with no messages offers again what it still holds, if anything."""
 
     def send_burst(self, messages: Sequence[can.Message]) -> None: ...
+
+
+@runtime_checkable
+class FrameTransport(Protocol):
+    """A python-can bus that also exchanges frames as plain tuples, without building a
+    ``can.Message`` per frame (the unix bus): ``HandBus`` then sends and drains through these
+    two, and uses python-can's ``send``/``recv`` for nothing else but error frames sent.
+    Flags are ``handctl.online.frameflags``; ``send_frames`` is one burst, and raises as
+    ``BurstTransport.send_burst`` does."""
+
+    def send_frames(self, frames: Sequence[tuple[int, int, bytes]]) -> None: ...
+
+    def recv_frame(self) -> tuple[float, int, int, bytes] | None: ...
 
 
 @runtime_checkable
@@ -191,6 +205,9 @@ class HandBus:
         self.received = 0
         self.closed = False
         self._bursts = bus if isinstance(bus, BurstTransport) else None
+        self._frames = bus if isinstance(bus, FrameTransport) else None
+        #: The flags of every frame this bus sends (``FrameTransport``).
+        self._send_flags = ff.FD | ff.BRS if fd else 0
         # The burst under way on a BurstTransport, held until flush: its frames for the counts
         # and the taps, and the messages for the transport (error frames too).
         self._burst: list[tuple[int, bytes]] = []
@@ -199,9 +216,9 @@ class HandBus:
         self._take = bus.take if isinstance(bus, ArrivalStampedVirtualBus) else None
         if isinstance(bus, ArrivalStampedVirtualBus):
             bus.clock_ns = self._now_ns
-        #: The message a drain read past its limit, to tell whether frames were left: the
-        #: first of the next drain. ``(arrival_ns, message)``.
-        self._lookahead: tuple[int, can.Message] | None = None
+        #: The frame a drain read past its limit, to tell whether frames were left: the
+        #: first of the next drain. ``(arrival_ns, arbitration_id, flags, data)``.
+        self._lookahead: tuple[int, int, int, bytes] | None = None
         #: The recorder's taps: every frame drained or sent, and every event as it is taken.
         self.tap: FrameTap | None = None
         self.rx_tap: RxTap | None = None
@@ -214,16 +231,38 @@ class HandBus:
     def _now_ns(self) -> int:
         return self._clock_ns()
 
-    def _receive(self, wall_to_clock_ns: int) -> tuple[int, can.Message] | None:
-        """The next message and its arrival time on this bus's clock, or None."""
+    def _receive(self, wall_to_clock_ns: int) -> tuple[int, int, int, bytes] | None:
+        """The next frame, ``(arrival_ns, arbitration_id, flags, data)`` with its arrival
+        on this bus's clock, or None."""
+        if self._frames is not None:
+            raw = self._frames.recv_frame()
+            if raw is None:
+                return None
+            stamp_s, frame_id, flags, data = raw
+            return self._arrival_ns(stamp_s, wall_to_clock_ns), frame_id, flags, data
         if self._take is not None:
-            return self._take()
-        msg = self._bus.recv(timeout=0)
-        if msg is None:
-            return None
-        if msg.timestamp <= 0:  # an interface that stamps nothing: the time of reading
-            return self._clock_ns(), msg
-        return round(msg.timestamp * 1e9) + wall_to_clock_ns, msg
+            item = self._take()
+            if item is None:
+                return None
+            stamp, msg = item
+        else:
+            received = self._bus.recv(timeout=0)
+            if received is None:
+                return None
+            msg, stamp = received, self._arrival_ns(received.timestamp, wall_to_clock_ns)
+        flags = (
+            (ff.FD if msg.is_fd else 0)
+            | (ff.ERROR if msg.is_error_frame else 0)
+            | (ff.EXTENDED if msg.is_extended_id else 0)
+        )
+        return stamp, msg.arbitration_id, flags, bytes(msg.data)
+
+    def _arrival_ns(self, stamp_s: float, wall_to_clock_ns: int) -> int:
+        """A wall-clock arrival stamp (s) on this bus's clock; an interface that stamps
+        nothing (0) gets the time of reading."""
+        if stamp_s <= 0:
+            return self._clock_ns()
+        return round(stamp_s * 1e9) + wall_to_clock_ns
 
     def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]:
         """The frames that have arrived, ``limit`` at most, without waiting; error frames
@@ -246,16 +285,15 @@ class HandBus:
                     self._event(BusEventKind.RX_BACKLOG, f"{limit} frames drained and more waiting")
                     break
                 count += 1
-                stamp, msg = item
+                stamp, frame_id, flags, data = item
                 item = None
-                if msg.is_error_frame:
-                    self._error_frame(msg)
+                if flags & ff.ERROR:
+                    self._error_frame(frame_id, data)
                     continue
                 self.received += 1
-                frame_id = msg.arbitration_id
-                if msg.is_extended_id:
+                if flags & ff.EXTENDED:
                     frame_id = (frame_id & EXTENDED_ID_MASK) | EXTENDED_ID_FLAG
-                frames.append(Frame(frame_id, bytes(msg.data), min(stamp, now), msg.is_fd))
+                frames.append(Frame(frame_id, data, min(stamp, now), bool(flags & ff.FD)))
         except (can.CanError, OSError, ValueError) as exc:
             self._event(BusEventKind.RX_FAILED, str(exc))
         if frames and self.rx_tap is not None:
@@ -270,6 +308,11 @@ class HandBus:
         (at most ``MAX_BURST`` frames): ``send`` returns True for it, and it is counted and
         tapped when the burst goes, with the burst's fate.
         """
+        if self._frames is not None:
+            self._burst.append((arbitration_id, data))
+            if more and len(self._burst) < MAX_BURST:
+                return True
+            return self.flush()
         extended = bool(arbitration_id & EXTENDED_ID_FLAG)
         msg = _Message(
             arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended else arbitration_id,
@@ -306,13 +349,25 @@ class HandBus:
         each of its frames is then counted in ``tx_failed`` and tapped as failed. Other buses
         send at once, so there is nothing to do.
         """
-        if self._bursts is None:
+        if self._bursts is None and self._frames is None:
             return True
         burst, self._burst = self._burst, []
         messages, self._burst_messages = self._burst_messages, []
         ok = True
         try:
-            self._bursts.send_burst(messages)
+            if self._frames is not None:
+                flags = self._send_flags
+                self._frames.send_frames(
+                    [
+                        (i & EXTENDED_ID_MASK, flags | ff.EXTENDED, data)
+                        if i & EXTENDED_ID_FLAG
+                        else (i, flags, data)
+                        for i, data in burst
+                    ]
+                )
+            else:
+                assert self._bursts is not None
+                self._bursts.send_burst(messages)
         except (can.CanError, OSError, ValueError) as exc:
             self._tx_error(exc)
             ok = False
@@ -353,7 +408,9 @@ class HandBus:
             data=data,
             check=False,
         )
-        if self._bursts is not None:
+        if self._frames is not None and self._burst:
+            self.flush()  # the frames held go first, in order
+        if self._bursts is not None and self._frames is None:
             self._burst_messages.append(msg)
             return self.flush()
         try:
@@ -372,7 +429,7 @@ class HandBus:
 
     def close(self) -> None:
         if not self.closed:
-            if self._burst_messages:
+            if self._burst_messages or self._burst:
                 self.flush()
             self.closed = True
             self._bus.shutdown()
@@ -386,14 +443,13 @@ class HandBus:
     def _event(self, kind: BusEventKind, detail: str) -> None:
         self._events.append(BusEvent(kind, detail, self._clock_ns()))
 
-    def _error_frame(self, msg: can.Message) -> None:
-        cls = msg.arbitration_id
+    def _error_frame(self, cls: int, data: bytes) -> None:
         if cls & _CAN_ERR_BUSOFF:
             self._event(BusEventKind.BUS_OFF, f"error class 0x{cls:X}")
         elif cls & _CAN_ERR_RESTARTED:
             self._event(BusEventKind.BUS_RESTARTED, f"error class 0x{cls:X}")
-        elif cls & _CAN_ERR_CRTL and len(msg.data) > 1 and msg.data[1] & _CAN_ERR_CRTL_PASSIVE:
-            self._event(BusEventKind.ERROR_PASSIVE, f"controller 0x{msg.data[1]:02X}")
+        elif cls & _CAN_ERR_CRTL and len(data) > 1 and data[1] & _CAN_ERR_CRTL_PASSIVE:
+            self._event(BusEventKind.ERROR_PASSIVE, f"controller 0x{data[1]:02X}")
         else:
             self._event(BusEventKind.ERROR_FRAME, f"error class 0x{cls:X}")
 

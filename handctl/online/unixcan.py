@@ -23,6 +23,8 @@ from typing import Any
 
 import can
 
+from handctl.online import frameflags as ff
+
 #: ``SO_TIMESTAMPNS`` (Linux, asm-generic; Python's socket module does not name it): the
 #: kernel stamps each datagram as it is queued for the receiving socket.
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
@@ -31,7 +33,6 @@ _TIMESPEC = struct.Struct("@qq")
 #: Per frame: the sender's time (s; diagnostics only: a frame is stamped on arrival by the
 #: receiver's kernel), arbitration id, flags, data length; then the data.
 _WIRE = struct.Struct("<dIBB")
-_FD, _BRS, _ERR, _ESI, _EXT = 1, 2, 4, 8, 16
 _unix_ids = itertools.count()
 #: Frames per datagram at most; a burst beyond it goes out in several datagrams.
 _BATCH = 32
@@ -99,7 +100,7 @@ class UnixDatagramBus(can.BusABC):
         self._peers: list[str] = []
         self._peers_at = 0.0
         self._held: dict[str, list[bytes]] = {}  # per receiver: frames its full queue refused
-        self._inbox: list[can.Message] = []
+        self._inbox: list[tuple[float, int, int, bytes]] = []  # newest first
         self._can_protocol = can.CanProtocol.CAN_FD
         self.datagrams_sent = 0
         self.queue_full = 0
@@ -143,7 +144,19 @@ class UnixDatagramBus(can.BusABC):
         participant; raise ``TransmitQueueFull`` if a receiver's transmit queue had no room.
         No messages: only what is held is offered again."""
         now = time.time()
-        frames = [_encode(msg, now) for msg in messages]
+        self._send_wire([_encode(msg, now) for msg in messages])
+
+    def send_frames(self, frames: Sequence[tuple[int, int, bytes]]) -> None:
+        """``send_burst`` of frames given as ``(arbitration_id, flags, data)``
+        (``handctl.online.frameflags``), without python-can's ``Message``
+        (``bus.FrameTransport``)."""
+        now = time.time()
+        pack = _WIRE.pack
+        self._send_wire([pack(now, i, flags, len(data)) + data for i, flags, data in frames])
+
+    def _send_wire(self, frames: list[bytes]) -> None:
+        """Send what is held, then ``frames`` (each on the wire already), to every other
+        participant; raise ``TransmitQueueFull`` as ``send_burst`` says."""
         if not frames and not self._held:
             return
         self._refresh_peers()
@@ -198,27 +211,24 @@ class UnixDatagramBus(can.BusABC):
             return False
         stamp = _arrival_s(ancillary)
         offset = 0
-        while offset + _WIRE.size <= len(payload):
-            _, frame_id, flags, length = _WIRE.unpack_from(payload, offset)
-            offset += _WIRE.size
-            self._inbox.append(
-                can.Message(
-                    timestamp=stamp,
-                    arbitration_id=frame_id,
-                    is_extended_id=bool(flags & _EXT),
-                    is_fd=bool(flags & _FD),
-                    bitrate_switch=bool(flags & _BRS),
-                    is_error_frame=bool(flags & _ERR),
-                    error_state_indicator=bool(flags & _ESI),
-                    data=payload[offset : offset + length],
-                    channel=self.channel_info,
-                    is_rx=True,
-                    check=False,
-                )
-            )
+        size = _WIRE.size
+        unpack = _WIRE.unpack_from
+        append = self._inbox.append
+        while offset + size <= len(payload):
+            _, frame_id, flags, length = unpack(payload, offset)
+            offset += size
+            append((stamp, frame_id, flags, payload[offset : offset + length]))
             offset += length
         self._inbox.reverse()  # popped from the end, in arrival order
         return True
+
+    def recv_frame(self) -> tuple[float, int, int, bytes] | None:
+        """The next frame without waiting, as ``(arrival_s, arbitration_id, flags, data)``
+        (``handctl.online.frameflags``), or None: what ``HandBus`` drains, without building a
+        python-can ``Message`` (``bus.FrameTransport``)."""
+        if not self._inbox and not self._read_datagram():
+            return None
+        return self._inbox.pop() if self._inbox else None
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if not self._inbox and not self._read_datagram():
@@ -229,7 +239,21 @@ class UnixDatagramBus(can.BusABC):
                 return None, False
         if not self._inbox:
             return None, False
-        return self._inbox.pop(), False
+        stamp, frame_id, flags, data = self._inbox.pop()
+        msg = can.Message(
+            timestamp=stamp,
+            arbitration_id=frame_id,
+            is_extended_id=bool(flags & ff.EXTENDED),
+            is_fd=bool(flags & ff.FD),
+            bitrate_switch=bool(flags & ff.BRS),
+            is_error_frame=bool(flags & ff.ERROR),
+            error_state_indicator=bool(flags & ff.ESI),
+            data=data,
+            channel=self.channel_info,
+            is_rx=True,
+            check=False,
+        )
+        return msg, False
 
     def fileno(self) -> int:
         return self._sock.fileno()
@@ -259,11 +283,11 @@ _ANCILLARY_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
 def _encode(msg: can.Message, sent_s: float) -> bytes:
     """One frame on the wire: ``_WIRE``'s header, then the data."""
     flags = (
-        (_FD if msg.is_fd else 0)
-        | (_BRS if msg.bitrate_switch else 0)
-        | (_ERR if msg.is_error_frame else 0)
-        | (_ESI if msg.error_state_indicator else 0)
-        | (_EXT if msg.is_extended_id else 0)
+        (ff.FD if msg.is_fd else 0)
+        | (ff.BRS if msg.bitrate_switch else 0)
+        | (ff.ERROR if msg.is_error_frame else 0)
+        | (ff.ESI if msg.error_state_indicator else 0)
+        | (ff.EXTENDED if msg.is_extended_id else 0)
     )
     data = bytes(msg.data)
     return _WIRE.pack(sent_s, msg.arbitration_id, flags, len(data)) + data
