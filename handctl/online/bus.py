@@ -239,7 +239,9 @@ class HandBus:
             if raw is None:
                 return None
             stamp_s, frame_id, flags, data = raw
-            return self._arrival_ns(stamp_s, wall_to_clock_ns), frame_id, flags, data
+            if stamp_s > 0:  # ``_arrival_ns``, inline: this is every frame of a real-time run
+                return round(stamp_s * 1e9) + wall_to_clock_ns, frame_id, flags, data
+            return self._clock_ns(), frame_id, flags, data
         if self._take is not None:
             item = self._take()
             if item is None:

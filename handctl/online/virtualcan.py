@@ -51,6 +51,8 @@ class ArrivalStampedVirtualBus(_virtual.VirtualBus):
         """The next ``(arrival_ns, message)``, or None when the queue is empty."""
         if not self._open:
             raise can.CanOperationError("Cannot operate on a closed bus")
+        if not self.queue.queue:  # empty: no lock taken and no exception raised to say so
+            return None
         try:
             return self.queue.get_nowait()  # type: ignore[return-value]
         except queue.Empty:

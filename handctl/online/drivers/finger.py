@@ -175,7 +175,10 @@ class FingerNode:
             fb = parse_feedback(values)
             self.feedback = fb
             self.feedback_ns = arrival_ns
-            self._report(fb.state, fb.fault_bits, "Feedback")
+            if fb.fault_bits == 0 and fb.state == self.state:  # every tick, as a rule
+                self.fault_bits = 0  # all ``_report`` would do: nothing to contradict
+            else:
+                self._report(fb.state, fb.fault_bits, "Feedback")
         elif layout is self.layouts.heartbeat:
             state, uptime = int(values[0]), int(values[1])
             if self.uptime_ms is not None and uptime < self.uptime_ms:
