@@ -229,10 +229,10 @@ class Supervisor:
                 # A late tick repeats the last applied command once, rather than stepping the
                 # rate limiter over an interval it did not see.
                 return self.applied
+            # Straight into ``applied``: the limiter reads the last applied torques first.
             self.limited_joints = limit_torque(
-                target, self.applied, self.limits, self.dt, self._scratch
+                target, self.applied, self.limits, self.dt, self.applied
             )
-            self.applied[:] = self._scratch
         elif state is State.STOPPING:
             limit_torque(np.zeros(self.n), self.applied, self.limits, self.dt, self._scratch)
             self.applied[:] = self._scratch
