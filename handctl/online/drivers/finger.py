@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from handctl.config import FingerConfig
 from handctl.online.drivers.receiver import CounterCheck, Reject, RejectCounts, validate
@@ -76,9 +77,12 @@ def make_node_command(layout: Layout, counter: int, command: str) -> tuple[int, 
     return layout.frame_id, layout.encode(counter, (NODE_COMMANDS[command],))
 
 
-@dataclass(frozen=True, slots=True)
-class Feedback:
-    """One decoded feedback frame, before the host's TDT calibration."""
+class Feedback(NamedTuple):
+    """One decoded feedback frame, before the host's TDT calibration.
+
+    A named tuple, not a frozen dataclass: one is built for every feedback frame, three or more
+    a tick, and a frozen dataclass's constructor sets each field through ``object.__setattr__``
+    (about three times the cost). Immutable all the same."""
 
     tdt: tuple[float, ...]  # N·m, node calibration, one per joint on the wire
     angles: tuple[float, ...]  # rad
