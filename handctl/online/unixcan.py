@@ -42,6 +42,9 @@ _BATCH = 32
 #: and a receiver that stopped reading must still be reported within a few dozen ticks (the
 #: host's BUS_ERROR after consecutive failed sends), not hidden behind a deep queue.
 TX_QUEUE_FRAMES = 64
+#: ns: a directory modified longer ago than this is as it was at the last listing if its
+#: modification time has not changed since (``_refresh_peers``).
+_SETTLED_NS = 1_000_000_000
 #: How long ``shutdown`` keeps offering held frames to receivers that are still reading.
 _SHUTDOWN_S = 0.02
 
@@ -96,6 +99,14 @@ class UnixDatagramBus(can.BusABC):
             self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         self._sock.bind(str(self._path))
         self._sock.setblocking(False)
+        # Readiness asked of the kernel before a read: an empty socket answers a poll in
+        # well under a µs, a read of it with an exception several µs, at the end of every drain.
+        self._ready = select.poll()
+        self._ready.register(self._sock, select.POLLIN)
+        #: Per receiver, a socket connected to it: a send on it skips the kernel's lookup of
+        #: the receiver's path, which costs as much as the send itself.
+        self._links: dict[str, socket.socket] = {}
+        self._directory_mtime_ns: int | None = None
         self._own = receive_own_messages
         self._peers: list[str] = []
         self._peers_at = 0.0
@@ -124,13 +135,30 @@ class UnixDatagramBus(can.BusABC):
         }
 
     def _refresh_peers(self) -> None:
-        """Re-list the participants at most every 50 ms: joining is rare, sending is not."""
+        """Re-list the participants at most every 50 ms: joining is rare, sending is not.
+
+        A listing costs tens of µs, so it is skipped while the directory is as it was at the
+        last one (its modification time the same, and older than ``_SETTLED_NS``: a time
+        stamp that coarse file systems may still share with a later change)."""
         now = time.monotonic()
         if now - self._peers_at < 0.05:
             return
         self._peers_at = now
+        try:
+            mtime: int | None = os.stat(self.directory).st_mtime_ns
+        except OSError:
+            mtime = None
+        if (
+            mtime is not None
+            and mtime == self._directory_mtime_ns
+            and time.time_ns() - mtime > _SETTLED_NS
+        ):
+            return
+        self._directory_mtime_ns = mtime
         mine = str(self._path)
         self._peers = [str(p) for p in self.directory.glob("*.sock") if self._own or str(p) != mine]
+        for gone in [p for p in self._links if p not in self._peers]:
+            self._links.pop(gone).close()
         for gone in [p for p in self._held if p not in self._peers]:
             del self._held[gone]
 
@@ -183,7 +211,8 @@ class UnixDatagramBus(can.BusABC):
         while done < total:
             chunk = frames if total <= _BATCH else frames[done : done + _BATCH]
             try:
-                self._sock.sendto(b"".join(chunk), peer)
+                link = self._links.get(peer) or self._link(peer)
+                link.send(b"".join(chunk))
             except (ConnectionRefusedError, FileNotFoundError):
                 self._forget(peer)  # its owner is gone
                 return
@@ -195,14 +224,31 @@ class UnixDatagramBus(can.BusABC):
             done += len(chunk)
         self._held.pop(peer, None)
 
+    def _link(self, peer: str) -> socket.socket:
+        """A non-blocking socket connected to ``peer``, kept for the next sends to it."""
+        link = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        link.setblocking(False)
+        try:
+            link.connect(peer)
+        except OSError:
+            link.close()
+            raise
+        self._links[peer] = link
+        return link
+
     def _forget(self, peer: str) -> None:
         self._peers.remove(peer)
         self._held.pop(peer, None)
+        link = self._links.pop(peer, None)
+        if link is not None:
+            link.close()
         if peer != str(self._path):
             with _suppress_oserror():
                 os.unlink(peer)
 
     def _read_datagram(self) -> bool:
+        if not self._ready.poll(0):
+            return False
         try:
             payload, ancillary, _, _ = self._sock.recvmsg(
                 _BATCH * (_WIRE.size + 64), _ANCILLARY_SIZE
@@ -272,6 +318,9 @@ class UnixDatagramBus(can.BusABC):
                 time.sleep(0.001)
                 self._flush_quietly()
             self._sock.close()
+            for link in self._links.values():
+                link.close()
+            self._links.clear()
             with _suppress_oserror():
                 self._path.unlink()
         super().shutdown()

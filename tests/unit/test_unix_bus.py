@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -199,3 +200,42 @@ def test_handbus_frames_cross_to_and_from_python_can_unchanged(
         (0x12345 | EXTENDED_ID_FLAG, b"\x01", True),
     ]
     assert [e.kind for e in events] == [BusEventKind.BUS_OFF]
+
+
+def test_the_participants_are_listed_again_only_when_the_directory_changed(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A listing of the bus directory costs tens of µs: a sender lists it again only when
+    the directory changed, and a participant that joins or leaves is still seen."""
+    from handctl.online import unixcan
+
+    monkeypatch.setattr(unixcan, "_SETTLED_NS", 0)  # any unchanged directory is settled
+    listings = [0]
+    glob = Path.glob
+
+    def counting(self: Path, pattern: str) -> Any:
+        listings[0] += 1
+        return glob(self, pattern)
+
+    monkeypatch.setattr(Path, "glob", counting)
+    channel = f"unix:{tmp_path / 'bus'}"
+
+    def send_after_refresh(tx: HandBus, frame_id: int) -> None:
+        tx._bus._peers_at = 0.0  # type: ignore[attr-defined]  # the 50 ms are up
+        assert tx.send(frame_id, b"\x01")
+
+    with open_bus(channel, hand.bus) as tx, open_bus(channel, hand.bus) as first:
+        send_after_refresh(tx, 0x101)
+        assert [f.arbitration_id for f in first.drain()] == [0x101]
+        before = listings[0]
+        send_after_refresh(tx, 0x102)
+        assert listings[0] == before  # nothing changed: no listing
+        assert [f.arbitration_id for f in first.drain()] == [0x102]
+        with open_bus(channel, hand.bus) as second:
+            send_after_refresh(tx, 0x103)
+            assert listings[0] == before + 1
+            assert [f.arbitration_id for f in second.drain()] == [0x103]
+            assert [f.arbitration_id for f in first.drain()] == [0x103]
+        send_after_refresh(tx, 0x104)  # the second one left
+        assert listings[0] == before + 2
+        assert [f.arbitration_id for f in first.drain()] == [0x104]
