@@ -15,9 +15,11 @@ handctl's (``missed_handctl``: it did not). Target: ``missed_handctl`` 0.
 ``tick_cost`` is the CPU cost of the tick, stage by stage, of this tree beside the tree of
 ``--baseline`` (a git revision; by default the one before the tick's cost was cut, issue #17),
 in the same benchmark run: each runs ``tools/tick_cost.py`` (a lockstep hold, the same work
-every time) in a process of its own, alternately, ``--tick-cost-rounds`` times, over the unix
-bus (a real-time run's transport) and the virtual bus (a lockstep run's). Per stage the median
-over the rounds of each p50 and p99, and ``ratio_*``: this tree's over the baseline's.
+every time) in a process of its own, both at once (whatever else loads the host loads both),
+``--tick-cost-rounds`` times, over the unix bus (a real-time run's transport) and the virtual
+bus (a lockstep run's). Per stage the median over the rounds of each p50 and p99, and
+``ratio_*``: this tree's over the baseline's. The recipe and feedback stages (the recipe
+runner's) are a control where the runner did not change.
 
 ``--rt --hygiene`` runs the loop once per real-time measure added in turn (SCHED_FIFO alone,
 then separate CPUs, locked memory, prefaulted memory), each in a fresh process (a priority,
@@ -36,6 +38,7 @@ import sys
 import tarfile
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -140,7 +143,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"(default {BASELINE_REV}, before the cost was cut)",
     )
     parser.add_argument(
-        "--tick-cost-rounds", type=int, default=2, help="alternating runs of each tree"
+        "--tick-cost-rounds", type=int, default=3, help="runs of the two trees side by side"
     )
     parser.add_argument(
         "--tick-cost-seconds", type=float, default=1.5, help="the hold of each such run"
@@ -387,11 +390,13 @@ def tick_cost(hand: Path, baseline: str, rounds: int, seconds: float) -> dict[st
         }
         for k in range(rounds):
             for transport in TRANSPORTS:
-                for name, tree in trees.items():
-                    print(
-                        f"tick cost {k + 1}/{rounds}: {name}, {transport} bus ...", file=sys.stderr
-                    )
-                    runs[transport][name].append(_cost_run(tree, hand, transport, seconds))
+                print(f"tick cost {k + 1}/{rounds}: {transport} bus ...", file=sys.stderr)
+                # Both trees at once: whatever else loads the host then loads both alike.
+                started = {
+                    name: _cost_run(tree, hand, transport, seconds) for name, tree in trees.items()
+                }
+                for name, finish in started.items():
+                    runs[transport][name].append(finish())
     out: dict[str, Any] = {"baseline": baseline, "rounds": rounds, "seconds": seconds}
     for transport, by_tree in runs.items():
         failed = [r["error"] for results in by_tree.values() for r in results if "error" in r]
@@ -428,8 +433,11 @@ def _extract(rev: str, into: Path) -> str:
     return ""
 
 
-def _cost_run(tree: str, hand: Path, transport: str, seconds: float) -> dict[str, Any]:
-    """One ``tick_cost.py`` run with ``tree``'s handctl first on the path."""
+def _cost_run(
+    tree: str, hand: Path, transport: str, seconds: float
+) -> Callable[[], dict[str, Any]]:
+    """One ``tick_cost.py`` run with ``tree``'s handctl first on the path, started; the
+    function returned waits for its figures."""
     cmd = [
         sys.executable,
         str(Path(__file__).resolve().parent / "tick_cost.py"),
@@ -441,13 +449,18 @@ def _cost_run(tree: str, hand: Path, transport: str, seconds: float) -> dict[str
         str(seconds),
     ]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([tree, os.environ.get("PYTHONPATH", "")])}
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
-    if done.returncode != 0:
-        return {"error": f"{tree}: exit {done.returncode}: {done.stderr.strip()[-300:]}"}
-    figures: dict[str, Any] = json.loads(done.stdout)
-    if figures.get("outcome") != "completed":
-        return {"error": f"{tree}: {figures.get('outcome')}: {figures.get('message')}"}
-    return figures
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+    def finish() -> dict[str, Any]:
+        out, err = proc.communicate()
+        if proc.returncode != 0:
+            return {"error": f"{tree}: exit {proc.returncode}: {err.strip()[-300:]}"}
+        figures: dict[str, Any] = json.loads(out)
+        if figures.get("outcome") != "completed":
+            return {"error": f"{tree}: {figures.get('outcome')}: {figures.get('message')}"}
+        return figures
+
+    return finish
 
 
 def _median_figures(results: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
