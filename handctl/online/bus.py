@@ -36,7 +36,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import can
 
@@ -93,11 +93,12 @@ class CountingTransport(Protocol):
     def transport_counts(self) -> dict[str, int]: ...
 
 
-@dataclass(frozen=True, slots=True)
-class Frame:
+class Frame(NamedTuple):
     """One CAN frame as the rest of handctl sees it. ``timestamp_ns`` is when it arrived, on
     the clock of the ``HandBus`` that drained it (see the module's "Receive times");
-    ``arbitration_id`` has ``EXTENDED_ID_FLAG`` set for a 29-bit identifier."""
+    ``arbitration_id`` has ``EXTENDED_ID_FLAG`` set for a 29-bit identifier. A named tuple,
+    immutable and built for every frame drained: a frozen dataclass's constructor costs about
+    four times as much."""
 
     arbitration_id: int
     data: bytes
