@@ -7,6 +7,7 @@ updated in place, so a tick allocates little beyond the frames themselves.
 
 from __future__ import annotations
 
+import struct
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -91,12 +92,6 @@ class HandDriver:
             for node, sl in zip(self.nodes, self._slices, strict=True)
         ]
         n = hand.n_joints
-        # The poll's working copies, plain floats (nine joints: a list is cheaper to fill
-        # than an array), written into ``state``'s arrays once a poll.
-        self._calibration = [(j.tdt.scale, j.tdt.offset) for j in hand.joints]
-        self._angle = [0.0] * n
-        self._tdt_raw = [0.0] * n  # N·m as the nodes report it, before calibration
-        self._feedback_ns = [-1] * n
         #: Per node: where its joints start, how many, and the feedback last folded in.
         self._spans = [(sl.start, sl.stop - sl.start) for sl in self._slices]
         self._folded: list[object] = [None] * len(self.nodes)
@@ -107,6 +102,22 @@ class HandDriver:
             [-1] * len(self.nodes),
             [0] * len(self.nodes),
         )
+        # A node's new feedback goes straight into its span of the state's arrays, one packing
+        # call per array (a NumPy slice assignment from a tuple costs several times as much),
+        # the TDT readings calibrated on the way: raw * scale + offset, rounded as NumPy's
+        # multiply and add would round them.
+        self._angle_bytes = self.state.angle.data.cast("B")
+        self._tdt_bytes = self.state.tdt.data.cast("B")
+        self._feedback_ns_bytes = self.state.feedback_ns.data.cast("B")
+        self._packers = [
+            (
+                8 * start,
+                struct.Struct(f"={k}d").pack_into,
+                struct.Struct(f"={k}q").pack_into,
+                [(j.tdt.scale, j.tdt.offset) for j in hand.joints[start : start + k]],
+            )
+            for start, k in self._spans
+        ]
         self.unexpected = RejectCounts()
         self.unexpected_ids: dict[int, int] = {}
         self.bus_events: list[BusEvent] = []
@@ -134,29 +145,23 @@ class HandDriver:
         if events:
             self.bus_events.extend(events)
         state = self.state
-        angle, tdt_raw, feedback_ns, folded = (
-            self._angle,
-            self._tdt_raw,
-            self._feedback_ns,
-            self._folded,
-        )
+        folded = self._folded
         node_state, node_faults = state.node_state, state.node_faults
         for i, node in enumerate(self.nodes):
             fb = node.feedback
             if fb is not None and node.feedback_ns is not None and fb is not folded[i]:
                 folded[i] = fb  # a node's Feedback is a new object per accepted frame
-                start, k = self._spans[i]
-                stop = start + k
-                angle[start:stop] = fb.angles[:k]
-                tdt_raw[start:stop] = fb.tdt[:k]
-                feedback_ns[start:stop] = [node.feedback_ns] * k
+                offset, floats, ints, calibration = self._packers[i]
+                k = len(calibration)
+                floats(self._angle_bytes, offset, *fb.angles[:k])
+                floats(
+                    self._tdt_bytes,
+                    offset,
+                    *[r * c[0] + c[1] for r, c in zip(fb.tdt[:k], calibration, strict=True)],
+                )
+                ints(self._feedback_ns_bytes, offset, *([node.feedback_ns] * k))
             node_state[i] = node.state
             node_faults[i] = node.fault_bits
-        # Every poll, as before: whatever the arrays were made to hold, they hold the poll's.
-        state.angle[:] = angle
-        state.feedback_ns[:] = feedback_ns
-        # raw * scale + offset, rounded as the arrays' multiply and add round it
-        state.tdt[:] = [r * c[0] + c[1] for r, c in zip(tdt_raw, self._calibration, strict=True)]
         return state
 
     def drain_budget(self, now_ns: int) -> int:
