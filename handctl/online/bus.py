@@ -215,6 +215,9 @@ class HandBus:
         self._burst_messages: list[can.Message] = []
         # A virtual bus stamps arrivals on this bus's clock; the others in wall-clock time.
         self._take = bus.take if isinstance(bus, ArrivalStampedVirtualBus) else None
+        #: One frame sent without a python-can Message to handctl's own receivers (the
+        #: arrival-stamped virtual bus), raising as python-can's ``send`` would.
+        self._send_frame = bus.send_frame if isinstance(bus, ArrivalStampedVirtualBus) else None
         if isinstance(bus, ArrivalStampedVirtualBus):
             bus.clock_ns = self._now_ns
         #: The frame a drain read past its limit, to tell whether frames were left: the
@@ -248,6 +251,9 @@ class HandBus:
             if item is None:
                 return None
             stamp, msg = item
+            if isinstance(msg, tuple):  # from handctl's own sender: (id, flags, data) already
+                frame_id, flags, data = msg
+                return stamp, frame_id, flags, data
         else:
             received = self._bus.recv(timeout=0)
             if received is None:
@@ -317,22 +323,31 @@ class HandBus:
                 return True
             return self.flush()
         extended = bool(arbitration_id & EXTENDED_ID_FLAG)
-        msg = _Message(
-            arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended else arbitration_id,
-            data=data,
-            is_extended_id=extended,
-            is_fd=self.fd,
-            bitrate_switch=self.fd,
-            check=False,
-        )
-        if self._bursts is not None:
-            self._burst.append((arbitration_id, data))
-            self._burst_messages.append(msg)
-            if more and len(self._burst_messages) < MAX_BURST:
-                return True
-            return self.flush()
+        if self._bursts is not None or self._send_frame is None:
+            msg = _Message(
+                arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended else arbitration_id,
+                data=data,
+                is_extended_id=extended,
+                is_fd=self.fd,
+                bitrate_switch=self.fd,
+                check=False,
+            )
+            if self._bursts is not None:
+                self._burst.append((arbitration_id, data))
+                self._burst_messages.append(msg)
+                if more and len(self._burst_messages) < MAX_BURST:
+                    return True
+                return self.flush()
         try:
-            self._bus.send(msg, timeout=0)
+            if self._send_frame is not None:
+                if extended:
+                    self._send_frame(
+                        arbitration_id & EXTENDED_ID_MASK, self._send_flags | ff.EXTENDED, data
+                    )
+                else:
+                    self._send_frame(arbitration_id, self._send_flags, data)
+            else:
+                self._bus.send(msg, timeout=0)
         except (can.CanError, OSError, ValueError) as exc:
             self._tx_error(exc)
             self.tx_failed += 1
