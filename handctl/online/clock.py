@@ -216,8 +216,8 @@ def collector_paused() -> Iterator[None]:
     python-can that takes about 11 ms. In the simulated hand's process one such pass held the
     node timer long enough for the host's FEEDBACK_TIMEOUT, about two minutes into every soak.
     The simulated hand is a test peer that makes little cyclic garbage, so it runs without the
-    collector. The control process needs no such thing: its loop allocates almost no container
-    objects (six minutes of soak ran one young collection every few seconds and no full one).
+    collector. The control loop keeps collecting, between its ticks only
+    (``handctl.online.collector``).
     """
     gc.collect()
     gc.disable()
