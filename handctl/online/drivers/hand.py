@@ -102,20 +102,17 @@ class HandDriver:
             [-1] * len(self.nodes),
             [0] * len(self.nodes),
         )
-        # A node's new feedback goes straight into its span of the state's arrays, one packing
-        # call per array (a NumPy slice assignment from a tuple costs several times as much),
-        # the TDT readings calibrated on the way: raw * scale + offset, rounded as NumPy's
-        # multiply and add would round them.
+        # A node's new feedback goes straight into its span of the arrays, one packing call
+        # per array (cheaper than a NumPy slice assignment from a tuple); the TDT readings
+        # as the nodes report them, calibrated for all joints at once after.
+        self._tdt_scale = np.array([j.tdt.scale for j in hand.joints])
+        self._tdt_offset = np.array([j.tdt.offset for j in hand.joints])
+        self._tdt_raw = np.zeros(n)  # N·m as the nodes report it, before calibration
         self._angle_bytes = self.state.angle.data.cast("B")
-        self._tdt_bytes = self.state.tdt.data.cast("B")
+        self._tdt_raw_bytes = self._tdt_raw.data.cast("B")
         self._feedback_ns_bytes = self.state.feedback_ns.data.cast("B")
         self._packers = [
-            (
-                8 * start,
-                struct.Struct(f"={k}d").pack_into,
-                struct.Struct(f"={k}q").pack_into,
-                [(j.tdt.scale, j.tdt.offset) for j in hand.joints[start : start + k]],
-            )
+            (8 * start, k, struct.Struct(f"={k}d").pack_into, struct.Struct(f"={k}q").pack_into)
             for start, k in self._spans
         ]
         self.unexpected = RejectCounts()
@@ -151,17 +148,14 @@ class HandDriver:
             fb = node.feedback
             if fb is not None and node.feedback_ns is not None and fb is not folded[i]:
                 folded[i] = fb  # a node's Feedback is a new object per accepted frame
-                offset, floats, ints, calibration = self._packers[i]
-                k = len(calibration)
+                offset, k, floats, ints = self._packers[i]
                 floats(self._angle_bytes, offset, *fb.angles[:k])
-                floats(
-                    self._tdt_bytes,
-                    offset,
-                    *[r * c[0] + c[1] for r, c in zip(fb.tdt[:k], calibration, strict=True)],
-                )
+                floats(self._tdt_raw_bytes, offset, *fb.tdt[:k])
                 ints(self._feedback_ns_bytes, offset, *([node.feedback_ns] * k))
             node_state[i] = node.state
             node_faults[i] = node.fault_bits
+        np.multiply(self._tdt_raw, self._tdt_scale, out=state.tdt)
+        state.tdt += self._tdt_offset
         return state
 
     def drain_budget(self, now_ns: int) -> int:
