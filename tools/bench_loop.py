@@ -378,7 +378,7 @@ def _one(
 
 
 def tick_cost(hand: Path, baseline: str, rounds: int, seconds: float) -> dict[str, Any]:
-    """The tick's CPU per stage, this tree beside ``baseline``'s, alternately in one run (see
+    """The tick's CPU per stage, this tree beside ``baseline``'s, side by side in one run (see
     the module's docstring); ``error`` instead when the baseline cannot be had."""
     with tempfile.TemporaryDirectory(prefix="handctl-baseline-") as tmp:
         problem = _extract(baseline, Path(tmp))
