@@ -12,6 +12,15 @@ for the whole run (``handctl.hostcheck``): ``host_*`` is what it saw, and every 
 the run proper is the host's (``missed_host``: the bare loop stalled at the same time) or
 handctl's (``missed_handctl``: it did not). Target: ``missed_handctl`` 0.
 
+``tick_cost`` is the CPU cost of the tick, stage by stage, of this tree beside the tree of
+``--baseline`` (a git revision; by default the one before the tick's cost was cut, issue #17),
+in the same benchmark run: each runs ``tools/tick_cost.py`` (a lockstep hold, the same work
+every time) in a process of its own, both at once (whatever else loads the host loads both),
+``--tick-cost-rounds`` times, over the unix bus (a real-time run's transport) and the virtual
+bus (a lockstep run's). Per stage the median over the rounds of each p50 and p99, and
+``ratio_*``: this tree's over the baseline's. The recipe and feedback stages (the recipe
+runner's) are a control where the runner did not change.
+
 ``--rt --hygiene`` runs the loop once per real-time measure added in turn (SCHED_FIFO alone,
 then separate CPUs, locked memory, prefaulted memory), each in a fresh process (a priority,
 a CPU or locked memory would otherwise carry over to the next) with the bare loop beside it,
@@ -23,11 +32,15 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import subprocess
 import sys
+import tarfile
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -78,6 +91,10 @@ def hold_recipe(hand: HandConfig, name: str, seconds: float, pose: bool = True) 
     return json.dumps(doc)  # JSON is YAML
 
 
+#: The tree before the tick's CPU cost was cut (issue #17): ``tick_cost``'s baseline.
+BASELINE_REV = "c130bf7"
+TRANSPORTS = ("unix", "virtual")
+
 #: The variants of ``--hygiene``, each adding one measure to the one before.
 HYGIENE = {
     "fifo": Hygiene(pin=False, lock_memory=False, prefault=False),
@@ -117,6 +134,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--no-naive", action="store_true", help="leave out the naive asyncio.sleep baseline"
+    )
+    parser.add_argument(
+        "--baseline",
+        default=BASELINE_REV,
+        metavar="REV",
+        help=f"the git revision whose tick cost is measured beside this tree's "
+        f"(default {BASELINE_REV}, before the cost was cut)",
+    )
+    parser.add_argument(
+        "--tick-cost-rounds", type=int, default=3, help="runs of the two trees side by side"
+    )
+    parser.add_argument(
+        "--tick-cost-seconds", type=float, default=1.5, help="the hold of each such run"
+    )
+    parser.add_argument(
+        "--no-tick-cost", action="store_true", help="leave out the tick cost beside the baseline"
     )
     parser.add_argument(
         "--live",
@@ -224,6 +257,11 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         naive_p99 = float(np.percentile(naive, 99)) / 1e3
         figures["naive_lateness_p99_us"] = round(naive_p99, 1)
         figures["lateness_ratio"] = round(float(figures["lateness_p99_us"]) / naive_p99, 4)  # type: ignore[arg-type]
+    # Once per benchmark: not again in each run of the live-view comparison (``record``).
+    if not args.no_tick_cost and not getattr(args, "record", False):
+        figures["tick_cost"] = tick_cost(
+            args.hand, args.baseline, args.tick_cost_rounds, args.tick_cost_seconds
+        )
     if variants:
         keep = (
             "lateness_p99_us",
@@ -262,6 +300,7 @@ def _variant(name: str, args: argparse.Namespace) -> dict[str, object]:
         "--babble",
         str(args.babble),
         "--no-naive",
+        "--no-tick-cost",
     ]
     done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=False)
     if done.returncode != 0:
@@ -335,4 +374,101 @@ def _one(
         "tick_cpu_us_p50": round(float(np.percentile(cpu, 50)) / 1e3, 1),
         **host_figures(report, hand, first, running.ns),
         **{f"{name}_cpu_us_p99": v for name, v in report.summary["stage_cpu_us_p99"].items()},
+    }
+
+
+def tick_cost(hand: Path, baseline: str, rounds: int, seconds: float) -> dict[str, Any]:
+    """The tick's CPU per stage, this tree beside ``baseline``'s, side by side in one run (see
+    the module's docstring); ``error`` instead when the baseline cannot be had."""
+    with tempfile.TemporaryDirectory(prefix="handctl-baseline-") as tmp:
+        problem = _extract(baseline, Path(tmp))
+        if problem:
+            return {"baseline": baseline, "error": problem}
+        trees = {"baseline": tmp, "current": str(ROOT)}
+        runs: dict[str, dict[str, list[dict[str, Any]]]] = {
+            t: {name: [] for name in trees} for t in TRANSPORTS
+        }
+        for k in range(rounds):
+            for transport in TRANSPORTS:
+                print(f"tick cost {k + 1}/{rounds}: {transport} bus ...", file=sys.stderr)
+                # Both trees at once: whatever else loads the host then loads both alike.
+                started = {
+                    name: _cost_run(tree, hand, transport, seconds) for name, tree in trees.items()
+                }
+                for name, finish in started.items():
+                    runs[transport][name].append(finish())
+    out: dict[str, Any] = {"baseline": baseline, "rounds": rounds, "seconds": seconds}
+    for transport, by_tree in runs.items():
+        failed = [r["error"] for results in by_tree.values() for r in results if "error" in r]
+        if failed:
+            out[transport] = {"error": failed[0]}
+            continue
+        summary: dict[str, Any] = {
+            name: _median_figures(results) for name, results in by_tree.items()
+        }
+        for q in ("p50_us", "p99_us"):
+            summary[f"ratio_{q.removesuffix('_us')}"] = {
+                stage: round(cur[q] / base[q], 3) if base[q] > 0 else None
+                for stage, cur in summary["current"].items()
+                if (base := summary["baseline"][stage])
+            }
+        out[transport] = summary
+    return out
+
+
+def _extract(rev: str, into: Path) -> str:
+    """The ``handctl`` package of git revision ``rev`` under ``into``; a problem, or ""."""
+    archive = into / "tree.tar"
+    done = subprocess.run(
+        ["git", "-C", str(ROOT), "archive", "-o", str(archive), rev, "handctl"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if done.returncode != 0:
+        return f"git archive {rev}: {done.stderr.strip() or f'exit {done.returncode}'}"
+    with tarfile.open(archive) as tar:
+        tar.extractall(into, filter="data")
+    archive.unlink()
+    return ""
+
+
+def _cost_run(
+    tree: str, hand: Path, transport: str, seconds: float
+) -> Callable[[], dict[str, Any]]:
+    """One ``tick_cost.py`` run with ``tree``'s handctl first on the path, started; the
+    function returned waits for its figures."""
+    cmd = [
+        sys.executable,
+        str(Path(__file__).resolve().parent / "tick_cost.py"),
+        "--hand",
+        str(hand),
+        "--transport",
+        transport,
+        "--seconds",
+        str(seconds),
+    ]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([tree, os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+    def finish() -> dict[str, Any]:
+        out, err = proc.communicate()
+        if proc.returncode != 0:
+            return {"error": f"{tree}: exit {proc.returncode}: {err.strip()[-300:]}"}
+        figures: dict[str, Any] = json.loads(out)
+        if figures.get("outcome") != "completed":
+            return {"error": f"{tree}: {figures.get('outcome')}: {figures.get('message')}"}
+        return figures
+
+    return finish
+
+
+def _median_figures(results: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Per stage, the median over the runs of each figure."""
+    stages = [k for k, v in results[0].items() if isinstance(v, dict)]
+    return {
+        stage: {
+            q: round(float(np.median([r[stage][q] for r in results])), 1) for q in results[0][stage]
+        }
+        for stage in stages
     }

@@ -36,12 +36,13 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import can
 
 from handctl.config import BusConfig
 from handctl.errors import BusError
+from handctl.online import frameflags as ff
 from handctl.online.busspec import BusSpec, bus_kwargs, check_socketcan, parse_spec
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.online.virtualcan import ArrivalStampedVirtualBus
@@ -73,17 +74,31 @@ class BurstTransport(Protocol):
 
 
 @runtime_checkable
+class FrameTransport(Protocol):
+    """A python-can bus that also exchanges frames as plain tuples, without building a
+    ``can.Message`` per frame (the unix bus): ``HandBus`` then sends and drains through these
+    two, and uses python-can's ``send``/``recv`` for nothing else but error frames sent.
+    Flags are ``handctl.online.frameflags``; ``send_frames`` is one burst, and raises as
+    ``BurstTransport.send_burst`` does."""
+
+    def send_frames(self, frames: Sequence[tuple[int, int, bytes]]) -> None: ...
+
+    def recv_frame(self) -> tuple[float, int, int, bytes] | None: ...
+
+
+@runtime_checkable
 class CountingTransport(Protocol):
     """A python-can bus that keeps delivery counters of its own, for summaries."""
 
     def transport_counts(self) -> dict[str, int]: ...
 
 
-@dataclass(frozen=True, slots=True)
-class Frame:
+class Frame(NamedTuple):
     """One CAN frame as the rest of handctl sees it. ``timestamp_ns`` is when it arrived, on
     the clock of the ``HandBus`` that drained it (see the module's "Receive times");
-    ``arbitration_id`` has ``EXTENDED_ID_FLAG`` set for a 29-bit identifier."""
+    ``arbitration_id`` has ``EXTENDED_ID_FLAG`` set for a 29-bit identifier. A named tuple,
+    immutable and built for every frame drained: a frozen dataclass's constructor costs about
+    four times as much."""
 
     arbitration_id: int
     data: bytes
@@ -191,17 +206,23 @@ class HandBus:
         self.received = 0
         self.closed = False
         self._bursts = bus if isinstance(bus, BurstTransport) else None
+        self._frames = bus if isinstance(bus, FrameTransport) else None
+        #: The flags of every frame this bus sends (``FrameTransport``).
+        self._send_flags = ff.FD | ff.BRS if fd else 0
         # The burst under way on a BurstTransport, held until flush: its frames for the counts
         # and the taps, and the messages for the transport (error frames too).
         self._burst: list[tuple[int, bytes]] = []
         self._burst_messages: list[can.Message] = []
         # A virtual bus stamps arrivals on this bus's clock; the others in wall-clock time.
         self._take = bus.take if isinstance(bus, ArrivalStampedVirtualBus) else None
+        #: One frame sent without a python-can Message to handctl's own receivers (the
+        #: arrival-stamped virtual bus), raising as python-can's ``send`` would.
+        self._send_frame = bus.send_frame if isinstance(bus, ArrivalStampedVirtualBus) else None
         if isinstance(bus, ArrivalStampedVirtualBus):
             bus.clock_ns = self._now_ns
-        #: The message a drain read past its limit, to tell whether frames were left: the
-        #: first of the next drain. ``(arrival_ns, message)``.
-        self._lookahead: tuple[int, can.Message] | None = None
+        #: The frame a drain read past its limit, to tell whether frames were left: the
+        #: first of the next drain. ``(arrival_ns, arbitration_id, flags, data)``.
+        self._lookahead: tuple[int, int, int, bytes] | None = None
         #: The recorder's taps: every frame drained or sent, and every event as it is taken.
         self.tap: FrameTap | None = None
         self.rx_tap: RxTap | None = None
@@ -214,16 +235,43 @@ class HandBus:
     def _now_ns(self) -> int:
         return self._clock_ns()
 
-    def _receive(self, wall_to_clock_ns: int) -> tuple[int, can.Message] | None:
-        """The next message and its arrival time on this bus's clock, or None."""
+    def _receive(self, wall_to_clock_ns: int) -> tuple[int, int, int, bytes] | None:
+        """The next frame, ``(arrival_ns, arbitration_id, flags, data)`` with its arrival
+        on this bus's clock, or None."""
+        if self._frames is not None:
+            raw = self._frames.recv_frame()
+            if raw is None:
+                return None
+            stamp_s, frame_id, flags, data = raw
+            if stamp_s > 0:  # ``_arrival_ns``, inline: this is every frame of a real-time run
+                return round(stamp_s * 1e9) + wall_to_clock_ns, frame_id, flags, data
+            return self._clock_ns(), frame_id, flags, data
         if self._take is not None:
-            return self._take()
-        msg = self._bus.recv(timeout=0)
-        if msg is None:
-            return None
-        if msg.timestamp <= 0:  # an interface that stamps nothing: the time of reading
-            return self._clock_ns(), msg
-        return round(msg.timestamp * 1e9) + wall_to_clock_ns, msg
+            item = self._take()
+            if item is None:
+                return None
+            stamp, msg = item
+            if isinstance(msg, tuple):  # from handctl's own sender: (id, flags, data) already
+                frame_id, flags, data = msg
+                return stamp, frame_id, flags, data
+        else:
+            received = self._bus.recv(timeout=0)
+            if received is None:
+                return None
+            msg, stamp = received, self._arrival_ns(received.timestamp, wall_to_clock_ns)
+        flags = (
+            (ff.FD if msg.is_fd else 0)
+            | (ff.ERROR if msg.is_error_frame else 0)
+            | (ff.EXTENDED if msg.is_extended_id else 0)
+        )
+        return stamp, msg.arbitration_id, flags, bytes(msg.data)
+
+    def _arrival_ns(self, stamp_s: float, wall_to_clock_ns: int) -> int:
+        """A wall-clock arrival stamp (s) on this bus's clock; an interface that stamps
+        nothing (0) gets the time of reading."""
+        if stamp_s <= 0:
+            return self._clock_ns()
+        return round(stamp_s * 1e9) + wall_to_clock_ns
 
     def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]:
         """The frames that have arrived, ``limit`` at most, without waiting; error frames
@@ -246,16 +294,15 @@ class HandBus:
                     self._event(BusEventKind.RX_BACKLOG, f"{limit} frames drained and more waiting")
                     break
                 count += 1
-                stamp, msg = item
+                stamp, frame_id, flags, data = item
                 item = None
-                if msg.is_error_frame:
-                    self._error_frame(msg)
+                if flags & ff.ERROR:
+                    self._error_frame(frame_id, data)
                     continue
                 self.received += 1
-                frame_id = msg.arbitration_id
-                if msg.is_extended_id:
+                if flags & ff.EXTENDED:
                     frame_id = (frame_id & EXTENDED_ID_MASK) | EXTENDED_ID_FLAG
-                frames.append(Frame(frame_id, bytes(msg.data), min(stamp, now), msg.is_fd))
+                frames.append(Frame(frame_id, data, min(stamp, now), bool(flags & ff.FD)))
         except (can.CanError, OSError, ValueError) as exc:
             self._event(BusEventKind.RX_FAILED, str(exc))
         if frames and self.rx_tap is not None:
@@ -270,23 +317,37 @@ class HandBus:
         (at most ``MAX_BURST`` frames): ``send`` returns True for it, and it is counted and
         tapped when the burst goes, with the burst's fate.
         """
-        extended = bool(arbitration_id & EXTENDED_ID_FLAG)
-        msg = _Message(
-            arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended else arbitration_id,
-            data=data,
-            is_extended_id=extended,
-            is_fd=self.fd,
-            bitrate_switch=self.fd,
-            check=False,
-        )
-        if self._bursts is not None:
+        if self._frames is not None:
             self._burst.append((arbitration_id, data))
-            self._burst_messages.append(msg)
-            if more and len(self._burst_messages) < MAX_BURST:
+            if more and len(self._burst) < MAX_BURST:
                 return True
             return self.flush()
+        extended = bool(arbitration_id & EXTENDED_ID_FLAG)
+        if self._bursts is not None or self._send_frame is None:
+            msg = _Message(
+                arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended else arbitration_id,
+                data=data,
+                is_extended_id=extended,
+                is_fd=self.fd,
+                bitrate_switch=self.fd,
+                check=False,
+            )
+            if self._bursts is not None:
+                self._burst.append((arbitration_id, data))
+                self._burst_messages.append(msg)
+                if more and len(self._burst_messages) < MAX_BURST:
+                    return True
+                return self.flush()
         try:
-            self._bus.send(msg, timeout=0)
+            if self._send_frame is not None:
+                if extended:
+                    self._send_frame(
+                        arbitration_id & EXTENDED_ID_MASK, self._send_flags | ff.EXTENDED, data
+                    )
+                else:
+                    self._send_frame(arbitration_id, self._send_flags, data)
+            else:
+                self._bus.send(msg, timeout=0)
         except (can.CanError, OSError, ValueError) as exc:
             self._tx_error(exc)
             self.tx_failed += 1
@@ -306,13 +367,25 @@ class HandBus:
         each of its frames is then counted in ``tx_failed`` and tapped as failed. Other buses
         send at once, so there is nothing to do.
         """
-        if self._bursts is None:
+        if self._bursts is None and self._frames is None:
             return True
         burst, self._burst = self._burst, []
         messages, self._burst_messages = self._burst_messages, []
         ok = True
         try:
-            self._bursts.send_burst(messages)
+            if self._frames is not None:
+                flags = self._send_flags
+                self._frames.send_frames(
+                    [
+                        (i & EXTENDED_ID_MASK, flags | ff.EXTENDED, data)
+                        if i & EXTENDED_ID_FLAG
+                        else (i, flags, data)
+                        for i, data in burst
+                    ]
+                )
+            else:
+                assert self._bursts is not None
+                self._bursts.send_burst(messages)
         except (can.CanError, OSError, ValueError) as exc:
             self._tx_error(exc)
             ok = False
@@ -353,7 +426,9 @@ class HandBus:
             data=data,
             check=False,
         )
-        if self._bursts is not None:
+        if self._frames is not None and self._burst:
+            self.flush()  # the frames held go first, in order
+        if self._bursts is not None and self._frames is None:
             self._burst_messages.append(msg)
             return self.flush()
         try:
@@ -372,7 +447,7 @@ class HandBus:
 
     def close(self) -> None:
         if not self.closed:
-            if self._burst_messages:
+            if self._burst_messages or self._burst:
                 self.flush()
             self.closed = True
             self._bus.shutdown()
@@ -386,14 +461,13 @@ class HandBus:
     def _event(self, kind: BusEventKind, detail: str) -> None:
         self._events.append(BusEvent(kind, detail, self._clock_ns()))
 
-    def _error_frame(self, msg: can.Message) -> None:
-        cls = msg.arbitration_id
+    def _error_frame(self, cls: int, data: bytes) -> None:
         if cls & _CAN_ERR_BUSOFF:
             self._event(BusEventKind.BUS_OFF, f"error class 0x{cls:X}")
         elif cls & _CAN_ERR_RESTARTED:
             self._event(BusEventKind.BUS_RESTARTED, f"error class 0x{cls:X}")
-        elif cls & _CAN_ERR_CRTL and len(msg.data) > 1 and msg.data[1] & _CAN_ERR_CRTL_PASSIVE:
-            self._event(BusEventKind.ERROR_PASSIVE, f"controller 0x{msg.data[1]:02X}")
+        elif cls & _CAN_ERR_CRTL and len(data) > 1 and data[1] & _CAN_ERR_CRTL_PASSIVE:
+            self._event(BusEventKind.ERROR_PASSIVE, f"controller 0x{data[1]:02X}")
         else:
             self._event(BusEventKind.ERROR_FRAME, f"error class 0x{cls:X}")
 

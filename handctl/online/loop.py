@@ -39,6 +39,7 @@ from handctl import protocol as wire
 from handctl.config import HandConfig
 from handctl.online.bus import BusEvent
 from handctl.online.clock import Clock, Tick
+from handctl.online.collector import LoopCollector
 from handctl.online.drivers import finger, receiver
 from handctl.online.drivers.hand import AppliedTorques, HandDriver
 from handctl.online.recipes import runner as recipe_runner
@@ -203,6 +204,8 @@ class Runtime:
         self.first_send_tick = -1
         self.startup_missed_ticks = 0
         self.tick_hooks: list[Callable[[Tick], None]] = []
+        #: Garbage collection between ticks only, for the length of ``run`` (collector.py).
+        self.collector = LoopCollector()
         self._stats = TickStats(len(STAGES), window_ticks)
         self._max_abs = np.zeros(hand.n_joints)
         self._missed = 0
@@ -213,6 +216,7 @@ class Runtime:
         self._recipe_done_ns = 0
         self.exception: TickException | None = None
         self._feedback_ns = 0  # CPU time of this tick's feedback stage (part of the recipe's)
+        self._feedback_start_ns = -1  # when it began, if it ran this tick
         #: CPU time of the loop's thread, for the per-stage accounting (a re-run, which has no
         #: use for it, puts a cheaper clock here).
         self.cpu_clock: Callable[[], int] = time.thread_time_ns
@@ -256,18 +260,19 @@ class Runtime:
     # -- the run --------------------------------------------------------------------------
     async def run(self) -> RunResult:
         try:
-            try:
-                outcome, message = await self._run()
-            except Exception as exc:  # any stage: a safety stop, never a crash (module doc)
-                if isinstance(exc, EndOfTicks) and self.clock.lockstep:
+            with self.collector.running():  # the stop's ticks too
+                try:
+                    outcome, message = await self._run()
+                except Exception as exc:  # any stage: a safety stop, never a crash (module doc)
+                    if isinstance(exc, EndOfTicks) and self.clock.lockstep:
+                        raise
+                    outcome, message = await self._stop_after_exception(exc)
+                except BaseException:
+                    # Ctrl-C without a signal handler, a cancelled task, SystemExit: no tick is
+                    # left to wait for, so zero and disable at once (in this order on the bus).
+                    self.driver.send_zero()
+                    self.driver.send_disable()
                     raise
-                outcome, message = await self._stop_after_exception(exc)
-            except BaseException:
-                # Ctrl-C without a signal handler, a cancelled task, SystemExit: no tick is
-                # left to wait for, so zero and disable at once (in this order on the bus).
-                self.driver.send_zero()
-                self.driver.send_disable()
-                raise
         finally:
             self.clock.close()
         return self._result(outcome, message)
@@ -456,7 +461,9 @@ class Runtime:
         return f"nodes not ready within {self.startup_ticks} ticks: {detail}"
 
     async def _next_tick(self) -> Tick:
-        """Every tick of the run starts here, so the recorder sees each one before its poll."""
+        """Every tick of the run starts here, so the recorder sees each one before its poll;
+        the garbage the ticks before it left is collected here too, if it is time to."""
+        self.collector.after_tick()
         tk = await self.clock.wait_tick()
         if self.recorder is not None:
             self.recorder.begin_tick(tk)
@@ -511,7 +518,9 @@ class Runtime:
             record.stage_ns = (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, 0, fb)
             record.faults = new_faults
             self.recorder.push(record)
-        c5 = cpu()
+        # The CPU clock is a system call (about 1 µs): the record stage of a run that records
+        # nothing is nothing, not another reading.
+        c5 = cpu() if self.recorder is not None else c4
         fb = self._feedback_ns
         self._store(tk, (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, c5 - c4, fb))
         if self.status is not None and tk.tick % STATUS_EVERY_TICKS == 0:
@@ -554,9 +563,12 @@ class Runtime:
         if self.estop_requested:
             sup.trip(FaultCode.ESTOP, self.estop_requested, tick)
             self.estop_requested = ""
-        self._feedback_ns = 0
+        self._feedback_start_ns = -1
         desired = self._desired(t_s, angle, tdt)
-        self._recipe_done_ns = self.cpu_clock()
+        done = self._recipe_done_ns = self.cpu_clock()
+        # The feedback stage ends with the recipe part: one reading of the clock for both.
+        start = self._feedback_start_ns
+        self._feedback_ns = done - start if start >= 0 else 0
         new_faults = sup.observe(tick, now_ns, self.driver.nodes, angle, tdt, missed, events)
         if self.stop_requested and sup.state in (State.RUNNING, State.ENABLING):
             if self.runner is not None:
@@ -574,9 +586,8 @@ class Runtime:
             return self._zero
         estimates = self.estimator(angle) if self.estimator is not None else None
         runner.advance(t_s, angle, tdt, estimates)
-        f0 = self.cpu_clock()
+        self._feedback_start_ns = self.cpu_clock()  # its end is the recipe part's (decide)
         desired = runner.feedback(t_s, angle, estimates)
-        self._feedback_ns = self.cpu_clock() - f0
         if runner.status is RunStatus.ABORTED and not self.stop_requested:
             sup.trip(FaultCode.RECIPE_ABORT, runner.abort_reason, self.tick)
         return desired

@@ -23,6 +23,8 @@ from typing import Any
 
 import can
 
+from handctl.online import frameflags as ff
+
 #: ``SO_TIMESTAMPNS`` (Linux, asm-generic; Python's socket module does not name it): the
 #: kernel stamps each datagram as it is queued for the receiving socket.
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
@@ -31,7 +33,6 @@ _TIMESPEC = struct.Struct("@qq")
 #: Per frame: the sender's time (s; diagnostics only: a frame is stamped on arrival by the
 #: receiver's kernel), arbitration id, flags, data length; then the data.
 _WIRE = struct.Struct("<dIBB")
-_FD, _BRS, _ERR, _ESI, _EXT = 1, 2, 4, 8, 16
 _unix_ids = itertools.count()
 #: Frames per datagram at most; a burst beyond it goes out in several datagrams.
 _BATCH = 32
@@ -41,6 +42,9 @@ _BATCH = 32
 #: and a receiver that stopped reading must still be reported within a few dozen ticks (the
 #: host's BUS_ERROR after consecutive failed sends), not hidden behind a deep queue.
 TX_QUEUE_FRAMES = 64
+#: ns: a directory modified longer ago than this is as it was at the last listing if its
+#: modification time has not changed since (``_refresh_peers``).
+_SETTLED_NS = 1_000_000_000
 #: How long ``shutdown`` keeps offering held frames to receivers that are still reading.
 _SHUTDOWN_S = 0.02
 
@@ -95,11 +99,19 @@ class UnixDatagramBus(can.BusABC):
             self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         self._sock.bind(str(self._path))
         self._sock.setblocking(False)
+        # Readiness asked of the kernel before a read: an empty socket answers a poll in
+        # well under a µs, a read of it with an exception several µs, at the end of every drain.
+        self._ready = select.poll()
+        self._ready.register(self._sock, select.POLLIN)
+        #: Per receiver, a socket connected to it: a send on it skips the kernel's lookup of
+        #: the receiver's path, which costs as much as the send itself.
+        self._links: dict[str, socket.socket] = {}
+        self._directory_mtime_ns: int | None = None
         self._own = receive_own_messages
         self._peers: list[str] = []
         self._peers_at = 0.0
         self._held: dict[str, list[bytes]] = {}  # per receiver: frames its full queue refused
-        self._inbox: list[can.Message] = []
+        self._inbox: list[tuple[float, int, int, bytes]] = []  # newest first
         self._can_protocol = can.CanProtocol.CAN_FD
         self.datagrams_sent = 0
         self.queue_full = 0
@@ -123,13 +135,30 @@ class UnixDatagramBus(can.BusABC):
         }
 
     def _refresh_peers(self) -> None:
-        """Re-list the participants at most every 50 ms: joining is rare, sending is not."""
+        """Re-list the participants at most every 50 ms: joining is rare, sending is not.
+
+        A listing costs tens of µs, so it is skipped while the directory is as it was at the
+        last one (its modification time the same, and older than ``_SETTLED_NS``: a time
+        stamp that coarse file systems may still share with a later change)."""
         now = time.monotonic()
         if now - self._peers_at < 0.05:
             return
         self._peers_at = now
+        try:
+            mtime: int | None = os.stat(self.directory).st_mtime_ns
+        except OSError:
+            mtime = None
+        if (
+            mtime is not None
+            and mtime == self._directory_mtime_ns
+            and time.time_ns() - mtime > _SETTLED_NS
+        ):
+            return
+        self._directory_mtime_ns = mtime
         mine = str(self._path)
         self._peers = [str(p) for p in self.directory.glob("*.sock") if self._own or str(p) != mine]
+        for gone in [p for p in self._links if p not in self._peers]:
+            self._links.pop(gone).close()
         for gone in [p for p in self._held if p not in self._peers]:
             del self._held[gone]
 
@@ -143,7 +172,19 @@ class UnixDatagramBus(can.BusABC):
         participant; raise ``TransmitQueueFull`` if a receiver's transmit queue had no room.
         No messages: only what is held is offered again."""
         now = time.time()
-        frames = [_encode(msg, now) for msg in messages]
+        self._send_wire([_encode(msg, now) for msg in messages])
+
+    def send_frames(self, frames: Sequence[tuple[int, int, bytes]]) -> None:
+        """``send_burst`` of frames given as ``(arbitration_id, flags, data)``
+        (``handctl.online.frameflags``), without python-can's ``Message``
+        (``bus.FrameTransport``)."""
+        now = time.time()
+        pack = _WIRE.pack
+        self._send_wire([pack(now, i, flags, len(data)) + data for i, flags, data in frames])
+
+    def _send_wire(self, frames: list[bytes]) -> None:
+        """Send what is held, then ``frames`` (each on the wire already), to every other
+        participant; raise ``TransmitQueueFull`` as ``send_burst`` says."""
         if not frames and not self._held:
             return
         self._refresh_peers()
@@ -170,7 +211,8 @@ class UnixDatagramBus(can.BusABC):
         while done < total:
             chunk = frames if total <= _BATCH else frames[done : done + _BATCH]
             try:
-                self._sock.sendto(b"".join(chunk), peer)
+                link = self._links.get(peer) or self._link(peer)
+                link.send(b"".join(chunk))
             except (ConnectionRefusedError, FileNotFoundError):
                 self._forget(peer)  # its owner is gone
                 return
@@ -182,14 +224,31 @@ class UnixDatagramBus(can.BusABC):
             done += len(chunk)
         self._held.pop(peer, None)
 
+    def _link(self, peer: str) -> socket.socket:
+        """A non-blocking socket connected to ``peer``, kept for the next sends to it."""
+        link = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        link.setblocking(False)
+        try:
+            link.connect(peer)
+        except OSError:
+            link.close()
+            raise
+        self._links[peer] = link
+        return link
+
     def _forget(self, peer: str) -> None:
         self._peers.remove(peer)
         self._held.pop(peer, None)
+        link = self._links.pop(peer, None)
+        if link is not None:
+            link.close()
         if peer != str(self._path):
             with _suppress_oserror():
                 os.unlink(peer)
 
     def _read_datagram(self) -> bool:
+        if not self._ready.poll(0):
+            return False
         try:
             payload, ancillary, _, _ = self._sock.recvmsg(
                 _BATCH * (_WIRE.size + 64), _ANCILLARY_SIZE
@@ -198,27 +257,24 @@ class UnixDatagramBus(can.BusABC):
             return False
         stamp = _arrival_s(ancillary)
         offset = 0
-        while offset + _WIRE.size <= len(payload):
-            _, frame_id, flags, length = _WIRE.unpack_from(payload, offset)
-            offset += _WIRE.size
-            self._inbox.append(
-                can.Message(
-                    timestamp=stamp,
-                    arbitration_id=frame_id,
-                    is_extended_id=bool(flags & _EXT),
-                    is_fd=bool(flags & _FD),
-                    bitrate_switch=bool(flags & _BRS),
-                    is_error_frame=bool(flags & _ERR),
-                    error_state_indicator=bool(flags & _ESI),
-                    data=payload[offset : offset + length],
-                    channel=self.channel_info,
-                    is_rx=True,
-                    check=False,
-                )
-            )
+        size = _WIRE.size
+        unpack = _WIRE.unpack_from
+        append = self._inbox.append
+        while offset + size <= len(payload):
+            _, frame_id, flags, length = unpack(payload, offset)
+            offset += size
+            append((stamp, frame_id, flags, payload[offset : offset + length]))
             offset += length
         self._inbox.reverse()  # popped from the end, in arrival order
         return True
+
+    def recv_frame(self) -> tuple[float, int, int, bytes] | None:
+        """The next frame without waiting, as ``(arrival_s, arbitration_id, flags, data)``
+        (``handctl.online.frameflags``), or None: what ``HandBus`` drains, without building a
+        python-can ``Message`` (``bus.FrameTransport``)."""
+        if not self._inbox and not self._read_datagram():
+            return None
+        return self._inbox.pop() if self._inbox else None
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if not self._inbox and not self._read_datagram():
@@ -229,7 +285,21 @@ class UnixDatagramBus(can.BusABC):
                 return None, False
         if not self._inbox:
             return None, False
-        return self._inbox.pop(), False
+        stamp, frame_id, flags, data = self._inbox.pop()
+        msg = can.Message(
+            timestamp=stamp,
+            arbitration_id=frame_id,
+            is_extended_id=bool(flags & ff.EXTENDED),
+            is_fd=bool(flags & ff.FD),
+            bitrate_switch=bool(flags & ff.BRS),
+            is_error_frame=bool(flags & ff.ERROR),
+            error_state_indicator=bool(flags & ff.ESI),
+            data=data,
+            channel=self.channel_info,
+            is_rx=True,
+            check=False,
+        )
+        return msg, False
 
     def fileno(self) -> int:
         return self._sock.fileno()
@@ -248,6 +318,9 @@ class UnixDatagramBus(can.BusABC):
                 time.sleep(0.001)
                 self._flush_quietly()
             self._sock.close()
+            for link in self._links.values():
+                link.close()
+            self._links.clear()
             with _suppress_oserror():
                 self._path.unlink()
         super().shutdown()
@@ -259,11 +332,11 @@ _ANCILLARY_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
 def _encode(msg: can.Message, sent_s: float) -> bytes:
     """One frame on the wire: ``_WIRE``'s header, then the data."""
     flags = (
-        (_FD if msg.is_fd else 0)
-        | (_BRS if msg.bitrate_switch else 0)
-        | (_ERR if msg.is_error_frame else 0)
-        | (_ESI if msg.error_state_indicator else 0)
-        | (_EXT if msg.is_extended_id else 0)
+        (ff.FD if msg.is_fd else 0)
+        | (ff.BRS if msg.bitrate_switch else 0)
+        | (ff.ERROR if msg.is_error_frame else 0)
+        | (ff.ESI if msg.error_state_indicator else 0)
+        | (ff.EXTENDED if msg.is_extended_id else 0)
     )
     data = bytes(msg.data)
     return _WIRE.pack(sent_s, msg.arbitration_id, flags, len(data)) + data

@@ -11,6 +11,8 @@ from typing import Any
 import can
 from can.interfaces import virtual as _virtual
 
+from handctl.online import frameflags as ff
+
 
 class _ArrivalQueue(queue.Queue[Any]):
     """A virtual-bus receive queue that stamps each message as it is put, on its owner's clock.
@@ -47,10 +49,46 @@ class ArrivalStampedVirtualBus(_virtual.VirtualBus):
     def _stamp(self) -> int:
         return self.clock_ns()
 
-    def take(self) -> tuple[int, can.Message] | None:
-        """The next ``(arrival_ns, message)``, or None when the queue is empty."""
+    def send_frame(self, arbitration_id: int, flags: int, data: bytes) -> None:
+        """python-can's ``send`` with a zero timeout, of one frame given as
+        ``(arbitration_id, flags, data)`` (``handctl.online.frameflags``): handctl's own
+        receivers on the channel are given that tuple, any other receiver a python-can
+        ``Message``, as ``send`` would. A receiver with a full queue misses it; then this
+        raises as ``send`` does, once every other receiver has it."""
+        self._check_if_open()
+        all_sent = True
+        for bus_queue in self.channel:
+            if bus_queue is self.queue and not self.receive_own_messages:
+                continue
+            item: Any = (arbitration_id, flags, data)
+            if type(bus_queue) is not _ArrivalQueue:
+                item = can.Message(
+                    timestamp=time.time(),
+                    arbitration_id=arbitration_id,
+                    is_extended_id=bool(flags & ff.EXTENDED),
+                    is_fd=bool(flags & ff.FD),
+                    bitrate_switch=bool(flags & ff.BRS),
+                    is_error_frame=bool(flags & ff.ERROR),
+                    error_state_indicator=bool(flags & ff.ESI),
+                    data=data,
+                    channel=self.channel_id,
+                    is_rx=bus_queue is not self.queue,
+                    check=False,
+                )
+            try:
+                bus_queue.put_nowait(item)
+            except queue.Full:
+                all_sent = False
+        if not all_sent:
+            raise can.CanOperationError("Could not send message to one or more recipients")
+
+    def take(self) -> tuple[int, can.Message | tuple[int, int, bytes]] | None:
+        """The next ``(arrival_ns, message)``, or None when the queue is empty; a message from
+        handctl's own sender is the ``(arbitration_id, flags, data)`` of ``send_frame``."""
         if not self._open:
             raise can.CanOperationError("Cannot operate on a closed bus")
+        if not self.queue.queue:  # empty: no lock taken and no exception raised to say so
+            return None
         try:
             return self.queue.get_nowait()  # type: ignore[return-value]
         except queue.Empty:
@@ -62,5 +100,20 @@ class ArrivalStampedVirtualBus(_virtual.VirtualBus):
             item: Any = self.queue.get(block=True, timeout=timeout)  # (arrival_ns, message)
         except queue.Empty:
             return None, False
-        item[1].timestamp = item[0] * 1e-9
-        return item[1], False
+        stamp_ns, msg = item
+        if isinstance(msg, tuple):  # a frame from handctl's own sender (``send_frame``)
+            arbitration_id, flags, data = msg
+            msg = can.Message(
+                arbitration_id=arbitration_id,
+                is_extended_id=bool(flags & ff.EXTENDED),
+                is_fd=bool(flags & ff.FD),
+                bitrate_switch=bool(flags & ff.BRS),
+                is_error_frame=bool(flags & ff.ERROR),
+                error_state_indicator=bool(flags & ff.ESI),
+                data=data,
+                channel=self.channel_id,
+                is_rx=True,
+                check=False,
+            )
+        msg.timestamp = stamp_ns * 1e-9
+        return msg, False

@@ -5,11 +5,12 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import can
 import pytest
 
 from handctl.config import HandConfig
 from handctl.errors import BusError, ConfigError
-from handctl.online.bus import BusEventKind, HandBus, open_bus
+from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, HandBus, open_bus
 from handctl.online.busspec import (
     BusSpec,
     bus_kwargs,
@@ -131,3 +132,45 @@ def test_send_after_close_is_an_event(hand: HandConfig, channel: str) -> None:
     assert bus.events()[0].kind == BusEventKind.TX_FAILED
     assert bus.drain() == []
     assert bus.events()[0].kind == BusEventKind.RX_FAILED
+
+
+def test_virtual_frames_between_handctl_buses_are_no_messages_and_others_still_hear_them(
+    hand: HandConfig, channel: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Between handctl's own ends of a virtual channel a frame travels as a plain tuple, no
+    python-can Message built; a plain python-can bus on the channel hears it as from any
+    python-can sender, and what such a bus sends is drained as before."""
+    built = [0]
+    init = can.Message.__init__
+
+    def counting(self: can.Message, *args: object, **kwargs: object) -> None:
+        built[0] += 1
+        init(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    with (
+        open_bus(f"virtual:{channel}", hand.bus) as host,
+        open_bus(f"virtual:{channel}", hand.bus) as peer,
+        can.Bus(interface="virtual", channel=channel) as plain,
+    ):
+        monkeypatch.setattr(can.Message, "__init__", counting)
+        assert host.send(0x101, bytes(range(16)))
+        assert host.send(0x1ABCDEF | EXTENDED_ID_FLAG, b"\x05")
+        got = peer.drain()
+        assert built[0] == 2  # the two the plain bus was given, none for the peer
+        monkeypatch.setattr(can.Message, "__init__", init)
+        heard = [plain.recv(timeout=1.0) for _ in range(2)]
+        plain.send(can.Message(arbitration_id=0x181, data=b"\x07", is_extended_id=False))
+        from_plain = peer.drain()
+    assert [(f.arbitration_id, f.data, f.is_fd) for f in got] == [
+        (0x101, bytes(range(16)), True),
+        (0x1ABCDEF | EXTENDED_ID_FLAG, b"\x05", True),
+    ]
+    assert [
+        (m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch, m.is_extended_id, m.is_rx)
+        for m in heard
+        if m is not None
+    ] == [
+        (0x101, bytes(range(16)), True, True, False, True),
+        (0x1ABCDEF, b"\x05", True, True, True, True),
+    ]
+    assert [(f.arbitration_id, f.data, f.is_fd) for f in from_plain] == [(0x181, b"\x07", False)]

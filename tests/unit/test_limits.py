@@ -136,6 +136,20 @@ def test_a_non_finite_torque_is_refused_naming_the_joint(hand: HandConfig, bad: 
         assert str(bad) in detail
 
 
+def test_finite_torques_whose_sum_overflows_are_not_taken_for_non_finite(
+    hand: HandConfig,
+) -> None:
+    """The check sums first (a finite sum proves every value finite); a sum that overflows
+    is still judged value by value, so huge finite torques are left to the limiter."""
+    desired = np.full(hand.n_joints, 1e308)
+    assert sum(desired.tolist()) == float("inf")
+    assert check_desired(desired, hand.n_joints) is None
+    desired[0], desired[1] = np.inf, -np.inf  # a NaN sum, as a NaN would give
+    found = check_desired(desired, hand.n_joints)
+    assert found is not None and found[0] is FaultCode.NON_FINITE_TORQUE
+    assert found[1].startswith("joint 0: ")
+
+
 @pytest.mark.parametrize("n", [0, 8, 10])
 def test_a_wrong_number_of_torques_is_refused(hand: HandConfig, n: int) -> None:
     assert check_desired(np.zeros(n), hand.n_joints) == (

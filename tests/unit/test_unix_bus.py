@@ -10,12 +10,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
 
 from handctl.config import HandConfig
-from handctl.online.bus import BusEventKind, Frame, HandBus, open_bus
+from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
 from handctl.online.taps import TAP_TX
 from handctl.online.unixcan import TX_QUEUE_FRAMES
 
@@ -141,3 +142,100 @@ def test_python_can_opens_the_unix_bus_by_its_interface_name(tmp_path: Path) -> 
     ] == [
         (m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch, m.is_extended_id) for m in sent
     ]
+
+
+def test_handbus_frames_cross_to_and_from_python_can_unchanged(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """HandBus speaks to the unix bus in plain tuples (``FrameTransport``), building no
+    python-can ``Message`` per frame; a python-can program on the same bus sees the same
+    frames as from any python-can sender, and HandBus reads what such a program sends."""
+    channel = tmp_path / "bus"
+    built = [0]
+    init = can.Message.__init__
+
+    def counting(self: can.Message, *args: object, **kwargs: object) -> None:
+        built[0] += 1
+        init(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    with (
+        open_bus(f"unix:{channel}", hand.bus) as ours,
+        can.Bus(interface="unix", channel=str(channel)) as theirs,
+    ):
+        monkeypatch.setattr(can.Message, "__init__", counting)
+        assert ours.send(0x101, bytes(range(16)), more=True)
+        assert ours.send(0x1ABCDEF | EXTENDED_ID_FLAG, b"\x05\x06", more=True)
+        assert ours.send(0x103, b"\x07")
+        drained_nothing = ours.drain()
+        assert built[0] == 0
+        monkeypatch.setattr(can.Message, "__init__", init)
+        got = [theirs.recv(timeout=5.0) for _ in range(3)]
+        theirs.send(
+            can.Message(arbitration_id=0x181, data=bytes(8), is_fd=False, is_extended_id=False)
+        )
+        theirs.send(
+            can.Message(arbitration_id=0x12345, data=b"\x01", is_extended_id=True, is_fd=True)
+        )
+        theirs.send(can.Message(arbitration_id=0x040, is_error_frame=True, data=bytes(8)))
+        monkeypatch.setattr(can.Message, "__init__", counting)
+        frames: list[Frame] = []
+        for _ in range(50):
+            frames += ours.drain()
+            if len(frames) == 2:
+                break
+        events = ours.events()
+        assert built[0] == 0
+    assert drained_nothing == []
+    assert [
+        (m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch, m.is_extended_id)
+        for m in got
+        if m is not None
+    ] == [
+        (0x101, bytes(range(16)), True, True, False),
+        (0x1ABCDEF, b"\x05\x06", True, True, True),
+        (0x103, b"\x07", True, True, False),
+    ]
+    assert [(f.arbitration_id, f.data, f.is_fd) for f in frames] == [
+        (0x181, bytes(8), False),
+        (0x12345 | EXTENDED_ID_FLAG, b"\x01", True),
+    ]
+    assert [e.kind for e in events] == [BusEventKind.BUS_OFF]
+
+
+def test_the_participants_are_listed_again_only_when_the_directory_changed(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A listing of the bus directory costs tens of µs: a sender lists it again only when
+    the directory changed, and a participant that joins or leaves is still seen."""
+    from handctl.online import unixcan
+
+    monkeypatch.setattr(unixcan, "_SETTLED_NS", 0)  # any unchanged directory is settled
+    listings = [0]
+    glob = Path.glob
+
+    def counting(self: Path, pattern: str) -> Any:
+        listings[0] += 1
+        return glob(self, pattern)
+
+    monkeypatch.setattr(Path, "glob", counting)
+    channel = f"unix:{tmp_path / 'bus'}"
+
+    def send_after_refresh(tx: HandBus, frame_id: int) -> None:
+        tx._bus._peers_at = 0.0  # type: ignore[attr-defined]  # the 50 ms are up
+        assert tx.send(frame_id, b"\x01")
+
+    with open_bus(channel, hand.bus) as tx, open_bus(channel, hand.bus) as first:
+        send_after_refresh(tx, 0x101)
+        assert [f.arbitration_id for f in first.drain()] == [0x101]
+        before = listings[0]
+        send_after_refresh(tx, 0x102)
+        assert listings[0] == before  # nothing changed: no listing
+        assert [f.arbitration_id for f in first.drain()] == [0x102]
+        with open_bus(channel, hand.bus) as second:
+            send_after_refresh(tx, 0x103)
+            assert listings[0] == before + 1
+            assert [f.arbitration_id for f in second.drain()] == [0x103]
+            assert [f.arbitration_id for f in first.drain()] == [0x103]
+        send_after_refresh(tx, 0x104)  # the second one left
+        assert listings[0] == before + 2
+        assert [f.arbitration_id for f in first.drain()] == [0x104]

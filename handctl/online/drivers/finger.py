@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from handctl.config import FingerConfig
 from handctl.online.drivers.receiver import CounterCheck, Reject, RejectCounts, validate
@@ -76,9 +77,12 @@ def make_node_command(layout: Layout, counter: int, command: str) -> tuple[int, 
     return layout.frame_id, layout.encode(counter, (NODE_COMMANDS[command],))
 
 
-@dataclass(frozen=True, slots=True)
-class Feedback:
-    """One decoded feedback frame, before the host's TDT calibration."""
+class Feedback(NamedTuple):
+    """One decoded feedback frame, before the host's TDT calibration.
+
+    A named tuple, not a frozen dataclass: one is built for every feedback frame, three or more
+    a tick, and a frozen dataclass's constructor sets each field through ``object.__setattr__``
+    (about three times the cost). Immutable all the same."""
 
     tdt: tuple[float, ...]  # N·m, node calibration, one per joint on the wire
     angles: tuple[float, ...]  # rad
@@ -175,7 +179,10 @@ class FingerNode:
             fb = parse_feedback(values)
             self.feedback = fb
             self.feedback_ns = arrival_ns
-            self._report(fb.state, fb.fault_bits, "Feedback")
+            if fb.fault_bits == 0 and fb.state == self.state:  # every tick, as a rule
+                self.fault_bits = 0  # all ``_report`` would do: nothing to contradict
+            else:
+                self._report(fb.state, fb.fault_bits, "Feedback")
         elif layout is self.layouts.heartbeat:
             state, uptime = int(values[0]), int(values[1])
             if self.uptime_ms is not None and uptime < self.uptime_ms:

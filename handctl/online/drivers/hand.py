@@ -7,6 +7,7 @@ updated in place, so a tick allocates little beyond the frames themselves.
 
 from __future__ import annotations
 
+import struct
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -91,9 +92,9 @@ class HandDriver:
             for node, sl in zip(self.nodes, self._slices, strict=True)
         ]
         n = hand.n_joints
-        self._tdt_scale = np.array([j.tdt.scale for j in hand.joints])
-        self._tdt_offset = np.array([j.tdt.offset for j in hand.joints])
-        self._tdt_raw = np.zeros(n)  # N·m as the nodes report it, before calibration
+        #: Per node: where its joints start, how many, and the feedback last folded in.
+        self._spans = [(sl.start, sl.stop - sl.start) for sl in self._slices]
+        self._folded: list[object] = [None] * len(self.nodes)
         self.state = JointState(
             np.zeros(n),
             np.zeros(n),
@@ -101,6 +102,19 @@ class HandDriver:
             [-1] * len(self.nodes),
             [0] * len(self.nodes),
         )
+        # A node's new feedback goes straight into its span of the arrays, one packing call
+        # per array (cheaper than a NumPy slice assignment from a tuple); the TDT readings
+        # as the nodes report them, calibrated for all joints at once after.
+        self._tdt_scale = np.array([j.tdt.scale for j in hand.joints])
+        self._tdt_offset = np.array([j.tdt.offset for j in hand.joints])
+        self._tdt_raw = np.zeros(n)  # N·m as the nodes report it, before calibration
+        self._angle_bytes = self.state.angle.data.cast("B")
+        self._tdt_raw_bytes = self._tdt_raw.data.cast("B")
+        self._feedback_ns_bytes = self.state.feedback_ns.data.cast("B")
+        self._packers = [
+            (8 * start, k, struct.Struct(f"={k}d").pack_into, struct.Struct(f"={k}q").pack_into)
+            for start, k in self._spans
+        ]
         self.unexpected = RejectCounts()
         self.unexpected_ids: dict[int, int] = {}
         self.bus_events: list[BusEvent] = []
@@ -124,16 +138,22 @@ class HandDriver:
                     ids[frame_id] = ids.get(frame_id, 0) + 1
                 continue
             node.receive(frame_id, frame.data, frame.timestamp_ns)
-        self.bus_events.extend(self.bus.events())
+        events = self.bus.events()
+        if events:
+            self.bus_events.extend(events)
         state = self.state
-        for i, (node, sl) in enumerate(zip(self.nodes, self._slices, strict=True)):
+        folded = self._folded
+        node_state, node_faults = state.node_state, state.node_faults
+        for i, node in enumerate(self.nodes):
             fb = node.feedback
-            if fb is not None and node.feedback_ns is not None:
-                state.angle[sl] = fb.angles[: sl.stop - sl.start]
-                self._tdt_raw[sl] = fb.tdt[: sl.stop - sl.start]
-                state.feedback_ns[sl] = node.feedback_ns
-            state.node_state[i] = node.state
-            state.node_faults[i] = node.fault_bits
+            if fb is not None and node.feedback_ns is not None and fb is not folded[i]:
+                folded[i] = fb  # a node's Feedback is a new object per accepted frame
+                offset, k, floats, ints = self._packers[i]
+                floats(self._angle_bytes, offset, *fb.angles[:k])
+                floats(self._tdt_raw_bytes, offset, *fb.tdt[:k])
+                ints(self._feedback_ns_bytes, offset, *([node.feedback_ns] * k))
+            node_state[i] = node.state
+            node_faults[i] = node.fault_bits
         np.multiply(self._tdt_raw, self._tdt_scale, out=state.tdt)
         state.tdt += self._tdt_offset
         return state
@@ -183,13 +203,17 @@ class HandDriver:
         Returns False when any frame could not be sent (the bus event says why).
         """
         ok = True
+        values = torques.tolist()  # one conversion for every node, plain floats after
+        bus = self.bus
         last = len(self.nodes) - 1
-        for i, (node, sl, pad) in enumerate(zip(self.nodes, self._slices, self._pads, strict=True)):
-            values = torques[sl].tolist()
+        for i, (node, (start, k), pad) in enumerate(
+            zip(self.nodes, self._spans, self._pads, strict=True)
+        ):
+            mine = values[start : start + k]
             if pad:
-                values += pad
-            frame_id, data = node.next_command(values)
-            ok = self.bus.send(frame_id, data, more=i < last) and ok
+                mine += pad
+            frame_id, data = node.next_command(mine)
+            ok = bus.send(frame_id, data, more=i < last) and ok
         return ok
 
     # -- the stop that needs no codec -----------------------------------------------------

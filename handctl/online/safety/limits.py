@@ -8,6 +8,7 @@ is what makes every start, and every restart after a reset, a ramp from zero.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -61,7 +62,10 @@ def check_desired(
             return FaultCode.WRONG_SHAPE, f"desired torques are not numbers: {desired!r:.60}"
     if arr.shape != (n_joints,):
         return FaultCode.WRONG_SHAPE, f"expected {n_joints} torques, found shape {arr.shape}"
-    if not np.isfinite(arr).all():
+    # A NaN or an infinity makes the sum NaN or infinite; a finite sum proves every value
+    # finite at a third of the cost of the elementwise test, which only a non-finite sum
+    # (or a sum of huge finite values that overflowed) still needs.
+    if not math.isfinite(sum(arr.tolist())) and not np.isfinite(arr).all():
         joint = int(np.argmax(~np.isfinite(arr)))
         return FaultCode.NON_FINITE_TORQUE, f"joint {joint}: {arr[joint]!r}"
     return None
@@ -74,7 +78,8 @@ def limit_torque(
     limited (a count for the record, not an error: limiting is the limiter's job).
 
     A plain loop over the joints: for nine values it is several times cheaper than the numpy
-    calls, and it runs every tick.
+    calls, and it runs every tick. ``out`` may be ``last_applied``: it is read before ``out``
+    is written.
     """
     limited = 0
     result = []

@@ -39,6 +39,10 @@ from handctl.protocol import NodeState
 
 
 class State(enum.Enum):
+    # Members are singletons compared by identity: hashing them by identity too (in C)
+    # spares the tick Enum's hash of the name, a Python call, at each ``in ARMED``.
+    __hash__ = object.__hash__
+
     IDLE = "idle"
     ENABLING = "enabling"
     RUNNING = "running"
@@ -48,6 +52,8 @@ class State(enum.Enum):
 
 
 class Event(enum.Enum):
+    __hash__ = object.__hash__  # as State's
+
     START = "start"
     ENABLED = "enabled"
     STOP = "stop"
@@ -229,10 +235,10 @@ class Supervisor:
                 # A late tick repeats the last applied command once, rather than stepping the
                 # rate limiter over an interval it did not see.
                 return self.applied
+            # Straight into ``applied``: the limiter reads the last applied torques first.
             self.limited_joints = limit_torque(
-                target, self.applied, self.limits, self.dt, self._scratch
+                target, self.applied, self.limits, self.dt, self.applied
             )
-            self.applied[:] = self._scratch
         elif state is State.STOPPING:
             limit_torque(np.zeros(self.n), self.applied, self.limits, self.dt, self._scratch)
             self.applied[:] = self._scratch

@@ -1,0 +1,14 @@
+"""The flag bits of a raw frame, shared by ``HandBus`` and the transports that exchange frames
+without python-can's ``Message`` (``bus.FrameTransport``: the unix bus).
+
+A ``Message`` costs a few µs to build and as much to take apart; a tick moves half a dozen
+frames each way. The unix bus carries these very bits on its wire.
+"""
+
+from __future__ import annotations
+
+FD = 1  # CAN-FD frame
+BRS = 2  # CAN-FD bit-rate switch
+ERROR = 4  # an error frame: the id is the error class (linux/can/error.h)
+ESI = 8  # CAN-FD error state indicator
+EXTENDED = 16  # a 29-bit identifier
