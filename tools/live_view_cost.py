@@ -2,8 +2,16 @@
 
 Two real-time runs of the loop benchmark in one invocation, both recorded: the first without
 the live server, the second with it and a real client subscribed to every channel (so the
-server encodes and sends everything). The difference of their figures is the live view's
-cost on the tick; both runs share the machine's load of the moment.
+server encodes and sends everything it serves). The difference and the ratio of their figures
+are the live view's cost on the tick; both runs share the machine's load of the moment.
+
+The client is a process of its own, as Foxglove is: a client thread in the control process
+would take the interpreter's lock from the loop (for up to the 5 ms switch interval at a time)
+and the benchmark would measure itself, not the live view.
+
+``python tools/live_view_cost.py PORT`` is that client: it connects (retrying until the server
+is up), subscribes to every channel, counts what arrives, and when its stdin closes prints
+the counts as one JSON object.
 """
 
 from __future__ import annotations
@@ -12,8 +20,10 @@ import argparse
 import asyncio
 import json
 import socket
+import subprocess
 import sys
 import threading
+from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
@@ -21,6 +31,8 @@ import websockets
 from websockets.typing import Subprotocol
 
 SUBPROTOCOL = Subprotocol("foxglove.sdk.v1")
+#: The per-tick figures compared between the two runs.
+FIGURES = ("tick_cpu_us_p99", "tick_cpu_us_p50", "lateness_p99_us", "lateness_p50_us")
 
 
 def free_port() -> int:
@@ -29,8 +41,9 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-async def _client(port: int, stop: threading.Event, counts: dict[str, int]) -> None:
-    """Connect as Foxglove would, subscribe to every advertised channel, count messages."""
+async def _listen(port: int, stop: threading.Event, counts: Counter[str]) -> None:
+    """Connect as Foxglove would, subscribe to every advertised channel, count messages by
+    topic."""
     while not stop.is_set():
         try:
             ws = await websockets.connect(
@@ -41,6 +54,7 @@ async def _client(port: int, stop: threading.Event, counts: dict[str, int]) -> N
             await asyncio.sleep(0.1)
     else:
         return
+    topics: dict[int, str] = {}
     async with ws:
         while not stop.is_set():
             try:
@@ -52,40 +66,80 @@ async def _client(port: int, stop: threading.Event, counts: dict[str, int]) -> N
             if isinstance(raw, str):
                 op = json.loads(raw)
                 if op.get("op") == "advertise":
-                    await ws.send(
-                        json.dumps(
-                            {
-                                "op": "subscribe",
-                                "subscriptions": [
-                                    {"id": c["id"], "channelId": c["id"]} for c in op["channels"]
-                                ],
-                            }
-                        )
-                    )
-            else:
-                counts["messages"] += 1
+                    subs = []
+                    for c in op["channels"]:
+                        topics[c["id"]] = c["topic"]
+                        subs.append({"id": c["id"], "channelId": c["id"]})
+                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+            elif raw[:1] == b"\x01":  # message data: subscription id, log time, payload
+                counts[topics.get(int.from_bytes(raw[1:5], "little"), "?")] += 1
+
+
+def client_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="a Foxglove client that counts messages")
+    parser.add_argument("port", type=int)
+    args = parser.parse_args(argv)
+    stop = threading.Event()
+    counts: Counter[str] = Counter()
+
+    def wait_stdin() -> None:
+        sys.stdin.read()
+        stop.set()
+
+    threading.Thread(target=wait_stdin, daemon=True).start()
+    asyncio.run(_listen(args.port, stop, counts))
+    stop.wait()
+    print(json.dumps({"messages": sum(counts.values()), "by_topic": dict(counts)}))
+    return 0
+
+
+def _start_client(port: int) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, __file__, str(port)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _stop_client(client: subprocess.Popen[str]) -> dict[str, Any]:
+    try:
+        out, _ = client.communicate("", timeout=30)
+    except subprocess.TimeoutExpired:
+        client.kill()
+        client.communicate()
+        return {"messages": -1, "by_topic": {}}
+    try:
+        counts: dict[str, Any] = json.loads(out)
+    except json.JSONDecodeError:
+        return {"messages": -1, "by_topic": {}}
+    return counts
 
 
 def compare(
     run: Callable[[argparse.Namespace], dict[str, Any]], args: argparse.Namespace
 ) -> dict[str, Any]:
-    base = argparse.Namespace(**{**vars(args), "live": False, "record": True, "live_port": None})
+    base = argparse.Namespace(
+        **{**vars(args), "live": False, "record": True, "live_port": None, "no_naive": True}
+    )
     print("recorded, no live view:", file=sys.stderr)
     recorded = run(base)
     port = free_port()
-    counts = {"messages": 0}
-    stop = threading.Event()
-    client = threading.Thread(target=lambda: asyncio.run(_client(port, stop, counts)), daemon=True)
-    client.start()
+    client = _start_client(port)
     print(f"recorded and live on port {port} with a subscribed client:", file=sys.stderr)
     try:
         live = run(argparse.Namespace(**{**vars(base), "live_port": port}))
     finally:
-        stop.set()
-        client.join(5.0)
+        counts = _stop_client(client)
     out: dict[str, Any] = {f"recorded_{k}": v for k, v in recorded.items()}
     out.update({f"live_{k}": v for k, v in live.items()})
     out["live_messages_received"] = counts["messages"]
-    for key in ("tick_cpu_us_p99", "tick_cpu_us_p50", "lateness_p99_us", "lateness_p50_us"):
+    out["live_messages_by_topic"] = counts["by_topic"]
+    for key in FIGURES:
         out[f"live_added_{key}"] = round(live[key] - recorded[key], 1)
+        out[f"live_ratio_{key}"] = round(live[key] / recorded[key], 3) if recorded[key] else None
     return out
+
+
+if __name__ == "__main__":
+    raise SystemExit(client_main())
