@@ -5,6 +5,12 @@ hands it every message as it writes it to the MCAP file: the loop does not know 
 a slow or stalled viewer costs the writer a bounded queue (the SDK drops the oldest message
 per client), never the loop a microsecond of waiting. ``handctl replay RUN.mcap --live``
 serves a finished (or truncated) file at the speed it was recorded.
+
+A channel written every tick (1 kHz) is served sampled: at most one message per
+``SAMPLE_PERIOD_NS`` of log time and key (a CAN frame's key is its id, so every kind of frame
+is shown, each at most that often). A viewer draws at its screen's rate; a thousand messages
+a second on each of a dozen channels would cost the viewer, the server and the machine the
+loop runs on for nothing anyone sees. The MCAP file keeps every message.
 """
 
 from __future__ import annotations
@@ -26,6 +32,12 @@ if TYPE_CHECKING:
 #: someone chooses to tunnel it.
 HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
+#: The live view's sampling of a per-tick channel: 100 Hz of log time, still a smooth plot
+#: (the 3D scene is written at 50 Hz anyway).
+SAMPLE_PERIOD_NS = 10_000_000
+#: Keys remembered for the sampling before they are forgotten all at once (frame ids from a
+#: bus that babbles ever new ones must not grow the writer without bound).
+MAX_SAMPLED_KEYS = 4096
 
 
 class LiveServer:
@@ -35,6 +47,9 @@ class LiveServer:
         self.context = Context()
         self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context)
         self.channels: dict[str, Channel] = {}
+        #: Sampled topics, and per (topic, key) the log time of the message last served.
+        self.sampled: set[str] = set()
+        self._served: dict[tuple[str, int], int] = {}
 
     @property
     def port(self) -> int:
@@ -48,7 +63,12 @@ class LiveServer:
         schema_data: bytes,
         message_encoding: str,
         metadata: dict[str, str] | None = None,
+        sampled: bool = False,
     ) -> None:
+        """``sampled``: the topic is written every tick and served at most once per
+        ``SAMPLE_PERIOD_NS`` of log time and key (see ``log``)."""
+        if sampled:
+            self.sampled.add(topic)
         self.channels[topic] = Channel(
             topic,
             schema=Schema(name=schema_name, encoding=schema_encoding, data=schema_data),
@@ -57,10 +77,22 @@ class LiveServer:
             metadata=metadata,
         )
 
-    def log(self, topic: str, log_time: int, payload: bytes) -> None:
+    def log(self, topic: str, log_time: int, payload: bytes, key: int = 0) -> None:
+        """Serve one message to the clients subscribed to ``topic``, if any. On a sampled
+        topic, a message is served when it is ``SAMPLE_PERIOD_NS`` after the last one served
+        with the same key, or at the same log time (a tick's messages stay together)."""
         channel = self.channels.get(topic)
-        if channel is not None and channel.has_sinks():
-            channel.log(payload, log_time=log_time)
+        if channel is None or not channel.has_sinks():
+            return
+        if topic in self.sampled:
+            slot = (topic, key)
+            last = self._served.get(slot)
+            if last is not None and last < log_time < last + SAMPLE_PERIOD_NS:
+                return
+            if len(self._served) >= MAX_SAMPLED_KEYS:  # a bus babbling ever new ids
+                self._served.clear()
+            self._served[slot] = log_time
+        channel.log(payload, log_time=log_time)
 
     def close(self) -> None:
         self.server.stop()
