@@ -23,7 +23,7 @@ import struct
 import subprocess
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -112,6 +112,21 @@ def _view(vector: Any) -> memoryview:
     return view
 
 
+def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] | None:
+    """The CPUs the writer process may run on beside a run pinned to ``loop_cpu``: this
+    process's CPUs but the loop's and the simulated hand's, or but the loop's alone when no
+    other is left (two CPUs); None (anywhere) when the loop is not pinned or it has the only
+    CPU. The writer's bursts of encoding then never queue on the loop's CPU."""
+    if loop_cpu is None:
+        return None
+    allowed = os.sched_getaffinity(0)
+    for taken in ({loop_cpu, sim_cpu}, {loop_cpu}):
+        rest = allowed - taken
+        if rest:
+            return sorted(rest)
+    return None
+
+
 def _shared_memory(size: int) -> int:
     """An anonymous memory file both processes can map: memfd where there is one."""
     if hasattr(os, "memfd_create"):
@@ -136,7 +151,9 @@ class Recorder:
         object_names: Sequence[str] = (),
         layout: RingLayout | None = None,
         live_port: int | None = None,
+        cpus: Collection[int] | None = None,
     ) -> None:
+        """``cpus``: where the writer process may run (``writer_cpus``); None: anywhere."""
         self.path = Path(path)
         self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
         try:
@@ -158,6 +175,9 @@ class Recorder:
         package_root = str(Path(__file__).resolve().parents[2])
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
+        # The writer does no linear algebra: no BLAS thread pool, whose threads would start
+        # at numpy's import, before the writer places itself (``cpus``) and lowers its priority.
+        env["OPENBLAS_NUM_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = "1"
         try:
             self.process = subprocess.Popen(
                 [
@@ -195,6 +215,7 @@ class Recorder:
                     "path": str(self.path),
                     "metadata": metadata,
                     "live_port": live_port,
+                    "cpus": sorted(cpus) if cpus is not None else None,
                 }
             )
         except BaseException:
