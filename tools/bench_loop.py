@@ -124,6 +124,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="two recorded runs, without and with the live Foxglove server and "
         "a subscribed client: what the live view adds to the tick",
     )
+    parser.add_argument(
+        "--live-pairs",
+        type=int,
+        default=1,
+        metavar="N",
+        help="with --live: N pairs of runs, the added cost the median over them",
+    )
 
 
 class RunningSince:
@@ -317,6 +324,7 @@ def _one(
     sim = report.summary.get("sim") or {}
     transport = sim.get("transport") or {}
     return {
+        **(_writer_figures(log, result.ticks * hand.bus.period_s) if record else {}),
         "seconds": args.seconds,
         "babble_per_ms": args.babble,
         "foreign_frames": result.node_rejects.get("unexpected_id", 0),
@@ -335,4 +343,23 @@ def _one(
         "tick_cpu_us_p50": round(float(np.percentile(cpu, 50)) / 1e3, 1),
         **host_figures(report, hand, first, running.ns),
         **{f"{name}_cpu_us_p99": v for name, v in report.summary["stage_cpu_us_p99"].items()},
+    }
+
+
+def _writer_figures(log: Path, run_s: float) -> dict[str, object]:
+    """What the recording's writer process took of the machine (its CPU time per second of
+    run, the live server's threads included) and what it dropped, from the file's end record."""
+    from handctl.recording import channels as ch
+    from handctl.recording.reader import open_recording
+
+    try:
+        end = open_recording(log).metadata.get(ch.META_END, {})
+    except Exception as exc:  # the figures of the loop stand without the writer's
+        return {"writer_error": str(exc)}
+    cpu_s = float(end.get("writer_cpu_s", "nan"))
+    return {
+        "writer_cpu_s": cpu_s,
+        "writer_cpu_share": round(cpu_s / run_s, 4) if run_s > 0 else float("nan"),
+        "writer_dropped_ticks": int(end.get("dropped_ticks", -1)),
+        "writer_dropped_frames": int(end.get("dropped_frames", -1)),
     }

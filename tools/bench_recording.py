@@ -26,7 +26,11 @@ process, then read back:
 
   ``loop_cost_us_p99`` is the direct 99th percentile plus what the paired mean found beyond
   the direct mean (that indirect share, taken as the same in every tick). Target <= 20.
-  ``tick_us_p50_unrecorded`` is B's median tick, for scale.
+  ``tick_us_p50_unrecorded`` is B's median tick, for scale: the baseline of the same run.
+  ``loop_cost_share_p99`` is ``loop_cost_us_p99`` over it (and ``loop_cost_share_p50`` the
+  direct median over it): on a shared machine every time swells with the load of the
+  moment, the recording's and the tick's alike, and the share tells a recorder that got
+  dearer from a machine that got busier.
 - ``writer_rtf``: recorded seconds the writer process copies out, encodes and writes per
   second it spends doing so (its own busy time during the run). Target >= 5.
 - ``replay_rtf``: recorded seconds per wall second of ``handctl replay --rerun`` (reading the
@@ -319,7 +323,7 @@ def estimator_us_per_tick(recording: Recording) -> float:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     loop_p99, loop_p50, loop_mean, writer, replay, sizes = [], [], [], [], [], []
-    paired_mean, paired_sem, paired_p99 = [], [], []
+    paired_mean, paired_sem, paired_p99, share_p99, share_p50 = [], [], [], [], []
     read_us, runtime_us, tick_p50, estimator_us = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
         for i in range(args.repeat):
@@ -335,6 +339,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             paired_sem.append(float(np.std(added)) / np.sqrt(len(added)) / 1e3)
             paired_p99.append(float(np.percentile(added, 99)) / 1e3)
             tick_p50.append(float(np.percentile(run_["unrecorded_ns"], 50)) / 1e3)
+            share_p99.append(loop_p99[-1] / tick_p50[-1])
+            share_p50.append(loop_p50[-1] / tick_p50[-1])
             recording = open_recording(out)
             end = recording.metadata[ch.META_END]
             recorded_s = run_["ticks"] * run_["period_s"]
@@ -356,7 +362,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             print(
                 f"bench recording: run {i + 1}/{args.repeat}: loop p99 {loop_p99[-1]:.1f} us "
                 f"(p50 {loop_p50[-1]:.1f}, mean {loop_mean[-1]:.1f}; paired mean "
-                f"{paired_mean[-1]:.1f} +- {paired_sem[-1]:.1f}), writer_rtf "
+                f"{paired_mean[-1]:.1f} +- {paired_sem[-1]:.1f}; {share_p99[-1]:.3f} of the "
+                f"unrecorded tick's median {tick_p50[-1]:.1f} us), writer_rtf "
                 f"{writer[-1]:.1f}, replay_rtf {replay[-1]:.1f}, {sizes[-1]:.1f} MB/min",
                 file=sys.stderr,
             )
@@ -389,7 +396,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "paired_cost_us_sem": round(paired_sem[best], 2),
         "paired_cost_us_p99": round(paired_p99[best], 2),
         "paired_noise_us_p99": round(noise, 2),
-        "tick_us_p50_unrecorded": round(min(tick_p50), 2),
+        "tick_us_p50_unrecorded": round(tick_p50[best], 2),
+        "loop_cost_share_p99": round(share_p99[best], 4),
+        "loop_cost_share_p50": round(share_p50[best], 4),
         "writer_rtf": round(max(writer), 2),
         "replay_rtf": round(max(replay), 2),
         "rerun_read_us_per_tick": round(min(read_us), 1),
