@@ -190,8 +190,11 @@ def run_recipe(
         signals = stack.enter_context(StopSignals())
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
+        peer_process = is_sim and not lockstep  # the simulated hand on ``sim_cpu``
         recording = (
-            stack.enter_context(_recorder(req, is_sim and lockstep, loop_cpu, sim_cpu))
+            stack.enter_context(
+                _recorder(req, is_sim and lockstep, loop_cpu, sim_cpu if peer_process else None)
+            )
             if req.log
             else None
         )

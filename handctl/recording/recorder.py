@@ -113,18 +113,17 @@ def _view(vector: Any) -> memoryview:
 
 
 def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] | None:
-    """The CPUs the writer process may run on beside a run pinned to ``loop_cpu``: this
-    process's CPUs but the loop's and the simulated hand's, or but the loop's alone when no
-    other is left (two CPUs); None (anywhere) when the loop is not pinned or it has the only
-    CPU. The writer's bursts of encoding then never queue on the loop's CPU."""
+    """The CPUs the writer process may run on beside a run pinned to ``loop_cpu``, with the
+    simulated hand's process on ``sim_cpu`` (None: no such process): this process's CPUs but
+    those two. None (anywhere) when the loop is not pinned or no CPU is left: on two CPUs
+    with the simulated hand, the writer shares the loop's idle time, where the loop's
+    SCHED_FIFO always comes first. Pinned beside the simulated hand alone instead, the writer
+    fell seconds behind on a busy machine and the rings dropped ticks: a lost log costs more
+    than the caches the writer cools on the loop's CPU."""
     if loop_cpu is None:
         return None
-    allowed = os.sched_getaffinity(0)
-    for taken in ({loop_cpu, sim_cpu}, {loop_cpu}):
-        rest = allowed - taken
-        if rest:
-            return sorted(rest)
-    return None
+    rest = os.sched_getaffinity(0) - {loop_cpu, sim_cpu}
+    return sorted(rest) if rest else None
 
 
 def _shared_memory(size: int) -> int:
