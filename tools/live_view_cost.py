@@ -36,13 +36,7 @@ from websockets.typing import Subprotocol
 
 SUBPROTOCOL = Subprotocol("foxglove.sdk.v1")
 #: The per-tick figures compared between the two runs.
-FIGURES = (
-    "tick_cpu_us_p99",
-    "tick_cpu_us_p50",
-    "lateness_p99_us",
-    "lateness_p50_us",
-    "writer_cpu_share",
-)
+FIGURES = ("tick_cpu_us_p99", "tick_cpu_us_p50", "lateness_p99_us", "lateness_p50_us")
 
 
 def free_port() -> int:
@@ -111,7 +105,7 @@ def client_main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _start_client(port: int) -> subprocess.Popen[str]:
+def start_client(port: int) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, __file__, str(port)],
         stdin=subprocess.PIPE,
@@ -120,7 +114,7 @@ def _start_client(port: int) -> subprocess.Popen[str]:
     )
 
 
-def _stop_client(client: subprocess.Popen[str]) -> dict[str, Any]:
+def stop_client(client: subprocess.Popen[str]) -> dict[str, Any]:
     try:
         out, _ = client.communicate("", timeout=30)
     except subprocess.TimeoutExpired:
@@ -151,7 +145,7 @@ def compare(
         print(f"pair {i + 1}/{pairs}: recorded, no live view:", file=sys.stderr)
         recorded = run(base)
         port = free_port()
-        client = _start_client(port)
+        client = start_client(port)
         print(
             f"pair {i + 1}/{pairs}: recorded and live on port {port} with a client:",
             file=sys.stderr,
@@ -159,7 +153,7 @@ def compare(
         try:
             live = run(argparse.Namespace(**{**vars(base), "live_port": port}))
         finally:
-            counts = _stop_client(client)
+            counts = stop_client(client)
         outcomes.append(f"{recorded['outcome']}/{live['outcome']}")
         for key in FIGURES:
             added[key].append(live[key] - recorded[key])
