@@ -10,7 +10,8 @@ A channel written every tick (1 kHz) is served sampled: at most one message per
 ``SAMPLE_PERIOD_NS`` of log time and key (a CAN frame's key is its id, so every kind of frame
 is shown, each at most that often). A viewer draws at its screen's rate; a thousand messages
 a second on each of a dozen channels would cost the viewer, the server and the machine the
-loop runs on for nothing anyone sees. The MCAP file keeps every message.
+loop runs on for nothing anyone sees. The MCAP file keeps every message; a replay serves it
+sampled the same way.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
 import foxglove
+import orjson
 from foxglove import Channel, Context, Schema
 
 if TYPE_CHECKING:
@@ -108,6 +110,7 @@ def serve_recording(
     from handctl.recording.reader import iter_messages, open_recording
 
     recording = open_recording(path)
+    sampled, keyed = _sampled_topics()
     server = LiveServer(port, name=f"handctl replay {path.name}")
     try:
         with path.open("rb") as stream:
@@ -119,6 +122,7 @@ def serve_recording(
                     bytes(schema.data) if schema else b"",
                     channel.message_encoding,
                     dict(channel.metadata),
+                    sampled=topic in sampled,
                 )
         if started is not None:
             started(server)
@@ -131,11 +135,31 @@ def serve_recording(
             delay = wall0 + (log_time - first_log) * 1e-9 / speed - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            server.log(topic, log_time, data)
+            server.log(topic, log_time, data, _frame_id(data) if topic in keyed else 0)
             sent += 1
         return sent
     finally:
         server.close()
+
+
+def _sampled_topics() -> tuple[frozenset[str], frozenset[str]]:
+    """The topics a run's live view samples (as the writer registers them), and those of
+    them sampled per frame id."""
+    from handctl.foxglove.derived import JOINTS, RX_DECODED, TX_DECODED
+    from handctl.recording import channels as ch
+    from handctl.recording.writer import LIVE_SAMPLED
+
+    keyed = frozenset({ch.CAN_RX, ch.CAN_TX, RX_DECODED, TX_DECODED})
+    return LIVE_SAMPLED | {JOINTS} | keyed, keyed
+
+
+def _frame_id(data: bytes) -> int:
+    """The ``id`` of a recorded frame message (JSON); 0 when it has none."""
+    try:
+        frame_id = orjson.loads(data).get("id", 0)
+    except (orjson.JSONDecodeError, AttributeError):
+        return 0
+    return frame_id if isinstance(frame_id, int) else 0
 
 
 def _channels(stream: BinaryIO) -> dict[str, tuple[McapSchema | None, McapChannel]]:

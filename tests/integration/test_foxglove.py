@@ -406,10 +406,15 @@ def replay_live(log: Path, cwd: Path) -> tuple[Live, bytes]:
 
 def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
     """``handctl replay RUN.mcap --live PORT`` serves the file's channels at its own pace
-    (the recorded pace: a client that subscribes to the 1 kHz channels keeps up with it)."""
+    (the recorded pace), the per-tick ones sampled as a run's live view serves them."""
+    from handctl.foxglove.live import SAMPLE_PERIOD_NS
+
     live, out = replay_live(run.path, tmp_path)
     for topic in WANTED:
         assert len(live.received[topic]) >= 3, topic
+    for topic in (ch.JOINT_STATE, fx.JOINTS):  # recorded every tick, 1 ms apart
+        gaps = [b - a for a, b in itertools.pairwise(live.log_times[topic])]
+        assert all(g >= SAMPLE_PERIOD_NS for g in gaps), (topic, gaps[:20])
     assert b"messages streamed" in out
 
 
