@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, BinaryIO
 import foxglove
 import orjson
 from foxglove import Channel, Context, Schema
+from foxglove.websocket import WebSocketServer
 
 if TYPE_CHECKING:
     from mcap.records import Channel as McapChannel
@@ -43,19 +44,32 @@ MAX_SAMPLED_KEYS = 4096
 
 
 class LiveServer:
-    """A Foxglove WebSocket server with one channel per recorded topic, fed raw payloads."""
+    """A Foxglove WebSocket server with one channel per recorded topic, fed raw payloads.
+
+    Its channels are added first and the server is started after them (``start``): a client
+    that connected while channels were still being added could subscribe to one the SDK had
+    advertised to it but not yet entered for it, and be told ``Unknown channel ID`` and get
+    nothing of that channel for the whole session."""
 
     def __init__(self, port: int, name: str = "handctl", host: str = HOST) -> None:
         self.context = Context()
-        self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context)
+        self.name, self.host, self.requested_port = name, host, port
+        self.server: WebSocketServer | None = None
         self.channels: dict[str, Channel] = {}
         #: Sampled topics, and per (topic, key) the log time of the message last served.
         self.sampled: set[str] = set()
         self._served: dict[tuple[str, int], int] = {}
 
+    def start(self) -> None:
+        """Bind the port and serve the channels added so far; raises if the port cannot be
+        bound."""
+        self.server = foxglove.start_server(
+            name=self.name, host=self.host, port=self.requested_port, context=self.context
+        )
+
     @property
     def port(self) -> int:
-        return self.server.port
+        return self.server.port if self.server is not None else self.requested_port
 
     def add_channel(
         self,
@@ -97,7 +111,8 @@ class LiveServer:
         channel.log(payload, log_time=log_time)
 
     def close(self) -> None:
-        self.server.stop()
+        if self.server is not None:
+            self.server.stop()
 
 
 def serve_recording(
@@ -124,6 +139,7 @@ def serve_recording(
                     dict(channel.metadata),
                     sampled=topic in sampled,
                 )
+        server.start()
         if started is not None:
             started(server)
         sent = 0

@@ -540,18 +540,23 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
     rings = Rings(layout, block)
     live = None
     if setup.get("live_port") is not None:
-        # Before the ready byte: a port that cannot be bound fails the start, not the run.
         from handctl.foxglove.live import LiveServer
 
-        try:
-            live = LiveServer(int(setup["live_port"]))
-        except Exception as exc:  # foxglove's own error type: say what, not where
-            sys.stderr.write(
-                f"the live view cannot serve on 127.0.0.1:{setup['live_port']} ({exc})\n"
-            )
-            return 1
+        live = LiveServer(int(setup["live_port"]))
     with os.fdopen(out_fd, "wb", buffering=1 << 20) as out:
         encoder = Encoder(rings, out, setup, live)
+        if live is not None:
+            # Once every channel is there, and before the ready byte: a port that cannot be
+            # bound fails the start (and leaves the file empty), not the run.
+            try:
+                live.start()
+            except Exception as exc:  # foxglove's own error type: say what, not where
+                sys.stderr.write(
+                    f"the live view cannot serve on 127.0.0.1:{setup['live_port']} ({exc})\n"
+                )
+                out.flush()
+                out.truncate(0)
+                return 1
         os.write(ready_fd, b"R")
         os.close(ready_fd)
         messages = control.pending

@@ -577,3 +577,34 @@ def test_a_live_run_with_a_client_completes_and_records_every_tick(
     ids = {json.loads(m)["id"] for m in live.received[ch.CAN_RX]}
     for kind in ("feedback", "heartbeat"):
         assert {f.can_ids.as_dict()[kind] for f in hand.fingers} <= ids, (kind, sorted(ids))
+
+
+async def _first_advertise(port: int) -> set[str]:
+    async with websockets.connect(
+        f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None
+    ) as ws:
+        while True:
+            raw = await asyncio.wait_for(ws.recv(), 5.0)
+            if isinstance(raw, str) and json.loads(raw)["op"] == "advertise":
+                return {c["topic"] for c in json.loads(raw)["channels"]}
+
+
+def test_the_live_server_listens_only_once_its_channels_are_there() -> None:
+    """A client that connects while channels are still being added can be told ``Unknown
+    channel ID`` for one it was advertised, and get nothing of it (the SDK's race; the
+    replay-live test lost the joint states to it one run in three). So the server binds its
+    port only when every channel is there, and a client's first advertise names them all."""
+    from handctl.foxglove.live import LiveServer
+
+    port = free_port()
+    server = LiveServer(port)
+    try:
+        with pytest.raises(OSError):
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+        topics = {"/hand/joint_state", "/hand/joints", "/foxglove/scene"}
+        for topic in sorted(topics):
+            server.add_channel(topic, "handctl.Test", "jsonschema", b"{}", "json")
+        server.start()
+        assert asyncio.run(_first_advertise(port)) == topics
+    finally:
+        server.close()
