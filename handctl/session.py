@@ -190,7 +190,14 @@ def run_recipe(
         signals = stack.enter_context(StopSignals())
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
-        recording = stack.enter_context(_recorder(req, is_sim and lockstep)) if req.log else None
+        peer_process = is_sim and not lockstep  # the simulated hand on ``sim_cpu``
+        recording = (
+            stack.enter_context(
+                _recorder(req, is_sim and lockstep, loop_cpu, sim_cpu if peer_process else None)
+            )
+            if req.log
+            else None
+        )
         if recording is not None:
             recorder = recording
         peer = _start_peer(stack, req, spec, lockstep, sim_cpu)
@@ -411,9 +418,11 @@ def _close_recording(
         summary["recording"] = {"path": str(req.log), "error": str(exc)}
 
 
-def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
+def _recorder(
+    req: RunRequest, lockstep_sim: bool, loop_cpu: int | None, sim_cpu: int | None
+) -> Recorder:
     from handctl.recording.metadata import start_metadata
-    from handctl.recording.recorder import Recorder
+    from handctl.recording.recorder import Recorder, writer_cpus
 
     assert req.log is not None
     objects: list[str] = []
@@ -428,6 +437,7 @@ def _recorder(req: RunRequest, lockstep_sim: bool) -> Recorder:
         phase_names=[p.name for p in req.recipe.phases],
         object_names=objects,
         live_port=req.live_port,
+        cpus=writer_cpus(loop_cpu, sim_cpu),
     )
 
 

@@ -157,6 +157,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="two recorded runs, without and with the live Foxglove server and "
         "a subscribed client: what the live view adds to the tick",
     )
+    parser.add_argument(
+        "--live-pairs",
+        type=int,
+        default=1,
+        metavar="N",
+        help="with --live: N pairs of runs, the added cost the median over them",
+    )
 
 
 class RunningSince:
@@ -356,6 +363,7 @@ def _one(
     sim = report.summary.get("sim") or {}
     transport = sim.get("transport") or {}
     return {
+        **(_writer_figures(log, result.ticks * hand.bus.period_s) if record else {}),
         "seconds": args.seconds,
         "babble_per_ms": args.babble,
         "foreign_frames": result.node_rejects.get("unexpected_id", 0),
@@ -471,4 +479,23 @@ def _median_figures(results: list[dict[str, Any]]) -> dict[str, dict[str, float]
             q: round(float(np.median([r[stage][q] for r in results])), 1) for q in results[0][stage]
         }
         for stage in stages
+    }
+
+
+def _writer_figures(log: Path, run_s: float) -> dict[str, object]:
+    """What the recording's writer process took of the machine (its CPU time per second of
+    run, the live server's threads included) and what it dropped, from the file's end record."""
+    from handctl.recording import channels as ch
+    from handctl.recording.reader import open_recording
+
+    try:
+        end = open_recording(log).metadata.get(ch.META_END, {})
+    except Exception as exc:  # the figures of the loop stand without the writer's
+        return {"writer_error": str(exc)}
+    cpu_s = float(end.get("writer_cpu_s", "nan"))
+    return {
+        "writer_cpu_s": cpu_s,
+        "writer_cpu_share": round(cpu_s / run_s, 4) if run_s > 0 else float("nan"),
+        "writer_dropped_ticks": int(end.get("dropped_ticks", -1)),
+        "writer_dropped_frames": int(end.get("dropped_frames", -1)),
     }

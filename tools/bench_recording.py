@@ -26,7 +26,11 @@ process, then read back:
 
   ``loop_cost_us_p99`` is the direct 99th percentile plus what the paired mean found beyond
   the direct mean (that indirect share, taken as the same in every tick). Target <= 20.
-  ``tick_us_p50_unrecorded`` is B's median tick, for scale.
+  ``tick_us_p50_unrecorded`` is B's median tick, for scale: the baseline of the same run.
+  ``loop_cost_share_p99`` is ``loop_cost_us_p99`` over it (and ``loop_cost_share_p50`` the
+  direct median over it): on a shared machine every time swells with the load of the
+  moment, the recording's and the tick's alike, and the share tells a recorder that got
+  dearer from a machine that got busier.
 - ``writer_rtf``: recorded seconds the writer process copies out, encodes and writes per
   second it spends doing so (its own busy time during the run). Target >= 5.
 - ``replay_rtf``: recorded seconds per wall second of ``handctl replay --rerun`` (reading the
@@ -37,6 +41,14 @@ process, then read back:
 - ``mb_per_min``: file size per minute of run.
 
 Each figure is the best of ``--repeat`` runs (the machine is shared). Progress goes to stderr.
+
+``--live``: instead, what the live Foxglove view adds to the tick. The same pair, both
+runtimes recorded, A's writer also serving its live view to a client process subscribed to
+every channel (``live_view_cost.py``'s). The two tick in turn under the same load, so that
+``live_added_tick_us_p99`` (A's tick p99 minus B's, CPU time) and ``live_ratio_tick_p99``
+compare like with like, which two real-time runs one after the other on a shared machine do
+not; ``live_paired_us_mean`` is the mean of A's tick minus B's, with its standard error. The
+median over ``--repeat`` pairs.
 """
 
 from __future__ import annotations
@@ -94,6 +106,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--recipe", default=str(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")
     )
     parser.add_argument("--repeat", type=int, default=3, help="runs per figure (default 3)")
+    parser.add_argument(
+        "--live",
+        action="store_true",
+        help="instead: the live Foxglove view's cost on the tick, both runtimes recorded, "
+        "A's writer serving a client subscribed to every channel (live_*)",
+    )
     parser.add_argument(
         "--breakdown",
         action="store_true",
@@ -161,6 +179,7 @@ class _Side:
         turns: Turns,
         side: str,
         push: str = "all",
+        live_port: int | None = None,
     ) -> None:
         channel = f"virtual:bench-rec-{uuid.uuid4().hex[:8]}"
         peer = stack.enter_context(open_bus(channel, hand.bus))
@@ -177,6 +196,7 @@ class _Side:
                 start_metadata(hand, recipe, ["bench"]),
                 phase_names=[p.name for p in recipe.phases],
                 object_names=[o.name for o in sim.params.objects],
+                live_port=live_port,
             )
         self.runtime = runtime = Runtime(
             hand, driver, self.clock, recipe, recorder=self.recorder, estimator=estimator
@@ -236,15 +256,22 @@ def _partial_push(recorder: Recorder, part: str) -> Callable[[Any], None]:
 
 
 def _pair(
-    hand: HandConfig, recipe: Recipe, out: Path | None, push: str = "all"
+    hand: HandConfig,
+    recipe: Recipe,
+    out: Path | None,
+    push: str = "all",
+    live_port: int | None = None,
+    b_out: Path | None = None,
 ) -> tuple[_Side, _Side, RunResult, float, dict[str, Any]]:
-    """Run A (recorded to ``out``, or not when ``out`` is None) and B (never) in turn."""
+    """Run A (recorded to ``out``, or not when ``out`` is None; served live on ``live_port``)
+    and B (recorded to ``b_out``, by default not) in turn."""
     with contextlib.ExitStack() as stack:
         turns = Turns()
-        a = _Side(stack, hand, recipe, out, turns, "a", push)
-        b = _Side(stack, hand, recipe, None, turns, "b")
-        if a.recorder is not None:
-            a.recorder.wait_ready()
+        a = _Side(stack, hand, recipe, out, turns, "a", push, live_port)
+        b = _Side(stack, hand, recipe, b_out, turns, "b")
+        for side in (a, b):
+            if side.recorder is not None:
+                side.recorder.wait_ready()
 
         async def both() -> tuple[RunResult, RunResult]:
             return await asyncio.gather(a.runtime.run(), b.runtime.run())
@@ -253,6 +280,8 @@ def _pair(
         result, twin = asyncio.run(both())
         loop_wall = time.perf_counter() - started
         stats = a.recorder.close({"outcome": result.outcome.value}) if a.recorder else {}
+        if b.recorder is not None:
+            b.recorder.close({"outcome": twin.outcome.value})
     if result.ticks != twin.ticks or result.outcome != twin.outcome:
         raise RuntimeError(
             f"bench: the twin runs differ ({result.ticks} and {twin.ticks} "
@@ -317,9 +346,67 @@ def estimator_us_per_tick(recording: Recording) -> float:
     return 1e6 * (time.perf_counter() - started) / max(len(angles), 1)
 
 
+def live_once(hand_path: str, recipe_path: str, directory: Path) -> dict[str, Any]:
+    """One pair, both recorded, A served live to a client process (``live_view_cost``):
+    per control tick, A's CPU time and B's, interleaved tick by tick under the same load."""
+    from live_view_cost import free_port, start_client, stop_client
+
+    hand = load_hand(hand_path)
+    recipe = load_recipe(recipe_path, hand)
+    port = free_port()
+    client = start_client(port)
+    try:
+        _, _, result, _, _ = pair = _pair(
+            hand, recipe, directory / "a.mcap", live_port=port, b_out=directory / "b.mcap"
+        )
+    finally:
+        counts = stop_client(client)
+    a, b = pair[0], pair[1]
+    control = result.stage_ns[:, 3] > 0
+    n = min(len(a.clock.work_ns), len(b.clock.work_ns), len(control))
+    live = np.array(a.clock.work_ns[:n])[control[:n]] / 1e3
+    recorded = np.array(b.clock.work_ns[:n])[control[:n]] / 1e3
+    added = live - recorded
+    figures: dict[str, Any] = {"live_messages_received": counts["messages"]}
+    for q in (50, 99):
+        with_live, without = float(np.percentile(live, q)), float(np.percentile(recorded, q))
+        figures[f"live_tick_us_p{q}"] = round(with_live, 2)
+        figures[f"recorded_tick_us_p{q}"] = round(without, 2)
+        figures[f"live_added_tick_us_p{q}"] = round(with_live - without, 2)
+        figures[f"live_ratio_tick_p{q}"] = round(with_live / without, 4)
+    figures["live_paired_us_mean"] = round(float(np.mean(added)), 2)
+    figures["live_paired_us_sem"] = round(float(np.std(added)) / np.sqrt(len(added)), 2)
+    for name in ("a", "b"):
+        end = open_recording(directory / f"{name}.mcap").metadata[ch.META_END]
+        side = "live" if name == "a" else "recorded"
+        figures[f"{side}_dropped_ticks"] = int(end["dropped_ticks"])
+        figures[f"{side}_writer_cpu_s"] = round(float(end["writer_cpu_s"]), 2)
+    return figures
+
+
+def run_live(args: argparse.Namespace) -> dict[str, Any]:
+    """``--live``: ``--repeat`` pairs; each figure the median over them, each pair's kept."""
+    runs = []
+    for i in range(args.repeat):
+        with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
+            runs.append(live_once(args.hand, args.recipe, Path(directory)))
+        print(
+            f"bench recording --live: pair {i + 1}/{args.repeat}: tick p99 "
+            f"{runs[-1]['live_tick_us_p99']} us live, {runs[-1]['recorded_tick_us_p99']} us "
+            f"without; paired mean {runs[-1]['live_paired_us_mean']} +- "
+            f"{runs[-1]['live_paired_us_sem']} us",
+            file=sys.stderr,
+        )
+    figures: dict[str, Any] = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+    figures["live_added_tick_us_p99_runs"] = [r["live_added_tick_us_p99"] for r in runs]
+    return figures
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    if args.live:
+        return run_live(args)
     loop_p99, loop_p50, loop_mean, writer, replay, sizes = [], [], [], [], [], []
-    paired_mean, paired_sem, paired_p99 = [], [], []
+    paired_mean, paired_sem, paired_p99, share_p99, share_p50 = [], [], [], [], []
     read_us, runtime_us, tick_p50, estimator_us = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
         for i in range(args.repeat):
@@ -335,6 +422,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             paired_sem.append(float(np.std(added)) / np.sqrt(len(added)) / 1e3)
             paired_p99.append(float(np.percentile(added, 99)) / 1e3)
             tick_p50.append(float(np.percentile(run_["unrecorded_ns"], 50)) / 1e3)
+            share_p99.append(loop_p99[-1] / tick_p50[-1])
+            share_p50.append(loop_p50[-1] / tick_p50[-1])
             recording = open_recording(out)
             end = recording.metadata[ch.META_END]
             recorded_s = run_["ticks"] * run_["period_s"]
@@ -356,7 +445,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             print(
                 f"bench recording: run {i + 1}/{args.repeat}: loop p99 {loop_p99[-1]:.1f} us "
                 f"(p50 {loop_p50[-1]:.1f}, mean {loop_mean[-1]:.1f}; paired mean "
-                f"{paired_mean[-1]:.1f} +- {paired_sem[-1]:.1f}), writer_rtf "
+                f"{paired_mean[-1]:.1f} +- {paired_sem[-1]:.1f}; {share_p99[-1]:.3f} of the "
+                f"unrecorded tick's median {tick_p50[-1]:.1f} us), writer_rtf "
                 f"{writer[-1]:.1f}, replay_rtf {replay[-1]:.1f}, {sizes[-1]:.1f} MB/min",
                 file=sys.stderr,
             )
@@ -389,7 +479,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "paired_cost_us_sem": round(paired_sem[best], 2),
         "paired_cost_us_p99": round(paired_p99[best], 2),
         "paired_noise_us_p99": round(noise, 2),
-        "tick_us_p50_unrecorded": round(min(tick_p50), 2),
+        "tick_us_p50_unrecorded": round(tick_p50[best], 2),
+        "loop_cost_share_p99": round(share_p99[best], 4),
+        "loop_cost_share_p50": round(share_p50[best], 4),
         "writer_rtf": round(max(writer), 2),
         "replay_rtf": round(max(replay), 2),
         "rerun_read_us_per_tick": round(min(read_us), 1),

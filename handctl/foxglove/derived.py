@@ -15,9 +15,9 @@ metadata, so the writer needs nothing the loop does not already hand it.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import orjson
 from foxglove.messages import FrameTransforms, Log, LogLevel, SceneUpdate
@@ -59,6 +59,8 @@ class DerivedChannel:
     schema_encoding: str  # "protobuf" or "jsonschema"
     schema_data: bytes
     message_encoding: str  # "protobuf" or "json"
+    #: Written every tick or every frame: the live view serves it sampled.
+    per_tick: bool = False
 
 
 def _well_known(topic: str, message: type[SceneUpdate | FrameTransforms | Log]) -> DerivedChannel:
@@ -66,13 +68,14 @@ def _well_known(topic: str, message: type[SceneUpdate | FrameTransforms | Log]) 
     return DerivedChannel(topic, schema.name, schema.encoding, bytes(schema.data), "protobuf")
 
 
-def _json(topic: str, name: str, schema: dict[str, Any]) -> DerivedChannel:
+def _json(topic: str, name: str, schema: dict[str, Any], per_tick: bool) -> DerivedChannel:
     return DerivedChannel(
         topic,
         name,
         ch.SCHEMA_ENCODING,
         orjson.dumps({"title": name, **schema}),
         ch.MESSAGE_ENCODING,
+        per_tick,
     )
 
 
@@ -135,7 +138,11 @@ def _frame_kind(layout: Layout, finger: str, joints: Sequence[str]) -> _FrameKin
     return _FrameKind(layout, finger, tuple(slots), tuple(others))
 
 
-Emit = Callable[[str, int, bytes], None]
+class Emit(Protocol):
+    """Where the derived messages go: ``key`` tells apart what the live view samples
+    separately on one topic (a frame's id)."""
+
+    def __call__(self, topic: str, log_time: int, data: bytes, key: int = 0) -> None: ...
 
 
 class Derived:
@@ -159,9 +166,9 @@ class Derived:
             _well_known(SCENE, SceneUpdate),
             _well_known(TRANSFORMS, FrameTransforms),
             _well_known(LOG, Log),
-            _json(JOINTS, "handctl.Joints", joints_schema(self.joints)),
-            _json(RX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA),
-            _json(TX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA),
+            _json(JOINTS, "handctl.Joints", joints_schema(self.joints), per_tick=True),
+            _json(RX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA, per_tick=True),
+            _json(TX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA, per_tick=True),
         ]
         protocol = protocol_for(hand)
         self.frames: dict[int, _FrameKind] = {}
@@ -317,4 +324,4 @@ class Derived:
             "signals": {name: values[i] for i, name in kind.others},
             "joints": joints,
         }
-        self.emit(RX_DECODED if received else TX_DECODED, t_ns, orjson.dumps(message))
+        self.emit(RX_DECODED if received else TX_DECODED, t_ns, orjson.dumps(message), frame_id)

@@ -5,6 +5,13 @@ hands it every message as it writes it to the MCAP file: the loop does not know 
 a slow or stalled viewer costs the writer a bounded queue (the SDK drops the oldest message
 per client), never the loop a microsecond of waiting. ``handctl replay RUN.mcap --live``
 serves a finished (or truncated) file at the speed it was recorded.
+
+A channel written every tick (1 kHz) is served sampled: at most one message per
+``SAMPLE_PERIOD_NS`` of log time and key (a CAN frame's key is its id, so every kind of frame
+is shown, each at most that often). A viewer draws at its screen's rate; a thousand messages
+a second on each of a dozen channels would cost the viewer, the server and the machine the
+loop runs on for nothing anyone sees. The MCAP file keeps every message; a replay serves it
+sampled the same way.
 """
 
 from __future__ import annotations
@@ -16,7 +23,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
 import foxglove
+import orjson
 from foxglove import Channel, Context, Schema
+from foxglove.websocket import WebSocketServer
 
 if TYPE_CHECKING:
     from mcap.records import Channel as McapChannel
@@ -26,19 +35,41 @@ if TYPE_CHECKING:
 #: someone chooses to tunnel it.
 HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
+#: The live view's sampling of a per-tick channel: 100 Hz of log time, still a smooth plot
+#: (the 3D scene is written at 50 Hz anyway).
+SAMPLE_PERIOD_NS = 10_000_000
+#: Keys remembered for the sampling before they are forgotten all at once (frame ids from a
+#: bus that babbles ever new ones must not grow the writer without bound).
+MAX_SAMPLED_KEYS = 4096
 
 
 class LiveServer:
-    """A Foxglove WebSocket server with one channel per recorded topic, fed raw payloads."""
+    """A Foxglove WebSocket server with one channel per recorded topic, fed raw payloads.
+
+    Its channels are added first and the server is started after them (``start``): a client
+    that connected while channels were still being added could subscribe to one the SDK had
+    advertised to it but not yet entered for it, and be told ``Unknown channel ID`` and get
+    nothing of that channel for the whole session."""
 
     def __init__(self, port: int, name: str = "handctl", host: str = HOST) -> None:
         self.context = Context()
-        self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context)
+        self.name, self.host, self.requested_port = name, host, port
+        self.server: WebSocketServer | None = None
         self.channels: dict[str, Channel] = {}
+        #: Sampled topics, and per (topic, key) the log time of the message last served.
+        self.sampled: set[str] = set()
+        self._served: dict[tuple[str, int], int] = {}
+
+    def start(self) -> None:
+        """Bind the port and serve the channels added so far; raises if the port cannot be
+        bound."""
+        self.server = foxglove.start_server(
+            name=self.name, host=self.host, port=self.requested_port, context=self.context
+        )
 
     @property
     def port(self) -> int:
-        return self.server.port
+        return self.server.port if self.server is not None else self.requested_port
 
     def add_channel(
         self,
@@ -48,7 +79,12 @@ class LiveServer:
         schema_data: bytes,
         message_encoding: str,
         metadata: dict[str, str] | None = None,
+        sampled: bool = False,
     ) -> None:
+        """``sampled``: the topic is written every tick and served at most once per
+        ``SAMPLE_PERIOD_NS`` of log time and key (see ``log``)."""
+        if sampled:
+            self.sampled.add(topic)
         self.channels[topic] = Channel(
             topic,
             schema=Schema(name=schema_name, encoding=schema_encoding, data=schema_data),
@@ -57,13 +93,26 @@ class LiveServer:
             metadata=metadata,
         )
 
-    def log(self, topic: str, log_time: int, payload: bytes) -> None:
+    def log(self, topic: str, log_time: int, payload: bytes, key: int = 0) -> None:
+        """Serve one message to the clients subscribed to ``topic``, if any. On a sampled
+        topic, a message is served when it is ``SAMPLE_PERIOD_NS`` after the last one served
+        with the same key, or at the same log time (a tick's messages stay together)."""
         channel = self.channels.get(topic)
-        if channel is not None and channel.has_sinks():
-            channel.log(payload, log_time=log_time)
+        if channel is None or not channel.has_sinks():
+            return
+        if topic in self.sampled:
+            slot = (topic, key)
+            last = self._served.get(slot)
+            if last is not None and last < log_time < last + SAMPLE_PERIOD_NS:
+                return
+            if len(self._served) >= MAX_SAMPLED_KEYS:  # a bus babbling ever new ids
+                self._served.clear()
+            self._served[slot] = log_time
+        channel.log(payload, log_time=log_time)
 
     def close(self) -> None:
-        self.server.stop()
+        if self.server is not None:
+            self.server.stop()
 
 
 def serve_recording(
@@ -76,6 +125,7 @@ def serve_recording(
     from handctl.recording.reader import iter_messages, open_recording
 
     recording = open_recording(path)
+    sampled, keyed = _sampled_topics()
     server = LiveServer(port, name=f"handctl replay {path.name}")
     try:
         with path.open("rb") as stream:
@@ -87,7 +137,9 @@ def serve_recording(
                     bytes(schema.data) if schema else b"",
                     channel.message_encoding,
                     dict(channel.metadata),
+                    sampled=topic in sampled,
                 )
+        server.start()
         if started is not None:
             started(server)
         sent = 0
@@ -99,11 +151,31 @@ def serve_recording(
             delay = wall0 + (log_time - first_log) * 1e-9 / speed - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            server.log(topic, log_time, data)
+            server.log(topic, log_time, data, _frame_id(data) if topic in keyed else 0)
             sent += 1
         return sent
     finally:
         server.close()
+
+
+def _sampled_topics() -> tuple[frozenset[str], frozenset[str]]:
+    """The topics a run's live view samples (as the writer registers them), and those of
+    them sampled per frame id."""
+    from handctl.foxglove.derived import JOINTS, RX_DECODED, TX_DECODED
+    from handctl.recording import channels as ch
+    from handctl.recording.writer import LIVE_SAMPLED
+
+    keyed = frozenset({ch.CAN_RX, ch.CAN_TX, RX_DECODED, TX_DECODED})
+    return LIVE_SAMPLED | {JOINTS} | keyed, keyed
+
+
+def _frame_id(data: bytes) -> int:
+    """The ``id`` of a recorded frame message (JSON); 0 when it has none."""
+    try:
+        frame_id = orjson.loads(data).get("id", 0)
+    except (orjson.JSONDecodeError, AttributeError):
+        return 0
+    return frame_id if isinstance(frame_id, int) else 0
 
 
 def _channels(stream: BinaryIO) -> dict[str, tuple[McapSchema | None, McapChannel]]:

@@ -23,7 +23,7 @@ import struct
 import subprocess
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -112,6 +112,20 @@ def _view(vector: Any) -> memoryview:
     return view
 
 
+def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] | None:
+    """The CPUs the writer process may run on beside a run pinned to ``loop_cpu``, with the
+    simulated hand's process on ``sim_cpu`` (None: no such process): this process's CPUs but
+    those two. None (anywhere) when the loop is not pinned or no CPU is left: on two CPUs
+    with the simulated hand, the writer shares the loop's idle time, where the loop's
+    SCHED_FIFO always comes first. Pinned beside the simulated hand alone instead, the writer
+    fell seconds behind on a busy machine and the rings dropped ticks: a lost log costs more
+    than the caches the writer cools on the loop's CPU."""
+    if loop_cpu is None:
+        return None
+    rest = os.sched_getaffinity(0) - {loop_cpu, sim_cpu}
+    return sorted(rest) if rest else None
+
+
 def _shared_memory(size: int) -> int:
     """An anonymous memory file both processes can map: memfd where there is one."""
     if hasattr(os, "memfd_create"):
@@ -136,7 +150,9 @@ class Recorder:
         object_names: Sequence[str] = (),
         layout: RingLayout | None = None,
         live_port: int | None = None,
+        cpus: Collection[int] | None = None,
     ) -> None:
+        """``cpus``: where the writer process may run (``writer_cpus``); None: anywhere."""
         self.path = Path(path)
         self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
         try:
@@ -158,6 +174,9 @@ class Recorder:
         package_root = str(Path(__file__).resolve().parents[2])
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
+        # The writer does no linear algebra: no BLAS thread pool, whose threads would start
+        # at numpy's import, before the writer places itself (``cpus``) and lowers its priority.
+        env["OPENBLAS_NUM_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = "1"
         try:
             self.process = subprocess.Popen(
                 [
@@ -195,6 +214,7 @@ class Recorder:
                     "path": str(self.path),
                     "metadata": metadata,
                     "live_port": live_port,
+                    "cpus": sorted(cpus) if cpus is not None else None,
                 }
             )
         except BaseException:

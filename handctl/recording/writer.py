@@ -81,6 +81,11 @@ CHUNK_NS = 50_000_000
 CHUNK_WALL_S = 0.05
 SYNC_EVERY_S = 1.0
 _LENGTH = struct.Struct("<I")
+#: Recorded channels written every tick or every frame: the live view serves them sampled
+#: (``handctl.foxglove.live``); the file keeps every message.
+LIVE_SAMPLED = frozenset(
+    {ch.TIMING, ch.JOINT_STATE, ch.TORQUE, ch.SAFETY, ch.PHASE, ch.CAN_RX, ch.CAN_TX}
+)
 
 
 class Encoder:
@@ -129,6 +134,7 @@ class Encoder:
                     ch.SCHEMA_ENCODING,
                     orjson.dumps(ch.schema_of(channel)),
                     ch.MESSAGE_ENCODING,
+                    sampled=channel.topic in LIVE_SAMPLED,
                 )
         self.derived: Derived | None = None
         try:
@@ -154,6 +160,7 @@ class Encoder:
                         derived.schema_encoding,
                         derived.schema_data,
                         derived.message_encoding,
+                        sampled=derived.per_tick,
                     )
         self.sequence = dict.fromkeys(self.channel.values(), 0)
         self.ticks = self.frames = self.events = self.poses = 0
@@ -167,16 +174,18 @@ class Encoder:
         self.busy_s = 0.0
         self.dropped = [0, 0, 0, 0]
 
-    def add(self, topic: str, log_time: int, payload: dict[str, Any]) -> None:
-        self.add_raw(topic, log_time, orjson.dumps(payload))
+    def add(self, topic: str, log_time: int, payload: dict[str, Any], key: int = 0) -> None:
+        self.add_raw(topic, log_time, orjson.dumps(payload), key)
 
-    def add_raw(self, topic: str, log_time: int, data: bytes) -> None:
+    def add_raw(self, topic: str, log_time: int, data: bytes, key: int = 0) -> None:
+        """One message into the file (and to the live view, which samples by ``key`` on a
+        per-tick channel: a frame's id)."""
         channel = self.channel[topic]
         seq = self.sequence[channel]
         self.sequence[channel] = seq + 1
         self.writer.add_message(channel, log_time, data, seq & 0xFFFFFFFF)
         if self.live is not None:
-            self.live.log(topic, log_time, data)
+            self.live.log(topic, log_time, data, key)
         self.messages += 1
         if self.chunk_log is None:
             self.chunk_log = log_time
@@ -231,12 +240,14 @@ class Encoder:
                     ch.CAN_RX,
                     t_ns,
                     {"tick": tick, "id": frame_id, "data": data, "bus_time_ns": bus_ns},
+                    frame_id,
                 )
             else:
                 add(
                     ch.CAN_TX,
                     t_ns,
                     {"tick": tick, "id": frame_id, "data": data, "ok": direction == TAP_TX},
+                    frame_id,
                 )
             if derived is not None:
                 derived.frame(t_ns, tick, direction == TAP_RX, frame_id, payload)
@@ -519,22 +530,33 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
     control = _Control(ctl_fd)
     setup = control.first()
     layout = RingLayout.from_dict(setup["layout"])
+    if setup.get("cpus"):
+        # Before the live server starts its threads, which inherit the CPUs.
+        try:
+            os.sched_setaffinity(0, setup["cpus"])
+        except OSError as exc:
+            sys.stderr.write(f"handctl writer: runs on any CPU ({exc})\n")
     block = mmap.mmap(shm_fd, layout.size)
     rings = Rings(layout, block)
     live = None
     if setup.get("live_port") is not None:
-        # Before the ready byte: a port that cannot be bound fails the start, not the run.
         from handctl.foxglove.live import LiveServer
 
-        try:
-            live = LiveServer(int(setup["live_port"]))
-        except Exception as exc:  # foxglove's own error type: say what, not where
-            sys.stderr.write(
-                f"the live view cannot serve on 127.0.0.1:{setup['live_port']} ({exc})\n"
-            )
-            return 1
+        live = LiveServer(int(setup["live_port"]))
     with os.fdopen(out_fd, "wb", buffering=1 << 20) as out:
         encoder = Encoder(rings, out, setup, live)
+        if live is not None:
+            # Once every channel is there, and before the ready byte: a port that cannot be
+            # bound fails the start (and leaves the file empty), not the run.
+            try:
+                live.start()
+            except Exception as exc:  # foxglove's own error type: say what, not where
+                sys.stderr.write(
+                    f"the live view cannot serve on 127.0.0.1:{setup['live_port']} ({exc})\n"
+                )
+                out.flush()
+                out.truncate(0)
+                return 1
         os.write(ready_fd, b"R")
         os.close(ready_fd)
         messages = control.pending
@@ -569,9 +591,13 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
     # Behind the loop and the simulated hand when the CPUs are contended: the rings give the
-    # writer seconds of slack, a late tick is a safety stop.
+    # writer seconds of slack, a late tick is a safety stop. SCHED_BATCH as well: a writer
+    # waking from its poll does not preempt a running tick. Both are inherited by the live
+    # server's threads.
     with contextlib.suppress(OSError):
         os.nice(5)
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
     args = sys.argv[1:] if argv is None else argv
     try:
         shm_fd, ctl_fd, out_fd, ready_fd = (int(a) for a in args[:4])
