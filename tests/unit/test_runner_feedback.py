@@ -263,6 +263,94 @@ def test_the_brake_holds_no_damping_while_the_estimate_is_invalid(
     assert runner.damping == 0.0
 
 
+PACED: dict[str, object] = {"paced_ramp": {"rate_deg_s": -90}}
+
+
+def test_a_paced_ramp_advances_at_the_ramp_s_speed_while_the_pair_is_slow(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A pair at rest, or turning the wrong way, is a pair the torque has not turned yet: the
+    ramp goes on as the recipe's own would, to the phase's torque; a pair turning the wanted
+    way, slower than wanted, slows it in proportion."""
+    for rate in (0.0, +200.0, -30.0):
+        runner = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)
+        t, _, turn = _drive(runner, rate, RAMP / 2)
+        assert runner.pace == pytest.approx(0.5 if rate != -30.0 else 0.5 * 2 / 3, abs=0.1)
+        _, out, _ = _drive(runner, rate, 2 * RAMP, t, turn)
+        assert runner.pace == 1.0
+        assert out == pytest.approx(np.array(TORQUES))
+
+
+def test_a_paced_ramp_goes_back_while_the_pair_turns_too_fast(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Too fast the wanted way: the torque goes back along its segment, towards the previous
+    phase's (here none: zero), and no further."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)
+    t, _, turn = _drive(runner, 0.0, 2 * RAMP)
+    assert runner.pace == 1.0
+    _, out, _ = _drive(runner, -900.0, 0.2, t, turn)
+    assert runner.pace == 0.0
+    assert out == pytest.approx(np.zeros(9))
+
+
+def test_a_paced_ramp_settles_where_the_pair_turns_at_the_wanted_rate(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A pair whose rate follows the torque (here: in proportion to the fraction along the
+    segment, 180°/s at the phase's torque) settles at the fraction that turns it at the
+    wanted 90°/s."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)
+    t, turn = 0.0, 0.0
+    for _ in range(2000):
+        runner.step(t, np.zeros(9), np.zeros(9), _estimates(turn))
+        turn -= math.radians(180.0) * runner.pace * DT
+        t += DT
+    assert runner.pace == pytest.approx(0.5, abs=0.02)
+    assert runner.turn_rate == pytest.approx(math.radians(-90.0), rel=0.05)
+
+
+def test_a_paced_ramp_goes_beyond_the_phase_s_torque_up_to_its_reach(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    runner = RecipeRunner(
+        _recipe(tmp_path, hand, {"paced_ramp": {"rate_deg_s": -90, "reach": 1.5}}), 9
+    )
+    _, out, _ = _drive(runner, 0.0, 4 * RAMP)
+    assert runner.pace == 1.5
+    assert out == pytest.approx(1.5 * np.array(TORQUES))
+
+
+def test_a_paced_ramp_goes_back_when_a_joint_moves_too_fast(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """With ``joint_rate`` the joints count too: they are measured every tick, also while
+    the pair's estimate is invalid (an open cage), and a pair turning slowly does not keep
+    the torque up while a finger flies."""
+    phase = {"paced_ramp": {"rate_deg_s": -90, "joint_rate": 1.0}}
+    runner = RecipeRunner(_recipe(tmp_path, hand, phase), 9)
+    _tumble(runner, 0.0, 0.5, 4 * RAMP)  # half the joint rate: on, at half the speed
+    assert runner.pace == 1.0
+    runner = RecipeRunner(_recipe(tmp_path, hand, phase), 9)
+    _tumble(runner, 0.0, 3.0, 4 * RAMP)
+    assert runner.pace == 0.0
+    runner = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)  # without: the pair alone
+    _tumble(runner, 0.0, 3.0, 4 * RAMP)
+    assert runner.pace == 1.0
+
+
+def test_the_next_phase_ramps_from_the_paced_torque(tmp_path: Path, hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, PACED, max_s=0.5), 9)
+    t, _, turn = _drive(runner, 0.0, 0.3)
+    t, before, turn = _drive(runner, -900.0, 0.02, t, turn)
+    assert runner.phase_name == "turn" and 0.0 < runner.pace < 1.0
+    t, _, turn = _drive(runner, -900.0, 0.5 - 0.32 - DT, t, turn)
+    before = runner.feedback(t - DT, np.zeros(9), _estimates(turn)).copy()
+    _, after, _ = _drive(runner, 0.0, 2 * DT, t, turn)
+    assert runner.phase_name == "after"
+    assert np.max(np.abs(after - before)) < 0.01
+
+
 def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
     recipe = _recipe(tmp_path, hand, TURN_RATE)
     rng = np.random.default_rng(1)
@@ -309,6 +397,16 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
             True,
         ),
         ({"joint_damping": 1.0}, "phases[0].joint_damping", False),
+        ({"paced_ramp": {"rate_deg_s": -90}}, "phases[0].paced_ramp", False),
+        ({"paced_ramp": {"rate_deg_s": 0}}, "phases[0].paced_ramp.rate_deg_s", True),
+        ({"paced_ramp": {"rate_deg_s": -90, "reach": 0.5}}, "phases[0].paced_ramp.reach", True),
+        ({"paced_ramp": {"rate_deg_s": -90, "back": 0}}, "phases[0].paced_ramp.back", True),
+        (
+            {"paced_ramp": {"rate_deg_s": -90, "joint_rate": -1}},
+            "phases[0].paced_ramp.joint_rate",
+            True,
+        ),
+        ({"paced_ramp": {"rate_deg_s": -90}, "ramp_s": 0}, "phases[0].ramp_s", True),
     ],
 )
 def test_bad_feedback_is_refused_naming_the_key(
