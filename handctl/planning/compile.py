@@ -164,6 +164,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             "rate_deg_s": round(math.degrees(phase.brake.rate), 6),
             "joint_damping": phase.brake.damping,
         }
+        if phase.brake.joint_rate > 0.0:
+            doc["brake"]["joint_rate"] = phase.brake.joint_rate
     if phase.paced is not None:
         paced = phase.paced
         doc["paced_ramp"] = {

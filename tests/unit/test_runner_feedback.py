@@ -263,6 +263,23 @@ def test_the_brake_holds_no_damping_while_the_estimate_is_invalid(
     assert runner.damping == 0.0
 
 
+@pytest.mark.parametrize(("speed", "damping"), [(0.5, 0.0), (1.0, 0.0), (1.5, 0.02), (3.0, 0.04)])
+def test_a_brake_with_a_joint_rate_damps_the_joints_as_they_move_faster(
+    tmp_path: Path, hand: HandConfig, speed: float, damping: float
+) -> None:
+    """With ``joint_rate`` a pair at rest by its estimate (or a stale one: an open cage)
+    does not keep the brake off while the fingers fly: none at or below that joint speed,
+    the brake's full damping from twice it."""
+    phase = {"brake": {"rate_deg_s": 90, "joint_damping": 0.04, "joint_rate": 1.0}}
+    runner = RecipeRunner(_recipe(tmp_path, hand, phase), 9)
+    out = _tumble(runner, 0.0, speed, 0.5)
+    assert runner.damping == pytest.approx(damping, abs=1e-6)
+    assert out == pytest.approx(np.array(TORQUES) - damping * speed, abs=1e-4)
+    runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)  # without: the pair's rate alone
+    _tumble(runner, 0.0, speed, 0.5)
+    assert runner.damping == 0.0
+
+
 PACED: dict[str, object] = {"paced_ramp": {"rate_deg_s": -90}}
 
 
@@ -407,6 +424,11 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
             True,
         ),
         ({"paced_ramp": {"rate_deg_s": -90}, "ramp_s": 0}, "phases[0].ramp_s", True),
+        (
+            {"brake": {"rate_deg_s": 90, "joint_damping": 0.03, "joint_rate": 500}},
+            "phases[0].brake.joint_rate",
+            True,
+        ),
     ],
 )
 def test_bad_feedback_is_refused_naming_the_key(

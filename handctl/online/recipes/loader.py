@@ -57,7 +57,7 @@ MAX_REACH = 3.0
 #: the most times its ramp's speed a paced ramp may go back at (the loader checked the ramp
 #: against the joints' rate limit; the supervisor holds every step to it)
 MAX_BACK = 10.0
-#: rad/s, the largest joint speed a paced ramp may hold the joints under
+#: rad/s, the largest joint speed a paced ramp or a brake may take as its threshold
 MAX_JOINT_RATE = 100.0
 
 
@@ -277,15 +277,17 @@ def parse_joint_damping(doc: Doc) -> float:
 def parse_brake(doc: Doc) -> TurnBrake:
     """``brake`` of a recipe's or a template's phase (``schema.TurnBrake``): ``rate_deg_s``,
     the turn rate above which it acts, and ``joint_damping`` (N·m·s/rad), reached at twice
-    that rate."""
+    that rate; ``joint_rate`` (rad/s, optional), the joint speed above which it acts as
+    well."""
     rate = doc.number(
         "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
     )
     damping = doc.number(
         "joint_damping", min=0.0, max=MAX_JOINT_DAMPING, min_exclusive=True, unit="N·m·s/rad"
     )
+    joint_rate = doc.number("joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
     doc.done()
-    return TurnBrake(math.radians(rate), damping)
+    return TurnBrake(math.radians(rate), damping, joint_rate)
 
 
 def parse_paced_ramp(doc: Doc, sign: float | None = None) -> PacedRamp:

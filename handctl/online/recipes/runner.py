@@ -18,9 +18,16 @@ Feedback, all of it from the angles and the estimates computed from them:
   phase's torques.
 - ``brake``: more injected damping while the pair tumbles: none while the estimated
   centre-line rate is at most the brake's rate, rising to its ``joint_damping`` at twice
-  that rate, on top of the phase's own ``joint_damping``. A damper that acts only on a
+  that rate, on top of the phase's own ``joint_damping``; with a ``joint_rate``, the same
+  while the fastest joint moves faster than that, whichever is the further over (the
+  joints are measured every tick, the pair only while its cage is closed, and a pair
+  swept along the palm opens it). A damper that acts only on a
   tumble slows the roll-over of a lightly damped hand and leaves alone a heavily damped one,
   whose pair a fixed damper would let fall back.
+- ``paced_ramp``: the ramp into the phase moves along the segment from the previous
+  phase's torque to this one's at a pace set by the pair (``_pace_step``): on while it
+  turns slower than wanted, back while faster. The previous phase's torque held the pair
+  where this phase begins, so between the two lies a torque that turns it slowly.
 - ``joint_damping``: ``-joint_damping * velocity`` on every joint (the velocities filtered
   from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
   least (a tendon's losses are not measured to a factor of three), and in a turn it sets how
@@ -228,6 +235,9 @@ class RecipeRunner:
         if phase is not None and phase.brake is not None:
             brake = phase.brake
             over = (abs(self.turn_rate) - brake.rate) / brake.rate
+            if brake.joint_rate > 0.0:
+                fastest = float(np.max(np.abs(self.velocity.value)))
+                over = max(over, (fastest - brake.joint_rate) / brake.joint_rate)
             self.damping += self._fraction * brake.damping * min(1.0, max(0.0, over))
         if phase is not None and (
             phase.turn_rate is not None or phase.pose is not None or phase.paced is not None

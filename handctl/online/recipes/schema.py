@@ -122,6 +122,9 @@ class TurnBrake:
 
     rate: float  # rad/s, > 0
     damping: float  # N·m·s/rad, at twice ``rate``
+    #: rad/s: also while the fastest joint moves faster than this (full at twice it); 0:
+    #: on the pair's rate alone
+    joint_rate: float = 0.0
 
 
 @dataclass(frozen=True)
