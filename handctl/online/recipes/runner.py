@@ -26,8 +26,8 @@ Feedback, all of it from the angles and the estimates computed from them:
   whose pair a fixed damper would let fall back.
 - ``paced_ramp``: the ramp into the phase moves along the segment from the previous
   phase's torque to this one's at a pace set by the pair (``_pace_step``): on while it
-  turns slower than wanted, back while faster. The previous phase's torque held the pair
-  where this phase begins, so between the two lies a torque that turns it slowly.
+  turns slower than wanted, back while faster. The previous phase's torque brought the
+  pair to where this phase begins, so between the two lies a torque that turns it slowly.
 - ``joint_damping``: ``-joint_damping * velocity`` on every joint (the velocities filtered
   from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
   least (a tendon's losses are not measured to a factor of three), and in a turn it sets how

@@ -135,11 +135,11 @@ class PacedRamp:
     turns faster, and never past ``reach`` (1: this phase's torque; more: on along the
     segment, beyond it).
 
-    Why along the segment: the previous phase's torque held the pair where this phase
-    begins and this phase's turns it on, so between them lies a torque that turns it
-    slowly. Gravity makes the set of torques that turn the pair no cone (a smaller torque
+    Why along the segment: the previous phase's torque brought the pair to where this
+    phase begins and this phase's turns it on, so between them lies a torque that turns
+    it slowly. Gravity makes the set of torques that turn the pair no cone (a smaller torque
     along its ray lets the pair fall back), so a scale of one torque is the wrong
-    direction to give way in; the segment's other end is a torque that held it."""
+    direction to give way in; the segment's other end is a torque that brought it here."""
 
     rate: float  # rad/s, signed: the wanted direction of the turn
     reach: float  # the furthest fraction along the segment, >= 1
