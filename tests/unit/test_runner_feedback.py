@@ -298,6 +298,20 @@ def test_a_paced_ramp_advances_at_the_ramp_s_speed_while_the_pair_is_slow(
         assert out == pytest.approx(np.array(TORQUES))
 
 
+def test_a_paced_ramp_without_an_estimate_is_the_recipe_s_own_ramp(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """No valid estimate (the pair not caged yet): nothing says the pair runs, and the
+    torque is the plain ramp's, tick for tick."""
+    paced = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)
+    plain = RecipeRunner(_recipe(tmp_path, hand, {}), 9)
+    for k in range(round(2 * RAMP / DT)):
+        t = k * DT
+        a = paced.step(t, np.zeros(9), np.zeros(9), _estimates(math.nan))
+        b = plain.step(t, np.zeros(9), np.zeros(9), _estimates(math.nan))
+        assert a == pytest.approx(b, abs=1e-12)
+
+
 def test_a_paced_ramp_goes_back_while_the_pair_turns_too_fast(
     tmp_path: Path, hand: HandConfig
 ) -> None:
