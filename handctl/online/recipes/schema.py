@@ -238,9 +238,7 @@ class Recipe:
         return any(
             p.turn_rate is not None or p.brake is not None or p.paced is not None
             for p in self.phases
-        ) or any(
-            c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts)
-        )
+        ) or any(c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
 
 
 def parse_condition(
