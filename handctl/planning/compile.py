@@ -164,6 +164,17 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             "rate_deg_s": round(math.degrees(phase.brake.rate), 6),
             "joint_damping": phase.brake.damping,
         }
+        if phase.brake.joint_rate > 0.0:
+            doc["brake"]["joint_rate"] = phase.brake.joint_rate
+    if phase.paced is not None:
+        paced = phase.paced
+        doc["paced_ramp"] = {
+            "rate_deg_s": round(math.degrees(paced.rate), 6),
+            "reach": paced.reach,
+            "back": paced.back,
+        }
+        if paced.joint_rate > 0.0:
+            doc["paced_ramp"]["joint_rate"] = paced.joint_rate
     doc["provenance"] = plan.provenance
     return doc
 
@@ -238,6 +249,7 @@ def _compiled_phase(
         pose=pose,
         joint_damping=spec.joint_damping,
         brake=spec.brake,
+        paced=spec.paced,
     )
 
 

@@ -31,10 +31,12 @@ from handctl.online.recipes.loader import (
     parse_joint_damping,
     parse_min_total_turn,
     parse_objects,
+    parse_paced_ramp,
     parse_turn_rate,
 )
 from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
+    PacedRamp,
     RecipeObject,
     TurnBrake,
     TurnRate,
@@ -67,6 +69,8 @@ class TemplatePhase:
     estimates: tuple[str, ...] = ()
     joint_damping: float = 0.0  # N·m·s/rad, injected on every joint, carried into the recipe
     brake: TurnBrake | None = None  # more damping while the pair tumbles, carried likewise
+    #: a turn phase's ramp paced by the pair's turn rate, carried likewise
+    paced: PacedRamp | None = None
 
     def exit_condition(self) -> str:
         """The compiled exit of a turn phase: on the estimated turn of the first pair since
@@ -220,6 +224,7 @@ def _phase(
     if kind in ("lift", "hold"):
         min_height = doc.number("min_height", min=0.0, max=0.2, unit="m")
     turn_rate = None
+    paced = None
     if kind == "turn":
         if len(objects) < 2:
             doc.fail(
@@ -234,6 +239,8 @@ def _phase(
         exit_hold = doc.number("exit_hold_s", default=0.02, min=0.0, max=1.0, unit="s")
         if doc.has("turn_rate"):
             turn_rate = parse_turn_rate(doc.mapping("turn_rate"), math.copysign(1.0, turn))
+        if doc.has("paced_ramp"):
+            paced = parse_paced_ramp(doc.mapping("paced_ramp"), math.copysign(1.0, turn))
     stiffness: float | None = None
     damping = 0.0
     if kind == "free" and doc.has("pose"):
@@ -261,4 +268,5 @@ def _phase(
         estimates,
         joint_damping,
         brake,
+        paced,
     )

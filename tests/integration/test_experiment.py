@@ -33,6 +33,14 @@ PHASE_TURN_DEG = 45.0
 PHASE_TURN_TOLERANCE_DEG = 10.0
 
 
+#: deg/s: the issue's most for the true centre line's rate over the manipulation: faster is
+#: the pair tumbling, which the quasi-static analysis does not cover and a real hand would
+#: likely drop
+MAX_PEAK_TURN_RATE_DEG_S = 180.0
+#: deg: the bench's swap, the cylinders traded places (180° less a little)
+SWAP_DEG = 170.0
+
+
 #: N·m, the most a joint's applied torque may change from one tick to the next at p99 over
 #: the nominal run: more is the chatter the soft-limit guard's damping is there to remove
 MAX_TORQUE_STEP_P99 = 0.005
@@ -95,6 +103,25 @@ def test_each_manipulation_phase_turns_about_45_deg(summary: dict[str, object]) 
         assert abs(abs(angle) - PHASE_TURN_DEG) <= PHASE_TURN_TOLERANCE_DEG, (
             f"manipulate_{k} turned {angle}°: {ex['phase_angles_deg']}"
         )
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="manipulate_3's torque sweeps the pair 50 mm along the palm at 430 deg/s with the "
+    "estimate invalid (its cage open), so the pace on the pair's rate does not see it; the "
+    "variants that pace and brake on the joints' speed as well turn it at 124 deg/s but cost "
+    "the estimator's accuracy and the bench's models (docs/experiment.md)",
+)
+def test_the_pair_is_turned_not_tumbled(summary: dict[str, object]) -> None:
+    ex = summary["experiment"]
+    assert isinstance(ex, dict)
+    assert 0.0 < ex["peak_turn_rate_deg_s"] <= MAX_PEAK_TURN_RATE_DEG_S, ex["phase_angles_deg"]
+
+
+def test_the_pair_is_swapped(summary: dict[str, object]) -> None:
+    ex = summary["experiment"]
+    assert isinstance(ex, dict)
+    assert ex["total_rotation_deg"] >= SWAP_DEG, ex["phase_angles_deg"]
 
 
 def test_the_estimator_follows_ground_truth(summary: dict[str, object]) -> None:

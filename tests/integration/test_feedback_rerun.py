@@ -1,7 +1,7 @@
 """Feedback keeps a run reproducible: a lockstep run of the experiment's first phases with a
-pose hold, the soft-limit guard, a turn-rate loop and a brake is recorded, and ``handctl replay
---rerun`` computes the very same torques from the logged angles (bit-exact), because the
-feedback reads only the angles and the estimates made from them."""
+pose hold, the soft-limit guard, a turn-rate loop, brakes and a paced ramp is recorded, and
+``handctl replay --rerun`` computes the very same torques from the logged angles (bit-exact),
+because the feedback reads only the angles and the estimates made from them."""
 
 from __future__ import annotations
 
@@ -29,12 +29,16 @@ POSE = {
 
 def _with_feedback(tmp_path: Path) -> Path:
     data = yaml.safe_load(RECIPE.read_text())
-    phases = data["phases"][:4]
+    phases = data["phases"][:5]
     phases[0]["pose"] = {"angles": POSE, "stiffness": 0.5, "damping": 0.005}
     phases[2]["max_s"] = 0.8  # envelop: long enough for the estimate to be valid
     phases[3]["max_s"] = 0.5
     phases[3]["turn_rate"] = {"rate_deg_s": -45, "scale": [0.5, 1.5]}
     phases[3]["brake"] = {"rate_deg_s": 30, "joint_damping": 0.03}
+    phases[3].pop("paced_ramp", None)  # the turn-rate loop is this phase's feedback
+    phases[4]["max_s"] = 0.5
+    phases[4]["paced_ramp"] = {"rate_deg_s": -30, "back": 3, "joint_rate": 1.0}
+    phases[4]["brake"] = {"rate_deg_s": 30, "joint_damping": 0.03, "joint_rate": 0.5}
     data["phases"] = phases
     path = tmp_path / "feedback.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))

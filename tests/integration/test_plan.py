@@ -57,6 +57,9 @@ def test_plan_compiles_a_recipe_with_provenance_reproducibly(
     assert (loop.scale_min, loop.scale_max) == (0.6, 1.5)
     assert template.phases[3].brake is not None
     assert recipe.phases[3].brake == template.phases[3].brake
+    paced = recipe.phases[3].paced
+    assert paced is not None and paced == template.phases[3].paced
+    assert paced.rate < 0  # signed as the turn
     pose = recipe.phases[0].pose
     assert pose is not None and pose.stiffness == 0.5
     # the pose is where the nominal hand ends the approach: the fingers flexed from the start

@@ -36,6 +36,8 @@ def test_the_shipped_template_loads(hand: HandConfig) -> None:
     assert all(p.turn == pytest.approx(math.radians(-45)) for p in turns)
     assert turns[0].exit_condition() == "estimate.cyl1_cyl2_line_turn < -0.7461 for 0.02"
     assert t.objects[0].name == "cyl1" and t.objects[1].radius == 0.02
+    # a turn's paced ramp gives the rate's magnitude; it is signed as the turn
+    assert all(p.paced is not None and p.paced.rate < 0 for p in turns)
 
 
 @pytest.mark.parametrize(
@@ -48,6 +50,16 @@ def test_the_shipped_template_loads(hand: HandConfig) -> None:
         (lambda d: d["phases"][0].pop("torques"), "phases[0].torques", ""),
         (lambda d: d["search"].update(elite=99, population=4), "search.elite", "population"),
         (lambda d: d["phases"].append(dict(d["phases"][3])), "phases[7].name", "not used"),
+        (
+            lambda d: d["phases"][3]["paced_ramp"].update(rate_deg_s=-90),
+            "phases[3].paced_ramp.rate_deg_s",
+            "deg/s",
+        ),
+        (
+            lambda d: d["phases"][2].update(paced_ramp={"rate_deg_s": 90}),
+            "phases[2]",
+            "paced_ramp",
+        ),
     ],
 )
 def test_bad_templates_are_refused_naming_the_key(

@@ -263,6 +263,125 @@ def test_the_brake_holds_no_damping_while_the_estimate_is_invalid(
     assert runner.damping == 0.0
 
 
+@pytest.mark.parametrize(("speed", "damping"), [(0.5, 0.0), (1.0, 0.0), (1.5, 0.02), (3.0, 0.04)])
+def test_a_brake_with_a_joint_rate_damps_the_joints_as_they_move_faster(
+    tmp_path: Path, hand: HandConfig, speed: float, damping: float
+) -> None:
+    """With ``joint_rate`` a pair at rest by its estimate (or a stale one: an open cage)
+    does not keep the brake off while the fingers fly: none at or below that joint speed,
+    the brake's full damping from twice it."""
+    phase = {"brake": {"rate_deg_s": 90, "joint_damping": 0.04, "joint_rate": 1.0}}
+    runner = RecipeRunner(_recipe(tmp_path, hand, phase), 9)
+    out = _tumble(runner, 0.0, speed, 0.5)
+    assert runner.damping == pytest.approx(damping, abs=1e-6)
+    assert out == pytest.approx(np.array(TORQUES) - damping * speed, abs=1e-4)
+    runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)  # without: the pair's rate alone
+    _tumble(runner, 0.0, speed, 0.5)
+    assert runner.damping == 0.0
+
+
+PACED: dict[str, object] = {"paced_ramp": {"rate_deg_s": -90}}
+
+
+def test_a_paced_ramp_advances_at_the_ramp_s_speed_while_the_pair_is_slow(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A pair at rest, or turning the wrong way, is a pair the torque has not turned yet: the
+    ramp goes on as the recipe's own would, to the phase's torque; a pair turning the wanted
+    way, slower than wanted, slows it in proportion."""
+    for rate in (0.0, +200.0, -30.0):
+        runner = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)
+        t, _, turn = _drive(runner, rate, RAMP / 2)
+        assert runner.pace == pytest.approx(0.5 if rate != -30.0 else 0.5 * 2 / 3, abs=0.1)
+        _, out, _ = _drive(runner, rate, 2 * RAMP, t, turn)
+        assert runner.pace == 1.0
+        assert out == pytest.approx(np.array(TORQUES))
+
+
+def test_a_paced_ramp_without_an_estimate_is_the_recipe_s_own_ramp(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """No valid estimate (the pair not caged yet): nothing says the pair runs, and the
+    torque is the plain ramp's, tick for tick."""
+    paced = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)
+    plain = RecipeRunner(_recipe(tmp_path, hand, {}), 9)
+    for k in range(round(2 * RAMP / DT)):
+        t = k * DT
+        a = paced.step(t, np.zeros(9), np.zeros(9), _estimates(math.nan))
+        b = plain.step(t, np.zeros(9), np.zeros(9), _estimates(math.nan))
+        assert a == pytest.approx(b, abs=1e-12)
+
+
+def test_a_paced_ramp_goes_back_while_the_pair_turns_too_fast(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Too fast the wanted way: the torque goes back along its segment, towards the previous
+    phase's (here none: zero), and no further."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)
+    t, _, turn = _drive(runner, 0.0, 2 * RAMP)
+    assert runner.pace == 1.0
+    _, out, _ = _drive(runner, -900.0, 0.2, t, turn)
+    assert runner.pace == 0.0
+    assert out == pytest.approx(np.zeros(9))
+
+
+def test_a_paced_ramp_settles_where_the_pair_turns_at_the_wanted_rate(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A pair whose rate follows the torque (here: in proportion to the fraction along the
+    segment, 180°/s at the phase's torque) settles at the fraction that turns it at the
+    wanted 90°/s."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)
+    t, turn = 0.0, 0.0
+    for _ in range(2000):
+        runner.step(t, np.zeros(9), np.zeros(9), _estimates(turn))
+        turn -= math.radians(180.0) * runner.pace * DT
+        t += DT
+    assert runner.pace == pytest.approx(0.5, abs=0.02)
+    assert runner.turn_rate == pytest.approx(math.radians(-90.0), rel=0.05)
+
+
+def test_a_paced_ramp_goes_beyond_the_phase_s_torque_up_to_its_reach(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    runner = RecipeRunner(
+        _recipe(tmp_path, hand, {"paced_ramp": {"rate_deg_s": -90, "reach": 1.5}}), 9
+    )
+    _, out, _ = _drive(runner, 0.0, 4 * RAMP)
+    assert runner.pace == 1.5
+    assert out == pytest.approx(1.5 * np.array(TORQUES))
+
+
+def test_a_paced_ramp_goes_back_when_a_joint_moves_too_fast(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """With ``joint_rate`` the joints count too: they are measured every tick, also while
+    the pair's estimate is invalid (an open cage), and a pair turning slowly does not keep
+    the torque up while a finger flies."""
+    phase = {"paced_ramp": {"rate_deg_s": -90, "joint_rate": 1.0}}
+    runner = RecipeRunner(_recipe(tmp_path, hand, phase), 9)
+    _tumble(runner, 0.0, 0.5, 4 * RAMP)  # half the joint rate: on, at half the speed
+    assert runner.pace == 1.0
+    runner = RecipeRunner(_recipe(tmp_path, hand, phase), 9)
+    _tumble(runner, 0.0, 3.0, 4 * RAMP)
+    assert runner.pace == 0.0
+    runner = RecipeRunner(_recipe(tmp_path, hand, PACED), 9)  # without: the pair alone
+    _tumble(runner, 0.0, 3.0, 4 * RAMP)
+    assert runner.pace == 1.0
+
+
+def test_the_next_phase_ramps_from_the_paced_torque(tmp_path: Path, hand: HandConfig) -> None:
+    runner = RecipeRunner(_recipe(tmp_path, hand, PACED, max_s=0.5), 9)
+    t, _, turn = _drive(runner, 0.0, 0.3)
+    t, before, turn = _drive(runner, -900.0, 0.02, t, turn)
+    assert runner.phase_name == "turn" and 0.0 < runner.pace < 1.0
+    t, _, turn = _drive(runner, -900.0, 0.5 - 0.32 - DT, t, turn)
+    before = runner.feedback(t - DT, np.zeros(9), _estimates(turn)).copy()
+    _, after, _ = _drive(runner, 0.0, 2 * DT, t, turn)
+    assert runner.phase_name == "after"
+    assert np.max(np.abs(after - before)) < 0.01
+
+
 def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
     recipe = _recipe(tmp_path, hand, TURN_RATE)
     rng = np.random.default_rng(1)
@@ -309,6 +428,21 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
             True,
         ),
         ({"joint_damping": 1.0}, "phases[0].joint_damping", False),
+        ({"paced_ramp": {"rate_deg_s": -90}}, "phases[0].paced_ramp", False),
+        ({"paced_ramp": {"rate_deg_s": 0}}, "phases[0].paced_ramp.rate_deg_s", True),
+        ({"paced_ramp": {"rate_deg_s": -90, "reach": 0.5}}, "phases[0].paced_ramp.reach", True),
+        ({"paced_ramp": {"rate_deg_s": -90, "back": 0}}, "phases[0].paced_ramp.back", True),
+        (
+            {"paced_ramp": {"rate_deg_s": -90, "joint_rate": -1}},
+            "phases[0].paced_ramp.joint_rate",
+            True,
+        ),
+        ({"paced_ramp": {"rate_deg_s": -90}, "ramp_s": 0}, "phases[0].ramp_s", True),
+        (
+            {"brake": {"rate_deg_s": 90, "joint_damping": 0.03, "joint_rate": 500}},
+            "phases[0].brake.joint_rate",
+            True,
+        ),
     ],
 )
 def test_bad_feedback_is_refused_naming_the_key(

@@ -20,6 +20,7 @@ from handctl.online.recipes.guard import LimitGuard
 from handctl.online.recipes.schema import (
     MAX_OBJECTS,
     Condition,
+    PacedRamp,
     Pair,
     Phase,
     PoseHold,
@@ -50,6 +51,14 @@ MAX_TURN_RATE_DEG_S = 720.0
 MAX_JOINT_DAMPING = 0.2
 #: the most a turn-rate loop may scale its phase's torque (tau_max still bounds it)
 MAX_SCALE = 5.0
+#: the furthest a paced ramp may go along its segment (1: the phase's torque; tau_max and
+#: the supervisor still bound every joint)
+MAX_REACH = 3.0
+#: the most times its ramp's speed a paced ramp may go back at (the loader checked the ramp
+#: against the joints' rate limit; the supervisor holds every step to it)
+MAX_BACK = 10.0
+#: rad/s, the largest joint speed a paced ramp or a brake may take as its threshold
+MAX_JOINT_RATE = 100.0
 
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
@@ -91,7 +100,11 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     )
     check_unique_names(doc, [p.name for p in phases])
     for i, phase in enumerate(phases):
-        for key, loop in (("turn_rate", phase.turn_rate), ("brake", phase.brake)):
+        for key, loop in (
+            ("turn_rate", phase.turn_rate),
+            ("brake", phase.brake),
+            ("paced_ramp", phase.paced),
+        ):
             if loop is not None and not pairs:
                 raise ConfigError(
                     doc.file,
@@ -229,6 +242,9 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
     pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
     joint_damping = parse_joint_damping(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
+    paced = parse_paced_ramp(doc.mapping("paced_ramp")) if doc.has("paced_ramp") else None
+    if paced is not None and ramp <= 0:
+        doc.fail("ramp_s", "a ramp longer than 0 s (the paced_ramp moves at its speed)", ramp)
     provenance = doc.raw("provenance", {})
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
@@ -246,6 +262,7 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
         pose,
         joint_damping,
         brake,
+        paced,
     )
 
 
@@ -260,15 +277,41 @@ def parse_joint_damping(doc: Doc) -> float:
 def parse_brake(doc: Doc) -> TurnBrake:
     """``brake`` of a recipe's or a template's phase (``schema.TurnBrake``): ``rate_deg_s``,
     the turn rate above which it acts, and ``joint_damping`` (N·m·s/rad), reached at twice
-    that rate."""
+    that rate; ``joint_rate`` (rad/s, optional), the joint speed above which it acts as
+    well."""
     rate = doc.number(
         "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
     )
     damping = doc.number(
         "joint_damping", min=0.0, max=MAX_JOINT_DAMPING, min_exclusive=True, unit="N·m·s/rad"
     )
+    joint_rate = doc.number("joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
     doc.done()
-    return TurnBrake(math.radians(rate), damping)
+    return TurnBrake(math.radians(rate), damping, joint_rate)
+
+
+def parse_paced_ramp(doc: Doc, sign: float | None = None) -> PacedRamp:
+    """``paced_ramp`` of a phase (``schema.PacedRamp``): ``rate_deg_s`` (signed, the wanted
+    direction; a template gives its magnitude and the turn's sign as ``sign``), ``reach``
+    (the furthest fraction along the segment, 1 by default) and ``back`` (how many times the
+    ramp's speed it may go back at, 2 by default), and ``joint_rate`` (rad/s, the fastest a
+    joint may move before the torque goes back as well; 0, the default: the pair's rate
+    alone)."""
+    if sign is None:
+        rate = doc.number(
+            "rate_deg_s", min=-MAX_TURN_RATE_DEG_S, max=MAX_TURN_RATE_DEG_S, unit="deg/s"
+        )
+        if rate == 0:
+            doc.fail("rate_deg_s", "a non-zero rate, signed as the wanted turn", rate)
+    else:
+        rate = sign * doc.number(
+            "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
+        )
+    reach = doc.number("reach", default=1.0, min=1.0, max=MAX_REACH)
+    back = doc.number("back", default=2.0, min=0.0, max=MAX_BACK, min_exclusive=True)
+    joint_rate = doc.number("joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
+    doc.done()
+    return PacedRamp(math.radians(rate), reach, back, joint_rate)
 
 
 def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:

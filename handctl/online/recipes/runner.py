@@ -18,9 +18,16 @@ Feedback, all of it from the angles and the estimates computed from them:
   phase's torques.
 - ``brake``: more injected damping while the pair tumbles: none while the estimated
   centre-line rate is at most the brake's rate, rising to its ``joint_damping`` at twice
-  that rate, on top of the phase's own ``joint_damping``. A damper that acts only on a
+  that rate, on top of the phase's own ``joint_damping``; with a ``joint_rate``, the same
+  while the fastest joint moves faster than that, whichever is the further over (the
+  joints are measured every tick, the pair only while its cage is closed, and a pair
+  swept along the palm opens it). A damper that acts only on a
   tumble slows the roll-over of a lightly damped hand and leaves alone a heavily damped one,
   whose pair a fixed damper would let fall back.
+- ``paced_ramp``: the ramp into the phase moves along the segment from the previous
+  phase's torque to this one's at a pace set by the pair (``_pace_step``): on while it
+  turns slower than wanted, back while faster. The previous phase's torque brought the
+  pair to where this phase begins, so between the two lies a torque that turns it slowly.
 - ``joint_damping``: ``-joint_damping * velocity`` on every joint (the velocities filtered
   from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
   least (a tendon's losses are not measured to a factor of three), and in a turn it sets how
@@ -43,6 +50,7 @@ from handctl.arrays import FloatArray
 from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
     Condition,
+    PacedRamp,
     Recipe,
     SignalKind,
     TimeoutAction,
@@ -110,6 +118,9 @@ class RecipeRunner:
         self._damping_to = 0.0
         self.damping = 0.0
         self._damped = np.zeros(n_joints)
+        # a paced ramp's fraction along its segment, and when it last moved
+        self.pace = 0.0
+        self._pace_t = math.nan
 
     @property
     def phase_name(self) -> str:
@@ -138,6 +149,8 @@ class RecipeRunner:
         self.scale = self._scale_i = 1.0
         self.turn_rate = 0.0
         self._turn_last = self._turn_t = math.nan
+        self.pace = 0.0
+        self._pace_t = t
         if index < len(self.recipe.phases):
             phase = self.recipe.phases[index]
             self.index = index
@@ -215,17 +228,30 @@ class RecipeRunner:
         phase = self.recipe.phases[self.index] if self.status is RunStatus.RUNNING else None
         out = self._desired
         fresh = False  # whether the turn-rate estimate took a new sample this tick
-        if phase is not None and (phase.turn_rate is not None or phase.brake is not None):
+        if phase is not None and (
+            phase.turn_rate is not None or phase.brake is not None or phase.paced is not None
+        ):
             fresh = self._follow_turn(t, estimates)
         if phase is not None and phase.brake is not None:
             brake = phase.brake
             over = (abs(self.turn_rate) - brake.rate) / brake.rate
+            if brake.joint_rate > 0.0:
+                fastest = float(np.max(np.abs(self.velocity.value)))
+                over = max(over, (fastest - brake.joint_rate) / brake.joint_rate)
             self.damping += self._fraction * brake.damping * min(1.0, max(0.0, over))
-        if phase is not None and (phase.turn_rate is not None or phase.pose is not None):
+        if phase is not None and (
+            phase.turn_rate is not None or phase.pose is not None or phase.paced is not None
+        ):
             # the ramp state stays the recipe's own torque; only what is proposed moves
             out = self._proposed
             out[:] = self._desired
             self._fed = True
+            if phase.paced is not None:
+                self._pace_step(t, phase.paced, phase.ramp_s)
+                # from + pace * (target - from), where the ramp put from + fraction * (...)
+                np.subtract(self._target, self._from, out=self._delta)
+                self._delta *= self.pace - self._fraction
+                out += self._delta
             if phase.turn_rate is not None:
                 if fresh:
                     self._turn_loop()
@@ -265,6 +291,26 @@ class RecipeRunner:
         self._turn_last, self._turn_t = turn, t
         self._turn_dt = dt
         return True
+
+    def _pace_step(self, t: float, paced: PacedRamp, ramp_s: float) -> None:
+        """Move the paced ramp's fraction along its segment by the relative rate error: at
+        the ramp's own speed while the pair turns slower than the wanted rate (or the wrong
+        way), back at up to ``back`` times that while it turns faster, in proportion
+        between. The pair's rate is the last one estimated (it holds while the estimate is
+        invalid). With ``joint_rate`` the fastest joint counts as well, whichever is the
+        further over: the joints are measured every tick, also while the cage is open."""
+        dt = t - self._pace_t
+        self._pace_t = t
+        if not dt > 0.0:
+            return
+        wanted = abs(paced.rate)
+        along = self.turn_rate if paced.rate > 0 else -self.turn_rate
+        error = (wanted - along) / wanted
+        if paced.joint_rate > 0.0:
+            fastest = float(np.max(np.abs(self.velocity.value)))
+            error = min(error, (paced.joint_rate - fastest) / paced.joint_rate)
+        speed = min(1.0, max(-paced.back, error)) / ramp_s
+        self.pace = min(paced.reach, max(0.0, self.pace + speed * dt))
 
     def _turn_loop(self) -> None:
         """One step of the proportional-integral loop of the scale on the turn rate."""

@@ -122,6 +122,31 @@ class TurnBrake:
 
     rate: float  # rad/s, > 0
     damping: float  # N·m·s/rad, at twice ``rate``
+    #: rad/s: also while the fastest joint moves faster than this (full at twice it); 0:
+    #: on the pair's rate alone
+    joint_rate: float = 0.0
+
+
+@dataclass(frozen=True)
+class PacedRamp:
+    """A turn phase's ramp paced by the pair (``runner.py``): the torque moves along the
+    segment from the previous phase's torque to this one's, forward at the ramp's speed
+    while the estimated centre line turns slower than ``rate`` the wanted way, back while it
+    turns faster, and never past ``reach`` (1: this phase's torque; more: on along the
+    segment, beyond it).
+
+    Why along the segment: the previous phase's torque brought the pair to where this
+    phase begins and this phase's turns it on, so between them lies a torque that turns
+    it slowly. Gravity makes the set of torques that turn the pair no cone (a smaller torque
+    along its ray lets the pair fall back), so a scale of one torque is the wrong
+    direction to give way in; the segment's other end is a torque that brought it here."""
+
+    rate: float  # rad/s, signed: the wanted direction of the turn
+    reach: float  # the furthest fraction along the segment, >= 1
+    back: float  # how many times the ramp's speed the torque may go back at
+    #: rad/s, the fastest any joint may move before the torque goes back as well; 0: the
+    #: pair's rate alone
+    joint_rate: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -152,6 +177,7 @@ class Phase:
     #: change makes the motion's pace less its own; 0: none
     joint_damping: float = 0.0
     brake: TurnBrake | None = None
+    paced: PacedRamp | None = None
 
 
 @dataclass(frozen=True)
@@ -209,9 +235,10 @@ class Recipe:
 
     @property
     def uses_estimates(self) -> bool:
-        return any(p.turn_rate is not None or p.brake is not None for p in self.phases) or any(
-            c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts)
-        )
+        return any(
+            p.turn_rate is not None or p.brake is not None or p.paced is not None
+            for p in self.phases
+        ) or any(c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
 
 
 def parse_condition(
