@@ -93,6 +93,11 @@ class RecipeRunner:
         self._guarded = np.zeros(n_joints)
         # from the angles it is fed, so a re-run of the logged feedback gets the same values
         self.velocity = JointVelocity(n_joints)
+        # the guard's own, less smoothed: its damper must act within the drive's lag
+        self._guard_velocity = JointVelocity(
+            n_joints,
+            self._guard.velocity_time_constant if self._guard is not None else 0.0,
+        )
         self._fraction = 1.0  # of the current ramp
         # the turn-rate loop of the current phase: scale, its integral part, the rate
         self.scale = 1.0
@@ -172,6 +177,7 @@ class RecipeRunner:
             self._desired[:] = 0.0
             return
         self.velocity.update(t, angle)
+        self._guard_velocity.update(t, angle)
         elapsed = t - self.phase_start
         if self.status is RunStatus.RUNNING:
             phase = self.recipe.phases[self.index]
@@ -247,7 +253,7 @@ class RecipeRunner:
             out = self._damped
         if self._guard is None:
             return out
-        return self._guard.apply(angle, out, self._guarded, self.velocity.value)
+        return self._guard.apply(angle, out, self._guarded, self._guard_velocity.value)
 
     def _follow_turn(self, t: float, estimates: Sequence[float] | None) -> bool:
         """One step of the estimated centre-line rate (``turn_rate``, rad/s); False when there
