@@ -164,6 +164,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             "rate_deg_s": round(math.degrees(phase.brake.rate), 6),
             "joint_damping": phase.brake.damping,
         }
+    if phase.torque_margin != 1.0:
+        doc["torque_margin"] = phase.torque_margin
     doc["provenance"] = plan.provenance
     return doc
 
@@ -238,6 +240,7 @@ def _compiled_phase(
         pose=pose,
         joint_damping=spec.joint_damping,
         brake=spec.brake,
+        torque_margin=spec.torque_margin,
     )
 
 

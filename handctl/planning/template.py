@@ -31,6 +31,7 @@ from handctl.online.recipes.loader import (
     parse_joint_damping,
     parse_min_total_turn,
     parse_objects,
+    parse_torque_margin,
     parse_turn_rate,
 )
 from handctl.online.recipes.schema import (
@@ -67,6 +68,7 @@ class TemplatePhase:
     estimates: tuple[str, ...] = ()
     joint_damping: float = 0.0  # N·m·s/rad, injected on every joint, carried into the recipe
     brake: TurnBrake | None = None  # more damping while the pair tumbles, carried likewise
+    torque_margin: float = 1.0  # the recipe's torques times this when run, carried likewise
 
     def exit_condition(self) -> str:
         """The compiled exit of a turn phase: on the estimated turn of the first pair since
@@ -243,6 +245,7 @@ def _phase(
         pose.done()
     joint_damping = parse_joint_damping(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
+    margin = parse_torque_margin(doc)
     doc.done()
     return TemplatePhase(
         name,
@@ -261,4 +264,5 @@ def _phase(
         estimates,
         joint_damping,
         brake,
+        margin,
     )

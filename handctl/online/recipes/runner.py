@@ -146,7 +146,7 @@ class RecipeRunner:
         if index < len(self.recipe.phases):
             phase = self.recipe.phases[index]
             self.index = index
-            self._target = np.array(phase.torques)
+            self._target = np.array(phase.torques) * phase.torque_margin
             self._ramp_s = phase.ramp_s
             self._damping_to = phase.joint_damping
             self.records.append(PhaseRecord(phase.name, t))

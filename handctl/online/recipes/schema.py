@@ -152,6 +152,9 @@ class Phase:
     #: change makes the motion's pace less its own; 0: none
     joint_damping: float = 0.0
     brake: TurnBrake | None = None
+    #: the runner applies ``torques`` times this (>= 1): headroom in the lift and the hold
+    #: for objects heavier than the plan's models (docs/experiment.md); 1: the plan's own
+    torque_margin: float = 1.0
 
 
 @dataclass(frozen=True)
