@@ -8,10 +8,11 @@ the sensors' seed. By default every family is varied on its own (``--seeds`` mod
 then all of them at once; ``--family F`` runs one (``all`` for everything at once). A run
 succeeds when it completed and its ``experiment.success`` holds (lifted, held, nothing
 dropped, the recipe's ``min_total_turn_deg``); it is a swap when, besides, the pair turned
-``--swap-deg`` (170) or more. Per group: ``success_rate``, ``swap_rate`` and the peak true
-centre-line rate (deg/s, the largest and the median over the runs); the nominal hand is run
-once as well. ``estimator_us_p50/p99`` is the estimator's own cost per tick on this machine
-(a benchmark figure, never a test).
+``--swap-deg`` (170) or more. Per group: ``success_rate``, ``swap_rate``, the peak true
+centre-line rate (deg/s, the largest and the median over the runs) and
+``before_manipulation_failures``, the runs that never lifted and held the pair; the nominal
+hand is run once as well. ``estimator_us_p50/p99`` is the estimator's own cost per tick on
+this machine (a benchmark figure, never a test).
 """
 
 from __future__ import annotations
@@ -104,6 +105,9 @@ def _figures(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "swap_rate": round(sum(r["swap"] for r in runs) / n, 3),
         "drop_rate": round(sum(bool(r["dropped"]) for r in runs) / n, 3),
         "safety_stop_rate": round(sum(r["outcome"] == "safety_stop" for r in runs) / n, 3),
+        # never lifted and held the pair: failed in the approach, the lift or the hold, before
+        # any manipulation phase could do anything
+        "before_manipulation_failures": sum(not r["lifted"] for r in runs),
         "mean_total_rotation_deg": round(
             float(np.mean([r["total_rotation_deg"] for r in runs])), 2
         ),
