@@ -23,14 +23,17 @@ Two things decide whether that damper acts in time, and both are the drive's lag
 through a lag ``tau`` is a negative damping of about ``gain * tau``; the guard's spring
 (``tau_max / band``, 2 N·m/rad on a distal joint) through 5..10 ms is 0.01..0.02 N·m·s/rad,
 as much as a nominal joint's own damping and several times a lightly damped one's. The
-damper must make up for it, so it acts on a velocity of its own, low-passed over 3 ms only
-(``GUARD_VELOCITY_TIME_CONSTANT``; the recipe's 10 ms filter would add its own lag to the
-drive's), and it is ``GUARD_DAMPING_S`` times the gain, more than the lag it cancels. And a
-finger flung at a limit on a lightly damped hand (the lift on a hand whose damping is ×0.3
-moves the distal joints at 20 rad/s, three times the nominal's) crosses both bands in less
-than that lag: the damper therefore judges where the joint will be ``lookahead`` later at
-its present speed (``GUARD_LOOKAHEAD_S``), so it meets a fast joint early enough to brake it
-before the spring's band, and a slow one exactly as before.
+damper that makes up for it must not add much lag of its own, so it acts on a velocity of
+its own: the slope of a line through the last 8 angles (``velocity.FittedVelocity``), which
+lags by 3.5 ms where the recipe's low-pass lags by 10 ms, and moves by a sixth as much when
+an encoder count comes in. And a finger flung at a limit on a lightly damped hand (the lift
+on a hand whose damping is ×0.3 moves the distal joints at 20 rad/s, three times the
+nominal's) crosses both bands in less than the lag: the damper therefore judges where the
+joint will be ``lookahead`` later at its present speed (``GUARD_LOOKAHEAD_S``), so it meets
+a fast joint early enough to brake it before the spring's band, and a slow one as before.
+A stronger damper (0.016 s) caught the light hands as well but made the nominal run's
+torques chatter (0.0068 N·m a tick at p99), so its strength is the one the nominal was
+tuned with.
 
 The guard is a pure function of the measured angles (and the velocities filtered from them)
 and the phase's torque, so a replay of the logged feedback computes the very same torques.
@@ -44,18 +47,17 @@ from dataclasses import dataclass
 from handctl.arrays import FloatArray
 from handctl.config import HandConfig
 
-#: s, the damper against the spring (damping = gain * this): more than the drive's lag at
-#: the top of the model set (10 ms), whose negative damping through the spring it cancels
-GUARD_DAMPING_S = 0.016
+#: s, the damper against the spring (damping = gain * this): over a nominal run, half of it
+#: leaves the joints' bounces off their bands, twice as much chatters through the drive's lag
+GUARD_DAMPING_S = 0.008
 #: s, how far ahead the damper looks: it meets a joint where the joint will be this much later
-#: at its present speed. The drive's and the filter's lag (up to 13 ms) plus the time the
+#: at its present speed. The drive's and the velocity's lag (up to 14 ms) plus the time the
 #: damper needs to slow the joint, so that a joint flung at its limit on a lightly damped
 #: hand is braked before the spring's band, not inside it
 GUARD_LOOKAHEAD_S = 0.03
-#: s, the low-pass of the velocities the guard's damper acts on (``velocity.py``): one
-#: encoder count in one tick (0.38 rad/s) then moves the damper's torque by at most
-#: 0.38 / 4 * 0.032 = 0.003 N·m, and the filter adds 3 ms, not 10, to the drive's lag
-GUARD_VELOCITY_TIME_CONSTANT = 0.003
+#: ticks, the line the guard's velocities are the slope of (``velocity.FittedVelocity``): it
+#: lags by 3.5 ms, not the recipe's low-pass's 10, and an encoder count moves it by 0.05 rad/s
+GUARD_VELOCITY_WINDOW = 8
 
 
 @dataclass(frozen=True)
@@ -69,7 +71,7 @@ class LimitGuard:
     tau_max: tuple[float, ...]  # N·m
     damping: tuple[float, ...] = ()  # N·m·s/rad, at full strength inside the band; (): none
     lookahead: float = 0.0  # s, the damper acts on the angle this far ahead at the velocity
-    velocity_time_constant: float = GUARD_VELOCITY_TIME_CONSTANT  # s, of the velocity it damps
+    velocity_window: int = GUARD_VELOCITY_WINDOW  # ticks, of the velocity it damps
 
     @classmethod
     def for_hand(
@@ -95,7 +97,7 @@ class LimitGuard:
             tuple(j.tau_max for j in joints),
             tuple(j.tau_max / band * damping_s for j in joints),
             lookahead_s,
-            GUARD_VELOCITY_TIME_CONSTANT,
+            int(GUARD_VELOCITY_WINDOW),
         )
 
     def apply(

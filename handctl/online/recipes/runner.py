@@ -47,7 +47,7 @@ from handctl.online.recipes.schema import (
     SignalKind,
     TimeoutAction,
 )
-from handctl.online.recipes.velocity import JointVelocity
+from handctl.online.recipes.velocity import FittedVelocity, JointVelocity
 
 #: s, the low-pass of the estimated centre-line rate: the estimate moves in steps of the
 #: encoder's resolution, and the rate loop must not chase them
@@ -94,9 +94,8 @@ class RecipeRunner:
         # from the angles it is fed, so a re-run of the logged feedback gets the same values
         self.velocity = JointVelocity(n_joints)
         # the guard's own, less smoothed: its damper must act within the drive's lag
-        self._guard_velocity = JointVelocity(
-            n_joints,
-            self._guard.velocity_time_constant if self._guard is not None else 0.0,
+        self._guard_velocity = FittedVelocity(
+            n_joints, self._guard.velocity_window if self._guard is not None else 2
         )
         self._fraction = 1.0  # of the current ramp
         # the turn-rate loop of the current phase: scale, its integral part, the rate
