@@ -57,6 +57,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--nominal", action="store_true", help="run only the unperturbed hand, once"
     )
+    parser.add_argument(
+        "--before-manipulation",
+        action="store_true",
+        help="stop every run where the first manipulation phase would begin (the phases "
+        "before it have no exits, so at the sum of their max_s): what fails in the approach, "
+        "the lift and the hold, in a third of the time",
+    )
     parser.add_argument("--workers", type=int, help="local worker processes (default: every core)")
     parser.add_argument(
         "--scheduler",
@@ -83,6 +90,30 @@ def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
         times.append(clock() - t0)
     p50, p99 = np.percentile(times, [50, 99])
     return float(p50) / 1e3, float(p99) / 1e3
+
+
+def _before_manipulation_s(path: Path, recipe: Any) -> float:
+    """s from the start to where the recipe's first manipulation phase begins: the sum of the
+    phases' ``max_s`` before it, which must have no exits (else where it begins is not known
+    beforehand)."""
+    from handctl.errors import ConfigError
+    from handctl.experiment.merit import MANIPULATE_PREFIX
+
+    total = 0.0
+    for k, phase in enumerate(recipe.phases):
+        if phase.name.startswith(MANIPULATE_PREFIX):
+            return total
+        if phase.exits:
+            raise ConfigError(
+                str(path),
+                f"phases[{k}].exit",
+                "no exit before the first manipulation phase (for --before-manipulation)",
+                [c.text for c in phase.exits],
+            )
+        total += phase.max_s
+    raise ConfigError(
+        str(path), "phases", f"a phase named {MANIPULATE_PREFIX}*", [p.name for p in recipe.phases]
+    )
 
 
 def _say(run: dict[str, Any]) -> None:
@@ -136,11 +167,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "min_total_turn_deg": recipe.min_total_turn_deg,
         "spread": Spread().as_dict(),
     }
+    until = _before_manipulation_s(args.recipe, recipe) if args.before_manipulation else None
+    out["before_manipulation_s"] = until
     groups = [] if args.nominal else ([*FAMILIES, "all"] if args.family is None else [args.family])
     # One pool for every run, the nominal first: results come back in this order.
-    tasks = [SeedRun(portable, recipe, None, "nominal", args.swap_deg)]
+    tasks = [SeedRun(portable, recipe, None, "nominal", args.swap_deg, until)]
     tasks += [
-        SeedRun(portable, recipe, seed, group, args.swap_deg)
+        SeedRun(portable, recipe, seed, group, args.swap_deg, until)
         for group in groups
         for seed in range(args.first_seed, args.first_seed + args.seeds)
     ]
