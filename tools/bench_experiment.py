@@ -8,10 +8,11 @@ the sensors' seed. By default every family is varied on its own (``--seeds`` mod
 then all of them at once; ``--family F`` runs one (``all`` for everything at once). A run
 succeeds when it completed and its ``experiment.success`` holds (lifted, held, nothing
 dropped, the recipe's ``min_total_turn_deg``); it is a swap when, besides, the pair turned
-``--swap-deg`` (170) or more. Per group: ``success_rate``, ``swap_rate`` and the peak true
-centre-line rate (deg/s, the largest and the median over the runs); the nominal hand is run
-once as well. ``estimator_us_p50/p99`` is the estimator's own cost per tick on this machine
-(a benchmark figure, never a test).
+``--swap-deg`` (170) or more. Per group: ``success_rate``, ``swap_rate``, the peak true
+centre-line rate (deg/s, the largest and the median over the runs) and
+``before_manipulation_failures``, the runs that never lifted and held the pair; the nominal
+hand is run once as well. ``estimator_us_p50/p99`` is the estimator's own cost per tick on
+this machine (a benchmark figure, never a test).
 """
 
 from __future__ import annotations
@@ -56,6 +57,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--nominal", action="store_true", help="run only the unperturbed hand, once"
     )
+    parser.add_argument(
+        "--before-manipulation",
+        action="store_true",
+        help="stop every run where the first manipulation phase would begin (the phases "
+        "before it have no exits, so at the sum of their max_s): what fails in the approach, "
+        "the lift and the hold, in a third of the time",
+    )
     parser.add_argument("--workers", type=int, help="local worker processes (default: every core)")
     parser.add_argument(
         "--scheduler",
@@ -84,6 +92,30 @@ def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
     return float(p50) / 1e3, float(p99) / 1e3
 
 
+def _before_manipulation_s(path: Path, recipe: Any) -> float:
+    """s from the start to where the recipe's first manipulation phase begins: the sum of the
+    phases' ``max_s`` before it, which must have no exits (else where it begins is not known
+    beforehand)."""
+    from handctl.errors import ConfigError
+    from handctl.experiment.merit import MANIPULATE_PREFIX
+
+    total = 0.0
+    for k, phase in enumerate(recipe.phases):
+        if phase.name.startswith(MANIPULATE_PREFIX):
+            return total
+        if phase.exits:
+            raise ConfigError(
+                str(path),
+                f"phases[{k}].exit",
+                "no exit before the first manipulation phase (for --before-manipulation)",
+                [c.text for c in phase.exits],
+            )
+        total += phase.max_s
+    raise ConfigError(
+        str(path), "phases", f"a phase named {MANIPULATE_PREFIX}*", [p.name for p in recipe.phases]
+    )
+
+
 def _say(run: dict[str, Any]) -> None:
     from handctl.progress import say
 
@@ -104,6 +136,9 @@ def _figures(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "swap_rate": round(sum(r["swap"] for r in runs) / n, 3),
         "drop_rate": round(sum(bool(r["dropped"]) for r in runs) / n, 3),
         "safety_stop_rate": round(sum(r["outcome"] == "safety_stop" for r in runs) / n, 3),
+        # never lifted and held the pair: failed in the approach, the lift or the hold, before
+        # any manipulation phase could do anything
+        "before_manipulation_failures": sum(not r["lifted"] for r in runs),
         "mean_total_rotation_deg": round(
             float(np.mean([r["total_rotation_deg"] for r in runs])), 2
         ),
@@ -132,11 +167,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "min_total_turn_deg": recipe.min_total_turn_deg,
         "spread": Spread().as_dict(),
     }
+    until = _before_manipulation_s(args.recipe, recipe) if args.before_manipulation else None
+    out["before_manipulation_s"] = until
     groups = [] if args.nominal else ([*FAMILIES, "all"] if args.family is None else [args.family])
     # One pool for every run, the nominal first: results come back in this order.
-    tasks = [SeedRun(portable, recipe, None, "nominal", args.swap_deg)]
+    tasks = [SeedRun(portable, recipe, None, "nominal", args.swap_deg, until)]
     tasks += [
-        SeedRun(portable, recipe, seed, group, args.swap_deg)
+        SeedRun(portable, recipe, seed, group, args.swap_deg, until)
         for group in groups
         for seed in range(args.first_seed, args.first_seed + args.seeds)
     ]

@@ -31,6 +31,8 @@ class SeedRun:
     seed: int | None
     family: str = "all"
     swap_deg: float = 170.0
+    #: s, stop the run after this long (``None``: run it to its end), as ``--max-seconds``
+    max_seconds: float | None = None
 
 
 def run_seed(task: SeedRun) -> dict[str, Any]:
@@ -50,7 +52,11 @@ def run_seed(task: SeedRun) -> dict[str, Any]:
         model_hand = hand_with(hand, model.params, seed=seed)
         scales = model.scales
     t0 = time.monotonic()
-    report = run_recipe(RunRequest(hand=model_hand, recipe=task.recipe, seed=seed or 0))
+    report = run_recipe(
+        RunRequest(
+            hand=model_hand, recipe=task.recipe, seed=seed or 0, max_seconds=task.max_seconds
+        )
+    )
     wall = time.monotonic() - t0
     ex = report.summary.get("experiment", {})
     ok = bool(report.summary["completed"] and ex.get("success"))

@@ -175,6 +175,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
         }
         if paced.joint_rate > 0.0:
             doc["paced_ramp"]["joint_rate"] = paced.joint_rate
+    if phase.torque_margin != 1.0:
+        doc["torque_margin"] = phase.torque_margin
     doc["provenance"] = plan.provenance
     return doc
 
@@ -250,6 +252,7 @@ def _compiled_phase(
         joint_damping=spec.joint_damping,
         brake=spec.brake,
         paced=spec.paced,
+        torque_margin=spec.torque_margin,
     )
 
 

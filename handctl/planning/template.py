@@ -32,6 +32,7 @@ from handctl.online.recipes.loader import (
     parse_min_total_turn,
     parse_objects,
     parse_paced_ramp,
+    parse_torque_margin,
     parse_turn_rate,
 )
 from handctl.online.recipes.schema import (
@@ -71,6 +72,7 @@ class TemplatePhase:
     brake: TurnBrake | None = None  # more damping while the pair tumbles, carried likewise
     #: a turn phase's ramp paced by the pair's turn rate, carried likewise
     paced: PacedRamp | None = None
+    torque_margin: float = 1.0  # the recipe's torques times this when run, carried likewise
 
     def exit_condition(self) -> str:
         """The compiled exit of a turn phase: on the estimated turn of the first pair since
@@ -250,6 +252,7 @@ def _phase(
         pose.done()
     joint_damping = parse_joint_damping(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
+    margin = parse_torque_margin(doc)
     doc.done()
     return TemplatePhase(
         name,
@@ -269,4 +272,5 @@ def _phase(
         joint_damping,
         brake,
         paced,
+        margin,
     )

@@ -65,7 +65,7 @@ def test_inside_the_band_the_joint_is_pushed_back_and_at_the_limit_fully(hand: H
 
 def test_a_joint_heading_for_a_limit_is_damped_a_band_before_the_spring(hand: HandConfig) -> None:
     band = 0.15
-    guard = LimitGuard.for_hand(hand, band)
+    guard = LimitGuard.for_hand(hand, band, lookahead_s=0.0)
     j = 4  # f2_j2
     joint = hand.joints[j]
     angle = np.array([(x.angle_min + x.angle_max) / 2 for x in hand.joints])
@@ -92,6 +92,30 @@ def test_a_joint_heading_for_a_limit_is_damped_a_band_before_the_spring(hand: Ha
     velocity[j] = -1.0
     out = guard.apply(angle, desired, np.empty(9), velocity)
     assert out[j] == pytest.approx(0.05 + guard.gain[j] * band / 2 + damping * 1.0)
+
+
+def test_a_fast_joint_is_met_where_it_will_be_after_the_lag(hand: HandConfig) -> None:
+    """A joint flung at a limit (a lightly damped finger in the lift) is braked from where it
+    will be ``lookahead`` later: at 20 rad/s the damper reaches it well before the two bands
+    where a slow joint is first damped, so that it acts through the drive's lag in time."""
+    band, lookahead = 0.15, 0.03
+    guard = LimitGuard.for_hand(hand, band, lookahead_s=lookahead)
+    j = 5  # f2_j3, heading for its lower limit
+    joint = hand.joints[j]
+    angle = np.array([(x.angle_min + x.angle_max) / 2 for x in hand.joints])
+    desired = np.full(9, -0.06)
+    velocity = np.zeros(9)
+    angle[j] = joint.angle_min + 2 * band + 0.3  # 0.3 rad before the damper's band
+    velocity[j] = -0.5  # slow: 15 mrad ahead, still outside
+    assert guard.apply(angle, desired, np.empty(9), velocity)[j] == -0.06
+    velocity[j] = -20.0  # fast: 0.6 rad ahead, inside the spring's band
+    out = guard.apply(angle, desired, np.empty(9), velocity)
+    assert out[j] == pytest.approx(min(joint.tau_max, -0.06 + guard.damping[j] * 20.0))
+    assert out[j] > 0.0  # braked hard, against the recipe's own torque
+    assert np.array_equal(np.delete(out, j), np.delete(desired, j))
+    # moving away as fast, nothing
+    velocity[j] = 20.0
+    assert guard.apply(angle, desired, np.empty(9), velocity)[j] == -0.06
 
 
 @settings(max_examples=300, deadline=None)

@@ -40,9 +40,31 @@ def test_the_shipped_template_loads(hand: HandConfig) -> None:
     assert all(p.paced is not None and p.paced.rate < 0 for p in turns)
 
 
+def test_the_shipped_recipe_carries_the_template_s_feedback(hand: HandConfig) -> None:
+    """What ``handctl plan`` carries from a template phase into the recipe it compiles (the
+    pose hold's gains, the injected damping, the brake, the torque margin) is in the shipped
+    recipe as the template says, so that planning the template again gives the same keys."""
+    from handctl.online.recipes.loader import load_recipe
+
+    template = load_template(TEMPLATE, hand)
+    recipe = load_recipe(TEMPLATE.with_name("swap_two_cylinders.yaml"), hand)
+    compiled = {p.name: p for p in recipe.phases}
+    assert [p.name for p in template.phases] == list(compiled)
+    for spec in template.phases:
+        phase = compiled[spec.name]
+        assert phase.torque_margin == spec.torque_margin, spec.name
+        assert phase.joint_damping == spec.joint_damping, spec.name
+        assert phase.brake == spec.brake, spec.name
+        assert (phase.pose is None) == (spec.pose_stiffness is None), spec.name
+        if phase.pose is not None:
+            assert phase.pose.stiffness == spec.pose_stiffness, spec.name
+            assert phase.pose.damping == spec.pose_damping, spec.name
+
+
 @pytest.mark.parametrize(
     ("change", "key", "expected"),
     [
+        (lambda d: d["phases"][1].update(torque_margin=3), "phases[1].torque_margin", "2"),
         (lambda d: d["phases"][3].update(kind="spin"), "phases[3].kind", "one of"),
         (lambda d: d["phases"][3].update(turn_deg=0), "phases[3].turn_deg", "non-zero"),
         (lambda d: d["phases"][3].update(colour="red"), "phases[3]", "colour"),

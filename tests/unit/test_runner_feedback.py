@@ -382,6 +382,26 @@ def test_the_next_phase_ramps_from_the_paced_torque(tmp_path: Path, hand: HandCo
     assert np.max(np.abs(after - before)) < 0.01
 
 
+def test_a_torque_margin_multiplies_the_phase_s_torques(tmp_path: Path, hand: HandConfig) -> None:
+    """The lift's and the hold's headroom for heavier objects: the runner proposes the
+    phase's torques times its ``torque_margin``, ramped in as they are, and the next phase
+    ramps from there."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"torque_margin": 1.3}, max_s=0.2), 9)
+    angle = np.zeros(9)
+    t, out = 0.0, np.zeros(9)
+    while t < 0.2 - 1e-9:
+        out = runner.step(t, angle, np.zeros(9)).copy()
+        t = round(t + DT, 9)
+    assert runner.phase_name == "turn"
+    assert np.allclose(out, 1.3 * np.array(TORQUES))
+    assert not np.any(np.abs(out) > np.array([j.tau_max for j in hand.joints]))
+    out = runner.step(0.2, angle, np.zeros(9)).copy()  # the next phase, margin 1: from there
+    assert runner.phase_name == "after"
+    assert np.allclose(out, 1.3 * np.array(TORQUES), atol=0.01)
+    t = 0.2 + RAMP + DT
+    assert np.allclose(runner.step(t, angle, np.zeros(9)), TORQUES)
+
+
 def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
     recipe = _recipe(tmp_path, hand, TURN_RATE)
     rng = np.random.default_rng(1)
@@ -443,6 +463,8 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
             "phases[0].brake.joint_rate",
             True,
         ),
+        ({"torque_margin": 0.8}, "phases[0].torque_margin", False),
+        ({"torque_margin": 2.5}, "phases[0].torque_margin", False),
     ],
 )
 def test_bad_feedback_is_refused_naming_the_key(

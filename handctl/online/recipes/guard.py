@@ -14,10 +14,26 @@ A spring alone chatters: a joint that runs into its band at speed (a distal join
 a slipping object) is caught by the spring within a few ticks and bounced back, and the torque
 it asks for swings by a tenth of a N·m in a few hundredths of a second. The guard therefore
 also damps a joint heading for a limit: from a band before the spring's band on, fading in
-over that band, a damping of ``gain * damping_s`` opposes the velocity towards the limit (the
-velocity filtered from the angles, ``velocity.py``), so the joint reaches the spring slowly.
-It opposes only that motion, so a joint leaving its limit is never held back, and it is small
-against the tendon drive's lag (``GUARD_DAMPING_S``), so the damper itself stays stable.
+over that band, a damping of ``gain * damping_s`` opposes the velocity towards the limit, so
+the joint reaches the spring slowly. It opposes only that motion, so a joint leaving its
+limit is never held back.
+
+Two things decide whether that damper acts in time, and both are the drive's lag (5 ms,
+×0.5..×2 over the model set) against the joint's own damping (×0.3..×3). A spring acting
+through a lag ``tau`` is a negative damping of about ``gain * tau``; the guard's spring
+(``tau_max / band``, 2 N·m/rad on a distal joint) through 5..10 ms is 0.01..0.02 N·m·s/rad,
+as much as a nominal joint's own damping and several times a lightly damped one's. The
+damper that makes up for it must not add much lag of its own, so it acts on a velocity of
+its own: the slope of a line through the last 8 angles (``velocity.FittedVelocity``), which
+lags by 3.5 ms where the recipe's low-pass lags by 10 ms, and moves by a sixth as much when
+an encoder count comes in. And a finger flung at a limit on a lightly damped hand (the lift
+on a hand whose damping is ×0.3 moves the distal joints at 20 rad/s, three times the
+nominal's) crosses both bands in less than the lag: the damper therefore judges where the
+joint will be ``lookahead`` later at its present speed (``GUARD_LOOKAHEAD_S``), so it meets
+a fast joint early enough to brake it before the spring's band, and a slow one as before.
+A stronger damper (0.016 s) caught the light hands as well but made the nominal run's
+torques chatter (0.0068 N·m a tick at p99), so its strength is the one the nominal was
+tuned with.
 
 The guard is a pure function of the measured angles (and the velocities filtered from them)
 and the phase's torque, so a replay of the logged feedback computes the very same torques.
@@ -34,6 +50,14 @@ from handctl.config import HandConfig
 #: s, the damper against the spring (damping = gain * this): over a nominal run, half of it
 #: leaves the joints' bounces off their bands, twice as much chatters through the drive's lag
 GUARD_DAMPING_S = 0.008
+#: s, how far ahead the damper looks: it meets a joint where the joint will be this much later
+#: at its present speed. The drive's and the velocity's lag (up to 14 ms) plus the time the
+#: damper needs to slow the joint, so that a joint flung at its limit on a lightly damped
+#: hand is braked before the spring's band, not inside it
+GUARD_LOOKAHEAD_S = 0.03
+#: ticks, the line the guard's velocities are the slope of (``velocity.FittedVelocity``): it
+#: lags by 3.5 ms, not the recipe's low-pass's 10, and an encoder count moves it by 0.05 rad/s
+GUARD_VELOCITY_WINDOW = 8
 
 
 @dataclass(frozen=True)
@@ -46,13 +70,24 @@ class LimitGuard:
     gain: tuple[float, ...]  # N·m/rad, tau_max / band
     tau_max: tuple[float, ...]  # N·m
     damping: tuple[float, ...] = ()  # N·m·s/rad, at full strength inside the band; (): none
+    lookahead: float = 0.0  # s, the damper acts on the angle this far ahead at the velocity
+    velocity_window: int = GUARD_VELOCITY_WINDOW  # ticks, of the velocity it damps
 
     @classmethod
     def for_hand(
-        cls, hand: HandConfig, band: float, damping_s: float = GUARD_DAMPING_S
+        cls,
+        hand: HandConfig,
+        band: float,
+        damping_s: float | None = None,
+        lookahead_s: float | None = None,
     ) -> LimitGuard:
         """The guard with ``band`` (rad) for every joint of ``hand``, from its soft limits,
-        with a damping of ``damping_s`` (s) times the spring's gain."""
+        with a damping of ``damping_s`` (s; None: ``GUARD_DAMPING_S``) times the spring's gain,
+        looking ``lookahead_s`` (s; None: ``GUARD_LOOKAHEAD_S``) ahead."""
+        if damping_s is None:
+            damping_s = GUARD_DAMPING_S
+        if lookahead_s is None:
+            lookahead_s = GUARD_LOOKAHEAD_S
         joints = hand.joints
         return cls(
             band,
@@ -61,6 +96,8 @@ class LimitGuard:
             tuple(j.tau_max / band for j in joints),
             tuple(j.tau_max for j in joints),
             tuple(j.tau_max / band * damping_s for j in joints),
+            lookahead_s,
+            int(GUARD_VELOCITY_WINDOW),
         )
 
     def apply(
@@ -89,11 +126,14 @@ class LimitGuard:
                 assert velocity is not None
                 v = float(velocity[j])
                 # the damper meets a joint heading for a limit a band before the spring does,
-                # fading in over that band, and opposes only the motion towards the limit
-                if v > 0.0 and q > hi - band:
-                    push -= self.damping[j] * min(1.0, (q - hi + band) / band) * v
-                elif v < 0.0 and q < lo + band:
-                    push -= self.damping[j] * min(1.0, (lo + band - q) / band) * v
+                # fading in over that band, and opposes only the motion towards the limit;
+                # it judges where the joint will be ``lookahead`` later, so a fast joint is
+                # met early enough for the brake to act through the lag
+                ahead = q + v * self.lookahead
+                if v > 0.0 and ahead > hi - band:
+                    push -= self.damping[j] * min(1.0, (ahead - hi + band) / band) * v
+                elif v < 0.0 and ahead < lo + band:
+                    push -= self.damping[j] * min(1.0, (lo + band - ahead) / band) * v
             if push == 0.0:
                 continue
             limit = self.tau_max[j]

@@ -49,6 +49,8 @@ MAX_TURN_RATE_DEG_S = 720.0
 #: delay the damper by about 15 ms, and a damper much stiffer than the joints' inertia over
 #: that delay oscillates instead of damping
 MAX_JOINT_DAMPING = 0.2
+#: the largest ``torque_margin``: twice the planned torque is already a different plan
+MAX_TORQUE_MARGIN = 2.0
 #: the most a turn-rate loop may scale its phase's torque (tau_max still bounds it)
 MAX_SCALE = 5.0
 #: the furthest a paced ramp may go along its segment (1: the phase's torque; tau_max and
@@ -245,6 +247,7 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
     paced = parse_paced_ramp(doc.mapping("paced_ramp")) if doc.has("paced_ramp") else None
     if paced is not None and ramp <= 0:
         doc.fail("ramp_s", "a ramp longer than 0 s (the paced_ramp moves at its speed)", ramp)
+    margin = parse_torque_margin(doc)
     provenance = doc.raw("provenance", {})
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
@@ -263,7 +266,14 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
         joint_damping,
         brake,
         paced,
+        margin,
     )
+
+
+def parse_torque_margin(doc: Doc) -> float:
+    """``torque_margin`` of a recipe's or a template's phase: the factor (1 when it is not set)
+    the runner applies to the phase's torques."""
+    return doc.number("torque_margin", default=1.0, min=1.0, max=MAX_TORQUE_MARGIN)
 
 
 def parse_joint_damping(doc: Doc) -> float:

@@ -55,7 +55,7 @@ from handctl.online.recipes.schema import (
     SignalKind,
     TimeoutAction,
 )
-from handctl.online.recipes.velocity import JointVelocity
+from handctl.online.recipes.velocity import FittedVelocity, JointVelocity
 
 #: s, the low-pass of the estimated centre-line rate: the estimate moves in steps of the
 #: encoder's resolution, and the rate loop must not chase them
@@ -101,6 +101,10 @@ class RecipeRunner:
         self._guarded = np.zeros(n_joints)
         # from the angles it is fed, so a re-run of the logged feedback gets the same values
         self.velocity = JointVelocity(n_joints)
+        # the guard's own, less smoothed: its damper must act within the drive's lag
+        self._guard_velocity = FittedVelocity(
+            n_joints, self._guard.velocity_window if self._guard is not None else 2
+        )
         self._fraction = 1.0  # of the current ramp
         # the turn-rate loop of the current phase: scale, its integral part, the rate
         self.scale = 1.0
@@ -154,7 +158,7 @@ class RecipeRunner:
         if index < len(self.recipe.phases):
             phase = self.recipe.phases[index]
             self.index = index
-            self._target = np.array(phase.torques)
+            self._target = np.array(phase.torques) * phase.torque_margin
             self._ramp_s = phase.ramp_s
             self._damping_to = phase.joint_damping
             self.records.append(PhaseRecord(phase.name, t))
@@ -185,6 +189,7 @@ class RecipeRunner:
             self._desired[:] = 0.0
             return
         self.velocity.update(t, angle)
+        self._guard_velocity.update(t, angle)
         elapsed = t - self.phase_start
         if self.status is RunStatus.RUNNING:
             phase = self.recipe.phases[self.index]
@@ -273,7 +278,7 @@ class RecipeRunner:
             out = self._damped
         if self._guard is None:
             return out
-        return self._guard.apply(angle, out, self._guarded, self.velocity.value)
+        return self._guard.apply(angle, out, self._guarded, self._guard_velocity.value)
 
     def _follow_turn(self, t: float, estimates: Sequence[float] | None) -> bool:
         """One step of the estimated centre-line rate (``turn_rate``, rad/s); False when there

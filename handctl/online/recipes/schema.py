@@ -178,6 +178,9 @@ class Phase:
     joint_damping: float = 0.0
     brake: TurnBrake | None = None
     paced: PacedRamp | None = None
+    #: the runner applies ``torques`` times this (>= 1): headroom in the lift and the hold
+    #: for objects heavier than the plan's models (docs/experiment.md); 1: the plan's own
+    torque_margin: float = 1.0
 
 
 @dataclass(frozen=True)

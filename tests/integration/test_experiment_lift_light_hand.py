@@ -1,0 +1,83 @@
+"""Everything before the manipulation, on the hand the recipe is least sure of: joint damping
+and tendon friction at the bottom of the model set (×0.3), in lockstep. There the lift moves
+the distal joints three times as fast as on the nominal hand and the limit guard's spring,
+acting through the drive's lag, has little of the joint's own damping to lean on; a finger
+flung past its soft limit stopped the run in the lift (``ANGLE_LIMIT``). The run is stopped at
+the end of the last phase before the first manipulation phase (``--max-seconds``): up to
+there it must lift both cylinders, hold them caged, drop nothing and stop on nothing."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from ..conftest import HAND_YAML, ROOT
+
+RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+#: the simulated joints' factors: the corner of the model set (``planning/models.py``)
+LIGHT = {"damping": 0.3, "frictionloss": 0.3}
+#: s, the experiment's own hold before the first manipulation (``experiment/merit.py``)
+HELD_S = 2.0
+
+
+def _light_hand(tmp_path: Path) -> Path:
+    data = yaml.safe_load(HAND_YAML.read_text())
+    for key, factor in LIGHT.items():
+        data["sim"]["joints"][key] = data["sim"]["joints"][key] * factor
+    path = tmp_path / "light_hand.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _before_manipulation() -> tuple[float, str]:
+    """s from the start to the end of the last phase before a manipulation phase, and that
+    phase's name: these phases end on their timeouts (none has an exit), so their ``max_s``
+    add up."""
+    phases = yaml.safe_load(RECIPE.read_text())["phases"]
+    before = []
+    for phase in phases:
+        if phase["name"].startswith("manipulate"):
+            break
+        assert not phase.get("exit"), phase["name"]
+        before.append(phase)
+    assert before, "the recipe has no phase before its manipulation"
+    return sum(p["max_s"] for p in before), before[-1]["name"]
+
+
+def test_a_lightly_damped_hand_lifts_and_holds_the_pair(tmp_path: Path) -> None:
+    out = tmp_path / "summary.json"
+    until, last = _before_manipulation()
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            str(RECIPE),
+            "--hand",
+            str(_light_hand(tmp_path)),
+            "--max-seconds",
+            f"{until:g}",
+            "--summary-json",
+            str(out),
+        ],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=600,
+        check=False,
+    )
+    summary = json.loads(out.read_text())
+    ex = summary["experiment"]
+    # stopped by the time budget at the end of the hold, not by the supervisor
+    assert summary["outcome"] == "time_budget", (summary["outcome"], summary["message"])
+    assert not summary["faults"], summary["faults"]
+    assert done.returncode == 0, done.stderr
+    assert summary["phases"][-1]["name"] == last, summary["phases"]
+    assert ex["lifted"] and not ex["dropped"], ex
+    assert ex["held_s"] >= HELD_S, ex
