@@ -19,7 +19,7 @@ import pytest
 
 from handctl.config import load_hand
 
-from ..conftest import HAND_YAML, ROOT
+from ..conftest import HAND_YAML, ROOT, DefaultRun
 from .rig import HOLD_LONG
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
@@ -56,11 +56,10 @@ def handctl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str
     )
 
 
-def test_main_job_completes_with_a_summary(tmp_path: Path) -> None:
-    out = tmp_path / "out.json"
-    done = handctl("run", "recipe", RECIPE, "--summary-json", str(out))
+def test_main_job_completes_with_a_summary(default_run: DefaultRun) -> None:
+    """The README's main job (the session's one run of it, with a log and a plot)."""
+    done, summary = default_run.done, default_run.summary
     assert done.returncode == 0, done.stderr
-    summary = json.loads(out.read_text())
     assert summary["completed"] is True
     assert summary["mode"] == "lockstep"
     import yaml
