@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -85,11 +84,7 @@ def default_run(tmp_path_factory: pytest.TempPathFactory) -> DefaultRun:
             "--plot",
             str(plot),
         ],
-        cwd=ROOT,
-        env={
-            **os.environ,
-            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
-        },
+        cwd=ROOT,  # python -m puts the repository first on the path, as for a user there
         text=True,
         capture_output=True,
         timeout=900,
