@@ -379,6 +379,23 @@ def test_a_signal_during_start_up_is_an_interrupt_not_a_safety_stop(
         host.kill()
 
 
+#: Two timed phases at zero torque (the default hand's nine joints): the nodes enabled and
+#: every frame flowing, nothing moving.
+STILL = """
+recipe: still
+phases:
+  - name: first
+    torques: [0, 0, 0, 0, 0, 0, 0, 0, 0]
+    ramp_s: 0.1
+    max_s: 0.3
+    on_timeout: next
+  - name: second
+    torques: [0, 0, 0, 0, 0, 0, 0, 0, 0]
+    max_s: 0.6
+    on_timeout: next
+"""
+
+
 def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -> None:
     """The second host counts its frames from 0 again, the nodes from where the first left
     them: each side takes the other's counters afresh (PROTOCOL.md, "A new host").
@@ -386,18 +403,18 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
     Real time on a shared machine: a run stopped by the load (a starved loop or hand) is
     tried again; a start-up that never enables the nodes (the bug) is not load.
 
-    The hand hangs in zero gravity: between hosts it is limp, and a limp finger of the
-    default hand sags under gravity past its soft limit (f1_j3 below -0.9 rad after some
-    45 s), which the next host rightly stops on (ANGLE_LIMIT) however often it is tried. How
-    long the hand hangs there is how long the machine's load makes a host's start-up take
-    (15-30 s each beside a CPU hog), so with gravity this test failed under load; the
-    counters it is about do not depend on gravity."""
+    The hand holds still, so that where it is when a host comes does not depend on how long
+    the hosts before it took: in zero gravity, at zero torque. Between hosts the hand is limp,
+    and a limp finger of the default hand sags under gravity past its soft limit (f1_j3 below
+    -0.9 rad after some 45 s), which the next host rightly stops on (ANGLE_LIMIT) however
+    often it is tried; in zero gravity a closing grasp left curled by one host is pushed past
+    the other limit (+2.3 rad) by the next. How long the hand waits is how long the machine's
+    load makes a host's start-up take (15-30 s each beside a CPU hog), so either way the
+    test failed under load. The counters it is about flow with any torque, zero included."""
     import yaml
 
-    from .rig import SHORT
-
-    recipe = tmp_path / "short.yaml"
-    recipe.write_text(SHORT)
+    recipe = tmp_path / "still.yaml"
+    recipe.write_text(STILL)
     weightless = yaml.safe_load(HAND_YAML.read_text())
     weightless["sim"]["gravity"] = 0.0
     hand = tmp_path / "hand.yaml"
