@@ -35,8 +35,12 @@ def give_up(what: str, stopped: list[str]) -> NoReturn:
 
 #: The stops a starved control loop or a starved simulated hand cause (docs/timing.md): on a
 #: loaded machine they are the specified behaviour, whatever a test is about. Any other stop
-#: is not the load's doing and fails the test at once.
-LOAD_STOPS = ("LOOP_OVERRUN", "FEEDBACK_TIMEOUT")
+#: is not the load's doing and fails the test at once. RX_BACKLOG is one of them on the unix
+#: bus: a simulated hand kept from its timer catches up to MAX_CATCH_UP ticks at once and
+#: sends all their frames together, more than a real bus carries between two ticks, and the
+#: host rightly stops on the flood (seen at start-up beside a full test suite: 54 frames
+#: drained and more waiting, the host's own timing PASS).
+LOAD_STOPS = ("LOOP_OVERRUN", "FEEDBACK_TIMEOUT", "RX_BACKLOG")
 
 
 def stopped_by_load(stderr: str) -> bool:
