@@ -1,10 +1,16 @@
-"""Shared fixtures: the default hand, the protocol, and private virtual-bus channels."""
+"""Shared fixtures: the default hand, the protocol, private virtual-bus channels, and one
+run of the default recipe that many tests read."""
 
 from __future__ import annotations
 
 import itertools
+import json
+import subprocess
+import sys
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -14,6 +20,8 @@ from handctl.protocol import Protocol, load_protocol
 
 ROOT = Path(__file__).resolve().parent.parent
 HAND_YAML = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
+#: The main job's recipe, as the README names it (relative to the repository root)
+DEFAULT_RECIPE = "config/recipes/swap_two_cylinders.yaml"
 _channels = itertools.count()
 
 
@@ -41,3 +49,46 @@ def bus_pair(hand: HandConfig, channel: str) -> Iterator[tuple[HandBus, HandBus]
     yield host, peer
     host.close()
     peer.close()
+
+
+@dataclass(frozen=True)
+class DefaultRun:
+    """The README's main job, run once as a user runs it, with its log and plot: ``handctl run
+    recipe config/recipes/swap_two_cylinders.yaml --summary-json F --log F --plot F`` from the
+    repository root, the simulated hand in lockstep (deterministic, so any number of tests can
+    read one run). A run of the default recipe costs some 12 s of CPU; the tests that judge
+    the summary, the experiment, the plot and the replay of the same run share this one."""
+
+    done: subprocess.CompletedProcess[str]
+    summary: dict[str, Any]
+    log: Path
+    plot: Path
+
+
+@pytest.fixture(scope="session")
+def default_run(tmp_path_factory: pytest.TempPathFactory) -> DefaultRun:
+    directory = tmp_path_factory.mktemp("default-run")
+    out, log, plot = directory / "out.json", directory / "run.mcap", directory / "run.png"
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "handctl",
+            "run",
+            "recipe",
+            DEFAULT_RECIPE,
+            "--summary-json",
+            str(out),
+            "--log",
+            str(log),
+            "--plot",
+            str(plot),
+        ],
+        cwd=ROOT,  # python -m puts the repository first on the path, as for a user there
+        text=True,
+        capture_output=True,
+        timeout=900,
+        check=False,
+    )
+    assert out.exists(), done.stderr
+    return DefaultRun(done, json.loads(out.read_text()), log, plot)

@@ -6,19 +6,16 @@ follows ground truth."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from handctl.config import HandConfig
-from handctl.online.loop import TickRecord
 from handctl.online.recipes.loader import load_recipe
-from handctl.session import RunRequest, run_recipe
+from handctl.recording import channels as ch
 
-from ..conftest import ROOT
+from ..conftest import ROOT, DefaultRun
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 #: deg: the issue's target for the whole manipulation. The compiled recipe turns the pair 180°
@@ -46,38 +43,28 @@ SWAP_DEG = 170.0
 MAX_TORQUE_STEP_P99 = 0.005
 
 
-class AppliedTorques:
-    """A record sink that keeps the applied torques of every tick."""
-
-    def __init__(self) -> None:
-        self.rows: list[np.ndarray] = []
-
-    def begin_tick(self, tick: object) -> None:
-        pass
-
-    def push(self, record: TickRecord) -> None:
-        self.rows.append(np.array(record.applied, dtype=float))
-
-    def note(self, kind: str, detail: str, tick: int) -> None:
-        pass
+@pytest.fixture(scope="module")
+def applied(default_run: DefaultRun) -> np.ndarray:
+    """The applied torques of every tick of the session's run, read back from its log with
+    the mcap library (one row per tick, in tick order)."""
+    rows: dict[int, list[float]] = {}
+    with default_run.log.open("rb") as handle:
+        for _, _, message in make_reader(handle).iter_messages(topics=[ch.TORQUE]):
+            record = json.loads(message.data)
+            rows[record["tick"]] = record["applied_nm"]
+    return np.array([rows[k] for k in sorted(rows)], dtype=float)
 
 
 @pytest.fixture(scope="module")
-def applied() -> AppliedTorques:
-    return AppliedTorques()
+def summary(default_run: DefaultRun) -> dict[str, object]:
+    """The session's lockstep run of this recipe (``handctl run recipe``'s summary)."""
+    assert default_run.done.returncode == 0, default_run.done.stderr
+    return default_run.summary
 
 
-@pytest.fixture(scope="module")
-def summary(hand: HandConfig, applied: AppliedTorques) -> dict[str, object]:
-    recipe = load_recipe(RECIPE, hand)
-    report = run_recipe(RunRequest(hand=hand, recipe=recipe), recorder=applied)
-    return report.summary
-
-
-def test_no_joint_chatters(
-    summary: dict[str, object], applied: AppliedTorques, hand: HandConfig
-) -> None:
-    steps = np.abs(np.diff(np.array(applied.rows), axis=0))
+def test_no_joint_chatters(applied: np.ndarray, hand: HandConfig) -> None:
+    assert len(applied) > 5_000
+    steps = np.abs(np.diff(applied, axis=0))
     p99 = np.percentile(steps, 99, axis=0)
     worst = int(np.argmax(p99))
     assert p99[worst] <= MAX_TORQUE_STEP_P99, (
@@ -150,28 +137,10 @@ def test_the_compiled_recipe_is_planned_for_this_hand(hand: HandConfig) -> None:
     assert all(c.text.startswith("estimate.cyl1_cyl2_line_turn") for p in turns for c in p.exits)
 
 
-def test_run_recipe_plot_writes_the_overview(tmp_path: Path) -> None:
-    plot, out = tmp_path / "run.png", tmp_path / "out.json"
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "handctl",
-            "run",
-            "recipe",
-            str(RECIPE),
-            "--summary-json",
-            str(out),
-            "--plot",
-            str(plot),
-        ],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=300,
-        check=False,
-    )
+def test_run_recipe_plot_writes_the_overview(default_run: DefaultRun) -> None:
+    """``--plot`` on the session's run."""
+    done = default_run.done
     assert done.returncode == 0, done.stderr
-    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "experiment" in json.loads(out.read_text())
+    assert default_run.plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "experiment" in default_run.summary
     assert "experiment: lifted True" in done.stdout

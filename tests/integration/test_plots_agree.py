@@ -12,9 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from ..conftest import HAND_YAML, ROOT
-
-RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+from ..conftest import ROOT, DefaultRun
 
 
 def handctl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -30,31 +28,13 @@ def handctl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-def test_run_and_replay_agree(tmp_path: Path) -> None:
-    log, run_json, replay_json = (
-        tmp_path / "run.mcap",
-        tmp_path / "run.json",
-        tmp_path / "replay.json",
-    )
-    run = handctl(
-        "run",
-        "recipe",
-        str(RECIPE),
-        "--hand",
-        str(HAND_YAML),
-        "--lockstep",
-        "--log",
-        str(log),
-        "--summary-json",
-        str(run_json),
-        "--plot",
-        str(tmp_path / "run.png"),
-        cwd=tmp_path,
-    )
-    assert run.returncode == 0, run.stderr
+def test_run_and_replay_agree(default_run: DefaultRun, tmp_path: Path) -> None:
+    """The session's run of the default recipe (its summary, log and plot), replayed here."""
+    replay_json = tmp_path / "replay.json"
+    assert default_run.done.returncode == 0, default_run.done.stderr
     rep = handctl(
         "replay",
-        str(log),
+        str(default_run.log),
         "--json",
         str(replay_json),
         "--plot",
@@ -62,7 +42,7 @@ def test_run_and_replay_agree(tmp_path: Path) -> None:
         cwd=tmp_path,
     )
     assert rep.returncode == 0, rep.stderr
-    ran = json.loads(run_json.read_text())
+    ran = default_run.summary
     replayed = json.loads(replay_json.read_text())["summary"]
     # phase times: the same clock, to the tick
     run_phases = [(p["name"], p["start_s"]) for p in ran["phases"]]
@@ -82,5 +62,5 @@ def test_run_and_replay_agree(tmp_path: Path) -> None:
     # heights above rest, as the run measures lifting: 0 where they rested at the start
     for pose in replayed["objects"].values():
         assert pose["start"]["height_above_rest_m"] == pytest.approx(0.0, abs=2e-3)
-    assert (tmp_path / "run.png").stat().st_size > 10_000
+    assert default_run.plot.stat().st_size > 10_000
     assert (tmp_path / "replay.png").stat().st_size > 10_000
