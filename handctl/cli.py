@@ -1785,10 +1785,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         if threading.current_thread() is not threading.main_thread():  # signals are not ours
             return _run_args(argv)
         before = signal.signal(signal.SIGTERM, _interrupt)
+        # SIGINT too, explicitly: a process started with it ignored (a background job of a
+        # non-interactive shell, a supervisor's child) inherits SIG_IGN, and Python then
+        # leaves it so; a plan or a check would go on through every Ctrl-C and kill -INT.
+        before_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         try:
             return _run_args(argv)
         finally:
             signal.signal(signal.SIGTERM, before)
+            signal.signal(signal.SIGINT, before_int)
 
 
 def _run_args(argv: Sequence[str] | None) -> int:

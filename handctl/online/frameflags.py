@@ -12,3 +12,16 @@ BRS = 2  # CAN-FD bit-rate switch
 ERROR = 4  # an error frame: the id is the error class (linux/can/error.h)
 ESI = 8  # CAN-FD error state indicator
 EXTENDED = 16  # a 29-bit identifier
+
+
+def message_fields(flags: int) -> dict[str, bool]:
+    """The flag bits as python-can ``Message`` keyword arguments: a frame that left handctl as
+    bits and meets a python-can program (a logger, another tool on the channel) becomes a
+    ``Message`` in one place, whichever transport carried it."""
+    return {
+        "is_extended_id": bool(flags & EXTENDED),
+        "is_fd": bool(flags & FD),
+        "bitrate_switch": bool(flags & BRS),
+        "is_error_frame": bool(flags & ERROR),
+        "error_state_indicator": bool(flags & ESI),
+    }

@@ -289,11 +289,7 @@ class UnixDatagramBus(can.BusABC):
         msg = can.Message(
             timestamp=stamp,
             arbitration_id=frame_id,
-            is_extended_id=bool(flags & ff.EXTENDED),
-            is_fd=bool(flags & ff.FD),
-            bitrate_switch=bool(flags & ff.BRS),
-            is_error_frame=bool(flags & ff.ERROR),
-            error_state_indicator=bool(flags & ff.ESI),
+            **ff.message_fields(flags),
             data=data,
             channel=self.channel_info,
             is_rx=True,

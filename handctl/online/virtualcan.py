@@ -65,11 +65,7 @@ class ArrivalStampedVirtualBus(_virtual.VirtualBus):
                 item = can.Message(
                     timestamp=time.time(),
                     arbitration_id=arbitration_id,
-                    is_extended_id=bool(flags & ff.EXTENDED),
-                    is_fd=bool(flags & ff.FD),
-                    bitrate_switch=bool(flags & ff.BRS),
-                    is_error_frame=bool(flags & ff.ERROR),
-                    error_state_indicator=bool(flags & ff.ESI),
+                    **ff.message_fields(flags),
                     data=data,
                     channel=self.channel_id,
                     is_rx=bus_queue is not self.queue,
@@ -105,11 +101,7 @@ class ArrivalStampedVirtualBus(_virtual.VirtualBus):
             arbitration_id, flags, data = msg
             msg = can.Message(
                 arbitration_id=arbitration_id,
-                is_extended_id=bool(flags & ff.EXTENDED),
-                is_fd=bool(flags & ff.FD),
-                bitrate_switch=bool(flags & ff.BRS),
-                is_error_frame=bool(flags & ff.ERROR),
-                error_state_indicator=bool(flags & ff.ESI),
+                **ff.message_fields(flags),
                 data=data,
                 channel=self.channel_id,
                 is_rx=True,

@@ -109,11 +109,21 @@ def _kept_models() -> int:
     return len(phase_task._kept)
 
 
+#: Starts the rest of its command line with SIGINT ignored, as a background job of a script
+#: is started: the ignored disposition survives exec, and Ctrl-C must still stop handctl.
+SIGINT_IGNORED = [
+    sys.executable,
+    "-c",
+    "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+    "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])",
+]
+
+
 def test_ctrl_c_stops_the_plan_and_all_its_workers(tmp_path: Path) -> None:
     out = tmp_path / "r.yaml"
     proc = subprocess.Popen(
         [
-            sys.executable,
+            *SIGINT_IGNORED,
             "-m",
             "handctl",
             "plan",

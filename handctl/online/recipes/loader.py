@@ -300,6 +300,21 @@ def parse_brake(doc: Doc) -> TurnBrake:
     return TurnBrake(math.radians(rate), damping, joint_rate)
 
 
+def _signed_rate(doc: Doc, sign: float | None) -> float:
+    """A feedback's ``rate_deg_s`` (deg/s): a recipe writes it signed as the wanted turn; a
+    template writes its magnitude, and the turn it belongs to gives the ``sign``."""
+    if sign is None:
+        rate = doc.number(
+            "rate_deg_s", min=-MAX_TURN_RATE_DEG_S, max=MAX_TURN_RATE_DEG_S, unit="deg/s"
+        )
+        if rate == 0:
+            doc.fail("rate_deg_s", "a non-zero rate, signed as the wanted turn", rate)
+        return rate
+    return sign * doc.number(
+        "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
+    )
+
+
 def parse_paced_ramp(doc: Doc, sign: float | None = None) -> PacedRamp:
     """``paced_ramp`` of a phase (``schema.PacedRamp``): ``rate_deg_s`` (signed, the wanted
     direction; a template gives its magnitude and the turn's sign as ``sign``), ``reach``
@@ -307,16 +322,7 @@ def parse_paced_ramp(doc: Doc, sign: float | None = None) -> PacedRamp:
     ramp's speed it may go back at, 2 by default), and ``joint_rate`` (rad/s, the fastest a
     joint may move before the torque goes back as well; 0, the default: the pair's rate
     alone)."""
-    if sign is None:
-        rate = doc.number(
-            "rate_deg_s", min=-MAX_TURN_RATE_DEG_S, max=MAX_TURN_RATE_DEG_S, unit="deg/s"
-        )
-        if rate == 0:
-            doc.fail("rate_deg_s", "a non-zero rate, signed as the wanted turn", rate)
-    else:
-        rate = sign * doc.number(
-            "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
-        )
+    rate = _signed_rate(doc, sign)
     reach = doc.number("reach", default=1.0, min=1.0, max=MAX_REACH)
     back = doc.number("back", default=2.0, min=0.0, max=MAX_BACK, min_exclusive=True)
     joint_rate = doc.number("joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
@@ -328,16 +334,7 @@ def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:
     """``turn_rate`` of a phase (``schema.TurnRate``): ``rate_deg_s`` (signed, the wanted
     direction; a template gives its magnitude and the turn's sign as ``sign``), ``scale``
     ``[min, max]``, ``gain`` and ``integral_per_s``."""
-    if sign is None:
-        rate = doc.number(
-            "rate_deg_s", min=-MAX_TURN_RATE_DEG_S, max=MAX_TURN_RATE_DEG_S, unit="deg/s"
-        )
-        if rate == 0:
-            doc.fail("rate_deg_s", "a non-zero rate, signed as the wanted turn", rate)
-    else:
-        rate = sign * doc.number(
-            "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
-        )
+    rate = _signed_rate(doc, sign)
     scale = doc.numbers("scale", length=2, min=0.0, max=MAX_SCALE)
     if not 0 < scale[0] <= 1.0 <= scale[1]:
         doc.fail(
