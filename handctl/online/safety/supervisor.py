@@ -115,7 +115,7 @@ class Supervisor:
         self._ramp_ticks = max(1, math.floor(RAMP_BOUND_S / self.dt))
         self._ramp_k = 0
         self._enabling_since = 0
-        self._scratch = np.zeros(self.n)
+        self._zero = np.zeros(self.n)  # the STOPPING state's target, never written
 
     # -- events ---------------------------------------------------------------------------
     def fire(self, event: Event, tick: int) -> State:
@@ -240,8 +240,7 @@ class Supervisor:
                 target, self.applied, self.limits, self.dt, self.applied
             )
         elif state is State.STOPPING:
-            limit_torque(np.zeros(self.n), self.applied, self.limits, self.dt, self._scratch)
-            self.applied[:] = self._scratch
+            limit_torque(self._zero, self.applied, self.limits, self.dt, self.applied)
             if not self.applied.any():
                 self.fire(Event.AT_ZERO, tick)
         elif state is State.FAULT_RAMP:
