@@ -101,9 +101,12 @@ class RecipeRunner:
         self._guarded = np.zeros(n_joints)
         # from the angles it is fed, so a re-run of the logged feedback gets the same values
         self.velocity = JointVelocity(n_joints)
-        # the guard's own, less smoothed: its damper must act within the drive's lag
-        self._guard_velocity = FittedVelocity(
-            n_joints, self._guard.velocity_window if self._guard is not None else 2
+        # the guard's own, less smoothed: its damper must act within the drive's lag; none
+        # (and no work a tick) for a recipe without a guard
+        self._guard_velocity = (
+            FittedVelocity(n_joints, self._guard.velocity_window)
+            if self._guard is not None
+            else None
         )
         self._fraction = 1.0  # of the current ramp
         # the turn-rate loop of the current phase: scale, its integral part, the rate
@@ -189,7 +192,8 @@ class RecipeRunner:
             self._desired[:] = 0.0
             return
         self.velocity.update(t, angle)
-        self._guard_velocity.update(t, angle)
+        if self._guard_velocity is not None:
+            self._guard_velocity.update(t, angle)
         elapsed = t - self.phase_start
         if self.status is RunStatus.RUNNING:
             phase = self.recipe.phases[self.index]
@@ -241,7 +245,7 @@ class RecipeRunner:
             brake = phase.brake
             over = (abs(self.turn_rate) - brake.rate) / brake.rate
             if brake.joint_rate > 0.0:
-                fastest = float(np.max(np.abs(self.velocity.value)))
+                fastest = self._fastest_joint()
                 over = max(over, (fastest - brake.joint_rate) / brake.joint_rate)
             self.damping += self._fraction * brake.damping * min(1.0, max(0.0, over))
         if phase is not None and (
@@ -276,7 +280,7 @@ class RecipeRunner:
             np.multiply(self.velocity.value, -self.damping, out=self._damped)
             self._damped += out
             out = self._damped
-        if self._guard is None:
+        if self._guard is None or self._guard_velocity is None:
             return out
         return self._guard.apply(angle, out, self._guarded, self._guard_velocity.value)
 
@@ -297,6 +301,11 @@ class RecipeRunner:
         self._turn_dt = dt
         return True
 
+    def _fastest_joint(self) -> float:
+        """rad/s, the speed of the fastest joint: what a brake's or a paced ramp's
+        ``joint_rate`` is compared with."""
+        return float(np.max(np.abs(self.velocity.value)))
+
     def _pace_step(self, t: float, paced: PacedRamp, ramp_s: float) -> None:
         """Move the paced ramp's fraction along its segment by the relative rate error: at
         the ramp's own speed while the pair turns slower than the wanted rate (or the wrong
@@ -312,7 +321,7 @@ class RecipeRunner:
         along = self.turn_rate if paced.rate > 0 else -self.turn_rate
         error = (wanted - along) / wanted
         if paced.joint_rate > 0.0:
-            fastest = float(np.max(np.abs(self.velocity.value)))
+            fastest = self._fastest_joint()
             error = min(error, (paced.joint_rate - fastest) / paced.joint_rate)
         speed = min(1.0, max(-paced.back, error)) / ramp_s
         self.pace = min(paced.reach, max(0.0, self.pace + speed * dt))
