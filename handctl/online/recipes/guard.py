@@ -78,16 +78,12 @@ class LimitGuard:
         cls,
         hand: HandConfig,
         band: float,
-        damping_s: float | None = None,
-        lookahead_s: float | None = None,
+        damping_s: float = GUARD_DAMPING_S,
+        lookahead_s: float = GUARD_LOOKAHEAD_S,
     ) -> LimitGuard:
         """The guard with ``band`` (rad) for every joint of ``hand``, from its soft limits,
-        with a damping of ``damping_s`` (s; None: ``GUARD_DAMPING_S``) times the spring's gain,
-        looking ``lookahead_s`` (s; None: ``GUARD_LOOKAHEAD_S``) ahead."""
-        if damping_s is None:
-            damping_s = GUARD_DAMPING_S
-        if lookahead_s is None:
-            lookahead_s = GUARD_LOOKAHEAD_S
+        with a damping of ``damping_s`` (s) times the spring's gain, looking ``lookahead_s``
+        (s) ahead."""
         joints = hand.joints
         return cls(
             band,
@@ -97,7 +93,6 @@ class LimitGuard:
             tuple(j.tau_max for j in joints),
             tuple(j.tau_max / band * damping_s for j in joints),
             lookahead_s,
-            int(GUARD_VELOCITY_WINDOW),
         )
 
     def apply(

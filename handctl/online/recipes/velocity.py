@@ -84,12 +84,6 @@ class FittedVelocity:
         self._next = 0
         self._count = 0
 
-    def reset(self) -> None:
-        """Forget the history: the next update starts from rest."""
-        self.value[:] = 0.0
-        self._count = 0
-        self._weights[:] = 0.0
-
     def update(self, t: float, angle: Sequence[float] | FloatArray) -> FloatArray:
         """The estimate after the angles ``angle`` (rad) measured at ``t`` (s)."""
         last = (self._next - 1) % self.window
