@@ -259,12 +259,7 @@ class HandBus:
             if received is None:
                 return None
             msg, stamp = received, self._arrival_ns(received.timestamp, wall_to_clock_ns)
-        flags = (
-            (ff.FD if msg.is_fd else 0)
-            | (ff.ERROR if msg.is_error_frame else 0)
-            | (ff.EXTENDED if msg.is_extended_id else 0)
-        )
-        return stamp, msg.arbitration_id, flags, bytes(msg.data)
+        return stamp, msg.arbitration_id, ff.flags_of(msg), bytes(msg.data)
 
     def _arrival_ns(self, stamp_s: float, wall_to_clock_ns: int) -> int:
         """A wall-clock arrival stamp (s) on this bus's clock; an interface that stamps

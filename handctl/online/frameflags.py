@@ -7,6 +7,8 @@ frames each way. The unix bus carries these very bits on its wire.
 
 from __future__ import annotations
 
+from typing import Protocol
+
 FD = 1  # CAN-FD frame
 BRS = 2  # CAN-FD bit-rate switch
 ERROR = 4  # an error frame: the id is the error class (linux/can/error.h)
@@ -25,3 +27,24 @@ def message_fields(flags: int) -> dict[str, bool]:
         "is_error_frame": bool(flags & ERROR),
         "error_state_indicator": bool(flags & ESI),
     }
+
+
+class FlaggedFrame(Protocol):
+    """What a python-can ``Message`` says of a frame's flags (this module needs no python-can)."""
+
+    is_fd: bool
+    bitrate_switch: bool
+    is_error_frame: bool
+    error_state_indicator: bool
+    is_extended_id: bool
+
+
+def flags_of(msg: FlaggedFrame) -> int:
+    """A python-can ``Message``'s flags as these bits: ``message_fields`` the other way."""
+    return (
+        (FD if msg.is_fd else 0)
+        | (BRS if msg.bitrate_switch else 0)
+        | (ERROR if msg.is_error_frame else 0)
+        | (ESI if msg.error_state_indicator else 0)
+        | (EXTENDED if msg.is_extended_id else 0)
+    )

@@ -327,15 +327,8 @@ _ANCILLARY_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
 
 def _encode(msg: can.Message, sent_s: float) -> bytes:
     """One frame on the wire: ``_WIRE``'s header, then the data."""
-    flags = (
-        (ff.FD if msg.is_fd else 0)
-        | (ff.BRS if msg.bitrate_switch else 0)
-        | (ff.ERROR if msg.is_error_frame else 0)
-        | (ff.ESI if msg.error_state_indicator else 0)
-        | (ff.EXTENDED if msg.is_extended_id else 0)
-    )
     data = bytes(msg.data)
-    return _WIRE.pack(sent_s, msg.arbitration_id, flags, len(data)) + data
+    return _WIRE.pack(sent_s, msg.arbitration_id, ff.flags_of(msg), len(data)) + data
 
 
 def _arrival_s(ancillary: list[tuple[int, int, bytes]]) -> float:
