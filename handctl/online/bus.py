@@ -312,37 +312,22 @@ class HandBus:
         (at most ``MAX_BURST`` frames): ``send`` returns True for it, and it is counted and
         tapped when the burst goes, with the burst's fate.
         """
-        if self._frames is not None:
+        if self._frames is not None or self._bursts is not None:
             self._burst.append((arbitration_id, data))
+            if self._frames is None:  # a BurstTransport takes python-can Messages
+                self._burst_messages.append(self._message(arbitration_id, data))
             if more and len(self._burst) < MAX_BURST:
                 return True
             return self.flush()
-        extended = bool(arbitration_id & EXTENDED_ID_FLAG)
-        if self._bursts is not None or self._send_frame is None:
-            msg = _Message(
-                arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended else arbitration_id,
-                data=data,
-                is_extended_id=extended,
-                is_fd=self.fd,
-                bitrate_switch=self.fd,
-                check=False,
-            )
-            if self._bursts is not None:
-                self._burst.append((arbitration_id, data))
-                self._burst_messages.append(msg)
-                if more and len(self._burst_messages) < MAX_BURST:
-                    return True
-                return self.flush()
         try:
-            if self._send_frame is not None:
-                if extended:
-                    self._send_frame(
-                        arbitration_id & EXTENDED_ID_MASK, self._send_flags | ff.EXTENDED, data
-                    )
-                else:
-                    self._send_frame(arbitration_id, self._send_flags, data)
+            if self._send_frame is None:
+                self._bus.send(self._message(arbitration_id, data), timeout=0)
+            elif arbitration_id & EXTENDED_ID_FLAG:
+                self._send_frame(
+                    arbitration_id & EXTENDED_ID_MASK, self._send_flags | ff.EXTENDED, data
+                )
             else:
-                self._bus.send(msg, timeout=0)
+                self._send_frame(arbitration_id, self._send_flags, data)
         except (can.CanError, OSError, ValueError) as exc:
             self._tx_error(exc)
             self.tx_failed += 1
@@ -353,6 +338,18 @@ class HandBus:
         if self.tap is not None:
             self.tap(arbitration_id, data, TAP_TX)
         return True
+
+    def _message(self, arbitration_id: int, data: bytes) -> can.Message:
+        """The python-can Message of a frame this bus sends (a transport that takes Messages)."""
+        extended = bool(arbitration_id & EXTENDED_ID_FLAG)
+        return _Message(
+            arbitration_id=arbitration_id & EXTENDED_ID_MASK if extended else arbitration_id,
+            data=data,
+            is_extended_id=extended,
+            is_fd=self.fd,
+            bitrate_switch=self.fd,
+            check=False,
+        )
 
     def flush(self) -> bool:
         """End a burst: a batching transport sends the frames ``send(..., more=True)`` held
