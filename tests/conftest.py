@@ -51,6 +51,20 @@ def bus_pair(hand: HandConfig, channel: str) -> Iterator[tuple[HandBus, HandBus]
     peer.close()
 
 
+def handctl(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    """``python -m handctl ARGS`` from the repository root, as a user runs it (``python -m``
+    puts the repository first on the path), its output captured and its exit left to the
+    caller."""
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", *args],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
 @dataclass(frozen=True)
 class DefaultRun:
     """The README's main job, run once as a user runs it, with its log and plot: ``handctl run
@@ -69,26 +83,17 @@ class DefaultRun:
 def default_run(tmp_path_factory: pytest.TempPathFactory) -> DefaultRun:
     directory = tmp_path_factory.mktemp("default-run")
     out, log, plot = directory / "out.json", directory / "run.mcap", directory / "run.png"
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "handctl",
-            "run",
-            "recipe",
-            DEFAULT_RECIPE,
-            "--summary-json",
-            str(out),
-            "--log",
-            str(log),
-            "--plot",
-            str(plot),
-        ],
-        cwd=ROOT,  # python -m puts the repository first on the path, as for a user there
-        text=True,
-        capture_output=True,
+    done = handctl(
+        "run",
+        "recipe",
+        DEFAULT_RECIPE,
+        "--summary-json",
+        str(out),
+        "--log",
+        str(log),
+        "--plot",
+        str(plot),
         timeout=900,
-        check=False,
     )
     assert out.exists(), done.stderr
     return DefaultRun(done, json.loads(out.read_text()), log, plot)

@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 import yaml
 
-from ..conftest import HAND_YAML, ROOT
+from ..conftest import HAND_YAML, ROOT, handctl
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 CORNERS = {
@@ -49,24 +48,14 @@ def _hand(tmp_path: Path, factors: dict[str, float]) -> Path:
 def _run(directory: Path, corner: str) -> tuple[subprocess.CompletedProcess[str], Path]:
     directory.mkdir()
     out = directory / "out.json"
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "handctl",
-            "run",
-            "recipe",
-            str(RECIPE),
-            "--hand",
-            str(_hand(directory, CORNERS[corner])),
-            "--summary-json",
-            str(out),
-        ],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=600,
-        check=False,
+    done = handctl(
+        "run",
+        "recipe",
+        str(RECIPE),
+        "--hand",
+        str(_hand(directory, CORNERS[corner])),
+        "--summary-json",
+        str(out),
     )
     return done, out
 

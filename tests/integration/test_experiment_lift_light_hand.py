@@ -9,13 +9,11 @@ there it must lift both cylinders, hold them caged, drop nothing and stop on not
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import yaml
 
-from ..conftest import HAND_YAML, ROOT
+from ..conftest import HAND_YAML, ROOT, handctl
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 #: the simulated joints' factors: the corner of the model set (``planning/models.py``)
@@ -51,26 +49,16 @@ def _before_manipulation() -> tuple[float, str]:
 def test_a_lightly_damped_hand_lifts_and_holds_the_pair(tmp_path: Path) -> None:
     out = tmp_path / "summary.json"
     until, last = _before_manipulation()
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "handctl",
-            "run",
-            "recipe",
-            str(RECIPE),
-            "--hand",
-            str(_light_hand(tmp_path)),
-            "--max-seconds",
-            f"{until:g}",
-            "--summary-json",
-            str(out),
-        ],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=600,
-        check=False,
+    done = handctl(
+        "run",
+        "recipe",
+        str(RECIPE),
+        "--hand",
+        str(_light_hand(tmp_path)),
+        "--max-seconds",
+        f"{until:g}",
+        "--summary-json",
+        str(out),
     )
     summary = json.loads(out.read_text())
     ex = summary["experiment"]
