@@ -7,6 +7,7 @@ runner is fed, so the same feed gives the same torques."""
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ TURN = FIRST_PAIR_TURN
 def _recipe(
     tmp_path: Path,
     hand: HandConfig,
-    phase: dict[str, object],
+    phase: Mapping[str, object],
     objects: bool = True,
     max_s: float = 10.0,
 ) -> Recipe:
