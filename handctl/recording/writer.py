@@ -58,7 +58,7 @@ from handctl.recording.ring import (
     FRAME_HEAD,
     FRAME_TAIL,
     I_FAULTS,
-    I_FEEDBACK,
+    I_NODES,
     I_PHASE,
     I_STAGES,
     I_STATE,
@@ -307,7 +307,7 @@ class Encoder:
         rings.ctl[TICK_TAIL] = head
         n, m = self.n, self.m
         states, add, derived = self.states, self.add, self.derived
-        node_at = I_FEEDBACK + n
+        node_at, feedback_at = I_NODES, self.layout.i_feedback
         for r, f in zip(ints, floats, strict=True):
             k, scheduled, now, missed, active = r[0], r[1], r[2], r[3], r[4]
             timing: dict[str, Any] = {
@@ -325,7 +325,7 @@ class Encoder:
                 )
             add(ch.TIMING, now, timing)
             if active:
-                feedback = r[I_FEEDBACK:node_at]
+                feedback = r[feedback_at : feedback_at + n]
                 add(
                     ch.JOINT_STATE,
                     now,
