@@ -121,9 +121,8 @@ class LiveServer:
         topic, a message is served when it is ``SAMPLE_PERIOD_NS`` after the last one served
         with the same key (``key``, the frame id, on a frame channel), or at the same log
         time (a tick's messages stay together)."""
-        channel = self.channels.get(topic)
-        if channel is None or not channel.has_sinks():
-            return
+        # The sampling first, a dictionary's work, which turns away nine in ten messages of a
+        # per-tick channel before the call into the SDK that asks for its subscribers.
         sampling = self.sampled.get(topic)
         if sampling is not None:
             slot = (topic, key if sampling == PER_FRAME else 0)
@@ -133,6 +132,9 @@ class LiveServer:
             if len(self._served) >= MAX_SAMPLED_KEYS:  # a bus babbling ever new ids
                 self._served.clear()
             self._served[slot] = log_time
+        channel = self.channels.get(topic)
+        if channel is None or not channel.has_sinks():
+            return
         channel.log(payload, log_time=log_time)
 
     def close(self) -> None:
