@@ -419,7 +419,7 @@ class CallTimes:
             setattr(r, attribute, self.wrap(name, bound))
         bus = runtime.driver.bus
         bus.tap = self.wrap("tx_tap", r._frame)
-        bus.rx_tap = self.wrap("rx_tap", r._rx)
+        bus.rx_tap = self.wrap("rx_tap", r._pending.append)
 
     def per_tick(self, ticks: np.ndarray) -> dict[str, np.ndarray]:
         """Per component, the ns spent in each of ``ticks`` (0 where it was not called)."""

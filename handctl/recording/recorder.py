@@ -297,7 +297,8 @@ class Recorder:
         self._runtime = runtime
         bus = runtime.driver.bus
         bus.tap = self._frame
-        bus.rx_tap = self._rx
+        # The list's own append: a drain's frames are noted without a call of ours.
+        bus.rx_tap = self._pending.append
         bus.event_tap = self._bus_event
         driver = runtime.driver
         self._reject_lists = [n.rejects.counts for n in driver.nodes]
@@ -494,9 +495,6 @@ class Recorder:
     # -- taps: note now, copy in ``push`` -------------------------------------------------
     def _frame(self, arbitration_id: int, data: bytes, direction: int) -> None:
         self._pending.append((arbitration_id, data, direction))
-
-    def _rx(self, frames: list[Frame]) -> None:
-        self._pending.append(frames)
 
     def _flush_frames(self) -> None:
         """Copy the frames noted this tick into the ring, in the order they were on the bus.
