@@ -39,6 +39,23 @@ process, then read back:
   ``rerun_runtime_us_per_tick`` (the rest) and ``rerun_estimator_us_per_tick`` (the object
   estimator alone, fed the logged angles: the part of the rest a recipe with objects needs).
 - ``mb_per_min``: file size per minute of run.
+- ``thread_clock_us``: what one reading of the thread CPU clock costs here and now (a system
+  call; microseconds on a loaded virtual machine). The direct figure holds about two of them
+  (``begin_tick``'s timing, and the runtime's reading that ends its record stage, which the
+  runtime makes only when it records).
+
+``--profile``: instead, where the recording's time goes in the running loop. One pair as
+above, every call of A's recorder (``begin_tick``, the two frame taps, ``push``,
+``_flush_frames``, ``_sweep``, ``poses``) timed with ``perf_counter_ns`` (cheap; the thread
+CPU clock is a system call) and exclusive of the timed calls it makes, summed per control
+tick: ``profile_<call>_us_p50`` / ``_p99`` / ``_mean``, ``profile_recorder_own_*`` their sum,
+``profile_record_stage_*`` the runtime's own record stage, ``profile_refill_and_clock_*`` that
+stage less ``push`` (the refill of the runtime's record and a clock reading), against
+``profile_tick_recorded_*`` and ``profile_tick_unrecorded_*`` (A's and B's whole tick, thread
+CPU time) and ``profile_paired_*``. ``profile_clock_*`` say what a clock reading and a timed
+empty call cost in the same run. ``--writer-paused`` stops A's writer (SIGSTOP, rings large
+enough for the whole run) until the pair has run: the same figures without the writer's
+competition for the CPU.
 
 Each figure is the best of ``--repeat`` runs (the machine is shared). Progress goes to stderr.
 
@@ -683,8 +700,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "frames": round(part_p50["frames"] - part_p50["none"], 2),
             "tick_row": round(loop_p50[best] - part_p50["frames"], 2),
         }
+    clocks = _clock_costs()
     return {
         **({"breakdown_us_p50": breakdown} if breakdown else {}),
+        "thread_clock_us": round(clocks["thread_time_ns"] / 1e3, 2),
         "loop_cost_us_p99": round(loop_p99[best], 2),
         "loop_cost_us_p50": round(loop_p50[best], 2),
         "loop_cost_us_mean": round(loop_mean[best], 2),
