@@ -608,7 +608,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.plot:
         from handctl.recording.plot import plot_recording, title_of
 
-        plot_recording(series, args.plot, title_of(summary))
+        plot_recording(series, args.plot, title_of(summary), recording)
         print(f"plot: {args.plot}")
     if args.rerun:
         result = rerun.rerun(recording)

@@ -66,7 +66,7 @@ class RunRequest:
     reset_node_faults: bool = False
     sim_faults: Path | None = None
     max_seconds: float | None = None  # the time budget (s): a controlled stop, TIME_BUDGET
-    plot: Path | None = None  # write the overview PNG of the run here (lockstep sim only)
+    plot: Path | None = None  # write the overview PNG of the run here (from its recording)
     log: Path | None = None  # record the run to this MCAP file
     live_port: int | None = None  # serve the recording's channels to Foxglove on this port
     command_line: tuple[str, ...] = ()  # for the recording's metadata
@@ -191,11 +191,20 @@ def run_recipe(
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
         peer_process = is_sim and not lockstep  # the simulated hand on ``sim_cpu``
+        # The plot is drawn from the run's recording (``handctl.recording.plot``), the
+        # replay's plot of the same log: a run asked for a plot and no log records to a
+        # file of its own, gone with the run.
+        log = req.log
+        if log is None and req.plot is not None:
+            directory = stack.enter_context(tempfile.TemporaryDirectory(prefix="handctl-"))
+            log = Path(directory) / "plot.mcap"
         recording = (
             stack.enter_context(
-                _recorder(req, is_sim and lockstep, loop_cpu, sim_cpu if peer_process else None)
+                _recorder(
+                    req, log, is_sim and lockstep, loop_cpu, sim_cpu if peer_process else None
+                )
             )
-            if req.log
+            if log
             else None
         )
         if recording is not None:
@@ -244,6 +253,8 @@ def run_recipe(
         _experiment_summary(summary, req, tracker, warnings)
         if recording is not None:
             _close_recording(recording, summary, req, warnings)
+            if req.plot is not None:
+                _plot(summary, req, warnings)
     return RunReport(
         result,
         summary,
@@ -388,22 +399,24 @@ def _host_summary(
 def _experiment_summary(
     summary: dict[str, Any], req: RunRequest, tracker: Any, warnings: list[str]
 ) -> None:
-    """Into ``summary``: how the objects moved (the simulated hand's ground truth); and the
-    plot, which needs that ground truth."""
+    """Into ``summary``: how the objects moved (the simulated hand's ground truth)."""
     if tracker is not None:
         from handctl.experiment.merit import experiment_summary
 
         summary["experiment"] = experiment_summary(tracker.trace, req.recipe.min_total_turn_deg)
-    if req.plot is not None:
-        if tracker is None:
-            warnings.append(
-                "--plot needs the simulated hand in lockstep and a recipe "
-                "that declares its objects: no plot written"
-            )
-        else:
-            from handctl.experiment.plot import plot_run
 
-            plot_run(tracker.trace, req.plot, req.recipe, req.hand, summary.get("experiment"))
+
+def _plot(summary: dict[str, Any], req: RunRequest, warnings: list[str]) -> None:
+    """The run's plot, from its finished recording; the recording of a run that was recorded
+    only for it is left out of the summary (its file goes with the run)."""
+    from handctl.recording.plot import plot_log
+
+    assert req.plot is not None
+    recorded = summary["recording"] if req.log else summary.pop("recording")
+    if "error" in recorded:
+        warnings.append(f"no plot written: the run's recording failed ({recorded['error']})")
+        return
+    plot_log(Path(recorded["path"]), req.plot)
 
 
 def _close_recording(
@@ -415,23 +428,22 @@ def _close_recording(
         summary["recording"] = recording.close(summary)
     except HandctlError as exc:
         warnings.append(str(exc))
-        summary["recording"] = {"path": str(req.log), "error": str(exc)}
+        summary["recording"] = {"path": str(recording.path), "error": str(exc)}
 
 
 def _recorder(
-    req: RunRequest, lockstep_sim: bool, loop_cpu: int | None, sim_cpu: int | None
+    req: RunRequest, log: Path, lockstep_sim: bool, loop_cpu: int | None, sim_cpu: int | None
 ) -> Recorder:
     from handctl.recording.metadata import start_metadata
     from handctl.recording.recorder import Recorder, writer_cpus
 
-    assert req.log is not None
     objects: list[str] = []
     if lockstep_sim:
         from handctl.sim.params import parse_sim
 
         objects = [o.name for o in parse_sim(req.hand).objects]
     return Recorder(
-        req.log,
+        log,
         req.hand,
         start_metadata(req.hand, req.recipe, req.command_line),
         phase_names=[p.name for p in req.recipe.phases],

@@ -39,6 +39,23 @@ process, then read back:
   ``rerun_runtime_us_per_tick`` (the rest) and ``rerun_estimator_us_per_tick`` (the object
   estimator alone, fed the logged angles: the part of the rest a recipe with objects needs).
 - ``mb_per_min``: file size per minute of run.
+- ``thread_clock_us``: what one reading of the thread CPU clock costs here and now (a system
+  call; microseconds on a loaded virtual machine). The direct figure holds about two of them
+  (``begin_tick``'s timing, and the runtime's reading that ends its record stage, which the
+  runtime makes only when it records).
+
+``--profile``: instead, where the recording's time goes in the running loop. One pair as
+above, every call of A's recorder (``begin_tick``, the two frame taps, ``push``,
+``_flush_frames``, ``_sweep``, ``poses``) timed with ``perf_counter_ns`` (cheap; the thread
+CPU clock is a system call) and exclusive of the timed calls it makes, summed per control
+tick: ``profile_<call>_us_p50`` / ``_p99`` / ``_mean``, ``profile_recorder_own_*`` their sum,
+``profile_record_stage_*`` the runtime's own record stage, ``profile_refill_and_clock_*`` that
+stage less ``push`` (the refill of the runtime's record and a clock reading), against
+``profile_tick_recorded_*`` and ``profile_tick_unrecorded_*`` (A's and B's whole tick, thread
+CPU time) and ``profile_paired_*``. ``profile_clock_*`` say what a clock reading and a timed
+empty call cost in the same run. ``--writer-paused`` stops A's writer (SIGSTOP, rings large
+enough for the whole run) until the pair has run: the same figures without the writer's
+competition for the CPU.
 
 Each figure is the best of ``--repeat`` runs (the machine is shared). Progress goes to stderr.
 
@@ -57,6 +74,7 @@ import argparse
 import asyncio
 import contextlib
 import os
+import signal
 import sys
 import tempfile
 import time
@@ -90,6 +108,7 @@ from handctl.recording.metadata import (  # noqa: E402
 from handctl.recording.reader import Recording, iter_decoded, open_recording  # noqa: E402
 from handctl.recording.recorder import Recorder  # noqa: E402
 from handctl.recording.rerun import rerun, tick_inputs  # noqa: E402
+from handctl.recording.ring import RingLayout  # noqa: E402
 from handctl.sim.hand import SimulatedHand  # noqa: E402
 
 LOOP_TARGET_US = 20.0
@@ -111,6 +130,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="instead: the live Foxglove view's cost on the tick, both runtimes recorded, "
         "A's writer serving a client subscribed to every channel (live_*)",
+    )
+    parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="instead: the recorder's own calls per tick (begin_tick, the taps, push, "
+        "_flush_frames, _sweep, poses), timed in process against the whole tick (profile_*)",
+    )
+    parser.add_argument(
+        "--writer-paused",
+        action="store_true",
+        help="with --profile: the writer process stopped (SIGSTOP) while the pair runs and "
+        "resumed before the recorder closes (rings large enough to hold the whole run), so "
+        "that the figures lack the writer's competition for the CPU",
     )
     parser.add_argument(
         "--breakdown",
@@ -180,6 +212,7 @@ class _Side:
         side: str,
         push: str = "all",
         live_port: int | None = None,
+        layout: RingLayout | None = None,
     ) -> None:
         channel = f"virtual:bench-rec-{uuid.uuid4().hex[:8]}"
         peer = stack.enter_context(open_bus(channel, hand.bus))
@@ -197,6 +230,7 @@ class _Side:
                 phase_names=[p.name for p in recipe.phases],
                 object_names=[o.name for o in sim.params.objects],
                 live_port=live_port,
+                layout=layout,
             )
         self.runtime = runtime = Runtime(
             hand, driver, self.clock, recipe, recorder=self.recorder, estimator=estimator
@@ -262,13 +296,19 @@ def _pair(
     push: str = "all",
     live_port: int | None = None,
     b_out: Path | None = None,
+    instrument: Callable[[_Side], None] | None = None,
+    layout: RingLayout | None = None,
+    before_close: Callable[[Recorder], None] | None = None,
 ) -> tuple[_Side, _Side, RunResult, float, dict[str, Any]]:
     """Run A (recorded to ``out``, or not when ``out`` is None; served live on ``live_port``)
-    and B (recorded to ``b_out``, by default not) in turn."""
+    and B (recorded to ``b_out``, by default not) in turn. ``instrument`` is called with A
+    before the run."""
     with contextlib.ExitStack() as stack:
         turns = Turns()
-        a = _Side(stack, hand, recipe, out, turns, "a", push, live_port)
+        a = _Side(stack, hand, recipe, out, turns, "a", push, live_port, layout)
         b = _Side(stack, hand, recipe, b_out, turns, "b")
+        if instrument is not None:
+            instrument(a)
         for side in (a, b):
             if side.recorder is not None:
                 side.recorder.wait_ready()
@@ -279,6 +319,8 @@ def _pair(
         started = time.perf_counter()
         result, twin = asyncio.run(both())
         loop_wall = time.perf_counter() - started
+        if before_close is not None and a.recorder is not None:
+            before_close(a.recorder)
         stats = a.recorder.close({"outcome": result.outcome.value}) if a.recorder else {}
         if b.recorder is not None:
             b.recorder.close({"outcome": twin.outcome.value})
@@ -346,6 +388,192 @@ def estimator_us_per_tick(recording: Recording) -> float:
     return 1e6 * (time.perf_counter() - started) / max(len(angles), 1)
 
 
+class CallTimes:
+    """The recorder's own calls, each timed with ``perf_counter_ns`` (a cheap clock; the
+    thread CPU clock is a system call) and exclusive of the timed calls it makes (``push``
+    calls ``_flush_frames`` and ``_sweep``), summed per tick."""
+
+    NAMES = ("begin_tick", "tx_tap", "rx_tap", "push", "flush_frames", "sweep", "poses")
+
+    def __init__(self, recorder: Recorder) -> None:
+        self.recorder = recorder
+        self.ticks: list[int] = []
+        self.parts: list[int] = []
+        self.spent: list[int] = []
+        self._child = 0
+
+    def wrap(self, name: str, call: Callable[..., Any]) -> Callable[..., Any]:
+        part = self.NAMES.index(name)
+        clock = time.perf_counter_ns
+        recorder, ticks, parts, spent = self.recorder, self.ticks, self.parts, self.spent
+
+        def timed(*args: Any) -> Any:
+            outer = self._child
+            self._child = 0
+            started = clock()
+            try:
+                return call(*args)
+            finally:
+                took = clock() - started
+                ticks.append(recorder._tick)
+                parts.append(part)
+                spent.append(took - self._child)
+                self._child = outer + took
+
+        return timed
+
+    def install(self, runtime: Runtime) -> None:
+        """Replace the recorder's methods and the bus's taps by timed ones (after ``attach``)."""
+        r = self.recorder
+        for name, attribute in (
+            ("begin_tick", "begin_tick"),
+            ("push", "push"),
+            ("flush_frames", "_flush_frames"),
+            ("sweep", "_sweep"),
+            ("poses", "poses"),
+        ):
+            bound = getattr(type(r), attribute).__get__(r)
+            setattr(r, attribute, self.wrap(name, bound))
+        bus = runtime.driver.bus
+        bus.tap = self.wrap("tx_tap", r._frame)
+        bus.rx_tap = self.wrap("rx_tap", r._pending.append)
+
+    def per_tick(self, ticks: np.ndarray) -> dict[str, np.ndarray]:
+        """Per component, the ns spent in each of ``ticks`` (0 where it was not called)."""
+        at = {int(k): i for i, k in enumerate(ticks)}
+        out = {name: np.zeros(len(ticks)) for name in self.NAMES}
+        calls = {name: np.zeros(len(ticks)) for name in self.NAMES}
+        for k, part, ns in zip(self.ticks, self.parts, self.spent, strict=True):
+            i = at.get(k)
+            if i is not None:
+                out[self.NAMES[part]][i] += ns
+                calls[self.NAMES[part]][i] += 1
+        out.update({f"{name}_calls": c for name, c in calls.items()})
+        return out
+
+
+def _clock_costs() -> dict[str, float]:
+    """What one reading of each clock, and one timed no-op call, cost here and now (ns,
+    median of batches)."""
+
+    def per_call(call: Callable[[], Any], n: int = 20000) -> float:
+        batches = []
+        for _ in range(5):
+            started = time.perf_counter_ns()
+            for _ in range(n):
+                call()
+            batches.append((time.perf_counter_ns() - started) / n)
+        return float(np.median(batches))
+
+    class _Null:
+        _tick = 0
+
+    times = CallTimes(_Null())  # type: ignore[arg-type]
+    timed_noop = times.wrap("poses", lambda: None)
+    return {
+        "perf_counter_ns": per_call(time.perf_counter_ns),
+        "thread_time_ns": per_call(time.thread_time_ns),
+        "timed_noop_ns": per_call(timed_noop) - per_call(lambda: None),
+    }
+
+
+def profile_once(
+    hand_path: str, recipe_path: str, out: Path, writer_paused: bool = False
+) -> dict[str, Any]:
+    """One pair as ``record_once`` runs it, A's recorder calls timed (``CallTimes``);
+    ``writer_paused``: A's writer stopped until the pair has run."""
+    hand = load_hand(hand_path)
+    recipe = load_recipe(recipe_path, hand)
+    installed: list[CallTimes] = []
+
+    def instrument(side: _Side) -> None:
+        assert side.recorder is not None
+        times = CallTimes(side.recorder)
+        times.install(side.runtime)
+        installed.append(times)
+        if writer_paused:
+            side.recorder.wait_ready()
+            os.kill(side.recorder.process.pid, signal.SIGSTOP)
+
+    layout = None
+    if writer_paused:  # a minute of everything: the writer copies it out afterwards
+        layout = RingLayout(
+            hand.n_joints,
+            len(hand.fingers),
+            len(recipe.objects),
+            tick_capacity=1 << 16,
+            frame_capacity=1 << 19,
+        )
+    a, b, result, _, _ = _pair(
+        hand,
+        recipe,
+        out,
+        instrument=instrument,
+        layout=layout,
+        before_close=(lambda side: os.kill(side.process.pid, signal.SIGCONT))
+        if writer_paused
+        else None,
+    )
+    times = installed[0]
+    control = result.stage_ns[:, 3] > 0
+    n = min(len(a.clock.work_ns), len(b.clock.work_ns), len(control))
+    control = control[:n]
+    ticks = np.flatnonzero(control)
+    parts = times.per_tick(ticks)
+    figures: dict[str, Any] = {"control_ticks": len(ticks)}
+
+    def describe(name: str, ns: np.ndarray) -> None:
+        us = ns / 1e3
+        figures[f"{name}_us_p50"] = round(float(np.percentile(us, 50)), 2)
+        figures[f"{name}_us_p99"] = round(float(np.percentile(us, 99)), 2)
+        figures[f"{name}_us_mean"] = round(float(np.mean(us)), 2)
+
+    total = np.zeros(len(ticks))
+    calls = np.zeros(len(ticks))
+    for name in CallTimes.NAMES:
+        describe(name, parts[name])
+        figures[f"{name}_calls_per_tick"] = round(float(np.mean(parts[f"{name}_calls"])), 2)
+        total += parts[name]
+        calls += parts[f"{name}_calls"]
+    describe("recorder_own", total)
+    figures["timed_calls_per_tick"] = round(float(np.mean(calls)), 2)
+    stage = result.stage_ns[:n, 4][control]
+    describe("record_stage", stage)
+    push_inclusive = parts["push"] + parts["flush_frames"] + parts["sweep"]
+    # flush_frames also runs in begin_tick (a tick that only polled): not in push then
+    describe("refill_and_clock", np.maximum(stage - push_inclusive, 0))
+    describe("tick_recorded", np.array(a.clock.work_ns[:n])[control])
+    describe("tick_unrecorded", np.array(b.clock.work_ns[:n])[control])
+    describe(
+        "paired", np.array(a.clock.work_ns[:n])[control] - np.array(b.clock.work_ns[:n])[control]
+    )
+    return figures
+
+
+def run_profile(args: argparse.Namespace) -> dict[str, Any]:
+    """``--profile``: ``--repeat`` pairs; each figure the median over them."""
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
+        for i in range(args.repeat):
+            runs.append(
+                profile_once(
+                    args.hand, args.recipe, Path(directory) / f"p{i}.mcap", args.writer_paused
+                )
+            )
+            print(
+                f"bench recording --profile: run {i + 1}/{args.repeat}: recorder's own calls "
+                f"p50 {runs[-1]['recorder_own_us_p50']} us, p99 "
+                f"{runs[-1]['recorder_own_us_p99']} us; tick p50 "
+                f"{runs[-1]['tick_recorded_us_p50']} us",
+                file=sys.stderr,
+            )
+    figures: dict[str, Any] = {
+        f"profile_{key}": float(np.median([r[key] for r in runs])) for key in runs[0]
+    }
+    figures.update({f"profile_clock_{k}": round(v, 1) for k, v in _clock_costs().items()})
+    return figures
+
+
 def live_once(hand_path: str, recipe_path: str, directory: Path) -> dict[str, Any]:
     """One pair, both recorded, A served live to a client process (``live_view_cost``):
     per control tick, A's CPU time and B's, interleaved tick by tick under the same load."""
@@ -405,6 +633,8 @@ def run_live(args: argparse.Namespace) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.live:
         return run_live(args)
+    if args.profile:
+        return run_profile(args)
     loop_p99, loop_p50, loop_mean, writer, replay, sizes = [], [], [], [], [], []
     paired_mean, paired_sem, paired_p99, share_p99, share_p50 = [], [], [], [], []
     read_us, runtime_us, tick_p50, estimator_us = [], [], [], []
@@ -470,8 +700,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "frames": round(part_p50["frames"] - part_p50["none"], 2),
             "tick_row": round(loop_p50[best] - part_p50["frames"], 2),
         }
+    clocks = _clock_costs()
     return {
         **({"breakdown_us_p50": breakdown} if breakdown else {}),
+        "thread_clock_us": round(clocks["thread_time_ns"] / 1e3, 2),
         "loop_cost_us_p99": round(loop_p99[best], 2),
         "loop_cost_us_p50": round(loop_p50[best], 2),
         "loop_cost_us_mean": round(loop_mean[best], 2),

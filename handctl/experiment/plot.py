@@ -1,5 +1,5 @@
-"""Pictures: the overview of a run (``run recipe --plot``) and each phase's torque region
-(``plan --plot``).
+"""Pictures: each phase's torque region (``plan --plot``). The overview of a run (``run recipe
+--plot``) is drawn from its recording, as its replay's is (``handctl.recording.plot``).
 
 matplotlib is imported inside the functions and drives an Agg canvas directly (no pyplot, no
 global backend switch), as in ``handctl.analysis.plot``.
@@ -8,7 +8,6 @@ global backend switch), as in ``handctl.analysis.plot``.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -16,96 +15,7 @@ from typing import Any
 import numpy as np
 
 from handctl.config import FingerConfig, HandConfig
-from handctl.convention import TIME_LABEL
-from handctl.experiment.merit import LIFT_HEIGHT, Trace, _segments
 from handctl.handshape import hand_span
-from handctl.online.recipes.schema import Recipe
-
-
-def plot_run(
-    trace: Trace,
-    path: Path,
-    recipe: Recipe,
-    hand: HandConfig,
-    experiment: dict[str, Any] | None = None,
-) -> Path:
-    """One PNG in the replay plot's style (``handctl.recording.plot``): a torque panel per
-    finger of ``hand`` (applied, and measured: what the simulated tendons transmit), every
-    object's height above rest and each pair's centre-line turn (true, and estimated for the
-    first pair), on ``handctl.convention``'s axes. The run keeps no desired torques; the
-    replay of its log draws them too."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    from handctl.recording.plot import objects_panels, phase_bands, torque_panel
-
-    a = trace.arrays()
-    t = a["t"]
-    groups: list[tuple[str, list[int]]] = []
-    for finger in hand.fingers:
-        groups.append((finger.name, [hand.joint_names.index(j.name) for j in finger.joints]))
-    tau_max = [j.tau_max for j in hand.joints]
-    fig = Figure(figsize=(12, 2.3 * (len(groups) + 2) + 1.0), dpi=110)
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(len(groups) + 2, 1, sharex=True, squeeze=False)[:, 0]
-    for ax in axes:
-        ax.grid(True, lw=0.3)
-    torques, applied = a["torques"], a["applied"]
-    for row, (finger_name, group) in enumerate(groups):
-        cols = np.array(group)
-        names = [trace.joint_names[j] for j in group]
-        kinds: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        if len(applied):
-            kinds["applied"] = (t, applied[:, cols])
-        kinds["measured"] = (t, torques[:, cols] if len(torques) else torques)
-        torque_panel(axes[row], finger_name, names, [tau_max[j] for j in group], kinds)
-    turns: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for k, pair in enumerate(trace.pairs):
-        label = "/".join(trace.objects[i] for i in pair)
-        true = trace.line_angle(pair, a["poses"])
-        turn = true - true[0] if len(true) else true
-        turns[f"{label} true (simulation)"] = (t, np.degrees(turn))
-        if k == 0:
-            # each estimate drawn on the true angle's branch (the estimate is an angle in
-            # (-pi, pi], the truth is unwrapped): the gap between the lines is the error
-            est = a["estimate"][:, 0]
-            gap = (est - true + math.pi) % (2 * math.pi) - math.pi
-            est_turn = np.where(a["valid"] & np.isfinite(est), turn + gap, np.nan)
-            turns[f"{label} estimated (joint angles)"] = (t, np.degrees(est_turn))
-    heights_ax = axes[len(groups)]
-    with warnings.catch_warnings():  # an empty turn panel has no legend to draw
-        warnings.simplefilter("ignore", UserWarning)
-        objects_panels(heights_ax, axes[-1], t, a["heights"], list(trace.objects), turns)
-    if not trace.pairs:  # nothing turns: no turn panel
-        fig.delaxes(axes[-1])
-        axes = axes[:-1]
-        axes[-1].tick_params(labelbottom=True)
-    heights_ax.axhline(LIFT_HEIGHT * 1e3, color="k", lw=0.6, ls="--")
-    phase_bands(
-        list(axes),
-        [
-            (name, float(t[s]), float(t[e]) if e < len(t) else float(t[-1]))
-            for name, s, e in _segments(trace.phase)
-            if e > s
-        ],
-    )
-    axes[-1].set_xlabel(TIME_LABEL)
-    if len(t):
-        axes[-1].set_xlim(0.0, max(float(t[-1]), 1e-3))
-    title = f"{recipe.name}"
-    if experiment:
-        title += f": lifted {experiment.get('lifted')}, "
-        if "turn_deg" in experiment:
-            title += (
-                f"turned {experiment['turn_deg']:+.1f} deg (ccw +), estimator p95 "
-                f"{experiment.get('estimator_error_deg')} deg, "
-            )
-        title += f"dropped {experiment.get('dropped')}"
-    fig.suptitle(title, fontsize=10, y=0.995)
-    fig.tight_layout(rect=(0, 0, 1, 0.97))
-    out = Path(path)
-    fig.savefig(str(out))
-    return out
 
 
 def plot_phase_region(

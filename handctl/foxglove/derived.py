@@ -59,8 +59,6 @@ class DerivedChannel:
     schema_encoding: str  # "protobuf" or "jsonschema"
     schema_data: bytes
     message_encoding: str  # "protobuf" or "json"
-    #: Written every tick or every frame: the live view serves it sampled.
-    per_tick: bool = False
 
 
 def _well_known(topic: str, message: type[SceneUpdate | FrameTransforms | Log]) -> DerivedChannel:
@@ -68,14 +66,13 @@ def _well_known(topic: str, message: type[SceneUpdate | FrameTransforms | Log]) 
     return DerivedChannel(topic, schema.name, schema.encoding, bytes(schema.data), "protobuf")
 
 
-def _json(topic: str, name: str, schema: dict[str, Any], per_tick: bool) -> DerivedChannel:
+def _json(topic: str, name: str, schema: dict[str, Any]) -> DerivedChannel:
     return DerivedChannel(
         topic,
         name,
         ch.SCHEMA_ENCODING,
         orjson.dumps({"title": name, **schema}),
         ch.MESSAGE_ENCODING,
-        per_tick,
     )
 
 
@@ -166,9 +163,9 @@ class Derived:
             _well_known(SCENE, SceneUpdate),
             _well_known(TRANSFORMS, FrameTransforms),
             _well_known(LOG, Log),
-            _json(JOINTS, "handctl.Joints", joints_schema(self.joints), per_tick=True),
-            _json(RX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA, per_tick=True),
-            _json(TX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA, per_tick=True),
+            _json(JOINTS, "handctl.Joints", joints_schema(self.joints)),
+            _json(RX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA),
+            _json(TX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA),
         ]
         protocol = protocol_for(hand)
         self.frames: dict[int, _FrameKind] = {}

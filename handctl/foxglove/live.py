@@ -27,6 +27,9 @@ import orjson
 from foxglove import Channel, Context, Schema
 from foxglove.websocket import WebSocketServer
 
+from handctl.foxglove.derived import JOINTS, RX_DECODED, TX_DECODED
+from handctl.recording import channels as ch
+
 if TYPE_CHECKING:
     from mcap.records import Channel as McapChannel
     from mcap.records import Schema as McapSchema
@@ -41,6 +44,25 @@ SAMPLE_PERIOD_NS = 10_000_000
 #: Keys remembered for the sampling before they are forgotten all at once (frame ids from a
 #: bus that babbles ever new ones must not grow the writer without bound).
 MAX_SAMPLED_KEYS = 4096
+#: A channel sampled as one stream (at most one message per ``SAMPLE_PERIOD_NS``).
+PER_TICK = "tick"
+#: A channel sampled per frame id, so that every kind of frame shows.
+PER_FRAME = "frame"
+#: The channels written every tick or every frame (recorded and derived), and how the live
+#: view samples each; every other channel is served whole. The one list a run's writer and
+#: a replay's server both serve by (``LiveServer.add_channel``).
+SAMPLING: dict[str, str] = {
+    ch.TIMING: PER_TICK,
+    ch.JOINT_STATE: PER_TICK,
+    ch.TORQUE: PER_TICK,
+    ch.SAFETY: PER_TICK,
+    ch.PHASE: PER_TICK,
+    JOINTS: PER_TICK,
+    ch.CAN_RX: PER_FRAME,
+    ch.CAN_TX: PER_FRAME,
+    RX_DECODED: PER_FRAME,
+    TX_DECODED: PER_FRAME,
+}
 
 
 class LiveServer:
@@ -56,8 +78,9 @@ class LiveServer:
         self.name, self.host, self.requested_port = name, host, port
         self.server: WebSocketServer | None = None
         self.channels: dict[str, Channel] = {}
-        #: Sampled topics, and per (topic, key) the log time of the message last served.
-        self.sampled: set[str] = set()
+        #: Per sampled topic, its sampling (``SAMPLING``); per (topic, key) the log time of
+        #: the message last served.
+        self.sampled: dict[str, str] = {}
         self._served: dict[tuple[str, int], int] = {}
 
     def start(self) -> None:
@@ -79,12 +102,12 @@ class LiveServer:
         schema_data: bytes,
         message_encoding: str,
         metadata: dict[str, str] | None = None,
-        sampled: bool = False,
     ) -> None:
-        """``sampled``: the topic is written every tick and served at most once per
-        ``SAMPLE_PERIOD_NS`` of log time and key (see ``log``)."""
-        if sampled:
-            self.sampled.add(topic)
+        """A topic of ``SAMPLING`` is served at most once per ``SAMPLE_PERIOD_NS`` of log
+        time (and frame id, on a frame channel; see ``log``)."""
+        sampling = SAMPLING.get(topic)
+        if sampling is not None:
+            self.sampled[topic] = sampling
         self.channels[topic] = Channel(
             topic,
             schema=Schema(name=schema_name, encoding=schema_encoding, data=schema_data),
@@ -96,18 +119,22 @@ class LiveServer:
     def log(self, topic: str, log_time: int, payload: bytes, key: int = 0) -> None:
         """Serve one message to the clients subscribed to ``topic``, if any. On a sampled
         topic, a message is served when it is ``SAMPLE_PERIOD_NS`` after the last one served
-        with the same key, or at the same log time (a tick's messages stay together)."""
-        channel = self.channels.get(topic)
-        if channel is None or not channel.has_sinks():
-            return
-        if topic in self.sampled:
-            slot = (topic, key)
+        with the same key (``key``, the frame id, on a frame channel), or at the same log
+        time (a tick's messages stay together)."""
+        # The sampling first, a dictionary's work, which turns away nine in ten messages of a
+        # per-tick channel before the call into the SDK that asks for its subscribers.
+        sampling = self.sampled.get(topic)
+        if sampling is not None:
+            slot = (topic, key if sampling == PER_FRAME else 0)
             last = self._served.get(slot)
             if last is not None and last < log_time < last + SAMPLE_PERIOD_NS:
                 return
             if len(self._served) >= MAX_SAMPLED_KEYS:  # a bus babbling ever new ids
                 self._served.clear()
             self._served[slot] = log_time
+        channel = self.channels.get(topic)
+        if channel is None or not channel.has_sinks():
+            return
         channel.log(payload, log_time=log_time)
 
     def close(self) -> None:
@@ -125,7 +152,6 @@ def serve_recording(
     from handctl.recording.reader import iter_messages, open_recording
 
     recording = open_recording(path)
-    sampled, keyed = _sampled_topics()
     server = LiveServer(port, name=f"handctl replay {path.name}")
     try:
         with path.open("rb") as stream:
@@ -137,7 +163,6 @@ def serve_recording(
                     bytes(schema.data) if schema else b"",
                     channel.message_encoding,
                     dict(channel.metadata),
-                    sampled=topic in sampled,
                 )
         server.start()
         if started is not None:
@@ -151,22 +176,12 @@ def serve_recording(
             delay = wall0 + (log_time - first_log) * 1e-9 / speed - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            server.log(topic, log_time, data, _frame_id(data) if topic in keyed else 0)
+            per_frame = server.sampled.get(topic) == PER_FRAME
+            server.log(topic, log_time, data, _frame_id(data) if per_frame else 0)
             sent += 1
         return sent
     finally:
         server.close()
-
-
-def _sampled_topics() -> tuple[frozenset[str], frozenset[str]]:
-    """The topics a run's live view samples (as the writer registers them), and those of
-    them sampled per frame id."""
-    from handctl.foxglove.derived import JOINTS, RX_DECODED, TX_DECODED
-    from handctl.recording import channels as ch
-    from handctl.recording.writer import LIVE_SAMPLED
-
-    keyed = frozenset({ch.CAN_RX, ch.CAN_TX, RX_DECODED, TX_DECODED})
-    return LIVE_SAMPLED | {JOINTS} | keyed, keyed
 
 
 def _frame_id(data: bytes) -> int:

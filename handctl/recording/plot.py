@@ -1,16 +1,20 @@
-"""PNGs of a run: ``replay --plot`` from a recording, and the panels it shares with ``run recipe
---plot`` (``handctl.experiment.plot``), so that both draw the same things the same way.
+"""The PNG of a run, drawn from its recording: ``handctl replay RUN.mcap --plot`` and ``handctl
+run recipe --plot`` (which records the run, to a file of its own when not asked to) both call
+``plot_log``, so the two plots of one run are the same picture from the same numbers.
 
 One panel per finger; a joint has the same colour in every finger (proximal, middle, distal),
 and the line style says what the value is: desired dashed, applied solid, measured dotted, with
 thin lines of the joint's colour at ±tau_max. Phases are shaded bands named in a strip above the
 first panel, never over the traces. Heights are above rest and the turn is signed
-counter-clockwise positive, as ``handctl.convention`` defines them for every summary too.
+counter-clockwise positive, as ``handctl.convention`` defines them for every summary too; the
+estimated turn is the object estimator's, run again on the logged joint angles of the ticks
+the loop ran it (it is a function of those angles, which the re-run relies on too).
 matplotlib drives an Agg canvas directly (no pyplot), as in ``handctl.analysis.plot``.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -18,6 +22,8 @@ from typing import Any
 import numpy as np
 
 from handctl.convention import HEIGHT_LABEL, TIME_LABEL, TURN_LABEL, turn_deg
+from handctl.recording import channels as ch
+from handctl.recording.reader import Recording
 from handctl.recording.replay import NOT_PHASES
 from handctl.recording.series import Series
 
@@ -115,29 +121,130 @@ def objects_panels(
     names: Sequence[str],
     turns: dict[str, tuple[np.ndarray, np.ndarray]],
 ) -> None:
-    """Heights above rest (m in, mm drawn) and the centre line's turn (deg, ccw +)."""
+    """Heights above rest (m in, mm drawn) and the centre line's turn (deg, ccw +), when
+    there is a panel for it."""
     for i, name in enumerate(names):
         ax_height.plot(
             t, heights[:, i] * 1e3, label=name, color=JOINT_COLOURS[(i + 3) % len(JOINT_COLOURS)]
         )
     ax_height.set_ylabel(HEIGHT_LABEL)
     ax_height.legend(**_OUTSIDE)
+    if ax_turn is None:  # nothing turns (fewer than two objects)
+        return
     for label, (tt, values) in turns.items():
         ax_turn.plot(tt, values, label=label, linewidth=1.0)
     ax_turn.set_ylabel(TURN_LABEL)
     ax_turn.legend(**_OUTSIDE)
 
 
-def plot_recording(series: Series, path: Path, title: str) -> None:
+def plot_log(path: Path, out: Path) -> None:
+    """The plot of the recording at ``path``, titled with its replay summary."""
+    from handctl.recording.reader import check_format, open_recording
+    from handctl.recording.replay import summarise_recording
+    from handctl.recording.series import load_series
+
+    recording = open_recording(path)
+    check_format(recording)
+    series = load_series(recording)
+    plot_recording(series, out, title_of(summarise_recording(recording, series)), recording)
+
+
+def turns_deg(
+    series: Series, recording: Recording | None = None
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The centre line's turn (deg, ccw +) at the logged poses, by label: the true one
+    (simulation) and, for a recording whose recipe has objects, the estimator's, drawn on the
+    true turn's branch (the estimate is an angle in (-pi, pi]; the gap between the two lines
+    is the estimator's error). The first pair of the recipe, or the first two objects."""
+    ob = series.objects
+    if not len(ob):
+        return {}
+    names = series.object_names
+    pair = (0, 1)
+    recipe = _recorded_recipe(recording) if recording is not None else None
+    if recipe is not None and recipe.pairs and all(o.name in names for o in recipe.objects):
+        a, b = recipe.pairs[0]
+        pair = (names.index(recipe.objects[a].name), names.index(recipe.objects[b].name))
+    if max(pair) >= len(names):
+        return {}
+    a, b = pair
+    true = np.arctan2(ob[:, 3 + 3 * b] - ob[:, 3 + 3 * a], ob[:, 2 + 3 * b] - ob[:, 2 + 3 * a])
+    label = f"{names[a]}/{names[b]}"
+    turn = turn_deg(true)
+    out = {f"{label} true (simulation)": (ob[:, 0], turn)}
+    if recording is not None and recipe is not None and recipe.objects:
+        estimated = _estimated_line(recording, series, ob[:, 0])
+        gap = np.degrees((estimated - true + np.pi) % (2 * np.pi) - np.pi)
+        out[f"{label} estimated (joint angles)"] = (ob[:, 0], turn + gap)
+    return out
+
+
+def _recorded_recipe(recording: Recording) -> Any:
+    """The recording's recipe, or None when it has none that parses for its hand."""
+    from handctl.errors import HandctlError
+    from handctl.recording.metadata import recorded_hand, recorded_recipe
+
+    try:
+        hand = recorded_hand(recording, required=False)
+        return recorded_recipe(recording, hand) if hand is not None else None
+    except HandctlError:
+        return None
+
+
+def _estimated_line(recording: Recording, series: Series, at_s: np.ndarray) -> np.ndarray:
+    """The estimator's first centre-line angle (rad) as the loop had it at each time of
+    ``at_s`` (s, the series' times): its estimate of the last tick before, NaN where it was
+    not valid. The estimator is fed the logged angles of every control tick the loop ran it
+    (the supervisor running, the recipe not done), as the writer's Foxglove scene does."""
+    from handctl.online.estimator import ObjectEstimator
+    from handctl.recording.metadata import recorded_hand
+    from handctl.recording.reader import iter_decoded
+
+    hand = recorded_hand(recording)
+    recipe = _recorded_recipe(recording)
+    assert hand is not None and recipe is not None
+    estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs)
+    times: list[int] = []
+    lines: list[float] = []
+    angle: list[float] = []
+    running = False
+    topics = (ch.JOINT_STATE, ch.SAFETY, ch.PHASE)
+    for topic, log_time, msg in iter_decoded(recording, topics):
+        if topic == ch.JOINT_STATE:
+            angle = [math.nan if v is None else v for v in msg["angle_rad"]]
+        elif topic == ch.SAFETY:
+            running = msg["state"] == "running"
+        elif running and msg["phase"] not in ("completed", "aborted"):
+            estimate = estimator(angle)
+            times.append(log_time)
+            lines.append(estimate[0] if estimator.valid else math.nan)
+    if not times:
+        return np.full(len(at_s), math.nan)
+    t_s = (np.asarray(times, dtype=np.int64) - series.t0_ns) * 1e-9
+    # the last estimate strictly before each pose: a pose is taken at the start of its tick
+    before = np.searchsorted(t_s, np.asarray(at_s) - 1e-7) - 1
+    line = np.asarray(lines)[np.clip(before, 0, None)]
+    return np.where(before >= 0, line, math.nan)
+
+
+def plot_recording(
+    series: Series, path: Path, title: str, recording: Recording | None = None
+) -> None:
+    """The plot of ``series``; with its ``recording``, the estimated turn as well."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    from handctl.experiment.merit import LIFT_HEIGHT
+
     groups = finger_groups(series.fingers, len(series.joints))
     has_objects = len(series.objects) > 0
-    rows = len(groups) + (2 if has_objects else 0)
+    turns = turns_deg(series, recording)
+    rows = len(groups) + (1 if has_objects else 0) + (1 if turns else 0)
     fig = Figure(figsize=(12, 2.3 * rows + 1.0), dpi=110)
     FigureCanvasAgg(fig)
     axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
+    for ax in axes:
+        ax.grid(True, lw=0.3)
     n = len(series.joints)
     tq, js = series.torque, series.joint
     for row, (finger, group) in enumerate(groups):
@@ -171,12 +278,13 @@ def plot_recording(series: Series, path: Path, title: str) -> None:
         heights = ob[:, 3 : 3 + 3 * k : 3] - np.asarray(series.rest_y[:k], dtype=float)
         objects_panels(
             axes[len(groups)],
-            axes[len(groups) + 1],
+            axes[len(groups) + 1] if turns else None,
             ob[:, 0],
             heights,
             series.object_names,
-            {"true (simulation)": (ob[:, 0], turn_deg(ob[:, 1]))},
+            turns,
         )
+        axes[len(groups)].axhline(LIFT_HEIGHT * 1e3, color="k", lw=0.6, ls="--")
     phase_bands(list(axes), [(p["name"], p["start_s"], p["end_s"]) for p in series.phases])
     axes[-1].set_xlabel(TIME_LABEL)
     if len(series.timing):

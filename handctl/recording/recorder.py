@@ -57,7 +57,7 @@ from handctl.recording.ring import (
     FRAME_HEAD,
     FRAME_ROW,
     FRAME_TAIL,
-    I_FEEDBACK,
+    I_NODES,
     POSE_HEAD,
     POSE_TAIL,
     SEP,
@@ -74,11 +74,15 @@ if TYPE_CHECKING:
     from handctl.online.loop import Runtime, TickRecord
 
 _TICK_HEAD = struct.Struct("<qqqqq")  # tick, scheduled, now, missed, active
-#: The whole fixed part of a control tick's row in one call: the head, then active, 4 stages,
-#: state, phase, faults latched.
-_TICK_ROW = struct.Struct("<qqqqqqqqqqqq")
 _POSE_INTS = struct.Struct("<qq")  # tick, t
-_FRAME = struct.Struct(f"<qqqqq{FRAME_BYTES}s")  # t, tick, id, direction | size << 8, bus time
+#: One frame row: t, tick, id, direction | size << 8, bus time, the data.
+_FRAME_FORMAT = f"qqqqq{FRAME_BYTES}s"
+_FRAME = struct.Struct("<" + _FRAME_FORMAT)
+#: The items of a frame row, as ``_flush_frames`` lays them out for its one ``pack_into``.
+_FRAME_ITEMS = 6
+#: A tick's frames are packed with one call up to this many (a struct per count, made when
+#: first needed); more, or a run of them that wraps round the ring's end, one call each.
+_MAX_FRAMES_PACKED = 64
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
 #: Runner status names a phase column can also hold.
 RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
@@ -251,7 +255,12 @@ class Recorder:
         self._scheduled = self._missed = 0
         self._tick_stride = self.layout.tick_ints * 8
         self._tick_base = r.offsets["tick_i"]
-        self._nodes_pack = struct.Struct(f"<{2 * self.layout.n_nodes}q").pack_into
+        # The integer part of a control tick's row in one call: tick, scheduled, now, missed,
+        # active, the 4 stages, state, phase, faults latched, then the node states and fault
+        # bits; the feedback_ns column after them is a buffer copy.
+        self._row_pack = struct.Struct(f"<{I_NODES + 2 * self.layout.n_nodes}q").pack_into
+        self._no_nodes = (-1,) * self.layout.n_nodes + (0,) * self.layout.n_nodes
+        self._feedback_at = self.layout.i_feedback
         self._tick_mask = self.layout.tick_capacity - 1
         self._head = self._tail = 0
         self._row = -1
@@ -259,6 +268,10 @@ class Recorder:
         self._frame_mask = self.layout.frame_capacity - 1
         self._fhead = self._ftail = 0
         self._pending: list[list[Frame] | tuple[int, bytes, int]] = []
+        #: The items of the tick's frame rows, refilled by ``_flush_frames`` (kept: no list
+        #: allocated per tick), and the ``pack_into`` of a struct of k frame rows, per k.
+        self._frame_items: list[Any] = []
+        self._frames_pack: dict[int, Any] = {}
         self._event_base = r.offsets["event_i"]
         self._event_data = r.offsets["event_d"]
         self._event_mask = self.layout.event_capacity - 1
@@ -284,7 +297,8 @@ class Recorder:
         self._runtime = runtime
         bus = runtime.driver.bus
         bus.tap = self._frame
-        bus.rx_tap = self._rx
+        # The list's own append: a drain's frames are noted without a call of ours.
+        bus.rx_tap = self._pending.append
         bus.event_tap = self._bus_event
         driver = runtime.driver
         self._reject_lists = [n.rejects.counts for n in driver.nodes]
@@ -382,22 +396,52 @@ class Recorder:
             if phase is None:
                 phase = self._intern(record.phase)
             s = record.stage_ns
-            _TICK_ROW.pack_into(
-                self._buf,
-                self._tick_base + row * self._tick_stride,
-                self._tick,
-                self._scheduled,
-                self._now,
-                self._missed,
-                1,
-                s[0],
-                s[1],
-                s[2],
-                s[3],
-                self._states.get(record.state, -1),
-                phase,
-                len(runtime.supervisor.faults) if runtime is not None else 0,
-            )
+            at = self._tick_base + row * self._tick_stride
+            if runtime is not None:
+                state = runtime.driver.state
+                self._row_pack(
+                    self._buf,
+                    at,
+                    self._tick,
+                    self._scheduled,
+                    self._now,
+                    self._missed,
+                    1,
+                    s[0],
+                    s[1],
+                    s[2],
+                    s[3],
+                    self._states.get(record.state, -1),
+                    phase,
+                    len(runtime.supervisor.faults),
+                    *state.node_state,
+                    *state.node_faults,
+                )
+                if state.feedback_ns is not self._feedback:
+                    self._feedback, self._feedback_view = (
+                        state.feedback_ns,
+                        state.feedback_ns.data.cast("B").cast("q"),
+                    )
+                at = row * self._tick_ints + self._feedback_at
+                self._ints[at : at + self._n] = self._feedback_view
+            else:
+                self._row_pack(
+                    self._buf,
+                    at,
+                    self._tick,
+                    self._scheduled,
+                    self._now,
+                    self._missed,
+                    1,
+                    s[0],
+                    s[1],
+                    s[2],
+                    s[3],
+                    self._states.get(record.state, -1),
+                    phase,
+                    0,
+                    *self._no_nodes,
+                )
             # Four vectors by memoryview slice assignment: no numpy call, no allocation. The
             # views of the runtime's arrays are made once (an array the runtime swaps in,
             # the zero vector for the runner's, gets its view made when first seen).
@@ -422,21 +466,6 @@ class Recorder:
             except (TypeError, ValueError, BufferError):  # not a float64 vector of n
                 self._angle = self._tdt = self._desired = self._applied = None
                 self._copy_floats(row, record)
-            if runtime is not None:
-                state = runtime.driver.state
-                at = row * self._tick_ints
-                if state.feedback_ns is not self._feedback:
-                    self._feedback, self._feedback_view = (
-                        state.feedback_ns,
-                        state.feedback_ns.data.cast("B").cast("q"),
-                    )
-                self._ints[at + I_FEEDBACK : at + I_FEEDBACK + n] = self._feedback_view
-                self._nodes_pack(
-                    self._buf,
-                    (at + I_FEEDBACK + n) * 8 + self._tick_base,
-                    *state.node_state,
-                    *state.node_faults,
-                )
         # The tick's events before its row, so that a reader that meets the row has met them.
         if runtime is not None:
             sup = runtime.supervisor
@@ -467,86 +496,57 @@ class Recorder:
     def _frame(self, arbitration_id: int, data: bytes, direction: int) -> None:
         self._pending.append((arbitration_id, data, direction))
 
-    def _rx(self, frames: list[Frame]) -> None:
-        self._pending.append(frames)
-
     def _flush_frames(self) -> None:
         """Copy the frames noted this tick into the ring, in the order they were on the bus.
 
-        A frame's time is its tick's (the clock stands still inside a lockstep tick; in real
-        time a tick's frames are drained or sent within its first few hundred microseconds);
-        a received frame keeps the adapter's own time stamp as well.
+        The tick's frame rows are laid out as one list of items and packed with one
+        ``pack_into`` (a struct of that many rows): a call per frame cost more than the
+        packing itself. A frame's time is its tick's (the clock stands still inside a lockstep
+        tick; in real time a tick's frames are drained or sent within its first few hundred
+        microseconds); a received frame keeps the adapter's own time stamp as well.
         """
-        head = self._fhead
-        mask = self._frame_mask
-        room = mask + 1 + self._ftail  # the head may go up to here without a look at the tail
-        now, tick, buf, base = self._now, self._tick, self._buf, self._frame_base
-        pack = _FRAME.pack_into
+        items = self._frame_items
+        now, tick = self._now, self._tick
         for entry in self._pending:
             if isinstance(entry, list):
-                if head + len(entry) > room:  # the ring looks full: the careful way
-                    head = self._flush_slowly(entry, head)
-                    room = mask + 1 + self._ftail
-                    continue
-                for frame in entry:
-                    data = frame.data
-                    pack(
-                        buf,
-                        base + (head & mask) * FRAME_ROW,
-                        now,
-                        tick,
-                        frame.arbitration_id,
-                        len(data) << 8,
-                        frame.timestamp_ns,
-                        data,
-                    )  # direction TAP_RX is 0
-                    head += 1
-            elif isinstance(entry, tuple):
-                if head >= room:
-                    head = self._flush_slowly([entry], head)
-                    room = mask + 1 + self._ftail
-                    continue
-                frame_id, payload, direction = entry
-                pack(
-                    buf,
-                    base + (head & mask) * FRAME_ROW,
-                    now,
-                    tick,
-                    frame_id,
-                    direction | len(payload) << 8,
-                    0,
-                    payload,
-                )
-                head += 1
-        self._pending.clear()
-        self._fhead = head
-
-    def _flush_slowly(self, entries: Sequence[Frame | tuple[int, bytes, int]], head: int) -> int:
-        """Frames when the ring looked full: one look at the writer's tail per frame, and
-        what does not fit is dropped and counted."""
-        mask = self._frame_mask
-        for i, entry in enumerate(entries):
-            if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask, len(entries) - i):
-                break
-            if isinstance(entry, Frame):
-                frame_id, data, meta, stamp = (
-                    entry.arbitration_id,
-                    entry.data,
-                    TAP_RX | len(entry.data) << 8,
-                    entry.timestamp_ns,
-                )
+                for frame_id, data, stamp, _ in entry:
+                    items += (now, tick, frame_id, len(data) << 8, stamp, data)  # TAP_RX is 0
             else:
                 frame_id, data, direction = entry
-                meta, stamp = direction | len(data) << 8, 0
+                items += (now, tick, frame_id, direction | len(data) << 8, 0, data)
+        self._pending.clear()
+        count = len(items) // _FRAME_ITEMS
+        head = self._fhead
+        mask = self._frame_mask
+        at = head & mask
+        if (
+            head + count - self._ftail <= mask + 1
+            and at + count <= mask + 1
+            and count <= _MAX_FRAMES_PACKED
+        ):
+            pack = self._frames_pack.get(count)
+            if pack is None:
+                pack = self._frames_pack[count] = struct.Struct(
+                    "<" + _FRAME_FORMAT * count
+                ).pack_into
+            pack(self._buf, self._frame_base + at * FRAME_ROW, *items)
+            self._fhead = head + count
+        else:  # the ring looks full, or the rows wrap round its end, or a great many
+            self._fhead = self._flush_slowly(items, head)
+        items.clear()
+
+    def _flush_slowly(self, items: list[Any], head: int) -> int:
+        """Frame rows one call each, with a look at the writer's tail when the ring looks
+        full: what does not fit is dropped and counted."""
+        mask = self._frame_mask
+        count = len(items) // _FRAME_ITEMS
+        for i in range(count):
+            if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask, count - i):
+                break
             _FRAME.pack_into(
                 self._buf,
                 self._frame_base + (head & mask) * FRAME_ROW,
-                self._now,
-                self._tick,
-                frame_id,
-                meta,
-                stamp,
-                data,
+                *items[i * _FRAME_ITEMS : (i + 1) * _FRAME_ITEMS],
             )
             head += 1
         return head

@@ -36,15 +36,16 @@ DROPPED_TICKS, DROPPED_FRAMES, DROPPED_EVENTS, DROPPED_POSES = 8, 9, 10, 11
 CLOSED = 12  # 1: the loop side closed the recorder on purpose
 CTL_WORDS = 16
 
-# Tick row, integer part: these columns, then feedback_ns per joint, then node state and
-# node fault bits per node.
+# Tick row, integer part: these columns, then node state and node fault bits per node, then
+# feedback_ns per joint. The columns and the node words are all plain ints, so the loop packs
+# them with one ``struct.pack_into``; feedback_ns is a numpy vector, copied as a buffer.
 I_TICK, I_SCHEDULED, I_NOW, I_MISSED, I_ACTIVE = 0, 1, 2, 3, 4
 I_STAGES = 5  # poll, recipe, safety, send
 N_STAGES = 4
 #: The names of those columns: the first loop stages, whose places never change.
 RECORDED_STAGES = STAGES[:N_STAGES]
 I_STATE, I_PHASE, I_FAULTS = 9, 10, 11
-I_FEEDBACK = 12
+I_NODES = 12
 # Tick row, float part: angle, tdt, desired, applied, n_joints each.
 
 # Frame row: t_ns, tick, arbitration id, direction | length << 8, bus time, then the data, in
@@ -99,7 +100,12 @@ class RingLayout:
 
     @property
     def tick_ints(self) -> int:
-        return I_FEEDBACK + self.n_joints + 2 * self.n_nodes
+        return I_NODES + 2 * self.n_nodes + self.n_joints
+
+    @property
+    def i_feedback(self) -> int:
+        """Where a tick row's feedback_ns column starts (after the node words)."""
+        return I_NODES + 2 * self.n_nodes
 
     @property
     def tick_floats(self) -> int:

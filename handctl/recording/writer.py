@@ -58,7 +58,7 @@ from handctl.recording.ring import (
     FRAME_HEAD,
     FRAME_TAIL,
     I_FAULTS,
-    I_FEEDBACK,
+    I_NODES,
     I_PHASE,
     I_STAGES,
     I_STATE,
@@ -81,11 +81,6 @@ CHUNK_NS = 50_000_000
 CHUNK_WALL_S = 0.05
 SYNC_EVERY_S = 1.0
 _LENGTH = struct.Struct("<I")
-#: Recorded channels written every tick or every frame: the live view serves them sampled
-#: (``handctl.foxglove.live``); the file keeps every message.
-LIVE_SAMPLED = frozenset(
-    {ch.TIMING, ch.JOINT_STATE, ch.TORQUE, ch.SAFETY, ch.PHASE, ch.CAN_RX, ch.CAN_TX}
-)
 
 
 class Encoder:
@@ -134,7 +129,6 @@ class Encoder:
                     ch.SCHEMA_ENCODING,
                     orjson.dumps(ch.schema_of(channel)),
                     ch.MESSAGE_ENCODING,
-                    sampled=channel.topic in LIVE_SAMPLED,
                 )
         self.derived: Derived | None = None
         try:
@@ -160,7 +154,6 @@ class Encoder:
                         derived.schema_encoding,
                         derived.schema_data,
                         derived.message_encoding,
-                        sampled=derived.per_tick,
                     )
         self.sequence = dict.fromkeys(self.channel.values(), 0)
         self.ticks = self.frames = self.events = self.poses = 0
@@ -307,7 +300,7 @@ class Encoder:
         rings.ctl[TICK_TAIL] = head
         n, m = self.n, self.m
         states, add, derived = self.states, self.add, self.derived
-        node_at = I_FEEDBACK + n
+        node_at, feedback_at = I_NODES, self.layout.i_feedback
         for r, f in zip(ints, floats, strict=True):
             k, scheduled, now, missed, active = r[0], r[1], r[2], r[3], r[4]
             timing: dict[str, Any] = {
@@ -325,7 +318,7 @@ class Encoder:
                 )
             add(ch.TIMING, now, timing)
             if active:
-                feedback = r[I_FEEDBACK:node_at]
+                feedback = r[feedback_at : feedback_at + n]
                 add(
                     ch.JOINT_STATE,
                     now,

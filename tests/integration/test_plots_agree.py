@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ..conftest import ROOT, DefaultRun
@@ -64,3 +65,28 @@ def test_run_and_replay_agree(default_run: DefaultRun, tmp_path: Path) -> None:
         assert pose["start"]["height_above_rest_m"] == pytest.approx(0.0, abs=2e-3)
     assert default_run.plot.stat().st_size > 10_000
     assert (tmp_path / "replay.png").stat().st_size > 10_000
+    # the two plots are one picture: the same panels, traces, legends and title, pixel for pixel
+    from matplotlib.image import imread
+
+    run_pixels, replay_pixels = imread(default_run.plot), imread(tmp_path / "replay.png")
+    assert run_pixels.shape == replay_pixels.shape
+    assert np.array_equal(run_pixels, replay_pixels)
+
+
+def test_the_plot_draws_the_estimated_turn_beside_the_true_one(default_run: DefaultRun) -> None:
+    """The estimator, run again on the logged angles, follows the true turn as the run's
+    summary says it did (its p95 error), sampled where the log has poses."""
+    from handctl.recording.plot import turns_deg
+    from handctl.recording.reader import open_recording
+    from handctl.recording.series import load_series
+
+    recording = open_recording(default_run.log)
+    turns = turns_deg(load_series(recording), recording)
+    assert list(turns) == ["cyl1/cyl2 true (simulation)", "cyl1/cyl2 estimated (joint angles)"]
+    (t_true, true), (t_est, estimated) = turns.values()
+    assert np.array_equal(t_true, t_est)
+    valid = np.isfinite(estimated)
+    assert valid.sum() > 0.5 * len(estimated)  # the estimate is valid once the cage closes
+    error = np.abs(estimated[valid] - true[valid])
+    p95 = default_run.summary["experiment"]["estimator_error_deg"]
+    assert float(np.percentile(error, 95)) <= p95 + 1.0, (np.percentile(error, 95), p95)
