@@ -165,6 +165,20 @@ def test_a_blind_pace_goes_back_while_the_joints_run_and_the_cage_is_open(
     assert runner.pace == 1.0
 
 
+def test_a_blind_brake_damps_while_the_joints_run_and_the_cage_is_open(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """With the estimate invalid, a brake with ``blind_joint_rate`` brakes on the joints'
+    speed (full at twice the rate); without it, on the pair's last rate (here at rest)."""
+    brake = {"rate_deg_s": 120, "joint_damping": 0.03}
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"brake": {**brake, "blind_joint_rate": 2.0}}), 9)
+    _run(runner, 0.0, 4 * RAMP, joint_speed=4.0, valid=False)
+    assert runner.damping == pytest.approx(0.03)
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"brake": brake}), 9)
+    _run(runner, 0.0, 4 * RAMP, joint_speed=4.0, valid=False)
+    assert runner.damping == 0.0
+
+
 @pytest.mark.parametrize(
     ("phases", "key"),
     [
@@ -176,6 +190,10 @@ def test_a_blind_pace_goes_back_while_the_joints_run_and_the_cage_is_open(
         (
             ({"paced_ramp": {"rate_deg_s": -90, "blind_joint_rate": -1}},),
             "phases[0].paced_ramp.blind_joint_rate",
+        ),
+        (
+            ({"brake": {"rate_deg_s": 90, "joint_damping": 0.03, "blind_joint_rate": 500}},),
+            "phases[0].brake.blind_joint_rate",
         ),
     ],
 )
@@ -207,3 +225,34 @@ def test_the_shipped_swap_exits_as_its_template_asks(hand: HandConfig) -> None:
         assert phase.turn_from == spec.turn_from == ("manipulate_1" if k > 1 else "")
         assert phase.stall is None and spec.stall is None
     assert turns[-1].exit_fraction == 0.94
+
+
+def test_a_compiled_phase_carries_the_template_s_switching(hand: HandConfig) -> None:
+    """``handctl plan`` writes ``turn_from`` with the exit on the turn since that phase
+    began, and a ``stall`` and the blind joint rates as the template gives them; the
+    planner's own episode of the phase keeps the exit on the phase's own turn."""
+    from dataclasses import replace
+
+    from handctl.online.recipes.schema import PacedRamp, TurnBrake, TurnStall
+    from handctl.planning.compile import PhasePlan, _compiled_phase, _phase_document
+    from handctl.planning.template import load_template
+
+    root = Path(__file__).resolve().parents[2] / "config" / "recipes"
+    template = load_template(root / "swap_two_cylinders.template.yaml", hand)
+    spec = next(p for p in template.phases if p.name == "manipulate_3")
+    spec = replace(
+        spec,
+        stall=TurnStall(math.radians(1.0), 0.3),
+        paced=PacedRamp(math.radians(-90.0), 1.0, 2.0, 0.0, 4.0),
+        brake=TurnBrake(math.radians(120.0), 0.03, 0.0, 3.0),
+    )
+    phase = _compiled_phase(spec, tuple(TORQUES), hand)
+    assert [c.text for c in phase.exits] == [spec.exit_condition()]
+    assert phase.exits[0].value == pytest.approx(math.radians(-45.0) * 0.95, abs=1e-4)
+    doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand)
+    assert doc["turn_from"] == "manipulate_1"
+    assert doc["exit"] == [spec.recipe_exit_condition()]
+    assert "-2.2384" in doc["exit"][0]
+    assert doc["stall"] == {"turn_deg": 1.0, "window_s": 0.3}
+    assert doc["paced_ramp"]["blind_joint_rate"] == 4.0
+    assert doc["brake"]["blind_joint_rate"] == 3.0
