@@ -28,6 +28,13 @@ Feedback, all of it from the angles and the estimates computed from them:
   phase's torque to this one's at a pace set by the pair (``_pace_step``): on while it
   turns slower than wanted, back while faster. The previous phase's torque brought the
   pair to where this phase begins, so between the two lies a torque that turns it slowly.
+- ``blind_joint_rate`` (of a ``paced_ramp`` or a ``brake``): while the pair's estimate is
+  invalid, the fastest joint against that rate in place of the pair's last rate, which
+  says nothing about a pair swept along the palm with its cage open.
+- ``turn_from``: a phase's exits read the turn from where the pair was when an earlier
+  phase began (the paper switches on where the pair is, so what one phase left undone
+  the next takes up); ``stall``: a phase ends once its torque is fully in and the turn
+  has stopped moving (``_stalled``).
 - ``joint_damping``: ``-joint_damping * velocity`` on every joint (the velocities filtered
   from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
   least (a tendon's losses are not measured to a factor of three), and in a turn it sets how
@@ -101,8 +108,9 @@ class RecipeRunner:
             {c.index for p in recipe.phases for c in (*p.exits, *p.aborts) if c.relative}
         )
         names = [p.name for p in recipe.phases]
-        self._turn_from = [names.index(p.turn_from) if p.turn_from else k
-                           for k, p in enumerate(recipe.phases)]
+        self._turn_from = [
+            names.index(p.turn_from) if p.turn_from else k for k, p in enumerate(recipe.phases)
+        ]
         # the stall detector: the turn and the time it last moved by more than its ``turn``
         self._stall_turn = math.nan
         self._stall_t = math.nan
