@@ -143,6 +143,15 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     }
     if phase.exits:
         doc["exit"] = [c.text for c in phase.exits]
+    if plan.spec.turn_from:
+        # the episodes exit on the phase's own turn; the recipe on the turn since turn_from
+        doc["turn_from"] = plan.spec.turn_from
+        doc["exit"] = [plan.spec.recipe_exit_condition()]
+    if phase.stall is not None:
+        doc["stall"] = {
+            "turn_deg": round(math.degrees(phase.stall.turn), 6),
+            "window_s": phase.stall.window_s,
+        }
     if phase.turn_rate is not None:
         loop = phase.turn_rate
         doc["turn_rate"] = {
@@ -166,6 +175,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
         }
         if phase.brake.joint_rate > 0.0:
             doc["brake"]["joint_rate"] = phase.brake.joint_rate
+        if phase.brake.blind_joint_rate > 0.0:
+            doc["brake"]["blind_joint_rate"] = phase.brake.blind_joint_rate
     if phase.paced is not None:
         paced = phase.paced
         doc["paced_ramp"] = {
@@ -175,6 +186,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
         }
         if paced.joint_rate > 0.0:
             doc["paced_ramp"]["joint_rate"] = paced.joint_rate
+        if paced.blind_joint_rate > 0.0:
+            doc["paced_ramp"]["blind_joint_rate"] = paced.blind_joint_rate
     if phase.torque_margin != 1.0:
         doc["torque_margin"] = phase.torque_margin
     doc["provenance"] = plan.provenance
@@ -253,6 +266,7 @@ def _compiled_phase(
         brake=spec.brake,
         paced=spec.paced,
         torque_margin=spec.torque_margin,
+        stall=spec.stall,
     )
 
 

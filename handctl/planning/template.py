@@ -20,7 +20,7 @@ name the file and key path.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from handctl.config import HandConfig
@@ -32,6 +32,7 @@ from handctl.online.recipes.loader import (
     parse_min_total_turn,
     parse_objects,
     parse_paced_ramp,
+    parse_stall,
     parse_torque_margin,
     parse_turn_rate,
 )
@@ -41,6 +42,7 @@ from handctl.online.recipes.schema import (
     RecipeObject,
     TurnBrake,
     TurnRate,
+    TurnStall,
     consecutive_pairs,
     estimate_names,
 )
@@ -73,14 +75,33 @@ class TemplatePhase:
     #: a turn phase's ramp paced by the pair's turn rate, carried likewise
     paced: PacedRamp | None = None
     torque_margin: float = 1.0  # the recipe's torques times this when run, carried likewise
+    #: a turn phase whose recipe exit reads the turn from where this earlier phase began
+    #: (``schema.Phase.turn_from``), carried likewise; "": its own start
+    turn_from: str = ""
+    #: rad, what the phases from ``turn_from`` up to this one (this one excluded) ask to turn
+    from_turn: float = 0.0
+    stall: TurnStall | None = None  # the end of a turn phase that stopped turning, carried
 
     def exit_condition(self) -> str:
-        """The compiled exit of a turn phase: on the estimated turn of the first pair since
-        the phase began."""
+        """The exit of a turn phase in the planner's episodes: on the estimated turn of the
+        first pair since the phase began (an episode runs one phase from where the last
+        left the pair)."""
         op = "<" if self.turn < 0 else ">"
         return (
             f"estimate.{self.estimates[FIRST_PAIR_TURN]} {op} "
             f"{self.turn * self.exit_fraction:.4f} for {self.exit_hold_s:g}"
+        )
+
+    def recipe_exit_condition(self) -> str:
+        """The compiled recipe's exit of a turn phase: with ``turn_from``, on the turn since
+        that phase began, to ``exit_fraction`` of all the phases from there to this one
+        ask; else as ``exit_condition``."""
+        if not self.turn_from:
+            return self.exit_condition()
+        op = "<" if self.turn < 0 else ">"
+        return (
+            f"estimate.{self.estimates[FIRST_PAIR_TURN]} {op} "
+            f"{(self.turn + self.from_turn) * self.exit_fraction:.4f} for {self.exit_hold_s:g}"
         )
 
 
@@ -125,10 +146,30 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         _phase(p, hand, names, estimates) for p in doc.mappings("phases", min_len=1, max_len=32)
     )
     check_unique_names(doc, [p.name for p in phases])
+    phases = _resolve_turn_from(doc, phases)
     doc.done()
     return Template(
         doc.file, recipe, description, tuple(objects), end_ramp, search, phases, band, min_turn
     )
+
+
+def _resolve_turn_from(doc: Doc, phases: tuple[TemplatePhase, ...]) -> tuple[TemplatePhase, ...]:
+    """Each ``turn_from`` checked to name this or an earlier turn phase, and the turn the
+    phases from there up to this one ask for (its exit's share of the way)."""
+    out = list(phases)
+    for i, phase in enumerate(phases):
+        if not phase.turn_from:
+            continue
+        earlier = [p.name for p in phases[: i + 1] if p.kind == "turn"]
+        if phase.turn_from not in earlier:
+            doc.fail(
+                f"phases[{i}].turn_from",
+                "the name of this or an earlier turn phase (" + ", ".join(earlier) + ")",
+                phase.turn_from,
+            )
+        start = next(k for k, p in enumerate(phases) if p.name == phase.turn_from)
+        out[i] = replace(phase, from_turn=sum(p.turn for p in phases[start:i]))
+    return tuple(out)
 
 
 def _search(doc: Doc) -> SearchSettings:
@@ -227,6 +268,8 @@ def _phase(
         min_height = doc.number("min_height", min=0.0, max=0.2, unit="m")
     turn_rate = None
     paced = None
+    turn_from = ""
+    stall = None
     if kind == "turn":
         if len(objects) < 2:
             doc.fail(
@@ -243,6 +286,8 @@ def _phase(
             turn_rate = parse_turn_rate(doc.mapping("turn_rate"), math.copysign(1.0, turn))
         if doc.has("paced_ramp"):
             paced = parse_paced_ramp(doc.mapping("paced_ramp"), math.copysign(1.0, turn))
+        turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
+        stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
     stiffness: float | None = None
     damping = 0.0
     if kind == "free" and doc.has("pose"):
@@ -273,4 +318,6 @@ def _phase(
         brake,
         paced,
         margin,
+        turn_from,
+        stall=stall,
     )

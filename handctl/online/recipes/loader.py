@@ -29,6 +29,7 @@ from handctl.online.recipes.schema import (
     TimeoutAction,
     TurnBrake,
     TurnRate,
+    TurnStall,
     consecutive_pairs,
     estimate_names,
     parse_condition,
@@ -102,10 +103,19 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     )
     check_unique_names(doc, [p.name for p in phases])
     for i, phase in enumerate(phases):
+        earlier = [p.name for p in phases[: i + 1]]
+        if phase.turn_from and phase.turn_from not in earlier:
+            raise ConfigError(
+                doc.file,
+                f"phases[{i}].turn_from",
+                "the name of this phase or an earlier one (" + ", ".join(earlier) + ")",
+                phase.turn_from,
+            )
         for key, loop in (
             ("turn_rate", phase.turn_rate),
             ("brake", phase.brake),
             ("paced_ramp", phase.paced),
+            ("stall", phase.stall),
         ):
             if loop is not None and not pairs:
                 raise ConfigError(
@@ -248,6 +258,8 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
     if paced is not None and ramp <= 0:
         doc.fail("ramp_s", "a ramp longer than 0 s (the paced_ramp moves at its speed)", ramp)
     margin = parse_torque_margin(doc)
+    turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
+    stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
     provenance = doc.raw("provenance", {})
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
@@ -267,7 +279,19 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
         brake,
         paced,
         margin,
+        turn_from,
+        stall,
     )
+
+
+def parse_stall(doc: Doc) -> TurnStall:
+    """``stall`` of a recipe's or a template's phase (``schema.TurnStall``): ``turn_deg``
+    (deg, > 0), the least the pair must turn within ``window_s`` (s, > 0) once the
+    phase's torque is fully in, or the phase ends."""
+    turn = doc.number("turn_deg", min=0.0, max=45.0, min_exclusive=True, unit="deg")
+    window = doc.number("window_s", min=0.0, max=60.0, min_exclusive=True, unit="s")
+    doc.done()
+    return TurnStall(math.radians(turn), window)
 
 
 def parse_torque_margin(doc: Doc) -> float:
@@ -288,7 +312,8 @@ def parse_brake(doc: Doc) -> TurnBrake:
     """``brake`` of a recipe's or a template's phase (``schema.TurnBrake``): ``rate_deg_s``,
     the turn rate above which it acts, and ``joint_damping`` (N·m·s/rad), reached at twice
     that rate; ``joint_rate`` (rad/s, optional), the joint speed above which it acts as
-    well."""
+    well; ``blind_joint_rate`` (rad/s, optional), the joint speed above which it acts while
+    the pair's estimate is invalid, in place of the pair's last rate."""
     rate = doc.number(
         "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
     )
@@ -296,8 +321,11 @@ def parse_brake(doc: Doc) -> TurnBrake:
         "joint_damping", min=0.0, max=MAX_JOINT_DAMPING, min_exclusive=True, unit="N·m·s/rad"
     )
     joint_rate = doc.number("joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
+    blind = doc.number(
+        "blind_joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s"
+    )
     doc.done()
-    return TurnBrake(math.radians(rate), damping, joint_rate)
+    return TurnBrake(math.radians(rate), damping, joint_rate, blind)
 
 
 def _signed_rate(doc: Doc, sign: float | None) -> float:
@@ -319,15 +347,19 @@ def parse_paced_ramp(doc: Doc, sign: float | None = None) -> PacedRamp:
     """``paced_ramp`` of a phase (``schema.PacedRamp``): ``rate_deg_s`` (signed, the wanted
     direction; a template gives its magnitude and the turn's sign as ``sign``), ``reach``
     (the furthest fraction along the segment, 1 by default) and ``back`` (how many times the
-    ramp's speed it may go back at, 2 by default), and ``joint_rate`` (rad/s, the fastest a
+    ramp's speed it may go back at, 2 by default), ``joint_rate`` (rad/s, the fastest a
     joint may move before the torque goes back as well; 0, the default: the pair's rate
-    alone)."""
+    alone) and ``blind_joint_rate`` (rad/s, the same while the pair's estimate is invalid,
+    in place of the pair's last rate; 0, the default: the last rate holds)."""
     rate = _signed_rate(doc, sign)
     reach = doc.number("reach", default=1.0, min=1.0, max=MAX_REACH)
     back = doc.number("back", default=2.0, min=0.0, max=MAX_BACK, min_exclusive=True)
     joint_rate = doc.number("joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
+    blind = doc.number(
+        "blind_joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s"
+    )
     doc.done()
-    return PacedRamp(math.radians(rate), reach, back, joint_rate)
+    return PacedRamp(math.radians(rate), reach, back, joint_rate, blind)
 
 
 def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:

@@ -28,6 +28,13 @@ Feedback, all of it from the angles and the estimates computed from them:
   phase's torque to this one's at a pace set by the pair (``_pace_step``): on while it
   turns slower than wanted, back while faster. The previous phase's torque brought the
   pair to where this phase begins, so between the two lies a torque that turns it slowly.
+- ``blind_joint_rate`` (of a ``paced_ramp`` or a ``brake``): while the pair's estimate is
+  invalid, the fastest joint against that rate in place of the pair's last rate, which
+  says nothing about a pair swept along the palm with its cage open.
+- ``turn_from``: a phase's exits read the turn from where the pair was when an earlier
+  phase began (the paper switches on where the pair is, so what one phase left undone
+  the next takes up); ``stall``: a phase ends once its torque is fully in and the turn
+  has stopped moving (``_stalled``).
 - ``joint_damping``: ``-joint_damping * velocity`` on every joint (the velocities filtered
   from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
   least (a tendon's losses are not measured to a factor of three), and in a turn it sets how
@@ -94,8 +101,19 @@ class RecipeRunner:
         self._desired = np.zeros(n_joints)
         self._ramp_s = 0.0
         self._held_since: dict[int, float] = {}
-        # first finite value of each phase-relative estimate in the current phase, by index
-        self._phase_ref: dict[int, float] = {}
+        # per phase, the first finite value of each phase-relative estimate while it ran, by
+        # index: a phase's exits read the turn from its own start or an earlier phase's
+        self._refs: list[dict[int, float]] = [{} for _ in recipe.phases]
+        self._relative = sorted(
+            {c.index for p in recipe.phases for c in (*p.exits, *p.aborts) if c.relative}
+        )
+        names = [p.name for p in recipe.phases]
+        self._turn_from = [
+            names.index(p.turn_from) if p.turn_from else k for k, p in enumerate(recipe.phases)
+        ]
+        # the stall detector: the turn and the time it last moved by more than its ``turn``
+        self._stall_turn = math.nan
+        self._stall_t = math.nan
         self._started = False
         self._guard = recipe.limit_guard
         self._guarded = np.zeros(n_joints)
@@ -113,6 +131,9 @@ class RecipeRunner:
         self.scale = 1.0
         self._scale_i = 1.0
         self.turn_rate = 0.0  # rad/s, estimated, low-passed
+        # whether the pair's estimate was invalid this tick (its cage open): ``turn_rate``
+        # is then the last one seen, not the pair's present rate
+        self.blind = False
         self._turn_last = math.nan
         self._turn_t = math.nan
         self._turn_dt = 0.0
@@ -152,9 +173,10 @@ class RecipeRunner:
         self.phase_start = t
         self._damping_from = self.damping
         self._held_since.clear()
-        self._phase_ref.clear()
+        self._stall_turn = self._stall_t = math.nan
         self.scale = self._scale_i = 1.0
         self.turn_rate = 0.0
+        self.blind = False
         self._turn_last = self._turn_t = math.nan
         self.pace = 0.0
         self._pace_t = t
@@ -197,6 +219,8 @@ class RecipeRunner:
         elapsed = t - self.phase_start
         if self.status is RunStatus.RUNNING:
             phase = self.recipe.phases[self.index]
+            if estimates is not None:
+                self._note_references(estimates)
             for k, cond in enumerate(phase.aborts):
                 if self._held(1000 + k, cond, t, elapsed, angle, tdt, estimates):
                     self.abort(t, f"abort: {cond.text}")
@@ -209,6 +233,11 @@ class RecipeRunner:
                 ),
                 None,
             )
+            if reason is None and phase.stall is not None and self._stalled(t, elapsed, estimates):
+                reason = (
+                    f"stalled: turned less than {math.degrees(phase.stall.turn):g} deg"
+                    f" in {phase.stall.window_s:g} s"
+                )
             if reason is None and elapsed >= phase.max_s:
                 if phase.on_timeout is TimeoutAction.ABORT:
                     self.abort(t, f"timeout: phase '{phase.name}' ran {phase.max_s:g} s")
@@ -243,7 +272,11 @@ class RecipeRunner:
             fresh = self._follow_turn(t, estimates)
         if phase is not None and phase.brake is not None:
             brake = phase.brake
-            over = (abs(self.turn_rate) - brake.rate) / brake.rate
+            if self.blind and brake.blind_joint_rate > 0.0:
+                blind = brake.blind_joint_rate
+                over = (self._fastest_joint() - blind) / blind
+            else:
+                over = (abs(self.turn_rate) - brake.rate) / brake.rate
             if brake.joint_rate > 0.0:
                 fastest = self._fastest_joint()
                 over = max(over, (fastest - brake.joint_rate) / brake.joint_rate)
@@ -288,7 +321,8 @@ class RecipeRunner:
         """One step of the estimated centre-line rate (``turn_rate``, rad/s); False when there
         was no new valid sample to take."""
         turn = float(estimates[_TURN]) if estimates is not None else math.nan
-        if not math.isfinite(turn):
+        self.blind = not math.isfinite(turn)
+        if self.blind:
             self._turn_last = math.nan  # the rate restarts from the next valid estimate
             return False
         dt = t - self._turn_t
@@ -301,6 +335,40 @@ class RecipeRunner:
         self._turn_dt = dt
         return True
 
+    def _note_references(self, estimates: Sequence[float]) -> None:
+        """Keep the first finite value of every phase-relative estimate in this phase, for
+        its own exits and for those of later phases that read the turn from it."""
+        refs = self._refs[self.index]
+        for i in self._relative:
+            if i not in refs:
+                value = float(estimates[i])
+                if math.isfinite(value):
+                    refs[i] = value
+
+    def _reference(self, index: int) -> float | None:
+        """Where a phase-relative estimate is read from: its first finite value since the
+        phase ``turn_from`` names began (this phase's own start by default)."""
+        for k in range(self._turn_from[self.index], self.index + 1):
+            ref = self._refs[k].get(index)
+            if ref is not None:
+                return ref
+        return None
+
+    def _stalled(self, t: float, elapsed: float, estimates: Sequence[float] | None) -> bool:
+        """Whether the pair has turned less than the phase's ``stall.turn`` for its
+        ``window_s`` with the phase's torque fully in. A tick without a valid estimate, or
+        with the torque still coming in, starts the window again: a stall is measured, never
+        assumed."""
+        phase = self.recipe.phases[self.index]
+        stall = phase.stall
+        assert stall is not None
+        turn = float(estimates[_TURN]) if estimates is not None else math.nan
+        full = elapsed >= self._ramp_s and (phase.paced is None or self.pace >= phase.paced.reach)
+        if not (full and math.isfinite(turn)) or not abs(turn - self._stall_turn) <= stall.turn:
+            self._stall_turn, self._stall_t = turn, t
+            return False
+        return t - self._stall_t >= stall.window_s - 1e-12
+
     def _fastest_joint(self) -> float:
         """rad/s, the speed of the fastest joint: what a brake's or a paced ramp's
         ``joint_rate`` is compared with."""
@@ -312,14 +380,21 @@ class RecipeRunner:
         way), back at up to ``back`` times that while it turns faster, in proportion
         between. The pair's rate is the last one estimated (it holds while the estimate is
         invalid). With ``joint_rate`` the fastest joint counts as well, whichever is the
-        further over: the joints are measured every tick, also while the cage is open."""
+        further over: the joints are measured every tick, also while the cage is open.
+        With ``blind_joint_rate``, while the estimate is invalid the fastest joint against
+        that rate replaces the pair's last rate: a pair swept along the palm opens its
+        cage, and the rate seen before (often a small turn the wrong way, which reads as
+        slow) says nothing about the sweep."""
         dt = t - self._pace_t
         self._pace_t = t
         if not dt > 0.0:
             return
-        wanted = abs(paced.rate)
-        along = self.turn_rate if paced.rate > 0 else -self.turn_rate
-        error = (wanted - along) / wanted
+        if self.blind and paced.blind_joint_rate > 0.0:
+            error = (paced.blind_joint_rate - self._fastest_joint()) / paced.blind_joint_rate
+        else:
+            wanted = abs(paced.rate)
+            along = self.turn_rate if paced.rate > 0 else -self.turn_rate
+            error = (wanted - along) / wanted
         if paced.joint_rate > 0.0:
             fastest = self._fastest_joint()
             error = min(error, (paced.joint_rate - fastest) / paced.joint_rate)
@@ -371,11 +446,9 @@ class RecipeRunner:
                 return False
             value = float(estimates[cond.index])
             if cond.relative:
-                ref = self._phase_ref.get(cond.index)
+                ref = self._reference(cond.index)
                 if ref is None:
-                    if not math.isfinite(value):
-                        return False
-                    ref = self._phase_ref[cond.index] = value
+                    return False
                 value -= ref
         if not cond.holds(value):
             self._held_since.pop(key, None)

@@ -125,6 +125,9 @@ class TurnBrake:
     #: rad/s: also while the fastest joint moves faster than this (full at twice it); 0:
     #: on the pair's rate alone
     joint_rate: float = 0.0
+    #: rad/s: while the pair's estimate is invalid (its cage open), the fastest joint
+    #: against this in place of the pair's last rate; 0: the last rate holds
+    blind_joint_rate: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -147,6 +150,24 @@ class PacedRamp:
     #: rad/s, the fastest any joint may move before the torque goes back as well; 0: the
     #: pair's rate alone
     joint_rate: float = 0.0
+    #: rad/s: while the pair's estimate is invalid (its cage open), the fastest joint
+    #: against this sets the pace instead of the pair's last rate; 0: the last rate holds
+    blind_joint_rate: float = 0.0
+
+
+@dataclass(frozen=True)
+class TurnStall:
+    """A turn phase that ends when the pair has stopped turning (``runner.py``): once the
+    phase's torque is fully in (its ramp done, a paced ramp at its ``reach``), the first
+    pair's estimated turn moving less than ``turn`` either way for ``window_s``.
+
+    Why: a torque that has stopped turning the pair will not start again by being held
+    (the pair rests against what resists it), so holding it to the phase's ``max_s`` only
+    spends time; the next phase, whose exit reads the turn from an earlier phase
+    (``Phase.turn_from``), takes up what this one left."""
+
+    turn: float  # rad, > 0
+    window_s: float  # s, > 0
 
 
 @dataclass(frozen=True)
@@ -181,6 +202,11 @@ class Phase:
     #: the runner applies ``torques`` times this (>= 1): headroom in the lift and the hold
     #: for objects heavier than the plan's models (docs/experiment.md); 1: the plan's own
     torque_margin: float = 1.0
+    #: the name of this or an earlier phase: the phase's exits read a ``line_turn`` from
+    #: where the pair was when that phase began, not this one (the paper's switching on the
+    #: pair's measured position, whatever an earlier phase left undone); "": this phase
+    turn_from: str = ""
+    stall: TurnStall | None = None
 
 
 @dataclass(frozen=True)
@@ -240,6 +266,7 @@ class Recipe:
     def uses_estimates(self) -> bool:
         return any(
             p.turn_rate is not None or p.brake is not None or p.paced is not None
+            or p.stall is not None
             for p in self.phases
         ) or any(c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
 
