@@ -90,6 +90,13 @@ STILL_TIME_CONSTANT = 0.02
 #: relative: how far a fitted radius may go from the recipe's. Beyond this it is another
 #: object, or a cage the object does not fill; the fit stops at the bound.
 RADIUS_RANGE = 0.4
+#: m: once an object's radius is measured, a cage this much larger than the object is loose,
+#: and the object is not located by it (it lies anywhere in the slack, where the deepest point
+#: is only the middle): its estimate is invalid. Soft contacts sink in; they do not open.
+LOOSE_CLEARANCE = 0.0005
+#: ticks of fitting after which an object's radius counts as measured (``LOOSE_CLEARANCE``):
+#: a few of the fit's time constants
+MEASURED_TICKS = 150
 #: m, a track whose best clearance exceeds this has left every cage: restart from the seeds.
 #: (A track deep in the links is not restarted: the seeds may be in the links themselves, and
 #: the ascent takes it out of a pocket too small for it as soon as the pocket changes.)
@@ -198,6 +205,7 @@ class ObjectEstimator:
         self.closed = [False] * m
         #: m/s, each estimated centre's speed, low-passed (``STILL_TIME_CONSTANT``)
         self.speed = [math.inf] * m
+        self._fitted = [0] * m  # ticks each radius has been fitted, up to MEASURED_TICKS
         self.valid = False
         self._turn = [NAN] * p  # rad, each pair's unwrapped centre-line angle (running)
         self._last_angle = [NAN] * p
@@ -277,7 +285,10 @@ class ObjectEstimator:
             self._track(index, segs)
         if all(self.closed) and max(self.speed) < STILL_SPEED:
             self._fit_radii()
-        self.valid = all(self.caged) and all(abs(c) <= VALID_CLEARANCE for c in self.clearance)
+        self.valid = all(self.caged) and all(
+            abs(c) <= VALID_CLEARANCE and (c <= LOOSE_CLEARANCE or n < MEASURED_TICKS)
+            for c, n in zip(self.clearance, self._fitted, strict=True)
+        )
         if not self.valid:
             self.last = (NAN,) * len(self.estimates)
             return self.last
@@ -349,6 +360,7 @@ class ObjectEstimator:
             radius = self.radii[i] + RADIUS_GAIN * clearance
             low, high = nominal * (1.0 - RADIUS_RANGE), nominal * (1.0 + RADIUS_RANGE)
             self.radii[i] = min(high, max(low, radius))
+            self._fitted[i] = min(MEASURED_TICKS, self._fitted[i] + 1)
 
 
 def _seed_offsets(radii: Sequence[float]) -> list[float]:

@@ -98,6 +98,27 @@ def test_the_radius_is_not_fitted_while_the_cage_moves(hand: HandConfig) -> None
     assert est.radii == pytest.approx([R, R], abs=2e-5)
 
 
+def test_a_cage_looser_than_the_measured_object_does_not_place_it(hand: HandConfig) -> None:
+    """Measured in a cage narrowed by finger 3's distal link (16.25 mm), cylinder 2 is then
+    left in the square cage of 17.5 mm. While that cage moves it does not hold the cylinder:
+    it lies anywhere in the slack, and the deepest point is a guess, so the estimate is
+    invalid though the cage is closed round it. Held still, the cage is taken for its size."""
+    est = ObjectEstimator(boxed_hand(hand), PAIR)
+    settle(est, BOX_ANGLES, 1000)
+    narrow = list(BOX_ANGLES)
+    narrow[8] -= 0.1
+    settle(est, narrow, 1000)
+    assert est.radii[1] == pytest.approx(R - 0.00125, abs=5e-5)
+    for _ in range(50):
+        est(BOX_ANGLES)
+        assert not est.valid
+    assert est.caged[1]
+    assert est.clearance[1] > 0.001
+    settle(est, BOX_ANGLES, 1000)
+    assert est.valid
+    assert est.radii[1] == pytest.approx(R, abs=2e-5)
+
+
 def test_a_cage_far_larger_than_the_object_is_not_its_size(hand: HandConfig) -> None:
     """A cylinder half the size of its cage: the cage is another object's, or one the
     cylinder does not fill; the radius is not fitted to it, and the estimate is invalid."""
