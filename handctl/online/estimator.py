@@ -24,8 +24,9 @@ the deepest point is pulled off the object where a cylinder's cage is partly the
 cylinder, and the cage test fails on a clearance that is not the same at every wall. At the
 deepest point of a closed cage every tight wall is the same clearance away, so a squeezed
 object is that much larger than its radius says: each object's radius is moved towards it
-(``_fit_radii``), slowly, within ±``RADIUS_RANGE`` of the recipe's, and only while every
-object's cage is closed and every estimate is still (``STILL_SPEED``). A grasp held still is
+(``_fit_radii``), slowly, within ±``RADIUS_RANGE`` of the recipe's (the recipe's kept
+within ``RADIUS_TOLERANCE``), and only while every object's cage is closed and every
+estimate is still (``STILL_SPEED``). A grasp held still is
 squeezed into its cages; one moving through the hand is not, and a loose cage's deepest
 point is not the object's size. The radii are kept when the grasp moves on, so the centres
 and the centre line of a turn are placed with the radii the hold measured.
@@ -87,6 +88,11 @@ RADIUS_GAIN = 0.02
 STILL_SPEED = 0.01
 #: s, the low-pass of each estimated centre's speed that ``STILL_SPEED`` is compared with
 STILL_TIME_CONSTANT = 0.02
+#: m: a measured radius this close to the recipe's does not replace it. The measurement is
+#: no better than that: soft contacts sink in a few tenths of a millimetre, and two cylinders
+#: caged partly by each other leave the split of their sizes as uncertain. Within it the
+#: recipe's radius is the better estimate.
+RADIUS_TOLERANCE = 0.0005
 #: relative: how far a fitted radius may go from the recipe's. Beyond this it is another
 #: object, or a cage the object does not fill; the fit stops at the bound.
 RADIUS_RANGE = 0.4
@@ -199,6 +205,8 @@ class ObjectEstimator:
         self.centres: list[tuple[float, float]] = list(self._seeds)
         #: m, each object's radius as its cages measure it (``_fit_radii``)
         self.radii: list[float] = list(self.nominal_radii)
+        #: m, each object's radius as its cages measure it, before ``RADIUS_TOLERANCE``
+        self.measured_radii: list[float] = list(self.nominal_radii)
         self.clearance = [NAN] * m  # m, each object's best clearance at its estimate
         self.caged = [False] * m
         #: whether each object's three tightest walls surround it (a closed cage)
@@ -286,8 +294,11 @@ class ObjectEstimator:
         if all(self.closed) and max(self.speed) < STILL_SPEED:
             self._fit_radii()
         self.valid = all(self.caged) and all(
-            abs(c) <= VALID_CLEARANCE and (c <= LOOSE_CLEARANCE or n < MEASURED_TICKS)
-            for c, n in zip(self.clearance, self._fitted, strict=True)
+            abs(c) <= VALID_CLEARANCE
+            and (c + r - measured <= LOOSE_CLEARANCE or n < MEASURED_TICKS)
+            for c, r, measured, n in zip(
+                self.clearance, self.radii, self.measured_radii, self._fitted, strict=True
+            )
         )
         if not self.valid:
             self.last = (NAN,) * len(self.estimates)
@@ -357,9 +368,17 @@ class ObjectEstimator:
             clearance = self.clearance[i]
             if not abs(clearance) <= RADIUS_RANGE * nominal:
                 continue
-            radius = self.radii[i] + RADIUS_GAIN * clearance
+            measured = self.measured_radii[i]
+            measured += RADIUS_GAIN * (self.radii[i] + clearance - measured)
             low, high = nominal * (1.0 - RADIUS_RANGE), nominal * (1.0 + RADIUS_RANGE)
-            self.radii[i] = min(high, max(low, radius))
+            measured = self.measured_radii[i] = min(high, max(low, measured))
+            # the measurement replaces the recipe's once it is further off than its own
+            # uncertainty, and gives way to it again only well within it (no flicker)
+            off = abs(measured - nominal)
+            if off > RADIUS_TOLERANCE or (self.radii[i] != nominal and off > RADIUS_TOLERANCE / 2):
+                self.radii[i] = measured
+            else:
+                self.radii[i] = nominal
             self._fitted[i] = min(MEASURED_TICKS, self._fitted[i] + 1)
 
 
