@@ -18,6 +18,19 @@ the Chebyshev centre of the free space, and it is the right estimate for three r
 - an object that is *not* caged (on the table, the hand open) has no bounded maximiser: the
   clearance grows and the estimate is reported invalid (NaN), which no exit condition accepts.
 
+The radius is measured as well as the centre. A real cylinder is seldom the recipe's: ±20 %
+moves the clearance at each link by up to 4 mm, and by twice that between two cylinders, so
+the deepest point is pulled off the object where a cylinder's cage is partly the other
+cylinder, and the cage test fails on a clearance that is not the same at every wall. At the
+deepest point of a closed cage every tight wall is the same clearance away, so a squeezed
+object is that much larger than its radius says: each object's radius is moved towards it
+(``_fit_radii``), slowly, within ±``RADIUS_RANGE`` of the recipe's (the recipe's kept
+within ``RADIUS_TOLERANCE``), and only while every object's cage is closed and every
+estimate is still (``STILL_SPEED``). A grasp held still is
+squeezed into its cages; one moving through the hand is not, and a loose cage's deepest
+point is not the object's size. The radii are kept when the grasp moves on, so the centres
+and the centre line of a turn are placed with the radii the hold measured.
+
 The maximisation is tracked rather than solved from scratch, because it must fit in a tick:
 each tick takes one active-set step per object from the previous estimate, with the other
 objects fixed (the three tightest distinct clearances, linearised; the step that equalises them
@@ -62,9 +75,34 @@ NAN = float("nan")
 MAX_STEP = 0.002
 #: m, an object whose best clearance is further from zero than this is not held by its cage
 #: (too loose, or the estimate sits in a pocket too small for it): its estimate is invalid. It
-#: covers the nominal radius being 10 % off and the few tenths of a millimetre soft contacts
-#: sink in.
+#: covers a radius 20 % off before the fit has measured it and the few tenths of a millimetre
+#: soft contacts sink in.
 VALID_CLEARANCE = 0.004
+#: the most a fitted radius moves towards the one the cage measures, per tick, as a fraction
+#: of the difference: 50 ticks (50 ms at 1 kHz) to take up most of it, so the encoder's
+#: counts and a contact's momentary slip average out.
+RADIUS_GAIN = 0.02
+#: m/s: the radii are fitted only while every estimated centre moves slower than this. A grasp
+#: held still is squeezed into its cages; an object moving through the hand is not, and in a
+#: loose cage the deepest point is not where the object is.
+STILL_SPEED = 0.01
+#: s, the low-pass of each estimated centre's speed that ``STILL_SPEED`` is compared with
+STILL_TIME_CONSTANT = 0.02
+#: m: a measured radius this close to the recipe's does not replace it. The measurement is
+#: no better than that: soft contacts sink in a few tenths of a millimetre, and two cylinders
+#: caged partly by each other leave the split of their sizes as uncertain. Within it the
+#: recipe's radius is the better estimate.
+RADIUS_TOLERANCE = 0.0005
+#: relative: how far a fitted radius may go from the recipe's. Beyond this it is another
+#: object, or a cage the object does not fill; the fit stops at the bound.
+RADIUS_RANGE = 0.4
+#: m: once an object's radius is measured, a cage this much larger than the object is loose,
+#: and the object is not located by it (it lies anywhere in the slack, where the deepest point
+#: is only the middle): its estimate is invalid. Soft contacts sink in; they do not open.
+LOOSE_CLEARANCE = 0.0005
+#: ticks of fitting after which an object's radius counts as measured (``LOOSE_CLEARANCE``):
+#: a few of the fit's time constants
+MEASURED_TICKS = 150
 #: m, a track whose best clearance exceeds this has left every cage: restart from the seeds.
 #: (A track deep in the links is not restarted: the seeds may be in the links themselves, and
 #: the ascent takes it out of a pocket too small for it as soon as the pocket changes.)
@@ -104,7 +142,8 @@ class ObjectEstimator:
                 f"the estimator tracks 1 to {MAX_OBJECTS} objects, found {len(objects)}"
             )
         self.names = tuple(o.name for o in objects)
-        self.radii = tuple(float(o.radius) for o in objects)
+        #: m, the recipe's radii: where the fit starts and what bounds it
+        self.nominal_radii = tuple(float(o.radius) for o in objects)
         self.pairs: tuple[Pair, ...] = (
             tuple(pairs) if pairs is not None else consecutive_pairs(len(objects))
         )
@@ -119,6 +158,9 @@ class ObjectEstimator:
             for f in hand.fingers
         ]
         self._n = hand.n_joints
+        period = hand.bus.period_s
+        self._speed_gain = period / (STILL_TIME_CONSTANT + period)
+        self._per_tick = 1.0 / period
         bases = [(f.base_x, f.base_y) for f in hand.fingers]
         first, last = max(
             ((a, b) for a in bases for b in bases), key=lambda ab: math.dist(ab[0], ab[1])
@@ -148,7 +190,9 @@ class ObjectEstimator:
                 mid_x + offset * side_x + (r + SEED_DEPTH) * down_x,
                 mid_y + offset * side_y + (r + SEED_DEPTH) * down_y,
             )
-            for offset, r in zip(_seed_offsets(self.radii), self.radii, strict=True)
+            for offset, r in zip(
+                _seed_offsets(self.nominal_radii), self.nominal_radii, strict=True
+            )
         )
         reach = max(sum(j[0] for j in f[3]) for f in self._fingers) + length
         self._centre = (mid_x, mid_y)
@@ -157,10 +201,19 @@ class ObjectEstimator:
 
     def reset(self) -> None:
         """Forget the track (a new grasp): back to the seeds, the turn counts restart."""
-        m, p = len(self.radii), len(self.pairs)
+        m, p = len(self.nominal_radii), len(self.pairs)
         self.centres: list[tuple[float, float]] = list(self._seeds)
+        #: m, each object's radius as its cages measure it (``_fit_radii``)
+        self.radii: list[float] = list(self.nominal_radii)
+        #: m, each object's radius as its cages measure it, before ``RADIUS_TOLERANCE``
+        self.measured_radii: list[float] = list(self.nominal_radii)
         self.clearance = [NAN] * m  # m, each object's best clearance at its estimate
         self.caged = [False] * m
+        #: whether each object's three tightest walls surround it (a closed cage)
+        self.closed = [False] * m
+        #: m/s, each estimated centre's speed, low-passed (``STILL_TIME_CONSTANT``)
+        self.speed = [math.inf] * m
+        self._fitted = [0] * m  # ticks each radius has been fitted, up to MEASURED_TICKS
         self.valid = False
         self._turn = [NAN] * p  # rad, each pair's unwrapped centre-line angle (running)
         self._last_angle = [NAN] * p
@@ -169,7 +222,10 @@ class ObjectEstimator:
     def positions(self, values: Sequence[float]) -> list[tuple[float, float]]:
         """Each object's estimated centre ``(x, y)`` (m) in an output of this estimator."""
         start = 2 * len(self.pairs)
-        return [(values[start + 2 * i], values[start + 2 * i + 1]) for i in range(len(self.radii))]
+        return [
+            (values[start + 2 * i], values[start + 2 * i + 1])
+            for i in range(len(self.nominal_radii))
+        ]
 
     # -- geometry ---------------------------------------------------------------------------
     def segments(self, angles: Sequence[float] | npt.NDArray[np.float64]) -> list[Segment]:
@@ -235,7 +291,15 @@ class ObjectEstimator:
         m = len(self.radii)
         for index in range(m):
             self._track(index, segs)
-        self.valid = all(self.caged) and all(abs(c) <= VALID_CLEARANCE for c in self.clearance)
+        if all(self.closed) and max(self.speed) < STILL_SPEED:
+            self._fit_radii()
+        self.valid = all(self.caged) and all(
+            abs(c) <= VALID_CLEARANCE
+            and (c + r - measured <= LOOSE_CLEARANCE or n < MEASURED_TICKS)
+            for c, r, measured, n in zip(
+                self.clearance, self.radii, self.measured_radii, self._fitted, strict=True
+            )
+        )
         if not self.valid:
             self.last = (NAN,) * len(self.estimates)
             return self.last
@@ -260,7 +324,8 @@ class ObjectEstimator:
         far = math.dist(centre, self._centre) > self._reach
         if best > RESET_CLEARANCE or far:
             self.centres[index] = self._seeds[index]
-            self.caged[index] = False
+            self.caged[index] = self.closed[index] = False
+            self.speed[index] = math.inf
             return
         chosen = [found[0]]
         for item in found[1:]:
@@ -279,13 +344,42 @@ class ObjectEstimator:
             trial = [c for k, c in enumerate(chosen[:3]) if k != worst] + [chosen[3]]
             retry, again = _chebyshev_step(trial)
             if again < 0:
-                step = retry
+                step, worst = retry, again
+        self.closed[index] = worst < 0 and len(chosen) >= 3
         self.caged[index] = _surrounds([c for c in chosen if c[0] - best <= CAGE_BAND])
         dx, dy = step
         size = math.hypot(dx, dy)
         if size > MAX_STEP:
             dx, dy = dx * MAX_STEP / size, dy * MAX_STEP / size
         self.centres[index] = (centre[0] + dx, centre[1] + dy)
+        speed = self.speed[index]
+        moved = math.hypot(dx, dy) * self._per_tick
+        self.speed[index] = (
+            moved if math.isinf(speed) else speed + (moved - speed) * self._speed_gain
+        )
+
+    def _fit_radii(self) -> None:
+        """Move each object's radius towards the one its cage measures: at the deepest point
+        of a closed cage every tight wall is the same clearance away, and an object that
+        touches them is that much larger than its radius says. Only while every object's
+        cage is closed: each object is a wall of the others', and one that is not located
+        says nothing of their size."""
+        for i, nominal in enumerate(self.nominal_radii):
+            clearance = self.clearance[i]
+            if not abs(clearance) <= RADIUS_RANGE * nominal:
+                continue
+            measured = self.measured_radii[i]
+            measured += RADIUS_GAIN * (self.radii[i] + clearance - measured)
+            low, high = nominal * (1.0 - RADIUS_RANGE), nominal * (1.0 + RADIUS_RANGE)
+            measured = self.measured_radii[i] = min(high, max(low, measured))
+            # the measurement replaces the recipe's once it is further off than its own
+            # uncertainty, and gives way to it again only well within it (no flicker)
+            off = abs(measured - nominal)
+            if off > RADIUS_TOLERANCE or (self.radii[i] != nominal and off > RADIUS_TOLERANCE / 2):
+                self.radii[i] = measured
+            else:
+                self.radii[i] = nominal
+            self._fitted[i] = min(MEASURED_TICKS, self._fitted[i] + 1)
 
 
 def _seed_offsets(radii: Sequence[float]) -> list[float]:
