@@ -18,22 +18,11 @@ import pytest
 
 from handctl.config import load_hand
 
-from ..conftest import HAND_YAML, ROOT, DefaultRun
+from ..conftest import HAND_YAML, ROOT, DefaultRun, handctl
 from .realtime import ATTEMPTS_UNDER_LOAD, LOAD_STOPS, give_up, stopped_by_load
 from .rig import HOLD_LONG
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
-
-
-def handctl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=timeout,
-        check=False,
-    )
 
 
 def test_main_job_completes_with_a_summary(default_run: DefaultRun) -> None:

@@ -18,25 +18,11 @@ from handctl.config import HandConfig
 from handctl.hostcheck import INJECT_ENV
 from handctl.online.bus import open_bus
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
 #: Recorded on a two-vCPU virtual machine: `handctl check --timing --seconds 60 --json F`.
 FAILING = ROOT / "tests" / "data" / "host_stalls_failing.json"
-
-
-def handctl(
-    *args: str, env: dict[str, str] | None = None, timeout: float = 120
-) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=timeout,
-        check=False,
-        env={**os.environ, **(env or {})},
-    )
 
 
 def test_the_bare_loop_reports_every_wakeup() -> None:

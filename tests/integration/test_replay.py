@@ -30,20 +30,9 @@ from handctl.recording.replay import summarise_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 from .rig import SHORT, short_recipe
 from .test_recording import ESTOP_TICK, Recorded, record_run
-
-
-def handctl(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=timeout,
-        check=False,
-    )
 
 
 @pytest.fixture(scope="module")
