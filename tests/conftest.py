@@ -26,6 +26,26 @@ DEFAULT_RECIPE = "config/recipes/swap_two_cylinders.yaml"
 _channels = itertools.count()
 
 
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
+    """The suite's work units (``tests/worker_units.py``) where pyproject.toml asks for
+    ``--dist loadgroup``; any other ``--dist`` given on the command line is xdist's own."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from .worker_units import ModuleOrGroupScheduling
+
+    return ModuleOrGroupScheduling(config, log)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every reader of the session's run of the default recipe on one worker, so that it runs
+    once (before xdist reads the groups: tryfirst)."""
+    for item in items:
+        if "default_run" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.xdist_group("default_run"))
+
+
 @pytest.fixture(scope="session")
 def hand() -> HandConfig:
     return load_hand(HAND_YAML)

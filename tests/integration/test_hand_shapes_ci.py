@@ -24,6 +24,7 @@ from handctl.online.recipes.loader import load_recipe
 from handctl.sim.params import parse_sim
 
 from ..conftest import HAND_YAML, ROOT, handctl
+from .realtime import REALTIME
 
 HANDS = ROOT / "config" / "hands"
 RECIPES = ROOT / "config" / "recipes"
@@ -217,6 +218,7 @@ def test_the_shapes_recipe_lifts_its_objects_and_its_log_reruns_bit_exact(
 # -- every shipped hand as `handctl sim`, answering `handctl nodes` --------------------------
 
 
+@REALTIME
 @pytest.mark.parametrize("hand_path", [HAND_YAML, PLANAR, FOUR_BY_FOUR], ids=lambda p: p.stem)
 def test_the_shape_runs_as_handctl_sim_and_answers_as_its_nodes(
     hand_path: Path, tmp_path: Path

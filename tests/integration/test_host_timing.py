@@ -19,6 +19,7 @@ from handctl.hostcheck import INJECT_ENV
 from handctl.online.bus import open_bus
 
 from ..conftest import ROOT, handctl
+from .realtime import REALTIME
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
 #: Recorded on a two-vCPU virtual machine: `handctl check --timing --seconds 60 --json F`.
@@ -146,6 +147,7 @@ phases:
 """
 
 
+@REALTIME
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU: nothing to separate")
 def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) -> None:
     """On the simulated hand the host's verdict is a warning beside the stop; with --rt the
