@@ -222,8 +222,10 @@ def test_a_check_of_no_length_is_bad_input(tmp_path: Path) -> None:
     done = handctl("check", "--timing", "--seconds", "0")
     assert done.returncode == 2
     assert "--seconds: expected a number of seconds > 0 and <= 3600, found 0.0" in done.stderr
-    nowhere = tmp_path / "missing" / "t.json"
-    done = handctl("check", "--timing", "--json", str(nowhere))
+    # relative, so that the message holds all of it: a value over 80 characters is cut there,
+    # and a worker's temporary directory is long
+    nowhere = Path("missing", "t.json")
+    done = handctl("check", "--timing", "--json", str(nowhere), cwd=tmp_path)
     assert done.returncode == 2
     assert f"--json: expected a file in an existing directory, found '{nowhere}'" in done.stderr
 
