@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,26 @@ HAND_YAML = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
 #: The main job's recipe, as the README names it (relative to the repository root)
 DEFAULT_RECIPE = "config/recipes/swap_two_cylinders.yaml"
 _channels = itertools.count()
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
+    """The suite's work units (``tests/worker_units.py``) where pyproject.toml asks for
+    ``--dist loadgroup``; any other ``--dist`` given on the command line is xdist's own."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from .worker_units import ModuleOrGroupScheduling
+
+    return ModuleOrGroupScheduling(config, log)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every reader of the session's run of the default recipe on one worker, so that it runs
+    once (before xdist reads the groups: tryfirst)."""
+    for item in items:
+        if "default_run" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.xdist_group("default_run"))
 
 
 @pytest.fixture(scope="session")
@@ -51,13 +72,22 @@ def bus_pair(hand: HandConfig, channel: str) -> Iterator[tuple[HandBus, HandBus]
     peer.close()
 
 
-def handctl(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
-    """``python -m handctl ARGS`` from the repository root, as a user runs it (``python -m``
-    puts the repository first on the path), its output captured and its exit left to the
-    caller."""
+def handctl(
+    *args: str,
+    cwd: Path = ROOT,
+    env: Mapping[str, str] | None = None,
+    timeout: float = 600,
+) -> subprocess.CompletedProcess[str]:
+    """``python -m handctl ARGS`` as a user runs it, from the repository root unless ``cwd``
+    says otherwise, its output captured and its exit left to the caller. The repository comes
+    first on the path wherever it runs (from the root ``python -m`` puts it there; elsewhere
+    PYTHONPATH does), so the code under test is this checkout's, whatever is installed;
+    ``env`` adds to the environment the suite runs in."""
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
     return subprocess.run(
         [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": path, **(env or {})},
         text=True,
         capture_output=True,
         timeout=timeout,

@@ -13,6 +13,11 @@ from typing import NoReturn
 
 import pytest
 
+#: The real-time tests' mark: under pytest-xdist they form one unit of work
+#: (``tests/worker_units.py``), run on one worker one after another, so that no two of them
+#: compete for the CPUs; beside them the other worker runs the rest of the suite, the load
+#: that ATTEMPTS_UNDER_LOAD is for.
+REALTIME = pytest.mark.xdist_group("realtime")
 #: A real-time run of two free-running processes, on a machine that stalls by itself for
 #: 3-28 ms at times, is tried this often before the machine's load is blamed.
 ATTEMPTS_UNDER_LOAD = 5

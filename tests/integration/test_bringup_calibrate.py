@@ -24,7 +24,7 @@ from handctl.sim.params import parse_sim
 from handctl.sim.sensors import TdtModel
 
 from ..conftest import HAND_YAML, ROOT
-from .realtime import ATTEMPTS_UNDER_LOAD, give_up, stopped_by_load
+from .realtime import ATTEMPTS_UNDER_LOAD, REALTIME, give_up, stopped_by_load
 
 #: A bias on top of the drawn ones: node 2 joint 3 (f2_j3), N·m, well above the noise.
 ADDED = 0.1
@@ -165,6 +165,7 @@ def test_a_layout_it_cannot_edit_is_dumped_and_still_right(hand: HandConfig) -> 
     assert [j.tdt.offset for j in back.joints] == pytest.approx(list(offsets.values()))
 
 
+@REALTIME
 def test_on_the_unix_bus_with_the_hand_in_its_own_process(hand: HandConfig, tmp_path: Path) -> None:
     faults = _scenario(
         tmp_path, f"{{kind: tdt_offset, node: 2, joint: 3, offset: {ADDED}, start: 0.0}}"
@@ -211,6 +212,7 @@ def test_on_the_unix_bus_with_the_hand_in_its_own_process(hand: HandConfig, tmp_
     _check_offsets(hand, out, json.loads((tmp_path / "m.json").read_text()))
 
 
+@REALTIME
 @pytest.mark.parametrize(
     "entry, says",
     [

@@ -17,7 +17,7 @@ from handctl.config import HandConfig
 from handctl.online.bus import open_bus
 
 from ..conftest import ROOT
-from .realtime import ATTEMPTS_UNDER_LOAD, give_up, stopped_by_load
+from .realtime import ATTEMPTS_UNDER_LOAD, REALTIME, give_up, stopped_by_load
 
 
 def test_one_joint_turns_its_way_and_no_other_gets_torque(
@@ -83,6 +83,7 @@ def test_a_missing_node_stops_it_at_start_up(
     assert "node 3 (f3): no feedback" in capsys.readouterr().err
 
 
+@REALTIME
 def test_ctrl_c_is_a_controlled_stop_on_the_unix_bus() -> None:
     stopped = []
     for _attempt in range(ATTEMPTS_UNDER_LOAD):  # a run the load stopped is tried again

@@ -19,7 +19,7 @@ from handctl.online.loop import Outcome, StatusLine
 from handctl.online.recipes.loader import load_recipe
 from handctl.session import RunRequest, run_recipe
 
-from ..conftest import HAND_YAML, ROOT
+from ..conftest import HAND_YAML, ROOT, handctl
 from .rig import TWO_PHASES, write_recipe
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
@@ -27,33 +27,22 @@ RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 UNIT_IN_KEY = re.compile(r"_(s|ms|us|ns|m|mm|rad|deg|nm|n|hz|mb|fraction|ratio)(_|$)", re.I)
 
 
-def handctl(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=cwd,
-        text=True,
-        capture_output=True,
-        timeout=600,
-        check=False,
-    )
-
-
 def test_the_packaged_default_hand_is_the_repository_copy() -> None:
     assert DEFAULT_HAND.read_bytes() == HAND_YAML.read_bytes()
 
 
 def test_defaults_do_not_depend_on_the_current_directory(tmp_path: Path) -> None:
-    done = handctl(tmp_path, "check")
+    done = handctl("check", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines()[-1] == "ok"
 
 
 def test_a_missing_hand_is_reported_against_the_option_that_named_it(tmp_path: Path) -> None:
-    done = handctl(tmp_path, "run", "recipe", str(RECIPE), "--hand", "nothere.yaml")
+    done = handctl("run", "recipe", str(RECIPE), "--hand", "nothere.yaml", cwd=tmp_path)
     assert done.returncode == 2
     assert "handctl: error: --hand: expected an existing hand config file" in done.stderr
     assert "nothere.yaml: no such file" in done.stderr
-    done = handctl(tmp_path, "check", "nothere.yaml")
+    done = handctl("check", "nothere.yaml", cwd=tmp_path)
     assert done.returncode == 2
     assert "HAND.yaml: expected an existing hand config file" in done.stderr
 
@@ -62,7 +51,14 @@ def test_a_missing_hand_is_reported_against_the_option_that_named_it(tmp_path: P
 def test_a_time_budget_that_is_not_a_duration_is_bad_input(tmp_path: Path, seconds: str) -> None:
     out = tmp_path / "out.json"
     done = handctl(
-        tmp_path, "run", "recipe", str(RECIPE), "--max-seconds", seconds, "--summary-json", str(out)
+        "run",
+        "recipe",
+        str(RECIPE),
+        "--max-seconds",
+        seconds,
+        "--summary-json",
+        str(out),
+        cwd=tmp_path,
     )
     assert done.returncode == 2, done.stderr
     assert "--max-seconds: expected a number of seconds > 0" in done.stderr
@@ -72,7 +68,14 @@ def test_a_time_budget_that_is_not_a_duration_is_bad_input(tmp_path: Path, secon
 def test_a_run_that_ends_on_its_time_budget_has_its_own_outcome(tmp_path: Path) -> None:
     out = tmp_path / "out.json"
     done = handctl(
-        tmp_path, "run", "recipe", str(RECIPE), "--max-seconds", "0.5", "--summary-json", str(out)
+        "run",
+        "recipe",
+        str(RECIPE),
+        "--max-seconds",
+        "0.5",
+        "--summary-json",
+        str(out),
+        cwd=tmp_path,
     )
     assert done.returncode == 0, done.stderr
     summary = json.loads(out.read_text())

@@ -18,22 +18,11 @@ import pytest
 
 from handctl.config import load_hand
 
-from ..conftest import HAND_YAML, ROOT, DefaultRun
-from .realtime import ATTEMPTS_UNDER_LOAD, LOAD_STOPS, give_up, stopped_by_load
+from ..conftest import HAND_YAML, ROOT, DefaultRun, handctl
+from .realtime import ATTEMPTS_UNDER_LOAD, LOAD_STOPS, REALTIME, give_up, stopped_by_load
 from .rig import HOLD_LONG
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
-
-
-def handctl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=timeout,
-        check=False,
-    )
 
 
 def test_main_job_completes_with_a_summary(default_run: DefaultRun) -> None:
@@ -130,6 +119,7 @@ def test_sigint_is_a_controlled_stop(tmp_path: Path) -> None:
     assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0 for n in nodes.values())
 
 
+@REALTIME
 def test_realtime_run_on_the_simulated_hand_in_its_own_process(tmp_path: Path) -> None:
     """The real-time path: timerfd ticks, the simulated hand as a separate process on the unix
     datagram bus. --rt asks for SCHED_FIFO so other load cannot starve the loop (where the
@@ -289,6 +279,7 @@ class RealtimeHost:
         self.proc.communicate()
 
 
+@REALTIME
 def test_a_killed_realtime_host_leaves_no_simulated_hand_and_no_bus_directory(
     tmp_path: Path,
 ) -> None:
@@ -324,6 +315,7 @@ def _controlled_stop(summary: dict[str, object], stderr: str) -> None:
     assert "simulated hand's process ended" not in stderr, stderr
 
 
+@REALTIME
 def test_ctrl_c_on_a_terminal_is_the_same_controlled_stop_in_real_time(tmp_path: Path) -> None:
     """A terminal's Ctrl-C is SIGINT to the whole foreground process group. The simulated hand
     must not take it: the host's stop ramp needs its feedback, and the host stops it after.
@@ -396,6 +388,7 @@ phases:
 """
 
 
+@REALTIME
 def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -> None:
     """The second host counts its frames from 0 again, the nodes from where the first left
     them: each side takes the other's counters afresh (PROTOCOL.md, "A new host").

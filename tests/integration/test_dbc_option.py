@@ -4,8 +4,6 @@ that its re-run speaks it too."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -16,22 +14,11 @@ from handctl.protocol import DEFAULT_DBC
 from handctl.recording import channels as ch
 from handctl.recording.reader import open_recording
 
+from ..conftest import ROOT, handctl
 from ..shapes import shaped_hand
 
-ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 HAND = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
-
-
-def handctl(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,7 @@ from handctl.online.loop import StatusLine
 from handctl.online.recipes.loader import load_recipe
 from handctl.session import RunRequest, run_recipe
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 
 CLOSE = {
     "f1_j1": 0.05,
@@ -102,13 +102,6 @@ def test_min_total_turn_out_of_range_is_refused_naming_the_key(
     data = yaml.safe_load(path.read_text())
     data["min_total_turn_deg"] = -5
     path.write_text(yaml.safe_dump(data))
-    done = subprocess.run(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(path)],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=120,
-        check=False,
-    )
+    done = handctl("run", "recipe", str(path))
     assert done.returncode == 2
     assert f"{path}: min_total_turn_deg" in done.stderr and "-5" in done.stderr

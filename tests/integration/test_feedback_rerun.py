@@ -5,13 +5,11 @@ because the feedback reads only the angles and the estimates made from them."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import yaml
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 POSE = {
@@ -47,33 +45,10 @@ def _with_feedback(tmp_path: Path) -> Path:
 
 def test_a_run_with_feedback_reruns_bit_exact(tmp_path: Path) -> None:
     log = tmp_path / "run.mcap"
-    run = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "handctl",
-            "run",
-            "recipe",
-            str(_with_feedback(tmp_path)),
-            "--log",
-            str(log),
-        ],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=600,
-        check=False,
-    )
+    run = handctl("run", "recipe", str(_with_feedback(tmp_path)), "--log", str(log))
     # the experiment is cut short, so it fails (exit 1); the hand is fine
     assert run.returncode == 1, run.stderr
     assert "completed" in run.stdout
-    done = subprocess.run(
-        [sys.executable, "-m", "handctl", "replay", str(log), "--rerun"],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=600,
-        check=False,
-    )
+    done = handctl("replay", str(log), "--rerun")
     assert done.returncode == 0, done.stdout + done.stderr
     assert "bit-exact" in done.stdout

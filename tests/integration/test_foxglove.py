@@ -87,10 +87,15 @@ class Live:
 CLIENTS = ((fx.SCENE, fx.TRANSFORMS), (fx.JOINTS, ch.JOINT_STATE))
 
 
-async def listen(port: int, proc: subprocess.Popen[bytes], enough: int) -> Live:
-    """One client per group of ``CLIENTS`` at once, their messages in one ``Live``."""
+async def listen(
+    port: int,
+    proc: subprocess.Popen[bytes],
+    enough: int,
+    clients: tuple[tuple[str, ...], ...] = CLIENTS,
+) -> Live:
+    """One client per group of topics at once, their messages in one ``Live``."""
     live = Live()
-    await asyncio.gather(*(_client(port, proc, enough, topics, live) for topics in CLIENTS))
+    await asyncio.gather(*(_client(port, proc, enough, topics, live) for topics in clients))
     return live
 
 
@@ -145,17 +150,36 @@ class Run:
     stderr: str
 
 
+def served(
+    args: list[str],
+    cwd: Path,
+    enough: int,
+    clients: tuple[tuple[str, ...], ...] = CLIENTS,
+) -> tuple[Live, subprocess.CompletedProcess[bytes]]:
+    """``python -m handctl ARGS --live PORT`` on a free port, in a process of its own with the
+    checkout first on its path, and ``listen``'s clients connected until each has ``enough``
+    messages of its topics (or the server closed); then the command's end."""
+    port = free_port()
+    command = [sys.executable, "-m", "handctl", *args, "--live", str(port)]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with subprocess.Popen(
+        command, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    ) as proc:
+        try:
+            live = asyncio.run(listen(port, proc, enough, clients))
+            out, err = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    return live, subprocess.CompletedProcess(command, proc.returncode, out, err)
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
     directory = tmp_path_factory.mktemp("foxglove")
     path = directory / "run.mcap"
-    port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    with subprocess.Popen(
+    live, done = served(
         [
-            sys.executable,
-            "-m",
-            "handctl",
             "run",
             "recipe",
             str(RECIPE),
@@ -164,23 +188,13 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
             "--lockstep",
             "--log",
             str(path),
-            "--live",
-            str(port),
             "--max-seconds",
             RUN_S,
         ],
-        cwd=directory,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    ) as proc:
-        try:
-            live = asyncio.run(listen(port, proc, enough=5))
-            _, err = proc.communicate(timeout=300)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-    yield Run(path, live, proc.returncode, err.decode(errors="replace"))
+        directory,
+        enough=5,
+    )
+    yield Run(path, live, done.returncode, done.stderr.decode(errors="replace"))
 
 
 def mcap_messages(path: Path) -> Iterator[tuple[Any, Any, Any]]:
@@ -385,23 +399,9 @@ def check_log(decoded: dict[str, list[tuple[int, Any]]]) -> None:
 def replay_live(log: Path, cwd: Path) -> tuple[Live, bytes]:
     """``handctl replay LOG --live PORT`` with the viewer-like clients listening; what they
     received and what the command printed, once it exited 0."""
-    port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    with subprocess.Popen(
-        [sys.executable, "-m", "handctl", "replay", str(log), "--live", str(port)],
-        cwd=cwd,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    ) as proc:
-        try:
-            live = asyncio.run(listen(port, proc, enough=3))
-            out, err = proc.communicate(timeout=300)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-    assert proc.returncode == 0, err.decode()
-    return live, out
+    live, done = served(["replay", str(log)], cwd, enough=3)
+    assert done.returncode == 0, done.stderr.decode()
+    return live, done.stdout
 
 
 def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
@@ -508,13 +508,9 @@ def test_a_live_run_with_a_client_completes_and_records_every_tick(
     recipe.write_text(SHORT_RECIPE)
     path = tmp_path / "run.mcap"
     summary_path = tmp_path / "summary.json"
-    port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    with subprocess.Popen(
+    # one client, listening until the server closes with the end of the run
+    live, done = served(
         [
-            sys.executable,
-            "-m",
-            "handctl",
             "run",
             "recipe",
             str(recipe),
@@ -523,25 +519,14 @@ def test_a_live_run_with_a_client_completes_and_records_every_tick(
             "--lockstep",
             "--log",
             str(path),
-            "--live",
-            str(port),
             "--summary-json",
             str(summary_path),
         ],
-        cwd=tmp_path,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    ) as proc:
-        try:
-            # Listens until the server closes with the end of the run.
-            live = Live()
-            asyncio.run(_client(port, proc, 1 << 30, (*SAMPLED, fx.SCENE), live))
-            _, err = proc.communicate(timeout=300)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-    assert proc.returncode == 0, err.decode()
+        tmp_path,
+        enough=1 << 30,
+        clients=((*SAMPLED, fx.SCENE),),
+    )
+    assert done.returncode == 0, done.stderr.decode()
     summary = json.loads(summary_path.read_text())
     assert summary["outcome"] == "completed"
     timing: list[int] = []

@@ -23,7 +23,8 @@ from handctl.config import load_hand
 from handctl.online.recipes.loader import load_recipe
 from handctl.sim.params import parse_sim
 
-from ..conftest import HAND_YAML, ROOT
+from ..conftest import HAND_YAML, ROOT, handctl
+from .realtime import REALTIME
 
 HANDS = ROOT / "config" / "hands"
 RECIPES = ROOT / "config" / "recipes"
@@ -36,19 +37,6 @@ FOUR_BY_FOUR_RECIPE = RECIPES / "four_by_four_close.yaml"
 #: m: how far the paper's grasp may sit from the scene's cylinders (the analysis has the pair
 #: touching and enveloped, the scene has it resting on the table 1 mm apart)
 GRASP_ABOVE_REST_M = 0.05
-
-
-def _handctl(
-    *args: str, cwd: Path = ROOT, timeout: float = 300
-) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=cwd,
-        text=True,
-        capture_output=True,
-        timeout=timeout,
-        check=False,
-    )
 
 
 # -- the paper's planar hand: analysis and planning on its own geometry ---------------------
@@ -80,7 +68,7 @@ def test_the_planar_analysis_is_the_hand_configs_geometry() -> None:
 
 def test_the_planar_analysis_runs_on_its_own_geometry(tmp_path: Path) -> None:
     out = tmp_path / "region.json"
-    done = _handctl(
+    done = handctl(
         "analyze",
         "torque-set",
         str(PLANAR_ANALYSIS),
@@ -109,7 +97,7 @@ def test_the_planar_template_plans_the_committed_recipe(tmp_path: Path) -> None:
     that is committed, byte for byte after its header: that recipe is what the template asks
     for on this hand, and planning it stays small enough for CI."""
     out = tmp_path / "planned.yaml"
-    done = _handctl(
+    done = handctl(
         "plan",
         str(PLANAR_TEMPLATE.relative_to(ROOT)),
         "--hand",
@@ -157,7 +145,7 @@ def test_a_one_object_template_plans_on_the_four_by_four_hand(tmp_path: Path) ->
     path = tmp_path / "close_and_lift.template.yaml"
     path.write_text(yaml.safe_dump(template, sort_keys=False))
     out = tmp_path / "planned.yaml"
-    done = _handctl(
+    done = handctl(
         "plan",
         str(path),
         "--hand",
@@ -194,7 +182,7 @@ def test_the_shapes_recipe_lifts_its_objects_and_its_log_reruns_bit_exact(
     hand_path, recipe, objects = RUNS[shape]
     hand = load_hand(hand_path)
     out = tmp_path / "out.json"
-    done = _handctl(
+    done = handctl(
         "run",
         "recipe",
         str(recipe),
@@ -221,7 +209,7 @@ def test_the_shapes_recipe_lifts_its_objects_and_its_log_reruns_bit_exact(
         assert obj["lifted"] is True and obj["final"]["height_above_rest_m"] > 0.02, name
     # the log re-runs: the same recipe on the same simulated hand, bit-exact
     replay = tmp_path / "replay.json"
-    done = _handctl("replay", "run.mcap", "--rerun", "--json", str(replay), cwd=tmp_path)
+    done = handctl("replay", "run.mcap", "--rerun", "--json", str(replay), cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert "applied torques bit-exact" in done.stdout
     assert set(json.loads(replay.read_text())["summary"]["objects"]) == objects
@@ -230,6 +218,7 @@ def test_the_shapes_recipe_lifts_its_objects_and_its_log_reruns_bit_exact(
 # -- every shipped hand as `handctl sim`, answering `handctl nodes` --------------------------
 
 
+@REALTIME
 @pytest.mark.parametrize("hand_path", [HAND_YAML, PLANAR, FOUR_BY_FOUR], ids=lambda p: p.stem)
 def test_the_shape_runs_as_handctl_sim_and_answers_as_its_nodes(
     hand_path: Path, tmp_path: Path
@@ -262,7 +251,7 @@ def test_the_shape_runs_as_handctl_sim_and_answers_as_its_nodes(
         # The simulated hand takes a moment to start, and a loaded machine may hold its timer
         # back for longer than a listening window: ask again rather than blame the hand.
         for _ in range(20):
-            done = _handctl(
+            done = handctl(
                 "nodes",
                 "--bus",
                 spec,

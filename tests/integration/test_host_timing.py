@@ -18,25 +18,12 @@ from handctl.config import HandConfig
 from handctl.hostcheck import INJECT_ENV
 from handctl.online.bus import open_bus
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
+from .realtime import REALTIME
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
 #: Recorded on a two-vCPU virtual machine: `handctl check --timing --seconds 60 --json F`.
 FAILING = ROOT / "tests" / "data" / "host_stalls_failing.json"
-
-
-def handctl(
-    *args: str, env: dict[str, str] | None = None, timeout: float = 120
-) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=timeout,
-        check=False,
-        env={**os.environ, **(env or {})},
-    )
 
 
 def test_the_bare_loop_reports_every_wakeup() -> None:
@@ -160,6 +147,7 @@ phases:
 """
 
 
+@REALTIME
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU: nothing to separate")
 def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) -> None:
     """On the simulated hand the host's verdict is a warning beside the stop; with --rt the
@@ -234,8 +222,10 @@ def test_a_check_of_no_length_is_bad_input(tmp_path: Path) -> None:
     done = handctl("check", "--timing", "--seconds", "0")
     assert done.returncode == 2
     assert "--seconds: expected a number of seconds > 0 and <= 3600, found 0.0" in done.stderr
-    nowhere = tmp_path / "missing" / "t.json"
-    done = handctl("check", "--timing", "--json", str(nowhere))
+    # relative, so that the message holds all of it: a value over 80 characters is cut there,
+    # and a worker's temporary directory is long
+    nowhere = Path("missing", "t.json")
+    done = handctl("check", "--timing", "--json", str(nowhere), cwd=tmp_path)
     assert done.returncode == 2
     assert f"--json: expected a file in an existing directory, found '{nowhere}'" in done.stderr
 

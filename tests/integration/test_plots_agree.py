@@ -5,28 +5,12 @@ rest. Real processes, as a user runs them."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from ..conftest import ROOT, DefaultRun
-
-
-def handctl(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-        check=False,
-    )
+from ..conftest import DefaultRun, handctl
 
 
 def test_run_and_replay_agree(default_run: DefaultRun, tmp_path: Path) -> None:

@@ -39,7 +39,7 @@ from handctl.recording.recorder import Recorder
 from handctl.recording.ring import FRAME_HEAD, FRAME_TAIL, TICK_HEAD, TICK_TAIL, RingLayout
 from handctl.sim import faults as inj
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 from .rig import rig, short_recipe
 
 ESTOP_TICK = 700
@@ -530,14 +530,7 @@ def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(
     assert got == everything[:lost_from] + everything[lost_to:]
     assert counts[bad + 1 :] and got[-1] == everything[-1]  # the chunks after it are kept
 
-    done = subprocess.run(
-        [sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    done = handctl("replay", str(damaged), "--rerun")
     assert done.returncode == 0, done.stdout + done.stderr
     assert f"DAMAGED: chunk {bad} at byte {middle.chunk_start_offset}" in done.stdout
     assert "bit-exact" in done.stdout and "before a damaged chunk" in done.stdout
@@ -580,14 +573,7 @@ def test_a_damaged_metadata_record_is_named(recorded: Recorded, tmp_path: Path) 
     assert recording.damaged and recording.bad_metadata == [ch.META_HAND]
     assert f"metadata record '{ch.META_HAND}' at byte {hand_index.offset}" in recording.problem
     assert ch.META_RUN in recording.metadata and recording.chunks == len(summary.chunk_indexes)
-    done = subprocess.run(
-        [sys.executable, "-m", "handctl", "replay", str(damaged), "--rerun"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    done = handctl("replay", str(damaged), "--rerun")
     assert done.returncode == 2, done.stdout + done.stderr
     assert str(damaged) in done.stderr and ch.META_HAND in done.stderr
 

@@ -30,20 +30,10 @@ from handctl.recording.replay import summarise_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
+from .realtime import REALTIME
 from .rig import SHORT, short_recipe
 from .test_recording import ESTOP_TICK, Recorded, record_run
-
-
-def handctl(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=timeout,
-        check=False,
-    )
 
 
 @pytest.fixture(scope="module")
@@ -230,6 +220,7 @@ def test_the_disable_after_the_last_tick_reruns_whenever_the_writer_drains(
     assert report.frames_compared == sent
 
 
+@REALTIME
 def test_realtime_recording_reruns_bit_exact(tmp_path: Path) -> None:
     """Real time, the simulated hand in its own process: frames arrive when they arrive, and
     the log holds what each poll drained, so the re-run still matches bit for bit."""

@@ -8,8 +8,6 @@ import copy
 import dataclasses
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +23,7 @@ from handctl.sim.placement import link_segments
 from handctl.sim.plant import Plant, gravity_torques
 from handctl.sim.render import draw_scene, scene_half_width
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 
 HANDS = ROOT / "config" / "hands"
 PLANAR = HANDS / "planar_2f2j.yaml"
@@ -280,22 +278,11 @@ phases:
 """
 
 
-def _handctl(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=timeout,
-        check=False,
-    )
-
-
 def test_planar_hand_closes_on_its_two_cylinders_in_lockstep(tmp_path: Path) -> None:
     recipe = tmp_path / "close.yaml"
     recipe.write_text(CLOSE)
     out = tmp_path / "out.json"
-    done = _handctl("run", "recipe", str(recipe), "--hand", str(PLANAR), "--summary-json", str(out))
+    done = handctl("run", "recipe", str(recipe), "--hand", str(PLANAR), "--summary-json", str(out))
     assert done.returncode == 0, done.stderr
     summary = json.loads(out.read_text())
     assert summary["completed"] is True and summary["hand"] == "planar_2f2j"
@@ -308,7 +295,7 @@ def test_planar_hand_closes_on_its_two_cylinders_in_lockstep(tmp_path: Path) -> 
 
 
 def test_a_scene_out_of_reach_is_bad_input_before_anything_runs(tmp_path: Path) -> None:
-    done = _handctl("check", str(PLANAR), timeout=120)
+    done = handctl("check", str(PLANAR), timeout=120)
     assert done.returncode == 0, done.stderr
     assert "simulated hand: cyl1 (r 0.045 m), cyl2 (r 0.045 m); fingers collide" in done.stdout
     bad = tmp_path / "far.yaml"
@@ -320,7 +307,7 @@ def test_a_scene_out_of_reach_is_bad_input_before_anything_runs(tmp_path: Path) 
         ["sim", "--bus", "virtual:far", "--seconds", "0.1", "--hand", str(bad)],
         ["run", "recipe", str(recipe), "--hand", str(bad)],
     ):
-        done = _handctl(*args, timeout=120)
+        done = handctl(*args, timeout=120)
         assert done.returncode == 2, done.stderr
         assert f"{bad}: sim.objects[1].x: expected a place within reach of a finger" in done.stderr
         assert "found 0.6" in done.stderr

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -20,7 +18,7 @@ from handctl.config import HandConfig, load_hand
 from handctl.hand_protocol import protocol_for
 from handctl.protocol import Protocol
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 from ..shapes import shaped_hand
 
 
@@ -94,14 +92,7 @@ def test_four_fingers_of_four_joints_on_can_fd_are_refused_with_the_figures(tmp_
     assert not budget.ok and round(budget.load * 100, 1) == 59.0
     two = hand_budget(hand, protocol, nodes={1, 2})
     assert two.load == pytest.approx(2 * per_node)
-    result = subprocess.run(
-        [sys.executable, "-m", "handctl", "check", str(path)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    result = handctl("check", str(path))
     assert result.returncode == 2
     assert (
         f"{path}: bus: expected a worst-case load <= 50 %, found 59.0 % at 1000 Hz; "
@@ -114,14 +105,7 @@ def test_four_fingers_of_four_joints_on_can_fd_are_refused_with_the_figures(tmp_
 
 def test_a_hand_within_the_budget_passes_check(tmp_path: Path) -> None:
     path = shaped_hand(tmp_path, [2, 2])
-    result = subprocess.run(
-        [sys.executable, "-m", "handctl", "check", str(path)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    result = handctl("check", str(path))
     assert result.returncode == 0, result.stderr
     assert result.stdout.splitlines()[-1] == "ok"
     assert "TorqueCommand_2   0x102     6" in result.stdout  # 2 + 2 x 2 bytes

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import copy
 import math
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,8 +16,7 @@ from handctl.config import load_hand
 from handctl.errors import ConfigError
 from handctl.protocol import DEFAULT_DBC, Protocol, SignalSpec
 
-ROOT = Path(__file__).resolve().parents[2]
-HAND_YAML = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
+from ..conftest import HAND_YAML, handctl
 
 
 @pytest.fixture
@@ -218,19 +215,8 @@ def test_yaml_is_loaded_safely(tmp_path: Path) -> None:
     assert not marker.exists()
 
 
-def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-
-
 def test_check_cli_accepts_default_hand() -> None:
-    result = run_cli("check", "config/hands/hiroshima_hand.yaml")
+    result = handctl("check", "config/hands/hiroshima_hand.yaml")
     assert result.returncode == 0, result.stderr
     assert "total 39.1 %" in result.stdout
     assert result.stdout.rstrip().endswith("ok")
@@ -241,14 +227,14 @@ def test_check_cli_bad_config_exits_2_with_the_message(
 ) -> None:
     del base["fingers"][0]["joints"][0]["tau_max"]
     path = write(tmp_path, base)
-    result = run_cli("check", str(path))
+    result = handctl("check", str(path))
     assert result.returncode == 2
     assert f"{path}: fingers[0].joints[0].tau_max: expected" in result.stderr
     assert "Traceback" not in result.stderr
 
 
 def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
-    result = run_cli("check", "config/hands/hiroshima_hand_classic.yaml")
+    result = handctl("check", "config/hands/hiroshima_hand_classic.yaml")
     assert result.returncode == 2
     assert (
         "hiroshima_hand_classic.yaml: bus.fd: expected true (CAN-FD): Feedback_1 (16 bytes)"
@@ -431,14 +417,14 @@ def test_check_cli_refuses_a_limit_the_wire_cannot_carry(
 ) -> None:
     joint_of(base, 0, 0).update(tau_max=5.0, device_tau_max=5.0)
     path = write(tmp_path, base)
-    result = run_cli("check", str(path))
+    result = handctl("check", str(path))
     assert result.returncode == 2
     assert (
         f"{path}: fingers[0].joints[0].tau_max: expected ±tau_max (-5..5 N·m) within what "
         "TorqueCommand_1.Torque1 carries (-3.2768..3.2767 N·m), found 5.0"
     ) in result.stderr
     assert "Traceback" not in result.stderr
-    narrow = run_cli(
+    narrow = handctl(
         "check", "config/hands/hiroshima_hand.yaml", "--dbc", str(narrower_dbc(tmp_path))
     )
     assert narrow.returncode == 2

@@ -6,8 +6,6 @@ from __future__ import annotations
 import ast
 import math
 import re
-import subprocess
-import sys
 import tracemalloc
 from pathlib import Path
 from typing import Any
@@ -22,7 +20,7 @@ from handctl.errors import ConfigError
 from handctl.online.recipes.loader import load_recipe
 from handctl.schema import MAX_BYTES, MAX_DEPTH, MAX_NODES, dump_yaml, load_yaml, parse_yaml
 
-from ..conftest import HAND_YAML, ROOT
+from ..conftest import HAND_YAML, ROOT, handctl
 
 HAND_TEXT = HAND_YAML.read_text(encoding="utf-8")
 RECIPE_YAML = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
@@ -434,20 +432,9 @@ def test_only_the_schema_module_imports_yaml() -> None:
 
 
 # -- the CLI ------------------------------------------------------------------------------------
-def run_check(path: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", "check", str(path)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-
-
 def test_check_refuses_an_alias_bomb_with_exit_2(tmp_path: Path) -> None:
     path = hand_file(tmp_path, HAND_TEXT + laughs(9, key="x_") + "surprise: *l8\n")
-    result = run_check(path)
+    result = handctl("check", str(path))
     assert result.returncode == 2, result.stderr
     assert f"{path}: expected at most {MAX_NODES} values with every alias expanded" in result.stderr
     assert "Traceback" not in result.stderr and "MemoryError" not in result.stderr
@@ -459,7 +446,7 @@ def test_check_refuses_a_duplicate_key_with_exit_2(tmp_path: Path) -> None:
     path = hand_file(
         tmp_path, replace_on(HAND_TEXT, line, "tau_max: 0.60,", "tau_max: 0.60, tau_max: 0.80,")
     )
-    result = run_check(path)
+    result = handctl("check", str(path))
     assert result.returncode == 2
     assert f"{path}: fingers[0].joints[0].tau_max: expected each key once" in result.stderr
     assert f"again at line {line}" in result.stderr
