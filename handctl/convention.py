@@ -28,6 +28,9 @@ import numpy.typing as npt
 POSE_EVERY_TICKS = 10
 TIME_LABEL = "time since tick 0 [s]"
 HEIGHT_LABEL = "height above rest [mm]"
+#: m, an object's centre this far above rest is lifted: the experiment's judgement and the
+#: line the plots draw are one number
+LIFT_HEIGHT = 0.010
 TURN_LABEL = "turn of the centre line [deg, ccw +]"
 
 

@@ -48,12 +48,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from handctl.convention import POSE_EVERY_TICKS, phase_turns_deg
+from handctl.convention import LIFT_HEIGHT, POSE_EVERY_TICKS, phase_turns_deg
 from handctl.errors import ConfigError
 from handctl.handshape import hand_span
 from handctl.online.recipes.schema import Pair, Recipe
 
-LIFT_HEIGHT = 0.010  # m
 HOLD_S = 2.0  # s
 DROP_HEIGHT = 0.005  # m
 MANIPULATE_PREFIX = "manipulate"

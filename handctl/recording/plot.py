@@ -234,7 +234,7 @@ def plot_recording(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from handctl.experiment.merit import LIFT_HEIGHT
+    from handctl.convention import LIFT_HEIGHT
 
     groups = finger_groups(series.fingers, len(series.joints))
     has_objects = len(series.objects) > 0
