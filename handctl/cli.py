@@ -383,7 +383,7 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
 
 # -- plan --------------------------------------------------------------------------------------
 def _cmd_plan(args: argparse.Namespace) -> int:
-    from handctl.executor import check_scheduler, open_pool
+    from handctl.executor import Stopwatch, check_scheduler, open_pool
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
     from handctl.planning.template import load_template
     from handctl.progress import Progress, close_active, say
@@ -404,8 +404,10 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             )
     hand = _load_hand(args.hand, "--hand")
     template = load_template(args.template, hand)
+    clock = Stopwatch()
     with open_pool(args.workers, args.scheduler) as pool:
-        say(f"planning on {pool.where}")
+        where = pool.where
+        say(f"planning on {where}")
         try:
             result = plan_recipe(
                 template,
@@ -425,7 +427,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         + (["--quick"] if args.quick else [])
     )
     args.output.write_text(recipe_text(result, command), encoding="utf-8")
+    wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
     print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {args.output}")
+    print(
+        f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU (this process and its local workers) "
+        f"on {where}"
+    )
     for plan in result.phases:
         prov = plan.provenance
         analysis = prov["analysis"]

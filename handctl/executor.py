@@ -26,6 +26,7 @@ import concurrent.futures as cf
 import importlib
 import os
 import re
+import resource
 import signal
 import threading
 import time
@@ -140,6 +141,26 @@ class WorkPool:
         _tb: TracebackType | None,
     ) -> None:
         self.close(cancel=kind is not None)
+
+
+def _cpu_s() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    ended = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + ended.ru_utime + ended.ru_stime
+
+
+class Stopwatch:
+    """Wall and CPU time since it was made, for a report of what offline work cost. The CPU
+    is this process's and that of its children which have ended: a local pool's workers once
+    the pool is closed, not a cluster's workers (they run elsewhere)."""
+
+    def __init__(self) -> None:
+        self._wall = time.monotonic()
+        self._cpu = _cpu_s()
+
+    def read(self) -> tuple[float, float]:
+        """(wall s, CPU s) since the stopwatch was made."""
+        return time.monotonic() - self._wall, _cpu_s() - self._cpu
 
 
 def check_scheduler(address: str) -> str:

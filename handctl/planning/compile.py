@@ -372,7 +372,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 else (LIMIT_MARGIN, LIMIT_FAIL)
             )
             scorer = (
-                turn_scorer(spec.turn, spec.max_s, margin)
+                turn_scorer(spec.turn, spec.max_s, margin, settings.max_turn_rate_deg_s)
                 if spec.kind == "turn"
                 else hold_scorer(spec.min_height, open_pair=True, limit_margin=margin)
             )
@@ -424,7 +424,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         say(
             f"  chosen from {origin}: "
             + ", ".join(
-                f"{o.exit[:28]} ({o.true_turn_deg:+.0f} deg)"
+                f"{o.exit[:28]} ({o.true_turn_deg:+.0f} deg, peak {o.peak_rate_deg_s:.0f} deg/s)"
                 if spec.kind == "turn"
                 else f"{o.exit[:28]} (up {o.end_height * 1e3:.0f} mm)"
                 for o in outcomes
@@ -456,6 +456,9 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         }
         if spec.kind == "turn":
             provenance["models"]["true_turn_deg"] = [round(o.true_turn_deg, 1) for o in outcomes]
+            provenance["models"]["peak_rate_deg_s"] = [
+                round(o.peak_rate_deg_s) for o in outcomes
+            ]
         plans.append(PhasePlan(spec, phase, analysis, chosen, outcomes, provenance))
         alive = survivors
         previous = phase.torques

@@ -4,13 +4,16 @@ The search tries hundreds of torque vectors per phase on several models, so it r
 directly (about ten times faster than through the emulated nodes) but keeps everything that
 decides what a phase does on the hand:
 
-- the real ``RecipeRunner`` (ramps, exits, ``for`` holds, phase-relative estimates), entered
-  from the previous phase's torques through a one-tick "from" phase, so a phase is judged with
-  the ramp it will really have;
+- the real ``RecipeRunner`` (ramps, exits, ``for`` holds, phase-relative estimates, and the
+  phase's feedback: pose hold, injected damping, brake, paced ramp, turn-rate loop, torque
+  margin, soft-limit guard), started from the previous phase's runner's handover (the torque
+  its ramp starts from, the damping it fades from, the velocity filters), so a phase is judged
+  with the entry it will really have in a run of the whole recipe;
 - the real ``ObjectEstimator`` fed with encoder-quantised angles, so exits fire when the
   estimator (not the ground truth) says the pair has turned;
 - the soft joint limits, checked every tick on the measured angles as the safety supervisor
   does (a lift that brushes a limit for a millisecond stops the real run);
+- the supervisor's limiter (``limit_torque``: ±tau_max, then the rate limit), as in every run;
 - the bus's one-tick delay between a command and the nodes applying it.
 
 Ground truth (object poses) is read only to *score* a phase, never to decide anything in it.
@@ -23,6 +26,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -30,11 +34,13 @@ import mujoco
 import numpy as np
 
 from handctl.config import HandConfig
+from handctl.experiment.merit import RATE_WINDOW_S
 from handctl.handshape import hand_span
 from handctl.online.estimator import ObjectEstimator
 from handctl.online.recipes.guard import LimitGuard
-from handctl.online.recipes.runner import RecipeRunner, RunStatus
-from handctl.online.recipes.schema import Phase, Recipe, RecipeObject, TimeoutAction
+from handctl.online.recipes.runner import Handover, RecipeRunner, RunStatus
+from handctl.online.recipes.schema import Phase, Recipe, RecipeObject
+from handctl.online.safety.limits import JointLimits, limit_torque
 from handctl.sim.params import NODE_TICK_S, SimParams
 from handctl.sim.plant import Plant
 
@@ -50,7 +56,11 @@ class Snapshot:
     state: np.ndarray
     estimator: ObjectEstimator
     torques: tuple[float, ...]
-    time: float
+    tick: int  # ticks since the start
+    handover: Handover | None = None  # the runner's state the next phase starts from
+    #: the estimator's output for ``tick`` when it already ran there (the tick a phase was left
+    #: on, which the next phase runs again): the estimator takes one step a call
+    estimates: tuple[float, ...] | None = None
 
 
 @dataclass
@@ -71,6 +81,9 @@ class PhaseOutcome:
     est_valid: bool
     est_error_deg: float
     errors_deg: list[float] = field(default_factory=list)
+    #: deg/s, the largest true centre-line rate, each over ``RATE_WINDOW_S`` (the summary's
+    #: ``peak_turn_rate_deg_s`` measures the same in a run)
+    peak_rate_deg_s: float = 0.0
 
     @property
     def failed(self) -> bool:
@@ -97,7 +110,10 @@ class Episode:
         self.plant = Plant(hand, params)
         self.estimator = ObjectEstimator(hand, objects)
         self.torques: tuple[float, ...] = (0.0,) * hand.n_joints
-        self.time = 0.0
+        self.tick = 0
+        self.handover: Handover | None = None
+        self._estimates: tuple[float, ...] | None = None
+        self._limits = JointLimits.from_hand(hand)
         counts = params.encoder.counts_per_rev
         self._quantum = 2 * math.pi / counts
         self._lo = [j.angle_min for j in hand.joints]
@@ -114,7 +130,14 @@ class Episode:
         size = mujoco.mj_stateSize(m, _STATE)
         state = np.empty(size)
         mujoco.mj_getState(m, d, state, _STATE)
-        return Snapshot(state, copy.deepcopy(self.estimator), self.torques, self.time)
+        return Snapshot(
+            state,
+            copy.deepcopy(self.estimator),
+            self.torques,
+            self.tick,
+            copy.deepcopy(self.handover),
+            self._estimates,
+        )
 
     def restore(self, snap: Snapshot) -> None:
         m, d = self.plant.model, self.plant.data
@@ -122,7 +145,9 @@ class Episode:
         mujoco.mj_forward(m, d)
         self.estimator = copy.deepcopy(snap.estimator)
         self.torques = snap.torques
-        self.time = snap.time
+        self.tick = snap.tick
+        self.handover = copy.deepcopy(snap.handover)
+        self._estimates = snap.estimates
 
     # -- truth (scoring only) ---------------------------------------------------------------
     def heights(self) -> list[float]:
@@ -178,22 +203,30 @@ class Episode:
         record_errors: bool = False,
         stop: Callable[[], bool] | None = None,
     ) -> PhaseOutcome:
-        """Run ``phase`` from the current state, entered from ``self.torques``.
+        """Run ``phase`` from the current state, entered as the runner enters it from the
+        previous phase (``self.handover``; from rest at the start), with ``self.torques``
+        applied until the first command arrives.
 
         ``lifted`` says the objects are up already, so falling back counts as a drop; ``stop``
         (checked every few ticks) ends the phase early, with the exit "stopped".
         """
-        start = Phase("from", self.torques, 0.0, NODE_TICK_S, TimeoutAction.NEXT, (), ())
+        # a final ramp of some length, so that on the tick the phase is left the runner still
+        # holds, unramped, the torque and the damping it hands the next phase
         recipe = Recipe(
-            "episode", "<episode>", "", (start, phase), 0.0, None, False, limit_guard=self.guard
+            "episode", "<episode>", "", (phase,), 1.0, None, False, limit_guard=self.guard
         )
-        runner = RecipeRunner(recipe, self.hand.n_joints)
+        runner = RecipeRunner(recipe, self.hand.n_joints, self.handover)
         plant, est = self.plant, self.estimator
         quantum = self._quantum
-        t0 = self.time
+        t0 = self.tick
         first = self.true_angle()
         previous = first
         turned = 0.0
+        # the true centre line every tick, unwrapped, over the last window: the peak rate
+        window = max(1, round(RATE_WINDOW_S / NODE_TICK_S))
+        recent: deque[float] = deque(maxlen=window + 1)
+        line, line_last = first, first
+        peak = 0.0
         est_start = math.nan
         min_height = math.inf
         margin = math.inf
@@ -204,7 +237,15 @@ class Episode:
         zeros = np.zeros(self.hand.n_joints)
         lo_list, hi_list = self._lo, self._hi
         applied = np.array(self.torques, dtype=float)
+        limits = self._limits
+        out: tuple[float, ...] = ()
         for tick in range(steps):
+            now = self.true_angle()
+            line += _wrap(now - line_last)
+            line_last = now
+            recent.append(line)
+            if len(recent) > window:
+                peak = max(peak, abs(recent[-1] - recent[0]))
             raw = plant.joint_angles
             angles = [round(float(q) / quantum) * quantum for q in raw]
             # the soft limits every tick, on the measured angles, as the supervisor checks them
@@ -216,16 +257,17 @@ class Episode:
                 bad = next(j for j, q in enumerate(angles) if q < lo_list[j] or q > hi_list[j])
                 exit_reason = f"fail: {self.hand.joint_names[bad]} outside its soft limits"
                 break
-            out = est(angles)
-            if runner.index == 1 and math.isnan(est_start) and est.valid and est.pairs:
+            # the tick a phase was left on is this phase's first: its estimates are those
+            out = self._estimates if tick == 0 and self._estimates is not None else est(angles)
+            if math.isnan(est_start) and est.valid and est.pairs:
                 est_start = out[1]
-            desired = runner.step(tick * NODE_TICK_S, np.asarray(angles), zeros, out)
-            if runner.index > 1 or runner.status is not RunStatus.RUNNING:
+            desired = runner.step((t0 + tick) * NODE_TICK_S, np.asarray(angles), zeros, out)
+            if runner.index > 0 or runner.status is not RunStatus.RUNNING:
                 break
             # the nodes apply a command one tick after the host computed it (the bus), so the
-            # plant gets the previous tick's torques
+            # plant gets the previous tick's torques; the supervisor limits every command
             plant.set_torque_commands(applied)
-            applied[:] = desired
+            limit_torque(desired, applied, limits, NODE_TICK_S, applied)
             plant.step()
             if tick % CHECK_EVERY == 0:
                 now = self.true_angle()
@@ -247,9 +289,12 @@ class Episode:
                     exit_reason = "stopped"
                     break
         if not exit_reason:
-            exit_reason = runner.records[1].exit if len(runner.records) > 1 else "timeout"
+            exit_reason = runner.records[0].exit if runner.records else "timeout"
         self.torques = tuple(float(x) for x in applied)
-        self.time = t0 + tick * NODE_TICK_S
+        self.handover = runner.handover()
+        self.tick = t0 + tick
+        # the phase was left on this tick, its plant not stepped: the next phase runs it again
+        self._estimates = out if runner.index > 0 else None
         now = self.true_angle()
         turned += _wrap(now - previous)
         est_turn = (
@@ -269,6 +314,7 @@ class Episode:
             est_valid=est.valid,
             est_error_deg=self.estimate_error_deg(),
             errors_deg=errors,
+            peak_rate_deg_s=math.degrees(peak / (window * NODE_TICK_S)),
         )
 
 

@@ -43,6 +43,13 @@ LIMIT_FAIL = 0.1
 #: guard's band, and only the last few hundredths of a radian are the danger
 GUARDED_LIMIT_MARGIN = 0.06
 GUARDED_LIMIT_FAIL = 0.02
+#: deg/s, the true centre-line rate a manipulation phase should not exceed at its peak (the
+#: template's ``search.max_turn_rate_deg_s``): faster is a tumble, dynamics the quasi-static
+#: analysis does not cover and a real hand would likely drop
+MAX_TURN_RATE_DEG_S = 180.0
+#: what a peak rate above it costs, per multiple of it over, and at most
+RATE_WEIGHT = 0.5
+RATE_PENALTY_CAP = 1.0
 
 
 def _limit_penalty(o: PhaseOutcome, margin: float = LIMIT_MARGIN) -> float:
@@ -213,16 +220,33 @@ def cem(
     return SearchResult(best, seeded, evaluated, history)
 
 
-def turn_scorer(target_rad: float, max_s: float, limit_margin: float = LIMIT_MARGIN) -> Scorer:
+def _rate_penalty(o: PhaseOutcome, max_rate_deg_s: float) -> float:
+    over = o.peak_rate_deg_s / max_rate_deg_s - 1.0
+    return min(RATE_PENALTY_CAP, RATE_WEIGHT * max(0.0, over))
+
+
+def turn_scorer(
+    target_rad: float,
+    max_s: float,
+    limit_margin: float = LIMIT_MARGIN,
+    max_rate_deg_s: float = MAX_TURN_RATE_DEG_S,
+) -> Scorer:
     """Score of a manipulation phase: reaching the wanted turn (by its exit) is worth 1 plus a
     little for speed; a timeout is worth the fraction of the turn made; failing (soft limit,
-    drop, an object out of the hand) costs 1; ending with a lost estimate costs half."""
+    drop, an object out of the hand) costs 1; ending with a lost estimate costs half; a true
+    centre-line rate peaking above ``max_rate_deg_s`` costs half per multiple of it over, up
+    to 1, so a turn that tumbles to its exit ranks below a slow one that falls short: the
+    speed the score rewards is that of a turn made at the pace the analysis covers."""
     target_deg = math.degrees(target_rad)
 
     def score(o: PhaseOutcome) -> float:
         if o.failed:
             return -1.0
-        lost = (0.0 if o.est_valid and o.in_hand else -0.5) - _limit_penalty(o, limit_margin)
+        lost = (
+            (0.0 if o.est_valid and o.in_hand else -0.5)
+            - _limit_penalty(o, limit_margin)
+            - _rate_penalty(o, max_rate_deg_s)
+        )
         if o.exit != "timeout":
             return 1.0 + 0.25 * (1.0 - o.duration_s / max_s) + lost
         return 0.8 * float(np.clip(o.true_turn_deg / target_deg, -1.0, 1.0)) + lost

@@ -47,7 +47,7 @@ from handctl.online.recipes.schema import (
     estimate_names,
 )
 from handctl.planning.models import Spread
-from handctl.planning.search import Budget
+from handctl.planning.search import MAX_TURN_RATE_DEG_S, Budget
 from handctl.schema import Doc, load_yaml
 
 KINDS = ("free", "lift", "hold", "turn")
@@ -112,6 +112,8 @@ class SearchSettings:
     spread: Spread
     budget: Budget
     random_seeds: int = 0  # extra seeds per phase drawn uniformly from the flexion box
+    #: deg/s, a turn phase's true centre-line rate above this at its peak is penalised
+    max_turn_rate_deg_s: float = MAX_TURN_RATE_DEG_S
 
 
 @dataclass(frozen=True)
@@ -190,6 +192,13 @@ def _search(doc: Doc) -> SearchSettings:
         spread,
         budget,
         doc.integer("random_seeds", default=0, min=0, max=1000),
+        doc.number(
+            "max_turn_rate_deg_s",
+            default=MAX_TURN_RATE_DEG_S,
+            min=1.0,
+            max=100000.0,
+            unit="deg/s",
+        ),
     )
     doc.done()
     return settings

@@ -103,6 +103,9 @@ def test_plan_command_writes_the_recipe_and_the_region_plots(tmp_path: Path) -> 
     )
     assert done.returncode == 0, done.stderr
     assert out.read_text().startswith("# Compiled by handctl plan")
+    assert " s wall, " in done.stdout and " s CPU (this process and its local workers)" in (
+        done.stdout
+    )
     assert sorted(p.name for p in plots.glob("*.png")) == [
         "01_approach.png",
         "02_lift.png",

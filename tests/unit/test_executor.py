@@ -13,7 +13,7 @@ import psutil
 import pytest
 
 from handctl.errors import ConfigError
-from handctl.executor import available_cores, check_scheduler, open_pool
+from handctl.executor import Stopwatch, available_cores, check_scheduler, open_pool
 from handctl.progress import Progress
 
 from ..conftest import ROOT
@@ -53,6 +53,26 @@ def sleep_long(_: int) -> int:
 
 
 @pytest.mark.parametrize("workers", [1, 2])
+def spin(seconds: float) -> float:
+    """Burn ``seconds`` of CPU in the worker."""
+    end = time.process_time() + seconds
+    while time.process_time() < end:
+        pass
+    return seconds
+
+
+def test_the_stopwatch_counts_a_closed_local_pool_s_workers() -> None:
+    """``handctl plan`` reports its CPU time with this: what the workers burnt is in it once
+    the pool is closed, though this process itself only waited."""
+    clock = Stopwatch()
+    own = time.process_time()
+    with open_pool(2) as pool:
+        pool.map(spin, [0.4, 0.4])
+    _, cpu = clock.read()
+    assert cpu >= 0.8
+    assert time.process_time() - own < 0.8  # it is not this process's own
+
+
 def test_results_come_in_input_order(workers: int) -> None:
     import io
 

@@ -99,3 +99,28 @@ def test_per_joint_dynamics_must_give_one_value_per_joint(hand: HandConfig) -> N
     with pytest.raises(ConfigError) as info:
         parse_sim(dataclasses.replace(hand, sim=section))
     assert info.value.key == "sim.joints.damping" and "9" in info.value.expected
+
+
+@pytest.mark.parametrize("seed", [0, 7, 11])
+def test_a_plan_s_few_models_cover_every_range_end_to_end(
+    hand: HandConfig, params: SimParams, seed: int
+) -> None:
+    """The planner draws its models stratified: of five, one lies in each fifth of every
+    range (the joint damping's lightest fifth, ×0.3..×0.48, among them), where five
+    independent draws leave some fifth of some range out almost always."""
+    count = 5
+    models = model_set(params, count + 1, seed, Spread(), hand=hand)[1:]  # nominal first
+    spread = Spread()
+
+    def fifths(values: list[float], low: float, high: float) -> list[int]:
+        return sorted(int((v - low) / (high - low) * count) for v in values)
+
+    every = list(range(count))
+    scales = [m.scales for m in models]
+    for key in ("damping", "frictionloss", "armature", "actuator_lag", "tdt_bias"):
+        low, high = getattr(spread, key)
+        logs = [np.log(s[key]) for s in scales]
+        assert fifths(logs, np.log(low), np.log(high)) == every, key
+    for key, half in (("mass.1", spread.mass), ("radius.2", spread.radius)):
+        assert fifths([s[key] for s in scales], 1 - half, 1 + half) == every, key
+    assert fifths([s["gap_m"] for s in scales], *(spread.gap or (0.0, 0.0))) == every

@@ -1,11 +1,31 @@
-"""The planner's episodes on hands of other shapes than the default: one object is no pair."""
+"""The planner's episodes: on hands of other shapes than the default (one object is no pair),
+and phase by phase exactly as a run of the whole recipe."""
 
 from __future__ import annotations
 
-from handctl.config import load_hand
-from handctl.online.recipes.schema import Phase, RecipeObject, TimeoutAction
+import itertools
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from handctl.config import HandConfig, load_hand
+from handctl.online.estimator import RESET_CLEARANCE, ObjectEstimator
+from handctl.online.recipes.guard import LimitGuard
+from handctl.online.recipes.runner import RecipeRunner
+from handctl.online.recipes.schema import (
+    PacedRamp,
+    Phase,
+    PoseHold,
+    Recipe,
+    RecipeObject,
+    TimeoutAction,
+    TurnBrake,
+)
+from handctl.online.safety.limits import JointLimits, limit_torque
 from handctl.planning.episode import Episode
-from handctl.sim.params import parse_sim
+from handctl.sim.params import NODE_TICK_S, parse_sim
 
 from ..conftest import ROOT
 
@@ -24,3 +44,115 @@ def test_a_phase_on_one_object_has_no_pair_to_block() -> None:
     assert outcome.exit == "timeout"
     assert outcome.pair_blocked is False
     assert outcome.pair_gap == 0.0 and outcome.true_turn_deg == 0.0
+
+
+class CountedEstimator(ObjectEstimator):
+    """The estimator, counting its steps: it takes one a call, and a run one a tick."""
+
+    calls = 0
+
+    def __call__(self, angle: Sequence[float] | npt.NDArray[np.float64]) -> tuple[float, ...]:
+        self.calls += 1
+        return super().__call__(angle)
+
+
+def _counted(episode: Episode, objects: Sequence[RecipeObject]) -> Episode:
+    episode.estimator = CountedEstimator(episode.hand, objects)
+    return episode
+
+
+def _whole_recipe(episode: Episode, recipe: Recipe) -> int:
+    """Every phase of ``recipe`` in one runner on ``episode``'s plant, as a run drives them
+    (measured angles, the supervisor's limiter, the bus's one tick): the tick the last phase
+    is left on, with the plant where it is then."""
+    hand, plant, estimator = episode.hand, episode.plant, episode.estimator
+    runner = RecipeRunner(recipe, hand.n_joints)
+    limits = JointLimits.from_hand(hand)
+    quantum = 2 * math.pi / episode.params.encoder.counts_per_rev
+    applied = np.zeros(hand.n_joints)
+    zeros = np.zeros(hand.n_joints)
+    for tick in itertools.count():
+        angles = [round(float(q) / quantum) * quantum for q in plant.joint_angles]
+        estimates = estimator(angles)
+        desired = runner.step(tick * NODE_TICK_S, np.asarray(angles), zeros, estimates)
+        if runner.index >= len(recipe.phases):
+            return tick
+        plant.set_torque_commands(applied)
+        limit_torque(desired, applied, limits, NODE_TICK_S, applied)
+        plant.step()
+    raise AssertionError("unreachable")
+
+
+def test_phases_run_one_by_one_move_the_hand_as_the_whole_recipe_does(
+    hand: HandConfig,
+) -> None:
+    """The planner scores each phase on a runner of its own. Its episodes must move the hand
+    exactly as one runner over the whole recipe does, or the plan scores something else than
+    what runs: the second phase's ramp starts from the first's proposed torque (its pose hold
+    included, not the injected damping or the guard), the damping fades from the first's,
+    the velocities go on, and the supervisor's limiter clamps every command."""
+    params = parse_sim(hand)
+    objects = [RecipeObject(o.name, o.radius) for o in params.objects]
+    guard = LimitGuard.for_hand(hand, 0.15)
+    start = [q for finger in params.initial_angles for q in finger]
+    flex = (0.30, 0.20, 0.15, 0.30, 0.20, 0.15, -0.30, -0.20, -0.15)
+    brake = TurnBrake(math.radians(120.0), 0.03, joint_rate=0.3)
+    first = Phase(
+        "first",
+        flex,
+        0.01,  # s: faster than the rate limit, which the limiter then clamps
+        0.5,
+        TimeoutAction.NEXT,
+        (),
+        (),
+        pose=PoseHold(tuple(q + 0.3 for q in start), 0.5, 0.005),
+        joint_damping=0.02,
+        brake=brake,
+    )
+    second = Phase(
+        "second",
+        (0.2, 0.3, 0.2, 0.2, 0.3, 0.2, -0.2, -0.3, -0.2),
+        0.1,
+        0.12,
+        TimeoutAction.NEXT,
+        (),
+        (),
+        brake=brake,
+        paced=PacedRamp(math.radians(-90.0), 1.0, 2.0, joint_rate=0.5),
+        torque_margin=1.2,
+    )
+    whole = _counted(Episode(hand, params, objects, guard), objects)
+    recipe = Recipe("whole", "<test>", "", (first, second), 1.0, None, False, limit_guard=guard)
+    ticks = _whole_recipe(whole, recipe)
+
+    by_phase = _counted(Episode(hand, params, objects, guard), objects)
+    by_phase.run_phase(first)
+    again = by_phase.snapshot()  # and a phase started from a snapshot starts the same
+    by_phase.run_phase(second)
+    assert by_phase.tick == ticks
+    assert np.array_equal(by_phase.plant.data.qpos, whole.plant.data.qpos)
+    # the estimator took one step a tick (it tracks the pair by now: an estimator reset to
+    # its seeds would be equal whatever steps it took)
+    assert by_phase.estimator.centres == whole.estimator.centres
+    assert max(whole.estimator.clearance) < RESET_CLEARANCE
+    assert isinstance(by_phase.estimator, CountedEstimator)
+    assert isinstance(whole.estimator, CountedEstimator)
+    assert by_phase.estimator.calls == whole.estimator.calls == ticks + 1
+    by_phase.restore(again)
+    by_phase.run_phase(second)
+    assert np.array_equal(by_phase.plant.data.qpos, whole.plant.data.qpos)
+
+
+def test_a_phase_reports_its_peak_centre_line_rate(hand: HandConfig) -> None:
+    """The true centre line's largest rate over 10 ms, as the run summary measures it: a
+    pair pushed over by one finger turns at some hundreds of deg/s, a pair left alone not."""
+    params = parse_sim(hand)
+    objects = [RecipeObject(o.name, o.radius) for o in params.objects]
+    still = Episode(hand, params, objects)
+    rest = still.run_phase(Phase("rest", (0.0,) * 9, 0.0, 0.3, TimeoutAction.NEXT, (), ()))
+    assert rest.peak_rate_deg_s < 5.0
+    pushed = Episode(hand, params, objects)
+    sweep = (0.6, 0.45, 0.3) + (0.0,) * 6  # finger 1 alone, flexed hard into the pair
+    moved = pushed.run_phase(Phase("push", sweep, 0.0, 0.6, TimeoutAction.NEXT, (), ()))
+    assert moved.peak_rate_deg_s > 50.0
+    assert moved.peak_rate_deg_s >= abs(moved.true_turn_deg) / 0.6

@@ -71,6 +71,11 @@ def test_the_shipped_recipe_carries_the_template_s_feedback(hand: HandConfig) ->
         (lambda d: d["phases"][1]["move"].update(cyl9=[0, 1]), "phases[1].move.cyl9", "object"),
         (lambda d: d["phases"][0].pop("torques"), "phases[0].torques", ""),
         (lambda d: d["search"].update(elite=99, population=4), "search.elite", "population"),
+        (
+            lambda d: d["search"].update(max_turn_rate_deg_s=0),
+            "search.max_turn_rate_deg_s",
+            "deg/s",
+        ),
         (lambda d: d["phases"].append(dict(d["phases"][3])), "phases[7].name", "not used"),
         (
             lambda d: d["phases"][3]["paced_ramp"].update(rate_deg_s=-90),

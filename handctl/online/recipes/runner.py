@@ -85,10 +85,24 @@ class PhaseRecord:
     exit: str = ""  # the condition text, "timeout", "abort: ...", or "stopped"
 
 
+@dataclass
+class Handover:
+    """What one phase hands the next within a run: the torque the next ramp starts from (the
+    last proposed, feedback included, before injected damping and the guard), the injected
+    damping it fades from, and the velocity filters' history. The planner runs each phase on
+    a runner of its own; starting that runner from the previous one's handover makes the
+    phase begin as it does in a run of the whole recipe."""
+
+    torques: FloatArray
+    damping: float
+    velocity: JointVelocity
+    guard_velocity: FittedVelocity | None
+
+
 class RecipeRunner:
     """The state of one execution of a recipe."""
 
-    def __init__(self, recipe: Recipe, n_joints: int) -> None:
+    def __init__(self, recipe: Recipe, n_joints: int, after: Handover | None = None) -> None:
         self.recipe = recipe
         self.n = n_joints
         self.status = RunStatus.RUNNING
@@ -149,6 +163,17 @@ class RecipeRunner:
         # a paced ramp's fraction along its segment, and when it last moved
         self.pace = 0.0
         self._pace_t = math.nan
+        if after is not None:  # the first phase is entered from the handed-over state
+            self._desired[:] = after.torques
+            self.damping = after.damping
+            self.velocity = after.velocity
+            if self._guard_velocity is not None and after.guard_velocity is not None:
+                self._guard_velocity = after.guard_velocity
+
+    def handover(self) -> Handover:
+        """What the next phase would start from now (its filters are this runner's own)."""
+        torques = (self._proposed if self._fed else self._desired).copy()
+        return Handover(torques, self.damping, self.velocity, self._guard_velocity)
 
     @property
     def phase_name(self) -> str:

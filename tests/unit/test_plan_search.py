@@ -1,0 +1,56 @@
+"""The plan's scores: a manipulation phase that tumbles to its exit ranks below one that turns
+at the pace the analysis covers."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from handctl.planning.episode import PhaseOutcome
+from handctl.planning.search import turn_scorer
+
+TARGET_RAD = -0.785398  # -45 deg
+
+
+def outcome(exit: str, turn_deg: float, peak: float, duration_s: float = 1.0) -> PhaseOutcome:
+    return PhaseOutcome(
+        exit=exit,
+        duration_s=duration_s,
+        true_turn_deg=turn_deg,
+        est_turn_deg=turn_deg,
+        min_height=0.02,
+        end_height=0.02,
+        limit_margin=1.0,
+        pair_gap=0.0,
+        pair_blocked=False,
+        in_hand=True,
+        est_valid=True,
+        est_error_deg=1.0,
+        peak_rate_deg_s=peak,
+    )
+
+
+def test_a_turn_is_scored_on_its_peak_centre_line_rate() -> None:
+    score = turn_scorer(TARGET_RAD, 3.0, max_rate_deg_s=180.0)
+    paced = outcome("estimate.cyl1_cyl2_line_turn < -0.7461 for 0.02", -45.0, 150.0)
+    # up to the limit the rate costs nothing
+    assert score(paced) == score(dataclasses.replace(paced, peak_rate_deg_s=180.0))
+    # the same turn done faster than the limit scores less, the more so the faster
+    fast = [score(dataclasses.replace(paced, peak_rate_deg_s=p)) for p in (270, 400, 800)]
+    assert score(paced) > fast[0] > fast[1] > fast[2]
+    # a tumble to the exit, even a quick one, ranks below a slow turn that falls short
+    tumble = dataclasses.replace(paced, peak_rate_deg_s=800.0, duration_s=0.3)
+    short = outcome("timeout", -35.0, 90.0, 3.0)
+    assert score(short) > score(tumble)
+    # and above a failure: the tumble still kept the pair
+    assert score(tumble) > score(outcome("fail: an object left the hand", -60.0, 900.0))
+    # a timeout is judged on its rate as well
+    assert score(short) > score(dataclasses.replace(short, peak_rate_deg_s=500.0))
+
+
+def test_the_rate_limit_is_the_scorer_s_own() -> None:
+    """A template sets it (``search.max_turn_rate_deg_s``): the same turn at 300 deg/s is
+    fine under a limit of 360 and penalised under the default 180."""
+    turn = outcome("estimate.cyl1_cyl2_line_turn < -0.7461 for 0.02", -45.0, 300.0)
+    assert turn_scorer(TARGET_RAD, 3.0, max_rate_deg_s=360.0)(turn) > turn_scorer(TARGET_RAD, 3.0)(
+        turn
+    )
