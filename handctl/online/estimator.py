@@ -190,9 +190,7 @@ class ObjectEstimator:
                 mid_x + offset * side_x + (r + SEED_DEPTH) * down_x,
                 mid_y + offset * side_y + (r + SEED_DEPTH) * down_y,
             )
-            for offset, r in zip(
-                _seed_offsets(self.nominal_radii), self.nominal_radii, strict=True
-            )
+            for offset, r in zip(_seed_offsets(self.nominal_radii), self.nominal_radii, strict=True)
         )
         reach = max(sum(j[0] for j in f[3]) for f in self._fingers) + length
         self._centre = (mid_x, mid_y)

@@ -456,9 +456,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         }
         if spec.kind == "turn":
             provenance["models"]["true_turn_deg"] = [round(o.true_turn_deg, 1) for o in outcomes]
-            provenance["models"]["peak_rate_deg_s"] = [
-                round(o.peak_rate_deg_s) for o in outcomes
-            ]
+            provenance["models"]["peak_rate_deg_s"] = [round(o.peak_rate_deg_s) for o in outcomes]
         plans.append(PhasePlan(spec, phase, analysis, chosen, outcomes, provenance))
         alive = survivors
         previous = phase.torques

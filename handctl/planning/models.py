@@ -166,9 +166,7 @@ def _per_joint(
     return factor, tuple(v * factor * _log_uniform(rng, own) for v in values)
 
 
-def perturb(
-    params: SimParams, rng: Draws, spread: Spread, hand: HandConfig | None = None
-) -> Model:
+def perturb(params: SimParams, rng: Draws, spread: Spread, hand: HandConfig | None = None) -> Model:
     """Draw one model around ``params``; the factors are kept for provenance. ``hand`` (the
     soft limits) bounds the drawn initial angles; without it they are not varied."""
     fr = params.friction

@@ -321,9 +321,7 @@ def parse_brake(doc: Doc) -> TurnBrake:
         "joint_damping", min=0.0, max=MAX_JOINT_DAMPING, min_exclusive=True, unit="N·m·s/rad"
     )
     joint_rate = doc.number("joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
-    blind = doc.number(
-        "blind_joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s"
-    )
+    blind = doc.number("blind_joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
     doc.done()
     return TurnBrake(math.radians(rate), damping, joint_rate, blind)
 
@@ -355,9 +353,7 @@ def parse_paced_ramp(doc: Doc, sign: float | None = None) -> PacedRamp:
     reach = doc.number("reach", default=1.0, min=1.0, max=MAX_REACH)
     back = doc.number("back", default=2.0, min=0.0, max=MAX_BACK, min_exclusive=True)
     joint_rate = doc.number("joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
-    blind = doc.number(
-        "blind_joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s"
-    )
+    blind = doc.number("blind_joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
     doc.done()
     return PacedRamp(math.radians(rate), reach, back, joint_rate, blind)
 

@@ -265,7 +265,9 @@ class Recipe:
     @property
     def uses_estimates(self) -> bool:
         return any(
-            p.turn_rate is not None or p.brake is not None or p.paced is not None
+            p.turn_rate is not None
+            or p.brake is not None
+            or p.paced is not None
             or p.stall is not None
             for p in self.phases
         ) or any(c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
