@@ -31,6 +31,9 @@ HEIGHT_LABEL = "height above rest [mm]"
 #: m, an object's centre this far above rest is lifted: the experiment's judgement and the
 #: line the plots draw are one number
 LIFT_HEIGHT = 0.010
+#: s, a centre-line rate is taken over this window, so that one contact impact of a
+#: millisecond is not a peak: the summary's, the bench's and the planner's peak rate alike
+RATE_WINDOW_S = 0.010
 TURN_LABEL = "turn of the centre line [deg, ccw +]"
 
 

@@ -48,7 +48,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from handctl.convention import LIFT_HEIGHT, POSE_EVERY_TICKS, phase_turns_deg
+from handctl.convention import LIFT_HEIGHT, POSE_EVERY_TICKS, RATE_WINDOW_S, phase_turns_deg
 from handctl.errors import ConfigError
 from handctl.handshape import hand_span
 from handctl.online.recipes.schema import Pair, Recipe
@@ -56,7 +56,6 @@ from handctl.online.recipes.schema import Pair, Recipe
 HOLD_S = 2.0  # s
 DROP_HEIGHT = 0.005  # m
 MANIPULATE_PREFIX = "manipulate"
-RATE_WINDOW_S = 0.010  # s
 
 
 class _Pose(Protocol):

@@ -34,7 +34,7 @@ import mujoco
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.experiment.merit import RATE_WINDOW_S
+from handctl.convention import RATE_WINDOW_S
 from handctl.handshape import hand_span
 from handctl.online.estimator import ObjectEstimator
 from handctl.online.recipes.guard import LimitGuard

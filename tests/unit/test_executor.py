@@ -52,7 +52,6 @@ def sleep_long(_: int) -> int:
     return 0
 
 
-@pytest.mark.parametrize("workers", [1, 2])
 def spin(seconds: float) -> float:
     """Burn ``seconds`` of CPU in the worker."""
     end = time.process_time() + seconds
@@ -73,6 +72,7 @@ def test_the_stopwatch_counts_a_closed_local_pool_s_workers() -> None:
     assert time.process_time() - own < 0.8  # it is not this process's own
 
 
+@pytest.mark.parametrize("workers", [1, 2])
 def test_results_come_in_input_order(workers: int) -> None:
     import io
 
