@@ -259,7 +259,8 @@ class Recorder:
         # active, the 4 stages, state, phase, faults latched, then the node states and fault
         # bits; the feedback_ns column after them is a buffer copy.
         self._row_pack = struct.Struct(f"<{I_NODES + 2 * self.layout.n_nodes}q").pack_into
-        self._no_nodes = (-1,) * self.layout.n_nodes + (0,) * self.layout.n_nodes
+        self._no_states = [-1] * self.layout.n_nodes  # a tick without a runtime: no node seen
+        self._no_faults = [0] * self.layout.n_nodes
         self._feedback_at = self.layout.i_feedback
         self._tick_mask = self.layout.tick_capacity - 1
         self._head = self._tail = 0
@@ -399,24 +400,33 @@ class Recorder:
             at = self._tick_base + row * self._tick_stride
             if runtime is not None:
                 state = runtime.driver.state
-                self._row_pack(
-                    self._buf,
-                    at,
-                    self._tick,
-                    self._scheduled,
-                    self._now,
-                    self._missed,
-                    1,
-                    s[0],
-                    s[1],
-                    s[2],
-                    s[3],
-                    self._states.get(record.state, -1),
-                    phase,
+                faults, node_state, node_faults = (
                     len(runtime.supervisor.faults),
-                    *state.node_state,
-                    *state.node_faults,
+                    state.node_state,
+                    state.node_faults,
                 )
+            else:
+                state = None
+                faults, node_state, node_faults = 0, self._no_states, self._no_faults
+            self._row_pack(
+                self._buf,
+                at,
+                self._tick,
+                self._scheduled,
+                self._now,
+                self._missed,
+                1,
+                s[0],
+                s[1],
+                s[2],
+                s[3],
+                self._states.get(record.state, -1),
+                phase,
+                faults,
+                *node_state,
+                *node_faults,
+            )
+            if state is not None:
                 if state.feedback_ns is not self._feedback:
                     self._feedback, self._feedback_view = (
                         state.feedback_ns,
@@ -424,24 +434,6 @@ class Recorder:
                     )
                 at = row * self._tick_ints + self._feedback_at
                 self._ints[at : at + self._n] = self._feedback_view
-            else:
-                self._row_pack(
-                    self._buf,
-                    at,
-                    self._tick,
-                    self._scheduled,
-                    self._now,
-                    self._missed,
-                    1,
-                    s[0],
-                    s[1],
-                    s[2],
-                    s[3],
-                    self._states.get(record.state, -1),
-                    phase,
-                    0,
-                    *self._no_nodes,
-                )
             # Four vectors by memoryview slice assignment: no numpy call, no allocation. The
             # views of the runtime's arrays are made once (an array the runtime swaps in,
             # the zero vector for the runner's, gets its view made when first seen).
