@@ -316,6 +316,11 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
             f"p99 {host['lateness_us']['p99']:g} µs, longest stall "
             f"{host['longest_stall_ms']:g} ms; missed ticks: {host['missed_host']} the "
             f"host's, {host['missed_handctl']} handctl's"
+            + (
+                f", {host['missed_rival']} real-time rivals' ({', '.join(host['rivals'])})"
+                if host.get("missed_rival")
+                else ""
+            )
         )
     print(
         "  max |τ| [N·m] " + ", ".join(f"{k} {v:.3f}" for k, v in summary["max_abs_tau_nm"].items())

@@ -36,6 +36,7 @@ from handctl.online.clock import LOOP_PRIORITY, Hygiene, StallLog
 from handctl.online.safety.faults import Fault, FaultCode
 from handctl.online.safety.watchdog import TickWatch
 from handctl.online.tickstats import HIST_RANGE_US
+from handctl.rivals import Rival, RivalRecord, RivalWatch, find_rivals
 
 #: Seconds of the check a run on a real bus makes before it opens the bus.
 PRECHECK_S = 1.5
@@ -286,9 +287,18 @@ def worse(a: Verdict, b: Verdict) -> Verdict:
     return a if LEVELS.index(a.level) >= LEVELS.index(b.level) else b
 
 
-def advice(facts: HostFacts, record: ProbeRecord, realtime: bool) -> list[str]:
+def advice(
+    facts: HostFacts, record: ProbeRecord, realtime: bool, rivals: Sequence[Rival] = ()
+) -> list[str]:
     """What would help this host hold the deadlines, each naming what was found."""
     tips: list[str] = []
+    for rival in rivals:
+        tips.append(
+            f"the loop's CPU to itself: {rival.label()} may run on CPU(s) "
+            f"{list(rival.cpus)} at the loop's priority or above; move it "
+            f"('taskset -p -c ... {rival.tid}'), lower it ('chrt -p ... {rival.tid}'), or give "
+            "the loop another CPU with --loop-cpu"
+        )
     if facts.preemption != "PREEMPT_RT" and facts.realtime_kernel is not True:
         found = "/sys/kernel/realtime " + ("absent" if facts.realtime_kernel is None else "0")
         model = facts.preemption + (
@@ -508,6 +518,7 @@ def timing_check(
         )
     if realtime and cpu is None:
         cpu, _ = plan_cpus(set(facts.cpus), set(facts.isolated))
+    rivals = find_rivals(cpu if realtime else None, LOOP_PRIORITY if realtime else 1, [os.getpid()])
     with Probe(
         deadlines.period_ns,
         record_ns=deadlines.period_ns // 2,
@@ -522,8 +533,25 @@ def timing_check(
     verdict = records[0][1]
     for _, v in records[1:]:
         verdict = worse(verdict, v)
+    if rivals:
+        verdict = worse(verdict, rival_verdict(rivals, verdict.figures))
     return CheckReport(
-        verdict, tuple(records), facts, tuple(advice(facts, measured, realtime)), realtime
+        verdict, tuple(records), facts, tuple(advice(facts, measured, realtime, rivals)), realtime
+    )
+
+
+def rival_verdict(rivals: Sequence[Rival], figures: dict[str, Any]) -> Verdict:
+    """Marginal while another real-time task may take the loop's CPU: the bare loop, one
+    priority above the loop, cannot feel it, and it can hold the loop for as long as it runs
+    (an idle one costs nothing, so not a fail)."""
+    names = ", ".join(r.label() for r in rivals)
+    return Verdict(
+        "marginal",
+        (
+            f"{len(rivals)} real-time task(s) at the loop's priority or above may run "
+            f"on its CPU: {names}",
+        ),
+        figures,
     )
 
 
@@ -533,13 +561,19 @@ def attribute(
     host: ProbeRecord,
     period_ns: int,
     handctls: list[int] | None = None,
+    rivals: RivalRecord | None = None,
 ) -> dict[str, int]:
     """Split the control loop's missed ticks between the host and handctl.
 
     A missed tick's interval runs from one period before the oldest deadline it slept through
-    (the tick before it may have been the one held up) to its wake-up. If a stall of the bare
-    loop beside it overlaps that interval, the host held both loops: ``missed_host``. If none
-    did, the host let a bare loop run at that time and handctl was late on its own:
+    (the tick before it may have been the one held up) to its wake-up. If stalls of the bare
+    loop beside it overlap that interval by as long as the loop was late, less one period
+    (the loop's own tick may take up to a period), the host held both loops: ``missed_host``.
+    A host stall of 0.9 ms does not explain a loop 13 ms late. If the host does not explain
+    it but a real-time rival (``handctl.rivals``: a task at the loop's priority or above,
+    allowed on its CPU, which the probe one priority up does not feel) ran during it, the
+    rival held the loop: ``missed_rival``, the host's too (what else runs on the host). If
+    neither, the host let a bare loop run at that time and handctl was late on its own:
     ``missed_handctl``. Of those, ``missed_handctl_after_host`` came in the very next tick
     after a host stall, while the loop caught up (a backlog of frames to read). Missed ticks
     outside the time the probe ran are ``missed_unobserved``. The ticks of handctl's own
@@ -548,6 +582,7 @@ def attribute(
     host_stalls = sorted((due, wake) for _, due, wake, _ in host.stalls)
     counts = {
         "missed_host": 0,
+        "missed_rival": 0,
         "missed_handctl": 0,
         "missed_handctl_after_host": 0,
         "missed_unobserved": 0,
@@ -557,8 +592,11 @@ def attribute(
         start = due - period_ns
         if wake < host.start_ns or start > host.end_ns:
             counts["missed_unobserved"] += missed
-        elif any(h_due < wake and h_wake > start for h_due, h_wake in host_stalls):
+        elif _held(host_stalls, start, wake) >= wake - due - period_ns:
             counts["missed_host"] += missed
+            after_host = tick
+        elif rivals is not None and rivals.active(start, wake):
+            counts["missed_rival"] += missed
             after_host = tick
         else:
             counts["missed_handctl"] += missed
@@ -568,6 +606,11 @@ def attribute(
             if handctls is not None:
                 handctls.append(tick)
     return counts
+
+
+def _held(host_stalls: list[tuple[int, int]], start: int, end: int) -> int:
+    """ns of ``[start, end]`` during which the bare loop was stalled."""
+    return sum(max(0, min(end, h_wake) - max(start, h_due)) for h_due, h_wake in host_stalls)
 
 
 # -- a run's host: its CPUs, the check before it, the bare loop beside it -----------------------
@@ -652,23 +695,26 @@ def host_summary(
     faults: Sequence[Fault],
     warnings: list[str],
     peer_probe: Probe | None = None,
-) -> tuple[ProbeRecord | None, dict[str, Any]]:
+    rival_watch: RivalWatch | None = None,
+) -> tuple[ProbeRecord | None, RivalRecord | None, dict[str, Any]]:
     """What the bare loop beside a run saw, and whose the run's missed ticks were; a warning
     with the host's verdict when the run stopped on LOOP_OVERRUN or FEEDBACK_TIMEOUT.
 
     ``peer_probe`` is a bare loop on the simulated hand's CPU: its stalls are the host's part
-    in a feedback that came late, which the loop's CPU does not see.
+    in a feedback that came late, which the loop's CPU does not see. ``rival_watch`` saw the
+    real-time tasks that could hold the loop where the probe above it would not notice.
     """
     try:
         record = probe.stop()
         peer = peer_probe.stop() if peer_probe is not None else None
+        rivals = rival_watch.stop() if rival_watch is not None else None
     except HandctlError as exc:
         warnings.append(str(exc))
-        return None, {"error": str(exc)}
+        return None, None, {"error": str(exc)}
     deadlines = Deadlines.of(hand)
     verdict = judge(record, deadlines)
     own: list[int] = []
-    shares = attribute(loop_stalls.rows(), record, deadlines.period_ns, own)
+    shares = attribute(loop_stalls.rows(), record, deadlines.period_ns, own, rivals)
     shares["missed_unobserved"] += loop_stalls.overflow_missed
     summary = {
         "verdict": verdict.level,
@@ -679,6 +725,7 @@ def host_summary(
         "probe_period_us": record.period_ns / 1e3,
         "scheduler": record.scheduler,
         "refused": list(record.refused),
+        "rivals": sorted(set(rivals.rivals.values())) if rivals is not None else [],
     }
     peer_text = ""
     if peer is not None:
@@ -710,8 +757,14 @@ def host_summary(
             f"the host was {verdict.level.upper()}"
             + "".join(f"; {r}" for r in verdict.reasons)
             + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
-            f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's)"
+            f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's"
+            + (
+                f", {shares['missed_rival']} a real-time rival's: " + ", ".join(summary["rivals"])
+                if shares["missed_rival"]
+                else ""
+            )
+            + ")"
             + peer_text
             + "; see 'handctl check --timing' and docs/timing.md"
         )
-    return record, summary
+    return record, rivals, summary

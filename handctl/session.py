@@ -46,6 +46,7 @@ from handctl.online.loop import Outcome, RecordSink, RunResult, Runtime, StatusL
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FAULTS
 from handctl.online.tickstats import STAGES, TickWindow, percentile_us
+from handctl.rivals import RivalRecord, RivalWatch
 
 if TYPE_CHECKING:
     from handctl.online.clock import Tick
@@ -87,6 +88,8 @@ class RunReport:
     # as (tick, due_ns, wake_ns, missed), for ``handctl.hostcheck.attribute``.
     host: ProbeRecord | None = None
     loop_stalls: list[tuple[int, int, int, int]] = field(default_factory=list)
+    # Real time: the real-time rivals seen on the loop's CPU (``handctl.rivals``).
+    rivals: RivalRecord | None = None
 
 
 def _percentiles_us(window: TickWindow) -> dict[str, float]:
@@ -249,7 +252,7 @@ def run_recipe(
         summary = summarise_run(
             result, req.hand, req.recipe, lockstep, _peer_summary(peer, warnings)
         )
-        host = _host_summary(summary, req, timing, result, host_check, warnings)
+        host, rivals = _host_summary(summary, req, timing, result, host_check, warnings)
         _experiment_summary(summary, req, tracker, warnings)
         if recording is not None:
             _close_recording(recording, summary, req, warnings)
@@ -263,6 +266,7 @@ def run_recipe(
         runtime.startup_missed_ticks,
         host,
         clock.stalls.rows() if isinstance(clock, RealtimeClock) else [],
+        rivals,
     )
 
 
@@ -320,6 +324,7 @@ class _Timing:
     clock: Clock
     probe: Probe | None = None
     peer_probe: Probe | None = None
+    rival_watch: RivalWatch | None = None
     cpus: dict[str, Any] = field(default_factory=dict)
 
 
@@ -347,6 +352,14 @@ def _start_clock(
                 req.hand, req.realtime_priority, sim_cpu, req.hygiene.lock_memory, LOOP_PRIORITY
             )
         )
+    # Before the loop's priority is raised: starting a process at SCHED_FIFO costs the CPU.
+    timing.rival_watch = stack.enter_context(
+        RivalWatch(
+            loop_cpu,
+            LOOP_PRIORITY if req.realtime_priority else 1,
+            [p.proc.pid for p in (timing.probe, timing.peer_probe) if p is not None],
+        )
+    )
     if req.realtime_priority:
         warnings += request_realtime(
             LOOP_PRIORITY,
@@ -381,19 +394,27 @@ def _host_summary(
     result: RunResult,
     host_check: dict[str, Any] | None,
     warnings: list[str],
-) -> ProbeRecord | None:
+) -> tuple[ProbeRecord | None, RivalRecord | None]:
     """Into ``summary``: in real time, whose the missed ticks were (the host's or handctl's)
-    and the CPUs; the timing check made before the bus was opened. The probe's record."""
+    and the CPUs; the timing check made before the bus was opened. The probe's and the rivals'
+    watcher's records."""
     host: ProbeRecord | None = None
+    rivals: RivalRecord | None = None
     if timing.probe is not None:
         assert isinstance(timing.clock, RealtimeClock)
-        host, summary["host"] = host_summary(
-            req.hand, timing.probe, timing.clock.stalls, result.faults, warnings, timing.peer_probe
+        host, rivals, summary["host"] = host_summary(
+            req.hand,
+            timing.probe,
+            timing.clock.stalls,
+            result.faults,
+            warnings,
+            timing.peer_probe,
+            timing.rival_watch,
         )
         summary["host"]["cpus"] = timing.cpus
     if host_check is not None:
         summary["host_check"] = host_check
-    return host
+    return host, rivals
 
 
 def _experiment_summary(

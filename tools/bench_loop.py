@@ -9,7 +9,9 @@ so the feedback stage does the work of a feedback phase every tick.
 
 Beside the loop, on its CPU one priority above it, the bare timer loop of the timing check runs
 for the whole run (``handctl.hostcheck``): ``host_*`` is what it saw, and every missed tick of
-the run proper is the host's (``missed_host``: the bare loop stalled at the same time) or
+the run proper is the host's (``missed_host``: the bare loop stalled at the same time;
+``missed_rival``: a real-time task at the loop's priority or above ran on its CPU, which the
+bare loop one priority up does not feel, ``handctl.rivals``) or
 handctl's (``missed_handctl``: it did not). Target: ``missed_handctl`` 0.
 
 ``tick_cost`` is the CPU cost of the tick, stage by stage, of this tree beside the tree of
@@ -190,8 +192,10 @@ def host_figures(
     rows = [r for r in report.loop_stalls if r[0] >= first_tick]
     period = round(hand.bus.period_s * 1e9)
     own: list[int] = []
-    shares = attribute(rows, host, period, own)
-    startup = attribute([r for r in report.loop_stalls if r[0] < first_tick], host, period)
+    shares = attribute(rows, host, period, own, report.rivals)
+    startup = attribute(
+        [r for r in report.loop_stalls if r[0] < first_tick], host, period, None, report.rivals
+    )
     f = verdict.figures
     return {
         "host_verdict": verdict.level,
@@ -202,6 +206,7 @@ def host_figures(
         "host_steal_ms": host.steal_ms,
         **shares,
         "missed_handctl_at_ticks": own[:20],
+        "rivals": sorted(set(report.rivals.rivals.values())) if report.rivals else [],
         "startup_missed_handctl": startup["missed_handctl"],
     }
 
@@ -274,6 +279,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             "lateness_p99_us",
             "missed_rate",
             "missed_host",
+            "missed_rival",
             "missed_handctl",
             "missed_handctl_after_host",
             "startup_missed_ticks",

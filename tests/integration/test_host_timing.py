@@ -273,3 +273,48 @@ def _alive(pid: int) -> bool:
     except OSError:
         return False
     return state != "Z"
+
+
+#: A real-time task that runs 10 ms in every 60 ms on CPU 0 at SCHED_FIFO 1 (below any of
+#: handctl's), or exits 77 where real-time priority is refused.
+RIVAL = """
+import os, sys, time
+try:
+    os.sched_setaffinity(0, {0})
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+except OSError:
+    sys.exit(77)
+print("ready", flush=True)
+end = time.monotonic() + 20
+while time.monotonic() < end:
+    busy = time.monotonic() + 0.01
+    while time.monotonic() < busy:
+        pass
+    time.sleep(0.05)
+"""
+
+
+def test_the_watcher_sees_a_real_time_rival_run_on_the_loops_cpu() -> None:
+    from handctl.rivals import RivalWatch
+
+    rival = subprocess.Popen([sys.executable, "-c", RIVAL], stdout=subprocess.PIPE, text=True)
+    try:
+        assert rival.stdout is not None
+        if rival.stdout.readline().strip() != "ready":
+            rival.wait(timeout=10)
+            pytest.skip(f"real-time priority refused here (exit {rival.returncode})")
+        with RivalWatch(0, 1, []) as watch:
+            time.sleep(1.3)  # two looks at least
+            seen = watch.stop()
+        with RivalWatch(1, 1, [rival.pid]) as watch:  # excluded: not seen
+            time.sleep(0.6)
+            unseen = watch.stop()
+    finally:
+        rival.kill()
+        rival.communicate()
+    label = f"python (pid {rival.pid}, tid {rival.pid}, SCHED_FIFO 1)"
+    assert label in seen.rivals.values()
+    ran = [s for s in seen.spans if s[2] == rival.pid]
+    assert ran and all(r[3] > 0 for r in ran)
+    assert seen.active(ran[0][0], ran[0][1]) == [label]
+    assert rival.pid not in unseen.rivals

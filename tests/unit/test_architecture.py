@@ -53,6 +53,7 @@ COMPOSITION = (
     "handctl.hostcheck",
     "handctl.hostprobe",
     "handctl.hostfacts",
+    "handctl.rivals",
     "handctl.parent_death",
     "handctl.experiment",
     "handctl.harness",

@@ -169,11 +169,26 @@ def test_a_missed_tick_is_the_hosts_only_if_the_bare_loop_stalled_with_it() -> N
     own: list[int] = []
     assert attribute(loop, host, MS, own) == {
         "missed_host": 3,
+        "missed_rival": 0,
         "missed_handctl": 2,
         "missed_handctl_after_host": 0,
         "missed_unobserved": 2,
     }
     assert own == [30]
+
+
+def test_a_short_host_stall_does_not_explain_a_long_miss() -> None:
+    # Seen on the two-CPU machine: the loop 13 ms late, the bare loop beside it 0.9 ms.
+    host = record([(500, 505.0, 0.9), (900, 900.0, 9.0)], period_ns=MS // 2)
+    at = START
+    loop = [
+        (10, at + 500 * MS, at + 513 * MS, 13),  # 0.9 ms of host stall inside: handctl's
+        (20, at + 900 * MS, at + 909 * MS + 400_000, 9),  # 9 ms of 9.4: the host's
+    ]
+    own: list[int] = []
+    shares = attribute(loop, host, MS, own)
+    assert (shares["missed_host"], shares["missed_handctl"]) == (9, 13)
+    assert own == [10]
 
 
 def test_a_miss_right_after_a_host_stall_is_handctls_catching_up() -> None:
