@@ -43,6 +43,7 @@ from handctl.online.clock import (
 from handctl.online.drivers.hand import HandDriver
 from handctl.online.estimator import ObjectEstimator
 from handctl.online.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
+from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FAULTS
 from handctl.online.tickstats import STAGES, TickWindow, percentile_us
@@ -214,6 +215,11 @@ def run_recipe(
         timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu, warnings)
         clock = timing.clock
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
+        estimator = (
+            ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
+            if req.recipe.objects
+            else None
+        )
         runtime = Runtime(
             req.hand,
             driver,
@@ -224,11 +230,8 @@ def run_recipe(
             reset_node_faults=req.reset_node_faults,
             max_ticks=NO_TICK_LIMIT,
             startup_timeout_s=peer.startup_s,
-            estimator=(
-                ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
-                if req.recipe.objects
-                else None
-            ),
+            estimator=estimator,
+            reanalyser=_reanalyser(stack, req, estimator, lockstep),
         )
         # Ground truth of the experiment, recorded every tick and never fed back.
         tracker = None
@@ -264,6 +267,23 @@ def run_recipe(
         host,
         clock.stalls.rows() if isinstance(clock, RealtimeClock) else [],
     )
+
+
+def _reanalyser(
+    stack: ExitStack, req: RunRequest, estimator: ObjectEstimator | None, lockstep: bool
+) -> Reanalyser | None:
+    """The analysis at the measured configuration, for a recipe with ``reanalyse`` phases:
+    on the tick in lockstep (the hand waits for it), in a process of its own in real time
+    (``handctl.planning.reanalysis``)."""
+    if estimator is None or not any(p.reanalyse is not None for p in req.recipe.phases):
+        return None
+    from handctl.planning.reanalysis import ReanalysisOnTick, ReanalysisWorker
+
+    if lockstep:
+        return ReanalysisOnTick(req.hand, req.recipe, estimator)
+    worker = ReanalysisWorker(req.hand, req.recipe, estimator)
+    stack.callback(worker.close)
+    return worker
 
 
 def _lockstep(req: RunRequest, is_sim: bool) -> bool:

@@ -275,3 +275,36 @@ def _evaluate(conditions: Conditions, tau: Array, nothing: TorquePlan) -> Torque
 
 def _replace(plan: TorquePlan, *, reason: str) -> TorquePlan:
     return TorquePlan(plan.found, plan.tau, plan.margin, plan.values, reason)
+
+
+#: points tried along a blend's segment, the planned torque's end first
+BLEND_STEPS = 8
+
+
+def blend_towards(
+    conditions: Conditions, planned: Vector, robust: Vector, min_margin: float
+) -> tuple[float, TorquePlan]:
+    """The torque nearest ``planned`` on the segment from it to ``robust`` (a torque the
+    planner found) whose robust margin is at least ``min_margin`` (or, if ``robust``'s own
+    is less, ``robust``'s): the fraction along the segment and the torque, the oracle's
+    margin with it.
+
+    Why a segment and not the nearest point of the whole set: the planned torque is what
+    the search found to work on the simulated models, and the analysis' torque is what is
+    guaranteed at this configuration; a torque between them keeps as much of the first as
+    the second allows. The margin along the segment is not monotone (a minimum of convex
+    functions), so it is sampled at ``BLEND_STEPS + 1`` points from the planned end, not
+    bisected."""
+    start = np.asarray(planned, dtype=float)
+    end = np.asarray(robust, dtype=float)
+    nothing = TorquePlan(False, tuple(0.0 for _ in start), -np.inf, {}, "")
+    best = _evaluate(conditions, end, nothing)
+    if not best.found:
+        return 1.0, best
+    wanted = min(min_margin, best.margin)
+    for k in range(BLEND_STEPS):
+        fraction = k / BLEND_STEPS
+        plan = _evaluate(conditions, start + fraction * (end - start), nothing)
+        if plan.found and plan.margin >= wanted:
+            return fraction, plan
+    return 1.0, best
