@@ -54,7 +54,8 @@ def reanalysed_torque(
     planned one) with the reason: the grasp of the measured angles, centres and radii
     (``measured_grasp``), the conditions for turning the recipe's first pair the phase's
     way, the planner's torque of the largest margin, then (``use: blend``) the point
-    nearest the planned torque between the two that keeps ``min_margin``."""
+    nearest the planned torque between the two that keeps ``min_margin``, or (``use:
+    nearest``) the torque nearest the planned one that keeps it."""
     spec = recipe.phases[phase]
     wanted = spec.reanalyse
     model = recipe.grasp_model
@@ -72,15 +73,35 @@ def reanalysed_torque(
     if not grasp.finger_contacts:
         return ReanalysisResult(None, "none: no finger touches an object; the planned torque")
     planned = np.asarray(spec.torques, dtype=float) * spec.torque_margin
+    limits = [j.tau_max for j in hand.joints]
     try:
         conditions = build_conditions(grasp, turn_directions(grasp, wanted.turn, recipe.pairs[0]))
-        plan = plan_for_conditions(conditions, [j.tau_max for j in hand.joints])
+        plan = plan_for_conditions(conditions, limits)
     except AnalysisError as exc:
         return ReanalysisResult(None, f"none: {exc}; the planned torque ({contacts})")
     if not plan.found:
         return ReanalysisResult(None, f"none: {plan.reason}; the planned torque ({contacts})")
     if wanted.use == "analysis":
         return ReanalysisResult(plan.tau, f"analysis: margin {plan.margin:.3g} N ({contacts})")
+    if wanted.use == "nearest":
+        if plan.margin < wanted.min_margin:
+            return ReanalysisResult(
+                plan.tau,
+                f"analysis: margin {plan.margin:.3g} N, less than min_margin_N ({contacts})",
+            )
+        near = plan_for_conditions(
+            conditions, limits, nearest=planned, min_margin=wanted.min_margin
+        )
+        if not near.found:  # numerically at the edge: the largest margin is the safe side
+            return ReanalysisResult(
+                plan.tau, f"analysis: margin {plan.margin:.3g} N ({near.reason}) ({contacts})"
+            )
+        moved = float(np.sum(np.abs(np.asarray(near.tau) - planned)))
+        return ReanalysisResult(
+            near.tau,
+            f"nearest: {moved:.3g} N·m from the planned torque, margin {near.margin:.3g} N "
+            f"({contacts})",
+        )
     fraction, blended = blend_towards(conditions, planned, plan.tau, wanted.min_margin)
     return ReanalysisResult(
         blended.tau,

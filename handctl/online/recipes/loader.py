@@ -308,14 +308,17 @@ def parse_stall(doc: Doc) -> TurnStall:
 def parse_reanalyse(doc: Doc) -> Reanalyse:
     """``reanalyse`` of a recipe's or a template's turn phase (``schema.Reanalyse``):
     ``turn_deg`` (deg, signed; only its sense is asked of the analysis), ``delay_s`` (s,
-    from the request to the tick its result is applied), ``use`` (``analysis`` or
-    ``blend``) and ``min_margin_N`` (N, the margin a blend must keep)."""
+    from the request to the tick its result is applied), ``use`` (``analysis``, ``blend``
+    or ``nearest``) and ``min_margin_N`` (N, the margin a blend or the nearest torque must
+    keep, > 0)."""
     turn = doc.number("turn_deg", min=-180.0, max=180.0, unit="deg")
     if turn == 0.0:
         doc.fail("turn_deg", "a turn other than 0 deg (its sense is what is asked for)", turn)
     delay = doc.number("delay_s", default=0.1, min=0.001, max=MAX_REANALYSIS_DELAY_S, unit="s")
     use = doc.string("use", default="blend", choices=list(REANALYSIS_USES))
-    margin = doc.number("min_margin_N", default=0.05, min=0.0, max=100.0, unit="N")
+    margin = doc.number(
+        "min_margin_N", default=0.05, min=0.0, max=100.0, min_exclusive=True, unit="N"
+    )
     doc.done()
     return Reanalyse(math.radians(turn), delay, use, margin)
 

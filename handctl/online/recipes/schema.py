@@ -170,8 +170,9 @@ class TurnStall:
     window_s: float  # s, > 0
 
 
-#: what a ``Reanalyse`` may apply: the analysis' own torque, or a blend towards the plan's
-REANALYSIS_USES = ("analysis", "blend")
+#: what a ``Reanalyse`` may apply: the analysis' own torque, a blend of it and the plan's, or
+#: the robust torque nearest the plan's
+REANALYSIS_USES = ("analysis", "blend", "nearest")
 
 
 @dataclass(frozen=True)
@@ -191,7 +192,8 @@ class Reanalyse:
     delay_s: float  # s, from the request to the tick the result is applied
     #: "analysis": the analysis' torque of the largest margin; "blend": the point nearest the
     #: planned torque on the segment from it to the analysis' torque whose margin is at least
-    #: ``min_margin``
+    #: ``min_margin``; "nearest": the torque nearest the planned one (the sum of the joints'
+    #: differences) whose margin is at least ``min_margin``
     use: str
     min_margin: float  # N
 
