@@ -184,3 +184,39 @@ def test_bad_reanalysis_keys_are_refused_with_the_key_and_the_value(
         _recipe(tmp_path, hand, reanalyse, model)
     text = str(info.value)
     assert "reanalysis.yaml" in text and key in text and expected in text
+
+
+def test_a_template_s_reanalyse_and_grasp_model_are_carried_into_the_recipe(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A template's turn phase asks with its own turn as the default; ``handctl plan``
+    writes ``reanalyse`` and ``grasp_model`` into the recipe it compiles, which loads back
+    to the same values."""
+    from handctl.planning.compile import PhasePlan, PlanResult, _compiled_phase
+    from handctl.planning.template import load_template
+
+    root = Path(__file__).resolve().parents[2] / "config" / "recipes"
+    data = yaml.safe_load((root / "swap_two_cylinders.template.yaml").read_text())
+    data["phases"][5]["reanalyse"] = {"use": "nearest", "delay_s": 0.3}
+    data["grasp_model"] = {
+        "masses_kg": {"cyl1": 0.05, "cyl2": 0.06},
+        "friction": {"finger_object": 0.8, "object_object": 0.3},
+    }
+    path = tmp_path / "t.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    template = load_template(path, hand)
+    spec = template.phases[5]
+    assert spec.reanalyse is not None
+    assert spec.reanalyse.turn == pytest.approx(spec.turn)
+    plans = [
+        PhasePlan(s, _compiled_phase(s, tuple(TORQUES), hand), None, None, [])
+        for s in template.phases
+    ]
+    document = PlanResult(template, hand, plans, [], "sha256:0").recipe_document()
+    compiled = tmp_path / "compiled.yaml"
+    compiled.write_text(yaml.safe_dump(document, sort_keys=False))
+    recipe = load_recipe(compiled, hand)
+    assert recipe.phases[5].reanalyse == spec.reanalyse
+    assert [p.reanalyse is None for p in recipe.phases] == [k != 5 for k in range(7)]
+    assert recipe.grasp_model == template.grasp_model
+    assert recipe.grasp_model is not None and recipe.grasp_model.masses == (0.05, 0.06)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -108,7 +109,9 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
         for p in doc.mappings("phases", min_len=1, max_len=MAX_PHASES)
     )
     check_unique_names(doc, [p.name for p in phases])
-    grasp_model = parse_grasp_model(doc, objects, phases)
+    grasp_model = parse_grasp_model(
+        doc, objects, [i for i, p in enumerate(phases) if p.reanalyse is not None]
+    )
     for i, phase in enumerate(phases):
         earlier = [p.name for p in phases[: i + 1]]
         if phase.turn_from and phase.turn_from not in earlier:
@@ -305,32 +308,37 @@ def parse_stall(doc: Doc) -> TurnStall:
     return TurnStall(math.radians(turn), window)
 
 
-def parse_reanalyse(doc: Doc) -> Reanalyse:
+def parse_reanalyse(doc: Doc, turn: float | None = None) -> Reanalyse:
     """``reanalyse`` of a recipe's or a template's turn phase (``schema.Reanalyse``):
-    ``turn_deg`` (deg, signed; only its sense is asked of the analysis), ``delay_s`` (s,
+    ``turn_deg`` (deg, signed; only its sense is asked of the analysis; a template's phase
+    gives its own ``turn`` (rad) as the default), ``delay_s`` (s,
     from the request to the tick its result is applied), ``use`` (``analysis``, ``blend``
     or ``nearest``) and ``min_margin_N`` (N, the margin a blend or the nearest torque must
     keep, > 0)."""
-    turn = doc.number("turn_deg", min=-180.0, max=180.0, unit="deg")
-    if turn == 0.0:
-        doc.fail("turn_deg", "a turn other than 0 deg (its sense is what is asked for)", turn)
+    if turn is None:
+        turn_deg = doc.number("turn_deg", min=-180.0, max=180.0, unit="deg")
+    else:
+        turn_deg = doc.number(
+            "turn_deg", default=math.degrees(turn), min=-180.0, max=180.0, unit="deg"
+        )
+    if turn_deg == 0.0:
+        doc.fail("turn_deg", "a turn other than 0 deg (its sense is what is asked for)", turn_deg)
     delay = doc.number("delay_s", default=0.1, min=0.001, max=MAX_REANALYSIS_DELAY_S, unit="s")
     use = doc.string("use", default="blend", choices=list(REANALYSIS_USES))
     margin = doc.number(
         "min_margin_N", default=0.05, min=0.0, max=100.0, min_exclusive=True, unit="N"
     )
     doc.done()
-    return Reanalyse(math.radians(turn), delay, use, margin)
+    return Reanalyse(math.radians(turn_deg), delay, use, margin)
 
 
 def parse_grasp_model(
-    doc: Doc, objects: tuple[RecipeObject, ...], phases: tuple[Phase, ...]
+    doc: Doc, objects: Sequence[RecipeObject], wanted: Sequence[int]
 ) -> GraspModel | None:
     """``grasp_model`` of a recipe (``schema.GraspModel``): ``masses_kg`` (one per object,
     by name), ``friction: {finger_object, object_object}``, ``gravity_m_s2`` and
     ``contact_gap_m``. Required when a phase has ``reanalyse``, refused otherwise (a key
-    that does nothing misleads)."""
-    wanted = [i for i, p in enumerate(phases) if p.reanalyse is not None]
+    that does nothing misleads). ``wanted``: the indices of the phases with ``reanalyse``."""
     if not doc.has("grasp_model"):
         if wanted:
             doc.fail(
