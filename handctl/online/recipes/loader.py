@@ -69,6 +69,9 @@ MAX_JOINT_RATE = 100.0
 #: s, the longest a phase's ``reanalyse`` may wait for its result (the planned torque acts
 #: meanwhile; a result much later is for a pair that has moved on)
 MAX_REANALYSIS_DELAY_S = 1.0
+#: s, the default wait for a reanalysis: the analysis' one MILP takes 30..370 ms of CPU at
+#: the configurations measured (docs/experiment.md), and a real-time run must have it then
+DEFAULT_REANALYSIS_DELAY_S = 0.5
 
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
@@ -323,7 +326,13 @@ def parse_reanalyse(doc: Doc, turn: float | None = None) -> Reanalyse:
         )
     if turn_deg == 0.0:
         doc.fail("turn_deg", "a turn other than 0 deg (its sense is what is asked for)", turn_deg)
-    delay = doc.number("delay_s", default=0.1, min=0.001, max=MAX_REANALYSIS_DELAY_S, unit="s")
+    delay = doc.number(
+        "delay_s",
+        default=DEFAULT_REANALYSIS_DELAY_S,
+        min=0.001,
+        max=MAX_REANALYSIS_DELAY_S,
+        unit="s",
+    )
     use = doc.string("use", default="blend", choices=list(REANALYSIS_USES))
     margin = doc.number(
         "min_margin_N", default=0.05, min=0.0, max=100.0, min_exclusive=True, unit="N"
