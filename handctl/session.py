@@ -210,16 +210,19 @@ def run_recipe(
         )
         if recording is not None:
             recorder = recording
-        peer = _start_peer(stack, req, spec, lockstep, sim_cpu)
-        bus: HandBus = stack.enter_context(open_bus(peer.spec, req.hand.bus))
-        timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu, warnings)
-        clock = timing.clock
-        driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
         estimator = (
             ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
             if req.recipe.objects
             else None
         )
+        # before the clock asks for the loop's priority and CPU, which a process started
+        # later would inherit
+        reanalyser = _reanalyser(stack, req, estimator, lockstep, {loop_cpu, sim_cpu})
+        peer = _start_peer(stack, req, spec, lockstep, sim_cpu)
+        bus: HandBus = stack.enter_context(open_bus(peer.spec, req.hand.bus))
+        timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu, warnings)
+        clock = timing.clock
+        driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
         runtime = Runtime(
             req.hand,
             driver,
@@ -231,7 +234,7 @@ def run_recipe(
             max_ticks=NO_TICK_LIMIT,
             startup_timeout_s=peer.startup_s,
             estimator=estimator,
-            reanalyser=_reanalyser(stack, req, estimator, lockstep),
+            reanalyser=reanalyser,
         )
         # Ground truth of the experiment, recorded every tick and never fed back.
         tracker = None
@@ -270,18 +273,23 @@ def run_recipe(
 
 
 def _reanalyser(
-    stack: ExitStack, req: RunRequest, estimator: ObjectEstimator | None, lockstep: bool
+    stack: ExitStack,
+    req: RunRequest,
+    estimator: ObjectEstimator | None,
+    lockstep: bool,
+    busy_cpus: set[int | None],
 ) -> Reanalyser | None:
     """The analysis at the measured configuration, for a recipe with ``reanalyse`` phases:
     on the tick in lockstep (the hand waits for it), in a process of its own in real time
-    (``handctl.planning.reanalysis``)."""
+    (``handctl.planning.reanalysis``), off ``busy_cpus`` (the loop's and the hand's)."""
     if estimator is None or not any(p.reanalyse is not None for p in req.recipe.phases):
         return None
     from handctl.planning.reanalysis import ReanalysisOnTick, ReanalysisWorker
 
     if lockstep:
         return ReanalysisOnTick(req.hand, req.recipe, estimator)
-    worker = ReanalysisWorker(req.hand, req.recipe, estimator)
+    avoid = frozenset(cpu for cpu in busy_cpus if cpu is not None)
+    worker = ReanalysisWorker(req.hand, req.recipe, estimator, avoid)
     stack.callback(worker.close)
     return worker
 

@@ -20,8 +20,10 @@ wherever it is computed. Two ways to compute it:
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import multiprocessing
-from collections.abc import Sequence
+import os
+from collections.abc import Sequence, Set
 from typing import Protocol
 
 import numpy as np
@@ -143,14 +145,24 @@ def _answer(
 
 class ReanalysisWorker:
     """The analysis in a process of its own (real time): ``submit`` hands the request over
-    and returns; ``collect`` takes the answer if it is there. Close it when the run ends."""
+    and returns; ``collect`` takes the answer if it is there. Close it when the run ends.
 
-    def __init__(self, hand: HandConfig, recipe: Recipe, radii: Radii) -> None:
+    The worker runs at the ordinary priority and off ``avoid_cpus`` (the loop's and the
+    simulated hand's): started from a process that has already asked for SCHED_FIFO and a
+    CPU of its own, it would inherit both, and a few hundred ms of analysis at the loop's
+    priority on the loop's CPU would stop the loop. Start it before the loop asks."""
+
+    def __init__(
+        self, hand: HandConfig, recipe: Recipe, radii: Radii, avoid_cpus: Set[int] = frozenset()
+    ) -> None:
         self.hand = portable_hand(hand)
         self.recipe = recipe
         self.radii = radii
         self._pool = concurrent.futures.ProcessPoolExecutor(
-            max_workers=1, mp_context=multiprocessing.get_context("spawn")
+            max_workers=1,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_ordinary,
+            initargs=(frozenset(avoid_cpus),),
         )
         self._futures: dict[int, concurrent.futures.Future[ReanalysisResult]] = {}
         # before the run: the worker's start and its imports are not paid for in a phase
@@ -174,8 +186,28 @@ class ReanalysisWorker:
         del self._futures[phase]
         return future.result()
 
+    def placement(self) -> tuple[int, frozenset[int]]:
+        """The worker's scheduling policy and CPUs, as it sees them (for a run's notes and
+        the tests: it must not be the loop's)."""
+        return self._pool.submit(_placement).result()
+
     def close(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _ordinary(avoid_cpus: frozenset[int]) -> None:
+    """In the worker: the ordinary scheduling policy, and every CPU it may use but those
+    to avoid (all of them if that leaves none)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError, AttributeError):
+        allowed = os.sched_getaffinity(0) - avoid_cpus
+        if allowed:
+            os.sched_setaffinity(0, allowed)
+
+
+def _placement() -> tuple[int, frozenset[int]]:
+    return os.sched_getscheduler(0), frozenset(os.sched_getaffinity(0))
 
 
 def _warm_up() -> None:

@@ -7,6 +7,7 @@ one keeps the margin asked for and is no further from it than the largest-margin
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from pathlib import Path
 
@@ -139,3 +140,17 @@ def test_the_nearest_torque_keeps_its_margin_and_is_nearer_than_the_best() -> No
     np.testing.assert_allclose(same.tau, inside, atol=1e-7)
     with pytest.raises(AnalysisError, match="min_margin"):
         plan_for_conditions(cond, sc.tau_max, nearest=inside, min_margin=0.0)
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs to avoid one")
+def test_the_worker_runs_at_the_ordinary_priority_off_the_loop_s_cpu(
+    held: Held, hand: HandConfig
+) -> None:
+    loop_cpu = min(os.sched_getaffinity(0))
+    worker = ReanalysisWorker(hand, held.recipe, _Radii(held.radii), frozenset({loop_cpu}))
+    try:
+        policy, cpus = worker.placement()
+    finally:
+        worker.close()
+    assert policy == os.SCHED_OTHER
+    assert cpus and loop_cpu not in cpus
