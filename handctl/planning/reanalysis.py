@@ -192,7 +192,7 @@ class ReanalysisWorker:
         return self._pool.submit(_placement).result()
 
     def close(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _ordinary(avoid_cpus: frozenset[int]) -> None:
