@@ -131,16 +131,17 @@ class ReanalysisOnTick:
         return reanalysed_torque(self.hand, self.recipe, phase, *asked)
 
 
+#: in the worker: the hand (its own, from the portable one) and the recipe, handed over once
+#: when it starts, so a request carries only what was measured
+_RUN: dict[str, tuple[HandConfig, Recipe]] = {}
+
+
 def _answer(
-    hand: HandConfig,
-    recipe: Recipe,
-    phase: int,
-    angles: list[float],
-    estimates: tuple[float, ...],
-    radii: list[float],
+    phase: int, angles: list[float], estimates: tuple[float, ...], radii: list[float]
 ) -> ReanalysisResult:
-    """In the worker: the hand as the worker's own (``portable``), then the answer."""
-    return reanalysed_torque(local_hand(hand), recipe, phase, angles, estimates, radii)
+    """In the worker: the answer to one request."""
+    hand, recipe = _RUN["run"]
+    return reanalysed_torque(hand, recipe, phase, angles, estimates, radii)
 
 
 class ReanalysisWorker:
@@ -155,14 +156,14 @@ class ReanalysisWorker:
     def __init__(
         self, hand: HandConfig, recipe: Recipe, radii: Radii, avoid_cpus: Set[int] = frozenset()
     ) -> None:
-        self.hand = portable_hand(hand)
-        self.recipe = recipe
         self.radii = radii
+        # the hand and the recipe go over once, at the start: a request is then a few
+        # hundred numbers to pickle, which the executor's threads do beside the loop
         self._pool = concurrent.futures.ProcessPoolExecutor(
             max_workers=1,
             mp_context=multiprocessing.get_context("spawn"),
-            initializer=_ordinary,
-            initargs=(frozenset(avoid_cpus),),
+            initializer=_start,
+            initargs=(frozenset(avoid_cpus), portable_hand(hand), recipe),
         )
         self._futures: dict[int, concurrent.futures.Future[ReanalysisResult]] = {}
         # before the run: the worker's start and its imports are not paid for in a phase
@@ -170,13 +171,7 @@ class ReanalysisWorker:
 
     def submit(self, phase: int, angles: Sequence[float], estimates: Sequence[float]) -> None:
         self._futures[phase] = self._pool.submit(
-            _answer,
-            self.hand,
-            self.recipe,
-            phase,
-            list(angles),
-            tuple(estimates),
-            list(self.radii.radii),
+            _answer, phase, list(angles), tuple(estimates), list(self.radii.radii)
         )
 
     def collect(self, phase: int) -> ReanalysisResult | None:
@@ -195,9 +190,10 @@ class ReanalysisWorker:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _ordinary(avoid_cpus: frozenset[int]) -> None:
-    """In the worker: the ordinary scheduling policy, and every CPU it may use but those
-    to avoid (all of them if that leaves none)."""
+def _start(avoid_cpus: frozenset[int], hand: HandConfig, recipe: Recipe) -> None:
+    """In the worker, once: the ordinary scheduling policy, every CPU it may use but those
+    to avoid (all of them if that leaves none), and the run's hand and recipe."""
+    _RUN["run"] = (local_hand(hand), recipe)
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     with contextlib.suppress(OSError, AttributeError):
