@@ -623,7 +623,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         plot_recording(series, args.plot, title_of(summary), recording)
         print(f"plot: {args.plot}")
     if args.rerun:
-        result = rerun.rerun(recording)
+        from handctl.planning.reanalysis import ReanalysisOnTick
+
+        result = rerun.rerun(recording, ReanalysisOnTick)
         report["rerun"] = result.as_dict()
         for note in result.notes:
             print(f"rerun: note: {note}")

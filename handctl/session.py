@@ -43,6 +43,7 @@ from handctl.online.clock import (
 from handctl.online.drivers.hand import HandDriver
 from handctl.online.estimator import ObjectEstimator
 from handctl.online.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
+from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FAULTS
 from handctl.online.tickstats import STAGES, TickWindow, percentile_us
@@ -212,6 +213,14 @@ def run_recipe(
         )
         if recording is not None:
             recorder = recording
+        estimator = (
+            ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
+            if req.recipe.objects
+            else None
+        )
+        # before the clock asks for the loop's priority and CPU, which a process started
+        # later would inherit
+        reanalyser = _reanalyser(stack, req, estimator, lockstep, {loop_cpu, sim_cpu})
         peer = _start_peer(stack, req, spec, lockstep, sim_cpu)
         bus: HandBus = stack.enter_context(open_bus(peer.spec, req.hand.bus))
         timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu, warnings)
@@ -227,11 +236,8 @@ def run_recipe(
             reset_node_faults=req.reset_node_faults,
             max_ticks=NO_TICK_LIMIT,
             startup_timeout_s=peer.startup_s,
-            estimator=(
-                ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
-                if req.recipe.objects
-                else None
-            ),
+            estimator=estimator,
+            reanalyser=reanalyser,
         )
         # Ground truth of the experiment, recorded every tick and never fed back.
         tracker = None
@@ -268,6 +274,28 @@ def run_recipe(
         clock.stalls.rows() if isinstance(clock, RealtimeClock) else [],
         rivals,
     )
+
+
+def _reanalyser(
+    stack: ExitStack,
+    req: RunRequest,
+    estimator: ObjectEstimator | None,
+    lockstep: bool,
+    busy_cpus: set[int | None],
+) -> Reanalyser | None:
+    """The analysis at the measured configuration, for a recipe with ``reanalyse`` phases:
+    on the tick in lockstep (the hand waits for it), in a process of its own in real time
+    (``handctl.planning.reanalysis``), off ``busy_cpus`` (the loop's and the hand's)."""
+    if estimator is None or not any(p.reanalyse is not None for p in req.recipe.phases):
+        return None
+    from handctl.planning.reanalysis import ReanalysisOnTick, ReanalysisWorker
+
+    if lockstep:
+        return ReanalysisOnTick(req.hand, req.recipe, estimator)
+    avoid = frozenset(cpu for cpu in busy_cpus if cpu is not None)
+    worker = ReanalysisWorker(req.hand, req.recipe, estimator, avoid)
+    stack.callback(worker.close)
+    return worker
 
 
 def _lockstep(req: RunRequest, is_sim: bool) -> bool:

@@ -65,9 +65,16 @@ def plan_torques(
 
 
 def plan_for_conditions(
-    conditions: Conditions, tau_max: float | Vector, ratios: Sequence[Vector | None] | None = None
+    conditions: Conditions,
+    tau_max: float | Vector,
+    ratios: Sequence[Vector | None] | None = None,
+    nearest: Vector | None = None,
+    min_margin: float = 0.0,
 ) -> TorquePlan:
-    """``plan_torques`` for conditions already built."""
+    """``plan_torques`` for conditions already built. With ``nearest`` (a torque, N·m): not
+    the largest margin but the torque nearest ``nearest`` (the sum of the joints' absolute
+    differences) whose margin is at least ``min_margin`` (N, > 0): the smallest change to a
+    torque that keeps the motion guaranteed by that much."""
     st = conditions.statics
     s = st.torque_map.shape[0]
     limits = np.broadcast_to(np.asarray(tau_max, dtype=float), (s,)).copy()
@@ -80,13 +87,17 @@ def plan_for_conditions(
     duals = _duals(conditions)
     if isinstance(duals, str):
         return _replace(nothing, reason=duals)
-    program = _Program(s, conditions.count, fingers, duals.vertices)
+    if nearest is not None and not min_margin > 0.0:
+        raise AnalysisError(f"min_margin must be > 0 N with a nearest torque, found {min_margin!r}")
+    program = _Program(s, conditions.count, fingers, duals.vertices, 0 if nearest is None else s)
     _add_margin_rows(program, conditions)
     z_bound = _add_vertex_rows(program, conditions, duals.vertices, limits)
     _add_realisable_rows(program, conditions, duals)
     if ratios is not None:
         _add_ratio_rows(program, conditions, ratios)
-    result = program.solve(limits, z_bound)
+    if nearest is not None:
+        _add_distance_rows(program, np.asarray(nearest, dtype=float))
+    result = program.solve(limits, z_bound, None if nearest is None else min_margin)
     if result.status != 0 or result.x is None:
         return _replace(
             nothing, reason=f"the planning MILP ended with status {result.status}: {result.message}"
@@ -133,9 +144,12 @@ def _duals(conditions: Conditions) -> _Duals | str:
 
 class _Program:
     """The planning MILP as it is built: the variables are tau (s) | t | z (Q*n) | b (one per
-    vertex of every (q, j) with more than one vertex), and the rows are added in order."""
+    vertex of every (q, j) with more than one vertex) | e (``extra``: each joint's distance
+    from a torque to stay near), and the rows are added in order."""
 
-    def __init__(self, s: int, q_count: int, fingers: int, vertices: list[list[Array]]) -> None:
+    def __init__(
+        self, s: int, q_count: int, fingers: int, vertices: list[list[Array]], extra: int = 0
+    ) -> None:
         self.s = s
         self.q_count = q_count
         self.fingers = fingers
@@ -149,7 +163,9 @@ class _Program:
             for v in range(len(vertices[q][j]))
         ]
         self.b_index = {key: self.b0 + i for i, key in enumerate(self.binaries)}
-        self.n_var = self.b0 + len(self.binaries)
+        self.e0 = self.b0 + len(self.binaries)
+        self.extra = extra
+        self.n_var = self.e0 + extra
         self.rows: list[Array] = []
         self.lower: list[float] = []
         self.upper: list[float] = []
@@ -166,18 +182,38 @@ class _Program:
         self.lower.append(lo)
         self.upper.append(hi)
 
-    def solve(self, limits: Array, z_bound: float) -> OptimizeResult:
-        """Maximise t within the torque limits; each z within the bound its vertices allow."""
+    def solve(
+        self, limits: Array, z_bound: float, min_margin: float | None = None
+    ) -> OptimizeResult:
+        """Maximise t within the torque limits; each z within the bound its vertices allow.
+        With ``min_margin``: t at least that, and the sum of the distances e the least."""
         z_count = self.q_count * self.fingers
         lb = np.concatenate(
-            [-limits, [-np.inf], np.full(z_count, -z_bound - 1.0), np.zeros(len(self.binaries))]
+            [
+                -limits,
+                [-np.inf if min_margin is None else min_margin],
+                np.full(z_count, -z_bound - 1.0),
+                np.zeros(len(self.binaries)),
+                np.zeros(self.extra),
+            ]
         )
         ub = np.concatenate(
-            [limits, [np.inf], np.full(z_count, z_bound + 1.0), np.ones(len(self.binaries))]
+            [
+                limits,
+                [np.inf],
+                np.full(z_count, z_bound + 1.0),
+                np.ones(len(self.binaries)),
+                np.full(self.extra, np.inf),
+            ]
         )
         cost = np.zeros(self.n_var)
-        cost[self.s] = -1.0
-        integrality = np.concatenate([np.zeros(self.b0), np.ones(len(self.binaries))])
+        if min_margin is None:
+            cost[self.s] = -1.0
+        else:
+            cost[self.e0 :] = 1.0
+        integrality = np.concatenate(
+            [np.zeros(self.b0), np.ones(len(self.binaries)), np.zeros(self.extra)]
+        )
         return milp(
             cost,
             integrality=integrality,
@@ -232,6 +268,13 @@ def _add_realisable_rows(program: _Program, conditions: Conditions, duals: _Dual
         program.add({block.start + i: float(line[i]) for i in range(len(line))}, 0.0, 0.0)
 
 
+def _add_distance_rows(program: _Program, nearest: Array) -> None:
+    """e_i at least |tau_i - nearest_i|: two rows a joint."""
+    for i, value in enumerate(nearest):
+        program.add({program.e0 + i: 1.0, i: -1.0}, -float(value), np.inf)
+        program.add({program.e0 + i: 1.0, i: 1.0}, float(value), np.inf)
+
+
 def _add_ratio_rows(
     program: _Program, conditions: Conditions, ratios: Sequence[Vector | None]
 ) -> None:
@@ -275,3 +318,36 @@ def _evaluate(conditions: Conditions, tau: Array, nothing: TorquePlan) -> Torque
 
 def _replace(plan: TorquePlan, *, reason: str) -> TorquePlan:
     return TorquePlan(plan.found, plan.tau, plan.margin, plan.values, reason)
+
+
+#: points tried along a blend's segment, the planned torque's end first
+BLEND_STEPS = 8
+
+
+def blend_towards(
+    conditions: Conditions, planned: Vector, robust: Vector, min_margin: float
+) -> tuple[float, TorquePlan]:
+    """The torque nearest ``planned`` on the segment from it to ``robust`` (a torque the
+    planner found) whose robust margin is at least ``min_margin`` (or, if ``robust``'s own
+    is less, ``robust``'s): the fraction along the segment and the torque, the oracle's
+    margin with it.
+
+    Why a segment and not the nearest point of the whole set: the planned torque is what
+    the search found to work on the simulated models, and the analysis' torque is what is
+    guaranteed at this configuration; a torque between them keeps as much of the first as
+    the second allows. The margin along the segment is not monotone (a minimum of convex
+    functions), so it is sampled at ``BLEND_STEPS + 1`` points from the planned end, not
+    bisected."""
+    start = np.asarray(planned, dtype=float)
+    end = np.asarray(robust, dtype=float)
+    nothing = TorquePlan(False, tuple(0.0 for _ in start), -np.inf, {}, "")
+    best = _evaluate(conditions, end, nothing)
+    if not best.found:
+        return 1.0, best
+    wanted = min(min_margin, best.margin)
+    for k in range(BLEND_STEPS):
+        fraction = k / BLEND_STEPS
+        plan = _evaluate(conditions, start + fraction * (end - start), nothing)
+        if plan.found and plan.margin >= wanted:
+            return fraction, plan
+    return 1.0, best

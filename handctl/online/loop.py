@@ -43,6 +43,7 @@ from handctl.online.collector import LoopCollector
 from handctl.online.drivers import finger, receiver
 from handctl.online.drivers.hand import AppliedTorques, HandDriver
 from handctl.online.recipes import runner as recipe_runner
+from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.runner import RecipeRunner, RunStatus
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety import faults as safety_faults
@@ -181,6 +182,7 @@ class Runtime:
         *,
         recorder: RecordSink | None = None,
         estimator: Estimator | None = None,
+        reanalyser: Reanalyser | None = None,
         status: Callable[[StatusLine], None] | None = None,
         reset_node_faults: bool = False,
         startup_timeout_s: float = 0.5,
@@ -192,7 +194,13 @@ class Runtime:
         self.clock = clock
         self.recipe = recipe
         self.supervisor = Supervisor(hand)
-        self.runner = RecipeRunner(recipe, hand.n_joints) if recipe is not None else None
+        # the analysis at the measured configuration, for a recipe's ``reanalyse`` phases
+        self.reanalyser = reanalyser
+        self.runner = (
+            RecipeRunner(recipe, hand.n_joints, reanalyser=reanalyser)
+            if recipe is not None
+            else None
+        )
         self.recorder = recorder
         self.estimator = estimator
         self.status = status
@@ -251,7 +259,7 @@ class Runtime:
             self.recorder.note("reset", "", self.tick)
         self.driver.node_command("fault_reset")
         if self.recipe is not None:
-            self.runner = RecipeRunner(self.recipe, self.hand.n_joints)
+            self.runner = RecipeRunner(self.recipe, self.hand.n_joints, reanalyser=self.reanalyser)
         self.stop_requested = ""
         self.estop_requested = ""
         self.exception = None
@@ -614,6 +622,7 @@ class Runtime:
                     "start_s": round(r.start_s, 6),
                     "end_s": None if r.end_s is None else round(r.end_s, 6),
                     "exit": r.exit,
+                    **({"reanalysis": r.reanalysis} if r.reanalysis else {}),
                 }
                 for r in self.runner.records
             ]

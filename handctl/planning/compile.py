@@ -124,8 +124,23 @@ class PlanResult:
             "end_ramp_s": t.end_ramp_s,
             **({"limit_guard_band": t.limit_guard_band} if t.limit_guard_band is not None else {}),
             **({"min_total_turn_deg": t.min_total_turn_deg} if t.min_total_turn_deg > 0 else {}),
+            **({"grasp_model": _grasp_model_document(t)} if t.grasp_model is not None else {}),
             "phases": [_phase_document(p, self.hand) for p in self.phases],
         }
+
+
+def _grasp_model_document(template: Template) -> dict[str, Any]:
+    model = template.grasp_model
+    assert model is not None
+    return {
+        "masses_kg": {o.name: m for o, m in zip(template.objects, model.masses, strict=True)},
+        "friction": {
+            "finger_object": model.finger_object_mu,
+            "object_object": model.object_object_mu,
+        },
+        "gravity_m_s2": model.gravity,
+        "contact_gap_m": model.contact_gap,
+    }
 
 
 def _rounded(values: tuple[float, ...] | list[float]) -> list[float]:
@@ -151,6 +166,13 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
         doc["stall"] = {
             "turn_deg": round(math.degrees(phase.stall.turn), 6),
             "window_s": phase.stall.window_s,
+        }
+    if phase.reanalyse is not None:
+        doc["reanalyse"] = {
+            "turn_deg": round(math.degrees(phase.reanalyse.turn), 6),
+            "delay_s": phase.reanalyse.delay_s,
+            "use": phase.reanalyse.use,
+            "min_margin_N": phase.reanalyse.min_margin,
         }
     if phase.turn_rate is not None:
         loop = phase.turn_rate
@@ -267,6 +289,7 @@ def _compiled_phase(
         paced=spec.paced,
         torque_margin=spec.torque_margin,
         stall=spec.stall,
+        reanalyse=spec.reanalyse,
     )
 
 

@@ -33,6 +33,7 @@ import numpy as np
 from handctl.analysis.frames import Array, rotation_2d, unit
 from handctl.analysis.model import Body, BodyContact, Finger, FingerContact, Grasp
 from handctl.config import HandConfig
+from handctl.online.recipes.schema import GraspModel
 from handctl.sim.plant import Plant
 
 
@@ -124,6 +125,106 @@ def grasp_of(plant: Plant, hand: HandConfig) -> GraspSnapshot:
     return GraspSnapshot(grasp, tuple(sorted(environment)), tuple(names))
 
 
+def measured_grasp(
+    hand: HandConfig,
+    angles: Sequence[float],
+    centres: Sequence[tuple[float, float]],
+    radii: Sequence[float],
+    names: Sequence[str],
+    model: GraspModel,
+) -> GraspSnapshot:
+    """The grasp of a configuration as the hand measures it: joint angles (rad), each
+    object's estimated centre (m) and measured radius (m), in the recipe's order. What the
+    hand cannot measure (masses, friction, gravity) is ``model``'s.
+
+    The contacts are decided by geometry, as the estimator sees the cage: the estimator puts
+    each object equally far from every wall that holds it (a clearance that is not zero where
+    the measured radius or the soft contacts are off), so a link or another object counts as
+    touching an object when its clearance is within ``model.contact_gap`` of that object's
+    tightest one. Link clearances count the link's half-thickness, as the estimator's do; the
+    contact point and normal are then placed as ``grasp_of`` places them. The palm is left out
+    (see the module doc)."""
+    fingers: list[Finger] = []
+    thickness: list[tuple[float, ...]] = []
+    offset = 0
+    for f in hand.fingers:
+        n = len(f.joints)
+        fingers.append(
+            Finger(
+                f.name,
+                np.array([f.base_x, f.base_y]),
+                rotation_2d(f.base_angle),
+                tuple(j.link_length for j in f.joints),
+                tuple(float(a) for a in angles[offset : offset + n]),
+            )
+        )
+        thickness.append(tuple(j.half_thickness for j in f.joints))
+        offset += n
+    bodies = tuple(
+        Body(
+            name,
+            np.array([float(c[0]), float(c[1])]),
+            rotation_2d(0.0),
+            float(r),
+            m,
+            np.array([[m * float(r) ** 2 / 2]]),
+        )
+        for name, c, r, m in zip(names, centres, radii, model.masses, strict=True)
+    )
+    segments = [
+        (fi, k, *finger.link_segment(k))
+        for fi, finger in enumerate(fingers)
+        for k in range(finger.joints)
+    ]
+    link_clearance = {
+        (fi, k, bi): _segment_distance(body.position, start, end) - body.radius - thickness[fi][k]
+        for fi, k, start, end in segments
+        for bi, body in enumerate(bodies)
+    }
+    pair_clearance = {
+        (a, b): float(np.linalg.norm(bodies[b].position - bodies[a].position))
+        - bodies[a].radius
+        - bodies[b].radius
+        for a in range(len(bodies))
+        for b in range(a + 1, len(bodies))
+    }
+    tightest = [
+        min(
+            [c for (_, _, bi), c in link_clearance.items() if bi == i]
+            + [c for pair, c in pair_clearance.items() if i in pair]
+        )
+        for i in range(len(bodies))
+    ]
+    keys = sorted(k for k, c in link_clearance.items() if c <= tightest[k[2]] + model.contact_gap)
+    touching = sorted(
+        pair
+        for pair, c in pair_clearance.items()
+        if c <= min(tightest[pair[0]], tightest[pair[1]]) + model.contact_gap
+    )
+    grasp = Grasp(
+        2,
+        bodies,
+        tuple(fingers),
+        tuple(
+            _finger_contact(fingers[fi], k, bodies[bi], fi, bi, model.finger_object_mu)
+            for fi, k, bi in keys
+        ),
+        tuple(_body_contact(bodies, a, b, model.object_object_mu) for a, b in touching),
+        np.array([0.0, -model.gravity]),
+        "net",
+    )
+    contacts = [f"{hand.fingers[fi].joints[k].name}/{names[bi]}" for fi, k, bi in keys]
+    contacts += [f"{names[a]}/{names[b]}" for a, b in touching]
+    return GraspSnapshot(grasp, (), tuple(contacts))
+
+
+def _segment_distance(point: Array, start: Array, end: Array) -> float:
+    """m, from ``point`` to the segment from ``start`` to ``end``."""
+    span = end - start
+    along = float(np.clip((point - start) @ span / float(span @ span), 0.0, 1.0))
+    return float(np.linalg.norm(point - (start + along * span)))
+
+
 def _finger_contact(
     finger: Finger, link: int, body: Body, fi: int, bi: int, mu: float
 ) -> FingerContact:
@@ -141,14 +242,15 @@ def _body_contact(bodies: Sequence[Body], first: int, second: int, mu: float) ->
     return BodyContact(first, second, a.position + normal * a.radius, normal, mu)
 
 
-def turn_directions(grasp: Grasp, turn: float) -> dict[str, Array]:
-    """Wanted directions for turning the line from object 1 to object 2 by ``turn`` (its
-    sign; rad): both move tangentially about their midpoint, in opposite directions."""
-    c1, c2 = grasp.bodies[0].position, grasp.bodies[1].position
-    u = unit(c2 - c1)
+def turn_directions(grasp: Grasp, turn: float, pair: tuple[int, int] = (0, 1)) -> dict[str, Array]:
+    """Wanted directions for turning the line from object ``pair[0]`` to ``pair[1]`` (the
+    first two by default) by ``turn`` (its sign; rad): both move tangentially about their
+    midpoint, in opposite directions."""
+    first, second = grasp.bodies[pair[0]], grasp.bodies[pair[1]]
+    u = unit(second.position - first.position)
     sense = math.copysign(1.0, turn)
     t2 = sense * np.array([-u[1], u[0]])
-    return {grasp.bodies[0].name: -t2, grasp.bodies[1].name: t2}
+    return {first.name: -t2, second.name: t2}
 
 
 def fixed_directions(grasp: Grasp, move: Mapping[str, Sequence[float]]) -> dict[str, Array]:

@@ -27,18 +27,22 @@ from handctl.config import HandConfig
 from handctl.online.recipes.loader import (
     check_unique_names,
     parse_brake,
+    parse_grasp_model,
     parse_guard_band,
     parse_joint_damping,
     parse_min_total_turn,
     parse_objects,
     parse_paced_ramp,
+    parse_reanalyse,
     parse_stall,
     parse_torque_margin,
     parse_turn_rate,
 )
 from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
+    GraspModel,
     PacedRamp,
+    Reanalyse,
     RecipeObject,
     TurnBrake,
     TurnRate,
@@ -81,6 +85,8 @@ class TemplatePhase:
     #: rad, what the phases from ``turn_from`` up to this one (this one excluded) ask to turn
     from_turn: float = 0.0
     stall: TurnStall | None = None  # the end of a turn phase that stopped turning, carried
+    #: the analysis again at the measured configuration when the phase begins, carried
+    reanalyse: Reanalyse | None = None
 
     def exit_condition(self) -> str:
         """The exit of a turn phase in the planner's episodes: on the estimated turn of the
@@ -127,6 +133,7 @@ class Template:
     phases: tuple[TemplatePhase, ...]
     limit_guard_band: float | None = None  # rad; carried into the compiled recipe
     min_total_turn_deg: float = 0.0  # deg; carried into the compiled recipe
+    grasp_model: GraspModel | None = None  # what ``reanalyse`` needs; carried likewise
 
 
 def load_template(path: str | Path, hand: HandConfig) -> Template:
@@ -149,9 +156,21 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     )
     check_unique_names(doc, [p.name for p in phases])
     phases = _resolve_turn_from(doc, phases)
+    grasp_model = parse_grasp_model(
+        doc, objects, [i for i, p in enumerate(phases) if p.reanalyse is not None]
+    )
     doc.done()
     return Template(
-        doc.file, recipe, description, tuple(objects), end_ramp, search, phases, band, min_turn
+        doc.file,
+        recipe,
+        description,
+        tuple(objects),
+        end_ramp,
+        search,
+        phases,
+        band,
+        min_turn,
+        grasp_model,
     )
 
 
@@ -279,6 +298,7 @@ def _phase(
     paced = None
     turn_from = ""
     stall = None
+    reanalyse = None
     if kind == "turn":
         if len(objects) < 2:
             doc.fail(
@@ -297,6 +317,8 @@ def _phase(
             paced = parse_paced_ramp(doc.mapping("paced_ramp"), math.copysign(1.0, turn))
         turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
         stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
+        if doc.has("reanalyse"):
+            reanalyse = parse_reanalyse(doc.mapping("reanalyse"), turn)
     stiffness: float | None = None
     damping = 0.0
     if kind == "free" and doc.has("pose"):
@@ -329,4 +351,5 @@ def _phase(
         margin,
         turn_from,
         stall=stall,
+        reanalyse=reanalyse,
     )

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.hand_protocol import protocol_for
 from handctl.online import timebudget
@@ -32,6 +33,8 @@ from handctl.online.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, Frame
 from handctl.online.clock import Tick
 from handctl.online.drivers.hand import HandDriver
 from handctl.online.loop import EndOfTicks, Runtime, TickRecord
+from handctl.online.recipes.reanalysis import Reanalyser
+from handctl.online.recipes.schema import Recipe
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.recording import channels as ch
 from handctl.recording.feedback_check import FeedbackCheck
@@ -398,8 +401,17 @@ class RerunReport:
         }
 
 
-def rerun(recording: Recording) -> RerunReport:
-    """Feed the logged feedback through a fresh driver, runner and supervisor; compare."""
+#: What builds the analysis at the measured configuration for a re-run (the offline plane's
+#: ``handctl.planning.reanalysis.ReanalysisOnTick``, which the command passes in: the
+#: recording plane does not import the offline one): the hand, the recipe, the estimator.
+ReanalysisFactory = Callable[[HandConfig, Recipe, Any], Reanalyser]
+
+
+def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> RerunReport:
+    """Feed the logged feedback through a fresh driver, runner and supervisor; compare.
+
+    A recipe with ``reanalyse`` phases needs ``reanalysis``: the re-run computes each
+    phase's analysis again from the logged inputs, on the tick the run applied it."""
     require_topics(recording, ch.RERUN_TOPICS, "--rerun")
     path = str(recording.path)
     run = recording.metadata.get(ch.META_RUN)
@@ -455,6 +467,13 @@ def rerun(recording: Recording) -> RerunReport:
         recipe,
         recorder=compare,
         estimator=estimator,
+        reanalyser=(
+            reanalysis(hand, recipe, estimator)
+            if reanalysis is not None
+            and estimator is not None
+            and any(p.reanalyse is not None for p in recipe.phases)
+            else None
+        ),
         reset_node_faults=run.get("reset_node_faults") == "True",
         startup_timeout_s=startup_ticks * period_s,
         max_ticks=1 << 62,

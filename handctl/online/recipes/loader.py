@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +20,14 @@ from handctl.errors import ConfigError
 from handctl.online.recipes.guard import LimitGuard
 from handctl.online.recipes.schema import (
     MAX_OBJECTS,
+    REANALYSIS_USES,
     Condition,
+    GraspModel,
     PacedRamp,
     Pair,
     Phase,
     PoseHold,
+    Reanalyse,
     Recipe,
     RecipeObject,
     TimeoutAction,
@@ -62,6 +66,12 @@ MAX_REACH = 3.0
 MAX_BACK = 10.0
 #: rad/s, the largest joint speed a paced ramp or a brake may take as its threshold
 MAX_JOINT_RATE = 100.0
+#: s, the longest a phase's ``reanalyse`` may wait for its result (the planned torque acts
+#: meanwhile; a result much later is for a pair that has moved on)
+MAX_REANALYSIS_DELAY_S = 1.0
+#: s, the default wait for a reanalysis: the analysis' one MILP takes 30..370 ms of CPU at
+#: the configurations measured (docs/experiment.md), and a real-time run must have it then
+DEFAULT_REANALYSIS_DELAY_S = 0.5
 
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
@@ -102,6 +112,9 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
         for p in doc.mappings("phases", min_len=1, max_len=MAX_PHASES)
     )
     check_unique_names(doc, [p.name for p in phases])
+    grasp_model = parse_grasp_model(
+        doc, objects, [i for i, p in enumerate(phases) if p.reanalyse is not None]
+    )
     for i, phase in enumerate(phases):
         earlier = [p.name for p in phases[: i + 1]]
         if phase.turn_from and phase.turn_from not in earlier:
@@ -116,6 +129,7 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
             ("brake", phase.brake),
             ("paced_ramp", phase.paced),
             ("stall", phase.stall),
+            ("reanalyse", phase.reanalyse),
         ):
             if loop is not None and not pairs:
                 raise ConfigError(
@@ -147,6 +161,7 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
         guard,
         min_turn,
         pairs,
+        grasp_model,
     )
 
 
@@ -260,6 +275,7 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
     margin = parse_torque_margin(doc)
     turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
     stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
+    reanalyse = parse_reanalyse(doc.mapping("reanalyse")) if doc.has("reanalyse") else None
     provenance = doc.raw("provenance", {})
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
@@ -281,6 +297,7 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
         margin,
         turn_from,
         stall,
+        reanalyse,
     )
 
 
@@ -292,6 +309,71 @@ def parse_stall(doc: Doc) -> TurnStall:
     window = doc.number("window_s", min=0.0, max=60.0, min_exclusive=True, unit="s")
     doc.done()
     return TurnStall(math.radians(turn), window)
+
+
+def parse_reanalyse(doc: Doc, turn: float | None = None) -> Reanalyse:
+    """``reanalyse`` of a recipe's or a template's turn phase (``schema.Reanalyse``):
+    ``turn_deg`` (deg, signed; only its sense is asked of the analysis; a template's phase
+    gives its own ``turn`` (rad) as the default), ``delay_s`` (s,
+    from the request to the tick its result is applied), ``use`` (``analysis``, ``blend``
+    or ``nearest``) and ``min_margin_N`` (N, the margin a blend or the nearest torque must
+    keep, > 0)."""
+    if turn is None:
+        turn_deg = doc.number("turn_deg", min=-180.0, max=180.0, unit="deg")
+    else:
+        turn_deg = doc.number(
+            "turn_deg", default=math.degrees(turn), min=-180.0, max=180.0, unit="deg"
+        )
+    if turn_deg == 0.0:
+        doc.fail("turn_deg", "a turn other than 0 deg (its sense is what is asked for)", turn_deg)
+    delay = doc.number(
+        "delay_s",
+        default=DEFAULT_REANALYSIS_DELAY_S,
+        min=0.001,
+        max=MAX_REANALYSIS_DELAY_S,
+        unit="s",
+    )
+    use = doc.string("use", default="blend", choices=list(REANALYSIS_USES))
+    margin = doc.number(
+        "min_margin_N", default=0.05, min=0.0, max=100.0, min_exclusive=True, unit="N"
+    )
+    doc.done()
+    return Reanalyse(math.radians(turn_deg), delay, use, margin)
+
+
+def parse_grasp_model(
+    doc: Doc, objects: Sequence[RecipeObject], wanted: Sequence[int]
+) -> GraspModel | None:
+    """``grasp_model`` of a recipe (``schema.GraspModel``): ``masses_kg`` (one per object,
+    by name), ``friction: {finger_object, object_object}``, ``gravity_m_s2`` and
+    ``contact_gap_m``. Required when a phase has ``reanalyse``, refused otherwise (a key
+    that does nothing misleads). ``wanted``: the indices of the phases with ``reanalyse``."""
+    if not doc.has("grasp_model"):
+        if wanted:
+            doc.fail(
+                "grasp_model",
+                f"the grasp model phases[{wanted[0]}].reanalyse needs (masses_kg, friction, "
+                "gravity_m_s2, contact_gap_m)",
+                "nothing",
+            )
+        return None
+    if not wanted:
+        doc.fail("grasp_model", "no grasp_model: no phase has reanalyse", "a grasp_model")
+    model = doc.mapping("grasp_model")
+    masses_doc = model.mapping("masses_kg")
+    masses = tuple(
+        masses_doc.number(o.name, min=0.0, max=100.0, min_exclusive=True, unit="kg")
+        for o in objects
+    )
+    masses_doc.done()
+    friction = model.mapping("friction")
+    finger_object = friction.number("finger_object", min=0.0, max=10.0, unit="")
+    object_object = friction.number("object_object", min=0.0, max=10.0, unit="")
+    friction.done()
+    gravity = model.number("gravity_m_s2", default=9.81, min=0.0, max=100.0, unit="m/s^2")
+    gap = model.number("contact_gap_m", default=0.001, min=0.0, max=0.01, unit="m")
+    model.done()
+    return GraspModel(masses, finger_object, object_object, gravity, gap)
 
 
 def parse_torque_margin(doc: Doc) -> float:

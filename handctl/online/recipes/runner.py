@@ -35,6 +35,10 @@ Feedback, all of it from the angles and the estimates computed from them:
   phase began (the paper switches on where the pair is, so what one phase left undone
   the next takes up); ``stall``: a phase ends once its torque is fully in and the turn
   has stopped moving (``_stalled``).
+- ``reanalyse``: on the phase's first tick with a valid estimate the runner asks its
+  ``Reanalyser`` for the analysis' torque at the measured configuration, and ``delay_s``
+  later takes the answer: the phase's ramp starts again, from the torque proposed then to
+  the answer (``_reanalyse``); no answer, or none robust, keeps the planned torque.
 - ``joint_damping``: ``-joint_damping * velocity`` on every joint (the velocities filtered
   from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
   least (a tendon's losses are not measured to a factor of three), and in a turn it sets how
@@ -54,6 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from handctl.arrays import FloatArray
+from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
     Condition,
@@ -83,6 +88,7 @@ class PhaseRecord:
     start_s: float
     end_s: float | None = None
     exit: str = ""  # the condition text, "timeout", "abort: ...", or "stopped"
+    reanalysis: str = ""  # what a ``reanalyse`` phase's analysis answered ("": none asked)
 
 
 @dataclass
@@ -102,8 +108,17 @@ class Handover:
 class RecipeRunner:
     """The state of one execution of a recipe."""
 
-    def __init__(self, recipe: Recipe, n_joints: int, after: Handover | None = None) -> None:
+    def __init__(
+        self,
+        recipe: Recipe,
+        n_joints: int,
+        after: Handover | None = None,
+        reanalyser: Reanalyser | None = None,
+    ) -> None:
         self.recipe = recipe
+        # the analysis at the measured configuration (``reanalyse`` phases); None: their
+        # planned torques
+        self.reanalyser = reanalyser
         self.n = n_joints
         self.status = RunStatus.RUNNING
         self.index = -1
@@ -114,6 +129,9 @@ class RecipeRunner:
         self._target = np.zeros(n_joints)
         self._desired = np.zeros(n_joints)
         self._ramp_s = 0.0
+        self._ramp_start = 0.0  # s, where the ramp began: the phase's start, or a reanalysis
+        self._asked_at = math.nan  # s, when this phase asked for its reanalysis
+        self._answered = False  # whether this phase's reanalysis is settled
         self._held_since: dict[int, float] = {}
         # per phase, the first finite value of each phase-relative estimate while it ran, by
         # index: a phase's exits read the turn from its own start or an earlier phase's
@@ -196,6 +214,9 @@ class RecipeRunner:
         self._from = (self._proposed if self._fed else self._desired).copy()
         self._fed = False
         self.phase_start = t
+        self._ramp_start = t
+        self._asked_at = math.nan
+        self._answered = False
         self._damping_from = self.damping
         self._held_since.clear()
         self._stall_turn = self._stall_t = math.nan
@@ -270,8 +291,10 @@ class RecipeRunner:
                 reason = "timeout"
             if reason is not None:
                 self._enter(self.index + 1, t, reason)
-                elapsed = 0.0
-        fraction = 1.0 if self._ramp_s <= 0 else min(1.0, elapsed / self._ramp_s)
+            if self.status is RunStatus.RUNNING and not self._answered:
+                self._reanalyse(t, angle, estimates)
+        ramped = t - self._ramp_start
+        fraction = 1.0 if self._ramp_s <= 0 else min(1.0, ramped / self._ramp_s)
         self._fraction = fraction
         self.damping = self._damping_from + fraction * (self._damping_to - self._damping_from)
         np.subtract(self._target, self._from, out=self._desired)
@@ -359,6 +382,46 @@ class RecipeRunner:
         self._turn_last, self._turn_t = turn, t
         self._turn_dt = dt
         return True
+
+    def _reanalyse(self, t: float, angle: FloatArray, estimates: Sequence[float] | None) -> None:
+        """Ask for the analysis at the configuration the pair is measured in (the phase's
+        first tick with a valid estimate), and ``delay_s`` later take the answer: the ramp
+        starts again from the torque proposed last to the answer's, so taking it is no step
+        in torque. Work on the tick: a copy of the angles and estimates, once a phase."""
+        phase = self.recipe.phases[self.index]
+        wanted = phase.reanalyse
+        if wanted is None:
+            self._answered = True
+            return
+        record = self.records[-1]
+        if math.isnan(self._asked_at):
+            if self.reanalyser is None:
+                self._answered = True
+                record.reanalysis = "not run: no analysis in this run; the planned torque"
+                return
+            if estimates is None or not math.isfinite(float(estimates[_TURN])):
+                return  # the pair is not measured yet: ask once it is
+            self.reanalyser.submit(self.index, angle.tolist(), tuple(estimates))
+            self._asked_at = t
+            return
+        if t - self._asked_at < wanted.delay_s - 1e-12:
+            return
+        self._answered = True
+        result = self.reanalyser.collect(self.index) if self.reanalyser is not None else None
+        if result is None:
+            record.reanalysis = (
+                f"late: no answer {wanted.delay_s:g} s after the request; the planned torque"
+            )
+            return
+        record.reanalysis = result.note
+        if result.torques is None:
+            return
+        self._from = (self._proposed if self._fed else self._desired).copy()
+        self._target = np.array(result.torques, dtype=float)
+        self._damping_from += self._fraction * (self._damping_to - self._damping_from)
+        self._ramp_start = t
+        self.pace = 0.0
+        self._pace_t = t
 
     def _note_references(self, estimates: Sequence[float]) -> None:
         """Keep the first finite value of every phase-relative estimate in this phase, for

@@ -170,6 +170,49 @@ class TurnStall:
     window_s: float  # s, > 0
 
 
+#: what a ``Reanalyse`` may apply: the analysis' own torque, a blend of it and the plan's, or
+#: the robust torque nearest the plan's
+REANALYSIS_USES = ("analysis", "blend", "nearest")
+
+
+@dataclass(frozen=True)
+class Reanalyse:
+    """A turn phase whose torque is computed again for the configuration the pair is in
+    when the phase begins (``runner.py``, the paper's §4-5 torque sets at the measured
+    relative position): the analysis runs off the tick on the measured joint angles, the
+    estimated centres and the measured radii, and its torque replaces the planned one
+    ``delay_s`` after the first valid estimate of the phase, in every mode (lockstep, real
+    time, a re-run), so a run and its re-run apply it on the same tick.
+
+    Why: the planned torque was computed for the pair where the nominal hand leaves it;
+    on a hand whose pair is elsewhere (turned less, other radii) it can turn it back.
+    Where the analysis finds no robust torque, the planned one is kept."""
+
+    turn: float  # rad, signed: the sense of the turn the analysis is asked for
+    delay_s: float  # s, from the request to the tick the result is applied
+    #: "analysis": the analysis' torque of the largest margin; "blend": the point nearest the
+    #: planned torque on the segment from it to the analysis' torque whose margin is at least
+    #: ``min_margin``; "nearest": the torque nearest the planned one (the sum of the joints'
+    #: differences) whose margin is at least ``min_margin``
+    use: str
+    min_margin: float  # N
+
+
+@dataclass(frozen=True)
+class GraspModel:
+    """What the analysis of a measured grasp needs and the hand cannot measure: each
+    object's mass (kg, the recipe's objects' order), the Coulomb coefficients of a finger
+    on an object and of two objects, gravity (m/s², along -y of the hand's plane), and how
+    much looser than an object's tightest wall another wall may be and still count as a
+    contact (m: the estimator places an object equally far from every wall of its cage)."""
+
+    masses: tuple[float, ...]
+    finger_object_mu: float
+    object_object_mu: float
+    gravity: float
+    contact_gap: float
+
+
 @dataclass(frozen=True)
 class PoseHold:
     """Joint-space impedance of a phase: ``stiffness * (angle - q) - damping * velocity`` is
@@ -207,6 +250,9 @@ class Phase:
     #: pair's measured position, whatever an earlier phase left undone); "": this phase
     turn_from: str = ""
     stall: TurnStall | None = None
+    #: the analysis again at the measured configuration when the phase begins; None: the
+    #: planned torque throughout
+    reanalyse: Reanalyse | None = None
 
 
 @dataclass(frozen=True)
@@ -256,6 +302,8 @@ class Recipe:
     min_total_turn_deg: float = 0.0
     #: the pairs whose centre line the estimator reports (``consecutive_pairs`` by default)
     pairs: tuple[Pair, ...] = ()
+    #: what a phase's ``reanalyse`` needs beyond what the hand measures; None: no phase does
+    grasp_model: GraspModel | None = None
 
     @property
     def estimates(self) -> tuple[str, ...]:
@@ -269,6 +317,7 @@ class Recipe:
             or p.brake is not None
             or p.paced is not None
             or p.stall is not None
+            or p.reanalyse is not None
             for p in self.phases
         ) or any(c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
 
