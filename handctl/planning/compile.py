@@ -188,6 +188,10 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             doc["paced_ramp"]["joint_rate"] = paced.joint_rate
         if paced.blind_joint_rate > 0.0:
             doc["paced_ramp"]["blind_joint_rate"] = paced.blind_joint_rate
+        if paced.limit_depth > 0.0:
+            doc["paced_ramp"]["limit_depth"] = paced.limit_depth
+        if paced.turn_back > 0.0:
+            doc["paced_ramp"]["turn_back_deg"] = round(math.degrees(paced.turn_back), 6)
     if phase.torque_margin != 1.0:
         doc["torque_margin"] = phase.torque_margin
     doc["provenance"] = plan.provenance
