@@ -141,7 +141,7 @@ def _deep(hand: HandConfig, joint: str, depth: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize("depth", [0.0, 0.3])
-def test_a_joint_deep_in_its_band_sends_the_pace_back(
+def test_a_joint_pushed_deep_into_its_band_sends_the_pace_back(
     tmp_path: Path, hand: HandConfig, depth: float
 ) -> None:
     """A distal joint pushed 0.9 of the way into its guard's band while the pair does not
@@ -149,7 +149,9 @@ def test_a_joint_deep_in_its_band_sends_the_pace_back(
     ramp goes on to the phase's torque."""
     paced = {"limit_depth": depth} if depth else {}
     runner = RecipeRunner(_recipe(tmp_path, hand, paced), 9)
-    _feed(runner, [0.0] * round(4 * RAMP / DT), _deep(hand, "f2_j3", 0.9))
+    t = _feed(runner, [0.0] * round(4 * RAMP / DT), _deep(hand, "f2_j3", 0.0))
+    assert runner.pace == 1.0
+    _feed(runner, [0.0] * round(4 * RAMP / DT), _deep(hand, "f2_j3", 0.9), t0=t)
     assert runner.pace == (1.0 if depth == 0.0 else 0.0)
 
 
@@ -157,14 +159,26 @@ def test_a_joint_deep_in_its_band_sends_the_pace_back(
 def test_how_deep_a_joint_is_sets_how_far_the_pace_goes(
     tmp_path: Path, hand: HandConfig, depth: float, pace: float
 ) -> None:
-    """Up to ``limit_depth`` (a lift that leans a joint into its band on purpose) the ramp
-    is the rate's; a third of the way from there to the limit, it holds where it is;
-    deeper, it goes back."""
+    """Up to ``limit_depth`` the ramp is the rate's; a third of the way from there to the
+    limit, it holds where it is; deeper, it goes back."""
     runner = RecipeRunner(_recipe(tmp_path, hand, {"limit_depth": 0.3}), 9)
     t = _feed(runner, [0.0] * round(4 * RAMP / DT))
     assert runner.pace == 1.0
     _feed(runner, [0.0] * round(4 * RAMP / DT), _deep(hand, "f1_j3", depth), t0=t)
     assert runner.pace == pytest.approx(pace, abs=1e-6)
+
+
+def test_a_joint_the_grasp_leans_into_its_band_counts_from_where_it_was(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A joint already 0.6 of its band in when the phase begins (a grasp that leans on the
+    guard on purpose) is not the phase's doing: the ramp goes on while it stays there, and
+    backs off only once the phase pushes it deeper (here 0.9 of the band in)."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"limit_depth": 0.3}), 9)
+    t = _feed(runner, [0.0] * round(4 * RAMP / DT), _deep(hand, "f2_j3", 0.6))
+    assert runner.pace == 1.0
+    _feed(runner, [0.0] * round(4 * RAMP / DT), _deep(hand, "f2_j3", 0.9), t0=t)
+    assert runner.pace == 0.0
 
 
 @pytest.mark.parametrize(

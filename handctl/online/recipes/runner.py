@@ -167,6 +167,11 @@ class RecipeRunner:
         # pair is behind it now
         self._furthest = math.nan
         self._behind = 0.0
+        # each joint's depth into its guard's band now, and where a paced ramp's
+        # ``limit_depth`` starts for it in this phase (``_limit_cap``)
+        self._depth = np.zeros(n_joints)
+        self._depth_from = np.zeros(n_joints)
+        self._depth_known = False
         if after is not None:  # the first phase is entered from the handed-over state
             self._desired[:] = after.torques
             self.damping = after.damping
@@ -211,6 +216,7 @@ class RecipeRunner:
         self._pace_t = t
         self._furthest = math.nan
         self._behind = 0.0
+        self._depth_known = False
         if index < len(self.recipe.phases):
             phase = self.recipe.phases[index]
             self.index = index
@@ -440,8 +446,8 @@ class RecipeRunner:
         """The most a paced ramp may go forward (as its relative error) with the pair where
         it is against the furthest it got the wanted way in this phase: on at full speed
         until it is ``turn_back`` behind, back at ``back`` at twice that, in proportion
-        between (it holds ``1 / (1 + back)`` of the way: a third with ``back`` 2). The pair's last valid estimate counts while
-        its cage is open."""
+        between (it holds ``1 / (1 + back)`` of the way: a third with ``back`` 2). The
+        pair's last valid estimate counts while its cage is open."""
         turn = self._turn_last
         if math.isfinite(turn):
             along = turn if paced.rate > 0 else -turn
@@ -454,28 +460,38 @@ class RecipeRunner:
         return 1.0 - (1.0 + paced.back) * min(1.0, over)
 
     def _limit_cap(self, paced: PacedRamp, angle: FloatArray) -> float:
-        """The most a paced ramp may go forward (as its relative error) with its deepest
-        joint where it is in its soft-limit guard's band: on at full speed up to
-        ``limit_depth`` of the band, back at ``back`` at the limit, in proportion between
-        (it holds ``1 / (1 + back)`` of the way). A joint pushed that deep is the phase's torque
-        driving the hand into its limit rather than turning the pair, and pushing on ends
-        in a safety stop; going back along the segment eases towards the torque that held
-        the pair."""
+        """The most a paced ramp may go forward (as its relative error) with its joints
+        where they are in their soft-limit guard's bands: on at full speed while every
+        joint is at most ``limit_depth`` of its band in, or no deeper than it was when the
+        phase began, back at ``back`` at the limit, in proportion between (it holds
+        ``1 / (1 + back)`` of the way). A joint the phase pushes that deep is its torque
+        driving the hand into a limit rather than turning the pair, and pushing on ends in
+        a safety stop; going back along the segment eases towards the torque that held the
+        pair. Why from where it began: a grasp may lean a joint into its band on purpose
+        (the lift's distal joints), and that is not this phase's doing."""
         guard = self._guard
         if guard is None:
             return 1.0
         band = guard.band
-        deepest = 0.0
+        depth = self._depth
         for j in range(self.n):
             q = float(angle[j])
             if q < guard.lower[j]:
-                deepest = max(deepest, (guard.lower[j] - q) / band)
+                depth[j] = (guard.lower[j] - q) / band
             elif q > guard.upper[j]:
-                deepest = max(deepest, (q - guard.upper[j]) / band)
-        start = paced.limit_depth
-        if deepest <= start:
-            return 1.0
-        return 1.0 - (1.0 + paced.back) * min(1.0, (deepest - start) / (1.0 - start))
+                depth[j] = (q - guard.upper[j]) / band
+            else:
+                depth[j] = 0.0
+        if not self._depth_known:
+            np.maximum(depth, paced.limit_depth, out=self._depth_from)
+            self._depth_known = True
+        cap = 1.0
+        for j in range(self.n):
+            start = float(self._depth_from[j])
+            if depth[j] > start and start < 1.0:
+                over = min(1.0, (float(depth[j]) - start) / (1.0 - start))
+                cap = min(cap, 1.0 - (1.0 + paced.back) * over)
+        return cap
 
     def _turn_loop(self) -> None:
         """One step of the proportional-integral loop of the scale on the turn rate."""
