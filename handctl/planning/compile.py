@@ -34,7 +34,14 @@ from handctl.analysis.model import AnalysisError
 from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
 from handctl.executor import WorkPool, open_pool
-from handctl.online.recipes.schema import Condition, Phase, PoseHold, TimeoutAction, parse_condition
+from handctl.online.recipes.schema import (
+    Condition,
+    PacedRamp,
+    Phase,
+    PoseHold,
+    TimeoutAction,
+    parse_condition,
+)
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.planning.grasp import GraspSnapshot, fixed_directions, grasp_of, turn_directions
 from handctl.planning.models import Model, model_set
@@ -147,6 +154,24 @@ def _rounded(values: tuple[float, ...] | list[float]) -> list[float]:
     return [round(float(v), TORQUE_DECIMALS) + 0.0 for v in values]
 
 
+def _paced_document(paced: PacedRamp) -> dict[str, Any]:
+    """A phase's ``paced_ramp`` as a recipe writes it: the optional keys only when set."""
+    doc: dict[str, Any] = {
+        "rate_deg_s": round(math.degrees(paced.rate), 6),
+        "reach": paced.reach,
+        "back": paced.back,
+    }
+    if paced.joint_rate > 0.0:
+        doc["joint_rate"] = paced.joint_rate
+    if paced.blind_joint_rate > 0.0:
+        doc["blind_joint_rate"] = paced.blind_joint_rate
+    if paced.limit_depth > 0.0:
+        doc["limit_depth"] = paced.limit_depth
+    if paced.turn_back > 0.0:
+        doc["turn_back_deg"] = round(math.degrees(paced.turn_back), 6)
+    return doc
+
+
 def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     phase = plan.phase
     doc: dict[str, Any] = {
@@ -200,16 +225,7 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
         if phase.brake.blind_joint_rate > 0.0:
             doc["brake"]["blind_joint_rate"] = phase.brake.blind_joint_rate
     if phase.paced is not None:
-        paced = phase.paced
-        doc["paced_ramp"] = {
-            "rate_deg_s": round(math.degrees(paced.rate), 6),
-            "reach": paced.reach,
-            "back": paced.back,
-        }
-        if paced.joint_rate > 0.0:
-            doc["paced_ramp"]["joint_rate"] = paced.joint_rate
-        if paced.blind_joint_rate > 0.0:
-            doc["paced_ramp"]["blind_joint_rate"] = paced.blind_joint_rate
+        doc["paced_ramp"] = _paced_document(phase.paced)
     if phase.torque_margin != 1.0:
         doc["torque_margin"] = phase.torque_margin
     doc["provenance"] = plan.provenance

@@ -72,6 +72,9 @@ MAX_REANALYSIS_DELAY_S = 1.0
 #: s, the default wait for a reanalysis: the analysis' one MILP takes 30..370 ms of CPU at
 #: the configurations measured (docs/experiment.md), and a real-time run must have it then
 DEFAULT_REANALYSIS_DELAY_S = 0.5
+#: the deepest fraction of the guard's band a paced ramp's ``limit_depth`` may start at: it
+#: needs room before the limit to go back in
+MAX_LIMIT_DEPTH = 0.9
 
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
@@ -140,6 +143,13 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                     "the turn of the first pair",
                     f"{len(objects)} objects",
                 )
+        if phase.paced is not None and phase.paced.limit_depth > 0.0 and guard is None:
+            raise ConfigError(
+                doc.file,
+                f"phases[{i}].paced_ramp.limit_depth",
+                "a recipe with a limit_guard_band (limit_depth is a fraction of its band)",
+                "no limit_guard_band",
+            )
     doc.done()
     if digest is not None and digest != hand.config_hash:
         raise ConfigError(
@@ -436,8 +446,12 @@ def parse_paced_ramp(doc: Doc, sign: float | None = None) -> PacedRamp:
     back = doc.number("back", default=2.0, min=0.0, max=MAX_BACK, min_exclusive=True)
     joint_rate = doc.number("joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
     blind = doc.number("blind_joint_rate", default=0.0, min=0.0, max=MAX_JOINT_RATE, unit="rad/s")
+    depth = doc.number("limit_depth", default=0.0, min=0.0, max=MAX_LIMIT_DEPTH)
+    turn_back = doc.number("turn_back_deg", default=0.0, min=0.0, max=90.0, unit="deg")
     doc.done()
-    return PacedRamp(math.radians(rate), reach, back, joint_rate, blind)
+    return PacedRamp(
+        math.radians(rate), reach, back, joint_rate, blind, depth, math.radians(turn_back)
+    )
 
 
 def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:

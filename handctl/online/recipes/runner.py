@@ -181,6 +181,15 @@ class RecipeRunner:
         # a paced ramp's fraction along its segment, and when it last moved
         self.pace = 0.0
         self._pace_t = math.nan
+        # a paced ramp's furthest turn the wanted way in this phase (rad) and how far the
+        # pair is behind it now
+        self._furthest = math.nan
+        self._behind = 0.0
+        # each joint's depth into its guard's band now, and where a paced ramp's
+        # ``limit_depth`` starts for it in this phase (``_limit_cap``)
+        self._depth = np.zeros(n_joints)
+        self._depth_from = np.zeros(n_joints)
+        self._depth_known = False
         if after is not None:  # the first phase is entered from the handed-over state
             self._desired[:] = after.torques
             self.damping = after.damping
@@ -226,6 +235,9 @@ class RecipeRunner:
         self._turn_last = self._turn_t = math.nan
         self.pace = 0.0
         self._pace_t = t
+        self._furthest = math.nan
+        self._behind = 0.0
+        self._depth_known = False
         if index < len(self.recipe.phases):
             phase = self.recipe.phases[index]
             self.index = index
@@ -337,7 +349,7 @@ class RecipeRunner:
             out[:] = self._desired
             self._fed = True
             if phase.paced is not None:
-                self._pace_step(t, phase.paced, phase.ramp_s)
+                self._pace_step(t, phase.paced, phase.ramp_s, angle)
                 # from + pace * (target - from), where the ramp put from + fraction * (...)
                 np.subtract(self._target, self._from, out=self._delta)
                 self._delta *= self.pace - self._fraction
@@ -462,7 +474,7 @@ class RecipeRunner:
         ``joint_rate`` is compared with."""
         return float(np.max(np.abs(self.velocity.value)))
 
-    def _pace_step(self, t: float, paced: PacedRamp, ramp_s: float) -> None:
+    def _pace_step(self, t: float, paced: PacedRamp, ramp_s: float, angle: FloatArray) -> None:
         """Move the paced ramp's fraction along its segment by the relative rate error: at
         the ramp's own speed while the pair turns slower than the wanted rate (or the wrong
         way), back at up to ``back`` times that while it turns faster, in proportion
@@ -486,8 +498,63 @@ class RecipeRunner:
         if paced.joint_rate > 0.0:
             fastest = self._fastest_joint()
             error = min(error, (paced.joint_rate - fastest) / paced.joint_rate)
+        if paced.limit_depth > 0.0:
+            error = min(error, self._limit_cap(paced, angle))
+        if paced.turn_back > 0.0:
+            error = min(error, self._turn_back_cap(paced))
         speed = min(1.0, max(-paced.back, error)) / ramp_s
         self.pace = min(paced.reach, max(0.0, self.pace + speed * dt))
+
+    def _turn_back_cap(self, paced: PacedRamp) -> float:
+        """The most a paced ramp may go forward (as its relative error) with the pair where
+        it is against the furthest it got the wanted way in this phase: on at full speed
+        until it is ``turn_back`` behind, back at ``back`` at twice that, in proportion
+        between (it holds ``1 / (1 + back)`` of the way: a third with ``back`` 2). The
+        pair's last valid estimate counts while its cage is open."""
+        turn = self._turn_last
+        if math.isfinite(turn):
+            along = turn if paced.rate > 0 else -turn
+            if not along <= self._furthest:  # NaN at the phase's start
+                self._furthest = along
+            self._behind = self._furthest - along
+        over = (self._behind - paced.turn_back) / paced.turn_back
+        if over <= 0.0:
+            return 1.0
+        return 1.0 - (1.0 + paced.back) * min(1.0, over)
+
+    def _limit_cap(self, paced: PacedRamp, angle: FloatArray) -> float:
+        """The most a paced ramp may go forward (as its relative error) with its joints
+        where they are in their soft-limit guard's bands: on at full speed while every
+        joint is at most ``limit_depth`` of its band in, or no deeper than it was when the
+        phase began, back at ``back`` at the limit, in proportion between (it holds
+        ``1 / (1 + back)`` of the way). A joint the phase pushes that deep is its torque
+        driving the hand into a limit rather than turning the pair, and pushing on ends in
+        a safety stop; going back along the segment eases towards the torque that held the
+        pair. Why from where it began: a grasp may lean a joint into its band on purpose
+        (the lift's distal joints), and that is not this phase's doing."""
+        guard = self._guard
+        if guard is None:
+            return 1.0
+        band = guard.band
+        depth = self._depth
+        for j in range(self.n):
+            q = float(angle[j])
+            if q < guard.lower[j]:
+                depth[j] = (guard.lower[j] - q) / band
+            elif q > guard.upper[j]:
+                depth[j] = (q - guard.upper[j]) / band
+            else:
+                depth[j] = 0.0
+        if not self._depth_known:
+            np.maximum(depth, paced.limit_depth, out=self._depth_from)
+            self._depth_known = True
+        cap = 1.0
+        for j in range(self.n):
+            start = float(self._depth_from[j])
+            if depth[j] > start and start < 1.0:
+                over = min(1.0, (float(depth[j]) - start) / (1.0 - start))
+                cap = min(cap, 1.0 - (1.0 + paced.back) * over)
+        return cap
 
     def _turn_loop(self) -> None:
         """One step of the proportional-integral loop of the scale on the turn rate."""

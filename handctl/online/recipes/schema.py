@@ -153,6 +153,15 @@ class PacedRamp:
     #: rad/s: while the pair's estimate is invalid (its cage open), the fastest joint
     #: against this sets the pace instead of the pair's last rate; 0: the last rate holds
     blind_joint_rate: float = 0.0
+    #: a fraction of the soft-limit guard's band: a joint deeper into its band than this
+    #: holds the pace, and deeper still sends it back, at ``back`` once the joint is at its
+    #: limit: the phase's torque is pushing the hand into its limit instead of turning the
+    #: pair; 0: off (needs the recipe's ``limit_guard_band``)
+    limit_depth: float = 0.0
+    #: rad: once the pair is this far behind the furthest it got the wanted way in this
+    #: phase (turned back), the pace holds, and further behind goes back, at ``back`` at
+    #: twice it: a pair the torque turns the wrong way is not a slow pair; 0: off
+    turn_back: float = 0.0
 
 
 @dataclass(frozen=True)
