@@ -16,6 +16,7 @@ left in the rings and finishes an indexed file.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import mmap
 import os
 import select
@@ -53,21 +54,21 @@ from handctl.recording.ring import (
     EVENT_BYTES,
     EVENT_HEAD,
     EVENT_TAIL,
-    FRAME_BYTES,
     FRAME_HEAD,
     FRAME_ROW,
     FRAME_TAIL,
     I_NODES,
     POSE_HEAD,
     POSE_TAIL,
+    RX_FRAME_ROW,
+    RX_HEAD_ROW,
     SEP,
     TICK_HEAD,
     TICK_TAIL,
+    TX_FRAME_ROW,
     RingLayout,
     Rings,
 )
-
-assert TAP_RX == 0  # a received frame's meta word is its length alone (``_flush_frames``)
 
 if TYPE_CHECKING:
     from handctl.online.clock import Tick
@@ -75,13 +76,11 @@ if TYPE_CHECKING:
 
 _TICK_HEAD = struct.Struct("<qqqqq")  # tick, scheduled, now, missed, active
 _POSE_INTS = struct.Struct("<qq")  # tick, t
-#: One frame row: t, tick, id, direction | size << 8, bus time, the data.
-_FRAME_FORMAT = f"qqqqq{FRAME_BYTES}s"
-_FRAME = struct.Struct("<" + _FRAME_FORMAT)
-#: The items of a frame row, as ``_flush_frames`` lays them out for its one ``pack_into``.
-_FRAME_ITEMS = 6
-#: A tick's frames are packed with one call up to this many (a struct per count, made when
-#: first needed); more, or a run of them that wraps round the ring's end, one call each.
+_RX_HEAD = struct.Struct("<" + RX_HEAD_ROW)
+_RX_FRAME = struct.Struct("<" + RX_FRAME_ROW)
+_TX_FRAME = struct.Struct("<" + TX_FRAME_ROW)
+#: A drain's frames are packed with one call up to this many (a struct per count, made when
+#: first needed); more, or a block that would wrap round the ring's end, a row a call.
 _MAX_FRAMES_PACKED = 64
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
 #: Runner status names a phase column can also hold.
@@ -268,11 +267,12 @@ class Recorder:
         self._frame_base = r.offsets["frame"]
         self._frame_mask = self.layout.frame_capacity - 1
         self._fhead = self._ftail = 0
-        self._pending: list[list[Frame] | tuple[int, bytes, int]] = []
-        #: The items of the tick's frame rows, refilled by ``_flush_frames`` (kept: no list
-        #: allocated per tick), and the ``pack_into`` of a struct of k frame rows, per k.
-        self._frame_items: list[Any] = []
-        self._frames_pack: dict[int, Any] = {}
+        #: The tick's frames as the taps noted them, in bus order: a drain's list of frames,
+        #: or a sent frame's row (direction, t, tick, id, data).
+        self._pending: list[list[Frame] | tuple[int, int, int, int, bytes]] = []
+        #: The ``pack_into`` of a drain's block (its head row and k frame rows), per k.
+        self._rx_pack: dict[int, Any] = {}
+        self._frames_noted = 0
         self._event_base = r.offsets["event_i"]
         self._event_data = r.offsets["event_d"]
         self._event_mask = self.layout.event_capacity - 1
@@ -486,62 +486,76 @@ class Recorder:
 
     # -- taps: note now, copy in ``push`` -------------------------------------------------
     def _frame(self, arbitration_id: int, data: bytes, direction: int) -> None:
-        self._pending.append((arbitration_id, data, direction))
+        self._pending.append((direction, self._now, self._tick, arbitration_id, data))
 
     def _flush_frames(self) -> None:
         """Copy the frames noted this tick into the ring, in the order they were on the bus.
 
-        The tick's frame rows are laid out as one list of items and packed with one
-        ``pack_into`` (a struct of that many rows): a call per frame cost more than the
-        packing itself. A frame's time is its tick's (the clock stands still inside a lockstep
-        tick; in real time a tick's frames are drained or sent within its first few hundred
-        microseconds); a received frame keeps the adapter's own time stamp as well.
+        A drain's frames go in with one ``pack_into`` of the bus's own frame tuples (a struct
+        of a head row and that many frame rows), a sent frame with one of the row its tap
+        noted: no frame is taken apart in Python. A frame's time is its tick's (the clock
+        stands still inside a lockstep tick; in real time a tick's frames are drained or sent
+        within its first few hundred microseconds); a received frame keeps the adapter's own
+        time stamp as well.
         """
-        items = self._frame_items
-        now, tick = self._now, self._tick
-        for entry in self._pending:
-            if isinstance(entry, list):
-                for frame_id, data, stamp, _ in entry:
-                    items += (now, tick, frame_id, len(data) << 8, stamp, data)  # TAP_RX is 0
-            else:
-                frame_id, data, direction = entry
-                items += (now, tick, frame_id, direction | len(data) << 8, 0, data)
-        self._pending.clear()
-        count = len(items) // _FRAME_ITEMS
+        buf, base, mask = self._buf, self._frame_base, self._frame_mask
         head = self._fhead
-        mask = self._frame_mask
-        at = head & mask
-        if (
-            head + count - self._ftail <= mask + 1
-            and at + count <= mask + 1
-            and count <= _MAX_FRAMES_PACKED
-        ):
-            pack = self._frames_pack.get(count)
-            if pack is None:
-                pack = self._frames_pack[count] = struct.Struct(
-                    "<" + _FRAME_FORMAT * count
-                ).pack_into
-            pack(self._buf, self._frame_base + at * FRAME_ROW, *items)
-            self._fhead = head + count
-        else:  # the ring looks full, or the rows wrap round its end, or a great many
-            self._fhead = self._flush_slowly(items, head)
-        items.clear()
+        tail = self._ftail
+        noted = self._frames_noted
+        for entry in self._pending:
+            if isinstance(entry, tuple):
+                if head - tail > mask:
+                    if self._ring_full(_FRAMES, head, mask):
+                        continue
+                    tail = self._ftail
+                _TX_FRAME.pack_into(buf, base + (head & mask) * FRAME_ROW, *entry)
+                head += 1
+                noted += 1
+                continue
+            count = len(entry)
+            at = head & mask
+            if head + count - tail <= mask and at + count <= mask and count <= _MAX_FRAMES_PACKED:
+                pack = self._rx_pack.get(count)
+                if pack is None:
+                    pack = self._rx_pack[count] = struct.Struct(
+                        "<" + RX_HEAD_ROW + RX_FRAME_ROW * count
+                    ).pack_into
+                pack(
+                    buf,
+                    base + at * FRAME_ROW,
+                    TAP_RX,
+                    self._now,
+                    self._tick,
+                    count,
+                    *itertools.chain.from_iterable(entry),
+                )
+                head += count + 1
+                noted += count
+            else:  # the ring looks full, or the block wraps round its end, or a great many
+                head, count = self._flush_drain(entry, head)
+                tail = self._ftail
+                noted += count
+        self._pending.clear()
+        self._fhead = head
+        self._frames_noted = noted
 
-    def _flush_slowly(self, items: list[Any], head: int) -> int:
-        """Frame rows one call each, with a look at the writer's tail when the ring looks
-        full: what does not fit is dropped and counted."""
+    def _flush_drain(self, frames: list[Frame], head: int) -> tuple[int, int]:
+        """A drain's block a row a call, with a look at the writer's tail when the ring looks
+        full: a block that does not fit is dropped whole and its frames counted. The new head
+        and the frames written."""
         mask = self._frame_mask
-        count = len(items) // _FRAME_ITEMS
-        for i in range(count):
-            if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask, count - i):
-                break
-            _FRAME.pack_into(
-                self._buf,
-                self._frame_base + (head & mask) * FRAME_ROW,
-                *items[i * _FRAME_ITEMS : (i + 1) * _FRAME_ITEMS],
-            )
+        count = len(frames)
+        end = head + count
+        if end - self._ftail > mask and self._ring_full(_FRAMES, end, mask, count):
+            return head, 0
+        base = self._frame_base
+        _RX_HEAD.pack_into(
+            self._buf, base + (head & mask) * FRAME_ROW, TAP_RX, self._now, self._tick, count
+        )
+        for frame in frames:
             head += 1
-        return head
+            _RX_FRAME.pack_into(self._buf, base + (head & mask) * FRAME_ROW, *frame)
+        return head + 1, count
 
     def _ring_full(self, ring: _Ring, head: int, mask: int, records: int = 1) -> bool:
         """A ring looked full by the tail this side last read: read the writer's tail again
@@ -686,7 +700,7 @@ class Recorder:
         self.stats = {
             "path": str(self.path),
             "ticks": self._head,
-            "frames": self._fhead,
+            "frames": self._frames_noted,
             "events": self._ehead,
             "dropped_ticks": ctl[DROPPED_TICKS],
             "dropped_frames": ctl[DROPPED_FRAMES],
