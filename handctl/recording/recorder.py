@@ -79,9 +79,25 @@ _POSE_INTS = struct.Struct("<qq")  # tick, t
 _RX_HEAD = struct.Struct("<" + RX_HEAD_ROW)
 _RX_FRAME = struct.Struct("<" + RX_FRAME_ROW)
 _TX_FRAME = struct.Struct("<" + TX_FRAME_ROW)
-#: A drain's frames are packed with one call up to this many (a struct per count, made when
-#: first needed); more, or a block that would wrap round the ring's end, a row a call.
-_MAX_FRAMES_PACKED = 64
+#: A tick's frame rows are packed with one call (a struct per shape of tick) when they are
+#: fewer than this less two; more, or rows that would wrap round the ring's end, a row a
+#: call. A shape is a number in this base, a digit per sent frame (1) or drain (2 + its
+#: frames), so that every shape of fewer rows has a number of its own.
+_SHAPE_BASE = 66
+#: Structs kept, one per shape met, before they are forgotten all at once.
+_MAX_SHAPES = 1024
+
+
+def _frames_struct(pending: list[list[Frame] | tuple[int, int, int, int, bytes]]) -> struct.Struct:
+    """The struct of a tick's frame rows: a sent frame's row, or a drain's head row and its
+    frames' rows, for each of ``pending`` in turn."""
+    return struct.Struct(
+        "<"
+        + "".join(
+            TX_FRAME_ROW if isinstance(e, tuple) else RX_HEAD_ROW + RX_FRAME_ROW * len(e)
+            for e in pending
+        )
+    )
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
 #: Runner status names a phase column can also hold.
 RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
@@ -270,8 +286,8 @@ class Recorder:
         #: The tick's frames as the taps noted them, in bus order: a drain's list of frames,
         #: or a sent frame's row (direction, t, tick, id, data).
         self._pending: list[list[Frame] | tuple[int, int, int, int, bytes]] = []
-        #: The ``pack_into`` of a drain's block (its head row and k frame rows), per k.
-        self._rx_pack: dict[int, Any] = {}
+        #: The ``pack_into`` of a tick's frame rows, per shape (``_flush_frames``).
+        self._frames_pack: dict[int, Any] = {}
         self._frames_noted = 0
         self._event_base = r.offsets["event_i"]
         self._event_data = r.offsets["event_d"]
@@ -493,53 +509,65 @@ class Recorder:
     def _flush_frames(self) -> None:
         """Copy the frames noted this tick into the ring, in the order they were on the bus.
 
-        A drain's frames go in with one ``pack_into`` of the bus's own frame tuples (a struct
-        of a head row and that many frame rows), a sent frame with one of the row its tap
-        noted: no frame is taken apart in Python. A frame's time is its tick's (the clock
-        stands still inside a lockstep tick; in real time a tick's frames are drained or sent
-        within its first few hundred microseconds); a received frame keeps the adapter's own
-        time stamp as well.
+        The tick's rows are laid out as one list of items and packed with one ``pack_into``,
+        a struct per shape of tick (the sequence of its sent frames and drains, made when
+        first met): a drain's items are the bus's own frame tuples flattened in C, a sent
+        frame's the row its tap noted, so no frame is taken apart in Python and a call per
+        row is not paid. A frame's time is its tick's (the clock stands still inside a
+        lockstep tick; in real time a tick's frames are drained or sent within its first few
+        hundred microseconds); a received frame keeps the adapter's own time stamp as well.
         """
+        pending = self._pending
+        items: list[Any] = []
+        shape = rows = frames = 0
+        now, tick = self._now, self._tick
+        for entry in pending:
+            if isinstance(entry, tuple):
+                items += entry
+                shape = shape * _SHAPE_BASE + 1
+                rows += 1
+                frames += 1
+            else:
+                count = len(entry)
+                items += (TAP_RX, now, tick, count)
+                items += itertools.chain.from_iterable(entry)
+                shape = shape * _SHAPE_BASE + 2 + count
+                rows += count + 1
+                frames += count
+        head = self._fhead
+        mask = self._frame_mask
+        at = head & mask
+        fits = head + rows - self._ftail <= mask + 1 and at + rows <= mask + 1
+        if fits and rows < _SHAPE_BASE - 2:
+            pack = self._frames_pack.get(shape)
+            if pack is None:
+                if len(self._frames_pack) >= _MAX_SHAPES:  # a bus that makes ever new ones
+                    self._frames_pack.clear()
+                pack = self._frames_pack[shape] = _frames_struct(pending).pack_into
+            pack(self._buf, self._frame_base + at * FRAME_ROW, *items)
+            self._fhead = head + rows
+            self._frames_noted += frames
+        else:  # the ring looks full, or the rows wrap round its end, or a great many
+            self._flush_slowly(pending)
+        pending.clear()
+
+    def _flush_slowly(self, pending: list[list[Frame] | tuple[int, int, int, int, bytes]]) -> None:
+        """The tick's frames a row a call, with a look at the writer's tail when the ring
+        looks full: a sent frame or a drain's block that does not fit is dropped whole and
+        its frames counted."""
         buf, base, mask = self._buf, self._frame_base, self._frame_mask
         head = self._fhead
-        tail = self._ftail
-        noted = self._frames_noted
-        for entry in self._pending:
+        for entry in pending:
             if isinstance(entry, tuple):
-                if head - tail > mask:
-                    if self._ring_full(_FRAMES, head, mask):
-                        continue
-                    tail = self._ftail
+                if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask):
+                    continue
                 _TX_FRAME.pack_into(buf, base + (head & mask) * FRAME_ROW, *entry)
                 head += 1
-                noted += 1
-                continue
-            count = len(entry)
-            at = head & mask
-            if head + count - tail <= mask and at + count <= mask and count <= _MAX_FRAMES_PACKED:
-                pack = self._rx_pack.get(count)
-                if pack is None:
-                    pack = self._rx_pack[count] = struct.Struct(
-                        "<" + RX_HEAD_ROW + RX_FRAME_ROW * count
-                    ).pack_into
-                pack(
-                    buf,
-                    base + at * FRAME_ROW,
-                    TAP_RX,
-                    self._now,
-                    self._tick,
-                    count,
-                    *itertools.chain.from_iterable(entry),
-                )
-                head += count + 1
-                noted += count
-            else:  # the ring looks full, or the block wraps round its end, or a great many
+                self._frames_noted += 1
+            else:
                 head, count = self._flush_drain(entry, head)
-                tail = self._ftail
-                noted += count
-        self._pending.clear()
+                self._frames_noted += count
         self._fhead = head
-        self._frames_noted = noted
 
     def _flush_drain(self, frames: list[Frame], head: int) -> tuple[int, int]:
         """A drain's block a row a call, with a look at the writer's tail when the ring looks
