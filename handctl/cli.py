@@ -272,7 +272,7 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
         live_port=args.live,
     )
     if args.live is not None:
-        from handctl.foxglove.live import HOST
+        from handctl.foxglove import HOST  # not ``live``: the SDK stays out of the loop's process
 
         _progress(
             f"live: Foxglove WebSocket on ws://{HOST}:{args.live} "
@@ -665,7 +665,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=str) + "\n")
     if args.live is not None:
-        from handctl.foxglove.live import HOST, serve_recording
+        from handctl.foxglove import HOST
+        from handctl.foxglove.live import serve_recording
 
         _progress(
             f"live: streaming {args.log} at {args.speed or 1.0:g}x to Foxglove on "

@@ -10,9 +10,10 @@ process, then read back:
   even ticks and B first on odd ones. Both run the same deterministic lockstep trajectory,
   so tick k of A and tick k of B do the same work but for the recording. Two measures:
 
-  - *direct*: the thread CPU time of the recording's own work in each of A's ticks, timed
-    where it runs: ``begin_tick`` (the bench times it) and the runtime's ``record`` stage
-    (the refill of its record and ``push``; the runtime times it). ``loop_cost_us_p50``,
+  - *direct*: the recording's own work in each of A's ticks, timed where it runs:
+    ``begin_tick`` and, every tenth tick, ``poses`` (the bench times them, with the wall
+    clock: ``_WALL``) and the runtime's ``record`` stage (the refill of its record and
+    ``push``, thread CPU time; the runtime times it). ``loop_cost_us_p50``,
     ``loop_cost_us_mean``.
   - *paired*: the CPU time of A's whole tick minus B's (from the moment the clock hands out
     the tick to the moment the runtime waits for the next, the simulated hands' steps
@@ -26,6 +27,9 @@ process, then read back:
 
   ``loop_cost_us_p99`` is the direct 99th percentile plus what the paired mean found beyond
   the direct mean (that indirect share, taken as the same in every tick). Target <= 20.
+  The two places of a pair are not alike (``_pair``): the runs alternate them, A first in
+  the first run, second in the next, and the indirect share is the average of the two
+  places' (``indirect_us_mean``); a single run has the places' difference in it.
   ``tick_us_p50_unrecorded`` is B's median tick, for scale: the baseline of the same run.
   ``loop_cost_share_p99`` is ``loop_cost_us_p99`` over it (and ``loop_cost_share_p50`` the
   direct median over it): on a shared machine every time swells with the load of the
@@ -40,9 +44,9 @@ process, then read back:
   estimator alone, fed the logged angles: the part of the rest a recipe with objects needs).
 - ``mb_per_min``: file size per minute of run.
 - ``thread_clock_us``: what one reading of the thread CPU clock costs here and now (a system
-  call; microseconds on a loaded virtual machine). The direct figure holds about two of them
-  (``begin_tick``'s timing, and the runtime's reading that ends its record stage, which the
-  runtime makes only when it records).
+  call; microseconds on a loaded virtual machine). The direct figure holds about one: the
+  runtime's reading that ends its record stage, which the runtime makes only when it
+  records, a cost of recording in every real run too.
 
 ``--profile``: instead, where the recording's time goes in the running loop. One pair as
 above, every call of A's recorder (``begin_tick``, the two frame taps, ``push``,
@@ -60,12 +64,14 @@ competition for the CPU.
 Each figure is the best of ``--repeat`` runs (the machine is shared). Progress goes to stderr.
 
 ``--live``: instead, what the live Foxglove view adds to the tick. The same pair, both
-runtimes recorded, A's writer also serving its live view to a client process subscribed to
-every channel (``live_view_cost.py``'s). The two tick in turn under the same load, so that
-``live_added_tick_us_p99`` (A's tick p99 minus B's, CPU time) and ``live_ratio_tick_p99``
-compare like with like, which two real-time runs one after the other on a shared machine do
-not; ``live_paired_us_mean`` is the mean of A's tick minus B's, with its standard error. The
-median over ``--repeat`` pairs.
+runtimes recorded, one's writer also serving its live view to a client process subscribed
+to every channel (``live_view_cost.py``'s): A's in the first pair, B's in the second, and so
+on. The two tick in turn under the same load, so that ``live_added_tick_us_p99`` (the live
+side's tick p99 minus the other's, CPU time) and ``live_ratio_tick_p99`` compare like with
+like, which two real-time runs one after the other on a shared machine do not;
+``live_paired_us_mean`` is the mean of the live side's tick minus the other's, with its
+standard error. Over the ticks of all ``--repeat`` pairs pooled (each pair's own in
+``*_runs``).
 """
 
 from __future__ import annotations
@@ -115,6 +121,12 @@ LOOP_TARGET_US = 20.0
 #: CPU time of the calling thread, as the runtime's own stage accounting: time the loop was
 #: preempted by another process (the machine is shared) is not the recorder's cost.
 _CPU = time.thread_time_ns
+#: What times ``begin_tick``: the wall clock, a read of some 50 ns without a system call. The
+#: thread CPU clock is a system call (``thread_clock_us``), and two of them around each
+#: ``begin_tick`` were the bench's own cost, in the direct figure and in A's tick alike, not
+#: the recording's; a preemption inside a microsecond's call falls on far fewer ticks than
+#: the 1 % a 99th percentile looks at.
+_WALL = time.perf_counter_ns
 WRITER_TARGET = 5.0
 REPLAY_TARGET = 50.0
 
@@ -236,17 +248,19 @@ class _Side:
             hand, driver, self.clock, recipe, recorder=self.recorder, estimator=estimator
         )
         recorder = self.recorder
-        #: CPU time of each ``begin_tick`` (the part of the recording before the tick's poll)
+        #: Time of each ``begin_tick`` (the part of the recording before the tick's poll)
         self.begin_ns: list[int] = []
+        #: Time of ``poses`` (the tick's object poses handed over), by tick
+        self.poses_ns: dict[int, int] = {}
         if recorder is not None:
             recorder.attach(runtime)
             begin = recorder.begin_tick
             begin_ns = self.begin_ns
 
             def timed_begin(tk: Tick) -> None:
-                started = _CPU()
+                started = _WALL()
                 begin(tk)
-                begin_ns.append(_CPU() - started)
+                begin_ns.append(_WALL() - started)
 
             recorder.begin_tick = timed_begin  # type: ignore[method-assign, assignment]
             if push != "all":
@@ -266,11 +280,15 @@ class _Side:
                 ),
             )
 
+        poses_ns = self.poses_ns
+
         def poses(tk: Tick) -> None:
             if tk.tick % POSE_EVERY_TICKS == 0:
                 truth = [(o.x, o.y, o.angle) for o in sim.ground_truth().objects]
                 if recorder is not None:
+                    started = _WALL()
                     recorder.poses(truth)
+                    poses_ns[tk.tick] = _WALL() - started
 
         runtime.tick_hooks.append(poses)
 
@@ -299,14 +317,23 @@ def _pair(
     instrument: Callable[[_Side], None] | None = None,
     layout: RingLayout | None = None,
     before_close: Callable[[Recorder], None] | None = None,
+    swap: bool = False,
 ) -> tuple[_Side, _Side, RunResult, float, dict[str, Any]]:
     """Run A (recorded to ``out``, or not when ``out`` is None; served live on ``live_port``)
     and B (recorded to ``b_out``, by default not) in turn. ``instrument`` is called with A
-    before the run."""
+    before the run. A is the runtime made first, gathered first and first on even ticks;
+    ``swap``: B is. The two places are not alike: with both runtimes doing the same, the
+    first one's ticks measured some 3-5 us more CPU time than the second's (a shared
+    machine, load 4-5), which a comparison in one place only would count as the cost of
+    what A does."""
     with contextlib.ExitStack() as stack:
         turns = Turns()
-        a = _Side(stack, hand, recipe, out, turns, "a", push, live_port, layout)
-        b = _Side(stack, hand, recipe, b_out, turns, "b")
+        # The turns' "a" is the first place, whichever runtime holds it.
+        if swap:
+            b = _Side(stack, hand, recipe, b_out, turns, "a")
+        a = _Side(stack, hand, recipe, out, turns, "b" if swap else "a", push, live_port, layout)
+        if not swap:
+            b = _Side(stack, hand, recipe, b_out, turns, "b")
         if instrument is not None:
             instrument(a)
         for side in (a, b):
@@ -314,6 +341,9 @@ def _pair(
                 side.recorder.wait_ready()
 
         async def both() -> tuple[RunResult, RunResult]:
+            if swap:
+                twin, result = await asyncio.gather(b.runtime.run(), a.runtime.run())
+                return result, twin
             return await asyncio.gather(a.runtime.run(), b.runtime.run())
 
         started = time.perf_counter()
@@ -340,18 +370,22 @@ def _paired(a: _Side, b: _Side, control: np.ndarray) -> tuple[np.ndarray, np.nda
     return work_a - work_b, work_b
 
 
-def record_once(hand_path: str, recipe_path: str, out: Path, push: str = "all") -> dict[str, Any]:
+def record_once(
+    hand_path: str, recipe_path: str, out: Path, push: str = "all", swap: bool = False
+) -> dict[str, Any]:
     hand = load_hand(hand_path)
     recipe = load_recipe(recipe_path, hand)
-    a, b, result, loop_wall, stats = _pair(hand, recipe, out, push)
+    a, b, result, loop_wall, stats = _pair(hand, recipe, out, push, swap=swap)
     # Control ticks only (start-up ticks only poll): those with a stage time for the send.
     control = result.stage_ns[:, 3] > 0
     added, unrecorded = _paired(a, b, control)
     # The direct figure: the recording's own work in each control tick, timed where it runs:
-    # ``begin_tick`` (timed by the bench) and the runtime's record stage (the refill of its
-    # record and ``push``, timed by the runtime itself). Tick k's stage row is tick k.
+    # ``begin_tick`` and ``poses`` (timed by the bench) and the runtime's record stage (the
+    # refill of its record and ``push``, timed by the runtime itself). Tick k's stage row is
+    # tick k.
     n = min(len(a.begin_ns), len(control))
-    direct = (np.array(a.begin_ns[:n]) + result.stage_ns[:n, 4])[control[:n]]
+    poses = np.array([a.poses_ns.get(k, 0) for k in range(n)])
+    direct = (np.array(a.begin_ns[:n]) + poses + result.stage_ns[:n, 4])[control[:n]]
     return {
         "direct_ns": direct,
         "added_ns": added,
@@ -574,9 +608,10 @@ def run_profile(args: argparse.Namespace) -> dict[str, Any]:
     return figures
 
 
-def live_once(hand_path: str, recipe_path: str, directory: Path) -> dict[str, Any]:
-    """One pair, both recorded, A served live to a client process (``live_view_cost``):
-    per control tick, A's CPU time and B's, interleaved tick by tick under the same load."""
+def live_once(hand_path: str, recipe_path: str, directory: Path, swap: bool) -> dict[str, Any]:
+    """One pair, both recorded, A served live to a client process (``live_view_cost``), in
+    the pair's second place with ``swap``: per control tick, A's CPU time and B's,
+    interleaved tick by tick under the same load."""
     from live_view_cost import free_port, start_client, stop_client
 
     hand = load_hand(hand_path)
@@ -585,7 +620,12 @@ def live_once(hand_path: str, recipe_path: str, directory: Path) -> dict[str, An
     client = start_client(port)
     try:
         _, _, result, _, _ = pair = _pair(
-            hand, recipe, directory / "a.mcap", live_port=port, b_out=directory / "b.mcap"
+            hand,
+            recipe,
+            directory / "a.mcap",
+            live_port=port,
+            b_out=directory / "b.mcap",
+            swap=swap,
         )
     finally:
         counts = stop_client(client)
@@ -594,8 +634,20 @@ def live_once(hand_path: str, recipe_path: str, directory: Path) -> dict[str, An
     n = min(len(a.clock.work_ns), len(b.clock.work_ns), len(control))
     live = np.array(a.clock.work_ns[:n])[control[:n]] / 1e3
     recorded = np.array(b.clock.work_ns[:n])[control[:n]] / 1e3
+    figures: dict[str, Any] = _live_figures(live, recorded)
+    figures["live_messages_received"] = counts["messages"]
+    for name in ("a", "b"):
+        end = open_recording(directory / f"{name}.mcap").metadata[ch.META_END]
+        side = "live" if name == "a" else "recorded"
+        figures[f"{side}_dropped_ticks"] = int(end["dropped_ticks"])
+        figures[f"{side}_writer_cpu_s"] = round(float(end["writer_cpu_s"]), 2)
+    return figures | {"_live": live, "_recorded": recorded, "_swap": swap}
+
+
+def _live_figures(live: np.ndarray, recorded: np.ndarray) -> dict[str, Any]:
+    """The live side's tick CPU time against the other's (us, tick by tick alike)."""
     added = live - recorded
-    figures: dict[str, Any] = {"live_messages_received": counts["messages"]}
+    figures: dict[str, Any] = {}
     for q in (50, 99):
         with_live, without = float(np.percentile(live, q)), float(np.percentile(recorded, q))
         figures[f"live_tick_us_p{q}"] = round(with_live, 2)
@@ -604,29 +656,45 @@ def live_once(hand_path: str, recipe_path: str, directory: Path) -> dict[str, An
         figures[f"live_ratio_tick_p{q}"] = round(with_live / without, 4)
     figures["live_paired_us_mean"] = round(float(np.mean(added)), 2)
     figures["live_paired_us_sem"] = round(float(np.std(added)) / np.sqrt(len(added)), 2)
-    for name in ("a", "b"):
-        end = open_recording(directory / f"{name}.mcap").metadata[ch.META_END]
-        side = "live" if name == "a" else "recorded"
-        figures[f"{side}_dropped_ticks"] = int(end["dropped_ticks"])
-        figures[f"{side}_writer_cpu_s"] = round(float(end["writer_cpu_s"]), 2)
     return figures
 
 
 def run_live(args: argparse.Namespace) -> dict[str, Any]:
-    """``--live``: ``--repeat`` pairs; each figure the median over them, each pair's kept."""
+    """``--live``: ``--repeat`` pairs, the live runtime first of the pair in the first, second
+    in the next, and so on (``_pair``'s ``swap``). Each figure is taken over the ticks of the
+    pairs of one order pooled (a 99th percentile of several runs' ticks, not the median of
+    percentiles of a hundred-odd ticks each), then averaged over the two orders, so that
+    the places' own difference cancels; each pair's own are kept in ``*_runs``."""
     runs = []
     for i in range(args.repeat):
         with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
-            runs.append(live_once(args.hand, args.recipe, Path(directory)))
+            runs.append(live_once(args.hand, args.recipe, Path(directory), swap=i % 2 == 1))
         print(
-            f"bench recording --live: pair {i + 1}/{args.repeat}: tick p99 "
+            f"bench recording --live: pair {i + 1}/{args.repeat} (live runtime "
+            f"{'second' if runs[-1]['_swap'] else 'first'}): tick p99 "
             f"{runs[-1]['live_tick_us_p99']} us live, {runs[-1]['recorded_tick_us_p99']} us "
             f"without; paired mean {runs[-1]['live_paired_us_mean']} +- "
             f"{runs[-1]['live_paired_us_sem']} us",
             file=sys.stderr,
         )
-    figures: dict[str, Any] = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+    by_order = [
+        _live_figures(
+            np.concatenate([r["_live"] for r in group]),
+            np.concatenate([r["_recorded"] for r in group]),
+        )
+        for group in ([r for r in runs if not r["_swap"]], [r for r in runs if r["_swap"]])
+        if group
+    ]
+    figures: dict[str, Any] = {
+        key: round(float(np.mean([f[key] for f in by_order])), 4 if "ratio" in key else 2)
+        for key in by_order[0]
+    }
+    for key in runs[0]:
+        if not key.startswith("_") and key not in figures:
+            figures[key] = float(np.median([r[key] for r in runs]))
+    figures["live_orders"] = len(by_order)
     figures["live_added_tick_us_p99_runs"] = [r["live_added_tick_us_p99"] for r in runs]
+    figures["live_paired_us_mean_runs"] = [r["live_paired_us_mean"] for r in runs]
     return figures
 
 
@@ -636,18 +704,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.profile:
         return run_profile(args)
     loop_p99, loop_p50, loop_mean, writer, replay, sizes = [], [], [], [], [], []
+    direct_p99: list[float] = []
     paired_mean, paired_sem, paired_p99, share_p99, share_p50 = [], [], [], [], []
     read_us, runtime_us, tick_p50, estimator_us = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
         for i in range(args.repeat):
             out = Path(directory) / f"run{i}.mcap"
-            run_ = record_once(args.hand, args.recipe, out)
+            run_ = record_once(args.hand, args.recipe, out, swap=i % 2 == 1)
             direct = run_["direct_ns"]
             added = run_["added_ns"]
             paired_mean.append(float(np.mean(added)) / 1e3)
             loop_mean.append(float(np.mean(direct)) / 1e3)
-            indirect = max(0.0, paired_mean[-1] - loop_mean[-1])
-            loop_p99.append(float(np.percentile(direct, 99)) / 1e3 + indirect)
+            direct_p99.append(float(np.percentile(direct, 99)) / 1e3)
+            # This run's own indirect share, until the other order's runs are in.
+            loop_p99.append(direct_p99[-1] + max(0.0, paired_mean[-1] - loop_mean[-1]))
             loop_p50.append(float(np.percentile(direct, 50)) / 1e3)
             paired_sem.append(float(np.std(added)) / np.sqrt(len(added)) / 1e3)
             paired_p99.append(float(np.percentile(added, 99)) / 1e3)
@@ -680,6 +750,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 f"{writer[-1]:.1f}, replay_rtf {replay[-1]:.1f}, {sizes[-1]:.1f} MB/min",
                 file=sys.stderr,
             )
+    # The indirect share (the paired mean beyond the direct mean) of the recorded runtime in
+    # the pair's first place and in its second, averaged: the places' own difference cancels
+    # (``_pair``). One run has one order only, and that difference in it.
+    orders = [
+        [paired_mean[i] - loop_mean[i] for i in range(args.repeat) if i % 2 == swapped]
+        for swapped in (0, 1)
+    ]
+    indirect = max(0.0, float(np.mean([np.mean(o) for o in orders if o])))
+    loop_p99 = [p + indirect for p in direct_p99]
+    share_p99 = [p / t for p, t in zip(loop_p99, tick_p50, strict=True)]
     print(
         "bench recording: the same pair with neither recording (the noise floor)", file=sys.stderr
     )
@@ -721,6 +801,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "rerun_estimator_us_per_tick": round(min(estimator_us), 1),
         "mb_per_min": round(min(sizes), 2),
         "loop_cost_runs": [round(v, 2) for v in loop_p99],
+        "indirect_us_mean": round(indirect, 2),
         "writer_rtf_runs": [round(v, 2) for v in writer],
         "replay_rtf_runs": [round(v, 2) for v in replay],
         "loop_target_met": min(loop_p99) <= LOOP_TARGET_US,

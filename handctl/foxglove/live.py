@@ -27,6 +27,7 @@ import orjson
 from foxglove import Channel, Context, Schema
 from foxglove.websocket import WebSocketServer
 
+from handctl.foxglove import HOST
 from handctl.foxglove.derived import JOINTS, RX_DECODED, TX_DECODED
 from handctl.recording import channels as ch
 
@@ -34,10 +35,6 @@ if TYPE_CHECKING:
     from mcap.records import Channel as McapChannel
     from mcap.records import Schema as McapSchema
 
-#: Bound to the loopback interface only: a live view of a robot is not for the network unless
-#: someone chooses to tunnel it.
-HOST = "127.0.0.1"
-DEFAULT_PORT = 8765
 #: The live view's sampling of a per-tick channel: 100 Hz of log time, still a smooth plot
 #: (the 3D scene is written at 50 Hz anyway).
 SAMPLE_PERIOD_NS = 10_000_000

@@ -16,6 +16,7 @@ left in the rings and finishes an indexed file.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import mmap
 import os
 import select
@@ -53,21 +54,21 @@ from handctl.recording.ring import (
     EVENT_BYTES,
     EVENT_HEAD,
     EVENT_TAIL,
-    FRAME_BYTES,
     FRAME_HEAD,
     FRAME_ROW,
     FRAME_TAIL,
     I_NODES,
     POSE_HEAD,
     POSE_TAIL,
+    RX_FRAME_ROW,
+    RX_HEAD_ROW,
     SEP,
     TICK_HEAD,
     TICK_TAIL,
+    TX_FRAME_ROW,
     RingLayout,
     Rings,
 )
-
-assert TAP_RX == 0  # a received frame's meta word is its length alone (``_flush_frames``)
 
 if TYPE_CHECKING:
     from handctl.online.clock import Tick
@@ -75,14 +76,28 @@ if TYPE_CHECKING:
 
 _TICK_HEAD = struct.Struct("<qqqqq")  # tick, scheduled, now, missed, active
 _POSE_INTS = struct.Struct("<qq")  # tick, t
-#: One frame row: t, tick, id, direction | size << 8, bus time, the data.
-_FRAME_FORMAT = f"qqqqq{FRAME_BYTES}s"
-_FRAME = struct.Struct("<" + _FRAME_FORMAT)
-#: The items of a frame row, as ``_flush_frames`` lays them out for its one ``pack_into``.
-_FRAME_ITEMS = 6
-#: A tick's frames are packed with one call up to this many (a struct per count, made when
-#: first needed); more, or a run of them that wraps round the ring's end, one call each.
-_MAX_FRAMES_PACKED = 64
+_RX_HEAD = struct.Struct("<" + RX_HEAD_ROW)
+_RX_FRAME = struct.Struct("<" + RX_FRAME_ROW)
+_TX_FRAME = struct.Struct("<" + TX_FRAME_ROW)
+#: A tick's frame rows are packed with one call (a struct per shape of tick) when they are
+#: fewer than this less two; more, or rows that would wrap round the ring's end, a row a
+#: call. A shape is a number in this base, a digit per sent frame (1) or drain (2 + its
+#: frames), so that every shape of fewer rows has a number of its own.
+_SHAPE_BASE = 66
+#: Structs kept, one per shape met, before they are forgotten all at once.
+_MAX_SHAPES = 1024
+
+
+def _frames_struct(pending: list[list[Frame] | tuple[int, int, int, int, bytes]]) -> struct.Struct:
+    """The struct of a tick's frame rows: a sent frame's row, or a drain's head row and its
+    frames' rows, for each of ``pending`` in turn."""
+    return struct.Struct(
+        "<"
+        + "".join(
+            TX_FRAME_ROW if isinstance(e, tuple) else RX_HEAD_ROW + RX_FRAME_ROW * len(e)
+            for e in pending
+        )
+    )
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
 #: Runner status names a phase column can also hold.
 RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
@@ -268,11 +283,12 @@ class Recorder:
         self._frame_base = r.offsets["frame"]
         self._frame_mask = self.layout.frame_capacity - 1
         self._fhead = self._ftail = 0
-        self._pending: list[list[Frame] | tuple[int, bytes, int]] = []
-        #: The items of the tick's frame rows, refilled by ``_flush_frames`` (kept: no list
-        #: allocated per tick), and the ``pack_into`` of a struct of k frame rows, per k.
-        self._frame_items: list[Any] = []
+        #: The tick's frames as the taps noted them, in bus order: a drain's list of frames,
+        #: or a sent frame's row (direction, t, tick, id, data).
+        self._pending: list[list[Frame] | tuple[int, int, int, int, bytes]] = []
+        #: The ``pack_into`` of a tick's frame rows, per shape (``_flush_frames``).
         self._frames_pack: dict[int, Any] = {}
+        self._frames_noted = 0
         self._event_base = r.offsets["event_i"]
         self._event_data = r.offsets["event_d"]
         self._event_mask = self.layout.event_capacity - 1
@@ -282,6 +298,8 @@ class Recorder:
         self._pose_f_base = r.offsets["pose_f"]
         self._pose_stride = r.pose_f.shape[1] * 8
         self._pose_floats = struct.Struct(f"<{3 * self.layout.n_objects}d")
+        self._pose_values = 3 * self.layout.n_objects
+        self._pose_mask = self.layout.pose_capacity - 1
         self._tick = -1  # frames drained before the first tick (discarded at start-up)
         self._now = 0
         self._runtime: Runtime | None = None
@@ -486,62 +504,88 @@ class Recorder:
 
     # -- taps: note now, copy in ``push`` -------------------------------------------------
     def _frame(self, arbitration_id: int, data: bytes, direction: int) -> None:
-        self._pending.append((arbitration_id, data, direction))
+        self._pending.append((direction, self._now, self._tick, arbitration_id, data))
 
     def _flush_frames(self) -> None:
         """Copy the frames noted this tick into the ring, in the order they were on the bus.
 
-        The tick's frame rows are laid out as one list of items and packed with one
-        ``pack_into`` (a struct of that many rows): a call per frame cost more than the
-        packing itself. A frame's time is its tick's (the clock stands still inside a lockstep
-        tick; in real time a tick's frames are drained or sent within its first few hundred
-        microseconds); a received frame keeps the adapter's own time stamp as well.
+        The tick's rows are laid out as one list of items and packed with one ``pack_into``,
+        a struct per shape of tick (the sequence of its sent frames and drains, made when
+        first met): a drain's items are the bus's own frame tuples flattened in C, a sent
+        frame's the row its tap noted, so no frame is taken apart in Python and a call per
+        row is not paid. A frame's time is its tick's (the clock stands still inside a
+        lockstep tick; in real time a tick's frames are drained or sent within its first few
+        hundred microseconds); a received frame keeps the adapter's own time stamp as well.
         """
-        items = self._frame_items
+        pending = self._pending
+        items: list[Any] = []
+        shape = rows = frames = 0
         now, tick = self._now, self._tick
-        for entry in self._pending:
-            if isinstance(entry, list):
-                for frame_id, data, stamp, _ in entry:
-                    items += (now, tick, frame_id, len(data) << 8, stamp, data)  # TAP_RX is 0
+        for entry in pending:
+            if isinstance(entry, tuple):
+                items += entry
+                shape = shape * _SHAPE_BASE + 1
+                rows += 1
+                frames += 1
             else:
-                frame_id, data, direction = entry
-                items += (now, tick, frame_id, direction | len(data) << 8, 0, data)
-        self._pending.clear()
-        count = len(items) // _FRAME_ITEMS
+                count = len(entry)
+                items += (TAP_RX, now, tick, count)
+                items += itertools.chain.from_iterable(entry)
+                shape = shape * _SHAPE_BASE + 2 + count
+                rows += count + 1
+                frames += count
         head = self._fhead
         mask = self._frame_mask
         at = head & mask
-        if (
-            head + count - self._ftail <= mask + 1
-            and at + count <= mask + 1
-            and count <= _MAX_FRAMES_PACKED
-        ):
-            pack = self._frames_pack.get(count)
+        fits = head + rows - self._ftail <= mask + 1 and at + rows <= mask + 1
+        if fits and rows < _SHAPE_BASE - 2:
+            pack = self._frames_pack.get(shape)
             if pack is None:
-                pack = self._frames_pack[count] = struct.Struct(
-                    "<" + _FRAME_FORMAT * count
-                ).pack_into
+                if len(self._frames_pack) >= _MAX_SHAPES:  # a bus that makes ever new ones
+                    self._frames_pack.clear()
+                pack = self._frames_pack[shape] = _frames_struct(pending).pack_into
             pack(self._buf, self._frame_base + at * FRAME_ROW, *items)
-            self._fhead = head + count
+            self._fhead = head + rows
+            self._frames_noted += frames
         else:  # the ring looks full, or the rows wrap round its end, or a great many
-            self._fhead = self._flush_slowly(items, head)
-        items.clear()
+            self._flush_slowly(pending)
+        pending.clear()
 
-    def _flush_slowly(self, items: list[Any], head: int) -> int:
-        """Frame rows one call each, with a look at the writer's tail when the ring looks
-        full: what does not fit is dropped and counted."""
+    def _flush_slowly(self, pending: list[list[Frame] | tuple[int, int, int, int, bytes]]) -> None:
+        """The tick's frames a row a call, with a look at the writer's tail when the ring
+        looks full: a sent frame or a drain's block that does not fit is dropped whole and
+        its frames counted."""
+        buf, base, mask = self._buf, self._frame_base, self._frame_mask
+        head = self._fhead
+        for entry in pending:
+            if isinstance(entry, tuple):
+                if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask):
+                    continue
+                _TX_FRAME.pack_into(buf, base + (head & mask) * FRAME_ROW, *entry)
+                head += 1
+                self._frames_noted += 1
+            else:
+                head, count = self._flush_drain(entry, head)
+                self._frames_noted += count
+        self._fhead = head
+
+    def _flush_drain(self, frames: list[Frame], head: int) -> tuple[int, int]:
+        """A drain's block a row a call, with a look at the writer's tail when the ring looks
+        full: a block that does not fit is dropped whole and its frames counted. The new head
+        and the frames written."""
         mask = self._frame_mask
-        count = len(items) // _FRAME_ITEMS
-        for i in range(count):
-            if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask, count - i):
-                break
-            _FRAME.pack_into(
-                self._buf,
-                self._frame_base + (head & mask) * FRAME_ROW,
-                *items[i * _FRAME_ITEMS : (i + 1) * _FRAME_ITEMS],
-            )
+        count = len(frames)
+        end = head + count
+        if end - self._ftail > mask and self._ring_full(_FRAMES, end, mask, count):
+            return head, 0
+        base = self._frame_base
+        _RX_HEAD.pack_into(
+            self._buf, base + (head & mask) * FRAME_ROW, TAP_RX, self._now, self._tick, count
+        )
+        for frame in frames:
             head += 1
-        return head
+            _RX_FRAME.pack_into(self._buf, base + (head & mask) * FRAME_ROW, *frame)
+        return head + 1, count
 
     def _ring_full(self, ring: _Ring, head: int, mask: int, records: int = 1) -> bool:
         """A ring looked full by the tail this side last read: read the writer's tail again
@@ -562,15 +606,16 @@ class Recorder:
     def poses(self, poses: Sequence[tuple[float, float, float]]) -> None:
         """Ground truth of the simulated objects at the current tick: (x, y, angle) each."""
         head = self._phead
-        mask = self.layout.pose_capacity - 1
+        mask = self._pose_mask
         if head - self._ptail > mask and self._ring_full(_POSES, head, mask):
             return
         row = head & mask
         # Two ``pack_into`` calls at fixed offsets; numpy item and slice assignments cost
-        # tens of microseconds here, on the ticks that carry poses.
+        # tens of microseconds here, on the ticks that carry poses, and a comprehension
+        # several times what flattening the poses in C costs.
         _POSE_INTS.pack_into(self._buf, self._pose_base + row * 16, self._tick, self._now)
-        values = [v for pose in poses for v in pose]
-        if len(values) == self._pose_floats.size // 8:
+        values = tuple(itertools.chain.from_iterable(poses))
+        if len(values) == self._pose_values:
             self._pose_floats.pack_into(
                 self._buf, self._pose_f_base + row * self._pose_stride, *values
             )
@@ -686,7 +731,7 @@ class Recorder:
         self.stats = {
             "path": str(self.path),
             "ticks": self._head,
-            "frames": self._fhead,
+            "frames": self._frames_noted,
             "events": self._ehead,
             "dropped_ticks": ctl[DROPPED_TICKS],
             "dropped_frames": ctl[DROPPED_FRAMES],

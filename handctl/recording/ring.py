@@ -18,6 +18,7 @@ head moves. The writer also re-reads nothing it has released.
 from __future__ import annotations
 
 import mmap
+import struct
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -48,12 +49,27 @@ I_STATE, I_PHASE, I_FAULTS = 9, 10, 11
 I_NODES = 12
 # Tick row, float part: angle, tdt, desired, applied, n_joints each.
 
-# Frame row: t_ns, tick, arbitration id, direction | length << 8, bus time, then the data, in
-# one 104-byte record so the loop writes a frame with a single ``struct.pack_into``.
-F_T, F_TICK, F_ID, F_META, F_BUS = 0, 1, 2, 3, 4
-FRAME_INTS = 5
+# Frame rows, FRAME_ROW bytes each, in blocks that keep the order the frames were on the bus:
+# - a drain's received frames: a head row (TAP_RX, t_ns, tick, count), then ``count`` rows laid
+#   out as the bus's ``Frame`` tuple (arbitration id, data, bus time, is_fd), so that the loop
+#   copies a whole drain with one ``struct.pack_into`` of the drain's own tuples;
+# - a sent frame: one row (direction: TAP_TX or TAP_TX_FAILED, t_ns, tick, arbitration id,
+#   data), as the bus's tap notes it.
+# Data is a Pascal string: its length byte, then up to FRAME_BYTES bytes.
 FRAME_BYTES = 64  # CAN-FD's largest payload
-FRAME_ROW = FRAME_INTS * 8 + FRAME_BYTES
+FRAME_ROW = 104
+_DATA = f"{FRAME_BYTES + 1}p"
+
+
+def _frame_row(fields: str) -> str:
+    """A frame row's ``struct`` format (little-endian, unaligned): ``fields`` padded to
+    FRAME_ROW bytes."""
+    return fields + f"{FRAME_ROW - struct.calcsize('<' + fields)}x"
+
+
+RX_HEAD_ROW = _frame_row("qqqq")
+RX_FRAME_ROW = _frame_row(f"q{_DATA}q?")
+TX_FRAME_ROW = _frame_row(f"qqqq{_DATA}")
 
 # Event row: t_ns, tick, kind, length of the text; the text apart.
 E_T, E_TICK, E_KIND, E_LEN = 0, 1, 2, 3
@@ -88,7 +104,7 @@ class RingLayout:
     n_nodes: int
     n_objects: int = 0
     tick_capacity: int = 1 << 13  # 8 s at 1 kHz
-    frame_capacity: int = 1 << 16  # about 10 s of a 9-joint hand's traffic
+    frame_capacity: int = 1 << 16  # rows: about 10 s of a 9-joint hand's traffic
     event_capacity: int = 1 << 12
     pose_capacity: int = 1 << 10
 
@@ -156,17 +172,7 @@ class Rings:
         self.ctl: IntArray = views["ctl"]
         self.tick_i: IntArray = views["tick_i"]
         self.tick_f: FloatArray = views["tick_f"]
-        frames = self.offsets["frame"]
-        self.frame_i: IntArray = np.ndarray(
-            (layout.frame_capacity, FRAME_INTS), np.int64, buffer, frames, (FRAME_ROW, 8)
-        )
-        self.frame_d: ByteArray = np.ndarray(
-            (layout.frame_capacity, FRAME_BYTES),
-            np.uint8,
-            buffer,
-            frames + FRAME_INTS * 8,
-            (FRAME_ROW, 1),
-        )
+        self.frame: ByteArray = views["frame"]
         self.event_i: IntArray = views["event_i"]
         self.event_d: ByteArray = views["event_d"]
         self.pose_i: IntArray = views["pose_i"]
@@ -178,8 +184,7 @@ class Rings:
             "ctl",
             "tick_i",
             "tick_f",
-            "frame_i",
-            "frame_d",
+            "frame",
             "event_i",
             "event_d",
             "pose_i",

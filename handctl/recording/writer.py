@@ -54,8 +54,8 @@ from handctl.recording.ring import (
     EVENT_BYTES,
     EVENT_HEAD,
     EVENT_TAIL,
-    FRAME_BYTES,
     FRAME_HEAD,
+    FRAME_ROW,
     FRAME_TAIL,
     I_FAULTS,
     I_NODES,
@@ -66,9 +66,12 @@ from handctl.recording.ring import (
     POSE_HEAD,
     POSE_TAIL,
     RECORDED_STAGES,
+    RX_FRAME_ROW,
+    RX_HEAD_ROW,
     SEP,
     TICK_HEAD,
     TICK_TAIL,
+    TX_FRAME_ROW,
     RingLayout,
     Rings,
 )
@@ -81,6 +84,10 @@ CHUNK_NS = 50_000_000
 CHUNK_WALL_S = 0.05
 SYNC_EVERY_S = 1.0
 _LENGTH = struct.Struct("<I")
+_KIND = struct.Struct("<q")  # a frame block's first word: TAP_RX, or a sent frame's direction
+_RX_HEAD = struct.Struct("<" + RX_HEAD_ROW)
+_RX_FRAME = struct.Struct("<" + RX_FRAME_ROW)
+_TX_FRAME = struct.Struct("<" + TX_FRAME_ROW)
 
 
 class Encoder:
@@ -218,33 +225,42 @@ class Encoder:
         return np.arange(tail, head, dtype=np.int64) & (capacity - 1)
 
     def _frames(self, tail: int, head: int) -> None:
+        """The frame rows between ``tail`` and ``head``, block by block (``ring.py``): the
+        loop publishes whole blocks, so ``tail`` is always at the start of one."""
         rings = self.rings
         index = self._take(tail, head, self.layout.frame_capacity)
-        rows = rings.frame_i[index].tolist()
-        raw = rings.frame_d[index].tobytes()
+        raw = rings.frame[index].tobytes()
         rings.ctl[FRAME_TAIL] = head
+        rows = len(index)
         add, derived = self.add, self.derived
-        for j, (t_ns, tick, frame_id, meta, bus_ns) in enumerate(rows):
-            direction, size = meta & 0xFF, min((meta >> 8) & 0xFF, FRAME_BYTES)
-            payload = raw[j * FRAME_BYTES : j * FRAME_BYTES + size]
-            data = payload.hex()
-            if direction == TAP_RX:
-                add(
-                    ch.CAN_RX,
-                    t_ns,
-                    {"tick": tick, "id": frame_id, "data": data, "bus_time_ns": bus_ns},
-                    frame_id,
-                )
-            else:
-                add(
-                    ch.CAN_TX,
-                    t_ns,
-                    {"tick": tick, "id": frame_id, "data": data, "ok": direction == TAP_TX},
-                    frame_id,
-                )
+        i = 0
+        while i < rows:
+            at = i * FRAME_ROW
+            kind = _KIND.unpack_from(raw, at)[0]
+            if kind == TAP_RX:
+                _, t_ns, tick, count = _RX_HEAD.unpack_from(raw, at)
+                count = max(0, min(count, rows - i - 1))
+                for j in range(i + 1, i + 1 + count):
+                    frame_id, payload, bus_ns, _ = _RX_FRAME.unpack_from(raw, j * FRAME_ROW)
+                    message = {"tick": tick, "id": frame_id, "data": payload.hex()}
+                    message["bus_time_ns"] = bus_ns
+                    add(ch.CAN_RX, t_ns, message, frame_id)
+                    if derived is not None:
+                        derived.frame(t_ns, tick, True, frame_id, payload)
+                self.frames += count
+                i += count + 1
+                continue
+            direction, t_ns, tick, frame_id, payload = _TX_FRAME.unpack_from(raw, at)
+            add(
+                ch.CAN_TX,
+                t_ns,
+                {"tick": tick, "id": frame_id, "data": payload.hex(), "ok": direction == TAP_TX},
+                frame_id,
+            )
             if derived is not None:
-                derived.frame(t_ns, tick, direction == TAP_RX, frame_id, payload)
-        self.frames += len(rows)
+                derived.frame(t_ns, tick, False, frame_id, payload)
+            self.frames += 1
+            i += 1
 
     def _events(self, tail: int, head: int) -> None:
         rings = self.rings

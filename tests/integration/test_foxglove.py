@@ -155,12 +155,14 @@ def served(
     cwd: Path,
     enough: int,
     clients: tuple[tuple[str, ...], ...] = CLIENTS,
+    python_options: tuple[str, ...] = (),
 ) -> tuple[Live, subprocess.CompletedProcess[bytes]]:
     """``python -m handctl ARGS --live PORT`` on a free port, in a process of its own with the
     checkout first on its path, and ``listen``'s clients connected until each has ``enough``
-    messages of its topics (or the server closed); then the command's end."""
+    messages of its topics (or the server closed); then the command's end.
+    ``python_options``: the interpreter's own, for the command's process alone."""
     port = free_port()
-    command = [sys.executable, "-m", "handctl", *args, "--live", str(port)]
+    command = [sys.executable, *python_options, "-m", "handctl", *args, "--live", str(port)]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with subprocess.Popen(
         command, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE
@@ -193,6 +195,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
         ],
         directory,
         enough=5,
+        python_options=("-X", "importtime"),  # which modules the control process loads
     )
     yield Run(path, live, done.returncode, done.stderr.decode(errors="replace"))
 
@@ -200,6 +203,21 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Run]:
 def mcap_messages(path: Path) -> Iterator[tuple[Any, Any, Any]]:
     with path.open("rb") as handle:
         yield from make_reader(handle).iter_messages(log_time_order=False)
+
+
+def test_the_control_process_of_a_live_run_does_not_load_the_foxglove_sdk(run: Run) -> None:
+    """The live server is the writer process's: the loop's process serves nothing, so it
+    loads none of the SDK (its code and objects, which the loop's garbage collections would
+    walk). ``-X importtime`` lists what the command's process imported, not the writer's."""
+    imported = [
+        line.rsplit("|", 1)[-1].strip()
+        for line in run.stderr.splitlines()
+        if line.startswith("import time:")
+    ]
+    assert "handctl.recording.recorder" in imported  # the listing is there, and it records
+    assert "handctl.foxglove" in imported  # the live server's address
+    sdk = [name for name in imported if name.split(".")[0] == "foxglove"]
+    assert sdk == [], sdk
 
 
 def test_live_server_sends_scene_and_joint_messages(run: Run, hand: HandConfig) -> None:

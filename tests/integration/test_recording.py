@@ -28,6 +28,7 @@ from mcap.stream_reader import StreamReader
 
 from handctl.config import HandConfig
 from handctl.foxglove.derived import Derived
+from handctl.online.bus import DRAIN_LIMIT, Frame
 from handctl.online.clock import Tick
 from handctl.online.loop import Outcome, RunResult, TickRecord
 from handctl.online.recipes.schema import Recipe
@@ -61,6 +62,9 @@ class Recorded:
     poses: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
     final_angle: list[float] = field(default_factory=list)
     final_tdt: list[float] = field(default_factory=list)
+    #: every frame the host's bus drained, in order (a frame the host's receive queue had no
+    #: room for is on the wire but never drained)
+    drained: list[tuple[int, bytes]] = field(default_factory=list)
 
 
 def record_run(
@@ -72,6 +76,8 @@ def record_run(
     layout: RingLayout | None = None,
     pause_writer: bool = False,
     writer_between_ticks: bool = False,
+    writer_every_tick: bool = False,
+    babble: inj.Babble | None = None,
 ) -> Recorded:
     """A lockstep run on the simulated hand, recorded the way ``run_recipe`` records it.
 
@@ -80,8 +86,20 @@ def record_run(
     With ``writer_between_ticks``: once the hand is being stopped, every tick waits before it
     begins until the writer has taken everything published, the timing a loaded machine
     gives now and then (the loop descheduled between one tick's push and the next tick).
+    With ``writer_every_tick``: so does every tick of the run (a small ring that never fills).
+    ``babble``: a babbling node from 0.35 s to 0.36 s of the run.
     """
     with rig(hand, recipe) as r:
+        drained: list[tuple[int, bytes]] = []
+        bus = r.runtime.driver.bus
+        real_drain = bus.drain
+
+        def drain(limit: int = DRAIN_LIMIT) -> list[Frame]:
+            frames = real_drain(limit)
+            drained.extend((f.arbitration_id, f.data) for f in frames)
+            return frames
+
+        bus.drain = drain  # type: ignore[method-assign]
         recorder = Recorder(
             path,
             hand,
@@ -98,6 +116,8 @@ def record_run(
                     runtime.first_send_tick >= 0
                     and runtime.supervisor.state not in (State.ENABLING, State.RUNNING)
                 )
+            if writer_every_tick:
+                capture.before_tick = lambda: True
             r.runtime.recorder = capture
             recorder.attach(r.runtime)
             recorder.add_metadata(
@@ -127,6 +147,8 @@ def record_run(
                 r.sim.faults.add(inj.ErrorFrames(per_tick=1), 0.30, 0.303)
                 r.sim.faults.add(inj.Babble(id=0x050, per_tick=2, length=8), 0.40, 0.405)
                 r.sim.faults.add(inj.CounterSkip(node=1, message="feedback"), 0.50, 0.502)
+            if babble is not None:
+                r.sim.faults.add(babble, 0.35, 0.36)
             recorder.wait_ready()
             if pause_writer:
                 os.kill(recorder.process.pid, signal.SIGSTOP)
@@ -135,7 +157,9 @@ def record_run(
             finally:
                 if pause_writer:
                     os.kill(recorder.process.pid, signal.SIGCONT)
-            recorded = Recorded(path, result, list(r.wire), poses, capture.angle, capture.tdt)
+            recorded = Recorded(
+                path, result, list(r.wire), poses, capture.angle, capture.tdt, drained
+            )
             recorder.close({"outcome": result.outcome.value})
     return recorded
 
@@ -222,6 +246,37 @@ def test_frames_are_the_bus_traffic_in_order(recorded: Recorded) -> None:
         if t in (ch.CAN_RX, ch.CAN_TX)
     ]
     assert logged == recorded.wire
+
+
+def test_frames_wrapping_round_a_small_ring_are_the_bus_traffic(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A frame ring of 64 rows, the writer catching up before every tick so that nothing is
+    dropped: a tick's frames are a block of rows that wraps round the ring's end every few
+    ticks, and a babbling node's drains of some fifty frames (64 bytes each, zeros among
+    them) wrap nearly every tick. Every frame is in the file, in the order the host drained
+    and sent them, byte for byte."""
+    layout = RingLayout(hand.n_joints, len(hand.fingers), 2, frame_capacity=64)
+    run = record_run(
+        hand,
+        short_recipe(hand, tmp_path),
+        tmp_path / "small.mcap",
+        layout=layout,
+        writer_every_tick=True,
+        babble=inj.Babble(id=0x050, per_tick=70, length=64),
+    )
+    recording = open_recording(run.path)
+    end = recording.metadata[ch.META_END]
+    assert end["dropped_frames"] == "0"
+    logged: dict[str, list[tuple[int, bytes]]] = {ch.CAN_RX: [], ch.CAN_TX: []}
+    for t, _, m in library_messages(run.path):
+        if t in logged:
+            logged[t].append((m["id"], bytes.fromhex(m["data"])))
+    babbled = Counter(m["tick"] for t, _, m in library_messages(run.path) if m.get("id") == 0x050)
+    assert len(babbled) >= 3 and min(babbled.values()) > 32  # blocks of half the ring
+    assert logged[ch.CAN_RX] == run.drained
+    received = {frame_id for frame_id, _ in run.drained}
+    assert logged[ch.CAN_TX] == [f for f in run.wire if f[0] not in received]
 
 
 def test_per_tick_records_are_what_the_runtime_did(recorded: Recorded) -> None:
@@ -332,7 +387,9 @@ def test_a_full_ring_drops_and_counts_and_never_blocks(
     # what the recorder publishes at close, after the writer was let go, may find room.
     assert end["ticks"] + end["dropped_ticks"] == run.result.ticks
     assert end["frames"] + end["dropped_frames"] == len(run.wire)
-    assert 16 <= end["ticks"] <= 17 and 64 <= end["frames"] <= 64 + 6
+    # The frame ring's 64 rows hold the frames and a head row per drain; here a drain brings
+    # the three nodes' frames or more, so a head row to three frames at most.
+    assert 16 <= end["ticks"] <= 17 and 64 - 64 // 4 <= end["frames"] <= 64 + 6
     assert end["dropped_poses"] > 0 and end["dropped_events"] > 0
     logged = list(iter_decoded(recording, (ch.TIMING, ch.CAN_RX, ch.CAN_TX)))
     assert sum(t == ch.TIMING for t, _, _ in logged) == end["ticks"]
