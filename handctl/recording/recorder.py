@@ -98,6 +98,8 @@ def _frames_struct(pending: list[list[Frame] | tuple[int, int, int, int, bytes]]
             for e in pending
         )
     )
+
+
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
 #: Runner status names a phase column can also hold.
 RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
