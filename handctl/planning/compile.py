@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -132,7 +132,9 @@ class PlanResult:
             **({"limit_guard_band": t.limit_guard_band} if t.limit_guard_band is not None else {}),
             **({"min_total_turn_deg": t.min_total_turn_deg} if t.min_total_turn_deg > 0 else {}),
             **({"grasp_model": _grasp_model_document(t)} if t.grasp_model is not None else {}),
-            "phases": [_phase_document(p, self.hand) for p in self.phases],
+            "phases": [
+                _phase_document(p, self.hand, [o.name for o in t.objects]) for p in self.phases
+            ],
         }
 
 
@@ -172,7 +174,26 @@ def _paced_document(paced: PacedRamp) -> dict[str, Any]:
     return doc
 
 
-def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
+def _schedule_document(
+    phase: Phase, hand: HandConfig, objects: Sequence[str]
+) -> list[dict[str, Any]]:
+    """A phase's ``schedule`` as a recipe writes it (``loader.parse_schedule`` reads it)."""
+    out: list[dict[str, Any]] = []
+    for entry in phase.schedule:
+        ranges = [{"object": objects[r.object], "min": r.low, "max": r.high} for r in entry.when]
+        out.append(
+            {
+                "when": {"radius_ratio": ranges},
+                "torques": dict(zip(hand.joint_names, _rounded(entry.torques), strict=True)),
+            }
+        )
+    return out
+
+
+def _phase_document(
+    plan: PhasePlan, hand: HandConfig, objects: Sequence[str] = ()
+) -> dict[str, Any]:
+    """``objects``: the template's object names, which a ``schedule`` names its ranges by."""
     phase = plan.phase
     doc: dict[str, Any] = {
         "name": phase.name,
@@ -199,6 +220,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             "use": phase.reanalyse.use,
             "min_margin_N": phase.reanalyse.min_margin,
         }
+    if phase.schedule:
+        doc["schedule"] = _schedule_document(phase, hand, objects)
     if phase.turn_rate is not None:
         loop = phase.turn_rate
         doc["turn_rate"] = {
@@ -306,6 +329,7 @@ def _compiled_phase(
         torque_margin=spec.torque_margin,
         stall=spec.stall,
         reanalyse=spec.reanalyse,
+        schedule=spec.schedule,
     )
 
 
