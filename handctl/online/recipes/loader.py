@@ -342,6 +342,7 @@ def parse_schedule(
     out: list[ScheduledTorques] = []
     for entry in doc.mappings("schedule", min_len=1, max_len=MAX_SCHEDULE):
         when = entry.mapping("when")
+        when.expect(["radius_ratio"])  # what a torque may be scheduled on
         raw = when.raw("radius_ratio")
         single = isinstance(raw, dict)
         items = [raw] if single else raw
