@@ -363,6 +363,7 @@ class Recipe:
             or p.paced is not None
             or p.stall is not None
             or p.reanalyse is not None
+            or bool(p.schedule)
             for p in self.phases
         ) or any(c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
 
