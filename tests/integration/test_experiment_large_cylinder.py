@@ -18,7 +18,8 @@ from ..conftest import ROOT, handctl
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 #: cylinder 1's simulated radius as a factor of the configured one (the recipe's)
 RADIUS = {"cyl1": 1.12, "cyl2": 1.0}
-SWAP_DEG = 170.0
+#: deg: manipulate_3 asks for 45 (the wrong way, +, with its own torque on this hand)
+TURNED_DEG = -35.0
 
 
 def _hand(tmp_path: Path) -> Path:
@@ -55,7 +56,8 @@ def test_a_large_cylinder_1_is_swapped_with_the_torque_scheduled_for_it(tmp_path
     assert phases["manipulate_3"]["schedule"].endswith(": schedule[0]"), phases
     assert summary["outcome"] == "completed", (summary["outcome"], summary["message"])
     assert run.returncode == 0, run.stdout + run.stderr
-    assert ex["success"] and ex["total_rotation_deg"] >= SWAP_DEG, ex
+    assert ex["success"], ex
+    assert ex["phase_angles_deg"][2] <= TURNED_DEG, ex
     done = handctl("replay", str(log), "--rerun")
     assert done.returncode == 0, done.stdout + done.stderr
     assert "bit-exact" in done.stdout
