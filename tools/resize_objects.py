@@ -2,8 +2,8 @@
 objects of another size than it was planned for (docs/experiment.md, *A torque scheduled on
 the measured radius*):
 
-    python tools/resize_objects.py --scale cyl1=1.12 -o big_cyl1.yaml
-    handctl run recipe config/recipes/swap_two_cylinders.yaml --hand big_cyl1.yaml
+    python tools/resize_objects.py --scale OBJECT=1.12 -o big.yaml
+    handctl run recipe config/recipes/swap_two_cylinders.yaml --hand big.yaml
 
 Each named object's radius is multiplied by its factor (the others keep theirs), it rests on
 the table as before, and a pair stays side by side with the gap it had, around the middle it

@@ -132,9 +132,7 @@ class PlanResult:
             **({"limit_guard_band": t.limit_guard_band} if t.limit_guard_band is not None else {}),
             **({"min_total_turn_deg": t.min_total_turn_deg} if t.min_total_turn_deg > 0 else {}),
             **({"grasp_model": _grasp_model_document(t)} if t.grasp_model is not None else {}),
-            "phases": [
-                _phase_document(p, self.hand, [o.name for o in t.objects]) for p in self.phases
-            ],
+            "phases": [_phase_document(p, self.hand) for p in self.phases],
         }
 
 
@@ -190,10 +188,7 @@ def _schedule_document(
     return out
 
 
-def _phase_document(
-    plan: PhasePlan, hand: HandConfig, objects: Sequence[str] = ()
-) -> dict[str, Any]:
-    """``objects``: the template's object names, which a ``schedule`` names its ranges by."""
+def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     phase = plan.phase
     doc: dict[str, Any] = {
         "name": phase.name,
@@ -221,7 +216,7 @@ def _phase_document(
             "min_margin_N": phase.reanalyse.min_margin,
         }
     if phase.schedule:
-        doc["schedule"] = _schedule_document(phase, hand, objects)
+        doc["schedule"] = _schedule_document(phase, hand, plan.spec.object_names)
     if phase.turn_rate is not None:
         loop = phase.turn_rate
         doc["turn_rate"] = {

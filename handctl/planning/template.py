@@ -92,6 +92,8 @@ class TemplatePhase:
     #: a turn phase's alternative torques for the objects' measured sizes, carried into the
     #: recipe as written (the search plans the phase's own torques, on the template's models)
     schedule: tuple[ScheduledTorques, ...] = ()
+    #: the template's object names, by which a compiled ``schedule`` names its ranges
+    object_names: tuple[str, ...] = ()
 
     def exit_condition(self) -> str:
         """The exit of a turn phase in the planner's episodes: on the estimated turn of the
@@ -367,4 +369,5 @@ def _phase(
         stall=stall,
         reanalyse=reanalyse,
         schedule=schedule,
+        object_names=tuple(objects),
     )

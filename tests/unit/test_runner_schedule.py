@@ -284,7 +284,7 @@ def test_a_template_s_schedule_is_carried_into_the_compiled_recipe(
     spec = load_template(path, hand).phases[0]
     assert spec.schedule[0].when[0].object == 1
     phase = _compiled_phase(spec, tuple(OWN), hand)
-    doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand, ["cyl1", "cyl2"])
+    doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand)
     recipe = _data()
     recipe["phases"][1]["schedule"] = doc["schedule"]
     loaded = _load(tmp_path, hand, recipe).phases[1]
