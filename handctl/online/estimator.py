@@ -217,6 +217,14 @@ class ObjectEstimator:
         self._last_angle = [NAN] * p
         self.last: tuple[float, ...] = (NAN,) * len(self.estimates)
 
+    def measured_radius(self, index: int) -> float | None:
+        """m, object ``index``'s radius as the estimator places it, once its cages have
+        measured it (``MEASURED_TICKS`` of fitting; the recipe's within ``RADIUS_TOLERANCE``),
+        else None: what a phase's ``schedule`` chooses its torque on."""
+        if self._fitted[index] < MEASURED_TICKS:
+            return None
+        return self.radii[index]
+
     def positions(self, values: Sequence[float]) -> list[tuple[float, float]]:
         """Each object's estimated centre ``(x, y)`` (m) in an output of this estimator."""
         start = 2 * len(self.pairs)

@@ -45,7 +45,7 @@ from handctl.online.drivers.hand import AppliedTorques, HandDriver
 from handctl.online.recipes import runner as recipe_runner
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.runner import RecipeRunner, RunStatus
-from handctl.online.recipes.schema import Recipe
+from handctl.online.recipes.schema import MeasuredSizes, Recipe
 from handctl.online.safety import faults as safety_faults
 from handctl.online.safety.faults import Fault, FaultCode
 from handctl.online.safety.supervisor import State, Supervisor
@@ -94,7 +94,10 @@ class RecordSink(Protocol):
         at tick ``tick``: what a replay must repeat to reach the same torques."""
 
 
-class Estimator(Protocol):
+class Estimator(MeasuredSizes, Protocol):
+    """The object estimator as the loop uses it: the estimates of a tick, and the objects'
+    measured sizes a phase's ``schedule`` chooses on."""
+
     def __call__(self, angle: np.ndarray) -> Sequence[float]: ...
 
 
@@ -196,13 +199,13 @@ class Runtime:
         self.supervisor = Supervisor(hand)
         # the analysis at the measured configuration, for a recipe's ``reanalyse`` phases
         self.reanalyser = reanalyser
+        self.estimator = estimator
         self.runner = (
-            RecipeRunner(recipe, hand.n_joints, reanalyser=reanalyser)
+            RecipeRunner(recipe, hand.n_joints, reanalyser=reanalyser, sizes=estimator)
             if recipe is not None
             else None
         )
         self.recorder = recorder
-        self.estimator = estimator
         self.status = status
         self.reset_node_faults = reset_node_faults
         self.startup_ticks = max(1, round(startup_timeout_s / hand.bus.period_s))
@@ -259,7 +262,9 @@ class Runtime:
             self.recorder.note("reset", "", self.tick)
         self.driver.node_command("fault_reset")
         if self.recipe is not None:
-            self.runner = RecipeRunner(self.recipe, self.hand.n_joints, reanalyser=self.reanalyser)
+            self.runner = RecipeRunner(
+                self.recipe, self.hand.n_joints, reanalyser=self.reanalyser, sizes=self.estimator
+            )
         self.stop_requested = ""
         self.estop_requested = ""
         self.exception = None
@@ -623,6 +628,7 @@ class Runtime:
                     "end_s": None if r.end_s is None else round(r.end_s, 6),
                     "exit": r.exit,
                     **({"reanalysis": r.reanalysis} if r.reanalysis else {}),
+                    **({"schedule": r.schedule} if r.schedule else {}),
                 }
                 for r in self.runner.records
             ]

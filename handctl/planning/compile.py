@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -172,6 +172,22 @@ def _paced_document(paced: PacedRamp) -> dict[str, Any]:
     return doc
 
 
+def _schedule_document(
+    phase: Phase, hand: HandConfig, objects: Sequence[str]
+) -> list[dict[str, Any]]:
+    """A phase's ``schedule`` as a recipe writes it (``loader.parse_schedule`` reads it)."""
+    out: list[dict[str, Any]] = []
+    for entry in phase.schedule:
+        ranges = [{"object": objects[r.object], "min": r.low, "max": r.high} for r in entry.when]
+        out.append(
+            {
+                "when": {"radius_ratio": ranges},
+                "torques": dict(zip(hand.joint_names, _rounded(entry.torques), strict=True)),
+            }
+        )
+    return out
+
+
 def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     phase = plan.phase
     doc: dict[str, Any] = {
@@ -199,6 +215,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             "use": phase.reanalyse.use,
             "min_margin_N": phase.reanalyse.min_margin,
         }
+    if phase.schedule:
+        doc["schedule"] = _schedule_document(phase, hand, plan.spec.object_names)
     if phase.turn_rate is not None:
         loop = phase.turn_rate
         doc["turn_rate"] = {
@@ -306,6 +324,7 @@ def _compiled_phase(
         torque_margin=spec.torque_margin,
         stall=spec.stall,
         reanalyse=spec.reanalyse,
+        schedule=spec.schedule,
     )
 
 

@@ -34,6 +34,7 @@ from handctl.online.recipes.loader import (
     parse_objects,
     parse_paced_ramp,
     parse_reanalyse,
+    parse_schedule,
     parse_stall,
     parse_torque_margin,
     parse_turn_rate,
@@ -44,6 +45,7 @@ from handctl.online.recipes.schema import (
     PacedRamp,
     Reanalyse,
     RecipeObject,
+    ScheduledTorques,
     TurnBrake,
     TurnRate,
     TurnStall,
@@ -87,6 +89,11 @@ class TemplatePhase:
     stall: TurnStall | None = None  # the end of a turn phase that stopped turning, carried
     #: the analysis again at the measured configuration when the phase begins, carried
     reanalyse: Reanalyse | None = None
+    #: a turn phase's alternative torques for the objects' measured sizes, carried into the
+    #: recipe as written (the search plans the phase's own torques, on the template's models)
+    schedule: tuple[ScheduledTorques, ...] = ()
+    #: the template's object names, by which a compiled ``schedule`` names its ranges
+    object_names: tuple[str, ...] = ()
 
     def exit_condition(self) -> str:
         """The exit of a turn phase in the planner's episodes: on the estimated turn of the
@@ -299,6 +306,7 @@ def _phase(
     turn_from = ""
     stall = None
     reanalyse = None
+    schedule: tuple[ScheduledTorques, ...] = ()
     if kind == "turn":
         if len(objects) < 2:
             doc.fail(
@@ -319,6 +327,14 @@ def _phase(
         stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
         if doc.has("reanalyse"):
             reanalyse = parse_reanalyse(doc.mapping("reanalyse"), turn)
+        schedule = parse_schedule(doc, hand, objects)
+        if schedule and reanalyse is not None:
+            doc.fail(
+                "schedule",
+                "no schedule in a phase with reanalyse (the analysis replaces the phase's "
+                "torque itself)",
+                f"{len(schedule)} entries",
+            )
     stiffness: float | None = None
     damping = 0.0
     if kind == "free" and doc.has("pose"):
@@ -352,4 +368,6 @@ def _phase(
         turn_from,
         stall=stall,
         reanalyse=reanalyse,
+        schedule=schedule,
+        object_names=tuple(objects),
     )

@@ -27,9 +27,11 @@ from handctl.online.recipes.schema import (
     Pair,
     Phase,
     PoseHold,
+    RadiusRatio,
     Reanalyse,
     Recipe,
     RecipeObject,
+    ScheduledTorques,
     TimeoutAction,
     TurnBrake,
     TurnRate,
@@ -75,6 +77,12 @@ DEFAULT_REANALYSIS_DELAY_S = 0.5
 #: the deepest fraction of the guard's band a paced ramp's ``limit_depth`` may start at: it
 #: needs room before the limit to go back in
 MAX_LIMIT_DEPTH = 0.9
+#: the most alternative torques a phase's ``schedule`` may carry
+MAX_SCHEDULE = 8
+#: the widest range of a ``radius_ratio``: the estimator fits a radius within ±40 % of the
+#: recipe's (``estimator.RADIUS_RANGE``), so a bound outside this is never met
+RADIUS_RATIO_MIN = 0.5
+RADIUS_RATIO_MAX = 1.5
 
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
@@ -111,7 +119,7 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
             "planned_from", "a mapping (what handctl plan planned the recipe from)", planned_from
         )
     phases = tuple(
-        _parse_phase(p, hand, estimates)
+        _parse_phase(p, hand, estimates, objects)
         for p in doc.mappings("phases", min_len=1, max_len=MAX_PHASES)
     )
     check_unique_names(doc, [p.name for p in phases])
@@ -265,7 +273,9 @@ def parse_pairs(doc: Doc, objects: tuple[RecipeObject, ...]) -> tuple[Pair, ...]
     return tuple(out)
 
 
-def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phase:
+def _parse_phase(
+    doc: Doc, hand: HandConfig, estimates: tuple[str, ...], objects: tuple[RecipeObject, ...]
+) -> Phase:
     name = doc.string("name")
     torques = _parse_torques(doc, hand)
     ramp = doc.number("ramp_s", default=0.1, min=0.0, max=60.0, unit="s")
@@ -286,6 +296,14 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
     turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
     stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
     reanalyse = parse_reanalyse(doc.mapping("reanalyse")) if doc.has("reanalyse") else None
+    schedule = parse_schedule(doc, hand, [o.name for o in objects])
+    if schedule and reanalyse is not None:
+        doc.fail(
+            "schedule",
+            "no schedule in a phase with reanalyse (the analysis replaces the phase's torque "
+            "itself)",
+            f"{len(schedule)} entries",
+        )
     provenance = doc.raw("provenance", {})
     if not isinstance(provenance, dict):
         doc.fail("provenance", "a mapping", provenance)
@@ -308,7 +326,64 @@ def _parse_phase(doc: Doc, hand: HandConfig, estimates: tuple[str, ...]) -> Phas
         turn_from,
         stall,
         reanalyse,
+        schedule,
     )
+
+
+def parse_schedule(
+    doc: Doc, hand: HandConfig, names: Sequence[str]
+) -> tuple[ScheduledTorques, ...]:
+    """``schedule`` of a recipe's or a template's phase (``schema.ScheduledTorques``): a list
+    of ``{when: {radius_ratio: RANGE or [RANGE, ...]}, torques: {joint: N·m}}``, a RANGE
+    ``{object: NAME, min: RATIO, max: RATIO}`` (measured radius over the recipe's; either
+    bound may be left out); none when the key is absent."""
+    if not doc.has("schedule"):
+        return ()
+    out: list[ScheduledTorques] = []
+    for entry in doc.mappings("schedule", min_len=1, max_len=MAX_SCHEDULE):
+        when = entry.mapping("when")
+        when.expect(["radius_ratio"])  # what a torque may be scheduled on
+        raw = when.raw("radius_ratio")
+        single = isinstance(raw, dict)
+        items = [raw] if single else raw
+        if not isinstance(items, list) or not items:
+            when.fail(
+                "radius_ratio",
+                "a range {object: NAME, min: RATIO, max: RATIO} or a non-empty list of them",
+                raw,
+            )
+        ranges: list[RadiusRatio] = []
+        for i, item in enumerate(items):
+            path = when.key_path("radius_ratio") + ("" if single else f"[{i}]")
+            if not isinstance(item, dict):
+                raise ConfigError(doc.file, path, "a mapping {object, min, max}", item)
+            ranges.append(_parse_radius_ratio(Doc(item, doc.file, path), names, ranges))
+        when.done()
+        torques = _parse_torques(entry, hand)
+        entry.done()
+        out.append(ScheduledTorques(tuple(ranges), torques))
+    return tuple(out)
+
+
+def _parse_radius_ratio(
+    doc: Doc, names: Sequence[str], before: Sequence[RadiusRatio]
+) -> RadiusRatio:
+    """One range of a ``schedule``'s ``radius_ratio``: ``object``, ``min``, ``max``."""
+    name = doc.string("object")
+    if name not in names:
+        known = ", ".join(names) or "none declared"
+        doc.fail("object", f"an object of the recipe ({known})", name)
+    if not (doc.has("min") or doc.has("max")):
+        doc.fail("min", "a bound of the range (min, max or both)", "neither")
+    low = doc.number("min", default=RADIUS_RATIO_MIN, min=RADIUS_RATIO_MIN, max=RADIUS_RATIO_MAX)
+    high = doc.number("max", default=RADIUS_RATIO_MAX, min=RADIUS_RATIO_MIN, max=RADIUS_RATIO_MAX)
+    if high <= low:
+        doc.fail("max", f"a ratio larger than min ({low:g})", high)
+    doc.done()
+    index = list(names).index(name)
+    if any(r.object == index for r in before):
+        doc.fail("object", "an object not ranged before in this when", name)
+    return RadiusRatio(index, low, high)
 
 
 def parse_stall(doc: Doc) -> TurnStall:
@@ -523,38 +598,46 @@ def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
     names = hand.joint_names
     tau_max = np.array([j.tau_max for j in hand.joints])
     rate = np.array([j.rate_limit for j in hand.joints])
-    previous = np.zeros(len(names))
+    # every torque a phase may hold (its own and its schedule's), and every ramp between one
+    # of the previous phase's and one of this phase's: which one runs is chosen on the hand
+    previous = [np.zeros(len(names))]
     for i, phase in enumerate(recipe.phases):
-        torques = np.array(phase.torques)
-        for j in np.flatnonzero(np.abs(torques) > tau_max):
-            raise ConfigError(
-                recipe.source,
-                f"phases[{i}].torques.{names[j]}",
-                f"|τ| <= {tau_max[j]:g} N·m (tau_max of {names[j]} in {hand.source}) in phase "
-                f"'{phase.name}'",
-                float(torques[j]),
-            )
+        keys = [f"phases[{i}].torques"] + [
+            f"phases[{i}].schedule[{k}].torques" for k in range(len(phase.schedule))
+        ]
+        candidates = [np.array(phase.torques)] + [np.array(s.torques) for s in phase.schedule]
+        for key, torques in zip(keys, candidates, strict=True):
+            for j in np.flatnonzero(np.abs(torques) > tau_max):
+                raise ConfigError(
+                    recipe.source,
+                    f"{key}.{names[j]}",
+                    f"|τ| <= {tau_max[j]:g} N·m (tau_max of {names[j]} in {hand.source}) in "
+                    f"phase '{phase.name}'",
+                    float(torques[j]),
+                )
+            for start in previous:
+                _check_ramp(
+                    recipe,
+                    hand,
+                    f"phases[{i}].ramp_s",
+                    f"into phase '{phase.name}'" + (f" ({key})" if "schedule" in key else ""),
+                    start,
+                    torques,
+                    phase.ramp_s,
+                    rate,
+                )
+        previous = candidates
+    for start in previous:
         _check_ramp(
             recipe,
             hand,
-            f"phases[{i}].ramp_s",
-            f"into phase '{phase.name}'",
-            previous,
-            torques,
-            phase.ramp_s,
+            "end_ramp_s",
+            "back to zero after the last phase",
+            start,
+            np.zeros(len(names)),
+            recipe.end_ramp_s,
             rate,
         )
-        previous = torques
-    _check_ramp(
-        recipe,
-        hand,
-        "end_ramp_s",
-        "back to zero after the last phase",
-        previous,
-        np.zeros(len(names)),
-        recipe.end_ramp_s,
-        rate,
-    )
 
 
 def _check_ramp(

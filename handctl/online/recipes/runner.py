@@ -62,6 +62,7 @@ from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
     Condition,
+    MeasuredSizes,
     PacedRamp,
     Recipe,
     SignalKind,
@@ -89,6 +90,8 @@ class PhaseRecord:
     end_s: float | None = None
     exit: str = ""  # the condition text, "timeout", "abort: ...", or "stopped"
     reanalysis: str = ""  # what a ``reanalyse`` phase's analysis answered ("": none asked)
+    #: which of a ``schedule`` phase's torques ran and on what was measured ("": no schedule)
+    schedule: str = ""
 
 
 @dataclass
@@ -114,8 +117,13 @@ class RecipeRunner:
         n_joints: int,
         after: Handover | None = None,
         reanalyser: Reanalyser | None = None,
+        sizes: MeasuredSizes | None = None,
     ) -> None:
         self.recipe = recipe
+        # the objects' measured sizes (the estimator), for ``schedule`` phases; None: their
+        # own torques
+        self.sizes = sizes
+        self._scheduled = True  # whether this phase's schedule is settled
         # the analysis at the measured configuration (``reanalyse`` phases); None: their
         # planned torques
         self.reanalyser = reanalyser
@@ -226,6 +234,9 @@ class RecipeRunner:
         self._ramp_start = t
         self._asked_at = math.nan
         self._answered = False
+        if self.records and not self._scheduled:
+            self.records[-1].schedule = "not measured while the phase ran: its own torques"
+        self._scheduled = True
         self._damping_from = self.damping
         self._held_since.clear()
         self._stall_turn = self._stall_t = math.nan
@@ -245,6 +256,7 @@ class RecipeRunner:
             self._ramp_s = phase.ramp_s
             self._damping_to = phase.joint_damping
             self.records.append(PhaseRecord(phase.name, t))
+            self._scheduled = not phase.schedule
         else:
             self.index = len(self.recipe.phases)
             self.status = RunStatus.END_RAMP
@@ -303,6 +315,8 @@ class RecipeRunner:
                 reason = "timeout"
             if reason is not None:
                 self._enter(self.index + 1, t, reason)
+            if self.status is RunStatus.RUNNING and not self._scheduled:
+                self._schedule(t)
             if self.status is RunStatus.RUNNING and not self._answered:
                 self._reanalyse(t, angle, estimates)
         ramped = t - self._ramp_start
@@ -434,6 +448,55 @@ class RecipeRunner:
         self._ramp_start = t
         self.pace = 0.0
         self._pace_t = t
+
+    def _schedule(self, t: float) -> None:
+        """Choose the phase's torque from its ``schedule`` on the objects' measured radii,
+        once: on its first tick if they are measured by then (the ramp into the phase then
+        goes to the chosen torque), else on the first tick they are (the ramp starts again,
+        from the torque proposed last to the chosen one, so the choice is no step in
+        torque). The first entry whose every range holds; none: the phase's own torques.
+        Work on the tick: a comparison per range, once a phase."""
+        phase = self.recipe.phases[self.index]
+        record = self.records[-1]
+        if self.sizes is None:
+            self._scheduled = True
+            record.schedule = "not measured: no estimator in this run; its own torques"
+            return
+        wanted = sorted({r.object for s in phase.schedule for r in s.when})
+        ratios: dict[int, float] = {}
+        for k in wanted:
+            radius = self.sizes.measured_radius(k)
+            if radius is None:
+                return  # not measured yet: choose once it is
+            ratios[k] = radius / self.recipe.objects[k].radius
+        self._scheduled = True
+        measured = ", ".join(
+            f"{self.recipe.objects[k].name} radius x{ratios[k]:.3f}" for k in wanted
+        )
+        chosen = next(
+            (
+                k
+                for k, entry in enumerate(phase.schedule)
+                if all(r.holds(ratios[r.object]) for r in entry.when)
+            ),
+            None,
+        )
+        if chosen is None:
+            record.schedule = f"{measured}: its own torques"
+            return
+        late = t > self.phase_start
+        record.schedule = f"{measured}: schedule[{chosen}]" + (
+            f" from {t - self.phase_start:.3f} s into the phase" if late else ""
+        )
+        target = np.array(phase.schedule[chosen].torques) * phase.torque_margin
+        if late:
+            # chosen after the phase began: ramp again from what is proposed now
+            self._from = (self._proposed if self._fed else self._desired).copy()
+            self._damping_from += self._fraction * (self._damping_to - self._damping_from)
+            self._ramp_start = t
+            self.pace = 0.0
+            self._pace_t = t
+        self._target = target
 
     def _note_references(self, estimates: Sequence[float]) -> None:
         """Keep the first finite value of every phase-relative estimate in this phase, for
@@ -576,6 +639,9 @@ class RecipeRunner:
         if self.records and self.records[-1].end_s is None:
             self.records[-1].end_s = t
             self.records[-1].exit = reason
+            if not self._scheduled:
+                self.records[-1].schedule = "not measured while the phase ran: its own torques"
+                self._scheduled = True
         self.abort_reason = reason
         self.status = RunStatus.ABORTED
         self._desired[:] = 0.0

@@ -20,7 +20,7 @@ import operator
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from handctl.online.recipes.guard import LimitGuard
 
@@ -234,6 +234,39 @@ class PoseHold:
 
 
 @dataclass(frozen=True)
+class RadiusRatio:
+    """A range of one object's measured radius relative to the recipe's (measured / recipe),
+    ``low <= ratio <= high``: what a scheduled torque of a phase is for."""
+
+    object: int  # index into the recipe's ``objects``
+    low: float
+    high: float
+
+    def holds(self, ratio: float) -> bool:
+        return self.low <= ratio <= self.high
+
+
+@dataclass(frozen=True)
+class ScheduledTorques:
+    """An alternative torque of a phase (``schedule``), for the grasp it meets when every
+    range of ``when`` holds (``runner.py``, ``_schedule``).
+
+    Why: the grasp's configuration, and so the torque that turns it, depends on the objects'
+    size, which the estimator measures in the hold; one torque planned around the recipe's
+    radii turns a much larger object the wrong way (docs/experiment.md)."""
+
+    when: tuple[RadiusRatio, ...]
+    torques: tuple[float, ...]  # N·m, config joint order
+
+
+class MeasuredSizes(Protocol):
+    """What the runner reads of the objects' sizes (the object estimator): an object's radius
+    (m) once it is measured, else None."""
+
+    def measured_radius(self, index: int) -> float | None: ...
+
+
+@dataclass(frozen=True)
 class Phase:
     name: str
     torques: tuple[float, ...]  # N·m, config joint order
@@ -262,6 +295,9 @@ class Phase:
     #: the analysis again at the measured configuration when the phase begins; None: the
     #: planned torque throughout
     reanalyse: Reanalyse | None = None
+    #: alternative torques for ranges of the objects' measured sizes, the first that holds
+    #: chosen once the sizes are measured; none holding: ``torques``
+    schedule: tuple[ScheduledTorques, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -327,6 +363,7 @@ class Recipe:
             or p.paced is not None
             or p.stall is not None
             or p.reanalyse is not None
+            or bool(p.schedule)
             for p in self.phases
         ) or any(c.kind is SignalKind.ESTIMATE for p in self.phases for c in (*p.exits, *p.aborts))
 
