@@ -415,6 +415,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 lifted=lifted,
                 progress=say,
                 limit_fail=fail,
+                wanted_turn_deg=math.degrees(spec.turn) if spec.kind == "turn" else None,
                 bar=bar,
             )
             chosen = result.best
