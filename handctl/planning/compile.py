@@ -13,6 +13,9 @@ hand:
    states; a model that fails (drop, soft limit) is left out of the later phases and
    counted.
 
+With a ``replan.Base``, the phases before its ``start`` take their torques from that
+compiled recipe instead of steps 2 and 3 (step 4 runs as ever), and keep its provenance.
+
 Everything is deterministic given the template (its seed) and the hand config, so the
 compiled recipe is reproducible with one command; the provenance of each phase records its
 inputs (kind, wanted motion, grasp contacts), the analysis' margin or reason, the search's
@@ -39,6 +42,7 @@ from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.planning.grasp import GraspSnapshot, fixed_directions, grasp_of, turn_directions
 from handctl.planning.models import Model, model_set
 from handctl.planning.phase_task import PhaseTask, World, episode_of, run_phase_task, snapshot_of
+from handctl.planning.replan import Base
 from handctl.planning.search import (
     GUARDED_LIMIT_FAIL,
     GUARDED_LIMIT_MARGIN,
@@ -103,6 +107,7 @@ class PlanResult:
     phases: list[PhasePlan]
     models: list[Model]
     template_digest: str
+    base: Base | None = None
 
     def recipe_document(self) -> dict[str, Any]:
         """The compiled recipe as a YAML-ready mapping (the loader's format)."""
@@ -119,6 +124,7 @@ class PlanResult:
                     {"index": m.index, **{k: round(v, 4) for k, v in m.scales.items()}}
                     for m in self.models
                 ],
+                **(self.base.describe() if self.base is not None else {}),
             },
             "objects": [{"name": o.name, "radius": o.radius} for o in t.objects],
             "end_ramp_s": t.end_ramp_s,
@@ -311,8 +317,10 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
     budget: Budget | None = None,
     executor: WorkPool | None = None,
     meter: Callable[[str, int], Progress] | None = None,
+    base: Base | None = None,
 ) -> PlanResult:
-    """Plan every phase of ``template`` for ``hand`` (see the module doc).
+    """Plan every phase of ``template`` for ``hand`` (see the module doc), or, with ``base``,
+    the phases from its ``start`` on.
 
     The phases run on the models through ``executor`` (default: here, one after another);
     the recipe is the same wherever they run. ``meter`` makes a progress bar per phase."""
@@ -326,6 +334,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 budget=budget,
                 executor=inline,
                 meter=meter,
+                base=base,
             )
     say = progress or (lambda _m: None)
     settings = template.search
@@ -343,6 +352,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
     previous: tuple[float, ...] = (0.0,) * hand.n_joints
     lifted = False
     plans: list[PhasePlan] = []
+    base_name = Path(base.recipe.source).name if base is not None else ""
     for spec in template.phases:
         say(f"phase {spec.name} ({spec.kind}) on {len(alive)} model(s)")
         if not alive:
@@ -351,13 +361,16 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 f"'{spec.name}' begins: the phases before it fail (widen the "
                 "search or change the template)"
             )
+        kept = base.kept(spec.name) if base is not None else None
         nominal = episode_of(worlds[alive[0]])
         nominal.restore(snaps[alive[0]])
-        if spec.kind == "lift" and spec.seed is not None:
+        if kept is not None:
+            say(f"  torques kept from {base_name}")
+        elif spec.kind == "lift" and spec.seed is not None:
             # fingertip pushing begins without contact: its grasp is where the seed's motion
             # first touches the objects
             _advance_to_contact(nominal, _compiled_phase(spec, spec.seed, hand))
-        analysis = _analyse(nominal, spec, hand)
+        analysis = _analyse(nominal, spec, hand) if kept is None else None
         nominal.restore(snaps[alive[0]])
         if analysis is not None:
             say(
@@ -369,7 +382,11 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         search_doc: dict[str, Any] | None = None
         bar: Progress | None = None
         pose = None
-        if spec.kind == "free":
+        if kept is not None:
+            bar = meter(f"phase {spec.name}", len(alive)) if meter is not None else None
+            torques, pose = kept.torques, kept.pose
+            origin = f"base recipe {base_name}"
+        elif spec.kind == "free":
             bar = meter(f"phase {spec.name}", len(alive)) if meter is not None else None
             assert spec.seed is not None
             torques = spec.seed
@@ -473,6 +490,9 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
             }
         if search_doc is not None:
             provenance["search"] = search_doc
+        if kept is not None:
+            # what planned the kept torques; the models below are this plan's
+            provenance = {**dict(kept.provenance), "kept_from": origin}
         provenance["models"] = {
             "ran": len(alive),
             "held": len(survivors),
@@ -487,7 +507,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         if spec.kind == "lift":
             lifted = True
     digest = hashlib.sha256(Path(template.source).read_bytes()).hexdigest()[:16]
-    return PlanResult(template, hand, plans, model_list, f"sha256:{digest}")
+    return PlanResult(template, hand, plans, model_list, f"sha256:{digest}", base)
 
 
 def _wanted(spec: TemplatePhase) -> dict[str, Any]:
