@@ -347,14 +347,16 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
     ]
     snaps: list[Snapshot] = [snapshot_of(w) for w in worlds]
     alive = list(range(len(worlds)))
-    rng = np.random.default_rng(settings.seed)
     limits = [j.tau_max for j in hand.joints]
     previous: tuple[float, ...] = (0.0,) * hand.n_joints
     lifted = False
     plans: list[PhasePlan] = []
     base_name = Path(base.recipe.source).name if base is not None else ""
-    for spec in template.phases:
+    for index, spec in enumerate(template.phases):
         say(f"phase {spec.name} ({spec.kind}) on {len(alive)} model(s)")
+        # each phase draws from its own stream, so a phase's search does not depend on how
+        # the phases before it were chosen (searched, or kept from a base recipe)
+        rng = np.random.default_rng((settings.seed, index))
         if not alive:
             raise AnalysisError(
                 f"no model holds the objects any more when phase "
