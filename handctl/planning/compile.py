@@ -408,6 +408,11 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 seeds.append(("zero", previous))
             for k in range(settings.random_seeds):
                 seeds.append((f"random flexion {k + 1}", _flexion_seed(hand, rng)))
+            replanned = base.phase(spec.name) if base is not None else None
+            if replanned is not None:
+                # last, so that the plan keeps the base's torque only if nothing else drawn
+                # ranks as high
+                seeds.append(("base recipe", replanned.torques))
             margin, fail = (
                 (GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL)
                 if template.limit_guard_band is not None

@@ -35,6 +35,11 @@ class Base:
                 return phase
         return None
 
+    def phase(self, name: str) -> Phase | None:
+        """The base's phase ``name``, kept or not: a re-planned phase's search starts from it
+        too, so the plan keeps the base's torque unless it finds one that ranks above it."""
+        return next((p for p in self.recipe.phases if p.name == name), None)
+
     def describe(self) -> dict[str, str]:
         """For the re-planned recipe's ``planned_from``."""
         return {"from_phase": self.start, "base": Path(self.recipe.source).name}

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
 from handctl.config import HandConfig
@@ -150,6 +151,13 @@ def test_a_replan_keeps_the_base_s_phases_and_plans_the_rest_from_where_they_lea
         assert planned["torques"] == kept["torques"]
         assert planned["provenance"]["kept_from"] == "base recipe full.yaml"
         assert planned["provenance"]["chosen_from"] == kept["provenance"]["chosen_from"]
+    # the re-planned phase is the whole plan's, and its search also started from the base's
+    seed_scores = again_doc["phases"][3]["provenance"]["search"].pop("seed_scores")
+    assert seed_scores.pop("base recipe") == pytest.approx(
+        base_doc["phases"][3]["provenance"]["search"]["score"], abs=1e-4
+    )
+    assert seed_scores == base_doc["phases"][3]["provenance"]["search"].pop("seed_scores")
+    again_doc["phases"][3]["provenance"]["search"]["evaluated"] -= 1
     assert again_doc["phases"][3] == base_doc["phases"][3]
     assert "--from manipulate_1 --base" in again.read_text().splitlines()[1]
 
@@ -169,9 +177,9 @@ def test_a_replan_keeps_the_base_s_phases_and_plans_the_rest_from_where_they_lea
     replanned_doc = yaml.safe_load(replanned.read_text())
     assert replanned_doc["phases"][2]["torques"] == moved["phases"][2]["torques"]
     # the same candidates, scored from where the weaker envelop left the hand
-    seed_scores = replanned_doc["phases"][3]["provenance"]["search"]["seed_scores"]
-    assert seed_scores.keys() == base_doc["phases"][3]["provenance"]["search"]["seed_scores"].keys()
-    assert seed_scores != base_doc["phases"][3]["provenance"]["search"]["seed_scores"]
+    scored = replanned_doc["phases"][3]["provenance"]["search"]["seed_scores"]
+    assert scored.keys() == {"base recipe", *seed_scores}
+    assert {k: scored[k] for k in seed_scores} != seed_scores
     load_recipe(replanned, hand)
 
 
