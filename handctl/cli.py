@@ -409,6 +409,14 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             )
     hand = _load_hand(args.hand, "--hand")
     template = load_template(args.template, hand)
+    if (args.start is None) != (args.base is None):
+        given, missing = ("--from", "--base") if args.base is None else ("--base", "--from")
+        raise ConfigError(missing, "", f"{missing} with {given} (both or neither)", "nothing")
+    base = None
+    if args.start is not None:
+        from handctl.planning.replan import load_base
+
+        base = load_base(args.base, args.start, template, hand)
     clock = Stopwatch()
     with open_pool(args.workers, args.scheduler) as pool:
         where = pool.where
@@ -422,6 +430,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
                 budget=quick_budget() if args.quick else None,
                 executor=pool,
                 meter=Progress,
+                base=base,
             )
         finally:
             close_active()
@@ -430,6 +439,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         + (["--hand", str(args.hand)] if args.hand != DEFAULT_HAND else [])
         + (["--models", str(args.models)] if args.models else [])
         + (["--quick"] if args.quick else [])
+        + (["--from", args.start, "--base", str(args.base)] if base is not None else [])
     )
     args.output.write_text(recipe_text(result, command), encoding="utf-8")
     wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
@@ -1366,6 +1376,8 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
             "handctl plan config/recipes/swap_two_cylinders.template.yaml -o "
             "config/recipes/swap_two_cylinders.yaml --plot plan/",
             "handctl plan TEMPLATE.yaml -o RECIPE.yaml --quick",
+            "handctl plan config/recipes/swap_two_cylinders.template.yaml --from manipulate_1 "
+            "--base config/recipes/swap_two_cylinders.yaml -o replanned.yaml",
         ],
     )
     plan.add_argument(
@@ -1397,6 +1409,19 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     plan.add_argument(
         "--quick", action="store_true", help="the smallest search (smoke tests): 1 generation of 2"
+    )
+    plan.add_argument(
+        "--from",
+        dest="start",
+        metavar="PHASE",
+        help="plan only from this phase of the template on; the phases before it keep the "
+        "torques of --base (every model still runs them)",
+    )
+    plan.add_argument(
+        "--base",
+        type=Path,
+        metavar="RECIPE.yaml",
+        help="with --from: a recipe compiled from the same template for the same hand",
     )
     plan.add_argument(
         "--workers",

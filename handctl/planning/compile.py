@@ -13,6 +13,9 @@ hand:
    states; a model that fails (drop, soft limit) is left out of the later phases and
    counted.
 
+With a ``replan.Base``, the phases before its ``start`` take their torques from that
+compiled recipe instead of steps 2 and 3 (step 4 runs as ever), and keep its provenance.
+
 Everything is deterministic given the template (its seed) and the hand config, so the
 compiled recipe is reproducible with one command; the provenance of each phase records its
 inputs (kind, wanted motion, grasp contacts), the analysis' margin or reason, the search's
@@ -46,6 +49,7 @@ from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.planning.grasp import GraspSnapshot, fixed_directions, grasp_of, turn_directions
 from handctl.planning.models import Model, model_set
 from handctl.planning.phase_task import PhaseTask, World, episode_of, run_phase_task, snapshot_of
+from handctl.planning.replan import Base
 from handctl.planning.search import (
     GUARDED_LIMIT_FAIL,
     GUARDED_LIMIT_MARGIN,
@@ -110,6 +114,7 @@ class PlanResult:
     phases: list[PhasePlan]
     models: list[Model]
     template_digest: str
+    base: Base | None = None
 
     def recipe_document(self) -> dict[str, Any]:
         """The compiled recipe as a YAML-ready mapping (the loader's format)."""
@@ -126,6 +131,7 @@ class PlanResult:
                     {"index": m.index, **{k: round(v, 4) for k, v in m.scales.items()}}
                     for m in self.models
                 ],
+                **(self.base.describe() if self.base is not None else {}),
             },
             "objects": [{"name": o.name, "radius": o.radius} for o in t.objects],
             "end_ramp_s": t.end_ramp_s,
@@ -346,8 +352,10 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
     budget: Budget | None = None,
     executor: WorkPool | None = None,
     meter: Callable[[str, int], Progress] | None = None,
+    base: Base | None = None,
 ) -> PlanResult:
-    """Plan every phase of ``template`` for ``hand`` (see the module doc).
+    """Plan every phase of ``template`` for ``hand`` (see the module doc), or, with ``base``,
+    the phases from its ``start`` on.
 
     The phases run on the models through ``executor`` (default: here, one after another);
     the recipe is the same wherever they run. ``meter`` makes a progress bar per phase."""
@@ -361,6 +369,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 budget=budget,
                 executor=inline,
                 meter=meter,
+                base=base,
             )
     say = progress or (lambda _m: None)
     settings = template.search
@@ -373,26 +382,32 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
     ]
     snaps: list[Snapshot] = [snapshot_of(w) for w in worlds]
     alive = list(range(len(worlds)))
-    rng = np.random.default_rng(settings.seed)
     limits = [j.tau_max for j in hand.joints]
     previous: tuple[float, ...] = (0.0,) * hand.n_joints
     lifted = False
     plans: list[PhasePlan] = []
-    for spec in template.phases:
+    base_name = Path(base.recipe.source).name if base is not None else ""
+    for index, spec in enumerate(template.phases):
         say(f"phase {spec.name} ({spec.kind}) on {len(alive)} model(s)")
+        # each phase draws from its own stream, so a phase's search does not depend on how
+        # the phases before it were chosen (searched, or kept from a base recipe)
+        rng = np.random.default_rng((settings.seed, index))
         if not alive:
             raise AnalysisError(
                 f"no model holds the objects any more when phase "
                 f"'{spec.name}' begins: the phases before it fail (widen the "
                 "search or change the template)"
             )
+        kept = base.kept(spec.name) if base is not None else None
         nominal = episode_of(worlds[alive[0]])
         nominal.restore(snaps[alive[0]])
-        if spec.kind == "lift" and spec.seed is not None:
+        if kept is not None:
+            say(f"  torques kept from {base_name}")
+        elif spec.kind == "lift" and spec.seed is not None:
             # fingertip pushing begins without contact: its grasp is where the seed's motion
             # first touches the objects
             _advance_to_contact(nominal, _compiled_phase(spec, spec.seed, hand))
-        analysis = _analyse(nominal, spec, hand)
+        analysis = _analyse(nominal, spec, hand) if kept is None else None
         nominal.restore(snaps[alive[0]])
         if analysis is not None:
             say(
@@ -404,7 +419,11 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         search_doc: dict[str, Any] | None = None
         bar: Progress | None = None
         pose = None
-        if spec.kind == "free":
+        if kept is not None:
+            bar = meter(f"phase {spec.name}", len(alive)) if meter is not None else None
+            torques, pose = kept.torques, kept.pose
+            origin = f"base recipe {base_name}"
+        elif spec.kind == "free":
             bar = meter(f"phase {spec.name}", len(alive)) if meter is not None else None
             assert spec.seed is not None
             torques = spec.seed
@@ -424,6 +443,11 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 seeds.append(("zero", previous))
             for k in range(settings.random_seeds):
                 seeds.append((f"random flexion {k + 1}", _flexion_seed(hand, rng)))
+            replanned = base.phase(spec.name) if base is not None else None
+            if replanned is not None:
+                # last, so that the plan keeps the base's torque only if nothing else drawn
+                # ranks as high
+                seeds.append(("base recipe", replanned.torques))
             margin, fail = (
                 (GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL)
                 if template.limit_guard_band is not None
@@ -450,6 +474,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 lifted=lifted,
                 progress=say,
                 limit_fail=fail,
+                wanted_turn_deg=math.degrees(spec.turn) if spec.kind == "turn" else None,
                 bar=bar,
             )
             chosen = result.best
@@ -507,6 +532,9 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
             }
         if search_doc is not None:
             provenance["search"] = search_doc
+        if kept is not None:
+            # what planned the kept torques; the models below are this plan's
+            provenance = {**dict(kept.provenance), "kept_from": origin}
         provenance["models"] = {
             "ran": len(alive),
             "held": len(survivors),
@@ -521,7 +549,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         if spec.kind == "lift":
             lifted = True
     digest = hashlib.sha256(Path(template.source).read_bytes()).hexdigest()[:16]
-    return PlanResult(template, hand, plans, model_list, f"sha256:{digest}")
+    return PlanResult(template, hand, plans, model_list, f"sha256:{digest}", base)
 
 
 def _wanted(spec: TemplatePhase) -> dict[str, Any]:

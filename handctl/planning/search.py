@@ -13,8 +13,9 @@ re-fitted to the elite of each generation. It needs no gradient (contact makes t
 step function of the torques) and a few hundred episodes per phase. The score of a candidate is
 its mean score over the models minus a fraction of their spread, so a torque that works on most
 models beats one that is brilliant on one and drops the pair on another; and candidates are
-ranked by how many models they fail on first (a failure stops the hand or loses the objects),
-by score second.
+ranked by how many models they fail on first (a failure stops the hand or loses the objects,
+and a turn phase that turns the pair less than ``MIN_TURN_FRACTION`` of its wanted turn on a
+model has failed there too: it did not do its job), by score second.
 """
 
 from __future__ import annotations
@@ -50,6 +51,13 @@ MAX_TURN_RATE_DEG_S = 180.0
 #: what a peak rate above it costs, per multiple of it over, and at most
 RATE_WEIGHT = 0.5
 RATE_PENALTY_CAP = 1.0
+#: a turn phase that turned the pair less than this fraction of its wanted turn on a model
+#: (or the other way) failed there, for the ranking: without it a torque that does not turn
+#: the pair fails on no model, and "do nothing" ranks above any torque that turns the pair on
+#: most models but drops it on one. Half: a phase that stops short of half its turn leaves
+#: the next more than it was planned for, one past half is finished by the next phases'
+#: exits on the turn since ``turn_from``
+MIN_TURN_FRACTION = 0.5
 
 
 def _limit_penalty(o: PhaseOutcome, margin: float = LIMIT_MARGIN) -> float:
@@ -75,17 +83,31 @@ class Candidate:
     origin: str
     scores: list[float] = field(default_factory=list)  # per model
     limit_fail: float = LIMIT_FAIL  # rad, see ``failures``
+    #: deg, a turn phase's wanted turn (signed), see ``failures``; None: not a turn phase
+    wanted_turn_deg: float | None = None
 
     @property
     def failures(self) -> int:
-        """Models on which the phase failed (a drop, a soft limit, an object out of hand) or
-        came within ``LIMIT_FAIL`` of a soft limit: contact makes the motion chaotic enough
-        that a model which brushes a limit here crosses it on the real bus."""
-        return sum(1 for o in self.outcomes if o.failed or o.limit_margin < self.limit_fail)
+        """Models on which the phase failed (a drop, a soft limit, an object out of hand),
+        came within ``LIMIT_FAIL`` of a soft limit (contact makes the motion chaotic enough
+        that a model which brushes a limit here crosses it on the real bus), or, in a turn
+        phase, turned the pair less than ``MIN_TURN_FRACTION`` of its wanted turn."""
+        return sum(
+            1
+            for o in self.outcomes
+            if o.failed or o.limit_margin < self.limit_fail or self._short(o)
+        )
+
+    def _short(self, o: PhaseOutcome) -> bool:
+        wanted = self.wanted_turn_deg
+        if not wanted:
+            return False
+        return o.true_turn_deg / wanted < MIN_TURN_FRACTION
 
     def rank(self) -> tuple[int, float]:
         """Larger is better: fewer failures first, then the score. A failure stops the real
-        hand (the soft limits) or loses the objects, so no score makes up for one."""
+        hand (the soft limits), loses the objects or leaves the turn undone, so no score makes
+        up for one."""
         return (-self.failures, self.score)
 
     @property
@@ -116,6 +138,7 @@ def evaluate(
     *,
     lifted: bool,
     limit_fail: float = LIMIT_FAIL,
+    wanted_turn_deg: float | None = None,
     bar: Progress | None = None,
 ) -> list[Candidate]:
     """Run ``phase`` with each candidate's torques on every model from its snapshot, all of
@@ -141,6 +164,7 @@ def evaluate(
                 "",
                 [float(s) for s in scores],
                 limit_fail,
+                wanted_turn_deg,
             )
         )
     return out
@@ -160,6 +184,7 @@ def cem(
     lifted: bool,
     progress: Callable[[str], None] | None = None,
     limit_fail: float = LIMIT_FAIL,
+    wanted_turn_deg: float | None = None,
     bar: Progress | None = None,
 ) -> SearchResult:
     """Cross-entropy search around the seeds; returns the best candidate ever evaluated.
@@ -178,6 +203,7 @@ def cem(
         executor,
         lifted=lifted,
         limit_fail=limit_fail,
+        wanted_turn_deg=wanted_turn_deg,
         bar=bar,
     )
     for (origin, _), cand in zip(seeds, seeded, strict=True):
@@ -203,6 +229,7 @@ def cem(
             executor,
             lifted=lifted,
             limit_fail=limit_fail,
+            wanted_turn_deg=wanted_turn_deg,
             bar=bar,
         )
         for cand in population:

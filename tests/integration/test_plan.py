@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
 from handctl.config import HandConfig
@@ -113,3 +114,111 @@ def test_plan_command_writes_the_recipe_and_the_region_plots(tmp_path: Path) -> 
         "04_manipulate_1.png",
     ]
     assert "manipulate_1" in done.stdout
+
+
+def plan_command(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "handctl", "plan", *args],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=300,
+        check=False,
+    )
+
+
+def test_a_replan_keeps_the_base_s_phases_and_plans_the_rest_from_where_they_leave_the_hand(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """``--from PHASE --base RECIPE``: the phases before PHASE keep the base's torques, and the
+    models still run them, so re-planning from a phase on the plan's own recipe plans that
+    phase as the whole plan did; a base whose kept torques differ moves the hand elsewhere."""
+    template = short_template(tmp_path)
+    full = tmp_path / "full.yaml"
+    done = plan_command(str(template), "-o", str(full), "--quick", "--models", "1")
+    assert done.returncode == 0, done.stderr
+    again = tmp_path / "again.yaml"
+    done = plan_command(
+        str(template), "-o", str(again), "--quick", "--models", "1",
+        "--from", "manipulate_1", "--base", str(full),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    base_doc = yaml.safe_load(full.read_text())
+    again_doc = yaml.safe_load(again.read_text())
+    assert again_doc["planned_from"]["from_phase"] == "manipulate_1"
+    assert again_doc["planned_from"]["base"] == "full.yaml"
+    for kept, planned in zip(base_doc["phases"][:3], again_doc["phases"][:3], strict=True):
+        assert planned["torques"] == kept["torques"]
+        assert planned["provenance"]["kept_from"] == "base recipe full.yaml"
+        assert planned["provenance"]["chosen_from"] == kept["provenance"]["chosen_from"]
+    # the re-planned phase is the whole plan's, and its search also started from the base's
+    seed_scores = again_doc["phases"][3]["provenance"]["search"].pop("seed_scores")
+    assert seed_scores.pop("base recipe") == pytest.approx(
+        base_doc["phases"][3]["provenance"]["search"]["score"], abs=1e-4
+    )
+    assert seed_scores == base_doc["phases"][3]["provenance"]["search"].pop("seed_scores")
+    again_doc["phases"][3]["provenance"]["search"]["evaluated"] -= 1
+    assert again_doc["phases"][3] == base_doc["phases"][3]
+    assert "--from manipulate_1 --base" in again.read_text().splitlines()[1]
+
+    # the kept torques are the base's, and every model runs them before the planned phase
+    moved = dict(base_doc)
+    moved["phases"] = [dict(p) for p in base_doc["phases"]]
+    envelop = base_doc["phases"][2]["torques"]
+    moved["phases"][2]["torques"] = {k: round(0.7 * v, 4) for k, v in envelop.items()}
+    other = tmp_path / "other_base.yaml"
+    other.write_text(yaml.safe_dump(moved, sort_keys=False))
+    replanned = tmp_path / "replanned.yaml"
+    done = plan_command(
+        str(template), "-o", str(replanned), "--quick", "--models", "1",
+        "--from", "manipulate_1", "--base", str(other),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    replanned_doc = yaml.safe_load(replanned.read_text())
+    assert replanned_doc["phases"][2]["torques"] == moved["phases"][2]["torques"]
+    # the same candidates, scored from where the weaker envelop left the hand
+    scored = replanned_doc["phases"][3]["provenance"]["search"]["seed_scores"]
+    assert scored.keys() == {"base recipe", *seed_scores}
+    assert {k: scored[k] for k in seed_scores} != seed_scores
+    load_recipe(replanned, hand)
+
+
+def test_a_replan_refuses_an_unknown_phase_and_a_base_of_another_template_or_hand(
+    tmp_path: Path,
+) -> None:
+    template = short_template(tmp_path)
+    base = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+    out = tmp_path / "r.yaml"
+    unknown = plan_command(
+        str(template), "-o", str(out), "--from", "manipulate_9", "--base", str(base)
+    )
+    assert unknown.returncode == 2
+    assert "--from: expected a phase of short.template.yaml (approach, lift, envelop, " in (
+        unknown.stderr
+    )
+    assert "found 'manipulate_9'" in unknown.stderr
+    alone = plan_command(str(template), "-o", str(out), "--from", "lift")
+    assert alone.returncode == 2 and "--base" in alone.stderr
+
+    doc: dict[str, Any] = yaml.safe_load(base.read_text())
+    renamed = dict(doc, recipe="another_recipe")
+    other = tmp_path / "another.yaml"
+    other.write_text(yaml.safe_dump(renamed, sort_keys=False))
+    done = plan_command(str(template), "-o", str(out), "--from", "lift", "--base", str(other))
+    assert done.returncode == 2
+    assert f"{other}: recipe: expected 'swap_two_cylinders'" in done.stderr
+    assert "found 'another_recipe'" in done.stderr
+
+    rehashed = dict(doc, hand_config_hash="sha256:0000000000000000")
+    other.write_text(yaml.safe_dump(rehashed, sort_keys=False))
+    done = plan_command(str(template), "-o", str(out), "--from", "lift", "--base", str(other))
+    assert done.returncode == 2
+    assert f"{other}: hand_config_hash: expected sha256:" in done.stderr
+    assert "found 'sha256:0000000000000000'" in done.stderr
+
+    reordered = dict(doc, phases=[doc["phases"][1], doc["phases"][0], *doc["phases"][2:]])
+    other.write_text(yaml.safe_dump(reordered, sort_keys=False))
+    done = plan_command(str(template), "-o", str(out), "--from", "envelop", "--base", str(other))
+    assert done.returncode == 2
+    assert f"{other}: phases[0].name: expected 'approach'" in done.stderr
+    assert not out.exists()

@@ -4,9 +4,10 @@ at the pace the analysis covers."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from handctl.planning.episode import PhaseOutcome
-from handctl.planning.search import turn_scorer
+from handctl.planning.search import Candidate, turn_scorer
 
 TARGET_RAD = -0.785398  # -45 deg
 
@@ -54,3 +55,31 @@ def test_the_rate_limit_is_the_scorer_s_own() -> None:
     assert turn_scorer(TARGET_RAD, 3.0, max_rate_deg_s=360.0)(turn) > turn_scorer(TARGET_RAD, 3.0)(
         turn
     )
+
+
+def test_a_candidate_that_turns_the_pair_on_most_models_beats_one_that_turns_it_on_none() -> None:
+    """Doing nothing fails on no model by the old count, so it ranked first: a turn phase that
+    leaves the pair short of half its wanted turn on a model has failed there too."""
+    score = turn_scorer(TARGET_RAD, 3.0)
+    wanted = math.degrees(TARGET_RAD)
+    exit_text = "estimate.cyl1_cyl2_line_turn < -0.7461 for 0.02"
+
+    def candidate(outcomes: list[PhaseOutcome]) -> Candidate:
+        scores = [score(o) for o in outcomes]
+        mean = sum(scores) / len(scores)
+        return Candidate((0.0,), mean, outcomes, "", scores, wanted_turn_deg=wanted)
+
+    idle = candidate([outcome("timeout", d, 20.0, 3.0) for d in (-3.0, 1.0, 0.0, -5.0, 2.0, -1.0)])
+    turns = candidate(
+        [outcome(exit_text, -45.0, 150.0)] * 5
+        + [outcome("fail: an object left the hand", -60.0, 900.0)]
+    )
+    assert idle.failures == 6 and turns.failures == 1
+    assert turns.rank() > idle.rank()
+    # turning past the half of the wanted turn, the wanted way, is not a failure; the other way is
+    half = candidate([outcome("timeout", 0.6 * wanted, 90.0, 3.0)])
+    wrong = candidate([outcome("timeout", -0.6 * wanted, 90.0, 3.0)])
+    assert (half.failures, wrong.failures) == (0, 1)
+    # outside a turn phase the turn is not asked for
+    hold = Candidate((0.0,), 1.0, [outcome("timeout", 0.0, 0.0, 3.0)], "", [1.0])
+    assert hold.failures == 0

@@ -1,0 +1,94 @@
+"""Re-planning a recipe from one of its phases on: the phases before it keep an existing
+compiled recipe's torques.
+
+Why: the approach, the lift and the hold take most of a plan's time, and a change to the
+manipulation (its scoring, its feedback keys) does not change them. The kept phases are not
+skipped: every model still runs them, with the kept torques, so the re-planned phases start
+where a run of the recipe would start them on each model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.schema import Phase, Recipe
+from handctl.planning.template import Template
+
+
+@dataclass(frozen=True)
+class Base:
+    """A compiled recipe whose phases before ``start`` a plan keeps."""
+
+    recipe: Recipe
+    start: str  # the first phase planned again
+
+    def kept(self, name: str) -> Phase | None:
+        """The base's phase ``name`` if the plan keeps it (it comes before ``start``)."""
+        for phase in self.recipe.phases:
+            if phase.name == self.start:
+                return None
+            if phase.name == name:
+                return phase
+        return None
+
+    def phase(self, name: str) -> Phase | None:
+        """The base's phase ``name``, kept or not: a re-planned phase's search starts from it
+        too, so the plan keeps the base's torque unless it finds one that ranks above it."""
+        return next((p for p in self.recipe.phases if p.name == name), None)
+
+    def describe(self) -> dict[str, str]:
+        """For the re-planned recipe's ``planned_from``."""
+        return {"from_phase": self.start, "base": Path(self.recipe.source).name}
+
+
+def load_base(path: Path, start: str, template: Template, hand: HandConfig) -> Base:
+    """Load ``path`` as the base of a plan of ``template`` from phase ``start`` on, checking
+    that it was compiled from this template's phases for this hand; every problem is a
+    ``ConfigError`` naming the option or the file, the key, what was expected and found."""
+    names = [p.name for p in template.phases]
+    if start not in names:
+        listed = ", ".join(names)
+        where = Path(template.source).name
+        raise ConfigError("--from", "", f"a phase of {where} ({listed})", start)
+    recipe = load_recipe(path, hand)
+    source = str(path)
+    if not recipe.compiled:
+        raise ConfigError(source, "compiled", "a recipe compiled by handctl plan (true)", False)
+    if recipe.name != template.recipe:
+        raise ConfigError(
+            source,
+            "recipe",
+            f"'{template.recipe}', the recipe {Path(template.source).name} compiles",
+            recipe.name,
+        )
+    if recipe.hand_config_hash != hand.config_hash:
+        raise ConfigError(
+            source,
+            "hand_config_hash",
+            f"{hand.config_hash}, the hash of the hand planned for ({hand.source})",
+            recipe.hand_config_hash,
+        )
+    wanted_objects = [(o.name, o.radius) for o in template.objects]
+    found_objects = [(o.name, o.radius) for o in recipe.objects]
+    if found_objects != wanted_objects:
+        raise ConfigError(
+            source,
+            "objects",
+            f"the template's objects {wanted_objects} (name, radius in m)",
+            found_objects,
+        )
+    kept = names[: names.index(start)]
+    have = [p.name for p in recipe.phases]
+    for i, name in enumerate(kept):
+        if i >= len(have) or have[i] != name:
+            raise ConfigError(
+                source,
+                f"phases[{i}].name",
+                f"'{name}', the template's phase {i + 1} (the phases before '{start}' are kept)",
+                have[i] if i < len(have) else "no such phase",
+            )
+    return Base(recipe, start)
