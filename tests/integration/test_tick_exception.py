@@ -165,7 +165,8 @@ def force(stage: str, b: Bench, due: Trigger, mp: pytest.MonkeyPatch) -> None:  
         layout = protocol.layout("Feedback", 1)
         mp.setattr(layout, "decode", _wrap(due, stage, layout.decode))
     elif stage == "estimator":
-        rt.estimator = _wrap(due, stage, lambda angle: None)
+        # Only the call is broken: the runner reads measured sizes from its own reference.
+        mp.setattr(rt, "estimator", _wrap(due, stage, lambda angle: None))
     elif stage == "runner":
         assert rt.runner is not None
         mp.setattr(rt.runner, "advance", _wrap(due, stage, rt.runner.advance))
