@@ -31,6 +31,7 @@ from typing import Any
 
 from handctl.online.clock import StallLog, request_realtime
 from handctl.online.timerfd import PeriodicTimer
+from handctl.parent_death import stop_on_signals
 
 #: µs: the histogram's last bin collects every wake-up later than this (the maximum is exact)
 HIST_RANGE_US = 20_000
@@ -171,13 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-lock-memory", action="store_true")
     parser.add_argument("--parent-pid", type=int, help="end when this process ends")
     args = parser.parse_args(argv)
-    stop = [False]
-
-    def on_signal(signum: int, frame: object) -> None:
-        stop[0] = True
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    stop = stop_on_signals()
     if args.parent_pid is not None and not _end_with_parent(args.parent_pid):
         return 0
     # Before the priority is raised: a collection, like locking memory, at SCHED_FIFO would

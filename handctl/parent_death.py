@@ -90,3 +90,16 @@ def _is_bus_socket(path: Path) -> bool:
             path.lstat().st_mode
         )
     return False
+
+
+def stop_on_signals() -> list[bool]:
+    """A flag the helper's loop polls, set by SIGTERM (its parent's stop, or the parent's
+    death through ``die_with_parent``) and SIGINT: the loop then ends and writes its record."""
+    stop = [False]
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop[0] = True
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    return stop

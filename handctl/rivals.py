@@ -36,7 +36,7 @@ from typing import Any
 
 from handctl.errors import ConfigError, HandctlError
 from handctl.hostfacts import parse_cpu_list
-from handctl.parent_death import die_with_parent
+from handctl.parent_death import die_with_parent, stop_on_signals
 
 #: s: how often the watcher looks. A scan reads a few hundred small files (a few ms of CPU),
 #: so twice a second costs well under 1 % of a CPU; a stall is matched to the interval it fell in.
@@ -310,13 +310,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--exclude", type=int, nargs="*", default=[], help="process ids to skip")
     parser.add_argument("--parent-pid", type=int, help="end when this process ends")
     args = parser.parse_args(argv)
-    stop = [False]
-
-    def on_signal(signum: int, frame: object) -> None:
-        stop[0] = True
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    stop = stop_on_signals()
     exclude = set(args.exclude) | {os.getpid()}
     if args.parent_pid is not None and not die_with_parent(args.parent_pid):
         return 0

@@ -67,24 +67,8 @@ def grasp_of(plant: Plant, hand: HandConfig) -> GraspSnapshot:
         )
         for o, p in zip(params.objects, poses, strict=True)
     )
-    fingers: list[Finger] = []
-    owner: dict[str, tuple[int, int]] = {}
-    angles = plant.joint_angles.tolist()
-    offset = 0
-    for fi, f in enumerate(hand.fingers):
-        n = len(f.joints)
-        fingers.append(
-            Finger(
-                f.name,
-                np.array([f.base_x, f.base_y]),
-                rotation_2d(f.base_angle),
-                tuple(j.link_length for j in f.joints),
-                tuple(angles[offset : offset + n]),
-            )
-        )
-        for k, j in enumerate(f.joints):
-            owner[j.name] = (fi, k)
-        offset += n
+    fingers = _fingers(hand, plant.joint_angles.tolist())
+    owner = {j.name: (fi, k) for fi, f in enumerate(hand.fingers) for k, j in enumerate(f.joints)}
     finger_contacts: dict[tuple[int, int, int], FingerContact] = {}
     body_contacts: dict[tuple[int, int], BodyContact] = {}
     environment: set[str] = set()
@@ -125,6 +109,25 @@ def grasp_of(plant: Plant, hand: HandConfig) -> GraspSnapshot:
     return GraspSnapshot(grasp, tuple(sorted(environment)), tuple(names))
 
 
+def _fingers(hand: HandConfig, angles: Sequence[float]) -> list[Finger]:
+    """The analysis' fingers of ``hand`` at ``angles`` (rad, the hand's joint order)."""
+    fingers: list[Finger] = []
+    offset = 0
+    for f in hand.fingers:
+        n = len(f.joints)
+        fingers.append(
+            Finger(
+                f.name,
+                np.array([f.base_x, f.base_y]),
+                rotation_2d(f.base_angle),
+                tuple(j.link_length for j in f.joints),
+                tuple(angles[offset : offset + n]),
+            )
+        )
+        offset += n
+    return fingers
+
+
 def measured_grasp(
     hand: HandConfig,
     angles: Sequence[float],
@@ -144,22 +147,8 @@ def measured_grasp(
     tightest one. Link clearances count the link's half-thickness, as the estimator's do; the
     contact point and normal are then placed as ``grasp_of`` places them. The palm is left out
     (see the module doc)."""
-    fingers: list[Finger] = []
-    thickness: list[tuple[float, ...]] = []
-    offset = 0
-    for f in hand.fingers:
-        n = len(f.joints)
-        fingers.append(
-            Finger(
-                f.name,
-                np.array([f.base_x, f.base_y]),
-                rotation_2d(f.base_angle),
-                tuple(j.link_length for j in f.joints),
-                tuple(float(a) for a in angles[offset : offset + n]),
-            )
-        )
-        thickness.append(tuple(j.half_thickness for j in f.joints))
-        offset += n
+    fingers = _fingers(hand, [float(a) for a in angles])
+    thickness = [tuple(j.half_thickness for j in f.joints) for f in hand.fingers]
     bodies = tuple(
         Body(
             name,
