@@ -234,9 +234,7 @@ class RecipeRunner:
         self._ramp_start = t
         self._asked_at = math.nan
         self._answered = False
-        if self.records and not self._scheduled:
-            self.records[-1].schedule = "not measured while the phase ran: its own torques"
-        self._scheduled = True
+        self._settle_unmeasured()
         self._damping_from = self.damping
         self._held_since.clear()
         self._stall_turn = self._stall_t = math.nan
@@ -442,12 +440,25 @@ class RecipeRunner:
         record.reanalysis = result.note
         if result.torques is None:
             return
-        self._from = (self._proposed if self._fed else self._desired).copy()
+        self._ramp_again(t)
         self._target = np.array(result.torques, dtype=float)
+
+    def _ramp_again(self, t: float) -> None:
+        """Start the phase's ramp (and its paced ramp) again at ``t``, from the torque
+        proposed last and the injected damping reached, towards a target set now: a new
+        target within a phase is then no step in torque."""
+        self._from = (self._proposed if self._fed else self._desired).copy()
         self._damping_from += self._fraction * (self._damping_to - self._damping_from)
         self._ramp_start = t
         self.pace = 0.0
         self._pace_t = t
+
+    def _settle_unmeasured(self) -> None:
+        """The phase ends with its schedule still waiting for a measured radius: it ran its
+        own torques, and its record says so."""
+        if self.records and not self._scheduled:
+            self.records[-1].schedule = "not measured while the phase ran: its own torques"
+        self._scheduled = True
 
     def _schedule(self, t: float) -> None:
         """Choose the phase's torque from its ``schedule`` on the objects' measured radii,
@@ -488,15 +499,9 @@ class RecipeRunner:
         record.schedule = f"{measured}: schedule[{chosen}]" + (
             f" from {t - self.phase_start:.3f} s into the phase" if late else ""
         )
-        target = np.array(phase.schedule[chosen].torques) * phase.torque_margin
-        if late:
-            # chosen after the phase began: ramp again from what is proposed now
-            self._from = (self._proposed if self._fed else self._desired).copy()
-            self._damping_from += self._fraction * (self._damping_to - self._damping_from)
-            self._ramp_start = t
-            self.pace = 0.0
-            self._pace_t = t
-        self._target = target
+        if late:  # chosen after the phase began: ramp again from what is proposed now
+            self._ramp_again(t)
+        self._target = np.array(phase.schedule[chosen].torques) * phase.torque_margin
 
     def _note_references(self, estimates: Sequence[float]) -> None:
         """Keep the first finite value of every phase-relative estimate in this phase, for
@@ -639,9 +644,7 @@ class RecipeRunner:
         if self.records and self.records[-1].end_s is None:
             self.records[-1].end_s = t
             self.records[-1].exit = reason
-            if not self._scheduled:
-                self.records[-1].schedule = "not measured while the phase ran: its own torques"
-                self._scheduled = True
+            self._settle_unmeasured()
         self.abort_reason = reason
         self.status = RunStatus.ABORTED
         self._desired[:] = 0.0
