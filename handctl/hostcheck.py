@@ -21,9 +21,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +33,7 @@ from handctl.online.clock import LOOP_PRIORITY, Hygiene, StallLog
 from handctl.online.safety.faults import Fault, FaultCode
 from handctl.online.safety.watchdog import TickWatch
 from handctl.online.tickstats import HIST_RANGE_US
+from handctl.parent_death import JsonHelper
 from handctl.rivals import Rival, RivalRecord, RivalWatch, find_rivals
 
 #: Seconds of the check a run on a real bus makes before it opens the bus.
@@ -354,7 +352,7 @@ def _show_limit(value: int) -> str:
 
 
 # -- running the probe --------------------------------------------------------------------------
-class Probe:
+class Probe(JsonHelper):
     """The bare loop as a child process, from ``start`` to ``stop`` (or for ``seconds``)."""
 
     def __init__(
@@ -367,10 +365,7 @@ class Probe:
         cpu: int | None = None,
         lock_memory: bool = True,
     ) -> None:
-        cmd = [
-            sys.executable,
-            "-m",
-            "handctl.hostprobe",
+        args = [
             "--period-ns",
             str(period_ns),
             "--record-ns",
@@ -379,51 +374,20 @@ class Probe:
             str(os.getpid()),
         ]
         if seconds is not None:
-            cmd += ["--seconds", str(seconds)]
+            args += ["--seconds", str(seconds)]
         if priority is not None:
-            cmd += ["--priority", str(priority)]
+            args += ["--priority", str(priority)]
         if cpu is not None:
-            cmd += ["--cpu", str(cpu)]
+            args += ["--cpu", str(cpu)]
         if not lock_memory:
-            cmd.append("--no-lock-memory")
+            args.append("--no-lock-memory")
         self.seconds = seconds
-        # A session of its own: a terminal's Ctrl-C (SIGINT to the foreground process group)
-        # is the host's to handle; the probe ends when the host says so, or dies with it.
-        self.proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
-        )
+        super().__init__("handctl.hostprobe", args, "the timing probe")
 
     def stop(self) -> ProbeRecord:
         """End the probe (if it still runs) and read what it saw."""
-        if self.seconds is None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        timeout = _PROBE_START_S + (self.seconds or 0.0)
-        try:
-            out, err = self.proc.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, err = self.proc.communicate()
-        if self.proc.returncode != 0 or not out.strip():
-            raise HandctlError(
-                f"the timing probe ended with exit {self.proc.returncode}: "
-                + " | ".join(err.strip().splitlines()[-3:])
-            )
-        try:
-            data = json.loads(out)
-        except json.JSONDecodeError as exc:
-            raise HandctlError(f"the timing probe wrote no record ({exc})") from None
+        data = self.finish(_PROBE_START_S + (self.seconds or 0.0), self.seconds is None)
         return ProbeRecord.from_json(data, "the timing probe")
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-
-    def __enter__(self) -> Probe:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 @dataclass(frozen=True)

@@ -18,13 +18,19 @@ process killed with SIGKILL takes its threads down one by one), the child is sig
 from __future__ import annotations
 
 import ctypes
+import json
 import os
 import re
 import signal
 import stat
+import subprocess
+import sys
 import time
 from contextlib import suppress
 from pathlib import Path
+from typing import Any, Self
+
+from handctl.errors import HandctlError
 
 _PR_SET_PDEATHSIG = 1
 
@@ -103,3 +109,53 @@ def stop_on_signals() -> list[bool]:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     return stop
+
+
+class JsonHelper:
+    """A helper child process (``python -m MODULE ARGS``) that runs until told to stop, or
+    for a time of its own, then writes one JSON object to stdout: the timing probe, the
+    real-time rivals' watcher. It gets a session of its own: a terminal's Ctrl-C (SIGINT to
+    the foreground process group) is its parent's to handle; it ends when the parent says so,
+    or dies with it (``die_with_parent``)."""
+
+    def __init__(self, module: str, args: list[str], what: str) -> None:
+        self.what = what
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", module, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
+
+    def finish(self, timeout_s: float, terminate: bool = True) -> Any:
+        """Its record: SIGTERM first if ``terminate`` and it still runs, then up to
+        ``timeout_s`` for it to write, else it is killed; a helper that failed or wrote no
+        JSON is an error naming it (``self.what``)."""
+        if terminate and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            out, err = self.proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, err = self.proc.communicate()
+        if self.proc.returncode != 0 or not out.strip():
+            raise HandctlError(
+                f"{self.what} ended with exit {self.proc.returncode}: "
+                + " | ".join(err.strip().splitlines()[-3:])
+            )
+        try:
+            return json.loads(out)
+        except json.JSONDecodeError as exc:
+            raise HandctlError(f"{self.what} wrote no record ({exc})") from None
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -25,8 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import subprocess
 import sys
 import time
 from collections.abc import Iterable
@@ -34,9 +32,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from handctl.errors import ConfigError, HandctlError
+from handctl.errors import ConfigError
 from handctl.hostfacts import parse_cpu_list
-from handctl.parent_death import die_with_parent, stop_on_signals
+from handctl.parent_death import JsonHelper, die_with_parent, stop_on_signals
 
 #: s: how often the watcher looks. A scan reads a few hundred small files (a few ms of CPU),
 #: so twice a second costs well under 1 % of a CPU; a stall is matched to the interval it fell in.
@@ -244,14 +242,11 @@ def watch(
     return RivalRecord(cpu, priority, start, last, tuple(spans), names)
 
 
-class RivalWatch:
+class RivalWatch(JsonHelper):
     """The watcher as a child process, at the ordinary scheduler, from start to ``stop``."""
 
     def __init__(self, cpu: int | None, priority: int, exclude: Iterable[int]) -> None:
-        cmd = [
-            sys.executable,
-            "-m",
-            "handctl.rivals",
+        args = [
             "--priority",
             str(priority),
             "--parent-pid",
@@ -260,41 +255,12 @@ class RivalWatch:
             *(str(pid) for pid in sorted(set(exclude) | {os.getpid()})),
         ]
         if cpu is not None:
-            cmd += ["--cpu", str(cpu)]
-        self.proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
-        )
+            args += ["--cpu", str(cpu)]
+        super().__init__("handctl.rivals", args, "the real-time rivals' watcher")
 
     def stop(self) -> RivalRecord:
         """End the watcher and read what it saw."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        try:
-            out, err = self.proc.communicate(timeout=_STOP_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, err = self.proc.communicate()
-        if self.proc.returncode != 0 or not out.strip():
-            raise HandctlError(
-                f"the real-time rivals' watcher ended with exit {self.proc.returncode}: "
-                + " | ".join(err.strip().splitlines()[-3:])
-            )
-        try:
-            data = json.loads(out)
-        except json.JSONDecodeError as exc:
-            raise HandctlError(f"the real-time rivals' watcher wrote no record ({exc})") from None
-        return RivalRecord.from_json(data, "the real-time rivals' watcher")
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-
-    def __enter__(self) -> RivalWatch:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        return RivalRecord.from_json(self.finish(_STOP_TIMEOUT_S), self.what)
 
 
 def main(argv: list[str] | None = None) -> int:
