@@ -294,6 +294,7 @@ while time.monotonic() < end:
 """
 
 
+@REALTIME  # beside the other real-time tests, not among them: their tasks are rivals too
 def test_the_watcher_sees_a_real_time_rival_run_on_the_loops_cpu() -> None:
     from handctl.rivals import RivalWatch
 
@@ -316,5 +317,6 @@ def test_the_watcher_sees_a_real_time_rival_run_on_the_loops_cpu() -> None:
     assert label in seen.rivals.values()
     ran = [s for s in seen.spans if s[2] == rival.pid]
     assert ran and all(r[3] > 0 for r in ran)
-    assert seen.active(ran[0][0], ran[0][1]) == [label]
+    # Another real-time task of the machine may have run in the same look as well.
+    assert label in seen.active(ran[0][0], ran[0][1])
     assert rival.pid not in unseen.rivals
