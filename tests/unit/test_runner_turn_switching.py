@@ -207,7 +207,7 @@ def test_bad_switching_is_refused_naming_the_key(
 
 def test_the_shipped_swap_exits_as_its_template_asks(hand: HandConfig) -> None:
     """The compiled recipe's manipulation exits are the template's: each on the turn since
-    ``manipulate_1`` began (95 % of 45, 90 and 135 deg, 94 % of 180), and none ends on a
+    ``manipulate_1`` began (95 % of 45, 90 and 135 deg, all of 180), and none ends on a
     stall (docs/experiment.md: ended early, the pair's grasp had not settled)."""
     from handctl.planning.template import load_template
 
@@ -224,7 +224,7 @@ def test_the_shipped_swap_exits_as_its_template_asks(hand: HandConfig) -> None:
         assert phase.exits[0].value == pytest.approx(wanted, abs=1e-4)
         assert phase.turn_from == spec.turn_from == ("manipulate_1" if k > 1 else "")
         assert phase.stall is None and spec.stall is None
-    assert turns[-1].exit_fraction == 0.94
+    assert turns[-1].exit_fraction == 1.0
 
 
 def test_a_compiled_phase_carries_the_template_s_switching(hand: HandConfig) -> None:
