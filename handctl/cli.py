@@ -412,11 +412,15 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     if (args.start is None) != (args.base is None):
         given, missing = ("--from", "--base") if args.base is None else ("--base", "--from")
         raise ConfigError(missing, "", f"{missing} with {given} (both or neither)", "nothing")
+    if args.schedule_only and args.start is None:
+        raise ConfigError(
+            "--schedule-only", "", "--schedule-only with --from and --base", "neither"
+        )
     base = None
     if args.start is not None:
         from handctl.planning.replan import load_base
 
-        base = load_base(args.base, args.start, template, hand)
+        base = load_base(args.base, args.start, template, hand, args.schedule_only)
     clock = Stopwatch()
     with open_pool(args.workers, args.scheduler) as pool:
         where = pool.where
@@ -440,6 +444,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         + (["--models", str(args.models)] if args.models else [])
         + (["--quick"] if args.quick else [])
         + (["--from", args.start, "--base", str(args.base)] if base is not None else [])
+        + (["--schedule-only"] if args.schedule_only else [])
     )
     args.output.write_text(recipe_text(result, command), encoding="utf-8")
     wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
@@ -1378,6 +1383,9 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
             "handctl plan TEMPLATE.yaml -o RECIPE.yaml --quick",
             "handctl plan config/recipes/swap_two_cylinders.template.yaml --from manipulate_1 "
             "--base config/recipes/swap_two_cylinders.yaml -o replanned.yaml",
+            "handctl plan config/recipes/swap_two_cylinders.template.yaml --from manipulate_3 "
+            "--base config/recipes/swap_two_cylinders.yaml --schedule-only "
+            "-o config/recipes/swap_two_cylinders.yaml",
         ],
     )
     plan.add_argument(
@@ -1422,6 +1430,13 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=Path,
         metavar="RECIPE.yaml",
         help="with --from: a recipe compiled from the same template for the same hand",
+    )
+    plan.add_argument(
+        "--schedule-only",
+        action="store_true",
+        help="with --from and --base: keep every phase's own torques from --base and search "
+        "only the template's planned schedule entries (plan: {models: N}) of the phases from "
+        "--from on",
     )
     plan.add_argument(
         "--workers",

@@ -36,18 +36,20 @@ import numpy as np
 from handctl.analysis.model import AnalysisError
 from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
+from handctl.errors import ConfigError
 from handctl.executor import WorkPool, open_pool
 from handctl.online.recipes.schema import (
     Condition,
     PacedRamp,
     Phase,
     PoseHold,
+    ScheduledTorques,
     TimeoutAction,
     parse_condition,
 )
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.planning.grasp import GraspSnapshot, fixed_directions, grasp_of, turn_directions
-from handctl.planning.models import Model, model_set
+from handctl.planning.models import Model, model_set, sized_models
 from handctl.planning.phase_task import PhaseTask, World, episode_of, run_phase_task, snapshot_of
 from handctl.planning.replan import Base
 from handctl.planning.search import (
@@ -61,10 +63,10 @@ from handctl.planning.search import (
     hold_scorer,
     turn_scorer,
 )
-from handctl.planning.template import Template, TemplatePhase
+from handctl.planning.template import PlannedSchedule, Template, TemplatePhase
 from handctl.progress import Progress
 from handctl.schema import dump_yaml
-from handctl.sim.params import parse_sim
+from handctl.sim.params import SimParams, parse_sim
 
 #: decimals of N·m kept in the compiled recipe (0.1 mN·m, far below the TDT resolution)
 TORQUE_DECIMALS = 4
@@ -305,8 +307,18 @@ def _advance_to_contact(episode: Episode, phase: Phase) -> None:
     episode.run_phase(phase, stop=touching)
 
 
+def _written_schedule(spec: TemplatePhase) -> tuple[ScheduledTorques, ...]:
+    """The entries of ``spec``'s schedule that give their torques (the planned ones are the
+    plan's to fill in)."""
+    return tuple(e for e in spec.schedule if isinstance(e, ScheduledTorques))
+
+
 def _compiled_phase(
-    spec: TemplatePhase, torques: tuple[float, ...], hand: HandConfig, pose: PoseHold | None = None
+    spec: TemplatePhase,
+    torques: tuple[float, ...],
+    hand: HandConfig,
+    pose: PoseHold | None = None,
+    schedule: tuple[ScheduledTorques, ...] | None = None,
 ) -> Phase:
     exits: tuple[Condition, ...] = ()
     if spec.kind == "turn":
@@ -330,7 +342,7 @@ def _compiled_phase(
         torque_margin=spec.torque_margin,
         stall=spec.stall,
         reanalyse=spec.reanalyse,
-        schedule=spec.schedule,
+        schedule=_written_schedule(spec) if schedule is None else schedule,
     )
 
 
@@ -491,7 +503,27 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 "models": len(alive),
                 "successes": chosen.successes,
             }
-        phase = _compiled_phase(spec, torques, hand, pose)
+        schedule: tuple[ScheduledTorques, ...] | None = None
+        schedule_doc: list[dict[str, Any]] = []
+        if any(isinstance(e, PlannedSchedule) for e in spec.schedule):
+            if kept is not None and base is not None and not base.plans_schedule(spec.name):
+                schedule = _base_schedule(spec, kept, base)
+            else:
+                schedule, schedule_doc = _plan_schedule(
+                    template,
+                    hand,
+                    params,
+                    spec,
+                    index,
+                    torques,
+                    previous,
+                    plans,
+                    budget=budget,
+                    executor=executor,
+                    meter=meter,
+                    say=say,
+                )
+        phase = _compiled_phase(spec, torques, hand, pose, schedule)
         ran = executor.map(
             run_phase_task,
             [PhaseTask(worlds[i], snaps[i], phase, lifted, keep_state=True) for i in alive],
@@ -535,6 +567,8 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         if kept is not None:
             # what planned the kept torques; the models below are this plan's
             provenance = {**dict(kept.provenance), "kept_from": origin}
+        if schedule_doc:
+            provenance["schedule"] = schedule_doc
         provenance["models"] = {
             "ran": len(alive),
             "held": len(survivors),
@@ -550,6 +584,154 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
             lifted = True
     digest = hashlib.sha256(Path(template.source).read_bytes()).hexdigest()[:16]
     return PlanResult(template, hand, plans, model_list, f"sha256:{digest}", base)
+
+
+def _base_schedule(spec: TemplatePhase, kept: Phase, base: Base) -> tuple[ScheduledTorques, ...]:
+    """``spec``'s schedule for a phase the plan keeps: the written entries as the template
+    writes them, each planned one with the torques the base recipe has for its ``when``."""
+    out: list[ScheduledTorques] = []
+    for k, entry in enumerate(spec.schedule):
+        if isinstance(entry, ScheduledTorques):
+            out.append(entry)
+            continue
+        found = next((e for e in kept.schedule if e.when == entry.when), None)
+        if found is None:
+            raise ConfigError(
+                base.recipe.source,
+                f"phases[{spec.name}].schedule",
+                f"an entry for the template's schedule[{k}] (or plan it: --from {spec.name})",
+                "none with its ranges",
+            )
+        out.append(ScheduledTorques(entry.when, found.torques))
+    return tuple(out)
+
+
+def _plan_schedule(
+    template: Template,
+    hand: HandConfig,
+    params: SimParams,
+    spec: TemplatePhase,
+    index: int,
+    own: tuple[float, ...],
+    previous: tuple[float, ...],
+    plans: Sequence[PhasePlan],
+    *,
+    budget: Budget,
+    executor: WorkPool,
+    meter: Callable[[str, int], Progress] | None,
+    say: Callable[[str], None],
+) -> tuple[tuple[ScheduledTorques, ...], list[dict[str, Any]]]:
+    """``spec``'s schedule with each planned entry's torque searched (the written ones as
+    written), and what each search found, for the provenance.
+
+    Each planned entry gets models of its own: the template's spread with the objects' radii
+    drawn within the entry's ranges (``models.sized_models``), run through the phases
+    compiled so far (as every model of the plan is), and the search (``cem``) for the phase
+    on those of them that still hold the objects, from the phase's own torque, the written
+    entries', the previous phase's and random flexion seeds. Why its own models: the entry
+    is the torque for hands with objects of that size, so it is chosen on such hands, with
+    every other uncertainty of the spread."""
+    settings = template.search
+    written = _written_schedule(spec)
+    margin, fail = (
+        (GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL)
+        if template.limit_guard_band is not None
+        else (LIMIT_MARGIN, LIMIT_FAIL)
+    )
+    scorer = turn_scorer(spec.turn, spec.max_s, margin, settings.max_turn_rate_deg_s)
+    limits = [j.tau_max for j in hand.joints]
+    out: list[ScheduledTorques] = []
+    docs: list[dict[str, Any]] = []
+    for k, entry in enumerate(spec.schedule):
+        if isinstance(entry, ScheduledTorques):
+            out.append(entry)
+            continue
+        name = f"{spec.name}.schedule[{k}]"
+        ranges = {r.object: (r.low, r.high) for r in entry.when}
+        models = sized_models(
+            params, entry.models, (settings.seed, index, k), settings.spread, ranges, hand
+        )
+        worlds = [
+            World.of(hand, m.params, template.objects, template.limit_guard_band) for m in models
+        ]
+        snaps = [snapshot_of(w) for w in worlds]
+        alive = list(range(len(worlds)))
+        lifted = False
+        say(f"  {name}: {len(worlds)} model(s) of its sizes through the phases before it")
+        for before in plans:
+            ran = executor.map(
+                run_phase_task,
+                [
+                    PhaseTask(worlds[i], snaps[i], before.phase, lifted, keep_state=True)
+                    for i in alive
+                ],
+            )
+            held = []
+            for i, (outcome, snap) in zip(alive, ran, strict=True):
+                assert snap is not None
+                snaps[i] = snap
+                if not outcome.failed and outcome.in_hand:
+                    held.append(i)
+            alive = held
+            lifted = lifted or before.spec.kind == "lift"
+        if not alive:
+            raise AnalysisError(
+                f"no model of {name}'s sizes holds the objects when '{spec.name}' begins: "
+                "the phases before it fail on objects of that size (narrow its ranges)"
+            )
+        rng = np.random.default_rng((settings.seed, index, 1 + k))
+        seeds: list[tuple[str, tuple[float, ...]]] = [("phase's own", own)]
+        seeds += [(f"schedule[{j}]", e.torques) for j, e in enumerate(written)]
+        if any(previous):
+            seeds.append(("previous phase", previous))
+        seeds += [
+            (f"random flexion {j + 1}", _flexion_seed(hand, rng))
+            for j in range(settings.random_seeds)
+        ]
+        runs = (len(seeds) + budget.generations * budget.population) * len(alive)
+        bar = meter(f"phase {name}", runs) if meter is not None else None
+        result = cem(
+            [worlds[i] for i in alive],
+            [snaps[i] for i in alive],
+            _compiled_phase(spec, own, hand, schedule=()),
+            seeds,
+            limits,
+            scorer,
+            rng,
+            budget,
+            executor,
+            lifted=lifted,
+            progress=say,
+            limit_fail=fail,
+            wanted_turn_deg=math.degrees(spec.turn),
+            bar=bar,
+        )
+        if bar is not None:
+            bar.close()
+        best = result.best
+        out.append(ScheduledTorques(entry.when, tuple(_rounded(best.torques))))
+        objects = spec.object_names
+        docs.append(
+            {
+                "entry": k,
+                "radius_ratio": [
+                    {"object": objects[r.object], "min": r.low, "max": r.high} for r in entry.when
+                ],
+                "models": len(worlds),
+                "held": len(alive),
+                "chosen_from": best.origin,
+                "score": round(best.score, 4),
+                "successes": best.successes,
+                "failures": best.failures,
+                "true_turn_deg": [round(o.true_turn_deg, 1) for o in best.outcomes],
+                "peak_rate_deg_s": [round(o.peak_rate_deg_s) for o in best.outcomes],
+            }
+        )
+        say(
+            f"  {name}: chosen from {best.origin}, {best.successes}/{len(alive)} models turn, "
+            f"{best.failures} fail"
+        )
+    return tuple(out), docs
 
 
 def _wanted(spec: TemplatePhase) -> dict[str, Any]:

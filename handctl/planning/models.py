@@ -275,6 +275,50 @@ def model_set(
     return out
 
 
+def sized_models(
+    params: SimParams,
+    count: int,
+    seed: int | tuple[int, ...],
+    spread: Spread,
+    radius: dict[int, Range],
+    hand: HandConfig | None = None,
+) -> list[Model]:
+    """``count`` models of ``spread`` whose objects' radius factors are drawn within
+    ``radius`` (object index to (low, high) factors of the configured radius; the other
+    objects' within the spread's ±), stratified like ``model_set``'s. A range reaching out of
+    the spread is cut to it where that leaves a range, so the models stay hands the spread
+    covers. Why: a torque for objects of some size (a ``schedule`` entry) is planned on
+    hands with objects of that size, and every other uncertainty of the spread."""
+    # one stream for what the spread draws, one for the sizes
+    spread_stream, size_stream = np.random.SeedSequence(seed).spawn(2)
+    strata = Strata(np.random.default_rng(spread_stream), count)
+    sizes = Strata(np.random.default_rng(size_stream), count)
+    fixed = dataclasses.replace(spread, radius=0.0)
+    lo_spread, hi_spread = 1.0 - spread.radius, 1.0 + spread.radius
+    out: list[Model] = []
+    for k in range(count):
+        strata.start(k)
+        sizes.start(k)
+        model = perturb(params, strata, fixed, hand)
+        factors = []
+        for i in range(len(params.objects)):
+            low, high = radius.get(i, (lo_spread, hi_spread))
+            if max(low, lo_spread) < min(high, hi_spread):
+                low, high = max(low, lo_spread), min(high, hi_spread)
+            factors.append(sizes.uniform(low, high))
+        sized = _with(
+            model.params,
+            model.params.friction,
+            [1.0] * len(factors),
+            factors,
+            0.0,
+            model.scales.get("gap_m"),
+        )
+        scales = dict(model.scales) | {f"radius.{i + 1}": f for i, f in enumerate(factors)}
+        out.append(Model(k, sized, scales))
+    return out
+
+
 def sim_section(params: SimParams) -> dict[str, Any]:
     """``params`` back as a ``sim:`` mapping of a hand config (for a run through the bus)."""
     p = params

@@ -25,9 +25,15 @@ class Base:
 
     recipe: Recipe
     start: str  # the first phase planned again
+    #: keep every phase's own torques; plan only the planned ``schedule`` entries of the
+    #: phases from ``start`` on (``handctl plan --schedule-only``)
+    schedule_only: bool = False
 
     def kept(self, name: str) -> Phase | None:
-        """The base's phase ``name`` if the plan keeps it (it comes before ``start``)."""
+        """The base's phase ``name`` if the plan keeps its torques (it comes before
+        ``start``, or the plan is of the schedules only)."""
+        if self.schedule_only:
+            return self.phase(name)
         for phase in self.recipe.phases:
             if phase.name == self.start:
                 return None
@@ -40,12 +46,26 @@ class Base:
         too, so the plan keeps the base's torque unless it finds one that ranks above it."""
         return next((p for p in self.recipe.phases if p.name == name), None)
 
-    def describe(self) -> dict[str, str]:
+    def plans_schedule(self, name: str) -> bool:
+        """Whether the plan searches phase ``name``'s planned ``schedule`` entries (it is
+        ``start`` or after it); a phase before it keeps the base's."""
+        names = [p.name for p in self.recipe.phases]
+        return name not in names or names.index(name) >= names.index(self.start)
+
+    def describe(self) -> dict[str, str | bool]:
         """For the re-planned recipe's ``planned_from``."""
-        return {"from_phase": self.start, "base": Path(self.recipe.source).name}
+        out: dict[str, str | bool] = {
+            "from_phase": self.start,
+            "base": Path(self.recipe.source).name,
+        }
+        if self.schedule_only:
+            out["schedule_only"] = True
+        return out
 
 
-def load_base(path: Path, start: str, template: Template, hand: HandConfig) -> Base:
+def load_base(
+    path: Path, start: str, template: Template, hand: HandConfig, schedule_only: bool = False
+) -> Base:
     """Load ``path`` as the base of a plan of ``template`` from phase ``start`` on, checking
     that it was compiled from this template's phases for this hand; every problem is a
     ``ConfigError`` naming the option or the file, the key, what was expected and found."""
@@ -81,7 +101,8 @@ def load_base(path: Path, start: str, template: Template, hand: HandConfig) -> B
             f"the template's objects {wanted_objects} (name, radius in m)",
             found_objects,
         )
-    kept = names[: names.index(start)]
+    # the phases whose torques are kept must be the template's, in its order
+    kept = names if schedule_only else names[: names.index(start)]
     have = [p.name for p in recipe.phases]
     for i, name in enumerate(kept):
         if i >= len(have) or have[i] != name:
@@ -91,4 +112,4 @@ def load_base(path: Path, start: str, template: Template, hand: HandConfig) -> B
                 f"'{name}', the template's phase {i + 1} (the phases before '{start}' are kept)",
                 have[i] if i < len(have) else "no such phase",
             )
-    return Base(recipe, start)
+    return Base(recipe, start, schedule_only)

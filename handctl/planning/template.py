@@ -9,7 +9,10 @@ A template says *what* each phase must do, not the torques that do it:
 - ``hold``: the objects stay up and caged (no wanted motion);
 - ``turn``: the line through the two centres turns by ``turn_deg`` (counter-clockwise
   positive); the compiled phase exits when the *estimated* turn reaches ``exit_fraction`` of
-  it, held ``exit_hold_s``, and moves on at ``max_s`` otherwise.
+  it, held ``exit_hold_s``, and moves on at ``max_s`` otherwise. Its ``schedule`` entries
+  (alternative torques for the objects' measured sizes) either give their ``torques``,
+  carried into the recipe as written, or ask for ``plan: {models: N}``: the plan searches
+  that entry's torque on N models whose objects are of the sizes its ``when`` names.
 
 ``seed`` torques (optional) are where the search starts besides the analysis' answer and the
 previous phase's torques. ``search`` sets the budget and the perturbed models. Loading is
@@ -25,6 +28,7 @@ from pathlib import Path
 
 from handctl.config import HandConfig
 from handctl.online.recipes.loader import (
+    MAX_SCHEDULE,
     check_unique_names,
     parse_brake,
     parse_grasp_model,
@@ -34,7 +38,8 @@ from handctl.online.recipes.loader import (
     parse_objects,
     parse_paced_ramp,
     parse_reanalyse,
-    parse_schedule,
+    parse_schedule_torques,
+    parse_schedule_when,
     parse_stall,
     parse_torque_margin,
     parse_turn_rate,
@@ -43,6 +48,7 @@ from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
     GraspModel,
     PacedRamp,
+    RadiusRatio,
     Reanalyse,
     RecipeObject,
     ScheduledTorques,
@@ -57,6 +63,25 @@ from handctl.planning.search import MAX_TURN_RATE_DEG_S, Budget
 from handctl.schema import Doc, load_yaml
 
 KINDS = ("free", "lift", "hold", "turn")
+#: the most models a planned ``schedule`` entry may ask for
+MAX_SCHEDULE_MODELS = 64
+
+
+@dataclass(frozen=True)
+class PlannedSchedule:
+    """A ``schedule`` entry of a template's turn phase whose torque the plan searches
+    (``plan: {models: N}``), on ``models`` models of the template's spread whose objects'
+    radii are drawn within ``when``'s ranges (``compile._plan_schedule``).
+
+    Why planned: a torque found by hand for one size of object is tuned to the hands it was
+    tried on; searched over models of that size (and every other uncertainty of the spread),
+    it is chosen as the phase's own torque is, for what a hand of that size does."""
+
+    when: tuple[RadiusRatio, ...]
+    models: int
+
+
+ScheduleEntry = ScheduledTorques | PlannedSchedule
 
 
 @dataclass(frozen=True)
@@ -89,9 +114,9 @@ class TemplatePhase:
     stall: TurnStall | None = None  # the end of a turn phase that stopped turning, carried
     #: the analysis again at the measured configuration when the phase begins, carried
     reanalyse: Reanalyse | None = None
-    #: a turn phase's alternative torques for the objects' measured sizes, carried into the
-    #: recipe as written (the search plans the phase's own torques, on the template's models)
-    schedule: tuple[ScheduledTorques, ...] = ()
+    #: a turn phase's alternative torques for the objects' measured sizes: written ones are
+    #: carried into the recipe as written, planned ones searched (``PlannedSchedule``)
+    schedule: tuple[ScheduleEntry, ...] = ()
     #: the template's object names, by which a compiled ``schedule`` names its ranges
     object_names: tuple[str, ...] = ()
 
@@ -265,6 +290,31 @@ def _spread(doc: Doc) -> Spread:
     return spread
 
 
+def _schedule(doc: Doc, hand: HandConfig, objects: list[str]) -> tuple[ScheduleEntry, ...]:
+    """A template's ``schedule``: each entry a recipe's (``when`` and ``torques``) or
+    ``when`` and ``plan: {models: N}``, never both."""
+    if not doc.has("schedule"):
+        return ()
+    out: list[ScheduleEntry] = []
+    for entry in doc.mappings("schedule", min_len=1, max_len=MAX_SCHEDULE):
+        when = parse_schedule_when(entry, objects)
+        if entry.has("plan") == entry.has("torques"):
+            entry.fail(
+                "torques",
+                "either torques (carried as written) or plan: {models: N} (searched)",
+                "both" if entry.has("plan") else "neither",
+            )
+        if entry.has("plan"):
+            plan = entry.mapping("plan")
+            models = plan.integer("models", min=2, max=MAX_SCHEDULE_MODELS)
+            plan.done()
+            out.append(PlannedSchedule(when, models))
+        else:
+            out.append(ScheduledTorques(when, parse_schedule_torques(entry, hand)))
+        entry.done()
+    return tuple(out)
+
+
 def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
     raw = doc.raw(key)
     if isinstance(raw, list):
@@ -306,7 +356,7 @@ def _phase(
     turn_from = ""
     stall = None
     reanalyse = None
-    schedule: tuple[ScheduledTorques, ...] = ()
+    schedule: tuple[ScheduleEntry, ...] = ()
     if kind == "turn":
         if len(objects) < 2:
             doc.fail(
@@ -327,7 +377,7 @@ def _phase(
         stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
         if doc.has("reanalyse"):
             reanalyse = parse_reanalyse(doc.mapping("reanalyse"), turn)
-        schedule = parse_schedule(doc, hand, objects)
+        schedule = _schedule(doc, hand, objects)
         if schedule and reanalyse is not None:
             doc.fail(
                 "schedule",

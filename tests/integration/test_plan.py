@@ -222,3 +222,55 @@ def test_a_replan_refuses_an_unknown_phase_and_a_base_of_another_template_or_han
     assert done.returncode == 2
     assert f"{other}: phases[0].name: expected 'approach'" in done.stderr
     assert not out.exists()
+
+
+def test_a_planned_schedule_entry_is_searched_on_models_of_its_sizes(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A turn phase's ``schedule`` entry with ``plan: {models: N}`` gets torques searched on N
+    models whose cylinder 1 is of the entry's size, recorded in the phase's provenance, and
+    the written entry beside it is carried as written; ``--schedule-only`` keeps every
+    phase's own torques from ``--base`` and searches the planned entries again (the same
+    ones: the models and the search are seeded by the template)."""
+    template = short_template(tmp_path)
+    data = yaml.safe_load(template.read_text())
+    written = {name: 0.05 for name in hand.joint_names}
+    data["phases"][3]["schedule"] = [
+        {"when": {"radius_ratio": {"object": "cyl1", "min": 1.1}}, "plan": {"models": 2}},
+        {"when": {"radius_ratio": {"object": "cyl2", "min": 1.1}}, "torques": written},
+    ]
+    template.write_text(yaml.safe_dump(data, sort_keys=False))
+    full = tmp_path / "full.yaml"
+    done = plan_command(str(template), "-o", str(full), "--quick", "--models", "1")
+    assert done.returncode == 0, done.stderr
+    doc = yaml.safe_load(full.read_text())
+    turn = doc["phases"][3]
+    planned, kept = turn["schedule"]
+    assert planned["when"]["radius_ratio"] == [{"object": "cyl1", "min": 1.1, "max": 1.5}]
+    assert set(planned["torques"]) == set(hand.joint_names)
+    assert kept["torques"] == written
+    (record,) = turn["provenance"]["schedule"]
+    assert record["entry"] == 0 and record["models"] == 2
+    assert 1 <= record["held"] <= 2 and len(record["true_turn_deg"]) == record["held"]
+    assert record["radius_ratio"] == [{"object": "cyl1", "min": 1.1, "max": 1.5}]
+    recipe = load_recipe(full, hand)
+    assert len(recipe.phases[3].schedule) == 2
+
+    again = tmp_path / "again.yaml"
+    done = plan_command(
+        str(template), "-o", str(again), "--quick", "--models", "1",
+        "--from", "manipulate_1", "--base", str(full), "--schedule-only",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    again_doc = yaml.safe_load(again.read_text())
+    assert again_doc["planned_from"]["schedule_only"] is True
+    for before, after in zip(doc["phases"], again_doc["phases"], strict=True):
+        assert after["torques"] == before["torques"]
+        assert after["provenance"]["kept_from"] == "base recipe full.yaml"
+    assert again_doc["phases"][3]["schedule"] == turn["schedule"]
+    assert again_doc["phases"][3]["provenance"]["schedule"] == turn["provenance"]["schedule"]
+    assert "--schedule-only" in again.read_text().splitlines()[1]
+
+    alone = plan_command(str(template), "-o", str(again), "--schedule-only")
+    assert alone.returncode == 2
+    assert "--schedule-only: expected --schedule-only with --from and --base" in alone.stderr

@@ -124,3 +124,30 @@ def test_a_plan_s_few_models_cover_every_range_end_to_end(
     for key, half in (("mass.1", spread.mass), ("radius.2", spread.radius)):
         assert fifths([s[key] for s in scales], 1 - half, 1 + half) == every, key
     assert fifths([s["gap_m"] for s in scales], *(spread.gap or (0.0, 0.0))) == every
+
+
+def test_a_schedule_entry_s_models_have_objects_of_its_sizes(
+    hand: HandConfig, params: SimParams
+) -> None:
+    """``sized_models``: the ranged object's radius is drawn within its range (cut to the
+    spread's ±), the other's within the spread's, every other factor as the spread draws
+    it; the same seed gives the same models, and the scene stays a pair on the table."""
+    from handctl.planning.models import sized_models
+
+    spread = Spread()
+    models = sized_models(params, 8, (7, 5, 0), spread, {0: (1.1, 1.4)}, hand)
+    again = sized_models(params, 8, (7, 5, 0), spread, {0: (1.1, 1.4)}, hand)
+    assert [m.scales for m in models] == [m.scales for m in again]
+    first = [m.scales["radius.1"] for m in models]
+    second = [m.scales["radius.2"] for m in models]
+    assert all(1.1 <= f <= 1.0 + spread.radius for f in first)
+    assert all(1.0 - spread.radius <= f <= 1.0 + spread.radius for f in second)
+    # stratified: the eight cover the cut range end to end, a stratum each
+    assert max(first) - min(first) > 0.7 * (1.0 + spread.radius - 1.1)
+    assert len({round(m.scales["damping"], 6) for m in models}) == 8
+    for m, f1, f2 in zip(models, first, second, strict=True):
+        a, b = m.params.objects
+        assert a.radius == pytest.approx(params.objects[0].radius * f1)
+        assert b.radius == pytest.approx(params.objects[1].radius * f2)
+        assert a.y == pytest.approx(m.params.table_height + a.radius)
+        assert _gap(m.params) == pytest.approx(m.scales["gap_m"], abs=1e-9)

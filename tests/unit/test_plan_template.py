@@ -61,6 +61,52 @@ def test_the_shipped_recipe_carries_the_template_s_feedback(hand: HandConfig) ->
             assert phase.pose.damping == spec.pose_damping, spec.name
 
 
+def _schedule(data: dict[str, Any], *entries: dict[str, Any]) -> None:
+    data["phases"][3]["schedule"] = list(entries)
+
+
+_WHEN = {"radius_ratio": {"object": "cyl1", "min": 1.1}}
+_TORQUES = {f"f{f}_j{j}": 0.1 for f in (1, 2, 3) for j in (1, 2, 3)}
+
+
+def test_a_schedule_entry_is_written_or_planned(tmp_path: Path, hand: HandConfig) -> None:
+    """A template's schedule entry gives its torques (carried as written) or asks the plan
+    to search them (``plan: {models: N}``), in the order the runner tries them."""
+    from handctl.online.recipes.schema import ScheduledTorques
+    from handctl.planning.template import PlannedSchedule
+
+    data = base()
+    _schedule(
+        data,
+        {"when": _WHEN, "plan": {"models": 5}},
+        {"when": _WHEN, "torques": _TORQUES},
+    )
+    planned, written = load_template(write(tmp_path, data), hand).phases[3].schedule
+    assert isinstance(planned, PlannedSchedule) and planned.models == 5
+    assert planned.when[0].object == 0 and planned.when[0].low == 1.1
+    assert isinstance(written, ScheduledTorques) and written.torques == (0.1,) * 9
+
+
+@pytest.mark.parametrize(
+    ("entry", "key", "expected"),
+    [
+        ({"when": _WHEN, "plan": {"models": 5}, "torques": _TORQUES}, "torques", "both"),
+        ({"when": _WHEN}, "torques", "neither"),
+        ({"when": _WHEN, "plan": {"models": 1}}, "plan.models", "an integer"),
+        ({"when": _WHEN, "plan": {"models": 4, "seed": 3}}, "plan.seed", "unknown key"),
+    ],
+)
+def test_a_bad_schedule_entry_is_refused_naming_the_key(
+    tmp_path: Path, hand: HandConfig, entry: dict[str, Any], key: str, expected: str
+) -> None:
+    data = base()
+    _schedule(data, entry)
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key == f"phases[3].schedule[0].{key}"
+    assert expected in str(info.value)
+
+
 @pytest.mark.parametrize(
     ("change", "key", "expected"),
     [

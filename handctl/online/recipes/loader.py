@@ -341,28 +341,39 @@ def parse_schedule(
         return ()
     out: list[ScheduledTorques] = []
     for entry in doc.mappings("schedule", min_len=1, max_len=MAX_SCHEDULE):
-        when = entry.mapping("when")
-        when.expect(["radius_ratio"])  # what a torque may be scheduled on
-        raw = when.raw("radius_ratio")
-        single = isinstance(raw, dict)
-        items = [raw] if single else raw
-        if not isinstance(items, list) or not items:
-            when.fail(
-                "radius_ratio",
-                "a range {object: NAME, min: RATIO, max: RATIO} or a non-empty list of them",
-                raw,
-            )
-        ranges: list[RadiusRatio] = []
-        for i, item in enumerate(items):
-            path = when.key_path("radius_ratio") + ("" if single else f"[{i}]")
-            if not isinstance(item, dict):
-                raise ConfigError(doc.file, path, "a mapping {object, min, max}", item)
-            ranges.append(_parse_radius_ratio(Doc(item, doc.file, path), names, ranges))
-        when.done()
+        when = parse_schedule_when(entry, names)
         torques = _parse_torques(entry, hand)
         entry.done()
-        out.append(ScheduledTorques(tuple(ranges), torques))
+        out.append(ScheduledTorques(when, torques))
     return tuple(out)
+
+
+def parse_schedule_when(entry: Doc, names: Sequence[str]) -> tuple[RadiusRatio, ...]:
+    """The ``when`` of one ``schedule`` entry: the ranges of measured radius it is for."""
+    when = entry.mapping("when")
+    when.expect(["radius_ratio"])  # what a torque may be scheduled on
+    raw = when.raw("radius_ratio")
+    single = isinstance(raw, dict)
+    items = [raw] if single else raw
+    if not isinstance(items, list) or not items:
+        when.fail(
+            "radius_ratio",
+            "a range {object: NAME, min: RATIO, max: RATIO} or a non-empty list of them",
+            raw,
+        )
+    ranges: list[RadiusRatio] = []
+    for i, item in enumerate(items):
+        path = when.key_path("radius_ratio") + ("" if single else f"[{i}]")
+        if not isinstance(item, dict):
+            raise ConfigError(entry.file, path, "a mapping {object, min, max}", item)
+        ranges.append(_parse_radius_ratio(Doc(item, entry.file, path), names, ranges))
+    when.done()
+    return tuple(ranges)
+
+
+def parse_schedule_torques(entry: Doc, hand: HandConfig) -> tuple[float, ...]:
+    """The ``torques`` of one ``schedule`` entry (N·m, config joint order)."""
+    return _parse_torques(entry, hand)
 
 
 def _parse_radius_ratio(
