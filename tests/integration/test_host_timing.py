@@ -181,7 +181,11 @@ def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) ->
     host = summary["host"]
     assert host["verdict"] in ("pass", "marginal", "fail")
     assert (
-        host["missed_host"] + host["missed_handctl"] + host["missed_unobserved"]
+        host["missed_host"]
+        + host["missed_host_slow_cpu"]
+        + host["missed_rival"]
+        + host["missed_handctl"]
+        + host["missed_unobserved"]
         == summary["missed_ticks"]
     )
     assert host["probe_period_us"] == 500.0

@@ -169,6 +169,7 @@ def test_a_missed_tick_is_the_hosts_only_if_the_bare_loop_stalled_with_it() -> N
     own: list[int] = []
     assert attribute(loop, host, MS, own) == {
         "missed_host": 3,
+        "missed_host_slow_cpu": 0,
         "missed_rival": 0,
         "missed_handctl": 2,
         "missed_handctl_after_host": 0,
