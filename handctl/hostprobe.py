@@ -202,7 +202,7 @@ def probe(
             hist[b if 0 <= b < HIST_RANGE_US else (0 if b < 0 else HIST_RANGE_US)] += 1
             late_max = max(late_max, late)
             stalls.add(wakeups, due - (n - 1) * period_ns, now, n - 1)
-            if late < hiccup_below:
+            if n == 1 and late < hiccup_below:  # a stall's own lateness is the stall's
                 hiccups.add(wakeups, due, now, 0)
             if iterations:
                 c0 = cpu_clock()
