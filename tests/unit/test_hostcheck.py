@@ -304,7 +304,9 @@ def hiccups(first_index: int, from_ms: float, late_us: list[float]) -> list[list
 
 
 def slow_record(
-    pieces: list[list[int]], late: list[list[int]], stalls: list[tuple[int, float, float]] = ()
+    pieces: list[list[int]],
+    late: list[list[int]],
+    stalls: tuple[tuple[int, float, float], ...] = (),
 ) -> ProbeRecord:
     return record(
         list(stalls),
@@ -355,7 +357,7 @@ def test_hiccups_short_of_a_stall_add_up_to_a_miss() -> None:
 
 
 def test_stalls_alone_still_make_a_miss_the_hosts_not_its_slow_cpus() -> None:
-    host = slow_record(slow_pieces(1598, 799.0, 10, 5.0), [], stalls=[(1600, 801.0, 2.0)])
+    host = slow_record(slow_pieces(1598, 799.0, 10, 5.0), [], stalls=((1600, 801.0, 2.0),))
     shares = attribute([BUSY_TICK], host, MS)
     assert (shares["missed_host"], shares["missed_host_slow_cpu"]) == (2, 0)
 
