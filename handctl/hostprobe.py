@@ -1,20 +1,22 @@
 """The bare timer loop of the timing check, a process of its own: it only waits for its timerfd.
 
 What it measures is what the host does to any loop of that period, priority and CPU: the same
-``PeriodicTimer`` and the same ``request_realtime`` as the control loop, and no work at all, so
-every microsecond of lateness is the kernel's, the hypervisor's or another process's (like
-cyclictest of rt-tests). A loop that only waits cannot see a CPU that runs slower for a while
-(a hypervisor sharing the physical core, frequency, interruptions each shorter than the wait):
-so on each wake-up it also runs a fixed, calibrated piece of work (``WorkLog``) and keeps the
-wake-ups on which that work took much longer than usual. It is a process and not a thread
+``PeriodicTimer`` and the same ``request_realtime`` as the control loop, and no work of
+handctl's, so every microsecond of lateness is the kernel's, the hypervisor's or another
+process's (like cyclictest of rt-tests). A loop that only waits sees the CPU taken away only
+when that happens as it is due, and cannot see a CPU that runs slower for a while: so it also
+keeps its wake-ups late by less than a stall (hiccups), and on each wake-up it runs a fixed,
+calibrated piece of work (``WorkLog``) and keeps the wake-ups on which that took much longer
+than usual. It is a process and not a thread
 because a thread of the control process would wait for the interpreter lock whenever the
 control loop holds it, and take it from the loop every period.
 
 ``python -m handctl.hostprobe --period-ns N [--seconds S] [--record-ns T] [--priority P]
-[--cpu C] [--no-lock-memory] [--work-ns W] [--slow-factor F]`` runs until S seconds have passed
-or SIGTERM/SIGINT comes, then writes one JSON object to stdout (``handctl.hostcheck.ProbeRecord``
-reads it): the wake-up lateness as a histogram of 1 µs bins, every stall of at least T ns with
-its interval, and every slow piece of work with its interval and thread CPU time.
+[--cpu C] [--no-lock-memory] [--hiccup-ns H] [--work-ns W] [--slow-factor F]`` runs until S
+seconds have passed or SIGTERM/SIGINT comes, then writes one JSON object to stdout
+(``handctl.hostcheck.ProbeRecord`` reads it): the wake-up lateness as a histogram of 1 µs
+bins, every stall of at least T ns with its interval, every hiccup of at least H ns, and every
+slow piece of work with its interval and thread CPU time.
 """
 
 from __future__ import annotations
