@@ -474,9 +474,10 @@ def advice(
         tips.append(
             f"a CPU that does not slow down: the bare loop's CPU was taken away in hiccups or "
             f"ran slow {len(lost)} time(s) (longest "
-            f"{max(e - s for s, e, _ in lost) / 1e6:g} ms, {sum(n for _, _, n in lost) / 1e6:g}"
-            " ms lost in all); a dedicated or isolated CPU, no frequency scaling, a host that "
-            "does not overcommit its CPUs (a VM's vCPU pinned to a core of its own)"
+            f"{max(e - s for s, e, _ in lost) / 1e6:.3g} ms, "
+            f"{sum(n for _, _, n in lost) / 1e6:.3g} ms lost in all); a dedicated or isolated "
+            "CPU, no frequency scaling, a host that does not overcommit its CPUs (a VM's vCPU "
+            "pinned to a core of its own)"
         )
     slow = sorted({g for g in facts.governors.values() if g != "performance"})
     if slow:
