@@ -43,8 +43,8 @@ INJECT_ENV = "HANDCTL_TIMING_INJECT"
 #: Verdicts, best first.
 LEVELS = ("pass", "marginal", "fail")
 #: Share of the loop's period: a bare loop's wake-up this late, short of a stall, is a hiccup
-#: (the CPU taken away for a while). The bare loop is late by some 30-80 µs as a rule on the
-#: hosts measured (docs/timing.md), so at 1 kHz this is above the usual.
+#: (the CPU taken away for a while). The bare loop's median lateness is 30-80 µs on the hosts
+#: measured (docs/timing.md), so at 1 kHz this is well above the usual.
 HICCUP_SHARE = 0.1
 #: A host whose bare loop is late by more than this share of the period at p99 is marginal:
 #: the control loop's own tick (about 100 µs) must fit in what is left.
