@@ -315,7 +315,13 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
             f"  host (bare timer loop beside the run): {host['verdict'].upper()}, lateness "
             f"p99 {host['lateness_us']['p99']:g} µs, longest stall "
             f"{host['longest_stall_ms']:g} ms; missed ticks: {host['missed_host']} the "
-            f"host's, {host['missed_handctl']} handctl's"
+            f"host's"
+            + (
+                f" (and {host['missed_host_slow_cpu']} its slow CPU's)"
+                if host.get("missed_host_slow_cpu")
+                else ""
+            )
+            + f", {host['missed_handctl']} handctl's"
             + (
                 f", {host['missed_rival']} real-time rivals' ({', '.join(host['rivals'])})"
                 if host.get("missed_rival")

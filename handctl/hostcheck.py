@@ -42,6 +42,10 @@ PRECHECK_S = 1.5
 INJECT_ENV = "HANDCTL_TIMING_INJECT"
 #: Verdicts, best first.
 LEVELS = ("pass", "marginal", "fail")
+#: Share of the loop's period: a bare loop's wake-up this late, short of a stall, is a hiccup
+#: (the CPU taken away for a while). The bare loop's median lateness is 30-80 µs on the hosts
+#: measured (docs/timing.md), so at 1 kHz this is well above the usual.
+HICCUP_SHARE = 0.1
 #: A host whose bare loop is late by more than this share of the period at p99 is marginal:
 #: the control loop's own tick (about 100 µs) must fit in what is left.
 P99_SHARE = 0.5
@@ -85,6 +89,51 @@ class ProbeRecord:
     scheduler: dict[str, Any] = field(default_factory=dict)
     refused: tuple[str, ...] = ()
     source: str = "measured"
+    #: The piece of work on each wake-up (``hostprobe.WorkLog``): its usual wall time (0: the
+    #: probe did none), and the slow pieces as (wake-up index, start_ns, end_ns, cpu_ns).
+    work_reference_ns: int = 0
+    slow: tuple[tuple[int, int, int, int], ...] = ()
+    slow_overflow: int = 0
+    #: Wake-ups late by ``hiccup_ns`` or more but no stall, as (wake-up index, due_ns, wake_ns)
+    hiccup_ns: int = 0
+    hiccups: tuple[tuple[int, int, int], ...] = ()
+    hiccups_overflow: int = 0
+
+    def slow_cpu_intervals(self) -> list[tuple[int, int, int]]:
+        """Where the CPU was slow for a loop, as ``(start_ns, end_ns, lost_ns)``: hiccups and
+        slow pieces of work on consecutive wake-ups are one interval, from the first's start
+        to the last's end; lost is what was seen lost (each hiccup's lateness, each slow
+        piece's time over the usual)."""
+        events = sorted(
+            [(i, due, wake, wake - due) for i, due, wake in self.hiccups]
+            + [
+                (i, start, end, max(0, end - start - self.work_reference_ns))
+                for i, start, end, _ in self.slow
+            ]
+        )
+        out: list[tuple[int, int, int]] = []
+        last = None
+        for index, start, end, lost in events:
+            if out and last is not None and index - last <= 1:
+                s0, e0, l0 = out[-1]
+                out[-1] = (s0, max(e0, end), l0 + lost)
+            else:
+                out.append((start, end, lost))
+            last = index
+        return out
+
+    def slow_cpu_hits(self) -> list[tuple[int, int]]:
+        """The wake-ups on which the bare loop found its CPU taken away or slow, as
+        ``(time_ns, seen_ns)``: when (a hiccup's deadline, a slow piece's start) and how long
+        it saw lost (the hiccup's lateness, the piece's time over the usual); a wake-up with
+        both is one hit."""
+        hits: dict[int, tuple[int, int]] = {}
+        for index, due, wake in self.hiccups:
+            hits[index] = (due, wake - due)
+        for index, start, end, _ in self.slow:
+            at, seen = hits.get(index, (start, 0))
+            hits[index] = (at, seen + max(0, end - start - self.work_reference_ns))
+        return sorted(hits.values())
 
     @classmethod
     def from_json(cls, data: object, source: str) -> ProbeRecord:
@@ -147,6 +196,27 @@ class ProbeRecord:
                     row,
                 )
             stalls.append((row[0], row[1], row[2], row[3]))
+        reference, slow, slow_overflow = _work(data.get("work"), source, prefix + "work")
+        hiccups_raw = data.get("hiccups", [])
+        if not isinstance(hiccups_raw, list):
+            raise ConfigError(
+                source, prefix + "hiccups", "a list of [index, due_ns, wake_ns]", hiccups_raw
+            )
+        hiccups = []
+        for i, row in enumerate(hiccups_raw):
+            if (
+                not isinstance(row, list)
+                or len(row) != 3
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in row)
+                or row[2] < row[1]
+            ):
+                raise ConfigError(
+                    source,
+                    f"{prefix}hiccups[{i}]",
+                    "[index, due_ns, wake_ns] with wake_ns >= due_ns",
+                    row,
+                )
+            hiccups.append((row[0], row[1], row[2]))
         return cls(
             period_ns=period,
             start_ns=integer("start_ns"),
@@ -160,6 +230,12 @@ class ProbeRecord:
             scheduler=dict(scheduler),
             refused=tuple(refused),
             source=source,
+            work_reference_ns=reference,
+            slow=slow,
+            slow_overflow=slow_overflow,
+            hiccup_ns=integer("hiccup_ns", default=0),
+            hiccups=tuple(hiccups),
+            hiccups_overflow=integer("hiccups_overflow", default=0),
         )
 
     def as_json(self) -> dict[str, Any]:
@@ -176,6 +252,14 @@ class ProbeRecord:
             "scheduler": self.scheduler,
             "refused": list(self.refused),
             "source": self.source,
+            "hiccup_ns": self.hiccup_ns,
+            "hiccups": [list(h) for h in self.hiccups],
+            "hiccups_overflow": self.hiccups_overflow,
+            "work": {
+                "reference_ns": self.work_reference_ns,
+                "slow": [list(s) for s in self.slow],
+                "slow_overflow": self.slow_overflow,
+            },
         }
 
     def lateness_us(self, q: float) -> float:
@@ -190,6 +274,45 @@ class ProbeRecord:
             if seen >= rank:
                 return float(b)
         return float(HIST_RANGE_US)
+
+
+def _work(
+    raw: object, source: str, key: str
+) -> tuple[int, tuple[tuple[int, int, int, int], ...], int]:
+    """The probe's ``work`` record: usual wall time, slow pieces, those not kept. A record
+    without one (a probe that timed no work, or an older one) has no slow CPU intervals."""
+    if raw is None:
+        return 0, (), 0
+    if not isinstance(raw, dict):
+        raise ConfigError(source, key, "a mapping (reference_ns, slow, slow_overflow)", raw)
+    values = []
+    for name in ("reference_ns", "slow_overflow"):
+        value = raw.get(name, 0)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise ConfigError(source, f"{key}.{name}", "an integer >= 0", value)
+        values.append(value)
+    rows_raw = raw.get("slow", [])
+    if not isinstance(rows_raw, list):
+        raise ConfigError(
+            source, f"{key}.slow", "a list of [index, start_ns, end_ns, cpu_ns]", rows_raw
+        )
+    rows = []
+    for i, row in enumerate(rows_raw):
+        if (
+            not isinstance(row, list)
+            or len(row) != 4
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in row)
+            or row[2] < row[1]
+            or row[3] < 0
+        ):
+            raise ConfigError(
+                source,
+                f"{key}.slow[{i}]",
+                "[index, start_ns, end_ns, cpu_ns] with end_ns >= start_ns and cpu_ns >= 0",
+                row,
+            )
+        rows.append((row[0], row[1], row[2], row[3]))
+    return values[0], tuple(rows), values[1]
 
 
 @dataclass(frozen=True)
@@ -233,6 +356,9 @@ def judge(record: ProbeRecord, deadlines: Deadlines) -> Verdict:
             trips += 1
             watch.tick(0)
         last = index
+    slow_cpu = record.slow_cpu_intervals()
+    slow_cpu_lost = [lost for _, _, lost in slow_cpu]
+    slow_cpu_heavy = sum(1 for lost in slow_cpu_lost if lost >= P99_SHARE * period)
     figures = {
         "seconds": round((record.end_ns - record.start_ns) / 1e9, 3),
         "wakeups": record.wakeups,
@@ -247,6 +373,12 @@ def judge(record: ProbeRecord, deadlines: Deadlines) -> Verdict:
         "stalls_over_feedback_timeout": over_feedback,
         "loop_overrun_trips": trips,
         "stalls_unrecorded": record.stalls_overflow,
+        "hiccups": len(record.hiccups) + record.hiccups_overflow,
+        "slow_pieces": len(record.slow) + record.slow_overflow,
+        "slow_cpu_intervals": len(slow_cpu),
+        "slow_cpu_intervals_over_half_period": slow_cpu_heavy,
+        "longest_slow_cpu_ms": round(max((e - s for s, e, _ in slow_cpu), default=0) / 1e6, 3),
+        "slow_cpu_lost_ms": round(sum(slow_cpu_lost) / 1e6, 3),
         "steal_ms": record.steal_ms,
         "period_ms": period / 1e6,
         "overrun_tolerance_ms": tolerance_ns / 1e6,
@@ -277,6 +409,11 @@ def judge(record: ProbeRecord, deadlines: Deadlines) -> Verdict:
             )
         if p99 > P99_SHARE * period / 1e3:
             reasons.append(f"lateness p99 {p99:g} µs is more than {P99_SHARE:.0%} of the period")
+        if slow_cpu_heavy:
+            reasons.append(
+                f"{slow_cpu_heavy} time(s) the CPU was taken away in hiccups or ran slow for "
+                f"{P99_SHARE:.0%} of a period or more, which no stall shows (slow CPU)"
+            )
         level = "marginal" if reasons else "pass"
     return Verdict(level, tuple(reasons), figures)
 
@@ -332,6 +469,16 @@ def advice(
             f"nohz_full={loop_cpu} rcu_nocbs={loop_cpu}; handctl pins the loop to an "
             "isolated CPU with --rt"
         )
+    lost = record.slow_cpu_intervals()
+    if any(lost_ns >= P99_SHARE * record.period_ns for _, _, lost_ns in lost):
+        tips.append(
+            f"a CPU that does not slow down: the bare loop's CPU was taken away in hiccups or "
+            f"ran slow {len(lost)} time(s) (longest "
+            f"{max(e - s for s, e, _ in lost) / 1e6:.3g} ms, "
+            f"{sum(n for _, _, n in lost) / 1e6:.3g} ms lost in all); a dedicated or isolated "
+            "CPU, no frequency scaling, a host that does not overcommit its CPUs (a VM's vCPU "
+            "pinned to a core of its own)"
+        )
     slow = sorted({g for g in facts.governors.values() if g != "performance"})
     if slow:
         tips.append(
@@ -364,6 +511,9 @@ class Probe(JsonHelper):
         priority: int | None = None,
         cpu: int | None = None,
         lock_memory: bool = True,
+        work_ns: int | None = None,
+        slow_factor: float | None = None,
+        hiccup_ns: int | None = None,
     ) -> None:
         args = [
             "--period-ns",
@@ -381,6 +531,12 @@ class Probe(JsonHelper):
             args += ["--cpu", str(cpu)]
         if not lock_memory:
             args.append("--no-lock-memory")
+        if work_ns is not None:
+            args += ["--work-ns", str(work_ns)]
+        if slow_factor is not None:
+            args += ["--slow-factor", str(slow_factor)]
+        if hiccup_ns is not None:
+            args += ["--hiccup-ns", str(hiccup_ns)]
         self.seconds = seconds
         super().__init__("handctl.hostprobe", args, "the timing probe")
 
@@ -437,6 +593,10 @@ class CheckReport:
             f"the feedback timeout ({f['feedback_timeout_ms']:g} ms): "
             f"{f['stalls_over_feedback_timeout']}; LOOP_OVERRUN trips: "
             f"{f['loop_overrun_trips']}",
+            f"  slow CPU: {f['slow_cpu_intervals']} interval(s) of hiccups (wake-ups late "
+            f"but no stall: {f['hiccups']}) or slow work ({f['slow_pieces']}), "
+            f"{f['slow_cpu_intervals_over_half_period']} losing half a period or more; longest "
+            f"{f['longest_slow_cpu_ms']:g} ms, {f['slow_cpu_lost_ms']:g} ms lost in all",
         ]
         lines += [f"  because {r}" for r in self.records[0][1].reasons]
         for record, verdict in self.records[1:]:
@@ -486,6 +646,7 @@ def timing_check(
     with Probe(
         deadlines.period_ns,
         record_ns=deadlines.period_ns // 2,
+        hiccup_ns=round(HICCUP_SHARE * deadlines.period_ns),
         seconds=seconds,
         priority=LOOP_PRIORITY if realtime else None,
         cpu=cpu if realtime else None,
@@ -533,7 +694,11 @@ def attribute(
     (the tick before it may have been the one held up) to its wake-up. If stalls of the bare
     loop beside it overlap that interval by as long as the loop was late, less one period
     (the loop's own tick may take up to a period), the host held both loops: ``missed_host``.
-    A host stall of 0.9 ms does not explain a loop 13 ms late. If the host does not explain
+    A host stall of 0.9 ms does not explain a loop 13 ms late. If the stalls do not, but
+    together with the bare loop's hits (its hiccups, wake-ups late by less than a stall, and
+    its slow pieces of work, ``_slowed``) they do, the host's CPU was taken away in pieces or
+    ran slow: ``missed_host_slow_cpu``. A loop slow on its own does not slow the bare loop's
+    wake-ups or work, which run above it on the same CPU. If the host does not explain
     it but a real-time rival (``handctl.rivals``: a task at the loop's priority or above,
     allowed on its CPU, which the probe one priority up does not feel) ran during it, the
     rival held the loop: ``missed_rival``, the host's too (what else runs on the host). If
@@ -544,8 +709,10 @@ def attribute(
     misses are appended to ``handctls`` if given.
     """
     host_stalls = sorted((due, wake) for _, due, wake, _ in host.stalls)
+    hits = host.slow_cpu_hits()
     counts = {
         "missed_host": 0,
+        "missed_host_slow_cpu": 0,
         "missed_rival": 0,
         "missed_handctl": 0,
         "missed_handctl_after_host": 0,
@@ -556,8 +723,11 @@ def attribute(
         start = due - period_ns
         if wake < host.start_ns or start > host.end_ns:
             counts["missed_unobserved"] += missed
-        elif _held(host_stalls, start, wake) >= wake - due - period_ns:
+        elif (stalled := _held(host_stalls, start, wake)) >= wake - due - period_ns:
             counts["missed_host"] += missed
+            after_host = tick
+        elif stalled + _slowed(hits, host.period_ns, start, wake) >= wake - due - period_ns:
+            counts["missed_host_slow_cpu"] += missed
             after_host = tick
         elif rivals is not None and rivals.active(start, wake):
             counts["missed_rival"] += missed
@@ -575,6 +745,16 @@ def attribute(
 def _held(host_stalls: list[tuple[int, int]], start: int, end: int) -> int:
     """ns of ``[start, end]`` during which the bare loop was stalled."""
     return sum(max(0, min(end, h_wake) - max(start, h_due)) for h_due, h_wake in host_stalls)
+
+
+def _slowed(hits: list[tuple[int, int]], look_ns: int, start: int, end: int) -> int:
+    """ns of ``[start, end]`` the CPU was taken away or slow, estimated from the bare loop's
+    hits in it: each stands for one of its periods (``look_ns``), or what it saw if more. A
+    look every ``look_ns`` that finds the CPU gone, at a moment that is as good as random,
+    finds it gone in the share of looks that the CPU was gone: so each hit is one period's
+    worth (docs/timing.md: the loop lost a median 0.58 ms a hit, the bare loop looking every
+    0.5 ms), where what the hit itself saw is only the end of it."""
+    return sum(max(look_ns, seen) for at, seen in hits if start <= at <= end)
 
 
 # -- a run's host: its CPUs, the check before it, the bare loop beside it -----------------------
@@ -646,6 +826,7 @@ def beside_probe(
     return Probe(
         period // 2,
         record_ns=period // 2,
+        hiccup_ns=round(HICCUP_SHARE * period),
         priority=priority if realtime else None,
         cpu=cpu,
         lock_memory=realtime and lock_memory,
@@ -721,7 +902,13 @@ def host_summary(
             f"the host was {verdict.level.upper()}"
             + "".join(f"; {r}" for r in verdict.reasons)
             + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
-            f"{shares['missed_host']} the host's, {shares['missed_handctl']} handctl's"
+            f"{shares['missed_host']} the host's, "
+            + (
+                f"{shares['missed_host_slow_cpu']} its slow CPU's, "
+                if shares["missed_host_slow_cpu"]
+                else ""
+            )
+            + f"{shares['missed_handctl']} handctl's"
             + (
                 f", {shares['missed_rival']} a real-time rival's: " + ", ".join(summary["rivals"])
                 if shares["missed_rival"]

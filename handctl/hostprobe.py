@@ -1,16 +1,22 @@
 """The bare timer loop of the timing check, a process of its own: it only waits for its timerfd.
 
 What it measures is what the host does to any loop of that period, priority and CPU: the same
-``PeriodicTimer`` and the same ``request_realtime`` as the control loop, and no work at all, so
-every microsecond of lateness is the kernel's, the hypervisor's or another process's (like
-cyclictest of rt-tests). It is a process and not a thread because a thread of the control
-process would wait for the interpreter lock whenever the control loop holds it, and take it
-from the loop every period.
+``PeriodicTimer`` and the same ``request_realtime`` as the control loop, and no work of
+handctl's, so every microsecond of lateness is the kernel's, the hypervisor's or another
+process's (like cyclictest of rt-tests). A loop that only waits sees the CPU taken away only
+when that happens as it is due, and cannot see a CPU that runs slower for a while: so it also
+keeps its wake-ups late by less than a stall (hiccups), and on each wake-up it runs a fixed,
+calibrated piece of work (``WorkLog``) and keeps the wake-ups on which that took much longer
+than usual. It is a process and not a thread
+because a thread of the control process would wait for the interpreter lock whenever the
+control loop holds it, and take it from the loop every period.
 
 ``python -m handctl.hostprobe --period-ns N [--seconds S] [--record-ns T] [--priority P]
-[--cpu C] [--no-lock-memory]`` runs until S seconds have passed or SIGTERM/SIGINT comes, then
-writes one JSON object to stdout (``handctl.hostcheck.ProbeRecord`` reads it): the wake-up
-lateness as a histogram of 1 µs bins, and every stall of at least T ns with its interval.
+[--cpu C] [--no-lock-memory] [--hiccup-ns H] [--work-ns W] [--slow-factor F]`` runs until S
+seconds have passed or SIGTERM/SIGINT comes, then writes one JSON object to stdout
+(``handctl.hostcheck.ProbeRecord`` reads it): the wake-up lateness as a histogram of 1 µs
+bins, every stall of at least T ns with its interval, every hiccup of at least H ns, and every
+slow piece of work with its interval and thread CPU time.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ import os
 import signal
 import sys
 import time
+from array import array
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -35,6 +42,14 @@ from handctl.parent_death import stop_on_signals
 
 #: µs: the histogram's last bin collects every wake-up later than this (the maximum is exact)
 HIST_RANGE_US = 20_000
+#: ns: the piece of work each wake-up does by default (1 % of a CPU at two wake-ups a ms)
+WORK_NS = 5_000
+#: A piece of work this many times its usual wall time is slow. Pieces beside a busy control
+#: loop take up to about twice the usual (a cache the loop keeps cold); a CPU the hypervisor
+#: shares takes 3 to 100 times (docs/timing.md).
+SLOW_FACTOR = 3.0
+#: Wake-ups whose work sets the usual time (its median): 0.1 s at 2 kHz.
+REFERENCE_WAKEUPS = 200
 _USER_HZ = os.sysconf("SC_CLK_TCK")
 _PR_SET_PDEATHSIG = 1
 
@@ -57,14 +72,104 @@ def steal_ms(cpus: set[int] | None = None) -> float:
     return total * 1000 / _USER_HZ
 
 
+def work(iterations: int) -> int:
+    """The fixed piece of work: interpreted integer arithmetic, like the control loop's own
+    Python, so that what slows the loop down slows it down alike."""
+    x = 0
+    for i in range(iterations):
+        x = (x + i * 7) & 0xFFFF
+    return x
+
+
+def calibrate(work_ns: int) -> int:
+    """Iterations of ``work`` that take about ``work_ns`` of wall time here (the fastest of a
+    few tries: a try the host interrupted would make the piece too short)."""
+    iterations = 16
+    while True:
+        best = min(_timed(iterations) for _ in range(5))
+        if best >= work_ns or iterations >= 1 << 24:
+            return max(1, iterations * work_ns // max(1, best))
+        iterations *= 2
+
+
+def _timed(iterations: int) -> int:
+    t0 = time.perf_counter_ns()
+    work(iterations)
+    return time.perf_counter_ns() - t0
+
+
+class WorkLog:
+    """The wake-ups on which the piece of work was slow: ``(index, start_ns, end_ns, cpu_ns)``,
+    its wall interval and the thread CPU time it took.
+
+    The usual wall time (``reference_ns``) is the median of the first ``REFERENCE_WAKEUPS``
+    pieces, measured in place (at the probe's priority, on its CPU, beside what runs there),
+    not before: a cache the neighbours keep cold is the usual, not a slow CPU. From then on a
+    piece of at least ``factor`` times the usual is kept. Arrays allocated once, like
+    ``StallLog``; past ``capacity`` slow pieces are only counted.
+    """
+
+    def __init__(self, factor: float, capacity: int = 1 << 16) -> None:
+        self.factor = factor
+        self.capacity = capacity
+        self.first = array("q", bytes(8 * REFERENCE_WAKEUPS))
+        self.count = 0
+        self.reference_ns = 0
+        self.threshold_ns = 0
+        self.index = array("q", bytes(8 * capacity))
+        self.start_ns = array("q", bytes(8 * capacity))
+        self.end_ns = array("q", bytes(8 * capacity))
+        self.cpu_ns = array("q", bytes(8 * capacity))
+        self.size = 0
+        self.overflow = 0
+
+    def add(self, index: int, start_ns: int, end_ns: int, cpu_ns: int) -> None:
+        wall = end_ns - start_ns
+        count = self.count
+        self.count = count + 1
+        if count < REFERENCE_WAKEUPS:
+            self.first[count] = wall
+            if count + 1 == REFERENCE_WAKEUPS:
+                self.reference_ns = sorted(self.first)[REFERENCE_WAKEUPS // 2]
+                self.threshold_ns = max(1, round(self.factor * self.reference_ns))
+            return
+        if wall < self.threshold_ns:
+            return
+        n = self.size
+        if n >= self.capacity:
+            self.overflow += 1
+            return
+        self.index[n], self.start_ns[n], self.end_ns[n], self.cpu_ns[n] = (
+            index,
+            start_ns,
+            end_ns,
+            cpu_ns,
+        )
+        self.size = n + 1
+
+    def rows(self) -> list[tuple[int, int, int, int]]:
+        n = self.size
+        return list(
+            zip(self.index[:n], self.start_ns[:n], self.end_ns[:n], self.cpu_ns[:n], strict=True)
+        )
+
+
 def probe(
     period_ns: int,
     seconds: float | None,
     record_ns: int,
     stop: list[bool],
     become_realtime: Callable[[], list[str]],
+    work_ns: int = WORK_NS,
+    slow_factor: float = SLOW_FACTOR,
+    hiccup_ns: int | None = None,
 ) -> dict[str, Any]:
-    """The loop itself: wait, note the lateness, nothing else, until ``seconds`` or ``stop``.
+    """The loop itself: wait, note the lateness, time the piece of work (none if ``work_ns``
+    is 0), until ``seconds`` or ``stop``.
+
+    Wake-ups late by ``hiccup_ns`` or more, but less than a stall (``record_ns``), are kept
+    apart as hiccups (none if None): the CPU taken away for less than the stall threshold, many
+    times in a row, holds a loop as surely as one stall does.
 
     Everything is allocated, and the C library found, before ``become_realtime`` raises the
     priority: at SCHED_FIFO above the control loop, every millisecond of set-up would be one
@@ -72,10 +177,16 @@ def probe(
     """
     hist = [0] * (HIST_RANGE_US + 1)
     stalls = StallLog(record_ns)
+    hiccups = StallLog(hiccup_ns if hiccup_ns is not None else record_ns)
+    hiccup_below = record_ns if hiccup_ns is not None else 0
     late_max = 0
     wakeups = 0
     expirations = 0
     PeriodicTimer(period_ns).close()  # loads what the timer needs
+    iterations = calibrate(work_ns) if work_ns > 0 else 0
+    slow = WorkLog(slow_factor)
+    clock = time.monotonic_ns
+    cpu_clock = time.thread_time_ns
     refused = become_realtime()
     cpus = os.sched_getaffinity(0)
     steal_before = steal_ms(cpus)
@@ -93,6 +204,14 @@ def probe(
             hist[b if 0 <= b < HIST_RANGE_US else (0 if b < 0 else HIST_RANGE_US)] += 1
             late_max = max(late_max, late)
             stalls.add(wakeups, due - (n - 1) * period_ns, now, n - 1)
+            if n == 1 and late < hiccup_below:  # a stall's own lateness is the stall's
+                hiccups.add(wakeups, due, now, 0)
+            if iterations:
+                c0 = cpu_clock()
+                w0 = clock()
+                work(iterations)
+                w1 = clock()
+                slow.add(wakeups, w0, w1, cpu_clock() - c0)
             wakeups += 1
             if end is not None and now >= end:
                 break
@@ -112,7 +231,18 @@ def probe(
         "lateness_hist_us": {str(i): c for i, c in enumerate(hist) if c},
         "stalls": [list(row) for row in stalls.rows()],
         "stalls_overflow": stalls.overflow,
+        "hiccup_ns": hiccup_ns or 0,
+        "hiccups": [list(row[:3]) for row in hiccups.rows()],
+        "hiccups_overflow": hiccups.overflow,
         "steal_ms": round(steal_ms(cpus) - steal_before, 1),
+        "work": {
+            "iterations": iterations,
+            "pieces": slow.count,
+            "reference_ns": slow.reference_ns,
+            "slow_factor": slow_factor,
+            "slow": [list(row) for row in slow.rows()],
+            "slow_overflow": slow.overflow,
+        },
         "refused": refused,
         "scheduler": got,
     }
@@ -171,6 +301,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cpu", type=int, help="pin to this CPU")
     parser.add_argument("--no-lock-memory", action="store_true")
     parser.add_argument("--parent-pid", type=int, help="end when this process ends")
+    parser.add_argument(
+        "--hiccup-ns",
+        type=int,
+        help="also keep wake-ups this late that are no stall (default: none)",
+    )
+    parser.add_argument(
+        "--work-ns",
+        type=int,
+        default=WORK_NS,
+        help=f"the piece of work timed on each wake-up, ns (default {WORK_NS}; 0: none)",
+    )
+    parser.add_argument(
+        "--slow-factor",
+        type=float,
+        default=SLOW_FACTOR,
+        help=f"a piece this many times its usual time is slow (default {SLOW_FACTOR:g})",
+    )
     args = parser.parse_args(argv)
     stop = stop_on_signals()
     if args.parent_pid is not None and not _end_with_parent(args.parent_pid):
@@ -194,7 +341,14 @@ def main(argv: list[str] | None = None) -> int:
         return []
 
     result = probe(
-        args.period_ns, args.seconds, args.record_ns or args.period_ns, stop, become_realtime
+        args.period_ns,
+        args.seconds,
+        args.record_ns or args.period_ns,
+        stop,
+        become_realtime,
+        args.work_ns,
+        args.slow_factor,
+        args.hiccup_ns,
     )
     json.dump(result, sys.stdout)
     sys.stdout.write("\n")

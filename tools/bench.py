@@ -32,6 +32,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     name = argv[0]
+    # This tree's handctl, not an installed one: a script's path starts at its own folder, so
+    # a bench run from a second checkout would otherwise measure the installed tree's code
+    # beside this tree's helper processes (they start with ``python -m`` from the cwd).
+    sys.path.insert(0, str(HERE.parent))
     sys.path.insert(0, str(HERE))
     module = importlib.import_module(f"bench_{name}")
     parser = argparse.ArgumentParser(prog=f"bench.py {name}", description=module.__doc__)

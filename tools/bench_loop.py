@@ -10,9 +10,11 @@ so the feedback stage does the work of a feedback phase every tick.
 Beside the loop, on its CPU one priority above it, the bare timer loop of the timing check runs
 for the whole run (``handctl.hostcheck``): ``host_*`` is what it saw, and every missed tick of
 the run proper is the host's (``missed_host``: the bare loop stalled at the same time;
-``missed_rival``: a real-time task at the loop's priority or above ran on its CPU, which the
-bare loop one priority up does not feel, ``handctl.rivals``) or
-handctl's (``missed_handctl``: it did not). Target: ``missed_handctl`` 0.
+``missed_host_slow_cpu``: its stalls, hiccups and slow pieces of work together explain the
+miss, the CPU taken away in pieces shorter than a stall or running slow; ``missed_rival``:
+a real-time task at the loop's priority or above ran on its CPU, which the bare loop one
+priority up does not feel, ``handctl.rivals``) or handctl's (``missed_handctl``: none of
+these). Target: ``missed_handctl`` 0.
 
 ``tick_cost`` is the CPU cost of the tick, stage by stage, of this tree beside the tree of
 ``--baseline`` (a git revision; by default the one before the tick's cost was cut, issue #17),
@@ -203,6 +205,12 @@ def host_figures(
         "host_stalls_over_period": f["stalls_over_period"],
         "host_stalls_over_overrun_tolerance": f["stalls_over_overrun_tolerance"],
         "host_longest_stall_ms": f["longest_stall_ms"],
+        "host_hiccups": f["hiccups"],
+        "host_slow_pieces": f["slow_pieces"],
+        "host_slow_cpu_intervals": f["slow_cpu_intervals"],
+        "host_longest_slow_cpu_ms": f["longest_slow_cpu_ms"],
+        "host_slow_cpu_lost_ms": f["slow_cpu_lost_ms"],
+        "host_work_reference_us": round(host.work_reference_ns / 1e3, 2),
         "host_steal_ms": host.steal_ms,
         **shares,
         "missed_handctl_at_ticks": own[:20],
@@ -279,6 +287,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             "lateness_p99_us",
             "missed_rate",
             "missed_host",
+            "missed_host_slow_cpu",
             "missed_rival",
             "missed_handctl",
             "missed_handctl_after_host",
@@ -288,6 +297,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             "host_lateness_p99_us",
             "host_stalls_over_period",
             "host_longest_stall_ms",
+            "host_slow_cpu_intervals",
             "tick_cpu_us_p99",
             "outcome",
             "rt",

@@ -35,9 +35,13 @@ def test_the_bare_loop_reports_every_wakeup() -> None:
             "--period-ns",
             "1000000",
             "--seconds",
-            "0.2",
+            "0.4",
             "--record-ns",
             "500000",
+            "--hiccup-ns",
+            "100000",
+            "--slow-factor",
+            "1",
         ],
         cwd=ROOT,
         text=True,
@@ -54,6 +58,17 @@ def test_the_bare_loop_reports_every_wakeup() -> None:
     for index, due, wake, missed in out["stalls"]:
         assert 0 <= index < out["wakeups"] and wake - due >= 500_000 and missed >= 0
     assert out["scheduler"]["policy"] == "SCHED_OTHER"  # no --priority: none asked
+    for index, due, wake in out["hiccups"]:
+        assert 0 <= index < out["wakeups"] and 100_000 <= wake - due < 500_000
+    # The piece of work on each wake-up: calibrated, its usual time measured on the first 200
+    # wake-ups, then every piece at least that long (--slow-factor 1) kept with its times.
+    work = out["work"]
+    assert work["iterations"] > 0 and work["pieces"] == out["wakeups"]
+    assert work["reference_ns"] > 0
+    assert work["slow"], work
+    for index, start, end, cpu in work["slow"]:
+        assert 200 <= index < out["wakeups"] and end - start >= work["reference_ns"]
+        assert cpu > 0
 
 
 def test_check_timing_prints_a_verdict_and_writes_its_record(tmp_path: Path) -> None:
@@ -71,8 +86,13 @@ def test_check_timing_prints_a_verdict_and_writes_its_record(tmp_path: Path) -> 
         "stalls_over_overrun_tolerance",
         "stalls_over_feedback_timeout",
         "loop_overrun_trips",
+        "hiccups",
+        "slow_pieces",
+        "slow_cpu_intervals",
+        "slow_cpu_intervals_over_half_period",
     ):
         assert isinstance(data[key], int)
+    assert "  slow CPU: " in done.stdout
     assert (data["period_ms"], data["overrun_tolerance_ms"], data["feedback_timeout_ms"]) == (
         1.0,
         3.0,
@@ -181,7 +201,11 @@ def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) ->
     host = summary["host"]
     assert host["verdict"] in ("pass", "marginal", "fail")
     assert (
-        host["missed_host"] + host["missed_handctl"] + host["missed_unobserved"]
+        host["missed_host"]
+        + host["missed_host_slow_cpu"]
+        + host["missed_rival"]
+        + host["missed_handctl"]
+        + host["missed_unobserved"]
         == summary["missed_ticks"]
     )
     assert host["probe_period_us"] == 500.0

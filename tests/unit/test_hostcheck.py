@@ -169,6 +169,7 @@ def test_a_missed_tick_is_the_hosts_only_if_the_bare_loop_stalled_with_it() -> N
     own: list[int] = []
     assert attribute(loop, host, MS, own) == {
         "missed_host": 3,
+        "missed_host_slow_cpu": 0,
         "missed_rival": 0,
         "missed_handctl": 2,
         "missed_handctl_after_host": 0,
@@ -275,3 +276,152 @@ def test_a_real_time_host_gets_no_advice() -> None:
     got = record([], scheduler={"policy": "SCHED_FIFO", "priority": 80})
     assert advice(good, got, realtime=True) == []
     assert "run with --rt" in advice(good, got, realtime=False)[0]
+
+
+# -- a slow CPU: hiccups and slow pieces of work ------------------------------------------------
+REF_NS = 6_000  # the usual wall time of the bare loop's piece of work
+
+
+def slow_pieces(first_index: int, from_ms: float, count: int, factor: float) -> list[list[int]]:
+    """``count`` slow pieces on consecutive wake-ups of a bare loop ticking every 0.5 ms, the
+    first at ``from_ms``, each ``factor`` times the usual (as the probe writes them)."""
+    rows = []
+    for k in range(count):
+        start = START + round((from_ms + 0.5 * k) * MS) + 20_000
+        wall = round(factor * REF_NS)
+        rows.append([first_index + k, start, start + wall, wall])
+    return rows
+
+
+def hiccups(first_index: int, from_ms: float, late_us: list[float]) -> list[list[int]]:
+    """Wake-ups of the bare loop late by ``late_us`` each (less than a stall), one every
+    0.5 ms from ``from_ms``."""
+    rows = []
+    for k, late in enumerate(late_us):
+        due = START + round((from_ms + 0.5 * k) * MS)
+        rows.append([first_index + k, due, due + round(late * 1e3)])
+    return rows
+
+
+def slow_record(
+    pieces: list[list[int]],
+    late: list[list[int]],
+    stalls: tuple[tuple[int, float, float], ...] = (),
+) -> ProbeRecord:
+    return record(
+        list(stalls),
+        period_ns=MS // 2,
+        hiccup_ns=100_000,
+        hiccups=late,
+        work={"reference_ns": REF_NS, "slow": pieces, "slow_overflow": 0},
+    )
+
+
+#: A tick of the control loop 2.5 ms late: due at 801 ms, it woke at 803.5 ms, two missed.
+BUSY_TICK = (800, START + 801 * MS, START + 803 * MS + 500_000, 2)
+
+
+def test_a_tick_handctl_made_slow_on_a_cpu_that_was_not_is_handctls() -> None:
+    # A busy loop in the tick: the bare loop above it on the same CPU woke on time (but for
+    # one 120 µs hiccup, as happens) and its work ran at the usual speed; a slow CPU elsewhere.
+    host = slow_record(slow_pieces(600, 300.0, 6, 5.0), hiccups(1603, 801.5, [120]))
+    own: list[int] = []
+    shares = attribute([BUSY_TICK], host, MS, own)
+    assert (shares["missed_handctl"], shares["missed_host_slow_cpu"], shares["missed_host"]) == (
+        2,
+        0,
+        0,
+    )
+    assert own == [800]
+
+
+def test_a_slow_cpu_interval_over_a_miss_makes_it_the_hosts() -> None:
+    # The work of the bare loop ran at 5x its usual time on every wake-up across the miss.
+    host = slow_record(slow_pieces(1598, 799.0, 10, 5.0), [])
+    shares = attribute([BUSY_TICK], host, MS)
+    assert (shares["missed_host_slow_cpu"], shares["missed_handctl"]) == (2, 0)
+    # Each hit stands for one of the bare loop's periods (0.5 ms): two are 1 ms of the 1.5 ms
+    # the miss needs, three are enough.
+    for count, host_share in ((2, 0), (3, 2)):
+        host = slow_record(slow_pieces(1600, 801.0, count, 5.0), [])
+        shares = attribute([BUSY_TICK], host, MS)
+        assert (shares["missed_host_slow_cpu"], shares["missed_handctl"]) == (
+            host_share,
+            2 - host_share,
+        )
+    # A piece that itself took longer than a period counts what it took.
+    host = slow_record([[1600, START + 801 * MS, START + 802 * MS + 600_000, 10]], [])
+    assert attribute([BUSY_TICK], host, MS)["missed_host_slow_cpu"] == 2
+
+
+def test_hiccups_short_of_a_stall_add_up_to_a_miss() -> None:
+    # The CPU taken away on three wake-ups running, none a stall (>= 0.5 ms late).
+    late = hiccups(1598, 800.0, [150, 300, 200])
+    shares = attribute([BUSY_TICK], slow_record([], late), MS)
+    assert (shares["missed_host_slow_cpu"], shares["missed_handctl"]) == (2, 0)
+    # Two of them are not enough for 1.5 ms; a hiccup and a slow piece on one wake-up are one.
+    assert attribute([BUSY_TICK], slow_record([], late[:2]), MS)["missed_handctl"] == 2
+    both = slow_record(slow_pieces(1599, 800.5, 1, 5.0), late[:2])
+    assert attribute([BUSY_TICK], both, MS)["missed_handctl"] == 2
+
+
+def test_stalls_alone_still_make_a_miss_the_hosts_not_its_slow_cpus() -> None:
+    host = slow_record(slow_pieces(1598, 799.0, 10, 5.0), [], stalls=((1600, 801.0, 2.0),))
+    shares = attribute([BUSY_TICK], host, MS)
+    assert (shares["missed_host"], shares["missed_host_slow_cpu"]) == (2, 0)
+
+
+def test_consecutive_slow_pieces_are_one_interval_and_the_check_reports_it(
+    deadlines: Deadlines,
+) -> None:
+    pieces = slow_pieces(10, 100.0, 4, 10.0) + slow_pieces(40, 400.0, 1, 4.0)
+    host = slow_record(pieces, hiccups(12, 101.0, [200]) + hiccups(80, 900.0, [150]))
+    assert len(host.slow_cpu_hits()) == 6  # the hiccup at 101 ms and a piece share a wake-up
+    intervals = host.slow_cpu_intervals()
+    assert len(intervals) == 3  # 100 ms (pieces and a hiccup), 400 ms, 900 ms
+    assert intervals[0][2] == 4 * 9 * REF_NS + 200_000
+    d = dataclasses.replace(deadlines, period_ns=MS)
+    verdict = judge(host, d)
+    f = verdict.figures
+    assert (f["slow_cpu_intervals"], f["hiccups"], f["slow_pieces"]) == (3, 2, 5)
+    assert f["longest_slow_cpu_ms"] == 1.56  # from 100.02 ms to the 4th piece's end, 101.58
+    assert f["slow_cpu_intervals_over_half_period"] == 0  # 0.416 ms lost at most
+    assert verdict.level == "pass"
+    heavy = slow_record([], hiccups(12, 101.0, [300, 400]))  # 0.7 ms lost in a row
+    verdict = judge(heavy, d)
+    assert verdict.level == "marginal"
+    assert any("slow CPU" in r for r in verdict.reasons)
+    # The check's bare loop ticks at the loop's period, which the advice judges by.
+    heavy, host = (dataclasses.replace(r, period_ns=MS) for r in (heavy, host))
+    tips = "\n".join(advice(facts(), heavy, realtime=True))
+    assert "a CPU that does not slow down" in tips
+    assert "does not overcommit" in tips
+    assert "a CPU that does not slow down" not in "\n".join(advice(facts(), host, True))
+
+
+def test_a_record_without_work_or_hiccups_has_no_slow_cpu() -> None:
+    plain = record([(7, 7.0, 4.0)])
+    assert plain.slow_cpu_intervals() == [] and plain.slow_cpu_hits() == []
+    again = ProbeRecord.from_json(slow_record(slow_pieces(1, 1.0, 2, 5.0), []).as_json(), "r")
+    assert len(again.slow) == 2 and again.work_reference_ns == REF_NS
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "expected"),
+    [
+        ("work", [1, 2], "a mapping"),
+        ("work.reference_ns", -1, "an integer >= 0"),
+        ("work.slow[0]", [[1, 10, 5, 0]], "end_ns >= start_ns"),
+        ("hiccups[0]", [[1, 10, 5]], "wake_ns >= due_ns"),
+    ],
+)
+def test_a_bad_work_or_hiccup_record_names_the_key(key: str, value: object, expected: str) -> None:
+    data = record([]).as_json()
+    if key.startswith("work."):
+        data["work"][key.split(".")[1].split("[", maxsplit=1)[0]] = value
+    else:
+        data[key.split("[", maxsplit=1)[0]] = value
+    with pytest.raises(ConfigError) as info:
+        ProbeRecord.from_json(data, "old.json")
+    assert info.value.key == key
+    assert expected in info.value.expected
