@@ -302,6 +302,7 @@ def _partial_push(recorder: Recorder, part: str) -> Callable[[Any], None]:
             recorder._flush_frames()
         else:
             recorder._pending.clear()
+            recorder._shape = 0
         recorder._publish()
 
     return push
@@ -470,7 +471,7 @@ class CallTimes:
             setattr(r, attribute, self.wrap(name, bound))
         bus = runtime.driver.bus
         bus.tap = self.wrap("tx_tap", r._frame)
-        bus.rx_tap = self.wrap("rx_tap", r._pending.append)
+        bus.rx_tap = self.wrap("rx_tap", r._drain)
 
     def per_tick(self, ticks: np.ndarray) -> dict[str, np.ndarray]:
         """Per component, the ns spent in each of ``ticks`` (0 where it was not called)."""

@@ -24,7 +24,7 @@ import struct
 import subprocess
 import sys
 import tempfile
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -75,29 +75,48 @@ if TYPE_CHECKING:
     from handctl.online.loop import Runtime, TickRecord
 
 _TICK_HEAD = struct.Struct("<qqqqq")  # tick, scheduled, now, missed, active
-_POSE_INTS = struct.Struct("<qq")  # tick, t
 _RX_HEAD = struct.Struct("<" + RX_HEAD_ROW)
 _RX_FRAME = struct.Struct("<" + RX_FRAME_ROW)
 _TX_FRAME = struct.Struct("<" + TX_FRAME_ROW)
 #: A tick's frame rows are packed with one call (a struct per shape of tick) when they are
 #: fewer than this less two; more, or rows that would wrap round the ring's end, a row a
 #: call. A shape is a number in this base, a digit per sent frame (1) or drain (2 + its
-#: frames), so that every shape of fewer rows has a number of its own.
+#: frames), so that every shape of fewer rows has a number of its own; the taps work it out
+#: as they note the frames.
 _SHAPE_BASE = 66
 #: Structs kept, one per shape met, before they are forgotten all at once.
 _MAX_SHAPES = 1024
 
+#: What the taps note for the tick's frame rows, a row an entry in bus order: a sent frame's
+#: row (direction, t, tick, arbitration id, data), or a drain's head row (TAP_RX, t, tick,
+#: count) followed by its ``count`` frames, the bus's own ``Frame`` tuples.
+Pending = list[tuple[Any, ...]]
 
-def _frames_struct(pending: list[list[Frame] | tuple[int, int, int, int, bytes]]) -> struct.Struct:
-    """The struct of a tick's frame rows: a sent frame's row, or a drain's head row and its
-    frames' rows, for each of ``pending`` in turn."""
-    return struct.Struct(
-        "<"
-        + "".join(
-            TX_FRAME_ROW if isinstance(e, tuple) else RX_HEAD_ROW + RX_FRAME_ROW * len(e)
-            for e in pending
-        )
-    )
+
+def _blocks(pending: Pending) -> Iterator[tuple[int, Pending]]:
+    """The noted rows as sent frames and drains: (at, [the sent frame's row]) or (at, [the
+    drain's head row, its frames...]), ``at`` the index of the block's first row."""
+    at = 0
+    while at < len(pending):
+        entry = pending[at]
+        rows = 1 if entry[0] != TAP_RX else 1 + entry[3]
+        yield at, pending[at : at + rows]
+        at += rows
+
+
+def _frames_struct(pending: Pending) -> tuple[struct.Struct, int]:
+    """The struct of a tick's frame rows, and how many frames they hold (the drains' head
+    rows are not frames)."""
+    formats = []
+    frames = 0
+    for _, block in _blocks(pending):
+        if len(block[0]) == 5:
+            formats.append(TX_FRAME_ROW)
+            frames += 1
+        else:
+            formats.append(RX_HEAD_ROW + RX_FRAME_ROW * (len(block) - 1))
+            frames += len(block) - 1
+    return struct.Struct("<" + "".join(formats)), frames
 
 
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
@@ -285,22 +304,23 @@ class Recorder:
         self._frame_base = r.offsets["frame"]
         self._frame_mask = self.layout.frame_capacity - 1
         self._fhead = self._ftail = 0
-        #: The tick's frames as the taps noted them, in bus order: a drain's list of frames,
-        #: or a sent frame's row (direction, t, tick, id, data).
-        self._pending: list[list[Frame] | tuple[int, int, int, int, bytes]] = []
-        #: The ``pack_into`` of a tick's frame rows, per shape (``_flush_frames``).
-        self._frames_pack: dict[int, Any] = {}
+        #: The tick's frame rows as the taps noted them (``Pending``), and their shape.
+        self._pending: Pending = []
+        self._shape = 0
+        #: The ``pack_into`` of a tick's frame rows and the frames they hold, per shape
+        #: (``_flush_frames``).
+        self._frames_pack: dict[int, tuple[Any, int]] = {}
         self._frames_noted = 0
         self._event_base = r.offsets["event_i"]
         self._event_data = r.offsets["event_d"]
         self._event_mask = self.layout.event_capacity - 1
         self._ehead = self._etail = 0
         self._phead = self._ptail = 0
-        self._pose_base = r.offsets["pose_i"]
-        self._pose_f_base = r.offsets["pose_f"]
-        self._pose_stride = r.pose_f.shape[1] * 8
-        self._pose_floats = struct.Struct(f"<{3 * self.layout.n_objects}d")
-        self._pose_values = 3 * self.layout.n_objects
+        #: The poses handed over this tick, not yet copied (``poses``).
+        self._pose_list: Sequence[tuple[float, float, float]] | None = None
+        self._pose_base = r.offsets["pose"]
+        self._pose_stride = self.layout.pose_words * 8
+        self._pose_pack = struct.Struct(f"<qq{3 * self.layout.n_objects}d").pack_into
         self._pose_mask = self.layout.pose_capacity - 1
         self._tick = -1  # frames drained before the first tick (discarded at start-up)
         self._now = 0
@@ -318,8 +338,7 @@ class Recorder:
         self._runtime = runtime
         bus = runtime.driver.bus
         bus.tap = self._frame
-        # The list's own append: a drain's frames are noted without a call of ours.
-        bus.rx_tap = self._pending.append
+        bus.rx_tap = self._drain
         bus.event_tap = self._bus_event
         driver = runtime.driver
         self._reject_lists = [n.rejects.counts for n in driver.nodes]
@@ -369,6 +388,8 @@ class Recorder:
     # after the last control tick) still belong to it: they are published when the next tick
     # begins, after its row and before the next row, where ``rerun.tick_inputs`` looks.
     def begin_tick(self, tick: Tick) -> None:
+        if self._pose_list is not None:  # the last tick's, which had no push
+            self._copy_poses()
         if self._row >= 0:  # the last tick had no push (start-up, shut-down): publish it now
             self._publish_idle()
         elif self._pending:  # frames that came between ticks belong to the last one
@@ -412,6 +433,9 @@ class Recorder:
             self._flush_frames()
         runtime = self._runtime
         row = self._row
+        if runtime is not None:
+            sup = runtime.supervisor
+            faults = len(sup.faults)
         if row >= 0:
             phase = self._phases.get(record.phase)
             if phase is None:
@@ -420,11 +444,7 @@ class Recorder:
             at = self._tick_base + row * self._tick_stride
             if runtime is not None:
                 state = runtime.driver.state
-                faults, node_state, node_faults = (
-                    len(runtime.supervisor.faults),
-                    state.node_state,
-                    state.node_faults,
-                )
+                node_state, node_faults = state.node_state, state.node_faults
             else:
                 state = None
                 faults, node_state, node_faults = 0, self._no_states, self._no_faults
@@ -461,16 +481,13 @@ class Recorder:
             n = self._n
             at = row * 4 * n
             try:
-                if record.angle is not self._angle:
-                    self._angle, self._angle_view = record.angle, _view(record.angle)
-                if record.tdt is not self._tdt:
-                    self._tdt, self._tdt_view = record.tdt, _view(record.tdt)
-                desired = record.desired
-                if desired is not self._desired:
-                    self._desired = desired
-                    self._desired_view = _view(desired)
-                if record.applied is not self._applied:
-                    self._applied, self._applied_view = record.applied, _view(record.applied)
+                if (
+                    record.angle is not self._angle
+                    or record.tdt is not self._tdt
+                    or record.desired is not self._desired
+                    or record.applied is not self._applied
+                ):
+                    self._new_views(record)
                 floats[at : at + n] = self._angle_view
                 floats[at + n : at + 2 * n] = self._tdt_view
                 floats[at + 2 * n : at + 3 * n] = self._desired_view
@@ -478,20 +495,31 @@ class Recorder:
             except (TypeError, ValueError, BufferError):  # not a float64 vector of n
                 self._angle = self._tdt = self._desired = self._applied = None
                 self._copy_floats(row, record)
+        if self._pose_list is not None:
+            self._copy_poses()
         # The tick's events before its row, so that a reader that meets the row has met them.
-        if runtime is not None:
-            sup = runtime.supervisor
-            if (
-                len(sup.history) != self._history
-                or len(sup.faults) != self._faults
-                or record.phase != self._last_phase
-                or self._reject_lists != self._reject_seen
-            ):
-                self._sweep(runtime, record.phase)
-        if row >= 0:
-            self._publish()
-        else:
-            self._ctl_view[FRAME_HEAD] = self._fhead
+        if runtime is not None and (
+            len(sup.history) != self._history
+            or faults != self._faults
+            or record.phase != self._last_phase
+            or self._reject_lists != self._reject_seen
+        ):
+            self._sweep(runtime, record.phase)
+        ctl = self._ctl_view
+        ctl[FRAME_HEAD] = self._fhead
+        if row >= 0:  # the tick is complete: its frames are published, then its row
+            self._row = -1
+            self._head = head = self._head + 1
+            ctl[TICK_HEAD] = head
+
+    def _new_views(self, record: TickRecord) -> None:
+        """The views of the record's vectors, made again when the runtime swapped one in;
+        TypeError or ValueError when one is not a contiguous float64 vector."""
+        self._angle = self._tdt = self._desired = self._applied = None
+        views = [_view(v) for v in (record.angle, record.tdt, record.desired, record.applied)]
+        self._angle_view, self._tdt_view, self._desired_view, self._applied_view = views
+        self._angle, self._tdt = record.angle, record.tdt
+        self._desired, self._applied = record.desired, record.applied
 
     def _copy_floats(self, row: int, record: TickRecord) -> None:
         n = self._n
@@ -507,84 +535,86 @@ class Recorder:
     # -- taps: note now, copy in ``push`` -------------------------------------------------
     def _frame(self, arbitration_id: int, data: bytes, direction: int) -> None:
         self._pending.append((direction, self._now, self._tick, arbitration_id, data))
+        self._shape = self._shape * _SHAPE_BASE + 1
+
+    def _drain(self, frames: list[Frame]) -> None:
+        pending = self._pending
+        pending.append((TAP_RX, self._now, self._tick, len(frames)))
+        pending += frames
+        self._shape = self._shape * _SHAPE_BASE + 2 + len(frames)
 
     def _flush_frames(self) -> None:
         """Copy the frames noted this tick into the ring, in the order they were on the bus.
 
-        The tick's rows are laid out as one list of items and packed with one ``pack_into``,
-        a struct per shape of tick (the sequence of its sent frames and drains, made when
-        first met): a drain's items are the bus's own frame tuples flattened in C, a sent
-        frame's the row its tap noted, so no frame is taken apart in Python and a call per
-        row is not paid. A frame's time is its tick's (the clock stands still inside a
-        lockstep tick; in real time a tick's frames are drained or sent within its first few
-        hundred microseconds); a received frame keeps the adapter's own time stamp as well.
+        The taps have noted every row as a tuple (``Pending``) and the tick's shape (the
+        sequence of its sent frames and drains), so the rows go in with one ``pack_into``
+        of the rows flattened in C, a struct per shape made when first met: no loop over
+        the rows, no frame taken apart in Python, no call per row. In the running loop
+        every operation here costs about a microsecond, the loop over the noted entries
+        that this replaced some three. A frame's time is its tick's (the clock stands
+        still inside a lockstep tick; in real time a tick's frames are drained or sent
+        within its first few hundred microseconds); a received frame keeps the adapter's
+        own time stamp as well.
         """
         pending = self._pending
-        items: list[Any] = []
-        shape = rows = frames = 0
-        now, tick = self._now, self._tick
-        for entry in pending:
-            if isinstance(entry, tuple):
-                items += entry
-                shape = shape * _SHAPE_BASE + 1
-                rows += 1
-                frames += 1
-            else:
-                count = len(entry)
-                items += (TAP_RX, now, tick, count)
-                items += itertools.chain.from_iterable(entry)
-                shape = shape * _SHAPE_BASE + 2 + count
-                rows += count + 1
-                frames += count
+        rows = len(pending)
         head = self._fhead
         mask = self._frame_mask
         at = head & mask
-        fits = head + rows - self._ftail <= mask + 1 and at + rows <= mask + 1
-        if fits and rows < _SHAPE_BASE - 2:
-            pack = self._frames_pack.get(shape)
-            if pack is None:
+        if (
+            rows < _SHAPE_BASE - 2
+            and head + rows - self._ftail <= mask + 1
+            and at + rows <= mask + 1
+        ):
+            known = self._frames_pack.get(self._shape)
+            if known is None:
                 if len(self._frames_pack) >= _MAX_SHAPES:  # a bus that makes ever new ones
                     self._frames_pack.clear()
-                pack = self._frames_pack[shape] = _frames_struct(pending).pack_into
-            pack(self._buf, self._frame_base + at * FRAME_ROW, *items)
+                made, frames = _frames_struct(pending)
+                known = self._frames_pack[self._shape] = made.pack_into, frames
+            known[0](
+                self._buf,
+                self._frame_base + at * FRAME_ROW,
+                *itertools.chain.from_iterable(pending),
+            )
             self._fhead = head + rows
-            self._frames_noted += frames
+            self._frames_noted += known[1]
         else:  # the ring looks full, or the rows wrap round its end, or a great many
             self._flush_slowly(pending)
         pending.clear()
+        self._shape = 0
 
-    def _flush_slowly(self, pending: list[list[Frame] | tuple[int, int, int, int, bytes]]) -> None:
+    def _flush_slowly(self, pending: Pending) -> None:
         """The tick's frames a row a call, with a look at the writer's tail when the ring
         looks full: a sent frame or a drain's block that does not fit is dropped whole and
         its frames counted."""
         buf, base, mask = self._buf, self._frame_base, self._frame_mask
         head = self._fhead
-        for entry in pending:
-            if isinstance(entry, tuple):
+        for _, block in _blocks(pending):
+            entry = block[0]
+            if len(entry) == 5:
                 if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask):
                     continue
                 _TX_FRAME.pack_into(buf, base + (head & mask) * FRAME_ROW, *entry)
                 head += 1
                 self._frames_noted += 1
             else:
-                head, count = self._flush_drain(entry, head)
+                head, count = self._flush_drain(block, head)
                 self._frames_noted += count
         self._fhead = head
 
-    def _flush_drain(self, frames: list[Frame], head: int) -> tuple[int, int]:
-        """A drain's block a row a call, with a look at the writer's tail when the ring looks
-        full: a block that does not fit is dropped whole and its frames counted. The new head
-        and the frames written."""
+    def _flush_drain(self, block: Pending, head: int) -> tuple[int, int]:
+        """A drain's block (its head row, then its frames) a row a call, with a look at the
+        writer's tail when the ring looks full: a block that does not fit is dropped whole
+        and its frames counted. The new head and the frames written."""
         mask = self._frame_mask
-        count = len(frames)
+        count = len(block) - 1
         end = head + count
         if end - self._ftail > mask and self._ring_full(_FRAMES, end, mask, count):
             return head, 0
         base = self._frame_base
-        _RX_HEAD.pack_into(
-            self._buf, base + (head & mask) * FRAME_ROW, TAP_RX, self._now, self._tick, count
-        )
-        for frame in frames:
+        _RX_HEAD.pack_into(self._buf, base + (head & mask) * FRAME_ROW, *block[0])
+        for frame in block[1:]:
             head += 1
             _RX_FRAME.pack_into(self._buf, base + (head & mask) * FRAME_ROW, *frame)
         return head + 1, count
@@ -606,22 +636,41 @@ class Recorder:
         self._event(EV_BUS, self._tick, event.kind.value, event.detail, str(event.timestamp_ns))
 
     def poses(self, poses: Sequence[tuple[float, float, float]]) -> None:
-        """Ground truth of the simulated objects at the current tick: (x, y, angle) each."""
+        """Ground truth of the simulated objects at the current tick: (x, y, angle) each.
+
+        Kept by reference and copied into the ring with the tick's row, in ``push`` (or when
+        the next tick begins, for a tick without one), with one ``pack_into``: the caller
+        hands over a sequence it no longer changes. The ticks that carry poses were a third
+        of the slowest 1 % of the recording's, and every C call in the running loop costs
+        about a microsecond.
+        """
+        if self._pose_list is not None:  # two calls in one tick: both are kept, in order
+            self._copy_poses()
+        self._pose_list = poses
+
+    def _copy_poses(self) -> None:
+        """Copy the poses noted this tick (``poses``) into their ring."""
+        poses, self._pose_list = self._pose_list, None
+        assert poses is not None
         head = self._phead
         mask = self._pose_mask
         if head - self._ptail > mask and self._ring_full(_POSES, head, mask):
             return
         row = head & mask
-        # Two ``pack_into`` calls at fixed offsets; numpy item and slice assignments cost
-        # tens of microseconds here, on the ticks that carry poses, and a comprehension
-        # several times what flattening the poses in C costs.
-        _POSE_INTS.pack_into(self._buf, self._pose_base + row * 16, self._tick, self._now)
-        values = tuple(itertools.chain.from_iterable(poses))
-        if len(values) == self._pose_values:
-            self._pose_floats.pack_into(
-                self._buf, self._pose_f_base + row * self._pose_stride, *values
+        # One ``pack_into`` of the row, the poses flattened in C: numpy item and slice
+        # assignments cost tens of microseconds here, a comprehension several times as much,
+        # and in the running loop every further C call about a microsecond.
+        try:
+            self._pose_pack(
+                self._buf,
+                self._pose_base + row * self._pose_stride,
+                self._tick,
+                self._now,
+                *itertools.chain.from_iterable(poses),
             )
-        else:  # a pose list of another length: what fits, the rest NaN
+        except struct.error:  # a pose list of another length: what fits, the rest NaN
+            values = tuple(itertools.chain.from_iterable(poses))
+            self._rings.pose_i[row] = (self._tick, self._now)
             row_values = self._rings.pose_f[row]
             row_values[:] = float("nan")
             row_values[: min(len(values), len(row_values))] = values[: len(row_values)]
@@ -719,6 +768,8 @@ class Recorder:
             bus.rx_tap = None
             bus.event_tap = None
         try:
+            if self._pose_list is not None:
+                self._copy_poses()
             if self._row >= 0:
                 self._publish_idle()
             elif self._pending:

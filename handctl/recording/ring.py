@@ -89,7 +89,8 @@ RING_EVENT_KINDS = {
     EV_REQUEST: "request",
 }
 
-# Pose row: tick, t_ns; then x, y, angle per object.
+# Pose row: tick, t_ns (int64); then x, y, angle per object (float64), side by side in one
+# row of 8-byte words, so that the loop writes a row with one ``struct.pack_into``.
 POSE_INTS = 2
 
 IntArray = npt.NDArray[np.int64]
@@ -127,6 +128,12 @@ class RingLayout:
     def tick_floats(self) -> int:
         return 4 * self.n_joints
 
+    @property
+    def pose_words(self) -> int:
+        """A pose row's 8-byte words: its integers, then three floats per object (at least
+        one, so that a run without objects still has a well-formed ring)."""
+        return POSE_INTS + max(1, 3 * self.n_objects)
+
     def _sizes(self) -> list[tuple[str, tuple[int, ...], type]]:
         return [
             ("ctl", (CTL_WORDS,), np.int64),
@@ -135,8 +142,7 @@ class RingLayout:
             ("frame", (self.frame_capacity, FRAME_ROW), np.uint8),
             ("event_i", (self.event_capacity, EVENT_INTS), np.int64),
             ("event_d", (self.event_capacity, EVENT_BYTES), np.uint8),
-            ("pose_i", (self.pose_capacity, POSE_INTS), np.int64),
-            ("pose_f", (self.pose_capacity, max(1, 3 * self.n_objects)), np.float64),
+            ("pose", (self.pose_capacity, self.pose_words), np.int64),
         ]
 
     @property
@@ -175,8 +181,17 @@ class Rings:
         self.frame: ByteArray = views["frame"]
         self.event_i: IntArray = views["event_i"]
         self.event_d: ByteArray = views["event_d"]
-        self.pose_i: IntArray = views["pose_i"]
-        self.pose_f: FloatArray = views["pose_f"]
+        # The pose rows' two parts, as strided views of the one block of rows.
+        rows = views["pose"]
+        self.pose: IntArray = rows
+        self.pose_i: IntArray = rows[:, :POSE_INTS]
+        self.pose_f: FloatArray = np.ndarray(
+            (layout.pose_capacity, layout.pose_words - POSE_INTS),
+            dtype=np.float64,
+            buffer=buffer,
+            offset=self.offsets["pose"] + POSE_INTS * 8,
+            strides=(layout.pose_words * 8, 8),
+        )
 
     def release(self) -> None:
         """Drop the views so the mapping can be closed."""
@@ -187,6 +202,7 @@ class Rings:
             "frame",
             "event_i",
             "event_d",
+            "pose",
             "pose_i",
             "pose_f",
         ):
