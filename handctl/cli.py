@@ -1387,8 +1387,6 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
             "handctl plan config/recipes/swap_two_cylinders.template.yaml -o "
             "config/recipes/swap_two_cylinders.yaml --plot plan/",
             "handctl plan TEMPLATE.yaml -o RECIPE.yaml --quick",
-            "handctl plan config/recipes/swap_two_cylinders.template.yaml --from manipulate_1 "
-            "--base config/recipes/swap_two_cylinders.yaml -o replanned.yaml",
             "handctl plan config/recipes/swap_two_cylinders.template.yaml --from manipulate_3 "
             "--base config/recipes/swap_two_cylinders.yaml --schedule-only "
             "-o config/recipes/swap_two_cylinders.yaml",
