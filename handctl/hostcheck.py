@@ -175,48 +175,22 @@ class ProbeRecord:
             raise ConfigError(
                 source, prefix + "lateness_hist_us", "a mapping of µs bins to counts", hist_raw
             )
-        stalls_raw = data.get("stalls")
-        if not isinstance(stalls_raw, list):
-            raise ConfigError(
-                source, prefix + "stalls", "a list of [index, due_ns, wake_ns, missed]", stalls_raw
+        stalls = [
+            (r[0], r[1], r[2], r[3])
+            for r in _interval_rows(
+                data.get("stalls"),
+                source,
+                prefix + "stalls",
+                ("index", "due_ns", "wake_ns", "missed"),
             )
-        stalls = []
-        for i, row in enumerate(stalls_raw):
-            if (
-                not isinstance(row, list)
-                or len(row) != 4
-                or not all(isinstance(v, int) and not isinstance(v, bool) for v in row)
-                or row[2] < row[1]
-                or row[3] < 0
-            ):
-                raise ConfigError(
-                    source,
-                    f"{prefix}stalls[{i}]",
-                    "[index, due_ns, wake_ns, missed] with wake_ns >= due_ns and missed >= 0",
-                    row,
-                )
-            stalls.append((row[0], row[1], row[2], row[3]))
+        ]
         reference, slow, slow_overflow = _work(data.get("work"), source, prefix + "work")
-        hiccups_raw = data.get("hiccups", [])
-        if not isinstance(hiccups_raw, list):
-            raise ConfigError(
-                source, prefix + "hiccups", "a list of [index, due_ns, wake_ns]", hiccups_raw
+        hiccups = [
+            (r[0], r[1], r[2])
+            for r in _interval_rows(
+                data.get("hiccups", []), source, prefix + "hiccups", ("index", "due_ns", "wake_ns")
             )
-        hiccups = []
-        for i, row in enumerate(hiccups_raw):
-            if (
-                not isinstance(row, list)
-                or len(row) != 3
-                or not all(isinstance(v, int) and not isinstance(v, bool) for v in row)
-                or row[2] < row[1]
-            ):
-                raise ConfigError(
-                    source,
-                    f"{prefix}hiccups[{i}]",
-                    "[index, due_ns, wake_ns] with wake_ns >= due_ns",
-                    row,
-                )
-            hiccups.append((row[0], row[1], row[2]))
+        ]
         return cls(
             period_ns=period,
             start_ns=integer("start_ns"),
@@ -276,6 +250,28 @@ class ProbeRecord:
         return float(HIST_RANGE_US)
 
 
+def _interval_rows(raw: object, source: str, key: str, fields: tuple[str, ...]) -> list[list[int]]:
+    """A probe record's list of intervals: rows of ``fields`` integers, the third (an end)
+    not before the second (its start) and a fourth, if any, not negative; a ``ConfigError``
+    naming the row otherwise. One check for the stalls, the hiccups and the slow pieces."""
+    shape = f"[{', '.join(fields)}]"
+    if not isinstance(raw, list):
+        raise ConfigError(source, key, f"a list of {shape}", raw)
+    rule = f"{shape} with {fields[2]} >= {fields[1]}" + (
+        f" and {fields[3]} >= 0" if len(fields) > 3 else ""
+    )
+    for i, row in enumerate(raw):
+        if (
+            not isinstance(row, list)
+            or len(row) != len(fields)
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in row)
+            or row[2] < row[1]
+            or any(v < 0 for v in row[3:])
+        ):
+            raise ConfigError(source, f"{key}[{i}]", rule, row)
+    return raw
+
+
 def _work(
     raw: object, source: str, key: str
 ) -> tuple[int, tuple[tuple[int, int, int, int], ...], int]:
@@ -291,27 +287,12 @@ def _work(
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise ConfigError(source, f"{key}.{name}", "an integer >= 0", value)
         values.append(value)
-    rows_raw = raw.get("slow", [])
-    if not isinstance(rows_raw, list):
-        raise ConfigError(
-            source, f"{key}.slow", "a list of [index, start_ns, end_ns, cpu_ns]", rows_raw
+    rows = [
+        (r[0], r[1], r[2], r[3])
+        for r in _interval_rows(
+            raw.get("slow", []), source, f"{key}.slow", ("index", "start_ns", "end_ns", "cpu_ns")
         )
-    rows = []
-    for i, row in enumerate(rows_raw):
-        if (
-            not isinstance(row, list)
-            or len(row) != 4
-            or not all(isinstance(v, int) and not isinstance(v, bool) for v in row)
-            or row[2] < row[1]
-            or row[3] < 0
-        ):
-            raise ConfigError(
-                source,
-                f"{key}.slow[{i}]",
-                "[index, start_ns, end_ns, cpu_ns] with end_ns >= start_ns and cpu_ns >= 0",
-                row,
-            )
-        rows.append((row[0], row[1], row[2], row[3]))
+    ]
     return values[0], tuple(rows), values[1]
 
 

@@ -59,6 +59,7 @@ from handctl.planning.search import (
     LIMIT_MARGIN,
     Budget,
     Candidate,
+    SearchResult,
     cem,
     hold_scorer,
     turn_scorer,
@@ -460,23 +461,17 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 # last, so that the plan keeps the base's torque only if nothing else drawn
                 # ranks as high
                 seeds.append(("base recipe", replanned.torques))
-            margin, fail = (
-                (GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL)
-                if template.limit_guard_band is not None
-                else (LIMIT_MARGIN, LIMIT_FAIL)
-            )
+            margin, fail = _limit_bounds(template)
             scorer = (
                 turn_scorer(spec.turn, spec.max_s, margin, settings.max_turn_rate_deg_s)
                 if spec.kind == "turn"
                 else hold_scorer(spec.min_height, open_pair=True, limit_margin=margin)
             )
-            trial = _compiled_phase(spec, seeds[0][1], hand)
-            runs = (len(seeds) + budget.generations * budget.population + 1) * len(alive)
-            bar = meter(f"phase {spec.name}", runs) if meter is not None else None
-            result = cem(
+            # the chosen torque runs once more on every model, on the same bar
+            result, bar = _search(
                 [worlds[i] for i in alive],
                 [snaps[i] for i in alive],
-                trial,
+                _compiled_phase(spec, seeds[0][1], hand),
                 seeds,
                 limits,
                 scorer,
@@ -484,10 +479,12 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 budget,
                 executor,
                 lifted=lifted,
-                progress=say,
                 limit_fail=fail,
                 wanted_turn_deg=math.degrees(spec.turn) if spec.kind == "turn" else None,
-                bar=bar,
+                label=f"phase {spec.name}",
+                meter=meter,
+                say=say,
+                after=1,
             )
             chosen = result.best
             torques = chosen.torques
@@ -586,6 +583,56 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
     return PlanResult(template, hand, plans, model_list, f"sha256:{digest}", base)
 
 
+def _limit_bounds(template: Template) -> tuple[float, float]:
+    """rad: how near a soft limit a phase is scored down, and counted as failing (the guard
+    makes the approach to a limit a slope, so a guarded grasp may rest closer)."""
+    if template.limit_guard_band is not None:
+        return GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL
+    return LIMIT_MARGIN, LIMIT_FAIL
+
+
+def _search(
+    worlds: Sequence[World],
+    snapshots: Sequence[Snapshot],
+    trial: Phase,
+    seeds: Sequence[tuple[str, tuple[float, ...]]],
+    tau_max: Sequence[float],
+    scorer: Callable[[PhaseOutcome], float],
+    rng: np.random.Generator,
+    budget: Budget,
+    executor: WorkPool,
+    *,
+    lifted: bool,
+    limit_fail: float,
+    wanted_turn_deg: float | None,
+    label: str,
+    meter: Callable[[str, int], Progress] | None,
+    say: Callable[[str], None],
+    after: int = 0,
+) -> tuple[SearchResult, Progress | None]:
+    """The search (``cem``) for ``trial``'s torques on the models, with its progress bar
+    (counting ``after`` more runs per model that the caller makes on it; open)."""
+    runs = (len(seeds) + budget.generations * budget.population + after) * len(worlds)
+    bar = meter(label, runs) if meter is not None else None
+    result = cem(
+        worlds,
+        snapshots,
+        trial,
+        seeds,
+        tau_max,
+        scorer,
+        rng,
+        budget,
+        executor,
+        lifted=lifted,
+        progress=say,
+        limit_fail=limit_fail,
+        wanted_turn_deg=wanted_turn_deg,
+        bar=bar,
+    )
+    return result, bar
+
+
 def _base_schedule(spec: TemplatePhase, kept: Phase, base: Base) -> tuple[ScheduledTorques, ...]:
     """``spec``'s schedule for a phase the plan keeps: the written entries as the template
     writes them, each planned one with the torques the base recipe has for its ``when``."""
@@ -633,13 +680,8 @@ def _plan_schedule(
     every other uncertainty of the spread."""
     settings = template.search
     written = _written_schedule(spec)
-    margin, fail = (
-        (GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL)
-        if template.limit_guard_band is not None
-        else (LIMIT_MARGIN, LIMIT_FAIL)
-    )
+    margin, fail = _limit_bounds(template)
     scorer = turn_scorer(spec.turn, spec.max_s, margin, settings.max_turn_rate_deg_s)
-    limits = [j.tau_max for j in hand.joints]
     out: list[ScheduledTorques] = []
     docs: list[dict[str, Any]] = []
     for k, entry in enumerate(spec.schedule):
@@ -688,23 +730,22 @@ def _plan_schedule(
             (f"random flexion {j + 1}", _flexion_seed(hand, rng))
             for j in range(settings.random_seeds)
         ]
-        runs = (len(seeds) + budget.generations * budget.population) * len(alive)
-        bar = meter(f"phase {name}", runs) if meter is not None else None
-        result = cem(
+        result, bar = _search(
             [worlds[i] for i in alive],
             [snaps[i] for i in alive],
             _compiled_phase(spec, own, hand, schedule=()),
             seeds,
-            limits,
+            [j.tau_max for j in hand.joints],
             scorer,
             rng,
             budget,
             executor,
             lifted=lifted,
-            progress=say,
             limit_fail=fail,
             wanted_turn_deg=math.degrees(spec.turn),
-            bar=bar,
+            label=f"phase {name}",
+            meter=meter,
+            say=say,
         )
         if bar is not None:
             bar.close()
