@@ -99,41 +99,39 @@ class ProbeRecord:
     hiccups: tuple[tuple[int, int, int], ...] = ()
     hiccups_overflow: int = 0
 
+    def _hits(self) -> list[tuple[int, int, int, int]]:
+        """The wake-ups on which the bare loop found its CPU taken away or slow, in order, as
+        ``(index, start_ns, end_ns, seen_ns)``: a hiccup from its deadline to its wake-up, a
+        slow piece of work over its run, a wake-up with both one hit over both; seen is what
+        it saw lost (the hiccup's lateness, the piece's time over the usual)."""
+        hits: dict[int, tuple[int, int, int]] = {}
+        for index, due, wake in self.hiccups:
+            hits[index] = (due, wake, wake - due)
+        for index, start, end, _ in self.slow:
+            over = max(0, end - start - self.work_reference_ns)
+            at, until, seen = hits.get(index, (start, end, 0))
+            hits[index] = (at, max(until, end), seen + over)
+        return [(index, *hits[index]) for index in sorted(hits)]
+
     def slow_cpu_intervals(self) -> list[tuple[int, int, int]]:
-        """Where the CPU was slow for a loop, as ``(start_ns, end_ns, lost_ns)``: hiccups and
-        slow pieces of work on consecutive wake-ups are one interval, from the first's start
-        to the last's end; lost is what was seen lost (each hiccup's lateness, each slow
-        piece's time over the usual)."""
-        events = sorted(
-            [(i, due, wake, wake - due) for i, due, wake in self.hiccups]
-            + [
-                (i, start, end, max(0, end - start - self.work_reference_ns))
-                for i, start, end, _ in self.slow
-            ]
-        )
+        """Where the CPU was slow for a loop, as ``(start_ns, end_ns, lost_ns)``: hits on
+        consecutive wake-ups are one interval, from the first's start to the last's end, and
+        lost is what they saw lost."""
         out: list[tuple[int, int, int]] = []
         last = None
-        for index, start, end, lost in events:
+        for index, start, end, seen in self._hits():
             if out and last is not None and index - last <= 1:
                 s0, e0, l0 = out[-1]
-                out[-1] = (s0, max(e0, end), l0 + lost)
+                out[-1] = (s0, max(e0, end), l0 + seen)
             else:
-                out.append((start, end, lost))
+                out.append((start, end, seen))
             last = index
         return out
 
     def slow_cpu_hits(self) -> list[tuple[int, int]]:
-        """The wake-ups on which the bare loop found its CPU taken away or slow, as
-        ``(time_ns, seen_ns)``: when (a hiccup's deadline, a slow piece's start) and how long
-        it saw lost (the hiccup's lateness, the piece's time over the usual); a wake-up with
-        both is one hit."""
-        hits: dict[int, tuple[int, int]] = {}
-        for index, due, wake in self.hiccups:
-            hits[index] = (due, wake - due)
-        for index, start, end, _ in self.slow:
-            at, seen = hits.get(index, (start, 0))
-            hits[index] = (at, seen + max(0, end - start - self.work_reference_ns))
-        return sorted(hits.values())
+        """The bare loop's hits as ``(time_ns, seen_ns)``: when (a hiccup's deadline, a slow
+        piece's start) and how long it saw lost."""
+        return sorted((start, seen) for _, start, _, seen in self._hits())
 
     @classmethod
     def from_json(cls, data: object, source: str) -> ProbeRecord:

@@ -105,53 +105,36 @@ class WorkLog:
     The usual wall time (``reference_ns``) is the median of the first ``REFERENCE_WAKEUPS``
     pieces, measured in place (at the probe's priority, on its CPU, beside what runs there),
     not before: a cache the neighbours keep cold is the usual, not a slow CPU. From then on a
-    piece of at least ``factor`` times the usual is kept. Arrays allocated once, like
-    ``StallLog``; past ``capacity`` slow pieces are only counted.
+    piece of at least ``factor`` times the usual is kept, in a ``StallLog`` (an interval at
+    least a threshold long, in arrays allocated once; past its capacity only counted) whose
+    fourth column holds the piece's CPU time.
     """
 
     def __init__(self, factor: float, capacity: int = 1 << 16) -> None:
         self.factor = factor
-        self.capacity = capacity
         self.first = array("q", bytes(8 * REFERENCE_WAKEUPS))
         self.count = 0
         self.reference_ns = 0
-        self.threshold_ns = 0
-        self.index = array("q", bytes(8 * capacity))
-        self.start_ns = array("q", bytes(8 * capacity))
-        self.end_ns = array("q", bytes(8 * capacity))
-        self.cpu_ns = array("q", bytes(8 * capacity))
-        self.size = 0
-        self.overflow = 0
+        # nothing is slow until the usual time is known
+        self.kept = StallLog(threshold_ns=1 << 62, capacity=capacity)
+
+    @property
+    def overflow(self) -> int:
+        return self.kept.overflow
 
     def add(self, index: int, start_ns: int, end_ns: int, cpu_ns: int) -> None:
-        wall = end_ns - start_ns
         count = self.count
         self.count = count + 1
         if count < REFERENCE_WAKEUPS:
-            self.first[count] = wall
+            self.first[count] = end_ns - start_ns
             if count + 1 == REFERENCE_WAKEUPS:
                 self.reference_ns = sorted(self.first)[REFERENCE_WAKEUPS // 2]
-                self.threshold_ns = max(1, round(self.factor * self.reference_ns))
+                self.kept.threshold_ns = max(1, round(self.factor * self.reference_ns))
             return
-        if wall < self.threshold_ns:
-            return
-        n = self.size
-        if n >= self.capacity:
-            self.overflow += 1
-            return
-        self.index[n], self.start_ns[n], self.end_ns[n], self.cpu_ns[n] = (
-            index,
-            start_ns,
-            end_ns,
-            cpu_ns,
-        )
-        self.size = n + 1
+        self.kept.add(index, start_ns, end_ns, cpu_ns)
 
     def rows(self) -> list[tuple[int, int, int, int]]:
-        n = self.size
-        return list(
-            zip(self.index[:n], self.start_ns[:n], self.end_ns[:n], self.cpu_ns[:n], strict=True)
-        )
+        return self.kept.rows()
 
 
 def probe(

@@ -64,6 +64,10 @@ STOP_TICK_TIMEOUT_S = 0.1
 EXCEPTION_TEXT_CHARS = 200
 
 
+#: The phase name of a run without a recipe (the record and the status line alike).
+NO_PHASE = "-"
+
+
 class EndOfTicks(Exception):  # noqa: N818 - an end, not an error
     """A lockstep clock has no more ticks to give (a re-run reaching the end of its log): the
     run ends where it stands, sending nothing more, and this propagates to the caller.
@@ -531,7 +535,7 @@ class Runtime:
                 self._record_state = sup.state
                 record.state = sup.state.value
             runner = self.runner
-            record.phase = runner.phase_name if runner is not None else "-"
+            record.phase = runner.phase_name if runner is not None else NO_PHASE
             fb = self._feedback_ns
             record.stage_ns = (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, 0, fb)
             record.faults = new_faults
@@ -616,7 +620,7 @@ class Runtime:
         return tuple(r.name for r in self.runner.records if r.exit.startswith("timeout"))
 
     def _phase_name(self) -> str:
-        return self.runner.phase_name if self.runner is not None else "-"
+        return self.runner.phase_name if self.runner is not None else NO_PHASE
 
     def _store(self, tk: Tick, stages: tuple[int, ...]) -> None:
         self._stats.store(tk.lateness_ns, tk.missed, stages)

@@ -38,10 +38,10 @@ from handctl.online.recipes.loader import (
     parse_objects,
     parse_paced_ramp,
     parse_reanalyse,
-    parse_schedule_torques,
     parse_schedule_when,
     parse_stall,
     parse_torque_margin,
+    parse_torques,
     parse_turn_rate,
 )
 from handctl.online.recipes.schema import (
@@ -310,7 +310,7 @@ def _schedule(doc: Doc, hand: HandConfig, objects: list[str]) -> tuple[ScheduleE
             plan.done()
             out.append(PlannedSchedule(when, models))
         else:
-            out.append(ScheduledTorques(when, parse_schedule_torques(entry, hand)))
+            out.append(ScheduledTorques(when, parse_torques(entry, hand)))
         entry.done()
     return tuple(out)
 

@@ -93,14 +93,14 @@ _MAX_SHAPES = 1024
 Pending = list[tuple[Any, ...]]
 
 
-def _blocks(pending: Pending) -> Iterator[tuple[int, Pending]]:
-    """The noted rows as sent frames and drains: (at, [the sent frame's row]) or (at, [the
-    drain's head row, its frames...]), ``at`` the index of the block's first row."""
+def _blocks(pending: Pending) -> Iterator[Pending]:
+    """The noted rows as sent frames and drains: [the sent frame's row] or [the drain's head
+    row, its frames...]."""
     at = 0
     while at < len(pending):
         entry = pending[at]
         rows = 1 if entry[0] != TAP_RX else 1 + entry[3]
-        yield at, pending[at : at + rows]
+        yield pending[at : at + rows]
         at += rows
 
 
@@ -109,13 +109,13 @@ def _frames_struct(pending: Pending) -> tuple[struct.Struct, int]:
     rows are not frames)."""
     formats = []
     frames = 0
-    for _, block in _blocks(pending):
-        if len(block[0]) == 5:
-            formats.append(TX_FRAME_ROW)
-            frames += 1
-        else:
+    for block in _blocks(pending):
+        if block[0][0] == TAP_RX:
             formats.append(RX_HEAD_ROW + RX_FRAME_ROW * (len(block) - 1))
             frames += len(block) - 1
+        else:
+            formats.append(TX_FRAME_ROW)
+            frames += 1
     return struct.Struct("<" + "".join(formats)), frames
 
 
@@ -590,17 +590,17 @@ class Recorder:
         its frames counted."""
         buf, base, mask = self._buf, self._frame_base, self._frame_mask
         head = self._fhead
-        for _, block in _blocks(pending):
+        for block in _blocks(pending):
             entry = block[0]
-            if len(entry) == 5:
+            if entry[0] == TAP_RX:
+                head, count = self._flush_drain(block, head)
+                self._frames_noted += count
+            else:
                 if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask):
                     continue
                 _TX_FRAME.pack_into(buf, base + (head & mask) * FRAME_ROW, *entry)
                 head += 1
                 self._frames_noted += 1
-            else:
-                head, count = self._flush_drain(block, head)
-                self._frames_noted += count
         self._fhead = head
 
     def _flush_drain(self, block: Pending, head: int) -> tuple[int, int]:

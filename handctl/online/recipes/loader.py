@@ -277,7 +277,7 @@ def _parse_phase(
     doc: Doc, hand: HandConfig, estimates: tuple[str, ...], objects: tuple[RecipeObject, ...]
 ) -> Phase:
     name = doc.string("name")
-    torques = _parse_torques(doc, hand)
+    torques = parse_torques(doc, hand)
     ramp = doc.number("ramp_s", default=0.1, min=0.0, max=60.0, unit="s")
     max_s = doc.number("max_s", min=0.0, max=3600.0, min_exclusive=True, unit="s")
     on_timeout = TimeoutAction(
@@ -342,7 +342,7 @@ def parse_schedule(
     out: list[ScheduledTorques] = []
     for entry in doc.mappings("schedule", min_len=1, max_len=MAX_SCHEDULE):
         when = parse_schedule_when(entry, names)
-        torques = _parse_torques(entry, hand)
+        torques = parse_torques(entry, hand)
         entry.done()
         out.append(ScheduledTorques(when, torques))
     return tuple(out)
@@ -369,11 +369,6 @@ def parse_schedule_when(entry: Doc, names: Sequence[str]) -> tuple[RadiusRatio, 
         ranges.append(_parse_radius_ratio(Doc(item, entry.file, path), names, ranges))
     when.done()
     return tuple(ranges)
-
-
-def parse_schedule_torques(entry: Doc, hand: HandConfig) -> tuple[float, ...]:
-    """The ``torques`` of one ``schedule`` entry (N·m, config joint order)."""
-    return _parse_torques(entry, hand)
 
 
 def _parse_radius_ratio(
@@ -568,7 +563,9 @@ def _parse_pose(doc: Doc, hand: HandConfig) -> PoseHold:
     return PoseHold(tuple(angles), stiffness, damping)
 
 
-def _parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
+def parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
+    """``torques`` of a phase or a ``schedule`` entry: joint name to N·m, or a list in the
+    config's joint order."""
     names = hand.joint_names
     raw = doc.raw("torques")
     if isinstance(raw, list):

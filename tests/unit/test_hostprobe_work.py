@@ -1,0 +1,19 @@
+"""The bare loop's slow pieces of work (``hostprobe.WorkLog``): the usual time is the median of
+the first pieces, measured in place; from then on a piece of ``factor`` times it is kept."""
+
+from __future__ import annotations
+
+from handctl.hostprobe import REFERENCE_WAKEUPS, WorkLog
+
+
+def test_a_piece_slower_than_factor_times_the_usual_is_kept() -> None:
+    log = WorkLog(factor=3.0, capacity=2)
+    for k in range(REFERENCE_WAKEUPS):  # the usual pieces, and one the host held during them
+        log.add(k, 0, 1_000 if k != 7 else 50_000, 900)
+    assert log.reference_ns == 1_000 and log.rows() == []
+    log.add(500, 10, 10 + 2_999, 2_000)  # not slow
+    log.add(501, 20, 20 + 3_000, 2_800)
+    log.add(502, 30, 30 + 9_000, 8_500)
+    log.add(503, 40, 40 + 9_000, 8_500)  # past the capacity: counted only
+    assert log.rows() == [(501, 20, 3_020, 2_800), (502, 30, 9_030, 8_500)]
+    assert log.overflow == 1 and log.count == REFERENCE_WAKEUPS + 4
