@@ -98,19 +98,26 @@ class ProbeRecord:
     hiccup_ns: int = 0
     hiccups: tuple[tuple[int, int, int], ...] = ()
     hiccups_overflow: int = 0
+    #: The bare loop's passage through the kernel between two pieces of work (asleep on its
+    #: timer, switched out and in): its usual thread CPU time, and the wake-ups on which it
+    #: took ``--slow-factor`` times that or more, as (wake-up index, due_ns, wake_ns, cpu_ns).
+    switch_reference_ns: int = 0
+    slow_switches: tuple[tuple[int, int, int, int], ...] = ()
+    slow_switches_overflow: int = 0
 
     def _hits(self) -> list[tuple[int, int, int, int]]:
         """The wake-ups on which the bare loop found its CPU taken away or slow, in order, as
-        ``(index, start_ns, end_ns, seen_ns)``: a hiccup from its deadline to its wake-up, a
-        slow piece of work over its run, a wake-up with both one hit over both; seen is what
-        it saw lost (the hiccup's lateness, the piece's time over the usual)."""
+        ``(index, start_ns, end_ns, seen_ns)``: a hiccup or a slow switch from its deadline to
+        its wake-up, a slow piece of work over its run, a wake-up with more than one of them
+        one hit over all; seen is what it saw lost (the hiccup's lateness, the switch's CPU
+        time and the piece's time over the usual)."""
         hits: dict[int, tuple[int, int, int]] = {}
         for index, due, wake in self.hiccups:
             hits[index] = (due, wake, wake - due)
+        for index, due, wake, cpu in self.slow_switches:
+            _add_hit(hits, index, due, wake, max(0, cpu - self.switch_reference_ns))
         for index, start, end, _ in self.slow:
-            over = max(0, end - start - self.work_reference_ns)
-            at, until, seen = hits.get(index, (start, end, 0))
-            hits[index] = (at, max(until, end), seen + over)
+            _add_hit(hits, index, start, end, max(0, end - start - self.work_reference_ns))
         return [(index, *hits[index]) for index in sorted(hits)]
 
     def slow_cpu_intervals(self) -> list[tuple[int, int, int]]:
@@ -182,7 +189,7 @@ class ProbeRecord:
                 ("index", "due_ns", "wake_ns", "missed"),
             )
         ]
-        reference, slow, slow_overflow = _work(data.get("work"), source, prefix + "work")
+        work = _work(data.get("work"), source, prefix + "work")
         hiccups = [
             (r[0], r[1], r[2])
             for r in _interval_rows(
@@ -202,9 +209,12 @@ class ProbeRecord:
             scheduler=dict(scheduler),
             refused=tuple(refused),
             source=source,
-            work_reference_ns=reference,
-            slow=slow,
-            slow_overflow=slow_overflow,
+            work_reference_ns=work.reference_ns,
+            slow=work.slow,
+            slow_overflow=work.slow_overflow,
+            switch_reference_ns=work.switch_reference_ns,
+            slow_switches=work.slow_switches,
+            slow_switches_overflow=work.slow_switches_overflow,
             hiccup_ns=integer("hiccup_ns", default=0),
             hiccups=tuple(hiccups),
             hiccups_overflow=integer("hiccups_overflow", default=0),
@@ -231,6 +241,9 @@ class ProbeRecord:
                 "reference_ns": self.work_reference_ns,
                 "slow": [list(s) for s in self.slow],
                 "slow_overflow": self.slow_overflow,
+                "switch_reference_ns": self.switch_reference_ns,
+                "slow_switches": [list(s) for s in self.slow_switches],
+                "slow_switches_overflow": self.slow_switches_overflow,
             },
         }
 
@@ -270,28 +283,75 @@ def _interval_rows(raw: object, source: str, key: str, fields: tuple[str, ...]) 
     return raw
 
 
-def _work(
-    raw: object, source: str, key: str
-) -> tuple[int, tuple[tuple[int, int, int, int], ...], int]:
-    """The probe's ``work`` record: usual wall time, slow pieces, those not kept. A record
-    without one (a probe that timed no work, or an older one) has no slow CPU intervals."""
+def _add_hit(
+    hits: dict[int, tuple[int, int, int]], index: int, start: int, end: int, seen: int
+) -> None:
+    """One more sign of a slow CPU on wake-up ``index``: the wake-up's hit spans both, and
+    saw what both saw."""
+    at, until, before = hits.get(index, (start, end, 0))
+    hits[index] = (min(at, start), max(until, end), before + seen)
+
+
+@dataclass(frozen=True)
+class _WorkRecord:
+    """The probe's ``work`` record: the piece of work's usual wall time and its slow pieces,
+    the switch's usual CPU time and its slow switches, and how many of each were not kept."""
+
+    reference_ns: int = 0
+    slow: tuple[tuple[int, int, int, int], ...] = ()
+    slow_overflow: int = 0
+    switch_reference_ns: int = 0
+    slow_switches: tuple[tuple[int, int, int, int], ...] = ()
+    slow_switches_overflow: int = 0
+
+
+def _work(raw: object, source: str, key: str) -> _WorkRecord:
+    """The probe's ``work`` record. A record without one (a probe that timed no work, or an
+    older one) has no slow CPU intervals; one without switches (older) has no slow switches."""
     if raw is None:
-        return 0, (), 0
+        return _WorkRecord()
     if not isinstance(raw, dict):
-        raise ConfigError(source, key, "a mapping (reference_ns, slow, slow_overflow)", raw)
-    values = []
-    for name in ("reference_ns", "slow_overflow"):
+        raise ConfigError(
+            source,
+            key,
+            "a mapping (reference_ns, slow, slow_overflow, switch_reference_ns, "
+            "slow_switches, slow_switches_overflow)",
+            raw,
+        )
+    values = {}
+    for name in (
+        "reference_ns",
+        "slow_overflow",
+        "switch_reference_ns",
+        "slow_switches_overflow",
+    ):
         value = raw.get(name, 0)
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise ConfigError(source, f"{key}.{name}", "an integer >= 0", value)
-        values.append(value)
-    rows = [
+        values[name] = value
+    slow = tuple(
         (r[0], r[1], r[2], r[3])
         for r in _interval_rows(
             raw.get("slow", []), source, f"{key}.slow", ("index", "start_ns", "end_ns", "cpu_ns")
         )
-    ]
-    return values[0], tuple(rows), values[1]
+    )
+    switches = tuple(
+        (r[0], r[1], r[2], r[3])
+        for r in _interval_rows(
+            raw.get("slow_switches", []),
+            source,
+            f"{key}.slow_switches",
+            ("index", "due_ns", "wake_ns", "cpu_ns"),
+        )
+    )
+    return _WorkRecord(
+        values["reference_ns"],
+        slow,
+        values["slow_overflow"],
+        values["switch_reference_ns"],
+        switches,
+        values["slow_switches_overflow"],
+    )
 
 
 @dataclass(frozen=True)
@@ -354,6 +414,7 @@ def judge(record: ProbeRecord, deadlines: Deadlines) -> Verdict:
         "stalls_unrecorded": record.stalls_overflow,
         "hiccups": len(record.hiccups) + record.hiccups_overflow,
         "slow_pieces": len(record.slow) + record.slow_overflow,
+        "slow_switches": len(record.slow_switches) + record.slow_switches_overflow,
         "slow_cpu_intervals": len(slow_cpu),
         "slow_cpu_intervals_over_half_period": slow_cpu_heavy,
         "longest_slow_cpu_ms": round(max((e - s for s, e, _ in slow_cpu), default=0) / 1e6, 3),
@@ -573,7 +634,8 @@ class CheckReport:
             f"{f['stalls_over_feedback_timeout']}; LOOP_OVERRUN trips: "
             f"{f['loop_overrun_trips']}",
             f"  slow CPU: {f['slow_cpu_intervals']} interval(s) of hiccups (wake-ups late "
-            f"but no stall: {f['hiccups']}) or slow work ({f['slow_pieces']}), "
+            f"but no stall: {f['hiccups']}), slow work ({f['slow_pieces']}) or slow switches "
+            f"({f['slow_switches']}), "
             f"{f['slow_cpu_intervals_over_half_period']} losing half a period or more; longest "
             f"{f['longest_slow_cpu_ms']:g} ms, {f['slow_cpu_lost_ms']:g} ms lost in all",
         ]
@@ -674,10 +736,12 @@ def attribute(
     loop beside it overlap that interval by as long as the loop was late, less one period
     (the loop's own tick may take up to a period), the host held both loops: ``missed_host``.
     A host stall of 0.9 ms does not explain a loop 13 ms late. If the stalls do not, but
-    together with the bare loop's hits (its hiccups, wake-ups late by less than a stall, and
-    its slow pieces of work, ``_slowed``) they do, the host's CPU was taken away in pieces or
-    ran slow: ``missed_host_slow_cpu``. A loop slow on its own does not slow the bare loop's
-    wake-ups or work, which run above it on the same CPU. If the host does not explain
+    together with the bare loop's hits (its hiccups, wake-ups late by less than a stall, its
+    slow pieces of work, and its slow switches, a passage through the kernel between two
+    pieces that cost it several times the usual CPU time; ``_slowed``) they do, the host's
+    CPU was taken away in pieces or ran slow: ``missed_host_slow_cpu``. A loop slow on its
+    own does not slow the bare loop's wake-ups, work or switches, which run above it on the
+    same CPU. If the host does not explain
     it but a real-time rival (``handctl.rivals``: a task at the loop's priority or above,
     allowed on its CPU, which the probe one priority up does not feel) ran during it, the
     rival held the loop: ``missed_rival``, the host's too (what else runs on the host). If

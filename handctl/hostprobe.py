@@ -7,16 +7,18 @@ process's (like cyclictest of rt-tests). A loop that only waits sees the CPU tak
 when that happens as it is due, and cannot see a CPU that runs slower for a while: so it also
 keeps its wake-ups late by less than a stall (hiccups), and on each wake-up it runs a fixed,
 calibrated piece of work (``WorkLog``) and keeps the wake-ups on which that took much longer
-than usual. It is a process and not a thread
-because a thread of the control process would wait for the interpreter lock whenever the
-control loop holds it, and take it from the loop every period.
+than usual, or on which its own passage through the kernel since the last piece (asleep on
+its timer, switched out and in) cost much more CPU time than usual. It is a process and not
+a thread because a thread of the control process would wait for the interpreter lock
+whenever the control loop holds it, and take it from the loop every period.
 
 ``python -m handctl.hostprobe --period-ns N [--seconds S] [--record-ns T] [--priority P]
 [--cpu C] [--no-lock-memory] [--hiccup-ns H] [--work-ns W] [--slow-factor F]`` runs until S
 seconds have passed or SIGTERM/SIGINT comes, then writes one JSON object to stdout
 (``handctl.hostcheck.ProbeRecord`` reads it): the wake-up lateness as a histogram of 1 µs
-bins, every stall of at least T ns with its interval, every hiccup of at least H ns, and every
-slow piece of work with its interval and thread CPU time.
+bins, every stall of at least T ns with its interval, every hiccup of at least H ns, every
+slow piece of work with its interval and thread CPU time, and every slow switch (the kernel
+passage before a wake-up) with the wake-up's interval and that CPU time.
 """
 
 from __future__ import annotations
@@ -99,39 +101,46 @@ def _timed(iterations: int) -> int:
 
 
 class WorkLog:
-    """The wake-ups on which the piece of work was slow: ``(index, start_ns, end_ns, cpu_ns)``,
-    its wall interval and the thread CPU time it took.
+    """The wake-ups on which a cost of the bare loop's was high: ``(index, start_ns, end_ns,
+    cpu_ns)``, an interval and the thread CPU time in it.
 
-    The usual wall time (``reference_ns``) is the median of the first ``REFERENCE_WAKEUPS``
-    pieces, measured in place (at the probe's priority, on its CPU, beside what runs there),
-    not before: a cache the neighbours keep cold is the usual, not a slow CPU. From then on a
-    piece of at least ``factor`` times the usual is kept, in a ``StallLog`` (an interval at
-    least a threshold long, in arrays allocated once; past its capacity only counted) whose
-    fourth column holds the piece's CPU time.
+    Two costs are kept this way: the wall time of the piece of work (``by_cpu`` False), and
+    the thread CPU time of the bare loop's passage through the kernel between two pieces
+    (``by_cpu`` True: going to sleep on its timer, being switched out and back in, returning
+    from the read), whose interval runs from the wake-up's deadline to the wake-up.
+
+    The usual cost (``reference_ns``) is the median of the first ``REFERENCE_WAKEUPS``,
+    measured in place (at the probe's priority, on its CPU, beside what runs there), not
+    before: a cache the neighbours keep cold is the usual, not a slow CPU. From then on a cost
+    of at least ``factor`` times the usual is kept, in a ``StallLog`` (arrays allocated once;
+    past its capacity only counted) whose fourth column holds the CPU time.
     """
 
-    def __init__(self, factor: float, capacity: int = 1 << 16) -> None:
+    def __init__(self, factor: float, capacity: int = 1 << 16, by_cpu: bool = False) -> None:
         self.factor = factor
+        self.by_cpu = by_cpu
         self.first = array("q", bytes(8 * REFERENCE_WAKEUPS))
         self.count = 0
         self.reference_ns = 0
-        # nothing is slow until the usual time is known
-        self.kept = StallLog(threshold_ns=1 << 62, capacity=capacity)
+        self.threshold_ns = 1 << 62  # nothing is slow until the usual cost is known
+        self.kept = StallLog(threshold_ns=0, capacity=capacity)
 
     @property
     def overflow(self) -> int:
         return self.kept.overflow
 
     def add(self, index: int, start_ns: int, end_ns: int, cpu_ns: int) -> None:
+        cost = cpu_ns if self.by_cpu else end_ns - start_ns
         count = self.count
         self.count = count + 1
         if count < REFERENCE_WAKEUPS:
-            self.first[count] = end_ns - start_ns
+            self.first[count] = cost
             if count + 1 == REFERENCE_WAKEUPS:
                 self.reference_ns = sorted(self.first)[REFERENCE_WAKEUPS // 2]
-                self.kept.threshold_ns = max(1, round(self.factor * self.reference_ns))
+                self.threshold_ns = max(1, round(self.factor * self.reference_ns))
             return
-        self.kept.add(index, start_ns, end_ns, cpu_ns)
+        if cost >= self.threshold_ns:
+            self.kept.add(index, start_ns, end_ns, cpu_ns)
 
     def rows(self) -> list[tuple[int, int, int, int]]:
         return self.kept.rows()
@@ -147,8 +156,8 @@ def probe(
     slow_factor: float = SLOW_FACTOR,
     hiccup_ns: int | None = None,
 ) -> dict[str, Any]:
-    """The loop itself: wait, note the lateness, time the piece of work (none if ``work_ns``
-    is 0), until ``seconds`` or ``stop``.
+    """The loop itself: wait, note the lateness, time the piece of work and the switch before
+    it (neither if ``work_ns`` is 0), until ``seconds`` or ``stop``.
 
     Wake-ups late by ``hiccup_ns`` or more, but less than a stall (``record_ns``), are kept
     apart as hiccups (none if None): the CPU taken away for less than the stall threshold, many
@@ -168,12 +177,14 @@ def probe(
     PeriodicTimer(period_ns).close()  # loads what the timer needs
     iterations = calibrate(work_ns) if work_ns > 0 else 0
     slow = WorkLog(slow_factor)
+    switches = WorkLog(slow_factor, by_cpu=True)
     clock = time.monotonic_ns
     cpu_clock = time.thread_time_ns
     refused = become_realtime()
     cpus = os.sched_getaffinity(0)
     steal_before = steal_ms(cpus)
     timer = PeriodicTimer(period_ns)
+    last_cpu = cpu_clock()  # where the last piece of work ended, in thread CPU time
     try:
         start = timer.start_ns
         end = None if seconds is None else start + round(seconds * 1e9)
@@ -191,10 +202,13 @@ def probe(
                 hiccups.add(wakeups, due, now, 0)
             if iterations:
                 c0 = cpu_clock()
+                if n == 1 and late < record_ns:  # a stall's switch is the stall's
+                    switches.add(wakeups, due, now, c0 - last_cpu)
                 w0 = clock()
                 work(iterations)
                 w1 = clock()
-                slow.add(wakeups, w0, w1, cpu_clock() - c0)
+                last_cpu = cpu_clock()
+                slow.add(wakeups, w0, w1, last_cpu - c0)
             wakeups += 1
             if end is not None and now >= end:
                 break
@@ -225,6 +239,9 @@ def probe(
             "slow_factor": slow_factor,
             "slow": [list(row) for row in slow.rows()],
             "slow_overflow": slow.overflow,
+            "switch_reference_ns": switches.reference_ns,
+            "slow_switches": [list(row) for row in switches.rows()],
+            "slow_switches_overflow": switches.overflow,
         },
         "refused": refused,
         "scheduler": got,

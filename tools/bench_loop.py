@@ -10,8 +10,9 @@ so the feedback stage does the work of a feedback phase every tick.
 Beside the loop, on its CPU one priority above it, the bare timer loop of the timing check runs
 for the whole run (``handctl.hostcheck``): ``host_*`` is what it saw, and every missed tick of
 the run proper is the host's (``missed_host``: the bare loop stalled at the same time;
-``missed_host_slow_cpu``: its stalls, hiccups and slow pieces of work together explain the
-miss, the CPU taken away in pieces shorter than a stall or running slow; ``missed_rival``:
+``missed_host_slow_cpu``: its stalls, hiccups, slow pieces of work and slow switches (its own
+passage through the kernel between two pieces) together explain the miss, the CPU taken away
+in pieces shorter than a stall or running slow; ``missed_rival``:
 a real-time task at the loop's priority or above ran on its CPU, which the bare loop one
 priority up does not feel, ``handctl.rivals``) or handctl's (``missed_handctl``: none of
 these). Target: ``missed_handctl`` 0.
@@ -207,10 +208,12 @@ def host_figures(
         "host_longest_stall_ms": f["longest_stall_ms"],
         "host_hiccups": f["hiccups"],
         "host_slow_pieces": f["slow_pieces"],
+        "host_slow_switches": f["slow_switches"],
         "host_slow_cpu_intervals": f["slow_cpu_intervals"],
         "host_longest_slow_cpu_ms": f["longest_slow_cpu_ms"],
         "host_slow_cpu_lost_ms": f["slow_cpu_lost_ms"],
         "host_work_reference_us": round(host.work_reference_ns / 1e3, 2),
+        "host_switch_reference_us": round(host.switch_reference_ns / 1e3, 2),
         "host_steal_ms": host.steal_ms,
         **shares,
         "missed_handctl_at_ticks": own[:20],

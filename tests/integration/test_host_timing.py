@@ -69,6 +69,13 @@ def test_the_bare_loop_reports_every_wakeup() -> None:
     for index, start, end, cpu in work["slow"]:
         assert 200 <= index < out["wakeups"] and end - start >= work["reference_ns"]
         assert cpu > 0
+    # So is the switch before each piece (asleep on the timer and back), by its CPU time.
+    assert work["switch_reference_ns"] > 0
+    assert work["slow_switches"], work
+    stalled = {row[0] for row in out["stalls"]}
+    for index, due, wake, cpu in work["slow_switches"]:
+        assert 200 <= index < out["wakeups"] and index not in stalled
+        assert wake >= due and cpu >= work["switch_reference_ns"]
 
 
 def test_check_timing_prints_a_verdict_and_writes_its_record(tmp_path: Path) -> None:
@@ -88,6 +95,7 @@ def test_check_timing_prints_a_verdict_and_writes_its_record(tmp_path: Path) -> 
         "loop_overrun_trips",
         "hiccups",
         "slow_pieces",
+        "slow_switches",
         "slow_cpu_intervals",
         "slow_cpu_intervals_over_half_period",
     ):

@@ -4,6 +4,8 @@ timing), the host's facts and advice, and the attribution of missed ticks."""
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -15,6 +17,7 @@ from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_m
 
 MS = 1_000_000
 START = 10_000 * MS
+DATA = Path(__file__).resolve().parent.parent / "data"
 
 
 def record(
@@ -399,6 +402,104 @@ def test_consecutive_slow_pieces_are_one_interval_and_the_check_reports_it(
     assert "a CPU that does not slow down" not in "\n".join(advice(facts(), host, True))
 
 
+# -- slow switches: the bare loop's own passage through the kernel ------------------------------
+SWITCH_NS = 25_000  # the usual CPU time of the bare loop's switch (asleep on its timer and back)
+
+
+def slow_switches(first_index: int, from_ms: float, cpu_us: list[float]) -> list[list[int]]:
+    """Wake-ups of the bare loop, one every 0.5 ms from ``from_ms``, each 40 µs late (no
+    hiccup) after a switch that cost ``cpu_us`` of its thread CPU time (as the probe writes
+    them: from the deadline to the wake-up)."""
+    rows = []
+    for k, cpu in enumerate(cpu_us):
+        due = START + round((from_ms + 0.5 * k) * MS)
+        rows.append([first_index + k, due, due + 40_000, round(cpu * 1e3)])
+    return rows
+
+
+def switch_record(switches: list[list[int]], late: list[list[int]] | None = None) -> ProbeRecord:
+    return record(
+        [],
+        period_ns=MS // 2,
+        hiccup_ns=100_000,
+        hiccups=late or [],
+        work={
+            "reference_ns": REF_NS,
+            "slow": [],
+            "slow_overflow": 0,
+            "switch_reference_ns": SWITCH_NS,
+            "slow_switches": switches,
+            "slow_switches_overflow": 0,
+        },
+    )
+
+
+def test_slow_switches_add_up_to_a_miss_as_hiccups_do() -> None:
+    # The CPU taken away while the bare loop itself went through the kernel, on three
+    # wake-ups running, none of them late enough to be a hiccup.
+    three = switch_record(slow_switches(1598, 800.0, [120, 90, 150]))
+    shares = attribute([BUSY_TICK], three, MS)
+    assert (shares["missed_host_slow_cpu"], shares["missed_handctl"]) == (2, 0)
+    # Two are not enough for the 1.5 ms the miss needs; a hiccup on the same wake-up as a
+    # slow switch is one hit, not two.
+    two = slow_switches(1598, 800.0, [120, 90])
+    assert attribute([BUSY_TICK], switch_record(two), MS)["missed_handctl"] == 2
+    both = switch_record(two, hiccups(1599, 800.5, [150]))
+    assert len(both.slow_cpu_hits()) == 2
+    assert attribute([BUSY_TICK], both, MS)["missed_handctl"] == 2
+    # What a hit saw is the switch's CPU time over the usual: one of 1.6 ms covers the miss.
+    long = switch_record(slow_switches(1600, 801.0, [1_600]))
+    assert long.slow_cpu_hits()[0][1] == 1_600_000 - SWITCH_NS
+    assert attribute([BUSY_TICK], long, MS)["missed_host_slow_cpu"] == 2
+
+
+def test_slow_switches_are_counted_and_reported_by_the_check(deadlines: Deadlines) -> None:
+    host = switch_record(slow_switches(10, 100.0, [100, 200]) + slow_switches(40, 400.0, [90]))
+    verdict = judge(host, dataclasses.replace(deadlines, period_ns=MS))
+    f = verdict.figures
+    assert (f["slow_switches"], f["slow_cpu_intervals"], f["hiccups"]) == (3, 2, 0)
+    assert f["slow_cpu_lost_ms"] == round((75 + 175 + 65) / 1e3, 3)
+    again = ProbeRecord.from_json(host.as_json(), "again")
+    assert again.slow_switches == host.slow_switches
+    assert again.switch_reference_ns == SWITCH_NS
+
+
+def _recorded_cases(kind: str) -> list[tuple[list[tuple[int, int, int, int]], ProbeRecord]]:
+    """Recorded real-time runs of the shipped recipe (``--realtime --rt``) on a two-vCPU
+    virtual machine: the control loop's missed ticks and the bare loop beside it, around them
+    (docs/timing.md, "Slow switches")."""
+    data = json.loads((DATA / "host_slow_switches.json").read_text())
+    cases = [c for c in data["cases"] if c["kind"] == kind]
+    assert cases
+    return [
+        (
+            [(r[0], r[1], r[2], r[3]) for r in c["loop_stalls"]],
+            ProbeRecord.from_json(c["probe"], kind),
+        )
+        for c in cases
+    ]
+
+
+def test_recorded_busy_ticks_of_handctls_stay_handctls() -> None:
+    # A 2 ms busy loop of thread CPU time in every 80th tick: every tick it made the loop miss
+    # is handctl's, with the slow switches the bare loop recorded meanwhile counted.
+    for loop_stalls, host in _recorded_cases("handctl_busy_tick"):
+        shares = attribute(loop_stalls, host, MS)
+        assert shares["missed_handctl"] == sum(r[3] for r in loop_stalls) > 0
+        assert shares["missed_host"] == shares["missed_host_slow_cpu"] == 0
+
+
+def test_recorded_slow_cpu_misses_are_the_hosts_with_the_slow_switches() -> None:
+    # Ticks slowed in every stage at once (3-12x), no page fault, the loop preempted only by
+    # the bare loop; the bare loop's hiccups and slow pieces alone did not cover the misses.
+    for loop_stalls, host in _recorded_cases("host_slow_cpu"):
+        missed = sum(r[3] for r in loop_stalls)
+        shares = attribute(loop_stalls, host, MS)
+        assert (shares["missed_host_slow_cpu"], shares["missed_handctl"]) == (missed, 0)
+        without = dataclasses.replace(host, slow_switches=())
+        assert attribute(loop_stalls, without, MS)["missed_handctl"] == missed
+
+
 def test_a_record_without_work_or_hiccups_has_no_slow_cpu() -> None:
     plain = record([(7, 7.0, 4.0)])
     assert plain.slow_cpu_intervals() == [] and plain.slow_cpu_hits() == []
@@ -413,6 +514,8 @@ def test_a_record_without_work_or_hiccups_has_no_slow_cpu() -> None:
         ("work.reference_ns", -1, "an integer >= 0"),
         ("work.slow[0]", [[1, 10, 5, 0]], "end_ns >= start_ns"),
         ("hiccups[0]", [[1, 10, 5]], "wake_ns >= due_ns"),
+        ("work.switch_reference_ns", 1.5, "an integer >= 0"),
+        ("work.slow_switches[0]", [[1, 10, 20, -1]], "cpu_ns >= 0"),
     ],
 )
 def test_a_bad_work_or_hiccup_record_names_the_key(key: str, value: object, expected: str) -> None:

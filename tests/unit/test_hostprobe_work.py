@@ -17,3 +17,15 @@ def test_a_piece_slower_than_factor_times_the_usual_is_kept() -> None:
     log.add(503, 40, 40 + 9_000, 8_500)  # past the capacity: counted only
     assert log.rows() == [(501, 20, 3_020, 2_800), (502, 30, 9_030, 8_500)]
     assert log.overflow == 1 and log.count == REFERENCE_WAKEUPS + 4
+
+
+def test_a_switch_is_judged_by_its_cpu_time_not_its_wall_time() -> None:
+    # The switch's interval runs from the deadline to the wake-up, most of it asleep: only
+    # the CPU time the bare loop spent on its way through the kernel says it was slow.
+    log = WorkLog(factor=3.0, by_cpu=True)
+    for k in range(REFERENCE_WAKEUPS):
+        log.add(k, 0, 40_000 + 500 * k, 20_000)
+    assert log.reference_ns == 20_000
+    log.add(500, 1_000, 1_000 + 400_000, 59_000)  # late by a long wall time, not slow
+    log.add(501, 2_000, 2_000 + 40_000, 60_000)
+    assert log.rows() == [(501, 2_000, 42_000, 60_000)]
