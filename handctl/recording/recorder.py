@@ -301,7 +301,8 @@ class Recorder:
         self._angle_view = self._tdt_view = self._desired_view = self._applied_view = (
             self._feedback_view
         ) = memoryview(b"")
-        self._scheduled = self._missed = 0
+        #: The tick begun last, as the clock handed it out: the row's first four columns.
+        self._tk: tuple[int, int, int, int] = (-1, 0, 0, 0)
         self._tick_stride = self.layout.tick_ints * 8
         self._tick_base = r.offsets["tick_i"]
         # The integer part of a control tick's row in one call: tick, scheduled, now, missed,
@@ -408,10 +409,9 @@ class Recorder:
         elif self._pending:  # frames that came between ticks belong to the last one
             self._flush_frames()
             self._ctl_view[FRAME_HEAD] = self._fhead
+        self._tk = tick
         self._tick = tick.tick
-        self._scheduled = tick.scheduled_ns
         self._now = tick.now_ns
-        self._missed = tick.missed
         head = self._head
         if head - self._tail > self._tick_mask and self._ring_full(_TICKS, head, self._tick_mask):
             self._row = -1
@@ -425,10 +425,7 @@ class Recorder:
         _TICK_HEAD.pack_into(
             self._buf,
             self._tick_base + self._row * self._tick_stride,
-            self._tick,
-            self._scheduled,
-            self._now,
-            self._missed,
+            *self._tk,
             0,
         )
         self._publish()
@@ -464,10 +461,7 @@ class Recorder:
             self._row_pack(
                 self._buf,
                 at,
-                self._tick,
-                self._scheduled,
-                self._now,
-                self._missed,
+                *self._tk,
                 1,
                 s[0],
                 s[1],
