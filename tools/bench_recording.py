@@ -17,9 +17,11 @@ process, then read back:
     ``loop_cost_us_mean``.
   - *paired*: the CPU time of A's whole tick minus B's (from the moment the clock hands out
     the tick to the moment the runtime waits for the next, the simulated hands' steps
-    outside). Its mean, ``paired_cost_us_mean`` (with its standard error), also holds what
-    the direct measure cannot see: the taps' calls during the poll and the send, and the
-    caches the recording cools for the rest of the tick. Its 99th percentile,
+    outside; B reads the wall clock where A times ``begin_tick`` and ``poses``, so that the
+    difference holds none of the bench's own readings). Its mean, ``paired_cost_us_mean``
+    (with its standard error), also holds what the direct measure cannot see: the taps'
+    calls during the poll and the send, and the caches the recording cools for the rest of
+    the tick. Its 99th percentile,
     ``paired_cost_us_p99``, is not a usable tail: tick times vary by some ±10 µs from tick
     to tick on their own, so the difference of two ticks has a wide tail even when neither
     records. ``paired_noise_us_p99`` is that tail, from one more pair run with neither
@@ -252,10 +254,19 @@ class _Side:
         self.begin_ns: list[int] = []
         #: Time of ``poses`` (the tick's object poses handed over), by tick
         self.poses_ns: dict[int, int] = {}
-        if recorder is not None:
+        begin_ns = self.begin_ns
+        if recorder is None:
+            # The same timing around nothing, so that the paired difference holds none of the
+            # bench's own clock readings: the wrapper below is A's, not the recording's.
+
+            def timed_nothing(tk: Tick) -> None:
+                started = _WALL()
+                begin_ns.append(_WALL() - started)
+
+            runtime.tick_hooks.append(timed_nothing)
+        else:
             recorder.attach(runtime)
             begin = recorder.begin_tick
-            begin_ns = self.begin_ns
 
             def timed_begin(tk: Tick) -> None:
                 started = _WALL()
@@ -285,10 +296,10 @@ class _Side:
         def poses(tk: Tick) -> None:
             if tk.tick % POSE_EVERY_TICKS == 0:
                 truth = [(o.x, o.y, o.angle) for o in sim.ground_truth().objects]
+                started = _WALL()  # timed on both sides, as ``begin_tick`` is
                 if recorder is not None:
-                    started = _WALL()
                     recorder.poses(truth)
-                    poses_ns[tk.tick] = _WALL() - started
+                poses_ns[tk.tick] = _WALL() - started
 
         runtime.tick_hooks.append(poses)
 
