@@ -751,6 +751,8 @@ def recorder_of(revision: str) -> type[Recorder]:
         spec = importlib.util.spec_from_file_location("_recorder_against", handle.name)
         assert spec is not None and spec.loader is not None
         module = importlib.util.module_from_spec(spec)
+        # Where this tree's recorder lies: its writer process is started from this tree.
+        module.__file__ = str(ROOT / source)
         spec.loader.exec_module(module)
     finally:
         os.unlink(handle.name)
