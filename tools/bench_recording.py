@@ -17,9 +17,11 @@ process, then read back:
     ``loop_cost_us_mean``.
   - *paired*: the CPU time of A's whole tick minus B's (from the moment the clock hands out
     the tick to the moment the runtime waits for the next, the simulated hands' steps
-    outside). Its mean, ``paired_cost_us_mean`` (with its standard error), also holds what
-    the direct measure cannot see: the taps' calls during the poll and the send, and the
-    caches the recording cools for the rest of the tick. Its 99th percentile,
+    outside; B reads the wall clock where A times ``begin_tick`` and ``poses``, so that the
+    difference holds none of the bench's own readings). Its mean, ``paired_cost_us_mean``
+    (with its standard error), also holds what the direct measure cannot see: the taps'
+    calls during the poll and the send, and the caches the recording cools for the rest of
+    the tick. Its 99th percentile,
     ``paired_cost_us_p99``, is not a usable tail: tick times vary by some ±10 µs from tick
     to tick on their own, so the difference of two ticks has a wide tail even when neither
     records. ``paired_noise_us_p99`` is that tail, from one more pair run with neither
@@ -61,6 +63,17 @@ empty call cost in the same run. ``--writer-paused`` stops A's writer (SIGSTOP, 
 enough for the whole run) until the pair has run: the same figures without the writer's
 competition for the CPU.
 
+``--against REV``: instead, this tree's recorder against another's, under the same load:
+the same pair, both runtimes recorded, one by this tree's ``Recorder``, the other by the one
+in ``handctl/recording/recorder.py`` at git revision ``REV`` (imported beside this tree's, so
+it must speak this tree's ring layout), this tree's in the first place in the first pair and
+in the second in the next. ``against_this_us_p50`` / ``_p99`` / ``_mean`` and
+``against_reference_*`` are the direct cost of each, and ``against_tick_us_mean`` the mean
+of this tree's whole tick less the reference's, tick by tick: each over the ticks of the
+pairs of one order pooled, then averaged over the two orders. Two runs of the bench minutes
+apart on a shared machine differ by more than a recorder's change (the unrecorded tick's
+median moved from 160 to 225 us between two of them); two recorders ticking in turn do not.
+
 Each figure is the best of ``--repeat`` runs (the machine is shared). Progress goes to stderr.
 
 ``--live``: instead, what the live Foxglove view adds to the tick. The same pair, both
@@ -79,8 +92,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import importlib.util
 import os
 import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -157,6 +172,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "that the figures lack the writer's competition for the CPU",
     )
     parser.add_argument(
+        "--against",
+        metavar="REV",
+        help="instead: this tree's recorder against git revision REV's recorder.py (one that "
+        "speaks this tree's ring layout), both recording in one pair (against_*)",
+    )
+    parser.add_argument(
         "--breakdown",
         action="store_true",
         help="also split the direct cost: two more runs in which push copies "
@@ -225,6 +246,7 @@ class _Side:
         push: str = "all",
         live_port: int | None = None,
         layout: RingLayout | None = None,
+        recorder_type: type[Recorder] = Recorder,
     ) -> None:
         channel = f"virtual:bench-rec-{uuid.uuid4().hex[:8]}"
         peer = stack.enter_context(open_bus(channel, hand.bus))
@@ -235,7 +257,7 @@ class _Side:
         estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs) if recipe.objects else None
         self.recorder: Recorder | None = None
         if out is not None:
-            self.recorder = Recorder(
+            self.recorder = recorder_type(
                 out,
                 hand,
                 start_metadata(hand, recipe, ["bench"]),
@@ -252,10 +274,19 @@ class _Side:
         self.begin_ns: list[int] = []
         #: Time of ``poses`` (the tick's object poses handed over), by tick
         self.poses_ns: dict[int, int] = {}
-        if recorder is not None:
+        begin_ns = self.begin_ns
+        if recorder is None:
+            # The same timing around nothing, so that the paired difference holds none of the
+            # bench's own clock readings: the wrapper below is A's, not the recording's.
+
+            def timed_nothing(tk: Tick) -> None:
+                started = _WALL()
+                begin_ns.append(_WALL() - started)
+
+            runtime.tick_hooks.append(timed_nothing)
+        else:
             recorder.attach(runtime)
             begin = recorder.begin_tick
-            begin_ns = self.begin_ns
 
             def timed_begin(tk: Tick) -> None:
                 started = _WALL()
@@ -285,10 +316,10 @@ class _Side:
         def poses(tk: Tick) -> None:
             if tk.tick % POSE_EVERY_TICKS == 0:
                 truth = [(o.x, o.y, o.angle) for o in sim.ground_truth().objects]
+                started = _WALL()  # timed on both sides, as ``begin_tick`` is
                 if recorder is not None:
-                    started = _WALL()
                     recorder.poses(truth)
-                    poses_ns[tk.tick] = _WALL() - started
+                poses_ns[tk.tick] = _WALL() - started
 
         runtime.tick_hooks.append(poses)
 
@@ -699,11 +730,136 @@ def run_live(args: argparse.Namespace) -> dict[str, Any]:
     return figures
 
 
+def recorder_of(revision: str) -> type[Recorder]:
+    """The ``Recorder`` of ``handctl/recording/recorder.py`` at git revision ``revision``,
+    imported beside this tree's (its imports are this tree's modules)."""
+    source = "handctl/recording/recorder.py"
+    shown = subprocess.run(
+        ["git", "-C", str(ROOT), "show", f"{revision}:{source}"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if shown.returncode != 0:
+        raise SystemExit(
+            f"bench recording --against: expected a git revision with {source}; found "
+            f"{revision!r} ({shown.stderr.strip()})"
+        )
+    with tempfile.NamedTemporaryFile("w", suffix=".py", delete=False) as handle:
+        handle.write(shown.stdout)
+    try:
+        spec = importlib.util.spec_from_file_location("_recorder_against", handle.name)
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        # Where this tree's recorder lies: its writer process is started from this tree.
+        module.__file__ = str(ROOT / source)
+        spec.loader.exec_module(module)
+    finally:
+        os.unlink(handle.name)
+    recorder: type[Recorder] = module.Recorder
+    return recorder
+
+
+def against_once(
+    hand: HandConfig, recipe: Recipe, reference: type[Recorder], directory: Path, swap: bool
+) -> dict[str, dict[str, np.ndarray]]:
+    """One pair, both recorded: this tree's recorder first (second with ``swap``), the
+    reference in the other place. Per side and control tick: the direct cost and the whole
+    tick (us)."""
+    names = ["reference", "this"] if swap else ["this", "reference"]
+    with contextlib.ExitStack() as stack:
+        turns = Turns()
+        sides: dict[str, _Side] = {}
+        for place, name in zip("ab", names, strict=True):
+            kind = Recorder if name == "this" else reference
+            sides[name] = _Side(
+                stack, hand, recipe, directory / f"{name}.mcap", turns, place, recorder_type=kind
+            )
+        for side in sides.values():
+            assert side.recorder is not None
+            side.recorder.wait_ready()
+
+        async def both() -> list[RunResult]:
+            return list(await asyncio.gather(*(sides[name].runtime.run() for name in names)))
+
+        results = dict(zip(names, asyncio.run(both()), strict=True))
+        for side in sides.values():
+            assert side.recorder is not None
+            side.recorder.close({})
+    if results["this"].ticks != results["reference"].ticks:
+        raise RuntimeError("bench: the twin runs differ: the pair would compare unlike ticks")
+    out: dict[str, dict[str, np.ndarray]] = {}
+    n = min(
+        min(len(side.begin_ns), len(side.clock.work_ns), len(results[name].stage_ns))
+        for name, side in sides.items()
+    )
+    for name, side in sides.items():
+        result = results[name]
+        control = result.stage_ns[:, 3] > 0
+        poses = np.array([side.poses_ns.get(k, 0) for k in range(n)])
+        direct = np.array(side.begin_ns[:n]) + poses + result.stage_ns[:n, 4]
+        out[name] = {
+            "direct": direct[control[:n]] / 1e3,
+            "tick": np.array(side.clock.work_ns[:n])[control[:n]] / 1e3,
+        }
+    return out
+
+
+def run_against(args: argparse.Namespace) -> dict[str, Any]:
+    """``--against REV``: ``--repeat`` pairs, this tree's recorder first of the pair in the
+    first, second in the next, and so on. Each figure over the ticks of the pairs of one order
+    pooled, then averaged over the two orders (``run_live``'s way): the direct cost of each
+    recorder (``against_this_*``, ``against_reference_*``) and the mean of this tree's whole
+    tick less the reference's (``against_tick_us_mean``), tick by tick under the same load."""
+    hand = load_hand(args.hand)
+    recipe = load_recipe(args.recipe, hand)
+    reference = recorder_of(args.against)
+    runs = []
+    for i in range(args.repeat):
+        with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
+            runs.append(against_once(hand, recipe, reference, Path(directory), swap=i % 2 == 1))
+        this, ref = runs[-1]["this"]["direct"], runs[-1]["reference"]["direct"]
+        print(
+            f"bench recording --against {args.against}: pair {i + 1}/{args.repeat}: direct "
+            f"p50 {np.percentile(this, 50):.2f} against {np.percentile(ref, 50):.2f} us, p99 "
+            f"{np.percentile(this, 99):.1f} against {np.percentile(ref, 99):.1f} us",
+            file=sys.stderr,
+        )
+    by_order: list[dict[str, float]] = []
+    for order in (0, 1):
+        group = runs[order::2]
+        if not group:
+            continue
+        pooled = {
+            (name, part): np.concatenate([r[name][part] for r in group])
+            for name in ("this", "reference")
+            for part in ("direct", "tick")
+        }
+        figures: dict[str, float] = {}
+        for name in ("this", "reference"):
+            direct = pooled[(name, "direct")]
+            for q in (50, 99):
+                figures[f"against_{name}_us_p{q}"] = float(np.percentile(direct, q))
+            figures[f"against_{name}_us_mean"] = float(np.mean(direct))
+        figures["against_tick_us_mean"] = float(
+            np.mean(pooled[("this", "tick")] - pooled[("reference", "tick")])
+        )
+        by_order.append(figures)
+    result: dict[str, Any] = {
+        key: round(float(np.mean([f[key] for f in by_order])), 2) for key in by_order[0]
+    }
+    result["against"] = args.against
+    result["against_orders"] = len(by_order)
+    return result
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.live:
         return run_live(args)
     if args.profile:
         return run_profile(args)
+    if args.against:
+        return run_against(args)
     loop_p99, loop_p50, loop_mean, writer, replay, sizes = [], [], [], [], [], []
     direct_p99: list[float] = []
     paired_mean, paired_sem, paired_p99, share_p99, share_p50 = [], [], [], [], []

@@ -78,45 +78,58 @@ _TICK_HEAD = struct.Struct("<qqqqq")  # tick, scheduled, now, missed, active
 _RX_HEAD = struct.Struct("<" + RX_HEAD_ROW)
 _RX_FRAME = struct.Struct("<" + RX_FRAME_ROW)
 _TX_FRAME = struct.Struct("<" + TX_FRAME_ROW)
-#: A tick's frame rows are packed with one call (a struct per shape of tick) when they are
-#: fewer than this less two; more, or rows that would wrap round the ring's end, a row a
-#: call. A shape is a number in this base, a digit per sent frame (1) or drain (2 + its
-#: frames), so that every shape of fewer rows has a number of its own; the taps work it out
-#: as they note the frames.
+#: A tick's frame rows are packed with one call (a struct per shape of tick) when the taps
+#: noted fewer than ``_FLAT_ROWS`` items; more, or rows that would wrap round the ring's end,
+#: a row a call. A shape is a number in this base, a digit per sent frame (1) or drain (2 +
+#: its frames), so that every shape of fewer items has a number of its own (a drain's frames
+#: are four items each, so none of them has a digit past the base); the taps work it out as
+#: they note the frames.
 _SHAPE_BASE = 66
+_FLAT_ROWS = 4 * (_SHAPE_BASE - 2)
 #: Structs kept, one per shape met, before they are forgotten all at once.
 _MAX_SHAPES = 1024
+#: The items of a sent frame's row and of a drain's head row, and of each of a drain's frames.
+_TX_ITEMS = 5
+_RX_HEAD_ITEMS = _RX_FRAME_ITEMS = 4
 
-#: What the taps note for the tick's frame rows, a row an entry in bus order: a sent frame's
-#: row (direction, t, tick, arbitration id, data), or a drain's head row (TAP_RX, t, tick,
-#: count) followed by its ``count`` frames, the bus's own ``Frame`` tuples.
-Pending = list[tuple[Any, ...]]
+#: What the taps note for the tick's frame rows, flat, in bus order: a sent frame's row
+#: (direction, t, tick, arbitration id, data), or a drain's head row (TAP_RX, t, tick, count)
+#: followed by the fields of its ``count`` frames, the bus's own ``Frame`` tuples. Flat, so
+#: that the rows go into the ring with one ``pack_into`` of the list itself: flattening
+#: tuples of tuples there (``itertools.chain``) was the slowest step of the recording's tick.
+Pending = list[Any]
 
 
-def _blocks(pending: Pending) -> Iterator[Pending]:
-    """The noted rows as sent frames and drains: [the sent frame's row] or [the drain's head
-    row, its frames...]."""
+def _blocks(pending: Pending) -> Iterator[tuple[int, int]]:
+    """Where each sent frame's row and each drain (its head row and its frames) lie in the
+    noted items: (first, end)."""
     at = 0
     while at < len(pending):
-        entry = pending[at]
-        rows = 1 if entry[0] != TAP_RX else 1 + entry[3]
-        yield pending[at : at + rows]
-        at += rows
+        end = at + (
+            _RX_HEAD_ITEMS + _RX_FRAME_ITEMS * pending[at + 3]
+            if pending[at] == TAP_RX
+            else _TX_ITEMS
+        )
+        yield at, end
+        at = end
 
 
-def _frames_struct(pending: Pending) -> tuple[struct.Struct, int]:
-    """The struct of a tick's frame rows, and how many frames they hold (the drains' head
-    rows are not frames)."""
+def _frames_struct(pending: Pending) -> tuple[struct.Struct, int, int]:
+    """The struct of a tick's frame rows, how many frames they hold (the drains' head rows
+    are not frames) and how many rows."""
     formats = []
-    frames = 0
-    for block in _blocks(pending):
-        if block[0][0] == TAP_RX:
-            formats.append(RX_HEAD_ROW + RX_FRAME_ROW * (len(block) - 1))
-            frames += len(block) - 1
+    frames = rows = 0
+    for first, _ in _blocks(pending):
+        if pending[first] == TAP_RX:
+            count = pending[first + 3]
+            formats.append(RX_HEAD_ROW + RX_FRAME_ROW * count)
+            frames += count
+            rows += 1 + count
         else:
             formats.append(TX_FRAME_ROW)
             frames += 1
-    return struct.Struct("<" + "".join(formats)), frames
+            rows += 1
+    return struct.Struct("<" + "".join(formats)), frames, rows
 
 
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
@@ -288,7 +301,8 @@ class Recorder:
         self._angle_view = self._tdt_view = self._desired_view = self._applied_view = (
             self._feedback_view
         ) = memoryview(b"")
-        self._scheduled = self._missed = 0
+        #: The tick begun last, as the clock handed it out: the row's first four columns.
+        self._tk: tuple[int, int, int, int] = (-1, 0, 0, 0)
         self._tick_stride = self.layout.tick_ints * 8
         self._tick_base = r.offsets["tick_i"]
         # The integer part of a control tick's row in one call: tick, scheduled, now, missed,
@@ -307,9 +321,9 @@ class Recorder:
         #: The tick's frame rows as the taps noted them (``Pending``), and their shape.
         self._pending: Pending = []
         self._shape = 0
-        #: The ``pack_into`` of a tick's frame rows and the frames they hold, per shape
-        #: (``_flush_frames``).
-        self._frames_pack: dict[int, tuple[Any, int]] = {}
+        #: The ``pack_into`` of a tick's frame rows, the frames and the rows they hold, per
+        #: shape (``_flush_frames``).
+        self._frames_pack: dict[int, tuple[Any, int, int]] = {}
         self._frames_noted = 0
         self._event_base = r.offsets["event_i"]
         self._event_data = r.offsets["event_d"]
@@ -395,10 +409,9 @@ class Recorder:
         elif self._pending:  # frames that came between ticks belong to the last one
             self._flush_frames()
             self._ctl_view[FRAME_HEAD] = self._fhead
+        self._tk = tick
         self._tick = tick.tick
-        self._scheduled = tick.scheduled_ns
         self._now = tick.now_ns
-        self._missed = tick.missed
         head = self._head
         if head - self._tail > self._tick_mask and self._ring_full(_TICKS, head, self._tick_mask):
             self._row = -1
@@ -412,10 +425,7 @@ class Recorder:
         _TICK_HEAD.pack_into(
             self._buf,
             self._tick_base + self._row * self._tick_stride,
-            self._tick,
-            self._scheduled,
-            self._now,
-            self._missed,
+            *self._tk,
             0,
         )
         self._publish()
@@ -451,10 +461,7 @@ class Recorder:
             self._row_pack(
                 self._buf,
                 at,
-                self._tick,
-                self._scheduled,
-                self._now,
-                self._missed,
+                *self._tk,
                 1,
                 s[0],
                 s[1],
@@ -534,53 +541,49 @@ class Recorder:
 
     # -- taps: note now, copy in ``push`` -------------------------------------------------
     def _frame(self, arbitration_id: int, data: bytes, direction: int) -> None:
-        self._pending.append((direction, self._now, self._tick, arbitration_id, data))
+        pending = self._pending
+        pending += (direction, self._now, self._tick, arbitration_id, data)
         self._shape = self._shape * _SHAPE_BASE + 1
 
     def _drain(self, frames: list[Frame]) -> None:
         pending = self._pending
-        pending.append((TAP_RX, self._now, self._tick, len(frames)))
-        pending += frames
+        pending += (TAP_RX, self._now, self._tick, len(frames))
+        for frame in frames:  # three or so: a loop of list extends beats a chain here
+            pending += frame
         self._shape = self._shape * _SHAPE_BASE + 2 + len(frames)
 
     def _flush_frames(self) -> None:
         """Copy the frames noted this tick into the ring, in the order they were on the bus.
 
-        The taps have noted every row as a tuple (``Pending``) and the tick's shape (the
-        sequence of its sent frames and drains), so the rows go in with one ``pack_into``
-        of the rows flattened in C, a struct per shape made when first met: no loop over
-        the rows, no frame taken apart in Python, no call per row. In the running loop
-        every operation here costs about a microsecond, the loop over the noted entries
-        that this replaced some three. A frame's time is its tick's (the clock stands
-        still inside a lockstep tick; in real time a tick's frames are drained or sent
-        within its first few hundred microseconds); a received frame keeps the adapter's
-        own time stamp as well.
+        The taps have noted every row's fields in one flat list (``Pending``) and the tick's
+        shape (the sequence of its sent frames and drains), so the rows go in with one
+        ``pack_into`` of that list, a struct per shape made when first met: no loop over the
+        rows, no frame taken apart in Python, no call per row. A frame's time is its tick's
+        (the clock stands still inside a lockstep tick; in real time a tick's frames are
+        drained or sent within its first few hundred microseconds); a received frame keeps
+        the adapter's own time stamp as well.
         """
         pending = self._pending
-        rows = len(pending)
-        head = self._fhead
-        mask = self._frame_mask
-        at = head & mask
-        if (
-            rows < _SHAPE_BASE - 2
-            and head + rows - self._ftail <= mask + 1
-            and at + rows <= mask + 1
-        ):
+        if len(pending) < _FLAT_ROWS:
             known = self._frames_pack.get(self._shape)
             if known is None:
                 if len(self._frames_pack) >= _MAX_SHAPES:  # a bus that makes ever new ones
                     self._frames_pack.clear()
-                made, frames = _frames_struct(pending)
-                known = self._frames_pack[self._shape] = made.pack_into, frames
-            known[0](
-                self._buf,
-                self._frame_base + at * FRAME_ROW,
-                *itertools.chain.from_iterable(pending),
-            )
-            self._fhead = head + rows
-            self._frames_noted += known[1]
-        else:  # the ring looks full, or the rows wrap round its end, or a great many
-            self._flush_slowly(pending)
+                made, frames, rows = _frames_struct(pending)
+                known = self._frames_pack[self._shape] = made.pack_into, frames, rows
+            pack, frames, rows = known
+            head = self._fhead
+            mask = self._frame_mask
+            at = head & mask
+            if head + rows - self._ftail <= mask + 1 and at + rows <= mask + 1:
+                pack(self._buf, self._frame_base + at * FRAME_ROW, *pending)
+                self._fhead = head + rows
+                self._frames_noted += frames
+                pending.clear()
+                self._shape = 0
+                return
+        # The ring looks full, or the rows wrap round its end, or a great many.
+        self._flush_slowly(pending)
         pending.clear()
         self._shape = 0
 
@@ -590,33 +593,36 @@ class Recorder:
         its frames counted."""
         buf, base, mask = self._buf, self._frame_base, self._frame_mask
         head = self._fhead
-        for block in _blocks(pending):
-            entry = block[0]
-            if entry[0] == TAP_RX:
-                head, count = self._flush_drain(block, head)
+        for first, end in _blocks(pending):
+            if pending[first] == TAP_RX:
+                head, count = self._flush_drain(pending, first, end, head)
                 self._frames_noted += count
             else:
                 if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask):
                     continue
-                _TX_FRAME.pack_into(buf, base + (head & mask) * FRAME_ROW, *entry)
+                _TX_FRAME.pack_into(buf, base + (head & mask) * FRAME_ROW, *pending[first:end])
                 head += 1
                 self._frames_noted += 1
         self._fhead = head
 
-    def _flush_drain(self, block: Pending, head: int) -> tuple[int, int]:
-        """A drain's block (its head row, then its frames) a row a call, with a look at the
-        writer's tail when the ring looks full: a block that does not fit is dropped whole
-        and its frames counted. The new head and the frames written."""
+    def _flush_drain(self, pending: Pending, first: int, end: int, head: int) -> tuple[int, int]:
+        """A drain's block (its head row, then its frames, ``pending[first:end]``) a row a
+        call, with a look at the writer's tail when the ring looks full: a block that does not
+        fit is dropped whole and its frames counted. The new head and the frames written."""
         mask = self._frame_mask
-        count = len(block) - 1
-        end = head + count
-        if end - self._ftail > mask and self._ring_full(_FRAMES, end, mask, count):
+        count = pending[first + 3]
+        last = head + count
+        if last - self._ftail > mask and self._ring_full(_FRAMES, last, mask, count):
             return head, 0
         base = self._frame_base
-        _RX_HEAD.pack_into(self._buf, base + (head & mask) * FRAME_ROW, *block[0])
-        for frame in block[1:]:
+        at = first + _RX_HEAD_ITEMS
+        _RX_HEAD.pack_into(self._buf, base + (head & mask) * FRAME_ROW, *pending[first:at])
+        while at < end:
             head += 1
-            _RX_FRAME.pack_into(self._buf, base + (head & mask) * FRAME_ROW, *frame)
+            _RX_FRAME.pack_into(
+                self._buf, base + (head & mask) * FRAME_ROW, *pending[at : at + _RX_FRAME_ITEMS]
+            )
+            at += _RX_FRAME_ITEMS
         return head + 1, count
 
     def _ring_full(self, ring: _Ring, head: int, mask: int, records: int = 1) -> bool:

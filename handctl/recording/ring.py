@@ -52,7 +52,7 @@ I_NODES = 12
 # Frame rows, FRAME_ROW bytes each, in blocks that keep the order the frames were on the bus:
 # - a drain's received frames: a head row (TAP_RX, t_ns, tick, count), then ``count`` rows laid
 #   out as the bus's ``Frame`` tuple (arbitration id, data, bus time, is_fd), so that the loop
-#   copies a whole drain with one ``struct.pack_into`` of the drain's own tuples;
+#   copies a tick's drains and sent frames with one ``struct.pack_into`` of their fields;
 # - a sent frame: one row (direction: TAP_TX or TAP_TX_FAILED, t_ns, tick, arbitration id,
 #   data), as the bus's tap notes it.
 # Data is a Pascal string: its length byte, then up to FRAME_BYTES bytes.
