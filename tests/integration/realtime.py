@@ -72,6 +72,23 @@ def give_up(what: str, stopped: list[str]) -> NoReturn:
 LOAD_STOPS = ("LOOP_OVERRUN", "FEEDBACK_TIMEOUT", "RX_BACKLOG")
 
 
+def load_stopped(faults: list[dict[str, object]]) -> bool:
+    """Whether a run's faults (its summary's) are a stop the load caused: the first is one of
+    ``LOAD_STOPS``, and every later one is too or is a node's own watchdog timing out on the
+    same stall (``NODE_FAULT`` ... ``TIMEOUT``: commands stopped coming for as long as the
+    loop was held, which is what the watchdog is for)."""
+    if not faults:
+        return False
+    ordered = sorted(faults, key=lambda f: int(str(f.get("tick", 0))))
+    if ordered[0]["code"] not in LOAD_STOPS:
+        return False
+    return all(
+        f["code"] in LOAD_STOPS
+        or (f["code"] == "NODE_FAULT" and "TIMEOUT" in str(f.get("detail", "")))
+        for f in ordered[1:]
+    )
+
+
 def stopped_by_load(stderr: str) -> bool:
     """Whether a run's stop, as handctl says it on stderr, is one the load causes."""
     return any(f"safety stop: {code}" in stderr for code in LOAD_STOPS)

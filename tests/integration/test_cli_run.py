@@ -19,7 +19,14 @@ import pytest
 from handctl.config import load_hand
 
 from ..conftest import HAND_YAML, ROOT, DefaultRun, handctl
-from .realtime import ATTEMPTS_UNDER_LOAD, LOAD_STOPS, REALTIME, give_up, stopped_by_load
+from .realtime import (
+    ATTEMPTS_UNDER_LOAD,
+    LOAD_STOPS,
+    REALTIME,
+    give_up,
+    load_stopped,
+    stopped_by_load,
+)
 from .rig import HOLD_LONG
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
@@ -144,8 +151,7 @@ def test_realtime_run_on_the_simulated_hand_in_its_own_process(tmp_path: Path) -
             str(out),
         )
         summary = json.loads(out.read_text())
-        faults = {f["code"] for f in summary["faults"]}
-        if done.returncode == 3 and faults <= set(LOAD_STOPS):
+        if done.returncode == 3 and load_stopped(summary["faults"]):
             stopped.append(done.stderr)
             continue
         break

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from ..integration.realtime import give_up, host_stopped
+from ..integration.realtime import give_up, host_stopped, load_stopped
 
 _OVERRUN = (
     "warning: the run stopped on LOOP_OVERRUN; the bare timer loop beside it says the host "
@@ -49,3 +49,17 @@ def test_giving_up_skips_only_when_every_stop_was_the_host_s() -> None:
         give_up("run", [host, own])
     with pytest.raises(AssertionError):
         give_up("run", [])
+
+
+def test_a_node_watchdog_timing_out_on_the_same_stall_is_still_the_loads_stop() -> None:
+    """The loop held for 9 ms stops on LOOP_OVERRUN, and a node whose commands stopped for as
+    long times out a tick later: the load's stop, tried again. A node's fault of its own (a
+    sensor), or a node timing out first, is not the load's."""
+    overrun = {"code": "LOOP_OVERRUN", "tick": 641, "detail": "9 consecutive ticks missed"}
+    timeout = {"code": "NODE_FAULT", "tick": 642, "detail": "node 1 (f1) in FAULT (TIMEOUT)"}
+    sensor = {"code": "NODE_FAULT", "tick": 642, "detail": "node 1 (f1) in FAULT (SENSOR)"}
+    assert load_stopped([overrun])
+    assert load_stopped([timeout, overrun])  # in the summary's order or not
+    assert not load_stopped([overrun, sensor])
+    assert not load_stopped([{**timeout, "tick": 600}, overrun])
+    assert not load_stopped([])
