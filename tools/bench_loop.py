@@ -223,13 +223,18 @@ def host_figures(
 
 
 def since(record: ProbeRecord, start_ns: int) -> ProbeRecord:
-    """The record's stalls from ``start_ns`` on (the lateness histogram stays the whole run's)."""
+    """The record's stalls, hiccups, slow pieces and slow switches from ``start_ns`` on, so the
+    verdict over the run proper counts every kind of event over the same stretch (the
+    lateness histogram stays the whole run's: it keeps no times)."""
     import dataclasses
 
     return dataclasses.replace(
         record,
         start_ns=max(record.start_ns, start_ns),
         stalls=tuple(s for s in record.stalls if s[2] >= start_ns),
+        hiccups=tuple(h for h in record.hiccups if h[2] >= start_ns),
+        slow=tuple(w for w in record.slow if w[2] >= start_ns),
+        slow_switches=tuple(w for w in record.slow_switches if w[2] >= start_ns),
     )
 
 
