@@ -3,6 +3,7 @@ run of the default recipe that many tests read."""
 
 from __future__ import annotations
 
+import importlib.util
 import itertools
 import json
 import os
@@ -11,6 +12,7 @@ import sys
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import pytest
@@ -20,6 +22,23 @@ from handctl.online.bus import HandBus, open_bus
 from handctl.protocol import Protocol, load_protocol
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def load_tool(name: str) -> ModuleType:
+    """``tools/NAME.py`` as a module (the tools are scripts, not a package), with ``tools`` on
+    the path while it loads, as when it runs, so its imports of sibling tools resolve."""
+    tools = str(ROOT / "tools")
+    sys.path.insert(0, tools)
+    try:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "tools" / f"{name}.py")
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+    finally:
+        sys.path.remove(tools)
+
+
 HAND_YAML = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
 #: The main job's recipe, as the README names it (relative to the repository root)
 DEFAULT_RECIPE = "config/recipes/swap_two_cylinders.yaml"

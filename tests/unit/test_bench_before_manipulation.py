@@ -3,7 +3,6 @@ manipulation phase would begin, known beforehand only when no phase before it ha
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from types import ModuleType
 
@@ -14,19 +13,13 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.online.recipes.loader import load_recipe
 
-from ..conftest import ROOT
+from ..conftest import ROOT, load_tool
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location(
-        "bench_experiment", ROOT / "tools" / "bench_experiment.py"
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("bench_experiment")
 
 
 def test_the_runs_stop_where_the_first_manipulation_phase_begins(hand: HandConfig) -> None:

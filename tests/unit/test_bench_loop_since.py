@@ -4,27 +4,9 @@ burst of one kind cannot count while the same burst of another is left out."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from types import ModuleType
-
 from handctl.hostcheck import ProbeRecord
 
-from ..conftest import ROOT
-
-
-def _bench() -> ModuleType:
-    sys.path.insert(0, str(ROOT / "tools"))  # the bench imports its sibling modules
-    try:
-        spec = importlib.util.spec_from_file_location(
-            "bench_loop", ROOT / "tools" / "bench_loop.py"
-        )
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        return module
-    finally:
-        sys.path.remove(str(ROOT / "tools"))
+from ..conftest import load_tool
 
 
 def test_every_kind_of_event_is_cut_at_the_runs_start() -> None:
@@ -44,7 +26,7 @@ def test_every_kind_of_event_is_cut_at_the_runs_start() -> None:
         switch_reference_ns=2_000,
         slow_switches=((6, 6 * ms, 6 * ms + 10_000, 9_000), (90, 90 * ms, 90 * ms + 1, 8_000)),
     )
-    proper = _bench().since(record, 50 * ms)
+    proper = load_tool("bench_loop").since(record, 50 * ms)
     assert proper.start_ns == 50 * ms
     assert [s[0] for s in proper.stalls] == [60]
     assert [s[0] for s in proper.slow] == [70]
