@@ -125,9 +125,9 @@ class ProbeRecord:
         consecutive wake-ups are one interval, from the first's start to the last's end, and
         lost is what they saw lost."""
         out: list[tuple[int, int, int]] = []
-        last = None
+        last = -2  # no wake-up yet: wake-up indices start at 0
         for index, start, end, seen in self._hits():
-            if out and last is not None and index - last <= 1:
+            if index - last <= 1:
                 s0, e0, l0 = out[-1]
                 out[-1] = (s0, max(e0, end), l0 + seen)
             else:

@@ -521,8 +521,8 @@ class Recorder:
 
     def _new_views(self, record: TickRecord) -> None:
         """The views of the record's vectors, made again when the runtime swapped one in;
-        TypeError or ValueError when one is not a contiguous float64 vector."""
-        self._angle = self._tdt = self._desired = self._applied = None
+        TypeError or ValueError when one is not a contiguous float64 vector (``push`` then
+        forgets the vectors it had)."""
         views = [_view(v) for v in (record.angle, record.tdt, record.desired, record.applied)]
         self._angle_view, self._tdt_view, self._desired_view, self._applied_view = views
         self._angle, self._tdt = record.angle, record.tdt
