@@ -321,6 +321,11 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
                 if host.get("missed_host_slow_cpu")
                 else ""
             )
+            + (
+                f" (and {host['missed_host_catch_up']} its catch-up ticks')"
+                if host.get("missed_host_catch_up")
+                else ""
+            )
             + f", {host['missed_handctl']} handctl's"
             + (
                 f", {host['missed_rival']} real-time rivals' ({', '.join(host['rivals'])})"
