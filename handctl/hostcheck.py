@@ -964,6 +964,13 @@ def host_summary(
         **verdict.figures,
         **shares,
         "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
+        # what a catch-up tick of handctl's own miss took, beside the usual (attribute)
+        "usual_tick_cpu_us": round(usual_cpu_ns / 1e3, 1),
+        "handctl_catch_up_cpu_us": [
+            [tick, round(work.between_stalls_ns[tick] / 1e3, 1)]
+            for tick in own[:MAX_LISTED_TICKS]
+            if tick in work.between_stalls_ns
+        ],
         "probe_period_us": record.period_ns / 1e3,
         "scheduler": record.scheduler,
         "refused": list(record.refused),
