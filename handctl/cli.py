@@ -968,7 +968,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
                 with Live(table(view.snapshot(), title), screen=True, auto_refresh=False) as live:
                     shown = time.monotonic()
-                    for batch in listen(bus, seconds):
+                    for batch in listen(bus, seconds, view=view):
                         for frame_id, data, t_ns in batch:
                             view.observe(frame_id, data, t_ns)
                         if time.monotonic() - shown >= min(every, 0.25):
@@ -978,7 +978,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
                             )
             else:
                 emitted = time.monotonic()
-                for batch in listen(bus, seconds):
+                for batch in listen(bus, seconds, view=view):
                     for frame_id, data, t_ns in batch:
                         view.observe(frame_id, data, t_ns)
                     if time.monotonic() - emitted >= every:
