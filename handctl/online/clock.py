@@ -48,21 +48,21 @@ class StallLog:
     that overlaps a stall of a bare timer loop beside it was the host's doing.
 
     Only wake-ups at least ``threshold_ns`` late are kept, in arrays allocated once (``add``
-    stores four integers and allocates nothing); past ``capacity`` they are only counted.
+    stores integers and allocates nothing); past ``capacity`` they are only counted.
     ``index`` is the wake-up's number in its loop, so consecutive stalls can be told apart from
-    stalls with on-time wake-ups between them. ``cpu_ns`` is what the loop that keeps the log
-    knows of its own work before the wake-up, or -1 (``RealtimeClock``: the thread CPU time of
-    the tick that ran between two stalled wake-ups in a row).
+    stalls with on-time wake-ups between them. With ``work=True`` each also keeps ``cpu_ns``,
+    what the loop that keeps the log knows of its own work before the wake-up, or -1
+    (``RealtimeClock``: the thread CPU time of the tick between two stalled wake-ups in a row).
     """
 
-    def __init__(self, threshold_ns: int, capacity: int = 1 << 16) -> None:
+    def __init__(self, threshold_ns: int, capacity: int = 1 << 16, work: bool = False) -> None:
         self.threshold_ns = threshold_ns
         self.capacity = capacity
         self.index = array("q", bytes(8 * capacity))
         self.due_ns = array("q", bytes(8 * capacity))
         self.wake_ns = array("q", bytes(8 * capacity))
         self.missed = array("q", bytes(8 * capacity))
-        self.cpu_ns = array("q", bytes(8 * capacity))
+        self.cpu_ns = array("q", bytes(8 * capacity if work else 0))
         self.size = 0
         self.overflow = 0  # stalls seen after the log was full
         self.overflow_missed = 0  # ticks they missed
@@ -75,13 +75,14 @@ class StallLog:
             self.overflow += 1
             self.overflow_missed += missed
             return
-        self.index[n], self.due_ns[n], self.wake_ns[n], self.missed[n], self.cpu_ns[n] = (
+        self.index[n], self.due_ns[n], self.wake_ns[n], self.missed[n] = (
             index,
             due_ns,
             wake_ns,
             missed,
-            cpu_ns,
         )
+        if self.cpu_ns:
+            self.cpu_ns[n] = cpu_ns
         self.size = n + 1
 
     def rows(self) -> list[tuple[int, int, int, int]]:
@@ -93,7 +94,7 @@ class StallLog:
 
     def work_ns(self) -> dict[int, int]:
         """``cpu_ns`` of every stall kept that has one, by wake-up index."""
-        n = self.size
+        n = self.size if self.cpu_ns else 0
         return {i: c for i, c in zip(self.index[:n], self.cpu_ns[:n], strict=True) if c >= 0}
 
 
@@ -115,7 +116,7 @@ class RealtimeClock:
 
     def __init__(self, period_s: float) -> None:
         self.period_ns = round(period_s * 1e9)
-        self.stalls = StallLog(self.period_ns)
+        self.stalls = StallLog(self.period_ns, work=True)
         self._timer: PeriodicTimer | None = None
         self._waiter: asyncio.Future[int] | None = None
         self._pending = 0

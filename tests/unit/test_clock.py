@@ -67,7 +67,7 @@ def test_a_full_stall_log_counts_what_it_cannot_keep() -> None:
     assert log.rows() == [(2, 0, 2_000, 1), (5, 10_000, 13_000, 2)]
     assert (log.overflow, log.overflow_missed) == (1, 3)
     assert log.work_ns() == {}
-    log = StallLog(threshold_ns=500)
+    log = StallLog(threshold_ns=500, work=True)
     log.add(2, 0, 2_000, 1, cpu_ns=-1)
     log.add(3, 3_000, 5_000, 1, cpu_ns=300)
     assert log.work_ns() == {3: 300}
