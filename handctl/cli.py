@@ -321,6 +321,11 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
                 if host.get("missed_host_slow_cpu")
                 else ""
             )
+            + (
+                f" (and {host['missed_host_catch_up']} its catch-up ticks')"
+                if host.get("missed_host_catch_up")
+                else ""
+            )
             + f", {host['missed_handctl']} handctl's"
             + (
                 f", {host['missed_rival']} real-time rivals' ({', '.join(host['rivals'])})"
@@ -963,7 +968,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
                 with Live(table(view.snapshot(), title), screen=True, auto_refresh=False) as live:
                     shown = time.monotonic()
-                    for batch in listen(bus, seconds):
+                    for batch in listen(bus, seconds, view=view):
                         for frame_id, data, t_ns in batch:
                             view.observe(frame_id, data, t_ns)
                         if time.monotonic() - shown >= min(every, 0.25):
@@ -973,7 +978,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
                             )
             else:
                 emitted = time.monotonic()
-                for batch in listen(bus, seconds):
+                for batch in listen(bus, seconds, view=view):
                     for frame_id, data, t_ns in batch:
                         view.observe(frame_id, data, t_ns)
                     if time.monotonic() - emitted >= every:

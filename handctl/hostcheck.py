@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from handctl.config import HandConfig, SafetyConfig
 from handctl.errors import ConfigError, HandctlError
 from handctl.hostfacts import HostFacts, gather_facts, plan_cpus
@@ -36,6 +38,12 @@ from handctl.online.tickstats import HIST_RANGE_US
 from handctl.parent_death import JsonHelper
 from handctl.rivals import Rival, RivalRecord, RivalWatch, find_rivals
 
+#: A catch-up tick (the one between a stalled wake-up of the host's and another stalled
+#: wake-up right after it) that took at most this many times the run's usual tick CPU time
+#: was held, not slow: its miss is the host's (``attribute``). A catch-up drains the frames of
+#: the periods slept through; with host stalls injected it took 0.3-2x the usual
+#: (docs/timing.md, "Catch-up ticks").
+CATCH_UP_CPU_FACTOR = 2.0
 #: Seconds of the check a run on a real bus makes before it opens the bus.
 PRECHECK_S = 1.5
 #: The environment variable that names a recorded probe sequence to judge with the measurement.
@@ -722,12 +730,40 @@ def rival_verdict(rivals: Sequence[Rival], figures: dict[str, Any]) -> Verdict:
 
 
 # -- the host's share of a run's missed ticks ----------------------------------------------------
+@dataclass(frozen=True)
+class LoopWork:
+    """What the control loop measured of its own work, for ``attribute``: the thread CPU time
+    of each tick that ran between two stalled wake-ups in a row, by the second's wake-up index
+    (``StallLog.work_ns``), and the run's usual tick CPU time (``usual_tick_cpu_ns``)."""
+
+    between_stalls_ns: dict[int, int]
+    usual_ns: int
+
+    def held(self, tick: int, period_ns: int) -> bool:
+        """Whether the tick before wake-up ``tick`` took no more than a catch-up's usual CPU
+        time (``CATCH_UP_CPU_FACTOR`` times the usual, and less than a period: a tick that
+        needs a whole period misses on its own), so that its miss was time it did not run."""
+        cpu = self.between_stalls_ns.get(tick)
+        if cpu is None or self.usual_ns <= 0:
+            return False
+        return cpu <= CATCH_UP_CPU_FACTOR * self.usual_ns and cpu < period_ns
+
+
+def usual_tick_cpu_ns(stage_ns: np.ndarray) -> int:
+    """The median thread CPU time of the ticks that did work (their stages summed), from a
+    run's ``(ticks, stages)`` window; 0 if none did."""
+    totals = stage_ns.sum(axis=1) if stage_ns.size else stage_ns
+    working = totals[totals > 0]
+    return int(np.median(working)) if working.size else 0
+
+
 def attribute(
     loop_stalls: list[tuple[int, int, int, int]],
     host: ProbeRecord,
     period_ns: int,
     handctls: list[int] | None = None,
     rivals: RivalRecord | None = None,
+    work: LoopWork | None = None,
 ) -> dict[str, int]:
     """Split the control loop's missed ticks between the host and handctl.
 
@@ -744,10 +780,19 @@ def attribute(
     same CPU. If the host does not explain
     it but a real-time rival (``handctl.rivals``: a task at the loop's priority or above,
     allowed on its CPU, which the probe one priority up does not feel) ran during it, the
-    rival held the loop: ``missed_rival``, the host's too (what else runs on the host). If
-    neither, the host let a bare loop run at that time and handctl was late on its own:
-    ``missed_handctl``. Of those, ``missed_handctl_after_host`` came in the very next tick
-    after a host stall, while the loop caught up (a backlog of frames to read). Missed ticks
+    rival held the loop: ``missed_rival``, the host's too (what else runs on the host).
+
+    A wake-up that missed right after one of the host's (the next wake-up, in a chain that
+    began with the host) comes after a catch-up tick: it started late because of the host and
+    drained the frames of the periods slept through. If ``work`` shows that tick took no more
+    thread CPU time than a catch-up usually does (``LoopWork.held``), it did not miss on its
+    own work: it was held, for time it did not run, and the miss is the host's too
+    (``missed_host_catch_up``). A catch-up tick that was slow, with its CPU time high, stays
+    handctl's, as does any miss not right after the host's.
+
+    If none of these, the host let a bare loop run at that time and handctl was late on its
+    own: ``missed_handctl``. Of those, ``missed_handctl_after_host`` came in the very next
+    wake-up after the host's miss, its catch-up tick slow (or not measured). Missed ticks
     outside the time the probe ran are ``missed_unobserved``. The ticks of handctl's own
     misses are appended to ``handctls`` if given.
     """
@@ -757,24 +802,29 @@ def attribute(
         "missed_host": 0,
         "missed_host_slow_cpu": 0,
         "missed_rival": 0,
+        "missed_host_catch_up": 0,
         "missed_handctl": 0,
         "missed_handctl_after_host": 0,
         "missed_unobserved": 0,
     }
-    after_host = -2  # the last tick of a chain of misses that began with a host stall
+    after_host = -2  # the last wake-up of a chain of misses that began with the host's
+    hosts = -2  # the last wake-up whose miss was the host's (a catch-up's included)
     for tick, due, wake, missed in loop_stalls:
         start = due - period_ns
         if wake < host.start_ns or start > host.end_ns:
             counts["missed_unobserved"] += missed
         elif (stalled := _held(host_stalls, start, wake)) >= wake - due - period_ns:
             counts["missed_host"] += missed
-            after_host = tick
+            after_host = hosts = tick
         elif stalled + _slowed(hits, host.period_ns, start, wake) >= wake - due - period_ns:
             counts["missed_host_slow_cpu"] += missed
-            after_host = tick
+            after_host = hosts = tick
         elif rivals is not None and rivals.active(start, wake):
             counts["missed_rival"] += missed
-            after_host = tick
+            after_host = hosts = tick
+        elif tick == hosts + 1 and work is not None and work.held(tick, period_ns):
+            counts["missed_host_catch_up"] += missed
+            after_host = hosts = tick
         else:
             counts["missed_handctl"] += missed
             if tick == after_host + 1:
@@ -884,6 +934,7 @@ def host_summary(
     warnings: list[str],
     peer_probe: Probe | None = None,
     rival_watch: RivalWatch | None = None,
+    usual_cpu_ns: int = 0,
 ) -> tuple[ProbeRecord | None, RivalRecord | None, dict[str, Any]]:
     """What the bare loop beside a run saw, and whose the run's missed ticks were; a warning
     with the host's verdict when the run stopped on LOOP_OVERRUN or FEEDBACK_TIMEOUT.
@@ -891,6 +942,8 @@ def host_summary(
     ``peer_probe`` is a bare loop on the simulated hand's CPU: its stalls are the host's part
     in a feedback that came late, which the loop's CPU does not see. ``rival_watch`` saw the
     real-time tasks that could hold the loop where the probe above it would not notice.
+    ``usual_cpu_ns`` is the run's usual tick CPU time (``usual_tick_cpu_ns``), against which a
+    catch-up tick is judged (``attribute``); 0 judges none.
     """
     try:
         record = probe.stop()
@@ -902,7 +955,8 @@ def host_summary(
     deadlines = Deadlines.of(hand)
     verdict = judge(record, deadlines)
     own: list[int] = []
-    shares = attribute(loop_stalls.rows(), record, deadlines.period_ns, own, rivals)
+    work = LoopWork(loop_stalls.work_ns(), usual_cpu_ns)
+    shares = attribute(loop_stalls.rows(), record, deadlines.period_ns, own, rivals, work)
     shares["missed_unobserved"] += loop_stalls.overflow_missed
     summary = {
         "verdict": verdict.level,
@@ -910,6 +964,13 @@ def host_summary(
         **verdict.figures,
         **shares,
         "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
+        # what a catch-up tick of handctl's own miss took, beside the usual (attribute)
+        "usual_tick_cpu_us": round(usual_cpu_ns / 1e3, 1),
+        "handctl_catch_up_cpu_us": [
+            [tick, round(work.between_stalls_ns[tick] / 1e3, 1)]
+            for tick in own[:MAX_LISTED_TICKS]
+            if tick in work.between_stalls_ns
+        ],
         "probe_period_us": record.period_ns / 1e3,
         "scheduler": record.scheduler,
         "refused": list(record.refused),
@@ -949,6 +1010,11 @@ def host_summary(
             + (
                 f"{shares['missed_host_slow_cpu']} its slow CPU's, "
                 if shares["missed_host_slow_cpu"]
+                else ""
+            )
+            + (
+                f"{shares['missed_host_catch_up']} its catch-up ticks', "
+                if shares["missed_host_catch_up"]
                 else ""
             )
             + f"{shares['missed_handctl']} handctl's"

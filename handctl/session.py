@@ -27,7 +27,16 @@ from handctl.config import HandConfig
 from handctl.convention import POSE_EVERY_TICKS  # the summaries measure the turn on these poses
 from handctl.errors import ConfigError, HandctlError
 from handctl.hand_protocol import protocol_for
-from handctl.hostcheck import Probe, ProbeRecord, beside_probe, host_summary, precheck, run_cpus
+from handctl.hostcheck import (
+    LoopWork,
+    Probe,
+    ProbeRecord,
+    beside_probe,
+    host_summary,
+    precheck,
+    run_cpus,
+    usual_tick_cpu_ns,
+)
 from handctl.hostfacts import affinity
 from handctl.online import timebudget
 from handctl.online.bus import HandBus, open_bus
@@ -91,6 +100,8 @@ class RunReport:
     loop_stalls: list[tuple[int, int, int, int]] = field(default_factory=list)
     # Real time: the real-time rivals seen on the loop's CPU (``handctl.rivals``).
     rivals: RivalRecord | None = None
+    # Real time: the CPU time of the loop's catch-up ticks and of its usual tick.
+    loop_work: LoopWork | None = None
 
 
 def _percentiles_us(window: TickWindow) -> dict[str, float]:
@@ -273,6 +284,9 @@ def run_recipe(
         host,
         clock.stalls.rows() if isinstance(clock, RealtimeClock) else [],
         rivals,
+        LoopWork(clock.stalls.work_ns(), usual_tick_cpu_ns(result.window.stage_ns))
+        if isinstance(clock, RealtimeClock)
+        else None,
     )
 
 
@@ -438,6 +452,7 @@ def _host_summary(
             warnings,
             timing.peer_probe,
             timing.rival_watch,
+            usual_tick_cpu_ns(result.window.stage_ns),
         )
         summary["host"]["cpus"] = timing.cpus
     if host_check is not None:

@@ -14,8 +14,9 @@ the run proper is the host's (``missed_host``: the bare loop stalled at the same
 passage through the kernel between two pieces) together explain the miss, the CPU taken away
 in pieces shorter than a stall or running slow; ``missed_rival``:
 a real-time task at the loop's priority or above ran on its CPU, which the bare loop one
-priority up does not feel, ``handctl.rivals``) or handctl's (``missed_handctl``: none of
-these). Target: ``missed_handctl`` 0.
+priority up does not feel, ``handctl.rivals``; ``missed_host_catch_up``: right after the
+host's miss, its catch-up tick took no more CPU time than a catch-up usually does) or
+handctl's (``missed_handctl``: none of these). Target: ``missed_handctl`` 0.
 
 ``tick_cost`` is the CPU cost of the tick, stage by stage, of this tree beside the tree of
 ``--baseline`` (a git revision; by default the one before the tick's cost was cut, issue #17),
@@ -195,9 +196,14 @@ def host_figures(
     rows = [r for r in report.loop_stalls if r[0] >= first_tick]
     period = round(hand.bus.period_s * 1e9)
     own: list[int] = []
-    shares = attribute(rows, host, period, own, report.rivals)
+    shares = attribute(rows, host, period, own, report.rivals, report.loop_work)
     startup = attribute(
-        [r for r in report.loop_stalls if r[0] < first_tick], host, period, None, report.rivals
+        [r for r in report.loop_stalls if r[0] < first_tick],
+        host,
+        period,
+        None,
+        report.rivals,
+        report.loop_work,
     )
     f = verdict.figures
     return {
@@ -297,6 +303,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             "missed_host",
             "missed_host_slow_cpu",
             "missed_rival",
+            "missed_host_catch_up",
             "missed_handctl",
             "missed_handctl_after_host",
             "startup_missed_ticks",

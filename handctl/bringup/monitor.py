@@ -48,6 +48,9 @@ class BusView:
         self.first_ns: int | None = None
         self.last_ns: int | None = None
         self._snapshot_ns: int | None = None
+        #: Frames this listener lost before it read them, as far as its bus tells it (the unix
+        #: bus does): a gap in a message's counters then may be the listener's, not the node's.
+        self.frames_lost = 0
 
     def observe(self, frame_id: int, data: bytes, t_ns: int) -> None:
         self.frames += 1
@@ -107,6 +110,7 @@ class BusView:
         return {
             "t_s": None if now is None or start is None else round((now - start) * 1e-9, 3),
             "frames": self.frames,
+            "frames_lost": self.frames_lost,
             "messages": messages,
             "unknown_ids": {
                 f"0x{fid & ~EXTENDED_ID_FLAG:03X}"
@@ -131,6 +135,11 @@ def table(snapshot: dict[str, Any], title: str) -> Any:
     from rich.table import Table
 
     view = Table(title=title, expand=True)
+    if snapshot.get("frames_lost"):
+        view.caption = (
+            f"{snapshot['frames_lost']} frames lost by this listener before it read them: "
+            "a counter skipped then may be its own gap, not the node's"
+        )
     for name, justify in (
         ("id", "right"),
         ("message", "left"),
@@ -170,14 +179,18 @@ def listen(
     keep_going: Callable[[], bool] = lambda: True,
     clock: Callable[[], int] = time.monotonic_ns,
     poll_s: float = 0.005,
+    view: BusView | None = None,
 ) -> Iterator[list[tuple[int, bytes, int]]]:
     """Batches of ``(id, data, arrival_ns)`` from ``bus`` until ``seconds`` have passed (None:
-    until ``keep_going`` says no). Only drains: nothing is ever sent."""
+    until ``keep_going`` says no). Only drains: nothing is ever sent. ``view`` is kept told
+    of the frames the listener lost (``BusView.frames_lost``)."""
     bus.use_clock(clock)
     end = None if seconds is None else clock() + round(seconds * 1e9)
     while keep_going():
         batch = [(f.arbitration_id, f.data, f.timestamp_ns) for f in bus.drain()]
         bus.events()
+        if view is not None:
+            view.frames_lost = bus.transport_counts().get("rx_frames_lost", 0)
         yield batch
         now = clock()
         if end is not None and now >= end:

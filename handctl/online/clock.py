@@ -48,23 +48,26 @@ class StallLog:
     that overlaps a stall of a bare timer loop beside it was the host's doing.
 
     Only wake-ups at least ``threshold_ns`` late are kept, in arrays allocated once (``add``
-    stores four integers and allocates nothing); past ``capacity`` they are only counted.
+    stores integers and allocates nothing); past ``capacity`` they are only counted.
     ``index`` is the wake-up's number in its loop, so consecutive stalls can be told apart from
-    stalls with on-time wake-ups between them.
+    stalls with on-time wake-ups between them. With ``work=True`` each also keeps ``cpu_ns``,
+    what the loop that keeps the log knows of its own work before the wake-up, or -1
+    (``RealtimeClock``: the thread CPU time of the tick between two stalled wake-ups in a row).
     """
 
-    def __init__(self, threshold_ns: int, capacity: int = 1 << 16) -> None:
+    def __init__(self, threshold_ns: int, capacity: int = 1 << 16, work: bool = False) -> None:
         self.threshold_ns = threshold_ns
         self.capacity = capacity
         self.index = array("q", bytes(8 * capacity))
         self.due_ns = array("q", bytes(8 * capacity))
         self.wake_ns = array("q", bytes(8 * capacity))
         self.missed = array("q", bytes(8 * capacity))
+        self.cpu_ns = array("q", bytes(8 * capacity if work else 0))
         self.size = 0
         self.overflow = 0  # stalls seen after the log was full
         self.overflow_missed = 0  # ticks they missed
 
-    def add(self, index: int, due_ns: int, wake_ns: int, missed: int) -> None:
+    def add(self, index: int, due_ns: int, wake_ns: int, missed: int, cpu_ns: int = -1) -> None:
         if wake_ns - due_ns < self.threshold_ns:
             return
         n = self.size
@@ -78,6 +81,8 @@ class StallLog:
             wake_ns,
             missed,
         )
+        if self.cpu_ns:
+            self.cpu_ns[n] = cpu_ns
         self.size = n + 1
 
     def rows(self) -> list[tuple[int, int, int, int]]:
@@ -87,25 +92,39 @@ class StallLog:
             zip(self.index[:n], self.due_ns[:n], self.wake_ns[:n], self.missed[:n], strict=True)
         )
 
+    def work_ns(self) -> dict[int, int]:
+        """``cpu_ns`` of every stall kept that has one, by wake-up index."""
+        n = self.size if self.cpu_ns else 0
+        return {i: c for i, c in zip(self.index[:n], self.cpu_ns[:n], strict=True) if c >= 0}
+
 
 class RealtimeClock:
     """Ticks from a timerfd registered with the running asyncio loop.
 
     Every tick that missed expirations is also kept in ``stalls`` with the interval the loop
-    was late for, to be laid beside the host's own stalls.
+    was late for, to be laid beside the host's own stalls. A late wake-up serves only the
+    newest expiration: the periods slept through are counted, never run back to back.
+
+    The thread CPU time is read on stalled wake-ups only (a system call, about 1 µs, that an
+    on-time tick does not pay): so a stall that follows another in the very next wake-up
+    carries the CPU time the tick between them took (``StallLog.cpu_ns``). That tick started
+    late because of the first stall; whether it missed the next deadline by its own work or
+    because it was held is what ``handctl.hostcheck.attribute`` asks of it.
     """
 
     lockstep = False
 
     def __init__(self, period_s: float) -> None:
         self.period_ns = round(period_s * 1e9)
-        self.stalls = StallLog(self.period_ns)
+        self.stalls = StallLog(self.period_ns, work=True)
         self._timer: PeriodicTimer | None = None
         self._waiter: asyncio.Future[int] | None = None
         self._pending = 0
         self._expirations = 0
         self._tick = -1
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._stalled_tick = -2  # the last stalled wake-up, and the thread CPU time then
+        self._stalled_cpu_ns = 0
 
     def now_ns(self) -> int:
         return time.monotonic_ns()
@@ -142,7 +161,10 @@ class RealtimeClock:
         scheduled = self._timer.start_ns + self._expirations * self.period_ns
         now = time.monotonic_ns()
         if n > 1:
-            self.stalls.add(self._tick, scheduled - (n - 1) * self.period_ns, now, n - 1)
+            cpu = time.thread_time_ns()
+            work = cpu - self._stalled_cpu_ns if self._stalled_tick == self._tick - 1 else -1
+            self._stalled_tick, self._stalled_cpu_ns = self._tick, cpu
+            self.stalls.add(self._tick, scheduled - (n - 1) * self.period_ns, now, n - 1, work)
         return Tick(self._tick, scheduled, now, n - 1)
 
     def close(self) -> None:

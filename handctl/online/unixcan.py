@@ -42,6 +42,10 @@ _BATCH = 32
 #: and a receiver that stopped reading must still be reported within a few dozen ticks (the
 #: host's BUS_ERROR after consecutive failed sends), not hidden behind a deep queue.
 TX_QUEUE_FRAMES = 64
+#: A wire flag of the unix bus's own, beyond the CAN flags (``frameflags``): not a frame but a
+#: sender's word to one receiver that it refused this many frames for it (4 bytes, little
+#: endian) since its last delivery there, at this place in the stream.
+_LOST_MARK = 0x80
 #: ns: a directory modified longer ago than this is as it was at the last listing if its
 #: modification time has not changed since (``_refresh_peers``).
 _SETTLED_NS = 1_000_000_000
@@ -80,6 +84,12 @@ class UnixDatagramBus(can.BusABC):
     receiver's queue was found full, ``frames_dropped`` the frames refused (for one receiver
     or more). A socket whose owner died (SIGKILL) refuses delivery and is removed with what
     was held for it, so a killed peer does not wedge the bus.
+
+    The receiver is told what it lost, as a SocketCAN socket is told of its receive queue's
+    overflow (``SO_RXQ_OVFL``): the next delivery to it carries the number of frames refused
+    for it, at the place in the stream where they were, and it counts them in
+    ``rx_frames_lost``. So a listener kept from reading (a loaded machine) can tell a gap it
+    caused itself from a node that skipped a counter.
     """
 
     def __init__(
@@ -111,11 +121,13 @@ class UnixDatagramBus(can.BusABC):
         self._peers: list[str] = []
         self._peers_at = 0.0
         self._held: dict[str, list[bytes]] = {}  # per receiver: frames its full queue refused
+        self._lost: dict[str, int] = {}  # per receiver: frames refused since the last delivery
         self._inbox: list[tuple[float, int, int, bytes]] = []  # newest first
         self._can_protocol = can.CanProtocol.CAN_FD
         self.datagrams_sent = 0
         self.queue_full = 0
         self.frames_dropped = 0
+        self.rx_frames_lost = 0
         super().__init__(channel=channel, **kwargs)
 
     @property
@@ -126,12 +138,14 @@ class UnixDatagramBus(can.BusABC):
     def transport_counts(self) -> dict[str, int]:
         """The datagrams sent, the times a receiver's queue was full (its frames held and
         retried), the frames refused because a receiver's transmit queue was full, and the
-        frames held now."""
+        frames held now; and the frames this participant lost as a receiver, as its senders
+        told it."""
         return {
             "datagrams_sent": self.datagrams_sent,
             "queue_full": self.queue_full,
             "frames_dropped": self.frames_dropped,
             "frames_held": self.held,
+            "rx_frames_lost": self.rx_frames_lost,
         }
 
     def _refresh_peers(self) -> None:
@@ -161,6 +175,8 @@ class UnixDatagramBus(can.BusABC):
             self._links.pop(gone).close()
         for gone in [p for p in self._held if p not in self._peers]:
             del self._held[gone]
+        for gone in [p for p in self._lost if p not in self._peers]:
+            del self._lost[gone]
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send one frame now, as a burst of its own: what python-can's ``send`` promises
@@ -189,14 +205,20 @@ class UnixDatagramBus(can.BusABC):
             return
         self._refresh_peers()
         refused = 0
+        lost = self._lost
         for peer in list(self._peers):
             held = self._held.get(peer)
             if held is None:
                 if frames:
-                    self._deliver(peer, frames)
+                    mark = _lost_mark(lost.pop(peer)) if peer in lost else []
+                    self._deliver(peer, mark + frames)
             elif len(held) + len(frames) > TX_QUEUE_FRAMES:
                 refused += 1
+                if frames:
+                    lost[peer] = lost.get(peer, 0) + len(frames)
                 self._deliver(peer, held)
+            elif peer in lost:
+                self._deliver(peer, held + _lost_mark(lost.pop(peer)) + frames)
             else:
                 self._deliver(peer, held + frames)
         if refused:
@@ -239,6 +261,7 @@ class UnixDatagramBus(can.BusABC):
     def _forget(self, peer: str) -> None:
         self._peers.remove(peer)
         self._held.pop(peer, None)
+        self._lost.pop(peer, None)
         link = self._links.pop(peer, None)
         if link is not None:
             link.close()
@@ -263,7 +286,10 @@ class UnixDatagramBus(can.BusABC):
         while offset + size <= len(payload):
             _, frame_id, flags, length = unpack(payload, offset)
             offset += size
-            append((stamp, frame_id, flags, payload[offset : offset + length]))
+            if flags & _LOST_MARK:
+                self.rx_frames_lost += int.from_bytes(payload[offset : offset + length], "little")
+            else:
+                append((stamp, frame_id, flags, payload[offset : offset + length]))
             offset += length
         self._inbox.reverse()  # popped from the end, in arrival order
         return True
@@ -323,6 +349,12 @@ class UnixDatagramBus(can.BusABC):
 
 
 _ANCILLARY_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
+
+
+def _lost_mark(frames: int) -> list[bytes]:
+    """The word to a receiver that ``frames`` were refused for it (``_LOST_MARK``), as the
+    one wire entry it takes in a delivery."""
+    return [_WIRE.pack(time.time(), 0, _LOST_MARK, 4) + frames.to_bytes(4, "little")]
 
 
 def _encode(msg: can.Message, sent_s: float) -> bytes:

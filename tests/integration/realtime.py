@@ -14,6 +14,10 @@ from typing import NoReturn
 
 import pytest
 
+from handctl.config import HandConfig
+from handctl.hostcheck import Deadlines, Probe, ProbeRecord, beside_probe, judge
+from handctl.online.clock import LOOP_PRIORITY
+
 #: The real-time tests' mark: under pytest-xdist they form one unit of work
 #: (``tests/worker_units.py``), run on one worker one after another, so that no two of them
 #: compete for the CPUs; beside them the other worker runs the rest of the suite, the load
@@ -28,27 +32,53 @@ HOST_FAILED = "the bare timer loop beside it says the host was FAIL"
 
 
 #: How a run counts its missed ticks (``hostcheck``): the host's (a stall of the bare loop
-#: beside it), its slow CPU's, handctl's, and a real-time rival's
+#: beside it), its slow CPU's, its catch-up ticks', handctl's, and a real-time rival's
 MISSED = re.compile(
-    r"missed ticks: (\d+) the host's, (?:(\d+) its slow CPU's, )?(\d+) handctl's"
-    r"(?:, (\d+) a real-time rival's)?"
+    r"missed ticks: (\d+) the host's, (?:(\d+) its slow CPU's, )?"
+    r"(?:(\d+) its catch-up ticks', )?(\d+) handctl's(?:, (\d+) a real-time rival's)?"
 )
 #: What a run prints when the simulated hand's CPU stalled longer than the feedback timeout
 SIM_CPU_FAILED = re.compile(r"on the simulated hand's CPU \S+ the host was FAIL")
 
 
+def sim_cpu_probe(hand: HandConfig, cpu: int | None) -> Probe:
+    """The bare timer loop on the CPU of a simulated hand a test started as a process of its
+    own (``handctl sim``, which runs no probe), at the control loop's priority, above the
+    hand's: what ``handctl run`` puts beside the simulated hand it starts itself. Started
+    before a run and stopped after it, it says whether the host held the hand's CPU
+    meanwhile (``sim_cpu_verdict``)."""
+    return beside_probe(hand, True, cpu, True, LOOP_PRIORITY)
+
+
+def sim_cpu_verdict(probe: Probe, hand: HandConfig) -> str:
+    """What ``probe`` saw on the simulated hand's CPU (``hand_cpu_text``)."""
+    return hand_cpu_text(probe.stop(), hand)
+
+
+def hand_cpu_text(record: ProbeRecord, hand: HandConfig) -> str:
+    """A bare loop's record on the simulated hand's CPU, said as a run says it of its own
+    simulated hand's (``SIM_CPU_FAILED`` matches it when the host failed there)."""
+    verdict = judge(record, Deadlines.of(hand))
+    return (
+        f"on the simulated hand's CPU {record.scheduler.get('cpus')} the host was "
+        f"{verdict.level.upper()} (longest stall {verdict.figures['longest_stall_ms']:g} ms)"
+    )
+
+
 def host_stopped(text: str) -> bool:
     """Whether a stopped run's own probes put the stop on the host: the host FAIL beside the
     loop, a loop overrun whose missed ticks the probes explained every one (stalls, a slow
-    CPU, a rival) and were some, or a feedback timeout with the simulated hand's CPU FAIL."""
+    CPU, a catch-up tick held, a rival) and were some, or a feedback timeout or a flood of
+    frames (the hand catching up) with the simulated hand's CPU FAIL."""
     if HOST_FAILED in text:
         return True
     counts = MISSED.search(text)
     if "LOOP_OVERRUN" in text and counts is not None:
-        host, slow, own, rival = (int(n or 0) for n in counts.groups())
-        if own == 0 and host + slow + rival > 0:
+        host, slow, catch_up, own, rival = (int(n or 0) for n in counts.groups())
+        if own == 0 and host + slow + catch_up + rival > 0:
             return True
-    return "FEEDBACK_TIMEOUT" in text and SIM_CPU_FAILED.search(text) is not None
+    late_hand = "FEEDBACK_TIMEOUT" in text or "RX_BACKLOG" in text
+    return late_hand and SIM_CPU_FAILED.search(text) is not None
 
 
 def give_up(what: str, stopped: list[str]) -> NoReturn:

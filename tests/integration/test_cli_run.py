@@ -17,6 +17,8 @@ from pathlib import Path
 import pytest
 
 from handctl.config import load_hand
+from handctl.hostcheck import run_cpus
+from handctl.online.clock import Hygiene
 
 from ..conftest import HAND_YAML, ROOT, DefaultRun, handctl
 from .realtime import (
@@ -25,6 +27,8 @@ from .realtime import (
     REALTIME,
     give_up,
     load_stopped,
+    sim_cpu_probe,
+    sim_cpu_verdict,
     stopped_by_load,
 )
 from .rig import HOLD_LONG
@@ -420,6 +424,11 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
     hand.write_text(yaml.safe_dump(weightless))
     directory = tmp_path / "bus"
     log = tmp_path / "sim.log"
+    # The CPUs a run gives its loop and its own simulated hand: this hand on the hand's CPU,
+    # with a bare timer loop beside it, so that a feedback that came late can be put on the
+    # host that held the hand, or not (``sim_cpu_probe``).
+    _, sim_cpu = run_cpus(Hygiene())
+    hand_config = load_hand(hand)
     with log.open("wb") as err:
         sim = subprocess.Popen(
             [
@@ -438,35 +447,42 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
             stderr=err,
             start_new_session=True,
         )
+    if sim_cpu is not None:
+        os.sched_setaffinity(sim.pid, {sim_cpu})  # its threads, started later, inherit it
     try:
         _wait_for(lambda: "t=" in log.read_text(), "the simulated hand to run")
         for run in ("first", "second"):
             failures = []
             for attempt in range(ATTEMPTS_UNDER_LOAD):
                 out = tmp_path / f"{run}{attempt}.json"
-                # --accept-missed-deadlines: a named bus is checked for the host's timing
-                # first (docs/timing.md), which is not what this test is about
-                done = handctl(
-                    "run",
-                    "recipe",
-                    str(recipe),
-                    "--bus",
-                    f"unix:{directory}",
-                    "--hand",
-                    str(hand),
-                    "--rt",
-                    "--reset-node-faults",
-                    "--accept-missed-deadlines",
-                    "--summary-json",
-                    str(out),
-                )
+                probe = sim_cpu_probe(hand_config, sim_cpu)
+                try:
+                    # --accept-missed-deadlines: a named bus is checked for the host's timing
+                    # first (docs/timing.md), which is not what this test is about
+                    done = handctl(
+                        "run",
+                        "recipe",
+                        str(recipe),
+                        "--bus",
+                        f"unix:{directory}",
+                        "--hand",
+                        str(hand),
+                        "--rt",
+                        "--reset-node-faults",
+                        "--accept-missed-deadlines",
+                        "--summary-json",
+                        str(out),
+                    )
+                    on_the_hand = sim_cpu_verdict(probe, hand_config)
+                finally:
+                    probe.close()
                 summary = json.loads(out.read_text())
                 if done.returncode == 0:
                     assert summary["completed"] is True
                     break
                 # a start-up that never enables the nodes, or any stop but the load's, fails
                 assert stopped_by_load(done.stderr), f"{run} run: {done.stderr}"
-                failures.append(done.stderr)
+                failures.append(f"{done.stderr.rstrip()}; {on_the_hand}")
             else:
                 give_up(f"{run} run: every attempt was stopped by the load", failures)
         assert sim.poll() is None, log.read_text()

@@ -59,4 +59,5 @@ def test_no_frame_of_the_hand_is_lost_to_a_babbling_node(
         "queue_full": 0,
         "frames_dropped": 0,
         "frames_held": 0,
+        "rx_frames_lost": 0,
     }

@@ -34,6 +34,30 @@ async def test_realtime_ticks_are_consecutive_and_count_missed_ones() -> None:
         clock.close()
 
 
+def _burn_cpu(ns: int) -> None:
+    end = time.thread_time_ns() + ns
+    while time.thread_time_ns() < end:
+        pass
+
+
+async def test_a_stall_right_after_a_stall_carries_the_cpu_time_of_the_tick_between() -> None:
+    clock = RealtimeClock(0.001)
+    try:
+        await clock.wait_tick()
+        time.sleep(0.003)  # held, not working: at least two expirations pass unseen
+        held = await clock.wait_tick()
+        _burn_cpu(3_000_000)  # the tick after it works for three periods of thread CPU
+        slow = await clock.wait_tick()
+        assert held.missed >= 1 and slow.missed >= 1
+        work = clock.stalls.work_ns()
+        assert work[slow.tick] >= 3_000_000
+        # The tick before ``held`` slept: whether or not its own wake-up was late, it took
+        # little of the thread's CPU time.
+        assert work.get(held.tick, 0) < 3_000_000
+    finally:
+        clock.close()
+
+
 def test_a_full_stall_log_counts_what_it_cannot_keep() -> None:
     log = StallLog(threshold_ns=500, capacity=2)
     log.add(1, 0, 400, 0)  # shorter than the threshold: not a stall
@@ -42,6 +66,11 @@ def test_a_full_stall_log_counts_what_it_cannot_keep() -> None:
     log.add(9, 20_000, 24_000, 3)
     assert log.rows() == [(2, 0, 2_000, 1), (5, 10_000, 13_000, 2)]
     assert (log.overflow, log.overflow_missed) == (1, 3)
+    assert log.work_ns() == {}
+    log = StallLog(threshold_ns=500, work=True)
+    log.add(2, 0, 2_000, 1, cpu_ns=-1)
+    log.add(3, 3_000, 5_000, 1, cpu_ns=300)
+    assert log.work_ns() == {3: 300}
 
 
 async def test_lockstep_steps_the_peer_once_per_tick() -> None:

@@ -8,11 +8,21 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.hostcheck import Deadlines, ProbeRecord, advice, attribute, judge
+from handctl.hostcheck import (
+    CATCH_UP_CPU_FACTOR,
+    Deadlines,
+    LoopWork,
+    ProbeRecord,
+    advice,
+    attribute,
+    judge,
+    usual_tick_cpu_ns,
+)
 from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_model
 
 MS = 1_000_000
@@ -174,6 +184,7 @@ def test_a_missed_tick_is_the_hosts_only_if_the_bare_loop_stalled_with_it() -> N
         "missed_host": 3,
         "missed_host_slow_cpu": 0,
         "missed_rival": 0,
+        "missed_host_catch_up": 0,
         "missed_handctl": 2,
         "missed_handctl_after_host": 0,
         "missed_unobserved": 2,
@@ -207,6 +218,87 @@ def test_a_miss_right_after_a_host_stall_is_handctls_catching_up() -> None:
     shares = attribute(loop, host, MS)
     assert (shares["missed_host"], shares["missed_handctl"]) == (2, 3)
     assert shares["missed_handctl_after_host"] == 2
+
+
+USUAL_NS = 250_000  # a tick's usual thread CPU time in the catch-up cases below
+
+
+def _catch_up_chain() -> tuple[ProbeRecord, list[tuple[int, int, int, int]]]:
+    """A host stall the bare loop shared (wake-up 10), two misses in the next wake-ups that it
+    did not share (11, 12), and one long after (20)."""
+    host = record([(500, 500.0, 4.0)], period_ns=MS // 2)  # 500..504 ms
+    at = START
+    return host, [
+        (10, at + 501 * MS, at + 503 * MS, 2),
+        (11, at + 505 * MS, at + 506 * MS + 300_000, 1),
+        (12, at + 507 * MS, at + 508 * MS + 100_000, 1),
+        (20, at + 515 * MS, at + 516 * MS + 100_000, 1),
+    ]
+
+
+def test_a_catch_up_tick_of_its_usual_cpu_time_was_held_with_the_host() -> None:
+    # Ticks 10 and 11 ran 300 and 450 µs of CPU where a tick usually runs 250: they did not
+    # miss on their own work, they were held.
+    host, loop = _catch_up_chain()
+    work = LoopWork({11: 300_000, 12: 450_000, 20: 100_000}, USUAL_NS)
+    own: list[int] = []
+    shares = attribute(loop, host, MS, own, work=work)
+    assert (shares["missed_host"], shares["missed_host_catch_up"]) == (2, 2)
+    assert (shares["missed_handctl"], shares["missed_handctl_after_host"]) == (1, 0)
+    assert own == [20]  # not right after the host's: handctl's, however cheap its tick
+
+
+def test_a_slow_catch_up_tick_stays_handctls_and_ends_the_hosts_chain() -> None:
+    host, loop = _catch_up_chain()
+    limit = round(CATCH_UP_CPU_FACTOR * USUAL_NS)
+    own: list[int] = []
+    shares = attribute(loop, host, MS, own, work=LoopWork({11: limit + 1, 12: 1}, USUAL_NS))
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 3)
+    assert shares["missed_handctl_after_host"] == 2
+    assert own == [11, 12, 20]  # 12 came after handctl's slow 11, not after the host's
+    at_limit = attribute(loop, host, MS, work=LoopWork({11: limit}, USUAL_NS))
+    assert at_limit["missed_host_catch_up"] == 1
+
+
+def test_a_catch_up_tick_is_judged_only_when_it_was_measured_against_a_usual() -> None:
+    host, loop = _catch_up_chain()
+    for work in (LoopWork({}, USUAL_NS), LoopWork({11: 1, 12: 1}, 0), None):
+        shares = attribute(loop, host, MS, work=work)
+        assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 3)
+
+
+def test_a_catch_up_tick_of_a_whole_period_is_never_held() -> None:
+    # A tick whose usual cost is most of a period: twice it is more than a period, and a tick
+    # that needs a whole period of CPU misses on its own.
+    host, loop = _catch_up_chain()
+    shares = attribute(loop, host, MS, work=LoopWork({11: MS, 12: 1}, 600_000))
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 3)
+    shares = attribute(loop, host, MS, work=LoopWork({11: MS - 1}, 600_000))
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (1, 2)
+
+
+def test_the_usual_tick_is_the_median_of_the_ticks_that_did_work() -> None:
+    stages = np.array([[0, 0, 0], [100, 50, 50], [300, 0, 0], [0, 0, 0], [1000, 0, 400]])
+    assert usual_tick_cpu_ns(stages) == 300
+    assert usual_tick_cpu_ns(np.zeros((3, 6), dtype=np.int64)) == 0
+    assert usual_tick_cpu_ns(np.zeros((0, 6), dtype=np.int64)) == 0
+
+
+def test_recorded_slow_catch_up_ticks_of_handctls_stay_handctls() -> None:
+    # Real-time runs of the shipped recipe with host stalls injected (a SCHED_FIFO task above
+    # the bare loop, 1.6 ms busy on the loop's CPU) and a 2 ms busy loop of thread CPU time
+    # in the tick right after each stalled wake-up: every miss that slow catch-up made is
+    # handctl's, measured work or not (docs/timing.md, "Catch-up ticks").
+    data = json.loads((DATA / "host_catch_up.json").read_text())
+    for case in data["cases"]:
+        loop = [(r[0], r[1], r[2], r[3]) for r in case["loop_stalls"]]
+        host = ProbeRecord.from_json(case["probe"], case["kind"])
+        work = LoopWork({int(k): v for k, v in case["work_ns"].items()}, case["usual_cpu_ns"])
+        assert work.between_stalls_ns and min(work.between_stalls_ns.values()) > MS
+        without = attribute(loop, host, MS)
+        shares = attribute(loop, host, MS, work=work)
+        assert shares == without and shares["missed_host_catch_up"] == 0
+        assert shares["missed_handctl_after_host"] == shares["missed_handctl"] > 0
 
 
 # -- the host -------------------------------------------------------------------------------------

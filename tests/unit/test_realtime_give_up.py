@@ -3,9 +3,17 @@ host is skipped (``tests/integration/realtime.py``); a stop with a tick handctl 
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 
-from ..integration.realtime import give_up, host_stopped, load_stopped
+from handctl.config import HandConfig
+from handctl.hostcheck import ProbeRecord
+
+from ..integration.realtime import give_up, hand_cpu_text, host_stopped, load_stopped
+
+DATA = Path(__file__).resolve().parent.parent / "data"
 
 _OVERRUN = (
     "warning: the run stopped on LOOP_OVERRUN; the bare timer loop beside it says the host "
@@ -20,6 +28,8 @@ _OVERRUN = (
         ("3 the host's, 4 its slow CPU's, 0 handctl's", True),
         ("0 the host's, 0 handctl's, 2 a real-time rival's: spin (1234)", True),
         ("3 the host's, 4 its slow CPU's, 1 handctl's", False),
+        ("1 the host's, 2 its slow CPU's, 4 its catch-up ticks', 0 handctl's", True),
+        ("1 the host's, 4 its catch-up ticks', 1 handctl's", False),
         ("0 the host's, 0 handctl's", False),  # nothing the probes saw explains the stop
     ],
 )
@@ -38,6 +48,19 @@ def test_a_feedback_timeout_is_the_host_s_when_the_hand_s_cpu_failed() -> None:
     )
     assert host_stopped(text)
     assert not host_stopped(text.replace("CPU [1] the host was FAIL", "CPU [1] the host was PASS"))
+
+
+def test_a_flood_from_a_hand_catching_up_is_the_host_s_when_the_hand_s_cpu_failed(
+    hand: HandConfig,
+) -> None:
+    # A test's own bare loop beside a simulated hand it started (``handctl sim`` runs none),
+    # said as a run says it of its own hand's CPU; here the record of a failing host.
+    failing = json.loads((DATA / "host_stalls_failing.json").read_text())
+    on_the_hand = hand_cpu_text(ProbeRecord.from_json(failing, "failing"), hand)
+    stop = "handctl: safety stop: RX_BACKLOG at tick 40: 54 frames drained, more waiting"
+    assert host_stopped(f"{stop}; {on_the_hand}")
+    assert not host_stopped(f"{stop}; {on_the_hand.replace('was FAIL', 'was PASS')}")
+    assert not host_stopped(stop)
 
 
 def test_giving_up_skips_only_when_every_stop_was_the_host_s() -> None:

@@ -99,6 +99,23 @@ def test_a_receiver_that_stopped_reading_costs_counted_frames(open_unix: OpenUni
     assert tx.sent == len(accepted)
 
 
+def test_a_receiver_is_told_how_many_frames_it_lost(open_unix: OpenUnix) -> None:
+    """As a SocketCAN socket is told of its receive queue's overflow: a listener kept from
+    reading can tell the gap it caused itself from a node that skipped a counter."""
+    rx, tx = open_unix(), open_unix()
+    offered = TX_QUEUE_FRAMES + 100
+    accepted = [i for i in range(offered) if tx.send(0x101, i.to_bytes(2, "little"))]
+    refused = offered - len(accepted)
+    got: list[Frame] = []
+    catch_up(rx, tx, got, len(accepted))  # told after what was held for it, where it was lost
+    assert rx.transport_counts()["rx_frames_lost"] == refused > 0
+    assert tx.transport_counts()["rx_frames_lost"] == 0  # the sender lost nothing itself
+    assert tx.send(0x101, offered.to_bytes(2, "little"))  # said once
+    got += rx.drain()
+    assert rx.transport_counts()["rx_frames_lost"] == refused
+    assert [int.from_bytes(f.data, "little") for f in got] == [*accepted, offered]
+
+
 def test_a_burst_is_one_datagram_and_its_frames_share_its_fate(open_unix: OpenUnix) -> None:
     rx, tx = open_unix(), open_unix()
     taps: list[tuple[int, int]] = []
