@@ -28,6 +28,7 @@ from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+import numpy as np
 import orjson
 
 from handctl.config import HandConfig
@@ -117,6 +118,21 @@ def _view(vector: Any) -> memoryview:
     if view.format != "d" or view.ndim != 1 or not view.c_contiguous:
         raise TypeError("not a contiguous float64 vector")
     return view
+
+
+def _side_by_side(first: Any, second: Any) -> memoryview | None:
+    """One flat float64 view of two vectors that lie one after the other in one block of
+    memory (the driver's angles and torques), for one slice assignment; None otherwise."""
+    base = first.base
+    if base is None or second.base is not base or not isinstance(base, np.ndarray):
+        return None
+    start = first.ctypes.data - base.ctypes.data
+    if second.ctypes.data != first.ctypes.data + first.nbytes or not base.flags.c_contiguous:
+        return None
+    if start < 0 or start + first.nbytes + second.nbytes > base.nbytes:
+        return None
+    block = np.ndarray((first.size + second.size,), dtype=np.float64, buffer=base, offset=start)
+    return _view(block)
 
 
 def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] | None:
@@ -252,6 +268,9 @@ class Recorder:
         self._desired: Any = None
         self._applied: Any = None
         self._feedback: Any = None
+        #: The views ``push`` copies from: the angles and torques as one (``_side_by_side``),
+        #: the desired and applied torques, the feedback times.
+        self._joints_view: memoryview | None = None
         self._angle_view = self._tdt_view = self._desired_view = self._applied_view = (
             self._feedback_view
         ) = memoryview(b"")
@@ -457,8 +476,12 @@ class Recorder:
         else:
             floats = self._floats
             at = row * 4 * n
-            floats[at : at + n] = self._angle_view
-            floats[at + n : at + 2 * n] = self._tdt_view
+            joints_view = self._joints_view
+            if joints_view is not None:
+                floats[at : at + 2 * n] = joints_view
+            else:  # angles and torques not side by side
+                floats[at : at + n] = self._angle_view
+                floats[at + n : at + 2 * n] = self._tdt_view
             floats[at + 2 * n : at + 3 * n] = self._desired_view
             floats[at + 3 * n : at + 4 * n] = self._applied_view
         if self._pose_list is not None:
@@ -527,7 +550,8 @@ class Recorder:
 
     def _copy_floats(self, row: int, record: TickRecord) -> None:
         """The row's four vectors when the runtime handed over an array not seen before: the
-        views made anew, or (not a contiguous float64 vector of n) a numpy copy."""
+        views made anew (the angles' and torques' as one when they lie side by side), or (not
+        a contiguous float64 vector of n) a numpy copy."""
         vectors = (record.angle, record.tdt, record.desired, record.applied)
         try:
             views = [_view(v) for v in vectors]
@@ -542,6 +566,7 @@ class Recorder:
             for i, vector in enumerate(vectors):
                 values[i * n : (i + 1) * n] = vector
             return
+        self._joints_view = _side_by_side(record.angle, record.tdt)
         self._angle_view, self._tdt_view, self._desired_view, self._applied_view = views
         self._angle, self._tdt, self._desired, self._applied = vectors
 
