@@ -52,7 +52,7 @@ process, then read back:
 
 ``--profile``: instead, where the recording's time goes in the running loop. One pair as
 above, every call of A's recorder (``begin_tick``, the two frame taps, ``push``,
-``_flush_frames``, ``_sweep``, ``poses``) timed with ``perf_counter_ns`` (cheap; the thread
+``_sweep``, ``poses``) timed with ``perf_counter_ns`` (cheap; the thread
 CPU clock is a system call) and exclusive of the timed calls it makes, summed per control
 tick: ``profile_<call>_us_p50`` / ``_p99`` / ``_mean``, ``profile_recorder_own_*`` their sum,
 ``profile_record_stage_*`` the runtime's own record stage, ``profile_refill_and_clock_*`` that
@@ -162,7 +162,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--profile",
         action="store_true",
         help="instead: the recorder's own calls per tick (begin_tick, the taps, push, "
-        "_flush_frames, _sweep, poses), timed in process against the whole tick (profile_*)",
+        "_sweep, poses), timed in process against the whole tick (profile_*)",
     )
     parser.add_argument(
         "--writer-paused",
@@ -180,8 +180,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--breakdown",
         action="store_true",
-        help="also split the direct cost: two more runs in which push copies "
-        "only the frames, or nothing (breakdown_us_p50)",
+        help="also split the direct cost: one more run in which push only publishes, "
+        "the tick's row left empty (breakdown_us_p50)",
     )
 
 
@@ -325,15 +325,12 @@ class _Side:
 
 
 def _partial_push(recorder: Recorder, part: str) -> Callable[[Any], None]:
-    """A ``push`` that does only part of the work, for ``--breakdown``: ``frames`` copies the
-    tick's frames and publishes, ``none`` only publishes (the tick rows stay empty)."""
+    """A ``push`` that does only part of the work, for ``--breakdown``: ``none`` only
+    publishes (the tick rows stay empty; the taps still write the frames, as they go)."""
+    if part != "none":
+        raise ValueError(f"bench: no partial push {part!r}")
 
     def push(record: Any) -> None:
-        if part == "frames":
-            recorder._flush_frames()
-        else:
-            recorder._pending.clear()
-            recorder._shape = 0
         recorder._publish()
 
     return push
@@ -457,9 +454,9 @@ def estimator_us_per_tick(recording: Recording) -> float:
 class CallTimes:
     """The recorder's own calls, each timed with ``perf_counter_ns`` (a cheap clock; the
     thread CPU clock is a system call) and exclusive of the timed calls it makes (``push``
-    calls ``_flush_frames`` and ``_sweep``), summed per tick."""
+    calls ``_sweep``), summed per tick."""
 
-    NAMES = ("begin_tick", "tx_tap", "rx_tap", "push", "flush_frames", "sweep", "poses")
+    NAMES = ("begin_tick", "tx_tap", "rx_tap", "push", "sweep", "poses")
 
     def __init__(self, recorder: Recorder) -> None:
         self.recorder = recorder
@@ -494,7 +491,6 @@ class CallTimes:
         for name, attribute in (
             ("begin_tick", "begin_tick"),
             ("push", "push"),
-            ("flush_frames", "_flush_frames"),
             ("sweep", "_sweep"),
             ("poses", "poses"),
         ):
@@ -605,8 +601,7 @@ def profile_once(
     figures["timed_calls_per_tick"] = round(float(np.mean(calls)), 2)
     stage = result.stage_ns[:n, 4][control]
     describe("record_stage", stage)
-    push_inclusive = parts["push"] + parts["flush_frames"] + parts["sweep"]
-    # flush_frames also runs in begin_tick (a tick that only polled): not in push then
+    push_inclusive = parts["push"] + parts["sweep"]
     describe("refill_and_clock", np.maximum(stage - push_inclusive, 0))
     describe("tick_recorded", np.array(a.clock.work_ns[:n])[control])
     describe("tick_unrecorded", np.array(b.clock.work_ns[:n])[control])
@@ -925,17 +920,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     breakdown: dict[str, float] = {}
     if args.breakdown:
         with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
-            part_p50 = {}
-            for part in ("none", "frames"):
-                print(f"bench recording: breakdown, push copying {part}", file=sys.stderr)
-                direct = record_once(
-                    args.hand, args.recipe, Path(directory) / f"{part}.mcap", part
-                )["direct_ns"]
-                part_p50[part] = float(np.percentile(direct, 50)) / 1e3
+            print("bench recording: breakdown, push only publishing", file=sys.stderr)
+            direct = record_once(args.hand, args.recipe, Path(directory) / "none.mcap", "none")[
+                "direct_ns"
+            ]
+            publish_p50 = float(np.percentile(direct, 50)) / 1e3
         breakdown = {
-            "begin_refill_publish": round(part_p50["none"], 2),
-            "frames": round(part_p50["frames"] - part_p50["none"], 2),
-            "tick_row": round(loop_p50[best] - part_p50["frames"], 2),
+            "begin_refill_publish": round(publish_p50, 2),
+            "tick_row": round(loop_p50[best] - publish_p50, 2),
         }
     clocks = _clock_costs()
     return {

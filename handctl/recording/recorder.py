@@ -24,10 +24,11 @@ import struct
 import subprocess
 import sys
 import tempfile
-from collections.abc import Collection, Iterator, Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+import numpy as np
 import orjson
 
 from handctl.config import HandConfig
@@ -72,64 +73,17 @@ from handctl.recording.ring import (
 
 if TYPE_CHECKING:
     from handctl.online.clock import Tick
+    from handctl.online.drivers.hand import JointState
     from handctl.online.loop import Runtime, TickRecord
+    from handctl.online.safety.supervisor import Supervisor
 
 _TICK_HEAD = struct.Struct("<qqqqq")  # tick, scheduled, now, missed, active
 _RX_HEAD = struct.Struct("<" + RX_HEAD_ROW)
 _RX_FRAME = struct.Struct("<" + RX_FRAME_ROW)
 _TX_FRAME = struct.Struct("<" + TX_FRAME_ROW)
-#: A tick's frame rows are packed with one call (a struct per shape of tick) when the taps
-#: noted fewer than ``_FLAT_ROWS`` items; more, or rows that would wrap round the ring's end,
-#: a row a call. A shape is a number in this base, a digit per sent frame (1) or drain (2 +
-#: its frames), so that every shape of fewer items has a number of its own (a drain's frames
-#: are four items each, so none of them has a digit past the base); the taps work it out as
-#: they note the frames.
-_SHAPE_BASE = 66
-_FLAT_ROWS = 4 * (_SHAPE_BASE - 2)
-#: Structs kept, one per shape met, before they are forgotten all at once.
-_MAX_SHAPES = 1024
-#: The items of a sent frame's row and of a drain's head row, and of each of a drain's frames.
-_TX_ITEMS = 5
-_RX_HEAD_ITEMS = _RX_FRAME_ITEMS = 4
-
-#: What the taps note for the tick's frame rows, flat, in bus order: a sent frame's row
-#: (direction, t, tick, arbitration id, data), or a drain's head row (TAP_RX, t, tick, count)
-#: followed by the fields of its ``count`` frames, the bus's own ``Frame`` tuples. Flat, so
-#: that the rows go into the ring with one ``pack_into`` of the list itself: flattening
-#: tuples of tuples there (``itertools.chain``) was the slowest step of the recording's tick.
-Pending = list[Any]
-
-
-def _blocks(pending: Pending) -> Iterator[tuple[int, int]]:
-    """Where each sent frame's row and each drain (its head row and its frames) lie in the
-    noted items: (first, end)."""
-    at = 0
-    while at < len(pending):
-        end = at + (
-            _RX_HEAD_ITEMS + _RX_FRAME_ITEMS * pending[at + 3]
-            if pending[at] == TAP_RX
-            else _TX_ITEMS
-        )
-        yield at, end
-        at = end
-
-
-def _frames_struct(pending: Pending) -> tuple[struct.Struct, int, int]:
-    """The struct of a tick's frame rows, how many frames they hold (the drains' head rows
-    are not frames) and how many rows."""
-    formats = []
-    frames = rows = 0
-    for first, _ in _blocks(pending):
-        if pending[first] == TAP_RX:
-            count = pending[first + 3]
-            formats.append(RX_HEAD_ROW + RX_FRAME_ROW * count)
-            frames += count
-            rows += 1 + count
-        else:
-            formats.append(TX_FRAME_ROW)
-            frames += 1
-            rows += 1
-    return struct.Struct("<" + "".join(formats)), frames, rows
+#: Drains of more frames than this are written a row a call (a backlog at start-up): the
+#: structs kept, one per count of frames met, stay few.
+_PACKED_DRAIN = 64
 
 
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
@@ -151,7 +105,6 @@ class _Ring(NamedTuple):
 
 
 _TICKS = _Ring("_tail", TICK_TAIL, DROPPED_TICKS)
-_FRAMES = _Ring("_ftail", FRAME_TAIL, DROPPED_FRAMES)
 _EVENTS = _Ring("_etail", EVENT_TAIL, DROPPED_EVENTS)
 _POSES = _Ring("_ptail", POSE_TAIL, DROPPED_POSES)
 
@@ -163,6 +116,21 @@ def _view(vector: Any) -> memoryview:
     if view.format != "d" or view.ndim != 1 or not view.c_contiguous:
         raise TypeError("not a contiguous float64 vector")
     return view
+
+
+def _side_by_side(first: Any, second: Any) -> memoryview | None:
+    """One flat float64 view of two vectors that lie one after the other in one block of
+    memory (the driver's angles and torques), for one slice assignment; None otherwise."""
+    base = first.base
+    if base is None or second.base is not base or not isinstance(base, np.ndarray):
+        return None
+    start = first.ctypes.data - base.ctypes.data
+    if second.ctypes.data != first.ctypes.data + first.nbytes or not base.flags.c_contiguous:
+        return None
+    if start < 0 or start + first.nbytes + second.nbytes > base.nbytes:
+        return None
+    block = np.ndarray((first.size + second.size,), dtype=np.float64, buffer=base, offset=start)
+    return _view(block)
 
 
 def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] | None:
@@ -192,6 +160,95 @@ def _shared_memory(size: int) -> int:
 
 class Recorder:
     """Records one run to ``path``; see the module docstring for how."""
+
+    # Slots, the tick's in the order it reads them: an attribute in a slot is read at a
+    # fixed place in the object, where an instance dict of this many keys is a look-up in a
+    # table of its own, which the simulation between two ticks has pushed out of the caches.
+    # ``__dict__`` for what a bench or a test puts on an instance (a timed method).
+    __slots__ = (  # noqa: RUF023 - in the order the tick reads them, not sorted
+        # the taps
+        "_fhead",
+        "_frame_limit",
+        "_tx_pack",
+        "_buf",
+        "_frame_base",
+        "_frame_mask",
+        "_now",
+        "_tick",
+        "_drain_packs",
+        "_drains",
+        "_drained",
+        "_sent_packs",
+        # push
+        "_row",
+        "_sup",
+        "_joints",
+        "_last_phase",
+        "_faults",
+        "_history",
+        "_reject_lists",
+        "_reject_seen",
+        "_state_name",
+        "_state",
+        "_phase",
+        "_row_pack",
+        "_tick_base",
+        "_tick_stride",
+        "_tk",
+        "_feedback",
+        "_n",
+        "_tick_ints",
+        "_feedback_at",
+        "_ints",
+        "_feedback_view",
+        "_angle",
+        "_tdt",
+        "_desired",
+        "_applied",
+        "_floats",
+        "_joints_view",
+        "_angle_view",
+        "_tdt_view",
+        "_desired_view",
+        "_applied_view",
+        "_pose_list",
+        "_ctl_view",
+        "_head",
+        # begin_tick
+        "_tail",
+        "_tick_mask",
+        # the rest
+        "_ftail",
+        "_ehead",
+        "_etail",
+        "_event_base",
+        "_event_data",
+        "_event_mask",
+        "_phead",
+        "_ptail",
+        "_pose_base",
+        "_pose_mask",
+        "_pose_pack",
+        "_pose_stride",
+        "_phases",
+        "_states",
+        "_no_faults",
+        "_no_states",
+        "_runtime",
+        "_rings",
+        "_mmap",
+        "_ti",
+        "_tf",
+        "_ctl_w",
+        "_ready_r",
+        "_ready",
+        "closed",
+        "layout",
+        "path",
+        "process",
+        "stats",
+        "__dict__",
+    )
 
     def __init__(
         self,
@@ -298,6 +355,9 @@ class Recorder:
         self._desired: Any = None
         self._applied: Any = None
         self._feedback: Any = None
+        #: The views ``push`` copies from: the angles and torques as one (``_side_by_side``),
+        #: the desired and applied torques, the feedback times.
+        self._joints_view: memoryview | None = None
         self._angle_view = self._tdt_view = self._desired_view = self._applied_view = (
             self._feedback_view
         ) = memoryview(b"")
@@ -317,14 +377,19 @@ class Recorder:
         self._row = -1
         self._frame_base = r.offsets["frame"]
         self._frame_mask = self.layout.frame_capacity - 1
+        #: The frame rows written (the taps write them as the bus hands them over; ``push``
+        #: publishes them), and the head they may reach before the writer's tail last read.
         self._fhead = self._ftail = 0
-        #: The tick's frame rows as the taps noted them (``Pending``), and their shape.
-        self._pending: Pending = []
-        self._shape = 0
-        #: The ``pack_into`` of a tick's frame rows, the frames and the rows they hold, per
-        #: shape (``_flush_frames``).
-        self._frames_pack: dict[int, tuple[Any, int, int]] = {}
-        self._frames_noted = 0
+        self._frame_limit = self.layout.frame_capacity
+        self._tx_pack = _TX_FRAME.pack_into
+        #: The ``pack_into`` of a drain's block (its head row and its frames), by count of
+        #: frames, each made when first met (``_drain_slowly``); a list, read without a call.
+        self._drain_packs: list[Any] = [None] * (_PACKED_DRAIN + 1)
+        self._drains = 0  # head rows written: the frames are the rows but these
+        #: The frames of the last drain, not yet written: the next sent frame writes them
+        #: with its own row, in one ``pack_into`` (``_sent_packs``, by count of frames).
+        self._drained: list[Frame] | None = None
+        self._sent_packs: list[Any] = [None] * (_PACKED_DRAIN + 1)
         self._event_base = r.offsets["event_i"]
         self._event_data = r.offsets["event_d"]
         self._event_mask = self.layout.event_capacity - 1
@@ -339,7 +404,16 @@ class Recorder:
         self._tick = -1  # frames drained before the first tick (discarded at start-up)
         self._now = 0
         self._runtime: Runtime | None = None
+        #: What ``push`` reads every tick, kept at ``attach``: the supervisor and the driver's
+        #: joint state (None: no runtime attached).
+        self._sup: Supervisor | None = None
+        self._joints: JointState | None = None
+        #: The last tick's supervisor state name and phase name, as the runtime handed them
+        #: over (the same string objects tick after tick), and their numbers in the row.
+        self._state_name = ""
+        self._state = -1
         self._last_phase = ""
+        self._phase = 0
         self._history = 0
         self._faults = 0
         self._reject_lists: list[list[int]] = []
@@ -350,6 +424,8 @@ class Recorder:
         """Tap the runtime's bus and keep the runtime, whose supervisor, runner and driver the
         recorder reads when something changes (a state, a phase, a reject count)."""
         self._runtime = runtime
+        self._sup = runtime.supervisor
+        self._joints = runtime.driver.state
         bus = runtime.driver.bus
         bus.tap = self._frame
         bus.rx_tap = self._drain
@@ -393,22 +469,24 @@ class Recorder:
         self._send({"type": "metadata", "name": name, "data": data})
 
     # -- RecordSink -----------------------------------------------------------------------
-    # The hot path. Before the commands are sent (poll, send) the taps only note references;
-    # the copying into the rings happens in ``push``, after the tick's last command frame is
-    # on its way, with a few ``struct.pack_into`` and buffer copies and the attributes read
-    # into locals once. A tick's frames, events and row are published together at the end of
-    # its ``push`` (the row last; a tick without a push when the next one begins), so a SIGKILL
-    # costs at most the tick in progress. Frames sent after a tick's push (the nodes' disable
-    # after the last control tick) still belong to it: they are published when the next tick
-    # begins, after its row and before the next row, where ``rerun.tick_inputs`` looks.
+    # The hot path. The taps write each frame's row into the frame ring as the bus hands it
+    # over; ``push``, after the tick's last command frame is on its way, writes the tick's row
+    # with one ``struct.pack_into`` and a few buffer copies, and publishes the tick: its
+    # frames, then its row (a tick without a push when the next one begins, with its frames).
+    # Events go out as they happen, before the row. So a SIGKILL costs at most the tick in
+    # progress. Frames sent after a tick's push (the nodes' disable after the last control
+    # tick) still belong to it: they are published with the next row, before it, where
+    # ``rerun.tick_inputs`` looks. In the running loop every Python-level operation here
+    # costs about a microsecond and the 99th percentile grows with their number (docs/
+    # recording.md, "Cost"), so the common path has as few as it can.
     def begin_tick(self, tick: Tick) -> None:
+        if self._drained is not None:  # the last tick's, with no frame sent after it
+            self._write_drain(self._drained)
+            self._drained = None
         if self._pose_list is not None:  # the last tick's, which had no push
             self._copy_poses()
         if self._row >= 0:  # the last tick had no push (start-up, shut-down): publish it now
             self._publish_idle()
-        elif self._pending:  # frames that came between ticks belong to the last one
-            self._flush_frames()
-            self._ctl_view[FRAME_HEAD] = self._fhead
         self._tk = tick
         self._tick = tick.tick
         self._now = tick.now_ns
@@ -420,8 +498,6 @@ class Recorder:
 
     def _publish_idle(self) -> None:
         """The row of a tick that only polled is its head alone; publish it with its frames."""
-        if self._pending:
-            self._flush_frames()
         _TICK_HEAD.pack_into(
             self._buf,
             self._tick_base + self._row * self._tick_stride,
@@ -439,28 +515,106 @@ class Recorder:
         ctl[TICK_HEAD] = self._head
 
     def push(self, record: TickRecord) -> None:
-        if self._pending:
-            self._flush_frames()
-        runtime = self._runtime
         row = self._row
-        if runtime is not None:
-            sup = runtime.supervisor
+        sup = self._sup
+        joints = self._joints
+        if row < 0 or sup is None or joints is None:
+            self._push_rarely(record)
+            return
+        faults = len(sup.faults)
+        phase = record.phase
+        # The tick's events (and a new phase's number) before its row, so that a reader that
+        # meets the row has met them. Each check is a compare that nearly always finds
+        # nothing; the phase's is by identity (the runtime hands over the same name).
+        if (
+            phase is not self._last_phase
+            or faults != self._faults
+            or len(sup.history) != self._history
+            or self._reject_lists != self._reject_seen
+        ):
+            self._sweep(sup, phase)
+        state = record.state
+        if state is not self._state_name:
+            self._state_name, self._state = state, self._states.get(state, -1)
+        s = record.stage_ns
+        self._row_pack(
+            self._buf,
+            self._tick_base + row * self._tick_stride,
+            *self._tk,
+            1,
+            s[0],
+            s[1],
+            s[2],
+            s[3],
+            self._state,
+            self._phase,
+            faults,
+            *joints.node_state,
+            *joints.node_faults,
+        )
+        # The vectors by memoryview slice assignment: no numpy call, no allocation. The
+        # views of the runtime's arrays are made once (an array the runtime swaps in, the
+        # zero vector for the runner's, gets its view made when first seen).
+        if joints.feedback_ns is not self._feedback:
+            self._new_feedback(joints.feedback_ns)
+        n = self._n
+        at = row * self._tick_ints + self._feedback_at
+        self._ints[at : at + n] = self._feedback_view
+        if (
+            record.angle is not self._angle
+            or record.tdt is not self._tdt
+            or record.desired is not self._desired
+            or record.applied is not self._applied
+        ):
+            self._copy_floats(row, record)
+        else:
+            floats = self._floats
+            at = row * 4 * n
+            joints_view = self._joints_view
+            if joints_view is not None:
+                floats[at : at + 2 * n] = joints_view
+            else:  # angles and torques not side by side
+                floats[at : at + n] = self._angle_view
+                floats[at + n : at + 2 * n] = self._tdt_view
+            floats[at + 2 * n : at + 3 * n] = self._desired_view
+            floats[at + 3 * n : at + 4 * n] = self._applied_view
+        if self._pose_list is not None:
+            self._copy_poses()
+        if self._drained is not None:  # a tick that sent nothing after its drain
+            self._write_drain(self._drained)
+            self._drained = None
+        ctl = self._ctl_view
+        ctl[FRAME_HEAD] = self._fhead
+        self._row = -1
+        self._head = head = self._head + 1
+        ctl[TICK_HEAD] = head
+
+    def _push_rarely(self, record: TickRecord) -> None:
+        """``push`` without a row (the tick ring was full) or without an attached runtime:
+        the tick's events, poses and frames are still recorded, the row when there is one."""
+        row = self._row
+        sup = self._sup
+        faults = 0
+        if sup is not None:
             faults = len(sup.faults)
+            if (
+                record.phase != self._last_phase
+                or faults != self._faults
+                or len(sup.history) != self._history
+                or self._reject_lists != self._reject_seen
+            ):
+                self._sweep(sup, record.phase)
         if row >= 0:
             phase = self._phases.get(record.phase)
             if phase is None:
                 phase = self._intern(record.phase)
             s = record.stage_ns
-            at = self._tick_base + row * self._tick_stride
-            if runtime is not None:
-                state = runtime.driver.state
-                node_state, node_faults = state.node_state, state.node_faults
-            else:
-                state = None
-                faults, node_state, node_faults = 0, self._no_states, self._no_faults
+            joints = self._joints
+            node_state = joints.node_state if joints is not None else self._no_states
+            node_faults = joints.node_faults if joints is not None else self._no_faults
             self._row_pack(
                 self._buf,
-                at,
+                self._tick_base + row * self._tick_stride,
                 *self._tk,
                 1,
                 s[0],
@@ -473,157 +627,163 @@ class Recorder:
                 *node_state,
                 *node_faults,
             )
-            if state is not None:
-                if state.feedback_ns is not self._feedback:
-                    self._feedback, self._feedback_view = (
-                        state.feedback_ns,
-                        state.feedback_ns.data.cast("B").cast("q"),
-                    )
+            if joints is not None:
+                if joints.feedback_ns is not self._feedback:
+                    self._new_feedback(joints.feedback_ns)
                 at = row * self._tick_ints + self._feedback_at
                 self._ints[at : at + self._n] = self._feedback_view
-            # Four vectors by memoryview slice assignment: no numpy call, no allocation. The
-            # views of the runtime's arrays are made once (an array the runtime swaps in,
-            # the zero vector for the runner's, gets its view made when first seen).
-            floats = self._floats
-            n = self._n
-            at = row * 4 * n
-            try:
-                if (
-                    record.angle is not self._angle
-                    or record.tdt is not self._tdt
-                    or record.desired is not self._desired
-                    or record.applied is not self._applied
-                ):
-                    self._new_views(record)
-                floats[at : at + n] = self._angle_view
-                floats[at + n : at + 2 * n] = self._tdt_view
-                floats[at + 2 * n : at + 3 * n] = self._desired_view
-                floats[at + 3 * n : at + 4 * n] = self._applied_view
-            except (TypeError, ValueError, BufferError):  # not a float64 vector of n
-                self._angle = self._tdt = self._desired = self._applied = None
-                self._copy_floats(row, record)
+            self._copy_floats(row, record)
         if self._pose_list is not None:
             self._copy_poses()
-        # The tick's events before its row, so that a reader that meets the row has met them.
-        if runtime is not None and (
-            len(sup.history) != self._history
-            or faults != self._faults
-            or record.phase != self._last_phase
-            or self._reject_lists != self._reject_seen
-        ):
-            self._sweep(runtime, record.phase)
-        ctl = self._ctl_view
-        ctl[FRAME_HEAD] = self._fhead
-        if row >= 0:  # the tick is complete: its frames are published, then its row
-            self._row = -1
-            self._head = head = self._head + 1
-            ctl[TICK_HEAD] = head
+        if self._drained is not None:
+            self._write_drain(self._drained)
+            self._drained = None
+        if row >= 0:
+            self._publish()
+        else:
+            self._ctl_view[FRAME_HEAD] = self._fhead
 
-    def _new_views(self, record: TickRecord) -> None:
-        """The views of the record's vectors, made again when the runtime swapped one in;
-        TypeError or ValueError when one is not a contiguous float64 vector (``push`` then
-        forgets the vectors it had)."""
-        views = [_view(v) for v in (record.angle, record.tdt, record.desired, record.applied)]
-        self._angle_view, self._tdt_view, self._desired_view, self._applied_view = views
-        self._angle, self._tdt = record.angle, record.tdt
-        self._desired, self._applied = record.desired, record.applied
+    def _new_feedback(self, feedback_ns: Any) -> None:
+        """The view of the driver's feedback times, made again when it has another array."""
+        self._feedback = feedback_ns
+        self._feedback_view = feedback_ns.data.cast("B").cast("q")
 
     def _copy_floats(self, row: int, record: TickRecord) -> None:
-        n = self._n
-        values = self._tf[row]
-        values[:n] = record.angle
-        values[n : 2 * n] = record.tdt
-        values[2 * n : 3 * n] = record.desired
-        values[3 * n :] = record.applied
+        """The row's four vectors when the runtime handed over an array not seen before: the
+        views made anew (the angles' and torques' as one when they lie side by side), or (not
+        a contiguous float64 vector of n) a numpy copy."""
+        vectors = (record.angle, record.tdt, record.desired, record.applied)
+        try:
+            views = [_view(v) for v in vectors]
+            n = self._n
+            at = row * 4 * n
+            for i, view in enumerate(views):
+                self._floats[at + i * n : at + (i + 1) * n] = view
+        except (TypeError, ValueError, BufferError):  # not a float64 vector of n
+            self._angle = self._tdt = self._desired = self._applied = None
+            n = self._n
+            values = self._tf[row]
+            for i, vector in enumerate(vectors):
+                values[i * n : (i + 1) * n] = vector
+            return
+        self._joints_view = _side_by_side(record.angle, record.tdt)
+        self._angle_view, self._tdt_view, self._desired_view, self._applied_view = views
+        self._angle, self._tdt, self._desired, self._applied = vectors
 
     def note(self, kind: str, detail: str, tick: int) -> None:
         self._event(EV_REQUEST, tick, kind, detail)
 
-    # -- taps: note now, copy in ``push`` -------------------------------------------------
+    # -- taps: each frame's row written as the bus hands it over ---------------------------
+    # A frame's time is its tick's (the clock stands still inside a lockstep tick; in real
+    # time a tick's frames are drained or sent within its first few hundred microseconds); a
+    # received frame keeps the adapter's own time stamp as well. A drain's block waits for
+    # the tick's first sent frame and goes into the ring with it: a tick's first
+    # ``pack_into`` costs the running loop some 2 us more than the others whatever it packs,
+    # so one call fewer a tick is worth the wait (the block is written before anything that
+    # follows it: the next tick, the tick's push, another drain, the end).
     def _frame(self, arbitration_id: int, data: bytes, direction: int) -> None:
-        pending = self._pending
-        pending += (direction, self._now, self._tick, arbitration_id, data)
-        self._shape = self._shape * _SHAPE_BASE + 1
+        """A sent frame's row (direction, t, tick, arbitration id, data), after the last
+        drain's block if it is not written yet: both with one ``pack_into``."""
+        drained = self._drained
+        if drained is not None:
+            self._drained = None
+            count = len(drained)
+            head = self._fhead
+            end = head + count + 2
+            at = head & self._frame_mask
+            pack = self._sent_packs[count] if count <= _PACKED_DRAIN else None
+            if pack is not None and end <= self._frame_limit and at + count < self._frame_mask:
+                args = [
+                    self._buf,
+                    self._frame_base + at * FRAME_ROW,
+                    TAP_RX,
+                    self._now,
+                    self._tick,
+                    count,
+                ]
+                for frame in drained:
+                    args += frame
+                args += (direction, self._now, self._tick, arbitration_id, data)
+                pack(*args)
+                self._fhead = end
+                self._drains += 1
+                return
+            self._write_drain(drained)
+        head = self._fhead
+        if head >= self._frame_limit and self._frames_full(head + 1, 1):
+            return
+        self._tx_pack(
+            self._buf,
+            self._frame_base + (head & self._frame_mask) * FRAME_ROW,
+            direction,
+            self._now,
+            self._tick,
+            arbitration_id,
+            data,
+        )
+        self._fhead = head + 1
 
     def _drain(self, frames: list[Frame]) -> None:
-        pending = self._pending
-        pending += (TAP_RX, self._now, self._tick, len(frames))
-        for frame in frames:  # three or so: a loop of list extends beats a chain here
-            pending += frame
-        self._shape = self._shape * _SHAPE_BASE + 2 + len(frames)
+        """A drain's frames, kept for the next sent frame to write (``_frame``)."""
+        if self._drained is not None:  # two drains with no frame sent between them
+            self._write_drain(self._drained)
+        self._drained = frames
 
-    def _flush_frames(self) -> None:
-        """Copy the frames noted this tick into the ring, in the order they were on the bus.
-
-        The taps have noted every row's fields in one flat list (``Pending``) and the tick's
-        shape (the sequence of its sent frames and drains), so the rows go in with one
-        ``pack_into`` of that list, a struct per shape made when first met: no loop over the
-        rows, no frame taken apart in Python, no call per row. A frame's time is its tick's
-        (the clock stands still inside a lockstep tick; in real time a tick's frames are
-        drained or sent within its first few hundred microseconds); a received frame keeps
-        the adapter's own time stamp as well.
-        """
-        pending = self._pending
-        if len(pending) < _FLAT_ROWS:
-            known = self._frames_pack.get(self._shape)
-            if known is None:
-                if len(self._frames_pack) >= _MAX_SHAPES:  # a bus that makes ever new ones
-                    self._frames_pack.clear()
-                made, frames, rows = _frames_struct(pending)
-                known = self._frames_pack[self._shape] = made.pack_into, frames, rows
-            pack, frames, rows = known
-            head = self._fhead
-            mask = self._frame_mask
-            at = head & mask
-            if head + rows - self._ftail <= mask + 1 and at + rows <= mask + 1:
-                pack(self._buf, self._frame_base + at * FRAME_ROW, *pending)
-                self._fhead = head + rows
-                self._frames_noted += frames
-                pending.clear()
-                self._shape = 0
-                return
-        # The ring looks full, or the rows wrap round its end, or a great many.
-        self._flush_slowly(pending)
-        pending.clear()
-        self._shape = 0
-
-    def _flush_slowly(self, pending: Pending) -> None:
-        """The tick's frames a row a call, with a look at the writer's tail when the ring
-        looks full: a sent frame or a drain's block that does not fit is dropped whole and
-        its frames counted."""
-        buf, base, mask = self._buf, self._frame_base, self._frame_mask
+    def _write_drain(self, frames: list[Frame]) -> None:
+        """A drain's block: its head row (TAP_RX, t, tick, count), then its frames' rows laid
+        out as the bus's own ``Frame`` tuples, with one ``pack_into`` of their fields (a
+        struct per count of frames, made when first met; the arguments a list extended by
+        each frame, in the running loop a little cheaper than a chain). A block that would
+        wrap round the ring's end, or does not fit, or is long, goes a row a call
+        (``_drain_slowly``)."""
+        count = len(frames)
         head = self._fhead
-        for first, end in _blocks(pending):
-            if pending[first] == TAP_RX:
-                head, count = self._flush_drain(pending, first, end, head)
-                self._frames_noted += count
-            else:
-                if head - self._ftail > mask and self._ring_full(_FRAMES, head, mask):
-                    continue
-                _TX_FRAME.pack_into(buf, base + (head & mask) * FRAME_ROW, *pending[first:end])
-                head += 1
-                self._frames_noted += 1
-        self._fhead = head
+        end = head + count + 1
+        at = head & self._frame_mask
+        pack = self._drain_packs[count] if count <= _PACKED_DRAIN else None
+        if pack is None or end > self._frame_limit or at + count > self._frame_mask:
+            self._drain_slowly(frames, head)
+            return
+        args = [self._buf, self._frame_base + at * FRAME_ROW, TAP_RX, self._now, self._tick, count]
+        for frame in frames:
+            args += frame
+        pack(*args)
+        self._fhead = end
+        self._drains += 1
 
-    def _flush_drain(self, pending: Pending, first: int, end: int, head: int) -> tuple[int, int]:
-        """A drain's block (its head row, then its frames, ``pending[first:end]``) a row a
-        call, with a look at the writer's tail when the ring looks full: a block that does not
-        fit is dropped whole and its frames counted. The new head and the frames written."""
-        mask = self._frame_mask
-        count = pending[first + 3]
-        last = head + count
-        if last - self._ftail > mask and self._ring_full(_FRAMES, last, mask, count):
-            return head, 0
-        base = self._frame_base
-        at = first + _RX_HEAD_ITEMS
-        _RX_HEAD.pack_into(self._buf, base + (head & mask) * FRAME_ROW, *pending[first:at])
-        while at < end:
+    def _drain_slowly(self, frames: list[Frame], head: int) -> None:
+        """A drain's block a row a call, with a look at the writer's tail when the ring looks
+        full: a block that does not fit is dropped whole and its frames counted. Makes the
+        struct of a block of this many frames for the next time, if it is one to keep."""
+        count = len(frames)
+        if count <= _PACKED_DRAIN and self._drain_packs[count] is None:
+            block = "<" + RX_HEAD_ROW + RX_FRAME_ROW * count
+            self._drain_packs[count] = struct.Struct(block).pack_into
+            self._sent_packs[count] = struct.Struct(block + TX_FRAME_ROW).pack_into
+        end = head + count + 1
+        if end > self._frame_limit and self._frames_full(end, count):
+            return
+        buf, base, mask = self._buf, self._frame_base, self._frame_mask
+        _RX_HEAD.pack_into(
+            buf, base + (head & mask) * FRAME_ROW, TAP_RX, self._now, self._tick, count
+        )
+        for frame in frames:
             head += 1
-            _RX_FRAME.pack_into(
-                self._buf, base + (head & mask) * FRAME_ROW, *pending[at : at + _RX_FRAME_ITEMS]
-            )
-            at += _RX_FRAME_ITEMS
-        return head + 1, count
+            _RX_FRAME.pack_into(buf, base + (head & mask) * FRAME_ROW, *frame)
+        self._fhead = end
+        self._drains += 1
+
+    def _frames_full(self, end: int, records: int) -> bool:
+        """The frame ring looked full up to row ``end`` by the tail this side last read: read
+        the writer's tail again; if the rows still do not fit, the ``records`` about to be
+        written are dropped, and counted where the writer reports them."""
+        ctl = self._ctl_view
+        self._ftail = tail = ctl[FRAME_TAIL]
+        self._frame_limit = tail + self.layout.frame_capacity
+        if end > self._frame_limit:
+            ctl[DROPPED_FRAMES] += records
+            return True
+        return False
 
     def _ring_full(self, ring: _Ring, head: int, mask: int, records: int = 1) -> bool:
         """A ring looked full by the tail this side last read: read the writer's tail again
@@ -706,11 +866,10 @@ class Recorder:
         self._event(EV_INTERN, self._tick, str(index), name)
         return index
 
-    def _sweep(self, runtime: Runtime, phase: str) -> None:
+    def _sweep(self, sup: Supervisor, phase: str) -> None:
         """Turn what changed since the last tick into events: supervisor transitions, faults,
-        the phase, reject counts. Each check is a length or a string compare when nothing
-        changed, which is nearly always."""
-        sup = runtime.supervisor
+        the phase, reject counts; and keep the phase's number for the row. ``push`` calls it
+        when one of them looks changed, which is seldom."""
         if len(sup.history) != self._history:
             if len(sup.history) < self._history:
                 self._history = 0
@@ -729,15 +888,18 @@ class Recorder:
                     fault.detail,
                 )
             self._faults = len(sup.faults)
-        if phase != self._last_phase:
-            exit_reason = ""
-            runner = runtime.runner
-            if runner is not None:
-                for rec in reversed(runner.records):
-                    if rec.name == self._last_phase:
-                        exit_reason = rec.exit
-                        break
-            self._event(EV_PHASE, self._tick, phase, self._last_phase, exit_reason)
+        if phase is not self._last_phase:
+            if phase != self._last_phase:
+                exit_reason = ""
+                runner = self._runtime.runner if self._runtime is not None else None
+                if runner is not None:
+                    for rec in reversed(runner.records):
+                        if rec.name == self._last_phase:
+                            exit_reason = rec.exit
+                            break
+                self._event(EV_PHASE, self._tick, phase, self._last_phase, exit_reason)
+            number = self._phases.get(phase)
+            self._phase = self._intern(phase) if number is None else number
             self._last_phase = phase
         if self._reject_lists != self._reject_seen:
             from handctl.online.drivers.receiver import REJECT_KINDS
@@ -762,8 +924,8 @@ class Recorder:
             return self.stats
         problem = ""
         try:
-            if self._runtime is not None:
-                self._sweep(self._runtime, self._last_phase)
+            if self._sup is not None:
+                self._sweep(self._sup, self._last_phase)
         except Exception as exc:  # the file is still finished with what the rings hold
             problem = (
                 f"the last events could not be recorded ({type(exc).__name__}: {str(exc)[:300]})"
@@ -776,10 +938,11 @@ class Recorder:
         try:
             if self._pose_list is not None:
                 self._copy_poses()
+            if self._drained is not None:
+                self._write_drain(self._drained)
+                self._drained = None
             if self._row >= 0:
                 self._publish_idle()
-            elif self._pending:
-                self._flush_frames()
         except Exception as exc:  # as above: a recorder that broke in the run, broke again
             problem = problem or (
                 f"the last tick could not be recorded ({type(exc).__name__}: {str(exc)[:300]})"
@@ -790,7 +953,7 @@ class Recorder:
         self.stats = {
             "path": str(self.path),
             "ticks": self._head,
-            "frames": self._frames_noted,
+            "frames": self._fhead - self._drains,
             "events": self._ehead,
             "dropped_ticks": ctl[DROPPED_TICKS],
             "dropped_frames": ctl[DROPPED_FRAMES],

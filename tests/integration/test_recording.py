@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import jsonschema
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap.records import Channel as McapChannel
@@ -28,7 +29,7 @@ from mcap.stream_reader import StreamReader
 
 from handctl.config import HandConfig
 from handctl.foxglove.derived import Derived
-from handctl.online.bus import DRAIN_LIMIT, Frame
+from handctl.online.bus import DRAIN_LIMIT, Frame, open_bus
 from handctl.online.clock import Tick
 from handctl.online.loop import Outcome, RunResult, TickRecord
 from handctl.online.recipes.schema import Recipe
@@ -277,6 +278,76 @@ def test_frames_wrapping_round_a_small_ring_are_the_bus_traffic(
     assert logged[ch.CAN_RX] == run.drained
     received = {frame_id for frame_id, _ in run.drained}
     assert logged[ch.CAN_TX] == [f for f in run.wire if f[0] not in received]
+
+
+#: Per tick, what the bus does: ("rx", n) the peer sends n frames and the host drains them,
+#: ("tx",) the host sends one, ("push",) the tick's push (a tick without one only polled).
+BUS_SCRIPT: list[list[tuple[Any, ...]]] = [
+    [("rx", 3), ("tx",), ("tx",), ("tx",), ("push",)],
+    [("rx", 2)],
+    [("rx", 1), ("rx", 2), ("tx",), ("push",), ("tx",)],
+    [("rx", 4), ("tx",), ("tx",), ("push",)],
+    [("rx", 5), ("push",)],
+    [("rx", 3), ("tx",), ("push",)],
+    [("tx",), ("rx", 6), ("push",)],
+    [("rx", 2), ("tx",), ("tx",), ("tx",), ("push",)],
+    [("rx", 7), ("tx",), ("push",)],
+    [("rx", 1), ("tx",), ("push",)],
+    [("rx", 3), ("tx",), ("tx",), ("push",)],
+    [("rx", 2)],
+]
+
+
+def test_frames_keep_their_bus_order_and_ticks_however_drains_and_sends_fall(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """Through a real virtual bus, a frame ring of 16 rows emptied by the writer before each
+    tick: a drain and the sends after it (the drain's block goes in with the first of them),
+    ticks that only drain, two drains with nothing sent between them, a send before the
+    tick's drain, frames sent after a tick's push, blocks that wrap round the ring's end, and
+    a drain still waiting when the recorder closes. Every frame is in the file with its tick,
+    in the order the bus handed it over, byte for byte."""
+    layout = RingLayout(hand.n_joints, len(hand.fingers), 0, tick_capacity=16, frame_capacity=16)
+    channel = f"virtual:order-{os.getpid()}-{time.monotonic_ns()}"
+    path = tmp_path / "order.mcap"
+    expected: list[tuple[str, int, int, bytes]] = []
+    zero = np.zeros(hand.n_joints)
+    with open_bus(channel, hand.bus) as peer, open_bus(channel, hand.bus) as host:
+        recorder = Recorder(path, hand, {}, layout=layout)
+        host.tap, host.rx_tap = recorder._frame, recorder._drain
+        recorder.wait_ready()
+        n = 0
+        for k, actions in enumerate(BUS_SCRIPT):
+            wait_for_writer(recorder)
+            recorder.begin_tick(Tick(k, 1000 * k, 1000 * k, 0))
+            for action in actions:
+                if action[0] == "rx":
+                    for _ in range(action[1]):
+                        n += 1
+                        peer.send(0x100 + n % 7, n.to_bytes(2, "little") * 4)
+                    drained = host.drain()
+                    assert len(drained) == action[1]
+                    expected += [(ch.CAN_RX, k, f.arbitration_id, f.data) for f in drained]
+                elif action[0] == "tx":
+                    n += 1
+                    data = n.to_bytes(2, "little") * 3
+                    assert host.send(0x200 + n % 5, data)
+                    expected.append((ch.CAN_TX, k, 0x200 + n % 5, data))
+                else:
+                    recorder.push(
+                        TickRecord(k, 0, 0, 0, zero, zero, zero, zero, "running", "-", (0,) * 6, [])
+                    )
+        stats = recorder.close()
+    assert stats["frames"] == len(expected) and stats["dropped_frames"] == 0
+    logged = [
+        (t, m["tick"], m["id"], bytes.fromhex(m["data"]))
+        for t, _, m in library_messages(path)
+        if t in (ch.CAN_RX, ch.CAN_TX)
+    ]
+    assert logged == expected
+    assert [m["tick"] for t, _, m in library_messages(path) if t == ch.TIMING] == list(
+        range(len(BUS_SCRIPT))
+    )
 
 
 def test_per_tick_records_are_what_the_runtime_did(recorded: Recorded) -> None:

@@ -36,6 +36,7 @@ from handctl.online.loop import (
     EndOfTicks,
     Outcome,
     Runtime,
+    TickRecord,
 )
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
@@ -597,14 +598,20 @@ def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
     closed: the hand is stopped, the run ends in exit 3 with its summary, and the log is
     finished with every tick up to the fault, the fault event and the summary."""
     broken_from = 300
-    real_flush = Recorder._flush_frames
+    real_push, real_publish_idle = Recorder.push, Recorder._publish_idle
 
-    def flush(self: Recorder) -> None:
+    def push(self: Recorder, record: TickRecord) -> None:
         if self._tick >= broken_from:
             raise ForcedError("forced inside the recorder")
-        real_flush(self)
+        real_push(self, record)
 
-    monkeypatch.setattr(Recorder, "_flush_frames", flush)
+    def publish_idle(self: Recorder) -> None:  # the last tick's row, when it is closed
+        if self._tick >= broken_from:
+            raise ForcedError("forced inside the recorder, again")
+        real_publish_idle(self)
+
+    monkeypatch.setattr(Recorder, "push", push)
+    monkeypatch.setattr(Recorder, "_publish_idle", publish_idle)
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(CLOSE_AND_HOLD_1S)
     out, log = tmp_path / "out.json", tmp_path / "run.mcap"

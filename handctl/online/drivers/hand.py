@@ -95,9 +95,12 @@ class HandDriver:
         #: Per node: where its joints start, how many, and the feedback last folded in.
         self._spans = [(sl.start, sl.stop - sl.start) for sl in self._slices]
         self._folded: list[object] = [None] * len(self.nodes)
+        # The angles and the calibrated torques side by side in one block: a recorder copies
+        # both into its row with one call (``handctl.recording.recorder``).
+        joints = np.zeros((2, n))
         self.state = JointState(
-            np.zeros(n),
-            np.zeros(n),
+            joints[0],
+            joints[1],
             np.full(n, -1, dtype=np.int64),
             [-1] * len(self.nodes),
             [0] * len(self.nodes),
