@@ -253,7 +253,9 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             doc["brake"]["blind_joint_rate"] = phase.brake.blind_joint_rate
     if phase.paced is not None:
         doc["paced_ramp"] = _paced_document(phase.paced)
-    if phase.torque_margin != 1.0:
+    if isinstance(phase.torque_margin, tuple):
+        doc["torque_margin"] = dict(zip(hand.joint_names, phase.torque_margin, strict=True))
+    elif phase.torque_margin != 1.0:
         doc["torque_margin"] = phase.torque_margin
     doc["provenance"] = plan.provenance
     return doc

@@ -74,7 +74,7 @@ def reanalysed_torque(
     contacts = ", ".join(snap.contacts)
     if not grasp.finger_contacts:
         return ReanalysisResult(None, "none: no finger touches an object; the planned torque")
-    planned = np.asarray(spec.torques, dtype=float) * spec.torque_margin
+    planned = np.asarray(spec.torques, dtype=float) * np.asarray(spec.torque_margin)
     limits = [j.tau_max for j in hand.joints]
     try:
         conditions = build_conditions(grasp, turn_directions(grasp, wanted.turn, recipe.pairs[0]))

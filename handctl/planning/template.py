@@ -52,6 +52,7 @@ from handctl.online.recipes.schema import (
     Reanalyse,
     RecipeObject,
     ScheduledTorques,
+    TorqueMargin,
     TurnBrake,
     TurnRate,
     TurnStall,
@@ -105,7 +106,8 @@ class TemplatePhase:
     brake: TurnBrake | None = None  # more damping while the pair tumbles, carried likewise
     #: a turn phase's ramp paced by the pair's turn rate, carried likewise
     paced: PacedRamp | None = None
-    torque_margin: float = 1.0  # the recipe's torques times this when run, carried likewise
+    #: the recipe's torques times this when run (one factor, or one per joint), carried likewise
+    torque_margin: TorqueMargin = 1.0
     #: a turn phase whose recipe exit reads the turn from where this earlier phase began
     #: (``schema.Phase.turn_from``), carried likewise; "": its own start
     turn_from: str = ""
@@ -394,7 +396,7 @@ def _phase(
         pose.done()
     joint_damping = parse_joint_damping(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
-    margin = parse_torque_margin(doc)
+    margin = parse_torque_margin(doc, hand.joint_names)
     doc.done()
     return TemplatePhase(
         name,

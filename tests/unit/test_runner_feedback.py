@@ -403,6 +403,61 @@ def test_a_torque_margin_multiplies_the_phase_s_torques(tmp_path: Path, hand: Ha
     assert np.allclose(runner.step(t, angle, np.zeros(9)), TORQUES)
 
 
+def test_a_margin_per_joint_multiplies_each_joint_s_torque(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A lift's distal joints rest in their guard's band, held by its spring: a margin given
+    per joint leaves them their planned torque while the joints that carry the load get
+    headroom."""
+    margin = {name: (1.0 if name.endswith("_j3") else 1.5) for name in JOINTS}
+    recipe = _recipe(tmp_path, hand, {"torque_margin": margin}, max_s=0.2)
+    assert recipe.phases[0].torque_margin == tuple(margin[n] for n in hand.joint_names)
+    runner = RecipeRunner(recipe, 9)
+    t, out = 0.0, np.zeros(9)
+    while t < 0.2 - 1e-9:
+        out = runner.step(t, np.zeros(9), np.zeros(9)).copy()
+        t = round(t + DT, 9)
+    assert runner.phase_name == "turn"
+    wanted = np.array([margin[n] for n in JOINTS]) * np.array(TORQUES)
+    assert np.allclose(out, wanted)
+    assert not np.allclose(out, 1.5 * np.array(TORQUES))
+
+
+def test_a_template_s_margin_per_joint_is_carried_into_the_compiled_recipe(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """``handctl plan`` writes a per-joint margin as the mapping it read, and the recipe's
+    loader reads it back to the same factors in the config's joint order."""
+    from handctl.planning.compile import PhasePlan, _compiled_phase, _phase_document
+    from handctl.planning.template import load_template
+
+    margin = {name: (1.0 if name.endswith("_j3") else 1.4) for name in JOINTS}
+    template = {
+        "template": "margin",
+        "recipe": "margin",
+        "objects": [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}],
+        "phases": [
+            {
+                "name": "turn",
+                "kind": "turn",
+                "turn_deg": -45,
+                "max_s": 1.0,
+                "seed": dict(zip(JOINTS, TORQUES, strict=True)),
+                "torque_margin": margin,
+            }
+        ],
+    }
+    path = tmp_path / "t.template.yaml"
+    path.write_text(yaml.safe_dump(template, sort_keys=False))
+    spec = load_template(path, hand).phases[0]
+    assert spec.torque_margin == tuple(margin[n] for n in hand.joint_names)
+    phase = _compiled_phase(spec, tuple(TORQUES), hand)
+    doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand)
+    assert doc["torque_margin"] == margin
+    loaded = _recipe(tmp_path, hand, {"torque_margin": doc["torque_margin"]}).phases[0]
+    assert loaded.torque_margin == spec.torque_margin
+
+
 def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
     recipe = _recipe(tmp_path, hand, TURN_RATE)
     rng = np.random.default_rng(1)
@@ -466,6 +521,21 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
         ),
         ({"torque_margin": 0.8}, "phases[0].torque_margin", False),
         ({"torque_margin": 2.5}, "phases[0].torque_margin", False),
+        (
+            {"torque_margin": {**dict.fromkeys(JOINTS, 1.2), "f2_j3": 0.9}},
+            "phases[0].torque_margin.f2_j3",
+            False,
+        ),
+        (
+            {"torque_margin": {**dict.fromkeys(JOINTS[1:], 1.2)}},
+            "phases[0].torque_margin." + JOINTS[0],
+            False,
+        ),
+        (
+            {"torque_margin": {**dict.fromkeys(JOINTS, 1.2), "f9_j1": 1.2}},
+            "phases[0].torque_margin.f9_j1",
+            False,
+        ),
     ],
 )
 def test_bad_feedback_is_refused_naming_the_key(

@@ -33,6 +33,7 @@ from handctl.online.recipes.schema import (
     RecipeObject,
     ScheduledTorques,
     TimeoutAction,
+    TorqueMargin,
     TurnBrake,
     TurnRate,
     TurnStall,
@@ -292,7 +293,7 @@ def _parse_phase(
     paced = parse_paced_ramp(doc.mapping("paced_ramp")) if doc.has("paced_ramp") else None
     if paced is not None and ramp <= 0:
         doc.fail("ramp_s", "a ramp longer than 0 s (the paced_ramp moves at its speed)", ramp)
-    margin = parse_torque_margin(doc)
+    margin = parse_torque_margin(doc, hand.joint_names)
     turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
     stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
     reanalyse = parse_reanalyse(doc.mapping("reanalyse")) if doc.has("reanalyse") else None
@@ -467,10 +468,19 @@ def parse_grasp_model(
     return GraspModel(masses, finger_object, object_object, gravity, gap)
 
 
-def parse_torque_margin(doc: Doc) -> float:
+def parse_torque_margin(doc: Doc, joint_names: Sequence[str]) -> TorqueMargin:
     """``torque_margin`` of a recipe's or a template's phase: the factor (1 when it is not set)
-    the runner applies to the phase's torques."""
-    return doc.number("torque_margin", default=1.0, min=1.0, max=MAX_TORQUE_MARGIN)
+    the runner applies to the phase's torques, one for every joint or a mapping of each joint's
+    name to its own. Why per joint: a joint that ends the phase resting in its soft-limit
+    guard's band is held there by the guard's spring, not by its torque, and headroom on its
+    torque only pushes it into its limit (docs/experiment.md, "Torque margin")."""
+    if not isinstance(doc.raw("torque_margin", 1.0), dict):
+        return doc.number("torque_margin", default=1.0, min=1.0, max=MAX_TORQUE_MARGIN)
+    sub = doc.mapping("torque_margin")
+    sub.expect(joint_names)
+    values = tuple(sub.number(n, min=1.0, max=MAX_TORQUE_MARGIN) for n in joint_names)
+    sub.done()
+    return values
 
 
 def parse_joint_damping(doc: Doc) -> float:

@@ -250,7 +250,7 @@ class RecipeRunner:
         if index < len(self.recipe.phases):
             phase = self.recipe.phases[index]
             self.index = index
-            self._target = np.array(phase.torques) * phase.torque_margin
+            self._target = np.array(phase.torques) * np.asarray(phase.torque_margin)
             self._ramp_s = phase.ramp_s
             self._damping_to = phase.joint_damping
             self.records.append(PhaseRecord(phase.name, t))
@@ -501,7 +501,7 @@ class RecipeRunner:
         )
         if late:  # chosen after the phase began: ramp again from what is proposed now
             self._ramp_again(t)
-        self._target = np.array(phase.schedule[chosen].torques) * phase.torque_margin
+        self._target = np.array(phase.schedule[chosen].torques) * np.asarray(phase.torque_margin)
 
     def _note_references(self, estimates: Sequence[float]) -> None:
         """Keep the first finite value of every phase-relative estimate in this phase, for

@@ -222,6 +222,11 @@ class GraspModel:
     contact_gap: float
 
 
+#: A phase's ``torque_margin``: one factor for every joint, or one per joint in the config's
+#: order; either multiplies the phase's torques as it is (``numpy`` broadcasts the one).
+TorqueMargin = float | tuple[float, ...]
+
+
 @dataclass(frozen=True)
 class PoseHold:
     """Joint-space impedance of a phase: ``stiffness * (angle - q) - damping * velocity`` is
@@ -284,9 +289,10 @@ class Phase:
     joint_damping: float = 0.0
     brake: TurnBrake | None = None
     paced: PacedRamp | None = None
-    #: the runner applies ``torques`` times this (>= 1): headroom in the lift and the hold
-    #: for objects heavier than the plan's models (docs/experiment.md); 1: the plan's own
-    torque_margin: float = 1.0
+    #: the runner applies ``torques`` times this (>= 1; one factor, or one per joint in the
+    #: config's order): headroom in the lift for objects heavier than the plan's models
+    #: (docs/experiment.md); 1: the plan's own
+    torque_margin: TorqueMargin = 1.0
     #: the name of this or an earlier phase: the phase's exits read a ``line_turn`` from
     #: where the pair was when that phase began, not this one (the paper's switching on the
     #: pair's measured position, whatever an earlier phase left undone); "": this phase
