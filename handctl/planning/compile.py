@@ -63,14 +63,13 @@ from handctl.planning.search import (
     cem,
     hold_scorer,
     turn_scorer,
+    written_torques,
 )
 from handctl.planning.template import PlannedSchedule, Template, TemplatePhase
 from handctl.progress import Progress
 from handctl.schema import dump_yaml
 from handctl.sim.params import SimParams, parse_sim
 
-#: decimals of N·m kept in the compiled recipe (0.1 mN·m, far below the TDT resolution)
-TORQUE_DECIMALS = 4
 #: how far into extension (a fraction of tau_max) a random seed may go
 SEED_EXTENSION = 0.3
 
@@ -160,7 +159,7 @@ def _grasp_model_document(template: Template) -> dict[str, Any]:
 
 
 def _rounded(values: tuple[float, ...] | list[float]) -> list[float]:
-    return [round(float(v), TORQUE_DECIMALS) + 0.0 for v in values]
+    return list(written_torques(values))
 
 
 def _paced_document(paced: PacedRamp) -> dict[str, Any]:

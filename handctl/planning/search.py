@@ -127,6 +127,14 @@ class SearchResult:
 
 Scorer = Callable[[PhaseOutcome], float]
 
+#: decimals of N·m kept in the compiled recipe (0.1 mN·m, far below the TDT resolution)
+TORQUE_DECIMALS = 4
+
+
+def written_torques(values: Sequence[float] | np.ndarray) -> tuple[float, ...]:
+    """The torques as a compiled recipe writes them (``TORQUE_DECIMALS``; -0.0 as 0.0)."""
+    return tuple(round(float(v), TORQUE_DECIMALS) + 0.0 for v in values)
+
 
 def evaluate(
     worlds: Sequence[World],
@@ -144,6 +152,10 @@ def evaluate(
     """Run ``phase`` with each candidate's torques on every model from its snapshot, all of
     them as one batch of tasks for ``executor``; score each candidate over the models
     together (the scorer runs here: it is a closure, and cheap)."""
+    # what is scored is what a recipe can carry: the torques as the compiled recipe writes
+    # them. A score of the unrounded torques is not the written recipe's, and on a hand where
+    # 0.05 mN·m moves the outcome a re-plan from that recipe scored it otherwise.
+    candidates = [written_torques(torques) for torques in candidates]
     tasks = [
         PhaseTask(world, snap, with_torques(phase, torques), lifted)
         for torques in candidates
