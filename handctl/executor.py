@@ -26,6 +26,7 @@ its own traceback on the owner's stderr into a pipe nobody reads any more.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import importlib
 import os
 import re
@@ -93,15 +94,17 @@ def _start_worker(owner: int) -> None:
 def _stop_worker(process: BaseProcess, signum: int) -> None:
     """``signum`` to the worker's session: the worker and every process it started. A worker
     that has not reached its initializer yet has no session (and has started nothing): it
-    alone gets the signal."""
+    alone gets the signal. One already gone (the pool's own thread may have reaped it as it
+    died) is no error, as it is none for ``Process.terminate``."""
     pid = process.pid
     if pid is None:  # never started
         return
     try:
         os.killpg(pid, signum)
     except ProcessLookupError:
-        if process.is_alive():
-            os.kill(pid, signum)
+        with contextlib.suppress(ProcessLookupError):
+            if process.is_alive():
+                os.kill(pid, signum)
 
 
 class WorkPool:
