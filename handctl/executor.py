@@ -17,12 +17,16 @@ returns the results in the order of the inputs, whatever order they finished in.
 Cancelling (Ctrl-C, or any error) cancels every task not yet started and stops the local
 workers, so nothing is left running: local workers ignore SIGINT (a terminal sends it to the
 whole process group) and are terminated by the pool, which is the one that knows they exist;
-a worker whose owner was killed outright ends by itself.
+a worker whose owner was killed outright ends by itself. Each worker leads a session of its
+own, and the stop goes to the whole session: a process the worker started (``import mujoco``
+runs a helper of GLFW's to probe its library) ends with it rather than outlive it and write
+its own traceback on the owner's stderr into a pipe nobody reads any more.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import importlib
 import os
 import re
@@ -32,6 +36,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from multiprocessing import get_context
+from multiprocessing.process import BaseProcess
 from types import TracebackType
 from typing import Any, TypeVar
 
@@ -72,16 +77,34 @@ class InlineExecutor(cf.Executor):
 
 
 def _start_worker(owner: int) -> None:
-    """A local worker leaves Ctrl-C to the pool's owner, who stops it; and it ends when the
+    """A local worker leaves Ctrl-C to the pool's owner, who stops it; its session is its own,
+    so that it is stopped with whatever it started; and it ends, with all of that, when the
     owner is gone without stopping it (killed), rather than run its task to the end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.setsid()
 
     def watch() -> None:
         while os.getppid() == owner:
             time.sleep(OWNER_POLL_S)
-        os._exit(1)
+        os.killpg(0, signal.SIGKILL)
 
     threading.Thread(target=watch, name="handctl-owner-watch", daemon=True).start()
+
+
+def _stop_worker(process: BaseProcess, signum: int) -> None:
+    """``signum`` to the worker's session: the worker and every process it started. A worker
+    that has not reached its initializer yet has no session (and has started nothing): it
+    alone gets the signal. One already gone (the pool's own thread may have reaped it as it
+    died) is no error, as it is none for ``Process.terminate``."""
+    pid = process.pid
+    if pid is None:  # never started
+        return
+    try:
+        os.killpg(pid, signum)
+    except ProcessLookupError:
+        with contextlib.suppress(ProcessLookupError):
+            if process.is_alive():
+                os.kill(pid, signum)
 
 
 class WorkPool:
@@ -198,11 +221,11 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
         processes = list(getattr(pool, "_processes", {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
         for process in processes:
-            process.terminate()
+            _stop_worker(process, signal.SIGTERM)
         for process in processes:
             process.join(TERMINATE_GRACE_S)
             if process.is_alive():
-                process.kill()
+                _stop_worker(process, signal.SIGKILL)
                 process.join()
 
     return WorkPool(pool, count, f"{count} local processes", close)

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import psutil
 import pytest
@@ -50,6 +51,17 @@ def fail_on_three(i: int) -> int:
 def sleep_long(_: int) -> int:
     time.sleep(120.0)
     return 0
+
+
+def start_a_helper_and_sleep(pid_file: str) -> int:
+    """A task that starts a process of its own, as ``import mujoco`` does (GLFW's probe), says
+    its pid and goes on working."""
+    helper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    with open(pid_file + ".part", "w") as out:
+        out.write(str(helper.pid))
+    os.replace(pid_file + ".part", pid_file)
+    time.sleep(120.0)
+    return helper.pid
 
 
 def spin(seconds: float) -> float:
@@ -104,6 +116,24 @@ def test_cancelling_stops_the_local_workers() -> None:
     _, alive = psutil.wait_procs(workers, timeout=10.0)
     assert alive == []
     assert all(f.cancelled() or f.done() for f in futures)
+
+
+def test_cancelling_stops_what_the_workers_started(tmp_path: Path) -> None:
+    """A process a task started must not outlive its worker: orphaned, it would go on writing
+    to the owner's stderr (a traceback of its own) after the owner said it was interrupted."""
+    pid_files = [tmp_path / f"helper{i}" for i in range(2)]
+    pool = open_pool(2)
+    try:
+        for path in pid_files:
+            pool.executor.submit(start_a_helper_and_sleep, str(path))
+        deadline = time.monotonic() + 120.0
+        while not all(p.exists() for p in pid_files) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        helpers = [psutil.Process(int(p.read_text())) for p in pid_files]
+    finally:
+        pool.close(cancel=True)
+    _, alive = psutil.wait_procs(helpers, timeout=10.0)
+    assert alive == [], [p.pid for p in alive]
 
 
 def test_default_is_every_core_this_process_may_use() -> None:
