@@ -934,7 +934,7 @@ def host_summary(
     warnings: list[str],
     peer_probe: Probe | None = None,
     rival_watch: RivalWatch | None = None,
-    usual_cpu_ns: int = 0,
+    work: LoopWork | None = None,
 ) -> tuple[ProbeRecord | None, RivalRecord | None, dict[str, Any]]:
     """What the bare loop beside a run saw, and whose the run's missed ticks were; a warning
     with the host's verdict when the run stopped on LOOP_OVERRUN or FEEDBACK_TIMEOUT.
@@ -942,8 +942,8 @@ def host_summary(
     ``peer_probe`` is a bare loop on the simulated hand's CPU: its stalls are the host's part
     in a feedback that came late, which the loop's CPU does not see. ``rival_watch`` saw the
     real-time tasks that could hold the loop where the probe above it would not notice.
-    ``usual_cpu_ns`` is the run's usual tick CPU time (``usual_tick_cpu_ns``), against which a
-    catch-up tick is judged (``attribute``); 0 judges none.
+    ``work`` is what the loop measured of its catch-up ticks and its usual tick, against which
+    a catch-up tick is judged (``attribute``); None judges none.
     """
     try:
         record = probe.stop()
@@ -955,7 +955,6 @@ def host_summary(
     deadlines = Deadlines.of(hand)
     verdict = judge(record, deadlines)
     own: list[int] = []
-    work = LoopWork(loop_stalls.work_ns(), usual_cpu_ns)
     shares = attribute(loop_stalls.rows(), record, deadlines.period_ns, own, rivals, work)
     shares["missed_unobserved"] += loop_stalls.overflow_missed
     summary = {
@@ -965,11 +964,11 @@ def host_summary(
         **shares,
         "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
         # what a catch-up tick of handctl's own miss took, beside the usual (attribute)
-        "usual_tick_cpu_us": round(usual_cpu_ns / 1e3, 1),
+        "usual_tick_cpu_us": round(work.usual_ns / 1e3, 1) if work is not None else 0.0,
         "handctl_catch_up_cpu_us": [
             [tick, round(work.between_stalls_ns[tick] / 1e3, 1)]
             for tick in own[:MAX_LISTED_TICKS]
-            if tick in work.between_stalls_ns
+            if work is not None and tick in work.between_stalls_ns
         ],
         "probe_period_us": record.period_ns / 1e3,
         "scheduler": record.scheduler,

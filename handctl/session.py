@@ -269,7 +269,13 @@ def run_recipe(
         summary = summarise_run(
             result, req.hand, req.recipe, lockstep, _peer_summary(peer, warnings)
         )
-        host, rivals = _host_summary(summary, req, timing, result, host_check, warnings)
+        # what the loop measured of its catch-up ticks and its usual one (``attribute``)
+        loop_work = (
+            LoopWork(clock.stalls.work_ns(), usual_tick_cpu_ns(result.window.stage_ns))
+            if isinstance(clock, RealtimeClock)
+            else None
+        )
+        host, rivals = _host_summary(summary, req, timing, result, host_check, warnings, loop_work)
         _experiment_summary(summary, req, tracker, warnings)
         if recording is not None:
             _close_recording(recording, summary, req, warnings)
@@ -284,9 +290,7 @@ def run_recipe(
         host,
         clock.stalls.rows() if isinstance(clock, RealtimeClock) else [],
         rivals,
-        LoopWork(clock.stalls.work_ns(), usual_tick_cpu_ns(result.window.stage_ns))
-        if isinstance(clock, RealtimeClock)
-        else None,
+        loop_work,
     )
 
 
@@ -436,6 +440,7 @@ def _host_summary(
     result: RunResult,
     host_check: dict[str, Any] | None,
     warnings: list[str],
+    loop_work: LoopWork | None,
 ) -> tuple[ProbeRecord | None, RivalRecord | None]:
     """Into ``summary``: in real time, whose the missed ticks were (the host's or handctl's)
     and the CPUs; the timing check made before the bus was opened. The probe's and the rivals'
@@ -452,7 +457,7 @@ def _host_summary(
             warnings,
             timing.peer_probe,
             timing.rival_watch,
-            usual_tick_cpu_ns(result.window.stage_ns),
+            loop_work,
         )
         summary["host"]["cpus"] = timing.cpus
     if host_check is not None:
