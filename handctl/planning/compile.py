@@ -93,7 +93,7 @@ class AnalysisRecord:
             out["directions"] = {k: [round(x, 4) for x in v] for k, v in self.directions.items()}
         if self.found and self.torques is not None:
             out["margin_N"] = round(self.margin, 4)
-            out["torques"] = _rounded(self.torques)
+            out["torques"] = list(written_torques(self.torques))
         else:
             out["reason"] = self.reason
         return out
@@ -158,10 +158,6 @@ def _grasp_model_document(template: Template) -> dict[str, Any]:
     }
 
 
-def _rounded(values: tuple[float, ...] | list[float]) -> list[float]:
-    return list(written_torques(values))
-
-
 def _paced_document(paced: PacedRamp) -> dict[str, Any]:
     """A phase's ``paced_ramp`` as a recipe writes it: the optional keys only when set."""
     doc: dict[str, Any] = {
@@ -190,7 +186,7 @@ def _schedule_document(
         out.append(
             {
                 "when": {"radius_ratio": ranges},
-                "torques": dict(zip(hand.joint_names, _rounded(entry.torques), strict=True)),
+                "torques": dict(zip(hand.joint_names, written_torques(entry.torques), strict=True)),
             }
         )
     return out
@@ -200,7 +196,7 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     phase = plan.phase
     doc: dict[str, Any] = {
         "name": phase.name,
-        "torques": dict(zip(hand.joint_names, _rounded(phase.torques), strict=True)),
+        "torques": dict(zip(hand.joint_names, written_torques(phase.torques), strict=True)),
         "ramp_s": phase.ramp_s,
         "max_s": phase.max_s,
         "on_timeout": phase.on_timeout.value,
@@ -327,7 +323,7 @@ def _compiled_phase(
         parsed = parse_condition(spec.exit_condition(), hand.joint_names, spec.estimates)
         assert not isinstance(parsed, str), parsed
         exits = (parsed,)
-    rounded = tuple(_rounded(torques))
+    rounded = written_torques(torques)
     return Phase(
         spec.name,
         rounded,
@@ -751,7 +747,7 @@ def _plan_schedule(
         if bar is not None:
             bar.close()
         best = result.best
-        out.append(ScheduledTorques(entry.when, tuple(_rounded(best.torques))))
+        out.append(ScheduledTorques(entry.when, written_torques(best.torques)))
         objects = spec.object_names
         docs.append(
             {
