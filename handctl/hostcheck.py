@@ -26,8 +26,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from handctl.config import HandConfig, SafetyConfig
 from handctl.errors import ConfigError, HandctlError
 from handctl.hostfacts import HostFacts, gather_facts, plan_cpus
@@ -39,10 +37,12 @@ from handctl.parent_death import JsonHelper
 from handctl.rivals import Rival, RivalRecord, RivalWatch, find_rivals
 
 #: A catch-up tick (the one between a stalled wake-up of the host's and another stalled
-#: wake-up right after it) that took at most this many times the run's usual tick CPU time
-#: was held, not slow: its miss is the host's (``attribute``). A catch-up drains the frames of
-#: the periods slept through; with host stalls injected it took 0.3-2x the usual
-#: (docs/timing.md, "Catch-up ticks").
+#: wake-up right after it) that took at most this many times the run's usual tick CPU time,
+#: both from a wake-up to the next, was held, not slow: its miss is the host's
+#: (``attribute``). A catch-up drains the frames of the periods slept through, and after a
+#: host stall it runs on caches the host's other work evicted: a tick whose caches were
+#: flushed down to the last level took 2.6x its usual stages at the median (docs/timing.md,
+#: "Catch-up ticks").
 CATCH_UP_CPU_FACTOR = 2.0
 #: Seconds of the check a run on a real bus makes before it opens the bus.
 PRECHECK_S = 1.5
@@ -734,7 +734,8 @@ def rival_verdict(rivals: Sequence[Rival], figures: dict[str, Any]) -> Verdict:
 class LoopWork:
     """What the control loop measured of its own work, for ``attribute``: the thread CPU time
     of each tick that ran between two stalled wake-ups in a row, by the second's wake-up index
-    (``StallLog.work_ns``), and the run's usual tick CPU time (``usual_tick_cpu_ns``)."""
+    (``StallLog.work_ns``), and the run's usual tick CPU time measured the same way, from a
+    wake-up to the next (``UsualWork.median_ns``)."""
 
     between_stalls_ns: dict[int, int]
     usual_ns: int
@@ -747,14 +748,6 @@ class LoopWork:
         if cpu is None or self.usual_ns <= 0:
             return False
         return cpu <= CATCH_UP_CPU_FACTOR * self.usual_ns and cpu < period_ns
-
-
-def usual_tick_cpu_ns(stage_ns: np.ndarray) -> int:
-    """The median thread CPU time of the ticks that did work (their stages summed), from a
-    run's ``(ticks, stages)`` window; 0 if none did."""
-    totals = stage_ns.sum(axis=1) if stage_ns.size else stage_ns
-    working = totals[totals > 0]
-    return int(np.median(working)) if working.size else 0
 
 
 def attribute(

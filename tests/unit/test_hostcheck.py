@@ -8,7 +8,6 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 
 from handctl.config import HandConfig
@@ -21,7 +20,6 @@ from handctl.hostcheck import (
     advice,
     attribute,
     judge,
-    usual_tick_cpu_ns,
 )
 from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_model
 
@@ -275,13 +273,6 @@ def test_a_catch_up_tick_of_a_whole_period_is_never_held() -> None:
     assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 3)
     shares = attribute(loop, host, MS, work=LoopWork({11: MS - 1}, 600_000))
     assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (1, 2)
-
-
-def test_the_usual_tick_is_the_median_of_the_ticks_that_did_work() -> None:
-    stages = np.array([[0, 0, 0], [100, 50, 50], [300, 0, 0], [0, 0, 0], [1000, 0, 400]])
-    assert usual_tick_cpu_ns(stages) == 300
-    assert usual_tick_cpu_ns(np.zeros((3, 6), dtype=np.int64)) == 0
-    assert usual_tick_cpu_ns(np.zeros((0, 6), dtype=np.int64)) == 0
 
 
 def test_recorded_slow_catch_up_ticks_of_handctls_stay_handctls() -> None:
