@@ -740,6 +740,15 @@ class LoopWork:
     between_stalls_ns: dict[int, int]
     usual_ns: int
 
+    def late_start_missed(self, start_ns: int, due_ns: int, period_ns: int) -> int:
+        """How many deadlines from ``due_ns`` on a tick of the usual CPU time begun at
+        ``start_ns`` would have missed too: the host's, when the host made it begin then
+        (0 without a usual to judge by)."""
+        over = start_ns + self.usual_ns - due_ns
+        if self.usual_ns <= 0 or over <= 0:
+            return 0
+        return -(-over // period_ns)
+
     def held(self, tick: int, period_ns: int) -> bool:
         """Whether the tick before wake-up ``tick`` took no more than a catch-up's usual CPU
         time (``CATCH_UP_CPU_FACTOR`` times the usual, and less than a period: a tick that
@@ -780,8 +789,11 @@ def attribute(
     drained the frames of the periods slept through. If ``work`` shows that tick took no more
     thread CPU time than a catch-up usually does (``LoopWork.held``), it did not miss on its
     own work: it was held, for time it did not run, and the miss is the host's too
-    (``missed_host_catch_up``). A catch-up tick that was slow, with its CPU time high, stays
-    handctl's, as does any miss not right after the host's.
+    (``missed_host_catch_up``). So are the deadlines a tick of the usual CPU time would have
+    missed had it begun when the catch-up tick began (``LoopWork.late_start_missed``: a late
+    start): the host woke it too late to meet them, whatever its own work. What a catch-up
+    tick missed beyond that, with its CPU time high, stays handctl's, as does any miss not
+    right after the host's.
 
     If none of these, the host let a bare loop run at that time and handctl was late on its
     own: ``missed_handctl``. Of those, ``missed_handctl_after_host`` came in the very next
@@ -802,7 +814,9 @@ def attribute(
     }
     after_host = -2  # the last wake-up of a chain of misses that began with the host's
     hosts = -2  # the last wake-up whose miss was the host's (a catch-up's included)
+    begun = 0  # when the tick after the previous stalled wake-up began: that wake-up
     for tick, due, wake, missed in loop_stalls:
+        catch_up_began, begun = begun, wake
         start = due - period_ns
         if wake < host.start_ns or start > host.end_ns:
             counts["missed_unobserved"] += missed
@@ -819,9 +833,17 @@ def attribute(
             counts["missed_host_catch_up"] += missed
             after_host = hosts = tick
         else:
-            counts["missed_handctl"] += missed
+            late = 0
+            if tick == hosts + 1 and work is not None:
+                late = min(missed, work.late_start_missed(catch_up_began, due, period_ns))
+                counts["missed_host_catch_up"] += late
+            if late == missed:
+                after_host = hosts = tick
+                continue
+            own = missed - late
+            counts["missed_handctl"] += own
             if tick == after_host + 1:
-                counts["missed_handctl_after_host"] += missed
+                counts["missed_handctl_after_host"] += own
                 after_host = tick
             if handctls is not None:
                 handctls.append(tick)

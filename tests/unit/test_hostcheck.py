@@ -275,6 +275,64 @@ def test_a_catch_up_tick_of_a_whole_period_is_never_held() -> None:
     assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (1, 2)
 
 
+def _late_start_chain(next_wake_ms: float, missed: int) -> list[tuple[int, int, int, int]]:
+    """The host's stall of ``_catch_up_chain`` waking the loop 0.1 ms before its next
+    deadline (505 ms), and the wake-up after that catch-up tick missing ``missed`` ticks."""
+    at = START
+    return [
+        (10, at + 501 * MS, at + 504 * MS + 900_000, 3),
+        (11, at + 505 * MS, at + round(next_wake_ms * MS), missed),
+    ]
+
+
+def test_a_catch_up_tick_begun_too_late_for_the_next_deadline_missed_it_with_the_host() -> None:
+    # The host woke the loop 0.1 ms before the next deadline: a tick of the usual 250 µs could
+    # not have met it, so that miss is the host's however long the tick took (here 1.3 ms
+    # of CPU, more than a period: its caches were cold, or it was slow on its own).
+    host, _ = _catch_up_chain()
+    work = LoopWork({11: 1_300_000}, USUAL_NS)
+    own: list[int] = []
+    shares = attribute(_late_start_chain(506.4, 1), host, MS, own, work=work)
+    assert (shares["missed_host"], shares["missed_host_catch_up"]) == (3, 1)
+    assert (shares["missed_handctl"], own) == (0, [])
+    # Without the loop's measure of its usual tick there is no late start to judge.
+    shares = attribute(_late_start_chain(506.4, 1), host, MS, work=LoopWork({}, 0))
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 1)
+
+
+def test_what_a_late_catch_up_tick_missed_beyond_a_usual_ticks_share_stays_handctls() -> None:
+    # The same late start, but the tick ran 3.3 ms: a usual tick would have missed the deadline
+    # at 505 ms only; those at 506 and 507 are handctl's.
+    host, _ = _catch_up_chain()
+    work = LoopWork({11: 3_300_000}, USUAL_NS)
+    own: list[int] = []
+    shares = attribute(_late_start_chain(508.2, 3), host, MS, own, work=work)
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (1, 2)
+    assert (shares["missed_handctl_after_host"], own) == (2, [11])
+
+
+def test_a_catch_up_tick_begun_in_time_for_a_usual_tick_is_judged_by_its_cpu_time() -> None:
+    # Begun 0.3 ms before the deadline, a 250 µs tick would have met it: no late start, and
+    # its 1.3 ms of CPU time make the miss handctl's.
+    host, _ = _catch_up_chain()
+    rows = _late_start_chain(506.4, 1)
+    rows[0] = (10, START + 501 * MS, START + 504 * MS + 700_000, 3)
+    shares = attribute(rows, host, MS, work=LoopWork({11: 1_300_000}, USUAL_NS))
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 1)
+    late = attribute(rows, host, MS, work=LoopWork({11: 1_300_000}, 300_001))
+    assert (late["missed_host_catch_up"], late["missed_handctl"]) == (1, 0)
+
+
+def test_a_late_start_after_handctls_own_miss_is_handctls() -> None:
+    # Wake-up 10 late on handctl's own (no host stall near it): wake-up 11's catch-up tick
+    # began late because of handctl, so its miss is handctl's, however late it began.
+    host = record([(100, 100.0, 4.0)], period_ns=MS // 2)
+    shares = attribute(
+        _late_start_chain(506.4, 1), host, MS, work=LoopWork({11: 200_000}, USUAL_NS)
+    )
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 4)
+
+
 def test_recorded_slow_catch_up_ticks_of_handctls_stay_handctls() -> None:
     # Real-time runs of the shipped recipe with host stalls injected (a SCHED_FIFO task above
     # the bare loop, 1.6 ms busy on the loop's CPU) and a 2 ms busy loop of thread CPU time
