@@ -390,7 +390,9 @@ def _one(
     missed = int(result.missed[first:].sum())
     cpu = result.stage_ns[first:].sum(axis=1)
     # What the simulated hand's frames met on the way (its own count, from its process): frames
-    # that never went, and the times the host's socket queue was full so frames waited.
+    # that never went, the times the host's socket queue was full so frames waited, and the
+    # frames lost for a receiver that fell so far behind that its transmit queue was full (on
+    # the unix bus that costs the receiver, not the sender's send).
     sim = report.summary.get("sim") or {}
     transport = sim.get("transport") or {}
     return {
@@ -400,6 +402,7 @@ def _one(
         "foreign_frames": result.node_rejects.get("unexpected_id", 0),
         "sim_tx_failed": int(sim.get("tx_failed", -1)),
         "sim_queue_full": int(transport.get("queue_full", -1)),
+        "sim_frames_dropped": int(transport.get("frames_dropped", -1)),
         "rt": bool(args.rt and not any("refused" in w for w in report.warnings)),
         "outcome": result.outcome.value,
         "message": result.message,
