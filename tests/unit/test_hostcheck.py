@@ -350,6 +350,35 @@ def test_recorded_slow_catch_up_ticks_of_handctls_stay_handctls() -> None:
         assert shares["missed_handctl_after_host"] == shares["missed_handctl"] > 0
 
 
+def test_recorded_busy_catch_up_ticks_are_the_hosts_only_as_far_as_a_late_start() -> None:
+    # Real-time runs of the shipped recipe (load 1.4-1.8), 0.6 ms of busy thread CPU time in
+    # the tick right after each stalled wake-up past the start (``busy_ticks``: those whose
+    # next wake-up was stalled too), the usual measured from wake-up to wake-up; one run
+    # (``host_catch_up``) had no busy tick in a catch-up. The CPU rule holds no busy catch-up,
+    # and what the rules take from handctl are the deadlines of late starts alone: a busy
+    # tick that began in time for the next deadline keeps its misses handctl's.
+    data = json.loads((DATA / "host_late_start.json").read_text())
+    moved_in_all = own_in_all = 0
+    for case in data["cases"]:
+        loop = [(r[0], r[1], r[2], r[3]) for r in case["loop_stalls"]]
+        host = ProbeRecord.from_json(case["probe"], case["kind"])
+        work = LoopWork({int(k): v for k, v in case["work_ns"].items()}, case["usual_cpu_ns"])
+        for tick in case["busy_ticks"]:
+            assert work.between_stalls_ns[tick + 1] > CATCH_UP_CPU_FACTOR * work.usual_ns
+            assert not work.held(tick + 1, MS)
+        without = attribute(loop, host, MS)
+        shares = attribute(loop, host, MS, work=work)
+        moved = without["missed_handctl"] - shares["missed_handctl"]
+        assert moved == shares["missed_host_catch_up"] - without["missed_host_catch_up"]
+        # catch-up ticks that began less than a usual tick before the next deadline
+        woke = {r[0]: r[2] for r in loop}
+        late = [r for r in loop if r[0] - 1 in woke and woke[r[0] - 1] + work.usual_ns > r[1]]
+        assert moved <= len(late)
+        moved_in_all += moved
+        own_in_all += shares["missed_handctl"]
+    assert moved_in_all > 0 and own_in_all > 0
+
+
 # -- the host -------------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("version", "model"),
