@@ -15,8 +15,9 @@ passage through the kernel between two pieces) together explain the miss, the CP
 in pieces shorter than a stall or running slow; ``missed_rival``:
 a real-time task at the loop's priority or above ran on its CPU, which the bare loop one
 priority up does not feel, ``handctl.rivals``; ``missed_host_catch_up``: right after the
-host's miss, its catch-up tick took no more CPU time than a catch-up usually does) or
-handctl's (``missed_handctl``: none of these). Target: ``missed_handctl`` 0.
+host's miss, its catch-up tick took no more CPU time than a catch-up usually does, or it began
+too late for a tick of the usual CPU time to meet the deadline) or handctl's
+(``missed_handctl``: none of these). Target: ``missed_handctl`` 0.
 
 ``tick_cost`` is the CPU cost of the tick, stage by stage, of this tree beside the tree of
 ``--baseline`` (a git revision; by default the one before the tick's cost was cut, issue #17),
