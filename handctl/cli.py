@@ -1842,6 +1842,10 @@ def _output_for_readers_that_leave() -> Iterator[None]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # handctl draws nothing with MuJoCo's OpenGL. Unless told otherwise, ``import mujoco``
+    # loads GLFW, which starts a ``python -c`` child to probe its library: a Ctrl-C during
+    # that import left the child behind. Before the first import, and unless the user chose.
+    os.environ.setdefault("MUJOCO_GL", "disable")
     with _output_for_readers_that_leave():
         # SIGTERM is Ctrl-C for every command, from the start: while a hand config, a recipe
         # and their imports load (seconds on a busy machine) it too ends the command with exit

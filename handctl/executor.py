@@ -19,7 +19,8 @@ workers, so nothing is left running: local workers ignore SIGINT (a terminal sen
 whole process group) and are terminated by the pool, which is the one that knows they exist;
 a worker whose owner was killed outright ends by itself. Each worker leads a session of its
 own, and the stop goes to the whole session: a process the worker started (``import mujoco``
-runs a helper of GLFW's to probe its library) ends with it rather than outlive it and write
+with GLFW as its renderer, which the user may choose, runs a helper of GLFW's to probe its
+library) ends with it rather than outlive it and write
 its own traceback on the owner's stderr into a pipe nobody reads any more.
 """
 

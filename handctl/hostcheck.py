@@ -26,8 +26,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from handctl.config import HandConfig, SafetyConfig
 from handctl.errors import ConfigError, HandctlError
 from handctl.hostfacts import HostFacts, gather_facts, plan_cpus
@@ -39,10 +37,12 @@ from handctl.parent_death import JsonHelper
 from handctl.rivals import Rival, RivalRecord, RivalWatch, find_rivals
 
 #: A catch-up tick (the one between a stalled wake-up of the host's and another stalled
-#: wake-up right after it) that took at most this many times the run's usual tick CPU time
-#: was held, not slow: its miss is the host's (``attribute``). A catch-up drains the frames of
-#: the periods slept through; with host stalls injected it took 0.3-2x the usual
-#: (docs/timing.md, "Catch-up ticks").
+#: wake-up right after it) that took at most this many times the run's usual tick CPU time,
+#: both from a wake-up to the next, was held, not slow: its miss is the host's
+#: (``attribute``). A catch-up drains the frames of the periods slept through, and after a
+#: host stall it runs on caches the host's other work evicted: a tick whose caches were
+#: flushed down to the last level took 2.6x its usual stages at the median (docs/timing.md,
+#: "Catch-up ticks").
 CATCH_UP_CPU_FACTOR = 2.0
 #: Seconds of the check a run on a real bus makes before it opens the bus.
 PRECHECK_S = 1.5
@@ -734,10 +734,20 @@ def rival_verdict(rivals: Sequence[Rival], figures: dict[str, Any]) -> Verdict:
 class LoopWork:
     """What the control loop measured of its own work, for ``attribute``: the thread CPU time
     of each tick that ran between two stalled wake-ups in a row, by the second's wake-up index
-    (``StallLog.work_ns``), and the run's usual tick CPU time (``usual_tick_cpu_ns``)."""
+    (``StallLog.work_ns``), and the run's usual tick CPU time measured the same way, from a
+    wake-up to the next (``UsualWork.median_ns``)."""
 
     between_stalls_ns: dict[int, int]
     usual_ns: int
+
+    def late_start_missed(self, start_ns: int, due_ns: int, period_ns: int) -> int:
+        """How many deadlines from ``due_ns`` on a tick of the usual CPU time begun at
+        ``start_ns`` would have missed too: the host's, when the host made it begin then
+        (0 without a usual to judge by)."""
+        over = start_ns + self.usual_ns - due_ns
+        if self.usual_ns <= 0 or over <= 0:
+            return 0
+        return -(-over // period_ns)
 
     def held(self, tick: int, period_ns: int) -> bool:
         """Whether the tick before wake-up ``tick`` took no more than a catch-up's usual CPU
@@ -747,14 +757,6 @@ class LoopWork:
         if cpu is None or self.usual_ns <= 0:
             return False
         return cpu <= CATCH_UP_CPU_FACTOR * self.usual_ns and cpu < period_ns
-
-
-def usual_tick_cpu_ns(stage_ns: np.ndarray) -> int:
-    """The median thread CPU time of the ticks that did work (their stages summed), from a
-    run's ``(ticks, stages)`` window; 0 if none did."""
-    totals = stage_ns.sum(axis=1) if stage_ns.size else stage_ns
-    working = totals[totals > 0]
-    return int(np.median(working)) if working.size else 0
 
 
 def attribute(
@@ -787,8 +789,11 @@ def attribute(
     drained the frames of the periods slept through. If ``work`` shows that tick took no more
     thread CPU time than a catch-up usually does (``LoopWork.held``), it did not miss on its
     own work: it was held, for time it did not run, and the miss is the host's too
-    (``missed_host_catch_up``). A catch-up tick that was slow, with its CPU time high, stays
-    handctl's, as does any miss not right after the host's.
+    (``missed_host_catch_up``). So are the deadlines a tick of the usual CPU time would have
+    missed had it begun when the catch-up tick began (``LoopWork.late_start_missed``: a late
+    start): the host woke it too late to meet them, whatever its own work. What a catch-up
+    tick missed beyond that, with its CPU time high, stays handctl's, as does any miss not
+    right after the host's.
 
     If none of these, the host let a bare loop run at that time and handctl was late on its
     own: ``missed_handctl``. Of those, ``missed_handctl_after_host`` came in the very next
@@ -809,7 +814,9 @@ def attribute(
     }
     after_host = -2  # the last wake-up of a chain of misses that began with the host's
     hosts = -2  # the last wake-up whose miss was the host's (a catch-up's included)
+    begun = 0  # when the tick after the previous stalled wake-up began: that wake-up
     for tick, due, wake, missed in loop_stalls:
+        catch_up_began, begun = begun, wake
         start = due - period_ns
         if wake < host.start_ns or start > host.end_ns:
             counts["missed_unobserved"] += missed
@@ -826,9 +833,17 @@ def attribute(
             counts["missed_host_catch_up"] += missed
             after_host = hosts = tick
         else:
-            counts["missed_handctl"] += missed
+            late = 0
+            if tick == hosts + 1 and work is not None:
+                late = min(missed, work.late_start_missed(catch_up_began, due, period_ns))
+                counts["missed_host_catch_up"] += late
+            if late == missed:
+                after_host = hosts = tick
+                continue
+            own = missed - late
+            counts["missed_handctl"] += own
             if tick == after_host + 1:
-                counts["missed_handctl_after_host"] += missed
+                counts["missed_handctl_after_host"] += own
                 after_host = tick
             if handctls is not None:
                 handctls.append(tick)

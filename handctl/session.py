@@ -35,7 +35,6 @@ from handctl.hostcheck import (
     host_summary,
     precheck,
     run_cpus,
-    usual_tick_cpu_ns,
 )
 from handctl.hostfacts import affinity
 from handctl.online import timebudget
@@ -271,7 +270,7 @@ def run_recipe(
         )
         # what the loop measured of its catch-up ticks and its usual one (``attribute``)
         loop_work = (
-            LoopWork(clock.stalls.work_ns(), usual_tick_cpu_ns(result.window.stage_ns))
+            LoopWork(clock.stalls.work_ns(), clock.usual.median_ns(runtime.first_send_tick))
             if isinstance(clock, RealtimeClock)
             else None
         )

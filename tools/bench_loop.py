@@ -15,8 +15,9 @@ passage through the kernel between two pieces) together explain the miss, the CP
 in pieces shorter than a stall or running slow; ``missed_rival``:
 a real-time task at the loop's priority or above ran on its CPU, which the bare loop one
 priority up does not feel, ``handctl.rivals``; ``missed_host_catch_up``: right after the
-host's miss, its catch-up tick took no more CPU time than a catch-up usually does) or
-handctl's (``missed_handctl``: none of these). Target: ``missed_handctl`` 0.
+host's miss, its catch-up tick took no more CPU time than a catch-up usually does, or it began
+too late for a tick of the usual CPU time to meet the deadline) or handctl's
+(``missed_handctl``: none of these). Target: ``missed_handctl`` 0.
 
 ``tick_cost`` is the CPU cost of the tick, stage by stage, of this tree beside the tree of
 ``--baseline`` (a git revision; by default the one before the tick's cost was cut, issue #17),
@@ -390,7 +391,9 @@ def _one(
     missed = int(result.missed[first:].sum())
     cpu = result.stage_ns[first:].sum(axis=1)
     # What the simulated hand's frames met on the way (its own count, from its process): frames
-    # that never went, and the times the host's socket queue was full so frames waited.
+    # that never went, the times the host's socket queue was full so frames waited, and the
+    # frames lost for a receiver that fell so far behind that its transmit queue was full (on
+    # the unix bus that costs the receiver, not the sender's send).
     sim = report.summary.get("sim") or {}
     transport = sim.get("transport") or {}
     return {
@@ -400,6 +403,7 @@ def _one(
         "foreign_frames": result.node_rejects.get("unexpected_id", 0),
         "sim_tx_failed": int(sim.get("tx_failed", -1)),
         "sim_queue_full": int(transport.get("queue_full", -1)),
+        "sim_frames_dropped": int(transport.get("frames_dropped", -1)),
         "rt": bool(args.rt and not any("refused" in w for w in report.warnings)),
         "outcome": result.outcome.value,
         "message": result.message,

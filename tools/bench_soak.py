@@ -16,7 +16,8 @@ Figures (targets from the fault, load and soak issue):
 - ``missed_host``, ``missed_host_slow_cpu``, ``missed_rival``, ``missed_host_catch_up`` and
   ``missed_handctl``: the missed ticks of the run proper, the host's (the bare timer loop
   beside the run stalled, or its CPU was slow, at the same time), a real-time rival's, the
-  host's catch-up ticks' (right after its miss, the tick between at its usual CPU time), or
+  host's catch-up ticks' (right after its miss, the tick between at its usual CPU time, or
+  begun too late for a usual tick to meet the deadline), or
   handctl's (none of these), and
   the bare loop's own figures (``host_*``), as in ``bench.py loop``. Target: ``missed_handctl`` 0.
 

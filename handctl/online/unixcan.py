@@ -10,7 +10,6 @@ interface, and nothing in handctl names it but that entry point.
 from __future__ import annotations
 
 import contextlib
-import errno
 import itertools
 import os
 import select
@@ -36,11 +35,12 @@ _WIRE = struct.Struct("<dIBB")
 _unix_ids = itertools.count()
 #: Frames per datagram at most; a burst beyond it goes out in several datagrams.
 _BATCH = 32
-#: Frames held at most for one receiver whose queue is full (a CAN controller's transmit
-#: queue). A burst that does not fit any more is refused whole with ENOBUFS. Small on purpose:
-#: a receiver's socket queue already holds ten bursts or more; this is slack for a moment,
-#: and a receiver that stopped reading must still be reported within a few dozen ticks (the
-#: host's BUS_ERROR after consecutive failed sends), not hidden behind a deep queue.
+#: Frames held at most for one receiver whose queue is full. A burst that does not fit any
+#: more is lost for that receiver alone, and it is told so (``rx_frames_lost``): a CAN
+#: listener that does not read overflows its own receive queue and never fails a sender's
+#: frame. Small on purpose: a receiver's socket queue already holds ten bursts or more; this
+#: is slack for a moment, and a receiver that stopped reading must learn of its loss within a
+#: few dozen ticks, not have it hidden behind a deep queue.
 TX_QUEUE_FRAMES = 64
 #: A wire flag of the unix bus's own, beyond the CAN flags (``frameflags``): not a frame but a
 #: sender's word to one receiver that it refused this many frames for it (4 bytes, little
@@ -51,18 +51,6 @@ _LOST_MARK = 0x80
 _SETTLED_NS = 1_000_000_000
 #: How long ``shutdown`` keeps offering held frames to receivers that are still reading.
 _SHUTDOWN_S = 0.02
-
-
-class TransmitQueueFull(can.CanOperationError):
-    """A burst refused because a receiver's transmit queue is full: ``frames`` were dropped."""
-
-    def __init__(self, frames: int, receivers: int) -> None:
-        super().__init__(
-            f"No buffer space available: {frames} frames dropped, the transmit "
-            f"queue to {receivers} receiver(s) is full",
-            error_code=errno.ENOBUFS,
-        )
-        self.frames = frames
 
 
 class UnixDatagramBus(can.BusABC):
@@ -78,12 +66,13 @@ class UnixDatagramBus(can.BusABC):
     A receiver whose queue is full does not lose what it was sent, as a CAN controller does
     not drop a frame it took for transmission but retries arbitration: the frames wait in a
     transmit queue for that receiver and go first, merged into as few datagrams as fit, at the
-    next ``send_burst``. Only a burst that no longer fits that queue (``TX_QUEUE_FRAMES``: a
-    receiver that stopped reading) is refused, whole, with ``TransmitQueueFull`` (ENOBUFS), as
-    a full transmit queue refuses a frame on SocketCAN. ``queue_full`` counts the times a
-    receiver's queue was found full, ``frames_dropped`` the frames refused (for one receiver
-    or more). A socket whose owner died (SIGKILL) refuses delivery and is removed with what
-    was held for it, so a killed peer does not wedge the bus.
+    next ``send_burst``. A burst that no longer fits that queue (``TX_QUEUE_FRAMES``: a
+    receiver that stopped reading) is lost for that receiver only: the others get it, and the
+    send succeeds, as on CAN, where a listener that does not read overflows its own receive
+    queue and a sender never knows (a stopped ``handctl monitor`` must not stop a run).
+    ``queue_full`` counts the times a receiver's queue was found full, ``frames_dropped`` the
+    frames lost for one receiver or more. A socket whose owner died (SIGKILL) refuses delivery
+    and is removed with what was held for it, so a killed peer does not wedge the bus.
 
     The receiver is told what it lost, as a SocketCAN socket is told of its receive queue's
     overflow (``SO_RXQ_OVFL``): the next delivery to it carries the number of frames refused
@@ -185,7 +174,7 @@ class UnixDatagramBus(can.BusABC):
 
     def send_burst(self, messages: Sequence[can.Message]) -> None:
         """Send what is held for each receiver, then ``messages`` together, to every other
-        participant; raise ``TransmitQueueFull`` if a receiver's transmit queue had no room.
+        participant (a receiver whose transmit queue has no room loses them, and is told).
         No messages: only what is held is offered again."""
         now = time.time()
         self._send_wire([_encode(msg, now) for msg in messages])
@@ -200,11 +189,11 @@ class UnixDatagramBus(can.BusABC):
 
     def _send_wire(self, frames: list[bytes]) -> None:
         """Send what is held, then ``frames`` (each on the wire already), to every other
-        participant; raise ``TransmitQueueFull`` as ``send_burst`` says."""
+        participant, as ``send_burst`` says."""
         if not frames and not self._held:
             return
         self._refresh_peers()
-        refused = 0
+        refused = False
         lost = self._lost
         for peer in list(self._peers):
             held = self._held.get(peer)
@@ -213,7 +202,7 @@ class UnixDatagramBus(can.BusABC):
                     mark = _lost_mark(lost.pop(peer)) if peer in lost else []
                     self._deliver(peer, mark + frames)
             elif len(held) + len(frames) > TX_QUEUE_FRAMES:
-                refused += 1
+                refused = True
                 if frames:
                     lost[peer] = lost.get(peer, 0) + len(frames)
                 self._deliver(peer, held)
@@ -223,7 +212,6 @@ class UnixDatagramBus(can.BusABC):
                 self._deliver(peer, held + frames)
         if refused:
             self.frames_dropped += len(frames)
-            raise TransmitQueueFull(len(frames), refused)
 
     def _deliver(self, peer: str, frames: list[bytes]) -> None:
         """Send ``frames`` to one receiver in datagrams of at most ``_BATCH`` frames; what its

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -26,7 +27,9 @@ RECIPE = "config/recipes/swap_two_cylinders.yaml"
 FAILING = ROOT / "tests" / "data" / "host_stalls_failing.json"
 
 
-def test_the_bare_loop_reports_every_wakeup() -> None:
+def _bare_loop_record() -> dict[str, Any]:
+    """0.4 s of the bare loop at 1 kHz that keeps every piece and switch at least as slow as
+    its first 200's median (``--slow-factor 1``)."""
     done = subprocess.run(
         [
             sys.executable,
@@ -50,7 +53,17 @@ def test_the_bare_loop_reports_every_wakeup() -> None:
         check=False,
     )
     assert done.returncode == 0, done.stderr
-    out = json.loads(done.stdout)
+    out: dict[str, Any] = json.loads(done.stdout)
+    return out
+
+
+def test_the_bare_loop_reports_every_wakeup() -> None:
+    # Later pieces and switches as slow as the first 200's median come in any run but one
+    # whose start was the slowest stretch of it (a load that eased): tried again then.
+    for _ in range(3):
+        out = _bare_loop_record()
+        if out["work"]["slow"] and out["work"]["slow_switches"]:
+            break
     assert out["wakeups"] > 0
     assert sum(out["lateness_hist_us"].values()) == out["wakeups"]
     assert out["expirations"] >= out["wakeups"]

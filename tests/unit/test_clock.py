@@ -9,7 +9,13 @@ import sys
 import time
 from pathlib import Path
 
-from handctl.online.clock import LockstepClock, RealtimeClock, StallLog
+from handctl.online.clock import (
+    USUAL_SAMPLE_EVERY,
+    LockstepClock,
+    RealtimeClock,
+    StallLog,
+    UsualWork,
+)
 from handctl.online.timerfd import PeriodicTimer
 
 
@@ -56,6 +62,48 @@ async def test_a_stall_right_after_a_stall_carries_the_cpu_time_of_the_tick_betw
         assert work.get(held.tick, 0) < 3_000_000
     finally:
         clock.close()
+
+
+async def _sampled_run(ticks: int, slept_tick: int) -> UsualWork:
+    """``ticks`` ticks of 0.2 ms of CPU time each, but tick ``slept_tick``, which sleeps
+    three periods (so the wake-up after it is late)."""
+    clock = RealtimeClock(0.001)
+    try:
+        for _ in range(ticks):
+            tk = await clock.wait_tick()
+            if tk.tick == slept_tick:
+                time.sleep(0.003)
+            else:
+                _burn_cpu(200_000)
+        return clock.usual
+    finally:
+        clock.close()
+
+
+async def test_the_usual_tick_is_measured_from_one_on_time_wake_up_to_the_next() -> None:
+    # Whether two sampled wake-ups in a row are on time depends on the machine's load: a
+    # run with fewer than two samples is tried again.
+    for _ in range(5):
+        usual = await _sampled_run(6 * USUAL_SAMPLE_EVERY, 2 * USUAL_SAMPLE_EVERY)
+        if usual.count >= 2:
+            break
+    sampled = list(usual.tick[: usual.count])
+    assert usual.count >= 2
+    assert all(t % USUAL_SAMPLE_EVERY == 0 for t in sampled)
+    assert 2 * USUAL_SAMPLE_EVERY not in sampled  # the tick whose next wake-up was late
+    assert min(usual.cpu_ns[: usual.count]) >= 200_000  # what each tick burned, at least
+    assert usual.median_ns(since_tick=sampled[-1] + 1) == 0
+
+
+def test_the_usual_is_the_median_of_the_newest_samples_from_a_tick_on() -> None:
+    usual = UsualWork(capacity=4)
+    assert usual.median_ns() == 0
+    for tick, cpu in [(0, 10), (16, 900), (32, 300), (48, 200), (64, 400), (80, 100)]:
+        usual.add(tick, cpu)
+    # the first two are overwritten: 300, 200, 400, 100 are kept
+    assert usual.median_ns() == 300
+    assert usual.median_ns(since_tick=48) == 200  # of 200, 400, 100
+    assert usual.median_ns(since_tick=81) == 0
 
 
 def test_a_full_stall_log_counts_what_it_cannot_keep() -> None:

@@ -8,7 +8,6 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 
 from handctl.config import HandConfig
@@ -21,7 +20,6 @@ from handctl.hostcheck import (
     advice,
     attribute,
     judge,
-    usual_tick_cpu_ns,
 )
 from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_model
 
@@ -277,11 +275,62 @@ def test_a_catch_up_tick_of_a_whole_period_is_never_held() -> None:
     assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (1, 2)
 
 
-def test_the_usual_tick_is_the_median_of_the_ticks_that_did_work() -> None:
-    stages = np.array([[0, 0, 0], [100, 50, 50], [300, 0, 0], [0, 0, 0], [1000, 0, 400]])
-    assert usual_tick_cpu_ns(stages) == 300
-    assert usual_tick_cpu_ns(np.zeros((3, 6), dtype=np.int64)) == 0
-    assert usual_tick_cpu_ns(np.zeros((0, 6), dtype=np.int64)) == 0
+def _late_start_chain(next_wake_ms: float, missed: int) -> list[tuple[int, int, int, int]]:
+    """The host's stall of ``_catch_up_chain`` waking the loop 0.1 ms before its next
+    deadline (505 ms), and the wake-up after that catch-up tick missing ``missed`` ticks."""
+    at = START
+    return [
+        (10, at + 501 * MS, at + 504 * MS + 900_000, 3),
+        (11, at + 505 * MS, at + round(next_wake_ms * MS), missed),
+    ]
+
+
+def test_a_catch_up_tick_begun_too_late_for_the_next_deadline_missed_it_with_the_host() -> None:
+    # The host woke the loop 0.1 ms before the next deadline: a tick of the usual 250 µs could
+    # not have met it, so that miss is the host's however long the tick took (here 1.3 ms
+    # of CPU, more than a period: its caches were cold, or it was slow on its own).
+    host, _ = _catch_up_chain()
+    work = LoopWork({11: 1_300_000}, USUAL_NS)
+    own: list[int] = []
+    shares = attribute(_late_start_chain(506.4, 1), host, MS, own, work=work)
+    assert (shares["missed_host"], shares["missed_host_catch_up"]) == (3, 1)
+    assert (shares["missed_handctl"], own) == (0, [])
+    # Without the loop's measure of its usual tick there is no late start to judge.
+    shares = attribute(_late_start_chain(506.4, 1), host, MS, work=LoopWork({}, 0))
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 1)
+
+
+def test_what_a_late_catch_up_tick_missed_beyond_a_usual_ticks_share_stays_handctls() -> None:
+    # The same late start, but the tick ran 3.3 ms: a usual tick would have missed the deadline
+    # at 505 ms only; those at 506 and 507 are handctl's.
+    host, _ = _catch_up_chain()
+    work = LoopWork({11: 3_300_000}, USUAL_NS)
+    own: list[int] = []
+    shares = attribute(_late_start_chain(508.2, 3), host, MS, own, work=work)
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (1, 2)
+    assert (shares["missed_handctl_after_host"], own) == (2, [11])
+
+
+def test_a_catch_up_tick_begun_in_time_for_a_usual_tick_is_judged_by_its_cpu_time() -> None:
+    # Begun 0.3 ms before the deadline, a 250 µs tick would have met it: no late start, and
+    # its 1.3 ms of CPU time make the miss handctl's.
+    host, _ = _catch_up_chain()
+    rows = _late_start_chain(506.4, 1)
+    rows[0] = (10, START + 501 * MS, START + 504 * MS + 700_000, 3)
+    shares = attribute(rows, host, MS, work=LoopWork({11: 1_300_000}, USUAL_NS))
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 1)
+    late = attribute(rows, host, MS, work=LoopWork({11: 1_300_000}, 300_001))
+    assert (late["missed_host_catch_up"], late["missed_handctl"]) == (1, 0)
+
+
+def test_a_late_start_after_handctls_own_miss_is_handctls() -> None:
+    # Wake-up 10 late on handctl's own (no host stall near it): wake-up 11's catch-up tick
+    # began late because of handctl, so its miss is handctl's, however late it began.
+    host = record([(100, 100.0, 4.0)], period_ns=MS // 2)
+    shares = attribute(
+        _late_start_chain(506.4, 1), host, MS, work=LoopWork({11: 200_000}, USUAL_NS)
+    )
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (0, 4)
 
 
 def test_recorded_slow_catch_up_ticks_of_handctls_stay_handctls() -> None:
@@ -299,6 +348,35 @@ def test_recorded_slow_catch_up_ticks_of_handctls_stay_handctls() -> None:
         shares = attribute(loop, host, MS, work=work)
         assert shares == without and shares["missed_host_catch_up"] == 0
         assert shares["missed_handctl_after_host"] == shares["missed_handctl"] > 0
+
+
+def test_recorded_busy_catch_up_ticks_are_the_hosts_only_as_far_as_a_late_start() -> None:
+    # Real-time runs of the shipped recipe (load 1.4-1.8), 0.6 ms of busy thread CPU time in
+    # the tick right after each stalled wake-up past the start (``busy_ticks``: those whose
+    # next wake-up was stalled too), the usual measured from wake-up to wake-up; one run
+    # (``host_catch_up``) had no busy tick in a catch-up. The CPU rule holds no busy catch-up,
+    # and what the rules take from handctl are the deadlines of late starts alone: a busy
+    # tick that began in time for the next deadline keeps its misses handctl's.
+    data = json.loads((DATA / "host_late_start.json").read_text())
+    moved_in_all = own_in_all = 0
+    for case in data["cases"]:
+        loop = [(r[0], r[1], r[2], r[3]) for r in case["loop_stalls"]]
+        host = ProbeRecord.from_json(case["probe"], case["kind"])
+        work = LoopWork({int(k): v for k, v in case["work_ns"].items()}, case["usual_cpu_ns"])
+        for tick in case["busy_ticks"]:
+            assert work.between_stalls_ns[tick + 1] > CATCH_UP_CPU_FACTOR * work.usual_ns
+            assert not work.held(tick + 1, MS)
+        without = attribute(loop, host, MS)
+        shares = attribute(loop, host, MS, work=work)
+        moved = without["missed_handctl"] - shares["missed_handctl"]
+        assert moved == shares["missed_host_catch_up"] - without["missed_host_catch_up"]
+        # catch-up ticks that began less than a usual tick before the next deadline
+        woke = {r[0]: r[2] for r in loop}
+        late = [r for r in loop if r[0] - 1 in woke and woke[r[0] - 1] + work.usual_ns > r[1]]
+        assert moved <= len(late)
+        moved_in_all += moved
+        own_in_all += shares["missed_handctl"]
+    assert moved_in_all > 0 and own_in_all > 0
 
 
 # -- the host -------------------------------------------------------------------------------------

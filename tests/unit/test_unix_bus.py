@@ -3,7 +3,8 @@
 Linux queues ``net.unix.max_dgram_qlen`` datagrams per receiving socket (often 10), however
 small they are and whoever sent them. A receiver that falls behind must cost delay, not frames,
 as a CAN controller keeps a frame it took until arbitration lets it go; a receiver that stopped
-reading costs frames only once the transmit queue is full, and every one of them is counted.
+reading costs itself frames once the transmit queue is full, every one of them counted, and
+never costs the sender a send (on CAN, a listener that does not read overflows its own queue).
 """
 
 from __future__ import annotations
@@ -82,21 +83,45 @@ def test_held_frames_go_first_merged_into_few_datagrams(open_unix: OpenUnix) -> 
     assert frames[-1].arbitration_id == 0x181
 
 
-def test_a_receiver_that_stopped_reading_costs_counted_frames(open_unix: OpenUnix) -> None:
+def _offer(tx: HandBus, frames: int) -> None:
+    """``frames`` single-frame bursts, numbered, every one of them sent."""
+    for i in range(frames):
+        assert tx.send(0x101, i.to_bytes(2, "little"))
+
+
+def test_a_receiver_that_stopped_reading_costs_itself_counted_frames(open_unix: OpenUnix) -> None:
     rx, tx = open_unix(), open_unix()
     offered = TX_QUEUE_FRAMES + 100
-    accepted = [i for i in range(offered) if tx.send(0x101, i.to_bytes(2, "little"))]
-    refused = offered - len(accepted)
-    # The queue and the transmit queue full, the sender is told for every frame it loses.
-    assert refused > 0
-    assert tx.tx_failed == refused
-    assert [e.kind for e in tx.events()] == [BusEventKind.TX_QUEUE_FULL] * refused
-    assert tx.transport_counts()["frames_dropped"] == refused
-    # What was accepted arrives, all of it, in order, once the receiver reads again.
+    _offer(tx, offered)
+    # The queue and the transmit queue full, the receiver loses frames; the sender none.
+    dropped = tx.transport_counts()["frames_dropped"]
+    assert dropped > 0
+    assert (tx.sent, tx.tx_failed, tx.events()) == (offered, 0, [])
+    # What it was not refused arrives, all of it, in order, once the receiver reads again:
+    # the first frames, which its queues held.
     got: list[Frame] = []
-    catch_up(rx, tx, got, len(accepted))
-    assert [int.from_bytes(f.data, "little") for f in got] == accepted
-    assert tx.sent == len(accepted)
+    catch_up(rx, tx, got, offered - dropped)
+    assert [int.from_bytes(f.data, "little") for f in got] == list(range(offered - dropped))
+
+
+def test_a_stopped_listener_costs_a_reading_receiver_nothing(open_unix: OpenUnix) -> None:
+    """A monitor held by SIGSTOP on the hand's bus: the node that reads gets every command,
+    and the host never fails a send for the listener's sake."""
+    stopped, node, host = open_unix(), open_unix(), open_unix()
+    offered = TX_QUEUE_FRAMES + 100
+    got: list[Frame] = []
+    for i in range(offered):
+        assert host.send(0x101, i.to_bytes(2, "little"))
+        got += node.drain()
+    got += node.drain()
+    assert [int.from_bytes(f.data, "little") for f in got] == list(range(offered))
+    assert (host.tx_failed, host.events()) == (0, [])
+    dropped = host.transport_counts()["frames_dropped"]
+    assert dropped > 0
+    late: list[Frame] = []
+    catch_up(stopped, host, late, offered - dropped)
+    assert len(late) == offered - dropped
+    assert stopped.transport_counts()["rx_frames_lost"] == dropped
 
 
 def test_a_receiver_is_told_how_many_frames_it_lost(open_unix: OpenUnix) -> None:
@@ -104,8 +129,9 @@ def test_a_receiver_is_told_how_many_frames_it_lost(open_unix: OpenUnix) -> None
     reading can tell the gap it caused itself from a node that skipped a counter."""
     rx, tx = open_unix(), open_unix()
     offered = TX_QUEUE_FRAMES + 100
-    accepted = [i for i in range(offered) if tx.send(0x101, i.to_bytes(2, "little"))]
-    refused = offered - len(accepted)
+    _offer(tx, offered)
+    refused = tx.transport_counts()["frames_dropped"]
+    accepted = list(range(offered - refused))
     got: list[Frame] = []
     catch_up(rx, tx, got, len(accepted))  # told after what was held for it, where it was lost
     assert rx.transport_counts()["rx_frames_lost"] == refused > 0
