@@ -48,11 +48,11 @@ from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
     GraspModel,
     PacedRamp,
+    PerJoint,
     RadiusRatio,
     Reanalyse,
     RecipeObject,
     ScheduledTorques,
-    TorqueMargin,
     TurnBrake,
     TurnRate,
     TurnStall,
@@ -102,12 +102,13 @@ class TemplatePhase:
     pose_damping: float = 0.0  # N·m·s/rad
     #: the names of the estimates of the template's objects (``schema.estimate_names``)
     estimates: tuple[str, ...] = ()
-    joint_damping: float = 0.0  # N·m·s/rad, injected on every joint, carried into the recipe
+    #: N·m·s/rad, injected (one for every joint, or one per joint), carried into the recipe
+    joint_damping: PerJoint = 0.0
     brake: TurnBrake | None = None  # more damping while the pair tumbles, carried likewise
     #: a turn phase's ramp paced by the pair's turn rate, carried likewise
     paced: PacedRamp | None = None
     #: the recipe's torques times this when run (one factor, or one per joint), carried likewise
-    torque_margin: TorqueMargin = 1.0
+    torque_margin: PerJoint = 1.0
     #: a turn phase whose recipe exit reads the turn from where this earlier phase began
     #: (``schema.Phase.turn_from``), carried likewise; "": its own start
     turn_from: str = ""
@@ -394,7 +395,7 @@ def _phase(
         stiffness = pose.number("stiffness", min=0.0, max=100.0, min_exclusive=True, unit="N·m/rad")
         damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
         pose.done()
-    joint_damping = parse_joint_damping(doc)
+    joint_damping = parse_joint_damping(doc, hand.joint_names)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     margin = parse_torque_margin(doc, hand.joint_names)
     doc.done()
