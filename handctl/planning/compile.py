@@ -246,6 +246,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
         }
     if phase.joint_damping != 0.0:
         doc["joint_damping"] = _per_joint(phase.joint_damping, hand)
+        if not phase.joint_damping_fades:
+            doc["joint_damping_fades"] = False
     if phase.brake is not None:
         doc["brake"] = {
             "rate_deg_s": round(math.degrees(phase.brake.rate), 6),
@@ -342,6 +344,7 @@ def _compiled_phase(
         turn_rate=spec.turn_rate,
         pose=pose,
         joint_damping=spec.joint_damping,
+        joint_damping_fades=spec.joint_damping_fades,
         brake=spec.brake,
         paced=spec.paced,
         torque_margin=spec.torque_margin,

@@ -31,6 +31,7 @@ from handctl.online.recipes.loader import (
     MAX_SCHEDULE,
     check_unique_names,
     parse_brake,
+    parse_damping_fades,
     parse_grasp_model,
     parse_guard_band,
     parse_joint_damping,
@@ -122,6 +123,9 @@ class TemplatePhase:
     schedule: tuple[ScheduleEntry, ...] = ()
     #: the template's object names, by which a compiled ``schedule`` names its ranges
     object_names: tuple[str, ...] = ()
+    #: whether ``joint_damping`` fades over the next phase's ramp or ends with the phase,
+    #: carried into the recipe
+    joint_damping_fades: bool = True
 
     def exit_condition(self) -> str:
         """The exit of a turn phase in the planner's episodes: on the estimated turn of the
@@ -396,6 +400,7 @@ def _phase(
         damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
         pose.done()
     joint_damping = parse_joint_damping(doc, hand.joint_names)
+    fades = parse_damping_fades(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     margin = parse_torque_margin(doc, hand.joint_names)
     doc.done()
@@ -423,4 +428,5 @@ def _phase(
         reanalyse=reanalyse,
         schedule=schedule,
         object_names=tuple(objects),
+        joint_damping_fades=fades,
     )

@@ -243,6 +243,32 @@ def test_injected_damping_fades_with_the_next_phase_s_ramp(
     assert out == pytest.approx(np.array(TORQUES))
 
 
+def test_injected_damping_that_does_not_fade_ends_with_its_phase(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Damping meant for one phase's grasp (``joint_damping_fades: false``) is gone when the
+    next phase begins, not faded over its ramp: that phase's motion is the planned one from
+    its first tick. The planner's hand-over between phases says the same."""
+    recipe = _recipe(
+        tmp_path,
+        hand,
+        {"joint_damping": 0.05, "joint_damping_fades": False},
+        objects=False,
+        max_s=0.3,
+    )
+    assert recipe.phases[0].joint_damping_fades is False
+    assert recipe.phases[1].joint_damping_fades is True
+    runner = RecipeRunner(recipe, 9)
+    t, angle, _ = _move(runner, 2.0, 0.3 - DT)
+    assert runner.phase_name == "turn"
+    assert np.all(runner.damping == 0.05)
+    assert np.all(runner.handover().damping == 0.0)
+    t, angle, out = _move(runner, 2.0, 2 * DT, t, angle)
+    assert runner.phase_name == "after"
+    assert np.all(runner.damping == 0.0)
+    assert out == pytest.approx(np.array(TORQUES), abs=1e-4)
+
+
 BRAKE: dict[str, object] = {"brake": {"rate_deg_s": 90, "joint_damping": 0.04}}
 
 
@@ -495,6 +521,7 @@ def test_a_template_s_damping_per_joint_is_carried_into_the_compiled_recipe(
                 "max_s": 1.0,
                 "seed": dict(zip(JOINTS, TORQUES, strict=True)),
                 "joint_damping": damping,
+                "joint_damping_fades": False,
             }
         ],
     }
@@ -502,12 +529,19 @@ def test_a_template_s_damping_per_joint_is_carried_into_the_compiled_recipe(
     path.write_text(yaml.safe_dump(template, sort_keys=False))
     spec = load_template(path, hand).phases[0]
     assert spec.joint_damping == tuple(damping[n] for n in hand.joint_names)
+    assert spec.joint_damping_fades is False
     phase = _compiled_phase(spec, tuple(TORQUES), hand)
     assert phase.joint_damping == spec.joint_damping
     doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand)
     assert doc["joint_damping"] == damping
-    loaded = _recipe(tmp_path, hand, {"joint_damping": doc["joint_damping"]}).phases[0]
+    assert doc["joint_damping_fades"] is False
+    loaded = _recipe(
+        tmp_path,
+        hand,
+        {"joint_damping": doc["joint_damping"], "joint_damping_fades": False},
+    ).phases[0]
     assert loaded.joint_damping == spec.joint_damping
+    assert loaded.joint_damping_fades is False
 
 
 def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
@@ -556,6 +590,12 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
             True,
         ),
         ({"joint_damping": 1.0}, "phases[0].joint_damping", False),
+        ({"joint_damping_fades": False}, "phases[0].joint_damping_fades", False),
+        (
+            {"joint_damping": 0.01, "joint_damping_fades": "no"},
+            "phases[0].joint_damping_fades",
+            False,
+        ),
         (
             {"joint_damping": {**dict.fromkeys(JOINTS, 0.0), "f1_j3": 0.5}},
             "phases[0].joint_damping.f1_j3",

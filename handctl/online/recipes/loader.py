@@ -289,6 +289,7 @@ def _parse_phase(
     turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
     pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
     joint_damping = parse_joint_damping(doc, hand.joint_names)
+    fades = parse_damping_fades(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     paced = parse_paced_ramp(doc.mapping("paced_ramp")) if doc.has("paced_ramp") else None
     if paced is not None and ramp <= 0:
@@ -328,7 +329,21 @@ def _parse_phase(
         stall,
         reanalyse,
         schedule,
+        joint_damping_fades=fades,
     )
+
+
+def parse_damping_fades(doc: Doc) -> bool:
+    """``joint_damping_fades`` of a recipe's or a template's phase (true when not set):
+    whether the phase's injected damping fades out over the next phase's ramp or ends with
+    the phase. Refused without a ``joint_damping`` to end (a key that does nothing
+    misleads)."""
+    if not doc.has("joint_damping_fades"):
+        return True
+    fades = doc.boolean("joint_damping_fades")
+    if not doc.has("joint_damping"):
+        doc.fail("joint_damping_fades", "a phase with joint_damping", "no joint_damping")
+    return fades
 
 
 def parse_schedule(

@@ -211,7 +211,15 @@ class RecipeRunner:
     def handover(self) -> Handover:
         """What the next phase would start from now (its filters are this runner's own)."""
         torques = (self._proposed if self._fed else self._desired).copy()
-        return Handover(torques, self.damping.copy(), self.velocity, self._guard_velocity)
+        damping = np.zeros(self.n) if self._damping_ends() else self.damping.copy()
+        return Handover(torques, damping, self.velocity, self._guard_velocity)
+
+    def _damping_ends(self) -> bool:
+        """Whether the current phase's injected damping ends with it instead of fading over
+        the next phase's ramp (``joint_damping_fades``)."""
+        return 0 <= self.index < len(self.recipe.phases) and (
+            not self.recipe.phases[self.index].joint_damping_fades
+        )
 
     @property
     def phase_name(self) -> str:
@@ -238,7 +246,10 @@ class RecipeRunner:
         self._asked_at = math.nan
         self._answered = False
         self._settle_unmeasured()
-        self._damping_from[:] = self.damping
+        if self._damping_ends():
+            self._damping_from[:] = 0.0
+        else:
+            self._damping_from[:] = self.damping
         self._held_since.clear()
         self._stall_turn = self._stall_t = math.nan
         self.scale = self._scale_i = 1.0

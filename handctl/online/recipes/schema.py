@@ -305,6 +305,11 @@ class Phase:
     #: alternative torques for ranges of the objects' measured sizes, the first that holds
     #: chosen once the sizes are measured; none holding: ``torques``
     schedule: tuple[ScheduledTorques, ...] = ()
+    #: whether this phase's ``joint_damping`` fades out over the next phase's ramp (no step
+    #: in torque) or ends with the phase, so that damping meant for this phase's grasp does
+    #: not reach into the next phase's motion (the step is the damping times the joints'
+    #: speed at the switch, which the supervisor's rate limit spreads out)
+    joint_damping_fades: bool = True
 
 
 @dataclass(frozen=True)
