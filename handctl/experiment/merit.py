@@ -27,7 +27,10 @@ figures exist where the recipe has a pair. Definitions:
   ``estimator_error_deg``: the 95th percentile of |estimated - true| centre-line angle over
   the ticks of the hold and manipulation phases where the estimate was valid (with the
   fraction of those ticks that had a valid estimate), and over the manipulation phases alone
-  (where the exits read it; the hold includes the objects settling after the lift);
+  (where the exits read it; the hold includes the objects settling after the lift), and
+  per manipulation phase (``estimator_error_by_phase_deg``, None for a phase with no valid
+  estimate): a phase whose grasp the estimator cannot place is not hidden in the others'
+  ticks by being brief;
   ``peak_turn_rate_deg_s``: the largest rate of the true centre line over the manipulation
   phases, each rate taken over ``RATE_WINDOW_S`` (10 ms) so that one contact impact of a
   physics step does not count as a turn. The analysis behind a recipe is quasi-static: a
@@ -226,6 +229,7 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
         "peak_turn_rate_deg_s": 0.0,
         "estimator_error_deg": None,
         "estimator_error_manipulation_deg": None,
+        "estimator_error_by_phase_deg": {},
         "estimator_valid_fraction": 0.0,
     }
     empty: dict[str, Any] = {
@@ -329,6 +333,11 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
                 else 0.0,
                 "estimator_error_deg": _p95_deg(err[ok]),
                 "estimator_error_manipulation_deg": _p95_deg(err[ok & in_manip[sel]]),
+                "estimator_error_by_phase_deg": {
+                    name: _p95_deg(err[s - start : e - start][ok[s - start : e - start]])
+                    for name, s, e in manip
+                    if s >= start
+                },
             }
             pairs["/".join(trace.objects[i] for i in pair)] = figures
             if k == 0:

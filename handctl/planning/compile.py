@@ -41,6 +41,7 @@ from handctl.executor import WorkPool, open_pool
 from handctl.online.recipes.schema import (
     Condition,
     PacedRamp,
+    PerJoint,
     Phase,
     PoseHold,
     ScheduledTorques,
@@ -192,6 +193,14 @@ def _schedule_document(
     return out
 
 
+def _per_joint(value: PerJoint, hand: HandConfig) -> float | dict[str, float]:
+    """A value given once for every joint or per joint, written back as it was given (a
+    mapping of joint names in the config's order, or the one number)."""
+    if isinstance(value, tuple):
+        return dict(zip(hand.joint_names, value, strict=True))
+    return value
+
+
 def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     phase = plan.phase
     doc: dict[str, Any] = {
@@ -235,8 +244,10 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             "stiffness": phase.pose.stiffness,
             "damping": phase.pose.damping,
         }
-    if phase.joint_damping > 0.0:
-        doc["joint_damping"] = phase.joint_damping
+    if phase.joint_damping != 0.0:
+        doc["joint_damping"] = _per_joint(phase.joint_damping, hand)
+        if not phase.joint_damping_fades:
+            doc["joint_damping_fades"] = False
     if phase.brake is not None:
         doc["brake"] = {
             "rate_deg_s": round(math.degrees(phase.brake.rate), 6),
@@ -248,10 +259,8 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             doc["brake"]["blind_joint_rate"] = phase.brake.blind_joint_rate
     if phase.paced is not None:
         doc["paced_ramp"] = _paced_document(phase.paced)
-    if isinstance(phase.torque_margin, tuple):
-        doc["torque_margin"] = dict(zip(hand.joint_names, phase.torque_margin, strict=True))
-    elif phase.torque_margin != 1.0:
-        doc["torque_margin"] = phase.torque_margin
+    if phase.torque_margin != 1.0:
+        doc["torque_margin"] = _per_joint(phase.torque_margin, hand)
     doc["provenance"] = plan.provenance
     return doc
 
@@ -335,6 +344,7 @@ def _compiled_phase(
         turn_rate=spec.turn_rate,
         pose=pose,
         joint_damping=spec.joint_damping,
+        joint_damping_fades=spec.joint_damping_fades,
         brake=spec.brake,
         paced=spec.paced,
         torque_margin=spec.torque_margin,

@@ -31,6 +31,7 @@ from handctl.online.recipes.loader import (
     MAX_SCHEDULE,
     check_unique_names,
     parse_brake,
+    parse_damping_fades,
     parse_grasp_model,
     parse_guard_band,
     parse_joint_damping,
@@ -48,11 +49,11 @@ from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
     GraspModel,
     PacedRamp,
+    PerJoint,
     RadiusRatio,
     Reanalyse,
     RecipeObject,
     ScheduledTorques,
-    TorqueMargin,
     TurnBrake,
     TurnRate,
     TurnStall,
@@ -102,12 +103,13 @@ class TemplatePhase:
     pose_damping: float = 0.0  # N·m·s/rad
     #: the names of the estimates of the template's objects (``schema.estimate_names``)
     estimates: tuple[str, ...] = ()
-    joint_damping: float = 0.0  # N·m·s/rad, injected on every joint, carried into the recipe
+    #: N·m·s/rad, injected (one for every joint, or one per joint), carried into the recipe
+    joint_damping: PerJoint = 0.0
     brake: TurnBrake | None = None  # more damping while the pair tumbles, carried likewise
     #: a turn phase's ramp paced by the pair's turn rate, carried likewise
     paced: PacedRamp | None = None
     #: the recipe's torques times this when run (one factor, or one per joint), carried likewise
-    torque_margin: TorqueMargin = 1.0
+    torque_margin: PerJoint = 1.0
     #: a turn phase whose recipe exit reads the turn from where this earlier phase began
     #: (``schema.Phase.turn_from``), carried likewise; "": its own start
     turn_from: str = ""
@@ -121,6 +123,9 @@ class TemplatePhase:
     schedule: tuple[ScheduleEntry, ...] = ()
     #: the template's object names, by which a compiled ``schedule`` names its ranges
     object_names: tuple[str, ...] = ()
+    #: whether ``joint_damping`` fades over the next phase's ramp or ends with the phase,
+    #: carried into the recipe
+    joint_damping_fades: bool = True
 
     def exit_condition(self) -> str:
         """The exit of a turn phase in the planner's episodes: on the estimated turn of the
@@ -394,7 +399,8 @@ def _phase(
         stiffness = pose.number("stiffness", min=0.0, max=100.0, min_exclusive=True, unit="N·m/rad")
         damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
         pose.done()
-    joint_damping = parse_joint_damping(doc)
+    joint_damping = parse_joint_damping(doc, hand.joint_names)
+    fades = parse_damping_fades(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     margin = parse_torque_margin(doc, hand.joint_names)
     doc.done()
@@ -422,4 +428,5 @@ def _phase(
         reanalyse=reanalyse,
         schedule=schedule,
         object_names=tuple(objects),
+        joint_damping_fades=fades,
     )

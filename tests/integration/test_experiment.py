@@ -111,14 +111,41 @@ def test_the_pair_is_swapped(summary: dict[str, object]) -> None:
     assert ex["total_rotation_deg"] >= SWAP_DEG, ex["phase_angles_deg"]
 
 
+#: the manipulation phase in which the pair stands across the palm, where the estimator
+#: cannot place it (docs/experiment.md, "What is still fragile")
+ACROSS_THE_PALM = "manipulate_3"
+
+
 def test_the_estimator_follows_ground_truth(summary: dict[str, object]) -> None:
     ex = summary["experiment"]
     assert isinstance(ex, dict)
     # over hold and manipulation (the objects settle, loosely caged, after the lift) ...
     assert ex["estimator_error_deg"] is not None and ex["estimator_error_deg"] < 12.0
-    # ... and where the exits read it
-    assert ex["estimator_error_manipulation_deg"] < 3.0
+    # ... and where the exits read it, phase by phase: a brief phase's error is not hidden
+    # among the others' ticks
+    by_phase = ex["estimator_error_by_phase_deg"]
+    assert isinstance(by_phase, dict) and len(by_phase) == 4
+    for name, error in by_phase.items():
+        if name != ACROSS_THE_PALM:
+            assert error is not None and error < 3.0, by_phase
     assert ex["estimator_valid_fraction"] > 0.9
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="in manipulate_3 the pair stands across the palm, cylinder 1 squeezed between the "
+    "palm and cylinder 2: its place along the palm then follows cylinder 2's depth with a "
+    "gain of cot(angle from the palm's normal), 4 at 15 deg and 11 at 5 deg, so a millimetre "
+    "of slack in cylinder 2's cage moves the estimated centre line by 10..16 deg while the "
+    "estimate stays valid (docs/experiment.md)",
+)
+def test_the_estimator_places_the_pair_standing_across_the_palm(
+    summary: dict[str, object],
+) -> None:
+    ex = summary["experiment"]
+    assert isinstance(ex, dict)
+    error = ex["estimator_error_by_phase_deg"][ACROSS_THE_PALM]
+    assert error is not None and error < 3.0
 
 
 def test_the_compiled_recipe_is_planned_for_this_hand(hand: HandConfig) -> None:

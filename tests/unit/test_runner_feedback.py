@@ -205,7 +205,23 @@ def test_injected_damping_opposes_every_joint_s_velocity(tmp_path: Path, hand: H
     assert out == pytest.approx(np.array(TORQUES))  # at rest: the planned torque
     _, _, out = _move(runner, 2.0, 0.2, 2 * RAMP)  # past ten of the velocity's time constants
     assert out == pytest.approx(np.array(TORQUES) - 0.03 * 2.0, abs=1e-4)
-    assert runner.damping == 0.03
+    assert np.all(runner.damping == 0.03)
+
+
+def test_injected_damping_per_joint_damps_only_the_joints_named(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A phase that presses a distal joint into its guard's band damps that joint alone:
+    the others keep the planned torque whatever their speed, so the pair's roll in the next
+    phase is not slowed by damping nobody asked for."""
+    damping = {name: (0.005 if name.endswith("_j3") else 0.0) for name in JOINTS}
+    recipe = _recipe(tmp_path, hand, {"joint_damping": damping}, objects=False)
+    assert recipe.phases[0].joint_damping == tuple(damping[n] for n in hand.joint_names)
+    runner = RecipeRunner(recipe, 9)
+    _, _, out = _move(runner, 2.0, 0.2 + 2 * RAMP)
+    wanted = np.array(TORQUES) - 2.0 * np.array([damping[n] for n in JOINTS])
+    assert out == pytest.approx(wanted, abs=1e-4)
+    assert not np.allclose(out, np.array(TORQUES) - 0.005 * 2.0, atol=1e-4)
 
 
 def test_injected_damping_fades_with_the_next_phase_s_ramp(
@@ -221,10 +237,36 @@ def test_injected_damping_fades_with_the_next_phase_s_ramp(
     t, angle, after = _move(runner, 2.0, 2 * DT, t, angle)
     assert runner.phase_name == "after"
     assert np.max(np.abs(after - before)) < 0.01
-    assert 0.0 < runner.damping < 0.05
+    assert np.all((runner.damping > 0.0) & (runner.damping < 0.05))
     _, _, out = _move(runner, 2.0, RAMP, t, angle)
-    assert runner.damping == 0.0
+    assert np.all(runner.damping == 0.0)
     assert out == pytest.approx(np.array(TORQUES))
+
+
+def test_injected_damping_that_does_not_fade_ends_with_its_phase(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Damping meant for one phase's grasp (``joint_damping_fades: false``) is gone when the
+    next phase begins, not faded over its ramp: that phase's motion is the planned one from
+    its first tick. The planner's hand-over between phases says the same."""
+    recipe = _recipe(
+        tmp_path,
+        hand,
+        {"joint_damping": 0.05, "joint_damping_fades": False},
+        objects=False,
+        max_s=0.3,
+    )
+    assert recipe.phases[0].joint_damping_fades is False
+    assert recipe.phases[1].joint_damping_fades is True
+    runner = RecipeRunner(recipe, 9)
+    t, angle, _ = _move(runner, 2.0, 0.3 - DT)
+    assert runner.phase_name == "turn"
+    assert np.all(runner.damping == 0.05)
+    assert np.all(runner.handover().damping == 0.0)
+    t, angle, out = _move(runner, 2.0, 2 * DT, t, angle)
+    assert runner.phase_name == "after"
+    assert np.all(runner.damping == 0.0)
+    assert out == pytest.approx(np.array(TORQUES), abs=1e-4)
 
 
 BRAKE: dict[str, object] = {"brake": {"rate_deg_s": 90, "joint_damping": 0.04}}
@@ -261,7 +303,7 @@ def test_the_brake_holds_no_damping_while_the_estimate_is_invalid(
 ) -> None:
     runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)
     _drive(runner, -400.0, 0.5, valid=False)
-    assert runner.damping == 0.0
+    assert np.all(runner.damping == 0.0)
 
 
 @pytest.mark.parametrize(("speed", "damping"), [(0.5, 0.0), (1.0, 0.0), (1.5, 0.02), (3.0, 0.04)])
@@ -278,7 +320,7 @@ def test_a_brake_with_a_joint_rate_damps_the_joints_as_they_move_faster(
     assert out == pytest.approx(np.array(TORQUES) - damping * speed, abs=1e-4)
     runner = RecipeRunner(_recipe(tmp_path, hand, BRAKE), 9)  # without: the pair's rate alone
     _tumble(runner, 0.0, speed, 0.5)
-    assert runner.damping == 0.0
+    assert np.all(runner.damping == 0.0)
 
 
 PACED: dict[str, object] = {"paced_ramp": {"rate_deg_s": -90}}
@@ -458,6 +500,50 @@ def test_a_template_s_margin_per_joint_is_carried_into_the_compiled_recipe(
     assert loaded.torque_margin == spec.torque_margin
 
 
+def test_a_template_s_damping_per_joint_is_carried_into_the_compiled_recipe(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """``handctl plan`` writes a per-joint ``joint_damping`` as the mapping it read, and the
+    recipe's loader reads it back in the config's joint order."""
+    from handctl.planning.compile import PhasePlan, _compiled_phase, _phase_document
+    from handctl.planning.template import load_template
+
+    damping = {name: (0.005 if name.endswith("_j3") else 0.0) for name in JOINTS}
+    template = {
+        "template": "damping",
+        "recipe": "damping",
+        "objects": [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}],
+        "phases": [
+            {
+                "name": "turn",
+                "kind": "turn",
+                "turn_deg": -45,
+                "max_s": 1.0,
+                "seed": dict(zip(JOINTS, TORQUES, strict=True)),
+                "joint_damping": damping,
+                "joint_damping_fades": False,
+            }
+        ],
+    }
+    path = tmp_path / "t.template.yaml"
+    path.write_text(yaml.safe_dump(template, sort_keys=False))
+    spec = load_template(path, hand).phases[0]
+    assert spec.joint_damping == tuple(damping[n] for n in hand.joint_names)
+    assert spec.joint_damping_fades is False
+    phase = _compiled_phase(spec, tuple(TORQUES), hand)
+    assert phase.joint_damping == spec.joint_damping
+    doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand)
+    assert doc["joint_damping"] == damping
+    assert doc["joint_damping_fades"] is False
+    loaded = _recipe(
+        tmp_path,
+        hand,
+        {"joint_damping": doc["joint_damping"], "joint_damping_fades": False},
+    ).phases[0]
+    assert loaded.joint_damping == spec.joint_damping
+    assert loaded.joint_damping_fades is False
+
+
 def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) -> None:
     recipe = _recipe(tmp_path, hand, TURN_RATE)
     rng = np.random.default_rng(1)
@@ -504,6 +590,27 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
             True,
         ),
         ({"joint_damping": 1.0}, "phases[0].joint_damping", False),
+        ({"joint_damping_fades": False}, "phases[0].joint_damping_fades", False),
+        (
+            {"joint_damping": 0.01, "joint_damping_fades": "no"},
+            "phases[0].joint_damping_fades",
+            False,
+        ),
+        (
+            {"joint_damping": {**dict.fromkeys(JOINTS, 0.0), "f1_j3": 0.5}},
+            "phases[0].joint_damping.f1_j3",
+            False,
+        ),
+        (
+            {"joint_damping": {**dict.fromkeys(JOINTS[1:], 0.005)}},
+            "phases[0].joint_damping." + JOINTS[0],
+            False,
+        ),
+        (
+            {"joint_damping": {**dict.fromkeys(JOINTS, 0.0), "f9_j3": 0.005}},
+            "phases[0].joint_damping.f9_j3",
+            False,
+        ),
         ({"paced_ramp": {"rate_deg_s": -90}}, "phases[0].paced_ramp", False),
         ({"paced_ramp": {"rate_deg_s": 0}}, "phases[0].paced_ramp.rate_deg_s", True),
         ({"paced_ramp": {"rate_deg_s": -90, "reach": 0.5}}, "phases[0].paced_ramp.reach", True),

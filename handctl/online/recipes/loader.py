@@ -25,6 +25,7 @@ from handctl.online.recipes.schema import (
     GraspModel,
     PacedRamp,
     Pair,
+    PerJoint,
     Phase,
     PoseHold,
     RadiusRatio,
@@ -33,7 +34,6 @@ from handctl.online.recipes.schema import (
     RecipeObject,
     ScheduledTorques,
     TimeoutAction,
-    TorqueMargin,
     TurnBrake,
     TurnRate,
     TurnStall,
@@ -288,7 +288,8 @@ def _parse_phase(
     aborts = _parse_conditions(doc, "abort", hand, estimates)
     turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
     pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
-    joint_damping = parse_joint_damping(doc)
+    joint_damping = parse_joint_damping(doc, hand.joint_names)
+    fades = parse_damping_fades(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     paced = parse_paced_ramp(doc.mapping("paced_ramp")) if doc.has("paced_ramp") else None
     if paced is not None and ramp <= 0:
@@ -328,7 +329,21 @@ def _parse_phase(
         stall,
         reanalyse,
         schedule,
+        joint_damping_fades=fades,
     )
+
+
+def parse_damping_fades(doc: Doc) -> bool:
+    """``joint_damping_fades`` of a recipe's or a template's phase (true when not set):
+    whether the phase's injected damping fades out over the next phase's ramp or ends with
+    the phase. Refused without a ``joint_damping`` to end (a key that does nothing
+    misleads)."""
+    if not doc.has("joint_damping_fades"):
+        return True
+    fades = doc.boolean("joint_damping_fades")
+    if not doc.has("joint_damping"):
+        doc.fail("joint_damping_fades", "a phase with joint_damping", "no joint_damping")
+    return fades
 
 
 def parse_schedule(
@@ -468,7 +483,7 @@ def parse_grasp_model(
     return GraspModel(masses, finger_object, object_object, gravity, gap)
 
 
-def parse_torque_margin(doc: Doc, joint_names: Sequence[str]) -> TorqueMargin:
+def parse_torque_margin(doc: Doc, joint_names: Sequence[str]) -> PerJoint:
     """``torque_margin`` of a recipe's or a template's phase: the factor (1 when it is not set)
     the runner applies to the phase's torques, one for every joint or a mapping of each joint's
     name to its own. Why per joint: a joint that ends the phase resting in its soft-limit
@@ -483,12 +498,24 @@ def parse_torque_margin(doc: Doc, joint_names: Sequence[str]) -> TorqueMargin:
     return values
 
 
-def parse_joint_damping(doc: Doc) -> float:
+def parse_joint_damping(doc: Doc, joint_names: Sequence[str]) -> PerJoint:
     """``joint_damping`` (N·m·s/rad) of a recipe's or a template's phase: the damping the
-    runner injects on every joint (0 when it is not set)."""
-    return doc.number(
-        "joint_damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING, unit="N·m·s/rad"
+    runner injects (0 when it is not set), one for every joint or a mapping of each joint's
+    name to its own. Why per joint: a joint pressed into its guard's band by the phase's
+    torque is held by the guard's stiff spring, whose push through the drive's lag is a
+    negative damping a lightly damped joint cannot pay for; the other joints need none, and
+    damping them changes how the pair rolls (docs/experiment.md)."""
+    if not isinstance(doc.raw("joint_damping", 0.0), dict):
+        return doc.number(
+            "joint_damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING, unit="N·m·s/rad"
+        )
+    sub = doc.mapping("joint_damping")
+    sub.expect(joint_names)
+    values = tuple(
+        sub.number(n, min=0.0, max=MAX_JOINT_DAMPING, unit="N·m·s/rad") for n in joint_names
     )
+    sub.done()
+    return values
 
 
 def parse_brake(doc: Doc) -> TurnBrake:

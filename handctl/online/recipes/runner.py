@@ -39,13 +39,16 @@ Feedback, all of it from the angles and the estimates computed from them:
   ``Reanalyser`` for the analysis' torque at the measured configuration, and ``delay_s``
   later takes the answer: the phase's ramp starts again, from the torque proposed then to
   the answer (``_reanalyse``); no answer, or none robust, keeps the planned torque.
-- ``joint_damping``: ``-joint_damping * velocity`` on every joint (the velocities filtered
+- ``joint_damping``: ``-joint_damping * velocity`` on each joint (the velocities filtered
   from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
   least (a tendon's losses are not measured to a factor of three), and in a turn it sets how
   fast the grasp rolls over; an injected term larger than that uncertainty makes the pace of
   the motion the recipe's, and slows the roll-over of a pair past its balance to where the
   exits on the measured turn can catch it. The coefficient moves from the previous phase's
-  to this one's with the ramp, so a change of damping is no step in torque.
+  to this one's with the ramp, so a change of damping is no step in torque. Given per joint,
+  each joint has its own: a distal joint the phase presses into its guard's band needs it
+  (the guard's spring through the drive's lag is a negative damping), the joints that roll
+  the pair do not.
 """
 
 from __future__ import annotations
@@ -103,7 +106,7 @@ class Handover:
     phase begin as it does in a run of the whole recipe."""
 
     torques: FloatArray
-    damping: float
+    damping: FloatArray  # N·m·s/rad, per joint
     velocity: JointVelocity
     guard_velocity: FittedVelocity | None
 
@@ -182,9 +185,9 @@ class RecipeRunner:
         self._fed = False  # whether ``_proposed`` holds this phase's last proposal
         # injected joint damping (N·m·s/rad): the previous phase's, this one's, and between
         # them as the ramp goes, so a change of damping is no step in torque
-        self._damping_from = 0.0
-        self._damping_to = 0.0
-        self.damping = 0.0
+        self._damping_from = np.zeros(n_joints)
+        self._damping_to = np.zeros(n_joints)
+        self.damping = np.zeros(n_joints)
         self._damped = np.zeros(n_joints)
         # a paced ramp's fraction along its segment, and when it last moved
         self.pace = 0.0
@@ -200,7 +203,7 @@ class RecipeRunner:
         self._depth_known = False
         if after is not None:  # the first phase is entered from the handed-over state
             self._desired[:] = after.torques
-            self.damping = after.damping
+            self.damping[:] = after.damping
             self.velocity = after.velocity
             if self._guard_velocity is not None and after.guard_velocity is not None:
                 self._guard_velocity = after.guard_velocity
@@ -208,7 +211,15 @@ class RecipeRunner:
     def handover(self) -> Handover:
         """What the next phase would start from now (its filters are this runner's own)."""
         torques = (self._proposed if self._fed else self._desired).copy()
-        return Handover(torques, self.damping, self.velocity, self._guard_velocity)
+        damping = np.zeros(self.n) if self._damping_ends() else self.damping.copy()
+        return Handover(torques, damping, self.velocity, self._guard_velocity)
+
+    def _damping_ends(self) -> bool:
+        """Whether the current phase's injected damping ends with it instead of fading over
+        the next phase's ramp (``joint_damping_fades``)."""
+        return 0 <= self.index < len(self.recipe.phases) and (
+            not self.recipe.phases[self.index].joint_damping_fades
+        )
 
     @property
     def phase_name(self) -> str:
@@ -235,7 +246,10 @@ class RecipeRunner:
         self._asked_at = math.nan
         self._answered = False
         self._settle_unmeasured()
-        self._damping_from = self.damping
+        if self._damping_ends():
+            self._damping_from[:] = 0.0
+        else:
+            self._damping_from[:] = self.damping
         self._held_since.clear()
         self._stall_turn = self._stall_t = math.nan
         self.scale = self._scale_i = 1.0
@@ -252,7 +266,7 @@ class RecipeRunner:
             self.index = index
             self._target = np.array(phase.torques) * np.asarray(phase.torque_margin)
             self._ramp_s = phase.ramp_s
-            self._damping_to = phase.joint_damping
+            self._damping_to[:] = phase.joint_damping
             self.records.append(PhaseRecord(phase.name, t))
             self._scheduled = not phase.schedule
         else:
@@ -260,7 +274,7 @@ class RecipeRunner:
             self.status = RunStatus.END_RAMP
             self._target = np.zeros(self.n)
             self._ramp_s = self.recipe.end_ramp_s
-            self._damping_to = 0.0
+            self._damping_to[:] = 0.0
 
     def step(
         self, t: float, angle: FloatArray, tdt: FloatArray, estimates: Sequence[float] | None = None
@@ -320,7 +334,9 @@ class RecipeRunner:
         ramped = t - self._ramp_start
         fraction = 1.0 if self._ramp_s <= 0 else min(1.0, ramped / self._ramp_s)
         self._fraction = fraction
-        self.damping = self._damping_from + fraction * (self._damping_to - self._damping_from)
+        np.subtract(self._damping_to, self._damping_from, out=self.damping)
+        self.damping *= fraction
+        self.damping += self._damping_from
         np.subtract(self._target, self._from, out=self._desired)
         self._desired *= fraction
         self._desired += self._from
@@ -379,11 +395,11 @@ class RecipeRunner:
                     out[j] += self._fraction * (
                         pose.stiffness * (q_ref - float(angle[j])) - pose.damping * float(v[j])
                     )
-        if self.damping > 0.0:
+        if self.damping.any():
             # apart from ``_proposed``, which the next phase's ramp starts from: the damping
             # carries over through ``self.damping`` instead
-            np.multiply(self.velocity.value, -self.damping, out=self._damped)
-            self._damped += out
+            np.multiply(self.velocity.value, self.damping, out=self._damped)
+            np.subtract(out, self._damped, out=self._damped)
             out = self._damped
         if self._guard is None or self._guard_velocity is None:
             return out

@@ -222,9 +222,10 @@ class GraspModel:
     contact_gap: float
 
 
-#: A phase's ``torque_margin``: one factor for every joint, or one per joint in the config's
-#: order; either multiplies the phase's torques as it is (``numpy`` broadcasts the one).
-TorqueMargin = float | tuple[float, ...]
+#: A phase's value that may differ per joint (``torque_margin``, ``joint_damping``): one for
+#: every joint, or one per joint in the config's order; either is used as it is (``numpy``
+#: broadcasts the one).
+PerJoint = float | tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -283,16 +284,16 @@ class Phase:
     provenance: Mapping[str, Any] = field(default_factory=dict)
     turn_rate: TurnRate | None = None
     pose: PoseHold | None = None
-    #: N·m·s/rad, joint-velocity damping the runner adds to every joint (runner.py): the
-    #: hand's own damping is the least known of its dynamics, and an added term it cannot
-    #: change makes the motion's pace less its own; 0: none
-    joint_damping: float = 0.0
+    #: N·m·s/rad, joint-velocity damping the runner adds (runner.py; one for every joint, or
+    #: one per joint): the hand's own damping is the least known of its dynamics, and an
+    #: added term it cannot change makes the motion's pace less its own; 0: none
+    joint_damping: PerJoint = 0.0
     brake: TurnBrake | None = None
     paced: PacedRamp | None = None
     #: the runner applies ``torques`` times this (>= 1; one factor, or one per joint in the
     #: config's order): headroom in the lift for objects heavier than the plan's models
     #: (docs/experiment.md); 1: the plan's own
-    torque_margin: TorqueMargin = 1.0
+    torque_margin: PerJoint = 1.0
     #: the name of this or an earlier phase: the phase's exits read a ``line_turn`` from
     #: where the pair was when that phase began, not this one (the paper's switching on the
     #: pair's measured position, whatever an earlier phase left undone); "": this phase
@@ -304,6 +305,11 @@ class Phase:
     #: alternative torques for ranges of the objects' measured sizes, the first that holds
     #: chosen once the sizes are measured; none holding: ``torques``
     schedule: tuple[ScheduledTorques, ...] = ()
+    #: whether this phase's ``joint_damping`` fades out over the next phase's ramp (no step
+    #: in torque) or ends with the phase, so that damping meant for this phase's grasp does
+    #: not reach into the next phase's motion (the step is the damping times the joints'
+    #: speed at the switch, which the supervisor's rate limit spreads out)
+    joint_damping_fades: bool = True
 
 
 @dataclass(frozen=True)
