@@ -28,11 +28,22 @@ process, then read back:
     runtime recording.
 
   ``loop_cost_us_p99`` is the direct 99th percentile plus what the paired mean found beyond
-  the direct mean (that indirect share, taken as the same in every tick). Target <= 20.
+  the direct mean (that indirect share, taken as the same in every tick). Target <= 28
+  (``loop_target_met``; the issue's "about 14-28 us on this machine").
   The two places of a pair are not alike (``_pair``): the runs alternate them, A first in
   the first run, second in the next, and the indirect share is the average of the two
   places' (``indirect_us_mean``); a single run has the places' difference in it.
   ``tick_us_p50_unrecorded`` is B's median tick, for scale: the baseline of the same run.
+  The host's floor (``noise_floor``): ``floor_us_p50`` / ``_p99`` of a ``Window`` of work as
+  long as the direct median, in a pair that does not record, against
+  ``loop_cost_direct_us_p99`` (``loop_cost_over_floor_us_p99``, ``loop_cost_floor_ratio_p99``);
+  ``loop_cost_slow_share`` and ``floor_slow_share``, the shares of interrupted ticks
+  (``slow_share``); ``tick_us_p99_recorded`` / ``_unrecorded``, ``tick_p99_added_us`` and
+  ``tick_p99_ratio``, A's and B's whole ticks at the 99th percentile. The ticks that carry
+  poses (every ``POSE_EVERY_TICKS``-th) are a tenth of all and the dearest, so the 99th
+  percentile falls among them: ``loop_cost_posed_us_p50`` is their direct median and
+  ``loop_cost_unposed_us_p99`` the direct 99th percentile of the others (``--against``:
+  ``against_*_posed_us_p50``, ``against_*_unposed_us_p99``).
   ``loop_cost_share_p99`` is ``loop_cost_us_p99`` over it (and ``loop_cost_share_p50`` the
   direct median over it): on a shared machine every time swells with the load of the
   moment, the recording's and the tick's alike, and the share tells a recorder that got
@@ -425,6 +436,7 @@ def record_once(
     direct = (np.array(a.begin_ns[:n]) + poses + result.stage_ns[:n, 4])[control[:n]]
     return {
         "direct_ns": direct,
+        "posed": (np.arange(n) % POSE_EVERY_TICKS == 0)[control[:n]],
         "added_ns": added,
         "unrecorded_ns": unrecorded,
         "ticks": result.ticks,
@@ -902,6 +914,7 @@ def against_once(
         out[name] = {
             "direct": direct[control[:n]] / 1e3,
             "tick": np.array(side.clock.work_ns[:n])[control[:n]] / 1e3,
+            "posed": (np.arange(n) % POSE_EVERY_TICKS == 0)[control[:n]],
         }
     return out
 
@@ -939,7 +952,7 @@ def run_against(args: argparse.Namespace) -> dict[str, Any]:
         pooled = {
             (name, part): np.concatenate([r[name][part] for r in group])
             for name in ("this", "reference")
-            for part in ("direct", "tick")
+            for part in ("direct", "tick", "posed")
         }
         figures: dict[str, float] = {}
         for name in ("this", "reference"):
@@ -947,6 +960,9 @@ def run_against(args: argparse.Namespace) -> dict[str, Any]:
             for q in (50, 99):
                 figures[f"against_{name}_us_p{q}"] = float(np.percentile(direct, q))
             figures[f"against_{name}_us_mean"] = float(np.mean(direct))
+            posed = pooled[(name, "posed")].astype(bool)
+            figures[f"against_{name}_posed_us_p50"] = float(np.percentile(direct[posed], 50))
+            figures[f"against_{name}_unposed_us_p99"] = float(np.percentile(direct[~posed], 99))
         figures["against_tick_us_mean"] = float(
             np.mean(pooled[("this", "tick")] - pooled[("reference", "tick")])
         )
@@ -971,6 +987,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     paired_mean, paired_sem, paired_p99, share_p99, share_p50 = [], [], [], [], []
     read_us, runtime_us, tick_p50, estimator_us = [], [], [], []
     slow, tick_p99_recorded, tick_p99_unrecorded = [], [], []
+    posed_p50, unposed_p99 = [], []
     with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
         for i in range(args.repeat):
             out = Path(directory) / f"run{i}.mcap"
@@ -987,6 +1004,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             paired_p99.append(float(np.percentile(added, 99)) / 1e3)
             tick_p50.append(float(np.percentile(run_["unrecorded_ns"], 50)) / 1e3)
             slow.append(slow_share(direct))
+            posed_p50.append(float(np.percentile(direct[run_["posed"]], 50)) / 1e3)
+            unposed_p99.append(float(np.percentile(direct[~run_["posed"]], 99)) / 1e3)
             tick_p99_recorded.append(float(np.percentile(run_["unrecorded_ns"] + added, 99)) / 1e3)
             tick_p99_unrecorded.append(float(np.percentile(run_["unrecorded_ns"], 99)) / 1e3)
             share_p99.append(loop_p99[-1] / tick_p50[-1])
@@ -1059,6 +1078,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "paired_noise_us_p99": round(noise["paired_noise_us_p99"], 2),
         "loop_cost_direct_us_p99": round(direct_p99[best], 2),
         "loop_cost_slow_share": round(slow[best], 4),
+        "loop_cost_posed_us_p50": round(posed_p50[best], 2),
+        "loop_cost_unposed_us_p99": round(unposed_p99[best], 2),
         "floor_us_p50": round(noise["floor_us_p50"], 2),
         "floor_us_p99": round(noise["floor_us_p99"], 2),
         "floor_slow_share": round(noise["floor_slow_share"], 4),
