@@ -459,8 +459,9 @@ class Window:
     """A piece of interpreted work as long (at the median) as the recording's direct cost,
     run as a tick hook of a runtime that does not record and timed as the record stage is
     (the thread CPU clock): what the host does, in the same loop, to any work of that
-    length. Its length is a count of loop turns, set every ``WINDOW_EVERY`` calls over the
-    first ``WINDOW_SETTLE`` so that its median meets ``target_ns``; ``ns`` is kept after."""
+    length. Its length is a count of loop turns, set every ``WINDOW_EVERY`` calls so that
+    their median meets ``target_ns`` (the machine's speed drifts within a run); ``ns`` is
+    kept after the first ``WINDOW_SETTLE``."""
 
     def __init__(self, target_ns: float) -> None:
         self.target_ns = target_ns
@@ -481,7 +482,6 @@ class Window:
         self._calls += 1
         if self._calls > WINDOW_SETTLE:
             self.ns.append(took)
-            return
         self._recent.append(took)
         if len(self._recent) == WINDOW_EVERY:
             median = float(np.median(self._recent))
