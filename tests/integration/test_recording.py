@@ -312,8 +312,8 @@ def test_frames_keep_their_bus_order_and_ticks_however_drains_and_sends_fall(
     bursts of one frame and of several, a burst left open until a drain or a flush ends it,
     ticks that only drain, two drains with nothing sent between them, a send before the
     tick's drain, frames sent after a tick's push, blocks and bursts that wrap round the
-    ring's end, and a drain still waiting when the recorder closes. Every frame is in the file with its tick,
-    in the order the bus handed it over, byte for byte."""
+    ring's end, and a drain still waiting when the recorder closes. Every frame is in the
+    file with its tick, in the order the bus handed it over, byte for byte."""
     layout = RingLayout(hand.n_joints, len(hand.fingers), 0, tick_capacity=16, frame_capacity=16)
     channel = f"virtual:order-{os.getpid()}-{time.monotonic_ns()}"
     path = tmp_path / "order.mcap"
