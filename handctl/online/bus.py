@@ -125,10 +125,13 @@ class BusEvent:
     timestamp_ns: int
 
 
-#: What a frame tap is told about each frame (``HandBus.tap``): ``handctl.online.taps``.
-#: ``tap(arbitration_id, data, direction)``: each frame ``send`` handed to the bus (or could
-#: not). Called inside the tick, so it must only copy and return.
-FrameTap = Callable[[int, bytes, int], None]
+#: What a frame tap is told about the frames sent (``HandBus.tap``): ``handctl.online.taps``.
+#: ``tap(frames, direction)``: the ``(arbitration_id, data)`` of the frames ``send`` handed to
+#: the bus (or could not), a burst at a time (the frames sent with ``more=True`` and the one
+#: after them), in the order sent; a list the tap may keep. One call a burst rather than a
+#: frame: called inside the tick, where every Python-level call costs about a microsecond, so
+#: it must only copy and return.
+FrameTap = Callable[[list[tuple[int, bytes]], int], None]
 #: ``rx_tap(frames)``: the frames one ``drain`` returns, once per drain that returned any.
 RxTap = Callable[[list[Frame]], None]
 
@@ -225,6 +228,9 @@ class HandBus:
         self._lookahead: tuple[int, int, int, bytes] | None = None
         #: The recorder's taps: every frame drained or sent, and every event as it is taken.
         self.tap: FrameTap | None = None
+        #: Frames sent at once on a bus that does not batch, not yet tapped: their burst's
+        #: ``send(..., more=False)``, a ``flush`` or a drain hands them to ``tap`` together.
+        self._tapped: list[tuple[int, bytes]] = []
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
 
@@ -301,6 +307,8 @@ class HandBus:
         except (can.CanError, OSError, ValueError) as exc:
             self._event(BusEventKind.RX_FAILED, str(exc))
         if frames and self.rx_tap is not None:
+            if self._tapped:  # sent before this drain: tapped before it, in bus order
+                self._tap_sent()
             self.rx_tap(frames)
         return frames
 
@@ -310,7 +318,8 @@ class HandBus:
         ``more=True`` says another frame of the same burst follows at once, so for a batching
         transport (``BurstTransport``) this one is held until the last (``more=False``) or ``flush``
         (at most ``MAX_BURST`` frames): ``send`` returns True for it, and it is counted and
-        tapped when the burst goes, with the burst's fate.
+        tapped when the burst goes, with the burst's fate. On other buses every frame goes at
+        once, and the tap hears the burst's frames together after its last.
         """
         if self._frames is not None or self._bursts is not None:
             self._burst.append((arbitration_id, data))
@@ -332,12 +341,24 @@ class HandBus:
             self._tx_error(exc)
             self.tx_failed += 1
             if self.tap is not None:
-                self.tap(arbitration_id, data, TAP_TX_FAILED)
+                if self._tapped:
+                    self._tap_sent()
+                self.tap([(arbitration_id, data)], TAP_TX_FAILED)
             return False
         self.sent += 1
         if self.tap is not None:
-            self.tap(arbitration_id, data, TAP_TX)
+            tapped = self._tapped
+            tapped.append((arbitration_id, data))
+            if not more or len(tapped) >= MAX_BURST:  # ``_tap_sent``, inline: every tick's
+                self._tapped = []
+                self.tap(tapped, TAP_TX)
         return True
+
+    def _tap_sent(self) -> None:
+        """Hand the frames sent and not yet tapped to ``tap``."""
+        tapped, self._tapped = self._tapped, []
+        if self.tap is not None:
+            self.tap(tapped, TAP_TX)
 
     def _message(self, arbitration_id: int, data: bytes) -> can.Message:
         """The python-can Message of a frame this bus sends (a transport that takes Messages)."""
@@ -357,9 +378,11 @@ class HandBus:
 
         False, with a TX_QUEUE_FULL (or TX_FAILED) event, if the transport refused the burst:
         each of its frames is then counted in ``tx_failed`` and tapped as failed. Other buses
-        send at once, so there is nothing to do.
+        send at once: only the tap of the frames sent since the last burst ended is due.
         """
         if self._bursts is None and self._frames is None:
+            if self._tapped:
+                self._tap_sent()
             return True
         burst, self._burst = self._burst, []
         messages, self._burst_messages = self._burst_messages, []
@@ -385,10 +408,8 @@ class HandBus:
             self.sent += len(burst)
         else:
             self.tx_failed += len(burst)
-        if self.tap is not None:
-            direction = TAP_TX if ok else TAP_TX_FAILED
-            for frame_id, data in burst:
-                self.tap(frame_id, data, direction)
+        if self.tap is not None and burst:
+            self.tap(burst, TAP_TX if ok else TAP_TX_FAILED)
         return ok
 
     def _tx_error(self, exc: Exception) -> None:

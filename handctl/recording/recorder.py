@@ -33,7 +33,7 @@ import orjson
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError, HandctlError
-from handctl.online.bus import BusEvent, Frame
+from handctl.online.bus import MAX_BURST, BusEvent, Frame
 from handctl.online.recipes.runner import RunStatus
 from handctl.online.safety.faults import FAULTS
 from handctl.online.safety.supervisor import State
@@ -87,6 +87,8 @@ _PACKED_DRAIN = 64
 
 
 _EVENT = struct.Struct("<qqqq")  # t, tick, kind, text length
+#: The poses' (x, y, angle) as one run of floats, in C (bound once: no look-up a call).
+_flatten = itertools.chain.from_iterable
 #: Runner status names a phase column can also hold.
 RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
 SUPERVISOR_STATE_NAMES = tuple(s.value for s in State)
@@ -167,18 +169,19 @@ class Recorder:
     # ``__dict__`` for what a bench or a test puts on an instance (a timed method).
     __slots__ = (  # noqa: RUF023 - in the order the tick reads them, not sorted
         # the taps
-        "_fhead",
-        "_frame_limit",
-        "_tx_pack",
-        "_buf",
-        "_frame_base",
-        "_frame_mask",
+        "_drained",
         "_now",
         "_tick",
-        "_drain_packs",
-        "_drains",
-        "_drained",
+        "_fhead",
+        "_frame_mask",
         "_sent_packs",
+        "_frame_limit",
+        "_buf",
+        "_frame_base",
+        "_drains",
+        "_burst_packs",
+        "_drain_packs",
+        "_tx_pack",
         # push
         "_row",
         "_sup",
@@ -211,8 +214,14 @@ class Recorder:
         "_tdt_view",
         "_desired_view",
         "_applied_view",
-        "_pose_list",
         "_ctl_view",
+        "_pose_list",
+        "_phead",
+        "_ptail",
+        "_pose_mask",
+        "_pose_pack",
+        "_pose_base",
+        "_pose_stride",
         "_head",
         # begin_tick
         "_tail",
@@ -224,12 +233,6 @@ class Recorder:
         "_event_base",
         "_event_data",
         "_event_mask",
-        "_phead",
-        "_ptail",
-        "_pose_base",
-        "_pose_mask",
-        "_pose_pack",
-        "_pose_stride",
         "_phases",
         "_states",
         "_no_faults",
@@ -386,10 +389,14 @@ class Recorder:
         #: frames, each made when first met (``_drain_slowly``); a list, read without a call.
         self._drain_packs: list[Any] = [None] * (_PACKED_DRAIN + 1)
         self._drains = 0  # head rows written: the frames are the rows but these
-        #: The frames of the last drain, not yet written: the next sent frame writes them
-        #: with its own row, in one ``pack_into`` (``_sent_packs``, by count of frames).
+        #: The frames of the last drain, not yet written: the next burst sent writes them
+        #: with its own rows, in one ``pack_into`` (``_sent_packs``, by count of frames
+        #: drained and sent; ``_burst_packs`` a burst's alone, by count of frames).
         self._drained: list[Frame] | None = None
-        self._sent_packs: list[Any] = [None] * (_PACKED_DRAIN + 1)
+        self._sent_packs: list[list[Any]] = [
+            [None] * (MAX_BURST + 1) for _ in range(_PACKED_DRAIN + 1)
+        ]
+        self._burst_packs: list[Any] = [None] * (MAX_BURST + 1)
         self._event_base = r.offsets["event_i"]
         self._event_data = r.offsets["event_d"]
         self._event_mask = self.layout.event_capacity - 1
@@ -427,7 +434,7 @@ class Recorder:
         self._sup = runtime.supervisor
         self._joints = runtime.driver.state
         bus = runtime.driver.bus
-        bus.tap = self._frame
+        bus.tap = self._sent
         bus.rx_tap = self._drain
         bus.event_tap = self._bus_event
         driver = runtime.driver
@@ -578,12 +585,34 @@ class Recorder:
                 floats[at + n : at + 2 * n] = self._tdt_view
             floats[at + 2 * n : at + 3 * n] = self._desired_view
             floats[at + 3 * n : at + 4 * n] = self._applied_view
-        if self._pose_list is not None:
-            self._copy_poses()
+        ctl = self._ctl_view
+        poses = self._pose_list
+        if poses is not None:
+            # ``_copy_poses``, inline: every tenth tick of a run of the simulated hand, where
+            # the copy's code and data have gone cold since the last, a call more cost a
+            # microsecond or two of the slowest ticks' (the ticks that carry poses were most of
+            # the 99th percentile's).
+            self._pose_list = None
+            head = self._phead
+            if head - self._ptail <= self._pose_mask:
+                try:
+                    self._pose_pack(
+                        self._buf,
+                        self._pose_base + (head & self._pose_mask) * self._pose_stride,
+                        self._tick,
+                        self._now,
+                        *_flatten(poses),
+                    )
+                    ctl[POSE_HEAD] = self._phead = head + 1
+                except struct.error:  # a pose list of another length
+                    self._pose_list = poses
+                    self._copy_poses()
+            else:
+                self._pose_list = poses
+                self._copy_poses()
         if self._drained is not None:  # a tick that sent nothing after its drain
             self._write_drain(self._drained)
             self._drained = None
-        ctl = self._ctl_view
         ctl[FRAME_HEAD] = self._fhead
         self._row = -1
         self._head = head = self._head + 1
@@ -676,55 +705,91 @@ class Recorder:
     # -- taps: each frame's row written as the bus hands it over ---------------------------
     # A frame's time is its tick's (the clock stands still inside a lockstep tick; in real
     # time a tick's frames are drained or sent within its first few hundred microseconds); a
-    # received frame keeps the adapter's own time stamp as well. A drain's block waits for
-    # the tick's first sent frame and goes into the ring with it: a tick's first
-    # ``pack_into`` costs the running loop some 2 us more than the others whatever it packs,
-    # so one call fewer a tick is worth the wait (the block is written before anything that
-    # follows it: the next tick, the tick's push, another drain, the end).
-    def _frame(self, arbitration_id: int, data: bytes, direction: int) -> None:
-        """A sent frame's row (direction, t, tick, arbitration id, data), after the last
-        drain's block if it is not written yet: both with one ``pack_into``."""
+    # received frame keeps the adapter's own time stamp as well. The bus hands a burst of
+    # sent frames over in one call (the tick's command frames), and a drain's block waits for
+    # the tick's first burst and goes into the ring with it: in the running loop every call
+    # costs about a microsecond, and a tick's first ``pack_into`` some 2 us more than the
+    # others whatever it packs, so a tick's frames are two calls and one ``pack_into`` (the
+    # block is written before anything that follows it: the next tick, the tick's push,
+    # another drain, the end).
+    def _sent(self, frames: list[tuple[int, bytes]], direction: int) -> None:
+        """A burst's sent frames, a row each (direction, t, tick, arbitration id, data), after
+        the last drain's block if it is not written yet: all with one ``pack_into``."""
+        count = len(frames)
         drained = self._drained
+        now = self._now
+        tick = self._tick
+        head = self._fhead
+        at = head & self._frame_mask
         if drained is not None:
             self._drained = None
-            count = len(drained)
-            head = self._fhead
-            end = head + count + 2
-            at = head & self._frame_mask
-            pack = self._sent_packs[count] if count <= _PACKED_DRAIN else None
-            if pack is not None and end <= self._frame_limit and at + count < self._frame_mask:
-                args = [
-                    self._buf,
-                    self._frame_base + at * FRAME_ROW,
-                    TAP_RX,
-                    self._now,
-                    self._tick,
-                    count,
-                ]
+            rx = len(drained)
+            end = head + rx + 1 + count
+            try:
+                pack = self._sent_packs[rx][count]
+            except IndexError:  # a long drain or burst: written apart
+                pack = None
+            fits = end <= self._frame_limit and at + rx + count <= self._frame_mask
+            if pack is not None and fits:
+                args = [self._buf, self._frame_base + at * FRAME_ROW, TAP_RX, now, tick, rx]
                 for frame in drained:
                     args += frame
-                args += (direction, self._now, self._tick, arbitration_id, data)
+                for arbitration_id, data in frames:
+                    args += (direction, now, tick, arbitration_id, data)
                 pack(*args)
                 self._fhead = end
                 self._drains += 1
                 return
             self._write_drain(drained)
-        head = self._fhead
-        if head >= self._frame_limit and self._frames_full(head + 1, 1):
+            self._new_packs(rx, count)
+            head = self._fhead
+            at = head & self._frame_mask
+        end = head + count
+        try:
+            pack = self._burst_packs[count]
+        except IndexError:
+            pack = None
+        if pack is not None and end <= self._frame_limit and at + count <= self._frame_mask + 1:
+            args = [self._buf, self._frame_base + at * FRAME_ROW]
+            for arbitration_id, data in frames:
+                args += (direction, now, tick, arbitration_id, data)
+            pack(*args)
+            self._fhead = end
             return
-        self._tx_pack(
-            self._buf,
-            self._frame_base + (head & self._frame_mask) * FRAME_ROW,
-            direction,
-            self._now,
-            self._tick,
-            arbitration_id,
-            data,
-        )
-        self._fhead = head + 1
+        self._send_slowly(frames, direction)
+
+    def _send_slowly(self, frames: list[tuple[int, bytes]], direction: int) -> None:
+        """A burst's rows a call each, with a look at the writer's tail when the ring looks
+        full (a frame that does not fit is dropped and counted); the struct of a burst of this
+        many frames made for the next time."""
+        if len(frames) <= MAX_BURST and self._burst_packs[len(frames)] is None:
+            self._burst_packs[len(frames)] = struct.Struct(
+                "<" + TX_FRAME_ROW * len(frames)
+            ).pack_into
+        for arbitration_id, data in frames:
+            head = self._fhead
+            if head >= self._frame_limit and self._frames_full(head + 1, 1):
+                continue
+            self._tx_pack(
+                self._buf,
+                self._frame_base + (head & self._frame_mask) * FRAME_ROW,
+                direction,
+                self._now,
+                self._tick,
+                arbitration_id,
+                data,
+            )
+            self._fhead = head + 1
+
+    def _new_packs(self, rx: int, count: int) -> None:
+        """The struct of a drain's block of ``rx`` frames followed by ``count`` sent frames,
+        made when first met, if it is one to keep (a few, met every tick)."""
+        if rx <= _PACKED_DRAIN and count <= MAX_BURST and self._sent_packs[rx][count] is None:
+            block = "<" + RX_HEAD_ROW + RX_FRAME_ROW * rx + TX_FRAME_ROW * count
+            self._sent_packs[rx][count] = struct.Struct(block).pack_into
 
     def _drain(self, frames: list[Frame]) -> None:
-        """A drain's frames, kept for the next sent frame to write (``_frame``)."""
+        """A drain's frames, kept for the next burst sent to write (``_sent``)."""
         if self._drained is not None:  # two drains with no frame sent between them
             self._write_drain(self._drained)
         self._drained = frames
@@ -757,9 +822,9 @@ class Recorder:
         struct of a block of this many frames for the next time, if it is one to keep."""
         count = len(frames)
         if count <= _PACKED_DRAIN and self._drain_packs[count] is None:
-            block = "<" + RX_HEAD_ROW + RX_FRAME_ROW * count
-            self._drain_packs[count] = struct.Struct(block).pack_into
-            self._sent_packs[count] = struct.Struct(block + TX_FRAME_ROW).pack_into
+            self._drain_packs[count] = struct.Struct(
+                "<" + RX_HEAD_ROW + RX_FRAME_ROW * count
+            ).pack_into
         end = head + count + 1
         if end > self._frame_limit and self._frames_full(end, count):
             return
@@ -832,10 +897,10 @@ class Recorder:
                 self._pose_base + row * self._pose_stride,
                 self._tick,
                 self._now,
-                *itertools.chain.from_iterable(poses),
+                *_flatten(poses),
             )
         except struct.error:  # a pose list of another length: what fits, the rest NaN
-            values = tuple(itertools.chain.from_iterable(poses))
+            values = tuple(_flatten(poses))
             self._rings.pose_i[row] = (self._tick, self._now)
             row_values = self._rings.pose_f[row]
             row_values[:] = float("nan")

@@ -184,6 +184,9 @@ class ReplayBus:
         self._events: list[BusEvent] = []
         self.frame_mismatches: list[str] = []
         self.frames_compared = 0
+        #: The burst's frames sent and not yet tapped, and their direction.
+        self._tapped: list[tuple[int, bytes]] = []
+        self._tapped_direction = TAP_TX
 
     def load(self, tick: int, inputs: TickInput | _Pending) -> None:
         for frame_id, data, _ in self._tx:
@@ -208,6 +211,7 @@ class ReplayBus:
             frames = [rx.popleft() for _ in range(limit)]
         self.received += len(frames)
         if frames and self.rx_tap is not None:
+            self._tap_sent()
             self.rx_tap(frames)
         return frames
 
@@ -230,11 +234,25 @@ class ReplayBus:
             self.sent += ok
             self.tx_failed += not ok
         if self.tap is not None:
-            self.tap(arbitration_id, data, TAP_TX if ok else TAP_TX_FAILED)
+            # Tapped a burst at a time, as a ``HandBus`` taps them: a frame whose fate is not
+            # the burst's so far ends the burst's tap before its own.
+            direction = TAP_TX if ok else TAP_TX_FAILED
+            if self._tapped and direction != self._tapped_direction:
+                self._tap_sent()
+            self._tapped.append((arbitration_id, data))
+            self._tapped_direction = direction
+            if not more:
+                self._tap_sent()
         return ok
 
+    def _tap_sent(self) -> None:
+        tapped, self._tapped = self._tapped, []
+        if self.tap is not None and tapped:
+            self.tap(tapped, self._tapped_direction)
+
     def flush(self) -> bool:
-        """Sends are compared as they come: there is no burst to end."""
+        """Sends are compared as they come: only the burst's tap is due."""
+        self._tap_sent()
         return True
 
     def events(self) -> list[BusEvent]:

@@ -282,18 +282,24 @@ def test_frames_wrapping_round_a_small_ring_are_the_bus_traffic(
 
 #: Per tick, what the bus does: ("rx", n) the peer sends n frames and the host drains them,
 #: ("tx",) the host sends one, ("push",) the tick's push (a tick without one only polled).
+#: Per tick: ("rx", n) n frames drained at once; ("tx", n) a burst of n frames sent (the
+#: first n - 1 with ``more=True``); ("open", n) n frames sent with ``more=True`` and nothing
+#: after them (a ``flush`` or the next drain ends the burst); ("flush",); ("push",).
 BUS_SCRIPT: list[list[tuple[Any, ...]]] = [
-    [("rx", 3), ("tx",), ("tx",), ("tx",), ("push",)],
+    [("rx", 3), ("tx", 3), ("push",)],
     [("rx", 2)],
-    [("rx", 1), ("rx", 2), ("tx",), ("push",), ("tx",)],
-    [("rx", 4), ("tx",), ("tx",), ("push",)],
+    [("rx", 1), ("rx", 2), ("tx", 1), ("push",), ("tx", 1)],
+    [("rx", 4), ("tx", 1), ("tx", 1), ("push",)],
     [("rx", 5), ("push",)],
-    [("rx", 3), ("tx",), ("push",)],
-    [("tx",), ("rx", 6), ("push",)],
-    [("rx", 2), ("tx",), ("tx",), ("tx",), ("push",)],
-    [("rx", 7), ("tx",), ("push",)],
-    [("rx", 1), ("tx",), ("push",)],
-    [("rx", 3), ("tx",), ("tx",), ("push",)],
+    [("rx", 3), ("tx", 2), ("push",)],
+    [("tx", 1), ("rx", 6), ("push",)],
+    [("rx", 2), ("tx", 1), ("tx", 1), ("tx", 1), ("push",)],
+    [("rx", 7), ("tx", 3), ("push",)],
+    [("rx", 1), ("tx", 1), ("push",)],
+    [("open", 2), ("rx", 3), ("tx", 2), ("push",)],
+    [("tx", 4), ("push",), ("open", 1), ("flush",)],
+    [("rx", 3), ("tx", 1), ("tx", 1), ("push",)],
+    [("tx", 9), ("push",)],
     [("rx", 2)],
 ]
 
@@ -302,11 +308,12 @@ def test_frames_keep_their_bus_order_and_ticks_however_drains_and_sends_fall(
     hand: HandConfig, tmp_path: Path
 ) -> None:
     """Through a real virtual bus, a frame ring of 16 rows emptied by the writer before each
-    tick: a drain and the sends after it (the drain's block goes in with the first of them),
+    tick: a drain and the sends after it (the drain's block goes in with the first burst),
+    bursts of one frame and of several, a burst left open until a drain or a flush ends it,
     ticks that only drain, two drains with nothing sent between them, a send before the
-    tick's drain, frames sent after a tick's push, blocks that wrap round the ring's end, and
-    a drain still waiting when the recorder closes. Every frame is in the file with its tick,
-    in the order the bus handed it over, byte for byte."""
+    tick's drain, frames sent after a tick's push, blocks and bursts that wrap round the
+    ring's end, and a drain still waiting when the recorder closes. Every frame is in the
+    file with its tick, in the order the bus handed it over, byte for byte."""
     layout = RingLayout(hand.n_joints, len(hand.fingers), 0, tick_capacity=16, frame_capacity=16)
     channel = f"virtual:order-{os.getpid()}-{time.monotonic_ns()}"
     path = tmp_path / "order.mcap"
@@ -314,7 +321,7 @@ def test_frames_keep_their_bus_order_and_ticks_however_drains_and_sends_fall(
     zero = np.zeros(hand.n_joints)
     with open_bus(channel, hand.bus) as peer, open_bus(channel, hand.bus) as host:
         recorder = Recorder(path, hand, {}, layout=layout)
-        host.tap, host.rx_tap = recorder._frame, recorder._drain
+        host.tap, host.rx_tap = recorder._sent, recorder._drain
         recorder.wait_ready()
         n = 0
         for k, actions in enumerate(BUS_SCRIPT):
@@ -328,11 +335,15 @@ def test_frames_keep_their_bus_order_and_ticks_however_drains_and_sends_fall(
                     drained = host.drain()
                     assert len(drained) == action[1]
                     expected += [(ch.CAN_RX, k, f.arbitration_id, f.data) for f in drained]
-                elif action[0] == "tx":
-                    n += 1
-                    data = n.to_bytes(2, "little") * 3
-                    assert host.send(0x200 + n % 5, data)
-                    expected.append((ch.CAN_TX, k, 0x200 + n % 5, data))
+                elif action[0] in ("tx", "open"):
+                    for i in range(action[1]):
+                        n += 1
+                        data = n.to_bytes(2, "little") * 3
+                        more = action[0] == "open" or i < action[1] - 1
+                        assert host.send(0x200 + n % 5, data, more=more)
+                        expected.append((ch.CAN_TX, k, 0x200 + n % 5, data))
+                elif action[0] == "flush":
+                    assert host.flush()
                 else:
                     recorder.push(
                         TickRecord(k, 0, 0, 0, zero, zero, zero, zero, "running", "-", (0,) * 6, [])

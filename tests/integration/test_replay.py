@@ -468,7 +468,7 @@ def test_the_replay_bus_is_a_frame_bus_whose_taps_hear_the_run(
         assert isinstance(real, FrameBus)
     assert isinstance(replay, FrameBus)
     heard: list[tuple[Any, ...]] = []
-    replay.tap = lambda frame_id, data, direction: heard.append(("tx", frame_id, direction))
+    replay.tap = lambda frames, direction: heard.append(("tx", [f for f, _ in frames], direction))
     replay.rx_tap = lambda frames: heard.append(("rx", [f.arbitration_id for f in frames]))
     replay.event_tap = lambda event: heard.append(("event", event.kind))
     replay.load(
@@ -489,8 +489,8 @@ def test_the_replay_bus_is_a_frame_bus_whose_taps_hear_the_run(
     assert [e.kind for e in replay.events()] == [BusEventKind.TX_QUEUE_FULL]
     assert heard == [
         ("rx", [0x181]),
-        ("tx", 0x201, TAP_TX),
-        ("tx", 0x202, TAP_TX_FAILED),
+        ("tx", [0x201], TAP_TX),
+        ("tx", [0x202], TAP_TX_FAILED),
         ("event", BusEventKind.TX_QUEUE_FULL),
     ]
     assert replay.flush() is True

@@ -145,7 +145,7 @@ def test_a_receiver_is_told_how_many_frames_it_lost(open_unix: OpenUnix) -> None
 def test_a_burst_is_one_datagram_and_its_frames_share_its_fate(open_unix: OpenUnix) -> None:
     rx, tx = open_unix(), open_unix()
     taps: list[tuple[int, int]] = []
-    tx.tap = lambda frame_id, data, direction: taps.append((frame_id, direction))
+    tx.tap = lambda frames, direction: taps.extend((frame_id, direction) for frame_id, _ in frames)
     assert tx.send(0x181, bytes(16), more=True)
     assert tx.send(0x182, bytes(16), more=True)
     assert taps == [] and tx.sent == 0  # held until the burst ends
