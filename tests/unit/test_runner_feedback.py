@@ -19,6 +19,7 @@ from handctl.errors import ConfigError
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.runner import RecipeRunner
 from handctl.online.recipes.schema import FIRST_PAIR_TURN, Recipe, RecipeObject, estimate_names
+from handctl.planning.template import TemplatePhase
 
 JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
 TORQUES = [0.2, 0.1, 0.05, 0.2, 0.1, 0.05, -0.2, -0.1, -0.05]
@@ -465,18 +466,16 @@ def test_a_margin_per_joint_multiplies_each_joint_s_torque(
     assert not np.allclose(out, 1.5 * np.array(TORQUES))
 
 
-def test_a_template_s_margin_per_joint_is_carried_into_the_compiled_recipe(
-    tmp_path: Path, hand: HandConfig
-) -> None:
-    """``handctl plan`` writes a per-joint margin as the mapping it read, and the recipe's
-    loader reads it back to the same factors in the config's joint order."""
-    from handctl.planning.compile import PhasePlan, _compiled_phase, _phase_document
+def _one_turn_template(
+    tmp_path: Path, hand: HandConfig, keys: Mapping[str, object]
+) -> TemplatePhase:
+    """The one turn phase of a template whose phase has ``keys`` besides its seed, as
+    ``handctl plan`` reads it."""
     from handctl.planning.template import load_template
 
-    margin = {name: (1.0 if name.endswith("_j3") else 1.4) for name in JOINTS}
     template = {
-        "template": "margin",
-        "recipe": "margin",
+        "template": "one_turn",
+        "recipe": "one_turn",
         "objects": [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}],
         "phases": [
             {
@@ -485,13 +484,24 @@ def test_a_template_s_margin_per_joint_is_carried_into_the_compiled_recipe(
                 "turn_deg": -45,
                 "max_s": 1.0,
                 "seed": dict(zip(JOINTS, TORQUES, strict=True)),
-                "torque_margin": margin,
+                **keys,
             }
         ],
     }
     path = tmp_path / "t.template.yaml"
     path.write_text(yaml.safe_dump(template, sort_keys=False))
-    spec = load_template(path, hand).phases[0]
+    return load_template(path, hand).phases[0]
+
+
+def test_a_template_s_margin_per_joint_is_carried_into_the_compiled_recipe(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """``handctl plan`` writes a per-joint margin as the mapping it read, and the recipe's
+    loader reads it back to the same factors in the config's joint order."""
+    from handctl.planning.compile import PhasePlan, _compiled_phase, _phase_document
+
+    margin = {name: (1.0 if name.endswith("_j3") else 1.4) for name in JOINTS}
+    spec = _one_turn_template(tmp_path, hand, {"torque_margin": margin})
     assert spec.torque_margin == tuple(margin[n] for n in hand.joint_names)
     phase = _compiled_phase(spec, tuple(TORQUES), hand)
     doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand)
@@ -506,28 +516,11 @@ def test_a_template_s_damping_per_joint_is_carried_into_the_compiled_recipe(
     """``handctl plan`` writes a per-joint ``joint_damping`` as the mapping it read, and the
     recipe's loader reads it back in the config's joint order."""
     from handctl.planning.compile import PhasePlan, _compiled_phase, _phase_document
-    from handctl.planning.template import load_template
 
     damping = {name: (0.005 if name.endswith("_j3") else 0.0) for name in JOINTS}
-    template = {
-        "template": "damping",
-        "recipe": "damping",
-        "objects": [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}],
-        "phases": [
-            {
-                "name": "turn",
-                "kind": "turn",
-                "turn_deg": -45,
-                "max_s": 1.0,
-                "seed": dict(zip(JOINTS, TORQUES, strict=True)),
-                "joint_damping": damping,
-                "joint_damping_fades": False,
-            }
-        ],
-    }
-    path = tmp_path / "t.template.yaml"
-    path.write_text(yaml.safe_dump(template, sort_keys=False))
-    spec = load_template(path, hand).phases[0]
+    spec = _one_turn_template(
+        tmp_path, hand, {"joint_damping": damping, "joint_damping_fades": False}
+    )
     assert spec.joint_damping == tuple(damping[n] for n in hand.joint_names)
     assert spec.joint_damping_fades is False
     phase = _compiled_phase(spec, tuple(TORQUES), hand)
@@ -560,6 +553,16 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
             )
         )
     assert np.array_equal(runs[0], runs[1])
+
+
+def _bad_per_joint(key: str, good: float, bad: float) -> list[tuple[dict[str, object], str, bool]]:
+    """The ways a per-joint mapping of ``key`` goes wrong: a value out of range, a joint
+    left out, a joint the hand does not have; each refused naming the joint."""
+    return [
+        ({key: {**dict.fromkeys(JOINTS, good), "f2_j3": bad}}, f"phases[0].{key}.f2_j3", False),
+        ({key: dict.fromkeys(JOINTS[1:], good)}, f"phases[0].{key}.{JOINTS[0]}", False),
+        ({key: {**dict.fromkeys(JOINTS, good), "f9_j1": good}}, f"phases[0].{key}.f9_j1", False),
+    ]
 
 
 @pytest.mark.parametrize(
@@ -596,21 +599,7 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
             "phases[0].joint_damping_fades",
             False,
         ),
-        (
-            {"joint_damping": {**dict.fromkeys(JOINTS, 0.0), "f1_j3": 0.5}},
-            "phases[0].joint_damping.f1_j3",
-            False,
-        ),
-        (
-            {"joint_damping": {**dict.fromkeys(JOINTS[1:], 0.005)}},
-            "phases[0].joint_damping." + JOINTS[0],
-            False,
-        ),
-        (
-            {"joint_damping": {**dict.fromkeys(JOINTS, 0.0), "f9_j3": 0.005}},
-            "phases[0].joint_damping.f9_j3",
-            False,
-        ),
+        *_bad_per_joint("joint_damping", 0.005, 0.5),
         ({"paced_ramp": {"rate_deg_s": -90}}, "phases[0].paced_ramp", False),
         ({"paced_ramp": {"rate_deg_s": 0}}, "phases[0].paced_ramp.rate_deg_s", True),
         ({"paced_ramp": {"rate_deg_s": -90, "reach": 0.5}}, "phases[0].paced_ramp.reach", True),
@@ -628,21 +617,7 @@ def test_the_same_feed_gives_the_same_torques(tmp_path: Path, hand: HandConfig) 
         ),
         ({"torque_margin": 0.8}, "phases[0].torque_margin", False),
         ({"torque_margin": 2.5}, "phases[0].torque_margin", False),
-        (
-            {"torque_margin": {**dict.fromkeys(JOINTS, 1.2), "f2_j3": 0.9}},
-            "phases[0].torque_margin.f2_j3",
-            False,
-        ),
-        (
-            {"torque_margin": {**dict.fromkeys(JOINTS[1:], 1.2)}},
-            "phases[0].torque_margin." + JOINTS[0],
-            False,
-        ),
-        (
-            {"torque_margin": {**dict.fromkeys(JOINTS, 1.2), "f9_j1": 1.2}},
-            "phases[0].torque_margin.f9_j1",
-            False,
-        ),
+        *_bad_per_joint("torque_margin", 1.2, 0.9),
     ],
 )
 def test_bad_feedback_is_refused_naming_the_key(
