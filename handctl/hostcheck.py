@@ -941,6 +941,20 @@ def beside_probe(
     )
 
 
+def work_figures(work: LoopWork | None, own: Sequence[int]) -> dict[str, Any]:
+    """What the catch-up ticks before handctl's own misses (``own``, their ticks) took, beside
+    the usual tick, CPU time in µs (``attribute`` judges them against it): so a miss that
+    stayed handctl's shows whether its tick was slow or started late."""
+    return {
+        "usual_tick_cpu_us": round(work.usual_ns / 1e3, 1) if work is not None else 0.0,
+        "handctl_catch_up_cpu_us": [
+            [tick, round(work.between_stalls_ns[tick] / 1e3, 1)]
+            for tick in own[:MAX_LISTED_TICKS]
+            if work is not None and tick in work.between_stalls_ns
+        ],
+    }
+
+
 def host_summary(
     hand: HandConfig,
     probe: Probe,
@@ -978,13 +992,7 @@ def host_summary(
         **verdict.figures,
         **shares,
         "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
-        # what a catch-up tick of handctl's own miss took, beside the usual (attribute)
-        "usual_tick_cpu_us": round(work.usual_ns / 1e3, 1) if work is not None else 0.0,
-        "handctl_catch_up_cpu_us": [
-            [tick, round(work.between_stalls_ns[tick] / 1e3, 1)]
-            for tick in own[:MAX_LISTED_TICKS]
-            if work is not None and tick in work.between_stalls_ns
-        ],
+        **work_figures(work, own),
         "probe_period_us": record.period_ns / 1e3,
         "scheduler": record.scheduler,
         "refused": list(record.refused),

@@ -53,7 +53,7 @@ import numpy as np
 
 from handctl.config import HandConfig, load_hand
 from handctl.handshape import flexion_sign
-from handctl.hostcheck import Deadlines, ProbeRecord, attribute, judge
+from handctl.hostcheck import Deadlines, ProbeRecord, attribute, judge, work_figures
 from handctl.online.clock import Hygiene
 from handctl.online.loop import StatusLine
 from handctl.online.recipes.loader import load_recipe
@@ -224,6 +224,7 @@ def host_figures(
         "host_steal_ms": host.steal_ms,
         **shares,
         "missed_handctl_at_ticks": own[:20],
+        **work_figures(report.loop_work, own),
         "rivals": sorted(set(report.rivals.rivals.values())) if report.rivals else [],
         "startup_missed_handctl": startup["missed_handctl"],
     }

@@ -20,6 +20,7 @@ from handctl.hostcheck import (
     advice,
     attribute,
     judge,
+    work_figures,
 )
 from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_model
 
@@ -698,3 +699,15 @@ def test_a_bad_work_or_hiccup_record_names_the_key(key: str, value: object, expe
         ProbeRecord.from_json(data, "old.json")
     assert info.value.key == key
     assert expected in info.value.expected
+
+
+def test_the_work_figures_name_each_own_miss_s_catch_up_tick_beside_the_usual() -> None:
+    """A run's (and the loop bench's) figures of its catch-up ticks: the CPU time of the tick
+    before each of handctl's own misses where it was measured, in µs, and the usual tick's."""
+    work = LoopWork({120: 2_500_000, 480: 310_000}, 300_000)
+    figures = work_figures(work, [120, 300, 480])
+    assert figures == {
+        "usual_tick_cpu_us": 300.0,
+        "handctl_catch_up_cpu_us": [[120, 2500.0], [480, 310.0]],
+    }
+    assert work_figures(None, [120]) == {"usual_tick_cpu_us": 0.0, "handctl_catch_up_cpu_us": []}
