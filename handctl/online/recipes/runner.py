@@ -189,6 +189,11 @@ class RecipeRunner:
         self._damping_to = np.zeros(n_joints)
         self.damping = np.zeros(n_joints)
         self._damped = np.zeros(n_joints)
+        # whether that ramp has work (a coefficient not zero), and whether ``damping`` holds
+        # what the ramp alone would not (the brake's, or a phase's before): most phases have
+        # no injected damping, and the ramp's array operations cost 3 µs a tick
+        self._damping_ramped = False
+        self._damping_stale = False
         # a paced ramp's fraction along its segment, and when it last moved
         self.pace = 0.0
         self._pace_t = math.nan
@@ -275,6 +280,24 @@ class RecipeRunner:
             self._target = np.zeros(self.n)
             self._ramp_s = self.recipe.end_ramp_s
             self._damping_to[:] = 0.0
+        self._note_damping_ramp()
+
+    def _ramp_damping(self, fraction: float) -> None:
+        """``damping`` at ``fraction`` of the phase's ramp, from the previous phase's to this
+        one's (left at zero without a coefficient to ramp)."""
+        if self._damping_ramped:
+            np.subtract(self._damping_to, self._damping_from, out=self.damping)
+            self.damping *= fraction
+            self.damping += self._damping_from
+        elif self._damping_stale:
+            self.damping.fill(0.0)
+        self._damping_stale = False
+
+    def _note_damping_ramp(self) -> None:
+        """After the damping's ramp was set: whether it has work, and that ``damping`` is to
+        be recomputed or cleared on the next ``advance``."""
+        self._damping_ramped = bool(self._damping_from.any() or self._damping_to.any())
+        self._damping_stale = True
 
     def step(
         self, t: float, angle: FloatArray, tdt: FloatArray, estimates: Sequence[float] | None = None
@@ -334,9 +357,7 @@ class RecipeRunner:
         ramped = t - self._ramp_start
         fraction = 1.0 if self._ramp_s <= 0 else min(1.0, ramped / self._ramp_s)
         self._fraction = fraction
-        np.subtract(self._damping_to, self._damping_from, out=self.damping)
-        self.damping *= fraction
-        self.damping += self._damping_from
+        self._ramp_damping(fraction)
         np.subtract(self._target, self._from, out=self._desired)
         self._desired *= fraction
         self._desired += self._from
@@ -368,7 +389,10 @@ class RecipeRunner:
             if brake.joint_rate > 0.0:
                 fastest = self._fastest_joint()
                 over = max(over, (fastest - brake.joint_rate) / brake.joint_rate)
-            self.damping += self._fraction * brake.damping * min(1.0, max(0.0, over))
+            braked = self._fraction * brake.damping * min(1.0, max(0.0, over))
+            if braked > 0.0:
+                self.damping += braked
+                self._damping_stale = True
         if phase is not None and (
             phase.turn_rate is not None or phase.pose is not None or phase.paced is not None
         ):
@@ -395,7 +419,7 @@ class RecipeRunner:
                     out[j] += self._fraction * (
                         pose.stiffness * (q_ref - float(angle[j])) - pose.damping * float(v[j])
                     )
-        if self.damping.any():
+        if self._damping_ramped or self._damping_stale:
             # apart from ``_proposed``, which the next phase's ramp starts from: the damping
             # carries over through ``self.damping`` instead
             np.multiply(self.velocity.value, self.damping, out=self._damped)
@@ -465,6 +489,7 @@ class RecipeRunner:
         target within a phase is then no step in torque."""
         self._from = (self._proposed if self._fed else self._desired).copy()
         self._damping_from += self._fraction * (self._damping_to - self._damping_from)
+        self._note_damping_ramp()
         self._ramp_start = t
         self.pace = 0.0
         self._pace_t = t
