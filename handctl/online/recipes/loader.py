@@ -489,13 +489,7 @@ def parse_torque_margin(doc: Doc, joint_names: Sequence[str]) -> PerJoint:
     name to its own. Why per joint: a joint that ends the phase resting in its soft-limit
     guard's band is held there by the guard's spring, not by its torque, and headroom on its
     torque only pushes it into its limit (docs/experiment.md, "Torque margin")."""
-    if not isinstance(doc.raw("torque_margin", 1.0), dict):
-        return doc.number("torque_margin", default=1.0, min=1.0, max=MAX_TORQUE_MARGIN)
-    sub = doc.mapping("torque_margin")
-    sub.expect(joint_names)
-    values = tuple(sub.number(n, min=1.0, max=MAX_TORQUE_MARGIN) for n in joint_names)
-    sub.done()
-    return values
+    return _per_joint(doc, "torque_margin", joint_names, 1.0, 1.0, MAX_TORQUE_MARGIN, "")
 
 
 def parse_joint_damping(doc: Doc, joint_names: Sequence[str]) -> PerJoint:
@@ -505,15 +499,25 @@ def parse_joint_damping(doc: Doc, joint_names: Sequence[str]) -> PerJoint:
     torque is held by the guard's stiff spring, whose push through the drive's lag is a
     negative damping a lightly damped joint cannot pay for; the other joints need none, and
     damping them changes how the pair rolls (docs/experiment.md)."""
-    if not isinstance(doc.raw("joint_damping", 0.0), dict):
-        return doc.number(
-            "joint_damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING, unit="N·m·s/rad"
-        )
-    sub = doc.mapping("joint_damping")
+    return _per_joint(doc, "joint_damping", joint_names, 0.0, 0.0, MAX_JOINT_DAMPING, "N·m·s/rad")
+
+
+def _per_joint(
+    doc: Doc,
+    key: str,
+    joint_names: Sequence[str],
+    default: float,
+    low: float,
+    high: float,
+    unit: str,
+) -> PerJoint:
+    """``key``: one number for every joint, or a mapping of each joint's name to its own (in
+    the config's order), each within ``[low, high]``; ``default`` when it is not set."""
+    if not isinstance(doc.raw(key, default), dict):
+        return doc.number(key, default=default, min=low, max=high, unit=unit)
+    sub = doc.mapping(key)
     sub.expect(joint_names)
-    values = tuple(
-        sub.number(n, min=0.0, max=MAX_JOINT_DAMPING, unit="N·m·s/rad") for n in joint_names
-    )
+    values = tuple(sub.number(n, min=low, max=high, unit=unit) for n in joint_names)
     sub.done()
     return values
 
