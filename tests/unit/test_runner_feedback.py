@@ -19,7 +19,8 @@ from handctl.errors import ConfigError
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.runner import RecipeRunner
 from handctl.online.recipes.schema import FIRST_PAIR_TURN, Recipe, RecipeObject, estimate_names
-from handctl.planning.template import TemplatePhase
+
+from .one_turn import one_turn_template
 
 JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
 TORQUES = [0.2, 0.1, 0.05, 0.2, 0.1, 0.05, -0.2, -0.1, -0.05]
@@ -466,33 +467,6 @@ def test_a_margin_per_joint_multiplies_each_joint_s_torque(
     assert not np.allclose(out, 1.5 * np.array(TORQUES))
 
 
-def _one_turn_template(
-    tmp_path: Path, hand: HandConfig, keys: Mapping[str, object]
-) -> TemplatePhase:
-    """The one turn phase of a template whose phase has ``keys`` besides its seed, as
-    ``handctl plan`` reads it."""
-    from handctl.planning.template import load_template
-
-    template = {
-        "template": "one_turn",
-        "recipe": "one_turn",
-        "objects": [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}],
-        "phases": [
-            {
-                "name": "turn",
-                "kind": "turn",
-                "turn_deg": -45,
-                "max_s": 1.0,
-                "seed": dict(zip(JOINTS, TORQUES, strict=True)),
-                **keys,
-            }
-        ],
-    }
-    path = tmp_path / "t.template.yaml"
-    path.write_text(yaml.safe_dump(template, sort_keys=False))
-    return load_template(path, hand).phases[0]
-
-
 def test_a_template_s_margin_per_joint_is_carried_into_the_compiled_recipe(
     tmp_path: Path, hand: HandConfig
 ) -> None:
@@ -501,7 +475,7 @@ def test_a_template_s_margin_per_joint_is_carried_into_the_compiled_recipe(
     from handctl.planning.compile import PhasePlan, _compiled_phase, _phase_document
 
     margin = {name: (1.0 if name.endswith("_j3") else 1.4) for name in JOINTS}
-    spec = _one_turn_template(tmp_path, hand, {"torque_margin": margin})
+    spec = one_turn_template(tmp_path, hand, TORQUES, {"torque_margin": margin})
     assert spec.torque_margin == tuple(margin[n] for n in hand.joint_names)
     phase = _compiled_phase(spec, tuple(TORQUES), hand)
     doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand)
@@ -518,8 +492,8 @@ def test_a_template_s_damping_per_joint_is_carried_into_the_compiled_recipe(
     from handctl.planning.compile import PhasePlan, _compiled_phase, _phase_document
 
     damping = {name: (0.005 if name.endswith("_j3") else 0.0) for name in JOINTS}
-    spec = _one_turn_template(
-        tmp_path, hand, {"joint_damping": damping, "joint_damping_fades": False}
+    spec = one_turn_template(
+        tmp_path, hand, TORQUES, {"joint_damping": damping, "joint_damping_fades": False}
     )
     assert spec.joint_damping == tuple(damping[n] for n in hand.joint_names)
     assert spec.joint_damping_fades is False

@@ -21,6 +21,7 @@ from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.runner import RecipeRunner
 from handctl.online.recipes.schema import RecipeObject
 
+from .one_turn import one_turn_template
 from .test_estimator import BOX_ANGLES, OPEN_ANGLES, R, boxed_hand
 
 JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
@@ -262,26 +263,9 @@ def test_a_template_s_schedule_is_carried_into_the_compiled_recipe(
     """The compiled phase's document holds the schedule as written, and the loader reads it
     back to the same ranges and torques."""
     from handctl.planning.compile import PhasePlan, _compiled_phase, _phase_document
-    from handctl.planning.template import load_template
 
-    template = {
-        "template": "scheduled",
-        "recipe": "scheduled",
-        "objects": [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}],
-        "phases": [
-            {
-                "name": "turn",
-                "kind": "turn",
-                "turn_deg": -45,
-                "max_s": 1.0,
-                "seed": dict(zip(JOINTS, OWN, strict=True)),
-                "schedule": [_entry({"radius_ratio": {"object": "cyl2", "min": 1.1}}, f1_j1=0.3)],
-            }
-        ],
-    }
-    path = tmp_path / "t.template.yaml"
-    path.write_text(yaml.safe_dump(template, sort_keys=False))
-    spec = load_template(path, hand).phases[0]
+    entry = _entry({"radius_ratio": {"object": "cyl2", "min": 1.1}}, f1_j1=0.3)
+    spec = one_turn_template(tmp_path, hand, OWN, {"schedule": [entry]})
     assert spec.schedule[0].when[0].object == 1
     phase = _compiled_phase(spec, tuple(OWN), hand)
     doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand)
