@@ -18,6 +18,7 @@ import pytest
 import yaml
 
 from ..conftest import HAND_YAML, ROOT, handctl
+from .scaled_hand import scaled_hand
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 CORNERS = {
@@ -40,19 +41,6 @@ SWAP_DEG = 170.0
 PHASE_TURN_DEG, PHASE_TURN_TOLERANCE_DEG = 45.0, 10.0
 
 
-def _hand(tmp_path: Path, factors: dict[str, float]) -> Path:
-    """The shipped hand config with its simulated joints scaled (the sim section is not part
-    of the config hash, so the compiled recipe still loads for it)."""
-    data = yaml.safe_load(HAND_YAML.read_text())
-    sim = data["sim"]
-    for key, factor in factors.items():
-        section = sim["actuator"] if key == "lag" else sim["joints"]
-        section[key] = section[key] * factor
-    path = tmp_path / "hand.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
-
-
 def _run(directory: Path, corner: str) -> tuple[subprocess.CompletedProcess[str], Path]:
     directory.mkdir()
     out = directory / "out.json"
@@ -61,7 +49,7 @@ def _run(directory: Path, corner: str) -> tuple[subprocess.CompletedProcess[str]
         "recipe",
         str(RECIPE),
         "--hand",
-        str(_hand(directory, CORNERS[corner])),
+        str(scaled_hand(directory, CORNERS[corner])),
         "--summary-json",
         str(out),
     )

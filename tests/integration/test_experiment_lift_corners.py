@@ -21,7 +21,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from ..conftest import HAND_YAML, ROOT, handctl
+from ..conftest import ROOT, handctl
+from .scaled_hand import scaled_hand
 
 RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 #: the simulated joints' and objects' factors at the corners of the model set
@@ -33,21 +34,6 @@ CORNERS = {
 }
 #: s, the experiment's own hold before the first manipulation (``experiment/merit.py``)
 HELD_S = 2.0
-
-
-def _hand(tmp_path: Path, factors: dict[str, float]) -> Path:
-    """The shipped hand config with its simulated joints or objects scaled (the sim section
-    is not part of the config hash, so the compiled recipe still loads for it)."""
-    data = yaml.safe_load(HAND_YAML.read_text())
-    for key, factor in factors.items():
-        if key == "mass":
-            for obj in data["sim"]["objects"]:
-                obj["mass"] = obj["mass"] * factor
-        else:
-            data["sim"]["joints"][key] = data["sim"]["joints"][key] * factor
-    path = tmp_path / "hand.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
 
 
 def _before_manipulation() -> tuple[float, str]:
@@ -74,7 +60,7 @@ def test_the_lift_s_corners_lift_and_hold_the_pair(tmp_path: Path, corner: str) 
         "recipe",
         str(RECIPE),
         "--hand",
-        str(_hand(tmp_path, CORNERS[corner])),
+        str(scaled_hand(tmp_path, CORNERS[corner])),
         "--max-seconds",
         f"{until:g}",
         "--summary-json",
