@@ -30,6 +30,7 @@ from handctl.config import HandConfig, SafetyConfig
 from handctl.errors import ConfigError, HandctlError
 from handctl.hostfacts import HostFacts, gather_facts, plan_cpus
 from handctl.online.clock import LOOP_PRIORITY, Hygiene, StallLog
+from handctl.online.misstrace import describe
 from handctl.online.safety.faults import Fault, FaultCode
 from handctl.online.safety.watchdog import TickWatch
 from handctl.online.tickstats import HIST_RANGE_US
@@ -739,6 +740,11 @@ class LoopWork:
 
     between_stalls_ns: dict[int, int]
     usual_ns: int
+    #: What the tick before each late wake-up did, by the wake-up's tick
+    #: (``handctl.online.misstrace.MissTrace.rows``): shown for handctl's own misses.
+    late_wakeups: dict[int, dict[str, int]] = field(default_factory=dict)
+    #: The run_delay of a usual tick (``MissTrace.usual_run_delay_ns``; -1: unknown).
+    usual_run_delay_ns: int = -1
 
     def late_start_missed(self, start_ns: int, due_ns: int, period_ns: int) -> int:
         """How many deadlines from ``due_ns`` on a tick of the usual CPU time begun at
@@ -944,13 +950,19 @@ def beside_probe(
 def work_figures(work: LoopWork | None, own: Sequence[int]) -> dict[str, Any]:
     """What the catch-up ticks before handctl's own misses (``own``, their ticks) took, beside
     the usual tick, CPU time in µs (``attribute`` judges them against it): so a miss that
-    stayed handctl's shows whether its tick was slow or started late."""
+    stayed handctl's shows whether its tick was slow or started late. ``handctl_misses``: what
+    the tick before each of them did (``misstrace.describe``), whatever its wake-up."""
     return {
         "usual_tick_cpu_us": round(work.usual_ns / 1e3, 1) if work is not None else 0.0,
         "handctl_catch_up_cpu_us": [
             [tick, round(work.between_stalls_ns[tick] / 1e3, 1)]
             for tick in own[:MAX_LISTED_TICKS]
             if work is not None and tick in work.between_stalls_ns
+        ],
+        "handctl_misses": [
+            describe(work.late_wakeups[tick], work.usual_ns, work.usual_run_delay_ns)
+            for tick in own[:MAX_LISTED_TICKS]
+            if work is not None and tick in work.late_wakeups
         ],
     }
 

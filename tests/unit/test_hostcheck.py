@@ -23,6 +23,10 @@ from handctl.hostcheck import (
     work_figures,
 )
 from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_model
+from handctl.online.misstrace import (
+    NOTE_COLLECT,
+    NOTE_PHASE,
+)
 
 MS = 1_000_000
 START = 10_000 * MS
@@ -709,5 +713,51 @@ def test_the_work_figures_name_each_own_miss_s_catch_up_tick_beside_the_usual() 
     assert figures == {
         "usual_tick_cpu_us": 300.0,
         "handctl_catch_up_cpu_us": [[120, 2500.0], [480, 310.0]],
+        "handctl_misses": [],
     }
-    assert work_figures(None, [120]) == {"usual_tick_cpu_us": 0.0, "handctl_catch_up_cpu_us": []}
+    assert work_figures(None, [120]) == {
+        "usual_tick_cpu_us": 0.0,
+        "handctl_catch_up_cpu_us": [],
+        "handctl_misses": [],
+    }
+
+
+def test_each_own_miss_says_what_the_tick_before_it_did_where_it_was_traced() -> None:
+    """The loop's trace of a late wake-up (``MissTrace``) is shown for each of handctl's own
+    misses, whatever the wake-up before it: its CPU time against the usual, its wait for the
+    CPU against the usual, the time it slept, what happened in it."""
+    traced = {
+        "tick": 667,
+        "missed": 1,
+        "late_ns": 1_300_000,
+        "before_late_ns": 40_000,
+        "wall_ns": 2_260_000,
+        "cpu_ns": 1_900_000,
+        "stages_ns": 1_700_000,
+        "run_delay_ns": 90_000,
+        "switches": 3,
+        "faults": 0,
+        "faults_since": 656,
+        "notes": NOTE_COLLECT | NOTE_PHASE,
+    }
+    work = LoopWork({}, 300_000, {667: traced, 900: {**traced, "tick": 900}}, 45_000)
+    figures = work_figures(work, [300, 667])
+    assert figures["handctl_misses"] == [
+        {
+            "tick": 667,
+            "missed": 1,
+            "late_us": 1300.0,
+            "before_woke_late_us": 40.0,
+            "wall_us": 2260.0,
+            "cpu_us": 1900.0,
+            "cpu_over_usual": 6.33,
+            "stages_cpu_us": 1700.0,
+            "run_delay_us": 90.0,
+            "usual_run_delay_us": 45.0,
+            "slept_us": 270.0,
+            "switches": 3,
+            "page_faults": 0,
+            "page_faults_since_tick": 656,
+            "notes": ["phase", "collection"],
+        }
+    ]
