@@ -9,15 +9,19 @@ things, and the thread itself can tell them apart:
 - it **waited, runnable**: the kernel's ``run_delay`` of the thread
   (``/proc/thread-self/schedstat``), time it was ready to run and another task had the CPU
   (the bare loop above it, or anything else the host runs there);
-- it **slept**: the rest of the wall time, blocked (normally only the wait for the timer).
+- it was **off the CPU**: the rest of the wall time. Blocked, if it made a voluntary context
+  switch (the wait for the timer is one; handctl's tick itself never blocks); if it made
+  none, it never stopped running in the kernel's view, and the time was taken from under it
+  (a hypervisor's steal, or interrupts where they are accounted apart), uncounted as its CPU
+  time.
 
 ``MissTrace`` keeps, for every wake-up that slept through expirations, these figures over the
-interval from the tick before's wake-up to it, with the kernel's count of the times the thread
-was switched in (one per wake-up, more when it was preempted), its page faults and what
-happened in that tick (``NOTE_NAMES``: a phase switch, a change of the supervisor's state, a
-fault, a bus event, the status line, a collection). Per tick it costs one read of the
-schedstat file (about 3 µs) and a few stores; the thread CPU time is the stage accounting's own
-reading at the tick's start, and the page faults are read one tick in ``FAULTS_EVERY``.
+interval from the tick before's wake-up to it, with the thread's voluntary and involuntary
+context switches and page faults (``getrusage(RUSAGE_THREAD)``) and what happened in that
+tick (``NOTE_NAMES``: a phase switch, a change of the supervisor's state, a fault, a bus event,
+the status line, a collection). Per tick it costs a read of the schedstat file and a
+``getrusage`` (about 5 µs together on this project's two-vCPU machine) and a few stores; the
+thread CPU time is the stage accounting's own reading at the tick's start.
 """
 
 from __future__ import annotations
@@ -42,9 +46,8 @@ NOTE_NAMES = {
     NOTE_STATUS: "status_line",
     NOTE_COLLECT: "collection",
 }
-#: One tick in this many reads the thread's page faults (``getrusage``, about 2 µs): a miss's
-#: faults are those since the last such reading, so at most this many ticks before it.
-FAULTS_EVERY = 16
+#: One on-time tick in this many has its run_delay kept, for the usual (``usual_run_delay_ns``).
+USUAL_EVERY = 16
 _SCHEDSTAT = "/proc/thread-self/schedstat"
 _COLUMNS = (
     "tick",  # the late wake-up
@@ -55,25 +58,25 @@ _COLUMNS = (
     "cpu_ns",  # thread CPU time in that interval
     "stages_ns",  # of which the tick before's stages (poll to record)
     "run_delay_ns",  # time runnable and waiting for the CPU (-1: unknown)
-    "switches",  # times switched in (-1: unknown)
-    "faults",  # page faults, minor and major, since ``faults_since``
-    "faults_since",  # the tick of the reading they count from
+    "voluntary",  # context switches: the thread blocked (the wait for the timer is one)
+    "involuntary",  # context switches: preempted while it could run
+    "faults",  # page faults, minor and major
     "notes",  # NOTE_* of the tick before
 )
 
 
 def parse_schedstat(raw: bytes) -> tuple[int, int, int]:
     """(CPU time on the CPU in ns, run_delay in ns, times switched in) of a schedstat line;
-    (-1, -1, -1) if there is none."""
+    (-1, -1, -1) if there is none. The CPU time is as of the thread's last switch or
+    scheduler tick: the thread CPU clock is read for it instead."""
     fields = raw.split()
     if len(fields) < 3:
         return -1, -1, -1
     return int(fields[0]), int(fields[1]), int(fields[2])
 
 
-def _faults() -> int:
-    usage = resource.getrusage(resource.RUSAGE_THREAD)
-    return usage.ru_minflt + usage.ru_majflt
+def _usage() -> resource.struct_rusage:
+    return resource.getrusage(resource.RUSAGE_THREAD)
 
 
 class MissTrace:
@@ -94,18 +97,17 @@ class MissTrace:
         self._path = path
         self._fd = -1
         self._opened = False
-        # the tick before's: wake-up, lateness, CPU time at its start and at its stages' end,
-        # schedstat line at its wake-up, notes
+        # the tick before's: number, wake-up, lateness, CPU time at its start and its stages'
+        # CPU time, schedstat line and resource usage at its wake-up, notes
         self._tick = -2
         self._wake = 0
         self._late = 0
         self._cpu = 0
         self._stages = 0
         self._sched = b""
+        self._usage = _usage()
         self._notes = 0
-        self._fault_tick = -1
-        self._fault_count = 0
-        # run_delay of on-time ticks, one in FAULTS_EVERY (the newest ``capacity``)
+        # run_delay of on-time ticks, one in USUAL_EVERY (the newest ``capacity``)
         self._delays = array("q", bytes(8 * capacity))
         self._delay_count = 0
 
@@ -122,23 +124,17 @@ class MissTrace:
         slept through ``missed`` more; ``cpu_ns`` is the thread's CPU time now."""
         if not self._opened:
             self._open()
-            self._fault_tick, self._fault_count = tick, _faults()
         sched = os.pread(self._fd, 96, 0) if self._fd >= 0 else b""
-        if missed and tick == self._tick + 1:
-            self._add(tick, now_ns, late_ns, missed, cpu_ns, sched)
-        elif tick % FAULTS_EVERY == 0:
-            self._fault_tick, self._fault_count = tick, _faults()
-            if not missed and tick == self._tick + 1 and self._fd >= 0:
+        usage = _usage()
+        if tick == self._tick + 1:
+            if missed:
+                self._add(tick, now_ns, late_ns, missed, cpu_ns, sched, usage)
+            elif tick % USUAL_EVERY == 0 and self._fd >= 0:
                 delay = parse_schedstat(sched)[1] - parse_schedstat(self._sched)[1]
                 self._delays[self._delay_count % self.capacity] = delay
                 self._delay_count += 1
-        self._tick, self._wake, self._late, self._cpu, self._sched = (
-            tick,
-            now_ns,
-            late_ns,
-            cpu_ns,
-            sched,
-        )
+        self._tick, self._wake, self._late, self._cpu = tick, now_ns, late_ns, cpu_ns
+        self._sched, self._usage = sched, usage
         self._notes = 0
 
     def done(self, cpu_ns: int, notes: int) -> None:
@@ -151,7 +147,14 @@ class MissTrace:
         self._notes |= notes
 
     def _add(
-        self, tick: int, now_ns: int, late_ns: int, missed: int, cpu_ns: int, sched: bytes
+        self,
+        tick: int,
+        now_ns: int,
+        late_ns: int,
+        missed: int,
+        cpu_ns: int,
+        sched: bytes,
+        usage: resource.struct_rusage,
     ) -> None:
         n = self.size
         if n >= self.capacity:
@@ -160,7 +163,7 @@ class MissTrace:
         before = parse_schedstat(self._sched)
         after = parse_schedstat(sched)
         known = before[0] >= 0 and after[0] >= 0
-        faults = _faults()
+        was = self._usage
         row = (
             tick,
             missed,
@@ -170,19 +173,18 @@ class MissTrace:
             cpu_ns - self._cpu,
             self._stages,
             after[1] - before[1] if known else -1,
-            after[2] - before[2] if known else -1,
-            faults - self._fault_count if self._fault_tick >= 0 else -1,
-            self._fault_tick,
+            usage.ru_nvcsw - was.ru_nvcsw,
+            usage.ru_nivcsw - was.ru_nivcsw,
+            usage.ru_minflt + usage.ru_majflt - was.ru_minflt - was.ru_majflt,
             self._notes,
         )
         for column, value in zip(self.columns.values(), row, strict=True):
             column[n] = value
         self.size = n + 1
-        self._fault_tick, self._fault_count = tick, faults
 
     def usual_run_delay_ns(self) -> int:
         """The median run_delay of a tick that woke on time and was followed by an on-time
-        wake-up (one in ``FAULTS_EVERY`` is sampled): what the loop usually waits for the CPU
+        wake-up (one in ``USUAL_EVERY`` is sampled): what the loop usually waits for the CPU
         in a tick (the bare loop beside it preempts it twice a period); -1 if unknown."""
         n = min(self._delay_count, self.capacity)
         if n == 0:
@@ -204,8 +206,8 @@ class MissTrace:
 
 
 def describe(row: dict[str, int], usual_ns: int, usual_delay_ns: int = -1) -> dict[str, Any]:
-    """One late wake-up as the summary shows it (µs; the tick before's share of its wall time
-    that it ran, waited runnable and slept), beside the usual tick's CPU time and run_delay."""
+    """One late wake-up as the summary shows it (µs; of the tick before's wall time, what it
+    ran, waited runnable and was off the CPU), beside the usual tick's CPU time and run_delay."""
     wall, cpu, delay = row["wall_ns"], row["cpu_ns"], row["run_delay_ns"]
     return {
         "tick": row["tick"],
@@ -218,9 +220,9 @@ def describe(row: dict[str, int], usual_ns: int, usual_delay_ns: int = -1) -> di
         "stages_cpu_us": round(row["stages_ns"] / 1e3, 1),
         "run_delay_us": round(delay / 1e3, 1) if delay >= 0 else None,
         "usual_run_delay_us": round(usual_delay_ns / 1e3, 1) if usual_delay_ns >= 0 else None,
-        "slept_us": round((wall - cpu - delay) / 1e3, 1) if delay >= 0 else None,
-        "switches": row["switches"] if row["switches"] >= 0 else None,
-        "page_faults": row["faults"] if row["faults"] >= 0 else None,
-        "page_faults_since_tick": row["faults_since"],
+        "off_cpu_us": round((wall - cpu - delay) / 1e3, 1) if delay >= 0 else None,
+        "voluntary_switches": row["voluntary"],
+        "involuntary_switches": row["involuntary"],
+        "page_faults": row["faults"],
         "notes": [name for bit, name in NOTE_NAMES.items() if row["notes"] & bit],
     }

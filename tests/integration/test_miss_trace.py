@@ -93,8 +93,8 @@ def test_each_late_wake_up_says_what_the_tick_before_it_did(
         row = rows[tick]
         assert row["missed"] == 1 and row["wall_ns"] > 0
         assert 0 <= row["stages_ns"] <= row["cpu_ns"]
-        assert row["run_delay_ns"] >= 0 and row["switches"] >= 0
-        assert row["faults"] >= 0 and row["faults_since"] <= tick
+        assert row["run_delay_ns"] >= 0
+        assert min(row["voluntary"], row["involuntary"], row["faults"]) >= 0
         notes = set(describe(row, 300_000)["notes"])
         before, now = seen[tick - 1], seen[tick]
         assert ("collection" in notes) == (now[0] > before[0]), tick
@@ -110,7 +110,7 @@ def test_each_late_wake_up_says_what_the_tick_before_it_did(
 
 
 @pytest.mark.parametrize("readable", [True, False], ids=["schedstat", "no_schedstat"])
-def test_the_run_delay_and_switches_are_the_schedstat_s_growth_over_the_tick_before(
+def test_the_run_delay_is_the_schedstat_s_growth_over_the_tick_before(
     tmp_path: Path, readable: bool
 ) -> None:
     """Read from a file written as the kernel writes ``/proc/thread-self/schedstat``; without
@@ -128,9 +128,9 @@ def test_the_run_delay_and_switches_are_the_schedstat_s_growth_over_the_tick_bef
     assert shown["late_us"] == 1600.0 and shown["before_woke_late_us"] == 20.0
     assert shown["wall_us"] == 2600.0 and shown["cpu_us"] == 500.0
     assert shown["stages_cpu_us"] == 300.0 and shown["cpu_over_usual"] == 2.0
+    assert shown["voluntary_switches"] >= 0 and shown["page_faults"] >= 0
     if readable:
-        assert shown["run_delay_us"] == 1400.0 and shown["switches"] == 4
-        assert shown["slept_us"] == 2600.0 - 500.0 - 1400.0
+        assert shown["run_delay_us"] == 1400.0
+        assert shown["off_cpu_us"] == 2600.0 - 500.0 - 1400.0
     else:
-        assert shown["run_delay_us"] is None and shown["switches"] is None
-        assert shown["slept_us"] is None
+        assert shown["run_delay_us"] is None and shown["off_cpu_us"] is None

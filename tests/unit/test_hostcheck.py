@@ -725,7 +725,7 @@ def test_the_work_figures_name_each_own_miss_s_catch_up_tick_beside_the_usual() 
 def test_each_own_miss_says_what_the_tick_before_it_did_where_it_was_traced() -> None:
     """The loop's trace of a late wake-up (``MissTrace``) is shown for each of handctl's own
     misses, whatever the wake-up before it: its CPU time against the usual, its wait for the
-    CPU against the usual, the time it slept, what happened in it."""
+    CPU against the usual, the time it was off the CPU, what happened in it."""
     traced = {
         "tick": 667,
         "missed": 1,
@@ -735,9 +735,9 @@ def test_each_own_miss_says_what_the_tick_before_it_did_where_it_was_traced() ->
         "cpu_ns": 1_900_000,
         "stages_ns": 1_700_000,
         "run_delay_ns": 90_000,
-        "switches": 3,
+        "voluntary": 0,
+        "involuntary": 3,
         "faults": 0,
-        "faults_since": 656,
         "notes": NOTE_COLLECT | NOTE_PHASE,
     }
     work = LoopWork({}, 300_000, {667: traced, 900: {**traced, "tick": 900}}, 45_000)
@@ -754,10 +754,10 @@ def test_each_own_miss_says_what_the_tick_before_it_did_where_it_was_traced() ->
             "stages_cpu_us": 1700.0,
             "run_delay_us": 90.0,
             "usual_run_delay_us": 45.0,
-            "slept_us": 270.0,
-            "switches": 3,
+            "off_cpu_us": 270.0,
+            "voluntary_switches": 0,
+            "involuntary_switches": 3,
             "page_faults": 0,
-            "page_faults_since_tick": 656,
             "notes": ["phase", "collection"],
         }
     ]
