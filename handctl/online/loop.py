@@ -519,7 +519,7 @@ class Runtime:
         c0 = cpu()
         trace = self.trace
         if trace is not None:
-            trace.woke(tk.tick, tk.now_ns, tk.now_ns - tk.scheduled_ns, tk.missed, c0)
+            trace.woke(tk.tick, tk.now_ns - tk.scheduled_ns, tk.missed, c0)
         state = driver.poll(tk.now_ns)
         events = driver.take_bus_events()
         self._bus_events += len(events)

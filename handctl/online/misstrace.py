@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import os
 import resource
+import time
 from array import array
 from typing import Any
 
@@ -54,7 +55,7 @@ _COLUMNS = (
     "missed",  # the expirations it slept through
     "late_ns",  # how late it was, from the oldest of them
     "before_late_ns",  # how late the tick before woke (0: on time)
-    "wall_ns",  # from the tick before's wake-up to this one
+    "wall_ns",  # from the tick before's start to this one's (``MissTrace.woke``)
     "cpu_ns",  # thread CPU time in that interval
     "stages_ns",  # of which the tick before's stages (poll to record)
     "run_delay_ns",  # time runnable and waiting for the CPU (-1: unknown)
@@ -119,11 +120,18 @@ class MissTrace:
         except OSError:
             self._fd = -1
 
-    def woke(self, tick: int, now_ns: int, late_ns: int, missed: int, cpu_ns: int) -> None:
-        """Tick ``tick`` woke at ``now_ns``, ``late_ns`` after its (newest) expiration, having
-        slept through ``missed`` more; ``cpu_ns`` is the thread's CPU time now."""
+    def woke(self, tick: int, late_ns: int, missed: int, cpu_ns: int) -> None:
+        """Tick ``tick`` woke ``late_ns`` after its (newest) expiration, having slept through
+        ``missed`` more; ``cpu_ns`` is the thread's CPU time now.
+
+        Every figure of an interval is read here, at the tick's start (after its hooks, where
+        the stage accounting reads its first CPU time): the wall time too, not the wake-up's,
+        so that the interval's wall time, CPU time, run_delay and switches cover the same
+        stretch, and time the thread spent running before this point (a hook) is not taken
+        for time it was off the CPU."""
         if not self._opened:
             self._open()
+        now_ns = time.monotonic_ns()
         sched = os.pread(self._fd, 96, 0) if self._fd >= 0 else b""
         usage = _usage()
         if tick == self._tick + 1:

@@ -118,19 +118,20 @@ def test_the_run_delay_is_the_schedstat_s_growth_over_the_tick_before(
     stat = tmp_path / "schedstat"
     stat.write_text("1000000 500000 10\n")
     trace = MissTrace(1_000_000, path=str(stat) if readable else str(tmp_path / "absent"))
-    trace.woke(7, 10_000_000, 20_000, 0, 2_000_000)
+    trace.woke(7, 20_000, 0, 2_000_000)
     trace.done(2_300_000, 0)
     stat.write_text("1400000 1900000 14\n")
-    trace.woke(8, 12_600_000, 600_000, 1, 2_500_000)
+    time.sleep(0.003)
+    trace.woke(8, 600_000, 1, 2_500_000)
     trace.close()
     row = trace.rows()[8]
     shown = describe(row, 250_000)
     assert shown["late_us"] == 1600.0 and shown["before_woke_late_us"] == 20.0
-    assert shown["wall_us"] == 2600.0 and shown["cpu_us"] == 500.0
+    assert shown["wall_us"] >= 3000.0 and shown["cpu_us"] == 500.0
     assert shown["stages_cpu_us"] == 300.0 and shown["cpu_over_usual"] == 2.0
-    assert shown["voluntary_switches"] >= 0 and shown["page_faults"] >= 0
+    assert shown["voluntary_switches"] >= 1 and shown["page_faults"] >= 0  # it slept
     if readable:
         assert shown["run_delay_us"] == 1400.0
-        assert shown["off_cpu_us"] == 2600.0 - 500.0 - 1400.0
+        assert shown["off_cpu_us"] == pytest.approx(shown["wall_us"] - 1900.0, abs=0.11)
     else:
         assert shown["run_delay_us"] is None and shown["off_cpu_us"] is None
