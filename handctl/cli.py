@@ -326,6 +326,11 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
                 if host.get("missed_host_catch_up")
                 else ""
             )
+            + (
+                f" (and {host['missed_host_off_cpu']} with the loop held off its CPU)"
+                if host.get("missed_host_off_cpu")
+                else ""
+            )
             + f", {host['missed_handctl']} handctl's"
             + (
                 f", {host['missed_rival']} real-time rivals' ({', '.join(host['rivals'])})"

@@ -279,6 +279,8 @@ def run_recipe(
                 clock.usual.median_ns(runtime.first_send_tick),
                 runtime.trace.rows() if runtime.trace is not None else {},
                 runtime.trace.usual_run_delay_ns() if runtime.trace is not None else -1,
+                # the loop's thread is this one, which kept its scheduling after the run
+                os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR),
             )
             if isinstance(clock, RealtimeClock)
             else None
