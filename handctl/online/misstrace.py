@@ -55,8 +55,8 @@ LATE_SHARE = 0.2
 #: The run_delay a tick is allowed before any of it counts as the host's holding it: this many
 #: times the usual for the tick's length. The bare loop beside the run preempts the loop twice
 #: a period, and one preemption costs it 20-80 µs: ticks made 2.5 ms long by 2 ms of busy work
-#: of their own waited 0.55-1.9 times the usual for their length (docs/timing.md).
-RUN_DELAY_FACTOR = 2.0
+#: of their own waited 0.57-2.4 times the usual for their length (median 1.25; docs/timing.md).
+RUN_DELAY_FACTOR = 3.0
 #: One on-time tick in this many has its run_delay kept, for the usual (``usual_run_delay_ns``).
 USUAL_EVERY = 16
 _SCHEDSTAT = "/proc/thread-self/schedstat"

@@ -422,8 +422,9 @@ def _held_work(row: dict[str, int], realtime: bool = True) -> LoopWork:
 
 def test_a_miss_whose_tick_waited_runnable_for_the_cpu_is_the_hosts() -> None:
     # The tick before ran its usual 250 µs of CPU but waited 1.5 ms runnable while another
-    # task ran on its CPU (run_delay): the bare loop, which looked at other moments, saw
-    # nothing. Without that wait it would have met its deadline.
+    # task ran on its CPU (run_delay; three times the usual for its 2.15 ms is 0.32): the bare
+    # loop, which looked at other moments, saw nothing. Without that wait it would have met
+    # its deadline.
     loop = _one_miss(1.2)
     row = _traced(50, wall=2_150_000, cpu=USUAL_NS, delay=1_500_000, voluntary=1)
     own: list[int] = []
@@ -460,8 +461,8 @@ def test_a_tick_that_blocked_or_ran_long_keeps_its_misses_handctls() -> None:
 
 def test_only_the_deadlines_the_held_time_cost_are_the_hosts() -> None:
     # 3.4 ms late, 3 deadlines missed; the tick before ran 2.3 ms of its own and waited 1.5 ms
-    # runnable (1.28 beyond the usual for its 4.4 ms): without the wait it would have been
-    # 2.12 ms late, two deadlines. One is the host's, two handctl's.
+    # runnable (0.84 beyond three times the usual for its 4.4 ms): without the wait it would
+    # have been 2.56 ms late, two deadlines. One is the host's, two handctl's.
     loop = _one_miss(3.4)
     row = _traced(50, wall=4_400_000, cpu=2_300_000, delay=1_500_000, voluntary=1)
     own: list[int] = []
@@ -471,10 +472,10 @@ def test_only_the_deadlines_the_held_time_cost_are_the_hosts() -> None:
 
 def test_a_late_start_and_a_held_tick_together_take_only_what_each_explains() -> None:
     # The catch-up tick of the host's stall began 0.1 ms before the next deadline (a late
-    # start: one deadline), ran 1.4 ms of CPU and waited 1.0 ms runnable (0.88 beyond the
-    # usual); its wake-up came 2.3 ms after that deadline. Without the wait, 1.42 ms late: the
-    # one deadline a usual tick begun then would have missed too. So both misses are the
-    # host's: one a late start, one held.
+    # start: one deadline), ran 1.4 ms of CPU and waited 1.0 ms runnable (0.64 beyond three
+    # times the usual for its 2.4 ms); its wake-up came 2.3 ms after that deadline. Without the
+    # wait, 1.66 ms late: the one deadline a usual tick begun then would have missed too. So
+    # both misses are the host's: one a late start, one held.
     host, _ = _catch_up_chain()
     loop = _late_start_chain(507.3, 2)
     row = _traced(11, wall=2_400_000, cpu=1_400_000, delay=1_000_000)
