@@ -10,6 +10,7 @@ from typing import Any
 
 import pytest
 
+from handctl.cli import _own_miss_text
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.hostcheck import (
@@ -939,3 +940,9 @@ def test_each_own_miss_says_what_the_tick_before_it_did_where_it_was_traced() ->
             "notes": ["phase", "collection"],
         }
     ]
+    # and as a run prints it beside its summary
+    assert _own_miss_text(figures["handctl_misses"][0]) == (
+        "handctl's miss at tick 667 (1 missed, 1300 µs late): the tick before ran 1900 µs of "
+        "CPU (6.33x its usual), waited 90 µs for the CPU (usual 45.0), 270 µs off it, 0 "
+        "voluntary switch(es), 0 fault(s); in it: phase, collection"
+    )
