@@ -276,7 +276,9 @@ def run_recipe(
         loop_work = (
             LoopWork(
                 clock.stalls.work_ns(),
-                clock.usual.median_ns(runtime.first_send_tick),
+                # a run stopped too soon for a sample after its first command: the start-up
+                # ticks' (they only listen, so the usual is understated, never excused more)
+                clock.usual.median_ns(runtime.first_send_tick) or clock.usual.median_ns(),
                 runtime.trace.rows() if runtime.trace is not None else {},
                 runtime.trace.usual_run_delay_ns() if runtime.trace is not None else -1,
                 # the loop's thread is this one, which kept its scheduling after the run

@@ -319,6 +319,9 @@ class Runtime:
         tick = self.tick
         sup.start(tick)
         self.driver.node_command("enable")
+        if self.trace is not None:  # in the last start-up tick's interval
+            self.trace.note(NOTE_STATE)
+            self._traced_state = sup.state
         self.first_send_tick = self.tick  # command frame n of each node belongs to this + n
         self.startup_missed_ticks = self._missed  # before it the peer may still be starting
         stopping_since: int | None = None
@@ -503,6 +506,10 @@ class Runtime:
         return tk
 
     def _account_idle(self, tk: Tick) -> None:
+        """A tick with no stages (start-up, the last): counted, and traced, since the first
+        running tick may have missed by what the last start-up tick did."""
+        if self.trace is not None:
+            self.trace.woke(tk.tick, tk.now_ns - tk.scheduled_ns, tk.missed, self.cpu_clock())
         if self._t0_ns is None:
             self._t0_ns = tk.scheduled_ns
         self._store(tk, (0,) * len(STAGES))

@@ -157,7 +157,7 @@ class MissTrace:
                 self._delay_count += 1
         self._tick, self._wake, self._late, self._cpu = tick, now_ns, late_ns, cpu_ns
         self._sched, self._usage = sched, usage
-        self._notes = 0
+        self._notes = self._stages = 0  # a start-up tick has no stages (no ``done``)
 
     def done(self, cpu_ns: int, notes: int) -> None:
         """The tick's stages are done; ``notes`` is what happened in it (``NOTE_*``)."""

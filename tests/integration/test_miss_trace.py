@@ -6,7 +6,8 @@ wake-up one tick late (the hand config's overrun tolerance raised so that the ru
 so every tick of the run has its row. What each row must say is known from the runtime
 itself, read by a tick hook at every wake-up: whether the collector ran, the phase or the
 supervisor's state changed, the status line was due; and one tick is made busy in its send
-stage, which its row must show as CPU time of its stages.
+stage, which its row must show as CPU time of its stages. The first running tick's row is the
+last start-up tick's, with the nodes' enable.
 """
 
 from __future__ import annotations
@@ -103,6 +104,9 @@ def test_each_late_wake_up_says_what_the_tick_before_it_did(
         assert ("status_line" in notes) == ((tick - 1) % STATUS_EVERY_TICKS == 0), tick
     assert any("collection" in describe(rows[t], 1)["notes"] for t in traced)
     assert any("phase" in describe(rows[t], 1)["notes"] for t in traced)
+    # the first running tick's row: the last start-up tick (no stages) and the nodes' enable
+    first = min(seen)
+    assert rows[first]["stages_ns"] == 0 and "state" in describe(rows[first], 1)["notes"]
     slow = rows[busy[0] + 1]
     assert slow["stages_ns"] >= BUSY_NS
     shown = describe(slow, 300_000)
