@@ -17,12 +17,12 @@ things, and the thread itself can tell them apart:
 
 ``MissTrace`` keeps, for every wake-up that slept through expirations or came late by
 ``LATE_SHARE`` of a period, these figures over the interval from the tick before's start to
-its own, with the thread's voluntary and involuntary
-context switches and page faults (``getrusage(RUSAGE_THREAD)``) and what happened in that
-tick (``NOTE_NAMES``: a phase switch, a change of the supervisor's state, a fault, a bus event,
-the status line, a collection). Per tick it costs a read of the schedstat file and a
-``getrusage`` (about 5 µs together on this project's two-vCPU machine) and a few stores; the
-thread CPU time is the stage accounting's own reading at the tick's start.
+its own, with the thread's voluntary and involuntary context switches and page faults
+(``getrusage(RUSAGE_THREAD)``) and what happened in that tick (``NOTE_NAMES``: a phase switch,
+a change of the supervisor's state, a fault, a bus event, the status line, a collection). Per
+tick it costs a read of the schedstat file and a ``getrusage`` (3.5 µs together on this
+project's two-vCPU machine) and a few stores; the thread CPU time is the stage accounting's
+own reading at the tick's start.
 """
 
 from __future__ import annotations
@@ -48,14 +48,15 @@ NOTE_NAMES = {
     NOTE_STATUS: "status_line",
     NOTE_COLLECT: "collection",
 }
-#: Share of the period: a wake-up this late has its row even if it missed nothing. The loop's
-#: wake-ups are late by 30-150 µs at the median and p99 on this project's two-vCPU machine, so
-#: at 1 kHz one in a hundred or fewer.
+#: Share of the period: a wake-up this late has its row even if it missed nothing. On this
+#: project's two-vCPU machine a run's median wake-up was 45-222 µs late, and one wake-up in 400
+#: was this late (docs/timing.md).
 LATE_SHARE = 0.2
 #: The run_delay a tick is allowed before any of it counts as the host's holding it: this many
 #: times the usual for the tick's length. The bare loop beside the run preempts the loop twice
-#: a period, and one preemption costs it 20-80 µs: ticks made 2.5 ms long by 2 ms of busy work
-#: of their own waited 0.57-2.4 times the usual for their length (median 1.25; docs/timing.md).
+#: a period, and one preemption costs it 20-80 µs: 103 ticks made 2-3 ms long by 2 ms of busy
+#: work of their own waited 0.57-2.4 times the usual for their length (median 1.25;
+#: docs/timing.md).
 RUN_DELAY_FACTOR = 3.0
 #: One on-time tick in this many has its run_delay kept, for the usual (``usual_run_delay_ns``).
 USUAL_EVERY = 16
@@ -64,7 +65,7 @@ _COLUMNS = (
     "tick",  # the late wake-up
     "missed",  # the expirations it slept through (0: late, but it missed none)
     "late_ns",  # how late it was, from the oldest of them
-    "before_late_ns",  # how late the tick before woke (0: on time)
+    "before_late_ns",  # how late the tick before woke, from its newest expiration
     "wall_ns",  # from the tick before's start to this one's (``MissTrace.woke``)
     "cpu_ns",  # thread CPU time in that interval
     "stages_ns",  # of which the tick before's stages (poll to record)
@@ -94,10 +95,10 @@ class MissTrace:
     """Per late wake-up of the loop's thread (one that missed, or was ``late_floor_ns`` late),
     what the tick before it did; see the module.
 
-    ``woke`` is called at each tick's start, in the loop's thread, with the tick's number, its
-    wake-up time and lateness and the thread CPU time then; ``done`` when its stages are done,
-    with the CPU time then and its notes. Arrays are allocated once; past ``capacity`` late
-    wake-ups are only counted.
+    ``woke`` is called at each tick's start (start-up ticks too), in the loop's thread, with
+    the tick's number, its lateness, the expirations it slept through and the thread CPU time
+    then; ``done`` when its stages are done, with the CPU time then and its notes. Arrays are
+    allocated once; past ``capacity`` late wake-ups are only counted.
     """
 
     def __init__(self, period_ns: int, capacity: int = 16384, path: str = _SCHEDSTAT) -> None:
