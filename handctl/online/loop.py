@@ -430,6 +430,9 @@ class Runtime:
             if since is None:
                 since = tk.now_ns
             self.driver.poll(tk.now_ns)
+            # The first send's one-time work (the unix bus looks its receivers up) here, where
+            # the tick only listens, not in the nodes' enable before the first running tick.
+            self.driver.prepare_send()
             if self.stop_requested:
                 return f"stopped during start-up ({self.stop_requested})"
             # Judge the nodes on what they say now, not on what a previous run last heard:
