@@ -236,6 +236,23 @@ def status_text(line: object) -> str:
     )
 
 
+def _own_miss_text(miss: dict[str, Any]) -> str:
+    """One of handctl's own misses as its trace tells it (``misstrace.describe``)."""
+    over = miss["cpu_over_usual"]
+    text = (
+        f"handctl's miss at tick {miss['tick']} ({miss['missed']} missed, "
+        f"{miss['late_us']:g} µs late): the tick before ran {miss['cpu_us']:g} µs of CPU"
+        + (f" ({over:g}x its usual)" if over is not None else "")
+    )
+    if miss["run_delay_us"] is not None:
+        text += (
+            f", waited {miss['run_delay_us']:g} µs for the CPU (usual "
+            f"{miss['usual_run_delay_us']}), {miss['off_cpu_us']:g} µs off it"
+        )
+    text += f", {miss['voluntary_switches']} voluntary switch(es), {miss['page_faults']} fault(s)"
+    return text + (f"; in it: {', '.join(miss['notes'])}" if miss["notes"] else "")
+
+
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
     import json
 
@@ -326,6 +343,11 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
                 if host.get("missed_host_catch_up")
                 else ""
             )
+            + (
+                f" (and {host['missed_host_off_cpu']} with the loop held off its CPU)"
+                if host.get("missed_host_off_cpu")
+                else ""
+            )
             + f", {host['missed_handctl']} handctl's"
             + (
                 f", {host['missed_rival']} real-time rivals' ({', '.join(host['rivals'])})"
@@ -333,6 +355,8 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
                 else ""
             )
         )
+        for miss in host.get("handctl_misses", []):
+            print("  " + _own_miss_text(miss))
     print(
         "  max |τ| [N·m] " + ", ".join(f"{k} {v:.3f}" for k, v in summary["max_abs_tau_nm"].items())
     )

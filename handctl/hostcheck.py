@@ -30,6 +30,7 @@ from handctl.config import HandConfig, SafetyConfig
 from handctl.errors import ConfigError, HandctlError
 from handctl.hostfacts import HostFacts, gather_facts, plan_cpus
 from handctl.online.clock import LOOP_PRIORITY, Hygiene, StallLog
+from handctl.online.misstrace import describe, held_off_ns
 from handctl.online.safety.faults import Fault, FaultCode
 from handctl.online.safety.watchdog import TickWatch
 from handctl.online.tickstats import HIST_RANGE_US
@@ -739,6 +740,15 @@ class LoopWork:
 
     between_stalls_ns: dict[int, int]
     usual_ns: int
+    #: What the tick before each late wake-up did, by the wake-up's tick
+    #: (``handctl.online.misstrace.MissTrace.rows``): shown for handctl's own misses.
+    late_wakeups: dict[int, dict[str, int]] = field(default_factory=dict)
+    #: The run_delay of a usual tick (``MissTrace.usual_run_delay_ns``; -1: unknown).
+    usual_run_delay_ns: int = -1
+    #: Whether the loop ran at a real-time priority (SCHED_FIFO), which only the bare loop
+    #: beside it and the host's own real-time tasks can preempt: only then is the time it was
+    #: held off the CPU the host's (``unheld_missed``).
+    realtime: bool = False
 
     def late_start_missed(self, start_ns: int, due_ns: int, period_ns: int) -> int:
         """How many deadlines from ``due_ns`` on a tick of the usual CPU time begun at
@@ -748,6 +758,44 @@ class LoopWork:
         if self.usual_ns <= 0 or over <= 0:
             return 0
         return -(-over // period_ns)
+
+    def unheld_missed(
+        self, tick: int, wake_ns: int, due_ns: int, missed: int, period_ns: int
+    ) -> int:
+        """How many of the ``missed`` deadlines from ``due_ns`` on the late wake-up ``tick``
+        (at ``wake_ns``) would have missed too had the loop's thread not been held off the CPU
+        (``misstrace.held_off_ns``) in the tick before it, and, if that tick never blocked, in
+        the late ticks before it that led to its late start (``start_credit_ns``): the others
+        are the host's. All of them without a trace of that tick, or when the loop was not
+        real-time (then the processes of a run itself, the simulated hand or the recording's
+        writer, can hold it)."""
+        row = self.late_wakeups.get(tick)
+        if row is None or not self.realtime:
+            return missed
+        held = held_off_ns(row, self.usual_run_delay_ns, period_ns)
+        if row["voluntary"] == 0:
+            held += self.start_credit_ns(tick - 1, period_ns)
+        return min(missed, max(0, (wake_ns - due_ns - held) // period_ns))
+
+    def start_credit_ns(self, tick: int, period_ns: int) -> int:
+        """How much earlier tick ``tick`` would have begun had the loop's thread not been held
+        off the CPU before it: 0 if it began on time (no trace of its wake-up). Otherwise its
+        wake-up's own held time, and, if the tick before it never blocked (so this one began
+        where that one's work ended), what that one would have gained too; never more than
+        the tick was late. A tick that blocked cuts the chain: its end did not follow from
+        its start."""
+        chain = []
+        while (row := self.late_wakeups.get(tick)) is not None:
+            chain.append(row)
+            if row["voluntary"] != 0:
+                break
+            tick -= 1
+        credit = 0
+        for row in reversed(chain):
+            late = row["late_ns"] - row["missed"] * period_ns  # of its start, on its schedule
+            held = held_off_ns(row, self.usual_run_delay_ns, period_ns)
+            credit = min(late, held + (credit if row["voluntary"] == 0 else 0))
+        return max(0, credit)
 
     def held(self, tick: int, period_ns: int) -> bool:
         """Whether the tick before wake-up ``tick`` took no more than a catch-up's usual CPU
@@ -793,7 +841,16 @@ def attribute(
     missed had it begun when the catch-up tick began (``LoopWork.late_start_missed``: a late
     start): the host woke it too late to meet them, whatever its own work. What a catch-up
     tick missed beyond that, with its CPU time high, stays handctl's, as does any miss not
-    right after the host's.
+    right after the host's, but for this:
+
+    Whatever the wake-up before it, the deadlines the loop would have met had its thread not
+    been held off the CPU in the tick before the miss are the host's too
+    (``missed_host_off_cpu``, ``LoopWork.unheld_missed``): by the kernel's own account of that
+    thread (``handctl.online.misstrace``), the time it was runnable while another task ran
+    (``run_delay``, beyond the usual the bare loop's preemptions cost) and, in a tick that
+    never blocked, the time it was neither running nor runnable. Its own CPU time, however
+    slow, is never taken off; only with the loop at a real-time priority, which no process of
+    handctl's but the bare loop can preempt on its CPU.
 
     If none of these, the host let a bare loop run at that time and handctl was late on its
     own: ``missed_handctl``. Of those, ``missed_handctl_after_host`` came in the very next
@@ -808,6 +865,7 @@ def attribute(
         "missed_host_slow_cpu": 0,
         "missed_rival": 0,
         "missed_host_catch_up": 0,
+        "missed_host_off_cpu": 0,
         "missed_handctl": 0,
         "missed_handctl_after_host": 0,
         "missed_unobserved": 0,
@@ -836,11 +894,17 @@ def attribute(
             late = 0
             if tick == hosts + 1 and work is not None:
                 late = min(missed, work.late_start_missed(catch_up_began, due, period_ns))
-                counts["missed_host_catch_up"] += late
-            if late == missed:
+            unheld = (
+                work.unheld_missed(tick, wake, due, missed, period_ns)
+                if work is not None
+                else missed
+            )
+            own = max(0, unheld - late)
+            counts["missed_host_catch_up"] += late
+            counts["missed_host_off_cpu"] += missed - late - own
+            if own == 0:
                 after_host = hosts = tick
                 continue
-            own = missed - late
             counts["missed_handctl"] += own
             if tick == after_host + 1:
                 counts["missed_handctl_after_host"] += own
@@ -944,13 +1008,19 @@ def beside_probe(
 def work_figures(work: LoopWork | None, own: Sequence[int]) -> dict[str, Any]:
     """What the catch-up ticks before handctl's own misses (``own``, their ticks) took, beside
     the usual tick, CPU time in µs (``attribute`` judges them against it): so a miss that
-    stayed handctl's shows whether its tick was slow or started late."""
+    stayed handctl's shows whether its tick was slow or started late. ``handctl_misses``: what
+    the tick before each of them did (``misstrace.describe``), whatever its wake-up."""
     return {
         "usual_tick_cpu_us": round(work.usual_ns / 1e3, 1) if work is not None else 0.0,
         "handctl_catch_up_cpu_us": [
             [tick, round(work.between_stalls_ns[tick] / 1e3, 1)]
             for tick in own[:MAX_LISTED_TICKS]
             if work is not None and tick in work.between_stalls_ns
+        ],
+        "handctl_misses": [
+            describe(work.late_wakeups[tick], work.usual_ns, work.usual_run_delay_ns)
+            for tick in own[:MAX_LISTED_TICKS]
+            if work is not None and tick in work.late_wakeups
         ],
     }
 
@@ -1037,6 +1107,11 @@ def host_summary(
             + (
                 f"{shares['missed_host_catch_up']} its catch-up ticks', "
                 if shares["missed_host_catch_up"]
+                else ""
+            )
+            + (
+                f"{shares['missed_host_off_cpu']} with the loop held off its CPU, "
+                if shares["missed_host_off_cpu"]
                 else ""
             )
             + f"{shares['missed_handctl']} handctl's"

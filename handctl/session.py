@@ -51,6 +51,7 @@ from handctl.online.clock import (
 from handctl.online.drivers.hand import HandDriver
 from handctl.online.estimator import ObjectEstimator
 from handctl.online.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
+from handctl.online.misstrace import MissTrace
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FAULTS
@@ -249,6 +250,9 @@ def run_recipe(
             estimator=estimator,
             reanalyser=reanalyser,
         )
+        if isinstance(clock, RealtimeClock):
+            runtime.trace = MissTrace(clock.period_ns)
+            stack.callback(runtime.trace.close)
         # Ground truth of the experiment, recorded every tick and never fed back.
         tracker = None
         if peer.sim_hand is not None and req.recipe.objects:
@@ -270,7 +274,16 @@ def run_recipe(
         )
         # what the loop measured of its catch-up ticks and its usual one (``attribute``)
         loop_work = (
-            LoopWork(clock.stalls.work_ns(), clock.usual.median_ns(runtime.first_send_tick))
+            LoopWork(
+                clock.stalls.work_ns(),
+                # a run stopped too soon for a sample after its first command: the start-up
+                # ticks' (they only listen, so the usual is understated, never excused more)
+                clock.usual.median_ns(runtime.first_send_tick) or clock.usual.median_ns(),
+                runtime.trace.rows() if runtime.trace is not None else {},
+                runtime.trace.usual_run_delay_ns() if runtime.trace is not None else -1,
+                # the loop's thread is this one, which kept its scheduling after the run
+                os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR),
+            )
             if isinstance(clock, RealtimeClock)
             else None
         )

@@ -16,8 +16,11 @@ in pieces shorter than a stall or running slow; ``missed_rival``:
 a real-time task at the loop's priority or above ran on its CPU, which the bare loop one
 priority up does not feel, ``handctl.rivals``; ``missed_host_catch_up``: right after the
 host's miss, its catch-up tick took no more CPU time than a catch-up usually does, or it began
-too late for a tick of the usual CPU time to meet the deadline) or handctl's
-(``missed_handctl``: none of these). Target: ``missed_handctl`` 0.
+too late for a tick of the usual CPU time to meet the deadline; ``missed_host_off_cpu``: the
+loop's thread, at a real-time priority, was held off its CPU in the tick before the miss long
+enough to make it, by the kernel's account of the thread: ``handctl.online.misstrace``) or
+handctl's (``missed_handctl``: none of these; ``handctl_misses`` says what the tick before each
+did). Target: ``missed_handctl`` 0.
 
 ``tick_cost`` is the CPU cost of the tick, stage by stage, of this tree beside the tree of
 ``--baseline`` (a git revision; by default the one before the tick's cost was cut, issue #17),
@@ -306,6 +309,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             "missed_host_slow_cpu",
             "missed_rival",
             "missed_host_catch_up",
+            "missed_host_off_cpu",
             "missed_handctl",
             "missed_handctl_after_host",
             "startup_missed_ticks",

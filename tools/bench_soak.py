@@ -13,12 +13,13 @@ Figures (targets from the fault, load and soak issue):
 - ``records_lost``: what the recorder and writer counted as dropped, plus ticks the runtime ran
   that the file lacks (``/loop/timing`` read back and compared tick by tick), target 0;
 - ``ticks``, ``mb_written``, lateness (whole run), and the RSS at start and end;
-- ``missed_host``, ``missed_host_slow_cpu``, ``missed_rival``, ``missed_host_catch_up`` and
-  ``missed_handctl``: the missed ticks of the run proper, the host's (the bare timer loop
-  beside the run stalled, or its CPU was slow, at the same time), a real-time rival's, the
-  host's catch-up ticks' (right after its miss, the tick between at its usual CPU time, or
-  begun too late for a usual tick to meet the deadline), or
-  handctl's (none of these), and
+- ``missed_host``, ``missed_host_slow_cpu``, ``missed_rival``, ``missed_host_catch_up``,
+  ``missed_host_off_cpu`` and ``missed_handctl``: the missed ticks of the run proper, the
+  host's (the bare timer loop beside the run stalled, or its CPU was slow, at the same time), a
+  real-time rival's, the host's catch-up ticks' (right after its miss, the tick between at its
+  usual CPU time, or begun too late for a usual tick to meet the deadline), the host's with
+  the loop's thread held off its CPU (``handctl.online.misstrace``), or handctl's (none of
+  these), and
   the bare loop's own figures (``host_*``), as in ``bench.py loop``. Target: ``missed_handctl`` 0.
 
 With ``--rt`` the simulated hand's process gets SCHED_FIFO too (just below the loop): on a

@@ -30,6 +30,7 @@ period's worth, and ``drain`` reports frames it had to leave in the queue as an
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import errno
 import os
@@ -84,6 +85,14 @@ class FrameTransport(Protocol):
     def send_frames(self, frames: Sequence[tuple[int, int, bytes]]) -> None: ...
 
     def recv_frame(self) -> tuple[float, int, int, bytes] | None: ...
+
+
+@runtime_checkable
+class ConnectingTransport(Protocol):
+    """A python-can bus whose first send would look its receivers up (the unix bus):
+    ``HandBus.prepare_send`` has it done beforehand."""
+
+    def connect_peers(self) -> None: ...
 
 
 @runtime_checkable
@@ -174,6 +183,9 @@ class FrameBus(Protocol):
     rx_tap: RxTap | None
     event_tap: Callable[[BusEvent], None] | None
 
+    def prepare_send(self) -> None:
+        """Do now what the first send would (look the receivers up), while there is time."""
+
     def use_clock(self, clock_ns: Callable[[], int]) -> None: ...
 
     def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]: ...
@@ -210,6 +222,7 @@ class HandBus:
         self.closed = False
         self._bursts = bus if isinstance(bus, BurstTransport) else None
         self._frames = bus if isinstance(bus, FrameTransport) else None
+        self._connecting = bus if isinstance(bus, ConnectingTransport) else None
         #: The flags of every frame this bus sends (``FrameTransport``).
         self._send_flags = ff.FD | ff.BRS if fd else 0
         # The burst under way on a BurstTransport, held until flush: its frames for the counts
@@ -233,6 +246,13 @@ class HandBus:
         self._tapped: list[tuple[int, bytes]] = []
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
+
+    def prepare_send(self) -> None:
+        """Whatever the transport would do on its first send and can do before it (connect to
+        its receivers), so that the first send costs what later ones do; never raises."""
+        if self._connecting is not None:
+            with contextlib.suppress(Exception):
+                self._connecting.connect_peers()
 
     def use_clock(self, clock_ns: Callable[[], int]) -> None:
         """Stamp arrivals and events on ``clock_ns`` (the loop's clock) from now on."""

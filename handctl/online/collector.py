@@ -60,10 +60,11 @@ class LoopCollector:
             if was_enabled:
                 gc.enable()
 
-    def after_tick(self) -> None:
-        """Collect now if CPython would have by now; a few integer comparisons otherwise."""
+    def after_tick(self) -> bool:
+        """Collect now if CPython would have by now; a few integer comparisons otherwise.
+        Whether it collected."""
         if not self._active or gc.get_count()[0] < self.young_threshold:
-            return
+            return False
         generation = 0
         self._young_since_middle += 1
         if self._young_since_middle >= OLDER_EVERY:
@@ -75,3 +76,4 @@ class LoopCollector:
                 generation = 2
         gc.collect(generation)
         self.collections[generation] += 1
+        return True

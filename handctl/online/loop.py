@@ -42,6 +42,15 @@ from handctl.online.clock import Clock, Tick
 from handctl.online.collector import LoopCollector
 from handctl.online.drivers import finger, receiver
 from handctl.online.drivers.hand import AppliedTorques, HandDriver
+from handctl.online.misstrace import (
+    NOTE_BUS_EVENT,
+    NOTE_COLLECT,
+    NOTE_FAULT,
+    NOTE_PHASE,
+    NOTE_STATE,
+    NOTE_STATUS,
+    MissTrace,
+)
 from handctl.online.recipes import runner as recipe_runner
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.runner import RecipeRunner, RunStatus
@@ -241,6 +250,10 @@ class Runtime:
         )
         #: The supervisor state whose name the record holds.
         self._record_state: State | None = None
+        #: What the tick before each late wake-up did (a real-time run's; None: not kept).
+        self.trace: MissTrace | None = None
+        self._traced_state: State | None = None  # the state and phase the trace last saw
+        self._traced_phase = -1
 
     # -- requests from outside (signal handlers, tests) -----------------------------------
     def request_stop(self, reason: str = "interrupted") -> None:
@@ -306,6 +319,9 @@ class Runtime:
         tick = self.tick
         sup.start(tick)
         self.driver.node_command("enable")
+        if self.trace is not None:  # in the last start-up tick's interval
+            self.trace.note(NOTE_STATE)
+            self._traced_state = sup.state
         self.first_send_tick = self.tick  # command frame n of each node belongs to this + n
         self.startup_missed_ticks = self._missed  # before it the peer may still be starting
         stopping_since: int | None = None
@@ -414,6 +430,9 @@ class Runtime:
             if since is None:
                 since = tk.now_ns
             self.driver.poll(tk.now_ns)
+            # The first send's one-time work (the unix bus looks its receivers up) here, where
+            # the tick only listens, not in the nodes' enable before the first running tick.
+            self.driver.prepare_send()
             if self.stop_requested:
                 return f"stopped during start-up ({self.stop_requested})"
             # Judge the nodes on what they say now, not on what a previous run last heard:
@@ -482,13 +501,18 @@ class Runtime:
     async def _next_tick(self) -> Tick:
         """Every tick of the run starts here, so the recorder sees each one before its poll;
         the garbage the ticks before it left is collected here too, if it is time to."""
-        self.collector.after_tick()
+        if self.collector.after_tick() and self.trace is not None:
+            self.trace.note(NOTE_COLLECT)
         tk = await self.clock.wait_tick()
         if self.recorder is not None:
             self.recorder.begin_tick(tk)
         return tk
 
     def _account_idle(self, tk: Tick) -> None:
+        """A tick with no stages (start-up, the last): counted, and traced, since the first
+        running tick may have missed by what the last start-up tick did."""
+        if self.trace is not None:
+            self.trace.woke(tk.tick, tk.now_ns - tk.scheduled_ns, tk.missed, self.cpu_clock())
         if self._t0_ns is None:
             self._t0_ns = tk.scheduled_ns
         self._store(tk, (0,) * len(STAGES))
@@ -503,6 +527,9 @@ class Runtime:
         for hook in self.tick_hooks:
             hook(tk)
         c0 = cpu()
+        trace = self.trace
+        if trace is not None:
+            trace.woke(tk.tick, tk.now_ns - tk.scheduled_ns, tk.missed, c0)
         state = driver.poll(tk.now_ns)
         events = driver.take_bus_events()
         self._bus_events += len(events)
@@ -545,6 +572,8 @@ class Runtime:
         c5 = cpu() if self.recorder is not None else c4
         fb = self._feedback_ns
         self._store(tk, (c1 - c0, c2 - c1 - fb, c3 - c2, c4 - c3, c5 - c4, fb))
+        if trace is not None:
+            trace.done(c5, self._trace_notes(tk.tick, events, new_faults))
         if self.status is not None and tk.tick % STATUS_EVERY_TICKS == 0:
             runner = self.runner
             self.status(
@@ -562,6 +591,23 @@ class Runtime:
                 )
             )
         return tk
+
+    def _trace_notes(self, tick: int, events: Sequence[BusEvent], faults: list[Fault]) -> int:
+        """What happened in this tick, for the trace (``NOTE_*``)."""
+        notes = NOTE_BUS_EVENT if events else 0
+        if faults:
+            notes |= NOTE_FAULT
+        state = self.supervisor.state
+        if state is not self._traced_state:
+            self._traced_state = state
+            notes |= NOTE_STATE
+        phase = self.runner.index if self.runner is not None else -1
+        if phase != self._traced_phase:
+            self._traced_phase = phase
+            notes |= NOTE_PHASE
+        if self.status is not None and tick % STATUS_EVERY_TICKS == 0:
+            notes |= NOTE_STATUS
+        return notes
 
     def decide(
         self,

@@ -167,6 +167,18 @@ class UnixDatagramBus(can.BusABC):
         for gone in [p for p in self._lost if p not in self._peers]:
             del self._lost[gone]
 
+    def connect_peers(self) -> None:
+        """Look the participants up and connect a socket to each now, while there is time (a
+        run's start-up ticks, which only listen), not in the first send: the first listing
+        of the directory and the connects took 0.5 ms of CPU there, in the nodes' enable,
+        and delayed the first running tick (docs/timing.md). Later calls cost what the
+        send's own look does (``_refresh_peers``: at most every 50 ms, a ``stat``)."""
+        self._refresh_peers()
+        for peer in self._peers:
+            if peer not in self._links:
+                with _suppress_oserror():  # not there yet, or gone: a send tries again
+                    self._link(peer)
+
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send one frame now, as a burst of its own: what python-can's ``send`` promises
         any user of the interface. ``HandBus`` sends a tick's frames with ``send_burst``."""

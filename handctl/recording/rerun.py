@@ -199,6 +199,9 @@ class ReplayBus:
         self._tx = deque(inputs.tx)
         self._events = list(inputs.bus_events)
 
+    def prepare_send(self) -> None:
+        """Nothing to ready: a re-run sends nowhere."""
+
     def use_clock(self, clock_ns: Callable[[], int]) -> None:
         """The logged frames carry the times they arrived at in the run: no clock to use."""
 

@@ -35,7 +35,8 @@ HOST_FAILED = "the bare timer loop beside it says the host was FAIL"
 #: beside it), its slow CPU's, its catch-up ticks', handctl's, and a real-time rival's
 MISSED = re.compile(
     r"missed ticks: (\d+) the host's, (?:(\d+) its slow CPU's, )?"
-    r"(?:(\d+) its catch-up ticks', )?(\d+) handctl's(?:, (\d+) a real-time rival's)?"
+    r"(?:(\d+) its catch-up ticks', )?(?:(\d+) with the loop held off its CPU, )?"
+    r"(\d+) handctl's(?:, (\d+) a real-time rival's)?"
 )
 #: What a run prints when the simulated hand's CPU stalled longer than the feedback timeout
 SIM_CPU_FAILED = re.compile(r"on the simulated hand's CPU \S+ the host was FAIL")
@@ -68,14 +69,15 @@ def hand_cpu_text(record: ProbeRecord, hand: HandConfig) -> str:
 def host_stopped(text: str) -> bool:
     """Whether a stopped run's own probes put the stop on the host: the host FAIL beside the
     loop, a loop overrun whose missed ticks the probes explained every one (stalls, a slow
-    CPU, a catch-up tick held, a rival) and were some, or a feedback timeout or a flood of
-    frames (the hand catching up) with the simulated hand's CPU FAIL."""
+    CPU, a catch-up tick held, the loop held off its CPU, a rival) and were some, or a
+    feedback timeout or a flood of frames (the hand catching up) with the simulated hand's
+    CPU FAIL."""
     if HOST_FAILED in text:
         return True
     counts = MISSED.search(text)
     if "LOOP_OVERRUN" in text and counts is not None:
-        host, slow, catch_up, own, rival = (int(n or 0) for n in counts.groups())
-        if own == 0 and host + slow + catch_up + rival > 0:
+        host, slow, catch_up, held, own, rival = (int(n or 0) for n in counts.groups())
+        if own == 0 and host + slow + catch_up + held + rival > 0:
             return True
     late_hand = "FEEDBACK_TIMEOUT" in text or "RX_BACKLOG" in text
     return late_hand and SIM_CPU_FAILED.search(text) is not None

@@ -10,6 +10,7 @@ from typing import Any
 
 import pytest
 
+from handctl.cli import _own_miss_text
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.hostcheck import (
@@ -23,6 +24,10 @@ from handctl.hostcheck import (
     work_figures,
 )
 from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_model
+from handctl.online.misstrace import (
+    NOTE_COLLECT,
+    NOTE_PHASE,
+)
 
 MS = 1_000_000
 START = 10_000 * MS
@@ -184,6 +189,7 @@ def test_a_missed_tick_is_the_hosts_only_if_the_bare_loop_stalled_with_it() -> N
         "missed_host_slow_cpu": 0,
         "missed_rival": 0,
         "missed_host_catch_up": 0,
+        "missed_host_off_cpu": 0,
         "missed_handctl": 2,
         "missed_handctl_after_host": 0,
         "missed_unobserved": 2,
@@ -378,6 +384,183 @@ def test_recorded_busy_catch_up_ticks_are_the_hosts_only_as_far_as_a_late_start(
         moved_in_all += moved
         own_in_all += shares["missed_handctl"]
     assert moved_in_all > 0 and own_in_all > 0
+
+
+# -- held off the CPU: the loop thread's own account of the tick before a miss ------------------
+USUAL_DELAY_NS = 50_000  # what the bare loop's two preemptions a period usually cost the loop
+
+
+def _traced(tick: int, *, wall: int, cpu: int, delay: int, voluntary: int = 0) -> dict[str, int]:
+    """A ``MissTrace`` row of wake-up ``tick``: the tick before it, from its start to this
+    one's, ran ``cpu``, waited ``delay`` runnable, and blocked ``voluntary`` times."""
+    return {
+        "tick": tick,
+        "missed": 1,
+        "late_ns": 0,
+        "before_late_ns": 30_000,
+        "wall_ns": wall,
+        "cpu_ns": cpu,
+        "stages_ns": cpu * 3 // 4,
+        "run_delay_ns": delay,
+        "voluntary": voluntary,
+        "involuntary": 2,
+        "faults": 0,
+        "notes": 0,
+    }
+
+
+def _one_miss(late_ms: float) -> list[tuple[int, int, int, int]]:
+    """Wake-up 50 came ``late_ms`` after its oldest missed deadline (at 800 ms); the one before
+    it (49) was on time, so no catch-up rule applies. The bare loop saw nothing then."""
+    due = START + 800 * MS
+    missed = int(late_ms)
+    return [(50, due, due + round(late_ms * MS), missed)]
+
+
+def _held_work(row: dict[str, int], realtime: bool = True) -> LoopWork:
+    return LoopWork({}, USUAL_NS, {50: row}, USUAL_DELAY_NS, realtime)
+
+
+def test_a_miss_whose_tick_waited_runnable_for_the_cpu_is_the_hosts() -> None:
+    # The tick before ran its usual 250 µs of CPU but waited 1.5 ms runnable while another
+    # task ran on its CPU (run_delay; three times the usual for its 2.15 ms is 0.32): the bare
+    # loop, which looked at other moments, saw nothing. Without that wait it would have met
+    # its deadline.
+    loop = _one_miss(1.2)
+    row = _traced(50, wall=2_150_000, cpu=USUAL_NS, delay=1_500_000, voluntary=1)
+    own: list[int] = []
+    shares = attribute(loop, record([]), MS, own, work=_held_work(row))
+    assert (shares["missed_host_off_cpu"], shares["missed_handctl"], own) == (1, 0, [])
+    # the same figures, the loop not at a real-time priority: anything of the run's own (the
+    # simulated hand's process, the recording's writer) may have held it
+    shares = attribute(loop, record([]), MS, work=_held_work(row, realtime=False))
+    assert (shares["missed_host_off_cpu"], shares["missed_handctl"]) == (0, 1)
+
+
+def test_a_miss_whose_tick_never_blocked_and_was_off_the_cpu_is_the_hosts() -> None:
+    # No voluntary switch: the thread never slept, yet of 3.1 ms it ran 0.4 and waited 0.1
+    # runnable: 2.6 ms were taken from under it (a hypervisor's steal is not its CPU time).
+    loop = _one_miss(2.2)
+    row = _traced(50, wall=3_100_000, cpu=400_000, delay=100_000)
+    shares = attribute(loop, record([]), MS, work=_held_work(row))
+    assert (shares["missed_host_off_cpu"], shares["missed_handctl"]) == (2, 0)
+
+
+def test_a_tick_that_blocked_or_ran_long_keeps_its_misses_handctls() -> None:
+    # Off the CPU for 2 ms having blocked (a voluntary switch besides none for the timer:
+    # the tick overran, so it never waited for it): not the host's to have taken.
+    loop = _one_miss(1.3)
+    blocked = _traced(50, wall=2_300_000, cpu=250_000, delay=50_000, voluntary=1)
+    shares = attribute(loop, record([]), MS, work=_held_work(blocked))
+    assert (shares["missed_host_off_cpu"], shares["missed_handctl"]) == (0, 1)
+    # Busy: 2.2 ms of its own CPU time, the usual wait for the CPU. Its CPU time is never
+    # taken off, however slow.
+    busy = _traced(50, wall=2_300_000, cpu=2_200_000, delay=60_000)
+    shares = attribute(loop, record([]), MS, work=_held_work(busy))
+    assert (shares["missed_host_off_cpu"], shares["missed_handctl"]) == (0, 1)
+
+
+def test_only_the_deadlines_the_held_time_cost_are_the_hosts() -> None:
+    # 3.4 ms late, 3 deadlines missed; the tick before ran 2.3 ms of its own and waited 1.5 ms
+    # runnable (0.84 beyond three times the usual for its 4.4 ms): without the wait it would
+    # have been 2.56 ms late, two deadlines. One is the host's, two handctl's.
+    loop = _one_miss(3.4)
+    row = _traced(50, wall=4_400_000, cpu=2_300_000, delay=1_500_000, voluntary=1)
+    own: list[int] = []
+    shares = attribute(loop, record([]), MS, own, work=_held_work(row))
+    assert (shares["missed_host_off_cpu"], shares["missed_handctl"], own) == (1, 2, [50])
+
+
+def test_a_late_start_and_a_held_tick_together_take_only_what_each_explains() -> None:
+    # The catch-up tick of the host's stall began 0.1 ms before the next deadline (a late
+    # start: one deadline), ran 1.4 ms of CPU and waited 1.0 ms runnable (0.64 beyond three
+    # times the usual for its 2.4 ms); its wake-up came 2.3 ms after that deadline. Without the
+    # wait, 1.66 ms late: the one deadline a usual tick begun then would have missed too. So
+    # both misses are the host's: one a late start, one held.
+    host, _ = _catch_up_chain()
+    loop = _late_start_chain(507.3, 2)
+    row = _traced(11, wall=2_400_000, cpu=1_400_000, delay=1_000_000)
+    work = LoopWork({11: 1_400_000}, USUAL_NS, {11: row}, USUAL_DELAY_NS, True)
+    shares = attribute(loop, host, MS, work=work)
+    assert (shares["missed_host_catch_up"], shares["missed_host_off_cpu"]) == (1, 1)
+    assert shares["missed_handctl"] == 0
+    # without the trace: the late start alone
+    shares = attribute(loop, host, MS, work=LoopWork({11: 1_400_000}, USUAL_NS))
+    assert (shares["missed_host_catch_up"], shares["missed_handctl"]) == (1, 1)
+
+
+def _recorded_off_cpu() -> list[
+    tuple[dict[str, Any], list[tuple[int, int, int, int]], ProbeRecord]
+]:
+    data = json.loads((DATA / "host_off_cpu.json").read_text())
+    return [
+        (
+            case,
+            [(r[0], r[1], r[2], r[3]) for r in case["loop_stalls"]],
+            ProbeRecord.from_json(case["probe"], case["run"]),
+        )
+        for case in data["cases"]
+    ]
+
+
+def _recorded_work(case: dict[str, Any], realtime: bool) -> LoopWork:
+    return LoopWork(
+        {int(k): v for k, v in case["work_ns"].items()},
+        case["usual_cpu_ns"],
+        {int(k): v for k, v in case["late_wakeups"].items()},
+        case["usual_run_delay_ns"],
+        realtime,
+    )
+
+
+def test_recorded_misses_of_a_loop_held_off_its_cpu_are_the_hosts() -> None:
+    # Two quiet real-time runs (the loop bench's, a recipe's) in which the bare loop's stalls
+    # and hits did not cover four misses of one wake-up and one of another: in the tick before
+    # each, the loop's thread, slow in every stage (4.3 and 2.6 times its usual CPU time: the
+    # host's slow CPU), was off its CPU without blocking for 2.4 and 0.8 ms and waited
+    # runnable for 1.75 and 0.23 ms.
+    for case, loop, host in _recorded_off_cpu():
+        if case["kind"] != "held":
+            continue
+        own: list[int] = []
+        without = attribute(loop, host, MS, work=_recorded_work(case, realtime=False))
+        shares = attribute(loop, host, MS, own, work=_recorded_work(case, realtime=True))
+        assert without["missed_handctl"] > 0 and without["missed_host_off_cpu"] == 0
+        assert shares["missed_handctl"] == 0 and own == []
+        assert shares["missed_host_off_cpu"] == without["missed_handctl"]
+        # the other rules' shares as they were
+        ours = ("missed_host_off_cpu", "missed_handctl", "missed_handctl_after_host")
+        assert {k: v for k, v in shares.items() if k not in ours} == {
+            k: v for k, v in without.items() if k not in ours
+        }
+
+
+def test_recorded_busy_and_blocked_ticks_stay_handctls() -> None:
+    # The same runs with work of handctl's own injected: 2 ms of busy CPU time, or a 2 ms
+    # sleep, in the send stage of every 80th tick. A blocked tick's time off the CPU is never
+    # the host's; a busy tick's CPU time never is. One busy tick (2.9 ms of CPU) was also off
+    # its CPU 0.6 ms without blocking and missed three deadlines: the one that time cost is
+    # the host's, the two its work cost stay handctl's.
+    moved_in_all = 0
+    for case, loop, host in _recorded_off_cpu():
+        if case["kind"] == "held":
+            continue
+        work = _recorded_work(case, realtime=True)
+        without = attribute(loop, host, MS, work=_recorded_work(case, realtime=False))
+        shares = attribute(loop, host, MS, work=work)
+        moved = without["missed_handctl"] - shares["missed_handctl"]
+        assert moved == shares["missed_host_off_cpu"]
+        if case["kind"] == "blocked":
+            assert moved == 0
+        busy = case["busy_ticks"]
+        assert len(busy) >= 5
+        for tick in busy:  # each busy or blocked tick keeps a miss of its own
+            one = [r for r in loop if r[0] in (tick, tick + 1)]
+            kept = attribute(one, host, MS, work=work)["missed_handctl"]
+            before = attribute(one, host, MS, work=_recorded_work(case, realtime=False))
+            assert kept >= min(1, before["missed_handctl"])
+        moved_in_all += moved
+    assert moved_in_all == 1
 
 
 # -- the host -------------------------------------------------------------------------------------
@@ -709,5 +892,57 @@ def test_the_work_figures_name_each_own_miss_s_catch_up_tick_beside_the_usual() 
     assert figures == {
         "usual_tick_cpu_us": 300.0,
         "handctl_catch_up_cpu_us": [[120, 2500.0], [480, 310.0]],
+        "handctl_misses": [],
     }
-    assert work_figures(None, [120]) == {"usual_tick_cpu_us": 0.0, "handctl_catch_up_cpu_us": []}
+    assert work_figures(None, [120]) == {
+        "usual_tick_cpu_us": 0.0,
+        "handctl_catch_up_cpu_us": [],
+        "handctl_misses": [],
+    }
+
+
+def test_each_own_miss_says_what_the_tick_before_it_did_where_it_was_traced() -> None:
+    """The loop's trace of a late wake-up (``MissTrace``) is shown for each of handctl's own
+    misses, whatever the wake-up before it: its CPU time against the usual, its wait for the
+    CPU against the usual, the time it was off the CPU, what happened in it."""
+    traced = {
+        "tick": 667,
+        "missed": 1,
+        "late_ns": 1_300_000,
+        "before_late_ns": 40_000,
+        "wall_ns": 2_260_000,
+        "cpu_ns": 1_900_000,
+        "stages_ns": 1_700_000,
+        "run_delay_ns": 90_000,
+        "voluntary": 0,
+        "involuntary": 3,
+        "faults": 0,
+        "notes": NOTE_COLLECT | NOTE_PHASE,
+    }
+    work = LoopWork({}, 300_000, {667: traced, 900: {**traced, "tick": 900}}, 45_000)
+    figures = work_figures(work, [300, 667])
+    assert figures["handctl_misses"] == [
+        {
+            "tick": 667,
+            "missed": 1,
+            "late_us": 1300.0,
+            "before_woke_late_us": 40.0,
+            "wall_us": 2260.0,
+            "cpu_us": 1900.0,
+            "cpu_over_usual": 6.33,
+            "stages_cpu_us": 1700.0,
+            "run_delay_us": 90.0,
+            "usual_run_delay_us": 45.0,
+            "off_cpu_us": 270.0,
+            "voluntary_switches": 0,
+            "involuntary_switches": 3,
+            "page_faults": 0,
+            "notes": ["phase", "collection"],
+        }
+    ]
+    # and as a run prints it beside its summary
+    assert _own_miss_text(figures["handctl_misses"][0]) == (
+        "handctl's miss at tick 667 (1 missed, 1300 µs late): the tick before ran 1900 µs of "
+        "CPU (6.33x its usual), waited 90 µs for the CPU (usual 45.0), 270 µs off it, 0 "
+        "voluntary switch(es), 0 fault(s); in it: phase, collection"
+    )

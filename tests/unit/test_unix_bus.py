@@ -19,7 +19,7 @@ import pytest
 from handctl.config import HandConfig
 from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
 from handctl.online.taps import TAP_TX
-from handctl.online.unixcan import TX_QUEUE_FRAMES
+from handctl.online.unixcan import TX_QUEUE_FRAMES, UnixDatagramBus
 
 OpenUnix = Callable[[], HandBus]
 
@@ -282,3 +282,27 @@ def test_the_participants_are_listed_again_only_when_the_directory_changed(
         send_after_refresh(tx, 0x104)  # the second one left
         assert listings[0] == before + 2
         assert [f.arbitration_id for f in first.drain()] == [0x104]
+
+
+def test_a_bus_readied_before_its_first_send_is_connected_to_each_receiver(
+    open_unix: OpenUnix, hand: HandConfig
+) -> None:
+    """``prepare_send`` (a run's start-up ticks) looks the receivers up and connects to each,
+    which the first send did otherwise (0.5 ms of CPU in the nodes' enable: docs/timing.md);
+    a receiver that joins later is connected at a later call, and frames go as before."""
+    tx, first = open_unix(), open_unix()
+    unix = tx._bus
+    assert isinstance(unix, UnixDatagramBus)
+    tx.prepare_send()
+    assert sorted(unix._links) == sorted(unix._peers) and len(unix._peers) == 1
+    second = open_unix()
+    unix._peers_at = 0.0  # the next look is due (they are 50 ms apart)
+    tx.prepare_send()
+    assert len(unix._links) == 2
+    assert tx.send(0x101, b"\x01") and tx.flush()
+    for rx in (first, second):
+        got: list[Frame] = []
+        catch_up(rx, tx, got, 1)
+        assert [f.data for f in got] == [b"\x01"]
+    with open_bus(f"virtual:ready-{id(tx)}", hand.bus) as virtual:
+        virtual.prepare_send()  # nothing to ready: no error

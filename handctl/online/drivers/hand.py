@@ -171,6 +171,10 @@ class HandDriver:
         periods = max(1, -(-(now_ns - last) // self._period_ns))
         return self.frames_per_period * (periods + 1)
 
+    def prepare_send(self) -> None:
+        """Ready the bus for the first command frames while there is time (start-up)."""
+        self.bus.prepare_send()
+
     def discard_pending(self) -> int:
         """Drop every frame already waiting in the receive queue, unread.
 
