@@ -38,6 +38,7 @@ from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.executor import WorkPool, open_pool
+from handctl.online.recipes.loader import joint_fingers
 from handctl.online.recipes.schema import (
     Condition,
     PacedRamp,
@@ -385,7 +386,9 @@ def _with_rest(episode: Episode, spec: TemplatePhase, hand: HandConfig, hold: Po
     assert spec.seed is not None and spec.pose_integral is not None
     episode.run_phase(_compiled_phase(spec, spec.seed, hand, replace(hold, integral=None)))
     gain, bound, still = spec.pose_integral
-    return replace(hold, integral=PoseIntegral(_rounded_angles(episode), gain, bound, still))
+    rest = _rounded_angles(episode)
+    integral = PoseIntegral(rest, gain, bound, still, joint_fingers(hand))
+    return replace(hold, integral=integral)
 
 
 def _rounded_angles(episode: Episode) -> tuple[float, ...]:

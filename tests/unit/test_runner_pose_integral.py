@@ -133,3 +133,16 @@ def test_a_bad_integral_is_refused_naming_the_key(
     with pytest.raises(ConfigError) as info:
         _recipe(tmp_path, hand, _pose(**integral), objects=False)
     assert info.value.key == key
+
+
+def test_a_finger_past_its_rest_pose_grows_no_integral(tmp_path: Path, hand: HandConfig) -> None:
+    """A finger with a joint that went further than the rest pose (the way the phase's torque
+    pushes it) is not held back by friction, whatever its other joints do: it has closed onto
+    the objects. Its joints grow no integral; a finger short of the pose still does."""
+    runner = RecipeRunner(_recipe(tmp_path, hand, _pose(), objects=False), 9)
+    angles = _still(0.5)
+    angles[:, 0] = 2 * REST  # f1_j1, pushed the + way, past its rest pose of REST
+    _, out = _feed(runner, angles)
+    grown = out - np.array(TORQUES) - 0.5 * (0.0 - angles[-1])
+    assert np.all(grown[0:3] == 0.0)  # finger 1: none, though f1_j2 and f1_j3 are short
+    assert grown[3:6] == pytest.approx(np.full(3, BOUND))  # finger 2: short, pushed on

@@ -616,7 +616,12 @@ def _parse_integral(doc: Doc, hand: HandConfig) -> PoseIntegral:
     rest = _joint_angles(doc.mapping("rest"), hand)
     gain, bound, still = parse_integral_gains(doc, hand)
     doc.done()
-    return PoseIntegral(rest, gain, bound, still)
+    return PoseIntegral(rest, gain, bound, still, joint_fingers(hand))
+
+
+def joint_fingers(hand: HandConfig) -> tuple[int, ...]:
+    """Each joint's finger (its index in the config), in the config's joint order."""
+    return tuple(k for k, finger in enumerate(hand.fingers) for _ in finger.joints)
 
 
 def parse_integral_gains(doc: Doc, hand: HandConfig) -> tuple[float, float, float]:

@@ -213,6 +213,8 @@ class RecipeRunner:
         # a pose hold's integral (N·m per joint) and when it last grew
         self._pose_i = np.zeros(n_joints)
         self._pose_i_t = math.nan
+        # per finger: whether a joint of it is past the integral's rest pose this tick
+        self._finger_past = np.zeros(n_joints, dtype=bool)
         if after is not None:  # the first phase is entered from the handed-over state
             self._desired[:] = after.torques
             self.damping[:] = after.damping
@@ -448,8 +450,9 @@ class RecipeRunner:
         """One step of a pose hold's integral: only once the phase's ramp is done and only on
         a joint that has stopped, so that it makes up for what friction holds back, never
         for a joint still on its way (which would wind it up and overshoot). It only adds to
-        what the phase's torque asks of a joint (none on a joint it asks nothing of): it
-        pushes a finger that friction holds short of the rest pose on, and never pulls back
+        what the phase's torque asks of a joint (none on a joint it asks nothing of), and it
+        grows only while every joint of the finger is short of the rest pose the way the
+        torque pushes it: it pushes a finger that friction holds back on, and leaves alone
         one that a hand with less friction let go further (a start phase closes the fingers
         towards the objects, and the objects are what stops them there)."""
         dt = t - self._pose_i_t
@@ -458,12 +461,22 @@ class RecipeRunner:
             return
         v = self.velocity.value
         bound = integral.max
+        target = self._target
+        past = self._finger_past
+        past[:] = False
         for j, q_rest in enumerate(integral.rest):
-            if abs(float(v[j])) < integral.still_rate:
-                grown = float(self._pose_i[j]) + integral.gain * (q_rest - float(angle[j])) * dt
-                way = float(self._target[j])
-                low, high = (0.0, bound) if way > 0.0 else (-bound, 0.0) if way < 0.0 else (0.0, 0.0)
-                self._pose_i[j] = max(low, min(high, grown))
+            if float(target[j]) * (float(angle[j]) - q_rest) > 0.0:
+                past[integral.finger_of[j]] = True
+        for j, q_rest in enumerate(integral.rest):
+            if abs(float(v[j])) >= integral.still_rate:
+                continue
+            now = float(self._pose_i[j])
+            grown = now + integral.gain * (q_rest - float(angle[j])) * dt
+            if past[integral.finger_of[j]] and abs(grown) > abs(now):
+                continue  # the finger went further: only unwind
+            way = float(target[j])
+            low, high = (0.0, bound) if way > 0.0 else (-bound, 0.0) if way < 0.0 else (0.0, 0.0)
+            self._pose_i[j] = max(low, min(high, grown))
 
     def _follow_turn(self, t: float, estimates: Sequence[float] | None) -> bool:
         """One step of the estimated centre-line rate (``turn_rate``, rad/s); False when there

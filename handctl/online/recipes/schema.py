@@ -236,13 +236,15 @@ class PoseIntegral:
     with more friction than the nominal's stops short of the nominal's pose, and the lift
     begins from there. The integral grows only on a joint that has stopped (slower than
     ``still_rate``) once the phase's ramp is done, so a joint on its way is never wound up,
-    and it is bounded by ``max``. On the nominal hand it stays near zero: the hand rests
-    where ``rest`` says."""
+    only while no joint of its finger has gone past ``rest``, and it is bounded by ``max``.
+    On the nominal hand it stays near zero: the hand rests where ``rest`` says."""
 
     rest: tuple[float, ...]  # rad, config joint order
     gain: float  # N·m/(rad·s)
     max: float  # N·m, per joint, either way
     still_rate: float  # rad/s
+    #: each joint's finger (index in the hand config), config joint order
+    finger_of: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
