@@ -38,12 +38,14 @@ from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.executor import WorkPool, open_pool
+from handctl.online.recipes.loader import joint_fingers
 from handctl.online.recipes.schema import (
     Condition,
     PacedRamp,
     PerJoint,
     Phase,
     PoseHold,
+    PoseIntegral,
     ScheduledTorques,
     TimeoutAction,
     parse_condition,
@@ -201,6 +203,22 @@ def _per_joint(value: PerJoint, hand: HandConfig) -> float | dict[str, float]:
     return value
 
 
+def _pose_document(pose: PoseHold, hand: HandConfig) -> dict[str, Any]:
+    doc: dict[str, Any] = {
+        "angles": dict(zip(hand.joint_names, pose.angles, strict=True)),
+        "stiffness": pose.stiffness,
+        "damping": pose.damping,
+    }
+    if pose.integral is not None:
+        doc["integral"] = {
+            "rest": dict(zip(hand.joint_names, pose.integral.rest, strict=True)),
+            "gain": pose.integral.gain,
+            "max": pose.integral.max,
+            "still_rate": pose.integral.still_rate,
+        }
+    return doc
+
+
 def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     phase = plan.phase
     doc: dict[str, Any] = {
@@ -239,11 +257,7 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
             "integral_per_s": loop.integral,
         }
     if phase.pose is not None:
-        doc["pose"] = {
-            "angles": dict(zip(hand.joint_names, phase.pose.angles, strict=True)),
-            "stiffness": phase.pose.stiffness,
-            "damping": phase.pose.damping,
-        }
+        doc["pose"] = _pose_document(phase.pose, hand)
     if phase.joint_damping != 0.0:
         doc["joint_damping"] = _per_joint(phase.joint_damping, hand)
         if not phase.joint_damping_fades:
@@ -359,8 +373,26 @@ def _pose_of(episode: Episode, spec: TemplatePhase, hand: HandConfig) -> PoseHol
     nominal hand (rounded to 0.1 mrad), so the hold brings every hand to the nominal's pose."""
     assert spec.seed is not None and spec.pose_stiffness is not None
     episode.run_phase(_compiled_phase(spec, spec.seed, hand))
-    angles = tuple(round(float(q), 4) + 0.0 for q in episode.plant.joint_angles)
-    return PoseHold(angles, spec.pose_stiffness, spec.pose_damping)
+    return PoseHold(_rounded_angles(episode), spec.pose_stiffness, spec.pose_damping)
+
+
+def _with_rest(episode: Episode, spec: TemplatePhase, hand: HandConfig, hold: PoseHold) -> PoseHold:
+    """``hold`` with the template's integral, whose rest pose is where the nominal hand
+    settles under the hold (spring and torques). Why not the spring's own pose: through the
+    tips' friction on the table, where the hand comes to rest depends on the path, and the
+    hold's path is not the torques' alone. The next phase is planned from where the nominal
+    hand rests, so the integral brings every hand to the pose that phase was planned from.
+    The episode is left where the phase ended."""
+    assert spec.seed is not None and spec.pose_integral is not None
+    episode.run_phase(_compiled_phase(spec, spec.seed, hand, replace(hold, integral=None)))
+    gain, bound, still = spec.pose_integral
+    rest = _rounded_angles(episode)
+    integral = PoseIntegral(rest, gain, bound, still, joint_fingers(hand))
+    return replace(hold, integral=integral)
+
+
+def _rounded_angles(episode: Episode) -> tuple[float, ...]:
+    return tuple(round(float(q), 4) + 0.0 for q in episode.plant.joint_angles)
 
 
 def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
@@ -507,6 +539,11 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 "models": len(alive),
                 "successes": chosen.successes,
             }
+        if pose is not None and spec.pose_integral is not None:
+            # a kept hold gets its rest pose too: the template may add the integral to it
+            nominal.restore(snaps[alive[0]])
+            pose = _with_rest(nominal, spec, hand, pose)
+            nominal.restore(snaps[alive[0]])
         schedule: tuple[ScheduledTorques, ...] | None = None
         schedule_doc: list[dict[str, Any]] = []
         if any(isinstance(e, PlannedSchedule) for e in spec.schedule):

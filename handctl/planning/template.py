@@ -34,6 +34,7 @@ from handctl.online.recipes.loader import (
     parse_damping_fades,
     parse_grasp_model,
     parse_guard_band,
+    parse_integral_gains,
     parse_joint_damping,
     parse_min_total_turn,
     parse_objects,
@@ -126,6 +127,9 @@ class TemplatePhase:
     #: whether ``joint_damping`` fades over the next phase's ramp or ends with the phase,
     #: carried into the recipe
     joint_damping_fades: bool = True
+    #: the pose hold's integral: gain N·m/(rad·s), max N·m, still_rate rad/s; its rest pose
+    #: is where the nominal hand settles under the hold (``compile._pose_of``)
+    pose_integral: tuple[float, float, float] | None = None
 
     def exit_condition(self) -> str:
         """The exit of a turn phase in the planner's episodes: on the estimated turn of the
@@ -394,10 +398,15 @@ def _phase(
             )
     stiffness: float | None = None
     damping = 0.0
+    integral: tuple[float, float, float] | None = None
     if kind == "free" and doc.has("pose"):
         pose = doc.mapping("pose")
         stiffness = pose.number("stiffness", min=0.0, max=100.0, min_exclusive=True, unit="N·m/rad")
         damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
+        if pose.has("integral"):
+            gains = pose.mapping("integral")
+            integral = parse_integral_gains(gains, hand)
+            gains.done()
         pose.done()
     joint_damping = parse_joint_damping(doc, hand.joint_names)
     fades = parse_damping_fades(doc)
@@ -429,4 +438,5 @@ def _phase(
         schedule=schedule,
         object_names=tuple(objects),
         joint_damping_fades=fades,
+        pose_integral=integral,
     )

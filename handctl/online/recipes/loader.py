@@ -28,6 +28,7 @@ from handctl.online.recipes.schema import (
     PerJoint,
     Phase,
     PoseHold,
+    PoseIntegral,
     RadiusRatio,
     Reanalyse,
     Recipe,
@@ -593,15 +594,45 @@ def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:
 
 
 def _parse_pose(doc: Doc, hand: HandConfig) -> PoseHold:
-    sub = doc.mapping("angles")
-    angles = []
-    for joint in hand.joints:
-        angles.append(sub.number(joint.name, min=joint.angle_min, max=joint.angle_max, unit="rad"))
-    sub.done()
+    angles = _joint_angles(doc.mapping("angles"), hand)
     stiffness = doc.number("stiffness", min=0.0, max=100.0, unit="N·m/rad")
     damping = doc.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
+    integral = _parse_integral(doc.mapping("integral"), hand) if doc.has("integral") else None
     doc.done()
-    return PoseHold(tuple(angles), stiffness, damping)
+    return PoseHold(angles, stiffness, damping, integral)
+
+
+def _joint_angles(sub: Doc, hand: HandConfig) -> tuple[float, ...]:
+    """Every joint's angle by name, within its limits (a pose)."""
+    angles = [
+        sub.number(joint.name, min=joint.angle_min, max=joint.angle_max, unit="rad")
+        for joint in hand.joints
+    ]
+    sub.done()
+    return tuple(angles)
+
+
+def _parse_integral(doc: Doc, hand: HandConfig) -> PoseIntegral:
+    rest = _joint_angles(doc.mapping("rest"), hand)
+    gain, bound, still = parse_integral_gains(doc, hand)
+    doc.done()
+    return PoseIntegral(rest, gain, bound, still, joint_fingers(hand))
+
+
+def joint_fingers(hand: HandConfig) -> tuple[int, ...]:
+    """Each joint's finger (its index in the config), in the config's joint order."""
+    return tuple(k for k, finger in enumerate(hand.fingers) for _ in finger.joints)
+
+
+def parse_integral_gains(doc: Doc, hand: HandConfig) -> tuple[float, float, float]:
+    """A pose hold's ``integral``: ``gain`` (N·m/(rad·s)), ``max`` (N·m) and ``still_rate``
+    (rad/s), shared by a recipe and a template (whose ``rest`` the plan computes)."""
+    gain = doc.number("gain", min=0.0, max=100.0, min_exclusive=True, unit="N·m/(rad·s)")
+    # no more than the weakest joint's tau_max, so the bound means the same on every joint
+    cap = min(j.tau_max for j in hand.joints)
+    bound = doc.number("max", min=0.0, max=cap, min_exclusive=True, unit="N·m")
+    still = doc.number("still_rate", min=0.0, max=10.0, min_exclusive=True, unit="rad/s")
+    return gain, bound, still
 
 
 def parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:

@@ -15,7 +15,9 @@ Feedback, all of it from the angles and the estimates computed from them:
   pair's ``line_turn``, low-passed over ``RATE_TIME_CONSTANT``). While the estimate is invalid
   the scale holds. The loop starts at the plan's own torque (scale 1).
 - ``pose``: a joint-space spring and damper towards the phase's pose, ramped in with the
-  phase's torques.
+  phase's torques; with ``integral``, once the ramp is done, a bounded integral of each
+  stopped joint's distance from the pose the nominal hand rests in (``_pose_integrate``), so
+  friction the model does not know cannot hold a finger short of it.
 - ``brake``: more injected damping while the pair tumbles: none while the estimated
   centre-line rate is at most the brake's rate, rising to its ``joint_damping`` at twice
   that rate, on top of the phase's own ``joint_damping``; with a ``joint_rate``, the same
@@ -67,6 +69,8 @@ from handctl.online.recipes.schema import (
     Condition,
     MeasuredSizes,
     PacedRamp,
+    PoseHold,
+    PoseIntegral,
     Recipe,
     SignalKind,
     TimeoutAction,
@@ -206,6 +210,11 @@ class RecipeRunner:
         self._depth = np.zeros(n_joints)
         self._depth_from = np.zeros(n_joints)
         self._depth_known = False
+        # a pose hold's integral (N·m per joint) and when it last grew
+        self._pose_i = np.zeros(n_joints)
+        self._pose_i_t = math.nan
+        # per finger: whether a joint of it is past the integral's rest pose this tick
+        self._finger_past = np.zeros(n_joints, dtype=bool)
         if after is not None:  # the first phase is entered from the handed-over state
             self._desired[:] = after.torques
             self.damping[:] = after.damping
@@ -257,6 +266,8 @@ class RecipeRunner:
             self._damping_from[:] = self.damping
         self._held_since.clear()
         self._stall_turn = self._stall_t = math.nan
+        self._pose_i[:] = 0.0
+        self._pose_i_t = math.nan
         self.scale = self._scale_i = 1.0
         self.turn_rate = 0.0
         self.blind = False
@@ -413,12 +424,7 @@ class RecipeRunner:
                 np.multiply(self._target, (self.scale - 1.0) * self._fraction, out=self._delta)
                 out += self._delta
             if phase.pose is not None:
-                pose = phase.pose
-                v = self.velocity.value
-                for j, q_ref in enumerate(pose.angles):
-                    out[j] += self._fraction * (
-                        pose.stiffness * (q_ref - float(angle[j])) - pose.damping * float(v[j])
-                    )
+                self._pose_hold(t, phase.pose, angle, out)
         if self._damping_ramped or self._damping_stale:
             # apart from ``_proposed``, which the next phase's ramp starts from: the damping
             # carries over through ``self.damping`` instead
@@ -428,6 +434,49 @@ class RecipeRunner:
         if self._guard is None or self._guard_velocity is None:
             return out
         return self._guard.apply(angle, out, self._guarded, self._guard_velocity.value)
+
+    def _pose_hold(self, t: float, pose: PoseHold, angle: FloatArray, out: FloatArray) -> None:
+        """Add a pose hold's spring and damper, ramped in with the phase, and its integral."""
+        v = self.velocity.value
+        for j, q_ref in enumerate(pose.angles):
+            out[j] += self._fraction * (
+                pose.stiffness * (q_ref - float(angle[j])) - pose.damping * float(v[j])
+            )
+        if pose.integral is not None:
+            self._pose_integrate(t, pose.integral, angle)
+            out += self._pose_i
+
+    def _pose_integrate(self, t: float, integral: PoseIntegral, angle: FloatArray) -> None:
+        """One step of a pose hold's integral: only once the phase's ramp is done and only on
+        a joint that has stopped, so that it makes up for what friction holds back, never
+        for a joint still on its way (which would wind it up and overshoot). It only adds to
+        what the phase's torque asks of a joint (none on a joint it asks nothing of), and it
+        grows only while every joint of the finger is short of the rest pose the way the
+        torque pushes it: it pushes a finger that friction holds back on, and leaves alone
+        one that a hand with less friction let go further (a start phase closes the fingers
+        towards the objects, and the objects are what stops them there)."""
+        dt = t - self._pose_i_t
+        self._pose_i_t = t
+        if not dt > 0.0 or self._fraction < 1.0:
+            return
+        v = self.velocity.value
+        bound = integral.max
+        target = self._target
+        past = self._finger_past
+        past[:] = False
+        for j, q_rest in enumerate(integral.rest):
+            if float(target[j]) * (float(angle[j]) - q_rest) > 0.0:
+                past[integral.finger_of[j]] = True
+        for j, q_rest in enumerate(integral.rest):
+            if abs(float(v[j])) >= integral.still_rate:
+                continue
+            now = float(self._pose_i[j])
+            grown = now + integral.gain * (q_rest - float(angle[j])) * dt
+            if past[integral.finger_of[j]] and abs(grown) > abs(now):
+                continue  # the finger went further: only unwind
+            way = float(target[j])
+            low, high = (0.0, bound) if way > 0.0 else (-bound, 0.0) if way < 0.0 else (0.0, 0.0)
+            self._pose_i[j] = max(low, min(high, grown))
 
     def _follow_turn(self, t: float, estimates: Sequence[float] | None) -> bool:
         """One step of the estimated centre-line rate (``turn_rate``, rad/s); False when there

@@ -229,6 +229,25 @@ PerJoint = float | tuple[float, ...]
 
 
 @dataclass(frozen=True)
+class PoseIntegral:
+    """Integral action of a pose hold towards ``rest``, the pose the nominal hand settles in
+    under the hold. Why: the spring alone leaves a finger where its torque, the spring and the
+    friction the model does not know (the tendons', the tips' on the table) balance, so a hand
+    with more friction than the nominal's stops short of the nominal's pose, and the lift
+    begins from there. The integral grows only on a joint that has stopped (slower than
+    ``still_rate``) once the phase's ramp is done, so a joint on its way is never wound up,
+    only while no joint of its finger has gone past ``rest``, and it is bounded by ``max``.
+    On the nominal hand it stays near zero: the hand rests where ``rest`` says."""
+
+    rest: tuple[float, ...]  # rad, config joint order
+    gain: float  # N·m/(rad·s)
+    max: float  # N·m, per joint, either way
+    still_rate: float  # rad/s
+    #: each joint's finger (index in the hand config), config joint order
+    finger_of: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True)
 class PoseHold:
     """Joint-space impedance of a phase: ``stiffness * (angle - q) - damping * velocity`` is
     added to the phase's torques, so the fingers end in a known pose whatever pose they began
@@ -237,6 +256,7 @@ class PoseHold:
     angles: tuple[float, ...]  # rad, config joint order
     stiffness: float  # N·m/rad
     damping: float  # N·m·s/rad
+    integral: PoseIntegral | None = None
 
 
 @dataclass(frozen=True)
