@@ -128,7 +128,7 @@ class TemplatePhase:
     #: carried into the recipe
     joint_damping_fades: bool = True
     #: the pose hold's integral: gain N·m/(rad·s), max N·m, still_rate rad/s; its rest pose
-    #: is where the nominal hand settles under the hold (``compile._pose_of``)
+    #: is where the nominal hand settles under the hold (``compile._with_rest``)
     pose_integral: tuple[float, float, float] | None = None
 
     def exit_condition(self) -> str:

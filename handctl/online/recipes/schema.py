@@ -243,8 +243,9 @@ class PoseIntegral:
     gain: float  # N·m/(rad·s)
     max: float  # N·m, per joint, either way
     still_rate: float  # rad/s
-    #: each joint's finger (index in the hand config), config joint order
-    finger_of: tuple[int, ...] = ()
+    #: each joint's finger (index in the hand config), config joint order: the finger's rule
+    #: needs it and the runner has no hand config (``loader.joint_fingers``)
+    finger_of: tuple[int, ...]
 
 
 @dataclass(frozen=True)
