@@ -17,6 +17,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 from ..conftest import ROOT, handctl
 
@@ -47,29 +48,31 @@ def _hand(tmp_path: Path, radius: dict[str, float] = RADIUS) -> Path:
     return path
 
 
+def _run(tmp_path: Path, radius: dict[str, float], *extra: str) -> tuple[int, dict[str, Any], str]:
+    """Run the shipped recipe on the hand resized by ``radius``: the exit code, the summary,
+    and what ``manipulate_3``'s record says it chose."""
+    out = tmp_path / "summary.json"
+    run = handctl(
+        "run", "recipe", str(RECIPE), "--hand", str(_hand(tmp_path, radius)),
+        "--summary-json", str(out), *extra,
+    )  # fmt: skip
+    assert out.exists(), run.stdout + run.stderr
+    summary = json.loads(out.read_text())
+    phases = {p["name"]: p for p in summary["phases"]}
+    return run.returncode, summary, str(phases["manipulate_3"]["schedule"])
+
+
 def test_a_large_cylinder_1_is_swapped_with_the_torque_planned_for_a_large_pair(
     tmp_path: Path,
 ) -> None:
-    out, log = tmp_path / "summary.json", tmp_path / "run.mcap"
-    run = handctl(
-        "run",
-        "recipe",
-        str(RECIPE),
-        "--hand",
-        str(_hand(tmp_path)),
-        "--summary-json",
-        str(out),
-        "--log",
-        str(log),
-    )
-    summary = json.loads(out.read_text())
+    log = tmp_path / "run.mcap"
+    code, summary, chosen = _run(tmp_path, RADIUS, "--log", str(log))
     ex = summary["experiment"]
-    phases = {p["name"]: p for p in summary["phases"]}
-    assert phases["manipulate_3"]["schedule"].startswith("cyl1 radius x1.1"), phases
+    assert chosen.startswith("cyl1 radius x1.1"), chosen
     # the first entry: cylinder 1 large beside a cylinder 2 not measured small
-    assert phases["manipulate_3"]["schedule"].endswith(": schedule[0]"), phases
+    assert chosen.endswith(": schedule[0]"), chosen
     assert summary["outcome"] == "completed", (summary["outcome"], summary["message"])
-    assert run.returncode == 0, run.stdout + run.stderr
+    assert code == 0, summary["message"]
     assert ex["success"], ex
     assert ex["phase_angles_deg"][2] <= TURNED_DEG, ex
     done = handctl("replay", str(log), "--rerun")
@@ -80,16 +83,10 @@ def test_a_large_cylinder_1_is_swapped_with_the_torque_planned_for_a_large_pair(
 def test_two_large_cylinders_are_swapped_with_the_torque_planned_for_them(
     tmp_path: Path,
 ) -> None:
-    out = tmp_path / "summary.json"
-    run = handctl(
-        "run", "recipe", str(RECIPE), "--hand", str(_hand(tmp_path, BOTH)),
-        "--summary-json", str(out),
-    )  # fmt: skip
-    summary = json.loads(out.read_text())
+    code, summary, chosen = _run(tmp_path, BOTH)
     ex = summary["experiment"]
-    phases = {p["name"]: p for p in summary["phases"]}
-    assert phases["manipulate_3"]["schedule"].endswith(": schedule[0]"), phases
-    assert run.returncode == 0, run.stdout + run.stderr
+    assert chosen.endswith(": schedule[0]"), chosen
+    assert code == 0, summary["message"]
     assert ex["success"] and ex["total_rotation_deg"] >= SWAP_DEG, ex
     assert all(abs(abs(a) - 45.0) <= 10.0 for a in ex["phase_angles_deg"]), ex
 
@@ -97,16 +94,11 @@ def test_two_large_cylinders_are_swapped_with_the_torque_planned_for_them(
 def test_a_small_cylinder_1_beside_a_large_cylinder_2_is_turned_on_by_the_torque_planned_for_them(
     tmp_path: Path,
 ) -> None:
-    out = tmp_path / "summary.json"
-    run = handctl(
-        "run", "recipe", str(RECIPE), "--hand", str(_hand(tmp_path, SMALL_BESIDE_LARGE)),
-        "--summary-json", str(out),
-    )  # fmt: skip
-    summary = json.loads(out.read_text())
+    code, summary, chosen = _run(tmp_path, SMALL_BESIDE_LARGE)
     ex = summary["experiment"]
-    phases = {p["name"]: p for p in summary["phases"]}
-    assert phases["manipulate_3"]["schedule"].startswith("cyl1 radius x0.8"), phases
-    assert phases["manipulate_3"]["schedule"].endswith(": schedule[1]"), phases
-    assert run.returncode == 0, run.stdout + run.stderr
+    assert chosen.startswith("cyl1 radius x0.8"), chosen
+    # the second entry: cylinder 1 measured smaller, cylinder 2 larger
+    assert chosen.endswith(": schedule[1]"), chosen
+    assert code == 0, summary["message"]
     assert ex["success"], ex
     assert ex["phase_angles_deg"][2] <= TURNED_DEG, ex
