@@ -9,7 +9,10 @@ for a large pair swaps it. The run is logged and re-run bit-exact from its log, 
 included: the measured radius is the estimator's, from the logged angles. Both cylinders 15 %
 larger: the same entry swaps the pair in steps of about 45 degrees. Cylinder 1 15 % smaller
 beside a cylinder 2 6 % larger: ``manipulate_2`` stops short (about 20 degrees) and the
-phase's own torque then turns the pair back; the entry planned for such pairs turns it on."""
+phase's own torque then turns the pair back; the entry planned for such pairs turns it on.
+Cylinder 1 the recipe's size beside a cylinder 2 15 % larger: the phase's own torque turns the
+pair back in ``manipulate_4``; the same entry, taken on the sign of cylinder 2's measured size
+alone, swaps it."""
 
 from __future__ import annotations
 
@@ -28,6 +31,8 @@ RADIUS = {"cyl1": 1.16, "cyl2": 1.03}
 BOTH = {"cyl1": 1.15, "cyl2": 1.15}
 #: cylinder 1 small beside a larger cylinder 2 (the second entry)
 SMALL_BESIDE_LARGE = {"cyl1": 0.85, "cyl2": 1.06}
+#: cylinder 1 the recipe's size beside a larger cylinder 2 (the second entry as well)
+NEAR_BESIDE_LARGE = {"cyl1": 1.0, "cyl2": 1.15}
 #: deg: manipulate_3 asks for 45 (the wrong way, +, with the phase's own torque on these hands)
 TURNED_DEG = -35.0
 #: deg: the bench's swap (the cylinders traded places)
@@ -101,4 +106,17 @@ def test_a_small_cylinder_1_beside_a_large_cylinder_2_is_turned_on_by_the_torque
     assert chosen.endswith(": schedule[1]"), chosen
     assert code == 0, summary["message"]
     assert ex["success"], ex
+    assert ex["phase_angles_deg"][2] <= TURNED_DEG, ex
+
+
+def test_a_larger_cylinder_2_beside_a_cylinder_1_of_the_recipes_size_is_swapped_by_the_same_entry(
+    tmp_path: Path,
+) -> None:
+    code, summary, chosen = _run(tmp_path, NEAR_BESIDE_LARGE)
+    ex = summary["experiment"]
+    # cylinder 1 within the estimator's tolerance reads the recipe's radius exactly
+    assert chosen.startswith("cyl1 radius x1.000, cyl2 radius x1.1"), chosen
+    assert chosen.endswith(": schedule[1]"), chosen
+    assert code == 0, summary["message"]
+    assert ex["success"] and ex["total_rotation_deg"] >= SWAP_DEG, ex
     assert ex["phase_angles_deg"][2] <= TURNED_DEG, ex
