@@ -11,8 +11,8 @@ larger: the same entry swaps the pair in steps of about 45 degrees. Cylinder 1 1
 beside a cylinder 2 6 % larger: ``manipulate_2`` stops short (about 20 degrees) and the
 phase's own torque then turns the pair back; the entry planned for such pairs turns it on.
 Cylinder 1 the recipe's size beside a cylinder 2 15 % larger: the phase's own torque turns the
-pair back in ``manipulate_4``; the same entry, taken on the sign of cylinder 2's measured size
-alone, swaps it."""
+pair back in ``manipulate_3`` and ``manipulate_4``; the same entry, taken on the sign of
+cylinder 2's measured size, turns it on as well."""
 
 from __future__ import annotations
 
@@ -21,6 +21,8 @@ import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+
+import pytest
 
 from ..conftest import ROOT, handctl
 
@@ -96,27 +98,23 @@ def test_two_large_cylinders_are_swapped_with_the_torque_planned_for_them(
     assert all(abs(abs(a) - 45.0) <= 10.0 for a in ex["phase_angles_deg"]), ex
 
 
-def test_a_small_cylinder_1_beside_a_large_cylinder_2_is_turned_on_by_the_torque_planned_for_them(
-    tmp_path: Path,
+@pytest.mark.parametrize(
+    ("radius", "measured"),
+    [
+        # cylinder 1 measured smaller beside a cylinder 2 measured larger
+        (SMALL_BESIDE_LARGE, "cyl1 radius x0.8"),
+        # cylinder 1 within the estimator's tolerance reads the recipe's radius exactly
+        (NEAR_BESIDE_LARGE, "cyl1 radius x1.000, cyl2 radius x1.1"),
+    ],
+    ids=["small-beside-large", "recipes-size-beside-large"],
+)
+def test_a_larger_cylinder_2_beside_a_cylinder_1_not_large_is_turned_on_by_the_second_entry(
+    tmp_path: Path, radius: dict[str, float], measured: str
 ) -> None:
-    code, summary, chosen = _run(tmp_path, SMALL_BESIDE_LARGE)
+    code, summary, chosen = _run(tmp_path, radius)
     ex = summary["experiment"]
-    assert chosen.startswith("cyl1 radius x0.8"), chosen
-    # the second entry: cylinder 1 measured smaller, cylinder 2 larger
+    assert chosen.startswith(measured), chosen
     assert chosen.endswith(": schedule[1]"), chosen
     assert code == 0, summary["message"]
     assert ex["success"], ex
-    assert ex["phase_angles_deg"][2] <= TURNED_DEG, ex
-
-
-def test_a_larger_cylinder_2_beside_a_cylinder_1_of_the_recipes_size_is_swapped_by_the_same_entry(
-    tmp_path: Path,
-) -> None:
-    code, summary, chosen = _run(tmp_path, NEAR_BESIDE_LARGE)
-    ex = summary["experiment"]
-    # cylinder 1 within the estimator's tolerance reads the recipe's radius exactly
-    assert chosen.startswith("cyl1 radius x1.000, cyl2 radius x1.1"), chosen
-    assert chosen.endswith(": schedule[1]"), chosen
-    assert code == 0, summary["message"]
-    assert ex["success"] and ex["total_rotation_deg"] >= SWAP_DEG, ex
     assert ex["phase_angles_deg"][2] <= TURNED_DEG, ex
