@@ -41,7 +41,7 @@ TURNED_DEG = -35.0
 SWAP_DEG = 170.0
 
 
-def _hand(tmp_path: Path, radius: dict[str, float] = RADIUS) -> Path:
+def _hand(tmp_path: Path, radius: dict[str, float]) -> Path:
     """The shipped hand with its cylinders resized (``tools/resize_objects.py``)."""
     path = tmp_path / "hand.yaml"
     scales = [f"--scale={name}={factor:g}" for name, factor in radius.items()]
