@@ -140,7 +140,7 @@ class PlanResult:
             },
             "objects": [{"name": o.name, "radius": o.radius} for o in t.objects],
             "end_ramp_s": t.end_ramp_s,
-            **({"limit_guard_band": t.limit_guard_band} if t.limit_guard_band is not None else {}),
+            **(t.limit_guard.document() if t.limit_guard is not None else {}),
             **({"min_total_turn_deg": t.min_total_turn_deg} if t.min_total_turn_deg > 0 else {}),
             **({"grasp_model": _grasp_model_document(t)} if t.grasp_model is not None else {}),
             "phases": [_phase_document(p, self.hand) for p in self.phases],
@@ -429,9 +429,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
     budget = budget or settings.budget
     params = parse_sim(hand)
     model_list = model_set(params, count, settings.seed, settings.spread, hand=hand)
-    worlds = [
-        World.of(hand, m.params, template.objects, template.limit_guard_band) for m in model_list
-    ]
+    worlds = [World.of(hand, m.params, template.objects, template.limit_guard) for m in model_list]
     snaps: list[Snapshot] = [snapshot_of(w) for w in worlds]
     alive = list(range(len(worlds)))
     limits = [j.tau_max for j in hand.joints]
@@ -630,7 +628,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
 def _limit_bounds(template: Template) -> tuple[float, float]:
     """rad: how near a soft limit a phase is scored down, and counted as failing (the guard
     makes the approach to a limit a slope, so a guarded grasp may rest closer)."""
-    if template.limit_guard_band is not None:
+    if template.limit_guard is not None:
         return GUARDED_LIMIT_MARGIN, GUARDED_LIMIT_FAIL
     return LIMIT_MARGIN, LIMIT_FAIL
 
@@ -737,9 +735,7 @@ def _plan_schedule(
         models = sized_models(
             params, entry.models, (settings.seed, index, k), settings.spread, ranges, hand
         )
-        worlds = [
-            World.of(hand, m.params, template.objects, template.limit_guard_band) for m in models
-        ]
+        worlds = [World.of(hand, m.params, template.objects, template.limit_guard) for m in models]
         snaps = [snapshot_of(w) for w in worlds]
         alive = list(range(len(worlds)))
         lifted = False

@@ -1,7 +1,7 @@
 """A phase on one model as a task any worker can run: the unit of a plan's parallel work.
 
 A task carries everything the episode needs as data (the hand config as parsed, the model's
-simulation parameters, the objects, the guard band, the snapshot to start from), so a worker
+simulation parameters, the objects, the guard's settings, the snapshot to start from), so a worker
 on another machine needs nothing but the installed package: no file, no path, no state left by
 earlier tasks that could change a result. A worker keeps the MuJoCo models it built (keyed by
 the model's digest), because building one costs more than most phases; a kept episode is always
@@ -16,7 +16,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 from handctl.config import HandConfig
-from handctl.online.recipes.guard import LimitGuard
+from handctl.online.recipes.guard import GuardSettings
 from handctl.online.recipes.schema import Phase, RecipeObject
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.portable import local_hand, portable_hand
@@ -33,7 +33,7 @@ class World:
     hand: HandConfig  # a ``portable_hand``
     params: SimParams
     objects: tuple[RecipeObject, ...]
-    guard_band: float | None
+    guard: GuardSettings | None
     digest: str
 
     @classmethod
@@ -42,15 +42,15 @@ class World:
         hand: HandConfig,
         params: SimParams,
         objects: tuple[RecipeObject, ...],
-        guard_band: float | None,
+        guard: GuardSettings | None,
     ) -> World:
         portable = portable_hand(hand)
-        digest = hashlib.sha256(pickle.dumps((portable, params, objects, guard_band))).hexdigest()
-        return cls(portable, params, objects, guard_band, digest)
+        digest = hashlib.sha256(pickle.dumps((portable, params, objects, guard))).hexdigest()
+        return cls(portable, params, objects, guard, digest)
 
     def episode(self) -> Episode:
         hand = local_hand(self.hand)
-        guard = LimitGuard.for_hand(hand, self.guard_band) if self.guard_band is not None else None
+        guard = self.guard.guard(hand) if self.guard is not None else None
         return Episode(hand, self.params, self.objects, guard)
 
 

@@ -27,15 +27,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from handctl.config import HandConfig
+from handctl.online.recipes.guard import GuardSettings
 from handctl.online.recipes.loader import (
     MAX_SCHEDULE,
     check_unique_names,
     parse_brake,
     parse_damping_fades,
     parse_grasp_model,
-    parse_guard_band,
     parse_integral_gains,
     parse_joint_damping,
+    parse_limit_guard,
     parse_min_total_turn,
     parse_objects,
     parse_paced_ramp,
@@ -174,7 +175,7 @@ class Template:
     end_ramp_s: float
     search: SearchSettings
     phases: tuple[TemplatePhase, ...]
-    limit_guard_band: float | None = None  # rad; carried into the compiled recipe
+    limit_guard: GuardSettings | None = None  # carried into the compiled recipe
     min_total_turn_deg: float = 0.0  # deg; carried into the compiled recipe
     grasp_model: GraspModel | None = None  # what ``reanalyse`` needs; carried likewise
 
@@ -190,7 +191,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     objects = list(parse_objects(doc))
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
-    band = parse_guard_band(doc)
+    guard = parse_limit_guard(doc, hand)
     min_turn = parse_min_total_turn(doc, len(objects) > 1)
     names = [o.name for o in objects]
     estimates = estimate_names(objects, consecutive_pairs(len(objects)))
@@ -211,7 +212,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         end_ramp,
         search,
         phases,
-        band,
+        guard,
         min_turn,
         grasp_model,
     )

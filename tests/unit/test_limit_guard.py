@@ -12,11 +12,13 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from handctl.config import HandConfig
+from handctl.config import HandConfig, load_hand
 from handctl.errors import ConfigError
 from handctl.online.recipes.guard import LimitGuard
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.runner import RecipeRunner, RunStatus
+
+from ..conftest import HAND_YAML
 
 JOINTS = ["f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3"]
 
@@ -91,7 +93,7 @@ def test_a_joint_heading_for_a_limit_is_damped_a_band_before_the_spring(hand: Ha
     angle[j] = joint.angle_min + band / 2
     velocity[j] = -1.0
     out = guard.apply(angle, desired, np.empty(9), velocity)
-    assert out[j] == pytest.approx(0.05 + guard.gain[j] * band / 2 + damping * 1.0)
+    assert out[j] == pytest.approx(0.05 + guard.gain_lower[j] * band / 2 + damping * 1.0)
 
 
 def test_a_fast_joint_is_met_where_it_will_be_after_the_lag(hand: HandConfig) -> None:
@@ -170,3 +172,109 @@ def test_a_band_out_of_range_is_refused_naming_the_key(tmp_path: Path, hand: Han
         load_recipe(path, hand)
     assert info.value.key == "limit_guard_band"
     assert info.value.found == 2.0
+
+
+def test_a_side_with_a_spring_band_of_its_own_is_pushed_back_more_softly(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A light distal joint's lower wall over 0.25 rad: its spring starts further out and
+    reaches tau_max at the limit with 0.6 times the gain; its upper wall, every other joint
+    and the damper (the guard's band) are as without it."""
+    path = _recipe(
+        tmp_path,
+        hand,
+        limit_guard_band=0.15,
+        limit_guard_spring_bands={"f1_j3": {"lower": 0.25}},
+    )
+    recipe = load_recipe(path, hand)
+    soft = recipe.limit_guard
+    plain = LimitGuard.for_hand(hand, 0.15)
+    assert soft is not None
+    j = 2  # f1_j3
+    joint = hand.joints[j]
+    mid = np.array([(x.angle_min + x.angle_max) / 2 for x in hand.joints])
+    desired = np.zeros(9)
+    angle = mid.copy()
+    angle[j] = joint.angle_min + 0.2  # inside the soft spring's band, outside the guard's
+    out = soft.apply(angle, desired, np.empty(9))
+    assert out[j] == pytest.approx(joint.tau_max / 0.25 * 0.05)
+    assert plain.apply(angle, desired, np.empty(9))[j] == 0.0
+    angle[j] = joint.angle_min + 0.1
+    assert soft.apply(angle, desired, np.empty(9))[j] == pytest.approx(joint.tau_max * 0.6)
+    assert plain.apply(angle, desired, np.empty(9))[j] == pytest.approx(joint.tau_max / 3)
+    angle[j] = joint.angle_min
+    assert soft.apply(angle, desired, np.empty(9))[j] == pytest.approx(joint.tau_max)
+    # the upper wall, the other joints (f2_j3 here) and the damper are the plain guard's
+    for k, q in ((j, joint.angle_max - 0.05), (5, hand.joints[5].angle_min + 0.05)):
+        angle = mid.copy()
+        angle[k] = q
+        velocity = np.zeros(9)
+        velocity[k] = 1.5 if q > mid[k] else -1.5
+        assert np.array_equal(
+            soft.apply(angle, desired, np.empty(9), velocity),
+            plain.apply(angle, desired, np.empty(9), velocity),
+        )
+    assert soft.damping == plain.damping
+    assert (soft.band, soft.lower, soft.upper) == (plain.band, plain.lower, plain.upper)
+
+
+@pytest.mark.parametrize(
+    ("top", "key", "found"),
+    [
+        # a spring band needs the guard it belongs to
+        (
+            {"limit_guard_spring_bands": {"f1_j3": {"lower": 0.25}}},
+            "limit_guard_spring_bands",
+            None,
+        ),
+        # a joint the hand does not have
+        (
+            {"limit_guard_band": 0.15, "limit_guard_spring_bands": {"f4_j3": {"lower": 0.25}}},
+            "limit_guard_spring_bands.f4_j3",
+            None,
+        ),
+        # a side a joint does not have
+        (
+            {"limit_guard_band": 0.15, "limit_guard_spring_bands": {"f1_j3": {"low": 0.25}}},
+            "limit_guard_spring_bands.f1_j3.low",
+            None,
+        ),
+        # a band outside the guard's range
+        (
+            {"limit_guard_band": 0.15, "limit_guard_spring_bands": {"f1_j3": {"lower": 0.9}}},
+            "limit_guard_spring_bands.f1_j3.lower",
+            0.9,
+        ),
+    ],
+)
+def test_a_bad_spring_band_is_refused_naming_the_key(
+    tmp_path: Path, hand: HandConfig, top: dict[str, object], key: str, found: object
+) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_recipe(_recipe(tmp_path, hand, **top), hand)
+    assert info.value.key == key
+    if found is not None:
+        assert info.value.found == found
+
+
+def test_spring_bands_that_overlap_on_a_joints_range_are_refused(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """On a hand whose f1_j3 moves over 0.8 rad, two springs of 0.45 rad would each start
+    inside the other's band."""
+    data = yaml.safe_load(HAND_YAML.read_text())
+    data["fingers"][0]["joints"][2].update(angle_min=-0.2, angle_max=0.6)
+    narrow_yaml = tmp_path / "narrow.yaml"
+    narrow_yaml.write_text(yaml.safe_dump(data, sort_keys=False))
+    narrow = load_hand(narrow_yaml)
+    top = {
+        "limit_guard_band": 0.15,
+        "limit_guard_spring_bands": {"f1_j3": {"lower": 0.45, "upper": 0.45}},
+    }
+    with pytest.raises(ConfigError) as info:
+        load_recipe(_recipe(tmp_path, narrow, **top), narrow)
+    assert info.value.key == "limit_guard_spring_bands.f1_j3"
+    assert "0.8 rad" in info.value.expected and info.value.found == "0.9 rad"
+    # one side of it alone, with the guard's band on the other, leaves room
+    top["limit_guard_spring_bands"] = {"f1_j3": {"lower": 0.45}}
+    assert load_recipe(_recipe(tmp_path, narrow, **top), narrow).limit_guard is not None

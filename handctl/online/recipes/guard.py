@@ -35,14 +35,25 @@ A stronger damper (0.016 s) caught the light hands as well but made the nominal 
 torques chatter (0.0068 N·m a tick at p99), so its strength is the one the nominal was
 tuned with.
 
+A light joint's spring may need a wider band than the guard's. The same spring through the
+same lag is a faster ring on a lighter link: on a distal joint (6e-5 kg·m²) the 2 N·m/rad
+spring rings at about 30 Hz, and on a hand whose joint damping is ×0.3 the contact that
+bends the distal joint down into its lower band turns that ring into a growing one, which
+ends at the soft limit (``SOFT_LIMIT``). A recipe may therefore give one side of a joint a
+spring band of its own (``limit_guard_spring_bands``): the spring starts further from the
+limit and still reaches ``tau_max`` at it, with a lower gain (``tau_max / spring band``).
+The damper keeps the guard's band, and so does a paced ramp's ``limit_depth``: both were
+measured with it, and the damper's reach is what keeps a joint off the limit.
+
 The guard is a pure function of the measured angles (and the velocities filtered from them)
 and the phase's torque, so a replay of the logged feedback computes the very same torques.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any, Literal
 
 from handctl.arrays import FloatArray
 from handctl.config import HandConfig
@@ -60,14 +71,54 @@ GUARD_LOOKAHEAD_S = 0.03
 GUARD_VELOCITY_WINDOW = 8
 
 
+#: the two sides of a joint's range a spring band may be given for
+Side = Literal["lower", "upper"]
+SIDES: tuple[Side, ...] = ("lower", "upper")
+
+
+@dataclass(frozen=True)
+class SpringBand:
+    """One side of one joint whose spring acts over a band (rad) other than the guard's."""
+
+    joint: str
+    side: Side
+    band: float  # rad
+
+
+@dataclass(frozen=True)
+class GuardSettings:
+    """What a template or a recipe says of its guard: data, so that it travels to planner
+    workers and back into the compiled recipe as it was written."""
+
+    band: float  # rad, every joint's damper band, and its spring band unless given below
+    springs: tuple[SpringBand, ...] = ()
+
+    def guard(self, hand: HandConfig) -> LimitGuard:
+        """The guard these settings describe for ``hand``."""
+        return LimitGuard.for_hand(hand, self.band, springs=self.springs)
+
+    def document(self) -> dict[str, Any]:
+        """The recipe keys these settings are written as."""
+        out: dict[str, Any] = {"limit_guard_band": self.band}
+        if self.springs:
+            bands: dict[str, dict[str, float]] = {}
+            for s in self.springs:
+                bands.setdefault(s.joint, {})[s.side] = s.band
+            out["limit_guard_spring_bands"] = bands
+        return out
+
+
 @dataclass(frozen=True)
 class LimitGuard:
-    """The band (rad) before each soft limit where the push-back acts, per joint."""
+    """The bands (rad) before each soft limit where the push-back acts, per joint."""
 
-    band: float  # rad
+    band: float  # rad, the damper's band (and a paced ramp's ``limit_depth``'s)
     lower: tuple[float, ...]  # rad, where the band before the lower limit begins
     upper: tuple[float, ...]  # rad, where the band before the upper limit begins
-    gain: tuple[float, ...]  # N·m/rad, tau_max / band
+    spring_lower: tuple[float, ...]  # rad, where the spring before the lower limit begins
+    spring_upper: tuple[float, ...]  # rad, where the spring before the upper limit begins
+    gain_lower: tuple[float, ...]  # N·m/rad, tau_max / the lower spring's band
+    gain_upper: tuple[float, ...]  # N·m/rad, tau_max / the upper spring's band
     tau_max: tuple[float, ...]  # N·m
     damping: tuple[float, ...] = ()  # N·m·s/rad, at full strength inside the band; (): none
     lookahead: float = 0.0  # s, the damper acts on the angle this far ahead at the velocity
@@ -80,17 +131,29 @@ class LimitGuard:
         band: float,
         damping_s: float = GUARD_DAMPING_S,
         lookahead_s: float = GUARD_LOOKAHEAD_S,
+        springs: Sequence[SpringBand] = (),
     ) -> LimitGuard:
         """The guard with ``band`` (rad) for every joint of ``hand``, from its soft limits,
         with a damping of ``damping_s`` (s) times the spring's gain, looking ``lookahead_s``
-        (s) ahead."""
+        (s) ahead; ``springs`` give a side of a joint a spring band of its own."""
         joints = hand.joints
+        own: Mapping[tuple[str, str], float] = {(s.joint, s.side): s.band for s in springs}
+        names = {j.name for j in joints}
+        for s in springs:
+            if s.joint not in names:
+                raise ValueError(f"spring band for {s.joint!r}, which is not a joint of the hand")
+        lower_band = [own.get((j.name, "lower"), band) for j in joints]
+        upper_band = [own.get((j.name, "upper"), band) for j in joints]
         return cls(
             band,
             tuple(j.angle_min + band for j in joints),
             tuple(j.angle_max - band for j in joints),
-            tuple(j.tau_max / band for j in joints),
+            tuple(j.angle_min + b for j, b in zip(joints, lower_band, strict=True)),
+            tuple(j.angle_max - b for j, b in zip(joints, upper_band, strict=True)),
+            tuple(j.tau_max / b for j, b in zip(joints, lower_band, strict=True)),
+            tuple(j.tau_max / b for j, b in zip(joints, upper_band, strict=True)),
             tuple(j.tau_max for j in joints),
+            # the damper's strength is the guard's band's spring's, whatever the spring band
             tuple(j.tau_max / band * damping_s for j in joints),
             lookahead_s,
         )
@@ -113,10 +176,10 @@ class LimitGuard:
         band = self.band
         for j, (q, lo, hi) in enumerate(zip(angle, self.lower, self.upper, strict=True)):
             push = 0.0
-            if q > hi:
-                push = -self.gain[j] * (q - hi)
-            elif q < lo:
-                push = self.gain[j] * (lo - q)
+            if q > self.spring_upper[j]:
+                push = -self.gain_upper[j] * (q - self.spring_upper[j])
+            elif q < self.spring_lower[j]:
+                push = self.gain_lower[j] * (self.spring_lower[j] - q)
             if damped:
                 assert velocity is not None
                 v = float(velocity[j])

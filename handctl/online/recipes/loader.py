@@ -17,7 +17,7 @@ import numpy as np
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.online.recipes.guard import LimitGuard
+from handctl.online.recipes.guard import SIDES, GuardSettings, SpringBand
 from handctl.online.recipes.schema import (
     MAX_OBJECTS,
     REANALYSIS_USES,
@@ -112,8 +112,8 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     objects = parse_objects(doc)
     pairs = parse_pairs(doc, objects)
     estimates = estimate_names(objects, pairs)
-    band = parse_guard_band(doc)
-    guard = LimitGuard.for_hand(hand, band) if band is not None else None
+    settings = parse_limit_guard(doc, hand)
+    guard = settings.guard(hand) if settings is not None else None
     min_turn = parse_min_total_turn(doc, bool(pairs))
     planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe: read, not used
     if not isinstance(planned_from, dict):
@@ -201,11 +201,53 @@ def parse_min_total_turn(doc: Doc, has_pair: bool) -> float:
     return turn
 
 
-def parse_guard_band(doc: Doc) -> float | None:
-    """``limit_guard_band`` (rad) of a recipe or a template, or None when it is not set."""
+def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
+    """``limit_guard_band`` (rad) of a recipe or a template, with the spring bands of its own
+    that ``limit_guard_spring_bands`` gives a side of a joint, or None when the guard is off.
+
+    ``limit_guard_spring_bands`` is ``{joint: {lower: rad, upper: rad}}`` (either side may be
+    left out). A joint's two springs must leave room between them, or the push-back of the one
+    would start inside the other's band."""
+    spring_key = "limit_guard_spring_bands"
     if not doc.has("limit_guard_band"):
+        if doc.has(spring_key):
+            doc.fail(
+                spring_key,
+                "nothing without a limit_guard_band (the spring bands are the guard's)",
+                doc.raw(spring_key),
+            )
         return None
-    return doc.number("limit_guard_band", min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad")
+    band = doc.number("limit_guard_band", min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad")
+    springs: list[SpringBand] = []
+    bands = doc.mapping(spring_key, default={})
+    joints = {j.name: j for j in hand.joints}
+    bands.expect(joints)
+    for name in list(bands.keys()):
+        sides = bands.mapping(name)
+        sides.expect(SIDES)
+        for side in SIDES:
+            if sides.has(side):
+                springs.append(
+                    SpringBand(
+                        name,
+                        side,
+                        sides.number(side, min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad"),
+                    )
+                )
+        sides.done()
+        joint = joints[name]
+        own = {s.side: s.band for s in springs if s.joint == name}
+        width = own.get("lower", band) + own.get("upper", band)
+        if width >= joint.angle_max - joint.angle_min:
+            bands.fail(
+                name,
+                f"spring bands that leave room between them: lower + upper below the joint's "
+                f"range of {joint.angle_max - joint.angle_min:.4g} rad (the guard's band "
+                f"{band:g} rad for a side not given)",
+                f"{width:.4g} rad",
+            )
+    bands.done()
+    return GuardSettings(band, tuple(springs))
 
 
 def check_unique_names(doc: Doc, names: list[str]) -> None:
