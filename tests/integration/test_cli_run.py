@@ -272,7 +272,12 @@ class RealtimeHost:
         def enabled() -> bool:
             if self.proc.poll() is not None:
                 return True
-            lines = log.read_text().splitlines() if log.exists() else []
+            try:
+                lines = log.read_text().splitlines()
+            except FileNotFoundError:
+                # not written yet, or already removed with the bus directory by a run that
+                # is ending (the next look sees the host gone)
+                lines = []
             return any(line.count("=ENABLED") == 3 for line in lines)
 
         _wait_for(enabled, "the nodes to be enabled")
