@@ -52,6 +52,9 @@ def test_plan_compiles_a_recipe_with_provenance_reproducibly(
     assert recipe.phases[3].exits[0].text.startswith("estimate.cyl1_cyl2_line_turn <")
     # what the template asks of the experiment and of the feedback is carried into the recipe
     assert recipe.min_total_turn_deg == template.min_total_turn_deg > 0
+    # the guard too, with the light distal joints' softer lower walls
+    assert template.limit_guard is not None and template.limit_guard.springs
+    assert recipe.limit_guard == template.limit_guard.guard(hand)
     loop = recipe.phases[3].turn_rate
     assert loop is not None and loop.rate < 0  # signed as the clockwise turn
     assert (loop.scale_min, loop.scale_max) == (0.6, 1.5)
