@@ -174,12 +174,15 @@ class LimitGuard:
         out[:] = desired
         damped = velocity is not None and len(self.damping) > 0
         band = self.band
-        for j, (q, lo, hi) in enumerate(zip(angle, self.lower, self.upper, strict=True)):
+        springs = zip(self.spring_lower, self.spring_upper, strict=True)
+        for j, (q, lo, hi, (spring_lo, spring_hi)) in enumerate(
+            zip(angle, self.lower, self.upper, springs, strict=True)
+        ):
             push = 0.0
-            if q > self.spring_upper[j]:
-                push = -self.gain_upper[j] * (q - self.spring_upper[j])
-            elif q < self.spring_lower[j]:
-                push = self.gain_lower[j] * (self.spring_lower[j] - q)
+            if q > spring_hi:
+                push = -self.gain_upper[j] * (q - spring_hi)
+            elif q < spring_lo:
+                push = self.gain_lower[j] * (spring_lo - q)
             if damped:
                 assert velocity is not None
                 v = float(velocity[j])

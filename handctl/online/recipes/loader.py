@@ -225,18 +225,14 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
     for name in list(bands.keys()):
         sides = bands.mapping(name)
         sides.expect(SIDES)
-        for side in SIDES:
-            if sides.has(side):
-                springs.append(
-                    SpringBand(
-                        name,
-                        side,
-                        sides.number(side, min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad"),
-                    )
-                )
+        own = {
+            side: sides.number(side, min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad")
+            for side in SIDES
+            if sides.has(side)
+        }
         sides.done()
+        springs.extend(SpringBand(name, side, width) for side, width in own.items())
         joint = joints[name]
-        own = {s.side: s.band for s in springs if s.joint == name}
         width = own.get("lower", band) + own.get("upper", band)
         if width >= joint.angle_max - joint.angle_min:
             bands.fail(
