@@ -16,7 +16,10 @@ checked once, when the section is read, and refused with the key to change:
 A fingertip that starts a few millimetres into the table is not refused: the planning models
 draw start poses around the configured one (``handctl/planning/models.py``), and a fifth of
 them dip a fingertip that far; the table's contact lifts it out within a few ticks, a link
-inside a cylinder or the palm is not so benign.
+inside a cylinder or the palm is not so benign. A link deeper than its own diameter is
+refused: one that deep is flung out, past a joint's limit or into a node's sensor fault (a
+finger of five joints, 17 mm deep, passed its limit in 6 ticks). The planning models' start
+poses (±0.1 rad) dip the shipped hands' fingertips at most 11 mm, under their diameters.
 
 The scene is planar: links are capsules around segments in planes z = const (a finger's z),
 objects capsules along z. The distance of two such shapes is the in-plane distance of their
@@ -122,6 +125,19 @@ def check_placement(hand: HandConfig, params: SimParams, doc: Doc) -> None:
                 f"angles that keep every link out of the palm (x within "
                 f"±{params.palm_half_width:g} m, y 0..{params.palm_thickness:g} m): "
                 f"{link.name} is {inside:.4g} m inside it",
+                list(params.initial_angles[link.finger]),
+            )
+        # a few millimetres are benign (see above); a link whose axis starts more than its
+        # radius under the table top is flung out by the contact at the first step, past a
+        # joint's limit or into a reading the node's self-check takes for a broken sensor: a
+        # fault at tick 0 that says nothing of the scene
+        below = params.table_height - min(link.y0, link.y1) - link.radius
+        if below > _TOUCH:
+            doc.fail(
+                where,
+                f"angles that keep every link's surface within its diameter "
+                f"({2 * link.radius:g} m) of the table top (y = {params.table_height:g} m): "
+                f"{link.name} reaches {below + 2 * link.radius:.4g} m into it",
                 list(params.initial_angles[link.finger]),
             )
     if params.between_fingers:

@@ -137,6 +137,12 @@ def test_mistakes_name_the_key(hand: HandConfig, edit: Any, key: str, expected: 
             "sim.initial_angles.f1",
             "out of the palm",
         ),
+        # straight down, finger 3's tip starts 22 mm into the table (its diameter is 14 mm)
+        (
+            lambda s: s["initial_angles"].update(f3=[0.0, 0.0, 0.0]),
+            "sim.initial_angles.f3",
+            "within its diameter (0.014 m) of the table top",
+        ),
     ],
 )
 def test_a_scene_that_cannot_start_is_refused(
@@ -247,6 +253,18 @@ def test_every_model_the_planning_draws_is_a_scene_that_can_start(hand: HandConf
         assert again.initial_angles == model.params.initial_angles
         assert again.links == model.params.links
         assert again.motor_tau_max == model.params.motor_tau_max
+
+
+@pytest.mark.parametrize("name", ["four_fingers_four_joints", "planar_2f2j"])
+def test_every_model_the_planning_draws_of_the_other_shipped_hands_can_start(name: str) -> None:
+    """The same for the other shapes: the four-by-four's long fingers dip their tips deepest
+    into the table in a drawn start pose (up to 11 mm), still within a link's diameter."""
+    hand = load_hand(ROOT / "config" / "hands" / f"{name}.yaml")
+    params = parse_sim(hand)
+    for seed in range(300):
+        model = perturb(params, np.random.default_rng(seed), Spread(), hand)
+        again = parse_sim(hand_with(hand, model.params, seed=seed))
+        assert again.initial_angles == model.params.initial_angles
 
 
 def test_a_joint_named_like_the_scene_is_refused(hand: HandConfig) -> None:
