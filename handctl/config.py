@@ -28,6 +28,7 @@ MAX_STANDARD_ID = 0x7FF
 #: Identifier of the e-stop frame (fixed in the DBC: the highest priority on the bus).
 ESTOP_ID = 0x000
 CAN_ID_KINDS = ("node_command", "torque_command", "feedback", "status", "heartbeat")
+_CHANNEL = "a channel name (e.g. can0) or a channel number >= 0"
 
 
 @dataclass(frozen=True)
@@ -240,7 +241,15 @@ def _parse_safety(doc: Doc) -> SafetyConfig:
 
 def _parse_bus(doc: Doc) -> BusConfig:
     interface = doc.string("interface")
-    channel = str(doc.raw("channel"))
+    # A name (``can0``) or, for interfaces that number their channels, a number (``0``): never
+    # a list, a mapping, a boolean or null, which str() would turn into a channel called
+    # "[1, 2]", "True" or "None".
+    raw_channel = doc.raw("channel")
+    if isinstance(raw_channel, bool) or not isinstance(raw_channel, (str, int)):
+        doc.fail("channel", _CHANNEL, raw_channel)
+    if (isinstance(raw_channel, int) and raw_channel < 0) or not str(raw_channel).strip():
+        doc.fail("channel", _CHANNEL, raw_channel)
+    channel = str(raw_channel)
     fd = doc.boolean("fd")
     bitrate = doc.integer("bitrate", min=10_000, max=1_000_000)
     data_bitrate: int | None = None

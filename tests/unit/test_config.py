@@ -187,6 +187,25 @@ def test_duplicate_joint_name(tmp_path: Path, base: dict[str, Any]) -> None:
     assert err.key == "fingers[2].joints[1].name"
 
 
+@pytest.mark.parametrize("value", [None, True, False, [1, 2], {}, 0.5, math.nan, -1, "", "  "])
+def test_bus_channel_is_a_name_or_a_number(
+    tmp_path: Path, base: dict[str, Any], value: Any
+) -> None:
+    """A channel of the wrong type was made a string ("None", "True", "[1, 2]") and opened."""
+    base["bus"]["channel"] = value
+    err = error_for(tmp_path, base)
+    assert err.key == "bus.channel"
+    assert "channel name" in err.expected
+
+
+@pytest.mark.parametrize("value", ["can0", "vcan1", 0, 3])
+def test_bus_channel_may_be_a_name_or_a_number(
+    tmp_path: Path, base: dict[str, Any], value: Any
+) -> None:
+    base["bus"]["channel"] = value
+    assert load_hand(write(tmp_path, base)).bus.channel == str(value)
+
+
 def test_classic_bus_takes_no_data_bitrate(tmp_path: Path, base: dict[str, Any]) -> None:
     base["bus"]["fd"] = False
     err = error_for(tmp_path, base)
