@@ -38,7 +38,7 @@ from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.executor import WorkPool, open_pool
-from handctl.online.recipes.loader import joint_fingers
+from handctl.online.recipes.loader import check_against_hand, joint_fingers, parse_recipe
 from handctl.online.recipes.schema import (
     Condition,
     PacedRamp,
@@ -70,7 +70,7 @@ from handctl.planning.search import (
 )
 from handctl.planning.template import PlannedSchedule, Template, TemplatePhase
 from handctl.progress import Progress
-from handctl.schema import dump_yaml
+from handctl.schema import dump_yaml, parse_yaml
 from handctl.sim.params import SimParams, parse_sim
 
 #: how far into extension (a fraction of tau_max) a random seed may go
@@ -841,7 +841,25 @@ def recipe_text(result: PlanResult, command: str) -> str:
         f"# Change the template and plan again: {command}\n"
     )
     body = dump_yaml(result.recipe_document())
+    check_runnable(body, result.template.source, result.hand)
     return header + body
+
+
+def check_runnable(body: str, template_source: str, hand: HandConfig) -> None:
+    """Refuse a compiled recipe (``body``) that ``handctl run`` would refuse, naming the
+    template's key.
+
+    The template's ramps can be checked against the rate limits only once the torques they
+    lead to are planned: a ``ramp_s`` too short for the step into a phase (``ramp_s: 0``) made
+    a recipe that every run refused. The compiled phases are the template's, in its order, so
+    the recipe's key (``phases[2].ramp_s``, ``end_ramp_s``) is the template's key too."""
+    try:
+        recipe = parse_recipe(parse_yaml(body, template_source), hand)
+        check_against_hand(recipe, hand)
+    except ConfigError as exc:
+        raise ConfigError(
+            template_source, exc.key, f"{exc.expected} (in the recipe planned from it)", exc.found
+        ) from None
 
 
 def quick_budget() -> Budget:

@@ -322,7 +322,9 @@ def _schedule(doc: Doc, hand: HandConfig, objects: list[str]) -> tuple[ScheduleE
             plan.done()
             out.append(PlannedSchedule(when, models))
         else:
-            out.append(ScheduledTorques(when, parse_torques(entry, hand)))
+            torques = parse_torques(entry, hand)
+            _check_tau_max(entry, "torques", torques, hand)
+            out.append(ScheduledTorques(when, torques))
         entry.done()
     return tuple(out)
 
@@ -337,6 +339,21 @@ def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
     return values
 
 
+def _check_tau_max(doc: Doc, key: str, torques: tuple[float, ...] | None, hand: HandConfig) -> None:
+    """A template's torques (a free phase's, a schedule entry's) go into the recipe as they
+    are written, and its seeds start the search: none beyond the joint's tau_max, which the
+    recipe would refuse only after the whole plan (a seed would be clipped without a word)."""
+    if torques is None:  # a lift, hold or turn phase without a seed
+        return
+    for joint, value in zip(hand.joints, torques, strict=True):
+        if abs(value) > joint.tau_max:
+            doc.fail(
+                f"{key}.{joint.name}",
+                f"|τ| <= {joint.tau_max:g} N·m (tau_max of {joint.name} in {hand.source})",
+                value,
+            )
+
+
 def _phase(
     doc: Doc, hand: HandConfig, objects: list[str], estimates: tuple[str, ...]
 ) -> TemplatePhase:
@@ -346,6 +363,7 @@ def _phase(
     max_s = doc.number("max_s", min=0.0, max=600.0, min_exclusive=True, unit="s")
     key = "torques" if kind == "free" else "seed"
     seed = _torques(doc, key, hand) if kind == "free" or doc.has("seed") else None
+    _check_tau_max(doc, key, seed, hand)
     move: dict[str, tuple[float, float]] = {}
     min_height = 0.0
     turn = 0.0

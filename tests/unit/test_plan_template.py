@@ -146,6 +146,49 @@ def test_bad_templates_are_refused_naming_the_key(
     assert expected in str(info.value)
 
 
+def _set(path: tuple[Any, ...], value: Any) -> Any:
+    def change(data: dict[str, Any]) -> None:
+        for key in path[:-1]:
+            data = data[key]
+        data[path[-1]] = value
+
+    return change
+
+
+@pytest.mark.parametrize(
+    ("change", "key"),
+    [
+        (_set(("phases", 0, "torques", "f1_j1"), 0.61), "phases[0].torques.f1_j1"),
+        (_set(("phases", 0, "torques", "f3_j3"), -50.0), "phases[0].torques.f3_j3"),
+        (_set(("phases", 0, "torques", "f2_j2"), 1e30), "phases[0].torques.f2_j2"),
+        (_set(("phases", 0, "torques"), [0.1] * 8 + [0.31]), "phases[0].torques.f3_j3"),
+        (_set(("phases", 1, "seed", "f1_j1"), 1e30), "phases[1].seed.f1_j1"),
+        (_set(("phases", 3, "seed", "f2_j3"), -0.5), "phases[3].seed.f2_j3"),
+    ],
+)
+def test_a_torque_beyond_tau_max_is_refused_when_the_template_loads(
+    tmp_path: Path, hand: HandConfig, change: Any, key: str
+) -> None:
+    """A free phase's torques go into the recipe as written, which ``run`` refused only after
+    a whole plan (or the plan failed with 'an object left the hand'); a seed was clipped to
+    tau_max without a word."""
+    data = base()
+    change(data)
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key == key
+    assert "tau_max" in info.value.expected
+
+
+def test_a_schedule_torque_beyond_tau_max_is_refused(tmp_path: Path, hand: HandConfig) -> None:
+    data = base()
+    _schedule(data, {"when": _WHEN, "torques": [0.1] * 4 + [0.7] + [0.1] * 4})
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key == "phases[3].schedule[0].torques.f2_j2"
+    assert info.value.found == 0.7
+
+
 def one_object(data: dict[str, Any]) -> None:
     data["objects"] = data["objects"][:1]
     data["phases"][1]["move"].pop("cyl2")
@@ -187,3 +230,30 @@ def test_a_template_of_one_object_lifts_and_holds(tmp_path: Path, hand: HandConf
     t = load_template(write(tmp_path, data), hand)
     assert [o.name for o in t.objects] == ["cyl1"]
     assert [p.kind for p in t.phases] == ["free", "lift", "hold"]
+
+
+@pytest.mark.parametrize(
+    ("path", "key"),
+    [(("phases", 0, "ramp_s"), "phases[0].ramp_s"), (("end_ramp_s",), "end_ramp_s")],
+)
+def test_a_plan_whose_recipe_run_would_refuse_is_refused_naming_the_template_key(
+    path: tuple[Any, ...], key: str
+) -> None:
+    """A template's ramp_s: 0 was planned into a recipe that every run refused (exit 0 from
+    plan, exit 2 from run): the ramps are known only once the torques are planned."""
+    from handctl.config import load_hand
+    from handctl.planning.compile import check_runnable
+
+    hand = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    recipe = ROOT / "config" / "recipes" / "planar_lift_turn.yaml"
+    check_runnable(recipe.read_text(), "t.template.yaml", hand)
+    data = yaml.safe_load(recipe.read_text())
+    target = data
+    for part in path[:-1]:
+        target = target[part]
+    target[path[-1]] = 0.0
+    with pytest.raises(ConfigError) as info:
+        check_runnable(yaml.safe_dump(data, sort_keys=False), "t.template.yaml", hand)
+    assert info.value.file == "t.template.yaml"
+    assert info.value.key == key
+    assert "rate limit" in info.value.expected and info.value.found == 0.0
