@@ -283,12 +283,22 @@ def _body_contact(
 # -- YAML ------------------------------------------------------------------------------------
 
 
+#: Bounds far beyond any hand (the paper's scale is 1 m, 1 kg, a few N·m) that keep the
+#: analysis' arithmetic finite: a torque box of 1e300 N·m had an area of inf, a friction
+#: coefficient of 1e300 made every torque unrealisable, both reported as results.
+MAX_TAU = 1e4  # N·m
+MAX_MU = 100.0
+MAX_GRAVITY = 1e3  # m/s²
+
+
 def load_scenario(path: str | Path) -> Scenario:
     """Read and check a scenario file; every problem is a ``ConfigError``."""
     doc = load_yaml(path)
     dim = doc.integer("dimension", min=2, max=3)
     reading = doc.string("reading", choices=READINGS)
-    gravity = np.array(doc.numbers("gravity", length=dim, unit="m/s²"))
+    gravity = np.array(
+        doc.numbers("gravity", length=dim, min=-MAX_GRAVITY, max=MAX_GRAVITY, unit="m/s²")
+    )
     tol = doc.number("geometry_tolerance", default=1e-9, min=0.0, min_exclusive=True, unit="m")
     cone_edges = 2 if dim == 2 else doc.integer("cone_edges", default=8, min=3, max=64)
     bodies = tuple(_read_body(d, dim) for d in doc.mappings("objects", min_len=1))
@@ -299,11 +309,21 @@ def load_scenario(path: str | Path) -> Scenario:
 
     contacts = doc.mapping("contacts")
     finger_contacts: list[FingerContact] = []
-    for d in contacts.mappings("fingers", min_len=1):
+    touching: dict[tuple[int, int, int], int] = {}
+    for k, d in enumerate(contacts.mappings("fingers", min_len=1)):
         fi = _choose(d, "finger", [f.name for f in fingers])
         link = d.integer("link", min=1, max=fingers[fi].joints) - 1
         bi = _choose(d, "object", names)
-        mu = d.number("mu", min=0.0)
+        if (fi, link, bi) in touching:
+            # a contact listed twice would count its force twice in eq. 9
+            d.fail(
+                "object",
+                "each link touching each object at most once (contacts.fingers"
+                f"[{touching[fi, link, bi]}] is this finger, link and object)",
+                names[bi],
+            )
+        touching[fi, link, bi] = k
+        mu = d.number("mu", min=0.0, max=MAX_MU)
         finger_contacts.append(_finger_contact(bodies, fingers, fi, link, bi, mu, tol, d))
         d.done()
     body_contacts: list[BodyContact] = []
@@ -322,7 +342,7 @@ def load_scenario(path: str | Path) -> Scenario:
             d.fail("objects", "each pair of objects at most once", pair)
         seen.add((min(first, second), max(first, second)))
         mu_value = d.raw("mu", None)
-        mu_c = None if mu_value is None else d.check_number("mu", mu_value, min=0.0)
+        mu_c = None if mu_value is None else d.check_number("mu", mu_value, min=0.0, max=MAX_MU)
         body_contacts.append(_body_contact(bodies, first, second, mu_c, tol, d))
         d.done()
     contacts.done()
@@ -330,7 +350,7 @@ def load_scenario(path: str | Path) -> Scenario:
     finger_contacts.sort(key=lambda c: c.finger)
 
     task = doc.mapping("task")
-    tau_max = task.number("tau_max", min=0.0, min_exclusive=True, unit="N·m")
+    tau_max = task.number("tau_max", min=0.0, max=MAX_TAU, min_exclusive=True, unit="N·m")
     move = task.mapping("move")
     directions: dict[str, Array] = {}
     for name in list(move.keys()):
