@@ -253,6 +253,34 @@ def _own_miss_text(miss: dict[str, Any]) -> str:
     return text + (f"; in it: {', '.join(miss['notes'])}" if miss["notes"] else "")
 
 
+def _refuse_what_check_refuses(hand: HandConfig, path: Path) -> None:
+    """A hand whose bus cannot carry it, which ``handctl check`` refuses (exit 2), is bad
+    input for a run too: at bus.loop_rate_hz 10000 a run began and stopped at tick 10
+    (RX_BACKLOG, exit 3), and a classic-CAN hand sent frames longer than the bus carries."""
+    from handctl.busload import MAX_LOAD, hand_budget, too_long_for_classic, what_would_fit
+    from handctl.hand_protocol import protocol_for
+
+    protocol = protocol_for(hand)
+    too_long = [] if hand.bus.fd else too_long_for_classic(hand, protocol)
+    if too_long:
+        raise ConfigError(
+            str(path),
+            "bus.fd",
+            f"true (CAN-FD): {', '.join(too_long)} are longer than the 8 bytes of a classic "
+            "CAN frame, and handctl sends every message in one frame",
+            False,
+        )
+    budget = hand_budget(hand, protocol)
+    if not budget.ok:
+        raise ConfigError(
+            str(path),
+            "bus",
+            f"a worst-case load <= {MAX_LOAD * 100:.0f} % (handctl check {path}); "
+            + "; ".join(what_would_fit(hand, protocol)),
+            f"{budget.load * 100:.1f} % at {hand.bus.loop_rate_hz:g} Hz",
+        )
+
+
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
     import json
 
@@ -262,6 +290,7 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
 
     _positive_seconds("--max-seconds", args.max_seconds)
     hand = _load_hand(args.hand, "--hand", args.dbc)
+    _refuse_what_check_refuses(hand, args.hand)
     recipe = load_recipe(args.recipe, hand)
     if args.live is not None and args.log is None:
         raise ConfigError(

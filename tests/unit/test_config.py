@@ -265,6 +265,38 @@ def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
     assert "found 122.6 % at 1000 Hz; CAN-FD 1/5 Mbit/s would carry 39.1 %" in result.stderr
 
 
+def _classic(data: dict[str, Any]) -> None:
+    data["bus"]["fd"] = False
+    del data["bus"]["data_bitrate"]
+    data["bus"]["loop_rate_hz"] = 100
+
+
+@pytest.mark.parametrize(
+    ("change", "key", "found"),
+    [
+        (lambda d: d["bus"].update(loop_rate_hz=10_000), "bus", "388.0 % at 10000 Hz"),
+        (_classic, "bus.fd", "False"),
+    ],
+)
+def test_run_refuses_a_hand_check_refuses_before_anything_is_sent(
+    tmp_path: Path, base: dict[str, Any], change: Any, key: str, found: str
+) -> None:
+    """A hand whose bus cannot carry it loaded for a run: at 10 kHz the run started and
+    stopped at tick 10 (RX_BACKLOG, exit 3). It is bad input, as ``handctl check`` says."""
+    change(base)
+    path = write(tmp_path, base)
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text(
+        "recipe: r\nphases:\n  - {name: rest, torques: " + str([0.0] * 9) + ", max_s: 1}\n"
+    )
+    result = handctl("run", "recipe", str(recipe), "--hand", str(path), "--max-seconds", "0.2")
+    assert result.returncode == 2, result.stderr
+    assert f"{path}: {key}: expected" in result.stderr
+    assert found in result.stderr
+    assert "Traceback" not in result.stderr
+    assert "ticks" not in result.stdout
+
+
 # -- limits against the wire (handctl/wirelimits.py) ---------------------------------------------
 def signal(protocol: Protocol, message: str, index: int) -> SignalSpec:
     return protocol.by_name[message].signals[index]
