@@ -276,9 +276,8 @@ def read_case_log(path: Path) -> LoggedCase:
             rejects[msg["name"]] = rejects.get(msg["name"], 0) + msg.get("count", 0)
         elif msg["kind"] == "bus":
             bus += 1
-    end = recording.metadata.get(ch.META_END, {})
     dropped = sum(
-        int(end.get(k, "0"))
+        recording.meta_int(ch.META_END, k, 0)
         for k in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
     )
     return LoggedCase(recording.complete, dropped, ticks, faults, resets, rejects, bus)

@@ -82,7 +82,7 @@ def export(recording: Recording, fmt: str, out: str) -> int:
     require_topics(recording, (ch.CAN_RX, ch.CAN_TX), "--export")
     hand = recorded_hand(recording, required=False)
     fd = hand.bus.fd if hand is not None else True
-    started = int(recording.meta("handctl.command", "started_unix_ns", "0") or 0)
+    started = recording.meta_int("handctl.command", "started_unix_ns", 0)
     frames = logged_frames(recording)
     first: list[int] = []
 

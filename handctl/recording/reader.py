@@ -37,6 +37,7 @@ from mcap.records import Channel, ChunkIndex, Metadata, MetadataIndex, Statistic
 
 from handctl.errors import ConfigError
 from handctl.recording import channels as ch
+from handctl.recording.messages import MessageCheck
 
 MAGIC = b"\x89MCAP0\r\n"
 _RECORD = struct.Struct("<BQ")
@@ -112,9 +113,35 @@ class Recording:
     def meta(self, name: str, key: str, default: str = "") -> str:
         return self.metadata.get(name, {}).get(key, default)
 
-    def json_meta(self, name: str, key: str = "json") -> Any:
+    def json_meta(self, name: str, key: str = "json") -> dict[str, Any] | None:
+        """A metadata value that is a JSON object (None when absent); anything else is a
+        ConfigError naming the record and the key."""
         text = self.meta(name, key)
-        return orjson.loads(text) if text else None
+        if not text:
+            return None
+        try:
+            value = orjson.loads(text)
+        except orjson.JSONDecodeError as exc:
+            raise ConfigError(
+                str(self.path), f"metadata {name}.{key}", f"a JSON object ({exc})", text
+            ) from None
+        if not isinstance(value, dict):
+            raise ConfigError(str(self.path), f"metadata {name}.{key}", "a JSON object", value)
+        return value
+
+    def meta_int(self, name: str, key: str, default: int, minimum: int = 0) -> int:
+        """A metadata value that is a whole number of at least ``minimum`` (``default`` when
+        absent or empty); anything else is a ConfigError naming the record and the key."""
+        text = self.meta(name, key)
+        if not text:
+            return default
+        body = text[1:] if text[:1] == "-" else text
+        value = int(text) if body.isascii() and body.isdigit() and len(body) <= 19 else None
+        if value is None or value < minimum:
+            raise ConfigError(
+                str(self.path), f"metadata {name}.{key}", f"a whole number >= {minimum}", text
+            )
+        return value
 
 
 def _fail(path: Path, found: str) -> ConfigError:
@@ -460,30 +487,53 @@ def iter_messages(
 
 
 def iter_chunks(
-    recording: Recording, topics: Iterable[str]
+    recording: Recording, topics: Iterable[str], check: MessageCheck | None = None
 ) -> Iterator[tuple[list[str], list[Any]]]:
     """The topics and decoded messages of the wanted channels in file order, in batches of
     a few thousand, each batch decoded by one ``orjson.loads`` of a JSON array made of its
     messages: a re-run reads a dozen small messages per tick, and a call per message costs
-    more than the parsing itself."""
+    more than the parsing itself. Every message is checked (``MessageCheck``): one that is
+    not what its channel says is a ConfigError naming it."""
+    check = check or MessageCheck(str(recording.path))
     topics_: list[str] = []
+    times: list[int] = []
     raw: list[bytes] = []
-    for topic, _, data in iter_messages(recording, topics):
+    for topic, log_time, data in iter_messages(recording, topics):
         topics_.append(topic)
+        times.append(log_time)
         raw.append(data)
         if len(raw) >= 4096:
-            yield topics_, orjson.loads(b"[" + b",".join(raw) + b"]")
-            topics_, raw = [], []
+            yield topics_, _checked_batch(check, topics_, times, raw)
+            topics_, times, raw = [], [], []
     if raw:
-        yield topics_, orjson.loads(b"[" + b",".join(raw) + b"]")
+        yield topics_, _checked_batch(check, topics_, times, raw)
+
+
+def _checked_batch(
+    check: MessageCheck, topics: list[str], times: list[int], raw: list[bytes]
+) -> list[Any]:
+    try:
+        messages = orjson.loads(b"[" + b",".join(raw) + b"]")
+    except orjson.JSONDecodeError:
+        messages = None
+    if not isinstance(messages, list) or len(messages) != len(raw):
+        # a message that is not one JSON value (the batch does not parse, or one message
+        # is two): decoded one by one, so that the first bad one is named
+        messages = [check.loads(t, lt, r) for t, lt, r in zip(topics, times, raw, strict=True)]
+    test = check.check
+    for topic, log_time, msg in zip(topics, times, messages, strict=True):
+        test(topic, log_time, msg)
+    return messages
 
 
 def iter_decoded(
-    recording: Recording, topics: Iterable[str] | None = None
+    recording: Recording, topics: Iterable[str] | None = None, check: MessageCheck | None = None
 ) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    loads = orjson.loads
+    """``(topic, log_time_ns, message)`` in file order, each message checked
+    (``MessageCheck``)."""
+    loads = (check or MessageCheck(str(recording.path))).loads
     for topic, log_time, data in iter_messages(recording, topics):
-        yield topic, log_time, loads(data)
+        yield topic, log_time, loads(topic, log_time, data)
 
 
 def require_topics(recording: Recording, topics: Iterable[str], what: str) -> None:

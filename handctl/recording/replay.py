@@ -35,7 +35,10 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
     """Phases and their durations, the largest torques, faults, timing, drops."""
     n = len(series.joints)
     run_summary = recording.json_meta(ch.META_SUMMARY) or {}
-    end = recording.metadata.get(ch.META_END, {})
+    end = {
+        key: recording.meta_int(ch.META_END, key, int(series.stats.get(key, 0)))
+        for key in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
+    }
     timing = series.timing
     active = timing[timing[:, 4] > 0] if len(timing) else timing
     largest: dict[str, dict[str, float]] = {}
@@ -78,10 +81,7 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
     for e in series.events:
         if e["kind"] == "rejected_frames":
             rejected[e["name"]] = rejected.get(e["name"], 0) + int(e.get("count", 0))
-    drops = {
-        key: int(end.get(key, series.stats.get(key, 0)))
-        for key in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
-    }
+    drops = end
     summary: dict[str, Any] = {
         "file": str(recording.path),
         "complete": recording.complete,
@@ -92,7 +92,7 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
         "hand": recording.meta(ch.META_HAND, "name"),
         "mode": recording.meta(ch.META_RUN, "mode"),
         "outcome": run_summary.get("outcome", "unknown (the log has no summary)"),
-        "ended": end.get("ended", "the writer did not finish the file"),
+        "ended": recording.meta(ch.META_END, "ended", "the writer did not finish the file"),
         "duration_s": round(float(timing[-1, 0]), 3) if len(timing) else 0.0,
         "ticks": len(timing),
         "active_ticks": len(active),
@@ -129,7 +129,7 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
         }
         # a pose taken at the start of tick k belongs to the phase tick k - 1 ran, and the
         # phase channel says which phase a tick ran: the bounds move one tick later
-        period = int(recording.meta(ch.META_RUN, "period_ns") or 1_000_000) * 1e-9
+        period = recording.meta_int(ch.META_RUN, "period_ns", 1_000_000, minimum=1) * 1e-9
         turns = phase_turns_deg(
             series.objects[:, 0],
             series.objects[:, 1],

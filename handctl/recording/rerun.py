@@ -38,6 +38,7 @@ from handctl.online.recipes.schema import Recipe
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.recording import channels as ch
 from handctl.recording.feedback_check import FeedbackCheck
+from handctl.recording.messages import MessageCheck
 from handctl.recording.metadata import recorded_hand, recorded_protocol, recorded_recipe
 from handctl.recording.reader import Recording, iter_chunks, require_topics
 from handctl.recording.series import json_floats
@@ -71,7 +72,9 @@ class _Pending:
     rejects: dict[str, int] | None = None
 
 
-def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:  # noqa: C901 - one branch per channel; bus/replay split (issue 16)
+def tick_inputs(  # noqa: C901 - one branch per channel; bus/replay split (issue 16)
+    recording: Recording, check: MessageCheck | None = None
+) -> tuple[_Pending, Iterator[TickInput]]:
     """The frames drained before the first tick, and a stream of the logged ticks.
 
     A tick is whole when the next tick's row begins: its frames and events are published
@@ -79,12 +82,14 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:  
     after its push (the nodes' disable after the last control tick) between the two. So the
     stream hands out a tick only when it meets the next row, and the last row only when the
     recorder closed the file; a gap in the ticks (a damaged chunk) ends the stream before it,
-    and a log whose first row is not tick 0 gives no ticks at all.
+    and a log whose first row is not tick 0 gives no ticks at all. Only a damaged chunk can
+    explain either: in a log without one (whole, or cut short at its end) a row out of
+    sequence is a ConfigError naming it.
     One pass, one branch per message: this is most of what a re-run reads.
     """
     pending: dict[int, _Pending] = {}
     kinds = {k.value: k for k in BusEventKind}
-    batches = iter_chunks(recording, ch.RERUN_TOPICS)
+    batches = iter_chunks(recording, ch.RERUN_TOPICS, check)
     timing, torque, rx, tx, joint = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX, ch.JOINT_STATE
     fromhex = bytes.fromhex
     closed = recording.complete and recording.meta(ch.META_END, "ended") == ch.ENDED_CLOSED
@@ -111,12 +116,13 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:  
                     )
                 elif topic == timing:
                     k = msg["tick"]
+                    expected = 0 if current is None else current.tick + 1
+                    if k != expected:
+                        if not recording.damaged or k < expected:
+                            raise _out_of_sequence(recording, msg, expected)
+                        return  # a gap: the ticks in a damaged chunk are not in the file
                     if current is not None:
-                        if k != current.tick + 1:
-                            return  # a gap: the tick before it may lack what followed it
                         yield current
-                    elif k != 0:
-                        return  # the first ticks are missing: there is nothing to re-run from
                     current = TickInput(k, msg["scheduled_ns"], msg["now_ns"], msg["missed"])
                     got = pending.pop(k, None)
                     if got is not None:
@@ -139,6 +145,19 @@ def tick_inputs(recording: Recording) -> tuple[_Pending, Iterator[TickInput]]:  
     first = next(stream, None)
     before = pending.pop(-1, None) or _Pending()
     return before, itertools.chain(() if first is None else (first,), stream)
+
+
+def _out_of_sequence(recording: Recording, msg: dict[str, Any], expected: int) -> ConfigError:
+    """A logged tick row that does not follow the one before it, in a log where no damaged
+    chunk can have taken the rows between: the log was altered."""
+    return ConfigError(
+        str(recording.path),
+        f"{ch.TIMING} message: tick",
+        f"tick {expected}, the row after "
+        + ("the start of the log" if expected == 0 else f"tick {expected - 1}")
+        + " (ticks follow one another; only a damaged chunk leaves a gap)",
+        msg["tick"],
+    )
 
 
 def _route(
@@ -294,12 +313,19 @@ class ReplayClock:
         self.current: TickInput | None = None
         self.unsupported: list[str] = []
         self.check: FeedbackCheck | None = None
+        #: Bad input met in the log while the re-run ran: the runtime would take it for a
+        #: failed tick and stop the hand, so the log ends there and the re-run raises it after.
+        self.bad_input: ConfigError | None = None
 
     def now_ns(self) -> int:
         return self.current.now_ns if self.current is not None else 0
 
     async def wait_tick(self) -> Tick:
-        current = next(self.inputs, None)
+        try:
+            current = next(self.inputs, None)
+        except ConfigError as exc:
+            self.bad_input = exc
+            raise _EndOfLogError from None
         if current is None:
             raise _EndOfLogError
         self.current = current
@@ -443,9 +469,9 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
             "how the runtime was set up (recorded by handctl run recipe --log)",
             "nothing",
         )
-    end = recording.metadata.get(ch.META_END, {})
     dropped = {
-        k: int(end.get(k, "0")) for k in ("dropped_ticks", "dropped_frames", "dropped_events")
+        k: recording.meta_int(ch.META_END, k, 0)
+        for k in ("dropped_ticks", "dropped_frames", "dropped_events")
     }
     if any(dropped.values()):
         raise ConfigError(
@@ -457,10 +483,15 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
     hand = recorded_hand(recording)
     assert hand is not None
     recipe = recorded_recipe(recording, hand)
-    period_s = int(run.get("period_ns", round(hand.bus.period_s * 1e9))) * 1e-9
-    startup_ticks = int(run.get("startup_ticks", "500"))
+    period_s = (
+        recording.meta_int(ch.META_RUN, "period_ns", round(hand.bus.period_s * 1e9), minimum=1)
+        * 1e-9
+    )
+    startup_ticks = recording.meta_int(ch.META_RUN, "startup_ticks", 500)
     bus = ReplayBus()
-    before, inputs = tick_inputs(recording)
+    before, inputs = tick_inputs(
+        recording, MessageCheck(str(recording.path), hand.n_joints, len(hand.fingers))
+    )
     bus.load(-1, before)
     clock = ReplayClock(inputs, bus)
     driver = HandDriver(
@@ -513,6 +544,8 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
             f"the re-run stops after tick {clock.current.tick if clock.current else -1}"
             f", {where} ({recording.problem or 'no more ticks'}); compared up to there"
         )
+    if clock.bad_input is not None:  # wherever the run met it, the stop's ticks included
+        raise clock.bad_input
     wall = time.perf_counter() - started
     if clock.current is not None and outcome != "log ended":
         check.end(clock.current.tick, clock.current.rx)

@@ -7,11 +7,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import orjson
 
 from handctl.arrays import FloatArray
 from handctl.errors import ConfigError
 from handctl.recording import channels as ch
+from handctl.recording.messages import MessageCheck
 from handctl.recording.metadata import recorded_hand
 from handctl.recording.reader import Recording, iter_decoded, iter_messages
 from handctl.recording.ring import RECORDED_STAGES
@@ -61,14 +61,15 @@ class Series:
 def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per channel; bus/replay split (issue 16)
     """One pass over the recording into arrays: timing (t, tick, lateness, missed, active,
     4 stages), torques (t, desired, applied), joints (t, TDT, angle), object poses."""
-    joints = _joint_names(recording)
+    joints, nodes = _joint_names(recording)
     n = len(joints)
+    loads = MessageCheck(str(recording.path), n, nodes).loads
     timing, torque, joint = _Rows(9), _Rows(1 + 2 * n), _Rows(1 + 2 * n)
     objects: _Rows | None = None
     series = Series(joints)
     t0: int | None = None
     tick0: int | None = None  # tick 0's scheduled time (ns)
-    period_ns = int(recording.meta(ch.META_RUN, "period_ns") or 1_000_000)
+    period_ns = recording.meta_int(ch.META_RUN, "period_ns", 1_000_000, minimum=1)
     scheduled = 0.0  # the latest tick's scheduled time, s from the first message
     phase_name, phase_start, phase_tick = "", 0.0, 0
     frames = {"rx": 0, "tx": 0, "tx_refused": 0}
@@ -84,7 +85,7 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             if b'"ok":false' in raw:
                 frames["tx_refused"] += 1
             continue
-        msg = _loads(raw)
+        msg = loads(topic, log_time, raw)
         if t0 is None:
             t0 = log_time
         t = (log_time - t0) * 1e-9
@@ -128,11 +129,20 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
                 exits[(msg.get("previous", ""), msg["tick"])] = msg.get("detail", "")
         elif topic == ch.OBJECTS:
             if objects is None:
-                series.object_names = [o["name"] for o in msg["objects"]]
+                series.object_names = [
+                    str(o.get("name", f"object{i + 1}")) for i, o in enumerate(msg["objects"])
+                ]
                 objects = _Rows(2 + 3 * len(series.object_names))
-            values = [t, msg.get("line_angle_rad", math.nan)]
+            if len(msg["objects"]) != len(series.object_names):
+                raise ConfigError(
+                    str(recording.path),
+                    f"{topic} message at log time {log_time} ns (tick {msg['tick']}): objects",
+                    f"the {len(series.object_names)} objects of the first such message",
+                    f"{len(msg['objects'])} objects",
+                )
+            values = [t, _float(msg.get("line_angle_rad"))]
             for o in msg["objects"]:
-                values += [o["x_m"], o["y_m"], o["angle_rad"]]
+                values += [_float(o.get("x_m")), _float(o.get("y_m")), _float(o.get("angle_rad"))]
             objects.add(values)
         elif topic == ch.STATS:
             series.stats = msg
@@ -167,11 +177,9 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     return series
 
 
-def _loads(raw: bytes) -> dict[str, Any]:
-    value = orjson.loads(raw)
-    if not isinstance(value, dict):
-        raise ValueError("a message that is not a JSON object")
-    return value
+def _float(value: float | None) -> float:
+    """A number of a message (checked), NaN where the writer wrote null or none was written."""
+    return math.nan if value is None else value
 
 
 def json_floats(values: list[float | None]) -> list[float]:
@@ -179,13 +187,15 @@ def json_floats(values: list[float | None]) -> list[float]:
     return [math.nan if v is None else v for v in values]
 
 
-def _joint_names(recording: Recording) -> list[str]:
+def _joint_names(recording: Recording) -> tuple[list[str], int | None]:
+    """The joints' names and the number of finger nodes (None: not known) of the recorded
+    hand; for a log without one, as many joints as its first torques have."""
     hand = recorded_hand(recording, required=False)
     if hand is not None:
-        return list(hand.joint_names)
+        return list(hand.joint_names), len(hand.fingers)
     for _, _, msg in iter_decoded(recording, (ch.TORQUE,)):
-        return [f"j{i}" for i in range(len(msg["applied_nm"]))]
-    return []
+        return [f"j{i}" for i in range(len(msg["applied_nm"]))], None
+    return [], None
 
 
 def _rest_heights(recording: Recording, series: Series) -> list[float]:

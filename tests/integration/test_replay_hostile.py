@@ -1,0 +1,210 @@
+"""``handctl replay`` on recordings altered after the run: a message that is not what its
+channel says, metadata that does not parse, tick rows out of sequence. Each is bad input
+(exit 2) naming the file, the message or record, the field, what was expected and what was
+found; never a traceback, nor a re-run that claims bit-exact on what it did not compare."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.recording import channels as ch
+from handctl.recording.frames import to_bus
+from handctl.recording.reader import open_recording
+from handctl.recording.rerun import rerun
+from handctl.recording.series import load_series
+
+from ..conftest import handctl
+from .rig import short_recipe
+from .test_recording import Recorded, record_run
+
+#: ``change(topic, index within the topic, raw message) -> raw message``
+Change = Callable[[str, int, bytes], bytes]
+
+
+@pytest.fixture(scope="module")
+def recorded(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recorded:
+    directory = tmp_path_factory.mktemp("hostile")
+    return record_run(hand, short_recipe(hand, directory), directory / "run.mcap", troubles=False)
+
+
+def rewrite(
+    source: Path,
+    target: Path,
+    change: Change | None = None,
+    metadata: Callable[[str, dict[str, str]], dict[str, str]] | None = None,
+) -> None:
+    """Copy a recording record by record with the mcap library, the messages through
+    ``change`` and the metadata through ``metadata``."""
+    with source.open("rb") as handle:
+        reader = make_reader(handle)
+        summary = reader.get_summary()
+        assert summary is not None
+        messages = list(reader.iter_messages(log_time_order=False))
+        records = list(reader.iter_metadata())
+    counts: dict[str, int] = {}
+    with target.open("wb") as out:
+        writer = Writer(out)
+        writer.start()
+        for meta in records:
+            values = dict(meta.metadata)
+            writer.add_metadata(meta.name, metadata(meta.name, values) if metadata else values)
+        schema_ids = {
+            s.id: writer.register_schema(s.name, s.encoding, s.data)
+            for s in summary.schemas.values()
+        }
+        channel_ids = {
+            c.id: writer.register_channel(
+                c.topic, c.message_encoding, schema_ids[c.schema_id], c.metadata
+            )
+            for c in summary.channels.values()
+        }
+        for _, channel, message in messages:
+            index = counts.get(channel.topic, 0)
+            counts[channel.topic] = index + 1
+            raw = change(channel.topic, index, message.data) if change else message.data
+            writer.add_message(channel_ids[channel.id], message.log_time, raw, message.publish_time)
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
+
+
+def one_message(topic: str, index: int, alter: Callable[[bytes], bytes]) -> Change:
+    def change(t: str, i: int, raw: bytes) -> bytes:
+        return alter(raw) if (t, i) == (topic, index) else raw
+
+    return change
+
+
+def field(key: str, value: object) -> Callable[[bytes], bytes]:
+    def alter(raw: bytes) -> bytes:
+        msg = json.loads(raw)
+        if value is ...:
+            del msg[key]
+        else:
+            msg[key] = value
+        return json.dumps(msg).encode()
+
+    return alter
+
+
+# -- a message that is not what its channel says -------------------------------------------------
+@pytest.mark.parametrize(
+    ("topic", "alter", "key", "expected"),
+    [
+        (ch.TIMING, field("scheduled_ns", ...), "scheduled_ns", "expected an integer"),
+        (ch.TIMING, field("stage_cpu_ns", "x"), "stage_cpu_ns", "expected an object"),
+        (ch.TORQUE, field("applied_nm", None), "applied_nm", "expected an array"),
+        (ch.TORQUE, field("desired_nm", [0.0, 1.0]), "desired_nm", "9 values, one per joint"),
+        (ch.JOINT_STATE, field("angle_rad", ["x"] * 9), "angle_rad", "each item a number"),
+        (ch.PHASE, field("phase", 7), "phase", "expected a string"),
+        (ch.OBJECTS, field("objects", 1.5), "objects", "expected an array"),
+        (ch.EVENTS, field("kind", "other"), "kind", "expected one of fault, state"),
+        (ch.CAN_RX, field("data", "zz"), "data", "a frame's payload as hex"),
+        (ch.CAN_TX, field("id", 1 << 40), "id", "a CAN id"),
+        (ch.TIMING, lambda raw: b"not json", "", "expected a JSON object"),
+        (ch.TORQUE, lambda raw: b"[1, 2]", "", "expected a JSON object"),
+    ],
+)
+def test_a_message_not_of_its_channel_is_named(
+    recorded: Recorded,
+    tmp_path: Path,
+    topic: str,
+    alter: Callable[[bytes], bytes],
+    key: str,
+    expected: str,
+) -> None:
+    bad = tmp_path / "bad.mcap"
+    index = {ch.EVENTS: 1, ch.OBJECTS: 5}.get(topic, 300)
+    rewrite(recorded.path, bad, one_message(topic, index, alter))
+    recording = open_recording(bad)
+    assert recording.complete
+    with pytest.raises(ConfigError) as caught:
+        load_series(recording)
+        rerun(recording)  # the summary does not read every channel; the re-run does
+        to_bus(recording, "virtual:never-opened")  # nor the frames
+    text = str(caught.value)
+    assert text.startswith(f"{bad}: {topic} message at log time "), text
+    assert (f": {key}: " in text) if key else True, text
+    assert expected in text, text
+
+
+def test_the_cli_says_which_message_is_bad_and_exits_2(recorded: Recorded, tmp_path: Path) -> None:
+    bad = tmp_path / "bad.mcap"
+    rewrite(recorded.path, bad, one_message(ch.TIMING, 300, field("missed", None)))
+    done = handctl("replay", str(bad), "--rerun")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"{bad}: {ch.TIMING} message at log time" in done.stderr
+    assert "(tick 300): missed: expected an integer, found None" in done.stderr
+
+
+# -- metadata -------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("record", "key", "value", "expected"),
+    [
+        (ch.META_SUMMARY, "json", "{", "expected a JSON object"),
+        (ch.META_SUMMARY, "json", "[1]", "expected a JSON object, found [1]"),
+        (ch.META_RUN, "period_ns", "garbage", "expected a whole number >= 1, found 'garbage'"),
+        (ch.META_RUN, "startup_ticks", "-5", "expected a whole number >= 0, found '-5'"),
+        (ch.META_END, "dropped_ticks", "nan", "expected a whole number >= 0, found 'nan'"),
+        ("handctl.command", "started_unix_ns", "1e9", "expected a whole number >= 0, found '1e9'"),
+    ],
+)
+def test_metadata_that_does_not_parse_is_exit_2(
+    recorded: Recorded, tmp_path: Path, record: str, key: str, value: str, expected: str
+) -> None:
+    bad = tmp_path / "meta.mcap"
+    rewrite(
+        recorded.path,
+        bad,
+        metadata=lambda name, values: values | {key: value} if name == record else values,
+    )
+    done = handctl(
+        "replay", str(bad), "--rerun", "--export", "candump", str(tmp_path / "frames.log")
+    )
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"{bad}: metadata {record}.{key}: {expected}" in done.stderr, done.stderr
+
+
+# -- tick rows out of sequence ----------------------------------------------------------------
+@pytest.mark.parametrize("tick", [-1, 299, 400])
+def test_a_tick_row_out_of_sequence_in_a_whole_log_is_refused(
+    recorded: Recorded, tmp_path: Path, tick: int
+) -> None:
+    """Only a damaged chunk can leave a gap in the ticks; in a log without one, a row out of
+    sequence was altered, and a re-run that stopped there and said bit-exact would have
+    compared a part of the log and vouched for the whole."""
+    bad = tmp_path / "ticks.mcap"
+    rewrite(recorded.path, bad, one_message(ch.TIMING, 300, field("tick", tick)))
+    recording = open_recording(bad)
+    assert recording.complete and not recording.damaged
+    with pytest.raises(ConfigError) as caught:
+        rerun(recording)
+    assert str(caught.value) == (
+        f"{bad}: {ch.TIMING} message: tick: expected tick 300, the row after tick 299 (ticks "
+        f"follow one another; only a damaged chunk leaves a gap), found {tick}"
+    )
+
+
+def test_a_bad_message_the_re_run_meets_while_running_is_still_bad_input(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """The re-run reads the log as it goes: a bad message late in the log is met inside a
+    tick, where the runtime would take it for a failing tick and stop the hand. It is still
+    bad input naming the message, not a mismatch (exit 1) nor a stop."""
+    bad = tmp_path / "late.mcap"
+    rewrite(recorded.path, bad, one_message(ch.CAN_TX, 3000, field("data", "zz")))
+    recording = open_recording(bad)
+    load_series(recording)  # the summary does not decode the frames
+    with pytest.raises(ConfigError) as caught:
+        rerun(recording)
+    text = str(caught.value)
+    assert text.startswith(f"{bad}: {ch.CAN_TX} message at log time "), text
+    assert ": data: expected a frame's payload as hex, at most 64 bytes, found 'zz'" in text
