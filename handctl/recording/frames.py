@@ -7,9 +7,12 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from handctl.config import FingerConfig, HandConfig
 from handctl.errors import ConfigError
+from handctl.hand_protocol import node_message, protocol_for
+from handctl.protocol import Layout
 from handctl.recording import channels as ch
-from handctl.recording.metadata import recorded_hand
+from handctl.recording.metadata import recorded_hand, recorded_protocol
 from handctl.recording.reader import Recording, iter_decoded, require_topics
 
 
@@ -45,6 +48,7 @@ def to_bus(
     require_topics(recording, (ch.CAN_RX, ch.CAN_TX), "--to-bus")
     hand = recorded_hand(recording)
     assert hand is not None
+    check_commands(recording, hand, direction)
     sent = failed = 0
     worst_late = 0.0
     with open_bus(spec, hand.bus) as bus:
@@ -71,6 +75,135 @@ def to_bus(
         "speed": speed,
         "direction": direction,
     }
+
+
+def check_commands(recording: Recording, hand: HandConfig, direction: str = "both") -> int:
+    """Refuse, before anything is sent, a log whose frames hold a command the run's safety
+    supervisor would never have let through; returns how many commands were checked.
+
+    A log's command frames are what the supervisor let through, so a replay onto a bus (where
+    a hand may listen) sends nothing it would refuse, unless the log was altered. So every
+    frame with a command's id is checked, whichever channel holds it: a ``TorqueCommand`` or
+    ``NodeCommand`` must be of the recorded protocol's length with a good CRC, and address a
+    node of the recorded hand; each joint's torque must lie within ±``tau_max`` (and the
+    torques a command carries beyond a finger's joints be zero), and it may change from the
+    node's previous command by at most the rate limit over the time between the two (one loop
+    period at least) unless it moves towards zero, as a stop does."""
+    protocol = recorded_protocol(recording) or protocol_for(hand)
+    torque: dict[int, tuple[Layout, FingerConfig]] = {}
+    other: dict[int, Layout] = {}
+    for finger in hand.fingers:
+        torque[finger.can_ids.torque_command] = (
+            protocol.layout("TorqueCommand", finger.node_id),
+            finger,
+        )
+        other[finger.can_ids.node_command] = protocol.layout("NodeCommand", finger.node_id)
+    period_ns = round(hand.bus.period_s * 1e9)
+    last: dict[int, tuple[int, tuple[float, ...]]] = {}
+    checked = 0
+    for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
+        entry = torque.get(frame_id)
+        layout = entry[0] if entry is not None else other.get(frame_id)
+        if layout is None:
+            named = node_message(frame_id)
+            if named is not None and named[0] in ("TorqueCommand", "NodeCommand"):
+                raise _refused(
+                    recording,
+                    log_time,
+                    frame_id,
+                    data,
+                    is_rx,
+                    "",
+                    f"a command to one of the recorded hand's nodes "
+                    f"({', '.join(str(f.node_id) for f in hand.fingers)})",
+                    f"{named[0]} to node {named[1]}",
+                )
+            continue
+        checked += 1
+        if not layout.crc_ok(data):
+            raise _refused(
+                recording,
+                log_time,
+                frame_id,
+                data,
+                is_rx,
+                "",
+                f"a {layout.name} frame of {layout.length} bytes with a good CRC",
+                f"{len(data)} bytes, "
+                + ("a bad CRC" if len(data) == layout.length else "a wrong length"),
+            )
+        if entry is None:
+            continue
+        finger = entry[1]
+        _, values = layout.decode(data)
+        before_ns, before = last.get(frame_id, (log_time - period_ns, (0.0,) * len(values)))
+        dt = max(period_ns, log_time - before_ns) * 1e-9
+        resolution = min((s.scale for s in layout.signals), default=0.0)
+        for i, (signal, tau, was) in enumerate(zip(layout.signals, values, before, strict=True)):
+            if i >= len(finger.joints):
+                if tau != 0:
+                    raise _refused(
+                        recording,
+                        log_time,
+                        frame_id,
+                        data,
+                        is_rx,
+                        signal.name,
+                        f"0 (the finger {finger.name} has {len(finger.joints)} joints)",
+                        tau,
+                    )
+                continue
+            joint = finger.joints[i]
+            if not abs(tau) <= joint.tau_max + resolution / 2:
+                raise _refused(
+                    recording,
+                    log_time,
+                    frame_id,
+                    data,
+                    is_rx,
+                    f"{signal.name} ({joint.name})",
+                    f"a torque within ±{joint.tau_max:g} N·m (its tau_max)",
+                    tau,
+                )
+            towards_zero = 0 <= tau <= was or was <= tau <= 0
+            step = joint.rate_limit * dt + resolution
+            if not towards_zero and abs(tau - was) > step:
+                raise _refused(
+                    recording,
+                    log_time,
+                    frame_id,
+                    data,
+                    is_rx,
+                    f"{signal.name} ({joint.name})",
+                    f"a change of at most {step:.6g} N·m from the previous command's "
+                    f"{was:g} N·m (its rate limit {joint.rate_limit:g} N·m/s over "
+                    f"{dt * 1e3:g} ms)",
+                    tau,
+                )
+        last[frame_id] = (log_time, values)
+    return checked
+
+
+def _refused(
+    recording: Recording,
+    log_time: int,
+    frame_id: int,
+    data: bytes,
+    is_rx: bool,
+    signal: str,
+    expected: str,
+    found: object,
+) -> ConfigError:
+    where = (
+        f"{ch.CAN_RX if is_rx else ch.CAN_TX} frame 0x{frame_id:03X} {data.hex()} at log time "
+        f"{log_time} ns"
+    )
+    return ConfigError(
+        str(recording.path),
+        f"{where}: {signal}" if signal else where,
+        f"{expected}, as the supervisor lets a command through (nothing was sent)",
+        found,
+    )
 
 
 def export(recording: Recording, fmt: str, out: str) -> int:

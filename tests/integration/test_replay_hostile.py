@@ -1,7 +1,8 @@
 """``handctl replay`` on recordings altered after the run: a message that is not what its
-channel says, metadata that does not parse, tick rows out of sequence. Each is bad input
-(exit 2) naming the file, the message or record, the field, what was expected and what was
-found; never a traceback, nor a re-run that claims bit-exact on what it did not compare."""
+channel says, metadata that does not parse, tick rows out of sequence, and command frames the
+supervisor would never have let through. Each is bad input (exit 2) naming the file, the
+message or record, the field, what was expected and what was found; never a traceback, never
+a re-run that claims bit-exact on what it did not compare, and nothing onto a bus."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from mcap.writer import Writer
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
+from handctl.online.bus import open_bus
+from handctl.protocol import Protocol
 from handctl.recording import channels as ch
 from handctl.recording.frames import to_bus
 from handctl.recording.reader import open_recording
@@ -191,6 +194,106 @@ def test_a_tick_row_out_of_sequence_in_a_whole_log_is_refused(
         f"{bad}: {ch.TIMING} message: tick: expected tick 300, the row after tick 299 (ticks "
         f"follow one another; only a damaged chunk leaves a gap), found {tick}"
     )
+
+
+# -- frames onto a bus ---------------------------------------------------------------------------
+def _torque_command(
+    protocol: Protocol, finger: int, joint: int, torque: Callable[[float], float]
+) -> Callable[[bytes], bytes]:
+    """A logged TorqueCommand with one joint's torque changed to ``torque(logged torque)``."""
+    layout = protocol.layout("TorqueCommand", finger)
+
+    def alter(raw: bytes) -> bytes:
+        msg = json.loads(raw)
+        assert msg["id"] == layout.frame_id
+        counter, values = layout.decode(bytes.fromhex(msg["data"]))
+        changed = list(values)
+        changed[joint] = torque(values[joint])
+        msg["data"] = layout.encode(counter, changed).hex()  # a good CRC: a re-sealed frame
+        return json.dumps(msg).encode()
+
+    return alter
+
+
+def _nth_command(recorded: Recorded, frame_id: int, nth: int) -> int:
+    """The index within ``/can/tx`` of the ``nth`` frame of ``frame_id``."""
+    with recorded.path.open("rb") as handle:
+        frames = [
+            json.loads(m.data)["id"]
+            for _, c, m in make_reader(handle).iter_messages(topics=[ch.CAN_TX])
+        ]
+    return [i for i, f in enumerate(frames) if f == frame_id][nth]
+
+
+@pytest.mark.parametrize(
+    ("case", "torque", "expected"),
+    [
+        ("over_tau_max", lambda logged: 2.0, "expected a torque within ±0.6 N·m (its tau_max)"),
+        ("wire_maximum", lambda logged: 3.2767, "expected a torque within ±0.6 N·m"),
+        # across zero, 0.3 N·m in one tick: never towards zero, 15 times the rate limit's step
+        ("too_fast", lambda logged: -0.3 if logged >= 0 else 0.3, "expected a change of at most"),
+    ],
+)
+def test_to_bus_sends_nothing_from_a_log_with_a_command_the_supervisor_would_refuse(
+    recorded: Recorded,
+    tmp_path: Path,
+    hand: HandConfig,
+    protocol: Protocol,
+    case: str,
+    torque: Callable[[float], float],
+    expected: str,
+) -> None:
+    """The log's command frames are what the supervisor let through; a replay onto a bus
+    where a hand may listen sends none of a log whose commands were altered (a re-sealed
+    TorqueCommand over tau_max, or a step faster than the rate limit)."""
+    layout = protocol.layout("TorqueCommand", 1)
+    index = _nth_command(recorded, layout.frame_id, 200)
+    bad = tmp_path / "commands.mcap"
+    alter = _torque_command(protocol, 1, 0, torque)
+    rewrite(recorded.path, bad, one_message(ch.CAN_TX, index, alter))
+    recording = open_recording(bad)
+    channel = f"hostile-{case}"
+    with open_bus(f"virtual:{channel}", hand.bus) as listener:
+        with pytest.raises(ConfigError) as caught:
+            to_bus(recording, f"virtual:{channel}", speed=1000.0)
+        heard = listener.drain(limit=10**6)
+    assert heard == []
+    text = str(caught.value)
+    assert text.startswith(f"{bad}: {ch.CAN_TX} frame 0x101 "), text
+    assert "Torque1 (f1_j1): " + expected in text and "nothing was sent" in text, text
+
+
+def test_to_bus_refuses_a_command_hidden_among_the_received_frames(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
+) -> None:
+    """Whichever channel holds it, a frame with a command's id is checked as a command: the
+    received frames go onto the bus too."""
+    layout = protocol.layout("TorqueCommand", 2)
+    sealed = layout.encode(0, [0.5, 0.0, 0.0]).hex()
+
+    def change(topic: str, index: int, raw: bytes) -> bytes:
+        if (topic, index) != (ch.CAN_RX, 500):
+            return raw
+        msg = json.loads(raw)
+        return json.dumps(msg | {"id": layout.frame_id, "data": sealed}).encode()
+
+    bad = tmp_path / "rx.mcap"
+    rewrite(recorded.path, bad, change)
+    done = handctl("replay", str(bad), "--to-bus", "virtual:hostile-rx", "--speed", "1000")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"{bad}: {ch.CAN_RX} frame 0x102 {sealed}" in done.stderr
+    assert "Torque1 (f2_j1): expected a change of at most" in done.stderr
+    assert "to-bus:" not in done.stdout
+
+
+def test_an_unaltered_log_still_goes_onto_the_bus_whole(
+    recorded: Recorded, hand: HandConfig
+) -> None:
+    recording = open_recording(recorded.path)
+    with open_bus("virtual:hostile-whole", hand.bus) as listener:
+        sent = to_bus(recording, "virtual:hostile-whole", speed=1000.0)
+        heard = listener.drain(limit=10**7)
+    assert sent["failed"] == 0 and sent["sent"] == len(heard) > 0
 
 
 def test_a_bad_message_the_re_run_meets_while_running_is_still_bad_input(
