@@ -10,7 +10,7 @@ Exit codes (the same for every subcommand):
 4    bus unavailable or failed
 5    the host failed the timing check (``check --timing``, or before a run on a real bus);
      nothing was sent
-130  interrupted (Ctrl-C or SIGTERM), after a controlled stop
+130  interrupted (Ctrl-C, SIGTERM or SIGHUP), after a controlled stop
 ==== =====================================================================
 
 A run that reaches its ``--max-seconds`` stops under control with the outcome ``time_budget``
@@ -1320,7 +1320,7 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="run a grasp recipe",
         description="Run a recipe phase by phase at the hand's loop rate, every torque through "
         "the safety supervisor. Default bus: the simulated hand, in lockstep.",
-        notes="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
+        notes="Ctrl-C, SIGTERM or SIGHUP: a controlled stop (torque to zero, nodes disabled), exit "
         "130. At --max-seconds: the same stop, outcome time_budget, exit 0. A safety "
         "stop exits 3.",
         examples=[
@@ -1906,6 +1906,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if threading.current_thread() is not threading.main_thread():  # signals are not ours
             return _run_args(argv)
         before = signal.signal(signal.SIGTERM, _interrupt)
+        before_hup = signal.signal(signal.SIGHUP, _interrupt)  # a terminal that went away
         # SIGINT too, explicitly: a process started with it ignored (a background job of a
         # non-interactive shell, a supervisor's child) inherits SIG_IGN, and Python then
         # leaves it so; a plan or a check would go on through every Ctrl-C and kill -INT.
@@ -1915,6 +1916,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         finally:
             signal.signal(signal.SIGTERM, before)
             signal.signal(signal.SIGINT, before_int)
+            signal.signal(signal.SIGHUP, before_hup)
 
 
 def _run_args(argv: Sequence[str] | None) -> int:

@@ -657,8 +657,8 @@ class SimProcess:
 
 
 class StopSignals:
-    """SIGINT and SIGTERM over a whole run, from before anything starts to the last line of
-    the log, so that either one ends the run the same way whenever it comes, with exit 130:
+    """SIGINT, SIGTERM and SIGHUP over a whole run, from before anything starts to the last
+    line of the log, so that each ends the run the same way whenever it comes, with exit 130:
 
     - before the runtime runs (the simulated hand starting, the log opening): an interrupt
       (``KeyboardInterrupt``), which unwinds what was started; nothing was sent;
@@ -672,7 +672,10 @@ class StopSignals:
     its log is finished. Outside the main thread signals cannot be handled: nothing changes.
     """
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    #: SIGHUP too: the terminal or the SSH session a run was started from going away must not
+    #: kill the host mid-grasp (no stop, nodes left enabled until their watchdogs trip, the
+    #: log without its last tick and summary); it is a controlled stop like the others.
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
     def __init__(self) -> None:
         self.runtime: Runtime | None = None

@@ -253,7 +253,9 @@ def short_recipe_path(directory: Path) -> Path:
     return path
 
 
-def test_sigterm_leaves_a_complete_file_that_reruns(tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_leaves_a_complete_file_that_reruns(tmp_path: Path, sig: signal.Signals) -> None:
+    """SIGHUP (the terminal or the SSH session gone) too: a controlled stop, not a death."""
     log = tmp_path / "term.mcap"
     proc = subprocess.Popen(
         [
@@ -276,7 +278,7 @@ def test_sigterm_leaves_a_complete_file_that_reruns(tmp_path: Path) -> None:
         while not (log.exists() and log.stat().st_size > 300_000):  # chunks: ticking
             assert proc.poll() is None and time.monotonic() < deadline, proc.stderr
             time.sleep(0.02)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         _, stderr = proc.communicate(timeout=60)
     finally:
         proc.kill()

@@ -18,7 +18,7 @@ from handctl.session import StopSignals
 from ..conftest import ROOT
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
 def test_before_the_run_a_signal_is_an_interrupt(sig: signal.Signals) -> None:
     before = signal.getsignal(sig)
     with StopSignals(), pytest.raises(KeyboardInterrupt):
