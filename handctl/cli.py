@@ -1906,7 +1906,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if threading.current_thread() is not threading.main_thread():  # signals are not ours
             return _run_args(argv)
         before = signal.signal(signal.SIGTERM, _interrupt)
-        before_hup = signal.signal(signal.SIGHUP, _interrupt)  # a terminal that went away
+        # a terminal that went away; but a run started under nohup (SIGHUP ignored) asked to
+        # outlive its terminal, and keeps ignoring it
+        before_hup = signal.getsignal(signal.SIGHUP)
+        if before_hup is not signal.SIG_IGN:
+            signal.signal(signal.SIGHUP, _interrupt)
         # SIGINT too, explicitly: a process started with it ignored (a background job of a
         # non-interactive shell, a supervisor's child) inherits SIG_IGN, and Python then
         # leaves it so; a plan or a check would go on through every Ctrl-C and kill -INT.

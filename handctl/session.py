@@ -674,7 +674,8 @@ class StopSignals:
 
     #: SIGHUP too: the terminal or the SSH session a run was started from going away must not
     #: kill the host mid-grasp (no stop, nodes left enabled until their watchdogs trip, the
-    #: log without its last tick and summary); it is a controlled stop like the others.
+    #: log without its last tick and summary); it is a controlled stop like the others. Unless
+    #: the run was started with it ignored (``nohup``): then it was asked to go on, and does.
     SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
     def __init__(self) -> None:
@@ -688,6 +689,8 @@ class StopSignals:
     def __enter__(self) -> StopSignals:
         if threading.current_thread() is threading.main_thread():
             for sig in self.SIGNALS:
+                if sig == signal.SIGHUP and signal.getsignal(sig) is signal.SIG_IGN:
+                    continue  # started under nohup: asked to outlive its terminal
                 self._saved[sig] = signal.signal(sig, self._handle)
         return self
 

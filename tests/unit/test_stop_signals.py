@@ -1,4 +1,4 @@
-"""SIGINT and SIGTERM over a run (``session.StopSignals``), raised in this very process."""
+"""SIGINT, SIGTERM and SIGHUP over a run (``session.StopSignals``), raised in this very process."""
 
 from __future__ import annotations
 
@@ -24,6 +24,19 @@ def test_before_the_run_a_signal_is_an_interrupt(sig: signal.Signals) -> None:
     with StopSignals(), pytest.raises(KeyboardInterrupt):
         signal.raise_signal(sig)
     assert signal.getsignal(sig) is before  # put back afterwards
+
+
+def test_a_run_started_under_nohup_keeps_ignoring_sighup() -> None:
+    """``nohup handctl run ...`` asks the run to outlive its terminal: the hang-up it then
+    gets is not a stop."""
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with StopSignals():
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            signal.raise_signal(signal.SIGHUP)  # ignored: no KeyboardInterrupt
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, before)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
