@@ -127,17 +127,38 @@ def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | N
                 "nothing",
             )
         return None
+    _check_digest(recording, "yaml", "sha256", text)
     return parse_hand(
         parse_yaml(text, f"{recording.path} (its recorded hand config)"),
         recorded_protocol(recording),
     )
 
 
+def _check_digest(recording: Recording, key: str, digest_key: str, text: str) -> None:
+    """Refuse a recorded text that is not the one the run recorded the digest of: a hand or
+    DBC edited in the log would re-run, replay onto a bus and decode with limits and ids the
+    run never had. (A log from before the digest was recorded has none to check.)"""
+    recorded = recording.meta(ch.META_HAND, digest_key)
+    if not recorded:
+        return
+    actual = hashlib.sha256(text.encode()).hexdigest()
+    if actual != recorded:
+        raise ConfigError(
+            str(recording.path),
+            f"metadata {ch.META_HAND}.{key}",
+            f"the text whose sha256 the run recorded ({digest_key} {recorded[:16]}...)",
+            f"a text whose sha256 is {actual[:16]}... (edited after the run)",
+        )
+
+
 def recorded_protocol(recording: Recording) -> Protocol | None:
     """The protocol the run spoke, as it recorded it (None in a recording from before the
     protocol was recorded: then it was the packaged DBC, which the hand generates)."""
     text = recording.meta(ch.META_HAND, "dbc")
-    return parse_protocol(text, f"{recording.path} (its recorded DBC)") if text else None
+    if not text:
+        return None
+    _check_digest(recording, "dbc", "dbc_sha256", text)
+    return parse_protocol(text, f"{recording.path} (its recorded DBC)")
 
 
 def recorded_recipe(recording: Recording, hand: HandConfig) -> Recipe:

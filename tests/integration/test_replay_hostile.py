@@ -176,6 +176,34 @@ def test_metadata_that_does_not_parse_is_exit_2(
     assert f"{bad}: metadata {record}.{key}: {expected}" in done.stderr, done.stderr
 
 
+@pytest.mark.parametrize(
+    ("key", "edit"),
+    [
+        # a joint's limit raised tenfold: a re-run and a replay onto a bus would check the
+        # log's commands against it
+        ("yaml", lambda text: text.replace("tau_max: 0.60", "tau_max: 6.00", 1)),
+        ("dbc", lambda text: text + "\n"),
+    ],
+)
+def test_a_hand_or_protocol_edited_in_the_log_is_refused(
+    recorded: Recorded, tmp_path: Path, key: str, edit: Callable[[str], str]
+) -> None:
+    bad = tmp_path / "edited.mcap"
+
+    def metadata(name: str, values: dict[str, str]) -> dict[str, str]:
+        if name != ch.META_HAND:
+            return values
+        edited = edit(values[key])
+        assert edited != values[key]
+        return values | {key: edited}
+
+    rewrite(recorded.path, bad, metadata=metadata)
+    done = handctl("replay", str(bad), "--rerun")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"{bad}: metadata {ch.META_HAND}.{key}: expected the text whose sha256" in done.stderr
+
+
 # -- tick rows out of sequence ----------------------------------------------------------------
 @pytest.mark.parametrize("tick", [-1, 299, 400])
 def test_a_tick_row_out_of_sequence_in_a_whole_log_is_refused(
