@@ -125,9 +125,11 @@ def _cmd_check(args: argparse.Namespace) -> int:
         what_would_fit,
     )
     from handctl.hand_protocol import protocol_for
+    from handctl.online.busspec import check_interface
     from handctl.sim.params import parse_sim
 
     hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
+    check_interface(hand.bus, hand.source)
     protocol = protocol_for(hand)
 
     # The simulated hand's section is in the same file: a mistake there is found here, before

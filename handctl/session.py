@@ -181,7 +181,7 @@ def run_recipe(
     """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on."""
     timebudget.check(req.max_seconds)
     protocol = protocol_for(req.hand)
-    spec = parse_spec(req.bus, req.hand.bus)
+    spec = parse_spec(req.bus, req.hand.bus, req.hand.source)
     warnings: list[str] = []
     is_sim = spec.interface == "sim"
     lockstep = _lockstep(req, is_sim)

@@ -23,7 +23,7 @@ _channels = itertools.count()
 @contextmanager
 def listening_bus(spec_text: str, hand: HandConfig) -> Iterator[HandBus]:
     """Open ``spec_text`` to listen on; ``sim`` starts a simulated hand to listen to."""
-    spec = parse_spec(spec_text, hand.bus)
+    spec = parse_spec(spec_text, hand.bus, hand.source)
     with ExitStack() as stack:
         if spec.interface == "sim":
             from handctl.sim.hand import SimulatedHand

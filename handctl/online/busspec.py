@@ -34,13 +34,17 @@ class BusSpec:
         return f"{self.interface}:{self.channel}" if self.channel else self.interface
 
 
-def parse_spec(spec: str, bus_config: BusConfig | None = None) -> BusSpec:
-    """Split ``INTERFACE:CHANNEL``; ``hand`` takes both from the hand config."""
+def parse_spec(
+    spec: str, bus_config: BusConfig | None = None, source: str = "the hand config"
+) -> BusSpec:
+    """Split ``INTERFACE:CHANNEL``; ``hand`` takes both from the hand config (``source``, its
+    file, for an error)."""
     if spec == "sim":
         return BusSpec("sim", "")
     if spec == "hand":
         if bus_config is None:
             raise BusError("bus spec 'hand' needs a hand config")
+        check_interface(bus_config, source)
         return BusSpec(bus_config.interface, bus_config.channel)
     interface, sep, channel = spec.partition(":")
     if not sep or not interface or not channel:
@@ -55,6 +59,20 @@ def parse_spec(spec: str, bus_config: BusConfig | None = None) -> BusSpec:
             interface,
         )
     return BusSpec(interface, channel)
+
+
+def check_interface(bus_config: BusConfig, source: str) -> None:
+    """Refuse a hand config whose ``bus.interface`` python-can does not know, where the
+    config is read (``handctl check``, ``--bus hand``), not when a bring-up tool first opens
+    the bus and python-can says "Unknown interface type". The hand config's own loader
+    cannot: it is shared with code that never imports python-can."""
+    if bus_config.interface not in can.VALID_INTERFACES:
+        raise ConfigError(
+            source,
+            "bus.interface",
+            "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES)) + ")",
+            bus_config.interface,
+        )
 
 
 def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:

@@ -47,6 +47,17 @@ def test_a_missing_hand_is_reported_against_the_option_that_named_it(tmp_path: P
     assert "HAND.yaml: expected an existing hand config file" in done.stderr
 
 
+def test_check_refuses_an_interface_python_can_lacks(tmp_path: Path) -> None:
+    """A typo in bus.interface is found by ``handctl check``, not by the first bring-up tool
+    that opens the bus."""
+    hand = tmp_path / "hand.yaml"
+    hand.write_text(HAND_YAML.read_text().replace("interface: socketcan", "interface: sockectan"))
+    done = handctl("check", str(hand), cwd=tmp_path)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"{hand}: bus.interface: expected a python-can interface (" in done.stderr
+    assert "found 'sockectan'" in done.stderr
+
+
 @pytest.mark.parametrize("seconds", ["-1", "0", "nan", "inf"])
 def test_a_time_budget_that_is_not_a_duration_is_bad_input(tmp_path: Path, seconds: str) -> None:
     out = tmp_path / "out.json"

@@ -35,6 +35,20 @@ def test_bad_specs_name_what_is_wrong(spec: str) -> None:
     assert "--bus" in str(info.value)
 
 
+def test_a_hand_config_naming_an_interface_python_can_lacks_is_refused(hand: HandConfig) -> None:
+    """Where the config is read (``--bus hand``; ``handctl check`` calls the same check), not
+    when a bring-up tool opens the bus and python-can says "Unknown interface type"."""
+    bogus = replace(hand.bus, interface="bogus")
+    with pytest.raises(ConfigError) as info:
+        parse_spec("hand", bogus, hand.source)
+    assert (info.value.file, info.value.key, info.value.found) == (
+        hand.source,
+        "bus.interface",
+        "bogus",
+    )
+    assert "socketcan" in info.value.expected and "unix" in info.value.expected
+
+
 def test_socketcan_kwargs_leave_bitrates_to_the_kernel(hand: HandConfig) -> None:
     kwargs = bus_kwargs(BusSpec("socketcan", "can0"), hand.bus)
     assert kwargs == {"interface": "socketcan", "channel": "can0", "fd": True}
