@@ -710,7 +710,12 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         report["rerun"] = result.as_dict()
         for note in result.notes:
             print(f"rerun: note: {note}")
-        if result.ok:
+        if result.ok and result.compared == 0:
+            # a log whose first chunk is lost has no tick a fresh runtime could follow: the
+            # re-run ran nothing, and nothing was shown to be bit-exact
+            print("rerun: NOTHING COMPARED: no tick of the log could be re-run (see the notes)")
+            status = EXIT_FAILED
+        elif result.ok:
             print(
                 f"rerun: {result.compared} ticks compared, applied torques bit-exact; "
                 f"{result.frames_compared} command frames identical; outcome "

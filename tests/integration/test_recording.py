@@ -695,6 +695,10 @@ def test_a_rerun_does_not_start_after_a_damaged_first_chunk(
     report = rerun(recording)
     assert report.compared == 0 and report.frames_compared == 0, report.as_dict()
     assert any("before a damaged chunk" in note for note in report.notes)
+    # and the command does not call nothing bit-exact
+    done = handctl("replay", str(damaged), "--rerun")
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "rerun: NOTHING COMPARED" in done.stdout and "bit-exact" not in done.stdout
 
 
 def test_a_damaged_metadata_record_is_named(recorded: Recorded, tmp_path: Path) -> None:
