@@ -438,19 +438,10 @@ class Runtime:
             # Judge the nodes on what they say now, not on what a previous run last heard:
             # fresh feedback and a fresh heartbeat from every node (the heartbeat's uptime is
             # the baseline against which a reboot during the run is recognised).
-            # A node of another protocol version is refused before anything is sent to it:
-            # its frames may mean something else than this host reads into them.
-            wrong = [
-                problem
-                for n in nodes
-                if n.version_ns is not None
-                and n.version_ns >= since
-                and (problem := n.version_problem())
-            ]
-            if wrong:
-                detail = "; ".join(wrong)
-                self.supervisor.trip(FaultCode.STARTUP, detail, tk.tick)
-                return detail
+            refused = self._refused_at_startup(since)
+            if refused is not None:
+                self.supervisor.trip(refused[0], refused[1], tk.tick)
+                return refused[1]
             heard = all(
                 n.feedback_ns is not None
                 and n.feedback_ns >= since
@@ -497,6 +488,30 @@ class Runtime:
         detail = "; ".join(silent) or "nodes not ready"
         self.supervisor.trip(FaultCode.STARTUP, detail, self.tick)
         return f"nodes not ready within {self.startup_ticks} ticks: {detail}"
+
+    def _refused_at_startup(self, since: int) -> tuple[FaultCode, str] | None:
+        """Why the nodes must not be enabled, whatever they say of their state (None if
+        nothing refuses them): a node of another protocol version (its frames may mean
+        something else than this host reads into them), or another sender on the host's
+        command ids (the nodes would hear two hosts)."""
+        nodes = self.driver.nodes
+        wrong = [
+            problem
+            for n in nodes
+            if n.version_ns is not None
+            and n.version_ns >= since
+            and (problem := n.version_problem())
+        ]
+        if wrong:
+            return FaultCode.STARTUP, "; ".join(wrong)
+        foreign = [
+            f"node {n.node_id} ({n.finger.name}): {n.foreign_command}"
+            for n in nodes
+            if n.foreign_command
+        ]
+        if foreign:
+            return FaultCode.FOREIGN_COMMAND, "; ".join(foreign)
+        return None
 
     async def _next_tick(self) -> Tick:
         """Every tick of the run starts here, so the recorder sees each one before its poll;

@@ -120,6 +120,14 @@ class FingerNode:
         #: protocol (empty if none), and how many there were in all.
         self.contradiction = ""
         self.contradictions = 0
+        #: The host's own command identifiers for this node: a frame on one of them that the
+        #: host hears was sent by someone else (SocketCAN, the unix and the virtual bus do not
+        #: hand a sender its own frames).
+        self.command_ids = frozenset((layouts.command.frame_id, layouts.node_command.frame_id))
+        #: The first frame on ``command_ids`` heard since ``clear_contradiction`` (empty if
+        #: none), and how many were heard in all.
+        self.foreign_command = ""
+        self.foreign_commands = 0
         self.feedback: Feedback | None = None
         self.feedback_ns: int | None = None  # when the last good feedback arrived (host clock)
         self.heartbeat_ns: int | None = None
@@ -248,6 +256,21 @@ class FingerNode:
         if bits is not None:
             self.fault_bits = bits
 
+    def heard_command(self, frame_id: int, data: bytes) -> None:
+        """A frame on one of this node's command identifiers, heard by the host: another
+        sender is commanding the node (a second host, a bring-up tool left running, a forged
+        frame). Never applied, as any unexpected frame; remembered for the supervisor."""
+        self.foreign_commands += 1
+        if not self.foreign_command:
+            name = "TorqueCommand" if frame_id == self.layouts.command.frame_id else "NodeCommand"
+            self.foreign_command = (
+                f"another sender on this host's {name} id 0x{frame_id:03X} "
+                f"({len(data)} bytes: {data[:16].hex()}): a second host or a forged command, "
+                "which the node may obey instead of this host"
+            )
+
     def clear_contradiction(self) -> None:
-        """Judge the node afresh (a new start-up): earlier contradictions are not its now."""
+        """Judge the node afresh (a new start-up): earlier contradictions, and commands of
+        another sender heard before, are not its now."""
         self.contradiction = ""
+        self.foreign_command = ""

@@ -81,6 +81,8 @@ class HandDriver:
             FingerNode(f, FingerLayouts.for_node(protocol, f.node_id)) for f in hand.fingers
         ]
         self._dispatch = {fid: node for node in self.nodes for fid in node.streams}
+        #: The ids this host sends commands on, by node: heard on the bus, another sender.
+        self._command_owner = {fid: node for node in self.nodes for fid in node.command_ids}
         self._slices = []
         start = 0
         for finger in hand.fingers:
@@ -139,6 +141,9 @@ class HandDriver:
                 ids = self.unexpected_ids
                 if len(ids) < 64 or frame_id in ids:
                     ids[frame_id] = ids.get(frame_id, 0) + 1
+                owner = self._command_owner.get(frame_id)
+                if owner is not None:
+                    owner.heard_command(frame_id, frame.data)
                 continue
             node.receive(frame_id, frame.data, frame.timestamp_ns)
         events = self.bus.events()

@@ -63,6 +63,7 @@ class FaultCode(enum.IntEnum):
     RX_BACKLOG = 30
     NODE_CONTRADICTION = 31
     REJECT_RATE = 32
+    FOREIGN_COMMAND = 33
 
 
 @dataclass(frozen=True)
@@ -225,6 +226,13 @@ FAULTS: dict[FaultCode, FaultSpec] = {
             StopCategory.IMMEDIATE,
             "more frames of one node rejected within the window than the safety section "
             "allows (a replayed or corrupted stream may be hiding what the node says)",
+        ),
+        FaultSpec(
+            FaultCode.FOREIGN_COMMAND,
+            StopCategory.IMMEDIATE,
+            "a frame on one of the host's own command identifiers (TorqueCommand, "
+            "NodeCommand) was heard: another host, or a forged command, that the nodes may "
+            "obey instead of this one",
         ),
     )
 }

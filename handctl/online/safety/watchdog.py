@@ -181,7 +181,9 @@ class TickWatch:
 
 class ReceiveWatch:
     """Whether the host can still believe what a node's frames say: no contradiction among
-    its reports, and no more rejected frames within the window than the safety section allows.
+    its reports, and no more rejected frames within the window than the safety section allows;
+    and whether the node hears only this host: no frame on the host's command ids from
+    another sender.
 
     Rejected frames are counted by the receiver without bound; a stream of replayed or
     corrupted frames can keep the genuine ones from being accepted while enough of its own
@@ -228,6 +230,13 @@ class ReceiveWatch:
                     (
                         FaultCode.NODE_CONTRADICTION,
                         f"node {node.node_id} ({node.finger.name}): {node.contradiction}",
+                    )
+                )
+            if node.foreign_command:
+                found.append(
+                    (
+                        FaultCode.FOREIGN_COMMAND,
+                        f"node {node.node_id} ({node.finger.name}): {node.foreign_command}",
                     )
                 )
         self._pos = (pos + 1) % self.window

@@ -1,0 +1,119 @@
+"""A third peer on the hand's bus, against the runtime and the simulated hand in lockstep: a
+python-can bus of its own on the rig's virtual channel that sends what a hostile or confused
+participant would. Each attack is stopped (or cannot pass), and the wire carries zero within
+two ticks of detection."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import can
+import numpy as np
+import pytest
+
+from handctl.config import HandConfig
+from handctl.hand_protocol import protocol_for
+from handctl.online.loop import Outcome, RunResult
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.schema import Recipe
+from handctl.online.safety.faults import FaultCode
+from handctl.protocol import NodeState
+from handctl.sim.faults import Injector, SimContext
+
+from .rig import CLOSE_AND_HOLD_2S, Rig, rig
+
+INJECT_AT = 1.0  # s of simulated time: inside the hold phase
+INJECT_TICK = round(INJECT_AT / 0.001)
+HOST_IDS = {0x000, 0x011, 0x012, 0x013, 0x101, 0x102, 0x103}
+
+
+@pytest.fixture(scope="module")
+def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
+    path = tmp_path_factory.mktemp("recipes") / "hold.yaml"
+    path.write_text(CLOSE_AND_HOLD_2S)
+    return load_recipe(path, hand)
+
+
+@contextmanager
+def third_peer(r: Rig) -> Iterator[can.BusABC]:
+    """A plain python-can bus on the rig's channel: neither the host nor the hand."""
+    bus = can.Bus(interface="virtual", channel=r.sniffer.spec.channel)
+    try:
+        yield bus
+    finally:
+        bus.shutdown()
+
+
+@dataclass(eq=False)
+class Every(Injector):
+    """Not a fault of the hand: only the clock of the third peer, which sends from its own
+    bus once every simulated tick while this is on (in lockstep the tests have no other)."""
+
+    periodic: ClassVar[bool] = True
+    send: Callable[[], None] = field(default=lambda: None)
+
+    def tick(self, ctx: SimContext, now_ns: int) -> None:
+        self.send()
+
+
+def frame(frame_id: int, data: bytes) -> can.Message:
+    return can.Message(arbitration_id=frame_id, data=data, is_extended_id=False, is_fd=True)
+
+
+def _stopped_at_once(r: Rig, result: RunResult, code: FaultCode) -> int:
+    assert result.outcome is Outcome.SAFETY_STOP
+    first = result.faults[0]
+    assert first.code is code, [str(f) for f in result.faults]
+    wire = r.commands()
+    row = first.tick - r.runtime.first_send_tick
+    assert np.abs(wire[row - 1]).max() > 0.01
+    assert not np.any(wire[row + 2 :])
+    return first.tick
+
+
+def test_a_second_master_on_the_host_s_command_ids_is_stopped_at_once(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """Another sender puts TorqueCommand_1 frames on the bus, each a counter ahead of the host,
+    with 3 N·m: node 1 took them and rejected the host's as repeats. The host counted them as
+    unexpected ids and went on until the node latched a fault of its own (10 ticks on)."""
+    layout = protocol_for(hand).layout("TorqueCommand", 1)
+    with rig(hand, hold) as r, third_peer(r) as peer:
+        host_node = r.runtime.driver.nodes[0]
+
+        forged: list[tuple[int, bytes]] = []
+
+        def second_master() -> None:
+            data = layout.encode(host_node.command_counter, [3.0, 3.0, 3.0])
+            peer.send(frame(layout.frame_id, data))
+            forged.append((layout.frame_id, data))
+
+        r.sim.faults.add(Every(send=second_master), INJECT_AT)
+        result = r.run()
+        for sent in forged:  # the sniffer heard them too: the host's frames are judged
+            r.wire.remove(sent)
+        tick = _stopped_at_once(r, result, FaultCode.FOREIGN_COMMAND)
+        assert tick == INJECT_TICK
+        assert "TorqueCommand id 0x101" in result.faults[0].detail
+        assert FaultCode.NODE_FAULT not in {f.code for f in result.faults}
+        assert [n.state for n in r.sim.nodes] == [int(NodeState.DISABLED)] * 3
+
+
+def test_a_second_master_heard_at_start_up_sends_nothing(hand: HandConfig) -> None:
+    layout = protocol_for(hand).layout("NodeCommand", 2)
+    with rig(hand, None, max_seconds=1.0) as r, third_peer(r) as peer:
+        enable = layout.encode(0, [1])
+
+        def second_master() -> None:
+            peer.send(frame(layout.frame_id, enable))
+
+        r.sim.faults.add(Every(send=second_master), 0.0, 0.001)
+        result = r.run()
+        r.wire.remove((layout.frame_id, enable))  # the sniffer heard it too
+    assert result.outcome is Outcome.STARTUP_FAILED, [str(f) for f in result.faults]
+    assert [f.code for f in result.faults] == [FaultCode.FOREIGN_COMMAND]
+    assert "NodeCommand id 0x012" in result.message
+    assert not [fid for fid, _ in r.wire if fid in HOST_IDS]  # the host sent nothing
