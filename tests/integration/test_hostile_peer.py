@@ -117,3 +117,27 @@ def test_a_second_master_heard_at_start_up_sends_nothing(hand: HandConfig) -> No
     assert [f.code for f in result.faults] == [FaultCode.FOREIGN_COMMAND]
     assert "NodeCommand id 0x012" in result.message
     assert not [fid for fid, _ in r.wire if fid in HOST_IDS]  # the host sent nothing
+
+
+@pytest.mark.parametrize("version", [1, 3])
+def test_a_node_that_changes_its_protocol_mid_run_is_stopped(
+    hand: HandConfig, hold: Recipe, version: int
+) -> None:
+    """Node 2's Status says another protocol from 1 s on (its next Status, within 100 ms).
+    The start-up refuses such a node; mid-run the host took the new version in and the run
+    ended COMPLETED."""
+    with rig(hand, hold) as r:
+
+        def switch(tk: object) -> None:
+            if r.runtime.tick == INJECT_TICK:
+                r.sim.nodes[1].protocol_version = version
+
+        r.runtime.tick_hooks.append(switch)
+        result = r.run()
+        tick = _stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
+        assert INJECT_TICK < tick <= INJECT_TICK + 101  # Status: every 100 ms
+        detail = result.faults[0].detail
+        assert (
+            f"node 2 (f2): Status says handctl protocol {version}, this host protocol 2" in detail
+        )
+        assert [n.state for n in r.sim.nodes] == [int(NodeState.DISABLED)] * 3

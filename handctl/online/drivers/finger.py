@@ -180,6 +180,7 @@ class FingerNode:
                 if version is not None:
                     self.protocol_version, self.firmware_version = version, None
                     self.version_ns = arrival_ns
+                    self._check_version(version)
             return reason
         self.accepted += 1
         _, values = layout.decode(data)
@@ -206,6 +207,7 @@ class FingerNode:
             self.protocol_version = int(values[6])
             self.firmware_version = (int(values[7]), int(values[8]), int(values[9]))
             self.version_ns = arrival_ns
+            self._check_version(self.protocol_version)
             self._report(int(values[0]), int(values[1]), "Status")
         return None
 
@@ -268,6 +270,19 @@ class FingerNode:
                 f"({len(data)} bytes: {data[:16].hex()}): a second host or a forged command, "
                 "which the node may obey instead of this host"
             )
+
+    def _check_version(self, version: int) -> None:
+        """A Status announcing another protocol than the host's is a contradiction: the start-up
+        refuses such a node, so during a run it is a node that cannot be what it said it was
+        (a node changes its protocol only by a reboot into other firmware), or a forged Status;
+        either way its frames may no longer mean what this host reads into them."""
+        if version != self.layouts.protocol_version:
+            self.contradictions += 1
+            if not self.contradiction:
+                self.contradiction = (
+                    f"Status says handctl protocol {version}, this host protocol "
+                    f"{self.layouts.protocol_version}"
+                )
 
     def clear_contradiction(self) -> None:
         """Judge the node afresh (a new start-up): earlier contradictions, and commands of
