@@ -282,6 +282,11 @@ class HandBus:
                 return stamp, frame_id, flags, data
         else:
             received = self._bus.recv(timeout=0)
+            # An adapter that echoes what this process sent (python-can marks the echo
+            # ``is_rx`` False: gs_usb, SocketCAN with its own messages on) hands back the
+            # host's own commands, which are neither news of the hand nor another sender's.
+            while received is not None and not received.is_rx:
+                received = self._bus.recv(timeout=0)
             if received is None:
                 return None
             msg, stamp = received, self._arrival_ns(received.timestamp, wall_to_clock_ns)

@@ -139,6 +139,25 @@ def test_full_receiver_queue_is_an_event_not_an_exception(hand: HandConfig, chan
         assert host.sent == 2
 
 
+def test_an_adapter_echoing_the_hosts_own_frames_hands_back_only_the_others(
+    channel: str,
+) -> None:
+    """Some adapters echo what the process sent (python-can marks the echo ``is_rx`` False;
+    its virtual bus does so with ``receive_own_messages``): the host's own commands coming back
+    would read as another sender on its command ids (``FOREIGN_COMMAND``)."""
+    echoing = can.Bus(interface="virtual", channel=channel, receive_own_messages=True)
+    other = can.Bus(interface="virtual", channel=channel)
+    host = HandBus(echoing, BusSpec("virtual", channel), fd=False)
+    try:
+        assert host.send(0x101, bytes(8))
+        assert host.drain() == []  # the echo of the host's own command is not received
+        other.send(can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False))
+        assert [f.arbitration_id for f in host.drain()] == [0x181]
+    finally:
+        host.close()
+        other.shutdown()
+
+
 def test_send_after_close_is_an_event(hand: HandConfig, channel: str) -> None:
     bus = open_bus(f"virtual:{channel}", hand.bus)
     bus.close()
