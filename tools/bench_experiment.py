@@ -79,9 +79,9 @@ def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
 
     est = ObjectEstimator(hand, recipe.objects, recipe.pairs)
     rng = np.random.default_rng(0)
-    base = np.array([0.24, 1.46, 1.53, 0.24, 1.46, 1.53, 0.47, -1.57, -1.38])
-    poses = [(base + rng.normal(0.0, 0.02, 9)).tolist() for _ in range(2000)]
-    poses += [[-0.55, -0.1, -0.1, -0.55, -0.1, -0.1, 0.55, 0.1, 0.1]] * 500
+    closed, opened = _cost_poses(hand, recipe)
+    poses = [(closed + rng.normal(0.0, 0.02, len(closed))).tolist() for _ in range(2000)]
+    poses += [opened.tolist()] * 500
     times = []
     clock = time.perf_counter_ns
     for q in poses:
@@ -90,6 +90,31 @@ def _estimator_cost_us(hand: Any, recipe: Any) -> tuple[float, float]:
         times.append(clock() - t0)
     p50, p99 = np.percentile(times, [50, 99])
     return float(p50) / 1e3, float(p99) / 1e3
+
+
+#: The default hand's enveloping grasp in the manipulation (rad, config joint order) and its
+#: open start pose: the poses the estimator's cost has been measured on since it was written.
+_DEFAULT_CLOSED = (0.24, 1.46, 1.53, 0.24, 1.46, 1.53, 0.47, -1.57, -1.38)
+_DEFAULT_OPEN = (-0.55, -0.1, -0.1, -0.55, -0.1, -0.1, 0.55, 0.1, 0.1)
+
+
+def _cost_poses(hand: Any, recipe: Any) -> tuple[np.ndarray, np.ndarray]:
+    """A closed and an open pose of ``hand`` for the estimator's cost: the default hand's
+    own; for another shape, the recipe's first pose hold (where it brings the fingers round
+    the objects) or the middle of every joint's range, and the simulated hand's start pose
+    (or the same middle)."""
+    n = len(hand.joints)
+    if n == len(_DEFAULT_CLOSED) and hand.name == "hiroshima_hand":
+        return np.array(_DEFAULT_CLOSED), np.array(_DEFAULT_OPEN)
+    middle = np.array([(j.angle_min + j.angle_max) / 2 for j in hand.joints])
+    held = next((p.pose.angles for p in recipe.phases if p.pose is not None), None)
+    closed = np.array(held) if held is not None else middle
+    opened = middle
+    if hand.sim:
+        from handctl.sim.params import parse_sim
+
+        opened = np.array([q for finger in parse_sim(hand).initial_angles for q in finger])
+    return closed, opened
 
 
 def _before_manipulation_s(path: Path, recipe: Any) -> float:
