@@ -27,6 +27,9 @@ from handctl.wirelimits import check_wire_limits
 MAX_STANDARD_ID = 0x7FF
 #: Identifier of the e-stop frame (fixed in the DBC: the highest priority on the bus).
 ESTOP_ID = 0x000
+#: m, the shortest link: a shorter one is a point, not a link (MuJoCo refuses a link of
+#: 1e-12 m as "fromto points too close", and the estimator's cage has no side there)
+MIN_LINK_LENGTH = 0.001
 CAN_ID_KINDS = ("node_command", "torque_command", "feedback", "status", "heartbeat")
 _CHANNEL = "a channel name (e.g. can0) or a channel number >= 0"
 
@@ -291,7 +294,7 @@ def _parse_finger(doc: Doc) -> FingerConfig:
 
 def _parse_joint(doc: Doc) -> JointConfig:
     name = doc.string("name")
-    link = doc.number("link_length", min=0.0, max=1.0, min_exclusive=True, unit="m")
+    link = doc.number("link_length", min=MIN_LINK_LENGTH, max=1.0, unit="m")
     tau_max = doc.number("tau_max", min=0.0, max=100.0, min_exclusive=True, unit="N·m")
     device = doc.number("device_tau_max", min=0.0, max=100.0, min_exclusive=True, unit="N·m")
     if tau_max > device:

@@ -124,6 +124,9 @@ def test_wrong_types(
         (("fingers", 0, "joints", 0, "tau_max"), 0.0),
         (("fingers", 0, "joints", 0, "rate_limit"), 0),
         (("fingers", 0, "joints", 0, "link_length"), 2.5),
+        # a point, not a link: MuJoCo failed to build the simulated hand (a traceback)
+        (("fingers", 0, "joints", 0, "link_length"), 1e-12),
+        (("fingers", 1, "joints", 2, "link_length"), 0.0005),
         (("fingers", 2, "node_id"), 16),
         (("fingers", 2, "can_ids", "feedback"), 0x800),
         (("bus", "bitrate"), 2_000_000),
