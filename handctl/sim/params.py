@@ -23,6 +23,11 @@ from handctl.sim.placement import check_placement
 #: The emulated nodes run on a 1 ms tick (the protocol's feedback period and watchdog unit).
 NODE_TICK_S = 0.001
 NODE_TICK_NS = 1_000_000
+#: m and kg, the thinnest and the lightest simulated link: MuJoCo refuses a body whose
+#: inertia is below its mjMINVAL (a link of 1e-12 kg, or one 1e-9 m thick, ended a run in a
+#: traceback, exit 1); no finger is thinner than 2 mm or lighter than the lightest object
+MIN_LINK_RADIUS = 0.001
+MIN_LINK_MASS = 0.001
 
 
 @dataclass(frozen=True)
@@ -238,8 +243,8 @@ def _parse_links(doc: Doc, hand: HandConfig) -> tuple[LinkParams, ...]:
             zip(doc.mappings(finger.name, min_len=n, max_len=n), finger.joints, strict=True)
         ):
             link = LinkParams(
-                radius=link_doc.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m"),
-                mass=link_doc.number("mass", min=0.0, max=10.0, min_exclusive=True, unit="kg"),
+                radius=link_doc.number("radius", min=MIN_LINK_RADIUS, max=0.2, unit="m"),
+                mass=link_doc.number("mass", min=MIN_LINK_MASS, max=10.0, unit="kg"),
             )
             link_doc.done()
             if joint.half_thickness > 0 and abs(link.radius - joint.half_thickness) > 1e-12:

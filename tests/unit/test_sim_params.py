@@ -87,6 +87,10 @@ def test_missing_section_is_refused(hand: HandConfig) -> None:
             "half_thickness of f1_j3",
         ),
         (lambda s: s["friction"].update(object_object=-0.1), "sim.friction.object_object", ">= 0"),
+        # MuJoCo refused to build these (a traceback, exit 1): too light or too thin a link
+        (lambda s: s["links"]["f1"][0].update(mass=1e-12), "sim.links.f1[0].mass", ">= 0.001"),
+        (lambda s: s["links"]["f1"][2].update(mass=0.0005), "sim.links.f1[2].mass", ">= 0.001"),
+        (lambda s: s["links"]["f1"][1].update(radius=1e-9), "sim.links.f1[1].radius", ">= 0.001"),
         (
             lambda s: s["friction"].update(finger_finger=0.5),
             "sim.friction.finger_finger",
