@@ -35,6 +35,7 @@ import numpy as np
 
 from handctl.arrays import FloatArray
 from handctl.config import FingerConfig, HandConfig, JointConfig
+from handctl.errors import ConfigError
 from handctl.sim.params import LinkParams, SimParams
 
 #: Along z, the palm reaches this far beyond the fingers and the cylinders it must stop (m).
@@ -210,7 +211,18 @@ class Plant:
         self.hand = hand
         self.params = params
         self.xml = build_mjcf(hand, params)
-        self.model: Any = mujoco.MjModel.from_xml_string(self.xml)
+        try:
+            self.model: Any = mujoco.MjModel.from_xml_string(self.xml)
+        except ValueError as exc:
+            # parse_sim's bounds keep every scene it accepts buildable; should one still slip
+            # through, it is the hand config's numbers, not a crash: MuJoCo's message names
+            # the element (a link by its joint's name, an object by its own)
+            raise ConfigError(
+                hand.source,
+                "sim",
+                "numbers MuJoCo can build the simulated hand from",
+                " ".join(str(exc).split()),
+            ) from exc
         self.data: Any = mujoco.MjData(self.model)
         self.n_joints = hand.n_joints
         self._substeps = params.substeps

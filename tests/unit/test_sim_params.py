@@ -13,6 +13,7 @@ from handctl.config import HandConfig, load_hand
 from handctl.errors import ConfigError
 from handctl.planning.models import Spread, hand_with, perturb
 from handctl.sim.params import parse_sim
+from handctl.sim.plant import Plant
 
 from ..conftest import ROOT
 
@@ -290,3 +291,24 @@ def test_a_model_of_a_hand_whose_fingers_collide_keeps_its_finger_contact() -> N
     again = parse_sim(hand_with(planar, params))
     assert again == params
     assert again.between_fingers and again.finger_finger_friction == 0.5
+
+
+@pytest.mark.parametrize(
+    ("link", "problem"),
+    [
+        (dict(mass=1e-12), "mjMINVAL"),
+        (dict(radius=1e-9), "mjMINVAL"),
+    ],
+)
+def test_a_scene_mujoco_cannot_build_is_bad_input(
+    hand: HandConfig, link: dict[str, float], problem: str
+) -> None:
+    """Numbers past parse_sim's bounds (as a perturbed model could give) that MuJoCo refuses
+    are the hand config's fault, named as such, never a MuJoCo traceback."""
+    params = parse_sim(hand)
+    links = (dataclasses.replace(params.links[0], **link), *params.links[1:])
+    with pytest.raises(ConfigError) as err:
+        Plant(hand, dataclasses.replace(params, links=links))
+    assert err.value.file == hand.source
+    assert err.value.key == "sim"
+    assert problem in str(err.value.found)
