@@ -181,6 +181,16 @@ def parse_sim(hand: HandConfig) -> SimParams:
         counts_per_rev=enc_doc.integer("counts_per_rev", min=16, max=2**24),
         max_step=enc_doc.number("max_step", min=0.0, max=3.0, min_exclusive=True, unit="rad"),
     )
+    count = 2 * math.pi / encoder.counts_per_rev
+    if encoder.max_step <= count:
+        # every node latched SENSOR at the first count its joint moved, in the tick it was
+        # enabled: the run stopped at tick 1 on NODE_CONTRADICTION, far from this key
+        enc_doc.fail(
+            "max_step",
+            f"a step larger than one encoder count (2π/counts_per_rev = {count:.3g} rad): "
+            "a joint that moves one count in a tick must not fail the node's self-check",
+            encoder.max_step,
+        )
     enc_doc.done()
     doc.done()
 

@@ -88,6 +88,13 @@ def test_missing_section_is_refused(hand: HandConfig) -> None:
             "half_thickness of f1_j3",
         ),
         (lambda s: s["friction"].update(object_object=-0.1), "sim.friction.object_object", ">= 0"),
+        # the node latched SENSOR at the first count its joint moved (NODE_CONTRADICTION)
+        (lambda s: s["encoder"].update(max_step=1e-12), "sim.encoder.max_step", "encoder count"),
+        (
+            lambda s: s["encoder"].update(counts_per_rev=16, max_step=0.3),
+            "sim.encoder.max_step",
+            "0.393 rad",
+        ),
         # MuJoCo refused to build these (a traceback, exit 1): too light or too thin a link
         (lambda s: s["links"]["f1"][0].update(mass=1e-12), "sim.links.f1[0].mass", ">= 0.001"),
         (lambda s: s["links"]["f1"][2].update(mass=0.0005), "sim.links.f1[2].mass", ">= 0.001"),
