@@ -23,6 +23,10 @@ from handctl.sim.placement import check_placement
 #: The emulated nodes run on a 1 ms tick (the protocol's feedback period and watchdog unit).
 NODE_TICK_S = 0.001
 NODE_TICK_NS = 1_000_000
+#: rad, how far inside its soft limits a joint must start: one placed on a limit settled
+#: past it under gravity and stopped the run at tick 1 (ANGLE_LIMIT), one 1 mrad inside at
+#: tick 6; 10 mrad held
+START_MARGIN = 0.01
 #: m and kg, the thinnest and the lightest simulated link: MuJoCo refuses a body whose
 #: inertia is below its mjMINVAL (a link of 1e-12 kg, or one 1e-9 m thick, ended a run in a
 #: traceback, exit 1); no finger is thinner than 2 mm or lighter than the lightest object
@@ -294,8 +298,9 @@ def _parse_motor_tau_max(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
 
 
 def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...], ...]:
-    """One list per finger, by finger name, inside the soft limits: a start outside them would
-    trip the host's soft-limit check before anything happened."""
+    """One list per finger, by finger name, inside the soft limits (by ``START_MARGIN``): a
+    start outside them, or on one, would trip the host's soft-limit check before anything
+    happened."""
     doc.expect(f.name for f in hand.fingers)
     angles = []
     for finger in hand.fingers:
@@ -304,11 +309,13 @@ def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...]
         )
         where = Doc({}, doc.file, doc.key_path(finger.name))
         for k, (value, joint) in enumerate(zip(values, finger.joints, strict=True)):
-            if not joint.angle_min <= value <= joint.angle_max:
+            if not joint.angle_min + START_MARGIN <= value <= joint.angle_max - START_MARGIN:
                 where.fail(
                     k,
                     f"an angle within the soft limits of {joint.name} "
-                    f"[{joint.angle_min:g}, {joint.angle_max:g}] rad",
+                    f"[{joint.angle_min:g}, {joint.angle_max:g}] rad, at least "
+                    f"{START_MARGIN:g} rad inside (a joint that starts on a limit settles "
+                    "past it: ANGLE_LIMIT at tick 1)",
                     value,
                 )
         angles.append(values)

@@ -61,6 +61,17 @@ def test_missing_section_is_refused(hand: HandConfig) -> None:
             "sim.initial_angles.f3[1]",
             "soft limits",
         ),
+        # on a soft limit (f3_j2's angle_max is 0.9): ANGLE_LIMIT at tick 1 of every run
+        (
+            lambda s: s["initial_angles"].update(f3=[0.55, 0.9, 0.1]),
+            "sim.initial_angles.f3[1]",
+            "0.01 rad inside",
+        ),
+        (
+            lambda s: s["initial_angles"].update(f3=[0.55, 0.895, 0.1]),
+            "sim.initial_angles.f3[1]",
+            "0.01 rad inside",
+        ),
         (lambda s: s["initial_angles"].pop("f2"), "sim.initial_angles.f2", "required"),
         (
             lambda s: s["actuator"]["motor_tau_max"].update(f2=[0.5, 0.75, 0.5]),
