@@ -290,6 +290,9 @@ def test_objects_are_loaded_in_order(tmp_path: Path, hand: HandConfig) -> None:
         ([], "objects", "1 to 4 mappings"),
         ([OBJECTS[0], OBJECTS[0]], "objects[1].name", "a name not used"),
         ([OBJECTS[0], {"name": "cyl2", "radius": -0.01}], "objects[1].radius", "> 0"),
+        # accepted, and the estimator never placed it: an exit on its estimates never came
+        ([{"name": "cyl1", "radius": 1e-12}], "objects[0].radius", ">= 0.005 m"),
+        ([OBJECTS[0], {"name": "cyl2", "radius": 0.004}], "objects[1].radius", ">= 0.005 m"),
         ([OBJECTS[0], {"name": "cyl2", "radius": 0.02, "colour": "red"}], "objects[1]", "colour"),
         ([OBJECTS[0], {"name": "cyl2"}], "objects[1].radius", ""),
     ],

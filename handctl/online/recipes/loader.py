@@ -45,6 +45,10 @@ from handctl.online.recipes.schema import (
 from handctl.schema import Doc, load_yaml
 
 MAX_PHASES = 64
+#: m, the smallest nominal radius of a recipe's object: at 1e-12 m a recipe loaded and ran
+#: with an estimator that never placed the object (it fits within ±40 % of the nominal), so
+#: an exit on its estimates never came; the simulated hand's objects are as large or larger
+MIN_OBJECT_RADIUS = 0.005
 #: An object's name is the prefix of its estimates in conditions (``estimate.<name>_x``).
 OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]*$")
 #: rad, the range of ``limit_guard_band``: narrower is a cliff again, wider fights the grasp
@@ -271,6 +275,13 @@ def parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
                 name,
             )
         radius = sub.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m")
+        if radius < MIN_OBJECT_RADIUS:
+            sub.fail(
+                "radius",
+                f"a radius >= {MIN_OBJECT_RADIUS:g} m (the smallest object the simulated hand "
+                "has; the estimator fits a radius only within ±40 % of this one)",
+                radius,
+            )
         sub.done()
         if any(o.name == name for o in out):
             raise ConfigError(
