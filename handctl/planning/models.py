@@ -34,7 +34,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.sim.params import FrictionParams, SimParams
+from handctl.sim.params import START_MARGIN, FrictionParams, SimParams
 
 #: m, the gap left between two cylinders put back side by side when the gap is not varied.
 SIDE_GAP = 0.002
@@ -198,8 +198,8 @@ def perturb(params: SimParams, rng: Draws, spread: Spread, hand: HandConfig | No
                     float(
                         np.clip(
                             q + rng.uniform(-spread.initial_angles, spread.initial_angles),
-                            j.angle_min,
-                            j.angle_max,
+                            j.angle_min + START_MARGIN,
+                            j.angle_max - START_MARGIN,
                         )
                     )
                     for q, j in zip(angles, finger.joints, strict=True)

@@ -290,6 +290,21 @@ def test_every_model_the_planning_draws_of_the_other_shipped_hands_can_start(nam
         assert again.initial_angles == model.params.initial_angles
 
 
+def test_a_drawn_start_pose_stays_inside_the_margin_a_scene_needs(hand: HandConfig) -> None:
+    """A hand that starts near a limit: the drawn start poses are clipped inside the margin
+    ``parse_sim`` asks of a start pose, so every model can still start (one clipped onto the
+    limit itself was refused, and the bench stopped with it)."""
+    raw = copy.deepcopy(dict(hand.sim))
+    lower = hand.fingers[0].joints[0].angle_min
+    raw["initial_angles"]["f1"] = [lower + 0.02, *raw["initial_angles"]["f1"][1:]]
+    near = dataclasses.replace(hand, sim=raw)
+    params = parse_sim(near)
+    for seed in range(50):
+        model = perturb(params, np.random.default_rng(seed), Spread(), near)
+        again = parse_sim(hand_with(near, model.params, seed=seed))
+        assert again.initial_angles[0][0] >= lower + 0.01
+
+
 def test_a_joint_named_like_the_scene_is_refused(hand: HandConfig) -> None:
     fingers = list(hand.fingers)
     joints = list(fingers[1].joints)
