@@ -544,3 +544,29 @@ def test_the_limits_are_the_configs(hand: HandConfig) -> None:
     for _ in range(6):
         assert watch.sent(False) == []
     assert watch.sent(False) != []
+
+
+def test_a_reading_still_at_a_steady_torque_is_given_its_lag_once_the_command_moves(
+    hand: HandConfig,
+) -> None:
+    """A sensor quieter than its resolution reads the same at a steady torque for longer than
+    the stuck window; when the command then ramps, the sensor has three of its lags to answer
+    before it is stuck (the first fast ramp stopped such a hand at once)."""
+    dt = hand.bus.period_s
+    window_ticks = round(hand.safety.tdt_stuck_window_s / dt)
+    answer = round(3 * hand.safety.tdt_lag_s / dt)
+    assert 1 < answer < window_ticks
+    mon = monitor(hand)
+    steady = np.full(hand.n_joints, 0.1)
+    mon.reset(steady)
+    for _ in range(window_ticks + 20):  # still, the command too: not stuck
+        assert mon.update(steady, steady) == []
+    ramp = 0.02  # N·m a tick, the supervisor's rate limit at 1 kHz
+    ticks_to_move = 1 + round(hand.safety.tdt_stuck_min_change / ramp)
+    found = []
+    for k in range(1, ticks_to_move + answer + 1):
+        found = mon.update(steady + ramp * k, steady)
+        if k < ticks_to_move + answer - 1:
+            assert found == [], f"tick {k} of the ramp"
+    # and a reading that still has not moved by then is stuck
+    assert codes(found) == [FaultCode.TDT_STUCK] * hand.n_joints

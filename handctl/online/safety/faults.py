@@ -128,7 +128,8 @@ FAULTS: dict[FaultCode, FaultSpec] = {
         FaultSpec(
             FaultCode.TDT_STUCK,
             StopCategory.RAMP,
-            "a TDT reading did not change at all over the window while the command did",
+            "a TDT reading did not change at all over the window while the command did (given "
+            "three of the sensor's lags to answer once the command has moved)",
         ),
         FaultSpec(
             FaultCode.BUS_ERROR,

@@ -89,18 +89,27 @@ class TdtMonitor:
         self.min_change = safety.tdt_stuck_min_change
         still = round(safety.tdt_stuck_still_s / dt)
         self.still_window = still if still > 0 else 1 << 62
+        #: ticks a sensor is given to answer a command that has moved: three of its lags (95 %
+        #: of a step), within the stuck window. Without it, a reading that had sat still at a
+        #: steady torque for a window (a sensor quieter than its resolution) was "stuck" at the
+        #: first fast ramp, before the joint's torque could have moved at all.
+        self.answer_ticks = min(max(1, round(3 * safety.tdt_lag_s / dt)), self.stuck_window - 1)
         self.expected = [0.0] * n_joints
         self.mismatch_ticks = [0] * n_joints
         self.same_ticks = [0] * n_joints
         self.last_reading = [float("nan")] * n_joints
         self.cmd_lo = [0.0] * n_joints
         self.cmd_hi = [0.0] * n_joints
+        #: the count of ``same_ticks`` at which the command had first moved ``min_change``
+        #: while the reading stood (-1: not yet)
+        self.moved_at = [-1] * n_joints
 
     def reset(self, applied: FloatArray) -> None:
         self.expected = [float(a) for a in applied]
         self.mismatch_ticks = [0] * self.n
         self.same_ticks = [0] * self.n
         self.last_reading = [float("nan")] * self.n
+        self.moved_at = [-1] * self.n
 
     def update(self, applied: FloatArray, reading: FloatArray) -> list[Finding]:
         """Fold one tick in: ``applied`` is what the nodes were last told, ``reading`` the TDT."""
@@ -108,7 +117,7 @@ class TdtMonitor:
         alpha, tol, rel = self.alpha, self.tol, self.rel
         expected, mismatch = self.expected, self.mismatch_ticks
         same_ticks, last = self.same_ticks, self.last_reading
-        lo, hi = self.cmd_lo, self.cmd_hi
+        lo, hi, moved_at = self.cmd_lo, self.cmd_hi, self.moved_at
         for j, (a, r) in enumerate(zip(applied.tolist(), reading.tolist(), strict=True)):
             e = expected[j] + (a - expected[j]) * alpha
             expected[j] = e
@@ -129,8 +138,12 @@ class TdtMonitor:
                 lo[j] = min(lo[j], a)
                 hi[j] = max(hi[j], a)
                 n = same_ticks[j]
+                if moved_at[j] < 0 and hi[j] - lo[j] >= self.min_change:
+                    moved_at[j] = n
                 if (
-                    n >= self.stuck_window and hi[j] - lo[j] >= self.min_change
+                    n >= self.stuck_window
+                    and moved_at[j] >= 0
+                    and n - moved_at[j] >= self.answer_ticks
                 ) or n >= self.still_window:
                     found.append(
                         (
@@ -143,6 +156,7 @@ class TdtMonitor:
             else:
                 same_ticks[j] = 0
                 lo[j] = hi[j] = a
+                moved_at[j] = -1
                 last[j] = r
         return found
 
