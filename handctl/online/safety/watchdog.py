@@ -150,7 +150,13 @@ class TdtMonitor:
                             FaultCode.TDT_STUCK,
                             f"{self.names[j]}: TDT fixed at {r:+.4f} N·m for "
                             f"{same_ticks[j]} ticks while the command moved "
-                            f"{hi[j] - lo[j]:.3f} N·m",
+                            f"{hi[j] - lo[j]:.3f} N·m"
+                            + (
+                                ""
+                                if moved_at[j] >= 0
+                                else " (no live sensor reads so still so long: "
+                                "safety.tdt_stuck_still_s)"
+                            ),
                         )
                     )
             else:
