@@ -558,6 +558,8 @@ class Runtime:
         c2, c3 = self._recipe_done_ns, cpu()
         ok = driver.send(applied)
         sup.sent(ok, tk.tick)
+        if new_faults and self._another_master(new_faults):
+            driver.send_estop()
         np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)
         c4 = cpu()  # the record stage is the recording alone
         if self.recorder is not None:
@@ -658,6 +660,13 @@ class Runtime:
                 self.runner.abort(t_s, f"stopped: {self.stop_requested}")
             sup.stop(tick)
         return desired, sup.filter(tick, desired, missed), new_faults
+
+    @staticmethod
+    def _another_master(faults: Sequence[Fault]) -> bool:
+        """Whether another sender commands the nodes (``FOREIGN_COMMAND``): then the stop is
+        an e-stop as well, which the nodes latch whatever the other sender tells them next;
+        zero torque and a disable alone are two commands among its own."""
+        return any(f.code is FaultCode.FOREIGN_COMMAND for f in faults)
 
     def _desired(self, t_s: float, angle: np.ndarray, tdt: np.ndarray) -> np.ndarray:
         sup = self.supervisor
