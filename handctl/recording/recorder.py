@@ -150,13 +150,26 @@ def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] |
 
 
 def _shared_memory(size: int) -> int:
-    """An anonymous memory file both processes can map: memfd where there is one."""
-    if hasattr(os, "memfd_create"):
-        fd = os.memfd_create("handctl-recording", 0)
-    else:  # pragma: no cover - not Linux
-        with tempfile.TemporaryFile() as handle:
-            fd = os.dup(handle.fileno())
-    os.ftruncate(fd, size)
+    """An anonymous memory file both processes can map: memfd where there is one. One the
+    host will not give (a file-size limit below the rings, ``ulimit -f``; no memory) is an
+    error before the run, naming the size, not a traceback."""
+    try:
+        if hasattr(os, "memfd_create"):
+            fd = os.memfd_create("handctl-recording", 0)
+        else:  # pragma: no cover - not Linux
+            with tempfile.TemporaryFile() as handle:
+                fd = os.dup(handle.fileno())
+        try:
+            os.ftruncate(fd, size)
+        except OSError:
+            os.close(fd)
+            raise
+    except OSError as exc:
+        raise HandctlError(
+            f"the recording's rings ({size / 2**20:.1f} MiB of shared memory) could not be "
+            f"made: {exc.strerror or exc} (a file-size limit, ulimit -f, applies to them too);"
+            " nothing was sent"
+        ) from None
     return fd
 
 
@@ -1031,7 +1044,7 @@ class Recorder:
             if summary is not None:
                 self.add_metadata("handctl.summary", {"json": orjson.dumps(summary).decode()})
         except HandctlError as exc:
-            problem = problem or str(exc)
+            problem = problem or str(exc).removeprefix(f"{self.path}: ")
         os.close(self._ctl_w)
         try:
             _, err = self.process.communicate(timeout=CLOSE_TIMEOUT_S)
@@ -1040,16 +1053,26 @@ class Recorder:
             _, err = self.process.communicate()
             problem = problem or f"the writer did not finish within {CLOSE_TIMEOUT_S:g} s"
         os.close(self._ready_r)
-        if self.process.returncode != 0 and not problem:
-            problem = (
-                f"the writer failed (exit {self.process.returncode}): "
-                f"{err.decode(errors='replace').strip()[-2000:]}"
-            )
+        if self.process.returncode != 0:
+            problem = self._writer_failed(problem, err.decode(errors="replace").strip())
         self.stats["writer_exit"] = self.process.returncode
         self._release()
         if problem:
             raise HandctlError(f"{self.path}: {problem}")
         return self.stats
+
+    def _writer_failed(self, problem: str, said: str) -> str:
+        """What to say of a writer that exited with an error (``said``, its stderr) besides
+        what the recorder saw of it (``problem``): why it went (a full disk: "OSError:
+        [Errno 28] No space left on device"), the last line of its traceback."""
+        if not problem:
+            return f"the writer failed (exit {self.process.returncode}): {said[-2000:]}"
+        if not said:
+            return problem
+        return (
+            f"{problem} ({said.splitlines()[-1][:300]}); the run went on without it, and the"
+            " file ends where the writer stopped (handctl replay reads it up to there)"
+        )
 
     def _release(self) -> None:
         self._ctl_view.release()

@@ -1,0 +1,74 @@
+"""A log whose disk fills during a run: the run goes on under the supervisor as before, the
+warning says why the recording stopped and what the file holds, and the file reads up to
+where the writer stopped. The disk is a 3 MiB tmpfs, a third of the default run's log; it
+needs the right to mount one (root, as CI runs here), and is skipped, saying so, without."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from ..conftest import DEFAULT_RECIPE, ROOT, handctl
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Iterator[Path]:
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    made = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mount)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if made.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here: {made.stderr.strip() or made.returncode}")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", str(mount)], check=False)
+
+
+def test_a_log_whose_disk_fills_says_why_and_reads_up_to_there(small_disk: Path) -> None:
+    log = small_disk / "run.mcap"
+    done = handctl("run", "recipe", DEFAULT_RECIPE, "--log", str(log))
+    assert done.returncode == 0, done.stdout + done.stderr  # the run itself went on
+    assert "Traceback" not in done.stderr
+    warning = next(line for line in done.stderr.splitlines() if str(log) in line)
+    assert "the recording writer is gone (OSError: [Errno 28] No space left on device)" in warning
+    assert "the file ends where the writer stopped" in warning
+    assert log.stat().st_size > 1 << 20
+    replay = handctl("replay", str(log))
+    assert replay.returncode == 0, replay.stdout + replay.stderr
+    assert "TRUNCATED" in replay.stdout
+
+
+def test_rings_the_host_will_not_give_are_an_error_before_the_run(tmp_path: Path) -> None:
+    """A file-size limit (``ulimit -f``) below the recording's rings, which are a memory
+    file: a traceback before; now the error says what and how much, and nothing was sent."""
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    done = subprocess.run(
+        [
+            "bash",
+            "-c",
+            'ulimit -f 1024 && exec "$0" -m handctl run recipe "$1" --log "$2"',
+            sys.executable,
+            DEFAULT_RECIPE,
+            str(tmp_path / "run.mcap"),
+        ],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": path},
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert "the recording's rings (" in done.stderr and "could not be made" in done.stderr
+    assert "nothing was sent" in done.stderr
