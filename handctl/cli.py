@@ -88,6 +88,31 @@ def _positive_seconds(option: str, value: float | None) -> None:
         )
 
 
+def _output_file(option: str, path: Path | None) -> None:
+    """An option naming a file to write: refused before any work (a run, a plan) when it
+    cannot be written, rather than found out at the end in a traceback."""
+    if path is None:
+        return
+    if path.is_dir():
+        raise ConfigError(option, "", "a file to write, not a directory", str(path))
+    parent = path.resolve().parent
+    if not parent.is_dir():
+        raise ConfigError(option, "", "a file in an existing directory", str(path))
+    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise ConfigError(option, "", "a file this user may write", str(path))
+
+
+def _write_text(option: str, path: Path, text: str) -> None:
+    """Write an output the options named; the system refusing it (a full disk, a device
+    that is not a file) is said against the option, not in a traceback."""
+    try:
+        Path(path).write_text(text)
+    except OSError as exc:
+        raise ConfigError(
+            option, "", "a file that can be written", f"{path}: {exc.strerror or exc}"
+        ) from None
+
+
 def _progress(message: str) -> None:
     """Progress of long work goes to stderr, so stdout stays clean for results."""
     print(message, file=sys.stderr, flush=True)
@@ -101,8 +126,7 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 
     if not 0 < args.seconds <= 3600:
         raise ConfigError("--seconds", "", "a number of seconds > 0 and <= 3600", args.seconds)
-    if args.json and not args.json.resolve().parent.is_dir():
-        raise ConfigError("--json", "", "a file in an existing directory", str(args.json))
+    _output_file("--json", args.json)
     hand = _load_hand(args.hand, "HAND.yaml")
     _progress(
         f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for "
@@ -111,7 +135,7 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
     report = timing_check(hand, args.seconds, realtime=not args.no_rt, cpu=args.loop_cpu)
     print(report.text())
     if args.json:
-        Path(args.json).write_text(json.dumps(report.as_json(), indent=2) + "\n")
+        _write_text("--json", args.json, json.dumps(report.as_json(), indent=2) + "\n")
     return EXIT_HOST if report.verdict.fails else EXIT_OK
 
 
@@ -197,6 +221,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
 def _cmd_analyze_torque_set(args: argparse.Namespace) -> int:
     from handctl.analysis.commands import torque_set_report
 
+    _output_file("--json", args.json)
+    _output_file("--plot", args.plot)
     report = torque_set_report(
         args.scenario, (args.k[0], args.k[1]), args.json, args.plot, progress=_progress
     )
@@ -291,6 +317,8 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     from handctl.session import RunRequest, run_recipe
 
     _positive_seconds("--max-seconds", args.max_seconds)
+    _output_file("--summary-json", args.summary_json)
+    _output_file("--plot", args.plot)
     hand = _load_hand(args.hand, "--hand", args.dbc)
     _refuse_what_check_refuses(hand, args.hand)
     recipe = load_recipe(args.recipe, hand)
@@ -333,9 +361,9 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     for warning in report.warnings:
         print(f"handctl: warning: {warning}", file=sys.stderr)
     summary = report.summary
+    _print_run_summary(summary, args.plot)  # first: a summary file that fails still shows it
     if args.summary_json:
-        Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
-    _print_run_summary(summary, args.plot)
+        _write_text("--summary-json", args.summary_json, json.dumps(summary, indent=2) + "\n")
     return _run_exit_code(report.result, summary)
 
 
@@ -459,6 +487,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from handctl.planning.template import load_template
     from handctl.progress import Progress, close_active, say
 
+    _output_file("-o", args.output)
     if args.models is not None and args.models < 1:
         raise ConfigError("--models", "", "at least 1 model", args.models)
     if args.workers is not None and args.workers < 1:
@@ -679,6 +708,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from handctl.recording.reader import check_format, open_recording
     from handctl.recording.series import load_series
 
+    _output_file("--plot", args.plot)
+    _output_file("--json", args.json)
     if args.speed is not None and not (args.to_bus or args.live is not None):
         raise ConfigError(
             "--speed",
@@ -749,7 +780,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             f"worst lateness {sent['worst_late_ms']} ms)"
         )
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2, default=str) + "\n")
+        _write_text("--json", args.json, json.dumps(report, indent=2, default=str) + "\n")
     if args.live is not None:
         from handctl.foxglove import HOST
         from handctl.foxglove.live import serve_recording
@@ -1835,6 +1866,13 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
     except KeyboardInterrupt:
         print("handctl: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except OSError as exc:
+        # a file the command was told to read or write that the system refused (a full disk,
+        # a file turned read-only since the options were checked): its name and the reason
+        if exc.filename is None:
+            raise
+        print(f"handctl: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 def _interrupt(signum: int, frame: object) -> None:

@@ -152,3 +152,44 @@ def test_the_summary_names_its_units_and_the_other_nodes_frames_are_no_rejects(
 def hand_config(tmp_path: Path) -> tuple[Any, Any]:
     hand = load_hand(HAND_YAML)
     return hand, load_recipe(write_recipe(tmp_path, TWO_PHASES), hand)
+
+
+OUTPUTS = [
+    ("run", "recipe", str(RECIPE), "--summary-json", "{out}", "--max-seconds", "0.1"),
+    ("run", "recipe", str(RECIPE), "--plot", "{out}", "--max-seconds", "0.1"),
+    (
+        "analyze",
+        "torque-set",
+        "config/analysis/paper_fig3.yaml",
+        "--k",
+        "0.9",
+        "0.1",
+        "--json",
+        "{out}",
+    ),
+    ("check", "--timing", "--seconds", "0.05", "--json", "{out}"),
+]
+
+
+@pytest.mark.parametrize(
+    "command", OUTPUTS, ids=lambda c: f"{c[0]} {c[-3] if c[0] == 'run' else c[-2]}"
+)
+@pytest.mark.parametrize("where", ["missing directory", "a directory"])
+def test_an_output_file_that_cannot_be_written_is_refused_before_the_work(
+    tmp_path: Path, command: tuple[str, ...], where: str
+) -> None:
+    """Before, a run ran to its end and then stopped in a traceback (FileNotFoundError), and
+    a directory given to --plot was written beside it as DIR.png."""
+    out = tmp_path / "nowhere" / "out.json" if where == "missing directory" else tmp_path
+    option = next(
+        a for a in command if a.startswith("-") and command[command.index(a) + 1] == "{out}"
+    )
+    done = handctl(*(str(out) if a == "{out}" else a for a in command), cwd=ROOT)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    expected = (
+        "a file in an existing directory" if where == "missing directory" else "not a directory"
+    )
+    assert f"handctl: error: {option}: expected " in done.stderr and expected in done.stderr
+    assert "ticks" not in done.stdout  # nothing ran
+    assert not (tmp_path.parent / f"{tmp_path.name}.png").exists()
