@@ -1113,6 +1113,18 @@ def _monitor_log(
 DEFAULT_LIVE_PORT = 8765
 
 
+def _seed(text: str) -> int:
+    """A simulated hand's seed: numpy's generators take only a non-negative integer;
+    argparse makes the error a usage error (exit 2)."""
+    try:
+        seed = int(text)
+    except ValueError:
+        seed = -1
+    if seed < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, found {text!r}")
+    return seed
+
+
 def _port(text: str) -> int:
     """A TCP port for ``--live``; argparse makes the error a usage error (exit 2)."""
     try:
@@ -1319,7 +1331,7 @@ def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="S",
         help="stop after this long [s], > 0 (default: at Ctrl-C)",
     )
-    sim.add_argument("--seed", type=int, help="sensor noise seed (default: the config's)")
+    sim.add_argument("--seed", type=_seed, help="sensor noise seed (default: the config's)")
     sim.add_argument(
         "--faults", type=Path, metavar="FAULTS.yaml", help="fault scenario (config/sim/)"
     )
@@ -1423,7 +1435,7 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="FILE.json",
         help="write the run summary as JSON (units in its key names)",
     )
-    rec.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
+    rec.add_argument("--seed", type=_seed, default=0, help="simulated hand seed (default 0)")
     rec.add_argument(
         "--sim-faults",
         type=Path,
@@ -1567,7 +1579,7 @@ def _add_bringup_run_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="ask for SCHED_FIFO and locked memory (says so when refused)",
     )
-    p.add_argument("--seed", type=int, default=0, help="simulated hand seed (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="simulated hand seed (default 0)")
     p.add_argument(
         "--sim-faults",
         type=Path,

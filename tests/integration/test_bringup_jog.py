@@ -73,6 +73,26 @@ def test_bad_input_is_refused_before_anything_is_sent(
     assert heard == []
 
 
+@pytest.mark.parametrize(
+    "command", [["jog", "f1_j1", "--torque", "0.01"], ["calibrate", "tdt", "--write"]]
+)
+def test_a_negative_seed_is_a_usage_error_before_anything_is_sent(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str], command: list[str]
+) -> None:
+    # numpy's generators take no negative seed: it was a ValueError traceback from the
+    # simulated hand's start, after the command had begun
+    sniffer = open_bus(f"virtual:{channel}", hand.bus)
+    try:
+        with pytest.raises(SystemExit) as stop:
+            cli.main([*command, "--seed", "-5", "--bus", f"virtual:{channel}"])
+        heard = sniffer.drain(limit=1000)
+    finally:
+        sniffer.close()
+    assert stop.value.code == cli.EXIT_BAD_INPUT
+    assert "argument --seed: expected an integer >= 0, found '-5'" in capsys.readouterr().err
+    assert heard == []
+
+
 def test_a_missing_node_stops_it_at_start_up(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
