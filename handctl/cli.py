@@ -925,6 +925,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
         sim_faults=args.sim_faults,
         reset_node_faults=args.reset_node_faults,
         realtime_priority=args.rt,
+        accept_missed_deadlines=args.accept_missed_deadlines,
     )
     stopped = _run_outcome(calibration.report)
     if stopped is not None:
@@ -1010,6 +1011,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         seed=args.seed,
         sim_faults=args.sim_faults,
         reset_node_faults=args.reset_node_faults,
+        accept_missed_deadlines=args.accept_missed_deadlines,
         show=show,
     )
     moved = result.moved
@@ -1590,6 +1592,12 @@ def _add_bringup_run_options(p: argparse.ArgumentParser) -> None:
         "--reset-node-faults",
         action="store_true",
         help="clear faults latched in the nodes before starting (explicit reset)",
+    )
+    p.add_argument(
+        "--accept-missed-deadlines",
+        action="store_true",
+        help="run on a real bus even if the host fails the timing check made before it "
+        "(docs/timing.md): the hand may stop on LOOP_OVERRUN",
     )
 
 

@@ -190,6 +190,7 @@ def calibrate_tdt(
     seed: int = 0,
     sim_faults: Path | None = None,
     reset_node_faults: bool = False,
+    accept_missed_deadlines: bool = False,
     realtime_priority: bool = False,
 ) -> Calibration:
     """Run the zero-torque measurement on ``bus`` and judge it; writes nothing."""
@@ -205,6 +206,7 @@ def calibrate_tdt(
             seed=seed,
             sim_faults=sim_faults,
             reset_node_faults=reset_node_faults,
+            accept_missed_deadlines=accept_missed_deadlines,
             realtime_priority=realtime_priority,
         ),
         recorder=sampler,

@@ -153,6 +153,7 @@ def jog(
     seed: int = 0,
     sim_faults: Path | None = None,
     reset_node_faults: bool = False,
+    accept_missed_deadlines: bool = False,
     show: Callable[[JogLine], None] | None = None,
 ) -> JogReport:
     """Jog ``joint`` with ``torque`` N·m for ``seconds`` after the ramp, on ``bus``."""
@@ -168,6 +169,7 @@ def jog(
             seed=seed,
             sim_faults=sim_faults,
             reset_node_faults=reset_node_faults,
+            accept_missed_deadlines=accept_missed_deadlines,
         ),
         recorder=sink,
     )

@@ -17,6 +17,7 @@ from handctl.config import HandConfig
 from handctl.online.bus import open_bus
 
 from ..conftest import ROOT
+from .bringup_peer import running_hand
 from .realtime import ATTEMPTS_UNDER_LOAD, REALTIME, give_up, stopped_by_load
 
 
@@ -142,3 +143,43 @@ def test_ctrl_c_is_a_controlled_stop_on_the_unix_bus() -> None:
         assert stopped_by_load(err), err
         stopped.append(err)
     give_up("every attempt was stopped by the machine's load", stopped)
+
+
+@REALTIME
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["jog", "f2_j1", "--torque", "0.05", "--seconds", "0.3"],
+        ["calibrate", "tdt", "--settle", "0.2", "--seconds", "0.3", "--max-span", "1.0"],
+    ],
+)
+def test_on_a_real_bus_the_host_check_can_be_overridden_as_it_says(
+    hand: HandConfig, tmp_path: Path, command: list[str]
+) -> None:
+    # On a real bus a host that fails the timing check is refused with "to run anyway, pass
+    # --accept-missed-deadlines": jog and calibrate tdt did not have that option (exit 2).
+    spec = f"unix:{tmp_path / 'bus'}"
+    out = ["-o", str(tmp_path / "calibrated.yaml")] if command[0] == "calibrate" else []
+    with running_hand(hand, spec):
+        result = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "handctl",
+                *command,
+                *out,
+                "--bus",
+                spec,
+                "--accept-missed-deadlines",
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=300,
+            check=False,
+        )
+    # The run went onto the bus: done, or (on a loaded machine, the hand a thread of this
+    # process) stopped by the load, as the option warns it may be.
+    assert result.returncode == cli.EXIT_OK or (
+        result.returncode == cli.EXIT_SAFETY_STOP and stopped_by_load(result.stderr)
+    ), result.stderr
