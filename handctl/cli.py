@@ -878,7 +878,11 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     import json
 
     from handctl.bringup.calibrate import CalibrationLimits, calibrate_tdt
-    from handctl.bringup.hand_edit import format_offset, with_tdt_offsets
+    from handctl.bringup.hand_edit import (
+        check_writable,
+        format_offset,
+        with_tdt_offsets,
+    )
     from handctl.config import load_hand
 
     hand = _load_hand(args.hand, "--hand", args.dbc)
@@ -902,8 +906,18 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             f"another file than the hand config (--write overwrites {args.hand})",
             str(args.output),
         )
-    if not target.parent.is_dir():
-        raise ConfigError("-o", "", "a file in an existing directory", str(target))
+    # before anything starts: a calibration whose result cannot be written is not begun
+    written = check_writable(target, "-o" if args.output is not None else "--write")
+    if args.json is not None and check_writable(args.json, "--json") in (
+        written,
+        args.hand.resolve(),
+    ):
+        raise ConfigError(
+            "--json",
+            "",
+            "another file than the hand config and its calibrated copy",
+            str(args.json),
+        )
     limits = CalibrationLimits(
         max_span=_positive("--max-span", args.max_span, CalibrationLimits.max_span, "rad"),
         max_noise=_positive("--max-noise", args.max_noise, CalibrationLimits.max_noise, "N·m"),
@@ -944,7 +958,9 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             f"{j.mean:>+9.4f} {j.noise:>8.4f} {j.angle_span:>6.4f} rad  {j.problem or 'ok'}"
         )
     if args.json:
-        Path(args.json).write_text(
+        _write_result(
+            "--json",
+            args.json,
             json.dumps(
                 {
                     "samples": calibration.samples,
@@ -952,7 +968,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
                 },
                 indent=2,
             )
-            + "\n"
+            + "\n",
         )
     if calibration.problems:
         print(
@@ -967,7 +983,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             "written as a plain dump, without its comments and layout",
             file=sys.stderr,
         )
-    target.write_text(edited.text, encoding="utf-8")
+    _write_result("-o" if args.output is not None else "--write", written, edited.text)
     new_hash = load_hand(target, args.dbc).config_hash
     print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))
     if new_hash != hand.config_hash:
@@ -976,6 +992,19 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             "compiled for the old one must be planned again (handctl plan)"
         )
     return EXIT_OK
+
+
+def _write_result(option: str, path: Path, text: str) -> None:
+    """A result file of a bring-up command, whole or not at all (``write_atomically``); a
+    failure (a full disk, a directory gone since it was checked) is said by name, exit 1."""
+    from handctl.bringup.hand_edit import write_atomically
+
+    try:
+        write_atomically(path.resolve(), text)
+    except OSError as exc:
+        raise HandctlError(
+            f"{option}: {path} could not be written ({exc}); it is unchanged"
+        ) from None
 
 
 def _cmd_jog(args: argparse.Namespace) -> int:

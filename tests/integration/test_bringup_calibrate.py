@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 from handctl import cli
-from handctl.bringup.hand_edit import with_tdt_offsets
+from handctl.bringup.hand_edit import with_tdt_offsets, write_atomically
 from handctl.config import HandConfig, load_hand, parse_hand
+from handctl.online.bus import open_bus
 from handctl.schema import parse_yaml
 from handctl.sim.params import parse_sim
 from handctl.sim.sensors import TdtModel
@@ -100,6 +101,84 @@ def test_write_overwrites_the_hand_config_itself(
     )
     assert copy.read_text() != before
     assert load_hand(copy).joints[0].tdt.offset != 0.0
+
+
+def _read_only_hand(tmp_path: Path) -> list[str]:
+    copy = tmp_path / "hand.yaml"
+    shutil.copy(HAND_YAML, copy)
+    copy.chmod(0o444)
+    return ["--hand", str(copy), "--write"]
+
+
+def _into_read_only_dir(tmp_path: Path) -> list[str]:
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    return ["-o", str(locked / "calibrated.yaml")]
+
+
+@pytest.mark.parametrize(
+    "make_args, says",
+    [
+        (_read_only_hand, "--write: expected a file that may be written (it is read-only)"),
+        (_into_read_only_dir, "-o: expected a file in a directory that may be written"),
+        (lambda t: ["-o", str(t / "gone" / "c.yaml")], "-o: expected a file in an existing"),
+        (lambda t: ["-o", str(t)], "-o: expected a file (not a directory or a device)"),
+        (
+            lambda t: ["-o", str(t / "c.yaml"), "--json", str(t / "gone" / "m.json")],
+            "--json: expected a file in an existing directory",
+        ),
+        (
+            lambda t: ["-o", str(t / "c.yaml"), "--json", str(t / "c.yaml")],
+            "--json: expected another file than the hand config and its calibrated copy",
+        ),
+    ],
+)
+def test_a_result_that_cannot_be_written_is_refused_before_anything_starts(
+    hand: HandConfig,
+    channel: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    make_args: Any,
+    says: str,
+) -> None:
+    # A read-only hand config was overwritten by --write (os.replace needs only the
+    # directory), and a file that could not be written failed with a traceback after the
+    # whole calibration had run.
+    args = make_args(tmp_path)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    sniffer = open_bus(f"virtual:{channel}", hand.bus)
+    try:
+        code = cli.main(["calibrate", "tdt", *args, "--bus", f"virtual:{channel}"])
+        heard = sniffer.drain(limit=1000)
+    finally:
+        sniffer.close()
+        for p in tmp_path.rglob("*"):  # let pytest clean up
+            p.chmod(0o755 if p.is_dir() else 0o644)
+    assert code == cli.EXIT_BAD_INPUT
+    assert says in capsys.readouterr().err
+    assert heard == []
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
+def test_write_replaces_the_file_whole_keeping_its_mode(tmp_path: Path) -> None:
+    copy = tmp_path / "hand.yaml"
+    shutil.copy(HAND_YAML, copy)
+    copy.chmod(0o640)
+    code = cli.main(["calibrate", "tdt", "--hand", str(copy), "--write", "--seconds", "0.2"])
+    assert code == cli.EXIT_OK
+    assert [p.name for p in tmp_path.iterdir()] == ["hand.yaml"]  # no temporary file left
+    assert copy.stat().st_mode & 0o777 == 0o640
+    assert load_hand(copy).joints[0].tdt.offset != 0.0
+
+
+def test_a_write_that_fails_leaves_the_old_file_and_nothing_else(tmp_path: Path) -> None:
+    target = tmp_path / "hand.yaml"
+    target.write_text("old\n")
+    with pytest.raises(UnicodeEncodeError):  # fails in the middle of writing the new text
+        write_atomically(target, "new " * 10_000 + "\udc80")
+    assert target.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["hand.yaml"]
 
 
 def test_a_joint_that_moves_is_refused_by_name(
