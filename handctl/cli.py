@@ -923,6 +923,15 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
         max_noise=_positive("--max-noise", args.max_noise, CalibrationLimits.max_noise, "N·m"),
         max_offset=_positive("--max-offset", args.max_offset, CalibrationLimits.max_offset, "N·m"),
     )
+    widest = max(hand.joints, key=lambda j: j.tau_max)
+    if limits.max_offset > widest.tau_max:
+        raise ConfigError(
+            "--max-offset",
+            "",
+            f"at most {widest.tau_max:g} N·m (the largest tau_max, {widest.name}'s: an offset "
+            "beyond it is a broken sensor)",
+            limits.max_offset,
+        )
     measure = _seconds_or(args.seconds, 1.0)
     settle = 2.0 if args.settle is None else args.settle
     if not 0 <= settle < 1e6:

@@ -7,7 +7,9 @@ calibration) is averaged: at zero torque it should read zero, so the new offset 
 minus the mean. The measurement is refused, naming the joint, when a joint moved (its angle
 spanned more than ``max_span``: something pushed it, and the sensor read that push), when its
 noise is implausible (above ``max_noise``, or exactly zero: a live sensor is never
-bit-identical), or when the offset is beyond ``max_offset``.
+bit-identical), or when the offset is beyond ``max_offset`` or the joint's ``tau_max`` (a
+sensor that reads the joint's whole torque limit at zero torque is broken, whatever
+``max_offset`` allows).
 
 The supervisor's TDT plausibility check compares the reading with the applied torque; an
 uncalibrated sensor fails it by its very offset, which is what is being measured. For this run
@@ -168,10 +170,14 @@ def judge(hand: HandConfig, sampler: TdtSampler, limits: CalibrationLimits) -> l
             )
         elif s == 0.0:
             problem = "the reading did not change at all: a live sensor is never so still"
-        elif abs(m) > limits.max_offset:
+        elif abs(m) > min(limits.max_offset, joint.tau_max):
+            # at zero torque a sensor reading the joint's whole torque limit is broken
+            # whatever --max-offset allows
+            bound = min(limits.max_offset, joint.tau_max)
+            why = "" if bound == limits.max_offset else ", the joint's tau_max"
             problem = (
-                f"offset {m:+.4f} N·m is implausible (at most {limits.max_offset:g} "
-                "N·m): check the sensor's mounting and its factory calibration"
+                f"offset {m:+.4f} N·m is implausible (at most {bound:g} N·m{why}): "
+                "check the sensor's mounting and its factory calibration"
             )
         out.append(
             JointResult(joint.name, joint.tdt.offset, joint.tdt.offset - m, m, s, a, problem)

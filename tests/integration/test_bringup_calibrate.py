@@ -195,6 +195,26 @@ def test_a_joint_that_moves_is_refused_by_name(
     assert not out.exists()
 
 
+def test_an_offset_beyond_the_joints_tau_max_is_refused_whatever_max_offset_says(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # --max-offset 0.5 let a sensor reading 0.4 N·m at zero torque on a joint of tau_max
+    # 0.3 N·m be calibrated away, and --max-offset 5 one reading 1 N·m
+    faults = _scenario(tmp_path, "{kind: tdt_offset, node: 2, joint: 3, offset: 0.4, start: 0.0}")
+    out = tmp_path / "calibrated.yaml"
+    args = ["calibrate", "tdt", "-o", str(out), "--sim-faults", str(faults), "--seconds", "0.3"]
+    assert cli.main([*args, "--max-offset", "0.5"]) == cli.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "nothing written: f2_j3: offset +0.40" in err
+    assert "(at most 0.3 N·m, the joint's tau_max)" in err
+    assert not out.exists()
+    assert cli.main([*args, "--max-offset", "5"]) == cli.EXIT_BAD_INPUT
+    assert "--max-offset: expected at most 0.6 N·m (the largest tau_max" in (
+        capsys.readouterr().err
+    )
+    assert not out.exists()
+
+
 def test_fingers_that_have_not_settled_are_refused(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
