@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -102,17 +103,13 @@ def check_commands(recording: Recording, hand: HandConfig, direction: str = "bot
     last: dict[int, tuple[int, tuple[float, ...]]] = {}
     checked = 0
     for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
+        refuse = functools.partial(_refused, recording, log_time, frame_id, data, is_rx)
         entry = torque.get(frame_id)
         layout = entry[0] if entry is not None else other.get(frame_id)
         if layout is None:
             named = node_message(frame_id)
             if named is not None and named[0] in ("TorqueCommand", "NodeCommand"):
-                raise _refused(
-                    recording,
-                    log_time,
-                    frame_id,
-                    data,
-                    is_rx,
+                raise refuse(
                     "",
                     f"a command to one of the recorded hand's nodes "
                     f"({', '.join(str(f.node_id) for f in hand.fingers)})",
@@ -121,12 +118,7 @@ def check_commands(recording: Recording, hand: HandConfig, direction: str = "bot
             continue
         checked += 1
         if not layout.crc_ok(data):
-            raise _refused(
-                recording,
-                log_time,
-                frame_id,
-                data,
-                is_rx,
+            raise refuse(
                 "",
                 f"a {layout.name} frame of {layout.length} bytes with a good CRC",
                 f"{len(data)} bytes, "
@@ -134,54 +126,47 @@ def check_commands(recording: Recording, hand: HandConfig, direction: str = "bot
             )
         if entry is None:
             continue
-        finger = entry[1]
         _, values = layout.decode(data)
         before_ns, before = last.get(frame_id, (log_time - period_ns, (0.0,) * len(values)))
         dt = max(period_ns, log_time - before_ns) * 1e-9
-        resolution = min((s.scale for s in layout.signals), default=0.0)
-        for i, (signal, tau, was) in enumerate(zip(layout.signals, values, before, strict=True)):
-            if i >= len(finger.joints):
-                if tau != 0:
-                    raise _refused(
-                        recording,
-                        log_time,
-                        frame_id,
-                        data,
-                        is_rx,
-                        signal.name,
-                        f"0 (the finger {finger.name} has {len(finger.joints)} joints)",
-                        tau,
-                    )
-                continue
-            joint = finger.joints[i]
-            if not abs(tau) <= joint.tau_max + resolution / 2:
-                raise _refused(
-                    recording,
-                    log_time,
-                    frame_id,
-                    data,
-                    is_rx,
-                    f"{signal.name} ({joint.name})",
-                    f"a torque within ±{joint.tau_max:g} N·m (its tau_max)",
-                    tau,
-                )
-            towards_zero = 0 <= tau <= was or was <= tau <= 0
-            step = joint.rate_limit * dt + resolution
-            if not towards_zero and abs(tau - was) > step:
-                raise _refused(
-                    recording,
-                    log_time,
-                    frame_id,
-                    data,
-                    is_rx,
-                    f"{signal.name} ({joint.name})",
-                    f"a change of at most {step:.6g} N·m from the previous command's "
-                    f"{was:g} N·m (its rate limit {joint.rate_limit:g} N·m/s over "
-                    f"{dt * 1e3:g} ms)",
-                    tau,
-                )
+        problem = _torque_problem(layout, entry[1], values, before, dt)
+        if problem is not None:
+            raise refuse(*problem)
         last[frame_id] = (log_time, values)
     return checked
+
+
+def _torque_problem(
+    layout: Layout,
+    finger: FingerConfig,
+    values: tuple[float, ...],
+    before: tuple[float, ...],
+    dt: float,
+) -> tuple[str, str, float] | None:
+    """What the supervisor would not have let through in one TorqueCommand (the signal, what
+    it expects, the value), or None: a torque beyond a joint's ``tau_max``, a change beyond its
+    rate limit over ``dt`` (s) unless towards zero, a torque for a joint the finger lacks."""
+    resolution = min((s.scale for s in layout.signals), default=0.0)
+    for i, (signal, tau, was) in enumerate(zip(layout.signals, values, before, strict=True)):
+        if i >= len(finger.joints):
+            if tau != 0:
+                joints = len(finger.joints)
+                return signal.name, f"0 (the finger {finger.name} has {joints} joints)", tau
+            continue
+        joint = finger.joints[i]
+        label = f"{signal.name} ({joint.name})"
+        if not abs(tau) <= joint.tau_max + resolution / 2:
+            return label, f"a torque within ±{joint.tau_max:g} N·m (its tau_max)", tau
+        towards_zero = 0 <= tau <= was or was <= tau <= 0
+        step = joint.rate_limit * dt + resolution
+        if not towards_zero and abs(tau - was) > step:
+            return (
+                label,
+                f"a change of at most {step:.6g} N·m from the previous command's {was:g} N·m "
+                f"(its rate limit {joint.rate_limit:g} N·m/s over {dt * 1e3:g} ms)",
+                tau,
+            )
+    return None
 
 
 def _refused(
