@@ -31,6 +31,7 @@ from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
 
 from ..conftest import ROOT, handctl
+from .mcap_copy import rewrite as copy_recording
 from .realtime import REALTIME
 from .rig import SHORT, short_recipe
 from .test_recording import ESTOP_TICK, Recorded, record_run
@@ -43,35 +44,15 @@ def recorded(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Reco
 
 
 def rewrite(source: Path, target: Path, change: Any) -> None:
-    """Copy a recording message by message with the mcap library, through ``change(topic,
-    message) -> message``."""
-    with source.open("rb") as handle:
-        reader = make_reader(handle)
-        summary = reader.get_summary()
-        assert summary is not None
-        messages = list(reader.iter_messages(log_time_order=False))
-        metadata = list(reader.iter_metadata())
-    with target.open("wb") as out:
-        writer = Writer(out)
-        writer.start()
-        for meta in metadata:
-            writer.add_metadata(meta.name, meta.metadata)
-        schema_ids = {
-            s.id: writer.register_schema(s.name, s.encoding, s.data)
-            for s in summary.schemas.values()
-        }
-        channel_ids = {
-            c.id: writer.register_channel(
-                c.topic, c.message_encoding, schema_ids[c.schema_id], c.metadata
-            )
-            for c in summary.channels.values()
-        }
-        for _, channel, message in messages:
-            raw = message.data
-            if channel.message_encoding == "json":  # the Foxglove protobuf ones as they are
-                raw = json.dumps(change(channel.topic, json.loads(raw))).encode()
-            writer.add_message(channel_ids[channel.id], message.log_time, raw, message.publish_time)
-        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
+    """Copy a recording message by message, each JSON message through ``change(topic,
+    message) -> message`` (the Foxglove protobuf ones as they are)."""
+
+    def json_only(topic: str, index: int, raw: bytes) -> bytes:
+        if topic.startswith("/foxglove/"):
+            return raw
+        return json.dumps(change(topic, json.loads(raw))).encode()
+
+    copy_recording(source, target, json_only)
 
 
 # -- re-run -----------------------------------------------------------------------------------

@@ -1,0 +1,52 @@
+"""A recording copied record by record with the mcap library, its messages and metadata
+through the caller's changes: the logs the replay tests alter after the run."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+#: ``change(topic, index within the topic, raw message) -> raw message``
+Change = Callable[[str, int, bytes], bytes]
+
+
+def rewrite(
+    source: Path,
+    target: Path,
+    change: Change | None = None,
+    metadata: Callable[[str, dict[str, str]], dict[str, str]] | None = None,
+) -> None:
+    """Copy a recording record by record with the mcap library, the messages through
+    ``change`` and the metadata through ``metadata``."""
+    with source.open("rb") as handle:
+        reader = make_reader(handle)
+        summary = reader.get_summary()
+        assert summary is not None
+        messages = list(reader.iter_messages(log_time_order=False))
+        records = list(reader.iter_metadata())
+    counts: dict[str, int] = {}
+    with target.open("wb") as out:
+        writer = Writer(out)
+        writer.start()
+        for meta in records:
+            values = dict(meta.metadata)
+            writer.add_metadata(meta.name, metadata(meta.name, values) if metadata else values)
+        schema_ids = {
+            s.id: writer.register_schema(s.name, s.encoding, s.data)
+            for s in summary.schemas.values()
+        }
+        channel_ids = {
+            c.id: writer.register_channel(
+                c.topic, c.message_encoding, schema_ids[c.schema_id], c.metadata
+            )
+            for c in summary.channels.values()
+        }
+        for _, channel, message in messages:
+            index = counts.get(channel.topic, 0)
+            counts[channel.topic] = index + 1
+            raw = change(channel.topic, index, message.data) if change else message.data
+            writer.add_message(channel_ids[channel.id], message.log_time, raw, message.publish_time)
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
