@@ -14,9 +14,10 @@ import numpy as np
 from handctl.config import HandConfig
 from handctl.harness.campaign import hil_bench
 from handctl.online.bus import HandBus
-from handctl.online.loop import RunResult, Runtime
+from handctl.online.loop import Outcome, RunResult, Runtime
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
+from handctl.online.safety.faults import FaultCode
 from handctl.sim.hand import SimulatedHand
 
 from ..dbc import decode
@@ -147,3 +148,16 @@ def write_recipe(directory: Path, text: str, name: str = "recipe.yaml") -> Path:
     path = directory / name
     path.write_text(text)
     return path
+
+
+def stopped_at_once(r: Rig, result: RunResult, code: FaultCode) -> int:
+    """The first fault is ``code``; torque was flowing before it and is zero two ticks on.
+    Returns the tick that detected it."""
+    assert result.outcome is Outcome.SAFETY_STOP
+    first = result.faults[0]
+    assert first.code is code, [str(f) for f in result.faults]
+    wire = r.commands()
+    row = first.tick - r.runtime.first_send_tick
+    assert np.abs(wire[row - 1]).max() > 0.01
+    assert not np.any(wire[row + 2 :])
+    return first.tick

@@ -11,12 +11,11 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 import can
-import numpy as np
 import pytest
 
 from handctl.config import HandConfig
 from handctl.hand_protocol import protocol_for
-from handctl.online.loop import Outcome, RunResult
+from handctl.online.loop import Outcome
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FaultCode
@@ -24,7 +23,7 @@ from handctl.protocol import NodeState
 from handctl.sim.faults import Injector, SimContext
 from handctl.sim.firmware import FaultBits
 
-from .rig import CLOSE_AND_HOLD_2S, Rig, rig
+from .rig import CLOSE_AND_HOLD_2S, Rig, rig, stopped_at_once
 
 INJECT_AT = 1.0  # s of simulated time: inside the hold phase
 INJECT_TICK = round(INJECT_AT / 0.001)
@@ -64,18 +63,7 @@ def frame(frame_id: int, data: bytes) -> can.Message:
     return can.Message(arbitration_id=frame_id, data=data, is_extended_id=False, is_fd=True)
 
 
-def _stopped_at_once(r: Rig, result: RunResult, code: FaultCode) -> int:
-    assert result.outcome is Outcome.SAFETY_STOP
-    first = result.faults[0]
-    assert first.code is code, [str(f) for f in result.faults]
-    wire = r.commands()
-    row = first.tick - r.runtime.first_send_tick
-    assert np.abs(wire[row - 1]).max() > 0.01
-    assert not np.any(wire[row + 2 :])
-    return first.tick
-
-
-def test_a_second_master_on_the_host_s_command_ids_is_stopped_at_once(
+def test_a_second_master_on_the_host_s_command_ids_isstopped_at_once(
     hand: HandConfig, hold: Recipe
 ) -> None:
     """Another sender puts TorqueCommand_1 frames on the bus, each a counter ahead of the host,
@@ -96,7 +84,7 @@ def test_a_second_master_on_the_host_s_command_ids_is_stopped_at_once(
         result = r.run()
         for sent in forged:  # the sniffer heard them too: the host's frames are judged
             r.wire.remove(sent)
-        tick = _stopped_at_once(r, result, FaultCode.FOREIGN_COMMAND)
+        tick = stopped_at_once(r, result, FaultCode.FOREIGN_COMMAND)
         assert tick == INJECT_TICK
         assert "TorqueCommand id 0x101" in result.faults[0].detail
         assert FaultCode.NODE_FAULT not in {f.code for f in result.faults}
@@ -139,7 +127,7 @@ def test_a_node_that_changes_its_protocol_mid_run_is_stopped(
 
         r.runtime.tick_hooks.append(switch)
         result = r.run()
-        tick = _stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
+        tick = stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
         assert INJECT_TICK < tick <= INJECT_TICK + 101  # Status: every 100 ms
         detail = result.faults[0].detail
         assert (

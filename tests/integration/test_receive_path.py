@@ -5,19 +5,18 @@ carries zero within two ticks of detection."""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from handctl.config import HandConfig
 from handctl.online.bus import EXTENDED_ID_FLAG, open_bus
-from handctl.online.loop import Outcome, RunResult
+from handctl.online.loop import Outcome
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FaultCode
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
 
-from .rig import CLOSE_AND_HOLD_2S, Rig, rig
+from .rig import CLOSE_AND_HOLD_2S, rig, stopped_at_once
 
 INJECT_AT = 1.0  # s of simulated time: inside the hold phase
 INJECT_TICK = round(INJECT_AT / 0.001)
@@ -30,26 +29,13 @@ def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
     return load_recipe(path, hand)
 
 
-def _stopped_at_once(r: Rig, result: RunResult, code: FaultCode) -> int:
-    """The first fault is ``code``; torque was flowing before it and is zero two ticks on.
-    Returns the tick that detected it."""
-    assert result.outcome is Outcome.SAFETY_STOP
-    first = result.faults[0]
-    assert first.code is code, [str(f) for f in result.faults]
-    wire = r.commands()
-    row = first.tick - r.runtime.first_send_tick
-    assert np.abs(wire[row - 1]).max() > 0.01
-    assert not np.any(wire[row + 2 :])
-    return first.tick
-
-
-def test_a_flood_the_bus_cannot_carry_is_stopped_at_once(hand: HandConfig, hold: Recipe) -> None:
+def test_a_flood_the_bus_cannot_carry_isstopped_at_once(hand: HandConfig, hold: Recipe) -> None:
     """1000 foreign frames a tick (a CAN-FD bus carries 27): before, the host drained 512 a
     tick and judged ever older feedback as fresh."""
     with rig(hand, hold) as r:
         r.sim.faults.add(inj.Babble(id=0x050, per_tick=1000, length=8), INJECT_AT)
         result = r.run()
-        tick = _stopped_at_once(r, result, FaultCode.RX_BACKLOG)
+        tick = stopped_at_once(r, result, FaultCode.RX_BACKLOG)
         assert INJECT_TICK - 1 <= tick <= INJECT_TICK + 2
 
 
@@ -63,7 +49,7 @@ def test_feedback_held_back_is_as_old_as_it_is(hand: HandConfig, hold: Recipe) -
         driver.take_bus_events = lambda: []  # type: ignore[method-assign]
         r.sim.faults.add(inj.Babble(id=0x050, per_tick=1000, length=8), INJECT_AT)
         result = r.run()
-        tick = _stopped_at_once(r, result, FaultCode.FEEDBACK_TIMEOUT)
+        tick = stopped_at_once(r, result, FaultCode.FEEDBACK_TIMEOUT)
         assert tick - INJECT_TICK <= 12
 
 
@@ -100,7 +86,7 @@ def test_enabled_with_fault_bits_is_stopped(hand: HandConfig, hold: Recipe) -> N
     with rig(hand, hold) as r:
         r.sim.faults.add(inj.Contradict(node=2, report="fault_bits", bits=0x01), INJECT_AT)
         result = r.run()
-        tick = _stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
+        tick = stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
         assert INJECT_TICK - 1 <= tick <= INJECT_TICK + 2
         assert "latched fault bits (TIMEOUT)" in result.faults[0].detail
 
@@ -114,7 +100,7 @@ def test_a_fault_hidden_behind_an_enabled_heartbeat_is_stopped(
         r.sim.faults.add(inj.Contradict(node=3, report="heartbeat"), INJECT_AT - 0.2)
         r.sim.faults.add(inj.DropCommands(node=3, count=15), INJECT_AT)
         result = r.run()
-        tick = _stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
+        tick = stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
         assert INJECT_TICK + 5 <= tick <= INJECT_TICK + 15  # when the node faulted
         assert "ENABLED after FAULT" in result.faults[0].detail
         assert FaultCode.NODE_FAULT in {f.code for f in result.faults}
@@ -130,7 +116,7 @@ def test_a_replayed_stream_is_stopped_by_its_reject_rate(hand: HandConfig, hold:
         r.sim.faults.add(replay, INJECT_AT)
         r.sim.faults.add(inj.DropCommands(node=2, count=15), INJECT_AT + 0.25)
         result = r.run()
-        tick = _stopped_at_once(r, result, FaultCode.REJECT_RATE)
+        tick = stopped_at_once(r, result, FaultCode.REJECT_RATE)
         replay_starts = INJECT_TICK + 200
         limit = hand.safety.max_rejects_in_window
         assert replay_starts <= tick <= replay_starts + limit // 2 + 2
