@@ -289,6 +289,8 @@ def _body_contact(
 MAX_TAU = 1e4  # N·m
 MAX_MU = 100.0
 MAX_GRAVITY = 1e3  # m/s²
+#: of m r²: the smallest moment of inertia a body may have
+MIN_INERTIA_FRACTION = 1e-9
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -401,14 +403,22 @@ def _read_body(d: Doc, dim: int) -> Body:
     rotation = _rotation(d, dim, "angle", "rotation")
     radius = d.number("radius", min=0.0, min_exclusive=True, unit="m")
     mass = d.number("mass", min=0.0, min_exclusive=True, unit="kg")
+    # a body's moments of inertia are some fraction of m r² (a disc's is 1/2); far below it
+    # (1e-20 kg·m² on the paper's 1 kg cylinder) the contact equations' matrix is singular in
+    # floating point, which the analysis would report as dependent contacts
+    smallest = MIN_INERTIA_FRACTION * mass * radius**2
     if dim == 2:
         shape = "disc"
-        inertia = np.array([[d.number("inertia", min=0.0, min_exclusive=True, unit="kg·m²")]])
+        inertia = np.array([[d.number("inertia", min=smallest, unit="kg·m²")]])
     else:
         shape = d.string("shape", choices=("sphere", "cylinder"))
         inertia = np.diag(d.numbers("inertia", length=3, min=0.0, unit="kg·m²"))
-        if float(np.min(np.diag(inertia))) <= 0.0:
-            d.fail("inertia", "three principal moments > 0 kg·m²", list(np.diag(inertia)))
+        if float(np.min(np.diag(inertia))) < smallest:
+            d.fail(
+                "inertia",
+                f"three principal moments >= {smallest:.3g} kg·m² ({MIN_INERTIA_FRACTION:g} m r²)",
+                list(np.diag(inertia)),
+            )
     d.done()
     return Body(name, position, rotation, radius, mass, inertia, shape)
 
