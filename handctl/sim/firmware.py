@@ -14,7 +14,8 @@ A tick of the node, in the order the firmware runs it:
    zeroes torque and latches FAULT(TIMEOUT)), and the end of a reboot.
 3. The torque in ``applied`` goes to the motors.
 4. ``publish`` with the sensor readings of this tick: the self-check (TDT out of range, encoder
-   jump), then ``Feedback``, any ``Status`` frames due and the ``Heartbeat``.
+   jump), then the ``Status`` frames of this tick's state changes, ``Feedback``, a periodic
+   ``Status`` if due and the ``Heartbeat``.
 
 Readings of the spec worth stating:
 - "receive counters" reset by a fault reset are the rolling-counter states (the next frame of
@@ -359,13 +360,20 @@ class EmulatedNode:
         if self._pad_zeros:
             tdt = tdt + self._pad_zeros
             angles = angles + self._pad_zeros
+        # The Status frames of this tick's state changes go before the Feedback: they tell of
+        # states the node passed through before the one the Feedback reports. After it, a
+        # node enabled and faulted in one tick said FAULT, then ENABLED (the older change),
+        # which a host rightly takes for a node contradicting itself.
+        changed = bool(self._pending_status)
+        if changed:
+            self._publish_status(now_ns, out)
         feedback = self._feedback
         out.append(
             (feedback.frame_id, feedback.encode(self._tx_feedback, (*tdt, *angles, state, bits)))
         )
         self._tx_feedback = (self._tx_feedback + self.counter_step["Feedback"]) & 0xFF
         uptime = (now_ns - self._boot_ns) // NODE_TICK_NS
-        if self._pending_status or uptime % STATUS_PERIOD_MS == 0:
+        if not changed and uptime % STATUS_PERIOD_MS == 0:
             self._publish_status(now_ns, out)
         if uptime % HEARTBEAT_PERIOD_MS == 0:
             heartbeat = self._heartbeat

@@ -289,3 +289,23 @@ def test_reboot_is_silent_then_fresh(node: EmulatedNode, wire: Wire, protocol: P
     assert [c for c, _ in decode(protocol, out, "Feedback")] == [0]
     ((_, hb),) = decode(protocol, out, "Heartbeat")
     assert hb[1] == 0  # uptime restarted: the host sees the reboot
+
+
+def test_a_node_enabled_and_faulted_in_one_tick_reports_its_states_in_order(
+    node: EmulatedNode, wire: Wire, protocol: Protocol
+) -> None:
+    """Its Status frames of the two changes go before the Feedback, which reports the state
+    after them: sent after it, the older ENABLED came last, and a host took the node for one
+    contradicting itself (ENABLED after FAULT without a fault reset)."""
+    tick(node, 0)
+    out = tick(node, MS, wire.command("enable"), tdt=[0.0, TDT_RANGE + 0.1, 0.0])
+    assert node.state == NodeState.FAULT
+    status, feedback = protocol.layout("Status", 1), protocol.layout("Feedback", 1)
+    states = [
+        int(layout.decode(data)[1][index])
+        for fid, data in out
+        for layout, index in ((status, 0), (feedback, 6))
+        if fid == layout.frame_id
+    ]
+    assert states == [NodeState.ENABLED, NodeState.FAULT, NodeState.FAULT]
+    assert [fid for fid, _ in out][:3] == [status.frame_id, status.frame_id, feedback.frame_id]
