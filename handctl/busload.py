@@ -174,6 +174,29 @@ def too_long_for_classic(hand: HandConfig, protocol: Protocol) -> list[str]:
     ]
 
 
+def bus_refusals(
+    hand: HandConfig, protocol: Protocol, budget: BusBudget
+) -> list[tuple[str, str, object]]:
+    """Why the hand's bus cannot carry it, as ``(key, expected, found)`` of its config: frames
+    too long for classic CAN, a worst-case load over ``MAX_LOAD`` (``budget``, the hand's)
+    with what would fit. ``handctl check`` prints each, and ``handctl run`` refuses the hand
+    on the first: one reading of the bus for both."""
+    out: list[tuple[str, str, object]] = []
+    too_long = [] if hand.bus.fd else too_long_for_classic(hand, protocol)
+    if too_long:
+        expected = (
+            f"true (CAN-FD): {', '.join(too_long)} are longer than the 8 bytes of a classic "
+            "CAN frame, and handctl sends every message in one frame"
+        )
+        out.append(("bus.fd", expected, False))
+    if not budget.ok:
+        found = f"{budget.load * 100:.1f} % at {hand.bus.loop_rate_hz:g} Hz; " + "; ".join(
+            what_would_fit(hand, protocol)
+        )
+        out.append(("bus", f"a worst-case load <= {MAX_LOAD * 100:.0f} %", found))
+    return out
+
+
 def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
     """What would bring an over-budget hand within ``MAX_LOAD``, each with its figure.
 

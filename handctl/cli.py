@@ -142,12 +142,7 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 def _cmd_check(args: argparse.Namespace) -> int:
     if args.timing:
         return _cmd_check_timing(args)
-    from handctl.busload import (
-        MAX_LOAD,
-        hand_budget,
-        too_long_for_classic,
-        what_would_fit,
-    )
+    from handctl.busload import MAX_LOAD, bus_refusals, hand_budget
     from handctl.hand_protocol import protocol_for
     from handctl.online.busspec import check_interface
     from handctl.sim.params import parse_sim
@@ -196,22 +191,13 @@ def _cmd_check(args: argparse.Namespace) -> int:
             f"{m.frame_time_us:>7.1f}us {m.load * 100:>6.2f}%"
         )
     print(f"total {budget.load * 100:.1f} % (limit {MAX_LOAD * 100:.0f} %)")
-    too_long = [] if bus.fd else too_long_for_classic(hand, protocol)
-    if budget.ok and not too_long:
+    refusals = bus_refusals(hand, protocol, budget)
+    if not refusals:
         print("ok")
         return EXIT_OK
-    if too_long:
+    for key, expected, found in refusals:
         print(
-            f"handctl: error: {args.hand}: bus.fd: expected true (CAN-FD): "
-            f"{', '.join(too_long)} are longer than the 8 bytes of a classic CAN frame, and "
-            "handctl sends every message in one frame; found false",
-            file=sys.stderr,
-        )
-    if not budget.ok:
-        print(
-            f"handctl: error: {args.hand}: bus: expected a worst-case load <= "
-            f"{MAX_LOAD * 100:.0f} %, found {budget.load * 100:.1f} % at "
-            f"{bus.loop_rate_hz:g} Hz; " + "; ".join(what_would_fit(hand, protocol)),
+            f"handctl: error: {args.hand}: {key}: expected {expected}, found {found}",
             file=sys.stderr,
         )
     return EXIT_BAD_INPUT
@@ -285,28 +271,13 @@ def _refuse_what_check_refuses(hand: HandConfig, path: Path) -> None:
     """A hand whose bus cannot carry it, which ``handctl check`` refuses (exit 2), is bad
     input for a run too: at bus.loop_rate_hz 10000 a run began and stopped at tick 10
     (RX_BACKLOG, exit 3), and a classic-CAN hand sent frames longer than the bus carries."""
-    from handctl.busload import MAX_LOAD, hand_budget, too_long_for_classic, what_would_fit
+    from handctl.busload import bus_refusals, hand_budget
     from handctl.hand_protocol import protocol_for
 
     protocol = protocol_for(hand)
-    too_long = [] if hand.bus.fd else too_long_for_classic(hand, protocol)
-    if too_long:
-        raise ConfigError(
-            str(path),
-            "bus.fd",
-            f"true (CAN-FD): {', '.join(too_long)} are longer than the 8 bytes of a classic "
-            "CAN frame, and handctl sends every message in one frame",
-            False,
-        )
-    budget = hand_budget(hand, protocol)
-    if not budget.ok:
-        raise ConfigError(
-            str(path),
-            "bus",
-            f"a worst-case load <= {MAX_LOAD * 100:.0f} % (handctl check {path}); "
-            + "; ".join(what_would_fit(hand, protocol)),
-            f"{budget.load * 100:.1f} % at {hand.bus.loop_rate_hz:g} Hz",
-        )
+    refusals = bus_refusals(hand, protocol, hand_budget(hand, protocol))
+    if refusals:
+        raise ConfigError(str(path), *refusals[0])
 
 
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
