@@ -248,9 +248,12 @@ def _parse_bus(doc: Doc) -> BusConfig:
     # a list, a mapping, a boolean or null, which str() would turn into a channel called
     # "[1, 2]", "True" or "None".
     raw_channel = doc.raw("channel")
-    if isinstance(raw_channel, bool) or not isinstance(raw_channel, (str, int)):
-        doc.fail("channel", _CHANNEL, raw_channel)
-    if (isinstance(raw_channel, int) and raw_channel < 0) or not str(raw_channel).strip():
+    if (
+        isinstance(raw_channel, bool)
+        or not isinstance(raw_channel, (str, int))
+        or (isinstance(raw_channel, int) and raw_channel < 0)
+        or not str(raw_channel).strip()
+    ):
         doc.fail("channel", _CHANNEL, raw_channel)
     channel = str(raw_channel)
     fd = doc.boolean("fd")

@@ -35,7 +35,7 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
     """Phases and their durations, the largest torques, faults, timing, drops."""
     n = len(series.joints)
     run_summary = recording.json_meta(ch.META_SUMMARY) or {}
-    end = {
+    drops = {
         key: recording.meta_int(ch.META_END, key, int(series.stats.get(key, 0)))
         for key in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
     }
@@ -81,7 +81,6 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
     for e in series.events:
         if e["kind"] == "rejected_frames":
             rejected[e["name"]] = rejected.get(e["name"], 0) + int(e.get("count", 0))
-    drops = end
     summary: dict[str, Any] = {
         "file": str(recording.path),
         "complete": recording.complete,

@@ -140,9 +140,10 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
                     f"the {len(series.object_names)} objects of the first such message",
                     f"{len(msg['objects'])} objects",
                 )
-            values = [t, _float(msg.get("line_angle_rad"))]
+            # null where the writer wrote a non-finite number, or none was written: NaN
+            values = [t, *json_floats([msg.get("line_angle_rad")])]
             for o in msg["objects"]:
-                values += [_float(o.get("x_m")), _float(o.get("y_m")), _float(o.get("angle_rad"))]
+                values += json_floats([o.get("x_m"), o.get("y_m"), o.get("angle_rad")])
             objects.add(values)
         elif topic == ch.STATS:
             series.stats = msg
@@ -175,11 +176,6 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     series.rest_y = _rest_heights(recording, series)
     series.frames = frames
     return series
-
-
-def _float(value: float | None) -> float:
-    """A number of a message (checked), NaN where the writer wrote null or none was written."""
-    return math.nan if value is None else value
 
 
 def json_floats(values: list[float | None]) -> list[float]:
