@@ -90,26 +90,24 @@ def _positive_seconds(option: str, value: float | None) -> None:
 
 def _output_file(option: str, path: Path | None) -> None:
     """An option naming a file to write: refused before any work (a run, a plan) when it
-    cannot be written, rather than found out at the end in a traceback."""
-    if path is None:
-        return
-    if path.is_dir():
-        raise ConfigError(option, "", "a file to write, not a directory", str(path))
-    parent = path.resolve().parent
-    if not parent.is_dir():
-        raise ConfigError(option, "", "a file in an existing directory", str(path))
-    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
-        raise ConfigError(option, "", "a file this user may write", str(path))
+    cannot be written (``outfile.check_writable``), rather than found out at the end."""
+    from handctl.outfile import check_writable
+
+    if path is not None:
+        check_writable(path, option)
 
 
-def _write_text(option: str, path: Path, text: str) -> None:
-    """Write an output the options named; the system refusing it (a full disk, a device
-    that is not a file) is said against the option, not in a traceback."""
+def _write_output(option: str, path: Path, text: str) -> None:
+    """An output the options named, whole or not at all (``outfile.write_atomically``); a
+    failure at the end (a full disk, a directory gone since it was checked) is said by name,
+    exit 1: the work was done, its file was not written."""
+    from handctl.outfile import write_atomically
+
     try:
-        Path(path).write_text(text)
+        write_atomically(path.resolve(), text)
     except OSError as exc:
-        raise ConfigError(
-            option, "", "a file that can be written", f"{path}: {exc.strerror or exc}"
+        raise HandctlError(
+            f"{option}: {path} could not be written ({exc}); it is unchanged"
         ) from None
 
 
@@ -135,7 +133,7 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
     report = timing_check(hand, args.seconds, realtime=not args.no_rt, cpu=args.loop_cpu)
     print(report.text())
     if args.json:
-        _write_text("--json", args.json, json.dumps(report.as_json(), indent=2) + "\n")
+        _write_output("--json", args.json, json.dumps(report.as_json(), indent=2) + "\n")
     return EXIT_HOST if report.verdict.fails else EXIT_OK
 
 
@@ -334,7 +332,7 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     summary = report.summary
     _print_run_summary(summary, args.plot)  # first: a summary file that fails still shows it
     if args.summary_json:
-        _write_text("--summary-json", args.summary_json, json.dumps(summary, indent=2) + "\n")
+        _write_output("--summary-json", args.summary_json, json.dumps(summary, indent=2) + "\n")
     return _run_exit_code(report.result, summary)
 
 
@@ -751,7 +749,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             f"worst lateness {sent['worst_late_ms']} ms)"
         )
     if args.json:
-        _write_text("--json", args.json, json.dumps(report, indent=2, default=str) + "\n")
+        _write_output("--json", args.json, json.dumps(report, indent=2, default=str) + "\n")
     if args.live is not None:
         from handctl.foxglove import HOST
         from handctl.foxglove.live import serve_recording
@@ -849,12 +847,9 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     import json
 
     from handctl.bringup.calibrate import CalibrationLimits, calibrate_tdt
-    from handctl.bringup.hand_edit import (
-        check_writable,
-        format_offset,
-        with_tdt_offsets,
-    )
+    from handctl.bringup.hand_edit import format_offset, with_tdt_offsets
     from handctl.config import load_hand
+    from handctl.outfile import check_writable
 
     hand = _load_hand(args.hand, "--hand", args.dbc)
     if args.output is None and not args.write:
@@ -938,7 +933,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             f"{j.mean:>+9.4f} {j.noise:>8.4f} {j.angle_span:>6.4f} rad  {j.problem or 'ok'}"
         )
     if args.json:
-        _write_result(
+        _write_output(
             "--json",
             args.json,
             json.dumps(
@@ -963,7 +958,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             "written as a plain dump, without its comments and layout",
             file=sys.stderr,
         )
-    _write_result("-o" if args.output is not None else "--write", written, edited.text)
+    _write_output("-o" if args.output is not None else "--write", written, edited.text)
     new_hash = load_hand(target, args.dbc).config_hash
     print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))
     if new_hash != hand.config_hash:
@@ -972,19 +967,6 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             "compiled for the old one must be planned again (handctl plan)"
         )
     return EXIT_OK
-
-
-def _write_result(option: str, path: Path, text: str) -> None:
-    """A result file of a bring-up command, whole or not at all (``write_atomically``); a
-    failure (a full disk, a directory gone since it was checked) is said by name, exit 1."""
-    from handctl.bringup.hand_edit import write_atomically
-
-    try:
-        write_atomically(path.resolve(), text)
-    except OSError as exc:
-        raise HandctlError(
-            f"{option}: {path} could not be written ({exc}); it is unchanged"
-        ) from None
 
 
 def _cmd_jog(args: argparse.Namespace) -> int:

@@ -15,14 +15,9 @@ the comments and the layout; ``EditedHand.dumped`` says so, and the command warn
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import os
-import stat
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 
 from handctl.config import HandConfig, parse_hand
 from handctl.errors import ConfigError
@@ -178,60 +173,3 @@ def _verify(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> None:
         len(hand.fingers),
     ):
         raise _CannotEditError("the edited text reads back as another hand")
-
-
-def check_writable(path: Path, option: str) -> Path:
-    """The file ``path`` names, resolved (a symlink is written through, not replaced), if a
-    new version of it can be put there: its directory exists and may be written, and the file,
-    if it exists, is a file that may be written (a read-only hand config stays as it is).
-    Otherwise a ``ConfigError`` naming ``option``; asked before a calibration starts."""
-    target = path.resolve()
-    directory = target.parent
-    if not directory.is_dir():
-        raise ConfigError(option, "", "a file in an existing directory", str(path))
-    if target.exists() and not target.is_file():
-        raise ConfigError(option, "", "a file (not a directory or a device)", str(path))
-    if target.exists() and _read_only(target):
-        raise ConfigError(option, "", "a file that may be written (it is read-only)", str(path))
-    if _read_only(directory):
-        raise ConfigError(
-            option, "", "a file in a directory that may be written (it is read-only)", str(path)
-        )
-    return target
-
-
-def _read_only(path: Path) -> bool:
-    """Not to be written by this process, or by anyone (no write bit at all: root may still
-    write it, but whoever took the bits away meant it to stay)."""
-    no_bits = not stat.S_IMODE(path.stat().st_mode) & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)
-    return no_bits or not os.access(path, os.W_OK | (os.X_OK if path.is_dir() else 0))
-
-
-def write_atomically(target: Path, text: str) -> None:
-    """``text`` into ``target`` whole or not at all: written to a file beside it, flushed to
-    the disk, then renamed over it. A reader (or a crash, a full disk, Ctrl-C) sees the old
-    file or the new one, never a half; the old file's permissions are kept."""
-    if target.exists():
-        mode = stat.S_IMODE(target.stat().st_mode)
-    else:  # what open() would have given a new file
-        umask = os.umask(0)
-        os.umask(umask)
-        mode = 0o666 & ~umask
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as out:
-            out.write(text)
-            out.flush()
-            os.fsync(out.fileno())
-        os.chmod(tmp, mode)
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    with contextlib.suppress(OSError):  # the rename itself, on a file system that needs it
-        dir_fd = os.open(target.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)

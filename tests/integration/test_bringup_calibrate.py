@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 
 from handctl import cli
-from handctl.bringup.hand_edit import with_tdt_offsets, write_atomically
+from handctl.bringup.hand_edit import with_tdt_offsets
 from handctl.config import HandConfig, load_hand, parse_hand
 from handctl.online.bus import open_bus
+from handctl.outfile import write_atomically
 from handctl.schema import parse_yaml
 from handctl.sim.params import parse_sim
 from handctl.sim.sensors import TdtModel

@@ -55,6 +55,7 @@ COMPOSITION = (
     "handctl.hostfacts",
     "handctl.rivals",
     "handctl.parent_death",
+    "handctl.outfile",
     "handctl.experiment",
     "handctl.harness",
 )

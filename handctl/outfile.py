@@ -1,0 +1,73 @@
+"""The files a command is told to write (a summary, a plot, a calibrated hand config): asked
+whether they can be written before the work begins, and written whole or not at all.
+
+A run or a calibration that ends only to fail writing its result has done its work for
+nothing; a hand config half written by a crash or a full disk is worse than the old one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+import tempfile
+from pathlib import Path
+
+from handctl.errors import ConfigError
+
+
+def check_writable(path: Path, option: str) -> Path:
+    """The file ``path`` names, resolved (a symlink is written through, not replaced), if a
+    new version of it can be put there: its directory exists and may be written, and the file,
+    if it exists, is a file that may be written (a read-only hand config stays as it is).
+    Otherwise a ``ConfigError`` naming ``option``; asked before a calibration starts."""
+    target = path.resolve()
+    directory = target.parent
+    if not directory.is_dir():
+        raise ConfigError(option, "", "a file in an existing directory", str(path))
+    if target.exists() and not target.is_file():
+        raise ConfigError(option, "", "a file (not a directory or a device)", str(path))
+    if target.exists() and _read_only(target):
+        raise ConfigError(option, "", "a file that may be written (it is read-only)", str(path))
+    if _read_only(directory):
+        raise ConfigError(
+            option, "", "a file in a directory that may be written (it is read-only)", str(path)
+        )
+    return target
+
+
+def _read_only(path: Path) -> bool:
+    """Not to be written by this process, or by anyone (no write bit at all: root may still
+    write it, but whoever took the bits away meant it to stay)."""
+    no_bits = not stat.S_IMODE(path.stat().st_mode) & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)
+    return no_bits or not os.access(path, os.W_OK | (os.X_OK if path.is_dir() else 0))
+
+
+def write_atomically(target: Path, text: str) -> None:
+    """``text`` into ``target`` whole or not at all: written to a file beside it, flushed to
+    the disk, then renamed over it. A reader (or a crash, a full disk, Ctrl-C) sees the old
+    file or the new one, never a half; the old file's permissions are kept."""
+    if target.exists():
+        mode = stat.S_IMODE(target.stat().st_mode)
+    else:  # what open() would have given a new file
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o666 & ~umask
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as out:
+            out.write(text)
+            out.flush()
+            os.fsync(out.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # the rename itself, on a file system that needs it
+        dir_fd = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
