@@ -53,8 +53,12 @@ EXIT_INTERRUPTED = 130
 #: the repository's copy, kept identical by a test (tests/unit/test_cli_defaults.py).
 DEFAULT_HAND = Path(__file__).resolve().parent / "hands" / "hiroshima_hand.yaml"
 DEFAULT_HAND_HELP = "default: the Hiroshima-Hand, shipped with handctl"
-#: A simulated hand told to stop by SIGTERM waits this long (s) for its host to be gone.
-ORPHAN_WAIT_S = 2.0
+#: A simulated hand told to stop by SIGTERM waits this long (s) for its host to be gone:
+#: SIGTERM is the parent-death signal, which comes when the host's first thread dies, and a
+#: host killed with SIGKILL on a loaded machine took more than 2 s to take the rest down
+#: (its bus directory was then left behind). The wait ends as soon as the host is gone; only
+#: a SIGTERM sent to the hand alone, its host alive, waits it out.
+ORPHAN_WAIT_S = 10.0
 
 
 def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
