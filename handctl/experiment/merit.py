@@ -33,8 +33,9 @@ figures exist where the recipe has a pair. Definitions:
   ticks by being brief;
   ``peak_turn_rate_deg_s``: the largest rate of the true centre line over the manipulation
   phases, each rate taken over ``RATE_WINDOW_S`` (10 ms) so that one contact impact of a
-  physics step does not count as a turn. The analysis behind a recipe is quasi-static: a
-  pair that turns faster than some 180 °/s is tumbling, not being turned;
+  physics step does not count as a turn; ``peak_turn_rate_by_phase_deg_s`` the same per
+  manipulation phase, which says which phase tumbles. The analysis behind a recipe is
+  quasi-static: a pair that turns faster than some 180 °/s is tumbling, not being turned;
 - ``success``: lifted (and so held), nothing dropped, and a total rotation of at least the
   recipe's ``min_total_turn_deg`` (0 without a pair). A run whose experiment failed is a
   failed run (exit 1).
@@ -331,6 +332,9 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
                 )
                 if manip
                 else 0.0,
+                "peak_turn_rate_by_phase_deg_s": {
+                    name: round(peak_rate_deg_s(t[s:e], angles[s:e]), 1) for name, s, e in manip
+                },
                 "estimator_error_deg": _p95_deg(err[ok]),
                 "estimator_error_manipulation_deg": _p95_deg(err[ok & in_manip[sel]]),
                 "estimator_error_by_phase_deg": {

@@ -72,6 +72,7 @@ def run_seed(task: SeedRun) -> dict[str, Any]:
         "total_rotation_deg": total,
         "phase_angles_deg": ex.get("phase_angles_deg"),
         "peak_turn_rate_deg_s": ex.get("peak_turn_rate_deg_s"),
+        "peak_turn_rate_by_phase_deg_s": ex.get("peak_turn_rate_by_phase_deg_s"),
         "timed_out_phases": report.summary.get("timed_out_phases"),
         "estimator_error_deg": ex.get("estimator_error_deg"),
         "scales": {k: round(v, 4) for k, v in scales.items()},
