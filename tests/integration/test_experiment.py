@@ -92,13 +92,6 @@ def test_each_manipulation_phase_turns_about_45_deg(summary: dict[str, object]) 
         )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="manipulate_3's torque sweeps the pair 50 mm along the palm at 430 deg/s with the "
-    "estimate invalid (its cage open), so the pace on the pair's rate does not see it; the "
-    "variants that pace and brake on the joints' speed as well turn it at 124 deg/s but cost "
-    "the estimator's accuracy and the bench's models (docs/experiment.md)",
-)
 def test_the_pair_is_turned_not_tumbled(summary: dict[str, object]) -> None:
     ex = summary["experiment"]
     assert isinstance(ex, dict)

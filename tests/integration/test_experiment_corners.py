@@ -31,17 +31,17 @@ CORNERS = {
     "damping_x0.4": {"damping": 0.4},
     "damping_x0.3_lag_x2": {"damping": 0.3, "lag": 2.0},
 }
-#: the corners the shipped recipe does the experiment on, each phase turning 45° ± 10°
-DOES_THE_EXPERIMENT = {"damping_x1.1", "armature_lag_x2", "armature_lag_x0.5"}
+#: the corners the shipped recipe does the experiment on, each phase turning 45° ± 10° and
+#: the pair turned, not tumbled (its true centre line never faster than 180°/s)
+DOES_THE_EXPERIMENT = {"damping_x1.1", "armature_lag_x2", "armature_lag_x0.5", "damping_x0.4"}
 #: the corners it does the experiment on with a phase turning more or less than that: the
-#: lightly damped hands (their f1_j3 rang on its guard in manipulate_2 until the phase damped
-#: its distal joints and the distal joints' lower springs were softened; manipulate_3 then
-#: tumbles the pair 60° or more), and joint damping with tendon friction ×3, whose
-#: manipulate_2 stops at 34.6°: manipulate_2 stalls near 35° on every hand (no robust torque
-#: for its grasp), and this hand's approach, pushed on by the pose hold's integral, leaves it
-#: 0.5° short of the 35.1° it turned before (docs/experiment.md)
+#: lightest hands (joint damping ×0.3; their manipulate_2 stops at 34.4-34.6°, and
+#: manipulate_3 still tumbles them at about 400°/s: the injected damping is held down to what
+#: a light distal link tolerates through the drive's lag), and joint damping with tendon
+#: friction ×3, whose manipulate_4 makes up the 10° manipulate_2 left and turns 55°:
+#: manipulate_2 stalls near 35° on every hand (no robust torque for its grasp;
+#: docs/experiment.md)
 SWAPS_THE_PAIR = {
-    "damping_x0.4",
     "joint_dynamics_x3",
     "joint_dynamics_x0.3",
     "damping_x0.3_lag_x2",
@@ -50,6 +50,8 @@ SWAPS_THE_PAIR = {
 SWAP_DEG = 170.0
 #: deg: each manipulation phase's turn, and how far from it a phase may end
 PHASE_TURN_DEG, PHASE_TURN_TOLERANCE_DEG = 45.0, 10.0
+#: deg/s: faster is a tumble the quasi-static analysis does not cover (the issue's target)
+MAX_PEAK_TURN_RATE_DEG_S = 180.0
 
 
 def _run(directory: Path, corner: str) -> tuple[subprocess.CompletedProcess[str], Path]:
@@ -101,6 +103,9 @@ def test_a_hard_hand_ends_safely_and_says_how_it_went(
         assert all(
             abs(abs(a) - PHASE_TURN_DEG) <= PHASE_TURN_TOLERANCE_DEG for a in ex["phase_angles_deg"]
         ), ex["phase_angles_deg"]
+        assert 0.0 < ex["peak_turn_rate_deg_s"] <= MAX_PEAK_TURN_RATE_DEG_S, ex[
+            "peak_turn_rate_by_phase_deg_s"
+        ]
     # whatever happened, no torque beyond a joint's tau_max was ever applied
     limits = {
         j["name"]: j["tau_max"]

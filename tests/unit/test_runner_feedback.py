@@ -210,6 +210,21 @@ def test_injected_damping_opposes_every_joint_s_velocity(tmp_path: Path, hand: H
     assert np.all(runner.damping == 0.03)
 
 
+def test_injected_damping_acts_on_a_speed_eight_ticks_old_at_most(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A damper acts through the drive's lag plus its velocity's own, and the most a lightly
+    damped joint tolerates falls with that lag: the damping reads the line through the last
+    eight angles (``GUARD_VELOCITY_WINDOW``), whole after eight ticks of a new speed, where a
+    10 ms low-pass would still be at little more than half of it."""
+    from handctl.online.recipes.guard import GUARD_VELOCITY_WINDOW
+
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"joint_damping": 0.03}, objects=False), 9)
+    t, angle, _ = _move(runner, 0.0, 2 * RAMP)
+    _, _, out = _move(runner, 2.0, (GUARD_VELOCITY_WINDOW + 1) * DT, t, angle)
+    assert out == pytest.approx(np.array(TORQUES) - 0.03 * 2.0, abs=1e-6)
+
+
 def test_injected_damping_per_joint_damps_only_the_joints_named(
     tmp_path: Path, hand: HandConfig
 ) -> None:

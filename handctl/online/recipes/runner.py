@@ -41,16 +41,20 @@ Feedback, all of it from the angles and the estimates computed from them:
   ``Reanalyser`` for the analysis' torque at the measured configuration, and ``delay_s``
   later takes the answer: the phase's ramp starts again, from the torque proposed then to
   the answer (``_reanalyse``); no answer, or none robust, keeps the planned torque.
-- ``joint_damping``: ``-joint_damping * velocity`` on each joint (the velocities filtered
-  from the angles, ``velocity.py``). The hand's own joint damping is what a real hand knows
-  least (a tendon's losses are not measured to a factor of three), and in a turn it sets how
-  fast the grasp rolls over; an injected term larger than that uncertainty makes the pace of
-  the motion the recipe's, and slows the roll-over of a pair past its balance to where the
-  exits on the measured turn can catch it. The coefficient moves from the previous phase's
-  to this one's with the ramp, so a change of damping is no step in torque. Given per joint,
-  each joint has its own: a distal joint the phase presses into its guard's band needs it
-  (the guard's spring through the drive's lag is a negative damping), the joints that roll
-  the pair do not.
+- ``joint_damping``: ``-joint_damping * velocity`` on each joint (the velocity is the
+  slope of a line through the last eight angles, ``velocity.FittedVelocity``, as the
+  guard's: a damper acts through the drive's lag plus the velocity's own, and on a lightly
+  damped joint the most it may inject without ringing falls with that lag; the 10 ms
+  low-pass it used before cost a third of the manipulation's successes at 0.06). The
+  hand's own joint damping is what a real hand knows least (a tendon's losses are not
+  measured to a factor of three), and in a turn it sets how fast the grasp rolls over: the
+  fingers are torque-controlled, and what the analysis' margin puts into a roll only
+  damping takes out. An injected term larger than that uncertainty makes the pace of the
+  motion the recipe's. The coefficient moves from the previous phase's to this one's with
+  the ramp, so a change of damping is no step in torque. Given per joint, each joint has
+  its own: a light distal link tolerates far less through the lag than a proximal joint
+  that carries the finger and the pair (docs/experiment.md, *The manipulation damped and
+  ramped slowly*).
 """
 
 from __future__ import annotations
@@ -63,6 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from handctl.arrays import FloatArray
+from handctl.online.recipes.guard import GUARD_VELOCITY_WINDOW
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
@@ -112,7 +117,7 @@ class Handover:
     torques: FloatArray
     damping: FloatArray  # N·m·s/rad, per joint
     velocity: JointVelocity
-    guard_velocity: FittedVelocity | None
+    fitted_velocity: FittedVelocity
 
 
 class RecipeRunner:
@@ -166,12 +171,12 @@ class RecipeRunner:
         self._guarded = np.zeros(n_joints)
         # from the angles it is fed, so a re-run of the logged feedback gets the same values
         self.velocity = JointVelocity(n_joints)
-        # the guard's own, less smoothed: its damper must act within the drive's lag; none
-        # (and no work a tick) for a recipe without a guard
-        self._guard_velocity = (
-            FittedVelocity(n_joints, self._guard.velocity_window)
-            if self._guard is not None
-            else None
+        # less smoothed, for every damper that acts through the drive's lag (the guard's, the
+        # injected damping and the brake): a damper's stable gain on a light link falls with
+        # the lag around it, and this one adds 3.5 ms where the low-pass adds 10
+        self._fitted_velocity = FittedVelocity(
+            n_joints,
+            self._guard.velocity_window if self._guard is not None else GUARD_VELOCITY_WINDOW,
         )
         self._fraction = 1.0  # of the current ramp
         # the turn-rate loop of the current phase: scale, its integral part, the rate
@@ -219,14 +224,13 @@ class RecipeRunner:
             self._desired[:] = after.torques
             self.damping[:] = after.damping
             self.velocity = after.velocity
-            if self._guard_velocity is not None and after.guard_velocity is not None:
-                self._guard_velocity = after.guard_velocity
+            self._fitted_velocity = after.fitted_velocity
 
     def handover(self) -> Handover:
         """What the next phase would start from now (its filters are this runner's own)."""
         torques = (self._proposed if self._fed else self._desired).copy()
         damping = np.zeros(self.n) if self._damping_ends() else self.damping.copy()
-        return Handover(torques, damping, self.velocity, self._guard_velocity)
+        return Handover(torques, damping, self.velocity, self._fitted_velocity)
 
     def _damping_ends(self) -> bool:
         """Whether the current phase's injected damping ends with it instead of fading over
@@ -330,8 +334,7 @@ class RecipeRunner:
             self._desired[:] = 0.0
             return
         self.velocity.update(t, angle)
-        if self._guard_velocity is not None:
-            self._guard_velocity.update(t, angle)
+        self._fitted_velocity.update(t, angle)
         elapsed = t - self.phase_start
         if self.status is RunStatus.RUNNING:
             phase = self.recipe.phases[self.index]
@@ -428,12 +431,12 @@ class RecipeRunner:
         if self._damping_ramped or self._damping_stale:
             # apart from ``_proposed``, which the next phase's ramp starts from: the damping
             # carries over through ``self.damping`` instead
-            np.multiply(self.velocity.value, self.damping, out=self._damped)
+            np.multiply(self._fitted_velocity.value, self.damping, out=self._damped)
             np.subtract(out, self._damped, out=self._damped)
             out = self._damped
-        if self._guard is None or self._guard_velocity is None:
+        if self._guard is None:
             return out
-        return self._guard.apply(angle, out, self._guarded, self._guard_velocity.value)
+        return self._guard.apply(angle, out, self._guarded, self._fitted_velocity.value)
 
     def _pose_hold(self, t: float, pose: PoseHold, angle: FloatArray, out: FloatArray) -> None:
         """Add a pose hold's spring and damper, ramped in with the phase, and its integral."""
