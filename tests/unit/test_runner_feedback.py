@@ -16,6 +16,7 @@ import yaml
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
+from handctl.online.recipes.guard import GUARD_VELOCITY_WINDOW
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.runner import RecipeRunner
 from handctl.online.recipes.schema import FIRST_PAIR_TURN, Recipe, RecipeObject, estimate_names
@@ -217,8 +218,6 @@ def test_injected_damping_acts_on_a_speed_eight_ticks_old_at_most(
     damped joint tolerates falls with that lag: the damping reads the line through the last
     eight angles (``GUARD_VELOCITY_WINDOW``), whole after eight ticks of a new speed, where a
     10 ms low-pass would still be at little more than half of it."""
-    from handctl.online.recipes.guard import GUARD_VELOCITY_WINDOW
-
     runner = RecipeRunner(_recipe(tmp_path, hand, {"joint_damping": 0.03}, objects=False), 9)
     t, angle, _ = _move(runner, 0.0, 2 * RAMP)
     _, _, out = _move(runner, 2.0, (GUARD_VELOCITY_WINDOW + 1) * DT, t, angle)
