@@ -47,6 +47,8 @@ ENDED_CLOSED = "closed by the recorder"
 EVENT_KINDS = ("fault", "state", "phase", "bus", "rejected_frames", "request", "recording")
 
 _INT = {"type": "integer"}
+#: a count or a tick: a reader relies on it not being negative (a forged -5 would subtract)
+_COUNT = {"type": "integer", "minimum": 0}
 _NUM = {"type": "number"}
 _STR = {"type": "string"}
 _BOOL = {"type": "boolean"}
@@ -57,7 +59,7 @@ def _array(item: dict[str, str], description: str) -> dict[str, Any]:
 
 
 def _tick() -> dict[str, Any]:
-    return {"type": "integer", "description": "tick number, 0 first (start-up ticks included)"}
+    return {**_COUNT, "description": "tick number, 0 first (start-up ticks included)"}
 
 
 def _object(
@@ -136,7 +138,7 @@ CHANNELS: tuple[Channel, ...] = (
                     **_STR,
                     "description": "idle, enabling, running, stopping, fault_ramp or faulted",
                 },
-                "faults_latched": {**_INT, "description": "faults latched so far"},
+                "faults_latched": {**_COUNT, "description": "faults latched so far"},
             },
             ["tick", "state"],
         ),
@@ -167,7 +169,7 @@ CHANNELS: tuple[Channel, ...] = (
                 "scheduled_ns": {**_INT, "description": "when the tick was due (ns)"},
                 "now_ns": {**_INT, "description": "when the loop got it (ns)"},
                 "lateness_ns": _INT,
-                "missed": {**_INT, "description": "ticks missed just before it"},
+                "missed": {**_COUNT, "description": "ticks missed just before it"},
                 "active": {
                     **_BOOL,
                     "description": "false for start-up and shut-down ticks, which only poll",
@@ -175,7 +177,12 @@ CHANNELS: tuple[Channel, ...] = (
                 "stage_cpu_ns": {
                     "type": "object",
                     "description": "CPU time of each stage (ns)",
-                    "properties": {"poll": _INT, "recipe": _INT, "safety": _INT, "send": _INT},
+                    "properties": {
+                        "poll": _COUNT,
+                        "recipe": _COUNT,
+                        "safety": _COUNT,
+                        "send": _COUNT,
+                    },
                 },
             },
             ["tick", "scheduled_ns", "now_ns", "missed", "active"],
@@ -202,7 +209,7 @@ CHANNELS: tuple[Channel, ...] = (
                 "previous": {**_STR, "description": "state or phase before the change"},
                 "cause": {**_STR, "description": "supervisor event behind a state change"},
                 "count": {
-                    **_INT,
+                    **_COUNT,
                     "description": "rejected or dropped records since the last event",
                 },
                 "bus_time_ns": {**_INT, "description": "when the bus layer saw a bus event (ns)"},
@@ -265,13 +272,13 @@ CHANNELS: tuple[Channel, ...] = (
             "The recorder's own accounts: what it wrote and dropped.",
             {
                 "tick": {**_INT, "description": "the last tick written"},
-                "ticks": _INT,
-                "frames": _INT,
-                "events": _INT,
-                "dropped_ticks": _INT,
-                "dropped_frames": _INT,
-                "dropped_events": _INT,
-                "dropped_poses": _INT,
+                "ticks": _COUNT,
+                "frames": _COUNT,
+                "events": _COUNT,
+                "dropped_ticks": _COUNT,
+                "dropped_frames": _COUNT,
+                "dropped_events": _COUNT,
+                "dropped_poses": _COUNT,
             },
             ["tick", "dropped_ticks", "dropped_frames", "dropped_events"],
         ),

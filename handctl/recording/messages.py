@@ -88,6 +88,13 @@ def _compile(schema: dict[str, Any]) -> tuple[_Test, str]:
     kind = schema.get("type")
     if kind in _SCALARS:
         test, expected = _SCALARS[kind]
+        if "minimum" in schema:
+            low = schema["minimum"]
+            scalar = test
+            return (
+                lambda v: scalar(v) and v is not None and v >= low,
+                f"{expected.removesuffix(' (or null)')}, at least {low}",
+            )
         if "enum" in schema:
             allowed = frozenset(schema["enum"])
             return (

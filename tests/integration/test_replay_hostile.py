@@ -66,6 +66,11 @@ def field(key: str, value: object) -> Callable[[bytes], bytes]:
         (ch.PHASE, field("phase", 7), "phase", "expected a string"),
         (ch.OBJECTS, field("objects", 1.5), "objects", "expected an array"),
         (ch.EVENTS, field("kind", "other"), "kind", "expected one of fault, state"),
+        # counts and ticks a reader adds up or indexes by: a forged negative is refused
+        (ch.EVENTS, field("count", -5), "count", "expected an integer, at least 0, found -5"),
+        (ch.TIMING, field("missed", -3), "missed", "expected an integer, at least 0, found -3"),
+        (ch.TIMING, field("tick", -1), "tick", "expected an integer, at least 0, found -1"),
+        (ch.TORQUE, field("tick", 2.5), "tick", "expected an integer, at least 0, found 2.5"),
         (ch.CAN_RX, field("data", "zz"), "data", "a frame's payload as hex"),
         (ch.CAN_TX, field("id", 1 << 40), "id", "a CAN id"),
         (ch.TIMING, lambda raw: b"not json", "", "expected a JSON object"),
@@ -102,7 +107,7 @@ def test_the_cli_says_which_message_is_bad_and_exits_2(recorded: Recorded, tmp_p
     assert done.returncode == 2, done.stdout + done.stderr
     assert "Traceback" not in done.stderr
     assert f"{bad}: {ch.TIMING} message at log time" in done.stderr
-    assert "(tick 300): missed: expected an integer, found None" in done.stderr
+    assert "(tick 300): missed: expected an integer, at least 0, found None" in done.stderr
 
 
 # -- metadata -------------------------------------------------------------------------------------
@@ -163,7 +168,7 @@ def test_a_hand_or_protocol_edited_in_the_log_is_refused(
 
 
 # -- tick rows out of sequence ----------------------------------------------------------------
-@pytest.mark.parametrize("tick", [-1, 299, 400])
+@pytest.mark.parametrize("tick", [299, 400])  # a negative tick: the message check above
 def test_a_tick_row_out_of_sequence_in_a_whole_log_is_refused(
     recorded: Recorded, tmp_path: Path, tick: int
 ) -> None:
