@@ -121,6 +121,8 @@ def test_fig3_contacts_lie_on_links_and_normals_point_into_objects() -> None:
         (lambda d: d["contacts"]["fingers"][0].update(mu=1e300), "contacts.fingers[0].mu", "<="),
         (lambda d: d["contacts"]["objects"][0].update(mu=1e300), "contacts.objects[0].mu", "<="),
         (lambda d: d.update(gravity=[0.0, -1e300]), "gravity[1]", ">= -1000"),
+        # a tolerance of a metre accepted contacts that touch nothing as touching
+        (lambda d: d.update(geometry_tolerance=1.0), "geometry_tolerance", "<= 0.001"),
         # far below m r²: the contact equations' matrix was singular in floating point, said
         # as "the object-object contacts are not independent", naming no key
         (lambda d: d["objects"][0].update(inertia=1e-20), "objects[0].inertia", ">= 2.025e-10"),
