@@ -7,6 +7,7 @@ import importlib.util
 import itertools
 import json
 import os
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator, Mapping
@@ -43,6 +44,15 @@ HAND_YAML = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
 #: The main job's recipe, as the README names it (relative to the repository root)
 DEFAULT_RECIPE = "config/recipes/swap_two_cylinders.yaml"
 _channels = itertools.count()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """SIGHUP back to its default when the suite itself was started with it ignored (under
+    ``nohup``, or by a runner that ignores it): a run started so keeps ignoring SIGHUP on
+    purpose (``session.StopSignals``), so the tests of what a run does when its terminal goes
+    away would test that branch instead, and fail. Every worker and every child inherits it."""
+    if signal.getsignal(signal.SIGHUP) is signal.SIG_IGN:
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
 @pytest.hookimpl(optionalhook=True)
