@@ -60,6 +60,7 @@ from handctl.planning.search import (
     GUARDED_LIMIT_MARGIN,
     LIMIT_FAIL,
     LIMIT_MARGIN,
+    TUMBLE_FAIL_FACTOR,
     Budget,
     Candidate,
     SearchResult,
@@ -518,6 +519,11 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 lifted=lifted,
                 limit_fail=fail,
                 wanted_turn_deg=math.degrees(spec.turn) if spec.kind == "turn" else None,
+                tumble_deg_s=(
+                    TUMBLE_FAIL_FACTOR * settings.max_turn_rate_deg_s
+                    if spec.kind == "turn"
+                    else None
+                ),
                 label=f"phase {spec.name}",
                 meter=meter,
                 say=say,
@@ -647,6 +653,7 @@ def _search(
     lifted: bool,
     limit_fail: float,
     wanted_turn_deg: float | None,
+    tumble_deg_s: float | None,
     label: str,
     meter: Callable[[str, int], Progress] | None,
     say: Callable[[str], None],
@@ -670,6 +677,7 @@ def _search(
         progress=say,
         limit_fail=limit_fail,
         wanted_turn_deg=wanted_turn_deg,
+        tumble_deg_s=tumble_deg_s,
         bar=bar,
     )
     return result, bar
@@ -783,6 +791,7 @@ def _plan_schedule(
             lifted=lifted,
             limit_fail=fail,
             wanted_turn_deg=math.degrees(spec.turn),
+            tumble_deg_s=TUMBLE_FAIL_FACTOR * settings.max_turn_rate_deg_s,
             label=f"phase {name}",
             meter=meter,
             say=say,

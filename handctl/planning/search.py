@@ -51,6 +51,12 @@ MAX_TURN_RATE_DEG_S = 180.0
 #: what a peak rate above it costs, per multiple of it over, and at most
 RATE_WEIGHT = 0.5
 RATE_PENALTY_CAP = 1.0
+#: a turn whose true centre line peaked above this many times ``max_turn_rate_deg_s`` on a
+#: model failed there, for the ranking: the score charges a peak in proportion, so a torque
+#: that snapped the pair over on one model and reached its exit on the others outranked one
+#: that turns slowly everywhere and falls a little short on one; and a snap is what a real
+#: hand would likely drop (docs/experiment.md)
+TUMBLE_FAIL_FACTOR = 2.0
 #: a turn phase that turned the pair less than this fraction of its wanted turn on a model
 #: (or the other way) failed there, for the ranking: without it a torque that does not turn
 #: the pair fails on no model, and "do nothing" ranks above any torque that turns the pair on
@@ -85,18 +91,24 @@ class Candidate:
     limit_fail: float = LIMIT_FAIL  # rad, see ``failures``
     #: deg, a turn phase's wanted turn (signed), see ``failures``; None: not a turn phase
     wanted_turn_deg: float | None = None
+    #: deg/s, a turn phase's peak rate that counts as failing, see ``failures``; None: none
+    tumble_deg_s: float | None = None
 
     @property
     def failures(self) -> int:
         """Models on which the phase failed (a drop, a soft limit, an object out of hand),
         came within ``LIMIT_FAIL`` of a soft limit (contact makes the motion chaotic enough
         that a model which brushes a limit here crosses it on the real bus), or, in a turn
-        phase, turned the pair less than ``MIN_TURN_FRACTION`` of its wanted turn."""
+        phase, turned the pair less than ``MIN_TURN_FRACTION`` of its wanted turn or faster
+        than ``tumble_deg_s`` at its peak."""
         return sum(
             1
             for o in self.outcomes
-            if o.failed or o.limit_margin < self.limit_fail or self._short(o)
+            if o.failed or o.limit_margin < self.limit_fail or self._short(o) or self._tumbled(o)
         )
+
+    def _tumbled(self, o: PhaseOutcome) -> bool:
+        return self.tumble_deg_s is not None and o.peak_rate_deg_s > self.tumble_deg_s
 
     def _short(self, o: PhaseOutcome) -> bool:
         wanted = self.wanted_turn_deg
@@ -147,6 +159,7 @@ def evaluate(
     lifted: bool,
     limit_fail: float = LIMIT_FAIL,
     wanted_turn_deg: float | None = None,
+    tumble_deg_s: float | None = None,
     bar: Progress | None = None,
 ) -> list[Candidate]:
     """Run ``phase`` with each candidate's torques on every model from its snapshot, all of
@@ -177,6 +190,7 @@ def evaluate(
                 [float(s) for s in scores],
                 limit_fail,
                 wanted_turn_deg,
+                tumble_deg_s,
             )
         )
     return out
@@ -197,6 +211,7 @@ def cem(
     progress: Callable[[str], None] | None = None,
     limit_fail: float = LIMIT_FAIL,
     wanted_turn_deg: float | None = None,
+    tumble_deg_s: float | None = None,
     bar: Progress | None = None,
 ) -> SearchResult:
     """Cross-entropy search around the seeds; returns the best candidate ever evaluated.
@@ -216,6 +231,7 @@ def cem(
         lifted=lifted,
         limit_fail=limit_fail,
         wanted_turn_deg=wanted_turn_deg,
+        tumble_deg_s=tumble_deg_s,
         bar=bar,
     )
     for (origin, _), cand in zip(seeds, seeded, strict=True):
@@ -242,6 +258,7 @@ def cem(
             lifted=lifted,
             limit_fail=limit_fail,
             wanted_turn_deg=wanted_turn_deg,
+            tumble_deg_s=tumble_deg_s,
             bar=bar,
         )
         for cand in population:

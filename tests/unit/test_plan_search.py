@@ -7,7 +7,12 @@ import dataclasses
 import math
 
 from handctl.planning.episode import PhaseOutcome
-from handctl.planning.search import Candidate, turn_scorer
+from handctl.planning.search import (
+    MAX_TURN_RATE_DEG_S,
+    TUMBLE_FAIL_FACTOR,
+    Candidate,
+    turn_scorer,
+)
 
 TARGET_RAD = -0.785398  # -45 deg
 
@@ -82,4 +87,32 @@ def test_a_candidate_that_turns_the_pair_on_most_models_beats_one_that_turns_it_
     assert (half.failures, wrong.failures) == (0, 1)
     # outside a turn phase the turn is not asked for
     hold = Candidate((0.0,), 1.0, [outcome("timeout", 0.0, 0.0, 3.0)], "", [1.0])
+    assert hold.failures == 0
+
+
+def test_a_turn_that_snaps_over_on_a_model_has_failed_there() -> None:
+    """The score charges a peak in proportion, so a torque that snaps the pair over on one
+    model and reaches its exit on the others outscored one that turns slowly everywhere and
+    falls short (but past half) on one: past ``tumble_deg_s`` a turn counts as failing."""
+    score = turn_scorer(TARGET_RAD, 3.0)
+    wanted = math.degrees(TARGET_RAD)
+    exit_text = "estimate.cyl1_cyl2_line_turn < -0.7461 for 0.02"
+    tumble = TUMBLE_FAIL_FACTOR * MAX_TURN_RATE_DEG_S
+
+    def candidate(outcomes: list[PhaseOutcome]) -> Candidate:
+        scores = [score(o) for o in outcomes]
+        mean = sum(scores) / len(scores)
+        return Candidate(
+            (0.0,), mean, outcomes, "", scores, wanted_turn_deg=wanted, tumble_deg_s=tumble
+        )
+
+    fine = [outcome(exit_text, -45.0, 150.0)] * 5
+    snaps = candidate([*fine, outcome(exit_text, -45.0, 400.0)])
+    slow = candidate([*fine, outcome("timeout", -27.0, 90.0, 3.0)])
+    assert snaps.score > slow.score  # what the score alone prefers
+    assert (snaps.failures, slow.failures) == (1, 0)
+    assert slow.rank() > snaps.rank()
+    # at the bound itself, and without one (a hold phase), a peak is no failure
+    assert candidate([outcome(exit_text, -45.0, tumble)]).failures == 0
+    hold = Candidate((0.0,), 1.0, [outcome("timeout", 0.0, 900.0, 3.0)], "", [1.0])
     assert hold.failures == 0
