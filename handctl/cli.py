@@ -37,6 +37,7 @@ from handctl import __version__
 from handctl.errors import BusError, ConfigError, HandctlError
 
 if TYPE_CHECKING:
+    from handctl.bringup.jog import JogReport
     from handctl.config import HandConfig
     from handctl.online.loop import RunResult
 
@@ -978,9 +979,11 @@ def _cmd_jog(args: argparse.Namespace) -> int:
 
     hand = _load_hand(args.hand, "--hand", args.dbc)
     seconds = _seconds_or(args.seconds, 2.0)
-    jog_recipe(hand, args.joint, args.torque, seconds)  # refused here, before any bus opens
+    # refused here, before any bus opens
+    jog_recipe(hand, args.joint, args.torque, seconds, args.recover)
+    until = " or until it is back inside its soft limits" if args.recover else ""
     print(
-        f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s on {args.bus}, "
+        f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on {args.bus}, "
         "every other joint at zero (Ctrl-C: controlled stop)"
     )
     print(
@@ -1007,6 +1010,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         sim_faults=args.sim_faults,
         reset_node_faults=args.reset_node_faults,
         accept_missed_deadlines=args.accept_missed_deadlines,
+        recover=args.recover,
         show=show,
     )
     moved = result.moved
@@ -1018,7 +1022,39 @@ def _cmd_jog(args: argparse.Namespace) -> int:
             f"{result.report.summary['max_abs_tau_nm'][args.joint]:.4f} N·m"
         )
     stopped = _run_outcome(result.report)
+    if stopped is None and result.recovery is not None:
+        return _recovery_outcome(result, hand)
     return EXIT_OK if stopped is None else stopped
+
+
+def _recovery_outcome(result: JogReport, hand: HandConfig) -> int:
+    """What a recovery jog that ran to its end did: back inside (0), or not (1, a failed
+    result: the hand is safe, stopped, and still outside)."""
+    recovery = result.recovery
+    assert recovery is not None
+    spec = hand.joints[recovery.joint]
+    if not recovery.needed:
+        print(
+            f"{result.joint} was inside its soft limits [{spec.angle_min:+g}, "
+            f"{spec.angle_max:+g}] rad when torque came on ({recovery.start_angle:+.4f} rad): "
+            "nothing to recover"
+        )
+        return EXIT_OK
+    end = result.end_angle
+    back = end is not None and spec.angle_min <= end <= spec.angle_max
+    if not back:
+        print(
+            f"{result.joint} still outside its soft limits [{spec.angle_min:+g}, "
+            f"{spec.angle_max:+g}] rad at {end:+.4f} rad: jog it again with more torque or "
+            "--seconds (it is stopped, torque off)",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
+    print(
+        f"{result.joint} back inside its soft limits: {recovery.start_angle:+.4f} -> "
+        f"{end:+.4f} rad (limits [{spec.angle_min:+g}, {spec.angle_max:+g}] rad)"
+    )
+    return EXIT_OK
 
 
 def _cmd_monitor(args: argparse.Namespace) -> int:
@@ -1711,6 +1747,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         examples=[
             "handctl jog f1_j2 --torque 0.05",
             "handctl jog f3_j1 --torque -0.05 --seconds 3 --bus socketcan:can0",
+            "handctl jog f1_j2 --torque -0.03 --recover --bus socketcan:can0",
         ],
         help="one joint under a small torque, every other at zero, through safety",
         description="Ramp one joint to a torque (N·m) within its rate limit, hold it, ramp "
@@ -1720,9 +1757,19 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "torque is printed as it runs. Default bus: the simulated hand, in lockstep.",
         notes="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
         "130. A torque over the joint's tau_max is refused (exit 2) before anything "
-        "is sent.",
+        "is sent. --recover brings back a joint resting outside its soft limits "
+        "(no other run can arm then): the supervisor lets that joint, and only it, be "
+        "outside as long as it comes back in (never more than 0.02 rad further out "
+        "than the farthest in it came), and the jog ends once it is 0.15 rad inside; "
+        "exit 1 if it is still outside when --seconds are up.",
     )
     jog.add_argument("joint", help="joint name, as the hand config names it")
+    jog.add_argument(
+        "--recover",
+        action="store_true",
+        help="bring the joint back from outside its soft limits: the torque's sign must "
+        "push it back in (negative from above the upper limit)",
+    )
     jog.add_argument(
         "--torque", type=float, required=True, metavar="X", help="torque [N·m], signed"
     )

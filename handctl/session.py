@@ -55,6 +55,7 @@ from handctl.online.misstrace import MissTrace
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FAULTS
+from handctl.online.safety.recovery import Recovery
 from handctl.online.tickstats import STAGES, TickWindow, percentile_us
 from handctl.rivals import RivalRecord, RivalWatch
 
@@ -85,6 +86,9 @@ class RunRequest:
     hygiene: Hygiene = field(default_factory=Hygiene)
     # Run on a real bus even if the host fails the timing check (docs/timing.md).
     accept_missed_deadlines: bool = False
+    # One joint the supervisor lets torque bring back from outside its soft limits
+    # (``handctl jog --recover``; never from a recipe file). Filled in by the run.
+    recovery: Recovery | None = None
 
 
 @dataclass
@@ -250,6 +254,7 @@ def run_recipe(
             estimator=estimator,
             reanalyser=reanalyser,
         )
+        runtime.supervisor.recovery = req.recovery
         if isinstance(clock, RealtimeClock):
             runtime.trace = MissTrace(clock.period_ns)
             stack.callback(runtime.trace.close)

@@ -6,10 +6,19 @@ limit, every other joint gets zero, then the end ramp back to zero) with the sof
 run by the normal Runtime: every torque passes the supervisor with the hand's limits, exactly
 as in a recipe run, and Ctrl-C is its controlled stop. A torque over the joint's ``tau_max`` is
 refused before anything is opened or sent.
+
+With ``--recover`` the jog brings back a joint that rests outside its soft limits (after a
+stop at speed, on its mechanical stop), which no other run can arm with. The supervisor then
+allows that joint, and only it, outside its limits as long as it comes back in
+(``handctl/online/safety/recovery.py``); the phase ends as soon as the joint is ``GUARD_BAND``
+inside its range, so that the next run's soft-limit guard starts with it at rest outside its
+band. The guard is off for a recovery: at and beyond the limit it asks for the joint's whole
+``tau_max``, a shove where a recovery wants the small torque the user chose.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +30,8 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.online.clock import Tick
 from handctl.online.loop import TickRecord
-from handctl.online.recipes.schema import Recipe
+from handctl.online.recipes.schema import Condition, Recipe, TimeoutAction, parse_condition
+from handctl.online.safety.recovery import Recovery
 from handctl.session import RunReport, RunRequest, run_recipe
 
 #: The shortest ramp to and from the jog torque (s), however high the rate limit.
@@ -53,6 +63,7 @@ class JogReport:
     start_angle: float | None  # rad, when torque first flowed
     end_angle: float | None  # rad, at the end of the run
     max_abs_tdt: float  # N·m
+    recovery: Recovery | None = None  # with ``recover``: what the supervisor saw of it
 
     @property
     def moved(self) -> float | None:
@@ -117,8 +128,12 @@ def joint_index(hand: HandConfig, joint: str) -> int:
     return names.index(joint)
 
 
-def jog_recipe(hand: HandConfig, joint: str, torque: float, seconds: float) -> Recipe:
-    """The one-phase jog; refused (``ConfigError``) over ``tau_max``, naming the limit."""
+def jog_recipe(
+    hand: HandConfig, joint: str, torque: float, seconds: float, recover: bool = False
+) -> Recipe:
+    """The one-phase jog; refused (``ConfigError``) over ``tau_max``, naming the limit. With
+    ``recover``: the phase ``recover``, which ends once the joint is ``GUARD_BAND`` inside its
+    range on the side the torque pushes towards, without the guard."""
     j = joint_index(hand, joint)
     spec = hand.joints[j]
     if not abs(torque) <= spec.tau_max:  # NaN too
@@ -128,17 +143,50 @@ def jog_recipe(hand: HandConfig, joint: str, torque: float, seconds: float) -> R
             f"|τ| <= {spec.tau_max:g} N·m (tau_max of {joint} in {hand.source})",
             torque,
         )
+    if recover and torque == 0.0:
+        raise ConfigError(
+            "--torque",
+            "",
+            f"with --recover, a torque that pushes {joint} back in: negative from above its "
+            f"upper limit {spec.angle_max:+g} rad, positive from below its lower limit "
+            f"{spec.angle_min:+g} rad",
+            torque,
+        )
     ramp = max(MIN_RAMP_S, abs(torque) / spec.rate_limit)
     torques = [0.0] * hand.n_joints
     torques[j] = torque
-    return in_memory_recipe(
-        f"jog_{joint}",
-        f"{torque:+g} N·m on {joint}, zero elsewhere",
-        hand,
-        [phase("jog", torques, ramp, ramp + seconds)],
-        ramp,
-        guard_band=GUARD_BAND,
+    if not recover:
+        return in_memory_recipe(
+            f"jog_{joint}",
+            f"{torque:+g} N·m on {joint}, zero elsewhere",
+            hand,
+            [phase("jog", torques, ramp, ramp + seconds)],
+            ramp,
+            guard_band=GUARD_BAND,
+        )
+    back = phase("recover", torques, ramp, ramp + seconds)
+    back = dataclasses.replace(
+        back, exits=(recovered_condition(hand, joint, torque),), on_timeout=TimeoutAction.NEXT
     )
+    return in_memory_recipe(
+        f"recover_{joint}",
+        f"{torque:+g} N·m on {joint} until it is back inside its soft limits, zero elsewhere",
+        hand,
+        [back],
+        ramp,
+    )
+
+
+def recovered_condition(hand: HandConfig, joint: str, torque: float) -> Condition:
+    """The recovery's exit: the joint ``GUARD_BAND`` inside the limit it is pushed away from."""
+    spec = hand.joints[joint_index(hand, joint)]
+    if torque < 0:
+        text = f"angle.{joint} < {spec.angle_max - GUARD_BAND:.6f}"
+    else:
+        text = f"angle.{joint} > {spec.angle_min + GUARD_BAND:.6f}"
+    cond = parse_condition(text, hand.joint_names)
+    assert isinstance(cond, Condition), cond  # built here from a joint of the hand
+    return cond
 
 
 def jog(
@@ -154,10 +202,13 @@ def jog(
     sim_faults: Path | None = None,
     reset_node_faults: bool = False,
     accept_missed_deadlines: bool = False,
+    recover: bool = False,
     show: Callable[[JogLine], None] | None = None,
 ) -> JogReport:
-    """Jog ``joint`` with ``torque`` N·m for ``seconds`` after the ramp, on ``bus``."""
-    recipe = jog_recipe(hand, joint, torque, seconds)
+    """Jog ``joint`` with ``torque`` N·m for ``seconds`` after the ramp, on ``bus``; with
+    ``recover``, until it is back inside its soft limits (at most as long)."""
+    recipe = jog_recipe(hand, joint, torque, seconds, recover)
+    recovery = Recovery(joint_index(hand, joint), 1 if torque > 0 else -1) if recover else None
     sink = JogSink(joint_index(hand, joint), show, hand.bus.period_s)
     report = run_recipe(
         RunRequest(
@@ -170,7 +221,10 @@ def jog(
             sim_faults=sim_faults,
             reset_node_faults=reset_node_faults,
             accept_missed_deadlines=accept_missed_deadlines,
+            recovery=recovery,
         ),
         recorder=sink,
     )
-    return JogReport(report, joint, torque, sink.start_angle, sink.end_angle, sink.max_abs_tdt)
+    return JogReport(
+        report, joint, torque, sink.start_angle, sink.end_angle, sink.max_abs_tdt, recovery
+    )

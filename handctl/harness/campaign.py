@@ -49,6 +49,7 @@ from handctl.recording.reader import iter_decoded, open_recording
 from handctl.recording.recorder import Recorder
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
+from handctl.sim.params import SimParams
 
 #: The campaign recipe: one phase of each kind, torques that keep every joint well inside its
 #: soft limits on the default hand. Times in s.
@@ -184,17 +185,23 @@ class CaseResult:
 
 @contextmanager
 def hil_bench(
-    hand: HandConfig, recipe: Recipe | None, seed: int = 0, max_ticks: int = 20_000
+    hand: HandConfig,
+    recipe: Recipe | None,
+    seed: int = 0,
+    max_ticks: int = 20_000,
+    params: SimParams | None = None,
 ) -> Iterator[tuple[SimulatedHand, Runtime, HandBus]]:
     """The runtime and the simulated hand in lockstep on one private virtual bus, plus a
-    sniffer that hears every frame, as a CAN analyser would on a bench."""
+    sniffer that hears every frame, as a CAN analyser would on a bench. ``params``: the
+    simulated hand's own (default: the hand config's), for a hand no config describes (one
+    that starts where a config may not put it)."""
     channel = f"hil-{next(_channels)}"
     with (
         open_bus(f"virtual:{channel}", hand.bus) as peer,
         open_bus(f"virtual:{channel}", hand.bus) as host,
         open_bus(f"virtual:{channel}", hand.bus) as sniffer,
     ):
-        sim = SimulatedHand(hand, peer, seed=seed)
+        sim = SimulatedHand(hand, peer, seed=seed, params=params)
         clock = LockstepClock(hand.bus.period_s, sim.step)
         driver = HandDriver(hand, protocol_for(hand), host, clock_ns=clock.now_ns)
         yield sim, Runtime(hand, driver, clock, recipe, max_ticks=max_ticks), sniffer

@@ -19,6 +19,7 @@ from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FaultCode
 from handctl.sim.hand import SimulatedHand
+from handctl.sim.params import SimParams
 
 from ..dbc import decode
 
@@ -53,10 +54,15 @@ class Rig:
 
 @contextmanager
 def rig(
-    hand: HandConfig, recipe: Recipe | None, *, seed: int = 0, max_seconds: float = 30.0
+    hand: HandConfig,
+    recipe: Recipe | None,
+    *,
+    seed: int = 0,
+    max_seconds: float = 30.0,
+    params: SimParams | None = None,
 ) -> Iterator[Rig]:
     max_ticks = round(max_seconds / hand.bus.period_s)
-    with hil_bench(hand, recipe, seed, max_ticks) as (sim, runtime, sniffer):
+    with hil_bench(hand, recipe, seed, max_ticks, params) as (sim, runtime, sniffer):
         yield Rig(hand, sim, runtime, sniffer)
 
 

@@ -4,21 +4,27 @@ gets the torque, every other zero; a torque over tau_max is refused before anyth
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from handctl import cli
-from handctl.bringup.jog import jog
+from handctl.bringup.jog import jog, jog_recipe
 from handctl.config import HandConfig
 from handctl.online.bus import open_bus
+from handctl.online.loop import Outcome, RunResult
+from handctl.online.safety.recovery import RECOVERY_SLACK, Recovery
+from handctl.sim.params import SimParams, parse_sim
 
 from ..conftest import ROOT
 from .bringup_peer import running_hand
 from .realtime import ATTEMPTS_UNDER_LOAD, REALTIME, give_up, stopped_by_load
+from .rig import Rig, rig
 
 
 def test_one_joint_turns_its_way_and_no_other_gets_torque(
@@ -183,3 +189,116 @@ def test_on_a_real_bus_the_host_check_can_be_overridden_as_it_says(
     assert result.returncode == cli.EXIT_OK or (
         result.returncode == cli.EXIT_SAFETY_STOP and stopped_by_load(result.stderr)
     ), result.stderr
+
+
+# -- a joint resting outside its soft limits: ``--recover`` --------------------------------------
+#: f1_j1 rests 0.05 rad below its lower limit (−1.00 rad, its stop at −1.10), held there by its
+#: tendon's friction (0.05 N·m) against gravity, as a finger that tripped ANGLE_LIMIT at speed
+#: and coasted on would rest: no config may start a hand there, so the test builds its params
+OUTSIDE = -1.05
+
+
+def resting_outside(hand: HandConfig) -> SimParams:
+    params = parse_sim(hand)
+    angles = [list(finger) for finger in params.initial_angles]
+    angles[0][0] = OUTSIDE
+    friction = list(params.frictionloss)
+    friction[0] = 0.05
+    return dataclasses.replace(
+        params,
+        initial_angles=tuple(tuple(finger) for finger in angles),
+        frictionloss=tuple(friction),
+    )
+
+
+def recovery_run(
+    hand: HandConfig, torque: float, recovery: Recovery | None
+) -> tuple[Rig, RunResult, list[float]]:
+    """The jog (``recover`` with a recovery) in lockstep on the hand resting outside: the
+    rig, the run's result and f1_j1's measured angle at each tick."""
+    recipe = jog_recipe(hand, "f1_j1", torque, 2.0, recover=recovery is not None)
+    angles: list[float] = []
+    with rig(hand, recipe, params=resting_outside(hand)) as bench:
+        bench.runtime.supervisor.recovery = recovery
+        bench.runtime.tick_hooks.append(
+            lambda _tk: angles.append(float(bench.runtime.driver.state.angle[0]))
+        )
+        result = bench.run()
+    return bench, result, angles
+
+
+def test_a_joint_resting_outside_stops_any_run_and_says_how_to_recover(hand: HandConfig) -> None:
+    bench, result, _ = recovery_run(hand, 0.1, None)
+    assert result.outcome is Outcome.SAFETY_STOP
+    assert result.message.startswith(f"ANGLE_LIMIT at tick 1: f1_j1 at {OUTSIDE:+.3f} rad")
+    assert "bring it back with `handctl jog f1_j1 --torque +X --recover`" in result.message
+    assert not bench.commands().any()  # not one torque went out
+
+
+def test_recover_brings_it_back_inside_and_ends_there(hand: HandConfig) -> None:
+    recovery = Recovery(0, +1)
+    bench, result, angles = recovery_run(hand, 0.1, recovery)
+    assert result.outcome is Outcome.COMPLETED, result.message
+    assert recovery.needed and recovery.start_angle == pytest.approx(OUTSIDE, abs=0.002)
+    assert recovery.back_tick > 0
+    lower = hand.joints[0].angle_min
+    # the phase ended on its exit (GUARD_BAND inside), long before its 2 s
+    phase = result.phases[0]
+    assert phase["name"] == "recover" and phase["exit"].startswith("angle.f1_j1 >")
+    assert angles[-1] > lower + 0.1
+    # the ratchet held throughout: never further out than the slack beyond the farthest in
+    farthest_in = angles[0]
+    for q in angles:
+        assert q >= farthest_in - RECOVERY_SLACK or q >= lower
+        farthest_in = max(farthest_in, q)
+    commands = bench.commands()
+    assert set(np.flatnonzero(np.abs(commands).max(axis=0))) == {0}  # f1_j1 alone
+    assert 0 < commands[:, 0].max() <= 0.1  # no more than asked for: the guard is off
+
+
+def test_recover_the_wrong_way_is_refused_before_any_torque(hand: HandConfig) -> None:
+    bench, result, _ = recovery_run(hand, -0.1, Recovery(0, -1))
+    assert result.outcome is Outcome.SAFETY_STOP
+    assert "its recovery must push it back in (a positive torque)" in result.message
+    assert not bench.commands().any()
+
+
+def test_a_recovery_without_a_torque_is_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["jog", "f1_j1", "--torque", "0", "--recover"]) == cli.EXIT_BAD_INPUT
+    assert "with --recover, a torque that pushes f1_j1 back in" in capsys.readouterr().err
+
+
+def test_recover_says_when_there_was_nothing_to_recover(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert cli.main(["jog", "f1_j1", "--torque", "0.05", "--recover"]) == cli.EXIT_OK
+    assert "f1_j1 was inside its soft limits [-1, +1.9] rad" in capsys.readouterr().out
+
+
+RECOVER = [sys.executable, "-m", "handctl", "jog", "f1_j1", "--torque", "0.1", "--recover"]
+
+
+@REALTIME
+def test_recover_on_a_bus_from_the_command_line(hand: HandConfig, tmp_path: Path) -> None:
+    """The option end to end: the simulated hand resting outside, free-running on the unix
+    bus in this process, and ``handctl jog --recover`` in a process of its own (a real-time
+    run: one the load stopped is tried again, on a hand resting outside again)."""
+    stopped = []
+    spec = f"unix:{tmp_path / 'bus'}"
+    for _attempt in range(ATTEMPTS_UNDER_LOAD):
+        with running_hand(hand, spec, params=resting_outside(hand)):
+            result = subprocess.run(
+                [*RECOVER, "--bus", spec, "--accept-missed-deadlines"],
+                capture_output=True,
+                text=True,
+                cwd=ROOT,
+                timeout=300,
+                check=False,
+            )
+        if result.returncode == cli.EXIT_OK:
+            assert "f1_j1 back inside its soft limits: -1.05" in result.stdout, result.stdout
+            return
+        assert result.returncode == cli.EXIT_SAFETY_STOP, result.stderr
+        assert stopped_by_load(result.stderr), result.stderr
+        stopped.append(result.stderr)
+    give_up("every attempt was stopped by the machine's load", stopped)

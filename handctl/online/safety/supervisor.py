@@ -12,6 +12,11 @@ what can follow what is data that a test can enumerate, not control flow hidden 
 - FAULTED: zero torque; faults latched. Only RESET leaves it, to IDLE, so torque can only come
   back through a new START, with the rate limiter ramping it up from zero. A recipe never
   resumes by itself: the runner is not told to go on by anything in here.
+
+A joint outside its soft limits trips ``ANGLE_LIMIT`` in every armed state but FAULT_RAMP,
+with one exception asked for before the start: a ``Recovery`` (recovery.py), which lets one
+joint be outside as long as it comes back in, so that a finger resting past its limit can be
+jogged back.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from handctl.online.safety.limits import (
     check_desired,
     limit_torque,
 )
+from handctl.online.safety.recovery import Recovery
 from handctl.online.safety.watchdog import NodeWatch, ReceiveWatch, TdtMonitor, TickWatch
 from handctl.protocol import NodeState
 
@@ -116,6 +122,9 @@ class Supervisor:
         self._ramp_k = 0
         self._enabling_since = 0
         self._zero = np.zeros(self.n)  # the STOPPING state's target, never written
+        #: one joint allowed back in from outside its soft limits (recovery.py); None: none
+        self.recovery: Recovery | None = None
+        self._armed_tick = -1  # the tick the nodes were confirmed ENABLED
 
     # -- events ---------------------------------------------------------------------------
     def fire(self, event: Event, tick: int) -> State:
@@ -187,9 +196,7 @@ class Supervisor:
             findings += self.receive_watch.check(tick, nodes)
         if self.state is State.ENABLING:
             if all(node.state == NodeState.ENABLED for node in nodes):
-                self.fire(Event.ENABLED, tick)
-                self.node_watch.arm(nodes)
-                self.tdt.reset(self.applied)
+                findings += self._arm(tick, nodes, angle)
             elif tick - self._enabling_since > self.enable_deadline_ticks:
                 states = ", ".join(f"node {n.node_id} {n.state_name}" for n in nodes)
                 findings.append((FaultCode.STARTUP, f"nodes not ENABLED in time: {states}"))
@@ -197,20 +204,58 @@ class Supervisor:
             findings += self.node_watch.check(now_ns, nodes, expect_enabled=True)
             findings += self.tdt.update(self.applied, tdt)
             if self.state is not State.FAULT_RAMP:
-                for j in angle_violations(angle, self.limits):
-                    findings.append(
-                        (
-                            FaultCode.ANGLE_LIMIT,
-                            f"{self.limits.names[j]} at {angle[j]:+.3f} rad, limits "
-                            f"[{self.limits.angle_min[j]:+.3f}, "
-                            f"{self.limits.angle_max[j]:+.3f}]",
-                        )
-                    )
+                findings += self._angle_findings(angle, tick)
         for code, detail in findings:
             fault = self.trip(code, detail, tick)
             if fault is not None:
                 new.append(fault)
         return new
+
+    def _arm(
+        self, tick: int, nodes: Sequence[FingerNode], angle: FloatArray
+    ) -> list[tuple[FaultCode, str]]:
+        """The nodes confirmed ENABLED: torque may flow from this tick on."""
+        self.fire(Event.ENABLED, tick)
+        self.node_watch.arm(nodes)
+        self.tdt.reset(self.applied)
+        self._armed_tick = tick
+        if self.recovery is None:
+            return []
+        j = self.recovery.joint
+        refused = self.recovery.arm(float(angle[j]), tick, self.limits)
+        return [] if refused is None else [(FaultCode.ANGLE_LIMIT, refused)]
+
+    def _angle_findings(self, angle: FloatArray, tick: int) -> list[tuple[FaultCode, str]]:
+        """The soft limits, and a recovering joint's ratchet instead of its own limits."""
+        outside = angle_violations(angle, self.limits)
+        findings: list[tuple[FaultCode, str]] = []
+        recovery = self.recovery
+        if recovery is not None and recovery.active:
+            j = recovery.joint
+            beyond = recovery.check(float(angle[j]), tick, self.limits)
+            if j in outside:
+                outside.remove(j)
+            if beyond is not None:
+                findings.append((FaultCode.ANGLE_LIMIT, beyond))
+        for j in outside:
+            findings.append((FaultCode.ANGLE_LIMIT, self._outside(j, angle, tick)))
+        return findings
+
+    def _outside(self, j: int, angle: FloatArray, tick: int) -> str:
+        limits = self.limits
+        detail = (
+            f"{limits.names[j]} at {angle[j]:+.3f} rad, limits "
+            f"[{limits.angle_min[j]:+.3f}, {limits.angle_max[j]:+.3f}]"
+        )
+        if tick == self._armed_tick:
+            # Outside before any torque flowed: no run can arm until it is back, and the
+            # message is the only place the user learns how.
+            sign = "-" if angle[j] > limits.angle_max[j] else "+"
+            detail += (
+                f", before any torque: bring it back with `handctl jog {limits.names[j]} "
+                f"--torque {sign}X --recover` (docs/bringup.md)"
+            )
+        return detail
 
     def filter(
         self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int = 0

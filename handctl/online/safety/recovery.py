@@ -1,0 +1,106 @@
+"""Bringing one joint back inside its soft limits: the only way torque may flow with a joint
+outside them.
+
+Why it exists: a RAMP stop takes up to ``RAMP_BOUND_S`` to reach zero torque, and a finger that
+tripped ``ANGLE_LIMIT`` at speed coasts on past its soft limit, often to its mechanical stop.
+It then rests outside, and the supervisor's soft-limit check trips again as soon as any run
+arms: nothing in the software could move it back, only hands on the hardware.
+
+A recovery is asked for one joint and one direction, before the run starts (``handctl jog
+JOINT --torque X --recover``; never from a recipe file, which must not loosen a limit). While
+that joint is outside its soft limits the supervisor checks it against a tighter rule instead:
+
+- it must be outside on the side the direction leads *back* from (a torque that would push it
+  further out is refused at arming, as ``ANGLE_LIMIT``);
+- it may never get further out than ``RECOVERY_SLACK`` beyond the farthest-in angle it has
+  reached so far: a ratchet that follows the joint in and never out, so the worst it can do is
+  sit where it began (encoder noise and the joint settling as torque comes on fit in the
+  slack);
+- once inside the soft limits the recovery is over for the rest of the run, and the normal
+  check applies, so a joint that recovered and then went out again trips as any other.
+
+Every other joint is checked as always, and the torque still passes the limiter (``tau_max``
+and the rate limit): a recovery loosens one angle check of one joint, in one direction, once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from handctl.online.safety.limits import JointLimits
+
+#: rad: how far a recovering joint may go back out beyond the farthest-in angle it has reached
+#: (encoder counts, a joint resting on its stop that settles as the torque comes on)
+RECOVERY_SLACK = 0.02
+
+
+@dataclass
+class Recovery:
+    """One joint, one direction (+1: it is below its lower limit and is pushed up; −1: above
+    its upper limit and pushed down). ``arm`` at the first armed tick, then ``check`` each."""
+
+    joint: int
+    direction: int
+    #: rad, the angle when torque was first allowed (None before arming)
+    start_angle: float | None = None
+    #: the tick at which the joint was back inside its soft limits (−1: not yet)
+    back_tick: int = -1
+    #: rad, the farthest out it may be now (the ratchet); meaningful while active
+    bound: float = 0.0
+    #: whether the joint was outside its limits at arming (False: there was nothing to recover)
+    needed: bool = False
+
+    def __post_init__(self) -> None:
+        if self.direction not in (1, -1):
+            raise ValueError(f"a recovery direction is +1 or -1, found {self.direction!r}")
+
+    @property
+    def active(self) -> bool:
+        """Whether the joint's angle check is still the recovery's."""
+        return self.needed and self.back_tick < 0
+
+    def arm(self, q: float, tick: int, limits: JointLimits) -> str | None:
+        """At the first armed tick: the reason to refuse, or None. A joint already inside its
+        limits needs no recovery and is checked as usual from now on."""
+        self.start_angle = q
+        j = self.joint
+        lo, hi, name = limits.angle_min_list[j], limits.angle_max_list[j], limits.names[j]
+        if lo <= q <= hi:
+            self.needed = False
+            return None
+        below = q < lo
+        if below != (self.direction > 0):
+            side, limit = ("below its lower", lo) if below else ("above its upper", hi)
+            wanted = "a positive" if below else "a negative"
+            return (
+                f"{name} at {q:+.3f} rad, {side} limit {limit:+.3f} rad: its recovery must "
+                f"push it back in ({wanted} torque), and the one asked for pushes it further out"
+            )
+        self.needed = True
+        self.bound = q - RECOVERY_SLACK if below else q + RECOVERY_SLACK
+        return None
+
+    def check(self, q: float, tick: int, limits: JointLimits) -> str | None:
+        """While active: the ratchet; None while the joint keeps within it."""
+        j = self.joint
+        lo, hi = limits.angle_min_list[j], limits.angle_max_list[j]
+        if lo <= q <= hi:
+            self.back_tick = tick
+            return None
+        if self.direction > 0:  # below the lower limit, coming up
+            if q < self.bound:
+                return self._out(q, limits)
+            self.bound = max(self.bound, q - RECOVERY_SLACK)
+        else:
+            if q > self.bound:
+                return self._out(q, limits)
+            self.bound = min(self.bound, q + RECOVERY_SLACK)
+        return None
+
+    def _out(self, q: float, limits: JointLimits) -> str:
+        j = self.joint
+        return (
+            f"{limits.names[j]} at {q:+.3f} rad, further out than its recovery allows "
+            f"({self.bound:+.3f} rad, {RECOVERY_SLACK:g} rad beyond the farthest in it came; "
+            f"limits [{limits.angle_min_list[j]:+.3f}, {limits.angle_max_list[j]:+.3f}])"
+        )

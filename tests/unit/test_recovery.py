@@ -1,0 +1,171 @@
+"""A recovery (``handctl jog --recover``) as the supervisor sees it: one joint allowed outside
+its soft limits as long as it comes back in, over live emulated nodes.
+
+The supervisor is armed the way the runtime arms it: the nodes are enabled and ``observe`` sees
+every one report ENABLED, with the measured angles of that tick.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from handctl.config import HandConfig
+from handctl.online.safety.faults import Fault, FaultCode
+from handctl.online.safety.recovery import RECOVERY_SLACK, Recovery
+from handctl.online.safety.supervisor import State, Supervisor
+from handctl.protocol import Protocol
+
+from .node_pair import Link
+
+J = 1  # f1_j2: upper limit +2.30 rad, lower −0.90 rad
+
+
+class Armed:
+    """A supervisor armed over live nodes with the angles of the arming tick; ``see`` is one
+    more tick with these angles."""
+
+    def __init__(
+        self,
+        hand: HandConfig,
+        protocol: Protocol,
+        angle: np.ndarray,
+        recovery: Recovery | None,
+    ) -> None:
+        self.sup = Supervisor(hand)
+        self.sup.recovery = recovery
+        self.link = Link(hand, protocol)
+        self.link.enable()
+        self.sup.start(0)
+        self.tick = 1
+        self.zeros = np.zeros(hand.n_joints)
+        self.at_arming = self.sup.observe(
+            1, self.link.tick(), self.link.hosts, angle, self.zeros, 0
+        )
+
+    def see(self, angle: np.ndarray) -> list[Fault]:
+        self.tick += 1
+        return self.sup.observe(self.tick, self.link.tick(), self.link.hosts, angle, self.zeros, 0)
+
+
+def at(hand: HandConfig, q: float, joint: int = J) -> np.ndarray:
+    """Every joint mid-range, ``joint`` at ``q``."""
+    angle = np.array([(j.angle_min + j.angle_max) / 2 for j in hand.joints])
+    angle[joint] = q
+    return angle
+
+
+def test_outside_at_arming_trips_and_says_how_to_recover(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    top = hand.joints[J].angle_max
+    armed = Armed(hand, protocol, at(hand, top + 0.06), None)
+    assert [f.code for f in armed.at_arming] == [FaultCode.ANGLE_LIMIT]
+    assert "before any torque: bring it back with `handctl jog f1_j2 --torque -X --recover`" in (
+        armed.at_arming[0].detail
+    )
+    low = hand.joints[J].angle_min
+    armed = Armed(hand, protocol, at(hand, low - 0.06), None)
+    assert "`handctl jog f1_j2 --torque +X --recover`" in armed.at_arming[0].detail
+
+
+def test_a_joint_coming_back_in_is_let_back(hand: HandConfig, protocol: Protocol) -> None:
+    top = hand.joints[J].angle_max
+    recovery = Recovery(J, -1)
+    armed = Armed(hand, protocol, at(hand, top + 0.06), recovery)
+    assert armed.at_arming == [] and armed.sup.state is State.RUNNING
+    assert recovery.needed and recovery.active and recovery.start_angle == top + 0.06
+    # settling back out on its stop by less than the slack, then coming in
+    for q in (top + 0.06 + RECOVERY_SLACK * 0.9, top + 0.04, top + 0.01):
+        assert armed.see(at(hand, q)) == []
+    assert recovery.active
+    assert armed.see(at(hand, top - 0.01)) == []
+    assert not recovery.active and recovery.back_tick == armed.tick
+    # back inside, the normal check again: out once more is a fault
+    found = armed.see(at(hand, top + 0.005))
+    assert [f.code for f in found] == [FaultCode.ANGLE_LIMIT]
+    assert armed.sup.state is State.FAULT_RAMP
+
+
+def test_the_ratchet_follows_the_joint_in_and_never_out(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    low = hand.joints[J].angle_min
+    recovery = Recovery(J, +1)
+    armed = Armed(hand, protocol, at(hand, low - 0.08), recovery)
+    assert armed.at_arming == []
+    assert armed.see(at(hand, low - 0.03)) == []  # 0.05 rad on its way in
+    # back out by more than the slack from the farthest in it came: refused
+    found = armed.see(at(hand, low - 0.03 - RECOVERY_SLACK - 0.002))
+    assert [f.code for f in found] == [FaultCode.ANGLE_LIMIT]
+    assert "further out than its recovery allows" in found[0].detail
+    assert f"{low - 0.03 - RECOVERY_SLACK:+.3f} rad" in found[0].detail
+
+
+def test_a_torque_pushing_it_further_out_is_refused_at_arming(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    top = hand.joints[J].angle_max
+    armed = Armed(hand, protocol, at(hand, top + 0.05), Recovery(J, +1))
+    assert [f.code for f in armed.at_arming] == [FaultCode.ANGLE_LIMIT]
+    assert "pushes it further out" in armed.at_arming[0].detail
+    assert "(a negative torque)" in armed.at_arming[0].detail
+    # tripped as it armed: a ramp from the zero torque of arming, no torque ever flowed
+    assert armed.sup.state is State.FAULT_RAMP
+    assert not armed.sup.filter(armed.tick, np.full(hand.n_joints, 0.1)).any()
+
+
+def test_only_the_recovering_joint_is_let_off(hand: HandConfig, protocol: Protocol) -> None:
+    top = hand.joints[J].angle_max
+    angle = at(hand, top + 0.05)
+    other = 5
+    angle[other] = hand.joints[other].angle_max + 0.01
+    armed = Armed(hand, protocol, angle, Recovery(J, -1))
+    assert [f.code for f in armed.at_arming] == [FaultCode.ANGLE_LIMIT]
+    assert armed.at_arming[0].detail.startswith(hand.joints[other].name)
+
+
+def test_a_joint_inside_at_arming_needs_no_recovery(hand: HandConfig, protocol: Protocol) -> None:
+    top = hand.joints[J].angle_max
+    recovery = Recovery(J, -1)
+    armed = Armed(hand, protocol, at(hand, top - 0.2), recovery)
+    assert armed.at_arming == [] and not recovery.needed and not recovery.active
+    assert [f.code for f in armed.see(at(hand, top + 0.01))] == [FaultCode.ANGLE_LIMIT]
+
+
+def test_a_direction_is_up_or_down() -> None:
+    with pytest.raises(ValueError, match="recovery direction"):
+        Recovery(J, 0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-0.2, 0.2), min_size=1, max_size=40))
+def test_no_angle_goes_unchecked_further_out_than_the_ratchet(steps: list[float]) -> None:
+    """Whatever the joint does, while the supervisor lets it be outside, it never is more than
+    the slack beyond the farthest in it came; inside its limits it is always let be."""
+    from handctl.config import load_hand
+    from handctl.protocol import load_protocol
+
+    from ..conftest import HAND_YAML
+
+    hand, protocol = load_hand(HAND_YAML), load_protocol()
+    top = hand.joints[J].angle_max
+    q = top + 0.08
+    armed = Armed(hand, protocol, at(hand, q), Recovery(J, -1))
+    farthest_in = q
+    back = False
+    for step in steps:
+        q = min(q + step, top + 0.1)  # the mechanical stop
+        found = armed.see(at(hand, q))
+        if back:
+            assert bool(found) == (q > top)
+        elif q <= top:
+            assert found == []
+            back = True
+        else:
+            assert bool(found) == (q > farthest_in + RECOVERY_SLACK)
+        if found:
+            return
+        farthest_in = min(farthest_in, q)
