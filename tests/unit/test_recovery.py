@@ -117,6 +117,57 @@ def test_a_torque_pushing_it_further_out_is_refused_at_arming(
     assert not armed.sup.filter(armed.tick, np.full(hand.n_joints, 0.1)).any()
 
 
+def test_the_way_out_is_refused_from_either_side_naming_the_limit(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    spec = hand.joints[J]
+    below = Armed(hand, protocol, at(hand, spec.angle_min - 0.05), Recovery(J, -1))
+    assert below.at_arming[0].detail == (
+        f"f1_j2 at {spec.angle_min - 0.05:+.3f} rad, below its lower limit "
+        f"{spec.angle_min:+.3f} rad: its recovery must push it back in (a positive torque), "
+        "and the one asked for pushes it further out"
+    )
+    above = Armed(hand, protocol, at(hand, spec.angle_max + 0.05), Recovery(J, +1))
+    assert f"above its upper limit {spec.angle_max:+.3f} rad" in above.at_arming[0].detail
+
+
+def test_on_a_limit_is_inside(hand: HandConfig, protocol: Protocol) -> None:
+    """As the soft-limit check has it: only beyond a limit is outside."""
+    spec = hand.joints[J]
+    for q, direction in ((spec.angle_max, -1), (spec.angle_min, +1)):
+        recovery = Recovery(J, direction)
+        armed = Armed(hand, protocol, at(hand, q), recovery)
+        assert armed.at_arming == [] and recovery.needed is False
+    for q, direction in ((spec.angle_max, -1), (spec.angle_min, +1)):
+        recovery = Recovery(J, direction)
+        armed = Armed(hand, protocol, at(hand, q - direction * 0.05), recovery)
+        assert recovery.active
+        assert armed.see(at(hand, q)) == [] and recovery.back_tick == armed.tick
+
+
+@pytest.mark.parametrize("direction", [-1, +1])
+def test_the_ratchet_holds_exactly_at_its_bound_and_not_beyond(
+    hand: HandConfig, protocol: Protocol, direction: int
+) -> None:
+    spec = hand.joints[J]
+    limit = spec.angle_max if direction < 0 else spec.angle_min
+    out = -direction  # the way out
+    farthest_in = limit + out * 0.03
+    recovery = Recovery(J, direction)
+    armed = Armed(hand, protocol, at(hand, limit + out * 0.08), recovery)
+    assert armed.see(at(hand, farthest_in)) == []
+    bound = recovery.bound
+    assert bound == farthest_in + out * RECOVERY_SLACK
+    assert armed.see(at(hand, bound)) == []  # on the bound: let be
+    found = armed.see(at(hand, bound + out * 0.001))
+    assert [f.code for f in found] == [FaultCode.ANGLE_LIMIT]
+    assert found[0].detail == (
+        f"f1_j2 at {bound + out * 0.001:+.3f} rad, further out than its recovery allows "
+        f"({bound:+.3f} rad, {RECOVERY_SLACK:g} rad beyond the farthest in it came; "
+        f"limits [{spec.angle_min:+.3f}, {spec.angle_max:+.3f}])"
+    )
+
+
 def test_only_the_recovering_joint_is_let_off(hand: HandConfig, protocol: Protocol) -> None:
     top = hand.joints[J].angle_max
     angle = at(hand, top + 0.05)
