@@ -208,8 +208,9 @@ def jog(
     """Jog ``joint`` with ``torque`` N·m for ``seconds`` after the ramp, on ``bus``; with
     ``recover``, until it is back inside its soft limits (at most as long)."""
     recipe = jog_recipe(hand, joint, torque, seconds, recover)
-    recovery = Recovery(joint_index(hand, joint), 1 if torque > 0 else -1) if recover else None
-    sink = JogSink(joint_index(hand, joint), show, hand.bus.period_s)
+    j = joint_index(hand, joint)
+    recovery = Recovery(j, 1 if torque > 0 else -1) if recover else None
+    sink = JogSink(j, show, hand.bus.period_s)
     report = run_recipe(
         RunRequest(
             hand=hand,

@@ -59,7 +59,7 @@ class Recovery:
         """Whether the joint's angle check is still the recovery's."""
         return self.needed and self.back_tick < 0
 
-    def arm(self, q: float, tick: int, limits: JointLimits) -> str | None:
+    def arm(self, q: float, limits: JointLimits) -> str | None:
         """At the first armed tick: the reason to refuse, or None. A joint already inside its
         limits needs no recovery and is checked as usual from now on."""
         self.start_angle = q

@@ -204,7 +204,7 @@ class Supervisor:
             findings += self.node_watch.check(now_ns, nodes, expect_enabled=True)
             findings += self.tdt.update(self.applied, tdt)
             if self.state is not State.FAULT_RAMP:
-                findings += self._angle_findings(angle, tick)
+                self._angle_findings(angle, tick, findings)
         for code, detail in findings:
             fault = self.trip(code, detail, tick)
             if fault is not None:
@@ -222,13 +222,15 @@ class Supervisor:
         if self.recovery is None:
             return []
         j = self.recovery.joint
-        refused = self.recovery.arm(float(angle[j]), tick, self.limits)
+        refused = self.recovery.arm(float(angle[j]), self.limits)
         return [] if refused is None else [(FaultCode.ANGLE_LIMIT, refused)]
 
-    def _angle_findings(self, angle: FloatArray, tick: int) -> list[tuple[FaultCode, str]]:
-        """The soft limits, and a recovering joint's ratchet instead of its own limits."""
+    def _angle_findings(
+        self, angle: FloatArray, tick: int, findings: list[tuple[FaultCode, str]]
+    ) -> None:
+        """The soft limits, and a recovering joint's ratchet instead of its own limits, added
+        to ``findings`` (the tick's own list: no list of its own every tick)."""
         outside = angle_violations(angle, self.limits)
-        findings: list[tuple[FaultCode, str]] = []
         recovery = self.recovery
         if recovery is not None and recovery.active:
             j = recovery.joint
@@ -239,7 +241,6 @@ class Supervisor:
                 findings.append((FaultCode.ANGLE_LIMIT, beyond))
         for j in outside:
             findings.append((FaultCode.ANGLE_LIMIT, self._outside(j, angle, tick)))
-        return findings
 
     def _outside(self, j: int, angle: FloatArray, tick: int) -> str:
         limits = self.limits
