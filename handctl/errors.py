@@ -8,6 +8,8 @@ code keeps working.
 
 from __future__ import annotations
 
+import reprlib
+
 
 class HandctlError(Exception):
     """Base of every error handctl raises deliberately."""
@@ -41,7 +43,27 @@ class HandctlTimeoutError(HandctlError, TimeoutError):
     """A deadline passed: a node did not answer, a tick came too late."""
 
 
+#: characters of an offending value a message shows
+SHOWN_CHARS = 80
+
+
 def _show(found: object) -> str:
-    """Render the offending value briefly: long values are cut so a message stays one line."""
-    text = repr(found)
-    return text if len(text) <= 80 else text[:77] + "..."
+    """Render the offending value briefly: long values are cut so a message stays one line.
+
+    ``reprlib`` bounds the work as well as the text: a value read from a hostile file (a JSON
+    array nested a thousand deep) would otherwise exhaust the recursion limit while the error
+    that reports it is being built."""
+    text = _SHORT.repr(found)
+    return text if len(text) <= SHOWN_CHARS else text[: SHOWN_CHARS - 3] + "..."
+
+
+def _short_repr() -> reprlib.Repr:
+    short = reprlib.Repr()
+    short.maxlevel = 4
+    short.maxstring = SHOWN_CHARS
+    short.maxother = SHOWN_CHARS
+    short.maxlist = short.maxtuple = short.maxdict = short.maxset = 8
+    return short
+
+
+_SHORT = _short_repr()

@@ -75,6 +75,9 @@ def field(key: str, value: object) -> Callable[[bytes], bytes]:
         (ch.CAN_TX, field("id", 1 << 40), "id", "a CAN id"),
         (ch.TIMING, lambda raw: b"not json", "", "expected a JSON object"),
         (ch.TORQUE, lambda raw: b"[1, 2]", "", "expected a JSON object"),
+        # nested deeper than Python's recursion limit: the message is bounded, not the value
+        (ch.TORQUE, lambda raw: b"[" * 1000 + b"]" * 1000, "", "found [[[[[...]]]]]"),
+        (ch.TIMING, lambda raw: b"[" * 5000 + b"]" * 5000, "", "expected a JSON object"),
     ],
 )
 def test_a_message_not_of_its_channel_is_named(
