@@ -97,6 +97,11 @@ def test_compiled_recipe_for_another_hand_is_refused(tmp_path: Path, hand: HandC
         ("speed > 1", "a condition 'SIGNAL OP NUMBER"),
         ("time = 1", "a condition"),
         ("estimate.colour > 1", "an estimate of the recipe's objects"),
+        # digits the pattern admits but a float cannot hold: always or never crossed
+        ("angle.f1_j1 < 1e999", "NUMBER is finite (it reads as inf)"),
+        ("angle.f1_j1 > -1e999 for 0.1", "NUMBER is finite (it reads as -inf)"),
+        ("time > 1 for " + "9" * 400, "held for at most 3600 s"),
+        ("time > 1 for 3600.5", "held for at most 3600 s"),
     ],
 )
 def test_bad_conditions(tmp_path: Path, hand: HandConfig, condition: str, expected: str) -> None:

@@ -20,6 +20,7 @@ from handctl.errors import ConfigError
 from handctl.online.recipes.guard import SIDES, GuardSettings, SpringBand
 from handctl.online.recipes.schema import (
     MAX_OBJECTS,
+    MAX_PHASE_S,
     REANALYSIS_USES,
     Condition,
     GraspModel,
@@ -330,7 +331,7 @@ def _parse_phase(
     name = doc.string("name")
     torques = parse_torques(doc, hand)
     ramp = doc.number("ramp_s", default=0.1, min=0.0, max=60.0, unit="s")
-    max_s = doc.number("max_s", min=0.0, max=3600.0, min_exclusive=True, unit="s")
+    max_s = doc.number("max_s", min=0.0, max=MAX_PHASE_S, min_exclusive=True, unit="s")
     on_timeout = TimeoutAction(
         doc.string("on_timeout", default="abort", choices=[a.value for a in TimeoutAction])
     )

@@ -16,6 +16,7 @@ into predicates over a fixed set of signals:
 from __future__ import annotations
 
 import enum
+import math
 import operator
 import re
 from collections.abc import Callable, Mapping, Sequence
@@ -57,6 +58,9 @@ OPERATORS: dict[str, Callable[[float, float], bool]] = {
     ">": operator.gt,
     ">=": operator.ge,
 }
+
+#: s, the longest a phase may last (its ``max_s``); a condition cannot hold for longer
+MAX_PHASE_S = 3600.0
 
 _CONDITION = re.compile(
     r"^\s*(?P<signal>time|(?:angle|tdt|estimate)\.[A-Za-z0-9_]+)\s*(?P<op><=|>=|<|>)\s*"
@@ -413,6 +417,12 @@ def parse_condition(
     signal = match["signal"]
     hold = float(match["hold"]) if match["hold"] else 0.0
     value = float(match["value"])
+    # the pattern admits only digits, but enough of them overflow to infinity: a threshold of
+    # inf is always (or never) crossed, and a hold longer than any phase never ends
+    if not math.isfinite(value):
+        return f"a condition whose NUMBER is finite (it reads as {value})"
+    if hold > MAX_PHASE_S:
+        return f"a condition held for at most {MAX_PHASE_S:g} s, a phase's longest"
     if signal == "time":
         return Condition(text, SignalKind.TIME, 0, match["op"], value, hold)
     family, _, name = signal.partition(".")
