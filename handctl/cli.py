@@ -60,6 +60,14 @@ DEFAULT_HAND_HELP = "default: the Hiroshima-Hand, shipped with handctl"
 #: (its bus directory was then left behind). The wait ends as soon as the host is gone; only
 #: a SIGTERM sent to the hand alone, its host alive, waits it out.
 ORPHAN_WAIT_S = 10.0
+#: the largest |k| of ``analyze torque-set --k``: a second joint's torque a thousand times the
+#: first's is already a slice along one axis; 1e308 overflowed the grid
+MAX_TORQUE_RATIO = 1e3
+#: the slowest and fastest ``replay --speed``: a log of a minute replays in 17 hours at the
+#: slowest (1e-300 overflowed the clock's time stamps, 1e-9 waited for ever); at the fastest
+#: the frames go out as fast as the bus takes them anyway
+MIN_REPLAY_SPEED = 1e-3
+MAX_REPLAY_SPEED = 1e3
 
 
 def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
@@ -86,10 +94,17 @@ def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
 
 
 def _positive_seconds(option: str, value: float | None) -> None:
-    """A duration option: finite and > 0. Leaving the option out is how to ask for no limit."""
-    if value is not None and not (math.isfinite(value) and value > 0):
+    """A duration option: > 0 and at most ``MAX_BUDGET_S`` (about 115 days: a budget is
+    counted in ticks, and 1e308 s overflowed the count). Leaving the option out is how to ask
+    for no limit."""
+    from handctl.online.timebudget import MAX_BUDGET_S
+
+    if value is not None and not 0 < value <= MAX_BUDGET_S:
         raise ConfigError(
-            option, "", "a number of seconds > 0 (leave the option out for no limit)", value
+            option,
+            "",
+            f"a number of seconds > 0 and <= {MAX_BUDGET_S:g} (leave the option out for no limit)",
+            value,
         )
 
 
@@ -100,6 +115,15 @@ def _output_file(option: str, path: Path | None) -> None:
 
     if path is not None:
         check_writable(path, option)
+
+
+def _plot_file(option: str, path: Path | None) -> None:
+    """An option naming a picture to draw: a file that can be written, in a format a plot can
+    be written in (``outfile.check_image``), asked before the work."""
+    from handctl.outfile import check_image
+
+    if path is not None:
+        check_image(path, option)
 
 
 def _write_output(option: str, path: Path, text: str) -> None:
@@ -211,7 +235,11 @@ def _cmd_analyze_torque_set(args: argparse.Namespace) -> int:
     from handctl.analysis.commands import torque_set_report
 
     _output_file("--json", args.json)
-    _output_file("--plot", args.plot)
+    _plot_file("--plot", args.plot)
+    if not all(math.isfinite(k) and abs(k) <= MAX_TORQUE_RATIO for k in args.k):
+        raise ConfigError(
+            "--k", "", f"two finite ratios within ±{MAX_TORQUE_RATIO:g}", " ".join(map(str, args.k))
+        )
     report = torque_set_report(
         args.scenario, (args.k[0], args.k[1]), args.json, args.plot, progress=_progress
     )
@@ -292,7 +320,7 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
 
     _positive_seconds("--max-seconds", args.max_seconds)
     _output_file("--summary-json", args.summary_json)
-    _output_file("--plot", args.plot)
+    _plot_file("--plot", args.plot)
     hand = _load_hand(args.hand, "--hand", args.dbc)
     _refuse_what_check_refuses(hand, args.hand)
     recipe = load_recipe(args.recipe, hand)
@@ -682,7 +710,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from handctl.recording.reader import check_format, open_recording
     from handctl.recording.series import load_series
 
-    _output_file("--plot", args.plot)
+    _plot_file("--plot", args.plot)
     _output_file("--json", args.json)
     if args.speed is not None and not (args.to_bus or args.live is not None):
         raise ConfigError(
@@ -692,8 +720,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             "the replay onto a bus or to Foxglove)",
             args.speed,
         )
-    if args.speed is not None and not (math.isfinite(args.speed) and args.speed > 0):
-        raise ConfigError("--speed", "", "a positive number", args.speed)
+    if args.speed is not None and not MIN_REPLAY_SPEED <= args.speed <= MAX_REPLAY_SPEED:
+        raise ConfigError(
+            "--speed",
+            "",
+            f"a factor of the recorded pace from {MIN_REPLAY_SPEED:g} to {MAX_REPLAY_SPEED:g}",
+            args.speed,
+        )
     if args.export and args.export[0] not in LOG_FORMATS:
         raise ConfigError("--export", "FORMAT", "one of " + ", ".join(LOG_FORMATS), args.export[0])
     recording = open_recording(args.log)

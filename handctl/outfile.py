@@ -36,6 +36,28 @@ def check_writable(path: Path, option: str) -> Path:
     return target
 
 
+#: the picture formats a plot is written in (matplotlib's own, by file name suffix); said
+#: before the work, not found out when the picture is drawn at its end
+IMAGE_SUFFIXES = ("png", "pdf", "svg", "svgz", "jpg", "jpeg", "tif", "tiff", "webp", "eps", "ps")
+
+
+def check_image(path: Path, option: str) -> Path:
+    """``check_writable``, and a name whose suffix says a picture format the plot can be
+    written in. Why here: a run's plot is drawn after the run, and matplotlib refuses an
+    unknown suffix only then, with a traceback; a name without a suffix would be written
+    as another file (matplotlib adds ``.png``) than the one the user named."""
+    target = check_writable(path, option)
+    suffix = path.suffix.lower().lstrip(".")
+    if suffix not in IMAGE_SUFFIXES:
+        raise ConfigError(
+            option,
+            "",
+            "a picture file name ending in ." + ", .".join(IMAGE_SUFFIXES),
+            str(path),
+        )
+    return target
+
+
 def _read_only(path: Path) -> bool:
     """Not to be written by this process, or by anyone (no write bit at all: root may still
     write it, but whoever took the bits away meant it to stay)."""

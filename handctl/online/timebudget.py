@@ -9,21 +9,27 @@ same reason and reaches the same outcome.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 from handctl.errors import ConfigError
 from handctl.online.clock import Tick
 from handctl.online.loop import Outcome, RunResult, Runtime
 
+#: s, the longest budget: about 115 days, far beyond any run, and few enough ticks to count
+#: (1e308 s overflowed the count of ticks)
+MAX_BUDGET_S = 1e7
 #: The start of the stop's reason; what follows is the budget.
 REASON_PREFIX = "time budget of "
 
 
 def check(max_seconds: float | None) -> None:
-    """None is no limit; anything else must be a finite number of seconds > 0."""
-    if max_seconds is not None and not 0 < max_seconds < math.inf:
+    """None is no limit; anything else must be a number of seconds > 0, at most
+    ``MAX_BUDGET_S``."""
+    if max_seconds is not None and not 0 < max_seconds <= MAX_BUDGET_S:
         raise ConfigError(
-            "max_seconds", "", "a time budget in seconds > 0 (None: no limit)", max_seconds
+            "max_seconds",
+            "",
+            f"a time budget in seconds > 0 and <= {MAX_BUDGET_S:g} (None: no limit)",
+            max_seconds,
         )
 
 

@@ -58,7 +58,7 @@ def test_check_refuses_an_interface_python_can_lacks(tmp_path: Path) -> None:
     assert "found 'sockectan'" in done.stderr
 
 
-@pytest.mark.parametrize("seconds", ["-1", "0", "nan", "inf"])
+@pytest.mark.parametrize("seconds", ["-1", "0", "nan", "inf", "1e308"])
 def test_a_time_budget_that_is_not_a_duration_is_bad_input(tmp_path: Path, seconds: str) -> None:
     out = tmp_path / "out.json"
     done = handctl(
@@ -74,6 +74,25 @@ def test_a_time_budget_that_is_not_a_duration_is_bad_input(tmp_path: Path, secon
     assert done.returncode == 2, done.stderr
     assert "--max-seconds: expected a number of seconds > 0" in done.stderr
     assert not out.exists()  # refused before the run: nothing was sent
+
+
+@pytest.mark.parametrize(
+    ("command", "said"),
+    [
+        (("analyze", "torque-set", "config/analysis/paper_fig3.yaml", "--k", "nan", "0.1"), "--k"),
+        (("analyze", "torque-set", "config/analysis/paper_fig3.yaml", "--k", "1e308", "1"), "--k"),
+        (("replay", "run.mcap", "--to-bus", "virtual:never", "--speed", "1e-300"), "--speed"),
+        (("replay", "run.mcap", "--to-bus", "virtual:never", "--speed", "1e9"), "--speed"),
+    ],
+    ids=["k nan", "k huge", "speed tiny", "speed huge"],
+)
+def test_a_number_out_of_an_options_range_is_bad_input(command: tuple[str, ...], said: str) -> None:
+    """Before, these exited 1 (``--k nan``), overflowed into numpy's warnings and exit 0
+    (``--k 1e308``), or stopped in a traceback (``--speed 1e-300``: a time stamp out of range)."""
+    done = handctl(*command, cwd=ROOT)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr and "Warning" not in done.stderr
+    assert f"handctl: error: {said}: expected " in done.stderr
 
 
 def test_a_run_that_ends_on_its_time_budget_has_its_own_outcome(tmp_path: Path) -> None:
@@ -193,3 +212,25 @@ def test_an_output_file_that_cannot_be_written_is_refused_before_the_work(
     assert f"handctl: error: {option}: expected " in done.stderr and expected in done.stderr
     assert "ticks" not in done.stdout  # nothing ran
     assert not (tmp_path.parent / f"{tmp_path.name}.png").exists()
+
+
+PLOTS = [
+    ("run", "recipe", str(RECIPE), "--max-seconds", "0.1", "--plot"),
+    ("analyze", "torque-set", "config/analysis/paper_fig3.yaml", "--k", "0.9", "0.1", "--plot"),
+]
+
+
+@pytest.mark.parametrize("command", PLOTS, ids=lambda c: c[0])
+@pytest.mark.parametrize("name", ["out.txt", "out"])
+def test_a_plot_in_no_picture_format_is_refused_before_the_work(
+    tmp_path: Path, command: tuple[str, ...], name: str
+) -> None:
+    """Before, the run (or the analysis) ran to its end and then stopped in matplotlib's
+    traceback (``Format 'txt' is not supported``); a name without a suffix was written as
+    ``out.png``, not the file the user named."""
+    done = handctl(*command, str(tmp_path / name), cwd=ROOT)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert "handctl: error: --plot: expected a picture file name ending in .png" in done.stderr
+    assert "ticks" not in done.stdout
+    assert list(tmp_path.iterdir()) == []
