@@ -199,7 +199,13 @@ def run_recipe(
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
     if not is_sim:
-        # Before the bus is opened: a host that cannot hold the deadlines sends nothing.
+        # The bus is there, first: opening it sends nothing, and a bus that cannot be opened
+        # is said as such (exit 4) rather than behind a verdict on the host's timing that a
+        # loaded host may or may not give (it was exit 5 or 4 by the host's load).
+        with open_bus(spec, req.hand.bus):
+            pass
+        # Before the bus is opened for the run: a host that cannot hold the deadlines sends
+        # nothing.
         host_check, checked = precheck(
             req.hand, req.realtime_priority, loop_cpu, req.accept_missed_deadlines
         )

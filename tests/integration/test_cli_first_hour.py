@@ -234,3 +234,24 @@ def test_a_plot_in_no_picture_format_is_refused_before_the_work(
     assert "handctl: error: --plot: expected a picture file name ending in .png" in done.stderr
     assert "ticks" not in done.stdout
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ("run", "recipe", str(RECIPE)),
+        ("jog", "f1_j2", "--torque", "0.05", "--seconds", "0.3"),
+    ],
+    ids=["run", "jog"],
+)
+def test_a_bus_that_is_not_there_is_a_bus_error_before_the_timing_check(
+    command: tuple[str, ...],
+) -> None:
+    """Before, a run on a real bus made the host's timing check first (2 s) and a loaded host
+    failed it: exit 5, "pass --accept-missed-deadlines", and the missing interface was said
+    only once that was passed; on a quiet host the same command gave exit 4."""
+    done = handctl(*command, "--bus", "socketcan:hctlnone9", cwd=ROOT)
+    assert done.returncode == 4, done.stdout + done.stderr
+    assert "handctl: bus error: socketcan:hctlnone9:" in done.stderr
+    assert "timing check" not in done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
