@@ -202,8 +202,9 @@ def listen(
 def from_log(path: Path) -> Iterable[tuple[int, bytes, int]]:
     """The raw frames of a recording, both directions, in wire order, on the log's clock."""
     from handctl.recording.frames import logged_frames
-    from handctl.recording.reader import open_recording
+    from handctl.recording.reader import check_format, open_recording
 
     recording = open_recording(path)
+    check_format(recording)
     for log_ns, frame_id, data, _ in logged_frames(recording):
         yield frame_id, data, log_ns

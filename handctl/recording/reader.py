@@ -33,7 +33,7 @@ import orjson
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, ChunkIndex, Metadata, MetadataIndex, Statistics
+from mcap.records import Channel, ChunkIndex, Metadata, MetadataIndex, Schema, Statistics
 
 from handctl.errors import ConfigError
 from handctl.recording import channels as ch
@@ -99,6 +99,10 @@ class Recording:
     chunk_spans: list[tuple[int, int]] | None = None
     bad_chunks: list[BadChunk] = field(default_factory=list)
     bad_metadata: list[str] = field(default_factory=list)  # names of indexed records that fail
+    #: each channel's record and each schema's, by id: what ``check_format`` holds a handctl
+    #: topic's encoding and schema to
+    channels: dict[int, Channel] = field(default_factory=dict)
+    schemas: dict[int, Schema] = field(default_factory=dict)
 
     @property
     def damaged(self) -> bool:
@@ -196,6 +200,8 @@ class _Index:
     counts: dict[int, int]
     chunks: list[ChunkIndex]
     metadata: list[MetadataIndex]
+    channels: dict[int, Channel] = field(default_factory=dict)
+    schemas: dict[int, Schema] = field(default_factory=dict)
 
 
 _FOOTER_BODY = struct.Struct("<QQI")  # summary start, summary offset start, summary CRC
@@ -230,6 +236,10 @@ def _read_index(handle: BinaryIO) -> _Index | None:
         if op == Opcode.CHANNEL:
             channel = Channel.read(_stream(body))
             index.topics[channel.id] = channel.topic
+            index.channels[channel.id] = channel
+        elif op == Opcode.SCHEMA:
+            schema = Schema.read(_stream(body))
+            index.schemas[schema.id] = schema
         elif op == Opcode.STATISTICS:
             index.counts = dict(Statistics.read(_stream(body)).channel_message_counts)
         elif op == Opcode.CHUNK_INDEX:
@@ -257,6 +267,8 @@ def _read_record(handle: BinaryIO, offset: int, length: int, opcode: int) -> byt
 def _open_indexed(handle: BinaryIO, recording: Recording, index: _Index) -> None:
     """The first pass through the index: every chunk checked, the bad ones named."""
     recording.topics = dict(index.topics)
+    recording.channels = dict(index.channels)
+    recording.schemas = dict(index.schemas)
     recording.chunk_spans = []
     chunks = sorted(index.chunks, key=lambda c: c.chunk_start_offset)
     for number, chunk in enumerate(chunks):
@@ -314,7 +326,14 @@ def _open_walk(handle: BinaryIO, recording: Recording) -> None:
     walk = _Walk(handle)
     try:
         for op, body in walk.records(
-            (Opcode.CHUNK, Opcode.METADATA, Opcode.CHANNEL, Opcode.STATISTICS, Opcode.FOOTER)
+            (
+                Opcode.CHUNK,
+                Opcode.METADATA,
+                Opcode.CHANNEL,
+                Opcode.SCHEMA,
+                Opcode.STATISTICS,
+                Opcode.FOOTER,
+            )
         ):
             if op == Opcode.CHUNK:
                 _chunk_data(body)  # a chunk cut short raises here: the walk ends
@@ -325,6 +344,10 @@ def _open_walk(handle: BinaryIO, recording: Recording) -> None:
             elif op == Opcode.CHANNEL:
                 channel = Channel.read(_stream(body))
                 recording.topics[channel.id] = channel.topic
+                recording.channels[channel.id] = channel
+            elif op == Opcode.SCHEMA:
+                schema = Schema.read(_stream(body))
+                recording.schemas[schema.id] = schema
             elif op == Opcode.STATISTICS:
                 stats = Statistics.read(_stream(body))
                 counts = dict(stats.channel_message_counts)
@@ -356,6 +379,10 @@ def _topics_from_first_chunk(handle: BinaryIO, recording: Recording) -> None:
                 if op == Opcode.CHANNEL:
                     channel = Channel.read(_stream(record))
                     recording.topics[channel.id] = channel.topic
+                    recording.channels[channel.id] = channel
+                elif op == Opcode.SCHEMA:
+                    schema = Schema.read(_stream(record))
+                    recording.schemas[schema.id] = schema
             return
     except _CUT_SHORT:
         return
@@ -552,7 +579,11 @@ def require_topics(recording: Recording, topics: Iterable[str], what: str) -> No
 
 def check_format(recording: Recording) -> None:
     """Refuse a handctl recording of another format version (a foreign MCAP passes: it has no
-    version, and the channel checks say what it lacks)."""
+    version, and the channel checks say what it lacks), and a channel of a handctl topic
+    whose messages are not what handctl writes there: JSON, of the topic's JSON Schema.
+    Why the second: every reader decodes a handctl topic as that JSON, so a file whose
+    channel says protobuf or CBOR was read as if it were handctl's, and a re-run of it
+    claimed bit-exact."""
     version = recording.meta("handctl.command", "format_version")
     if version and version != str(ch.FORMAT_VERSION):
         raise ConfigError(
@@ -561,3 +592,21 @@ def check_format(recording: Recording) -> None:
             f"format version {ch.FORMAT_VERSION}",
             version,
         )
+    wanted = {c.topic: c.schema_name for c in ch.CHANNELS}
+    for channel in recording.channels.values():
+        name = wanted.get(channel.topic)
+        if name is None:
+            continue
+        schema = recording.schemas.get(channel.schema_id)
+        found = (
+            channel.message_encoding,
+            schema.encoding if schema is not None else "no schema",
+            schema.name if schema is not None else "",
+        )
+        if found != (ch.MESSAGE_ENCODING, ch.SCHEMA_ENCODING, name):
+            raise ConfigError(
+                str(recording.path),
+                f"channel {channel.topic}",
+                f"{ch.MESSAGE_ENCODING} messages of the {ch.SCHEMA_ENCODING} schema {name}",
+                f"{found[0]} messages of the {found[1]} schema {found[2] or '(none)'}",
+            )

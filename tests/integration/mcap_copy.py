@@ -18,9 +18,11 @@ def rewrite(
     target: Path,
     change: Change | None = None,
     metadata: Callable[[str, dict[str, str]], dict[str, str]] | None = None,
+    formats: dict[str, tuple[str, str, str]] | None = None,
 ) -> None:
     """Copy a recording record by record with the mcap library, the messages through
-    ``change`` and the metadata through ``metadata``."""
+    ``change``, the metadata through ``metadata``, and the channels of the topics in
+    ``formats`` given another (message encoding, schema name, schema encoding)."""
     with source.open("rb") as handle:
         reader = make_reader(handle)
         summary = reader.get_summary()
@@ -38,12 +40,14 @@ def rewrite(
             s.id: writer.register_schema(s.name, s.encoding, s.data)
             for s in summary.schemas.values()
         }
-        channel_ids = {
-            c.id: writer.register_channel(
-                c.topic, c.message_encoding, schema_ids[c.schema_id], c.metadata
-            )
-            for c in summary.channels.values()
-        }
+        channel_ids = {}
+        for c in summary.channels.values():
+            encoding, schema_id = c.message_encoding, schema_ids[c.schema_id]
+            if formats and c.topic in formats:
+                encoding, name, schema_encoding = formats[c.topic]
+                old = summary.schemas[c.schema_id]
+                schema_id = writer.register_schema(name, schema_encoding, old.data)
+            channel_ids[c.id] = writer.register_channel(c.topic, encoding, schema_id, c.metadata)
         for _, channel, message in messages:
             index = counts.get(channel.topic, 0)
             counts[channel.topic] = index + 1

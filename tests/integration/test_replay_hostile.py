@@ -113,6 +113,36 @@ def test_the_cli_says_which_message_is_bad_and_exits_2(recorded: Recorded, tmp_p
     assert "(tick 300): missed: expected an integer, at least 0, found None" in done.stderr
 
 
+@pytest.mark.parametrize(
+    ("form", "found"),
+    [
+        (("cbor", "handctl.Torque", "jsonschema"), "found 'cbor messages of the jsonschema"),
+        (("json", "handctl.Torque", "protobuf"), "found 'json messages of the protobuf schema"),
+        (("json", "handctl.Foo", "jsonschema"), "jsonschema schema handctl.Foo'"),
+    ],
+    ids=["cbor messages", "protobuf schema", "another schema"],
+)
+@pytest.mark.parametrize("mode", [(), ("--rerun",), ("--json", "{out}")], ids=str)
+def test_a_channel_that_is_not_handctls_json_is_refused(
+    recorded: Recorded,
+    tmp_path: Path,
+    form: tuple[str, str, str],
+    found: str,
+    mode: tuple[str, ...],
+) -> None:
+    """Before, every mode decoded the channel as handctl's JSON whatever it declared, and a
+    re-run of the file said bit-exact."""
+    bad = tmp_path / "bad.mcap"
+    rewrite(recorded.path, bad, formats={ch.TORQUE: form})
+    out = str(tmp_path / "out.json")
+    done = handctl("replay", str(bad), *(out if a == "{out}" else a for a in mode))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"handctl: error: {bad}: channel {ch.TORQUE}: expected json messages of the " in (
+        done.stderr
+    )
+    assert found in done.stderr and "bit-exact" not in done.stdout
+
+
 # -- metadata -------------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("record", "key", "value", "expected"),
