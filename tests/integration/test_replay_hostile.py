@@ -78,6 +78,9 @@ def field(key: str, value: object) -> Callable[[bytes], bytes]:
         # nested deeper than Python's recursion limit: the message is bounded, not the value
         (ch.TORQUE, lambda raw: b"[" * 1000 + b"]" * 1000, "", "found [[[[[...]]]]]"),
         (ch.TIMING, lambda raw: b"[" * 5000 + b"]" * 5000, "", "expected a JSON object"),
+        # frames too, in the summary: it counted a refusal by the raw bytes
+        (ch.CAN_TX, lambda raw: b'garbage "ok":false', "", "expected a JSON object"),
+        (ch.CAN_RX, field("data", "0"), "data", "a frame's payload as hex"),
     ],
 )
 def test_a_message_not_of_its_channel_is_named(
@@ -101,6 +104,25 @@ def test_a_message_not_of_its_channel_is_named(
     assert text.startswith(f"{bad}: {topic} message at log time "), text
     assert (f": {key}: " in text) if key else True, text
     assert expected in text, text
+
+
+def test_the_summary_counts_a_refused_frame_by_its_field(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """``"ok": false`` written with a space (as any JSON writer may) is a refusal: the count
+    read the raw bytes for ``"ok":false`` and missed it."""
+    spaced = tmp_path / "spaced.mcap"
+
+    def refused(raw: bytes) -> bytes:
+        msg = json.loads(raw)
+        msg["ok"] = False
+        return json.dumps(msg, separators=(", ", ": ")).encode()
+
+    rewrite(recorded.path, spaced, one_message(ch.CAN_TX, 10, refused))
+    frames = load_series(open_recording(spaced)).frames
+    assert (
+        frames["tx_refused"] == 1 + load_series(open_recording(recorded.path)).frames["tx_refused"]
+    )
 
 
 def test_the_cli_says_which_message_is_bad_and_exits_2(recorded: Recorded, tmp_path: Path) -> None:
@@ -329,7 +351,6 @@ def test_a_bad_message_the_re_run_meets_while_running_is_still_bad_input(
     bad = tmp_path / "late.mcap"
     rewrite(recorded.path, bad, one_message(ch.CAN_TX, 3000, field("data", "zz")))
     recording = open_recording(bad)
-    load_series(recording)  # the summary does not decode the frames
     with pytest.raises(ConfigError) as caught:
         rerun(recording)
     text = str(caught.value)
