@@ -593,6 +593,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
             raise KeyboardInterrupt(terminated[0])
 
     signal.signal(signal.SIGTERM, terminate)
+    # whether --parent-pid named this hand's parent, alive or gone: only then is a bus
+    # directory left when the parent is gone its to tidy (a live process that is not the
+    # parent would have it tidy a bus others are on)
+    adopted = False
     try:
         parent_alive: Callable[[], bool] | None = None
         if args.parent_pid is not None:
@@ -601,10 +605,27 @@ def _cmd_sim(args: argparse.Namespace) -> int:
             from handctl.parent_death import die_with_parent
             from handctl.parent_death import parent_alive as alive
 
+            if args.parent_pid <= 0:
+                raise ConfigError("--parent-pid", "", "a process id > 0", args.parent_pid)
             if not die_with_parent(args.parent_pid):
-                raise KeyboardInterrupt(
-                    f"process {args.parent_pid} ended before its simulated hand started"
+                if _process_exists(args.parent_pid):
+                    # a live process that is not this one's parent: its end would never be
+                    # seen, and this hand would outlive it
+                    raise ConfigError(
+                        "--parent-pid",
+                        "",
+                        f"the id of this process's parent ({os.getppid()})",
+                        args.parent_pid,
+                    )
+                # the host that started this hand is gone already: a stop, said as such
+                adopted = True
+                print(
+                    f"handctl: process {args.parent_pid} ended before its simulated hand "
+                    "started; nothing was run",
+                    file=sys.stderr,
                 )
+                return EXIT_INTERRUPTED
+            adopted = True
             parent_alive = partial(alive, args.parent_pid)
         from handctl.sim.faults import load_scenario
         from handctl.sim.hand import standalone
@@ -633,11 +654,20 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     finally:
         # SIGTERM is also the parent-death signal, which can come while the host is still
         # going down: then wait for it to be gone.
-        if args.parent_pid is not None and parent_ends(
-            args.parent_pid, ORPHAN_WAIT_S if terminated else 0.0
-        ):
+        if adopted and parent_ends(args.parent_pid, ORPHAN_WAIT_S if terminated else 0.0):
             remove_orphaned_bus(args.bus, args.summary_json)
     return EXIT_OK
+
+
+def _process_exists(pid: int) -> bool:
+    """Whether a process ``pid`` exists (signal 0 asks without sending anything)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # there, someone else's
+        return True
+    return True
 
 
 # -- replay ------------------------------------------------------------------------------------

@@ -68,15 +68,16 @@ def remove_orphaned_bus(spec: str, summary_json: Path | None) -> None:
     """The unix bus directory of a host that died, removed by its simulated hand, which
     outlived it (a host that ends normally removes the directory itself, after the hand ended).
 
-    Only what handctl put there goes: the bus's sockets (the dead host's too), the hand's
-    summary and its log, then the directory if nothing else is left in it. A directory that
-    holds anything else was not a run's private bus, and what else it holds is not ours.
+    Only what handctl put there goes: the bus's sockets (the dead host's too) but those of a
+    process still alive, the hand's summary and its log, then the directory if nothing else is
+    left in it. A directory that holds anything else was not a run's private bus, and what
+    else it holds is not ours; a live peer's endpoint is its own.
     """
     interface, _, channel = spec.partition(":")
     if interface != "unix" or not channel:
         return
     directory = Path(channel).resolve()
-    ours = [p for p in directory.glob("*.sock") if _is_bus_socket(p)]
+    ours = [p for p in directory.glob("*.sock") if _is_bus_socket(p) and not _owner_alive(p)]
     if summary_json is not None:
         ours.append(summary_json)
     with suppress(OSError):
@@ -87,6 +88,21 @@ def remove_orphaned_bus(spec: str, summary_json: Path | None) -> None:
                 path.unlink()
     with suppress(OSError):  # gone already, or not empty: what is left is not ours
         directory.rmdir()
+
+
+def _owner_alive(path: Path) -> bool:
+    """Whether the process a bus endpoint is named for (``PID-N.sock``) is alive and not
+    this one (this process's own endpoints go with it)."""
+    pid = int(path.name.partition("-")[0])
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
 
 
 def _is_bus_socket(path: Path) -> bool:

@@ -3,7 +3,10 @@ and never anything handctl did not put there."""
 
 from __future__ import annotations
 
+import os
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 from handctl.parent_death import remove_orphaned_bus
@@ -19,9 +22,16 @@ def _bus(directory: Path, *names: str) -> list[socket.socket]:
     return sockets
 
 
+def _dead_pid() -> int:
+    """The id of a process that has ended (reaped: nobody has it until the kernel reuses it)."""
+    done = subprocess.Popen([sys.executable, "-c", "pass"])
+    done.wait()
+    return done.pid
+
+
 def test_a_private_bus_directory_is_removed(tmp_path: Path) -> None:
     directory = tmp_path / "handctl-bus-x"
-    sockets = _bus(directory, "101-0.sock", "202-0.sock")
+    sockets = _bus(directory, f"{_dead_pid()}-0.sock", f"{_dead_pid()}-0.sock")
     summary = directory / "sim-summary.json"
     summary.write_text("{}")
     try:
@@ -35,7 +45,7 @@ def test_a_private_bus_directory_is_removed(tmp_path: Path) -> None:
 def test_a_directory_holding_anything_else_keeps_it(tmp_path: Path) -> None:
     """A user who pointed --bus unix: at a directory of their own loses nothing but sockets."""
     directory = tmp_path / "mine"
-    sockets = _bus(directory, "101-0.sock")
+    sockets = _bus(directory, f"{_dead_pid()}-0.sock")
     (directory / "notes.txt").write_text("keep me")
     (directory / "7-1.sock").write_text("a file, not a socket")
     (directory / "sub").mkdir()
@@ -45,6 +55,20 @@ def test_a_directory_holding_anything_else_keeps_it(tmp_path: Path) -> None:
         for sock in sockets:
             sock.close()
     assert sorted(p.name for p in directory.iterdir()) == ["7-1.sock", "notes.txt", "sub"]
+
+
+def test_a_live_peers_endpoint_is_its_own(tmp_path: Path) -> None:
+    """A process still on the bus keeps its endpoint, and so the directory stays; the dead
+    host's endpoint goes. Before, every endpoint went, a live peer's too."""
+    directory = tmp_path / "shared"
+    live, dead = f"{os.getppid()}-3.sock", f"{_dead_pid()}-0.sock"
+    sockets = _bus(directory, live, dead)
+    try:
+        remove_orphaned_bus(f"unix:{directory}", None)
+    finally:
+        for sock in sockets:
+            sock.close()
+    assert sorted(p.name for p in directory.iterdir()) == [live]
 
 
 def test_other_buses_are_left_alone(tmp_path: Path) -> None:
