@@ -551,26 +551,35 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         f"on {where}"
     )
     for plan in result.phases:
-        prov = plan.provenance
-        analysis = prov["analysis"]
-        ana = (
-            f"analysis margin {analysis['margin_N']} N"
-            if analysis.get("found")
-            else "analysis: none"
-        )
-        search = prov.get("search")
-        found = f", search score {search['score']}" if search else ""
-        held = prov["models"]
-        print(
-            f"  {plan.phase.name:<16} {plan.spec.kind:<5} {ana}{found}; from "
-            f"{prov['chosen_from']}; {held['held']}/{held['ran']} models hold"
-        )
+        print(_planned_phase_line(plan))
     if args.plot:
         from handctl.experiment.plot import plot_plan
 
         for path in plot_plan(result, args.plot):
             print(f"  plot {path}")
     return EXIT_OK
+
+
+def _planned_phase_line(plan: Any) -> str:
+    """One line of a plan's report. A kept phase's provenance is copied from the base
+    recipe, which is a file like any other: what it lacks is said, not a KeyError after
+    the whole search (it has no bearing on the torques)."""
+    prov = plan.provenance
+    analysis = prov.get("analysis")
+    if not isinstance(analysis, dict):
+        ana = "analysis: not recorded"
+    elif analysis.get("found"):
+        ana = f"analysis margin {analysis.get('margin_N', '?')} N"
+    else:
+        ana = "analysis: none"
+    search = prov.get("search")
+    found = f", search score {search.get('score', '?')}" if isinstance(search, dict) else ""
+    origin = prov.get("chosen_from") or prov.get("kept_from") or "?"
+    held = prov["models"]  # this plan's own run of the phase
+    return (
+        f"  {plan.phase.name:<16} {plan.spec.kind:<5} {ana}{found}; from "
+        f"{origin}; {held['held']}/{held['ran']} models hold"
+    )
 
 
 # -- sim ---------------------------------------------------------------------------------------
