@@ -19,7 +19,7 @@ from types import MappingProxyType
 from typing import Any
 
 from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids, protocol_for
-from handctl.protocol import Protocol
+from handctl.protocol import HEARTBEAT_PERIOD_S, Protocol
 from handctl.schema import Doc, load_yaml
 from handctl.wirelimits import check_wire_limits
 
@@ -200,8 +200,15 @@ def _parse_safety(doc: Doc) -> SafetyConfig:
         feedback_timeout_s=doc.number(
             "feedback_timeout_s", default=d.feedback_timeout_s, min=0.001, max=1.0, unit="s"
         ),
+        # longer than the nodes' heartbeat period, or every run stops on HEARTBEAT_LOST
+        # within a tenth of a second of a config that `handctl check` passed
         heartbeat_timeout_s=doc.number(
-            "heartbeat_timeout_s", default=d.heartbeat_timeout_s, min=0.01, max=10.0, unit="s"
+            "heartbeat_timeout_s",
+            default=d.heartbeat_timeout_s,
+            min=HEARTBEAT_PERIOD_S,
+            min_exclusive=True,
+            max=10.0,
+            unit="s",
         ),
         tdt_tolerance=doc.number(
             "tdt_tolerance", default=d.tdt_tolerance, min=0.0, max=10.0, unit="N·m"

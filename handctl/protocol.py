@@ -62,6 +62,9 @@ def node_state_name(value: int, unknown: str = "UNKNOWN") -> str:
 #: The DBC's ``VERSION`` string: "handctl protocol N", N the integer every node reports in its
 #: Status (``ProtocolVersion``) and the host compares with its own.
 _VERSION = re.compile(r"^handctl protocol (\d+)$")
+#: s, how often a node sends its Heartbeat (firmware_protocol/PROTOCOL.md): a host's heartbeat
+#: watchdog must wait longer than this
+HEARTBEAT_PERIOD_S = 0.1
 #: ``Command`` values of NodeCommand frames.
 NODE_COMMANDS = {"enable": 1, "disable": 2, "fault_reset": 3}
 

@@ -43,7 +43,7 @@ from collections.abc import Sequence
 
 from handctl.config import FingerConfig
 from handctl.errors import ConfigError
-from handctl.protocol import NODE_COMMANDS, Layout, NodeState, Protocol
+from handctl.protocol import HEARTBEAT_PERIOD_S, NODE_COMMANDS, Layout, NodeState, Protocol
 from handctl.sim.params import NODE_TICK_NS
 
 #: No accepted TorqueCommand for this long while ENABLED latches TIMEOUT.
@@ -51,7 +51,7 @@ WATCHDOG_NS = 10 * NODE_TICK_NS
 REJECT_PENALTY = 10
 REJECT_LIMIT = 100
 STATUS_PERIOD_MS = 100
-HEARTBEAT_PERIOD_MS = 100
+HEARTBEAT_PERIOD_MS = round(HEARTBEAT_PERIOD_S * 1000)
 #: The firmware version the emulated nodes report (major, minor, patch) in Status.
 FIRMWARE_VERSION = (0, 2, 0)
 _SATURATING = 255

@@ -146,6 +146,19 @@ def test_out_of_range(
     assert err.found == value
 
 
+@pytest.mark.parametrize("timeout", [0.01, 0.1])
+def test_a_heartbeat_watchdog_no_longer_than_the_heartbeat_period_is_refused(
+    tmp_path: Path, base: dict[str, Any], timeout: float
+) -> None:
+    """Nodes send a heartbeat every 0.1 s: a watchdog of 0.01 s passed ``handctl check`` and
+    stopped every run on HEARTBEAT_LOST within a tenth of a second."""
+    base["safety"] = {"heartbeat_timeout_s": timeout}
+    err = error_for(tmp_path, base)
+    assert err.key == "safety.heartbeat_timeout_s" and "> 0.1" in err.expected
+    base["safety"] = {"heartbeat_timeout_s": 0.15}
+    assert load_hand(write(tmp_path, base)).safety.heartbeat_timeout_s == 0.15
+
+
 def test_non_finite_number(tmp_path: Path, base: dict[str, Any]) -> None:
     base["fingers"][0]["joints"][0]["rate_limit"] = math.inf
     err = error_for(tmp_path, base)
