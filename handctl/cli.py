@@ -741,13 +741,10 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
         )
 
 
-def _cmd_replay(args: argparse.Namespace) -> int:
-    import json
-
-    from handctl.recording import frames, replay, rerun
+def _check_replay_options(args: argparse.Namespace) -> None:
+    """Every option of ``replay`` that needs another, or a range, said before the log is read:
+    an option that would be ignored is refused rather than silently dropped."""
     from handctl.recording.canlog import LOG_FORMATS
-    from handctl.recording.reader import check_format, open_recording
-    from handctl.recording.series import load_series
 
     _plot_file("--plot", args.plot)
     _output_file("--json", args.json)
@@ -759,6 +756,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             "the replay onto a bus or to Foxglove)",
             args.speed,
         )
+    if args.direction is not None and not args.to_bus:
+        raise ConfigError(
+            "--direction",
+            "",
+            "--to-bus SPEC as well (the direction is of the frames sent onto a bus)",
+            args.direction,
+        )
     if args.speed is not None and not MIN_REPLAY_SPEED <= args.speed <= MAX_REPLAY_SPEED:
         raise ConfigError(
             "--speed",
@@ -768,6 +772,16 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         )
     if args.export and args.export[0] not in LOG_FORMATS:
         raise ConfigError("--export", "FORMAT", "one of " + ", ".join(LOG_FORMATS), args.export[0])
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    import json
+
+    from handctl.recording import frames, replay, rerun
+    from handctl.recording.reader import check_format, open_recording
+    from handctl.recording.series import load_series
+
+    _check_replay_options(args)
     recording = open_recording(args.log)
     check_format(recording)
     series = load_series(recording)
@@ -819,7 +833,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print(f"export: {count} frames to {out} ({fmt})")
     if args.to_bus:
         _progress(f"replaying frames onto {args.to_bus} at {args.speed or 1.0:g}x ...")
-        sent = frames.to_bus(recording, args.to_bus, args.speed or 1.0, args.direction)
+        sent = frames.to_bus(recording, args.to_bus, args.speed or 1.0, args.direction or "both")
         report["to_bus"] = sent
         print(
             f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
@@ -935,6 +949,13 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             "",
             f"a file for the calibrated copy (or --write to overwrite {args.hand})",
             "nothing",
+        )
+    if args.output is not None and args.write:
+        raise ConfigError(
+            "--write",
+            "",
+            f"either -o FILE (a calibrated copy) or --write (overwrite {args.hand}), not both",
+            f"-o {args.output} --write",
         )
     target = args.hand if args.output is None else args.output
     if (
@@ -1155,7 +1176,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
 
     if args.log is not None:
         return _monitor_log(view, args.log, every, on_tty, emit)
-    bus_text = args.bus or "sim"
+    bus_text = "sim" if args.bus is None else args.bus  # '' is a bad spec, not the default
     try:
         with listening_bus(bus_text, hand) as bus:
             title = f"handctl monitor {bus_text} ({bus.spec}): listening, sending nothing"
@@ -1952,7 +1973,6 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     rep.add_argument(
         "--direction",
         choices=("both", "rx", "tx"),
-        default="both",
         help="with --to-bus: which logged frames to send (default both)",
     )
     rep.add_argument(

@@ -255,3 +255,23 @@ def test_a_bus_that_is_not_there_is_a_bus_error_before_the_timing_check(
     assert "handctl: bus error: socketcan:hctlnone9:" in done.stderr
     assert "timing check" not in done.stdout + done.stderr
     assert "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize(
+    ("command", "said"),
+    [
+        (("replay", "run.mcap", "--direction", "rx"), "--direction: expected --to-bus SPEC"),
+        (("monitor", "--bus", "", "--seconds", "0.2"), "--bus: expected sim, hand, or"),
+        (("calibrate", "tdt", "--write", "-o", "{tmp}/copy.yaml"), "--write: expected either"),
+    ],
+    ids=["replay direction alone", "monitor empty bus", "calibrate write and copy"],
+)
+def test_an_option_that_would_be_ignored_is_bad_input(
+    tmp_path: Path, command: tuple[str, ...], said: str
+) -> None:
+    """Before, each exited 0 doing something else than asked: the direction dropped, the
+    empty bus taken for the simulated hand, ``--write`` dropped for the copy."""
+    done = handctl(*(a.replace("{tmp}", str(tmp_path)) for a in command), cwd=ROOT)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"handctl: error: {said}" in done.stderr
+    assert list(tmp_path.iterdir()) == []
