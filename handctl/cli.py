@@ -67,6 +67,8 @@ MAX_TORQUE_RATIO = 1e3
 #: slowest (1e-300 overflowed the clock's time stamps, 1e-9 waited for ever); at the fastest
 #: the frames go out as fast as the bus takes them anyway
 MIN_REPLAY_SPEED = 1e-3
+#: s, the shortest timing check: ten ticks at 1 kHz (1e-300 s gave a verdict on no tick)
+MIN_TIMING_CHECK_S = 0.01
 MAX_REPLAY_SPEED = 1e3
 
 
@@ -151,8 +153,13 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 
     from handctl.hostcheck import timing_check
 
-    if not 0 < args.seconds <= 3600:
-        raise ConfigError("--seconds", "", "a number of seconds > 0 and <= 3600", args.seconds)
+    if not MIN_TIMING_CHECK_S <= args.seconds <= 3600:
+        raise ConfigError(
+            "--seconds",
+            "",
+            f"a number of seconds >= {MIN_TIMING_CHECK_S:g} and <= 3600",
+            args.seconds,
+        )
     _output_file("--json", args.json)
     hand = _load_hand(args.hand, "HAND.yaml")
     _progress(

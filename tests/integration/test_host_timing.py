@@ -266,7 +266,9 @@ def test_a_named_virtual_bus_counts_as_a_real_one() -> None:
 def test_a_check_of_no_length_is_bad_input(tmp_path: Path) -> None:
     done = handctl("check", "--timing", "--seconds", "0")
     assert done.returncode == 2
-    assert "--seconds: expected a number of seconds > 0 and <= 3600, found 0.0" in done.stderr
+    assert "--seconds: expected a number of seconds >= 0.01 and <= 3600, found 0.0" in done.stderr
+    tiny = handctl("check", "--timing", "--seconds", "1e-300")  # a verdict on no tick
+    assert tiny.returncode == 2 and "found 1e-300" in tiny.stderr
     # relative, so that the message holds all of it: a value over 80 characters is cut there,
     # and a worker's temporary directory is long
     nowhere = Path("missing", "t.json")
