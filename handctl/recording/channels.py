@@ -43,6 +43,10 @@ META_END = "handctl.recording_end"
 #: ``ended`` of ``META_END`` when the recorder closed the file (not a dead control process).
 ENDED_CLOSED = "closed by the recorder"
 
+#: The supervisor's states as ``/safety/state`` writes them (``supervisor.State``'s values; a
+#: test keeps the two in step: the recording does not import the runtime)
+SAFETY_STATES = ("idle", "enabling", "running", "stopping", "fault_ramp", "faulted")
+
 #: Event kinds on ``/events``.
 EVENT_KINDS = ("fault", "state", "phase", "bus", "rejected_frames", "request", "recording")
 
@@ -136,7 +140,8 @@ CHANNELS: tuple[Channel, ...] = (
                 "tick": _tick(),
                 "state": {
                     **_STR,
-                    "description": "idle, enabling, running, stopping, fault_ramp or faulted",
+                    "enum": list(SAFETY_STATES),
+                    "description": ", ".join(SAFETY_STATES[:-1]) + " or " + SAFETY_STATES[-1],
                 },
                 "faults_latched": {**_COUNT, "description": "faults latched so far"},
             },

@@ -67,6 +67,7 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     timing, torque, joint = _Rows(9), _Rows(1 + 2 * n), _Rows(1 + 2 * n)
     objects: _Rows | None = None
     series = Series(joints)
+    limits = _recorded_limits(recording, n)
     t0: int | None = None
     tick0: int | None = None  # tick 0's scheduled time (ns)
     period_ns = recording.meta_int(ch.META_RUN, "period_ns", 1_000_000, minimum=1)
@@ -109,7 +110,10 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             )
             last_t = t
         elif topic == ch.TORQUE:
-            torque.add([t, *json_floats(msg["desired_nm"]), *json_floats(msg["applied_nm"])])
+            applied = json_floats(msg["applied_nm"])
+            if limits is not None:
+                _check_applied(recording, log_time, msg, applied, limits, joints)
+            torque.add([t, *json_floats(msg["desired_nm"]), *applied])
         elif topic == ch.JOINT_STATE:
             joint.add([t, *json_floats(msg["tdt_torque_nm"]), *json_floats(msg["angle_rad"])])
         elif topic == ch.PHASE:
@@ -179,6 +183,41 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     series.rest_y = _rest_heights(recording, series)
     series.frames = frames
     return series
+
+
+def _recorded_limits(recording: Recording, n: int) -> list[float] | None:
+    """Each joint's ``tau_max`` from the recorded hand config, if it is there and has the log's
+    joints (a log without it, or whose hand does not read, is summarised unchecked)."""
+    try:
+        hand = recorded_hand(recording, required=False)
+    except ConfigError:
+        return None
+    if hand is None or hand.n_joints != n:
+        return None
+    return [j.tau_max * (1 + 1e-9) for j in hand.joints]
+
+
+def _check_applied(
+    recording: Recording,
+    log_time: int,
+    msg: dict[str, Any],
+    applied: list[float],
+    limits: list[float],
+    joints: list[str],
+) -> None:
+    """Refuse an applied torque over the recorded hand's ``tau_max``: the supervisor never
+    applies more, so such a log was not written by a run (the summary reported a largest
+    applied torque of 1e40 N·m as a fact)."""
+    for j, (value, limit) in enumerate(zip(applied, limits, strict=True)):
+        if abs(value) > limit:
+            raise ConfigError(
+                str(recording.path),
+                f"{ch.TORQUE} message at log time {log_time} ns (tick {msg['tick']}): "
+                f"applied_nm[{j}] ({joints[j]})",
+                f"at most the recorded hand's tau_max, {limit / (1 + 1e-9):g} N·m, as the "
+                "supervisor applies",
+                value,
+            )
 
 
 def json_floats(values: list[float | None]) -> list[float]:

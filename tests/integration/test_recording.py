@@ -754,3 +754,10 @@ def test_docs_name_every_channel_schema_and_field() -> None:
         ch.META_END,
     ):
         assert f"`{name}`" in text
+
+
+def test_the_safety_channel_s_states_are_the_supervisor_s() -> None:
+    """The recording does not import the runtime, so its schema lists the states itself."""
+    from handctl.online.safety.supervisor import State
+
+    assert tuple(s.value for s in State) == ch.SAFETY_STATES

@@ -81,6 +81,8 @@ def field(key: str, value: object) -> Callable[[bytes], bytes]:
         # frames too, in the summary: it counted a refusal by the raw bytes
         (ch.CAN_TX, lambda raw: b'garbage "ok":false', "", "expected a JSON object"),
         (ch.CAN_RX, field("data", "0"), "data", "a frame's payload as hex"),
+        # more than the supervisor ever applies: the summary reported 1e40 N·m as a fact
+        (ch.TORQUE, field("applied_nm", [1e40] * 9), "applied_nm[0] (f1_j1)", "tau_max"),
     ],
 )
 def test_a_message_not_of_its_channel_is_named(
