@@ -205,7 +205,8 @@ def run_recipe(
         )
         warnings += checked
     with ExitStack() as stack:
-        # First in, last out: from here to the end a signal ends the run as StopSignals says.
+        # First in, last out: from here to the end a signal ends the run as StopSignals says;
+        # until the runtime runs, at the checkpoints between the steps of the start-up.
         signals = stack.enter_context(StopSignals())
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
@@ -228,6 +229,7 @@ def run_recipe(
         )
         if recording is not None:
             recorder = recording
+        signals.checkpoint()
         estimator = (
             ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
             if req.recipe.objects
@@ -236,9 +238,13 @@ def run_recipe(
         # before the clock asks for the loop's priority and CPU, which a process started
         # later would inherit
         reanalyser = _reanalyser(stack, req, estimator, lockstep, {loop_cpu, sim_cpu})
+        signals.checkpoint()
         peer = _start_peer(stack, req, spec, lockstep, sim_cpu)
+        signals.checkpoint()
         bus: HandBus = stack.enter_context(open_bus(peer.spec, req.hand.bus))
+        signals.checkpoint()
         timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu, warnings)
+        signals.checkpoint()
         clock = timing.clock
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
         runtime = Runtime(
@@ -268,6 +274,7 @@ def run_recipe(
             timebudget.install(runtime, req.max_seconds)
         if recording is not None:
             _start_recording(recording, runtime, req, peer.spec, lockstep, peer.sim_hand)
+        signals.checkpoint()
         result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
         if result.exception is not None:
             warnings.append(
@@ -665,8 +672,15 @@ class StopSignals:
     """SIGINT, SIGTERM and SIGHUP over a whole run, from before anything starts to the last
     line of the log, so that each ends the run the same way whenever it comes, with exit 130:
 
-    - before the runtime runs (the simulated hand starting, the log opening): an interrupt
-      (``KeyboardInterrupt``), which unwinds what was started; nothing was sent;
+    - before the runtime runs (the modules loading, the log opening, the simulated hand
+      starting): noted, and raised as an interrupt (``KeyboardInterrupt``) at the start-up's
+      next ``checkpoint``, between two of its steps, which unwinds what was started; nothing
+      was sent. Never from the handler itself: that would raise wherever the main thread is,
+      inside an extension module's initialisation that cannot survive an exception (orjson's
+      dereferences the failed import and crashes the process), inside code that ``exec``
+      compiled (CPython then exits by SIGINT whatever exit code was chosen), or between a
+      resource's creation and its registration for clean-up (a log file created and left
+      empty). A signal noted when the runtime is handed over becomes its controlled stop;
     - while it runs, start-up included: the runtime's controlled stop (torque to zero, nodes
       disabled), asked for through the event loop, never by an exception inside a tick;
     - afterwards (the hand is stopped; the log and the summary are being finished), and once
@@ -686,6 +700,7 @@ class StopSignals:
     def __init__(self) -> None:
         self.runtime: Runtime | None = None
         self.finishing = False
+        self.noted = ""  # a signal during start-up that no checkpoint has raised yet
         self.interrupted = ""  # the signal that interrupted the run before the runtime ran
         self.ignored: list[str] = []
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -702,20 +717,32 @@ class StopSignals:
     def __exit__(self, kind: object, exc: BaseException | None, tb: object) -> None:
         for sig, handler in self._saved.items():
             signal.signal(sig, handler)
-        if self.interrupted and exc is not None and not isinstance(exc, KeyboardInterrupt):
-            # The interrupt was raised inside C code (MuJoCo's import, for one), which turned
-            # it into an error of its own: it is still the interrupt that was asked for.
-            raise KeyboardInterrupt(self.interrupted) from exc
+        if self.noted and exc is None:
+            # The start-up ended without another checkpoint or a runtime to stop: the signal
+            # still ends the command as the interrupt it was.
+            self.interrupted, self.noted = self.noted, ""
+            raise KeyboardInterrupt(self.interrupted)
+        interrupted = self.interrupted or self.noted
+        if interrupted and exc is not None and not isinstance(exc, KeyboardInterrupt):
+            # Whatever else went wrong once a stop was asked for, the run was interrupted.
+            raise KeyboardInterrupt(interrupted) from exc
+
+    def checkpoint(self) -> None:
+        """Raise the interrupt a signal asked for during start-up, if one did: here, between
+        two steps, everything started so far is on the run's exit stack and unwinds."""
+        if self.noted and not self.finishing:
+            self.finishing = True
+            self.interrupted, self.noted = self.noted, ""
+            raise KeyboardInterrupt(self.interrupted)
 
     def _handle(self, signum: int, frame: object) -> None:
         name = signal.Signals(signum).name
-        if self.finishing:
+        if self.finishing or self.noted:
             self.ignored.append(name)
             return
         if self.runtime is None or self._loop is None:
-            self.finishing = True
-            self.interrupted = f"signal {name}"
-            raise KeyboardInterrupt(self.interrupted)
+            self.noted = f"signal {name}"  # for the next checkpoint (class docstring)
+            return
         try:
             self._loop.call_soon_threadsafe(self.runtime.request_stop, f"signal {name}")
         except RuntimeError:  # the loop has just closed: the run is over
@@ -729,6 +756,9 @@ class StopSignals:
         """
         self._loop = asyncio.get_running_loop()
         self.runtime = runtime
+        if self.noted:  # came after the last checkpoint: the runtime's stop, before it sends
+            runtime.request_stop(self.noted)
+            self.noted = ""
         try:
             result = await runtime.run()
         finally:
