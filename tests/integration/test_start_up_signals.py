@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -80,47 +78,63 @@ def test_a_signal_inside_each_start_up_step_is_an_interrupt_with_a_readable_log(
     _replays(log)
 
 
-#: Runs ``python -m handctl ARGS...`` with SIGNAL raised the first time MODULE is looked up
-#: for an import: from inside that import, wherever it comes from.
-SIGNAL_ON_IMPORT = """
-import runpy, signal, sys
+#: ``sitecustomize`` of a ``python -m handctl`` the test runs: it raises a signal from inside
+#: the start-up, at the point HANDCTL_TEST_SIGNAL names (read once: the run's own processes,
+#: the recording's writer and the simulated hand, start without it):
+#: - ``import MODULE SIGNAL``: the first time MODULE is looked up for an import, wherever the
+#:   import comes from;
+#: - ``exec-in MODULE SIGNAL``: in the first code that ``exec`` compiled (the methods a
+#:   dataclass is given, a named tuple) to run once MODULE is being imported. A signal that
+#:   comes while such code compiles is taken as it starts.
+SITECUSTOMIZE = """
+import os, signal, sys
 
-module, sig = sys.argv[1], signal.Signals[sys.argv[2]]
+point = os.environ.pop("HANDCTL_TEST_SIGNAL", "")
+if point:
+    kind, module, name = point.split()
+    sig = signal.Signals[name]
 
-class SignalOnImport:
-    def find_spec(self, name, path=None, target=None):
-        if name == module:
-            sys.meta_path.remove(self)
+    def in_exec(frame, event, arg):
+        if frame.f_code.co_filename == "<string>":
+            sys.settrace(None)
             signal.raise_signal(sig)
-        return None
 
-sys.meta_path.insert(0, SignalOnImport())
-sys.argv = ["handctl", *sys.argv[3:]]
-runpy.run_module("handctl", run_name="__main__", alter_sys=True)
+    class At:
+        def find_spec(self, fullname, path=None, target=None):
+            if fullname == module:
+                sys.meta_path.remove(self)
+                if kind == "import":
+                    signal.raise_signal(sig)
+                else:
+                    sys.settrace(in_exec)
+            return None
+
+    sys.meta_path.insert(0, At())
 """
 
 
 @pytest.mark.parametrize(
-    ("module", "logged"),
+    ("point", "logged"),
     [
+        # The run's modules loading, the configs not yet read: the command stops before the
+        # log. CPython exits by SIGINT, whatever exit code was chosen, after an interrupt
+        # escaped code that ``exec`` compiled (``python -m`` only).
+        ("exec-in handctl.session", False),
         # orjson's initialisation imports uuid (the recording's modules loading, the log not
         # yet opened) and crashes the process if that import fails
-        ("uuid", True),
+        ("import uuid", True),
         # the simulated hand starting, the log open
-        ("mujoco", True),
+        ("import mujoco", True),
     ],
 )
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_inside_an_import_of_the_start_up_is_an_interrupt(
-    tmp_path: Path, module: str, logged: bool, sig: signal.Signals
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_inside_the_start_up_code_is_an_interrupt(
+    tmp_path: Path, point: str, logged: bool, sig: signal.Signals
 ) -> None:
+    (tmp_path / "sitecustomize.py").write_text(SITECUSTOMIZE)
     log = tmp_path / "run.mcap"
-    driver = tmp_path / "signal_on_import.py"
-    driver.write_text(SIGNAL_ON_IMPORT)
-    done = _handctl_under(
-        driver,
-        module,
-        sig.name,
+    path = os.pathsep.join(str(p) for p in (ROOT, tmp_path))
+    done = handctl(
         "run",
         "recipe",
         DEFAULT_RECIPE,
@@ -128,6 +142,8 @@ def test_a_signal_inside_an_import_of_the_start_up_is_an_interrupt(
         str(log),
         "--max-seconds",
         "1",
+        env={"PYTHONPATH": path, "HANDCTL_TEST_SIGNAL": f"{point} {sig.name}"},
+        timeout=300,
     )
     assert done.returncode == 130, done.stderr
     assert done.stderr.strip().splitlines()[-1] == "handctl: interrupted", done.stderr
@@ -135,18 +151,3 @@ def test_a_signal_inside_an_import_of_the_start_up_is_an_interrupt(
     assert log.exists() is logged
     if logged:
         _replays(log)
-
-
-def _handctl_under(driver: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    """``python DRIVER ARGS`` from the repository root with its handctl first on the path,
-    as ``conftest.handctl`` runs ``python -m handctl``."""
-    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
-    return subprocess.run(
-        [sys.executable, str(driver), *args],
-        cwd=ROOT,
-        env={**os.environ, "PYTHONPATH": path},
-        text=True,
-        capture_output=True,
-        timeout=300,
-        check=False,
-    )

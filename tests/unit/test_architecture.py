@@ -49,6 +49,7 @@ COMPOSITION = (
     "handctl.__main__",
     "handctl.cli",
     "handctl.session",
+    "handctl.stopsignals",
     "handctl.bringup",
     "handctl.hostcheck",
     "handctl.hostprobe",

@@ -1,4 +1,5 @@
-"""SIGINT, SIGTERM and SIGHUP over a run (``session.StopSignals``), raised in this very process."""
+"""SIGINT, SIGTERM and SIGHUP over a run (``stopsignals.StopSignals``), raised in this very
+process."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from handctl.online.drivers.hand import HandDriver
 from handctl.online.loop import Outcome, RunResult, Runtime
 from handctl.online.recipes.loader import load_recipe
 from handctl.protocol import Protocol
-from handctl.session import StopSignals
+from handctl.stopsignals import StopSignals
 
 from ..conftest import ROOT
 
