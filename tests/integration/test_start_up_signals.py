@@ -116,6 +116,9 @@ if point:
 @pytest.mark.parametrize(
     ("point", "logged"),
     [
+        # The command line module loading, before handctl.cli.main has taken the signals
+        # over: Python's own Ctrl-C (a traceback), SIGTERM's default (the process killed).
+        ("import handctl.cli", False),
         # The run's modules loading, the configs not yet read: the command stops before the
         # log. CPython exits by SIGINT, whatever exit code was chosen, after an interrupt
         # escaped code that ``exec`` compiled (``python -m`` only).
