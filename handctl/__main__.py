@@ -1,5 +1,33 @@
-"""``python -m handctl`` is the ``handctl`` command."""
+"""``python -m handctl`` is the ``handctl`` command; ``entry`` is both's first line."""
 
-from handctl.cli import main
+import signal
+import sys
 
-raise SystemExit(main())
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def entry() -> int:
+    """``handctl.cli.main``, with a signal that ends a command ending it from the first line.
+
+    ``main`` takes the signals over once ``handctl.cli`` is loaded, some tens of milliseconds
+    in; until then a Ctrl-C was Python's own (a ``KeyboardInterrupt`` traceback, and an exit
+    by SIGINT) and a SIGTERM or SIGHUP killed the process. Nothing has started yet: it is the
+    one line and exit 130 of any interrupt. Raising here is safe: ``handctl.cli`` loads
+    neither extension modules nor code that ``exec`` compiles (``handctl.stopsignals``).
+    """
+    signal.signal(signal.SIGTERM, _interrupt)
+    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # nohup: asked to go on
+        signal.signal(signal.SIGHUP, _interrupt)
+    try:
+        from handctl.cli import main
+
+        return main()
+    except KeyboardInterrupt:
+        print("handctl: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(entry())

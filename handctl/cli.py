@@ -40,6 +40,7 @@ if TYPE_CHECKING:
     from handctl.bringup.jog import JogReport
     from handctl.config import HandConfig
     from handctl.online.loop import RunResult
+    from handctl.stopsignals import StopSignals
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -319,6 +320,15 @@ def _refuse_what_check_refuses(hand: HandConfig, path: Path) -> None:
 
 
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
+    from handctl.stopsignals import StopSignals
+
+    # The run's stop signals before anything else: a signal while the modules of a run load
+    # (most of a second, more on a busy machine) is taken once they have, not inside one.
+    with StopSignals() as signals:
+        return _run_recipe_under(args, signals)
+
+
+def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     import json
 
     from handctl.online.clock import Hygiene
@@ -364,7 +374,7 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
             "(layout: docs/foxglove/handctl_layout.json)"
         )
     status = _status_printer()
-    report = run_recipe(request, status=status)
+    report = run_recipe(request, status=status, signals=signals)
     if status is not None:
         print(file=sys.stderr)
     for warning in report.warnings:

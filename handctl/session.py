@@ -9,14 +9,12 @@ like any other bus. The online plane itself never imports the simulation.
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import json
 import os
 import signal
 import subprocess
 import sys
 import tempfile
-import threading
 from collections.abc import Callable
 from contextlib import ExitStack, suppress
 from dataclasses import dataclass, field
@@ -58,6 +56,7 @@ from handctl.online.safety.faults import FAULTS
 from handctl.online.safety.recovery import Recovery
 from handctl.online.tickstats import STAGES, TickWindow, percentile_us
 from handctl.rivals import RivalRecord, RivalWatch
+from handctl.stopsignals import StopSignals
 
 if TYPE_CHECKING:
     from handctl.online.clock import Tick
@@ -181,8 +180,12 @@ def run_recipe(
     req: RunRequest,
     status: Callable[[StatusLine], None] | None = None,
     recorder: RecordSink | None = None,
+    signals: StopSignals | None = None,
 ) -> RunReport:
-    """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on."""
+    """Run ``req`` to its end (done, safety stop, or Ctrl-C/SIGTERM); never leaves torque on.
+
+    ``signals``: the stop signals already taken over by the caller (``handctl run``, before
+    it loaded the modules of a run); None: taken over here."""
     timebudget.check(req.max_seconds)
     protocol = protocol_for(req.hand)
     spec = parse_spec(req.bus, req.hand.bus, req.hand.source)
@@ -211,8 +214,11 @@ def run_recipe(
         )
         warnings += checked
     with ExitStack() as stack:
-        # First in, last out: from here to the end a signal ends the run as StopSignals says.
-        signals = stack.enter_context(StopSignals())
+        # First in, last out: from here to the end a signal ends the run as StopSignals says;
+        # until the runtime runs, at the checkpoints between the steps of the start-up.
+        if signals is None:
+            signals = stack.enter_context(StopSignals())
+        signals.checkpoint()  # before the log: a signal so far leaves no file
         # The recording first: a log path that cannot be written is refused before anything
         # starts, and the file is finished however the run ends.
         peer_process = is_sim and not lockstep  # the simulated hand on ``sim_cpu``
@@ -234,6 +240,7 @@ def run_recipe(
         )
         if recording is not None:
             recorder = recording
+        signals.checkpoint()
         estimator = (
             ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
             if req.recipe.objects
@@ -242,9 +249,13 @@ def run_recipe(
         # before the clock asks for the loop's priority and CPU, which a process started
         # later would inherit
         reanalyser = _reanalyser(stack, req, estimator, lockstep, {loop_cpu, sim_cpu})
+        signals.checkpoint()
         peer = _start_peer(stack, req, spec, lockstep, sim_cpu)
+        signals.checkpoint()
         bus: HandBus = stack.enter_context(open_bus(peer.spec, req.hand.bus))
+        signals.checkpoint()
         timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu, warnings)
+        signals.checkpoint()
         clock = timing.clock
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
         runtime = Runtime(
@@ -274,6 +285,7 @@ def run_recipe(
             timebudget.install(runtime, req.max_seconds)
         if recording is not None:
             _start_recording(recording, runtime, req, peer.spec, lockstep, peer.sim_hand)
+        signals.checkpoint()
         result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
         if result.exception is not None:
             warnings.append(
@@ -665,85 +677,3 @@ class SimProcess:
 
     def __exit__(self, *exc: object) -> None:
         self.finish()
-
-
-class StopSignals:
-    """SIGINT, SIGTERM and SIGHUP over a whole run, from before anything starts to the last
-    line of the log, so that each ends the run the same way whenever it comes, with exit 130:
-
-    - before the runtime runs (the simulated hand starting, the log opening): an interrupt
-      (``KeyboardInterrupt``), which unwinds what was started; nothing was sent;
-    - while it runs, start-up included: the runtime's controlled stop (torque to zero, nodes
-      disabled), asked for through the event loop, never by an exception inside a tick;
-    - afterwards (the hand is stopped; the log and the summary are being finished), and once
-      the first interrupt is unwinding: noted and otherwise ignored, so that they finish.
-
-    One handler throughout, rather than asyncio's own for the run: asyncio puts back the
-    default handlers when it removes its own, and a SIGTERM then would kill the process before
-    its log is finished. Outside the main thread signals cannot be handled: nothing changes.
-    """
-
-    #: SIGHUP too: the terminal or the SSH session a run was started from going away must not
-    #: kill the host mid-grasp (no stop, nodes left enabled until their watchdogs trip, the
-    #: log without its last tick and summary); it is a controlled stop like the others. Unless
-    #: the run was started with it ignored (``nohup``): then it was asked to go on, and does.
-    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-
-    def __init__(self) -> None:
-        self.runtime: Runtime | None = None
-        self.finishing = False
-        self.interrupted = ""  # the signal that interrupted the run before the runtime ran
-        self.ignored: list[str] = []
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._saved: dict[int, Any] = {}
-
-    def __enter__(self) -> StopSignals:
-        if threading.current_thread() is threading.main_thread():
-            for sig in self.SIGNALS:
-                if sig == signal.SIGHUP and signal.getsignal(sig) is signal.SIG_IGN:
-                    continue  # started under nohup: asked to outlive its terminal
-                self._saved[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def __exit__(self, kind: object, exc: BaseException | None, tb: object) -> None:
-        for sig, handler in self._saved.items():
-            signal.signal(sig, handler)
-        if self.interrupted and exc is not None and not isinstance(exc, KeyboardInterrupt):
-            # The interrupt was raised inside C code (MuJoCo's import, for one), which turned
-            # it into an error of its own: it is still the interrupt that was asked for.
-            raise KeyboardInterrupt(self.interrupted) from exc
-
-    def _handle(self, signum: int, frame: object) -> None:
-        name = signal.Signals(signum).name
-        if self.finishing:
-            self.ignored.append(name)
-            return
-        if self.runtime is None or self._loop is None:
-            self.finishing = True
-            self.interrupted = f"signal {name}"
-            raise KeyboardInterrupt(self.interrupted)
-        try:
-            self._loop.call_soon_threadsafe(self.runtime.request_stop, f"signal {name}")
-        except RuntimeError:  # the loop has just closed: the run is over
-            self.ignored.append(name)
-
-    async def run(self, runtime: Runtime) -> RunResult:
-        """Run ``runtime`` with the signals as its controlled stop.
-
-        A stop asked for before the nodes were enabled is the same interrupt as one asked for
-        later (exit 130), not a failed start-up: nothing went wrong with the hand.
-        """
-        self._loop = asyncio.get_running_loop()
-        self.runtime = runtime
-        try:
-            result = await runtime.run()
-        finally:
-            self.finishing = True
-            self.runtime = None
-        if (
-            result.outcome is Outcome.STARTUP_FAILED
-            and runtime.stop_requested
-            and not result.faults
-        ):
-            result = dataclasses.replace(result, outcome=Outcome.INTERRUPTED)
-        return result

@@ -49,7 +49,7 @@ _channels = itertools.count()
 def pytest_configure(config: pytest.Config) -> None:
     """SIGHUP back to its default when the suite itself was started with it ignored (under
     ``nohup``, or by a runner that ignores it): a run started so keeps ignoring SIGHUP on
-    purpose (``session.StopSignals``), so the tests of what a run does when its terminal goes
+    purpose (``stopsignals.StopSignals``), so the tests of what a run does when its terminal goes
     away would test that branch instead, and fail. Every worker and every child inherits it."""
     if signal.getsignal(signal.SIGHUP) is signal.SIG_IGN:
         signal.signal(signal.SIGHUP, signal.SIG_DFL)

@@ -287,67 +287,13 @@ class Recorder:
             raise ConfigError(
                 str(path), "", "a path where the recording can be written", exc.strerror or str(exc)
             ) from None
-        shm_fd = _shared_memory(self.layout.size)
-        self._mmap = mmap.mmap(shm_fd, self.layout.size)
-        # Touch every page now: a page's first write is a page fault, microseconds each (more
-        # in a virtual machine), which the loop would otherwise take every few ticks.
-        for offset in range(0, self.layout.size, mmap.PAGESIZE):
-            self._mmap[offset] = 0
-        self._rings = Rings(self.layout, self._mmap)
-        self._ctl_view = memoryview(self._mmap)[: CTL_WORDS * 8].cast("q")
-        ctl_r, self._ctl_w = os.pipe()
-        self._ready_r, ready_w = os.pipe()
-        package_root = str(Path(__file__).resolve().parents[2])
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
-        # The writer does no linear algebra: no BLAS thread pool, whose threads would start
-        # at numpy's import, before the writer places itself (``cpus``) and lowers its priority.
-        env["OPENBLAS_NUM_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = "1"
         try:
-            self.process = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "handctl.recording.writer",
-                    str(shm_fd),
-                    str(ctl_r),
-                    str(out_fd),
-                    str(ready_w),
-                ],
-                pass_fds=(shm_fd, ctl_r, out_fd, ready_w),
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL,
-                stderr=subprocess.PIPE,
-                env=env,
-                start_new_session=True,
-            )
-        finally:
-            for fd in (shm_fd, ctl_r, out_fd, ready_w):
-                os.close(fd)
-        self._states = {name: i for i, name in enumerate(SUPERVISOR_STATE_NAMES)}
-        names = list(dict.fromkeys([*RUNNER_NAMES, *phase_names]))
-        self._phases = {name: i for i, name in enumerate(names)}
-        try:
-            self._send(
-                {
-                    "type": "setup",
-                    "layout": self.layout.as_dict(),
-                    "states": SUPERVISOR_STATE_NAMES,
-                    "phases": names,
-                    "joints": list(hand.joint_names),
-                    "nodes": [f.name for f in hand.fingers],
-                    "objects": list(object_names),
-                    "path": str(self.path),
-                    "metadata": metadata,
-                    "live_port": live_port,
-                    "cpus": sorted(cpus) if cpus is not None else None,
-                }
-            )
+            self._start_writer(out_fd, hand, metadata, phase_names, object_names, live_port, cpus)
         except BaseException:
-            self.process.kill()
-            self.process.wait()
-            os.close(self._ctl_w)
-            os.close(self._ready_r)
+            # The writer never had its set-up, so it wrote nothing: no file, rather than an
+            # empty one that no reader (``handctl replay`` included) can open.
+            with contextlib.suppress(OSError):
+                self.path.unlink()
             raise
         self._ready = False
         self.closed = False
@@ -438,6 +384,97 @@ class Recorder:
         self._faults = 0
         self._reject_lists: list[list[int]] = []
         self._reject_seen: list[list[int]] = []
+
+    def _start_writer(
+        self,
+        out_fd: int,
+        hand: HandConfig,
+        metadata: dict[str, dict[str, str]],
+        phase_names: Sequence[str],
+        object_names: Sequence[str],
+        live_port: int | None,
+        cpus: Collection[int] | None,
+    ) -> None:
+        """Map the rings, start the writer on ``out_fd`` and hand it its set-up. The set-up
+        is bigger than a pipe holds (the hand, its DBC and the recipe), so the last write
+        waits for the writer to have started and read it. Raises with nothing left open: no
+        descriptor, no writer."""
+        child_fds = [out_fd]  # the writer's; ours closed once it has them
+        ctl_w = ready_r = -1
+        try:
+            shm_fd = _shared_memory(self.layout.size)
+            child_fds.append(shm_fd)
+            self._mmap = mmap.mmap(shm_fd, self.layout.size)
+            # Touch every page now: a page's first write is a page fault, microseconds each
+            # (more in a virtual machine), which the loop would otherwise take every few ticks.
+            for offset in range(0, self.layout.size, mmap.PAGESIZE):
+                self._mmap[offset] = 0
+            self._rings = Rings(self.layout, self._mmap)
+            self._ctl_view = memoryview(self._mmap)[: CTL_WORDS * 8].cast("q")
+            ctl_r, ctl_w = os.pipe()
+            child_fds.append(ctl_r)
+            ready_r, ready_w = os.pipe()
+            child_fds.append(ready_w)
+            package_root = str(Path(__file__).resolve().parents[2])
+            env = dict(os.environ)
+            env["PYTHONPATH"] = os.pathsep.join(
+                p for p in (package_root, env.get("PYTHONPATH")) if p
+            )
+            # The writer does no linear algebra: no BLAS thread pool, whose threads would
+            # start at numpy's import, before the writer places itself (``cpus``) and lowers
+            # its priority.
+            env["OPENBLAS_NUM_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = "1"
+            self.process = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "handctl.recording.writer",
+                    str(shm_fd),
+                    str(ctl_r),
+                    str(out_fd),
+                    str(ready_w),
+                ],
+                pass_fds=(shm_fd, ctl_r, out_fd, ready_w),
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+                env=env,
+                start_new_session=True,
+            )
+        except BaseException:
+            for fd in (ctl_w, ready_r):
+                if fd >= 0:
+                    os.close(fd)
+            raise
+        finally:
+            for fd in child_fds:
+                os.close(fd)
+        self._ctl_w, self._ready_r = ctl_w, ready_r
+        self._states = {name: i for i, name in enumerate(SUPERVISOR_STATE_NAMES)}
+        names = list(dict.fromkeys([*RUNNER_NAMES, *phase_names]))
+        self._phases = {name: i for i, name in enumerate(names)}
+        try:
+            self._send(
+                {
+                    "type": "setup",
+                    "layout": self.layout.as_dict(),
+                    "states": SUPERVISOR_STATE_NAMES,
+                    "phases": names,
+                    "joints": list(hand.joint_names),
+                    "nodes": [f.name for f in hand.fingers],
+                    "objects": list(object_names),
+                    "path": str(self.path),
+                    "metadata": metadata,
+                    "live_port": live_port,
+                    "cpus": sorted(cpus) if cpus is not None else None,
+                }
+            )
+        except BaseException:
+            self.process.kill()
+            self.process.communicate()  # its stderr pipe closed too
+            os.close(self._ctl_w)
+            os.close(self._ready_r)
+            raise
 
     # -- set-up ---------------------------------------------------------------------------
     def attach(self, runtime: Runtime) -> None:

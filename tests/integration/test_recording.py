@@ -28,6 +28,7 @@ from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 
 from handctl.config import HandConfig
+from handctl.errors import HandctlError
 from handctl.foxglove.derived import Derived
 from handctl.online.bus import DRAIN_LIMIT, Frame, open_bus
 from handctl.online.clock import Tick
@@ -598,6 +599,28 @@ def test_sigkill_of_both_leaves_a_readable_prefix(hand: HandConfig, tmp_path: Pa
             if isinstance(record, McapMessage) and record.channel_id in json_channels:
                 theirs.append(record)
     assert [json.loads(m.data) for m in theirs] == [m for _, _, m in ours]
+
+
+@pytest.mark.parametrize(
+    "failure",
+    [HandctlError("the recording writer is gone"), KeyboardInterrupt("signal SIGINT")],
+    ids=["writer_gone", "interrupt"],
+)
+def test_a_writer_that_never_had_its_set_up_leaves_no_file(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failure: BaseException
+) -> None:
+    """Nothing was recorded: no file, rather than an empty one that no reader opens
+    (``handctl replay``: "an empty file"). The set-up is bigger than a pipe holds, so handing
+    it over waits for the writer to start, the longest wait of a run's start-up."""
+
+    def fails(self: Recorder, message: dict[str, Any]) -> None:
+        raise failure
+
+    monkeypatch.setattr(Recorder, "_send", fails)
+    path = tmp_path / "run.mcap"
+    with pytest.raises(type(failure)):
+        Recorder(path, hand, {})
+    assert not path.exists()
 
 
 @pytest.mark.parametrize(

@@ -1,4 +1,5 @@
-"""SIGINT, SIGTERM and SIGHUP over a run (``session.StopSignals``), raised in this very process."""
+"""SIGINT, SIGTERM and SIGHUP over a run (``stopsignals.StopSignals``), raised in this very
+process."""
 
 from __future__ import annotations
 
@@ -13,17 +14,30 @@ from handctl.online.drivers.hand import HandDriver
 from handctl.online.loop import Outcome, RunResult, Runtime
 from handctl.online.recipes.loader import load_recipe
 from handctl.protocol import Protocol
-from handctl.session import StopSignals
+from handctl.stopsignals import StopSignals
 
 from ..conftest import ROOT
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
-def test_before_the_run_a_signal_is_an_interrupt(sig: signal.Signals) -> None:
+def test_before_the_run_a_signal_is_an_interrupt_at_the_next_checkpoint(
+    sig: signal.Signals,
+) -> None:
+    """Not where it lands (inside an import, a half-made step): the start-up goes on to its
+    next checkpoint, and stops there."""
     before = signal.getsignal(sig)
-    with StopSignals(), pytest.raises(KeyboardInterrupt):
-        signal.raise_signal(sig)
+    with StopSignals() as signals:
+        signal.raise_signal(sig)  # nothing raised here
+        with pytest.raises(KeyboardInterrupt, match=sig.name):
+            signals.checkpoint()
+        signal.raise_signal(sig)  # the interrupt is unwinding: this one is ignored
+        signals.checkpoint()
     assert signal.getsignal(sig) is before  # put back afterwards
+
+
+def test_a_signal_that_no_checkpoint_took_is_an_interrupt_at_the_end() -> None:
+    with pytest.raises(KeyboardInterrupt, match="SIGHUP"), StopSignals():
+        signal.raise_signal(signal.SIGHUP)
 
 
 def test_a_run_started_under_nohup_keeps_ignoring_sighup() -> None:
@@ -70,14 +84,37 @@ def test_a_signal_during_start_up_is_an_interrupt_with_nothing_sent(
     assert listener.drain() == []
 
 
-def test_an_interrupt_that_c_code_turned_into_its_own_error_is_still_an_interrupt() -> None:
-    """Ctrl-C while MuJoCo is being imported comes out as ``ImportError: initialization
-    failed`` (exit 1 and a traceback); it is an interrupt (exit 130)."""
-    with pytest.raises(KeyboardInterrupt), StopSignals():
-        try:
-            signal.raise_signal(signal.SIGINT)
-        except KeyboardInterrupt as exc:
-            raise ImportError("initialization failed") from exc
+def test_a_signal_before_the_runtime_runs_is_its_stop_with_nothing_sent(
+    hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
+) -> None:
+    """After the start-up's last checkpoint: the runtime stops before it sends anything."""
+    from handctl.online.clock import LockstepClock
+
+    host, listener = bus_pair
+    recipe = load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", hand)
+    runtime = Runtime(
+        hand,
+        HandDriver(hand, protocol, host),
+        LockstepClock(hand.bus.period_s, lambda: None),
+        recipe,
+        startup_timeout_s=600.0,
+    )
+    with StopSignals() as signals:
+        signal.raise_signal(signal.SIGTERM)
+        result = asyncio.run(signals.run(runtime))
+    assert result.outcome is Outcome.INTERRUPTED, result.message
+    assert result.faults == []
+    assert "SIGTERM" in result.message
+    assert listener.drain() == []
+
+
+def test_an_error_once_a_signal_came_is_still_the_interrupt() -> None:
+    """Whatever else went wrong once a stop was asked for, the run was interrupted (exit
+    130), the error its cause."""
+    with pytest.raises(KeyboardInterrupt) as caught, StopSignals():
+        signal.raise_signal(signal.SIGINT)
+        raise ImportError("initialization failed")
+    assert isinstance(caught.value.__cause__, ImportError)
 
 
 def test_other_errors_pass_through() -> None:

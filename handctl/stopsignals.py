@@ -1,0 +1,130 @@
+"""The stop signals of a run: SIGINT, SIGTERM and SIGHUP, each a controlled stop with exit 130
+whenever it comes (``StopSignals``).
+
+A module of its own, light to import (the standard library only, the runtime's modules when a
+run is handed over), so that ``handctl run`` takes the signals over before it loads the
+modules a run needs: a signal raised inside one of those imports is what the class keeps
+from happening.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import asyncio
+
+    from handctl.online.loop import RunResult, Runtime
+
+
+class StopSignals:
+    """SIGINT, SIGTERM and SIGHUP over a whole run, from before anything starts to the last
+    line of the log, so that each ends the run the same way whenever it comes, with exit 130:
+
+    - before the runtime runs (the modules loading, the log opening, the simulated hand
+      starting): noted, and raised as an interrupt (``KeyboardInterrupt``) at the start-up's
+      next ``checkpoint``, between two of its steps, which unwinds what was started; nothing
+      was sent. Never from the handler itself: that would raise wherever the main thread is,
+      inside an extension module's initialisation that cannot survive an exception (orjson's
+      dereferences the failed import and crashes the process), inside code that ``exec``
+      compiled (CPython then exits by SIGINT whatever exit code was chosen), or between a
+      resource's creation and its registration for clean-up (a log file created and left
+      empty). A signal noted when the runtime is handed over becomes its controlled stop;
+    - while it runs, start-up included: the runtime's controlled stop (torque to zero, nodes
+      disabled), asked for through the event loop, never by an exception inside a tick;
+    - afterwards (the hand is stopped; the log and the summary are being finished), and once
+      the first interrupt is unwinding: noted and otherwise ignored, so that they finish.
+
+    One handler throughout, rather than asyncio's own for the run: asyncio puts back the
+    default handlers when it removes its own, and a SIGTERM then would kill the process before
+    its log is finished. Outside the main thread signals cannot be handled: nothing changes.
+    """
+
+    #: SIGHUP too: the terminal or the SSH session a run was started from going away must not
+    #: kill the host mid-grasp (no stop, nodes left enabled until their watchdogs trip, the
+    #: log without its last tick and summary); it is a controlled stop like the others. Unless
+    #: the run was started with it ignored (``nohup``): then it was asked to go on, and does.
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+    def __init__(self) -> None:
+        self.runtime: Runtime | None = None
+        self.finishing = False
+        self.noted = ""  # a signal during start-up that no checkpoint has raised yet
+        self.interrupted = ""  # the signal that interrupted the run before the runtime ran
+        self.ignored: list[str] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._saved: dict[int, Any] = {}
+
+    def __enter__(self) -> StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                if sig == signal.SIGHUP and signal.getsignal(sig) is signal.SIG_IGN:
+                    continue  # started under nohup: asked to outlive its terminal
+                self._saved[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, kind: object, exc: BaseException | None, tb: object) -> None:
+        for sig, handler in self._saved.items():
+            signal.signal(sig, handler)
+        if self.noted and exc is None:
+            # The start-up ended without another checkpoint or a runtime to stop: the signal
+            # still ends the command as the interrupt it was.
+            self.interrupted, self.noted = self.noted, ""
+            raise KeyboardInterrupt(self.interrupted)
+        interrupted = self.interrupted or self.noted
+        if interrupted and exc is not None and not isinstance(exc, KeyboardInterrupt):
+            # Whatever else went wrong once a stop was asked for, the run was interrupted.
+            raise KeyboardInterrupt(interrupted) from exc
+
+    def checkpoint(self) -> None:
+        """Raise the interrupt a signal asked for during start-up, if one did: here, between
+        two steps, everything started so far is on the run's exit stack and unwinds."""
+        if self.noted and not self.finishing:
+            self.finishing = True
+            self.interrupted, self.noted = self.noted, ""
+            raise KeyboardInterrupt(self.interrupted)
+
+    def _handle(self, signum: int, frame: object) -> None:
+        name = signal.Signals(signum).name
+        if self.finishing or self.noted:
+            self.ignored.append(name)
+            return
+        if self.runtime is None or self._loop is None:
+            self.noted = f"signal {name}"  # for the next checkpoint (class docstring)
+            return
+        try:
+            self._loop.call_soon_threadsafe(self.runtime.request_stop, f"signal {name}")
+        except RuntimeError:  # the loop has just closed: the run is over
+            self.ignored.append(name)
+
+    async def run(self, runtime: Runtime) -> RunResult:
+        """Run ``runtime`` with the signals as its controlled stop.
+
+        A stop asked for before the nodes were enabled is the same interrupt as one asked for
+        later (exit 130), not a failed start-up: nothing went wrong with the hand.
+        """
+        # Here, not at the top: loaded by now, by the run being handed over (module docstring).
+        import asyncio
+        import dataclasses
+
+        from handctl.online.loop import Outcome
+
+        self._loop = asyncio.get_running_loop()
+        self.runtime = runtime
+        if self.noted:  # came after the last checkpoint: the runtime's stop, before it sends
+            runtime.request_stop(self.noted)
+            self.noted = ""
+        try:
+            result = await runtime.run()
+        finally:
+            self.finishing = True
+            self.runtime = None
+        if (
+            result.outcome is Outcome.STARTUP_FAILED
+            and runtime.stop_requested
+            and not result.faults
+        ):
+            result = dataclasses.replace(result, outcome=Outcome.INTERRUPTED)
+        return result

@@ -1,0 +1,156 @@
+"""A signal during a run's start-up (the log opening, the modules it needs loading, the
+simulated hand starting): exit 130 with one line, never a crash, and a log that is either
+absent or a short MCAP that ``handctl replay`` reads, never an empty file.
+
+The signal is raised from a point of the start-up itself (a step, an import), so each case
+hits the moment it names on any machine at any load, where a signal sent after a sleep would
+hit wherever the start-up happened to be."""
+
+from __future__ import annotations
+
+import os
+import signal
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from handctl import session
+from handctl.config import HandConfig
+from handctl.online.recipes.loader import load_recipe
+from handctl.recording.recorder import Recorder
+
+from ..conftest import DEFAULT_RECIPE, ROOT, handctl
+
+#: The steps of ``run_recipe``'s start-up, in order, each as the attribute of the module or
+#: class that holds it, with the signal raised in it. ``Recorder._send`` is the set-up handed
+#: to the recording's writer, which waits for the writer to have started: the longest wait of
+#: the start-up, where every signal is tried; elsewhere one does for all.
+STEPS: list[tuple[Any, str, signal.Signals]] = [
+    (session, "_recorder", signal.SIGINT),
+    (Recorder, "_send", signal.SIGINT),
+    (Recorder, "_send", signal.SIGTERM),
+    (Recorder, "_send", signal.SIGHUP),
+    (session, "_reanalyser", signal.SIGINT),
+    (session, "_start_peer", signal.SIGINT),
+    (session, "open_bus", signal.SIGINT),
+    (session, "_start_clock", signal.SIGINT),
+    (session, "_start_recording", signal.SIGINT),
+]
+
+
+def _replays(log: Path) -> None:
+    done = handctl("replay", str(log), timeout=120)
+    assert done.returncode == 0, done.stderr
+
+
+@pytest.mark.parametrize(
+    ("owner", "step", "sig"),
+    STEPS,
+    ids=[f"{o.__name__.rsplit('.', 1)[-1]}.{s}-{g.name}" for o, s, g in STEPS],
+)
+def test_a_signal_inside_each_start_up_step_is_an_interrupt_with_a_readable_log(
+    hand: HandConfig,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    owner: Any,
+    step: str,
+    sig: signal.Signals,
+) -> None:
+    """The signal comes at the start of the step: the step still runs to its end (an
+    exception inside it would leave what it started half made: a log file created and never
+    handed to its writer), and the start-up stops right after it. The log was opened first,
+    so it is there, short and finished."""
+    original: Callable[..., Any] = getattr(owner, step)
+
+    def signalled(*args: Any, **kwargs: Any) -> Any:
+        signal.raise_signal(sig)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(owner, step, signalled)
+    log = tmp_path / "run.mcap"
+    recipe = load_recipe(ROOT / DEFAULT_RECIPE, hand)
+    before = signal.getsignal(sig)
+    with pytest.raises(KeyboardInterrupt, match=sig.name):
+        session.run_recipe(session.RunRequest(hand=hand, recipe=recipe, log=log, max_seconds=1))
+    assert signal.getsignal(sig) is before
+    _replays(log)
+
+
+#: ``sitecustomize`` of a ``python -m handctl`` the test runs: it raises a signal from inside
+#: the start-up, at the point HANDCTL_TEST_SIGNAL names (read once: the run's own processes,
+#: the recording's writer and the simulated hand, start without it):
+#: - ``import MODULE SIGNAL``: the first time MODULE is looked up for an import, wherever the
+#:   import comes from;
+#: - ``exec-in MODULE SIGNAL``: in the first code that ``exec`` compiled (the methods a
+#:   dataclass is given, a named tuple) to run once MODULE is being imported. A signal that
+#:   comes while such code compiles is taken as it starts.
+SITECUSTOMIZE = """
+import os, signal, sys
+
+point = os.environ.pop("HANDCTL_TEST_SIGNAL", "")
+if point:
+    kind, module, name = point.split()
+    sig = signal.Signals[name]
+
+    def in_exec(frame, event, arg):
+        if frame.f_code.co_filename == "<string>":
+            sys.settrace(None)
+            signal.raise_signal(sig)
+
+    class At:
+        def find_spec(self, fullname, path=None, target=None):
+            if fullname == module:
+                sys.meta_path.remove(self)
+                if kind == "import":
+                    signal.raise_signal(sig)
+                else:
+                    sys.settrace(in_exec)
+            return None
+
+    sys.meta_path.insert(0, At())
+"""
+
+
+@pytest.mark.parametrize(
+    ("point", "logged"),
+    [
+        # The command line module loading, before handctl.cli.main has taken the signals
+        # over: Python's own Ctrl-C (a traceback), SIGTERM's default (the process killed).
+        ("import handctl.cli", False),
+        # The run's modules loading, the configs not yet read: the command stops before the
+        # log. CPython exits by SIGINT, whatever exit code was chosen, after an interrupt
+        # escaped code that ``exec`` compiled (``python -m`` only).
+        ("exec-in handctl.session", False),
+        # orjson's initialisation imports uuid (the recording's modules loading, the log not
+        # yet opened) and crashes the process if that import fails
+        ("import uuid", True),
+        # the simulated hand starting, the log open
+        ("import mujoco", True),
+    ],
+)
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_inside_the_start_up_code_is_an_interrupt(
+    tmp_path: Path, point: str, logged: bool, sig: signal.Signals
+) -> None:
+    (tmp_path / "sitecustomize.py").write_text(SITECUSTOMIZE)
+    log = tmp_path / "run.mcap"
+    path = os.pathsep.join(str(p) for p in (ROOT, tmp_path))
+    done = handctl(
+        "run",
+        "recipe",
+        DEFAULT_RECIPE,
+        "--log",
+        str(log),
+        "--max-seconds",
+        "1",
+        env={"PYTHONPATH": path, "HANDCTL_TEST_SIGNAL": f"{point} {sig.name}"},
+        timeout=300,
+    )
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == "handctl: interrupted", done.stderr
+    assert "Traceback" not in done.stderr
+    assert log.exists() is logged
+    if logged:
+        _replays(log)
