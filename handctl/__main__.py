@@ -8,6 +8,19 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
+def _load_orjson() -> None:
+    """orjson loaded with the stop signals held back: its module set-up does not check the
+    imports it makes, and an interrupt raised inside one (a Ctrl-C in the first half second
+    of any command that reads JSON) crashed the process (SIGSEGV). Held back, the signal
+    comes right after, as the interrupt it is."""
+    held = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        import orjson  # noqa: F401  # loaded here for the reason above
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
 def entry() -> int:
     """``handctl.cli.main``, with a signal that ends a command ending it from the first line.
 
@@ -21,6 +34,7 @@ def entry() -> int:
     if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # nohup: asked to go on
         signal.signal(signal.SIGHUP, _interrupt)
     try:
+        _load_orjson()
         from handctl.cli import main
 
         return main()

@@ -123,9 +123,10 @@ if point:
         # log. CPython exits by SIGINT, whatever exit code was chosen, after an interrupt
         # escaped code that ``exec`` compiled (``python -m`` only).
         ("exec-in handctl.session", False),
-        # orjson's initialisation imports uuid (the recording's modules loading, the log not
-        # yet opened) and crashes the process if that import fails
-        ("import uuid", True),
+        # orjson's initialisation imports uuid and crashes the process if that import fails:
+        # every command loads orjson first, with the signals held back, so the signal comes
+        # right after it, before anything else
+        ("import uuid", False),
         # the simulated hand starting, the log open
         ("import mujoco", True),
     ],
@@ -154,3 +155,21 @@ def test_a_signal_inside_the_start_up_code_is_an_interrupt(
     assert log.exists() is logged
     if logged:
         _replays(log)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_inside_orjsons_loading_is_an_interrupt_for_any_command(
+    tmp_path: Path, sig: signal.Signals
+) -> None:
+    """``handctl replay`` crashed (SIGSEGV) on a Ctrl-C inside orjson's first import, as a
+    run did: orjson is loaded for every command at its first line, the signals held back."""
+    (tmp_path / "sitecustomize.py").write_text(SITECUSTOMIZE)
+    path = os.pathsep.join(str(p) for p in (ROOT, tmp_path))
+    done = handctl(
+        "replay",
+        str(tmp_path / "no-such.mcap"),
+        env={"PYTHONPATH": path, "HANDCTL_TEST_SIGNAL": f"import uuid {sig.name}"},
+        timeout=120,
+    )
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == "handctl: interrupted", done.stderr
