@@ -30,6 +30,10 @@ def entry() -> int:
     one line and exit 130 of any interrupt. Raising here is safe: ``handctl.cli`` loads
     neither extension modules nor code that ``exec`` compiles (``handctl.stopsignals``).
     """
+    # SIGINT too, even if this process was started with it ignored (a script's background
+    # job is): ``handctl run`` and ``handctl sim`` honour it as a stop whatever they
+    # inherited, and a signal asked for is one from the first line on as well
+    signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
     if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # nohup: asked to go on
         signal.signal(signal.SIGHUP, _interrupt)
