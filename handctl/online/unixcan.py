@@ -14,6 +14,7 @@ import itertools
 import os
 import select
 import socket
+import stat
 import struct
 import time
 from collections.abc import Sequence
@@ -111,12 +112,14 @@ class UnixDatagramBus(can.BusABC):
         self._peers_at = 0.0
         self._held: dict[str, list[bytes]] = {}  # per receiver: frames its full queue refused
         self._lost: dict[str, int] = {}  # per receiver: frames refused since the last delivery
+        self._shunned: set[str] = set()  # paths in the directory that are no participant
         self._inbox: list[tuple[float, int, int, bytes]] = []  # newest first
         self._can_protocol = can.CanProtocol.CAN_FD
         self.datagrams_sent = 0
         self.queue_full = 0
         self.frames_dropped = 0
         self.rx_frames_lost = 0
+        self.peers_shunned = 0
         super().__init__(channel=channel, **kwargs)
 
     @property
@@ -159,7 +162,9 @@ class UnixDatagramBus(can.BusABC):
             return
         self._directory_mtime_ns = mtime
         mine = str(self._path)
-        self._peers = [str(p) for p in self.directory.glob("*.sock") if self._own or str(p) != mine]
+        listed = [str(p) for p in self.directory.glob("*.sock")]
+        self._shunned.intersection_update(listed)  # one gone and back is tried again
+        self._peers = [p for p in listed if (self._own or p != mine) and p not in self._shunned]
         for gone in [p for p in self._links if p not in self._peers]:
             self._links.pop(gone).close()
         for gone in [p for p in self._held if p not in self._peers]:
@@ -242,6 +247,13 @@ class UnixDatagramBus(can.BusABC):
                 self.queue_full += 1
                 self._held[peer] = frames[done:]
                 return
+            except OSError:
+                # not a participant: a stream socket (EPROTOTYPE), one this process may not
+                # write to (EACCES). Before, the error left the loop over the receivers, so
+                # one such socket in the directory kept every participant from every frame,
+                # the host's stop frames included
+                self._shun(peer)
+                return
             self.datagrams_sent += 1
             done += len(chunk)
         self._held.pop(peer, None)
@@ -259,15 +271,28 @@ class UnixDatagramBus(can.BusABC):
         return link
 
     def _forget(self, peer: str) -> None:
+        """A receiver whose owner is gone: its socket file is removed, if it is a socket (a
+        file of another kind that refuses a connection is not a participant's, nor ours)."""
+        self._drop(peer)
+        if peer != str(self._path):
+            with _suppress_oserror():
+                if stat.S_ISSOCK(os.lstat(peer).st_mode):
+                    os.unlink(peer)
+
+    def _shun(self, peer: str) -> None:
+        """A path in the directory that is no participant: never sent to again while it is
+        there (a socket put at that path later is tried afresh), and left as it is."""
+        self._drop(peer)
+        self._shunned.add(peer)
+        self.peers_shunned += 1
+
+    def _drop(self, peer: str) -> None:
         self._peers.remove(peer)
         self._held.pop(peer, None)
         self._lost.pop(peer, None)
         link = self._links.pop(peer, None)
         if link is not None:
             link.close()
-        if peer != str(self._path):
-            with _suppress_oserror():
-                os.unlink(peer)
 
     def _read_datagram(self) -> bool:
         if not self._ready.poll(0):

@@ -9,6 +9,7 @@ never costs the sender a send (on CAN, a listener that does not read overflows i
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -122,6 +123,42 @@ def test_a_stopped_listener_costs_a_reading_receiver_nothing(open_unix: OpenUnix
     catch_up(stopped, host, late, offered - dropped)
     assert len(late) == offered - dropped
     assert stopped.transport_counts()["rx_frames_lost"] == dropped
+
+
+def test_a_path_in_the_directory_that_is_no_participant_costs_nobody_a_frame(
+    open_unix: OpenUnix, tmp_path: Path
+) -> None:
+    """A stream socket bound among the participants (``connect`` fails with EPROTOTYPE) used
+    to end the loop over the receivers with that error: every participant failed every send,
+    the host's stop frames among them. It is passed over and left as it is, and so is a file
+    that is no socket (a refused connection was taken for a dead participant's socket and
+    the file unlinked)."""
+    directory = tmp_path / "bus"
+    directory.mkdir()
+    strangers = []
+    for name in ("0-stream.sock", "zz-stream.sock"):  # before and after the participants
+        stream = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        stream.bind(str(directory / name))
+        stream.listen(1)
+        strangers.append(stream)
+    (directory / "1-notes.sock").write_text("not a socket")
+    try:
+        node, host = open_unix(), open_unix()
+        for i in range(5):
+            assert host.send(0x101, bytes([i]))
+        got = node.drain()
+        assert [f.data for f in got] == [bytes([i]) for i in range(5)]
+        assert host.tx_failed == 0 and host.events() == []
+        assert node.send(0x181, b"\x01")
+        assert [f.data for f in host.drain()] == [b"\x01"]
+    finally:
+        for stream in strangers:
+            stream.close()
+    assert {p.name for p in directory.iterdir()} >= {
+        "0-stream.sock",
+        "zz-stream.sock",
+        "1-notes.sock",
+    }
 
 
 def test_a_receiver_is_told_how_many_frames_it_lost(open_unix: OpenUnix) -> None:
