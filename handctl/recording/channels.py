@@ -231,7 +231,10 @@ CHANNELS: tuple[Channel, ...] = (
             "One CAN frame, as drained from or handed to the bus.",
             {
                 "tick": {**_INT, "description": "the tick whose poll drained it or which sent it"},
-                "id": {**_INT, "description": "arbitration id"},
+                "id": {
+                    **_INT,
+                    "description": "arbitration id; a 29-bit one with 0x80000000 set",
+                },
                 "data": {**_STR, "description": "payload, lower-case hex"},
                 "bus_time_ns": {
                     **_INT,

@@ -26,6 +26,9 @@ from handctl.recording import channels as ch
 
 #: The largest CAN id (29 bits).
 MAX_CAN_ID = 0x1FFFFFFF
+#: Set on a 29-bit frame's id as the host holds and logs it (``online.bus.EXTENDED_ID_FLAG``,
+#: SocketCAN's ``CAN_EFF_FLAG``; not imported: the bus module loads python-can)
+EXTENDED_ID_FLAG = 0x80000000
 #: The longest CAN-FD payload (bytes).
 MAX_CAN_DATA = 64
 _INT64 = 1 << 63
@@ -50,7 +53,12 @@ def _is_bool(value: Any) -> bool:
 
 
 def _is_can_id(value: Any) -> bool:
-    return type(value) is int and 0 <= value <= MAX_CAN_ID
+    """An 11- or 29-bit id, or a 29-bit one with ``EXTENDED_ID_FLAG``: a foreign 29-bit frame
+    the host received is logged as it held it, and a log with one was refused."""
+    if type(value) is not int:
+        return False
+    bare = value ^ EXTENDED_ID_FLAG if value & EXTENDED_ID_FLAG else value
+    return 0 <= bare <= MAX_CAN_ID
 
 
 def _is_hex_frame(value: Any) -> bool:
@@ -72,7 +80,10 @@ _SCALARS: dict[str, tuple[_Test, str]] = {
 
 #: Fields whose schema says less than a reader relies on.
 _SPECIAL: dict[str, tuple[_Test, str]] = {
-    "id": (_is_can_id, f"a CAN id, an integer 0..0x{MAX_CAN_ID:X}"),
+    "id": (
+        _is_can_id,
+        f"a CAN id, an integer 0..0x{MAX_CAN_ID:X} (a 29-bit one may carry 0x{EXTENDED_ID_FLAG:X})",
+    ),
     "data": (_is_hex_frame, f"a frame's payload as hex, at most {MAX_CAN_DATA} bytes"),
 }
 _FRAME_TOPICS = frozenset({ch.CAN_RX, ch.CAN_TX})

@@ -228,6 +228,39 @@ def test_realtime_recording_reruns_bit_exact(tmp_path: Path) -> None:
     assert report.outcome == report.logged_outcome
 
 
+def test_a_run_that_heard_29_bit_frames_replays_and_reruns(tmp_path: Path) -> None:
+    """A 29-bit frame on the bus is counted and otherwise left alone by the host, and its log
+    holds it with the id as the host held it (``EXTENDED_ID_FLAG`` set). The reader took that
+    id for no CAN id, and every mode refused the log of a run that had gone well."""
+    faults = tmp_path / "twins.yaml"
+    faults.write_text(
+        "description: 29-bit twins of node 1's feedback\n"
+        "faults:\n"
+        "  - {kind: extended_twin, node: 1, message: feedback, start: 0.3, stop: 0.31}\n"
+    )
+    log, out, dump = tmp_path / "run.mcap", tmp_path / "summary.json", tmp_path / "frames.log"
+    done = handctl(
+        "run",
+        "recipe",
+        str(short_recipe_path(tmp_path)),
+        "--sim-faults",
+        str(faults),
+        "--max-seconds",
+        "0.5",
+        "--log",
+        str(log),
+        "--summary-json",
+        str(out),
+    )
+    assert done.returncode == 0, done.stderr
+    assert json.loads(out.read_text())["rejected_frames"]["extended_id"] > 0
+    again = handctl("replay", str(log), "--rerun", "--export", "candump", str(dump))
+    assert again.returncode == 0, again.stderr
+    assert "applied torques bit-exact" in again.stdout
+    extended = [line for line in dump.read_text().splitlines() if " can0 " in line]
+    assert any(len(line.split()[2].split("#")[0]) == 8 for line in extended)  # a 29-bit id
+
+
 def short_recipe_path(directory: Path) -> Path:
     path = directory / "short_hold.yaml"
     path.write_text(SHORT)
