@@ -50,6 +50,8 @@ from handctl.online.virtualcan import ArrivalStampedVirtualBus
 
 #: Frames drained per call at most: a babbling node must not keep one tick busy forever.
 DRAIN_LIMIT = 512
+#: bytes, the longest payload of a CAN-FD frame
+MAX_FRAME_DATA = 64
 #: Set in ``Frame.arbitration_id`` (and given to ``HandBus.send``) for a 29-bit identifier, as
 #: SocketCAN's ``CAN_EFF_FLAG``: an extended frame never has the id of a standard one.
 EXTENDED_ID_FLAG = 0x80000000
@@ -324,6 +326,16 @@ class HandBus:
                 item = None
                 if flags & ff.ERROR:
                     self._error_frame(frame_id, data)
+                    continue
+                if len(data) > MAX_FRAME_DATA:
+                    # no CAN-FD frame is longer; an emulated bus (the unix one, python-can's
+                    # virtual one) carries it all the same. Acted on, it was logged cut to 64
+                    # bytes, and the log's re-run then differed from the run
+                    self._event(
+                        BusEventKind.RX_FAILED,
+                        f"a frame of {len(data)} bytes (id 0x{frame_id:X}), longer than "
+                        f"CAN-FD's {MAX_FRAME_DATA}: dropped",
+                    )
                     continue
                 self.received += 1
                 if flags & ff.EXTENDED:

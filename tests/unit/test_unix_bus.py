@@ -161,6 +161,21 @@ def test_a_path_in_the_directory_that_is_no_participant_costs_nobody_a_frame(
     }
 
 
+def test_a_frame_longer_than_can_fd_allows_is_dropped_as_a_bus_event(open_unix: OpenUnix) -> None:
+    """The unix bus carries up to 255 bytes a frame; no CAN-FD frame has more than 64. Such a
+    frame was acted on, then logged cut to 64 bytes (the log's re-run differed from the run):
+    it is dropped where it is drained, said as an event, and the frames around it arrive."""
+    rx, tx = open_unix(), open_unix()
+    assert tx.send(0x281, bytes(8))
+    assert tx.send(0x281, bytes(70))
+    assert tx.send(0x281, bytes(64))
+    got = rx.drain()
+    assert [len(f.data) for f in got] == [8, 64]
+    events = rx.events()
+    assert [e.kind for e in events] == [BusEventKind.RX_FAILED]
+    assert "a frame of 70 bytes (id 0x281), longer than CAN-FD's 64: dropped" in events[0].detail
+
+
 def test_a_receiver_is_told_how_many_frames_it_lost(open_unix: OpenUnix) -> None:
     """As a SocketCAN socket is told of its receive queue's overflow: a listener kept from
     reading can tell the gap it caused itself from a node that skipped a counter."""
