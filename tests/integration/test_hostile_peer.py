@@ -95,6 +95,38 @@ def test_a_second_master_on_the_host_s_command_ids_isstopped_at_once(
         assert all(n.fault_bits & int(FaultBits.ESTOP) for n in r.sim.nodes)
 
 
+def test_a_second_master_in_the_zero_ticks_after_the_recipe_is_stopped_too(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """The recipe done, the supervisor idle, the nodes still enabled for the zero ticks before
+    the disable: another sender's 0.3 N·m a counter ahead of the host was taken by the nodes
+    for 4 ms and the run said completed, exit 0. It is the same second master as mid-run."""
+    from handctl.online.safety.supervisor import State
+
+    layouts = [protocol_for(hand).layout("TorqueCommand", n) for n in (1, 2, 3)]
+    with rig(hand, hold) as r, third_peer(r) as peer:
+        runtime = r.runtime
+        forged: list[tuple[int, bytes]] = []
+
+        def second_master() -> None:
+            if runtime.supervisor.state is not State.IDLE or runtime.runner is None:
+                return
+            if not runtime.runner.done or forged:
+                return
+            for layout, node in zip(layouts, runtime.driver.nodes, strict=True):
+                data = layout.encode(node.command_counter, [0.3, 0.3, 0.3])
+                peer.send(frame(layout.frame_id, data))
+                forged.append((layout.frame_id, data))
+
+        r.sim.faults.add(Every(send=second_master), INJECT_AT)
+        result = r.run()
+    assert forged, "the recipe never ended with the nodes enabled"
+    assert result.outcome is Outcome.SAFETY_STOP, result.message
+    assert FaultCode.FOREIGN_COMMAND in {f.code for f in result.faults}
+    assert r.estops() >= 1
+    assert all(n.fault_bits & int(FaultBits.ESTOP) for n in r.sim.nodes)
+
+
 def test_a_second_master_heard_at_start_up_sends_nothing(hand: HandConfig) -> None:
     layout = protocol_for(hand).layout("NodeCommand", 2)
     with rig(hand, None, max_seconds=1.0) as r, third_peer(r) as peer:

@@ -191,8 +191,15 @@ class Supervisor:
                 findings.append((FaultCode.BUS_ERROR, f"bus-off ({event.detail})"))
             elif event.kind is BusEventKind.RX_BACKLOG:
                 findings.append((FaultCode.RX_BACKLOG, event.detail))
-        if self.state is State.ENABLING or self.state in ARMED:
-            # Before the nodes are believed ENABLED, and all the while torque flows.
+        if (
+            self.state is State.ENABLING
+            or self.state in ARMED
+            or any(node.state == NodeState.ENABLED for node in nodes)
+        ):
+            # Before the nodes are believed ENABLED, all the while torque flows, and after it
+            # until they say they are disabled: the zero ticks before the disable, or a fault's
+            # stop. There a second sender's torque was taken by the nodes and the run said
+            # completed, its command frames counted and nothing more.
             findings += self.receive_watch.check(tick, nodes)
         if self.state is State.ENABLING:
             if all(node.state == NodeState.ENABLED for node in nodes):
