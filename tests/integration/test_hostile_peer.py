@@ -63,7 +63,7 @@ def frame(frame_id: int, data: bytes) -> can.Message:
     return can.Message(arbitration_id=frame_id, data=data, is_extended_id=False, is_fd=True)
 
 
-def test_a_second_master_on_the_host_s_command_ids_isstopped_at_once(
+def test_a_second_master_on_the_host_s_command_ids_is_stopped_at_once(
     hand: HandConfig, hold: Recipe
 ) -> None:
     """Another sender puts TorqueCommand_1 frames on the bus, each a counter ahead of the host,
