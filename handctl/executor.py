@@ -228,6 +228,13 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
             if process.is_alive():
                 _stop_worker(process, signal.SIGKILL)
                 process.join()
+        # The pool's manager thread closes its wake-up pipe once it sees the workers gone; at
+        # exit, concurrent.futures wakes every such thread through that pipe, and one still
+        # closing it races the wake-up (EBADF: "Exception ignored ... Bad file descriptor"
+        # printed after a Ctrl-C'd plan on a loaded machine). Waited for here, it is closed.
+        manager = getattr(pool, "_executor_manager_thread", None)
+        if manager is not None:
+            manager.join(TERMINATE_GRACE_S)
 
     return WorkPool(pool, count, f"{count} local processes", close)
 
