@@ -102,7 +102,19 @@ def _owner_alive(path: Path) -> bool:
         return False
     except (PermissionError, OverflowError):
         return True
-    return True
+    return not _zombie(pid)
+
+
+def _zombie(pid: int) -> bool:
+    """Whether ``pid`` has ended and waits to be reaped: a host killed with SIGKILL is one
+    until its parent waits for it, and its hand tidies up in that moment (the parent-death
+    signal comes at once). Where /proc does not say, the process counts as alive."""
+    try:
+        stat_line = Path(f"/proc/{pid}/stat").read_text(encoding="ascii", errors="replace")
+    except OSError:
+        return False
+    # "pid (comm) S ...": the state follows the last parenthesis (comm may hold any)
+    return stat_line.rpartition(")")[2].split()[:1] in (["Z"], ["X"])
 
 
 def _is_bus_socket(path: Path) -> bool:

@@ -71,6 +71,24 @@ def test_a_live_peers_endpoint_is_its_own(tmp_path: Path) -> None:
     assert sorted(p.name for p in directory.iterdir()) == [live]
 
 
+def test_a_host_that_ended_and_is_not_yet_reaped_is_gone(tmp_path: Path) -> None:
+    """A host killed with SIGKILL is a zombie until its parent waits for it, and its hand
+    tidies up in that moment: its endpoint goes, and with it the directory."""
+    host = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        os.waitid(os.P_PID, host.pid, os.WEXITED | os.WNOWAIT)  # ended, not reaped
+        directory = tmp_path / "handctl-bus-z"
+        sockets = _bus(directory, f"{host.pid}-0.sock")
+        try:
+            remove_orphaned_bus(f"unix:{directory}", None)
+        finally:
+            for sock in sockets:
+                sock.close()
+        assert not directory.exists()
+    finally:
+        host.wait()
+
+
 def test_other_buses_are_left_alone(tmp_path: Path) -> None:
     directory = tmp_path / "virtual"
     directory.mkdir()
