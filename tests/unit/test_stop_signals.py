@@ -53,6 +53,21 @@ def test_a_run_started_under_nohup_keeps_ignoring_sighup() -> None:
         signal.signal(signal.SIGHUP, before)
 
 
+def _waiting_runtime(hand: HandConfig, protocol: Protocol, host: HandBus) -> Runtime:
+    """A runtime of the shipped recipe on a bus nobody else is on: its start-up waits for
+    nodes that never answer (for ten minutes, far beyond any test)."""
+    from handctl.online.clock import LockstepClock
+
+    recipe = load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", hand)
+    return Runtime(
+        hand,
+        HandDriver(hand, protocol, host),
+        LockstepClock(hand.bus.period_s, lambda: None),
+        recipe,
+        startup_timeout_s=600.0,
+    )
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_during_start_up_is_an_interrupt_with_nothing_sent(
     hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus], sig: signal.Signals
@@ -60,17 +75,8 @@ def test_a_signal_during_start_up_is_an_interrupt_with_nothing_sent(
     """The nodes have not answered yet (nobody is on the bus): the start-up is still waiting
     for them when the signal comes. That is an interrupt (exit 130), not a failed start-up
     (exit 3): nothing went wrong with the hand, and nothing was sent to it."""
-    from handctl.online.clock import LockstepClock
-
     host, listener = bus_pair
-    recipe = load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", hand)
-    runtime = Runtime(
-        hand,
-        HandDriver(hand, protocol, host),
-        LockstepClock(hand.bus.period_s, lambda: None),
-        recipe,
-        startup_timeout_s=600.0,
-    )
+    runtime = _waiting_runtime(hand, protocol, host)
 
     async def run(signals: StopSignals) -> RunResult:
         asyncio.get_running_loop().call_later(0.05, signal.raise_signal, sig)
@@ -88,17 +94,8 @@ def test_a_signal_before_the_runtime_runs_is_its_stop_with_nothing_sent(
     hand: HandConfig, protocol: Protocol, bus_pair: tuple[HandBus, HandBus]
 ) -> None:
     """After the start-up's last checkpoint: the runtime stops before it sends anything."""
-    from handctl.online.clock import LockstepClock
-
     host, listener = bus_pair
-    recipe = load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", hand)
-    runtime = Runtime(
-        hand,
-        HandDriver(hand, protocol, host),
-        LockstepClock(hand.bus.period_s, lambda: None),
-        recipe,
-        startup_timeout_s=600.0,
-    )
+    runtime = _waiting_runtime(hand, protocol, host)
     with StopSignals() as signals:
         signal.raise_signal(signal.SIGTERM)
         result = asyncio.run(signals.run(runtime))
