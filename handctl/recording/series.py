@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -15,6 +15,9 @@ from handctl.recording.messages import MessageCheck
 from handctl.recording.metadata import recorded_hand
 from handctl.recording.reader import Recording, iter_decoded, iter_messages
 from handctl.recording.ring import RECORDED_STAGES
+
+if TYPE_CHECKING:
+    from handctl.config import HandConfig
 
 
 class _Rows:
@@ -67,7 +70,12 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     timing, torque, joint = _Rows(9), _Rows(1 + 2 * n), _Rows(1 + 2 * n)
     objects: _Rows | None = None
     series = Series(joints)
-    limits = _recorded_limits(recording, n)
+    hand = _recorded_hand(recording)
+    limits = (
+        [j.tau_max * (1 + 1e-9) for j in hand.joints]
+        if hand is not None and hand.n_joints == n
+        else None
+    )
     t0: int | None = None
     tick0: int | None = None  # tick 0's scheduled time (ns)
     period_ns = recording.meta_int(ch.META_RUN, "period_ns", 1_000_000, minimum=1)
@@ -180,21 +188,18 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     series.timing, series.torque, series.joint = timing.rows, torque.rows, joint.rows
     if objects is not None:
         series.objects = objects.rows
-    series.rest_y = _rest_heights(recording, series)
+    series.rest_y = _rest_heights(recording, series, hand)
     series.frames = frames
     return series
 
 
-def _recorded_limits(recording: Recording, n: int) -> list[float] | None:
-    """Each joint's ``tau_max`` from the recorded hand config, if it is there and has the log's
-    joints (a log without it, or whose hand does not read, is summarised unchecked)."""
+def _recorded_hand(recording: Recording) -> HandConfig | None:
+    """The recorded hand config, or None for a log without one or whose hand does not read
+    (then the summary has no limits to hold the torques to, and no scene)."""
     try:
-        hand = recorded_hand(recording, required=False)
+        return recorded_hand(recording, required=False)
     except ConfigError:
         return None
-    if hand is None or hand.n_joints != n:
-        return None
-    return [j.tau_max * (1 + 1e-9) for j in hand.joints]
 
 
 def _check_applied(
@@ -236,10 +241,10 @@ def _joint_names(recording: Recording) -> tuple[list[str], int | None]:
     return [], None
 
 
-def _rest_heights(recording: Recording, series: Series) -> list[float]:
+def _rest_heights(recording: Recording, series: Series, hand: HandConfig | None) -> list[float]:
     """Where the objects rested at the start: the recorded scene's initial poses (the run
     summary's reference), or the first logged pose for a log without them. Sets the joints'
-    ``tau_max`` from the recorded hand config on the way."""
+    ``tau_max`` from the recorded hand config (``hand``) on the way."""
     from handctl.sim.params import parse_sim
 
     first = (
@@ -251,7 +256,6 @@ def _rest_heights(recording: Recording, series: Series) -> list[float]:
         else []
     )
     try:
-        hand = recorded_hand(recording, required=False)
         params = parse_sim(hand) if hand is not None and hand.sim else None
     except ConfigError:
         hand, params = None, None
