@@ -68,9 +68,9 @@ MAX_TORQUE_RATIO = 1e3
 #: slowest (1e-300 overflowed the clock's time stamps, 1e-9 waited for ever); at the fastest
 #: the frames go out as fast as the bus takes them anyway
 MIN_REPLAY_SPEED = 1e-3
+MAX_REPLAY_SPEED = 1e3
 #: s, the shortest timing check: ten ticks at 1 kHz (1e-300 s gave a verdict on no tick)
 MIN_TIMING_CHECK_S = 0.01
-MAX_REPLAY_SPEED = 1e3
 
 
 def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
@@ -628,13 +628,13 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         if args.parent_pid is not None:
             from functools import partial
 
-            from handctl.parent_death import die_with_parent
+            from handctl.parent_death import die_with_parent, process_alive
             from handctl.parent_death import parent_alive as alive
 
             if args.parent_pid <= 0:
                 raise ConfigError("--parent-pid", "", "a process id > 0", args.parent_pid)
             if not die_with_parent(args.parent_pid):
-                if _process_exists(args.parent_pid):
+                if process_alive(args.parent_pid):
                     # a live process that is not this one's parent: its end would never be
                     # seen, and this hand would outlive it
                     raise ConfigError(
@@ -683,17 +683,6 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         if adopted and parent_ends(args.parent_pid, ORPHAN_WAIT_S if terminated else 0.0):
             remove_orphaned_bus(args.bus, args.summary_json)
     return EXIT_OK
-
-
-def _process_exists(pid: int) -> bool:
-    """Whether a process ``pid`` exists (signal 0 asks without sending anything)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # there, someone else's
-        return True
-    return True
 
 
 # -- replay ------------------------------------------------------------------------------------

@@ -94,8 +94,12 @@ def _owner_alive(path: Path) -> bool:
     """Whether the process a bus endpoint is named for (``PID-N.sock``) is alive and not
     this one (this process's own endpoints go with it)."""
     pid = int(path.name.partition("-")[0])
-    if pid == os.getpid():
-        return False
+    return pid != os.getpid() and process_alive(pid)
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and has not ended (one that ended and waits to be
+    reaped is not alive); one this process may not signal counts as alive."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
