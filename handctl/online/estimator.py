@@ -439,6 +439,10 @@ def _chebyshev_step(cons: Sequence[tuple[float, float, float]]) -> tuple[tuple[f
     multiplier is the most negative is not holding the object back: the second value is its
     index (the one to exchange), and the step ascends along the other two.
     """
+    # fewer than three (a hand of one or two links in all): none surrounds the object, and the
+    # index past the two given names the third, missing, one (the caller only exchanges among
+    # four); it was unbound, and the estimator raised at the first tick on such a hand
+    worst = 2
     if len(cons) == 3:
         (s1, a1, b1), (s2, a2, b2), (s3, a3, b3) = cons
         # A = [[a1, b1, -1], [a2, b2, -1], [a3, b3, -1]]; solve A [dx, dy, t] = -s and
@@ -464,7 +468,6 @@ def _chebyshev_step(cons: Sequence[tuple[float, float, float]]) -> tuple[tuple[f
             worst = 0 if mu1 <= mu2 and mu1 <= mu3 else (1 if mu2 <= mu3 else 2)
             cons = [c for k, c in enumerate(cons) if k != worst]
         else:
-            worst = 2
             cons = list(cons[:2])
     if len(cons) >= 2:
         (s1, a1, b1), (s2, a2, b2) = cons[0], cons[1]

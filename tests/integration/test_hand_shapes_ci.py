@@ -280,3 +280,28 @@ def test_the_shape_runs_as_handctl_sim_and_answers_as_its_nodes(
     ground = json.loads(truth.read_text())
     assert set(ground["nodes"]) == {f.name for f in hand.fingers}
     assert set(ground["objects"]) == {o.name for o in parse_sim(hand).objects}
+
+
+def test_a_hand_of_two_links_runs_its_estimator_and_records_the_run(tmp_path: Path) -> None:
+    """One finger of two joints around one cylinder: the object estimator meets two contacts
+    at most, and raised at the first tick (ESTIMATOR_EXCEPTION, exit 3); the recording's
+    writer, which runs the same estimator for its Foxglove channels, died with it and left
+    the log without a chunk."""
+    data = ROOT / "tests" / "data"
+    log = tmp_path / "run.mcap"
+    done = handctl(
+        "run",
+        "recipe",
+        str(data / "recipes" / "close_one_finger.yaml"),
+        "--hand",
+        str(data / "hands" / "one_finger_two_joints.yaml"),
+        "--max-seconds",
+        "1",
+        "--log",
+        str(log),
+    )
+    assert done.returncode in (0, 1), done.stderr  # 1: a close alone lifts nothing
+    assert "ESTIMATOR_EXCEPTION" not in done.stderr and "Traceback" not in done.stderr
+    again = handctl("replay", str(log), "--rerun")
+    assert again.returncode == 0, again.stderr
+    assert "applied torques bit-exact" in again.stdout
