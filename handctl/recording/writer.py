@@ -137,9 +137,9 @@ class Encoder:
                     orjson.dumps(ch.schema_of(channel)),
                     ch.MESSAGE_ENCODING,
                 )
-        self.derived: Derived | None = None
+        self.derived: _SafeView | None = None
         try:
-            self.derived = Derived.from_metadata(setup["metadata"], self.add_raw)
+            self.derived = _SafeView(Derived.from_metadata(setup["metadata"], self.add_raw))
         except Exception as exc:  # a view must never cost the recording
             sys.stderr.write(f"handctl writer: no Foxglove channels: {exc}\n")
         if self.derived is not None:
@@ -446,6 +446,40 @@ class Encoder:
         self.writer.finish()
         self.out.flush()
         os.fdatasync(self.out.fileno())
+
+
+class _SafeView:
+    """The Foxglove channels (``Derived``), computed so that a failure ends them and never
+    the recording: the writer died with an exception raised there (the estimator on a hand
+    of two links, in the view), and the run's log was left without a chunk."""
+
+    def __init__(self, view: Derived) -> None:
+        self._view: Derived | None = view
+        self.channels = view.channels
+
+    def _call(self, name: str, *args: Any) -> None:
+        view = self._view
+        if view is None:
+            return
+        try:
+            getattr(view, name)(*args)
+        except Exception as exc:  # a view must never cost the recording
+            self._view = None
+            sys.stderr.write(
+                f"handctl writer: Foxglove channels stopped ({type(exc).__name__}: {exc})\n"
+            )
+
+    def frame(self, *args: Any) -> None:
+        self._call("frame", *args)
+
+    def tick(self, *args: Any) -> None:
+        self._call("tick", *args)
+
+    def event(self, *args: Any) -> None:
+        self._call("event", *args)
+
+    def poses(self, *args: Any) -> None:
+        self._call("poses", *args)
 
 
 def _event_payload(kind: int, tick: int, fields: list[str]) -> dict[str, Any] | None:
