@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from handctl.protocol import Layout, Protocol
+from handctl.protocol import MIN_LOOP_RATE_HZ, Layout, Protocol
 
 if TYPE_CHECKING:  # the hand config's protocol is generated with the DLC sizes below
     from handctl.config import BusConfig, HandConfig
@@ -209,7 +209,13 @@ def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
         fd = hand_budget(hand, protocol, fd=True, bitrate=1_000_000, data_bitrate=5_000_000)
         return [f"CAN-FD 1/5 Mbit/s would carry {fd.load * 100:.1f} %"]
     budget = hand_budget(hand, protocol)
-    hints = [f"the highest loop rate that fits is {budget.highest_loop_rate_hz():.0f} Hz"]
+    highest = budget.highest_loop_rate_hz()
+    hints = (
+        [f"the highest loop rate that fits is {highest:.0f} Hz"]
+        if highest >= MIN_LOOP_RATE_HZ
+        # a slower loop would let the nodes' command watchdog trip between two ticks
+        else [f"no loop rate of {MIN_LOOP_RATE_HZ:.0f} Hz or more fits on one bus"]
+    )
     nodes = [f.node_id for f in hand.fingers]
     for buses in range(2, len(nodes) + 1):
         size = -(-len(nodes) // buses)

@@ -19,7 +19,7 @@ from types import MappingProxyType
 from typing import Any
 
 from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids, protocol_for
-from handctl.protocol import HEARTBEAT_PERIOD_S, Protocol
+from handctl.protocol import HEARTBEAT_PERIOD_S, MIN_LOOP_RATE_HZ, Protocol
 from handctl.schema import Doc, load_yaml
 from handctl.wirelimits import check_wire_limits
 
@@ -272,7 +272,9 @@ def _parse_bus(doc: Doc) -> BusConfig:
         doc.fail(
             "data_bitrate", "no data_bitrate on classic CAN (fd: false)", doc.raw("data_bitrate")
         )
-    loop_rate = doc.number("loop_rate_hz", min=1.0, max=10_000.0, unit="Hz")
+    # a tick at most half the nodes' command watchdog: at 100 Hz or below every run stopped
+    # on the nodes' TIMEOUT at its second tick, a config `handctl check` had passed
+    loop_rate = doc.number("loop_rate_hz", min=MIN_LOOP_RATE_HZ, max=10_000.0, unit="Hz")
     doc.done()
     return BusConfig(interface, channel, fd, bitrate, data_bitrate, loop_rate)
 

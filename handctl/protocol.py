@@ -65,6 +65,12 @@ _VERSION = re.compile(r"^handctl protocol (\d+)$")
 #: s, how often a node sends its Heartbeat (firmware_protocol/PROTOCOL.md): a host's heartbeat
 #: watchdog must wait longer than this
 HEARTBEAT_PERIOD_S = 0.1
+#: s, how long an ENABLED node waits for an accepted TorqueCommand before it latches TIMEOUT
+#: (firmware_protocol/PROTOCOL.md, the command watchdog)
+COMMAND_WATCHDOG_S = 0.010
+#: Hz, the slowest host loop: a tick every half of the command watchdog, so that one late tick
+#: does not trip it
+MIN_LOOP_RATE_HZ = 2.0 / COMMAND_WATCHDOG_S
 #: ``Command`` values of NodeCommand frames.
 NODE_COMMANDS = {"enable": 1, "disable": 2, "fault_reset": 3}
 

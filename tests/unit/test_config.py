@@ -132,6 +132,9 @@ def test_wrong_types(
         (("bus", "bitrate"), 2_000_000),
         (("bus", "data_bitrate"), 500_000),
         (("bus", "loop_rate_hz"), 0),
+        # a tick slower than half the nodes' 10 ms command watchdog: every run stopped on
+        # the nodes' TIMEOUT at its second tick, a config check had passed
+        (("bus", "loop_rate_hz"), 150),
     ],
 )
 def test_out_of_range(
@@ -284,7 +287,7 @@ def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
 def _classic(data: dict[str, Any]) -> None:
     data["bus"]["fd"] = False
     del data["bus"]["data_bitrate"]
-    data["bus"]["loop_rate_hz"] = 100
+    data["bus"]["loop_rate_hz"] = 200
 
 
 @pytest.mark.parametrize(
