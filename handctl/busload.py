@@ -190,10 +190,11 @@ def bus_refusals(
         )
         out.append(("bus.fd", expected, False))
     if not budget.ok:
-        found = f"{budget.load * 100:.1f} % at {hand.bus.loop_rate_hz:g} Hz; " + "; ".join(
-            what_would_fit(hand, protocol)
-        )
-        out.append(("bus", f"a worst-case load <= {MAX_LOAD * 100:.0f} %", found))
+        # what would fit goes with what is expected: a found value is cut to one short line
+        # in a message, and the hint was cut off there
+        fits = "; ".join(what_would_fit(hand, protocol))
+        found = f"{budget.load * 100:.1f} % at {hand.bus.loop_rate_hz:g} Hz"
+        out.append(("bus", f"a worst-case load <= {MAX_LOAD * 100:.0f} % ({fits})", found))
     return out
 
 

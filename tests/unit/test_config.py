@@ -281,7 +281,7 @@ def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
     assert "Status_3 (12 bytes) are longer than the 8 bytes of a classic CAN frame" in (
         result.stderr
     )
-    assert "found 122.6 % at 1000 Hz; CAN-FD 1/5 Mbit/s would carry 39.1 %" in result.stderr
+    assert "(CAN-FD 1/5 Mbit/s would carry 39.1 %), found 122.6 % at 1000 Hz" in result.stderr
 
 
 def _classic(data: dict[str, Any]) -> None:
