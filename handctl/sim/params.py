@@ -14,7 +14,6 @@ the config and is not repeated here; this section only adds what the host never 
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 
 from handctl.config import HandConfig
@@ -324,26 +323,9 @@ def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...]
     return tuple(angles)
 
 
-#: An object's name: what a recipe names it by (the recipe loader's ``OBJECT_NAME``: the
-#: prefix of its estimates, ``estimate.<name>_x``; a test keeps the two in step; the online
-#: plane does not import the simulation), and never MuJoCo's own ``world`` body. A name the
-#: scene took and no recipe could use was refused only by the recipe, blaming it, and
-#: ``world`` by MuJoCo's XML parser, naming a line of XML the user never wrote.
-OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]*$")
-RESERVED_NAMES = frozenset({"world"})
-
-
 def _parse_object(doc: Doc) -> ObjectParams:
-    name = doc.string("name")
-    if not OBJECT_NAME.match(name) or name in RESERVED_NAMES:
-        doc.fail(
-            "name",
-            "a name of letters and digits, starting with a letter (a recipe names the object "
-            "by it), other than " + ", ".join(sorted(RESERVED_NAMES)),
-            name,
-        )
     obj = ObjectParams(
-        name=name,
+        name=doc.string("name"),
         radius=doc.number("radius", min=0.005, max=1.0, unit="m"),
         length=doc.number("length", min=0.01, max=2.0, unit="m"),
         mass=doc.number("mass", min=0.001, max=20.0, unit="kg"),
