@@ -43,7 +43,9 @@ if TYPE_CHECKING:
 #: to the millimetre that meet exactly (a cylinder resting on the table).
 _TOUCH = 1e-9
 #: The names the MuJoCo model gives the scene's own bodies and geoms.
-_SCENE_NAMES = ("palm", "table")
+#: ``world`` too: MuJoCo's own body, which a joint or an object of that name clashed with in
+#: MuJoCo's XML parser (an error naming a line of XML the user never wrote)
+_SCENE_NAMES = ("palm", "table", "world")
 #: Object joints are named after the object with these suffixes (``handctl/sim/plant.py``).
 OBJECT_JOINT_SUFFIXES = ("_x", "_y", "_rz")
 

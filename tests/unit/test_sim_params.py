@@ -142,6 +142,7 @@ def test_mistakes_name_the_key(hand: HandConfig, edit: Any, key: str, expected: 
     ("edit", "key", "expected"),
     [
         (lambda s: s["objects"][1].update(name="palm"), "sim.objects[1].name", "a name of its own"),
+        (lambda s: s["objects"][0].update(name="world"), "sim.objects[0].name", "is the scene"),
         (lambda s: s["objects"][0].update(name="f2_j3"), "sim.objects[0].name", "a link of f2"),
         (lambda s: s["objects"][0].update(name="f1_base"), "sim.objects[0].name", "base of f1"),
         (
