@@ -272,7 +272,9 @@ def parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
             sub.fail(
                 "name",
                 "a name of letters and digits, starting with a letter (it "
-                "prefixes the object's estimates, e.g. estimate.NAME_x)",
+                "prefixes the object's estimates, e.g. estimate.NAME_x; the simulated "
+                "scene's objects go by the same names, so one named otherwise in the hand "
+                "config is renamed there too)",
                 name,
             )
         radius = sub.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m")
