@@ -89,7 +89,6 @@ class Recording:
 
     path: Path
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
-    topics: dict[int, str] = field(default_factory=dict)  # channel id -> topic
     message_counts: dict[str, int] = field(default_factory=dict)  # complete files only
     chunks: int = 0  # chunks that read
     complete: bool = False  # footer and closing magic read, and every chunk read
@@ -99,10 +98,15 @@ class Recording:
     chunk_spans: list[tuple[int, int]] | None = None
     bad_chunks: list[BadChunk] = field(default_factory=list)
     bad_metadata: list[str] = field(default_factory=list)  # names of indexed records that fail
-    #: each channel's record and each schema's, by id: what ``check_format`` holds a handctl
-    #: topic's encoding and schema to
+    #: each channel's record and each schema's, by id: the topics, and what ``check_format``
+    #: holds a handctl topic's encoding and schema to
     channels: dict[int, Channel] = field(default_factory=dict)
     schemas: dict[int, Schema] = field(default_factory=dict)
+
+    @property
+    def topics(self) -> dict[int, str]:
+        """Channel id to topic."""
+        return {cid: channel.topic for cid, channel in self.channels.items()}
 
     @property
     def damaged(self) -> bool:
@@ -196,7 +200,6 @@ def _why(exc: BaseException) -> str:
 class _Index:
     """What the summary section of a finished file holds."""
 
-    topics: dict[int, str]
     counts: dict[int, int]
     chunks: list[ChunkIndex]
     metadata: list[MetadataIndex]
@@ -231,11 +234,10 @@ def _read_index(handle: BinaryIO) -> _Index | None:
     summary = handle.read(footer_at - summary_start)
     if crc and zlib.crc32(tail[: 9 + 16], zlib.crc32(summary)) != crc:
         raise ValueError("summary CRC mismatch")
-    index = _Index({}, {}, [], [])
+    index = _Index({}, [], [])
     for op, body in _records(summary):
         if op == Opcode.CHANNEL:
             channel = Channel.read(_stream(body))
-            index.topics[channel.id] = channel.topic
             index.channels[channel.id] = channel
         elif op == Opcode.SCHEMA:
             schema = Schema.read(_stream(body))
@@ -266,7 +268,6 @@ def _read_record(handle: BinaryIO, offset: int, length: int, opcode: int) -> byt
 
 def _open_indexed(handle: BinaryIO, recording: Recording, index: _Index) -> None:
     """The first pass through the index: every chunk checked, the bad ones named."""
-    recording.topics = dict(index.topics)
     recording.channels = dict(index.channels)
     recording.schemas = dict(index.schemas)
     recording.chunk_spans = []
@@ -316,9 +317,8 @@ def _open_indexed(handle: BinaryIO, recording: Recording, index: _Index) -> None
     recording.complete = not problems
     recording.problem = "; ".join(problems)
     if recording.complete:
-        recording.message_counts = {
-            recording.topics.get(cid, str(cid)): n for cid, n in index.counts.items()
-        }
+        topics = recording.topics
+        recording.message_counts = {topics.get(cid, str(cid)): n for cid, n in index.counts.items()}
 
 
 def _open_walk(handle: BinaryIO, recording: Recording) -> None:
@@ -343,7 +343,6 @@ def _open_walk(handle: BinaryIO, recording: Recording) -> None:
                 recording.metadata[meta.name] = dict(meta.metadata)
             elif op == Opcode.CHANNEL:
                 channel = Channel.read(_stream(body))
-                recording.topics[channel.id] = channel.topic
                 recording.channels[channel.id] = channel
             elif op == Opcode.SCHEMA:
                 schema = Schema.read(_stream(body))
@@ -361,8 +360,9 @@ def _open_walk(handle: BinaryIO, recording: Recording) -> None:
             f"{recording.chunks} complete chunks ({_why(exc)})"
         )
     if recording.message_counts:
+        topics = recording.topics
         recording.message_counts = {
-            recording.topics.get(int(cid), cid): n for cid, n in recording.message_counts.items()
+            topics.get(int(cid), cid): n for cid, n in recording.message_counts.items()
         }
     if not recording.complete and not recording.problem:
         recording.problem = (
@@ -378,7 +378,6 @@ def _topics_from_first_chunk(handle: BinaryIO, recording: Recording) -> None:
             for op, record in _records(_chunk_data(body)):
                 if op == Opcode.CHANNEL:
                     channel = Channel.read(_stream(record))
-                    recording.topics[channel.id] = channel.topic
                     recording.channels[channel.id] = channel
                 elif op == Opcode.SCHEMA:
                     schema = Schema.read(_stream(record))
