@@ -119,7 +119,6 @@ class UnixDatagramBus(can.BusABC):
         self.queue_full = 0
         self.frames_dropped = 0
         self.rx_frames_lost = 0
-        self.peers_shunned = 0
         super().__init__(channel=channel, **kwargs)
 
     @property
@@ -284,7 +283,6 @@ class UnixDatagramBus(can.BusABC):
         there (a socket put at that path later is tried afresh), and left as it is."""
         self._drop(peer)
         self._shunned.add(peer)
-        self.peers_shunned += 1
 
     def _drop(self, peer: str) -> None:
         self._peers.remove(peer)
