@@ -43,11 +43,19 @@ from collections.abc import Sequence
 
 from handctl.config import FingerConfig
 from handctl.errors import ConfigError
-from handctl.protocol import HEARTBEAT_PERIOD_S, NODE_COMMANDS, Layout, NodeState, Protocol
+from handctl.protocol import (
+    COMMAND_WATCHDOG_S,
+    HEARTBEAT_PERIOD_S,
+    NODE_COMMANDS,
+    Layout,
+    NodeState,
+    Protocol,
+)
 from handctl.sim.params import NODE_TICK_NS
 
-#: No accepted TorqueCommand for this long while ENABLED latches TIMEOUT.
-WATCHDOG_NS = 10 * NODE_TICK_NS
+#: No accepted TorqueCommand for this long while ENABLED latches TIMEOUT (the protocol's, which
+#: the hand config's slowest loop is held to).
+WATCHDOG_NS = round(COMMAND_WATCHDOG_S * 1e9)
 REJECT_PENALTY = 10
 REJECT_LIMIT = 100
 STATUS_PERIOD_MS = 100
