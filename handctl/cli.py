@@ -1083,7 +1083,8 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     until = " or until it is back inside its soft limits" if args.recover else ""
     print(
         f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on {args.bus}, "
-        "every other joint at zero (Ctrl-C: controlled stop)"
+        "every other joint at zero unless the soft-limit guard pushes it back "
+        "(Ctrl-C: controlled stop)"
     )
     print(
         f"{'t s':>7} {'phase':<9} {'state':<10} {'desired':>9} {'applied':>9} "
@@ -1119,6 +1120,18 @@ def _cmd_jog(args: argparse.Namespace) -> int:
             f"({moved:+.4f} rad) under {args.torque:+g} N·m; largest |TDT| "
             f"{result.max_abs_tdt:.4f} N·m; largest |applied| "
             f"{result.report.summary['max_abs_tau_nm'][args.joint]:.4f} N·m"
+        )
+    # the soft-limit guard pushes back any joint the jog swings towards a limit, by the sign
+    # the hand config gives it: said, since a jog is where those signs are checked
+    pushed = {
+        name: tau
+        for name, tau in result.report.summary["max_abs_tau_nm"].items()
+        if name != args.joint and tau > 0.0
+    }
+    if pushed:
+        print(
+            "other joints pushed back from a soft limit by the guard (largest |applied|): "
+            + ", ".join(f"{name} {tau:.4f} N·m" for name, tau in pushed.items())
         )
     stopped = _run_outcome(result.report)
     if stopped is None and result.recovery is not None:

@@ -7,6 +7,13 @@ run by the normal Runtime: every torque passes the supervisor with the hand's li
 as in a recipe run, and Ctrl-C is its controlled stop. A torque over the joint's ``tau_max`` is
 refused before anything is opened or sent.
 
+The guard acts on every joint, not only the jogged one: a proximal joint's swing swings the
+joints beyond it, and with zero torque a middle joint swung onto its soft limit would stop the
+jog (``ANGLE_LIMIT``) at the small torques a bring-up starts with. Its push on another joint is
+in the direction the hand config says, which is what a jog is there to check, so the command
+names every other joint that got torque and how much; a sign that is wrong there pushes the
+joint into its limit and the supervisor stops the jog.
+
 With ``--recover`` the jog brings back a joint that rests outside its soft limits (after a
 stop at speed, on its mechanical stop), which no other run can arm with. The supervisor then
 allows that joint, and only it, outside its limits as long as it comes back in

@@ -1,6 +1,7 @@
 """``handctl jog`` end to end against the simulated hand: in lockstep on the virtual bus, and
 free-running in its own process on the unix bus with Ctrl-C as its controlled stop. One joint
-gets the torque, every other zero; a torque over tau_max is refused before anything is sent."""
+gets the torque, every other zero but for the guard's push-back (named); a torque over tau_max
+is refused before anything is sent."""
 
 from __future__ import annotations
 
@@ -31,9 +32,7 @@ from .realtime import ATTEMPTS_UNDER_LOAD, REALTIME, give_up, stopped_by_load
 from .rig import Rig, rig
 
 
-def test_one_joint_turns_its_way_and_no_other_gets_torque(
-    hand: HandConfig, capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_one_joint_turns_its_way(hand: HandConfig, capsys: pytest.CaptureFixture[str]) -> None:
     code = cli.main(["jog", "f1_j2", "--torque", "0.05", "--seconds", "0.3"])
     out = capsys.readouterr().out
     assert code == cli.EXIT_OK, out
@@ -41,7 +40,7 @@ def test_one_joint_turns_its_way_and_no_other_gets_torque(
     assert len(rows) > 5 and {r[1] for r in rows} >= {"jog", "end_ramp"}
     applied = [float(r[4]) for r in rows]
     assert max(applied) == pytest.approx(0.05) and applied[-1] < 0.01
-    summary = out.splitlines()[-1]
+    summary = next(line for line in out.splitlines() if line.startswith("f1_j2:"))
     moved = float(summary.split("(")[1].split()[0])
     assert moved > 0.1  # counter-clockwise positive: a positive torque turns it that way
     assert "largest |applied| 0.0500 N·m" in summary
@@ -55,9 +54,25 @@ def test_every_other_joint_gets_exactly_zero(hand: HandConfig) -> None:
     assert set(applied.values()) == {0.0}
 
 
+def test_a_joint_the_guard_pushes_is_named_with_its_torque(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A proximal joint's swing swings the middle joint onto its soft limit, and the guard
+    pushes it back by the sign the hand config gives it, the sign a jog is there to check:
+    the command says so, with the torque, as it does not for a distal jog."""
+    assert cli.main(["jog", "f1_j1", "--torque", "0.05", "--seconds", "0.5"]) == cli.EXIT_OK
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last.startswith("other joints pushed back from a soft limit by the guard"), last
+    pushed = dict(item.split()[:2] for item in last.split(": ", 1)[1].split(", "))
+    assert "f1_j1" not in pushed and float(pushed["f1_j2"]) > 0.01
+    assert cli.main(["jog", "f2_j3", "--torque", "0.03", "--seconds", "0.2"]) == cli.EXIT_OK
+    assert "pushed back" not in capsys.readouterr().out
+
+
 def test_a_negative_torque_turns_it_back(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["jog", "f3_j1", "--torque", "-0.05", "--seconds", "0.3"]) == cli.EXIT_OK
-    summary = capsys.readouterr().out.splitlines()[-1]
+    out = capsys.readouterr().out
+    summary = next(line for line in out.splitlines() if line.startswith("f3_j1:"))
     assert float(summary.split("(")[1].split()[0]) < -0.1
 
 
