@@ -7,9 +7,11 @@ calibration) is averaged: at zero torque it should read zero, so the new offset 
 minus the mean. The measurement is refused, naming the joint, when a joint moved (its angle
 spanned more than ``max_span``: something pushed it, and the sensor read that push), when its
 noise is implausible (above ``max_noise``, or exactly zero: a live sensor is never
-bit-identical), or when the offset is beyond ``max_offset`` or the joint's ``tau_max`` (a
-sensor that reads the joint's whole torque limit at zero torque is broken, whatever
-``max_offset`` allows).
+bit-identical), or when the offset it would write is beyond ``max_offset`` or the joint's
+``tau_max`` (a sensor that reads the joint's whole torque limit at zero torque is broken,
+whatever ``max_offset`` allows). The offset written is judged, not the reading with the offset
+configured: a hand config that already carries one would otherwise be moved by up to the bound
+a run, without end.
 
 The supervisor's TDT plausibility check compares the reading with the applied torque; an
 uncalibrated sensor fails it by its very offset, which is what is being measured. For this run
@@ -170,14 +172,17 @@ def judge(hand: HandConfig, sampler: TdtSampler, limits: CalibrationLimits) -> l
             )
         elif s == 0.0:
             problem = "the reading did not change at all: a live sensor is never so still"
-        elif abs(m) > min(limits.max_offset, joint.tau_max):
-            # at zero torque a sensor reading the joint's whole torque limit is broken
-            # whatever --max-offset allows
+        elif abs(joint.tdt.offset - m) > min(limits.max_offset, joint.tau_max):
+            # the offset that would be written is judged, not this run's change to it: an
+            # offset already in the config plus a reading within the bound would otherwise
+            # ratchet it by up to the bound a run. At zero torque a sensor reading the joint's
+            # whole torque limit is broken whatever --max-offset allows
             bound = min(limits.max_offset, joint.tau_max)
             why = "" if bound == limits.max_offset else ", the joint's tau_max"
             problem = (
-                f"offset {m:+.4f} N·m is implausible (at most {bound:g} N·m{why}): "
-                "check the sensor's mounting and its factory calibration"
+                f"offset {joint.tdt.offset - m:+.4f} N·m (the sensor reads {m:+.4f} N·m with "
+                f"the configured {joint.tdt.offset:+.4f}) is implausible (at most {bound:g} "
+                f"N·m{why}): check the sensor's mounting and its factory calibration"
             )
         out.append(
             JointResult(joint.name, joint.tdt.offset, joint.tdt.offset - m, m, s, a, problem)

@@ -206,7 +206,7 @@ def test_an_offset_beyond_the_joints_tau_max_is_refused_whatever_max_offset_says
     args = ["calibrate", "tdt", "-o", str(out), "--sim-faults", str(faults), "--seconds", "0.3"]
     assert cli.main([*args, "--max-offset", "0.5"]) == cli.EXIT_FAILED
     err = capsys.readouterr().err
-    assert "nothing written: f2_j3: offset +0.40" in err
+    assert "nothing written: f2_j3: offset -0.40" in err
     assert "(at most 0.3 N·m, the joint's tau_max)" in err
     assert not out.exists()
     assert cli.main([*args, "--max-offset", "5"]) == cli.EXIT_BAD_INPUT
@@ -214,6 +214,32 @@ def test_an_offset_beyond_the_joints_tau_max_is_refused_whatever_max_offset_says
         capsys.readouterr().err
     )
     assert not out.exists()
+
+
+def test_the_offset_written_is_judged_not_the_reading_with_the_configured_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A hand config that already carries an offset of -0.2 N·m on f2_j3, and a sensor that
+    reads 0.2 N·m more at zero torque: each reading is within --max-offset (0.25), and judging
+    it alone wrote -0.4, then -0.6 on the next run; the offset written is what is bounded."""
+    copy = tmp_path / "hand.yaml"
+    copy.write_text(
+        HAND_YAML.read_text().replace(
+            "name: f2_j3,", "name: f2_j3, tdt: {scale: 1.0, offset: -0.2},", 1
+        )
+    )
+    assert load_hand(copy).joints[5].tdt.offset == -0.2
+    faults = _scenario(tmp_path, "{kind: tdt_offset, node: 2, joint: 3, offset: 0.2, start: 0.0}")
+    out = tmp_path / "calibrated.yaml"
+    args = ["calibrate", "tdt", "--hand", str(copy), "-o", str(out), "--seconds", "0.3"]
+    assert cli.main([*args, "--sim-faults", str(faults)]) == cli.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "nothing written: f2_j3: offset -0.4" in err
+    assert "(the sensor reads +0.2" in err and "with the configured -0.2000)" in err
+    assert not out.exists()
+    # the same configured offset and a sensor that reads it back to zero is written
+    assert cli.main(args) == cli.EXIT_OK
+    assert abs(load_hand(out).joints[5].tdt.offset + 0.2) < 0.01
 
 
 def test_fingers_that_have_not_settled_are_refused(
