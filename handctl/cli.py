@@ -944,8 +944,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     import json
 
     from handctl.bringup.calibrate import CalibrationLimits, calibrate_tdt
-    from handctl.bringup.hand_edit import format_offset, with_tdt_offsets
-    from handctl.config import load_hand
+    from handctl.bringup.hand_edit import format_offset
     from handctl.outfile import check_writable
 
     hand = _load_hand(args.hand, "--hand", args.dbc)
@@ -962,6 +961,14 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             "",
             f"either -o FILE (a calibrated copy) or --write (overwrite {args.hand}), not both",
             f"-o {args.output} --write",
+        )
+    if args.write and args.hand.resolve() == DEFAULT_HAND:
+        raise ConfigError(
+            "--write",
+            "",
+            "--hand with the hand config of your hand: the one shipped with handctl is the "
+            "package's, not a hand's (-o FILE writes a calibrated copy of it)",
+            str(args.hand),
         )
     target = args.hand if args.output is None else args.output
     if (
@@ -1055,22 +1062,60 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILED
-    edited = with_tdt_offsets(text, hand, calibration.offsets)
+    return _write_calibration(args, hand, text, calibration.offsets, written)
+
+
+def _write_calibration(
+    args: argparse.Namespace,
+    hand: HandConfig,
+    text: str,
+    offsets: dict[str, float],
+    written: Path,
+) -> int:
+    """The calibrated hand config written (``-o`` or ``--write``) from ``text``, the hand
+    config as it was read before the run, with ``offsets`` (N·m by joint)."""
+    from handctl.bringup.hand_edit import with_tdt_offsets
+    from handctl.config import load_hand
+    from handctl.stopsignals import held_back
+
+    target = args.hand if args.output is None else args.output
+    try:
+        edited = with_tdt_offsets(text, hand, offsets)
+    except ValueError as exc:
+        print(f"handctl: calibration refused, nothing written: {args.hand} {exc}", file=sys.stderr)
+        return EXIT_FAILED
     if edited.dumped:
         print(
             f"handctl: warning: {args.hand} could not be edited in place ({edited.why}); "
             "written as a plain dump, without its comments and layout",
             file=sys.stderr,
         )
-    _write_output("-o" if args.output is not None else "--write", written, edited.text)
-    new_hash = load_hand(target, args.dbc).config_hash
-    print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))
-    if new_hash != hand.config_hash:
-        print(
-            f"  the config hash changes from {hand.config_hash} to {new_hash}: recipes "
-            "compiled for the old one must be planned again (handctl plan)"
-        )
+    with held_back() as late:
+        if args.write and _read_or_none(args.hand) != text:
+            # written from the text read before the run, it would undo whatever was saved
+            # into the file since
+            raise HandctlError(
+                f"--write: {args.hand} changed while the calibration ran; nothing written "
+                "(the offsets measured are above; calibrate again)"
+            )
+        _write_output("-o" if args.output is not None else "--write", written, edited.text)
+        new_hash = load_hand(target, args.dbc).config_hash
+        print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))
+        if new_hash != hand.config_hash:
+            print(
+                f"  the config hash changes from {hand.config_hash} to {new_hash}: recipes "
+                "compiled for the old one must be planned again (handctl plan)"
+            )
+    for name in late:
+        print(f"handctl: {name} came once {target} was being written: ignored", file=sys.stderr)
     return EXIT_OK
+
+
+def _read_or_none(path: Path) -> str | None:
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None
 
 
 def _cmd_jog(args: argparse.Namespace) -> int:

@@ -9,8 +9,10 @@ from happening.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -128,3 +130,27 @@ class StopSignals:
         ):
             result = dataclasses.replace(result, outcome=Outcome.INTERRUPTED)
         return result
+
+
+@contextlib.contextmanager
+def held_back() -> Iterator[list[str]]:
+    """The stop signals held back over a command's last step (a result file replaced, and the
+    line saying so), so that what the command says and its exit code agree with what it did.
+
+    A signal raised in the middle of that step interrupted the command after the file was
+    replaced: exit 130 and "interrupted", with the new file in place. Held back, a signal that
+    came during the step is taken off when it ends, and its name is yielded for the command to
+    say it came too late to stop anything. Outside the main thread nothing is held."""
+    late: list[str] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield late
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, StopSignals.SIGNALS)
+    try:
+        yield late
+    finally:
+        for sig in sorted(signal.sigpending() & set(StopSignals.SIGNALS)):
+            if sig not in before:
+                signal.sigtimedwait([sig], 0)
+                late.append(signal.Signals(sig).name)
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)

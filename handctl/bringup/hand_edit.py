@@ -48,7 +48,8 @@ def format_offset(value: float) -> str:
 
 
 def with_tdt_offsets(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> EditedHand:
-    """``text`` (the file ``hand`` was loaded from) with ``offsets`` (joint name -> N·m)."""
+    """``text`` (the file ``hand`` was loaded from) with ``offsets`` (joint name -> N·m);
+    ``ValueError`` when no text with them reads back as the same hand."""
     wanted = {name: float(format_offset(v)) for name, v in offsets.items()}
     try:
         edited = _edit(text, hand, wanted)
@@ -57,7 +58,12 @@ def with_tdt_offsets(text: str, hand: HandConfig, offsets: Mapping[str, float]) 
     except _CannotEditError as exc:
         why = str(exc)
     dumped = _dump(text, hand, wanted)
-    _verify(dumped, hand, wanted)
+    try:
+        _verify(dumped, hand, wanted)
+    except _CannotEditError as exc:
+        # not a layout: the hand with these offsets is not a hand config (an offset that puts
+        # a limit out of the wire's range, say), so there is nothing right to write
+        raise ValueError(f"with the new offsets it does not read back ({exc})") from None
     return EditedHand(dumped, dumped=True, why=why)
 
 

@@ -104,6 +104,46 @@ def test_write_overwrites_the_hand_config_itself(
     assert load_hand(copy).joints[0].tdt.offset != 0.0
 
 
+def test_write_refuses_the_hand_config_shipped_with_handctl(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without --hand the hand config is the package's own copy (site-packages, once
+    installed): not a hand's to overwrite. Refused before any bus opens. (The default is a
+    copy here, so that a regression overwrites nothing of the checkout's.)"""
+    shipped = tmp_path / "hiroshima_hand.yaml"
+    shutil.copy(cli.DEFAULT_HAND, shipped)
+    monkeypatch.setattr(cli, "DEFAULT_HAND", shipped)
+    before = shipped.read_text()
+    assert cli.main(["calibrate", "tdt", "--write", "--seconds", "0.2"]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--write: expected --hand with the hand config of your hand" in err
+    assert shipped.read_text() == before
+
+
+def test_write_keeps_what_was_saved_into_the_hand_config_during_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The offsets are written into the text read before the run: written over a file edited
+    since, they would undo the edit. The real calibration runs; the edit comes at its end."""
+    from handctl.bringup import calibrate
+
+    copy = tmp_path / "hand.yaml"
+    shutil.copy(HAND_YAML, copy)
+    measure = calibrate.calibrate_tdt
+
+    def edited_meanwhile(*args: Any, **kwargs: Any) -> calibrate.Calibration:
+        result = measure(*args, **kwargs)
+        copy.write_text(copy.read_text() + "# saved during the calibration\n")
+        return result
+
+    monkeypatch.setattr(calibrate, "calibrate_tdt", edited_meanwhile)
+    args = ["calibrate", "tdt", "--hand", str(copy), "--write", "--seconds", "0.2"]
+    assert cli.main(args) == cli.EXIT_FAILED
+    assert "changed while the calibration ran; nothing written" in capsys.readouterr().err
+    assert copy.read_text().endswith("# saved during the calibration\n")
+    assert load_hand(copy).joints[0].tdt.offset == 0.0
+
+
 def _read_only_hand(tmp_path: Path) -> list[str]:
     copy = tmp_path / "hand.yaml"
     shutil.copy(HAND_YAML, copy)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
+import pytest
 import yaml
 
 from handctl.bringup.hand_edit import with_tdt_offsets
@@ -60,3 +61,11 @@ def test_a_tdt_shared_through_an_alias_is_dumped(hand: HandConfig) -> None:
     edited = with_tdt_offsets(text, hand, offsets)
     assert edited.dumped and "shares its tdt with another joint" in edited.why
     _reads_back(edited.text, hand, offsets)
+
+
+def test_offsets_no_hand_config_can_carry_are_refused_not_written(hand: HandConfig) -> None:
+    """-5 N·m on f2_j3 puts the readings of its device_tau_max beyond the Feedback signal's
+    range: neither the edit nor the dump reads back, and that is said, not raised raw."""
+    offsets = {j.name: 0.0 for j in hand.joints} | {"f2_j3": -5.0}
+    with pytest.raises(ValueError, match="with the new offsets it does not read back"):
+        with_tdt_offsets(HAND_YAML.read_text(), hand, offsets)

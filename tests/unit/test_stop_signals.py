@@ -14,7 +14,7 @@ from handctl.online.drivers.hand import HandDriver
 from handctl.online.loop import Outcome, RunResult, Runtime
 from handctl.online.recipes.loader import load_recipe
 from handctl.protocol import Protocol
-from handctl.stopsignals import StopSignals
+from handctl.stopsignals import StopSignals, held_back
 
 from ..conftest import ROOT
 
@@ -117,3 +117,23 @@ def test_an_error_once_a_signal_came_is_still_the_interrupt() -> None:
 def test_other_errors_pass_through() -> None:
     with pytest.raises(ImportError), StopSignals():
         raise ImportError("a real one")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+def test_a_signal_during_a_commands_last_step_is_taken_off_and_named(
+    sig: signal.Signals,
+) -> None:
+    """A file replaced and the line saying so: a signal then came after the work was done,
+    so it neither cuts the step nor turns a done command into an interrupted one."""
+    before = signal.getsignal(sig)
+    seen: list[int] = []
+    signal.signal(sig, lambda signum, frame: seen.append(signum))
+    try:
+        with held_back() as late:
+            signal.raise_signal(sig)
+            assert not seen  # held back: the step goes on
+        assert late == [sig.name] and not seen  # taken off, never delivered
+        signal.raise_signal(sig)
+        assert seen == [sig]  # and the handler is as it was
+    finally:
+        signal.signal(sig, before)
