@@ -21,7 +21,12 @@ def check_writable(path: Path, option: str) -> Path:
     new version of it can be put there: its directory exists and may be written, and the file,
     if it exists, is a file that may be written (a read-only hand config stays as it is).
     Otherwise a ``ConfigError`` naming ``option``; asked before a calibration starts."""
-    target = path.resolve()
+    try:
+        target = path.resolve()
+    except (RuntimeError, OSError) as exc:  # a symlink loop; a name too long to resolve
+        raise ConfigError(
+            option, "", "a file name that resolves to a file", f"{path} ({exc})"
+        ) from None
     directory = target.parent
     if not directory.is_dir():
         raise ConfigError(option, "", "a file in an existing directory", str(path))
