@@ -430,6 +430,16 @@ def _compile(message: Any, source: str, send_choices: list[str]) -> Layout:
                 "a byte-aligned little-endian integer of 8, 16 or 32 bits",
                 f"start {sig.start}, {sig.length} bits, {sig.byte_order}",
             )
+        scale, offset = float(sig.scale), float(sig.offset)
+        if not (math.isfinite(scale) and scale > 0 and math.isfinite(offset)):
+            # every range and rounding here divides by the factor and takes it to keep the
+            # order of values: zero divides by zero, a negative one turns every range over
+            raise ConfigError(
+                source,
+                f"{where}.{sig.name}",
+                "a finite factor > 0 and a finite offset",
+                f"factor {sig.scale}, offset {sig.offset}",
+            )
         specs.append(
             SignalSpec(
                 name=sig.name,

@@ -102,6 +102,28 @@ def test_dbc_breaking_the_conventions_is_refused(tmp_path: Path) -> None:
     assert "byte-aligned" in info.value.expected
 
 
+@pytest.mark.parametrize(
+    "factor, says",
+    [("0", "factor 0,"), ("-0.0001", "factor -0.0001,")],
+)
+def test_a_signal_factor_that_is_not_positive_is_refused(
+    tmp_path: Path, factor: str, says: str
+) -> None:
+    """Zero divided by zero in the signal's range (a traceback); a negative one turned its
+    range over, and a hand config's angles were then refused as out of a range that held
+    them."""
+    text = DEFAULT_DBC.read_text()
+    old = "SG_ Angle1 : 64|16@1- (0.0001,0)"
+    assert old in text
+    path = tmp_path / "bad.dbc"
+    path.write_text(text.replace(old, f"SG_ Angle1 : 64|16@1- ({factor},0)", 1))
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    assert info.value.key == "Feedback_1.Angle1"
+    assert info.value.expected == "a finite factor > 0 and a finite offset"
+    assert says in str(info.value)
+
+
 def test_missing_dbc(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="no such file"):
         load_protocol(tmp_path / "none.dbc")
