@@ -309,7 +309,9 @@ def _own_miss_text(miss: dict[str, Any]) -> str:
 def _refuse_what_check_refuses(hand: HandConfig, path: Path) -> None:
     """A hand whose bus cannot carry it, which ``handctl check`` refuses (exit 2), is bad
     input for a run too: at bus.loop_rate_hz 10000 a run began and stopped at tick 10
-    (RX_BACKLOG, exit 3), and a classic-CAN hand sent frames longer than the bus carries."""
+    (RX_BACKLOG, exit 3), and a classic-CAN hand sent frames longer than the bus carries. So
+    for the bring-up commands, which run the same loop (and whose listening is of a hand that
+    cannot be driven as configured): one config, one verdict."""
     from handctl.busload import bus_refusals, hand_budget
     from handctl.hand_protocol import protocol_for
 
@@ -879,6 +881,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
     from handctl.hand_protocol import protocol_for
 
     hand = _load_hand(args.hand, "--hand", args.dbc)
+    _refuse_what_check_refuses(hand, args.hand)
     protocol = protocol_for(hand)
     seconds = _seconds_or(args.seconds, 1.0)
     with listening_bus(args.bus, hand) as bus:
@@ -948,6 +951,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     from handctl.outfile import check_writable
 
     hand = _load_hand(args.hand, "--hand", args.dbc)
+    _refuse_what_check_refuses(hand, args.hand)
     if args.output is None and not args.write:
         raise ConfigError(
             "-o",
@@ -1122,6 +1126,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     from handctl.bringup.jog import JogLine, jog, jog_recipe
 
     hand = _load_hand(args.hand, "--hand", args.dbc)
+    _refuse_what_check_refuses(hand, args.hand)
     seconds = _seconds_or(args.seconds, 2.0)
     # refused here, before any bus opens
     jog_recipe(hand, args.joint, args.torque, seconds, args.recover)
@@ -1230,6 +1235,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
             f"--log {args.log} --bus {args.bus}",
         )
     hand = _load_hand(args.hand, "--hand", args.dbc)
+    _refuse_what_check_refuses(hand, args.hand)
     seconds = None if args.seconds is None else _seconds_or(args.seconds, 0.0)
     every = _positive("--every", args.every, 1.0, "s")
     view = BusView(protocol_for(hand))

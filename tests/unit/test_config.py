@@ -16,7 +16,7 @@ from handctl.config import load_hand
 from handctl.errors import ConfigError
 from handctl.protocol import DEFAULT_DBC, Protocol, SignalSpec
 
-from ..conftest import HAND_YAML, handctl
+from ..conftest import HAND_YAML, ROOT, handctl
 
 
 @pytest.fixture
@@ -282,6 +282,28 @@ def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
         result.stderr
     )
     assert "(CAN-FD 1/5 Mbit/s would carry 39.1 %), found 122.6 % at 1000 Hz" in result.stderr
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["nodes", "--seconds", "0.2"],
+        ["jog", "f1_j1", "--torque", "0.01", "--seconds", "0.2"],
+        ["calibrate", "tdt", "-o", "unused.yaml", "--seconds", "0.2"],
+        ["monitor", "--seconds", "0.2"],
+    ],
+    ids=lambda command: command[0],
+)
+def test_the_bring_up_commands_refuse_what_check_refuses(
+    command: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One config, one verdict: a classic-CAN hand that check refuses was jogged, calibrated
+    and listed as fine on the simulated hand, which carries any frame."""
+    from handctl import cli
+
+    classic = str(ROOT / "config" / "hands" / "hiroshima_hand_classic.yaml")
+    assert cli.main([*command, "--hand", classic]) == cli.EXIT_BAD_INPUT
+    assert f"{classic}: bus.fd: expected true (CAN-FD)" in capsys.readouterr().err
 
 
 def _classic(data: dict[str, Any]) -> None:
