@@ -868,9 +868,15 @@ def _seconds_or(value: float | None, default: float) -> float:
     time; bad input is refused before anything starts."""
     if value is None:
         return default
-    if not 0 < value < 1e6:
-        raise ConfigError("--seconds", "", "a time in seconds > 0", value)
+    if not 0 < value < MAX_BRING_UP_S:
+        raise ConfigError(
+            "--seconds", "", f"a time in seconds > 0 and < {MAX_BRING_UP_S:g} (11.6 days)", value
+        )
     return value
+
+
+#: s, the longest a bring-up command runs: its work is counted in ticks and seconds at once
+MAX_BRING_UP_S = 1e6
 
 
 def _cmd_nodes(args: argparse.Namespace) -> int:
@@ -1130,6 +1136,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     seconds = _seconds_or(args.seconds, 2.0)
     # refused here, before any bus opens
     jog_recipe(hand, args.joint, args.torque, seconds, args.recover)
+    _refuse_a_torque_the_wire_rounds_away(hand, args.joint, args.torque)
     until = " or until it is back inside its soft limits" if args.recover else ""
     print(
         f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on {args.bus}, "
@@ -1187,6 +1194,27 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     if stopped is None and result.recovery is not None:
         return _recovery_outcome(result, hand)
     return EXIT_OK if stopped is None else stopped
+
+
+def _refuse_a_torque_the_wire_rounds_away(hand: HandConfig, joint: str, torque: float) -> None:
+    """A jog torque under the command signal's step travels as zero or as a whole step: the
+    jog said it ran under 1e-05 N·m and the joint got none. Bad input, before any bus
+    opens."""
+    from handctl.bringup.jog import joint_index
+    from handctl.hand_protocol import protocol_for
+
+    j = joint_index(hand, joint)
+    finger = next(f for f in hand.fingers if any(x.name == joint for x in f.joints))
+    k = [x.name for x in finger.joints].index(joint)
+    step = protocol_for(hand).layout("TorqueCommand", finger.node_id).signals[k].scale
+    if torque != 0.0 and abs(torque) < step:
+        raise ConfigError(
+            "--torque",
+            "",
+            f"0 or |τ| >= {step:g} N·m (the command signal's step: less reaches "
+            f"{hand.joints[j].name} as zero or as one step)",
+            torque,
+        )
 
 
 def _recovery_outcome(result: JogReport, hand: HandConfig) -> int:

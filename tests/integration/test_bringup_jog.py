@@ -83,6 +83,12 @@ def test_a_negative_torque_turns_it_back(capsys: pytest.CaptureFixture[str]) -> 
         (["f1_j3", "--torque", "nan"], "--torque: expected |τ| <= 0.3 N·m"),
         (["f9_j1", "--torque", "0.01"], "JOINT: expected a joint of"),
         (["f1_j1", "--torque", "0.01", "--seconds", "-1"], "--seconds"),
+        (["f1_j1", "--torque", "0.01", "--seconds", "1e9"], "--seconds: expected a time in "),
+        (
+            ["f2_j2", "--torque=-4e-5"],
+            "--torque: expected 0 or |τ| >= 0.0001 N·m (the command signal's step: less "
+            "reaches f2_j2 as zero or as one step), found -4e-05",
+        ),
     ],
 )
 def test_bad_input_is_refused_before_anything_is_sent(
