@@ -335,11 +335,23 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
 
     from handctl.online.clock import Hygiene
     from handctl.online.recipes.loader import load_recipe
+    from handctl.outfile import refuse_same_files
     from handctl.session import RunRequest, run_recipe
 
     _positive_seconds("--max-seconds", args.max_seconds)
     _output_file("--summary-json", args.summary_json)
     _plot_file("--plot", args.plot)
+    # a FIFO blocked the run in open() for good, deaf to Ctrl-C; a device lost the log
+    _output_file("--log", args.log)
+    refuse_same_files(
+        {"--log": args.log, "--summary-json": args.summary_json, "--plot": args.plot},
+        {
+            "the recipe": args.recipe,
+            "--hand": args.hand,
+            "--dbc": args.dbc,
+            "--sim-faults": args.sim_faults,
+        },
+    )
     hand = _load_hand(args.hand, "--hand", args.dbc)
     _refuse_what_check_refuses(hand, args.hand)
     recipe = load_recipe(args.recipe, hand)
@@ -504,11 +516,14 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
 # -- plan --------------------------------------------------------------------------------------
 def _cmd_plan(args: argparse.Namespace) -> int:
     from handctl.executor import Stopwatch, check_scheduler, open_pool
+    from handctl.outfile import refuse_same_files
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
     from handctl.planning.template import load_template
     from handctl.progress import Progress, close_active, say
 
     _output_file("-o", args.output)
+    # -o the --base is how a recipe is re-planned in place (the base is read first)
+    refuse_same_files({"-o": args.output}, {"the template": args.template, "--hand": args.hand})
     if args.models is not None and args.models < 1:
         raise ConfigError("--models", "", "at least 1 model", args.models)
     if args.workers is not None and args.workers < 1:

@@ -11,6 +11,7 @@ import contextlib
 import os
 import stat
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 
 from handctl.errors import ConfigError
@@ -31,7 +32,9 @@ def check_writable(path: Path, option: str) -> Path:
     if not directory.is_dir():
         raise ConfigError(option, "", "a file in an existing directory", str(path))
     if target.exists() and not target.is_file():
-        raise ConfigError(option, "", "a file (not a directory or a device)", str(path))
+        raise ConfigError(
+            option, "", "a regular file (not a directory, a device or a FIFO)", str(path)
+        )
     if target.exists() and _read_only(target):
         raise ConfigError(option, "", "a file that may be written (it is read-only)", str(path))
     if _read_only(directory):
@@ -39,6 +42,40 @@ def check_writable(path: Path, option: str) -> Path:
             option, "", "a file in a directory that may be written (it is read-only)", str(path)
         )
     return target
+
+
+def refuse_same_files(
+    outputs: Mapping[str, Path | None], inputs: Mapping[str, Path | None]
+) -> None:
+    """A ``ConfigError`` naming the option when a file a command is told to write is one it
+    reads (``inputs``) or one another option writes too (``outputs``; options given as None
+    are left out): written at its end, it replaced the recipe or the hand config with MCAP
+    data, or the log with the summary, and said nothing. Paths are compared as the files they
+    name (symlinks and hard links found out) where they exist, as resolved names otherwise."""
+    seen: dict[tuple[object, ...], str] = {}
+    for option, path in inputs.items():
+        if path is not None:
+            seen.setdefault(_identity(path), option)
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        key = _identity(path)
+        if key in seen:
+            raise ConfigError(
+                option, "", f"another file than {seen[key]}'s (both name it)", str(path)
+            )
+        seen[key] = option
+
+
+def _identity(path: Path) -> tuple[object, ...]:
+    try:
+        info = path.stat()
+    except (OSError, RuntimeError):  # not there yet, or a loop (refused where it is checked)
+        try:
+            return ("name", str(path.resolve()))
+        except (OSError, RuntimeError):
+            return ("name", str(path.absolute()))
+    return ("file", info.st_dev, info.st_ino)
 
 
 #: the picture formats a plot is written in (matplotlib's own, by file name suffix); said

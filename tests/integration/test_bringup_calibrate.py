@@ -164,7 +164,10 @@ def _into_read_only_dir(tmp_path: Path) -> list[str]:
         (_read_only_hand, "--write: expected a file that may be written (it is read-only)"),
         (_into_read_only_dir, "-o: expected a file in a directory that may be written"),
         (lambda t: ["-o", str(t / "gone" / "c.yaml")], "-o: expected a file in an existing"),
-        (lambda t: ["-o", str(t)], "-o: expected a file (not a directory or a device)"),
+        (
+            lambda t: ["-o", str(t)],
+            "-o: expected a regular file (not a directory, a device or a FIFO)",
+        ),
         (
             lambda t: ["-o", str(t / "c.yaml"), "--json", str(t / "gone" / "m.json")],
             "--json: expected a file in an existing directory",

@@ -3,12 +3,16 @@ not resolve to a place for a file is bad input naming the option, never an excep
 
 from __future__ import annotations
 
+import os
+import shutil
 from pathlib import Path
 
 import pytest
 
 from handctl.errors import ConfigError
-from handctl.outfile import check_writable
+from handctl.outfile import check_writable, refuse_same_files
+
+from ..conftest import ROOT
 
 
 def test_a_symlink_loop_is_bad_input_naming_the_option(tmp_path: Path) -> None:
@@ -21,3 +25,42 @@ def test_a_symlink_loop_is_bad_input_naming_the_option(tmp_path: Path) -> None:
 def test_a_file_in_a_writable_directory_is_its_resolved_self(tmp_path: Path) -> None:
     (tmp_path / "link").symlink_to(tmp_path / "real.yaml")
     assert check_writable(tmp_path / "link", "-o") == tmp_path / "real.yaml"
+
+
+def test_a_fifo_or_a_device_is_not_a_file_to_write(tmp_path: Path) -> None:
+    """A FIFO blocked a run in open() for good (Ctrl-C unheard); a device lost the log."""
+    fifo = tmp_path / "log.mcap"
+    os.mkfifo(fifo)
+    for path in (fifo, Path(os.devnull)):
+        with pytest.raises(ConfigError, match=r"--log: expected a regular file"):
+            check_writable(path, "--log")
+
+
+def test_an_output_that_is_an_input_or_another_output_is_refused(tmp_path: Path) -> None:
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text("name: x\n")
+    (tmp_path / "alias.yaml").symlink_to(recipe)
+    os.link(recipe, tmp_path / "hard.yaml")
+    inputs = {"the recipe": recipe, "--dbc": None}
+    for same in (recipe, tmp_path / "alias.yaml", tmp_path / "hard.yaml"):
+        with pytest.raises(ConfigError, match=r"--log: expected another file than the recipe's"):
+            refuse_same_files({"--log": same}, inputs)
+    new = tmp_path / "sub" / ".." / "run.mcap"  # not there yet: compared by name
+    with pytest.raises(ConfigError, match=r"--summary-json: expected another file than --log's"):
+        refuse_same_files({"--log": tmp_path / "run.mcap", "--summary-json": new}, inputs)
+    refuse_same_files({"--log": tmp_path / "run.mcap", "--plot": None}, inputs)
+
+
+def test_run_refuses_a_log_over_its_own_recipe_before_any_work(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It replaced the recipe with MCAP data and exited 0."""
+    from handctl import cli
+
+    recipe = tmp_path / "recipe.yaml"
+    shutil.copy(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", recipe)
+    before = recipe.read_bytes()
+    args = ["run", "recipe", str(recipe), "--log", str(recipe)]
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    assert "--log: expected another file than the recipe's" in capsys.readouterr().err
+    assert recipe.read_bytes() == before
