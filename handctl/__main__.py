@@ -1,11 +1,27 @@
 """``python -m handctl`` is the ``handctl`` command; ``entry`` is both's first line."""
 
+import os
 import signal
 import sys
 
 
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def _standard_descriptors() -> None:
+    """Descriptors 0, 1 and 2 open, on /dev/null where they were closed (``handctl run ...
+    >&-``): the first file opened then took descriptor 1, the MCAP log, and what was
+    printed or what a child process wrote to its stdout went into the log, which ended
+    up empty."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            devnull = os.open(os.devnull, os.O_RDWR)
+            if devnull != fd:
+                os.dup2(devnull, fd)
+                os.close(devnull)
 
 
 def _load_orjson() -> None:
@@ -33,6 +49,7 @@ def entry() -> int:
     # SIGINT too, even if this process was started with it ignored (a script's background
     # job is): ``handctl run`` and ``handctl sim`` honour it as a stop whatever they
     # inherited, and a signal asked for is one from the first line on as well
+    _standard_descriptors()  # sys.stdout and sys.stderr stay None if they were closed
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
     if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # nohup: asked to go on

@@ -2148,32 +2148,40 @@ def _interrupt(signum: int, frame: object) -> None:
 
 
 class _ReaderMayLeave(io.TextIOBase):
-    """stdout or stderr for a reader that may stop reading (``handctl check | head -1``).
+    """stdout or stderr for a reader that may stop reading (``handctl check | head -1``), or
+    a file that can no longer be written (``> /dev/full``, a disk full, an I/O error).
 
     Once the reader is gone, what is still written goes to /dev/null (its descriptor too, so
     that the interpreter's last flush finds somewhere to go): the command finishes its work,
     a run stops the hand as it would anyway, and the exit code is the command's own rather
-    than a ``BrokenPipeError`` traceback.
+    than a ``BrokenPipeError`` (or ``OSError``) traceback. A reader leaving is normal and
+    passes in silence; a stdout that fails otherwise is said once on stderr, since what it
+    held is lost.
     """
 
-    def __init__(self, stream: IO[str]) -> None:
+    def __init__(self, stream: IO[str] | None, name: str) -> None:
         super().__init__()
         self.stream = stream
-        self.reader_gone = False
+        self.name = name
+        # None: started with the descriptor closed (``>&-``), so nothing can be written
+        self.reader_gone = stream is None
 
     def write(self, text: str) -> int:
-        if not self.reader_gone:
-            self._guard(lambda: self.stream.write(text))
+        stream = self.stream
+        if stream is not None and not self.reader_gone:
+            self._guard(lambda: stream.write(text))
         return len(text)
 
     def flush(self) -> None:
-        if not self.reader_gone:
+        if self.stream is not None and not self.reader_gone:
             self._guard(self.stream.flush)
 
     def isatty(self) -> bool:
-        return not self.reader_gone and self.stream.isatty()
+        return self.stream is not None and not self.reader_gone and self.stream.isatty()
 
     def fileno(self) -> int:
+        if self.stream is None:
+            raise io.UnsupportedOperation(f"{self.name} was closed when handctl started")
         return self.stream.fileno()
 
     @property
@@ -2184,20 +2192,32 @@ class _ReaderMayLeave(io.TextIOBase):
         try:
             op()
         except BrokenPipeError:
-            self.reader_gone = True
-            try:
-                devnull = os.open(os.devnull, os.O_WRONLY)
-                os.dup2(devnull, self.stream.fileno())
-                os.close(devnull)
-            except (OSError, ValueError):  # no descriptor (a test's capture): nothing to flush
-                pass
+            self._gone()
+        except OSError as exc:
+            self._gone()
+            if self.name == "stdout":
+                print(
+                    f"handctl: warning: stdout cannot be written ({exc.strerror or exc}); "
+                    "the rest of what it would show is dropped",
+                    file=sys.stderr,
+                )
+
+    def _gone(self) -> None:
+        self.reader_gone = True
+        assert self.stream is not None  # a closed one is gone from the start
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self.stream.fileno())
+            os.close(devnull)
+        except (OSError, ValueError):  # no descriptor (a test's capture): nothing to flush
+            pass
 
 
 @contextmanager
 def _output_for_readers_that_leave() -> Iterator[None]:
     saved = sys.stdout, sys.stderr
-    sys.stdout = _ReaderMayLeave(sys.stdout)
-    sys.stderr = _ReaderMayLeave(sys.stderr)
+    sys.stdout = _ReaderMayLeave(sys.stdout, "stdout")
+    sys.stderr = _ReaderMayLeave(sys.stderr, "stderr")
     try:
         yield
     finally:

@@ -1,0 +1,61 @@
+"""A command whose stdout or stderr was closed, or cannot be written, still does its work:
+the log and the summary are written and the exit code is the run's own."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import IO
+
+import pytest
+
+from handctl.recording.reader import open_recording
+
+from ..conftest import ROOT
+
+RECIPE = str(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")
+
+
+def _run(
+    tmp_path: Path, stdout: IO[str] | int, close_stdout: bool = False
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [
+            *(sys.executable, "-m", "handctl", "run", "recipe", RECIPE, "--max-seconds", "0.3"),
+            *("--log", str(tmp_path / "run.mcap"), "--summary-json", str(tmp_path / "s.json")),
+        ],
+        cwd=ROOT,
+        text=True,
+        timeout=300,
+        check=False,
+        stdout=stdout,
+        stderr=subprocess.PIPE,
+        preexec_fn=(lambda: os.close(1)) if close_stdout else None,
+    )
+
+
+def _a_whole_log(path: Path) -> None:
+    recording = open_recording(path)
+    assert recording.complete, recording.problem
+    assert recording.message_counts["/hand/joint_state"] > 100
+
+
+def test_with_stdout_closed_the_log_and_the_summary_are_written(tmp_path: Path) -> None:
+    """The log took descriptor 1 and ended up empty (0 bytes), no summary, exit 120."""
+    result = _run(tmp_path, subprocess.PIPE, close_stdout=True)
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr
+    assert (tmp_path / "s.json").stat().st_size > 0
+    _a_whole_log(tmp_path / "run.mcap")
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full here")
+def test_a_stdout_that_cannot_be_written_is_said_and_the_exit_is_the_runs(tmp_path: Path) -> None:
+    with open("/dev/full", "w") as full:
+        result = _run(tmp_path, full)
+    assert result.returncode == 0, result.stderr
+    assert "warning: stdout cannot be written (No space left on device)" in result.stderr
+    assert "Traceback" not in result.stderr
+    _a_whole_log(tmp_path / "run.mcap")
