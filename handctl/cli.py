@@ -2231,6 +2231,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # loads GLFW, which starts a ``python -c`` child to probe its library: a Ctrl-C during
     # that import left the child behind. Before the first import, and unless the user chose.
     os.environ.setdefault("MUJOCO_GL", "disable")
+    # handctl's plots are files drawn on an Agg canvas, never a window, so matplotlib's
+    # backend is none of the user's business here; a value matplotlib does not know made its
+    # import raise after a whole run, whose summary was then never printed
+    os.environ.pop("MPLBACKEND", None)
     with _output_for_readers_that_leave():
         # SIGTERM is Ctrl-C for every command, from the start: while a hand config, a recipe
         # and their imports load (seconds on a busy machine) it too ends the command with exit

@@ -1,5 +1,6 @@
-"""A command whose stdout or stderr was closed, or cannot be written, still does its work:
-the log and the summary are written and the exit code is the run's own."""
+"""A command whose stdout or stderr was closed, or cannot be written, or whose environment names
+a matplotlib backend, still does its work: the log, the summary and the plot are written and
+the exit code is the run's own."""
 
 from __future__ import annotations
 
@@ -59,3 +60,23 @@ def test_a_stdout_that_cannot_be_written_is_said_and_the_exit_is_the_runs(tmp_pa
     assert "warning: stdout cannot be written (No space left on device)" in result.stderr
     assert "Traceback" not in result.stderr
     _a_whole_log(tmp_path / "run.mcap")
+
+
+def test_a_matplotlib_backend_it_does_not_know_does_not_stop_the_plot(tmp_path: Path) -> None:
+    """handctl's plots are files on an Agg canvas: MPLBACKEND=nonsense made matplotlib's
+    import raise after the run, and its summary was never printed."""
+    result = subprocess.run(
+        [
+            *(sys.executable, "-m", "handctl", "run", "recipe", RECIPE, "--max-seconds", "0.3"),
+            *("--plot", str(tmp_path / "run.png")),
+        ],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=300,
+        check=False,
+        env={**os.environ, "MPLBACKEND": "nonsense"},
+    )
+    assert result.returncode == 0, result.stderr
+    assert f"overview plot: {tmp_path / 'run.png'}" in result.stdout
+    assert (tmp_path / "run.png").stat().st_size > 0
