@@ -38,6 +38,7 @@ from handctl.online.recipes.runner import RunStatus
 from handctl.online.safety.faults import FAULTS
 from handctl.online.safety.supervisor import State
 from handctl.online.taps import TAP_RX
+from handctl.recording.metadata import valid_strings, valid_text
 from handctl.recording.ring import (
     CLOSED,
     CTL_WORDS,
@@ -463,8 +464,8 @@ class Recorder:
                     "joints": list(hand.joint_names),
                     "nodes": [f.name for f in hand.fingers],
                     "objects": list(object_names),
-                    "path": str(self.path),
-                    "metadata": metadata,
+                    "path": valid_text(str(self.path)),
+                    "metadata": valid_strings(metadata),
                     "live_port": live_port,
                     "cpus": sorted(cpus) if cpus is not None else None,
                 }
@@ -523,7 +524,7 @@ class Recorder:
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """An MCAP metadata record (string values), written as soon as the writer reads it."""
-        self._send({"type": "metadata", "name": name, "data": data})
+        self._send({"type": "metadata", "name": name, "data": valid_strings(data)})
 
     # -- RecordSink -----------------------------------------------------------------------
     # The hot path. The taps write each frame's row into the frame ring as the bus hands it
@@ -1079,7 +1080,9 @@ class Recorder:
         self.closed = True
         try:
             if summary is not None:
-                self.add_metadata("handctl.summary", {"json": orjson.dumps(summary).decode()})
+                self.add_metadata(
+                    "handctl.summary", {"json": orjson.dumps(valid_strings(summary)).decode()}
+                )
         except HandctlError as exc:
             problem = problem or str(exc).removeprefix(f"{self.path}: ")
         os.close(self._ctl_w)
