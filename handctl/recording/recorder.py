@@ -16,6 +16,7 @@ left in the rings and finishes an indexed file.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import itertools
 import mmap
 import os
@@ -148,6 +149,19 @@ def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] |
         return None
     rest = os.sched_getaffinity(0) - {loop_cpu, sim_cpu}
     return sorted(rest) if rest else None
+
+
+def _above_stdio(fd: int) -> int:
+    """``fd`` moved above 0-2 (closing the original): a descriptor handed to the writer as 0,
+    1 or 2 would be replaced there by the child's stdin, stdout or stderr. A run started with
+    stdout closed had its log opened as descriptor 1, and the writer wrote the whole
+    recording to /dev/null."""
+    if fd > 2:
+        return fd
+    try:
+        return fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 3)
+    finally:
+        os.close(fd)
 
 
 def _shared_memory(size: int) -> int:
@@ -283,7 +297,9 @@ class Recorder:
         self.path = Path(path)
         self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
         try:
-            out_fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+            out_fd = _above_stdio(
+                os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+            )
         except OSError as exc:
             raise ConfigError(
                 str(path), "", "a path where the recording can be written", exc.strerror or str(exc)
@@ -403,7 +419,7 @@ class Recorder:
         child_fds = [out_fd]  # the writer's; ours closed once it has them
         ctl_w = ready_r = -1
         try:
-            shm_fd = _shared_memory(self.layout.size)
+            shm_fd = _above_stdio(_shared_memory(self.layout.size))
             child_fds.append(shm_fd)
             self._mmap = mmap.mmap(shm_fd, self.layout.size)
             # Touch every page now: a page's first write is a page fault, microseconds each
@@ -412,9 +428,9 @@ class Recorder:
                 self._mmap[offset] = 0
             self._rings = Rings(self.layout, self._mmap)
             self._ctl_view = memoryview(self._mmap)[: CTL_WORDS * 8].cast("q")
-            ctl_r, ctl_w = os.pipe()
+            ctl_r, ctl_w = (_above_stdio(fd) for fd in os.pipe())
             child_fds.append(ctl_r)
-            ready_r, ready_w = os.pipe()
+            ready_r, ready_w = (_above_stdio(fd) for fd in os.pipe())
             child_fds.append(ready_w)
             package_root = str(Path(__file__).resolve().parents[2])
             env = dict(os.environ)

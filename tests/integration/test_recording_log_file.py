@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 from handctl.config import HandConfig
 from handctl.recording.metadata import start_metadata
 from handctl.recording.reader import open_recording
 from handctl.recording.recorder import Recorder
+
+from ..conftest import HAND_YAML, ROOT
 
 
 def _recorder(hand: HandConfig, path: Path, argv: tuple[str, ...] = ("test",)) -> Recorder:
@@ -52,3 +56,44 @@ def test_arguments_and_paths_that_are_not_utf_8_are_recorded_shown_as_bytes(
     assert recording.meta("handctl.test", "path") == shown
     summary = recording.json_meta("handctl.summary")
     assert summary is not None and summary["recording"]["path"] == shown
+
+
+#: A recorder started by a process whose descriptors 0 and 1 are closed (``handctl run ...
+#: >&- <&-``), so that the log and the shared memory take them; it prints nothing.
+_CLOSED_STDIO = """
+import os, sys
+from handctl.config import load_hand
+from handctl.recording.metadata import start_metadata
+from handctl.recording.recorder import Recorder
+os.close(0)
+os.close(1)
+hand = load_hand(sys.argv[1])
+recorder = Recorder(sys.argv[2], hand, start_metadata(hand, None, ["closed"]))
+recorder.wait_ready()
+recorder.close({"outcome": "test"})
+"""
+
+
+def test_a_run_started_with_stdin_and_stdout_closed_still_records(tmp_path: Path) -> None:
+    """The log opened as descriptor 0 or 1 was handed to the writer there, where its own
+    stdin or stdout replaced it: the writer wrote the recording to /dev/null, the log was
+    empty and the sync of /dev/null failed the writer."""
+    path = tmp_path / "closed.mcap"
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    done = subprocess.run(
+        [sys.executable, "-c", _CLOSED_STDIO, str(HAND_YAML), str(path)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    recording = open_recording(path)
+    assert recording.complete
+    assert recording.meta("handctl.command", "command_line") == '["closed"]'
+    assert recording.json_meta("handctl.summary") == {"outcome": "test"}
