@@ -21,6 +21,7 @@ import itertools
 import mmap
 import os
 import select
+import stat
 import struct
 import subprocess
 import sys
@@ -164,6 +165,49 @@ def _above_stdio(fd: int) -> int:
         os.close(fd)
 
 
+def _open_log(path: Path) -> int:
+    """The log opened for writing and locked for this run alone, then emptied.
+
+    Not truncated on opening: a second run given the same path while the first is still
+    writing it is refused by the lock (bad input, exit 2) and leaves the first's file as it
+    was; two writers used to interleave their chunks in one file and both say they were done.
+    The lock (``flock``) is the open file's: the writer's copy of the descriptor holds it
+    for as long as it writes, even if this process dies first, and the system drops it when
+    the last copy is closed, so it never outlives the recording. A file system that has no
+    such locks (some network ones) records unlocked, as before."""
+    try:
+        fd = _above_stdio(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o644))
+    except OSError as exc:
+        raise ConfigError(
+            str(path), "", "a path where the recording can be written", exc.strerror or str(exc)
+        ) from None
+    try:
+        # A device or a pipe is no file to lock or to empty (a lock on /dev/null would be
+        # every process's): only a regular file is.
+        if stat.S_ISREG(os.fstat(fd).st_mode):
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise ConfigError(
+                    str(path),
+                    "",
+                    "a log no other run is writing (give this run another --log)",
+                    "another process writing it now (it holds the file's lock)",
+                ) from None
+            except OSError:
+                pass  # no locks on this file system: recorded unlocked
+            try:
+                os.ftruncate(fd, 0)
+            except OSError as exc:
+                raise ConfigError(
+                    str(path), "", "a file the recording can replace", exc.strerror or str(exc)
+                ) from None
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
 def _shared_memory(size: int) -> int:
     """An anonymous memory file both processes can map: memfd where there is one. One the
     host will not give (a file-size limit below the rings, ``ulimit -f``; no memory) is an
@@ -266,6 +310,7 @@ class Recorder:
         "_no_faults",
         "_no_states",
         "_runtime",
+        "_log_fd",
         "_rings",
         "_mmap",
         "_ti",
@@ -296,21 +341,26 @@ class Recorder:
         """``cpus``: where the writer process may run (``writer_cpus``); None: anywhere."""
         self.path = Path(path)
         self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
+        #: The log's descriptor, kept to the end: it holds the file's lock with the writer's
+        #: copy, and says at the end whether the path still names the file written.
+        self._log_fd = _open_log(self.path)
         try:
-            out_fd = _above_stdio(
-                os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+            self._start_writer(
+                _above_stdio(os.dup(self._log_fd)),
+                hand,
+                metadata,
+                phase_names,
+                object_names,
+                live_port,
+                cpus,
             )
-        except OSError as exc:
-            raise ConfigError(
-                str(path), "", "a path where the recording can be written", exc.strerror or str(exc)
-            ) from None
-        try:
-            self._start_writer(out_fd, hand, metadata, phase_names, object_names, live_port, cpus)
         except BaseException:
             # The writer never had its set-up, so it wrote nothing: no file, rather than an
-            # empty one that no reader (``handctl replay`` included) can open.
+            # empty one that no reader (``handctl replay`` included) can open. Unlinked while
+            # this process still holds the lock, so no other run has started on it.
             with contextlib.suppress(OSError):
                 self.path.unlink()
+            os.close(self._log_fd)
             raise
         self._ready = False
         self.closed = False
@@ -1112,6 +1162,7 @@ class Recorder:
         if self.process.returncode != 0:
             problem = self._writer_failed(problem, err.decode(errors="replace").strip())
         self.stats["writer_exit"] = self.process.returncode
+        os.close(self._log_fd)
         self._release()
         if problem:
             raise HandctlError(f"{self.path}: {problem}")

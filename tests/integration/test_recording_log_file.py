@@ -9,12 +9,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.recording import channels as ch
 from handctl.recording.metadata import start_metadata
 from handctl.recording.reader import open_recording
 from handctl.recording.recorder import Recorder
 
-from ..conftest import HAND_YAML, ROOT
+from ..conftest import DEFAULT_RECIPE, HAND_YAML, ROOT, handctl
 
 
 def _recorder(hand: HandConfig, path: Path, argv: tuple[str, ...] = ("test",)) -> Recorder:
@@ -97,3 +101,30 @@ def test_a_run_started_with_stdin_and_stdout_closed_still_records(tmp_path: Path
     assert recording.complete
     assert recording.meta("handctl.command", "command_line") == '["closed"]'
     assert recording.json_meta("handctl.summary") == {"outcome": "test"}
+
+
+def test_a_second_run_on_a_log_being_written_is_refused_and_the_first_s_file_kept(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """Both runs said they were done and the file held chunks of each: now the second is bad
+    input naming the file, before anything starts, and the first's file is whole."""
+    path = tmp_path / "same.mcap"
+    first = _recorder(hand, path)
+    written = path.stat().st_size
+    assert written > 0
+    with pytest.raises(ConfigError) as refused:
+        Recorder(path, hand, start_metadata(hand, None, ("second",)))
+    assert str(path) in str(refused.value) and "another process writing it" in str(refused.value)
+    done = handctl("run", "recipe", DEFAULT_RECIPE, "--log", str(path))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"{path}: expected a log no other run is writing" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert path.stat().st_size >= written  # not emptied by either
+    first.close({"outcome": "test"})
+    recording = open_recording(path)
+    assert recording.complete and not recording.problem
+    assert recording.meta(ch.META_HAND, "name") == hand.name
+    assert recording.meta("handctl.command", "command_line") == '["test"]'
+    # The lock went with the run that held it: the path is free again.
+    _recorder(hand, path).close()
+    assert open_recording(path).complete
