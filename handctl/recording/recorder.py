@@ -1162,11 +1162,48 @@ class Recorder:
         if self.process.returncode != 0:
             problem = self._writer_failed(problem, err.decode(errors="replace").strip())
         self.stats["writer_exit"] = self.process.returncode
+        lost = self._lost()
         os.close(self._log_fd)
         self._release()
+        if lost:
+            problem = f"{lost}; {problem}" if problem else lost
         if problem:
             raise HandctlError(f"{self.path}: {problem}")
         return self.stats
+
+    def _lost(self) -> str:
+        """Whether the path still names the file the writer wrote: the log's directory
+        removed during the run, or the log unlinked, renamed or replaced, left a run that
+        said where it had recorded to and nothing (or another file) was there. Empty if it
+        does."""
+        try:
+            written = os.fstat(self._log_fd)
+        except OSError:
+            return ""
+        if not stat.S_ISREG(written.st_mode):
+            return ""  # a device: nothing to compare
+        try:
+            there = os.stat(self.path)
+        except FileNotFoundError:
+            there = None
+        except OSError as exc:
+            return (
+                f"the log cannot be checked at this path at the end of the run "
+                f"({exc.strerror or exc}): it may not be there"
+            )
+        if there is not None and (there.st_dev, there.st_ino) == (written.st_dev, written.st_ino):
+            return ""
+        where = (
+            "nothing is there now"
+            if there is None
+            else "another file is there now (the log was replaced)"
+        )
+        kept = (
+            "the recording is lost (the file was removed, or its directory)"
+            if written.st_nlink == 0
+            else "the recording is elsewhere (the file or its directory was renamed)"
+        )
+        return f"expected the recording at this path at the end of the run, but {where}: {kept}"
 
     def _writer_failed(self, problem: str, said: str) -> str:
         """What to say of a writer that exited with an error (``said``, its stderr) besides

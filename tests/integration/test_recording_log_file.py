@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -12,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from handctl.config import HandConfig
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, HandctlError
 from handctl.recording import channels as ch
 from handctl.recording.metadata import start_metadata
 from handctl.recording.reader import open_recording
@@ -127,4 +128,45 @@ def test_a_second_run_on_a_log_being_written_is_refused_and_the_first_s_file_kep
     assert recording.meta("handctl.command", "command_line") == '["test"]'
     # The lock went with the run that held it: the path is free again.
     _recorder(hand, path).close()
+    assert open_recording(path).complete
+
+
+@pytest.mark.parametrize("how", ["directory_removed", "file_removed", "file_replaced"])
+def test_a_log_that_is_not_at_its_path_at_the_end_is_said(
+    hand: HandConfig, tmp_path: Path, how: str
+) -> None:
+    """The run said "recorded ... to deld/x.mcap" and there was no such file. Now the close
+    raises (the run turns it into a warning, as a writer that failed), naming the path and
+    what is there instead."""
+    directory = tmp_path / "deld"
+    directory.mkdir()
+    path = directory / "x.mcap"
+    recorder = _recorder(hand, path)
+    if how == "directory_removed":
+        shutil.rmtree(directory)
+    elif how == "file_removed":
+        path.unlink()
+    else:
+        path.unlink()
+        path.write_text("another file\n")
+    with pytest.raises(HandctlError) as lost:
+        recorder.close({"outcome": "test"})
+    said = str(lost.value)
+    assert said.startswith(f"{path}: expected the recording at this path at the end of the run")
+    if how == "file_replaced":
+        assert "another file is there now (the log was replaced)" in said
+        assert path.read_text() == "another file\n"  # left as it is
+    else:
+        assert "nothing is there now: the recording is lost" in said
+    assert recorder.stats["writer_exit"] == 0  # the writer itself finished
+
+
+def test_a_log_still_at_its_path_is_no_warning(hand: HandConfig, tmp_path: Path) -> None:
+    """Through a symbolic link too: the path names the file written."""
+    path = tmp_path / "run.mcap"
+    link = tmp_path / "link.mcap"
+    path.touch()
+    link.symlink_to(path)
+    stats = _recorder(hand, link).close({"outcome": "test"})
+    assert stats["writer_exit"] == 0
     assert open_recording(path).complete
