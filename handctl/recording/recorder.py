@@ -26,6 +26,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -95,8 +96,14 @@ _flatten = itertools.chain.from_iterable
 #: Runner status names a phase column can also hold.
 RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
 SUPERVISOR_STATE_NAMES = tuple(s.value for s in State)
-#: How long ``close`` waits for the writer to finish the file.
+#: How long ``close`` waits for the writer to finish the file, at most, and for it to move
+#: at all: a writer on a slow disk gets its time, a stuck one is given up on (``close``).
 CLOSE_TIMEOUT_S = 120.0
+WRITER_STALL_S = 20.0
+#: After how long the wait is said on stderr, and how often again; the wait's poll.
+WAIT_NOTICE_S = 2.0
+WAIT_NOTICE_EVERY_S = 10.0
+WAIT_STEP_S = 0.25
 READY_TIMEOUT_S = 30.0
 
 
@@ -150,6 +157,15 @@ def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] |
         return None
     rest = os.sched_getaffinity(0) - {loop_cpu, sim_cpu}
     return sorted(rest) if rest else None
+
+
+def _say(text: str) -> None:
+    """A line on stderr that cannot fail the close: a run whose stderr is gone still stops
+    and finishes its log."""
+    with contextlib.suppress(Exception):
+        from handctl.progress import say
+
+        say(text)
 
 
 def _above_stdio(fd: int) -> int:
@@ -1094,7 +1110,9 @@ class Recorder:
             self._reject_seen = [list(c) for c in self._reject_lists]
 
     # -- the end --------------------------------------------------------------------------
-    def close(self, summary: dict[str, Any] | None = None) -> dict[str, Any]:
+    def close(
+        self, summary: dict[str, Any] | None = None, stall_timeout_s: float = WRITER_STALL_S
+    ) -> dict[str, Any]:
         """Publish the last row, hand over the summary, let the writer finish the file.
 
         Returns the recorder's accounts (ticks, frames, drops) for the run summary. A recorder
@@ -1152,12 +1170,8 @@ class Recorder:
         except HandctlError as exc:
             problem = problem or str(exc).removeprefix(f"{self.path}: ")
         os.close(self._ctl_w)
-        try:
-            _, err = self.process.communicate(timeout=CLOSE_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            _, err = self.process.communicate()
-            problem = problem or f"the writer did not finish within {CLOSE_TIMEOUT_S:g} s"
+        err, hung = self._wait_for_writer(stall_timeout_s)
+        problem = problem or hung
         os.close(self._ready_r)
         if self.process.returncode != 0:
             problem = self._writer_failed(problem, err.decode(errors="replace").strip())
@@ -1170,6 +1184,76 @@ class Recorder:
         if problem:
             raise HandctlError(f"{self.path}: {problem}")
         return self.stats
+
+    def _wait_for_writer(self, stall_timeout_s: float) -> tuple[bytes, str]:
+        """Wait for the writer to finish the file: its stderr, and what went wrong if it had
+        to be killed.
+
+        The hand is stopped by now (the runtime has returned), so the wait costs the hand
+        nothing, but a writer that hangs (a stalled disk, a SIGSTOP) held the run's exit with
+        no word until it went on. So the wait is said on stderr after ``WAIT_NOTICE_S``, with
+        what is left to write, and it ends when the writer has moved nothing (ring tails and
+        file size) for ``stall_timeout_s``, or after ``CLOSE_TIMEOUT_S`` in all: a writer that
+        is slow but moving gets its time, a stuck one is killed, and the file ends where it
+        stopped (a truncated file, which ``handctl replay`` reads up to there)."""
+        started = changed = said = time.monotonic()
+        seen = self._writer_progress()
+        announced = False
+        while True:
+            try:
+                _, err = self.process.communicate(timeout=WAIT_STEP_S)
+                return err, ""
+            except subprocess.TimeoutExpired:
+                pass
+            now = time.monotonic()
+            progress = self._writer_progress()
+            if progress != seen:
+                seen, changed = progress, now
+            waited = now - started
+            # Said before any giving up: a wait that is given up on was said first.
+            if now - said >= (WAIT_NOTICE_S if not announced else WAIT_NOTICE_EVERY_S):
+                announced, said = True, now
+                _say(
+                    f"handctl: the hand is stopped; waiting {waited:.0f} s so far for the "
+                    f"recording writer to finish {self.path} ({self._left_to_write()} records "
+                    f"left to write; given up after {stall_timeout_s:g} s without progress)"
+                )
+            if now - changed >= stall_timeout_s or waited >= CLOSE_TIMEOUT_S:
+                self.process.kill()
+                _, err = self.process.communicate()
+                why = (
+                    f"moved nothing for {now - changed:.1f} s (stopped or hung)"
+                    if now - changed >= stall_timeout_s
+                    else f"did not finish within {CLOSE_TIMEOUT_S:g} s"
+                )
+                return err, (
+                    f"the recording writer {why} and was killed with "
+                    f"{self._left_to_write()} records still to write: the log may be "
+                    "incomplete (it ends where the writer stopped; handctl replay reads it up "
+                    "to there)"
+                )
+
+    def _writer_progress(self) -> tuple[int, ...]:
+        """What the writer has done so far: the rings' tails and the file's size."""
+        ctl = self._ctl_view
+        try:
+            size = os.fstat(self._log_fd).st_size
+        except OSError:
+            size = -1
+        return (ctl[TICK_TAIL], ctl[FRAME_TAIL], ctl[EVENT_TAIL], ctl[POSE_TAIL], size)
+
+    def _left_to_write(self) -> int:
+        """Records published that the writer has not yet copied out of the rings."""
+        ctl = self._ctl_view
+        return sum(
+            max(0, ctl[head] - ctl[tail])
+            for head, tail in (
+                (TICK_HEAD, TICK_TAIL),
+                (FRAME_HEAD, FRAME_TAIL),
+                (EVENT_HEAD, EVENT_TAIL),
+                (POSE_HEAD, POSE_TAIL),
+            )
+        )
 
     def _lost(self) -> str:
         """Whether the path still names the file the writer wrote: the log's directory

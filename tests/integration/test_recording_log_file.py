@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -170,3 +171,29 @@ def test_a_log_still_at_its_path_is_no_warning(hand: HandConfig, tmp_path: Path)
     stats = _recorder(hand, link).close({"outcome": "test"})
     assert stats["writer_exit"] == 0
     assert open_recording(path).complete
+
+
+def test_a_hung_writer_is_said_then_given_up_on(
+    hand: HandConfig, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A writer that moves nothing (SIGSTOP, a disk that hangs) held the run's exit, with
+    no word, until it went on. Now the wait is said on stderr, the writer is killed once it
+    has moved nothing for the stall time, and the close says the log may be incomplete."""
+    path = tmp_path / "hung.mcap"
+    recorder = _recorder(hand, path)
+    os.kill(recorder.process.pid, signal.SIGSTOP)
+    try:
+        with pytest.raises(HandctlError) as hung:
+            recorder.close({"outcome": "test"}, stall_timeout_s=3.0)
+    finally:
+        if recorder.process.returncode is None:  # only if the close failed to end it
+            os.kill(recorder.process.pid, signal.SIGKILL)
+            recorder.process.wait()
+    assert recorder.process.returncode == -signal.SIGKILL
+    said = str(hung.value)
+    assert said.startswith(f"{path}: the recording writer moved nothing for")
+    assert "(stopped or hung) and was killed" in said and "the log may be incomplete" in said
+    err = capfd.readouterr().err
+    assert "waiting" in err and f"for the recording writer to finish {path}" in err
+    assert "the hand is stopped" in err
+    assert not open_recording(path).complete  # what the writer had flushed, without its end
