@@ -27,7 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -326,6 +326,7 @@ class Recorder:
         "_no_faults",
         "_no_states",
         "_runtime",
+        "_clock_ns",
         "_log_fd",
         "_rings",
         "_mmap",
@@ -452,6 +453,8 @@ class Recorder:
         self._pose_mask = self.layout.pose_capacity - 1
         self._tick = -1  # frames drained before the first tick (discarded at start-up)
         self._now = 0
+        #: The runtime's clock, read for what comes before the first tick (``attach``).
+        self._clock_ns: Callable[[], int] | None = None
         self._runtime: Runtime | None = None
         #: What ``push`` reads every tick, kept at ``attach``: the supervisor and the driver's
         #: joint state (None: no runtime attached).
@@ -568,7 +571,13 @@ class Recorder:
         self._joints = runtime.driver.state
         bus = runtime.driver.bus
         bus.tap = self._sent
-        bus.rx_tap = self._drain
+        # Until the first tick begins, the drains (the start-up's discard of what queued
+        # before the run) are stamped with the clock's time now, on the ticks' own time base:
+        # they had 0, which beside CLOCK_MONOTONIC ticks put them the host's uptime before
+        # the run (an export mixed wall-clock and uptime stamps).
+        self._clock_ns = runtime.clock.now_ns
+        self._now = self._clock_ns()
+        bus.rx_tap = self._drain_before_start
         bus.event_tap = self._bus_event
         driver = runtime.driver
         self._reject_lists = [n.rejects.counts for n in driver.nodes]
@@ -921,6 +930,17 @@ class Recorder:
             block = "<" + RX_HEAD_ROW + RX_FRAME_ROW * rx + TX_FRAME_ROW * count
             self._sent_packs[rx][count] = struct.Struct(block).pack_into
 
+    def _drain_before_start(self, frames: list[Frame]) -> None:
+        """``_drain`` for the drains before the first tick, stamped with the clock's time
+        now; at the first drain of a tick it hands the tap over to ``_drain`` itself, so
+        that the ticks' drains pay nothing for it."""
+        if self._tick >= 0:
+            if self._runtime is not None:
+                self._runtime.driver.bus.rx_tap = self._drain
+        elif self._clock_ns is not None:
+            self._now = self._clock_ns()
+        self._drain(frames)
+
     def _drain(self, frames: list[Frame]) -> None:
         """A drain's frames, kept for the next burst sent to write (``_sent``)."""
         if self._drained is not None:  # two drains with no frame sent between them
@@ -1045,6 +1065,8 @@ class Recorder:
     def _event(self, kind: int, tick: int, *fields: str) -> None:
         if self.closed:
             return
+        if self._tick < 0 and self._clock_ns is not None:  # before the first tick: its time
+            self._now = self._clock_ns()
         head = self._ehead
         if head - self._etail > self._event_mask and self._ring_full(
             _EVENTS, head, self._event_mask
