@@ -15,6 +15,7 @@ import time
 from collections.abc import Sequence
 from importlib import metadata as importlib_metadata
 from pathlib import Path
+from typing import Any
 
 import orjson
 
@@ -31,6 +32,34 @@ from handctl.schema import parse_yaml
 
 #: The packages whose versions a recording names.
 PACKAGES = ("numpy", "mujoco", "python-can", "mcap", "orjson", "cantools", "pyyaml")
+
+
+def valid_text(text: str) -> str:
+    """``text`` as valid UTF-8: a byte that is not (a file name or an argument in another
+    encoding, which Python holds as a lone surrogate) shown as ``\\xNN``, the rest as it is.
+    MCAP strings and JSON must be UTF-8; such a byte in ``--log``'s path failed the run's
+    start with a TypeError from the encoder, and no log."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        try:
+            raw = text.encode("utf-8", "surrogateescape")
+        except UnicodeEncodeError:  # a surrogate no file name or argument decodes to
+            return text.encode("utf-8", "backslashreplace").decode("utf-8")
+        return raw.decode("utf-8", "backslashreplace")
+    return text
+
+
+def valid_strings(value: Any) -> Any:
+    """``value`` with every string in it (keys too, in dicts, lists and tuples) made
+    ``valid_text``: what goes into a recording's metadata or the writer's set-up."""
+    if isinstance(value, str):
+        return valid_text(value)
+    if isinstance(value, dict):
+        return {valid_strings(k): valid_strings(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [valid_strings(v) for v in value]
+    return value
 
 
 def _read(path: str) -> str:
@@ -84,11 +113,13 @@ def start_metadata(
             "yaml": _read(recipe.source),
         }
     records["handctl.command"] = {
-        "command_line": orjson.dumps(list(command_line or sys.argv)).decode(),
+        "command_line": orjson.dumps(valid_strings(list(command_line or sys.argv))).decode(),
         "started_unix_ns": str(time.time_ns()),
         "format_version": str(ch.FORMAT_VERSION),
     }
-    return records
+    # The sources are paths as given: any of them may hold a byte that is not UTF-8.
+    result: dict[str, dict[str, str]] = valid_strings(records)
+    return result
 
 
 def run_metadata(

@@ -16,15 +16,18 @@ left in the rings and finishes an indexed file.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import itertools
 import mmap
 import os
 import select
+import stat
 import struct
 import subprocess
 import sys
 import tempfile
-from collections.abc import Collection, Sequence
+import time
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -38,6 +41,7 @@ from handctl.online.recipes.runner import RunStatus
 from handctl.online.safety.faults import FAULTS
 from handctl.online.safety.supervisor import State
 from handctl.online.taps import TAP_RX
+from handctl.recording.metadata import valid_strings, valid_text
 from handctl.recording.ring import (
     CLOSED,
     CTL_WORDS,
@@ -92,8 +96,14 @@ _flatten = itertools.chain.from_iterable
 #: Runner status names a phase column can also hold.
 RUNNER_NAMES = ("-", *(status.value for status in RunStatus))
 SUPERVISOR_STATE_NAMES = tuple(s.value for s in State)
-#: How long ``close`` waits for the writer to finish the file.
+#: How long ``close`` waits for the writer to finish the file, at most, and for it to move
+#: at all: a writer on a slow disk gets its time, a stuck one is given up on (``close``).
 CLOSE_TIMEOUT_S = 120.0
+WRITER_STALL_S = 20.0
+#: After how long the wait is said on stderr, and how often again; the wait's poll.
+WAIT_NOTICE_S = 2.0
+WAIT_NOTICE_EVERY_S = 10.0
+WAIT_STEP_S = 0.25
 READY_TIMEOUT_S = 30.0
 
 
@@ -147,6 +157,71 @@ def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] |
         return None
     rest = os.sched_getaffinity(0) - {loop_cpu, sim_cpu}
     return sorted(rest) if rest else None
+
+
+def _say(text: str) -> None:
+    """A line on stderr that cannot fail the close: a run whose stderr is gone still stops
+    and finishes its log."""
+    with contextlib.suppress(Exception):
+        from handctl.progress import say
+
+        say(text)
+
+
+def _above_stdio(fd: int) -> int:
+    """``fd`` moved above 0-2 (closing the original): a descriptor handed to the writer as 0,
+    1 or 2 would be replaced there by the child's stdin, stdout or stderr. A run started with
+    stdout closed had its log opened as descriptor 1, and the writer wrote the whole
+    recording to /dev/null."""
+    if fd > 2:
+        return fd
+    try:
+        return fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 3)
+    finally:
+        os.close(fd)
+
+
+def _open_log(path: Path) -> int:
+    """The log opened for writing and locked for this run alone, then emptied.
+
+    Not truncated on opening: a second run given the same path while the first is still
+    writing it is refused by the lock (bad input, exit 2) and leaves the first's file as it
+    was; two writers used to interleave their chunks in one file and both say they were done.
+    The lock (``flock``) is the open file's: the writer's copy of the descriptor holds it
+    for as long as it writes, even if this process dies first, and the system drops it when
+    the last copy is closed, so it never outlives the recording. A file system that has no
+    such locks (some network ones) records unlocked, as before."""
+    try:
+        fd = _above_stdio(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o644))
+    except OSError as exc:
+        raise ConfigError(
+            str(path), "", "a path where the recording can be written", exc.strerror or str(exc)
+        ) from None
+    try:
+        # A device or a pipe is no file to lock or to empty (a lock on /dev/null would be
+        # every process's): only a regular file is.
+        if stat.S_ISREG(os.fstat(fd).st_mode):
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise ConfigError(
+                    str(path),
+                    "",
+                    "a log no other run is writing (give this run another --log)",
+                    "another process writing it now (it holds the file's lock)",
+                ) from None
+            except OSError:
+                pass  # no locks on this file system: recorded unlocked
+            try:
+                os.ftruncate(fd, 0)
+            except OSError as exc:
+                raise ConfigError(
+                    str(path), "", "a file the recording can replace", exc.strerror or str(exc)
+                ) from None
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
 
 
 def _shared_memory(size: int) -> int:
@@ -251,6 +326,8 @@ class Recorder:
         "_no_faults",
         "_no_states",
         "_runtime",
+        "_clock_ns",
+        "_log_fd",
         "_rings",
         "_mmap",
         "_ti",
@@ -281,19 +358,26 @@ class Recorder:
         """``cpus``: where the writer process may run (``writer_cpus``); None: anywhere."""
         self.path = Path(path)
         self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
+        #: The log's descriptor, kept to the end: it holds the file's lock with the writer's
+        #: copy, and says at the end whether the path still names the file written.
+        self._log_fd = _open_log(self.path)
         try:
-            out_fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
-        except OSError as exc:
-            raise ConfigError(
-                str(path), "", "a path where the recording can be written", exc.strerror or str(exc)
-            ) from None
-        try:
-            self._start_writer(out_fd, hand, metadata, phase_names, object_names, live_port, cpus)
+            self._start_writer(
+                _above_stdio(os.dup(self._log_fd)),
+                hand,
+                metadata,
+                phase_names,
+                object_names,
+                live_port,
+                cpus,
+            )
         except BaseException:
             # The writer never had its set-up, so it wrote nothing: no file, rather than an
-            # empty one that no reader (``handctl replay`` included) can open.
+            # empty one that no reader (``handctl replay`` included) can open. Unlinked while
+            # this process still holds the lock, so no other run has started on it.
             with contextlib.suppress(OSError):
                 self.path.unlink()
+            os.close(self._log_fd)
             raise
         self._ready = False
         self.closed = False
@@ -369,6 +453,8 @@ class Recorder:
         self._pose_mask = self.layout.pose_capacity - 1
         self._tick = -1  # frames drained before the first tick (discarded at start-up)
         self._now = 0
+        #: The runtime's clock, read for what comes before the first tick (``attach``).
+        self._clock_ns: Callable[[], int] | None = None
         self._runtime: Runtime | None = None
         #: What ``push`` reads every tick, kept at ``attach``: the supervisor and the driver's
         #: joint state (None: no runtime attached).
@@ -402,7 +488,7 @@ class Recorder:
         child_fds = [out_fd]  # the writer's; ours closed once it has them
         ctl_w = ready_r = -1
         try:
-            shm_fd = _shared_memory(self.layout.size)
+            shm_fd = _above_stdio(_shared_memory(self.layout.size))
             child_fds.append(shm_fd)
             self._mmap = mmap.mmap(shm_fd, self.layout.size)
             # Touch every page now: a page's first write is a page fault, microseconds each
@@ -411,9 +497,9 @@ class Recorder:
                 self._mmap[offset] = 0
             self._rings = Rings(self.layout, self._mmap)
             self._ctl_view = memoryview(self._mmap)[: CTL_WORDS * 8].cast("q")
-            ctl_r, ctl_w = os.pipe()
+            ctl_r, ctl_w = (_above_stdio(fd) for fd in os.pipe())
             child_fds.append(ctl_r)
-            ready_r, ready_w = os.pipe()
+            ready_r, ready_w = (_above_stdio(fd) for fd in os.pipe())
             child_fds.append(ready_w)
             package_root = str(Path(__file__).resolve().parents[2])
             env = dict(os.environ)
@@ -463,8 +549,8 @@ class Recorder:
                     "joints": list(hand.joint_names),
                     "nodes": [f.name for f in hand.fingers],
                     "objects": list(object_names),
-                    "path": str(self.path),
-                    "metadata": metadata,
+                    "path": valid_text(str(self.path)),
+                    "metadata": valid_strings(metadata),
                     "live_port": live_port,
                     "cpus": sorted(cpus) if cpus is not None else None,
                 }
@@ -485,7 +571,13 @@ class Recorder:
         self._joints = runtime.driver.state
         bus = runtime.driver.bus
         bus.tap = self._sent
-        bus.rx_tap = self._drain
+        # Until the first tick begins, the drains (the start-up's discard of what queued
+        # before the run) are stamped with the clock's time now, on the ticks' own time base:
+        # they had 0, which beside CLOCK_MONOTONIC ticks put them the host's uptime before
+        # the run (an export mixed wall-clock and uptime stamps).
+        self._clock_ns = runtime.clock.now_ns
+        self._now = self._clock_ns()
+        bus.rx_tap = self._drain_before_start
         bus.event_tap = self._bus_event
         driver = runtime.driver
         self._reject_lists = [n.rejects.counts for n in driver.nodes]
@@ -523,7 +615,7 @@ class Recorder:
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """An MCAP metadata record (string values), written as soon as the writer reads it."""
-        self._send({"type": "metadata", "name": name, "data": data})
+        self._send({"type": "metadata", "name": name, "data": valid_strings(data)})
 
     # -- RecordSink -----------------------------------------------------------------------
     # The hot path. The taps write each frame's row into the frame ring as the bus hands it
@@ -838,6 +930,17 @@ class Recorder:
             block = "<" + RX_HEAD_ROW + RX_FRAME_ROW * rx + TX_FRAME_ROW * count
             self._sent_packs[rx][count] = struct.Struct(block).pack_into
 
+    def _drain_before_start(self, frames: list[Frame]) -> None:
+        """``_drain`` for the drains before the first tick, stamped with the clock's time
+        now; at the first drain of a tick it hands the tap over to ``_drain`` itself, so
+        that the ticks' drains pay nothing for it."""
+        if self._tick >= 0:
+            if self._runtime is not None:
+                self._runtime.driver.bus.rx_tap = self._drain
+        elif self._clock_ns is not None:
+            self._now = self._clock_ns()
+        self._drain(frames)
+
     def _drain(self, frames: list[Frame]) -> None:
         """A drain's frames, kept for the next burst sent to write (``_sent``)."""
         if self._drained is not None:  # two drains with no frame sent between them
@@ -962,6 +1065,8 @@ class Recorder:
     def _event(self, kind: int, tick: int, *fields: str) -> None:
         if self.closed:
             return
+        if self._tick < 0 and self._clock_ns is not None:  # before the first tick: its time
+            self._now = self._clock_ns()
         head = self._ehead
         if head - self._etail > self._event_mask and self._ring_full(
             _EVENTS, head, self._event_mask
@@ -1027,7 +1132,9 @@ class Recorder:
             self._reject_seen = [list(c) for c in self._reject_lists]
 
     # -- the end --------------------------------------------------------------------------
-    def close(self, summary: dict[str, Any] | None = None) -> dict[str, Any]:
+    def close(
+        self, summary: dict[str, Any] | None = None, stall_timeout_s: float = WRITER_STALL_S
+    ) -> dict[str, Any]:
         """Publish the last row, hand over the summary, let the writer finish the file.
 
         Returns the recorder's accounts (ticks, frames, drops) for the run summary. A recorder
@@ -1079,24 +1186,130 @@ class Recorder:
         self.closed = True
         try:
             if summary is not None:
-                self.add_metadata("handctl.summary", {"json": orjson.dumps(summary).decode()})
+                self.add_metadata(
+                    "handctl.summary", {"json": orjson.dumps(valid_strings(summary)).decode()}
+                )
         except HandctlError as exc:
             problem = problem or str(exc).removeprefix(f"{self.path}: ")
         os.close(self._ctl_w)
-        try:
-            _, err = self.process.communicate(timeout=CLOSE_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            _, err = self.process.communicate()
-            problem = problem or f"the writer did not finish within {CLOSE_TIMEOUT_S:g} s"
+        err, hung = self._wait_for_writer(stall_timeout_s)
+        problem = problem or hung
         os.close(self._ready_r)
         if self.process.returncode != 0:
             problem = self._writer_failed(problem, err.decode(errors="replace").strip())
         self.stats["writer_exit"] = self.process.returncode
+        lost = self._lost()
+        os.close(self._log_fd)
         self._release()
+        if lost:
+            problem = f"{lost}; {problem}" if problem else lost
         if problem:
             raise HandctlError(f"{self.path}: {problem}")
         return self.stats
+
+    def _wait_for_writer(self, stall_timeout_s: float) -> tuple[bytes, str]:
+        """Wait for the writer to finish the file: its stderr, and what went wrong if it had
+        to be killed.
+
+        The hand is stopped by now (the runtime has returned), so the wait costs the hand
+        nothing, but a writer that hangs (a stalled disk, a SIGSTOP) held the run's exit with
+        no word until it went on. So the wait is said on stderr after ``WAIT_NOTICE_S``, with
+        what is left to write, and it ends when the writer has moved nothing (ring tails and
+        file size) for ``stall_timeout_s``, or after ``CLOSE_TIMEOUT_S`` in all: a writer that
+        is slow but moving gets its time, a stuck one is killed, and the file ends where it
+        stopped (a truncated file, which ``handctl replay`` reads up to there)."""
+        started = changed = said = time.monotonic()
+        seen = self._writer_progress()
+        announced = False
+        while True:
+            try:
+                _, err = self.process.communicate(timeout=WAIT_STEP_S)
+                return err, ""
+            except subprocess.TimeoutExpired:
+                pass
+            now = time.monotonic()
+            progress = self._writer_progress()
+            if progress != seen:
+                seen, changed = progress, now
+            waited = now - started
+            # Said before any giving up: a wait that is given up on was said first.
+            if now - said >= (WAIT_NOTICE_S if not announced else WAIT_NOTICE_EVERY_S):
+                announced, said = True, now
+                _say(
+                    f"handctl: the hand is stopped; waiting {waited:.0f} s so far for the "
+                    f"recording writer to finish {self.path} ({self._left_to_write()} records "
+                    f"left to write; given up after {stall_timeout_s:g} s without progress)"
+                )
+            if now - changed >= stall_timeout_s or waited >= CLOSE_TIMEOUT_S:
+                self.process.kill()
+                _, err = self.process.communicate()
+                why = (
+                    f"moved nothing for {now - changed:.1f} s (stopped or hung)"
+                    if now - changed >= stall_timeout_s
+                    else f"did not finish within {CLOSE_TIMEOUT_S:g} s"
+                )
+                return err, (
+                    f"the recording writer {why} and was killed with "
+                    f"{self._left_to_write()} records still to write: the log may be "
+                    "incomplete (it ends where the writer stopped; handctl replay reads it up "
+                    "to there)"
+                )
+
+    def _writer_progress(self) -> tuple[int, ...]:
+        """What the writer has done so far: the rings' tails and the file's size."""
+        ctl = self._ctl_view
+        try:
+            size = os.fstat(self._log_fd).st_size
+        except OSError:
+            size = -1
+        return (ctl[TICK_TAIL], ctl[FRAME_TAIL], ctl[EVENT_TAIL], ctl[POSE_TAIL], size)
+
+    def _left_to_write(self) -> int:
+        """Records published that the writer has not yet copied out of the rings."""
+        ctl = self._ctl_view
+        return sum(
+            max(0, ctl[head] - ctl[tail])
+            for head, tail in (
+                (TICK_HEAD, TICK_TAIL),
+                (FRAME_HEAD, FRAME_TAIL),
+                (EVENT_HEAD, EVENT_TAIL),
+                (POSE_HEAD, POSE_TAIL),
+            )
+        )
+
+    def _lost(self) -> str:
+        """Whether the path still names the file the writer wrote: the log's directory
+        removed during the run, or the log unlinked, renamed or replaced, left a run that
+        said where it had recorded to and nothing (or another file) was there. Empty if it
+        does."""
+        try:
+            written = os.fstat(self._log_fd)
+        except OSError:
+            return ""
+        if not stat.S_ISREG(written.st_mode):
+            return ""  # a device: nothing to compare
+        try:
+            there = os.stat(self.path)
+        except FileNotFoundError:
+            there = None
+        except OSError as exc:
+            return (
+                f"the log cannot be checked at this path at the end of the run "
+                f"({exc.strerror or exc}): it may not be there"
+            )
+        if there is not None and (there.st_dev, there.st_ino) == (written.st_dev, written.st_ino):
+            return ""
+        where = (
+            "nothing is there now"
+            if there is None
+            else "another file is there now (the log was replaced)"
+        )
+        kept = (
+            "the recording is lost (the file was removed, or its directory)"
+            if written.st_nlink == 0
+            else "the recording is elsewhere (the file or its directory was renamed)"
+        )
+        return f"expected the recording at this path at the end of the run, but {where}: {kept}"
 
     def _writer_failed(self, problem: str, said: str) -> str:
         """What to say of a writer that exited with an error (``said``, its stderr) besides

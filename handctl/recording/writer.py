@@ -14,6 +14,7 @@ disk is a readable MCAP prefix missing no more than the chunk in progress.
 from __future__ import annotations
 
 import contextlib
+import errno
 import math
 import mmap
 import os
@@ -141,7 +142,7 @@ class Encoder:
         try:
             self.derived = _SafeView(Derived.from_metadata(setup["metadata"], self.add_raw))
         except Exception as exc:  # a view must never cost the recording
-            sys.stderr.write(f"handctl writer: no Foxglove channels: {exc}\n")
+            _note(f"handctl writer: no Foxglove channels: {exc}")
         if self.derived is not None:
             for derived in self.derived.channels:
                 if derived.schema_name not in schema_ids:
@@ -171,6 +172,7 @@ class Encoder:
         self.chunk_log: int | None = None
         self.chunk_wall = 0.0
         self.synced = time.monotonic()
+        self.can_sync = True  # until a sync says the file cannot be synced (``sync``)
         self.busy_s = 0.0
         self.dropped = [0, 0, 0, 0]
 
@@ -420,8 +422,23 @@ class Encoder:
         self.chunks += 1
         self.chunk_log = None
         if wall - self.synced >= SYNC_EVERY_S:
-            os.fdatasync(self.out.fileno())
+            self.sync()
             self.synced = wall
+
+    def sync(self) -> None:
+        """``fdatasync`` the file, if it is one that can be synced at all. A file that cannot
+        (EINVAL: a device such as /dev/null, a pipe; a file system without it) has nothing to
+        make durable, and the recording goes on without: the first such sync ended the
+        writer with a traceback and left the log empty. Another failure (EIO) is the
+        disk's, and ends the recording as a write error does."""
+        if not self.can_sync:
+            return
+        try:
+            os.fdatasync(self.out.fileno())
+        except OSError as exc:
+            if exc.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP):
+                raise
+            self.can_sync = False
 
     def finish(self, ended: str) -> None:
         self.maybe_flush(force=True)
@@ -445,7 +462,7 @@ class Encoder:
         )
         self.writer.finish()
         self.out.flush()
-        os.fdatasync(self.out.fileno())
+        self.sync()
 
 
 class _SafeView:
@@ -465,9 +482,7 @@ class _SafeView:
             getattr(view, name)(*args)
         except Exception as exc:  # a view must never cost the recording
             self._view = None
-            sys.stderr.write(
-                f"handctl writer: Foxglove channels stopped ({type(exc).__name__}: {exc})\n"
-            )
+            _note(f"handctl writer: Foxglove channels stopped ({type(exc).__name__}: {exc})")
 
     def frame(self, *args: Any) -> None:
         self._call("frame", *args)
@@ -578,7 +593,7 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
         try:
             os.sched_setaffinity(0, setup["cpus"])
         except OSError as exc:
-            sys.stderr.write(f"handctl writer: runs on any CPU ({exc})\n")
+            _note(f"handctl writer: runs on any CPU ({exc})")
     block = mmap.mmap(shm_fd, layout.size)
     rings = Rings(layout, block)
     live = None
@@ -594,9 +609,7 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
             try:
                 live.start()
             except Exception as exc:  # foxglove's own error type: say what, not where
-                sys.stderr.write(
-                    f"the live view cannot serve on 127.0.0.1:{setup['live_port']} ({exc})\n"
-                )
+                _note(f"the live view cannot serve on 127.0.0.1:{setup['live_port']} ({exc})")
                 out.flush()
                 out.truncate(0)
                 return 1
@@ -645,9 +658,28 @@ def main(argv: list[str] | None = None) -> int:
     try:
         shm_fd, ctl_fd, out_fd, ready_fd = (int(a) for a in args[:4])
         return run(shm_fd, ctl_fd, out_fd, ready_fd)
-    except Exception:
-        sys.stderr.write(traceback.format_exc())
+    except OSError as exc:
+        # The file or its disk refused (a full disk, an I/O error): the recorder says the
+        # last line to the user beside the log's name, so one line, never a traceback.
+        _note(f"{type(exc).__name__}: {exc}")
         return 1
+    except Exception:
+        _note(traceback.format_exc().rstrip())
+        return 1
+
+
+def _note(text: str) -> None:
+    """A line for the recorder on stderr, which the recorder reads when the writer fails.
+    Never the writer's end: a stderr that is gone (the control process died and its pipe
+    with it) or invalid costs the note, not the recording."""
+    try:
+        sys.stderr.write(text + "\n")
+        sys.stderr.flush()
+    except Exception:
+        # Nowhere to say it: and nothing left buffered that would fail the exit (an
+        # interpreter that cannot flush stderr at exit exits 120, a failed writer).
+        with contextlib.suppress(Exception):
+            sys.stderr = open(os.devnull, "w")  # noqa: SIM115 - for the rest of the process
 
 
 if __name__ == "__main__":

@@ -1,0 +1,199 @@
+"""The log file against what the system around a run may do to it and to the run's own
+descriptors. Each test drives a run's real writer process, never a stand-in."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from handctl.config import HandConfig
+from handctl.errors import ConfigError, HandctlError
+from handctl.recording import channels as ch
+from handctl.recording.metadata import start_metadata
+from handctl.recording.reader import open_recording
+from handctl.recording.recorder import Recorder
+
+from ..conftest import DEFAULT_RECIPE, HAND_YAML, ROOT, handctl
+
+
+def _recorder(hand: HandConfig, path: Path, argv: tuple[str, ...] = ("test",)) -> Recorder:
+    """A recorder whose writer has the file open and its header written."""
+    recorder = Recorder(path, hand, start_metadata(hand, None, argv))
+    recorder.wait_ready()
+    return recorder
+
+
+def test_a_log_that_cannot_be_synced_is_no_writer_failure(hand: HandConfig) -> None:
+    """``fdatasync`` of /dev/null is EINVAL: the writer ended with that traceback. A file that
+    cannot be synced has nothing to make durable; the recording goes on."""
+    stats = _recorder(hand, Path(os.devnull)).close({"outcome": "test"})
+    assert stats["writer_exit"] == 0
+
+
+def test_arguments_and_paths_that_are_not_utf_8_are_recorded_shown_as_bytes(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A byte that is not UTF-8 in ``--log``'s path (Python holds it as a lone surrogate)
+    failed the run's start with a TypeError from the JSON encoder, and no log. Now the file
+    is at the path as given, and the metadata show the byte as ``\\xff``."""
+    name = os.fsdecode(b"l_\xff.mcap")
+    path = tmp_path / name
+    argv = ("handctl", "run", "--log", name)
+    recorder = _recorder(hand, path, argv)
+    recorder.add_metadata("handctl.test", {"path": str(path)})
+    recorder.close({"outcome": "test", "recording": {"path": str(path)}})
+    assert os.fsencode(path) in [os.fsencode(tmp_path / p) for p in os.listdir(tmp_path)]
+    recording = open_recording(path)
+    assert recording.complete
+    shown = str(tmp_path / "l_\\xff.mcap")
+    assert json.loads(recording.meta("handctl.command", "command_line")) == [
+        "handctl",
+        "run",
+        "--log",
+        "l_\\xff.mcap",
+    ]
+    assert recording.meta("handctl.test", "path") == shown
+    summary = recording.json_meta("handctl.summary")
+    assert summary is not None and summary["recording"]["path"] == shown
+
+
+#: A recorder started by a process whose descriptors 0 and 1 are closed (``handctl run ...
+#: >&- <&-``), so that the log and the shared memory take them; it prints nothing.
+_CLOSED_STDIO = """
+import os, sys
+from handctl.config import load_hand
+from handctl.recording.metadata import start_metadata
+from handctl.recording.recorder import Recorder
+os.close(0)
+os.close(1)
+hand = load_hand(sys.argv[1])
+recorder = Recorder(sys.argv[2], hand, start_metadata(hand, None, ["closed"]))
+recorder.wait_ready()
+recorder.close({"outcome": "test"})
+"""
+
+
+def test_a_run_started_with_stdin_and_stdout_closed_still_records(tmp_path: Path) -> None:
+    """The log opened as descriptor 0 or 1 was handed to the writer there, where its own
+    stdin or stdout replaced it: the writer wrote the recording to /dev/null, the log was
+    empty and the sync of /dev/null failed the writer."""
+    path = tmp_path / "closed.mcap"
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    done = subprocess.run(
+        [sys.executable, "-c", _CLOSED_STDIO, str(HAND_YAML), str(path)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    recording = open_recording(path)
+    assert recording.complete
+    assert recording.meta("handctl.command", "command_line") == '["closed"]'
+    assert recording.json_meta("handctl.summary") == {"outcome": "test"}
+
+
+def test_a_second_run_on_a_log_being_written_is_refused_and_the_first_s_file_kept(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """Both runs said they were done and the file held chunks of each: now the second is bad
+    input naming the file, before anything starts, and the first's file is whole."""
+    path = tmp_path / "same.mcap"
+    first = _recorder(hand, path)
+    written = path.stat().st_size
+    assert written > 0
+    with pytest.raises(ConfigError) as refused:
+        Recorder(path, hand, start_metadata(hand, None, ("second",)))
+    assert str(path) in str(refused.value) and "another process writing it" in str(refused.value)
+    done = handctl("run", "recipe", DEFAULT_RECIPE, "--log", str(path))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"{path}: expected a log no other run is writing" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert path.stat().st_size >= written  # not emptied by either
+    first.close({"outcome": "test"})
+    recording = open_recording(path)
+    assert recording.complete and not recording.problem
+    assert recording.meta(ch.META_HAND, "name") == hand.name
+    assert recording.meta("handctl.command", "command_line") == '["test"]'
+    # The lock went with the run that held it: the path is free again.
+    _recorder(hand, path).close()
+    assert open_recording(path).complete
+
+
+@pytest.mark.parametrize("how", ["directory_removed", "file_removed", "file_replaced"])
+def test_a_log_that_is_not_at_its_path_at_the_end_is_said(
+    hand: HandConfig, tmp_path: Path, how: str
+) -> None:
+    """The run said "recorded ... to deld/x.mcap" and there was no such file. Now the close
+    raises (the run turns it into a warning, as a writer that failed), naming the path and
+    what is there instead."""
+    directory = tmp_path / "deld"
+    directory.mkdir()
+    path = directory / "x.mcap"
+    recorder = _recorder(hand, path)
+    if how == "directory_removed":
+        shutil.rmtree(directory)
+    elif how == "file_removed":
+        path.unlink()
+    else:
+        path.unlink()
+        path.write_text("another file\n")
+    with pytest.raises(HandctlError) as lost:
+        recorder.close({"outcome": "test"})
+    said = str(lost.value)
+    assert said.startswith(f"{path}: expected the recording at this path at the end of the run")
+    if how == "file_replaced":
+        assert "another file is there now (the log was replaced)" in said
+        assert path.read_text() == "another file\n"  # left as it is
+    else:
+        assert "nothing is there now: the recording is lost" in said
+    assert recorder.stats["writer_exit"] == 0  # the writer itself finished
+
+
+def test_a_log_still_at_its_path_is_no_warning(hand: HandConfig, tmp_path: Path) -> None:
+    """Through a symbolic link too: the path names the file written."""
+    path = tmp_path / "run.mcap"
+    link = tmp_path / "link.mcap"
+    path.touch()
+    link.symlink_to(path)
+    stats = _recorder(hand, link).close({"outcome": "test"})
+    assert stats["writer_exit"] == 0
+    assert open_recording(path).complete
+
+
+def test_a_hung_writer_is_said_then_given_up_on(
+    hand: HandConfig, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A writer that moves nothing (SIGSTOP, a disk that hangs) held the run's exit, with
+    no word, until it went on. Now the wait is said on stderr, the writer is killed once it
+    has moved nothing for the stall time, and the close says the log may be incomplete."""
+    path = tmp_path / "hung.mcap"
+    recorder = _recorder(hand, path)
+    os.kill(recorder.process.pid, signal.SIGSTOP)
+    try:
+        with pytest.raises(HandctlError) as hung:
+            recorder.close({"outcome": "test"}, stall_timeout_s=3.0)
+    finally:
+        if recorder.process.returncode is None:  # only if the close failed to end it
+            os.kill(recorder.process.pid, signal.SIGKILL)
+            recorder.process.wait()
+    assert recorder.process.returncode == -signal.SIGKILL
+    said = str(hung.value)
+    assert said.startswith(f"{path}: the recording writer moved nothing for")
+    assert "(stopped or hung) and was killed" in said and "the log may be incomplete" in said
+    err = capfd.readouterr().err
+    assert "waiting" in err and f"for the recording writer to finish {path}" in err
+    assert "the hand is stopped" in err
+    assert not open_recording(path).complete  # what the writer had flushed, without its end
