@@ -207,3 +207,20 @@ def test_virtual_frames_between_handctl_buses_are_no_messages_and_others_still_h
         (0x1ABCDEF, b"\x05", True, True, True, True),
     ]
     assert [(f.arbitration_id, f.data, f.is_fd) for f in from_plain] == [(0x181, b"\x07", False)]
+
+
+@pytest.mark.parametrize(
+    "spec, raised",
+    [
+        # python-can's socketcand backend takes host and port, not a channel: a TypeError
+        ("socketcand:localhost", "TypeError"),
+        # its kvaser backend without Kvaser's library: a NameError (or, with the library and
+        # no adapter, a CanError): either way, this bus does not open
+        ("kvaser:0", ""),
+    ],
+)
+def test_a_backend_failing_in_its_own_way_is_a_bus_error_naming_the_spec(
+    hand: HandConfig, spec: str, raised: str
+) -> None:
+    with pytest.raises(BusError, match=f"{spec}: cannot open the bus: {raised}"):
+        open_bus(spec, hand.bus)
