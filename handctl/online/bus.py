@@ -64,6 +64,8 @@ _CAN_ERR_CRTL = 0x004
 _CAN_ERR_BUSOFF = 0x040
 _CAN_ERR_RESTARTED = 0x100
 _CAN_ERR_CRTL_PASSIVE = 0x30  # rx or tx error-passive bits in data[1]
+#: Flags of what a drain hands on as an event, not a frame.
+_NOT_A_FRAME = ff.ERROR | ff.RX_FAILED
 
 
 @runtime_checkable
@@ -324,8 +326,11 @@ class HandBus:
                 count += 1
                 stamp, frame_id, flags, data = item
                 item = None
-                if flags & ff.ERROR:
-                    self._error_frame(frame_id, data)
+                if flags & _NOT_A_FRAME:
+                    if flags & ff.RX_FAILED:  # the transport dropped what it received
+                        self._event(BusEventKind.RX_FAILED, data.decode("utf-8", "replace"))
+                    else:
+                        self._error_frame(frame_id, data)
                     continue
                 if len(data) > MAX_FRAME_DATA:
                     # no CAN-FD frame is longer; an emulated bus (the unix one, python-can's

@@ -10,6 +10,7 @@ never costs the sender a send (on CAN, a listener that does not read overflows i
 from __future__ import annotations
 
 import socket
+import struct
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -358,3 +359,61 @@ def test_a_bus_readied_before_its_first_send_is_connected_to_each_receiver(
         assert [f.data for f in got] == [b"\x01"]
     with open_bus(f"virtual:ready-{id(tx)}", hand.bus) as virtual:
         virtual.prepare_send()  # nothing to ready: no error
+
+
+def _hostile_datagram(directory: Path, payload: bytes) -> None:
+    """One datagram of ``payload`` to every participant in ``directory``, from a socket that
+    is none: a peer that writes the wire by hand."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as peer:
+        for path in directory.glob("*.sock"):
+            peer.sendto(payload, str(path))
+
+
+def _wire(frame_id: int, flags: int, data: bytes) -> bytes:
+    return struct.pack("<dIBB", 0.0, frame_id, flags, len(data)) + data
+
+
+@pytest.mark.parametrize(
+    "payload, why",
+    [
+        # 40 frames of 64 bytes: more than the receive buffer holds, so the datagram comes cut
+        (b"".join(_wire(0x181, 1, bytes(64)) for _ in range(40)), "longer than the"),
+        (_wire(0x181, 1, bytes(16))[:-3], "a frame of 16 bytes with 13 left"),
+        (_wire(0x181, 1, bytes(16)) + b"\x00\x01", "2 bytes after its last frame"),
+        (_wire(0x181, 0x40, bytes(8)), "flags 0x40"),  # the transport's own word, forged
+        # a lost count of 2**32 - 1: no sender loses that many frames for anyone in a second
+        (_wire(0, 0x80, (2**32 - 1).to_bytes(4, "little")), "4294967295 frames were lost"),
+    ],
+    ids=["cut-by-the-buffer", "frame-cut-short", "bytes-after", "foreign-flag", "forged-lost"],
+)
+def test_a_malformed_datagram_is_dropped_whole_as_a_receive_failure(
+    open_unix: OpenUnix, tmp_path: Path, payload: bytes, why: str
+) -> None:
+    """A datagram cut by the receive buffer used to be handed on with its last frame cut
+    short, and a forged lost count was added as it came (a monitor's ``frames_lost`` went to
+    trillions). Neither is passed on: the datagram is dropped, said as an ``RX_FAILED``
+    event (as a frame over 64 bytes is, guarantee 55), and counted."""
+    rx, tx = open_unix(), open_unix()
+    _hostile_datagram(tmp_path / "bus", payload)
+    assert tx.send(0x181, b"\x07")
+    got: list[Frame] = []
+    for _ in range(20):  # the drain that meets the failure ends there; the next goes on
+        got += rx.drain()
+        if got:
+            break
+    assert [(f.arbitration_id, f.data) for f in got] == [(0x181, b"\x07")]
+    events = rx.events()
+    assert [e.kind for e in events] == [BusEventKind.RX_FAILED]
+    assert "unix bus: a malformed datagram" in events[0].detail and why in events[0].detail
+    counts = rx.transport_counts()
+    assert counts["rx_malformed"] == 1 and counts["rx_frames_lost"] == 0
+
+
+def test_a_python_can_reader_is_told_of_a_malformed_datagram_as_python_can_says_it(
+    tmp_path: Path,
+) -> None:
+    channel = tmp_path / "bus"
+    with can.Bus(interface="unix", channel=str(channel)) as rx:
+        _hostile_datagram(channel, _wire(0x181, 1, bytes(16))[:-1])
+        with pytest.raises(can.CanOperationError, match="malformed datagram"):
+            rx.recv(timeout=1.0)
