@@ -8,8 +8,9 @@
 - ``socketcan:can0``: a Linux SocketCAN interface. The kernel owns its bit rates; handctl checks
   that the interface exists and says how to configure it when it does not.
 - ``unix:DIRECTORY``: handctl's own python-can interface over Unix datagram sockets, one per
-  participant in DIRECTORY: a bus that crosses processes on one machine without a kernel CAN
-  driver or any network traffic (the simulated hand in its own process, kill tests).
+  participant in DIRECTORY (absolute: ``unix_rule``): a bus that crosses processes on one
+  machine without a kernel CAN driver or any network traffic (the simulated hand in its own
+  process, kill tests).
 - ``INTERFACE:CHANNEL``: any other python-can interface, given the config's CAN-FD bit rates.
 """
 
@@ -74,7 +75,20 @@ def parse_spec(
         )
     if interface == "socketcan" and not valid_ifname(channel):
         raise ConfigError("--bus", "channel", IFNAME_RULE, channel)
+    if interface == "unix" and not Path(channel).is_absolute():
+        raise ConfigError("--bus", "channel", unix_rule(channel), channel)
     return BusSpec(interface, channel)
+
+
+def unix_rule(channel: str) -> str:
+    """What a unix bus directory must be, said for ``channel``.
+
+    Absolute: the directory is what the participants share, and a relative one is taken
+    from each process's working directory, so a simulated hand and a host started from two
+    directories with the same spec were on two buses, each hearing nothing. Refused rather
+    than resolved: the user's spec is what every participant must be given, and a resolved
+    one would differ from it without saying so."""
+    return f"an absolute directory (e.g. unix:{Path(channel).absolute()})"
 
 
 def valid_ifname(name: str) -> bool:
@@ -105,6 +119,8 @@ def check_interface(bus_config: BusConfig, source: str) -> None:
         )
     if bus_config.interface == "socketcan" and not valid_ifname(bus_config.channel):
         raise ConfigError(source, "bus.channel", IFNAME_RULE, bus_config.channel)
+    if bus_config.interface == "unix" and not Path(bus_config.channel).is_absolute():
+        raise ConfigError(source, "bus.channel", unix_rule(bus_config.channel), bus_config.channel)
 
 
 def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:

@@ -99,6 +99,13 @@ class UnixDatagramBus(can.BusABC):
     def __init__(
         self, channel: str, receive_own_messages: bool = False, rcvbuf: int = 1 << 22, **kwargs: Any
     ) -> None:
+        if not Path(channel).is_absolute():
+            # the participants share the directory: a relative one is each process's own
+            # (``handctl.online.busspec.unix_rule``)
+            raise ValueError(
+                f"unix bus directory {channel!r}: expected an absolute directory "
+                f"(e.g. {Path(channel).absolute()})"
+            )
         self.directory = Path(channel)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.channel_info = f"unix:{channel}"

@@ -12,6 +12,7 @@ from __future__ import annotations
 import socket
 import struct
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,9 @@ import can
 import pytest
 
 from handctl.config import HandConfig
+from handctl.errors import ConfigError
 from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
+from handctl.online.busspec import parse_spec
 from handctl.online.taps import TAP_TX
 from handctl.online.unixcan import TX_QUEUE_FRAMES, UnixDatagramBus
 
@@ -417,3 +420,23 @@ def test_a_python_can_reader_is_told_of_a_malformed_datagram_as_python_can_says_
         _hostile_datagram(channel, _wire(0x181, 1, bytes(16))[:-1])
         with pytest.raises(can.CanOperationError, match="malformed datagram"):
             rx.recv(timeout=1.0)
+
+
+def test_a_relative_unix_bus_directory_is_refused_not_made(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each process would take it from its own working directory: a hand and a host started
+    from two directories with one spec were on two buses, each hearing nothing."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError) as info:
+        parse_spec("unix:relative_dir")
+    assert (info.value.file, info.value.key) == ("--bus", "channel")
+    assert f"unix:{tmp_path / 'relative_dir'}" in info.value.expected
+    unix_hand = replace(hand.bus, interface="unix", channel="bus")
+    with pytest.raises(ConfigError) as info:
+        parse_spec("hand", unix_hand, hand.source)
+    assert (info.value.file, info.value.key) == (hand.source, "bus.channel")
+    with pytest.raises(ValueError, match="expected an absolute directory"):
+        can.Bus(interface="unix", channel="relative_dir")
+    assert list(tmp_path.iterdir()) == []
+    parse_spec(f"unix:{tmp_path / 'bus'}")  # the documented form
