@@ -153,3 +153,33 @@ def test_a_log_and_a_bus_at_once_are_refused(
     code = cli.main(["monitor", "--log", str(tmp_path / "x.mcap"), "--bus", "virtual:x"])
     assert code == cli.EXIT_BAD_INPUT and "--log" in capsys.readouterr().err
     assert cli.main(["monitor", "--log", str(tmp_path / "x.mcap")]) == cli.EXIT_BAD_INPUT
+
+
+def _noisy_bus(sim: SimulatedHand) -> None:
+    sim.activate(inj.ErrorFrames(per_tick=1))
+    sim.activate(inj.Babble(id=0x555, per_tick=1, length=70))  # over CAN-FD's 64 bytes
+
+
+def test_error_frames_and_frames_the_bus_drops_are_shown(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Error frames and frames over 64 bytes carry no frame a message could count: a bus
+    flooded with them was shown as nothing at all ("frames": 0) while ``nodes`` counted them."""
+    spec = f"virtual:{channel}"
+    with running_hand(hand, spec, _noisy_bus):
+        code = cli.main(["monitor", "--bus", spec, "--seconds", "0.6", "--every", "0.2"])
+    assert code == cli.EXIT_OK
+    snapshot = _last(capsys.readouterr().out)
+    assert snapshot["bus_events"]["error_frame"] > 10
+    assert snapshot["bus_events"]["rx_failed"] > 10
+    assert "a frame of 70 bytes (id 0x555)" in snapshot["last_event"]["rx_failed"]
+    assert "0x555" not in snapshot["unknown_ids"]  # dropped, not counted as a frame
+    caption = _caption(snapshot)
+    assert "bus events: error_frame" in caption and "rx_failed" in caption
+
+
+def _caption(snapshot: dict[str, Any]) -> str:
+    """The caption the terminal view shows under its table."""
+    from handctl.bringup.monitor import table
+
+    return str(table(snapshot, "t").caption)
