@@ -1201,7 +1201,9 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
                             )
             else:
                 emitted = time.monotonic()
-                for batch in listen(bus, seconds, view=view):
+                # a reader that left (``handctl monitor | head -1``) is told nothing more:
+                # listening on would go on for ever, writing to no one
+                for batch in listen(bus, seconds, keep_going=_reader_stays, view=view):
                     for frame_id, data, t_ns in batch:
                         view.observe(frame_id, data, t_ns)
                     if time.monotonic() - emitted >= every:
@@ -1212,6 +1214,11 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     if not on_tty:
         emit(view.snapshot())
     return EXIT_OK
+
+
+def _reader_stays() -> bool:
+    """Whether stdout still has a reader (``_ReaderMayLeave`` notes when it left)."""
+    return not getattr(sys.stdout, "reader_gone", False)
 
 
 def _monitor_log(

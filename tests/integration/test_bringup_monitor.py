@@ -183,3 +183,30 @@ def _caption(snapshot: dict[str, Any]) -> str:
     from handctl.bringup.monitor import table
 
     return str(table(snapshot, "t").caption)
+
+
+def test_a_piped_monitor_ends_when_its_reader_leaves(tmp_path: Path) -> None:
+    """``handctl monitor | head -1``: once the reader is gone the monitor ends, exit 0 and
+    no traceback, as every command ends whose reader left; it used to listen for ever.
+    (The timeout only keeps a monitor that never ends from hanging the suite.)"""
+    spec = f"unix:{tmp_path / 'bus'}"
+    monitor = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "monitor", "--bus", spec, "--every", "0.05"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=ROOT,
+    )
+    try:
+        assert monitor.stdout is not None and monitor.stderr is not None
+        assert json.loads(monitor.stdout.readline())["frames"] == 0
+        monitor.stdout.close()  # the reader leaves, as head does
+        code = monitor.wait(timeout=120)
+        err = monitor.stderr.read().decode()
+    finally:
+        monitor.kill()
+        monitor.wait()
+        for stream in (monitor.stdout, monitor.stderr):
+            if stream is not None:
+                stream.close()
+    assert code == cli.EXIT_OK, err
+    assert "Traceback" not in err
