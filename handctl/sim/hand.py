@@ -43,7 +43,6 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.hand_protocol import protocol_for
 from handctl.online.bus import HandBus, open_bus
-from handctl.online.busspec import parse_spec
 from handctl.online.clock import collector_paused, request_realtime
 from handctl.online.timerfd import PeriodicTimer
 from handctl.protocol import NodeState
@@ -420,8 +419,7 @@ def standalone(
     ``keep_running``, asked every ``WATCH_PERIOD_S``, ends the run when it turns False (the
     host that started this hand is gone), as Ctrl-C would.
     """
-    parsed = parse_spec(bus_spec, hand.bus, hand.source)
-    if parsed.interface == "sim":
+    if bus_spec == "sim":  # the one spelling ``parse_spec`` takes for it
         # ``sim`` names this very hand to the commands that listen to it: as the bus it is
         # to join, it is a user's mix-up (bad input), not a bus that failed to open
         raise ConfigError(
@@ -431,7 +429,7 @@ def standalone(
             "virtual:NAME, hand, or INTERFACE:CHANNEL; 'sim' is the simulated hand itself",
             bus_spec,
         )
-    bus = open_bus(parsed, hand.bus)
+    bus = open_bus(bus_spec, hand.bus)
     interrupted = False
     try:
         sim = SimulatedHand(hand, bus, seed=seed, faults=faults)
