@@ -917,6 +917,13 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
         print(f"  id 0x{fid:03X}: {count} frames, {what}")
     if result.bus_events:
         print("  bus events: " + ", ".join(f"{k} {v}" for k, v in result.bus_events.items()))
+    if result.bus_problem:
+        print(f"  problem: {result.bus_problem} (docs/bringup.md, step 2)")
+    if result.frames_lost:
+        print(
+            f"  this listener lost {result.frames_lost} frames before it read them: as many "
+            "counter skips are its own, not the nodes'"
+        )
     print("  (node rejects: crc/counter/length, as the node's Status reports them)")
     return EXIT_OK if result.ok else EXIT_FAILED
 
