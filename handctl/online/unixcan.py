@@ -51,6 +51,7 @@ _LOST_MARK = 0x80
 #: ``RX_FAILED``, which is this transport's own word to its ``HandBus``). A wire entry with any
 #: other bit is a ``_LOST_MARK`` or a malformed datagram.
 _CAN_FLAGS = ff.FD | ff.BRS | ff.ERROR | ff.ESI | ff.EXTENDED
+_NOT_CAN = 0xFF & ~_CAN_FLAGS
 #: bytes: the receive buffer, a full datagram of a handctl sender: ``_BATCH`` frames of the
 #: longest CAN-FD payload. A longer datagram comes cut short (``MSG_TRUNC``), and is dropped
 #: as malformed rather than handed on with its last frame cut.
@@ -348,7 +349,7 @@ class UnixDatagramBus(can.BusABC):
             if offset + length > end:
                 self._malformed(stamp, f"a frame of {length} bytes with {end - offset} left")
                 return True
-            if flags & ~_CAN_FLAGS:
+            if flags & _NOT_CAN:
                 if flags != _LOST_MARK or length != 4:
                     self._malformed(stamp, f"a wire entry of flags 0x{flags:02X}, {length} bytes")
                     return True
