@@ -941,6 +941,13 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
         print(f"  id 0x{fid:03X}: {count} frames, {what}")
     if result.bus_events:
         print("  bus events: " + ", ".join(f"{k} {v}" for k, v in result.bus_events.items()))
+    if result.bus_problem:
+        print(f"  problem: {result.bus_problem} (docs/bringup.md, step 2)")
+    if result.frames_lost:
+        print(
+            f"  this listener lost {result.frames_lost} frames before it read them: as many "
+            "counter skips are its own, not the nodes'"
+        )
     print("  (node rejects: crc/counter/length, as the node's Status reports them)")
     return EXIT_OK if result.ok else EXIT_FAILED
 
@@ -1308,7 +1315,9 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
                             )
             else:
                 emitted = time.monotonic()
-                for batch in listen(bus, seconds, view=view):
+                # a reader that left (``handctl monitor | head -1``) is told nothing more:
+                # listening on would go on for ever, writing to no one
+                for batch in listen(bus, seconds, keep_going=_reader_stays, view=view):
                     for frame_id, data, t_ns in batch:
                         view.observe(frame_id, data, t_ns)
                     if time.monotonic() - emitted >= every:
@@ -1319,6 +1328,11 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     if not on_tty:
         emit(view.snapshot())
     return EXIT_OK
+
+
+def _reader_stays() -> bool:
+    """Whether stdout still has a reader (``_ReaderMayLeave`` notes when it left)."""
+    return not getattr(sys.stdout, "reader_gone", False)
 
 
 def _monitor_log(

@@ -2,7 +2,8 @@
 
 Per message of the DBC that is heard: how many frames, their rate, the last values in units,
 and what a receiver would reject (wrong length, bad CRC, repeated or skipped counter, in the
-protocol's order); frames on ids the DBC does not have are counted by id. It reads a bus and
+protocol's order); frames on ids the DBC does not have are counted by id, and the bus's
+events (error frames, bus-off, frames it dropped as malformed) by kind. It reads a bus and
 never sends, or reads the raw frames of an MCAP log (``handctl run recipe --log``), both
 directions of the wire, at the speed the file can be read.
 
@@ -19,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from handctl.online.bus import EXTENDED_ID_FLAG, HandBus
+from handctl.online.bus import EXTENDED_ID_FLAG, BusEvent, HandBus
 from handctl.online.drivers.finger import fault_names
 from handctl.online.drivers.receiver import CounterCheck, Reject
 from handctl.protocol import Layout, Protocol, node_state_name
@@ -51,6 +52,11 @@ class BusView:
         #: Frames this listener lost before it read them, as far as its bus tells it (the unix
         #: bus does): a gap in a message's counters then may be the listener's, not the node's.
         self.frames_lost = 0
+        #: What the bus said besides frames (``BusEvent``): error frames, bus-off, error-passive,
+        #: frames it dropped as malformed (over 64 bytes, a malformed datagram), by kind, and
+        #: the last detail of each. A flood of them carries no frame, and was shown as nothing.
+        self.bus_events: Counter[str] = Counter()
+        self.last_event: dict[str, str] = {}
 
     def observe(self, frame_id: int, data: bytes, t_ns: int) -> None:
         self.frames += 1
@@ -77,6 +83,13 @@ class BusView:
             else:
                 stats.accepted += 1
                 stats.values = layout.decode(data)[1]
+
+    def note_events(self, events: Iterable[BusEvent]) -> None:
+        """Count what the bus said besides frames (``HandBus.events``)."""
+        for event in events:
+            kind = event.kind.value
+            self.bus_events[kind] += 1
+            self.last_event[kind] = event.detail
 
     def snapshot(self, now_ns: int | None = None) -> dict[str, Any]:
         """The view as JSON-ready data; rates are over the time since the previous snapshot."""
@@ -111,6 +124,8 @@ class BusView:
             "t_s": None if now is None or start is None else round((now - start) * 1e-9, 3),
             "frames": self.frames,
             "frames_lost": self.frames_lost,
+            "bus_events": dict(self.bus_events),
+            "last_event": dict(self.last_event),
             "messages": messages,
             "unknown_ids": {
                 f"0x{fid & ~EXTENDED_ID_FLAG:03X}"
@@ -140,6 +155,11 @@ def table(snapshot: dict[str, Any], title: str) -> Any:
             f"{snapshot['frames_lost']} frames lost by this listener before it read them: "
             "a counter skipped then may be its own gap, not the node's"
         )
+    if snapshot.get("bus_events"):
+        events = ", ".join(f"{k} {v}" for k, v in snapshot["bus_events"].items())
+        last = "; ".join(f"{k}: {v}" for k, v in snapshot.get("last_event", {}).items())
+        line = f"[red]bus events: {events}[/red] (last: {last})"
+        view.caption = line if view.caption is None else f"{view.caption}\n{line}"
     for name, justify in (
         ("id", "right"),
         ("message", "left"),
@@ -183,13 +203,15 @@ def listen(
 ) -> Iterator[list[tuple[int, bytes, int]]]:
     """Batches of ``(id, data, arrival_ns)`` from ``bus`` until ``seconds`` have passed (None:
     until ``keep_going`` says no). Only drains: nothing is ever sent. ``view`` is kept told
-    of the frames the listener lost (``BusView.frames_lost``)."""
+    of the frames the listener lost (``BusView.frames_lost``) and of the bus's events
+    (``BusView.bus_events``)."""
     bus.use_clock(clock)
     end = None if seconds is None else clock() + round(seconds * 1e9)
     while keep_going():
         batch = [(f.arbitration_id, f.data, f.timestamp_ns) for f in bus.drain()]
-        bus.events()
+        events = bus.events()
         if view is not None:
+            view.note_events(events)
             view.frames_lost = bus.transport_counts().get("rx_frames_lost", 0)
         yield batch
         now = clock()

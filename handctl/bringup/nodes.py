@@ -15,9 +15,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from handctl.busload import message_rate
 from handctl.config import HandConfig
 from handctl.hand_protocol import check_protocol, node_message
-from handctl.online.bus import EXTENDED_ID_FLAG, HandBus
+from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, HandBus
 from handctl.online.drivers.finger import FingerLayouts, FingerNode, fault_names
 from handctl.protocol import NodeState, Protocol
 
@@ -25,6 +26,14 @@ from handctl.protocol import NodeState, Protocol
 NODE_KINDS = ("Feedback", "Status", "Heartbeat")
 #: How long a listening loop sleeps between drains (s): short against the queues it empties.
 POLL_S = 0.005
+#: A node whose accepted feedback comes at less than this share of its rate (the DBC's: the
+#: loop rate) is flagged. Far below, not a little: a loaded listener reads late but loses
+#: nothing on a kernel queue, while a node whose frames are mostly rejected (a bad CRC every
+#: other frame, a second sender on its id) has a handful of hertz of a thousand left.
+MIN_FEEDBACK_SHARE = 0.5
+#: Bus events that are the listener's own, not the bus's: a drain that met its limit reads
+#: the rest at the next one.
+LISTENER_EVENTS = frozenset({BusEventKind.RX_BACKLOG.value})
 
 
 @dataclass
@@ -39,7 +48,8 @@ class NodeRow:
     protocol_version: int | None
     firmware: str
     uptime_ms: int | None
-    feedback_hz: float
+    feedback_hz: float  # accepted feedback frames a second
+    feedback_expected_hz: float  # the DBC's rate of the node's Feedback
     heartbeats: int
     statuses: int
     host_rejects: dict[str, int]
@@ -63,6 +73,7 @@ class NodeRow:
             "firmware": self.firmware,
             "uptime_ms": self.uptime_ms,
             "feedback_hz": round(self.feedback_hz, 1),
+            "feedback_expected_hz": round(self.feedback_expected_hz, 1),
             "heartbeats": self.heartbeats,
             "statuses": self.statuses,
             "host_rejects": self.host_rejects,
@@ -81,6 +92,17 @@ class Survey:
     #: Frames on ids that are none of the configured nodes': id -> (what it is, frames).
     foreign: dict[int, tuple[str, int]] = field(default_factory=dict)
     bus_events: dict[str, int] = field(default_factory=dict)
+    #: Frames this listener lost before it read them, as its bus told it (the unix bus does).
+    frames_lost: int = 0
+
+    @property
+    def bus_problem(self) -> str:
+        """The bus's events that say the bus is unwell (error frames, bus-off, frames it
+        dropped as malformed), empty if none: what a node row cannot show."""
+        trouble = {k: n for k, n in self.bus_events.items() if k not in LISTENER_EVENTS}
+        if not trouble:
+            return ""
+        return "bus events: " + ", ".join(f"{k} {n}" for k, n in sorted(trouble.items()))
 
     @property
     def foreign_nodes(self) -> list[str]:
@@ -89,8 +111,13 @@ class Survey:
 
     @property
     def ok(self) -> bool:
-        """Every configured node there, in no fault, of the host's protocol; nobody else."""
-        return all(not row.problem for row in self.rows) and not self.foreign_nodes
+        """Every configured node there, in no fault, of the host's protocol, its feedback
+        coming and accepted; nobody else; a bus without error events."""
+        return (
+            all(not row.problem for row in self.rows)
+            and not self.foreign_nodes
+            and not self.bus_problem
+        )
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -104,6 +131,8 @@ class Survey:
                 for fid, (what, n) in sorted(self.foreign.items())
             ],
             "bus_events": self.bus_events,
+            "bus_problem": self.bus_problem,
+            "frames_lost": self.frames_lost,
         }
 
 
@@ -142,6 +171,7 @@ def survey(
     bus.use_clock(clock)
     bus.drain(limit=10**6)  # what waited before we listened says nothing of now
     bus.events()
+    lost_before = bus.transport_counts().get("rx_frames_lost", 0)
     start = clock()
     end = start + round(seconds * 1e9)
     while True:
@@ -162,13 +192,25 @@ def survey(
             break
         sleep(min(POLL_S, (end - now) * 1e-9))
     elapsed = max((clock() - start) * 1e-9, 1e-9)
+    lost = max(0, bus.transport_counts().get("rx_frames_lost", 0) - lost_before)
     node_ids = {f.node_id for f in hand.fingers}
-    rows = [_row(node, counts[node.node_id], elapsed) for node in nodes]
+    rows = [
+        _row(
+            node,
+            counts[node.node_id],
+            elapsed,
+            message_rate(node.layouts.feedback, hand.bus.loop_rate_hz),
+            lost,
+        )
+        for node in nodes
+    ]
     described = {fid: (describe_id(fid, protocol, node_ids), n) for fid, n in foreign.items()}
-    return Survey(str(bus.spec), elapsed, protocol.version, rows, described, dict(events))
+    return Survey(str(bus.spec), elapsed, protocol.version, rows, described, dict(events), lost)
 
 
-def _row(node: FingerNode, count: Counter[str], elapsed: float) -> NodeRow:
+def _row(
+    node: FingerNode, count: Counter[str], elapsed: float, expected_hz: float, lost: int
+) -> NodeRow:
     present = count["frames"] > 0
     status = node.status
     node_rejects = (
@@ -187,6 +229,10 @@ def _row(node: FingerNode, count: Counter[str], elapsed: float) -> NodeRow:
         problem = f"in FAULT ({', '.join(fault_names(node.fault_bits)) or 'no bits'})"
     elif node.contradiction:
         problem = f"contradicts itself: {node.contradiction}"
+    feedback_hz = count["Feedback"] / elapsed
+    if present:
+        heard = feedback_problem(node.rejects.as_dict(), feedback_hz, expected_hz, lost)
+        problem = "; ".join(p for p in (problem, heard) if p)
     return NodeRow(
         node_id=node.node_id,
         name=node.finger.name,
@@ -196,7 +242,8 @@ def _row(node: FingerNode, count: Counter[str], elapsed: float) -> NodeRow:
         protocol_version=node.protocol_version,
         firmware=node.firmware_text,
         uptime_ms=node.uptime_ms,
-        feedback_hz=count["Feedback"] / elapsed,
+        feedback_hz=feedback_hz,
+        feedback_expected_hz=expected_hz,
         heartbeats=count["Heartbeat"],
         statuses=count["Status"],
         host_rejects={k: v for k, v in node.rejects.as_dict().items() if v},
@@ -204,3 +251,27 @@ def _row(node: FingerNode, count: Counter[str], elapsed: float) -> NodeRow:
         command_age_ms=None if status is None else int(status[5]),
         problem=problem,
     )
+
+
+def feedback_problem(
+    rejects: dict[str, int], feedback_hz: float, expected_hz: float, lost: int
+) -> str:
+    """What is wrong with what a node sent, by the bring-up's own criteria (docs/bringup.md:
+    feedback near its rate, rejects 0); empty if nothing.
+
+    A listener that lost frames itself (``lost``, as its bus told it) skips a counter for
+    each gap it made: that many counter skips are not held against the node, and a low rate
+    says the listener lost frames too."""
+    rejected = dict(rejects)
+    if lost and rejected.get("counter_skip"):
+        rejected["counter_skip"] = max(0, rejected["counter_skip"] - lost)
+    text = ", ".join(f"{k} {n}" for k, n in rejected.items() if n)
+    problems = []
+    if feedback_hz < MIN_FEEDBACK_SHARE * expected_hz:
+        slow = f"feedback {feedback_hz:.0f} Hz accepted, expected {expected_hz:.0f} Hz"
+        if lost:
+            slow += f" (this listener lost {lost} frames itself)"
+        problems.append(slow)
+    if text:
+        problems.append(f"frames rejected: {text}")
+    return "; ".join(problems)

@@ -42,7 +42,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import can
 
 from handctl.config import BusConfig
-from handctl.errors import BusError
+from handctl.errors import BusError, HandctlError
 from handctl.online import frameflags as ff
 from handctl.online.busspec import BusSpec, bus_kwargs, check_socketcan, parse_spec
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
@@ -64,6 +64,8 @@ _CAN_ERR_CRTL = 0x004
 _CAN_ERR_BUSOFF = 0x040
 _CAN_ERR_RESTARTED = 0x100
 _CAN_ERR_CRTL_PASSIVE = 0x30  # rx or tx error-passive bits in data[1]
+#: Flags of what a drain hands on as an event, not a frame.
+_NOT_A_FRAME = ff.ERROR | ff.RX_FAILED
 
 
 @runtime_checkable
@@ -324,8 +326,11 @@ class HandBus:
                 count += 1
                 stamp, frame_id, flags, data = item
                 item = None
-                if flags & ff.ERROR:
-                    self._error_frame(frame_id, data)
+                if flags & _NOT_A_FRAME:
+                    if flags & ff.RX_FAILED:  # the transport dropped what it received
+                        self._event(BusEventKind.RX_FAILED, data.decode("utf-8", "replace"))
+                    else:
+                        self._error_frame(frame_id, data)
                     continue
                 if len(data) > MAX_FRAME_DATA:
                     # no CAN-FD frame is longer; an emulated bus (the unix one, python-can's
@@ -546,6 +551,11 @@ def open_bus(
             bus: can.BusABC = ArrivalStampedVirtualBus(**kwargs)
         else:
             bus = can.Bus(**kwargs)
-    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
+    except HandctlError:
+        raise  # handctl's own (the unix bus's), already saying what is wrong
+    except Exception as exc:
+        # A third-party backend raises what it likes: kvaser without its library a
+        # NameError, socketcand without host and port a TypeError. Each is this bus not
+        # opening, said with the spec; an interrupt (not an Exception) still interrupts.
         raise BusError(f"{parsed}: cannot open the bus: {type(exc).__name__}: {exc}") from None
     return HandBus(bus, parsed, bus_config.fd)

@@ -8,13 +8,15 @@
 - ``socketcan:can0``: a Linux SocketCAN interface. The kernel owns its bit rates; handctl checks
   that the interface exists and says how to configure it when it does not.
 - ``unix:DIRECTORY``: handctl's own python-can interface over Unix datagram sockets, one per
-  participant in DIRECTORY: a bus that crosses processes on one machine without a kernel CAN
-  driver or any network traffic (the simulated hand in its own process, kill tests).
+  participant in DIRECTORY (absolute: ``unix_rule``): a bus that crosses processes on one
+  machine without a kernel CAN driver or any network traffic (the simulated hand in its own
+  process, kill tests).
 - ``INTERFACE:CHANNEL``: any other python-can interface, given the config's CAN-FD bit rates.
 """
 
 from __future__ import annotations
 
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,19 @@ import can
 
 from handctl.config import BusConfig
 from handctl.errors import BusError, ConfigError
+
+#: bytes: the kernel's ``IFNAMSIZ``, the NUL included; a name has one byte fewer at most.
+IFNAMSIZ = 16
+#: The kernel's ``isspace`` (``lib/ctype.c``): tab to carriage return, space, and 0xA0,
+#: applied by ``dev_valid_name`` byte by byte to the name's bytes.
+_KERNEL_SPACE = frozenset(b"\t\n\v\f\r \xa0")
+#: ``/sys/class/net/<name>/type`` of a CAN interface (``ARPHRD_CAN``, linux/if_arp.h).
+ARPHRD_CAN = 280
+#: What a SocketCAN channel must be, said in error messages.
+IFNAME_RULE = (
+    f"a Linux interface name (1 to {IFNAMSIZ - 1} bytes, no '/', ':', whitespace or NUL, "
+    "not '.' or '..'), e.g. can0"
+)
 
 
 @dataclass(frozen=True)
@@ -58,14 +73,43 @@ def parse_spec(
             "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES)) + ")",
             interface,
         )
+    if interface == "socketcan" and not valid_ifname(channel):
+        raise ConfigError("--bus", "channel", IFNAME_RULE, channel)
+    if interface == "unix" and not Path(channel).is_absolute():
+        raise ConfigError("--bus", "channel", unix_rule(channel), channel)
     return BusSpec(interface, channel)
+
+
+def unix_rule(channel: str) -> str:
+    """What a unix bus directory must be, said for ``channel``.
+
+    Absolute: the directory is what the participants share, and a relative one is taken
+    from each process's working directory, so a simulated hand and a host started from two
+    directories with the same spec were on two buses, each hearing nothing. Refused rather
+    than resolved: the user's spec is what every participant must be given, and a resolved
+    one would differ from it without saying so."""
+    return f"an absolute directory (e.g. unix:{Path(channel).absolute()})"
+
+
+def valid_ifname(name: str) -> bool:
+    """Whether the kernel would take ``name`` for a network interface (``dev_valid_name``
+    in net/core/dev.c). Checked where a spec or a hand config is read: a name the kernel
+    never has would otherwise reach a sysfs path (``..``, ``a/b``), a message of any length,
+    or, unquoted, the ``ip link`` command handctl suggests (``can0;reboot``)."""
+    raw = name.encode("utf-8", "surrogateescape")
+    return (
+        0 < len(raw) < IFNAMSIZ
+        and name not in (".", "..")
+        and not any(b in _KERNEL_SPACE or b in b"/:\0" for b in raw)
+    )
 
 
 def check_interface(bus_config: BusConfig, source: str) -> None:
     """Refuse a hand config whose ``bus.interface`` python-can does not know, where the
     config is read (``handctl check``, ``--bus hand``), not when a bring-up tool first opens
     the bus and python-can says "Unknown interface type". The hand config's own loader
-    cannot: it is shared with code that never imports python-can."""
+    cannot: it is shared with code that never imports python-can. A SocketCAN channel
+    must be a name the kernel could have (``valid_ifname``)."""
     if bus_config.interface not in can.VALID_INTERFACES:
         raise ConfigError(
             source,
@@ -73,6 +117,10 @@ def check_interface(bus_config: BusConfig, source: str) -> None:
             "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES)) + ")",
             bus_config.interface,
         )
+    if bus_config.interface == "socketcan" and not valid_ifname(bus_config.channel):
+        raise ConfigError(source, "bus.channel", IFNAME_RULE, bus_config.channel)
+    if bus_config.interface == "unix" and not Path(bus_config.channel).is_absolute():
+        raise ConfigError(source, "bus.channel", unix_rule(bus_config.channel), bus_config.channel)
 
 
 def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:
@@ -96,8 +144,9 @@ def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:
 
 
 def socketcan_setup_command(channel: str, bus_config: BusConfig) -> str:
-    """The `ip link` command that brings a SocketCAN interface up with the hand's bit rates."""
-    cmd = f"sudo ip link set {channel} up type can bitrate {bus_config.bitrate}"
+    """The `ip link` command that brings a SocketCAN interface up with the hand's bit rates,
+    the channel quoted for a shell (it is pasted into one)."""
+    cmd = f"sudo ip link set {shlex.quote(channel)} up type can bitrate {bus_config.bitrate}"
     if bus_config.fd:
         cmd += f" dbitrate {bus_config.data_bitrate} fd on"
     return cmd
@@ -108,7 +157,11 @@ def check_socketcan(
     bus_config: BusConfig,
     sysfs: Path = Path("/sys/class/net"),
 ) -> None:
-    """Refuse a SocketCAN channel that is missing or down, with the command that fixes it."""
+    """Refuse a SocketCAN channel that is no interface name (bad input), missing, not a CAN
+    interface, or down, with the command that fixes it. ``sysfs`` is ``/sys/class/net``, a
+    directory of a test's making in tests."""
+    if not valid_ifname(channel):
+        raise ConfigError("--bus", "channel", IFNAME_RULE, channel)
     node = sysfs / channel
     hint = socketcan_setup_command(channel, bus_config)
     if not node.exists():
@@ -116,6 +169,21 @@ def check_socketcan(
             f"socketcan:{channel}: no such network interface; load the driver and "
             f"configure it with: {hint}"
         )
-    operstate = (node / "operstate").read_text().strip() if (node / "operstate").exists() else ""
-    if operstate == "down":
+    link_type = _read(node / "type")
+    if link_type and link_type != str(ARPHRD_CAN):
+        raise BusError(
+            f"socketcan:{channel}: not a CAN interface (its link type is {link_type[:16]}, "
+            f"a CAN interface's is {ARPHRD_CAN}, ARPHRD_CAN): name the CAN interface "
+            "(`ip -details link show type can` lists them)"
+        )
+    if _read(node / "operstate") == "down":
         raise BusError(f"socketcan:{channel}: interface is down; bring it up with: {hint}")
+
+
+def _read(path: Path) -> str:
+    """A sysfs attribute, stripped; empty if it is not there or cannot be read (a kernel
+    without it: the check it serves is then left to the socket's own error)."""
+    try:
+        return path.read_text().strip()
+    except (OSError, UnicodeDecodeError):
+        return ""

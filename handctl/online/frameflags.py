@@ -14,6 +14,10 @@ BRS = 2  # CAN-FD bit-rate switch
 ERROR = 4  # an error frame: the id is the error class (linux/can/error.h)
 ESI = 8  # CAN-FD error state indicator
 EXTENDED = 16  # a 29-bit identifier
+#: Not a frame: a transport's word that what it received was malformed and dropped (the unix
+#: bus: a datagram cut by its buffer, or one whose contents do not parse); the data is the
+#: reason, UTF-8. Only the transport itself sets it: no frame on the wire can carry it.
+RX_FAILED = 64
 
 
 def message_fields(flags: int) -> dict[str, bool]:

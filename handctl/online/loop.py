@@ -77,6 +77,20 @@ EXCEPTION_TEXT_CHARS = 200
 NO_PHASE = "-"
 
 
+def _no_feedback(rejects: dict[str, int]) -> str:
+    """Why no feedback of a node was taken at start-up: none came, or frames came and every
+    one was rejected (a bad CRC, a second sender on its ids), which points elsewhere than a
+    silent node does (power, wiring) and is said with the counts."""
+    heard = {kind: n for kind, n in rejects.items() if n}
+    if not heard:
+        return "no feedback"
+    kinds = ", ".join(f"{kind} {n}" for kind, n in heard.items())
+    return (
+        f"no feedback accepted: {sum(heard.values())} frames heard and rejected ({kinds}); "
+        "`handctl nodes` shows them"
+    )
+
+
 class EndOfTicks(Exception):  # noqa: N818 - an end, not an error
     """A lockstep clock has no more ticks to give (a re-run reaching the end of its log): the
     run ends where it stands, sending nothing more, and this propagates to the caller.
@@ -478,7 +492,7 @@ class Runtime:
         for n in nodes:
             who = f"node {n.node_id} ({n.finger.name})"
             if n.feedback_ns is None or since is None or n.feedback_ns < since:
-                silent.append(f"{who}: no feedback")
+                silent.append(f"{who}: {_no_feedback(n.rejects.as_dict())}")
             elif n.heartbeat_ns is None or n.heartbeat_ns < since:
                 silent.append(f"{who}: no heartbeat")
             elif n.version_ns is None or n.version_ns < since:

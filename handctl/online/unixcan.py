@@ -47,6 +47,21 @@ TX_QUEUE_FRAMES = 64
 #: sender's word to one receiver that it refused this many frames for it (4 bytes, little
 #: endian) since its last delivery there, at this place in the stream.
 _LOST_MARK = 0x80
+#: The flag bits a frame on the wire may carry: the CAN ones (``frameflags``, not
+#: ``RX_FAILED``, which is this transport's own word to its ``HandBus``). A wire entry with any
+#: other bit is a ``_LOST_MARK`` or a malformed datagram.
+_CAN_FLAGS = ff.FD | ff.BRS | ff.ERROR | ff.ESI | ff.EXTENDED
+_NOT_CAN = 0xFF & ~_CAN_FLAGS
+#: bytes: the receive buffer, a full datagram of a handctl sender: ``_BATCH`` frames of the
+#: longest CAN-FD payload. A longer datagram comes cut short (``MSG_TRUNC``), and is dropped
+#: as malformed rather than handed on with its last frame cut.
+_RECV_BYTES = _BATCH * (_WIRE.size + 64)
+#: frames a second no participant of one machine's unix bus sends (handctl's own burst path
+#: carries some hundred thousand): the frames a receiver is told it lost since it opened,
+#: at this rate and a second more, bound what a ``_LOST_MARK`` may claim. A mark beyond is
+#: no sender's honest word (a forged count of 2**32 - 1 a millisecond made a monitor's
+#: ``frames_lost`` trillions), and its datagram is dropped as malformed.
+MAX_FRAMES_PER_S = 1_000_000
 #: ns: a directory modified longer ago than this is as it was at the last listing if its
 #: modification time has not changed since (``_refresh_peers``).
 _SETTLED_NS = 1_000_000_000
@@ -85,6 +100,13 @@ class UnixDatagramBus(can.BusABC):
     def __init__(
         self, channel: str, receive_own_messages: bool = False, rcvbuf: int = 1 << 22, **kwargs: Any
     ) -> None:
+        if not Path(channel).is_absolute():
+            # the participants share the directory: a relative one is each process's own
+            # (``handctl.online.busspec.unix_rule``)
+            raise ValueError(
+                f"unix bus directory {channel!r}: expected an absolute directory "
+                f"(e.g. {Path(channel).absolute()})"
+            )
         self.directory = Path(channel)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.channel_info = f"unix:{channel}"
@@ -119,6 +141,10 @@ class UnixDatagramBus(can.BusABC):
         self.queue_full = 0
         self.frames_dropped = 0
         self.rx_frames_lost = 0
+        #: Datagrams received and dropped as malformed (cut by the buffer, not parsing, a
+        #: lost count beyond ``MAX_FRAMES_PER_S``), each also said to ``HandBus`` as an event.
+        self.rx_malformed = 0
+        self._opened_s = time.time()
         super().__init__(channel=channel, **kwargs)
 
     @property
@@ -137,6 +163,7 @@ class UnixDatagramBus(can.BusABC):
             "frames_dropped": self.frames_dropped,
             "frames_held": self.held,
             "rx_frames_lost": self.rx_frames_lost,
+            "rx_malformed": self.rx_malformed,
         }
 
     def _refresh_peers(self) -> None:
@@ -293,29 +320,63 @@ class UnixDatagramBus(can.BusABC):
             link.close()
 
     def _read_datagram(self) -> bool:
+        """Read one datagram into the inbox (empty: it is read only then). A malformed one
+        is dropped whole, frames and lost count, and leaves one ``RX_FAILED`` entry saying
+        why: a frame cut short, or a count no sender would send, is not passed on."""
         if not self._ready.poll(0):
             return False
         try:
-            payload, ancillary, _, _ = self._sock.recvmsg(
-                _BATCH * (_WIRE.size + 64), _ANCILLARY_SIZE
-            )
+            payload, ancillary, msg_flags, _ = self._sock.recvmsg(_RECV_BYTES, _ANCILLARY_SIZE)
         except (BlockingIOError, InterruptedError):
             return False
         stamp = _arrival_s(ancillary)
+        inbox = self._inbox
+        if msg_flags & socket.MSG_TRUNC:
+            self._malformed(stamp, f"longer than the {_RECV_BYTES} bytes of the receive buffer")
+            return True
         offset = 0
         size = _WIRE.size
+        end = len(payload)
         unpack = _WIRE.unpack_from
-        append = self._inbox.append
-        while offset + size <= len(payload):
+        append = inbox.append
+        lost = 0
+        while offset < end:
+            if offset + size > end:
+                self._malformed(stamp, f"{end - offset} bytes after its last frame")
+                return True
             _, frame_id, flags, length = unpack(payload, offset)
             offset += size
-            if flags & _LOST_MARK:
-                self.rx_frames_lost += int.from_bytes(payload[offset : offset + length], "little")
+            if offset + length > end:
+                self._malformed(stamp, f"a frame of {length} bytes with {end - offset} left")
+                return True
+            if flags & _NOT_CAN:
+                if flags != _LOST_MARK or length != 4:
+                    self._malformed(stamp, f"a wire entry of flags 0x{flags:02X}, {length} bytes")
+                    return True
+                lost += int.from_bytes(payload[offset : offset + 4], "little")
             else:
                 append((stamp, frame_id, flags, payload[offset : offset + length]))
             offset += length
-        self._inbox.reverse()  # popped from the end, in arrival order
+        if lost:
+            bound = (stamp - self._opened_s + 1.0) * MAX_FRAMES_PER_S
+            if self.rx_frames_lost + lost > bound:
+                self._malformed(
+                    stamp,
+                    f"it says {lost} frames were lost for this participant, "
+                    f"{self.rx_frames_lost} before: more than {MAX_FRAMES_PER_S} a second "
+                    "since it opened",
+                )
+                return True
+            self.rx_frames_lost += lost
+        inbox.reverse()  # popped from the end, in arrival order
         return True
+
+    def _malformed(self, stamp: float, why: str) -> None:
+        """Drop the datagram being read and leave, in its place, the word that it was."""
+        self.rx_malformed += 1
+        self._inbox.clear()
+        reason = f"unix bus: a malformed datagram ({why}): dropped"
+        self._inbox.append((stamp, 0, ff.RX_FAILED, reason.encode()))
 
     def recv_frame(self) -> tuple[float, int, int, bytes] | None:
         """The next frame without waiting, as ``(arrival_s, arbitration_id, flags, data)``
@@ -335,6 +396,8 @@ class UnixDatagramBus(can.BusABC):
         if not self._inbox:
             return None, False
         stamp, frame_id, flags, data = self._inbox.pop()
+        if flags & ff.RX_FAILED:  # python-can's way of saying a receive failed
+            raise can.CanOperationError(data.decode())
         msg = can.Message(
             timestamp=stamp,
             arbitration_id=frame_id,

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from handctl.config import HandConfig
+from handctl.errors import ConfigError
 from handctl.hand_protocol import protocol_for
 from handctl.online.bus import HandBus, open_bus
 from handctl.online.clock import collector_paused, request_realtime
@@ -418,6 +419,16 @@ def standalone(
     ``keep_running``, asked every ``WATCH_PERIOD_S``, ends the run when it turns False (the
     host that started this hand is gone), as Ctrl-C would.
     """
+    if bus_spec == "sim":  # the one spelling ``parse_spec`` takes for it
+        # ``sim`` names this very hand to the commands that listen to it: as the bus it is
+        # to join, it is a user's mix-up (bad input), not a bus that failed to open
+        raise ConfigError(
+            "--bus",
+            "",
+            "the bus this simulated hand joins: unix:DIRECTORY (a host in another process), "
+            "virtual:NAME, hand, or INTERFACE:CHANNEL; 'sim' is the simulated hand itself",
+            bus_spec,
+        )
     bus = open_bus(bus_spec, hand.bus)
     interrupted = False
     try:

@@ -153,3 +153,60 @@ def test_a_log_and_a_bus_at_once_are_refused(
     code = cli.main(["monitor", "--log", str(tmp_path / "x.mcap"), "--bus", "virtual:x"])
     assert code == cli.EXIT_BAD_INPUT and "--log" in capsys.readouterr().err
     assert cli.main(["monitor", "--log", str(tmp_path / "x.mcap")]) == cli.EXIT_BAD_INPUT
+
+
+def _noisy_bus(sim: SimulatedHand) -> None:
+    sim.activate(inj.ErrorFrames(per_tick=1))
+    sim.activate(inj.Babble(id=0x555, per_tick=1, length=70))  # over CAN-FD's 64 bytes
+
+
+def test_error_frames_and_frames_the_bus_drops_are_shown(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Error frames and frames over 64 bytes carry no frame a message could count: a bus
+    flooded with them was shown as nothing at all ("frames": 0) while ``nodes`` counted them."""
+    spec = f"virtual:{channel}"
+    with running_hand(hand, spec, _noisy_bus):
+        code = cli.main(["monitor", "--bus", spec, "--seconds", "0.6", "--every", "0.2"])
+    assert code == cli.EXIT_OK
+    snapshot = _last(capsys.readouterr().out)
+    assert snapshot["bus_events"]["error_frame"] > 10
+    assert snapshot["bus_events"]["rx_failed"] > 10
+    assert "a frame of 70 bytes (id 0x555)" in snapshot["last_event"]["rx_failed"]
+    assert "0x555" not in snapshot["unknown_ids"]  # dropped, not counted as a frame
+    caption = _caption(snapshot)
+    assert "bus events: error_frame" in caption and "rx_failed" in caption
+
+
+def _caption(snapshot: dict[str, Any]) -> str:
+    """The caption the terminal view shows under its table."""
+    from handctl.bringup.monitor import table
+
+    return str(table(snapshot, "t").caption)
+
+
+def test_a_piped_monitor_ends_when_its_reader_leaves(tmp_path: Path) -> None:
+    """``handctl monitor | head -1``: once the reader is gone the monitor ends, exit 0 and
+    no traceback, as every command ends whose reader left; it used to listen for ever.
+    (The timeout only keeps a monitor that never ends from hanging the suite.)"""
+    spec = f"unix:{tmp_path / 'bus'}"
+    monitor = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "monitor", "--bus", spec, "--every", "0.05"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=ROOT,
+    )
+    try:
+        assert monitor.stdout is not None and monitor.stderr is not None
+        assert json.loads(monitor.stdout.readline())["frames"] == 0
+        monitor.stdout.close()  # the reader leaves, as head does
+        code = monitor.wait(timeout=120)
+        err = monitor.stderr.read().decode()
+    finally:
+        monitor.kill()
+        monitor.wait()
+        for stream in (monitor.stdout, monitor.stderr):
+            if stream is not None:
+                stream.close()
+    assert code == cli.EXIT_OK, err
+    assert "Traceback" not in err

@@ -6,6 +6,7 @@ sends a frame."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -165,3 +166,64 @@ def test_on_the_unix_bus_from_another_process(
     assert result.returncode == cli.EXIT_FAILED
     assert problem in rows[node]["problem"]
     assert all(row["problem"] == "" for n, row in rows.items() if n != node)
+
+
+def _corrupt_feedback_1(sim: SimulatedHand) -> None:
+    sim.activate(inj.CorruptCrc(node=1, message="feedback"))
+
+
+def _skipping_feedback_2(sim: SimulatedHand) -> None:
+    sim.activate(inj.CounterSkip(node=2, message="feedback"))
+
+
+@pytest.mark.parametrize(
+    "prepare, node, rejected",
+    [(_corrupt_feedback_1, 1, "crc"), (_skipping_feedback_2, 2, "counter_skip")],
+)
+def test_a_node_whose_feedback_is_heard_and_rejected_is_a_problem(
+    hand: HandConfig,
+    channel: str,
+    capsys: pytest.CaptureFixture[str],
+    prepare: Any,
+    node: int,
+    rejected: str,
+) -> None:
+    """A thousand frames a second heard, none accepted: the row said "ok" and the exit was
+    0, against the bring-up's own criteria (feedback near its rate, rejects 0)."""
+    with running_hand(hand, f"virtual:{channel}", prepare):
+        code, report = _nodes(capsys, "--bus", f"virtual:{channel}")
+    rows = _rows(report)
+    assert code == cli.EXIT_FAILED and not report["ok"]
+    row = rows[node]
+    # the first frame of a stream is taken with any counter: a skipping stream has one
+    assert row["feedback_hz"] < 10 and row["feedback_expected_hz"] == 1000
+    assert row["host_rejects"][rejected] > 10
+    assert re.search(r"feedback \d Hz accepted, expected 1000 Hz", row["problem"])
+    assert f"frames rejected: {rejected} " in row["problem"]
+    assert all(r["problem"] == "" for n, r in rows.items() if n != node)
+
+
+def test_two_senders_of_one_nodes_frames_are_a_problem(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two hands on one bus: every node id twice, each stream's counters interleaved."""
+    spec = f"virtual:{channel}"
+    with running_hand(hand, spec), running_hand(hand, spec):
+        code, report = _nodes(capsys, "--bus", spec)
+    assert code == cli.EXIT_FAILED and not report["ok"]
+    for row in report["nodes"]:
+        assert "counter_skip" in row["host_rejects"] or "counter_repeat" in row["host_rejects"]
+        assert "frames rejected: counter_" in row["problem"]
+
+
+def test_a_bus_with_error_frames_is_a_problem(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with running_hand(
+        hand, f"virtual:{channel}", lambda sim: sim.activate(inj.ErrorFrames(per_tick=1))
+    ):
+        code, report = _nodes(capsys, "--bus", f"virtual:{channel}")
+    assert code == cli.EXIT_FAILED and not report["ok"]
+    assert report["bus_events"]["error_frame"] > 10
+    assert report["bus_problem"].startswith("bus events: error_frame ")
+    assert all(row["problem"] == "" for row in report["nodes"])  # the nodes are fine

@@ -4,6 +4,7 @@ two ticks, faults latch, and only an explicit reset brings torque back, from zer
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -231,3 +232,17 @@ def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Re
     assert seen["states"] == [NodeState.FAULT] * 3
     assert all(bits & 0x01 for bits in seen["faults"])
     assert seen["applied"] == [[0.0, 0.0, 0.0]] * 3
+
+
+def test_start_up_says_feedback_was_heard_and_rejected_not_that_none_came(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """Every feedback frame of node 1 with a bad CRC: a thousand frames a second heard, and
+    start-up said "no feedback", as for a node with no power."""
+    with rig(hand, hold) as r:
+        r.sim.activate(inj.CorruptCrc(node=1, message="feedback"))
+        result = r.run()
+    assert result.outcome is Outcome.STARTUP_FAILED
+    assert "node 1 (f1): no feedback accepted: " in result.message
+    assert re.search(r"\d+ frames heard and rejected \(crc \d+\)", result.message)
+    assert "node 2" not in result.message and "node 3" not in result.message

@@ -9,6 +9,8 @@ import threading
 import time
 from collections import Counter
 
+import pytest
+
 from handctl.config import HandConfig
 from handctl.online.bus import open_bus
 from handctl.sim.hand import SimulatedHand, standalone
@@ -189,3 +191,17 @@ def test_lockstep_follows_the_loop_period(hand: HandConfig, channel: str) -> Non
         assert ticks == [3, 5, 8, 10]  # 2.5 ms periods: simulated time keeps up, no drift
     finally:
         bus.close()
+
+
+def test_a_simulated_hand_asked_to_join_the_sim_bus_is_bad_input(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``sim`` names the simulated hand to the commands that listen to it; as the bus the hand
+    itself joins it is a mix-up of the user's (exit 2, saying what the hand takes), not a bus
+    that failed to open (exit 4, an internal message)."""
+    from handctl import cli
+
+    assert cli.main(["sim", "--bus", "sim", "--seconds", "0.3"]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--bus" in err and "unix:DIRECTORY" in err and "found 'sim'" in err
+    assert "resolved by the caller" not in err

@@ -60,4 +60,5 @@ def test_no_frame_of_the_hand_is_lost_to_a_babbling_node(
         "frames_dropped": 0,
         "frames_held": 0,
         "rx_frames_lost": 0,
+        "rx_malformed": 0,
     }

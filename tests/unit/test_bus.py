@@ -207,3 +207,77 @@ def test_virtual_frames_between_handctl_buses_are_no_messages_and_others_still_h
         (0x1ABCDEF, b"\x05", True, True, True, True),
     ]
     assert [(f.arbitration_id, f.data, f.is_fd) for f in from_plain] == [(0x181, b"\x07", False)]
+
+
+@pytest.mark.parametrize(
+    "spec, raised",
+    [
+        # python-can's socketcand backend takes host and port, not a channel: a TypeError
+        ("socketcand:localhost", "TypeError"),
+        # its kvaser backend without Kvaser's library: a NameError (or, with the library and
+        # no adapter, a CanError): either way, this bus does not open
+        ("kvaser:0", ""),
+    ],
+)
+def test_a_backend_failing_in_its_own_way_is_a_bus_error_naming_the_spec(
+    hand: HandConfig, spec: str, raised: str
+) -> None:
+    with pytest.raises(BusError, match=f"{spec}: cannot open the bus: {raised}"):
+        open_bus(spec, hand.bus)
+
+
+@pytest.mark.parametrize(
+    "channel",
+    [
+        "abcdefghijklmnop",  # 16 bytes: IFNAMSIZ with no room for the NUL
+        "a/b",
+        "../../../proc",
+        ".",
+        "..",
+        "can0 ",
+        "can\n0",
+        "can0:1",
+        "x" * 5000,
+        "ca\u00e0",  # its UTF-8 ends in byte 0xA0, a space to the kernel's isspace
+    ],
+)
+def test_a_socketcan_channel_the_kernel_could_never_name_is_bad_input(
+    hand: HandConfig, channel: str
+) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_spec(f"socketcan:{channel}")
+    assert (info.value.file, info.value.key, info.value.found) == ("--bus", "channel", channel)
+    assert "1 to 15 bytes" in info.value.expected
+    assert len(str(info.value)) < 300, "the name is shortened in the message"
+    # the same channel in a hand config: refused by file and key, by `handctl check` too
+    with pytest.raises(ConfigError) as info:
+        parse_spec("hand", replace(hand.bus, channel=channel), hand.source)
+    assert (info.value.file, info.value.key) == (hand.source, "bus.channel")
+    # and by the open itself, before any sysfs path is made of it
+    with pytest.raises(ConfigError):
+        check_socketcan(channel, hand.bus, sysfs=Path("/nonexistent"))
+
+
+def test_the_longest_interface_name_and_odd_legal_ones_are_taken() -> None:
+    for channel in ("abcdefghijklmno", "can0;reboot", "vcan-1.2", "lo"):
+        assert parse_spec(f"socketcan:{channel}") == BusSpec("socketcan", channel)
+
+
+def test_the_suggested_command_quotes_the_channel_for_the_shell(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    assert socketcan_setup_command("can0;reboot", hand.bus).startswith(
+        "sudo ip link set 'can0;reboot' up type can"
+    )
+    with pytest.raises(BusError, match=r"ip link set 'can0;fd=1' up"):
+        check_socketcan("can0;fd=1", hand.bus, sysfs=tmp_path)
+
+
+def test_an_interface_that_is_not_can_is_named_as_such(hand: HandConfig, tmp_path: Path) -> None:
+    (tmp_path / "lo").mkdir()
+    (tmp_path / "lo" / "type").write_text("772\n")  # ARPHRD_LOOPBACK
+    (tmp_path / "lo" / "operstate").write_text("unknown\n")
+    with pytest.raises(BusError, match=r"socketcan:lo: not a CAN interface \(its link type is 772"):
+        check_socketcan("lo", hand.bus, sysfs=tmp_path)
+    (tmp_path / "lo" / "type").write_text("280\n")
+    check_socketcan("lo", hand.bus, sysfs=tmp_path)

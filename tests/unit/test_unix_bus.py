@@ -10,7 +10,9 @@ never costs the sender a send (on CAN, a listener that does not read overflows i
 from __future__ import annotations
 
 import socket
+import struct
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +20,9 @@ import can
 import pytest
 
 from handctl.config import HandConfig
+from handctl.errors import ConfigError
 from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
+from handctl.online.busspec import parse_spec
 from handctl.online.taps import TAP_TX
 from handctl.online.unixcan import TX_QUEUE_FRAMES, UnixDatagramBus
 
@@ -358,3 +362,81 @@ def test_a_bus_readied_before_its_first_send_is_connected_to_each_receiver(
         assert [f.data for f in got] == [b"\x01"]
     with open_bus(f"virtual:ready-{id(tx)}", hand.bus) as virtual:
         virtual.prepare_send()  # nothing to ready: no error
+
+
+def _hostile_datagram(directory: Path, payload: bytes) -> None:
+    """One datagram of ``payload`` to every participant in ``directory``, from a socket that
+    is none: a peer that writes the wire by hand."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as peer:
+        for path in directory.glob("*.sock"):
+            peer.sendto(payload, str(path))
+
+
+def _wire(frame_id: int, flags: int, data: bytes) -> bytes:
+    return struct.pack("<dIBB", 0.0, frame_id, flags, len(data)) + data
+
+
+@pytest.mark.parametrize(
+    "payload, why",
+    [
+        # 40 frames of 64 bytes: more than the receive buffer holds, so the datagram comes cut
+        (b"".join(_wire(0x181, 1, bytes(64)) for _ in range(40)), "longer than the"),
+        (_wire(0x181, 1, bytes(16))[:-3], "a frame of 16 bytes with 13 left"),
+        (_wire(0x181, 1, bytes(16)) + b"\x00\x01", "2 bytes after its last frame"),
+        (_wire(0x181, 0x40, bytes(8)), "flags 0x40"),  # the transport's own word, forged
+        # a lost count of 2**32 - 1: no sender loses that many frames for anyone in a second
+        (_wire(0, 0x80, (2**32 - 1).to_bytes(4, "little")), "4294967295 frames were lost"),
+    ],
+    ids=["cut-by-the-buffer", "frame-cut-short", "bytes-after", "foreign-flag", "forged-lost"],
+)
+def test_a_malformed_datagram_is_dropped_whole_as_a_receive_failure(
+    open_unix: OpenUnix, tmp_path: Path, payload: bytes, why: str
+) -> None:
+    """A datagram cut by the receive buffer used to be handed on with its last frame cut
+    short, and a forged lost count was added as it came (a monitor's ``frames_lost`` went to
+    trillions). Neither is passed on: the datagram is dropped, said as an ``RX_FAILED``
+    event (as a frame over 64 bytes is, guarantee 55), and counted."""
+    rx, tx = open_unix(), open_unix()
+    _hostile_datagram(tmp_path / "bus", payload)
+    assert tx.send(0x181, b"\x07")
+    got: list[Frame] = []
+    for _ in range(20):  # the drain that meets the failure ends there; the next goes on
+        got += rx.drain()
+        if got:
+            break
+    assert [(f.arbitration_id, f.data) for f in got] == [(0x181, b"\x07")]
+    events = rx.events()
+    assert [e.kind for e in events] == [BusEventKind.RX_FAILED]
+    assert "unix bus: a malformed datagram" in events[0].detail and why in events[0].detail
+    counts = rx.transport_counts()
+    assert counts["rx_malformed"] == 1 and counts["rx_frames_lost"] == 0
+
+
+def test_a_python_can_reader_is_told_of_a_malformed_datagram_as_python_can_says_it(
+    tmp_path: Path,
+) -> None:
+    channel = tmp_path / "bus"
+    with can.Bus(interface="unix", channel=str(channel)) as rx:
+        _hostile_datagram(channel, _wire(0x181, 1, bytes(16))[:-1])
+        with pytest.raises(can.CanOperationError, match="malformed datagram"):
+            rx.recv(timeout=1.0)
+
+
+def test_a_relative_unix_bus_directory_is_refused_not_made(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each process would take it from its own working directory: a hand and a host started
+    from two directories with one spec were on two buses, each hearing nothing."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError) as info:
+        parse_spec("unix:relative_dir")
+    assert (info.value.file, info.value.key) == ("--bus", "channel")
+    assert f"unix:{tmp_path / 'relative_dir'}" in info.value.expected
+    unix_hand = replace(hand.bus, interface="unix", channel="bus")
+    with pytest.raises(ConfigError) as info:
+        parse_spec("hand", unix_hand, hand.source)
+    assert (info.value.file, info.value.key) == (hand.source, "bus.channel")
+    with pytest.raises(ValueError, match="expected an absolute directory"):
+        can.Bus(interface="unix", channel="relative_dir")
+    assert list(tmp_path.iterdir()) == []
+    parse_spec(f"unix:{tmp_path / 'bus'}")  # the documented form
