@@ -362,6 +362,10 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
             "--log RUN.mcap as well (the recording's writer serves the live view)",
             "no --log",
         )
+    if args.live is not None:
+        from handctl.foxglove import check_port_free
+
+        check_port_free(args.live, "--live")
     lockstep = True if args.lockstep else (False if args.realtime else None)
     request = RunRequest(
         hand=hand,
@@ -771,6 +775,10 @@ def _check_replay_options(args: argparse.Namespace) -> None:
 
     _plot_file("--plot", args.plot)
     _output_file("--json", args.json)
+    if args.live is not None:
+        from handctl.foxglove import check_port_free
+
+        check_port_free(args.live, "--live")
     if args.speed is not None and not (args.to_bus or args.live is not None):
         raise ConfigError(
             "--speed",

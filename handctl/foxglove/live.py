@@ -17,6 +17,7 @@ sampled the same way.
 from __future__ import annotations
 
 import struct
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -35,6 +36,8 @@ if TYPE_CHECKING:
     from mcap.records import Channel as McapChannel
     from mcap.records import Schema as McapSchema
 
+#: s, how long closing the live view waits for its clients to let go (``LiveServer.close``)
+CLOSE_TIMEOUT_S = 1.0
 #: The live view's sampling of a per-tick channel: 100 Hz of log time, still a smooth plot
 #: (the 3D scene is written at 50 Hz anyway).
 SAMPLE_PERIOD_NS = 10_000_000
@@ -134,9 +137,19 @@ class LiveServer:
             return
         channel.log(payload, log_time=log_time)
 
-    def close(self) -> None:
-        if self.server is not None:
-            self.server.stop()
+    def close(self, timeout_s: float = CLOSE_TIMEOUT_S) -> bool:
+        """Stop serving; False if the server had not stopped within ``timeout_s`` (s).
+
+        The SDK's stop waits for every client's connection to close, and a client that has
+        stopped reading (a viewer frozen, a laptop asleep) never lets it: a run's writer then
+        did not end for minutes after the hand had stopped, its log long finished. So the
+        stop is waited for a bounded time and then left to the process's end."""
+        if self.server is None:
+            return True
+        stopper = threading.Thread(target=self.server.stop, name="live-stop", daemon=True)
+        stopper.start()
+        stopper.join(timeout_s)
+        return not stopper.is_alive()
 
 
 def serve_recording(

@@ -636,8 +636,12 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
         encoder.finish(
             ch.ENDED_CLOSED if closed else "the control process ended without closing the recorder"
         )
-    if live is not None:
-        live.close()
+    if live is not None and not live.close():
+        # The log is whole and closed; only a viewer that stopped reading holds the server.
+        # Leaving now, without the interpreter's own end (which would wait on the server's
+        # threads again), is all that is left to do.
+        _note("the live view's clients did not let go; the live view is left behind")
+        os._exit(0)
     return 0
 
 

@@ -15,6 +15,7 @@ import socket
 import struct
 import subprocess
 import sys
+import time
 from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -451,37 +452,39 @@ def test_live_refuses_bad_input_with_exit_2(
     assert "--live" in err and "--log RUN.mcap" in err
 
 
-def test_a_port_in_use_fails_the_start_before_the_hand_moves(tmp_path: Path) -> None:
+@pytest.mark.parametrize("command", ["run", "replay"])
+def test_a_port_in_use_is_bad_input_before_anything_starts(
+    tmp_path: Path, run: Run, command: str
+) -> None:
+    """Found out by the writer it emptied an existing log of the --log name and said only
+    that the writer was gone (exit 1); found out by a replay it was the SDK's traceback."""
+    log = tmp_path / "run.mcap"
+    log.write_bytes(run.path.read_bytes())
+    args = {
+        "run": ["run", "recipe", str(RECIPE), "--hand", str(HAND_YAML), "--log", str(log)],
+        "replay": ["replay", str(log)],
+    }[command]
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        env = {**os.environ, "PYTHONPATH": str(ROOT)}
         done = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "handctl",
-                "run",
-                "recipe",
-                str(RECIPE),
-                "--hand",
-                str(HAND_YAML),
-                "--log",
-                str(tmp_path / "run.mcap"),
-                "--live",
-                str(port),
-            ],
+            [sys.executable, "-m", "handctl", *args, "--live", str(port)],
             cwd=tmp_path,
-            env=env,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
             capture_output=True,
             text=True,
             timeout=300,
             check=False,
         )
-    assert done.returncode != 0
-    assert "Traceback" not in done.stderr.split("handctl:")[-1]
-    assert str(port) in done.stderr or "address" in done.stderr.lower(), done.stderr
+    assert done.returncode == 2, done.stderr
+    assert (
+        f"--live: expected a port the live view can listen on at 127.0.0.1, found '{port} ("
+        in done.stderr
+    )
+    assert "Traceback" not in done.stderr
+    assert "live: Foxglove" not in done.stderr and "live: streaming" not in done.stderr
+    assert log.read_bytes() == run.path.read_bytes()
 
 
 def test_replay_live_plays_a_truncated_log_to_its_cut(run: Run, tmp_path: Path) -> None:
@@ -611,3 +614,97 @@ def test_the_live_server_listens_only_once_its_channels_are_there() -> None:
         assert asyncio.run(_first_advertise(port)) == topics
     finally:
         server.close()
+
+
+class _StalledViewer:
+    """A viewer that subscribes to every channel and then stops reading (frozen, asleep): a
+    WebSocket client by hand on a plain socket, since a client library reads for its user."""
+
+    def __init__(self, port: int, proc: subprocess.Popen[bytes]) -> None:
+        self.sock = self._connect(port, proc)
+        key = "dGhlIHNhbXBsZSBub25jZQ=="
+        self.sock.sendall(
+            (
+                f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+                f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+                f"Sec-WebSocket-Version: 13\r\nSec-WebSocket-Protocol: {SUBPROTOCOL}\r\n\r\n"
+            ).encode()
+        )
+        head = b""
+        while b"\r\n\r\n" not in head:
+            head += self._exactly(1)
+        assert head.startswith(b"HTTP/1.1 101"), head
+        while True:
+            opcode, payload = self._frame()
+            if opcode == 1 and json.loads(payload).get("op") == "advertise":
+                channels = json.loads(payload)["channels"]
+                break
+        subs = [{"id": c["id"], "channelId": c["id"]} for c in channels]
+        self._send_text(json.dumps({"op": "subscribe", "subscriptions": subs}).encode())
+
+    @staticmethod
+    def _connect(port: int, proc: subprocess.Popen[bytes]) -> socket.socket:
+        while True:
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            try:
+                sock.connect(("127.0.0.1", port))
+                return sock
+            except OSError:
+                sock.close()
+                assert proc.poll() is None, "ended before its live server accepted"
+                time.sleep(0.05)
+
+    def _exactly(self, n: int) -> bytes:
+        data = b""
+        while len(data) < n:
+            chunk = self.sock.recv(n - len(data))
+            assert chunk, "the server closed"
+            data += chunk
+        return data
+
+    def _frame(self) -> tuple[int, bytes]:
+        first, second = self._exactly(2)
+        n = second & 0x7F
+        if n == 126:
+            (n,) = struct.unpack(">H", self._exactly(2))
+        elif n == 127:
+            (n,) = struct.unpack(">Q", self._exactly(8))
+        return first & 0x0F, self._exactly(n)
+
+    def _send_text(self, payload: bytes) -> None:
+        mask = os.urandom(4)
+        header = bytes([0x81, 0x80 | 126]) + struct.pack(">H", len(payload))
+        if len(payload) < 126:
+            header = bytes([0x81, 0x80 | len(payload)])
+        masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+        self.sock.sendall(header + mask + masked)
+
+
+def test_a_viewer_that_stops_reading_does_not_hold_the_run_at_its_end(tmp_path: Path) -> None:
+    """The SDK's stop waits for every connection to close, and a viewer that stopped
+    reading never lets it: the writer, its log long finished, hung until it was killed 20 s
+    later and the summary lost its recording. The live view is now left behind instead."""
+    port = free_port()
+    summary_path = tmp_path / "summary.json"
+    command = [
+        *(sys.executable, "-m", "handctl", "run", "recipe"),
+        str(RECIPE),
+        *("--lockstep", "--log", str(tmp_path / "run.mcap")),
+        *("--summary-json", str(summary_path), "--live", str(port)),
+    ]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with subprocess.Popen(
+        command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    ) as proc:
+        try:
+            viewer = _StalledViewer(port, proc)
+            _, err = proc.communicate(timeout=300)
+            viewer.sock.close()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, err.decode()
+    recording = json.loads(summary_path.read_text())["recording"]
+    assert "error" not in recording, recording
+    assert recording["ticks"] > 10_000 and recording["writer_exit"] == 0
