@@ -290,17 +290,18 @@ def status_text(line: object) -> str:
 
 
 def _own_miss_text(miss: dict[str, Any]) -> str:
-    """One of handctl's own misses as its trace tells it (``misstrace.describe``)."""
+    """One of handctl's own misses as its trace tells it (``misstrace.describe``); whole
+    microseconds (a 3 s stop read "3.00164e+06 µs late")."""
     over = miss["cpu_over_usual"]
     text = (
         f"handctl's miss at tick {miss['tick']} ({miss['missed']} missed, "
-        f"{miss['late_us']:g} µs late): the tick before ran {miss['cpu_us']:g} µs of CPU"
+        f"{miss['late_us']:.0f} µs late): the tick before ran {miss['cpu_us']:.0f} µs of CPU"
         + (f" ({over:g}x its usual)" if over is not None else "")
     )
     if miss["run_delay_us"] is not None:
         text += (
-            f", waited {miss['run_delay_us']:g} µs for the CPU (usual "
-            f"{miss['usual_run_delay_us']}), {miss['off_cpu_us']:g} µs off it"
+            f", waited {miss['run_delay_us']:.0f} µs for the CPU (usual "
+            f"{miss['usual_run_delay_us']}), {miss['off_cpu_us']:.0f} µs off it"
         )
     text += f", {miss['voluntary_switches']} voluntary switch(es), {miss['page_faults']} fault(s)"
     return text + (f"; in it: {', '.join(miss['notes'])}" if miss["notes"] else "")

@@ -946,3 +946,7 @@ def test_each_own_miss_says_what_the_tick_before_it_did_where_it_was_traced() ->
         "CPU (6.33x its usual), waited 90 µs for the CPU (usual 45.0), 270 µs off it, 0 "
         "voluntary switch(es), 0 fault(s); in it: phase, collection"
     )
+    # a process stopped for 3 s (SIGSTOP) in whole microseconds, not "3.00164e+06"
+    stopped = {**figures["handctl_misses"][0], "late_us": 3001640.0, "off_cpu_us": 3000210.0}
+    assert "(1 missed, 3001640 µs late)" in _own_miss_text(stopped)
+    assert "3000210 µs off it" in _own_miss_text(stopped)
