@@ -9,6 +9,7 @@ code keeps working.
 from __future__ import annotations
 
 import reprlib
+from pathlib import PurePath
 
 
 class HandctlError(Exception):
@@ -53,6 +54,9 @@ def _show(found: object) -> str:
     ``reprlib`` bounds the work as well as the text: a value read from a hostile file (a JSON
     array nested a thousand deep) would otherwise exhaust the recursion limit while the error
     that reports it is being built."""
+    if isinstance(found, PurePath):
+        # a file's name is what the user must find again: whole (the system bounds it)
+        return repr(str(found))
     text = _SHORT.repr(found)
     return text if len(text) <= SHOWN_CHARS else text[: SHOWN_CHARS - 3] + "..."
 

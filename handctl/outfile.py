@@ -30,16 +30,14 @@ def check_writable(path: Path, option: str) -> Path:
         ) from None
     directory = target.parent
     if not directory.is_dir():
-        raise ConfigError(option, "", "a file in an existing directory", str(path))
+        raise ConfigError(option, "", "a file in an existing directory", path)
     if target.exists() and not target.is_file():
-        raise ConfigError(
-            option, "", "a regular file (not a directory, a device or a FIFO)", str(path)
-        )
+        raise ConfigError(option, "", "a regular file (not a directory, a device or a FIFO)", path)
     if target.exists() and _read_only(target):
-        raise ConfigError(option, "", "a file that may be written (it is read-only)", str(path))
+        raise ConfigError(option, "", "a file that may be written (it is read-only)", path)
     if _read_only(directory):
         raise ConfigError(
-            option, "", "a file in a directory that may be written (it is read-only)", str(path)
+            option, "", "a file in a directory that may be written (it is read-only)", path
         )
     return target
 
@@ -61,9 +59,7 @@ def refuse_same_files(
             continue
         key = _identity(path)
         if key in seen:
-            raise ConfigError(
-                option, "", f"another file than {seen[key]}'s (both name it)", str(path)
-            )
+            raise ConfigError(option, "", f"another file than {seen[key]}'s (both name it)", path)
         seen[key] = option
 
 
@@ -95,7 +91,7 @@ def check_image(path: Path, option: str) -> Path:
             option,
             "",
             "a picture file name ending in ." + ", .".join(IMAGE_SUFFIXES),
-            str(path),
+            path,
         )
     return target
 

@@ -64,3 +64,12 @@ def test_run_refuses_a_log_over_its_own_recipe_before_any_work(
     assert cli.main(args) == cli.EXIT_BAD_INPUT
     assert "--log: expected another file than the recipe's" in capsys.readouterr().err
     assert recipe.read_bytes() == before
+
+
+def test_a_long_path_is_named_whole(tmp_path: Path) -> None:
+    """Values in messages are cut at 80 characters; a file's name is what the user must find
+    again, so it is not."""
+    deep = tmp_path.joinpath(*["a_directory_that_is_not_there"] * 6, "run.mcap")
+    with pytest.raises(ConfigError) as info:
+        check_writable(deep, "--log")
+    assert f"found '{deep}'" in str(info.value) and len(str(deep)) > 160
