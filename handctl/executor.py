@@ -26,6 +26,7 @@ its own traceback on the owner's stderr into a pipe nobody reads any more.
 
 from __future__ import annotations
 
+import asyncio
 import concurrent.futures as cf
 import contextlib
 import importlib
@@ -51,9 +52,27 @@ R = TypeVar("R")
 TERMINATE_GRACE_S = 2.0
 #: s, how often a local worker checks that the process that started it is still there
 OWNER_POLL_S = 0.5
-#: s, how long connecting to a Dask scheduler may take
+#: s, how long each step of opening a Dask cluster may take: the whole handshake with the
+#: scheduler, a first worker to be there, and every worker to answer the version check
 CONNECT_TIMEOUT_S = 10.0
-_SCHEDULER = re.compile(r"^(tcp|tls|ws|wss|inproc)://[^\s/:]+(:\d{1,5})?$")
+#: a scheduler address: scheme, host (a name, IPv4 or a bracketed IPv6) and port, all required
+_SCHEDULER = re.compile(r"^(tcp|tls|ws|wss)://([A-Za-z0-9._-]+|\[[0-9A-Fa-f:.]+\]):(\d{1,5})$")
+_SCHEDULER_FORM = (
+    "a Dask scheduler address like tcp://HOST:8786 (tcp, tls, ws or wss; a port 1-65535)"
+)
+#: the schemes whose connection is TLS, set up from Dask's own configuration
+_TLS_SCHEMES = ("tls", "wss")
+
+
+class SchedulerError(ConfigError):
+    """A ``--scheduler`` that cannot be used: the address, what was expected of it, and why
+    it fell short, whole. The why is Dask's own text or ours, and a user needs all of it
+    (``ConfigError`` shortens what it found, which would cut it mid-word)."""
+
+    def __init__(self, address: str, expected: str, reason: str) -> None:
+        super().__init__("--scheduler", "", expected, address)
+        self.reason = reason
+        self.args = (f"{self.args[0]}: {reason}",)
 
 
 def available_cores() -> int:
@@ -112,7 +131,11 @@ class WorkPool:
     """One executor for offline work, with an ordered, cancellable ``map``."""
 
     def __init__(
-        self, executor: cf.Executor, workers: int, where: str, close: Callable[[bool], None]
+        self,
+        executor: cf.Executor,
+        workers: int,
+        where: str,
+        close: Callable[[bool], None],
     ) -> None:
         self.executor = executor
         self.workers = workers
@@ -188,11 +211,15 @@ class Stopwatch:
 
 
 def check_scheduler(address: str) -> str:
-    """The scheduler's address as Dask takes it, or a ``ConfigError`` naming the option."""
-    if not _SCHEDULER.match(address):
-        raise ConfigError(
-            "--scheduler", "", "a Dask scheduler address like tcp://HOST:8786", address
-        )
+    """The scheduler's address as Dask takes it, or a ``ConfigError`` naming the option.
+
+    Everything the address alone shows is checked here, before anything is imported or
+    connected: Dask's own parsing would only fail once connecting (a missing port, an
+    ``inproc://`` address, which is only meaningful inside the one process that holds that
+    cluster), after its retries, with a traceback."""
+    match = _SCHEDULER.match(address)
+    if not match or not 1 <= int(match.group(3)) <= 65535:
+        raise ConfigError("--scheduler", "", _SCHEDULER_FORM, address)
     return address
 
 
@@ -240,6 +267,8 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
 
 
 def _dask_pool(address: str) -> WorkPool:
+    """The cluster at ``address``, checked before any work goes to it: a scheduler that
+    answers Dask's handshake."""
     try:
         distributed: Any = importlib.import_module("distributed")
     except ImportError:
@@ -249,12 +278,14 @@ def _dask_pool(address: str) -> WorkPool:
             "Dask distributed installed (pip install 'handctl[cluster]')",
             address,
         ) from None
+    security = _security(distributed, address)
+    _greet(distributed, address, security)
     try:
-        client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-    except (OSError, TimeoutError) as exc:
-        raise ConfigError(
-            "--scheduler", "", "a reachable Dask scheduler", f"{address} ({exc})"
-        ) from None
+        client = distributed.Client(
+            address, timeout=CONNECT_TIMEOUT_S, set_as_default=False, security=security
+        )
+    except (OSError, TimeoutError) as exc:  # it answered a moment ago: gone since
+        raise SchedulerError(address, "a reachable Dask scheduler", str(exc)) from None
     # pure=False: every submission runs (a pure task of equal inputs would be shared, which is
     # correct but makes a repeated candidate cost nothing and the counts lie)
     executor = client.get_executor(pure=False)
@@ -264,4 +295,67 @@ def _dask_pool(address: str) -> WorkPool:
         executor.shutdown(wait=not cancel)
         client.close()
 
-    return WorkPool(executor, workers, f"the Dask cluster at {address} ({workers} workers)", close)
+    return WorkPool(
+        executor,
+        workers,
+        f"the Dask cluster at {address} ({workers} workers)",
+        close,
+    )
+
+
+def _security(distributed: Any, address: str) -> Any:
+    """Dask's TLS settings for a ``tls://`` or ``wss://`` address, from Dask's own
+    configuration (``distributed.comm.tls.*``, or ``DASK_DISTRIBUTED__COMM__TLS__...``), the
+    one the scheduler and workers are started with: handctl adds no options of its own for
+    them. Without a CA and a client certificate, Dask would fail only once connecting."""
+    security = distributed.Security()  # reads the configuration
+    if address.split("://", 1)[0] not in _TLS_SCHEMES:
+        return security
+    tls_vars = (
+        "DASK_DISTRIBUTED__COMM__TLS__CA_FILE, DASK_DISTRIBUTED__COMM__TLS__CLIENT__CERT "
+        "and DASK_DISTRIBUTED__COMM__TLS__CLIENT__KEY (docs/scale.md)"
+    )
+    try:
+        context = security.get_connection_args("client")["ssl_context"]
+    except (OSError, ValueError) as exc:  # a file named there missing, or not a cert or key
+        raise SchedulerError(
+            address, f"Dask's TLS settings usable: {tls_vars}", f"{type(exc).__name__}: {exc}"
+        ) from None
+    if context is None:
+        raise SchedulerError(
+            address,
+            f"Dask's TLS settings for a TLS address: {tls_vars}",
+            "no CA file and client certificate in Dask's configuration",
+        )
+    return security
+
+
+def _greet(distributed: Any, address: str, security: Any) -> None:
+    """Dask's whole handshake with the scheduler, and its answer to who it is, within
+    ``CONNECT_TIMEOUT_S``. Dask's own client bounds only its connection: a port that accepts
+    and never answers (a bare listening socket), or answers in another protocol (the
+    dashboard's HTTP on 8787, next to the scheduler's 8786), keeps it waiting for ever."""
+
+    async def identify() -> Any:
+        comm = await distributed.comm.connect(
+            address, timeout=CONNECT_TIMEOUT_S, **security.get_connection_args("client")
+        )
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    expected = f"a Dask scheduler that answers within {CONNECT_TIMEOUT_S:g} s"
+    try:
+        answer = asyncio.run(asyncio.wait_for(identify(), CONNECT_TIMEOUT_S))
+    except TimeoutError:
+        raise SchedulerError(
+            address, expected, f"no answer to Dask's handshake in {CONNECT_TIMEOUT_S:g} s"
+        ) from None
+    except Exception as exc:  # whatever a peer speaking another protocol makes Dask raise
+        reason = str(exc) or type(exc).__name__
+        raise SchedulerError(address, expected, reason) from None
+    if not isinstance(answer, dict) or answer.get("type") != "Scheduler":
+        kind = answer.get("type") if isinstance(answer, dict) else type(answer).__name__
+        raise SchedulerError(address, expected, f"it is a Dask {kind}, not a scheduler")

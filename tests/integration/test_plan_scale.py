@@ -190,7 +190,12 @@ def _cmdline(process: psutil.Process) -> list[str]:
         (
             ["--scheduler", "localhost:8786"],
             "handctl: error: --scheduler: expected a Dask scheduler "
-            "address like tcp://HOST:8786, found 'localhost:8786'",
+            "address like tcp://HOST:8786 (tcp, tls, ws or wss; a port 1-65535), "
+            "found 'localhost:8786'",
+        ),
+        (
+            ["--scheduler", "tcp://127.0.0.1"],  # no port: Dask failed on it only connecting
+            "handctl: error: --scheduler: expected a Dask scheduler address like tcp://HOST:8786",
         ),
         (
             ["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"],

@@ -3,18 +3,28 @@ failing task fails the map, cancelling stops the local workers, bad options are 
 
 from __future__ import annotations
 
+import contextlib
+import http.server
 import os
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import psutil
 import pytest
 
+from handctl import executor
 from handctl.errors import ConfigError
-from handctl.executor import Stopwatch, available_cores, check_scheduler, open_pool
+from handctl.executor import (
+    Stopwatch,
+    available_cores,
+    check_scheduler,
+    open_pool,
+)
 from handctl.progress import Progress
 
 from ..conftest import ROOT
@@ -146,20 +156,27 @@ def test_bad_options_are_named() -> None:
         open_pool(0)
     with pytest.raises(
         ConfigError,
-        match=r"--scheduler: expected a Dask scheduler address "
-        r"like tcp://HOST:8786, found 'localhost:8786'",
+        match=r"--scheduler: expected a Dask scheduler address like tcp://HOST:8786 "
+        r"\(tcp, tls, ws or wss; a port 1-65535\), found 'localhost:8786'",
     ):
         check_scheduler("localhost:8786")
     assert check_scheduler("tcp://10.0.0.5:8786") == "tcp://10.0.0.5:8786"
 
 
-def test_an_unreachable_scheduler_is_named() -> None:
-    with pytest.raises(
-        ConfigError,
-        match=r"--scheduler: expected a reachable Dask scheduler, "
-        r"found 'tcp://127.0.0.1:9 \(",
-    ):
+def test_an_unreachable_scheduler_is_named(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The reason is given whole, after the address: cut to a length, it was cut mid-word."""
+    monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 1.0)  # nothing listens there
+    with pytest.raises(ConfigError) as raised:
         open_pool(scheduler="tcp://127.0.0.1:9")
+    found = "found 'tcp://127.0.0.1:9': "
+    assert str(raised.value).startswith(
+        "--scheduler: expected a Dask scheduler that answers within 1 s, " + found
+    )
+    # Dask's own reason, or the handshake's bound if that came first: either one whole
+    assert str(raised.value).split(found)[1] in (
+        "Timed out trying to connect to tcp://127.0.0.1:9 after 1 s",
+        "no answer to Dask's handshake in 1 s",
+    )
 
 
 def test_workers_end_when_their_owner_is_killed() -> None:
@@ -194,3 +211,78 @@ def test_one_worker_advances_the_progress_task_by_task() -> None:
         assert pool.map(task, [0, 1, 2, 3], bar) == [0, 1, 2, 3]
     assert seen == [0, 1, 2, 3]
     assert pool.tasks_run == 4
+
+
+# -- a Dask cluster that cannot be used, or is lost -------------------------------------------
+def _open_in_thread(address: str) -> BaseException | None:
+    """What ``open_pool`` raised for ``address``, or ``None``; it must not wait for ever."""
+    raised: list[BaseException] = []
+
+    def attempt() -> None:
+        try:
+            open_pool(scheduler=address).close()
+        except BaseException as exc:
+            raised.append(exc)
+
+    thread = threading.Thread(target=attempt, daemon=True)
+    thread.start()
+    thread.join(120.0)
+    assert not thread.is_alive(), f"open_pool({address!r}) still waiting"
+    return raised[0] if raised else None
+
+
+@pytest.mark.parametrize(
+    "address",
+    ["tcp://127.0.0.1", "inproc://x", "tcp://127.0.0.1:99999", "tcp://127.0.0.1:0", "ucx://h:1"],
+)
+def test_an_address_dask_cannot_use_is_refused_by_its_form(address: str) -> None:
+    """Dask would take these and fail only once connecting, after its retries."""
+    with pytest.raises(ConfigError, match=r"^--scheduler: expected a Dask scheduler address"):
+        check_scheduler(address)
+
+
+def test_addresses_of_every_accepted_form_pass() -> None:
+    for address in ("tcp://[::1]:8786", "tls://sched.lan:8786", "ws://h:1", "wss://h:65535"):
+        assert check_scheduler(address) == address
+
+
+def test_a_tls_address_without_dask_s_tls_settings_is_refused_at_once() -> None:
+    pytest.importorskip("distributed")
+    with pytest.raises(ConfigError) as raised:
+        open_pool(scheduler="tls://127.0.0.1:9")
+    assert str(raised.value).startswith("--scheduler: expected Dask's TLS settings")
+    assert "DASK_DISTRIBUTED__COMM__TLS__CA_FILE" in str(raised.value)
+    assert "found 'tls://127.0.0.1:9'" in str(raised.value)
+
+
+class _Http(http.server.BaseHTTPRequestHandler):
+    def log_message(self, *_: object) -> None:  # not on the test's stderr
+        pass
+
+
+@pytest.mark.parametrize("peer", ["listen only", "http"])
+def test_a_port_that_does_not_speak_dask_is_refused(
+    peer: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A socket that accepts and never answers, or a server of another protocol (a cluster's
+    dashboard is HTTP, on the port next to the scheduler's): refused, not waited on."""
+    pytest.importorskip("distributed")
+    monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 2.0)  # neither ever answers Dask
+    with contextlib.ExitStack() as stack:
+        if peer == "http":
+            server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Http)
+            threading.Thread(target=server.serve_forever, daemon=True).start()
+            stack.callback(server.server_close)
+            stack.callback(server.shutdown)
+            port = server.server_address[1]
+        else:
+            listener = stack.enter_context(socket.socket())
+            listener.bind(("127.0.0.1", 0))
+            listener.listen()
+            port = listener.getsockname()[1]
+        raised = _open_in_thread(f"tcp://127.0.0.1:{port}")
+    assert isinstance(raised, ConfigError), raised
+    assert str(raised).startswith(
+        f"--scheduler: expected a Dask scheduler that answers within 2 s, "
+        f"found 'tcp://127.0.0.1:{port}': "
+    )
