@@ -62,6 +62,8 @@ _SCHEDULER_FORM = (
 )
 #: the schemes whose connection is TLS, set up from Dask's own configuration
 _TLS_SCHEMES = ("tls", "wss")
+#: workers a message names before it says how many more
+_WORKERS_NAMED = 3
 
 
 class SchedulerError(ConfigError):
@@ -268,7 +270,9 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
 
 def _dask_pool(address: str) -> WorkPool:
     """The cluster at ``address``, checked before any work goes to it: a scheduler that
-    answers Dask's handshake."""
+    answers Dask's handshake, at least one worker, and handctl, at this version, importable on
+    every worker (a worker without it cannot even read a task: Dask only logs that on the
+    worker, and the work waits for ever)."""
     try:
         distributed: Any = importlib.import_module("distributed")
     except ImportError:
@@ -286,6 +290,11 @@ def _dask_pool(address: str) -> WorkPool:
         )
     except (OSError, TimeoutError) as exc:  # it answered a moment ago: gone since
         raise SchedulerError(address, "a reachable Dask scheduler", str(exc)) from None
+    try:
+        _check_workers(client, address)
+    except BaseException:
+        client.close()
+        raise
     # pure=False: every submission runs (a pure task of equal inputs would be shared, which is
     # correct but makes a repeated candidate cost nothing and the counts lie)
     executor = client.get_executor(pure=False)
@@ -359,3 +368,54 @@ def _greet(distributed: Any, address: str, security: Any) -> None:
     if not isinstance(answer, dict) or answer.get("type") != "Scheduler":
         kind = answer.get("type") if isinstance(answer, dict) else type(answer).__name__
         raise SchedulerError(address, expected, f"it is a Dask {kind}, not a scheduler")
+
+
+def _handctl_version() -> Callable[[], str]:
+    """A function that imports handctl and gives its version, made here so that it is
+    pickled by value (it is no module's attribute): by reference, a worker without handctl
+    could not even unpickle it, and would report that as a Dask error, not this one."""
+
+    def version() -> str:
+        import handctl
+
+        return handctl.__version__
+
+    return version
+
+
+def _check_workers(client: Any, address: str) -> None:
+    """At least one worker, and this handctl on every one, before any task goes out."""
+    import handctl
+
+    try:
+        client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+    except TimeoutError:
+        raise SchedulerError(
+            address,
+            "a Dask cluster with at least one worker",
+            f"none in {CONNECT_TIMEOUT_S:g} s",
+        ) from None
+    try:
+        answers: dict[str, Any] = client.run(
+            _handctl_version(), on_error="return", callback_timeout=CONNECT_TIMEOUT_S
+        )
+    except TimeoutError:
+        raise SchedulerError(
+            address,
+            "a Dask cluster whose workers answer",
+            f"no answer from its workers in {CONNECT_TIMEOUT_S:g} s",
+        ) from None
+    wrong = []
+    for worker, answer in sorted(answers.items()):
+        if isinstance(answer, BaseException):
+            wrong.append(f"{worker}: {type(answer).__name__}: {answer}")
+        elif answer != handctl.__version__:
+            wrong.append(f"{worker}: handctl {answer}")
+    if wrong:
+        more = len(wrong) - _WORKERS_NAMED
+        named = "; ".join(wrong[:_WORKERS_NAMED]) + (f"; and {more} more" if more > 0 else "")
+        raise SchedulerError(
+            address,
+            f"handctl {handctl.__version__}, importable, on every worker of the cluster",
+            f"{len(wrong)} of {len(answers)} workers have not: {named}",
+        )

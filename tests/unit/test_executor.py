@@ -286,3 +286,64 @@ def test_a_port_that_does_not_speak_dask_is_refused(
         f"--scheduler: expected a Dask scheduler that answers within 2 s, "
         f"found 'tcp://127.0.0.1:{port}': "
     )
+
+
+def test_a_scheduler_without_workers_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    distributed = pytest.importorskip("distributed")
+    monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 1.0)  # none will ever come
+    with distributed.LocalCluster(
+        n_workers=0, processes=False, protocol="tcp", dashboard_address=None, scheduler_port=0
+    ) as cluster:
+        raised = _open_in_thread(cluster.scheduler_address)
+    assert isinstance(raised, ConfigError), raised
+    assert "expected a Dask cluster with at least one worker" in str(raised)
+
+
+#: worker preloads: one that makes handctl unimportable, one that gives it another version
+NO_HANDCTL = """
+import importlib.abc, sys
+class Refuse(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "handctl":
+            raise ModuleNotFoundError(f"No module named {name!r}")
+sys.meta_path.insert(0, Refuse())
+for name in [n for n in sys.modules if n.split(".")[0] == "handctl"]:
+    del sys.modules[name]
+"""
+OTHER_VERSION = "import handctl\nhandctl.__version__ = '0.0.1'\n"
+
+
+@pytest.mark.parametrize(
+    ("preload", "found"),
+    [
+        (NO_HANDCTL, "ModuleNotFoundError: No module named 'handctl'"),
+        (OTHER_VERSION, ": handctl 0.0.1"),
+    ],
+)
+def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
+    tmp_path: Path, preload: str, found: str
+) -> None:
+    """A worker without handctl cannot read a task: Dask logs it there and the work waits for
+    ever. It is found before any task goes out, and named."""
+    distributed = pytest.importorskip("distributed")
+    import handctl
+
+    script = tmp_path / "preload.py"
+    script.write_text(preload)
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
+        scheduler_port=0,
+        preload=[str(script)],
+    ) as cluster:
+        raised = _open_in_thread(cluster.scheduler_address)
+        (worker,) = cluster.scheduler.workers
+    assert isinstance(raised, ConfigError), raised
+    message = str(raised)
+    assert message.startswith(
+        f"--scheduler: expected handctl {handctl.__version__}, importable, on every worker"
+    )
+    assert f"1 of 1 workers have not: {worker}" in message
+    assert found in message
