@@ -515,7 +515,7 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
 
 # -- plan --------------------------------------------------------------------------------------
 def _cmd_plan(args: argparse.Namespace) -> int:
-    from handctl.executor import Stopwatch, check_scheduler, open_pool
+    from handctl.executor import ClusterLostError, Stopwatch, check_scheduler, open_pool
     from handctl.outfile import refuse_same_files
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
     from handctl.planning.template import load_template
@@ -567,6 +567,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
                 meter=Progress,
                 base=base,
             )
+        except ClusterLostError as exc:  # a failed result (exit 1), and the file is not written
+            raise ClusterLostError(exc.address, "mid-plan", "nothing was written") from None
         finally:
             close_active()
     command = " ".join(

@@ -30,6 +30,7 @@ import asyncio
 import concurrent.futures as cf
 import contextlib
 import importlib
+import logging
 import os
 import re
 import resource
@@ -42,7 +43,7 @@ from multiprocessing.process import BaseProcess
 from types import TracebackType
 from typing import Any, TypeVar
 
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, HandctlError
 from handctl.progress import Progress
 
 T = TypeVar("T")
@@ -62,6 +63,8 @@ _SCHEDULER_FORM = (
 )
 #: the schemes whose connection is TLS, set up from Dask's own configuration
 _TLS_SCHEMES = ("tls", "wss")
+#: the loggers a Dask client reports its lost connection on (each has a level of its own)
+_DASK_CLIENT_LOGGERS = ("distributed", "distributed.client", "distributed.utils")
 #: workers a message names before it says how many more
 _WORKERS_NAMED = 3
 
@@ -75,6 +78,20 @@ class SchedulerError(ConfigError):
         super().__init__("--scheduler", "", expected, address)
         self.reason = reason
         self.args = (f"{self.args[0]}: {reason}",)
+
+
+class ClusterLostError(HandctlError):
+    """The Dask scheduler went away while work ran on it: every result not yet back is lost
+    with it, so the work as a whole failed (a failed result, not bad input: the cluster was
+    usable when the work began). ``when`` and ``then`` are the caller's to say: what was under
+    way, and what came of it."""
+
+    def __init__(self, address: str, when: str = "while the work ran", then: str = "") -> None:
+        self.address = address
+        super().__init__(
+            f"--scheduler {address}: the Dask scheduler was lost {when} "
+            f"(the connection to it closed){'; ' + then if then else ''}"
+        )
 
 
 def available_cores() -> int:
@@ -138,11 +155,13 @@ class WorkPool:
         workers: int,
         where: str,
         close: Callable[[bool], None],
+        lost: Callable[[], ClusterLostError | None] = lambda: None,
     ) -> None:
         self.executor = executor
         self.workers = workers
         self.where = where
         self._close = close
+        self._lost = lost
         self._closed = False
         self.tasks_run = 0  # tasks whose results came back (what a rate is counted in)
 
@@ -152,7 +171,9 @@ class WorkPool:
         """``[fn(x) for x in items]``, run by the pool; results in the order of ``items``.
 
         The first task to fail fails the whole map (the rest are cancelled), and its
-        exception is raised here; ``progress`` advances as tasks finish, in any order."""
+        exception is raised here; ``progress`` advances as tasks finish, in any order. A
+        cluster lost meanwhile cancels every task: that is a ``ClusterLostError`` naming it,
+        not the first cancelled future's bare ``CancelledError``."""
         if isinstance(self.executor, InlineExecutor):  # one by one, so progress moves
             results = []
             for item in items:
@@ -169,9 +190,11 @@ class WorkPool:
                     progress.advance()
             self.tasks_run += len(futures)
             return [f.result() for f in futures]
-        except BaseException:
+        except BaseException as exc:
             for f in futures:
                 f.cancel()
+            if isinstance(exc, Exception) and (lost := self._lost()) is not None:
+                raise lost from None
             raise
 
     def close(self, cancel: bool = False) -> None:
@@ -300,15 +323,36 @@ def _dask_pool(address: str) -> WorkPool:
     executor = client.get_executor(pure=False)
     workers = len(client.scheduler_info().get("workers", {}))
 
+    quiet: list[tuple[logging.Logger, int]] = []
+
     def close(cancel: bool) -> None:
-        executor.shutdown(wait=not cancel)
-        client.close()
+        try:
+            executor.shutdown(wait=not cancel)
+            client.close()
+        finally:
+            for logger, level in quiet:
+                logger.setLevel(level)
+
+    def lost() -> ClusterLostError | None:
+        # the client cancels every future the moment its connection closes, then tries to
+        # reconnect ("connecting") and gives up ("closed")
+        if client.status == "running":
+            return None
+        # its giving up, or being closed while it tries, is logged with a traceback: the
+        # error raised here says it all, in one line, so the log is held until it is closed
+        if not quiet:
+            for name in _DASK_CLIENT_LOGGERS:
+                logger = logging.getLogger(name)
+                quiet.append((logger, logger.level))
+                logger.setLevel(logging.CRITICAL + 1)
+        return ClusterLostError(address)
 
     return WorkPool(
         executor,
         workers,
         f"the Dask cluster at {address} ({workers} workers)",
         close,
+        lost,
     )
 
 

@@ -212,3 +212,58 @@ def test_bad_scale_options_are_named_and_exit_2(
     assert main(["plan", str(TEMPLATE), "-o", str(out), *options]) == 2
     assert capsys.readouterr().err.startswith(message)
     assert not out.exists()
+
+
+#: A scheduler and one worker in one process (threads), which says its address and is killed
+#: (SIGKILL) the moment the first task goes to its worker: the scheduler lost mid-plan, and no
+#: worker process left behind.
+DYING_CLUSTER = """
+import os, signal, time
+from distributed import LocalCluster
+from distributed.diagnostics.plugin import SchedulerPlugin
+
+class DieAtTheFirstTask(SchedulerPlugin):
+    def transition(self, key, start, finish, *args, **kwargs):
+        if finish == "processing":
+            os.kill(os.getpid(), signal.SIGKILL)
+
+cluster = LocalCluster(
+    n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+    dashboard_address=None, scheduler_port=0,
+)
+cluster.scheduler.add_plugin(DieAtTheFirstTask())
+print(cluster.scheduler_address, flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_scheduler_lost_mid_plan_is_a_failed_result_named(tmp_path: Path) -> None:
+    """Killed under the plan, the scheduler takes every result not yet back with it: one line
+    that says so (not Dask's traceback), exit 1, and no recipe."""
+    pytest.importorskip("distributed")
+    out = tmp_path / "r.yaml"
+    with subprocess.Popen(
+        [sys.executable, "-c", DYING_CLUSTER], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    ) as cluster:
+        try:
+            assert cluster.stdout is not None
+            address = cluster.stdout.readline().strip()
+            done = subprocess.run(
+                plan_command(tiny_template(tmp_path), out, "--scheduler", address),
+                cwd=ROOT,
+                text=True,
+                capture_output=True,
+                timeout=300,
+                check=False,
+            )
+            assert cluster.wait(timeout=60) == -signal.SIGKILL  # it was lost, as meant
+        finally:
+            if cluster.poll() is None:
+                cluster.kill()
+    assert done.returncode == 1, done.stderr
+    assert "Traceback" not in done.stderr
+    assert done.stderr.splitlines()[-1] == (
+        f"handctl: error: --scheduler {address}: the Dask scheduler was lost mid-plan "
+        "(the connection to it closed); nothing was written"
+    )
+    assert not out.exists()

@@ -20,6 +20,7 @@ import pytest
 from handctl import executor
 from handctl.errors import ConfigError
 from handctl.executor import (
+    ClusterLostError,
     Stopwatch,
     available_cores,
     check_scheduler,
@@ -214,6 +215,27 @@ def test_one_worker_advances_the_progress_task_by_task() -> None:
 
 
 # -- a Dask cluster that cannot be used, or is lost -------------------------------------------
+#: A scheduler and one worker in one process (threads), which says its address: killing the
+#: process loses the scheduler, and leaves no worker process behind.
+ONE_PROCESS_CLUSTER = """
+import time
+from distributed import LocalCluster
+cluster = LocalCluster(
+    n_workers=1, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=None,
+    scheduler_port=0,
+)
+print(cluster.scheduler_address, flush=True)
+time.sleep(600)
+"""
+
+
+def mark_and_sleep(path: str) -> int:
+    """A task that says it has started, then works on (until its worker is gone)."""
+    Path(path).write_text("started")
+    time.sleep(120.0)
+    return 0
+
+
 def _open_in_thread(address: str) -> BaseException | None:
     """What ``open_pool`` raised for ``address``, or ``None``; it must not wait for ever."""
     raised: list[BaseException] = []
@@ -347,3 +369,42 @@ def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
     )
     assert f"1 of 1 workers have not: {worker}" in message
     assert found in message
+
+
+def test_a_scheduler_lost_while_the_work_runs_is_named(tmp_path: Path) -> None:
+    """The client cancels every task when its scheduler goes: that is the cluster lost, said
+    as such, not the first task's bare ``CancelledError``."""
+    pytest.importorskip("distributed")
+    started = tmp_path / "started"
+    with subprocess.Popen(
+        [sys.executable, "-c", ONE_PROCESS_CLUSTER], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    ) as cluster:
+        try:
+            assert cluster.stdout is not None
+            address = cluster.stdout.readline().strip()
+            raised: list[BaseException] = []
+
+            def work() -> None:
+                try:
+                    with open_pool(scheduler=address) as pool:
+                        pool.map(mark_and_sleep, [str(started)])
+                except BaseException as exc:
+                    raised.append(exc)
+
+            thread = threading.Thread(target=work, daemon=True)
+            thread.start()
+            deadline = time.monotonic() + 120.0
+            while not started.exists() and time.monotonic() < deadline and thread.is_alive():
+                time.sleep(0.05)
+            assert started.exists(), raised
+            cluster.kill()
+            thread.join(120.0)
+            assert not thread.is_alive()
+        finally:
+            if cluster.poll() is None:
+                cluster.kill()
+    assert len(raised) == 1 and isinstance(raised[0], ClusterLostError), raised
+    assert str(raised[0]) == (
+        f"--scheduler {address}: the Dask scheduler was lost while the work ran "
+        "(the connection to it closed)"
+    )
