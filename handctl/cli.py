@@ -554,7 +554,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         base = load_base(args.base, args.start, template, hand, args.schedule_only)
     clock = Stopwatch()
     with open_pool(args.workers, args.scheduler) as pool:
-        where = pool.where
+        where, cpu_counted = pool.where, pool.cpu_counted
         say(f"planning on {where}")
         try:
             result = plan_recipe(
@@ -582,10 +582,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     args.output.write_text(recipe_text(result, command), encoding="utf-8")
     wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
     print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {args.output}")
-    print(
-        f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU (this process and its local workers) "
-        f"on {where}"
-    )
+    print(f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU ({cpu_counted}) on {where}")
     for plan in result.phases:
         print(_planned_phase_line(plan))
     if args.plot:

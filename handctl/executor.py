@@ -156,10 +156,12 @@ class WorkPool:
         where: str,
         close: Callable[[bool], None],
         lost: Callable[[], ClusterLostError | None] = lambda: None,
+        cpu_counted: str = "this process and its local workers",
     ) -> None:
         self.executor = executor
         self.workers = workers
         self.where = where
+        self.cpu_counted = cpu_counted  # whose CPU a ``Stopwatch`` around this pool counts
         self._close = close
         self._lost = lost
         self._closed = False
@@ -353,6 +355,7 @@ def _dask_pool(address: str) -> WorkPool:
         f"the Dask cluster at {address} ({workers} workers)",
         close,
         lost,
+        cpu_counted="this process only, not the cluster's workers",
     )
 
 

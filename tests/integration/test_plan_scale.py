@@ -92,6 +92,7 @@ def test_a_plan_on_a_dask_cluster_equals_the_local_pools(tmp_path: Path, hand: H
         assert done.returncode == 0, done.stderr
         assert "planning on the Dask cluster at tcp://" in done.stderr
         assert "(2 workers)" in done.stderr
+        assert "s CPU (this process only, not the cluster's workers) on the Dask" in done.stdout
         with distributed.Client(cluster.scheduler_address) as client:
             # the tasks ran in the cluster's worker processes: they built the models there
             kept = client.run(_kept_models)
