@@ -338,8 +338,8 @@ OTHER_VERSION = "import handctl\nhandctl.__version__ = '0.0.1'\n"
 @pytest.mark.parametrize(
     ("preload", "found"),
     [
-        (NO_HANDCTL, "ModuleNotFoundError: No module named 'handctl'"),
-        (OTHER_VERSION, ": handctl 0.0.1"),
+        pytest.param(NO_HANDCTL, "ModuleNotFoundError: No module named 'handctl'", id="none"),
+        pytest.param(OTHER_VERSION, ": handctl 0.0.1", id="another version"),
     ],
 )
 def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
