@@ -374,8 +374,19 @@ def _security(distributed: Any, address: str) -> Any:
     try:
         context = security.get_connection_args("client")["ssl_context"]
     except (OSError, ValueError) as exc:  # a file named there missing, or not a cert or key
+        # ssl's errors do not say which file: the settings are named with the reason
+        files = ", ".join(
+            f"{what} {getattr(security, attr)}"
+            for what, attr in (
+                ("CA file", "tls_ca_file"),
+                ("client cert", "tls_client_cert"),
+                ("client key", "tls_client_key"),
+            )
+        )
         raise SchedulerError(
-            address, f"Dask's TLS settings usable: {tls_vars}", f"{type(exc).__name__}: {exc}"
+            address,
+            f"Dask's TLS settings usable: {tls_vars}",
+            f"{type(exc).__name__}: {exc} (of {files})",
         ) from None
     if context is None:
         raise SchedulerError(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import http.server
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -275,6 +276,64 @@ def test_a_tls_address_without_dask_s_tls_settings_is_refused_at_once() -> None:
     assert str(raised.value).startswith("--scheduler: expected Dask's TLS settings")
     assert "DASK_DISTRIBUTED__COMM__TLS__CA_FILE" in str(raised.value)
     assert "found 'tls://127.0.0.1:9'" in str(raised.value)
+
+
+def _self_signed(tmp_path: Path) -> tuple[str, str]:
+    """A certificate (its own CA) and its key, for 127.0.0.1."""
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(
+        [
+            *("openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2"),
+            *("-keyout", str(key), "-out", str(cert), "-subj", "/CN=localhost"),
+            *("-addext", "subjectAltName=IP:127.0.0.1"),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    return str(cert), str(key)
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="makes its certificate with openssl")
+def test_a_tls_cluster_is_used_through_dask_s_own_tls_settings(tmp_path: Path) -> None:
+    """What docs/scale.md says to set for tls:// is all it takes; a file it names that is not
+    there is refused, named."""
+    distributed = pytest.importorskip("distributed")
+    import dask.config
+
+    cert, key = _self_signed(tmp_path)
+    roles = {
+        f"tls_{role}_{part}": path
+        for role in ("scheduler", "worker", "client")
+        for part, path in (("cert", cert), ("key", key))
+    }
+    security = distributed.Security(tls_ca_file=cert, require_encryption=True, **roles)
+    settings = {
+        "distributed.comm.tls.ca-file": cert,
+        "distributed.comm.tls.client.cert": cert,
+        "distributed.comm.tls.client.key": key,
+    }
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tls",
+        security=security,
+        dashboard_address=None,
+        scheduler_port=0,
+    ) as cluster:
+        address = cluster.scheduler_address
+        with dask.config.set(settings), open_pool(scheduler=address) as pool:
+            assert pool.map(abs, [-1, -2]) == [1, 2]
+        missing = str(tmp_path / "missing.pem")
+        with (
+            dask.config.set({**settings, "distributed.comm.tls.ca-file": missing}),
+            pytest.raises(ConfigError) as raised,
+        ):
+            open_pool(scheduler=address)
+    assert str(raised.value).startswith("--scheduler: expected Dask's TLS settings usable")
+    assert f"FileNotFoundError: [Errno 2] No such file or directory (of CA file {missing}" in str(
+        raised.value
+    )
 
 
 class _Http(http.server.BaseHTTPRequestHandler):
