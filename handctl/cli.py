@@ -520,7 +520,7 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
 
 # -- plan --------------------------------------------------------------------------------------
 def _cmd_plan(args: argparse.Namespace) -> int:
-    from handctl.executor import Stopwatch, check_scheduler, open_pool
+    from handctl.executor import ClusterLostError, Stopwatch, check_scheduler, open_pool
     from handctl.outfile import refuse_same_files
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
     from handctl.planning.template import load_template
@@ -559,7 +559,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         base = load_base(args.base, args.start, template, hand, args.schedule_only)
     clock = Stopwatch()
     with open_pool(args.workers, args.scheduler) as pool:
-        where = pool.where
+        where, cpu_counted = pool.where, pool.cpu_counted
         say(f"planning on {where}")
         try:
             result = plan_recipe(
@@ -572,6 +572,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
                 meter=Progress,
                 base=base,
             )
+        except ClusterLostError as exc:  # a failed result (exit 1), and the file is not written
+            raise ClusterLostError(exc.address, "mid-plan", "nothing was written") from None
         finally:
             close_active()
     command = " ".join(
@@ -585,10 +587,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     args.output.write_text(recipe_text(result, command), encoding="utf-8")
     wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
     print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {args.output}")
-    print(
-        f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU (this process and its local workers) "
-        f"on {where}"
-    )
+    print(f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU ({cpu_counted}) on {where}")
     for plan in result.phases:
         print(_planned_phase_line(plan))
     if args.plot:

@@ -26,9 +26,11 @@ its own traceback on the owner's stderr into a pipe nobody reads any more.
 
 from __future__ import annotations
 
+import asyncio
 import concurrent.futures as cf
 import contextlib
 import importlib
+import logging
 import os
 import re
 import resource
@@ -41,7 +43,7 @@ from multiprocessing.process import BaseProcess
 from types import TracebackType
 from typing import Any, TypeVar
 
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, HandctlError
 from handctl.progress import Progress
 
 T = TypeVar("T")
@@ -51,9 +53,45 @@ R = TypeVar("R")
 TERMINATE_GRACE_S = 2.0
 #: s, how often a local worker checks that the process that started it is still there
 OWNER_POLL_S = 0.5
-#: s, how long connecting to a Dask scheduler may take
+#: s, how long each step of opening a Dask cluster may take: the whole handshake with the
+#: scheduler, a first worker to be there, and every worker to answer the version check
 CONNECT_TIMEOUT_S = 10.0
-_SCHEDULER = re.compile(r"^(tcp|tls|ws|wss|inproc)://[^\s/:]+(:\d{1,5})?$")
+#: a scheduler address: scheme, host (a name, IPv4 or a bracketed IPv6) and port, all required
+_SCHEDULER = re.compile(r"^(tcp|tls|ws|wss)://([A-Za-z0-9._-]+|\[[0-9A-Fa-f:.]+\]):(\d{1,5})$")
+_SCHEDULER_FORM = (
+    "a Dask scheduler address like tcp://HOST:8786 (tcp, tls, ws or wss; a port 1-65535)"
+)
+#: the schemes whose connection is TLS, set up from Dask's own configuration
+_TLS_SCHEMES = ("tls", "wss")
+#: the loggers a Dask client reports its lost connection on (each has a level of its own)
+_DASK_CLIENT_LOGGERS = ("distributed", "distributed.client", "distributed.utils")
+#: workers a message names before it says how many more
+_WORKERS_NAMED = 3
+
+
+class SchedulerError(ConfigError):
+    """A ``--scheduler`` that cannot be used: the address, what was expected of it, and why
+    it fell short, whole. The why is Dask's own text or ours, and a user needs all of it
+    (``ConfigError`` shortens what it found, which would cut it mid-word)."""
+
+    def __init__(self, address: str, expected: str, reason: str) -> None:
+        super().__init__("--scheduler", "", expected, address)
+        self.reason = reason
+        self.args = (f"{self.args[0]}: {reason}",)
+
+
+class ClusterLostError(HandctlError):
+    """The Dask scheduler went away while work ran on it: every result not yet back is lost
+    with it, so the work as a whole failed (a failed result, not bad input: the cluster was
+    usable when the work began). ``when`` and ``then`` are the caller's to say: what was under
+    way, and what came of it."""
+
+    def __init__(self, address: str, when: str = "while the work ran", then: str = "") -> None:
+        self.address = address
+        super().__init__(
+            f"--scheduler {address}: the Dask scheduler was lost {when} "
+            f"(the connection to it closed){'; ' + then if then else ''}"
+        )
 
 
 def available_cores() -> int:
@@ -112,12 +150,20 @@ class WorkPool:
     """One executor for offline work, with an ordered, cancellable ``map``."""
 
     def __init__(
-        self, executor: cf.Executor, workers: int, where: str, close: Callable[[bool], None]
+        self,
+        executor: cf.Executor,
+        workers: int,
+        where: str,
+        close: Callable[[bool], None],
+        lost: Callable[[], ClusterLostError | None] = lambda: None,
+        cpu_counted: str = "this process and its local workers",
     ) -> None:
         self.executor = executor
         self.workers = workers
         self.where = where
+        self.cpu_counted = cpu_counted  # whose CPU a ``Stopwatch`` around this pool counts
         self._close = close
+        self._lost = lost
         self._closed = False
         self.tasks_run = 0  # tasks whose results came back (what a rate is counted in)
 
@@ -127,7 +173,9 @@ class WorkPool:
         """``[fn(x) for x in items]``, run by the pool; results in the order of ``items``.
 
         The first task to fail fails the whole map (the rest are cancelled), and its
-        exception is raised here; ``progress`` advances as tasks finish, in any order."""
+        exception is raised here; ``progress`` advances as tasks finish, in any order. A
+        cluster lost meanwhile cancels every task: that is a ``ClusterLostError`` naming it,
+        not the first cancelled future's bare ``CancelledError``."""
         if isinstance(self.executor, InlineExecutor):  # one by one, so progress moves
             results = []
             for item in items:
@@ -144,9 +192,11 @@ class WorkPool:
                     progress.advance()
             self.tasks_run += len(futures)
             return [f.result() for f in futures]
-        except BaseException:
+        except BaseException as exc:
             for f in futures:
                 f.cancel()
+            if isinstance(exc, Exception) and (lost := self._lost()) is not None:
+                raise lost from None
             raise
 
     def close(self, cancel: bool = False) -> None:
@@ -188,11 +238,15 @@ class Stopwatch:
 
 
 def check_scheduler(address: str) -> str:
-    """The scheduler's address as Dask takes it, or a ``ConfigError`` naming the option."""
-    if not _SCHEDULER.match(address):
-        raise ConfigError(
-            "--scheduler", "", "a Dask scheduler address like tcp://HOST:8786", address
-        )
+    """The scheduler's address as Dask takes it, or a ``ConfigError`` naming the option.
+
+    Everything the address alone shows is checked here, before anything is imported or
+    connected: Dask's own parsing would only fail once connecting (a missing port, an
+    ``inproc://`` address, which is only meaningful inside the one process that holds that
+    cluster), after its retries, with a traceback."""
+    match = _SCHEDULER.match(address)
+    if not match or not 1 <= int(match.group(3)) <= 65535:
+        raise ConfigError("--scheduler", "", _SCHEDULER_FORM, address)
     return address
 
 
@@ -240,6 +294,10 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
 
 
 def _dask_pool(address: str) -> WorkPool:
+    """The cluster at ``address``, checked before any work goes to it: a scheduler that
+    answers Dask's handshake, at least one worker, and handctl, at this version, importable on
+    every worker (a worker without it cannot even read a task: Dask only logs that on the
+    worker, and the work waits for ever)."""
     try:
         distributed: Any = importlib.import_module("distributed")
     except ImportError:
@@ -249,19 +307,173 @@ def _dask_pool(address: str) -> WorkPool:
             "Dask distributed installed (pip install 'handctl[cluster]')",
             address,
         ) from None
+    security = _security(distributed, address)
+    _greet(distributed, address, security)
     try:
-        client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-    except (OSError, TimeoutError) as exc:
-        raise ConfigError(
-            "--scheduler", "", "a reachable Dask scheduler", f"{address} ({exc})"
-        ) from None
+        client = distributed.Client(
+            address, timeout=CONNECT_TIMEOUT_S, set_as_default=False, security=security
+        )
+    except (OSError, TimeoutError) as exc:  # it answered a moment ago: gone since
+        raise SchedulerError(address, "a reachable Dask scheduler", str(exc)) from None
+    try:
+        _check_workers(client, address)
+    except BaseException:
+        client.close()
+        raise
     # pure=False: every submission runs (a pure task of equal inputs would be shared, which is
     # correct but makes a repeated candidate cost nothing and the counts lie)
     executor = client.get_executor(pure=False)
     workers = len(client.scheduler_info().get("workers", {}))
 
-    def close(cancel: bool) -> None:
-        executor.shutdown(wait=not cancel)
-        client.close()
+    quiet: list[tuple[logging.Logger, int]] = []
 
-    return WorkPool(executor, workers, f"the Dask cluster at {address} ({workers} workers)", close)
+    def close(cancel: bool) -> None:
+        try:
+            executor.shutdown(wait=not cancel)
+            client.close()
+        finally:
+            for logger, level in quiet:
+                logger.setLevel(level)
+
+    def lost() -> ClusterLostError | None:
+        # the client cancels every future the moment its connection closes, then tries to
+        # reconnect ("connecting") and gives up ("closed")
+        if client.status == "running":
+            return None
+        # its giving up, or being closed while it tries, is logged with a traceback: the
+        # error raised here says it all, in one line, so the log is held until it is closed
+        if not quiet:
+            for name in _DASK_CLIENT_LOGGERS:
+                logger = logging.getLogger(name)
+                quiet.append((logger, logger.level))
+                logger.setLevel(logging.CRITICAL + 1)
+        return ClusterLostError(address)
+
+    return WorkPool(
+        executor,
+        workers,
+        f"the Dask cluster at {address} ({workers} workers)",
+        close,
+        lost,
+        cpu_counted="this process only, not the cluster's workers",
+    )
+
+
+def _security(distributed: Any, address: str) -> Any:
+    """Dask's TLS settings for a ``tls://`` or ``wss://`` address, from Dask's own
+    configuration (``distributed.comm.tls.*``, or ``DASK_DISTRIBUTED__COMM__TLS__...``), the
+    one the scheduler and workers are started with: handctl adds no options of its own for
+    them. Without a CA and a client certificate, Dask would fail only once connecting."""
+    security = distributed.Security()  # reads the configuration
+    if address.split("://", 1)[0] not in _TLS_SCHEMES:
+        return security
+    tls_vars = (
+        "DASK_DISTRIBUTED__COMM__TLS__CA_FILE, DASK_DISTRIBUTED__COMM__TLS__CLIENT__CERT "
+        "and DASK_DISTRIBUTED__COMM__TLS__CLIENT__KEY (docs/scale.md)"
+    )
+    try:
+        context = security.get_connection_args("client")["ssl_context"]
+    except (OSError, ValueError) as exc:  # a file named there missing, or not a cert or key
+        # ssl's errors do not say which file: the settings are named with the reason
+        files = ", ".join(
+            f"{what} {getattr(security, attr)}"
+            for what, attr in (
+                ("CA file", "tls_ca_file"),
+                ("client cert", "tls_client_cert"),
+                ("client key", "tls_client_key"),
+            )
+        )
+        raise SchedulerError(
+            address,
+            f"Dask's TLS settings usable: {tls_vars}",
+            f"{type(exc).__name__}: {exc} (of {files})",
+        ) from None
+    if context is None:
+        raise SchedulerError(
+            address,
+            f"Dask's TLS settings for a TLS address: {tls_vars}",
+            "no CA file and client certificate in Dask's configuration",
+        )
+    return security
+
+
+def _greet(distributed: Any, address: str, security: Any) -> None:
+    """Dask's whole handshake with the scheduler, and its answer to who it is, within
+    ``CONNECT_TIMEOUT_S``. Dask's own client bounds only its connection: a port that accepts
+    and never answers (a bare listening socket), or answers in another protocol (the
+    dashboard's HTTP on 8787, next to the scheduler's 8786), keeps it waiting for ever."""
+
+    async def identify() -> Any:
+        comm = await distributed.comm.connect(
+            address, timeout=CONNECT_TIMEOUT_S, **security.get_connection_args("client")
+        )
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    expected = f"a Dask scheduler that answers within {CONNECT_TIMEOUT_S:g} s"
+    try:
+        answer = asyncio.run(asyncio.wait_for(identify(), CONNECT_TIMEOUT_S))
+    except TimeoutError:
+        raise SchedulerError(
+            address, expected, f"no answer to Dask's handshake in {CONNECT_TIMEOUT_S:g} s"
+        ) from None
+    except Exception as exc:  # whatever a peer speaking another protocol makes Dask raise
+        reason = str(exc) or type(exc).__name__
+        raise SchedulerError(address, expected, reason) from None
+    if not isinstance(answer, dict) or answer.get("type") != "Scheduler":
+        kind = answer.get("type") if isinstance(answer, dict) else type(answer).__name__
+        raise SchedulerError(address, expected, f"it is a Dask {kind}, not a scheduler")
+
+
+def _handctl_version() -> Callable[[], str]:
+    """A function that imports handctl and gives its version, made here so that it is
+    pickled by value (it is no module's attribute): by reference, a worker without handctl
+    could not even unpickle it, and would report that as a Dask error, not this one."""
+
+    def version() -> str:
+        import handctl
+
+        return handctl.__version__
+
+    return version
+
+
+def _check_workers(client: Any, address: str) -> None:
+    """At least one worker, and this handctl on every one, before any task goes out."""
+    import handctl
+
+    try:
+        client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+    except TimeoutError:
+        raise SchedulerError(
+            address,
+            "a Dask cluster with at least one worker",
+            f"none in {CONNECT_TIMEOUT_S:g} s",
+        ) from None
+    try:
+        answers: dict[str, Any] = client.run(
+            _handctl_version(), on_error="return", callback_timeout=CONNECT_TIMEOUT_S
+        )
+    except TimeoutError:
+        raise SchedulerError(
+            address,
+            "a Dask cluster whose workers answer",
+            f"no answer from its workers in {CONNECT_TIMEOUT_S:g} s",
+        ) from None
+    wrong = []
+    for worker, answer in sorted(answers.items()):
+        if isinstance(answer, BaseException):
+            wrong.append(f"{worker}: {type(answer).__name__}: {answer}")
+        elif answer != handctl.__version__:
+            wrong.append(f"{worker}: handctl {answer}")
+    if wrong:
+        more = len(wrong) - _WORKERS_NAMED
+        named = "; ".join(wrong[:_WORKERS_NAMED]) + (f"; and {more} more" if more > 0 else "")
+        raise SchedulerError(
+            address,
+            f"handctl {handctl.__version__}, importable, on every worker of the cluster",
+            f"{len(wrong)} of {len(answers)} workers have not: {named}",
+        )

@@ -92,6 +92,7 @@ def test_a_plan_on_a_dask_cluster_equals_the_local_pools(tmp_path: Path, hand: H
         assert done.returncode == 0, done.stderr
         assert "planning on the Dask cluster at tcp://" in done.stderr
         assert "(2 workers)" in done.stderr
+        assert "s CPU (this process only, not the cluster's workers) on the Dask" in done.stdout
         with distributed.Client(cluster.scheduler_address) as client:
             # the tasks ran in the cluster's worker processes: they built the models there
             kept = client.run(_kept_models)
@@ -190,7 +191,12 @@ def _cmdline(process: psutil.Process) -> list[str]:
         (
             ["--scheduler", "localhost:8786"],
             "handctl: error: --scheduler: expected a Dask scheduler "
-            "address like tcp://HOST:8786, found 'localhost:8786'",
+            "address like tcp://HOST:8786 (tcp, tls, ws or wss; a port 1-65535), "
+            "found 'localhost:8786'",
+        ),
+        (
+            ["--scheduler", "tcp://127.0.0.1"],  # no port: Dask failed on it only connecting
+            "handctl: error: --scheduler: expected a Dask scheduler address like tcp://HOST:8786",
         ),
         (
             ["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"],
@@ -206,4 +212,59 @@ def test_bad_scale_options_are_named_and_exit_2(
     out = tmp_path / "r.yaml"
     assert main(["plan", str(TEMPLATE), "-o", str(out), *options]) == 2
     assert capsys.readouterr().err.startswith(message)
+    assert not out.exists()
+
+
+#: A scheduler and one worker in one process (threads), which says its address and is killed
+#: (SIGKILL) the moment the first task goes to its worker: the scheduler lost mid-plan, and no
+#: worker process left behind.
+DYING_CLUSTER = """
+import os, signal, time
+from distributed import LocalCluster
+from distributed.diagnostics.plugin import SchedulerPlugin
+
+class DieAtTheFirstTask(SchedulerPlugin):
+    def transition(self, key, start, finish, *args, **kwargs):
+        if finish == "processing":
+            os.kill(os.getpid(), signal.SIGKILL)
+
+cluster = LocalCluster(
+    n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+    dashboard_address=None, scheduler_port=0,
+)
+cluster.scheduler.add_plugin(DieAtTheFirstTask())
+print(cluster.scheduler_address, flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_scheduler_lost_mid_plan_is_a_failed_result_named(tmp_path: Path) -> None:
+    """Killed under the plan, the scheduler takes every result not yet back with it: one line
+    that says so (not Dask's traceback), exit 1, and no recipe."""
+    pytest.importorskip("distributed")
+    out = tmp_path / "r.yaml"
+    with subprocess.Popen(
+        [sys.executable, "-c", DYING_CLUSTER], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    ) as cluster:
+        try:
+            assert cluster.stdout is not None
+            address = cluster.stdout.readline().strip()
+            done = subprocess.run(
+                plan_command(tiny_template(tmp_path), out, "--scheduler", address),
+                cwd=ROOT,
+                text=True,
+                capture_output=True,
+                timeout=300,
+                check=False,
+            )
+            assert cluster.wait(timeout=60) == -signal.SIGKILL  # it was lost, as meant
+        finally:
+            if cluster.poll() is None:
+                cluster.kill()
+    assert done.returncode == 1, done.stderr
+    assert "Traceback" not in done.stderr
+    assert done.stderr.splitlines()[-1] == (
+        f"handctl: error: --scheduler {address}: the Dask scheduler was lost mid-plan "
+        "(the connection to it closed); nothing was written"
+    )
     assert not out.exists()

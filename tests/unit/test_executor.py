@@ -3,18 +3,30 @@ failing task fails the map, cancelling stops the local workers, bad options are 
 
 from __future__ import annotations
 
+import contextlib
+import http.server
 import os
+import shutil
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import psutil
 import pytest
 
+from handctl import executor
 from handctl.errors import ConfigError
-from handctl.executor import Stopwatch, available_cores, check_scheduler, open_pool
+from handctl.executor import (
+    ClusterLostError,
+    Stopwatch,
+    available_cores,
+    check_scheduler,
+    open_pool,
+)
 from handctl.progress import Progress
 
 from ..conftest import ROOT
@@ -146,20 +158,27 @@ def test_bad_options_are_named() -> None:
         open_pool(0)
     with pytest.raises(
         ConfigError,
-        match=r"--scheduler: expected a Dask scheduler address "
-        r"like tcp://HOST:8786, found 'localhost:8786'",
+        match=r"--scheduler: expected a Dask scheduler address like tcp://HOST:8786 "
+        r"\(tcp, tls, ws or wss; a port 1-65535\), found 'localhost:8786'",
     ):
         check_scheduler("localhost:8786")
     assert check_scheduler("tcp://10.0.0.5:8786") == "tcp://10.0.0.5:8786"
 
 
-def test_an_unreachable_scheduler_is_named() -> None:
-    with pytest.raises(
-        ConfigError,
-        match=r"--scheduler: expected a reachable Dask scheduler, "
-        r"found 'tcp://127.0.0.1:9 \(",
-    ):
+def test_an_unreachable_scheduler_is_named(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The reason is given whole, after the address: cut to a length, it was cut mid-word."""
+    monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 1.0)  # nothing listens there
+    with pytest.raises(ConfigError) as raised:
         open_pool(scheduler="tcp://127.0.0.1:9")
+    found = "found 'tcp://127.0.0.1:9': "
+    assert str(raised.value).startswith(
+        "--scheduler: expected a Dask scheduler that answers within 1 s, " + found
+    )
+    # Dask's own reason, or the handshake's bound if that came first: either one whole
+    assert str(raised.value).split(found)[1] in (
+        "Timed out trying to connect to tcp://127.0.0.1:9 after 1 s",
+        "no answer to Dask's handshake in 1 s",
+    )
 
 
 def test_workers_end_when_their_owner_is_killed() -> None:
@@ -194,3 +213,257 @@ def test_one_worker_advances_the_progress_task_by_task() -> None:
         assert pool.map(task, [0, 1, 2, 3], bar) == [0, 1, 2, 3]
     assert seen == [0, 1, 2, 3]
     assert pool.tasks_run == 4
+
+
+# -- a Dask cluster that cannot be used, or is lost -------------------------------------------
+#: A scheduler and one worker in one process (threads), which says its address: killing the
+#: process loses the scheduler, and leaves no worker process behind.
+ONE_PROCESS_CLUSTER = """
+import time
+from distributed import LocalCluster
+cluster = LocalCluster(
+    n_workers=1, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=None,
+    scheduler_port=0,
+)
+print(cluster.scheduler_address, flush=True)
+time.sleep(600)
+"""
+
+
+def mark_and_sleep(path: str) -> int:
+    """A task that says it has started, then works on (until its worker is gone)."""
+    Path(path).write_text("started")
+    time.sleep(120.0)
+    return 0
+
+
+def _open_in_thread(address: str) -> BaseException | None:
+    """What ``open_pool`` raised for ``address``, or ``None``; it must not wait for ever."""
+    raised: list[BaseException] = []
+
+    def attempt() -> None:
+        try:
+            open_pool(scheduler=address).close()
+        except BaseException as exc:
+            raised.append(exc)
+
+    thread = threading.Thread(target=attempt, daemon=True)
+    thread.start()
+    thread.join(120.0)
+    assert not thread.is_alive(), f"open_pool({address!r}) still waiting"
+    return raised[0] if raised else None
+
+
+@pytest.mark.parametrize(
+    "address",
+    ["tcp://127.0.0.1", "inproc://x", "tcp://127.0.0.1:99999", "tcp://127.0.0.1:0", "ucx://h:1"],
+)
+def test_an_address_dask_cannot_use_is_refused_by_its_form(address: str) -> None:
+    """Dask would take these and fail only once connecting, after its retries."""
+    with pytest.raises(ConfigError, match=r"^--scheduler: expected a Dask scheduler address"):
+        check_scheduler(address)
+
+
+def test_addresses_of_every_accepted_form_pass() -> None:
+    for address in ("tcp://[::1]:8786", "tls://sched.lan:8786", "ws://h:1", "wss://h:65535"):
+        assert check_scheduler(address) == address
+
+
+def test_a_tls_address_without_dask_s_tls_settings_is_refused_at_once() -> None:
+    pytest.importorskip("distributed")
+    with pytest.raises(ConfigError) as raised:
+        open_pool(scheduler="tls://127.0.0.1:9")
+    assert str(raised.value).startswith("--scheduler: expected Dask's TLS settings")
+    assert "DASK_DISTRIBUTED__COMM__TLS__CA_FILE" in str(raised.value)
+    assert "found 'tls://127.0.0.1:9'" in str(raised.value)
+
+
+def _self_signed(tmp_path: Path) -> tuple[str, str]:
+    """A certificate (its own CA) and its key, for 127.0.0.1."""
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(
+        [
+            *("openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2"),
+            *("-keyout", str(key), "-out", str(cert), "-subj", "/CN=localhost"),
+            *("-addext", "subjectAltName=IP:127.0.0.1"),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    return str(cert), str(key)
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="makes its certificate with openssl")
+def test_a_tls_cluster_is_used_through_dask_s_own_tls_settings(tmp_path: Path) -> None:
+    """What docs/scale.md says to set for tls:// is all it takes; a file it names that is not
+    there is refused, named."""
+    distributed = pytest.importorskip("distributed")
+    import dask.config
+
+    cert, key = _self_signed(tmp_path)
+    roles = {
+        f"tls_{role}_{part}": path
+        for role in ("scheduler", "worker", "client")
+        for part, path in (("cert", cert), ("key", key))
+    }
+    security = distributed.Security(tls_ca_file=cert, require_encryption=True, **roles)
+    settings = {
+        "distributed.comm.tls.ca-file": cert,
+        "distributed.comm.tls.client.cert": cert,
+        "distributed.comm.tls.client.key": key,
+    }
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tls",
+        security=security,
+        dashboard_address=None,
+        scheduler_port=0,
+    ) as cluster:
+        address = cluster.scheduler_address
+        with dask.config.set(settings), open_pool(scheduler=address) as pool:
+            assert pool.map(abs, [-1, -2]) == [1, 2]
+        missing = str(tmp_path / "missing.pem")
+        with (
+            dask.config.set({**settings, "distributed.comm.tls.ca-file": missing}),
+            pytest.raises(ConfigError) as raised,
+        ):
+            open_pool(scheduler=address)
+    assert str(raised.value).startswith("--scheduler: expected Dask's TLS settings usable")
+    assert f"FileNotFoundError: [Errno 2] No such file or directory (of CA file {missing}" in str(
+        raised.value
+    )
+
+
+class _Http(http.server.BaseHTTPRequestHandler):
+    def log_message(self, *_: object) -> None:  # not on the test's stderr
+        pass
+
+
+@pytest.mark.parametrize("peer", ["listen only", "http"])
+def test_a_port_that_does_not_speak_dask_is_refused(
+    peer: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A socket that accepts and never answers, or a server of another protocol (a cluster's
+    dashboard is HTTP, on the port next to the scheduler's): refused, not waited on."""
+    pytest.importorskip("distributed")
+    monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 2.0)  # neither ever answers Dask
+    with contextlib.ExitStack() as stack:
+        if peer == "http":
+            server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Http)
+            threading.Thread(target=server.serve_forever, daemon=True).start()
+            stack.callback(server.server_close)
+            stack.callback(server.shutdown)
+            port = server.server_address[1]
+        else:
+            listener = stack.enter_context(socket.socket())
+            listener.bind(("127.0.0.1", 0))
+            listener.listen()
+            port = listener.getsockname()[1]
+        raised = _open_in_thread(f"tcp://127.0.0.1:{port}")
+    assert isinstance(raised, ConfigError), raised
+    assert str(raised).startswith(
+        f"--scheduler: expected a Dask scheduler that answers within 2 s, "
+        f"found 'tcp://127.0.0.1:{port}': "
+    )
+
+
+def test_a_scheduler_without_workers_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    distributed = pytest.importorskip("distributed")
+    monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 1.0)  # none will ever come
+    with distributed.LocalCluster(
+        n_workers=0, processes=False, protocol="tcp", dashboard_address=None, scheduler_port=0
+    ) as cluster:
+        raised = _open_in_thread(cluster.scheduler_address)
+    assert isinstance(raised, ConfigError), raised
+    assert "expected a Dask cluster with at least one worker" in str(raised)
+
+
+#: worker preloads: one that makes handctl unimportable, one that gives it another version
+NO_HANDCTL = """
+import importlib.abc, sys
+class Refuse(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "handctl":
+            raise ModuleNotFoundError(f"No module named {name!r}")
+sys.meta_path.insert(0, Refuse())
+for name in [n for n in sys.modules if n.split(".")[0] == "handctl"]:
+    del sys.modules[name]
+"""
+OTHER_VERSION = "import handctl\nhandctl.__version__ = '0.0.1'\n"
+
+
+@pytest.mark.parametrize(
+    ("preload", "found"),
+    [
+        pytest.param(NO_HANDCTL, "ModuleNotFoundError: No module named 'handctl'", id="none"),
+        pytest.param(OTHER_VERSION, ": handctl 0.0.1", id="another version"),
+    ],
+)
+def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
+    tmp_path: Path, preload: str, found: str
+) -> None:
+    """A worker without handctl cannot read a task: Dask logs it there and the work waits for
+    ever. It is found before any task goes out, and named."""
+    distributed = pytest.importorskip("distributed")
+    import handctl
+
+    script = tmp_path / "preload.py"
+    script.write_text(preload)
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
+        scheduler_port=0,
+        preload=[str(script)],
+    ) as cluster:
+        raised = _open_in_thread(cluster.scheduler_address)
+        (worker,) = cluster.scheduler.workers
+    assert isinstance(raised, ConfigError), raised
+    message = str(raised)
+    assert message.startswith(
+        f"--scheduler: expected handctl {handctl.__version__}, importable, on every worker"
+    )
+    assert f"1 of 1 workers have not: {worker}" in message
+    assert found in message
+
+
+def test_a_scheduler_lost_while_the_work_runs_is_named(tmp_path: Path) -> None:
+    """The client cancels every task when its scheduler goes: that is the cluster lost, said
+    as such, not the first task's bare ``CancelledError``."""
+    pytest.importorskip("distributed")
+    started = tmp_path / "started"
+    with subprocess.Popen(
+        [sys.executable, "-c", ONE_PROCESS_CLUSTER], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    ) as cluster:
+        try:
+            assert cluster.stdout is not None
+            address = cluster.stdout.readline().strip()
+            raised: list[BaseException] = []
+
+            def work() -> None:
+                try:
+                    with open_pool(scheduler=address) as pool:
+                        pool.map(mark_and_sleep, [str(started)])
+                except BaseException as exc:
+                    raised.append(exc)
+
+            thread = threading.Thread(target=work, daemon=True)
+            thread.start()
+            deadline = time.monotonic() + 120.0
+            while not started.exists() and time.monotonic() < deadline and thread.is_alive():
+                time.sleep(0.05)
+            assert started.exists(), raised
+            cluster.kill()
+            thread.join(120.0)
+            assert not thread.is_alive()
+        finally:
+            if cluster.poll() is None:
+                cluster.kill()
+    assert len(raised) == 1 and isinstance(raised[0], ClusterLostError), raised
+    assert str(raised[0]) == (
+        f"--scheduler {address}: the Dask scheduler was lost while the work ran "
+        "(the connection to it closed)"
+    )
