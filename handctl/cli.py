@@ -1138,7 +1138,10 @@ def _write_calibration(
                 f"--write: {args.hand} changed while the calibration ran; nothing written "
                 "(the offsets measured are above; calibrate again)"
             )
-        _write_output("-o" if args.output is not None else "--write", written, edited.text)
+        out = edited.text
+        if b"\r\n" in args.hand.read_bytes():  # read with its line ends made \n: put back
+            out = out.replace("\n", "\r\n")
+        _write_output("-o" if args.output is not None else "--write", written, out)
         new_hash = load_hand(target, args.dbc).config_hash
         print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))
         if new_hash != hand.config_hash:

@@ -144,6 +144,19 @@ def test_write_keeps_what_was_saved_into_the_hand_config_during_the_run(
     assert load_hand(copy).joints[0].tdt.offset == 0.0
 
 
+def test_a_hand_config_with_crlf_line_ends_keeps_them(tmp_path: Path) -> None:
+    """Written from the text as read (its line ends made \\n), every line of the copy
+    differed from the original's."""
+    copy = tmp_path / "hand.yaml"
+    copy.write_bytes(HAND_YAML.read_bytes().replace(b"\n", b"\r\n"))
+    out = tmp_path / "calibrated.yaml"
+    args = ["calibrate", "tdt", "--hand", str(copy), "-o", str(out), "--seconds", "0.2"]
+    assert cli.main(args) == cli.EXIT_OK
+    written = out.read_bytes()
+    assert written.count(b"\n") == written.count(b"\r\n") > 100
+    assert load_hand(out).joints[0].tdt.offset != 0.0
+
+
 def _read_only_hand(tmp_path: Path) -> list[str]:
     copy = tmp_path / "hand.yaml"
     shutil.copy(HAND_YAML, copy)
