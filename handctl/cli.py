@@ -120,6 +120,14 @@ def _output_file(option: str, path: Path | None) -> None:
         check_writable(path, option)
 
 
+def _refuse_same_files(outputs: dict[str, Path | None], inputs: dict[str, Path | None]) -> None:
+    """``outfile.refuse_same_files``: an output that names an input or another output is
+    refused before the work (it replaced a DBC, a hand config or a recording, exit 0)."""
+    from handctl.outfile import refuse_same_files
+
+    refuse_same_files(outputs, inputs)
+
+
 def _plot_file(option: str, path: Path | None) -> None:
     """An option naming a picture to draw: a file that can be written, in a format a plot can
     be written in (``outfile.check_image``), asked before the work."""
@@ -162,6 +170,7 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
             args.seconds,
         )
     _output_file("--json", args.json)
+    _refuse_same_files({"--json": args.json}, {"HAND.yaml": args.hand})
     hand = _load_hand(args.hand, "HAND.yaml")
     _progress(
         f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for "
@@ -244,6 +253,7 @@ def _cmd_analyze_torque_set(args: argparse.Namespace) -> int:
 
     _output_file("--json", args.json)
     _plot_file("--plot", args.plot)
+    _refuse_same_files({"--json": args.json, "--plot": args.plot}, {"SCENARIO.yaml": args.scenario})
     if not all(math.isfinite(k) and abs(k) <= MAX_TORQUE_RATIO for k in args.k):
         raise ConfigError(
             "--k", "", f"two finite ratios within ±{MAX_TORQUE_RATIO:g}", " ".join(map(str, args.k))
@@ -336,7 +346,6 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
 
     from handctl.online.clock import Hygiene
     from handctl.online.recipes.loader import load_recipe
-    from handctl.outfile import refuse_same_files
     from handctl.session import RunRequest, run_recipe
 
     _positive_seconds("--max-seconds", args.max_seconds)
@@ -344,7 +353,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     _plot_file("--plot", args.plot)
     # a FIFO blocked the run in open() for good, deaf to Ctrl-C; a device lost the log
     _output_file("--log", args.log)
-    refuse_same_files(
+    _refuse_same_files(
         {"--log": args.log, "--summary-json": args.summary_json, "--plot": args.plot},
         {
             "the recipe": args.recipe,
@@ -521,14 +530,16 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
 # -- plan --------------------------------------------------------------------------------------
 def _cmd_plan(args: argparse.Namespace) -> int:
     from handctl.executor import ClusterLostError, Stopwatch, check_scheduler, open_pool
-    from handctl.outfile import refuse_same_files
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
     from handctl.planning.template import load_template
     from handctl.progress import Progress, close_active, say
 
     _output_file("-o", args.output)
     # -o the --base is how a recipe is re-planned in place (the base is read first)
-    refuse_same_files({"-o": args.output}, {"the template": args.template, "--hand": args.hand})
+    _refuse_same_files(
+        {"-o": args.output, "--plot": args.plot},
+        {"the template": args.template, "--hand": args.hand},
+    )
     if args.models is not None and args.models < 1:
         raise ConfigError("--models", "", "at least 1 model", args.models)
     if args.workers is not None and args.workers < 1:
@@ -803,6 +814,14 @@ def _check_replay_options(args: argparse.Namespace) -> None:
         )
     if args.export and args.export[0] not in LOG_FORMATS:
         raise ConfigError("--export", "FORMAT", "one of " + ", ".join(LOG_FORMATS), args.export[0])
+    export = Path(args.export[1]) if args.export else None
+    if export is not None:
+        _output_file("--export", export)
+    # an export or a summary written over the recording it was read from emptied it, exit 0
+    _refuse_same_files(
+        {"--json": args.json, "--plot": args.plot, "--export": export},
+        {"the recording": Path(args.log)},
+    )
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -986,6 +1005,10 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     from handctl.bringup.hand_edit import format_offset
     from handctl.outfile import check_writable
 
+    # before the DBC is read: one that -o or --json names would be replaced at the end (the
+    # two against each other and the hand config are asked below, with what --write means)
+    for option, output in (("-o", args.output), ("--json", args.json)):
+        _refuse_same_files({option: output}, {"--dbc": args.dbc, "--sim-faults": args.sim_faults})
     hand = _load_hand(args.hand, "--hand", args.dbc)
     _refuse_what_check_refuses(hand, args.hand)
     if args.output is None and not args.write:

@@ -73,3 +73,45 @@ def test_a_long_path_is_named_whole(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
         check_writable(deep, "--log")
     assert f"found '{deep}'" in str(info.value) and len(str(deep)) > 160
+
+
+@pytest.mark.parametrize(
+    "command, victim, says",
+    [
+        (["replay", "{f}", "--export", "candump", "{f}"], "run.mcap", "--export"),
+        (["replay", "{f}", "--json", "{f}"], "run.mcap", "--json"),
+        (["calibrate", "tdt", "--dbc", "{f}", "-o", "{f}"], "hand.dbc", "-o"),
+        (
+            ["calibrate", "tdt", "--dbc", "{f}", "-o", "x.yaml", "--json", "{f}"],
+            "hand.dbc",
+            "--json",
+        ),
+        (["check", "--timing", "{f}", "--json", "{f}"], "hand.yaml", "--json"),
+        (["analyze", "torque-set", "{f}", "--k", "1", "1", "--json", "{f}"], "s.yaml", "--json"),
+    ],
+    ids=[
+        "replay-export",
+        "replay-json",
+        "calibrate-o-dbc",
+        "calibrate-json-dbc",
+        "check",
+        "analyze",
+    ],
+)
+def test_no_command_writes_over_what_it_reads(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    command: list[str],
+    victim: str,
+    says: str,
+) -> None:
+    """Each replaced its input (a recording emptied by an export, a DBC or a hand config
+    overwritten by a summary) and exited 0; refused before any work now, the file as it was."""
+    from handctl import cli
+
+    path = tmp_path / victim
+    path.write_bytes(b"what the user keeps\n")
+    args = [a.replace("{f}", str(path)) for a in command]
+    assert cli.main([a if a != "x.yaml" else str(tmp_path / a) for a in args]) == 2
+    assert f"{says}: expected another file than " in capsys.readouterr().err
+    assert path.read_bytes() == b"what the user keeps\n"
