@@ -440,6 +440,16 @@ def _compile(message: Any, source: str, send_choices: list[str]) -> Layout:
                 "a finite factor > 0 and a finite offset",
                 f"factor {sig.scale}, offset {sig.offset}",
             )
+        low, high = sig.minimum, sig.maximum
+        if low is not None and high is not None and not low <= high:
+            # a range turned over holds no value: every frame of it was refused mid-run (a
+            # jog stopped on CLOCK_EXCEPTION) or the host had a limit it could not send
+            raise ConfigError(
+                source,
+                f"{where}.{sig.name}",
+                "a range [min|max] with min <= max",
+                f"[{low}|{high}]",
+            )
         specs.append(
             SignalSpec(
                 name=sig.name,

@@ -124,6 +124,19 @@ def test_a_signal_factor_that_is_not_positive_is_refused(
     assert says in str(info.value)
 
 
+def test_a_signal_range_turned_over_is_refused(tmp_path: Path) -> None:
+    """[3.2767|-3.2768] holds no value: jog stopped on CLOCK_EXCEPTION with a traceback."""
+    text = DEFAULT_DBC.read_text()
+    old = "SG_ Angle1 : 64|16@1- (0.0001,0) [-3.2768|3.2767]"
+    assert old in text
+    path = tmp_path / "bad.dbc"
+    path.write_text(text.replace(old, "SG_ Angle1 : 64|16@1- (0.0001,0) [3.2767|-3.2768]", 1))
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    assert info.value.key == "Feedback_1.Angle1"
+    assert info.value.expected == "a range [min|max] with min <= max"
+
+
 def test_missing_dbc(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="no such file"):
         load_protocol(tmp_path / "none.dbc")
