@@ -35,6 +35,7 @@ import os
 import re
 import resource
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -414,18 +415,42 @@ def _greet(distributed: Any, address: str, security: Any) -> None:
             comm.abort()
 
     expected = f"a Dask scheduler that answers within {CONNECT_TIMEOUT_S:g} s"
+    host, port = _host_and_port(address)
+    try:
+        # Dask retries a name that does not resolve or a port nobody listens on until its
+        # timeout; both are known in milliseconds
+        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError as exc:
+        raise SchedulerError(address, expected, f"{host} does not resolve ({exc})") from None
+    try:
+        with socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S):
+            pass
+    except ConnectionRefusedError as exc:
+        raise SchedulerError(address, expected, f"nothing listens there ({exc})") from None
+    except OSError:
+        pass  # unreachable for now, or slow: Dask's own connect says, within its bound
     try:
         answer = asyncio.run(asyncio.wait_for(identify(), CONNECT_TIMEOUT_S))
     except TimeoutError:
         raise SchedulerError(
             address, expected, f"no answer to Dask's handshake in {CONNECT_TIMEOUT_S:g} s"
         ) from None
+    except OSError as exc:  # the connection itself
+        raise SchedulerError(address, expected, str(exc) or type(exc).__name__) from None
     except Exception as exc:  # whatever a peer speaking another protocol makes Dask raise
-        reason = str(exc) or type(exc).__name__
+        # (an allocation of exabytes, a buffer too short: its answer read as Dask's frames)
+        reason = f"its answer is not Dask's ({type(exc).__name__}: {exc})"
         raise SchedulerError(address, expected, reason) from None
     if not isinstance(answer, dict) or answer.get("type") != "Scheduler":
         kind = answer.get("type") if isinstance(answer, dict) else type(answer).__name__
         raise SchedulerError(address, expected, f"it is a Dask {kind}, not a scheduler")
+
+
+def _host_and_port(address: str) -> tuple[str, int]:
+    """The host (brackets off an IPv6 one) and port of an address ``check_scheduler`` took."""
+    match = _SCHEDULER.match(address)
+    assert match is not None, address  # checked before any connection is tried
+    return match.group(2).strip("[]"), int(match.group(3))
 
 
 def _handctl_version() -> Callable[[], str]:
