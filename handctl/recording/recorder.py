@@ -16,6 +16,7 @@ left in the rings and finishes an indexed file.
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import itertools
 import mmap
@@ -527,10 +528,17 @@ class Recorder:
                 env=env,
                 start_new_session=True,
             )
-        except BaseException:
+        except BaseException as exc:
             for fd in (ctl_w, ready_r):
                 if fd >= 0:
                     os.close(fd)
+            if isinstance(exc, OSError) and not isinstance(exc, HandctlError):
+                # a pipe, /dev/null or the process itself refused: said, not a traceback
+                raise HandctlError(
+                    f"the recording writer could not be started: {exc.strerror or exc}"
+                    + (" (the open-files limit, ulimit -n)" if exc.errno == errno.EMFILE else "")
+                    + "; nothing was sent"
+                ) from None
             raise
         finally:
             for fd in child_fds:

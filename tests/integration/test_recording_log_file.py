@@ -197,3 +197,34 @@ def test_a_hung_writer_is_said_then_given_up_on(
     assert "waiting" in err and f"for the recording writer to finish {path}" in err
     assert "the hand is stopped" in err
     assert not open_recording(path).complete  # what the writer had flushed, without its end
+
+
+def test_a_writer_the_open_files_limit_keeps_from_starting_is_said(tmp_path: Path) -> None:
+    """Under ``ulimit -n`` 13 to 16 the writer's pipes or process could not be made: an
+    ``OSError`` traceback (or, at 12, a message naming /dev/null), and no word of the limit."""
+    import resource
+
+    log = tmp_path / "run.mcap"
+
+    def few_files() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (14, 14))
+
+    done = subprocess.run(
+        [
+            *(sys.executable, "-m", "handctl", "run", "recipe", str(DEFAULT_RECIPE)),
+            *("--max-seconds", "0.2", "--log", str(log)),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+        preexec_fn=few_files,
+    )
+    assert done.returncode == 1, done.stderr
+    assert "Traceback" not in done.stderr
+    assert (
+        "the recording writer could not be started: Too many open files (the open-files "
+        "limit, ulimit -n); nothing was sent"
+    ) in done.stderr
+    assert not log.exists()
