@@ -111,6 +111,15 @@ def _positive_seconds(option: str, value: float | None) -> None:
         )
 
 
+def _output_path(text: str) -> Path:
+    """An option's file to write, as ``Path`` would take it, but for a name that ends in a
+    separator: ``Path`` drops it, and ``--log y.mcap/`` wrote (or replaced) ``y.mcap`` where
+    the system would have refused a file name that is a directory's."""
+    if text.endswith(os.sep) or (os.altsep is not None and text.endswith(os.altsep)):
+        raise argparse.ArgumentTypeError(f"expected a file name, found {text!r} (a directory's)")
+    return Path(text)
+
+
 def _output_file(option: str, path: Path | None) -> None:
     """An option naming a file to write: refused before any work (a run, a plan) when it
     cannot be written (``outfile.check_writable``), rather than found out at the end."""
@@ -1539,7 +1548,7 @@ def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     )
     timing.add_argument(
         "--json",
-        type=Path,
+        type=_output_path,
         metavar="FILE.json",
         help="write the report, with the probe's record, as JSON",
     )
@@ -1578,10 +1587,13 @@ def _add_analyze(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         help="torque ratios k_1, k_2 (tau_i2 = k_i tau_i1) [N·m per N·m, dimensionless]",
     )
     tset.add_argument(
-        "--json", type=Path, metavar="FILE.json", help="write the region and the grid as JSON"
+        "--json",
+        type=_output_path,
+        metavar="FILE.json",
+        help="write the region and the grid as JSON",
     )
     tset.add_argument(
-        "--plot", type=Path, metavar="OUT.png", help="write a PNG in the style of Fig. 3"
+        "--plot", type=_output_path, metavar="OUT.png", help="write a PNG in the style of Fig. 3"
     )
     tset.set_defaults(func=_cmd_analyze_torque_set)
 
@@ -1624,7 +1636,7 @@ def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     sim.add_argument(
         "--summary-json",
-        type=Path,
+        type=_output_path,
         metavar="FILE.json",
         help="write the ground truth (object poses, node states) at the end",
     )
@@ -1718,7 +1730,7 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rec.add_argument(
         "--summary-json",
-        type=Path,
+        type=_output_path,
         metavar="FILE.json",
         help="write the run summary as JSON (units in its key names)",
     )
@@ -1744,14 +1756,14 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rec.add_argument(
         "--log",
-        type=Path,
+        type=_output_path,
         metavar="RUN.mcap",
         help="record every tick, event and frame to an MCAP file "
         "(see docs/recording.md; read it with 'handctl replay')",
     )
     rec.add_argument(
         "--plot",
-        type=Path,
+        type=_output_path,
         metavar="OUT.png",
         help="overview PNG: phases, torques, object heights, centre-line angle "
         "(simulated hand in lockstep)",
@@ -1800,14 +1812,14 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     plan.add_argument(
         "-o",
         "--output",
-        type=Path,
+        type=_output_path,
         required=True,
         metavar="RECIPE.yaml",
         help="where to write the compiled recipe",
     )
     plan.add_argument(
         "--plot",
-        type=Path,
+        type=_output_path,
         metavar="DIR",
         help="write each phase's torque region (chosen torque marked) as PNGs",
     )
@@ -1956,7 +1968,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     tdt.add_argument(
         "-o",
         "--output",
-        type=Path,
+        type=_output_path,
         metavar="HAND.yaml",
         help="where to write the calibrated copy of the hand config",
     )
@@ -1992,7 +2004,9 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         help="an offset above this [N·m] is refused (default 0.25)",
     )
     _add_bringup_run_options(tdt)
-    tdt.add_argument("--json", type=Path, metavar="FILE.json", help="write the measurement as JSON")
+    tdt.add_argument(
+        "--json", type=_output_path, metavar="FILE.json", help="write the measurement as JSON"
+    )
     tdt.set_defaults(func=_cmd_calibrate_tdt)
 
     jog = _command(
@@ -2109,7 +2123,7 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     rep.add_argument("log", type=Path, metavar="RUN.mcap", help="the recording")
     rep.add_argument(
         "--plot",
-        type=Path,
+        type=_output_path,
         metavar="OUT.png",
         help="torques over time with phase bands (and object poses if simulated)",
     )
@@ -2144,7 +2158,7 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     rep.add_argument(
         "--json",
-        type=Path,
+        type=_output_path,
         metavar="FILE.json",
         help="write the summary (and re-run report) as JSON",
     )

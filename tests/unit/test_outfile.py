@@ -115,3 +115,22 @@ def test_no_command_writes_over_what_it_reads(
     assert cli.main([a if a != "x.yaml" else str(tmp_path / a) for a in args]) == 2
     assert f"{says}: expected another file than " in capsys.readouterr().err
     assert path.read_bytes() == b"what the user keeps\n"
+
+
+@pytest.mark.parametrize("option", ["--log", "--summary-json", "--plot"])
+def test_an_output_named_as_a_directory_is_bad_input(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str
+) -> None:
+    """``Path`` drops a trailing separator: --log y.mcap/ wrote, or replaced, y.mcap."""
+    from handctl import cli
+
+    kept = tmp_path / "y.mcap"
+    kept.write_bytes(b"an earlier run\n")
+    recipe = str(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["run", "recipe", recipe, option, f"{kept}/"])
+    assert stop.value.code == cli.EXIT_BAD_INPUT
+    assert f"argument {option}: expected a file name, found '{kept}/' (a directory's)" in (
+        capsys.readouterr().err
+    )
+    assert kept.read_bytes() == b"an earlier run\n"
