@@ -10,6 +10,7 @@ interface, and nothing in handctl names it but that entry point.
 from __future__ import annotations
 
 import contextlib
+import errno
 import itertools
 import os
 import select
@@ -129,6 +130,8 @@ class UnixDatagramBus(can.BusABC):
         #: the receiver's path, which costs as much as the send itself.
         self._links: dict[str, socket.socket] = {}
         self._directory_mtime_ns: int | None = None
+        #: the directory was found removed at the last listing: nothing reaches anyone
+        self._directory_gone = False
         self._own = receive_own_messages
         self._peers: list[str] = []
         self._peers_at = 0.0
@@ -178,6 +181,10 @@ class UnixDatagramBus(can.BusABC):
         self._peers_at = now
         try:
             mtime: int | None = os.stat(self.directory).st_mtime_ns
+            self._directory_gone = False
+        except FileNotFoundError:
+            mtime = None
+            self._directory_gone = True
         except OSError:
             mtime = None
         if (
@@ -236,6 +243,15 @@ class UnixDatagramBus(can.BusABC):
         if not frames and not self._held:
             return
         self._refresh_peers()
+        if self._directory_gone:
+            # Sending to nobody would look like a bus that works: the sends fail instead, so
+            # that the host's supervisor stops on its bus (BUS_ERROR) and the bus events say
+            # why, rather than the nodes' silence alone (FEEDBACK_TIMEOUT, "0 bus events")
+            raise OSError(
+                errno.ENOENT,
+                f"the unix bus directory {self.directory} is gone (removed while in use): "
+                "no participant can be reached",
+            )
         refused = False
         lost = self._lost
         for peer in list(self._peers):

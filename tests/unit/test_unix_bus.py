@@ -440,3 +440,25 @@ def test_a_relative_unix_bus_directory_is_refused_not_made(
         can.Bus(interface="unix", channel="relative_dir")
     assert list(tmp_path.iterdir()) == []
     parse_spec(f"unix:{tmp_path / 'bus'}")  # the documented form
+
+
+def test_a_bus_directory_removed_in_use_fails_the_sends_and_says_why(
+    open_unix: OpenUnix, tmp_path: Path
+) -> None:
+    """Sending to nobody looked like a bus that works: a run whose bus directory was removed
+    stopped on the nodes' silence (FEEDBACK_TIMEOUT) with "0 bus events". The sends fail now,
+    so the supervisor stops on its bus (BUS_ERROR) and the event names the directory."""
+    import shutil
+    import time
+
+    rx, tx = open_unix(), open_unix()
+    assert tx.send(0x181, bytes(8))
+    assert len(rx.drain()) == 1
+    shutil.rmtree(tmp_path / "bus")
+    time.sleep(0.06)  # the directory is listed again at most every 50 ms
+    assert not tx.send(0x181, bytes(8))
+    events = tx.events()
+    assert [e.kind for e in events] == [BusEventKind.TX_FAILED]
+    assert f"the unix bus directory {tmp_path / 'bus'} is gone (removed while in use)" in (
+        events[0].detail
+    )
