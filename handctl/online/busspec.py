@@ -73,11 +73,18 @@ def parse_spec(
             "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES)) + ")",
             interface,
         )
-    if interface == "socketcan" and not valid_ifname(channel):
-        raise ConfigError("--bus", "channel", IFNAME_RULE, channel)
-    if interface == "unix" and not Path(channel).is_absolute():
-        raise ConfigError("--bus", "channel", unix_rule(channel), channel)
+    check_channel(interface, channel, "--bus", "channel")
     return BusSpec(interface, channel)
+
+
+def check_channel(interface: str, channel: str, source: str, key: str) -> None:
+    """A ``ConfigError`` naming ``source`` and ``key`` for a channel no bus of ``interface``
+    can have: a SocketCAN name the kernel never gives (``valid_ifname``), a relative unix bus
+    directory (``unix_rule``). One rule for a ``--bus`` spec and a hand config's bus."""
+    if interface == "socketcan" and not valid_ifname(channel):
+        raise ConfigError(source, key, IFNAME_RULE, channel)
+    if interface == "unix" and not Path(channel).is_absolute():
+        raise ConfigError(source, key, unix_rule(channel), channel)
 
 
 def unix_rule(channel: str) -> str:
@@ -117,10 +124,7 @@ def check_interface(bus_config: BusConfig, source: str) -> None:
             "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES)) + ")",
             bus_config.interface,
         )
-    if bus_config.interface == "socketcan" and not valid_ifname(bus_config.channel):
-        raise ConfigError(source, "bus.channel", IFNAME_RULE, bus_config.channel)
-    if bus_config.interface == "unix" and not Path(bus_config.channel).is_absolute():
-        raise ConfigError(source, "bus.channel", unix_rule(bus_config.channel), bus_config.channel)
+    check_channel(bus_config.interface, bus_config.channel, source, "bus.channel")
 
 
 def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:
