@@ -20,6 +20,7 @@ from handctl.analysis.exact import exact_torque_set
 from handctl.analysis.model import load_scenario
 from handctl.analysis.planner import plan_for_conditions
 from handctl.analysis.slices import ratio_slice
+from handctl.errors import ConfigError
 
 GRID_POINTS = 121
 
@@ -34,13 +35,22 @@ def torque_set_report(
     """Compute the torque set of ``scenario`` for ``τ_i2 = k_i τ_i1`` (eq. 25); write the JSON
     and the PNG if asked; return a short summary for a person.
 
-    Raises ``ConfigError`` for a bad scenario file and ``AnalysisError`` for a grasp that eq. 25
-    does not fit (it needs two fingers of two joints).
+    Raises ``ConfigError`` for a bad scenario file, and for a grasp that eq. 25 does not fit (it
+    needs two fingers of two joints).
     """
     say = progress or (lambda _msg: None)
     say(f"loading {scenario}")
     sc = load_scenario(scenario)
     grasp = sc.grasp
+    if len(grasp.fingers) != 2 or any(f.joints != 2 for f in grasp.fingers):
+        # the scenario's shape is what is wrong (bad input), not the analysis of it
+        raise ConfigError(
+            str(scenario),
+            "fingers",
+            "two fingers of two joints each (torque-set draws the paper's eq. 25 slice, "
+            "tau_i2 = k_i tau_i1; a hand of another shape is planned with handctl plan)",
+            ", ".join(f"{f.name}: {f.joints} joint(s)" for f in grasp.fingers),
+        )
     conditions = build_conditions(grasp, sc.directions)
     torque_slice = ratio_slice(grasp, k, sc.tau_max)
     say("computing the exact torque set")

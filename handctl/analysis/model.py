@@ -371,7 +371,7 @@ def load_scenario(path: str | Path) -> Scenario:
             move.fail(name, "an object name out of " + ", ".join(names), name)
         vector = np.array(move.numbers(name, length=dim))
         if float(np.linalg.norm(vector)) < 1e-12:
-            move.fail(name, "a non-zero direction", list(vector))
+            move.fail(name, "a non-zero direction", [float(v) for v in vector])
         directions[name] = unit(vector)
     move.done()
     task.done()

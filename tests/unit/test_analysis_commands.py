@@ -10,7 +10,6 @@ import pytest
 import yaml
 
 from handctl.analysis.commands import torque_set_report
-from handctl.analysis.model import AnalysisError
 from handctl.analysis.polygons import area
 from handctl.errors import ConfigError
 
@@ -73,5 +72,8 @@ def test_bad_scenario_and_unfit_grasp(tmp_path: Path) -> None:
     data["fingers"][1]["joints"] = data["fingers"][1]["joints"] + [0.0]
     path = tmp_path / "three.yaml"
     path.write_text(yaml.safe_dump(data), encoding="utf-8")
-    with pytest.raises(AnalysisError, match="two fingers of two joints"):
+    # bad input (exit 2), naming the file and the key, not a failed analysis
+    with pytest.raises(ConfigError, match="two fingers of two joints") as info:
         torque_set_report(path, (0.9, 0.1), None, None)
+    assert info.value.file == str(path) and info.value.key == "fingers"
+    assert "joint(s)" in str(info.value)
