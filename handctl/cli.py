@@ -120,6 +120,12 @@ def _output_path(text: str) -> Path:
     return Path(text)
 
 
+def _output_dir(text: str) -> Path:
+    """An option's directory to write files in: a trailing separator is how a directory is
+    often named, unlike ``_output_path``'s files."""
+    return Path(text)
+
+
 def _output_file(option: str, path: Path | None) -> None:
     """An option naming a file to write: refused before any work (a run, a plan) when it
     cannot be written (``outfile.check_writable``), rather than found out at the end."""
@@ -544,13 +550,24 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from handctl.progress import Progress, close_active, say
 
     _output_file("-o", args.output)
+    if args.plot is not None:
+        from handctl.outfile import check_directory
+
+        check_directory(args.plot, "--plot")
     # -o the --base is how a recipe is re-planned in place (the base is read first)
     _refuse_same_files(
         {"-o": args.output, "--plot": args.plot},
         {"the template": args.template, "--hand": args.hand},
     )
-    if args.models is not None and args.models < 1:
-        raise ConfigError("--models", "", "at least 1 model", args.models)
+    from handctl.planning.template import MAX_MODELS
+
+    if args.models is not None and not 1 <= args.models <= MAX_MODELS:
+        raise ConfigError(
+            "--models",
+            "",
+            f"1 to {MAX_MODELS} models (as the template's search.models)",
+            args.models,
+        )
     if args.workers is not None and args.workers < 1:
         raise ConfigError("--workers", "", "at least 1 worker", args.workers)
     if args.scheduler is not None:
@@ -615,6 +632,32 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
         for path in plot_plan(result, args.plot):
             print(f"  plot {path}")
+    return _plan_exit_code(result, args.output, args.quick)
+
+
+def _plan_exit_code(result: Any, output: Path, quick: bool) -> int:
+    """Exit 1 when a phase of the plan did nothing it is for on any model (said per phase):
+    such a recipe said "N/N models hold", exit 0, and every run of it failed, wherever the
+    phase sat. It is written all the same, to be looked at or re-planned from (--base);
+    ``--quick``, the smallest search, is a smoke test of the pipeline, and only warns."""
+    undone = [plan for plan in result.phases if plan.undone is not None]
+    for plan in undone:
+        print(
+            f"handctl: {'warning' if quick else 'the plan failed'}: phase "
+            f"'{plan.phase.name}' ({plan.spec.kind}): {plan.undone}, on every one of the "
+            f"{len(plan.outcomes)} model(s)",
+            file=sys.stderr,
+        )
+    if undone and not quick:
+        print(
+            f"handctl: {output} is written to be looked at or re-planned from, not to be "
+            "run: widen the search (search.models, generations, population), seed the "
+            "phase's torques, or change the template",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
+    if undone:
+        print("handctl: --quick is the smallest search, for a smoke test", file=sys.stderr)
     return EXIT_OK
 
 
@@ -634,9 +677,12 @@ def _planned_phase_line(plan: Any) -> str:
     found = f", search score {search.get('score', '?')}" if isinstance(search, dict) else ""
     origin = prov.get("chosen_from") or prov.get("kept_from") or "?"
     held = prov["models"]  # this plan's own run of the phase
+    # "hold" is only that the objects are still in the hand; what the phase is for (up by
+    # its height, turned) is said beside it, or a phase that did nothing read as done
+    done = "" if plan.done is None else f", {sum(plan.done)}/{len(plan.done)} did its job"
     return (
         f"  {plan.phase.name:<16} {plan.spec.kind:<5} {ana}{found}; from "
-        f"{origin}; {held['held']}/{held['ran']} models hold"
+        f"{origin}; {held['held']}/{held['ran']} models hold{done}"
     )
 
 
@@ -1819,7 +1865,7 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     plan.add_argument(
         "--plot",
-        type=_output_path,
+        type=_output_dir,
         metavar="DIR",
         help="write each phase's torque region (chosen torque marked) as PNGs",
     )

@@ -42,6 +42,33 @@ def check_writable(path: Path, option: str) -> Path:
     return target
 
 
+def check_directory(path: Path, option: str) -> Path:
+    """The directory ``path`` names, resolved, if files can be put in it: it is a directory
+    that may be written, or it does not exist yet and its nearest existing parent is one (it
+    is made when the files are written). Otherwise a ``ConfigError`` naming ``option``, asked
+    before the work: ``plan --plot`` learned only after the whole search that its directory
+    was a file or could not be made, with the recipe already written."""
+    try:
+        target = path.resolve()
+    except (RuntimeError, OSError) as exc:
+        raise ConfigError(option, "", "a directory name that resolves", f"{path} ({exc})") from None
+    existing = target
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ConfigError(
+            option,
+            "",
+            f"a directory, or a new one's name ({existing} is not a directory)",
+            path,
+        )
+    if _read_only(existing):
+        raise ConfigError(
+            option, "", f"a directory that may be written ({existing} is read-only)", path
+        )
+    return target
+
+
 def refuse_same_files(
     outputs: Mapping[str, Path | None], inputs: Mapping[str, Path | None]
 ) -> None:

@@ -194,11 +194,8 @@ def run_recipe(
     lockstep = _lockstep(req, is_sim)
     if is_sim and req.recipe.objects:
         from handctl.experiment.merit import check_objects_in_sim
-        from handctl.sim.params import parse_sim
 
-        check_objects_in_sim(
-            req.recipe, [o.name for o in parse_sim(req.hand).objects], req.hand.source
-        )
+        check_objects_in_sim(req.recipe, req.hand)
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
     if not is_sim:

@@ -52,10 +52,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from handctl.config import HandConfig
 from handctl.convention import LIFT_HEIGHT, POSE_EVERY_TICKS, RATE_WINDOW_S, phase_turns_deg
-from handctl.errors import ConfigError
 from handctl.handshape import hand_span
 from handctl.online.recipes.schema import Pair, Recipe
+from handctl.sim.params import check_scene_names
 
 HOLD_S = 2.0  # s
 DROP_HEIGHT = 0.005  # m
@@ -71,19 +72,10 @@ class _Pose(Protocol):
     def angle(self) -> float: ...
 
 
-def check_objects_in_sim(recipe: Recipe, sim_objects: Sequence[str], hand_source: str) -> None:
+def check_objects_in_sim(recipe: Recipe, hand: HandConfig) -> None:
     """Refuse, before the run, a recipe whose objects the simulated hand does not have: the
     experiment is measured on the simulated objects of the same names."""
-    for i, obj in enumerate(recipe.objects):
-        if obj.name not in sim_objects:
-            raise ConfigError(
-                recipe.source,
-                f"objects[{i}].name",
-                "an object of the "
-                f"simulated hand ({', '.join(sim_objects)}: sim.objects in "
-                f"{hand_source})",
-                obj.name,
-            )
+    check_scene_names(recipe.source, [o.name for o in recipe.objects], hand)
 
 
 @dataclass

@@ -60,6 +60,7 @@ from handctl.planning.search import (
     GUARDED_LIMIT_MARGIN,
     LIMIT_FAIL,
     LIMIT_MARGIN,
+    MIN_TURN_FRACTION,
     TUMBLE_FAIL_FACTOR,
     Budget,
     Candidate,
@@ -111,6 +112,11 @@ class PhasePlan:
     chosen: Candidate | None
     outcomes: list[PhaseOutcome]
     provenance: dict[str, Any] = field(default_factory=dict)
+    #: per model, whether the phase did its job (``_jobs_done``); None: a free phase
+    done: list[bool] | None = None
+    #: what the phase left undone on every model (``_job_left_undone``); None: it did its
+    #: job on one at least, or it has none
+    undone: str | None = None
 
 
 @dataclass
@@ -584,9 +590,9 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         say(
             f"  chosen from {origin}: "
             + ", ".join(
-                f"{o.exit[:28]} ({o.true_turn_deg:+.0f} deg, peak {o.peak_rate_deg_s:.0f} deg/s)"
+                f"{_exit_word(o)} ({o.true_turn_deg:+.0f} deg, peak {o.peak_rate_deg_s:.0f} deg/s)"
                 if spec.kind == "turn"
-                else f"{o.exit[:28]} (up {o.end_height * 1e3:.0f} mm)"
+                else f"{_exit_word(o)} (up {round(o.end_height * 1e3) + 0:d} mm)"
                 for o in outcomes
             )
         )
@@ -622,13 +628,80 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         if spec.kind == "turn":
             provenance["models"]["true_turn_deg"] = [round(o.true_turn_deg, 1) for o in outcomes]
             provenance["models"]["peak_rate_deg_s"] = [round(o.peak_rate_deg_s) for o in outcomes]
-        plans.append(PhasePlan(spec, phase, analysis, chosen, outcomes, provenance))
+        plans.append(
+            PhasePlan(
+                spec,
+                phase,
+                analysis,
+                chosen,
+                outcomes,
+                provenance,
+                _jobs_done(spec, outcomes, template),
+                _job_left_undone(spec, outcomes, template),
+            )
+        )
         alive = survivors
         previous = phase.torques
         if spec.kind == "lift":
             lifted = True
     digest = hashlib.sha256(Path(template.source).read_bytes()).hexdigest()[:16]
     return PlanResult(template, hand, plans, model_list, f"sha256:{digest}", base)
+
+
+def _jobs_done(
+    spec: TemplatePhase, outcomes: Sequence[PhaseOutcome], template: Template
+) -> list[bool] | None:
+    """Per model, whether a lift, hold or turn phase did its job (None for a free phase,
+    which has none to judge). A lift or hold has when the objects are up by its
+    ``min_height`` and in the hand, without a failure; a turn when it failed on none of the
+    search's counts (a drop, a soft limit, less than ``MIN_TURN_FRACTION`` of its wanted
+    turn, a tumble): a turn that stops short but past half is finished by the next phases'
+    exits on the turn, as the swap's ``manipulate_2`` is."""
+    if spec.kind == "free":
+        return None
+    if spec.kind == "turn":
+        judge = Candidate(
+            (),
+            0.0,
+            [],
+            "",
+            limit_fail=_limit_bounds(template)[1],
+            wanted_turn_deg=math.degrees(spec.turn),
+            tumble_deg_s=TUMBLE_FAIL_FACTOR * template.search.max_turn_rate_deg_s,
+        )
+        return [replace(judge, outcomes=[o]).failures == 0 for o in outcomes]
+    return [not o.failed and o.in_hand and o.end_height >= spec.min_height for o in outcomes]
+
+
+def _job_left_undone(
+    spec: TemplatePhase, outcomes: Sequence[PhaseOutcome], template: Template
+) -> str | None:
+    """What a phase left undone on *every* model (``_jobs_done``), or None."""
+    done = _jobs_done(spec, outcomes, template)
+    if done is None or not outcomes or any(done):
+        return None
+    if spec.kind == "turn":
+        turns = ", ".join(f"{o.true_turn_deg:+.1f}" for o in outcomes)
+        tumble = TUMBLE_FAIL_FACTOR * template.search.max_turn_rate_deg_s
+        return (
+            f"the pair turned {turns} deg of the {math.degrees(spec.turn):+.0f} deg wanted "
+            f"(its job: at least {MIN_TURN_FRACTION:.0%} of it, no tumble over "
+            f"{tumble:.0f} deg/s, nothing dropped, no soft limit)"
+        )
+    heights = ", ".join(f"{round(o.end_height * 1e3) + 0:d}" for o in outcomes)
+    exits = sorted({o.exit for o in outcomes})
+    return (
+        f"the objects ended {heights} mm up (its job: at least {spec.min_height * 1e3:.0f} mm, "
+        f"in the hand), exits: {'; '.join(exits)}"
+    )
+
+
+def _exit_word(o: PhaseOutcome) -> str:
+    """How a phase ended on one model, for a line of the plan's progress: a failure's whole
+    reason (cut, "an object left the han" said nothing), else its exit condition's kind."""
+    if o.failed or o.exit == "timeout":
+        return o.exit
+    return "exit"
 
 
 def _limit_bounds(template: Template) -> tuple[float, float]:

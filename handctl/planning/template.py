@@ -46,6 +46,7 @@ from handctl.online.recipes.loader import (
     parse_torque_margin,
     parse_torques,
     parse_turn_rate,
+    refuse_another_hands_joints,
 )
 from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
@@ -65,10 +66,19 @@ from handctl.online.recipes.schema import (
 from handctl.planning.models import Spread
 from handctl.planning.search import MAX_TURN_RATE_DEG_S, Budget
 from handctl.schema import Doc, load_yaml
+from handctl.sim.params import check_scene_names
 
 KINDS = ("free", "lift", "hold", "turn")
 #: the most models a planned ``schedule`` entry may ask for
 MAX_SCHEDULE_MODELS = 64
+
+
+#: the most perturbed models a phase is searched on (``search.models``, ``plan --models``): a
+#: search runs every candidate on each, and 100 is hours of planning on a workstation
+MAX_MODELS = 100
+#: deg, the smallest turn a turn phase may ask for: the pair's estimated centre line, which
+#: its exit reads, is noisier than that
+MIN_TURN_DEG = 1.0
 
 
 @dataclass(frozen=True)
@@ -189,6 +199,9 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     if not doc.has("objects"):
         doc.fail("objects", "the objects the template grasps ([{name, radius}, ...])", "nothing")
     objects = list(parse_objects(doc))
+    # every model the phases are planned on is the simulated hand's scene: objects it lacks
+    # were planned on as nothing, and the recipe was refused by every run after the search
+    check_scene_names(doc.file, [o.name for o in objects], hand)
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
     guard = parse_limit_guard(doc, hand)
@@ -250,7 +263,7 @@ def _search(doc: Doc) -> SearchSettings:
     if budget.elite > budget.population:
         doc.fail("elite", f"at most the population ({budget.population})", budget.elite)
     settings = SearchSettings(
-        doc.integer("models", default=6, min=1, max=100),
+        doc.integer("models", default=6, min=1, max=MAX_MODELS),
         doc.integer("seed", default=0, min=0, max=2**32 - 1),
         spread,
         budget,
@@ -333,6 +346,7 @@ def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
     raw = doc.raw(key)
     if isinstance(raw, list):
         return tuple(doc.numbers(key, length=hand.n_joints, unit="N·m"))
+    refuse_another_hands_joints(doc, key, hand)
     sub = doc.mapping(key)
     values = tuple(sub.number(n, unit="N·m") for n in hand.joint_names)
     sub.done()
@@ -394,9 +408,15 @@ def _phase(
                 "lift, hold or free: a turn is that of a pair of objects, and the template has one",
                 kind,
             )
-        turn = math.radians(doc.number("turn_deg", min=-180.0, max=180.0, unit="deg"))
-        if abs(turn) < 1e-6:
-            doc.fail("turn_deg", "a non-zero turn", 0.0)
+        turn_deg = doc.number("turn_deg", min=-180.0, max=180.0, unit="deg")
+        if abs(turn_deg) < MIN_TURN_DEG:
+            doc.fail(
+                "turn_deg",
+                f"a turn of at least {MIN_TURN_DEG:g} deg either way (less is within what the "
+                "estimate of the pair can tell)",
+                turn_deg,
+            )
+        turn = math.radians(turn_deg)
         exit_fraction = doc.number("exit_fraction", default=0.95, min=0.1, max=1.5)
         exit_hold = doc.number("exit_hold_s", default=0.02, min=0.0, max=1.0, unit="s")
         if doc.has("turn_rate"):

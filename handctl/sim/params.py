@@ -14,9 +14,11 @@ the config and is not repeated here; this section only adds what the host never 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from handctl.config import HandConfig
+from handctl.errors import ConfigError
 from handctl.schema import Doc
 from handctl.sim.placement import check_placement
 
@@ -111,6 +113,23 @@ class SimParams:
     def substeps(self) -> int:
         """Physics steps per 1 ms node tick."""
         return round(NODE_TICK_S / self.timestep)
+
+
+def check_scene_names(source: str, names: Sequence[str], hand: HandConfig) -> None:
+    """A ``ConfigError`` naming ``source``'s first object (a recipe's or a template's
+    ``objects[i].name``) that the simulated hand's scene does not have: the estimator's
+    truth, the experiment and the planner's models all find an object by its name there, and
+    a template planned on objects the scene lacks gave a recipe every run refused."""
+    scene = [o.name for o in parse_sim(hand).objects]
+    for i, name in enumerate(names):
+        if name not in scene:
+            raise ConfigError(
+                source,
+                f"objects[{i}].name",
+                f"an object of the simulated hand ({', '.join(scene)}: sim.objects in "
+                f"{hand.source})",
+                name,
+            )
 
 
 def parse_sim(hand: HandConfig) -> SimParams:

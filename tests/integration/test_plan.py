@@ -292,3 +292,59 @@ def test_a_planned_schedule_entry_is_searched_on_models_of_its_sizes(
     alone = plan_command(str(template), "-o", str(again), "--schedule-only")
     assert alone.returncode == 2
     assert "--schedule-only: expected --schedule-only with --from and --base" in alone.stderr
+
+
+PLANAR = ROOT / "config" / "hands" / "planar_2f2j.yaml"
+PLANAR_TEMPLATE = ROOT / "config" / "recipes" / "planar_lift_turn.template.yaml"
+
+
+def _hold_only(tmp_path: Path) -> Path:
+    """The planar template cut to a hold 20 mm up of objects still on the table: no torque
+    does that phase's job (the hand never lifted them)."""
+    data: dict[str, Any] = yaml.safe_load(PLANAR_TEMPLATE.read_text())
+    data["phases"] = [{"name": "hold", "kind": "hold", "min_height": 0.02, "max_s": 0.3}]
+    path = tmp_path / "hold_only.template.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_a_plan_whose_phase_does_its_job_on_no_model_fails(tmp_path: Path) -> None:
+    """It said "2/2 models hold", exit 0, and every run of its recipe failed. Now exit 1,
+    the phase and what it left undone named, the recipe written to be looked at; with
+    --quick (a smoke test of the pipeline) a warning and exit 0."""
+    template = _hold_only(tmp_path)
+    out = tmp_path / "r.yaml"
+    done = plan_command(str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1")
+    assert done.returncode == 1, done.stderr
+    assert "the plan failed: phase 'hold' (hold): the objects ended 0, 0 mm up" in done.stderr
+    assert "on every one of the 2 model(s)" in done.stderr
+    assert "2/2 models hold, 0/2 did its job" in done.stdout
+    assert out.exists() and "not to be run" in done.stderr
+    quick = plan_command(
+        str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1", "--quick"
+    )
+    assert quick.returncode == 0, quick.stderr
+    assert "warning: phase 'hold'" in quick.stderr and "smoke test" in quick.stderr
+
+
+def test_plot_directory_is_checked_before_the_plan_and_may_end_in_a_separator(
+    tmp_path: Path,
+) -> None:
+    a_file = tmp_path / "a_file"
+    a_file.write_text("not a directory")
+    out = tmp_path / "r.yaml"
+    args = (str(PLANAR_TEMPLATE), "--hand", str(PLANAR), "-o", str(out), "--quick")
+    done = plan_command(*args, "--plot", str(a_file / "plots"))
+    assert done.returncode == 2 and "--plot: expected a directory" in done.stderr
+    assert "planning on" not in done.stderr and not out.exists()  # before any work
+    done = plan_command(*args, "--plot", str(tmp_path / "new" / "plots") + "/")
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "new" / "plots" / "04_manipulate.png").stat().st_size > 0
+
+
+def test_models_on_the_command_line_are_bounded_as_the_templates(tmp_path: Path) -> None:
+    done = plan_command(
+        str(PLANAR_TEMPLATE), "--hand", str(PLANAR), "-o", "x.yaml", "--models", "101"
+    )
+    assert done.returncode == 2
+    assert "--models: expected 1 to 100 models" in done.stderr

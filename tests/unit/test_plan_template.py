@@ -112,8 +112,22 @@ def test_a_bad_schedule_entry_is_refused_naming_the_key(
     [
         (lambda d: d["phases"][1].update(torque_margin=3), "phases[1].torque_margin", "2"),
         (lambda d: d["phases"][3].update(kind="spin"), "phases[3].kind", "one of"),
-        (lambda d: d["phases"][3].update(turn_deg=0), "phases[3].turn_deg", "non-zero"),
+        (lambda d: d["phases"][3].update(turn_deg=0), "phases[3].turn_deg", "at least 1 deg"),
+        (lambda d: d["phases"][3].update(turn_deg=1e-9), "phases[3].turn_deg", "found 1e-09"),
         (lambda d: d["phases"][3].update(colour="red"), "phases[3]", "colour"),
+        # the planner's models are the hand's scene: an object it lacks is refused up front
+        (
+            lambda d: d["objects"].append({"name": "cyl3", "radius": 0.02}),
+            "objects[2].name",
+            "an object of the simulated hand (cyl1, cyl2",
+        ),
+        (
+            lambda d: d["phases"][0].update(
+                torques={"left_j1": 0.1, "left_j2": 0.1, "right_j1": -0.1, "right_j2": -0.1}
+            ),
+            "phases[0].torques",
+            "written for another hand? give its config with --hand",
+        ),
         (lambda d: d["phases"][1]["move"].update(cyl9=[0, 1]), "phases[1].move.cyl9", "object"),
         (lambda d: d["phases"][0].pop("torques"), "phases[0].torques", ""),
         (lambda d: d["search"].update(elite=99, population=4), "search.elite", "population"),

@@ -698,11 +698,34 @@ def parse_torques(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
         doc.fail(
             "torques", f"a mapping of joint name to N·m, or a list of {len(names)} numbers", raw
         )
+    refuse_another_hands_joints(doc, "torques", hand)
     sub = doc.mapping("torques")
     sub.expect(names)
     values = tuple(sub.number(n, unit="N·m") for n in names)
     sub.done()
     return values
+
+
+def refuse_another_hands_joints(doc: Doc, key: str, hand: HandConfig) -> None:
+    """A ``ConfigError`` when ``key`` is a mapping by joint name of which not one is a joint
+    of ``hand``: the file was written for another hand, which a "missing key" and a guessed
+    misspelling of the hand's first joint did not say."""
+    raw = doc.raw(key, None)
+    names = hand.joint_names
+    if isinstance(raw, dict) and raw and not set(raw) & set(names):
+        doc.fail(
+            key,
+            f"N·m for the joints of the hand {hand.name} ({_some(names)}: {hand.source}; "
+            "written for another hand? give its config with --hand)",
+            f"joints {_some([str(k) for k in raw])}",
+        )
+
+
+def _some(names: Sequence[str], shown: int = 4) -> str:
+    """The first few of ``names`` and how many more: a hand of 15 fingers of 6 joints in a
+    message is a screenful."""
+    more = len(names) - shown
+    return ", ".join(names[:shown]) + (f" and {more} more" if more > 0 else "")
 
 
 def _parse_conditions(
