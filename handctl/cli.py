@@ -4,7 +4,8 @@ Exit codes (the same for every subcommand):
 
 ==== =====================================================================
 0    done
-1    finished, but the result is a failure (e.g. a replay mismatch)
+1    finished, but the result is a failure (e.g. a replay mismatch, a run's log lost or
+     possibly incomplete)
 2    bad input: configuration, recipe, scenario, arguments; nothing was sent
 3    safety stop: a fault stopped the hand
 4    bus unavailable or failed
@@ -515,7 +516,33 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
 
 
 def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
-    """The exit code of a run's outcome (module doc), with why it stopped on stderr."""
+    """The exit code of a run's outcome (module doc), with why it stopped on stderr.
+
+    A log asked for and lost or possibly incomplete (its writer failed, hung and was killed,
+    the file removed or replaced) is a failed result: a run that exited 0 was taken for one
+    whose log could be trusted, by scripts that never read the warning. It makes no other
+    code 1: a safety stop, a bus error or an interrupt says more, and is kept."""
+    code = _outcome_exit_code(result, summary)
+    recorded = summary.get("recording")
+    if recorded is None or "error" not in recorded:
+        return code
+    if code == EXIT_OK:
+        print(
+            f"handctl: failed: the run ended as asked, but its log {recorded['path']} is lost "
+            "or may be incomplete (the warning above says why)",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
+    print(
+        f"handctl: and the run's log {recorded['path']} is lost or may be incomplete (the "
+        "warning above says why)",
+        file=sys.stderr,
+    )
+    return code
+
+
+def _outcome_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
+    """The exit code of how the run itself ended, its recording aside."""
     from handctl.online.loop import Outcome
 
     if result.outcome is Outcome.COMPLETED:
