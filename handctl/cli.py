@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from handctl import __version__
-from handctl.errors import BusError, ConfigError, HandctlError
+from handctl.errors import BusError, ConfigError, HandctlError, escaped
 
 if TYPE_CHECKING:
     from handctl.bringup.jog import JogReport
@@ -215,7 +215,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
         else f"classic CAN {bus.bitrate / 1e6:g} Mbit/s"
     )
     print(f"hand {hand.name} ({args.hand}), config hash {hand.config_hash}")
-    print(f"bus {bus.interface}:{bus.channel}, {kind}, loop {bus.loop_rate_hz:g} Hz")
+    print(f"bus {escaped(f'{bus.interface}:{bus.channel}')}, {kind}, loop {bus.loop_rate_hz:g} Hz")
     print(f"{'joint':<8} {'tau_max':>8} {'device':>8} {'rate':>9} {'angle range':>17}")
     for finger in hand.fingers:
         for joint in finger.joints:
@@ -1231,7 +1231,8 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     _refuse_a_torque_the_wire_rounds_away(hand, args.joint, args.torque)
     until = " or until it is back inside its soft limits" if args.recover else ""
     print(
-        f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on {args.bus}, "
+        f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on "
+        f"{escaped(args.bus)}, "
         "every other joint at zero unless the soft-limit guard pushes it back "
         "(Ctrl-C: controlled stop)"
     )
@@ -1369,7 +1370,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     bus_text = "sim" if args.bus is None else args.bus  # '' is a bad spec, not the default
     try:
         with listening_bus(bus_text, hand) as bus:
-            title = f"handctl monitor {bus_text} ({bus.spec}): listening, sending nothing"
+            title = f"handctl monitor {escaped(bus_text)} ({bus.spec}): listening, sending nothing"
             if on_tty:
                 from rich.live import Live
 
