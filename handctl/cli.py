@@ -25,6 +25,7 @@ import argparse
 import io
 import math
 import os
+import re
 import signal
 import sys
 import textwrap
@@ -35,7 +36,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from handctl import __version__
-from handctl.errors import BusError, ConfigError, HandctlError, escaped
+from handctl.errors import BusError, ConfigError, HandctlError, escaped, shown
 
 if TYPE_CHECKING:
     from handctl.bringup.jog import JogReport
@@ -1437,26 +1438,58 @@ def _monitor_log(
 DEFAULT_LIVE_PORT = 8765
 
 
+#: An integer as a command line gives one: ASCII digits after an optional sign. ``int()``
+#: also takes the digits of every script (a full-width '８７６５' was taken as port 8765),
+#: underscores and surrounding white space, none of which a user types as a number here.
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+
+
+def _integer_or_none(text: str) -> int | None:
+    """``text`` as an integer (``_INTEGER``), None if it is none: the one rule of every
+    integer option, so that no option takes what another refuses."""
+    if not _INTEGER.fullmatch(text):
+        return None
+    try:
+        return int(text)
+    except ValueError:  # more digits than Python converts (sys.get_int_max_str_digits)
+        return None
+
+
+def _integer(text: str) -> int:
+    """An integer option's argparse type: the error is a usage error (exit 2) naming what an
+    integer is here, not argparse's "invalid _integer value"."""
+    value = _integer_or_none(text)
+    if value is None:
+        raise argparse.ArgumentTypeError(
+            f"expected an integer (ASCII digits 0-9, an optional sign), found {shown(text)}"
+        )
+    return value
+
+
+def _not_ascii(text: str) -> str:
+    """What to add to an error for ``text`` that a reader may take for digits but that are
+    not ASCII (a full-width '８'): why it was refused."""
+    return "" if text.isascii() else " (a number here is written in ASCII digits 0-9)"
+
+
 def _seed(text: str) -> int:
     """A simulated hand's seed: numpy's generators take only a non-negative integer;
     argparse makes the error a usage error (exit 2)."""
-    try:
-        seed = int(text)
-    except ValueError:
-        seed = -1
-    if seed < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, found {text!r}")
+    seed = _integer_or_none(text)
+    if seed is None or seed < 0:
+        raise argparse.ArgumentTypeError(
+            f"expected an integer >= 0, found {shown(text)}{_not_ascii(text)}"
+        )
     return seed
 
 
 def _port(text: str) -> int:
     """A TCP port for ``--live``; argparse makes the error a usage error (exit 2)."""
-    try:
-        port = int(text)
-    except ValueError:
-        port = 0
-    if not 1 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"expected a TCP port 1..65535, found {text!r}")
+    port = _integer_or_none(text)
+    if port is None or not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(
+            f"expected a TCP port 1..65535, found {shown(text)}{_not_ascii(text)}"
+        )
     return port
 
 
@@ -1570,7 +1603,7 @@ def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     )
     timing.add_argument(
         "--loop-cpu",
-        type=int,
+        type=_integer,
         metavar="N",
         help="the CPU to check (default: the one --rt gives the loop)",
     )
@@ -1676,7 +1709,7 @@ def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     sim.add_argument(
         "--parent-pid",
-        type=int,
+        type=_integer,
         metavar="PID",
         help="run as the simulated hand of process PID (what handctl run "
         "--realtime does): stop when PID ends, and then remove the unix bus "
@@ -1739,13 +1772,13 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rec.add_argument(
         "--loop-cpu",
-        type=int,
+        type=_integer,
         metavar="N",
         help="with --rt: the control loop's CPU (default: an isolated CPU, else the highest)",
     )
     rec.add_argument(
         "--sim-cpu",
-        type=int,
+        type=_integer,
         metavar="N",
         help="with --rt: the simulated hand's CPU (default: the lowest other one)",
     )
@@ -1852,7 +1885,7 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="write each phase's torque region (chosen torque marked) as PNGs",
     )
     plan.add_argument(
-        "--models", type=int, metavar="N", help="perturbed models (default: the template's)"
+        "--models", type=_integer, metavar="N", help="perturbed models (default: the template's)"
     )
     plan.add_argument(
         "--quick", action="store_true", help="the smallest search (smoke tests): 1 generation of 2"
@@ -1879,7 +1912,7 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     plan.add_argument(
         "--workers",
-        type=int,
+        type=_integer,
         metavar="N",
         help="local worker processes (default: every core; 1 runs in this "
         "process); the recipe is the same for any N",
