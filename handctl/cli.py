@@ -1493,6 +1493,23 @@ def _port(text: str) -> int:
     return port
 
 
+#: A negative number as a value, in argparse's sense: an argument that looks like one is
+#: a value, not an option. argparse's own (Python 3.11) knows no exponent, so
+#: ``--torque -1e-3`` was "expected one argument" and had to be written ``--torque=-1e-3``.
+NEGATIVE_NUMBER = re.compile(r"^-(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?$")
+
+
+class _Parser(argparse.ArgumentParser):
+    """handctl's parser, and every subcommand's (``add_subparsers`` makes them of the
+    parent's class): one place that makes a negative number in exponent form a value."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        # argparse reads this private attribute (3.11) where it tells a negative number from
+        # an option; a later Python that matches more ("-" then a digit) still matches these
+        self._negative_number_matcher = NEGATIVE_NUMBER
+
+
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
     """Descriptions and examples as written (``_command`` wraps the prose itself), so that
     example commands keep their lines."""
@@ -1526,7 +1543,7 @@ def _command(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser: argparse.ArgumentParser = _Parser(
         prog="handctl",
         description="Grasp and manipulate two objects with a joint-torque-controlled "
         "three-fingered hand over CAN.",

@@ -1,4 +1,5 @@
-"""Numbers on the command line: what every integer option takes, through the real parser."""
+"""Numbers on the command line: what every integer option takes, and negative numbers in
+exponent form as values, through the real parser."""
 
 from __future__ import annotations
 
@@ -102,3 +103,45 @@ def test_an_integer_option_refuses_other_digits_as_a_usage_error(
     assert "invalid" not in err
     if not digits.isascii():
         assert "ASCII digits 0-9" in err
+
+
+def test_every_parser_takes_a_negative_number_in_exponent_form_as_a_value() -> None:
+    """The top parser's and every subcommand's, new ones too: each is handctl's own."""
+    parsers = [cli.build_parser()]
+    while parsers:
+        parser = parsers.pop()
+        assert parser._negative_number_matcher is cli.NEGATIVE_NUMBER, parser.prog
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                parsers.extend(action.choices.values())
+
+
+@pytest.mark.parametrize(
+    ("text", "value"),
+    [("-1e-3", -1e-3), ("-2.5E+2", -250.0), ("-.5e1", -5.0), ("-3.e0", -3.0), ("-7", -7.0)],
+)
+def test_a_negative_number_in_exponent_form_is_a_value(text: str, value: float) -> None:
+    parser = cli.build_parser()
+    assert parser.parse_args(["jog", "f1_j2", "--torque", text]).torque == value
+    assert parser.parse_args(["analyze", "torque-set", "s.yaml", "--k", text, text]).k == [
+        value,
+        value,
+    ]
+
+
+@pytest.mark.parametrize("text", ["-e3", "-1e", "-1e-", "-x1", "--1e3"])
+def test_what_is_no_number_is_still_an_option(text: str) -> None:
+    with pytest.raises(SystemExit) as done:
+        cli.build_parser().parse_args(["jog", "f1_j2", "--torque", text])
+    assert done.value.code == cli.EXIT_BAD_INPUT
+
+
+def test_a_negative_time_budget_in_exponent_form_is_refused_as_a_duration(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Through the command itself: the value reaches the check that says what is wrong with
+    it, rather than argparse's "expected one argument"."""
+    code = cli.main(["run", "recipe", "r.yaml", "--max-seconds", "-1e-3"])
+    assert code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--max-seconds" in err and "-0.001" in err and "expected one argument" not in err
