@@ -1466,6 +1466,20 @@ def _integer(text: str) -> int:
     return value
 
 
+def _real(text: str) -> float:
+    """A number option's argparse type: ``float`` but for the digits of other scripts, which
+    it takes as ``int`` does (a full-width '０.５' was 0.5). Its other spellings (``nan``,
+    ``inf``, ``1e-3``) are each option's own check to refuse or take."""
+    try:
+        if text.isascii():
+            return float(text)
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(
+        f"expected a number (e.g. 0.5, -1e-3), found {shown(text)}{_not_ascii(text)}"
+    )
+
+
 def _not_ascii(text: str) -> str:
     """What to add to an error for ``text`` that a reader may take for digits but that are
     not ASCII (a full-width '８'): why it was refused."""
@@ -1610,7 +1624,7 @@ def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     )
     timing.add_argument(
         "--seconds",
-        type=float,
+        type=_real,
         default=10.0,
         metavar="S",
         help="length of the timing check [s], > 0 and <= 3600 (default 10)",
@@ -1658,7 +1672,7 @@ def _add_analyze(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     )
     tset.add_argument(
         "--k",
-        type=float,
+        type=_real,
         nargs=2,
         metavar=("K1", "K2"),
         required=True,
@@ -1704,7 +1718,7 @@ def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     sim.add_argument(
         "--seconds",
-        type=float,
+        type=_real,
         metavar="S",
         help="stop after this long [s], > 0 (default: at Ctrl-C)",
     )
@@ -1826,7 +1840,7 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rec.add_argument(
         "--max-seconds",
-        type=float,
+        type=_real,
         metavar="S",
         help="time budget [s], > 0: stop (controlled) after this long, outcome "
         "time_budget, exit 0 (default: no limit; lockstep counts simulated "
@@ -2006,7 +2020,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         help=f"hand config ({DEFAULT_HAND_HELP})",
     )
     nodes.add_argument(
-        "--seconds", type=float, metavar="S", help="how long to listen [s] (default 1)"
+        "--seconds", type=_real, metavar="S", help="how long to listen [s] (default 1)"
     )
     nodes.add_argument("--json", action="store_true", help="print the result as JSON")
     nodes.set_defaults(func=_cmd_nodes)
@@ -2056,28 +2070,28 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         default="sim",
         help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL",
     )
-    tdt.add_argument("--seconds", type=float, metavar="S", help="measurement time [s] (default 1)")
+    tdt.add_argument("--seconds", type=_real, metavar="S", help="measurement time [s] (default 1)")
     tdt.add_argument(
         "--settle",
-        type=float,
+        type=_real,
         metavar="S",
         help="time at zero torque before measuring [s] (default 2)",
     )
     tdt.add_argument(
         "--max-span",
-        type=float,
+        type=_real,
         metavar="RAD",
         help="a joint that moves more than this [rad] is refused (default 0.1)",
     )
     tdt.add_argument(
         "--max-noise",
-        type=float,
+        type=_real,
         metavar="NM",
         help="a noise (1 sigma) above this [N·m] is refused (default 0.02)",
     )
     tdt.add_argument(
         "--max-offset",
-        type=float,
+        type=_real,
         metavar="NM",
         help="an offset above this [N·m] is refused (default 0.25)",
     )
@@ -2117,10 +2131,10 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "push it back in (negative from above the upper limit)",
     )
     jog.add_argument(
-        "--torque", type=float, required=True, metavar="X", help="torque [N·m], signed"
+        "--torque", type=_real, required=True, metavar="X", help="torque [N·m], signed"
     )
     jog.add_argument(
-        "--seconds", type=float, metavar="S", help="how long to hold it [s] (default 2)"
+        "--seconds", type=_real, metavar="S", help="how long to hold it [s] (default 2)"
     )
     _add_dbc(jog)
     jog.add_argument(
@@ -2174,11 +2188,11 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         help="read the raw frames of a recording instead of a bus",
     )
     mon.add_argument(
-        "--seconds", type=float, metavar="S", help="stop after this long [s] (default: at Ctrl-C)"
+        "--seconds", type=_real, metavar="S", help="stop after this long [s] (default: at Ctrl-C)"
     )
     mon.add_argument(
         "--every",
-        type=float,
+        type=_real,
         metavar="S",
         help="time between JSON snapshots [s] (default 1; of log time with --log)",
     )
@@ -2219,7 +2233,7 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     rep.add_argument(
         "--speed",
-        type=float,
+        type=_real,
         metavar="X",
         help="with --to-bus: time scale [× recorded speed] (2 = twice as fast)",
     )

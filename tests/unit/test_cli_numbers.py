@@ -41,12 +41,13 @@ def _options(
             yield words, action
 
 
-def test_no_option_is_parsed_by_int_itself() -> None:
-    """A new integer option uses the shared type (``cli._integer``), not ``int``, which takes
-    what no user types as a number; and every one is in the table the tests below walk."""
+def test_no_option_is_parsed_by_int_or_float_themselves() -> None:
+    """A new number option uses a shared type (``cli._integer``, ``cli._real``), not ``int``
+    or ``float``, which take what no user types as a number (digits of other scripts); and
+    every integer option is in the table the tests below walk."""
     found = set()
     for words, action in _options(cli.build_parser()):
-        assert action.type is not int, (words, action.option_strings)
+        assert action.type not in (int, float), (words, action.option_strings)
         if action.type in (cli._integer, cli._seed, cli._port):
             found.add((words, action.option_strings[0]))
     listed = {(command, option) for command, _, option, _ in INTEGER_OPTIONS}
@@ -145,3 +146,15 @@ def test_a_negative_time_budget_in_exponent_form_is_refused_as_a_duration(
     assert code == cli.EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "--max-seconds" in err and "-0.001" in err and "expected one argument" not in err
+
+
+@pytest.mark.parametrize("text", ["０.５", "٣", "1e\uff13", "half", ""])
+def test_a_number_option_refuses_digits_of_other_scripts(
+    text: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``float`` took '０.５' as 0.5, as ``int`` took '８７６５'."""
+    with pytest.raises(SystemExit) as done:
+        cli.build_parser().parse_args(["jog", "f1_j2", "--torque", text])
+    assert done.value.code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert f"argument --torque: expected a number (e.g. 0.5, -1e-3), found {shown(text)}" in err
