@@ -4,7 +4,8 @@ Exit codes (the same for every subcommand):
 
 ==== =====================================================================
 0    done
-1    finished, but the result is a failure (e.g. a replay mismatch)
+1    finished, but the result is a failure (e.g. a replay mismatch, a run's log lost or
+     possibly incomplete)
 2    bad input: configuration, recipe, scenario, arguments; nothing was sent
 3    safety stop: a fault stopped the hand
 4    bus unavailable or failed
@@ -24,6 +25,7 @@ import argparse
 import io
 import math
 import os
+import re
 import signal
 import sys
 import textwrap
@@ -34,7 +36,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from handctl import __version__
-from handctl.errors import BusError, ConfigError, HandctlError
+from handctl.errors import BusError, ConfigError, HandctlError, escaped, shown
 
 if TYPE_CHECKING:
     from handctl.bringup.jog import JogReport
@@ -220,7 +222,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
         else f"classic CAN {bus.bitrate / 1e6:g} Mbit/s"
     )
     print(f"hand {hand.name} ({args.hand}), config hash {hand.config_hash}")
-    print(f"bus {bus.interface}:{bus.channel}, {kind}, loop {bus.loop_rate_hz:g} Hz")
+    print(f"bus {escaped(f'{bus.interface}:{bus.channel}')}, {kind}, loop {bus.loop_rate_hz:g} Hz")
     print(f"{'joint':<8} {'tau_max':>8} {'device':>8} {'rate':>9} {'angle range':>17}")
     for finger in hand.fingers:
         for joint in finger.joints:
@@ -521,7 +523,33 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
 
 
 def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
-    """The exit code of a run's outcome (module doc), with why it stopped on stderr."""
+    """The exit code of a run's outcome (module doc), with why it stopped on stderr.
+
+    A log asked for and lost or possibly incomplete (its writer failed, hung and was killed,
+    the file removed or replaced) is a failed result: a run that exited 0 was taken for one
+    whose log could be trusted, by scripts that never read the warning. It makes no other
+    code 1: a safety stop, a bus error or an interrupt says more, and is kept."""
+    code = _outcome_exit_code(result, summary)
+    recorded = summary.get("recording")
+    if recorded is None or "error" not in recorded:
+        return code
+    if code == EXIT_OK:
+        print(
+            f"handctl: failed: the run ended as asked, but its log {recorded['path']} is lost "
+            "or may be incomplete (the warning above says why)",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
+    print(
+        f"handctl: and the run's log {recorded['path']} is lost or may be incomplete (the "
+        "warning above says why)",
+        file=sys.stderr,
+    )
+    return code
+
+
+def _outcome_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
+    """The exit code of how the run itself ended, its recording aside."""
     from handctl.online.loop import Outcome
 
     if result.outcome is Outcome.COMPLETED:
@@ -1250,7 +1278,8 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     _refuse_a_torque_the_wire_rounds_away(hand, args.joint, args.torque)
     until = " or until it is back inside its soft limits" if args.recover else ""
     print(
-        f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on {args.bus}, "
+        f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on "
+        f"{escaped(args.bus)}, "
         "every other joint at zero unless the soft-limit guard pushes it back "
         "(Ctrl-C: controlled stop)"
     )
@@ -1388,7 +1417,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     bus_text = "sim" if args.bus is None else args.bus  # '' is a bad spec, not the default
     try:
         with listening_bus(bus_text, hand) as bus:
-            title = f"handctl monitor {bus_text} ({bus.spec}): listening, sending nothing"
+            title = f"handctl monitor {escaped(bus_text)} ({bus.spec}): listening, sending nothing"
             if on_tty:
                 from rich.live import Live
 
@@ -1455,27 +1484,90 @@ def _monitor_log(
 DEFAULT_LIVE_PORT = 8765
 
 
+#: An integer as a command line gives one: ASCII digits after an optional sign. ``int()``
+#: also takes the digits of every script (a full-width '８７６５' was taken as port 8765),
+#: underscores and surrounding white space, none of which a user types as a number here.
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+
+
+def _integer_or_none(text: str) -> int | None:
+    """``text`` as an integer (``_INTEGER``), None if it is none: the one rule of every
+    integer option, so that no option takes what another refuses."""
+    if not _INTEGER.fullmatch(text):
+        return None
+    try:
+        return int(text)
+    except ValueError:  # more digits than Python converts (sys.get_int_max_str_digits)
+        return None
+
+
+def _integer(text: str) -> int:
+    """An integer option's argparse type: the error is a usage error (exit 2) naming what an
+    integer is here, not argparse's "invalid _integer value"."""
+    value = _integer_or_none(text)
+    if value is None:
+        raise argparse.ArgumentTypeError(
+            f"expected an integer (ASCII digits 0-9, an optional sign), found {shown(text)}"
+        )
+    return value
+
+
+def _real(text: str) -> float:
+    """A number option's argparse type: ``float`` but for the digits of other scripts, which
+    it takes as ``int`` does (a full-width '０.５' was 0.5). Its other spellings (``nan``,
+    ``inf``, ``1e-3``) are each option's own check to refuse or take."""
+    try:
+        if text.isascii():
+            return float(text)
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(
+        f"expected a number (e.g. 0.5, -1e-3), found {shown(text)}{_not_ascii(text)}"
+    )
+
+
+def _not_ascii(text: str) -> str:
+    """What to add to an error for ``text`` that a reader may take for digits but that are
+    not ASCII (a full-width '８'): why it was refused."""
+    return "" if text.isascii() else " (a number here is written in ASCII digits 0-9)"
+
+
 def _seed(text: str) -> int:
     """A simulated hand's seed: numpy's generators take only a non-negative integer;
     argparse makes the error a usage error (exit 2)."""
-    try:
-        seed = int(text)
-    except ValueError:
-        seed = -1
-    if seed < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, found {text!r}")
+    seed = _integer_or_none(text)
+    if seed is None or seed < 0:
+        raise argparse.ArgumentTypeError(
+            f"expected an integer >= 0, found {shown(text)}{_not_ascii(text)}"
+        )
     return seed
 
 
 def _port(text: str) -> int:
     """A TCP port for ``--live``; argparse makes the error a usage error (exit 2)."""
-    try:
-        port = int(text)
-    except ValueError:
-        port = 0
-    if not 1 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"expected a TCP port 1..65535, found {text!r}")
+    port = _integer_or_none(text)
+    if port is None or not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(
+            f"expected a TCP port 1..65535, found {shown(text)}{_not_ascii(text)}"
+        )
     return port
+
+
+#: A negative number as a value, in argparse's sense: an argument that looks like one is
+#: a value, not an option. argparse's own (Python 3.11) knows no exponent, so
+#: ``--torque -1e-3`` was "expected one argument" and had to be written ``--torque=-1e-3``.
+NEGATIVE_NUMBER = re.compile(r"^-(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?$")
+
+
+class _Parser(argparse.ArgumentParser):
+    """handctl's parser, and every subcommand's (``add_subparsers`` makes them of the
+    parent's class): one place that makes a negative number in exponent form a value."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        # argparse reads this private attribute (3.11) where it tells a negative number from
+        # an option; a later Python that matches more ("-" then a digit) still matches these
+        self._negative_number_matcher = NEGATIVE_NUMBER
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -1511,7 +1603,7 @@ def _command(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser: argparse.ArgumentParser = _Parser(
         prog="handctl",
         description="Grasp and manipulate two objects with a joint-torque-controlled "
         "three-fingered hand over CAN.",
@@ -1578,7 +1670,7 @@ def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     )
     timing.add_argument(
         "--seconds",
-        type=float,
+        type=_real,
         default=10.0,
         metavar="S",
         help="length of the timing check [s], > 0 and <= 3600 (default 10)",
@@ -1588,7 +1680,7 @@ def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     )
     timing.add_argument(
         "--loop-cpu",
-        type=int,
+        type=_integer,
         metavar="N",
         help="the CPU to check (default: the one --rt gives the loop)",
     )
@@ -1626,7 +1718,7 @@ def _add_analyze(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     )
     tset.add_argument(
         "--k",
-        type=float,
+        type=_real,
         nargs=2,
         metavar=("K1", "K2"),
         required=True,
@@ -1672,7 +1764,7 @@ def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     sim.add_argument(
         "--seconds",
-        type=float,
+        type=_real,
         metavar="S",
         help="stop after this long [s], > 0 (default: at Ctrl-C)",
     )
@@ -1694,7 +1786,7 @@ def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     sim.add_argument(
         "--parent-pid",
-        type=int,
+        type=_integer,
         metavar="PID",
         help="run as the simulated hand of process PID (what handctl run "
         "--realtime does): stop when PID ends, and then remove the unix bus "
@@ -1757,13 +1849,13 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rec.add_argument(
         "--loop-cpu",
-        type=int,
+        type=_integer,
         metavar="N",
         help="with --rt: the control loop's CPU (default: an isolated CPU, else the highest)",
     )
     rec.add_argument(
         "--sim-cpu",
-        type=int,
+        type=_integer,
         metavar="N",
         help="with --rt: the simulated hand's CPU (default: the lowest other one)",
     )
@@ -1794,7 +1886,7 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rec.add_argument(
         "--max-seconds",
-        type=float,
+        type=_real,
         metavar="S",
         help="time budget [s], > 0: stop (controlled) after this long, outcome "
         "time_budget, exit 0 (default: no limit; lockstep counts simulated "
@@ -1870,7 +1962,7 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="write each phase's torque region (chosen torque marked) as PNGs",
     )
     plan.add_argument(
-        "--models", type=int, metavar="N", help="perturbed models (default: the template's)"
+        "--models", type=_integer, metavar="N", help="perturbed models (default: the template's)"
     )
     plan.add_argument(
         "--quick", action="store_true", help="the smallest search (smoke tests): 1 generation of 2"
@@ -1897,7 +1989,7 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     plan.add_argument(
         "--workers",
-        type=int,
+        type=_integer,
         metavar="N",
         help="local worker processes (default: every core; 1 runs in this "
         "process); the recipe is the same for any N",
@@ -1974,7 +2066,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         help=f"hand config ({DEFAULT_HAND_HELP})",
     )
     nodes.add_argument(
-        "--seconds", type=float, metavar="S", help="how long to listen [s] (default 1)"
+        "--seconds", type=_real, metavar="S", help="how long to listen [s] (default 1)"
     )
     nodes.add_argument("--json", action="store_true", help="print the result as JSON")
     nodes.set_defaults(func=_cmd_nodes)
@@ -2024,28 +2116,28 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         default="sim",
         help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL",
     )
-    tdt.add_argument("--seconds", type=float, metavar="S", help="measurement time [s] (default 1)")
+    tdt.add_argument("--seconds", type=_real, metavar="S", help="measurement time [s] (default 1)")
     tdt.add_argument(
         "--settle",
-        type=float,
+        type=_real,
         metavar="S",
         help="time at zero torque before measuring [s] (default 2)",
     )
     tdt.add_argument(
         "--max-span",
-        type=float,
+        type=_real,
         metavar="RAD",
         help="a joint that moves more than this [rad] is refused (default 0.1)",
     )
     tdt.add_argument(
         "--max-noise",
-        type=float,
+        type=_real,
         metavar="NM",
         help="a noise (1 sigma) above this [N·m] is refused (default 0.02)",
     )
     tdt.add_argument(
         "--max-offset",
-        type=float,
+        type=_real,
         metavar="NM",
         help="an offset above this [N·m] is refused (default 0.25)",
     )
@@ -2085,10 +2177,10 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "push it back in (negative from above the upper limit)",
     )
     jog.add_argument(
-        "--torque", type=float, required=True, metavar="X", help="torque [N·m], signed"
+        "--torque", type=_real, required=True, metavar="X", help="torque [N·m], signed"
     )
     jog.add_argument(
-        "--seconds", type=float, metavar="S", help="how long to hold it [s] (default 2)"
+        "--seconds", type=_real, metavar="S", help="how long to hold it [s] (default 2)"
     )
     _add_dbc(jog)
     jog.add_argument(
@@ -2142,11 +2234,11 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         help="read the raw frames of a recording instead of a bus",
     )
     mon.add_argument(
-        "--seconds", type=float, metavar="S", help="stop after this long [s] (default: at Ctrl-C)"
+        "--seconds", type=_real, metavar="S", help="stop after this long [s] (default: at Ctrl-C)"
     )
     mon.add_argument(
         "--every",
-        type=float,
+        type=_real,
         metavar="S",
         help="time between JSON snapshots [s] (default 1; of log time with --log)",
     )
@@ -2187,7 +2279,7 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     rep.add_argument(
         "--speed",
-        type=float,
+        type=_real,
         metavar="X",
         help="with --to-bus: time scale [× recorded speed] (2 = twice as fast)",
     )

@@ -29,7 +29,7 @@ class ConfigError(HandctlError, ValueError):
         self.expected = expected
         self.found = found
         where = f"{file}: {key}" if key else file
-        super().__init__(f"{where}: expected {expected}, found {_show(found)}")
+        super().__init__(f"{where}: expected {expected}, found {shown(found)}")
 
 
 class ProtocolError(HandctlError, ValueError):
@@ -48,21 +48,68 @@ class HandctlTimeoutError(HandctlError, TimeoutError):
 SHOWN_CHARS = 80
 
 
-def _show(found: object) -> str:
+def escaped(text: str) -> str:
+    """``text`` as a terminal can show it and a reader can tell apart, for a message that
+    names a value the user gave (an argument, a file name, a value read from a file).
+
+    A control character was written as it was: an escape sequence in an interface name
+    recoloured or cleared the terminal that showed the error, a newline split the one line a
+    message is. A byte that is not UTF-8 (an argument or a file name in another encoding,
+    which Python holds as a lone surrogate) became ``\\udcff``, a character the user never
+    typed. Now each is an escape as Python's ``repr`` writes it, the byte as ``\\xff``, and a
+    backslash is doubled so that no escape is ambiguous; the rest (accented letters, any
+    printable script) is left as it is."""
+    if text.isprintable() and "\\" not in text:
+        return text
+    return "".join(_escape(char) for char in text)
+
+
+def _escape(char: str) -> str:
+    code = ord(char)
+    if char == "\\":
+        return "\\\\"
+    if 0xDC80 <= code <= 0xDCFF:  # a byte that was not UTF-8 (``surrogateescape``)
+        return f"\\x{code - 0xDC00:02x}"
+    if char.isprintable():
+        return char
+    return repr(char)[1:-1]  # \t, \x1b, \x85, \u202e, \ud800: repr's escapes
+
+
+def quoted(text: str) -> str:
+    """``text`` ``escaped`` between quotes, chosen as ``repr`` chooses them, so that a
+    message shows a string as it always has unless it holds what ``escaped`` escapes."""
+    body = escaped(text)
+    if "'" in body and '"' not in body:
+        return f'"{body}"'
+    return "'" + body.replace("'", "\\'") + "'"
+
+
+def shown(found: object) -> str:
     """Render the offending value briefly: long values are cut so a message stays one line.
 
     ``reprlib`` bounds the work as well as the text: a value read from a hostile file (a JSON
     array nested a thousand deep) would otherwise exhaust the recursion limit while the error
-    that reports it is being built."""
+    that reports it is being built. Strings, inside containers too, are ``quoted``."""
     if isinstance(found, PurePath):
         # a file's name is what the user must find again: whole (the system bounds it)
-        return repr(str(found))
+        return quoted(str(found))
     text = _SHORT.repr(found)
     return text if len(text) <= SHOWN_CHARS else text[: SHOWN_CHARS - 3] + "..."
 
 
+class _ShortRepr(reprlib.Repr):
+    def repr_str(self, x: str, level: int) -> str:
+        """A string ``quoted``, its middle cut as ``reprlib`` cuts one."""
+        text = quoted(x)
+        if len(text) > self.maxstring:
+            i = max(0, (self.maxstring - 3) // 2)
+            j = max(0, self.maxstring - 3 - i)
+            text = text[:i] + "..." + text[len(text) - j :]
+        return text
+
+
 def _short_repr() -> reprlib.Repr:
-    short = reprlib.Repr()
+    short = _ShortRepr()
     short.maxlevel = 4
     short.maxstring = SHOWN_CHARS
     short.maxother = SHOWN_CHARS

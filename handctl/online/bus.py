@@ -42,7 +42,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import can
 
 from handctl.config import BusConfig
-from handctl.errors import BusError, HandctlError
+from handctl.errors import BusError, HandctlError, escaped
 from handctl.online import frameflags as ff
 from handctl.online.busspec import BusSpec, bus_kwargs, check_socketcan, parse_spec
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
@@ -557,5 +557,7 @@ def open_bus(
         # A third-party backend raises what it likes: kvaser without its library a
         # NameError, socketcand without host and port a TypeError. Each is this bus not
         # opening, said with the spec; an interrupt (not an Exception) still interrupts.
-        raise BusError(f"{parsed}: cannot open the bus: {type(exc).__name__}: {exc}") from None
+        raise BusError(
+            f"{parsed}: cannot open the bus: {type(exc).__name__}: {escaped(str(exc))}"
+        ) from None
     return HandBus(bus, parsed, bus_config.fd)

@@ -24,7 +24,7 @@ from typing import Any
 import can
 
 from handctl.config import BusConfig
-from handctl.errors import BusError, ConfigError
+from handctl.errors import BusError, ConfigError, escaped
 
 #: bytes: the kernel's ``IFNAMSIZ``, the NUL included; a name has one byte fewer at most.
 IFNAMSIZ = 16
@@ -46,7 +46,10 @@ class BusSpec:
     channel: str
 
     def __str__(self) -> str:
-        return f"{self.interface}:{self.channel}" if self.channel else self.interface
+        """The spec as messages show it: a channel from argv or a hand config may hold
+        control characters or bytes that are not UTF-8, which are shown ``escaped``."""
+        text = f"{self.interface}:{self.channel}" if self.channel else self.interface
+        return escaped(text)
 
 
 def parse_spec(
@@ -149,11 +152,26 @@ def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:
 
 def socketcan_setup_command(channel: str, bus_config: BusConfig) -> str:
     """The `ip link` command that brings a SocketCAN interface up with the hand's bit rates,
-    the channel quoted for a shell (it is pasted into one)."""
-    cmd = f"sudo ip link set {shlex.quote(channel)} up type can bitrate {bus_config.bitrate}"
+    the channel quoted for a shell (it is pasted into one, ``shell_word``)."""
+    cmd = f"sudo ip link set {shell_word(channel)} up type can bitrate {bus_config.bitrate}"
     if bus_config.fd:
         cmd += f" dbitrate {bus_config.data_bitrate} fd on"
     return cmd
+
+
+def shell_word(name: str) -> str:
+    """``name`` as one word for a shell, in a command a message suggests. A name with a
+    control character or a byte that is not UTF-8 (the kernel takes both) is written
+    ``$'...'`` with its bytes as ``\\xNN`` (bash and POSIX shells decode it back), so that
+    the message shows no raw control character and the pasted command names the interface;
+    any other name is quoted as ``shlex`` quotes it."""
+    if name.isprintable():
+        return shlex.quote(name)
+    raw = name.encode("utf-8", "surrogateescape")
+    body = "".join(
+        chr(b) if 0x20 <= b < 0x7F and chr(b) not in "\\'" else f"\\x{b:02x}" for b in raw
+    )
+    return f"$'{body}'"
 
 
 def check_socketcan(
@@ -168,20 +186,21 @@ def check_socketcan(
         raise ConfigError("--bus", "channel", IFNAME_RULE, channel)
     node = sysfs / channel
     hint = socketcan_setup_command(channel, bus_config)
+    shown = escaped(channel)
     if not node.exists():
         raise BusError(
-            f"socketcan:{channel}: no such network interface; load the driver and "
+            f"socketcan:{shown}: no such network interface; load the driver and "
             f"configure it with: {hint}"
         )
     link_type = _read(node / "type")
     if link_type and link_type != str(ARPHRD_CAN):
         raise BusError(
-            f"socketcan:{channel}: not a CAN interface (its link type is {link_type[:16]}, "
+            f"socketcan:{shown}: not a CAN interface (its link type is {link_type[:16]}, "
             f"a CAN interface's is {ARPHRD_CAN}, ARPHRD_CAN): name the CAN interface "
             "(`ip -details link show type can` lists them)"
         )
     if _read(node / "operstate") == "down":
-        raise BusError(f"socketcan:{channel}: interface is down; bring it up with: {hint}")
+        raise BusError(f"socketcan:{shown}: interface is down; bring it up with: {hint}")
 
 
 def _read(path: Path) -> str:

@@ -25,6 +25,7 @@ from typing import Any
 import can
 
 from handctl.online import frameflags as ff
+from handctl.online.bus import MAX_FRAME_DATA
 
 #: ``SO_TIMESTAMPNS`` (Linux, asm-generic; Python's socket module does not name it): the
 #: kernel stamps each datagram as it is queued for the receiving socket.
@@ -56,7 +57,7 @@ _NOT_CAN = 0xFF & ~_CAN_FLAGS
 #: bytes: the receive buffer, a full datagram of a handctl sender: ``_BATCH`` frames of the
 #: longest CAN-FD payload. A longer datagram comes cut short (``MSG_TRUNC``), and is dropped
 #: as malformed rather than handed on with its last frame cut.
-_RECV_BYTES = _BATCH * (_WIRE.size + 64)
+_RECV_BYTES = _BATCH * (_WIRE.size + MAX_FRAME_DATA)
 #: frames a second no participant of one machine's unix bus sends (handctl's own burst path
 #: carries some hundred thousand): the frames a receiver is told it lost since it opened,
 #: at this rate and a second more, bound what a ``_LOST_MARK`` may claim. A mark beyond is

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, escaped
 from handctl.hand_protocol import protocol_for
 from handctl.online.bus import HandBus, open_bus
 from handctl.online.clock import collector_paused, request_realtime
@@ -469,7 +469,7 @@ def standalone(
         summary_json.write_text(json.dumps(sim.ground_truth_summary(), indent=2) + "\n")
     rtf = sim.time / wall if wall > 0 else 0.0
     return (
-        f"simulated hand on {bus_spec}: {sim.time:.3f} s simulated in {wall:.3f} s "
+        f"simulated hand on {escaped(bus_spec)}: {sim.time:.3f} s simulated in {wall:.3f} s "
         f"(real-time factor {rtf:.3f}){', interrupted' if interrupted else ''}; "
         f"{sim.frames_in} frames in, {sim.frames_out} out, {sim.tx_failed} failed sends, "
         f"{sim.bus_events} bus events, {sim.missed_ticks} missed ticks; " + sim.status_line()

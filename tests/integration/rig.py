@@ -4,6 +4,9 @@ sniffer that hears every frame the host puts on the wire, the way a CAN analyser
 from __future__ import annotations
 
 import asyncio
+import os
+import select
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -167,3 +170,22 @@ def stopped_at_once(r: Rig, result: RunResult, code: FaultCode) -> int:
     assert np.abs(wire[row - 1]).max() > 0.01
     assert not np.any(wire[row + 2 :])
     return first.tick
+
+
+def read_until(fd: int, wanted: str | None, timeout_s: float = 120.0) -> str:
+    """What a terminal showed until ``wanted`` appeared (``None``: until the process closed
+    it)."""
+    seen = ""
+    deadline = time.monotonic() + timeout_s
+    while (wanted is None or wanted not in seen) and time.monotonic() < deadline:
+        ready, _, _ = select.select([fd], [], [], 0.5)
+        if not ready:
+            continue
+        try:
+            chunk = os.read(fd, 4096)
+        except OSError:  # the other end closed: the process ended
+            break
+        if not chunk:
+            break
+        seen += chunk.decode(errors="replace")
+    return seen

@@ -76,6 +76,17 @@ def test_a_negative_torque_turns_it_back(capsys: pytest.CaptureFixture[str]) -> 
     assert float(summary.split("(")[1].split()[0]) < -0.1
 
 
+def test_a_negative_torque_in_exponent_form_is_a_value(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """argparse took ``-5e-2`` for an option ("--torque: expected one argument"): a torque
+    had to be written ``--torque=-5e-2``."""
+    assert cli.main(["jog", "f3_j1", "--torque", "-5e-2", "--seconds", "0.3"]) == cli.EXIT_OK
+    out = capsys.readouterr().out
+    summary = next(line for line in out.splitlines() if line.startswith("f3_j1:"))
+    assert "under -0.05 N·m" in summary
+
+
 @pytest.mark.parametrize(
     "args, says",
     [

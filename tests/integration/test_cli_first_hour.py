@@ -257,6 +257,63 @@ def test_a_bus_that_is_not_there_is_a_bus_error_before_the_timing_check(
     assert "Traceback" not in done.stderr
 
 
+#: Interface names the kernel takes that hold what a terminal acts on or cannot show: an
+#: escape sequence, DEL, a C1 control (U+0085), a byte that is not UTF-8 (0xFF, which Python
+#: holds as the lone surrogate U+DCFF); each with how a message shows it.
+ODD_NAMES = [
+    ("ca\x1b[31mn", "ca\\x1b[31mn"),
+    ("c\x7fn", "c\\x7fn"),
+    ("c\x85n", "c\\x85n"),
+    ("c\udcffn", "c\\xffn"),
+]
+
+
+@pytest.mark.parametrize(("name", "shown"), ODD_NAMES, ids=["escape", "del", "c1", "not-utf-8"])
+def test_an_interface_name_with_control_characters_or_bytes_is_shown_escaped(
+    tmp_path: Path, name: str, shown: str
+) -> None:
+    """Such a name, from ``--bus`` or a hand config's ``bus.channel``, was echoed raw: the
+    escape sequence recoloured the terminal that showed the error, the byte 0xFF became
+    ``\\udcff``. Now every message that names it shows it escaped, and the command it
+    suggests is one a shell decodes back to the name (``$'...'``)."""
+    done = handctl("nodes", "--bus", f"socketcan:{name}", "--seconds", "0.2", cwd=ROOT)
+    assert done.returncode == 4, done.stdout + done.stderr
+    assert f"handctl: bus error: socketcan:{shown}: no such network interface" in done.stderr
+    hint = done.stderr.split("configure it with: ")[1].split(" up type can")[0]
+    assert hint.startswith("sudo ip link set $'")
+    said = subprocess.run(
+        ["bash", "-c", f"printf %s {hint.removeprefix('sudo ip link set ')}"],
+        capture_output=True,
+        check=True,
+    )
+    assert said.stdout == name.encode("utf-8", "surrogateescape")
+    _nothing_raw(done.stdout + done.stderr)
+    if shown.endswith("\\xffn"):  # a hand config is UTF-8 text: it cannot hold such a byte
+        return
+    hand = tmp_path / "hand.yaml"
+    hand.write_text(
+        HAND_YAML.read_text().replace("channel: can0", f'channel: "{shown}"'), encoding="utf-8"
+    )
+    checked = handctl("check", str(hand), cwd=tmp_path)
+    assert checked.returncode == 0, checked.stdout + checked.stderr
+    assert f"bus socketcan:{shown}, CAN-FD" in checked.stdout
+    _nothing_raw(checked.stdout + checked.stderr)
+
+
+def _nothing_raw(output: str) -> None:
+    assert not any(c in output for c in "\x1b\x7f\x85\udcff"), output
+    assert "\\udcff" not in output, output
+
+
+def test_a_refused_interface_name_is_shown_escaped_in_the_error(tmp_path: Path) -> None:
+    """The bad-input message (a name the kernel never gives) shows a byte that is not UTF-8
+    as ``\\xff``, not as the surrogate Python holds it as."""
+    done = handctl("nodes", "--bus", "socketcan:a/\udcff\x1b", cwd=ROOT)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "--bus: channel: expected a Linux interface name" in done.stderr
+    assert "found 'a/\\xff\\x1b'" in done.stderr
+
+
 @pytest.mark.parametrize(
     ("command", "said"),
     [

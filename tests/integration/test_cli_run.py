@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import os
 import pty
-import select
 import signal
 import subprocess
 import sys
@@ -31,7 +30,7 @@ from .realtime import (
     sim_cpu_verdict,
     stopped_by_load,
 )
-from .rig import HOLD_LONG
+from .rig import HOLD_LONG, read_until
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
 
@@ -77,25 +76,6 @@ def test_bad_recipe_exits_2_before_anything_is_sent(tmp_path: Path) -> None:
     assert "0.45 N·m" in done.stderr and "0.55" in done.stderr
 
 
-def _read_until(fd: int, wanted: str | None, timeout_s: float = 120.0) -> str:
-    """What a terminal showed until ``wanted`` appeared (``None``: until the process closed
-    it)."""
-    seen = ""
-    deadline = time.monotonic() + timeout_s
-    while (wanted is None or wanted not in seen) and time.monotonic() < deadline:
-        ready, _, _ = select.select([fd], [], [], 0.5)
-        if not ready:
-            continue
-        try:
-            chunk = os.read(fd, 4096)
-        except OSError:  # the other end closed: the process ended
-            break
-        if not chunk:
-            break
-        seen += chunk.decode(errors="replace")
-    return seen
-
-
 def test_sigint_is_a_controlled_stop(tmp_path: Path) -> None:
     """Lockstep, so the stop is judged on behaviour alone, whatever the machine's load. The
     signal goes when the run's status line (shown on a terminal) says the phase is under way,
@@ -112,11 +92,11 @@ def test_sigint_is_a_controlled_stop(tmp_path: Path) -> None:
     )
     os.close(stderr_end)
     try:
-        shown = _read_until(terminal, "running")
+        shown = read_until(terminal, "running")
         assert "running" in shown, shown
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=60)
-        stderr = shown + _read_until(terminal, None, timeout_s=10.0)
+        stderr = shown + read_until(terminal, None, timeout_s=10.0)
     finally:
         proc.kill()
         os.close(terminal)

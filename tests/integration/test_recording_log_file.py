@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import pty
 import shutil
 import signal
 import subprocess
@@ -21,6 +22,7 @@ from handctl.recording.reader import open_recording
 from handctl.recording.recorder import Recorder
 
 from ..conftest import DEFAULT_RECIPE, HAND_YAML, ROOT, handctl
+from .rig import HOLD_LONG, read_until
 
 
 def _recorder(hand: HandConfig, path: Path, argv: tuple[str, ...] = ("test",)) -> Recorder:
@@ -228,3 +230,70 @@ def test_a_writer_the_open_files_limit_keeps_from_starting_is_said(tmp_path: Pat
         "limit, ulimit -n); nothing was sent"
     ) in done.stderr
     assert not log.exists()
+
+
+def _writer_running(run_pid: int) -> bool:
+    """Whether the run's recording writer is still alive (not even a zombie): the recorder
+    checks the log's path only after it has reaped the writer, so a log removed while this
+    is true is one the check sees."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat_line = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:  # gone meanwhile
+            continue
+        state, ppid = stat_line.rpartition(")")[2].split()[:2]
+        if int(ppid) == run_pid and b"handctl.recording.writer" in cmdline and state != "Z":
+            return True
+    return False
+
+
+@pytest.mark.parametrize("end", ["time_budget", "interrupted"])
+def test_a_run_whose_log_is_removed_during_it_says_so_in_its_exit(tmp_path: Path, end: str) -> None:
+    """A run that warned that its log was lost exited 0, as if the log could be trusted. Now
+    a lost (or possibly incomplete) log is a failed result, exit 1, said last; a run that
+    stops for a reason of its own (here Ctrl-C, 130) keeps its code and says the log too.
+    Lockstep: the log is removed once the status line (on a terminal) says the phase runs,
+    many simulated seconds before it ends, and only while the writer is still alive, so the
+    end-of-run check comes after it whatever the machine's load."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    directory = tmp_path / "logs"
+    directory.mkdir()
+    log = directory / "run.mcap"
+    budget = ["--max-seconds", "10"] if end == "time_budget" else []
+    terminal, stderr_end = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--log", str(log), *budget],
+        cwd=ROOT,
+        env={
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+        },
+        stdout=subprocess.DEVNULL,
+        stderr=stderr_end,
+    )
+    os.close(stderr_end)
+    try:
+        shown = read_until(terminal, "running")
+        assert "running" in shown, shown
+        shutil.rmtree(directory)
+        assert _writer_running(proc.pid), "the run ended before its log could be removed"
+        if end == "interrupted":
+            proc.send_signal(signal.SIGINT)
+        shown += read_until(terminal, None)
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+        os.close(terminal)
+    assert proc.returncode == (1 if end == "time_budget" else 130), shown
+    assert "Traceback" not in shown
+    assert f"{log}: expected the recording at this path at the end of the run" in shown
+    last = shown.strip().splitlines()[-1]
+    if end == "time_budget":
+        assert last.startswith("handctl: failed: the run ended as asked, but its log"), shown
+    else:
+        assert last.startswith("handctl: and the run's log"), shown
+    assert f"{log} is lost or may be incomplete" in last

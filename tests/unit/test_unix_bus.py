@@ -21,7 +21,15 @@ import pytest
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
+from handctl.online import unixcan
+from handctl.online.bus import (
+    EXTENDED_ID_FLAG,
+    MAX_FRAME_DATA,
+    BusEventKind,
+    Frame,
+    HandBus,
+    open_bus,
+)
 from handctl.online.busspec import parse_spec
 from handctl.online.taps import TAP_TX
 from handctl.online.unixcan import TX_QUEUE_FRAMES, UnixDatagramBus
@@ -410,6 +418,30 @@ def test_a_malformed_datagram_is_dropped_whole_as_a_receive_failure(
     assert "unix bus: a malformed datagram" in events[0].detail and why in events[0].detail
     counts = rx.transport_counts()
     assert counts["rx_malformed"] == 1 and counts["rx_frames_lost"] == 0
+
+
+def test_the_longest_datagram_a_sender_sends_arrives_whole(
+    open_unix: OpenUnix, tmp_path: Path
+) -> None:
+    """The receive buffer holds a full batch of the longest CAN-FD frames, and no more: its
+    size is derived from ``MAX_FRAME_DATA``, not written beside it."""
+    rx = open_unix()
+    full = [_wire(0x181 + i, 1, bytes([i]) * MAX_FRAME_DATA) for i in range(unixcan._BATCH)]
+    _hostile_datagram(tmp_path / "bus", b"".join(full))
+    got: list[Frame] = []
+    for _ in range(20):
+        got += rx.drain()
+        if got:
+            break
+    assert [(f.arbitration_id, f.data) for f in got] == [
+        (0x181 + i, bytes([i]) * MAX_FRAME_DATA) for i in range(unixcan._BATCH)
+    ]
+    assert rx.events() == []
+    _hostile_datagram(tmp_path / "bus", b"".join(full) + _wire(0x181, 1, b"\x00"))
+    for _ in range(20):
+        if rx.drain() or rx.events():
+            break
+    assert rx.transport_counts()["rx_malformed"] == 1  # one byte more is cut by the buffer
 
 
 def test_a_python_can_reader_is_told_of_a_malformed_datagram_as_python_can_says_it(

@@ -1,0 +1,160 @@
+"""Numbers on the command line: what every integer option takes, and negative numbers in
+exponent form as values, through the real parser."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterator
+
+import pytest
+
+from handctl import cli
+from handctl.errors import shown
+
+#: Every integer option of every command: the command, what else it requires, the option,
+#: a value it takes.
+INTEGER_OPTIONS = [
+    (("check",), ("--timing",), "--loop-cpu", "1"),
+    (("sim",), ("--bus", "virtual:x"), "--seed", "7"),
+    (("sim",), ("--bus", "virtual:x"), "--parent-pid", "4321"),
+    (("run", "recipe"), ("r.yaml",), "--loop-cpu", "1"),
+    (("run", "recipe"), ("r.yaml",), "--sim-cpu", "0"),
+    (("run", "recipe"), ("r.yaml",), "--seed", "7"),
+    (("run", "recipe"), ("r.yaml",), "--live", "8765"),
+    (("plan",), ("t.yaml", "-o", "out.yaml"), "--models", "4"),
+    (("plan",), ("t.yaml", "-o", "out.yaml"), "--workers", "2"),
+    (("replay",), ("run.mcap",), "--live", "8765"),
+    (("calibrate", "tdt"), (), "--seed", "7"),
+    (("jog",), ("f1_j2", "--torque", "0.05"), "--seed", "7"),
+]
+IDS = [f"{' '.join(command)} {option}" for command, _, option, _ in INTEGER_OPTIONS]
+
+
+def _options(
+    parser: argparse.ArgumentParser, words: tuple[str, ...] = ()
+) -> Iterator[tuple[tuple[str, ...], argparse.Action]]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _options(sub, (*words, name))
+        else:
+            yield words, action
+
+
+def test_no_option_is_parsed_by_int_or_float_themselves() -> None:
+    """A new number option uses a shared type (``cli._integer``, ``cli._real``), not ``int``
+    or ``float``, which take what no user types as a number (digits of other scripts); and
+    every integer option is in the table the tests below walk."""
+    found = set()
+    for words, action in _options(cli.build_parser()):
+        assert action.type not in (int, float), (words, action.option_strings)
+        if action.type in (cli._integer, cli._seed, cli._port):
+            found.add((words, action.option_strings[0]))
+    listed = {(command, option) for command, _, option, _ in INTEGER_OPTIONS}
+    assert found == listed
+
+
+@pytest.mark.parametrize(("command", "required", "option", "value"), INTEGER_OPTIONS, ids=IDS)
+def test_an_integer_option_takes_ascii_digits(
+    command: tuple[str, ...], required: tuple[str, ...], option: str, value: str
+) -> None:
+    args = cli.build_parser().parse_args([*command, *required, option, value])
+    assert getattr(args, option.lstrip("-").replace("-", "_")) == int(value)
+
+
+@pytest.mark.parametrize(
+    "digits",
+    [
+        "８７６５",  # full width: int() took it
+        "٣",  # ARABIC-INDIC DIGIT THREE
+        "१",  # DEVANAGARI DIGIT ONE
+        "1_0",
+        " 5",
+        "5\n",
+        "0x10",
+        "",
+        "9" * 5000,  # more digits than int() converts: argparse said "invalid _integer value"
+    ],
+    ids=[
+        "full-width",
+        "arabic-indic",
+        "devanagari",
+        "underscore",
+        "space",
+        "newline",
+        "hex",
+        "empty",
+        "huge",
+    ],
+)
+@pytest.mark.parametrize(("command", "required", "option", "value"), INTEGER_OPTIONS, ids=IDS)
+def test_an_integer_option_refuses_other_digits_as_a_usage_error(
+    command: tuple[str, ...],
+    required: tuple[str, ...],
+    option: str,
+    value: str,
+    digits: str,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit) as done:
+        cli.build_parser().parse_args([*command, *required, option, digits])
+    assert done.value.code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert f"argument {option}: expected " in err and f"found {shown(digits)}" in err, err
+    assert "invalid" not in err
+    if not digits.isascii():
+        assert "ASCII digits 0-9" in err
+
+
+def test_every_parser_takes_a_negative_number_in_exponent_form_as_a_value() -> None:
+    """The top parser's and every subcommand's, new ones too: each is handctl's own."""
+    parsers = [cli.build_parser()]
+    while parsers:
+        parser = parsers.pop()
+        assert parser._negative_number_matcher is cli.NEGATIVE_NUMBER, parser.prog
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                parsers.extend(action.choices.values())
+
+
+@pytest.mark.parametrize(
+    ("text", "value"),
+    [("-1e-3", -1e-3), ("-2.5E+2", -250.0), ("-.5e1", -5.0), ("-3.e0", -3.0), ("-7", -7.0)],
+)
+def test_a_negative_number_in_exponent_form_is_a_value(text: str, value: float) -> None:
+    parser = cli.build_parser()
+    assert parser.parse_args(["jog", "f1_j2", "--torque", text]).torque == value
+    assert parser.parse_args(["analyze", "torque-set", "s.yaml", "--k", text, text]).k == [
+        value,
+        value,
+    ]
+
+
+@pytest.mark.parametrize("text", ["-e3", "-1e", "-1e-", "-x1", "--1e3"])
+def test_what_is_no_number_is_still_an_option(text: str) -> None:
+    with pytest.raises(SystemExit) as done:
+        cli.build_parser().parse_args(["jog", "f1_j2", "--torque", text])
+    assert done.value.code == cli.EXIT_BAD_INPUT
+
+
+def test_a_negative_time_budget_in_exponent_form_is_refused_as_a_duration(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Through the command itself: the value reaches the check that says what is wrong with
+    it, rather than argparse's "expected one argument"."""
+    code = cli.main(["run", "recipe", "r.yaml", "--max-seconds", "-1e-3"])
+    assert code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--max-seconds" in err and "-0.001" in err and "expected one argument" not in err
+
+
+@pytest.mark.parametrize("text", ["０.５", "٣", "1e\uff13", "half", ""])
+def test_a_number_option_refuses_digits_of_other_scripts(
+    text: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``float`` took '０.５' as 0.5, as ``int`` took '８７６５'."""
+    with pytest.raises(SystemExit) as done:
+        cli.build_parser().parse_args(["jog", "f1_j2", "--torque", text])
+    assert done.value.code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert f"argument --torque: expected a number (e.g. 0.5, -1e-3), found {shown(text)}" in err
