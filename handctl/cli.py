@@ -511,7 +511,7 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
             f"  experiment: {'success' if ex['success'] else 'FAILED'} (lifted, held, "
             f"nothing dropped, at least {ex['min_total_turn_deg']:g} deg turned)"
         )
-    if plot and "experiment" in summary:
+    if plot and "experiment" in summary and "error" not in summary.get("plot", {}):
         print(f"  overview plot: {plot}")
     if "recording" in summary and "error" not in summary["recording"]:
         rec = summary["recording"]
@@ -527,9 +527,19 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
 
     A log asked for and lost or possibly incomplete (its writer failed, hung and was killed,
     the file removed or replaced) is a failed result: a run that exited 0 was taken for one
-    whose log could be trusted, by scripts that never read the warning. It makes no other
-    code 1: a safety stop, a bus error or an interrupt says more, and is kept."""
+    whose log could be trusted, by scripts that never read the warning; so is a ``--plot``
+    not written because the run's recording failed. Neither makes another code 1: a safety
+    stop, a bus error or an interrupt says more, and is kept."""
     code = _outcome_exit_code(result, summary)
+    plotted = summary.get("plot", {})
+    if "error" in plotted and code == EXIT_OK:
+        # --plot without --log: the run's own recording, which the plot is drawn from, failed
+        print(
+            f"handctl: failed: the run ended as asked, but no plot was written to "
+            f"{plotted['path']} ({plotted['error']}: the warning above says why)",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
     recorded = summary.get("recording")
     if recorded is None or "error" not in recorded:
         return code

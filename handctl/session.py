@@ -516,8 +516,12 @@ def _plot(summary: dict[str, Any], req: RunRequest, warnings: list[str]) -> None
     recorded = summary["recording"] if req.log else summary.pop("recording")
     if "error" in recorded:
         warnings.append(f"no plot written: the run's recording failed ({recorded['error']})")
+        # a file the run was told to write and did not: the exit says so (cli), not only
+        # a warning above a run that exited 0
+        summary["plot"] = {"path": str(req.plot), "error": "the run's recording failed"}
         return
     plot_log(Path(recorded["path"]), req.plot)
+    summary["plot"] = {"path": str(req.plot)}
 
 
 def _close_recording(

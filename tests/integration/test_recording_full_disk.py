@@ -53,6 +53,26 @@ def test_a_log_whose_disk_fills_says_why_and_reads_up_to_there(small_disk: Path)
     assert "TRUNCATED" in replay.stdout
 
 
+def test_a_plot_whose_recording_fills_the_disk_is_a_failed_result(
+    small_disk: Path, tmp_path: Path
+) -> None:
+    """``--plot`` without ``--log`` draws from a recording of the run's own in the temporary
+    directory; when that recording fails the plot is not written, which said a warning and
+    exit 0: a file the run was told to write and did not is a failed result."""
+    plot = tmp_path / "run.png"
+    done = handctl(
+        "run", "recipe", DEFAULT_RECIPE, "--plot", str(plot), env={"TMPDIR": str(small_disk)}
+    )
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert "no plot written: the run's recording failed" in done.stderr
+    assert done.stderr.strip().splitlines()[-1] == (
+        f"handctl: failed: the run ended as asked, but no plot was written to {plot} (the "
+        "run's recording failed: the warning above says why)"
+    )
+    assert not plot.exists() and "overview plot" not in done.stdout
+
+
 def test_rings_the_host_will_not_give_are_an_error_before_the_run(tmp_path: Path) -> None:
     """A file-size limit (``ulimit -f``) below the recording's rings, which are a memory
     file: a traceback before; now the error says what and how much, and nothing was sent."""
