@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from handctl.protocol import MIN_LOOP_RATE_HZ, Layout, Protocol
+from handctl.protocol import Layout, Protocol, slowest_loop_rate_hz
 
 if TYPE_CHECKING:  # the hand config's protocol is generated with the DLC sizes below
     from handctl.config import BusConfig, HandConfig
@@ -89,6 +89,9 @@ class MessageBudget:
     rate_hz: float  # 0 for event messages
     frame_time_us: float
     load: float  # fraction of the bus
+    #: sent once a loop period (the host's TorqueCommand): what a slower loop makes less of.
+    #: A node's Feedback is sent on its own 1 ms tick, at the loop's rate only at 1 kHz
+    per_loop: bool = False
 
 
 @dataclass(frozen=True)
@@ -110,11 +113,11 @@ class BusBudget:
     @property
     def loop_time_per_tick_s(self) -> float:
         """Bus time of everything sent once per loop period."""
-        return sum(m.frame_time_us for m in self.messages if m.rate_hz == self.loop_rate_hz) * 1e-6
+        return sum(m.frame_time_us for m in self.messages if m.per_loop) * 1e-6
 
     def highest_loop_rate_hz(self) -> float:
         """The loop rate at which this bus would sit exactly at ``MAX_LOAD``."""
-        fixed = sum(m.load for m in self.messages if m.rate_hz != self.loop_rate_hz)
+        fixed = sum(m.load for m in self.messages if not m.per_loop)
         per_tick = self.loop_time_per_tick_s
         return max(0.0, (MAX_LOAD - fixed) / per_tick) if per_tick else math.inf
 
@@ -153,7 +156,16 @@ def hand_budget(
         hz = message_rate(layout, hand.bus.loop_rate_hz)
         frames = 1 if use_fd else max(1, math.ceil(layout.length / 8))
         rows.append(
-            MessageBudget(layout.name, layout.frame_id, layout.length, frames, hz, t * 1e6, t * hz)
+            MessageBudget(
+                layout.name,
+                layout.frame_id,
+                layout.length,
+                frames,
+                hz,
+                t * 1e6,
+                t * hz,
+                per_loop=layout.send == "loop",
+            )
         )
     return BusBudget(use_fd, rate, data_rate, hand.bus.loop_rate_hz, tuple(rows))
 
@@ -185,8 +197,9 @@ def bus_refusals(
     too_long = [] if hand.bus.fd else too_long_for_classic(hand, protocol)
     if too_long:
         expected = (
-            f"true (CAN-FD): {', '.join(too_long)} are longer than the 8 bytes of a classic "
-            "CAN frame, and handctl sends every message in one frame"
+            f"true (CAN-FD): {', '.join(too_long)} {'is' if len(too_long) == 1 else 'are'} "
+            "longer than the 8 bytes of a classic CAN frame, and handctl sends every message "
+            "in one frame (no hand fits classic CAN: Status_n is 12 bytes for any joints)"
         )
         out.append(("bus.fd", expected, False))
     if not budget.ok:
@@ -213,9 +226,9 @@ def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
     highest = budget.highest_loop_rate_hz()
     hints = (
         [f"the highest loop rate that fits is {highest:.0f} Hz"]
-        if highest >= MIN_LOOP_RATE_HZ
+        if highest >= slowest_loop_rate_hz()
         # a slower loop would let the nodes' command watchdog trip between two ticks
-        else [f"no loop rate of {MIN_LOOP_RATE_HZ:.0f} Hz or more fits on one bus"]
+        else [f"no loop rate of {slowest_loop_rate_hz():.0f} Hz or more fits on one bus"]
     )
     nodes = [f.node_id for f in hand.fingers]
     for buses in range(2, len(nodes) + 1):

@@ -19,7 +19,15 @@ from types import MappingProxyType
 from typing import Any
 
 from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids, protocol_for
-from handctl.protocol import HEARTBEAT_PERIOD_S, MIN_LOOP_RATE_HZ, Protocol
+from handctl.protocol import (
+    COMMAND_WATCHDOG_S,
+    HEARTBEAT_PERIOD_S,
+    MIN_LOOP_RATE_HZ,
+    NODE_TIMING_MARGIN_S,
+    Protocol,
+    most_misses_before_watchdog,
+    slowest_loop_rate_hz,
+)
 from handctl.schema import Doc, load_yaml
 from handctl.wirelimits import check_wire_limits
 
@@ -188,10 +196,39 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
     )
     if protocol is None:
         protocol = protocol_for(hand)
+        # a recording's hand (protocol given) is read as it ran, whatever the rules now
+        _check_misses_before_watchdog(doc, hand)
     else:
         check_protocol(hand, protocol)
     check_wire_limits(hand, protocol)
     return hand
+
+
+def _check_misses_before_watchdog(doc: Doc, hand: HandConfig) -> None:
+    """The host's LOOP_OVERRUN stop must come before a node's command watchdog
+    (``most_misses_before_watchdog``): otherwise the nodes stop the hand themselves, latch a
+    TIMEOUT fault the next run must reset, and the host's summary says no tick was missed."""
+    rate = hand.bus.loop_rate_hz
+    most = most_misses_before_watchdog(rate)
+    watchdog_ms = COMMAND_WATCHDOG_S * 1e3
+    if most < 1:
+        doc.fail(
+            "bus.loop_rate_hz",
+            f"at least {slowest_loop_rate_hz():g} Hz: two periods, a tick and a late one, "
+            f"within the nodes' {watchdog_ms:g} ms command watchdog with "
+            f"{NODE_TIMING_MARGIN_S * 1e3:g} ms to spare for the bus and the node's tick",
+            rate,
+        )
+    misses = hand.safety.max_consecutive_misses
+    if misses > most:
+        doc.fail(
+            "safety.max_consecutive_misses",
+            f"at most {most} at a {rate:g} Hz loop: the host must stop on missed ticks before "
+            f"a node's {watchdog_ms:g} ms command watchdog trips ({misses + 1} periods of "
+            f"{1e3 / rate:.3g} ms, with {NODE_TIMING_MARGIN_S * 1e3:g} ms to spare for the bus "
+            "and the node's tick)",
+            misses,
+        )
 
 
 def _parse_safety(doc: Doc) -> SafetyConfig:

@@ -148,8 +148,8 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
     comments = {
         "NodeCommand": "Node management for finger {n}: enable, disable, fault reset.",
         "TorqueCommand": "Joint torque command for finger {n}, every loop period.",
-        "Feedback": "TDT joint torques, joint angles and node state of finger {n}, every loop "
-        "period.",
+        "Feedback": "TDT joint torques, joint angles and node state of finger {n}, every 1 ms "
+        "(the node's tick, whatever the host's loop rate).",
         "Status": "Node state, fault bits, receive-error counts, protocol and firmware version "
         "of finger {n}: on change and every 100 ms.",
         "Heartbeat": "Liveness of finger {n}: state and uptime, every 100 ms.",
@@ -174,7 +174,10 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
         f'BA_ "DataID" BO_ 0 {ESTOP_DATA_ID};',
     ]
     cycle = {"TorqueCommand": 1, "Feedback": 1, "Status": 100, "Heartbeat": 100}
-    send = {"TorqueCommand": 1, "Feedback": 1, "Status": 2, "Heartbeat": 2}
+    # HandctlSend: 1 "loop" (the host's loop period), 2 "cyclic" (GenMsgCycleTime). A node
+    # sends its Feedback on its own 1 ms tick, whatever the loop rate: the bus budget of a
+    # hand with a slower loop counted it at the loop rate, a third of what the wire carried
+    send = {"TorqueCommand": 1, "Feedback": 2, "Status": 2, "Heartbeat": 2}
     for node_id, _ in nodes:
         out += [
             f'BA_ "DataID" BO_ {ID_BASES[k] + node_id} {DATA_ID_BASES[k] + node_id};'

@@ -68,9 +68,32 @@ HEARTBEAT_PERIOD_S = 0.1
 #: s, how long an ENABLED node waits for an accepted TorqueCommand before it latches TIMEOUT
 #: (firmware_protocol/PROTOCOL.md, the command watchdog)
 COMMAND_WATCHDOG_S = 0.010
-#: Hz, the slowest host loop: a tick every half of the command watchdog, so that one late tick
-#: does not trip it
+#: Hz, the slowest host loop a hand config may name: a tick every half of the command
+#: watchdog, so that one late tick does not trip it. What a hand can run at is slower still
+#: than that bound allows: see ``loop_tolerance``
 MIN_LOOP_RATE_HZ = 2.0 / COMMAND_WATCHDOG_S
+#: s, of the command watchdog, left to what the host's tick count does not see: a frame
+#: waiting behind others on the bus, the node's own 1 ms tick on which it checks the watchdog
+NODE_TIMING_MARGIN_S = 0.002
+
+
+def most_misses_before_watchdog(loop_rate_hz: float) -> int:
+    """The most consecutive missed ticks a host at ``loop_rate_hz`` may allow before its
+    LOOP_OVERRUN stop (``safety.max_consecutive_misses``) so that it stops before a node's
+    command watchdog would: the command gap it then allows, that many periods and the one
+    the next command is late in, with ``NODE_TIMING_MARGIN_S`` to spare, stays within the
+    watchdog. 0: none; the loop is too slow. A 200 Hz hand stopped on its nodes' TIMEOUT (a
+    latched fault) with no missed tick at all: a tick late by most of its 5 ms period was
+    already the node's 10 ms."""
+    budget = (COMMAND_WATCHDOG_S - NODE_TIMING_MARGIN_S) * loop_rate_hz
+    return max(0, math.floor(budget + 1e-9) - 1)
+
+
+def slowest_loop_rate_hz() -> float:
+    """Hz, the slowest loop that allows one missed tick (``most_misses_before_watchdog``)."""
+    return 2.0 / (COMMAND_WATCHDOG_S - NODE_TIMING_MARGIN_S)
+
+
 #: ``Command`` values of NodeCommand frames.
 NODE_COMMANDS = {"enable": 1, "disable": 2, "fault_reset": 3}
 

@@ -160,7 +160,7 @@ int handctl_torque_command_3_decode(const uint8_t *in, size_t len, uint8_t *coun
                                     struct handctl_torque_command_3 *msg);
 
 /* Feedback_1 (id 0x181, 16 bytes, sent by FINGER1): TDT joint torques, joint angles and node
- * state of finger 1, every loop period.
+ * state of finger 1, every 1 ms (the node's tick, whatever the host's loop rate).
  */
 #define HANDCTL_FEEDBACK_1_FRAME_ID 0x181u
 #define HANDCTL_FEEDBACK_1_LENGTH 16u
@@ -182,7 +182,7 @@ int handctl_feedback_1_decode(const uint8_t *in, size_t len, uint8_t *counter,
                               struct handctl_feedback_1 *msg);
 
 /* Feedback_2 (id 0x182, 16 bytes, sent by FINGER2): TDT joint torques, joint angles and node
- * state of finger 2, every loop period.
+ * state of finger 2, every 1 ms (the node's tick, whatever the host's loop rate).
  */
 #define HANDCTL_FEEDBACK_2_FRAME_ID 0x182u
 #define HANDCTL_FEEDBACK_2_LENGTH 16u
@@ -204,7 +204,7 @@ int handctl_feedback_2_decode(const uint8_t *in, size_t len, uint8_t *counter,
                               struct handctl_feedback_2 *msg);
 
 /* Feedback_3 (id 0x183, 16 bytes, sent by FINGER3): TDT joint torques, joint angles and node
- * state of finger 3, every loop period.
+ * state of finger 3, every 1 ms (the node's tick, whatever the host's loop rate).
  */
 #define HANDCTL_FEEDBACK_3_FRAME_ID 0x183u
 #define HANDCTL_FEEDBACK_3_LENGTH 16u

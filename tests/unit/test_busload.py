@@ -65,10 +65,17 @@ def test_default_hand_fits_and_classic_does_not(hand: HandConfig, protocol: Prot
     budget = hand_budget(classic, protocol)
     assert not budget.ok
     assert budget.load == pytest.approx(1.2257, abs=1e-3)  # Status is 12 bytes: two frames
-    # At the advertised highest rate the load is exactly the limit.
-    rate = budget.highest_loop_rate_hz()
-    fixed = sum(m.load for m in budget.messages if m.rate_hz != budget.loop_rate_hz)
-    assert fixed + rate * budget.loop_time_per_tick_s == pytest.approx(MAX_LOAD)
+    # What does not follow the loop (the nodes' 1 kHz Feedback in two classic frames) is
+    # over the limit by itself: no loop rate fits
+    fixed = sum(m.load for m in budget.messages if not m.per_loop)
+    assert fixed > MAX_LOAD and budget.highest_loop_rate_hz() == 0.0
+    # on CAN-FD 1/5 Mbit/s a four-by-four hand at the advertised highest rate is exactly at it
+    four = load_hand(ROOT / "config" / "hands" / "four_fingers_four_joints.yaml")
+    slow = hand_budget(four, protocol_for(four), data_bitrate=5_000_000)
+    rate = slow.highest_loop_rate_hz()
+    fixed = sum(m.load for m in slow.messages if not m.per_loop)
+    assert 200 < rate < 1000
+    assert fixed + rate * slow.loop_time_per_tick_s == pytest.approx(MAX_LOAD)
     one_finger = hand_budget(classic, protocol, nodes={1})
     assert one_finger.ok
     assert {m.name for m in one_finger.messages if m.name.endswith("_2")} == set()
@@ -111,3 +118,32 @@ def test_a_hand_within_the_budget_passes_check(tmp_path: Path) -> None:
     assert result.stdout.splitlines()[-1] == "ok"
     assert "TorqueCommand_2   0x102     6" in result.stdout  # 2 + 2 x 2 bytes
     assert "Feedback_2        0x182    12" in result.stdout  # 2 + 4 x 2 + 2 bytes
+
+
+def test_feedback_is_budgeted_at_the_nodes_tick_whatever_the_loop_rate(tmp_path: Path) -> None:
+    """A node sends Feedback every 1 ms (PROTOCOL.md), at any loop rate: a 300 Hz hand's
+    budget counted it at 300 Hz, a third of what the wire carried, and passed hands the bus
+    cannot hold. Only the host's TorqueCommand follows the loop, so only it scales in the
+    highest loop rate that fits."""
+
+    def slow(doc: dict[str, object]) -> None:
+        bus = doc["bus"]
+        assert isinstance(bus, dict)
+        bus["loop_rate_hz"] = 300
+        doc["safety"] = {"max_consecutive_misses": 1}  # the most a 300 Hz loop may allow
+
+    hand = load_hand(shaped_hand(tmp_path, [1] * 15, edit=slow))
+    budget = hand_budget(hand, protocol_for(hand))
+    rates = {m.name: m.rate_hz for m in budget.messages}
+    assert rates["Feedback_15"] == 1000.0 and rates["TorqueCommand_15"] == 300.0
+    assert [m.name for m in budget.messages if m.per_loop] == [
+        f"TorqueCommand_{n}" for n in range(1, 16)
+    ]
+    fixed = sum(m.load for m in budget.messages if not m.per_loop)
+    per_tick = sum(m.frame_time_us for m in budget.messages if m.per_loop) * 1e-6
+    assert budget.highest_loop_rate_hz() == max(0.0, (MAX_LOAD - fixed) / per_tick)
+    # the nodes' own traffic is over half this bus: no loop rate fits, and check says so
+    assert fixed > MAX_LOAD and budget.highest_loop_rate_hz() == 0.0
+    result = handctl("check", str(hand.source))
+    assert result.returncode == 2
+    assert "no loop rate of 250 Hz or more fits on one bus" in result.stderr

@@ -309,13 +309,14 @@ def test_the_bring_up_commands_refuse_what_check_refuses(
 def _classic(data: dict[str, Any]) -> None:
     data["bus"]["fd"] = False
     del data["bus"]["data_bitrate"]
-    data["bus"]["loop_rate_hz"] = 200
+    data["bus"]["loop_rate_hz"] = 250  # the slowest loop, with one miss before the watchdog
+    data.setdefault("safety", {})["max_consecutive_misses"] = 1
 
 
 @pytest.mark.parametrize(
     ("change", "key", "found"),
     [
-        (lambda d: d["bus"].update(loop_rate_hz=10_000), "bus", "388.0 % at 10000 Hz"),
+        (lambda d: d["bus"].update(loop_rate_hz=10_000), "bus", "191.9 % at 10000 Hz"),
         (_classic, "bus.fd", "False"),
     ],
 )
@@ -521,3 +522,33 @@ def test_check_cli_refuses_a_limit_the_wire_cannot_carry(
     )
     assert narrow.returncode == 2
     assert "TorqueCommand_1.Torque1 carries (-0.32768..0.32767 N·m)" in narrow.stderr
+
+
+@pytest.mark.parametrize(
+    ("rate", "misses", "key", "expected"),
+    [
+        (220.0, 1, "bus.loop_rate_hz", "at least 250 Hz"),
+        (400.0, 3, "safety.max_consecutive_misses", "at most 2 at a 400 Hz loop"),
+        (1000.0, 8, "safety.max_consecutive_misses", "at most 7 at a 1000 Hz loop"),
+    ],
+)
+def test_the_host_stops_on_missed_ticks_before_the_nodes_watchdog(
+    tmp_path: Path, rate: float, misses: int, key: str, expected: str
+) -> None:
+    """A 200 Hz hand passed check, and its runs ended on the nodes' latched TIMEOUT with no
+    missed tick counted: the host's overrun stop must come first, with room for the bus."""
+    doc = yaml.safe_load(HAND_YAML.read_text(encoding="utf-8"))
+    doc["bus"]["loop_rate_hz"] = rate
+    doc.setdefault("safety", {})["max_consecutive_misses"] = misses
+    path = tmp_path / "hand.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_hand(path)
+    assert info.value.key == key and expected in str(info.value)
+    # one fewer miss (or the slowest rate allowed) loads
+    if key == "bus.loop_rate_hz":
+        doc["bus"]["loop_rate_hz"] = 250.0
+    else:
+        doc["safety"]["max_consecutive_misses"] = misses - 1
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    assert load_hand(path).safety.max_consecutive_misses == doc["safety"]["max_consecutive_misses"]
