@@ -19,6 +19,7 @@ the same run reads the same everywhere.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 
 import numpy as np
@@ -26,6 +27,10 @@ import numpy.typing as npt
 
 #: The simulated objects' poses are logged (and a turn measured) every this many ticks.
 POSE_EVERY_TICKS = 10
+#: An object's name, in a hand config's scene and in a recipe alike: the prefix of its
+#: estimates in conditions (``estimate.<name>_x``, a pair's ``<a>_<b>_line_turn``), so no
+#: underscore
+OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]*$")
 TIME_LABEL = "time since tick 0 [s]"
 HEIGHT_LABEL = "height above rest [mm]"
 #: m, an object's centre this far above rest is lifted: the experiment's judgement and the

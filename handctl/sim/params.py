@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from handctl.config import HandConfig
+from handctl.convention import OBJECT_NAME
 from handctl.errors import ConfigError
 from handctl.schema import Doc
 from handctl.sim.placement import check_placement
@@ -343,8 +344,18 @@ def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...]
 
 
 def _parse_object(doc: Doc) -> ObjectParams:
+    name = doc.string("name")
+    if not OBJECT_NAME.match(name):
+        # a recipe finds an object by this name and names its estimates after it: an
+        # underscore passed check, and then no recipe could name the object at all
+        doc.fail(
+            "name",
+            "a name of letters and digits, starting with a letter (recipes name the "
+            "object's estimates after it: estimate.NAME_x)",
+            name,
+        )
     obj = ObjectParams(
-        name=doc.string("name"),
+        name=name,
         radius=doc.number("radius", min=0.005, max=1.0, unit="m"),
         length=doc.number("length", min=0.01, max=2.0, unit="m"),
         mass=doc.number("mass", min=0.001, max=20.0, unit="kg"),

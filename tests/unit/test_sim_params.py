@@ -143,13 +143,11 @@ def test_mistakes_name_the_key(hand: HandConfig, edit: Any, key: str, expected: 
     [
         (lambda s: s["objects"][1].update(name="palm"), "sim.objects[1].name", "a name of its own"),
         (lambda s: s["objects"][0].update(name="world"), "sim.objects[0].name", "is the scene"),
-        (lambda s: s["objects"][0].update(name="f2_j3"), "sim.objects[0].name", "a link of f2"),
-        (lambda s: s["objects"][0].update(name="f1_base"), "sim.objects[0].name", "base of f1"),
-        (
-            lambda s: s["objects"][1].update(name="cyl1_x"),
-            "sim.objects[1].name",
-            "a joint of objects[0]",
-        ),
+        # a link's, a base's or an object joint's name has an underscore, which no object's
+        # may have: a recipe could not name it (its estimates are NAME_x, A_B_line_turn)
+        (lambda s: s["objects"][0].update(name="f2_j3"), "sim.objects[0].name", "letters and"),
+        (lambda s: s["objects"][0].update(name="f1_base"), "sim.objects[0].name", "letters and"),
+        (lambda s: s["objects"][1].update(name="cyl1_x"), "sim.objects[1].name", "letters and"),
         (lambda s: s["objects"][1].update(x=0.6), "sim.objects[1].x", "within reach of a finger"),
         (
             lambda s: s["objects"][0].update(x=-0.075, y=-0.05, radius=0.01),
@@ -192,7 +190,7 @@ def _objects(*specs: tuple[str, float, float, float]) -> Any:
 @pytest.mark.parametrize(
     "specs",
     [
-        [("the one", 0.03, 0.0, -0.11)],
+        [("theOne", 0.03, 0.0, -0.11)],
         [
             ("a", 0.01, -0.033, -0.13),
             ("b", 0.012, -0.011, -0.128),
@@ -201,11 +199,21 @@ def _objects(*specs: tuple[str, float, float, float]) -> Any:
         ],
     ],
 )
-def test_one_to_four_objects_of_any_radius_and_name(
+def test_one_to_four_objects_of_any_radius_and_name_a_recipe_can_name(
     hand: HandConfig, specs: list[tuple[str, float, float, float]]
 ) -> None:
     p = parse_sim(_with_sim(hand, _objects(*specs)))
     assert [(o.name, o.radius) for o in p.objects] == [(n, r) for n, r, _, _ in specs]
+
+
+@pytest.mark.parametrize("name", ["the one", "obj0_r15", "1st", "cyl-1"])
+def test_an_object_a_recipe_could_not_name_is_refused(hand: HandConfig, name: str) -> None:
+    """``obj0_r15`` passed check, and every recipe naming it was refused: as ``obj0r15`` not
+    an object of the scene, as ``obj0_r15`` not letters and digits."""
+    with pytest.raises(ConfigError) as err:
+        parse_sim(_with_sim(hand, _objects((name, 0.03, 0.0, -0.11))))
+    assert err.value.key == "sim.objects[0].name" and err.value.found == name
+    assert "letters and digits" in err.value.expected
 
 
 def test_five_objects_are_refused(hand: HandConfig) -> None:

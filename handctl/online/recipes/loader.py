@@ -9,13 +9,13 @@ names the phase, the joint, the value and the limit, so the fix is obvious.
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from handctl.config import HandConfig
+from handctl.convention import OBJECT_NAME
 from handctl.errors import ConfigError
 from handctl.online.recipes.guard import SIDES, GuardSettings, SpringBand
 from handctl.online.recipes.schema import (
@@ -50,8 +50,6 @@ MAX_PHASES = 64
 #: with an estimator that never placed the object (it fits within ±40 % of the nominal), so
 #: an exit on its estimates never came; the simulated hand's objects are as large or larger
 MIN_OBJECT_RADIUS = 0.005
-#: An object's name is the prefix of its estimates in conditions (``estimate.<name>_x``).
-OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]*$")
 #: rad, the range of ``limit_guard_band``: narrower is a cliff again, wider fights the grasp
 GUARD_BAND_MIN = 0.02
 GUARD_BAND_MAX = 0.5
@@ -273,8 +271,7 @@ def parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
                 "name",
                 "a name of letters and digits, starting with a letter (it "
                 "prefixes the object's estimates, e.g. estimate.NAME_x; the simulated "
-                "scene's objects go by the same names, so one named otherwise in the hand "
-                "config is renamed there too)",
+                "scene's objects go by the same names)",
                 name,
             )
         radius = sub.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m")
