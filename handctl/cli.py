@@ -1412,18 +1412,19 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
             "either --log or --bus: a log is read instead of a bus",
             f"--log {args.log} --bus {args.bus}",
         )
-    hand = _load_hand(args.hand, "--hand", args.dbc)
-    _refuse_what_check_refuses(hand, args.hand)
     seconds = None if args.seconds is None else _seconds_or(args.seconds, 0.0)
     every = _positive("--every", args.every, 1.0, "s")
-    view = BusView(protocol_for(hand))
     on_tty = sys.stdout.isatty()
 
     def emit(snapshot: dict[str, object]) -> None:
         print(json.dumps(snapshot), flush=True)
 
     if args.log is not None:
-        return _monitor_log(view, args.log, every, on_tty, emit)
+        return _monitor_log(args, every, on_tty, emit)
+    hand_path = DEFAULT_HAND if args.hand is None else args.hand
+    hand = _load_hand(hand_path, "--hand", args.dbc)
+    _refuse_what_check_refuses(hand, hand_path)
+    view = BusView(protocol_for(hand))
     bus_text = "sim" if args.bus is None else args.bus  # '' is a bad spec, not the default
     try:
         with listening_bus(bus_text, hand) as bus:
@@ -1464,17 +1465,30 @@ def _reader_stays() -> bool:
 
 
 def _monitor_log(
-    view: Any, log: Path, every: float, on_tty: bool, emit: Callable[[dict[str, object]], None]
+    args: argparse.Namespace,
+    every: float,
+    on_tty: bool,
+    emit: Callable[[dict[str, object]], None],
 ) -> int:
     """``handctl monitor --log``: a recording's raw frames through the same view, snapshots
-    every ``every`` s of log time when piped, the whole at the end."""
-    from handctl.bringup.monitor import from_log, table
-    from handctl.recording.reader import open_recording
+    every ``every`` s of log time when piped, the whole at the end. The frames are decoded
+    with the protocol the recording keeps (``log_protocol``): --hand and --dbc only matter
+    for a recording that keeps none, and one that is not the recorded hand is refused."""
+    from handctl.bringup.monitor import BusView, from_log, log_protocol, table
+    from handctl.recording.reader import check_format, open_recording
 
-    open_recording(log)  # a file that is no recording is refused by name
+    log: Path = args.log
+    recording = open_recording(log)  # a file that is no recording is refused by name
+    check_format(recording)
+    given = (
+        None
+        if args.hand is None and args.dbc is None
+        else _load_hand(DEFAULT_HAND if args.hand is None else args.hand, "--hand", args.dbc)
+    )
+    view = BusView(log_protocol(recording, given, lambda: _load_hand(DEFAULT_HAND, "--hand")))
     step = round(every * 1e9)
     next_ns: int | None = None
-    for frame_id, data, t_ns in from_log(log):
+    for frame_id, data, t_ns in from_log(recording):
         view.observe(frame_id, data, t_ns)
         next_ns = t_ns + step if next_ns is None else next_ns
         if not on_tty and t_ns >= next_ns:
@@ -2233,15 +2247,16 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     mon.add_argument(
         "--hand",
         type=Path,
-        default=DEFAULT_HAND,
         metavar="HAND.yaml",
-        help=f"hand config ({DEFAULT_HAND_HELP})",
+        help=f"hand config ({DEFAULT_HAND_HELP}; with --log: the recorded one, and another "
+        "is refused)",
     )
     mon.add_argument(
         "--log",
         type=Path,
         metavar="RUN.mcap",
-        help="read the raw frames of a recording instead of a bus",
+        help="read the raw frames of a recording instead of a bus, decoded with the "
+        "protocol the recording keeps",
     )
     mon.add_argument(
         "--seconds", type=_real, metavar="S", help="stop after this long [s] (default: at Ctrl-C)"

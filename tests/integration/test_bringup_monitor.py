@@ -147,6 +147,28 @@ def test_it_reads_the_frames_of_a_recording(
     assert messages["Feedback_3"]["frames"] > 100 and messages["NodeCommand_2"]["frames"] >= 2
 
 
+def test_a_recording_of_another_hand_is_decoded_with_its_own_protocol(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = ROOT / "tests" / "data"
+    hand = data / "hands" / "one_finger_two_joints.yaml"  # Feedback_1 of 2 joints, not 3
+    log = tmp_path / "run.mcap"
+    recipe = data / "recipes" / "close_one_finger.yaml"
+    cli.main(["run", "recipe", str(recipe), "--hand", str(hand), "--log", str(log)])
+    capsys.readouterr()
+    assert cli.main(["monitor", "--log", str(log)]) == cli.EXIT_OK
+    messages = _by_name(_last(capsys.readouterr().out))
+    feedback = messages["Feedback_1"]
+    assert feedback["rejects"] == {} and feedback["frames"] > 100
+    assert set(feedback["values"]) >= {"Angle1", "Angle2"} and "Angle3" not in feedback["values"]
+    assert cli.main(["monitor", "--log", str(log), "--hand", str(hand)]) == cli.EXIT_OK
+    assert _by_name(_last(capsys.readouterr().out))["Feedback_1"]["rejects"] == {}
+    other = ROOT / "handctl" / "hands" / "hiroshima_hand.yaml"
+    assert cli.main(["monitor", "--log", str(log), "--hand", str(other)]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--hand: expected the hand" in err and "one_finger_two_joints" in err
+
+
 def test_a_log_and_a_bus_at_once_are_refused(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
