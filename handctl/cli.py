@@ -1039,12 +1039,17 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
         f"{hand.name} on {where}: listened {result.seconds:.2f} s, sent nothing; "
         f"host protocol {result.host_protocol}"
     )
+    # the node column fits its widest id and name: ids 10-15 and names over 7 characters
+    # pushed the rest of their row one column or more to the right of the header
+    id_width = max((len(str(row.node_id)) for row in result.rows), default=1)
+    labels = [f"{row.node_id:>{id_width}} {row.name}" for row in result.rows]
+    node_width = max([9, *(len(label) for label in labels)])
     print(
-        f"{'node':<9} {'state':<9} {'faults':<16} {'proto':>5} {'firmware':>8} "
+        f"{'node':<{node_width}} {'state':<9} {'faults':<16} {'proto':>5} {'firmware':>8} "
         f"{'fb Hz':>6} {'hb':>3} {'st':>3} {'uptime s':>9} {'host rejects':<14} "
         f"{'node rejects':<13} problem"
     )
-    for row in result.rows:
+    for row, label in zip(result.rows, labels, strict=True):
         uptime = "-" if row.uptime_ms is None else f"{row.uptime_ms / 1e3:.1f}"
         host = ",".join(f"{k} {v}" for k, v in row.host_rejects.items()) or "0"
         theirs = (
@@ -1052,7 +1057,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
         )
         proto = "-" if row.protocol_version is None else str(row.protocol_version)
         print(
-            f"{row.node_id} {row.name:<7} {row.state:<9} {','.join(row.faults) or '-':<16} "
+            f"{label:<{node_width}} {row.state:<9} {','.join(row.faults) or '-':<16} "
             f"{proto:>5} {row.firmware:>8} {row.feedback_hz:>6.0f} {row.heartbeats:>3} "
             f"{row.statuses:>3} {uptime:>9} {host:<14} {theirs:<13} "
             f"{row.problem or 'ok'}"
