@@ -865,10 +865,10 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
             f"{start[key] * 1e3:+.1f} -> {end[key] * 1e3:+.1f} mm, "
             f"x {start['x_m'] * 1e3:+.1f} -> {end['x_m'] * 1e3:+.1f} mm"
         )
-    if "turn_deg" in summary:
+    for pair, figures in summary.get("pairs", {}).items():
         print(
-            f"  turn of the centre line: per phase {summary['phase_turns_deg']} deg, "
-            f"turn {summary['turn_deg']:+.2f} deg (ccw +)"
+            f"  turn of the centre line {pair}: per phase {figures['phase_turns_deg']} deg, "
+            f"turn {figures['turn_deg']:+.2f} deg (ccw +)"
         )
 
 
