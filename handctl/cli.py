@@ -88,6 +88,12 @@ def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
             "an existing hand config file (HAND.yaml; " + DEFAULT_HAND_HELP + ")",
             f"{path}: {'not a file' if path.exists() else 'no such file'}",
         )
+    _check_dbc_file(dbc)
+    return load_hand(path) if dbc is None else load_hand(path, dbc)
+
+
+def _check_dbc_file(dbc: Path | None) -> None:
+    """A ``--dbc`` that names no file is refused against the option."""
     if dbc is not None and not dbc.is_file():
         raise ConfigError(
             "--dbc",
@@ -95,7 +101,6 @@ def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
             "an existing DBC file (PROTOCOL.dbc)",
             f"{dbc}: {'not a file' if dbc.exists() else 'no such file'}",
         )
-    return load_hand(path) if dbc is None else load_hand(path, dbc)
 
 
 def _positive_seconds(option: str, value: float | None) -> None:
@@ -1485,12 +1490,12 @@ def _monitor_log(
     log: Path = args.log
     recording = open_recording(log)  # a file that is no recording is refused by name
     check_format(recording)
-    given = (
-        None
-        if args.hand is None and args.dbc is None
-        else _load_hand(DEFAULT_HAND if args.hand is None else args.hand, "--hand", args.dbc)
+    hand = None if args.hand is None else _load_hand(args.hand, "--hand", args.dbc)
+    _check_dbc_file(args.dbc)
+    protocol = log_protocol(
+        recording, hand, args.dbc, lambda: _load_hand(DEFAULT_HAND, "--hand", args.dbc)
     )
-    view = BusView(log_protocol(recording, given, lambda: _load_hand(DEFAULT_HAND, "--hand")))
+    view = BusView(protocol)
     step = round(every * 1e9)
     next_ns: int | None = None
     for frame_id, data, t_ns in from_log(recording):

@@ -17,6 +17,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from handctl.errors import ConfigError
@@ -226,18 +227,22 @@ def listen(
 
 
 def log_protocol(
-    recording: Recording, given: HandConfig | None, fallback: Callable[[], HandConfig]
+    recording: Recording,
+    hand: HandConfig | None,
+    dbc: Path | None,
+    fallback: Callable[[], HandConfig],
 ) -> Protocol:
     """The protocol to decode a recording's frames with: the one its run spoke.
 
     A recording keeps its hand and that hand's DBC; decoding with any other protocol (the
     default hand's, say) reads another hand's frames as length rejects and unknown ids, which
-    looks like a broken bus, not a wrong option. So ``given`` (``--hand``/``--dbc``, None when
-    neither was given) is only used for a recording from before the hand was recorded, and a
-    given hand that is not the recorded one is refused rather than warned about: the user
-    asked to decode with a hand the frames were not sent with, and either choice (ignore the
-    option, or decode with it) would silently show something else than was asked for.
-    ``fallback`` (the default hand) is for a recording that names no hand when none is given.
+    looks like a broken bus, not a wrong option. So ``hand`` (``--hand``) and ``dbc``
+    (``--dbc``), None when not given, only choose for a recording from before the hand was
+    recorded; one that is not the recorded one is refused rather than warned about: the user
+    asked to decode with a hand or DBC the frames were not sent with, and either choice
+    (ignore the option, or decode with it) would silently show something else than was asked
+    for. ``fallback`` (the default hand) is for a recording that keeps no hand when no
+    ``hand`` is given.
     """
     from handctl.hand_protocol import protocol_for
     from handctl.recording import channels as ch
@@ -245,25 +250,24 @@ def log_protocol(
 
     recorded = recorded_hand(recording, required=False)
     if recorded is None:
-        return protocol_for(fallback() if given is None else given)
+        return protocol_for(fallback() if hand is None else hand, dbc)
     protocol = recorded_protocol(recording) or protocol_for(recorded)
-    if given is not None:
-        if given.config_hash != recorded.config_hash:
-            raise ConfigError(
-                "--hand",
-                "",
-                f"the hand {recording.path} was recorded with ({recorded.name}, config hash "
-                f"{recorded.config_hash}; leave --hand out to decode with it)",
-                f"config hash {given.config_hash} ({given.name})",
-            )
-        if given.dbc is not None and protocol_for(given).text != protocol.text:
-            raise ConfigError(
-                "--dbc",
-                "",
-                f"the DBC {recording.path} was recorded with (metadata {ch.META_HAND}.dbc; "
-                "leave --dbc out to decode with it)",
-                f"{given.dbc}, another protocol",
-            )
+    if hand is not None and hand.config_hash != recorded.config_hash:
+        raise ConfigError(
+            "--hand",
+            "",
+            f"the hand {recording.path} was recorded with ({recorded.name}, config hash "
+            f"{recorded.config_hash}; leave --hand out to decode with it)",
+            f"config hash {hand.config_hash} ({hand.name})",
+        )
+    if dbc is not None and protocol_for(recorded, dbc).text != protocol.text:
+        raise ConfigError(
+            "--dbc",
+            "",
+            f"the DBC {recording.path} was recorded with (metadata {ch.META_HAND}.dbc; "
+            "leave --dbc out to decode with it)",
+            dbc,
+        )
     return protocol
 
 

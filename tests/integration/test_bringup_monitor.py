@@ -15,7 +15,8 @@ from typing import Any
 import pytest
 
 from handctl import cli
-from handctl.config import HandConfig
+from handctl.config import HandConfig, load_hand
+from handctl.hand_protocol import protocol_for
 from handctl.online.bus import open_bus
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
@@ -167,6 +168,26 @@ def test_a_recording_of_another_hand_is_decoded_with_its_own_protocol(
     assert cli.main(["monitor", "--log", str(log), "--hand", str(other)]) == cli.EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "--hand: expected the hand" in err and "one_finger_two_joints" in err
+
+
+def test_a_dbc_given_with_a_log_is_held_to_the_recorded_one_alone(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = ROOT / "tests" / "data"
+    hand = data / "hands" / "one_finger_two_joints.yaml"
+    log = tmp_path / "run.mcap"
+    recipe = data / "recipes" / "close_one_finger.yaml"
+    cli.main(["run", "recipe", str(recipe), "--hand", str(hand), "--log", str(log)])
+    dbc = tmp_path / "same.dbc"  # the DBC the run spoke, as a file: no --hand needed with it
+    dbc.write_text(protocol_for(load_hand(hand)).text, encoding="cp1252")
+    capsys.readouterr()
+    assert cli.main(["monitor", "--log", str(log), "--dbc", str(dbc)]) == cli.EXIT_OK
+    assert _by_name(_last(capsys.readouterr().out))["Feedback_1"]["rejects"] == {}
+    other = tmp_path / "other.dbc"  # another DataID for TorqueCommand_1: another protocol
+    text = dbc.read_text(encoding="cp1252")
+    other.write_text(text.replace('"DataID" BO_ 257 ', '"DataID" BO_ 257 1'), encoding="cp1252")
+    assert cli.main(["monitor", "--log", str(log), "--dbc", str(other)]) == cli.EXIT_BAD_INPUT
+    assert "--dbc: expected the DBC" in capsys.readouterr().err
 
 
 def test_a_log_and_a_bus_at_once_are_refused(
