@@ -88,6 +88,12 @@ def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
             "an existing hand config file (HAND.yaml; " + DEFAULT_HAND_HELP + ")",
             f"{path}: {'not a file' if path.exists() else 'no such file'}",
         )
+    _check_dbc_file(dbc)
+    return load_hand(path) if dbc is None else load_hand(path, dbc)
+
+
+def _check_dbc_file(dbc: Path | None) -> None:
+    """A ``--dbc`` that names no file is refused against the option."""
     if dbc is not None and not dbc.is_file():
         raise ConfigError(
             "--dbc",
@@ -95,7 +101,6 @@ def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
             "an existing DBC file (PROTOCOL.dbc)",
             f"{dbc}: {'not a file' if dbc.exists() else 'no such file'}",
         )
-    return load_hand(path) if dbc is None else load_hand(path, dbc)
 
 
 def _positive_seconds(option: str, value: float | None) -> None:
@@ -865,10 +870,10 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
             f"{start[key] * 1e3:+.1f} -> {end[key] * 1e3:+.1f} mm, "
             f"x {start['x_m'] * 1e3:+.1f} -> {end['x_m'] * 1e3:+.1f} mm"
         )
-    if "turn_deg" in summary:
+    for pair, figures in summary.get("pairs", {}).items():
         print(
-            f"  turn of the centre line: per phase {summary['phase_turns_deg']} deg, "
-            f"turn {summary['turn_deg']:+.2f} deg (ccw +)"
+            f"  turn of the centre line {pair}: per phase {figures['phase_turns_deg']} deg, "
+            f"turn {figures['turn_deg']:+.2f} deg (ccw +)"
         )
 
 
@@ -1039,12 +1044,17 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
         f"{hand.name} on {where}: listened {result.seconds:.2f} s, sent nothing; "
         f"host protocol {result.host_protocol}"
     )
+    # the node column fits its widest id and name: ids 10-15 and names over 7 characters
+    # pushed the rest of their row one column or more to the right of the header
+    id_width = max((len(str(row.node_id)) for row in result.rows), default=1)
+    labels = [f"{row.node_id:>{id_width}} {row.name}" for row in result.rows]
+    node_width = max([9, *(len(label) for label in labels)])
     print(
-        f"{'node':<9} {'state':<9} {'faults':<16} {'proto':>5} {'firmware':>8} "
+        f"{'node':<{node_width}} {'state':<9} {'faults':<16} {'proto':>5} {'firmware':>8} "
         f"{'fb Hz':>6} {'hb':>3} {'st':>3} {'uptime s':>9} {'host rejects':<14} "
         f"{'node rejects':<13} problem"
     )
-    for row in result.rows:
+    for row, label in zip(result.rows, labels, strict=True):
         uptime = "-" if row.uptime_ms is None else f"{row.uptime_ms / 1e3:.1f}"
         host = ",".join(f"{k} {v}" for k, v in row.host_rejects.items()) or "0"
         theirs = (
@@ -1052,7 +1062,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
         )
         proto = "-" if row.protocol_version is None else str(row.protocol_version)
         print(
-            f"{row.node_id} {row.name:<7} {row.state:<9} {','.join(row.faults) or '-':<16} "
+            f"{label:<{node_width}} {row.state:<9} {','.join(row.faults) or '-':<16} "
             f"{proto:>5} {row.firmware:>8} {row.feedback_hz:>6.0f} {row.heartbeats:>3} "
             f"{row.statuses:>3} {uptime:>9} {host:<14} {theirs:<13} "
             f"{row.problem or 'ok'}"
@@ -1412,18 +1422,19 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
             "either --log or --bus: a log is read instead of a bus",
             f"--log {args.log} --bus {args.bus}",
         )
-    hand = _load_hand(args.hand, "--hand", args.dbc)
-    _refuse_what_check_refuses(hand, args.hand)
     seconds = None if args.seconds is None else _seconds_or(args.seconds, 0.0)
     every = _positive("--every", args.every, 1.0, "s")
-    view = BusView(protocol_for(hand))
     on_tty = sys.stdout.isatty()
 
     def emit(snapshot: dict[str, object]) -> None:
         print(json.dumps(snapshot), flush=True)
 
     if args.log is not None:
-        return _monitor_log(view, args.log, every, on_tty, emit)
+        return _monitor_log(args, every, on_tty, emit)
+    hand_path = DEFAULT_HAND if args.hand is None else args.hand
+    hand = _load_hand(hand_path, "--hand", args.dbc)
+    _refuse_what_check_refuses(hand, hand_path)
+    view = BusView(protocol_for(hand))
     bus_text = "sim" if args.bus is None else args.bus  # '' is a bad spec, not the default
     try:
         with listening_bus(bus_text, hand) as bus:
@@ -1464,17 +1475,30 @@ def _reader_stays() -> bool:
 
 
 def _monitor_log(
-    view: Any, log: Path, every: float, on_tty: bool, emit: Callable[[dict[str, object]], None]
+    args: argparse.Namespace,
+    every: float,
+    on_tty: bool,
+    emit: Callable[[dict[str, object]], None],
 ) -> int:
     """``handctl monitor --log``: a recording's raw frames through the same view, snapshots
-    every ``every`` s of log time when piped, the whole at the end."""
-    from handctl.bringup.monitor import from_log, table
-    from handctl.recording.reader import open_recording
+    every ``every`` s of log time when piped, the whole at the end. The frames are decoded
+    with the protocol the recording keeps (``log_protocol``): --hand and --dbc only matter
+    for a recording that keeps none, and one that is not the recorded hand is refused."""
+    from handctl.bringup.monitor import BusView, from_log, log_protocol, table
+    from handctl.recording.reader import check_format, open_recording
 
-    open_recording(log)  # a file that is no recording is refused by name
+    log: Path = args.log
+    recording = open_recording(log)  # a file that is no recording is refused by name
+    check_format(recording)
+    hand = None if args.hand is None else _load_hand(args.hand, "--hand", args.dbc)
+    _check_dbc_file(args.dbc)
+    protocol = log_protocol(
+        recording, hand, args.dbc, lambda: _load_hand(DEFAULT_HAND, "--hand", args.dbc)
+    )
+    view = BusView(protocol)
     step = round(every * 1e9)
     next_ns: int | None = None
-    for frame_id, data, t_ns in from_log(log):
+    for frame_id, data, t_ns in from_log(recording):
         view.observe(frame_id, data, t_ns)
         next_ns = t_ns + step if next_ns is None else next_ns
         if not on_tty and t_ns >= next_ns:
@@ -2233,15 +2257,16 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     mon.add_argument(
         "--hand",
         type=Path,
-        default=DEFAULT_HAND,
         metavar="HAND.yaml",
-        help=f"hand config ({DEFAULT_HAND_HELP})",
+        help=f"hand config ({DEFAULT_HAND_HELP}; with --log: the recorded one, and another "
+        "is refused)",
     )
     mon.add_argument(
         "--log",
         type=Path,
         metavar="RUN.mcap",
-        help="read the raw frames of a recording instead of a bus",
+        help="read the raw frames of a recording instead of a bus, decoded with the "
+        "protocol the recording keeps",
     )
     mon.add_argument(
         "--seconds", type=_real, metavar="S", help="stop after this long [s] (default: at Ctrl-C)"

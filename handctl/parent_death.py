@@ -143,6 +143,13 @@ def stop_on_signals() -> list[bool]:
     return stop
 
 
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
+
+
 class JsonHelper:
     """A helper child process (``python -m MODULE ARGS``) that runs until told to stop, or
     for a time of its own, then writes one JSON object to stdout: the timing probe, the
@@ -152,6 +159,7 @@ class JsonHelper:
 
     def __init__(self, module: str, args: list[str], what: str) -> None:
         self.what = what
+        self.started = time.monotonic()
         self.proc = subprocess.Popen(
             [sys.executable, "-m", module, *args],
             stdout=subprocess.PIPE,
@@ -163,23 +171,50 @@ class JsonHelper:
     def finish(self, timeout_s: float, terminate: bool = True) -> Any:
         """Its record: SIGTERM first if ``terminate`` and it still runs, then up to
         ``timeout_s`` for it to write, else it is killed; a helper that failed or wrote no
-        JSON is an error naming it (``self.what``)."""
+        JSON is an error naming it (``self.what``) and saying why it ended."""
+        terminated = killed = False
         if terminate and self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
+            terminated = True
         try:
             out, err = self.proc.communicate(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             self.proc.kill()
+            killed = True
             out, err = self.proc.communicate()
         if self.proc.returncode != 0 or not out.strip():
-            raise HandctlError(
-                f"{self.what} ended with exit {self.proc.returncode}: "
-                + " | ".join(err.strip().splitlines()[-3:])
-            )
+            raise HandctlError(self._why_no_record(err, terminated, killed, timeout_s))
         try:
             return json.loads(out)
         except json.JSONDecodeError as exc:
             raise HandctlError(f"{self.what} wrote no record ({exc})") from None
+
+    def _why_no_record(self, err: str, terminated: bool, killed: bool, timeout_s: float) -> str:
+        """Why the helper wrote no record, as far as its exit tells. A helper handles SIGTERM
+        once it has started up (``stop_on_signals``), so an exit by SIGTERM that handctl sent
+        means it was stopped while it was still starting: the run it was beside ended first
+        (a short run, or one stopped early), and it measured nothing. That was shown as
+        "ended with exit -15: " and nothing after the colon."""
+        code = self.proc.returncode
+        said = " | ".join(err.strip().splitlines()[-3:])
+        tail = f": {said}" if said else ""
+        if killed:
+            return (
+                f"{self.what} wrote no record within {timeout_s:g} s of being asked to stop, "
+                f"and handctl killed it (SIGKILL){tail}"
+            )
+        if code is not None and code < 0:
+            name = _signal_name(-code)
+            if terminated and -code == signal.SIGTERM:
+                return (
+                    f"{self.what} measured nothing: handctl stopped it (SIGTERM) when what it "
+                    f"was beside ended, {time.monotonic() - self.started:.1f} s after starting "
+                    f"it, before it had started up{tail}"
+                )
+            return f"{self.what} was ended by {name}, which handctl did not send{tail}"
+        if code != 0:
+            return f"{self.what} ended with exit {code}" + (tail or " and wrote nothing on stderr")
+        return f"{self.what} ended (exit 0) without writing its record{tail}"
 
     def close(self) -> None:
         if self.proc.poll() is None:

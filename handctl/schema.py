@@ -52,7 +52,7 @@ from yaml import Node as Node  # noqa: PLC0414 - re-exported
 from yaml import ScalarNode as ScalarNode  # noqa: PLC0414 - re-exported
 from yaml import SequenceNode as SequenceNode  # noqa: PLC0414 - re-exported
 
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, shown
 
 _MISSING: Any = object()
 
@@ -732,8 +732,11 @@ class Doc:
         """A list of finite numbers, optionally of a fixed length."""
         value = self._get(key, default)
         what = f"a list of {length} numbers" if length is not None else "a list of numbers"
-        if not isinstance(value, list) or (length is not None and len(value) != length):
+        if not isinstance(value, list):
             self.fail(key, what, value if _is_scalar(value) else _type_name(value))
+        if length is not None and len(value) != length:
+            # the count is what is wrong, and the start of a long list does not show it
+            self.fail(key, what, _Text(f"a list of {len(value)}: {shown(value)}"))
         sub = Doc({}, self.file, self.key_path(key))
         return tuple(
             sub.check_number(i, v, min=min, max=max, unit=unit) for i, v in enumerate(value)

@@ -539,6 +539,7 @@ def _close_recording(
 def _recorder(
     req: RunRequest, log: Path, lockstep_sim: bool, loop_cpu: int | None, sim_cpu: int | None
 ) -> Recorder:
+    from handctl.recording.channels import pose_pairs
     from handctl.recording.metadata import start_metadata
     from handctl.recording.recorder import Recorder, writer_cpus
 
@@ -547,12 +548,15 @@ def _recorder(
         from handctl.sim.params import parse_sim
 
         objects = [o.name for o in parse_sim(req.hand).objects]
+    # the lines the recipe measures (its pairs), not those of the first two objects
+    named = [(req.recipe.objects[a].name, req.recipe.objects[b].name) for a, b in req.recipe.pairs]
     return Recorder(
         log,
         req.hand,
         start_metadata(req.hand, req.recipe, req.command_line),
         phase_names=[p.name for p in req.recipe.phases],
         object_names=objects,
+        object_pairs=pose_pairs(objects, named),
         live_port=req.live_port,
         cpus=writer_cpus(loop_cpu, sim_cpu),
     )

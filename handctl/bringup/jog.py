@@ -45,8 +45,14 @@ from handctl.session import RunReport, RunRequest, run_recipe
 MIN_RAMP_S = 0.2
 #: rad, the soft-limit guard's band (as the default recipe's ``limit_guard_band``).
 GUARD_BAND = 0.15
-#: A line of the run-time table every this many ticks.
-TABLE_EVERY_TICKS = 100
+#: s, the run-time table's line spacing: of the hand's loop, so that a slower loop does not
+#: show its lines further apart (100 ticks was 0.5 s at 200 Hz).
+TABLE_PERIOD_S = 0.1
+
+
+def table_every_ticks(period_s: float) -> int:
+    """Ticks between two lines of the run-time table at a loop period of ``period_s``."""
+    return max(1, round(TABLE_PERIOD_S / period_s))
 
 
 @dataclass(frozen=True)
@@ -80,20 +86,24 @@ class JogReport:
 
 
 class JogSink:
-    """A ``RecordSink`` that keeps the jogged joint's line every ``every`` ticks for ``show``
-    and the angles a summary needs."""
+    """A ``RecordSink`` that keeps the jogged joint's line for ``show`` every ``every`` ticks
+    (``TABLE_PERIOD_S`` of the loop by default) and at the first tick of every phase, and the
+    angles a summary needs. The phase's first tick: a phase shorter than the spacing (the end
+    ramp of a fast jog, or at a slow loop) had no line, and the table did not show the torque
+    going back to zero."""
 
     def __init__(
         self,
         index: int,
         show: Callable[[JogLine], None] | None,
         period_s: float,
-        every: int = TABLE_EVERY_TICKS,
+        every: int | None = None,
     ) -> None:
         self.index = index
         self.show = show
         self.period_s = period_s
-        self.every = every
+        self.every = table_every_ticks(period_s) if every is None else every
+        self._phase: str | None = None
         self.start_angle: float | None = None
         self.end_angle: float | None = None
         self.max_abs_tdt = 0.0
@@ -114,7 +124,11 @@ class JogSink:
         self.end_angle = angle
         if np.isfinite(tdt):
             self.max_abs_tdt = max(self.max_abs_tdt, abs(tdt))
-        if self.show is not None and (record.tick - self._first_tick) % self.every == 0:
+        new_phase = record.phase != self._phase
+        self._phase = record.phase
+        if self.show is not None and (
+            new_phase or (record.tick - self._first_tick) % self.every == 0
+        ):
             self.show(
                 JogLine(
                     (record.tick - self._first_tick) * self.period_s,

@@ -18,12 +18,17 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from handctl.errors import ConfigError
 from handctl.online.bus import EXTENDED_ID_FLAG, BusEvent, HandBus
 from handctl.online.drivers.finger import fault_names
 from handctl.online.drivers.receiver import CounterCheck, Reject
 from handctl.protocol import Layout, Protocol, node_state_name
+
+if TYPE_CHECKING:
+    from handctl.config import HandConfig
+    from handctl.recording.reader import Recording
 
 
 @dataclass
@@ -221,12 +226,54 @@ def listen(
             time.sleep(poll_s)
 
 
-def from_log(path: Path) -> Iterable[tuple[int, bytes, int]]:
+def log_protocol(
+    recording: Recording,
+    hand: HandConfig | None,
+    dbc: Path | None,
+    fallback: Callable[[], HandConfig],
+) -> Protocol:
+    """The protocol to decode a recording's frames with: the one its run spoke.
+
+    A recording keeps its hand and that hand's DBC; decoding with any other protocol (the
+    default hand's, say) reads another hand's frames as length rejects and unknown ids, which
+    looks like a broken bus, not a wrong option. So ``hand`` (``--hand``) and ``dbc``
+    (``--dbc``), None when not given, only choose for a recording from before the hand was
+    recorded; one that is not the recorded one is refused rather than warned about: the user
+    asked to decode with a hand or DBC the frames were not sent with, and either choice
+    (ignore the option, or decode with it) would silently show something else than was asked
+    for. ``fallback`` (the default hand) is for a recording that keeps no hand when no
+    ``hand`` is given.
+    """
+    from handctl.hand_protocol import protocol_for
+    from handctl.recording import channels as ch
+    from handctl.recording.metadata import recorded_hand, recorded_protocol
+
+    recorded = recorded_hand(recording, required=False)
+    if recorded is None:
+        return protocol_for(fallback() if hand is None else hand, dbc)
+    protocol = recorded_protocol(recording) or protocol_for(recorded)
+    if hand is not None and hand.config_hash != recorded.config_hash:
+        raise ConfigError(
+            "--hand",
+            "",
+            f"the hand {recording.path} was recorded with ({recorded.name}, config hash "
+            f"{recorded.config_hash}; leave --hand out to decode with it)",
+            f"config hash {hand.config_hash} ({hand.name})",
+        )
+    if dbc is not None and protocol_for(recorded, dbc).text != protocol.text:
+        raise ConfigError(
+            "--dbc",
+            "",
+            f"the DBC {recording.path} was recorded with (metadata {ch.META_HAND}.dbc; "
+            "leave --dbc out to decode with it)",
+            dbc,
+        )
+    return protocol
+
+
+def from_log(recording: Recording) -> Iterable[tuple[int, bytes, int]]:
     """The raw frames of a recording, both directions, in wire order, on the log's clock."""
     from handctl.recording.frames import logged_frames
-    from handctl.recording.reader import check_format, open_recording
 
-    recording = open_recording(path)
-    check_format(recording)
     for log_ns, frame_id, data, _ in logged_frames(recording):
         yield frame_id, data, log_ns

@@ -11,6 +11,7 @@ log times; angles are in rad and torques in N·m, as everywhere in handctl.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -264,8 +265,23 @@ CHANNELS: tuple[Channel, ...] = (
                 },
                 "line_angle_rad": {
                     **_NUM,
-                    "description": "angle of the line from the first object's "
-                    "centre to the second's",
+                    "description": "the first pair's line_angle_rad (pairs[0])",
+                },
+                "pairs": {
+                    "type": "array",
+                    "description": "the recipe's pairs of objects (each object with the next "
+                    "for a recipe that names none)",
+                    "items": {
+                        "type": "object",
+                        "properties": {
+                            "name": {**_STR, "description": "first/second object's name"},
+                            "line_angle_rad": {
+                                **_NUM,
+                                "description": "angle of the line from the first object's "
+                                "centre to the second's",
+                            },
+                        },
+                    },
                 },
             },
             ["tick", "objects"],
@@ -296,6 +312,21 @@ CHANNELS: tuple[Channel, ...] = (
 
 #: The channels ``handctl replay --rerun`` needs.
 RERUN_TOPICS = (TIMING, TORQUE, JOINT_STATE, CAN_RX, CAN_TX, EVENTS)
+
+
+def pair_name(first: str, second: str) -> str:
+    """A pair of objects as the recording, its replay and the experiment summary name it."""
+    return f"{first}/{second}"
+
+
+def pose_pairs(names: Sequence[str], named: Sequence[tuple[str, str]]) -> list[tuple[int, int]]:
+    """The pairs of ``named`` (a recipe's ``pairs``, by object name) as indices into
+    ``names`` (the objects whose poses are logged); with none named, each object with the
+    next, as a recipe that names no pairs gets them. A pair of an object not logged is left
+    out: there is no pose to measure its line by."""
+    if not named:
+        return [(i, i + 1) for i in range(len(names) - 1)]
+    return [(names.index(a), names.index(b)) for a, b in named if a in names and b in names]
 
 
 def schema_of(channel: Channel) -> dict[str, Any]:

@@ -25,7 +25,7 @@ from handctl.convention import HEIGHT_LABEL, TIME_LABEL, TURN_LABEL, turn_deg
 from handctl.recording import channels as ch
 from handctl.recording.reader import Recording
 from handctl.recording.replay import NOT_PHASES
-from handctl.recording.series import Series
+from handctl.recording.series import Series, line_angle, line_pairs, recorded_recipe_or_none
 
 JOINT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 #: (line style, width, opacity, z-order): applied wide and pale underneath, so that the desired
@@ -152,60 +152,52 @@ def plot_log(path: Path, out: Path) -> None:
 def turns_deg(
     series: Series, recording: Recording | None = None
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The centre line's turn (deg, ccw +) at the logged poses, by label: the true one
+    """Each centre line's turn (deg, ccw +) at the logged poses, by label: the true one
     (simulation) and, for a recording whose recipe has objects, the estimator's, drawn on the
     true turn's branch (the estimate is an angle in (-pi, pi]; the gap between the two lines
-    is the estimator's error). The first pair of the recipe, or the first two objects."""
+    is the estimator's error). Every pair the recipe declares (``line_pairs``; each object
+    with the next without one), as the replay's summary has them, not only the first."""
     ob = series.objects
     if not len(ob):
         return {}
-    names = series.object_names
-    pair = (0, 1)
-    recipe = _recorded_recipe(recording) if recording is not None else None
-    if recipe is not None and recipe.pairs and all(o.name in names for o in recipe.objects):
-        a, b = recipe.pairs[0]
-        pair = (names.index(recipe.objects[a].name), names.index(recipe.objects[b].name))
-    if max(pair) >= len(names):
-        return {}
-    a, b = pair
-    true = np.arctan2(ob[:, 3 + 3 * b] - ob[:, 3 + 3 * a], ob[:, 2 + 3 * b] - ob[:, 2 + 3 * a])
-    label = f"{names[a]}/{names[b]}"
-    turn = turn_deg(true)
-    out = {f"{label} true (simulation)": (ob[:, 0], turn)}
-    if recording is not None and recipe is not None and recipe.objects:
-        estimated = _estimated_line(recording, series, ob[:, 0])
-        gap = np.degrees((estimated - true + np.pi) % (2 * np.pi) - np.pi)
-        out[f"{label} estimated (joint angles)"] = (ob[:, 0], turn + gap)
+    pairs = line_pairs(recording, series.object_names)
+    recipe = recorded_recipe_or_none(recording) if recording is not None else None
+    estimated_names: list[str] = []
+    estimated = np.zeros((len(ob), 0))
+    if recording is not None and recipe is not None and recipe.objects and recipe.pairs:
+        estimated_names = [
+            ch.pair_name(recipe.objects[a].name, recipe.objects[b].name) for a, b in recipe.pairs
+        ]
+        estimated = _estimated_lines(recording, series, ob[:, 0])
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for name, a, b in pairs:
+        true = line_angle(ob, a, b)
+        turn = turn_deg(true)
+        out[f"{name} true (simulation)"] = (ob[:, 0], turn)
+        if name in estimated_names:
+            column = estimated[:, estimated_names.index(name)]
+            gap = np.degrees((column - true + np.pi) % (2 * np.pi) - np.pi)
+            out[f"{name} estimated (joint angles)"] = (ob[:, 0], turn + gap)
     return out
 
 
-def _recorded_recipe(recording: Recording) -> Any:
-    """The recording's recipe, or None when it has none that parses for its hand."""
-    from handctl.errors import HandctlError
-    from handctl.recording.metadata import recorded_hand, recorded_recipe
-
-    try:
-        hand = recorded_hand(recording, required=False)
-        return recorded_recipe(recording, hand) if hand is not None else None
-    except HandctlError:
-        return None
-
-
-def _estimated_line(recording: Recording, series: Series, at_s: np.ndarray) -> np.ndarray:
-    """The estimator's first centre-line angle (rad) as the loop had it at each time of
-    ``at_s`` (s, the series' times): its estimate of the last tick before, NaN where it was
-    not valid. The estimator is fed the logged angles of every control tick the loop ran it
-    (the supervisor running, the recipe not done), as the writer's Foxglove scene does."""
+def _estimated_lines(recording: Recording, series: Series, at_s: np.ndarray) -> np.ndarray:
+    """The estimator's centre-line angles (rad), one column per pair of the recipe, as the
+    loop had them at each time of ``at_s`` (s, the series' times): its estimate of the last
+    tick before, NaN where it was not valid. The estimator is fed the logged angles of every
+    control tick the loop ran it (the supervisor running, the recipe not done), as the
+    writer's Foxglove scene does."""
     from handctl.online.estimator import ObjectEstimator
     from handctl.recording.metadata import recorded_hand
     from handctl.recording.reader import iter_decoded
 
     hand = recorded_hand(recording)
-    recipe = _recorded_recipe(recording)
+    recipe = recorded_recipe_or_none(recording)
     assert hand is not None and recipe is not None
     estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs)
+    count = len(recipe.pairs)
     times: list[int] = []
-    lines: list[float] = []
+    lines: list[list[float]] = []
     angle: list[float] = []
     running = False
     topics = (ch.JOINT_STATE, ch.SAFETY, ch.PHASE)
@@ -217,14 +209,17 @@ def _estimated_line(recording: Recording, series: Series, at_s: np.ndarray) -> n
         elif running and msg["phase"] not in ("completed", "aborted"):
             estimate = estimator(angle)
             times.append(log_time)
-            lines.append(estimate[0] if estimator.valid else math.nan)
+            # a pair's line angle is its first estimate (``PAIR_ESTIMATES``), pairs first
+            valid = estimator.valid
+            lines.append([estimate[2 * k] if valid else math.nan for k in range(count)])
     if not times:
-        return np.full(len(at_s), math.nan)
+        return np.full((len(at_s), count), math.nan)
     t_s = (np.asarray(times, dtype=np.int64) - series.t0_ns) * 1e-9
     # the last estimate strictly before each pose: a pose is taken at the start of its tick
     before = np.searchsorted(t_s, np.asarray(at_s) - 1e-7) - 1
-    line = np.asarray(lines)[np.clip(before, 0, None)]
-    return np.where(before >= 0, line, math.nan)
+    line = np.asarray(lines, dtype=float).reshape(len(times), count)[np.clip(before, 0, None)]
+    result: np.ndarray = np.where((before >= 0)[:, None], line, math.nan)
+    return result
 
 
 def plot_recording(

@@ -42,6 +42,7 @@ from handctl.online.recipes.runner import RunStatus
 from handctl.online.safety.faults import FAULTS
 from handctl.online.safety.supervisor import State
 from handctl.online.taps import TAP_RX
+from handctl.recording import channels as ch
 from handctl.recording.metadata import valid_strings, valid_text
 from handctl.recording.ring import (
     CLOSED,
@@ -352,11 +353,14 @@ class Recorder:
         *,
         phase_names: Sequence[str] = (),
         object_names: Sequence[str] = (),
+        object_pairs: Sequence[tuple[int, int]] | None = None,
         layout: RingLayout | None = None,
         live_port: int | None = None,
         cpus: Collection[int] | None = None,
     ) -> None:
-        """``cpus``: where the writer process may run (``writer_cpus``); None: anywhere."""
+        """``cpus``: where the writer process may run (``writer_cpus``); None: anywhere.
+        ``object_pairs``: the pairs of ``object_names`` (indices) whose centre line the pose
+        messages carry, the recipe's ``pairs``; None: each object with the next."""
         self.path = Path(path)
         self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
         #: The log's descriptor, kept to the end: it holds the file's lock with the writer's
@@ -369,6 +373,7 @@ class Recorder:
                 metadata,
                 phase_names,
                 object_names,
+                ch.pose_pairs(object_names, ()) if object_pairs is None else object_pairs,
                 live_port,
                 cpus,
             )
@@ -479,6 +484,7 @@ class Recorder:
         metadata: dict[str, dict[str, str]],
         phase_names: Sequence[str],
         object_names: Sequence[str],
+        object_pairs: Sequence[tuple[int, int]],
         live_port: int | None,
         cpus: Collection[int] | None,
     ) -> None:
@@ -557,6 +563,7 @@ class Recorder:
                     "joints": list(hand.joint_names),
                     "nodes": [f.name for f in hand.fingers],
                     "objects": list(object_names),
+                    "pairs": [list(pair) for pair in object_pairs],
                     "path": valid_text(str(self.path)),
                     "metadata": valid_strings(metadata),
                     "live_port": live_port,

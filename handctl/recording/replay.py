@@ -14,7 +14,7 @@ from handctl.convention import phase_turns_deg
 from handctl.recording import channels as ch
 from handctl.recording.reader import Recording
 from handctl.recording.ring import RECORDED_STAGES
-from handctl.recording.series import Series
+from handctl.recording.series import Series, line_angle, line_pairs
 
 #: Phase names that are the runner's status rather than a phase of the recipe.
 NOT_PHASES = frozenset({"-", "running", "completed", "aborted", "?"})
@@ -119,24 +119,43 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
             name: {"start": _pose(first, i, series.rest_y), "end": _pose(last, i, series.rest_y)}
             for i, name in enumerate(series.object_names)
         }
-    if len(series.objects) and len(series.object_names) >= 2:
-        # the line between the first two objects, as the log carries it: one object has none
-        first, last = series.objects[0], series.objects[-1]
-        summary["objects_line_angle_rad"] = {
-            "start": round(float(first[1]), 5),
-            "end": round(float(last[1]), 5),
-        }
-        # a pose taken at the start of tick k belongs to the phase tick k - 1 ran, and the
-        # phase channel says which phase a tick ran: the bounds move one tick later
-        period = recording.meta_int(ch.META_RUN, "period_ns", 1_000_000, minimum=1) * 1e-9
-        turns = phase_turns_deg(
-            series.objects[:, 0],
-            series.objects[:, 1],
-            [(p["name"], p["start_s"] + period, p["end_s"] + period) for p in series.phases],
-        )
-        summary["phase_turns_deg"] = turns
-        summary["turn_deg"] = round(sum(turns), 2)
+    pairs = line_pairs(recording, series.object_names) if len(series.objects) else []
+    if pairs:
+        summary |= _pair_figures(recording, series, pairs)
     return summary
+
+
+def _pair_figures(
+    recording: Recording, series: Series, pairs: list[tuple[str, int, int]]
+) -> dict[str, Any]:
+    """Each pair's centre line (the recipe's pairs, ``line_pairs``) at the start and the end
+    and its turn per phase, under ``pairs`` by name as the experiment summary keys them; the
+    first pair's also at the top level (``objects_line_pair`` names it), where a log of the
+    default two-object recipe has always had them."""
+    # a pose taken at the start of tick k belongs to the phase tick k - 1 ran, and the
+    # phase channel says which phase a tick ran: the bounds move one tick later
+    period = recording.meta_int(ch.META_RUN, "period_ns", 1_000_000, minimum=1) * 1e-9
+    bounds = [(p["name"], p["start_s"] + period, p["end_s"] + period) for p in series.phases]
+    figures: dict[str, dict[str, Any]] = {}
+    for name, a, b in pairs:
+        angle = line_angle(series.objects, a, b)
+        turns = phase_turns_deg(series.objects[:, 0], angle, bounds)
+        figures[name] = {
+            "line_angle_rad": {
+                "start": round(float(angle[0]), 5),
+                "end": round(float(angle[-1]), 5),
+            },
+            "phase_turns_deg": turns,
+            "turn_deg": round(sum(turns), 2),
+        }
+    first = pairs[0][0]
+    return {
+        "objects_line_pair": first,
+        "objects_line_angle_rad": figures[first]["line_angle_rad"],
+        "phase_turns_deg": figures[first]["phase_turns_deg"],
+        "turn_deg": figures[first]["turn_deg"],
+        "pairs": figures,
+    }
 
 
 def _pose(row: FloatArray, i: int, rest_y: list[float]) -> dict[str, float]:

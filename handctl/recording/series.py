@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -18,6 +19,7 @@ from handctl.recording.ring import RECORDED_STAGES
 
 if TYPE_CHECKING:
     from handctl.config import HandConfig
+    from handctl.online.recipes.schema import Recipe
 
 
 class _Rows:
@@ -200,6 +202,44 @@ def _recorded_hand(recording: Recording) -> HandConfig | None:
         return recorded_hand(recording, required=False)
     except ConfigError:
         return None
+
+
+def recorded_recipe_or_none(recording: Recording) -> Recipe | None:
+    """The recording's recipe, or None when it has none that parses for its hand."""
+    from handctl.errors import HandctlError
+    from handctl.recording.metadata import recorded_recipe
+
+    try:
+        hand = recorded_hand(recording, required=False)
+        return recorded_recipe(recording, hand) if hand is not None else None
+    except HandctlError:
+        return None
+
+
+def line_pairs(recording: Recording | None, names: Sequence[str]) -> list[tuple[str, int, int]]:
+    """The pairs of logged objects whose centre line a replay measures, as ``(name, a, b)``
+    with ``a``, ``b`` indices into ``names`` (``Series.object_names``): the recorded
+    recipe's ``pairs``, in its order, or each object with the next for a log whose recipe
+    names none (or that has none that reads). Not simply the first two objects: a recipe of
+    four objects that measures the third with the fourth was summarised by a line it never
+    declared."""
+    recipe = recorded_recipe_or_none(recording) if recording is not None else None
+    named = (
+        [(recipe.objects[a].name, recipe.objects[b].name) for a, b in recipe.pairs]
+        if recipe is not None
+        else []
+    )
+    return [(ch.pair_name(names[a], names[b]), a, b) for a, b in ch.pose_pairs(names, named)]
+
+
+def line_angle(objects: FloatArray, a: int, b: int) -> FloatArray:
+    """rad: the angle of the line from object ``a``'s centre to ``b``'s, per row of
+    ``Series.objects``."""
+    angle: FloatArray = np.arctan2(
+        objects[:, 3 + 3 * b] - objects[:, 3 + 3 * a],
+        objects[:, 2 + 3 * b] - objects[:, 2 + 3 * a],
+    )
+    return angle
 
 
 def _check_applied(

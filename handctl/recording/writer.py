@@ -105,6 +105,13 @@ class Encoder:
         self.states: list[str] = list(setup["states"])
         self.phases: list[str] = list(setup["phases"])
         self.objects: list[str] = list(setup["objects"])
+        #: The pairs whose centre line each pose message carries: the recipe's, by index
+        #: into ``objects`` (a set-up without them: each object with the next).
+        self.pairs: list[tuple[int, int]] = [
+            (int(a), int(b))
+            for a, b in (setup["pairs"] if "pairs" in setup else ch.pose_pairs(self.objects, ()))
+        ]
+        self.pair_names = [ch.pair_name(self.objects[a], self.objects[b]) for a, b in self.pairs]
         self.writer = ChunkWriter(
             out,
             ch.PROFILE,
@@ -303,8 +310,18 @@ class Encoder:
                 for i, name in enumerate(self.objects)
             ]
             payload: dict[str, Any] = {"tick": tick, "objects": objects}
-            if len(objects) >= 2:
-                payload["line_angle_rad"] = math.atan2(values[4] - values[1], values[3] - values[0])
+            pairs = [
+                {
+                    "name": name,
+                    "line_angle_rad": math.atan2(
+                        values[3 * b + 1] - values[3 * a + 1], values[3 * b] - values[3 * a]
+                    ),
+                }
+                for (a, b), name in zip(self.pairs, self.pair_names, strict=True)
+            ]
+            if pairs:
+                payload["line_angle_rad"] = pairs[0]["line_angle_rad"]
+                payload["pairs"] = pairs
             self.add(ch.OBJECTS, t_ns, payload)
             self.poses += 1
             if self.derived is not None:

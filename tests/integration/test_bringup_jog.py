@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import os
 import signal
 import subprocess
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from handctl import cli
 from handctl.bringup.jog import jog, jog_recipe
@@ -44,6 +46,24 @@ def test_one_joint_turns_its_way(hand: HandConfig, capsys: pytest.CaptureFixture
     moved = float(summary.split("(")[1].split()[0])
     assert moved > 0.1  # counter-clockwise positive: a positive torque turns it that way
     assert "largest |applied| 0.0500 N·m" in summary
+
+
+@pytest.mark.parametrize("rate_hz", [200, 300])
+def test_the_table_is_every_tenth_of_a_second_and_shows_the_end_ramp_at_any_loop_rate(
+    rate_hz: int, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = yaml.safe_load((ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text())
+    doc["bus"]["loop_rate_hz"] = rate_hz
+    path = tmp_path / f"hand_{rate_hz}.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    args = ["jog", "f1_j2", "--torque", "0.05", "--seconds", "0.5", "--hand", str(path)]
+    assert cli.main(args) == cli.EXIT_OK
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()]
+    rows = [r for r in rows if r and r[0][:1].isdigit()]
+    assert {"jog", "end_ramp"} <= {r[1] for r in rows}
+    times = [float(r[0]) for r in rows]
+    assert max(b - a for a, b in itertools.pairwise(times)) <= 0.1 + 1e-9
+    assert {round(t, 2) for t in times} >= {0.1, 0.2, 0.3, 0.4, 0.5}
 
 
 def test_every_other_joint_gets_exactly_zero(hand: HandConfig) -> None:

@@ -15,7 +15,8 @@ from typing import Any
 import pytest
 
 from handctl import cli
-from handctl.config import HandConfig
+from handctl.config import HandConfig, load_hand
+from handctl.hand_protocol import protocol_for
 from handctl.online.bus import open_bus
 from handctl.sim import faults as inj
 from handctl.sim.hand import SimulatedHand
@@ -145,6 +146,48 @@ def test_it_reads_the_frames_of_a_recording(
     command = messages["TorqueCommand_1"]
     assert command["rejects"] == {} and command["values"]["Torque1"] == 0.0  # ends at zero
     assert messages["Feedback_3"]["frames"] > 100 and messages["NodeCommand_2"]["frames"] >= 2
+
+
+def test_a_recording_of_another_hand_is_decoded_with_its_own_protocol(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = ROOT / "tests" / "data"
+    hand = data / "hands" / "one_finger_two_joints.yaml"  # Feedback_1 of 2 joints, not 3
+    log = tmp_path / "run.mcap"
+    recipe = data / "recipes" / "close_one_finger.yaml"
+    cli.main(["run", "recipe", str(recipe), "--hand", str(hand), "--log", str(log)])
+    capsys.readouterr()
+    assert cli.main(["monitor", "--log", str(log)]) == cli.EXIT_OK
+    messages = _by_name(_last(capsys.readouterr().out))
+    feedback = messages["Feedback_1"]
+    assert feedback["rejects"] == {} and feedback["frames"] > 100
+    assert set(feedback["values"]) >= {"Angle1", "Angle2"} and "Angle3" not in feedback["values"]
+    assert cli.main(["monitor", "--log", str(log), "--hand", str(hand)]) == cli.EXIT_OK
+    assert _by_name(_last(capsys.readouterr().out))["Feedback_1"]["rejects"] == {}
+    other = ROOT / "handctl" / "hands" / "hiroshima_hand.yaml"
+    assert cli.main(["monitor", "--log", str(log), "--hand", str(other)]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--hand: expected the hand" in err and "one_finger_two_joints" in err
+
+
+def test_a_dbc_given_with_a_log_is_held_to_the_recorded_one_alone(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = ROOT / "tests" / "data"
+    hand = data / "hands" / "one_finger_two_joints.yaml"
+    log = tmp_path / "run.mcap"
+    recipe = data / "recipes" / "close_one_finger.yaml"
+    cli.main(["run", "recipe", str(recipe), "--hand", str(hand), "--log", str(log)])
+    dbc = tmp_path / "same.dbc"  # the DBC the run spoke, as a file: no --hand needed with it
+    dbc.write_text(protocol_for(load_hand(hand)).text, encoding="cp1252")
+    capsys.readouterr()
+    assert cli.main(["monitor", "--log", str(log), "--dbc", str(dbc)]) == cli.EXIT_OK
+    assert _by_name(_last(capsys.readouterr().out))["Feedback_1"]["rejects"] == {}
+    other = tmp_path / "other.dbc"  # another DataID for TorqueCommand_1: another protocol
+    text = dbc.read_text(encoding="cp1252")
+    other.write_text(text.replace('"DataID" BO_ 257 ', '"DataID" BO_ 257 1'), encoding="cp1252")
+    assert cli.main(["monitor", "--log", str(log), "--dbc", str(other)]) == cli.EXIT_BAD_INPUT
+    assert "--dbc: expected the DBC" in capsys.readouterr().err
 
 
 def test_a_log_and_a_bus_at_once_are_refused(

@@ -121,6 +121,25 @@ def test_a_node_not_in_the_config_is_flagged(
     assert foreign["0x703"] == "Heartbeat_3: node 3, not in the hand config"
 
 
+def test_the_table_keeps_its_columns_for_two_digit_node_ids(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = yaml.safe_load(HAND_YAML.read_text(encoding="utf-8"))
+    for finger, node in zip(doc["fingers"], [9, 10, 11], strict=True):
+        finger["node_id"] = node
+        finger.pop("can_ids", None)  # the protocol's, from the node id
+    path = tmp_path / "ids.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    assert cli.main(["nodes", "--seconds", SECONDS, "--hand", str(path)]) == cli.EXIT_OK
+    lines = capsys.readouterr().out.splitlines()
+    header = next(line for line in lines if line.startswith("node "))
+    rows = [line for line in lines if re.match(r" ?\d+ f\d ", line)]
+    assert len(rows) == 3
+    for column in ("state", "faults", "problem"):  # left-aligned: they start there
+        at = header.index(column)
+        assert {row[at - 1] for row in rows} == {" "} and all(row[at] != " " for row in rows)
+
+
 def test_bad_seconds_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["nodes", "--seconds", "0"]) == cli.EXIT_BAD_INPUT
     assert "--seconds" in capsys.readouterr().err

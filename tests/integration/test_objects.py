@@ -6,6 +6,7 @@ before anything runs. The hands are the default one with its scene's cylinders r
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -14,8 +15,11 @@ from typing import Any
 import pytest
 import yaml
 
+from handctl import cli
 from handctl.config import load_hand
 from handctl.online.recipes.loader import load_recipe
+from handctl.recording import channels as ch
+from handctl.recording.reader import iter_decoded, open_recording
 from handctl.session import RunRequest, run_recipe
 
 from ..conftest import HAND_YAML, ROOT
@@ -145,6 +149,39 @@ def test_three_cylinders_are_lifted_held_and_each_reported(tmp_path: Path) -> No
         assert obj["lifted"] is True and obj["held_s"] >= 2.0, name
         assert obj["final"]["height_above_rest_m"] > 0.01, name
     assert set(ex["pairs"]) == {"left/middle", "middle/right"}
+
+
+def test_the_log_and_its_replay_measure_the_pairs_the_recipe_declares(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = yaml.safe_load((RECIPES / "hold_three_cylinders.yaml").read_text())
+    doc["pairs"] = [["right", "left"], ["left", "middle"]]  # not the first two objects
+    doc["phases"] = doc["phases"][:1]
+    doc["phases"][0]["max_s"] = 0.4
+    recipe = tmp_path / "pairs.yaml"
+    recipe.write_text(yaml.safe_dump(doc, sort_keys=False))
+    log, out = tmp_path / "run.mcap", tmp_path / "replay.json"
+    hand = hand_with(tmp_path, THREE)
+    cli.main(["run", "recipe", str(recipe), "--hand", str(hand), "--log", str(log)])
+    assert cli.main(["replay", str(log), "--json", str(out)]) == cli.EXIT_OK
+    assert "turn of the centre line right/left: per phase" in capsys.readouterr().out
+    summary = json.loads(out.read_text())["summary"]
+    assert list(summary["pairs"]) == ["right/left", "left/middle"]
+    assert summary["objects_line_pair"] == "right/left"
+    start = summary["objects"]
+    for name, (a, b) in (("right/left", ("right", "left")), ("left/middle", ("left", "middle"))):
+        p, q = start[a]["start"], start[b]["start"]
+        line = math.atan2(q["y_m"] - p["y_m"], q["x_m"] - p["x_m"])
+        assert summary["pairs"][name]["line_angle_rad"]["start"] == pytest.approx(line, abs=1e-3)
+    assert summary["objects_line_angle_rad"] == summary["pairs"]["right/left"]["line_angle_rad"]
+    assert abs(summary["objects_line_angle_rad"]["start"]) > 3.0  # right to left: about pi
+    recording = open_recording(log)
+    poses = [msg for _, _, msg in iter_decoded(recording, (ch.OBJECTS,))]
+    assert poses and all(
+        [p["name"] for p in msg["pairs"]] == ["right/left", "left/middle"]
+        and msg["line_angle_rad"] == msg["pairs"][0]["line_angle_rad"]
+        for msg in poses
+    )
 
 
 def test_a_recipe_of_objects_the_simulated_hand_lacks_is_refused(tmp_path: Path) -> None:

@@ -9,7 +9,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from handctl.parent_death import remove_orphaned_bus
+import pytest
+
+from handctl.errors import HandctlError
+from handctl.parent_death import JsonHelper, remove_orphaned_bus
 
 
 def _bus(directory: Path, *names: str) -> list[socket.socket]:
@@ -94,3 +97,21 @@ def test_other_buses_are_left_alone(tmp_path: Path) -> None:
     directory.mkdir()
     remove_orphaned_bus(f"virtual:{directory}", None)
     assert directory.exists()
+
+
+def test_a_helper_stopped_before_it_started_up_says_so() -> None:
+    # timeit never handles SIGTERM, as a helper still starting up does not yet
+    helper = JsonHelper("timeit", ["-n", "1000000000000", "pass"], "the timing probe")
+    with helper, pytest.raises(HandctlError) as info:
+        helper.finish(timeout_s=60.0)
+    message = str(info.value)
+    assert message.startswith("the timing probe measured nothing: handctl stopped it (SIGTERM)")
+    assert "before it had started up" in message and not message.endswith(": ")
+
+
+def test_a_helper_that_failed_shows_its_exit_and_what_it_said(tmp_path: Path) -> None:
+    helper = JsonHelper("json.tool", [str(tmp_path / "none.json")], "the helper")
+    with helper, pytest.raises(HandctlError) as info:
+        helper.finish(timeout_s=60.0, terminate=False)
+    message = str(info.value)
+    assert message.startswith("the helper ended with exit 2: ") and "none.json" in message

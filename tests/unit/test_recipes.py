@@ -126,7 +126,9 @@ def test_torques_as_a_list(tmp_path: Path, hand: HandConfig) -> None:
     p["torques"] = [0.1] * 9
     assert load_recipe(write(tmp_path, recipe_doc(p)), hand).phases[0].torques == (0.1,) * 9
     p["torques"] = [0.1] * 8
-    assert error(tmp_path, hand, recipe_doc(p)).key == "phases[0].torques"
+    refused = error(tmp_path, hand, recipe_doc(p))
+    assert refused.key == "phases[0].torques"
+    assert "expected a list of 9 numbers, found a list of 8: [0.1, 0.1," in str(refused)
 
 
 def run(
