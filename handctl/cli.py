@@ -1967,8 +1967,10 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
             "config/recipes/swap_two_cylinders.yaml --plot plan/",
             "handctl plan TEMPLATE.yaml -o RECIPE.yaml --quick",
             "handctl plan config/recipes/swap_two_cylinders.template.yaml --from manipulate_3 "
-            "--base config/recipes/swap_two_cylinders.yaml --schedule-only "
+            "--base config/recipes/swap_two_cylinders.yaml --models 48 "
             "-o config/recipes/swap_two_cylinders.yaml",
+            "handctl plan TEMPLATE.yaml --from PHASE --base RECIPE.yaml --schedule-only "
+            "-o RECIPE.yaml",
         ],
     )
     plan.add_argument(

@@ -16,7 +16,7 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Phase, Recipe
-from handctl.planning.template import Template
+from handctl.planning.template import PlannedSchedule, Template
 
 
 @dataclass(frozen=True)
@@ -101,6 +101,8 @@ def load_base(
             f"the template's objects {wanted_objects} (name, radius in m)",
             found_objects,
         )
+    if schedule_only:
+        _check_something_to_search(template, start)
     # the phases whose torques are kept must be the template's, in its order
     kept = names if schedule_only else names[: names.index(start)]
     have = [p.name for p in recipe.phases]
@@ -113,3 +115,23 @@ def load_base(
                 have[i] if i < len(have) else "no such phase",
             )
     return Base(recipe, start, schedule_only)
+
+
+def _check_something_to_search(template: Template, start: str) -> None:
+    """``--schedule-only`` searches the planned ``schedule`` entries of the phases from
+    ``start`` on, and nothing else: with none, it searched nothing, exit 0, and wrote the base
+    again with this run's (fewer) models in its provenance, over a recipe planned on more."""
+    names = [p.name for p in template.phases]
+    planned = [
+        p.name
+        for p in template.phases[names.index(start) :]
+        if any(isinstance(e, PlannedSchedule) for e in p.schedule)
+    ]
+    if not planned:
+        raise ConfigError(
+            "--schedule-only",
+            "",
+            f"a phase from '{start}' on with a schedule entry to plan (plan: {{models: N}} in "
+            f"{Path(template.source).name}): --schedule-only searches only those",
+            "none",
+        )

@@ -348,3 +348,24 @@ def test_models_on_the_command_line_are_bounded_as_the_templates(tmp_path: Path)
     )
     assert done.returncode == 2
     assert "--models: expected 1 to 100 models" in done.stderr
+
+
+def test_schedule_only_with_no_entry_to_plan_is_refused(tmp_path: Path) -> None:
+    """The shipped template writes its schedule entries: --schedule-only searched nothing,
+    exit 0, and wrote the base again with fewer models in its provenance."""
+    out = tmp_path / "r.yaml"
+    base = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+    done = plan_command(
+        str(TEMPLATE),
+        "--from",
+        "manipulate_3",
+        "--base",
+        str(base),
+        "--schedule-only",
+        "-o",
+        str(out),
+    )
+    assert done.returncode == 2 and not out.exists()
+    assert "--schedule-only: expected a phase from 'manipulate_3' on with a schedule entry" in (
+        done.stderr
+    )

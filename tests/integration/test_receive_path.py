@@ -29,7 +29,7 @@ def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
     return load_recipe(path, hand)
 
 
-def test_a_flood_the_bus_cannot_carry_isstopped_at_once(hand: HandConfig, hold: Recipe) -> None:
+def test_a_flood_the_bus_cannot_carry_is_stopped_at_once(hand: HandConfig, hold: Recipe) -> None:
     """1000 foreign frames a tick (a CAN-FD bus carries 27): before, the host drained 512 a
     tick and judged ever older feedback as fresh."""
     with rig(hand, hold) as r:
