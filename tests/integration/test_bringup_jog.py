@@ -48,12 +48,14 @@ def test_one_joint_turns_its_way(hand: HandConfig, capsys: pytest.CaptureFixture
     assert "largest |applied| 0.0500 N·m" in summary
 
 
-@pytest.mark.parametrize("rate_hz", [200, 300])
+@pytest.mark.parametrize("rate_hz", [250, 300])
 def test_the_table_is_every_tenth_of_a_second_and_shows_the_end_ramp_at_any_loop_rate(
     rate_hz: int, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     doc = yaml.safe_load((ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text())
     doc["bus"]["loop_rate_hz"] = rate_hz
+    # the most misses a loop this slow may allow before the nodes' command watchdog
+    doc.setdefault("safety", {})["max_consecutive_misses"] = 1
     path = tmp_path / f"hand_{rate_hz}.yaml"
     path.write_text(yaml.safe_dump(doc))
     args = ["jog", "f1_j2", "--torque", "0.05", "--seconds", "0.5", "--hand", str(path)]
