@@ -559,9 +559,12 @@ _Dumper.add_representer(str, _represent_str)
 
 
 def _type_name(value: object) -> str:
+    """What a value of the wrong type is, as a description (``list``, ``str 'x'``): shown as
+    it is in a message, not quoted as if it were the value ("found 'list'")."""
     if value is None:
-        return "nothing (null)"
-    return f"{type(value).__name__} {value!r}" if _is_scalar(value) else type(value).__name__
+        return _Text("nothing (null)")
+    text = f"{type(value).__name__} {value!r}" if _is_scalar(value) else type(value).__name__
+    return _Text(text)
 
 
 def _is_scalar(value: object) -> bool:
@@ -764,7 +767,7 @@ class Doc:
         if not isinstance(value, list):
             self.fail(key, what, _type_name(value))
         if len(value) < min_len or (max_len is not None and len(value) > max_len):
-            self.fail(key, what, f"{len(value)} entries")
+            self.fail(key, what, _Text(f"{len(value)} entries"))
         sub = Doc({}, self.file, self.key_path(key))
         docs = []
         for i, item in enumerate(value):

@@ -8,7 +8,10 @@ from pathlib import Path
 
 import pytest
 
+from handctl.config import load_hand
 from handctl.errors import ConfigError, escaped
+
+from ..conftest import HAND_YAML
 
 
 @pytest.mark.parametrize(
@@ -43,3 +46,17 @@ def test_escaped_leaves_printable_text_alone_and_cuts_nothing() -> None:
     assert escaped("can0 é") == "can0 é"
     assert escaped("x\x1b" * 100) == r"x\x1b" * 100
     assert escaped("c\udcffn\x00") == r"c\xffn\x00"
+
+
+def test_a_value_of_the_wrong_type_is_described_not_quoted(tmp_path: Path) -> None:
+    """'found 'list'' read as if the value were the text "list"; a count of entries as if it
+    were a string: both are descriptions of what was found."""
+    from handctl.online.recipes.loader import load_recipe
+
+    path = tmp_path / "r.yaml"
+    path.write_text("recipe: x\ndescription: y\nphases: 5\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"found int 5$"):
+        load_recipe(path, load_hand(HAND_YAML))
+    path.write_text("recipe: x\ndescription: y\nphases: []\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"found 0 entries$"):
+        load_recipe(path, load_hand(HAND_YAML))
