@@ -1965,7 +1965,6 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         examples=[
             "handctl plan config/recipes/swap_two_cylinders.template.yaml -o "
             "config/recipes/swap_two_cylinders.yaml --plot plan/",
-            "handctl plan TEMPLATE.yaml -o RECIPE.yaml --quick",
             "handctl plan config/recipes/swap_two_cylinders.template.yaml --from manipulate_3 "
             "--base config/recipes/swap_two_cylinders.yaml --models 48 "
             "-o config/recipes/swap_two_cylinders.yaml",

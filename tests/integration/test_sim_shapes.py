@@ -341,11 +341,15 @@ def test_the_foxglove_scene_draws_each_link_with_its_own_radius() -> None:
 
 
 def test_objects_of_any_name_are_simulated_under_it(hand: HandConfig) -> None:
+    """A hand config names its objects as a recipe can (letters and digits, parse_sim), but
+    the scene's builder takes any name as it is, escaped for MuJoCo's XML: what it is given
+    is not its to trust."""
     names = ['a "quoted" <cylinder> & co', "zylinder 2"]
-    raw = copy.deepcopy(dict(hand.sim))
-    for obj, name in zip(raw["objects"], names, strict=True):
-        obj["name"] = name
-    plant = Plant(hand, parse_sim(dataclasses.replace(hand, sim=raw)))
+    params = parse_sim(hand)
+    objects = tuple(
+        dataclasses.replace(obj, name=name) for obj, name in zip(params.objects, names, strict=True)
+    )
+    plant = Plant(hand, dataclasses.replace(params, objects=objects))
     plant.step()
     assert [pose.name for pose in plant.object_poses()] == names
     assert names[0] in {_geom(plant, int(g)) for g in plant.model.pair_geom1}
