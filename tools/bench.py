@@ -4,6 +4,12 @@ Each benchmark lives in ``tools/bench_NAME.py`` with ``add_arguments(parser)`` a
 ``run(args) -> dict``. Figures that are targets are ratios against a baseline measured in the
 same run, because the machine is shared and absolute times are noisy. Progress goes to stderr
 so that stdout is exactly one JSON object.
+
+A benchmark that cannot measure what it was asked to says so on stderr and exits non-zero: one
+that finds out before measuring raises ``SystemExit`` with the reason (no figures); one whose
+figures hold ``failed`` (what could not be measured, each a sentence) has them printed and
+exits 1, each failure on stderr. An error inside figures that exit 0 reads as a success to a
+script, or to a reader who does not open the JSON.
 """
 
 from __future__ import annotations
@@ -44,7 +50,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv[1:])
     figures = module.run(args)
     print(json.dumps(figures, sort_keys=True))
-    return 0
+    failed = figures.get("failed") or []
+    for failure in failed:
+        print(f"bench.py {name}: failed: {failure}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
