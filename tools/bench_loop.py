@@ -66,6 +66,9 @@ from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
 from handctl.session import RunReport, RunRequest, run_recipe
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "the real-time loop's lateness and misses; the tick's CPU beside a baseline tree"
+
 ROOT = Path(__file__).resolve().parent.parent
 
 

@@ -145,6 +145,9 @@ from handctl.recording.rerun import rerun, tick_inputs  # noqa: E402
 from handctl.recording.ring import RingLayout  # noqa: E402
 from handctl.sim.hand import SimulatedHand  # noqa: E402
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "what recording costs the tick; the writer's and replay's speed, MB per minute"
+
 LOOP_TARGET_US = 28.0
 #: CPU time of the calling thread, as the runtime's own stage accounting: time the loop was
 #: preempted by another process (the machine is shared) is not the recorder's cost.

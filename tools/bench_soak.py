@@ -54,6 +54,9 @@ sys.path.insert(0, str(ROOT / "tools"))
 from bench_loop import RunningSince, host_figures  # noqa: E402
 from hold_recipe import hold_recipe  # noqa: E402
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "the real-time loop with the simulated hand and recording, for minutes on end"
+
 MISSED_TARGET = 0.001
 RSS_TARGET_MB_PER_HOUR = 5.0
 #: SCHED_FIFO priority of the simulated hand with ``--rt``: just below the loop's (80).

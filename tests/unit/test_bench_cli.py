@@ -1,15 +1,50 @@
-"""``tools/bench.py``: a benchmark whose figures say what failed exits 1, saying it on
-stderr, rather than 0 with the error inside the JSON."""
+"""``tools/bench.py``: ``--help`` lists the benchmarks (it was taken for a benchmark's name
+and exited 2), and a benchmark whose figures say what failed exits 1, saying it on stderr,
+rather than 0 with the error inside the JSON."""
 
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 import types
 
 import pytest
 
-from ..conftest import load_tool
+from ..conftest import ROOT, load_tool
+
+
+@pytest.mark.parametrize("flag", ["--help", "-h"])
+def test_help_lists_every_benchmark_with_its_line(
+    flag: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bench = load_tool("bench")
+    assert bench.main([flag]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: bench.py NAME")
+    names = bench.available()
+    assert "loop" in names and "recording" in names
+    for name in names:
+        summary = bench.summary(name)
+        assert summary and "\n" not in summary, f"bench_{name}.py has no SUMMARY line"
+        assert any(line.split() == [name, *summary.split()] for line in out.splitlines())
+
+
+def test_help_from_the_command_line() -> None:
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "bench.py"), "--help"],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "benchmarks:" in done.stdout and done.stderr == ""
+
+
+def test_no_name_still_exits_2_and_points_at_help(capsys: pytest.CaptureFixture[str]) -> None:
+    assert load_tool("bench").main([]) == 2
+    assert "bench.py --help lists them" in capsys.readouterr().err
 
 
 def _fake(figures: dict[str, object]) -> types.ModuleType:
