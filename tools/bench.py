@@ -1,33 +1,70 @@
 """Run one named benchmark and print its figures: ``python tools/bench.py NAME --json``.
 
-Each benchmark lives in ``tools/bench_NAME.py`` with ``add_arguments(parser)`` and
-``run(args) -> dict``. Figures that are targets are ratios against a baseline measured in the
-same run, because the machine is shared and absolute times are noisy. Progress goes to stderr
-so that stdout is exactly one JSON object.
+Each benchmark lives in ``tools/bench_NAME.py`` with ``add_arguments(parser)``, ``run(args) ->
+dict`` and ``SUMMARY``, its line of ``--help``. Figures that are targets are ratios against a
+baseline measured in the same run, because the machine is shared and absolute times are noisy.
+Progress goes to stderr so that stdout is exactly one JSON object.
+
+A benchmark that cannot measure what it was asked to says so on stderr and exits non-zero: one
+that finds out before measuring raises ``SystemExit`` with the reason (no figures); one whose
+figures hold ``failed`` (what could not be measured, each a sentence) has them printed and
+exits 1, each failure on stderr. An error inside figures that exit 0 reads as a success to a
+script, or to a reader who does not open the JSON.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
 import json
 import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+USAGE = "usage: bench.py NAME [--json] [options]   (bench.py NAME --help: its options)"
 
 
 def available() -> list[str]:
     return sorted(p.stem.removeprefix("bench_") for p in HERE.glob("bench_*.py"))
 
 
+def summary(name: str) -> str:
+    """Benchmark ``name``'s ``SUMMARY``, read from its source without importing it: the list
+    costs no benchmark's imports (MuJoCo, the runtime) and shows a benchmark whose imports
+    fail; the first line of its docstring when it has none."""
+    tree = ast.parse((HERE / f"bench_{name}.py").read_text(encoding="utf-8"))
+    for node in tree.body:
+        if (
+            isinstance(node, ast.Assign)
+            and [getattr(t, "id", None) for t in node.targets] == ["SUMMARY"]
+            and isinstance(node.value, ast.Constant)
+            and isinstance(node.value.value, str)
+        ):
+            return node.value.value
+    return (ast.get_docstring(tree) or "").partition("\n")[0]
+
+
+def listing() -> str:
+    """What ``--help`` prints: the usage and each benchmark with its line."""
+    names = available()
+    width = max(map(len, names))
+    lines = [USAGE, "", "benchmarks:"]
+    lines += [f"  {name:<{width}}  {summary(name)}" for name in names]
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in ("-h", "--help"):
+        print(listing())
+        return 0
     names = available()
     if not argv or argv[0] not in names:
         given = argv[0] if argv else "nothing"
         print(
-            f"bench.py: expected a benchmark name, one of {', '.join(names)}; found {given}",
+            f"bench.py: expected a benchmark name, one of {', '.join(names)}; found {given} "
+            "(bench.py --help lists them)",
             file=sys.stderr,
         )
         return 2
@@ -44,7 +81,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv[1:])
     figures = module.run(args)
     print(json.dumps(figures, sort_keys=True))
-    return 0
+    failed = figures.get("failed") or []
+    for failure in failed:
+        print(f"bench.py {name}: failed: {failure}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

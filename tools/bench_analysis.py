@@ -33,6 +33,9 @@ from handctl.analysis.slices import ratio_slice  # noqa: E402
 from handctl.executor import open_pool  # noqa: E402
 from handctl.progress import Progress, say  # noqa: E402
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "the exact torque set against a grid of LPs, on the paper's Fig. 3 scenario"
+
 PAPER_K = ((0.9, 0.1), (1.2, 0.5))
 
 

@@ -26,6 +26,9 @@ from typing import Any
 
 import numpy as np
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "the paper's experiment over perturbed simulated hands: robust, not lucky?"
+
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 DEFAULT_HAND = ROOT / "config" / "hands" / "hiroshima_hand.yaml"

@@ -34,6 +34,9 @@ from handctl.online.bus import open_bus  # noqa: E402
 from handctl.online.drivers.hand import HandDriver  # noqa: E402
 from tests.strategies import Frame, frame_batches  # noqa: E402
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "decoder fuzz: 100 000 and more drawn frames through the host's receive path"
+
 #: Examples per Hypothesis run at most; runs repeat with the next seed until enough frames are
 #: drawn (an example is a poll's worth: about 25 frames).
 EXAMPLES_PER_RUN = 500

@@ -29,7 +29,10 @@ every time) in a process of its own, both at once (whatever else loads the host 
 ``--tick-cost-rounds`` times, over the unix bus (a real-time run's transport) and the virtual
 bus (a lockstep run's). Per stage the median over the rounds of each p50 and p99, and
 ``ratio_*``: this tree's over the baseline's. The recipe and feedback stages (the recipe
-runner's) are a control where the runner did not change.
+runner's) are a control where the runner did not change. A baseline that cannot run
+``tick_cost.py`` (a revision whose handctl lacks what it imports) is tried out and refused
+before anything is measured, on stderr and with exit 1; a round that fails later is its
+transport's ``error`` and in ``failed``, and the benchmark exits 1 all the same.
 
 ``--rt --hygiene`` runs the loop once per real-time measure added in turn (SCHED_FIFO alone,
 then separate CPUs, locked memory, prefaulted memory), each in a fresh process (a priority,
@@ -53,9 +56,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from hold_recipe import hold_recipe
 
 from handctl.config import HandConfig, load_hand
-from handctl.handshape import flexion_sign
 from handctl.hostcheck import Deadlines, ProbeRecord, attribute, judge, work_figures
 from handctl.online.clock import Hygiene
 from handctl.online.loop import StatusLine
@@ -63,46 +66,26 @@ from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
 from handctl.session import RunReport, RunRequest, run_recipe
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "the real-time loop's lateness and misses; the tick's CPU beside a baseline tree"
+
 ROOT = Path(__file__).resolve().parent.parent
-#: N·m per N·m of tau_max and rad: how hard and how far the benchmarks' hold closes each
-#: joint (its flexion's way), gently, well inside every limit
-HOLD_TORQUE_FRACTION = 0.1
-HOLD_POSE_RAD = 0.3
 
 
-def hold_recipe(hand: HandConfig, name: str, seconds: float, pose: bool = True) -> str:
-    """A one-phase recipe for ``hand`` that closes it gently and holds for ``seconds``: each
-    joint flexed at ``HOLD_TORQUE_FRACTION`` of its tau_max and, with ``pose``, sprung towards
-    ``HOLD_POSE_RAD`` of flexion (for the loop and soak benchmarks: the hand busy, nothing
-    grasped); with ``pose`` the soft-limit guard is on too (the loop's whole feedback)."""
-    torques: dict[str, float] = {}
-    angles: dict[str, float] = {}
-    for finger in hand.fingers:
-        sign = flexion_sign(hand, finger)
-        for joint in finger.joints:
-            torques[joint.name] = round(sign * HOLD_TORQUE_FRACTION * joint.tau_max, 4)
-            angles[joint.name] = sign * HOLD_POSE_RAD
-    phase: dict[str, object] = {
-        "name": "close",
-        "torques": torques,
-        "ramp_s": 0.3,
-        "max_s": seconds,
-        "on_timeout": "next",
-    }
-    doc: dict[str, object] = {
-        "recipe": name,
-        "description": "close the hand gently and hold, for a benchmark",
-    }
-    if pose:
-        phase["pose"] = {"angles": angles, "stiffness": 0.05, "damping": 0.002}
-        phase["joint_damping"] = 0.03  # the damping injection a braked phase adds
-        doc["limit_guard_band"] = 0.15
-    doc["phases"] = [phase]
-    return json.dumps(doc)  # JSON is YAML
-
-
-#: The tree before the tick's CPU cost was cut (issue #17): ``tick_cost``'s baseline.
+#: ``tick_cost``'s baseline: the tree before the tick's CPU cost was cut (issue #17), the
+#: first parent of that work's merge (eff65b6) and so the newest revision without the cuts.
+#: Its handctl has everything ``tick_cost.py`` and ``hold_recipe.py`` import (a test holds
+#: them to it); a later revision would have some of the cuts in it, an earlier one less of the
+#: runtime than ``tick_cost.py`` drives. A baseline that cannot run is refused before the
+#: benchmark measures anything (``baseline_problem``).
 BASELINE_REV = "c130bf7"
+#: s: the hold of the short run of each transport that tries the baseline out first
+PROBE_SECONDS = 0.1
+#: s: how long one ``tick_cost.py`` run may take, at most, and per second of its hold: a run
+#: that hangs fails the benchmark with a message instead of holding it up for ever. Lockstep
+#: holds of 1.5 s take a few seconds; a host loaded many times over takes many times that.
+COST_RUN_TIMEOUT_S = 120.0
+COST_RUN_TIMEOUT_PER_S = 60.0
 TRANSPORTS = ("unix", "virtual")
 
 #: The variants of ``--hygiene``, each adding one measure to the one before.
@@ -267,6 +250,29 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         from live_view_cost import compare
 
         return compare(run, args)
+    # Once per benchmark: not again in each run of the live-view comparison (``record``).
+    if args.no_tick_cost or getattr(args, "record", False):
+        return _measure(args, None)
+    with tempfile.TemporaryDirectory(prefix="handctl-baseline-") as baseline:
+        # Before anything is measured: a baseline that cannot run would otherwise be found
+        # out after the loop's whole run, as an error among figures of a benchmark that
+        # exited 0.
+        print(f"tick cost: trying the baseline {args.baseline} ...", file=sys.stderr)
+        problem = baseline_problem(args.baseline, Path(baseline), args.hand)
+        if problem:
+            raise SystemExit(
+                f"bench.py loop: the baseline {args.baseline} cannot run tools/tick_cost.py "
+                f"beside this tree: {problem}\n(give --baseline a revision whose handctl has "
+                f"what tools/tick_cost.py imports, as the default {BASELINE_REV} has, or "
+                "--no-tick-cost)"
+            )
+        return _measure(args, Path(baseline))
+
+
+def _measure(args: argparse.Namespace, baseline: Path | None) -> dict[str, object]:
+    """The benchmark proper; the tick's cost beside ``baseline``, a tree already tried out,
+    unless it is None. A round of it that failed all the same is in ``failed``, which makes
+    ``bench.py`` exit 1."""
     hand = load_hand(args.hand)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "hold.yaml"
@@ -296,11 +302,18 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         naive_p99 = float(np.percentile(naive, 99)) / 1e3
         figures["naive_lateness_p99_us"] = round(naive_p99, 1)
         figures["lateness_ratio"] = round(float(figures["lateness_p99_us"]) / naive_p99, 4)  # type: ignore[arg-type]
-    # Once per benchmark: not again in each run of the live-view comparison (``record``).
-    if not args.no_tick_cost and not getattr(args, "record", False):
-        figures["tick_cost"] = tick_cost(
-            args.hand, args.baseline, args.tick_cost_rounds, args.tick_cost_seconds
+    if baseline is not None:
+        cost = tick_cost(
+            args.hand, args.baseline, baseline, args.tick_cost_rounds, args.tick_cost_seconds
         )
+        figures["tick_cost"] = cost
+        failed = [
+            f"tick_cost.{t} (baseline {args.baseline}): {cost[t]['error']}"
+            for t in TRANSPORTS
+            if "error" in cost[t]
+        ]
+        if failed:
+            figures["failed"] = failed
     if variants:
         keep = (
             "lateness_p99_us",
@@ -425,27 +438,41 @@ def _one(
     }
 
 
-def tick_cost(hand: Path, baseline: str, rounds: int, seconds: float) -> dict[str, Any]:
-    """The tick's CPU per stage, this tree beside ``baseline``'s, side by side in one run (see
-    the module's docstring); ``error`` instead when the baseline cannot be had."""
-    with tempfile.TemporaryDirectory(prefix="handctl-baseline-") as tmp:
-        problem = _extract(baseline, Path(tmp))
-        if problem:
-            return {"baseline": baseline, "error": problem}
-        trees = {"baseline": tmp, "current": str(ROOT)}
-        runs: dict[str, dict[str, list[dict[str, Any]]]] = {
-            t: {name: [] for name in trees} for t in TRANSPORTS
-        }
-        for k in range(rounds):
-            for transport in TRANSPORTS:
-                print(f"tick cost {k + 1}/{rounds}: {transport} bus ...", file=sys.stderr)
-                # Both trees at once: whatever else loads the host then loads both alike.
-                started = {
-                    name: _cost_run(tree, hand, transport, seconds) for name, tree in trees.items()
-                }
-                for name, finish in started.items():
-                    runs[transport][name].append(finish())
-    out: dict[str, Any] = {"baseline": baseline, "rounds": rounds, "seconds": seconds}
+def baseline_problem(rev: str, into: Path, hand: Path) -> str:
+    """Why git revision ``rev``'s handctl, extracted under ``into``, cannot run
+    ``tools/tick_cost.py``, or "": a short hold on each transport, both at once, as the
+    benchmark will run it (an import it lacks, a recipe or hand it reads otherwise, a runtime
+    that does not complete)."""
+    problem = _extract(rev, into)
+    if problem:
+        return problem
+    started = {t: _cost_run(str(into), hand, t, PROBE_SECONDS) for t in TRANSPORTS}
+    problems = []
+    for transport, finish in started.items():
+        result = finish()
+        if "error" in result:
+            problems.append(f"{transport} bus: {result['error']}")
+    return "; ".join(problems)
+
+
+def tick_cost(hand: Path, rev: str, baseline: Path, rounds: int, seconds: float) -> dict[str, Any]:
+    """The tick's CPU per stage, this tree beside that of git revision ``rev`` (extracted in
+    ``baseline``), side by side in one run (see the module's docstring); per transport
+    ``error`` instead when a run of either failed."""
+    trees = {"baseline": str(baseline), "current": str(ROOT)}
+    runs: dict[str, dict[str, list[dict[str, Any]]]] = {
+        t: {name: [] for name in trees} for t in TRANSPORTS
+    }
+    for k in range(rounds):
+        for transport in TRANSPORTS:
+            print(f"tick cost {k + 1}/{rounds}: {transport} bus ...", file=sys.stderr)
+            # Both trees at once: whatever else loads the host then loads both alike.
+            started = {
+                name: _cost_run(tree, hand, transport, seconds) for name, tree in trees.items()
+            }
+            for name, finish in started.items():
+                runs[transport][name].append(finish())
+    out: dict[str, Any] = {"baseline": rev, "rounds": rounds, "seconds": seconds}
     for transport, by_tree in runs.items():
         failed = [r["error"] for results in by_tree.values() for r in results if "error" in r]
         if failed:
@@ -500,9 +527,17 @@ def _cost_run(
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
     def finish() -> dict[str, Any]:
-        out, err = proc.communicate()
+        timeout = COST_RUN_TIMEOUT_S + COST_RUN_TIMEOUT_PER_S * seconds
+        try:
+            out, err = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+            return {"error": f"{tree}: no figures after {timeout:g} s (stopped)"}
         if proc.returncode != 0:
-            return {"error": f"{tree}: exit {proc.returncode}: {err.strip()[-300:]}"}
+            # The traceback's last line says what failed; its path says which tree.
+            lines = err.strip().splitlines() or [""]
+            return {"error": f"{tree}: exit {proc.returncode}: {lines[-1][-300:]}"}
         figures: dict[str, Any] = json.loads(out)
         if figures.get("outcome") != "completed":
             return {"error": f"{tree}: {figures.get('outcome')}: {figures.get('message')}"}

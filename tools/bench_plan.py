@@ -30,6 +30,9 @@ from handctl.planning.search import Budget  # noqa: E402
 from handctl.planning.template import load_template  # noqa: E402
 from handctl.progress import Progress, close_active, say  # noqa: E402
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "a small plan with one worker and with a local pool of them"
+
 TEMPLATE = ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml"
 HAND = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
 

@@ -77,9 +77,12 @@ competition for the CPU.
 ``--against REV``: instead, this tree's recorder against another's, under the same load: the
 same pair, both runtimes recorded, one by this tree's ``Recorder`` and bus taps, the other by
 the ``Recorder`` in ``handctl/recording/recorder.py`` at git revision ``REV`` on the ``HandBus``
-of ``handctl/online/bus.py`` at ``REV`` (both imported beside this tree's, so they must speak
-this tree's ring layout; the rest of the runtime is this tree's), this tree's in the first place
-in the first pair and in the second in the next. ``against_this_us_p50`` / ``_p99`` / ``_mean``
+of ``handctl/online/bus.py`` at ``REV`` (both imported beside this tree's, so they must work
+with this tree's runtime, ring layout and writer; the rest of the runtime is this tree's), this
+tree's in the first place in the first pair and in the second in the next. REV is first tried
+out in a short pair (``against_problem``), and one that cannot run is refused, saying why,
+before anything is measured: the bus of any revision before d7981c5 lacks ``prepare_send``,
+which this tree's driver calls in start-up. ``against_this_us_p50`` / ``_p99`` / ``_mean``
 and ``against_reference_*`` are the direct cost of each, and ``against_tick_us_mean`` the mean
 of this tree's whole tick less the reference's, tick by tick: each over the ticks of the pairs
 of one order pooled, then averaged over the two orders. Two runs of the bench minutes apart on a
@@ -87,6 +90,9 @@ shared machine differ by more than a recorder's change (the unrecorded tick's me
 160 to 225 us between two of them); two recorders ticking in turn do not.
 
 Each figure is the best of ``--repeat`` runs (the machine is shared). Progress goes to stderr.
+The two runtimes of a pair wait for each other every tick; one that ends or stalls
+(``PARTNER_WAIT_S``) while the other waits breaks the pair off, and the bench exits 1 saying
+which and how it ended, instead of waiting for ever.
 
 ``--live``: instead, what the live Foxglove view adds to the tick. The same pair, both
 runtimes recorded, one's writer also serving its live view to a client process subscribed
@@ -145,6 +151,9 @@ from handctl.recording.rerun import rerun, tick_inputs  # noqa: E402
 from handctl.recording.ring import RingLayout  # noqa: E402
 from handctl.sim.hand import SimulatedHand  # noqa: E402
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "what recording costs the tick; the writer's and replay's speed, MB per minute"
+
 LOOP_TARGET_US = 28.0
 #: CPU time of the calling thread, as the runtime's own stage accounting: time the loop was
 #: preempted by another process (the machine is shared) is not the recorder's cost.
@@ -187,8 +196,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--against",
         metavar="REV",
-        help="instead: this tree's recorder against git revision REV's recorder.py (one that "
-        "speaks this tree's ring layout), both recording in one pair (against_*)",
+        help="instead: this tree's recorder against git revision REV's recorder.py and bus.py "
+        "(d7981c5 or later; one that cannot run beside this tree is refused), both recording "
+        "in one pair (against_*)",
     )
     parser.add_argument(
         "--breakdown",
@@ -196,6 +206,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="also split the direct cost: one more run in which push only publishes, "
         "the tick's row left empty (breakdown_us_p50)",
     )
+
+
+#: s of wall time a runtime of the pair waits at most for the other to begin a tick: each
+#: waits for the other every tick, so one that stopped or hung would hold the other (and the
+#: bench) for ever. A tick takes milliseconds even on a loaded host.
+PARTNER_WAIT_S = 60.0
+
+
+class BrokenPairError(RuntimeError):
+    """A runtime of the pair stopped or stalled while the other waited for it: the pair
+    cannot go on, and ``bench.py`` says why (``run``)."""
 
 
 class Turns:
@@ -206,6 +227,10 @@ class Turns:
 
     def __init__(self) -> None:
         self.done: dict[int, int] = {}  # tick -> how many of the pair have begun it
+        #: side -> how its runtime ended, once it has (``_run_side``)
+        self.ended: dict[str, str] = {}
+        #: why the pair could not go on: the first ``BrokenPairError``'s reason, or ""
+        self.broken = ""
 
     def first(self, k: int) -> str:
         return "a" if k % 2 == 0 else "b"
@@ -218,6 +243,25 @@ class Turns:
     def begin(self, k: int) -> None:
         self.done[k] = self.done.get(k, 0) + 1
         self.done.pop(k - 2, None)
+
+    def wait_in_vain(self, side: str, k: int, since: float) -> None:
+        """Raise ``BrokenPairError`` when ``side``, waiting since ``since`` (``time.monotonic``)
+        for the other to begin tick ``k``, waits in vain: the other's runtime has ended, or
+        has not moved for ``PARTNER_WAIT_S``."""
+        other = "b" if side == "a" else "a"
+        if other in self.ended:
+            why = f"{self.ended[other]}, while the other waited for it at tick {k}"
+        elif time.monotonic() - since > PARTNER_WAIT_S:
+            why = f"a runtime of the pair did not begin tick {k} in {PARTNER_WAIT_S:g} s"
+        else:
+            return
+        self.broken = self.broken or why
+        raise BrokenPairError(why)
+
+    def check(self) -> None:
+        """Raise ``BrokenPairError`` if the pair broke: its runs' figures would be half a pair's."""
+        if self.broken:
+            raise BrokenPairError(self.broken)
 
 
 class TickTimer(LockstepClock):
@@ -238,8 +282,11 @@ class TickTimer(LockstepClock):
         if self._started is not None:
             self.work_ns.append(_CPU() - self._started)
         tick = await super().wait_tick()
-        while not self.turns.mine(self.side, tick.tick):
-            await asyncio.sleep(0)
+        if not self.turns.mine(self.side, tick.tick):
+            since = time.monotonic()
+            while not self.turns.mine(self.side, tick.tick):
+                self.turns.wait_in_vain(self.side, tick.tick, since)
+                await asyncio.sleep(0)
         self.turns.begin(tick.tick)
         self._started = _CPU()
         return tick
@@ -261,8 +308,11 @@ class _Side:
         layout: RingLayout | None = None,
         recorder_type: type[Recorder] = Recorder,
         open_host: Callable[..., Any] = open_bus,
+        label: str = "",
     ) -> None:
-        """``open_host`` opens the runtime's own bus (the simulated hand's is this tree's)."""
+        """``open_host`` opens the runtime's own bus (the simulated hand's is this tree's);
+        ``label`` names the side in what the bench says of it (default: its place)."""
+        self.label = label or f"the runtime in place {side.upper()}"
         channel = f"virtual:bench-rec-{uuid.uuid4().hex[:8]}"
         peer = stack.enter_context(open_bus(channel, hand.bus))
         host = stack.enter_context(open_host(channel, hand.bus))
@@ -339,6 +389,22 @@ class _Side:
         runtime.tick_hooks.append(poses)
 
 
+async def _run_side(side: _Side) -> RunResult:
+    """``side``'s run, its end noted with the pair's ``Turns``: the other runtime, waiting
+    for it to begin a tick it never will, then stops instead of waiting for ever."""
+    turns = side.clock.turns
+    try:
+        result = await side.runtime.run()
+    except BaseException as exc:
+        turns.ended[side.clock.side] = f"{side.label} raised {exc!r}"
+        raise
+    turns.ended[side.clock.side] = (
+        f"{side.label} ended at tick {result.ticks}: {result.outcome.value}"
+        + (f" ({result.message})" if result.message else "")
+    )
+    return result
+
+
 def _partial_push(recorder: Recorder, part: str) -> Callable[[Any], None]:
     """A ``push`` that does only part of the work, for ``--breakdown``: ``none`` only
     publishes (the tick rows stay empty; the taps still write the frames, as they go)."""
@@ -390,9 +456,9 @@ def _pair(
 
         async def both() -> tuple[RunResult, RunResult]:
             if swap:
-                twin, result = await asyncio.gather(b.runtime.run(), a.runtime.run())
+                twin, result = await asyncio.gather(_run_side(b), _run_side(a))
                 return result, twin
-            return await asyncio.gather(a.runtime.run(), b.runtime.run())
+            return await asyncio.gather(_run_side(a), _run_side(b))
 
         started = time.perf_counter()
         result, twin = asyncio.run(both())
@@ -402,6 +468,7 @@ def _pair(
         stats = a.recorder.close({"outcome": result.outcome.value}) if a.recorder else {}
         if b.recorder is not None:
             b.recorder.close({"outcome": twin.outcome.value})
+    turns.check()
     if result.ticks != twin.ticks or result.outcome != twin.outcome:
         raise RuntimeError(
             f"bench: the twin runs differ ({result.ticks} and {twin.ticks} "
@@ -861,17 +928,21 @@ def bus_opener_of(revision: str) -> Callable[..., Any]:
     return opener
 
 
-def against_once(
+def _against_pair(
     hand: HandConfig,
     recipe: Recipe,
     reference: type[Recorder],
     reference_bus: Callable[..., Any],
     directory: Path,
     swap: bool,
-) -> dict[str, dict[str, np.ndarray]]:
-    """One pair, both recorded: this tree's recorder and bus first (second with ``swap``),
-    the reference's (``reference``, its bus opened by ``reference_bus``) in the other place.
-    Per side and control tick: the direct cost and the whole tick (us)."""
+    revision: str,
+    max_ticks: int | None = None,
+) -> tuple[dict[str, _Side], dict[str, RunResult]]:
+    """One pair, both recorded (to ``this.mcap`` and ``reference.mcap`` in ``directory``),
+    run and closed: this tree's recorder and bus first (second with ``swap``), the
+    reference's (``reference``, its bus opened by ``reference_bus``, of git revision
+    ``revision``) in the other place; each run stopped after ``max_ticks`` ticks if given.
+    Raises ``BrokenPairError`` when one side stopped while the other waited for it."""
     names = ["reference", "this"] if swap else ["this", "reference"]
     with contextlib.ExitStack() as stack:
         turns = Turns()
@@ -887,18 +958,39 @@ def against_once(
                 place,
                 recorder_type=Recorder if this else reference,
                 open_host=open_bus if this else reference_bus,
+                label="this tree's runtime" if this else f"the runtime with {revision}'s recorder",
             )
+            if max_ticks is not None:
+                sides[name].runtime.max_ticks = max_ticks
         for side in sides.values():
             assert side.recorder is not None
             side.recorder.wait_ready()
 
         async def both() -> list[RunResult]:
-            return list(await asyncio.gather(*(sides[name].runtime.run() for name in names)))
+            return list(await asyncio.gather(*(_run_side(sides[name]) for name in names)))
 
         results = dict(zip(names, asyncio.run(both()), strict=True))
         for side in sides.values():
             assert side.recorder is not None
             side.recorder.close({})
+    turns.check()
+    return sides, results
+
+
+def against_once(
+    hand: HandConfig,
+    recipe: Recipe,
+    reference: type[Recorder],
+    reference_bus: Callable[..., Any],
+    directory: Path,
+    swap: bool,
+    revision: str = "REV",
+) -> dict[str, dict[str, np.ndarray]]:
+    """One pair (``_against_pair``). Per side and control tick: the direct cost and the
+    whole tick (us)."""
+    sides, results = _against_pair(
+        hand, recipe, reference, reference_bus, directory, swap, revision
+    )
     if results["this"].ticks != results["reference"].ticks:
         raise RuntimeError("bench: the twin runs differ: the pair would compare unlike ticks")
     out: dict[str, dict[str, np.ndarray]] = {}
@@ -919,6 +1011,69 @@ def against_once(
     return out
 
 
+#: Ticks of the pair that tries ``--against``'s revision out before anything is measured:
+#: the start-up, the enable and a few hundred recorded ticks, poses among them.
+PROBE_TICKS = 400
+
+
+def against_problem(
+    hand: HandConfig,
+    recipe: Recipe,
+    reference: type[Recorder],
+    reference_bus: Callable[..., Any],
+    revision: str,
+) -> str:
+    """Why ``revision``'s recorder and bus cannot be measured beside this tree, or "".
+
+    Only their two modules are that revision's; the runtime that calls them, the modules
+    they import and the writer process that reads their rings are this tree's. A revision
+    whose bus lacks what this tree's driver calls stopped its runtime at the first tick, and
+    the other waited for it for ever; one that fills the rings otherwise than this tree's
+    writer reads them leaves a recording unlike this tree's. So a short pair, both recorded,
+    must end alike, and the two recordings must be whole, hold the same messages and re-run
+    exactly (``handctl replay --rerun``)."""
+    with tempfile.TemporaryDirectory(prefix="handctl-bench-") as tmp:
+        try:
+            _, results = _against_pair(
+                hand, recipe, reference, reference_bus, Path(tmp), False, revision, PROBE_TICKS
+            )
+        except BrokenPairError as exc:
+            return str(exc)
+        except Exception as exc:
+            return f"the pair raised {type(exc).__name__}: {exc}"
+        ends = {name: (r.outcome.value, r.message, r.ticks) for name, r in results.items()}
+        if ends["this"] != ends["reference"]:
+            return f"the two runs ended unlike: this tree's {ends['this']}, {ends['reference']}"
+        recordings: dict[str, Recording] = {}
+        for name in results:
+            try:
+                recordings[name] = recording = open_recording(Path(tmp) / f"{name}.mcap")
+            except Exception as exc:
+                return f"the {name} recording cannot be read: {exc}"
+            if not recording.complete:
+                return f"the {name} recording is not whole: {recording.problem}"
+        for name, recording in recordings.items():
+            end = recording.metadata.get(ch.META_END, {})
+            dropped = {k: v for k, v in end.items() if k.startswith("dropped_") and v != "0"}
+            if dropped:
+                return f"the {name} recording's writer fell behind and dropped records: {dropped}"
+        # The writer's own stats close each chunk, and a chunk closes on wall time too: their
+        # count is the host's, not the recorder's.
+        this, ref = (
+            {t: n for t, n in recordings[name].message_counts.items() if t != ch.STATS}
+            for name in ("this", "reference")
+        )
+        unlike = sorted(t for t in this.keys() | ref.keys() if this.get(t) != ref.get(t))
+        if unlike:
+            return "the recordings hold different messages: " + ", ".join(
+                f"{t} {this.get(t, 0)} against {ref.get(t, 0)}" for t in unlike
+            )
+        report = rerun(recordings["reference"])
+        if not report.ok:
+            return f"the reference's recording does not re-run exactly: {report.as_dict()}"
+    return ""
+
+
 def run_against(args: argparse.Namespace) -> dict[str, Any]:
     """``--against REV``: ``--repeat`` pairs, this tree's recorder first of the pair in the
     first, second in the next, and so on. Each figure over the ticks of the pairs of one order
@@ -929,12 +1084,31 @@ def run_against(args: argparse.Namespace) -> dict[str, Any]:
     recipe = load_recipe(args.recipe, hand)
     reference = recorder_of(args.against)
     reference_bus = bus_opener_of(args.against)
+    print(
+        f"bench recording --against {args.against}: trying it out in a pair of "
+        f"{PROBE_TICKS} ticks ...",
+        file=sys.stderr,
+    )
+    problem = against_problem(hand, recipe, reference, reference_bus, args.against)
+    if problem:
+        raise SystemExit(
+            f"bench.py recording --against {args.against}: its recorder and bus cannot run "
+            f"beside this tree: {problem}\n(--against needs a revision whose "
+            "handctl/recording/recorder.py and handctl/online/bus.py work with this tree's "
+            "runtime and writer; docs/recording.md says which)"
+        )
     runs = []
     for i in range(args.repeat):
         with tempfile.TemporaryDirectory(prefix="handctl-bench-") as directory:
             runs.append(
                 against_once(
-                    hand, recipe, reference, reference_bus, Path(directory), swap=i % 2 == 1
+                    hand,
+                    recipe,
+                    reference,
+                    reference_bus,
+                    Path(directory),
+                    swap=i % 2 == 1,
+                    revision=args.against,
                 )
             )
         this, ref = runs[-1]["this"]["direct"], runs[-1]["reference"]["direct"]
@@ -976,6 +1150,13 @@ def run_against(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    try:
+        return _run(args)
+    except BrokenPairError as exc:
+        raise SystemExit(f"bench.py recording: the pair of runtimes broke off: {exc}") from None
+
+
+def _run(args: argparse.Namespace) -> dict[str, Any]:
     if args.live:
         return run_live(args)
     if args.profile:

@@ -38,6 +38,9 @@ from handctl.sim.hand import SimulatedHand  # noqa: E402
 from handctl.sim.params import NODE_TICK_S, parse_sim  # noqa: E402
 from handctl.sim.plant import Plant  # noqa: E402
 
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "speed of the simulated hand: the plant alone and the whole peer in lockstep"
+
 PLANT_TARGET = 20.0
 BUS_TARGET = 5.0
 

@@ -51,7 +51,11 @@ from handctl.recording.reader import iter_decoded, open_recording  # noqa: E402
 from handctl.session import RunRequest, run_recipe  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "tools"))
-from bench_loop import RunningSince, hold_recipe, host_figures  # noqa: E402
+from bench_loop import RunningSince, host_figures  # noqa: E402
+from hold_recipe import hold_recipe  # noqa: E402
+
+#: One line of ``bench.py --help`` (read from the source there, without importing this).
+SUMMARY = "the real-time loop with the simulated hand and recording, for minutes on end"
 
 MISSED_TARGET = 0.001
 RSS_TARGET_MB_PER_HOUR = 5.0

@@ -1,6 +1,6 @@
 """The CPU cost of the control tick, stage by stage, for whichever handctl is on the path.
 
-A lockstep run of the loop benchmark's hold recipe (``bench_loop.hold_recipe``) on the
+A lockstep run of the benchmarks' hold recipe (``hold_recipe.hold_recipe``) on the
 simulated hand, over the unix bus (the transport of a real-time run) or the virtual bus (that
 of a lockstep run): deterministic work, the same every time, so two implementations can be laid
 side by side in one benchmark run (``bench_loop.tick_cost``). It prints one JSON object: per
@@ -9,7 +9,8 @@ the ticks with the hand running.
 
 It uses only what every handctl since the stage accounting has (hand and recipe loading,
 the driver, the runtime, the simulated hand, the bus), so that ``PYTHONPATH`` can point it at
-an older tree (``python tools/bench.py loop --baseline REV``).
+an older tree (``python tools/bench.py loop --baseline REV``); of the tools it imports only
+``hold_recipe.py``, whose handctl imports are as old (``bench_loop``'s are not).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     from handctl.sim.hand import SimulatedHand
 
     sys.path.insert(0, str(HERE))
-    from bench_loop import hold_recipe
+    from hold_recipe import hold_recipe
 
     hand = load_hand(args.hand)
     if args.transport == "unix":

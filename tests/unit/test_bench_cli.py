@@ -1,0 +1,74 @@
+"""``tools/bench.py``: ``--help`` lists the benchmarks (it was taken for a benchmark's name
+and exited 2), and a benchmark whose figures say what failed exits 1, saying it on stderr,
+rather than 0 with the error inside the JSON."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import types
+
+import pytest
+
+from ..conftest import ROOT, load_tool
+
+
+@pytest.mark.parametrize("flag", ["--help", "-h"])
+def test_help_lists_every_benchmark_with_its_line(
+    flag: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bench = load_tool("bench")
+    assert bench.main([flag]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: bench.py NAME")
+    names = bench.available()
+    assert "loop" in names and "recording" in names
+    for name in names:
+        summary = bench.summary(name)
+        assert summary and "\n" not in summary, f"bench_{name}.py has no SUMMARY line"
+        assert any(line.split() == [name, *summary.split()] for line in out.splitlines())
+
+
+def test_help_from_the_command_line() -> None:
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "bench.py"), "--help"],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "benchmarks:" in done.stdout and done.stderr == ""
+
+
+def test_no_name_still_exits_2_and_points_at_help(capsys: pytest.CaptureFixture[str]) -> None:
+    assert load_tool("bench").main([]) == 2
+    assert "bench.py --help lists them" in capsys.readouterr().err
+
+
+def _fake(figures: dict[str, object]) -> types.ModuleType:
+    module = types.ModuleType("bench_fake", "A benchmark of the test's.")
+    module.add_arguments = lambda parser: None  # type: ignore[attr-defined]
+    module.run = lambda args: figures  # type: ignore[attr-defined]
+    return module
+
+
+@pytest.mark.parametrize(
+    ("figures", "code"),
+    [({"x": 1}, 0), ({"x": 1, "failed": ["tick_cost.unix: exit 1"]}, 1)],
+)
+def test_figures_that_hold_failures_exit_1_and_say_each(
+    figures: dict[str, object],
+    code: int,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    bench = load_tool("bench")
+    monkeypatch.setattr(sys, "path", list(sys.path))  # main puts the tools on it
+    monkeypatch.setattr(bench, "available", lambda: ["fake"])
+    monkeypatch.setitem(sys.modules, "bench_fake", _fake(figures))
+    assert bench.main(["fake", "--json"]) == code
+    out, err = capsys.readouterr()
+    assert json.loads(out) == figures
+    assert err == ("bench.py fake: failed: tick_cost.unix: exit 1\n" if code else "")
