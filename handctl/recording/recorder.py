@@ -1357,5 +1357,9 @@ class Recorder:
         if exc is None:
             self.close()
             return
-        with contextlib.suppress(HandctlError):  # the exception in flight says more
+        try:
             self.close()
+        except HandctlError as error:
+            # the exception in flight (a bus error, a fault) says more and keeps its exit
+            # code, but a log lost with it is said too: it was said of no other exit
+            _say(f"handctl: and the run's log {self.path} is lost or may be incomplete: {error}")

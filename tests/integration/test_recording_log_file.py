@@ -297,3 +297,18 @@ def test_a_run_whose_log_is_removed_during_it_says_so_in_its_exit(tmp_path: Path
     else:
         assert last.startswith("handctl: and the run's log"), shown
     assert f"{log} is lost or may be incomplete" in last
+
+
+def test_a_log_lost_under_an_exception_in_flight_is_said_too(
+    hand: HandConfig, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A run that ends on an exception (a bus error, exit 4) keeps that exception and its
+    code; the log's own failure to close was swallowed without a word."""
+    path = tmp_path / "run.mcap"
+    recorder = _recorder(hand, path)
+    recorder.process.kill()
+    recorder.process.wait()
+    with pytest.raises(RuntimeError, match="the bus went away"), recorder:
+        raise RuntimeError("the bus went away")
+    err = capsys.readouterr().err
+    assert f"handctl: and the run's log {path} is lost or may be incomplete: " in err
