@@ -170,14 +170,15 @@ class UnixDatagramBus(can.BusABC):
             "rx_malformed": self.rx_malformed,
         }
 
-    def _refresh_peers(self) -> None:
-        """Re-list the participants at most every 50 ms: joining is rare, sending is not.
+    def _refresh_peers(self, now_please: bool = False) -> None:
+        """Re-list the participants at most every 50 ms (unless ``now_please``): joining is
+        rare, sending is not.
 
         A listing costs tens of µs, so it is skipped while the directory is as it was at the
         last one (its modification time the same, and older than ``_SETTLED_NS``: a time
         stamp that coarse file systems may still share with a later change)."""
         now = time.monotonic()
-        if now - self._peers_at < 0.05:
+        if not now_please and now - self._peers_at < 0.05:
             return
         self._peers_at = now
         try:
@@ -211,8 +212,15 @@ class UnixDatagramBus(can.BusABC):
         run's start-up ticks, which only listen), not in the first send: the first listing
         of the directory and the connects took 0.5 ms of CPU there, in the nodes' enable,
         and delayed the first running tick (docs/timing.md). Later calls cost what the
-        send's own look does (``_refresh_peers``: at most every 50 ms, a ``stat``)."""
-        self._refresh_peers()
+        send's own look does (``_refresh_peers``: a ``stat``).
+
+        It looks every time, not at most every 50 ms as a send does: a run's start-up ends
+        at the tick it first hears every node, and it sends the nodes' enable next. A
+        simulated hand that had bound its socket within the 50 ms since the last look was
+        not a receiver yet, its enable went to nobody, and the run stopped on STARTUP
+        ("nodes not ENABLED in time") while the torque frames after it arrived: half the
+        real-time runs on a loaded host."""
+        self._refresh_peers(now_please=True)
         for peer in self._peers:
             if peer not in self._links:
                 with _suppress_oserror():  # not there yet, or gone: a send tries again

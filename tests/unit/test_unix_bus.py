@@ -360,7 +360,8 @@ def test_a_bus_readied_before_its_first_send_is_connected_to_each_receiver(
     tx.prepare_send()
     assert sorted(unix._links) == sorted(unix._peers) and len(unix._peers) == 1
     second = open_unix()
-    unix._peers_at = 0.0  # the next look is due (they are 50 ms apart)
+    # at once, not 50 ms later as a send would look: a run sends the nodes' enable at the
+    # tick it first hears them, and a hand that joined since the last look missed it
     tx.prepare_send()
     assert len(unix._links) == 2
     assert tx.send(0x101, b"\x01") and tx.flush()
