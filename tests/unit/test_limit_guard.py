@@ -227,10 +227,19 @@ def test_a_side_with_a_spring_band_of_its_own_is_pushed_back_more_softly(
             "limit_guard_spring_bands",
             None,
         ),
-        # a joint the hand does not have
+        # a joint the hand does not have, beside one it has
+        (
+            {
+                "limit_guard_band": 0.15,
+                "limit_guard_spring_bands": {"f1_j3": {"lower": 0.25}, "f4_j3": {"lower": 0.25}},
+            },
+            "limit_guard_spring_bands.f4_j3",
+            None,
+        ),
+        # no joint the hand has: written for another hand (the message names the hand's)
         (
             {"limit_guard_band": 0.15, "limit_guard_spring_bands": {"f4_j3": {"lower": 0.25}}},
-            "limit_guard_spring_bands.f4_j3",
+            "limit_guard_spring_bands",
             None,
         ),
         # a side a joint does not have

@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 import yaml
 
-from handctl.config import HandConfig
+from handctl.config import HandConfig, load_hand
 from handctl.errors import ConfigError
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.runner import RecipeRunner, RunStatus
 from handctl.online.recipes.schema import RecipeObject, estimate_names
+
+from ..conftest import ROOT
 
 ZERO = np.zeros(9)
 
@@ -211,3 +213,15 @@ def test_runner_abort_condition_and_estimates(tmp_path: Path, hand: HandConfig) 
     est[0] = 0.8
     run(runner, 0.01, est=est)
     assert runner.phase_name == "b"
+
+
+def test_a_recipe_for_another_hand_says_so_at_its_first_joint_keyed_mapping(
+    hand: HandConfig,
+) -> None:
+    """The swap recipe on the planar hand met its spring bands first: 'unknown key', with
+    no word of --hand; a per-joint damping 'did you mean left_j1?'."""
+    planar = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    with pytest.raises(ConfigError) as info:
+        load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", planar)
+    assert info.value.key == "limit_guard_spring_bands"
+    assert "written for another hand? give its config with --hand" in str(info.value)

@@ -222,6 +222,7 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
         return None
     band = doc.number("limit_guard_band", min=GUARD_BAND_MIN, max=GUARD_BAND_MAX, unit="rad")
     springs: list[SpringBand] = []
+    refuse_another_hands_joints(doc, spring_key, hand)
     bands = doc.mapping(spring_key, default={})
     joints = {j.name: j for j in hand.joints}
     bands.expect(joints)
@@ -565,6 +566,7 @@ def _per_joint(
     the config's order), each within ``[low, high]``; ``default`` when it is not set."""
     if not isinstance(doc.raw(key, default), dict):
         return doc.number(key, default=default, min=low, max=high, unit=unit)
+    _refuse_other_joints(doc, key, joint_names)
     sub = doc.mapping(key)
     sub.expect(joint_names)
     values = tuple(sub.number(n, min=low, max=high, unit=unit) for n in joint_names)
@@ -707,13 +709,19 @@ def refuse_another_hands_joints(doc: Doc, key: str, hand: HandConfig) -> None:
     """A ``ConfigError`` when ``key`` is a mapping by joint name of which not one is a joint
     of ``hand``: the file was written for another hand, which a "missing key" and a guessed
     misspelling of the hand's first joint did not say."""
+    _refuse_other_joints(doc, key, hand.joint_names, f"the hand {hand.name}", f": {hand.source}")
+
+
+def _refuse_other_joints(
+    doc: Doc, key: str, names: Sequence[str], whose: str = "the hand", where: str = ""
+) -> None:
+    """``refuse_another_hands_joints`` for a mapping keyed by ``names``."""
     raw = doc.raw(key, None)
-    names = hand.joint_names
     if isinstance(raw, dict) and raw and not set(raw) & set(names):
         doc.fail(
             key,
-            f"N·m for the joints of the hand {hand.name} ({_some(names)}: {hand.source}; "
-            "written for another hand? give its config with --hand)",
+            f"keys that are joints of {whose} ({_some(list(names))}{where}; written for "
+            "another hand? give its config with --hand)",
             f"joints {_some([str(k) for k in raw])}",
         )
 
