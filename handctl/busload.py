@@ -26,7 +26,12 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from handctl.protocol import Layout, Protocol, slowest_loop_rate_hz
+from handctl.protocol import (
+    Layout,
+    Protocol,
+    most_misses_before_watchdog,
+    slowest_loop_rate_hz,
+)
 
 if TYPE_CHECKING:  # the hand config's protocol is generated with the DLC sizes below
     from handctl.config import BusConfig, HandConfig
@@ -224,8 +229,15 @@ def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
         return [f"CAN-FD 1/5 Mbit/s would carry {fd.load * 100:.1f} %"]
     budget = hand_budget(hand, protocol)
     highest = budget.highest_loop_rate_hz()
+    rate_hint = f"the highest loop rate that fits is {highest:.0f} Hz"
+    if highest < math.inf and most_misses_before_watchdog(math.floor(highest)) < (
+        hand.safety.max_consecutive_misses
+    ):
+        # the hint must lead to a config check takes: a slower loop allows fewer misses
+        most = most_misses_before_watchdog(math.floor(highest))
+        rate_hint += f" (with safety.max_consecutive_misses at most {most})"
     hints = (
-        [f"the highest loop rate that fits is {highest:.0f} Hz"]
+        [rate_hint]
         if highest >= slowest_loop_rate_hz()
         # a slower loop would let the nodes' command watchdog trip between two ticks
         else [f"no loop rate of {slowest_loop_rate_hz():.0f} Hz or more fits on one bus"]

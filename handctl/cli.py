@@ -129,7 +129,10 @@ def _output_path(text: str) -> Path:
 
 def _output_dir(text: str) -> Path:
     """An option's directory to write files in: a trailing separator is how a directory is
-    often named, unlike ``_output_path``'s files."""
+    often named, unlike ``_output_path``'s files. An empty name was the current directory
+    (``Path('')``), where the files were written unasked."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected a directory name, found '' (nothing)")
     return Path(text)
 
 
@@ -1589,8 +1592,11 @@ def _port(text: str) -> int:
 
 #: A negative number as a value, in argparse's sense: an argument that looks like one is
 #: a value, not an option. argparse's own (Python 3.11) knows no exponent, so
-#: ``--torque -1e-3`` was "expected one argument" and had to be written ``--torque=-1e-3``.
-NEGATIVE_NUMBER = re.compile(r"^-(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?$")
+#: ``--torque -1e-3`` was "expected one argument" and had to be written ``--torque=-1e-3``;
+#: ``--k -inf 0.1`` likewise, where the option's own check says what a value must be.
+NEGATIVE_NUMBER = re.compile(
+    r"^-(?:(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|(?i:inf|infinity|nan))$"
+)
 
 
 class _Parser(argparse.ArgumentParser):

@@ -337,6 +337,8 @@ def test_plot_directory_is_checked_before_the_plan_and_may_end_in_a_separator(
     done = plan_command(*args, "--plot", str(a_file / "plots"))
     assert done.returncode == 2 and "--plot: expected a directory" in done.stderr
     assert "planning on" not in done.stderr and not out.exists()  # before any work
+    done = plan_command(*args, "--plot", "")  # was the current directory
+    assert done.returncode == 2 and "expected a directory name, found ''" in done.stderr
     done = plan_command(*args, "--plot", str(tmp_path / "new" / "plots") + "/")
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "new" / "plots" / "04_manipulate.png").stat().st_size > 0

@@ -147,3 +147,19 @@ def test_feedback_is_budgeted_at_the_nodes_tick_whatever_the_loop_rate(tmp_path:
     result = handctl("check", str(hand.source))
     assert result.returncode == 2
     assert "no loop rate of 250 Hz or more fits on one bus" in result.stderr
+
+
+def test_the_highest_loop_rate_hint_names_the_misses_that_rate_allows(tmp_path: Path) -> None:
+    """Six fingers of two joints fit at 333 Hz at most: a loop that slow may allow only one
+    missed tick before the nodes' watchdog (``most_misses_before_watchdog``), and the hint
+    that led to a config check then refused for its default three says so."""
+    path = shaped_hand(tmp_path, [2] * 6)
+    hand = load_hand(path)
+    highest = hand_budget(hand, protocol_for(hand)).highest_loop_rate_hz()
+    assert 250 < highest < 375
+    result = handctl("check", str(path))
+    assert result.returncode == 2
+    assert (
+        f"the highest loop rate that fits is {highest:.0f} Hz (with "
+        "safety.max_consecutive_misses at most 1)"
+    ) in result.stderr

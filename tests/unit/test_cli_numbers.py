@@ -11,6 +11,8 @@ import pytest
 from handctl import cli
 from handctl.errors import shown
 
+from ..conftest import ROOT
+
 #: Every integer option of every command: the command, what else it requires, the option,
 #: a value it takes.
 INTEGER_OPTIONS = [
@@ -158,3 +160,14 @@ def test_a_number_option_refuses_digits_of_other_scripts(
     assert done.value.code == cli.EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert f"argument --torque: expected a number (e.g. 0.5, -1e-3), found {shown(text)}" in err
+
+
+def test_a_negative_infinity_reaches_the_options_own_check(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--k -inf 0.1`` was argparse's "expected 2 arguments": the value is the option's to
+    refuse, as a finite number is its to take."""
+    scenario = str(ROOT / "config" / "analysis" / "planar_2f2j.yaml")
+    args = ["analyze", "torque-set", scenario, "--k", "-inf", "0.1"]
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    assert "--k: expected two finite ratios" in capsys.readouterr().err
