@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -587,15 +588,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
             assert snap is not None
             snaps[i] = snap
         survivors = [i for i, o in zip(alive, outcomes, strict=True) if not o.failed and o.in_hand]
-        say(
-            f"  chosen from {origin}: "
-            + ", ".join(
-                f"{_exit_word(o)} ({o.true_turn_deg:+.0f} deg, peak {o.peak_rate_deg_s:.0f} deg/s)"
-                if spec.kind == "turn"
-                else f"{_exit_word(o)} (up {round(o.end_height * 1e3) + 0:d} mm)"
-                for o in outcomes
-            )
-        )
+        say(f"  chosen from {origin}: {_outcomes_text(spec, outcomes)}")
         provenance: dict[str, Any] = {
             "kind": spec.kind,
             "wanted": _wanted(spec),
@@ -694,6 +687,35 @@ def _job_left_undone(
         f"the objects ended {heights} mm up (its job: at least {spec.min_height * 1e3:.0f} mm, "
         f"in the hand), exits: {'; '.join(exits)}"
     )
+
+
+#: models up to which the plan's progress says each one's outcome; more are counted
+OUTCOMES_LISTED = 8
+
+
+def _outcomes_text(spec: TemplatePhase, outcomes: Sequence[PhaseOutcome]) -> str:
+    """How the chosen torque did on the models, for the plan's progress: each model's exit
+    and turn or height, or, on more than ``OUTCOMES_LISTED`` models, the exits counted and
+    the range (a line per model of 48 was 2,000 characters)."""
+    if len(outcomes) <= OUTCOMES_LISTED:
+        return ", ".join(
+            f"{_exit_word(o)} ({o.true_turn_deg:+.0f} deg, peak {o.peak_rate_deg_s:.0f} deg/s)"
+            if spec.kind == "turn"
+            else f"{_exit_word(o)} (up {round(o.end_height * 1e3) + 0:d} mm)"
+            for o in outcomes
+        )
+    counted = Counter(_exit_word(o) for o in outcomes)
+    exits = ", ".join(f"{word} {n}" for word, n in counted.most_common())
+    if spec.kind == "turn":
+        turns = [o.true_turn_deg for o in outcomes]
+        spread = (
+            f"turn {min(turns):+.0f} to {max(turns):+.0f} deg, peak at most "
+            f"{max(o.peak_rate_deg_s for o in outcomes):.0f} deg/s"
+        )
+    else:
+        heights = [round(o.end_height * 1e3) + 0 for o in outcomes]
+        spread = f"up {min(heights):d} to {max(heights):d} mm"
+    return f"{len(outcomes)} models: {exits}; {spread}"
 
 
 def _exit_word(o: PhaseOutcome) -> str:

@@ -116,3 +116,23 @@ def test_a_turn_that_snaps_over_on_a_model_has_failed_there() -> None:
     assert candidate([outcome(exit_text, -45.0, tumble)]).failures == 0
     hold = Candidate((0.0,), 1.0, [outcome("timeout", 0.0, 900.0, 3.0)], "", [1.0])
     assert hold.failures == 0
+
+
+def test_the_plans_progress_lists_a_few_models_and_counts_many() -> None:
+    """Each model's outcome, whole (a failure's reason was cut at 28 characters), up to
+    ``OUTCOMES_LISTED``; beyond, the exits counted and the range (48 models made a line of
+    2,000 characters)."""
+    from handctl.planning.compile import OUTCOMES_LISTED, _outcomes_text
+    from handctl.planning.template import TemplatePhase
+
+    turn = TemplatePhase("m", "turn", 0.3, 3.0, None, turn=math.radians(-45.0))
+    few = [outcome("fail: an object left the hand", -10.0, 50.0), outcome("timeout", -30.0, 90.0)]
+    assert _outcomes_text(turn, few) == (
+        "fail: an object left the hand (-10 deg, peak 50 deg/s), timeout (-30 deg, peak 90 deg/s)"
+    )
+    many = [outcome("estimate.x < -0.7 for 0.02", -44.0 - k, 100.0 + k) for k in range(12)]
+    many[0] = outcome("timeout", -20.0, 80.0)
+    assert len(many) > OUTCOMES_LISTED
+    assert _outcomes_text(turn, many) == (
+        "12 models: exit 11, timeout 1; turn -55 to -20 deg, peak at most 111 deg/s"
+    )
