@@ -101,13 +101,19 @@ def test_four_by_four_cylinder_rests_then_is_closed_on_by_every_finger(
     gains = [0.15, 0.10, 0.06, 0.04]
     plant.set_torque_commands([s * gains[k % 4] for k, s in enumerate(_flexion(four))])
     touching: set[str] = set()
+    met: set[tuple[str, str]] = set()
     for _ in range(1500):
         plant.step()
+        met |= set(plant.contact_pairs())
         touching |= {
             a if b == start.name else b for a, b in plant.contact_pairs() if start.name in (a, b)
         }
     fingers = {f.name for f in four.fingers if touching & {j.name for j in f.joints}}
     assert fingers == {f.name for f in four.fingers}
+    # the fingers collide, and the two sides, interleaved along z, cross without touching
+    assert params.between_fingers
+    owner = {j.name: f.name for f in four.fingers for j in f.joints}
+    assert not any(a in owner and b in owner for a, b in met)
     assert draw_scene(plant, tmp_path / "four.png").stat().st_size > 0
 
 
