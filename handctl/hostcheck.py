@@ -703,6 +703,7 @@ def timing_check(
         lock_memory=realtime,
     ) as probe:
         measured = probe.stop()
+    _check_measured_whole(measured, seconds)
     records = [(measured, judge(measured, deadlines))]
     records += [(r, judge(r, deadlines)) for r in injected]
     verdict = records[0][1]
@@ -713,6 +714,19 @@ def timing_check(
     return CheckReport(
         verdict, tuple(records), facts, tuple(advice(facts, measured, realtime, rivals)), realtime
     )
+
+
+def _check_measured_whole(measured: ProbeRecord, seconds: float) -> None:
+    """A ``HandctlError`` when the probe measured less than asked: a SIGTERM or SIGINT from
+    outside ends it early and cleanly, as handctl's own stop does, and a check of 2 s of the
+    20 asked gave its verdict as if whole. The loop stops at its first wake-up past its
+    length, so a whole one is within a period of it; a hundredth (at least 50 ms) is slack."""
+    got = (measured.end_ns - measured.start_ns) / 1e9
+    if got < seconds - max(0.05, 0.01 * seconds):
+        raise HandctlError(
+            f"the timing probe was stopped after {got:.3g} s of the {seconds:g} s asked, by a "
+            "signal handctl did not send: no verdict on a measurement cut short"
+        )
 
 
 def rival_verdict(rivals: Sequence[Rival], figures: dict[str, Any]) -> Verdict:

@@ -4,6 +4,7 @@ than the simulated hand refused before it opens the bus."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -367,3 +368,44 @@ def test_the_watcher_sees_a_real_time_rival_run_on_the_loops_cpu() -> None:
     # Another real-time task of the machine may have run in the same look as well.
     assert label in seen.active(ran[0][0], ran[0][1])
     assert rival.pid not in unseen.rivals
+
+
+def _children(pid: int) -> list[int]:
+    """The processes ``pid`` started (Linux: /proc/PID/task/*/children)."""
+    found: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            found += [int(c) for c in (task / "children").read_text().split()]
+    return found
+
+
+def test_a_check_whose_probe_is_stopped_from_outside_gives_no_verdict() -> None:
+    """A SIGTERM to the bare loop from outside ends it early and cleanly, as handctl's own
+    stop does: a check of 2 s of the 30 asked gave its verdict as if whole."""
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "check", "--timing", "--seconds", "30", "--no-rt"],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": path},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        probes: list[int] = []
+        while not probes and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+            probes = _children(proc.pid)
+        assert probes, "the check started no probe"
+        time.sleep(1.0)  # let it measure a little, as a user's stray kill would
+        for pid in probes:
+            os.kill(pid, signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, out + err
+    assert "the timing probe was stopped after" in err and "of the 30 s asked" in err
+    assert not any(word in out for word in ("PASS", "MARGINAL", "FAIL"))  # no verdict
