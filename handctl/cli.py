@@ -390,6 +390,14 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     hand = _load_hand(args.hand, "--hand", args.dbc)
     _refuse_what_check_refuses(hand, args.hand)
     recipe = load_recipe(args.recipe, hand)
+    for name, undone in recipe.plan_failed:
+        # run as asked (the engineer may mean to try it), but not as if it were a plan's
+        print(
+            f"handctl: warning: {args.recipe} is the recipe of a failed plan, written to be "
+            f"looked at: its phase '{name}' left this undone on every model it was planned "
+            f"on: {undone}",
+            file=sys.stderr,
+        )
     if args.live is not None and args.log is None:
         raise ConfigError(
             "--live",

@@ -145,6 +145,12 @@ class PlanResult:
                     for m in self.models
                 ],
                 **(self.base.describe() if self.base is not None else {}),
+                # a failed plan's recipe says so itself: `handctl run` warns of it
+                **(
+                    {"failed_phases": {p.phase.name: p.undone for p in failed}}
+                    if (failed := [p for p in self.phases if p.undone is not None])
+                    else {}
+                ),
             },
             "objects": [{"name": o.name, "radius": o.radius} for o in t.objects],
             "end_ramp_s": t.end_ramp_s,

@@ -10,7 +10,7 @@ from typing import Any
 
 import yaml
 
-from handctl.config import HandConfig
+from handctl.config import HandConfig, load_hand
 from handctl.online.recipes.loader import load_recipe
 from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
 from handctl.planning.template import load_template
@@ -296,6 +296,7 @@ def test_a_planned_schedule_entry_is_searched_on_models_of_its_sizes(
 
 PLANAR = ROOT / "config" / "hands" / "planar_2f2j.yaml"
 PLANAR_TEMPLATE = ROOT / "config" / "recipes" / "planar_lift_turn.template.yaml"
+PLANAR_RECIPE = ROOT / "config" / "recipes" / "planar_lift_turn.yaml"
 
 
 def _hold_only(tmp_path: Path) -> Path:
@@ -320,6 +321,12 @@ def test_a_plan_whose_phase_does_its_job_on_no_model_fails(tmp_path: Path) -> No
     assert "on every one of the 2 model(s)" in done.stderr
     assert "2/2 models hold, 0/2 did its job" in done.stdout
     assert out.exists() and "not to be run" in done.stderr
+    # the recipe says so itself, for the run that warns of it; planned recipes that did
+    # their job say nothing
+    planar = load_hand(PLANAR)
+    failed = load_recipe(out, planar).plan_failed
+    assert [name for name, _ in failed] == ["hold"] and "0, 0 mm up" in failed[0][1]
+    assert load_recipe(PLANAR_RECIPE, planar).plan_failed == ()
     quick = plan_command(
         str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1", "--quick"
     )

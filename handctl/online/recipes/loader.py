@@ -118,11 +118,12 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
     settings = parse_limit_guard(doc, hand)
     guard = settings.guard(hand) if settings is not None else None
     min_turn = parse_min_total_turn(doc, bool(pairs))
-    planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe: read, not used
+    planned_from = doc.raw("planned_from", {})  # provenance of a planned recipe
     if not isinstance(planned_from, dict):
         doc.fail(
             "planned_from", "a mapping (what handctl plan planned the recipe from)", planned_from
         )
+    plan_failed = _plan_failed(doc)
     phases = tuple(
         _parse_phase(p, hand, estimates, objects)
         for p in doc.mappings("phases", min_len=1, max_len=MAX_PHASES)
@@ -185,7 +186,19 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
         min_turn,
         pairs,
         grasp_model,
+        plan_failed,
     )
+
+
+def _plan_failed(doc: Doc) -> tuple[tuple[str, str], ...]:
+    """``planned_from.failed_phases`` (``phase: what it left undone``): what a plan that
+    failed said of its recipe, which it wrote to be looked at. The rest of ``planned_from``
+    is provenance, read by people, not by the runner."""
+    planned = doc.mapping("planned_from", default={})
+    if not planned.has("failed_phases"):
+        return ()
+    failed = planned.mapping("failed_phases")
+    return tuple((str(name), failed.text(str(name))) for name in list(failed.keys()))
 
 
 def parse_min_total_turn(doc: Doc, has_pair: bool) -> float:

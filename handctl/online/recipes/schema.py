@@ -386,6 +386,9 @@ class Recipe:
     pairs: tuple[Pair, ...] = ()
     #: what a phase's ``reanalyse`` needs beyond what the hand measures; None: no phase does
     grasp_model: GraspModel | None = None
+    #: the phases a failed plan left undone on every model, as ``phase: what``
+    #: (``planned_from.failed_phases``); a recipe written to be looked at, not run
+    plan_failed: tuple[tuple[str, str], ...] = ()
 
     @property
     def estimates(self) -> tuple[str, ...]:
