@@ -1522,6 +1522,14 @@ def _monitor_log(
         Console().print(table(final, f"{log}: {view.frames} frames"))
     else:
         emit(final)
+    if not recording.complete:
+        # as replay says it: a view of part of a run read as the whole of one
+        state = "DAMAGED" if recording.damaged else "TRUNCATED"
+        print(
+            f"handctl: warning: {log} is {state} ({recording.problem}): the frames shown are "
+            "those that could be read",
+            file=sys.stderr,
+        )
     return EXIT_OK
 
 

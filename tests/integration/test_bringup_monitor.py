@@ -146,6 +146,14 @@ def test_it_reads_the_frames_of_a_recording(
     command = messages["TorqueCommand_1"]
     assert command["rejects"] == {} and command["values"]["Torque1"] == 0.0  # ends at zero
     assert messages["Feedback_3"]["frames"] > 100 and messages["NodeCommand_2"]["frames"] >= 2
+    assert "warning" not in capsys.readouterr().err
+    # cut short (a crash mid-run): the frames up to there, and said, as replay says it
+    with log.open("r+b") as handle:
+        handle.truncate(log.stat().st_size * 2 // 3)
+    assert cli.main(["monitor", "--log", str(log)]) == cli.EXIT_OK
+    captured = capsys.readouterr()
+    assert _by_name(json.loads(captured.out.splitlines()[-1]))["Feedback_3"]["frames"] > 0
+    assert f"handctl: warning: {log} is TRUNCATED (" in captured.err
 
 
 def test_a_recording_of_another_hand_is_decoded_with_its_own_protocol(
