@@ -230,11 +230,9 @@ def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
     budget = hand_budget(hand, protocol)
     highest = budget.highest_loop_rate_hz()
     rate_hint = f"the highest loop rate that fits is {highest:.0f} Hz"
-    if highest < math.inf and most_misses_before_watchdog(math.floor(highest)) < (
-        hand.safety.max_consecutive_misses
-    ):
+    most = most_misses_before_watchdog(math.floor(highest)) if highest < math.inf else 0
+    if highest < math.inf and most < hand.safety.max_consecutive_misses:
         # the hint must lead to a config check takes: a slower loop allows fewer misses
-        most = most_misses_before_watchdog(math.floor(highest))
         rate_hint += f" (with safety.max_consecutive_misses at most {most})"
     hints = (
         [rate_hint]

@@ -680,14 +680,14 @@ def _job_left_undone(
     if done is None or not outcomes or any(done):
         return None
     if spec.kind == "turn":
-        turns = ", ".join(f"{o.true_turn_deg:+.1f}" for o in outcomes)
+        turns = _figures([o.true_turn_deg for o in outcomes], "{:+.1f}")
         tumble = TUMBLE_FAIL_FACTOR * template.search.max_turn_rate_deg_s
         return (
             f"the pair turned {turns} deg of the {math.degrees(spec.turn):+.0f} deg wanted "
             f"(its job: at least {MIN_TURN_FRACTION:.0%} of it, no tumble over "
             f"{tumble:.0f} deg/s, nothing dropped, no soft limit)"
         )
-    heights = ", ".join(f"{round(o.end_height * 1e3) + 0:d}" for o in outcomes)
+    heights = _figures([round(o.end_height * 1e3) + 0 for o in outcomes], "{:d}")
     exits = sorted({o.exit for o in outcomes})
     return (
         f"the objects ended {heights} mm up (its job: at least {spec.min_height * 1e3:.0f} mm, "
@@ -697,6 +697,14 @@ def _job_left_undone(
 
 #: models up to which the plan's progress says each one's outcome; more are counted
 OUTCOMES_LISTED = 8
+
+
+def _figures(values: Sequence[float], form: str) -> str:
+    """Each model's figure, or on more than ``OUTCOMES_LISTED`` models their range: a
+    message (and a failed recipe's ``failed_phases``) of 48 figures says no more than two."""
+    if len(values) <= OUTCOMES_LISTED:
+        return ", ".join(form.format(v) for v in values)
+    return f"{form.format(min(values))} to {form.format(max(values))}"
 
 
 def _outcomes_text(spec: TemplatePhase, outcomes: Sequence[PhaseOutcome]) -> str:
