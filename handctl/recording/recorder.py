@@ -1361,5 +1361,10 @@ class Recorder:
             self.close()
         except HandctlError as error:
             # the exception in flight (a bus error, a fault) says more and keeps its exit
-            # code, but a log lost with it is said too: it was said of no other exit
-            _say(f"handctl: and the run's log {self.path} is lost or may be incomplete: {error}")
+            # code, but a log lost with it is said too: it was said of no other exit. Not
+            # when the writer never started: the exception in flight is that, and says it
+            if self._ready:
+                _say(
+                    f"handctl: and the run's log {self.path} is lost or may be incomplete: "
+                    f"{error}"
+                )

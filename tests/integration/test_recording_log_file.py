@@ -312,3 +312,17 @@ def test_a_log_lost_under_an_exception_in_flight_is_said_too(
         raise RuntimeError("the bus went away")
     err = capsys.readouterr().err
     assert f"handctl: and the run's log {path} is lost or may be incomplete: " in err
+
+
+def test_a_writer_that_never_started_is_said_once(
+    hand: HandConfig, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The exception in flight is the writer's not starting: the log's own close failure was
+    said before it too, as if the run had lost a log it never began."""
+    path = tmp_path / "run.mcap"
+    recorder = Recorder(path, hand, start_metadata(hand, None, ("test",)))
+    recorder.process.kill()
+    recorder.process.wait()
+    with pytest.raises(HandctlError, match="the recording writer did not start"), recorder:
+        recorder.wait_ready()
+    assert "is lost or may be incomplete" not in capsys.readouterr().err
