@@ -1365,6 +1365,5 @@ class Recorder:
             # when the writer never started: the exception in flight is that, and says it
             if self._ready:
                 _say(
-                    f"handctl: and the run's log {self.path} is lost or may be incomplete: "
-                    f"{error}"
+                    f"handctl: and the run's log {self.path} is lost or may be incomplete: {error}"
                 )
