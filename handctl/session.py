@@ -193,9 +193,10 @@ def run_recipe(
     is_sim = spec.interface == "sim"
     lockstep = _lockstep(req, is_sim)
     if is_sim and req.recipe.objects:
-        from handctl.experiment.merit import check_objects_in_sim
+        from handctl.sim.params import check_scene_names
 
-        check_objects_in_sim(req.recipe, req.hand)
+        # the experiment is measured on the simulated objects of the recipe's names
+        check_scene_names(req.recipe.source, [o.name for o in req.recipe.objects], req.hand)
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
     if not is_sim:

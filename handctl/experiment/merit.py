@@ -52,11 +52,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from handctl.config import HandConfig
 from handctl.convention import LIFT_HEIGHT, POSE_EVERY_TICKS, RATE_WINDOW_S, phase_turns_deg
 from handctl.handshape import hand_span
 from handctl.online.recipes.schema import Pair, Recipe
-from handctl.sim.params import check_scene_names
 
 HOLD_S = 2.0  # s
 DROP_HEIGHT = 0.005  # m
@@ -70,12 +68,6 @@ class _Pose(Protocol):
     def y(self) -> float: ...
     @property
     def angle(self) -> float: ...
-
-
-def check_objects_in_sim(recipe: Recipe, hand: HandConfig) -> None:
-    """Refuse, before the run, a recipe whose objects the simulated hand does not have: the
-    experiment is measured on the simulated objects of the same names."""
-    check_scene_names(recipe.source, [o.name for o in recipe.objects], hand)
 
 
 @dataclass
@@ -382,7 +374,7 @@ class Tracker:
 
 def track(runtime: Any, sim_hand: Any) -> Tracker:
     """A tracker of ``runtime`` on the lockstep ``sim_hand``, hooked into its ticks. The
-    recipe's objects are the simulated ones of the same names (``check_objects_in_sim``)."""
+    recipe's objects are the simulated ones of the same names (``sim.params.check_scene_names``)."""
     hand = runtime.hand
     estimator = runtime.estimator
     recipe: Recipe = runtime.recipe

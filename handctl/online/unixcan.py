@@ -170,15 +170,15 @@ class UnixDatagramBus(can.BusABC):
             "rx_malformed": self.rx_malformed,
         }
 
-    def _refresh_peers(self, now_please: bool = False) -> None:
-        """Re-list the participants at most every 50 ms (unless ``now_please``): joining is
+    def _refresh_peers(self, force: bool = False) -> None:
+        """Re-list the participants at most every 50 ms (unless ``force``): joining is
         rare, sending is not.
 
         A listing costs tens of µs, so it is skipped while the directory is as it was at the
         last one (its modification time the same, and older than ``_SETTLED_NS``: a time
         stamp that coarse file systems may still share with a later change)."""
         now = time.monotonic()
-        if not now_please and now - self._peers_at < 0.05:
+        if not force and now - self._peers_at < 0.05:
             return
         self._peers_at = now
         try:
@@ -220,7 +220,7 @@ class UnixDatagramBus(can.BusABC):
         not a receiver yet, its enable went to nobody, and the run stopped on STARTUP
         ("nodes not ENABLED in time") while the torque frames after it arrived: half the
         real-time runs on a loaded host."""
-        self._refresh_peers(now_please=True)
+        self._refresh_peers(force=True)
         for peer in self._peers:
             if peer not in self._links:
                 with _suppress_oserror():  # not there yet, or gone: a send tries again

@@ -627,18 +627,9 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         if spec.kind == "turn":
             provenance["models"]["true_turn_deg"] = [round(o.true_turn_deg, 1) for o in outcomes]
             provenance["models"]["peak_rate_deg_s"] = [round(o.peak_rate_deg_s) for o in outcomes]
-        plans.append(
-            PhasePlan(
-                spec,
-                phase,
-                analysis,
-                chosen,
-                outcomes,
-                provenance,
-                _jobs_done(spec, outcomes, template),
-                _job_left_undone(spec, outcomes, template),
-            )
-        )
+        done = _jobs_done(spec, outcomes, template)
+        undone = _job_left_undone(spec, outcomes, template, done)
+        plans.append(PhasePlan(spec, phase, analysis, chosen, outcomes, provenance, done, undone))
         alive = survivors
         previous = phase.torques
         if spec.kind == "lift":
@@ -673,10 +664,12 @@ def _jobs_done(
 
 
 def _job_left_undone(
-    spec: TemplatePhase, outcomes: Sequence[PhaseOutcome], template: Template
+    spec: TemplatePhase,
+    outcomes: Sequence[PhaseOutcome],
+    template: Template,
+    done: Sequence[bool] | None,
 ) -> str | None:
-    """What a phase left undone on *every* model (``_jobs_done``), or None."""
-    done = _jobs_done(spec, outcomes, template)
+    """What a phase left undone on *every* model (``done``, ``_jobs_done``), or None."""
     if done is None or not outcomes or any(done):
         return None
     if spec.kind == "turn":
