@@ -16,6 +16,9 @@ torque reading and signal k + joints-per-node its angle):
   sees every torque the node can apply instead of a saturated reading;
 - ``angle_min`` and ``angle_max``: strictly inside the range of the feedback angle signal, so a
   joint past its soft limit reads past it before the reading saturates;
+- zero: the command signal carries 0 N·m exactly (its offset a multiple of its factor), so
+  that a stop is a zero torque and not the nearest value to it; the supervisor keeps every
+  applied torque on that signal's grid (``handctl/online/safety/limits.py``);
 - ``rate_limit``: one tick's step (rate_limit / bus.loop_rate_hz) is at least the command
   signal's resolution and at most its whole span. A smaller step travels as a one-resolution
   jump every few ticks, which is a faster change between two frames than the limit allows; a
@@ -50,11 +53,24 @@ def check_wire_limits(hand: HandConfig, protocol: Protocol) -> None:
                 f"{len(finger.joints)} joints",
             )
         for k, joint in enumerate(finger.joints):
+            _check_zero(protocol, command.name, command.signals[k])
             check = _JointCheck(hand, f"fingers[{i}].joints[{k}]", joint)
             check.torque_limits(command.name, command.signals[k])
             check.reading(feedback.name, feedback.signals[k])
             check.angles(feedback.name, feedback.signals[per_node + k])
             check.rate(command.name, command.signals[k], hand.bus.loop_rate_hz)
+
+
+def _check_zero(protocol: Protocol, message: str, signal: SignalSpec) -> None:
+    raw_zero = -signal.offset / signal.scale
+    if abs(raw_zero - round(raw_zero)) > 1e-9 * max(1.0, abs(raw_zero)):
+        raise ConfigError(
+            protocol.source,
+            f"{message}.{signal.name}",
+            "a factor and an offset that carry 0 N·m exactly (the offset a multiple of the "
+            "factor): a stop sends zero torque, not the nearest value to it",
+            f"factor {signal.scale:g}, offset {signal.offset:g}",
+        )
 
 
 def _layouts(

@@ -223,7 +223,8 @@ class Runtime:
         self.driver = driver
         self.clock = clock
         self.recipe = recipe
-        self.supervisor = Supervisor(hand)
+        # on the grid of the frames it drives (``limit_torque``)
+        self.supervisor = Supervisor(hand, driver.protocol)
         # the analysis at the measured configuration, for a recipe's ``reanalyse`` phases
         self.reanalyser = reanalyser
         self.estimator = estimator

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from handctl.config import HandConfig, load_hand
+from handctl.hand_protocol import protocol_for
 from handctl.online.safety.faults import FaultCode
 from handctl.online.safety.supervisor import TRANSITIONS, Event, State, Supervisor, next_state
 
@@ -164,3 +167,65 @@ def test_fault_page_is_generated_from_the_table() -> None:
     page = (ROOT / "docs" / "faults.md").read_text()
     for code in FaultCode:
         assert f"`{code.name}`" in page
+
+
+def _with_limits(hand: HandConfig, tau_max: float, rate_limit: float) -> HandConfig:
+    fingers = tuple(
+        dataclasses.replace(
+            f,
+            joints=tuple(
+                dataclasses.replace(j, tau_max=tau_max, rate_limit=rate_limit) for j in f.joints
+            ),
+        )
+        for f in hand.fingers
+    )
+    return dataclasses.replace(hand, fingers=fingers)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    # limits that are no multiple of the command signal's 0.0001 N·m, as a config may write
+    st.floats(0.01, 0.6),
+    st.floats(0.1, 3.0),
+    st.lists(st.lists(st.floats(-1, 1), min_size=9, max_size=9), min_size=1, max_size=40),
+    st.integers(0, 40),
+    st.sampled_from([None, FaultCode.TDT_MISMATCH]),
+)
+def test_what_the_command_frames_carry_keeps_both_limits(
+    tau: float, rate: float, asked: list[list[float]], stop_at: int, fault: FaultCode | None
+) -> None:
+    """The frames, not only the supervisor's floats: rounded to the signal's resolution by
+    the encoder, a torque must still be within tau_max and a step within the rate limit
+    (a stop or a fault's ramp towards zero included), and the applied torque the log records
+    must be what the frame says."""
+    hand = _with_limits(HAND, tau, rate)
+    protocol = protocol_for(hand)
+    layouts = [protocol.layout("TorqueCommand", f.node_id) for f in hand.fingers]
+    sup = Supervisor(hand, protocol)
+    sup.start(0)
+    sup.fire(Event.ENABLED, 0)
+    step = rate * hand.bus.period_s
+    previous = np.zeros(9)
+    plan = asked + [asked[-1]] * 60
+    for k, want in enumerate(plan, start=1):
+        if k == stop_at:
+            if fault is None:
+                sup.stop(k)
+            else:
+                sup.trip(fault, "injected", k)
+        applied = sup.filter(k, np.array(want))
+        carried = np.concatenate(
+            [
+                layout.decode(layout.encode(k % 256, applied[3 * i : 3 * i + 3].tolist()))[1][:3]
+                for i, layout in enumerate(layouts)
+            ]
+        )
+        assert carried == pytest.approx(applied, abs=1e-12), "the log differs from the frame"
+        assert np.all(np.abs(carried) <= tau + 1e-12)
+        moved = np.abs(carried - previous)
+        toward_zero = np.abs(carried) < np.abs(previous)
+        if sup.state is State.RUNNING or fault is None:
+            assert np.all(moved <= step + 1e-12)
+        else:
+            assert np.all((moved <= step + 1e-12) | toward_zero)
+        previous = carried

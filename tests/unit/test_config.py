@@ -494,6 +494,19 @@ def narrower_dbc(tmp_path: Path) -> Path:
     return path
 
 
+def test_a_command_signal_that_cannot_carry_zero_torque_is_refused(tmp_path: Path) -> None:
+    """The supervisor keeps applied torques on the command signal's grid, and a stop sends
+    0 N·m: a DBC whose offset puts zero between two raw values could send neither."""
+    text = DEFAULT_DBC.read_text(encoding="utf-8")
+    line = ' SG_ Torque1 : 16|16@1- (0.0001,0) [-3.2768|3.2767] "N.m" FINGER1\n'
+    path = tmp_path / "offset.dbc"
+    path.write_text(text.replace(line, line.replace("(0.0001,0)", "(0.0001,0.00005)")))
+    with pytest.raises(ConfigError, match="carry 0 N·m exactly") as info:
+        load_hand(HAND_YAML, path)
+    assert info.value.key == "TorqueCommand_1.Torque1"
+    assert "offset.dbc" in str(info.value) and "offset 5e-05" in str(info.value)
+
+
 def test_the_wire_ranges_come_from_the_dbc(tmp_path: Path) -> None:
     with pytest.raises(
         ConfigError,

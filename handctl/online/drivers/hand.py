@@ -70,6 +70,7 @@ class HandDriver:
     ) -> None:
         check_protocol(hand, protocol)
         self.hand = hand
+        self.protocol = protocol
         self.bus = bus
         self.clock_ns = clock_ns
         bus.use_clock(clock_ns)

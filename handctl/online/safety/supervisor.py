@@ -38,10 +38,11 @@ from handctl.online.safety.limits import (
     angle_violations,
     check_desired,
     limit_torque,
+    toward_zero_on_grid,
 )
 from handctl.online.safety.recovery import Recovery
 from handctl.online.safety.watchdog import NodeWatch, ReceiveWatch, TdtMonitor, TickWatch
-from handctl.protocol import NodeState
+from handctl.protocol import NodeState, Protocol
 
 
 class State(enum.Enum):
@@ -101,11 +102,13 @@ def next_state(state: State, event: Event) -> State:
 class Supervisor:
     """Turns desired torques into applied torques, and node/bus/timing news into faults."""
 
-    def __init__(self, hand: HandConfig) -> None:
+    def __init__(self, hand: HandConfig, protocol: Protocol | None = None) -> None:
+        """``protocol``: the one the command frames are encoded with (None: the hand's,
+        ``protocol_for``), whose resolution the applied torques keep to (``limit_torque``)."""
         self.hand = hand
         self.n = hand.n_joints
         self.dt = hand.bus.period_s
-        self.limits = JointLimits.from_hand(hand)
+        self.limits = JointLimits.from_hand(hand, protocol)
         self.node_watch = NodeWatch(hand.safety)
         self.receive_watch = ReceiveWatch(hand.safety, self.dt)
         self.tdt = TdtMonitor(hand.safety, self.n, self.dt, self.limits.names)
@@ -300,6 +303,7 @@ class Supervisor:
             self._ramp_k += 1
             remaining = max(0.0, 1.0 - self._ramp_k / self._ramp_ticks)
             self.applied[:] = self._ramp_from * remaining
+            toward_zero_on_grid(self.applied, self.limits)
             if remaining == 0.0:
                 self.fire(Event.AT_ZERO, tick)
         else:
