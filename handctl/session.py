@@ -155,6 +155,8 @@ def summarise_run(
         },
         "rejected_frames": result.node_rejects,
         "bus_events": result.bus_events,
+        # joints that sank out of their soft limits while a stop took the torque out
+        **({"left_limits_in_stop": result.stop_notes} if result.stop_notes else {}),
         **(
             {"exception": _exception_summary(result.exception)}
             if result.exception is not None
@@ -290,6 +292,7 @@ def run_recipe(
                 f"the run stopped on an exception ({result.exception.code.name}); "
                 "the hand was stopped.\n" + result.exception.traceback.rstrip()
             )
+        warnings += result.stop_notes
         summary = summarise_run(
             result, req.hand, req.recipe, lockstep, _peer_summary(peer, warnings)
         )

@@ -198,6 +198,9 @@ class RunResult:
     bus_events: int = 0
     supervisor_history: list[tuple[int, str, str, str]] = field(default_factory=list)
     exception: TickException | None = None  # what raised, when the run ended on one
+    #: joints that left their soft limits in a controlled stop, not by their own torque
+    #: (``Supervisor._left_while_stopping``): not faults, said
+    stop_notes: list[str] = field(default_factory=list)
 
 
 class Runtime:
@@ -240,6 +243,7 @@ class Runtime:
         self.max_ticks = max_ticks
         self.stop_requested = ""
         self.estop_requested = ""
+        self._stop_notes_said = 0  # of ``supervisor.stop_notes``, in the log
         self.first_send_tick = -1
         self.startup_missed_ticks = 0
         self.tick_hooks: list[Callable[[Tick], None]] = []
@@ -571,6 +575,8 @@ class Runtime:
             tk.tick, tk.now_ns, tk.missed, t_s, state.angle, state.tdt, events
         )
         c2, c3 = self._recipe_done_ns, cpu()
+        if len(sup.stop_notes) > self._stop_notes_said:  # grows only in a controlled stop
+            self._say_stop_notes(tk.tick)
         ok = driver.send(applied)
         sup.sent(ok, tk.tick)
         if new_faults and self._another_master(new_faults):
@@ -676,6 +682,14 @@ class Runtime:
             sup.stop(tick)
         return desired, sup.filter(tick, desired, missed), new_faults
 
+    def _say_stop_notes(self, tick: int) -> None:
+        """The supervisor's new stop notes into the log, where the tick's faults go."""
+        notes = self.supervisor.stop_notes
+        if self.recorder is not None:
+            for note in notes[self._stop_notes_said :]:
+                self.recorder.note("limit", note, tick)
+        self._stop_notes_said = len(notes)
+
     @staticmethod
     def _another_master(faults: Sequence[Fault]) -> bool:
         """Whether another sender commands the nodes (``FOREIGN_COMMAND``): then the stop is
@@ -746,6 +760,7 @@ class Runtime:
                 (tick, a.value, e.value, b.value) for tick, a, e, b in self.supervisor.history
             ],
             exception=self.exception,
+            stop_notes=list(self.supervisor.stop_notes),
         )
 
 

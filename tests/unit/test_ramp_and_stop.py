@@ -490,3 +490,51 @@ def test_rejected_frames_before_start_are_no_fault(hand: HandConfig, protocol: P
         _corrupt_feedback(run, 0)
         assert run.observe() == []
     assert sup.state is State.IDLE
+
+
+@pytest.mark.parametrize("pushing_out", [False, True])
+def test_a_joint_sinking_out_of_its_limits_in_a_controlled_stop_is_said_not_a_fault(
+    hand: HandConfig, running: Running, pushing_out: bool
+) -> None:
+    """A stop takes the torque out, and a joint held against gravity sinks: past its soft
+    limit that turned a Ctrl-C or a time budget into a safety stop, for the stop itself. A
+    joint whose own torque still pushes it out is a fault as ever."""
+    sup = running.sup
+    j = 1
+    torque = np.zeros(hand.n_joints)
+    # the joint is pushed towards its lower limit when pushing out, held up against it not
+    torque[j] = (-0.5 if pushing_out else 0.5) * hand.joints[j].tau_max
+    hold(running, torque)
+    sup.stop(running.tick)
+    assert sup.state is State.STOPPING
+    angle = np.zeros(hand.n_joints)
+    angle[j] = hand.joints[j].angle_min - 0.01
+    faults = running.observe(angle=angle)
+    if pushing_out:
+        assert [f.code for f in faults] == [FaultCode.ANGLE_LIMIT]
+        assert sup.state is State.FAULT_RAMP
+        assert sup.stop_notes == []
+        return
+    assert faults == [] and sup.state is State.STOPPING
+    assert len(sup.stop_notes) == 1
+    assert sup.stop_notes[0].startswith(f"{hand.joints[j].name} at ")
+    assert "not a fault" in sup.stop_notes[0]
+    running.observe(angle=angle)
+    assert len(sup.stop_notes) == 1, "said once per joint"
+    # the stop goes on to zero
+    for _ in range(10_000):
+        running.tick += 1
+        sup.filter(running.tick, None)
+        if sup.state is State.IDLE:
+            break
+    assert sup.state is State.IDLE and not sup.faults
+
+
+def test_a_joint_out_of_its_limits_while_running_is_a_fault_whatever_its_torque(
+    hand: HandConfig, running: Running
+) -> None:
+    sup = running.sup
+    angle = np.zeros(hand.n_joints)
+    angle[0] = hand.joints[0].angle_max + 0.01
+    assert [f.code for f in running.observe(angle=angle)] == [FaultCode.ANGLE_LIMIT]
+    assert sup.stop_notes == []

@@ -13,8 +13,9 @@ what can follow what is data that a test can enumerate, not control flow hidden 
   back through a new START, with the rate limiter ramping it up from zero. A recipe never
   resumes by itself: the runner is not told to go on by anything in here.
 
-A joint outside its soft limits trips ``ANGLE_LIMIT`` in every armed state but FAULT_RAMP,
-with one exception asked for before the start: a ``Recovery`` (recovery.py), which lets one
+A joint outside its soft limits trips ``ANGLE_LIMIT`` in every armed state but FAULT_RAMP (in
+STOPPING only while its own torque pushes it further out: ``_left_while_stopping``), with one
+exception asked for before the start: a ``Recovery`` (recovery.py), which lets one
 joint be outside as long as it comes back in, so that a finger resting past its limit can be
 jogged back.
 """
@@ -128,6 +129,9 @@ class Supervisor:
         #: one joint allowed back in from outside its soft limits (recovery.py); None: none
         self.recovery: Recovery | None = None
         self._armed_tick = -1  # the tick the nodes were confirmed ENABLED
+        #: joints that left their soft limits in a controlled stop, not pushed out by their
+        #: own torque (``_left_while_stopping``): said in the summary and the log
+        self.stop_notes: list[str] = []
 
     # -- events ---------------------------------------------------------------------------
     def fire(self, event: Event, tick: int) -> State:
@@ -249,8 +253,36 @@ class Supervisor:
                 outside.remove(j)
             if beyond is not None:
                 findings.append((FaultCode.ANGLE_LIMIT, beyond))
+        stopping = self.state is State.STOPPING
         for j in outside:
-            findings.append((FaultCode.ANGLE_LIMIT, self._outside(j, angle, tick)))
+            if stopping and not self._pushes_out(j, angle):
+                self._left_while_stopping(j, angle, tick)
+            else:
+                findings.append((FaultCode.ANGLE_LIMIT, self._outside(j, angle, tick)))
+
+    def _pushes_out(self, j: int, angle: FloatArray) -> bool:
+        """Whether joint ``j``'s applied torque pushes it further out of its soft limits."""
+        tau = float(self.applied[j])
+        return tau > 0.0 if angle[j] > self.limits.angle_max[j] else tau < 0.0
+
+    def _left_while_stopping(self, j: int, angle: FloatArray, tick: int) -> None:
+        """A joint that leaves its soft limits while a controlled stop ramps the torques out,
+        its own torque not pushing it out: said, once per joint, and not a fault.
+
+        Why not ``ANGLE_LIMIT``: the limit is there so that torque never drives a joint into
+        its hard stop, and a fault's answer is torque to zero, which the stop is already
+        doing. A joint that sinks out as its torque goes (gravity, a finger it leaned on) is
+        the hand coming to rest with no torque, as it would after any run; as a fault it
+        turned a Ctrl-C or a time budget into a safety stop (exit 3) for the stop itself. A
+        joint whose own torque still pushes it out is a fault as ever, and its faster ramp
+        takes the torque out sooner."""
+        name = self.limits.names[j]
+        if any(note.startswith(f"{name} ") for note in self.stop_notes):
+            return
+        self.stop_notes.append(
+            f"{self._outside(j, angle, tick)} at tick {tick}, while the torques were ramped "
+            "out for the stop, its own torque not pushing it out: not a fault"
+        )
 
     def _outside(self, j: int, angle: FloatArray, tick: int) -> str:
         limits = self.limits
