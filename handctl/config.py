@@ -171,7 +171,10 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
     """The hand config in ``doc``, checked against ``protocol`` if given (a recording's), else
     against the protocol of the hand and ``dbc`` (``protocol_for``)."""
     name = doc.string("name")
-    bus = _parse_bus(doc.mapping("bus"))
+    # a recording's hand is read as it ran; a hand to run takes a loop the rules allow now
+    bus = _parse_bus(
+        doc.mapping("bus"), MIN_LOOP_RATE_HZ if protocol is not None else slowest_loop_rate_hz()
+    )
     finger_docs = doc.mappings("fingers", min_len=1, max_len=len(NODE_IDS))
     fingers = tuple(_parse_finger(f) for f in finger_docs)
     safety = _parse_safety(doc.mapping("safety", default={}))
@@ -204,6 +207,15 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
     return hand
 
 
+def _too_slow() -> str:
+    """What a loop rate below the slowest one allowed is told."""
+    return (
+        f"at least {slowest_loop_rate_hz():g} Hz: two periods, a tick and a late one, "
+        f"within the nodes' {COMMAND_WATCHDOG_S * 1e3:g} ms command watchdog with "
+        f"{NODE_TIMING_MARGIN_S * 1e3:g} ms to spare for the bus and the node's tick"
+    )
+
+
 def _check_misses_before_watchdog(doc: Doc, hand: HandConfig) -> None:
     """The host's LOOP_OVERRUN stop must come before a node's command watchdog
     (``most_misses_before_watchdog``): otherwise the nodes stop the hand themselves, latch a
@@ -211,14 +223,8 @@ def _check_misses_before_watchdog(doc: Doc, hand: HandConfig) -> None:
     rate = hand.bus.loop_rate_hz
     most = most_misses_before_watchdog(rate)
     watchdog_ms = COMMAND_WATCHDOG_S * 1e3
-    if most < 1:
-        doc.fail(
-            "bus.loop_rate_hz",
-            f"at least {slowest_loop_rate_hz():g} Hz: two periods, a tick and a late one, "
-            f"within the nodes' {watchdog_ms:g} ms command watchdog with "
-            f"{NODE_TIMING_MARGIN_S * 1e3:g} ms to spare for the bus and the node's tick",
-            rate,
-        )
+    if most < 1:  # refused when the bus section was read (``_parse_bus``); kept as a guard
+        doc.fail("bus.loop_rate_hz", _too_slow(), rate)
     misses = hand.safety.max_consecutive_misses
     if misses > most:
         doc.fail(
@@ -286,7 +292,7 @@ def _parse_safety(doc: Doc) -> SafetyConfig:
     return s
 
 
-def _parse_bus(doc: Doc) -> BusConfig:
+def _parse_bus(doc: Doc, min_loop_rate_hz: float) -> BusConfig:
     interface = doc.string("interface")
     # A name (``can0``) or, for interfaces that number their channels, a number (``0``): never
     # a list, a mapping, a boolean or null, which str() would turn into a channel called
@@ -311,7 +317,17 @@ def _parse_bus(doc: Doc) -> BusConfig:
         )
     # a tick at most half the nodes' command watchdog: at 100 Hz or below every run stopped
     # on the nodes' TIMEOUT at its second tick, a config `handctl check` had passed
-    loop_rate = doc.number("loop_rate_hz", min=MIN_LOOP_RATE_HZ, max=10_000.0, unit="Hz")
+    # (``min_loop_rate_hz``: the slowest the nodes' watchdog allows a missed tick at, said
+    # with why for a number below it, and as the bound for a value that is no number)
+    raw_rate = doc.raw("loop_rate_hz", None)
+    if (
+        isinstance(raw_rate, (int, float))
+        and not isinstance(raw_rate, bool)
+        and raw_rate < min_loop_rate_hz
+        and min_loop_rate_hz > MIN_LOOP_RATE_HZ
+    ):
+        doc.fail("loop_rate_hz", _too_slow(), raw_rate)
+    loop_rate = doc.number("loop_rate_hz", min=min_loop_rate_hz, max=10_000.0, unit="Hz")
     doc.done()
     return BusConfig(interface, channel, fd, bitrate, data_bitrate, loop_rate)
 

@@ -541,12 +541,15 @@ def test_check_cli_refuses_a_limit_the_wire_cannot_carry(
     ("rate", "misses", "key", "expected"),
     [
         (220.0, 1, "bus.loop_rate_hz", "at least 250 Hz"),
+        (100.0, 1, "bus.loop_rate_hz", "at least 250 Hz"),
+        # no number: the bound it is told is the one that holds (it said >= 200)
+        ("1kHz", 1, "bus.loop_rate_hz", "expected a number >= 250 and <= 10000 Hz"),
         (400.0, 3, "safety.max_consecutive_misses", "at most 2 at a 400 Hz loop"),
         (1000.0, 8, "safety.max_consecutive_misses", "at most 7 at a 1000 Hz loop"),
     ],
 )
 def test_the_host_stops_on_missed_ticks_before_the_nodes_watchdog(
-    tmp_path: Path, rate: float, misses: int, key: str, expected: str
+    tmp_path: Path, rate: float | str, misses: int, key: str, expected: str
 ) -> None:
     """A 200 Hz hand passed check, and its runs ended on the nodes' latched TIMEOUT with no
     missed tick counted: the host's overrun stop must come first, with room for the bus."""
