@@ -52,6 +52,9 @@ R = TypeVar("R")
 
 #: s, how long a terminated local worker gets to exit before it is killed
 TERMINATE_GRACE_S = 2.0
+#: s, how long a cancelled local pool's manager thread gets to see its workers gone (it
+#: ends the running tasks' futures as it does): a bound for a hung thread, not a pace
+MANAGER_GRACE_S = 30.0
 #: s, how often a local worker checks that the process that started it is still there
 OWNER_POLL_S = 0.5
 #: s, how long each step of opening a Dask cluster may take: the whole handshake with the
@@ -275,6 +278,8 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
             pool.shutdown(wait=True)
             return
         processes = list(getattr(pool, "_processes", {}).values())
+        # taken before the shutdown, which lets go of it (it was None when looked for after)
+        manager = getattr(pool, "_executor_manager_thread", None)
         pool.shutdown(wait=False, cancel_futures=True)
         for process in processes:
             _stop_worker(process, signal.SIGTERM)
@@ -287,9 +292,11 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
         # exit, concurrent.futures wakes every such thread through that pipe, and one still
         # closing it races the wake-up (EBADF: "Exception ignored ... Bad file descriptor"
         # printed after a Ctrl-C'd plan on a loaded machine). Waited for here, it is closed.
-        manager = getattr(pool, "_executor_manager_thread", None)
+        # Waiting for it also ends the futures of the tasks that were running (failed, their
+        # workers gone): a close looked for it after the shutdown, found nothing to wait for,
+        # and returned with futures still pending.
         if manager is not None:
-            manager.join(TERMINATE_GRACE_S)
+            manager.join(MANAGER_GRACE_S)
 
     return WorkPool(pool, count, f"{count} local processes", close)
 
