@@ -42,6 +42,7 @@ if TYPE_CHECKING:
     from handctl.bringup.jog import JogReport
     from handctl.config import HandConfig
     from handctl.online.loop import RunResult
+    from handctl.recording.rerun import RerunReport
     from handctl.stopsignals import StopSignals
 
 EXIT_OK = 0
@@ -933,6 +934,11 @@ def _check_replay_options(args: argparse.Namespace) -> None:
     )
 
 
+def _startup_repeated(result: RerunReport) -> bool:
+    """Whether a re-run with no control tick repeated a start-up that failed as logged."""
+    return result.outcome == result.logged_outcome == "startup_failed"
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     import json
 
@@ -960,10 +966,21 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         report["rerun"] = result.as_dict()
         for note in result.notes:
             print(f"rerun: note: {note}")
-        if result.ok and result.compared == 0:
+        if result.ok and result.compared == 0 and _startup_repeated(result):
+            # a run that never enabled its nodes has no control tick: what can be shown is
+            # that the start-up, fed the same frames, ends the same way
+            print(
+                f"rerun: the start-up re-run to the same end ({result.outcome}), every frame "
+                f"as logged ({result.frames_compared} sent); no control tick to compare: the "
+                "nodes were never enabled"
+            )
+        elif result.ok and result.compared == 0:
             # a log whose first chunk is lost has no tick a fresh runtime could follow: the
             # re-run ran nothing, and nothing was shown to be bit-exact
-            print("rerun: NOTHING COMPARED: no tick of the log could be re-run (see the notes)")
+            print(
+                "rerun: NOTHING COMPARED: no tick of the log could be re-run"
+                + (" (see the notes)" if result.notes else "")
+            )
             status = EXIT_FAILED
         elif result.ok:
             print(

@@ -199,6 +199,13 @@ def run_recipe(
 
         # the experiment is measured on the simulated objects of the recipe's names
         check_scene_names(req.recipe.source, [o.name for o in req.recipe.objects], req.hand)
+    if is_sim and req.sim_faults is not None:
+        from handctl.sim.faults import load_scenario
+
+        # Read here, before the log is opened or a process started: a file the simulated
+        # hand would refuse truncated an existing --log first, and in real time its process
+        # ended with exit 2 while the host listened out its start-up (20 s, exit 3).
+        load_scenario(req.sim_faults, req.hand)
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
     if not is_sim:
@@ -272,6 +279,8 @@ def run_recipe(
             reanalyser=reanalyser,
         )
         runtime.supervisor.recovery = req.recovery
+        if peer.sim_process is not None:
+            runtime.peer_gone = peer.sim_process.gone
         if isinstance(clock, RealtimeClock):
             runtime.trace = MissTrace(clock.period_ns)
             stack.callback(runtime.trace.close)
@@ -665,6 +674,10 @@ class SimProcess:
         if self.summary is None and self.summary_path.exists():
             self.summary = json.loads(self.summary_path.read_text())
         return self.summary
+
+    def gone(self) -> str:
+        """What the simulated hand said if its process has ended, else ""."""
+        return "" if self.proc.poll() is None else self.problem()
 
     def problem(self) -> str:
         """Empty if the simulated hand ended well; else its exit and the end of its log."""

@@ -37,7 +37,7 @@ import numpy as np
 import handctl
 from handctl import protocol as wire
 from handctl.config import HandConfig
-from handctl.online.bus import BusEvent
+from handctl.online.bus import BusEvent, BusEventKind
 from handctl.online.clock import Clock, Tick
 from handctl.online.collector import LoopCollector
 from handctl.online.drivers import finger, receiver
@@ -244,6 +244,10 @@ class Runtime:
         self.stop_requested = ""
         self.estop_requested = ""
         self._stop_notes_said = 0  # of ``supervisor.stop_notes``, in the log
+        #: a peer process the start-up waits for (the simulated hand of a real-time run):
+        #: what it said if it has ended, else ""; asked every start-up tick, so that a hand
+        #: that died is said at once and not after the whole start-up timeout (20 s)
+        self.peer_gone: Callable[[], str] | None = None
         self.first_send_tick = -1
         self.startup_missed_ticks = 0
         self.tick_hooks: list[Callable[[Tick], None]] = []
@@ -510,9 +514,21 @@ class Runtime:
 
     def _refused_at_startup(self, since: int) -> tuple[FaultCode, str] | None:
         """Why the nodes must not be enabled, whatever they say of their state (None if
-        nothing refuses them): a node of another protocol version (its frames may mean
-        something else than this host reads into them), or another sender on the host's
-        command ids (the nodes would hear two hosts)."""
+        nothing refuses them): a peer process that ended (the simulated hand of a real-time
+        run: said at once, not after the whole start-up timeout), a bus-off (before, the run
+        enabled every node on that bus and stopped on BUS_ERROR at its first tick; the other
+        bus events wait for the first running tick, as ever), a node of another protocol
+        version (its frames may mean something else than this host reads into them), or
+        another sender on the host's command ids (the nodes would hear two hosts)."""
+        gone = self.peer_gone() if self.peer_gone is not None else ""
+        if gone:
+            return FaultCode.STARTUP, gone
+        off = next((e for e in self.driver.bus_events if e.kind is BusEventKind.BUS_OFF), None)
+        if off is not None:
+            return (
+                FaultCode.BUS_ERROR,
+                f"bus-off during start-up ({off.detail}): no node was enabled",
+            )
         nodes = self.driver.nodes
         wrong = [
             problem
