@@ -225,3 +225,66 @@ def test_a_recipe_for_another_hand_says_so_at_its_first_joint_keyed_mapping(
         load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", planar)
     assert info.value.key == "limit_guard_spring_bands"
     assert "written for another hand? give its config with --hand" in str(info.value)
+
+
+def test_the_torque_margin_is_held_to_tau_max_and_the_rate_limit(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """The runner holds the torques times the margin: the margin got around both checks, and
+    the supervisor clamped what the recipe asked for."""
+    over = phase("a", 0.0, torque_margin=2.0)
+    over["torques"]["f1_j1"] = 0.35  # 0.7 N·m held, tau_max 0.6
+    err = error(tmp_path, hand, recipe_doc(over))
+    assert err.key == "phases[0].torques.f1_j1" and err.found == 0.7
+    assert "torque_margin (2)" in err.expected
+    fast = phase("a", 0.0, torque_margin=2.0, ramp_s=0.002)
+    fast["torques"]["f1_j1"] = 0.04  # 0.08 N·m in 2 ms: 40 N·m/s, the limit 20
+    assert error(tmp_path, hand, recipe_doc(fast)).key == "phases[0].ramp_s"
+    fast["torques"]["f1_j1"] = 0.015  # 0.03 N·m in 2 ms: 15 N·m/s
+    load_recipe(write(tmp_path, recipe_doc(fast)), hand)
+
+
+@pytest.mark.parametrize("name", ["running", "end_ramp", "completed", "aborted", "-"])
+def test_a_phase_may_not_take_a_name_the_log_uses_for_something_else(
+    tmp_path: Path, hand: HandConfig, name: str
+) -> None:
+    err = error(tmp_path, hand, recipe_doc(phase("a"), phase(name)))
+    assert err.key == "phases[1].name" and err.found == name
+
+
+def test_the_reserved_phase_names_are_what_the_log_says_where_no_phase_runs() -> None:
+    from handctl.online.loop import NO_PHASE
+    from handctl.online.recipes.loader import RESERVED_PHASE_NAMES
+
+    assert {s.value for s in RunStatus} | {NO_PHASE} == RESERVED_PHASE_NAMES
+
+
+@pytest.mark.parametrize(
+    ("condition", "why"),
+    [
+        ("time >= 0 for 5", "held for 5 s, it outlasts the phase"),
+        ("time > 5", "the phase times out first"),
+        ("time >= 0.8 for 0.3", "the phase times out first"),
+        ("time < -1", "a phase's time is never below 0"),
+        ("time < 0", "a phase's time is never below 0"),
+        ("angle.f1_j1 > 5", "f1_j1 past its soft limit"),
+        ("angle.f1_j1 < -5", "f1_j1 past its soft limit"),
+    ],
+)
+def test_a_condition_that_never_holds_in_its_phase_is_refused(
+    tmp_path: Path, hand: HandConfig, condition: str, why: str
+) -> None:
+    for key in ("exit", "abort"):
+        doc = recipe_doc(phase("a", max_s=1.0))
+        doc["phases"][0][key] = [condition]
+        err = error(tmp_path, hand, doc)
+        assert err.key == f"phases[0].{key}[0]" and why in err.expected, err
+    # at the edge it may hold, and loads
+    load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=["time >= 1"]))), hand)
+
+
+def test_turn_from_without_a_turn_to_count_is_refused(tmp_path: Path, hand: HandConfig) -> None:
+    data = recipe_doc(phase("a", max_s=0.5, on_timeout="next"), phase("b", turn_from="a"))
+    err = error(tmp_path, hand, data)
+    assert err.key == "phases[1].turn_from" and "reads a turn" in err.expected
+

@@ -220,6 +220,19 @@ def _entry(when: Any, **torques: float) -> dict[str, Any]:
             "0.7",
         ),
         ([], "phases[1].schedule", "a list of 1 to 8 mappings", "0 entries"),
+        # a range past what the estimator measures (±40 %) is never met
+        (
+            [_entry({"radius_ratio": {"object": "cyl1", "min": 1.45}})],
+            "phases[1].schedule[0].when.radius_ratio.min",
+            "a range that meets 0.6..1.4",
+            "1.45",
+        ),
+        (
+            [_entry({"radius_ratio": {"object": "cyl1", "max": 0.55}})],
+            "phases[1].schedule[0].when.radius_ratio.max",
+            "a range that meets 0.6..1.4",
+            "0.55",
+        ),
     ],
 )
 def test_a_bad_schedule_is_refused_naming_the_key(

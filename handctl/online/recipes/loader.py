@@ -17,7 +17,9 @@ import numpy as np
 from handctl.config import HandConfig
 from handctl.convention import OBJECT_NAME
 from handctl.errors import ConfigError
+from handctl.online.estimator import RADIUS_RANGE
 from handctl.online.recipes.guard import SIDES, GuardSettings, SpringBand
+from handctl.online.recipes.runner import RunStatus
 from handctl.online.recipes.schema import (
     MAX_OBJECTS,
     MAX_PHASE_S,
@@ -35,6 +37,7 @@ from handctl.online.recipes.schema import (
     Recipe,
     RecipeObject,
     ScheduledTorques,
+    SignalKind,
     TimeoutAction,
     TurnBrake,
     TurnRate,
@@ -84,8 +87,8 @@ DEFAULT_REANALYSIS_DELAY_S = 0.5
 MAX_LIMIT_DEPTH = 0.9
 #: the most alternative torques a phase's ``schedule`` may carry
 MAX_SCHEDULE = 8
-#: the widest range of a ``radius_ratio``: the estimator fits a radius within ±40 % of the
-#: recipe's (``estimator.RADIUS_RANGE``), so a bound outside this is never met
+#: the widest bounds of a ``radius_ratio``: the estimator fits a radius within ±40 % of the
+#: recipe's (``RADIUS_RANGE``); a bound past that is an open end, a range past it is refused
 RADIUS_RATIO_MIN = 0.5
 RADIUS_RATIO_MAX = 1.5
 
@@ -139,6 +142,16 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                 doc.file,
                 f"phases[{i}].turn_from",
                 "the name of this phase or an earlier one (" + ", ".join(earlier) + ")",
+                phase.turn_from,
+            )
+        if phase.turn_from and not any(c.relative for c in phase.exits + phase.aborts):
+            # it sets where a turn read in the phase's conditions counts from, and nothing
+            # else: without one it did nothing, and a key that does nothing misleads
+            raise ConfigError(
+                doc.file,
+                f"phases[{i}].turn_from",
+                "a phase whose exit or abort reads a turn (estimate.<pair>_turn): turn_from "
+                "sets where it counts from",
                 phase.turn_from,
             )
         for key, loop in (
@@ -263,10 +276,27 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
     return GuardSettings(band, tuple(springs))
 
 
+#: What the log's phase channel says when no phase of the recipe runs: the runner's status
+#: (``RunStatus``) and the loop's ``NO_PHASE``. A phase of one of these names made its own
+#: rows indistinguishable from them (a replay merged a phase 'end_ramp' with the end ramp and
+#: lost phases 'running', 'aborted' and 'completed').
+RESERVED_PHASE_NAMES = frozenset(status.value for status in RunStatus) | {"-"}
+
+
 def check_unique_names(doc: Doc, names: list[str]) -> None:
-    """Phase names are how logs, exits and provenance refer to phases: no two alike."""
+    """Phase names are how logs, exits and provenance refer to phases: no two alike, and none
+    that the log uses for something else."""
     seen: set[str] = set()
     for i, name in enumerate(names):
+        if name in RESERVED_PHASE_NAMES:
+            raise ConfigError(
+                doc.file,
+                f"phases[{i}].name",
+                "a phase name other than "
+                + ", ".join(sorted(RESERVED_PHASE_NAMES))
+                + " (the log says these where no phase runs)",
+                name,
+            )
         if name in seen:
             raise ConfigError(doc.file, f"phases[{i}].name", "a phase name not used before", name)
         seen.add(name)
@@ -350,6 +380,8 @@ def _parse_phase(
     )
     exits = _parse_conditions(doc, "exit", hand, estimates)
     aborts = _parse_conditions(doc, "abort", hand, estimates)
+    for key, conditions in (("exit", exits), ("abort", aborts)):
+        _refuse_never_holding(doc, key, conditions, max_s, hand)
     turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
     pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
     joint_damping = parse_joint_damping(doc, hand.joint_names)
@@ -465,6 +497,15 @@ def _parse_radius_ratio(
     high = doc.number("max", default=RADIUS_RATIO_MAX, min=RADIUS_RATIO_MIN, max=RADIUS_RATIO_MAX)
     if high <= low:
         doc.fail("max", f"a ratio larger than min ({low:g})", high)
+    # the bounds may reach past what the estimator measures (an open end), the range not
+    fits = (1.0 - RADIUS_RANGE, 1.0 + RADIUS_RANGE)
+    if low >= fits[1] or high <= fits[0]:
+        doc.fail(
+            "min" if low >= fits[1] else "max",
+            f"a range that meets {fits[0]:g}..{fits[1]:g}, the ratios the estimator measures "
+            f"(within ±{RADIUS_RANGE:g} of the recipe's radius): this one is never met",
+            low if low >= fits[1] else high,
+        )
     doc.done()
     index = list(names).index(name)
     if any(r.object == index for r in before):
@@ -766,6 +807,41 @@ def _parse_conditions(
     return tuple(out)
 
 
+def _refuse_never_holding(
+    doc: Doc, key: str, conditions: Sequence[Condition], max_s: float, hand: HandConfig
+) -> None:
+    """A condition that cannot hold before the phase ends is refused: it loaded and ran as
+    nothing, the phase timing out as if the exit had not been written."""
+    sub = Doc({}, doc.file, doc.key_path(key))
+    for i, cond in enumerate(conditions):
+        why = _never_holds(cond, max_s, hand)
+        if why:
+            sub.fail(
+                i,
+                f"a condition that can hold within the phase's max_s ({max_s:g} s): {why}",
+                cond.text,
+            )
+
+
+def _never_holds(cond: Condition, max_s: float, hand: HandConfig) -> str:
+    """Why ``cond`` never holds in a phase of ``max_s`` on ``hand`` ('' if it may)."""
+    if cond.hold_s > max_s * (1 + 1e-9):
+        return f"held for {cond.hold_s:g} s, it outlasts the phase"
+    above = cond.op in (">", ">=")
+    if cond.kind is SignalKind.TIME:
+        if above and cond.value + cond.hold_s > max_s * (1 + 1e-9):
+            return "the phase times out first"
+        if not above and (cond.value < 0 or (cond.op == "<" and cond.value == 0)):
+            return "a phase's time is never below 0"
+    if cond.kind is SignalKind.ANGLE:
+        joint = hand.joints[cond.index]
+        if above and cond.value > joint.angle_max:
+            return f"{joint.name} past its soft limit {joint.angle_max:g} rad is a safety stop"
+        if not above and cond.value < joint.angle_min:
+            return f"{joint.name} past its soft limit {joint.angle_min:g} rad is a safety stop"
+    return ""
+
+
 def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
     """Refuse torques over tau_max and ramps faster than the rate limit, naming everything."""
     names = hand.joint_names
@@ -778,15 +854,25 @@ def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
         keys = [f"phases[{i}].torques"] + [
             f"phases[{i}].schedule[{k}].torques" for k in range(len(phase.schedule))
         ]
-        candidates = [np.array(phase.torques)] + [np.array(s.torques) for s in phase.schedule]
+        # what the runner holds: the torques times the phase's torque_margin (before, the
+        # margin got around both checks and the supervisor clamped what it asked for)
+        margin = np.broadcast_to(np.asarray(phase.torque_margin, dtype=float), tau_max.shape)
+        candidates = [np.array(phase.torques) * margin] + [
+            np.array(s.torques) * margin for s in phase.schedule
+        ]
         for key, torques in zip(keys, candidates, strict=True):
             for j in np.flatnonzero(np.abs(torques) > tau_max):
+                by = (
+                    f", the torque times the phase's torque_margin ({margin[j]:g})"
+                    if margin[j] != 1.0
+                    else ""
+                )
                 raise ConfigError(
                     recipe.source,
                     f"{key}.{names[j]}",
                     f"|τ| <= {tau_max[j]:g} N·m (tau_max of {names[j]} in {hand.source}) in "
-                    f"phase '{phase.name}'",
-                    float(torques[j]),
+                    f"phase '{phase.name}'{by}",
+                    round(float(torques[j]), 9),
                 )
             for start in previous:
                 _check_ramp(
