@@ -288,3 +288,21 @@ def test_turn_from_without_a_turn_to_count_is_refused(tmp_path: Path, hand: Hand
     err = error(tmp_path, hand, data)
     assert err.key == "phases[1].turn_from" and "reads a turn" in err.expected
 
+
+def test_every_phase_is_judged_from_its_second_tick_the_first_one_too(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A first phase whose exit held at once ended on the tick it began: no tick of the log
+    ran it, and its holds counted one tick less than every later phase's."""
+    data = recipe_doc(
+        phase("a", exit=["time >= 0"]),
+        phase("b", exit=["time >= 0"]),
+        phase("c", exit=["time >= 0 for 0.005"]),
+        phase("d", exit=["time >= 0 for 0.005"]),
+        phase("e"),
+    )
+    runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
+    run(runner, 0.05)
+    ticks = {r.name: round(((r.end_s or 0.0) - r.start_s) / 0.001) for r in runner.records[:4]}
+    assert ticks["a"] == ticks["b"] == 1
+    assert ticks["c"] == ticks["d"]

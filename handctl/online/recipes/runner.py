@@ -74,6 +74,7 @@ from handctl.online.recipes.schema import (
     Condition,
     MeasuredSizes,
     PacedRamp,
+    Phase,
     PoseHold,
     PoseIntegral,
     Recipe,
@@ -328,7 +329,12 @@ class RecipeRunner:
     ) -> None:
         """Exits, aborts and the ramp of the current phase at ``t``: the recipe's own torque,
         before any feedback."""
-        if not self._started:
+        # Every phase is judged from the tick after the one it was entered on, the first one
+        # too: checked on its first tick, a first phase whose exit held at once ended in the
+        # tick it began, so no tick of the log ran it, and its holds counted a tick less than
+        # every later phase's.
+        entering = not self._started
+        if entering:
             self._started = True
             self._enter(0, t, "")
         if self.done:
@@ -341,30 +347,10 @@ class RecipeRunner:
             phase = self.recipe.phases[self.index]
             if estimates is not None:
                 self._note_references(estimates)
-            for k, cond in enumerate(phase.aborts):
-                if self._held(1000 + k, cond, t, elapsed, angle, tdt, estimates):
-                    self.abort(t, f"abort: {cond.text}")
-                    return
-            reason = next(
-                (
-                    c.text
-                    for k, c in enumerate(phase.exits)
-                    if self._held(k, c, t, elapsed, angle, tdt, estimates)
-                ),
-                None,
-            )
-            if reason is None and phase.stall is not None and self._stalled(t, elapsed, estimates):
-                reason = (
-                    f"stalled: turned less than {math.degrees(phase.stall.turn):g} deg"
-                    f" in {phase.stall.window_s:g} s"
-                )
-            if reason is None and elapsed >= phase.max_s:
-                if phase.on_timeout is TimeoutAction.ABORT:
-                    self.abort(t, f"timeout: phase '{phase.name}' ran {phase.max_s:g} s")
-                    return
-                reason = "timeout"
-            if reason is not None:
-                self._enter(self.index + 1, t, reason)
+            if not entering:
+                self._judge(phase, t, elapsed, angle, tdt, estimates)
+                if self.done:
+                    return  # aborted: its torque is zero from this tick on (``abort``)
             if self.status is RunStatus.RUNNING and not self._scheduled:
                 self._schedule(t)
             if self.status is RunStatus.RUNNING and not self._answered:
@@ -378,6 +364,42 @@ class RecipeRunner:
         self._desired += self._from
         if self.status is RunStatus.END_RAMP and fraction >= 1.0:
             self.status = RunStatus.COMPLETED
+
+    def _judge(
+        self,
+        phase: Phase,
+        t: float,
+        elapsed: float,
+        angle: FloatArray,
+        tdt: FloatArray,
+        estimates: Sequence[float] | None,
+    ) -> None:
+        """The phase's aborts, exits, stall and timeout at ``t``: abort, or go on to the next
+        phase, or nothing."""
+        for k, cond in enumerate(phase.aborts):
+            if self._held(1000 + k, cond, t, elapsed, angle, tdt, estimates):
+                self.abort(t, f"abort: {cond.text}")
+                return
+        reason = next(
+            (
+                c.text
+                for k, c in enumerate(phase.exits)
+                if self._held(k, c, t, elapsed, angle, tdt, estimates)
+            ),
+            None,
+        )
+        if reason is None and phase.stall is not None and self._stalled(t, elapsed, estimates):
+            reason = (
+                f"stalled: turned less than {math.degrees(phase.stall.turn):g} deg"
+                f" in {phase.stall.window_s:g} s"
+            )
+        if reason is None and elapsed >= phase.max_s:
+            if phase.on_timeout is TimeoutAction.ABORT:
+                self.abort(t, f"timeout: phase '{phase.name}' ran {phase.max_s:g} s")
+                return
+            reason = "timeout"
+        if reason is not None:
+            self._enter(self.index + 1, t, reason)
 
     def feedback(
         self, t: float, angle: FloatArray, estimates: Sequence[float] | None = None
