@@ -306,3 +306,22 @@ def test_every_phase_is_judged_from_its_second_tick_the_first_one_too(
     ticks = {r.name: round(((r.end_s or 0.0) - r.start_s) / 0.001) for r in runner.records[:4]}
     assert ticks["a"] == ticks["b"] == 1
     assert ticks["c"] == ticks["d"]
+
+
+def test_a_phase_s_max_s_is_as_many_ticks_wherever_the_phase_begins(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Times to the nanosecond: a bare difference of two tick times is a hair under or over
+    0.01 s by where the phase began, and 64 phases of max_s 0.01 ran 10 ticks or 11."""
+    data = recipe_doc(
+        *(phase(f"p{k}", ramp_s=0.01, max_s=0.01, on_timeout="next") for k in range(40)),
+        phase("last", exit=["time >= 0.013"]),
+    )
+    runner = RecipeRunner(load_recipe(write(tmp_path, data), hand), 9)
+    tick = 0
+    while not runner.done and tick < 2000:
+        # the loop's times: integer nanoseconds from the first tick, in seconds
+        runner.step(tick * 1_000_000 * 1e-9, ZERO, ZERO)
+        tick += 1
+    ticks = [round(((r.end_s or 0.0) - r.start_s) * 1000) for r in runner.records]
+    assert ticks == [10] * 40 + [13]

@@ -342,7 +342,10 @@ class RecipeRunner:
             return
         self.velocity.update(t, angle)
         self._fitted_velocity.update(t, angle)
-        elapsed = t - self.phase_start
+        # to the nanosecond, the resolution of every time in a run: a bare difference of two
+        # tick times is a hair under or over a phase's max_s (or a time condition's value)
+        # by where the phase began, and a max_s of 0.01 s ran 10 ticks or 11
+        elapsed = round(t - self.phase_start, 9)
         if self.status is RunStatus.RUNNING:
             phase = self.recipe.phases[self.index]
             if estimates is not None:
