@@ -325,3 +325,21 @@ def test_a_phase_s_max_s_is_as_many_ticks_wherever_the_phase_begins(
         tick += 1
     ticks = [round(((r.end_s or 0.0) - r.start_s) * 1000) for r in runner.records]
     assert ticks == [10] * 40 + [13]
+
+
+def test_a_pose_of_another_hand_s_joints_says_so(tmp_path: Path) -> None:
+    """It said 'left_j1: required, missing', where the torques and damping said --hand."""
+    planar = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    joints = ("f1_j1", "f1_j2", "f1_j3", "f2_j1", "f2_j2", "f2_j3", "f3_j1", "f3_j2", "f3_j3")
+    pose = {"angles": dict.fromkeys(joints, 0.1), "stiffness": 1.0}
+    doc = recipe_doc(
+        {
+            "name": "a",
+            "torques": dict.fromkeys(planar.joint_names, 0.0),
+            "max_s": 1.0,
+            "pose": pose,
+        }
+    )
+    err = error(tmp_path, planar, doc)
+    assert err.key == "phases[0].pose.angles"
+    assert "written for another hand? give its config with --hand" in err.expected

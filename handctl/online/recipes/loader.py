@@ -699,6 +699,7 @@ def parse_turn_rate(doc: Doc, sign: float | None = None) -> TurnRate:
 
 
 def _parse_pose(doc: Doc, hand: HandConfig) -> PoseHold:
+    refuse_another_hands_joints(doc, "angles", hand)
     angles = _joint_angles(doc.mapping("angles"), hand)
     stiffness = doc.number("stiffness", min=0.0, max=100.0, unit="N·m/rad")
     damping = doc.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
@@ -718,6 +719,7 @@ def _joint_angles(sub: Doc, hand: HandConfig) -> tuple[float, ...]:
 
 
 def _parse_integral(doc: Doc, hand: HandConfig) -> PoseIntegral:
+    refuse_another_hands_joints(doc, "rest", hand)
     rest = _joint_angles(doc.mapping("rest"), hand)
     gain, bound, still = parse_integral_gains(doc, hand)
     doc.done()
