@@ -379,6 +379,21 @@ def test_estimates_are_named_by_the_recipe_objects(tmp_path: Path, hand: HandCon
             hand,
         )
     assert "cyl2_peg_line_turn" in info.value.expected
+    # nor a pair written the other way round: its line is half a turn from what they meant
+    with pytest.raises(ConfigError) as info:
+        load_recipe(
+            write(
+                tmp_path,
+                {
+                    "recipe": "r",
+                    "objects": OBJECTS,
+                    "pairs": [["cyl2", "cyl1"]],
+                    "phases": [phase("a", exit=["estimate.centre_line_angle > 3.0"])],
+                },
+            ),
+            hand,
+        )
+    assert "first to second" in info.value.expected
 
 
 def test_a_turn_needs_a_pair(tmp_path: Path, hand: HandConfig) -> None:

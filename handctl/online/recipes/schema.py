@@ -436,6 +436,8 @@ def parse_condition(
             index = LEGACY_ESTIMATES[name]
         else:
             known = ", ".join(estimates) if estimates else "none: the recipe declares no objects"
+            if name in LEGACY_ESTIMATES and estimates:
+                known += "; the legacy names read two objects' one pair, first to second"
             return f"an estimate of the recipe's objects ({known}) (in '{text}')"
         return Condition(
             text,
@@ -453,6 +455,10 @@ def parse_condition(
 
 
 def _legacy_layout(estimates: Sequence[str]) -> bool:
-    """Whether the estimates are those of two objects and their one pair: the only layout the
-    legacy names described."""
-    return len(estimates) == len(LEGACY_ESTIMATES) and estimates[1].endswith(PHASE_RELATIVE_SUFFIX)
+    """Whether the estimates are those of two objects and their one pair, from the first to
+    the second: the only layout the legacy names described (a pair written the other way
+    round read its line half a turn from what the legacy names meant)."""
+    if len(estimates) != len(LEGACY_ESTIMATES) or not estimates[1].endswith(PHASE_RELATIVE_SUFFIX):
+        return False
+    first, second = estimates[2].removesuffix("_x"), estimates[4].removesuffix("_x")
+    return estimates[0] == f"{first}_{second}_line_angle"
