@@ -105,18 +105,13 @@ class Survey:
         return "bus events: " + ", ".join(f"{k} {n}" for k, n in sorted(trouble.items()))
 
     @property
-    def foreign_nodes(self) -> list[str]:
-        """Descriptions of the frames from protocol nodes the hand config does not have."""
-        return [what for what, _ in self.foreign.values() if "not in the hand config" in what]
-
-    @property
     def ok(self) -> bool:
-        """Every configured node there, in no fault, of the host's protocol, its feedback
-        coming and accepted; nobody else; a bus without error events."""
+        """Every configured node there, DISABLED, in no fault, of the host's protocol, its
+        feedback coming and accepted; nobody else (no frame on another id: another host's
+        commands, a node the config lacks, an id the DBC does not have); a bus without error
+        events. Before, another host's commands and ids outside the DBC left it true."""
         return (
-            all(not row.problem for row in self.rows)
-            and not self.foreign_nodes
-            and not self.bus_problem
+            all(not row.problem for row in self.rows) and not self.foreign and not self.bus_problem
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -229,6 +224,10 @@ def _row(
         problem = f"in FAULT ({', '.join(fault_names(node.fault_bits)) or 'no bits'})"
     elif node.contradiction:
         problem = f"contradicts itself: {node.contradiction}"
+    elif node.state == NodeState.ENABLED:
+        # a node takes torque only from a host: another one is driving the hand, or left it
+        # enabled (docs/bringup.md: good is DISABLED)
+        problem = "ENABLED: another host is driving it, or left it enabled"
     feedback_hz = count["Feedback"] / elapsed
     if present:
         heard = feedback_problem(node.rejects.as_dict(), feedback_hz, expected_hz, lost)

@@ -9,6 +9,8 @@ import json
 import re
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -246,3 +248,39 @@ def test_a_bus_with_error_frames_is_a_problem(
     assert report["bus_events"]["error_frame"] > 10
     assert report["bus_problem"].startswith("bus events: error_frame ")
     assert all(row["problem"] == "" for row in report["nodes"])  # the nodes are fine
+
+
+@pytest.mark.parametrize(
+    ("frame_id", "what"),
+    [(0x101, "TorqueCommand_1: sent by another host"), (0x555, "not in the DBC")],
+)
+def test_frames_on_other_ids_are_a_problem(
+    hand: HandConfig,
+    channel: str,
+    capsys: pytest.CaptureFixture[str],
+    frame_id: int,
+    what: str,
+) -> None:
+    """Good is 'no line about other ids' (docs/bringup.md): another host's commands and ids
+    the DBC does not have were listed, and the survey still said ok, exit 0."""
+    spec = f"virtual:{channel}"
+    other = open_bus(spec, hand.bus)
+    stop = threading.Event()
+
+    def send() -> None:
+        while not stop.is_set():
+            other.send(frame_id, bytes(8))
+            time.sleep(0.002)
+
+    sender = threading.Thread(target=send)
+    try:
+        with running_hand(hand, spec):
+            sender.start()
+            code, report = _nodes(capsys, "--bus", spec)
+    finally:
+        stop.set()
+        if sender.is_alive():
+            sender.join()
+        other.close()
+    assert code == cli.EXIT_FAILED and not report["ok"]
+    assert [f["what"] for f in report["foreign_ids"]] == [what]
