@@ -49,7 +49,7 @@ def to_bus(
     require_topics(recording, (ch.CAN_RX, ch.CAN_TX), "--to-bus")
     hand = recorded_hand(recording)
     assert hand is not None
-    check_commands(recording, hand, direction)
+    check_commands(recording, hand, direction, speed)
     sent = failed = 0
     worst_late = 0.0
     with open_bus(spec, hand.bus) as bus:
@@ -78,7 +78,9 @@ def to_bus(
     }
 
 
-def check_commands(recording: Recording, hand: HandConfig, direction: str = "both") -> int:
+def check_commands(
+    recording: Recording, hand: HandConfig, direction: str = "both", speed: float = 1.0
+) -> int:
     """Refuse, before anything is sent, a log whose frames hold a command the run's safety
     supervisor would never have let through; returns how many commands were checked.
 
@@ -88,8 +90,10 @@ def check_commands(recording: Recording, hand: HandConfig, direction: str = "bot
     ``NodeCommand`` must be of the recorded protocol's length with a good CRC, and address a
     node of the recorded hand; each joint's torque must lie within ±``tau_max`` (and the
     torques a command carries beyond a finger's joints be zero), and it may change from the
-    node's previous command by at most the rate limit over the time between the two (one loop
-    period at least) unless it moves towards zero, as a stop does."""
+    node's previous command by at most the rate limit over the time between the two as they
+    are sent, the logged time over ``speed`` (one loop period of the log at least), unless it
+    moves towards zero, as a stop does. Judged on the logged time, a replay at ``--speed 4``
+    put four times the rate limit on the wire."""
     protocol = recorded_protocol(recording) or protocol_for(hand)
     torque: dict[int, tuple[Layout, FingerConfig]] = {}
     other: dict[int, Layout] = {}
@@ -128,8 +132,8 @@ def check_commands(recording: Recording, hand: HandConfig, direction: str = "bot
             continue
         _, values = layout.decode(data)
         before_ns, before = last.get(frame_id, (log_time - period_ns, (0.0,) * len(values)))
-        dt = max(period_ns, log_time - before_ns) * 1e-9
-        problem = _torque_problem(layout, entry[1], values, before, dt)
+        dt = max(period_ns, log_time - before_ns) * 1e-9 / speed
+        problem = _torque_problem(layout, entry[1], values, before, dt, speed)
         if problem is not None:
             raise refuse(*problem)
         last[frame_id] = (log_time, values)
@@ -142,6 +146,7 @@ def _torque_problem(
     values: tuple[float, ...],
     before: tuple[float, ...],
     dt: float,
+    speed: float = 1.0,
 ) -> tuple[str, str, float] | None:
     """What the supervisor would not have let through in one TorqueCommand (the signal, what
     it expects, the value), or None: a torque beyond a joint's ``tau_max``, a change beyond its
@@ -163,7 +168,9 @@ def _torque_problem(
             return (
                 label,
                 f"a change of at most {step:.6g} N·m from the previous command's {was:g} N·m "
-                f"(its rate limit {joint.rate_limit:g} N·m/s over {dt * 1e3:g} ms)",
+                f"(its rate limit {joint.rate_limit:g} N·m/s over {dt * 1e3:g} ms"
+                + (f", the logged time at --speed {speed:g}" if speed != 1.0 else "")
+                + ")",
                 tau,
             )
     return None

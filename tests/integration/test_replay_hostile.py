@@ -303,7 +303,7 @@ def test_to_bus_sends_nothing_from_a_log_with_a_command_the_supervisor_would_ref
     channel = f"hostile-{case}"
     with open_bus(f"virtual:{channel}", hand.bus) as listener:
         with pytest.raises(ConfigError) as caught:
-            to_bus(recording, f"virtual:{channel}", speed=1000.0)
+            to_bus(recording, f"virtual:{channel}")
         heard = listener.drain(limit=10**6)
     assert heard == []
     text = str(caught.value)
@@ -327,7 +327,7 @@ def test_to_bus_refuses_a_command_hidden_among_the_received_frames(
 
     bad = tmp_path / "rx.mcap"
     rewrite(recorded.path, bad, change)
-    done = handctl("replay", str(bad), "--to-bus", "virtual:hostile-rx", "--speed", "1000")
+    done = handctl("replay", str(bad), "--to-bus", "virtual:hostile-rx")
     assert done.returncode == 2, done.stdout + done.stderr
     assert f"{bad}: {ch.CAN_RX} frame 0x102 {sealed}" in done.stderr
     assert "Torque1 (f2_j1): expected a change of at most" in done.stderr
@@ -339,9 +339,24 @@ def test_an_unaltered_log_still_goes_onto_the_bus_whole(
 ) -> None:
     recording = open_recording(recorded.path)
     with open_bus("virtual:hostile-whole", hand.bus) as listener:
-        sent = to_bus(recording, "virtual:hostile-whole", speed=1000.0)
+        sent = to_bus(recording, "virtual:hostile-whole")
         heard = listener.drain(limit=10**7)
     assert sent["failed"] == 0 and sent["sent"] == len(heard) > 0
+
+
+def test_a_replay_faster_than_the_log_is_held_to_the_rate_limit_as_it_is_sent(
+    recorded: Recorded, hand: HandConfig
+) -> None:
+    """Judged on the logged time, a replay at --speed 4 put four times the rate limit on a
+    bus where a hand may listen; it is judged on the time it is sent at."""
+    recording = open_recording(recorded.path)
+    with open_bus("virtual:hostile-fast", hand.bus) as listener:
+        with pytest.raises(ConfigError) as caught:
+            to_bus(recording, "virtual:hostile-fast", speed=1000.0)
+        heard = listener.drain(limit=10**6)
+    assert heard == []
+    assert "the logged time at --speed 1000" in str(caught.value)
+    assert "nothing was sent" in str(caught.value)
 
 
 def test_a_bad_message_the_re_run_meets_while_running_is_still_bad_input(
