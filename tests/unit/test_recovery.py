@@ -69,6 +69,12 @@ def test_outside_at_arming_trips_and_says_how_to_recover(
     low = hand.joints[J].angle_min
     armed = Armed(hand, protocol, at(hand, low - 0.06), None)
     assert "`handctl jog f1_j2 --torque +X --recover`" in armed.at_arming[0].detail
+    # every joint outside is named, not the first alone
+    angle = at(hand, top + 0.06)
+    angle[5] = hand.joints[5].angle_min - 0.02
+    armed = Armed(hand, protocol, angle, None)
+    detail = armed.at_arming[0].detail
+    assert f"({hand.joints[5].name} outside too)" in detail and "then each of the others" in detail
 
 
 def test_a_joint_coming_back_in_is_let_back(hand: HandConfig, protocol: Protocol) -> None:
@@ -168,14 +174,51 @@ def test_the_ratchet_holds_exactly_at_its_bound_and_not_beyond(
     )
 
 
-def test_only_the_recovering_joint_is_let_off(hand: HandConfig, protocol: Protocol) -> None:
+def test_the_other_joints_resting_outside_stay_where_they_rest(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    """A hand left at zero torque sags several distal joints past their limits at once, and
+    each one's recovery was refused for the others: a joint already resting outside when
+    torque is first allowed is held to the ratchet from where it rests."""
+    top = hand.joints[J].angle_max
+    angle = at(hand, top + 0.05)
+    other = 5
+    rest = hand.joints[other].angle_max + 0.01
+    angle[other] = rest
+    recovery = Recovery(J, -1)
+    armed = Armed(hand, protocol, angle, recovery)
+    assert armed.at_arming == [] and set(recovery.resting) == {other}
+    angle[other] = rest + 0.015  # within the slack
+    assert armed.see(angle) == []
+    angle[other] = rest + 0.03  # further out than it rested: as any joint out
+    (fault,) = armed.see(angle)
+    assert fault.code is FaultCode.ANGLE_LIMIT
+    assert fault.detail.startswith(f"{hand.joints[other].name} at ")
+    assert "further out than it rested" in fault.detail
+
+
+def test_a_resting_joint_back_inside_is_checked_as_any_other(
+    hand: HandConfig, protocol: Protocol
+) -> None:
     top = hand.joints[J].angle_max
     angle = at(hand, top + 0.05)
     other = 5
     angle[other] = hand.joints[other].angle_max + 0.01
+    recovery = Recovery(J, -1)
+    armed = Armed(hand, protocol, angle, recovery)
+    angle[other] = hand.joints[other].angle_max - 0.01
+    assert armed.see(angle) == [] and recovery.resting == {}
+    angle[other] = hand.joints[other].angle_max + 0.005
+    assert [f.code for f in armed.see(angle)] == [FaultCode.ANGLE_LIMIT]
+
+
+def test_a_joint_inside_at_arming_may_not_go_out(hand: HandConfig, protocol: Protocol) -> None:
+    top = hand.joints[J].angle_max
+    angle = at(hand, top + 0.05)
     armed = Armed(hand, protocol, angle, Recovery(J, -1))
-    assert [f.code for f in armed.at_arming] == [FaultCode.ANGLE_LIMIT]
-    assert armed.at_arming[0].detail.startswith(hand.joints[other].name)
+    other = 5
+    angle[other] = hand.joints[other].angle_max + 0.001
+    assert [f.code for f in armed.see(angle)] == [FaultCode.ANGLE_LIMIT]
 
 
 def test_a_joint_inside_at_arming_needs_no_recovery(hand: HandConfig, protocol: Protocol) -> None:

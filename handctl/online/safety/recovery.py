@@ -19,13 +19,18 @@ that joint is outside its soft limits the supervisor checks it against a tighter
 - once inside the soft limits the recovery is over for the rest of the run, and the normal
   check applies, so a joint that recovered and then went out again trips as any other.
 
-Every other joint is checked as always, and the torque still passes the limiter (``tau_max``
-and the rate limit): a recovery loosens one angle check of one joint, in one direction, once.
+Every other joint is checked as always, but one that already rests outside its soft limits
+when torque is first allowed (a hand left at zero torque sags: its fingers' distal joints
+sink past their limits together, and each joint's recovery was refused for the others): such
+a joint is held to the same ratchet from where it rests, with no torque asked of it, so that
+the joints can be brought back one at a time. The torque still passes the limiter
+(``tau_max`` and the rate limit): a recovery loosens the angle check of the joints already
+out, for as long as they do not go further out, once.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from handctl.online.safety.limits import JointLimits
 
@@ -49,6 +54,9 @@ class Recovery:
     bound: float = 0.0
     #: whether the joint was outside its limits at arming (False: there was nothing to recover)
     needed: bool = False
+    #: the other joints resting outside their limits at arming: joint -> the farthest out it
+    #: may be (the ratchet, from where it rested); a joint leaves once it is back inside
+    resting: dict[int, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.direction not in (1, -1):
@@ -78,6 +86,37 @@ class Recovery:
             )
         self.needed = True
         self.bound = q - RECOVERY_SLACK if below else q + RECOVERY_SLACK
+        return None
+
+    def rest(self, angles: list[float], limits: JointLimits) -> None:
+        """At the first armed tick, after ``arm``: the other joints resting outside."""
+        for k, q in enumerate(angles):
+            if k == self.joint:
+                continue
+            if q < limits.angle_min_list[k]:
+                self.resting[k] = q - RECOVERY_SLACK
+            elif q > limits.angle_max_list[k]:
+                self.resting[k] = q + RECOVERY_SLACK
+
+    def check_resting(self, k: int, q: float, limits: JointLimits) -> str | None:
+        """A resting joint ``k`` at ``q``: None while it keeps within its ratchet (it leaves
+        the resting ones once back inside its limits)."""
+        lo, hi = limits.angle_min_list[k], limits.angle_max_list[k]
+        bound = self.resting[k]
+        if lo <= q <= hi:
+            del self.resting[k]
+            return None
+        below = bound < lo
+        if (q < bound) if below else (q > bound):
+            return (
+                f"{limits.names[k]} at {q:+.3f} rad, resting outside its limits "
+                f"[{lo:+.3f}, {hi:+.3f}] while {limits.names[self.joint]} is recovered, and "
+                f"further out than it rested ({bound:+.3f} rad with {RECOVERY_SLACK:g} rad to "
+                "spare)"
+            )
+        self.resting[k] = (
+            max(bound, q - RECOVERY_SLACK) if below else min(bound, q + RECOVERY_SLACK)
+        )
         return None
 
     def check(self, q: float, tick: int, limits: JointLimits) -> str | None:

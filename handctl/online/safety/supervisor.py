@@ -16,8 +16,8 @@ what can follow what is data that a test can enumerate, not control flow hidden 
 A joint outside its soft limits trips ``ANGLE_LIMIT`` in every armed state but FAULT_RAMP (in
 STOPPING only while its own torque pushes it further out: ``_left_while_stopping``), with one
 exception asked for before the start: a ``Recovery`` (recovery.py), which lets one
-joint be outside as long as it comes back in, so that a finger resting past its limit can be
-jogged back.
+joint be outside as long as it comes back in, and the others resting outside stay where they
+are, so that a finger resting past its limit can be jogged back.
 """
 
 from __future__ import annotations
@@ -237,6 +237,8 @@ class Supervisor:
             return []
         j = self.recovery.joint
         refused = self.recovery.arm(float(angle[j]), self.limits)
+        if refused is None:
+            self.recovery.rest(angle.tolist(), self.limits)
         return [] if refused is None else [(FaultCode.ANGLE_LIMIT, refused)]
 
     def _angle_findings(
@@ -253,6 +255,13 @@ class Supervisor:
                 outside.remove(j)
             if beyond is not None:
                 findings.append((FaultCode.ANGLE_LIMIT, beyond))
+        if recovery is not None and recovery.resting:
+            for k in list(recovery.resting):
+                beyond = recovery.check_resting(k, float(angle[k]), self.limits)
+                if k in outside:
+                    outside.remove(k)
+                if beyond is not None:
+                    findings.append((FaultCode.ANGLE_LIMIT, beyond))
         stopping = self.state is State.STOPPING
         for j in outside:
             if stopping and not self._pushes_out(j, angle):
@@ -292,11 +301,16 @@ class Supervisor:
         )
         if tick == self._armed_tick:
             # Outside before any torque flowed: no run can arm until it is back, and the
-            # message is the only place the user learns how.
+            # message is the only place the user learns how (every joint outside: a hand left
+            # at zero torque sags several at once, and one named seemed the only one).
             sign = "-" if angle[j] > limits.angle_max[j] else "+"
+            others = [limits.names[k] for k in angle_violations(angle, limits) if k != j]
             detail += (
-                f", before any torque: bring it back with `handctl jog {limits.names[j]} "
-                f"--torque {sign}X --recover` (docs/bringup.md)"
+                (f" ({', '.join(others)} outside too)" if others else "")
+                + f", before any torque: bring it back with `handctl jog {limits.names[j]} "
+                f"--torque {sign}X --recover`"
+                + (", then each of the others" if others else "")
+                + " (docs/bringup.md)"
             )
         return detail
 
