@@ -364,6 +364,8 @@ class Runtime:
         tk = await self._next_tick()
         self._account_idle(tk)
         self.driver.poll(tk.now_ns)
+        # the last tick's bus events, which the log has: the summary's count had them not
+        self._bus_events += len(self.driver.take_bus_events())
         if sup.faults:
             return Outcome.SAFETY_STOP, "; ".join(str(f) for f in sup.faults)
         if self.stop_requested:

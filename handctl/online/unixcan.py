@@ -123,6 +123,9 @@ class UnixDatagramBus(can.BusABC):
             self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         self._sock.bind(str(self._path))
         self._sock.setblocking(False)
+        #: the directory this participant joined (its inode): one of that name made anew is
+        #: another bus, which none of the participants of this one are on
+        self._directory_ino = os.stat(self.directory).st_ino
         # Readiness asked of the kernel before a read: an empty socket answers a poll in
         # well under a µs, a read of it with an exception several µs, at the end of every drain.
         self._ready = select.poll()
@@ -182,8 +185,10 @@ class UnixDatagramBus(can.BusABC):
             return
         self._peers_at = now
         try:
-            mtime: int | None = os.stat(self.directory).st_mtime_ns
-            self._directory_gone = False
+            seen = os.stat(self.directory)
+            mtime: int | None = seen.st_mtime_ns
+            # removed and made again (rm -rf; mkdir): its sends went to nobody, no bus event
+            self._directory_gone = seen.st_ino != self._directory_ino
         except FileNotFoundError:
             mtime = None
             self._directory_gone = True
@@ -258,8 +263,8 @@ class UnixDatagramBus(can.BusABC):
             # why, rather than the nodes' silence alone (FEEDBACK_TIMEOUT, "0 bus events")
             raise OSError(
                 errno.ENOENT,
-                f"the unix bus directory {self.directory} is gone (removed while in use): "
-                "no participant can be reached",
+                f"the unix bus directory {self.directory} is gone (removed, or removed and "
+                "made again, while in use): no participant can be reached",
             )
         refused = False
         lost = self._lost

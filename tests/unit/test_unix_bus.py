@@ -492,6 +492,22 @@ def test_a_bus_directory_removed_in_use_fails_the_sends_and_says_why(
     assert not tx.send(0x181, bytes(8))
     events = tx.events()
     assert [e.kind for e in events] == [BusEventKind.TX_FAILED]
-    assert f"the unix bus directory {tmp_path / 'bus'} is gone (removed while in use)" in (
-        events[0].detail
-    )
+    assert f"the unix bus directory {tmp_path / 'bus'} is gone (removed" in events[0].detail
+
+
+def test_a_bus_directory_made_anew_in_use_fails_the_sends_too(
+    open_unix: OpenUnix, tmp_path: Path
+) -> None:
+    """Removed and made again (rm -rf; mkdir), the directory is another bus, and the sends
+    went to nobody with no bus event, as a removed one's did."""
+    import shutil
+    import time
+
+    rx, tx = open_unix(), open_unix()
+    assert tx.send(0x181, bytes(8))
+    assert len(rx.drain()) == 1
+    shutil.rmtree(tmp_path / "bus")
+    (tmp_path / "bus").mkdir()
+    time.sleep(0.06)  # the directory is listed again at most every 50 ms
+    assert not tx.send(0x181, bytes(8))
+    assert [e.kind for e in tx.events()] == [BusEventKind.TX_FAILED]
