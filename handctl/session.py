@@ -157,6 +157,7 @@ def summarise_run(
         "bus_events": result.bus_events,
         # joints that sank out of their soft limits while a stop took the torque out
         **({"left_limits_in_stop": result.stop_notes} if result.stop_notes else {}),
+        **({"nodes_reset": result.nodes_reset} if result.nodes_reset else {}),
         **(
             {"exception": _exception_summary(result.exception)}
             if result.exception is not None
@@ -164,6 +165,21 @@ def summarise_run(
         ),
         **({"sim": sim} if sim is not None else {}),
     }
+
+
+def _run_warnings(result: RunResult) -> list[str]:
+    """What the run says beside its outcome: an exception it stopped on, joints that sank out
+    of their limits in its stop, node faults it cleared at start-up."""
+    said = []
+    if result.exception is not None:
+        said.append(
+            f"the run stopped on an exception ({result.exception.code.name}); "
+            "the hand was stopped.\n" + result.exception.traceback.rstrip()
+        )
+    said += result.stop_notes
+    if result.nodes_reset:
+        said.append(result.nodes_reset)
+    return said
 
 
 def _exception_summary(exc: TickException) -> dict[str, Any]:
@@ -296,12 +312,7 @@ def run_recipe(
             _start_recording(recording, runtime, req, peer.spec, lockstep, peer.sim_hand)
         signals.checkpoint()
         result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
-        if result.exception is not None:
-            warnings.append(
-                f"the run stopped on an exception ({result.exception.code.name}); "
-                "the hand was stopped.\n" + result.exception.traceback.rstrip()
-            )
-        warnings += result.stop_notes
+        warnings += _run_warnings(result)
         summary = summarise_run(
             result, req.hand, req.recipe, lockstep, _peer_summary(peer, warnings)
         )

@@ -201,6 +201,8 @@ class RunResult:
     #: joints that left their soft limits in a controlled stop, not by their own torque
     #: (``Supervisor._left_while_stopping``): not faults, said
     stop_notes: list[str] = field(default_factory=list)
+    #: the nodes' faults ``--reset-node-faults`` cleared at start-up ("": none)
+    nodes_reset: str = ""
 
 
 class Runtime:
@@ -244,6 +246,8 @@ class Runtime:
         self.stop_requested = ""
         self.estop_requested = ""
         self._stop_notes_said = 0  # of ``supervisor.stop_notes``, in the log
+        #: the nodes' faults ``--reset-node-faults`` cleared at start-up ("": none)
+        self.nodes_reset = ""
         #: a peer process the start-up waits for (the simulated hand of a real-time run):
         #: what it said if it has ended, else ""; asked every start-up tick, so that a hand
         #: that died is said at once and not after the whole start-up timeout (20 s)
@@ -483,22 +487,10 @@ class Runtime:
                 if all(n.state == NodeState.DISABLED for n in nodes):
                     return ""
                 continue
-            if not self.reset_node_faults:
-                from handctl.online.drivers.finger import fault_names
-
-                names = "; ".join(
-                    f"node {n.node_id} ({n.finger.name}) in FAULT "
-                    f"({', '.join(fault_names(n.fault_bits)) or 'no bits'})"
-                    for n in faulted
-                )
-                self.supervisor.trip(FaultCode.STARTUP, names, tk.tick)
-                return (
-                    f"{names}: check the hand, then clear the faults explicitly with "
-                    "--reset-node-faults"
-                )
-            if not reset_sent:
-                self.driver.node_command("fault_reset", [n.node_id for n in faulted])
-                reset_sent = True
+            faults = self._faulted_at_startup(faulted, tk.tick, reset_sent)
+            if faults:
+                return faults
+            reset_sent = True
         silent = []
         for n in nodes:
             who = f"node {n.node_id} ({n.finger.name})"
@@ -513,6 +505,30 @@ class Runtime:
         detail = "; ".join(silent) or "nodes not ready"
         self.supervisor.trip(FaultCode.STARTUP, detail, self.tick)
         return f"nodes not ready within {self.startup_ticks} ticks: {detail}"
+
+    def _faulted_at_startup(self, faulted: list[finger.FingerNode], tick: int, sent: bool) -> str:
+        """Nodes in FAULT at start-up: the reason to refuse (without ``--reset-node-faults``),
+        or "" once their reset is sent (``sent``: already), said in the summary, on stderr and
+        in the log (before, only the NodeCommand frames in the log showed what was cleared)."""
+        from handctl.online.drivers.finger import fault_names
+
+        names = "; ".join(
+            f"node {n.node_id} ({n.finger.name}) in FAULT "
+            f"({', '.join(fault_names(n.fault_bits)) or 'no bits'})"
+            for n in faulted
+        )
+        if not self.reset_node_faults:
+            self.supervisor.trip(FaultCode.STARTUP, names, tick)
+            return (
+                f"{names}: check the hand, then clear the faults explicitly with "
+                "--reset-node-faults"
+            )
+        if not sent:
+            self.driver.node_command("fault_reset", [n.node_id for n in faulted])
+            self.nodes_reset = f"cleared at start-up (--reset-node-faults): {names}"
+            if self.recorder is not None:
+                self.recorder.note("node_reset", self.nodes_reset, tick)
+        return ""
 
     def _refused_at_startup(self, since: int) -> tuple[FaultCode, str] | None:
         """Why the nodes must not be enabled, whatever they say of their state (None if
@@ -779,6 +795,7 @@ class Runtime:
             ],
             exception=self.exception,
             stop_notes=list(self.supervisor.stop_notes),
+            nodes_reset=self.nodes_reset,
         )
 
 

@@ -339,8 +339,8 @@ class ReplayClock:
                     runtime.request_stop(detail)
                 elif kind == "estop":
                     runtime.request_estop(detail)
-                elif kind == "limit":
-                    pass  # the supervisor's own note of the stop: the re-run's says it again
+                elif kind in ("limit", "node_reset"):
+                    pass  # the runtime's own notes (a stop's, the start-up's): said again
                 else:
                     self.unsupported.append(f"tick {current.tick}: {kind}")
         return Tick(current.tick, current.scheduled_ns, current.now_ns, current.missed)

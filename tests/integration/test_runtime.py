@@ -199,6 +199,9 @@ def test_startup_refuses_nodes_in_fault_without_explicit_reset(
         r.runtime.reset_node_faults = True
         result = r.run()
         assert result.outcome is Outcome.COMPLETED, result.message
+        # what was cleared is said (before, only the NodeCommand frames in the log showed it)
+        assert result.nodes_reset.startswith("cleared at start-up (--reset-node-faults): node 1")
+        assert "in FAULT (ESTOP" in result.nodes_reset
 
 
 def test_a_dead_host_is_stopped_by_the_node_watchdogs(hand: HandConfig, hold: Recipe) -> None:
