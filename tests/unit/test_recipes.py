@@ -265,8 +265,9 @@ def test_the_reserved_phase_names_are_what_the_log_says_where_no_phase_runs() ->
         ("time >= 0 for 5", "held for 5 s, it outlasts the phase"),
         ("time > 5", "the phase times out first"),
         ("time >= 0.8 for 0.3", "the phase times out first"),
-        ("time < -1", "a phase's time is never below 0"),
-        ("time < 0", "a phase's time is never below 0"),
+        ("time < -1", "a phase's time is never below one loop period (1 ms)"),
+        ("time <= 0", "a phase's time is never below one loop period"),
+        ("time < 0.001", "a phase's time is never below one loop period"),
         ("angle.f1_j1 > 5", "f1_j1 past its soft limit"),
         ("angle.f1_j1 < -5", "f1_j1 past its soft limit"),
     ],
@@ -279,8 +280,9 @@ def test_a_condition_that_never_holds_in_its_phase_is_refused(
         doc["phases"][0][key] = [condition]
         err = error(tmp_path, hand, doc)
         assert err.key == f"phases[0].{key}[0]" and why in err.expected, err
-    # at the edge it may hold, and loads
+    # at the edges it may hold, and loads
     load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=["time >= 1"]))), hand)
+    load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=["time <= 0.001"]))), hand)
 
 
 def test_turn_from_without_a_turn_to_count_is_refused(tmp_path: Path, hand: HandConfig) -> None:

@@ -833,8 +833,10 @@ def _never_holds(cond: Condition, max_s: float, hand: HandConfig) -> str:
     if cond.kind is SignalKind.TIME:
         if above and cond.value + cond.hold_s > max_s * (1 + 1e-9):
             return "the phase times out first"
-        if not above and (cond.value < 0 or (cond.op == "<" and cond.value == 0)):
-            return "a phase's time is never below 0"
+        # a phase is judged from the tick after it began: its time is a loop period at least
+        first = hand.bus.period_s
+        if not above and (cond.value < first or (cond.op == "<" and cond.value == first)):
+            return f"a phase's time is never below one loop period ({first * 1e3:g} ms)"
     if cond.kind is SignalKind.ANGLE:
         joint = hand.joints[cond.index]
         if above and cond.value > joint.angle_max:
