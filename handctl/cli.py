@@ -974,6 +974,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
                 f"as logged ({result.frames_compared} sent); no control tick to compare: the "
                 "nodes were never enabled"
             )
+        elif (
+            result.ok
+            and result.compared == 0
+            and result.logged_outcome == "startup_failed"
+            and result.outcome == "log ended"
+        ):
+            # a start-up that failed on something outside the frames (the simulated hand's
+            # process ending): the re-run, fed the same frames, listens to the log's end
+            print(
+                "rerun: the start-up re-run on every logged frame to the log's end, nothing "
+                "sent; it failed on something the frames do not hold (its reason is in the "
+                "summary: a peer process that ended, say); no control tick to compare"
+            )
         elif result.ok and result.compared == 0:
             # a log whose first chunk is lost has no tick a fresh runtime could follow: the
             # re-run ran nothing, and nothing was shown to be bit-exact

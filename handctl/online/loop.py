@@ -341,6 +341,7 @@ class Runtime:
         # 1. Listen until every node has spoken (feedback and heartbeat); send nothing yet.
         problem = await self._startup()
         if problem:
+            self._bus_events += len(self.driver.take_bus_events())  # the log has them
             return Outcome.STARTUP_FAILED, problem
         # 2. Enable, with zero torque every tick from now on (the device watchdog is armed).
         tick = self.tick

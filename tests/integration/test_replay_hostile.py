@@ -373,3 +373,20 @@ def test_a_bad_message_the_re_run_meets_while_running_is_still_bad_input(
     text = str(caught.value)
     assert text.startswith(f"{bad}: {ch.CAN_TX} message at log time "), text
     assert ": data: expected a frame's payload as hex, at most 64 bytes, found 'zz'" in text
+
+
+def test_faster_than_logged_one_resolution_a_frame_is_no_spare(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    """The one resolution a frame spared for a log whose encoder rounded to the nearest let
+    0.0001 N·m a frame through at any speed: on a joint whose step a tick is about that, a
+    replay at --speed 50 put 50 times its rate limit on the wire."""
+    from handctl.recording.frames import _torque_problem
+
+    layout = protocol.layout("TorqueCommand", 1)
+    finger = hand.fingers[0]
+    resolution = layout.signals[0].scale
+    step_dt = resolution / finger.joints[0].rate_limit  # the time one resolution may take
+    before, after = (0.0, 0.0, 0.0), (resolution, 0.0, 0.0)
+    assert _torque_problem(layout, finger, after, before, step_dt, 1.0) is None
+    assert _torque_problem(layout, finger, after, before, step_dt / 50, 50.0) is not None

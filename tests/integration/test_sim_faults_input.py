@@ -99,6 +99,7 @@ def test_a_bus_off_during_start_up_enables_no_node(tmp_path: Path) -> None:
     assert summary["outcome"] == "startup_failed"
     assert [f["code"] for f in summary["faults"]] == ["BUS_ERROR"]
     assert "bus-off during start-up" in summary["faults"][0]["detail"]
+    assert summary["bus_events"] >= 1  # the bus-off, which the log has too
     replayed = tmp_path / "replay.json"
     assert handctl("replay", str(log), "--json", str(replayed)).returncode == 0
     assert json.loads(replayed.read_text())["summary"]["frames"]["tx"] == 0  # nothing sent

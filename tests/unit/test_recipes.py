@@ -244,7 +244,7 @@ def test_the_torque_margin_is_held_to_tau_max_and_the_rate_limit(
     load_recipe(write(tmp_path, recipe_doc(fast)), hand)
 
 
-@pytest.mark.parametrize("name", ["running", "end_ramp", "completed", "aborted", "-"])
+@pytest.mark.parametrize("name", ["running", "end_ramp", "completed", "aborted", "-", "end_ramp "])
 def test_a_phase_may_not_take_a_name_the_log_uses_for_something_else(
     tmp_path: Path, hand: HandConfig, name: str
 ) -> None:
@@ -262,7 +262,7 @@ def test_the_reserved_phase_names_are_what_the_log_says_where_no_phase_runs() ->
 @pytest.mark.parametrize(
     ("condition", "why"),
     [
-        ("time >= 0 for 5", "held for 5 s, it outlasts the phase"),
+        ("time >= 0 for 5", "held for 5 s from its second tick"),
         ("time > 5", "the phase times out first"),
         ("time >= 0.8 for 0.3", "the phase times out first"),
         ("time < -1", "a phase's time is never below one loop period (1 ms)"),
@@ -270,6 +270,10 @@ def test_the_reserved_phase_names_are_what_the_log_says_where_no_phase_runs() ->
         ("time < 0.001", "a phase's time is never below one loop period"),
         ("angle.f1_j1 > 5", "f1_j1 past its soft limit"),
         ("angle.f1_j1 < -5", "f1_j1 past its soft limit"),
+        # a hold starts at the phase's second tick at the earliest
+        ("time >= 0 for 1", "it outlasts the phase"),
+        ("angle.f1_j1 > -5 for 1", "it outlasts the phase"),
+        ("tdt.f1_j1 > 1000", "never passes its device_tau_max"),
     ],
 )
 def test_a_condition_that_never_holds_in_its_phase_is_refused(
@@ -310,8 +314,9 @@ def test_every_phase_is_judged_from_its_second_tick_the_first_one_too(
     assert ticks["c"] == ticks["d"]
 
 
+@pytest.mark.parametrize(("period_ns", "ticks"), [(1_000_000, 10), (3_333_333, 3)])
 def test_a_phase_s_max_s_is_as_many_ticks_wherever_the_phase_begins(
-    tmp_path: Path, hand: HandConfig
+    tmp_path: Path, hand: HandConfig, period_ns: int, ticks: int
 ) -> None:
     """Times to the nanosecond: a bare difference of two tick times is a hair under or over
     0.01 s by where the phase began, and 64 phases of max_s 0.01 ran 10 ticks or 11."""
@@ -323,10 +328,12 @@ def test_a_phase_s_max_s_is_as_many_ticks_wherever_the_phase_begins(
     tick = 0
     while not runner.done and tick < 2000:
         # the loop's times: integer nanoseconds from the first tick, in seconds
-        runner.step(tick * 1_000_000 * 1e-9, ZERO, ZERO)
+        runner.step(tick * period_ns * 1e-9, ZERO, ZERO)
         tick += 1
-    ticks = [round(((r.end_s or 0.0) - r.start_s) * 1000) for r in runner.records]
-    assert ticks == [10] * 40 + [13]
+    # at 300 Hz a period of whole nanoseconds is short by a third of one: three were under
+    # 0.01 s, and a phase of max_s 0.01 ran four
+    lasted = [round(((r.end_s or 0.0) - r.start_s) / (period_ns * 1e-9)) for r in runner.records]
+    assert lasted[:40] == [ticks] * 40
 
 
 def test_a_pose_of_another_hand_s_joints_says_so(tmp_path: Path) -> None:

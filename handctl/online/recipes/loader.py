@@ -288,7 +288,7 @@ def check_unique_names(doc: Doc, names: list[str]) -> None:
     that the log uses for something else."""
     seen: set[str] = set()
     for i, name in enumerate(names):
-        if name in RESERVED_PHASE_NAMES:
+        if name in RESERVED_PHASE_NAMES or name.strip() in RESERVED_PHASE_NAMES:
             raise ConfigError(
                 doc.file,
                 f"phases[{i}].name",
@@ -827,16 +827,25 @@ def _refuse_never_holding(
 
 def _never_holds(cond: Condition, max_s: float, hand: HandConfig) -> str:
     """Why ``cond`` never holds in a phase of ``max_s`` on ``hand`` ('' if it may)."""
-    if cond.hold_s > max_s * (1 + 1e-9):
-        return f"held for {cond.hold_s:g} s, it outlasts the phase"
+    # a phase is judged from the tick after it began: its time is a loop period at least
+    first = hand.bus.period_s
+    slack = 1e-6  # s, the runner's times are to the microsecond
+    if first + cond.hold_s > max_s + slack:
+        return (
+            f"held for {cond.hold_s:g} s from its second tick ({first * 1e3:g} ms) at the "
+            "earliest, it outlasts the phase"
+        )
     above = cond.op in (">", ">=")
     if cond.kind is SignalKind.TIME:
-        if above and cond.value + cond.hold_s > max_s * (1 + 1e-9):
+        if above and max(cond.value, first) + cond.hold_s > max_s + slack:
             return "the phase times out first"
-        # a phase is judged from the tick after it began: its time is a loop period at least
-        first = hand.bus.period_s
         if not above and (cond.value < first or (cond.op == "<" and cond.value == first)):
             return f"a phase's time is never below one loop period ({first * 1e3:g} ms)"
+    if cond.kind is SignalKind.TDT:
+        joint = hand.joints[cond.index]
+        most = joint.device_tau_max
+        if (above and cond.value > most) or (not above and cond.value < -most):
+            return f"{joint.name}'s torque never passes its device_tau_max ({most:g} N·m)"
     if cond.kind is SignalKind.ANGLE:
         joint = hand.joints[cond.index]
         if above and cond.value > joint.angle_max:

@@ -342,10 +342,11 @@ class RecipeRunner:
             return
         self.velocity.update(t, angle)
         self._fitted_velocity.update(t, angle)
-        # to the nanosecond, the resolution of every time in a run: a bare difference of two
-        # tick times is a hair under or over a phase's max_s (or a time condition's value)
-        # by where the phase began, and a max_s of 0.01 s ran 10 ticks or 11
-        elapsed = round(t - self.phase_start, 9)
+        # to the microsecond: a bare difference of two tick times is a hair under or over a
+        # phase's max_s (or a time condition's value) by where the phase began, and a max_s of
+        # 0.01 s ran 10 ticks or 11; at 300 Hz a period of whole nanoseconds (3 333 333) is
+        # short by a third of one, and three ticks were 9 999 999 ns, a tick too few for 0.01 s
+        elapsed = round(t - self.phase_start, 6)
         if self.status is RunStatus.RUNNING:
             phase = self.recipe.phases[self.index]
             if estimates is not None:
