@@ -39,6 +39,15 @@ from handctl.online.safety.limits import JointLimits
 RECOVERY_SLACK = 0.02
 
 
+def _ratchet(bound: float, q: float, below: bool) -> float | None:
+    """The ratchet of a joint outside its limits (``below`` its lower one, else above its
+    upper one), at ``q``: its bound moved in to follow it, or None if it went further out
+    than ``bound``."""
+    if below:
+        return None if q < bound else max(bound, q - RECOVERY_SLACK)
+    return None if q > bound else min(bound, q + RECOVERY_SLACK)
+
+
 @dataclass
 class Recovery:
     """One joint, one direction (+1: it is below its lower limit and is pushed up; −1: above
@@ -93,10 +102,9 @@ class Recovery:
         for k, q in enumerate(angles):
             if k == self.joint:
                 continue
-            if q < limits.angle_min_list[k]:
-                self.resting[k] = q - RECOVERY_SLACK
-            elif q > limits.angle_max_list[k]:
-                self.resting[k] = q + RECOVERY_SLACK
+            if not limits.angle_min_list[k] <= q <= limits.angle_max_list[k]:
+                # its ratchet as it starts: where it rests, with the slack to spare
+                self.resting[k] = q + RECOVERY_SLACK * (-1 if q < limits.angle_min_list[k] else 1)
 
     def check_resting(self, k: int, q: float, limits: JointLimits) -> str | None:
         """A resting joint ``k`` at ``q``: None while it keeps within its ratchet (it leaves
@@ -106,17 +114,15 @@ class Recovery:
         if lo <= q <= hi:
             del self.resting[k]
             return None
-        below = bound < lo
-        if (q < bound) if below else (q > bound):
+        moved = _ratchet(bound, q, below=bound < lo)
+        if moved is None:
             return (
                 f"{limits.names[k]} at {q:+.3f} rad, resting outside its limits "
                 f"[{lo:+.3f}, {hi:+.3f}] while {limits.names[self.joint]} is recovered, and "
                 f"further out than it rested ({bound:+.3f} rad with {RECOVERY_SLACK:g} rad to "
                 "spare)"
             )
-        self.resting[k] = (
-            max(bound, q - RECOVERY_SLACK) if below else min(bound, q + RECOVERY_SLACK)
-        )
+        self.resting[k] = moved
         return None
 
     def check(self, q: float, tick: int, limits: JointLimits) -> str | None:
@@ -126,14 +132,11 @@ class Recovery:
         if lo <= q <= hi:
             self.back_tick = tick
             return None
-        if self.direction > 0:  # below the lower limit, coming up
-            if q < self.bound:
-                return self._out(q, limits)
-            self.bound = max(self.bound, q - RECOVERY_SLACK)
-        else:
-            if q > self.bound:
-                return self._out(q, limits)
-            self.bound = min(self.bound, q + RECOVERY_SLACK)
+        # +1: below the lower limit, coming up
+        moved = _ratchet(self.bound, q, below=self.direction > 0)
+        if moved is None:
+            return self._out(q, limits)
+        self.bound = moved
         return None
 
     def _out(self, q: float, limits: JointLimits) -> str:
