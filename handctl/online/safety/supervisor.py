@@ -132,6 +132,7 @@ class Supervisor:
         #: joints that left their soft limits in a controlled stop, not pushed out by their
         #: own torque (``_left_while_stopping``): said in the summary and the log
         self.stop_notes: list[str] = []
+        self._said_in_stop: set[int] = set()  # the joints of ``stop_notes``
 
     # -- events ---------------------------------------------------------------------------
     def fire(self, event: Event, tick: int) -> State:
@@ -285,9 +286,9 @@ class Supervisor:
         turned a Ctrl-C or a time budget into a safety stop (exit 3) for the stop itself. A
         joint whose own torque still pushes it out is a fault as ever, and its faster ramp
         takes the torque out sooner."""
-        name = self.limits.names[j]
-        if any(note.startswith(f"{name} ") for note in self.stop_notes):
+        if j in self._said_in_stop:
             return
+        self._said_in_stop.add(j)
         self.stop_notes.append(
             f"{self._outside(j, angle, tick)} at tick {tick}, while the torques were ramped "
             "out for the stop, its own torque not pushing it out: not a fault"
