@@ -288,7 +288,7 @@ def check_unique_names(doc: Doc, names: list[str]) -> None:
     that the log uses for something else."""
     seen: set[str] = set()
     for i, name in enumerate(names):
-        if name in RESERVED_PHASE_NAMES or name.strip() in RESERVED_PHASE_NAMES:
+        if name.strip() in RESERVED_PHASE_NAMES:
             raise ConfigError(
                 doc.file,
                 f"phases[{i}].name",
