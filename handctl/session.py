@@ -61,6 +61,7 @@ from handctl.stopsignals import StopSignals
 if TYPE_CHECKING:
     from handctl.online.clock import Tick
     from handctl.recording.recorder import Recorder
+    from handctl.sim.faults import FaultSchedule
 
 #: The runtime's own tick limit when a run has no time budget: none that a run can reach.
 NO_TICK_LIMIT = 1 << 62
@@ -215,13 +216,15 @@ def run_recipe(
 
         # the experiment is measured on the simulated objects of the recipe's names
         check_scene_names(req.recipe.source, [o.name for o in req.recipe.objects], req.hand)
+    sim_faults: FaultSchedule | None = None
     if is_sim and req.sim_faults is not None:
         from handctl.sim.faults import load_scenario
 
         # Read here, before the log is opened or a process started: a file the simulated
         # hand would refuse truncated an existing --log first, and in real time its process
-        # ended with exit 2 while the host listened out its start-up (20 s, exit 3).
-        load_scenario(req.sim_faults, req.hand)
+        # ended with exit 2 while the host listened out its start-up (20 s, exit 3). The
+        # lockstep hand takes it as read; a hand of its own process reads the file itself.
+        sim_faults = load_scenario(req.sim_faults, req.hand)
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
     if not is_sim:
@@ -273,7 +276,7 @@ def run_recipe(
         # later would inherit
         reanalyser = _reanalyser(stack, req, estimator, lockstep, {loop_cpu, sim_cpu})
         signals.checkpoint()
-        peer = _start_peer(stack, req, spec, lockstep, sim_cpu)
+        peer = _start_peer(stack, req, spec, lockstep, sim_cpu, sim_faults)
         signals.checkpoint()
         bus: HandBus = stack.enter_context(open_bus(peer.spec, req.hand.bus))
         signals.checkpoint()
@@ -394,10 +397,16 @@ class _Peer:
 
 
 def _start_peer(
-    stack: ExitStack, req: RunRequest, spec: BusSpec, lockstep: bool, sim_cpu: int | None
+    stack: ExitStack,
+    req: RunRequest,
+    spec: BusSpec,
+    lockstep: bool,
+    sim_cpu: int | None,
+    faults: FaultSchedule | None = None,
 ) -> _Peer:
-    """On ``--bus sim``, start the simulated hand and name the bus it is on; any other bus is
-    opened as it is named."""
+    """On ``--bus sim``, start the simulated hand (with ``faults``, the scenario of
+    ``req.sim_faults`` as read) and name the bus it is on; any other bus is opened as it is
+    named."""
     if spec.interface != "sim":
         return _Peer(spec)
     if lockstep:
@@ -405,9 +414,7 @@ def _start_peer(
 
         channel = f"handctl-sim-{os.getpid()}-{id(req)}"
         peer_bus = stack.enter_context(open_bus(BusSpec("virtual", channel), req.hand.bus))
-        sim_hand = SimulatedHand(req.hand, peer_bus, seed=req.seed)
-        if req.sim_faults is not None:
-            sim_hand.load_faults(req.sim_faults)
+        sim_hand = SimulatedHand(req.hand, peer_bus, seed=req.seed, faults=faults)
         return _Peer(BusSpec("virtual", channel), sim_hand=sim_hand)
     # Free-running, the simulated hand gets a process of its own: a busy thread in the
     # control process would take the interpreter from the loop for a millisecond at a
