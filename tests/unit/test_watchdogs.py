@@ -312,6 +312,26 @@ def test_a_mismatch_is_a_fault_once_it_has_held_for_the_window(hand: HandConfig)
     assert mon.update(applied, reading) != []  # it goes on while it holds
 
 
+@pytest.mark.parametrize(
+    ("rate_hz", "ticks"), [(250.0, 13), (750.0, 38), (1000.0, 50), (333.0, 17)]
+)
+def test_a_mismatch_window_is_never_shorter_than_its_seconds_at_any_loop_rate(
+    hand: HandConfig, rate_hz: float, ticks: int
+) -> None:
+    """50 ms at 250 Hz is 12.5 ticks: a mismatch held for 12 (48 ms) is not yet a fault,
+    the 13th (52 ms) is."""
+    assert hand.safety.tdt_window_s == 0.05
+    dt = 1.0 / rate_hz
+    mon = TdtMonitor(hand.safety, hand.n_joints, dt, hand.joint_names)
+    zero = np.zeros(hand.n_joints)
+    mon.reset(zero)
+    off = np.full(hand.n_joints, 1.01 * hand.safety.tdt_tolerance)
+    for k in range(1, ticks):
+        assert mon.update(zero, off) == [], f"tick {k} of {ticks}"
+    assert (ticks - 1) * dt < hand.safety.tdt_window_s <= ticks * dt
+    assert codes(mon.update(zero, off)) == [FaultCode.TDT_MISMATCH] * hand.n_joints
+
+
 def test_a_reading_exactly_at_the_tolerance_is_within_it(hand: HandConfig) -> None:
     mon = monitor(hand, tdt_window_s=hand.bus.period_s)  # a window of one tick
     zero = np.zeros(hand.n_joints)

@@ -6,6 +6,7 @@ joint per tick beyond small numpy temporaries, and none waits for anything.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 from handctl.arrays import FloatArray
@@ -17,6 +18,14 @@ from handctl.protocol import NodeState
 ENABLED = int(NodeState.ENABLED)  # plain ints: compared for every node every tick
 FAULT = int(NodeState.FAULT)
 Finding = tuple[FaultCode, str]
+
+
+def ticks_lasting(seconds: float, dt: float) -> int:
+    """The fewest whole ticks that last at least ``seconds``: a window the config states in
+    seconds ("the mismatch must hold this long") must not end sooner at a loop rate that does
+    not divide it. Rounding to the nearest made 50 ms 12 ticks (48 ms) at 250 Hz. The slack
+    keeps an exact quotient (0.05 s at 1 kHz) from rounding up on its last bit."""
+    return math.ceil(seconds / dt - 1e-9)
 
 
 class NodeWatch:
@@ -84,10 +93,10 @@ class TdtMonitor:
         self.tol = safety.tdt_tolerance
         self.rel = safety.tdt_tolerance_rel
         self.alpha = dt / (safety.tdt_lag_s + dt)
-        self.window = max(1, round(safety.tdt_window_s / dt))
-        self.stuck_window = max(2, round(safety.tdt_stuck_window_s / dt))
+        self.window = max(1, ticks_lasting(safety.tdt_window_s, dt))
+        self.stuck_window = max(2, ticks_lasting(safety.tdt_stuck_window_s, dt))
         self.min_change = safety.tdt_stuck_min_change
-        still = round(safety.tdt_stuck_still_s / dt)
+        still = ticks_lasting(safety.tdt_stuck_still_s, dt)
         self.still_window = still if still > 0 else 1 << 62
         #: ticks a sensor is given to answer a command that has moved: three of its lags (95 %
         #: of a step), within the stuck window. Without it, a reading that had sat still at a
@@ -213,7 +222,7 @@ class ReceiveWatch:
     """
 
     def __init__(self, safety: SafetyConfig, dt: float) -> None:
-        self.window = max(1, round(safety.reject_window_s / dt))
+        self.window = max(1, ticks_lasting(safety.reject_window_s, dt))
         self.limit = safety.max_rejects_in_window
         self._totals: list[list[int]] = []  # per node: its reject total at each tick of the window
         self._pos = 0
