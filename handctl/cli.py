@@ -1028,6 +1028,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
             f"worst lateness {sent['worst_late_ms']} ms)"
         )
+        if "warning" in sent:
+            print(f"handctl: warning: to-bus: {sent['warning']}", file=sys.stderr)
     if args.json:
         _write_output("--json", args.json, json.dumps(report, indent=2, default=str) + "\n")
     if args.live is not None:

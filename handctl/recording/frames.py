@@ -68,7 +68,8 @@ def to_bus(
                 sent += 1
             else:
                 failed += 1
-    return {
+        counts = bus.transport_counts()
+    report: dict[str, Any] = {
         "sent": sent,
         "failed": failed,
         "worst_late_ms": round(worst_late * 1e3, 3),
@@ -76,6 +77,15 @@ def to_bus(
         "speed": speed,
         "direction": direction,
     }
+    if sent and counts.get("datagrams_sent") == 0:
+        # The unix bus makes its directory if it is not there, and a send with nobody else
+        # in it succeeds: "N frames sent, 0 failed" to a mistyped directory looked like a
+        # replay somebody had heard. (A CAN bus without a listener has no ACK, and says so.)
+        report["warning"] = (
+            f"no other participant was on {spec}: nobody received the frames "
+            "(is the listener's bus directory this one?)"
+        )
+    return report
 
 
 def check_commands(

@@ -392,6 +392,40 @@ def test_to_bus_sends_every_frame_with_its_spacing(
     assert now[0] == pytest.approx(span / 4.0, rel=1e-6)
 
 
+def test_to_bus_says_when_nobody_was_on_the_unix_bus(
+    recorded: Recorded, hand: HandConfig, tmp_path: Path
+) -> None:
+    """A unix bus directory that does not exist is made, and its sends succeed: to a
+    mistyped directory the replay said "N frames sent, 0 failed" as if a listener had them."""
+    recording = open_recording(recorded.path)
+    logged = list(logged_frames(recording))
+    now = [0.0]
+
+    def sleep(seconds: float) -> None:  # the recorded spacing, without the wait
+        now[0] += seconds
+
+    def send(spec: str) -> dict[str, Any]:
+        return to_bus(recording, spec, sleep=sleep, clock=lambda: now[0])
+
+    alone = send(f"unix:{tmp_path / 'nobody'}")
+    assert alone["sent"] == len(logged)
+    assert "nobody received the frames" in alone["warning"]
+    directory = tmp_path / "bus"
+    with open_bus(f"unix:{directory}", hand.bus) as listener:
+        heard_by = send(f"unix:{directory}")
+        heard = listener.drain(limit=10**7)
+    assert "warning" not in heard_by
+    # a listener that does not read while the replay sends loses what overflows its queue
+    # (the unix bus's own rule), and what it has is the log's first frames, in order
+    assert heard
+    assert [(f.arbitration_id, f.data) for f in heard] == [
+        (fid, d) for _, fid, d, _ in logged[: len(heard)]
+    ]
+    done = handctl("replay", str(recorded.path), "--to-bus", f"unix:{tmp_path / 'typo'}")
+    assert done.returncode == 0, done.stderr
+    assert "warning: to-bus: no other participant was on" in done.stderr
+
+
 # -- bad input --------------------------------------------------------------------------------
 def test_not_an_mcap_file_is_exit_2(tmp_path: Path) -> None:
     bad = tmp_path / "notes.txt"
