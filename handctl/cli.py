@@ -915,6 +915,14 @@ def _check_replay_options(args: argparse.Namespace) -> None:
             "--to-bus SPEC as well (the direction is of the frames sent onto a bus)",
             args.direction,
         )
+    if args.hand is not None and not args.to_bus:
+        raise ConfigError(
+            "--hand",
+            "",
+            "--to-bus SPEC as well (the hand is the one on that bus, whose limits bound what "
+            "is sent)",
+            str(args.hand),
+        )
     if args.speed is not None and not MIN_REPLAY_SPEED <= args.speed <= MAX_REPLAY_SPEED:
         raise ConfigError(
             "--speed",
@@ -1022,11 +1030,20 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print(f"export: {count} frames to {out} ({fmt})")
     if args.to_bus:
         _progress(f"replaying frames onto {args.to_bus} at {args.speed or 1.0:g}x ...")
-        sent = frames.to_bus(recording, args.to_bus, args.speed or 1.0, args.direction or "both")
+        on_bus = _load_hand(args.hand, "--hand") if args.hand is not None else None
+        sent = frames.to_bus(
+            recording, args.to_bus, args.speed or 1.0, args.direction or "both", hand=on_bus
+        )
         report["to_bus"] = sent
         print(
             f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
-            f"worst lateness {sent['worst_late_ms']} ms)"
+            f"worst lateness {sent['worst_late_ms']} ms"
+            + (
+                f"; fell behind and shifted the rest by {sent['shifted_ms']} ms in all"
+                if sent["shifted_ms"]
+                else ""
+            )
+            + ")"
         )
         if "warning" in sent:
             print(f"handctl: warning: to-bus: {sent['warning']}", file=sys.stderr)
@@ -2366,6 +2383,14 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         metavar="SPEC",
         help="send the logged frames onto a bus (virtual:NAME, socketcan:can0, ...) "
         "with their original timing",
+    )
+    rep.add_argument(
+        "--hand",
+        type=Path,
+        metavar="HAND.yaml",
+        help="with --to-bus: the config of the hand on that bus; every command sent is held "
+        "to its limits as well as the recorded hand's (needed on any bus but virtual: and "
+        "unix:, since a log's own limits can be rewritten with it)",
     )
     rep.add_argument(
         "--speed",

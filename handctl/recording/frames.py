@@ -16,6 +16,9 @@ from handctl.recording import channels as ch
 from handctl.recording.metadata import recorded_hand, recorded_protocol
 from handctl.recording.reader import Recording, iter_decoded, require_topics
 
+#: buses where no real hand listens: a replay onto them may take the log's limits as its own
+SIMULATED_BUSES = ("virtual", "unix")
+
 
 def logged_frames(
     recording: Recording, direction: str = "both"
@@ -37,21 +40,45 @@ def to_bus(
     direction: str = "both",
     sleep: Callable[[float], None] = time.sleep,
     clock: Callable[[], float] = time.perf_counter,
+    hand: HandConfig | None = None,
 ) -> dict[str, Any]:
     """Send the logged frames onto the bus ``spec`` with their original spacing / ``speed``.
 
     Frames are paced against their due times (not slept frame to frame), so the time spent
-    sending does not add up into drift."""
+    sending does not add up into drift; a sender more than a period behind shifts the rest of
+    the replay by as much (``shifted_ms``) rather than send a backlog at once."""
     from handctl.online.bus import open_bus
+    from handctl.online.busspec import parse_spec
 
     if not speed > 0 or not math.isfinite(speed):
         raise ConfigError("--speed", "", "a speed factor > 0 (1 = as recorded)", speed)
     require_topics(recording, (ch.CAN_RX, ch.CAN_TX), "--to-bus")
-    hand = recorded_hand(recording)
-    assert hand is not None
-    check_commands(recording, hand, direction, speed)
+    recorded = recorded_hand(recording)
+    assert recorded is not None
+    if hand is None and parse_spec(spec, recorded.bus).interface not in SIMULATED_BUSES:
+        # The recorded hand config is in the log, and its digest is no seal: a log whose
+        # tau_max was raised and whose digest was computed again passed every check against
+        # its own limits. On a bus where a real hand may listen, the limits are the
+        # operator's.
+        raise ConfigError(
+            "--hand",
+            "",
+            f"the config of the hand on {spec}, whose limits bound every command sent (the "
+            "log's own hand config is part of what a tampered log can rewrite)",
+            "nothing",
+        )
+    check_commands(recording, recorded, direction, speed)
+    if hand is not None:
+        check_commands(recording, hand, direction, speed, on_bus=True)
+    hand = hand if hand is not None else recorded
     sent = failed = 0
     worst_late = 0.0
+    # A sender that fell behind (a stall, a slow machine) and sent its backlog back to back
+    # broke on the wire the rate limit the commands were checked against on their logged
+    # spacing. Behind by more than a period (the slack ``check_commands`` gives a late
+    # tick), the rest of the replay is shifted instead, as late as this frame.
+    period_s = hand.bus.period_s / speed
+    shifted = 0.0
     with open_bus(spec, hand.bus) as bus:
         start: float | None = None
         first = 0
@@ -64,6 +91,9 @@ def to_bus(
                 sleep(wait)
             else:
                 worst_late = max(worst_late, -wait)
+                if -wait > period_s:
+                    start -= wait
+                    shifted -= wait
             if bus.send(frame_id, data):
                 sent += 1
             else:
@@ -73,6 +103,7 @@ def to_bus(
         "sent": sent,
         "failed": failed,
         "worst_late_ms": round(worst_late * 1e3, 3),
+        "shifted_ms": round(shifted * 1e3, 3),
         "bus": spec,
         "speed": speed,
         "direction": direction,
@@ -89,7 +120,11 @@ def to_bus(
 
 
 def check_commands(
-    recording: Recording, hand: HandConfig, direction: str = "both", speed: float = 1.0
+    recording: Recording,
+    hand: HandConfig,
+    direction: str = "both",
+    speed: float = 1.0,
+    on_bus: bool = False,
 ) -> int:
     """Refuse, before anything is sent, a log whose frames hold a command the run's safety
     supervisor would never have let through; returns how many commands were checked.
@@ -103,8 +138,12 @@ def check_commands(
     node's previous command by at most the rate limit over the time between the two as they
     are sent, the logged time over ``speed`` (one loop period of the log at least), unless it
     moves towards zero, as a stop does. Judged on the logged time, a replay at ``--speed 4``
-    put four times the rate limit on the wire."""
-    protocol = recorded_protocol(recording) or protocol_for(hand)
+    put four times the rate limit on the wire.
+
+    ``on_bus``: ``hand`` is the one on the bus (``--hand``), not the recorded one: its own
+    protocol's frame ids and its limits, each refusal naming it."""
+    protocol = protocol_for(hand) if on_bus else recorded_protocol(recording) or protocol_for(hand)
+    whose = "--hand's" if on_bus else "the recorded hand's"
     torque: dict[int, tuple[Layout, FingerConfig]] = {}
     other: dict[int, Layout] = {}
     for finger in hand.fingers:
@@ -113,8 +152,17 @@ def check_commands(
             finger,
         )
         other[finger.can_ids.node_command] = protocol.layout("NodeCommand", finger.node_id)
-    period_ns = round(hand.bus.period_s * 1e9)
-    last: dict[int, tuple[int, tuple[float, ...]]] = {}
+    # the log's own ticks (their spacing and lateness are what the slack is for)
+    period_ns = round((recorded_hand(recording) or hand).bus.period_s * 1e9)
+    # what each joint may still change by (N·m), per command id: a bucket filled at the rate
+    # limit over the time between a node's commands as they are sent, up to two periods'
+    # worth. The supervisor allows one period's step a tick; the second period is the slack
+    # a real-time log needs for a tick that ran late (the next one comes sooner). Judged on
+    # the time since the previous command alone, with one period at least, any number of
+    # commands stacked at one log time each got a whole step: 40 of them put 0.6 N·m on the
+    # wire within a millisecond.
+    period_s = period_ns * 1e-9 / speed
+    last: dict[int, tuple[int, tuple[float, ...], list[float]]] = {}
     checked = 0
     for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
         refuse = functools.partial(_refused, recording, log_time, frame_id, data, is_rx)
@@ -125,7 +173,7 @@ def check_commands(
             if named is not None and named[0] in ("TorqueCommand", "NodeCommand"):
                 raise refuse(
                     "",
-                    f"a command to one of the recorded hand's nodes "
+                    f"a command to one of {whose} nodes "
                     f"({', '.join(str(f.node_id) for f in hand.fingers)})",
                     f"{named[0]} to node {named[1]}",
                 )
@@ -141,13 +189,29 @@ def check_commands(
         if entry is None:
             continue
         _, values = layout.decode(data)
-        before_ns, before = last.get(frame_id, (log_time - period_ns, (0.0,) * len(values)))
-        dt = max(period_ns, log_time - before_ns) * 1e-9 / speed
-        problem = _torque_problem(layout, entry[1], values, before, dt, speed)
+        finger = entry[1]
+        rates = [j.rate_limit for j in finger.joints]
+        if frame_id in last:
+            before_ns, before, budget = last[frame_id]
+            dt = max(0, log_time - before_ns) * 1e-9 / speed
+        else:  # a node's first command: from zero, the bucket full
+            before, budget, dt = (0.0,) * len(values), [0.0] * len(rates), 2 * period_s
+        budget = [min(2 * r * period_s, b + r * dt) for r, b in zip(rates, budget, strict=True)]
+        problem = _torque_problem(layout, finger, values, before, budget, speed, period_s)
+        if problem is not None and on_bus:
+            problem = (problem[0], f"{problem[1]} in --hand {hand.source}", problem[2])
         if problem is not None:
             raise refuse(*problem)
-        last[frame_id] = (log_time, values)
+        for i, (tau, was) in enumerate(zip(values, before, strict=False)):
+            if i < len(budget) and not _towards_zero(tau, was):
+                budget[i] = max(0.0, budget[i] - abs(tau - was))
+        last[frame_id] = (log_time, values, budget)
     return checked
+
+
+def _towards_zero(tau: float, was: float) -> bool:
+    """A change a stop makes, which no rate limit holds back."""
+    return 0 <= tau <= was or was <= tau <= 0
 
 
 def _torque_problem(
@@ -155,12 +219,14 @@ def _torque_problem(
     finger: FingerConfig,
     values: tuple[float, ...],
     before: tuple[float, ...],
-    dt: float,
+    budget: list[float],
     speed: float = 1.0,
+    period_s: float = 0.0,
 ) -> tuple[str, str, float] | None:
     """What the supervisor would not have let through in one TorqueCommand (the signal, what
-    it expects, the value), or None: a torque beyond a joint's ``tau_max``, a change beyond its
-    rate limit over ``dt`` (s) unless towards zero, a torque for a joint the finger lacks."""
+    it expects, the value), or None: a torque beyond a joint's ``tau_max``, a change beyond
+    what its rate limit has left it (``budget``, N·m, ``check_commands``) unless towards zero,
+    a torque for a joint the finger lacks."""
     resolution = min((s.scale for s in layout.signals), default=0.0)
     for i, (signal, tau, was) in enumerate(zip(layout.signals, values, before, strict=True)):
         if i >= len(finger.joints):
@@ -172,17 +238,17 @@ def _torque_problem(
         label = f"{signal.name} ({joint.name})"
         if not abs(tau) <= joint.tau_max + resolution / 2:
             return label, f"a torque within ±{joint.tau_max:g} N·m (its tau_max)", tau
-        towards_zero = 0 <= tau <= was or was <= tau <= 0
         # one resolution to spare for a log whose encoder rounded to the nearest (before the
         # supervisor kept the grid); faster than logged none: one resolution a frame passed
         # at any speed on a joint whose step a tick is about one resolution
-        step = joint.rate_limit * dt + (resolution if speed <= 1.0 else 0.0)
-        if not towards_zero and abs(tau - was) > step:
+        step = budget[i] + (resolution if speed <= 1.0 else 0.0)
+        if not _towards_zero(tau, was) and abs(tau - was) > step:
             return (
                 label,
                 f"a change of at most {step:.6g} N·m from the previous command's {was:g} N·m "
-                f"(its rate limit {joint.rate_limit:g} N·m/s over {dt * 1e3:g} ms"
-                + (f", the logged time at --speed {speed:g}" if speed != 1.0 else "")
+                f"(what its rate limit {joint.rate_limit:g} N·m/s has left since the "
+                f"commands before, at most two periods' worth, {2 * period_s * 1e3:g} ms"
+                + (f" of the logged time at --speed {speed:g}" if speed != 1.0 else "")
                 + ")",
                 tau,
             )

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from mcap.reader import make_reader
@@ -18,7 +19,7 @@ from handctl.errors import ConfigError
 from handctl.online.bus import open_bus
 from handctl.protocol import Protocol
 from handctl.recording import channels as ch
-from handctl.recording.frames import to_bus
+from handctl.recording.frames import logged_frames, to_bus
 from handctl.recording.reader import open_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
@@ -355,7 +356,7 @@ def test_a_replay_faster_than_the_log_is_held_to_the_rate_limit_as_it_is_sent(
             to_bus(recording, "virtual:hostile-fast", speed=1000.0)
         heard = listener.drain(limit=10**6)
     assert heard == []
-    assert "the logged time at --speed 1000" in str(caught.value)
+    assert "of the logged time at --speed 1000" in str(caught.value)
     assert "nothing was sent" in str(caught.value)
 
 
@@ -379,14 +380,140 @@ def test_faster_than_logged_one_resolution_a_frame_is_no_spare(
     hand: HandConfig, protocol: Protocol
 ) -> None:
     """The one resolution a frame spared for a log whose encoder rounded to the nearest let
-    0.0001 N·m a frame through at any speed: on a joint whose step a tick is about that, a
-    replay at --speed 50 put 50 times its rate limit on the wire."""
+    0.0001 N·m a frame through at any speed: on a joint whose step a tick is about one
+    resolution, a replay at --speed 50 put 50 times its rate limit on the wire."""
     from handctl.recording.frames import _torque_problem
 
     layout = protocol.layout("TorqueCommand", 1)
     finger = hand.fingers[0]
     resolution = layout.signals[0].scale
-    step_dt = resolution / finger.joints[0].rate_limit  # the time one resolution may take
     before, after = (0.0, 0.0, 0.0), (resolution, 0.0, 0.0)
-    assert _torque_problem(layout, finger, after, before, step_dt, 1.0) is None
-    assert _torque_problem(layout, finger, after, before, step_dt / 50, 50.0) is not None
+    nothing_left = [0.0, 0.0, 0.0]
+    assert _torque_problem(layout, finger, after, before, nothing_left, 1.0) is None
+    assert _torque_problem(layout, finger, after, before, nothing_left, 50.0) is not None
+
+
+def _commands(
+    monkeypatch: pytest.MonkeyPatch,
+    protocol: Protocol,
+    hand: HandConfig,
+    times_ns: list[int],
+    torques: list[float],
+) -> int:
+    """``check_commands`` on a log whose only frames are node 1's commands to f1_j1, at
+    ``times_ns``: what the rate limit makes of their timing alone."""
+    from handctl.recording import frames
+
+    layout = protocol.layout("TorqueCommand", 1)
+    logged = [
+        (t, layout.frame_id, layout.encode(k % 256, [tau, 0.0, 0.0]), False)
+        for k, (t, tau) in enumerate(zip(times_ns, torques, strict=True))
+    ]
+    monkeypatch.setattr(frames, "logged_frames", lambda recording, direction="both": logged)
+    monkeypatch.setattr(frames, "recorded_protocol", lambda recording: protocol)
+    monkeypatch.setattr(frames, "recorded_hand", lambda recording: hand)
+    log = SimpleNamespace(path=Path("commands.mcap"))  # all the refusal reads of it
+    return frames.check_commands(log, hand)  # type: ignore[arg-type]
+
+
+def test_commands_stacked_at_one_log_time_are_held_to_the_rate_limit_together(
+    monkeypatch: pytest.MonkeyPatch, hand: HandConfig, protocol: Protocol
+) -> None:
+    """Each command was judged on the time since the one before, with one period at least:
+    20 commands at one log time, each a step just under a period's, put 0.38 N·m on the wire
+    at once. Together they have what the rate limit gives over two periods, no more."""
+    step = 0.95 * hand.fingers[0].joints[0].rate_limit * hand.bus.period_s
+    torques = [step * (k + 1) for k in range(20)]
+    with pytest.raises(ConfigError) as caught:
+        _commands(monkeypatch, protocol, hand, [10**8] * 20, torques)
+    text = str(caught.value)
+    assert f"{ch.CAN_TX} frame 0x101 {_encoded(protocol, 2, torques[2])} " in text, text
+    assert "Torque1 (f1_j1): expected a change of at most" in text
+    # the same steps a period apart are what the supervisor sends
+    period_ns = round(hand.bus.period_s * 1e9)
+    assert _commands(monkeypatch, protocol, hand, [k * period_ns for k in range(20)], torques)
+
+
+def test_a_late_tick_and_the_one_after_it_are_what_a_real_time_run_sends(
+    monkeypatch: pytest.MonkeyPatch, hand: HandConfig, protocol: Protocol
+) -> None:
+    """A tick 0.9 of a period late, then one on time: two full steps 0.1 of a period apart,
+    as the supervisor sends them in real time. The slack for it is one period, once."""
+    step = hand.fingers[0].joints[0].rate_limit * hand.bus.period_s
+    period_ns = round(hand.bus.period_s * 1e9)
+    times = [0, period_ns + 9 * period_ns // 10, 2 * period_ns, 3 * period_ns]
+    assert _commands(monkeypatch, protocol, hand, times, [step * (k + 1) for k in range(4)])
+    with pytest.raises(ConfigError):  # three full steps within a period are not
+        _commands(monkeypatch, protocol, hand, [0, 1, 2], [step, 2 * step, 3 * step])
+
+
+def _encoded(protocol: Protocol, counter: int, torque: float) -> str:
+    return protocol.layout("TorqueCommand", 1).encode(counter, [torque, 0.0, 0.0]).hex()
+
+
+def test_a_sender_that_fell_behind_shifts_the_rest_instead_of_sending_its_backlog(
+    recorded: Recorded, hand: HandConfig
+) -> None:
+    """After a stall of the sender, the frames it owed went out back to back: the rate limit
+    the commands were checked against on their logged spacing was broken on the wire. The
+    rest of the replay is shifted by the stall instead."""
+    recording = open_recording(recorded.path)
+    logged = list(logged_frames(recording))
+    span_s = (logged[-1][0] - logged[0][0]) * 1e-9
+    now = [0.0]
+    calls = [0]
+
+    def clock() -> float:
+        calls[0] += 1
+        if calls[0] == 2000:  # the sender stalls for 20 ms, once
+            now[0] += 0.020
+        return now[0]
+
+    def sleep(seconds: float) -> None:
+        now[0] += seconds
+
+    with open_bus("virtual:hostile-stall", hand.bus) as listener:
+        sent = to_bus(recording, "virtual:hostile-stall", sleep=sleep, clock=clock)
+        listener.drain(limit=10**7)
+    assert sent["failed"] == 0
+    assert sent["shifted_ms"] == pytest.approx(20.0, abs=1.0)
+    assert sent["worst_late_ms"] == pytest.approx(20.0, abs=1.0)
+    # the whole replay took its logged span and the stall: nothing was caught up
+    assert now[0] == pytest.approx(span_s + 0.020, abs=0.002)
+
+
+def test_the_hand_on_the_bus_bounds_what_goes_out_not_the_log_s_own_config(
+    recorded: Recorded, hand: HandConfig, tmp_path: Path
+) -> None:
+    """The log carries its hand config, and its digest is no seal: a log whose tau_max was
+    raised and its digest computed again passed every check against its own limits. With
+    --hand, the commands are held to the config of the hand on the bus as well."""
+    source = Path(hand.source)  # the recorded run's
+    text = source.read_text()
+    assert "tau_max: 0.60" in text
+    weaker = tmp_path / "weaker_hand.yaml"
+    weaker.write_text(text.replace("tau_max: 0.60", "tau_max: 0.05", 1))
+    done = handctl(
+        "replay", str(recorded.path), "--to-bus", "virtual:hostile-hand", "--hand", str(weaker)
+    )
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Torque1 (f1_j1): expected a torque within ±0.05 N·m (its tau_max) in --hand" in (
+        done.stderr
+    )
+    assert str(weaker) in done.stderr and "nothing was sent" in done.stderr
+    assert "to-bus:" not in done.stdout
+    same = handctl(
+        "replay", str(recorded.path), "--to-bus", "virtual:hostile-hand", "--hand", str(source)
+    )
+    assert same.returncode == 0, same.stderr
+
+
+def test_a_bus_where_a_real_hand_may_listen_needs_the_operator_s_hand_config(
+    recorded: Recorded,
+) -> None:
+    done = handctl("replay", str(recorded.path), "--to-bus", "socketcan:can0")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "--hand: expected the config of the hand on socketcan:can0" in done.stderr
+    assert "to-bus:" not in done.stdout
+    alone = handctl("replay", str(recorded.path), "--hand", "hand.yaml")
+    assert alone.returncode == 2 and "--hand: expected --to-bus SPEC as well" in alone.stderr
