@@ -947,6 +947,27 @@ def _startup_repeated(result: RerunReport) -> bool:
     return result.outcome == result.logged_outcome == "startup_failed"
 
 
+def _replay_to_bus(args: argparse.Namespace, recording: Any) -> dict[str, Any]:
+    """``replay --to-bus``: the frames onto the bus, and what became of them said."""
+    from handctl.recording import frames
+
+    _progress(f"replaying frames onto {args.to_bus} at {args.speed or 1.0:g}x ...")
+    on_bus = _load_hand(args.hand, "--hand") if args.hand is not None else None
+    sent = frames.to_bus(
+        recording, args.to_bus, args.speed or 1.0, args.direction or "both", hand=on_bus
+    )
+    shifted = sent["shifted_ms"]
+    print(
+        f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
+        f"worst lateness {sent['worst_late_ms']} ms"
+        + (f"; fell behind and shifted the rest by {shifted} ms in all" if shifted else "")
+        + ")"
+    )
+    if "warning" in sent:
+        print(f"handctl: warning: to-bus: {sent['warning']}", file=sys.stderr)
+    return sent
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     import json
 
@@ -1005,7 +1026,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             status = EXIT_FAILED
         elif result.ok:
             print(
-                f"rerun: {result.compared} ticks compared, applied torques bit-exact; "
+                f"rerun: {result.compared} ticks compared, applied torques bit-exact "
+                "(desired ones too, safety state and phase as logged); "
                 f"{result.frames_compared} command frames identical; outcome "
                 f"{result.outcome} (logged {result.logged_outcome or '?'}); "
                 f"{result.wall_s:.2f} s"
@@ -1023,30 +1045,15 @@ def _cmd_replay(args: argparse.Namespace) -> int:
                 )
             for text in result.frame_mismatches[: rerun.MAX_LISTED]:
                 print(f"  {text}")
+            for text in result.decision_mismatches[: rerun.MAX_LISTED]:
+                print(f"  {text}")
             status = EXIT_FAILED
     if args.export:
         fmt, out = args.export
         count = frames.export(recording, fmt, out)
         print(f"export: {count} frames to {out} ({fmt})")
     if args.to_bus:
-        _progress(f"replaying frames onto {args.to_bus} at {args.speed or 1.0:g}x ...")
-        on_bus = _load_hand(args.hand, "--hand") if args.hand is not None else None
-        sent = frames.to_bus(
-            recording, args.to_bus, args.speed or 1.0, args.direction or "both", hand=on_bus
-        )
-        report["to_bus"] = sent
-        print(
-            f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
-            f"worst lateness {sent['worst_late_ms']} ms"
-            + (
-                f"; fell behind and shifted the rest by {sent['shifted_ms']} ms in all"
-                if sent["shifted_ms"]
-                else ""
-            )
-            + ")"
-        )
-        if "warning" in sent:
-            print(f"handctl: warning: to-bus: {sent['warning']}", file=sys.stderr)
+        report["to_bus"] = _replay_to_bus(args, recording)
     if args.json:
         _write_output("--json", args.json, json.dumps(report, indent=2, default=str) + "\n")
     if args.live is not None:

@@ -311,7 +311,7 @@ CHANNELS: tuple[Channel, ...] = (
 )
 
 #: The channels ``handctl replay --rerun`` needs.
-RERUN_TOPICS = (TIMING, TORQUE, JOINT_STATE, CAN_RX, CAN_TX, EVENTS)
+RERUN_TOPICS = (TIMING, TORQUE, JOINT_STATE, SAFETY, PHASE, CAN_RX, CAN_TX, EVENTS)
 
 
 def pair_name(first: str, second: str) -> str:

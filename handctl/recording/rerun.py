@@ -60,7 +60,10 @@ class TickInput:
     requests: list[tuple[str, str]] = field(default_factory=list)
     rejects: dict[str, int] | None = None  # the rejected_frames events of the tick, by kind
     applied: list[float] | None = None
+    desired: list[float] | None = None
     joint_state: dict[str, Any] | None = None  # the logged /hand/joint_state message
+    state: str | None = None  # the logged /safety/state
+    phase: str | None = None  # the logged /recipe/phase
 
 
 @dataclass
@@ -91,6 +94,7 @@ def tick_inputs(  # noqa: C901 - one branch per channel; bus/replay split (issue
     kinds = {k.value: k for k in BusEventKind}
     batches = iter_chunks(recording, ch.RERUN_TOPICS, check)
     timing, torque, rx, tx, joint = ch.TIMING, ch.TORQUE, ch.CAN_RX, ch.CAN_TX, ch.JOINT_STATE
+    safety, phase = ch.SAFETY, ch.PHASE
     fromhex = bytes.fromhex
     closed = recording.complete and recording.meta(ch.META_END, "ended") == ch.ENDED_CLOSED
 
@@ -132,6 +136,13 @@ def tick_inputs(  # noqa: C901 - one branch per channel; bus/replay split (issue
                 elif topic == torque:
                     if current is not None and current.tick == msg["tick"]:
                         current.applied = json_floats(msg["applied_nm"])
+                        current.desired = json_floats(msg["desired_nm"])
+                elif topic == safety:
+                    if current is not None and current.tick == msg["tick"]:
+                        current.state = msg["state"]
+                elif topic == phase:
+                    if current is not None and current.tick == msg["tick"]:
+                        current.phase = msg["phase"]
                 elif topic == joint:
                     if current is not None and current.tick == msg["tick"]:
                         current.joint_state = msg
@@ -366,6 +377,10 @@ class _Compare:
         self.compared = 0
         self.mismatches: list[dict[str, Any]] = []
         self.mismatched_ticks = 0
+        #: what else the tick decided and the log says it decided: the desired torques, the
+        #: supervisor's state, the phase. A log whose phase or state was rewritten re-ran
+        #: "bit-exact" on its torques while replay's phase table showed the rewritten ones.
+        self.decisions: list[str] = []
 
     def begin_tick(self, tick: Tick) -> None:
         return None
@@ -391,7 +406,10 @@ class _Compare:
         if pack is None:
             pack = _PACK[n] = struct.Struct(f"<{n}d")
         self.compared += 1
+        decided = self._decisions(record, current, pack) if current is not None else True
         if len(rerun) == n and rerun.tobytes() == pack.pack(*logged):
+            if not decided:
+                self.mismatched_ticks += 1
             return
         self.mismatched_ticks += 1
         for j, (a, b) in enumerate(zip(logged, rerun.tolist(), strict=False)):
@@ -401,6 +419,32 @@ class _Compare:
 
     def note(self, kind: str, detail: str, tick: int) -> None:
         return None
+
+    def _decisions(self, record: TickRecord, logged: TickInput, pack: struct.Struct) -> bool:
+        """Whether the tick's desired torques, safety state and phase are the log's (each
+        that differs is listed in ``decisions``)."""
+        same = True
+        if logged.state is not None and logged.state != record.state:
+            self._decided(record.tick, "safety state", logged.state, record.state)
+            same = False
+        if logged.phase is not None and logged.phase != record.phase:
+            self._decided(record.tick, "phase", logged.phase, record.phase)
+            same = False
+        desired = logged.desired
+        if desired is not None and (
+            len(desired) != len(record.desired) or record.desired.tobytes() != pack.pack(*desired)
+        ):
+            for j, (a, b) in enumerate(zip(desired, record.desired.tolist(), strict=False)):
+                if struct.pack("<d", a) != struct.pack("<d", b):
+                    name = self.joints[j] if j < len(self.joints) else str(j)
+                    self._decided(record.tick, f"desired torque of {name} (N·m)", a, b)
+                    break
+            same = False
+        return same
+
+    def _decided(self, tick: int, what: str, logged: object, rerun: object) -> None:
+        if len(self.decisions) < 1000:
+            self.decisions.append(f"tick {tick}: {what}: logged {logged!r}, re-run {rerun!r}")
 
     def _add(self, tick: int, joint: str, logged: float, rerun: float, detail: str) -> None:
         if len(self.mismatches) < 1000:
@@ -423,6 +467,7 @@ class RerunReport:
     mismatches: list[dict[str, Any]]
     frames_compared: int
     frame_mismatches: list[str]  # sent frames, and received ones the re-run read otherwise
+    decision_mismatches: list[str]  # desired torques, safety state, phase
     feedback_compared: int  # ticks whose received frames were compared
     outcome: str
     logged_outcome: str
@@ -442,6 +487,7 @@ class RerunReport:
             "mismatches": self.mismatches[:MAX_LISTED],
             "frames_compared": self.frames_compared,
             "frame_mismatches": self.frame_mismatches[:MAX_LISTED],
+            "decision_mismatches": self.decision_mismatches[:MAX_LISTED],
             "feedback_compared": self.feedback_compared,
             "outcome": self.outcome,
             "logged_outcome": self.logged_outcome,
@@ -566,6 +612,7 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         compare.mismatches,
         bus.frames_compared,
         frame_mismatches,
+        compare.decisions,
         check.compared,
         outcome,
         logged.get("outcome", ""),

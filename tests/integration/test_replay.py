@@ -67,6 +67,41 @@ def test_rerun_is_bit_exact_through_faults_and_an_estop(recorded: Recorded) -> N
     assert report.outcome == report.logged_outcome == "safety_stop"
 
 
+@pytest.mark.parametrize(
+    ("topic", "key", "value", "said"),
+    [
+        (ch.PHASE, "phase", "bogus", "phase: logged 'bogus', re-run "),
+        (ch.SAFETY, "state", "faulted", "safety state: logged 'faulted', re-run 'running'"),
+        (ch.TORQUE, "desired_nm", 0.125, "desired torque of f1_j1 (N·m): logged 0.125, re-run "),
+    ],
+)
+def test_rerun_finds_a_tick_whose_phase_state_or_desired_torques_were_rewritten(
+    recorded: Recorded, tmp_path: Path, topic: str, key: str, value: object, said: str
+) -> None:
+    """The applied torques and the frames were compared, not what the tick decided: a log
+    whose phase or safety state was rewritten re-ran "bit-exact" while replay's phase table
+    showed the rewritten phase."""
+    tampered = tmp_path / "decided.mcap"
+    target = 300
+
+    def change(t: str, message: dict[str, Any]) -> dict[str, Any]:
+        if t == topic and message["tick"] == target:
+            if key == "desired_nm":
+                message[key][0] = value
+            else:
+                message[key] = value
+        return message
+
+    rewrite(recorded.path, tampered, change)
+    report = rerun(open_recording(tampered))
+    assert not report.ok and report.mismatched_ticks == 1
+    assert len(report.decision_mismatches) == 1
+    assert report.decision_mismatches[0].startswith(f"tick {target}: {said}")
+    done = handctl("replay", str(tampered), "--rerun")
+    assert done.returncode == 1, done.stderr
+    assert f"tick {target}: {said}" in done.stdout and "MISMATCH" in done.stdout
+
+
 def test_rerun_finds_a_one_ulp_difference(recorded: Recorded, tmp_path: Path) -> None:
     tampered = tmp_path / "tampered.mcap"
     target = 400
