@@ -180,6 +180,8 @@ def _run_warnings(result: RunResult) -> list[str]:
     said += result.stop_notes
     if result.nodes_reset:
         said.append(result.nodes_reset)
+    if result.disable_unconfirmed:
+        said.append(result.disable_unconfirmed)
     return said
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import enum
+import math
 import os
 import time
 import traceback
@@ -64,6 +65,9 @@ from handctl.protocol import NodeState
 #: Ticks the loop keeps sending zero after a stop before it disables the nodes: frames in
 #: flight are superseded, and the nodes see zero before they see "disable".
 ZERO_TICKS_BEFORE_DISABLE = 5
+#: After the disable, the ticks a run listens for every node to report it (s): the nodes' own
+#: command watchdog (10 ms) would disable a node the frame missed by then anyway.
+DISABLE_CONFIRM_S = 0.010
 STATUS_EVERY_TICKS = 100
 #: A tick of the stop after an exception waits this long at most for the clock; a clock that
 #: does not answer is given up and the rest of the stop's frames go at once, in order.
@@ -203,6 +207,8 @@ class RunResult:
     stop_notes: list[str] = field(default_factory=list)
     #: the nodes' faults ``--reset-node-faults`` cleared at start-up ("": none)
     nodes_reset: str = ""
+    #: nodes not heard DISABLED after the run's disable ("": every one was)
+    disable_unconfirmed: str = ""
 
 
 class Runtime:
@@ -248,6 +254,7 @@ class Runtime:
         self._stop_notes_said = 0  # of ``supervisor.stop_notes``, in the log
         #: the nodes' faults ``--reset-node-faults`` cleared at start-up ("": none)
         self.nodes_reset = ""
+        self.disable_unconfirmed = ""
         #: a peer process the start-up waits for (the simulated hand of a real-time run):
         #: what it said if it has ended, else ""; asked every start-up tick, so that a hand
         #: that died is said at once and not after the whole start-up timeout (20 s)
@@ -364,11 +371,7 @@ class Runtime:
             if self.tick >= self.max_ticks:
                 self.request_stop("tick budget exhausted")
         self.driver.node_command("disable")
-        # One more period so the disable is on its way (in lockstep: so the hand steps once
-        # more and sees it) before the bus is closed.
-        tk = await self._next_tick()
-        self._account_idle(tk)
-        self.driver.poll(tk.now_ns)
+        await self._confirm_disabled()
         # the last tick's bus events, which the log has: the summary's count had them not
         self._bus_events += len(self.driver.take_bus_events())
         if sup.faults:
@@ -376,6 +379,29 @@ class Runtime:
         if self.stop_requested:
             return Outcome.INTERRUPTED, self.stop_requested
         return Outcome.COMPLETED, ""
+
+    async def _confirm_disabled(self) -> None:
+        """Listen after the disable until every node says it is no longer ENABLED, for
+        ``DISABLE_CONFIRM_S`` at most, before the bus is closed. One period alone was waited:
+        above 1 kHz in lockstep the simulated nodes, on their own 1 ms tick, had not run one
+        in it, and the run ended (exit 0 as well) with the hand ENABLED. A node that does not
+        say so in time is said in the summary's warnings: its watchdog is what disables it."""
+        period_s = self.hand.bus.period_s
+        ticks = max(1, math.ceil(DISABLE_CONFIRM_S / period_s - 1e-9))
+        enabled = int(NodeState.ENABLED)
+        for _ in range(ticks):
+            tk = await self._next_tick()
+            self._account_idle(tk)
+            self.driver.poll(tk.now_ns)
+            if not any(n.state == enabled for n in self.driver.nodes):
+                return
+        still = [
+            f"node {n.node_id} ({n.finger.name})" for n in self.driver.nodes if n.state == enabled
+        ]
+        self.disable_unconfirmed = (
+            f"{', '.join(still)} still reported ENABLED {ticks * period_s * 1e3:g} ms after "
+            "the disable; the nodes' command watchdog disables a node that hears no command"
+        )
 
     async def _stop_after_exception(self, exc: Exception) -> tuple[Outcome, str]:
         """The stop after an exception: latch its fault, then zero torque and disable with
@@ -797,6 +823,7 @@ class Runtime:
             exception=self.exception,
             stop_notes=list(self.supervisor.stop_notes),
             nodes_reset=self.nodes_reset,
+            disable_unconfirmed=self.disable_unconfirmed,
         )
 
 

@@ -80,6 +80,7 @@ def record_run(
     writer_between_ticks: bool = False,
     writer_every_tick: bool = False,
     babble: inj.Babble | None = None,
+    babble_until_s: float = 0.36,
 ) -> Recorded:
     """A lockstep run on the simulated hand, recorded the way ``run_recipe`` records it.
 
@@ -89,7 +90,7 @@ def record_run(
     begins until the writer has taken everything published, the timing a loaded machine
     gives now and then (the loop descheduled between one tick's push and the next tick).
     With ``writer_every_tick``: so does every tick of the run (a small ring that never fills).
-    ``babble``: a babbling node from 0.35 s to 0.36 s of the run.
+    ``babble``: a babbling node from 0.35 s to ``babble_until_s`` of the run.
     """
     with rig(hand, recipe) as r:
         drained: list[tuple[int, bytes]] = []
@@ -150,7 +151,7 @@ def record_run(
                 r.sim.faults.add(inj.Babble(id=0x050, per_tick=2, length=8), 0.40, 0.405)
                 r.sim.faults.add(inj.CounterSkip(node=1, message="feedback"), 0.50, 0.502)
             if babble is not None:
-                r.sim.faults.add(babble, 0.35, 0.36)
+                r.sim.faults.add(babble, 0.35, babble_until_s)
             recorder.wait_ready()
             if pause_writer:
                 os.kill(recorder.process.pid, signal.SIGSTOP)
@@ -266,6 +267,10 @@ def test_frames_wrapping_round_a_small_ring_are_the_bus_traffic(
         layout=layout,
         writer_every_tick=True,
         babble=inj.Babble(id=0x050, per_tick=70, length=64),
+        # over before the stop it causes ends: a tick that only listens (the stop's last,
+        # which waits for the nodes to say they are disabled) hands its frames to the ring
+        # at the next tick's start, and 70 of them do not fit 64 rows whatever the writer does
+        babble_until_s=0.354,
     )
     recording = open_recording(run.path)
     end = recording.metadata[ch.META_END]
@@ -275,7 +280,7 @@ def test_frames_wrapping_round_a_small_ring_are_the_bus_traffic(
         if t in logged:
             logged[t].append((m["id"], bytes.fromhex(m["data"])))
     babbled = Counter(m["tick"] for t, _, m in library_messages(run.path) if m.get("id") == 0x050)
-    assert len(babbled) >= 3 and min(babbled.values()) > 32  # blocks of half the ring
+    assert sum(1 for n in babbled.values() if n > 32) >= 3  # blocks of half the ring
     assert logged[ch.CAN_RX] == run.drained
     received = {frame_id for frame_id, _ in run.drained}
     assert logged[ch.CAN_TX] == [f for f in run.wire if f[0] not in received]

@@ -5,6 +5,7 @@ two ticks, faults latch, and only an explicit reset brings torque back, from zer
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,22 @@ def test_default_recipe_completes(hand: HandConfig) -> None:
         tau_max = np.array([j.tau_max for j in hand.joints])
         assert np.all(np.abs(wire) <= tau_max + 1e-4)
         assert all(n.state == NodeState.DISABLED for n in r.sim.nodes)  # at the end
+
+
+@pytest.mark.parametrize("stop_after_s", [0.2, 0.2008, 0.2016, 0.2024, 0.2032])
+def test_the_nodes_are_heard_disabled_at_the_end_above_1_khz(
+    hand: HandConfig, hold: Recipe, stop_after_s: float
+) -> None:
+    """The run listened one period after its disable: at 1250 Hz, where some periods hold
+    none of the nodes' 1 ms ticks, the run ended (and said it completed) with the simulated
+    hand ENABLED, as a stop after 0.2016 s did. It now listens until every node says so."""
+    fast = replace(hand, bus=replace(hand.bus, loop_rate_hz=1250.0))
+    with rig(fast, load_recipe(hold.source, fast), max_seconds=stop_after_s) as r:
+        result = r.run()
+        assert result.outcome is Outcome.INTERRUPTED, result.message
+        assert all(n.state == NodeState.DISABLED for n in r.sim.nodes)
+        assert all(n.state == NodeState.DISABLED for n in r.runtime.driver.nodes)
+        assert result.disable_unconfirmed == ""
 
 
 def test_lockstep_runs_are_deterministic(hand: HandConfig, hold: Recipe) -> None:
