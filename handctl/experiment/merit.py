@@ -3,14 +3,16 @@
 The run never uses ground truth: the recipe's exits read the estimator. Ground truth is
 *recorded* here, every tick in lockstep, to measure what happened (did the objects leave the
 table, how far did a pair's centre line turn in each manipulation phase, did anything drop)
-and how good the estimator was. Every object of the simulated hand is reported; the pair
-figures exist where the recipe has a pair. Definitions:
+and how good the estimator was. Every object of the simulated hand is reported under
+``objects``; the experiment (``lifted``, ``dropped``, ``success``) is the recipe's objects'
+(every object's for a trace that names none), and the pair figures exist where the recipe has
+a pair. Definitions:
 
-- ``lifted``: every object's centre ``LIFT_HEIGHT`` (10 mm) or more above where it rested on
-  the table, continuously for ``HOLD_S`` (2 s) or more before the first manipulation phase
+- ``lifted``: every recipe object's centre ``LIFT_HEIGHT`` (10 mm) or more above where it
+  rested on the table, continuously for ``HOLD_S`` (2 s) or more before the first manipulation phase
   ("lifted and held"); per object under ``objects``, the same for that object alone;
-- ``dropped``: once lifted, an object came back within ``DROP_HEIGHT`` of the table or left the
-  hand before the last manipulation phase ended (the end ramp lets go of the objects on
+- ``dropped``: once lifted, a recipe object came back within ``DROP_HEIGHT`` of the table or
+  left the hand before the last manipulation phase ended (the end ramp lets go of the objects on
   purpose). An object has left the hand when no part of it is between the outermost finger
   bases any more: its centre is further along the palm from the palm's middle than the
   farthest finger base plus its own radius (``hand_span``);
@@ -237,7 +239,11 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
     first_manip = manip[0][1] if manip else n
     end_manip = manip[-1][2] if manip else n
     up = heights >= LIFT_HEIGHT
-    held_s, lift_start = _held(np.all(up, axis=1), t, first_manip)
+    # The experiment is the recipe's objects': another object in the scene (a third
+    # cylinder on the table the recipe never names) left "lifted" false and the run FAILED,
+    # exit 1, while the pair it grasped was lifted, held and turned as the nominal one.
+    ours = list(trace.estimated) if trace.estimated else list(range(len(trace.objects)))
+    held_s, lift_start = _held(np.all(up[:, ours], axis=1), t, first_manip)
     lifted = held_s >= HOLD_S - 1e-9
     # each object's lows and departures, from the lift of all of them on
     gone = np.zeros(heights.shape, dtype=bool)
@@ -248,7 +254,7 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
             trace.radii
         )
         gone[after] = low | away
-    dropped = bool(np.any(gone))
+    dropped = bool(np.any(gone[:, ours]))
     # the estimator is judged from the lifted stretch on (hold and manipulation)
     start = lift_start if lift_start is not None else first_manip
     sel = slice(start, end_manip)

@@ -237,3 +237,26 @@ def test_an_object_beyond_the_outermost_finger_base_has_left_the_hand() -> None:
     ex = experiment_summary(line_of(2, [0.03, 0.03], [-0.02, inside + 0.002], pairs=((0, 1),)))
     assert ex["dropped"] is True
     assert [ex["objects"][n]["dropped"] for n in ("o0", "o1")] == [False, True]
+
+
+def test_an_object_the_recipe_does_not_name_is_reported_not_judged() -> None:
+    """A third cylinder left on the table, which the recipe never names: the pair it grasped
+    was lifted, held and kept, and the run said FAILED (lifted false, held 0 s)."""
+
+    def scene(recipe_objects: tuple[int, ...]) -> Trace:
+        tr = empty_trace(3, ((0, 1),), recipe_objects)
+        t = 0.0
+        for phase, span in (("lift", 1.0), ("hold", 3.0), ("manipulate_1", 1.0)):
+            for _ in range(round(span / 0.001)):
+                h = 0.0 if phase == "lift" else 0.03
+                poses = [Pose(-0.02, REST[0] + h), Pose(0.02, REST[0] + h), Pose(0.175, REST[0])]
+                tr.add(t, phase, poses, [0.0] * 9, None, False)
+                t += 0.001
+        return tr
+
+    ex = experiment_summary(scene((0, 1)))
+    assert ex["lifted"] is True and ex["dropped"] is False and ex["success"] is True
+    assert ex["held_s"] >= 2.0
+    assert ex["objects"]["o2"]["lifted"] is False
+    # were it the recipe's, it would count
+    assert experiment_summary(scene((0, 1, 2)))["success"] is False
