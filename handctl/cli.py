@@ -308,7 +308,8 @@ def _status_printer() -> Callable[[object], None] | None:
 
 def status_text(line: object) -> str:
     """One status line: run time (marked as simulated in lockstep, which runs faster than
-    the wall clock), phase k of n and the time in it, safety state, torque and lateness."""
+    the wall clock), phase k of n and the time in it, safety state, torque, lateness and the
+    phases that ended on their timeout."""
     from handctl.online.loop import StatusLine
 
     assert isinstance(line, StatusLine)
@@ -319,9 +320,12 @@ def status_text(line: object) -> str:
         )
     else:
         where = f"{line.phase:<28}"
+    # the phases that ran out their max_s so far, which the docs promise the line says (it
+    # carried them, and showed none)
+    timed_out = f"  timed out: {', '.join(line.timed_out)}" if line.timed_out else ""
     return (
         f"{clock}{line.t_s:7.2f} s  {where}  {line.state:<10} "
-        f"max|τ| {line.max_abs_tau:5.3f} N·m  late {line.lateness_us:7.1f} µs"
+        f"max|τ| {line.max_abs_tau:5.3f} N·m  late {line.lateness_us:7.1f} µs{timed_out}"
     )
 
 

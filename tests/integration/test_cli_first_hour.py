@@ -165,6 +165,9 @@ def test_the_summary_names_its_units_and_the_other_nodes_frames_are_no_rejects(
     second = [line for line in lines if line.phase_number == 2]
     assert second[0].phase_s < second[-1].phase_s < second[-1].t_s
     assert "sim " in status_text(second[-1]) and "phase 2/2 second" in status_text(second[-1])
+    # the first phase ran out its 0.4 s: the line says so from then on, and not before
+    assert status_text(second[-1]).endswith("timed out: first")
+    assert "timed out" not in status_text(lines[0])
 
 
 @pytest.fixture
