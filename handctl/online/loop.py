@@ -739,9 +739,27 @@ class Runtime:
         new_faults = sup.observe(tick, now_ns, self.driver.nodes, angle, tdt, missed, events)
         if self.stop_requested and sup.state in (State.RUNNING, State.ENABLING):
             if self.runner is not None:
-                self.runner.abort(t_s, f"stopped: {self.stop_requested}")
+                self._abort_phase(t_s, f"stopped: {self.stop_requested}", tick)
             sup.stop(tick)
+        elif sup.faults and self.runner is not None and self.runner.in_phase:
+            # the phase under way ends here, on the fault: it had no end and no exit in the
+            # summary, and the replay ended it at the log's last tick. What the runner
+            # proposed in this tick is kept for the log (its abort empties the buffer); the
+            # supervisor, ramping down, no longer reads it.
+            proposed = desired.copy()
+            self._abort_phase(t_s, f"safety stop: {sup.faults[0].code.name}", tick)
+            desired = proposed
         return desired, sup.filter(tick, desired, missed), new_faults
+
+    def _abort_phase(self, t_s: float, reason: str, tick: int) -> None:
+        """End the recipe where it is, and say in the log where the phase under way ended and
+        why (a ``phase_end`` note), which no change of phase name shows a replay."""
+        runner = self.runner
+        assert runner is not None
+        under_way = bool(runner.records) and runner.records[-1].end_s is None
+        runner.abort(t_s, reason)
+        if under_way and self.recorder is not None:
+            self.recorder.note("phase_end", reason, tick)
 
     def _say_stop_notes(self, tick: int) -> None:
         """The supervisor's new stop notes into the log, where the tick's faults go."""
@@ -772,6 +790,8 @@ class Runtime:
         desired = runner.feedback(t_s, angle, estimates)
         if runner.status is RunStatus.ABORTED and not self.stop_requested:
             sup.trip(FaultCode.RECIPE_ABORT, runner.abort_reason, self.tick)
+            if self.recorder is not None and runner.records:
+                self.recorder.note("phase_end", runner.records[-1].exit, self.tick)
         return desired
 
     def _timed_out(self) -> tuple[str, ...]:

@@ -85,6 +85,9 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     phase_name, phase_start, phase_tick = "", 0.0, 0
     frames = {"rx": 0, "tx": 0, "tx_refused": 0}
     exits: dict[tuple[str, int], str] = {}
+    #: where the phase under way ended when the run was stopped in it (a stop or a fault),
+    #: and why: the run's ``phase_end`` note, which no change of phase name shows
+    ended: tuple[int, str] | None = None
     last_t = 0.0
     topics = (ch.TIMING, ch.TORQUE, ch.JOINT_STATE, ch.PHASE, ch.EVENTS, ch.OBJECTS, ch.STATS)
     for topic, log_time, raw in iter_messages(recording, (*topics, ch.CAN_RX, ch.CAN_TX)):
@@ -144,6 +147,8 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             series.events.append(msg)
             if msg["kind"] == "phase":
                 exits[(msg.get("previous", ""), msg["tick"])] = msg.get("detail", "")
+            elif msg["kind"] == "request" and msg.get("name") == "phase_end":
+                ended = (int(msg["tick"]), str(msg.get("detail", "")))
         elif topic == ch.OBJECTS:
             if objects is None:
                 series.object_names = [
@@ -168,6 +173,12 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
         series.phases.append(
             {"name": phase_name, "start_s": phase_start, "end_s": last_t, "tick": phase_tick}
         )
+    stop_exit = ""
+    if ended is not None and series.phases and ended[0] >= series.phases[-1]["tick"]:
+        # the stop's tick, on the ticks' time base (as the run's own summary has it)
+        if tick0 is not None and t0 is not None:
+            series.phases[-1]["end_s"] = (tick0 + ended[0] * period_ns - t0) * 1e-9
+        stop_exit = ended[1]
     for phase in series.phases:
         phase["exit"] = next(
             (
@@ -177,6 +188,8 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             ),
             "",
         )
+    if stop_exit and not series.phases[-1]["exit"]:
+        series.phases[-1]["exit"] = stop_exit
     # Times were taken from the first message on; the convention's are from tick 0.
     shift = ((tick0 - t0) * 1e-9) if tick0 is not None and t0 is not None else 0.0
     series.t0_ns = tick0 if tick0 is not None else (t0 or 0)

@@ -397,7 +397,8 @@ def test_per_tick_records_are_what_the_runtime_did(recorded: Recorded) -> None:
     requests = [
         (m["name"], m["tick"]) for t, _, m in messages if t == ch.EVENTS and m["kind"] == "request"
     ]
-    assert requests == [("estop", ESTOP_TICK)]
+    # the operator's e-stop, and the run's note of the phase it ended
+    assert requests == [("estop", ESTOP_TICK), ("phase_end", ESTOP_TICK)]
     rejected: Counter[str] = Counter()
     for t, _, m in messages:
         if t == ch.EVENTS and m["kind"] == "rejected_frames":

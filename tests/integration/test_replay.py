@@ -33,7 +33,7 @@ from handctl.recording.series import load_series
 from ..conftest import ROOT, handctl
 from .mcap_copy import rewrite as copy_recording
 from .realtime import REALTIME
-from .rig import SHORT, short_recipe
+from .rig import SHORT, TWO_PHASES, short_recipe, write_recipe
 from .test_recording import ESTOP_TICK, Recorded, record_run
 
 
@@ -65,6 +65,48 @@ def test_rerun_is_bit_exact_through_faults_and_an_estop(recorded: Recorded) -> N
     sent = sum(1 for *_, is_rx in logged_frames(recording) if not is_rx)
     assert report.frames_compared == sent
     assert report.outcome == report.logged_outcome == "safety_stop"
+
+
+def test_the_phase_a_stop_ended_is_the_same_in_the_run_and_its_replay(
+    recorded: Recorded,
+) -> None:
+    """The run's operator e-stop ends the phase under way: its end and exit in the run's own
+    summary (before: no end, no exit) and in the replay's (before: the log's last tick, no
+    exit)."""
+    run_phases = recorded.result.phases
+    assert run_phases[-1]["exit"] == "safety stop: ESTOP"
+    assert run_phases[-1]["end_s"] == pytest.approx(ESTOP_TICK * 1e-3)
+    recording = open_recording(recorded.path)
+    replayed = summarise_recording(recording, load_series(recording))["phases"]
+    assert [(p["name"], p["start_s"], p["end_s"], p["exit"]) for p in replayed] == [
+        (p["name"], p["start_s"], p["end_s"], p["exit"]) for p in run_phases
+    ]
+
+
+def test_a_time_budget_ends_the_phase_where_the_run_said_in_the_replay_too(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    log = tmp_path / "budget.mcap"
+    summary = tmp_path / "budget.json"
+    done = handctl(
+        "run",
+        "recipe",
+        str(write_recipe(tmp_path, TWO_PHASES)),
+        "--max-seconds",
+        "0.75",
+        "--log",
+        str(log),
+        "--summary-json",
+        str(summary),
+    )
+    assert done.returncode == 0, done.stderr
+    run_phases = json.loads(summary.read_text())["phases"]
+    assert run_phases[-1]["exit"] == "stopped: time budget of 0.75 s reached"
+    recording = open_recording(log)
+    replayed = summarise_recording(recording, load_series(recording))["phases"]
+    assert [(p["name"], p["start_s"], p["end_s"], p["exit"]) for p in replayed] == [
+        (p["name"], p["start_s"], p["end_s"], p["exit"]) for p in run_phases
+    ]
 
 
 @pytest.mark.parametrize(

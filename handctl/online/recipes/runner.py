@@ -253,6 +253,11 @@ class RecipeRunner:
     def done(self) -> bool:
         return self.status in (RunStatus.COMPLETED, RunStatus.ABORTED)
 
+    @property
+    def in_phase(self) -> bool:
+        """Whether one of the recipe's phases is under way (not the end ramp, not done)."""
+        return not self.done and bool(self.records) and self.records[-1].end_s is None
+
     def _enter(self, index: int, t: float, reason: str) -> None:
         if self.records:
             self.records[-1].end_s = t
