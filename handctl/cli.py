@@ -197,7 +197,7 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
         )
     _output_file("--json", args.json)
     _refuse_same_files({"--json": args.json}, {"HAND.yaml": args.hand})
-    hand = _load_hand(args.hand, "HAND.yaml")
+    hand = _load_checked_hand(args.hand, "HAND.yaml")
     _progress(
         f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for "
         f"{args.seconds:g} s ..."
@@ -347,19 +347,28 @@ def _own_miss_text(miss: dict[str, Any]) -> str:
     return text + (f"; in it: {', '.join(miss['notes'])}" if miss["notes"] else "")
 
 
-def _refuse_what_check_refuses(hand: HandConfig, path: Path) -> None:
-    """A hand whose bus cannot carry it, which ``handctl check`` refuses (exit 2), is bad
-    input for a run too: at bus.loop_rate_hz 10000 a run began and stopped at tick 10
-    (RX_BACKLOG, exit 3), and a classic-CAN hand sent frames longer than the bus carries. So
-    for the bring-up commands, which run the same loop (and whose listening is of a hand that
-    cannot be driven as configured): one config, one verdict."""
+def _load_checked_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
+    """``_load_hand``, refusing what ``handctl check`` refuses: one config, one verdict, for
+    every command that takes a hand config. A hand whose bus cannot carry it is bad input for
+    any of them: at bus.loop_rate_hz 10000 a run began and stopped at tick 10 (RX_BACKLOG,
+    exit 3), a classic-CAN hand was jogged and calibrated as fine, and ``handctl sim`` put
+    16-byte frames on a classic bus. So is a ``bus.interface`` python-can does not know and
+    a ``sim:`` section check refuses (a run on the robot never reads it, but the config that
+    check turned away is the one the run would record as its hand)."""
     from handctl.busload import bus_refusals, hand_budget
     from handctl.hand_protocol import protocol_for
+    from handctl.online.busspec import check_interface
+    from handctl.sim.params import parse_sim
 
+    hand = _load_hand(path, option, dbc)
+    check_interface(hand.bus, hand.source)
+    if hand.sim:
+        parse_sim(hand)
     protocol = protocol_for(hand)
     refusals = bus_refusals(hand, protocol, hand_budget(hand, protocol))
     if refusals:
         raise ConfigError(str(path), *refusals[0])
+    return hand
 
 
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
@@ -392,8 +401,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
             "--sim-faults": args.sim_faults,
         },
     )
-    hand = _load_hand(args.hand, "--hand", args.dbc)
-    _refuse_what_check_refuses(hand, args.hand)
+    hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     recipe = load_recipe(args.recipe, hand)
     for name, undone in recipe.plan_failed:
         # run as asked (the engineer may mean to try it), but not as if it were a plan's
@@ -639,7 +647,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
                 "workers are started on their machines)",
                 args.workers,
             )
-    hand = _load_hand(args.hand, "--hand")
+    hand = _load_checked_hand(args.hand, "--hand")
     template = load_template(args.template, hand)
     if (args.start is None) != (args.base is None):
         given, missing = ("--from", "--base") if args.base is None else ("--base", "--from")
@@ -802,7 +810,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         from handctl.sim.faults import load_scenario
         from handctl.sim.hand import standalone
 
-        hand = _load_hand(args.hand, "--hand", args.dbc)
+        hand = _load_checked_hand(args.hand, "--hand", args.dbc)
         faults = load_scenario(args.faults, hand) if args.faults else None
         print(
             standalone(
@@ -951,12 +959,14 @@ def _startup_repeated(result: RerunReport) -> bool:
     return result.outcome == result.logged_outcome == "startup_failed"
 
 
-def _replay_to_bus(args: argparse.Namespace, recording: Any) -> dict[str, Any]:
-    """``replay --to-bus``: the frames onto the bus, and what became of them said."""
+def _replay_to_bus(
+    args: argparse.Namespace, recording: Any, on_bus: HandConfig | None
+) -> dict[str, Any]:
+    """``replay --to-bus``: the frames onto the bus (held to the limits of ``on_bus``, the
+    hand config given with ``--hand``, as well), and what became of them said."""
     from handctl.recording import frames
 
     _progress(f"replaying frames onto {args.to_bus} at {args.speed or 1.0:g}x ...")
-    on_bus = _load_hand(args.hand, "--hand") if args.hand is not None else None
     sent = frames.to_bus(
         recording, args.to_bus, args.speed or 1.0, args.direction or "both", hand=on_bus
     )
@@ -980,6 +990,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from handctl.recording.series import load_series
 
     _check_replay_options(args)
+    # the bus's hand before the work: one check refuses was found only after the summary,
+    # the plot and the re-run were done
+    on_bus = _load_checked_hand(args.hand, "--hand") if args.hand is not None else None
     recording = open_recording(args.log)
     check_format(recording)
     series = load_series(recording)
@@ -1057,7 +1070,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         count = frames.export(recording, fmt, out)
         print(f"export: {count} frames to {out} ({fmt})")
     if args.to_bus:
-        report["to_bus"] = _replay_to_bus(args, recording)
+        report["to_bus"] = _replay_to_bus(args, recording, on_bus)
     if args.json:
         _write_output("--json", args.json, json.dumps(report, indent=2, default=str) + "\n")
     if args.live is not None:
@@ -1097,8 +1110,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
     from handctl.bringup.peer import listening_bus
     from handctl.hand_protocol import protocol_for
 
-    hand = _load_hand(args.hand, "--hand", args.dbc)
-    _refuse_what_check_refuses(hand, args.hand)
+    hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     protocol = protocol_for(hand)
     seconds = _seconds_or(args.seconds, 1.0)
     with listening_bus(args.bus, hand) as bus:
@@ -1183,8 +1195,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     # two against each other and the hand config are asked below, with what --write means)
     for option, output in (("-o", args.output), ("--json", args.json)):
         _refuse_same_files({option: output}, {"--dbc": args.dbc, "--sim-faults": args.sim_faults})
-    hand = _load_hand(args.hand, "--hand", args.dbc)
-    _refuse_what_check_refuses(hand, args.hand)
+    hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     if args.output is None and not args.write:
         raise ConfigError(
             "-o",
@@ -1361,8 +1372,7 @@ def _read_or_none(path: Path) -> str | None:
 def _cmd_jog(args: argparse.Namespace) -> int:
     from handctl.bringup.jog import JogLine, jog, jog_recipe
 
-    hand = _load_hand(args.hand, "--hand", args.dbc)
-    _refuse_what_check_refuses(hand, args.hand)
+    hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     seconds = _seconds_or(args.seconds, 2.0)
     # refused here, before any bus opens
     jog_recipe(hand, args.joint, args.torque, seconds, args.recover)
@@ -1503,8 +1513,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     if args.log is not None:
         return _monitor_log(args, every, on_tty, emit)
     hand_path = DEFAULT_HAND if args.hand is None else args.hand
-    hand = _load_hand(hand_path, "--hand", args.dbc)
-    _refuse_what_check_refuses(hand, hand_path)
+    hand = _load_checked_hand(hand_path, "--hand", args.dbc)
     view = BusView(protocol_for(hand))
     bus_text = "sim" if args.bus is None else args.bus  # '' is a bad spec, not the default
     try:
@@ -1559,10 +1568,10 @@ def _monitor_log(
     from handctl.recording.reader import check_format, open_recording
 
     log: Path = args.log
+    hand = None if args.hand is None else _load_checked_hand(args.hand, "--hand", args.dbc)
+    _check_dbc_file(args.dbc)
     recording = open_recording(log)  # a file that is no recording is refused by name
     check_format(recording)
-    hand = None if args.hand is None else _load_hand(args.hand, "--hand", args.dbc)
-    _check_dbc_file(args.dbc)
     protocol = log_protocol(
         recording, hand, args.dbc, lambda: _load_hand(DEFAULT_HAND, "--hand", args.dbc)
     )

@@ -284,26 +284,78 @@ def test_check_cli_refuses_classic_can_and_says_what_fits() -> None:
     assert "(CAN-FD 1/5 Mbit/s would carry 39.1 %), found 122.6 % at 1000 Hz" in result.stderr
 
 
+#: Every command that takes a hand config, HAND standing for it and DIR for a directory of
+#: the test's own. The files in DIR are not there (a template, a recording) and are read
+#: only after the hand, so a refusal of the hand is the only way for the command to end on
+#: the hand's message.
+COMMANDS_TAKING_A_HAND = [
+    ["nodes", "--seconds", "0.2", "--hand", "HAND"],
+    ["jog", "f1_j1", "--torque", "0.01", "--seconds", "0.2", "--hand", "HAND"],
+    ["calibrate", "tdt", "-o", "DIR/out.yaml", "--seconds", "0.2", "--hand", "HAND"],
+    ["monitor", "--seconds", "0.2", "--hand", "HAND"],
+    ["monitor", "--log", "DIR/absent.mcap", "--hand", "HAND"],
+    ["sim", "--bus", "virtual:refused", "--seconds", "0.2", "--hand", "HAND"],
+    ["plan", "DIR/absent.template.yaml", "-o", "DIR/out.yaml", "--hand", "HAND"],
+    ["replay", "DIR/absent.mcap", "--to-bus", "virtual:refused", "--hand", "HAND"],
+    ["check", "HAND", "--timing", "--seconds", "0.01"],
+]
+
+
+def argv_for(command: list[str], hand: str, directory: Path) -> list[str]:
+    return [hand if arg == "HAND" else arg.replace("DIR", str(directory)) for arg in command]
+
+
 @pytest.mark.parametrize(
-    "command",
-    [
-        ["nodes", "--seconds", "0.2"],
-        ["jog", "f1_j1", "--torque", "0.01", "--seconds", "0.2"],
-        ["calibrate", "tdt", "-o", "unused.yaml", "--seconds", "0.2"],
-        ["monitor", "--seconds", "0.2"],
-    ],
-    ids=lambda command: command[0],
+    "command", COMMANDS_TAKING_A_HAND, ids=lambda command: "-".join(command[:2])
 )
-def test_the_bring_up_commands_refuse_what_check_refuses(
-    command: list[str], capsys: pytest.CaptureFixture[str]
+def test_every_command_taking_a_hand_refuses_what_check_refuses(
+    tmp_path: Path, command: list[str], capsys: pytest.CaptureFixture[str]
 ) -> None:
     """One config, one verdict: a classic-CAN hand that check refuses was jogged, calibrated
-    and listed as fine on the simulated hand, which carries any frame."""
+    and listed as fine on the simulated hand, which carries any frame; ``handctl sim`` put
+    its 16-byte frames on the bus, and ``plan`` planned for it."""
     from handctl import cli
 
     classic = str(ROOT / "config" / "hands" / "hiroshima_hand_classic.yaml")
-    assert cli.main([*command, "--hand", classic]) == cli.EXIT_BAD_INPUT
+    assert cli.main(argv_for(command, classic, tmp_path)) == cli.EXIT_BAD_INPUT
     assert f"{classic}: bus.fd: expected true (CAN-FD)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (
+            lambda d: d["bus"].update(interface="  "),
+            "bus.interface: expected a python-can interface",
+        ),
+        (
+            lambda d: d["sim"]["tdt"].update(noise=-1.0),
+            "sim.tdt.noise: expected a number >= 0 and <= 1 N·m",
+        ),
+    ],
+    ids=["interface", "sim"],
+)
+@pytest.mark.parametrize(
+    "command", COMMANDS_TAKING_A_HAND, ids=lambda command: "-".join(command[:2])
+)
+def test_every_command_taking_a_hand_refuses_a_section_check_refuses(
+    tmp_path: Path,
+    base: dict[str, Any],
+    command: list[str],
+    change: Any,
+    message: str,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """check refuses a ``bus.interface`` python-can does not know and a mistake in the
+    ``sim:`` section; a run, ``sim`` and ``plan`` on the simulated hand went ahead with the
+    interface (it is only opened for ``--bus hand``), a timing check and a replay onto a
+    bus with either, so the same file was good or bad by the command."""
+    from handctl import cli
+
+    change(base)
+    path = str(write(tmp_path, base))
+    assert cli.main(argv_for(command, path, tmp_path)) == cli.EXIT_BAD_INPUT
+    assert f"{path}: {message}" in capsys.readouterr().err
 
 
 def _classic(data: dict[str, Any]) -> None:
