@@ -10,7 +10,8 @@ torque reading and signal k + joints-per-node its angle):
 
 - ``tau_max`` and ``device_tau_max``: ±limit lies within the range of the command signal, so
   every torque up to the limit can be sent and the node's own saturation is one it can be asked
-  to reach;
+  to reach; and ``tau_max`` is at least the signal's resolution, or no torque the supervisor
+  lets through is anything but zero on the wire;
 - ``device_tau_max``, through the TDT calibration (reading = (τ - offset) / scale): the
   readings of ±device_tau_max lie within the range of the feedback torque signal, so the host
   sees every torque the node can apply instead of a saturated reading;
@@ -116,6 +117,17 @@ class _JointCheck:
                     f"{message}.{signal.name} carries ({_span(lo, hi, 'N·m')})",
                     limit,
                 )
+        # Under one step every torque the supervisor may apply is on the grid's zero: the
+        # joint could never be driven, though check, a run and a plan took it (a jog of the
+        # same torque is refused). The same relative tolerance as ``rate``'s.
+        resolution = abs(signal.scale)
+        if self.joint.tau_max < resolution * (1 - 1e-9):
+            self.fail(
+                "tau_max",
+                f"a tau_max >= {resolution:g} N·m, the resolution of {message}.{signal.name}: "
+                "every torque below it reaches the joint as zero",
+                self.joint.tau_max,
+            )
 
     def reading(self, message: str, signal: SignalSpec) -> None:
         lo, hi = signal.carried_range()

@@ -427,6 +427,31 @@ def test_the_largest_torque_the_wire_carries_is_accepted(
     assert hand.joints[0].tau_max == limit
 
 
+@pytest.mark.parametrize("limit", [5e-5, 1e-300])
+def test_tau_max_below_the_command_signal_s_resolution_is_refused(
+    tmp_path: Path, base: dict[str, Any], protocol: Protocol, limit: float
+) -> None:
+    """Under one step of the wire every torque the supervisor may apply goes out as zero:
+    check took the joint, and it could never be driven (a jog of the same torque is
+    refused)."""
+    carried = signal(protocol, "TorqueCommand_1", 2)
+    joint_of(base, 0, 2).update(tau_max=limit, device_tau_max=limit)
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[0].joints[2].tau_max"
+    assert err.found == limit
+    assert f"a tau_max >= {carried.scale:g} N·m, the resolution of TorqueCommand_1." in (
+        err.expected
+    )
+
+
+def test_a_tau_max_of_one_step_of_the_wire_is_accepted(
+    tmp_path: Path, base: dict[str, Any], protocol: Protocol
+) -> None:
+    step = signal(protocol, "TorqueCommand_1", 2).scale
+    joint_of(base, 0, 2).update(tau_max=step, device_tau_max=step)
+    assert load_hand(write(tmp_path, base)).joints[2].tau_max == step
+
+
 def test_device_tau_max_the_command_signal_cannot_carry_is_refused(
     tmp_path: Path, base: dict[str, Any], protocol: Protocol
 ) -> None:
