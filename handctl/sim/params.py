@@ -17,7 +17,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from handctl.config import HandConfig
+from handctl.config import HandConfig, JointConfig
 from handctl.convention import OBJECT_NAME
 from handctl.errors import ConfigError
 from handctl.schema import Doc
@@ -199,6 +199,7 @@ def parse_sim(hand: HandConfig) -> SimParams:
         resolution=tdt_doc.number("resolution", min=0.0, max=0.1, unit="N·m"),
         range=tdt_doc.number("range", min=0.1, max=3.2767, unit="N·m"),
     )
+    _check_tdt_range(tdt_doc, tdt.range, hand)
     tdt_doc.done()
     enc_doc = doc.mapping("encoder")
     encoder = EncoderParams(
@@ -315,6 +316,28 @@ def _parse_motor_tau_max(doc: Doc, hand: HandConfig) -> tuple[float, ...]:
         limits += values
     doc.done()
     return tuple(limits)
+
+
+def _check_tdt_range(doc: Doc, limit: float, hand: HandConfig) -> None:
+    """The sensor's range at least every joint's reading of ±device_tau_max (in the node's
+    factory calibration, as the self-check sees it): below it a torque the node applies
+    latched SENSOR and every run stopped on NODE_FAULT, with no word of this key. As
+    ``motor_tau_max`` below ``device_tau_max``: the node's saturation must be what binds."""
+
+    def reading_of(joint: JointConfig) -> float:
+        ends = (-joint.device_tau_max, joint.device_tau_max)
+        return max(abs((end - joint.tdt.offset) / joint.tdt.scale) for end in ends)
+
+    joint = max(hand.joints, key=reading_of)  # the first of the largest, in config order
+    reading = reading_of(joint)
+    if limit < reading:
+        doc.fail(
+            "range",
+            f"a range >= {reading:g} N·m, the reading of device_tau_max of {joint.name} "
+            f"({joint.device_tau_max:g} N·m through its tdt scale and offset): a torque the "
+            "node applies must not fail the node's self-check (it latches SENSOR)",
+            limit,
+        )
 
 
 def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...], ...]:

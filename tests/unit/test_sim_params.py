@@ -48,6 +48,26 @@ def test_missing_section_is_refused(hand: HandConfig) -> None:
     assert err.value.file == hand.source
 
 
+def test_a_tdt_range_is_held_to_the_readings_of_device_tau_max(hand: HandConfig) -> None:
+    """The node's self-check compares the reading in its factory calibration: a joint whose
+    sensor reads half scale reads device_tau_max twice as large, and the range must hold it."""
+    assert parse_sim(_with_sim(hand, lambda s: s["tdt"].update(range=0.8))).tdt.range == 0.8
+    half = dataclasses.replace(
+        hand.joints[4], tdt=dataclasses.replace(hand.joints[4].tdt, scale=0.5)
+    )
+    fingers = list(hand.fingers)
+    fingers[1] = dataclasses.replace(
+        fingers[1], joints=(fingers[1].joints[0], half, *fingers[1].joints[2:])
+    )
+    halved = dataclasses.replace(hand, fingers=tuple(fingers))
+    with pytest.raises(ConfigError) as err:
+        parse_sim(_with_sim(halved, lambda s: s["tdt"].update(range=1.0)))
+    assert err.value.key == "sim.tdt.range"
+    assert "a range >= 1.2 N·m, the reading of device_tau_max of f2_j2 (0.6 N·m" in (
+        err.value.expected
+    )
+
+
 @pytest.mark.parametrize(
     ("edit", "key", "expected"),
     [
@@ -105,6 +125,12 @@ def test_missing_section_is_refused(hand: HandConfig) -> None:
             lambda s: s["encoder"].update(counts_per_rev=16, max_step=0.3),
             "sim.encoder.max_step",
             "0.393 rad",
+        ),
+        # every run stopped on NODE_FAULT (SENSOR) the first time a joint pulled hard
+        (
+            lambda s: s["tdt"].update(range=0.1),
+            "sim.tdt.range",
+            "a range >= 0.8 N·m, the reading of device_tau_max of f1_j1 (0.8 N·m",
         ),
         # MuJoCo refused to build these (a traceback, exit 1): too light or too thin a link
         (lambda s: s["links"]["f1"][0].update(mass=1e-12), "sim.links.f1[0].mass", ">= 0.001"),
