@@ -200,6 +200,7 @@ def parse_sim(hand: HandConfig) -> SimParams:
         range=tdt_doc.number("range", min=0.1, max=3.2767, unit="N·m"),
     )
     _check_tdt_range(tdt_doc, tdt.range, hand)
+    _check_tdt_noise(tdt_doc, tdt, hand)
     tdt_doc.done()
     enc_doc = doc.mapping("encoder")
     encoder = EncoderParams(
@@ -337,6 +338,42 @@ def _check_tdt_range(doc: Doc, limit: float, hand: HandConfig) -> None:
             f"({joint.device_tau_max:g} N·m through its tdt scale and offset): a torque the "
             "node applies must not fail the node's self-check (it latches SENSOR)",
             limit,
+        )
+
+
+def _check_tdt_noise(doc: Doc, tdt: TdtParams, hand: HandConfig) -> None:
+    """Noise of at least half the step the host reads a joint's torque in, while the host
+    stops on a reading that never moves (``safety.tdt_stuck_still_s``): that watchdog exists
+    for a sensor whose reading is bit-identical that long, and a simulated one quieter than
+    its steps is such a sensor (noise 0, or 1e-300, stopped every run on TDT_STUCK at the
+    first half second of steady torque). The step is the coarser of the sensor's ADC step
+    and the Feedback signal's, in N·m through the joint's tdt scale. At half a step a reading
+    in the middle of a step stays on it with a chance of 0.68 a sample (P(|z| < 1)), so it
+    moves within a few ticks; at a sixth of one, 0.997 a sample, it stays put for the 500
+    ticks of the default window about one time in four. ``tdt_stuck_still_s: 0`` is how to
+    simulate a noiseless sensor."""
+    from handctl.hand_protocol import protocol_for
+
+    still = hand.safety.tdt_stuck_still_s
+    if still == 0:
+        return
+    protocol = protocol_for(hand)
+    steps = []
+    for finger in hand.fingers:
+        feedback = protocol.layout("Feedback", finger.node_id)
+        for k, joint in enumerate(finger.joints):
+            wire = abs(feedback.signals[k].scale * joint.tdt.scale)
+            steps.append((max(tdt.resolution, wire), joint.name, feedback.signals[k], feedback))
+    step, name, signal, message = max(steps, key=lambda s: s[0])
+    if tdt.noise < step / 2:
+        doc.fail(
+            "noise",
+            f"a noise >= {step / 2:g} N·m, half the step the host reads {name}'s torque in "
+            f"({step:g} N·m: sim.tdt.resolution, or {message.name}.{signal.name} through "
+            f"its tdt scale), while safety.tdt_stuck_still_s is {still:g} s: a quieter "
+            "sensor reads one value that long and every run stops on TDT_STUCK "
+            "(safety.tdt_stuck_still_s: 0 turns that check off, for a noiseless sensor)",
+            tdt.noise,
         )
 
 

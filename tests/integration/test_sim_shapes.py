@@ -186,6 +186,8 @@ def _odd_hand(counts: tuple[int, ...], between_fingers: bool = False) -> dict[st
             "loop_rate_hz": 1000,
         },
         "fingers": fingers,
+        # its sensors are noiseless (_SIM): a reading that never moves is no fault here
+        "safety": {"tdt_stuck_still_s": 0.0},
         "sim": sim,
     }
 

@@ -68,6 +68,49 @@ def test_a_tdt_range_is_held_to_the_readings_of_device_tau_max(hand: HandConfig)
     )
 
 
+@pytest.mark.parametrize("noise", [0.0, 1e-300, 0.0002])
+def test_a_tdt_quieter_than_its_steps_is_refused_while_stillness_is_a_fault(
+    hand: HandConfig, noise: float
+) -> None:
+    """A reading that never moves for safety.tdt_stuck_still_s is TDT_STUCK: noise 0 (or
+    1e-300) stopped every run there, at the first half second of steady torque."""
+    with pytest.raises(ConfigError) as err:
+        parse_sim(_with_sim(hand, lambda s: s["tdt"].update(noise=noise)))
+    assert err.value.key == "sim.tdt.noise"
+    assert err.value.found == noise
+    assert "a noise >= 0.00025 N·m, half the step the host reads f1_j1's torque in" in (
+        err.value.expected
+    )
+    assert "safety.tdt_stuck_still_s is 0.5 s" in err.value.expected
+    # with the stillness check off, a noiseless sensor is what it says
+    still_off = dataclasses.replace(
+        hand, safety=dataclasses.replace(hand.safety, tdt_stuck_still_s=0.0)
+    )
+    assert parse_sim(_with_sim(still_off, lambda s: s["tdt"].update(noise=noise))).tdt.noise == (
+        noise
+    )
+
+
+def test_the_quietest_tdt_accepted_never_reads_still_long_enough_to_be_stuck(
+    hand: HandConfig,
+) -> None:
+    """The sensor model at the least noise parse_sim takes, on the wire's grid, through the
+    host's own stuck check for four of its windows at a steady torque: not one finding."""
+    from handctl.hand_protocol import protocol_for
+    from handctl.online.safety.watchdog import TdtMonitor
+    from handctl.sim.sensors import TdtModel
+
+    params = parse_sim(_with_sim(hand, lambda s: s["tdt"].update(noise=0.00025)))
+    model = TdtModel(hand, params.tdt, np.random.default_rng(0))
+    monitor = TdtMonitor(hand.safety, hand.n_joints, 0.001, [j.name for j in hand.joints])
+    applied = np.full(hand.n_joints, 0.1234567)
+    monitor.reset(applied)
+    step = protocol_for(hand).layout("Feedback", 1).signals[0].scale  # every joint's, here
+    for _ in range(2000):
+        reading = np.round(np.asarray(model.sample(applied.tolist())) / step) * step
+        assert monitor.update(applied, reading) == []
+
+
 @pytest.mark.parametrize(
     ("edit", "key", "expected"),
     [
