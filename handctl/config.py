@@ -18,6 +18,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from handctl.convention import PART_NAME, PART_NAME_RULE
 from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids, protocol_for
 from handctl.protocol import (
     COMMAND_WATCHDOG_S,
@@ -183,6 +184,9 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
         doc.fail("sim", "a mapping", type(sim_raw).__name__)
     doc.done()
     _check_unique(doc, fingers)
+    if protocol is None:
+        # a recording's hand (protocol given) is read as it ran, whatever the rules now
+        _check_names(doc, fingers)
     hashed = {k: v for k, v in doc.data.items() if k != "sim"}
     digest = hashlib.sha256(
         json.dumps(hashed, sort_keys=True, separators=(",", ":")).encode()
@@ -409,6 +413,29 @@ def _check_unique(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
                     hex(can_id),
                 )
             seen_ids[can_id] = f"{where}.can_ids.{kind}"
+
+
+def _check_names(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
+    """Finger and joint names by ``PART_NAME``, as objects' are by ``OBJECT_NAME``: a joint
+    a recipe condition cannot name cannot be waited on, and names are printed as they are."""
+    for i, finger in enumerate(fingers):
+        if not PART_NAME.match(finger.name):
+            _fail_at(
+                doc,
+                f"fingers[{i}].name",
+                f"{PART_NAME_RULE} (e.g. index): the sim section names a finger by it, and "
+                "check and nodes print it",
+                finger.name,
+            )
+        for k, joint in enumerate(finger.joints):
+            if not PART_NAME.match(joint.name):
+                _fail_at(
+                    doc,
+                    f"fingers[{i}].joints[{k}].name",
+                    f"{PART_NAME_RULE} (e.g. index_base): recipe conditions name a joint by it "
+                    "(angle.NAME, tdt.NAME)",
+                    joint.name,
+                )
 
 
 def _fail_at(doc: Doc, path: str, expected: str, found: object) -> None:

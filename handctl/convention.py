@@ -31,6 +31,12 @@ POSE_EVERY_TICKS = 10
 #: estimates in conditions (``estimate.<name>_x``, a pair's ``<a>_<b>_line_turn``), so no
 #: underscore
 OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]*$")
+#: A finger's or a joint's name in a hand config: what a recipe condition names a joint by
+#: (``angle.NAME``, ``tdt.NAME``: ``[A-Za-z0-9_]+``), and what check, nodes and a run's
+#: summary print as it is (a name with a space or an accent passed check and no condition
+#: could name it; one with an escape sequence or a newline was written to the terminal raw)
+PART_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*\Z")  # \Z: "$" lets a trailing newline by
+PART_NAME_RULE = "a name of letters, digits and underscores, starting with a letter"
 TIME_LABEL = "time since tick 0 [s]"
 HEIGHT_LABEL = "height above rest [mm]"
 #: m, an object's centre this far above rest is lifted: the experiment's judgement and the

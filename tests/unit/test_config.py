@@ -206,6 +206,43 @@ def test_duplicate_joint_name(tmp_path: Path, base: dict[str, Any]) -> None:
     assert err.key == "fingers[2].joints[1].name"
 
 
+#: names check took: no recipe condition could name the first three (``angle.NAME`` is
+#: ``[A-Za-z0-9_]+``), and the escape sequence and the newlines were printed raw by check,
+#: nodes and a run's summary
+ODD_PART_NAMES = ["f2 j1", "f2_jé", "a-b", "f.2", "f2\x1b[2Jj1", "f2\nX", "f2_j1\n", "1st"]
+
+
+@pytest.mark.parametrize("name", ODD_PART_NAMES)
+def test_a_joint_name_is_one_a_recipe_condition_can_name(
+    tmp_path: Path, base: dict[str, Any], name: str
+) -> None:
+    joint_of(base, 1, 0)["name"] = name
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[1].joints[0].name"
+    assert err.found == name
+    assert "letters, digits and underscores, starting with a letter" in err.expected
+    assert "angle.NAME, tdt.NAME" in err.expected
+
+
+@pytest.mark.parametrize("name", ODD_PART_NAMES)
+def test_a_finger_name_is_held_to_the_same_rule(
+    tmp_path: Path, base: dict[str, Any], name: str
+) -> None:
+    base["fingers"][1]["name"] = name
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[1].name"
+    assert "letters, digits and underscores, starting with a letter" in err.expected
+
+
+def test_check_shows_a_refused_name_escaped(tmp_path: Path, base: dict[str, Any]) -> None:
+    joint_of(base, 1, 0)["name"] = "f2\x1b[2Jj1"
+    result = handctl("check", str(write(tmp_path, base)))
+    assert result.returncode == 2
+    assert "fingers[1].joints[0].name: expected a name of letters" in result.stderr
+    assert "found 'f2\\x1b[2Jj1'" in result.stderr
+    assert "\x1b" not in result.stdout + result.stderr
+
+
 @pytest.mark.parametrize("value", [None, True, False, [1, 2], {}, 0.5, math.nan, -1, "", "  "])
 def test_bus_channel_is_a_name_or_a_number(
     tmp_path: Path, base: dict[str, Any], value: Any
