@@ -230,7 +230,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
         if bus.fd
         else f"classic CAN {bus.bitrate / 1e6:g} Mbit/s"
     )
-    print(f"hand {hand.name} ({args.hand}), config hash {hand.config_hash}")
+    print(f"hand {escaped(hand.name)} ({escaped(str(args.hand))}), config hash {hand.config_hash}")
     print(f"bus {escaped(f'{bus.interface}:{bus.channel}')}, {kind}, loop {bus.loop_rate_hz:g} Hz")
     print(f"{'joint':<8} {'tau_max':>8} {'device':>8} {'rate':>9} {'angle range':>17}")
     for finger in hand.fingers:
@@ -267,7 +267,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
         return EXIT_OK
     for key, expected, found in refusals:
         print(
-            f"handctl: error: {args.hand}: {key}: expected {expected}, found {found}",
+            f"handctl: error: {escaped(str(args.hand))}: {key}: expected {expected}, found {found}",
             file=sys.stderr,
         )
     return EXIT_BAD_INPUT

@@ -28,7 +28,10 @@ class ConfigError(HandctlError, ValueError):
         self.key = key
         self.expected = expected
         self.found = found
-        where = f"{file}: {key}" if key else file
+        # the file and the key are the user's as much as the value: a key of a YAML file
+        # ("bad\x1b[2Jkey", written with a double-quoted escape) or a file name holding an
+        # escape sequence cleared the terminal that showed the message
+        where = f"{escaped(file)}: {escaped(key)}" if key else escaped(file)
         super().__init__(f"{where}: expected {expected}, found {shown(found)}")
 
 
@@ -93,8 +96,18 @@ def shown(found: object) -> str:
     if isinstance(found, PurePath):
         # a file's name is what the user must find again: whole (the system bounds it)
         return quoted(str(found))
-    text = _SHORT.repr(found)
+    # a description rather than a value (the YAML reader's ``_Text``, shown as it is, not
+    # quoted) is its writer's to escape; this catches what one let through raw
+    text = printable(_SHORT.repr(found))
     return text if len(text) <= SHOWN_CHARS else text[: SHOWN_CHARS - 3] + "..."
+
+
+def printable(text: str) -> str:
+    """``text`` with what ``escaped`` escapes escaped, but for the backslash: for text that
+    may hold values already ``escaped`` or ``quoted``, whose backslashes must stay single."""
+    if text.isprintable():
+        return text
+    return "".join(char if char == "\\" else _escape(char) for char in text)
 
 
 class _ShortRepr(reprlib.Repr):

@@ -52,7 +52,7 @@ from yaml import Node as Node  # noqa: PLC0414 - re-exported
 from yaml import ScalarNode as ScalarNode  # noqa: PLC0414 - re-exported
 from yaml import SequenceNode as SequenceNode  # noqa: PLC0414 - re-exported
 
-from handctl.errors import ConfigError, shown
+from handctl.errors import ConfigError, quoted, shown
 
 _MISSING: Any = object()
 
@@ -641,7 +641,7 @@ class Doc:
         else:
             strays = [k for k in self.data if k not in self._used]
         best = _closest(key, strays)
-        return f"; '{best}' is here instead (a misspelling of it?)" if best else ""
+        return f"; {quoted(best)} is here instead (a misspelling of it?)" if best else ""
 
     # -- scalars --------------------------------------------------------------------------
     def number(
@@ -812,7 +812,7 @@ def _closest(key: str, candidates: Sequence[str]) -> str | None:
 
 def _did_you_mean(key: str, candidates: Sequence[str]) -> str:
     best = _closest(key, candidates)
-    return f"; did you mean '{best}'?" if best else ""
+    return f"; did you mean {quoted(best)}?" if best else ""
 
 
 def _bounds_text(min: float | None, max: float | None, min_exclusive: bool) -> str:

@@ -60,3 +60,74 @@ def test_a_value_of_the_wrong_type_is_described_not_quoted(tmp_path: Path) -> No
     path.write_text("recipe: x\ndescription: y\nphases: []\n", encoding="utf-8")
     with pytest.raises(ConfigError, match=r"found 0 entries$"):
         load_recipe(path, load_hand(HAND_YAML))
+
+
+def test_the_file_and_the_key_are_shown_escaped_as_the_value_is() -> None:
+    """A YAML key written with a double-quoted escape ("bad\\e[2Jkey") and a file name that
+    holds one were written raw: the message cleared the terminal that showed it."""
+    message = str(ConfigError("d/bad\x1b[2J\udcff.yaml", "a.bad\x1b[2Jkey\n", "x", 1))
+    assert message == r"d/bad\x1b[2J\xff.yaml: a.bad\x1b[2Jkey\n: expected x, found 1"
+    assert str(ConfigError("ok é.yaml", "fingers[1].joints[0].tau_max", "x", 1)) == (
+        "ok é.yaml: fingers[1].joints[0].tau_max: expected x, found 1"
+    )
+
+
+def _hand_with_tau_max_key(tmp_path: Path, key: str) -> Path:
+    """The shipped hand with the first joint's tau_max written under ``key`` instead."""
+    import yaml
+
+    data = yaml.safe_load(HAND_YAML.read_text(encoding="utf-8"))
+    joint = data["fingers"][0]["joints"][0]
+    joint[key] = joint.pop("tau_max")
+    path = tmp_path / "hand.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    return path
+
+
+def test_a_key_of_the_file_is_escaped_where_it_is_the_key_and_where_it_is_a_suggestion(
+    tmp_path: Path,
+) -> None:
+    """The unknown key is the message's key; a misspelt one beside a missing key is named in
+    what was found ("'tau_m\\x1b' is here instead"): neither raw."""
+    with pytest.raises(ConfigError) as info:
+        load_hand(_hand_with_tau_max_key(tmp_path, "tau_m\x1b"))
+    message = str(info.value)
+    assert "\x1b" not in message
+    assert (
+        r"fingers[0].joints[0].tau_max: expected this key (required), found nothing: the key "
+        r"is missing; 'tau_m\x1b' is here instead (a misspelling of it?)"
+    ) in message
+
+
+def test_a_did_you_mean_suggestion_is_quoted_as_a_value_is() -> None:
+    from handctl.schema import Doc
+
+    doc = Doc({"it's": 1}, "f.yaml", "")
+    with pytest.raises(ConfigError) as info:
+        doc.expect(["its'"])
+    assert str(info.value).endswith('(unknown key; did you mean "its\'"?), found 1')
+
+
+def test_a_description_of_what_was_found_holds_no_raw_control_character() -> None:
+    """What the YAML reader describes rather than quotes (``_Text``) is shown as written,
+    but for a control character a description let through."""
+    from handctl.schema import _Text
+
+    assert str(ConfigError("f.yaml", "k", "x", _Text("2 entries; 'a\\\\x1b' and \x1b"))) == (
+        r"f.yaml: k: expected x, found 2 entries; 'a\\x1b' and \x1b"
+    )
+
+
+def test_check_shows_a_file_name_escaped_in_its_own_lines(tmp_path: Path) -> None:
+    """check prints the hand config's name on stdout and its bus refusals itself, not as a
+    ``ConfigError``: a name holding an escape sequence was written raw in both."""
+    from ..conftest import ROOT, handctl
+
+    classic = (ROOT / "config" / "hands" / "hiroshima_hand_classic.yaml").read_text()
+    path = tmp_path / "bad\x1b[2J.yaml"
+    path.write_text(classic.replace("name: hiroshima_hand_classic", 'name: "hand\\e[31m"', 1))
+    result = handctl("check", str(path))
+    assert result.returncode == 2
+    assert "\x1b" not in result.stdout + result.stderr
+    assert rf"hand hand\x1b[31m ({tmp_path}/bad\x1b[2J.yaml), config hash" in result.stdout
+    assert rf"handctl: error: {tmp_path}/bad\x1b[2J.yaml: bus.fd: expected true" in (result.stderr)
