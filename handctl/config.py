@@ -29,7 +29,7 @@ from handctl.protocol import (
     most_misses_before_watchdog,
     slowest_loop_rate_hz,
 )
-from handctl.schema import Doc, load_yaml
+from handctl.schema import Doc, description, load_yaml
 from handctl.wirelimits import check_wire_limits
 
 #: Highest standard (11-bit) CAN identifier; handctl uses only standard ids.
@@ -180,8 +180,17 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
     fingers = tuple(_parse_finger(f) for f in finger_docs)
     safety = _parse_safety(doc.mapping("safety", default={}))
     sim_raw = doc.raw("sim", None)
+    if doc.has("sim") and protocol is None and (sim_raw is None or sim_raw == {}):
+        # read as no section at all, then a run on the simulated hand said "the key is
+        # missing" of a key that is there; a recording's hand is read as it ran
+        doc.fail(
+            "sim",
+            "the simulated hand's section, a mapping of its keys (docs/simulation.md), or no "
+            "sim key at all for a hand that is never simulated",
+            description("an empty section" if sim_raw == {} else "an empty section (null)"),
+        )
     if sim_raw is not None and not isinstance(sim_raw, dict):
-        doc.fail("sim", "a mapping", type(sim_raw).__name__)
+        doc.fail("sim", "a mapping", description(type(sim_raw).__name__))
     doc.done()
     _check_unique(doc, fingers)
     if protocol is None:

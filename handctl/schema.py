@@ -152,6 +152,12 @@ class _Text(str):
         return str(self)
 
 
+def description(text: str) -> str:
+    """What was found, told rather than quoted (``found an empty section``), for a
+    ``ConfigError`` raised outside this module."""
+    return _Text(text)
+
+
 # -- parse errors ----------------------------------------------------------------------------------
 #: What PyYAML and libyaml count as line breaks (str.splitlines counts more, e.g. form feeds).
 _LINE_BREAKS = re.compile("\r\n|[\r\n\x85\u2028\u2029]")

@@ -66,6 +66,33 @@ def test_hash_ignores_comments_and_sim_but_not_limits(tmp_path: Path, base: dict
     assert load_hand(write(tmp_path, changed)).config_hash != original
 
 
+@pytest.mark.parametrize(
+    ("value", "found"), [({}, "an empty section"), (None, "an empty section (null)")]
+)
+def test_an_empty_sim_section_is_said_to_be_empty(
+    tmp_path: Path, base: dict[str, Any], value: Any, found: str
+) -> None:
+    """``sim: {}`` and ``sim:`` read as no section: check took the hand, and a run on the
+    simulated hand said "the key is missing" of a key that is there."""
+    base["sim"] = value
+    err = error_for(tmp_path, base)
+    assert err.key == "sim"
+    assert "or no sim key at all for a hand that is never simulated" in err.expected
+    assert str(err).endswith(f"found {found}")
+
+
+def test_a_sim_section_of_another_type_is_described_not_quoted(
+    tmp_path: Path, base: dict[str, Any]
+) -> None:
+    base["sim"] = [1, 2]
+    assert str(error_for(tmp_path, base)).endswith("sim: expected a mapping, found list")
+
+
+def test_a_hand_without_a_sim_section_loads(tmp_path: Path, base: dict[str, Any]) -> None:
+    del base["sim"]
+    assert not load_hand(write(tmp_path, base)).sim
+
+
 def test_missing_tau_max_has_no_default(tmp_path: Path, base: dict[str, Any]) -> None:
     del base["fingers"][1]["joints"][2]["tau_max"]
     err = error_for(tmp_path, base)
