@@ -30,7 +30,7 @@ POSE_EVERY_TICKS = 10
 #: An object's name, in a hand config's scene and in a recipe alike: the prefix of its
 #: estimates in conditions (``estimate.<name>_x``, a pair's ``<a>_<b>_line_turn``), so no
 #: underscore
-OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]*$")
+OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]*\Z")  # \Z: "$" lets a trailing newline by
 #: A finger's or a joint's name in a hand config: what a recipe condition names a joint by
 #: (``angle.NAME``, ``tdt.NAME``: ``[A-Za-z0-9_]+``), and what check, nodes and a run's
 #: summary print as it is (a name with a space or an accent passed check and no condition

@@ -287,6 +287,8 @@ def test_objects_are_loaded_in_order(tmp_path: Path, hand: HandConfig) -> None:
     [
         ([{"name": f"c{i}", "radius": 0.01} for i in range(5)], "objects", "1 to 4 mappings"),
         ([{"name": "cyl_1", "radius": 0.02}], "objects[0].name", "letters and digits"),
+        # "$" let it by: a newline in a name check printed as it is
+        ([{"name": "cyl1\n", "radius": 0.02}], "objects[0].name", "letters and digits"),
         ([], "objects", "1 to 4 mappings"),
         ([OBJECTS[0], OBJECTS[0]], "objects[1].name", "a name not used"),
         ([OBJECTS[0], {"name": "cyl2", "radius": -0.01}], "objects[1].radius", "> 0"),

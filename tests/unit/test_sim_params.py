@@ -275,7 +275,7 @@ def test_one_to_four_objects_of_any_radius_and_name_a_recipe_can_name(
     assert [(o.name, o.radius) for o in p.objects] == [(n, r) for n, r, _, _ in specs]
 
 
-@pytest.mark.parametrize("name", ["the one", "obj0_r15", "1st", "cyl-1"])
+@pytest.mark.parametrize("name", ["the one", "obj0_r15", "1st", "cyl-1", "cyl1\n"])
 def test_an_object_a_recipe_could_not_name_is_refused(hand: HandConfig, name: str) -> None:
     """``obj0_r15`` passed check, and every recipe naming it was refused: as ``obj0r15`` not
     an object of the scene, as ``obj0_r15`` not letters and digits."""
