@@ -846,6 +846,11 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
         if summary["complete"]
         else f"{'DAMAGED' if summary.get('damaged') else 'TRUNCATED'}: {summary['problem']}"
     )
+    from handctl.recording.channels import ENDED_CLOSED
+
+    if summary["complete"] and summary.get("ended") not in (None, ENDED_CLOSED):
+        # finished by the writer alone: a killed control process, which only --json said
+        state += f" (but {summary['ended']})"
     print(
         f"{summary['file']}: {summary['recipe'] or '?'} on {summary['hand'] or '?'} "
         f"({summary['mode'] or '?'}), {summary['outcome']}; {summary['duration_s']:.3f} s, "

@@ -601,9 +601,29 @@ class _Control:
         raise EOFError("the control pipe closed before the set-up message")
 
 
+#: ``ended`` of a log whose control process died before it handed the writer its set-up
+ENDED_BEFORE_SETUP = "the control process ended before it set the recording up"
+
+
+def _finish_unset(out_fd: int) -> int:
+    """The file of a recording whose set-up never came (the control process killed while
+    it started the writer): an MCAP with nothing but its end said. The log had been emptied
+    for this run, and an empty file was left: no MCAP at all, for a run that had begun."""
+    with os.fdopen(out_fd, "wb") as out:
+        writer = ChunkWriter(out, ch.PROFILE, f"handctl {__version__}")
+        writer.add_metadata(ch.META_END, {"ended": ENDED_BEFORE_SETUP, "ticks": "0"})
+        writer.finish()
+        out.flush()
+        os.fsync(out.fileno())
+    return 1
+
+
 def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
     control = _Control(ctl_fd)
-    setup = control.first()
+    try:
+        setup = control.first()
+    except EOFError:
+        return _finish_unset(out_fd)
     layout = RingLayout.from_dict(setup["layout"])
     if setup.get("cpus"):
         # Before the live server starts its threads, which inherit the CPUs.
@@ -630,7 +650,11 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
                 out.flush()
                 out.truncate(0)
                 return 1
-        os.write(ready_fd, b"R")
+        # A control process that died since it sent the set-up cannot read this: the file
+        # is still finished below, with what it had (before, the broken pipe ended the
+        # writer and left the file without its end)
+        with contextlib.suppress(OSError):
+            os.write(ready_fd, b"R")
         os.close(ready_fd)
         messages = control.pending
         while True:

@@ -326,3 +326,37 @@ def test_a_writer_that_never_started_is_said_once(
     with pytest.raises(HandctlError, match="the recording writer did not start"), recorder:
         recorder.wait_ready()
     assert "is lost or may be incomplete" not in capsys.readouterr().err
+
+
+def test_a_control_process_gone_before_the_set_up_leaves_an_mcap_that_says_so(
+    tmp_path: Path,
+) -> None:
+    """Killed while it started the writer (SIGKILL in the first half second of a run), the
+    control process had emptied the log, and the writer, its set-up never come, left it
+    empty: no MCAP at all for a run that had begun. The writer finishes an MCAP that says why
+    it holds nothing."""
+    from handctl.recording.writer import ENDED_BEFORE_SETUP
+
+    log = tmp_path / "run.mcap"
+    out_fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    shm_fd = os.memfd_create("shm", 0)
+    ctl_r, ctl_w = os.pipe()
+    ready_r, ready_w = os.pipe()
+    fds = (shm_fd, ctl_r, out_fd, ready_w)
+    writer = subprocess.Popen(
+        [sys.executable, "-m", "handctl.recording.writer", *(str(fd) for fd in fds)],
+        pass_fds=fds,
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+    )
+    for fd in (*fds, ctl_w):  # the control end closes with nothing sent: as if killed
+        os.close(fd)
+    _, err = writer.communicate(timeout=60)
+    os.close(ready_r)
+    assert writer.returncode == 1, err
+    recording = open_recording(log)
+    assert recording.complete
+    assert recording.meta(ch.META_END, "ended") == ENDED_BEFORE_SETUP
+    done = handctl("replay", str(log))
+    assert done.returncode == 0, done.stderr
+    assert f"0 ticks, 0 chunks, complete (but {ENDED_BEFORE_SETUP})" in done.stdout
