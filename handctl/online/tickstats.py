@@ -109,6 +109,16 @@ class TickStats:
         )
 
 
+def histogram_us(values_ns: np.ndarray) -> np.ndarray:
+    """The 1 µs histogram of ``values_ns`` that a run keeps (``TickStats``): a replay's
+    percentiles from it are the run's own (numpy's interpolating percentile gave a real-time
+    log's lateness p99 as 282.39 µs where its run had said 297)."""
+    counts: np.ndarray = np.bincount(
+        _bins(np.asarray(values_ns, dtype=np.int64)), minlength=HIST_RANGE_US + 1
+    )
+    return counts
+
+
 def _bins(values_ns: np.ndarray) -> np.ndarray:
     bins: np.ndarray = np.minimum(np.maximum(values_ns, 0) // 1000, HIST_RANGE_US)
     return bins

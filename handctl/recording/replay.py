@@ -11,6 +11,7 @@ import numpy as np
 
 from handctl.arrays import FloatArray
 from handctl.convention import phase_turns_deg
+from handctl.online.tickstats import histogram_us, percentile_us
 from handctl.recording import channels as ch
 from handctl.recording.reader import Recording
 from handctl.recording.ring import RECORDED_STAGES
@@ -20,14 +21,15 @@ from handctl.recording.series import Series, line_angle, line_pairs
 NOT_PHASES = frozenset({"-", "running", "completed", "aborted", "?"})
 
 
-def _percentiles(values: FloatArray, scale: float) -> dict[str, float]:
-    if values.size == 0:
+def _percentiles(values_ns: FloatArray) -> dict[str, float]:
+    """As the run's summary has them (``session._percentiles_us``): from 1 µs bins."""
+    if values_ns.size == 0:
         return {"p50": 0.0, "p99": 0.0, "max": 0.0}
-    p50, p99 = np.percentile(values, [50, 99])
+    hist = histogram_us(values_ns)
     return {
-        "p50": round(float(p50) * scale, 2),
-        "p99": round(float(p99) * scale, 2),
-        "max": round(float(values.max()) * scale, 2),
+        "p50": percentile_us(hist, 50),
+        "p99": percentile_us(hist, 99),
+        "max": round(float(values_ns.max()) / 1e3, 2),
     }
 
 
@@ -99,11 +101,12 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
         "largest_torques": largest,
         "faults": faults,
         "timing": {
-            "lateness_us": _percentiles(timing[:, 2] if len(timing) else timing, 1e-3),
+            "lateness_us": _percentiles(timing[:, 2] if len(timing) else timing),
             "missed_ticks": int(timing[:, 3].sum()) if len(timing) else 0,
+            # over every tick, as the run's (its idle ticks' stages are zero)
             "stage_cpu_us_p99": {
-                name: round(float(np.percentile(active[:, 5 + i], 99)) / 1e3, 2)
-                if len(active)
+                name: round(percentile_us(histogram_us(timing[:, 5 + i]), 99), 2)
+                if len(timing)
                 else 0.0
                 for i, name in enumerate(RECORDED_STAGES)
             },
