@@ -964,6 +964,69 @@ def _startup_repeated(result: RerunReport) -> bool:
     return result.outcome == result.logged_outcome == "startup_failed"
 
 
+def _print_rerun(result: RerunReport) -> int:
+    """What a re-run found, said; its exit code (EXIT_FAILED when nothing was shown
+    bit-exact or something differed)."""
+    from handctl.recording import rerun
+
+    for note in result.notes:
+        print(f"rerun: note: {note}")
+    if result.ok and result.compared == 0 and _startup_repeated(result):
+        # a run that never enabled its nodes has no control tick: what can be shown is
+        # that the start-up, fed the same frames, ends the same way
+        print(
+            f"rerun: the start-up re-run to the same end ({result.outcome}), every frame "
+            f"as logged ({result.frames_compared} sent); no control tick to compare: the "
+            "nodes were never enabled"
+        )
+    elif (
+        result.ok
+        and result.compared == 0
+        and result.logged_outcome == "startup_failed"
+        and result.outcome == "log ended"
+    ):
+        # a start-up that failed on something outside the frames (the simulated hand's
+        # process ending): the re-run, fed the same frames, listens to the log's end
+        print(
+            "rerun: the start-up re-run on every logged frame to the log's end, nothing "
+            "sent; it failed on something the frames do not hold (its reason is in the "
+            "summary: a peer process that ended, say); no control tick to compare"
+        )
+    elif result.ok and result.compared == 0:
+        # a log whose first chunk is lost has no tick a fresh runtime could follow: the
+        # re-run ran nothing, and nothing was shown to be bit-exact
+        print(
+            "rerun: NOTHING COMPARED: no tick of the log could be re-run"
+            + (" (see the notes)" if result.notes else "")
+        )
+        return EXIT_FAILED
+    elif result.ok:
+        print(
+            f"rerun: {result.compared} ticks compared, applied torques bit-exact "
+            "(desired ones too, safety state and phase as logged); "
+            f"{result.frames_compared} command frames identical; outcome "
+            f"{result.outcome} (logged {result.logged_outcome or '?'}); "
+            f"{result.wall_s:.2f} s"
+        )
+    else:
+        print(
+            f"rerun: MISMATCH in {result.mismatched_ticks} of {result.ticks} ticks, "
+            f"{len(result.frame_mismatches)} frame mismatches; outcome {result.outcome} "
+            f"(logged {result.logged_outcome or '?'})"
+        )
+        for m in result.mismatches[: rerun.MAX_LISTED]:
+            print(
+                f"  tick {m['tick']} {m['joint']}: logged {m['logged_nm']!r}, re-run "
+                f"{m['rerun_nm']!r} {m['detail']}"
+            )
+        for text in result.frame_mismatches[: rerun.MAX_LISTED]:
+            print(f"  {text}")
+        for text in result.decision_mismatches[: rerun.MAX_LISTED]:
+            print(f"  {text}")
+        return EXIT_FAILED
+    return EXIT_OK
+
+
 def _replay_to_bus(
     args: argparse.Namespace, recording: Any, on_bus: HandConfig | None
 ) -> dict[str, Any]:
@@ -1015,60 +1078,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
         result = rerun.rerun(recording, ReanalysisOnTick)
         report["rerun"] = result.as_dict()
-        for note in result.notes:
-            print(f"rerun: note: {note}")
-        if result.ok and result.compared == 0 and _startup_repeated(result):
-            # a run that never enabled its nodes has no control tick: what can be shown is
-            # that the start-up, fed the same frames, ends the same way
-            print(
-                f"rerun: the start-up re-run to the same end ({result.outcome}), every frame "
-                f"as logged ({result.frames_compared} sent); no control tick to compare: the "
-                "nodes were never enabled"
-            )
-        elif (
-            result.ok
-            and result.compared == 0
-            and result.logged_outcome == "startup_failed"
-            and result.outcome == "log ended"
-        ):
-            # a start-up that failed on something outside the frames (the simulated hand's
-            # process ending): the re-run, fed the same frames, listens to the log's end
-            print(
-                "rerun: the start-up re-run on every logged frame to the log's end, nothing "
-                "sent; it failed on something the frames do not hold (its reason is in the "
-                "summary: a peer process that ended, say); no control tick to compare"
-            )
-        elif result.ok and result.compared == 0:
-            # a log whose first chunk is lost has no tick a fresh runtime could follow: the
-            # re-run ran nothing, and nothing was shown to be bit-exact
-            print(
-                "rerun: NOTHING COMPARED: no tick of the log could be re-run"
-                + (" (see the notes)" if result.notes else "")
-            )
-            status = EXIT_FAILED
-        elif result.ok:
-            print(
-                f"rerun: {result.compared} ticks compared, applied torques bit-exact "
-                "(desired ones too, safety state and phase as logged); "
-                f"{result.frames_compared} command frames identical; outcome "
-                f"{result.outcome} (logged {result.logged_outcome or '?'}); "
-                f"{result.wall_s:.2f} s"
-            )
-        else:
-            print(
-                f"rerun: MISMATCH in {result.mismatched_ticks} of {result.ticks} ticks, "
-                f"{len(result.frame_mismatches)} frame mismatches; outcome {result.outcome} "
-                f"(logged {result.logged_outcome or '?'})"
-            )
-            for m in result.mismatches[: rerun.MAX_LISTED]:
-                print(
-                    f"  tick {m['tick']} {m['joint']}: logged {m['logged_nm']!r}, re-run "
-                    f"{m['rerun_nm']!r} {m['detail']}"
-                )
-            for text in result.frame_mismatches[: rerun.MAX_LISTED]:
-                print(f"  {text}")
-            for text in result.decision_mismatches[: rerun.MAX_LISTED]:
-                print(f"  {text}")
+        if _print_rerun(result) != EXIT_OK:
             status = EXIT_FAILED
     if args.export:
         fmt, out = args.export
