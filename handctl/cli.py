@@ -960,8 +960,13 @@ def _check_replay_options(args: argparse.Namespace) -> None:
 
 
 def _startup_repeated(result: RerunReport) -> bool:
-    """Whether a re-run with no control tick repeated a start-up that failed as logged."""
-    return result.outcome == result.logged_outcome == "startup_failed"
+    """Whether a re-run with no control tick repeated a start-up that ended as logged: it
+    failed, or it was stopped (a signal, the time budget) before the nodes were enabled."""
+    return result.outcome == result.logged_outcome and result.outcome in (
+        "startup_failed",
+        "interrupted",
+        "time_budget",
+    )
 
 
 def _print_rerun(result: RerunReport) -> int:
@@ -971,7 +976,9 @@ def _print_rerun(result: RerunReport) -> int:
 
     for note in result.notes:
         print(f"rerun: note: {note}")
-    if result.ok and result.compared == 0 and _startup_repeated(result):
+    if result.outcome == rerun.NOT_STARTED:
+        print(f"rerun: nothing to re-run: {rerun.NOT_STARTED} (no tick was logged)")
+    elif result.ok and result.compared == 0 and _startup_repeated(result):
         # a run that never enabled its nodes has no control tick: what can be shown is
         # that the start-up, fed the same frames, ends the same way
         print(

@@ -109,9 +109,6 @@ class StopSignals:
         """
         # Here, not at the top: loaded by now, by the run being handed over (module docstring).
         import asyncio
-        import dataclasses
-
-        from handctl.online.loop import Outcome
 
         self._loop = asyncio.get_running_loop()
         self.runtime = runtime
@@ -119,17 +116,10 @@ class StopSignals:
             runtime.request_stop(self.noted)
             self.noted = ""
         try:
-            result = await runtime.run()
+            return await runtime.run()
         finally:
             self.finishing = True
             self.runtime = None
-        if (
-            result.outcome is Outcome.STARTUP_FAILED
-            and runtime.stop_requested
-            and not result.faults
-        ):
-            result = dataclasses.replace(result, outcome=Outcome.INTERRUPTED)
-        return result
 
 
 @contextlib.contextmanager

@@ -349,6 +349,13 @@ class Runtime:
         problem = await self._startup()
         if problem:
             self._bus_events += len(self.driver.take_bus_events())  # the log has them
+            if self.stop_requested and not sup.faults:
+                # a stop asked for before the nodes were enabled is the same interrupt as
+                # one asked for later, not a failed start-up: nothing went wrong with the
+                # hand. Said here, where a re-run of the log says it too (the run's signal
+                # handling said it alone, and the re-run of such a log found "NOTHING
+                # COMPARED", exit 1)
+                return Outcome.INTERRUPTED, problem
             return Outcome.STARTUP_FAILED, problem
         # 2. Enable, with zero torque every tick from now on (the device watchdog is armed).
         tick = self.tick

@@ -44,6 +44,8 @@ from handctl.recording.reader import Recording, iter_chunks, require_topics
 from handctl.recording.series import json_floats
 
 MAX_LISTED = 20
+#: the outcome of a re-run of a log whose run stopped before its runtime was set up
+NOT_STARTED = "the run ended before its runtime was set up"
 
 
 @dataclass
@@ -507,9 +509,14 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
 
     A recipe with ``reanalyse`` phases needs ``reanalysis``: the re-run computes each
     phase's analysis again from the logged inputs, on the tick the run applied it."""
-    require_topics(recording, ch.RERUN_TOPICS, "--rerun")
     path = str(recording.path)
     run = recording.metadata.get(ch.META_RUN)
+    if not run and recording.meta_int(ch.META_END, "ticks", -1) == 0:
+        # the run stopped before its runtime was set up (a signal while it started), and
+        # its recorder closed the file with no tick in it: no input was refused, and nothing
+        # is there to re-run (before: exit 2, as if handctl's own log were bad input)
+        return RerunReport(0, 0, 0, [], 0, [], [], 0, NOT_STARTED, "", [], 0.0)
+    require_topics(recording, ch.RERUN_TOPICS, "--rerun")
     if not run:
         raise ConfigError(
             path,

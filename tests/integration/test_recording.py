@@ -81,6 +81,7 @@ def record_run(
     writer_every_tick: bool = False,
     babble: inj.Babble | None = None,
     babble_until_s: float = 0.36,
+    stop_at_start: bool = False,
 ) -> Recorded:
     """A lockstep run on the simulated hand, recorded the way ``run_recipe`` records it.
 
@@ -91,6 +92,7 @@ def record_run(
     gives now and then (the loop descheduled between one tick's push and the next tick).
     With ``writer_every_tick``: so does every tick of the run (a small ring that never fills).
     ``babble``: a babbling node from 0.35 s to ``babble_until_s`` of the run.
+    ``stop_at_start``: a stop asked for before the run, met in its start-up.
     """
     with rig(hand, recipe) as r:
         drained: list[tuple[int, bytes]] = []
@@ -155,6 +157,8 @@ def record_run(
             recorder.wait_ready()
             if pause_writer:
                 os.kill(recorder.process.pid, signal.SIGSTOP)
+            if stop_at_start:
+                r.runtime.request_stop("test stop")
             try:
                 result = r.run()
             finally:

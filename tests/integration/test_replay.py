@@ -25,7 +25,9 @@ from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
 from handctl.recording.frames import logged_frames, to_bus
+from handctl.recording.metadata import start_metadata
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
+from handctl.recording.recorder import Recorder
 from handctl.recording.replay import summarise_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
@@ -114,6 +116,37 @@ def test_a_time_budget_ends_the_phase_where_the_run_said_in_the_replay_too(
     stages = replay["timing"]["stage_cpu_us_p99"]
     assert stages == {k: run["stage_cpu_us_p99"][k] for k in stages}
     assert replay["timing"]["lateness_us"] == run["lateness_us"]
+
+
+def test_a_run_stopped_in_its_start_up_re_runs_to_the_same_end(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A stop met before the nodes were enabled is an interrupt, in the run and in its
+    re-run alike: the re-run of such a log said "NOTHING COMPARED", exit 1, where the run
+    had been interrupted (its signal handling alone made the failed start-up an interrupt)."""
+    run = record_run(
+        hand, short_recipe(hand, tmp_path), tmp_path / "early.mcap", troubles=False,
+        stop_at_start=True,
+    )  # fmt: skip
+    assert run.result.outcome is Outcome.INTERRUPTED, run.result.message
+    assert "stopped during start-up" in run.result.message
+    done = handctl("replay", str(run.path), "--rerun")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "rerun: the start-up re-run to the same end (interrupted)" in done.stdout
+
+
+def test_a_log_with_no_tick_and_no_runtime_has_nothing_to_re_run(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A run stopped before its runtime was set up (a signal while it started) leaves a
+    closed log with its start and no tick: the re-run said exit 2, as for bad input."""
+    log = tmp_path / "unstarted.mcap"
+    recorder = Recorder(log, hand, start_metadata(hand, None, ["test"]))
+    recorder.wait_ready()
+    recorder.close({"outcome": "interrupted"})
+    done = handctl("replay", str(log), "--rerun")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "rerun: nothing to re-run: the run ended before its runtime was set up" in done.stdout
 
 
 @pytest.mark.parametrize(
