@@ -1061,6 +1061,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     import json
 
     from handctl.recording import frames, replay, rerun
+    from handctl.recording.metadata import check_run_metadata, recorded_hand
     from handctl.recording.reader import check_format, open_recording
     from handctl.recording.series import load_series
 
@@ -1070,6 +1071,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     on_bus = _load_checked_hand(args.hand, "--hand") if args.hand is not None else None
     recording = open_recording(args.log)
     check_format(recording)
+    check_run_metadata(recording, recorded_hand(recording, required=False))
     series = load_series(recording)
     summary = replay.summarise_recording(recording, series)
     _print_replay_summary(summary)

@@ -146,6 +146,38 @@ def run_metadata(
     }
 
 
+def check_run_metadata(recording: Recording, hand: HandConfig | None) -> None:
+    """Refuse a ``handctl.run`` record that is not what a run writes (``run_metadata``): a
+    log whose mode, seed or period was rewritten was summarised and re-run "bit-exact" as
+    it was, its period read into the phases' times. None is fine (a run stopped before its
+    runtime was set up writes none)."""
+    run = recording.metadata.get(ch.META_RUN)
+    if not run:
+        return
+
+    def refuse(key: str, expected: str) -> ConfigError:
+        return ConfigError(
+            str(recording.path), f"metadata {ch.META_RUN}.{key}", expected, run.get(key, "nothing")
+        )
+
+    if run.get("mode") not in ("lockstep", "realtime"):
+        raise refuse("mode", "lockstep or realtime")
+    for key in ("seed", "startup_ticks"):
+        if not run.get(key):
+            raise refuse(key, "a whole number >= 0")
+        recording.meta_int(ch.META_RUN, key, 0)  # said as every whole number is
+    period_ns = recording.meta_int(ch.META_RUN, "period_ns", -1, minimum=1)
+    if hand is not None and period_ns != round(hand.bus.period_s * 1e9):
+        raise refuse(
+            "period_ns",
+            f"{round(hand.bus.period_s * 1e9)} (the period of the recorded hand's "
+            f"{hand.bus.loop_rate_hz:g} Hz loop)",
+        )
+    for key in ("reset_node_faults", "estimator"):
+        if run.get(key) not in ("True", "False"):
+            raise refuse(key, "True or False")
+
+
 def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | None:
     """The hand config a recording's run used, as it was loaded then."""
     text = recording.meta(ch.META_HAND, "yaml")

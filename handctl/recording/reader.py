@@ -152,6 +152,25 @@ class Recording:
         return value
 
 
+def _check_tick_count(recording: Recording) -> None:
+    """A finished file holds the tick rows its end record counts: every message after a
+    tick cut out and the file finished again read as a complete run of that many ticks, its
+    re-run "bit-exact" on them."""
+    if not recording.complete or not recording.message_counts:
+        return
+    told = recording.meta(ch.META_END, "ticks")
+    if not told:
+        return
+    rows = recording.message_counts.get(ch.TIMING, 0)
+    if recording.meta_int(ch.META_END, "ticks", 0) != rows:
+        raise ConfigError(
+            str(recording.path),
+            f"channel {ch.TIMING}",
+            f"the {told} tick rows the end record ({ch.META_END}.ticks) counts",
+            f"{rows} rows",
+        )
+
+
 def _fail(path: Path, found: str) -> ConfigError:
     return ConfigError(
         str(path),
@@ -591,6 +610,7 @@ def check_format(recording: Recording) -> None:
             f"format version {ch.FORMAT_VERSION}",
             version,
         )
+    _check_tick_count(recording)
     wanted = {c.topic: c.schema_name for c in ch.CHANNELS}
     for channel in recording.channels.values():
         name = wanted.get(channel.topic)

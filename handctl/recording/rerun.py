@@ -39,7 +39,12 @@ from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.recording import channels as ch
 from handctl.recording.feedback_check import FeedbackCheck
 from handctl.recording.messages import MessageCheck
-from handctl.recording.metadata import recorded_hand, recorded_protocol, recorded_recipe
+from handctl.recording.metadata import (
+    check_run_metadata,
+    recorded_hand,
+    recorded_protocol,
+    recorded_recipe,
+)
 from handctl.recording.reader import Recording, iter_chunks, require_topics
 from handctl.recording.series import json_floats
 
@@ -537,6 +542,7 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         )
     hand = recorded_hand(recording)
     assert hand is not None
+    check_run_metadata(recording, hand)
     recipe = recorded_recipe(recording, hand)
     period_s = (
         recording.meta_int(ch.META_RUN, "period_ns", round(hand.bus.period_s * 1e9), minimum=1)

@@ -205,7 +205,26 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
         series.objects = objects.rows
     series.rest_y = _rest_heights(recording, series, hand)
     series.frames = frames
+    _check_drops(recording, series.stats)
     return series
+
+
+def _check_drops(recording: Recording, stats: dict[str, Any]) -> None:
+    """The writer's running counts (``/recording/stats``) never exceed its final ones (the
+    end record): a log whose stats said 3 ticks dropped and whose end said none was shown
+    "drops: none" and re-run as if whole."""
+    for key in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses"):
+        said = stats.get(key)
+        if said is None or not recording.meta(ch.META_END, key):
+            continue
+        final = recording.meta_int(ch.META_END, key, 0)
+        if int(said) > final:
+            raise ConfigError(
+                str(recording.path),
+                f"metadata {ch.META_END}.{key}",
+                f"at least the {said} that {ch.STATS} counted",
+                str(final),
+            )
 
 
 def _recorded_hand(recording: Recording) -> HandConfig | None:

@@ -178,6 +178,11 @@ def test_a_channel_that_is_not_handctls_json_is_refused(
         (ch.META_RUN, "startup_ticks", "-5", "expected a whole number >= 0, found '-5'"),
         (ch.META_END, "dropped_ticks", "nan", "expected a whole number >= 0, found 'nan'"),
         ("handctl.command", "started_unix_ns", "1e9", "expected a whole number >= 0, found '1e9'"),
+        # what a run never writes: summarised and re-run "bit-exact" as it was
+        (ch.META_RUN, "seed", "abc", "expected a whole number >= 0, found 'abc'"),
+        (ch.META_RUN, "mode", "bogus", "expected lockstep or realtime, found 'bogus'"),
+        (ch.META_RUN, "period_ns", "500000", "expected 1000000 (the period of the recorded"),
+        (ch.META_RUN, "estimator", "maybe", "expected True or False, found 'maybe'"),
     ],
 )
 def test_metadata_that_does_not_parse_is_exit_2(
@@ -517,3 +522,42 @@ def test_a_bus_where_a_real_hand_may_listen_needs_the_operator_s_hand_config(
     assert "to-bus:" not in done.stdout
     alone = handctl("replay", str(recorded.path), "--hand", "hand.yaml")
     assert alone.returncode == 2 and "--hand: expected --to-bus SPEC as well" in alone.stderr
+
+
+def test_a_log_holding_other_tick_rows_than_its_end_counts_is_refused(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """Every message after a tick cut out and the file finished again read as a complete
+    run of that many ticks, re-run "bit-exact": the end record counts the rows there are."""
+    bad = tmp_path / "rows.mcap"
+
+    def fewer(name: str, values: dict[str, str]) -> dict[str, str]:
+        return (
+            values | {"ticks": str(int(values["ticks"]) + 158)} if name == ch.META_END else values
+        )
+
+    rewrite(recorded.path, bad, metadata=fewer)
+    done = handctl("replay", str(bad), "--rerun")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"{bad}: channel {ch.TIMING}: expected the " in done.stderr
+    assert "tick rows the end record (handctl.recording_end.ticks) counts" in done.stderr
+    assert "bit-exact" not in done.stdout
+
+
+def test_drops_the_writer_counted_on_the_way_cannot_vanish_from_its_end(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    bad = tmp_path / "drops.mcap"
+
+    def dropped(topic: str, index: int, raw: bytes) -> bytes:
+        if topic != ch.STATS:
+            return raw
+        return json.dumps(json.loads(raw) | {"dropped_ticks": 3}).encode()
+
+    rewrite(recorded.path, bad, dropped)
+    done = handctl("replay", str(bad), "--rerun")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert (
+        f"{bad}: metadata handctl.recording_end.dropped_ticks: expected at least the 3 that "
+        f"{ch.STATS} counted, found '0'"
+    ) in done.stderr
