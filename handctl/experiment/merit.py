@@ -294,11 +294,17 @@ def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[st
     }
     total = 0.0
     if trace.pairs:
-        bounds = [
-            (name, float(t[s]), float(t[e]) if e < n else math.inf) for name, s, e in segments
-        ]
         # on the samples a log keeps (the convention's), so that its replay measures the same
         period = float(t[1] - t[0]) if n > 1 else 1.0
+        # A sample is taken as its tick begins, labelled with the phase the tick before ran:
+        # a phase ran from the tick before its first label to the tick before the next
+        # phase's, and the sample at that tick is the state it ended in. Bounds at the
+        # labels' own times ended a phase one sample late when its last tick was a logged
+        # one's, and gave the next phase's first 10 ms of turn to it.
+        bounds = [
+            (name, float(t[s]) - period, float(t[e]) - period if e < n else math.inf)
+            for name, s, e in segments
+        ]
         logged = np.round(t / period).astype(np.int64) % POSE_EVERY_TICKS == 0
         in_manip = np.zeros(n, dtype=bool)
         for _, s, e in manip:

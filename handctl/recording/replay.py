@@ -135,10 +135,11 @@ def _pair_figures(
     and its turn per phase, under ``pairs`` by name as the experiment summary keys them; the
     first pair's also at the top level (``objects_line_pair`` names it), where a log of the
     default two-object recipe has always had them."""
-    # a pose taken at the start of tick k belongs to the phase tick k - 1 ran, and the
-    # phase channel says which phase a tick ran: the bounds move one tick later
-    period = recording.meta_int(ch.META_RUN, "period_ns", 1_000_000, minimum=1) * 1e-9
-    bounds = [(p["name"], p["start_s"] + period, p["end_s"] + period) for p in series.phases]
+    # The phase channel says which phase a tick ran, and a pose is taken as its tick begins:
+    # the pose at a phase's first tick is where it started, the one at the next phase's
+    # first tick where it ended. (Bounds a tick later ended a phase one sample late when its
+    # last tick was a logged one's.)
+    bounds = [(p["name"], p["start_s"], p["end_s"]) for p in series.phases]
     figures: dict[str, dict[str, Any]] = {}
     for name, a, b in pairs:
         angle = line_angle(series.objects, a, b)

@@ -260,3 +260,22 @@ def test_an_object_the_recipe_does_not_name_is_reported_not_judged() -> None:
     assert ex["objects"]["o2"]["lifted"] is False
     # were it the recipe's, it would count
     assert experiment_summary(scene((0, 1, 2)))["success"] is False
+
+
+def test_a_phase_ending_on_a_logged_tick_ends_at_that_sample() -> None:
+    """A sample is taken as its tick begins and labelled with the phase the tick before ran.
+    ``manipulate_1`` runs ticks 100..199, turning 45°; ``manipulate_2`` ticks 200..299,
+    turning 90°. The sample at tick 200 (a logged one) is where the first ended: bounds at
+    the labels' own times ended it at tick 210's, and gave it 9° of the second's turn."""
+    tr = empty_trace()
+    for k in range(0, 400):
+        ran = k - 1  # the tick this sample follows
+        phase = "lift" if ran < 100 else "manipulate_1" if ran < 200 else "manipulate_2"
+        phase = phase if ran < 300 else "manipulate_3"
+        done = min(max(ran - 99, 0), 100) * 0.45 + min(max(ran - 199, 0), 100) * 0.9
+        angle = math.radians(-done)
+        dx, dy = 0.02 * math.cos(angle), 0.02 * math.sin(angle)
+        y = REST[0] + 0.05
+        tr.add(k * 0.001, phase, [Pose(-dx, y - dy), Pose(dx, y + dy)], [0.0] * 9, None, False)
+    turns = experiment_summary(tr)["phase_angles_deg"]
+    assert turns[:2] == pytest.approx([-45.0, -90.0], abs=1e-6)
