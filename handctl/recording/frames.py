@@ -152,8 +152,11 @@ def check_commands(
             finger,
         )
         other[finger.can_ids.node_command] = protocol.layout("NodeCommand", finger.node_id)
-    # the log's own ticks (their spacing and lateness are what the slack is for)
-    period_ns = round((recorded_hand(recording) or hand).bus.period_s * 1e9)
+    # the log's own ticks (their spacing and lateness are what the slack is for), or the
+    # hand's on the bus if its loop is faster: a log re-sealed to say 250 Hz was given four
+    # times the slack of the 1 kHz hand it went to
+    logged_period_s = (recorded_hand(recording) or hand).bus.period_s
+    period_ns = round(min(logged_period_s, hand.bus.period_s) * 1e9)
     # what each joint may still change by (N·m), per command id: a bucket filled at the rate
     # limit over the time between a node's commands as they are sent, up to two periods'
     # worth. The supervisor allows one period's step a tick; the second period is the slack
@@ -196,6 +199,7 @@ def check_commands(
             dt = max(0, log_time - before_ns) * 1e-9 / speed
         else:  # a node's first command: from zero, the bucket full
             before, budget, dt = (0.0,) * len(values), [0.0] * len(rates), 2 * period_s
+            before_ns = log_time
         budget = [min(2 * r * period_s, b + r * dt) for r, b in zip(rates, budget, strict=True)]
         problem = _torque_problem(layout, finger, values, before, budget, speed, period_s)
         if problem is not None and on_bus:
@@ -205,7 +209,10 @@ def check_commands(
         for i, (tau, was) in enumerate(zip(values, before, strict=False)):
             if i < len(budget) and not _towards_zero(tau, was):
                 budget[i] = max(0.0, budget[i] - abs(tau - was))
-        last[frame_id] = (log_time, values, budget)
+        # the budget's clock never runs back: a command dated before the one it follows
+        # gets nothing, and the next is measured from the later of the two (from the earlier,
+        # commands dated 0.7 ms back put 1.75 times the rate limit on the wire)
+        last[frame_id] = (max(log_time, before_ns), values, budget)
     return checked
 
 
@@ -248,7 +255,12 @@ def _torque_problem(
                 f"a change of at most {step:.6g} N·m from the previous command's {was:g} N·m "
                 f"(what its rate limit {joint.rate_limit:g} N·m/s has left since the "
                 f"commands before, at most two periods' worth, {2 * period_s * 1e3:g} ms"
-                + (f" of the logged time at --speed {speed:g}" if speed != 1.0 else "")
+                + (
+                    f" as sent, {2 * period_s * speed * 1e3:g} ms of the logged time at "
+                    f"--speed {speed:g}"
+                    if speed != 1.0
+                    else ""
+                )
                 + ")",
                 tau,
             )

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -404,9 +405,12 @@ def _commands(
     hand: HandConfig,
     times_ns: list[int],
     torques: list[float],
+    logged_hand: HandConfig | None = None,
+    on_bus: bool = False,
 ) -> int:
     """``check_commands`` on a log whose only frames are node 1's commands to f1_j1, at
-    ``times_ns``: what the rate limit makes of their timing alone."""
+    ``times_ns``: what the rate limit makes of their timing alone (the log's hand
+    ``logged_hand``, ``hand`` by default; ``on_bus``: ``hand`` is --hand's)."""
     from handctl.recording import frames
 
     layout = protocol.layout("TorqueCommand", 1)
@@ -416,9 +420,9 @@ def _commands(
     ]
     monkeypatch.setattr(frames, "logged_frames", lambda recording, direction="both": logged)
     monkeypatch.setattr(frames, "recorded_protocol", lambda recording: protocol)
-    monkeypatch.setattr(frames, "recorded_hand", lambda recording: hand)
+    monkeypatch.setattr(frames, "recorded_hand", lambda recording: logged_hand or hand)
     log = SimpleNamespace(path=Path("commands.mcap"))  # all the refusal reads of it
-    return frames.check_commands(log, hand)  # type: ignore[arg-type]
+    return frames.check_commands(log, hand, on_bus=on_bus)  # type: ignore[arg-type]
 
 
 def test_commands_stacked_at_one_log_time_are_held_to_the_rate_limit_together(
@@ -561,3 +565,33 @@ def test_drops_the_writer_counted_on_the_way_cannot_vanish_from_its_end(
         f"{bad}: metadata handctl.recording_end.dropped_ticks: expected at least the 3 that "
         f"{ch.STATS} counted, found '0'"
     ) in done.stderr
+
+
+def test_a_command_dated_back_gives_the_next_no_more_time(
+    monkeypatch: pytest.MonkeyPatch, hand: HandConfig, protocol: Protocol
+) -> None:
+    """After each tick's command, another dated 0.7 ms before it: measured from that earlier
+    time, each tick was credited 1.7 ms, and up to 1.75 times the rate limit went out
+    (here 1.68)."""
+    step = hand.fingers[0].joints[0].rate_limit * hand.bus.period_s
+    period_ns = round(hand.bus.period_s * 1e9)
+    times, torques = [], []
+    for k in range(12):
+        times += [k * period_ns, k * period_ns - 7 * period_ns // 10]
+        torques += [step * (2 * k + 1) * 0.84, step * (2 * k + 2) * 0.84]
+    with pytest.raises(ConfigError, match="expected a change of at most"):
+        _commands(monkeypatch, protocol, hand, times, torques)
+
+
+def test_the_slack_is_the_faster_loop_s_the_log_s_or_the_hand_s_on_the_bus(
+    monkeypatch: pytest.MonkeyPatch, hand: HandConfig, protocol: Protocol
+) -> None:
+    """A log that says 250 Hz (re-sealed, or honest) had two of its periods' slack onto a
+    1 kHz hand: a jump of four of that hand's steps at once went out."""
+    slow = replace(hand, bus=replace(hand.bus, loop_rate_hz=250.0))
+    step = hand.fingers[0].joints[0].rate_limit * slow.bus.period_s  # one 4 ms tick's
+    times = [k * 4_000_000 for k in range(6)]
+    torques = [0.9 * step * (k + 1) for k in range(6)]
+    assert _commands(monkeypatch, protocol, slow, times, torques)  # onto its own hand
+    with pytest.raises(ConfigError, match="in --hand"):
+        _commands(monkeypatch, protocol, hand, times, torques, logged_hand=slow, on_bus=True)
