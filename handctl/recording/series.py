@@ -88,6 +88,7 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     #: where the phase under way ended when the run was stopped in it (a stop or a fault),
     #: and why: the run's ``phase_end`` note, which no change of phase name shows
     ended: tuple[int, str] | None = None
+    ended_at: float | None = None
     last_t = 0.0
     topics = (ch.TIMING, ch.TORQUE, ch.JOINT_STATE, ch.PHASE, ch.EVENTS, ch.OBJECTS, ch.STATS)
     for topic, log_time, raw in iter_messages(recording, (*topics, ch.CAN_RX, ch.CAN_TX)):
@@ -110,6 +111,10 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             if tick0 is None:
                 tick0 = int(msg["scheduled_ns"]) - int(msg["tick"]) * period_ns
             scheduled = (int(msg["scheduled_ns"]) - t0) * 1e-9
+            if ended is not None and msg["tick"] == ended[0]:
+                # the stop's tick's own scheduled time: after missed ticks (real time) it is
+                # later than its number of periods, and the run's clock is the schedule's
+                ended_at = scheduled
             stages = msg.get("stage_cpu_ns") or {}
             timing.add(
                 (
@@ -176,8 +181,8 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     stop_exit = ""
     if ended is not None and series.phases and ended[0] >= series.phases[-1]["tick"]:
         # the stop's tick, on the ticks' time base (as the run's own summary has it)
-        if tick0 is not None and t0 is not None:
-            series.phases[-1]["end_s"] = (tick0 + ended[0] * period_ns - t0) * 1e-9
+        if ended_at is not None:
+            series.phases[-1]["end_s"] = ended_at
         stop_exit = ended[1]
     for phase in series.phases:
         phase["exit"] = next(

@@ -85,6 +85,26 @@ def test_the_phase_a_stop_ended_is_the_same_in_the_run_and_its_replay(
     ]
 
 
+def test_a_stop_after_missed_ticks_ends_the_phase_at_its_tick_s_scheduled_time(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """After missed ticks (real time) a tick's scheduled time is later than its number of
+    periods, and the run's clock is the schedule's: the replay ended a stopped phase at the
+    number of periods, as many ticks early as were missed."""
+    late = tmp_path / "late.mcap"
+
+    def missed_five(topic: str, message: dict[str, Any]) -> dict[str, Any]:
+        if topic == ch.TIMING and message["tick"] >= 500:
+            message["scheduled_ns"] += 5_000_000  # five ticks missed before tick 500
+        return message
+
+    rewrite(recorded.path, late, missed_five)
+    recording = open_recording(late)
+    phases = summarise_recording(recording, load_series(recording))["phases"]
+    assert phases[-1]["exit"] == "safety stop: ESTOP"
+    assert phases[-1]["end_s"] == pytest.approx(ESTOP_TICK * 1e-3 + 0.005)
+
+
 def test_a_time_budget_ends_the_phase_where_the_run_said_in_the_replay_too(
     hand: HandConfig, tmp_path: Path
 ) -> None:
