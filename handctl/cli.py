@@ -976,8 +976,8 @@ def _print_rerun(result: RerunReport) -> int:
 
     for note in result.notes:
         print(f"rerun: note: {note}")
-    if result.outcome == rerun.NOT_STARTED:
-        print(f"rerun: nothing to re-run: {rerun.NOT_STARTED} (no tick was logged)")
+    if result.outcome in (rerun.NOT_STARTED, rerun.NO_TICK):
+        print(f"rerun: nothing to re-run: {result.outcome} (no tick was logged)")
     elif result.ok and result.compared == 0 and _startup_repeated(result):
         # a run that never enabled its nodes has no control tick: what can be shown is
         # that the start-up, fed the same frames, ends the same way

@@ -49,8 +49,10 @@ from handctl.recording.reader import Recording, iter_chunks, require_topics
 from handctl.recording.series import json_floats
 
 MAX_LISTED = 20
-#: the outcome of a re-run of a log whose run stopped before its runtime was set up
+#: the outcome of a re-run of a log whose run stopped before its runtime was set up, and of
+#: one whose run stopped before its first tick
 NOT_STARTED = "the run ended before its runtime was set up"
+NO_TICK = "the run ended before its first tick"
 
 
 @dataclass
@@ -70,6 +72,7 @@ class TickInput:
     desired: list[float] | None = None
     joint_state: dict[str, Any] | None = None  # the logged /hand/joint_state message
     state: str | None = None  # the logged /safety/state
+    faults_latched: int | None = None  # and its count of faults latched so far
     phase: str | None = None  # the logged /recipe/phase
 
 
@@ -147,6 +150,7 @@ def tick_inputs(  # noqa: C901 - one branch per channel; bus/replay split (issue
                 elif topic == safety:
                     if current is not None and current.tick == msg["tick"]:
                         current.state = msg["state"]
+                        current.faults_latched = msg.get("faults_latched")
                 elif topic == phase:
                     if current is not None and current.tick == msg["tick"]:
                         current.phase = msg["phase"]
@@ -431,10 +435,17 @@ class _Compare:
         """Whether the tick's desired torques, safety state and phase are the log's (each
         that differs is listed in ``decisions``)."""
         same = True
-        if logged.state is not None and logged.state != record.state:
+        # a tick the log has no record of is no tick it shows as the re-run's (a record cut
+        # out re-ran "as logged")
+        if logged.state != record.state:
             self._decided(record.tick, "safety state", logged.state, record.state)
             same = False
-        if logged.phase is not None and logged.phase != record.phase:
+        runtime = self.clock.runtime
+        latched = len(runtime.supervisor.faults) if runtime is not None else None
+        if latched is not None and logged.state is not None and logged.faults_latched != latched:
+            self._decided(record.tick, "faults latched", logged.faults_latched, latched)
+            same = False
+        if logged.phase != record.phase:
             self._decided(record.tick, "phase", logged.phase, record.phase)
             same = False
         desired = logged.desired
@@ -516,11 +527,16 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
     phase's analysis again from the logged inputs, on the tick the run applied it."""
     path = str(recording.path)
     run = recording.metadata.get(ch.META_RUN)
-    if not run and recording.meta_int(ch.META_END, "ticks", -1) == 0:
-        # the run stopped before its runtime was set up (a signal while it started), and
-        # its recorder closed the file with no tick in it: no input was refused, and nothing
-        # is there to re-run (before: exit 2, as if handctl's own log were bad input)
-        return RerunReport(0, 0, 0, [], 0, [], [], 0, NOT_STARTED, "", [], 0.0)
+    if (
+        recording.meta_int(ch.META_END, "ticks", -1) == 0
+        and recording.message_counts.get(ch.TIMING, 0) == 0
+    ):
+        # the run stopped before its runtime was set up (a signal while it started) or
+        # before its first tick (killed then), and its file was finished with no tick in it:
+        # no input was refused, and nothing is there to re-run (before: exit 2, as if
+        # handctl's own log were bad input, or "NOTHING COMPARED", exit 1)
+        why = NOT_STARTED if not run else NO_TICK
+        return RerunReport(0, 0, 0, [], 0, [], [], 0, why, "", [], 0.0)
     require_topics(recording, ch.RERUN_TOPICS, "--rerun")
     if not run:
         raise ConfigError(

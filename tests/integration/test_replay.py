@@ -25,7 +25,7 @@ from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
 from handctl.recording.frames import logged_frames, to_bus
-from handctl.recording.metadata import start_metadata
+from handctl.recording.metadata import run_metadata, start_metadata
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.recorder import Recorder
 from handctl.recording.replay import summarise_recording
@@ -155,6 +155,27 @@ def test_a_run_stopped_in_its_start_up_re_runs_to_the_same_end(
     assert "rerun: the start-up re-run to the same end (interrupted)" in done.stdout
 
 
+def test_a_log_with_its_runtime_and_no_tick_has_nothing_to_re_run(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """Killed after its runtime was set up and before its first tick, a run leaves a file
+    the writer finished with no tick: the re-run said "NOTHING COMPARED", exit 1."""
+    log = tmp_path / "no_tick.mcap"
+    recorder = Recorder(log, hand, start_metadata(hand, None, ["test"]))
+    recorder.wait_ready()
+    recorder.add_metadata(
+        ch.META_RUN,
+        run_metadata(
+            mode="lockstep", bus="virtual", seed=0, period_ns=1_000_000, startup_ticks=500,
+            reset_node_faults=False, estimator=False,
+        ),
+    )  # fmt: skip
+    recorder.close({"outcome": "interrupted"})
+    done = handctl("replay", str(log), "--rerun")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "rerun: nothing to re-run: the run ended before its first tick" in done.stdout
+
+
 def test_a_log_with_no_tick_and_no_runtime_has_nothing_to_re_run(
     hand: HandConfig, tmp_path: Path
 ) -> None:
@@ -175,6 +196,10 @@ def test_a_log_with_no_tick_and_no_runtime_has_nothing_to_re_run(
         (ch.PHASE, "phase", "bogus", "phase: logged 'bogus', re-run "),
         (ch.SAFETY, "state", "faulted", "safety state: logged 'faulted', re-run 'running'"),
         (ch.TORQUE, "desired_nm", 0.125, "desired torque of f1_j1 (N·m): logged 0.125, re-run "),
+        (ch.SAFETY, "faults_latched", 1, "faults latched: logged 1, re-run 0"),
+        # a record moved off its tick leaves the tick without one: no record re-ran "as logged"
+        (ch.PHASE, "tick", 10**6, "phase: logged None, re-run "),
+        (ch.SAFETY, "tick", 10**6, "safety state: logged None, re-run 'running'"),
     ],
 )
 def test_rerun_finds_a_tick_whose_phase_state_or_desired_torques_were_rewritten(
@@ -190,6 +215,8 @@ def test_rerun_finds_a_tick_whose_phase_state_or_desired_torques_were_rewritten(
         if t == topic and message["tick"] == target:
             if key == "desired_nm":
                 message[key][0] = value
+            elif key == "tick":
+                message[key] = target + 1
             else:
                 message[key] = value
         return message
