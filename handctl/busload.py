@@ -229,7 +229,12 @@ def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
         return [f"CAN-FD 1/5 Mbit/s would carry {fd.load * 100:.1f} %"]
     budget = hand_budget(hand, protocol)
     highest = budget.highest_loop_rate_hz()
-    rate_hint = f"the highest loop rate that fits is {highest:.0f} Hz"
+    # whole hertz down: rounded to the nearest, a hint of 1641 Hz for 1640.9 was refused
+    rate_hint = (
+        f"the highest loop rate that fits is {math.floor(highest)} Hz"
+        if highest < math.inf
+        else "any loop rate fits"
+    )
     most = most_misses_before_watchdog(math.floor(highest)) if highest < math.inf else 0
     if highest < math.inf and most < hand.safety.max_consecutive_misses:
         # the hint must lead to a config check takes: a slower loop allows fewer misses

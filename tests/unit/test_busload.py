@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -103,7 +104,7 @@ def test_four_fingers_of_four_joints_on_can_fd_are_refused_with_the_figures(tmp_
     assert result.returncode == 2
     assert (
         f"{path}: bus: expected a worst-case load <= 50 % ("
-        f"the highest loop rate that fits is {budget.highest_loop_rate_hz():.0f} Hz; "
+        f"the highest loop rate that fits is {math.floor(budget.highest_loop_rate_hz())} Hz; "
         f"2 buses of at most 2 fingers would carry {two.load * 100:.1f} % at most; "
         "a data phase of 8 Mbit/s would carry "
         f"{hand_budget(hand, protocol, data_bitrate=8_000_000).load * 100:.1f} %), "
@@ -160,6 +161,6 @@ def test_the_highest_loop_rate_hint_names_the_misses_that_rate_allows(tmp_path: 
     result = handctl("check", str(path))
     assert result.returncode == 2
     assert (
-        f"the highest loop rate that fits is {highest:.0f} Hz (with "
+        f"the highest loop rate that fits is {math.floor(highest)} Hz (with "
         "safety.max_consecutive_misses at most 1)"
     ) in result.stderr
