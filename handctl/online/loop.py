@@ -406,8 +406,9 @@ class Runtime:
             f"node {n.node_id} ({n.finger.name})" for n in self.driver.nodes if n.state == enabled
         ]
         self.disable_unconfirmed = (
-            f"{', '.join(still)} still reported ENABLED {ticks * period_s * 1e3:g} ms after "
-            "the disable; the nodes' command watchdog disables a node that hears no command"
+            f"{', '.join(still)} not heard disabled within {ticks * period_s * 1e3:g} ms of "
+            "the disable (last heard ENABLED, or silent since); the nodes' command watchdog "
+            "disables a node that hears no command"
         )
 
     async def _stop_after_exception(self, exc: Exception) -> tuple[Outcome, str]:

@@ -21,7 +21,7 @@ from handctl.online.safety.supervisor import State
 from handctl.protocol import NodeState
 from handctl.sim import faults as inj
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 from .rig import CLOSE_AND_HOLD_2S, rig
 
 INJECT_AT = 1.0  # s of simulated time: well inside the hold phase
@@ -63,6 +63,23 @@ def test_the_nodes_are_heard_disabled_at_the_end_above_1_khz(
         assert all(n.state == NodeState.DISABLED for n in r.sim.nodes)
         assert all(n.state == NodeState.DISABLED for n in r.runtime.driver.nodes)
         assert result.disable_unconfirmed == ""
+
+
+def test_a_node_not_heard_disabled_at_the_end_is_said(
+    hand: HandConfig, hold: Recipe, tmp_path: Path
+) -> None:
+    """A node gone silent (its FEEDBACK_TIMEOUT the run's stop) is not heard disabled after
+    the disable: the run listens 10 ms for it and says so, and the node's own command
+    watchdog is what disables it."""
+    faults = tmp_path / "silent.yaml"
+    faults.write_text("faults:\n  - {kind: node_silent, node: 2, start: 0.5, stop: 5.0}\n")
+    done = handctl(
+        "run", "recipe", str(hold.source), "--sim-faults", str(faults), "--max-seconds", "2"
+    )  # fmt: skip
+    assert done.returncode == 3, done.stderr
+    assert "FEEDBACK_TIMEOUT" in done.stderr
+    assert "warning: node 2 (f2) not heard disabled within 10 ms of the disable" in done.stderr
+    assert "node 1 (f1) not heard" not in done.stderr  # the others said so in time
 
 
 def test_lockstep_runs_are_deterministic(hand: HandConfig, hold: Recipe) -> None:
