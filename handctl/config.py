@@ -136,12 +136,22 @@ class HandConfig:
     source: str
     bus: BusConfig
     fingers: tuple[FingerConfig, ...]
+    #: of the config as read (whole numbers of real-valued keys as reals): ``rate_limit: 20``
+    #: and ``20.0`` are one hand; spelled differently, every recipe compiled for one refused
+    #: the other as "another hand config"
     config_hash: str
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
     #: The DBC file given for this hand (``--dbc``), or None: its protocol is the one generated
     #: from its fingers (``handctl.hand_protocol.protocol_for`` decides, for every command).
     dbc: str | None = None
+    #: the hash of the config as written, which recipes compiled before ``config_hash`` was
+    #: taken as read carry (``config_hash`` itself for a config that wrote its reals as reals)
+    legacy_hash: str = ""
+
+    def answers_to(self, digest: str | None) -> bool:
+        """Whether a recipe's ``hand_config_hash`` is this hand's, either way it was taken."""
+        return digest is not None and digest in (self.config_hash, self.legacy_hash)
 
     @property
     def joints(self) -> tuple[JointConfig, ...]:
@@ -171,6 +181,11 @@ def load_hand(path: str | Path, dbc: str | Path | None = None) -> HandConfig:
 def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = None) -> HandConfig:
     """The hand config in ``doc``, checked against ``protocol`` if given (a recording's), else
     against the protocol of the hand and ``dbc`` (``protocol_for``)."""
+    # as written, before reading turns the whole numbers of real-valued keys into reals: the
+    # hash recipes compiled before that was done carry (``legacy_hash``)
+    as_written = json.dumps(
+        {k: v for k, v in doc.data.items() if k != "sim"}, sort_keys=True, separators=(",", ":")
+    )
     name = doc.string("name")
     # a recording's hand is read as it ran; a hand to run takes a loop the rules allow now
     bus = _parse_bus(
@@ -206,6 +221,7 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
         bus=bus,
         fingers=fingers,
         config_hash=f"sha256:{digest[:16]}",
+        legacy_hash=f"sha256:{hashlib.sha256(as_written.encode()).hexdigest()[:16]}",
         safety=safety,
         sim=MappingProxyType(dict(sim_raw or {})),
         dbc=dbc,

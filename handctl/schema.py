@@ -660,11 +660,18 @@ class Doc:
         min_exclusive: bool = False,
         unit: str = "",
     ) -> float:
-        """A finite real number; bounds are inclusive unless ``min_exclusive``."""
+        """A finite real number; bounds are inclusive unless ``min_exclusive``.
+
+        A whole number written for it (``20`` for ``20.0``) is kept in the data as the real
+        number it is read as, so that what is hashed of a file (a hand config's
+        ``config_hash``) is the same however the number was spelled."""
         value = self._get(key, default)
-        return self.check_number(
+        number = self.check_number(
             key, value, min=min, max=max, min_exclusive=min_exclusive, unit=unit
         )
+        if type(value) is int and isinstance(self.data, dict) and key in self.data:
+            self.data[key] = number
+        return number
 
     def check_number(
         self,
@@ -747,9 +754,11 @@ class Doc:
             # the count is what is wrong, and the start of a long list does not show it
             self.fail(key, what, _Text(f"a list of {len(value)}: {shown(value)}"))
         sub = Doc({}, self.file, self.key_path(key))
-        return tuple(
+        numbers = tuple(
             sub.check_number(i, v, min=min, max=max, unit=unit) for i, v in enumerate(value)
         )
+        value[:] = numbers  # as ``number`` keeps them: read as reals, whatever the spelling
+        return numbers
 
     # -- structure ------------------------------------------------------------------------
     def mapping(self, key: str, *, default: Any = _MISSING) -> Doc:

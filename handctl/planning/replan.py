@@ -85,7 +85,7 @@ def load_base(
             f"'{template.recipe}', the recipe {Path(template.source).name} compiles",
             recipe.name,
         )
-    if recipe.hand_config_hash != hand.config_hash:
+    if not hand.answers_to(recipe.hand_config_hash):
         raise ConfigError(
             source,
             "hand_config_hash",

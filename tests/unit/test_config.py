@@ -66,6 +66,29 @@ def test_hash_ignores_comments_and_sim_but_not_limits(tmp_path: Path, base: dict
     assert load_hand(write(tmp_path, changed)).config_hash != original
 
 
+def test_a_real_number_spelled_whole_is_the_same_hand(tmp_path: Path) -> None:
+    """``rate_limit: 20`` for ``20.0`` made every recipe compiled for the hand refuse it as
+    another hand config; the shipped recipe now loads for either spelling, and one compiled
+    before (the hash of the config as written) still loads for the hand it was made for."""
+    from handctl.online.recipes.loader import load_recipe
+
+    text = HAND_YAML.read_text()
+    assert "rate_limit: 20.0" in text
+    whole = tmp_path / "whole.yaml"
+    whole.write_text(text.replace("rate_limit: 20.0", "rate_limit: 20"))
+    shipped, respelled = load_hand(HAND_YAML), load_hand(whole)
+    assert respelled.config_hash == shipped.config_hash
+    assert respelled.legacy_hash != shipped.legacy_hash  # as written, they differ
+    recipe = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+    assert load_recipe(recipe, respelled).hand_config_hash == shipped.config_hash
+    older = tmp_path / "older.yaml"
+    older.write_text(recipe.read_text().replace(shipped.config_hash, shipped.legacy_hash))
+    assert shipped.legacy_hash != shipped.config_hash  # loop_rate_hz: 1000 is written whole
+    assert load_recipe(older, shipped).hand_config_hash == shipped.legacy_hash
+    with pytest.raises(ConfigError, match="compiled for another hand config"):
+        load_recipe(older, respelled)  # as written then, for the spelling of then
+
+
 @pytest.mark.parametrize(
     ("value", "found"), [({}, "an empty section"), (None, "an empty section (null)")]
 )

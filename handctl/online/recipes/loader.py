@@ -178,7 +178,7 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                 "no limit_guard_band",
             )
     doc.done()
-    if digest is not None and digest != hand.config_hash:
+    if digest is not None and not hand.answers_to(digest):
         raise ConfigError(
             doc.file,
             "hand_config_hash",
