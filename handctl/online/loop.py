@@ -24,7 +24,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import enum
-import math
 import os
 import time
 import traceback
@@ -59,6 +58,7 @@ from handctl.online.recipes.schema import MeasuredSizes, Recipe
 from handctl.online.safety import faults as safety_faults
 from handctl.online.safety.faults import Fault, FaultCode
 from handctl.online.safety.supervisor import State, Supervisor
+from handctl.online.safety.watchdog import ticks_lasting
 from handctl.online.tickstats import DEFAULT_WINDOW, STAGES, TickStats, TickWindow
 from handctl.protocol import NodeState
 
@@ -394,7 +394,7 @@ class Runtime:
         in it, and the run ended (exit 0 as well) with the hand ENABLED. A node that does not
         say so in time is said in the summary's warnings: its watchdog is what disables it."""
         period_s = self.hand.bus.period_s
-        ticks = max(1, math.ceil(DISABLE_CONFIRM_S / period_s - 1e-9))
+        ticks = max(1, ticks_lasting(DISABLE_CONFIRM_S, period_s))
         enabled = int(NodeState.ENABLED)
         for _ in range(ticks):
             tk = await self._next_tick()
@@ -764,7 +764,7 @@ class Runtime:
         why (a ``phase_end`` note), which no change of phase name shows a replay."""
         runner = self.runner
         assert runner is not None
-        under_way = bool(runner.records) and runner.records[-1].end_s is None
+        under_way = runner.in_phase
         runner.abort(t_s, reason)
         if under_way and self.recorder is not None:
             self.recorder.note("phase_end", reason, tick)
