@@ -178,14 +178,19 @@ def load_hand(path: str | Path, dbc: str | Path | None = None) -> HandConfig:
     return parse_hand(load_yaml(path), dbc=None if dbc is None else str(dbc))
 
 
+def _config_hash(data: Mapping[str, Any]) -> str:
+    """``sha256:`` and 16 hex digits of everything but the ``sim`` section, key order aside."""
+    hashed = {k: v for k, v in data.items() if k != "sim"}
+    text = json.dumps(hashed, sort_keys=True, separators=(",", ":"))
+    return f"sha256:{hashlib.sha256(text.encode()).hexdigest()[:16]}"
+
+
 def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = None) -> HandConfig:
     """The hand config in ``doc``, checked against ``protocol`` if given (a recording's), else
     against the protocol of the hand and ``dbc`` (``protocol_for``)."""
     # as written, before reading turns the whole numbers of real-valued keys into reals: the
     # hash recipes compiled before that was done carry (``legacy_hash``)
-    as_written = json.dumps(
-        {k: v for k, v in doc.data.items() if k != "sim"}, sort_keys=True, separators=(",", ":")
-    )
+    as_written = _config_hash(doc.data)
     name = doc.string("name")
     # a recording's hand is read as it ran; a hand to run takes a loop the rules allow now
     bus = _parse_bus(
@@ -211,17 +216,13 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
     if protocol is None:
         # a recording's hand (protocol given) is read as it ran, whatever the rules now
         _check_names(doc, fingers)
-    hashed = {k: v for k, v in doc.data.items() if k != "sim"}
-    digest = hashlib.sha256(
-        json.dumps(hashed, sort_keys=True, separators=(",", ":")).encode()
-    ).hexdigest()
     hand = HandConfig(
         name=name,
         source=doc.file,
         bus=bus,
         fingers=fingers,
-        config_hash=f"sha256:{digest[:16]}",
-        legacy_hash=f"sha256:{hashlib.sha256(as_written.encode()).hexdigest()[:16]}",
+        config_hash=_config_hash(doc.data),
+        legacy_hash=as_written,
         safety=safety,
         sim=MappingProxyType(dict(sim_raw or {})),
         dbc=dbc,
