@@ -283,10 +283,7 @@ def read_case_log(path: Path) -> LoggedCase:
             rejects[msg["name"]] = rejects.get(msg["name"], 0) + msg.get("count", 0)
         elif msg["kind"] == "bus":
             bus += 1
-    dropped = sum(
-        recording.meta_int(ch.META_END, k, 0)
-        for k in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
-    )
+    dropped = sum(recording.meta_int(ch.META_END, k, 0) for k in ch.DROPPED_KEYS)
     return LoggedCase(recording.complete, dropped, ticks, faults, resets, rejects, bus)
 
 

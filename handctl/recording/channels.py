@@ -311,6 +311,8 @@ CHANNELS: tuple[Channel, ...] = (
 )
 
 #: The channels ``handctl replay --rerun`` needs.
+#: the writer's counts of what it dropped, in ``/recording/stats`` and the end record alike
+DROPPED_KEYS = ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
 RERUN_TOPICS = (TIMING, TORQUE, JOINT_STATE, SAFETY, PHASE, CAN_RX, CAN_TX, EVENTS)
 
 

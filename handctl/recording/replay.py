@@ -39,7 +39,7 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
     run_summary = recording.json_meta(ch.META_SUMMARY) or {}
     drops = {
         key: recording.meta_int(ch.META_END, key, int(series.stats.get(key, 0)))
-        for key in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
+        for key in ch.DROPPED_KEYS
     }
     timing = series.timing
     active = timing[timing[:, 4] > 0] if len(timing) else timing

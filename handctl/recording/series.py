@@ -218,7 +218,7 @@ def _check_drops(recording: Recording, stats: dict[str, Any]) -> None:
     """The writer's running counts (``/recording/stats``) never exceed its final ones (the
     end record): a log whose stats said 3 ticks dropped and whose end said none was shown
     "drops: none" and re-run as if whole."""
-    for key in ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses"):
+    for key in ch.DROPPED_KEYS:
         said = stats.get(key)
         if said is None or not recording.meta(ch.META_END, key):
             continue

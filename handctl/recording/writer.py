@@ -393,7 +393,7 @@ class Encoder:
     def _drops(self) -> None:
         """Drops the loop counted become ``recording`` events as they grow."""
         ctl = self.rings.ctl
-        names = ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
+        names = ch.DROPPED_KEYS
         for i, word in enumerate((DROPPED_TICKS, DROPPED_FRAMES, DROPPED_EVENTS, DROPPED_POSES)):
             now = int(ctl[word])
             if now != self.dropped[i]:
