@@ -536,7 +536,20 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         # no input was refused, and nothing is there to re-run (before: exit 2, as if
         # handctl's own log were bad input, or "NOTHING COMPARED", exit 1)
         why = NOT_STARTED if not run else NO_TICK
-        return RerunReport(0, 0, 0, [], 0, [], [], 0, why, "", [], 0.0)
+        return RerunReport(
+            ticks=0,
+            compared=0,
+            mismatched_ticks=0,
+            mismatches=[],
+            frames_compared=0,
+            frame_mismatches=[],
+            decision_mismatches=[],
+            feedback_compared=0,
+            outcome=why,
+            logged_outcome="",
+            notes=[],
+            wall_s=0.0,
+        )
     require_topics(recording, ch.RERUN_TOPICS, "--rerun")
     if not run:
         raise ConfigError(
