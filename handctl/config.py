@@ -9,6 +9,7 @@ hand stays valid whatever the simulation parameters are.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
@@ -189,8 +190,9 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
     """The hand config in ``doc``, checked against ``protocol`` if given (a recording's), else
     against the protocol of the hand and ``dbc`` (``protocol_for``)."""
     # as written, before reading turns the whole numbers of real-valued keys into reals: the
-    # hash recipes compiled before that was done carry (``legacy_hash``)
-    as_written = _config_hash(doc.data)
+    # hash recipes compiled before that was done carry (``legacy_hash``). Hashed once the
+    # config is known good: a key that is no string fails the hash's sort, not the reading.
+    as_written = copy.deepcopy(dict(doc.data))
     name = doc.string("name")
     # a recording's hand is read as it ran; a hand to run takes a loop the rules allow now
     bus = _parse_bus(
@@ -222,7 +224,7 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
         bus=bus,
         fingers=fingers,
         config_hash=_config_hash(doc.data),
-        legacy_hash=as_written,
+        legacy_hash=_config_hash(as_written),
         safety=safety,
         sim=MappingProxyType(dict(sim_raw or {})),
         dbc=dbc,

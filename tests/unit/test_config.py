@@ -732,3 +732,15 @@ def test_the_host_stops_on_missed_ticks_before_the_nodes_watchdog(
         doc["safety"]["max_consecutive_misses"] = misses - 1
     path.write_text(yaml.safe_dump(doc), encoding="utf-8")
     assert load_hand(path).safety.max_consecutive_misses == doc["safety"]["max_consecutive_misses"]
+
+
+def test_a_key_that_is_no_string_is_refused_before_anything_is_hashed(tmp_path: Path) -> None:
+    """The hash of the config as written was taken before the reading refused a key that is
+    no string, and its sort raised a TypeError (the loader fuzz found it)."""
+    text = HAND_YAML.read_text()
+    assert "\n  fd: true" in text
+    path = tmp_path / "int_key.yaml"
+    path.write_text(text.replace("\n  fd: true", "\n  7: 8\n  fd: true", 1))
+    with pytest.raises(ConfigError) as caught:
+        load_hand(path)
+    assert "bus: expected string keys, found 7" in str(caught.value)
