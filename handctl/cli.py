@@ -468,6 +468,10 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
         end = "-" if phase["end_s"] is None else f"{phase['end_s']:.3f}"
         exit_text = f"TIMED OUT ({phase['exit']})" if phase.get("timed_out") else phase["exit"]
         print(f"  {phase['name']:<16} {phase['start_s']:8.3f} .. {end:>8} s  {exit_text}")
+        backoff = phase.get("damping_backoff")
+        if backoff:
+            least = ", ".join(f"{name} x{gain:.2f}" for name, gain in backoff.items())
+            print(f"  {'':<16} injected damping backed off (rate limit clipped): {least}")
     for fault in summary["faults"]:
         print(
             f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']}: "

@@ -52,6 +52,7 @@ from handctl.online.misstrace import (
     MissTrace,
 )
 from handctl.online.recipes import runner as recipe_runner
+from handctl.online.recipes.backoff import RateBackoff
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.runner import RecipeRunner, RunStatus
 from handctl.online.recipes.schema import MeasuredSizes, Recipe
@@ -240,7 +241,13 @@ class Runtime:
         self.reanalyser = reanalyser
         self.estimator = estimator
         self.runner = (
-            RecipeRunner(recipe, hand.n_joints, reanalyser=reanalyser, sizes=estimator)
+            RecipeRunner(
+                recipe,
+                hand.n_joints,
+                reanalyser=reanalyser,
+                sizes=estimator,
+                backoff=RateBackoff.for_hand(hand, self.supervisor.dt),
+            )
             if recipe is not None
             else None
         )
@@ -316,7 +323,11 @@ class Runtime:
         self.driver.node_command("fault_reset")
         if self.recipe is not None:
             self.runner = RecipeRunner(
-                self.recipe, self.hand.n_joints, reanalyser=self.reanalyser, sizes=self.estimator
+                self.recipe,
+                self.hand.n_joints,
+                reanalyser=self.reanalyser,
+                sizes=self.estimator,
+                backoff=RateBackoff.for_hand(self.hand, self.supervisor.dt),
             )
         self.stop_requested = ""
         self.estop_requested = ""
@@ -802,6 +813,14 @@ class Runtime:
                 self.recorder.note("phase_end", runner.records[-1].exit, self.tick)
         return desired
 
+    def _damping_backoff(self, k: int) -> dict[str, dict[str, float]]:
+        """``damping_backoff`` of phase record ``k`` for the summary: the least gain of each
+        joint whose injected damping backed off there (none: no key)."""
+        assert self.runner is not None
+        names = self.hand.joint_names
+        least = {names[j]: round(g, 3) for j, g in self.runner.damping_backoff(k)}
+        return {"damping_backoff": least} if least else {}
+
     def _timed_out(self) -> tuple[str, ...]:
         if self.runner is None:
             return ()
@@ -826,8 +845,9 @@ class Runtime:
                     "exit": r.exit,
                     **({"reanalysis": r.reanalysis} if r.reanalysis else {}),
                     **({"schedule": r.schedule} if r.schedule else {}),
+                    **self._damping_backoff(k),
                 }
-                for r in self.runner.records
+                for k, r in enumerate(self.runner.records)
             ]
         window = self._stats.result()
         return RunResult(

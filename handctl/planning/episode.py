@@ -37,6 +37,7 @@ from handctl.config import HandConfig
 from handctl.convention import RATE_WINDOW_S
 from handctl.handshape import hand_span
 from handctl.online.estimator import ObjectEstimator
+from handctl.online.recipes.backoff import RateBackoff
 from handctl.online.recipes.guard import LimitGuard
 from handctl.online.recipes.runner import Handover, RecipeRunner, RunStatus
 from handctl.online.recipes.schema import Phase, Recipe, RecipeObject
@@ -215,7 +216,8 @@ class Episode:
         recipe = Recipe(
             "episode", "<episode>", "", (phase,), 1.0, None, False, limit_guard=self.guard
         )
-        runner = RecipeRunner(recipe, self.hand.n_joints, self.handover)
+        backoff = RateBackoff.for_hand(self.hand, NODE_TICK_S)  # unless handed over
+        runner = RecipeRunner(recipe, self.hand.n_joints, self.handover, backoff=backoff)
         plant, est = self.plant, self.estimator
         quantum = self._quantum
         t0 = self.tick

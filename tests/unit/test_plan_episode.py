@@ -12,6 +12,7 @@ import numpy.typing as npt
 
 from handctl.config import HandConfig, load_hand
 from handctl.online.estimator import RESET_CLEARANCE, ObjectEstimator
+from handctl.online.recipes.backoff import RateBackoff
 from handctl.online.recipes.guard import LimitGuard
 from handctl.online.recipes.runner import RecipeRunner
 from handctl.online.recipes.schema import (
@@ -66,7 +67,7 @@ def _whole_recipe(episode: Episode, recipe: Recipe) -> int:
     (measured angles, the supervisor's limiter, the bus's one tick): the tick the last phase
     is left on, with the plant where it is then."""
     hand, plant, estimator = episode.hand, episode.plant, episode.estimator
-    runner = RecipeRunner(recipe, hand.n_joints)
+    runner = RecipeRunner(recipe, hand.n_joints, backoff=RateBackoff.for_hand(hand, NODE_TICK_S))
     limits = JointLimits.from_hand(hand)
     quantum = 2 * math.pi / episode.params.encoder.counts_per_rev
     applied = np.zeros(hand.n_joints)
@@ -90,7 +91,8 @@ def test_phases_run_one_by_one_move_the_hand_as_the_whole_recipe_does(
     exactly as one runner over the whole recipe does, or the plan scores something else than
     what runs: the second phase's ramp starts from the first's proposed torque (its pose hold
     included, not the injected damping or the guard), the damping fades from the first's,
-    the velocities go on, and the supervisor's limiter clamps every command."""
+    the velocities go on, the injected damping's back-off goes on mirroring the limiter, and
+    the supervisor's limiter clamps every command."""
     params = parse_sim(hand)
     objects = [RecipeObject(o.name, o.radius) for o in params.objects]
     guard = LimitGuard.for_hand(hand, 0.15)

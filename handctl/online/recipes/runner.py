@@ -54,7 +54,11 @@ Feedback, all of it from the angles and the estimates computed from them:
   the ramp, so a change of damping is no step in torque. Given per joint, each joint has
   its own: a light distal link tolerates far less through the lag than a proximal joint
   that carries the finger and the pair (docs/experiment.md, *The manipulation damped and
-  ramped slowly*).
+  ramped slowly*). With a ``RateBackoff`` (every run and every plan has one), a joint's
+  injected damping, the brake's included, backs off while the supervisor's rate limit clips
+  its command, where a damper pumps a light joint's ring instead of damping it
+  (``backoff.py``; docs/experiment.md, *The injected damping backs off where the rate limit
+  clips it*).
 """
 
 from __future__ import annotations
@@ -62,11 +66,12 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from handctl.arrays import FloatArray
+from handctl.online.recipes.backoff import RateBackoff
 from handctl.online.recipes.guard import GUARD_VELOCITY_WINDOW
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import (
@@ -105,6 +110,9 @@ class PhaseRecord:
     reanalysis: str = ""  # what a ``reanalyse`` phase's analysis answered ("": none asked)
     #: which of a ``schedule`` phase's torques ran and on what was measured ("": no schedule)
     schedule: str = ""
+    #: each joint's least gain on its injected damping while the phase ran (``backoff.py``;
+    #: the back-off's own list, filled as it goes); empty: no back-off
+    least_damping_gain: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -119,6 +127,8 @@ class Handover:
     damping: FloatArray  # N·m·s/rad, per joint
     velocity: JointVelocity
     fitted_velocity: FittedVelocity
+    #: the injected damping's back-off, whose mirror of the limiter goes on with the run
+    backoff: RateBackoff | None = None
 
 
 class RecipeRunner:
@@ -131,8 +141,15 @@ class RecipeRunner:
         after: Handover | None = None,
         reanalyser: Reanalyser | None = None,
         sizes: MeasuredSizes | None = None,
+        backoff: RateBackoff | None = None,
     ) -> None:
         self.recipe = recipe
+        # the injected damping's gains against the supervisor's rate limit (backoff.py);
+        # None: the recipe's damping as it is (a runner driving no supervisor)
+        self.backoff = backoff
+        # this runner's last proposal, which the back-off takes in on the next tick
+        self._last_proposal = np.zeros(n_joints)
+        self._proposals = False
         # the objects' measured sizes (the estimator), for ``schedule`` phases; None: their
         # own torques
         self.sizes = sizes
@@ -227,12 +244,29 @@ class RecipeRunner:
             self.damping[:] = after.damping
             self.velocity = after.velocity
             self._fitted_velocity = after.fitted_velocity
+            if after.backoff is not None:
+                self.backoff = after.backoff
 
     def handover(self) -> Handover:
         """What the next phase would start from now (its filters are this runner's own)."""
         torques = (self._proposed if self._fed else self._desired).copy()
         damping = np.zeros(self.n) if self._damping_ends() else self.damping.copy()
-        return Handover(torques, damping, self.velocity, self._fitted_velocity)
+        return Handover(torques, damping, self.velocity, self._fitted_velocity, self.backoff)
+
+    def damping_backoff(self, k: int) -> list[tuple[int, float]]:
+        """The joints whose injected damping backed off while record ``k``'s phase ran, and
+        the least gain each had: joints the phase damped (its ``joint_damping``, or every
+        joint under a brake), not those whose command the rate limit clipped undamped."""
+        record = self.records[k]
+        phase = next((p for p in self.recipe.phases if p.name == record.name), None)
+        if phase is None or not record.least_damping_gain:
+            return []
+        damped = np.broadcast_to(np.asarray(phase.joint_damping, dtype=float), (self.n,))
+        return [
+            (j, g)
+            for j, g in enumerate(record.least_damping_gain)
+            if g < 1.0 and (damped[j] > 0.0 or phase.brake is not None)
+        ]
 
     def _damping_ends(self) -> bool:
         """Whether the current phase's injected damping ends with it instead of fading over
@@ -295,6 +329,8 @@ class RecipeRunner:
             self._ramp_s = phase.ramp_s
             self._damping_to[:] = phase.joint_damping
             self.records.append(PhaseRecord(phase.name, t))
+            if self.backoff is not None:
+                self.backoff.least = self.records[-1].least_damping_gain = [1.0] * self.n
             self._scheduled = not phase.schedule
         else:
             self.index = len(self.recipe.phases)
@@ -418,6 +454,11 @@ class RecipeRunner:
         if self.done:
             self._desired[:] = 0.0
             return self._desired
+        if self.backoff is not None and self._proposals:
+            # the last tick's proposal, now that it is known to have been sent: the planner
+            # drops the proposal of the tick a phase is left on, which the next phase's
+            # runner proposes again
+            self.backoff.observe(self._last_proposal)
         phase = self.recipe.phases[self.index] if self.status is RunStatus.RUNNING else None
         out = self._desired
         fresh = False  # whether the turn-rate estimate took a new sample this tick
@@ -460,15 +501,24 @@ class RecipeRunner:
                 out += self._delta
             if phase.pose is not None:
                 self._pose_hold(t, phase.pose, angle, out)
-        if self._damping_ramped or self._damping_stale:
-            # apart from ``_proposed``, which the next phase's ramp starts from: the damping
-            # carries over through ``self.damping`` instead
-            np.multiply(self._fitted_velocity.value, self.damping, out=self._damped)
-            np.subtract(out, self._damped, out=self._damped)
-            out = self._damped
-        if self._guard is None:
+        out = self._damp(out)
+        if self._guard is not None:
+            out = self._guard.apply(angle, out, self._guarded, self._fitted_velocity.value)
+        self._last_proposal[:] = out
+        self._proposals = True
+        return out
+
+    def _damp(self, out: FloatArray) -> FloatArray:
+        """``out`` less the injected damping, backed off on a joint whose command the rate
+        limit clips (``backoff.py``): apart from ``_proposed``, which the next phase's ramp
+        starts from, as the damping carries over through ``self.damping`` instead."""
+        if not (self._damping_ramped or self._damping_stale):
             return out
-        return self._guard.apply(angle, out, self._guarded, self._fitted_velocity.value)
+        np.multiply(self._fitted_velocity.value, self.damping, out=self._damped)
+        if self.backoff is not None:
+            self._damped *= self.backoff.gain
+        np.subtract(out, self._damped, out=self._damped)
+        return self._damped
 
     def _pose_hold(self, t: float, pose: PoseHold, angle: FloatArray, out: FloatArray) -> None:
         """Add a pose hold's spring and damper, ramped in with the phase, and its integral."""
