@@ -58,8 +58,11 @@ class RateBackoff:
         self.steps = tuple(r * period_s for r in rate_limit)  # N·m a tick
         self.tau_max = tau_max
         self.recover = period_s / BACKOFF_RECOVER_S  # of the gain a tick
-        #: the gain on each joint's injected damping, 1 until the rate limit clips it
+        #: the gain on each joint's injected damping, 1 until the rate limit clips it (the
+        #: runner multiplies by this array; ``observe`` works on plain floats and writes the
+        #: array only on a tick that changed a gain)
         self.gain: FloatArray = np.ones(len(tau_max))
+        self._gains = [1.0] * len(tau_max)
         # what the supervisor would have applied last, on each joint (N·m)
         self._mirror = [0.0] * len(tau_max)
         #: ticks on which a joint's command would have been clipped
@@ -79,21 +82,24 @@ class RateBackoff:
         tick): the joints it clipped back off, the others recover.
 
         Plain floats: nine of them, every tick (as ``limit_torque``)."""
-        gain = self.gain
+        gains = self._gains
         mirror = self._mirror
-        recover = self.recover
+        changed = False
         for j, (d, last, step, tau) in enumerate(
             zip(proposed.tolist(), mirror, self.steps, self.tau_max, strict=True)
         ):
             v = tau if d > tau else (-tau if d < -tau else d)
-            g = float(gain[j])
             if v > last + step + CLIP_SLACK or v < last - step - CLIP_SLACK:
                 mirror[j] = last + step if v > last else last - step
-                g = max(BACKOFF_GAIN_MIN, g * BACKOFF_DECAY)
-                gain[j] = g
+                g = max(BACKOFF_GAIN_MIN, gains[j] * BACKOFF_DECAY)
+                gains[j] = g
                 self.clipped_ticks[j] += 1
                 self.least[j] = min(self.least[j], g)
+                changed = True
             else:
                 mirror[j] = v
-                if g < 1.0:
-                    gain[j] = min(1.0, g + recover)
+                if gains[j] < 1.0:
+                    gains[j] = min(1.0, gains[j] + self.recover)
+                    changed = True
+        if changed:
+            self.gain[:] = gains
