@@ -26,6 +26,7 @@ import io
 import math
 import os
 import re
+import shutil
 import signal
 import sys
 import textwrap
@@ -301,9 +302,20 @@ def _status_printer() -> Callable[[object], None] | None:
         from handctl.online.loop import StatusLine
 
         assert isinstance(line, StatusLine)
-        print("\r" + status_text(line) + " ", end="", file=sys.stderr, flush=True)
+        width = shutil.get_terminal_size().columns
+        # erased to the line's end: a shorter line leaves nothing of the one before
+        print("\r" + fit_width(status_text(line), width) + "\x1b[K", end="", file=sys.stderr)
+        sys.stderr.flush()
 
     return show
+
+
+def fit_width(text: str, columns: int) -> str:
+    """``text`` cut to fit a terminal ``columns`` wide, with room for the cursor: a status
+    line that wraps is rewritten by ``\\r`` on its last row only, and the rows above pile up
+    (132 characters with six phases timed out)."""
+    room = max(columns - 1, 1)
+    return text if len(text) <= room else text[: room - 1] + "…"
 
 
 def status_text(line: object) -> str:

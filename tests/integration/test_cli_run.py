@@ -30,7 +30,7 @@ from .realtime import (
     sim_cpu_verdict,
     stopped_by_load,
 )
-from .rig import HOLD_LONG, read_until
+from .rig import HOLD_LONG, TWO_PHASES, read_until
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
 
@@ -480,3 +480,32 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
         except subprocess.TimeoutExpired:
             sim.kill()
             sim.wait()
+
+
+def test_the_status_line_fits_the_terminal(tmp_path: Path) -> None:
+    """A status line wider than the terminal wraps, and ``\\r`` rewrites only its last row:
+    the rows above piled up on the screen. On a terminal 50 columns wide every line shown is
+    cut to 49, and erased to its end, so a shorter one leaves nothing of the longer before."""
+    recipe = tmp_path / "two.yaml"
+    recipe.write_text(TWO_PHASES)
+    terminal, stderr_end = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--max-seconds", "1.5"],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=stderr_end,
+        env={**os.environ, "COLUMNS": "50"},
+    )
+    os.close(stderr_end)
+    try:
+        shown = read_until(terminal, None, timeout_s=60.0)
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+        os.close(terminal)
+    assert proc.returncode == 0, shown
+    lines = [piece for piece in shown.split("\r") if piece.endswith("\x1b[K")]
+    assert len(lines) > 2, shown
+    assert all(len(line.removesuffix("\x1b[K")) <= 49 for line in lines), lines
+    # the second phase's line says the first timed out: too long for 49 columns, it is cut
+    assert any(line.removesuffix("\x1b[K").endswith("…") for line in lines), lines
