@@ -10,9 +10,8 @@ good part of a period more than the drive's lag alone: the damper pumps energy i
 taking it out, and the ring grows to the joint's hard limit (``ANGLE_LIMIT``) within a few
 tenths of a second. The same hands with a rate limit of 200 N·m/s do not ring, and neither
 do they with half the injected damping; the nominal hand's run clips on 4 ticks of one
-joint. The injected damping
-of a phase was chosen for the linear loop, where the rate limit does not act; once it acts,
-the loop is another one.
+joint. The injected damping of a phase was chosen for the linear loop, where the rate limit
+does not act; once it acts, the loop is another one.
 
 So the runner keeps, per joint, a gain on its injected damping (the phase's
 ``joint_damping`` and a brake's): each tick on which the supervisor would clip the proposed
@@ -20,9 +19,11 @@ torque by the rate limit, the gain falls by ``BACKOFF_DECAY``; each tick it woul
 gain comes back towards 1 by ``period / BACKOFF_RECOVER_S``, never below
 ``BACKOFF_GAIN_MIN``. Whether the supervisor would clip is read off a mirror of its limiter
 (``safety.limits.limit_torque``: the clamp to ±tau_max, then the change per tick), fed the
-runner's own proposals: the runner need not be told what the supervisor did, and a re-run of
-the logged feedback computes the same gains (the mirror leaves out the limiter's last step,
-the command grid, whose rounding is less than a resolution).
+runner's own proposals one tick late (each when the next tick begins, so a proposal the
+planner drops, on the tick a phase is left, is never taken in): the runner need not be told
+what the supervisor did, and a re-run of the logged feedback computes the same gains (the
+mirror leaves out the limiter's last step, the command grid, whose rounding is less than a
+resolution).
 
 It only lowers a damping the recipe asked for, so it cannot ask for more torque than the
 recipe would; every torque still passes the supervisor.
