@@ -36,8 +36,8 @@ def _backoff(n: int = 3) -> RateBackoff:
 def test_a_command_the_rate_limit_passes_keeps_every_gain_at_one() -> None:
     backoff = _backoff()
     for k in range(200):
-        # 2 N·m/s on the first joint, a slow sine on the second, 0.1 N·m on the third (the
-        # first tick's step to it is 5 ticks' worth: clipped, once)
+        # 2 N·m/s on the first joint, a slow sine on the second, 0.01 N·m on the third (half
+        # of one tick's step)
         backoff.observe(np.array([0.002 * k, 0.2 * math.sin(k * DT), 0.01]))
     assert backoff.gain.tolist() == [1.0, 1.0, 1.0]
     assert backoff.clipped_ticks == [0, 0, 0]
@@ -88,23 +88,33 @@ def test_a_command_beyond_tau_max_is_the_clamp_s_not_the_rate_limit_s() -> None:
 
 
 def test_the_mirror_clips_where_the_supervisor_s_limiter_does(hand: HandConfig) -> None:
-    """The back-off reads off a mirror what the limiter does to the same proposals (its
-    command grid aside): a tick the one clips is a tick the other counts."""
+    """The back-off reads off a mirror what the limiter does to the same proposals: the joints
+    the one limits on a tick are the joints the other counts as clipped, but where the
+    limiter's command grid (which the mirror leaves out) tips a change that just meets the
+    rate limit. The limiter limited a joint where what it applied is further from the
+    proposal than the grid's rounding takes it."""
     limits = JointLimits.from_hand(hand)
+    grid = np.array(limits.step_list)
     backoff = RateBackoff.for_hand(hand, DT)
     applied = np.zeros(9)
     rng = np.random.default_rng(3)
-    limited = 0
-    for k in range(400):
-        proposed = 0.3 * np.sin(2 * math.pi * 13.0 * k * DT + np.arange(9)) + rng.normal(
-            0.0, 0.01, 9
+    agree = limited_count = 0
+    ticks = 1000
+    for k in range(ticks):
+        # 0.15 N·m at 25 Hz (up to 24 N·m/s, over the rate limit for part of each period),
+        # below every joint's tau_max, so the limiter limits by the rate alone
+        proposed = 0.15 * np.sin(2 * math.pi * 25.0 * k * DT + np.arange(9)) + rng.normal(
+            0.0, 0.002, 9
         )
-        limited += limit_torque(proposed, applied, limits, DT, applied) > 0
+        limit_torque(proposed, applied, limits, DT, applied)
+        limited = np.abs(applied - proposed) > grid
+        before = list(backoff.clipped_ticks)
         backoff.observe(proposed)
-    assert limited > 0
-    # ticks on which some joint was limited (the limiter counts tau_max's clamp as well, which
-    # a 0.3 N·m wave never reaches)
-    assert sum(backoff.clipped_ticks) >= limited
+        clipped = np.array(backoff.clipped_ticks) > np.array(before)
+        agree += int(np.sum(limited == clipped))
+        limited_count += int(np.sum(limited))
+    assert 0.1 * 9 * ticks < limited_count < 0.9 * 9 * ticks
+    assert agree >= 0.98 * 9 * ticks
 
 
 def _damped_recipe(tmp_path: Path, hand: HandConfig) -> Recipe:
