@@ -154,6 +154,7 @@ def _say(run: dict[str, Any]) -> None:
         f"{run['lifted']} dropped {run['dropped']} turned {run['total_rotation_deg']} deg "
         f"{run['phase_angles_deg']} peak {run['peak_turn_rate_deg_s']} deg/s "
         f"({run['outcome']}, {run['wall_s']:.1f} s)"
+        + (f": {run['message']}" if run.get("message") else "")
     )
 
 

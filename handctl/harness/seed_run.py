@@ -67,6 +67,8 @@ def run_seed(task: SeedRun) -> dict[str, Any]:
         "success": ok,
         "swap": ok and total >= task.swap_deg,
         "outcome": report.summary["outcome"],
+        # why a run stopped ("" for one that completed): a safety stop's fault and joint
+        "message": report.summary["message"],
         "lifted": ex.get("lifted"),
         "dropped": ex.get("dropped"),
         "total_rotation_deg": total,

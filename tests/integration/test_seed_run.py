@@ -39,3 +39,14 @@ def test_a_seed_gives_the_same_figures_in_a_worker_as_here(
     assert here["seed"] == 1003
     assert {"mass.1", "radius.2", "damping", "placement_m"} <= set(here["scales"])
     assert here["lifted"] is not None
+    assert here["outcome"] == "completed" and here["message"] == ""
+
+
+def test_a_stopped_seed_says_why(hand: HandConfig) -> None:
+    """A run stopped short (here by its time budget; on the bench, mostly a safety stop
+    naming the fault and the joint) carries the run's message into the seed's figures, which
+    the bench prints beside a failed seed."""
+    recipe = load_recipe(RECIPE, hand)
+    figures = run_seed(SeedRun(portable_hand(hand), recipe, 1003, "all", max_seconds=0.3))
+    assert figures["outcome"] == "time_budget"
+    assert figures["message"], figures
