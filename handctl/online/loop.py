@@ -240,17 +240,7 @@ class Runtime:
         # the analysis at the measured configuration, for a recipe's ``reanalyse`` phases
         self.reanalyser = reanalyser
         self.estimator = estimator
-        self.runner = (
-            RecipeRunner(
-                recipe,
-                hand.n_joints,
-                reanalyser=reanalyser,
-                sizes=estimator,
-                backoff=RateBackoff.for_hand(hand, self.supervisor.dt),
-            )
-            if recipe is not None
-            else None
-        )
+        self.runner = self._new_runner()
         self.recorder = recorder
         self.status = status
         self.reset_node_faults = reset_node_faults
@@ -304,6 +294,20 @@ class Runtime:
             if self.recorder is not None:
                 self.recorder.note("stop", reason, self.tick)
 
+    def _new_runner(self) -> RecipeRunner | None:
+        """The recipe's runner from its first phase (None without a recipe): at the start,
+        and again after a reset, each with a back-off that mirrors this supervisor's limiter
+        from zero torque, where the supervisor starts (and restarts) too."""
+        if self.recipe is None:
+            return None
+        return RecipeRunner(
+            self.recipe,
+            self.hand.n_joints,
+            reanalyser=self.reanalyser,
+            sizes=self.estimator,
+            backoff=RateBackoff.for_hand(self.hand, self.supervisor.dt),
+        )
+
     def request_estop(self, reason: str = "operator") -> None:
         self.estop_requested = reason
         if self.recorder is not None:
@@ -321,14 +325,7 @@ class Runtime:
         if self.recorder is not None:
             self.recorder.note("reset", "", self.tick)
         self.driver.node_command("fault_reset")
-        if self.recipe is not None:
-            self.runner = RecipeRunner(
-                self.recipe,
-                self.hand.n_joints,
-                reanalyser=self.reanalyser,
-                sizes=self.estimator,
-                backoff=RateBackoff.for_hand(self.hand, self.supervisor.dt),
-            )
+        self.runner = self._new_runner()
         self.stop_requested = ""
         self.estop_requested = ""
         self.exception = None
