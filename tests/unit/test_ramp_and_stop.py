@@ -19,7 +19,14 @@ import pytest
 
 from handctl.config import HandConfig
 from handctl.online.bus import BusEvent, BusEventKind
-from handctl.online.safety.faults import FAULTS, RAMP_BOUND_S, Fault, FaultCode, StopCategory
+from handctl.online.safety.faults import (
+    FAULTS,
+    RAMP_BOUND_S,
+    STOP_BOUND_S,
+    Fault,
+    FaultCode,
+    StopCategory,
+)
 from handctl.online.safety.supervisor import Event, State, Supervisor
 from handctl.protocol import Protocol
 
@@ -237,6 +244,48 @@ def test_a_stop_rate_limits_to_zero_and_is_idle_exactly_when_torque_is_zero(
     assert sup.history[-1] == (tick + k, State.STOPPING, Event.AT_ZERO, State.IDLE)
     assert not sup.torque_allowed
     assert not sup.filter(tick + k + 1, tau_max(hand)).any()
+
+
+def test_a_stop_on_a_slow_rate_limit_still_lets_go_within_the_stop_bound(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    """A rate limit of 0.6 N·m/s would take 0.9 s to bring the largest of these torques
+    (0.54 N·m) to zero; the stop is done at STOP_BOUND_S, each joint no later than the line
+    from where it began and never slower than its rate limit."""
+    slow = replace(
+        hand,
+        fingers=tuple(
+            replace(f, joints=tuple(replace(j, rate_limit=0.6) for j in f.joints))
+            for f in hand.fingers
+        ),
+    )
+    sup = Supervisor(slow)
+    link = Link(slow, protocol)
+    link.enable()
+    sup.start(0)
+    sup.observe(1, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0)
+    assert sup.state is State.RUNNING
+    start = hold(Running(sup, link, 1), signed_torque(slow))
+    step, grid = rate_step(slow), np.array(sup.limits.step_list)
+    stop_ticks = math.floor(STOP_BOUND_S / slow.bus.period_s + 1e-9)
+    assert float(np.max(np.abs(start) / step)) > 1.5 * stop_ticks  # the bound is what binds
+    tick = 10_000
+    sup.stop(tick)
+    previous, k = start, 0
+    while sup.state is State.STOPPING:
+        k += 1
+        assert k <= stop_ticks, "the stop outlasts its bound"
+        out = sup.filter(tick + k, tau_max(slow)).copy()
+        line = np.abs(start) * max(0.0, 1.0 - k / stop_ticks)
+        rate_limited = np.maximum(np.abs(previous) - step, 0.0)
+        assert np.all(np.sign(out) * np.sign(start) >= 0), f"stop tick {k}: past zero"
+        # the nearer zero of the two, on the command grid towards zero
+        assert np.abs(out) == pytest.approx(
+            np.floor(np.minimum(line, rate_limited) / grid + 1e-9) * grid, abs=1e-12
+        ), f"stop tick {k}"
+        previous = out
+    assert k == stop_ticks
+    assert sup.state is State.IDLE and not previous.any()
 
 
 def test_a_stop_at_zero_torque_is_idle_on_its_first_tick(

@@ -28,6 +28,13 @@ class StopCategory(enum.Enum):
 #: The ramp of a RAMP stop reaches zero within this time (s), whatever the torque was.
 RAMP_BOUND_S = 0.05
 
+#: A controlled stop (Ctrl-C, SIGTERM, SIGHUP, the time budget) takes the torque out at the
+#: joint's rate limit, and reaches zero within this time (s) whatever the rate limit: a hand
+#: configured with a slow rate limit (0.03 N·m/s takes 15 s from 0.45 N·m) must not keep its
+#: torque on for as long after the operator asked for it off. Where the rate limit is the
+#: faster (every shipped hand: 30 ms from tau_max), the stop is as the rate limit makes it.
+STOP_BOUND_S = 0.5
+
 
 class FaultCode(enum.IntEnum):
     NON_FINITE_TORQUE = 1

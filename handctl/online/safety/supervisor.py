@@ -7,7 +7,8 @@ what can follow what is data that a test can enumerate, not control flow hidden 
 - IDLE: zero torque, nodes disabled. START leads to ENABLING.
 - ENABLING: zero torque while the nodes confirm ENABLED (ENABLED event), within a deadline.
 - RUNNING: desired torques through the limiter (tau_max, rate limit).
-- STOPPING: a normal stop, rate-limited to zero, then IDLE.
+- STOPPING: a normal stop, rate-limited to zero and there within ``STOP_BOUND_S`` whatever the
+  rate limit, then IDLE.
 - FAULT_RAMP: a RAMP-category fault: linear to zero within ``RAMP_BOUND_S``, then FAULTED.
 - FAULTED: zero torque; faults latched. Only RESET leaves it, to IDLE, so torque can only come
   back through a new START, with the rate limiter ramping it up from zero. A recipe never
@@ -33,7 +34,7 @@ from handctl.config import HandConfig
 from handctl.online.bus import BusEvent, BusEventKind
 from handctl.online.drivers.finger import FingerNode
 from handctl.online.drivers.hand import AppliedTorques
-from handctl.online.safety.faults import RAMP_BOUND_S, Fault, FaultCode, StopCategory
+from handctl.online.safety.faults import RAMP_BOUND_S, STOP_BOUND_S, Fault, FaultCode, StopCategory
 from handctl.online.safety.limits import (
     JointLimits,
     angle_violations,
@@ -124,6 +125,9 @@ class Supervisor:
         self._ramp_from = np.zeros(self.n)
         self._ramp_ticks = max(1, math.floor(RAMP_BOUND_S / self.dt))
         self._ramp_k = 0
+        self._stop_from = np.zeros(self.n)
+        self._stop_ticks = max(1, math.floor(STOP_BOUND_S / self.dt))
+        self._stop_k = 0
         self._enabling_since = 0
         self._zero = np.zeros(self.n)  # the STOPPING state's target, never written
         #: one joint allowed back in from outside its soft limits (recovery.py); None: none
@@ -144,6 +148,9 @@ class Supervisor:
             if new is State.FAULT_RAMP:
                 self._ramp_from[:] = self.applied
                 self._ramp_k = 0
+            elif new is State.STOPPING:
+                self._stop_from[:] = self.applied
+                self._stop_k = 0
             self.state = new
         return new
 
@@ -344,6 +351,12 @@ class Supervisor:
             )
         elif state is State.STOPPING:
             limit_torque(self._zero, self.applied, self.limits, self.dt, self.applied)
+            # and no later than the line from where the stop began to zero at STOP_BOUND_S:
+            # the rate limit alone may take a slow-limited hand seconds to let go
+            self._stop_k += 1
+            line = self._stop_from * max(0.0, 1.0 - self._stop_k / self._stop_ticks)
+            np.copyto(self.applied, line, where=np.abs(line) < np.abs(self.applied))
+            toward_zero_on_grid(self.applied, self.limits)
             if not self.applied.any():
                 self.fire(Event.AT_ZERO, tick)
         elif state is State.FAULT_RAMP:
