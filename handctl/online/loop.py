@@ -59,7 +59,7 @@ from handctl.online.recipes.schema import MeasuredSizes, Recipe
 from handctl.online.safety import faults as safety_faults
 from handctl.online.safety.faults import Fault, FaultCode
 from handctl.online.safety.supervisor import State, Supervisor
-from handctl.online.safety.watchdog import ticks_lasting
+from handctl.online.safety.watchdog import StartupRejects, ticks_lasting
 from handctl.online.tickstats import DEFAULT_WINDOW, STAGES, TickStats, TickWindow
 from handctl.protocol import NodeState
 
@@ -496,12 +496,19 @@ class Runtime:
         reset_sent = False
         since: int | None = None
         self.driver.discard_pending()
+        # the nodes' frames judged at the reject rate before anything is enabled
+        rejects = StartupRejects(self.hand.safety, self.hand.bus.period_s, nodes)
         for _ in range(self.startup_ticks):
             tk = await self._next_tick()
             self._account_idle(tk)
             if since is None:
                 since = tk.now_ns
             self.driver.poll(tk.now_ns)
+            rate = rejects.check(tk.tick, nodes)
+            if rate:
+                detail = f"{rate} at start-up: no node was enabled"
+                self.supervisor.trip(FaultCode.REJECT_RATE, detail, tk.tick)
+                return detail
             # The first send's one-time work (the unix bus looks its receivers up) here, where
             # the tick only listens, not in the nodes' enable before the first running tick.
             self.driver.prepare_send()
@@ -527,7 +534,7 @@ class Runtime:
                 continue
             faulted = [n for n in nodes if n.state == NodeState.FAULT]
             if not faulted:
-                if all(n.state == NodeState.DISABLED for n in nodes):
+                if all(n.state == NodeState.DISABLED for n in nodes) and rejects.settled(tk.tick):
                     return ""
                 continue
             faults = self._faulted_at_startup(faulted, tk.tick, reset_sent)

@@ -275,11 +275,15 @@ def test_start_up_says_feedback_was_heard_and_rejected_not_that_none_came(
     hand: HandConfig, hold: Recipe
 ) -> None:
     """Every feedback frame of node 1 with a bad CRC: a thousand frames a second heard, and
-    start-up said "no feedback", as for a node with no power."""
+    start-up said "no feedback", as for a node with no power. The start-up judges the
+    frames at the reject rate as a run does, so it now says so within the reject window,
+    not at the end of its timeout."""
     with rig(hand, hold) as r:
         r.sim.activate(inj.CorruptCrc(node=1, message="feedback"))
         result = r.run()
     assert result.outcome is Outcome.STARTUP_FAILED
-    assert "node 1 (f1): no feedback accepted: " in result.message
-    assert re.search(r"\d+ frames heard and rejected \(crc \d+\)", result.message)
+    assert [f.code for f in result.faults] == [FaultCode.REJECT_RATE]
+    assert result.message.startswith("node 1 (f1): ")
+    assert re.search(r"\d+ frames rejected within \d+ ticks \(.*crc \d+\)", result.message)
+    assert "no feedback" not in result.message
     assert "node 2" not in result.message and "node 3" not in result.message

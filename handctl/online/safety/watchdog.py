@@ -270,3 +270,33 @@ class ReceiveWatch:
                 )
         self._pos = (pos + 1) % self.window
         return found
+
+
+class StartupRejects:
+    """The reject rate of ``ReceiveWatch``, judged while the start-up listens, before any
+    node is enabled.
+
+    Why: a second hand on the bus answering to the same ids, or a stream replayed from a
+    log, interleaves its counters with the node's, so nearly every frame is rejected; yet
+    the first frame of each node was heard as fresh, and the start-up enabled the nodes
+    (on a bus where an enable reaches both hands). The start-up is short (a few ticks in
+    lockstep), shorter than a reject window, so a start-up that has heard a rejected frame
+    is not ``settled`` until a whole window has passed since; a clean one is unchanged."""
+
+    def __init__(self, safety: SafetyConfig, dt: float, nodes: Sequence[FingerNode]) -> None:
+        self.watch = ReceiveWatch(safety, dt)
+        self._before = [n.rejects.total for n in nodes]
+        self._first: int | None = None  # the tick of the first rejected frame heard
+
+    def check(self, tick: int, nodes: Sequence[FingerNode]) -> str:
+        """The reject rate's finding this tick ("" for none); to be called every tick."""
+        rate = [d for code, d in self.watch.check(tick, nodes) if code is FaultCode.REJECT_RATE]
+        if self._first is None and any(
+            n.rejects.total > before for n, before in zip(nodes, self._before, strict=True)
+        ):
+            self._first = tick
+        return "; ".join(rate)
+
+    def settled(self, tick: int) -> bool:
+        """Whether no rejected frame was heard, or a whole window has passed since one."""
+        return self._first is None or tick - self._first >= self.watch.window
