@@ -168,6 +168,14 @@ def test_a_node_that_changes_its_protocol_mid_run_is_stopped(
         assert [n.state for n in r.sim.nodes] == [int(NodeState.DISABLED)] * 3
 
 
+def twin_feedback(hand: HandConfig, counter: int) -> can.Message:
+    """A Feedback frame of node 1 from a twin of it: every joint at rest, DISABLED."""
+    layout = protocol_for(hand).layout("Feedback", 1)
+    joints = (len(layout.signals) - 2) // 2
+    values = [0.0] * (2 * joints) + [int(NodeState.DISABLED), 0]
+    return frame(layout.frame_id, layout.encode(counter, values))
+
+
 def test_a_second_hand_on_the_bus_at_start_up_is_refused_before_anything_is_enabled(
     hand: HandConfig,
 ) -> None:
@@ -176,18 +184,13 @@ def test_a_second_hand_on_the_bus_at_start_up_is_refused_before_anything_is_enab
     node 1 rejects nearly every frame as a counter skip. Before, the start-up had heard one
     good frame and enabled the nodes, and the run stopped on FEEDBACK_TIMEOUT with them
     enabled; an enable on a bus with two hands reaches both."""
-    layout = protocol_for(hand).layout("Feedback", 1)
-    joints = (len(layout.signals) - 2) // 2
     disabled = int(NodeState.DISABLED)
     with rig(hand, None, max_seconds=1.0) as r, third_peer(r) as peer:
         counter = [100]
-        sent: list[tuple[int, bytes]] = []
 
         def twin() -> None:
             counter[0] = (counter[0] + 1) % 256
-            data = layout.encode(counter[0], [0.0] * (2 * joints) + [disabled, 0])
-            peer.send(frame(layout.frame_id, data))
-            sent.append((layout.frame_id, data))
+            peer.send(twin_feedback(hand, counter[0]))
 
         r.sim.faults.add(Every(send=twin), 0.0)
         result = r.run()
@@ -204,16 +207,11 @@ def test_a_few_rejected_frames_at_start_up_delay_the_enable_by_a_reject_window(
     """Three frames of a node 1 twin in the first ticks cost a few rejects, within the
     allowance: the start-up listens on for a whole reject window after the first, and then
     enables the nodes as ever."""
-    layout = protocol_for(hand).layout("Feedback", 1)
-    joints = (len(layout.signals) - 2) // 2
-    disabled = int(NodeState.DISABLED)
     window = round(hand.safety.reject_window_s / hand.bus.period_s)
     with rig(hand, None, max_seconds=0.5) as r, third_peer(r) as peer:
 
         def twin() -> None:
-            peer.send(
-                frame(layout.frame_id, layout.encode(7, [0.0] * (2 * joints) + [disabled, 0]))
-            )
+            peer.send(twin_feedback(hand, 7))
 
         r.sim.faults.add(Every(send=twin), 0.0, 0.003)
         result = r.run()

@@ -79,8 +79,8 @@ def ramp_ticks(hand: HandConfig) -> int:
     return max(1, math.floor(RAMP_BOUND_S / hand.bus.period_s + 1e-9))
 
 
-@pytest.fixture
-def running(hand: HandConfig, protocol: Protocol) -> Running:
+def bring_up(hand: HandConfig, protocol: Protocol) -> Running:
+    """A supervisor for ``hand`` brought to RUNNING over live simulated nodes."""
     sup = Supervisor(hand)
     link = Link(hand, protocol)
     link.enable()
@@ -94,6 +94,11 @@ def running(hand: HandConfig, protocol: Protocol) -> Running:
         (1, State.ENABLING, Event.ENABLED, State.RUNNING),
     ]
     return Running(sup, link, 1)
+
+
+@pytest.fixture
+def running(hand: HandConfig, protocol: Protocol) -> Running:
+    return bring_up(hand, protocol)
 
 
 def hold(run: Running, torque: np.ndarray) -> np.ndarray:
@@ -259,13 +264,9 @@ def test_a_stop_on_a_slow_rate_limit_still_lets_go_within_the_stop_bound(
             for f in hand.fingers
         ),
     )
-    sup = Supervisor(slow)
-    link = Link(slow, protocol)
-    link.enable()
-    sup.start(0)
-    sup.observe(1, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0)
-    assert sup.state is State.RUNNING
-    start = hold(Running(sup, link, 1), signed_torque(slow))
+    run = bring_up(slow, protocol)
+    sup = run.sup
+    start = hold(run, signed_torque(slow))
     step, grid = rate_step(slow), np.array(sup.limits.step_list)
     stop_ticks = math.floor(STOP_BOUND_S / slow.bus.period_s + 1e-9)
     assert float(np.max(np.abs(start) / step)) > 1.5 * stop_ticks  # the bound is what binds
