@@ -1,5 +1,5 @@
 """What the hand's shape implies, derived from its config alone, for code that must not
-assume one hand: where the palm's middle is, how far the fingers' bases spread, and which way
+assume one hand: where the palm's middle is, how much of it the fingers enclose, and which way
 each finger flexes.
 
 The hand is planar, fingers based along the palm's face (x) and hanging from it; joint angles
@@ -12,20 +12,37 @@ import math
 
 from handctl.config import FingerConfig, HandConfig
 
+# m: finger bases nearer each other along the palm than this are at one x
+_SAME_X = 1e-6
+
 
 def hand_span(hand: HandConfig) -> tuple[float, float]:
-    """``(middle, half_span)`` (m, along the palm's x): the palm's middle between the
-    outermost finger bases, and how far from it the farthest base is."""
+    """``(middle, half_span)`` (m, along the palm's x) of the stretch of palm the fingers
+    enclose, where an object counts as in the hand.
+
+    Between the outermost finger bases: fingers curl towards the bases' middle, so they hold
+    what lies between them. A hand whose fingers are all based at one x (one finger, or two
+    facing each other across the palm's thickness) has no such stretch; its fingers hold an
+    object against the palm on the side a positive torque curls them to, as far as each one's
+    straight length reaches. Without that, every object would have left such a hand before
+    it moved.
+    """
     xs = [f.base_x for f in hand.fingers]
-    middle = (min(xs) + max(xs)) / 2
-    return middle, max(abs(x - middle) for x in xs)
+    lo, hi = min(xs), max(xs)
+    if hi - lo <= _SAME_X:
+        for f in hand.fingers:
+            # a counter-clockwise curl from straight moves the tip along -sin(angle) in x
+            reach = -math.sin(f.base_angle) * sum(j.link_length for j in f.joints)
+            lo, hi = min(lo, f.base_x + reach), max(hi, f.base_x + reach)
+    return (lo + hi) / 2, (hi - lo) / 2
 
 
 def flexion_sign(hand: HandConfig, finger: FingerConfig) -> float:
-    """+1 when positive torque curls ``finger`` towards the palm's middle (its tip swings
-    towards it), -1 when negative torque does; +1 for a finger based at the middle."""
-    middle, _ = hand_span(hand)
+    """+1 when positive torque curls ``finger`` towards the middle of the finger bases (its
+    tip swings towards it), -1 when negative torque does; +1 for a finger based at the
+    middle."""
+    xs = [f.base_x for f in hand.fingers]
     # z of (finger direction) x (base -> middle): positive when the middle lies
     # counter-clockwise of the finger
-    towards = -math.sin(finger.base_angle) * (middle - finger.base_x)
+    towards = -math.sin(finger.base_angle) * ((min(xs) + max(xs)) / 2 - finger.base_x)
     return -1.0 if towards < 0 else 1.0

@@ -15,7 +15,8 @@ a pair. Definitions:
   left the hand before the last manipulation phase ended (the end ramp lets go of the objects on
   purpose). An object has left the hand when no part of it is between the outermost finger
   bases any more: its centre is further along the palm from the palm's middle than the
-  farthest finger base plus its own radius (``hand_span``);
+  farthest finger base plus its own radius (``hand_span``; on a hand whose fingers are all
+  based at one x, further than the fingers reach);
 - ``objects``: each object's ``lifted``, ``held_s``, ``dropped``, final pose and, for an object
   of the recipe, ``estimator_error_m``: the 95th percentile of the distance between its
   estimated and true centres over the ticks of the hold and manipulation phases where the

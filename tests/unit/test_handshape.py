@@ -30,3 +30,36 @@ def test_a_hand_moved_along_and_turned_upside_down(hand: HandConfig) -> None:
     )
     assert hand_span(shifted) == pytest.approx((0.1, 0.1))
     assert [flexion_sign(shifted, f) for f in shifted.fingers] == [-1.0, -1.0, 1.0]
+
+
+def _one_sided(hand: HandConfig, count: int) -> HandConfig:
+    """The default hand's first ``count`` fingers, every one based where f1 is."""
+    first = hand.fingers[0]
+    return dataclasses.replace(
+        hand,
+        fingers=tuple(
+            dataclasses.replace(f, base_x=first.base_x, base_angle=first.base_angle)
+            for f in hand.fingers[:count]
+        ),
+    )
+
+
+@pytest.mark.parametrize("count", [1, 2])
+def test_fingers_based_at_one_x_enclose_as_far_as_they_reach(hand: HandConfig, count: int) -> None:
+    """With no base across from them, the fingers hold against the palm out to their
+    straight length on the side they curl towards (+x for a finger hanging down that flexes
+    counter-clockwise); the stretch of bases alone is a point, and everything would be out."""
+    one = _one_sided(hand, count)
+    base = one.fingers[0].base_x
+    length = sum(j.link_length for j in one.fingers[0].joints)
+    middle, half = hand_span(one)
+    assert (middle - half, middle + half) == pytest.approx((base, base + length))
+    assert [flexion_sign(one, f) for f in one.fingers] == [1.0] * count
+
+
+def test_bases_close_together_still_bound_the_hand_by_themselves(hand: HandConfig) -> None:
+    """f3 moved to -0.03 m: the bases span 2 cm, and that is the stretch, however far the
+    fingers reach; only bases at one x enclose by reach."""
+    f1, f2, f3 = hand.fingers
+    near = dataclasses.replace(hand, fingers=(f1, f2, dataclasses.replace(f3, base_x=-0.03)))
+    assert hand_span(near) == pytest.approx((-0.04, 0.01))
