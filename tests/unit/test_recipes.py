@@ -216,15 +216,31 @@ def test_runner_abort_condition_and_estimates(tmp_path: Path, hand: HandConfig) 
 
 
 def test_a_recipe_for_another_hand_says_so_at_its_first_joint_keyed_mapping(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """The swap recipe, its hash taken out, on the planar hand met its spring bands first:
+    'unknown key', with no word of --hand; a per-joint damping 'did you mean left_j1?'."""
+    planar = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    data = yaml.safe_load((ROOT / "config" / "recipes" / "swap_two_cylinders.yaml").read_text())
+    data.pop("hand_config_hash")
+    data["compiled"] = False
+    with pytest.raises(ConfigError) as info:
+        load_recipe(write(tmp_path, data), planar)
+    assert info.value.key == "limit_guard_spring_bands"
+    assert "written for another hand? give its config with --hand" in str(info.value)
+
+
+def test_a_compiled_recipe_on_another_hand_says_it_was_compiled_for_another(
     hand: HandConfig,
 ) -> None:
-    """The swap recipe on the planar hand met its spring bands first: 'unknown key', with
-    no word of --hand; a per-joint damping 'did you mean left_j1?'."""
+    """On a hand whose joints are others' (the two-finger one), the recipe's hash is what is
+    wrong, not the first joint it names: that said 'unknown key f2_j3, did you mean f3_j3?'
+    on a two-finger hand of f1 and f3, and sent the user to rename a joint."""
     planar = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
     with pytest.raises(ConfigError) as info:
         load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", planar)
-    assert info.value.key == "limit_guard_spring_bands"
-    assert "written for another hand? give its config with --hand" in str(info.value)
+    assert info.value.key == "hand_config_hash"
+    assert "compiled for another hand config" in str(info.value)
 
 
 def test_the_torque_margin_is_held_to_tau_max_and_the_rate_limit(

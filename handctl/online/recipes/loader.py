@@ -114,6 +114,16 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
             "the hash of the hand config a compiled recipe was made for",
             "nothing",
         )
+    # before anything that names a joint: on another hand the joints a recipe names are
+    # not this hand's, and an unknown joint would hide that the whole recipe is another's
+    if digest is not None and not hand.answers_to(digest):
+        raise ConfigError(
+            doc.file,
+            "hand_config_hash",
+            f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
+            "compiled for another hand config: recompile it for this one)",
+            digest,
+        )
     end_ramp = doc.number("end_ramp_s", default=0.2, min=0.0, max=60.0, unit="s")
     objects = parse_objects(doc)
     pairs = parse_pairs(doc, objects)
@@ -178,14 +188,6 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
                 "no limit_guard_band",
             )
     doc.done()
-    if digest is not None and not hand.answers_to(digest):
-        raise ConfigError(
-            doc.file,
-            "hand_config_hash",
-            f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
-            "compiled for another hand config: recompile it for this one)",
-            digest,
-        )
     return Recipe(
         name,
         doc.file,
