@@ -178,6 +178,18 @@ def _write_output(option: str, path: Path, text: str) -> None:
         ) from None
 
 
+def _truth_to(path: Path) -> Callable[[dict[str, Any]], None]:
+    """The simulated hand's ground truth into ``--summary-json`` at its end, whole or not at
+    all (``_write_output``)."""
+
+    def write(truth: dict[str, Any]) -> None:
+        import json
+
+        _write_output("--summary-json", path, json.dumps(truth, indent=2) + "\n")
+
+    return write
+
+
 def _progress(message: str) -> None:
     """Progress of long work goes to stderr, so stdout stays clean for results."""
     print(message, file=sys.stderr, flush=True)
@@ -774,6 +786,13 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from handctl.parent_death import parent_ends, remove_orphaned_bus
 
     _positive_seconds("--seconds", args.seconds)
+    # the ground truth is written after the whole run: a path that cannot take it is said
+    # now, not found out at the end with the run done for nothing
+    _output_file("--summary-json", args.summary_json)
+    _refuse_same_files(
+        {"--summary-json": args.summary_json},
+        {"--hand": args.hand, "--dbc": args.dbc, "--faults": args.faults},
+    )
     # Ctrl-C, the host's SIGINT and SIGTERM (also the parent-death signal) end the hand
     # cleanly with its summary, even when this process inherited them ignored or blocked, as
     # a script's background jobs do.
@@ -836,7 +855,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
                 _progress,
                 seed=args.seed,
                 faults=faults,
-                summary_json=args.summary_json,
+                ground_truth=None if args.summary_json is None else _truth_to(args.summary_json),
                 realtime=args.rt,
                 keep_running=parent_alive,
             )

@@ -27,7 +27,6 @@ their own frames and count them as unexpected, as the spec says of "a frame sent
 from __future__ import annotations
 
 import itertools
-import json
 import math
 import threading
 import time
@@ -401,15 +400,15 @@ def standalone(
     *,
     seed: int | None = None,
     faults: FaultSchedule | None = None,
-    summary_json: Path | None = None,
+    ground_truth: Callable[[dict[str, Any]], None] | None = None,
     realtime: bool = False,
     keep_running: Callable[[], bool] | None = None,
 ) -> str:
     """Run the simulated hand free on ``bus_spec`` for ``seconds`` (None: until Ctrl-C).
 
     ``progress`` gets a status line about once a second. Returns a summary for the CLI;
-    ``summary_json`` also receives the ground truth at the end (for a host that started this
-    process and wants to report where the objects ended up).
+    ``ground_truth`` also receives the ground truth at the end (``--summary-json``, for a host
+    that started this process and wants to report where the objects ended up).
 
     ``realtime`` asks for SCHED_FIFO (``SIM_RT_PRIORITY``) and locked memory for the node
     timer, as the hand's node controllers have a core each: at normal priority any other load
@@ -465,8 +464,8 @@ def standalone(
     finally:
         bus.close()
     wall = time.monotonic() - started
-    if summary_json is not None:
-        summary_json.write_text(json.dumps(sim.ground_truth_summary(), indent=2) + "\n")
+    if ground_truth is not None:
+        ground_truth(sim.ground_truth_summary())
     rtf = sim.time / wall if wall > 0 else 0.0
     return (
         f"simulated hand on {escaped(bus_spec)}: {sim.time:.3f} s simulated in {wall:.3f} s "

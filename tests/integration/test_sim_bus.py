@@ -8,6 +8,7 @@ import re
 import threading
 import time
 from collections import Counter
+from pathlib import Path
 
 import pytest
 
@@ -15,6 +16,7 @@ from handctl.config import HandConfig
 from handctl.online.bus import open_bus
 from handctl.sim.hand import SimulatedHand, standalone
 
+from ..conftest import ROOT
 from ..dbc import DB
 from .test_sim_support import SimHost, crc8_autosar, crc_ok, enable_all, sim_and_host
 
@@ -205,3 +207,29 @@ def test_a_simulated_hand_asked_to_join_the_sim_bus_is_bad_input(
     err = capsys.readouterr().err
     assert "--bus" in err and "unix:DIRECTORY" in err and "found 'sim'" in err
     assert "resolved by the caller" not in err
+
+
+@pytest.mark.parametrize("where", ["directory", "missing directory", "the hand config"])
+def test_a_summary_the_hand_cannot_write_is_refused_before_it_runs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], where: str
+) -> None:
+    """The ground truth is written after the whole run: a directory, a file in a directory
+    that is not there, or the hand config it reads were found out only then (after the run,
+    or never: the config was replaced), and ``/dev/full`` was a traceback."""
+    from handctl import cli
+
+    hand_file = tmp_path / "hand.yaml"
+    original = (ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text()
+    hand_file.write_text(original)
+    target = {
+        "directory": tmp_path,
+        "missing directory": tmp_path / "nowhere" / "truth.json",
+        "the hand config": hand_file,
+    }[where]
+    argv = ["sim", "--bus", "virtual:refused-summary", "--seconds", "0.3"]
+    argv += ["--hand", str(hand_file), "--summary-json", str(target)]
+    assert cli.main(argv) == cli.EXIT_BAD_INPUT
+    out, err = capsys.readouterr()
+    assert "--summary-json" in err and str(target) in err
+    assert "simulated hand on" not in out  # nothing was run
+    assert hand_file.read_text() == original
