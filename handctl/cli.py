@@ -178,6 +178,33 @@ def _write_output(option: str, path: Path, text: str) -> None:
         ) from None
 
 
+def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
+    """``--seed`` (0 if not given), once the options only the simulated hand takes are known
+    to be for it: on another bus ``--seed`` and ``--sim-faults`` went unused without a word,
+    and a run the user meant to disturb ran undisturbed (``--lockstep`` there was refused).
+    ``--loop-cpu`` and ``--sim-cpu`` place the threads ``--rt`` makes real-time: without it
+    they too did nothing."""
+    from handctl.online.busspec import parse_spec
+
+    if parse_spec(args.bus, hand.bus, hand.source).interface != "sim":
+        for option, value in (("--seed", args.seed), ("--sim-faults", args.sim_faults)):
+            if value is not None:
+                raise ConfigError(
+                    option,
+                    "",
+                    "the simulated hand (--bus sim): only it takes " + option,
+                    f"{value} with --bus {args.bus}",
+                )
+    if not args.rt:
+        for option in ("--loop-cpu", "--sim-cpu"):
+            value = getattr(args, option[2:].replace("-", "_"), None)
+            if value is not None:
+                raise ConfigError(
+                    option, "", "--rt as well (it places the real-time threads)", value
+                )
+    return 0 if args.seed is None else int(args.seed)
+
+
 def _truth_to(path: Path) -> Callable[[dict[str, Any]], None]:
     """The simulated hand's ground truth into ``--summary-json`` at its end, whole or not at
     all (``_write_output``)."""
@@ -453,7 +480,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
         bus=args.bus,
         lockstep=lockstep,
         realtime_priority=args.rt,
-        seed=args.seed,
+        seed=_sim_seed(args, hand),
         reset_node_faults=args.reset_node_faults,
         sim_faults=args.sim_faults,
         max_seconds=args.max_seconds,
@@ -1328,7 +1355,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
         measure_s=measure,
         limits=limits,
         lockstep=False if args.realtime else None,
-        seed=args.seed,
+        seed=_sim_seed(args, hand),
         sim_faults=args.sim_faults,
         reset_node_faults=args.reset_node_faults,
         realtime_priority=args.rt,
@@ -1463,7 +1490,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         bus=args.bus,
         lockstep=False if args.realtime else None,
         realtime_priority=args.rt,
-        seed=args.seed,
+        seed=_sim_seed(args, hand),
         sim_faults=args.sim_faults,
         reset_node_faults=args.reset_node_faults,
         accept_missed_deadlines=args.accept_missed_deadlines,
@@ -1714,12 +1741,13 @@ def _not_ascii(text: str) -> str:
 
 
 def _seed(text: str) -> int:
-    """A simulated hand's seed: numpy's generators take only a non-negative integer;
-    argparse makes the error a usage error (exit 2)."""
+    """A simulated hand's seed: numpy's generators take only a non-negative integer, and
+    the hand config's ``sim.seed`` one below 2**32, so that a seed means the same hand given
+    either way; argparse makes the error a usage error (exit 2)."""
     seed = _integer_or_none(text)
-    if seed is None or seed < 0:
+    if seed is None or not 0 <= seed <= 2**32 - 1:
         raise argparse.ArgumentTypeError(
-            f"expected an integer >= 0, found {shown(text)}{_not_ascii(text)}"
+            f"expected an integer from 0 to {2**32 - 1}, found {shown(text)}{_not_ascii(text)}"
         )
     return seed
 
@@ -2056,7 +2084,7 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="FILE.json",
         help="write the run summary as JSON (units in its key names)",
     )
-    rec.add_argument("--seed", type=_seed, default=0, help="simulated hand seed (default 0)")
+    rec.add_argument("--seed", type=_seed, help="simulated hand seed (default 0)")
     rec.add_argument(
         "--sim-faults",
         type=Path,
@@ -2201,7 +2229,7 @@ def _add_bringup_run_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="ask for SCHED_FIFO and locked memory (says so when refused)",
     )
-    p.add_argument("--seed", type=_seed, default=0, help="simulated hand seed (default 0)")
+    p.add_argument("--seed", type=_seed, help="simulated hand seed (default 0)")
     p.add_argument(
         "--sim-faults",
         type=Path,

@@ -154,7 +154,42 @@ def test_a_negative_seed_is_a_usage_error_before_anything_is_sent(
     finally:
         sniffer.close()
     assert stop.value.code == cli.EXIT_BAD_INPUT
-    assert "argument --seed: expected an integer >= 0, found '-5'" in capsys.readouterr().err
+    assert "argument --seed: expected an integer from 0 to 4294967295, found '-5'" in (
+        capsys.readouterr().err
+    )
+    assert heard == []
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["jog", "f1_j1", "--torque", "0.01"],
+        ["calibrate", "tdt", "-o", "{tmp}/calibrated.yaml"],
+        ["run", "recipe", str(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")],
+    ],
+)
+@pytest.mark.parametrize("option", ["--seed", "--sim-faults"])
+def test_an_option_of_the_simulated_hand_on_another_bus_is_refused_before_anything_is_sent(
+    tmp_path: Path,
+    hand: HandConfig,
+    channel: str,
+    capsys: pytest.CaptureFixture[str],
+    command: list[str],
+    option: str,
+) -> None:
+    """On a bus that is not the simulated hand, ``--seed`` and ``--sim-faults`` did nothing,
+    without a word: a run meant to be disturbed by faults ran on a hand that had none."""
+    value = "3" if option == "--seed" else str(ROOT / "config" / "sim" / "sensor_faults.yaml")
+    sniffer = open_bus(f"virtual:{channel}", hand.bus)
+    try:
+        words = [w.replace("{tmp}", str(tmp_path)) for w in command]
+        code = cli.main([*words, option, value, "--bus", f"virtual:{channel}"])
+        heard = sniffer.drain(limit=1000)
+    finally:
+        sniffer.close()
+    assert code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert f"{option}: expected the simulated hand (--bus sim): only it takes {option}" in err
     assert heard == []
 
 

@@ -509,3 +509,14 @@ def test_the_status_line_fits_the_terminal(tmp_path: Path) -> None:
     assert all(len(line.removesuffix("\x1b[K")) <= 49 for line in lines), lines
     # the second phase's line says the first timed out: too long for 49 columns, it is cut
     assert any(line.removesuffix("\x1b[K").endswith("…") for line in lines), lines
+
+
+@pytest.mark.parametrize("option", ["--loop-cpu", "--sim-cpu"])
+def test_a_cpu_without_rt_is_refused(option: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """The CPUs place the threads ``--rt`` makes real-time; without it the run went on as if
+    the CPU had been taken."""
+    from handctl import cli
+
+    code = cli.main(["run", "recipe", str(ROOT / RECIPE), option, "0", "--max-seconds", "0.1"])
+    assert code == cli.EXIT_BAD_INPUT
+    assert f"{option}: expected --rt as well" in capsys.readouterr().err
