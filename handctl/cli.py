@@ -436,6 +436,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
 
     from handctl.online.clock import Hygiene
     from handctl.online.recipes.loader import load_recipe
+    from handctl.outfile import check_log_target
     from handctl.session import RunRequest, run_recipe
 
     _positive_seconds("--max-seconds", args.max_seconds)
@@ -452,6 +453,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
             "--sim-faults": args.sim_faults,
         },
     )
+    replaces_log = args.log is not None and check_log_target(args.log, "--log")
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     recipe = load_recipe(args.recipe, hand)
     for name, undone in recipe.plan_failed:
@@ -499,6 +501,12 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
             "(layout: docs/foxglove/handctl_layout.json)"
         )
     status = _status_printer()
+    if replaces_log:
+        print(
+            f"handctl: warning: --log: {escaped(str(args.log))} is a recording already; "
+            "this run's replaces it",
+            file=sys.stderr,
+        )
     report = run_recipe(request, status=status, signals=signals)
     if status is not None:
         print(file=sys.stderr)

@@ -42,6 +42,31 @@ def check_writable(path: Path, option: str) -> Path:
     return target
 
 
+#: the first bytes of an MCAP file (a recording of handctl's or anyone's)
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def check_log_target(path: Path, option: str) -> bool:
+    """``check_writable`` for a recording, which replaces what is there only if that is a
+    recording too (or empty): a hand config, a recipe or a README given as ``--log`` by a
+    slip of the hand, or reached through a symlink, was replaced by MCAP data without a word.
+    Returns whether a recording is there, to be said when it is replaced."""
+    target = check_writable(path, option)
+    if not target.exists() or target.stat().st_size == 0:
+        return False
+    with target.open("rb") as handle:
+        head = handle.read(len(MCAP_MAGIC))
+    if head != MCAP_MAGIC:
+        raise ConfigError(
+            option,
+            "",
+            "a new file, or a recording (MCAP) to replace: the file there is not one, and a "
+            "recording would replace it",
+            path,
+        )
+    return True
+
+
 def check_directory(path: Path, option: str) -> Path:
     """The directory ``path`` names, resolved, if files can be put in it: it is a directory
     that may be written, or it does not exist yet and its nearest existing parent is one (it

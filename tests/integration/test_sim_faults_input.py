@@ -17,6 +17,8 @@ from pathlib import Path
 import psutil
 import pytest
 
+from handctl.outfile import MCAP_MAGIC
+
 from ..conftest import ROOT, handctl
 from .realtime import REALTIME
 from .rig import HOLD_LONG
@@ -31,7 +33,8 @@ def test_a_fault_scenario_the_hand_refuses_is_bad_input_and_leaves_the_log_alone
     recipe, faults, log = tmp_path / "hold.yaml", tmp_path / "faults.yaml", tmp_path / "run.mcap"
     recipe.write_text(HOLD_LONG)
     faults.write_text(BAD_NODE)
-    log.write_bytes(b"an earlier run's log")
+    earlier = MCAP_MAGIC + b"an earlier run's log"  # a recording, which a run may replace
+    log.write_bytes(earlier)
     done = handctl(
         "run", "recipe", str(recipe), mode, "--sim-faults", str(faults),
         "--max-seconds", "1", "--log", str(log),
@@ -39,7 +42,7 @@ def test_a_fault_scenario_the_hand_refuses_is_bad_input_and_leaves_the_log_alone
     assert done.returncode == 2, done.stderr
     assert f"{faults}: faults[0].node: expected an integer >= 1 and <= 3, found 9" in (done.stderr)
     assert "Traceback" not in done.stderr
-    assert log.read_bytes() == b"an earlier run's log"
+    assert log.read_bytes() == earlier
     missing = handctl(
         "run", "recipe", str(recipe), mode, "--sim-faults", str(tmp_path / "none.yaml"),
         "--max-seconds", "1",

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from handctl.errors import ConfigError
-from handctl.outfile import check_writable, refuse_same_files
+from handctl.outfile import MCAP_MAGIC, check_log_target, check_writable, refuse_same_files
 
 from ..conftest import ROOT
 
@@ -134,3 +134,23 @@ def test_an_output_named_as_a_directory_is_bad_input(
         capsys.readouterr().err
     )
     assert kept.read_bytes() == b"an earlier run\n"
+
+
+def test_a_recording_replaces_only_a_recording_or_nothing(tmp_path: Path) -> None:
+    """A hand config given as --log, or reached through a symlink named like a log, was
+    replaced by MCAP data; a log over a log (the same run again) is said, not refused."""
+    assert check_log_target(tmp_path / "new.mcap", "--log") is False
+    (tmp_path / "empty.mcap").touch()
+    assert check_log_target(tmp_path / "empty.mcap", "--log") is False
+    old = tmp_path / "old.mcap"
+    old.write_bytes(MCAP_MAGIC + b"rest of a recording")
+    assert check_log_target(old, "--log") is True
+    hand = tmp_path / "hand.yaml"
+    shutil.copy(ROOT / "config" / "hands" / "hiroshima_hand.yaml", hand)
+    link = tmp_path / "run.mcap"
+    link.symlink_to(hand)
+    for given in (hand, link):
+        with pytest.raises(ConfigError) as info:
+            check_log_target(given, "--log")
+        assert str(info.value).startswith("--log: expected a new file, or a recording (MCAP)")
+    assert hand.read_bytes() == (ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_bytes()
