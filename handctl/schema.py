@@ -721,6 +721,17 @@ class Doc:
             self.fail(key, "a non-empty string", _type_name(value))
         return value
 
+    def label(self, key: str, *, default: Any = _MISSING) -> str:
+        """A name that is printed as it is (a hand's, a recipe's, a phase's): ``string`` of
+        printable characters. An escape sequence in a hand's name retitled and cleared the
+        terminal of whoever ran it or replayed its log; a newline in a phase's name forged a
+        line of the summary. (Names the rest of handctl looks up, of joints and objects, have
+        stricter rules of their own.)"""
+        value = self.string(key, default=default)
+        if not value.isprintable():
+            self.fail(key, "a name of printable characters (no newline, tab or escape)", value)
+        return value
+
     def text(self, key: str, *, default: Any = _MISSING) -> str:
         """Free text such as a description: any string, empty too, but a string (a number or a
         list where text belongs is a mistake, not something to print)."""

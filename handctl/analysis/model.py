@@ -409,7 +409,7 @@ def _rotation(d: Doc, dim: int, key2: str, key3: str) -> Array:
 
 
 def _read_body(d: Doc, dim: int) -> Body:
-    name = d.string("name")
+    name = d.label("name")
     position = np.array(d.numbers("position", length=dim, unit="m"))
     rotation = _rotation(d, dim, "angle", "rotation")
     radius = d.number("radius", min=0.0, min_exclusive=True, unit="m")
@@ -435,7 +435,7 @@ def _read_body(d: Doc, dim: int) -> Body:
 
 
 def _read_finger(d: Doc, dim: int) -> Finger:
-    name = d.string("name")
+    name = d.label("name")
     base = np.array(d.numbers("base", length=dim, unit="m"))
     rotation = _rotation(d, dim, "base_angle", "base_rotation")
     lengths = d.numbers("links", min=0.0, unit="m")

@@ -194,7 +194,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     """Read and check a template against ``hand``; every problem is a ``ConfigError``."""
     doc = load_yaml(path)
     doc.string("template")
-    recipe = doc.string("recipe")
+    recipe = doc.label("recipe")
     description = doc.text("description", default="")
     if not doc.has("objects"):
         doc.fail("objects", "the objects the template grasps ([{name, radius}, ...])", "nothing")
@@ -371,7 +371,7 @@ def _check_tau_max(doc: Doc, key: str, torques: tuple[float, ...] | None, hand: 
 def _phase(
     doc: Doc, hand: HandConfig, objects: list[str], estimates: tuple[str, ...]
 ) -> TemplatePhase:
-    name = doc.string("name")
+    name = doc.label("name")
     kind = doc.string("kind", choices=KINDS)
     ramp = doc.number("ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     max_s = doc.number("max_s", min=0.0, max=600.0, min_exclusive=True, unit="s")

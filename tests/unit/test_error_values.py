@@ -119,15 +119,18 @@ def test_a_description_of_what_was_found_holds_no_raw_control_character() -> Non
 
 
 def test_check_shows_a_file_name_escaped_in_its_own_lines(tmp_path: Path) -> None:
-    """check prints the hand config's name on stdout and its bus refusals itself, not as a
-    ``ConfigError``: a name holding an escape sequence was written raw in both."""
+    """check prints the hand config's file name on stdout and its bus refusals itself, not as
+    a ``ConfigError``: a file name holding an escape sequence was written raw in both. (A
+    hand's own name holding one is refused: ``test_yaml_reader``.)"""
     from ..conftest import ROOT, handctl
 
     classic = (ROOT / "config" / "hands" / "hiroshima_hand_classic.yaml").read_text()
     path = tmp_path / "bad\x1b[2J.yaml"
-    path.write_text(classic.replace("name: hiroshima_hand_classic", 'name: "hand\\e[31m"', 1))
+    path.write_text(classic)
     result = handctl("check", str(path))
     assert result.returncode == 2
     assert "\x1b" not in result.stdout + result.stderr
-    assert rf"hand hand\x1b[31m ({tmp_path}/bad\x1b[2J.yaml), config hash" in result.stdout
+    assert rf"hand hiroshima_hand_classic ({tmp_path}/bad\x1b[2J.yaml), config hash" in (
+        result.stdout
+    )
     assert rf"handctl: error: {tmp_path}/bad\x1b[2J.yaml: bus.fd: expected true" in (result.stderr)

@@ -450,3 +450,27 @@ def test_check_refuses_a_duplicate_key_with_exit_2(tmp_path: Path) -> None:
     assert result.returncode == 2
     assert f"{path}: fingers[0].joints[0].tau_max: expected each key once" in result.stderr
     assert f"again at line {line}" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("document", "old", "new", "key"),
+    [
+        ("hand", "name: hiroshima_hand", 'name: "hand\\e]0;pwned\\a"', "name"),
+        ("recipe", "recipe: swap_two_cylinders", 'recipe: "swap\\nfake line"', "recipe"),
+        ("recipe", "- name: approach", '- name: "appr\\toach"', "phases[0].name"),
+    ],
+)
+def test_a_name_with_a_control_character_is_refused(
+    tmp_path: Path, hand: HandConfig, document: str, old: str, new: str, key: str
+) -> None:
+    """Names are printed by every summary, status line and replay: an escape sequence in a
+    hand's name retitled and cleared the terminal of whoever ran it, or replayed its log; a
+    newline in a phase's name forged a line of the output."""
+    source = HAND_TEXT if document == "hand" else RECIPE_YAML.read_text(encoding="utf-8")
+    assert source.count(old) == 1
+    path = tmp_path / f"{document}.yaml"
+    path.write_text(source.replace(old, new), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_hand(path) if document == "hand" else load_recipe(path, hand)
+    assert info.value.key == key
+    assert "a name of printable characters" in info.value.expected

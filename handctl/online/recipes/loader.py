@@ -102,7 +102,7 @@ def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
 
 
 def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
-    name = doc.string("recipe")
+    name = doc.label("recipe")
     description = doc.text("description", default="")
     compiled = doc.boolean("compiled", default=False)
     digest = doc.raw("hand_config_hash", None)
@@ -373,7 +373,7 @@ def parse_pairs(doc: Doc, objects: tuple[RecipeObject, ...]) -> tuple[Pair, ...]
 def _parse_phase(
     doc: Doc, hand: HandConfig, estimates: tuple[str, ...], objects: tuple[RecipeObject, ...]
 ) -> Phase:
-    name = doc.string("name")
+    name = doc.label("name")
     torques = parse_torques(doc, hand)
     ramp = doc.number("ramp_s", default=0.1, min=0.0, max=60.0, unit="s")
     max_s = doc.number("max_s", min=0.0, max=MAX_PHASE_S, min_exclusive=True, unit="s")
