@@ -110,7 +110,14 @@ class UnixDatagramBus(can.BusABC):
                 f"(e.g. {Path(channel).absolute()})"
             )
         self.directory = Path(channel)
-        self.directory.mkdir(parents=True, exist_ok=True)
+        if not self.directory.parent.is_dir():
+            # made here, but not the directories above it: a mistyped path made a tree of
+            # them, and a bus there that no other participant would ever find
+            raise ValueError(
+                f"unix bus directory {channel!r}: expected a directory in an existing one "
+                f"({self.directory.parent} is not a directory)"
+            )
+        self.directory.mkdir(exist_ok=True)
         self.channel_info = f"unix:{channel}"
         self._path = self.directory / f"{os.getpid()}-{next(_unix_ids)}.sock"
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

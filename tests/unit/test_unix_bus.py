@@ -511,3 +511,18 @@ def test_a_bus_directory_made_anew_in_use_fails_the_sends_too(
     time.sleep(0.06)  # the directory is listed again at most every 50 ms
     assert not tx.send(0x181, bytes(8))
     assert [e.kind for e in tx.events()] == [BusEventKind.TX_FAILED]
+
+
+def test_a_bus_directory_in_a_missing_one_is_refused_and_nothing_is_made(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """The bus makes its own directory, not the ones above it: a mistyped path made a whole
+    tree, and the run then waited out its start-up for nodes no one would put there."""
+    from handctl.errors import BusError
+
+    missing = tmp_path / "typo" / "bus"
+    with pytest.raises(BusError, match="expected a directory in an existing one"):
+        open_bus(f"unix:{missing}", hand.bus)
+    assert not (tmp_path / "typo").exists()
+    with open_bus(f"unix:{tmp_path / 'bus'}", hand.bus):
+        assert (tmp_path / "bus").is_dir()
