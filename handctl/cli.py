@@ -1132,7 +1132,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
     from handctl.recording import frames, replay, rerun
     from handctl.recording.metadata import check_run_metadata, recorded_hand
-    from handctl.recording.reader import check_format, open_recording
+    from handctl.recording.reader import check_format, open_recording, require_content
     from handctl.recording.series import load_series
 
     _check_replay_options(args)
@@ -1140,6 +1140,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     # the plot and the re-run were done
     on_bus = _load_checked_hand(args.hand, "--hand") if args.hand is not None else None
     recording = open_recording(args.log)
+    require_content(recording)
     check_format(recording)
     check_run_metadata(recording, recorded_hand(recording, required=False))
     series = load_series(recording)

@@ -42,21 +42,19 @@ def check_writable(path: Path, option: str) -> Path:
     return target
 
 
-#: the first bytes of an MCAP file (a recording of handctl's or anyone's)
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-
 def check_log_target(path: Path, option: str) -> bool:
     """``check_writable`` for a recording, which replaces what is there only if that is a
     recording too (or empty): a hand config, a recipe or a README given as ``--log`` by a
     slip of the hand, or reached through a symlink, was replaced by MCAP data without a word.
     Returns whether a recording is there, to be said when it is replaced."""
+    from handctl.recording.reader import MAGIC
+
     target = check_writable(path, option)
     if not target.exists() or target.stat().st_size == 0:
         return False
     with target.open("rb") as handle:
-        head = handle.read(len(MCAP_MAGIC))
-    if head != MCAP_MAGIC:
+        head = handle.read(len(MAGIC))
+    if head != MAGIC:
         raise ConfigError(
             option,
             "",

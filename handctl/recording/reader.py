@@ -595,6 +595,21 @@ def require_topics(recording: Recording, topics: Iterable[str], what: str) -> No
         )
 
 
+def require_content(recording: Recording) -> None:
+    """Refuse a file in which nothing reads: no metadata, no channel, no chunk. It begins as
+    an MCAP file does and is otherwise random or cut within its first record, and its summary
+    was all zeros and question marks, exit 0, as if it were the log of a run that did
+    nothing."""
+    if recording.metadata or recording.channels or recording.chunks:
+        return
+    raise ConfigError(
+        str(recording.path),
+        "",
+        "a recording with something in it to read (metadata, a channel or a chunk)",
+        f"none: {recording.problem or 'nothing after the magic bytes'}",
+    )
+
+
 def check_format(recording: Recording) -> None:
     """Refuse a handctl recording of another format version (a foreign MCAP passes: it has no
     version, and the channel checks say what it lacks), and a channel of a handctl topic

@@ -21,7 +21,7 @@ from handctl.online.bus import open_bus
 from handctl.protocol import Protocol
 from handctl.recording import channels as ch
 from handctl.recording.frames import logged_frames, to_bus
-from handctl.recording.reader import open_recording
+from handctl.recording.reader import MAGIC, open_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
 
@@ -137,6 +137,23 @@ def test_the_cli_says_which_message_is_bad_and_exits_2(recorded: Recorded, tmp_p
     assert "Traceback" not in done.stderr
     assert f"{bad}: {ch.TIMING} message at log time" in done.stderr
     assert "(tick 300): missed: expected an integer, at least 0, found None" in done.stderr
+
+
+@pytest.mark.parametrize("after_magic", ["random", "first record cut"])
+def test_a_file_where_nothing_reads_is_bad_input(
+    recorded: Recorded, tmp_path: Path, after_magic: str
+) -> None:
+    """An MCAP's first bytes and then nothing that reads (random bytes, or a log cut inside
+    its first record) was summarised as a run of 0 ticks on '?', exit 0."""
+    bad = tmp_path / "bad.mcap"
+    if after_magic == "random":
+        bad.write_bytes(MAGIC + bytes(range(7, 250)) * 40)
+    else:
+        bad.write_bytes(recorded.path.read_bytes()[:100])
+    done = handctl("replay", str(bad))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"{bad}: expected a recording with something in it to read" in done.stderr
 
 
 @pytest.mark.parametrize(

@@ -17,7 +17,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from handctl.outfile import MCAP_MAGIC
+from handctl.recording.reader import MAGIC
 
 from ..conftest import ROOT, handctl
 from .realtime import REALTIME
@@ -33,7 +33,7 @@ def test_a_fault_scenario_the_hand_refuses_is_bad_input_and_leaves_the_log_alone
     recipe, faults, log = tmp_path / "hold.yaml", tmp_path / "faults.yaml", tmp_path / "run.mcap"
     recipe.write_text(HOLD_LONG)
     faults.write_text(BAD_NODE)
-    earlier = MCAP_MAGIC + b"an earlier run's log"  # a recording, which a run may replace
+    earlier = MAGIC + b"an earlier run's log"  # a recording, which a run may replace
     log.write_bytes(earlier)
     done = handctl(
         "run", "recipe", str(recipe), mode, "--sim-faults", str(faults),

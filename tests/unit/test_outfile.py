@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from handctl.errors import ConfigError
-from handctl.outfile import MCAP_MAGIC, check_log_target, check_writable, refuse_same_files
+from handctl.outfile import check_log_target, check_writable, refuse_same_files
+from handctl.recording.reader import MAGIC
 
 from ..conftest import ROOT
 
@@ -143,7 +144,7 @@ def test_a_recording_replaces_only_a_recording_or_nothing(tmp_path: Path) -> Non
     (tmp_path / "empty.mcap").touch()
     assert check_log_target(tmp_path / "empty.mcap", "--log") is False
     old = tmp_path / "old.mcap"
-    old.write_bytes(MCAP_MAGIC + b"rest of a recording")
+    old.write_bytes(MAGIC + b"rest of a recording")
     assert check_log_target(old, "--log") is True
     hand = tmp_path / "hand.yaml"
     shutil.copy(ROOT / "config" / "hands" / "hiroshima_hand.yaml", hand)
