@@ -1640,7 +1640,9 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass  # Ctrl-C is how a monitor is ended: what was seen is still said below
     if not on_tty:
-        emit(view.snapshot())
+        # on the clock the snapshots before it took: at the last frame's time it was earlier
+        # than the one before, and every rate came out as none
+        emit(view.snapshot(time.monotonic_ns()))
     return EXIT_OK
 
 

@@ -55,8 +55,14 @@ def test_it_decodes_counts_rejects_and_never_sends(
     finally:
         sniffer.close()
     assert code == cli.EXIT_OK
-    snapshot = _last(capsys.readouterr().out)
+    out = capsys.readouterr().out
+    snapshot = _last(out)
+    # the last snapshot on the clock of the ones before it: taken at the last frame's time,
+    # it came out earlier than the one before, with no rate for any message
+    times = [json.loads(line)["t_s"] for line in out.splitlines() if line.strip()]
+    assert times == sorted(times) and len(times) >= 3
     messages = _by_name(snapshot)
+    assert all(m["rate_hz"] is not None for m in messages.values())
     feedback = messages["Feedback_2"]
     assert feedback["rejects"] == {} and feedback["frames"] > 10
     assert feedback["values"]["State"] == 0 and feedback["units"]["Angle1"] == "rad"
