@@ -882,6 +882,15 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
         hand = _load_checked_hand(args.hand, "--hand", args.dbc)
         faults = load_scenario(args.faults, hand) if args.faults else None
+        if args.bus.startswith("virtual:"):
+            # python-can's virtual bus is a queue inside one process: `handctl nodes` or a
+            # host in another process heard nothing, and nothing said why
+            print(
+                f"handctl: warning: --bus {escaped(args.bus)} lives inside this process: no "
+                "other command or process hears this hand (a unix:DIRECTORY bus crosses "
+                "processes)",
+                file=sys.stderr,
+            )
         print(
             standalone(
                 hand,
@@ -1968,14 +1977,16 @@ def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "on its own 1 kHz timer, as a peer on any python-can bus.",
         examples=[
             "handctl sim --bus unix:/tmp/handctl-bus --seconds 60",
-            "handctl sim --bus virtual:test --faults config/sim/feedback_dropout.yaml",
+            "handctl sim --bus unix:/tmp/handctl-bus --faults config/sim/feedback_dropout.yaml",
         ],
     )
     sim.add_argument(
         "--bus",
         required=True,
         metavar="SPEC",
-        help="INTERFACE:CHANNEL, e.g. virtual:test, unix:DIRECTORY or udp_multicast:239.74.163.2",
+        help="INTERFACE:CHANNEL, e.g. unix:DIRECTORY, socketcan:vcan0 or "
+        "udp_multicast:239.74.163.2 (virtual:NAME lives inside this process: no other "
+        "command hears it)",
     )
     _add_dbc(sim)
     sim.add_argument(

@@ -233,3 +233,18 @@ def test_a_summary_the_hand_cannot_write_is_refused_before_it_runs(
     assert "--summary-json" in err and str(target) in err
     assert "simulated hand on" not in out  # nothing was run
     assert hand_file.read_text() == original
+
+
+def test_a_standalone_hand_on_the_virtual_bus_says_no_other_process_hears_it(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`handctl sim --bus virtual:y` and then `handctl nodes --bus virtual:y`: every node
+    missing, the hand sending 12000 frames to a queue inside its own process, and nothing
+    said why. It still runs (a test in one process may want it)."""
+    from handctl import cli
+
+    assert cli.main(["sim", "--bus", "virtual:alone", "--seconds", "0.1"]) == cli.EXIT_OK
+    err = capsys.readouterr().err
+    assert "--bus virtual:alone lives inside this process: no other command or process" in err
+    assert cli.main(["sim", "--bus", "sim", "--seconds", "0.1"]) == cli.EXIT_BAD_INPUT
+    assert "lives inside this process" not in capsys.readouterr().err
