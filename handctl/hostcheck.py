@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -1107,35 +1107,56 @@ def host_summary(
         }
     )
     if stopped_on:
-        warnings.append(
-            f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it says "
-            f"the host was {verdict.level.upper()}"
-            + "".join(f"; {r}" for r in verdict.reasons)
-            + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
-            f"{shares['missed_host']} the host's, "
-            + (
-                f"{shares['missed_host_slow_cpu']} its slow CPU's, "
-                if shares["missed_host_slow_cpu"]
-                else ""
-            )
-            + (
-                f"{shares['missed_host_catch_up']} its catch-up ticks', "
-                if shares["missed_host_catch_up"]
-                else ""
-            )
-            + (
-                f"{shares['missed_host_off_cpu']} with the loop held off its CPU, "
-                if shares["missed_host_off_cpu"]
-                else ""
-            )
-            + f"{shares['missed_handctl']} handctl's"
-            + (
-                f", {shares['missed_rival']} a real-time rival's: " + ", ".join(summary["rivals"])
-                if shares["missed_rival"]
-                else ""
-            )
-            + ")"
-            + peer_text
-            + "; see 'handctl check --timing' and docs/timing.md"
-        )
+        warnings.append(stop_warning(stopped_on, verdict, shares, summary["rivals"], peer_text))
     return record, rivals, summary
+
+
+def stop_warning(
+    stopped_on: Sequence[str],
+    verdict: Verdict,
+    shares: Mapping[str, int],
+    rivals: Sequence[str],
+    peer_text: str = "",
+) -> str:
+    """The warning of a run that stopped on ``stopped_on`` (LOOP_OVERRUN, FEEDBACK_TIMEOUT):
+    the bare loop's verdict on the host beside it, and whose the missed ticks were
+    (``attribute``'s ``shares``), every kind that has any said."""
+    return (
+        f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it says "
+        f"the host was {verdict.level.upper()}"
+        + "".join(f"; {r}" for r in verdict.reasons)
+        + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
+        f"{shares['missed_host']} the host's, "
+        + (
+            f"{shares['missed_host_slow_cpu']} its slow CPU's, "
+            if shares["missed_host_slow_cpu"]
+            else ""
+        )
+        + (
+            f"{shares['missed_host_catch_up']} its catch-up ticks', "
+            if shares["missed_host_catch_up"]
+            else ""
+        )
+        + (
+            f"{shares['missed_host_off_cpu']} with the loop held off its CPU, "
+            if shares["missed_host_off_cpu"]
+            else ""
+        )
+        + f"{shares['missed_handctl']} handctl's"
+        + (
+            f", {shares['missed_rival']} a real-time rival's: " + ", ".join(rivals)
+            if shares["missed_rival"]
+            else ""
+        )
+        + (
+            # a stop in the first ticks comes before the bare loop's first wake-ups: said,
+            # or the stop read as "0 the host's, 0 handctl's"
+            f", {shares['missed_unobserved']} while the bare loop was not running "
+            "(judged by no one)"
+            if shares["missed_unobserved"]
+            else ""
+        )
+        + ")"
+        + peer_text
+        + "; see 'handctl check --timing' and docs/timing.md"
+    )

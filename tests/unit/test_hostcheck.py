@@ -21,6 +21,7 @@ from handctl.hostcheck import (
     advice,
     attribute,
     judge,
+    stop_warning,
     work_figures,
 )
 from handctl.hostfacts import HostFacts, parse_cpu_list, plan_cpus, preemption_model
@@ -195,6 +196,22 @@ def test_a_missed_tick_is_the_hosts_only_if_the_bare_loop_stalled_with_it() -> N
         "missed_unobserved": 2,
     }
     assert own == [30]
+
+
+def test_a_stop_before_the_bare_loop_ran_says_whose_misses_no_one_judged() -> None:
+    """A stop in a run's first ticks (a jog stopped on LOOP_OVERRUN at tick 31) comes before
+    the bare loop's first wake-ups: its warning said "0 the host's, 0 handctl's", as if the
+    stop had missed no tick."""
+    host = record([], period_ns=MS // 2)
+    early = [(31, START - 10 * MS, START - 3 * MS, 7)]  # before the probe began
+    shares = attribute(early, host, MS)
+    assert shares["missed_unobserved"] == 7 and shares["missed_host"] == 0
+    verdict = judge(host, Deadlines(MS, 5, 20 * MS))
+    text = stop_warning(["LOOP_OVERRUN"], verdict, shares, [])
+    assert "0 the host's, 0 handctl's, 7 while the bare loop was not running" in text
+    assert "not running" not in stop_warning(
+        ["LOOP_OVERRUN"], verdict, dict(shares, missed_unobserved=0), []
+    )
 
 
 def test_a_short_host_stall_does_not_explain_a_long_miss() -> None:
