@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 from handctl.busload import fd_dlc_size
 from handctl.errors import ConfigError
 from handctl.protocol import Protocol, crc8, load_protocol, parse_protocol
+from handctl.schema import description
 
 if TYPE_CHECKING:
     from handctl.config import HandConfig
@@ -336,7 +337,7 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
                     hand.source,
                     f"{where}.can_ids.{key}",
                     f"0x{layout.frame_id:03X} ({name} in {protocol.source})",
-                    f"0x{configured:03X}",
+                    description(f"0x{configured:03X}"),  # an id, written as the expected one
                 )
         n = len(finger.joints)
         command = protocol.by_name[f"TorqueCommand_{finger.node_id}"]

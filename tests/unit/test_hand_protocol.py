@@ -164,7 +164,8 @@ def test_can_ids_follow_the_node_and_a_wrong_one_is_named(tmp_path: Path) -> Non
     with pytest.raises(ConfigError) as err:
         load_hand(path)
     assert err.value.key == "fingers[1].can_ids.feedback"
-    assert "0x189" in err.value.expected and "0x188" in str(err.value)
+    # the id found written as the one expected, not quoted as a string ('0x188')
+    assert "0x189" in err.value.expected and str(err.value).endswith("found 0x188")
 
 
 def test_a_given_dbc_must_carry_the_hand(tmp_path: Path) -> None:
