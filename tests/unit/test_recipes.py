@@ -368,3 +368,15 @@ def test_a_pose_of_another_hand_s_joints_says_so(tmp_path: Path) -> None:
     err = error(tmp_path, planar, doc)
     assert err.key == "phases[0].pose.angles"
     assert "written for another hand? give its config with --hand" in err.expected
+
+
+def test_a_misspelt_joint_of_a_pose_is_named_not_the_one_it_stands_for(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """fX_j1 for f1_j1 said 'f1_j1: required, missing', and never named fX_j1."""
+    angles = dict.fromkeys(hand.joint_names, 0.1)
+    angles["fX_j1"] = angles.pop("f1_j1")
+    doc = recipe_doc(phase("a", pose={"angles": angles, "stiffness": 1.0}))
+    err = error(tmp_path, hand, doc)
+    assert err.key == "phases[0].pose.angles.fX_j1"
+    assert "did you mean 'f1_j1'?" in err.expected

@@ -711,7 +711,9 @@ def _parse_pose(doc: Doc, hand: HandConfig) -> PoseHold:
 
 
 def _joint_angles(sub: Doc, hand: HandConfig) -> tuple[float, ...]:
-    """Every joint's angle by name, within its limits (a pose)."""
+    """Every joint's angle by name, within its limits (a pose). A misspelt joint is named as
+    such: the first joint not read yet was said to be missing instead."""
+    sub.expect(hand.joint_names)
     angles = [
         sub.number(joint.name, min=joint.angle_min, max=joint.angle_max, unit="rad")
         for joint in hand.joints
