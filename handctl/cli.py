@@ -179,14 +179,16 @@ def _write_output(option: str, path: Path, text: str) -> None:
 
 
 def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
-    """``--seed`` (0 if not given), once the options only the simulated hand takes are known
-    to be for it: on another bus ``--seed`` and ``--sim-faults`` went unused without a word,
-    and a run the user meant to disturb ran undisturbed (``--lockstep`` there was refused).
-    ``--loop-cpu`` and ``--sim-cpu`` place the threads ``--rt`` makes real-time: without it
-    they too did nothing."""
+    """``--seed`` (not given: the hand config's ``sim.seed``, as ``handctl sim`` takes it and
+    docs/simulation.md says; it was 0 whatever the config said), once the options only the
+    simulated hand takes are known to be for it: on another bus ``--seed`` and
+    ``--sim-faults`` went unused without a word, and a run the user meant to disturb ran
+    undisturbed (``--lockstep`` there was refused). ``--loop-cpu`` and ``--sim-cpu`` place the
+    threads ``--rt`` makes real-time: without it they too did nothing."""
     from handctl.online.busspec import parse_spec
 
-    if parse_spec(args.bus, hand.bus, hand.source).interface != "sim":
+    on_sim = parse_spec(args.bus, hand.bus, hand.source).interface == "sim"
+    if not on_sim:
         for option, value in (("--seed", args.seed), ("--sim-faults", args.sim_faults)):
             if value is not None:
                 raise ConfigError(
@@ -202,7 +204,13 @@ def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
                 raise ConfigError(
                     option, "", "--rt as well (it places the real-time threads)", value
                 )
-    return 0 if args.seed is None else int(args.seed)
+    if args.seed is not None:
+        return int(args.seed)
+    if not on_sim:
+        return 0  # no simulated hand to seed
+    from handctl.sim.params import parse_sim
+
+    return parse_sim(hand).seed
 
 
 def _truth_to(path: Path) -> Callable[[dict[str, Any]], None]:
@@ -2106,7 +2114,9 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="FILE.json",
         help="write the run summary as JSON (units in its key names)",
     )
-    rec.add_argument("--seed", type=_seed, help="simulated hand seed (default 0)")
+    rec.add_argument(
+        "--seed", type=_seed, help="simulated hand seed (default: the hand config's sim.seed)"
+    )
     rec.add_argument(
         "--sim-faults",
         type=Path,
@@ -2251,7 +2261,9 @@ def _add_bringup_run_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="ask for SCHED_FIFO and locked memory (says so when refused)",
     )
-    p.add_argument("--seed", type=_seed, help="simulated hand seed (default 0)")
+    p.add_argument(
+        "--seed", type=_seed, help="simulated hand seed (default: the hand config's sim.seed)"
+    )
     p.add_argument(
         "--sim-faults",
         type=Path,

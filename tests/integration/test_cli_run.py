@@ -520,3 +520,23 @@ def test_a_cpu_without_rt_is_refused(option: str, capsys: pytest.CaptureFixture[
     code = cli.main(["run", "recipe", str(ROOT / RECIPE), option, "0", "--max-seconds", "0.1"])
     assert code == cli.EXIT_BAD_INPUT
     assert f"{option}: expected --rt as well" in capsys.readouterr().err
+
+
+def test_the_simulated_hand_is_seeded_by_the_hand_config_unless_seed_is_given(
+    tmp_path: Path,
+) -> None:
+    """docs/simulation.md: ``sim.seed`` is the default seed, ``--seed`` overrides it. ``handctl
+    run`` seeded its hand with 0 whatever the config said."""
+    from handctl import cli
+
+    text = HAND_YAML.read_text()
+    assert text.count("\n  seed: 0 ") == 1
+    hand = tmp_path / "hand.yaml"
+    hand.write_text(text.replace("\n  seed: 0 ", "\n  seed: 7 "))
+    seeds: list[int] = []
+    for extra in ([], ["--seed", "3"]):
+        out = tmp_path / f"run{len(seeds)}.json"
+        argv = ["run", "recipe", str(ROOT / RECIPE), "--hand", str(hand), "--max-seconds", "0.05"]
+        assert cli.main([*argv, "--summary-json", str(out), *extra]) == cli.EXIT_OK
+        seeds.append(json.loads(out.read_text())["sim"]["seed"])
+    assert seeds == [7, 3]
