@@ -607,10 +607,7 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
             f"  experiment: lifted {ex['lifted']} (held {ex['held_s']:.2f} s), {turned}"
             f"dropped {ex['dropped']}, estimator p95 {estimated}"
         )
-        print(
-            f"  experiment: {'success' if ex['success'] else 'FAILED'} (lifted, held, "
-            f"nothing dropped, at least {ex['min_total_turn_deg']:g} deg turned)"
-        )
+        print(f"  experiment: {_experiment_verdict(ex)}")
     if plot and "experiment" in summary and "error" not in summary.get("plot", {}):
         print(f"  overview plot: {plot}")
     if "recording" in summary and "error" not in summary["recording"]:
@@ -620,6 +617,23 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
             f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to {rec['path']}"
             + (f" ({dropped} records dropped: the writer fell behind)" if dropped else "")
         )
+
+
+def _experiment_verdict(ex: dict[str, Any]) -> str:
+    """Success with what it took, or FAILED with what was missing: the criteria alone after
+    FAILED read as if they had been met."""
+    wanted = ex["min_total_turn_deg"]
+    if ex["success"]:
+        return f"success (lifted, held, nothing dropped, at least {wanted:g} deg turned)"
+    missing = []
+    if not ex["lifted"]:
+        missing.append(f"not lifted and held (held {ex['held_s']:.2f} s)")
+    if ex["dropped"]:
+        missing.append("an object dropped")
+    turned = ex.get("total_rotation_deg")
+    if wanted > 0 and turned is not None and turned < wanted:
+        missing.append(f"turned {turned:.1f} deg of the {wanted:g} it needs")
+    return "FAILED: " + ("; ".join(missing) or "see above")
 
 
 def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:

@@ -81,7 +81,11 @@ def test_a_failed_experiment_exits_1_and_names_the_timed_out_phase(tmp_path: Pat
     assert ex["min_total_turn_deg"] == 90.0
     assert summary["timed_out_phases"] == ["approach"]
     assert [p["timed_out"] for p in summary["phases"]] == [True, False]
-    assert "TIMED OUT" in done.stdout and "experiment: FAILED" in done.stdout
+    assert "TIMED OUT" in done.stdout
+    # what was missing, not the criteria (which read as if they had been met)
+    assert "experiment: FAILED: not lifted and held (held 0.00 s); turned 0.0 deg of the 90" in (
+        done.stdout
+    )
     assert "the experiment failed" in done.stderr
 
 
