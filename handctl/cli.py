@@ -1142,7 +1142,11 @@ def _replay_to_bus(
     hand config given with ``--hand``, as well), and what became of them said."""
     from handctl.recording import frames
 
-    _progress(f"replaying frames onto {args.to_bus} at {args.speed or 1.0:g}x ...")
+    # said before the frames' checks, which may still refuse the whole log (nothing sent)
+    _progress(
+        f"to-bus: checking the logged commands, then replaying the frames onto {args.to_bus} "
+        f"at {args.speed or 1.0:g}x ..."
+    )
     sent = frames.to_bus(
         recording, args.to_bus, args.speed or 1.0, args.direction or "both", hand=on_bus
     )
@@ -1861,9 +1865,18 @@ def build_parser() -> argparse.ArgumentParser:
         prog="handctl",
         description="Grasp and manipulate two objects with a joint-torque-controlled "
         "three-fingered hand over CAN.",
-        epilog="Exit codes: 0 done (or stopped at --max-seconds), 1 failed result, 2 bad "
-        "input, 3 safety stop, 4 bus error, 5 host failed the timing check, "
-        "130 interrupted.",
+        epilog="examples:\n"
+        "  handctl run recipe config/recipes/swap_two_cylinders.yaml --summary-json out.json\n"
+        "  handctl replay run.mcap --plot run.png\n"
+        "  handctl check config/hands/hiroshima_hand.yaml\n"
+        "  handctl COMMAND --help   (every option of a command, with its examples)\n\n"
+        + textwrap.fill(
+            "Exit codes: 0 done (or stopped at --max-seconds), 1 failed result, 2 bad "
+            "input, 3 safety stop, 4 bus error, 5 host failed the timing check, "
+            "130 interrupted.",
+            88,
+        ),
+        formatter_class=_HelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"handctl {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
