@@ -36,6 +36,8 @@ _TIMESPEC = struct.Struct("@qq")
 #: receiver's kernel), arbitration id, flags, data length; then the data.
 _WIRE = struct.Struct("<dIBB")
 _unix_ids = itertools.count()
+#: names tried for a participant's endpoint before the bus refuses to open (``_bind``)
+_BIND_ATTEMPTS = 8
 #: Frames per datagram at most; a burst beyond it goes out in several datagrams.
 _BATCH = 32
 #: Frames held at most for one receiver whose queue is full. A burst that does not fit any
@@ -119,7 +121,6 @@ class UnixDatagramBus(can.BusABC):
             )
         self.directory.mkdir(exist_ok=True)
         self.channel_info = f"unix:{channel}"
-        self._path = self.directory / f"{os.getpid()}-{next(_unix_ids)}.sock"
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         with _suppress_oserror():
             self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
@@ -128,7 +129,7 @@ class UnixDatagramBus(can.BusABC):
         # the time of reading, which makes frames look younger: Linux has it.)
         with _suppress_oserror():
             self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
-        self._sock.bind(str(self._path))
+        self._path = self._bind()
         self._sock.setblocking(False)
         #: the directory this participant joined (its inode): one of that name made anew is
         #: another bus, which none of the participants of this one are on
@@ -180,6 +181,31 @@ class UnixDatagramBus(can.BusABC):
             "rx_malformed": self.rx_malformed,
         }
 
+    def _bind(self) -> Path:
+        """This participant's endpoint, under a name no entry of the directory has.
+
+        The name is the process id and a count. An entry of that name left behind (the socket
+        of a participant killed with SIGKILL whose process id came round again, or any file
+        put there) made the bind fail with "Address already in use", naming neither; the
+        next count is taken instead, a few times, then the bus refuses to open saying why."""
+        tried = []
+        for _ in range(_BIND_ATTEMPTS):
+            path = self.directory / f"{os.getpid()}-{next(_unix_ids)}.sock"
+            try:
+                self._sock.bind(str(path))
+            except OSError as exc:
+                if exc.errno != errno.EADDRINUSE:
+                    raise
+                tried.append(path.name)
+                continue
+            return path
+        self._sock.close()
+        raise ValueError(
+            f"unix bus directory {str(self.directory)!r}: expected names free for this "
+            f"participant's endpoint, found {', '.join(tried)} taken (left behind by "
+            "participants that were killed? remove them)"
+        )
+
     def _refresh_peers(self, force: bool = False) -> None:
         """Re-list the participants at most every 50 ms (unless ``force``): joining is
         rare, sending is not.
@@ -209,7 +235,10 @@ class UnixDatagramBus(can.BusABC):
             return
         self._directory_mtime_ns = mtime
         mine = str(self._path)
-        listed = [str(p) for p in self.directory.glob("*.sock")]
+        # sockets only, and not through a link: a symlink named like one sent every
+        # participant's traffic to whatever datagram socket it named (the system log's), and a
+        # link to a participant doubled every frame it was sent
+        listed = [str(p) for p in self.directory.glob("*.sock") if _is_socket(p)]
         self._shunned.intersection_update(listed)  # one gone and back is tried again
         self._peers = [p for p in listed if (self._own or p != mine) and p not in self._shunned]
         for gone in [p for p in self._links if p not in self._peers]:
@@ -501,3 +530,11 @@ class _suppress_oserror:  # noqa: N801 - used like contextlib.suppress(OSError),
 
     def __exit__(self, kind: object, exc: object, tb: object) -> bool:
         return isinstance(exc, OSError)
+
+
+def _is_socket(path: Path) -> bool:
+    """A socket itself, not a link to one, nor any other kind of file (``lstat``)."""
+    try:
+        return stat.S_ISSOCK(os.lstat(path).st_mode)
+    except OSError:  # gone since the listing
+        return False

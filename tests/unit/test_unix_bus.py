@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import socket
 import struct
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -526,3 +527,56 @@ def test_a_bus_directory_in_a_missing_one_is_refused_and_nothing_is_made(
     assert not (tmp_path / "typo").exists()
     with open_bus(f"unix:{tmp_path / 'bus'}", hand.bus):
         assert (tmp_path / "bus").is_dir()
+
+
+def test_an_endpoint_name_left_behind_is_passed_over_and_too_many_are_said(
+    tmp_path: Path, hand: HandConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A participant killed with SIGKILL leaves its socket, and a process id comes round
+    again: the bind failed with "Address already in use", naming neither the file nor why.
+    Now the next name is taken; with every name tried taken, the bus says which."""
+    import itertools
+    import os
+
+    from handctl.errors import BusError
+
+    bus_dir = tmp_path / "bus"
+    bus_dir.mkdir()
+    pid = os.getpid()
+    for n in range(1000, 1003):
+        (bus_dir / f"{pid}-{n}.sock").write_text("left behind")
+    monkeypatch.setattr(unixcan, "_unix_ids", itertools.count(1000))
+    with open_bus(f"unix:{bus_dir}", hand.bus):
+        assert (bus_dir / f"{pid}-1003.sock").is_socket()
+    for n in range(1004, 1004 + unixcan._BIND_ATTEMPTS):
+        (bus_dir / f"{pid}-{n}.sock").write_text("left behind")
+    with pytest.raises(BusError, match=f"found {pid}-1004.sock, .* taken"):
+        open_bus(f"unix:{bus_dir}", hand.bus)
+
+
+def test_only_sockets_in_the_directory_are_sent_to_not_links(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A symlink named like a participant sent every participant's traffic to the datagram
+    socket it named (any on the machine); one to a participant doubled its frames."""
+    bus_dir, outside = tmp_path / "bus", tmp_path / "outside.sock"
+    victim = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    victim.bind(str(outside))
+    victim.setblocking(False)
+    try:
+        with (
+            open_bus(f"unix:{bus_dir}", hand.bus) as tx,
+            open_bus(f"unix:{bus_dir}", hand.bus) as rx,
+        ):
+            for k, participant in enumerate(sorted(bus_dir.glob("*.sock"))):
+                (bus_dir / f"twin{k}.sock").symlink_to(participant)
+            (bus_dir / "link.sock").symlink_to(outside)
+            time.sleep(0.1)  # past the participants' 50 ms between listings
+            tx.send(0x123, b"\x01\x02")
+            time.sleep(0.05)
+            got = rx.drain(limit=100)
+        with pytest.raises(BlockingIOError):
+            victim.recv(100)
+        assert [f.arbitration_id for f in got] == [0x123]
+    finally:
+        victim.close()
