@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from handctl.protocol import (
+    FD_DLC_SIZES,
     Layout,
     Protocol,
     most_misses_before_watchdog,
@@ -38,7 +39,6 @@ if TYPE_CHECKING:  # the hand config's protocol is generated with the DLC sizes 
 
 #: A configuration whose worst-case load exceeds this fraction is refused.
 MAX_LOAD = 0.5
-FD_DLC_SIZES = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
 
 def classic_frame_bits(n_bytes: int) -> int:

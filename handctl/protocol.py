@@ -62,6 +62,8 @@ def node_state_name(value: int, unknown: str = "UNKNOWN") -> str:
 #: The DBC's ``VERSION`` string: "handctl protocol N", N the integer every node reports in its
 #: Status (``ProtocolVersion``) and the host compares with its own.
 _VERSION = re.compile(r"^handctl protocol (\d+)$")
+#: the data lengths a CAN-FD frame can have (its DLC codes), bytes
+FD_DLC_SIZES = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 #: s, how often a node sends its Heartbeat (firmware_protocol/PROTOCOL.md): a host's heartbeat
 #: watchdog must wait longer than this
 HEARTBEAT_PERIOD_S = 0.1
@@ -435,6 +437,16 @@ def _enum_choices(db: Any, attribute: str) -> list[str]:
 
 def _compile(message: Any, source: str, send_choices: list[str]) -> Layout:
     where = message.name
+    if message.length not in FD_DLC_SIZES[1:]:
+        # a CAN-FD frame carries one of these lengths, 64 bytes at most: a longer one was a
+        # traceback from the bus budget (and a C codec was generated for it), one between
+        # them was budgeted as sent while a controller pads it to the next
+        raise ConfigError(
+            source,
+            f"{where} length",
+            "a CAN-FD data length: " + ", ".join(map(str, FD_DLC_SIZES[1:])) + " bytes",
+            message.length,
+        )
     signals = sorted(message.signals, key=lambda s: s.start)
     names = [s.name for s in signals[:2]]
     if names != ["Crc", "Counter"] or any(s.length != 8 for s in signals[:2]):

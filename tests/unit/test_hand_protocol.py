@@ -10,11 +10,11 @@ from typing import Any
 import cantools
 import pytest
 
-from handctl.busload import FD_DLC_SIZES, fd_dlc_size
+from handctl.busload import fd_dlc_size
 from handctl.config import HandConfig, load_hand
 from handctl.errors import ConfigError
 from handctl.hand_protocol import generate_dbc, generated_protocol, protocol_for
-from handctl.protocol import DEFAULT_DBC, Protocol, load_protocol
+from handctl.protocol import DEFAULT_DBC, FD_DLC_SIZES, Protocol, load_protocol
 
 from ..conftest import ROOT
 from ..shapes import shaped_hand

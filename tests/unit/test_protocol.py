@@ -165,3 +165,18 @@ def test_node_states_are_the_dbcs_value_table() -> None:
     assert tables, "no State signal of the DBC has a value table"
     for table in tables:
         assert table == {state.value: state.name for state in NodeState}
+
+
+@pytest.mark.parametrize("length", [65, 17])
+def test_a_frame_length_can_fd_has_not_is_refused(tmp_path: Path, length: int) -> None:
+    """65 bytes was a traceback from the bus budget (and a C codec was generated for it); 17
+    was budgeted as 17 bytes, where a CAN-FD controller sends 20."""
+    text = DEFAULT_DBC.read_text()
+    old = "BO_ 385 Feedback_1: 16 FINGER1"
+    assert old in text
+    path = tmp_path / "bad.dbc"
+    path.write_text(text.replace(old, f"BO_ 385 Feedback_1: {length} FINGER1", 1))
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    assert info.value.key == "Feedback_1 length" and info.value.found == length
+    assert "a CAN-FD data length" in info.value.expected
