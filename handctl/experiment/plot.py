@@ -8,6 +8,7 @@ global backend switch), as in ``handctl.analysis.plot``.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -158,7 +159,7 @@ def plot_plan(result: Any, directory: Path) -> list[Path]:
             title += f", wanted turn {math.degrees(plan.spec.turn):+.0f} deg"
         out.append(
             plot_phase_region(
-                directory / f"{k + 1:02d}_{plan.phase.name}.png",
+                directory / f"{k + 1:02d}_{_file_part(plan.phase.name)}.png",
                 title,
                 plan.analysis,
                 plan.phase.torques,
@@ -166,6 +167,14 @@ def plot_plan(result: Any, directory: Path) -> list[Path]:
             )
         )
     return out
+
+
+def _file_part(name: str) -> str:
+    """A phase's name as part of a file name: what a file name cannot hold (a separator, a
+    dot-dot, more than a name's length) made a plan fail only after its whole search, or wrote
+    outside ``--plot``'s directory. Letters, digits, ``-`` and ``_`` are kept, anything else is
+    ``_``, and the part is cut to 80 characters (the phase number before it keeps it unique)."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", name)[:80] or "_"
 
 
 def _fingers(fingers: Sequence[FingerConfig]) -> str:

@@ -81,15 +81,21 @@ def test_plan_compiles_a_recipe_with_provenance_reproducibly(
 
 
 def test_plan_command_writes_the_recipe_and_the_region_plots(tmp_path: Path) -> None:
+    """The hold is named with what a file name cannot hold: the plot named after it failed
+    after the whole search (a separator), or was written outside the directory (a dot-dot)."""
     out = tmp_path / "r.yaml"
     plots = tmp_path / "plots"
+    template = short_template(tmp_path)
+    data = yaml.safe_load(template.read_text())
+    data["phases"][2]["name"] = "envelop/../../x"
+    template.write_text(yaml.safe_dump(data, sort_keys=False))
     done = subprocess.run(
         [
             sys.executable,
             "-m",
             "handctl",
             "plan",
-            str(short_template(tmp_path)),
+            str(template),
             "-o",
             str(out),
             "--quick",
@@ -112,9 +118,10 @@ def test_plan_command_writes_the_recipe_and_the_region_plots(tmp_path: Path) -> 
     assert sorted(p.name for p in plots.glob("*.png")) == [
         "01_approach.png",
         "02_lift.png",
-        "03_envelop.png",
+        "03_envelop_______x.png",
         "04_manipulate_1.png",
     ]
+    assert not list(tmp_path.glob("x*"))
     assert "manipulate_1" in done.stdout
 
 
