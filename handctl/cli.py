@@ -450,8 +450,6 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     _positive_seconds("--max-seconds", args.max_seconds)
     _output_file("--summary-json", args.summary_json)
     _plot_file("--plot", args.plot)
-    # a FIFO blocked the run in open() for good, deaf to Ctrl-C; a device lost the log
-    _output_file("--log", args.log)
     _refuse_same_files(
         {"--log": args.log, "--summary-json": args.summary_json, "--plot": args.plot},
         {
@@ -461,6 +459,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
             "--sim-faults": args.sim_faults,
         },
     )
+    # a FIFO blocked the run in open() for good, deaf to Ctrl-C; a device lost the log
     replaces_log = args.log is not None and check_log_target(args.log, "--log")
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     recipe = load_recipe(args.recipe, hand)

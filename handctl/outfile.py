@@ -17,10 +17,12 @@ from pathlib import Path
 from handctl.errors import ConfigError
 
 
-def check_writable(path: Path, option: str) -> Path:
+def check_writable(path: Path, option: str, *, recording: bool = False) -> Path:
     """The file ``path`` names, resolved (a symlink is written through, not replaced), if a
     new version of it can be put there: its directory exists and may be written, and the file,
-    if it exists, is a file that may be written (a read-only hand config stays as it is).
+    if it exists, is a file that may be written (a read-only hand config stays as it is) and,
+    unless the output is a ``recording`` itself, not a recording: a calibrated hand config, a
+    plan, a summary or an export written over a run's log lost the log without a word.
     Otherwise a ``ConfigError`` naming ``option``; asked before a calibration starts."""
     try:
         target = path.resolve()
@@ -39,7 +41,22 @@ def check_writable(path: Path, option: str) -> Path:
         raise ConfigError(
             option, "", "a file in a directory that may be written (it is read-only)", path
         )
+    if not recording and _is_recording(target):
+        raise ConfigError(
+            option, "", "a file that is not a run's recording (it would replace the log)", path
+        )
     return target
+
+
+def _is_recording(target: Path) -> bool:
+    """Whether ``target`` is an MCAP file (begins with its magic bytes)."""
+    from handctl.recording.reader import MAGIC
+
+    try:
+        with target.open("rb") as handle:
+            return handle.read(len(MAGIC)) == MAGIC
+    except OSError:  # not there (yet), or not readable: nothing of a log to lose by it
+        return False
 
 
 def check_log_target(path: Path, option: str) -> bool:
@@ -47,14 +64,10 @@ def check_log_target(path: Path, option: str) -> bool:
     recording too (or empty): a hand config, a recipe or a README given as ``--log`` by a
     slip of the hand, or reached through a symlink, was replaced by MCAP data without a word.
     Returns whether a recording is there, to be said when it is replaced."""
-    from handctl.recording.reader import MAGIC
-
-    target = check_writable(path, option)
+    target = check_writable(path, option, recording=True)
     if not target.exists() or target.stat().st_size == 0:
         return False
-    with target.open("rb") as handle:
-        head = handle.read(len(MAGIC))
-    if head != MAGIC:
+    if not _is_recording(target):
         raise ConfigError(
             option,
             "",

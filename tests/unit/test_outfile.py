@@ -155,3 +155,15 @@ def test_a_recording_replaces_only_a_recording_or_nothing(tmp_path: Path) -> Non
             check_log_target(given, "--log")
         assert str(info.value).startswith("--log: expected a new file, or a recording (MCAP)")
     assert hand.read_bytes() == (ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_bytes()
+
+
+def test_no_other_output_replaces_a_recording(tmp_path: Path) -> None:
+    """calibrate -o, plan -o, a summary or an export given a run's log by a slip replaced it
+    (a 2 MB log by a 7.8 kB hand config), exit 0; only a recording may replace a recording."""
+    log = tmp_path / "run.mcap"
+    log.write_bytes(MAGIC + b"a run's recording")
+    with pytest.raises(ConfigError) as info:
+        check_writable(log, "-o")
+    assert str(info.value).startswith("-o: expected a file that is not a run's recording")
+    assert check_writable(log, "--log", recording=True) == log.resolve()
+    assert log.read_bytes() == MAGIC + b"a run's recording"
