@@ -18,6 +18,7 @@ import argparse
 import ast
 import importlib
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -55,6 +56,45 @@ def listing() -> str:
     return "\n".join(lines)
 
 
+#: The options the benchmarks share by name, and what each takes: a count (1 or more), a
+#: number from 0 (a seed, a babble rate), a positive or non-negative finite number of units.
+#: Checked once here, after parsing: 0 seeds divided by zero after the nominal run, a NaN
+#: tolerance printed NaN into the JSON (no JSON parser takes it), a negative duration was
+#: clamped and reported as met.
+_COUNTS = (
+    "seeds",
+    "workers",
+    "repeat",
+    "repeats",
+    "ticks",
+    "frames",
+    "grid",
+    "models",
+    "population",
+    "generations",
+)
+_FROM_ZERO = ("first_seed", "seed", "babble")
+_POSITIVE = ("seconds", "minutes", "tolerance", "swap_deg")
+_NON_NEGATIVE = ("warmup_s",)
+
+
+def _out_of_range(args: argparse.Namespace) -> str:
+    """What the first shared option out of its range is, said as the CLI says it; "" if none."""
+    for key, value in vars(args).items():
+        if value is None or isinstance(value, bool) or not isinstance(value, int | float):
+            continue
+        option = "--" + key.replace("_", "-")
+        if key in _COUNTS and not value >= 1:
+            return f"{option}: expected a whole number >= 1, found {value}"
+        if key in _FROM_ZERO and not value >= 0:
+            return f"{option}: expected a whole number >= 0, found {value}"
+        if key in _POSITIVE and not (math.isfinite(value) and value > 0):
+            return f"{option}: expected a finite number > 0, found {value}"
+        if key in _NON_NEGATIVE and not (math.isfinite(value) and value >= 0):
+            return f"{option}: expected a finite number >= 0, found {value}"
+    return ""
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] in ("-h", "--help"):
@@ -80,7 +120,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object (default)")
     module.add_arguments(parser)
     args = parser.parse_args(argv[1:])
-    figures = module.run(args)
+    wrong = _out_of_range(args)
+    if wrong:
+        print(f"bench.py {name}: {wrong}", file=sys.stderr)
+        return 2
+    from handctl.errors import HandctlError
+
+    try:
+        figures = module.run(args)
+    except HandctlError as exc:  # bad input found by handctl (a recipe, a hand, an address)
+        print(f"bench.py {name}: error: {exc}", file=sys.stderr)
+        return 2
     print(json.dumps(figures, sort_keys=True))
     failed = figures.get("failed") or []
     for failure in failed:

@@ -72,3 +72,33 @@ def test_figures_that_hold_failures_exit_1_and_say_each(
     out, err = capsys.readouterr()
     assert json.loads(out) == figures
     assert err == ("bench.py fake: failed: tick_cost.unix: exit 1\n" if code else "")
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["experiment", "--seeds", "0"], "--seeds: expected a whole number >= 1, found 0"),
+        (["experiment", "--first-seed", "-1"], "--first-seed: expected a whole number >= 0"),
+        (["analysis", "--tolerance", "nan"], "--tolerance: expected a finite number > 0"),
+        (["sim", "--seconds", "-1"], "--seconds: expected a finite number > 0, found -1.0"),
+        (["codec", "--ticks", "0"], "--ticks: expected a whole number >= 1, found 0"),
+    ],
+)
+def test_a_shared_option_out_of_its_range_is_bad_input_before_any_work(
+    capsys: pytest.CaptureFixture[str], argv: list[str], says: str
+) -> None:
+    """0 seeds divided by zero after the nominal run had been simulated; a NaN tolerance went
+    into the JSON as NaN, which no JSON parser takes; a negative duration was clamped and its
+    target reported as met; 0 ticks was a StatisticsError."""
+    assert load_tool("bench").main(argv) == 2
+    assert says in capsys.readouterr().err
+
+
+def test_bad_input_found_by_a_benchmark_is_said_and_exits_2(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A recipe that is not there was a ConfigError traceback, exit 1."""
+    argv = ["experiment", "--seeds", "1", "--recipe", "nosuch.yaml", "--family", "all"]
+    assert load_tool("bench").main(argv) == 2
+    err = capsys.readouterr().err
+    assert "bench.py experiment: error: nosuch.yaml: expected an existing file" in err
