@@ -365,6 +365,9 @@ def load_scenario(path: str | Path) -> Scenario:
     task = doc.mapping("task")
     tau_max = task.number("tau_max", min=0.0, max=MAX_TAU, min_exclusive=True, unit="N·m")
     move = task.mapping("move")
+    if not list(move.keys()):
+        # the analysis found out only when it ran: "no wanted motion", exit 1, no file named
+        task.fail("move", "a direction for at least one object (" + ", ".join(names) + ")", {})
     directions: dict[str, Array] = {}
     for name in list(move.keys()):
         if name not in names:

@@ -109,6 +109,8 @@ def test_fig3_contacts_lie_on_links_and_normals_point_into_objects() -> None:
             "non-zero",
         ),
         (lambda d: d["task"]["move"].update(cup=[0.0, 1.0]), "task.move.cup", "object name"),
+        # nothing to move was found only by the analysis: exit 1, naming no file or key
+        (lambda d: d["task"]["move"].clear(), "task.move", "at least one object"),
         (lambda d: d.update(gravity=[0.0, "down"]), "gravity[1]", "number"),
         # a contact listed twice counted its force twice; a tau_max of 1e300 gave a torque box
         # of area inf and a mu of 1e300 no realisable torque, each reported as a result
