@@ -112,16 +112,11 @@ def test_a_signal_factor_that_is_not_positive_is_refused(
     """Zero divided by zero in the signal's range (a traceback); a negative one turned its
     range over, and a hand config's angles were then refused as out of a range that held
     them."""
-    text = DEFAULT_DBC.read_text()
     old = "SG_ Angle1 : 64|16@1- (0.0001,0)"
-    assert old in text
-    path = tmp_path / "bad.dbc"
-    path.write_text(text.replace(old, f"SG_ Angle1 : 64|16@1- ({factor},0)", 1))
-    with pytest.raises(ConfigError) as info:
-        load_protocol(path)
-    assert info.value.key == "Feedback_1.Angle1"
-    assert info.value.expected == "a finite factor > 0 and a finite offset"
-    assert says in str(info.value)
+    err = _refused(tmp_path, old, f"SG_ Angle1 : 64|16@1- ({factor},0)")
+    assert err.key == "Feedback_1.Angle1"
+    assert err.expected == "a finite factor > 0 and a finite offset"
+    assert says in str(err)
 
 
 def test_a_signal_range_turned_over_is_refused(tmp_path: Path) -> None:
@@ -171,12 +166,19 @@ def test_node_states_are_the_dbcs_value_table() -> None:
 def test_a_frame_length_can_fd_has_not_is_refused(tmp_path: Path, length: int) -> None:
     """65 bytes was a traceback from the bus budget (and a C codec was generated for it); 17
     was budgeted as 17 bytes, where a CAN-FD controller sends 20."""
+    err = _refused(
+        tmp_path, "BO_ 385 Feedback_1: 16 FINGER1", f"BO_ 385 Feedback_1: {length} FINGER1"
+    )
+    assert err.key == "Feedback_1 length" and err.found == length
+    assert "a CAN-FD data length" in err.expected
+
+
+def _refused(tmp_path: Path, old: str, new: str) -> ConfigError:
+    """The error of the default DBC with ``old`` (which it has) written as ``new``."""
     text = DEFAULT_DBC.read_text()
-    old = "BO_ 385 Feedback_1: 16 FINGER1"
     assert old in text
     path = tmp_path / "bad.dbc"
-    path.write_text(text.replace(old, f"BO_ 385 Feedback_1: {length} FINGER1", 1))
+    path.write_text(text.replace(old, new, 1))
     with pytest.raises(ConfigError) as info:
         load_protocol(path)
-    assert info.value.key == "Feedback_1 length" and info.value.found == length
-    assert "a CAN-FD data length" in info.value.expected
+    return info.value
