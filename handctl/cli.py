@@ -75,6 +75,8 @@ MIN_REPLAY_SPEED = 1e-3
 MAX_REPLAY_SPEED = 1e3
 #: s, the shortest timing check: ten ticks at 1 kHz (1e-300 s gave a verdict on no tick)
 MIN_TIMING_CHECK_S = 0.01
+#: s, the timing check's length when --seconds is not given
+TIMING_CHECK_DEFAULT_S = 10.0
 
 
 def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
@@ -236,6 +238,8 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 
     from handctl.hostcheck import timing_check
 
+    if args.seconds is None:
+        args.seconds = TIMING_CHECK_DEFAULT_S
     if not MIN_TIMING_CHECK_S <= args.seconds <= 3600:
         raise ConfigError(
             "--seconds",
@@ -258,6 +262,27 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
+    # an option of the other check did nothing, without a word: `check --json t.json` wrote
+    # no file, `check --timing --dbc nosuch.dbc` never looked at it
+    other = (
+        [("--dbc", args.dbc)]
+        if args.timing
+        else [
+            ("--seconds", args.seconds),
+            ("--no-rt", args.no_rt or None),
+            ("--loop-cpu", args.loop_cpu),
+            ("--json", args.json),
+        ]
+    )
+    for option, value in other:
+        if value is not None:
+            raise ConfigError(
+                option,
+                "",
+                "the check it belongs to: "
+                + ("the hand config's (without --timing)" if args.timing else "--timing"),
+                value,
+            )
     if args.timing:
         return _cmd_check_timing(args)
     from handctl.busload import MAX_LOAD, bus_refusals, hand_budget
@@ -1937,9 +1962,9 @@ def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     timing.add_argument(
         "--seconds",
         type=_real,
-        default=10.0,
         metavar="S",
-        help="length of the timing check [s], > 0 and <= 3600 (default 10)",
+        help=f"length of the timing check [s], >= {MIN_TIMING_CHECK_S:g} and <= 3600 "
+        f"(default {TIMING_CHECK_DEFAULT_S:g})",
     )
     timing.add_argument(
         "--no-rt", action="store_true", help="check at the default scheduler, as a run without --rt"

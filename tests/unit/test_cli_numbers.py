@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -171,3 +172,24 @@ def test_a_negative_infinity_reaches_the_options_own_check(
     args = ["analyze", "torque-set", scenario, "--k", "-inf", "0.1"]
     assert cli.main(args) == cli.EXIT_BAD_INPUT
     assert "--k: expected two finite ratios" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "option"),
+    [
+        (["check", "--json", "{tmp}/t.json"], "--json"),
+        (["check", "--seconds", "5"], "--seconds"),
+        (["check", "--no-rt"], "--no-rt"),
+        (["check", "--loop-cpu", "0"], "--loop-cpu"),
+        (["check", "--timing", "--dbc", "nosuch.dbc", "--seconds", "0.1"], "--dbc"),
+    ],
+)
+def test_an_option_of_the_other_check_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], option: str
+) -> None:
+    """`check --json t.json` wrote no file and `check --timing --dbc nosuch.dbc` never looked
+    at it, both exit 0: an option of the check not asked for did nothing, without a word."""
+    words = [w.replace("{tmp}", str(tmp_path)) for w in argv]
+    assert cli.main(words) == cli.EXIT_BAD_INPUT
+    assert f"{option}: expected the check it belongs to" in capsys.readouterr().err
+    assert not (tmp_path / "t.json").exists()
