@@ -64,7 +64,22 @@ def write_or_check(
                 file=sys.stderr,
             )
         return 1 if stale else 0
+    from handctl.errors import ConfigError
+    from handctl.outfile import check_writable
+
     for path, text in files.items():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text, encoding="utf-8", newline="\n")
+        # a directory or a device given as --out was an IsADirectoryError traceback; a file
+        # where its directory should be, a FileExistsError: each is said, exit 2
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            check_writable(path, "--out")
+            path.write_text(text, encoding="utf-8", newline="\n")
+        except ConfigError as exc:
+            print(f"{tool}: {exc}", file=sys.stderr)
+            return 2
+        except OSError as exc:
+            print(
+                f"{tool}: --out: {display_path(path)} could not be written ({exc})", file=sys.stderr
+            )
+            return 2
     return 0

@@ -361,3 +361,24 @@ def test_c_matches_python_off_the_vectors(harness: Path, protocol: Protocol) -> 
         c_counter, c_values = parse_decoded(answer, decoded)
         assert c_counter == counter
         assert all(same(c, p) for c, p in zip(c_values, decoded, strict=True)), answer
+
+
+@pytest.mark.parametrize("tool", ["gen_c_codec.py", "gen_vectors.py", "gen_dbc.py"])
+def test_an_out_that_cannot_be_written_is_said_with_exit_2(tool: str, tmp_path: Path) -> None:
+    """A directory given as a file's --out (or a file as the C codec's directory) was an
+    IsADirectoryError or FileExistsError traceback, exit 1."""
+    out = tmp_path / "taken"
+    if tool == "gen_c_codec.py":
+        out.write_text("a file where the codec's directory goes")
+    else:
+        out.mkdir()
+    result = subprocess.run(
+        [sys.executable, str(TOOLS / tool), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+        check=False,
+    )
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr and f"{tool}: --out" in result.stderr
