@@ -78,13 +78,29 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("-o", "--output", type=Path, required=True)
     args = parser.parse_args(argv)
-    data = yaml.safe_load(args.hand.read_text())
+    from handctl.errors import ConfigError
+    from handctl.outfile import check_writable, refuse_same_files, write_atomically
+
+    names = [name for name, _ in args.scale]
     try:
-        out = resized(data, dict(args.scale), str(args.hand))
-    except ValueError as exc:
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:  # the last one won, without a word
+            raise ConfigError("--scale", "", "each object scaled once", ", ".join(twice))
+        # the hand's file given as -o was dumped over, its comments and anchors lost; a
+        # missing hand or a directory as -o were tracebacks
+        refuse_same_files({"-o": args.output}, {"--hand": args.hand})
+        target = check_writable(args.output, "-o")
+        try:
+            text = args.hand.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(
+                "--hand", "", "a hand config to read", f"{args.hand} ({exc})"
+            ) from None
+        out = resized(yaml.safe_load(text), dict(args.scale), str(args.hand))
+    except ValueError as exc:  # ConfigError is a ValueError
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    args.output.write_text(yaml.safe_dump(out, sort_keys=False))
+    write_atomically(target, yaml.safe_dump(out, sort_keys=False))
     return 0
 
 
