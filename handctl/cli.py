@@ -238,23 +238,21 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 
     from handctl.hostcheck import timing_check
 
-    if args.seconds is None:
-        args.seconds = TIMING_CHECK_DEFAULT_S
-    if not MIN_TIMING_CHECK_S <= args.seconds <= 3600:
+    seconds = TIMING_CHECK_DEFAULT_S if args.seconds is None else args.seconds
+    if not MIN_TIMING_CHECK_S <= seconds <= 3600:
         raise ConfigError(
             "--seconds",
             "",
             f"a number of seconds >= {MIN_TIMING_CHECK_S:g} and <= 3600",
-            args.seconds,
+            seconds,
         )
     _output_file("--json", args.json)
     _refuse_same_files({"--json": args.json}, {"HAND.yaml": args.hand})
     hand = _load_checked_hand(args.hand, "HAND.yaml")
     _progress(
-        f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for "
-        f"{args.seconds:g} s ..."
+        f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for {seconds:g} s ..."
     )
-    report = timing_check(hand, args.seconds, realtime=not args.no_rt, cpu=args.loop_cpu)
+    report = timing_check(hand, seconds, realtime=not args.no_rt, cpu=args.loop_cpu)
     print(report.text())
     if args.json:
         _write_output("--json", args.json, json.dumps(report.as_json(), indent=2) + "\n")
