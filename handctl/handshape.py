@@ -27,8 +27,7 @@ def hand_span(hand: HandConfig) -> tuple[float, float]:
     straight length reaches. Without that, every object would have left such a hand before
     it moved.
     """
-    xs = [f.base_x for f in hand.fingers]
-    lo, hi = min(xs), max(xs)
+    lo, hi = _bases(hand)
     if hi - lo <= _SAME_X:
         for f in hand.fingers:
             # a counter-clockwise curl from straight moves the tip along -sin(angle) in x
@@ -41,8 +40,14 @@ def flexion_sign(hand: HandConfig, finger: FingerConfig) -> float:
     """+1 when positive torque curls ``finger`` towards the middle of the finger bases (its
     tip swings towards it), -1 when negative torque does; +1 for a finger based at the
     middle."""
-    xs = [f.base_x for f in hand.fingers]
+    lo, hi = _bases(hand)
     # z of (finger direction) x (base -> middle): positive when the middle lies
     # counter-clockwise of the finger
-    towards = -math.sin(finger.base_angle) * ((min(xs) + max(xs)) / 2 - finger.base_x)
+    towards = -math.sin(finger.base_angle) * ((lo + hi) / 2 - finger.base_x)
     return -1.0 if towards < 0 else 1.0
+
+
+def _bases(hand: HandConfig) -> tuple[float, float]:
+    """The outermost finger bases along the palm (m): the stretch both functions start from."""
+    xs = [f.base_x for f in hand.fingers]
+    return min(xs), max(xs)
