@@ -233,6 +233,19 @@ def _pose_document(pose: PoseHold, hand: HandConfig) -> dict[str, Any]:
     return doc
 
 
+def _switching(spec: TemplatePhase) -> dict[str, Any]:
+    """A turn phase's switching on the pair's measured position, as the recipe carries it:
+    the episodes exit on the phase's own turn, the recipe on the turn since ``turn_from``,
+    shared out by the runner with an ``exit_share``."""
+    doc: dict[str, Any] = {
+        "turn_from": spec.turn_from,
+        "exit": [spec.recipe_exit_condition()],
+    }
+    if spec.exit_share > 1:
+        doc["exit_share"] = spec.exit_share
+    return doc
+
+
 def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     phase = plan.phase
     doc: dict[str, Any] = {
@@ -245,9 +258,7 @@ def _phase_document(plan: PhasePlan, hand: HandConfig) -> dict[str, Any]:
     if phase.exits:
         doc["exit"] = [c.text for c in phase.exits]
     if plan.spec.turn_from:
-        # the episodes exit on the phase's own turn; the recipe on the turn since turn_from
-        doc["turn_from"] = plan.spec.turn_from
-        doc["exit"] = [plan.spec.recipe_exit_condition()]
+        doc.update(_switching(plan.spec))
     if phase.stall is not None:
         doc["stall"] = {
             "turn_deg": round(math.degrees(phase.stall.turn), 6),

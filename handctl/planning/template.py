@@ -9,7 +9,9 @@ A template says *what* each phase must do, not the torques that do it:
 - ``hold``: the objects stay up and caged (no wanted motion);
 - ``turn``: the line through the two centres turns by ``turn_deg`` (counter-clockwise
   positive); the compiled phase exits when the *estimated* turn reaches ``exit_fraction`` of
-  it, held ``exit_hold_s``, and moves on at ``max_s`` otherwise. Its ``schedule`` entries
+  it, held ``exit_hold_s``, and moves on at ``max_s`` otherwise (with ``turn_from``, on the
+  turn since that phase began; with ``exit_share: N`` too, on an even share, among it and the
+  N - 1 turn phases after it, of what is left to the last one's exit). Its ``schedule`` entries
   (alternative torques for the objects' measured sizes) either give their ``torques``,
   carried into the recipe as written, or ask for ``plan: {models: N}``: the plan searches
   that entry's torque on N models whose objects are of the sizes its ``when`` names.
@@ -33,6 +35,7 @@ from handctl.online.recipes.loader import (
     check_unique_names,
     parse_brake,
     parse_damping_fades,
+    parse_exit_share,
     parse_grasp_model,
     parse_integral_gains,
     parse_joint_damping,
@@ -128,6 +131,13 @@ class TemplatePhase:
     #: rad, what the phases from ``turn_from`` up to this one (this one excluded) ask to turn
     from_turn: float = 0.0
     stall: TurnStall | None = None  # the end of a turn phase that stopped turning, carried
+    #: this turn phase and the ``exit_share - 1`` turn phases after it share what is left of
+    #: the turn to the last one's exit (``schema.Phase.exit_share``), carried into the recipe
+    #: with that exit; 1: its own exit
+    exit_share: int = 1
+    #: rad, with an ``exit_share``: the last sharing phase's recipe exit (the turn since
+    #: ``turn_from``), which this phase's compiled exit is written with
+    share_to: float = 0.0
     #: the analysis again at the measured configuration when the phase begins, carried
     reanalyse: Reanalyse | None = None
     #: a turn phase's alternative torques for the objects' measured sizes: written ones are
@@ -161,8 +171,16 @@ class TemplatePhase:
         op = "<" if self.turn < 0 else ">"
         return (
             f"estimate.{self.estimates[FIRST_PAIR_TURN]} {op} "
-            f"{(self.turn + self.from_turn) * self.exit_fraction:.4f} for {self.exit_hold_s:g}"
+            f"{self.recipe_exit_turn():.4f} for {self.exit_hold_s:g}"
         )
+
+    def recipe_exit_turn(self) -> float:
+        """rad, the turn since ``turn_from`` the compiled exit is written with: the phases'
+        turns to here times ``exit_fraction``, or with an ``exit_share`` the last sharing
+        phase's, which the runner shares out when this phase measures the pair."""
+        if self.exit_share > 1:
+            return self.share_to
+        return (self.turn + self.from_turn) * self.exit_fraction
 
 
 @dataclass(frozen=True)
@@ -247,7 +265,36 @@ def _resolve_turn_from(doc: Doc, phases: tuple[TemplatePhase, ...]) -> tuple[Tem
             )
         start = next(k for k, p in enumerate(phases) if p.name == phase.turn_from)
         out[i] = replace(phase, from_turn=sum(p.turn for p in phases[start:i]))
+    for i, phase in enumerate(out):
+        if phase.exit_share > 1:
+            out[i] = replace(phase, share_to=_share_to(doc, out, i))
     return tuple(out)
+
+
+def _share_to(doc: Doc, phases: list[TemplatePhase], i: int) -> float:
+    """rad, the recipe exit of the last of the turn phases phase ``i``'s ``exit_share``
+    spans: they must follow it and read the turn from the same ``turn_from``, so that
+    "what is left" is the same turn for each of them."""
+    phase = phases[i]
+    key = f"phases[{i}].exit_share"
+    if not phase.turn_from:
+        doc.fail(
+            key,
+            "a phase with turn_from (the shared turn is read from where that phase began)",
+            phase.exit_share,
+        )
+    sharing = phases[i + 1 : i + phase.exit_share]
+    if len(sharing) < phase.exit_share - 1 or any(
+        p.kind != "turn" or p.turn_from != phase.turn_from or p.exit_share > 1 for p in sharing
+    ):
+        found = [f"{p.name} ({p.kind}, turn_from {p.turn_from or 'none'})" for p in sharing]
+        doc.fail(
+            key,
+            f"{phase.exit_share - 1} turn phase(s) after it, each with turn_from "
+            f"{phase.turn_from} and no exit_share of its own",
+            ", ".join(found) or "none",
+        )
+    return sharing[-1].recipe_exit_turn()
 
 
 def _search(doc: Doc) -> SearchSettings:
@@ -399,6 +446,7 @@ def _phase(
     paced = None
     turn_from = ""
     stall = None
+    share = 1
     reanalyse = None
     schedule: tuple[ScheduleEntry, ...] = ()
     if kind == "turn":
@@ -425,6 +473,7 @@ def _phase(
             paced = parse_paced_ramp(doc.mapping("paced_ramp"), math.copysign(1.0, turn))
         turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
         stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
+        share = parse_exit_share(doc)
         if doc.has("reanalyse"):
             reanalyse = parse_reanalyse(doc.mapping("reanalyse"), turn)
         schedule = _schedule(doc, hand, objects)
@@ -478,4 +527,5 @@ def _phase(
         object_names=tuple(objects),
         joint_damping_fades=fades,
         pose_integral=integral,
+        exit_share=share,
     )

@@ -69,6 +69,54 @@ _WHEN = {"radius_ratio": {"object": "cyl1", "min": 1.1}}
 _TORQUES = {f"f{f}_j{j}": 0.1 for f in (1, 2, 3) for j in (1, 2, 3)}
 
 
+def test_an_exit_share_compiles_to_the_last_sharing_phase_s_exit(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """``exit_share: N`` writes the exit of the turn phase N - 1 later (what the runner shares
+    out), whatever that phase's own ``exit_fraction``; 3 spans manipulate_2 to _4."""
+    data = base()
+    turns = [p for p in data["phases"] if p.get("kind") == "turn"]
+    for phase in turns:
+        phase.pop("exit_share", None)
+    turns[1]["exit_share"] = 3
+    turns[3]["exit_fraction"] = 0.9
+    t = load_template(write(tmp_path, data), hand)
+    specs = [p for p in t.phases if p.kind == "turn"]
+    assert specs[1].recipe_exit_turn() == pytest.approx(math.radians(-180.0) * 0.9)
+    assert specs[1].recipe_exit_condition() == specs[3].recipe_exit_condition()
+    assert specs[2].recipe_exit_turn() == pytest.approx(math.radians(-135.0) * 0.95)
+    # the planner's own episode of the phase still exits on its own turn
+    assert specs[1].exit_condition() == "estimate.cyl1_cyl2_line_turn < -0.7461 for 0.02"
+
+
+@pytest.mark.parametrize(
+    ("edit", "found"),
+    [
+        (lambda turns: turns[3].update(exit_share=2), "none"),  # nothing after the last
+        (lambda turns: turns[2].update(exit_share=3), "found 'manipulate_4 (turn, "),
+        (lambda turns: turns[1].update(exit_share=2) or turns[2].update(exit_share=2), "_3"),
+        (lambda turns: turns[0].update(exit_share=2), "2"),  # no turn_from
+        (
+            lambda turns: turns[2].update(exit_share=2) or turns[3].pop("turn_from"),
+            "manipulate_4 (turn, turn_from none)",
+        ),
+        (lambda turns: turns[2].update(exit_share=1.5), "float"),
+    ],
+)
+def test_a_bad_exit_share_is_refused_naming_the_key(
+    tmp_path: Path, hand: HandConfig, edit: Any, found: str
+) -> None:
+    data = base()
+    turns = [p for p in data["phases"] if p.get("kind") == "turn"]
+    for phase in turns:
+        phase.pop("exit_share", None)
+    edit(turns)
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key.endswith("exit_share"), info.value
+    assert found in str(info.value)
+
+
 def test_a_schedule_entry_is_written_or_planned(tmp_path: Path, hand: HandConfig) -> None:
     """A template's schedule entry gives its torques (carried as written) or asks the plan
     to search them (``plan: {models: N}``), in the order the runner tries them."""

@@ -6,6 +6,7 @@ joints (``blind_joint_rate``) instead of the pair's last rate."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -146,6 +147,72 @@ def test_an_exit_reads_the_turn_from_the_phase_turn_from_names(
     assert _second_phase_turn_deg(runner) == pytest.approx(-45.0, abs=0.5)
 
 
+def _turns_per_phase(runner: RecipeRunner, stop_first_at_deg: float) -> dict[str, float]:
+    """Turn the pair at 100 deg/s: ``stop_first_at_deg`` in ``turn_1`` (then it rests until
+    the phase ends), on in every later phase; returns how far each phase turned it (deg)."""
+    angle = np.zeros(9)
+    turn, t = 0.0, 0.0
+    starts: dict[str, float] = {}
+    while runner.phase_name != "after" and t < 4 * MAX_S:
+        runner.step(t, angle, np.zeros(9), _estimates(turn))
+        starts.setdefault(runner.phase_name, turn)
+        if runner.phase_name != "turn_1" or turn > math.radians(-stop_first_at_deg):
+            turn -= math.radians(100.0) * DT
+        t += DT
+    names = list(starts)
+    return {a: math.degrees(starts[b] - starts[a]) for a, b in itertools.pairwise(names)}
+
+
+@pytest.mark.parametrize("stop_deg", [20.0, 35.0])
+def test_an_exit_share_splits_what_is_left_evenly_wherever_the_last_phase_stopped(
+    tmp_path: Path, hand: HandConfig, stop_deg: float
+) -> None:
+    """The first phase stops short at 20 or 35 deg; the second shares what is left of 180 deg
+    with the third, so both turn (180 - stop) / 2, where a fixed exit at 135 deg gave the
+    second all of the first's shortfall. The record says where the shared exit was."""
+    first = {"exit": ["estimate.a_b_line_turn < -0.7854"], "stall": STALL}
+    last = {"exit": ["estimate.a_b_line_turn < -3.1416"], "turn_from": "turn_1"}
+    shared = {**last, "exit_share": 2}
+    runner = RecipeRunner(_recipe(tmp_path, hand, first, shared, last), 9)
+    turns = _turns_per_phase(runner, stop_deg)
+    half = (180.0 - stop_deg) / 2
+    assert turns["turn_2"] == pytest.approx(-half, abs=0.5)
+    assert turns["turn_3"] == pytest.approx(-half, abs=0.5)
+    said, at = runner.records[1].exit.rsplit(": at ", 1)
+    assert said == f"{last['exit'][0]}, 1/2 of the rest"
+    assert math.degrees(float(at)) == pytest.approx(-stop_deg - half, abs=0.2)
+    fixed = {**last, "exit": ["estimate.a_b_line_turn < -2.3562"]}
+    runner = RecipeRunner(_recipe(tmp_path, hand, first, fixed, last), 9)
+    turns = _turns_per_phase(runner, stop_deg)
+    assert turns["turn_2"] == pytest.approx(-(135.0 - stop_deg), abs=0.5)
+    assert runner.records[1].exit == fixed["exit"][0]
+
+
+def test_a_shared_exit_waits_for_the_pair_to_be_measured_in_its_phase(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """While the pair's estimate is invalid the share has no start, so the phase does not
+    end on it (a guessed start would end it anywhere); from the first valid estimate the
+    share is taken from there."""
+    shared = {
+        "exit": ["estimate.a_b_line_turn < -1.5708"],
+        "turn_from": "turn_1",
+        "exit_share": 2,
+    }
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"exit": ["time > 0.1"]}, shared), 9)
+    angle = np.zeros(9)
+    for k in range(300):  # turn_1 seen at 0; turn_2 blind while the pair is far past its goal
+        seen = k * DT < 0.05
+        runner.step(k * DT, angle, np.zeros(9), _estimates(0.0 if seen else math.nan))
+    assert runner.phase_name == "turn_2"
+    t = 300 * DT
+    for turn_deg in (-60.0, -60.0, -74.0, -76.0, -76.0):  # measured at 60: exits at 75
+        runner.step(t, angle, np.zeros(9), _estimates(math.radians(turn_deg)))
+        t += 0.01
+    assert runner.phase_name == "after"
+    assert runner.records[1].exit.endswith(f"at {math.radians(-75.0):.4f}")
+
+
 def test_a_blind_pace_goes_back_while_the_joints_run_and_the_cage_is_open(
     tmp_path: Path, hand: HandConfig
 ) -> None:
@@ -185,6 +252,12 @@ def test_a_blind_brake_damps_while_the_joints_run_and_the_cage_is_open(
         (({}, {"turn_from": "turn_3"}), "phases[1].turn_from"),
         (({"turn_from": "turn_2"}, {}), "phases[0].turn_from"),
         (({"stall": {"turn_deg": 0, "window_s": 0.3}},), "phases[0].stall.turn_deg"),
+        (({"exit": ["time > 1"], "exit_share": 2},), "phases[0].exit_share"),
+        (({"exit": ["estimate.a_b_line_turn < -1"], "exit_share": 0},), "phases[0].exit_share"),
+        (
+            ({"exit": ["estimate.a_b_line_turn < -1"], "exit_share": True},),
+            "phases[0].exit_share",
+        ),
         (({"stall": {"turn_deg": 1, "window_s": -1}},), "phases[0].stall.window_s"),
         (({"stall": {"turn_deg": 1}},), "phases[0].stall.window_s"),
         (

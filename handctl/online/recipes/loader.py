@@ -395,6 +395,14 @@ def _parse_phase(
     margin = parse_torque_margin(doc, hand.joint_names)
     turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
     stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
+    share = parse_exit_share(doc)
+    if share > 1 and not any(c.relative for c in exits):
+        doc.fail(
+            "exit_share",
+            "a phase whose exit reads a turn (estimate.<pair>_turn): exit_share moves that "
+            "exit's threshold",
+            share,
+        )
     reanalyse = parse_reanalyse(doc.mapping("reanalyse")) if doc.has("reanalyse") else None
     schedule = parse_schedule(doc, hand, [o.name for o in objects])
     if schedule and reanalyse is not None:
@@ -428,7 +436,19 @@ def _parse_phase(
         reanalyse,
         schedule,
         joint_damping_fades=fades,
+        exit_share=share,
     )
+
+
+#: the most phases an ``exit_share`` may share the rest of a turn among
+MAX_EXIT_SHARE = 16
+
+
+def parse_exit_share(doc: Doc) -> int:
+    """``exit_share`` of a recipe's or a template's phase: how many phases, this one and
+    those after it, share what is left of the turn when it begins (1, the written threshold,
+    when not set)."""
+    return doc.integer("exit_share", default=1, min=1, max=MAX_EXIT_SHARE)
 
 
 def parse_damping_fades(doc: Doc) -> bool:

@@ -35,7 +35,9 @@ Feedback, all of it from the angles and the estimates computed from them:
   says nothing about a pair swept along the palm with its cage open.
 - ``turn_from``: a phase's exits read the turn from where the pair was when an earlier
   phase began (the paper switches on where the pair is, so what one phase left undone
-  the next takes up); ``stall``: a phase ends once its torque is fully in and the turn
+  the next takes up); ``exit_share``: a phase's exit on that turn moves, once the phase
+  measures the pair, to an even share of what is left to it among this phase and the next
+  ones (``_threshold``); ``stall``: a phase ends once its torque is fully in and the turn
   has stopped moving (``_stalled``).
 - ``reanalyse``: on the phase's first tick with a valid estimate the runner asks its
   ``Reanalyser`` for the analysis' torque at the measured configuration, and ``delay_s``
@@ -427,9 +429,9 @@ class RecipeRunner:
                 return
         reason = next(
             (
-                c.text
+                self._exit_text(phase, c)
                 for k, c in enumerate(phase.exits)
-                if self._held(k, c, t, elapsed, angle, tdt, estimates)
+                if self._held(k, c, t, elapsed, angle, tdt, estimates, self._threshold(phase, c))
             ),
             None,
         )
@@ -697,6 +699,28 @@ class RecipeRunner:
                 return ref
         return None
 
+    def _threshold(self, phase: Phase, cond: Condition) -> float:
+        """Where an exit of the current phase holds: its written value, or with an
+        ``exit_share`` of N and a turn read relative to a phase's start, where the pair was
+        when this phase first measured it plus 1/N of the way from there to the written value
+        (NaN, which nothing holds against, until it is measured: never guessed)."""
+        if phase.exit_share == 1 or not cond.relative:
+            return cond.value
+        start = self._refs[self.index].get(cond.index)
+        ref = self._reference(cond.index)
+        if start is None or ref is None:
+            return math.nan
+        began = start - ref
+        return began + (cond.value - began) / phase.exit_share
+
+    def _exit_text(self, phase: Phase, cond: Condition) -> str:
+        """What the phase record says of an exit that held: its text, and with a shared
+        threshold, where that was (the text's value is the whole turn, not this phase's)."""
+        threshold = self._threshold(phase, cond)
+        if threshold == cond.value or not math.isfinite(threshold):
+            return cond.text
+        return f"{cond.text}, 1/{phase.exit_share} of the rest: at {threshold:.4f}"
+
     def _stalled(self, t: float, elapsed: float, estimates: Sequence[float] | None) -> bool:
         """Whether the pair has turned less than the phase's ``stall.turn`` for its
         ``window_s`` with the phase's torque fully in. A tick without a valid estimate, or
@@ -833,7 +857,11 @@ class RecipeRunner:
         angle: FloatArray,
         tdt: FloatArray,
         estimates: Sequence[float] | None,
+        threshold: float | None = None,
     ) -> bool:
+        """Whether ``cond`` has held for its ``hold_s`` at ``t``; ``threshold`` in place of
+        its written value when given (an ``exit_share``'s), and never while that is unknown
+        (NaN)."""
         if cond.kind is SignalKind.TIME:
             value = elapsed
         elif cond.kind is SignalKind.ANGLE:
@@ -849,7 +877,8 @@ class RecipeRunner:
                 if ref is None:
                     return False
                 value -= ref
-        if not cond.holds(value):
+        holds = cond.holds(value) if threshold is None else cond.holds_at(value, threshold)
+        if not holds:
             self._held_since.pop(key, None)
             return False
         since = self._held_since.setdefault(key, t)

@@ -89,6 +89,11 @@ class Condition:
     def holds(self, value: float) -> bool:
         return OPERATORS[self.op](value, self.value)
 
+    def holds_at(self, value: float, threshold: float) -> bool:
+        """Whether the condition holds against ``threshold`` in place of its own value (a
+        shared exit's, ``Phase.exit_share``); never against NaN."""
+        return OPERATORS[self.op](value, threshold)
+
 
 class TimeoutAction(enum.Enum):
     NEXT = "next"
@@ -335,6 +340,14 @@ class Phase:
     #: not reach into the next phase's motion (the step is the damping times the joints'
     #: speed at the switch, which the supervisor's rate limit spreads out)
     joint_damping_fades: bool = True
+    #: this phase and the ``exit_share - 1`` after it share what is left of the turn: when
+    #: the phase first measures the pair, each exit on a turn (``Condition.relative``) moves
+    #: from its written threshold to where the pair is plus ``1/exit_share`` of the way
+    #: there (``runner.py``, ``_shared_threshold``). Why: how far an earlier phase's grasp
+    #: could turn the pair differs from hand to hand (its fingers reach their limits), and a
+    #: fixed threshold left the whole difference to this phase and none to the next; 1: the
+    #: written threshold
+    exit_share: int = 1
 
 
 @dataclass(frozen=True)
