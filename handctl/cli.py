@@ -43,6 +43,8 @@ if TYPE_CHECKING:
     from handctl.bringup.jog import JogReport
     from handctl.config import HandConfig
     from handctl.online.loop import RunResult
+    from handctl.planning.replan import Base
+    from handctl.planning.template import Template
     from handctl.recording.rerun import RerunReport
     from handctl.stopsignals import StopSignals
 
@@ -756,18 +758,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             )
     hand = _load_checked_hand(args.hand, "--hand")
     template = load_template(args.template, hand)
-    if (args.start is None) != (args.base is None):
-        given, missing = ("--from", "--base") if args.base is None else ("--base", "--from")
-        raise ConfigError(missing, "", f"{missing} with {given} (both or neither)", "nothing")
-    if args.schedule_only and args.start is None:
-        raise ConfigError(
-            "--schedule-only", "", "--schedule-only with --from and --base", "neither"
-        )
-    base = None
-    if args.start is not None:
-        from handctl.planning.replan import load_base
-
-        base = load_base(args.base, args.start, template, hand, args.schedule_only)
+    base = _plan_base(args, template, hand)
     clock = Stopwatch()
     with open_pool(args.workers, args.scheduler) as pool:
         where, cpu_counted = pool.where, pool.cpu_counted
@@ -792,8 +783,10 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         + (["--hand", str(args.hand)] if args.hand != DEFAULT_HAND else [])
         + (["--models", str(args.models)] if args.models else [])
         + (["--quick"] if args.quick else [])
-        + (["--from", args.start, "--base", str(args.base)] if base is not None else [])
+        + (["--from", args.start] if args.start is not None else [])
+        + (["--base", str(args.base)] if base is not None else [])
         + (["--schedule-only"] if args.schedule_only else [])
+        + (["--keep-torques"] if args.keep_torques else [])
     )
     args.output.write_text(recipe_text(result, command), encoding="utf-8")
     wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
@@ -807,6 +800,38 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         for path in plot_plan(result, args.plot):
             print(f"  plot {path}")
     return _plan_exit_code(result, args.output, args.quick)
+
+
+def _plan_base(args: argparse.Namespace, template: Template, hand: HandConfig) -> Base | None:
+    """The recipe a plan keeps torques from (``--base`` with ``--from``, or with
+    ``--keep-torques``), checked against the template and the hand; None: plan every phase."""
+    if args.keep_torques:
+        if args.base is None:
+            raise ConfigError("--keep-torques", "", "--keep-torques with --base", "no --base")
+        for option, given in (("--from", args.start), ("--schedule-only", args.schedule_only)):
+            if given:
+                raise ConfigError(
+                    option,
+                    "",
+                    f"no {option} with --keep-torques (every phase's torques are kept)",
+                    given,
+                )
+    elif (args.start is None) != (args.base is None):
+        given, missing = ("--from", "--base") if args.base is None else ("--base", "--from")
+        raise ConfigError(missing, "", f"{missing} with {given} (both or neither)", "nothing")
+    if args.schedule_only and args.start is None:
+        raise ConfigError(
+            "--schedule-only", "", "--schedule-only with --from and --base", "neither"
+        )
+    if args.keep_torques:
+        from handctl.planning.replan import load_kept_base
+
+        return load_kept_base(args.base, template, hand)
+    if args.start is not None:
+        from handctl.planning.replan import load_base
+
+        return load_base(args.base, args.start, template, hand, args.schedule_only)
+    return None
 
 
 def _plan_exit_code(result: Any, output: Path, quick: bool) -> int:
@@ -2224,11 +2249,11 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         examples=[
             "handctl plan config/recipes/swap_two_cylinders.template.yaml -o "
             "config/recipes/swap_two_cylinders.yaml --plot plan/",
-            "handctl plan config/recipes/swap_two_cylinders.template.yaml --from manipulate_3 "
-            "--base config/recipes/swap_two_cylinders.yaml --models 48 "
-            "-o config/recipes/swap_two_cylinders.yaml",
-            "handctl plan TEMPLATE.yaml --from PHASE --base RECIPE.yaml --schedule-only "
+            "handctl plan TEMPLATE.yaml --from PHASE --base RECIPE.yaml [--schedule-only] "
             "-o RECIPE.yaml",
+            "handctl plan config/recipes/swap_two_cylinders.template.yaml "
+            "--base config/recipes/swap_two_cylinders.yaml --keep-torques --models 48 "
+            "-o config/recipes/swap_two_cylinders.yaml",
         ],
     )
     plan.add_argument(
@@ -2280,6 +2305,13 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="with --from and --base: keep every phase's own torques from --base and search "
         "only the template's planned schedule entries (plan: {models: N}) of the phases from "
         "--from on",
+    )
+    plan.add_argument(
+        "--keep-torques",
+        action="store_true",
+        help="with --base, without --from: keep every phase's torques and schedule entries "
+        "from --base and search nothing; the template's other keys (exits, feedback, "
+        "guard) are compiled onto them, and every model runs the recipe for the provenance",
     )
     plan.add_argument(
         "--workers",

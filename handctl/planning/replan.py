@@ -28,11 +28,14 @@ class Base:
     #: keep every phase's own torques; plan only the planned ``schedule`` entries of the
     #: phases from ``start`` on (``handctl plan --schedule-only``)
     schedule_only: bool = False
+    #: keep every phase's torques and schedule entries, search nothing (``handctl plan
+    #: --keep-torques``): the template's other keys compiled onto the base's torques
+    keep_torques: bool = False
 
     def kept(self, name: str) -> Phase | None:
         """The base's phase ``name`` if the plan keeps its torques (it comes before
-        ``start``, or the plan is of the schedules only)."""
-        if self.schedule_only:
+        ``start``, or the plan is of the schedules only, or of nothing)."""
+        if self.schedule_only or self.keep_torques:
             return self.phase(name)
         for phase in self.recipe.phases:
             if phase.name == self.start:
@@ -48,7 +51,10 @@ class Base:
 
     def plans_schedule(self, name: str) -> bool:
         """Whether the plan searches phase ``name``'s planned ``schedule`` entries (it is
-        ``start`` or after it); a phase before it keeps the base's."""
+        ``start`` or after it); a phase before it keeps the base's, and so does every phase
+        with ``keep_torques``."""
+        if self.keep_torques:
+            return False
         names = [p.name for p in self.recipe.phases]
         return name not in names or names.index(name) >= names.index(self.start)
 
@@ -60,6 +66,8 @@ class Base:
         }
         if self.schedule_only:
             out["schedule_only"] = True
+        if self.keep_torques:
+            out = {"base": out["base"], "keep_torques": True}
         return out
 
 
@@ -103,18 +111,38 @@ def load_base(
         )
     if schedule_only:
         _check_something_to_search(template, start)
-    # the phases whose torques are kept must be the template's, in its order
-    kept = names if schedule_only else names[: names.index(start)]
+    _check_kept_phases(recipe, source, template, start, schedule_only)
+    return Base(recipe, start, schedule_only)
+
+
+def load_kept_base(path: Path, template: Template, hand: HandConfig) -> Base:
+    """Load ``path`` as the base of a plan that keeps every phase's torques and searches
+    nothing (``--keep-torques``): a change to a template's exits or feedback is compiled in a
+    minute, where planning it again searches for the torques for tens of minutes. The base
+    is checked as ``load_base`` checks it, each of the template's phases kept."""
+    start = template.phases[0].name
+    base = load_base(path, start, template, hand)
+    _check_kept_phases(base.recipe, str(path), template, start, True)
+    return Base(base.recipe, start, keep_torques=True)
+
+
+def _check_kept_phases(
+    recipe: Recipe, source: str, template: Template, start: str, every: bool
+) -> None:
+    """The phases whose torques are kept (those before ``start``, or ``every`` one) must be
+    the template's, in its order."""
+    names = [p.name for p in template.phases]
+    kept = names if every else names[: names.index(start)]
+    which = "every phase is kept" if every else f"the phases before '{start}' are kept"
     have = [p.name for p in recipe.phases]
     for i, name in enumerate(kept):
         if i >= len(have) or have[i] != name:
             raise ConfigError(
                 source,
                 f"phases[{i}].name",
-                f"'{name}', the template's phase {i + 1} (the phases before '{start}' are kept)",
+                f"'{name}', the template's phase {i + 1} ({which})",
                 have[i] if i < len(have) else "no such phase",
             )
-    return Base(recipe, start, schedule_only)
 
 
 def _check_something_to_search(template: Template, start: str) -> None:

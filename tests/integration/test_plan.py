@@ -3,6 +3,7 @@ the loader accepts, provenance on every phase, the same text twice, and the plot
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -299,6 +300,59 @@ def test_a_planned_schedule_entry_is_searched_on_models_of_its_sizes(
     alone = plan_command(str(template), "-o", str(again), "--schedule-only")
     assert alone.returncode == 2
     assert "--schedule-only: expected --schedule-only with --from and --base" in alone.stderr
+
+
+def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """``--keep-torques``: every phase keeps the base's torques and schedule entries, nothing
+    is searched, and what the template changed besides (an exit, a brake) is in the recipe;
+    the header says how it was made. Without ``--base``, or with ``--from``, it is refused
+    before anything is planned or written."""
+    template = short_template(tmp_path)
+    full = tmp_path / "full.yaml"
+    done = plan_command(str(template), "-o", str(full), "--quick", "--models", "1")
+    assert done.returncode == 0, done.stderr
+    data = yaml.safe_load(template.read_text())
+    data["phases"][3]["exit_fraction"] = 0.8
+    data["phases"][3]["brake"] = {"rate_deg_s": 60, "joint_damping": 0.02}
+    template.write_text(yaml.safe_dump(data, sort_keys=False))
+    kept = tmp_path / "kept.yaml"
+    # --quick: the short template's one-generation torques do not turn the pair, which a
+    # plan without it fails (exit 1) whether it searched or kept them
+    done = plan_command(
+        str(template), "-o", str(kept), "--quick", "--models", "1",
+        "--base", str(full), "--keep-torques",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    before, after = yaml.safe_load(full.read_text()), yaml.safe_load(kept.read_text())
+    assert after["planned_from"]["keep_torques"] is True
+    assert after["planned_from"]["base"] == "full.yaml"
+    for old, new in zip(before["phases"], after["phases"], strict=True):
+        assert new["torques"] == old["torques"]
+        assert new.get("schedule") == old.get("schedule")
+        assert new["provenance"]["kept_from"] == "base recipe full.yaml"
+        assert "search" not in new["provenance"] or new["provenance"]["search"] == (
+            old["provenance"].get("search")
+        )
+    turn = after["phases"][3]
+    exit_rad = math.radians(-45) * 0.8
+    assert turn["exit"] == [f"estimate.cyl1_cyl2_line_turn < {exit_rad:.4f} for 0.02"]
+    assert turn["brake"]["rate_deg_s"] == 60 and turn["brake"]["joint_damping"] == 0.02
+    assert before["phases"][3]["exit"] != turn["exit"]
+    assert kept.read_text().splitlines()[1].endswith(f"--base {full} --keep-torques")
+    load_recipe(kept, hand)
+
+    refused = tmp_path / "refused.yaml"
+    alone = plan_command(str(template), "-o", str(refused), "--keep-torques")
+    assert alone.returncode == 2 and not refused.exists()
+    assert "--keep-torques: expected --keep-torques with --base" in alone.stderr
+    both = plan_command(
+        str(template), "-o", str(refused), "--base", str(full), "--keep-torques",
+        "--from", "lift",
+    )  # fmt: skip
+    assert both.returncode == 2 and not refused.exists()
+    assert "--from: expected no --from with --keep-torques" in both.stderr
 
 
 PLANAR = ROOT / "config" / "hands" / "planar_2f2j.yaml"

@@ -15,7 +15,7 @@ import yaml
 
 from handctl.cli import build_parser
 from handctl.config import load_hand
-from handctl.planning.replan import load_base
+from handctl.planning.replan import load_base, load_kept_base
 from handctl.planning.template import load_template
 
 from ..conftest import ROOT
@@ -48,5 +48,7 @@ def test_the_header_names_a_plan_command_that_is_accepted(
     hand = load_hand(args.hand)
     template = load_template(args.template, hand)
     assert template.recipe == yaml.safe_load(recipe.read_text())["recipe"]
-    if args.start is not None:
+    if args.keep_torques:
+        load_kept_base(args.base, template, hand)
+    elif args.start is not None:
         load_base(args.base, args.start, template, hand, args.schedule_only)
