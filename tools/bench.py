@@ -74,7 +74,7 @@ _COUNTS = (
     "generations",
 )
 _FROM_ZERO = ("first_seed", "seed", "babble")
-_POSITIVE = ("seconds", "minutes", "tolerance", "swap_deg")
+_POSITIVE = ("seconds", "minutes", "tolerance", "swap_deg", "phase_deg", "phase_tolerance_deg")
 _NON_NEGATIVE = ("warmup_s",)
 
 

@@ -12,7 +12,9 @@ dropped, the recipe's ``min_total_turn_deg``); it is a swap when, besides, the p
 centre-line rate (deg/s, the largest and the median over the runs) and
 ``before_manipulation_failures``, the runs that never lifted and held the pair;
 ``quasi_static_rate``, the fraction of runs whose peak stayed at or under 180°/s (what the
-quasi-static analysis covers, ``MAX_TURN_RATE_DEG_S``); the nominal
+quasi-static analysis covers, ``MAX_TURN_RATE_DEG_S``); ``phase_band_rate``, the fraction
+whose every manipulation phase turned ``--phase-deg`` (45) within ``--phase-tolerance-deg``
+(10), and ``controlled_turn_rate``, those of them at or under 180°/s as well; the nominal
 hand is run once as well. ``estimator_us_p50/p99`` is the estimator's own cost per tick on
 this machine (a benchmark figure, never a test).
 """
@@ -58,6 +60,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=170.0,
         help="degrees the pair must turn for a run to count as a swap",
+    )
+    parser.add_argument(
+        "--phase-deg",
+        type=float,
+        default=45.0,
+        help="deg, what each manipulation phase should turn (the paper's steps of 45)",
+    )
+    parser.add_argument(
+        "--phase-tolerance-deg",
+        type=float,
+        default=10.0,
+        help="deg, how far from --phase-deg a phase's turn may be and still count",
     )
     parser.add_argument(
         "--nominal", action="store_true", help="run only the unperturbed hand, once"
@@ -158,11 +172,21 @@ def _say(run: dict[str, Any]) -> None:
     )
 
 
-def _figures(runs: list[dict[str, Any]]) -> dict[str, Any]:
+def in_band(run: dict[str, Any], phase_deg: float, tolerance_deg: float) -> bool:
+    """Whether every manipulation phase of ``run`` turned the pair ``phase_deg`` within
+    ``tolerance_deg`` (either way round: the sign is the recipe's): the paper's turn in
+    steps, each switched on the measured position. A run without its manipulation phases
+    (stopped before them, or in one) is not."""
+    angles = run["phase_angles_deg"] or []
+    return len(angles) > 0 and all(abs(abs(a) - phase_deg) <= tolerance_deg for a in angles)
+
+
+def _figures(runs: list[dict[str, Any]], phase_deg: float, tolerance_deg: float) -> dict[str, Any]:
     from handctl.planning.search import MAX_TURN_RATE_DEG_S
 
     n = len(runs)
     peaks = [r["peak_turn_rate_deg_s"] or 0.0 for r in runs]
+    banded = [in_band(r, phase_deg, tolerance_deg) for r in runs]
     return {
         "seeds": n,
         "success_rate": round(sum(r["success"] for r in runs) / n, 3),
@@ -180,6 +204,13 @@ def _figures(runs: list[dict[str, Any]]) -> dict[str, Any]:
         # turned, not tumbled: the true centre line never faster than the quasi-static
         # analysis covers (a run stopped before the manipulation counts, having turned nothing)
         "quasi_static_rate": round(sum(p <= MAX_TURN_RATE_DEG_S for p in peaks) / n, 3),
+        # each manipulation phase its step (--phase-deg, --phase-tolerance-deg), and that
+        # with no tumble too: the controlled turn the paper makes
+        "phase_band_rate": round(sum(banded) / n, 3),
+        "controlled_turn_rate": round(
+            sum(b and p <= MAX_TURN_RATE_DEG_S for b, p in zip(banded, peaks, strict=True)) / n,
+            3,
+        ),
         "runs": runs,
     }
 
@@ -200,6 +231,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "benchmark": "experiment",
         "recipe": str(args.recipe.name),
         "swap_deg": args.swap_deg,
+        "phase_deg": args.phase_deg,
+        "phase_tolerance_deg": args.phase_tolerance_deg,
         "min_total_turn_deg": recipe.min_total_turn_deg,
         "spread": Spread().as_dict(),
     }
@@ -230,14 +263,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "peak_turn_rate_deg_s",
         )
     }
+    out["nominal"]["phases_in_band"] = in_band(nominal, args.phase_deg, args.phase_tolerance_deg)
     if groups:
         out["families"] = {
-            group: _figures([r for r in runs[1:] if r["family"] == group]) for group in groups
+            group: _figures(
+                [r for r in runs[1:] if r["family"] == group],
+                args.phase_deg,
+                args.phase_tolerance_deg,
+            )
+            for group in groups
         }
         last = out["families"]["all" if "all" in out["families"] else groups[-1]]
         out["success_rate"] = last["success_rate"]
         out["swap_rate"] = last["swap_rate"]
         out["quasi_static_rate"] = last["quasi_static_rate"]
+        out["phase_band_rate"] = last["phase_band_rate"]
+        out["controlled_turn_rate"] = last["controlled_turn_rate"]
         out["worst_success_rate"] = min(f["success_rate"] for f in out["families"].values())
         out["peak_turn_rate_deg_s_max"] = max(
             f["peak_turn_rate_deg_s_max"] for f in out["families"].values()
