@@ -34,7 +34,8 @@ def test_the_shipped_template_loads(hand: HandConfig) -> None:
     assert [p.kind for p in t.phases] == ["free", "lift", "hold"] + ["turn"] * 4
     turns = [p for p in t.phases if p.kind == "turn"]
     assert all(p.turn == pytest.approx(math.radians(-45)) for p in turns)
-    assert turns[0].exit_condition() == "estimate.cyl1_cyl2_line_turn < -0.7461 for 0.02"
+    # manipulate_1 ends at 90 % of its 45 deg, to leave manipulate_2 its share
+    assert turns[0].exit_condition() == "estimate.cyl1_cyl2_line_turn < -0.7069 for 0.02"
     assert t.objects[0].name == "cyl1" and t.objects[1].radius == 0.02
     # a turn's paced ramp gives the rate's magnitude; it is signed as the turn
     assert all(p.paced is not None and p.paced.rate < 0 for p in turns)

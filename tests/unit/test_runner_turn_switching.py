@@ -280,8 +280,9 @@ def test_bad_switching_is_refused_naming_the_key(
 
 def test_the_shipped_swap_exits_as_its_template_asks(hand: HandConfig) -> None:
     """The compiled recipe's manipulation exits are the template's: each on the turn since
-    ``manipulate_1`` began (95 % of 45, 90 and 135 deg, all of 180), and none ends on a
-    stall (docs/experiment.md: ended early, the pair's grasp had not settled)."""
+    ``manipulate_1`` began (90 % of 45, 95 % of 90, an even share with the last of what is
+    left of 180, all of 180), and none ends on a stall (docs/experiment.md: ended early, the
+    pair's grasp had not settled)."""
     from handctl.planning.template import load_template
 
     root = Path(__file__).resolve().parents[2] / "config" / "recipes"
@@ -290,12 +291,13 @@ def test_the_shipped_swap_exits_as_its_template_asks(hand: HandConfig) -> None:
     turns = [p for p in template.phases if p.kind == "turn"]
     compiled = {p.name: p for p in recipe.phases}
     assert [p.name for p in turns] == [f"manipulate_{k}" for k in range(1, 5)]
-    for k, spec in enumerate(turns, 1):
+    wanted_deg = [-45.0 * 0.9, -90.0 * 0.95, -180.0, -180.0]
+    for k, (spec, wanted) in enumerate(zip(turns, wanted_deg, strict=True), 1):
         phase = compiled[spec.name]
         assert [c.text for c in phase.exits] == [spec.recipe_exit_condition()]
-        wanted = math.radians(-45.0 * k) * spec.exit_fraction
-        assert phase.exits[0].value == pytest.approx(wanted, abs=1e-4)
+        assert phase.exits[0].value == pytest.approx(math.radians(wanted), abs=1e-4)
         assert phase.turn_from == spec.turn_from == ("manipulate_1" if k > 1 else "")
+        assert phase.exit_share == spec.exit_share == (2 if k == 3 else 1)
         assert phase.stall is None and spec.stall is None
     assert turns[-1].exit_fraction == 1.0
 
@@ -325,7 +327,8 @@ def test_a_compiled_phase_carries_the_template_s_switching(hand: HandConfig) -> 
     doc = _phase_document(PhasePlan(spec, phase, None, None, []), hand)
     assert doc["turn_from"] == "manipulate_1"
     assert doc["exit"] == [spec.recipe_exit_condition()]
-    assert "-2.2384" in doc["exit"][0]
+    assert "-3.1416" in doc["exit"][0]  # manipulate_4's, shared out with it
+    assert doc["exit_share"] == 2
     assert doc["stall"] == {"turn_deg": 1.0, "window_s": 0.3}
     assert doc["paced_ramp"]["blind_joint_rate"] == 4.0
     assert doc["brake"]["blind_joint_rate"] == 3.0
