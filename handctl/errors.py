@@ -15,6 +15,24 @@ from pathlib import PurePath
 class HandctlError(Exception):
     """Base of every error handctl raises deliberately."""
 
+    def __reduce__(self) -> tuple[object, ...]:
+        """Pickled as its message and its attributes, whatever its ``__init__`` takes: an
+        error raised in a plan's or a bench's worker process crosses back to the parent so.
+        By default it is rebuilt by calling the class with its message, which a
+        ``ConfigError`` (four arguments) refuses, and the pool said only that a process had
+        "terminated abruptly"."""
+        return (_rebuilt, (type(self), self.args, dict(self.__dict__)))
+
+
+def _rebuilt(
+    cls: type[HandctlError], args: tuple[object, ...], attributes: dict[str, object]
+) -> HandctlError:
+    """A handctl error as it was pickled (``HandctlError.__reduce__``), ``__init__`` skipped."""
+    error = cls.__new__(cls, *args)
+    error.args = args
+    error.__dict__.update(attributes)
+    return error
+
 
 class ConfigError(HandctlError, ValueError):
     """Bad input in a file: names the file, the key path, what was expected and what was found.
