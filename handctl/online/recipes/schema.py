@@ -343,7 +343,7 @@ class Phase:
     #: this phase and the ``exit_share - 1`` after it share what is left of the turn: when
     #: the phase first measures the pair, each exit on a turn (``Condition.relative``) moves
     #: from its written threshold to where the pair is plus ``1/exit_share`` of the way
-    #: there (``runner.py``, ``_shared_threshold``). Why: how far an earlier phase's grasp
+    #: there (``runner.py``, ``_threshold``). Why: how far an earlier phase's grasp
     #: could turn the pair differs from hand to hand (its fingers reach their limits), and a
     #: fixed threshold left the whole difference to this phase and none to the next; 1: the
     #: written threshold
