@@ -116,37 +116,6 @@ def test_a_turning_or_unseen_pair_is_not_stalled(
     assert "after" not in _run(runner, rate_deg_s, 2.0, valid=valid)
 
 
-def _second_phase_turn_deg(runner: RecipeRunner) -> float:
-    """Turn the pair at 100 deg/s: 35 deg in ``turn_1`` (then it rests until the phase
-    ends), on in ``turn_2``; returns how far ``turn_2`` turned it (deg)."""
-    angle = np.zeros(9)
-    turn, t = 0.0, 0.0
-    ends: dict[str, float] = {}
-    while runner.phase_name != "after" and t < 2 * MAX_S:
-        runner.step(t, angle, np.zeros(9), _estimates(turn))
-        ends.setdefault(runner.phase_name, turn)
-        first = runner.phase_name == "turn_1" and turn > math.radians(-35.0)
-        if first or runner.phase_name == "turn_2":
-            turn -= math.radians(100.0) * DT
-        t += DT
-    return math.degrees(ends["after"] - ends["turn_2"])
-
-
-def test_an_exit_reads_the_turn_from_the_phase_turn_from_names(
-    tmp_path: Path, hand: HandConfig
-) -> None:
-    """The first phase stalls 10 deg short of its 45; the second, exiting on 90 deg since the
-    first began, turns 55 and not 45; without ``turn_from``, 45 from its own start."""
-    first = {"exit": ["estimate.a_b_line_turn < -0.7854"], "stall": STALL}
-    second = {"exit": ["estimate.a_b_line_turn < -1.5708"], "turn_from": "turn_1"}
-    runner = RecipeRunner(_recipe(tmp_path, hand, first, second), 9)
-    assert _second_phase_turn_deg(runner) == pytest.approx(-55.0, abs=0.5)
-    assert runner.records[0].exit.startswith("stalled")
-    own = {"exit": ["estimate.a_b_line_turn < -0.7854"]}
-    runner = RecipeRunner(_recipe(tmp_path, hand, first, own), 9)
-    assert _second_phase_turn_deg(runner) == pytest.approx(-45.0, abs=0.5)
-
-
 def _turns_per_phase(runner: RecipeRunner, stop_first_at_deg: float) -> dict[str, float]:
     """Turn the pair at 100 deg/s: ``stop_first_at_deg`` in ``turn_1`` (then it rests until
     the phase ends), on in every later phase; returns how far each phase turned it (deg)."""
@@ -161,6 +130,21 @@ def _turns_per_phase(runner: RecipeRunner, stop_first_at_deg: float) -> dict[str
         t += DT
     names = list(starts)
     return {a: math.degrees(starts[b] - starts[a]) for a, b in itertools.pairwise(names)}
+
+
+def test_an_exit_reads_the_turn_from_the_phase_turn_from_names(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """The first phase stalls 10 deg short of its 45; the second, exiting on 90 deg since the
+    first began, turns 55 and not 45; without ``turn_from``, 45 from its own start."""
+    first = {"exit": ["estimate.a_b_line_turn < -0.7854"], "stall": STALL}
+    second = {"exit": ["estimate.a_b_line_turn < -1.5708"], "turn_from": "turn_1"}
+    runner = RecipeRunner(_recipe(tmp_path, hand, first, second), 9)
+    assert _turns_per_phase(runner, 35.0)["turn_2"] == pytest.approx(-55.0, abs=0.5)
+    assert runner.records[0].exit.startswith("stalled")
+    own = {"exit": ["estimate.a_b_line_turn < -0.7854"]}
+    runner = RecipeRunner(_recipe(tmp_path, hand, first, own), 9)
+    assert _turns_per_phase(runner, 35.0)["turn_2"] == pytest.approx(-45.0, abs=0.5)
 
 
 @pytest.mark.parametrize("stop_deg", [20.0, 35.0])
