@@ -265,9 +265,10 @@ def _resolve_turn_from(doc: Doc, phases: tuple[TemplatePhase, ...]) -> tuple[Tem
             )
         start = next(k for k, p in enumerate(phases) if p.name == phase.turn_from)
         out[i] = replace(phase, from_turn=sum(p.turn for p in phases[start:i]))
-    for i, phase in enumerate(out):
-        if phase.exit_share > 1:
-            out[i] = replace(phase, share_to=_share_to(doc, out, i))
+    # from the last phase back, so that a later phase's own share is named at its own key
+    for i in reversed(range(len(out))):
+        if out[i].exit_share > 1:
+            out[i] = replace(out[i], share_to=_share_to(doc, out, i))
     return tuple(out)
 
 
@@ -284,17 +285,31 @@ def _share_to(doc: Doc, phases: list[TemplatePhase], i: int) -> float:
             phase.exit_share,
         )
     sharing = phases[i + 1 : i + phase.exit_share]
-    if len(sharing) < phase.exit_share - 1 or any(
-        p.kind != "turn" or p.turn_from != phase.turn_from or p.exit_share > 1 for p in sharing
-    ):
-        found = [f"{p.name} ({p.kind}, turn_from {p.turn_from or 'none'})" for p in sharing]
+    unfit = [f"{p.name} ({why})" for p in sharing if (why := _why_not_sharing(p, phase))]
+    missing = phase.exit_share - 1 - len(sharing)
+    if missing:
+        unfit.append(f"{missing} phase(s) short of the end")
+    if unfit:
         doc.fail(
             key,
             f"{phase.exit_share - 1} turn phase(s) after it, each with turn_from "
-            f"{phase.turn_from} and no exit_share of its own",
-            ", ".join(found) or "none",
+            f"{phase.turn_from}, turning the same way and with no exit_share of its own",
+            "; ".join(unfit),
         )
     return sharing[-1].recipe_exit_turn()
+
+
+def _why_not_sharing(phase: TemplatePhase, sharer: TemplatePhase) -> str:
+    """Why ``phase`` cannot take a share of ``sharer``'s turn ("": it can)."""
+    if phase.kind != "turn":
+        return f"a {phase.kind} phase"
+    if phase.turn_from != sharer.turn_from:
+        return f"turn_from {phase.turn_from or 'none'}"
+    if phase.exit_share > 1:
+        return f"exit_share {phase.exit_share} of its own"
+    if (phase.turn < 0) != (sharer.turn < 0):
+        return f"turn_deg {math.degrees(phase.turn):g}, the other way"
+    return ""
 
 
 def _search(doc: Doc) -> SearchSettings:
@@ -415,6 +430,22 @@ def _check_tau_max(doc: Doc, key: str, torques: tuple[float, ...] | None, hand: 
             )
 
 
+def _turn_exit(doc: Doc) -> tuple[float, float, int]:
+    """A turn phase's ``exit_fraction``, ``exit_hold_s`` (s) and ``exit_share``."""
+    exit_fraction = doc.number("exit_fraction", default=0.95, min=0.1, max=1.5)
+    exit_hold = doc.number("exit_hold_s", default=0.02, min=0.0, max=1.0, unit="s")
+    share = parse_exit_share(doc)
+    if share > 1 and doc.has("exit_fraction"):
+        # the shared exit is the last sharing phase's, so this phase's fraction is not read
+        doc.fail(
+            "exit_fraction",
+            "no exit_fraction on a phase with an exit_share (its exit is the last sharing "
+            "phase's, shared out)",
+            exit_fraction,
+        )
+    return exit_fraction, exit_hold, share
+
+
 def _phase(
     doc: Doc, hand: HandConfig, objects: list[str], estimates: tuple[str, ...]
 ) -> TemplatePhase:
@@ -465,15 +496,13 @@ def _phase(
                 turn_deg,
             )
         turn = math.radians(turn_deg)
-        exit_fraction = doc.number("exit_fraction", default=0.95, min=0.1, max=1.5)
-        exit_hold = doc.number("exit_hold_s", default=0.02, min=0.0, max=1.0, unit="s")
+        exit_fraction, exit_hold, share = _turn_exit(doc)
         if doc.has("turn_rate"):
             turn_rate = parse_turn_rate(doc.mapping("turn_rate"), math.copysign(1.0, turn))
         if doc.has("paced_ramp"):
             paced = parse_paced_ramp(doc.mapping("paced_ramp"), math.copysign(1.0, turn))
         turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
         stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
-        share = parse_exit_share(doc)
         if doc.has("reanalyse"):
             reanalyse = parse_reanalyse(doc.mapping("reanalyse"), turn)
         schedule = _schedule(doc, hand, objects)

@@ -93,13 +93,20 @@ def test_an_exit_share_compiles_to_the_last_sharing_phase_s_exit(
 @pytest.mark.parametrize(
     ("edit", "found"),
     [
-        (lambda turns: turns[3].update(exit_share=2), "none"),  # nothing after the last
-        (lambda turns: turns[2].update(exit_share=3), "found 'manipulate_4 (turn, "),
-        (lambda turns: turns[1].update(exit_share=2) or turns[2].update(exit_share=2), "_3"),
+        (lambda turns: turns[3].update(exit_share=2), "1 phase(s) short"),  # the last
+        (lambda turns: turns[2].update(exit_share=3), "1 phase(s) short of the end"),
+        (
+            lambda turns: turns[1].update(exit_share=2) or turns[2].update(exit_share=2),
+            "found 'manipulate_3 (exit_share 2 of its own)'",
+        ),
         (lambda turns: turns[0].update(exit_share=2), "2"),  # no turn_from
         (
             lambda turns: turns[2].update(exit_share=2) or turns[3].pop("turn_from"),
-            "manipulate_4 (turn, turn_from none)",
+            "manipulate_4 (turn_from none)",
+        ),
+        (
+            lambda turns: turns[2].update(exit_share=2) or turns[3].update(turn_deg=45),
+            "manipulate_4 (turn_deg 45, the other way)",
         ),
         (lambda turns: turns[2].update(exit_share=1.5), "float"),
     ],
@@ -111,11 +118,23 @@ def test_a_bad_exit_share_is_refused_naming_the_key(
     turns = [p for p in data["phases"] if p.get("kind") == "turn"]
     for phase in turns:
         phase.pop("exit_share", None)
+        phase.pop("exit_fraction", None)
     edit(turns)
     with pytest.raises(ConfigError) as info:
         load_template(write(tmp_path, data), hand)
     assert info.value.key.endswith("exit_share"), info.value
     assert found in str(info.value)
+
+
+def test_an_exit_fraction_beside_an_exit_share_is_refused(tmp_path: Path, hand: HandConfig) -> None:
+    """A sharing phase's exit is the last sharing phase's, so its own fraction is not read:
+    a key that does nothing is refused rather than left to mislead."""
+    data = base()
+    turns = [p for p in data["phases"] if p.get("kind") == "turn"]
+    turns[2]["exit_fraction"] = 0.5
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key == "phases[5].exit_fraction"
 
 
 def test_a_schedule_entry_is_written_or_planned(tmp_path: Path, hand: HandConfig) -> None:

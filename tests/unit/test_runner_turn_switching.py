@@ -28,6 +28,7 @@ RAMP = 0.05
 MAX_S = 3.0
 ESTIMATES = estimate_names((RecipeObject("a", 0.02), RecipeObject("b", 0.02)), ((0, 1),))
 STALL = {"turn_deg": 1.0, "window_s": 0.3}
+TURN_EXIT = "estimate.a_b_line_turn < -1"
 
 
 def _recipe(tmp_path: Path, hand: HandConfig, *phases: Mapping[str, object]) -> Recipe:
@@ -183,7 +184,8 @@ def test_a_shared_exit_waits_for_the_pair_to_be_measured_in_its_phase(
         "turn_from": "turn_1",
         "exit_share": 2,
     }
-    runner = RecipeRunner(_recipe(tmp_path, hand, {"exit": ["time > 0.1"]}, shared), 9)
+    last = {"exit": ["estimate.a_b_line_turn < -3.1416"], "turn_from": "turn_1"}
+    runner = RecipeRunner(_recipe(tmp_path, hand, {"exit": ["time > 0.1"]}, shared, last), 9)
     angle = np.zeros(9)
     for k in range(300):  # turn_1 seen at 0; turn_2 blind while the pair is far past its goal
         seen = k * DT < 0.05
@@ -193,7 +195,7 @@ def test_a_shared_exit_waits_for_the_pair_to_be_measured_in_its_phase(
     for turn_deg in (-60.0, -60.0, -74.0, -76.0, -76.0):  # measured at 60: exits at 75
         runner.step(t, angle, np.zeros(9), _estimates(math.radians(turn_deg)))
         t += 0.01
-    assert runner.phase_name == "after"
+    assert runner.phase_name == "turn_3"
     assert runner.records[1].exit.endswith(f"at {math.radians(-75.0):.4f}")
 
 
@@ -237,6 +239,35 @@ def test_a_blind_brake_damps_while_the_joints_run_and_the_cage_is_open(
         (({"turn_from": "turn_2"}, {}), "phases[0].turn_from"),
         (({"stall": {"turn_deg": 0, "window_s": 0.3}},), "phases[0].stall.turn_deg"),
         (({"exit": ["time > 1"], "exit_share": 2},), "phases[0].exit_share"),
+        (({"exit": ["time > 1"], "exit_share": 1},), "phases[0].exit_share"),
+        (({"exit": [TURN_EXIT], "exit_share": 2},), "phases[0].exit_share"),  # none after it
+        (
+            ({"exit": [TURN_EXIT], "exit_share": 3}, {"exit": [TURN_EXIT], "turn_from": "turn_1"}),
+            "phases[0].exit_share",  # one short
+        ),
+        (
+            ({"exit": [TURN_EXIT], "exit_share": 2}, {"exit": [TURN_EXIT]}),
+            "phases[0].exit_share",  # the next reads its turn from its own start
+        ),
+        (
+            (
+                {"exit": [TURN_EXIT], "exit_share": 2},
+                {"exit": ["estimate.a_b_line_turn > 1"], "turn_from": "turn_1"},
+            ),
+            "phases[0].exit_share",  # the next waits for the turn the other way
+        ),
+        (
+            (
+                {"exit": [TURN_EXIT], "exit_share": 2},
+                {"exit": [TURN_EXIT], "turn_from": "turn_1", "exit_share": 2},
+                {"exit": [TURN_EXIT], "turn_from": "turn_1"},
+            ),
+            "phases[0].exit_share",  # the next shares its own
+        ),
+        (
+            ({"exit": [TURN_EXIT]}, {"exit": [TURN_EXIT], "turn_from": "turn_1", "exit_share": 2}),
+            "phases[1].exit_share",  # the last, with nothing after it to share with
+        ),
         (({"exit": ["estimate.a_b_line_turn < -1"], "exit_share": 0},), "phases[0].exit_share"),
         (
             ({"exit": ["estimate.a_b_line_turn < -1"], "exit_share": True},),

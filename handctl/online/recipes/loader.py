@@ -142,6 +142,7 @@ def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
         for p in doc.mappings("phases", min_len=1, max_len=MAX_PHASES)
     )
     check_unique_names(doc, [p.name for p in phases])
+    check_exit_shares(doc.file, phases)
     grasp_model = parse_grasp_model(
         doc, objects, [i for i, p in enumerate(phases) if p.reanalyse is not None]
     )
@@ -396,7 +397,8 @@ def _parse_phase(
     turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
     stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
     share = parse_exit_share(doc)
-    if share > 1 and not any(c.relative for c in exits):
+    if doc.has("exit_share") and not any(c.relative for c in exits):
+        # a key that does nothing misleads, 1 too
         doc.fail(
             "exit_share",
             "a phase whose exit reads a turn (estimate.<pair>_turn): exit_share moves that "
@@ -442,6 +444,56 @@ def _parse_phase(
 
 #: the most phases an ``exit_share`` may share the rest of a turn among
 MAX_EXIT_SHARE = 16
+
+
+def check_exit_shares(file: str, phases: Sequence[Phase]) -> None:
+    """A phase's ``exit_share`` of N needs the N - 1 phases after it to take the rest: each
+    with an exit on a turn read from the same phase's start (``turn_from``, or its own start
+    for a phase without one) and no share of its own. Without them the phase ended after
+    1/N of the turn and nothing took up the rest (``exit_share: 16`` on the last phase
+    turned it 4 degrees). From the last phase back, so that a later phase's own share is
+    named at its own key, not as what an earlier one found."""
+    for i, phase in reversed(list(enumerate(phases))):
+        if phase.exit_share == 1:
+            continue
+        origin = phase.turn_from or phase.name
+        sharing = phases[i + 1 : i + phase.exit_share]
+        unfit = [
+            f"{p.name} ({why})"
+            for p, why in ((p, _why_not_sharing(p, origin, _below(phase))) for p in sharing)
+            if why
+        ]
+        missing = phase.exit_share - 1 - len(sharing)
+        if missing:
+            unfit.append(f"{missing} phase(s) short of the end")
+        if unfit:
+            raise ConfigError(
+                file,
+                f"phases[{i}].exit_share",
+                f"{phase.exit_share - 1} phase(s) after it, each exiting on the turn since "
+                f"'{origin}' began and with no exit_share of its own",
+                "; ".join(unfit),
+            )
+
+
+def _below(phase: Phase) -> bool:
+    """Whether the phase's first exit on a turn waits for the turn to fall below its value
+    (a clockwise turn), not rise above it."""
+    return next(c for c in phase.exits if c.relative).op.startswith("<")
+
+
+def _why_not_sharing(phase: Phase, origin: str, below: bool) -> str:
+    """Why ``phase`` cannot take a share of a turn read from ``origin``'s start that ends
+    ``below`` its threshold or above it ("": it can)."""
+    if not any(c.relative for c in phase.exits):
+        return "no exit on a turn"
+    if (phase.turn_from or phase.name) != origin:
+        return f"its turn is read from '{phase.turn_from or phase.name}'"
+    if phase.exit_share > 1:
+        return f"exit_share {phase.exit_share} of its own"
+    if _below(phase) != below:
+        return "its exit waits for the turn the other way"
+    return ""
 
 
 def parse_exit_share(doc: Doc) -> int:
