@@ -808,12 +808,19 @@ def _plan_base(args: argparse.Namespace, template: Template, hand: HandConfig) -
     if args.keep_torques:
         if args.base is None:
             raise ConfigError("--keep-torques", "", "--keep-torques with --base", "no --base")
-        for option, given in (("--from", args.start), ("--schedule-only", args.schedule_only)):
+        # --quick sizes a search, and here there is none: it only turned a failed plan's
+        # exit 1 into a smoke test's warning
+        for option, given in (
+            ("--from", args.start),
+            ("--schedule-only", args.schedule_only),
+            ("--quick", args.quick),
+        ):
             if given:
                 raise ConfigError(
                     option,
                     "",
-                    f"no {option} with --keep-torques (every phase's torques are kept)",
+                    f"no {option} with --keep-torques (every phase's torques are kept, "
+                    "nothing is searched)",
                     given,
                 )
     elif (args.start is None) != (args.base is None):
@@ -2309,9 +2316,10 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     plan.add_argument(
         "--keep-torques",
         action="store_true",
-        help="with --base, without --from: keep every phase's torques and schedule entries "
-        "from --base and search nothing; the template's other keys (exits, feedback, "
-        "guard) are compiled onto them, and every model runs the recipe for the provenance",
+        help="with --base, without --from: keep every phase's torques and the torques of "
+        "its planned schedule entries (plan: {models: N}) from --base and search nothing; "
+        "the template's other keys (exits, feedback, guard, written schedule entries) are "
+        "compiled onto them, and every model runs the recipe for the provenance",
     )
     plan.add_argument(
         "--workers",

@@ -135,6 +135,14 @@ def _check_kept_phases(
     kept = names if every else names[: names.index(start)]
     which = "every phase is kept" if every else f"the phases before '{start}' are kept"
     have = [p.name for p in recipe.phases]
+    if every and len(have) > len(names):
+        # a phase the template does not have would be dropped from the recipe without a word
+        raise ConfigError(
+            source,
+            f"phases[{len(names)}].name",
+            f"no phase after '{names[-1]}', the template's last ({which})",
+            have[len(names)],
+        )
     for i, name in enumerate(kept):
         if i >= len(have) or have[i] != name:
             raise ConfigError(

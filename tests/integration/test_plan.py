@@ -318,13 +318,13 @@ def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
     data["phases"][3]["brake"] = {"rate_deg_s": 60, "joint_damping": 0.02}
     template.write_text(yaml.safe_dump(data, sort_keys=False))
     kept = tmp_path / "kept.yaml"
-    # --quick: the short template's one-generation torques do not turn the pair, which a
-    # plan without it fails (exit 1) whether it searched or kept them
+    # the short template's one-generation torques do not turn the pair: the plan says so and
+    # fails (exit 1), kept as they were searched, and writes the recipe to be looked at
     done = plan_command(
-        str(template), "-o", str(kept), "--quick", "--models", "1",
-        "--base", str(full), "--keep-torques",
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr
+        str(template), "-o", str(kept), "--models", "1", "--base", str(full), "--keep-torques"
+    )
+    assert done.returncode == 1, done.stderr
+    assert "the plan failed: phase 'manipulate_1' (turn)" in done.stderr
     before, after = yaml.safe_load(full.read_text()), yaml.safe_load(kept.read_text())
     assert after["planned_from"]["keep_torques"] is True
     assert after["planned_from"]["base"] == "full.yaml"
@@ -340,7 +340,7 @@ def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
     assert turn["exit"] == [f"estimate.cyl1_cyl2_line_turn < {exit_rad:.4f} for 0.02"]
     assert turn["brake"]["rate_deg_s"] == 60 and turn["brake"]["joint_damping"] == 0.02
     assert before["phases"][3]["exit"] != turn["exit"]
-    assert kept.read_text().splitlines()[1].endswith(f"--base {full} --keep-torques")
+    assert kept.read_text().splitlines()[1].endswith(f"--models 1 --base {full} --keep-torques")
     load_recipe(kept, hand)
 
     refused = tmp_path / "refused.yaml"
@@ -353,6 +353,20 @@ def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
     )  # fmt: skip
     assert both.returncode == 2 and not refused.exists()
     assert "--from: expected no --from with --keep-torques" in both.stderr
+    # --quick sizes a search, and there is none: it only made a failed plan exit 0
+    quick = plan_command(
+        str(template), "-o", str(refused), "--base", str(full), "--keep-torques", "--quick"
+    )
+    assert quick.returncode == 2 and not refused.exists()
+    assert "--quick: expected no --quick with --keep-torques" in quick.stderr
+    # a base with a phase the template lacks: it would be dropped without a word
+    longer = yaml.safe_load(full.read_text())
+    longer["phases"].append({**longer["phases"][-1], "name": "manipulate_9"})
+    extra = tmp_path / "extra.yaml"
+    extra.write_text(yaml.safe_dump(longer, sort_keys=False))
+    done = plan_command(str(template), "-o", str(refused), "--base", str(extra), "--keep-torques")
+    assert done.returncode == 2 and not refused.exists()
+    assert "phases[4].name: expected no phase after 'manipulate_1'" in done.stderr
 
 
 PLANAR = ROOT / "config" / "hands" / "planar_2f2j.yaml"
