@@ -172,21 +172,50 @@ def _say(run: dict[str, Any]) -> None:
     )
 
 
-def in_band(run: dict[str, Any], phase_deg: float, tolerance_deg: float) -> bool:
-    """Whether every manipulation phase of ``run`` turned the pair ``phase_deg`` within
-    ``tolerance_deg`` (either way round: the sign is the recipe's): the paper's turn in
-    steps, each switched on the measured position. A run without its manipulation phases
-    (stopped before them, or in one) is not."""
+def in_band(run: dict[str, Any], step_deg: float, tolerance_deg: float) -> bool:
+    """Whether every manipulation phase of ``run`` turned the pair ``step_deg`` (signed as
+    the recipe turns, ``turn_sense``) within ``tolerance_deg``: the paper's turn in steps,
+    each switched on the measured position. A phase that turned the pair back is not in the
+    band, and neither is a run without its manipulation phases (stopped before them, or in
+    one)."""
     angles = run["phase_angles_deg"] or []
-    return len(angles) > 0 and all(abs(abs(a) - phase_deg) <= tolerance_deg for a in angles)
+    return len(angles) > 0 and all(abs(a - step_deg) <= tolerance_deg for a in angles)
 
 
-def _figures(runs: list[dict[str, Any]], phase_deg: float, tolerance_deg: float) -> dict[str, Any]:
+def turn_sense(recipe: Any) -> float:
+    """-1 for a recipe whose manipulation turns the pair clockwise, +1 counter-clockwise: from
+    the first manipulation phase's exit on a turn (waiting for it to fall below its value is
+    clockwise); +1 without one."""
+    from handctl.experiment.merit import MANIPULATE_PREFIX
+
+    for phase in recipe.phases:
+        if phase.name.startswith(MANIPULATE_PREFIX):
+            for cond in phase.exits:
+                if cond.relative:
+                    return -1.0 if cond.op.startswith("<") else 1.0
+    return 1.0
+
+
+def _check_band(phase_deg: float, tolerance_deg: float) -> None:
+    """A band that reaches 0 counts a phase that did not turn the pair as one that did."""
+    from handctl.errors import ConfigError
+
+    if not tolerance_deg < phase_deg:
+        raise ConfigError(
+            "--phase-tolerance-deg",
+            "",
+            f"a tolerance below --phase-deg ({phase_deg:g} deg): a band that reaches 0 "
+            "counts a phase that did not turn the pair",
+            tolerance_deg,
+        )
+
+
+def _figures(runs: list[dict[str, Any]], step_deg: float, tolerance_deg: float) -> dict[str, Any]:
     from handctl.planning.search import MAX_TURN_RATE_DEG_S
 
     n = len(runs)
     peaks = [r["peak_turn_rate_deg_s"] or 0.0 for r in runs]
-    banded = [in_band(r, phase_deg, tolerance_deg) for r in runs]
+    banded = [in_band(r, step_deg, tolerance_deg) for r in runs]
     return {
         "seeds": n,
         "success_rate": round(sum(r["success"] for r in runs) / n, 3),
@@ -224,6 +253,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from handctl.portable import portable_hand
     from handctl.progress import Progress, say
 
+    _check_band(args.phase_deg, args.phase_tolerance_deg)
     hand = load_hand(args.hand)
     recipe = load_recipe(args.recipe, hand)
     portable = portable_hand(hand)
@@ -263,12 +293,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "peak_turn_rate_deg_s",
         )
     }
-    out["nominal"]["phases_in_band"] = in_band(nominal, args.phase_deg, args.phase_tolerance_deg)
+    step_deg = turn_sense(recipe) * args.phase_deg
+    out["nominal"]["phases_in_band"] = in_band(nominal, step_deg, args.phase_tolerance_deg)
     if groups:
         out["families"] = {
             group: _figures(
                 [r for r in runs[1:] if r["family"] == group],
-                args.phase_deg,
+                step_deg,
                 args.phase_tolerance_deg,
             )
             for group in groups

@@ -3,12 +3,20 @@ its step (45 deg within 10 by default), and no tumble besides."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import pytest
+import yaml
 
-from ..conftest import load_tool
+from handctl.config import HandConfig
+from handctl.errors import ConfigError
+from handctl.online.recipes.loader import load_recipe
+
+from ..conftest import ROOT, load_tool
+
+RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 
 
 def _bench() -> ModuleType:
@@ -32,7 +40,8 @@ def _run(angles: list[float] | None, peak: float = 100.0) -> dict[str, Any]:
     ("angles", "expected"),
     [
         ([-38.6, -39.7, -51.5, -50.2], True),
-        ([38.6, 39.7, 51.5, 50.2], True),  # a turn the other way round
+        ([38.6, 39.7, 51.5, 50.2], False),  # turned back, each phase
+        ([-40.97, -37.35, 0.0, 78.35], False),  # a phase that did nothing, one turned back
         ([-35.0, -55.0, -45.0, -45.0], True),  # the band's edges count
         ([-43.1, -34.9, -51.0, -51.0], False),
         ([-43.1, -35.3, -44.0, -57.6], False),
@@ -44,7 +53,29 @@ def _run(angles: list[float] | None, peak: float = 100.0) -> dict[str, Any]:
 def test_a_run_is_in_band_only_with_every_phase_within_the_tolerance(
     angles: list[float] | None, expected: bool
 ) -> None:
-    assert _bench().in_band(_run(angles), 45.0, 10.0) is expected
+    assert _bench().in_band(_run(angles), -45.0, 10.0) is expected
+
+
+def test_the_step_is_signed_as_the_recipe_turns(tmp_path: Path, hand: HandConfig) -> None:
+    """The shipped swap turns clockwise (its exits wait for the turn to fall below them); a
+    recipe whose manipulation exits wait for it to rise turns counter-clockwise."""
+    recipe = load_recipe(RECIPE, hand)
+    assert _bench().turn_sense(recipe) == -1.0
+    data = yaml.safe_load(RECIPE.read_text())
+    for phase in data["phases"]:
+        phase["exit"] = [e.replace(" < -", " > ") for e in phase.get("exit", [])] or None
+        if phase["exit"] is None:
+            del phase["exit"]
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert _bench().turn_sense(load_recipe(path, hand)) == 1.0
+
+
+@pytest.mark.parametrize(("phase_deg", "tolerance_deg"), [(45.0, 45.0), (1e-300, 1e300)])
+def test_a_band_that_reaches_zero_is_refused(phase_deg: float, tolerance_deg: float) -> None:
+    with pytest.raises(ConfigError) as info:
+        _bench()._check_band(phase_deg, tolerance_deg)
+    assert info.value.file == "--phase-tolerance-deg"
 
 
 def test_the_rates_count_the_band_and_the_band_with_no_tumble() -> None:
@@ -54,7 +85,7 @@ def test_the_rates_count_the_band_and_the_band_with_no_tumble() -> None:
         _run([-30.0, -60.0, -45.0, -45.0]),
         _run([-45.0] * 4, peak=180.0),  # the quasi-static limit itself counts
     ]
-    figures = _bench()._figures(runs, 45.0, 10.0)
+    figures = _bench()._figures(runs, -45.0, 10.0)
     assert figures["phase_band_rate"] == 0.75
     assert figures["controlled_turn_rate"] == 0.5
-    assert _bench()._figures(runs, 45.0, 20.0)["phase_band_rate"] == 1.0
+    assert _bench()._figures(runs, -45.0, 20.0)["phase_band_rate"] == 1.0
