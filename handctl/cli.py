@@ -26,6 +26,7 @@ import io
 import math
 import os
 import re
+import shlex
 import shutil
 import signal
 import sys
@@ -778,8 +779,9 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             raise ClusterLostError(exc.address, "mid-plan", "nothing was written") from None
         finally:
             close_active()
-    command = " ".join(
-        ["handctl plan", str(args.template), "-o", str(args.output)]
+    # quoted as a shell takes it back (a path with a space was two words in the header)
+    command = shlex.join(
+        ["handctl", "plan", str(args.template), "-o", str(args.output)]
         + (["--hand", str(args.hand)] if args.hand != DEFAULT_HAND else [])
         + (["--models", str(args.models)] if args.models else [])
         + (["--quick"] if args.quick else [])

@@ -37,7 +37,7 @@ import numpy as np
 from handctl.analysis.model import AnalysisError
 from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, escaped
 from handctl.executor import WorkPool, open_pool
 from handctl.online.recipes.loader import check_against_hand, joint_fingers, parse_recipe
 from handctl.online.recipes.schema import (
@@ -957,10 +957,12 @@ def _exit_counts(outcomes: list[PhaseOutcome]) -> dict[str, int]:
 
 def recipe_text(result: PlanResult, command: str) -> str:
     """The compiled recipe's YAML, with a header that says how to make it again."""
+    # each a comment of one line: a newline in a file's name made the rest of it YAML, and
+    # the recipe written did not load
     header = (
-        f"# Compiled by handctl plan from {Path(result.template.source).name}: do not "
-        "edit by hand.\n"
-        f"# Change the template and plan again: {command}\n"
+        f"# Compiled by handctl plan from {escaped(Path(result.template.source).name)}: do "
+        "not edit by hand.\n"
+        f"# Change the template and plan again: {escaped(command)}\n"
     )
     body = dump_yaml(result.recipe_document())
     check_runnable(body, result.template.source, result.hand)

@@ -4,6 +4,7 @@ the loader accepts, provenance on every phase, the same text twice, and the plot
 from __future__ import annotations
 
 import math
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +20,7 @@ from handctl.planning.template import load_template
 from ..conftest import ROOT
 
 TEMPLATE = ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml"
+PREFIX = "# Change the template and plan again: "
 
 
 def short_template(tmp_path: Path) -> Path:
@@ -367,6 +369,33 @@ def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
     done = plan_command(str(template), "-o", str(refused), "--base", str(extra), "--keep-torques")
     assert done.returncode == 2 and not refused.exists()
     assert "phases[4].name: expected no phase after 'manipulate_1'" in done.stderr
+
+
+def test_the_header_takes_any_path_back_and_stays_a_comment(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """The header's command is quoted as a shell takes it back (a path with a space was two
+    words), and a newline in a file's name stays inside its comment line (the rest of the
+    name was YAML, and the recipe written did not load)."""
+    base = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+    spaced = tmp_path / "with space"
+    spaced.mkdir()
+    for name in ("my template.yaml", "evil\ncompiled: false\nx.yaml"):
+        template = spaced / name
+        template.write_text(TEMPLATE.read_text())
+        out = spaced / "out recipe.yaml"
+        done = plan_command(
+            str(template), "-o", str(out), "--models", "1", "--base", str(base), "--keep-torques"
+        )
+        assert done.returncode == 0, done.stderr
+        lines = out.read_text().splitlines()
+        assert lines[0].startswith("# Compiled by handctl plan from ")
+        assert lines[1].startswith(PREFIX) and lines[2].startswith("recipe: ")
+        assert load_recipe(out, hand).name == "swap_two_cylinders"
+        argv = shlex.split(lines[1].removeprefix(PREFIX))
+        # the path as given, or with its newline written as the two characters \n
+        shown = str(template).replace("\n", "\\n")
+        assert argv[:5] == ["handctl", "plan", shown, "-o", str(out)]
 
 
 PLANAR = ROOT / "config" / "hands" / "planar_2f2j.yaml"
