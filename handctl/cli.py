@@ -883,13 +883,16 @@ def _planned_phase_line(plan: Any) -> str:
         ana = "analysis: none"
     search = prov.get("search")
     found = f", search score {search.get('score', '?')}" if isinstance(search, dict) else ""
-    origin = prov.get("chosen_from") or prov.get("kept_from") or "?"
+    origin = f"from {prov.get('chosen_from') or '?'}"
+    kept = prov.get("kept_from")
+    if kept:  # nothing was searched here: the score and origin are the base's
+        origin = f"kept from {kept} ({origin} there)"
     held = prov["models"]  # this plan's own run of the phase
     # "hold" is only that the objects are still in the hand; what the phase is for (up by
     # its height, turned) is said beside it, or a phase that did nothing read as done
     done = "" if plan.done is None else f", {sum(plan.done)}/{len(plan.done)} did its job"
     return (
-        f"  {plan.phase.name:<16} {plan.spec.kind:<5} {ana}{found}; from "
+        f"  {plan.phase.name:<16} {plan.spec.kind:<5} {ana}{found}; "
         f"{origin}; {held['held']}/{held['ran']} models hold{done}"
     )
 

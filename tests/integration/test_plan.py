@@ -327,6 +327,9 @@ def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
     )
     assert done.returncode == 1, done.stderr
     assert "the plan failed: phase 'manipulate_1' (turn)" in done.stderr
+    reported = [line for line in done.stdout.splitlines() if "models hold" in line]
+    assert len(reported) == 4, done.stdout
+    assert all("kept from base recipe full.yaml (from " in line for line in reported), reported
     before, after = yaml.safe_load(full.read_text()), yaml.safe_load(kept.read_text())
     assert after["planned_from"]["keep_torques"] is True
     assert after["planned_from"]["base"] == "full.yaml"
