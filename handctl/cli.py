@@ -832,6 +832,9 @@ def _plan_base(args: argparse.Namespace, template: Template, hand: HandConfig) -
         raise ConfigError(
             "--schedule-only", "", "--schedule-only with --from and --base", "neither"
         )
+    if args.base is not None and not args.base.is_file():
+        # an empty --base is Path("."): the loader's own message named '.', not the option
+        raise ConfigError("--base", "", "a compiled recipe file", str(args.base))
     if args.keep_torques:
         from handctl.planning.replan import load_kept_base
 

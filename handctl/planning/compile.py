@@ -806,9 +806,10 @@ def _base_schedule(spec: TemplatePhase, kept: Phase, base: Base) -> tuple[Schedu
             continue
         found = next((e for e in kept.schedule if e.when == entry.when), None)
         if found is None:
+            at = [p.name for p in base.recipe.phases].index(spec.name)
             raise ConfigError(
                 base.recipe.source,
-                f"phases[{spec.name}].schedule",
+                f"phases[{at}].schedule",
                 f"an entry for the template's schedule[{k}] (or plan it: --from {spec.name})",
                 "none with its ranges",
             )

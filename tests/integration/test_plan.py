@@ -364,6 +364,22 @@ def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
     )
     assert quick.returncode == 2 and not refused.exists()
     assert "--quick: expected no --quick with --keep-torques" in quick.stderr
+    # an empty --base is the directory '.': said as the option's, not as a file '.'
+    empty = plan_command(str(template), "-o", str(refused), "--base", "", "--keep-torques")
+    assert empty.returncode == 2 and not refused.exists()
+    assert "--base: expected a compiled recipe file, found '.'" in empty.stderr
+    # a planned schedule entry the base has no torques for: named by the phase's index
+    data = yaml.safe_load(template.read_text())
+    data["phases"][3]["schedule"] = [
+        {"when": {"radius_ratio": {"object": "cyl1", "min": 1.1}}, "plan": {"models": 2}}
+    ]
+    planned = tmp_path / "planned.template.yaml"
+    planned.write_text(yaml.safe_dump(data, sort_keys=False))
+    done = plan_command(str(planned), "-o", str(refused), "--base", str(full), "--keep-torques")
+    assert done.returncode == 2 and not refused.exists()
+    assert f"{full}: phases[3].schedule: expected an entry for the template's schedule[0]" in (
+        done.stderr
+    )
     # a base with a phase the template lacks: it would be dropped without a word
     longer = yaml.safe_load(full.read_text())
     longer["phases"].append({**longer["phases"][-1], "name": "manipulate_9"})
