@@ -112,7 +112,9 @@ def load_base(
     if schedule_only:
         _check_something_to_search(template, start)
     _check_kept_phases(recipe, source, template, start, schedule_only)
-    return Base(recipe, start, schedule_only)
+    base = Base(recipe, start, schedule_only)
+    check_kept_entries(base, template)
+    return base
 
 
 def load_kept_base(path: Path, template: Template, hand: HandConfig) -> Base:
@@ -123,7 +125,30 @@ def load_kept_base(path: Path, template: Template, hand: HandConfig) -> Base:
     start = template.phases[0].name
     base = load_base(path, start, template, hand)
     _check_kept_phases(base.recipe, str(path), template, start, True)
-    return Base(base.recipe, start, keep_torques=True)
+    kept = Base(base.recipe, start, keep_torques=True)
+    check_kept_entries(kept, template)
+    return kept
+
+
+def check_kept_entries(base: Base, template: Template) -> None:
+    """Every planned ``schedule`` entry the plan takes from the base (those of the phases
+    whose schedule it does not search) must be in the base, for the same ranges: checked
+    before anything is planned, where the plan found it out only when it reached the phase,
+    after its models had run the phases before."""
+    names = [p.name for p in base.recipe.phases]
+    for spec in template.phases:
+        if spec.name not in names or base.plans_schedule(spec.name):
+            continue
+        at = names.index(spec.name)
+        have = [e.when for e in base.recipe.phases[at].schedule]
+        for k, entry in enumerate(spec.schedule):
+            if isinstance(entry, PlannedSchedule) and entry.when not in have:
+                raise ConfigError(
+                    base.recipe.source,
+                    f"phases[{at}].schedule",
+                    f"an entry for the template's schedule[{k}] (or plan it: --from {spec.name})",
+                    "none with its ranges",
+                )
 
 
 def _check_kept_phases(

@@ -380,6 +380,7 @@ def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
     assert f"{full}: phases[3].schedule: expected an entry for the template's schedule[0]" in (
         done.stderr
     )
+    assert "planning on" not in done.stdout  # said before the plan starts, not in it
     # a base with a phase the template lacks: it would be dropped without a word
     longer = yaml.safe_load(full.read_text())
     longer["phases"].append({**longer["phases"][-1], "name": "manipulate_9"})
