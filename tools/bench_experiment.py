@@ -189,10 +189,9 @@ def turn_sense(recipe: Any) -> float:
     from handctl.experiment.merit import MANIPULATE_PREFIX
 
     for phase in recipe.phases:
-        if phase.name.startswith(MANIPULATE_PREFIX):
-            for cond in phase.exits:
-                if cond.relative:
-                    return -1.0 if cond.op.startswith("<") else 1.0
+        sense = phase.turn_sense() if phase.name.startswith(MANIPULATE_PREFIX) else None
+        if sense is not None:
+            return float(sense)
     return 1.0
 
 

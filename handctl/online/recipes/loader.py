@@ -460,7 +460,7 @@ def check_exit_shares(file: str, phases: Sequence[Phase]) -> None:
         sharing = phases[i + 1 : i + phase.exit_share]
         unfit = [
             f"{p.name} ({why})"
-            for p, why in ((p, _why_not_sharing(p, origin, _below(phase))) for p in sharing)
+            for p, why in ((p, _why_not_sharing(p, origin, phase.turn_sense())) for p in sharing)
             if why
         ]
         missing = phase.exit_share - 1 - len(sharing)
@@ -476,22 +476,16 @@ def check_exit_shares(file: str, phases: Sequence[Phase]) -> None:
             )
 
 
-def _below(phase: Phase) -> bool:
-    """Whether the phase's first exit on a turn waits for the turn to fall below its value
-    (a clockwise turn), not rise above it."""
-    return next(c for c in phase.exits if c.relative).op.startswith("<")
-
-
-def _why_not_sharing(phase: Phase, origin: str, below: bool) -> str:
-    """Why ``phase`` cannot take a share of a turn read from ``origin``'s start that ends
-    ``below`` its threshold or above it ("": it can)."""
+def _why_not_sharing(phase: Phase, origin: str, sense: float | None) -> str:
+    """Why ``phase`` cannot take a share of a turn read from ``origin``'s start, turning
+    the ``sense`` way (``Phase.turn_sense``) ("": it can)."""
     if not any(c.relative for c in phase.exits):
         return "no exit on a turn"
     if (phase.turn_from or phase.name) != origin:
         return f"its turn is read from '{phase.turn_from or phase.name}'"
     if phase.exit_share > 1:
         return f"exit_share {phase.exit_share} of its own"
-    if _below(phase) != below:
+    if phase.turn_sense() != sense:
         return "its exit waits for the turn the other way"
     return ""
 

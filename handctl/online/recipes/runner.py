@@ -877,8 +877,7 @@ class RecipeRunner:
                 if ref is None:
                     return False
                 value -= ref
-        holds = cond.holds(value) if threshold is None else cond.holds_at(value, threshold)
-        if not holds:
+        if not cond.holds(value, threshold):
             self._held_since.pop(key, None)
             return False
         since = self._held_since.setdefault(key, t)

@@ -86,13 +86,10 @@ class Condition:
     hold_s: float
     relative: bool = False  # an estimate read relative to its value when the phase began
 
-    def holds(self, value: float) -> bool:
-        return OPERATORS[self.op](value, self.value)
-
-    def holds_at(self, value: float, threshold: float) -> bool:
-        """Whether the condition holds against ``threshold`` in place of its own value (a
-        shared exit's, ``Phase.exit_share``); never against NaN."""
-        return OPERATORS[self.op](value, threshold)
+    def holds(self, value: float, threshold: float | None = None) -> bool:
+        """Whether ``value`` meets the condition: against its own value, or against
+        ``threshold`` in its place (a shared exit's, ``Phase.exit_share``; never NaN's)."""
+        return OPERATORS[self.op](value, self.value if threshold is None else threshold)
 
 
 class TimeoutAction(enum.Enum):
@@ -348,6 +345,14 @@ class Phase:
     #: fixed threshold left the whole difference to this phase and none to the next; 1: the
     #: written threshold
     exit_share: int = 1
+
+    def turn_sense(self) -> float | None:
+        """-1 when the phase's first exit on a turn waits for it to fall below its value (a
+        clockwise turn), +1 when for it to rise above; None without such an exit."""
+        cond = next((c for c in self.exits if c.relative), None)
+        if cond is None:
+            return None
+        return -1.0 if cond.op.startswith("<") else 1.0
 
 
 @dataclass(frozen=True)
