@@ -576,7 +576,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         schedule_doc: list[dict[str, Any]] = []
         if any(isinstance(e, PlannedSchedule) for e in spec.schedule):
             if kept is not None and base is not None and not base.plans_schedule(spec.name):
-                schedule = _base_schedule(spec, kept, base)
+                schedule = _base_schedule(spec, kept)
             else:
                 schedule, schedule_doc = _plan_schedule(
                     template,
@@ -796,23 +796,16 @@ def _search(
     return result, bar
 
 
-def _base_schedule(spec: TemplatePhase, kept: Phase, base: Base) -> tuple[ScheduledTorques, ...]:
+def _base_schedule(spec: TemplatePhase, kept: Phase) -> tuple[ScheduledTorques, ...]:
     """``spec``'s schedule for a phase the plan keeps: the written entries as the template
-    writes them, each planned one with the torques the base recipe has for its ``when``."""
+    writes them, each planned one with the torques the base recipe has for its ``when``
+    (there: checked when the base was loaded, ``replan._check_kept_entries``)."""
     out: list[ScheduledTorques] = []
-    for k, entry in enumerate(spec.schedule):
+    for entry in spec.schedule:
         if isinstance(entry, ScheduledTorques):
             out.append(entry)
             continue
-        found = next((e for e in kept.schedule if e.when == entry.when), None)
-        if found is None:
-            at = [p.name for p in base.recipe.phases].index(spec.name)
-            raise ConfigError(
-                base.recipe.source,
-                f"phases[{at}].schedule",
-                f"an entry for the template's schedule[{k}] (or plan it: --from {spec.name})",
-                "none with its ranges",
-            )
+        found = next(e for e in kept.schedule if e.when == entry.when)
         out.append(ScheduledTorques(entry.when, found.torques))
     return tuple(out)
 

@@ -60,14 +60,12 @@ class Base:
 
     def describe(self) -> dict[str, str | bool]:
         """For the re-planned recipe's ``planned_from``."""
-        out: dict[str, str | bool] = {
-            "from_phase": self.start,
-            "base": Path(self.recipe.source).name,
-        }
+        base = Path(self.recipe.source).name
+        if self.keep_torques:
+            return {"base": base, "keep_torques": True}
+        out: dict[str, str | bool] = {"from_phase": self.start, "base": base}
         if self.schedule_only:
             out["schedule_only"] = True
-        if self.keep_torques:
-            out = {"base": out["base"], "keep_torques": True}
         return out
 
 
@@ -82,6 +80,24 @@ def load_base(
         listed = ", ".join(names)
         where = Path(template.source).name
         raise ConfigError("--from", "", f"a phase of {where} ({listed})", start)
+    recipe = _read_base(path, template, hand)
+    if schedule_only:
+        _check_something_to_search(template, start)
+    return _checked(Base(recipe, start, schedule_only), template)
+
+
+def load_kept_base(path: Path, template: Template, hand: HandConfig) -> Base:
+    """Load ``path`` as the base of a plan that keeps every phase's torques and searches
+    nothing (``--keep-torques``): a change to a template's exits or feedback is compiled in a
+    minute, where planning it again searches for the torques for tens of minutes. The base
+    is checked as ``load_base`` checks it, each of the template's phases kept."""
+    recipe = _read_base(path, template, hand)
+    return _checked(Base(recipe, template.phases[0].name, keep_torques=True), template)
+
+
+def _read_base(path: Path, template: Template, hand: HandConfig) -> Recipe:
+    """The recipe at ``path``, if it was compiled from ``template``'s recipe for ``hand``,
+    with the template's objects."""
     recipe = load_recipe(path, hand)
     source = str(path)
     if not recipe.compiled:
@@ -109,28 +125,18 @@ def load_base(
             f"the template's objects {wanted_objects} (name, radius in m)",
             found_objects,
         )
-    if schedule_only:
-        _check_something_to_search(template, start)
-    _check_kept_phases(recipe, source, template, start, schedule_only)
-    base = Base(recipe, start, schedule_only)
-    check_kept_entries(base, template)
+    return recipe
+
+
+def _checked(base: Base, template: Template) -> Base:
+    """``base``, once the phases it keeps are the template's (``_check_kept_phases``) and
+    every planned schedule entry it is to give is in it (``_check_kept_entries``)."""
+    _check_kept_phases(base, template)
+    _check_kept_entries(base, template)
     return base
 
 
-def load_kept_base(path: Path, template: Template, hand: HandConfig) -> Base:
-    """Load ``path`` as the base of a plan that keeps every phase's torques and searches
-    nothing (``--keep-torques``): a change to a template's exits or feedback is compiled in a
-    minute, where planning it again searches for the torques for tens of minutes. The base
-    is checked as ``load_base`` checks it, each of the template's phases kept."""
-    start = template.phases[0].name
-    base = load_base(path, start, template, hand)
-    _check_kept_phases(base.recipe, str(path), template, start, True)
-    kept = Base(base.recipe, start, keep_torques=True)
-    check_kept_entries(kept, template)
-    return kept
-
-
-def check_kept_entries(base: Base, template: Template) -> None:
+def _check_kept_entries(base: Base, template: Template) -> None:
     """Every planned ``schedule`` entry the plan takes from the base (those of the phases
     whose schedule it does not search) must be in the base, for the same ranges: checked
     before anything is planned, where the plan found it out only when it reached the phase,
@@ -151,15 +157,15 @@ def check_kept_entries(base: Base, template: Template) -> None:
                 )
 
 
-def _check_kept_phases(
-    recipe: Recipe, source: str, template: Template, start: str, every: bool
-) -> None:
-    """The phases whose torques are kept (those before ``start``, or ``every`` one) must be
-    the template's, in its order."""
+def _check_kept_phases(base: Base, template: Template) -> None:
+    """The phases whose torques are kept (those before ``start``, or every one with
+    ``schedule_only`` or ``keep_torques``) must be the template's, in its order."""
+    every = base.schedule_only or base.keep_torques
     names = [p.name for p in template.phases]
-    kept = names if every else names[: names.index(start)]
-    which = "every phase is kept" if every else f"the phases before '{start}' are kept"
-    have = [p.name for p in recipe.phases]
+    kept = names if every else names[: names.index(base.start)]
+    which = "every phase is kept" if every else f"the phases before '{base.start}' are kept"
+    have = [p.name for p in base.recipe.phases]
+    source = base.recipe.source
     if every and len(have) > len(names):
         # a phase the template does not have would be dropped from the recipe without a word
         raise ConfigError(
