@@ -98,6 +98,10 @@ class ClusterLostError(HandctlError):
         )
 
 
+#: the most local workers per core a pool starts (more share the cores and only cost memory)
+WORKERS_PER_CORE = 4
+
+
 def available_cores() -> int:
     """Cores this process may run on (its affinity, not the machine's count)."""
     try:
@@ -261,7 +265,19 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
         return _dask_pool(check_scheduler(scheduler))
     if workers is not None and workers < 1:
         raise ConfigError("--workers", "", "at least 1 worker", workers)
-    count = workers if workers is not None else available_cores()
+    cores = available_cores()
+    if workers is not None and workers > WORKERS_PER_CORE * cores:
+        # each worker is a process with its own simulated hand; thousands of them ran the
+        # machine out of memory (or of processes) before the first task ended
+        raise ConfigError(
+            "--workers",
+            "",
+            f"at most {WORKERS_PER_CORE * cores} workers ({WORKERS_PER_CORE} per core this "
+            f"process may run on, {cores}: more only share the same cores, each with its own "
+            "simulated hand's memory; a cluster takes --scheduler)",
+            workers,
+        )
+    count = workers if workers is not None else cores
     if count == 1:
         return WorkPool(InlineExecutor(), 1, "this process", lambda _cancel: None)
     # spawn, not fork: a worker starts from the installed package alone, as a cluster's does,

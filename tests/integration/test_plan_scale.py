@@ -188,6 +188,7 @@ def _cmdline(process: psutil.Process) -> list[str]:
     ("options", "message"),
     [
         (["--workers", "0"], "handctl: error: --workers: expected at least 1 worker, found 0"),
+        (["--workers", "100000"], "handctl: error: --workers: expected at most "),
         (
             ["--scheduler", "localhost:8786"],
             "handctl: error: --scheduler: expected a Dask scheduler "

@@ -161,6 +161,11 @@ def test_default_is_every_core_this_process_may_use() -> None:
 def test_bad_options_are_named() -> None:
     with pytest.raises(ConfigError, match=r"--workers: expected at least 1 worker, found 0"):
         open_pool(0)
+    most = executor.WORKERS_PER_CORE * available_cores()
+    with pytest.raises(
+        ConfigError, match=rf"--workers: expected at most {most} workers .* found {most + 1}"
+    ):
+        open_pool(most + 1)
     with pytest.raises(
         ConfigError,
         match=r"--scheduler: expected a Dask scheduler address like tcp://HOST:8786 "
