@@ -30,7 +30,14 @@ from typing import TYPE_CHECKING
 
 from handctl.busload import fd_dlc_size
 from handctl.errors import ConfigError
-from handctl.protocol import Protocol, crc8, load_protocol, parse_protocol
+from handctl.protocol import (
+    STATUS_VERSION_BYTE,
+    Layout,
+    Protocol,
+    crc8,
+    load_protocol,
+    parse_protocol,
+)
 from handctl.schema import description
 
 if TYPE_CHECKING:
@@ -368,6 +375,34 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
                     f"{n} joints)",
                     ", ".join(layout.signal_names),
                 )
+        _check_version_signal(protocol, protocol.by_name[f"Status_{finger.node_id}"])
+
+
+def _check_version_signal(protocol: Protocol, status: Layout) -> None:
+    """``ProtocolVersion`` where every version keeps it (PROTOCOL.md, *Versions*): byte 8 of
+    Status, a whole byte. The host reads a node's version there in frames of any length, and a
+    DBC that claimed the host's version with it elsewhere (or scaled) had nodes of this
+    version named as speaking another, and a node of another one as speaking this."""
+    sig = next(s for s in status.signals if s.name == "ProtocolVersion")
+    found = (sig.offset_byte, sig.size_bits, sig.signed, sig.scale, sig.offset)
+    if found != (STATUS_VERSION_BYTE, 8, False, 1.0, 0.0):
+        raise ConfigError(
+            protocol.source,
+            f"{status.name}.ProtocolVersion",
+            f"byte {STATUS_VERSION_BYTE} of Status, 8 bits unsigned, scale 1, offset 0 (where "
+            "every protocol version keeps it: firmware_protocol/PROTOCOL.md, Versions)",
+            f"byte {sig.offset_byte}, {sig.size_bits} bits "
+            f"{'signed' if sig.signed else 'unsigned'}, scale {sig.scale:g}, offset "
+            f"{sig.offset:g}",
+        )
+    if protocol.version < 2:
+        raise ConfigError(
+            protocol.source,
+            "VERSION",
+            '"handctl protocol N" with N at least 2 (the first version with a ProtocolVersion '
+            "in Status, which this DBC's Status carries)",
+            protocol.version,
+        )
 
 
 def wire_joints(signal_names: Iterable[str], prefix: str) -> int:

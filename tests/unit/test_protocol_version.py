@@ -9,6 +9,7 @@ import pytest
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
+from handctl.hand_protocol import protocol_for
 from handctl.online.bus import HandBus
 from handctl.online.drivers.hand import HandDriver
 from handctl.protocol import (
@@ -76,3 +77,46 @@ def test_the_host_names_both_versions(
     assert "node 3 (f3) speaks handctl protocol 1, this host protocol 2" in three.version_problem()
     assert three.rejects.as_dict()["length"] == 1  # named, and still never applied
     assert three.status is None
+
+
+@pytest.mark.parametrize(
+    ("signal", "found"),
+    [
+        ("64|8@1- (1,0) [-128|127]", "byte 8, 8 bits signed, scale 1, offset 0"),
+        ("64|8@1+ (1,1) [1|256]", "byte 8, 8 bits unsigned, scale 1, offset 1"),
+    ],
+)
+def test_a_dbc_whose_status_carries_its_version_otherwise_is_refused(
+    tmp_path: Path, hand: HandConfig, signal: str, found: str
+) -> None:
+    """The host reads a node's version as byte 8 of any Status: a DBC that claimed version 2
+    with ProtocolVersion scaled or signed had the nodes built from it say another
+    version than the one they speak."""
+    line = ' SG_ ProtocolVersion : 64|8@1+ (1,0) [0|255] "" HOST'
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    assert text.count(line) == 3
+    path = tmp_path / "moved.dbc"
+    # Status_2's only: the first two occurrences are Status_1's and Status_2's
+    first = text.index(line) + len(line)
+    second = text.index(line, first)
+    text = (
+        text[:second] + line.replace("64|8@1+ (1,0) [0|255]", signal) + text[second + len(line) :]
+    )
+    path.write_text(text, encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, path)
+    assert err.value.key == "Status_2.ProtocolVersion"
+    assert err.value.found == found
+    assert "byte 8 of Status, 8 bits unsigned, scale 1, offset 0" in err.value.expected
+
+
+def test_a_dbc_of_version_1_with_a_version_in_its_status_is_refused(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    path = tmp_path / "one.dbc"
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    path.write_text(text.replace("handctl protocol 2", "handctl protocol 1"), encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, path)
+    assert (err.value.key, err.value.found) == ("VERSION", 1)
+    assert protocol_for(hand, DEFAULT_DBC).version == 2
