@@ -411,6 +411,10 @@ def _parse_joint(doc: Doc) -> JointConfig:
     )
 
 
+#: keys a log's per-tick joint message (``/hand/joints``) has beside the joints' names
+RESERVED_JOINT_NAMES = ("tick",)
+
+
 def _check_unique(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
     """Names, node ids and CAN ids must be unique: a clash would route frames to the wrong node."""
     seen_names: dict[str, str] = {}
@@ -462,6 +466,16 @@ def _check_names(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
                     f"fingers[{i}].joints[{k}].name",
                     f"{PART_NAME_RULE} (e.g. index_base): recipe conditions name a joint by it "
                     "(angle.NAME, tdt.NAME)",
+                    joint.name,
+                )
+            if joint.name in RESERVED_JOINT_NAMES:
+                # a log's per-tick joint messages key each joint by its name beside these:
+                # a joint named tick overwrote the tick number in every one of them
+                _fail_at(
+                    doc,
+                    f"fingers[{i}].joints[{k}].name",
+                    f"a name other than {', '.join(RESERVED_JOINT_NAMES)} (a log's joint "
+                    "messages carry that key beside the joints' names)",
                     joint.name,
                 )
 

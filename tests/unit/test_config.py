@@ -12,7 +12,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from handctl.config import load_hand
+from handctl.config import RESERVED_JOINT_NAMES, load_hand
 from handctl.errors import ConfigError
 from handctl.protocol import DEFAULT_DBC, Protocol, SignalSpec
 
@@ -254,6 +254,21 @@ def test_duplicate_joint_name(tmp_path: Path, base: dict[str, Any]) -> None:
     base["fingers"][2]["joints"][1]["name"] = "f1_j1"
     err = error_for(tmp_path, base)
     assert err.key == "fingers[2].joints[1].name"
+
+
+def test_a_joint_may_not_take_a_key_of_the_log_s_joint_messages(
+    tmp_path: Path, base: dict[str, Any]
+) -> None:
+    """A joint named tick was accepted, and overwrote the tick number in every /hand/joints
+    message of its runs' logs."""
+    from handctl.foxglove.derived import joints_schema
+
+    beside = set(joints_schema(["j"])["properties"]) - {"j"}
+    assert beside == set(RESERVED_JOINT_NAMES) == {"tick"}
+    joint_of(base, 1, 0)["name"] = "tick"
+    err = error_for(tmp_path, base)
+    assert (err.key, err.found) == ("fingers[1].joints[0].name", "tick")
+    assert "a name other than tick" in err.expected
 
 
 #: names check took: no recipe condition could name the first three (``angle.NAME`` is
