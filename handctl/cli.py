@@ -1948,6 +1948,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run(sub)
     _add_plan(sub)
     _add_replay(sub)
+    _add_layout(sub)
     _add_bringup(sub)
     return parser
 
@@ -1962,6 +1963,47 @@ def _add_dbc(command: argparse.ArgumentParser) -> None:
         "the hand config; checked against the hand's nodes, joints and "
         "can_ids",
     )
+
+
+def _add_layout(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    layout = _command(
+        sub,
+        "layout",
+        help="write the Foxglove layout of a hand",
+        description="Write the Foxglove layout of a hand config: the 3D scene, one torque plot "
+        "per finger, the phase, the safety state and the log (docs/recording.md). In "
+        "Foxglove: Layouts, Import from file.",
+        examples=[
+            "handctl layout config/hands/four_fingers_four_joints.yaml -o four_by_four.json",
+        ],
+    )
+    layout.add_argument(
+        "hand",
+        type=Path,
+        nargs="?",
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
+    layout.add_argument(
+        "-o", dest="output", type=_output_path, required=True, metavar="OUT.json",
+        help="where to write the layout (JSON)",
+    )  # fmt: skip
+    _add_dbc(layout)
+    layout.set_defaults(func=_cmd_layout)
+
+
+def _cmd_layout(args: argparse.Namespace) -> int:
+    from handctl.foxglove.layout import layout_json
+    from handctl.outfile import check_writable, write_atomically
+
+    # a layout written over the hand config lost the hand
+    _refuse_same_files({"-o": args.output}, {"HAND.yaml": args.hand, "--dbc": args.dbc})
+    target = check_writable(args.output, "-o")
+    hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
+    write_atomically(target, layout_json(hand))
+    print(f"written: {args.output} (the Foxglove layout of {hand.name})")
+    return EXIT_OK
 
 
 def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -1,20 +1,17 @@
 """The Foxglove layout for a hand, built with the SDK's layout classes.
 
 ``docs/foxglove/handctl_layout.json`` is this module's output for the default hand (a test
-keeps the two equal); ``python -m handctl.foxglove.layout HAND.yaml OUT.json`` writes the
-layout of any other hand. One plot per finger, the joints in the same three colours in every
+keeps the two equal); ``handctl layout HAND.yaml -o OUT.json`` writes the layout of any
+other hand. One plot per finger, the joints in the same three colours in every
 finger, and for each joint its desired (dashed), applied (solid) and measured (dotted, the TDT)
 torque, with thin lines at +-tau_max, the host limit.
 """
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import foxglove.layouts as fl
 
-from handctl.config import FingerConfig, HandConfig, load_hand
+from handctl.config import FingerConfig, HandConfig
 from handctl.foxglove.derived import JOINTS, LOG, SCENE
 from handctl.foxglove.scene import WORLD
 from handctl.recording import channels as ch
@@ -115,16 +112,3 @@ def layout_json(hand: HandConfig) -> str:
     import json
 
     return json.dumps(json.loads(build_layout(hand).to_json()), indent=2) + "\n"
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    if len(args) != 2:
-        sys.stderr.write("usage: python -m handctl.foxglove.layout HAND.yaml OUT.json\n")
-        return 2
-    Path(args[1]).write_text(layout_json(load_hand(args[0])))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
+import pytest
+
+from handctl.cli import main
 from handctl.config import HandConfig
 from handctl.foxglove import derived as fx
 from handctl.foxglove.layout import layout_json
@@ -17,8 +21,8 @@ LAYOUT = ROOT / "docs" / "foxglove" / "handctl_layout.json"
 
 def test_the_committed_layout_is_the_built_one(hand: HandConfig) -> None:
     assert LAYOUT.read_text() == layout_json(hand), (
-        "regenerate: python -m handctl.foxglove.layout config/hands/hiroshima_hand.yaml "
-        "docs/foxglove/handctl_layout.json"
+        "regenerate: handctl layout config/hands/hiroshima_hand.yaml "
+        "-o docs/foxglove/handctl_layout.json"
     )
 
 
@@ -37,3 +41,26 @@ def test_every_plotted_path_is_a_field_of_the_joints_channel(hand: HandConfig) -
     }
     doc = json.loads(text)
     assert fx.SCENE in json.dumps(doc) and fx.LOG in json.dumps(doc)
+
+
+def test_the_layout_command_says_what_is_wrong_and_exits_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A hand config that does not load, a directory that does not exist, and the hand config
+    itself as the output ended in tracebacks (and the last lost the hand)."""
+    hand = tmp_path / "hand.yaml"
+    hand.write_text((ROOT / "config" / "hands" / "planar_2f2j.yaml").read_text())
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("fingers: 3\n")
+    cases = [
+        ([str(bad), "-o", str(tmp_path / "l.json")], f"{bad}: "),
+        ([str(hand), "-o", str(tmp_path / "none" / "l.json")], "-o: expected a file in an"),
+        ([str(hand), "-o", str(hand)], "-o: expected another file than HAND.yaml's"),
+    ]
+    for argv, said in cases:
+        assert main(["layout", *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"handctl: error: {said}"), err
+    assert hand.read_text() == (ROOT / "config" / "hands" / "planar_2f2j.yaml").read_text()
+    assert main(["layout", str(hand), "-o", str(tmp_path / "l.json")]) == 0
+    assert '"/hand/joints.' in (tmp_path / "l.json").read_text()
