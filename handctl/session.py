@@ -564,6 +564,9 @@ def _close_recording(
     raised: the run is over and the hand is safe."""
     try:
         summary["recording"] = recording.close(summary)
+        notes = summary["recording"].get("writer_notes")
+        if notes:
+            warnings.extend(str(notes).splitlines())
     except HandctlError as exc:
         warnings.append(str(exc))
         summary["recording"] = {"path": str(recording.path), "error": str(exc)}

@@ -1213,6 +1213,11 @@ class Recorder:
         if self.process.returncode != 0:
             problem = self._writer_failed(problem, err.decode(errors="replace").strip())
         self.stats["writer_exit"] = self.process.returncode
+        notes = err.decode(errors="replace").strip()
+        if self.process.returncode == 0 and notes:
+            # what the writer said of a log it did finish (no Foxglove channels, say): its
+            # stderr was read only when it failed, and such a log was short of them silently
+            self.stats["writer_notes"] = notes
         lost = self._lost()
         os.close(self._log_fd)
         self._release()

@@ -360,3 +360,23 @@ def test_a_control_process_gone_before_the_set_up_leaves_an_mcap_that_says_so(
     done = handctl("replay", str(log))
     assert done.returncode == 0, done.stderr
     assert f"0 ticks, 0 chunks, complete (but {ENDED_BEFORE_SETUP})" in done.stdout
+
+
+def test_what_the_writer_said_of_a_log_it_finished_is_kept(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A writer that could not derive the Foxglove channels (the hand it was given does not
+    read) finished the log without them, and its word on stderr was read only when a writer
+    failed: the run said nothing of the channels it lacked."""
+    from handctl.recording import channels as ch
+
+    metadata = start_metadata(hand, None, ("test",))
+    metadata[ch.META_HAND] = {**metadata[ch.META_HAND], "yaml": "name: no_fingers\n"}
+    recorder = Recorder(tmp_path / "run.mcap", hand, metadata)
+    recorder.wait_ready()
+    stats = recorder.close({"outcome": "test"})
+    assert stats["writer_exit"] == 0
+    assert stats["writer_notes"].startswith("handctl writer: no Foxglove channels: ")
+    assert "the recorded hand config: bus: expected this key" in stats["writer_notes"]
+    whole = _recorder(hand, tmp_path / "whole.mcap").close({"outcome": "test"})
+    assert "writer_notes" not in whole
