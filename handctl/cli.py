@@ -1103,6 +1103,14 @@ def _check_replay_options(args: argparse.Namespace) -> None:
             "is sent)",
             str(args.hand),
         )
+    if args.dbc is not None and args.hand is None:
+        raise ConfigError(
+            "--dbc",
+            "",
+            "--to-bus SPEC --hand HAND.yaml as well (the DBC is the protocol of the hand on "
+            "that bus; the recording's own is recorded in it)",
+            str(args.dbc),
+        )
     if args.speed is not None and not MIN_REPLAY_SPEED <= args.speed <= MAX_REPLAY_SPEED:
         raise ConfigError(
             "--speed",
@@ -1118,7 +1126,7 @@ def _check_replay_options(args: argparse.Namespace) -> None:
     # an export or a summary written over the recording it was read from emptied it, exit 0
     _refuse_same_files(
         {"--json": args.json, "--plot": args.plot, "--export": export},
-        {"the recording": Path(args.log)},
+        {"the recording": Path(args.log), "--hand": args.hand, "--dbc": args.dbc},
     )
 
 
@@ -1235,7 +1243,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     _check_replay_options(args)
     # the bus's hand before the work: one check refuses was found only after the summary,
     # the plot and the re-run were done
-    on_bus = _load_checked_hand(args.hand, "--hand") if args.hand is not None else None
+    on_bus = _load_checked_hand(args.hand, "--hand", args.dbc) if args.hand is not None else None
     recording = open_recording(args.log)
     require_content(recording)
     check_format(recording)
@@ -2671,6 +2679,13 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         help="with --to-bus: the config of the hand on that bus; every command sent is held "
         "to its limits as well as the recorded hand's (needed on any bus but virtual: and "
         "unix:, since a log's own limits can be rewritten with it)",
+    )
+    rep.add_argument(
+        "--dbc",
+        type=Path,
+        metavar="PROTOCOL.dbc",
+        help="with --hand: the CAN protocol of the hand on that bus (a DBC file) instead of "
+        "the one generated from its config, as run's --dbc",
     )
     rep.add_argument(
         "--speed",

@@ -165,7 +165,9 @@ def _dump(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:
 def _verify(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> None:
     """The edited text must be the same hand but for exactly the new offsets."""
     try:
-        got = parse_hand(parse_yaml(text, hand.source))
+        # against the DBC the hand was loaded with (--dbc): one that numbers its frames
+        # otherwise refused every calibration of such a hand after it had measured
+        got = parse_hand(parse_yaml(text, hand.source), dbc=hand.dbc)
     except ConfigError as exc:
         raise _CannotEditError(f"the edited text does not read back: {exc}") from None
     for old, new in zip(hand.joints, got.joints, strict=True):

@@ -26,7 +26,8 @@ from handctl.config import CAN_ID_KINDS, ESTOP_ID, HandConfig, parse_hand
 from handctl.foxglove.scene import DEFAULT_OBJECT_LENGTH, HandScene, ObjectShape, timestamp
 from handctl.hand_protocol import protocol_for
 from handctl.online.estimator import ObjectEstimator
-from handctl.protocol import Layout
+from handctl.protocol import Layout, parse_protocol
+from handctl.protocol import Protocol as Wire
 from handctl.recording import channels as ch
 from handctl.schema import parse_yaml
 
@@ -152,6 +153,7 @@ class Derived:
         true_objects: Sequence[ObjectShape],
         estimator: ObjectEstimator | None,
         emit: Emit,
+        protocol: Wire | None = None,
     ) -> None:
         self.hand = hand
         self.joints = hand.joint_names
@@ -167,7 +169,7 @@ class Derived:
             _json(RX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA),
             _json(TX_DECODED, "handctl.DecodedFrame", _DECODED_SCHEMA),
         ]
-        protocol = protocol_for(hand)
+        protocol = protocol_for(hand) if protocol is None else protocol
         self.frames: dict[int, _FrameKind] = {}
         for finger in hand.fingers:
             ids = finger.can_ids.as_dict()
@@ -195,7 +197,11 @@ class Derived:
             raise ValueError(
                 f"metadata {ch.META_HAND}.yaml: expected the hand config, found nothing"
             )
-        hand = parse_hand(parse_yaml(str(hand_doc), "the recorded hand config"))
+        # the DBC the run spoke: one given with --dbc numbers a hand's frames otherwise than
+        # the generated one, and the hand read without it was refused (no channels at all)
+        dbc = metadata.get(ch.META_HAND, {}).get("dbc")
+        protocol = parse_protocol(str(dbc), "the recorded DBC") if dbc else None
+        hand = parse_hand(parse_yaml(str(hand_doc), "the recorded hand config"), protocol)
         recipe_doc = metadata.get(ch.META_RECIPE, {}).get("yaml")
         recipe_objects = []
         if recipe_doc:
@@ -224,7 +230,7 @@ class Derived:
             # the angles it was fed, tick by tick (the re-run relies on it): fed the same
             # recorded angles here, it gives the loop's estimates without the loop's cost.
             estimator = ObjectEstimator(hand, recipe_objects, recipe.pairs)
-        return cls(hand, estimated, true_objects, estimator, emit)
+        return cls(hand, estimated, true_objects, estimator, emit, protocol)
 
     # -- what the writer feeds --------------------------------------------------------------
     def tick(

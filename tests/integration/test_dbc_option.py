@@ -4,15 +4,19 @@ that its re-run speaks it too."""
 
 from __future__ import annotations
 
+import json
+import re
 from pathlib import Path
 
 import pytest
+import yaml
 
 from handctl.config import load_hand
+from handctl.foxglove import derived as fx
 from handctl.hand_protocol import protocol_for
 from handctl.protocol import DEFAULT_DBC
 from handctl.recording import channels as ch
-from handctl.recording.reader import open_recording
+from handctl.recording.reader import iter_messages, open_recording
 
 from ..conftest import ROOT, handctl
 from ..shapes import shaped_hand
@@ -90,3 +94,74 @@ def test_a_run_on_a_given_dbc_records_it_and_reruns_on_it(tmp_path: Path) -> Non
     rerun = handctl("replay", str(log), "--rerun")
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
     assert "command frames identical" in rerun.stdout
+
+
+def moved_feedback_id(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """A hand whose finger 1 feedback is at 0x1A1, the DBC its firmware speaks (the packaged
+    one with Feedback_1 moved there) and a short recipe for it: a hand that loads only with
+    its --dbc."""
+    hand = tmp_path / "moved.yaml"
+    hand.write_text(HAND.read_text().replace("feedback: 0x181", "feedback: 0x1A1"))
+    dbc = tmp_path / "moved.dbc"
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    assert len(re.findall(r"\b385\b", text)) > 3 and not re.findall(r"\b417\b", text)
+    dbc.write_text(re.sub(r"\b385\b", "417", text), encoding="cp1252")
+    recipe = tmp_path / "hold.yaml"
+    torques = {
+        j: 0.02 if j.startswith(("f1", "f2")) else -0.02 for j in load_hand(HAND).joint_names
+    }
+    recipe.write_text(
+        yaml.safe_dump(
+            {
+                "recipe": "moved_ids",
+                "phases": [
+                    {
+                        "name": "hold",
+                        "torques": torques,
+                        "ramp_s": 0.1,
+                        "max_s": 0.3,
+                        "on_timeout": "next",
+                    }
+                ],
+            }
+        )
+    )
+    return hand, dbc, recipe
+
+
+def test_every_command_of_a_hand_that_needs_its_dbc_takes_it(tmp_path: Path) -> None:
+    """With a DBC that numbers a frame otherwise, a run's log had no Foxglove channels (the
+    writer read the hand without the DBC, and said so nowhere), a calibration measured and then
+    refused to write, and the log could not be replayed onto that hand's bus at all."""
+    hand, dbc, recipe = moved_feedback_id(tmp_path)
+    log = tmp_path / "run.mcap"
+    run = handctl(
+        "run", "recipe", str(recipe), "--hand", str(hand), "--dbc", str(dbc), "--log", str(log)
+    )
+    assert run.returncode == 0, run.stderr
+    assert "no Foxglove channels" not in run.stderr
+    recording = open_recording(log)
+    decoded = [json.loads(raw) for _, _, raw in iter_messages(recording, (fx.RX_DECODED,))]
+    assert {d["message"] for d in decoded} >= {"Feedback_1", "Feedback_2", "Status_1"}
+    assert {d["id"] for d in decoded if d["message"] == "Feedback_1"} == {0x1A1}
+    assert any(True for _ in iter_messages(recording, (fx.SCENE,)))
+
+    sent = handctl(
+        "replay", str(log), "--to-bus", "virtual:moved", "--hand", str(hand), "--dbc", str(dbc)
+    )
+    assert sent.returncode == 0, sent.stderr
+    assert "frames sent to virtual:moved (0 failed" in sent.stdout
+    without = handctl("replay", str(log), "--to-bus", "virtual:moved", "--hand", str(hand))
+    assert without.returncode == 2
+    assert f"{hand}: fingers[0].can_ids.feedback: expected 0x181" in without.stderr
+    alone = handctl("replay", str(log), "--dbc", str(dbc))
+    assert alone.returncode == 2
+    assert "--dbc: expected --to-bus SPEC --hand HAND.yaml as well" in alone.stderr
+
+    out = tmp_path / "calibrated.yaml"
+    cal = handctl(
+        "calibrate", "tdt", "--hand", str(hand), "--dbc", str(dbc), "-o", str(out),
+        "--settle", "0.3", "--seconds", "0.3",
+    )  # fmt: skip
+    assert cal.returncode == 0, cal.stdout + cal.stderr
+    assert load_hand(out, dbc).fingers[0].can_ids.feedback == 0x1A1
