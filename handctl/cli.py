@@ -734,7 +734,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     # -o the --base is how a recipe is re-planned in place (the base is read first)
     _refuse_same_files(
         {"-o": args.output, "--plot": args.plot},
-        {"the template": args.template, "--hand": args.hand},
+        {"the template": args.template, "--hand": args.hand, "--dbc": args.dbc},
     )
     from handctl.planning.template import MAX_MODELS
 
@@ -757,7 +757,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
                 "workers are started on their machines)",
                 args.workers,
             )
-    hand = _load_checked_hand(args.hand, "--hand")
+    hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     template = load_template(args.template, hand)
     base = _plan_base(args, template, hand)
     clock = Stopwatch()
@@ -2391,6 +2391,14 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="tcp://HOST:PORT",
         help="run the work on this Dask distributed cluster instead "
         "(pip install 'handctl[cluster]'; see docs/scale.md)",
+    )
+    plan.add_argument(
+        "--dbc",
+        type=Path,
+        metavar="PROTOCOL.dbc",
+        help="the CAN protocol of the hand (a DBC file) instead of the one generated from "
+        "its config, for a hand whose can_ids only it carries (the simulated hand the plan "
+        "runs on speaks it)",
     )
     plan.set_defaults(func=_cmd_plan)
 

@@ -165,3 +165,20 @@ def test_every_command_of_a_hand_that_needs_its_dbc_takes_it(tmp_path: Path) -> 
     )  # fmt: skip
     assert cal.returncode == 0, cal.stdout + cal.stderr
     assert load_hand(out, dbc).fingers[0].can_ids.feedback == 0x1A1
+
+
+def test_plan_takes_the_dbc_of_its_hand(tmp_path: Path) -> None:
+    """plan had no --dbc: a hand whose can_ids only its DBC carries could not be planned for.
+    (A template it then refuses shows the hand was read; the plan itself is the search's.)"""
+    hand, dbc, _ = moved_feedback_id(tmp_path)
+    template = tmp_path / "t.yaml"
+    text = (ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml").read_text()
+    assert "{name: cyl2," in text
+    template.write_text(text.replace("{name: cyl2,", "{name: drum,", 1))
+    args = ["plan", str(template), "--hand", str(hand), "-o", str(tmp_path / "r.yaml")]
+    without = handctl(*args)
+    assert without.returncode == 2
+    assert f"{hand}: fingers[0].can_ids.feedback: expected 0x181" in without.stderr
+    done = handctl(*args, "--dbc", str(dbc))
+    assert done.returncode == 2
+    assert done.stderr.startswith(f"handctl: error: {template}: objects[1].name"), done.stderr
