@@ -1384,6 +1384,34 @@ def _run_outcome(report: Any) -> int | None:
     return _run_exit_code(report.result, {})
 
 
+def _refuse_other_file(output: Path, hand: HandConfig) -> None:
+    """``-o`` names a new file, or a calibrated copy of this very hand (a calibration done
+    again): another hand's config or a recipe there was replaced by this hand's, exit 0."""
+    from handctl.schema import load_yaml
+
+    if not output.is_file():
+        return  # new (or not a file at all, which check_writable names)
+    data: dict[str, Any] | None
+    try:
+        data = dict(load_yaml(output).data)
+    except ConfigError:
+        data = None
+    if isinstance(data, dict) and data.get("name") == hand.name and "fingers" in data:
+        return
+    what = (
+        f"the hand config of '{data['name']}'"
+        if isinstance(data, dict) and "fingers" in data and "name" in data
+        else "a file that is not a hand config"
+    )
+    raise ConfigError(
+        "-o",
+        "",
+        f"a new file, or a calibrated copy of '{hand.name}' to write again (an existing "
+        "file of anything else is not replaced)",
+        f"{output}, {what}",
+    )
+
+
 def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     import json
 
@@ -1431,6 +1459,8 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             f"another file than the hand config (--write overwrites {args.hand})",
             str(args.output),
         )
+    if args.output is not None:
+        _refuse_other_file(args.output, hand)
     # before anything starts: a calibration whose result cannot be written is not begun
     written = check_writable(target, "-o" if args.output is not None else "--write")
     if args.json is not None and check_writable(args.json, "--json") in (
@@ -2510,7 +2540,8 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "--output",
         type=_output_path,
         metavar="HAND.yaml",
-        help="where to write the calibrated copy of the hand config",
+        help="where to write the calibrated copy of the hand config: a new file, or an "
+        "earlier calibrated copy of the same hand (nothing else is replaced)",
     )
     tdt.add_argument("--write", action="store_true", help="overwrite the hand config itself")
     tdt.add_argument(

@@ -104,6 +104,31 @@ def test_write_overwrites_the_hand_config_itself(
     assert load_hand(copy).joints[0].tdt.offset != 0.0
 
 
+def test_o_replaces_only_a_calibrated_copy_of_the_same_hand(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """-o over another hand's config or a recipe replaced it with this hand's, exit 0 (only
+    --write is said to overwrite). Refused before any bus opens; a copy of this hand that
+    exists is a calibration done again."""
+    other = tmp_path / "planar.yaml"
+    shutil.copy(ROOT / "config" / "hands" / "planar_2f2j.yaml", other)
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text("recipe: mine\nphases: []\n")
+    for victim, what in ((other, "the hand config of 'planar_2f2j'"), (recipe, "not a hand")):
+        before = victim.read_text()
+        args = ["calibrate", "tdt", "-o", str(victim), "--seconds", "0.2"]
+        assert cli.main(args) == cli.EXIT_BAD_INPUT
+        err = capsys.readouterr().err
+        assert "-o: expected a new file, or a calibrated copy of 'hiroshima_hand'" in err
+        assert what in err
+        assert victim.read_text() == before
+    copy = tmp_path / "copy.yaml"
+    args = ["calibrate", "tdt", "-o", str(copy), "--seconds", "0.2", "--settle", "0.2"]
+    assert cli.main(args) == cli.EXIT_OK
+    assert cli.main(args) == cli.EXIT_OK  # again, over its own copy
+    assert load_hand(copy).name == "hiroshima_hand"
+
+
 def test_write_refuses_the_hand_config_shipped_with_handctl(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
