@@ -39,7 +39,9 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import re
+import stat
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
@@ -73,16 +75,51 @@ MAX_INT_DIGITS = 100
 _EVENT_LOADER: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
-def load_yaml(path: str | Path) -> Doc:
-    """Read a YAML file whose top level is a mapping; every failure is a ``ConfigError``."""
+_NOT_REGULAR = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def read_input(path: str | Path, expected: str, limit: int) -> bytes:
+    """The first ``limit`` + 1 bytes of the input file ``path``, a regular file; anything else
+    is a ``ConfigError`` (``expected`` says what it should have been). It is opened without
+    blocking and looked at before it is read: a FIFO no one writes held a command in its
+    open() for good, deaf to Ctrl-C and SIGTERM (the stop is handled between system calls,
+    and an interrupted open is retried), and a device was read as a file."""
     name = str(path)
     try:
-        with open(path, "rb") as file:
-            data = file.read(MAX_BYTES + 1)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
         raise ConfigError(name, "", "an existing file", "no such file") from None
     except OSError as exc:
-        raise ConfigError(name, "", "a readable UTF-8 file", str(exc)) from None
+        raise ConfigError(name, "", expected, str(exc)) from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = next((what for test, what in _NOT_REGULAR if test(mode)), "no file")
+            raise ConfigError(name, "", f"a regular file ({expected})", _Text(kind))
+        os.set_blocking(fd, True)
+    except OSError as exc:
+        os.close(fd)
+        raise ConfigError(name, "", expected, str(exc)) from None
+    except BaseException:
+        os.close(fd)
+        raise
+    with os.fdopen(fd, "rb") as file:
+        try:
+            return file.read(limit + 1)
+        except OSError as exc:
+            raise ConfigError(name, "", expected, str(exc)) from None
+
+
+def load_yaml(path: str | Path) -> Doc:
+    """Read a YAML file whose top level is a mapping; every failure is a ``ConfigError``."""
+    name = str(path)
+    data = read_input(path, "a readable UTF-8 file", MAX_BYTES)
     if len(data) > MAX_BYTES:
         raise ConfigError(
             name, "", f"a file of at most {MAX_BYTES} bytes", _Text(f"more than {MAX_BYTES} bytes")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import math
+import os
 import re
 import tracemalloc
 from pathlib import Path
@@ -474,3 +475,26 @@ def test_a_name_with_a_control_character_is_refused(
         load_hand(path) if document == "hand" else load_recipe(path, hand)
     assert info.value.key == key
     assert "a name of printable characters" in info.value.expected
+
+
+def test_an_input_that_is_not_a_regular_file_is_refused_without_waiting_on_it(
+    tmp_path: Path,
+) -> None:
+    """A FIFO no one writes held ``run recipe FIFO`` in its open() for good, deaf to Ctrl-C
+    and SIGTERM; a directory said only 'Is a directory'. Refused at once, the kind named (run
+    in a subprocess, so that a regression is a timeout, not a hung suite)."""
+    fifo = tmp_path / "recipe.yaml"
+    os.mkfifo(fifo)
+    cases = [
+        (["run", "recipe", str(fifo)], f"{fifo}: expected a regular file", "a FIFO (named pipe)"),
+        (["run", "recipe", str(tmp_path)], f"{tmp_path}: expected a regular file", "a directory"),
+        (["run", "recipe", os.devnull], "expected a regular file", "a character device"),
+    ]
+    for args, said, kind in cases:
+        done = handctl(*args, timeout=60)
+        assert done.returncode == 2, (args, done.stderr)
+        assert said in done.stderr and kind in done.stderr, done.stderr
+        assert "Traceback" not in done.stderr
+    with pytest.raises(ConfigError) as err:
+        load_yaml(tmp_path)
+    assert (err.value.key, err.value.found) == ("", "a directory")
