@@ -77,7 +77,31 @@ def parse_spec(
             interface,
         )
     check_channel(interface, channel, "--bus", "channel")
+    if interface == "unix":
+        _check_unix_directory(channel)
     return BusSpec(interface, channel)
+
+
+def _check_unix_directory(channel: str) -> None:
+    """A ``--bus unix:DIRECTORY`` whose directory cannot be the bus's, said as the bad input it
+    is (it was a bus error, exit 4, from the bus's opening). Only for a spec given now: a hand
+    config's or a recording's bus is checked where it is opened, on the machine it runs on."""
+    path = Path(channel)
+    if not path.parent.is_dir():
+        raise ConfigError(
+            "--bus",
+            "channel",
+            f"a directory in an existing one (the bus makes its own directory, not those "
+            f"above it: {path.parent} is not a directory)",
+            channel,
+        )
+    if path.exists() and not path.is_dir():
+        raise ConfigError(
+            "--bus",
+            "channel",
+            "a directory (each participant's socket is made in it)",
+            f"{channel}: not a directory",
+        )
 
 
 def check_channel(interface: str, channel: str, source: str, key: str) -> None:

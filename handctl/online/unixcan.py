@@ -119,6 +119,11 @@ class UnixDatagramBus(can.BusABC):
                 f"unix bus directory {channel!r}: expected a directory in an existing one "
                 f"({self.directory.parent} is not a directory)"
             )
+        if self.directory.exists() and not self.directory.is_dir():
+            raise ValueError(
+                f"unix bus directory {channel!r}: expected a directory (each participant's "
+                "socket is made in it), found another kind of file"
+            )
         self.directory.mkdir(exist_ok=True)
         self.channel_info = f"unix:{channel}"
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

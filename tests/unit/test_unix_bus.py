@@ -519,14 +519,41 @@ def test_a_bus_directory_in_a_missing_one_is_refused_and_nothing_is_made(
 ) -> None:
     """The bus makes its own directory, not the ones above it: a mistyped path made a whole
     tree, and the run then waited out its start-up for nodes no one would put there."""
-    from handctl.errors import BusError
+    from handctl.errors import ConfigError
+    from handctl.online.unixcan import UnixDatagramBus
 
     missing = tmp_path / "typo" / "bus"
-    with pytest.raises(BusError, match="expected a directory in an existing one"):
+    with pytest.raises(ConfigError, match="expected a directory in an existing one"):
         open_bus(f"unix:{missing}", hand.bus)
+    with pytest.raises(ValueError, match="expected a directory in an existing one"):
+        UnixDatagramBus(str(missing))  # as python-can opens it
     assert not (tmp_path / "typo").exists()
     with open_bus(f"unix:{tmp_path / 'bus'}", hand.bus):
         assert (tmp_path / "bus").is_dir()
+
+
+def test_a_bus_spec_whose_directory_cannot_be_the_bus_s_is_bad_input(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """--bus unix:/nonexistent/dir and --bus unix:A_FILE were bus errors (exit 4, the second a
+    bare FileExistsError): bad input, said against --bus before anything opens."""
+    from handctl.errors import ConfigError
+    from handctl.online.busspec import parse_spec
+    from handctl.online.unixcan import UnixDatagramBus
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    for channel, said in (
+        (tmp_path / "typo" / "bus", f"{tmp_path / 'typo'} is not a directory"),
+        (afile, "not a directory"),
+    ):
+        with pytest.raises(ConfigError) as err:
+            parse_spec(f"unix:{channel}", hand.bus, "test")
+        assert (err.value.file, err.value.key) == ("--bus", "channel")
+        assert said in str(err.value)
+    with pytest.raises(ValueError, match=r"expected a directory .* found another kind of file"):
+        UnixDatagramBus(str(afile))  # as python-can opens it
+    assert parse_spec(f"unix:{tmp_path / 'bus'}", hand.bus, "test").channel == str(tmp_path / "bus")
 
 
 def test_an_endpoint_name_left_behind_is_passed_over_and_too_many_are_said(
