@@ -200,7 +200,7 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
     )
     finger_docs = doc.mappings("fingers", min_len=1, max_len=len(NODE_IDS))
     fingers = tuple(_parse_finger(f) for f in finger_docs)
-    safety = _parse_safety(doc.mapping("safety", default={}))
+    safety = _parse_safety(doc.mapping("safety", default={}), bus.loop_rate_hz)
     sim_raw = doc.raw("sim", None)
     if doc.has("sim") and protocol is None and (sim_raw is None or sim_raw == {}):
         # read as no section at all, then a run on the simulated hand said "the key is
@@ -268,8 +268,15 @@ def _check_misses_before_watchdog(doc: Doc, hand: HandConfig) -> None:
         )
 
 
-def _parse_safety(doc: Doc) -> SafetyConfig:
+def _parse_safety(doc: Doc, loop_rate_hz: float) -> SafetyConfig:
     d = SafetyConfig()
+    # the default stop on missed ticks comes before the nodes' watchdog at any loop rate the
+    # bus section allows: a 250 Hz hand was refused for a 3 it never wrote
+    # (``_check_misses_before_watchdog``); a value written is held to it as it is
+    misses = most_misses_before_watchdog(loop_rate_hz)
+    default_misses = (
+        min(d.max_consecutive_misses, misses) if misses >= 1 else d.max_consecutive_misses
+    )
     s = SafetyConfig(
         feedback_timeout_s=doc.number(
             "feedback_timeout_s", default=d.feedback_timeout_s, min=0.001, max=1.0, unit="s"
@@ -307,7 +314,7 @@ def _parse_safety(doc: Doc) -> SafetyConfig:
             "enable_timeout_s", default=d.enable_timeout_s, min=0.005, max=10.0, unit="s"
         ),
         max_consecutive_misses=doc.integer(
-            "max_consecutive_misses", default=d.max_consecutive_misses, min=1, max=100
+            "max_consecutive_misses", default=default_misses, min=1, max=100
         ),
         max_consecutive_send_failures=doc.integer(
             "max_consecutive_send_failures", default=d.max_consecutive_send_failures, min=1, max=100

@@ -749,6 +749,20 @@ def test_the_host_stops_on_missed_ticks_before_the_nodes_watchdog(
     assert load_hand(path).safety.max_consecutive_misses == doc["safety"]["max_consecutive_misses"]
 
 
+@pytest.mark.parametrize(("rate", "default"), [(250.0, 1), (400.0, 2), (499.0, 2), (1000.0, 3)])
+def test_the_default_stop_on_missed_ticks_fits_the_loop_rate(
+    tmp_path: Path, rate: float, default: int
+) -> None:
+    """A 250-499 Hz hand without max_consecutive_misses was refused for the default 3 it never
+    wrote; the default is now the most its rate allows, up to 3."""
+    doc = yaml.safe_load(HAND_YAML.read_text(encoding="utf-8"))
+    doc["bus"]["loop_rate_hz"] = rate
+    doc.get("safety", {}).pop("max_consecutive_misses", None)
+    path = tmp_path / "hand.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    assert load_hand(path).safety.max_consecutive_misses == default
+
+
 def test_a_key_that_is_no_string_is_refused_before_anything_is_hashed(tmp_path: Path) -> None:
     """The hash of the config as written was taken before the reading refused a key that is
     no string, and its sort raised a TypeError (the loader fuzz found it)."""
