@@ -1777,7 +1777,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     if not on_tty:
         # on the clock the snapshots before it took: at the last frame's time it was earlier
         # than the one before, and every rate came out as none
-        emit(view.snapshot(time.monotonic_ns()))
+        emit(view.snapshot(time.monotonic_ns(), whole=True))
     return EXIT_OK
 
 
@@ -1816,7 +1816,7 @@ def _monitor_log(
         if not on_tty and t_ns >= next_ns:
             emit(view.snapshot(t_ns))
             next_ns += step
-    final = view.snapshot()
+    final = view.snapshot(whole=True)
     if on_tty:
         from rich.console import Console
 

@@ -96,16 +96,19 @@ class BusView:
             self.bus_events[kind] += 1
             self.last_event[kind] = event.detail
 
-    def snapshot(self, now_ns: int | None = None) -> dict[str, Any]:
-        """The view as JSON-ready data; rates are over the time since the previous snapshot."""
+    def snapshot(self, now_ns: int | None = None, *, whole: bool = False) -> dict[str, Any]:
+        """The view as JSON-ready data; rates are over the time since the previous snapshot,
+        or with ``whole`` over all of it since the first frame: the last snapshot's, which
+        came a moment after the one before (``--seconds`` a multiple of ``--every``) and
+        said every rate was 0."""
         now = self.last_ns if now_ns is None else now_ns
-        since = self._snapshot_ns
+        since = self.first_ns if whole else self._snapshot_ns
         span_s = (now - since) * 1e-9 if now is not None and since is not None else 0.0
         self._snapshot_ns = now
         messages = []
         for fid in sorted(self.messages):
             stats = self.messages[fid]
-            new = stats.frames - stats.frames_at_snapshot
+            new = stats.frames if whole else stats.frames - stats.frames_at_snapshot
             stats.frames_at_snapshot = stats.frames
             layout = stats.layout
             messages.append(

@@ -152,6 +152,10 @@ def test_it_reads_the_frames_of_a_recording(
     command = messages["TorqueCommand_1"]
     assert command["rejects"] == {} and command["values"]["Torque1"] == 0.0  # ends at zero
     assert messages["Feedback_3"]["frames"] > 100 and messages["NodeCommand_2"]["frames"] >= 2
+    # the last snapshot's rates are over the whole log: over the moment since the one before
+    # they were 0 (or none) whenever that was a moment
+    feedback = messages["Feedback_3"]
+    assert feedback["rate_hz"] == pytest.approx(feedback["frames"] / lines[-1]["t_s"], rel=0.01)
     assert "warning" not in capsys.readouterr().err
     # cut short (a crash mid-run): the frames up to there, and said, as replay says it
     with log.open("r+b") as handle:
