@@ -471,7 +471,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     from handctl.online.clock import Hygiene
     from handctl.online.recipes.loader import load_recipe
     from handctl.outfile import check_log_target
-    from handctl.session import RunRequest, run_recipe
+    from handctl.session import RunRequest, interrupted_summary, run_recipe
 
     _positive_seconds("--max-seconds", args.max_seconds)
     _output_file("--summary-json", args.summary_json)
@@ -540,7 +540,14 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
             "this run's replaces it",
             file=sys.stderr,
         )
-    report = run_recipe(request, status=status, signals=signals)
+    try:
+        report = run_recipe(request, status=status, signals=signals)
+    except KeyboardInterrupt as exc:
+        # a stop signal during the start-up: the summary asked for says so (there was none)
+        if args.summary_json:
+            text = json.dumps(interrupted_summary(request, str(exc)), indent=2) + "\n"
+            _write_output("--summary-json", args.summary_json, text)
+        raise
     if status is not None:
         print(file=sys.stderr)
     for warning in report.warnings:

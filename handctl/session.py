@@ -268,6 +268,9 @@ def run_recipe(
         )
         if recording is not None:
             recorder = recording
+            # unwound before the recorder's own exit: a start-up a signal ended finishes the
+            # log with a summary that says so (it was a log of 'no summary', as if cut short)
+            stack.push(_summary_if_interrupted(recording, req))
         signals.checkpoint()
         estimator = (
             ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
@@ -555,6 +558,31 @@ def _plot(summary: dict[str, Any], req: RunRequest, warnings: list[str]) -> None
         return
     plot_log(Path(recorded["path"]), req.plot)
     summary["plot"] = {"path": str(req.plot)}
+
+
+def interrupted_summary(req: RunRequest, why: str) -> dict[str, Any]:
+    """The summary of a run a stop signal ended before its runtime ran (at a start-up
+    checkpoint): nothing was sent to the hand, no tick ran."""
+    return {
+        "recipe": req.recipe.name,
+        "hand": req.hand.name,
+        "outcome": "interrupted",
+        "message": f"{why or 'interrupted'} during the start-up, before the first tick: "
+        "nothing was sent to the hand",
+        "ticks": 0,
+    }
+
+
+def _summary_if_interrupted(
+    recording: Recorder, req: RunRequest
+) -> Callable[[type[BaseException] | None, BaseException | None, object], bool]:
+    def finish(kind: object, exc: BaseException | None, tb: object) -> bool:
+        if isinstance(exc, KeyboardInterrupt) and not recording.closed:
+            with suppress(HandctlError):  # said by the recorder's own exit
+                recording.close(interrupted_summary(req, str(exc)))
+        return False
+
+    return finish
 
 
 def _close_recording(

@@ -8,6 +8,7 @@ hit wherever the start-up happened to be."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 from collections.abc import Callable
@@ -41,8 +42,12 @@ STEPS: list[tuple[Any, str, signal.Signals]] = [
 
 
 def _replays(log: Path) -> None:
+    """The log reads, and says the run was interrupted (it said 'unknown (the log has no
+    summary)', as a log cut short does)."""
     done = handctl("replay", str(log), timeout=120)
     assert done.returncode == 0, done.stderr
+    first = done.stdout.splitlines()[0]
+    assert "interrupted" in first and "no summary" not in first, first
 
 
 @pytest.mark.parametrize(
@@ -114,26 +119,26 @@ if point:
 
 
 @pytest.mark.parametrize(
-    ("point", "logged"),
+    ("point", "logged", "summarised"),
     [
         # The command line module loading, before handctl.cli.main has taken the signals
         # over: Python's own Ctrl-C (a traceback), SIGTERM's default (the process killed).
-        ("import handctl.cli", False),
-        # The run's modules loading, the configs not yet read: the command stops before the
-        # log. CPython exits by SIGINT, whatever exit code was chosen, after an interrupt
-        # escaped code that ``exec`` compiled (``python -m`` only).
-        ("exec-in handctl.session", False),
+        ("import handctl.cli", False, False),
+        # The run's modules loading: the command stops at the run's first step, before the
+        # log (its summary says so). CPython exits by SIGINT, whatever exit code was chosen,
+        # after an interrupt escaped code that ``exec`` compiled (``python -m`` only).
+        ("exec-in handctl.session", False, True),
         # orjson's initialisation imports uuid and crashes the process if that import fails:
         # every command loads orjson first, with the signals held back, so the signal comes
         # right after it, before anything else
-        ("import uuid", False),
+        ("import uuid", False, False),
         # the simulated hand starting, the log open
-        ("import mujoco", True),
+        ("import mujoco", True, True),
     ],
 )
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_a_signal_inside_the_start_up_code_is_an_interrupt(
-    tmp_path: Path, point: str, logged: bool, sig: signal.Signals
+    tmp_path: Path, point: str, logged: bool, summarised: bool, sig: signal.Signals
 ) -> None:
     (tmp_path / "sitecustomize.py").write_text(SITECUSTOMIZE)
     log = tmp_path / "run.mcap"
@@ -146,6 +151,8 @@ def test_a_signal_inside_the_start_up_code_is_an_interrupt(
         str(log),
         "--max-seconds",
         "1",
+        "--summary-json",
+        str(tmp_path / "summary.json"),
         env={"PYTHONPATH": path, "HANDCTL_TEST_SIGNAL": f"{point} {sig.name}"},
         timeout=300,
     )
@@ -153,8 +160,14 @@ def test_a_signal_inside_the_start_up_code_is_an_interrupt(
     assert done.stderr.strip().splitlines()[-1] == "handctl: interrupted", done.stderr
     assert "Traceback" not in done.stderr
     assert log.exists() is logged
+    # once the run's start-up has begun, the summary asked for is written, and says so
+    assert (tmp_path / "summary.json").exists() is summarised
     if logged:
         _replays(log)
+    if summarised:
+        summary = json.loads((tmp_path / "summary.json").read_text())
+        assert summary["outcome"] == "interrupted" and summary["ticks"] == 0
+        assert f"signal {sig.name} during the start-up" in summary["message"]
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
