@@ -462,7 +462,15 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
     # The run's stop signals before anything else: a signal while the modules of a run load
     # (most of a second, more on a busy machine) is taken once they have, not inside one.
     with StopSignals() as signals:
-        return _run_recipe_under(args, signals)
+        code = _run_recipe_under(args, signals)
+    if signals.ignored:
+        # taken, not lost: a SIGTERM that exited 0 without a word looked unheard
+        print(
+            f"handctl: {', '.join(dict.fromkeys(signals.ignored))} came after the hand had "
+            "stopped, while the run's log and summary were finished: they were finished first",
+            file=sys.stderr,
+        )
+    return code
 
 
 def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:

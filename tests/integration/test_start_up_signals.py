@@ -186,3 +186,26 @@ def test_a_signal_inside_orjsons_loading_is_an_interrupt_for_any_command(
     )
     assert done.returncode == 130, done.stderr
     assert done.stderr.strip().splitlines()[-1] == "handctl: interrupted", done.stderr
+
+
+def test_a_signal_after_the_hand_has_stopped_is_said_and_the_run_finishes(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A SIGTERM while the summary was being made (the loop over, the hand stopped) was
+    ignored, as it should be so that the log and summary finish, but said nowhere: the run
+    exited 0 as if it had never come."""
+    from handctl import cli
+
+    original = session.summarise_run
+
+    def signalled(*args: Any, **kwargs: Any) -> Any:
+        signal.raise_signal(signal.SIGTERM)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(session, "summarise_run", signalled)
+    summary = tmp_path / "summary.json"
+    args = ["run", "recipe", str(ROOT / DEFAULT_RECIPE), "--max-seconds", "0.3"]
+    assert cli.main([*args, "--summary-json", str(summary)]) == cli.EXIT_OK
+    err = capsys.readouterr().err
+    assert "handctl: SIGTERM came after the hand had stopped" in err
+    assert json.loads(summary.read_text())["outcome"] == "time_budget"
