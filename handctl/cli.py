@@ -1622,6 +1622,11 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     # refused here, before any bus opens
     jog_recipe(hand, args.joint, args.torque, seconds, args.recover)
     _refuse_a_torque_the_wire_rounds_away(hand, args.joint, args.torque)
+    if args.bus == "sim":
+        from handctl.sim.params import parse_sim
+
+        # a hand without a simulated one was refused under the table's header
+        parse_sim(hand)
     until = " or until it is back inside its soft limits" if args.recover else ""
     print(
         f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on "

@@ -28,7 +28,7 @@ from handctl.online.safety.recovery import RECOVERY_SLACK, Recovery
 from handctl.sim.hand import SIM_RT_PRIORITY, SimulatedHand
 from handctl.sim.params import SimParams, parse_sim
 
-from ..conftest import ROOT
+from ..conftest import HAND_YAML, ROOT
 from .bringup_peer import running_hand
 from .realtime import ATTEMPTS_UNDER_LOAD, REALTIME, give_up, stopped_by_load
 from .rig import Rig, rig
@@ -414,3 +414,18 @@ def test_recover_on_a_bus_from_the_command_line(hand: HandConfig, tmp_path: Path
         assert stopped_by_load(result.stderr), result.stderr
         stopped.append(result.stderr)
     give_up("every attempt was stopped by the machine's load", stopped)
+
+
+def test_a_hand_without_a_simulated_one_is_refused_before_the_table(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """On the simulated hand (the default bus), a hand config without a sim section was
+    refused under the table's header, as if the jog had begun."""
+    doc = yaml.safe_load(HAND_YAML.read_text(encoding="utf-8"))
+    del doc["sim"]
+    path = tmp_path / "nosim.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    assert cli.main(["jog", "f1_j1", "--torque", "0.01", "--hand", str(path)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert f"{path}: sim: expected this key (required)" in captured.err
