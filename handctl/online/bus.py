@@ -30,9 +30,11 @@ period's worth, and ``drain`` reports frames it had to leave in the queue as an
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import enum
 import errno
+import itertools
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -58,6 +60,16 @@ EXTENDED_ID_FLAG = 0x80000000
 EXTENDED_ID_MASK = 0x1FFFFFFF
 #: Frames one burst holds at most on a batching transport before they go anyway (a datagram).
 MAX_BURST = 32
+#: python-can interfaces that hand a process back the frames it sent, unmarked (``is_rx``
+#: True) and unasked: udp_multicast keeps multicast loopback on (its peers on the same
+#: machine hear each other by it) and refuses ``receive_own_messages=False``'s meaning. Their
+#: echoes are taken out by ``HandBus`` (``_EchoFilter``); the host took its own enable for a
+#: second host's (FOREIGN_COMMAND) on every run.
+ECHOING_INTERFACES = frozenset({"udp_multicast"})
+#: Frames sent whose echo is still awaited, at most; and how far into them a frame received
+#: is looked for (an echo the network lost is passed over when a later one comes).
+ECHOES_HELD = 4096
+ECHO_LOOKAHEAD = 64
 
 # Linux error-frame classes (linux/can/error.h), as python-can hands them over.
 _CAN_ERR_CRTL = 0x004
@@ -203,6 +215,29 @@ class FrameBus(Protocol):
     def close(self) -> None: ...
 
 
+class _EchoFilter:
+    """The frames a process sent, awaited back from a bus that echoes them
+    (``ECHOING_INTERFACES``). An echo comes back in the order sent, between other senders'
+    frames; one the network lost is passed over when a later one arrives. A frame of another
+    sender that is byte for byte one this process sent (counter and CRC alike) is taken for
+    its echo: it says nothing this process did not already say."""
+
+    def __init__(self) -> None:
+        self._sent: collections.deque[tuple[int, bytes]] = collections.deque(maxlen=ECHOES_HELD)
+
+    def sent(self, arbitration_id: int, data: bytes) -> None:
+        self._sent.append((arbitration_id, bytes(data)))
+
+    def is_echo(self, arbitration_id: int, data: bytes) -> bool:
+        sent = self._sent
+        for k, frame in enumerate(itertools.islice(sent, ECHO_LOOKAHEAD)):
+            if frame[0] == arbitration_id and frame[1] == data:
+                for _ in range(k + 1):
+                    sent.popleft()
+                return True
+        return False
+
+
 class HandBus:
     """A python-can bus behind a small, never-raising interface for the loop (``FrameBus``)."""
 
@@ -250,6 +285,7 @@ class HandBus:
         self._tapped: list[tuple[int, bytes]] = []
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
+        self._echoes = _EchoFilter() if spec.interface in ECHOING_INTERFACES else None
 
     def prepare_send(self) -> None:
         """Whatever the transport would do on its first send and can do before it (connect to
@@ -289,12 +325,21 @@ class HandBus:
             # An adapter that echoes what this process sent (python-can marks the echo
             # ``is_rx`` False: gs_usb, SocketCAN with its own messages on) hands back the
             # host's own commands, which are neither news of the hand nor another sender's.
-            while received is not None and not received.is_rx:
+            while received is not None and (
+                not received.is_rx or (self._echoes is not None and self._is_echo(received))
+            ):
                 received = self._bus.recv(timeout=0)
             if received is None:
                 return None
             msg, stamp = received, self._arrival_ns(received.timestamp, wall_to_clock_ns)
         return stamp, msg.arbitration_id, ff.flags_of(msg), bytes(msg.data)
+
+    def _is_echo(self, msg: can.Message) -> bool:
+        assert self._echoes is not None
+        frame_id = msg.arbitration_id
+        if msg.is_extended_id:
+            frame_id = (frame_id & EXTENDED_ID_MASK) | EXTENDED_ID_FLAG
+        return self._echoes.is_echo(frame_id, bytes(msg.data))
 
     def _arrival_ns(self, stamp_s: float, wall_to_clock_ns: int) -> int:
         """A wall-clock arrival stamp (s) on this bus's clock; an interface that stamps
@@ -372,6 +417,8 @@ class HandBus:
             return self.flush()
         try:
             if self._send_frame is None:
+                if self._echoes is not None:
+                    self._echoes.sent(arbitration_id, data)
                 self._bus.send(self._message(arbitration_id, data), timeout=0)
             elif arbitration_id & EXTENDED_ID_FLAG:
                 self._send_frame(
