@@ -143,13 +143,13 @@ def _output_dir(text: str) -> Path:
     return Path(text)
 
 
-def _output_file(option: str, path: Path | None) -> None:
+def _output_file(option: str, path: Path | None, *, json_output: bool = False) -> None:
     """An option naming a file to write: refused before any work (a run, a plan) when it
     cannot be written (``outfile.check_writable``), rather than found out at the end."""
     from handctl.outfile import check_writable
 
     if path is not None:
-        check_writable(path, option)
+        check_writable(path, option, json_output=json_output)
 
 
 def _refuse_same_files(outputs: dict[str, Path | None], inputs: dict[str, Path | None]) -> None:
@@ -249,8 +249,8 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
             f"a number of seconds >= {MIN_TIMING_CHECK_S:g} and <= 3600",
             seconds,
         )
-    _output_file("--json", args.json)
     _refuse_same_files({"--json": args.json}, {"HAND.yaml": args.hand})
+    _output_file("--json", args.json, json_output=True)
     hand = _load_checked_hand(args.hand, "HAND.yaml")
     _progress(
         f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for {seconds:g} s ..."
@@ -351,9 +351,9 @@ def _cmd_check(args: argparse.Namespace) -> int:
 def _cmd_analyze_torque_set(args: argparse.Namespace) -> int:
     from handctl.analysis.commands import torque_set_report
 
-    _output_file("--json", args.json)
     _plot_file("--plot", args.plot)
     _refuse_same_files({"--json": args.json, "--plot": args.plot}, {"SCENARIO.yaml": args.scenario})
+    _output_file("--json", args.json, json_output=True)
     if not all(math.isfinite(k) and abs(k) <= MAX_TORQUE_RATIO for k in args.k):
         raise ConfigError(
             "--k", "", f"two finite ratios within ±{MAX_TORQUE_RATIO:g}", " ".join(map(str, args.k))
@@ -493,6 +493,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
             "--sim-faults": args.sim_faults,
         },
     )
+    _output_file("--summary-json", args.summary_json, json_output=True)
     # a FIFO blocked the run in open() for good, deaf to Ctrl-C; a device lost the log
     replaces_log = args.log is not None and check_log_target(args.log, "--log")
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
@@ -922,11 +923,11 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     _positive_seconds("--seconds", args.seconds)
     # the ground truth is written after the whole run: a path that cannot take it is said
     # now, not found out at the end with the run done for nothing
-    _output_file("--summary-json", args.summary_json)
     _refuse_same_files(
         {"--summary-json": args.summary_json},
         {"--hand": args.hand, "--dbc": args.dbc, "--faults": args.faults},
     )
+    _output_file("--summary-json", args.summary_json, json_output=True)
     # Ctrl-C, the host's SIGINT and SIGTERM (also the parent-death signal) end the hand
     # cleanly with its summary, even when this process inherited them ignored or blocked, as
     # a script's background jobs do.
@@ -1143,6 +1144,7 @@ def _check_replay_options(args: argparse.Namespace) -> None:
         {"--json": args.json, "--plot": args.plot, "--export": export},
         {"the recording": Path(args.log), "--hand": args.hand, "--dbc": args.dbc},
     )
+    _output_file("--json", args.json, json_output=True)
 
 
 def _startup_repeated(result: RerunReport) -> bool:
@@ -1478,7 +1480,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
         _refuse_other_file(args.output, hand)
     # before anything starts: a calibration whose result cannot be written is not begun
     written = check_writable(target, "-o" if args.output is not None else "--write")
-    if args.json is not None and check_writable(args.json, "--json") in (
+    if args.json is not None and check_writable(args.json, "--json", json_output=True) in (
         written,
         args.hand.resolve(),
     ):

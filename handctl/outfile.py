@@ -17,7 +17,9 @@ from pathlib import Path
 from handctl.errors import ConfigError
 
 
-def check_writable(path: Path, option: str, *, recording: bool = False) -> Path:
+def check_writable(
+    path: Path, option: str, *, recording: bool = False, json_output: bool = False
+) -> Path:
     """The file ``path`` names, resolved (a symlink is written through, not replaced), if a
     new version of it can be put there: its directory exists and may be written, and the file,
     if it exists, is a file that may be written (a read-only hand config stays as it is) and,
@@ -45,7 +47,33 @@ def check_writable(path: Path, option: str, *, recording: bool = False) -> Path:
         raise ConfigError(
             option, "", "a file that is not a run's recording (it would replace the log)", path
         )
+    if json_output and not _json_or_nothing(target):
+        # a summary written over a hand config or a recipe replaced it, exit 0
+        raise ConfigError(
+            option,
+            "",
+            "a new file, or an earlier JSON output to write again (an existing file that is "
+            "not JSON, a hand config or a recipe say, is not replaced)",
+            f"{path}: an existing file that is not JSON",
+        )
     return target
+
+
+def _json_or_nothing(target: Path) -> bool:
+    """Whether ``target`` is absent, empty, or JSON: what a JSON output may replace."""
+    import json
+
+    try:
+        text = target.read_bytes()
+    except OSError:  # not there (yet), or not readable (said when it is written)
+        return True
+    if not text.strip():
+        return True
+    try:
+        json.loads(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _is_recording(target: Path) -> bool:

@@ -167,3 +167,44 @@ def test_no_other_output_replaces_a_recording(tmp_path: Path) -> None:
     assert str(info.value).startswith("-o: expected a file that is not a run's recording")
     assert check_writable(log, "--log", recording=True) == log.resolve()
     assert log.read_bytes() == MAGIC + b"a run's recording"
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["check", "--timing", "--seconds", "0.1", "--json", "{f}"],
+        ["run", "recipe", "config/recipes/swap_two_cylinders.yaml", "--summary-json", "{f}"],
+        ["calibrate", "tdt", "-o", "{o}", "--json", "{f}"],
+        [
+            "analyze",
+            "torque-set",
+            "config/analysis/paper_fig3.yaml",
+            "--k",
+            "1",
+            "1",
+            "--json",
+            "{f}",
+        ],
+    ],
+)
+def test_a_json_output_replaces_only_json(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: list[str]
+) -> None:
+    """A summary or a report written over another hand's config or a recipe replaced it,
+    exit 0 (only recordings were kept from it). Refused before any work; an earlier JSON
+    output, or an empty file, is written again."""
+    from handctl import cli
+
+    victim = tmp_path / "other_hand.yaml"
+    shutil.copy(ROOT / "config" / "hands" / "planar_2f2j.yaml", victim)
+    before = victim.read_text()
+    args = [a.format(f=victim, o=tmp_path / "cal.yaml") for a in command]
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "expected a new file, or an earlier JSON output to write again" in err
+    assert "an existing file that is not JSON" in err
+    assert victim.read_text() == before and not (tmp_path / "cal.yaml").exists()
+    earlier = tmp_path / "earlier.json"
+    for text in ('{"outcome": "done"}\n', ""):
+        earlier.write_text(text)
+        check_writable(earlier, "--json", json_output=True)
