@@ -108,6 +108,8 @@ class JogSink:
         self.end_angle: float | None = None
         self.max_abs_tdt = 0.0
         self._first_tick: int | None = None
+        #: the last tick's line if it was not shown: shown at the end (``finish``)
+        self._unshown: JogLine | None = None
 
     def begin_tick(self, tick: Tick) -> None:
         pass
@@ -126,20 +128,29 @@ class JogSink:
             self.max_abs_tdt = max(self.max_abs_tdt, abs(tdt))
         new_phase = record.phase != self._phase
         self._phase = record.phase
-        if self.show is not None and (
-            new_phase or (record.tick - self._first_tick) % self.every == 0
-        ):
-            self.show(
-                JogLine(
-                    (record.tick - self._first_tick) * self.period_s,
-                    record.phase,
-                    record.state,
-                    float(record.desired[j]),
-                    float(record.applied[j]),
-                    angle,
-                    tdt,
-                )
-            )
+        if self.show is None:
+            return
+        line = JogLine(
+            (record.tick - self._first_tick) * self.period_s,
+            record.phase,
+            record.state,
+            float(record.desired[j]),
+            float(record.applied[j]),
+            angle,
+            tdt,
+        )
+        if new_phase or (record.tick - self._first_tick) % self.every == 0:
+            self._unshown = None
+            self.show(line)
+        else:
+            self._unshown = line
+
+    def finish(self) -> None:
+        """Show the last tick's line if it was not: a stop (Ctrl-C, a fault) ended the table
+        on a line of the jog's torque, and never showed it back at zero."""
+        if self.show is not None and self._unshown is not None:
+            self.show(self._unshown)
+            self._unshown = None
 
 
 def joint_index(hand: HandConfig, joint: str) -> int:
@@ -247,6 +258,7 @@ def jog(
         ),
         recorder=sink,
     )
+    sink.finish()
     return JogReport(
         report, joint, torque, sink.start_angle, sink.end_angle, sink.max_abs_tdt, recovery
     )

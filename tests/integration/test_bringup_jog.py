@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -429,3 +430,13 @@ def test_a_hand_without_a_simulated_one_is_refused_before_the_table(
     captured = capsys.readouterr()
     assert captured.out == ""
     assert f"{path}: sim: expected this key (required)" in captured.err
+
+
+def test_the_table_ends_on_the_torque_back_at_zero_after_a_stop(hand: HandConfig) -> None:
+    """A safety stop (and a Ctrl-C) ended the table on a line of the fault ramp, the torque
+    still on: the operator never saw it back at zero, which the bus had."""
+    lines: list[Any] = []
+    report = jog(hand, "f1_j1", 0.6, seconds=1.0, show=lines.append)
+    assert report.report.result.outcome is Outcome.SAFETY_STOP
+    assert lines[-1].applied == 0.0 and lines[-1].state == "faulted"
+    assert any(line.applied > 0.1 for line in lines)
