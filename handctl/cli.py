@@ -194,7 +194,12 @@ def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
 
     on_sim = parse_spec(args.bus, hand.bus, hand.source).interface == "sim"
     if not on_sim:
-        for option, value in (("--seed", args.seed), ("--sim-faults", args.sim_faults)):
+        sim_cpu = getattr(args, "sim_cpu", None)
+        for option, value in (
+            ("--seed", args.seed),
+            ("--sim-faults", args.sim_faults),
+            ("--sim-cpu", sim_cpu),  # no simulated hand's process to place
+        ):
             if value is not None:
                 raise ConfigError(
                     option,
@@ -248,6 +253,15 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
             "",
             f"a number of seconds >= {MIN_TIMING_CHECK_S:g} and <= 3600",
             seconds,
+        )
+    if args.no_rt and args.loop_cpu is not None:
+        # as a run refuses --loop-cpu without --rt: the CPU is where SCHED_FIFO pins the loop
+        raise ConfigError(
+            "--loop-cpu",
+            "",
+            "no --no-rt (the CPU is the one --rt pins the loop to; without it the loop runs "
+            "where the scheduler puts it)",
+            f"--loop-cpu {args.loop_cpu} --no-rt",
         )
     _refuse_same_files({"--json": args.json}, {"HAND.yaml": args.hand})
     _output_file("--json", args.json, json_output=True)

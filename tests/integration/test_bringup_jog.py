@@ -194,6 +194,17 @@ def test_an_option_of_the_simulated_hand_on_another_bus_is_refused_before_anythi
     assert heard == []
 
 
+def test_sim_cpu_on_another_bus_is_refused(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``run --sim-cpu N --rt`` on a bus with no simulated hand placed nothing, without a
+    word."""
+    recipe = str(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")
+    args = ["run", "recipe", recipe, "--sim-cpu", "0", "--rt", "--bus", f"virtual:{channel}"]
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    assert "--sim-cpu: expected the simulated hand (--bus sim)" in capsys.readouterr().err
+
+
 def test_a_missing_node_stops_it_at_start_up(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -193,3 +193,13 @@ def test_an_option_of_the_other_check_is_refused(
     assert cli.main(words) == cli.EXIT_BAD_INPUT
     assert f"{option}: expected the check it belongs to" in capsys.readouterr().err
     assert not (tmp_path / "t.json").exists()
+
+
+def test_the_timing_check_refuses_a_loop_cpu_it_would_not_use(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``check --timing --loop-cpu 0 --no-rt`` ran where the scheduler put it, as if on CPU 0
+    (a run refuses --loop-cpu without --rt)."""
+    args = ["check", "--timing", "--seconds", "0.1", "--loop-cpu", "0", "--no-rt"]
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    assert "--loop-cpu: expected no --no-rt" in capsys.readouterr().err
