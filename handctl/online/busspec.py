@@ -176,11 +176,13 @@ def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:
 
 def socketcan_setup_command(channel: str, bus_config: BusConfig) -> str:
     """The `ip link` command that brings a SocketCAN interface up with the hand's bit rates,
-    the channel quoted for a shell (it is pasted into one, ``shell_word``)."""
+    the channel quoted for a shell (it is pasted into one, ``shell_word``); with the
+    controller's own restart 100 ms after a bus-off, as docs/bringup.md sets it up (the
+    host's supervisor stops the run on the bus-off either way)."""
     cmd = f"sudo ip link set {shell_word(channel)} up type can bitrate {bus_config.bitrate}"
     if bus_config.fd:
         cmd += f" dbitrate {bus_config.data_bitrate} fd on"
-    return cmd
+    return cmd + " restart-ms 100"
 
 
 def shell_word(name: str) -> str:

@@ -66,10 +66,10 @@ def test_other_adapters_get_both_bitrates(hand: HandConfig) -> None:
 
 def test_socketcan_setup_command(hand: HandConfig) -> None:
     assert socketcan_setup_command("can1", hand.bus) == (
-        "sudo ip link set can1 up type can bitrate 1000000 dbitrate 5000000 fd on"
+        "sudo ip link set can1 up type can bitrate 1000000 dbitrate 5000000 fd on restart-ms 100"
     )
     classic = replace(hand.bus, fd=False, data_bitrate=None)
-    assert socketcan_setup_command("can1", classic).endswith("bitrate 1000000")
+    assert socketcan_setup_command("can1", classic).endswith("bitrate 1000000 restart-ms 100")
 
 
 def test_socketcan_check_against_a_sysfs_tree(hand: HandConfig, tmp_path: Path) -> None:
