@@ -131,6 +131,11 @@ def _output_path(text: str) -> Path:
     the system would have refused a file name that is a directory's."""
     if text.endswith(os.sep) or (os.altsep is not None and text.endswith(os.altsep)):
         raise argparse.ArgumentTypeError(f"expected a file name, found {text!r} (a directory's)")
+    if text in ("", "-"):
+        # '' was the current directory ('.'), '-' a file of that name where standard output
+        # was meant: neither is written
+        why = "an empty name" if not text else "standard output is not written to: give a file"
+        raise argparse.ArgumentTypeError(f"expected a file name, found {text!r} ({why})")
     return Path(text)
 
 

@@ -137,6 +137,27 @@ def test_an_output_named_as_a_directory_is_bad_input(
     assert kept.read_bytes() == b"an earlier run\n"
 
 
+@pytest.mark.parametrize(("name", "why"), [("-", "standard output is not"), ("", "an empty")])
+def test_an_output_named_dash_or_nothing_is_bad_input(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    name: str,
+    why: str,
+) -> None:
+    """``--json -`` wrote a file named '-' where standard output was meant, and ``--json ''``
+    was said as '.'."""
+    from handctl import cli
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["check", "--timing", "--seconds", "0.1", "--json", name])
+    assert stop.value.code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert f"argument --json: expected a file name, found {name!r} ({why}" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_recording_replaces_only_a_recording_or_nothing(tmp_path: Path) -> None:
     """A hand config given as --log, or reached through a symlink named like a log, was
     replaced by MCAP data; a log over a log (the same run again) is said, not refused."""
