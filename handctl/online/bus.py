@@ -574,6 +574,18 @@ class HandBus:
             self._event(BusEventKind.ERROR_FRAME, f"error class 0x{cls:X}")
 
 
+def _errno_of(exc: BaseException) -> int | None:
+    """The errno of ``exc`` or of what it was raised from (python-can wraps an OSError)."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno is not None:
+            return exc.errno
+        code = getattr(exc, "error_code", None)
+        if isinstance(code, int):
+            return code
+        exc = exc.__cause__ or exc.__context__  # type: ignore[assignment]
+    return None
+
+
 def open_bus(
     spec: str | BusSpec, bus_config: BusConfig, options: dict[str, Any] | None = None
 ) -> HandBus:
@@ -604,7 +616,13 @@ def open_bus(
         # A third-party backend raises what it likes: kvaser without its library a
         # NameError, socketcand without host and port a TypeError. Each is this bus not
         # opening, said with the spec; an interrupt (not an Exception) still interrupts.
+        hint = ""
+        if parsed.interface == "socketcan" and _errno_of(exc) == errno.EAFNOSUPPORT:
+            hint = (
+                ": this kernel has no SocketCAN (AF_CAN); load its modules "
+                "(sudo modprobe can_raw) or run on a kernel built with them"
+            )
         raise BusError(
-            f"{parsed}: cannot open the bus: {type(exc).__name__}: {escaped(str(exc))}"
+            f"{parsed}: cannot open the bus: {type(exc).__name__}: {escaped(str(exc))}{hint}"
         ) from None
     return HandBus(bus, parsed, bus_config.fd)

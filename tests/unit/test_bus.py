@@ -281,3 +281,26 @@ def test_an_interface_that_is_not_can_is_named_as_such(hand: HandConfig, tmp_pat
         check_socketcan("lo", hand.bus, sysfs=tmp_path)
     (tmp_path / "lo" / "type").write_text("280\n")
     check_socketcan("lo", hand.bus, sysfs=tmp_path)
+
+
+def test_a_kernel_without_socketcan_is_said_with_what_to_do(
+    hand: HandConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Past the interface checks (sysfs), the socket itself failed with a bare 'Address
+    family not supported by protocol'. Run where the kernel has no AF_CAN (as here); on a
+    kernel with it the failure cannot be made."""
+    import errno
+    import socket
+
+    from handctl.online import bus as bus_module
+
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except OSError as exc:
+        if exc.errno != errno.EAFNOSUPPORT:
+            raise
+    else:
+        pytest.skip("this kernel has SocketCAN")
+    monkeypatch.setattr(bus_module, "check_socketcan", lambda *args, **kwargs: None)
+    with pytest.raises(BusError, match=r"this kernel has no SocketCAN \(AF_CAN\); load its"):
+        open_bus("socketcan:can0", hand.bus)
