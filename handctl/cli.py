@@ -1525,8 +1525,15 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
         )
     measure = _seconds_or(args.seconds, 1.0)
     settle = 2.0 if args.settle is None else args.settle
-    if not 0 <= settle < 1e6:
-        raise ConfigError("--settle", "", "a time in seconds >= 0", settle)
+    from handctl.online.recipes.schema import MAX_PHASE_S
+
+    if not 0 <= settle <= MAX_PHASE_S:  # a phase of the calibration's recipe, as long as any
+        raise ConfigError(
+            "--settle",
+            "",
+            f"a time in seconds from 0 to {MAX_PHASE_S:g} (a phase's longest)",
+            settle,
+        )
     text = args.hand.read_text(encoding="utf-8")
     calibration = calibrate_tdt(
         hand,

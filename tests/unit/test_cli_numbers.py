@@ -203,3 +203,13 @@ def test_the_timing_check_refuses_a_loop_cpu_it_would_not_use(
     args = ["check", "--timing", "--seconds", "0.1", "--loop-cpu", "0", "--no-rt"]
     assert cli.main(args) == cli.EXIT_BAD_INPUT
     assert "--loop-cpu: expected no --no-rt" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("settle", ["-1", "3601", "1e6"])
+def test_calibrate_says_the_settle_it_takes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], settle: str
+) -> None:
+    """It said 'a time in seconds >= 0' of 1e6: the bound it kept was not the one it said."""
+    args = ["calibrate", "tdt", "-o", str(tmp_path / "c.yaml"), "--settle", settle]
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    assert "--settle: expected a time in seconds from 0 to 3600" in capsys.readouterr().err
