@@ -762,6 +762,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from handctl.progress import Progress, close_active, say
 
     _output_file("-o", args.output)
+    _refuse_other_than_a_recipe(args.output)
     if args.plot is not None:
         from handctl.outfile import check_directory
 
@@ -818,6 +819,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     command = shlex.join(
         ["handctl", "plan", str(args.template), "-o", str(args.output)]
         + (["--hand", str(args.hand)] if args.hand != DEFAULT_HAND else [])
+        + (["--dbc", str(args.dbc)] if args.dbc is not None else [])
         + (["--models", str(args.models)] if args.models else [])
         + (["--quick"] if args.quick else [])
         + (["--from", args.start] if args.start is not None else [])
@@ -825,18 +827,35 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         + (["--schedule-only"] if args.schedule_only else [])
         + (["--keep-torques"] if args.keep_torques else [])
     )
-    args.output.write_text(recipe_text(result, command), encoding="utf-8")
+    # the plots first, drawn aside and moved in whole, the recipe last and whole: a Ctrl-C
+    # while they were drawn left a recipe and a PNG cut short, where nothing was to be written
+    plots = _plan_plots(result, args.plot) if args.plot else []
+    _write_output("-o", args.output, recipe_text(result, command))
     wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
     print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {args.output}")
     print(f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU ({cpu_counted}) on {where}")
     for plan in result.phases:
         print(_planned_phase_line(plan))
-    if args.plot:
-        from handctl.experiment.plot import plot_plan
-
-        for path in plot_plan(result, args.plot):
-            print(f"  plot {path}")
+    for path in plots:
+        print(f"  plot {path}")
     return _plan_exit_code(result, args.output, args.quick)
+
+
+def _plan_plots(result: Any, directory: Path) -> list[Path]:
+    """The plan's region plots, drawn in a directory of their own inside ``directory`` and
+    moved into it once all are drawn; an interrupt leaves none."""
+    import tempfile
+
+    from handctl.experiment.plot import plot_plan
+
+    directory.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=directory, prefix=".handctl-plot-") as aside:
+        drawn = plot_plan(result, Path(aside))
+        placed = []
+        for path in drawn:
+            os.replace(path, directory / path.name)
+            placed.append(directory / path.name)
+    return placed
 
 
 def _plan_base(args: argparse.Namespace, template: Template, hand: HandConfig) -> Base | None:
@@ -1420,23 +1439,28 @@ def _run_outcome(report: Any) -> int | None:
     return _run_exit_code(report.result, {})
 
 
-def _refuse_other_file(output: Path, hand: HandConfig) -> None:
-    """``-o`` names a new file, or a calibrated copy of this very hand (a calibration done
-    again): another hand's config or a recipe there was replaced by this hand's, exit 0."""
+def _existing_yaml(output: Path) -> dict[str, Any] | None:
+    """The YAML mapping an output would replace; None when there is nothing there (or no
+    regular file, which ``check_writable`` names); {} for a file that is not one."""
     from handctl.schema import load_yaml
 
     if not output.is_file():
-        return  # new (or not a file at all, which check_writable names)
-    data: dict[str, Any] | None
+        return None
     try:
-        data = dict(load_yaml(output).data)
+        return dict(load_yaml(output).data)
     except ConfigError:
-        data = None
-    if isinstance(data, dict) and data.get("name") == hand.name and "fingers" in data:
+        return {}
+
+
+def _refuse_other_file(output: Path, hand: HandConfig) -> None:
+    """``-o`` names a new file, or a calibrated copy of this very hand (a calibration done
+    again): another hand's config or a recipe there was replaced by this hand's, exit 0."""
+    data = _existing_yaml(output)
+    if data is None or (data.get("name") == hand.name and "fingers" in data):
         return
     what = (
         f"the hand config of '{data['name']}'"
-        if isinstance(data, dict) and "fingers" in data and "name" in data
+        if "fingers" in data and "name" in data
         else "a file that is not a hand config"
     )
     raise ConfigError(
@@ -1445,6 +1469,21 @@ def _refuse_other_file(output: Path, hand: HandConfig) -> None:
         f"a new file, or a calibrated copy of '{hand.name}' to write again (an existing "
         "file of anything else is not replaced)",
         f"{output}, {what}",
+    )
+
+
+def _refuse_other_than_a_recipe(output: Path) -> None:
+    """A plan's ``-o`` names a new file or a recipe (re-planned, or planned again): a hand
+    config, a template or notes there were replaced by the recipe, exit 0."""
+    data = _existing_yaml(output)
+    if data is None or ("recipe" in data and "phases" in data and "template" not in data):
+        return
+    raise ConfigError(
+        "-o",
+        "",
+        "a new file, or a recipe to write again (an existing file of anything else, a hand "
+        "config or a template say, is not replaced)",
+        f"{output}, an existing file that is not a recipe",
     )
 
 

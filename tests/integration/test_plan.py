@@ -124,6 +124,8 @@ def test_plan_command_writes_the_recipe_and_the_region_plots(tmp_path: Path) -> 
         "03_envelop_______x.png",
         "04_manipulate_1.png",
     ]
+    # drawn aside and moved in whole (a Ctrl-C while they were drawn left one cut short)
+    assert sorted(p.name for p in plots.iterdir()) == sorted(p.name for p in plots.glob("*.png"))
     assert not list(tmp_path.glob("x*"))
     assert "manipulate_1" in done.stdout
 

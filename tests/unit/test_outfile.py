@@ -229,3 +229,26 @@ def test_a_json_output_replaces_only_json(
     for text in ('{"outcome": "done"}\n', ""):
         earlier.write_text(text)
         check_writable(earlier, "--json", json_output=True)
+
+
+def test_a_plan_replaces_only_a_recipe(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``plan -o`` over a copy of a hand config, another template or notes replaced it with
+    the recipe, exit 0. Refused before any work; a recipe there is planned again."""
+    from handctl import cli
+
+    template = ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml"
+    hand = tmp_path / "hand.yaml"
+    shutil.copy(ROOT / "config" / "hands" / "planar_2f2j.yaml", hand)
+    other = tmp_path / "other.template.yaml"
+    shutil.copy(template, other)
+    notes = tmp_path / "notes.txt"
+    notes.write_text("what I keep\n")
+    for victim in (hand, other, notes):
+        before = victim.read_bytes()
+        assert cli.main(["plan", str(template), "-o", str(victim)]) == cli.EXIT_BAD_INPUT
+        assert "-o: expected a new file, or a recipe to write again" in capsys.readouterr().err
+        assert victim.read_bytes() == before
+    from handctl.cli import _refuse_other_than_a_recipe
+
+    _refuse_other_than_a_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")
+    _refuse_other_than_a_recipe(tmp_path / "new.yaml")
