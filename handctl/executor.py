@@ -60,6 +60,10 @@ OWNER_POLL_S = 0.5
 #: s, how long each step of opening a Dask cluster may take: the whole handshake with the
 #: scheduler, a first worker to be there, and every worker to answer the version check
 CONNECT_TIMEOUT_S = 10.0
+#: s: how often a map with no task back looks at whether its cluster still has a worker, and
+#: how long one may be without any (a worker restarting) before the work is given up
+IDLE_CHECK_S = 2.0
+NO_WORKER_S = 30.0
 #: a scheduler address: scheme, host (a name, IPv4 or a bracketed IPv6) and port, all required
 _SCHEDULER = re.compile(r"^(tcp|tls|ws|wss)://([A-Za-z0-9._-]+|\[[0-9A-Fa-f:.]+\]):(\d{1,5})$")
 _SCHEDULER_FORM = (
@@ -165,6 +169,7 @@ class WorkPool:
         close: Callable[[bool], None],
         lost: Callable[[], ClusterLostError | None] = lambda: None,
         cpu_counted: str = "this process and its local workers",
+        idle: Callable[[], HandctlError | None] = lambda: None,
     ) -> None:
         self.executor = executor
         self.workers = workers
@@ -172,6 +177,9 @@ class WorkPool:
         self.cpu_counted = cpu_counted  # whose CPU a ``Stopwatch`` around this pool counts
         self._close = close
         self._lost = lost
+        #: asked while no task comes back: why the work cannot go on, if it cannot (a
+        #: cluster whose workers are all gone, its scheduler still up, waited for ever)
+        self._idle = idle
         self._closed = False
         self.tasks_run = 0  # tasks whose results came back (what a rate is counted in)
 
@@ -194,10 +202,17 @@ class WorkPool:
             return results
         futures = [self.executor.submit(fn, item) for item in items]
         try:
-            for future in cf.as_completed(futures):
-                future.result()  # raises the task's exception at once
-                if progress is not None:
-                    progress.advance()
+            pending = set(futures)
+            while pending:
+                done, pending = cf.wait(
+                    pending, timeout=IDLE_CHECK_S, return_when=cf.FIRST_COMPLETED
+                )
+                if not done and (why := self._idle()) is not None:
+                    raise why
+                for future in done:
+                    future.result()  # raises the task's exception at once
+                    if progress is not None:
+                        progress.advance()
             self.tasks_run += len(futures)
             return [f.result() for f in futures]
         except BaseException as exc:
@@ -205,6 +220,13 @@ class WorkPool:
                 f.cancel()
             if isinstance(exc, Exception) and (lost := self._lost()) is not None:
                 raise lost from None
+            if isinstance(exc, cf.process.BrokenProcessPool):
+                # one line, as a lost cluster is said: the pool's own traceback said nothing
+                # a user can act on
+                raise HandctlError(
+                    "a local worker process ended abruptly (killed, or out of memory): the "
+                    "work cannot go on"
+                ) from None
             raise
 
     def close(self, cancel: bool = False) -> None:
@@ -373,6 +395,25 @@ def _dask_pool(address: str) -> WorkPool:
                 logger.setLevel(logging.CRITICAL + 1)
         return ClusterLostError(address)
 
+    since: list[float] = []  # when the cluster was first seen without a worker
+
+    def idle() -> HandctlError | None:
+        try:
+            now_workers = len(client.scheduler_info().get("workers", {}))
+        except Exception:  # the scheduler gone: ``lost`` says so
+            return None
+        if now_workers:
+            since.clear()
+            return None
+        since.append(time.monotonic())
+        if since[-1] - since[0] < NO_WORKER_S:
+            return None
+        return HandctlError(
+            f"--scheduler {address}: the Dask cluster has had no worker for {NO_WORKER_S:g} s "
+            "(they ended, or lost the scheduler): its tasks would wait for one for ever, and "
+            "the work is given up"
+        )
+
     return WorkPool(
         executor,
         workers,
@@ -380,6 +421,7 @@ def _dask_pool(address: str) -> WorkPool:
         close,
         lost,
         cpu_counted="this process only, not the cluster's workers",
+        idle=idle,
     )
 
 

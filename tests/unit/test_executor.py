@@ -20,7 +20,7 @@ import psutil
 import pytest
 
 from handctl import executor
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, HandctlError
 from handctl.executor import (
     ClusterLostError,
     Stopwatch,
@@ -485,4 +485,81 @@ def test_a_scheduler_lost_while_the_work_runs_is_named(tmp_path: Path) -> None:
     assert str(raised[0]) == (
         f"--scheduler {address}: the Dask scheduler was lost while the work ran "
         "(the connection to it closed)"
+    )
+
+
+def test_a_cluster_left_without_workers_is_given_up(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every worker gone, the scheduler still up: the plan's tasks waited for one for ever,
+    without a word. Given up, said, once the cluster has had none for ``NO_WORKER_S``."""
+    distributed = pytest.importorskip("distributed")
+    monkeypatch.setattr(executor, "NO_WORKER_S", 1.0)
+    monkeypatch.setattr(executor, "IDLE_CHECK_S", 0.2)
+    started = tmp_path / "started"
+    with distributed.LocalCluster(
+        n_workers=0, processes=False, protocol="tcp", dashboard_address=None, scheduler_port=0
+    ) as cluster:
+        address = cluster.scheduler_address
+        # a worker of its own process, without a nanny to start it again
+        command = [sys.executable, "-m", "distributed.cli.dask_worker", address, "--no-nanny"]
+        with subprocess.Popen(
+            [*command, "--nthreads", "1"], cwd=ROOT, stderr=subprocess.DEVNULL
+        ) as worker:
+            try:
+                raised: list[BaseException] = []
+
+                def work() -> None:
+                    try:
+                        with open_pool(scheduler=address) as pool:
+                            pool.map(mark_and_sleep, [str(started)])
+                    except BaseException as exc:
+                        raised.append(exc)
+
+                thread = threading.Thread(target=work, daemon=True)
+                thread.start()
+                deadline = time.monotonic() + 120.0
+                while not started.exists() and time.monotonic() < deadline and thread.is_alive():
+                    time.sleep(0.05)
+                assert started.exists(), raised
+                worker.kill()
+                thread.join(120.0)
+                assert not thread.is_alive()
+            finally:
+                if worker.poll() is None:
+                    worker.kill()
+    assert len(raised) == 1 and not isinstance(raised[0], ClusterLostError), raised
+    assert str(raised[0]).startswith(
+        f"--scheduler {address}: the Dask cluster has had no worker for 1 s"
+    )
+
+
+def test_a_local_worker_killed_is_said_in_one_line(tmp_path: Path) -> None:
+    """``kill -9`` of a local worker (or the kernel's OOM killer) ended a plan with the
+    pool's BrokenProcessPool traceback."""
+    started = tmp_path / "started"
+    raised: list[BaseException] = []
+
+    def work() -> None:
+        try:
+            with open_pool(2) as pool:
+                pool.map(mark_and_sleep, [str(started)])
+        except BaseException as exc:
+            raised.append(exc)
+
+    thread = threading.Thread(target=work, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 120.0
+    while not started.exists() and time.monotonic() < deadline and thread.is_alive():
+        time.sleep(0.05)
+    assert started.exists(), raised
+    workers = [p for p in psutil.Process().children() if "spawn_main" in " ".join(p.cmdline())]
+    assert workers
+    for process in workers:
+        process.kill()
+    thread.join(60.0)
+    assert not thread.is_alive()
+    assert len(raised) == 1 and isinstance(raised[0], HandctlError), raised
+    assert str(raised[0]) == (
+        "a local worker process ended abruptly (killed, or out of memory): the work cannot go on"
     )
