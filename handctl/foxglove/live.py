@@ -28,6 +28,7 @@ import orjson
 from foxglove import Channel, Context, Schema
 from foxglove.websocket import WebSocketServer
 
+from handctl.errors import ConfigError
 from handctl.foxglove import HOST
 from handctl.foxglove.derived import JOINTS, RX_DECODED, TX_DECODED
 from handctl.recording import channels as ch
@@ -84,11 +85,22 @@ class LiveServer:
         self._served: dict[tuple[str, int], int] = {}
 
     def start(self) -> None:
-        """Bind the port and serve the channels added so far; raises if the port cannot be
-        bound."""
-        self.server = foxglove.start_server(
-            name=self.name, host=self.host, port=self.requested_port, context=self.context
-        )
+        """Bind the port and serve the channels added so far; a ``ConfigError`` naming
+        ``--live`` if the port cannot be bound (free when the command began, and taken by
+        another program since: a replay binds it after its summary and re-run, and that was
+        the SDK's traceback)."""
+        try:
+            self.server = foxglove.start_server(
+                name=self.name, host=self.host, port=self.requested_port, context=self.context
+            )
+        except RuntimeError as exc:
+            raise ConfigError(
+                "--live",
+                "",
+                f"a port the live view can listen on at {self.host} (it was free when the "
+                "command began: another program has taken it since)",
+                f"{self.requested_port} ({exc})",
+            ) from None
 
     @property
     def port(self) -> int:

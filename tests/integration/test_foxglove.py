@@ -616,6 +616,24 @@ def test_the_live_server_listens_only_once_its_channels_are_there() -> None:
         server.close()
 
 
+def test_a_port_taken_after_the_check_is_said_against_live() -> None:
+    """Free when the command began, taken by another program before the server bound it (a
+    replay binds after its summary and re-run): that was the SDK's RuntimeError traceback."""
+    from handctl.errors import ConfigError
+    from handctl.foxglove.live import LiveServer
+
+    port = free_port()
+    server = LiveServer(port)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taker:
+        taker.bind(("127.0.0.1", port))
+        taker.listen()
+        with pytest.raises(ConfigError) as err:
+            server.start()
+    assert err.value.file == "--live"
+    assert "another program has taken it since" in err.value.expected
+    assert str(port) in str(err.value.found)
+
+
 class _StalledViewer:
     """A viewer that subscribes to every channel and then stops reading (frozen, asleep): a
     WebSocket client by hand on a plain socket, since a client library reads for its user."""
