@@ -20,6 +20,7 @@ import importlib
 import json
 import math
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -124,18 +125,31 @@ def main(argv: list[str] | None = None) -> int:
     if wrong:
         print(f"bench.py {name}: {wrong}", file=sys.stderr)
         return 2
-    from handctl.errors import HandctlError
+    from handctl.errors import ConfigError, HandctlError
 
+    # SIGTERM as Ctrl-C, as handctl's commands take it: the pool's workers stopped, exit 130
+    # (it was 143 with a leaked semaphore; Ctrl-C a KeyboardInterrupt traceback)
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         figures = module.run(args)
-    except HandctlError as exc:  # bad input found by handctl (a recipe, a hand, an address)
+    except ConfigError as exc:  # bad input found by handctl (a recipe, a hand, an address)
         print(f"bench.py {name}: error: {exc}", file=sys.stderr)
         return 2
+    except HandctlError as exc:  # a failed result (a cluster lost mid-run): not bad input
+        print(f"bench.py {name}: failed: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"bench.py {name}: interrupted", file=sys.stderr)
+        return 130
     print(json.dumps(figures, sort_keys=True))
     failed = figures.get("failed") or []
     for failure in failed:
         print(f"bench.py {name}: failed: {failure}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 if __name__ == "__main__":

@@ -24,10 +24,11 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from handctl.config import load_hand  # noqa: E402
+from handctl.errors import ConfigError  # noqa: E402
 from handctl.executor import open_pool  # noqa: E402
 from handctl.planning.compile import plan_recipe, recipe_text  # noqa: E402
 from handctl.planning.search import Budget  # noqa: E402
-from handctl.planning.template import load_template  # noqa: E402
+from handctl.planning.template import MAX_MODELS, load_template  # noqa: E402
 from handctl.progress import Progress, close_active, say  # noqa: E402
 
 #: One line of ``bench.py --help`` (read from the source there, without importing this).
@@ -59,6 +60,11 @@ def small_template(folder: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    # before any work: --workers 9 was refused only after the one-worker plan had run, and
+    # --models 1000 ran where handctl plan takes at most MAX_MODELS
+    if not 1 <= args.models <= MAX_MODELS:
+        raise ConfigError("--models", "", f"1 to {MAX_MODELS} models, as handctl plan", args.models)
+    open_pool(args.workers).close()
     hand = load_hand(HAND)
     budget = Budget(
         generations=args.generations, population=args.population, elite=min(4, args.population)

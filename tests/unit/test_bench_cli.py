@@ -102,3 +102,62 @@ def test_bad_input_found_by_a_benchmark_is_said_and_exits_2(
     assert load_tool("bench").main(argv) == 2
     err = capsys.readouterr().err
     assert "bench.py experiment: error: nosuch.yaml: expected an existing file" in err
+
+
+def _raising(what: BaseException | None = None, sig: int | None = None) -> types.ModuleType:
+    module = types.ModuleType("bench_fake", "A benchmark of the test's.")
+    module.add_arguments = lambda parser: None  # type: ignore[attr-defined]
+
+    def run(args: object) -> dict[str, object]:
+        if sig is not None:
+            import signal
+
+            signal.raise_signal(sig)
+        if what is not None:
+            raise what
+        return {}
+
+    module.run = run  # type: ignore[attr-defined]
+    return module
+
+
+def test_a_cluster_lost_is_a_failed_result_and_a_stop_signal_an_interrupt(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A cluster lost mid-run was said as bad input (exit 2); SIGTERM ended the bench with 143
+    and a leaked semaphore, Ctrl-C with a KeyboardInterrupt traceback."""
+    import signal
+
+    from handctl.executor import ClusterLostError
+
+    bench = load_tool("bench")
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    monkeypatch.setattr(bench, "available", lambda: ["fake"])
+    before = signal.getsignal(signal.SIGTERM)
+    try:
+        monkeypatch.setitem(sys.modules, "bench_fake", _raising(ClusterLostError("tcp://h:1")))
+        assert bench.main(["fake"]) == 1
+        assert capsys.readouterr().err.startswith(
+            "bench.py fake: failed: --scheduler tcp://h:1: the Dask scheduler was lost"
+        )
+        monkeypatch.setitem(sys.modules, "bench_fake", _raising(sig=signal.SIGTERM))
+        assert bench.main(["fake"]) == 130
+        assert capsys.readouterr().err == "bench.py fake: interrupted\n"
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["plan", "--models", "1000"], "--models: expected 1 to 100 models"),
+        (["plan", "--workers", "100000"], "--workers: expected at most"),
+    ],
+)
+def test_the_plan_bench_checks_its_options_before_any_plan(
+    capsys: pytest.CaptureFixture[str], argv: list[str], says: str
+) -> None:
+    """--workers 9 was refused only after the one-worker plan had run; --models 1000 ran."""
+    assert load_tool("bench").main(argv) == 2
+    err = capsys.readouterr().err
+    assert says in err and "plan with" not in err
