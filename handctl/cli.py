@@ -559,7 +559,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
 
         _progress(
             f"live: Foxglove WebSocket on ws://{HOST}:{args.live} "
-            "(layout: docs/foxglove/handctl_layout.json)"
+            f"(its layout: handctl layout {shlex.quote(str(args.hand))} -o LAYOUT.json)"
         )
     status = _status_printer()
     if replaces_log:
@@ -1337,7 +1337,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             f"ws://{HOST}:{args.live} ..."
         )
         streamed = serve_recording(Path(args.log), args.live, args.speed or 1.0)
-        print(f"live: {streamed} messages streamed")
+        # every message of the log at its pace; a viewer is sent what it subscribed to, the
+        # per-tick channels sampled (docs/recording.md): not a count of what it was sent
+        print(f"live: {streamed} messages of the log played")
     return status
 
 
@@ -2817,7 +2819,7 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "--speed",
         type=_real,
         metavar="X",
-        help="with --to-bus: time scale [× recorded speed] (2 = twice as fast)",
+        help="with --to-bus or --live: time scale [× recorded speed] (2 = twice as fast)",
     )
     rep.add_argument(
         "--direction",

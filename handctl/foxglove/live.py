@@ -168,7 +168,7 @@ def serve_recording(
     path: Path, port: int, speed: float = 1.0, started: Callable[[LiveServer], None] | None = None
 ) -> int:
     """Stream every message of ``path`` in file order at its recorded spacing (divided by
-    ``speed``); returns the number of messages sent. The messages are read as ``handctl
+    ``speed``); returns the number of messages played. The messages are read as ``handctl
     replay`` reads them (``handctl.recording.reader``): a truncated file plays up to its last
     complete chunk, a damaged chunk is left out."""
     from handctl.recording.reader import iter_messages, open_recording

@@ -434,7 +434,7 @@ def test_replay_live_streams_a_recording(run: Run, tmp_path: Path) -> None:
     for topic in (ch.JOINT_STATE, fx.JOINTS):  # recorded every tick, 1 ms apart
         gaps = [b - a for a, b in itertools.pairwise(live.log_times[topic])]
         assert all(g >= SAMPLE_PERIOD_NS for g in gaps), (topic, gaps[:20])
-    assert b"messages streamed" in out
+    assert b"messages of the log played" in out
 
 
 def test_live_refuses_bad_input_with_exit_2(
