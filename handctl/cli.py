@@ -2092,6 +2092,19 @@ def _add_dbc(command: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_hand_argument(command: argparse.ArgumentParser) -> None:
+    """The hand config as the command's argument (``check``, ``layout``), the default one if
+    none is given."""
+    command.add_argument(
+        "hand",
+        type=Path,
+        nargs="?",
+        default=DEFAULT_HAND,
+        metavar="HAND.yaml",
+        help=f"hand config ({DEFAULT_HAND_HELP})",
+    )
+
+
 def _add_layout(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     layout = _command(
         sub,
@@ -2104,14 +2117,7 @@ def _add_layout(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
             "handctl layout config/hands/four_fingers_four_joints.yaml -o four_by_four.json",
         ],
     )
-    layout.add_argument(
-        "hand",
-        type=Path,
-        nargs="?",
-        default=DEFAULT_HAND,
-        metavar="HAND.yaml",
-        help=f"hand config ({DEFAULT_HAND_HELP})",
-    )
+    _add_hand_argument(layout)
     layout.add_argument(
         "-o", dest="output", type=_output_path, required=True, metavar="OUT.json",
         help="where to write the layout (JSON)",
@@ -2146,14 +2152,7 @@ def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
             "handctl check --timing --seconds 600 --json timing.json",
         ],
     )
-    check.add_argument(
-        "hand",
-        type=Path,
-        nargs="?",
-        default=DEFAULT_HAND,
-        metavar="HAND.yaml",
-        help=f"hand config ({DEFAULT_HAND_HELP})",
-    )
+    _add_hand_argument(check)
     _add_dbc(check)
     timing = check.add_argument_group(
         "timing", "can this host hold the hand's deadlines? (docs/timing.md; exit 5 if not)"

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from multiprocessing import resource_tracker
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from handctl.errors import ConfigError, HandctlError
 from handctl.executor import (
     ClusterLostError,
     Stopwatch,
+    WorkPool,
     available_cores,
     check_scheduler,
     open_pool,
@@ -449,6 +451,32 @@ def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
     assert found in message
 
 
+def _raised_when_killed(
+    open_it: Callable[[], WorkPool], started: Path, kill: Callable[[], None]
+) -> list[BaseException]:
+    """What a map of one long task on the pool ``open_it`` opens raised once ``kill`` ended
+    what ran it, the task having started; the map must end, not wait for ever."""
+    raised: list[BaseException] = []
+
+    def work() -> None:
+        try:
+            with open_it() as pool:
+                pool.map(mark_and_sleep, [str(started)])
+        except BaseException as exc:
+            raised.append(exc)
+
+    thread = threading.Thread(target=work, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 120.0
+    while not started.exists() and time.monotonic() < deadline and thread.is_alive():
+        time.sleep(0.05)
+    assert started.exists(), raised
+    kill()
+    thread.join(120.0)
+    assert not thread.is_alive()
+    return raised
+
+
 def test_a_scheduler_lost_while_the_work_runs_is_named(tmp_path: Path) -> None:
     """The client cancels every task when its scheduler goes: that is the cluster lost, said
     as such, not the first task's bare ``CancelledError``."""
@@ -460,24 +488,9 @@ def test_a_scheduler_lost_while_the_work_runs_is_named(tmp_path: Path) -> None:
         try:
             assert cluster.stdout is not None
             address = cluster.stdout.readline().strip()
-            raised: list[BaseException] = []
-
-            def work() -> None:
-                try:
-                    with open_pool(scheduler=address) as pool:
-                        pool.map(mark_and_sleep, [str(started)])
-                except BaseException as exc:
-                    raised.append(exc)
-
-            thread = threading.Thread(target=work, daemon=True)
-            thread.start()
-            deadline = time.monotonic() + 120.0
-            while not started.exists() and time.monotonic() < deadline and thread.is_alive():
-                time.sleep(0.05)
-            assert started.exists(), raised
-            cluster.kill()
-            thread.join(120.0)
-            assert not thread.is_alive()
+            raised = _raised_when_killed(
+                lambda: open_pool(scheduler=address), started, cluster.kill
+            )
         finally:
             if cluster.poll() is None:
                 cluster.kill()
@@ -507,24 +520,9 @@ def test_a_cluster_left_without_workers_is_given_up(
             [*command, "--nthreads", "1"], cwd=ROOT, stderr=subprocess.DEVNULL
         ) as worker:
             try:
-                raised: list[BaseException] = []
-
-                def work() -> None:
-                    try:
-                        with open_pool(scheduler=address) as pool:
-                            pool.map(mark_and_sleep, [str(started)])
-                    except BaseException as exc:
-                        raised.append(exc)
-
-                thread = threading.Thread(target=work, daemon=True)
-                thread.start()
-                deadline = time.monotonic() + 120.0
-                while not started.exists() and time.monotonic() < deadline and thread.is_alive():
-                    time.sleep(0.05)
-                assert started.exists(), raised
-                worker.kill()
-                thread.join(120.0)
-                assert not thread.is_alive()
+                raised = _raised_when_killed(
+                    lambda: open_pool(scheduler=address), started, worker.kill
+                )
             finally:
                 if worker.poll() is None:
                     worker.kill()
@@ -537,28 +535,14 @@ def test_a_cluster_left_without_workers_is_given_up(
 def test_a_local_worker_killed_is_said_in_one_line(tmp_path: Path) -> None:
     """``kill -9`` of a local worker (or the kernel's OOM killer) ended a plan with the
     pool's BrokenProcessPool traceback."""
-    started = tmp_path / "started"
-    raised: list[BaseException] = []
 
-    def work() -> None:
-        try:
-            with open_pool(2) as pool:
-                pool.map(mark_and_sleep, [str(started)])
-        except BaseException as exc:
-            raised.append(exc)
+    def kill_the_workers() -> None:
+        workers = [p for p in psutil.Process().children() if "spawn_main" in " ".join(p.cmdline())]
+        assert workers
+        for process in workers:
+            process.kill()
 
-    thread = threading.Thread(target=work, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 120.0
-    while not started.exists() and time.monotonic() < deadline and thread.is_alive():
-        time.sleep(0.05)
-    assert started.exists(), raised
-    workers = [p for p in psutil.Process().children() if "spawn_main" in " ".join(p.cmdline())]
-    assert workers
-    for process in workers:
-        process.kill()
-    thread.join(60.0)
-    assert not thread.is_alive()
+    raised = _raised_when_killed(lambda: open_pool(2), tmp_path / "started", kill_the_workers)
     assert len(raised) == 1 and isinstance(raised[0], HandctlError), raised
     assert str(raised[0]) == (
         "a local worker process ended abruptly (killed, or out of memory): the work cannot go on"
