@@ -204,15 +204,17 @@ class WorkPool:
         try:
             pending = set(futures)
             while pending:
-                done, pending = cf.wait(
-                    pending, timeout=IDLE_CHECK_S, return_when=cf.FIRST_COMPLETED
-                )
-                if not done and (why := self._idle()) is not None:
-                    raise why
-                for future in done:
-                    future.result()  # raises the task's exception at once
-                    if progress is not None:
-                        progress.advance()
+                # in rounds of IDLE_CHECK_S, each O(tasks left), between which the pool is
+                # asked whether the work can still go on
+                try:
+                    for future in cf.as_completed(pending, timeout=IDLE_CHECK_S):
+                        pending.discard(future)
+                        future.result()  # raises the task's exception at once
+                        if progress is not None:
+                            progress.advance()
+                except TimeoutError:
+                    if (why := self._idle()) is not None:
+                        raise why from None
             self.tasks_run += len(futures)
             return [f.result() for f in futures]
         except BaseException as exc:
@@ -395,7 +397,7 @@ def _dask_pool(address: str) -> WorkPool:
                 logger.setLevel(logging.CRITICAL + 1)
         return ClusterLostError(address)
 
-    since: list[float] = []  # when the cluster was first seen without a worker
+    without: list[float] = []  # when the cluster was first seen without a worker, if it is
 
     def idle() -> HandctlError | None:
         try:
@@ -403,10 +405,11 @@ def _dask_pool(address: str) -> WorkPool:
         except Exception:  # the scheduler gone: ``lost`` says so
             return None
         if now_workers:
-            since.clear()
+            without.clear()
             return None
-        since.append(time.monotonic())
-        if since[-1] - since[0] < NO_WORKER_S:
+        if not without:
+            without.append(time.monotonic())
+        if time.monotonic() - without[0] < NO_WORKER_S:
             return None
         return HandctlError(
             f"--scheduler {address}: the Dask cluster has had no worker for {NO_WORKER_S:g} s "
