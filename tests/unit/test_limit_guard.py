@@ -299,3 +299,28 @@ def test_spring_bands_that_overlap_on_a_joints_range_are_refused(
     # one side of it alone, with the guard's band on the other, leaves room
     top["limit_guard_spring_bands"] = {"f1_j3": {"lower": 0.45}}
     assert load_recipe(_recipe(tmp_path, narrow, **top), narrow).limit_guard is not None
+
+
+def test_a_band_wider_than_half_a_joint_s_range_is_refused(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Its two springs overlapped, every angle of the joint inside a band: a hand with a
+    joint of 0.2 rad and a recipe of 0.15 rad bands each passed their checks, and every run
+    stopped on ANGLE_LIMIT. Refused, naming the joint; its own spring bands make room."""
+    import dataclasses
+
+    from handctl.errors import ConfigError
+
+    narrow = dataclasses.replace(hand.fingers[0].joints[2], angle_min=0.1, angle_max=0.3)
+    finger = dataclasses.replace(hand.fingers[0], joints=(*hand.fingers[0].joints[:2], narrow))
+    narrow_hand = dataclasses.replace(hand, fingers=(finger, *hand.fingers[1:]))
+    with pytest.raises(ConfigError) as err:
+        load_recipe(_recipe(tmp_path, narrow_hand, limit_guard_band=0.15), narrow_hand)
+    assert (err.value.key, err.value.found) == ("limit_guard_band", 0.15)
+    assert "below half of f1_j3's 0.2 rad" in err.value.expected
+    own = {"f1_j3": {"lower": 0.05, "upper": 0.05}}
+    recipe = load_recipe(
+        _recipe(tmp_path, narrow_hand, limit_guard_band=0.15, limit_guard_spring_bands=own),
+        narrow_hand,
+    )
+    assert recipe.limit_guard is not None

@@ -276,6 +276,19 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
                 f"{width:.4g} rad",
             )
     bands.done()
+    for joint in hand.joints:
+        span = joint.angle_max - joint.angle_min
+        if not bands.has(joint.name) and 2 * band >= span:
+            # the two springs overlapped: every angle of the joint was inside a band, pushed
+            # back from one limit into the other (a narrow joint's every run stopped on
+            # ANGLE_LIMIT, its recipe and hand config both passing their checks)
+            doc.fail(
+                "limit_guard_band",
+                f"a band whose two sides leave room in every joint's range: below half of "
+                f"{joint.name}'s {span:.4g} rad (in {hand.source}; or give it bands of its "
+                f"own in {spring_key})",
+                band,
+            )
     return GuardSettings(band, tuple(springs))
 
 
