@@ -1108,6 +1108,14 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
     )
     drops = summary["drops"]
     print("  drops: " + (", ".join(f"{k} {v}" for k, v in drops.items() if v) or "none"))
+    for topic, count in summary.get("messages_back_in_time", {}).items():
+        print(
+            f"handctl: warning: {summary['file']}: {count} messages of {topic} have log times "
+            "earlier than one written before them: the writer writes each channel in time "
+            "order, so the log's times were edited after the run (or the host's clock was "
+            "stepped during it); a re-run compares the frames' content, not their times",
+            file=sys.stderr,
+        )
     for name, pose in summary.get("objects", {}).items():
         start, end = pose["start"], pose["end"]
         key = "height_above_rest_m" if "height_above_rest_m" in start else "y_m"

@@ -60,6 +60,11 @@ class Series:
     phases: list[dict[str, Any]] = field(default_factory=list)
     events: list[dict[str, Any]] = field(default_factory=list)
     frames: dict[str, int] = field(default_factory=dict)
+    #: per channel, its messages whose log time is earlier than one written before them:
+    #: none in a log the writer wrote (it writes each channel in time order) unless the
+    #: host's clock was stepped, so a log whose times were edited after the run, which a
+    #: re-run's "identical" (about the frames' content) and the summary missed
+    out_of_order: dict[str, int] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
 
 
@@ -84,6 +89,7 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     scheduled = 0.0  # the latest tick's scheduled time, s from the first message
     phase_name, phase_start, phase_tick = "", 0.0, 0
     frames = {"rx": 0, "tx": 0, "tx_refused": 0}
+    last_log_time: dict[str, int] = {}
     exits: dict[tuple[str, int], str] = {}
     #: where the phase under way ended when the run was stopped in it (a stop or a fault),
     #: and why: the run's ``phase_end`` note, which no change of phase name shows
@@ -96,6 +102,9 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
         # counted a garbled frame that held '"ok":false' as refused and a refused one written
         # with a space as sent, and passed frames the re-run then refused
         msg = loads(topic, log_time, raw)
+        if log_time < last_log_time.get(topic, log_time):
+            series.out_of_order[topic] = series.out_of_order.get(topic, 0) + 1
+        last_log_time[topic] = max(log_time, last_log_time.get(topic, log_time))
         if topic == ch.CAN_RX:
             frames["rx"] += 1
             continue

@@ -19,10 +19,12 @@ def rewrite(
     change: Change | None = None,
     metadata: Callable[[str, dict[str, str]], dict[str, str]] | None = None,
     formats: dict[str, tuple[str, str, str]] | None = None,
+    times: Callable[[str, int], int] | None = None,
 ) -> None:
     """Copy a recording record by record with the mcap library, the messages through
-    ``change``, the metadata through ``metadata``, and the channels of the topics in
-    ``formats`` given another (message encoding, schema name, schema encoding)."""
+    ``change``, the metadata through ``metadata``, the channels of the topics in ``formats``
+    given another (message encoding, schema name, schema encoding), and each message's log
+    time through ``times(topic, log_time) -> log_time``."""
     with source.open("rb") as handle:
         reader = make_reader(handle)
         summary = reader.get_summary()
@@ -52,5 +54,6 @@ def rewrite(
             index = counts.get(channel.topic, 0)
             counts[channel.topic] = index + 1
             raw = change(channel.topic, index, message.data) if change else message.data
-            writer.add_message(channel_ids[channel.id], message.log_time, raw, message.publish_time)
+            log_time = times(channel.topic, message.log_time) if times else message.log_time
+            writer.add_message(channel_ids[channel.id], log_time, raw, message.publish_time)
         writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped

@@ -269,6 +269,33 @@ def test_rerun_finds_a_command_frame_that_differs(recorded: Recorded, tmp_path: 
     assert f"tick {first_command[0]}" in report.frame_mismatches[0]
 
 
+def test_log_times_edited_within_a_channel_are_said(
+    recorded: Recorded, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The command frames' log times reversed after the run: the re-run said "identical"
+    (the frames' content is) and the summary nothing. The writer writes each channel in
+    time order, so the replay says how many go back, for the channel."""
+    from handctl import cli
+
+    sent = [t for _, t, _ in iter_messages(open_recording(recorded.path), [ch.CAN_TX])]
+    first, last = min(sent), max(sent)
+    tampered = tmp_path / "times.mcap"
+    copy_recording(
+        recorded.path,
+        tampered,
+        times=lambda topic, t: first + last - t if topic == ch.CAN_TX else t,
+    )
+    report = tmp_path / "r.json"
+    assert cli.main(["replay", str(tampered), "--json", str(report)]) == cli.EXIT_OK
+    err = capsys.readouterr().err
+    assert f"messages of {ch.CAN_TX} have log times earlier than one written before" in err
+    back = json.loads(report.read_text())["summary"]["messages_back_in_time"]
+    assert list(back) == [ch.CAN_TX] and back[ch.CAN_TX] > 100
+    assert cli.main(["replay", str(recorded.path), "--json", str(report)]) == cli.EXIT_OK
+    assert "log times earlier" not in capsys.readouterr().err
+    assert json.loads(report.read_text())["summary"]["messages_back_in_time"] == {}
+
+
 def _alter_feedback(
     recorded: Recorded, target: Path, frame_id: int, after_tick: int, change: Any
 ) -> int:
