@@ -2088,13 +2088,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _add_dbc(command: argparse.ArgumentParser) -> None:
-    """``--dbc``, on every command whose frames go on a bus."""
+def _add_dbc(command: argparse.ArgumentParser, help: str = "") -> None:
+    """``--dbc``, on every command that speaks a hand's protocol (``help``: what it is for
+    there, where that is not the frames the command puts on a bus)."""
     command.add_argument(
         "--dbc",
         type=Path,
         metavar="PROTOCOL.dbc",
-        help="the CAN protocol (a DBC file) instead of the one generated from "
+        help=help
+        or "the CAN protocol (a DBC file) instead of the one generated from "
         "the hand config; checked against the hand's nodes, joints and "
         "can_ids",
     )
@@ -2136,13 +2138,12 @@ def _add_layout(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
 
 def _cmd_layout(args: argparse.Namespace) -> int:
     from handctl.foxglove.layout import layout_json
-    from handctl.outfile import check_writable, write_atomically
 
     # a layout written over the hand config lost the hand
     _refuse_same_files({"-o": args.output}, {"HAND.yaml": args.hand, "--dbc": args.dbc})
-    target = check_writable(args.output, "-o")
+    _output_file("-o", args.output)
     hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
-    write_atomically(target, layout_json(hand))
+    _write_output("-o", args.output, layout_json(hand))
     print(f"written: {args.output} (the Foxglove layout of {hand.name})")
     return EXIT_OK
 
@@ -2518,13 +2519,11 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="run the work on this Dask distributed cluster instead "
         "(pip install 'handctl[cluster]'; see docs/scale.md)",
     )
-    plan.add_argument(
-        "--dbc",
-        type=Path,
-        metavar="PROTOCOL.dbc",
-        help="the CAN protocol of the hand (a DBC file) instead of the one generated from "
-        "its config, for a hand whose can_ids only it carries (the simulated hand the plan "
-        "runs on speaks it)",
+    _add_dbc(
+        plan,
+        "the CAN protocol of the hand (a DBC file) instead of the one generated from its "
+        "config, for a hand whose can_ids only it carries (the simulated hand the plan runs "
+        "on speaks it)",
     )
     plan.set_defaults(func=_cmd_plan)
 
@@ -2815,12 +2814,10 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "to its limits as well as the recorded hand's (needed on any bus but virtual: and "
         "unix:, since a log's own limits can be rewritten with it)",
     )
-    rep.add_argument(
-        "--dbc",
-        type=Path,
-        metavar="PROTOCOL.dbc",
-        help="with --hand: the CAN protocol of the hand on that bus (a DBC file) instead of "
-        "the one generated from its config, as run's --dbc",
+    _add_dbc(
+        rep,
+        "with --hand: the CAN protocol of the hand on that bus (a DBC file) instead of the "
+        "one generated from its config, as run's --dbc",
     )
     rep.add_argument(
         "--speed",
