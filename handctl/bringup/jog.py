@@ -108,8 +108,9 @@ class JogSink:
         self.end_angle: float | None = None
         self.max_abs_tdt = 0.0
         self._first_tick: int | None = None
-        #: the last tick's line if it was not shown: shown at the end (``finish``)
-        self._unshown: JogLine | None = None
+        #: the last tick's line if it was not shown, as JogLine's fields (made a line only
+        #: if it is: a frozen dataclass every tick was work in the tick): shown by ``finish``
+        self._unshown: tuple[float, str, str, float, float, float, float] | None = None
 
     def begin_tick(self, tick: Tick) -> None:
         pass
@@ -130,7 +131,7 @@ class JogSink:
         self._phase = record.phase
         if self.show is None:
             return
-        line = JogLine(
+        fields = (
             (record.tick - self._first_tick) * self.period_s,
             record.phase,
             record.state,
@@ -141,15 +142,15 @@ class JogSink:
         )
         if new_phase or (record.tick - self._first_tick) % self.every == 0:
             self._unshown = None
-            self.show(line)
+            self.show(JogLine(*fields))
         else:
-            self._unshown = line
+            self._unshown = fields
 
     def finish(self) -> None:
         """Show the last tick's line if it was not: a stop (Ctrl-C, a fault) ended the table
         on a line of the jog's torque, and never showed it back at zero."""
         if self.show is not None and self._unshown is not None:
-            self.show(self._unshown)
+            self.show(JogLine(*self._unshown))
             self._unshown = None
 
 
