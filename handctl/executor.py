@@ -397,19 +397,20 @@ def _dask_pool(address: str) -> WorkPool:
                 logger.setLevel(logging.CRITICAL + 1)
         return ClusterLostError(address)
 
-    without: list[float] = []  # when the cluster was first seen without a worker, if it is
+    without: float | None = None  # when the cluster was first seen without a worker
 
     def idle() -> HandctlError | None:
+        nonlocal without
         try:
             now_workers = len(client.scheduler_info().get("workers", {}))
         except Exception:  # the scheduler gone: ``lost`` says so
             return None
         if now_workers:
-            without.clear()
+            without = None
             return None
-        if not without:
-            without.append(time.monotonic())
-        if time.monotonic() - without[0] < NO_WORKER_S:
+        if without is None:
+            without = time.monotonic()
+        if time.monotonic() - without < NO_WORKER_S:
             return None
         return HandctlError(
             f"--scheduler {address}: the Dask cluster has had no worker for {NO_WORKER_S:g} s "

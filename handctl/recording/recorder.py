@@ -1210,14 +1210,14 @@ class Recorder:
         err, hung = self._wait_for_writer(stall_timeout_s)
         problem = problem or hung
         os.close(self._ready_r)
+        said = err.decode(errors="replace").strip()
         if self.process.returncode != 0:
-            problem = self._writer_failed(problem, err.decode(errors="replace").strip())
-        self.stats["writer_exit"] = self.process.returncode
-        notes = err.decode(errors="replace").strip()
-        if self.process.returncode == 0 and notes:
+            problem = self._writer_failed(problem, said)
+        elif said:
             # what the writer said of a log it did finish (no Foxglove channels, say): its
             # stderr was read only when it failed, and such a log was short of them silently
-            self.stats["writer_notes"] = notes
+            self.stats["writer_notes"] = said
+        self.stats["writer_exit"] = self.process.returncode
         lost = self._lost()
         os.close(self._log_fd)
         self._release()

@@ -104,7 +104,8 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
         msg = loads(topic, log_time, raw)
         if log_time < last_log_time.get(topic, log_time):
             series.out_of_order[topic] = series.out_of_order.get(topic, 0) + 1
-        last_log_time[topic] = max(log_time, last_log_time.get(topic, log_time))
+        else:
+            last_log_time[topic] = log_time
         if topic == ch.CAN_RX:
             frames["rx"] += 1
             continue
