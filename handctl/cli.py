@@ -2911,7 +2911,7 @@ class _ReaderMayLeave(io.TextIOBase):
     def write(self, text: str) -> int:
         stream = self.stream
         if stream is not None and not self.reader_gone:
-            self._guard(lambda: stream.write(text))
+            self._guard(lambda: _write_encodable(stream, text))
         return len(text)
 
     def flush(self) -> None:
@@ -2953,6 +2953,18 @@ class _ReaderMayLeave(io.TextIOBase):
             os.close(devnull)
         except (OSError, ValueError):  # no descriptor (a test's capture): nothing to flush
             pass
+
+
+def _write_encodable(stream: IO[str], text: str) -> None:
+    """Write ``text`` as far as the stream's encoding can say it: a character it has no code
+    for (``N·m``, ``τ`` under ``LANG=C`` or ``PYTHONIOENCODING=latin-1``) is written as its
+    escape, as Python's own stderr does. Output in a poorer encoding is still output; a
+    ``UnicodeEncodeError`` ended a finished run before its ``--summary-json`` was written."""
+    try:
+        stream.write(text)
+    except UnicodeEncodeError:
+        encoding = getattr(stream, "encoding", None) or "ascii"
+        stream.write(text.encode(encoding, "backslashreplace").decode(encoding))
 
 
 @contextmanager

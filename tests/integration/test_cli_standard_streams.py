@@ -80,3 +80,29 @@ def test_a_matplotlib_backend_it_does_not_know_does_not_stop_the_plot(tmp_path: 
     assert result.returncode == 0, result.stderr
     assert f"overview plot: {tmp_path / 'run.png'}" in result.stdout
     assert (tmp_path / "run.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "latin-1"])
+def test_an_output_encoding_without_the_units_characters_still_gets_the_summary(
+    tmp_path: Path, encoding: str
+) -> None:
+    """``N·m`` and ``τ`` have no code in ASCII (``LANG=C``) and ``τ`` none in Latin-1: the
+    summary's print raised ``UnicodeEncodeError`` after the run, exit 1 with a traceback and
+    no ``--summary-json``. Now such a character is written as its escape."""
+    result = subprocess.run(
+        [
+            *(sys.executable, "-m", "handctl", "run", "recipe", RECIPE, "--max-seconds", "0.3"),
+            *("--summary-json", str(tmp_path / "s.json")),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        timeout=300,
+        check=False,
+        env={**os.environ, "PYTHONIOENCODING": encoding},
+    )
+    stderr = result.stderr.decode(encoding)
+    assert result.returncode == 0, stderr
+    assert "Traceback" not in stderr
+    assert (tmp_path / "s.json").stat().st_size > 0
+    # '·' is in Latin-1 and written as itself; ASCII has it as its escape
+    assert ("N·m" if encoding == "latin-1" else "N\\xb7m") in result.stdout.decode(encoding)
