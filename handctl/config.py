@@ -233,9 +233,11 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
         protocol = protocol_for(hand)
         # a recording's hand (protocol given) is read as it ran, whatever the rules now
         _check_misses_before_watchdog(doc, hand)
+        check_wire_limits(hand, protocol)
+        _check_tdt_tolerance(doc, hand)  # against limits the wire carries
     else:
         check_protocol(hand, protocol)
-    check_wire_limits(hand, protocol)
+        check_wire_limits(hand, protocol)
     return hand
 
 
@@ -246,6 +248,24 @@ def _too_slow() -> str:
         f"within the nodes' {COMMAND_WATCHDOG_S * 1e3:g} ms command watchdog with "
         f"{NODE_TIMING_MARGIN_S * 1e3:g} ms to spare for the bus and the node's tick"
     )
+
+
+def _check_tdt_tolerance(doc: Doc, hand: HandConfig) -> None:
+    """The TDT cross-check must be able to see a sensor that reads a joint's whole torque
+    wrong. Its absolute part is one figure for every joint, chosen for joints of tenths of a
+    N·m: on a hand of joints of a thousandth, its default 0.02 N·m let a TDT read twenty
+    times the most the joint's drive can give, without a fault."""
+    tolerance = hand.safety.tdt_tolerance
+    weakest = min((j for f in hand.fingers for j in f.joints), key=lambda j: j.tau_max)
+    if tolerance >= weakest.tau_max / 2:
+        written = doc.mapping("safety", default={}).has("tdt_tolerance")
+        doc.fail(
+            "safety.tdt_tolerance",
+            f"less than half of every joint's tau_max ({weakest.name}: {weakest.tau_max:g} "
+            f"N·m, so below {weakest.tau_max / 2:g} N·m): the TDT cross-check must see a "
+            "sensor that reads a joint's whole torque wrong",
+            f"{tolerance:g} N·m" + ("" if written else " (the default)"),
+        )
 
 
 def _check_misses_before_watchdog(doc: Doc, hand: HandConfig) -> None:

@@ -551,6 +551,8 @@ def test_a_tau_max_of_one_step_of_the_wire_is_accepted(
 ) -> None:
     step = signal(protocol, "TorqueCommand_1", 2).scale
     joint_of(base, 0, 2).update(tau_max=step, device_tau_max=step)
+    # a joint this weak needs a TDT cross-check as fine (``_check_tdt_tolerance``)
+    base.setdefault("safety", {})["tdt_tolerance"] = step / 4
     assert load_hand(write(tmp_path, base)).joints[2].tau_max == step
 
 
@@ -651,6 +653,7 @@ def test_a_limit_loads_exactly_when_the_wire_carries_it(
     _, hi = signal(protocol, "TorqueCommand_3", 0).carried_range()
     data = copy.deepcopy(base)
     joint_of(data, 2, 0).update(tau_max=limit, device_tau_max=limit)
+    data.setdefault("safety", {})["tdt_tolerance"] = min(limit, 0.02) / 4
     path = write(tmp_path, data)
     if limit <= hi:
         load_hand(path)
@@ -773,3 +776,21 @@ def test_a_key_that_is_no_string_is_refused_before_anything_is_hashed(tmp_path: 
     with pytest.raises(ConfigError) as caught:
         load_hand(path)
     assert "bus: expected string keys, found 7" in str(caught.value)
+
+
+@pytest.mark.parametrize("written", [None, 0.01])
+def test_a_tdt_tolerance_of_half_a_joint_s_torque_is_refused(
+    tmp_path: Path, base: dict[str, Any], written: float | None
+) -> None:
+    """A hand of weak joints with the default tolerance (0.02 N·m, for joints of tenths of
+    a N·m): a TDT reading twenty times the drive's most was within it, and no fault."""
+    joint_of(base, 1, 1).update(tau_max=0.02, device_tau_max=0.02)
+    if written is not None:
+        base.setdefault("safety", {})["tdt_tolerance"] = written
+    err = error_for(tmp_path, base)
+    assert err.key == "safety.tdt_tolerance"
+    name = base["fingers"][1]["joints"][1]["name"]
+    assert f"({name}: 0.02 N·m, so below 0.01 N·m)" in err.expected
+    assert err.found == ("0.01 N·m" if written else "0.02 N·m (the default)")
+    base["safety"] = {**base.get("safety", {}), "tdt_tolerance": 0.0099}
+    assert load_hand(write(tmp_path, base)).safety.tdt_tolerance == 0.0099
