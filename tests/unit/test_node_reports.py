@@ -78,3 +78,40 @@ def test_a_state_the_protocol_does_not_know_is_named_by_its_number(node: FingerN
     version = node.layouts.protocol_version
     node.receive(node.layouts.status.frame_id, _status(node, 0, 7, TIMEOUT, version, (1, 0, 0)), 2)
     assert node.contradiction == "Status says state 7 with latched fault bits (TIMEOUT)"
+
+
+def _heartbeat(node: FingerNode, counter: int, state: int) -> bytes:
+    return node.layouts.heartbeat.encode(counter, (state, 1000 + counter))
+
+
+def test_enabled_after_disabled_needs_an_enable_from_this_host(node: FingerNode) -> None:
+    """One DISABLED report in the same poll as the next ENABLED was overruled by it: a node
+    that dropped its torque, or a forged Heartbeat, went unseen and the run ended exit 0."""
+    fb, hb = node.layouts.feedback.frame_id, node.layouts.heartbeat.frame_id
+    node.receive(fb, _feedback(node, 0, DISABLED, 0), 1)
+    node.next_node_command("enable")
+    # the node's Heartbeat sent before the enable may arrive after its Feedback sent after it
+    node.receive(fb, _feedback(node, 1, ENABLED, 0), 2)
+    node.receive(hb, _heartbeat(node, 0, DISABLED), 3)
+    node.receive(fb, _feedback(node, 2, ENABLED, 0), 4)
+    node.receive(hb, _heartbeat(node, 1, ENABLED), 5)
+    assert node.contradiction == "" and node.state == ENABLED
+    # every stream has said ENABLED since the enable: a DISABLED now is the node's present
+    node.receive(hb, _heartbeat(node, 2, DISABLED), 6)
+    node.receive(fb, _feedback(node, 3, ENABLED, 0), 7)
+    assert node.contradiction == (
+        "Feedback says ENABLED after DISABLED without an enable from this host"
+    )
+    assert node.state == DISABLED  # what the DISABLED report said stands
+    node.next_node_command("enable")  # enabled again by this host: no contradiction more
+    node.receive(fb, _feedback(node, 4, ENABLED, 0), 8)
+    assert node.contradictions == 1 and node.state == ENABLED
+
+
+def test_a_listener_hears_another_host_enable_the_node(node: FingerNode) -> None:
+    """``nodes`` and ``monitor`` send nothing: an enable they did not send is no
+    contradiction."""
+    fb = node.layouts.feedback.frame_id
+    node.receive(fb, _feedback(node, 0, DISABLED, 0), 1)
+    node.receive(fb, _feedback(node, 1, ENABLED, 0), 2)
+    assert node.contradiction == "" and node.state == ENABLED

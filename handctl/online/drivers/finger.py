@@ -28,7 +28,8 @@ FAULT_BITS = {"TIMEOUT": 0x01, "ESTOP": 0x02, "RX_ERRORS": 0x04, "SENSOR": 0x08,
 #: Bits only a node in FAULT may report (they latch it), and bits the protocol reserves.
 LATCHED_BITS = 0x0F
 RESERVED_BITS = 0xE0
-_ENABLED = int(NodeState.ENABLED)  # plain ints on the hot path
+_DISABLED = int(NodeState.DISABLED)  # plain ints on the hot path
+_ENABLED = int(NodeState.ENABLED)
 _FAULT = int(NodeState.FAULT)
 
 
@@ -128,6 +129,17 @@ class FingerNode:
         #: none), and how many were heard in all.
         self.foreign_command = ""
         self.foreign_commands = 0
+        #: Whether this host commands the node (it sent a node command): only then is an
+        #: ENABLED after DISABLED judged by the enables it sent. A listener (``nodes``,
+        #: ``monitor``) hears another host enable the node, which is no contradiction.
+        self._commanding = False
+        #: The streams (Feedback, Heartbeat, Status) not yet heard saying ENABLED since this
+        #: host's last enable: until each has, a DISABLED of that stream may be one sent
+        #: before the enable (CAN keeps the order within an identifier, not across them).
+        self._since_enable: set[str] = set()
+        #: Whether the node may now go from DISABLED to ENABLED: this host enabled it, and
+        #: no stream that had already said ENABLED since has said DISABLED again.
+        self._may_enable = False
         self.feedback: Feedback | None = None
         self.feedback_ns: int | None = None  # when the last good feedback arrived (host clock)
         self.heartbeat_ns: int | None = None
@@ -161,6 +173,10 @@ class FingerNode:
         return frame
 
     def next_node_command(self, command: str) -> tuple[int, bytes]:
+        self._commanding = True
+        if command == "enable":
+            self._since_enable = {"Feedback", "Heartbeat", "Status"}
+            self._may_enable = True
         frame = make_node_command(self.layouts.node_command, self.node_command_counter, command)
         self.node_command_counter = (self.node_command_counter + 1) & 0xFF
         return frame
@@ -235,9 +251,12 @@ class FingerNode:
         """Fold in what one accepted frame says of the node's state (and fault bits).
 
         The last report does not simply win: each must agree with the protocol and with the
-        reports before it. Latched fault bits outside FAULT, reserved bits, or ENABLED after
-        FAULT without the DISABLED a fault reset leads to, is a contradiction; the host then
-        keeps believing FAULT, and the supervisor stops on the contradiction.
+        reports before it. Latched fault bits outside FAULT, reserved bits, ENABLED after
+        FAULT without the DISABLED a fault reset leads to, or (on a node this host commands)
+        ENABLED after DISABLED without an enable of this host's, is a contradiction; the host
+        then keeps believing the earlier state, and the supervisor stops on the contradiction.
+        Before, a DISABLED that arrived in the same poll as the next ENABLED was overruled by
+        it: a node that dropped its torque for a moment, or a forged report, went unseen.
         """
         problem = ""
         if bits is not None and bits & RESERVED_BITS:
@@ -250,6 +269,20 @@ class FingerNode:
         if self.state == _FAULT and state == _ENABLED:
             problem = problem or f"{message} says ENABLED after FAULT without a fault reset"
             state, bits = _FAULT, None  # what the FAULT report said stands
+        elif (
+            self.state == _DISABLED
+            and state == _ENABLED
+            and self._commanding
+            and not self._may_enable
+        ):
+            problem = problem or (
+                f"{message} says ENABLED after DISABLED without an enable from this host"
+            )
+            state = _DISABLED  # what the DISABLED report said stands
+        if state == _ENABLED:
+            self._since_enable.discard(message)
+        elif state == _DISABLED and message not in self._since_enable:
+            self._may_enable = False  # not a report from before the enable: a new DISABLED
         if problem:
             self.contradictions += 1
             if not self.contradiction:
