@@ -159,6 +159,12 @@ def summarise_run(
         # joints that sank out of their soft limits while a stop took the torque out
         **({"left_limits_in_stop": result.stop_notes} if result.stop_notes else {}),
         **({"nodes_reset": result.nodes_reset} if result.nodes_reset else {}),
+        # whether the hand may still be ENABLED: what a script reading the summary most needs
+        **(
+            {"disable_unconfirmed": result.disable_unconfirmed}
+            if result.disable_unconfirmed
+            else {}
+        ),
         **(
             {"exception": _exception_summary(result.exception)}
             if result.exception is not None

@@ -418,6 +418,8 @@ class Runtime:
             "the disable (last heard ENABLED, or silent since); the nodes' command watchdog "
             "disables a node that hears no command"
         )
+        if self.recorder is not None:  # the log says it too: whether the hand may be ENABLED
+            self.recorder.note("disable_unconfirmed", self.disable_unconfirmed, self.tick)
 
     async def _stop_after_exception(self, exc: Exception) -> tuple[Outcome, str]:
         """The stop after an exception: latch its fault, then zero torque and disable with

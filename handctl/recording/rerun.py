@@ -361,7 +361,7 @@ class ReplayClock:
                     runtime.request_stop(detail)
                 elif kind == "estop":
                     runtime.request_estop(detail)
-                elif kind in ("limit", "node_reset", "phase_end"):
+                elif kind in ("limit", "node_reset", "phase_end", "disable_unconfirmed"):
                     pass  # the runtime's own notes (a stop's, the start-up's): said again
                 else:
                     self.unsupported.append(f"tick {current.tick}: {kind}")

@@ -4,6 +4,7 @@ two ticks, faults latch, and only an explicit reset brings torque back, from zer
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -19,6 +20,7 @@ from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FAULTS, RAMP_BOUND_S, FaultCode, StopCategory
 from handctl.online.safety.supervisor import State
 from handctl.protocol import NodeState
+from handctl.recording.reader import iter_decoded, open_recording
 from handctl.sim import faults as inj
 
 from ..conftest import ROOT, handctl
@@ -70,16 +72,25 @@ def test_a_node_not_heard_disabled_at_the_end_is_said(
 ) -> None:
     """A node gone silent (its FEEDBACK_TIMEOUT the run's stop) is not heard disabled after
     the disable: the run listens 10 ms for it and says so, and the node's own command
-    watchdog is what disables it."""
+    watchdog is what disables it. The summary and the log say it too (stderr alone did): a
+    script, or whoever reads the log later, needs to know the hand may still be ENABLED."""
     faults = tmp_path / "silent.yaml"
     faults.write_text("faults:\n  - {kind: node_silent, node: 2, start: 0.5, stop: 5.0}\n")
+    log, summary = tmp_path / "run.mcap", tmp_path / "s.json"
     done = handctl(
-        "run", "recipe", str(hold.source), "--sim-faults", str(faults), "--max-seconds", "2"
+        "run", "recipe", str(hold.source), "--sim-faults", str(faults), "--max-seconds", "2",
+        "--log", str(log), "--summary-json", str(summary),
     )  # fmt: skip
     assert done.returncode == 3, done.stderr
     assert "FEEDBACK_TIMEOUT" in done.stderr
-    assert "warning: node 2 (f2) not heard disabled within 10 ms of the disable" in done.stderr
+    said = "node 2 (f2) not heard disabled within 10 ms of the disable"
+    assert f"warning: {said}" in done.stderr
     assert "node 1 (f1) not heard" not in done.stderr  # the others said so in time
+    assert json.loads(summary.read_text())["disable_unconfirmed"].startswith(said)
+    events = [m for _, _, m in iter_decoded(open_recording(log), ("/events",))]
+    assert [e["name"] for e in events if said in e.get("detail", "")] == ["disable_unconfirmed"]
+    rerun = handctl("replay", str(log), "--rerun")
+    assert rerun.returncode == 0, rerun.stdout + rerun.stderr
 
 
 def test_lockstep_runs_are_deterministic(hand: HandConfig, hold: Recipe) -> None:
