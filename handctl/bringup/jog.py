@@ -37,6 +37,7 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.online.clock import Tick
 from handctl.online.loop import TickRecord
+from handctl.online.recipes.guard import LimitGuard, SpringBand
 from handctl.online.recipes.schema import Condition, Recipe, TimeoutAction, parse_condition
 from handctl.online.safety.recovery import Recovery
 from handctl.session import RunReport, RunRequest, run_recipe
@@ -195,7 +196,7 @@ def jog_recipe(
             hand,
             [phase("jog", torques, ramp, ramp + seconds)],
             ramp,
-            guard_band=GUARD_BAND,
+            guard=jog_guard(hand, torque),
         )
     back = phase("recover", torques, ramp, ramp + seconds)
     back = dataclasses.replace(
@@ -208,6 +209,25 @@ def jog_recipe(
         [back],
         ramp,
     )
+
+
+def jog_guard(hand: HandConfig, torque: float) -> LimitGuard:
+    """The jog's soft-limit guard: ``GUARD_BAND``, narrowed to a quarter of the range of a
+    joint narrower than twice it, pushing no joint harder than twice the jog's ``torque``.
+
+    A jog is a small torque on one joint. With the recipe's guard, a joint resting inside its
+    band (near an asymmetric limit) got up to its whole ``tau_max`` while another was jogged
+    at a seventh of it, and a joint of 0.1 rad anywhere on the hand, inside the band from both
+    sides, was pushed onto a limit by the guard itself: every jog stopped on ``ANGLE_LIMIT``.
+    Twice the torque still stops the jogged joint inside its band, the spring meeting it
+    with the torque's own size halfway in."""
+    springs = [
+        SpringBand(j.name, side, (j.angle_max - j.angle_min) / 4)
+        for j in hand.joints
+        if j.angle_max - j.angle_min < 2 * GUARD_BAND
+        for side in ("lower", "upper")
+    ]
+    return LimitGuard.for_hand(hand, GUARD_BAND, springs=springs, push_max=2 * abs(torque))
 
 
 def recovered_condition(hand: HandConfig, joint: str, torque: float) -> Condition:

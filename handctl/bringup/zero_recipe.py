@@ -26,10 +26,9 @@ def in_memory_recipe(
     hand: HandConfig,
     phases: Sequence[Phase],
     end_ramp_s: float,
-    guard_band: float | None = None,
+    guard: LimitGuard | None = None,
 ) -> Recipe:
     """A recipe for ``hand``, refused (``ConfigError``) where a file's would be."""
-    guard = LimitGuard.for_hand(hand, guard_band) if guard_band is not None else None
     recipe = Recipe(
         name, f"<{name}>", description, tuple(phases), end_ramp_s, None, False, (), guard
     )

@@ -22,7 +22,7 @@ import yaml
 
 from handctl import cli
 from handctl.bringup.jog import jog, jog_recipe
-from handctl.config import HandConfig
+from handctl.config import HandConfig, load_hand
 from handctl.online.bus import open_bus
 from handctl.online.loop import Outcome, RunResult
 from handctl.online.safety.recovery import RECOVERY_SLACK, Recovery
@@ -90,6 +90,28 @@ def test_a_joint_the_guard_pushes_is_named_with_its_torque(
     assert "f1_j1" not in pushed and float(pushed["f1_j2"]) > 0.01
     assert cli.main(["jog", "f2_j3", "--torque", "0.03", "--seconds", "0.2"]) == cli.EXIT_OK
     assert "pushed back" not in capsys.readouterr().out
+
+
+def test_the_guard_pushes_no_joint_harder_than_twice_the_jog(tmp_path: Path) -> None:
+    """A joint resting inside its guard band (f2_j1, its lower limit 0.05 rad below where it
+    rests) got up to its whole tau_max while another was jogged at a twelfth of it, and a
+    joint of 0.1 rad (f3_j3, around its rest) was pushed onto a limit by the guard from both
+    sides: the jog stopped on ANGLE_LIMIT, exit 3. The jog's guard narrows its band on such a
+    joint and pushes no joint harder than twice the jog's torque."""
+    doc = yaml.safe_load((ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text())
+    f2_j1, f3_j3 = doc["fingers"][1]["joints"][0], doc["fingers"][2]["joints"][2]
+    f2_j1["angle_min"] = doc["sim"]["initial_angles"]["f2"][0] - 0.05
+    rest = doc["sim"]["initial_angles"]["f3"][2]
+    f3_j3["angle_min"], f3_j3["angle_max"] = rest - 0.05, rest + 0.05
+    path = tmp_path / "hand.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    result = jog(load_hand(path), "f1_j2", 0.05, seconds=0.5)
+    summary = result.report.summary
+    assert summary["outcome"] == "completed", summary.get("faults")
+    applied = summary["max_abs_tau_nm"]
+    assert applied.pop("f1_j2") == pytest.approx(0.05)
+    assert applied["f2_j1"] > 0.01  # pushed out of its band, as before, but gently
+    assert max(applied.values()) <= 2 * 0.05 + 1e-9, applied
 
 
 def test_a_negative_torque_turns_it_back(capsys: pytest.CaptureFixture[str]) -> None:

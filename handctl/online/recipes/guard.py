@@ -132,11 +132,15 @@ class LimitGuard:
         damping_s: float = GUARD_DAMPING_S,
         lookahead_s: float = GUARD_LOOKAHEAD_S,
         springs: Sequence[SpringBand] = (),
+        push_max: float | None = None,
     ) -> LimitGuard:
         """The guard with ``band`` (rad) for every joint of ``hand``, from its soft limits,
         with a damping of ``damping_s`` (s) times the spring's gain, looking ``lookahead_s``
-        (s) ahead; ``springs`` give a side of a joint a spring band of its own."""
+        (s) ahead; ``springs`` give a side of a joint a spring band of its own. Its spring
+        reaches each joint's ``tau_max`` at the soft limit, or ``push_max`` (N·m) if that is
+        less (and the damper is as much weaker)."""
         joints = hand.joints
+        most = [j.tau_max if push_max is None else min(j.tau_max, push_max) for j in joints]
         own: Mapping[tuple[str, str], float] = {(s.joint, s.side): s.band for s in springs}
         names = {j.name for j in joints}
         for s in springs:
@@ -150,11 +154,11 @@ class LimitGuard:
             tuple(j.angle_max - band for j in joints),
             tuple(j.angle_min + b for j, b in zip(joints, lower_band, strict=True)),
             tuple(j.angle_max - b for j, b in zip(joints, upper_band, strict=True)),
-            tuple(j.tau_max / b for j, b in zip(joints, lower_band, strict=True)),
-            tuple(j.tau_max / b for j, b in zip(joints, upper_band, strict=True)),
-            tuple(j.tau_max for j in joints),
+            tuple(t / b for t, b in zip(most, lower_band, strict=True)),
+            tuple(t / b for t, b in zip(most, upper_band, strict=True)),
+            tuple(most),
             # the damper's strength is the guard's band's spring's, whatever the spring band
-            tuple(j.tau_max / band * damping_s for j in joints),
+            tuple(t / band * damping_s for t in most),
             lookahead_s,
         )
 
