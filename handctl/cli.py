@@ -1280,9 +1280,16 @@ def _replay_to_bus(
         f"to-bus: checking the logged commands, then replaying the frames onto {args.to_bus} "
         f"at {args.speed or 1.0:g}x ..."
     )
-    sent = frames.to_bus(
-        recording, args.to_bus, args.speed or 1.0, args.direction or "both", hand=on_bus
-    )
+    try:
+        sent = frames.to_bus(
+            recording, args.to_bus, args.speed or 1.0, args.direction or "both", hand=on_bus
+        )
+    except frames.ReplayInterrupted as exc:
+        if exc.stopped:
+            print(f"to-bus: interrupted; {exc.stopped}", file=sys.stderr)
+        raise
+    if "stopped" in sent:
+        print(f"to-bus: the log ended with {sent['stopped']}", file=sys.stderr)
     shifted = sent["shifted_ms"]
     print(
         f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "

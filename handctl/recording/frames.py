@@ -11,7 +11,7 @@ from typing import Any
 from handctl.config import FingerConfig, HandConfig
 from handctl.errors import ConfigError
 from handctl.hand_protocol import node_message, protocol_for
-from handctl.protocol import Layout
+from handctl.protocol import NODE_COMMANDS, Layout
 from handctl.recording import channels as ch
 from handctl.recording.metadata import recorded_hand, recorded_protocol
 from handctl.recording.reader import Recording, iter_decoded, require_topics
@@ -79,25 +79,34 @@ def to_bus(
     # tick), the rest of the replay is shifted instead, as late as this frame.
     period_s = hand.bus.period_s / speed
     shifted = 0.0
+    left = _LeftEnabled(hand)
     with open_bus(spec, hand.bus) as bus:
         start: float | None = None
         first = 0
-        for log_time, frame_id, data, _ in logged_frames(recording, direction):
-            if start is None:
-                start, first = clock(), log_time
-            due = start + (log_time - first) * 1e-9 / speed
-            wait = due - clock()
-            if wait > 0:
-                sleep(wait)
-            else:
-                worst_late = max(worst_late, -wait)
-                if -wait > period_s:
-                    start -= wait
-                    shifted -= wait
-            if bus.send(frame_id, data):
-                sent += 1
-            else:
-                failed += 1
+        try:
+            for log_time, frame_id, data, _ in logged_frames(recording, direction):
+                if start is None:
+                    start, first = clock(), log_time
+                due = start + (log_time - first) * 1e-9 / speed
+                wait = due - clock()
+                if wait > 0:
+                    sleep(wait)
+                else:
+                    worst_late = max(worst_late, -wait)
+                    if -wait > period_s:
+                        start -= wait
+                        shifted -= wait
+                if bus.send(frame_id, data):
+                    sent += 1
+                    left.sent(frame_id, data)
+                else:
+                    failed += 1
+        except KeyboardInterrupt:
+            # a replay stopped midway (Ctrl-C, SIGTERM) left the hand under the last torques
+            # sent, until the nodes' watchdog faulted them: stopped as a run stops
+            raise ReplayInterrupted(left.stop(bus, period_s, sleep)) from None
+        # so did a log that ends with nodes enabled (a run killed, a log cut short)
+        stopped = left.stop(bus, period_s, sleep)
         counts = bus.transport_counts()
     report: dict[str, Any] = {
         "sent": sent,
@@ -108,6 +117,8 @@ def to_bus(
         "speed": speed,
         "direction": direction,
     }
+    if stopped:
+        report["stopped"] = stopped
     if sent and counts.get("datagrams_sent") == 0:
         # The unix bus makes its directory if it is not there, and a send with nobody else
         # in it succeeds: "N frames sent, 0 failed" to a mistyped directory looked like a
@@ -117,6 +128,82 @@ def to_bus(
             "(is the listener's bus directory this one?)"
         )
     return report
+
+
+class ReplayInterrupted(KeyboardInterrupt):
+    """A replay onto a bus interrupted; ``stopped`` says what was sent to stop the nodes it
+    had left enabled ("" if none were)."""
+
+    def __init__(self, stopped: str) -> None:
+        super().__init__(stopped)
+        self.stopped = stopped
+
+
+class _LeftEnabled:
+    """The nodes a replay's frames may have left enabled, and how to stop them: each node's
+    last ``TorqueCommand`` and ``NodeCommand`` counters, and whether an enable or a torque
+    was sent after its last disable."""
+
+    def __init__(self, hand: HandConfig) -> None:
+        protocol = protocol_for(hand)
+        self.torque = {
+            protocol.layout("TorqueCommand", f.node_id).frame_id: f.node_id for f in hand.fingers
+        }
+        self.command = {
+            protocol.layout("NodeCommand", f.node_id).frame_id: f.node_id for f in hand.fingers
+        }
+        self.layouts = {
+            f.node_id: (
+                protocol.layout("TorqueCommand", f.node_id),
+                protocol.layout("NodeCommand", f.node_id),
+            )
+            for f in hand.fingers
+        }
+        self.counters: dict[int, int] = {}
+        self.enabled: set[int] = set()
+
+    def sent(self, frame_id: int, data: bytes) -> None:
+        node = self.torque.get(frame_id)
+        if node is not None:
+            self.counters[frame_id] = self.layouts[node][0].decode(data)[0]
+            self.enabled.add(node)
+            return
+        node = self.command.get(frame_id)
+        if node is not None:
+            counter, values = self.layouts[node][1].decode(data)
+            self.counters[frame_id] = counter
+            if int(values[0]) == NODE_COMMANDS["disable"]:
+                self.enabled.discard(node)
+            elif int(values[0]) == NODE_COMMANDS["enable"]:
+                self.enabled.add(node)
+
+    def stop(self, bus: Any, period_s: float, sleep: Callable[[float], None]) -> str:
+        """Zero torque for as many periods as a run's stop, then disable, to every node left
+        enabled; what was done, or "" when no node was."""
+        from handctl.online.loop import ZERO_TICKS_BEFORE_DISABLE
+
+        nodes = sorted(self.enabled)
+        if not nodes:
+            return ""
+
+        def send(layout: Layout, values: tuple[float, ...]) -> None:
+            counter = (self.counters.get(layout.frame_id, -1) + 1) & 0xFF
+            self.counters[layout.frame_id] = counter
+            bus.send(layout.frame_id, layout.encode(counter, values))
+
+        for tick in range(ZERO_TICKS_BEFORE_DISABLE + 1):
+            for node in nodes:
+                torque = self.layouts[node][0]
+                send(torque, (0.0,) * (len(torque.signals)))
+            if tick < ZERO_TICKS_BEFORE_DISABLE:
+                sleep(period_s)
+        for node in nodes:
+            send(self.layouts[node][1], (float(NODE_COMMANDS["disable"]),))
+        self.enabled.clear()
+        return (
+            f"node(s) {', '.join(map(str, nodes))} left enabled by the frames sent: zero "
+            "torque and a disable sent after them, as a run's stop does"
+        )
 
 
 def check_commands(

@@ -4,6 +4,7 @@ the export to python-can's formats and the replay onto a bus; bad input is exit 
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import signal
@@ -19,6 +20,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from handctl.config import HandConfig
+from handctl.hand_protocol import protocol_for
 from handctl.online.bus import BusEvent, BusEventKind, Frame, FrameBus, open_bus
 from handctl.online.loop import Outcome
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
@@ -578,9 +580,51 @@ def test_to_bus_sends_every_frame_with_its_spacing(
         sent = to_bus(recording, f"virtual:{channel}", speed=4.0, sleep=sleep, clock=clock)
         heard = listener.drain(limit=10**7)
     assert sent["sent"] == len(logged) and sent["failed"] == 0
+    # the run disabled the nodes at its end: nothing is sent after its frames
     assert [(f.arbitration_id, f.data) for f in heard] == [(fid, d) for _, fid, d, _ in logged]
+    assert "stopped" not in sent
     span = (logged[-1][0] - logged[0][0]) * 1e-9
     assert now[0] == pytest.approx(span / 4.0, rel=1e-6)
+
+
+def test_to_bus_stopped_midway_zeroes_and_disables_the_nodes_it_enabled(
+    recorded: Recorded, hand: HandConfig, channel: str
+) -> None:
+    """Ctrl-C in a replay onto a bus (or a log that ends with the nodes enabled, a run
+    killed) left the hand under the last torques sent, near tau_max, until the nodes'
+    watchdog faulted them. The replay ends as a run's stop does: zero torque to every node
+    it left enabled for six periods, then a disable, each on the node's next counter."""
+    recording = open_recording(recorded.path)
+    protocol = protocol_for(hand)
+    logged = list(logged_frames(recording))
+    halfway = (logged[-1][0] - logged[0][0]) * 1e-9 / 2  # s, the nodes enabled, under torque
+    now = [0.0]
+
+    def sleep(seconds: float) -> None:
+        before = now[0]
+        now[0] += seconds
+        if before < halfway <= now[0]:
+            raise KeyboardInterrupt
+
+    with open_bus(f"virtual:{channel}", hand.bus) as listener:
+        with pytest.raises(KeyboardInterrupt):
+            to_bus(recording, f"virtual:{channel}", sleep=sleep, clock=lambda: now[0])
+        heard = [(f.arbitration_id, f.data) for f in listener.drain(limit=10**7)]
+    nodes = [f.node_id for f in hand.fingers]
+    torque = {n: protocol.layout("TorqueCommand", n) for n in nodes}
+    command = {n: protocol.layout("NodeCommand", n) for n in nodes}
+    tail = heard[-7 * len(nodes) :]
+    assert [fid for fid, _ in tail] == [torque[n].frame_id for n in nodes] * 6 + [
+        command[n].frame_id for n in nodes
+    ]
+    for n in nodes:
+        sent = [torque[n].decode(d) for fid, d in heard if fid == torque[n].frame_id]
+        assert any(any(v != 0.0 for v in values) for _, values in sent[:-6])  # was under torque
+        assert all(values == (0.0,) * len(values) for _, values in sent[-6:])
+        counters = [c for c, _ in sent]
+        assert all(b == (a + 1) & 0xFF for a, b in itertools.pairwise(counters))
+        last = [command[n].decode(d) for fid, d in heard if fid == command[n].frame_id][-1]
+        assert last[1] == (2.0,)  # disable
 
 
 def test_to_bus_says_when_nobody_was_on_the_unix_bus(
