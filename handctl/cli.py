@@ -1339,7 +1339,15 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         fmt, out = args.export
         count = frames.export(recording, fmt, out)
         print(f"export: {count} frames to {out} ({fmt})")
-    if args.to_bus:
+    if args.to_bus and status != EXIT_OK:
+        # the re-run proved the log does not repeat its run: a frame was altered, and the
+        # command checks' bounds may have been re-sealed with it
+        print(
+            "to-bus: nothing sent: the re-run found this log does not repeat its run",
+            file=sys.stderr,
+        )
+        report["to_bus"] = {"sent": 0, "refused": "the re-run found a mismatch"}
+    elif args.to_bus:
         report["to_bus"] = _replay_to_bus(args, recording, on_bus)
     if args.json:
         _write_output("--json", args.json, json.dumps(report, indent=2, default=str) + "\n")

@@ -335,6 +335,29 @@ def test_to_bus_sends_nothing_from_a_log_with_a_command_the_supervisor_would_ref
     assert "Torque1 (f1_j1): " + expected in text and "nothing was sent" in text, text
 
 
+def test_to_bus_sends_nothing_when_the_rerun_asked_with_it_finds_a_mismatch(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
+) -> None:
+    """A command altered within every bound the checks know (a tenth of a rate-limit step,
+    re-sealed): the re-run said MISMATCH, and every frame went onto the bus all the same."""
+    layout = protocol.layout("TorqueCommand", 1)
+    index = _nth_command(recorded, layout.frame_id, 200)
+    bad = tmp_path / "nudged.mcap"
+    rewrite(recorded.path, bad, one_message(ch.CAN_TX, index, _torque_command(
+        protocol, 1, 0, lambda logged: logged + 0.002 * (1 if logged < 0 else -1)
+    )))  # fmt: skip
+    directory = tmp_path / "bus"
+    with open_bus(f"unix:{directory}", hand.bus) as listener:
+        done = handctl("replay", str(bad), "--rerun", "--to-bus", f"unix:{directory}")
+        heard = listener.drain(limit=10**6)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "rerun: MISMATCH" in done.stdout, done.stdout
+    assert "to-bus: nothing sent: the re-run found this log does not repeat its run" in (
+        done.stderr
+    )
+    assert heard == []
+
+
 def test_to_bus_refuses_a_command_hidden_among_the_received_frames(
     recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
 ) -> None:
