@@ -105,6 +105,21 @@ def quoted(text: str) -> str:
     return "'" + body.replace("'", "\\'") + "'"
 
 
+class Description(str):
+    """A found value that handctl told rather than read (``found a file that is not a blf
+    export``): shown as it is, neither quoted nor cut to ``SHOWN_CHARS``. Cut, the part
+    that said what was wrong was often the part left out (``reading stopped at byte 8
+    after...FError: the file ends inside a record``)."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+#: characters of a ``Description`` a message shows: whole, but bounded (it may quote a
+#: library's message about a hostile file)
+DESCRIPTION_CHARS = 1000
+
+
 def shown(found: object) -> str:
     """Render the offending value briefly: long values are cut so a message stays one line.
 
@@ -114,6 +129,12 @@ def shown(found: object) -> str:
     if isinstance(found, PurePath):
         # a file's name is what the user must find again: whole (the system bounds it)
         return quoted(str(found))
+    if isinstance(found, Description):
+        text = printable(str(found))
+        if len(text) > DESCRIPTION_CHARS:
+            half = (DESCRIPTION_CHARS - 3) // 2
+            text = text[:half] + "..." + text[len(text) - half :]
+        return text
     # a description rather than a value (the YAML reader's ``_Text``, shown as it is, not
     # quoted) is its writer's to escape; this catches what one let through raw
     text = printable(_SHORT.repr(found))

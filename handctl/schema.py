@@ -54,7 +54,7 @@ from yaml import Node as Node  # noqa: PLC0414 - re-exported
 from yaml import ScalarNode as ScalarNode  # noqa: PLC0414 - re-exported
 from yaml import SequenceNode as SequenceNode  # noqa: PLC0414 - re-exported
 
-from handctl.errors import ConfigError, quoted, shown
+from handctl.errors import ConfigError, Description, quoted, shown
 
 _MISSING: Any = object()
 
@@ -182,11 +182,8 @@ def dump_yaml(data: Any) -> str:
     return yaml.dump(data, Dumper=_Dumper, sort_keys=False, width=100, allow_unicode=True)
 
 
-class _Text(str):
+class _Text(Description):
     """A found value that is already a description: shown as it is, not quoted."""
-
-    def __repr__(self) -> str:
-        return str(self)
 
 
 def description(text: str) -> str:

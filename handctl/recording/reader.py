@@ -35,7 +35,7 @@ from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, Metadata, MetadataIndex, Schema, Statistics
 
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, Description
 from handctl.recording import channels as ch
 from handctl.recording.messages import MessageCheck
 
@@ -176,7 +176,7 @@ def _fail(path: Path, found: str) -> ConfigError:
         str(path),
         "",
         "an MCAP file (a handctl recording, e.g. from 'handctl run recipe --log RUN.mcap')",
-        found,
+        Description(found),
     )
 
 

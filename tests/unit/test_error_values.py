@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from handctl.config import load_hand
-from handctl.errors import ConfigError, escaped
+from handctl.errors import DESCRIPTION_CHARS, ConfigError, Description, escaped
 
 from ..conftest import HAND_YAML
 
@@ -134,3 +134,14 @@ def test_check_shows_a_file_name_escaped_in_its_own_lines(tmp_path: Path) -> Non
         result.stdout
     )
     assert rf"handctl: error: {tmp_path}/bad\x1b[2J.yaml: bus.fd: expected true" in (result.stderr)
+
+
+def test_a_description_handctl_told_is_shown_whole_and_unquoted() -> None:
+    """Cut to 80 characters in the middle, what said what was wrong was the part left out
+    (``reading stopped at byte 8 after...FError: the file ends inside a record``)."""
+    told = Description("reading stopped at byte 8 after " + "x" * 60 + ": the file ends there")
+    assert str(ConfigError("run.mcap", "", "an MCAP file", told)).endswith(f"found {told}")
+    huge = Description("a" * 600 + "b" * 600)
+    text = str(ConfigError("f", "", "e", huge)).split("found ", 1)[1]
+    assert len(text) == DESCRIPTION_CHARS - 1 and text.startswith("a") and text.endswith("b")
+    assert "..." in text
