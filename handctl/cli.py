@@ -1183,13 +1183,15 @@ def _check_replay_options(args: argparse.Namespace) -> None:
     if args.export and args.export[0] not in LOG_FORMATS:
         raise ConfigError("--export", "FORMAT", "one of " + ", ".join(LOG_FORMATS), args.export[0])
     export = Path(args.export[1]) if args.export else None
-    if export is not None:
-        _output_file("--export", export)
     # an export or a summary written over the recording it was read from emptied it, exit 0
     _refuse_same_files(
         {"--json": args.json, "--plot": args.plot, "--export": export},
         {"the recording": Path(args.log), "--hand": args.hand, "--dbc": args.dbc},
     )
+    if export is not None:
+        from handctl.outfile import check_writable
+
+        check_writable(export, "--export", export=args.export[0])
     _output_file("--json", args.json, json_output=True)
 
 

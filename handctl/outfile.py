@@ -9,16 +9,22 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import stat
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, Description
 
 
 def check_writable(
-    path: Path, option: str, *, recording: bool = False, json_output: bool = False
+    path: Path,
+    option: str,
+    *,
+    recording: bool = False,
+    json_output: bool = False,
+    export: str | None = None,
 ) -> Path:
     """The file ``path`` names, resolved (a symlink is written through, not replaced), if a
     new version of it can be put there: its directory exists and may be written, and the file,
@@ -54,9 +60,36 @@ def check_writable(
             "",
             "a new file, or an earlier JSON output to write again (an existing file that is "
             "not JSON, a hand config or a recipe say, is not replaced)",
-            f"{path}: an existing file that is not JSON",
+            Description(f"{path}: an existing file that is not JSON"),
+        )
+    if export is not None and not _export_or_nothing(target, export):
+        # a frame export written over a hand config replaced it, exit 0
+        raise ConfigError(
+            option,
+            "",
+            f"a new file, or an earlier {export} export to write again (an existing file of "
+            "another kind, a hand config say, is not replaced)",
+            Description(f"{path}: an existing file that is not a {export} export"),
         )
     return target
+
+
+#: How each frame export (python-can's log formats) begins: what an export may replace.
+EXPORT_HEADS = {
+    "blf": re.compile(rb"LOGG"),
+    "asc": re.compile(rb"date "),
+    "candump": re.compile(rb"\(\d+\.\d+\) \S+ [0-9A-Fa-f]+#"),
+}
+
+
+def _export_or_nothing(target: Path, fmt: str) -> bool:
+    """Whether ``target`` is absent, empty, or begins as an export in ``fmt`` does."""
+    try:
+        with target.open("rb") as handle:
+            head = handle.read(256)
+    except OSError:  # not there (yet), or not readable (said when it is written)
+        return True
+    return not head.strip() or EXPORT_HEADS[fmt].match(head) is not None
 
 
 def _json_or_nothing(target: Path) -> bool:

@@ -561,6 +561,28 @@ def test_export_reads_back_with_python_can(
         assert [rx for *_, rx in back] == [rx for *_, rx in logged]
 
 
+def test_an_export_replaces_only_an_earlier_export_of_its_format(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """``--export blf hand.yaml`` replaced the hand config with BLF data, exit 0, where
+    ``--json hand.yaml`` refused: an export replaces a new or empty file, or an export."""
+    config = tmp_path / "hand.yaml"
+    config.write_text((ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text())
+    kept = config.read_bytes()
+    done = handctl("replay", str(recorded.path), "--export", "blf", str(config))
+    assert done.returncode == 2, done.stderr
+    assert "an existing file that is not a blf export" in done.stderr
+    assert config.read_bytes() == kept
+    for fmt in ("candump", "asc", "blf"):
+        out = tmp_path / f"frames.{fmt}"
+        for _ in range(2):  # written, then written again over itself
+            done = handctl("replay", str(recorded.path), "--export", fmt, str(out))
+            assert done.returncode == 0, done.stderr
+    other = tmp_path / "frames.asc"
+    done = handctl("replay", str(recorded.path), "--export", "candump", str(other))
+    assert done.returncode == 2 and "not a candump export" in done.stderr
+
+
 def test_to_bus_sends_every_frame_with_its_spacing(
     recorded: Recorded, hand: HandConfig, channel: str
 ) -> None:
