@@ -601,6 +601,36 @@ def require_content(recording: Recording) -> None:
     was all zeros and question marks, exit 0, as if it were the log of a run that did
     nothing."""
     if recording.metadata or recording.channels or recording.chunks:
+        handctl_topics = {c.topic for c in ch.CHANNELS}
+        if not any(name.startswith("handctl.") for name in recording.metadata) and not any(
+            topic in handctl_topics for topic in recording.topics.values()
+        ):
+            # an MCAP file of another tool was summarised as a run of '? on ?', exit 0
+            topics = sorted(recording.topics.values())
+            raise ConfigError(
+                str(recording.path),
+                "",
+                "a handctl recording (from 'handctl run recipe --log RUN.mcap')",
+                Description(
+                    "an MCAP file of another tool: no handctl metadata and no handctl channel"
+                    + (f" (its channels: {', '.join(topics[:8])}" if topics else "")
+                    + (", ..." if len(topics) > 8 else "")
+                    + (")" if topics else "")
+                ),
+            )
+        counted = sum(recording.message_counts.values()) if recording.message_counts else 0
+        if counted and not recording.chunks:
+            # handctl writes its messages in chunks and reads them there: a log rewritten
+            # without chunks (by another tool) read as empty, "0 ticks, complete", exit 0
+            raise ConfigError(
+                str(recording.path),
+                "",
+                "a recording with its messages in chunks, as handctl writes it",
+                Description(
+                    f"{counted} messages outside any chunk (a file rewritten by another tool "
+                    "without chunks)"
+                ),
+            )
         return
     raise ConfigError(
         str(recording.path),

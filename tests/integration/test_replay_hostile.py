@@ -14,6 +14,7 @@ from types import SimpleNamespace
 
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import Writer
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
@@ -635,3 +636,55 @@ def test_the_slack_is_the_faster_loop_s_the_log_s_or_the_hand_s_on_the_bus(
     assert _commands(monkeypatch, protocol, slow, times, torques)  # onto its own hand
     with pytest.raises(ConfigError, match="in --hand"):
         _commands(monkeypatch, protocol, hand, times, torques, logged_hand=slow, on_bus=True)
+
+
+def test_an_mcap_file_of_another_tool_is_not_summarised_as_a_run(tmp_path: Path) -> None:
+    """A complete MCAP file written by the mcap library with channels of its own was
+    summarised as a run of '? on ?', 'complete (but the writer did not finish the file)',
+    exit 0, and plotted empty."""
+    foreign = tmp_path / "foreign.mcap"
+    with foreign.open("wb") as handle:
+        writer = Writer(handle)
+        writer.start()
+        schema = writer.register_schema("Chatter", "jsonschema", b"{}")
+        for k in range(3):
+            channel = writer.register_channel(f"/chatter/{k}", "json", schema)
+            writer.add_message(channel, log_time=k, publish_time=k, data=b"{}")
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
+    done = handctl("replay", str(foreign), "--plot", str(tmp_path / "p.png"))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "expected a handctl recording" in done.stderr
+    assert "no handctl metadata and no handctl channel (its channels: /chatter/0, " in (done.stderr)
+    assert not (tmp_path / "p.png").exists()
+
+
+def test_a_recording_rewritten_without_chunks_is_refused_not_read_as_empty(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """handctl reads the messages in chunks, where it writes them: a log copied without
+    chunks read as '0.000 s, 0 ticks, complete', exit 0, and its re-run compared nothing."""
+    flat = tmp_path / "flat.mcap"
+    with recorded.path.open("rb") as source, flat.open("wb") as handle:
+        reader = make_reader(source)
+        writer = Writer(handle, use_chunking=False)
+        writer.start()
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages():
+            if channel.id not in channels:
+                if schema is not None and schema.id not in schemas:
+                    schemas[schema.id] = writer.register_schema(
+                        schema.name, schema.encoding, schema.data
+                    )
+                channels[channel.id] = writer.register_channel(
+                    channel.topic,
+                    channel.message_encoding,
+                    schemas[schema.id] if schema is not None else 0,
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.publish_time
+            )
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped
+    done = handctl("replay", str(flat), "--rerun")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "expected a recording with its messages in chunks, as handctl writes it" in (done.stderr)
