@@ -148,6 +148,24 @@ def _output_dir(text: str) -> Path:
     return Path(text)
 
 
+def _json_text(value: Any, indent: int | None = 2) -> str:
+    """``value`` as JSON that any reader takes: a NaN or an infinity (a value a log lacks, a
+    figure of nothing) is written ``null``, where ``json.dumps`` wrote ``NaN``, which is not
+    JSON and which strict readers (``jq``, browsers, most languages) refuse."""
+    import json
+
+    def finite(v: Any) -> Any:
+        if isinstance(v, float):
+            return v if math.isfinite(v) else None
+        if isinstance(v, dict):
+            return {k: finite(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [finite(x) for x in v]
+        return v
+
+    return json.dumps(finite(value), indent=indent, default=str, allow_nan=False)
+
+
 def _output_file(option: str, path: Path | None, *, json_output: bool = False) -> None:
     """An option naming a file to write: refused before any work (a run, a plan) when it
     cannot be written (``outfile.check_writable``), rather than found out at the end."""
@@ -233,9 +251,8 @@ def _truth_to(path: Path) -> Callable[[dict[str, Any]], None]:
     all (``_write_output``)."""
 
     def write(truth: dict[str, Any]) -> None:
-        import json
 
-        _write_output("--summary-json", path, json.dumps(truth, indent=2) + "\n")
+        _write_output("--summary-json", path, _json_text(truth) + "\n")
 
     return write
 
@@ -247,7 +264,6 @@ def _progress(message: str) -> None:
 
 # -- check ---------------------------------------------------------------------------------------
 def _cmd_check_timing(args: argparse.Namespace) -> int:
-    import json
 
     from handctl.hostcheck import timing_check
 
@@ -277,7 +293,7 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
     report = timing_check(hand, seconds, realtime=not args.no_rt, cpu=args.loop_cpu)
     print(report.text())
     if args.json:
-        _write_output("--json", args.json, json.dumps(report.as_json(), indent=2) + "\n")
+        _write_output("--json", args.json, _json_text(report.as_json()) + "\n")
     return EXIT_HOST if report.verdict.fails else EXIT_OK
 
 
@@ -493,7 +509,6 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
 
 
 def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
-    import json
 
     from handctl.online.clock import Hygiene
     from handctl.online.recipes.loader import load_recipe
@@ -573,7 +588,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     except KeyboardInterrupt as exc:
         # a stop signal during the start-up: the summary asked for says so (there was none)
         if args.summary_json:
-            text = json.dumps(interrupted_summary(request, str(exc)), indent=2) + "\n"
+            text = _json_text(interrupted_summary(request, str(exc))) + "\n"
             _write_output("--summary-json", args.summary_json, text)
         raise
     if status is not None:
@@ -583,7 +598,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     summary = report.summary
     _print_run_summary(summary, args.plot)  # first: a summary file that fails still shows it
     if args.summary_json:
-        _write_output("--summary-json", args.summary_json, json.dumps(summary, indent=2) + "\n")
+        _write_output("--summary-json", args.summary_json, _json_text(summary) + "\n")
     return _run_exit_code(report.result, summary)
 
 
@@ -1082,9 +1097,12 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
     print("  largest torques [N·m] (applied, when; |desired|; |TDT|):")
     for name, t in summary["largest_torques"].items():
         if "applied_nm" in t:
+            desired, tdt = t.get("desired_nm"), t.get("tdt_nm")
             print(
                 f"    {name:<8} {t['applied_nm']:+.4f} at {t['at_s']:.3f} s; "
-                f"{t['desired_nm']:.4f}; {t.get('tdt_nm', float('nan')):.4f}"
+                + ("-" if desired is None else f"{desired:.4f}")
+                + "; "
+                + ("-" if tdt is None else f"{tdt:.4f}")
             )
     for fault in summary["faults"]:
         print(
@@ -1305,7 +1323,6 @@ def _replay_to_bus(
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    import json
 
     from handctl.recording import frames, replay, rerun
     from handctl.recording.metadata import check_run_metadata, recorded_hand
@@ -1352,7 +1369,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     elif args.to_bus:
         report["to_bus"] = _replay_to_bus(args, recording, on_bus)
     if args.json:
-        _write_output("--json", args.json, json.dumps(report, indent=2, default=str) + "\n")
+        _write_output("--json", args.json, _json_text(report) + "\n")
     if args.live is not None:
         from handctl.foxglove import HOST
         from handctl.foxglove.live import serve_recording
@@ -1386,7 +1403,6 @@ MAX_BRING_UP_S = 1e6
 
 
 def _cmd_nodes(args: argparse.Namespace) -> int:
-    import json
 
     from handctl.bringup.nodes import survey
     from handctl.bringup.peer import listening_bus
@@ -1398,7 +1414,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
     with listening_bus(args.bus, hand) as bus:
         result = survey(hand, protocol, bus, seconds)
     if args.json:
-        print(json.dumps(result.as_dict(), indent=2))
+        print(_json_text(result.as_dict()))
         return EXIT_OK if result.ok else EXIT_FAILED
     where = (
         result.bus
@@ -1515,7 +1531,6 @@ def _refuse_other_than_a_recipe(output: Path) -> None:
 
 
 def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
-    import json
 
     from handctl.bringup.calibrate import CalibrationLimits, calibrate_tdt
     from handctl.bringup.hand_edit import format_offset
@@ -1634,12 +1649,11 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
         _write_output(
             "--json",
             args.json,
-            json.dumps(
+            _json_text(
                 {
                     "samples": calibration.samples,
                     "joints": [j.as_dict() for j in calibration.joints],
-                },
-                indent=2,
+                }
             )
             + "\n",
         )
@@ -1833,7 +1847,6 @@ def _recovery_outcome(result: JogReport, hand: HandConfig) -> int:
 
 
 def _cmd_monitor(args: argparse.Namespace) -> int:
-    import json
     import time
 
     from handctl.bringup.monitor import BusView, listen, table
@@ -1852,7 +1865,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     on_tty = sys.stdout.isatty()
 
     def emit(snapshot: dict[str, object]) -> None:
-        print(json.dumps(snapshot), flush=True)
+        print(_json_text(snapshot, indent=None), flush=True)
 
     if args.log is not None:
         return _monitor_log(args, every, on_tty, emit)

@@ -47,15 +47,22 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
     tq, js = series.torque, series.joint
     for j, name in enumerate(series.joints):
         entry: dict[str, float] = {}
-        if len(tq):
-            i = int(np.nanargmax(np.abs(tq[:, 1 + n + j])))
+        # a column with no number in it (a log whose values were nulled) has no largest:
+        # its key is left out, where ``nanargmax`` raised and ``nanmax`` gave NaN, which
+        # the JSON summary then wrote as the non-JSON ``NaN``
+        applied = np.abs(tq[:, 1 + n + j]) if len(tq) else np.empty(0)
+        if np.isfinite(applied).any():
+            i = int(np.nanargmax(applied))
             entry |= {
                 "applied_nm": round(float(tq[i, 1 + n + j]), 5),
                 "at_s": round(float(tq[i, 0]), 3),
-                "desired_nm": round(float(np.nanmax(np.abs(tq[:, 1 + j]))), 5),
             }
-        if len(js):
-            entry["tdt_nm"] = round(float(np.nanmax(np.abs(js[:, 1 + j]))), 5)
+        for key, column in (
+            ("desired_nm", tq[:, 1 + j] if len(tq) else np.empty(0)),
+            ("tdt_nm", js[:, 1 + j] if len(js) else np.empty(0)),
+        ):
+            if np.isfinite(column).any():
+                entry[key] = round(float(np.nanmax(np.abs(column))), 5)
         largest[name] = entry
     phases = [
         {

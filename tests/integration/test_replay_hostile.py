@@ -688,3 +688,33 @@ def test_a_recording_rewritten_without_chunks_is_refused_not_read_as_empty(
     done = handctl("replay", str(flat), "--rerun")
     assert done.returncode == 2, done.stdout + done.stderr
     assert "expected a recording with its messages in chunks, as handctl writes it" in (done.stderr)
+
+
+@pytest.mark.parametrize("key", ["applied_nm", "desired_nm"])
+def test_a_torque_column_without_a_number_is_summarised_and_its_json_is_json(
+    recorded: Recorded, tmp_path: Path, key: str
+) -> None:
+    """Every ``/control/torque`` value of one column nulled: the applied one ended the
+    summary in a numpy traceback, exit 1; the desired one wrote ``NaN`` into ``--json``,
+    which is not JSON. The column has no largest value: it is left out, and what JSON
+    cannot say is ``null``."""
+
+    def change(topic: str, index: int, raw: bytes) -> bytes:
+        if topic != ch.TORQUE:
+            return raw
+        msg = json.loads(raw)
+        return json.dumps(msg | {key: [None] * len(msg[key])}).encode()
+
+    bad = tmp_path / "nulled.mcap"
+    rewrite(recorded.path, bad, change)
+    out = tmp_path / "summary.json"
+    done = handctl("replay", str(bad), "--json", str(out))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr and "RuntimeWarning" not in done.stderr
+
+    def refuse(constant: str) -> object:
+        raise AssertionError(f"{constant} in the JSON output")
+
+    largest = json.loads(out.read_text(), parse_constant=refuse)["summary"]["largest_torques"]
+    assert all(key not in entry for entry in largest.values())
+    assert all("tdt_nm" in entry for entry in largest.values())
