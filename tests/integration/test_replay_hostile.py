@@ -718,3 +718,23 @@ def test_a_torque_column_without_a_number_is_summarised_and_its_json_is_json(
     largest = json.loads(out.read_text(), parse_constant=refuse)["summary"]["largest_torques"]
     assert all(key not in entry for entry in largest.values())
     assert all("tdt_nm" in entry for entry in largest.values())
+
+
+def test_a_summary_whose_outcome_was_changed_does_not_rerun_bit_exact(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """The log's summary says the run completed; fed the same frames, the run ends as it
+    really did: 'outcome X (logged completed)', bit-exact, exit 0, before."""
+    logged = json.loads(open_recording(recorded.path).metadata[ch.META_SUMMARY]["json"])
+    other = "completed" if logged["outcome"] != "completed" else "time_budget"
+
+    def metadata(name: str, data: dict[str, str]) -> dict[str, str]:
+        if name != ch.META_SUMMARY:
+            return data
+        return {"json": json.dumps(json.loads(data["json"]) | {"outcome": other})}
+
+    bad = tmp_path / "outcome.mcap"
+    rewrite(recorded.path, bad, metadata=metadata)
+    done = handctl("replay", str(bad), "--rerun")
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert f"outcome: logged '{other}', re-run '{logged['outcome']}'" in done.stdout
