@@ -1324,9 +1324,15 @@ def _replay_to_bus(
 
 def _cmd_replay(args: argparse.Namespace) -> int:
 
+    from handctl.recording import channels as ch
     from handctl.recording import frames, replay, rerun
     from handctl.recording.metadata import check_run_metadata, recorded_hand
-    from handctl.recording.reader import check_format, open_recording, require_content
+    from handctl.recording.reader import (
+        check_format,
+        open_recording,
+        require_content,
+        require_topics,
+    )
     from handctl.recording.series import load_series
 
     _check_replay_options(args)
@@ -1336,6 +1342,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     recording = open_recording(args.log)
     require_content(recording)
     check_format(recording)
+    # a run writes all these channels or, gone before its set-up, none; a log cut short may
+    # end before some of them
+    if recording.complete and set(ch.CORE_TOPICS) & set(recording.topics.values()):
+        require_topics(recording, ch.CORE_TOPICS, "its summary")
     check_run_metadata(recording, recorded_hand(recording, required=False))
     series = load_series(recording)
     summary = replay.summarise_recording(recording, series)

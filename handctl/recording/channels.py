@@ -33,6 +33,9 @@ CAN_RX = "/can/rx"
 CAN_TX = "/can/tx"
 OBJECTS = "/sim/objects"
 STATS = "/recording/stats"
+#: the channels every run writes, whatever its bus and hand: a complete log without one was
+#: altered, and its summary would say of it what a run without it would ("faults: none")
+CORE_TOPICS = (JOINT_STATE, TORQUE, SAFETY, PHASE, TIMING, EVENTS, CAN_RX, CAN_TX)
 
 #: Metadata record names (MCAP metadata: string to string maps).
 META_RUN = "handctl.run"

@@ -591,7 +591,7 @@ def require_topics(recording: Recording, topics: Iterable[str], what: str) -> No
             "channels",
             f"the channels {', '.join(missing)} for {what} (a recording made by "
             "'handctl run recipe --log')",
-            ", ".join(sorted(have)) or "no channels",
+            Description(", ".join(sorted(have)) or "no channels"),
         )
 
 

@@ -20,11 +20,13 @@ def rewrite(
     metadata: Callable[[str, dict[str, str]], dict[str, str]] | None = None,
     formats: dict[str, tuple[str, str, str]] | None = None,
     times: Callable[[str, int], int] | None = None,
+    drop: tuple[str, ...] = (),
 ) -> None:
     """Copy a recording record by record with the mcap library, the messages through
     ``change``, the metadata through ``metadata``, the channels of the topics in ``formats``
     given another (message encoding, schema name, schema encoding), and each message's log
-    time through ``times(topic, log_time) -> log_time``."""
+    time through ``times(topic, log_time) -> log_time``; the channels of the topics in
+    ``drop`` are left out, with their messages."""
     with source.open("rb") as handle:
         reader = make_reader(handle)
         summary = reader.get_summary()
@@ -44,6 +46,8 @@ def rewrite(
         }
         channel_ids = {}
         for c in summary.channels.values():
+            if c.topic in drop:
+                continue
             encoding, schema_id = c.message_encoding, schema_ids[c.schema_id]
             if formats and c.topic in formats:
                 encoding, name, schema_encoding = formats[c.topic]
@@ -51,6 +55,8 @@ def rewrite(
                 schema_id = writer.register_schema(name, schema_encoding, old.data)
             channel_ids[c.id] = writer.register_channel(c.topic, encoding, schema_id, c.metadata)
         for _, channel, message in messages:
+            if channel.topic in drop:
+                continue
             index = counts.get(channel.topic, 0)
             counts[channel.topic] = index + 1
             raw = change(channel.topic, index, message.data) if change else message.data

@@ -738,3 +738,21 @@ def test_a_summary_whose_outcome_was_changed_does_not_rerun_bit_exact(
     done = handctl("replay", str(bad), "--rerun")
     assert done.returncode == 1, done.stdout + done.stderr
     assert f"outcome: logged '{other}', re-run '{logged['outcome']}'" in done.stdout
+
+
+@pytest.mark.parametrize("topic", ch.CORE_TOPICS)
+def test_a_complete_log_without_a_channel_every_run_writes_is_refused(
+    recorded: Recorded, tmp_path: Path, topic: str
+) -> None:
+    """Every run writes these channels: a complete log without ``/events`` summarised a
+    run that ended in a safety stop as 'faults: none', exit 0; without ``/recipe/phase``,
+    with no phases."""
+    bad = tmp_path / "without.mcap"
+    rewrite(recorded.path, bad, drop=(topic,))
+    done = handctl("replay", str(bad))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert (
+        f"expected the channels {topic} for its summary" in done.stderr
+        # the end record counts the tick rows the timing channel should hold
+        or f"channel {topic}: expected the 1" in done.stderr
+    ), done.stderr
