@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from handctl.config import FingerConfig, HandConfig
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, Description
 from handctl.hand_protocol import node_message, protocol_for
 from handctl.protocol import NODE_COMMANDS, Layout
 from handctl.recording import channels as ch
@@ -67,6 +67,7 @@ def to_bus(
             "log's own hand config is part of what a tampered log can rewrite)",
             "nothing",
         )
+    check_pacing(recording, recorded, direction)
     check_commands(recording, recorded, direction, speed)
     if hand is not None:
         check_commands(recording, hand, direction, speed, on_bus=True)
@@ -204,6 +205,38 @@ class _LeftEnabled:
             f"node(s) {', '.join(map(str, nodes))} left enabled by the frames sent: zero "
             "torque and a disable sent after them, as a run's stop does"
         )
+
+
+def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both") -> None:
+    """Refuse, before anything is sent, a log whose frame is logged at another time than its
+    tick: the recorder stamps each frame with its tick's time, and a replay sends it then.
+    One frame moved an hour on held the replay (every earlier frame sent, the nodes enabled)
+    silent for that hour; nothing else read the frame's time."""
+    ticks: dict[int, int] = {}
+    for _, log_time, msg in iter_decoded(recording, (ch.TIMING,)):
+        ticks[int(msg["tick"])] = log_time
+    if not ticks:
+        return
+    slack = round(hand.bus.period_s * 1e9)
+    first, last = min(ticks.values()) - SILENT_START_NS, max(ticks.values()) + slack
+    topics = {"both": (ch.CAN_RX, ch.CAN_TX), "rx": (ch.CAN_RX,), "tx": (ch.CAN_TX,)}
+    for topic, log_time, msg in iter_decoded(recording, topics.get(direction, ())):
+        due = ticks.get(int(msg.get("tick", -1)))
+        late = abs(log_time - due) > slack if due is not None else not first <= log_time <= last
+        if late:
+            raise ConfigError(
+                str(recording.path),
+                f"{topic} frame 0x{msg['id']:03X} of tick {msg.get('tick')}",
+                "a frame logged at its tick's time"
+                + ("" if due is None else f" ({due} ns, within {slack} ns)")
+                + ", as the recorder stamps it (nothing was sent)",
+                Description(f"log time {log_time} ns"),
+            )
+
+
+#: ns: how long before the first timed tick a frame may be logged (a start-up that waits for
+#: its nodes, at most its enable timeout, before its first timed tick)
+SILENT_START_NS = 60_000_000_000
 
 
 def check_commands(

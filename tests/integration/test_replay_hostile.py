@@ -22,7 +22,7 @@ from handctl.online.bus import open_bus
 from handctl.protocol import Protocol
 from handctl.recording import channels as ch
 from handctl.recording.frames import logged_frames, to_bus
-from handctl.recording.reader import MAGIC, open_recording
+from handctl.recording.reader import MAGIC, iter_decoded, open_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
 
@@ -756,3 +756,28 @@ def test_a_complete_log_without_a_channel_every_run_writes_is_refused(
         # the end record counts the tick rows the timing channel should hold
         or f"channel {topic}: expected the 1" in done.stderr
     ), done.stderr
+
+
+def test_to_bus_sends_nothing_from_a_log_with_a_frame_moved_off_its_tick(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig
+) -> None:
+    """The last received frame moved an hour on, still of its tick: every earlier frame
+    was sent, the nodes enabled, and the replay waited silent for the hour."""
+    last = len(list(iter_decoded(open_recording(recorded.path), (ch.CAN_RX,)))) - 1
+    seen = [0]
+
+    def times(topic: str, log_time: int) -> int:
+        if topic != ch.CAN_RX:
+            return log_time
+        seen[0] += 1
+        return log_time + 3600 * 10**9 if seen[0] - 1 == last else log_time
+
+    bad = tmp_path / "moved.mcap"
+    rewrite(recorded.path, bad, times=times)
+    with open_bus("virtual:hostile-moved", hand.bus) as listener:
+        with pytest.raises(ConfigError) as caught:
+            to_bus(open_recording(bad), "virtual:hostile-moved")
+        heard = listener.drain(limit=10**6)
+    assert heard == []
+    assert "expected a frame logged at its tick's time" in str(caught.value)
+    assert "(nothing was sent)" in str(caught.value)
