@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import shlex
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -200,23 +201,67 @@ def shell_word(name: str) -> str:
     return f"$'{body}'"
 
 
+def kernel_has_socketcan() -> bool:
+    """Whether this kernel takes a SocketCAN socket (AF_CAN): False only when it says the
+    address family is not supported; any other refusal is left to the socket's own error."""
+    import errno
+    import socket
+
+    family = getattr(socket, "AF_CAN", None)
+    if family is None:
+        return False
+    try:
+        socket.socket(family, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except OSError as exc:
+        return exc.errno != errno.EAFNOSUPPORT
+    return True
+
+
+def vcan_setup_command(channel: str, bus_config: BusConfig) -> str:
+    """The commands that make a virtual SocketCAN interface (``vcan``): ``ip link set ... up
+    type can`` cannot make an interface, and a vcan has no bit rate (CAN-FD needs its MTU)."""
+    name = shell_word(channel)
+    mtu = f" && sudo ip link set {name} mtu 72" if bus_config.fd else ""
+    return (
+        f"sudo modprobe vcan && sudo ip link add dev {name} type vcan{mtu} && "
+        f"sudo ip link set {name} up"
+    )
+
+
 def check_socketcan(
     channel: str,
     bus_config: BusConfig,
     sysfs: Path = Path("/sys/class/net"),
+    has_socketcan: Callable[[], bool] = kernel_has_socketcan,
 ) -> None:
-    """Refuse a SocketCAN channel that is no interface name (bad input), missing, not a CAN
-    interface, or down, with the command that fixes it. ``sysfs`` is ``/sys/class/net``, a
-    directory of a test's making in tests."""
+    """Refuse a SocketCAN channel that is no interface name (bad input), on a kernel without
+    SocketCAN, missing, not a CAN interface, or down, with the command that fixes it.
+    ``sysfs`` is ``/sys/class/net``, a directory of a test's making in tests."""
     if not valid_ifname(channel):
         raise ConfigError("--bus", "channel", IFNAME_RULE, channel)
     node = sysfs / channel
     hint = socketcan_setup_command(channel, bus_config)
     shown = escaped(channel)
-    if not node.exists():
+    virtual = channel.startswith("vcan")
+    if not has_socketcan():
+        # no interface can be a CAN one on such a kernel: whatever is done to it, no socket
+        # opens; what to do about the interface comes after the modules
+        then = vcan_setup_command(channel, bus_config) if virtual else hint
         raise BusError(
-            f"socketcan:{shown}: no such network interface; load the driver and "
-            f"configure it with: {hint}"
+            f"socketcan:{shown}: this kernel has no SocketCAN (AF_CAN); load its modules "
+            f"(sudo modprobe can can_raw) or run on a kernel built with them, then "
+            f"configure it with: {then}"
+        )
+    if not node.exists():
+        if virtual:
+            raise BusError(
+                f"socketcan:{shown}: no such network interface; a virtual CAN interface is "
+                f"made with: {vcan_setup_command(channel, bus_config)}"
+            )
+        raise BusError(
+            f"socketcan:{shown}: no such network interface (`ip -details link show type can` "
+            "lists the CAN interfaces; an adapter shows one once its driver is loaded); "
+            f"then configure it with: {hint}"
         )
     link_type = _read(node / "type")
     if link_type and link_type != str(ARPHRD_CAN):
@@ -226,6 +271,8 @@ def check_socketcan(
             "(`ip -details link show type can` lists them)"
         )
     if _read(node / "operstate") == "down":
+        if channel.startswith("vcan"):  # no bit rates to set on a virtual interface
+            hint = f"sudo ip link set {shell_word(channel)} up"
         raise BusError(f"socketcan:{shown}: interface is down; bring it up with: {hint}")
 
 

@@ -72,15 +72,20 @@ def test_socketcan_setup_command(hand: HandConfig) -> None:
     assert socketcan_setup_command("can1", classic).endswith("bitrate 1000000 restart-ms 100")
 
 
+def _yes() -> bool:
+    """A kernel with SocketCAN (AF_CAN), as a robot's has and this one has not."""
+    return True
+
+
 def test_socketcan_check_against_a_sysfs_tree(hand: HandConfig, tmp_path: Path) -> None:
     with pytest.raises(BusError, match=r"no such network interface.*ip link set can0 up"):
-        check_socketcan("can0", hand.bus, sysfs=tmp_path)
+        check_socketcan("can0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
     (tmp_path / "can0").mkdir()
     (tmp_path / "can0" / "operstate").write_text("down\n")
     with pytest.raises(BusError, match=r"interface is down.*dbitrate 5000000 fd on"):
-        check_socketcan("can0", hand.bus, sysfs=tmp_path)
+        check_socketcan("can0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
     (tmp_path / "can0" / "operstate").write_text("up\n")
-    check_socketcan("can0", hand.bus, sysfs=tmp_path)
+    check_socketcan("can0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
 
 
 def test_opening_socketcan_here_fails_with_a_hint(hand: HandConfig) -> None:
@@ -270,7 +275,7 @@ def test_the_suggested_command_quotes_the_channel_for_the_shell(
         "sudo ip link set 'can0;reboot' up type can"
     )
     with pytest.raises(BusError, match=r"ip link set 'can0;fd=1' up"):
-        check_socketcan("can0;fd=1", hand.bus, sysfs=tmp_path)
+        check_socketcan("can0;fd=1", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
 
 
 def test_an_interface_that_is_not_can_is_named_as_such(hand: HandConfig, tmp_path: Path) -> None:
@@ -278,9 +283,9 @@ def test_an_interface_that_is_not_can_is_named_as_such(hand: HandConfig, tmp_pat
     (tmp_path / "lo" / "type").write_text("772\n")  # ARPHRD_LOOPBACK
     (tmp_path / "lo" / "operstate").write_text("unknown\n")
     with pytest.raises(BusError, match=r"socketcan:lo: not a CAN interface \(its link type is 772"):
-        check_socketcan("lo", hand.bus, sysfs=tmp_path)
+        check_socketcan("lo", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
     (tmp_path / "lo" / "type").write_text("280\n")
-    check_socketcan("lo", hand.bus, sysfs=tmp_path)
+    check_socketcan("lo", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
 
 
 def test_a_kernel_without_socketcan_is_said_with_what_to_do(
@@ -304,3 +309,30 @@ def test_a_kernel_without_socketcan_is_said_with_what_to_do(
     monkeypatch.setattr(bus_module, "check_socketcan", lambda *args, **kwargs: None)
     with pytest.raises(BusError, match=r"this kernel has no SocketCAN \(AF_CAN\); load its"):
         open_bus("socketcan:can0", hand.bus)
+
+
+def test_a_vcan_and_a_kernel_without_socketcan_get_the_commands_that_fix_them(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A missing vcan was told ``ip link set vcan0 up type can bitrate ...``, which cannot
+    make an interface (nor does a vcan have a bit rate), and a kernel without AF_CAN was
+    told the interface was missing, as if loading a driver would do."""
+    with pytest.raises(BusError) as info:
+        check_socketcan("vcan0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
+    assert str(info.value) == (
+        "socketcan:vcan0: no such network interface; a virtual CAN interface is made with: "
+        "sudo modprobe vcan && sudo ip link add dev vcan0 type vcan && "
+        "sudo ip link set vcan0 mtu 72 && sudo ip link set vcan0 up"
+    )
+    (tmp_path / "vcan0").mkdir()
+    (tmp_path / "vcan0" / "operstate").write_text("down\n")
+    with pytest.raises(
+        BusError, match=r"interface is down; bring it up with: sudo ip link set vcan0 up$"
+    ):
+        check_socketcan("vcan0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
+    (tmp_path / "can0").mkdir()
+    (tmp_path / "can0" / "operstate").write_text("up\n")
+    with pytest.raises(
+        BusError, match=r"^socketcan:can0: this kernel has no SocketCAN \(AF_CAN\);"
+    ):
+        check_socketcan("can0", hand.bus, sysfs=tmp_path, has_socketcan=lambda: False)
