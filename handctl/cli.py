@@ -22,6 +22,7 @@ does not change the exit code: the command finishes its work and says nothing mo
 from __future__ import annotations
 
 import argparse
+import difflib
 import io
 import math
 import os
@@ -2056,13 +2057,45 @@ NEGATIVE_NUMBER = re.compile(
 
 class _Parser(argparse.ArgumentParser):
     """handctl's parser, and every subcommand's (``add_subparsers`` makes them of the
-    parent's class): one place that makes a negative number in exponent form a value."""
+    parent's class): one place that makes a negative number in exponent form a value, that
+    takes an option only as written in full, and that says an option it does not know with
+    the command's own usage.
+
+    In full: ``--acc`` ran as ``--accept-missed-deadlines``, ``--reset`` as
+    ``--reset-node-faults`` and ``--rec`` as ``--recover``, switches a controller of a real
+    hand should take only when they are spelled out (and an option added later would have
+    changed what an abbreviation meant)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
         # argparse reads this private attribute (3.11) where it tells a negative number from
         # an option; a later Python that matches more ("-" then a digit) still matches these
         self._negative_number_matcher = NEGATIVE_NUMBER
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        parsed, extras = super().parse_known_args(args, namespace)
+        if extras and self._subparsers is None:
+            # a command's own options: said here, with its usage, where argparse said them
+            # at the top ("usage: handctl [-h] [--version] COMMAND ...")
+            self.error(f"unrecognized arguments: {' '.join(map(self._hint, extras))}")
+        return parsed, extras
+
+    def _hint(self, extra: str) -> str:
+        """``extra`` with the option it may have meant: the one it begins (options are taken
+        only in full), or the one it is a slip of."""
+        word = extra.split("=", 1)[0]
+        if not word.startswith("-"):
+            return extra
+        known = [o for a in self._actions for o in a.option_strings]
+        begun = [o for o in known if o.startswith(word)]
+        close = begun or difflib.get_close_matches(word, known, 1, 0.75)
+        if not close:
+            return extra
+        how = " options are taken only in full" if begun else ""
+        return f"{extra} (did you mean {' or '.join(close)}?{how})"
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):

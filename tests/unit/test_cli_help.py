@@ -71,3 +71,29 @@ def test_file_arguments_have_placeholders_that_say_what_the_file_is(
         if action.type is Path:
             assert isinstance(action.metavar, str), (path, action.dest)
             assert FILE_PLACEHOLDER.match(action.metavar), (path, action.dest, action.metavar)
+
+
+def test_an_option_is_taken_only_in_full_and_a_slip_is_said_with_the_command_s_usage(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--acc`` ran as ``--accept-missed-deadlines`` (a switch a controller of a real hand
+    should take only spelled out), and a mistyped option was said with the top-level usage
+    (``usage: handctl [-h] [--version] COMMAND ...``), no hint."""
+    recipe = "config/recipes/swap_two_cylinders.yaml"
+    for args, said in [
+        (
+            ["run", "recipe", recipe, "--acc"],
+            "--acc (did you mean --accept-missed-deadlines? options are taken only in full)",
+        ),
+        (["jog", "f1_j1", "--torque", "0.1", "--rec"], "--rec (did you mean --recover?"),
+        (
+            ["run", "recipe", recipe, "--summay-json", "x.json"],
+            "--summay-json (did you mean --summary-json?) x.json",
+        ),
+    ]:
+        with pytest.raises(SystemExit) as info:
+            build_parser().parse_args(args)
+        assert info.value.code == 2
+        err = capsys.readouterr().err
+        assert f"unrecognized arguments: {said}" in err, err
+        assert err.startswith(f"usage: handctl {args[0]}"), err
