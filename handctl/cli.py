@@ -2549,7 +2549,11 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--models", type=_integer, metavar="N", help="perturbed models (default: the template's)"
     )
     plan.add_argument(
-        "--quick", action="store_true", help="the smallest search (smoke tests): 1 generation of 2"
+        "--quick",
+        action="store_true",
+        help="the smallest search (smoke tests): each phase's first candidates (the "
+        "analysis', the template's, the previous phase's and the random flexion seeds) on "
+        "every model, then 1 generation of 2 instead of 4 of 16",
     )
     plan.add_argument(
         "--from",
