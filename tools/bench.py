@@ -96,6 +96,10 @@ def _out_of_range(args: argparse.Namespace) -> str:
     return ""
 
 
+class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """The benchmark's description as written, and each option's default after its help."""
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] in ("-h", "--help"):
@@ -117,9 +121,18 @@ def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(HERE.parent))
     sys.path.insert(0, str(HERE))
     module = importlib.import_module(f"bench_{name}")
-    parser = argparse.ArgumentParser(prog=f"bench.py {name}", description=module.__doc__)
+    parser = argparse.ArgumentParser(
+        prog=f"bench.py {name}",
+        description=module.__doc__,
+        formatter_class=_Formatter,
+        allow_abbrev=False,
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object (default)")
     module.add_arguments(parser)
+    for action in parser._actions:
+        # every option's default in its help, those a benchmark gave no words too
+        if action.help is None and action.option_strings:
+            action.help = "(default: %(default)s)"
     args = parser.parse_args(argv[1:])
     wrong = _out_of_range(args)
     if wrong:

@@ -98,7 +98,9 @@ HYGIENE = {
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seconds", type=float, default=60.0, help="length of each loop run")
+    parser.add_argument(
+        "--seconds", type=float, default=60.0, help="s, the length of each loop run"
+    )
     parser.add_argument("--hand", type=Path, default=ROOT / "config/hands/hiroshima_hand.yaml")
     parser.add_argument(
         "--babble",
