@@ -176,7 +176,7 @@ def load_hand(path: str | Path, dbc: str | Path | None = None) -> HandConfig:
     frames for, another joint count, or a limit the wire cannot carry is refused here, not
     discovered mid-run.
     """
-    return parse_hand(load_yaml(path), dbc=None if dbc is None else str(dbc))
+    return parse_hand(load_yaml(path, "hand config"), dbc=None if dbc is None else str(dbc))
 
 
 def _config_hash(data: Mapping[str, Any]) -> str:

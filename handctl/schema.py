@@ -116,8 +116,52 @@ def read_input(path: str | Path, expected: str, limit: int) -> bytes:
             raise ConfigError(name, "", expected, str(exc)) from None
 
 
-def load_yaml(path: str | Path) -> Doc:
-    """Read a YAML file whose top level is a mapping; every failure is a ``ConfigError``."""
+#: handctl's kinds of YAML file, each told by top-level keys only it has, and what is done
+#: with one: a file of one kind given for another was refused on a key deep inside it
+#: ("phases[0].pose.angles: expected this key"), not on what the file is.
+FILE_KINDS: tuple[tuple[str, frozenset[str], str], ...] = (
+    (
+        "recipe template",
+        frozenset({"template"}),
+        "compile it into a recipe with 'handctl plan TEMPLATE.yaml -o RECIPE.yaml'",
+    ),
+    ("recipe", frozenset({"recipe", "phases"}), "run it with 'handctl run recipe RECIPE.yaml'"),
+    ("hand config", frozenset({"bus", "fingers"}), "give it as the hand: --hand HAND.yaml"),
+    (
+        "analysis scenario",
+        frozenset({"dimension", "reading"}),
+        "analyse it with 'handctl analyze torque-set SCENARIO.yaml'",
+    ),
+    ("fault list", frozenset({"faults"}), "give it to the simulated hand: --sim-faults"),
+)
+
+
+def file_kind(data: object) -> tuple[str, str] | None:
+    """The kind of handctl file ``data`` (a YAML file's top level) is, and what is done with
+    one (``FILE_KINDS``); None if it is none of them."""
+    if not isinstance(data, dict):
+        return None
+    for kind, keys, use in FILE_KINDS:
+        if keys <= data.keys():
+            return kind, use
+    return None
+
+
+def _a(noun: str) -> str:
+    return f"an {noun}" if noun[:1] in "aeiou" else f"a {noun}"
+
+
+def load_yaml(path: str | Path, kind: str | None = None) -> Doc:
+    """Read a YAML file whose top level is a mapping; every failure is a ``ConfigError``.
+    ``kind``: the ``FILE_KINDS`` entry it must be, if it is one of them at all."""
+    doc = _load_yaml(path)
+    found = file_kind(doc.data) if kind is not None else None
+    if kind is not None and found is not None and found[0] != kind:
+        raise ConfigError(str(path), "", _a(kind), _Text(f"{_a(found[0])}; {found[1]}"))
+    return doc
+
+
+def _load_yaml(path: str | Path) -> Doc:
     name = str(path)
     data = read_input(path, "a readable UTF-8 file", MAX_BYTES)
     if len(data) > MAX_BYTES:

@@ -299,7 +299,7 @@ MAX_GEOMETRY_TOLERANCE = 1e-3
 
 def load_scenario(path: str | Path) -> Scenario:
     """Read and check a scenario file; every problem is a ``ConfigError``."""
-    doc = load_yaml(path)
+    doc = load_yaml(path, "analysis scenario")
     dim = doc.integer("dimension", min=2, max=3)
     reading = doc.string("reading", choices=READINGS)
     gravity = np.array(

@@ -210,7 +210,7 @@ class Template:
 
 def load_template(path: str | Path, hand: HandConfig) -> Template:
     """Read and check a template against ``hand``; every problem is a ``ConfigError``."""
-    doc = load_yaml(path)
+    doc = load_yaml(path, "recipe template")
     doc.string("template")
     recipe = doc.label("recipe")
     description = doc.text("description", default="")

@@ -673,7 +673,7 @@ class FaultSchedule:
 
 def load_scenario(path: str | Path, hand: HandConfig) -> FaultSchedule:
     """Read a fault scenario file; every mistake is a ``ConfigError`` that names the key."""
-    return parse_scenario(load_yaml(path), hand)
+    return parse_scenario(load_yaml(path, "fault list"), hand)
 
 
 def parse_scenario(doc: Doc, hand: HandConfig) -> FaultSchedule:

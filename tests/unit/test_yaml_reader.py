@@ -498,3 +498,52 @@ def test_an_input_that_is_not_a_regular_file_is_refused_without_waiting_on_it(
     with pytest.raises(ConfigError) as err:
         load_yaml(tmp_path)
     assert (err.value.key, err.value.found) == ("", "a directory")
+
+
+@pytest.mark.parametrize(
+    ("given", "load", "said"),
+    [
+        (
+            "config/recipes/swap_two_cylinders.template.yaml",
+            "recipe",
+            "expected a recipe, found a recipe template; compile it into a recipe with "
+            "'handctl plan TEMPLATE.yaml -o RECIPE.yaml'",
+        ),
+        (
+            "config/hands/hiroshima_hand.yaml",
+            "recipe",
+            "expected a recipe, found a hand config; give it as the hand: --hand HAND.yaml",
+        ),
+        (
+            "config/recipes/swap_two_cylinders.yaml",
+            "template",
+            "expected a recipe template, found a recipe; run it with 'handctl run recipe "
+            "RECIPE.yaml'",
+        ),
+        (
+            "config/recipes/swap_two_cylinders.yaml",
+            "hand",
+            "expected a hand config, found a recipe",
+        ),
+        ("config/sim/bus_trouble.yaml", "hand", "expected a hand config, found a fault list"),
+        ("config/analysis/paper_fig3.yaml", "recipe", "expected a recipe, found an analysis"),
+    ],
+)
+def test_a_file_of_another_kind_is_named_as_what_it_is(given: str, load: str, said: str) -> None:
+    """A template given to ``run`` was refused on 'phases[0].pose.angles: expected this
+    key', a recipe given to ``plan`` on 'template: expected this key': true, and no help to
+    someone who gave the wrong file."""
+    from handctl.config import load_hand
+    from handctl.online.recipes.loader import load_recipe
+    from handctl.planning.template import load_template
+
+    hand = load_hand(ROOT / "config" / "hands" / "hiroshima_hand.yaml")
+    path = ROOT / given
+    with pytest.raises(ConfigError) as info:
+        if load == "recipe":
+            load_recipe(path, hand)
+        elif load == "template":
+            load_template(path, hand)
+        else:
+            load_hand(path)
+    assert said in str(info.value), str(info.value)

@@ -95,7 +95,7 @@ RADIUS_RATIO_MAX = 1.5
 
 def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
     """Load, validate and check a recipe for ``hand``; raises ``ConfigError``."""
-    doc = load_yaml(path)
+    doc = load_yaml(path, "recipe")
     recipe = parse_recipe(doc, hand)
     check_against_hand(recipe, hand)
     return recipe
