@@ -266,7 +266,7 @@ def _progress(message: str) -> None:
 # -- check ---------------------------------------------------------------------------------------
 def _cmd_check_timing(args: argparse.Namespace) -> int:
 
-    from handctl.hostcheck import timing_check
+    from handctl.hostcheck import check_loop_cpu, timing_check
 
     seconds = TIMING_CHECK_DEFAULT_S if args.seconds is None else args.seconds
     if not MIN_TIMING_CHECK_S <= seconds <= 3600:
@@ -288,6 +288,7 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
     _refuse_same_files({"--json": args.json}, {"HAND.yaml": args.hand})
     _output_file("--json", args.json, json_output=True)
     hand = _load_checked_hand(args.hand, "HAND.yaml")
+    check_loop_cpu(args.loop_cpu)  # before the line that says the check has begun
     _progress(
         f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for {seconds:g} s ..."
     )
@@ -1169,6 +1170,21 @@ def _check_replay_options(args: argparse.Namespace) -> None:
             "the replay onto a bus or to Foxglove)",
             args.speed,
         )
+    if args.to_bus and args.to_bus not in ("sim", "hand"):
+        from handctl.online.busspec import parse_spec
+        from handctl.recording.frames import SIMULATED_BUSES
+
+        # before the summary and the re-run, as every other option (it was found after them,
+        # and named '--bus', an option replay does not have)
+        parsed = parse_spec(args.to_bus, option="--to-bus")
+        if args.hand is None and parsed.interface not in SIMULATED_BUSES:
+            raise ConfigError(
+                "--hand",
+                "",
+                f"the config of the hand on {args.to_bus}, whose limits bound every command "
+                "sent (the log's own hand config is part of what a tampered log can rewrite)",
+                "nothing",
+            )
     if args.direction is not None and not args.to_bus:
         raise ConfigError(
             "--direction",

@@ -686,10 +686,7 @@ def timing_check(
     deadlines = Deadlines.of(hand)
     injected = injected_records()  # a bad file is refused before the measurement
     facts = gather_facts()
-    if cpu is not None and cpu not in facts.cpus:
-        raise ConfigError(
-            "--loop-cpu", "", f"one of the CPUs this process may use {list(facts.cpus)}", cpu
-        )
+    check_loop_cpu(cpu, facts.cpus)
     if realtime and cpu is None:
         cpu, _ = plan_cpus(set(facts.cpus), set(facts.isolated))
     rivals = find_rivals(cpu if realtime else None, LOOP_PRIORITY if realtime else 1, [os.getpid()])
@@ -946,6 +943,14 @@ def _slowed(hits: list[tuple[int, int]], look_ns: int, start: int, end: int) -> 
 # -- a run's host: its CPUs, the check before it, the bare loop beside it -----------------------
 #: The summary lists the ticks of at most this many of handctl's own misses.
 MAX_LISTED_TICKS = 20
+
+
+def check_loop_cpu(cpu: int | None, cpus: Sequence[int] | None = None) -> None:
+    """Refuse a ``--loop-cpu`` this process may not run on (``cpus``: the ones it may,
+    ``os.sched_getaffinity`` by default), before anything is measured or said."""
+    allowed = sorted(os.sched_getaffinity(0) if cpus is None else cpus)
+    if cpu is not None and cpu not in allowed:
+        raise ConfigError("--loop-cpu", "", f"one of the CPUs this process may use {allowed}", cpu)
 
 
 def run_cpus(hygiene: Hygiene) -> tuple[int | None, int | None]:

@@ -54,10 +54,13 @@ class BusSpec:
 
 
 def parse_spec(
-    spec: str, bus_config: BusConfig | None = None, source: str = "the hand config"
+    spec: str,
+    bus_config: BusConfig | None = None,
+    source: str = "the hand config",
+    option: str = "--bus",
 ) -> BusSpec:
     """Split ``INTERFACE:CHANNEL``; ``hand`` takes both from the hand config (``source``, its
-    file, for an error)."""
+    file, for an error); ``option`` is the one that gave ``spec``, for an error."""
     if spec == "sim":
         return BusSpec("sim", "")
     if spec == "hand":
@@ -68,29 +71,29 @@ def parse_spec(
     interface, sep, channel = spec.partition(":")
     if not sep or not interface or not channel:
         raise ConfigError(
-            "--bus", "", "sim, hand, or INTERFACE:CHANNEL (e.g. socketcan:can0, virtual:test)", spec
+            option, "", "sim, hand, or INTERFACE:CHANNEL (e.g. socketcan:can0, virtual:test)", spec
         )
     if interface not in can.VALID_INTERFACES:
         raise ConfigError(
-            "--bus",
+            option,
             "interface",
             "a python-can interface (" + ", ".join(sorted(can.VALID_INTERFACES)) + ")",
             interface,
         )
-    check_channel(interface, channel, "--bus", "channel")
+    check_channel(interface, channel, option, "channel")
     if interface == "unix":
-        _check_unix_directory(channel)
+        _check_unix_directory(channel, option)
     return BusSpec(interface, channel)
 
 
-def _check_unix_directory(channel: str) -> None:
+def _check_unix_directory(channel: str, option: str) -> None:
     """A ``--bus unix:DIRECTORY`` whose directory cannot be the bus's, said as the bad input it
     is (it was a bus error, exit 4, from the bus's opening). Only for a spec given now: a hand
     config's or a recording's bus is checked where it is opened, on the machine it runs on."""
     path = Path(channel)
     if not path.parent.is_dir():
         raise ConfigError(
-            "--bus",
+            option,
             "channel",
             f"a directory in an existing one (the bus makes its own directory, not those "
             f"above it: {path.parent} is not a directory)",
@@ -98,7 +101,7 @@ def _check_unix_directory(channel: str) -> None:
         )
     if path.exists() and not path.is_dir():
         raise ConfigError(
-            "--bus",
+            option,
             "channel",
             "a directory (each participant's socket is made in it)",
             f"{channel}: not a directory",

@@ -336,3 +336,25 @@ def test_an_option_that_would_be_ignored_is_bad_input(
     assert done.returncode == 2, done.stdout + done.stderr
     assert f"handctl: error: {said}" in done.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_options_that_cannot_work_are_refused_before_anything_is_said_or_measured(
+    tmp_path: Path,
+) -> None:
+    """``check --timing --loop-cpu 7`` said 'timing check: a bare timer loop ...' before
+    its refusal; ``replay --to-bus`` onto a bus a real hand may be on, without ``--hand``,
+    printed the whole summary first; ``--to-bus bogus`` was said of ``--bus``."""
+    done = handctl("check", "--timing", "--seconds", "1", "--loop-cpu", "4096")
+    assert done.returncode == 2, done.stderr
+    assert "--loop-cpu: expected one of the CPUs this process may use" in done.stderr
+    assert "timing check" not in done.stdout + done.stderr
+    log = tmp_path / "no.mcap"  # never read: each is refused before the recording is opened
+    for spec, said in [
+        ("bogus", "handctl: error: --to-bus: expected sim, hand, or INTERFACE:CHANNEL"),
+        ("unix:relative/dir", "handctl: error: --to-bus: channel: expected an absolute"),
+        ("udp_multicast:239.1.1.3", "handctl: error: --hand: expected the config of the hand"),
+    ]:
+        done = handctl("replay", str(log), "--to-bus", spec)
+        assert done.returncode == 2, done.stderr
+        assert done.stderr.startswith(said), done.stderr
+        assert done.stdout == ""
