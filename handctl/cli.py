@@ -207,6 +207,20 @@ def _write_output(option: str, path: Path, text: str) -> None:
         ) from None
 
 
+def _say_in_process_bus(option: str, spec: str | None) -> None:
+    """A python-can ``virtual`` bus is a queue inside one process: a command on one hears
+    and reaches nobody but itself. ``run`` waited out a timing check and its start-up to stop
+    on 'no feedback' (exit 3), ``nodes`` listed every node missing, ``replay --to-bus`` sent
+    its frames to nobody, each without saying why."""
+    if spec is not None and spec.startswith("virtual:"):
+        print(
+            f"handctl: warning: {option} {escaped(spec)} lives inside this process: nothing "
+            "in another process hears or answers it (a simulated hand in another process is "
+            "on unix:DIRECTORY; the one this command starts is --bus sim)",
+            file=sys.stderr,
+        )
+
+
 def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
     """``--seed`` (not given: the hand config's ``sim.seed``, as ``handctl sim`` takes it and
     docs/simulation.md says; it was 0 whatever the config said), once the options only the
@@ -216,6 +230,7 @@ def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
     threads ``--rt`` makes real-time: without it they too did nothing."""
     from handctl.online.busspec import parse_spec
 
+    _say_in_process_bus("--bus", args.bus)  # run, calibrate and jog all come by here
     on_sim = parse_spec(args.bus, hand.bus, hand.source).interface == "sim"
     if not on_sim:
         sim_cpu = getattr(args, "sim_cpu", None)
@@ -1312,6 +1327,7 @@ def _replay_to_bus(
     hand config given with ``--hand``, as well), and what became of them said."""
     from handctl.recording import frames
 
+    _say_in_process_bus("--to-bus", args.to_bus)
     # said before the frames' checks, which may still refuse the whole log (nothing sent)
     _progress(
         f"to-bus: checking the logged commands, then replaying the frames onto {args.to_bus} "
@@ -1438,6 +1454,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     protocol = protocol_for(hand)
     seconds = _seconds_or(args.seconds, 1.0)
+    _say_in_process_bus("--bus", args.bus)
     with listening_bus(args.bus, hand) as bus:
         result = survey(hand, protocol, bus, seconds)
     if args.json:
@@ -1900,6 +1917,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     hand = _load_checked_hand(hand_path, "--hand", args.dbc)
     view = BusView(protocol_for(hand))
     bus_text = "sim" if args.bus is None else args.bus  # '' is a bad spec, not the default
+    _say_in_process_bus("--bus", args.bus)
     try:
         with listening_bus(bus_text, hand) as bus:
             title = f"handctl monitor {escaped(bus_text)} ({bus.spec}): listening, sending nothing"

@@ -358,3 +358,13 @@ def test_options_that_cannot_work_are_refused_before_anything_is_said_or_measure
         assert done.returncode == 2, done.stderr
         assert done.stderr.startswith(said), done.stderr
         assert done.stdout == ""
+
+
+def test_a_bus_inside_the_process_is_said_to_be_one() -> None:
+    """``nodes --bus virtual:x`` listed every node missing, ``run`` stopped on 'no feedback'
+    after its start-up, and neither said that nothing outside the process is on such a bus
+    (``sim`` said it; the others now say it too)."""
+    said = "--bus virtual:first-hour lives inside this process: nothing in another process"
+    for args in (["nodes", "--seconds", "0.1"], ["monitor", "--seconds", "0.1"]):
+        done = handctl(*args, "--bus", "virtual:first-hour")
+        assert f"handctl: warning: {said}" in done.stderr, done.stderr
