@@ -30,13 +30,20 @@ POSE_EVERY_TICKS = 10
 #: An object's name, in a hand config's scene and in a recipe alike: the prefix of its
 #: estimates in conditions (``estimate.<name>_x``, a pair's ``<a>_<b>_line_turn``), so no
 #: underscore
-OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]*\Z")  # \Z: "$" lets a trailing newline by
+OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]{0,31}\Z")  # \Z: "$" lets a trailing newline by
 #: A finger's or a joint's name in a hand config: what a recipe condition names a joint by
 #: (``angle.NAME``, ``tdt.NAME``: ``[A-Za-z0-9_]+``), and what check, nodes and a run's
 #: summary print as it is (a name with a space or an accent passed check and no condition
 #: could name it; one with an escape sequence or a newline was written to the terminal raw)
-PART_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*\Z")  # \Z: "$" lets a trailing newline by
-PART_NAME_RULE = "a name of letters, digits and underscores, starting with a letter"
+#: At most ``NAME_CHARS`` characters, objects' too: a name heads a table's column, a plot's
+#: legend and a Foxglove panel, and a 300-character one (check took it) ran off the plot's
+#: top and broke every table's columns.
+PART_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}\Z")  # \Z: "$" lets a trailing newline by
+NAME_CHARS = 32
+PART_NAME_RULE = (
+    f"a name of letters, digits and underscores, starting with a letter, at most {NAME_CHARS} "
+    "characters"
+)
 TIME_LABEL = "time since tick 0 [s]"
 HEIGHT_LABEL = "height above rest [mm]"
 #: m, an object's centre this far above rest is lifted: the experiment's judgement and the

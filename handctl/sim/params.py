@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from handctl.config import HandConfig, JointConfig
-from handctl.convention import OBJECT_NAME
+from handctl.convention import NAME_CHARS, OBJECT_NAME
 from handctl.errors import ConfigError
 from handctl.schema import Doc
 from handctl.sim.placement import check_placement
@@ -410,7 +410,8 @@ def _parse_object(doc: Doc) -> ObjectParams:
         # underscore passed check, and then no recipe could name the object at all
         doc.fail(
             "name",
-            "a name of letters and digits, starting with a letter (recipes name the "
+            f"a name of letters and digits, starting with a letter, at most {NAME_CHARS} "
+            "characters (recipes name the "
             "object's estimates after it: estimate.NAME_x)",
             name,
         )

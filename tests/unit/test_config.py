@@ -794,3 +794,14 @@ def test_a_tdt_tolerance_of_half_a_joint_s_torque_is_refused(
     assert err.found == ("0.01 N·m" if written else "0.02 N·m (the default)")
     base["safety"] = {**base.get("safety", {}), "tdt_tolerance": 0.0099}
     assert load_hand(write(tmp_path, base)).safety.tdt_tolerance == 0.0099
+
+
+def test_a_name_longer_than_a_column_is_refused(tmp_path: Path, base: dict[str, Any]) -> None:
+    """A 300-character joint name passed check, ran off the top of the run's plot and broke
+    every table's columns: names are at most 32 characters."""
+    joint_of(base, 0, 0)["name"] = "j" * 32
+    assert load_hand(write(tmp_path, base)).joints[0].name == "j" * 32
+    joint_of(base, 0, 0)["name"] = "j" * 33
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[0].joints[0].name"
+    assert "at most 32 characters" in err.expected

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.convention import OBJECT_NAME
+from handctl.convention import NAME_CHARS, OBJECT_NAME
 from handctl.errors import ConfigError
 from handctl.online.estimator import RADIUS_RANGE
 from handctl.online.recipes.guard import SIDES, GuardSettings, SpringBand
@@ -329,7 +329,8 @@ def parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
         if not OBJECT_NAME.match(name):
             sub.fail(
                 "name",
-                "a name of letters and digits, starting with a letter (it "
+                f"a name of letters and digits, starting with a letter, at most {NAME_CHARS} "
+                "characters (it "
                 "prefixes the object's estimates, e.g. estimate.NAME_x; the simulated "
                 "scene's objects go by the same names)",
                 name,
