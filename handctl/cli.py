@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from handctl import __version__
-from handctl.errors import BusError, ConfigError, HandctlError, escaped, shown
+from handctl.errors import BusError, ConfigError, Description, HandctlError, escaped, shown
 
 if TYPE_CHECKING:
     from handctl.bringup.jog import JogReport
@@ -1093,6 +1093,8 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
     state = (
         "complete"
         if summary["complete"]
+        else "BEING WRITTEN by a run: what it holds so far"
+        if summary.get("being_written")
         else f"{'DAMAGED' if summary.get('damaged') else 'TRUNCATED'}: {summary['problem']}"
     )
     from handctl.recording.channels import ENDED_CLOSED
@@ -1374,6 +1376,16 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     on_bus = _load_checked_hand(args.hand, "--hand", args.dbc) if args.hand is not None else None
     recording = open_recording(args.log)
     require_content(recording)
+    if recording.being_written and (args.rerun or args.to_bus or args.export):
+        # each read of it finds more: the summary said 9391 ticks and the re-run compared
+        # 11544 of one invocation, and frames sent or exported would end wherever it had got
+        raise ConfigError(
+            str(args.log),
+            "",
+            "a finished recording for --rerun, --to-bus or --export (the run writing it "
+            "ends it; its summary can be read now)",
+            Description("a log a run is still writing (its writer holds the file's lock)"),
+        )
     check_format(recording)
     # a run writes all these channels or, gone before its set-up, none; a log cut short may
     # end before some of them

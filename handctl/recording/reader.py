@@ -102,6 +102,9 @@ class Recording:
     #: holds a handctl topic's encoding and schema to
     channels: dict[int, Channel] = field(default_factory=dict)
     schemas: dict[int, Schema] = field(default_factory=dict)
+    #: a run still writes the file (its writer holds the file's lock): not cut short, not
+    #: yet finished, and each read of it finds more
+    being_written: bool = False
 
     @property
     def topics(self) -> dict[int, str]:
@@ -208,7 +211,23 @@ def open_recording(path: str | Path) -> Recording:
                 )
         if not recording.topics:
             _topics_from_first_chunk(handle, recording)
+        recording.being_written = not recording.complete and _locked_by_a_writer(handle)
     return recording
+
+
+def _locked_by_a_writer(handle: BinaryIO) -> bool:
+    """Whether a run's writer holds the file's lock (``recorder._open_log``): a shared lock
+    of ours is refused while it does. A file system without locks says no."""
+    import fcntl
+
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+    return False
 
 
 def _why(exc: BaseException) -> str:

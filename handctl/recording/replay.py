@@ -93,6 +93,7 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
     summary: dict[str, Any] = {
         "file": str(recording.path),
         "complete": recording.complete,
+        "being_written": recording.being_written,
         "damaged": recording.damaged,
         "problem": recording.problem,
         "chunks": recording.chunks,

@@ -781,3 +781,29 @@ def test_to_bus_sends_nothing_from_a_log_with_a_frame_moved_off_its_tick(
     assert heard == []
     assert "expected a frame logged at its tick's time" in str(caught.value)
     assert "(nothing was sent)" in str(caught.value)
+
+
+def test_a_log_a_run_still_writes_is_said_so_and_not_re_run(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """A log read while its run wrote it was called TRUNCATED, and one ``--rerun`` read two
+    lengths of it (the summary 9391 ticks, the re-run 11544). The writer holds the file's
+    lock (``recorder._open_log``): held here as a writer holds it."""
+    import fcntl
+
+    cut = tmp_path / "live.mcap"
+    data = recorded.path.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    with cut.open("ab") as writer:
+        fcntl.flock(writer.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        done = handctl("replay", str(cut))
+        assert done.returncode == 0, done.stderr
+        assert "BEING WRITTEN by a run: what it holds so far" in done.stdout
+        assert "TRUNCATED" not in done.stdout
+        done = handctl("replay", str(cut), "--rerun")
+        assert done.returncode == 2, done.stdout + done.stderr
+        assert "found a log a run is still writing (its writer holds the file's lock)" in (
+            done.stderr
+        )
+    done = handctl("replay", str(cut))  # the lock gone, and the file cut: cut short
+    assert "TRUNCATED" in done.stdout
