@@ -590,3 +590,26 @@ def test_a_reading_still_at_a_steady_torque_is_given_its_lag_once_the_command_mo
             assert found == [], f"tick {k} of the ramp"
     # and a reading that still has not moved by then is stuck
     assert codes(found) == [FaultCode.TDT_STUCK] * hand.n_joints
+
+
+def test_a_node_s_own_watchdog_says_whose_its_timeout_is(link: Link, hand: HandConfig) -> None:
+    """A node's TIMEOUT is its watchdog hearing no command: the host's stall or the bus's,
+    not the node's. A host frozen within a tick read as the node's fault, said as one."""
+    watch = NodeWatch(hand.safety)
+    watch.arm(link.hosts)
+    pair = link.pairs[0]
+    now = link.now_ns
+    for _ in range(30):  # 30 ms of the node's ticks with no command from the host
+        now += 1_000_000
+        pair.node.update(now)
+        out: list[tuple[int, bytes]] = []
+        pair.node.publish(now, [0.0] * pair.n, [0.0] * pair.n, out)
+        for frame_id, data in out:
+            pair.host.receive(frame_id, data, now)
+    found = watch.check(now, link.hosts, expect_enabled=True)
+    f = hand.fingers[0]
+    assert (
+        FaultCode.NODE_FAULT,
+        f"node {f.node_id} ({f.name}) in FAULT (TIMEOUT): it heard no command for its 10 ms "
+        "watchdog (the host stalled, or its commands did not reach it)",
+    ) in found, found

@@ -13,7 +13,7 @@ from handctl.arrays import FloatArray
 from handctl.config import SafetyConfig
 from handctl.online.drivers.finger import FingerNode, fault_names
 from handctl.online.safety.faults import FaultCode
-from handctl.protocol import NodeState
+from handctl.protocol import COMMAND_WATCHDOG_S, NodeState
 
 ENABLED = int(NodeState.ENABLED)  # plain ints: compared for every node every tick
 FAULT = int(NodeState.FAULT)
@@ -69,7 +69,16 @@ class NodeWatch:
             if node.state == FAULT:
                 names = fault_names(node.fault_bits)
                 code = FaultCode.ESTOP if "ESTOP" in names else FaultCode.NODE_FAULT
-                found.append((code, f"{who} in FAULT ({', '.join(names) or 'no bits'})"))
+                why = ""
+                if "TIMEOUT" in names:
+                    # the node's own watchdog: what it says is of the host or the bus (a host
+                    # frozen within a tick was read as the node's fault, its LOOP_OVERRUN a
+                    # tick later)
+                    why = (
+                        f": it heard no command for its {COMMAND_WATCHDOG_S * 1e3:g} ms "
+                        "watchdog (the host stalled, or its commands did not reach it)"
+                    )
+                found.append((code, f"{who} in FAULT ({', '.join(names) or 'no bits'}){why}"))
             elif expect_enabled and node.state != ENABLED:
                 found.append(
                     (FaultCode.NODE_STATE, f"{who} is {node.state_name}, expected ENABLED")
