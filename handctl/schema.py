@@ -251,6 +251,8 @@ def _parse_error(exc: yaml.MarkedYAMLError, text: str) -> tuple[str, str]:
     the next line's first token: the closer is missing at the end of the last line before it.
     """
     problem = exc.problem or exc.context or "not YAML"
+    # the parser's "found character ..." follows our own "found": said once
+    problem = problem.removeprefix("found ")
     mark = exc.problem_mark or exc.context_mark
     if mark is None:
         return "", problem

@@ -547,3 +547,13 @@ def test_a_file_of_another_kind_is_named_as_what_it_is(given: str, load: str, sa
         else:
             load_hand(path)
     assert said in str(info.value), str(info.value)
+
+
+def test_the_parser_s_found_is_said_once(tmp_path: Path) -> None:
+    """'expected valid YAML at line 1, column 4, found found character ...'"""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("a: @x\n")
+    with pytest.raises(ConfigError) as info:
+        load_yaml(bad)
+    assert "found character that cannot start any token" in str(info.value)
+    assert "found found" not in str(info.value)
