@@ -422,14 +422,19 @@ def _status_printer() -> Callable[[object], None] | None:
     """A live status line on a terminal; nothing when stderr is a file or a pipe."""
     if not sys.stderr.isatty():
         return None
+    # a terminal that knows no escape sequences (TERM=dumb: an editor's shell, a serial
+    # console) showed the erase as '^[[K' on every line: there, spaces erase instead
+    dumb = os.environ.get("TERM") == "dumb"
 
     def show(line: object) -> None:
         from handctl.online.loop import StatusLine
 
         assert isinstance(line, StatusLine)
         width = shutil.get_terminal_size().columns
+        text = fit_width(status_text(line), width)
         # erased to the line's end: a shorter line leaves nothing of the one before
-        print("\r" + fit_width(status_text(line), width) + "\x1b[K", end="", file=sys.stderr)
+        end = " " * max(width - 1 - len(text), 0) if dumb else "\x1b[K"
+        print("\r" + text + end, end="", file=sys.stderr)
         sys.stderr.flush()
 
     return show

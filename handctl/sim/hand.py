@@ -471,5 +471,6 @@ def standalone(
         f"simulated hand on {escaped(bus_spec)}: {sim.time:.3f} s simulated in {wall:.3f} s "
         f"(real-time factor {rtf:.3f}){', interrupted' if interrupted else ''}; "
         f"{sim.frames_in} frames in, {sim.frames_out} out, {sim.tx_failed} failed sends, "
-        f"{sim.bus_events} bus events, {sim.missed_ticks} missed ticks; " + sim.status_line()
+        f"{sim.bus_events} bus events, {sim.missed_ticks} missed ticks; at the end: "
+        + sim.status_line()
     )

@@ -511,6 +511,34 @@ def test_the_status_line_fits_the_terminal(tmp_path: Path) -> None:
     assert any(line.removesuffix("\x1b[K").endswith("…") for line in lines), lines
 
 
+def test_a_terminal_without_escapes_gets_a_status_line_without_them(tmp_path: Path) -> None:
+    """TERM=dumb (an editor's shell, a serial console) showed the erase as '^[[K' on every
+    status line: there a line is padded to the terminal's width with spaces instead."""
+    recipe = tmp_path / "two.yaml"
+    recipe.write_text(TWO_PHASES)
+    terminal, stderr_end = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--max-seconds", "1.5"],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=stderr_end,
+        env={**os.environ, "COLUMNS": "120", "TERM": "dumb"},
+    )
+    os.close(stderr_end)
+    try:
+        shown = read_until(terminal, None, timeout_s=60.0)
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+        os.close(terminal)
+    assert proc.returncode == 0, shown
+    assert "\x1b" not in shown, shown
+    lines = [piece for piece in shown.split("\r") if piece.startswith("sim ")][:-1]
+    assert len(lines) > 2, shown
+    # shorter than the terminal, each is padded to its width less the cursor's column
+    assert all(len(line) == 119 and line.endswith(" ") for line in lines), lines
+
+
 @pytest.mark.parametrize("option", ["--loop-cpu", "--sim-cpu"])
 def test_a_cpu_without_rt_is_refused(option: str, capsys: pytest.CaptureFixture[str]) -> None:
     """The CPUs place the threads ``--rt`` makes real-time; without it the run went on as if
