@@ -721,7 +721,8 @@ def _experiment_verdict(ex: dict[str, Any]) -> str:
     FAILED read as if they had been met."""
     wanted = ex["min_total_turn_deg"]
     if ex["success"]:
-        return f"success (lifted, held, nothing dropped, at least {wanted:g} deg turned)"
+        turn = f", at least {wanted:g} deg turned" if wanted > 0 else ""  # a recipe asks none
+        return f"success (lifted, held, nothing dropped{turn})"
     missing = []
     if not ex["lifted"]:
         missing.append(f"not lifted and held (held {ex['held_s']:.2f} s)")

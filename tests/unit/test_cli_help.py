@@ -97,3 +97,17 @@ def test_an_option_is_taken_only_in_full_and_a_slip_is_said_with_the_command_s_u
         err = capsys.readouterr().err
         assert f"unrecognized arguments: {said}" in err, err
         assert err.startswith(f"usage: handctl {args[0]}"), err
+
+
+def test_a_success_that_asked_no_turn_does_not_say_it_turned_zero_degrees() -> None:
+    """A one-object recipe asks no turn: 'at least 0 deg turned' said a criterion there was
+    not."""
+    from handctl.cli import _experiment_verdict
+
+    held = {"success": True, "lifted": True, "dropped": False, "held_s": 2.0}
+    assert _experiment_verdict({**held, "min_total_turn_deg": 0.0}) == (
+        "success (lifted, held, nothing dropped)"
+    )
+    assert _experiment_verdict({**held, "min_total_turn_deg": 170.0}) == (
+        "success (lifted, held, nothing dropped, at least 170 deg turned)"
+    )
