@@ -1417,8 +1417,11 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             status = EXIT_FAILED
     if args.export:
         fmt, out = args.export
-        count = frames.export(recording, fmt, out)
-        print(f"export: {count} frames to {out} ({fmt})")
+        exported = frames.export(recording, fmt, out)
+        report["export"] = exported
+        print(f"export: {exported['frames']} frames to {out} ({fmt})")
+        if "warning" in exported:
+            print(f"handctl: warning: export: {exported['warning']}", file=sys.stderr)
     if args.to_bus and status != EXIT_OK:
         # the re-run proved the log does not repeat its run: a frame was altered, and the
         # command checks' bounds may have been re-sealed with it

@@ -409,8 +409,10 @@ def _refused(
     )
 
 
-def export(recording: Recording, fmt: str, out: str) -> int:
-    """Write the logged frames in a python-can log format (candump, asc, blf)."""
+def export(recording: Recording, fmt: str, out: str) -> dict[str, Any]:
+    """Write the logged frames in a python-can log format (candump, asc, blf); what was
+    written (``frames``, ``format``, ``path``, and a ``warning`` when the times are not the
+    run's own)."""
     from handctl.recording.canlog import LOG_FORMATS, write_frames
 
     if fmt not in LOG_FORMATS:
@@ -429,8 +431,16 @@ def export(recording: Recording, fmt: str, out: str) -> int:
             yield ((started + log_time - first[0]) * 1e-9, frame_id, data, is_rx, fd)
 
     try:
-        return write_frames(out, fmt, stamped())
+        count = write_frames(out, fmt, stamped())
     except OSError as exc:
         raise ConfigError(
             out, "", "a path where the export can be written", exc.strerror or str(exc)
         ) from None
+    report: dict[str, Any] = {"frames": count, "format": fmt, "path": out}
+    if not started:
+        # stamped from 1970 without a word: the times are the log's own, from its first frame
+        report["warning"] = (
+            "the log does not say when its run started (handctl.command.started_unix_ns): "
+            "the frames are stamped from 0, the first frame's time"
+        )
+    return report

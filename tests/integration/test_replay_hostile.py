@@ -807,3 +807,23 @@ def test_a_log_a_run_still_writes_is_said_so_and_not_re_run(
         )
     done = handctl("replay", str(cut))  # the lock gone, and the file cut: cut short
     assert "TRUNCATED" in done.stdout
+
+
+def test_an_export_of_a_log_that_does_not_say_when_it_started_says_so(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """Without ``started_unix_ns`` the frames were stamped from 1970, without a word; the
+    export is in ``--json`` now as well."""
+
+    def metadata(name: str, data: dict[str, str]) -> dict[str, str]:
+        return {k: v for k, v in data.items() if k != "started_unix_ns"}
+
+    bad = tmp_path / "when.mcap"
+    rewrite(recorded.path, bad, metadata=metadata)
+    out, summary = tmp_path / "frames.log", tmp_path / "s.json"
+    done = handctl("replay", str(bad), "--export", "candump", str(out), "--json", str(summary))
+    assert done.returncode == 0, done.stderr
+    assert "warning: export: the log does not say when its run started" in done.stderr
+    exported = json.loads(summary.read_text())["export"]
+    assert exported["format"] == "candump" and exported["frames"] > 0
+    assert out.read_text().startswith("(0.000000) ")
