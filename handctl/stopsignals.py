@@ -1,5 +1,5 @@
-"""The stop signals of a run: SIGINT, SIGTERM and SIGHUP, each a controlled stop with exit 130
-whenever it comes (``StopSignals``).
+"""The stop signals of a run: SIGINT, SIGTERM, SIGHUP and SIGTSTP, each a controlled stop with
+exit 130 whenever it comes (``StopSignals``).
 
 A module of its own, light to import (the standard library only, the runtime's modules when a
 run is handed over), so that ``handctl run`` takes the signals over before it loads the
@@ -48,7 +48,11 @@ class StopSignals:
     #: kill the host mid-grasp (no stop, nodes left enabled until their watchdogs trip, the
     #: log without its last tick and summary); it is a controlled stop like the others. Unless
     #: the run was started with it ignored (``nohup``): then it was asked to go on, and does.
-    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    #: SIGTSTP (Ctrl-Z) as well: suspended mid-grasp, the loop froze, the nodes' watchdogs
+    #: dropped the torque at once and latched a TIMEOUT fault the next run had to reset, and
+    #: the log and the summary waited for a resume. A run that drives a hand cannot pause; it
+    #: stops, as asked, and says why.
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGTSTP)
 
     def __init__(self) -> None:
         self.runtime: Runtime | None = None
@@ -90,6 +94,8 @@ class StopSignals:
 
     def _handle(self, signum: int, frame: object) -> None:
         name = signal.Signals(signum).name
+        if signum == signal.SIGTSTP:
+            name += " (Ctrl-Z: a run that drives a hand cannot be suspended; stopped instead)"
         if self.finishing or self.noted:
             self.ignored.append(name)
             return

@@ -568,3 +568,33 @@ def test_the_simulated_hand_is_seeded_by_the_hand_config_unless_seed_is_given(
         assert cli.main([*argv, "--summary-json", str(out), *extra]) == cli.EXIT_OK
         seeds.append(json.loads(out.read_text())["sim"]["seed"])
     assert seeds == [7, 3]
+
+
+def test_ctrl_z_stops_a_run_rather_than_suspending_it(tmp_path: Path) -> None:
+    """SIGTSTP suspended the run mid-grasp: the nodes' watchdogs dropped the torque and
+    latched TIMEOUT, and the log waited for a resume. A run that drives a hand cannot pause:
+    it stops as Ctrl-C stops it, exit 130, and says why. (Suspended, it would still be there
+    when waited for, and the wait would time out.)"""
+    recipe = tmp_path / "long.yaml"
+    recipe.write_text(TWO_PHASES)  # its second phase holds for 600 s
+    summary = tmp_path / "s.json"
+    proc = subprocess.Popen(
+        [
+            *(sys.executable, "-m", "handctl", "run", "recipe", str(recipe)),
+            *("--max-seconds", "60", "--summary-json", str(summary)),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        time.sleep(3.0)  # in its start-up or its run: either way a stop, not a pause
+        proc.send_signal(signal.SIGTSTP)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert "SIGTSTP (Ctrl-Z: a run that drives a hand cannot be suspended; stopped instead)" in (
+        out + err
+    )
