@@ -482,10 +482,9 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
             sim.wait()
 
 
-def test_the_status_line_fits_the_terminal(tmp_path: Path) -> None:
-    """A status line wider than the terminal wraps, and ``\\r`` rewrites only its last row:
-    the rows above piled up on the screen. On a terminal 50 columns wide every line shown is
-    cut to 49, and erased to its end, so a shorter one leaves nothing of the longer before."""
+def _status_on_a_terminal(tmp_path: Path, env: dict[str, str]) -> str:
+    """What a 1.5 s run of two phases shows on a terminal (its stderr a pty) with ``env``;
+    the run's exit asserted 0."""
     recipe = tmp_path / "two.yaml"
     recipe.write_text(TWO_PHASES)
     terminal, stderr_end = pty.openpty()
@@ -494,7 +493,7 @@ def test_the_status_line_fits_the_terminal(tmp_path: Path) -> None:
         cwd=ROOT,
         stdout=subprocess.DEVNULL,
         stderr=stderr_end,
-        env={**os.environ, "COLUMNS": "50"},
+        env={**os.environ, **env},
     )
     os.close(stderr_end)
     try:
@@ -504,6 +503,14 @@ def test_the_status_line_fits_the_terminal(tmp_path: Path) -> None:
         proc.kill()
         os.close(terminal)
     assert proc.returncode == 0, shown
+    return shown
+
+
+def test_the_status_line_fits_the_terminal(tmp_path: Path) -> None:
+    """A status line wider than the terminal wraps, and ``\\r`` rewrites only its last row:
+    the rows above piled up on the screen. On a terminal 50 columns wide every line shown is
+    cut to 49, and erased to its end, so a shorter one leaves nothing of the longer before."""
+    shown = _status_on_a_terminal(tmp_path, {"COLUMNS": "50"})
     lines = [piece for piece in shown.split("\r") if piece.endswith("\x1b[K")]
     assert len(lines) > 2, shown
     assert all(len(line.removesuffix("\x1b[K")) <= 49 for line in lines), lines
@@ -514,24 +521,7 @@ def test_the_status_line_fits_the_terminal(tmp_path: Path) -> None:
 def test_a_terminal_without_escapes_gets_a_status_line_without_them(tmp_path: Path) -> None:
     """TERM=dumb (an editor's shell, a serial console) showed the erase as '^[[K' on every
     status line: there a line is padded to the terminal's width with spaces instead."""
-    recipe = tmp_path / "two.yaml"
-    recipe.write_text(TWO_PHASES)
-    terminal, stderr_end = pty.openpty()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--max-seconds", "1.5"],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=stderr_end,
-        env={**os.environ, "COLUMNS": "120", "TERM": "dumb"},
-    )
-    os.close(stderr_end)
-    try:
-        shown = read_until(terminal, None, timeout_s=60.0)
-        proc.wait(timeout=60)
-    finally:
-        proc.kill()
-        os.close(terminal)
-    assert proc.returncode == 0, shown
+    shown = _status_on_a_terminal(tmp_path, {"COLUMNS": "120", "TERM": "dumb"})
     assert "\x1b" not in shown, shown
     lines = [piece for piece in shown.split("\r") if piece.startswith("sim ")][:-1]
     assert len(lines) > 2, shown

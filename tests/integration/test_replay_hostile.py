@@ -22,7 +22,7 @@ from handctl.online.bus import open_bus
 from handctl.protocol import Protocol
 from handctl.recording import channels as ch
 from handctl.recording.frames import logged_frames, to_bus
-from handctl.recording.reader import MAGIC, iter_decoded, open_recording
+from handctl.recording.reader import MAGIC, Recording, iter_decoded, open_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
 
@@ -36,6 +36,19 @@ from .test_recording import Recorded, record_run
 def recorded(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recorded:
     directory = tmp_path_factory.mktemp("hostile")
     return record_run(hand, short_recipe(hand, directory), directory / "run.mcap", troubles=False)
+
+
+def _refused_with_nothing_sent(
+    recording: Recording, hand: HandConfig, channel: str, speed: float = 1.0
+) -> str:
+    """``to_bus`` of ``recording`` onto a virtual bus a listener is on: refused, nothing
+    heard; the refusal's text."""
+    with open_bus(f"virtual:{channel}", hand.bus) as listener:
+        with pytest.raises(ConfigError) as caught:
+            to_bus(recording, f"virtual:{channel}", speed=speed)
+        heard = listener.drain(limit=10**6)
+    assert heard == []
+    return str(caught.value)
 
 
 def one_message(topic: str, index: int, alter: Callable[[bytes], bytes]) -> Change:
@@ -397,14 +410,11 @@ def test_a_replay_faster_than_the_log_is_held_to_the_rate_limit_as_it_is_sent(
 ) -> None:
     """Judged on the logged time, a replay at --speed 4 put four times the rate limit on a
     bus where a hand may listen; it is judged on the time it is sent at."""
-    recording = open_recording(recorded.path)
-    with open_bus("virtual:hostile-fast", hand.bus) as listener:
-        with pytest.raises(ConfigError) as caught:
-            to_bus(recording, "virtual:hostile-fast", speed=1000.0)
-        heard = listener.drain(limit=10**6)
-    assert heard == []
-    assert "of the logged time at --speed 1000" in str(caught.value)
-    assert "nothing was sent" in str(caught.value)
+    refused = _refused_with_nothing_sent(
+        open_recording(recorded.path), hand, "hostile-fast", speed=1000.0
+    )
+    assert "of the logged time at --speed 1000" in refused
+    assert "nothing was sent" in refused
 
 
 def test_a_bad_message_the_re_run_meets_while_running_is_still_bad_input(
@@ -774,13 +784,9 @@ def test_to_bus_sends_nothing_from_a_log_with_a_frame_moved_off_its_tick(
 
     bad = tmp_path / "moved.mcap"
     rewrite(recorded.path, bad, times=times)
-    with open_bus("virtual:hostile-moved", hand.bus) as listener:
-        with pytest.raises(ConfigError) as caught:
-            to_bus(open_recording(bad), "virtual:hostile-moved")
-        heard = listener.drain(limit=10**6)
-    assert heard == []
-    assert "expected a frame logged at its tick's time" in str(caught.value)
-    assert "(nothing was sent)" in str(caught.value)
+    refused = _refused_with_nothing_sent(open_recording(bad), hand, "hostile-moved")
+    assert "expected a frame logged at its tick's time" in refused
+    assert "(nothing was sent)" in refused
 
 
 def test_a_log_a_run_still_writes_is_said_so_and_not_re_run(
