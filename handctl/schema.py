@@ -42,6 +42,7 @@ import math
 import os
 import re
 import stat
+import sys
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
@@ -771,6 +772,15 @@ class Doc:
         number = float(value)
         if not math.isfinite(number):
             self.fail(key, "a finite number" + suffix, value)
+        if number != 0.0 and abs(number) < sys.float_info.min:
+            # a subnormal float (5e-324) is above zero and nothing once converted or divided
+            # by: a rate of 5e-324 deg/s passed "> 0" and was 0 rad/s, and the run stopped
+            # on a division by zero in its manipulation
+            self.fail(
+                key,
+                f"{what}, and 0 or at least {sys.float_info.min:g} in size (a normal float)",
+                value,
+            )
         below = min is not None and (number <= min if min_exclusive else number < min)
         above = max is not None and number > max
         if below or above:

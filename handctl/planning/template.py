@@ -31,6 +31,7 @@ from pathlib import Path
 from handctl.config import HandConfig
 from handctl.online.recipes.guard import GuardSettings
 from handctl.online.recipes.loader import (
+    MAX_JOINT_DAMPING,
     MAX_SCHEDULE,
     check_unique_names,
     parse_brake,
@@ -519,7 +520,9 @@ def _phase(
     if kind == "free" and doc.has("pose"):
         pose = doc.mapping("pose")
         stiffness = pose.number("stiffness", min=0.0, max=100.0, min_exclusive=True, unit="N·m/rad")
-        damping = pose.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
+        damping = pose.number(
+            "damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING, unit="N·m·s/rad"
+        )
         if pose.has("integral"):
             gains = pose.mapping("integral")
             integral = parse_integral_gains(gains, hand)

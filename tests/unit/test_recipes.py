@@ -380,3 +380,29 @@ def test_a_misspelt_joint_of_a_pose_is_named_not_the_one_it_stands_for(
     err = error(tmp_path, hand, doc)
     assert err.key == "phases[0].pose.angles.fX_j1"
     assert "did you mean 'f1_j1'?" in err.expected
+
+
+def test_a_subnormal_number_is_refused_where_it_would_be_nothing(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """5e-324 deg/s passed a brake's "> 0", was 0 rad/s once converted, and the run stopped
+    on a division by zero in its manipulation (RUNNER_EXCEPTION, exit 3)."""
+    doc = recipe_doc(phase("a", brake={"rate_deg_s": 5e-324, "joint_damping": 0.03}))
+    err = error(tmp_path, hand, doc)
+    assert err.key == "phases[0].brake.rate_deg_s"
+    assert "0 or at least 2.22507e-308 in size (a normal float)" in err.expected
+    doc = recipe_doc(phase("a", ramp_s=-5e-324))
+    assert error(tmp_path, hand, doc).key == "phases[0].ramp_s"
+
+
+def test_a_pose_hold_damps_no_harder_than_injected_damping(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """The pose's damper is the same damper on the same velocity, through the same lag, as a
+    phase's joint_damping (at most 0.2 N·m·s/rad); it took 10, and 0.5 drove a joint onto its
+    limit in the approach."""
+    angles = dict.fromkeys(hand.joint_names, 0.1)
+    doc = recipe_doc(phase("a", pose={"angles": angles, "stiffness": 0.5, "damping": 0.5}))
+    err = error(tmp_path, hand, doc)
+    assert err.key == "phases[0].pose.damping"
+    assert "<= 0.2 N·m·s/rad" in err.expected

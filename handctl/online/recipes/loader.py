@@ -784,7 +784,9 @@ def _parse_pose(doc: Doc, hand: HandConfig) -> PoseHold:
     refuse_another_hands_joints(doc, "angles", hand)
     angles = _joint_angles(doc.mapping("angles"), hand)
     stiffness = doc.number("stiffness", min=0.0, max=100.0, unit="N·m/rad")
-    damping = doc.number("damping", default=0.0, min=0.0, max=10.0, unit="N·m·s/rad")
+    # the same damper on the same fitted velocity as injected joint_damping, through the same
+    # lag: bounded alike (10 N·m·s/rad was taken, and 0.5 already drove a joint onto its limit)
+    damping = doc.number("damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING, unit="N·m·s/rad")
     integral = _parse_integral(doc.mapping("integral"), hand) if doc.has("integral") else None
     doc.done()
     return PoseHold(angles, stiffness, damping, integral)
