@@ -25,14 +25,18 @@ name the file and key path.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+
+import numpy as np
 
 from handctl.config import HandConfig
 from handctl.online.recipes.guard import GuardSettings
 from handctl.online.recipes.loader import (
     MAX_JOINT_DAMPING,
     MAX_SCHEDULE,
+    check_ramp,
     check_unique_names,
     parse_brake,
     parse_damping_fades,
@@ -231,6 +235,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         _phase(p, hand, names, estimates) for p in doc.mappings("phases", min_len=1, max_len=32)
     )
     check_unique_names(doc, [p.name for p in phases])
+    _check_free_ramps(doc.file, phases, hand)
     phases = _resolve_turn_from(doc, phases)
     grasp_model = parse_grasp_model(
         doc, objects, [i for i, p in enumerate(phases) if p.reanalyse is not None]
@@ -248,6 +253,32 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         min_turn,
         grasp_model,
     )
+
+
+def _check_free_ramps(source: str, phases: Sequence[TemplatePhase], hand: HandConfig) -> None:
+    """The ramps between torques the template gives itself (its free phases', from zero at
+    the start), held to the rate limits now, as the planned recipe's are: a ramp_s of 0 into
+    the first phase was refused only once every phase had been planned."""
+    rate = np.array([j.rate_limit for j in hand.joints])
+    before: np.ndarray | None = np.zeros(hand.n_joints)
+    for i, phase in enumerate(phases):
+        if phase.kind != "free" or phase.seed is None:
+            before = None  # what the search finds, checked in the recipe
+            continue
+        margin = np.broadcast_to(np.asarray(phase.torque_margin, dtype=float), rate.shape)
+        torques = np.asarray(phase.seed) * margin
+        if before is not None:
+            check_ramp(
+                source,
+                hand,
+                f"phases[{i}].ramp_s",
+                f"into phase '{phase.name}'",
+                before,
+                torques,
+                phase.ramp_s,
+                rate,
+            )
+        before = torques
 
 
 def _resolve_turn_from(doc: Doc, phases: tuple[TemplatePhase, ...]) -> tuple[TemplatePhase, ...]:

@@ -339,3 +339,17 @@ def test_a_plan_whose_recipe_run_would_refuse_is_refused_naming_the_template_key
     assert info.value.file == "t.template.yaml"
     assert info.value.key == key
     assert "rate limit" in info.value.expected and info.value.found == 0.0
+
+
+def test_a_ramp_into_the_template_s_own_torques_is_checked_before_any_search(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A ramp_s of 0 into the first (free) phase was refused only in the recipe planned from
+    the template, once every phase had been searched."""
+    data = base()
+    data["phases"][0]["ramp_s"] = 0.0
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key == "phases[0].ramp_s"
+    assert "expected a ramp of at least" in str(info.value)
+    assert f"into phase '{data['phases'][0]['name']}'" in str(info.value)

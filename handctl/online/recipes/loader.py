@@ -974,8 +974,8 @@ def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
                     round(float(torques[j]), 9),
                 )
             for start in previous:
-                _check_ramp(
-                    recipe,
+                check_ramp(
+                    recipe.source,
                     hand,
                     f"phases[{i}].ramp_s",
                     f"into phase '{phase.name}'" + (f" ({key})" if "schedule" in key else ""),
@@ -986,8 +986,8 @@ def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
                 )
         previous = candidates
     for start in previous:
-        _check_ramp(
-            recipe,
+        check_ramp(
+            recipe.source,
             hand,
             "end_ramp_s",
             "back to zero after the last phase",
@@ -998,8 +998,8 @@ def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
         )
 
 
-def _check_ramp(
-    recipe: Recipe,
+def check_ramp(
+    source: str,
     hand: HandConfig,
     key: str,
     what: str,
@@ -1008,6 +1008,8 @@ def _check_ramp(
     ramp_s: float,
     rate: np.ndarray,
 ) -> None:
+    """Refuse (naming ``source`` and ``key``) a ramp from ``start`` to ``end`` (N·m) over
+    ``ramp_s`` faster than a joint's rate limit ``rate`` (N·m/s)."""
     step = np.abs(end - start)
     for j in range(len(step)):
         if step[j] == 0:
@@ -1016,7 +1018,7 @@ def _check_ramp(
         if need > rate[j] * (1 + 1e-9):
             name = hand.joint_names[j]
             raise ConfigError(
-                recipe.source,
+                source,
                 key,
                 f"a ramp of at least {step[j] / rate[j]:.3g} s {what}: {name} moves "
                 f"{step[j]:.3g} N·m and its rate limit is {rate[j]:g} N·m/s",
