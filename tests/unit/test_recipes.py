@@ -286,6 +286,9 @@ def test_the_reserved_phase_names_are_what_the_log_says_where_no_phase_runs() ->
         ("time < 0.001", "a phase's time is never below one loop period"),
         ("angle.f1_j1 > 5", "f1_j1 past its soft limit"),
         ("angle.f1_j1 < -5", "f1_j1 past its soft limit"),
+        # at the soft limit itself: '>' holds only past it
+        ("angle.f1_j1 > 1.9", "f1_j1 past its soft limit 1.9 rad"),
+        ("angle.f1_j1 < -1", "f1_j1 past its soft limit -1 rad"),
         # a hold starts at the phase's second tick at the earliest
         ("time >= 0 for 1", "it outlasts the phase"),
         ("angle.f1_j1 > -5 for 1", "it outlasts the phase"),
@@ -303,6 +306,8 @@ def test_a_condition_that_never_holds_in_its_phase_is_refused(
     # at the edges it may hold, and loads
     load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=["time >= 1"]))), hand)
     load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=["time <= 0.001"]))), hand)
+    for at_the_limit in ("angle.f1_j1 >= 1.9", "angle.f1_j1 <= -1"):
+        load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=[at_the_limit]))), hand)
 
 
 def test_turn_from_without_a_turn_to_count_is_refused(tmp_path: Path, hand: HandConfig) -> None:

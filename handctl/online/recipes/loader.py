@@ -933,11 +933,14 @@ def _never_holds(cond: Condition, max_s: float, hand: HandConfig) -> str:
         if (above and cond.value > most) or (not above and cond.value < -most):
             return f"{joint.name}'s torque never passes its device_tau_max ({most:g} N·m)"
     if cond.kind is SignalKind.ANGLE:
+        # the soft limit itself is inside (a joint at it is allowed, ``angle_violations``):
+        # '> limit' holds only past it, '>= limit' at it
         joint = hand.joints[cond.index]
-        if above and cond.value > joint.angle_max:
-            return f"{joint.name} past its soft limit {joint.angle_max:g} rad is a safety stop"
-        if not above and cond.value < joint.angle_min:
-            return f"{joint.name} past its soft limit {joint.angle_min:g} rad is a safety stop"
+        hi, lo = joint.angle_max, joint.angle_min
+        if above and (cond.value > hi or (cond.op == ">" and cond.value == hi)):
+            return f"{joint.name} past its soft limit {hi:g} rad is a safety stop"
+        if not above and (cond.value < lo or (cond.op == "<" and cond.value == lo)):
+            return f"{joint.name} past its soft limit {lo:g} rad is a safety stop"
     return ""
 
 
