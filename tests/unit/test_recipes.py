@@ -411,3 +411,18 @@ def test_a_pose_hold_damps_no_harder_than_injected_damping(
     err = error(tmp_path, hand, doc)
     assert err.key == "phases[0].pose.damping"
     assert "<= 0.2 N·m·s/rad" in err.expected
+
+
+@pytest.mark.parametrize("name", ["lift ", " lift", "  ", "p" * 65])
+def test_a_phase_name_readers_cannot_tell_apart_is_refused(
+    tmp_path: Path, hand: HandConfig, name: str
+) -> None:
+    """'lift ' beside 'lift' were two phases, a name of spaces showed as nothing, and a name
+    of 10 000 characters was printed whole on the summary's line."""
+    err = error(
+        tmp_path, hand, recipe_doc(phase("lift", max_s=0.5, on_timeout="next"), phase(name))
+    )
+    assert err.key == "phases[1].name"
+    assert "a phase name of 1 to 64 characters, not beginning or ending with a space" in (
+        err.expected
+    )

@@ -299,11 +299,26 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
 RESERVED_PHASE_NAMES = frozenset(status.value for status in RunStatus) | {"-"}
 
 
+#: characters of a phase's name: it heads the status line, the summary's phase table and
+#: the plots' phase bands
+MAX_PHASE_NAME = 64
+
+
 def check_unique_names(doc: Doc, names: list[str]) -> None:
     """Phase names are how logs, exits and provenance refer to phases: no two alike, and none
     that the log uses for something else."""
     seen: set[str] = set()
     for i, name in enumerate(names):
+        if not name.strip() or name != name.strip() or len(name) > MAX_PHASE_NAME:
+            # 'lift ' beside 'lift' were two phases no reader tells apart, a name of spaces
+            # showed as nothing, and one of 10 000 characters filled the summary
+            raise ConfigError(
+                doc.file,
+                f"phases[{i}].name",
+                f"a phase name of 1 to {MAX_PHASE_NAME} characters, not beginning or ending "
+                "with a space",
+                name,
+            )
         if name.strip() in RESERVED_PHASE_NAMES:
             raise ConfigError(
                 doc.file,
