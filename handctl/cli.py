@@ -1193,6 +1193,25 @@ def _check_replay_options(args: argparse.Namespace) -> None:
             "the replay onto a bus or to Foxglove)",
             args.speed,
         )
+    if args.to_bus == "sim":
+        raise ConfigError(
+            "--to-bus",
+            "",
+            "a bus other processes are on (unix:DIRECTORY, or a CAN interface): 'sim' is the "
+            "simulated hand a run starts for itself; start one with 'handctl sim --bus "
+            "unix:DIRECTORY' and replay onto unix:DIRECTORY",
+            args.to_bus,
+        )
+    if args.to_bus == "hand" and args.hand is None:
+        # the hand config's own bus: where the real hand is
+        raise ConfigError(
+            "--hand",
+            "",
+            "the config of the hand whose bus --to-bus hand names, whose limits bound every "
+            "command sent (the log's own hand config is part of what a tampered log can "
+            "rewrite)",
+            "nothing",
+        )
     if args.to_bus and args.to_bus not in ("sim", "hand"):
         from handctl.online.busspec import parse_spec
         from handctl.recording.frames import SIMULATED_BUSES

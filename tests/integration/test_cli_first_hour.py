@@ -353,6 +353,8 @@ def test_options_that_cannot_work_are_refused_before_anything_is_said_or_measure
         ("bogus", "handctl: error: --to-bus: expected sim, hand, or INTERFACE:CHANNEL"),
         ("unix:relative/dir", "handctl: error: --to-bus: channel: expected an absolute"),
         ("udp_multicast:239.1.1.3", "handctl: error: --hand: expected the config of the hand"),
+        ("hand", "handctl: error: --hand: expected the config of the hand whose bus"),
+        ("sim", "handctl: error: --to-bus: expected a bus other processes are on"),
     ]:
         done = handctl("replay", str(log), "--to-bus", spec)
         assert done.returncode == 2, done.stderr
