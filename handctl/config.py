@@ -264,7 +264,7 @@ def _check_tdt_tolerance(doc: Doc, hand: HandConfig) -> None:
             f"less than half of every joint's tau_max ({weakest.name}: {weakest.tau_max:g} "
             f"N·m, so below {weakest.tau_max / 2:g} N·m): the TDT cross-check must see a "
             "sensor that reads a joint's whole torque wrong",
-            f"{tolerance:g} N·m" + ("" if written else " (the default)"),
+            description(f"{tolerance:g} N·m" + ("" if written else " (the default)")),
         )
 
 

@@ -133,7 +133,12 @@ FILE_KINDS: tuple[tuple[str, frozenset[str], str], ...] = (
         frozenset({"dimension", "reading"}),
         "analyse it with 'handctl analyze torque-set SCENARIO.yaml'",
     ),
-    ("fault list", frozenset({"faults"}), "give it to the simulated hand: --sim-faults"),
+    (
+        "fault list",
+        frozenset({"faults"}),
+        "give it to the simulated hand: 'handctl run recipe ... --sim-faults' or "
+        "'handctl sim --faults'",
+    ),
 )
 
 
@@ -658,6 +663,11 @@ def _is_scalar(value: object) -> bool:
     return isinstance(value, (bool, int, float, str))
 
 
+#: characters of a name printed as it is (a hand's, a recipe's, a phase's): it heads the
+#: summary, the status line and the plots' titles
+MAX_LABEL = 64
+
+
 class Doc:
     """One mapping of a YAML file, with the file name and key path it was found at.
 
@@ -820,6 +830,9 @@ class Doc:
         value = self.string(key, default=default)
         if not value.isprintable():
             self.fail(key, "a name of printable characters (no newline, tab or escape)", value)
+        if len(value) > MAX_LABEL:
+            # a 300-character recipe name ran off both edges of its plot's title
+            self.fail(key, f"a name of at most {MAX_LABEL} characters", value)
         return value
 
     def text(self, key: str, *, default: Any = _MISSING) -> str:

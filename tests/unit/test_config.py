@@ -791,7 +791,7 @@ def test_a_tdt_tolerance_of_half_a_joint_s_torque_is_refused(
     assert err.key == "safety.tdt_tolerance"
     name = base["fingers"][1]["joints"][1]["name"]
     assert f"({name}: 0.02 N·m, so below 0.01 N·m)" in err.expected
-    assert err.found == ("0.01 N·m" if written else "0.02 N·m (the default)")
+    assert str(err.found) == ("0.01 N·m" if written else "0.02 N·m (the default)")
     base["safety"] = {**base.get("safety", {}), "tdt_tolerance": 0.0099}
     assert load_hand(write(tmp_path, base)).safety.tdt_tolerance == 0.0099
 
