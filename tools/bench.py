@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import ast
 import importlib
+import io
 import json
 import math
 import os
@@ -97,11 +98,23 @@ def _out_of_range(args: argparse.Namespace) -> str:
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """The benchmark's description as written, and each option's default after its help."""
+    """The benchmark's description as written, and each option's default after its help
+    unless the help already says it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if "default" in text:
+            return text
+        return super()._get_help_string(action)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    # an output encoding without '°', '±' or '×' (LANG=C) gets their escapes, as handctl's
+    # own commands do: the help of three benchmarks ended in a UnicodeEncodeError
+    for stream in (sys.stdout, sys.stderr):
+        if isinstance(stream, io.TextIOWrapper):
+            stream.reconfigure(errors="backslashreplace")
     if argv and argv[0] in ("-h", "--help"):
         print(listing())
         return 0

@@ -5,6 +5,7 @@ rather than 0 with the error inside the JSON."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import types
@@ -161,3 +162,20 @@ def test_the_plan_bench_checks_its_options_before_any_plan(
     assert load_tool("bench").main(argv) == 2
     err = capsys.readouterr().err
     assert says in err and "plan with" not in err
+
+
+@pytest.mark.parametrize("name", ["analysis", "experiment", "recording"])
+def test_a_benchmark_s_help_on_an_ascii_stdout(name: str) -> None:
+    """'×', '°' and '±' in three benchmarks' help ended in a UnicodeEncodeError under LANG=C;
+    every option's default is said."""
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "bench.py"), name, "--help"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+        env={**os.environ, "PYTHONIOENCODING": "ascii"},
+    )
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    assert "(default: " in done.stdout
