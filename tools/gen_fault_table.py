@@ -22,6 +22,54 @@ OUT = ROOT / "docs" / "faults.md"
 CAMPAIGN = ROOT / "docs" / "fault_campaign.json"
 
 
+#: the unit of each injector key that has one
+_KEY_UNITS = {
+    "delay": "s",
+    "downtime": "s",
+    "duration": "s",
+    "offset": "N·m",
+    "limit": "N·m",
+    "amplitude": "N·m",
+}
+
+
+def _fault_list_section() -> list[str]:
+    """The fault-list format, its kinds and their keys from the injectors themselves."""
+    from handctl.sim.faults import INJECTORS, _JointFault
+
+    rows = []
+    for kind, cls in sorted(INJECTORS.items()):
+        keys = ["node", *(["joint"] if issubclass(cls, _JointFault) else []), *cls.keys]
+        named = [f"`{k}` ({_KEY_UNITS[k]})" if k in _KEY_UNITS else f"`{k}`" for k in keys]
+        rows.append(f"| `{kind}` | {', '.join(named)} |")
+    return [
+        "## Fault lists for the simulated hand",
+        "",
+        "`handctl run recipe ... --sim-faults FAULTS.yaml` and `handctl sim --faults "
+        "FAULTS.yaml` take a list of faults the simulated hand injects (`config/sim/*.yaml`; "
+        "`every_injector.yaml` uses every kind, with its keys as comments):",
+        "",
+        "```yaml",
+        "description: what the list is for      # optional",
+        "faults:",
+        "  - {kind: node_silent, node: 2, start: 1.0, stop: 1.5}   # s, from the hand's start",
+        "  - {kind: tdt_offset, node: 1, joint: 2, offset: 0.05, start: 2.0}   # to the end",
+        "```",
+        "",
+        "| kind | keys besides `start` and `stop` (s) |",
+        "|---|---|",
+        *rows,
+        "",
+        "Times are rounded to the nodes' 1 ms tick, and a window lasts one tick at least "
+        "(`start` equal to `stop` is one tick); a `start` after the run has ended never fires. "
+        "Two windows of one kind on one target (the same node and joint) may not overlap: the "
+        "injector's state is the node's, so the first window's end would end the other "
+        "(refused, naming both). Babble on identifier 0 is the e-stop's frame, and the nodes "
+        "obey it as one. A mistake is refused before anything starts, naming the key (exit 2).",
+        "",
+    ]
+
+
 def render() -> str:
     s = SafetyConfig()
     lines = [
@@ -78,6 +126,7 @@ def render() -> str:
         "a 10 ms command watchdog, torque saturation at `device_tau_max`, and the e-stop "
         "frame (`firmware_protocol/PROTOCOL.md`).",
         "",
+        *_fault_list_section(),
     ]
     if CAMPAIGN.exists():
         from handctl.harness.campaign import CaseResult, render_table

@@ -27,15 +27,16 @@ even if another one covers it too.
 
 from __future__ import annotations
 
+import math
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
 from handctl.config import HandConfig
 from handctl.online.bus import EXTENDED_ID_FLAG
-from handctl.schema import Doc, load_yaml
+from handctl.schema import Doc, description, load_yaml
 from handctl.sim.params import NODE_TICK_NS
 
 if TYPE_CHECKING:
@@ -637,8 +638,8 @@ class FaultSchedule:
     def add(self, injector: Injector, start: float, stop: float | None = None) -> None:
         """Switch ``injector`` on at ``start`` s and off at ``stop`` s (never, if ``None``).
 
-        Times are rounded to the 1 ms tick. Adding an event in the past makes it happen at the
-        next tick.
+        Times are rounded to the 1 ms tick, and a window lasts one tick at least. Adding an
+        event in the past makes it happen at the next tick.
         """
         if start < 0 or (stop is not None and stop < start):
             raise ValueError(
@@ -646,9 +647,12 @@ class FaultSchedule:
                 f"start={start!r}, stop={stop!r}"
             )
         self.entries.append(Scheduled(injector, start, stop))
-        self._insert(round(start * 1e9) // NODE_TICK_NS, 1, injector)
+        on = round(start * 1e9) // NODE_TICK_NS
+        self._insert(on, 1, injector)
         if stop is not None:
-            self._insert(round(stop * 1e9) // NODE_TICK_NS, 0, injector)
+            # a window within one tick (start == stop) lasts that tick: its off, sorted
+            # before its on in the same tick, left the fault on for good
+            self._insert(max(round(stop * 1e9) // NODE_TICK_NS, on + 1), 0, injector)
 
     def _insert(self, tick: int, on: int, injector: Injector) -> None:
         # Off events sort before on events of the same tick, so an off and an on at the same
@@ -679,8 +683,32 @@ def load_scenario(path: str | Path, hand: HandConfig) -> FaultSchedule:
 def parse_scenario(doc: Doc, hand: HandConfig) -> FaultSchedule:
     doc.string("description", default="-")
     entries = [_parse_entry(d, hand) for d in doc.mappings("faults", min_len=1)]
+    _refuse_overlaps(doc, entries)
     doc.done()
     return FaultSchedule(entries)
+
+
+def _refuse_overlaps(doc: Doc, entries: Sequence[Scheduled]) -> None:
+    """Two windows of one injector on one target may not overlap: the injector's state is the
+    node's (a saturation, a counter's repeat), so the first window's end ended the other's,
+    and a long fault beside a short one lasted the short one."""
+    seen: dict[tuple[object, ...], list[tuple[int, Scheduled]]] = {}
+    for k, entry in enumerate(entries):
+        injector = entry.injector
+        # its kind and target, whatever its other keys (a saturation's limit, say)
+        target = (type(injector), getattr(injector, "node", None), getattr(injector, "joint", None))
+        end = math.inf if entry.stop is None else entry.stop
+        for j, other in seen.get(target, []):
+            other_end = math.inf if other.stop is None else other.stop
+            if entry.start < other_end and other.start < end:
+                doc.fail(
+                    f"faults[{k}]",
+                    f"a window that does not overlap faults[{j}]'s ({other.start:g}"
+                    f"..{other_end:g} s): the same injector on the same target, whose end "
+                    "would end both",
+                    description(f"{injector.describe()} from {entry.start:g} to {end:g} s"),
+                )
+        seen.setdefault(target, []).append((k, entry))
 
 
 def _parse_entry(doc: Doc, hand: HandConfig) -> Scheduled:

@@ -93,3 +93,34 @@ def test_schedule_hands_out_switchings_in_time_order() -> None:
     assert not schedule.pending
     with pytest.raises(ValueError, match="start <= stop"):
         schedule.add(a, start=0.5, stop=0.4)
+
+
+@pytest.mark.parametrize(("start", "stop"), [(0.010, 0.010), (0.0102, 0.0107)])
+def test_a_window_within_one_tick_lasts_that_tick(start: float, stop: float) -> None:
+    """Its off sorted before its on in the same tick, and the fault stayed on for good: a
+    node made silent from 1.0 to 1.0 s never spoke again."""
+    silent = DropFeedback(node=2)
+    schedule = FaultSchedule()
+    schedule.add(silent, start=start, stop=stop)
+    assert list(schedule.due(10)) == [(True, silent)]
+    assert list(schedule.due(11)) == [(False, silent)]
+    assert not schedule.pending
+
+
+def test_two_windows_of_one_injector_on_one_target_may_not_overlap(hand: HandConfig) -> None:
+    """The injector's state is the node's: the short window's end ended the long one, and a
+    saturation from 1.5 to 3 s beside one from 1.5 to 1.52 s lasted 20 ms."""
+    text = """
+faults:
+  - {kind: motor_saturation, node: 1, joint: 1, limit: 0.01, start: 1.5, stop: 3.0}
+  - {kind: motor_saturation, node: 1, joint: 1, limit: 0.02, start: 1.5, stop: 1.52}
+"""
+    with pytest.raises(ConfigError) as err:
+        parse_scenario(parse_yaml(text, "s.yaml"), hand)
+    assert err.value.key == "faults[1]"
+    assert "a window that does not overlap faults[0]'s (1.5..3 s)" in err.value.expected
+    # one after the other, or on another joint, they may
+    after = text.replace("start: 1.5, stop: 1.52", "start: 3.0, stop: 3.5")
+    parse_scenario(parse_yaml(after, "s.yaml"), hand)
+    elsewhere = text.replace("joint: 1, limit: 0.02", "joint: 2, limit: 0.02")
+    parse_scenario(parse_yaml(elsewhere, "s.yaml"), hand)
