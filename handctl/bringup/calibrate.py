@@ -15,8 +15,11 @@ a run, without end.
 
 The supervisor's TDT plausibility check compares the reading with the applied torque; an
 uncalibrated sensor fails it by its very offset, which is what is being measured. For this run
-only its tolerance is ``max_offset`` (the largest offset accepted anyway); at zero torque there
-is nothing for it to protect. Every other check stays as the hand config has it.
+only its tolerance is the largest ``device_tau_max`` of the hand (or ``max_offset``, if more):
+at zero torque there is nothing for it to protect, and an offset just past ``max_offset`` is
+the per-joint refusal this command exists to give (with ``max_offset`` as the tolerance, an
+offset of 0.26 N·m stopped the run on TDT_MISMATCH, exit 3, with no table). Every other check
+stays as the hand config has it.
 """
 
 from __future__ import annotations
@@ -142,9 +145,10 @@ def calibration_recipe(hand: HandConfig, settle_s: float, measure_s: float) -> R
 
 
 def calibration_hand(hand: HandConfig, limits: CalibrationLimits) -> HandConfig:
-    """The hand as the calibration run sees it: the TDT tolerance widened to ``max_offset``
-    (module docstring), nothing else changed."""
-    tolerance = max(hand.safety.tdt_tolerance, limits.max_offset)
+    """The hand as the calibration run sees it: the TDT tolerance widened to the sensor's
+    range (module docstring), nothing else changed."""
+    widest = max(j.device_tau_max for j in hand.joints)
+    tolerance = max(hand.safety.tdt_tolerance, limits.max_offset, widest)
     return dataclasses.replace(
         hand, safety=dataclasses.replace(hand.safety, tdt_tolerance=tolerance)
     )

@@ -297,6 +297,22 @@ def test_an_offset_beyond_the_joints_tau_max_is_refused_whatever_max_offset_says
     assert not out.exists()
 
 
+def test_an_offset_just_past_max_offset_is_the_joint_s_refusal_not_a_safety_stop(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """With max_offset (0.25 N·m) as the run's TDT tolerance, a sensor reading 0.26 N·m at
+    zero torque stopped the calibration on TDT_MISMATCH (exit 3, no table): the refusal by
+    joint the docs promise was out of reach for the offsets it is for."""
+    faults = _scenario(tmp_path, "{kind: tdt_offset, node: 1, joint: 1, offset: 0.26, start: 0.0}")
+    out = tmp_path / "calibrated.yaml"
+    args = ["calibrate", "tdt", "-o", str(out), "--sim-faults", str(faults), "--seconds", "0.3"]
+    assert cli.main(args) == cli.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "nothing written: f1_j1: offset -0.26" in err and "(at most 0.25 N·m)" in err
+    assert "TDT_MISMATCH" not in err
+    assert not out.exists()
+
+
 def test_the_offset_written_is_judged_not_the_reading_with_the_configured_one(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
