@@ -74,9 +74,19 @@ _COUNTS = (
     "models",
     "population",
     "generations",
+    "tick_cost_rounds",
+    "live_pairs",
 )
 _FROM_ZERO = ("first_seed", "seed", "babble")
-_POSITIVE = ("seconds", "minutes", "tolerance", "swap_deg", "phase_deg", "phase_tolerance_deg")
+_POSITIVE = (
+    "seconds",
+    "minutes",
+    "tolerance",
+    "swap_deg",
+    "phase_deg",
+    "phase_tolerance_deg",
+    "tick_cost_seconds",
+)
 _NON_NEGATIVE = ("warmup_s",)
 
 

@@ -61,7 +61,7 @@ from hold_recipe import hold_recipe
 from handctl.config import HandConfig, load_hand
 from handctl.hostcheck import Deadlines, ProbeRecord, attribute, judge, work_figures
 from handctl.online.clock import Hygiene
-from handctl.online.loop import StatusLine
+from handctl.online.loop import Outcome, StatusLine
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
 from handctl.session import RunReport, RunRequest, run_recipe
@@ -124,8 +124,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--variant",
         choices=list(HYGIENE),
-        default=list(HYGIENE)[-1],
-        help="with --rt: the real-time measures of the run (default: all)",
+        default=None,
+        help=f"with --rt: the real-time measures of the run (default: {list(HYGIENE)[-1]})",
     )
     parser.add_argument(
         "--no-naive", action="store_true", help="leave out the naive asyncio.sleep baseline"
@@ -248,6 +248,7 @@ async def _naive(period_s: float, seconds: float) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> dict[str, object]:
+    _check_options(args)
     if args.live:
         from live_view_cost import compare
 
@@ -269,6 +270,23 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                 "--no-tick-cost)"
             )
         return _measure(args, Path(baseline))
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Options that would do nothing, and a hand that is none, refused before any work: a
+    --hygiene without --rt ran an ordinary loop and said nothing, and a fault list given as
+    --hand was blamed on the baseline revision after it had been checked out."""
+    from handctl.errors import ConfigError
+
+    rt, live = getattr(args, "rt", False), getattr(args, "live", False)
+    for option, given, needs, has in (
+        ("--hygiene", getattr(args, "hygiene", False), "--rt", rt),
+        ("--variant", getattr(args, "variant", None) is not None, "--rt", rt),
+        ("--live-pairs", getattr(args, "live_pairs", 1) != 1, "--live", live),
+    ):
+        if given and not has:
+            raise ConfigError(option, "", f"{needs} as well (it is a measure of {needs})", given)
+    load_hand(args.hand)
 
 
 def _measure(args: argparse.Namespace, baseline: Path | None) -> dict[str, object]:
@@ -296,7 +314,12 @@ def _measure(args: argparse.Namespace, baseline: Path | None) -> dict[str, objec
             figures = dict(variants[list(HYGIENE)[-1]])
         else:
             figures = _one(
-                hand, recipe, faults, args, HYGIENE[args.variant], Path(tmp) / "run.mcap"
+                hand,
+                recipe,
+                faults,
+                args,
+                HYGIENE[args.variant or list(HYGIENE)[-1]],
+                Path(tmp) / "run.mcap",
             )
     if not args.no_naive and "lateness_p99_us" in figures:
         print(f"naive asyncio.sleep loop, {args.seconds:g} s ...", file=sys.stderr)
@@ -403,6 +426,10 @@ def _one(
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     result = report.result
+    if result.outcome is Outcome.INTERRUPTED:
+        # Ctrl-C or SIGTERM stopped the run: its figures are of a fraction of it, not the
+        # benchmark's (exit 0 with 117 ticks of a 20 s run, before)
+        raise KeyboardInterrupt(result.message or "interrupted")
     # Ticks of the run proper: from the first command on. Before it the peer process is still
     # importing MuJoCo and building its model on the same two cores, which is start-up, not
     # the loop's steady state; the start-up misses are reported apart.

@@ -83,6 +83,17 @@ def test_figures_that_hold_failures_exit_1_and_say_each(
         (["analysis", "--tolerance", "nan"], "--tolerance: expected a finite number > 0"),
         (["sim", "--seconds", "-1"], "--seconds: expected a finite number > 0, found -1.0"),
         (["codec", "--ticks", "0"], "--ticks: expected a whole number >= 1, found 0"),
+        # an IndexError after ten seconds of loop; a baseline blamed for a zero hold
+        (["loop", "--tick-cost-rounds", "0"], "--tick-cost-rounds: expected a whole number"),
+        (["loop", "--tick-cost-seconds", "0"], "--tick-cost-seconds: expected a finite"),
+        # ran an ordinary loop and said nothing; blamed the baseline revision
+        (["loop", "--hygiene"], "--hygiene: expected --rt as well"),
+        (["loop", "--variant", "fifo"], "--variant: expected --rt as well"),
+        (["loop", "--live-pairs", "3"], "--live-pairs: expected --live as well"),
+        (
+            ["loop", "--hand", str(ROOT / "config" / "sim" / "bus_trouble.yaml")],
+            "expected a hand config, found a fault list",
+        ),
     ],
 )
 def test_a_shared_option_out_of_its_range_is_bad_input_before_any_work(
