@@ -93,9 +93,11 @@ def bench_bus(hand: HandConfig, ticks: int) -> tuple[float, float, float]:
         tau = _closing_torques(hand).tolist()
         per_finger = []
         offset = 0
-        for finger in hand.fingers:
+        for finger, layout in zip(hand.fingers, commands, strict=True):
             values = tau[offset : offset + len(finger.joints)]
-            per_finger.append(tuple(values + [0.0] * (3 - len(values))))
+            # as many torques as the finger's command carries (its DBC's), not three: a hand
+            # of two-joint fingers was refused 'expected 2 values, found 3'
+            per_finger.append(tuple(values + [0.0] * (len(layout.signals) - len(values))))
             offset += len(finger.joints)
         received = 0
         in_step = 0.0

@@ -190,3 +190,13 @@ def test_a_benchmark_s_help_on_an_ascii_stdout(name: str) -> None:
     assert done.returncode == 0, done.stderr
     assert "Traceback" not in done.stderr
     assert "(default: " in done.stdout
+
+
+def test_the_sim_bench_drives_a_hand_of_two_joint_fingers() -> None:
+    """Its commands were padded to three torques a finger: 'TorqueCommand_1: expected 2
+    values (Torque1, Torque2), found 3' on the planar hand."""
+    from handctl.config import load_hand
+
+    planar = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    rtf, frames_per_tick, _ = load_tool("bench_sim").bench_bus(planar, 50)
+    assert rtf > 0 and frames_per_tick > 0
