@@ -23,7 +23,6 @@ import json
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from handctl.config import HandConfig, SafetyConfig
@@ -666,12 +665,18 @@ def injected_records() -> list[ProbeRecord]:
     path = os.environ.get(INJECT_ENV)
     if not path:
         return []
+    from handctl.schema import read_input
+
+    # opened without blocking and refused unless a regular file: a FIFO held the check in its
+    # open() for good; the variable named, as what set the file
+    limit = 64 << 20
+    raw = read_input(path, f"a readable JSON file ({INJECT_ENV})", limit)
+    if len(raw) > limit:
+        raise ConfigError(path, "", f"a JSON file of at most {limit} bytes ({INJECT_ENV})", "more")
     try:
-        data = json.loads(Path(path).read_text())
-    except OSError as exc:
-        raise ConfigError(path, "", f"a readable JSON file ({INJECT_ENV})", str(exc)) from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(path, "", "valid JSON", str(exc)) from None
+        data = json.loads(raw)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(path, "", f"valid JSON ({INJECT_ENV})", str(exc)) from None
     return [ProbeRecord.from_json(data, path)]
 
 

@@ -143,6 +143,20 @@ def test_a_bad_recorded_sequence_is_bad_input(tmp_path: Path) -> None:
     assert f"{bad}: probe.stalls[0]: expected [index, due_ns, wake_ns, missed]" in done.stderr
 
 
+def test_a_recorded_sequence_that_is_a_fifo_is_refused_not_waited_on(tmp_path: Path) -> None:
+    """A FIFO named by the variable held the check in its open() until Ctrl-C; another
+    file's mistake did not say the variable had named it."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(fifo)})
+    assert done.returncode == 2, done.stderr
+    assert f"{fifo}: expected a regular file (a readable JSON file ({INJECT_ENV}))" in done.stderr
+    text = tmp_path / "not.json"
+    text.write_text("timing: no\n")
+    done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(text)})
+    assert done.returncode == 2 and f"expected valid JSON ({INJECT_ENV})" in done.stderr
+
+
 def test_a_run_on_a_real_bus_is_refused_on_a_failing_host(tmp_path: Path, hand: HandConfig) -> None:
     directory = tmp_path / "bus"
     with open_bus(f"unix:{directory}", hand.bus) as listener:
