@@ -177,7 +177,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"bench.py {name}: interrupted", file=sys.stderr)
         return 130
-    print(json.dumps(figures, sort_keys=True))
+    try:
+        print(json.dumps(figures, sort_keys=True), flush=True)
+    except BrokenPipeError:
+        raise  # a reader that stopped early: said nothing of (``__main__`` below)
+    except OSError as exc:
+        # a stdout that cannot be written (a full disk, /dev/full): the one thing the bench
+        # makes is lost, so said, exit 1, where it ended in a traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        print(f"bench.py {name}: failed: its figures could not be written ({exc})", file=sys.stderr)
+        return 1
     failed = figures.get("failed") or []
     for failure in failed:
         print(f"bench.py {name}: failed: {failure}", file=sys.stderr)

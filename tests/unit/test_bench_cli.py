@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import types
+from pathlib import Path
 
 import pytest
 
@@ -200,3 +201,19 @@ def test_the_sim_bench_drives_a_hand_of_two_joint_fingers() -> None:
     planar = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
     rtf, frames_per_tick, _ = load_tool("bench_sim").bench_bus(planar, 50)
     assert rtf > 0 and frames_per_tick > 0
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full here")
+def test_figures_that_cannot_be_written_are_a_failure_said_not_a_traceback() -> None:
+    with open("/dev/full", "w") as full:
+        done = subprocess.run(
+            [sys.executable, str(ROOT / "tools" / "bench.py"), "codec", "--ticks", "200"],
+            stdout=full,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=300,
+            check=False,
+        )
+    assert done.returncode == 1, done.stderr
+    assert "failed: its figures could not be written" in done.stderr
+    assert "Traceback" not in done.stderr
