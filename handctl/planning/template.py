@@ -484,7 +484,8 @@ def _phase(
     name = doc.label("name")
     kind = doc.string("kind", choices=KINDS)
     ramp = doc.number("ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
-    max_s = doc.number("max_s", min=0.0, max=600.0, min_exclusive=True, unit="s")
+    # a loop period at least, as the recipe's (refused there only after the search)
+    max_s = doc.number("max_s", min=hand.bus.period_s, max=600.0, unit="s")
     key = "torques" if kind == "free" else "seed"
     seed = _torques(doc, key, hand) if kind == "free" or doc.has("seed") else None
     _check_tau_max(doc, key, seed, hand)

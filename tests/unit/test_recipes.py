@@ -435,3 +435,10 @@ def test_a_recipe_name_longer_than_a_title_is_refused(tmp_path: Path, hand: Hand
     assert err.key == "recipe" and "a name of at most 64 characters" in err.expected
     err = error(tmp_path, hand, recipe_doc(phase("p" * 65)))
     assert err.key == "phases[0].name" and "a name of at most 64 characters" in err.expected
+
+
+def test_a_phase_shorter_than_a_loop_period_is_refused(tmp_path: Path, hand: HandConfig) -> None:
+    """max_s: 1e-9 ran one tick of its phase, as if it were one that lasted a tick."""
+    err = error(tmp_path, hand, recipe_doc(phase("a", max_s=1e-9)))
+    assert err.key == "phases[0].max_s" and ">= 0.001" in err.expected
+    load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=0.001))), hand)

@@ -406,7 +406,8 @@ def _parse_phase(
     name = doc.label("name")
     torques = parse_torques(doc, hand)
     ramp = doc.number("ramp_s", default=0.1, min=0.0, max=60.0, unit="s")
-    max_s = doc.number("max_s", min=0.0, max=MAX_PHASE_S, min_exclusive=True, unit="s")
+    # a phase lasts a loop period at least: 1e-9 s ran one tick of it, as if it had not been
+    max_s = doc.number("max_s", min=hand.bus.period_s, max=MAX_PHASE_S, unit="s")
     on_timeout = TimeoutAction(
         doc.string("on_timeout", default="abort", choices=[a.value for a in TimeoutAction])
     )
