@@ -299,3 +299,26 @@ def test_the_estimator_says_a_radius_is_measured_only_after_its_fit(hand: HandCo
     for _ in range(400):
         est(np.array(BOX_ANGLES))
     assert est.measured_radius(0) == pytest.approx(R, abs=2e-5)
+
+
+@pytest.mark.parametrize(
+    "second",
+    [
+        {"object": "cyl1", "min": 1.07, "max": 1.3},  # the same ranges
+        {"object": "cyl1", "min": 1.1, "max": 1.2},  # within them
+        [{"object": "cyl1", "min": 1.1, "max": 1.2}, {"object": "cyl2", "max": 0.9}],  # narrower
+    ],
+)
+def test_an_entry_an_earlier_one_always_holds_for_is_refused(
+    tmp_path: Path, hand: HandConfig, second: Any
+) -> None:
+    """Two entries with one 'when' and opposite torques: the second was never chosen, and the
+    run was the recipe without it."""
+    first = _entry({"radius_ratio": {"object": "cyl1", "min": 1.07, "max": 1.3}}, f1_j1=0.2)
+    with pytest.raises(ConfigError) as info:
+        _load(tmp_path, hand, _data(schedule=[first, _entry({"radius_ratio": second})]))
+    assert info.value.key == "phases[1].schedule[1].when"
+    assert "schedule[0] holds wherever this one does: it is never chosen" in info.value.expected
+    # an entry the first does not cover may follow it
+    wider = _entry({"radius_ratio": {"object": "cyl1", "min": 1.0, "max": 1.3}})
+    _load(tmp_path, hand, _data(schedule=[first, wider]))

@@ -46,7 +46,7 @@ from handctl.online.recipes.schema import (
     estimate_names,
     parse_condition,
 )
-from handctl.schema import Doc, load_yaml
+from handctl.schema import Doc, description, load_yaml
 
 MAX_PHASES = 64
 #: m, the smallest nominal radius of a recipe's object: at 1e-12 m a recipe loaded and ran
@@ -550,12 +550,36 @@ def parse_schedule(
     if not doc.has("schedule"):
         return ()
     out: list[ScheduledTorques] = []
-    for entry in doc.mappings("schedule", min_len=1, max_len=MAX_SCHEDULE):
+    for k, entry in enumerate(doc.mappings("schedule", min_len=1, max_len=MAX_SCHEDULE)):
         when = parse_schedule_when(entry, names)
         torques = parse_torques(entry, hand)
         entry.done()
+        # the first entry that holds is chosen: one whose every measurement an earlier one
+        # also holds for is never chosen (a key that does nothing misleads)
+        shadow = next((j for j, e in enumerate(out) if _within(when, e.when)), None)
+        if shadow is not None:
+            doc.fail(
+                f"schedule[{k}].when",
+                f"ranges not all within schedule[{shadow}]'s (the first entry that holds is "
+                f"chosen, and schedule[{shadow}] holds wherever this one does: it is never "
+                "chosen)",
+                description(_ranges_text(when, names)),
+            )
         out.append(ScheduledTorques(when, torques))
     return tuple(out)
+
+
+def _within(inner: Sequence[RadiusRatio], outer: Sequence[RadiusRatio]) -> bool:
+    """Whether every radius ``inner`` holds for, ``outer`` holds for too: each range of
+    ``outer`` contains one of ``inner`` on the same object."""
+    return all(
+        any(b.object == a.object and a.low <= b.low and b.high <= a.high for b in inner)
+        for a in outer
+    )
+
+
+def _ranges_text(ranges: Sequence[RadiusRatio], names: Sequence[str]) -> str:
+    return ", ".join(f"{names[r.object]} x{r.low:g}..x{r.high:g}" for r in ranges)
 
 
 def parse_schedule_when(entry: Doc, names: Sequence[str]) -> tuple[RadiusRatio, ...]:
