@@ -18,16 +18,17 @@ from handctl.recording.reader import Recording, iter_decoded, require_topics
 
 #: buses where no real hand listens: a replay onto them may take the log's limits as its own
 SIMULATED_BUSES = ("virtual", "unix")
+#: the logged frames of each ``--direction``
+DIRECTION_TOPICS = {"both": (ch.CAN_RX, ch.CAN_TX), "rx": (ch.CAN_RX,), "tx": (ch.CAN_TX,)}
 
 
 def logged_frames(
     recording: Recording, direction: str = "both"
 ) -> Iterator[tuple[int, int, bytes, bool]]:
     """``(log_time_ns, arbitration_id, data, is_rx)`` in the order they were on the wire."""
-    topics = {"both": (ch.CAN_RX, ch.CAN_TX), "rx": (ch.CAN_RX,), "tx": (ch.CAN_TX,)}
-    if direction not in topics:
+    if direction not in DIRECTION_TOPICS:
         raise ConfigError("--direction", "", "both, rx or tx", direction)
-    for topic, log_time, msg in iter_decoded(recording, topics[direction]):
+    for topic, log_time, msg in iter_decoded(recording, DIRECTION_TOPICS[direction]):
         if topic == ch.CAN_TX and msg.get("ok") is False:
             continue  # the bus refused it: it never was on the wire
         yield log_time, msg["id"], bytes.fromhex(msg["data"]), topic == ch.CAN_RX
@@ -146,60 +147,58 @@ class _LeftEnabled:
     was sent after its last disable."""
 
     def __init__(self, hand: HandConfig) -> None:
+        from handctl.online.drivers.finger import FingerLayouts
+
         protocol = protocol_for(hand)
-        self.torque = {
-            protocol.layout("TorqueCommand", f.node_id).frame_id: f.node_id for f in hand.fingers
-        }
-        self.command = {
-            protocol.layout("NodeCommand", f.node_id).frame_id: f.node_id for f in hand.fingers
-        }
         self.layouts = {
-            f.node_id: (
-                protocol.layout("TorqueCommand", f.node_id),
-                protocol.layout("NodeCommand", f.node_id),
-            )
-            for f in hand.fingers
+            f.node_id: FingerLayouts.for_node(protocol, f.node_id) for f in hand.fingers
+        }
+        #: each command identifier: its node, and whether it is the node's NodeCommand
+        self.of_id = {
+            frame_id: (node, frame_id == layouts.node_command.frame_id)
+            for node, layouts in self.layouts.items()
+            for frame_id in (layouts.command.frame_id, layouts.node_command.frame_id)
         }
         self.counters: dict[int, int] = {}
         self.enabled: set[int] = set()
 
     def sent(self, frame_id: int, data: bytes) -> None:
-        node = self.torque.get(frame_id)
-        if node is not None:
-            self.counters[frame_id] = self.layouts[node][0].decode(data)[0]
-            self.enabled.add(node)
+        found = self.of_id.get(frame_id)
+        if found is None:
             return
-        node = self.command.get(frame_id)
-        if node is not None:
-            counter, values = self.layouts[node][1].decode(data)
-            self.counters[frame_id] = counter
-            if int(values[0]) == NODE_COMMANDS["disable"]:
-                self.enabled.discard(node)
-            elif int(values[0]) == NODE_COMMANDS["enable"]:
-                self.enabled.add(node)
+        node, is_command = found
+        layouts = self.layouts[node]
+        counter, values = (layouts.node_command if is_command else layouts.command).decode(data)
+        self.counters[frame_id] = counter
+        if is_command and int(values[0]) == NODE_COMMANDS["disable"]:
+            self.enabled.discard(node)
+        elif not is_command or int(values[0]) == NODE_COMMANDS["enable"]:
+            self.enabled.add(node)
 
     def stop(self, bus: Any, period_s: float, sleep: Callable[[float], None]) -> str:
         """Zero torque for as many periods as a run's stop, then disable, to every node left
         enabled; what was done, or "" when no node was."""
+        from handctl.online.drivers.finger import make_command, make_node_command
         from handctl.online.loop import ZERO_TICKS_BEFORE_DISABLE
 
         nodes = sorted(self.enabled)
         if not nodes:
             return ""
 
-        def send(layout: Layout, values: tuple[float, ...]) -> None:
-            counter = (self.counters.get(layout.frame_id, -1) + 1) & 0xFF
-            self.counters[layout.frame_id] = counter
-            bus.send(layout.frame_id, layout.encode(counter, values))
+        def next_counter(frame_id: int) -> int:
+            counter = self.counters[frame_id] = (self.counters.get(frame_id, -1) + 1) & 0xFF
+            return counter
 
         for tick in range(ZERO_TICKS_BEFORE_DISABLE + 1):
             for node in nodes:
-                torque = self.layouts[node][0]
-                send(torque, (0.0,) * (len(torque.signals)))
+                layout = self.layouts[node].command
+                zero = (0.0,) * len(layout.signals)
+                bus.send(*make_command(layout, next_counter(layout.frame_id), zero))
             if tick < ZERO_TICKS_BEFORE_DISABLE:
                 sleep(period_s)
         for node in nodes:
-            send(self.layouts[node][1], (float(NODE_COMMANDS["disable"]),))
+            layout = self.layouts[node].node_command
+            bus.send(*make_node_command(layout, next_counter(layout.frame_id), "disable"))
         self.enabled.clear()
         return (
             f"node(s) {', '.join(map(str, nodes))} left enabled by the frames sent: zero "
@@ -219,8 +218,7 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
         return
     slack = round(hand.bus.period_s * 1e9)
     first, last = min(ticks.values()) - SILENT_START_NS, max(ticks.values()) + slack
-    topics = {"both": (ch.CAN_RX, ch.CAN_TX), "rx": (ch.CAN_RX,), "tx": (ch.CAN_TX,)}
-    for topic, log_time, msg in iter_decoded(recording, topics.get(direction, ())):
+    for topic, log_time, msg in iter_decoded(recording, DIRECTION_TOPICS.get(direction, ())):
         due = ticks.get(int(msg.get("tick", -1)))
         late = abs(log_time - due) > slack if due is not None else not first <= log_time <= last
         if late:
