@@ -267,7 +267,6 @@ def _truth_to(path: Path) -> Callable[[dict[str, Any]], None]:
     all (``_write_output``)."""
 
     def write(truth: dict[str, Any]) -> None:
-
         _write_output("--summary-json", path, _json_text(truth) + "\n")
 
     return write
@@ -280,7 +279,6 @@ def _progress(message: str) -> None:
 
 # -- check ---------------------------------------------------------------------------------------
 def _cmd_check_timing(args: argparse.Namespace) -> int:
-
     from handctl.hostcheck import check_loop_cpu, timing_check
 
     seconds = TIMING_CHECK_DEFAULT_S if args.seconds is None else args.seconds
@@ -531,7 +529,6 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
 
 
 def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
-
     from handctl.online.clock import Hygiene
     from handctl.online.recipes.loader import load_recipe
     from handctl.outfile import check_log_target
@@ -1383,7 +1380,6 @@ def _replay_to_bus(
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-
     from handctl.recording import channels as ch
     from handctl.recording import frames, replay, rerun
     from handctl.recording.metadata import check_run_metadata, recorded_hand
@@ -1486,7 +1482,6 @@ MAX_BRING_UP_S = 1e6
 
 
 def _cmd_nodes(args: argparse.Namespace) -> int:
-
     from handctl.bringup.nodes import survey
     from handctl.bringup.peer import listening_bus
     from handctl.hand_protocol import protocol_for
@@ -1615,7 +1610,6 @@ def _refuse_other_than_a_recipe(output: Path) -> None:
 
 
 def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
-
     from handctl.bringup.calibrate import CalibrationLimits, calibrate_tdt
     from handctl.bringup.hand_edit import format_offset
     from handctl.outfile import check_writable
