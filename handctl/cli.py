@@ -1199,31 +1199,18 @@ def _check_replay_options(args: argparse.Namespace) -> None:
             "unix:DIRECTORY' and replay onto unix:DIRECTORY",
             args.to_bus,
         )
-    if args.to_bus == "hand" and args.hand is None:
-        # the hand config's own bus: where the real hand is
-        raise ConfigError(
-            "--hand",
-            "",
-            "the config of the hand whose bus --to-bus hand names, whose limits bound every "
-            "command sent (the log's own hand config is part of what a tampered log can "
-            "rewrite)",
-            "nothing",
-        )
-    if args.to_bus and args.to_bus not in ("sim", "hand"):
+    if args.to_bus:
         from handctl.online.busspec import parse_spec
-        from handctl.recording.frames import SIMULATED_BUSES
+        from handctl.recording.frames import SIMULATED_BUSES, hand_needed
 
         # before the summary and the re-run, as every other option (it was found after them,
-        # and named '--bus', an option replay does not have)
-        parsed = parse_spec(args.to_bus, option="--to-bus")
-        if args.hand is None and parsed.interface not in SIMULATED_BUSES:
-            raise ConfigError(
-                "--hand",
-                "",
-                f"the config of the hand on {args.to_bus}, whose limits bound every command "
-                "sent (the log's own hand config is part of what a tampered log can rewrite)",
-                "nothing",
-            )
+        # and named '--bus', an option replay does not have); 'hand' is the hand config's own
+        # bus, where the real hand is
+        real = args.to_bus == "hand" or (
+            parse_spec(args.to_bus, option="--to-bus").interface not in SIMULATED_BUSES
+        )
+        if real and args.hand is None:
+            raise hand_needed(args.to_bus)
     if args.direction is not None and not args.to_bus:
         raise ConfigError(
             "--direction",
@@ -1574,15 +1561,26 @@ def _existing_yaml(output: Path) -> dict[str, Any] | None:
         return {}
 
 
+def _existing_kind(data: dict[str, Any]) -> str | None:
+    """What handctl file ``data`` (an existing output's YAML) is (``schema.FILE_KINDS``)."""
+    from handctl.schema import file_kind
+
+    found = file_kind(data)
+    return None if found is None else found[0]
+
+
 def _refuse_other_file(output: Path, hand: HandConfig) -> None:
     """``-o`` names a new file, or a calibrated copy of this very hand (a calibration done
     again): another hand's config or a recipe there was replaced by this hand's, exit 0."""
     data = _existing_yaml(output)
-    if data is None or (data.get("name") == hand.name and "fingers" in data):
+    if data is None:
+        return
+    is_hand = _existing_kind(data) == "hand config"
+    if is_hand and data.get("name") == hand.name:
         return
     what = (
         f"the hand config of '{data['name']}'"
-        if "fingers" in data and "name" in data
+        if is_hand and "name" in data
         else "a file that is not a hand config"
     )
     raise ConfigError(
@@ -1598,7 +1596,7 @@ def _refuse_other_than_a_recipe(output: Path) -> None:
     """A plan's ``-o`` names a new file or a recipe (re-planned, or planned again): a hand
     config, a template or notes there were replaced by the recipe, exit 0."""
     data = _existing_yaml(output)
-    if data is None or ("recipe" in data and "phases" in data and "template" not in data):
+    if data is None or _existing_kind(data) == "recipe":
         return
     raise ConfigError(
         "-o",

@@ -61,13 +61,7 @@ def to_bus(
         # tau_max was raised and whose digest was computed again passed every check against
         # its own limits. On a bus where a real hand may listen, the limits are the
         # operator's.
-        raise ConfigError(
-            "--hand",
-            "",
-            f"the config of the hand on {spec}, whose limits bound every command sent (the "
-            "log's own hand config is part of what a tampered log can rewrite)",
-            "nothing",
-        )
+        raise hand_needed(spec)
     check_pacing(recording, recorded, direction)
     check_commands(recording, recorded, direction, speed)
     if hand is not None:
@@ -130,6 +124,19 @@ def to_bus(
             "(is the listener's bus directory this one?)"
         )
     return report
+
+
+def hand_needed(spec: str) -> ConfigError:
+    """The refusal of a replay onto ``spec``, a bus a real hand may be on, without the hand
+    config of that hand (``--hand``)."""
+    where = "whose bus --to-bus hand names" if spec == "hand" else f"on {spec}"
+    return ConfigError(
+        "--hand",
+        "",
+        f"the config of the hand {where}, whose limits bound every command sent (the log's "
+        "own hand config is part of what a tampered log can rewrite)",
+        "nothing",
+    )
 
 
 class ReplayInterrupted(KeyboardInterrupt):
