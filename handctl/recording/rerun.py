@@ -392,8 +392,6 @@ class _Compare:
         #: supervisor's state, the phase. A log whose phase or state was rewritten re-ran
         #: "bit-exact" on its torques while replay's phase table showed the rewritten ones.
         self.decisions: list[str] = []
-        #: the run's end, if it is not the one the log's summary says ("" if it is)
-        self.outcome_mismatch = ""
 
     def begin_tick(self, tick: Tick) -> None:
         return None
@@ -497,9 +495,7 @@ class RerunReport:
 
     @property
     def ok(self) -> bool:
-        return (
-            not self.mismatched_ticks and not self.frame_mismatches and not (self.outcome_mismatch)
-        )
+        return not (self.mismatched_ticks or self.frame_mismatches or self.outcome_mismatch)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -653,10 +649,11 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
     ticks = (clock.current.tick + 1) if clock.current else 0
     frame_mismatches = list(heapq.merge(bus.frame_mismatches, check.mismatches, key=_tick_of))
     logged_outcome = str(logged.get("outcome", ""))
+    outcome_mismatch = ""
     if logged_outcome and outcome not in ("log ended", logged_outcome):
         # the run, fed the same frames to its end, ended otherwise than the log's summary
         # says: a summary altered (a time budget said to have completed) passed bit-exact
-        compare.outcome_mismatch = f"outcome: logged {logged_outcome!r}, re-run {outcome!r}"
+        outcome_mismatch = f"outcome: logged {logged_outcome!r}, re-run {outcome!r}"
     return RerunReport(
         ticks,
         compare.compared,
@@ -664,13 +661,13 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         compare.mismatches,
         bus.frames_compared,
         frame_mismatches,
-        [*compare.decisions, *([compare.outcome_mismatch] if compare.outcome_mismatch else [])],
+        [*compare.decisions, *([outcome_mismatch] if outcome_mismatch else [])],
         check.compared,
         outcome,
         logged_outcome,
         notes,
         wall,
-        compare.outcome_mismatch,
+        outcome_mismatch,
     )
 
 
