@@ -256,7 +256,7 @@ def _check_tdt_tolerance(doc: Doc, hand: HandConfig) -> None:
     N·m: on a hand of joints of a thousandth, its default 0.02 N·m let a TDT read twenty
     times the most the joint's drive can give, without a fault."""
     tolerance = hand.safety.tdt_tolerance
-    weakest = min((j for f in hand.fingers for j in f.joints), key=lambda j: j.tau_max)
+    weakest = min(hand.joints, key=lambda j: j.tau_max)
     if tolerance >= weakest.tau_max / 2:
         written = doc.mapping("safety", default={}).has("tdt_tolerance")
         doc.fail(

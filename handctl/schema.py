@@ -162,8 +162,8 @@ def load_yaml(path: str | Path, kind: str | None = None) -> Doc:
     ``kind``: the ``FILE_KINDS`` entry it must be, if it is one of them at all."""
     doc = _load_yaml(path)
     found = file_kind(doc.data) if kind is not None else None
-    if kind is not None and found is not None and found[0] != kind:
-        raise ConfigError(str(path), "", _a(kind), _Text(f"{_a(found[0])}; {found[1]}"))
+    if found is not None and found[0] != kind:
+        raise ConfigError(str(path), "", _a(str(kind)), _Text(f"{_a(found[0])}; {found[1]}"))
     return doc
 
 
@@ -232,8 +232,8 @@ def dump_yaml(data: Any) -> str:
     return yaml.dump(data, Dumper=_Dumper, sort_keys=False, width=100, allow_unicode=True)
 
 
-class _Text(Description):
-    """A found value that is already a description: shown as it is, not quoted."""
+#: A found value that is already a description: shown as it is, not quoted.
+_Text = Description
 
 
 def description(text: str) -> str:
