@@ -46,7 +46,13 @@ import can
 from handctl.config import BusConfig
 from handctl.errors import BusError, HandctlError, escaped
 from handctl.online import frameflags as ff
-from handctl.online.busspec import BusSpec, bus_kwargs, check_socketcan, parse_spec
+from handctl.online.busspec import (
+    NO_SOCKETCAN,
+    BusSpec,
+    bus_kwargs,
+    check_socketcan,
+    parse_spec,
+)
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.online.virtualcan import ArrivalStampedVirtualBus
 
@@ -618,10 +624,7 @@ def open_bus(
         # opening, said with the spec; an interrupt (not an Exception) still interrupts.
         hint = ""
         if parsed.interface == "socketcan" and _errno_of(exc) == errno.EAFNOSUPPORT:
-            hint = (
-                ": this kernel has no SocketCAN (AF_CAN); load its modules "
-                "(sudo modprobe can_raw) or run on a kernel built with them"
-            )
+            hint = f": {NO_SOCKETCAN}"
         raise BusError(
             f"{parsed}: cannot open the bus: {type(exc).__name__}: {escaped(str(exc))}{hint}"
         ) from None

@@ -204,6 +204,13 @@ def shell_word(name: str) -> str:
     return f"$'{body}'"
 
 
+#: what a kernel without SocketCAN is told, where the check finds it and where a socket does
+NO_SOCKETCAN = (
+    "this kernel has no SocketCAN (AF_CAN); load its modules (sudo modprobe can can_raw) or "
+    "run on a kernel built with them"
+)
+
+
 def kernel_has_socketcan() -> bool:
     """Whether this kernel takes a SocketCAN socket (AF_CAN): False only when it says the
     address family is not supported; any other refusal is left to the socket's own error."""
@@ -250,11 +257,7 @@ def check_socketcan(
         # no interface can be a CAN one on such a kernel: whatever is done to it, no socket
         # opens; what to do about the interface comes after the modules
         then = vcan_setup_command(channel, bus_config) if virtual else hint
-        raise BusError(
-            f"socketcan:{shown}: this kernel has no SocketCAN (AF_CAN); load its modules "
-            f"(sudo modprobe can can_raw) or run on a kernel built with them, then "
-            f"configure it with: {then}"
-        )
+        raise BusError(f"socketcan:{shown}: {NO_SOCKETCAN}, then configure it with: {then}")
     if not node.exists():
         if virtual:
             raise BusError(
@@ -274,7 +277,7 @@ def check_socketcan(
             "(`ip -details link show type can` lists them)"
         )
     if _read(node / "operstate") == "down":
-        if channel.startswith("vcan"):  # no bit rates to set on a virtual interface
+        if virtual:  # no bit rates to set on a virtual interface
             hint = f"sudo ip link set {shell_word(channel)} up"
         raise BusError(f"socketcan:{shown}: interface is down; bring it up with: {hint}")
 
