@@ -626,15 +626,14 @@ def require_content(recording: Recording) -> None:
         ):
             # an MCAP file of another tool was summarised as a run of '? on ?', exit 0
             topics = sorted(recording.topics.values())
+            listed = ", ".join(topics[:8]) + (", ..." if len(topics) > 8 else "")
             raise ConfigError(
                 str(recording.path),
                 "",
                 "a handctl recording (from 'handctl run recipe --log RUN.mcap')",
                 Description(
                     "an MCAP file of another tool: no handctl metadata and no handctl channel"
-                    + (f" (its channels: {', '.join(topics[:8])}" if topics else "")
-                    + (", ..." if len(topics) > 8 else "")
-                    + (")" if topics else "")
+                    + (f" (its channels: {listed})" if topics else "")
                 ),
             )
         counted = sum(recording.message_counts.values()) if recording.message_counts else 0
