@@ -29,7 +29,7 @@ def _load_orjson() -> None:
     imports it makes, and an interrupt raised inside one (a Ctrl-C in the first half second
     of any command that reads JSON) crashed the process (SIGSEGV). Held back, the signal
     comes right after, as the interrupt it is."""
-    held = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+    held = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT}
     before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:
         import orjson  # noqa: F401  # loaded here for the reason above
@@ -52,8 +52,11 @@ def entry() -> int:
     _standard_descriptors()  # sys.stdout and sys.stderr stay None if they were closed
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
-    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # nohup: asked to go on
-        signal.signal(signal.SIGHUP, _interrupt)
+    # SIGHUP and SIGQUIT (Ctrl-\\) end a command as Ctrl-C does, not by the signal; unless
+    # started with them ignored (nohup: asked to go on)
+    for sig in (signal.SIGHUP, signal.SIGQUIT):
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            signal.signal(sig, _interrupt)
     try:
         _load_orjson()
         from handctl.cli import main

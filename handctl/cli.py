@@ -3139,11 +3139,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         if threading.current_thread() is not threading.main_thread():  # signals are not ours
             return _run_args(argv)
         before = signal.signal(signal.SIGTERM, _interrupt)
-        # a terminal that went away; but a run started under nohup (SIGHUP ignored) asked to
-        # outlive its terminal, and keeps ignoring it
+        # a terminal that went away, and Ctrl-\\ (SIGQUIT: it ended a jog or a replay onto a
+        # bus by the signal, no stop sent); but a run started under nohup (SIGHUP ignored)
+        # asked to outlive its terminal, and keeps ignoring it
         before_hup = signal.getsignal(signal.SIGHUP)
-        if before_hup is not signal.SIG_IGN:
-            signal.signal(signal.SIGHUP, _interrupt)
+        before_quit = signal.getsignal(signal.SIGQUIT)
+        for sig, inherited in ((signal.SIGHUP, before_hup), (signal.SIGQUIT, before_quit)):
+            if inherited is not signal.SIG_IGN:
+                signal.signal(sig, _interrupt)
         # SIGINT too, explicitly: a process started with it ignored (a background job of a
         # non-interactive shell, a supervisor's child) inherits SIG_IGN, and Python then
         # leaves it so; a plan or a check would go on through every Ctrl-C and kill -INT.
@@ -3154,6 +3157,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, before)
             signal.signal(signal.SIGINT, before_int)
             signal.signal(signal.SIGHUP, before_hup)
+            signal.signal(signal.SIGQUIT, before_quit)
 
 
 def _run_args(argv: Sequence[str] | None) -> int:

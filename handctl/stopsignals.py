@@ -1,5 +1,6 @@
-"""The stop signals of a run: SIGINT, SIGTERM, SIGHUP and SIGTSTP, each a controlled stop with
-exit 130 whenever it comes (``StopSignals``).
+"""The stop signals of a run: SIGINT, SIGTERM, SIGHUP, SIGTSTP, SIGQUIT and the others whose
+default ends the process, each a controlled stop with exit 130 whenever it comes
+(``StopSignals``).
 
 A module of its own, light to import (the standard library only, the runtime's modules when a
 run is handed over), so that ``handctl run`` takes the signals over before it loads the
@@ -22,7 +23,7 @@ if TYPE_CHECKING:
 
 
 class StopSignals:
-    """SIGINT, SIGTERM and SIGHUP over a whole run, from before anything starts to the last
+    """The stop signals (``SIGNALS``) over a whole run, from before anything starts to the last
     line of the log, so that each ends the run the same way whenever it comes, with exit 130:
 
     - before the runtime runs (the modules loading, the log opening, the simulated hand
@@ -52,7 +53,25 @@ class StopSignals:
     #: dropped the torque at once and latched a TIMEOUT fault the next run had to reset, and
     #: the log and the summary waited for a resume. A run that drives a hand cannot pause; it
     #: stops, as asked, and says why.
-    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGTSTP)
+    #: SIGQUIT (Ctrl-\\, the key pressed when Ctrl-C seems slow), SIGUSR1, SIGUSR2 and SIGALRM:
+    #: their default ends the process by the signal, with the same result as a hang-up's,
+    #: and a stray ``kill -USR1`` or a second terminal key is no reason to leave a hand under
+    #: torque. A run started with one of these (or SIGHUP) ignored keeps ignoring it
+    #: (``HONOURED_IF_IGNORED`` are the ones taken whatever was inherited).
+    SIGNALS = (
+        signal.SIGINT,
+        signal.SIGTERM,
+        signal.SIGHUP,
+        signal.SIGTSTP,
+        signal.SIGQUIT,
+        signal.SIGUSR1,
+        signal.SIGUSR2,
+        signal.SIGALRM,
+    )
+    #: SIGINT and SIGTERM are a stop even when inherited ignored (a script's background job
+    #: inherits SIGINT ignored, and its user still means Ctrl-C and ``kill``); SIGTSTP cannot
+    #: be asked for by ignoring it.
+    HONOURED_IF_IGNORED = (signal.SIGINT, signal.SIGTERM, signal.SIGTSTP)
 
     def __init__(self) -> None:
         self.runtime: Runtime | None = None
@@ -66,8 +85,8 @@ class StopSignals:
     def __enter__(self) -> StopSignals:
         if threading.current_thread() is threading.main_thread():
             for sig in self.SIGNALS:
-                if sig == signal.SIGHUP and signal.getsignal(sig) is signal.SIG_IGN:
-                    continue  # started under nohup: asked to outlive its terminal
+                if sig not in self.HONOURED_IF_IGNORED and signal.getsignal(sig) is signal.SIG_IGN:
+                    continue  # started under nohup, for one: asked to outlive its terminal
                 self._saved[sig] = signal.signal(sig, self._handle)
         return self
 
@@ -141,11 +160,14 @@ def held_back() -> Iterator[list[str]]:
     if threading.current_thread() is not threading.main_thread():
         yield late
         return
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, StopSignals.SIGNALS)
+    # not one this process ignores: blocked, an ignored signal is kept pending (Linux) and
+    # would be named as one that came too late
+    held = {sig for sig in StopSignals.SIGNALS if signal.getsignal(sig) is not signal.SIG_IGN}
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:
         yield late
     finally:
-        for sig in sorted(signal.sigpending() & set(StopSignals.SIGNALS)):
+        for sig in sorted(signal.sigpending() & held):
             if sig not in before:
                 signal.sigtimedwait([sig], 0)
                 late.append(signal.Signals(sig).name)

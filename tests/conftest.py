@@ -47,12 +47,16 @@ _channels = itertools.count()
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """SIGHUP back to its default when the suite itself was started with it ignored (under
-    ``nohup``, or by a runner that ignores it): a run started so keeps ignoring SIGHUP on
-    purpose (``stopsignals.StopSignals``), so the tests of what a run does when its terminal goes
-    away would test that branch instead, and fail. Every worker and every child inherits it."""
-    if signal.getsignal(signal.SIGHUP) is signal.SIG_IGN:
-        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    """The stop signals back to their defaults when the suite itself was started with them
+    ignored (SIGHUP under ``nohup`` or a runner that ignores it, SIGQUIT as a background job
+    of a script): a run started so keeps ignoring them on purpose (``stopsignals.StopSignals``),
+    so the tests of what a run does when its terminal goes away or Ctrl-\\ is pressed would
+    test that branch instead, and fail. Every worker and every child inherits them."""
+    from handctl.stopsignals import StopSignals
+
+    for sig in set(StopSignals.SIGNALS) - set(StopSignals.HONOURED_IF_IGNORED):
+        if signal.getsignal(sig) is signal.SIG_IGN:
+            signal.signal(sig, signal.SIG_DFL)
 
 
 @pytest.hookimpl(optionalhook=True)

@@ -560,31 +560,44 @@ def test_the_simulated_hand_is_seeded_by_the_hand_config_unless_seed_is_given(
     assert seeds == [7, 3]
 
 
-def test_ctrl_z_stops_a_run_rather_than_suspending_it(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("sig", "said"),
+    [
+        (signal.SIGTSTP, "SIGTSTP (Ctrl-Z: a run that drives a hand cannot be suspended; stopped"),
+        (signal.SIGQUIT, "signal SIGQUIT"),
+    ],
+)
+def test_ctrl_z_and_ctrl_backslash_stop_a_run(
+    tmp_path: Path, sig: signal.Signals, said: str
+) -> None:
     """SIGTSTP suspended the run mid-grasp: the nodes' watchdogs dropped the torque and
     latched TIMEOUT, and the log waited for a resume. A run that drives a hand cannot pause:
-    it stops as Ctrl-C stops it, exit 130, and says why. (Suspended, it would still be there
-    when waited for, and the wait would time out.)"""
-    recipe = tmp_path / "long.yaml"
-    recipe.write_text(TWO_PHASES)  # its second phase holds for 600 s
-    summary = tmp_path / "s.json"
+    it stops as Ctrl-C stops it, exit 130, and says why. SIGQUIT (Ctrl-\\) killed the run by
+    the signal, exit 131, no stop sent and no summary: a controlled stop too. The signal
+    goes when the status line says the phase is under way (as for Ctrl-C, above)."""
+    out = tmp_path / "out.json"
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    terminal, stderr_end = pty.openpty()
     proc = subprocess.Popen(
-        [
-            *(sys.executable, "-m", "handctl", "run", "recipe", str(recipe)),
-            *("--max-seconds", "60", "--summary-json", str(summary)),
-        ],
+        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--summary-json", str(out)],
         cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+        stdout=subprocess.DEVNULL,
+        stderr=stderr_end,
     )
+    os.close(stderr_end)
     try:
-        time.sleep(3.0)  # in its start-up or its run: either way a stop, not a pause
-        proc.send_signal(signal.SIGTSTP)
-        out, err = proc.communicate(timeout=60)
+        shown = read_until(terminal, "running")
+        assert "running" in shown, shown
+        proc.send_signal(sig)
+        proc.wait(timeout=60)
+        stderr = shown + read_until(terminal, None, timeout_s=10.0)
     finally:
         proc.kill()
-    assert proc.returncode == 130, err
-    assert "SIGTSTP (Ctrl-Z: a run that drives a hand cannot be suspended; stopped instead)" in (
-        out + err
-    )
+        os.close(terminal)
+    assert proc.returncode == 130, stderr
+    summary = json.loads(out.read_text())
+    assert summary["outcome"] == "interrupted"
+    assert said in summary["message"], summary["message"]
+    nodes = summary["sim"]["nodes"]  # left disabled by the host, not by their watchdogs
+    assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0 for n in nodes.values())

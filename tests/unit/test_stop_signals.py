@@ -1,5 +1,4 @@
-"""SIGINT, SIGTERM and SIGHUP over a run (``stopsignals.StopSignals``), raised in this very
-process."""
+"""The stop signals over a run (``stopsignals.StopSignals``), raised in this very process."""
 
 from __future__ import annotations
 
@@ -19,7 +18,9 @@ from handctl.stopsignals import StopSignals, held_back
 from ..conftest import ROOT
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+@pytest.mark.parametrize(
+    "sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1]
+)
 def test_before_the_run_a_signal_is_an_interrupt_at_the_next_checkpoint(
     sig: signal.Signals,
 ) -> None:
@@ -40,17 +41,31 @@ def test_a_signal_that_no_checkpoint_took_is_an_interrupt_at_the_end() -> None:
         signal.raise_signal(signal.SIGHUP)
 
 
-def test_a_run_started_under_nohup_keeps_ignoring_sighup() -> None:
+@pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGQUIT, signal.SIGALRM])
+def test_a_run_started_with_a_signal_ignored_keeps_ignoring_it(sig: signal.Signals) -> None:
     """``nohup handctl run ...`` asks the run to outlive its terminal: the hang-up it then
-    gets is not a stop."""
-    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    gets is not a stop. Nor is a SIGQUIT its parent shell had it ignore."""
+    before = signal.signal(sig, signal.SIG_IGN)
     try:
         with StopSignals():
-            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
-            signal.raise_signal(signal.SIGHUP)  # ignored: no KeyboardInterrupt
-        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            assert signal.getsignal(sig) is signal.SIG_IGN
+            signal.raise_signal(sig)  # ignored: no KeyboardInterrupt
+        assert signal.getsignal(sig) is signal.SIG_IGN
+        with held_back() as late:  # nor held back and then named as a late one
+            signal.raise_signal(sig)
+        assert late == []
     finally:
-        signal.signal(signal.SIGHUP, before)
+        signal.signal(sig, before)
+
+
+def test_sigint_is_a_stop_even_when_inherited_ignored() -> None:
+    """A script's background job inherits SIGINT ignored; its user still means Ctrl-C."""
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with pytest.raises(KeyboardInterrupt, match="SIGINT"), StopSignals():
+            signal.raise_signal(signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def _waiting_runtime(hand: HandConfig, protocol: Protocol, host: HandBus) -> Runtime:
@@ -119,7 +134,7 @@ def test_other_errors_pass_through() -> None:
         raise ImportError("a real one")
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT])
 def test_a_signal_during_a_commands_last_step_is_taken_off_and_named(
     sig: signal.Signals,
 ) -> None:
