@@ -235,6 +235,7 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
         _check_misses_before_watchdog(doc, hand)
         check_wire_limits(hand, protocol)
         _check_tdt_tolerance(doc, hand)  # against limits the wire carries
+        _check_checks_can_fire(doc, hand)
     else:
         check_protocol(hand, protocol)
         check_wire_limits(hand, protocol)
@@ -265,6 +266,58 @@ def _check_tdt_tolerance(doc: Doc, hand: HandConfig) -> None:
             f"N·m, so below {weakest.tau_max / 2:g} N·m): the TDT cross-check must see a "
             "sensor that reads a joint's whole torque wrong",
             description(f"{tolerance:g} N·m" + ("" if written else " (the default)")),
+        )
+
+
+#: s: the longest a host may go on commanding torque without a node's feedback (100 ticks at
+#: 1 kHz). Up to 1 s was accepted: a thousand ticks of torque sent blind.
+MAX_FEEDBACK_TIMEOUT_S = 0.1
+#: of |expected torque|: the TDT cross-check's relative part, at most half. With 1 or more a
+#: sensor reading 0 while the joint was commanded any torque was never a mismatch (a slack
+#: tendon went unseen and the run exited 0); at a half, with the absolute part under half of
+#: tau_max (``_check_tdt_tolerance``), a reading of 0 at tau_max is still one.
+MAX_TDT_TOLERANCE_REL = 0.5
+
+
+def _check_checks_can_fire(doc: Doc, hand: HandConfig) -> None:
+    """A safety setting that switches its own check off is refused: each watchdog of the
+    ``safety:`` section must be able to fire on a hand of these limits. (Not for a recording's
+    hand, read as it ran.)"""
+    safety = hand.safety
+    weakest = min(hand.joints, key=lambda j: j.tau_max)
+    if safety.tdt_tolerance_rel > MAX_TDT_TOLERANCE_REL:
+        doc.fail(
+            "safety.tdt_tolerance_rel",
+            f"at most {MAX_TDT_TOLERANCE_REL:g} (of the expected torque): the TDT cross-check "
+            "must see a sensor that reads 0 while its joint is commanded tau_max",
+            description(f"{safety.tdt_tolerance_rel:g}"),
+        )
+    # written only: the default (0.02 N·m) is a figure for joints of tenths of a N·m, and a
+    # hand of smaller ones that does not set it was accepted before this check
+    written = doc.mapping("safety", default={}).has("tdt_stuck_min_change")
+    if written and safety.tdt_stuck_min_change >= 2 * weakest.tau_max:
+        doc.fail(
+            "safety.tdt_stuck_min_change",
+            f"less than twice every joint's tau_max ({weakest.name}: {weakest.tau_max:g} N·m, "
+            f"so below {2 * weakest.tau_max:g} N·m, the most its command can move): a command "
+            "that must move further never makes a stuck sensor a fault",
+            description(f"{safety.tdt_stuck_min_change:g} N·m"),
+        )
+    if safety.feedback_timeout_s > MAX_FEEDBACK_TIMEOUT_S:
+        doc.fail(
+            "safety.feedback_timeout_s",
+            f"at most {MAX_FEEDBACK_TIMEOUT_S:g} s: the host must not command torque for longer "
+            "without hearing the joint",
+            description(f"{safety.feedback_timeout_s:g} s"),
+        )
+    ticks = round(safety.reject_window_s * hand.bus.loop_rate_hz)
+    if safety.max_rejects_in_window >= max(ticks, 1):
+        doc.fail(
+            "safety.max_rejects_in_window",
+            f"fewer than the {max(ticks, 1)} ticks of reject_window_s "
+            f"({safety.reject_window_s:g} s at {hand.bus.loop_rate_hz:g} Hz): more would let a "
+            "node whose every frame is rejected run on without a REJECT_RATE stop",
+            description(f"{safety.max_rejects_in_window}"),
         )
 
 

@@ -796,6 +796,37 @@ def test_a_tdt_tolerance_of_half_a_joint_s_torque_is_refused(
     assert load_hand(write(tmp_path, base)).safety.tdt_tolerance == 0.0099
 
 
+@pytest.mark.parametrize(
+    ("key", "refused", "accepted", "expected"),
+    [
+        # 1.5 of the expected torque: a slack tendon (TDT reading 0) was never a mismatch
+        ("tdt_tolerance_rel", 0.51, 0.5, "at most 0.5 (of the expected torque)"),
+        # a command cannot move twice the weakest tau_max (0.3 N·m): the check never fires
+        ("tdt_stuck_min_change", 0.6, 0.59, "so below 0.6 N·m"),
+        # a thousand ticks of torque commanded without hearing the joint
+        ("feedback_timeout_s", 0.101, 0.1, "at most 0.1 s"),
+        # 100 ticks in the default 0.1 s window: 100 rejects let every frame be rejected
+        ("max_rejects_in_window", 100, 99, "fewer than the 100 ticks of reject_window_s"),
+    ],
+)
+def test_a_safety_setting_that_turns_its_own_check_off_is_refused(
+    tmp_path: Path,
+    base: dict[str, Any],
+    key: str,
+    refused: float,
+    accepted: float,
+    expected: str,
+) -> None:
+    """Each was accepted up to a bound far past where its check can still fire (found by an
+    outside audit): the hand passed ``check`` and its watchdog was off."""
+    base["safety"] = {**base.get("safety", {}), key: refused}
+    err = error_for(tmp_path, base)
+    assert err.key == f"safety.{key}"
+    assert expected in err.expected, err.expected
+    base["safety"][key] = accepted
+    assert getattr(load_hand(write(tmp_path, base)).safety, key) == accepted
+
+
 def test_a_name_longer_than_a_column_is_refused(tmp_path: Path, base: dict[str, Any]) -> None:
     """A 300-character joint name passed check, ran off the top of the run's plot and broke
     every table's columns: names are at most 32 characters."""
