@@ -1569,15 +1569,29 @@ def _existing_kind(data: dict[str, Any]) -> str | None:
     return None if found is None else found[0]
 
 
-def _refuse_other_file(output: Path, hand: HandConfig) -> None:
+def _refuse_other_file(output: Path, hand: HandConfig, source: Path) -> None:
     """``-o`` names a new file, or a calibrated copy of this very hand (a calibration done
-    again): another hand's config or a recipe there was replaced by this hand's, exit 0."""
+    again): another hand's config or a recipe there was replaced by this hand's, exit 0. A
+    copy of the same name is this hand only if nothing but its TDT offsets differs from
+    ``source``: a working copy with a lowered ``tau_max`` or a ``safety`` section of its own,
+    named as the hand is, lost them without a word."""
+    from handctl.schema import load_yaml
+
     data = _existing_yaml(output)
     if data is None:
         return
     is_hand = _existing_kind(data) == "hand config"
     if is_hand and data.get("name") == hand.name:
-        return
+        differs = _first_difference(data, dict(load_yaml(source).data), "")
+        if differs is None:
+            return
+        raise ConfigError(
+            "-o",
+            "",
+            f"a new file, or a calibrated copy of {source} that differs from it in TDT offsets "
+            "alone (one that differs otherwise is another config, and is not replaced)",
+            Description(f"{output}, whose {differs}"),
+        )
     what = (
         f"the hand config of '{data['name']}'"
         if is_hand and "name" in data
@@ -1590,6 +1604,35 @@ def _refuse_other_file(output: Path, hand: HandConfig) -> None:
         "file of anything else is not replaced)",
         f"{output}, {what}",
     )
+
+
+def _first_difference(copy: Any, source: Any, path: str) -> str | None:
+    """Where a calibrated copy's YAML data first differs from its source's, besides a joint's
+    ``tdt.offset`` (what a calibration writes); None when nowhere."""
+    if isinstance(copy, dict) and isinstance(source, dict):
+        for key in sorted(set(copy) | set(source), key=str):
+            here = f"{path}.{key}" if path else str(key)
+            if key == "offset" and path.endswith(".tdt") and ".joints[" in path:
+                continue
+            if key not in copy or key not in source:
+                side = "the copy" if key not in copy else "the hand config"
+                return f"{here} is not in {side}"
+            found = _first_difference(copy[key], source[key], here)
+            if found is not None:
+                return found
+        return None
+    if isinstance(copy, list) and isinstance(source, list):
+        if len(copy) != len(source):
+            return f"{path} has {len(copy)} entries, not {len(source)}"
+        for k, (a, b) in enumerate(zip(copy, source, strict=True)):
+            found = _first_difference(a, b, f"{path}[{k}]")
+            if found is not None:
+                return found
+        return None
+    numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in (copy, source))
+    if copy != source or (not numbers and type(copy) is not type(source)):
+        return f"{path} is {shown(copy)}, not {shown(source)}"
+    return None
 
 
 def _refuse_other_than_a_recipe(output: Path) -> None:
@@ -1653,7 +1696,7 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             str(args.output),
         )
     if args.output is not None:
-        _refuse_other_file(args.output, hand)
+        _refuse_other_file(args.output, hand, args.hand)
     # before anything starts: a calibration whose result cannot be written is not begun
     written = check_writable(target, "-o" if args.output is not None else "--write")
     if args.json is not None and check_writable(args.json, "--json", json_output=True) in (
@@ -2779,7 +2822,8 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         type=_output_path,
         metavar="HAND.yaml",
         help="where to write the calibrated copy of the hand config: a new file, or an "
-        "earlier calibrated copy of the same hand (nothing else is replaced)",
+        "earlier calibrated copy of the same hand, differing in TDT offsets alone "
+        "(nothing else is replaced)",
     )
     tdt.add_argument("--write", action="store_true", help="overwrite the hand config itself")
     tdt.add_argument(

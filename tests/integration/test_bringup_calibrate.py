@@ -122,6 +122,18 @@ def test_o_replaces_only_a_calibrated_copy_of_the_same_hand(
         assert "-o: expected a new file, or a calibrated copy of 'hiroshima_hand'" in err
         assert what in err
         assert victim.read_text() == before
+    # a working copy of the same name with a lowered limit: its tau_max went back up to the
+    # hand's 0.60 N·m, exit 0 (found by an outside audit)
+    working = tmp_path / "working.yaml"
+    lowered = cli.DEFAULT_HAND.read_text().replace("tau_max: 0.60,", "tau_max: 0.20,", 1)
+    assert lowered != cli.DEFAULT_HAND.read_text()
+    working.write_text(lowered)
+    args = ["calibrate", "tdt", "-o", str(working), "--seconds", "0.2"]
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "differs from it in TDT offsets alone" in err
+    assert "fingers[0].joints[0].tau_max is 0.2, not 0.6" in err, err
+    assert working.read_text() == lowered
     copy = tmp_path / "copy.yaml"
     args = ["calibrate", "tdt", "-o", str(copy), "--seconds", "0.2", "--settle", "0.2"]
     assert cli.main(args) == cli.EXIT_OK
