@@ -154,21 +154,29 @@ def held_back() -> Iterator[list[str]]:
 
     A signal raised in the middle of that step interrupted the command after the file was
     replaced: exit 130 and "interrupted", with the new file in place. Held back, a signal that
-    came during the step is taken off when it ends, and its name is yielded for the command to
-    say it came too late to stop anything. Outside the main thread nothing is held."""
+    came during the step is noted, never acted on, and its name is yielded for the command to
+    say it came too late to stop anything. Held by this process's handlers, not by a signal
+    mask: a mask is the calling thread's, and with another thread alive (a calibration's) the
+    kernel gave the signal to that one, whose handler Python then ran in the main thread all
+    the same. A signal this process ignores stays ignored. Outside the main thread nothing is
+    held."""
     late: list[str] = []
     if threading.current_thread() is not threading.main_thread():
         yield late
         return
-    # not one this process ignores: blocked, an ignored signal is kept pending (Linux) and
-    # would be named as one that came too late
-    held = {sig for sig in StopSignals.SIGNALS if signal.getsignal(sig) is not signal.SIG_IGN}
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+
+    def note(signum: int, frame: object) -> None:
+        name = signal.Signals(signum).name
+        if name not in late:
+            late.append(name)
+
+    saved = {}
+    for sig in StopSignals.SIGNALS:
+        # (None: a handler not installed from Python, which cannot be put back)
+        if signal.getsignal(sig) not in (signal.SIG_IGN, None):
+            saved[sig] = signal.signal(sig, note)
     try:
         yield late
     finally:
-        for sig in sorted(signal.sigpending() & held):
-            if sig not in before:
-                signal.sigtimedwait([sig], 0)
-                late.append(signal.Signals(sig).name)
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)

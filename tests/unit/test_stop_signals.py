@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import signal
+import threading
+import time
 
 import pytest
 
@@ -152,3 +154,29 @@ def test_a_signal_during_a_commands_last_step_is_taken_off_and_named(
         assert seen == [sig]  # and the handler is as it was
     finally:
         signal.signal(sig, before)
+
+
+def test_a_signal_given_to_another_thread_is_held_back_too() -> None:
+    """A calibration has a second thread alive as it writes its file: the kernel gave a
+    process-wide SIGINT to that thread, which the main thread's signal mask did not hold, and
+    Python raised the interrupt in the main thread inside the step (the file written, the
+    command saying "interrupted", exit 130; found by an outside audit)."""
+    release = threading.Event()
+    other = threading.Thread(target=release.wait, daemon=True)
+    other.start()
+    seen: list[int] = []
+    before = signal.signal(signal.SIGINT, lambda signum, frame: seen.append(signum))
+    try:
+        with held_back() as late:
+            assert other.ident is not None
+            signal.pthread_kill(other.ident, signal.SIGINT)
+            for _ in range(1000):  # the main thread runs Python code: the handler's chance
+                if late or seen:
+                    break
+                time.sleep(0.001)
+            assert not seen  # held back: the step goes on
+        assert late == ["SIGINT"] and not seen
+    finally:
+        signal.signal(signal.SIGINT, before)
+        release.set()
+        other.join()
