@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from handctl.config import HandConfig
 from handctl.convention import POSE_EVERY_TICKS  # the summaries measure the turn on these poses
-from handctl.errors import ConfigError, HandctlError
+from handctl.errors import BusError, ConfigError, HandctlError
 from handctl.hand_protocol import protocol_for
 from handctl.hostcheck import (
     LoopWork,
@@ -239,8 +239,10 @@ def run_recipe(
         # The bus is there, first: opening it sends nothing, and a bus that cannot be opened
         # is said as such (exit 4) rather than behind a verdict on the host's timing that a
         # loaded host may or may not give (it was exit 5 or 4 by the host's load).
-        with open_bus(spec, req.hand.bus):
-            pass
+        # And nobody else commands its nodes: a second run or jog beside one took real-time
+        # priority on the first's CPU for its timing check before its driver heard the other
+        # host and refused, and the first lost its ticks and latched every node's TIMEOUT.
+        _refuse_another_host(spec, req.hand)
         # Before the bus is opened for the run: a host that cannot hold the deadlines sends
         # nothing.
         host_check, checked = precheck(
@@ -492,6 +494,39 @@ def _start_clock(
         "sim": affinity(peer.sim_process.proc.pid) if peer.sim_process else None,
     }
     return timing
+
+
+#: s, the least a run on a bus listens for another host's commands before anything else: a
+#: host sends a TorqueCommand every tick (twenty at 1 kHz), a listener (``monitor``) none
+LISTEN_FOR_HOST_S = 0.02
+
+
+def _refuse_another_host(spec: BusSpec, hand: HandConfig) -> None:
+    """``BusError`` when a frame on one of ``hand``'s command identifiers is heard on the bus
+    before this process has sent anything: another host (a run, a jog, a replay onto the
+    bus) is commanding the nodes, and this run must not start beside it."""
+    import time
+
+    commands = {}
+    for finger in hand.fingers:
+        commands[finger.can_ids.torque_command] = ("TorqueCommand", finger)
+        commands[finger.can_ids.node_command] = ("NodeCommand", finger)
+    with open_bus(spec, hand.bus) as bus:
+        end = time.monotonic() + max(LISTEN_FOR_HOST_S, 10 * hand.bus.period_s)
+        while True:
+            for frame in bus.drain():
+                heard = commands.get(frame.arbitration_id)
+                if heard is not None:
+                    name, finger = heard
+                    raise BusError(
+                        f"another host is commanding this hand on {spec}: a {name} to "
+                        f"node {finger.node_id} ({finger.name}), id "
+                        f"0x{frame.arbitration_id:03X}, heard before this run sent anything. "
+                        "Stop the other run, jog or replay first (nothing was sent)"
+                    )
+            if time.monotonic() >= end:
+                return
+            time.sleep(hand.bus.period_s / 2)
 
 
 def _peer_summary(peer: _Peer, warnings: list[str]) -> dict[str, Any] | None:

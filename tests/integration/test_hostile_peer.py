@@ -223,3 +223,43 @@ def test_a_few_rejected_frames_at_start_up_delay_the_enable_by_a_reject_window(
         <= (hand.safety.max_rejects_in_window)
     )
     assert window <= first_send <= window + 5
+
+
+def test_a_run_on_a_bus_another_host_commands_is_refused_before_anything(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """A second run or jog beside one took real-time priority on the first's CPU for its
+    timing check before its driver heard the other host and refused: the first lost its ticks
+    and latched every node's TIMEOUT (found by an outside audit). Now it listens first, and
+    refuses as a bus in use: no timing check, nothing sent."""
+    import threading
+    import uuid
+
+    from handctl.errors import BusError
+    from handctl.session import RunRequest, run_recipe
+
+    channel = f"other-host-{uuid.uuid4().hex}"
+    layout = protocol_for(hand).layout("TorqueCommand", 1)
+    other = can.Bus(interface="virtual", channel=channel)
+    sniffer = can.Bus(interface="virtual", channel=channel)
+    stop = threading.Event()
+
+    def other_host() -> None:  # a host's torque command every tick
+        while not stop.wait(0.001):
+            other.send(frame(layout.frame_id, layout.encode(0, [0.0] * 3)))
+
+    sender = threading.Thread(target=other_host, daemon=True)
+    sender.start()
+    try:
+        with pytest.raises(BusError, match="another host is commanding this hand") as caught:
+            run_recipe(RunRequest(hand=hand, recipe=hold, bus=f"virtual:{channel}"))
+        assert "TorqueCommand to node 1 (f1), id 0x101" in str(caught.value)
+    finally:
+        stop.set()
+        sender.join()
+    heard = []
+    while (msg := sniffer.recv(timeout=0)) is not None:
+        heard.append((msg.arbitration_id, bytes(msg.data)))
+    other.shutdown()
+    sniffer.shutdown()
+    assert heard and {fid for fid, _ in heard} == {layout.frame_id}  # the other host's only
