@@ -1858,8 +1858,12 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     print(
         f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on "
         f"{escaped(args.bus)}, "
-        "every other joint at zero unless the soft-limit guard pushes it back "
-        "(Ctrl-C: controlled stop)"
+        + (
+            "every other joint at zero (the soft-limit guard is off in a recovery) "
+            if args.recover
+            else "every other joint at zero unless the soft-limit guard pushes it back "
+        )
+        + "(Ctrl-C: controlled stop)"
     )
     print(
         f"{'t s':>7} {'phase':<9} {'state':<10} {'desired':>9} {'applied':>9} "

@@ -253,6 +253,15 @@ def check_socketcan(
     hint = socketcan_setup_command(channel, bus_config)
     shown = escaped(channel)
     virtual = channel.startswith("vcan")
+    link_type = _read(node / "type") if node.exists() else ""
+    if link_type and link_type != str(ARPHRD_CAN):
+        # first, on any kernel: `ip link set lo ... type can` was the advice for lo on one
+        # without SocketCAN
+        raise BusError(
+            f"socketcan:{shown}: not a CAN interface (its link type is {link_type[:16]}, "
+            f"a CAN interface's is {ARPHRD_CAN}, ARPHRD_CAN): name the CAN interface "
+            "(`ip -details link show type can` lists them)"
+        )
     if not has_socketcan():
         # no interface can be a CAN one on such a kernel: whatever is done to it, no socket
         # opens; what to do about the interface comes after the modules
@@ -268,13 +277,6 @@ def check_socketcan(
             f"socketcan:{shown}: no such network interface (`ip -details link show type can` "
             "lists the CAN interfaces; an adapter shows one once its driver is loaded); "
             f"then configure it with: {hint}"
-        )
-    link_type = _read(node / "type")
-    if link_type and link_type != str(ARPHRD_CAN):
-        raise BusError(
-            f"socketcan:{shown}: not a CAN interface (its link type is {link_type[:16]}, "
-            f"a CAN interface's is {ARPHRD_CAN}, ARPHRD_CAN): name the CAN interface "
-            "(`ip -details link show type can` lists them)"
         )
     if _read(node / "operstate") == "down":
         if virtual:  # no bit rates to set on a virtual interface

@@ -415,8 +415,9 @@ class Runtime:
         ]
         self.disable_unconfirmed = (
             f"{', '.join(still)} not heard disabled within {ticks * period_s * 1e3:g} ms of "
-            "the disable (last heard ENABLED, or silent since); the nodes' command watchdog "
-            "disables a node that hears no command"
+            "the disable (last heard ENABLED, or silent since); a node that hears no command "
+            f"for {wire.COMMAND_WATCHDOG_S * 1e3:g} ms sets its torque to zero and latches "
+            "FAULT (TIMEOUT), which the next run clears with --reset-node-faults"
         )
         if self.recorder is not None:  # the log says it too: whether the hand may be ENABLED
             self.recorder.note("disable_unconfirmed", self.disable_unconfirmed, self.tick)

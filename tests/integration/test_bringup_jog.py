@@ -39,6 +39,7 @@ def test_one_joint_turns_its_way(hand: HandConfig, capsys: pytest.CaptureFixture
     code = cli.main(["jog", "f1_j2", "--torque", "0.05", "--seconds", "0.3"])
     out = capsys.readouterr().out
     assert code == cli.EXIT_OK, out
+    assert "every other joint at zero unless the soft-limit guard pushes it back" in out
     rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]
     assert len(rows) > 5 and {r[1] for r in rows} >= {"jog", "end_ramp"}
     applied = [float(r[4]) for r in rows]
@@ -405,7 +406,10 @@ def test_recover_says_when_there_was_nothing_to_recover(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     assert cli.main(["jog", "f1_j1", "--torque", "0.05", "--recover"]) == cli.EXIT_OK
-    assert "f1_j1 was inside its soft limits [-1, +1.9] rad" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "f1_j1 was inside its soft limits [-1, +1.9] rad" in out
+    # the guard is off in a recovery: the banner said it might push the other joints
+    assert "every other joint at zero (the soft-limit guard is off in a recovery)" in out
 
 
 RECOVER = [sys.executable, "-m", "handctl", "jog", "f1_j3", "--torque", str(PUSH), "--recover"]

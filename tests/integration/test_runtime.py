@@ -86,6 +86,11 @@ def test_a_node_not_heard_disabled_at_the_end_is_said(
     said = "node 2 (f2) not heard disabled within 10 ms of the disable"
     assert f"warning: {said}" in done.stderr
     assert "node 1 (f1) not heard" not in done.stderr  # the others said so in time
+    # what the node's watchdog does: latch a fault the next run must clear (it said the
+    # watchdog "disables" the node, which is not what PROTOCOL.md says)
+    assert "latches FAULT (TIMEOUT), which the next run clears with --reset-node-faults" in (
+        done.stderr
+    )
     assert json.loads(summary.read_text())["disable_unconfirmed"].startswith(said)
     events = [m for _, _, m in iter_decoded(open_recording(log), ("/events",))]
     assert [e["name"] for e in events if said in e.get("detail", "")] == ["disable_unconfirmed"]
