@@ -2327,7 +2327,9 @@ def _cmd_layout(args: argparse.Namespace) -> int:
 
     # a layout written over the hand config lost the hand
     _refuse_same_files({"-o": args.output}, {"HAND.yaml": args.hand, "--dbc": args.dbc})
-    _output_file("-o", args.output)
+    # a layout is JSON: an existing file that is not (another hand's config, a recipe,
+    # notes) was replaced by it, exit 0
+    _output_file("-o", args.output, json_output=True)
     hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
     _write_output("-o", args.output, layout_json(hand))
     print(f"written: {args.output} (the Foxglove layout of {hand.name})")

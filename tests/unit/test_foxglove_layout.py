@@ -62,5 +62,11 @@ def test_the_layout_command_says_what_is_wrong_and_exits_2(
         err = capsys.readouterr().err
         assert err.startswith(f"handctl: error: {said}"), err
     assert hand.read_text() == (ROOT / "config" / "hands" / "planar_2f2j.yaml").read_text()
+    notes = tmp_path / "notes.txt"  # another file than the hand's: replaced, exit 0
+    notes.write_text("bring-up notes\n")
+    assert main(["layout", str(hand), "-o", str(notes)]) == 2
+    assert "an existing file that is not JSON" in capsys.readouterr().err
+    assert notes.read_text() == "bring-up notes\n"
     assert main(["layout", str(hand), "-o", str(tmp_path / "l.json")]) == 0
+    assert main(["layout", str(hand), "-o", str(tmp_path / "l.json")]) == 0  # over its own
     assert '"/hand/joints.' in (tmp_path / "l.json").read_text()
