@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from handctl.config import HandConfig, JointConfig
 from handctl.convention import NAME_CHARS, OBJECT_NAME
 from handctl.errors import ConfigError
-from handctl.schema import Doc
+from handctl.schema import Doc, description
 from handctl.sim.placement import check_placement
 
 #: The emulated nodes run on a 1 ms tick (the protocol's feedback period and watchdog unit).
@@ -201,6 +201,7 @@ def parse_sim(hand: HandConfig) -> SimParams:
     )
     _check_tdt_range(tdt_doc, tdt.range, hand)
     _check_tdt_noise(tdt_doc, tdt, hand)
+    _check_tdt_within_tolerance(tdt_doc, tdt, hand)
     tdt_doc.done()
     enc_doc = doc.mapping("encoder")
     encoder = EncoderParams(
@@ -374,6 +375,37 @@ def _check_tdt_noise(doc: Doc, tdt: TdtParams, hand: HandConfig) -> None:
             "sensor reads one value that long and every run stops on TDT_STUCK "
             "(safety.tdt_stuck_still_s: 0 turns that check off, for a noiseless sensor)",
             tdt.noise,
+        )
+
+
+def _check_tdt_within_tolerance(doc: Doc, tdt: TdtParams, hand: HandConfig) -> None:
+    """A simulated sensor the host's TDT cross-check can live with: its bias and its noise
+    (standard deviations) each below ``safety.tdt_tolerance`` (at one sigma a third of the
+    sensors read beyond it, and nearly every run of a hand of several joints stops: a sensor
+    model that says the sensor cannot be used; a model with some chance of a mismatch, a
+    wider spread's, still runs and is judged by its runs), and its lag
+    at most the host's model of it (``safety.tdt_lag_s``) plus the window a mismatch must
+    last (``safety.tdt_window_s``), beyond which a step of the torque reads wrong for longer
+    than the window. Beyond either, every run stopped on TDT_MISMATCH in its first tenth of a
+    second, on a config ``check`` passed."""
+    safety = hand.safety
+    for key, value in (("bias", tdt.bias), ("noise", tdt.noise)):
+        if value >= safety.tdt_tolerance:
+            doc.fail(
+                key,
+                f"a {key} (1 sigma) below safety.tdt_tolerance ({safety.tdt_tolerance:g} "
+                "N·m): a sensor that far off stops nearly every run on TDT_MISMATCH",
+                description(f"{value:g} N·m"),
+            )
+    slowest = safety.tdt_lag_s + safety.tdt_window_s
+    if tdt.lag > slowest:
+        doc.fail(
+            "lag",
+            f"at most {slowest:g} s, safety.tdt_lag_s ({safety.tdt_lag_s:g} s, the host's "
+            f"model of the sensor) plus safety.tdt_window_s ({safety.tdt_window_s:g} s): a "
+            "slower sensor reads a step of the torque wrong for longer than the window and "
+            "stops every run on TDT_MISMATCH",
+            description(f"{tdt.lag:g} s"),
         )
 
 

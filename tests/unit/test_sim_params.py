@@ -91,6 +91,30 @@ def test_a_tdt_quieter_than_its_steps_is_refused_while_stillness_is_a_fault(
     )
 
 
+@pytest.mark.parametrize(
+    ("key", "refused", "accepted", "expected"),
+    [
+        # safety.tdt_tolerance 0.02 N·m
+        ("bias", 0.02, 0.0199, "a bias (1 sigma) below safety.tdt_tolerance (0.02 N·m)"),
+        ("noise", 0.02, 0.0199, "a noise (1 sigma) below safety.tdt_tolerance (0.02 N·m)"),
+        # safety.tdt_lag_s 0.01 s plus tdt_window_s 0.05 s
+        ("lag", 0.0601, 0.06, "at most 0.06 s, safety.tdt_lag_s (0.01 s"),
+    ],
+)
+def test_a_tdt_the_host_s_cross_check_cannot_live_with_is_refused(
+    hand: HandConfig, key: str, refused: float, accepted: float, expected: str
+) -> None:
+    """A simulated sensor of bias or noise 1.0 N·m, or a lag of 1 s, passed ``check`` and
+    every run on it stopped on TDT_MISMATCH within a tenth of a second (found by an outside
+    audit)."""
+    with pytest.raises(ConfigError) as err:
+        parse_sim(_with_sim(hand, lambda s: s["tdt"].update({key: refused})))
+    assert err.value.key == f"sim.tdt.{key}"
+    assert expected in err.value.expected, err.value.expected
+    parsed = parse_sim(_with_sim(hand, lambda s: s["tdt"].update({key: accepted})))
+    assert getattr(parsed.tdt, key) == accepted
+
+
 def test_the_quietest_tdt_accepted_never_reads_still_long_enough_to_be_stuck(
     hand: HandConfig,
 ) -> None:
