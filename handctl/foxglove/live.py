@@ -16,7 +16,9 @@ sampled the same way.
 
 from __future__ import annotations
 
+import logging
 import struct
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -66,6 +68,44 @@ SAMPLING: dict[str, str] = {
 }
 
 
+#: lines of the SDK's own notes (a client's invalid message, an unknown channel) shown per
+#: server: any local user may connect, and one sending junk put eleven thousand lines on the
+#: operator's terminal and 800 kB into the run's summary (the writer's notes); the rest are
+#: counted, and the count said when the server closes
+NOTES_SHOWN = 5
+
+
+class _BoundedNotes(logging.Handler):
+    """The SDK's log (Python ``logging`` under ``foxglove``), warnings and errors only, the
+    first ``NOTES_SHOWN`` on stderr, the rest counted."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.shown = 0
+        self.more = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.shown < NOTES_SHOWN:
+            self.shown += 1
+            sys.stderr.write(f"live view: {record.getMessage()}\n")
+        else:
+            self.more += 1
+
+
+def _bounded_notes() -> _BoundedNotes:
+    """The one handler of the SDK's logger in this process, put there once (not propagated:
+    Python's last-resort handler printed every note)."""
+    logger = logging.getLogger("foxglove")
+    for handler in logger.handlers:
+        if isinstance(handler, _BoundedNotes):
+            return handler
+    handler = _BoundedNotes()
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING)
+    logger.propagate = False
+    return handler
+
+
 class LiveServer:
     """A Foxglove WebSocket server with one channel per recorded topic, fed raw payloads.
 
@@ -83,6 +123,7 @@ class LiveServer:
         #: the message last served.
         self.sampled: dict[str, str] = {}
         self._served: dict[tuple[str, int], int] = {}
+        self.notes = _bounded_notes()
 
     def start(self) -> None:
         """Bind the port and serve the channels added so far; a ``ConfigError`` naming
@@ -161,6 +202,9 @@ class LiveServer:
         stopper = threading.Thread(target=self.server.stop, name="live-stop", daemon=True)
         stopper.start()
         stopper.join(timeout_s)
+        if self.notes.more:
+            sys.stderr.write(f"live view: {self.notes.more} more notes of its clients not shown\n")
+            self.notes.more = 0
         return not stopper.is_alive()
 
 

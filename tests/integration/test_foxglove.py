@@ -616,6 +616,44 @@ def test_the_live_server_listens_only_once_its_channels_are_there() -> None:
         server.close()
 
 
+async def _junk(port: int, count: int) -> None:
+    async with websockets.connect(
+        f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None
+    ) as ws:
+        for k in range(count):
+            await ws.send(f"junk {k}")
+        await ws.send(
+            json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 999}]})
+        )
+        await asyncio.sleep(0.5)  # the server reads them all
+
+
+def test_a_client_sending_junk_gets_a_few_lines_on_stderr_not_one_each(
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    """Any local user may connect: a client sending 200 000 invalid messages put eleven
+    thousand lines on the operator's terminal and 800 kB into the run's summary (found by an
+    outside audit). The first few are said, the rest counted."""
+    from handctl.foxglove.live import NOTES_SHOWN, LiveServer
+
+    port = free_port()
+    server = LiveServer(port)
+    server.add_channel("/hand/joints", "handctl.Test", "jsonschema", b"{}", "json")
+    server.start()
+    try:
+        asyncio.run(_junk(port, 50))
+    finally:
+        assert server.close()
+    err = capfd.readouterr().err.splitlines()
+    said = [line for line in err if line.startswith("live view: ")]
+    assert len(said) == NOTES_SHOWN + 1, err
+    assert "Invalid message" in said[0]
+    more = said[-1].removeprefix("live view: ").split()
+    assert more[1:] == ["more", "notes", "of", "its", "clients", "not", "shown"]
+    assert int(more[0]) >= 50 - NOTES_SHOWN  # every junk message counted, none lost
+    assert len(err) == len(said)  # nothing else printed of them
+
+
 def test_a_port_taken_after_the_check_is_said_against_live() -> None:
     """Free when the command began, taken by another program before the server bound it (a
     replay binds after its summary and re-run): that was the SDK's RuntimeError traceback."""
