@@ -356,13 +356,16 @@ def _cmd_check(args: argparse.Namespace) -> int:
     )
     print(f"hand {escaped(hand.name)} ({escaped(str(args.hand))}), config hash {hand.config_hash}")
     print(f"bus {escaped(f'{bus.interface}:{bus.channel}')}, {kind}, loop {bus.loop_rate_hz:g} Hz")
-    print(f"{'joint':<8} {'tau_max':>8} {'device':>8} {'rate':>9} {'angle range':>17}")
+    # torques to the wire's resolution (0.0001 N·m: a tau_max of 0.0004 read 0.000), the
+    # names' column as wide as the longest (up to 32 characters)
+    width = max(8, *(len(j.name) for j in hand.joints))
+    print(f"{'joint':<{width}} {'tau_max':>9} {'device':>9} {'rate':>10} {'angle range':>17}")
     for finger in hand.fingers:
         for joint in finger.joints:
             limits = f"[{joint.angle_min:+.2f}, {joint.angle_max:+.2f}] rad"
             print(
-                f"{joint.name:<8} {joint.tau_max:>6.3f}Nm {joint.device_tau_max:>6.3f}Nm "
-                f"{joint.rate_limit:>6.1f}N·m/s {limits}"
+                f"{escaped(joint.name):<{width}} {joint.tau_max:>7.4f}Nm "
+                f"{joint.device_tau_max:>7.4f}Nm {joint.rate_limit:>6.1f}N·m/s {limits}"
             )
     for finger in hand.fingers:
         ids = ", ".join(f"{k} 0x{v:03X}" for k, v in finger.can_ids.as_dict().items())
@@ -675,7 +678,7 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
         for miss in host.get("handctl_misses", []):
             print("  " + _own_miss_text(miss))
     print(
-        "  max |τ| [N·m] " + ", ".join(f"{k} {v:.3f}" for k, v in summary["max_abs_tau_nm"].items())
+        "  max |τ| [N·m] " + ", ".join(f"{k} {v:.4f}" for k, v in summary["max_abs_tau_nm"].items())
     )
     if "experiment" in summary:
         ex = summary["experiment"]

@@ -556,6 +556,26 @@ def test_a_tau_max_of_one_step_of_the_wire_is_accepted(
     assert load_hand(write(tmp_path, base)).joints[2].tau_max == step
 
 
+def test_check_shows_a_small_tau_max_and_a_long_name_as_they_are(
+    tmp_path: Path, base: dict[str, Any], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Torques were printed to 0.001 N·m (a tau_max of 0.0004 read 0.000, bring-up step 1
+    could not be done) and a name longer than 8 characters pushed its row out of the header's
+    columns (found by an outside audit)."""
+    from handctl import cli
+
+    base.pop("sim", None)
+    joint_of(base, 0, 2).update(tau_max=0.0004, device_tau_max=0.0004, name="distal_of_finger_one")
+    base.setdefault("safety", {})["tdt_tolerance"] = 0.0001
+    assert cli.main(["check", str(write(tmp_path, base))]) == cli.EXIT_OK
+    lines = capsys.readouterr().out.splitlines()
+    header = next(line for line in lines if line.startswith("joint "))
+    row = next(line for line in lines if line.startswith("distal_of_finger_one "))
+    assert "0.0004Nm" in row
+    assert row.index("Nm") + 2 == header.index("tau_max") + len("tau_max")
+    assert header.index("tau_max") > len("distal_of_finger_one")
+
+
 def test_device_tau_max_the_command_signal_cannot_carry_is_refused(
     tmp_path: Path, base: dict[str, Any], protocol: Protocol
 ) -> None:

@@ -306,7 +306,7 @@ def test_a_mismatch_is_a_fault_once_it_has_held_for_the_window(hand: HandConfig)
     assert found == [
         (
             FaultCode.TDT_MISMATCH,
-            f"{name}: TDT {reading[4]:+.3f} N·m, expected +0.200 N·m for {window(hand)} ticks",
+            f"{name}: TDT {reading[4]:+.4f} N·m, expected +0.2000 N·m for {window(hand)} ticks",
         )
     ]
     assert mon.update(applied, reading) != []  # it goes on while it holds
@@ -453,7 +453,7 @@ def test_a_reading_that_never_moves_while_the_command_does_is_stuck(hand: HandCo
     assert found[0][1][0] == (
         FaultCode.TDT_STUCK,
         f"{hand.joint_names[0]}: TDT fixed at +0.1000 N·m for {n} ticks "
-        f"while the command moved {swing:.3f} N·m",
+        f"while the command moved {swing:.4f} N·m",
     )
     assert codes(found[0][1]) == [FaultCode.TDT_STUCK] * hand.n_joints
 

@@ -145,7 +145,9 @@ class TdtMonitor:
                     found.append(
                         (
                             FaultCode.TDT_MISMATCH,
-                            f"{self.names[j]}: TDT {r:+.3f} N·m, expected {e:+.3f} N·m "
+                            # to the wire's 0.0001 N·m: a hand of joints of a thousandth
+                            # read "TDT +0.001 N·m, expected -0.000 N·m"
+                            f"{self.names[j]}: TDT {r:+.4f} N·m, expected {e:+.4f} N·m "
                             f"for {mismatch[j]} ticks",
                         )
                     )
@@ -168,7 +170,7 @@ class TdtMonitor:
                             FaultCode.TDT_STUCK,
                             f"{self.names[j]}: TDT fixed at {r:+.4f} N·m for "
                             f"{same_ticks[j]} ticks while the command moved "
-                            f"{hi[j] - lo[j]:.3f} N·m"
+                            f"{hi[j] - lo[j]:.4f} N·m"
                             + (
                                 ""
                                 if moved_at[j] >= 0
