@@ -215,6 +215,8 @@ class WorkPool:
                 except TimeoutError:
                     if (why := self._idle()) is not None:
                         raise why from None
+                    if progress is not None:
+                        progress.tick()
             self.tasks_run += len(futures)
             return [f.result() for f in futures]
         except BaseException as exc:

@@ -56,6 +56,7 @@ class Progress:
         )
         self._clock = clock
         self._start = clock()
+        self._last_done = self._start  # when a task last ended (or the work began)
         self._shown = -math.inf
         self._closed = False
         _active[:] = [self]
@@ -68,18 +69,29 @@ class Progress:
         return self.done / elapsed if elapsed > 0 and self.done else 0.0
 
     def line(self) -> str:
-        """What the progress says now, without the bar (a plain line)."""
+        """What the progress says now, without the bar (a plain line); when no task has
+        ended for ``PLAIN_EVERY_S`` or more, for how long (a stalled worker, a cluster with
+        none: "0:04 left" stood for half a minute, and read as nearly done)."""
         rate = self.rate
         left = (self.total - self.done) / rate if rate > 0 else math.inf
         share = 100 * self.done / self.total if self.total else 100.0
+        waiting = self._clock() - self._last_done
+        stalled = f", none done for {_duration(waiting)}" if waiting >= PLAIN_EVERY_S else ""
         return (
             f"{self.label}: {self.done}/{self.total} ({share:.0f} %), {rate:.3g}/s, "
-            f"{_duration(left)} left"
+            f"{_duration(left)} left{stalled}"
         )
 
     def advance(self, count: int = 1) -> None:
         self.done = min(self.total, self.done + count)
+        self._last_done = self._clock()
         self._show(force=self.done == self.total)
+
+    def tick(self) -> None:
+        """Show the progress again if it is due, though no task ended: the work waits on
+        something (a plain line was written only when a task ended, and a stall of forty
+        seconds wrote nothing)."""
+        self._show()
 
     def close(self) -> None:
         """End the progress (also when the work was cancelled: the line says how far it got)."""
@@ -89,7 +101,12 @@ class Progress:
         if _active == [self]:
             _active.clear()
         elapsed = self._clock() - self._start
-        end = f"{self.label}: {self.done}/{self.total} in {_duration(elapsed)}"
+        end = (
+            f"{self.label}: {self.done}/{self.total} in {_duration(elapsed)}"
+            if self.done == self.total
+            # cancelled or failed: "15/72 in 0:03" read as a phase finished
+            else f"{self.label}: stopped at {self.done}/{self.total} after {_duration(elapsed)}"
+        )
         if self._terminal:
             self._stream.write("\r\x1b[2K" + end + "\n")
         else:

@@ -114,6 +114,33 @@ def test_results_come_in_input_order(workers: int) -> None:
     assert (pids == {os.getpid()}) if workers == 1 else (os.getpid() not in pids)
 
 
+def nap(seconds: float) -> float:
+    time.sleep(seconds)
+    return seconds
+
+
+def test_a_map_waiting_on_a_slow_task_still_shows_its_progress(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The progress was shown only when a task ended: piped, a plan stalled on a paused
+    worker wrote nothing for forty seconds. The map's idle checks show it too (here every
+    0.2 s, a line due every 0.5 s)."""
+    import io
+
+    from handctl import executor, progress
+
+    monkeypatch.setattr(executor, "IDLE_CHECK_S", 0.2)
+    monkeypatch.setattr(progress, "PLAIN_EVERY_S", 0.5)
+    out = io.StringIO()
+    with open_pool(2) as pool:
+        bar = Progress("t", 2, stream=out, terminal=False)
+        assert pool.map(nap, [0.0, 2.5], bar) == [0.0, 2.5]
+        bar.close()
+    lines = out.getvalue().splitlines()
+    assert any(line.startswith("t: 1/2 (50 %), ") and "none done for" in line for line in lines)
+    assert lines[-1].startswith("t: 2/2 in ")
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_failing_task_fails_the_map(workers: int) -> None:
     with open_pool(workers) as pool, pytest.raises(ValueError, match="task 3 cannot"):
