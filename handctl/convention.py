@@ -40,6 +40,10 @@ OBJECT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9]{0,31}\Z")  # \Z: "$" lets a trai
 #: top and broke every table's columns.
 PART_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}\Z")  # \Z: "$" lets a trailing newline by
 NAME_CHARS = 32
+#: m, the largest object's radius, in a hand config's scene and in a recipe alike: the scene
+#: took 1 m and a recipe 0.2, so an object a hand config held could not be named by a recipe
+#: (no estimator, no experiment)
+MAX_OBJECT_RADIUS = 1.0
 PART_NAME_RULE = (
     f"a name of letters, digits and underscores, starting with a letter, at most {NAME_CHARS} "
     "characters"

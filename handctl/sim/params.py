@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from handctl.config import HandConfig, JointConfig
-from handctl.convention import NAME_CHARS, OBJECT_NAME
+from handctl.convention import MAX_OBJECT_RADIUS, NAME_CHARS, OBJECT_NAME
 from handctl.errors import ConfigError
 from handctl.schema import Doc, description
 from handctl.sim.placement import check_placement
@@ -449,7 +449,7 @@ def _parse_object(doc: Doc) -> ObjectParams:
         )
     obj = ObjectParams(
         name=name,
-        radius=doc.number("radius", min=0.005, max=1.0, unit="m"),
+        radius=doc.number("radius", min=0.005, max=MAX_OBJECT_RADIUS, unit="m"),
         length=doc.number("length", min=0.01, max=2.0, unit="m"),
         mass=doc.number("mass", min=0.001, max=20.0, unit="kg"),
         x=doc.number("x", min=-5.0, max=5.0, unit="m"),

@@ -215,6 +215,23 @@ def test_runner_abort_condition_and_estimates(tmp_path: Path, hand: HandConfig) 
     assert runner.phase_name == "b"
 
 
+def test_an_object_a_hand_config_s_scene_may_hold_a_recipe_may_name(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A hand config's scene took objects of up to 1 m, a recipe only up to 0.2 m: a larger
+    gripper's object could not be named, so it had no estimator and no experiment (found by
+    an outside audit). One bound, ``convention.MAX_OBJECT_RADIUS``, for both."""
+    from handctl.convention import MAX_OBJECT_RADIUS
+
+    data = recipe_doc(phase("a"), objects=[{"name": "big", "radius": 0.25}])
+    assert load_recipe(write(tmp_path, data), hand).objects[0].radius == 0.25
+    data = recipe_doc(phase("a"), objects=[{"name": "big", "radius": MAX_OBJECT_RADIUS * 1.01}])
+    with pytest.raises(ConfigError) as info:
+        load_recipe(write(tmp_path, data), hand)
+    assert info.value.key == "objects[0].radius"
+    assert f"<= {MAX_OBJECT_RADIUS:g} m" in info.value.expected
+
+
 def test_a_recipe_for_another_hand_says_so_at_its_first_joint_keyed_mapping(
     tmp_path: Path, hand: HandConfig
 ) -> None:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.convention import NAME_CHARS, OBJECT_NAME
+from handctl.convention import MAX_OBJECT_RADIUS, NAME_CHARS, OBJECT_NAME
 from handctl.errors import ConfigError
 from handctl.online.estimator import RADIUS_RANGE
 from handctl.online.recipes.guard import SIDES, GuardSettings, SpringBand
@@ -350,7 +350,7 @@ def parse_objects(doc: Doc) -> tuple[RecipeObject, ...]:
                 "scene's objects go by the same names)",
                 name,
             )
-        radius = sub.number("radius", min=0.0, max=0.2, min_exclusive=True, unit="m")
+        radius = sub.number("radius", min=0.0, max=MAX_OBJECT_RADIUS, min_exclusive=True, unit="m")
         if radius < MIN_OBJECT_RADIUS:
             sub.fail(
                 "radius",
