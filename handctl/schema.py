@@ -830,6 +830,9 @@ class Doc:
         value = self.string(key, default=default)
         if not value.isprintable():
             self.fail(key, "a name of printable characters (no newline, tab or escape)", value)
+        if value != value.strip() or (value and not value.strip()):
+            # a hand named " " showed as nothing in check, the summary and the plot's title
+            self.fail(key, "a name not beginning or ending with a space", value)
         if len(value) > MAX_LABEL:
             # a 300-character recipe name ran off both edges of its plot's title
             self.fail(key, f"a name of at most {MAX_LABEL} characters", value)

@@ -557,3 +557,18 @@ def test_the_parser_s_found_is_said_once(tmp_path: Path) -> None:
         load_yaml(bad)
     assert "found character that cannot start any token" in str(info.value)
     assert "found found" not in str(info.value)
+
+
+@pytest.mark.parametrize("new", ['name: " "', 'name: " hiroshima_hand"', 'name: "hand "'])
+def test_a_hand_name_of_spaces_or_with_spaces_at_its_ends_is_refused(
+    tmp_path: Path, new: str
+) -> None:
+    """A hand named " " passed check (an empty name did not) and showed as nothing in check,
+    the summary and the plot's title (found by an outside audit)."""
+    assert HAND_TEXT.count("name: hiroshima_hand") == 1
+    path = tmp_path / "hand.yaml"
+    path.write_text(HAND_TEXT.replace("name: hiroshima_hand", new), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_hand(path)
+    assert info.value.key == "name"
+    assert "a name not beginning or ending with a space" in info.value.expected
