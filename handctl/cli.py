@@ -1536,7 +1536,8 @@ def _positive(option: str, value: float | None, default: float, unit: str) -> fl
     if value is None:
         return default
     if not 0 < value < 1e6:
-        raise ConfigError(option, "", f"a value > 0 {unit}", value)
+        # the bound too: "expected a value > 0 s, found 1000000.0" contradicted itself
+        raise ConfigError(option, "", f"a value > 0 and < 1e+06 {unit}", value)
     return value
 
 

@@ -271,3 +271,9 @@ def test_a_piped_monitor_ends_when_its_reader_leaves(tmp_path: Path) -> None:
                 stream.close()
     assert code == cli.EXIT_OK, err
     assert "Traceback" not in err
+
+
+def test_an_every_beyond_its_bound_names_the_bound(capsys: pytest.CaptureFixture[str]) -> None:
+    """'expected a value > 0 s, found 1000000.0' contradicted itself: the bound is said."""
+    assert cli.main(["monitor", "--bus", "virtual:x", "--every", "1e6"]) == cli.EXIT_BAD_INPUT
+    assert "--every: expected a value > 0 and < 1e+06 s, found 1000000.0" in capsys.readouterr().err
