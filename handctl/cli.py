@@ -1859,7 +1859,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         # a hand without a simulated one was refused under the table's header
         parse_sim(hand)
     until = " or until it is back inside its soft limits" if args.recover else ""
-    print(
+    banner = [
         f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on "
         f"{escaped(args.bus)}, "
         + (
@@ -1867,14 +1867,21 @@ def _cmd_jog(args: argparse.Namespace) -> int:
             if args.recover
             else "every other joint at zero unless the soft-limit guard pushes it back "
         )
-        + "(Ctrl-C: controlled stop)"
-    )
-    print(
+        + "(Ctrl-C: controlled stop)",
         f"{'t s':>7} {'phase':<9} {'state':<10} {'desired':>9} {'applied':>9} "
-        f"{'angle rad':>10} {'TDT N·m':>9}"
-    )
+        f"{'angle rad':>10} {'TDT N·m':>9}",
+    ]
+
+    def say_banner() -> None:
+        """Once the jog runs, not before: a jog refused (no bus, the timing check, another
+        host) printed its banner and table header first, and read from a log or through a
+        pipe it looked like a jog that had started."""
+        if banner:
+            print("\n".join(banner), flush=True)
+            banner.clear()
 
     def show(line: JogLine) -> None:
+        say_banner()
         print(
             f"{line.t_s:>7.2f} {line.phase:<9} {line.state:<10} {line.desired:>+9.4f} "
             f"{line.applied:>+9.4f} {line.angle:>+10.4f} {line.tdt:>+9.4f}",
@@ -1896,6 +1903,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         recover=args.recover,
         show=show,
     )
+    say_banner()
     moved = result.moved
     if moved is not None:
         print(

@@ -477,3 +477,16 @@ def test_the_table_ends_on_the_torque_back_at_zero_after_a_stop(hand: HandConfig
     assert report.report.result.outcome is Outcome.SAFETY_STOP
     assert lines[-1].applied == 0.0 and lines[-1].state == "faulted"
     assert any(line.applied > 0.1 for line in lines)
+
+
+def test_a_jog_refused_before_it_runs_prints_no_banner(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The banner and the table's header came first, then the bus error (exit 4): read from
+    a log or through a pipe it looked like a jog that had started (found by an outside
+    audit). Here the kernel has no SocketCAN; on one with it, no can0 is there either."""
+    code = cli.main(["jog", "f1_j1", "--torque", "0.03", "--bus", "socketcan:can0"])
+    assert code == cli.EXIT_BUS
+    captured = capsys.readouterr()
+    assert "socketcan:can0" in captured.err
+    assert captured.out == ""
