@@ -1159,6 +1159,13 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
             "stepped during it); a re-run compares the frames' content, not their times",
             file=sys.stderr,
         )
+    for name, tick in summary.get("unknown_phases", {}).items():
+        print(
+            f"handctl: warning: {summary['file']}: the phase channel says {shown(name)} at "
+            f"tick {tick}, neither a phase of the recorded recipe nor the runner's status: "
+            "the log was edited after the run (`--rerun` finds where)",
+            file=sys.stderr,
+        )
     for name, pose in summary.get("objects", {}).items():
         start, end = pose["start"], pose["end"]
         key = "height_above_rest_m" if "height_above_rest_m" in start else "y_m"

@@ -122,6 +122,7 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
         "drops": drops,
         "frames": series.frames,
         "messages_back_in_time": series.out_of_order,
+        "unknown_phases": series.unknown_phases,
         "bus_events": sum(1 for e in series.events if e["kind"] == "bus"),
         "rejected_frames": rejected,
     }

@@ -65,6 +65,9 @@ class Series:
     #: host's clock was stepped, so a log whose times were edited after the run, which a
     #: re-run's "identical" (about the frames' content) and the summary missed
     out_of_order: dict[str, int] = field(default_factory=dict)
+    #: names the phase channel gives that are neither a phase of the recorded recipe nor the
+    #: runner's status, each with the first tick that says it: none in a log handctl wrote
+    unknown_phases: dict[str, int] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
 
 
@@ -96,6 +99,7 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     ended: tuple[int, str] | None = None
     ended_at: float | None = None
     last_t = 0.0
+    names = _phase_names(recording)
     topics = (ch.TIMING, ch.TORQUE, ch.JOINT_STATE, ch.PHASE, ch.EVENTS, ch.OBJECTS, ch.STATS)
     for topic, log_time, raw in iter_messages(recording, (*topics, ch.CAN_RX, ch.CAN_TX)):
         # every message decoded and checked, frames too: a count read from the raw bytes
@@ -146,6 +150,10 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             joint.add([t, *json_floats(msg["tdt_torque_nm"]), *json_floats(msg["angle_rad"])])
         elif topic == ch.PHASE:
             name = msg["phase"]
+            if names is not None and name not in names:
+                # one message edited to "no_such_phase" split a phase in two in the summary
+                # without a word; only the re-run saw it
+                series.unknown_phases.setdefault(name, msg["tick"])
             if name != phase_name:  # a phase starts at its first tick's scheduled time
                 if phase_name:
                     series.phases.append(
@@ -249,6 +257,20 @@ def _recorded_hand(recording: Recording) -> HandConfig | None:
         return recorded_hand(recording, required=False)
     except ConfigError:
         return None
+
+
+def _phase_names(recording: Recording) -> frozenset[str] | None:
+    """What the phase channel may say: the recorded recipe's phases and the runner's own
+    statuses; None for a log without a recipe that reads (nothing to hold the names to)."""
+    from handctl.online.recipes.runner import RunStatus
+    from handctl.recording.replay import NOT_PHASES
+
+    recipe = recorded_recipe_or_none(recording)
+    if recipe is None:
+        return None
+    return frozenset(
+        {p.name for p in recipe.phases} | {s.value for s in RunStatus} | set(NOT_PHASES)
+    )
 
 
 def recorded_recipe_or_none(recording: Recording) -> Recipe | None:

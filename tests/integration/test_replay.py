@@ -231,6 +231,10 @@ def test_rerun_finds_a_tick_whose_phase_state_or_desired_torques_were_rewritten(
     done = handctl("replay", str(tampered), "--rerun")
     assert done.returncode == 1, done.stderr
     assert f"tick {target}: {said}" in done.stdout and "MISMATCH" in done.stdout
+    # a phase the recipe does not have: the summary says so too (it split a phase in two
+    # without a word, exit 0)
+    unknown = "the phase channel says 'bogus' at tick 300, neither a phase of the recorded"
+    assert (unknown in done.stderr) == (value == "bogus"), done.stderr
 
 
 def test_rerun_finds_a_one_ulp_difference(recorded: Recorded, tmp_path: Path) -> None:
