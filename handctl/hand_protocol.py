@@ -375,7 +375,27 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
                     f"{n} joints)",
                     ", ".join(layout.signal_names),
                 )
+            _check_units(protocol, layout)
         _check_version_signal(protocol, protocol.by_name[f"Status_{finger.node_id}"])
+
+
+#: The units a torque's and an angle's signal may state (PROTOCOL.md fixes N·m and rad; a DBC
+#: may leave a unit out). A DBC whose torques said "mN.m" or whose angles said "deg" passed
+#: check, and the host read them as N·m and rad all the same.
+SIGNAL_UNITS = {"Torque": ("N.m", "N·m", "Nm", "N*m", ""), "Angle": ("rad", "")}
+
+
+def _check_units(protocol: Protocol, layout: Layout) -> None:
+    for sig in layout.signals:
+        for prefix, units in SIGNAL_UNITS.items():
+            if sig.name.startswith(prefix) and sig.unit not in units:
+                raise ConfigError(
+                    protocol.source,
+                    f"{layout.name}.{sig.name}",
+                    f"the unit {units[0]} (what the host reads it in; "
+                    "firmware_protocol/PROTOCOL.md)",
+                    sig.unit,
+                )
 
 
 def _check_version_signal(protocol: Protocol, status: Layout) -> None:

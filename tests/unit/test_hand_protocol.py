@@ -219,3 +219,22 @@ def test_a_given_dbc_must_have_the_signals_host_and_nodes_read(
         err.value.expected
     )
     assert str(err.value.found).endswith("FaultBits, Temperature")
+
+
+@pytest.mark.parametrize(
+    ("old", "new"), [('"N.m" FINGER2', '"mN.m" FINGER2'), ('"rad" HOST', '"deg" HOST')]
+)
+def test_a_given_dbc_whose_units_are_not_the_host_s_is_refused(
+    hand: HandConfig, tmp_path: Path, old: str, new: str
+) -> None:
+    """A DBC whose torques said mN.m or whose angles said deg passed check, and the host read
+    their values as N·m and rad all the same (found by an outside audit)."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    assert old in text
+    dbc = tmp_path / "units.dbc"
+    dbc.write_text(text.replace(old, new, 1), encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, dbc)
+    assert err.value.file == str(dbc)
+    assert "(what the host reads it in; firmware_protocol/PROTOCOL.md)" in err.value.expected
+    assert err.value.found == new.split('"')[1]
