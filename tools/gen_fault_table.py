@@ -35,12 +35,26 @@ _KEY_UNITS = {
 
 def _fault_list_section() -> list[str]:
     """The fault-list format, its kinds and their keys from the injectors themselves."""
+    import dataclasses
+
     from handctl.sim.faults import INJECTORS, _JointFault
 
     rows = []
     for kind, cls in sorted(INJECTORS.items()):
         keys = ["node", *(["joint"] if issubclass(cls, _JointFault) else []), *cls.keys]
-        named = [f"`{k}` ({_KEY_UNITS[k]})" if k in _KEY_UNITS else f"`{k}`" for k in keys]
+        # what a key left out means: the injector's own default (a fault list without
+        # `node` hit every node, and one without `offset` 0.1 N·m, which the page did not say)
+        defaults = {f.name: f.default for f in dataclasses.fields(cls)}
+        named = []
+        for k in keys:
+            default = defaults.get(k, dataclasses.MISSING)
+            said = [_KEY_UNITS[k]] if k in _KEY_UNITS else []
+            if default is None:
+                # a target left out is every one; a count, no bound (all while on)
+                said.append(f"default: every {k}" if k in ("node", "joint") else "default: all")
+            elif default is not dataclasses.MISSING:
+                said.append(f"default {default:#x}" if k == "bits" else f"default {default}")
+            named.append(f"`{k}` ({', '.join(said)})" if said else f"`{k}`")
         rows.append(f"| `{kind}` | {', '.join(named)} |")
     return [
         "## Fault lists for the simulated hand",
