@@ -67,8 +67,12 @@ from handctl.protocol import NodeState
 #: flight are superseded, and the nodes see zero before they see "disable".
 ZERO_TICKS_BEFORE_DISABLE = 5
 #: After the disable, the ticks a run listens for every node to report it (s): the nodes' own
-#: command watchdog (10 ms) would disable a node the frame missed by then anyway.
+#: command watchdog (10 ms) would stop a node the frame missed by then anyway (FAULT, TIMEOUT).
 DISABLE_CONFIRM_S = 0.010
+#: periods after the disable from which a node's Feedback still saying ENABLED is a node that
+#: disobeys it (one sent before the node acted on the disable arrives within two: the node's
+#: tick and the bus), and the host sends the e-stop
+DEFIANT_AFTER_PERIODS = 3
 STATUS_EVERY_TICKS = 100
 #: A tick of the stop after an exception waits this long at most for the clock; a clock that
 #: does not answer is given up and the rest of the stop's frames go at once, in order.
@@ -404,21 +408,42 @@ class Runtime:
         period_s = self.hand.bus.period_s
         ticks = max(1, ticks_lasting(DISABLE_CONFIRM_S, period_s))
         enabled = int(NodeState.ENABLED)
+        # a Feedback sent this long after the disable was sent by a node that had had the
+        # disable a tick to act on: its ENABLED is not one sent before it
+        defiant_after_ns: int | None = None
         for _ in range(ticks):
             tk = await self._next_tick()
+            if defiant_after_ns is None:
+                defiant_after_ns = tk.now_ns + round(DEFIANT_AFTER_PERIODS * period_s * 1e9)
             self._account_idle(tk)
             self.driver.poll(tk.now_ns)
             if not any(n.state == enabled for n in self.driver.nodes):
                 return
-        still = [
-            f"node {n.node_id} ({n.finger.name})" for n in self.driver.nodes if n.state == enabled
+        still = [n for n in self.driver.nodes if n.state == enabled]
+        defiant = [
+            n
+            for n in still
+            if defiant_after_ns is not None
+            and n.feedback_ns is not None
+            and n.feedback_ns >= defiant_after_ns
         ]
+        said = ", ".join(f"node {n.node_id} ({n.finger.name})" for n in still)
         self.disable_unconfirmed = (
-            f"{', '.join(still)} not heard disabled within {ticks * period_s * 1e3:g} ms of "
+            f"{said} not heard disabled within {ticks * period_s * 1e3:g} ms of "
             "the disable (last heard ENABLED, or silent since); a node that hears no command "
             f"for {wire.COMMAND_WATCHDOG_S * 1e3:g} ms sets its torque to zero and latches "
             "FAULT (TIMEOUT), which the next run clears with --reset-node-faults"
         )
+        if defiant:
+            # a node that goes on saying ENABLED after the disable disobeys it: the e-stop,
+            # which every node honours (PROTOCOL.md), is the last word the host has; it
+            # latches FAULT (ESTOP) on every node, for --reset-node-faults to clear
+            sent = self.driver.send_estop()
+            names = ", ".join(f"node {n.node_id} ({n.finger.name})" for n in defiant)
+            what = "the e-stop was sent" if sent else "the e-stop could not be sent"
+            self.disable_unconfirmed += (
+                f"; {names} went on saying ENABLED after the disable: {what}"
+            )
         if self.recorder is not None:  # the log says it too: whether the hand may be ENABLED
             self.recorder.note("disable_unconfirmed", self.disable_unconfirmed, self.tick)
 

@@ -263,3 +263,34 @@ def test_a_run_on_a_bus_another_host_commands_is_refused_before_anything(
     other.shutdown()
     sniffer.shutdown()
     assert heard and {fid for fid, _ in heard} == {layout.frame_id}  # the other host's only
+
+
+def test_a_node_that_goes_on_saying_enabled_after_the_disable_gets_the_e_stop(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """A node whose firmware ignored the disable was only warned about, and left ENABLED for
+    its watchdog (found by an outside audit): the host now sends the e-stop, which every node
+    honours, once that node's Feedback still says ENABLED after it had the disable to act on.
+    The nodes that obeyed are no reason for it: see the test above, where none is sent."""
+    from handctl.protocol import NODE_COMMANDS
+    from handctl.sim.firmware import FaultBits as Bits
+
+    with rig(hand, hold, max_seconds=0.5) as r:
+        stubborn = r.sim.nodes[1]
+        command = protocol_for(hand).layout("NodeCommand", 2)
+        obey = stubborn._apply
+
+        def ignore_disable(layout: object, data: bytes, now_ns: int) -> None:
+            if layout is command and command.decode(data)[1][0] == NODE_COMMANDS["disable"]:
+                return
+            obey(layout, data, now_ns)  # type: ignore[arg-type]
+
+        stubborn._apply = ignore_disable  # type: ignore[method-assign]
+        result = r.run()
+        r.sim.step()  # the nodes take the e-stop on their next tick
+    assert result.outcome is Outcome.INTERRUPTED, result.message  # the rig's tick budget
+    said = result.disable_unconfirmed
+    assert said.startswith("node 2 (f2) not heard disabled"), said
+    assert "node 2 (f2) went on saying ENABLED after the disable: the e-stop was sent" in said
+    assert r.estops() == 1
+    assert stubborn.state == int(NodeState.FAULT) and stubborn.fault_bits & Bits.ESTOP
