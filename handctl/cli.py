@@ -868,15 +868,38 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     # the plots first, drawn aside and moved in whole, the recipe last and whole: a Ctrl-C
     # while they were drawn left a recipe and a PNG cut short, where nothing was to be written
     plots = _plan_plots(result, args.plot) if args.plot else []
-    _write_output("-o", args.output, recipe_text(result, command))
+    output = _failed_plan_output(result, args.output, args.quick)
+    _write_output("-o", output, recipe_text(result, command))
     wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
-    print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {args.output}")
+    print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {output}")
     print(f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU ({cpu_counted}) on {where}")
     for plan in result.phases:
         print(_planned_phase_line(plan))
     for path in plots:
         print(f"  plot {path}")
-    return _plan_exit_code(result, args.output, args.quick)
+    return _plan_exit_code(result, output, args.quick)
+
+
+def _failed_plan_output(result: Any, output: Path, quick: bool) -> Path:
+    """Where a plan is written: ``output``, but for a failed plan (``_plan_exit_code``) over a
+    recipe that runs, which it never replaces: ``-o`` the ``--base`` (how a recipe is
+    re-planned in place, as the README shows) lost the working recipe to the failed one. That
+    one goes beside it, ``NAME.failed.yaml``."""
+    failed = not quick and any(plan.undone is not None for plan in result.phases)
+    if not failed or not output.is_file():
+        return output
+    data = _existing_yaml(output)
+    if not data or _existing_kind(data) != "recipe":
+        return output
+    if "failed_phases" in (data.get("planned_from") or {}):
+        return output  # a failed plan's recipe itself: nothing that runs is lost
+    aside = output.with_name(f"{output.stem}.failed{output.suffix}")
+    print(
+        f"handctl: the plan failed: {output} is a recipe that runs and is kept; the failed "
+        f"plan is written to {aside}",
+        file=sys.stderr,
+    )
+    return aside
 
 
 def _plan_plots(result: Any, directory: Path) -> list[Path]:

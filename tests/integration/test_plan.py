@@ -460,6 +460,25 @@ def test_a_plan_whose_phase_does_its_job_on_no_model_fails(tmp_path: Path) -> No
     assert "warning: phase 'hold'" in quick.stderr and "smoke test" in quick.stderr
 
 
+def test_a_failed_plan_never_replaces_a_recipe_that_runs(tmp_path: Path) -> None:
+    """-o the --base is how a recipe is re-planned in place: a plan that failed replaced the
+    working recipe with the failed one (found by an outside audit). It goes beside it."""
+    template = _hold_only(tmp_path)
+    out = tmp_path / "r.yaml"
+    out.write_text(PLANAR_RECIPE.read_text())  # a recipe that runs
+    done = plan_command(str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1")
+    assert done.returncode == 1, done.stderr
+    assert out.read_text() == PLANAR_RECIPE.read_text()  # kept
+    aside = tmp_path / "r.failed.yaml"
+    assert f"{out} is a recipe that runs and is kept; the failed plan is written to {aside}" in (
+        done.stderr
+    )
+    assert load_recipe(aside, load_hand(PLANAR)).plan_failed  # the failed one, beside it
+    # a failed plan's own recipe is replaced as ever: nothing that runs is lost
+    again = plan_command(str(template), "--hand", str(PLANAR), "-o", str(aside), "--workers", "1")
+    assert again.returncode == 1 and "is kept" not in again.stderr
+
+
 def test_plot_directory_is_checked_before_the_plan_and_may_end_in_a_separator(
     tmp_path: Path,
 ) -> None:
