@@ -320,7 +320,12 @@ def hold_scorer(
     def score(o: PhaseOutcome) -> float:
         if o.failed:
             return -1.0
-        up = 1.0 if o.end_height >= min_height else 0.5 * max(0.0, o.end_height / min_height)
+        # (a min_height of 0, which a template may write, asks only that nothing sank: it
+        # was a division by zero, a traceback at the end of the phase's search)
+        if o.end_height >= min_height:
+            up = 1.0
+        else:
+            up = 0.5 * max(0.0, o.end_height / min_height) if min_height > 0 else 0.0
         pair = -0.5 if open_pair and o.pair_blocked else 0.0
         caged = 0.25 if o.est_valid and o.in_hand else -0.5
         return up + pair + caged - _limit_penalty(o, limit_margin)

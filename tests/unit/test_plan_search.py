@@ -136,3 +136,15 @@ def test_the_plans_progress_lists_a_few_models_and_counts_many() -> None:
     assert _outcomes_text(turn, many) == (
         "12 models: exit 11, timeout 1; turn -55 to -20 deg, peak at most 111 deg/s"
     )
+
+
+def test_a_hold_of_min_height_zero_is_scored_not_divided_by() -> None:
+    """A template may write min_height 0 (nothing asked but that nothing sinks): a model
+    that ended a little below its start was a division by zero, a traceback at the end of
+    the phase's search (found by an outside audit)."""
+    from handctl.planning.search import hold_scorer
+
+    score = hold_scorer(0.0)
+    sank = dataclasses.replace(outcome("timeout", 0.0, 0.0), end_height=-0.001)
+    held = dataclasses.replace(outcome("timeout", 0.0, 0.0), end_height=0.0)
+    assert score(sank) < score(held)
