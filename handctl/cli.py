@@ -867,7 +867,11 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     )
     # the plots first, drawn aside and moved in whole, the recipe last and whole: a Ctrl-C
     # while they were drawn left a recipe and a PNG cut short, where nothing was to be written
-    plots = _plan_plots(result, args.plot) if args.plot else []
+    plot_error: HandctlError | None = None
+    try:
+        plots = _plan_plots(result, args.plot) if args.plot else []
+    except HandctlError as exc:  # the plan is not lost to a plot that cannot be placed
+        plots, plot_error = [], exc
     output = _failed_plan_output(result, args.output, args.quick)
     _write_output("-o", output, recipe_text(result, command))
     wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
@@ -877,6 +881,9 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         print(_planned_phase_line(plan))
     for path in plots:
         print(f"  plot {path}")
+    if plot_error is not None:
+        print(f"handctl: error: {plot_error} (the recipe is written)", file=sys.stderr)
+        return EXIT_BAD_INPUT
     return _plan_exit_code(result, output, args.quick)
 
 
@@ -914,8 +921,17 @@ def _plan_plots(result: Any, directory: Path) -> list[Path]:
         drawn = plot_plan(result, Path(aside))
         placed = []
         for path in drawn:
-            os.replace(path, directory / path.name)
-            placed.append(directory / path.name)
+            target = directory / path.name
+            try:
+                os.replace(path, target)
+            except OSError as exc:  # it named the temporary file, not the one in --plot
+                raise ConfigError(
+                    "--plot",
+                    "",
+                    "a directory whose plot files can be replaced",
+                    Description(f"{target}: {exc.strerror}"),
+                ) from None
+            placed.append(target)
     return placed
 
 

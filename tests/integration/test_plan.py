@@ -479,6 +479,23 @@ def test_a_failed_plan_never_replaces_a_recipe_that_runs(tmp_path: Path) -> None
     assert again.returncode == 1 and "is kept" not in again.stderr
 
 
+def test_a_plot_that_cannot_be_placed_loses_no_plan(tmp_path: Path) -> None:
+    """A directory where a phase's plot goes lost the whole plan (no recipe), with a message
+    naming a temporary path (found by an outside audit)."""
+    template = _hold_only(tmp_path)
+    out, plots = tmp_path / "r.yaml", tmp_path / "plots"
+    (plots / "01_hold.png").mkdir(parents=True)
+    done = plan_command(
+        str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1", "--plot", str(plots)
+    )
+    assert done.returncode == 2, done.stderr
+    assert f"--plot: expected a directory whose plot files can be replaced, found {plots}" in (
+        done.stderr
+    )
+    assert "01_hold.png" in done.stderr and ".handctl-plot-" not in done.stderr
+    assert "(the recipe is written)" in done.stderr and out.exists()
+
+
 def test_plot_directory_is_checked_before_the_plan_and_may_end_in_a_separator(
     tmp_path: Path,
 ) -> None:
