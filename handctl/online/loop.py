@@ -612,8 +612,9 @@ class Runtime:
         """Why the nodes must not be enabled, whatever they say of their state (None if
         nothing refuses them): a peer process that ended (the simulated hand of a real-time
         run: said at once, not after the whole start-up timeout), a bus-off (before, the run
-        enabled every node on that bus and stopped on BUS_ERROR at its first tick; the other
-        bus events wait for the first running tick, as ever), a node of another protocol
+        enabled every node on that bus and stopped on BUS_ERROR at its first tick; a receive
+        backlog likewise; the other bus events wait for the first running tick, as ever), a
+        node of another protocol
         version (its frames may mean something else than this host reads into them), or
         another sender on the host's command ids (the nodes would hear two hosts)."""
         gone = self.peer_gone() if self.peer_gone is not None else ""
@@ -624,6 +625,16 @@ class Runtime:
             return (
                 FaultCode.BUS_ERROR,
                 f"bus-off during start-up ({off.detail}): no node was enabled",
+            )
+        # a receive backlog too, an immediate stop in a run (safety.md #41): the start-up
+        # enabled every node and the run stopped on it at its first running tick
+        backlog = next(
+            (e for e in self.driver.bus_events if e.kind is BusEventKind.RX_BACKLOG), None
+        )
+        if backlog is not None:
+            return (
+                FaultCode.RX_BACKLOG,
+                f"receive backlog during start-up ({backlog.detail}): no node was enabled",
             )
         nodes = self.driver.nodes
         wrong = [

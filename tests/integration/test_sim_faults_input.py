@@ -109,3 +109,23 @@ def test_a_bus_off_during_start_up_enables_no_node(tmp_path: Path) -> None:
     rerun = handctl("replay", str(log), "--rerun")
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
     assert "the start-up re-run to the same end (startup_failed)" in rerun.stdout
+
+
+def test_a_receive_backlog_during_start_up_enables_no_node(tmp_path: Path) -> None:
+    """A backlog is an immediate stop (safety.md #41), and one heard while the nodes are
+    listened to enabled them all the same: the run stopped on it at its first running tick
+    (found by an outside audit). Now it is the start-up's end, as a bus-off is."""
+    recipe, faults = tmp_path / "hold.yaml", tmp_path / "faults.yaml"
+    out = tmp_path / "out.json"
+    recipe.write_text(HOLD_LONG)
+    faults.write_text("faults:\n  - {kind: babble, per_tick: 1000, start: 0.0, stop: 0.02}\n")
+    done = handctl(
+        "run", "recipe", str(recipe), "--sim-faults", str(faults), "--max-seconds", "2",
+        "--summary-json", str(out),
+    )  # fmt: skip
+    assert done.returncode == 3, done.stderr
+    summary = json.loads(out.read_text())
+    assert summary["outcome"] == "startup_failed", summary["message"]
+    assert [f["code"] for f in summary["faults"]] == ["RX_BACKLOG"]
+    assert "receive backlog during start-up" in summary["faults"][0]["detail"]
+    assert "no node was enabled" in summary["faults"][0]["detail"]
