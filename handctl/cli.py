@@ -1058,6 +1058,11 @@ def _cmd_sim(args: argparse.Namespace) -> int:
             raise KeyboardInterrupt(terminated[0])
 
     signal.signal(signal.SIGTERM, terminate)
+    # and the others whose default ends the process, as for a run (stopsignals): SIGUSR1
+    # killed the hand by the signal, no summary, its socket left in the bus directory
+    for other in (signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM):
+        if signal.getsignal(other) is not signal.SIG_IGN:
+            signal.signal(other, terminate)
     # whether --parent-pid named this hand's parent, alive or gone: only then is a bus
     # directory left when the parent is gone its to tidy (a live process that is not the
     # parent would have it tidy a bus others are on)

@@ -5,6 +5,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import signal as sig_module
+import subprocess
+import sys
 import threading
 import time
 from collections import Counter
@@ -248,3 +251,35 @@ def test_a_standalone_hand_on_the_virtual_bus_says_no_other_process_hears_it(
     assert "--bus virtual:alone lives inside this process: no other command or process" in err
     assert cli.main(["sim", "--bus", "sim", "--seconds", "0.1"]) == cli.EXIT_BAD_INPUT
     assert "lives inside this process" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("sig", [sig_module.SIGTERM, sig_module.SIGUSR1, sig_module.SIGALRM])
+def test_a_standalone_hand_ends_cleanly_on_a_signal_that_would_kill_it(
+    tmp_path: Path, sig: sig_module.Signals
+) -> None:
+    """SIGUSR1, SIGUSR2 and SIGALRM killed ``handctl sim`` by the signal: no summary, its
+    socket left in the bus directory (found by an outside audit). They end it as SIGTERM
+    does: its summary written, the directory left as it found it."""
+    bus, summary = tmp_path / "bus", tmp_path / "truth.json"
+    bus.mkdir()
+    sim = subprocess.Popen(
+        [
+            *(sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{bus}"),
+            *("--seconds", "120", "--summary-json", str(summary)),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert sim.stderr is not None
+        first = sim.stderr.readline()  # its first status line: the hand runs
+        assert first.startswith("t="), first + sim.communicate()[1]
+        sim.send_signal(sig)
+        _, err = sim.communicate(timeout=60)
+    finally:
+        sim.kill()
+    assert sim.returncode in (0, 130), err
+    assert summary.exists(), err
+    assert not any(bus.iterdir())  # its socket gone with it
