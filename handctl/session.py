@@ -497,8 +497,10 @@ def _start_clock(
 
 
 #: s, the least a run on a bus listens for another host's commands before anything else: a
-#: host sends a TorqueCommand every tick (twenty at 1 kHz), a listener (``monitor``) none
-LISTEN_FOR_HOST_S = 0.02
+#: host sends a TorqueCommand every tick, a listener (``monitor``) none. Three of a unix bus
+#: sender's re-listings of its participants (``unixcan.PEERS_EVERY_S``): a listener there
+#: is sent to only once the other host has listed it, and 20 ms missed one run in two
+LISTEN_FOR_HOST_S = 0.15
 
 
 def _refuse_another_host(spec: BusSpec, hand: HandConfig) -> None:

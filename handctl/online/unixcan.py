@@ -69,6 +69,9 @@ MAX_FRAMES_PER_S = 1_000_000
 #: ns: a directory modified longer ago than this is as it was at the last listing if its
 #: modification time has not changed since (``_refresh_peers``).
 _SETTLED_NS = 1_000_000_000
+#: s: how often a sender lists the participants again (``_refresh_peers``): a socket that
+#: joins is sent to from at most this long after
+PEERS_EVERY_S = 0.05
 #: How long ``shutdown`` keeps offering held frames to receivers that are still reading.
 _SHUTDOWN_S = 0.02
 
@@ -212,14 +215,14 @@ class UnixDatagramBus(can.BusABC):
         )
 
     def _refresh_peers(self, force: bool = False) -> None:
-        """Re-list the participants at most every 50 ms (unless ``force``): joining is
+        """Re-list the participants at most every ``PEERS_EVERY_S`` (unless ``force``): joining is
         rare, sending is not.
 
         A listing costs tens of µs, so it is skipped while the directory is as it was at the
         last one (its modification time the same, and older than ``_SETTLED_NS``: a time
         stamp that coarse file systems may still share with a later change)."""
         now = time.monotonic()
-        if not force and now - self._peers_at < 0.05:
+        if not force and now - self._peers_at < PEERS_EVERY_S:
             return
         self._peers_at = now
         try:
