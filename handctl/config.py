@@ -193,8 +193,8 @@ def parse_hand(doc: Doc, protocol: Protocol | None = None, dbc: str | None = Non
     # hash recipes compiled before that was done carry (``legacy_hash``). Hashed once the
     # config is known good: a key that is no string fails the hash's sort, not the reading.
     as_written = copy.deepcopy(dict(doc.data))
-    name = doc.label("name")
     # a recording's hand is read as it ran; a hand to run takes a loop the rules allow now
+    name = doc.label("name", as_recorded=protocol is not None)
     bus = _parse_bus(
         doc.mapping("bus"), MIN_LOOP_RATE_HZ if protocol is not None else slowest_loop_rate_hz()
     )

@@ -821,7 +821,7 @@ class Doc:
             self.fail(key, "a non-empty string", _type_name(value))
         return value
 
-    def label(self, key: str, *, default: Any = _MISSING) -> str:
+    def label(self, key: str, *, default: Any = _MISSING, as_recorded: bool = False) -> str:
         """A name that is printed as it is (a hand's, a recipe's, a phase's): ``string`` of
         printable characters. An escape sequence in a hand's name retitled and cleared the
         terminal of whoever ran it or replayed its log; a newline in a phase's name forged a
@@ -830,8 +830,9 @@ class Doc:
         value = self.string(key, default=default)
         if not value.isprintable():
             self.fail(key, "a name of printable characters (no newline, tab or escape)", value)
-        if value != value.strip() or (value and not value.strip()):
-            # a hand named " " showed as nothing in check, the summary and the plot's title
+        if not as_recorded and (value != value.strip() or (value and not value.strip())):
+            # a hand named " " showed as nothing in check, the summary and the plot's title;
+            # (``as_recorded``: a recording's hand or recipe is read as it ran)
             self.fail(key, "a name not beginning or ending with a space", value)
         if len(value) > MAX_LABEL:
             # a 300-character recipe name ran off both edges of its plot's title

@@ -205,7 +205,9 @@ class Derived:
         recipe_doc = metadata.get(ch.META_RECIPE, {}).get("yaml")
         recipe_objects = []
         if recipe_doc:
-            recipe = parse_recipe(parse_yaml(str(recipe_doc), "the recorded recipe"), hand)
+            recipe = parse_recipe(
+                parse_yaml(str(recipe_doc), "the recorded recipe"), hand, as_recorded=True
+            )
             recipe_objects = list(recipe.objects)
         lengths: dict[str, float] = {}
         true_objects: list[ObjectShape] = []

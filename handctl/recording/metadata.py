@@ -234,6 +234,8 @@ def recorded_recipe(recording: Recording, hand: HandConfig) -> Recipe:
             "the recipe the run used (recorded by handctl)",
             "nothing",
         )
-    recipe = parse_recipe(parse_yaml(text, f"{recording.path} (its recorded recipe)"), hand)
+    recipe = parse_recipe(
+        parse_yaml(text, f"{recording.path} (its recorded recipe)"), hand, as_recorded=True
+    )
     check_against_hand(recipe, hand)
     return recipe

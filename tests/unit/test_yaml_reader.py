@@ -572,3 +572,27 @@ def test_a_hand_name_of_spaces_or_with_spaces_at_its_ends_is_refused(
         load_hand(path)
     assert info.value.key == "name"
     assert "a name not beginning or ending with a space" in info.value.expected
+
+
+def test_a_recording_s_hand_and_recipe_are_read_as_they_ran_whatever_their_names(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A name with a space at one end is refused in a hand config or a recipe to run, but a
+    recording made before that rule still replays (it exited 2: found by an outside review)."""
+    from handctl.config import parse_hand
+    from handctl.hand_protocol import protocol_for
+    from handctl.online.recipes.loader import parse_recipe
+    from handctl.schema import parse_yaml
+
+    text = HAND_TEXT.replace("name: hiroshima_hand", 'name: "hiroshima_hand "')
+    with pytest.raises(ConfigError):
+        parse_hand(parse_yaml(text, "hand.yaml"))
+    recorded = parse_hand(parse_yaml(text, "hand.yaml"), protocol_for(hand))
+    assert recorded.name == "hiroshima_hand "
+    recipe = RECIPE_YAML.read_text(encoding="utf-8")
+    old = recipe.replace("recipe: swap_two_cylinders", 'recipe: "swap_two_cylinders "')
+    with pytest.raises(ConfigError):
+        parse_recipe(parse_yaml(old, "recipe.yaml"), hand)
+    assert parse_recipe(parse_yaml(old, "recipe.yaml"), hand, as_recorded=True).name == (
+        "swap_two_cylinders "
+    )

@@ -101,8 +101,10 @@ def load_recipe(path: str | Path, hand: HandConfig) -> Recipe:
     return recipe
 
 
-def parse_recipe(doc: Doc, hand: HandConfig) -> Recipe:
-    name = doc.label("recipe")
+def parse_recipe(doc: Doc, hand: HandConfig, *, as_recorded: bool = False) -> Recipe:
+    """The recipe in ``doc`` for ``hand``; ``as_recorded``: a recording's, read as it ran
+    (a name the rules refuse now stays readable)."""
+    name = doc.label("recipe", as_recorded=as_recorded)
     description = doc.text("description", default="")
     compiled = doc.boolean("compiled", default=False)
     digest = doc.raw("hand_config_hash", None)
