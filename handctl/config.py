@@ -277,6 +277,12 @@ MAX_FEEDBACK_TIMEOUT_S = 0.1
 #: tendon went unseen and the run exited 0); at a half, with the absolute part under half of
 #: tau_max (``_check_tdt_tolerance``), a reading of 0 at tau_max is still one.
 MAX_TDT_TOLERANCE_REL = 0.5
+#: s: the longest a watchdog's window may be, the TDT cross-check's and the stuck-sensor's
+#: (a mismatch or a still reading must last it to be a fault). 10 s was accepted: a slack
+#: tendon ran nine seconds unseen and the run stopped only on a joint's soft limit.
+MAX_WATCHDOG_WINDOW_S = 0.5
+#: s: the longest the host may go without a node's heartbeat (ten of its periods)
+MAX_HEARTBEAT_TIMEOUT_S = 1.0
 
 
 def _check_checks_can_fire(doc: Doc, hand: HandConfig) -> None:
@@ -310,6 +316,19 @@ def _check_checks_can_fire(doc: Doc, hand: HandConfig) -> None:
             "without hearing the joint",
             description(f"{safety.feedback_timeout_s:g} s"),
         )
+    windows = (
+        ("tdt_window_s", safety.tdt_window_s, MAX_WATCHDOG_WINDOW_S),
+        ("tdt_stuck_window_s", safety.tdt_stuck_window_s, MAX_WATCHDOG_WINDOW_S),
+        ("heartbeat_timeout_s", safety.heartbeat_timeout_s, MAX_HEARTBEAT_TIMEOUT_S),
+    )
+    for key, value, most in windows:
+        if value > most:
+            doc.fail(
+                f"safety.{key}",
+                f"at most {most:g} s: longer, the watchdog sees a fault only once the hand has "
+                "lived with it that long (a slack tendon ran nine seconds unseen at 10 s)",
+                description(f"{value:g} s"),
+            )
     ticks = round(safety.reject_window_s * hand.bus.loop_rate_hz)
     if safety.max_rejects_in_window >= max(ticks, 1):
         doc.fail(

@@ -827,6 +827,10 @@ def test_a_tdt_tolerance_of_half_a_joint_s_torque_is_refused(
         ("feedback_timeout_s", 0.101, 0.1, "at most 0.1 s"),
         # 100 ticks in the default 0.1 s window: 100 rejects let every frame be rejected
         ("max_rejects_in_window", 100, 99, "fewer than the 100 ticks of reject_window_s"),
+        # a slack tendon ran nine seconds unseen with a window of 10 s
+        ("tdt_window_s", 0.51, 0.5, "at most 0.5 s: longer, the watchdog sees a fault"),
+        ("tdt_stuck_window_s", 0.51, 0.5, "at most 0.5 s"),
+        ("heartbeat_timeout_s", 1.01, 1.0, "at most 1 s"),
     ],
 )
 def test_a_safety_setting_that_turns_its_own_check_off_is_refused(
