@@ -29,7 +29,15 @@ def _load_orjson() -> None:
     imports it makes, and an interrupt raised inside one (a Ctrl-C in the first half second
     of any command that reads JSON) crashed the process (SIGSEGV). Held back, the signal
     comes right after, as the interrupt it is."""
-    held = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT}
+    held = {
+        signal.SIGINT,
+        signal.SIGTERM,
+        signal.SIGHUP,
+        signal.SIGQUIT,
+        signal.SIGUSR1,
+        signal.SIGUSR2,
+        signal.SIGALRM,
+    }
     before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:
         import orjson  # noqa: F401  # loaded here for the reason above
@@ -52,9 +60,10 @@ def entry() -> int:
     _standard_descriptors()  # sys.stdout and sys.stderr stay None if they were closed
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
-    # SIGHUP and SIGQUIT (Ctrl-\\) end a command as Ctrl-C does, not by the signal; unless
-    # started with them ignored (nohup: asked to go on)
-    for sig in (signal.SIGHUP, signal.SIGQUIT):
+    # SIGHUP, SIGQUIT (Ctrl-\\), SIGUSR1/2 and SIGALRM end a command as Ctrl-C does, not by
+    # the signal (a run killed so in its first tenth of a second, rc -10); unless started
+    # with them ignored (nohup: asked to go on)
+    for sig in (signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM):
         if signal.getsignal(sig) is not signal.SIG_IGN:
             signal.signal(sig, _interrupt)
     try:

@@ -11,7 +11,8 @@ Exit codes (the same for every subcommand):
 4    bus unavailable or failed
 5    the host failed the timing check (``check --timing``, or before a run on a real bus);
      nothing was sent
-130  interrupted (Ctrl-C, SIGTERM or SIGHUP), after a controlled stop
+130  interrupted (Ctrl-C, SIGTERM, SIGHUP, Ctrl-\\ or, for a run, Ctrl-Z, SIGUSR1/2 and
+     SIGALRM), after a controlled stop
 ==== =====================================================================
 
 A run that reaches its ``--max-seconds`` stops under control with the outcome ``time_budget``
@@ -1954,7 +1955,10 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         recover=args.recover,
         show=show,
     )
-    say_banner()
+    from handctl.online.loop import Outcome
+
+    if result.report.result.outcome is not Outcome.STARTUP_FAILED:
+        say_banner()  # a jog that ran (a failed start-up's error says it did not)
     moved = result.moved
     if moved is not None:
         print(
@@ -2566,9 +2570,9 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="run a grasp recipe",
         description="Run a recipe phase by phase at the hand's loop rate, every torque through "
         "the safety supervisor. Default bus: the simulated hand, in lockstep.",
-        notes="Ctrl-C, SIGTERM or SIGHUP: a controlled stop (torque to zero, nodes disabled), exit "
-        "130. At --max-seconds: the same stop, outcome time_budget, exit 0. A safety "
-        "stop exits 3.",
+        notes="Ctrl-C, SIGTERM, SIGHUP, Ctrl-\\ (SIGQUIT), Ctrl-Z, SIGUSR1/2 or SIGALRM: a "
+        "controlled stop (torque to zero, nodes disabled), exit 130. At --max-seconds: the "
+        "same stop, outcome time_budget, exit 0. A safety stop exits 3.",
         examples=[
             example,
             "handctl run recipe RECIPE.yaml --bus socketcan:can0 --rt --log RUN.mcap",

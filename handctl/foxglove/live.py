@@ -30,7 +30,7 @@ import orjson
 from foxglove import Channel, Context, Schema
 from foxglove.websocket import WebSocketServer
 
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, escaped
 from handctl.foxglove import HOST
 from handctl.foxglove.derived import JOINTS, RX_DECODED, TX_DECODED
 from handctl.recording import channels as ch
@@ -87,7 +87,9 @@ class _BoundedNotes(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         if self.shown < NOTES_SHOWN:
             self.shown += 1
-            sys.stderr.write(f"live view: {record.getMessage()}\n")
+            # escaped: the note quotes what the client sent, and an escape sequence there
+            # retitled and recoloured the operator's terminal
+            sys.stderr.write(f"live view: {escaped(record.getMessage())}\n")
         else:
             self.more += 1
 

@@ -490,3 +490,15 @@ def test_a_jog_refused_before_it_runs_prints_no_banner(
     captured = capsys.readouterr()
     assert "socketcan:can0" in captured.err
     assert captured.out == ""
+
+
+def test_a_jog_whose_start_up_failed_prints_no_banner(capsys: pytest.CaptureFixture[str]) -> None:
+    """No node answered, the start-up failed (exit 3), and the banner and the table's header
+    were printed all the same, after it: a jog that never ran looked like one that had."""
+    import uuid
+
+    argv = ["jog", "f1_j1", "--torque", "0.03", "--bus", f"virtual:nobody-{uuid.uuid4().hex}"]
+    assert cli.main([*argv, "--accept-missed-deadlines"]) == cli.EXIT_SAFETY_STOP
+    captured = capsys.readouterr()
+    assert "no feedback" in captured.err or "not ready" in captured.err, captured.err
+    assert "jog f1_j1 with" not in captured.out and "angle rad" not in captured.out

@@ -620,6 +620,7 @@ async def _junk(port: int, count: int) -> None:
     async with websockets.connect(
         f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None
     ) as ws:
+        await ws.send(json.dumps({"op": "\x1b]2;PWNED\x07\x1b[31mevil"}))  # shown first
         for k in range(count):
             await ws.send(f"junk {k}")
         await ws.send(
@@ -647,11 +648,12 @@ def test_a_client_sending_junk_gets_a_few_lines_on_stderr_not_one_each(
     err = capfd.readouterr().err.splitlines()
     said = [line for line in err if line.startswith("live view: ")]
     assert len(said) == NOTES_SHOWN + 1, err
-    assert "Invalid message" in said[0]
+    assert "Invalid message" in said[0] and "PWNED" in said[0]
     more = said[-1].removeprefix("live view: ").split()
     assert more[1:] == ["more", "notes", "of", "its", "clients", "not", "shown"]
-    assert int(more[0]) >= 50 - NOTES_SHOWN  # every junk message counted, none lost
+    assert int(more[0]) >= 51 - NOTES_SHOWN  # every junk message counted, none lost
     assert len(err) == len(said)  # nothing else printed of them
+    assert "\x1b" not in capfd.readouterr().err + "\n".join(err)  # no escape reaches a terminal
 
 
 def test_a_port_taken_after_the_check_is_said_against_live() -> None:
