@@ -127,6 +127,25 @@ class InlineExecutor(cf.Executor):
         return future
 
 
+def start_resource_tracker() -> None:
+    """multiprocessing's resource tracker started now, with the terminal's other signals
+    held back in it: it shares the terminal's process group, and Ctrl-\\ (SIGQUIT) killed
+    it, which printed a "process died unexpectedly" and five KeyError tracebacks at the
+    end of a plan Ctrl-\\ had stopped cleanly; Ctrl-Z stopped it. (It holds back SIGINT and
+    SIGTERM itself.) Blocked signals stay blocked across its exec, and are never delivered."""
+    from multiprocessing import resource_tracker
+
+    if threading.current_thread() is not threading.main_thread():
+        resource_tracker.ensure_running()
+        return
+    held = {signal.SIGQUIT, signal.SIGTSTP, signal.SIGHUP}
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
 def _start_worker(owner: int) -> None:
     """A local worker leaves Ctrl-C to the pool's owner, who stops it; its session is its own,
     so that it is stopped with whatever it started; and it ends, with all of that, when the
@@ -308,6 +327,7 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
         return WorkPool(InlineExecutor(), 1, "this process", lambda _cancel: None)
     # spawn, not fork: a worker starts from the installed package alone, as a cluster's does,
     # and inherits no thread, lock or open file of the caller
+    start_resource_tracker()
     pool = cf.ProcessPoolExecutor(
         max_workers=count,
         mp_context=get_context("spawn"),

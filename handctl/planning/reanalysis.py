@@ -156,7 +156,10 @@ class ReanalysisWorker:
     def __init__(
         self, hand: HandConfig, recipe: Recipe, radii: Radii, avoid_cpus: Set[int] = frozenset()
     ) -> None:
+        from handctl.executor import start_resource_tracker
+
         self.radii = radii
+        start_resource_tracker()
         # the hand and the recipe go over once, at the start: a request is then a few
         # hundred numbers to pickle, which the executor's threads do beside the loop
         self._pool = concurrent.futures.ProcessPoolExecutor(
@@ -194,6 +197,11 @@ def _start(avoid_cpus: frozenset[int], hand: HandConfig, recipe: Recipe) -> None
     """In the worker, once: the ordinary scheduling policy, every CPU it may use but those
     to avoid (all of them if that leaves none), and the run's hand and recipe."""
     _RUN["run"] = (local_hand(hand), recipe)
+    # a session of its own: Ctrl-C, Ctrl-\\ and Ctrl-Z at the terminal are the run's to
+    # answer (a controlled stop), and reached this worker too, which printed a
+    # KeyboardInterrupt traceback or died by the signal mid-run
+    with contextlib.suppress(OSError):
+        os.setsid()
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     with contextlib.suppress(OSError, AttributeError):

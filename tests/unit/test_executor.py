@@ -574,3 +574,26 @@ def test_a_local_worker_killed_is_said_in_one_line(tmp_path: Path) -> None:
     assert str(raised[0]) == (
         "a local worker process ended abruptly (killed, or out of memory): the work cannot go on"
     )
+
+
+def test_the_resource_tracker_holds_back_the_terminal_s_signals() -> None:
+    """It shares the terminal's process group: Ctrl-\\ killed it, and a plan stopped cleanly
+    by it printed "process died unexpectedly" and five KeyError tracebacks (found by an
+    outside review). Started by handctl, SIGQUIT, SIGTSTP and SIGHUP are blocked in it. (In a
+    process of its own: this one's tracker may have been started by another test.)"""
+    script = (
+        "import signal\n"
+        "from multiprocessing import resource_tracker\n"
+        "from handctl.executor import start_resource_tracker\n"
+        "start_resource_tracker()\n"
+        "pid = resource_tracker._resource_tracker._pid\n"
+        "status = open(f'/proc/{pid}/status').read()\n"
+        "line = next(x for x in status.splitlines() if x.startswith('SigBlk:'))\n"
+        "blocked = int(line.split()[1], 16)\n"
+        "held = (signal.SIGQUIT, signal.SIGTSTP, signal.SIGHUP)\n"
+        "print(all(blocked >> (s - 1) & 1 for s in held))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], check=False, capture_output=True, text=True, timeout=60
+    )
+    assert done.stdout.strip() == "True", done.stdout + done.stderr
