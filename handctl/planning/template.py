@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from handctl.config import HandConfig
+from handctl.errors import ConfigError
 from handctl.online.recipes.guard import GuardSettings
 from handctl.online.recipes.loader import (
     MAX_JOINT_DAMPING,
@@ -235,7 +236,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         _phase(p, hand, names, estimates) for p in doc.mappings("phases", min_len=1, max_len=32)
     )
     check_unique_names(doc, [p.name for p in phases])
-    _check_free_ramps(doc.file, phases, hand)
+    _check_free_ramps(doc.file, phases, hand, end_ramp)
     phases = _resolve_turn_from(doc, phases)
     grasp_model = parse_grasp_model(
         doc, objects, [i for i, p in enumerate(phases) if p.reanalyse is not None]
@@ -255,10 +256,14 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     )
 
 
-def _check_free_ramps(source: str, phases: Sequence[TemplatePhase], hand: HandConfig) -> None:
+def _check_free_ramps(
+    source: str, phases: Sequence[TemplatePhase], hand: HandConfig, end_ramp_s: float
+) -> None:
     """The ramps between torques the template gives itself (its free phases', from zero at
-    the start), held to the rate limits now, as the planned recipe's are: a ramp_s of 0 into
-    the first phase was refused only once every phase had been planned."""
+    the start, and back to zero at the end), held to the rate limits now, as the planned
+    recipe's are: a ramp_s of 0 into the first phase, or an end_ramp_s of 0, was refused only
+    once every phase had been planned (minutes of planning lost). A last phase the search
+    plans ends on torques not known yet, but not zero: its end ramp must take time."""
     rate = np.array([j.rate_limit for j in hand.joints])
     before: np.ndarray | None = np.zeros(hand.n_joints)
     for i, phase in enumerate(phases):
@@ -279,6 +284,25 @@ def _check_free_ramps(source: str, phases: Sequence[TemplatePhase], hand: HandCo
                 rate,
             )
         before = torques
+    if before is not None:
+        check_ramp(
+            source,
+            hand,
+            "end_ramp_s",
+            "back to zero after the last phase",
+            before,
+            np.zeros(hand.n_joints),
+            end_ramp_s,
+            rate,
+        )
+    elif end_ramp_s == 0:
+        raise ConfigError(
+            source,
+            "end_ramp_s",
+            "a ramp back to zero longer than 0 s: the last phase's planned torques are not "
+            "zero, and a step to zero is beyond every rate limit",
+            end_ramp_s,
+        )
 
 
 def _resolve_turn_from(doc: Doc, phases: tuple[TemplatePhase, ...]) -> tuple[TemplatePhase, ...]:
