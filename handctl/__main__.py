@@ -4,6 +4,8 @@ import os
 import signal
 import sys
 
+from handctl.stopsignals import ENDING  # the standard library's modules only
+
 
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt(signal.Signals(signum).name)
@@ -29,15 +31,7 @@ def _load_orjson() -> None:
     imports it makes, and an interrupt raised inside one (a Ctrl-C in the first half second
     of any command that reads JSON) crashed the process (SIGSEGV). Held back, the signal
     comes right after, as the interrupt it is."""
-    held = {
-        signal.SIGINT,
-        signal.SIGTERM,
-        signal.SIGHUP,
-        signal.SIGQUIT,
-        signal.SIGUSR1,
-        signal.SIGUSR2,
-        signal.SIGALRM,
-    }
+    held = {signal.SIGINT, signal.SIGTERM, *ENDING}
     before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:
         import orjson  # noqa: F401  # loaded here for the reason above
@@ -63,7 +57,7 @@ def entry() -> int:
     # SIGHUP, SIGQUIT (Ctrl-\\), SIGUSR1/2 and SIGALRM end a command as Ctrl-C does, not by
     # the signal (a run killed so in its first tenth of a second, rc -10); unless started
     # with them ignored (nohup: asked to go on)
-    for sig in (signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM):
+    for sig in ENDING:
         if signal.getsignal(sig) is not signal.SIG_IGN:
             signal.signal(sig, _interrupt)
     try:

@@ -3256,12 +3256,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         if threading.current_thread() is not threading.main_thread():  # signals are not ours
             return _run_args(argv)
         before = signal.signal(signal.SIGTERM, _interrupt)
-        # a terminal that went away, and Ctrl-\\ (SIGQUIT: it ended a jog or a replay onto a
-        # bus by the signal, no stop sent); but a run started under nohup (SIGHUP ignored)
-        # asked to outlive its terminal, and keeps ignoring it
-        before_hup = signal.getsignal(signal.SIGHUP)
-        before_quit = signal.getsignal(signal.SIGQUIT)
-        for sig, inherited in ((signal.SIGHUP, before_hup), (signal.SIGQUIT, before_quit)):
+        # a terminal that went away, Ctrl-\\ (SIGQUIT: it ended a jog or a replay onto a bus
+        # by the signal, no stop sent) and the rest of stopsignals.ENDING; but a run started
+        # under nohup (SIGHUP ignored) asked to outlive its terminal, and keeps ignoring it
+        from handctl.stopsignals import ENDING
+
+        ending = {sig: signal.getsignal(sig) for sig in ENDING}
+        for sig, inherited in ending.items():
             if inherited is not signal.SIG_IGN:
                 signal.signal(sig, _interrupt)
         # SIGINT too, explicitly: a process started with it ignored (a background job of a
@@ -3273,8 +3274,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         finally:
             signal.signal(signal.SIGTERM, before)
             signal.signal(signal.SIGINT, before_int)
-            signal.signal(signal.SIGHUP, before_hup)
-            signal.signal(signal.SIGQUIT, before_quit)
+            for sig, inherited in ending.items():
+                signal.signal(sig, inherited)
 
 
 def _run_args(argv: Sequence[str] | None) -> int:

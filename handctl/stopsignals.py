@@ -22,6 +22,13 @@ if TYPE_CHECKING:
     from handctl.online.loop import RunResult, Runtime
 
 
+#: The signals whose default ends the process by the signal, and that a terminal, a session's
+#: end or a stray ``kill`` can send: every command takes them as Ctrl-C (``__main__.entry``,
+#: ``cli.main``) and a run as its controlled stop, unless it was started with one ignored
+#: (``nohup``: asked to go on).
+ENDING = (signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM)
+
+
 class StopSignals:
     """The stop signals (``SIGNALS``) over a whole run, from before anything starts to the last
     line of the log, so that each ends the run the same way whenever it comes, with exit 130:
@@ -58,16 +65,7 @@ class StopSignals:
     #: and a stray ``kill -USR1`` or a second terminal key is no reason to leave a hand under
     #: torque. A run started with one of these (or SIGHUP) ignored keeps ignoring it
     #: (``HONOURED_IF_IGNORED`` are the ones taken whatever was inherited).
-    SIGNALS = (
-        signal.SIGINT,
-        signal.SIGTERM,
-        signal.SIGHUP,
-        signal.SIGTSTP,
-        signal.SIGQUIT,
-        signal.SIGUSR1,
-        signal.SIGUSR2,
-        signal.SIGALRM,
-    )
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGTSTP, *ENDING)
     #: SIGINT and SIGTERM are a stop even when inherited ignored (a script's background job
     #: inherits SIGINT ignored, and its user still means Ctrl-C and ``kill``); SIGTSTP cannot
     #: be asked for by ignoring it.
