@@ -830,7 +830,7 @@ class Doc:
         value = self.string(key, default=default)
         if not value.isprintable():
             self.fail(key, "a name of printable characters (no newline, tab or escape)", value)
-        if not as_recorded and (value != value.strip() or (value and not value.strip())):
+        if not as_recorded and value != value.strip():
             # a hand named " " showed as nothing in check, the summary and the plot's title;
             # (``as_recorded``: a recording's hand or recipe is read as it ran)
             self.fail(key, "a name not beginning or ending with a space", value)

@@ -100,6 +100,7 @@ def _bounded_notes() -> _BoundedNotes:
     logger = logging.getLogger("foxglove")
     for handler in logger.handlers:
         if isinstance(handler, _BoundedNotes):
+            handler.shown = handler.more = 0  # a server's own five (a replay's after a run's)
             return handler
     handler = _BoundedNotes()
     logger.addHandler(handler)

@@ -253,7 +253,7 @@ def check_socketcan(
     hint = socketcan_setup_command(channel, bus_config)
     shown = escaped(channel)
     virtual = channel.startswith("vcan")
-    link_type = _read(node / "type") if node.exists() else ""
+    link_type = _read(node / "type")
     if link_type and link_type != str(ARPHRD_CAN):
         # first, on any kernel: `ip link set lo ... type can` was the advice for lo on one
         # without SocketCAN

@@ -74,6 +74,13 @@ DISABLE_CONFIRM_S = 0.010
 #: tick and the bus), and the host sends the e-stop
 DEFIANT_AFTER_PERIODS = 3
 STATUS_EVERY_TICKS = 100
+#: The bus events that end the start-up with nothing enabled, each an immediate stop in a run
+#: (safety.md #41): the start-up enabled every node and the run stopped on it at its first
+#: running tick. The other bus events wait for that tick, as ever.
+_REFUSE_STARTUP = {
+    BusEventKind.BUS_OFF: (FaultCode.BUS_ERROR, "bus-off"),
+    BusEventKind.RX_BACKLOG: (FaultCode.RX_BACKLOG, "receive backlog"),
+}
 #: A tick of the stop after an exception waits this long at most for the clock; a clock that
 #: does not answer is given up and the rest of the stop's frames go at once, in order.
 STOP_TICK_TIMEOUT_S = 0.1
@@ -611,31 +618,17 @@ class Runtime:
     def _refused_at_startup(self, since: int) -> tuple[FaultCode, str] | None:
         """Why the nodes must not be enabled, whatever they say of their state (None if
         nothing refuses them): a peer process that ended (the simulated hand of a real-time
-        run: said at once, not after the whole start-up timeout), a bus-off (before, the run
-        enabled every node on that bus and stopped on BUS_ERROR at its first tick; a receive
-        backlog likewise; the other bus events wait for the first running tick, as ever), a
-        node of another protocol
-        version (its frames may mean something else than this host reads into them), or
+        run: said at once, not after the whole start-up timeout), a bus-off or a receive
+        backlog (``_REFUSE_STARTUP``), a node of another protocol version (its frames may
+        mean something else than this host reads into them), or
         another sender on the host's command ids (the nodes would hear two hosts)."""
         gone = self.peer_gone() if self.peer_gone is not None else ""
         if gone:
             return FaultCode.STARTUP, gone
-        off = next((e for e in self.driver.bus_events if e.kind is BusEventKind.BUS_OFF), None)
-        if off is not None:
-            return (
-                FaultCode.BUS_ERROR,
-                f"bus-off during start-up ({off.detail}): no node was enabled",
-            )
-        # a receive backlog too, an immediate stop in a run (safety.md #41): the start-up
-        # enabled every node and the run stopped on it at its first running tick
-        backlog = next(
-            (e for e in self.driver.bus_events if e.kind is BusEventKind.RX_BACKLOG), None
-        )
-        if backlog is not None:
-            return (
-                FaultCode.RX_BACKLOG,
-                f"receive backlog during start-up ({backlog.detail}): no node was enabled",
-            )
+        event = next((e for e in self.driver.bus_events if e.kind in _REFUSE_STARTUP), None)
+        if event is not None:
+            code, what = _REFUSE_STARTUP[event.kind]
+            return code, f"{what} during start-up ({event.detail}): no node was enabled"
         nodes = self.driver.nodes
         wrong = [
             problem
