@@ -383,10 +383,10 @@ def _check_tdt_within_tolerance(doc: Doc, tdt: TdtParams, hand: HandConfig) -> N
     (standard deviations) each below ``safety.tdt_tolerance`` (at one sigma a third of the
     sensors read beyond it, and nearly every run of a hand of several joints stops: a sensor
     model that says the sensor cannot be used; a model with some chance of a mismatch, a
-    wider spread's, still runs and is judged by its runs), and its lag
-    at most the host's model of it (``safety.tdt_lag_s``) plus half the window a mismatch
-    must last (``safety.tdt_window_s``), beyond which a ramp of the torque reads wrong for
-    longer than the window. Beyond either, every run stopped on TDT_MISMATCH in its first tenth of a
+    wider spread's, still runs and is judged by its runs), and its lag at most the host's
+    model of it (``safety.tdt_lag_s``) plus half the window a mismatch must last
+    (``safety.tdt_window_s``), beyond which a ramp of the torque reads wrong for longer than
+    the window. Beyond either, every run stopped on TDT_MISMATCH in its first tenth of a
     second, on a config ``check`` passed."""
     safety = hand.safety
     for key, value in (("bias", tdt.bias), ("noise", tdt.noise)):
