@@ -77,7 +77,7 @@ STATUS_EVERY_TICKS = 100
 #: The bus events that end the start-up with nothing enabled, each an immediate stop in a run
 #: (safety.md #41): the start-up enabled every node and the run stopped on it at its first
 #: running tick. The other bus events wait for that tick, as ever.
-_REFUSE_STARTUP = {
+REFUSE_STARTUP = {
     BusEventKind.BUS_OFF: (FaultCode.BUS_ERROR, "bus-off"),
     BusEventKind.RX_BACKLOG: (FaultCode.RX_BACKLOG, "receive backlog"),
 }
@@ -619,15 +619,15 @@ class Runtime:
         """Why the nodes must not be enabled, whatever they say of their state (None if
         nothing refuses them): a peer process that ended (the simulated hand of a real-time
         run: said at once, not after the whole start-up timeout), a bus-off or a receive
-        backlog (``_REFUSE_STARTUP``), a node of another protocol version (its frames may
+        backlog (``REFUSE_STARTUP``), a node of another protocol version (its frames may
         mean something else than this host reads into them), or
         another sender on the host's command ids (the nodes would hear two hosts)."""
         gone = self.peer_gone() if self.peer_gone is not None else ""
         if gone:
             return FaultCode.STARTUP, gone
-        event = next((e for e in self.driver.bus_events if e.kind in _REFUSE_STARTUP), None)
+        event = next((e for e in self.driver.bus_events if e.kind in REFUSE_STARTUP), None)
         if event is not None:
-            code, what = _REFUSE_STARTUP[event.kind]
+            code, what = REFUSE_STARTUP[event.kind]
             return code, f"{what} during start-up ({event.detail}): no node was enabled"
         nodes = self.driver.nodes
         wrong = [

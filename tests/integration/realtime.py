@@ -122,5 +122,12 @@ def load_stopped(faults: list[dict[str, object]]) -> bool:
 
 
 def stopped_by_load(stderr: str) -> bool:
-    """Whether a run's stop, as handctl says it on stderr, is one the load causes."""
-    return any(f"safety stop: {code}" in stderr for code in LOAD_STOPS)
+    """Whether a run's stop, as handctl says it on stderr, is one the load causes: in the run
+    ("safety stop: RX_BACKLOG at tick ..."), or the start-up's end on one of those
+    (``REFUSE_STARTUP``: "safety stop: receive backlog during start-up ...")."""
+    from handctl.online.loop import REFUSE_STARTUP
+
+    during_start_up = [what for code, what in REFUSE_STARTUP.values() if code.name in LOAD_STOPS]
+    return any(f"safety stop: {code}" in stderr for code in LOAD_STOPS) or any(
+        f"safety stop: {what} during start-up" in stderr for what in during_start_up
+    )
