@@ -4,11 +4,11 @@ import os
 import signal
 import sys
 
-from handctl.stopsignals import ENDING  # the standard library's modules only
+from handctl.stopsignals import ENDING, signal_name  # the standard library's modules only
 
 
 def _interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt(signal.Signals(signum).name)
+    raise KeyboardInterrupt(signal_name(signum))
 
 
 def _standard_descriptors() -> None:
@@ -54,9 +54,9 @@ def entry() -> int:
     _standard_descriptors()  # sys.stdout and sys.stderr stay None if they were closed
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
-    # SIGHUP, SIGQUIT (Ctrl-\\), SIGUSR1/2 and SIGALRM end a command as Ctrl-C does, not by
-    # the signal (a run killed so in its first tenth of a second, rc -10); unless started
-    # with them ignored (nohup: asked to go on)
+    # SIGHUP, SIGQUIT (Ctrl-\\), SIGUSR1/2, SIGALRM, SIGXCPU and the rest of ENDING end a
+    # command as Ctrl-C does, not by the signal (a run killed so in its first tenth of a
+    # second, rc -10); unless started with them ignored (nohup: asked to go on)
     for sig in ENDING:
         if signal.getsignal(sig) is not signal.SIG_IGN:
             signal.signal(sig, _interrupt)

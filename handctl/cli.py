@@ -1035,6 +1035,7 @@ def _planned_phase_line(plan: Any) -> str:
 # -- sim ---------------------------------------------------------------------------------------
 def _cmd_sim(args: argparse.Namespace) -> int:
     from handctl.parent_death import parent_ends, remove_orphaned_bus
+    from handctl.stopsignals import ENDING, signal_name
 
     _positive_seconds("--seconds", args.seconds)
     # the ground truth is written after the whole run: a path that cannot take it is said
@@ -1054,16 +1055,18 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     def terminate(signum: int, frame: object) -> None:
         # Only the first: a dying host can signal its hand more than once (once per thread),
         # and a second interrupt would cut short the clean-up the first one began.
-        terminated.append(signal.Signals(signum).name)
+        terminated.append(signal_name(signum))
         if len(terminated) == 1:
             raise KeyboardInterrupt(terminated[0])
 
     signal.signal(signal.SIGTERM, terminate)
-    # and the others whose default ends the process, as for a run (stopsignals): SIGUSR1
-    # killed the hand by the signal, no summary, its socket left in the bus directory
-    for other in (signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM):
-        if signal.getsignal(other) is not signal.SIG_IGN:
-            signal.signal(other, terminate)
+    # and the others whose default ends the process, as for a run (stopsignals.ENDING; SIGHUP
+    # and SIGQUIT are ``main``'s already): SIGUSR1 killed the hand by the signal, no summary,
+    # its socket left in the bus directory
+    for other in ENDING:
+        if other in (signal.SIGHUP, signal.SIGQUIT) or signal.getsignal(other) is signal.SIG_IGN:
+            continue
+        signal.signal(other, terminate)
     # whether --parent-pid named this hand's parent, alive or gone: only then is a bus
     # directory left when the parent is gone its to tidy (a live process that is not the
     # parent would have it tidy a bus others are on)
@@ -3146,7 +3149,9 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
 
 def _interrupt(signum: int, frame: object) -> None:
     """SIGTERM as Ctrl-C: an interrupt that unwinds what was started, then exit 130."""
-    raise KeyboardInterrupt(signal.Signals(signum).name)
+    from handctl.stopsignals import signal_name
+
+    raise KeyboardInterrupt(signal_name(signum))
 
 
 class _ReaderMayLeave(io.TextIOBase):

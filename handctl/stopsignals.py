@@ -22,11 +22,39 @@ if TYPE_CHECKING:
     from handctl.online.loop import RunResult, Runtime
 
 
-#: The signals whose default ends the process by the signal, and that a terminal, a session's
-#: end or a stray ``kill`` can send: every command takes them as Ctrl-C (``__main__.entry``,
-#: ``cli.main``) and a run as its controlled stop, unless it was started with one ignored
-#: (``nohup``: asked to go on).
-ENDING = (signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM)
+def _ending() -> tuple[signal.Signals | int, ...]:
+    named = (
+        "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGXCPU", "SIGXFSZ",
+        "SIGVTALRM", "SIGPROF", "SIGIO", "SIGPWR", "SIGSTKFLT",
+    )  # fmt: skip
+    found: list[signal.Signals | int] = [getattr(signal, n) for n in named if hasattr(signal, n)]
+    low, high = getattr(signal, "SIGRTMIN", 0), getattr(signal, "SIGRTMAX", -1)
+    found += [n for n in range(int(low), int(high) + 1) if n not in found]
+    return tuple(found)
+
+
+#: Every signal whose default ends the process by the signal and that a process can catch,
+#: but SIGINT and SIGTERM (taken apart) and the faults the process raises on itself (SIGSEGV,
+#: SIGBUS, SIGILL, SIGFPE, SIGTRAP, SIGSYS, SIGABRT: a handler cannot resume after those):
+#: a terminal, a session's end, a stray ``kill`` and the kernel's resource limits can send
+#: them. SIGXCPU is the one an ``--rt`` run meets for real: the kernel sends it to a
+#: SCHED_FIFO loop past its ``RLIMIT_RTTIME`` (and to any process past ``ulimit -t``), and it
+#: killed the run with its last torque on the bus, no zero, no disable, no summary. SIGXFSZ,
+#: a log past ``ulimit -f``, likewise. Every command takes them as Ctrl-C
+#: (``__main__.entry``, ``cli.main``) and a run as its controlled stop, unless it was started
+#: with one ignored (``nohup``: asked to go on). SIGPIPE is not among them: Python ignores it
+#: (a closed pipe is an error of the write).
+ENDING = _ending()
+
+
+def signal_name(number: int) -> str:
+    """``SIGXCPU``, or ``SIGRTMIN+3`` for a real-time signal (``signal.Signals`` names only the
+    first and the last of those, and raised on the others inside the handler)."""
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        low = int(getattr(signal, "SIGRTMIN", 0))
+        return f"SIGRTMIN+{number - low}" if low and number > low else f"signal {number}"
 
 
 class StopSignals:
@@ -60,8 +88,9 @@ class StopSignals:
     #: dropped the torque at once and latched a TIMEOUT fault the next run had to reset, and
     #: the log and the summary waited for a resume. A run that drives a hand cannot pause; it
     #: stops, as asked, and says why.
-    #: SIGQUIT (Ctrl-\\, the key pressed when Ctrl-C seems slow), SIGUSR1, SIGUSR2 and SIGALRM:
-    #: their default ends the process by the signal, with the same result as a hang-up's,
+    #: SIGQUIT (Ctrl-\\, the key pressed when Ctrl-C seems slow), SIGUSR1, SIGUSR2, SIGALRM,
+    #: SIGXCPU and the rest of ``ENDING``: their default ends the process by the signal, with
+    #: the same result as a hang-up's,
     #: and a stray ``kill -USR1`` or a second terminal key is no reason to leave a hand under
     #: torque. A run started with one of these (or SIGHUP) ignored keeps ignoring it
     #: (``HONOURED_IF_IGNORED`` are the ones taken whatever was inherited).
@@ -110,7 +139,7 @@ class StopSignals:
             raise KeyboardInterrupt(self.interrupted)
 
     def _handle(self, signum: int, frame: object) -> None:
-        name = signal.Signals(signum).name
+        name = signal_name(signum)
         if signum == signal.SIGTSTP:
             name += " (Ctrl-Z: a run that drives a hand cannot be suspended; stopped instead)"
         if self.finishing or self.noted:
@@ -164,7 +193,7 @@ def held_back() -> Iterator[list[str]]:
         return
 
     def note(signum: int, frame: object) -> None:
-        name = signal.Signals(signum).name
+        name = signal_name(signum)
         if name not in late:
             late.append(name)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import pty
+import resource
 import signal
 import subprocess
 import sys
@@ -84,15 +85,18 @@ def test_bad_recipe_exits_2_before_anything_is_sent(tmp_path: Path) -> None:
         (signal.SIGINT, "signal SIGINT"),
         (signal.SIGTSTP, "SIGTSTP (Ctrl-Z: a run that drives a hand cannot be suspended; stopped"),
         (signal.SIGQUIT, "signal SIGQUIT"),
+        (signal.SIGXCPU, "signal SIGXCPU"),
+        (signal.SIGRTMIN + 3, "signal SIGRTMIN+3"),
     ],
 )
-def test_sigint_is_a_controlled_stop(tmp_path: Path, sig: signal.Signals, said: str) -> None:
+def test_sigint_is_a_controlled_stop(tmp_path: Path, sig: int, said: str) -> None:
     """Lockstep, so the stop is judged on behaviour alone, whatever the machine's load. The
     signal goes when the run's status line (shown on a terminal) says the phase is under way,
     not after a guess at how long the imports and the start-up take. Ctrl-Z (SIGTSTP)
     suspended the run mid-grasp: the nodes' watchdogs dropped the torque and latched TIMEOUT,
     and the log waited for a resume; Ctrl-\\ (SIGQUIT) killed it by the signal, exit 131, no
-    stop sent and no summary. Both are the same controlled stop now, and say which it was."""
+    stop sent and no summary, and so did SIGXCPU (exit 152, the last torque left on the bus)
+    and a real-time signal. All are the same controlled stop now, and say which it was."""
     out = tmp_path / "out.json"
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD_LONG)
@@ -120,6 +124,40 @@ def test_sigint_is_a_controlled_stop(tmp_path: Path, sig: signal.Signals, said: 
     assert summary["phases"][0]["exit"].startswith("stopped")
     assert "stopped" in stderr
     # The nodes were left disabled, at zero torque, by the host, not by their watchdogs.
+    nodes = summary["sim"]["nodes"]
+    assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0 for n in nodes.values())
+
+
+def test_the_kernels_cpu_time_limit_is_a_controlled_stop(tmp_path: Path) -> None:
+    """The kernel's own SIGXCPU, not one sent by hand: a run past its ``RLIMIT_CPU`` (``ulimit
+    -t``; an ``--rt`` loop past ``RLIMIT_RTTIME`` gets the same signal) was killed by it, its
+    last torque left on the bus until the nodes' watchdogs acted, no summary. The limit is
+    lowered once the run is under way, below the time it has used: the kernel signals at its
+    next check, and again each second of CPU after (one stop, the rest ignored)."""
+    out = tmp_path / "out.json"
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    terminal, stderr_end = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--summary-json", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=stderr_end,
+    )
+    os.close(stderr_end)
+    try:
+        shown = read_until(terminal, "running")
+        assert "running" in shown, shown
+        resource.prlimit(proc.pid, resource.RLIMIT_CPU, (1, resource.RLIM_INFINITY))
+        proc.wait(timeout=60)
+        stderr = shown + read_until(terminal, None, timeout_s=10.0)
+    finally:
+        proc.kill()
+        os.close(terminal)
+    assert proc.returncode == 130, stderr
+    summary = json.loads(out.read_text())
+    assert summary["outcome"] == "interrupted"
+    assert "signal SIGXCPU" in summary["message"], summary["message"]
     nodes = summary["sim"]["nodes"]
     assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0 for n in nodes.values())
 

@@ -253,7 +253,9 @@ def test_a_standalone_hand_on_the_virtual_bus_says_no_other_process_hears_it(
     assert "lives inside this process" not in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("sig", [sig_module.SIGTERM, sig_module.SIGUSR1, sig_module.SIGALRM])
+@pytest.mark.parametrize(
+    "sig", [sig_module.SIGTERM, sig_module.SIGUSR1, sig_module.SIGALRM, sig_module.SIGXCPU]
+)
 def test_a_standalone_hand_ends_cleanly_on_a_signal_that_would_kill_it(
     tmp_path: Path, sig: sig_module.Signals
 ) -> None:

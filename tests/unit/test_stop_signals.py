@@ -15,7 +15,7 @@ from handctl.online.drivers.hand import HandDriver
 from handctl.online.loop import Outcome, RunResult, Runtime
 from handctl.online.recipes.loader import load_recipe
 from handctl.protocol import Protocol
-from handctl.stopsignals import StopSignals, held_back
+from handctl.stopsignals import StopSignals, held_back, signal_name
 
 from ..conftest import ROOT
 
@@ -180,3 +180,16 @@ def test_a_signal_given_to_another_thread_is_held_back_too() -> None:
         signal.signal(signal.SIGINT, before)
         release.set()
         other.join()
+
+
+def test_every_catchable_signal_that_ends_a_process_is_a_stop() -> None:
+    """Those a run meets for real (the kernel's SIGXCPU past ``RLIMIT_CPU`` or
+    ``RLIMIT_RTTIME``, SIGXFSZ past ``RLIMIT_FSIZE``) and the real-time ones, which
+    ``signal.Signals`` cannot name; never a fault the process raises on itself."""
+    for sig in (signal.SIGXCPU, signal.SIGXFSZ, signal.SIGVTALRM, signal.SIGPROF, signal.SIGIO):
+        assert sig in StopSignals.SIGNALS
+    assert set(range(signal.SIGRTMIN, signal.SIGRTMAX + 1)) <= set(StopSignals.SIGNALS)
+    for fault in (signal.SIGSEGV, signal.SIGBUS, signal.SIGILL, signal.SIGFPE, signal.SIGABRT):
+        assert fault not in StopSignals.SIGNALS
+    assert signal_name(signal.SIGRTMIN + 3) == "SIGRTMIN+3"
+    assert signal_name(signal.SIGXCPU) == "SIGXCPU"
