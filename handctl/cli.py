@@ -23,6 +23,7 @@ does not change the exit code: the command finishes its work and says nothing mo
 from __future__ import annotations
 
 import argparse
+import contextlib
 import difflib
 import io
 import math
@@ -612,7 +613,8 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
         # a stop signal during the start-up: the summary asked for says so (there was none)
         if args.summary_json:
             text = _json_text(interrupted_summary(request, str(exc))) + "\n"
-            _write_output("--summary-json", args.summary_json, text)
+            with contextlib.suppress(HandctlError):  # said; the interrupt keeps its 130
+                _write_summary(args.summary_json, text)
         raise
     if status is not None:
         print(file=sys.stderr)
@@ -620,9 +622,25 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
         print(f"handctl: warning: {warning}", file=sys.stderr)
     summary = report.summary
     _print_run_summary(summary, args.plot)  # first: a summary file that fails still shows it
+    code = _run_exit_code(report.result, summary)
     if args.summary_json:
-        _write_output("--summary-json", args.summary_json, _json_text(summary) + "\n")
-    return _run_exit_code(report.result, summary)
+        try:
+            _write_summary(args.summary_json, _json_text(summary) + "\n")
+        except HandctlError:
+            # a run that stopped for a reason that says more keeps its code (3, 4, 130), as
+            # with a lost log; its line above stays, this one is added
+            return code if code != EXIT_OK else EXIT_FAILED
+    return code
+
+
+def _write_summary(path: Path, text: str) -> None:
+    """``--summary-json`` at the end of a run: a failure to write it is said on stderr (and
+    raised, for the exit code), after what the run said of itself."""
+    try:
+        _write_output("--summary-json", path, text)
+    except HandctlError as exc:
+        print(f"handctl: error: {exc}", file=sys.stderr)
+        raise
 
 
 def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
@@ -745,14 +763,17 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
     stop, a bus error or an interrupt says more, and is kept."""
     code = _outcome_exit_code(result, summary)
     plotted = summary.get("plot", {})
-    if "error" in plotted and code == EXIT_OK:
-        # --plot without --log: the run's own recording, which the plot is drawn from, failed
-        print(
-            f"handctl: failed: the run ended as asked, but no plot was written to "
-            f"{plotted['path']} ({plotted['error']}: the warning above says why)",
-            file=sys.stderr,
-        )
-        return EXIT_FAILED
+    if "error" in plotted:
+        # the run's own recording, which the plot is drawn from, failed, or the picture
+        # could not be written (a full disk, its directory gone)
+        if code == EXIT_OK:
+            print(
+                f"handctl: failed: the run ended as asked, but no plot was written to "
+                f"{plotted['path']} ({plotted['error']}: the warning above says why)",
+                file=sys.stderr,
+            )
+            return EXIT_FAILED
+        print(f"handctl: and no plot was written to {plotted['path']}", file=sys.stderr)
     recorded = summary.get("recording")
     if recorded is None or "error" not in recorded:
         return code

@@ -599,7 +599,16 @@ def _plot(summary: dict[str, Any], req: RunRequest, warnings: list[str]) -> None
         # a warning above a run that exited 0
         summary["plot"] = {"path": str(req.plot), "error": "the run's recording failed"}
         return
-    plot_log(Path(recorded["path"]), req.plot)
+    try:
+        plot_log(Path(recorded["path"]), req.plot)
+    except (OSError, HandctlError) as exc:
+        # after the run, as a log that could not be finished: said, never raised (a
+        # traceback, the summary never printed or written, and an exit 1 or 2 that hid a
+        # safety stop)
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        warnings.append(f"--plot: no plot written to {req.plot} ({why})")
+        summary["plot"] = {"path": str(req.plot), "error": why}
+        return
     summary["plot"] = {"path": str(req.plot)}
 
 

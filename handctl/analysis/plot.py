@@ -11,6 +11,7 @@ from pathlib import Path
 
 from handctl.analysis.exact import ExactTorqueSet
 from handctl.analysis.frames import Array
+from handctl.wholefile import save_picture
 
 
 def plot_torque_set(
@@ -67,4 +68,4 @@ def plot_torque_set(
     ax.set_title(title, fontsize=10)
     ax.legend(loc="upper left", fontsize=8, framealpha=0.9)
     fig.tight_layout()
-    fig.savefig(str(path))
+    save_picture(fig, Path(path))

@@ -17,6 +17,7 @@ import numpy as np
 
 from handctl.config import FingerConfig, HandConfig
 from handctl.handshape import hand_span
+from handctl.wholefile import save_picture
 
 
 def plot_phase_region(
@@ -137,7 +138,7 @@ def plot_phase_region(
     ax.grid(True, lw=0.3)
     fig.tight_layout()
     out = Path(path)
-    fig.savefig(str(out))
+    save_picture(fig, out)
     return out
 
 

@@ -26,6 +26,7 @@ from handctl.recording import channels as ch
 from handctl.recording.reader import Recording
 from handctl.recording.replay import NOT_PHASES
 from handctl.recording.series import Series, line_angle, line_pairs, recorded_recipe_or_none
+from handctl.wholefile import save_picture
 
 JOINT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 #: (line style, width, opacity, z-order): applied wide and pale underneath, so that the desired
@@ -286,7 +287,7 @@ def plot_recording(
         axes[-1].set_xlim(0.0, max(float(series.timing[-1, 0]), 1e-3))
     fig.suptitle(title, fontsize=10, y=0.995)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
-    fig.savefig(str(path))
+    save_picture(fig, Path(path))
 
 
 def title_of(summary: dict[str, Any]) -> str:

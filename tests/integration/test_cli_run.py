@@ -162,6 +162,48 @@ def test_the_kernels_cpu_time_limit_is_a_controlled_stop(tmp_path: Path) -> None
     assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0 for n in nodes.values())
 
 
+def test_outputs_lost_after_the_run_keep_its_exit_code_and_its_summary(tmp_path: Path) -> None:
+    """The directories of ``--plot`` and ``--summary-json`` removed while the run holds (a
+    full disk at the end is the same failure): the plot gave a traceback, the summary was
+    neither printed nor written, and the exit was 2 ("nothing was sent") after seconds of
+    torque; a summary that could not be written made an interrupt's 130 (and a safety
+    stop's 3) a 1. Now each is said in a line, and the run's own code is kept."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    (tmp_path / "plots").mkdir()
+    (tmp_path / "summaries").mkdir()
+    plot = tmp_path / "plots" / "run.png"
+    out = tmp_path / "summaries" / "run.json"
+    terminal, stderr_end = pty.openpty()
+    command = ["run", "recipe", str(recipe), "--plot", str(plot), "--summary-json", str(out)]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", *command],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=stderr_end,
+        text=True,
+    )
+    os.close(stderr_end)
+    try:
+        shown = read_until(terminal, "running")
+        assert "running" in shown, shown
+        (tmp_path / "plots").rmdir()
+        (tmp_path / "summaries").rmdir()
+        proc.send_signal(signal.SIGINT)
+        stdout, _ = proc.communicate(timeout=60)
+        stderr = shown + read_until(terminal, None, timeout_s=10.0)
+    finally:
+        proc.kill()
+        os.close(terminal)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr, stderr
+    assert f"--plot: no plot written to {plot} (No such file or directory)" in stderr
+    assert f"and no plot was written to {plot}" in stderr
+    assert f"--summary-json: {out} could not be written" in stderr
+    assert "interrupted" in stdout  # the summary, printed all the same
+    assert not (tmp_path / "plots").exists()  # no half picture left where it was asked for
+
+
 @REALTIME
 def test_realtime_run_on_the_simulated_hand_in_its_own_process(tmp_path: Path) -> None:
     """The real-time path: timerfd ticks, the simulated hand as a separate process on the unix

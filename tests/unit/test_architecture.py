@@ -32,6 +32,7 @@ FOUNDATION = (
     "handctl.hand_protocol",
     "handctl.handshape",
     "handctl.arrays",
+    "handctl.wholefile",
 )
 OFFLINE = (
     "handctl.analysis",
