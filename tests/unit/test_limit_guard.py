@@ -324,3 +324,28 @@ def test_a_band_wider_than_half_a_joint_s_range_is_refused(
         narrow_hand,
     )
     assert recipe.limit_guard is not None
+
+
+def test_the_band_check_names_the_narrowest_joint_and_holds_at_exactly_half(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Two narrow joints: the refusal named the first in the config's order, and a band
+    made narrow enough for it was refused again for the other. And a band of exactly half
+    of a range written 0.35..0.45 rad (0.09999999999999998 in floating point) passed, its
+    two springs meeting."""
+    import dataclasses
+
+    from handctl.errors import ConfigError
+
+    first = dataclasses.replace(hand.fingers[0].joints[2], angle_min=0.1, angle_max=0.3)
+    second = dataclasses.replace(hand.fingers[1].joints[2], angle_min=0.35, angle_max=0.45)
+    f1 = dataclasses.replace(hand.fingers[0], joints=(*hand.fingers[0].joints[:2], first))
+    f2 = dataclasses.replace(hand.fingers[1], joints=(*hand.fingers[1].joints[:2], second))
+    narrow_hand = dataclasses.replace(hand, fingers=(f1, f2, *hand.fingers[2:]))
+    with pytest.raises(ConfigError) as err:
+        load_recipe(_recipe(tmp_path, narrow_hand, limit_guard_band=0.15), narrow_hand)
+    assert "below half of f2_j3's 0.1 rad, the narrowest" in err.value.expected
+    with pytest.raises(ConfigError) as err:
+        load_recipe(_recipe(tmp_path, narrow_hand, limit_guard_band=0.05), narrow_hand)
+    assert "f2_j3" in err.value.expected
+    assert load_recipe(_recipe(tmp_path, narrow_hand, limit_guard_band=0.045), narrow_hand)

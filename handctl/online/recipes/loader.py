@@ -278,17 +278,23 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
                 f"{width:.4g} rad",
             )
     bands.done()
-    for joint in hand.joints:
+    # the narrowest joint the band is for, named: the first one too narrow in the config's
+    # order was, and a band made narrow enough for it was refused again for the next
+    shared = [j for j in hand.joints if not bands.has(j.name)]
+    if shared:
+        joint = min(shared, key=lambda j: j.angle_max - j.angle_min)
         span = joint.angle_max - joint.angle_min
-        if not bands.has(joint.name) and 2 * band >= span:
+        # (with a rounding's tolerance: a band of exactly half of a range of 0.45 - 0.35 rad,
+        # 0.09999999999999998, passed, and its two springs met)
+        if 2 * band >= span - 1e-9:
             # the two springs overlapped: every angle of the joint was inside a band, pushed
             # back from one limit into the other (a narrow joint's every run stopped on
             # ANGLE_LIMIT, its recipe and hand config both passing their checks)
             doc.fail(
                 "limit_guard_band",
                 f"a band whose two sides leave room in every joint's range: below half of "
-                f"{joint.name}'s {span:.4g} rad (in {hand.source}; or give it bands of its "
-                f"own in {spring_key})",
+                f"{joint.name}'s {span:.4g} rad, the narrowest (in {hand.source}; or give it "
+                f"bands of its own in {spring_key})",
                 band,
             )
     return GuardSettings(band, tuple(springs))
