@@ -315,6 +315,19 @@ def check_commands(
                 + ("a bad CRC" if len(data) == layout.length else "a wrong length"),
             )
         if entry is None:
+            # a NodeCommand: enable and disable, as the run sent them; never a fault reset,
+            # which clears what a node latched for a reason and is a person's decision for
+            # the run in front of them (``run --reset-node-faults``), not a replay's: one
+            # recorded so, or written into a log, went onto the bus unasked. Nor a command
+            # value the protocol does not define.
+            _, (command,) = layout.decode(data)
+            if command not in (NODE_COMMANDS["enable"], NODE_COMMANDS["disable"]):
+                raise refuse(
+                    "Command",
+                    f"enable ({NODE_COMMANDS['enable']}) or disable "
+                    f"({NODE_COMMANDS['disable']}): a replay never resets a node's faults",
+                    command,
+                )
             continue
         _, values = layout.decode(data)
         finger = entry[1]

@@ -19,7 +19,7 @@ from mcap.writer import Writer
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.online.bus import open_bus
-from handctl.protocol import Protocol
+from handctl.protocol import NODE_COMMANDS, Protocol
 from handctl.recording import channels as ch
 from handctl.recording.frames import logged_frames, to_bus
 from handctl.recording.reader import MAGIC, Recording, iter_decoded, open_recording
@@ -393,6 +393,34 @@ def test_to_bus_refuses_a_command_hidden_among_the_received_frames(
     assert f"{bad}: {ch.CAN_RX} frame 0x102 {sealed}" in done.stderr
     assert "Torque1 (f2_j1): expected a change of at most" in done.stderr
     assert "to-bus:" not in done.stdout
+
+
+def test_to_bus_never_resets_a_node_s_faults(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
+) -> None:
+    """A NodeCommand's ``Command`` was never read: a fault reset written into a log (or
+    recorded by a run with ``--reset-node-faults``) went onto the bus and cleared what the
+    nodes had latched, unasked. Only enable and disable are replayed."""
+    layout = protocol.layout("NodeCommand", 1)
+    sealed = layout.encode(0, [NODE_COMMANDS["fault_reset"]]).hex()
+
+    def change(topic: str, index: int, raw: bytes) -> bytes:
+        if (topic, index) != (ch.CAN_TX, 300):
+            return raw
+        msg = json.loads(raw)
+        return json.dumps(msg | {"id": layout.frame_id, "data": sealed}).encode()
+
+    bad = tmp_path / "reset.mcap"
+    rewrite(recorded.path, bad, change)
+    with open_bus("virtual:hostile-reset", hand.bus) as listener:
+        with pytest.raises(ConfigError) as caught:
+            to_bus(open_recording(bad), "virtual:hostile-reset")
+        heard = listener.drain(limit=10**6)
+    assert heard == []
+    text = str(caught.value)
+    assert f"{ch.CAN_TX} frame 0x{layout.frame_id:03X} {sealed}" in text, text
+    assert "Command: expected enable (1) or disable (2)" in text, text
+    assert "nothing was sent" in text
 
 
 def test_an_unaltered_log_still_goes_onto_the_bus_whole(
