@@ -129,6 +129,13 @@ class Candidate:
         return sum(1 for s in self.scores if s >= 1.0)
 
 
+def _tally(cand: Candidate, models: int) -> str:
+    """What a candidate's line says beside its score: ranked on its failures first (``rank``),
+    it read '(1/2)' beside one that was chosen over it with '(0/2)', which looked like the
+    worse one chosen; the models it did the job on and those it failed on, both named."""
+    return f"{cand.successes}/{models} did the job, {cand.failures} failed"
+
+
 @dataclass
 class SearchResult:
     best: Candidate
@@ -236,7 +243,7 @@ def cem(
     )
     for (origin, _), cand in zip(seeds, seeded, strict=True):
         cand.origin = origin
-        say(f"  seed {origin}: score {cand.score:+.3f} ({cand.successes}/{len(worlds)})")
+        say(f"  seed {origin}: score {cand.score:+.3f} ({_tally(cand, len(worlds))})")
     best = max(seeded, key=Candidate.rank)
     mean = np.array(best.torques)
     spread = np.full(len(limit), budget.initial_spread) * limit
@@ -272,7 +279,7 @@ def cem(
         mean = stack.mean(axis=0)
         spread = np.maximum(stack.std(axis=0), budget.min_spread * limit)
         history.append(best.score)
-        say(f"  generation {gen + 1}: best {best.score:+.3f} ({best.successes}/{len(worlds)})")
+        say(f"  generation {gen + 1}: best {best.score:+.3f} ({_tally(best, len(worlds))})")
     return SearchResult(best, seeded, evaluated, history)
 
 

@@ -4,6 +4,7 @@ the loader accepts, provenance on every phase, the same text twice, and the plot
 from __future__ import annotations
 
 import math
+import re
 import shlex
 import subprocess
 import sys
@@ -115,6 +116,12 @@ def test_plan_command_writes_the_recipe_and_the_region_plots(tmp_path: Path) -> 
     )
     assert done.returncode == 0, done.stderr
     assert out.read_text().startswith("# Compiled by handctl plan")
+    # each candidate's line names both counts it is ranked on: '(0/1)' beside the chosen one
+    # read as the worse one chosen
+    assert re.search(
+        r"seed \w[\w ]*: score [+-]\d\.\d{3} \(\d+/1 did the job, \d+ failed\)",
+        done.stdout + done.stderr,
+    )
     assert " s wall, " in done.stdout and " s CPU (this process and its local workers)" in (
         done.stdout
     )
