@@ -905,7 +905,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         print(f"  plot {path}")
     if plot_error is not None:
         print(f"handctl: error: {plot_error} (the recipe is written)", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        # a directory whose files cannot be replaced is bad input; a disk that filled is not
+        return EXIT_BAD_INPUT if isinstance(plot_error, ConfigError) else EXIT_FAILED
     return _plan_exit_code(result, output, args.quick)
 
 
@@ -1484,11 +1485,17 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     _print_replay_summary(summary)
     report: dict[str, Any] = {"summary": summary}
     status = EXIT_OK
+    plot_error: HandctlError | None = None
     if args.plot:
         from handctl.recording.plot import plot_recording, title_of
+        from handctl.wholefile import PictureNotWrittenError
 
-        plot_recording(series, args.plot, title_of(summary), recording)
-        print(f"plot: {args.plot}")
+        try:
+            plot_recording(series, args.plot, title_of(summary), recording)
+            print(f"plot: {args.plot}")
+        except PictureNotWrittenError as exc:  # said at the end, the rest done and written
+            plot_error = exc
+            report["plot"] = {"path": str(args.plot), "error": exc.why}
     if args.rerun:
         from handctl.planning.reanalysis import ReanalysisOnTick
 
@@ -1515,6 +1522,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         report["to_bus"] = _replay_to_bus(args, recording, on_bus)
     if args.json:
         _write_output("--json", args.json, _json_text(report) + "\n")
+    if plot_error is not None:
+        print(f"handctl: error: --plot: {plot_error}", file=sys.stderr)
+        status = EXIT_FAILED
     if args.live is not None:
         from handctl.foxglove import HOST
         from handctl.foxglove.live import serve_recording

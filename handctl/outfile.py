@@ -7,15 +7,14 @@ nothing; a hand config half written by a crash or a full disk is worse than the 
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
 import stat
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
 from handctl.errors import ConfigError, Description
+from handctl.wholefile import write_whole
 
 
 def check_writable(
@@ -228,30 +227,5 @@ def _read_only(path: Path) -> bool:
 
 
 def write_atomically(target: Path, text: str) -> None:
-    """``text`` into ``target`` whole or not at all: written to a file beside it, flushed to
-    the disk, then renamed over it. A reader (or a crash, a full disk, Ctrl-C) sees the old
-    file or the new one, never a half; the old file's permissions are kept."""
-    if target.exists():
-        mode = stat.S_IMODE(target.stat().st_mode)
-    else:  # what open() would have given a new file
-        umask = os.umask(0)
-        os.umask(umask)
-        mode = 0o666 & ~umask
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as out:
-            out.write(text)
-            out.flush()
-            os.fsync(out.fileno())
-        os.chmod(tmp, mode)
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    with contextlib.suppress(OSError):  # the rename itself, on a file system that needs it
-        dir_fd = os.open(target.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
+    """``text`` into ``target`` whole or not at all (``wholefile.write_whole``)."""
+    write_whole(target, text.encode("utf-8"))

@@ -590,6 +590,7 @@ def _plot(summary: dict[str, Any], req: RunRequest, warnings: list[str]) -> None
     """The run's plot, from its finished recording; the recording of a run that was recorded
     only for it is left out of the summary (its file goes with the run)."""
     from handctl.recording.plot import plot_log
+    from handctl.wholefile import PictureNotWrittenError
 
     assert req.plot is not None
     recorded = summary["recording"] if req.log else summary.pop("recording")
@@ -605,7 +606,7 @@ def _plot(summary: dict[str, Any], req: RunRequest, warnings: list[str]) -> None
         # after the run, as a log that could not be finished: said, never raised (a
         # traceback, the summary never printed or written, and an exit 1 or 2 that hid a
         # safety stop)
-        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        why = exc.why if isinstance(exc, PictureNotWrittenError) else str(exc)
         warnings.append(f"--plot: no plot written to {req.plot} ({why})")
         summary["plot"] = {"path": str(req.plot), "error": why}
         return

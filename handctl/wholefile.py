@@ -1,36 +1,84 @@
-"""A picture written whole or not at all.
+"""A file written whole or not at all, a JSON output or a picture alike.
 
-Of the foundation, so that the analysis, planning and recording draw their plots with it.
+Every output a command writes goes to a file beside its name, flushed to the disk, then
+renamed over it: a reader (or a crash, a full disk, Ctrl-C) sees the old file or the new one,
+never a half, where writing in place left a half picture or an empty file under the name asked
+for. Of the foundation, so that the analysis, planning and recording draw their plots with it
+as the commands write their JSON.
 """
 
 from __future__ import annotations
 
 import contextlib
+import io
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Protocol
+
+from handctl.errors import HandctlError
+
+
+def write_whole(target: Path, data: bytes) -> None:
+    """``data`` into ``target``, whole or not at all (module docstring). A symbolic link is
+    written through, not replaced; the old file's permissions are kept, a new file gets what
+    ``open`` would have given it (the umask's). The file beside it has a short name of its
+    own: one named after the target went past the file system's longest name for a name that
+    itself fits."""
+    target = Path(target).resolve()
+    if target.exists():
+        mode = stat.S_IMODE(target.stat().st_mode)
+    else:
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o666 & ~umask
+    fd, tmp = tempfile.mkstemp(prefix=".handctl-", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # the rename itself, on a file system that needs it
+        dir_fd = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
 
 
 class Picture(Protocol):
     """What ``save_picture`` needs of a figure (matplotlib's ``Figure``), without importing
     matplotlib here."""
 
-    def savefig(self, fname: str, *, format: str) -> None: ...  # matplotlib's
+    def savefig(self, fname: io.BytesIO, *, format: str) -> None: ...  # its name
+
+
+class PictureNotWrittenError(HandctlError):
+    """A picture that could not be written: its name and why (the system's words)."""
+
+    def __init__(self, path: Path, why: str) -> None:
+        super().__init__(f"{path}: no plot written ({why})")
+        self.path = path
+        self.why = why
 
 
 def save_picture(figure: Picture, target: Path) -> None:
-    """A plot into ``target`` whole or not at all, as ``write_atomically``: matplotlib writes
-    the file in place, and a full disk or a directory removed while it drew left a half
-    picture, or an empty file, under the name asked for. The format is the name's suffix
-    (``check_image`` checked it)."""
+    """A plot into ``target`` whole or not at all (``write_whole``), in the format its name's
+    suffix says (``outfile.check_image`` checked it). Drawn in memory first: a picture drawn
+    to a file records that file's name (an .svgz's gzip header, an .eps's title), which was
+    the temporary one. A picture that cannot be written (a full disk, its directory gone) is
+    ``PictureNotWrittenError`` naming it, not an ``OSError`` naming the file beside it."""
     target = Path(target)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
+    drawn = io.BytesIO()
+    figure.savefig(drawn, format=target.suffix.lower().lstrip("."))
     try:
-        figure.savefig(tmp, format=target.suffix.lower().lstrip("."))
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+        write_whole(target, drawn.getvalue())
+    except OSError as exc:
+        raise PictureNotWrittenError(target, exc.strerror or str(exc)) from None

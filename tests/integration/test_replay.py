@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import resource
 import signal
 import subprocess
 import sys
@@ -57,6 +58,35 @@ def rewrite(source: Path, target: Path, change: Any) -> None:
         return json.dumps(change(topic, json.loads(raw))).encode()
 
     copy_recording(source, target, json_only)
+
+
+def test_a_plot_the_disk_cannot_take_is_said_and_the_rest_is_written(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """A full disk at the plot (here a file size limit, ``ulimit -f``, which fails the write
+    the same way): a traceback, and the ``--json`` asked for never written. Now one line,
+    exit 1, the report written with why the plot is not."""
+    out, plot = tmp_path / "report.json", tmp_path / "replay.png"
+    limit = 32_000  # bytes: the report fits, the picture does not
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    command = ["replay", str(recorded.path), "--plot", str(plot), "--json", str(out)]
+    done = subprocess.run(
+        [sys.executable, "-m", "handctl", *command],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+        preexec_fn=small_files,
+    )
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"handctl: error: --plot: {plot}: no plot written (File too large)" in done.stderr
+    assert json.loads(out.read_text())["plot"] == {"path": str(plot), "error": "File too large"}
+    assert not plot.exists() and [p.name for p in tmp_path.iterdir()] == [out.name]
 
 
 # -- re-run -----------------------------------------------------------------------------------
