@@ -24,8 +24,8 @@ if TYPE_CHECKING:
 
 def _ending() -> tuple[signal.Signals | int, ...]:
     named = (
-        "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGXCPU", "SIGXFSZ",
-        "SIGVTALRM", "SIGPROF", "SIGIO", "SIGPWR", "SIGSTKFLT",
+        "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGXCPU", "SIGVTALRM",
+        "SIGPROF", "SIGIO", "SIGPWR", "SIGSTKFLT",
     )  # fmt: skip
     found: list[signal.Signals | int] = [getattr(signal, n) for n in named if hasattr(signal, n)]
     low, high = getattr(signal, "SIGRTMIN", 0), getattr(signal, "SIGRTMAX", -1)
@@ -38,12 +38,14 @@ def _ending() -> tuple[signal.Signals | int, ...]:
 #: SIGBUS, SIGILL, SIGFPE, SIGTRAP, SIGSYS, SIGABRT: a handler cannot resume after those):
 #: a terminal, a session's end, a stray ``kill`` and the kernel's resource limits can send
 #: them. SIGXCPU is the one an ``--rt`` run meets for real: the kernel sends it to a
-#: SCHED_FIFO loop past its ``RLIMIT_RTTIME`` (and to any process past ``ulimit -t``), and it
-#: killed the run with its last torque on the bus, no zero, no disable, no summary. SIGXFSZ,
-#: a log past ``ulimit -f``, likewise. Every command takes them as Ctrl-C
+#: SCHED_FIFO loop past the soft limit of its ``RLIMIT_RTTIME`` (and to any process past
+#: ``ulimit -S -t``), and it killed the run with its last torque on the bus, no zero, no
+#: disable, no summary. (At a hard limit the kernel sends SIGKILL, which no process can catch:
+#: a limit meant to stop a run gently is a soft one.) Every command takes them as Ctrl-C
 #: (``__main__.entry``, ``cli.main``) and a run as its controlled stop, unless it was started
-#: with one ignored (``nohup``: asked to go on). SIGPIPE is not among them: Python ignores it
-#: (a closed pipe is an error of the write).
+#: with one ignored (``nohup``: asked to go on). SIGPIPE and SIGXFSZ are not among them:
+#: Python ignores both, and a closed pipe or a file past ``ulimit -f`` is an error of the
+#: write (a log's is the recording's failure, docs/recording.md).
 ENDING = _ending()
 
 
@@ -99,6 +101,13 @@ class StopSignals:
     #: inherits SIGINT ignored, and its user still means Ctrl-C and ``kill``); SIGTSTP cannot
     #: be asked for by ignoring it.
     HONOURED_IF_IGNORED = (signal.SIGINT, signal.SIGTERM, signal.SIGTSTP)
+    #: SIGTTOU and SIGTTIN suspend a process as SIGTSTP does: a run in the background of a
+    #: terminal set ``stty tostop`` was stopped mid-grasp by its own status line (or by a
+    #: ``kill -TTOU``), with its torque on. Ignored, a write to the terminal goes through and
+    #: a read fails; nothing suspends the run. Not a stop: a run put in the background is
+    #: not asked to end. (Caught instead, the write the signal interrupts is tried again
+    #: and signalled again, for ever.)
+    DEAF = (signal.SIGTTOU, signal.SIGTTIN)
 
     def __init__(self) -> None:
         self.runtime: Runtime | None = None
@@ -111,6 +120,8 @@ class StopSignals:
 
     def __enter__(self) -> StopSignals:
         if threading.current_thread() is threading.main_thread():
+            for deaf in self.DEAF:
+                self._saved[deaf] = signal.signal(deaf, signal.SIG_IGN)
             for sig in self.SIGNALS:
                 if sig not in self.HONOURED_IF_IGNORED and signal.getsignal(sig) is signal.SIG_IGN:
                     continue  # started under nohup, for one: asked to outlive its terminal

@@ -184,12 +184,26 @@ def test_a_signal_given_to_another_thread_is_held_back_too() -> None:
 
 def test_every_catchable_signal_that_ends_a_process_is_a_stop() -> None:
     """Those a run meets for real (the kernel's SIGXCPU past ``RLIMIT_CPU`` or
-    ``RLIMIT_RTTIME``, SIGXFSZ past ``RLIMIT_FSIZE``) and the real-time ones, which
-    ``signal.Signals`` cannot name; never a fault the process raises on itself."""
-    for sig in (signal.SIGXCPU, signal.SIGXFSZ, signal.SIGVTALRM, signal.SIGPROF, signal.SIGIO):
+    ``RLIMIT_RTTIME``) and the real-time ones, which ``signal.Signals`` cannot name; never a
+    fault the process raises on itself, nor SIGXFSZ and SIGPIPE, which Python ignores (the
+    write fails instead)."""
+    for sig in (signal.SIGXCPU, signal.SIGVTALRM, signal.SIGPROF, signal.SIGIO):
         assert sig in StopSignals.SIGNALS
+    assert signal.SIGXFSZ not in StopSignals.SIGNALS and signal.SIGPIPE not in StopSignals.SIGNALS
     assert set(range(signal.SIGRTMIN, signal.SIGRTMAX + 1)) <= set(StopSignals.SIGNALS)
     for fault in (signal.SIGSEGV, signal.SIGBUS, signal.SIGILL, signal.SIGFPE, signal.SIGABRT):
         assert fault not in StopSignals.SIGNALS
     assert signal_name(signal.SIGRTMIN + 3) == "SIGRTMIN+3"
     assert signal_name(signal.SIGXCPU) == "SIGXCPU"
+
+
+def test_nothing_suspends_a_run_from_the_terminal() -> None:
+    """SIGTTOU (a background run's status line on a terminal set ``stty tostop``, or a
+    ``kill -TTOU``) and SIGTTIN suspended the run as Ctrl-Z did, its torque on: ignored over
+    the run, and put back after."""
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGTTOU, signal.SIGTTIN)}
+    with StopSignals():
+        for sig in before:
+            assert signal.getsignal(sig) is signal.SIG_IGN
+            signal.raise_signal(sig)  # ignored: this process goes on
+    assert {sig: signal.getsignal(sig) for sig in before} == before
