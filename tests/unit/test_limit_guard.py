@@ -349,3 +349,11 @@ def test_the_band_check_names_the_narrowest_joint_and_holds_at_exactly_half(
         load_recipe(_recipe(tmp_path, narrow_hand, limit_guard_band=0.05), narrow_hand)
     assert "f2_j3" in err.value.expected
     assert load_recipe(_recipe(tmp_path, narrow_hand, limit_guard_band=0.045), narrow_hand)
+    # and a joint's own spring bands, meeting at exactly half of its range each
+    own = {"f2_j3": {"lower": 0.05, "upper": 0.05}}
+    with pytest.raises(ConfigError) as err:
+        load_recipe(
+            _recipe(tmp_path, narrow_hand, limit_guard_band=0.04, limit_guard_spring_bands=own),
+            narrow_hand,
+        )
+    assert err.value.key == "limit_guard_spring_bands.f2_j3"

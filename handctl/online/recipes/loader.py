@@ -269,7 +269,8 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
         springs.extend(SpringBand(name, side, width) for side, width in own.items())
         joint = joints[name]
         width = own.get("lower", band) + own.get("upper", band)
-        if width >= joint.angle_max - joint.angle_min:
+        # with a rounding's tolerance, as the shared band's below (0.45 - 0.35 rad)
+        if width >= joint.angle_max - joint.angle_min - 1e-9:
             bands.fail(
                 name,
                 f"spring bands that leave room between them: lower + upper below the joint's "
