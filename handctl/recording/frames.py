@@ -322,11 +322,19 @@ def check_commands(
             # value the protocol does not define.
             _, (command,) = layout.decode(data)
             if command not in (NODE_COMMANDS["enable"], NODE_COMMANDS["disable"]):
-                raise refuse(
-                    "Command",
-                    f"enable ({NODE_COMMANDS['enable']}) or disable "
-                    f"({NODE_COMMANDS['disable']}): a replay never resets a node's faults",
-                    command,
+                where = f"{ch.CAN_RX if is_rx else ch.CAN_TX} frame 0x{frame_id:03X} {data.hex()}"
+                raise ConfigError(
+                    str(recording.path),
+                    f"{where} at log time {log_time} ns: Command",
+                    f"enable ({NODE_COMMANDS['enable']}) or disable ({NODE_COMMANDS['disable']}) "
+                    f"(nothing was sent): a replay never resets the faults a node latched, nor "
+                    f"sends a command the protocol does not define; a run does, asked "
+                    f"(`handctl run recipe ... --reset-node-faults`)",
+                    Description(
+                        "a fault reset"
+                        if command == NODE_COMMANDS["fault_reset"]
+                        else f"{command:g}"
+                    ),
                 )
             continue
         _, values = layout.decode(data)

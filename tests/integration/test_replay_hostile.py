@@ -419,8 +419,9 @@ def test_to_bus_never_resets_a_node_s_faults(
     assert heard == []
     text = str(caught.value)
     assert f"{ch.CAN_TX} frame 0x{layout.frame_id:03X} {sealed}" in text, text
-    assert "Command: expected enable (1) or disable (2)" in text, text
-    assert "nothing was sent" in text
+    assert "Command: expected enable (1) or disable (2) (nothing was sent)" in text, text
+    assert "--reset-node-faults" in text and text.endswith("found a fault reset"), text
+    assert "as the supervisor lets a command through" not in text  # the run's did
 
 
 def test_an_unaltered_log_still_goes_onto_the_bus_whole(
