@@ -132,8 +132,10 @@ class Candidate:
 def _tally(cand: Candidate, models: int) -> str:
     """What a candidate's line says beside its score: ranked on its failures first (``rank``),
     it read '(1/2)' beside one that was chosen over it with '(0/2)', which looked like the
-    worse one chosen; the models it did the job on and those it failed on, both named."""
-    return f"{cand.successes}/{models} did the job, {cand.failures} failed"
+    worse one chosen; the models it scored in full on (1 or more: ``successes``) and those it
+    failed on, both named, in words of their own (the phase's line after the search counts
+    the models it "did its job" on, none failed: ``compile._jobs_done``)."""
+    return f"{cand.successes}/{models} scored in full, {cand.failures} failed"
 
 
 @dataclass

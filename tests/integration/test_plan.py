@@ -119,7 +119,7 @@ def test_plan_command_writes_the_recipe_and_the_region_plots(tmp_path: Path) -> 
     # each candidate's line names both counts it is ranked on: '(0/1)' beside the chosen one
     # read as the worse one chosen
     assert re.search(
-        r"seed \w[\w ]*: score [+-]\d\.\d{3} \(\d+/1 did the job, \d+ failed\)",
+        r"seed \w[\w ]*: score [+-]\d\.\d{3} \(\d+/1 scored in full, \d+ failed\)",
         done.stdout + done.stderr,
     )
     assert " s wall, " in done.stdout and " s CPU (this process and its local workers)" in (
