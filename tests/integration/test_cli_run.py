@@ -79,6 +79,36 @@ def test_bad_recipe_exits_2_before_anything_is_sent(tmp_path: Path) -> None:
     assert "0.45 N·m" in done.stderr and f"found {round(0.55 * margin, 9):g}" in done.stderr
 
 
+def _stopped_while_holding(
+    tmp_path: Path, options: list[str], stop: Callable[[subprocess.Popen[str]], None]
+) -> tuple[int, str, str]:
+    """``handctl run recipe`` of a hold that goes on until stopped, its status line on a
+    terminal; ``stop(process)`` once the line says the phase is under way (not after a guess
+    at how long the imports and the start-up take). The exit code, stdout and what the
+    terminal showed."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    terminal, stderr_end = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), *options],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=stderr_end,
+        text=True,
+    )
+    os.close(stderr_end)
+    try:
+        shown = read_until(terminal, "running")
+        assert "running" in shown, shown
+        stop(proc)
+        stdout, _ = proc.communicate(timeout=60)
+        stderr = shown + read_until(terminal, None, timeout_s=10.0)
+    finally:
+        proc.kill()
+        os.close(terminal)
+    return proc.returncode, stdout, stderr
+
+
 @pytest.mark.parametrize(
     ("sig", "said"),
     [
@@ -98,26 +128,10 @@ def test_sigint_is_a_controlled_stop(tmp_path: Path, sig: int, said: str) -> Non
     stop sent and no summary, and so did SIGXCPU (exit 152, the last torque left on the bus)
     and a real-time signal. All are the same controlled stop now, and say which it was."""
     out = tmp_path / "out.json"
-    recipe = tmp_path / "hold.yaml"
-    recipe.write_text(HOLD_LONG)
-    terminal, stderr_end = pty.openpty()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--summary-json", str(out)],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=stderr_end,
+    code, _, stderr = _stopped_while_holding(
+        tmp_path, ["--summary-json", str(out)], lambda proc: proc.send_signal(sig)
     )
-    os.close(stderr_end)
-    try:
-        shown = read_until(terminal, "running")
-        assert "running" in shown, shown
-        proc.send_signal(sig)
-        proc.wait(timeout=60)
-        stderr = shown + read_until(terminal, None, timeout_s=10.0)
-    finally:
-        proc.kill()
-        os.close(terminal)
-    assert proc.returncode == 130, stderr
+    assert code == 130, stderr
     summary = json.loads(out.read_text())
     assert summary["outcome"] == "interrupted"
     assert said in summary["message"], summary["message"]
@@ -135,26 +149,13 @@ def test_the_kernels_cpu_time_limit_is_a_controlled_stop(tmp_path: Path) -> None
     lowered once the run is under way, below the time it has used: the kernel signals at its
     next check, and again each second of CPU after (one stop, the rest ignored)."""
     out = tmp_path / "out.json"
-    recipe = tmp_path / "hold.yaml"
-    recipe.write_text(HOLD_LONG)
-    terminal, stderr_end = pty.openpty()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--summary-json", str(out)],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=stderr_end,
-    )
-    os.close(stderr_end)
-    try:
-        shown = read_until(terminal, "running")
-        assert "running" in shown, shown
+
+    def lower_the_limit(proc: subprocess.Popen[str]) -> None:
         resource.prlimit(proc.pid, resource.RLIMIT_CPU, (1, resource.RLIM_INFINITY))
-        proc.wait(timeout=60)
-        stderr = shown + read_until(terminal, None, timeout_s=10.0)
-    finally:
-        proc.kill()
-        os.close(terminal)
-    assert proc.returncode == 130, stderr
+
+    options = ["--summary-json", str(out)]
+    code, _, stderr = _stopped_while_holding(tmp_path, options, lower_the_limit)
+    assert code == 130, stderr
     summary = json.loads(out.read_text())
     assert summary["outcome"] == "interrupted"
     assert "signal SIGXCPU" in summary["message"], summary["message"]
@@ -168,34 +169,20 @@ def test_outputs_lost_after_the_run_keep_its_exit_code_and_its_summary(tmp_path:
     neither printed nor written, and the exit was 2 ("nothing was sent") after seconds of
     torque; a summary that could not be written made an interrupt's 130 (and a safety
     stop's 3) a 1. Now each is said in a line, and the run's own code is kept."""
-    recipe = tmp_path / "hold.yaml"
-    recipe.write_text(HOLD_LONG)
     (tmp_path / "plots").mkdir()
     (tmp_path / "summaries").mkdir()
     plot = tmp_path / "plots" / "run.png"
     out = tmp_path / "summaries" / "run.json"
-    terminal, stderr_end = pty.openpty()
-    command = ["run", "recipe", str(recipe), "--plot", str(plot), "--summary-json", str(out)]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "handctl", *command],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=stderr_end,
-        text=True,
-    )
-    os.close(stderr_end)
-    try:
-        shown = read_until(terminal, "running")
-        assert "running" in shown, shown
+
+    def remove_both_then_stop(proc: subprocess.Popen[str]) -> None:
         (tmp_path / "plots").rmdir()
         (tmp_path / "summaries").rmdir()
         proc.send_signal(signal.SIGINT)
-        stdout, _ = proc.communicate(timeout=60)
-        stderr = shown + read_until(terminal, None, timeout_s=10.0)
-    finally:
-        proc.kill()
-        os.close(terminal)
-    assert proc.returncode == 130, stderr
+
+    code, stdout, stderr = _stopped_while_holding(
+        tmp_path, ["--plot", str(plot), "--summary-json", str(out)], remove_both_then_stop
+    )
+    assert code == 130, stderr
     assert "Traceback" not in stderr, stderr
     assert f"--plot: no plot written to {plot} (No such file or directory)" in stderr
     assert f"and no plot was written to {plot}" in stderr

@@ -372,6 +372,18 @@ def test_to_bus_sends_nothing_when_the_rerun_asked_with_it_finds_a_mismatch(
     assert heard == []
 
 
+def _one_frame_replaced(topic: str, index: int, frame_id: int, data: str) -> Change:
+    """A change of a log that puts the frame ``frame_id`` ``data`` (hex) in place of message
+    ``index`` of ``topic``, the rest as it was."""
+
+    def change(at: str, i: int, raw: bytes) -> bytes:
+        if (at, i) != (topic, index):
+            return raw
+        return json.dumps(json.loads(raw) | {"id": frame_id, "data": data}).encode()
+
+    return change
+
+
 def test_to_bus_refuses_a_command_hidden_among_the_received_frames(
     recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
 ) -> None:
@@ -379,15 +391,8 @@ def test_to_bus_refuses_a_command_hidden_among_the_received_frames(
     received frames go onto the bus too."""
     layout = protocol.layout("TorqueCommand", 2)
     sealed = layout.encode(0, [0.5, 0.0, 0.0]).hex()
-
-    def change(topic: str, index: int, raw: bytes) -> bytes:
-        if (topic, index) != (ch.CAN_RX, 500):
-            return raw
-        msg = json.loads(raw)
-        return json.dumps(msg | {"id": layout.frame_id, "data": sealed}).encode()
-
     bad = tmp_path / "rx.mcap"
-    rewrite(recorded.path, bad, change)
+    rewrite(recorded.path, bad, _one_frame_replaced(ch.CAN_RX, 500, layout.frame_id, sealed))
     done = handctl("replay", str(bad), "--to-bus", "virtual:hostile-rx")
     assert done.returncode == 2, done.stdout + done.stderr
     assert f"{bad}: {ch.CAN_RX} frame 0x102 {sealed}" in done.stderr
@@ -403,15 +408,8 @@ def test_to_bus_never_resets_a_node_s_faults(
     nodes had latched, unasked. Only enable and disable are replayed."""
     layout = protocol.layout("NodeCommand", 1)
     sealed = layout.encode(0, [NODE_COMMANDS["fault_reset"]]).hex()
-
-    def change(topic: str, index: int, raw: bytes) -> bytes:
-        if (topic, index) != (ch.CAN_TX, 300):
-            return raw
-        msg = json.loads(raw)
-        return json.dumps(msg | {"id": layout.frame_id, "data": sealed}).encode()
-
     bad = tmp_path / "reset.mcap"
-    rewrite(recorded.path, bad, change)
+    rewrite(recorded.path, bad, _one_frame_replaced(ch.CAN_TX, 300, layout.frame_id, sealed))
     with open_bus("virtual:hostile-reset", hand.bus) as listener:
         with pytest.raises(ConfigError) as caught:
             to_bus(open_recording(bad), "virtual:hostile-reset")
