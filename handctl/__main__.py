@@ -4,11 +4,7 @@ import os
 import signal
 import sys
 
-from handctl.stopsignals import ENDING, signal_name  # the standard library's modules only
-
-
-def _interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt(signal_name(signum))
+from handctl.stopsignals import ENDING, interrupt  # the standard library's modules only
 
 
 def _standard_descriptors() -> None:
@@ -52,14 +48,14 @@ def entry() -> int:
     # job is): ``handctl run`` and ``handctl sim`` honour it as a stop whatever they
     # inherited, and a signal asked for is one from the first line on as well
     _standard_descriptors()  # sys.stdout and sys.stderr stay None if they were closed
-    signal.signal(signal.SIGINT, _interrupt)
-    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, interrupt)
+    signal.signal(signal.SIGTERM, interrupt)
     # SIGHUP, SIGQUIT (Ctrl-\\), SIGUSR1/2, SIGALRM, SIGXCPU and the rest of ENDING end a
     # command as Ctrl-C does, not by the signal (a run killed so in its first tenth of a
     # second, rc -10); unless started with them ignored (nohup: asked to go on)
     for sig in ENDING:
         if signal.getsignal(sig) is not signal.SIG_IGN:
-            signal.signal(sig, _interrupt)
+            signal.signal(sig, interrupt)
     try:
         _load_orjson()
         from handctl.cli import main

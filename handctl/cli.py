@@ -3178,13 +3178,6 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
         return EXIT_BAD_INPUT
 
 
-def _interrupt(signum: int, frame: object) -> None:
-    """SIGTERM as Ctrl-C: an interrupt that unwinds what was started, then exit 130."""
-    from handctl.stopsignals import signal_name
-
-    raise KeyboardInterrupt(signal_name(signum))
-
-
 class _ReaderMayLeave(io.TextIOBase):
     """stdout or stderr for a reader that may stop reading (``handctl check | head -1``), or
     a file that can no longer be written (``> /dev/full``, a disk full, an I/O error).
@@ -3291,16 +3284,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         # 130. ``handctl run`` turns both into its controlled stop once the run begins.
         if threading.current_thread() is not threading.main_thread():  # signals are not ours
             return _run_args(argv)
-        before = signal.signal(signal.SIGTERM, _interrupt)
+        from handctl.stopsignals import ENDING, interrupt
+
+        before = signal.signal(signal.SIGTERM, interrupt)
         # a terminal that went away, Ctrl-\\ (SIGQUIT: it ended a jog or a replay onto a bus
         # by the signal, no stop sent) and the rest of stopsignals.ENDING; but a run started
         # under nohup (SIGHUP ignored) asked to outlive its terminal, and keeps ignoring it
-        from handctl.stopsignals import ENDING
-
         ending = {sig: signal.getsignal(sig) for sig in ENDING}
         for sig, inherited in ending.items():
             if inherited is not signal.SIG_IGN:
-                signal.signal(sig, _interrupt)
+                signal.signal(sig, interrupt)
         # SIGINT too, explicitly: a process started with it ignored (a background job of a
         # non-interactive shell, a supervisor's child) inherits SIG_IGN, and Python then
         # leaves it so; a plan or a check would go on through every Ctrl-C and kill -INT.

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any, Self
 
 from handctl.errors import HandctlError
+from handctl.stopsignals import signal_name
 
 _PR_SET_PDEATHSIG = 1
 
@@ -143,13 +144,6 @@ def stop_on_signals() -> list[bool]:
     return stop
 
 
-def _signal_name(number: int) -> str:
-    try:
-        return signal.Signals(number).name
-    except ValueError:
-        return f"signal {number}"
-
-
 class JsonHelper:
     """A helper child process (``python -m MODULE ARGS``) that runs until told to stop, or
     for a time of its own, then writes one JSON object to stdout: the timing probe, the
@@ -204,7 +198,7 @@ class JsonHelper:
                 f"and handctl killed it (SIGKILL){tail}"
             )
         if code is not None and code < 0:
-            name = _signal_name(-code)
+            name = signal_name(-code)
             if terminated and -code == signal.SIGTERM:
                 return (
                     f"{self.what} measured nothing: handctl stopped it (SIGTERM) when what it "

@@ -59,6 +59,12 @@ def signal_name(number: int) -> str:
         return f"SIGRTMIN+{number - low}" if low and number > low else f"signal {number}"
 
 
+def interrupt(signum: int, frame: object) -> None:
+    """A signal as Ctrl-C: an interrupt that unwinds what was started, then exit 130 (the
+    handler of every command's stop signals before, and outside, a run's ``StopSignals``)."""
+    raise KeyboardInterrupt(signal_name(signum))
+
+
 class StopSignals:
     """The stop signals (``SIGNALS``) over a whole run, from before anything starts to the last
     line of the log, so that each ends the run the same way whenever it comes, with exit 130:

@@ -322,10 +322,9 @@ def check_commands(
             # value the protocol does not define.
             _, (command,) = layout.decode(data)
             if command not in (NODE_COMMANDS["enable"], NODE_COMMANDS["disable"]):
-                where = f"{ch.CAN_RX if is_rx else ch.CAN_TX} frame 0x{frame_id:03X} {data.hex()}"
                 raise ConfigError(
                     str(recording.path),
-                    f"{where} at log time {log_time} ns: Command",
+                    f"{_frame_at(log_time, frame_id, data, is_rx)}: Command",
                     f"enable ({NODE_COMMANDS['enable']}) or disable ({NODE_COMMANDS['disable']}) "
                     f"(nothing was sent): a replay never resets the faults a node latched, nor "
                     f"sends a command the protocol does not define; a run does, asked "
@@ -413,6 +412,14 @@ def _torque_problem(
     return None
 
 
+def _frame_at(log_time: int, frame_id: int, data: bytes, is_rx: bool) -> str:
+    """A logged frame as a refusal names it: its channel, id, bytes and log time."""
+    return (
+        f"{ch.CAN_RX if is_rx else ch.CAN_TX} frame 0x{frame_id:03X} {data.hex()} at log time "
+        f"{log_time} ns"
+    )
+
+
 def _refused(
     recording: Recording,
     log_time: int,
@@ -423,10 +430,7 @@ def _refused(
     expected: str,
     found: object,
 ) -> ConfigError:
-    where = (
-        f"{ch.CAN_RX if is_rx else ch.CAN_TX} frame 0x{frame_id:03X} {data.hex()} at log time "
-        f"{log_time} ns"
-    )
+    where = _frame_at(log_time, frame_id, data, is_rx)
     return ConfigError(
         str(recording.path),
         f"{where}: {signal}" if signal else where,

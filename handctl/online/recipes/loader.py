@@ -235,6 +235,12 @@ def parse_min_total_turn(doc: Doc, has_pair: bool) -> float:
     return turn
 
 
+#: rad: a joint's range as written (0.45 - 0.35 is 0.09999999999999998 or, the other way
+#: round, 0.10000000000000003) is compared with bands this much short of it: bands of exactly
+#: half of it each passed by rounding, and their two springs met
+RANGE_ROUNDING_RAD = 1e-9
+
+
 def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
     """``limit_guard_band`` (rad) of a recipe or a template, with the spring bands of its own
     that ``limit_guard_spring_bands`` gives a side of a joint, or None when the guard is off.
@@ -269,8 +275,7 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
         springs.extend(SpringBand(name, side, width) for side, width in own.items())
         joint = joints[name]
         width = own.get("lower", band) + own.get("upper", band)
-        # with a rounding's tolerance, as the shared band's below (0.45 - 0.35 rad)
-        if width >= joint.angle_max - joint.angle_min - 1e-9:
+        if width >= joint.angle_max - joint.angle_min - RANGE_ROUNDING_RAD:
             bands.fail(
                 name,
                 f"spring bands that leave room between them: lower + upper below the joint's "
@@ -285,9 +290,7 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
     if shared:
         joint = min(shared, key=lambda j: j.angle_max - j.angle_min)
         span = joint.angle_max - joint.angle_min
-        # (with a rounding's tolerance: a band of exactly half of a range of 0.45 - 0.35 rad,
-        # 0.09999999999999998, passed, and its two springs met)
-        if 2 * band >= span - 1e-9:
+        if 2 * band >= span - RANGE_ROUNDING_RAD:
             # the two springs overlapped: every angle of the joint was inside a band, pushed
             # back from one limit into the other (a narrow joint's every run stopped on
             # ANGLE_LIMIT, its recipe and hand config both passing their checks)
