@@ -11,8 +11,9 @@ Exit codes (the same for every subcommand):
 4    bus unavailable or failed
 5    the host failed the timing check (``check --timing``, or before a run on a real bus);
      nothing was sent
-130  interrupted (Ctrl-C, SIGTERM, SIGHUP, Ctrl-\\ or, for a run, Ctrl-Z, SIGUSR1/2 and
-     SIGALRM), after a controlled stop
+130  interrupted (Ctrl-C, SIGTERM, SIGHUP, Ctrl-\\, SIGUSR1/2, SIGALRM, SIGXCPU or any other
+     signal whose default would kill the process, and for a run Ctrl-Z), after a controlled
+     stop
 ==== =====================================================================
 
 A run that reaches its ``--max-seconds`` stops under control with the outcome ``time_budget``
@@ -2604,8 +2605,9 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="run a grasp recipe",
         description="Run a recipe phase by phase at the hand's loop rate, every torque through "
         "the safety supervisor. Default bus: the simulated hand, in lockstep.",
-        notes="Ctrl-C, SIGTERM, SIGHUP, Ctrl-\\ (SIGQUIT), Ctrl-Z, SIGUSR1/2 or SIGALRM: a "
-        "controlled stop (torque to zero, nodes disabled), exit 130. At --max-seconds: the "
+        notes="Ctrl-C, SIGTERM, SIGHUP, Ctrl-\\ (SIGQUIT), Ctrl-Z, SIGUSR1/2, SIGALRM, SIGXCPU "
+        "or any other signal whose default would kill it: a controlled stop (torque to zero, "
+        "nodes disabled), exit 130. At --max-seconds: the "
         "same stop, outcome time_budget, exit 0. A safety stop exits 3.",
         examples=[
             example,
