@@ -204,6 +204,9 @@ class FrameBus(Protocol):
     tap: FrameTap | None
     rx_tap: RxTap | None
     event_tap: Callable[[BusEvent], None] | None
+    #: Whether ``send(..., more=True)`` holds a frame for its burst (its True says nothing of
+    #: the frame's fate, the burst's last send or ``flush`` does) rather than sending it.
+    batching: bool
 
     def prepare_send(self) -> None:
         """Do now what the first send would (look the receivers up), while there is time."""
@@ -267,6 +270,7 @@ class HandBus:
         self.closed = False
         self._bursts = bus if isinstance(bus, BurstTransport) else None
         self._frames = bus if isinstance(bus, FrameTransport) else None
+        self.batching = self._frames is not None or self._bursts is not None
         self._connecting = bus if isinstance(bus, ConnectingTransport) else None
         #: The flags of every frame this bus sends (``FrameTransport``).
         self._send_flags = ff.FD | ff.BRS if fd else 0

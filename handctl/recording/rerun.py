@@ -215,6 +215,9 @@ class ReplayBus:
         self.tap: FrameTap | None = None
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
+        #: Each frame's fate is the log's, frame by frame, a burst's too (``HandBus`` taps a
+        #: failed burst's every frame as failed).
+        self.batching = False
         self.sent = 0
         self.tx_failed = 0
         self.received = 0

@@ -172,6 +172,12 @@ class FingerNode:
         self.command_counter = (self.command_counter + 1) & 0xFF
         return frame
 
+    def take_back_command(self) -> None:
+        """The last ``next_command``'s frame never went: its counter is the next frame's. Used
+        up, the node would take the next frame (the stop's zero torque too) for a skip and
+        reject it, keeping its last torque a period longer."""
+        self.command_counter = (self.command_counter - 1) & 0xFF
+
     def next_node_command(self, command: str) -> tuple[int, bytes]:
         self._commanding = True
         if command == "enable":
@@ -180,6 +186,10 @@ class FingerNode:
         frame = make_node_command(self.layouts.node_command, self.node_command_counter, command)
         self.node_command_counter = (self.node_command_counter + 1) & 0xFF
         return frame
+
+    def take_back_node_command(self) -> None:
+        """The last ``next_node_command``'s frame never went (``take_back_command``)."""
+        self.node_command_counter = (self.node_command_counter - 1) & 0xFF
 
     def receive(self, frame_id: int, data: bytes, arrival_ns: int) -> Reject | None:
         """Apply one frame addressed to this node's streams; return why it was rejected, if so.

@@ -218,15 +218,32 @@ class HandDriver:
         ok = True
         values = torques.tolist()  # one conversion for every node, plain floats after
         bus = self.bus
+        batching = bus.batching
         last = len(self.nodes) - 1
-        for i, (node, (start, k), pad) in enumerate(
-            zip(self.nodes, self._spans, self._pads, strict=True)
-        ):
-            mine = values[start : start + k]
-            if pad:
-                mine += pad
-            frame_id, data = node.next_command(mine)
-            ok = bus.send(frame_id, data, more=i < last) and ok
+        # the nodes whose frame has not been seen to go: a frame that did not go (refused, or
+        # the send raised) gives its counter back, so the next frame is in sequence
+        unsent: list[FingerNode] = []
+        try:
+            for i, (node, (start, k), pad) in enumerate(
+                zip(self.nodes, self._spans, self._pads, strict=True)
+            ):
+                mine = values[start : start + k]
+                if pad:
+                    mine += pad
+                frame_id, data = node.next_command(mine)
+                unsent.append(node)
+                more = i < last
+                if not bus.send(frame_id, data, more=more):
+                    ok = False
+                    for held in unsent:  # a batching bus's failed burst: every frame in it
+                        held.take_back_command()
+                    unsent.clear()
+                elif not (batching and more):
+                    unsent.clear()
+        except BaseException:
+            for held in unsent:
+                held.take_back_command()
+            raise
         return ok
 
     # -- the stop that needs no codec -----------------------------------------------------
@@ -281,8 +298,11 @@ class HandDriver:
         ok = True
         for node, (frame_id, frames) in zip(self.nodes, prepared, strict=True):
             counter = getattr(node, counter_name) % COUNTER_VALUES
-            setattr(node, counter_name, (counter + 1) % COUNTER_VALUES)
-            ok = self._send_quietly(frame_id, frames[counter]) and ok
+            if self._send_quietly(frame_id, frames[counter]):
+                # only a frame that went uses its counter up (``send``)
+                setattr(node, counter_name, (counter + 1) % COUNTER_VALUES)
+            else:
+                ok = False
         if not ok:
             self.send_estop()
         return ok
@@ -307,7 +327,9 @@ class HandDriver:
         for node in self.nodes:
             if wanted is None or node.node_id in wanted:
                 frame_id, data = node.next_node_command(command)
-                ok = self.bus.send(frame_id, data) and ok
+                if not self.bus.send(frame_id, data):
+                    node.take_back_node_command()
+                    ok = False
         return ok
 
     def estop(self, reason: int = 2) -> bool:
