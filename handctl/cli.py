@@ -538,7 +538,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     from handctl.online.clock import Hygiene
     from handctl.online.recipes.loader import load_recipe
     from handctl.outfile import check_log_target
-    from handctl.session import RunRequest, interrupted_summary, run_recipe
+    from handctl.session import RunInterrupted, RunRequest, interrupted_summary, run_recipe
 
     _positive_seconds("--max-seconds", args.max_seconds)
     _output_file("--summary-json", args.summary_json)
@@ -611,9 +611,17 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     try:
         report = run_recipe(request, status=status, signals=signals)
     except KeyboardInterrupt as exc:
-        # a stop signal during the start-up: the summary asked for says so (there was none)
+        # a stop signal during the start-up, or an interrupt inside a tick (Ctrl-C without
+        # the signal handler, a cancelled task): the summary asked for says what ran
+        summary = (
+            exc.summary
+            if isinstance(exc, RunInterrupted)
+            else interrupted_summary(request, str(exc))
+        )
+        if isinstance(exc, RunInterrupted) and summary.get("ticks"):
+            print(f"handctl: {summary['message']}", file=sys.stderr)
         if args.summary_json:
-            text = _json_text(interrupted_summary(request, str(exc))) + "\n"
+            text = _json_text(summary) + "\n"
             with contextlib.suppress(HandctlError):  # said; the interrupt keeps its 130
                 _write_summary(args.summary_json, text)
         raise

@@ -276,9 +276,11 @@ def run_recipe(
         )
         if recording is not None:
             recorder = recording
-            # unwound before the recorder's own exit: a start-up a signal ended finishes the
-            # log with a summary that says so (it was a log of 'no summary', as if cut short)
-            stack.push(_summary_if_interrupted(recording, req))
+        # unwound before the recorder's own exit: a start-up a signal ended finishes the log
+        # with a summary that says so (it was a log of 'no summary', as if cut short), and a
+        # run interrupted inside a tick with the summary of what it did
+        ran: list[Runtime] = []
+        stack.push(_summary_if_interrupted(recording, req, ran, lockstep))
         signals.checkpoint()
         estimator = (
             ObjectEstimator(req.hand, req.recipe.objects, req.recipe.pairs)
@@ -310,6 +312,7 @@ def run_recipe(
             estimator=estimator,
             reanalyser=reanalyser,
         )
+        ran.append(runtime)
         runtime.supervisor.recovery = req.recovery
         if peer.sim_process is not None:
             runtime.peer_gone = peer.sim_process.gone
@@ -626,14 +629,31 @@ def interrupted_summary(req: RunRequest, why: str) -> dict[str, Any]:
     }
 
 
+class RunInterrupted(KeyboardInterrupt):
+    """A KeyboardInterrupt (or a cancellation) that ended a run, with the run's summary:
+    what ran, or that nothing was sent if it came before the first tick."""
+
+    def __init__(self, why: str, summary: dict[str, Any]) -> None:
+        super().__init__(why)
+        self.summary = summary
+
+
 def _summary_if_interrupted(
-    recording: Recorder, req: RunRequest
+    recording: Recorder | None, req: RunRequest, ran: list[Runtime], lockstep: bool
 ) -> Callable[[type[BaseException] | None, BaseException | None, object], bool]:
     def finish(kind: object, exc: BaseException | None, tb: object) -> bool:
-        if isinstance(exc, KeyboardInterrupt) and not recording.closed:
+        if not isinstance(exc, KeyboardInterrupt) or isinstance(exc, RunInterrupted):
+            return False
+        result = ran[0].interrupted if ran else None
+        summary = (
+            interrupted_summary(req, str(exc))
+            if result is None
+            else summarise_run(result, req.hand, req.recipe, lockstep, None)
+        )
+        if recording is not None and not recording.closed:
             with suppress(HandctlError):  # said by the recorder's own exit
-                recording.close(interrupted_summary(req, str(exc)))
-        return False
+                recording.close(summary)
+        raise RunInterrupted(summary["message"], summary) from exc
 
     return finish
 

@@ -41,7 +41,7 @@ from handctl.online.bus import BusEvent, BusEventKind
 from handctl.online.clock import Clock, Tick
 from handctl.online.collector import LoopCollector
 from handctl.online.drivers import finger, receiver
-from handctl.online.drivers.hand import AppliedTorques, HandDriver
+from handctl.online.drivers.hand import AppliedTorques, HandDriver, JointState
 from handctl.online.misstrace import (
     NOTE_BUS_EVENT,
     NOTE_COLLECT,
@@ -281,6 +281,12 @@ class Runtime:
         self._bus_events = 0
         self._recipe_done_ns = 0
         self.exception: TickException | None = None
+        #: The run's result up to a KeyboardInterrupt or cancellation that ended it
+        #: (``_keep_interrupted``); None otherwise.
+        self.interrupted: RunResult | None = None
+        #: s, the recipe time of the last tick that began its stages: where a phase that an
+        #: exception or an interrupt ends, ends.
+        self._t_s = 0.0
         self._feedback_ns = 0  # CPU time of this tick's feedback stage (part of the recipe's)
         self._feedback_start_ns = -1  # when it began, if it ran this tick
         #: CPU time of the loop's thread, for the per-stage accounting (a re-run, which has no
@@ -348,15 +354,20 @@ class Runtime:
             with self.collector.running():  # the stop's ticks too
                 try:
                     outcome, message = await self._run()
-                except Exception as exc:  # any stage: a safety stop, never a crash (module doc)
+                except (Exception, SystemExit) as exc:  # any stage: a safety stop (module doc)
+                    # SystemExit too: nothing in a tick asks the process to end (a stop signal
+                    # is a request to the loop); a library's exit() inside one is a broken
+                    # stage, and went out as the process' exit code with no summary
                     if isinstance(exc, EndOfTicks) and self.clock.lockstep:
                         raise
                     outcome, message = await self._stop_after_exception(exc)
-                except BaseException:
-                    # Ctrl-C without a signal handler, a cancelled task, SystemExit: no tick is
-                    # left to wait for, so zero and disable at once (in this order on the bus).
+                except BaseException as exc:
+                    # Ctrl-C without a signal handler, a cancelled task: no tick is left to
+                    # wait for, so zero and disable at once (in this order on the bus), and
+                    # what ran is kept for the summary (``interrupted``) before it goes on
                     self.driver.send_zero()
                     self.driver.send_disable()
+                    self._keep_interrupted(exc)
                     raise
         finally:
             self.clock.close()
@@ -454,7 +465,23 @@ class Runtime:
         if self.recorder is not None:  # the log says it too: whether the hand may be ENABLED
             self.recorder.note("disable_unconfirmed", self.disable_unconfirmed, self.tick)
 
-    async def _stop_after_exception(self, exc: Exception) -> tuple[Outcome, str]:
+    def _keep_interrupted(self, exc: BaseException) -> None:
+        """What the run did up to a KeyboardInterrupt or a cancellation inside it, as its
+        result (``interrupted``): the run's summary says so, not that nothing was sent. Never
+        raises: the interrupt goes on whatever this finds."""
+        tick = self.tick
+        message = (
+            f"{type(exc).__name__} in tick {tick}"
+            + (f" ({exc})" if str(exc) else "")
+            + ": zero torque and a disable were sent at once"
+        )
+        with contextlib.suppress(Exception):
+            if self.runner is not None and self.runner.in_phase:
+                self._abort_phase(self._t_s, f"interrupted: {type(exc).__name__}", tick)
+        with contextlib.suppress(Exception):
+            self.interrupted = self._result(Outcome.INTERRUPTED, message)
+
+    async def _stop_after_exception(self, exc: BaseException) -> tuple[Outcome, str]:
         """The stop after an exception: latch its fault, then zero torque and disable with
         the driver's prepared frames, as the normal stop does (zero in this tick and the next
         ZERO_TICKS_BEFORE_DISABLE, then disable, then one tick for it to go).
@@ -469,6 +496,20 @@ class Runtime:
         if tk is not None and self.tick == tk.tick:  # the tick that raised was not counted
             self._count_stop_tick(tk)
         driver.send_zero()
+        failure = self.exception
+        code = failure.code.name if failure is not None else FaultCode.RUN_EXCEPTION.name
+        # the phase under way ends on the exception (it had no end in the summary), and the
+        # log's per-tick rows go on to the disable with the zero torque sent (they stopped at
+        # the last torque the runner asked for, which a plot then held to the log's end)
+        raised_in = tk.tick if tk is not None else self.tick
+        with contextlib.suppress(Exception):
+            if self.runner is not None and self.runner.in_phase:
+                self._abort_phase(self._t_s, f"safety stop: {code}", raised_in)
+        # the rows are pushed while pushing works; the recorder's tick boundaries, which
+        # its timing rows hang on, are tried on their own
+        rows_ok = self.recorder is not None
+        if tk is not None and self._record.tick != tk.tick:  # its row was not pushed
+            rows_ok = rows_ok and self._record_stop_tick(tk, None)
         clock_ok = recorder_ok = poll_ok = True
         for n in range(1, ZERO_TICKS_BEFORE_DISABLE + 2):  # the ticks after the one that raised
             tk = None
@@ -484,9 +525,10 @@ class Runtime:
                         self.recorder.begin_tick(tk)
                     except Exception:  # later frames go with the last tick it began
                         recorder_ok = False
+            state = None
             if poll_ok:
                 try:
-                    driver.poll(tk.now_ns if tk is not None else None)
+                    state = driver.poll(tk.now_ns if tk is not None else None)
                     self._bus_events += len(driver.take_bus_events())
                 except Exception:  # polling only feeds the log here: not needed to stop
                     poll_ok = False
@@ -494,7 +536,30 @@ class Runtime:
                 driver.send_zero()
             if n == ZERO_TICKS_BEFORE_DISABLE:
                 driver.send_disable()
+            if tk is not None and recorder_ok and rows_ok:
+                rows_ok = self._record_stop_tick(tk, state)
         return Outcome.SAFETY_STOP, "; ".join(str(f) for f in self._faults())
+
+    def _record_stop_tick(self, tk: Tick, state: JointState | None) -> bool:
+        """The row of a tick of the stop after an exception, as a fault stop's: zero torque
+        asked and sent, the supervisor faulted, the angles polled (the last ones without).
+        False when the recorder failed: the stop goes on without it."""
+        record = self._record
+        try:
+            record.tick, record.t_ns, now_ns, record.missed = tk
+            record.lateness_ns = now_ns - tk.scheduled_ns
+            if state is not None:
+                record.angle, record.tdt = state.angle, state.tdt
+            record.desired = record.applied = self._zero
+            record.state, self._record_state = State.FAULTED.value, State.FAULTED
+            record.phase = self._phase_name()
+            record.stage_ns = (0,) * len(STAGES)
+            record.faults = []
+            assert self.recorder is not None
+            self.recorder.push(record)
+        except Exception:
+            return False
+        return True
 
     def _count_stop_tick(self, tk: Tick) -> None:
         """Count a tick of the stop; the accounting may be what raised, and the stop does
@@ -502,7 +567,7 @@ class Runtime:
         with contextlib.suppress(Exception):
             self._store(tk, (0,) * len(STAGES))
 
-    def _latch_exception(self, exc: Exception) -> Tick | None:
+    def _latch_exception(self, exc: BaseException) -> Tick | None:
         """Turn ``exc`` into the fault of its stage, latched (and kept in ``exception``);
         return the tick under way when it was raised, if known. Never raises."""
         try:
@@ -685,6 +750,7 @@ class Runtime:
         self._bus_events += len(events)
         c1 = cpu()
         t_s = (tk.scheduled_ns - (self._t0_ns or 0)) * 1e-9
+        self._t_s = t_s
         if self.estop_requested:
             driver.estop(reason=1)  # the frame first; ``decide`` latches the fault
         desired, applied, new_faults = self.decide(

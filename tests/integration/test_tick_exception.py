@@ -277,6 +277,26 @@ def assert_stopped_on_the_wire(wire: Wire, fault_row: int, unreachable: Sequence
         assert disables[-1] > rows[-1][0], f"node {node}: a torque command after its disable"
 
 
+def logged_torques(log: Path) -> dict[int, tuple[float, str]]:
+    """Per tick of the log's ``/control/torque`` rows: the largest |applied| (N·m) and the
+    supervisor's state of ``/safety/state`` at that tick."""
+    recording = open_recording(log)
+    torque: dict[int, float] = {}
+    states: dict[int, str] = {}
+    state = ""
+    for topic, _, msg in iter_decoded(recording, [ch.TORQUE, ch.SAFETY]):
+        if topic == ch.TORQUE:
+            torque[msg["tick"]] = max(abs(v) for v in msg["applied_nm"])
+        else:
+            state = msg["state"]
+            states[msg["tick"]] = state
+    out = {}
+    for tick in sorted(torque):
+        state = states.get(tick, state)
+        out[tick] = (torque[tick], state)
+    return out
+
+
 def logged_faults(log: Path) -> tuple[bool, int, list[dict[str, Any]]]:
     """Whether the log is complete, its ticks, and its fault events."""
     recording = open_recording(log)
@@ -344,6 +364,19 @@ def test_an_exception_in_any_stage_is_a_controlled_stop(
         (code.name, "immediate", first.tick)
     ]
     assert f"ForcedError: forced in the {stage} stage" in faults[0]["detail"]
+    # The phase under way ends on the exception, and the log's rows say what was sent: zero,
+    # faulted, from the tick that raised to the disable (they stopped at the last torque the
+    # runner asked for, which a plot of the log then held to its end).
+    assert result.phases[-1]["exit"] == f"safety stop: {code.name}"
+    assert result.phases[-1]["end_s"] is not None
+    if stage != "record" and not (stage == "clock" and always):  # no rows, no ticks
+        rows = logged_torques(tmp_path / "run.mcap")
+        # the status line and the accounting come after the tick's send and its row: that
+        # tick sent what its row says
+        since = first.tick + (stage in ("status", "accounting"))
+        after = {t: v for t, v in rows.items() if t >= since}
+        assert max(after, default=-1) >= first.tick + ZERO_TICKS_BEFORE_DISABLE, sorted(after)
+        assert all(v == (0.0, "faulted") for v in after.values()), after
 
 
 def test_a_node_that_cannot_be_sent_to_gets_the_estop(
@@ -632,3 +665,76 @@ def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
     assert [(f["name"], f["tick"]) for f in faults] == [("RECORD_EXCEPTION", broken_from)]
     logged = open_recording(log).json_meta(ch.META_SUMMARY)
     assert logged is not None and logged["outcome"] == "safety_stop"
+
+
+def _raise_in_the_runner_at(tick: int, exc: BaseException, mp: pytest.MonkeyPatch) -> None:
+    """The recipe runner of every run in this process raises ``exc`` from its ``advance`` at
+    run tick ``tick``, once."""
+    from handctl.online.recipes.runner import RecipeRunner
+
+    real = RecipeRunner.advance
+    calls = [0]
+
+    def advance(self: RecipeRunner, *args: Any, **kwargs: Any) -> None:
+        calls[0] += 1
+        if calls[0] == tick:
+            raise exc
+        real(self, *args, **kwargs)
+
+    mp.setattr(RecipeRunner, "advance", advance)
+
+
+def test_a_system_exit_inside_a_tick_is_a_safety_stop_with_its_summary(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A library's exit() inside a stage went out as the process' exit code (here 7), with no
+    summary and a log of 'no summary': it is a broken stage like any other."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(CLOSE_AND_HOLD_1S)
+    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
+    _raise_in_the_runner_at(300, SystemExit(7), monkeypatch)
+    code, listener = _cli_run(
+        [str(recipe), "--summary-json", str(out), "--log", str(log)], monkeypatch
+    )
+    try:
+        wire = hear(listener, hand)
+    finally:
+        listener.shutdown()
+    assert code == cli.EXIT_SAFETY_STOP
+    _stopped_after_torque(wire)
+    summary = json.loads(out.read_text())
+    assert summary["outcome"] == "safety_stop"
+    assert summary["exception"]["code"] == "RUNNER_EXCEPTION"
+    assert summary["exception"]["type"] == "SystemExit"
+    logged = open_recording(log).json_meta(ch.META_SUMMARY)
+    assert logged is not None and logged["outcome"] == "safety_stop"
+
+
+def test_an_interrupt_inside_a_tick_says_what_ran_not_that_nothing_was_sent(
+    hand: HandConfig,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A KeyboardInterrupt inside a tick (Ctrl-C where no signal handler is installed, or code
+    raising it) goes on as an interrupt, exit 130; the summary and the log said 'before the
+    first tick: nothing was sent to the hand' after hundreds of ticks of torque."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(CLOSE_AND_HOLD_1S)
+    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
+    _raise_in_the_runner_at(300, KeyboardInterrupt(), monkeypatch)
+    code, listener = _cli_run(
+        [str(recipe), "--summary-json", str(out), "--log", str(log)], monkeypatch
+    )
+    listener.shutdown()
+    assert code == cli.EXIT_INTERRUPTED
+    summary = json.loads(out.read_text())
+    assert summary["outcome"] == "interrupted"
+    assert summary["ticks"] > 300
+    assert "zero torque and a disable were sent" in summary["message"]
+    assert "nothing was sent" not in summary["message"]
+    assert summary["phases"][-1]["exit"] == "interrupted: KeyboardInterrupt"
+    logged = open_recording(log).json_meta(ch.META_SUMMARY)
+    assert logged is not None and logged["outcome"] == "interrupted"
+    assert logged["ticks"] == summary["ticks"]
+    assert summary["message"] in capsys.readouterr().err
