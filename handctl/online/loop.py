@@ -496,20 +496,7 @@ class Runtime:
         if tk is not None and self.tick == tk.tick:  # the tick that raised was not counted
             self._count_stop_tick(tk)
         driver.send_zero()
-        failure = self.exception
-        code = failure.code.name if failure is not None else FaultCode.RUN_EXCEPTION.name
-        # the phase under way ends on the exception (it had no end in the summary), and the
-        # log's per-tick rows go on to the disable with the zero torque sent (they stopped at
-        # the last torque the runner asked for, which a plot then held to the log's end)
-        raised_in = tk.tick if tk is not None else self.tick
-        with contextlib.suppress(Exception):
-            if self.runner is not None and self.runner.in_phase:
-                self._abort_phase(self._t_s, f"safety stop: {code}", raised_in)
-        # the rows are pushed while pushing works; the recorder's tick boundaries, which
-        # its timing rows hang on, are tried on their own
-        rows_ok = self.recorder is not None
-        if tk is not None and self._record.tick != tk.tick:  # its row was not pushed
-            rows_ok = rows_ok and self._record_stop_tick(tk, None)
+        rows_ok = self._end_phase_on_exception(tk)
         clock_ok = recorder_ok = poll_ok = True
         for n in range(1, ZERO_TICKS_BEFORE_DISABLE + 2):  # the ticks after the one that raised
             tk = None
@@ -538,7 +525,38 @@ class Runtime:
                 driver.send_disable()
             if tk is not None and recorder_ok and rows_ok:
                 rows_ok = self._record_stop_tick(tk, state)
-        return Outcome.SAFETY_STOP, "; ".join(str(f) for f in self._faults())
+        if clock_ok and recorder_ok and poll_ok:
+            # heard disabled, as after any other stop (``disable_unconfirmed`` could not be
+            # said after an exception); the hand is stopped whatever this finds
+            with contextlib.suppress(Exception):
+                await self._confirm_disabled()
+        return Outcome.SAFETY_STOP, self._exception_stop_message()
+
+    def _end_phase_on_exception(self, tk: Tick | None) -> bool:
+        """End the phase under way on the exception (it had no end in the summary), and push
+        the row of the tick that raised if it had none: the log's per-tick rows go on to the
+        disable with the zero torque sent (they stopped at the last torque asked, which a plot
+        then held to the log's end). Whether rows can still be pushed."""
+        failure = self.exception
+        code = failure.code.name if failure is not None else FaultCode.RUN_EXCEPTION.name
+        raised_in = tk.tick if tk is not None else self.tick
+        with contextlib.suppress(Exception):
+            if self.runner is not None and self.runner.in_phase:
+                self._abort_phase(self._t_s, f"safety stop: {code}", raised_in)
+        if self.recorder is None:
+            return False
+        if tk is not None and self._record.tick != tk.tick:  # its row was not pushed
+            return self._record_stop_tick(tk, None)
+        return True
+
+    def _exception_stop_message(self) -> str:
+        message = "; ".join(str(f) for f in self._faults())
+        if self.driver.stop_estops:
+            message += (
+                "; a stop frame did not go to every node, so the e-stop was sent: each node "
+                "latches FAULT (ESTOP), which the next run clears with --reset-node-faults"
+            )
+        return message
 
     def _record_stop_tick(self, tk: Tick, state: JointState | None) -> bool:
         """The row of a tick of the stop after an exception, as a fault stop's: zero torque

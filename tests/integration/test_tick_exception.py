@@ -394,6 +394,9 @@ def test_a_node_that_cannot_be_sent_to_gets_the_estop(
     assert_stopped_on_the_wire(wire, row, unreachable=[BROKEN_NODE])
     broken = next(n for n in b.sim.nodes if n.node_id == BROKEN_NODE)
     assert broken.state == NodeState.FAULT and not any(broken.applied)  # e-stop, no torque
+    # said, with what the next run needs (it was not: the next run refused the nodes)
+    assert "the e-stop was sent" in result.message
+    assert "--reset-node-faults" in result.message
 
 
 def test_an_exception_while_enabling_is_a_controlled_stop(
@@ -738,3 +741,28 @@ def test_an_interrupt_inside_a_tick_says_what_ran_not_that_nothing_was_sent(
     assert logged is not None and logged["outcome"] == "interrupted"
     assert logged["ticks"] == summary["ticks"]
     assert summary["message"] in capsys.readouterr().err
+
+
+def test_a_node_not_heard_disabled_after_an_exception_is_said(
+    hand: HandConfig, hold: Recipe, tmp_path: Path
+) -> None:
+    """The stop after an exception listens for the nodes to say they are disabled, as every
+    other stop does: a node whose transmitter dies as the exception comes is said (the stop
+    ended a tick after the disable and could never say it)."""
+    from handctl.sim.faults import NodeSilent
+
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always=False)
+
+        def raise_as_node_2_falls_silent(tk: Tick) -> None:
+            if due():
+                b.sim.faults.add(NodeSilent(node=2), 0.0)  # from the simulated hand's next tick
+                raise ForcedError("forced in a tick hook")
+
+        b.runtime.tick_hooks.append(raise_as_node_2_falls_silent)
+        result = asyncio.run(b.runtime.run())
+    assert result.outcome is Outcome.SAFETY_STOP
+    assert result.disable_unconfirmed.startswith("node 2 (f2) not heard disabled"), (
+        result.disable_unconfirmed
+    )
+    assert "node 1" not in result.disable_unconfirmed

@@ -125,6 +125,9 @@ class HandDriver:
         self.unexpected_ids: dict[int, int] = {}
         self.bus_events: list[BusEvent] = []
         self._estop_counter = 0
+        #: How many times a stop's prepared frame did not go to every node and the e-stop
+        #: followed (``_send_prepared``): each node latches FAULT (ESTOP) on it.
+        self.stop_estops = 0
         self._estop_layout = protocol.layout("EStop")
         self._prepare_stop_frames()
 
@@ -304,6 +307,7 @@ class HandDriver:
             else:
                 ok = False
         if not ok:
+            self.stop_estops += 1
             self.send_estop()
         return ok
 
