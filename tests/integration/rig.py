@@ -148,7 +148,8 @@ phases:
 def short_recipe(hand: HandConfig, directory: Path, hold_s: float = 0.6) -> Recipe:
     """Close, then hold for ``hold_s``: a short run with torque flowing."""
     path = directory / "short_hold.yaml"
-    path.write_text(SHORT.replace("max_s: 0.6", f"max_s: {hold_s}"))
+    hold = f"ramp_s: {min(0.15, hold_s):g}\n    max_s: {hold_s}"  # a ramp within its phase
+    path.write_text(SHORT.replace("ramp_s: 0.15\n    max_s: 0.6", hold))
     return load_recipe(path, hand)
 
 

@@ -31,12 +31,16 @@ def _with_feedback(tmp_path: Path) -> Path:
     phases[0]["pose"] = {"angles": POSE, "stiffness": 0.5, "damping": 0.005}
     phases[2]["max_s"] = 0.8  # envelop: long enough for the estimate to be valid
     phases[3]["max_s"] = 0.5
-    phases[3]["turn_rate"] = {"rate_deg_s": -45, "scale": [0.5, 1.5]}
+    # at most the phase's own torque: manipulate_1's is close to tau_max (the loader holds a
+    # larger scale to it)
+    phases[3]["turn_rate"] = {"rate_deg_s": -45, "scale": [0.5, 1.0]}
     phases[3]["brake"] = {"rate_deg_s": 30, "joint_damping": 0.03}
     phases[3].pop("paced_ramp", None)  # the turn-rate loop is this phase's feedback
     phases[4]["max_s"] = 0.5
     phases[4]["paced_ramp"] = {"rate_deg_s": -30, "back": 3, "joint_rate": 1.0}
     phases[4]["brake"] = {"rate_deg_s": 30, "joint_damping": 0.03, "joint_rate": 0.5}
+    for phase in phases:  # a ramp within its shortened phase
+        phase["ramp_s"] = min(phase.get("ramp_s", 0.1), phase["max_s"])
     data["phases"] = phases
     path = tmp_path / "feedback.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))

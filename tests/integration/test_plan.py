@@ -31,8 +31,11 @@ def short_template(tmp_path: Path) -> Path:
     phases = data["phases"]
     phases[2]["max_s"] = 0.5
     phases[3]["max_s"] = 1.0
+    for phase in phases[2:4]:  # a ramp within its shortened phase
+        phase["ramp_s"] = min(phase.get("ramp_s", 0.1), phase["max_s"])
     phases[0]["pose"] = {"stiffness": 0.5, "damping": 0.005}
-    phases[3]["turn_rate"] = {"rate_deg_s": 45, "scale": [0.6, 1.5]}
+    # a scale past 1 is held to tau_max with the phase's torque, which the seeds here reach
+    phases[3]["turn_rate"] = {"rate_deg_s": 45, "scale": [0.6, 1.0]}
     phases[3]["brake"] = {"rate_deg_s": 90, "joint_damping": 0.03}
     data["phases"] = phases[:4]
     path = tmp_path / "short.template.yaml"
@@ -61,7 +64,7 @@ def test_plan_compiles_a_recipe_with_provenance_reproducibly(
     assert recipe.limit_guard == template.limit_guard.guard(hand)
     loop = recipe.phases[3].turn_rate
     assert loop is not None and loop.rate < 0  # signed as the clockwise turn
-    assert (loop.scale_min, loop.scale_max) == (0.6, 1.5)
+    assert (loop.scale_min, loop.scale_max) == (0.6, 1.0)
     assert template.phases[3].brake is not None
     assert recipe.phases[3].brake == template.phases[3].brake
     paced = recipe.phases[3].paced

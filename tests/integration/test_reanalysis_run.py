@@ -34,6 +34,7 @@ def _reanalysed(tmp_path: Path) -> Path:
     }
     phases = data["phases"][:4]
     phases[3]["max_s"] = 0.6
+    phases[3]["ramp_s"] = min(phases[3]["ramp_s"], 0.6)  # a ramp within the shortened phase
     phases[3]["reanalyse"] = {"turn_deg": -45, "delay_s": 0.05, "use": "nearest"}
     # the analysis replaces the phase's torque, so its sized alternatives go (the loader
     # refuses both in one phase)

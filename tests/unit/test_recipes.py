@@ -298,6 +298,9 @@ def test_the_reserved_phase_names_are_what_the_log_says_where_no_phase_runs() ->
         ("time >= 0 for 5", "held for 5 s from its second tick"),
         ("time > 5", "the phase times out first"),
         ("time >= 0.8 for 0.3", "the phase times out first"),
+        # '>' holds a tick after its value: at the timeout's own tick it is not yet past it
+        ("time > 1", "the phase times out first"),
+        ("time > 0.5 for 0.5", "the phase times out first"),
         ("time < -1", "a phase's time is never below one loop period (1 ms)"),
         ("time <= 0", "a phase's time is never below one loop period"),
         ("time < 0.001", "a phase's time is never below one loop period"),
@@ -322,6 +325,8 @@ def test_a_condition_that_never_holds_in_its_phase_is_refused(
         assert err.key == f"phases[0].{key}[0]" and why in err.expected, err
     # at the edges it may hold, and loads
     load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=["time >= 1"]))), hand)
+    for edge in ("time > 0.999", "time >= 0.5 for 0.5", "time > 0.499 for 0.5"):
+        load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=[edge]))), hand)
     load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=["time <= 0.001"]))), hand)
     for at_the_limit in ("angle.f1_j1 >= 1.9", "angle.f1_j1 <= -1"):
         load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=1.0, exit=[at_the_limit]))), hand)
@@ -457,4 +462,67 @@ def test_a_phase_shorter_than_a_loop_period_is_refused(tmp_path: Path, hand: Han
     """max_s: 1e-9 ran one tick of its phase, as if it were one that lasted a tick."""
     err = error(tmp_path, hand, recipe_doc(phase("a", max_s=1e-9)))
     assert err.key == "phases[0].max_s" and ">= 0.001" in err.expected
-    load_recipe(write(tmp_path, recipe_doc(phase("a", max_s=0.001))), hand)
+    load_recipe(write(tmp_path, recipe_doc(phase("a", 0.0, max_s=0.001, ramp_s=0.001))), hand)
+
+
+@pytest.mark.parametrize(
+    "condition",
+    ["x > 4.0", "x >= 3.15", "x > 3.141592653589793", "x < -3.15", "x <= -3.141592653589793"],
+)
+def test_an_exit_on_a_line_direction_beyond_its_range_is_refused(
+    tmp_path: Path, hand: HandConfig, condition: str
+) -> None:
+    """A line's direction lies in (-π, π]: an exit past that never came, and the phase timed
+    out as if it had not been written."""
+    objects = [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}]
+    text = condition.replace("x", "estimate.cyl1_cyl2_line_angle")
+    err = error(tmp_path, hand, recipe_doc(phase("a", exit=[text]), objects=objects))
+    assert err.key == "phases[0].exit[0]" and "a direction in (-π, π] rad" in err.expected
+    assert "estimate.cyl1_cyl2_line_turn" in err.expected
+    for fine in ("x > 3.1", "x >= 3.141592653589793", "x < -3.1"):
+        doc = recipe_doc(
+            phase("a", exit=[fine.replace("x", "estimate.cyl1_cyl2_line_angle")]), objects=objects
+        )
+        load_recipe(write(tmp_path, doc), hand)
+
+
+def test_a_ramp_longer_than_its_phase_is_refused(tmp_path: Path, hand: HandConfig) -> None:
+    """ramp_s 60 in a phase of max_s 0.5 sent 0.004 N·m of the 0.5 asked, and completed."""
+    err = error(tmp_path, hand, recipe_doc(phase("a", ramp_s=60.0, max_s=0.5)))
+    assert (
+        err.key == "phases[0].ramp_s" and "no longer than the phase's max_s (0.5 s)" in err.expected
+    )
+    assert err.found == 60.0
+    # unsaid, the ramp fits a short phase
+    short = phase("a", 0.0, max_s=0.05)
+    del short["ramp_s"]
+    assert load_recipe(write(tmp_path, recipe_doc(short)), hand).phases[0].ramp_s == 0.05
+
+
+@pytest.mark.parametrize(
+    ("feedback", "key"),
+    [
+        ({"turn_rate": {"rate_deg_s": -45, "scale": [0.5, 5.0]}}, "phases[1].turn_rate.scale"),
+        ({"paced_ramp": {"rate_deg_s": -90, "reach": 3.0}}, "phases[1].paced_ramp.reach"),
+        (
+            {"paced_ramp": {"rate_deg_s": -90, "back": 10.0}, "ramp_s": 0.05},
+            "phases[1].paced_ramp.back",
+        ),
+    ],
+)
+def test_a_feedback_that_takes_the_torque_past_the_hand_is_refused(
+    tmp_path: Path, hand: HandConfig, feedback: dict[str, Any], key: str
+) -> None:
+    """A turn-rate loop's scale and a paced ramp's reach went past tau_max (the supervisor
+    clamped each joint, bending the planned torque's direction, and nothing said so), and a
+    paced ramp going back at ten times its speed past the rate limit the ramp was checked on."""
+    objects = [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}]
+    turn = {**phase("turn", 0.2, exit=["estimate.cyl1_cyl2_line_turn < -0.7"]), **feedback}
+    data = recipe_doc(phase("hold", -0.1, on_timeout="next"), turn, objects=objects)
+    err = error(tmp_path, hand, data)
+    assert err.key == key, err
+    assert "tau_max" in err.expected or "rate limit" in err.expected, err
+    # within the hand, the same feedback loads
+    turn["torques"] = dict.fromkeys(turn["torques"], 0.05)
+    data = recipe_doc(phase("hold", -0.01, on_timeout="next"), turn, objects=objects)
+    load_recipe(write(tmp_path, data), hand)

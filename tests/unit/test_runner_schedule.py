@@ -126,7 +126,7 @@ def test_a_radius_measured_after_the_phase_began_chooses_then_without_a_step(
     fit): it ramps to its own torque; once the radius is measured the scheduled torque is
     ramped to from where the torque is, never a step."""
     data = _data()
-    data["phases"][0]["max_s"] = 0.05
+    data["phases"][0]["max_s"] = data["phases"][0]["ramp_s"] = 0.05
     data["phases"][1]["ramp_s"] = 0.05  # the turn's own torque is in before the choice
     recipe = _load(tmp_path, hand, data)
     est = ObjectEstimator(boxed_hand(hand), recipe.objects, recipe.pairs)

@@ -417,9 +417,19 @@ def _parse_phase(
 ) -> Phase:
     name = doc.label("name")
     torques = parse_torques(doc, hand)
-    ramp = doc.number("ramp_s", default=0.1, min=0.0, max=60.0, unit="s")
     # a phase lasts a loop period at least: 1e-9 s ran one tick of it, as if it had not been
     max_s = doc.number("max_s", min=hand.bus.period_s, max=MAX_PHASE_S, unit="s")
+    # unsaid, the ramp fits the phase
+    ramp = doc.number("ramp_s", default=min(0.1, max_s), min=0.0, max=60.0, unit="s")
+    if ramp > max_s + 1e-9:
+        # the phase ended, on its timeout at the latest, before its torques were in: a
+        # recipe that said 0.5 N·m sent 0.004 and completed
+        doc.fail(
+            "ramp_s",
+            f"a ramp no longer than the phase's max_s ({max_s:g} s): the phase never reaches "
+            "its torques",
+            ramp,
+        )
     on_timeout = TimeoutAction(
         doc.string("on_timeout", default="abort", choices=[a.value for a in TimeoutAction])
     )
@@ -967,18 +977,37 @@ def _never_holds(cond: Condition, max_s: float, hand: HandConfig) -> str:
     """Why ``cond`` never holds in a phase of ``max_s`` on ``hand`` ('' if it may)."""
     # a phase is judged from the tick after it began: its time is a loop period at least
     first = hand.bus.period_s
-    slack = 1e-6  # s, the runner's times are to the microsecond
-    if first + cond.hold_s > max_s + slack:
+    above = cond.op in (">", ">=")
+    timeout = _phase_tick(first, max_s, strictly=False)  # exits are judged in it first
+    if cond.kind is SignalKind.TIME and above:
+        begins = _phase_tick(first, cond.value, strictly=cond.op == ">")
+    else:
+        begins = 1
+    if _held_from(first, begins, cond.hold_s) > timeout:
+        if begins > 1:  # a time that comes too late, not a hold too long
+            return "the phase times out first"
         return (
             f"held for {cond.hold_s:g} s from its second tick ({first * 1e3:g} ms) at the "
             "earliest, it outlasts the phase"
         )
-    above = cond.op in (">", ">=")
-    if cond.kind is SignalKind.TIME:
-        if above and max(cond.value, first) + cond.hold_s > max_s + slack:
-            return "the phase times out first"
-        if not above and (cond.value < first or (cond.op == "<" and cond.value == first)):
-            return f"a phase's time is never below one loop period ({first * 1e3:g} ms)"
+    if (
+        cond.kind is SignalKind.TIME
+        and not above
+        and (cond.value < first or (cond.op == "<" and cond.value == first))
+    ):
+        return f"a phase's time is never below one loop period ({first * 1e3:g} ms)"
+    signal = cond.text.split()[0]
+    # a line's direction is in (-π, π] (its turn, ``_line_turn``, is the unwrapped one)
+    past_pi = cond.value > math.pi or (cond.op == ">" and cond.value == math.pi)
+    if (
+        cond.kind is SignalKind.ESTIMATE
+        and signal.endswith("_line_angle")
+        and ((above and past_pi) or (not above and cond.value <= -math.pi))
+    ):
+        return (
+            f"{signal} is a direction in (-π, π] rad; its turn, unwrapped, is "
+            f"{signal.removesuffix('_angle')}_turn"
+        )
     if cond.kind is SignalKind.TDT:
         joint = hand.joints[cond.index]
         most = joint.device_tau_max
@@ -994,6 +1023,31 @@ def _never_holds(cond: Condition, max_s: float, hand: HandConfig) -> str:
         if not above and (cond.value < lo or (cond.op == "<" and cond.value == lo)):
             return f"{joint.name} past its soft limit {lo:g} rad is a safety stop"
     return ""
+
+
+def _elapsed(period_s: float, ticks: int) -> float:
+    """s, a phase's time ``ticks`` ticks after it began, as the runner reads it: whole
+    nanoseconds a period, rounded to the microsecond."""
+    return round(ticks * round(period_s * 1e9) * 1e-9, 6)
+
+
+def _phase_tick(period_s: float, seconds: float, *, strictly: bool) -> int:
+    """The first tick of a phase (1: the first judged) whose time is at least ``seconds``
+    (past it, ``strictly``)."""
+    tick = max(1, math.floor(seconds / period_s) - 1)
+    while not (
+        _elapsed(period_s, tick) > seconds if strictly else _elapsed(period_s, tick) >= seconds
+    ):
+        tick += 1
+    return tick
+
+
+def _held_from(period_s: float, begins: int, hold_s: float) -> int:
+    """The tick at which a condition true from tick ``begins`` on has held ``hold_s``."""
+    tick = begins + max(0, math.floor(hold_s / period_s) - 1)
+    while _elapsed(period_s, tick) - _elapsed(period_s, begins) < hold_s - 1e-12:
+        tick += 1
+    return tick
 
 
 def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
@@ -1028,17 +1082,20 @@ def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
                     f"phase '{phase.name}'{by}",
                     round(float(torques[j]), 9),
                 )
+            _check_feedback_reach(recipe, hand, i, key, torques, previous, tau_max)
             for start in previous:
+                into = f"into phase '{phase.name}'" + (f" ({key})" if "schedule" in key else "")
                 check_ramp(
-                    recipe.source,
-                    hand,
-                    f"phases[{i}].ramp_s",
-                    f"into phase '{phase.name}'" + (f" ({key})" if "schedule" in key else ""),
-                    start,
-                    torques,
-                    phase.ramp_s,
-                    rate,
-                )
+                    recipe.source, hand, f"phases[{i}].ramp_s", into, start, torques,
+                    phase.ramp_s, rate,
+                )  # fmt: skip
+                if phase.paced is not None and phase.paced.back > 1.0:
+                    # going back along the segment at ``back`` times the ramp's speed
+                    check_ramp(
+                        recipe.source, hand, f"phases[{i}].paced_ramp.back",
+                        f"{into}, going back at {phase.paced.back:g} times the ramp's speed",
+                        start, torques, phase.ramp_s / phase.paced.back, rate,
+                    )  # fmt: skip
         previous = candidates
     for start in previous:
         check_ramp(
@@ -1051,6 +1108,45 @@ def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
             recipe.end_ramp_s,
             rate,
         )
+
+
+def _check_feedback_reach(
+    recipe: Recipe,
+    hand: HandConfig,
+    i: int,
+    key: str,
+    torques: np.ndarray,
+    previous: Sequence[np.ndarray],
+    tau_max: np.ndarray,
+) -> None:
+    """Refuse a feedback that takes a phase's torque past tau_max: a turn-rate loop's largest
+    scale, a paced ramp's ``reach`` beyond the phase's torque along the segment from the
+    previous phase's. The supervisor clamped such a torque joint by joint, which changed the
+    direction of the torque the analysis planned, and nothing said so."""
+    phase = recipe.phases[i]
+    names = hand.joint_names
+    reached: list[tuple[str, float, str, np.ndarray]] = []
+    if phase.turn_rate is not None and phase.turn_rate.scale_max != 1.0:
+        scale = phase.turn_rate.scale_max
+        how = f"times turn_rate's largest scale ({scale:g})"
+        reached.append(("turn_rate.scale", scale, how, torques * scale))
+    if phase.paced is not None and phase.paced.reach > 1.0:
+        reach = phase.paced.reach
+        how = f"{reach:g} of the way along the segment from the previous phase's torque"
+        reached += [
+            ("paced_ramp.reach", reach, how, start + reach * (torques - start))
+            for start in previous
+        ]
+    for what, value, how, values in reached:
+        for j in np.flatnonzero(np.abs(values) > tau_max * (1 + 1e-9)):
+            raise ConfigError(
+                recipe.source,
+                f"phases[{i}].{what}",
+                f"a feedback that keeps |τ| <= {tau_max[j]:g} N·m (tau_max of {names[j]} in "
+                f"{hand.source}) in phase '{phase.name}': {key}.{names[j]} {how} is "
+                f"{float(values[j]):.4g} N·m",
+                value,
+            )
 
 
 def check_ramp(
