@@ -241,6 +241,8 @@ def test_a_recipe_for_another_hand_says_so_at_its_first_joint_keyed_mapping(
     data = yaml.safe_load((ROOT / "config" / "recipes" / "swap_two_cylinders.yaml").read_text())
     data.pop("hand_config_hash")
     data["compiled"] = False
+    for planned in data["phases"]:  # what it was planned for is said first when it is there
+        planned.pop("provenance", None)
     with pytest.raises(ConfigError) as info:
         load_recipe(write(tmp_path, data), planar)
     assert info.value.key == "limit_guard_spring_bands"
@@ -526,3 +528,28 @@ def test_a_feedback_that_takes_the_torque_past_the_hand_is_refused(
     turn["torques"] = dict.fromkeys(turn["torques"], 0.05)
     data = recipe_doc(phase("hold", -0.01, on_timeout="next"), turn, objects=objects)
     load_recipe(write(tmp_path, data), hand)
+
+
+def test_a_phase_planned_for_another_hand_is_refused_without_the_recipes_own_hash(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Deleting a compiled recipe's `compiled` and `hand_config_hash` let it run on another
+    hand config, every phase's provenance still naming the hand it was planned for."""
+    planned = phase("a", provenance={"kind": "free", "hand_config_hash": "sha256:0123456789abcdef"})
+    err = error(tmp_path, hand, recipe_doc(planned))
+    assert err.key == "phases[0].provenance.hand_config_hash"
+    assert hand.config_hash in err.expected and "planned for another hand config" in err.expected
+    assert err.found == "sha256:0123456789abcdef"
+    planned["provenance"]["hand_config_hash"] = hand.config_hash
+    load_recipe(write(tmp_path, recipe_doc(planned)), hand)
+
+
+def test_a_phase_key_indented_into_provenance_is_refused(tmp_path: Path, hand: HandConfig) -> None:
+    """A `joint_damping` or an `exit` a level too deep sat in provenance, unread: the phase
+    ran without it and nothing said so."""
+    deep = phase("a", provenance={"kind": "free", "joint_damping": 0.05})
+    err = error(tmp_path, hand, recipe_doc(deep))
+    assert err.key == "phases[0].provenance.joint_damping" and "a level too deep" in err.expected
+    # what handctl plan writes there loads (its own 'schedule' among it)
+    deep["provenance"] = {"kind": "free", "schedule": [{"chosen_from": "x"}], "models": {}}
+    load_recipe(write(tmp_path, recipe_doc(deep)), hand)

@@ -126,6 +126,8 @@ def parse_recipe(doc: Doc, hand: HandConfig, *, as_recorded: bool = False) -> Re
             "compiled for another hand config: recompile it for this one)",
             digest,
         )
+    if not as_recorded:
+        _refuse_another_hands_phases(doc, hand)
     end_ramp = doc.number("end_ramp_s", default=0.2, min=0.0, max=60.0, unit="s")
     objects = parse_objects(doc)
     pairs = parse_pairs(doc, objects)
@@ -206,6 +208,51 @@ def parse_recipe(doc: Doc, hand: HandConfig, *, as_recorded: bool = False) -> Re
         grasp_model,
         plan_failed,
     )
+
+
+#: The keys of a phase that ``handctl plan`` never writes into a phase's ``provenance`` (its
+#: own ``schedule`` is there, what planned the phase's schedule): one found there is a phase
+#: key indented a level too deep, which provenance swallowed unread.
+PHASE_KEYS = frozenset(
+    {
+        "name", "torques", "ramp_s", "max_s", "on_timeout", "exit", "abort", "turn_rate",
+        "pose", "joint_damping", "joint_damping_fades", "brake", "paced_ramp",
+        "torque_margin", "turn_from", "stall", "exit_share", "reanalyse",
+    }
+)  # fmt: skip
+
+
+def _refuse_another_hands_phases(doc: Doc, hand: HandConfig) -> None:
+    """A phase whose provenance says it was planned for another hand config is refused as
+    a recipe compiled for one is: deleting the recipe's own hash (or its ``compiled``) let
+    the whole recipe run on another hand, every phase still saying it was planned for the
+    first. And a phase key inside ``provenance`` is refused: it ran as if it were not there."""
+    phases = doc.raw("phases", None)
+    if not isinstance(phases, list):
+        return  # said where the phases are read
+    for i, phase in enumerate(phases):
+        provenance = phase.get("provenance") if isinstance(phase, dict) else None
+        if not isinstance(provenance, dict):
+            continue
+        key = f"phases[{i}].provenance"
+        digest = provenance.get("hand_config_hash")
+        if digest is not None and not (isinstance(digest, str) and hand.answers_to(digest)):
+            raise ConfigError(
+                doc.file,
+                f"{key}.hand_config_hash",
+                f"{hand.config_hash}, the hash of {hand.source} (the phase was planned for "
+                "another hand config: plan the recipe again for this one)",
+                digest,
+            )
+        stray = sorted(PHASE_KEYS.intersection(provenance))
+        if stray:
+            raise ConfigError(
+                doc.file,
+                f"{key}.{stray[0]}",
+                "only what handctl plan wrote there: a phase's own keys go beside "
+                "'provenance', not inside it (indented a level too deep?)",
+                provenance[stray[0]],
+            )
 
 
 def _plan_failed(doc: Doc) -> tuple[tuple[str, str], ...]:
