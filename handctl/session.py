@@ -17,7 +17,7 @@ import sys
 import tempfile
 from collections.abc import Callable
 from contextlib import ExitStack, suppress
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -170,6 +170,8 @@ def summarise_run(
             if result.exception is not None
             else {}
         ),
+        # joints whose command rang: the limits held, the joint took the swing
+        **({"chatter": [asdict(r) for r in result.chatter]} if result.chatter else {}),
         **({"sim": sim} if sim is not None else {}),
     }
 
@@ -188,6 +190,7 @@ def _run_warnings(result: RunResult) -> list[str]:
         said.append(result.nodes_reset)
     if result.disable_unconfirmed:
         said.append(result.disable_unconfirmed)
+    said += [ringing.text() for ringing in result.chatter]
     return said
 
 

@@ -57,6 +57,7 @@ from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.runner import RecipeRunner, RunStatus
 from handctl.online.recipes.schema import MeasuredSizes, Recipe
 from handctl.online.safety import faults as safety_faults
+from handctl.online.safety.chatter import ChatterWatch, Ringing
 from handctl.online.safety.faults import Fault, FaultCode
 from handctl.online.safety.supervisor import State, Supervisor
 from handctl.online.safety.watchdog import StartupRejects, ticks_lasting
@@ -221,6 +222,8 @@ class RunResult:
     nodes_reset: str = ""
     #: nodes not heard DISABLED after the run's disable ("": every one was)
     disable_unconfirmed: str = ""
+    #: joints whose command rang (``safety.chatter``)
+    chatter: list[Ringing] = field(default_factory=list)
 
 
 class Runtime:
@@ -274,6 +277,10 @@ class Runtime:
         self.collector = LoopCollector()
         self._stats = TickStats(len(STAGES), window_ticks)
         self._max_abs = np.zeros(hand.n_joints)
+        #: joints whose command rings (a feedback too stiff for them)
+        self.chatter = ChatterWatch(
+            hand.joint_names, np.array([j.tau_max for j in hand.joints]), hand.bus.period_s
+        )
         self._missed = 0
         self.tick = 0  # the number of the tick under way (or next): as many have run before it
         self._t0_ns: int | None = None
@@ -782,6 +789,7 @@ class Runtime:
         if new_faults and self._another_master(new_faults):
             driver.send_estop()
         np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)
+        self.chatter.observe(applied, t_s)
         c4 = cpu()  # the record stage is the recording alone
         if self.recorder is not None:
             # The refill runs no Python-level call it can do without (``Tick.lateness_ns``,
@@ -992,6 +1000,7 @@ class Runtime:
             stop_notes=list(self.supervisor.stop_notes),
             nodes_reset=self.nodes_reset,
             disable_unconfirmed=self.disable_unconfirmed,
+            chatter=self.chatter.found(),
         )
 
 

@@ -72,6 +72,12 @@ def test_no_joint_chatters(applied: np.ndarray, hand: HandConfig) -> None:
     )
 
 
+def test_no_joint_rings(summary: dict[str, object]) -> None:
+    """No joint's command swings back and forth for tenths of a second (``safety.chatter``),
+    which the run would say as a warning and under ``chatter``."""
+    assert "chatter" not in summary, summary.get("chatter")
+
+
 def test_lifted_held_turned_not_dropped(summary: dict[str, object]) -> None:
     assert summary["completed"] is True and summary["faults"] == []
     ex = summary["experiment"]

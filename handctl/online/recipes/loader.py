@@ -53,7 +53,10 @@ MAX_PHASES = 64
 #: with an estimator that never placed the object (it fits within ±40 % of the nominal), so
 #: an exit on its estimates never came; the simulated hand's objects are as large or larger
 MIN_OBJECT_RADIUS = 0.005
-#: rad, the range of ``limit_guard_band``: narrower is a cliff again, wider fights the grasp
+#: rad, the range of ``limit_guard_band``: narrower is a cliff again, wider fights the grasp.
+#: The spring (tau_max / band) through the drive's lag rings on a light joint well above the
+#: least (0.02 and 0.05 on the nominal hand's distal joints, not 0.08): a run whose command
+#: rings says so (``safety.chatter``)
 GUARD_BAND_MIN = 0.02
 GUARD_BAND_MAX = 0.5
 #: deg, the most ``min_total_turn_deg`` may ask for (a few turns of the pair)
@@ -62,7 +65,9 @@ MAX_TOTAL_TURN_DEG = 1440.0
 MAX_TURN_RATE_DEG_S = 720.0
 #: N·m·s/rad, the most damping a phase may inject: the drive's lag and the velocity filter
 #: delay the damper by about 15 ms, and a damper much stiffer than the joints' inertia over
-#: that delay oscillates instead of damping
+#: that delay oscillates instead of damping. Not a bound of stability (a distal link of the
+#: nominal hand rings from about 0.01, a proximal one takes more; a hand config carries no
+#: inertia): a run whose command rings says so (``safety.chatter``)
 MAX_JOINT_DAMPING = 0.2
 #: the largest ``torque_margin``: twice the planned torque is already a different plan
 MAX_TORQUE_MARGIN = 2.0
@@ -893,8 +898,11 @@ def _parse_pose(doc: Doc, hand: HandConfig) -> PoseHold:
     refuse_another_hands_joints(doc, "angles", hand)
     angles = _joint_angles(doc.mapping("angles"), hand)
     stiffness = doc.number("stiffness", min=0.0, max=100.0, unit="N·m/rad")
-    # the same damper on the same fitted velocity as injected joint_damping, through the same
-    # lag: bounded alike (10 N·m·s/rad was taken, and 0.5 already drove a joint onto its limit)
+    # bounded as injected joint_damping is (10 N·m·s/rad was taken, and 0.5 already drove a
+    # joint onto its limit); it acts on the 10 ms low-passed velocity, more lag than the
+    # fitted one injected damping uses, so it rings at less (0.1 on the nominal hand's
+    # distal joints): no bound is one of stability without the joints' inertia, which a hand
+    # config does not carry, and a run whose command rings says so (``safety.chatter``)
     damping = doc.number("damping", default=0.0, min=0.0, max=MAX_JOINT_DAMPING, unit="N·m·s/rad")
     integral = _parse_integral(doc.mapping("integral"), hand) if doc.has("integral") else None
     doc.done()
