@@ -457,7 +457,6 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
     worlds = [World.of(hand, m.params, template.objects, template.limit_guard) for m in model_list]
     snaps: list[Snapshot] = [snapshot_of(w) for w in worlds]
     alive = list(range(len(worlds)))
-    limits = [j.tau_max for j in hand.joints]
     previous: tuple[float, ...] = (0.0,) * hand.n_joints
     lifted = False
     plans: list[PhasePlan] = []
@@ -535,7 +534,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 [snaps[i] for i in alive],
                 _compiled_phase(spec, seeds[0][1], hand),
                 seeds,
-                limits,
+                search_box(spec, hand, previous),
                 scorer,
                 rng,
                 budget,
@@ -752,6 +751,26 @@ def _limit_bounds(template: Template) -> tuple[float, float]:
     return LIMIT_MARGIN, LIMIT_FAIL
 
 
+def search_box(spec: TemplatePhase, hand: HandConfig, previous: Sequence[float]) -> list[float]:
+    """N·m, the largest |torque| per joint the search may give ``spec``: tau_max less what the
+    phase's feedback adds when it runs (its ``torque_margin``, a turn-rate loop's largest
+    scale, a paced ramp's ``reach`` beyond it along the segment from ``previous``), which the
+    loader holds to tau_max as well; searched to tau_max, a plan ended refused by its own
+    recipe's loader."""
+    tau = np.array([j.tau_max for j in hand.joints])
+    factor = np.maximum(
+        np.broadcast_to(np.asarray(spec.torque_margin, dtype=float), tau.shape), 1.0
+    )
+    if spec.turn_rate is not None:
+        factor = np.maximum(factor, spec.turn_rate.scale_max)
+    box = tau / factor
+    if spec.paced is not None and spec.paced.reach > 1.0:
+        reach = spec.paced.reach
+        start = np.abs(np.asarray(previous, dtype=float))
+        box = np.minimum(box, np.maximum(0.0, (tau - (reach - 1.0) * start) / reach))
+    return [float(b) for b in box]
+
+
 def _search(
     worlds: Sequence[World],
     snapshots: Sequence[Snapshot],
@@ -890,7 +909,7 @@ def _plan_schedule(
             [snaps[i] for i in alive],
             _compiled_phase(spec, own, hand, schedule=()),
             seeds,
-            [j.tau_max for j in hand.joints],
+            search_box(spec, hand, previous),
             scorer,
             rng,
             budget,

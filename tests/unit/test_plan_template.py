@@ -367,3 +367,40 @@ def test_an_end_ramp_of_zero_is_refused_before_any_search(tmp_path: Path, hand: 
     assert "a ramp back to zero longer than 0 s" in info.value.expected
     data["end_ramp_s"] = 0.3
     assert load_template(write(tmp_path, data), hand).end_ramp_s == 0.3
+
+
+def test_the_search_box_leaves_room_for_what_the_feedback_adds(hand: HandConfig) -> None:
+    """The search gives a phase no torque its own feedback takes past tau_max when it runs
+    (the loader refuses that recipe): the lift's torque_margin, a turn-rate loop's largest
+    scale, a paced ramp's reach beyond the phase's torque."""
+    from dataclasses import replace
+
+    from handctl.online.recipes.schema import PacedRamp, TurnRate
+    from handctl.planning.compile import search_box
+
+    template = load_template(ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml", hand)
+    tau = [j.tau_max for j in hand.joints]
+    zero = [0.0] * hand.n_joints
+    lift = next(p for p in template.phases if p.name == "lift")
+    margin = (
+        [lift.torque_margin] * len(tau)
+        if isinstance(lift.torque_margin, float)
+        else list(lift.torque_margin)
+    )
+    assert search_box(lift, hand, zero) == pytest.approx(
+        [t / max(m, 1.0) for t, m in zip(tau, margin, strict=True)]
+    )
+    turn = next(p for p in template.phases if p.kind == "turn")
+    plain = replace(turn, turn_rate=None, paced=None, torque_margin=1.0)
+    assert search_box(plain, hand, zero) == pytest.approx(tau)
+    scaled = replace(
+        plain, turn_rate=TurnRate(rate=-0.8, scale_min=0.5, scale_max=2.0, gain=1.0, integral=0.0)
+    )
+    assert search_box(scaled, hand, zero) == pytest.approx([t / 2 for t in tau])
+    paced = replace(plain, paced=PacedRamp(rate=-1.5, reach=1.5, back=2.0))
+    previous = [0.1] * hand.n_joints
+    box = search_box(paced, hand, previous)
+    # the furthest the ramp goes, previous + 1.5 (torque - previous), stays within tau_max
+    for b, t in zip(box, tau, strict=True):
+        assert abs(0.1 + 1.5 * (b - 0.1)) <= t + 1e-12
+        assert abs(0.1 + 1.5 * (-b - 0.1)) <= t + 1e-12
