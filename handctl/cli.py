@@ -3186,6 +3186,19 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
             raise
         print(f"handctl: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except Exception as exc:  # a bug: said as one, with what to report
+        # not a bare traceback: the first line says what failed and that it is handctl's own
+        # fault, not the input's; a run's stop does not pass through here (the loop stops
+        # the hand itself on any exception inside it)
+        import traceback
+
+        print(
+            f"handctl: internal error: {type(exc).__name__}: {exc} (a bug in handctl, not in "
+            "the input; please report it with the traceback below)",
+            file=sys.stderr,
+        )
+        traceback.print_exception(exc, file=sys.stderr)
+        return EXIT_FAILED
 
 
 class _ReaderMayLeave(io.TextIOBase):

@@ -766,3 +766,26 @@ def test_a_node_not_heard_disabled_after_an_exception_is_said(
         result.disable_unconfirmed
     )
     assert "node 1" not in result.disable_unconfirmed
+
+
+def test_an_exception_before_the_first_tick_is_said_as_handctls_own_fault(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bug in the run's set-up (here the estimator's) was a bare traceback: the first line
+    now says it is handctl's fault, not the input's, and what to report; exit 1."""
+    from handctl.online import estimator
+
+    def broken(*args: Any, **kwargs: Any) -> None:
+        raise ForcedError("forced in the estimator's set-up")
+
+    monkeypatch.setattr(estimator.ObjectEstimator, "__init__", broken)
+    recipe = tmp_path / "two.yaml"
+    recipe.write_text(TWO_OBJECTS)
+    assert cli.main(["run", "recipe", str(recipe)]) == cli.EXIT_FAILED
+    err = capsys.readouterr().err
+    first = next(line for line in err.splitlines() if line.startswith("handctl:"))
+    assert first.startswith(
+        "handctl: internal error: ForcedError: forced in the estimator's set-up (a bug in "
+        "handctl, not in the input"
+    )
+    assert "Traceback (most recent call last)" in err
