@@ -147,7 +147,13 @@ def test_finite_torques_whose_sum_overflows_are_not_taken_for_non_finite(
     desired[0], desired[1] = np.inf, -np.inf  # a NaN sum, as a NaN would give
     found = check_desired(desired, hand.n_joints)
     assert found is not None and found[0] is FaultCode.NON_FINITE_TORQUE
-    assert found[1].startswith("joint 0: ")
+    assert found[1] == "joint 0: inf N·m asked"
+    # named where the names are known (the supervisor's): numpy's repr said np.float64(nan)
+    desired[0] = np.nan
+    assert check_desired(desired, hand.n_joints, hand.joint_names) == (
+        FaultCode.NON_FINITE_TORQUE,
+        f"{hand.joint_names[0]}: nan N·m asked",
+    )
 
 
 @pytest.mark.parametrize("n", [0, 8, 10])

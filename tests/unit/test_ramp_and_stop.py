@@ -379,7 +379,7 @@ def test_a_torque_that_must_be_refused_is_a_fault_at_its_tick(
     assert sup.state is State.FAULTED
     [fault] = sup.faults
     assert (fault.code, fault.tick) == (FaultCode.NON_FINITE_TORQUE, running.tick + 1)
-    assert fault.detail.startswith("joint 3: ") and "inf" in fault.detail
+    assert fault.detail.startswith(f"{hand.joint_names[3]}: ") and "inf" in fault.detail
 
 
 @pytest.mark.parametrize("code", RAMP_CODES)

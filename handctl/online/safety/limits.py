@@ -79,9 +79,10 @@ class JointLimits:
 
 
 def check_desired(
-    desired: Sequence[float] | FloatArray, n_joints: int
+    desired: Sequence[float] | FloatArray, n_joints: int, names: Sequence[str] = ()
 ) -> tuple[FaultCode, str] | None:
-    """A fault for desired torques that must not be limited but refused; None when usable."""
+    """A fault for desired torques that must not be limited but refused; None when usable.
+    ``names``: the joints', to name the one at fault (else its index)."""
     if isinstance(desired, np.ndarray) and desired.dtype == np.float64:
         arr = desired
     else:
@@ -96,7 +97,8 @@ def check_desired(
     # (or a sum of huge finite values that overflowed) still needs.
     if not math.isfinite(sum(arr.tolist())) and not np.isfinite(arr).all():
         joint = int(np.argmax(~np.isfinite(arr)))
-        return FaultCode.NON_FINITE_TORQUE, f"joint {joint}: {arr[joint]!r}"
+        name = names[joint] if len(names) == n_joints else f"joint {joint}"
+        return FaultCode.NON_FINITE_TORQUE, f"{name}: {float(arr[joint])} N·m asked"
     return None
 
 

@@ -333,7 +333,9 @@ class Supervisor:
     ) -> FloatArray:
         state = self.state
         if state is State.RUNNING:
-            problem = check_desired(desired, self.n) if desired is not None else None
+            problem = (
+                check_desired(desired, self.n, self.limits.names) if desired is not None else None
+            )
             if desired is None:
                 target = self.applied  # nothing asked: hold
             elif problem is not None:
