@@ -259,6 +259,23 @@ def test_a_scheduled_torque_too_far_for_the_ramp_is_refused(
     assert "schedule[0]" in err.value.expected
 
 
+def test_a_schedule_chosen_mid_phase_is_checked_from_the_phase_s_own_torque(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A radius measured once the phase has begun ramps from where the phase's own ramp got
+    to the entry's torque: from the previous phase's torque to the entry's is within the rate
+    limit here, from the phase's own to the entry's is not (0.8 N·m in 30 ms)."""
+    data = _data(schedule=[_entry({"radius_ratio": {"object": "cyl1", "min": 1.1}}, f1_j1=0.5)])
+    data["phases"][1]["torques"]["f1_j1"] = -0.3
+    data["phases"][1]["ramp_s"] = 0.03
+    with pytest.raises(ConfigError) as err:
+        _load(tmp_path, hand, data)
+    assert err.value.key == "phases[1].ramp_s"
+    assert "schedule[0]" in err.value.expected and "0.8 N·m" in err.value.expected
+    data["phases"][1]["ramp_s"] = 0.05  # 16 N·m/s
+    _load(tmp_path, hand, data)
+
+
 def test_a_schedule_and_a_reanalysis_are_not_both_a_phase_s(
     tmp_path: Path, hand: HandConfig
 ) -> None:

@@ -1138,7 +1138,10 @@ def check_against_hand(recipe: Recipe, hand: HandConfig) -> None:
                     round(float(torques[j]), 9),
                 )
             _check_feedback_reach(recipe, hand, i, key, torques, previous, tau_max)
-            for start in previous:
+            # a schedule entry chosen once the phase has begun is ramped to again, from where
+            # the phase's own ramp had got: anywhere between the previous torque and its own
+            starts = [*previous, candidates[0]] if "schedule" in key else previous
+            for start in starts:
                 into = f"into phase '{phase.name}'" + (f" ({key})" if "schedule" in key else "")
                 check_ramp(
                     recipe.source, hand, f"phases[{i}].ramp_s", into, start, torques,
