@@ -15,8 +15,9 @@ centre-line rate (deg/s, the largest and the median over the runs) and
 quasi-static analysis covers, ``MAX_TURN_RATE_DEG_S``); ``phase_band_rate``, the fraction
 whose every manipulation phase turned ``--phase-deg`` (45) within ``--phase-tolerance-deg``
 (10), and ``controlled_turn_rate``, those of them at or under 180°/s as well; the nominal
-hand is run once as well. ``estimator_us_p50/p99`` is the estimator's own cost per tick on
-this machine (a benchmark figure, never a test).
+hand is run once as well. ``ringing_rate``: the runs with a joint whose command rang (a
+feedback too stiff for it, ``handctl/online/safety/chatter.py``). ``estimator_us_p50/p99``
+is the estimator's own cost per tick on this machine (a benchmark figure, never a test).
 """
 
 from __future__ import annotations
@@ -235,6 +236,8 @@ def _figures(runs: list[dict[str, Any]], step_deg: float, tolerance_deg: float) 
         # each manipulation phase its step (--phase-deg, --phase-tolerance-deg), and that
         # with no tumble too: the controlled turn the paper makes
         "phase_band_rate": round(sum(banded) / n, 3),
+        # runs with a joint whose command rang for half a second or more (safety.chatter)
+        "ringing_rate": round(sum(bool(r.get("ringing_joints")) for r in runs) / n, 3),
         "controlled_turn_rate": round(
             sum(b and p <= MAX_TURN_RATE_DEG_S for b, p in zip(banded, peaks, strict=True)) / n,
             3,

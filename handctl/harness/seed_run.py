@@ -77,6 +77,8 @@ def run_seed(task: SeedRun) -> dict[str, Any]:
         "peak_turn_rate_by_phase_deg_s": ex.get("peak_turn_rate_by_phase_deg_s"),
         "timed_out_phases": report.summary.get("timed_out_phases"),
         "estimator_error_deg": ex.get("estimator_error_deg"),
+        # joints whose command rang (safety.chatter): the limits held, the joint took it
+        "ringing_joints": [c["joint"] for c in report.summary.get("chatter", [])],
         "scales": {k: round(v, 4) for k, v in scales.items()},
         "wall_s": round(wall, 2),
     }

@@ -40,6 +40,7 @@ def test_a_seed_gives_the_same_figures_in_a_worker_as_here(
     assert {"mass.1", "radius.2", "damping", "placement_m"} <= set(here["scales"])
     assert here["lifted"] is not None
     assert here["outcome"] == "completed" and here["message"] == ""
+    assert here["ringing_joints"] == []
 
 
 def test_a_stopped_seed_says_why(hand: HandConfig) -> None:

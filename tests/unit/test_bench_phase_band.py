@@ -89,3 +89,10 @@ def test_the_rates_count_the_band_and_the_band_with_no_tumble() -> None:
     assert figures["phase_band_rate"] == 0.75
     assert figures["controlled_turn_rate"] == 0.5
     assert _bench()._figures(runs, -45.0, 20.0)["phase_band_rate"] == 1.0
+
+
+def test_the_ringing_rate_counts_the_runs_with_a_joint_that_rang() -> None:
+    runs = [_run([-45.0] * 4) for _ in range(4)]
+    runs[1]["ringing_joints"] = ["f1_j3", "f2_j3"]
+    runs[2]["ringing_joints"] = []
+    assert _bench()._figures(runs, -45.0, 10.0)["ringing_rate"] == 0.25
