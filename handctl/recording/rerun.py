@@ -20,7 +20,7 @@ import struct
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -391,6 +391,11 @@ class _Compare:
         self.compared = 0
         self.mismatches: list[dict[str, Any]] = []
         self.mismatched_ticks = 0
+        #: the ticks counted in ``mismatched_ticks``, and the ticks compared before ``until``
+        #: (``_up_to_the_exception``: a run that ended on an exception the re-run cannot raise)
+        self.bad_ticks: list[int] = []
+        self.until = math.inf
+        self.compared_before = 0
         #: what else the tick decided and the log says it decided: the desired torques, the
         #: supervisor's state, the phase. A log whose phase or state was rewritten re-ran
         #: "bit-exact" on its torques while replay's phase table showed the rewritten ones.
@@ -406,7 +411,7 @@ class _Compare:
         logged = current.applied if current is not None else None
         rerun = record.applied
         if logged is None:
-            self.mismatched_ticks += 1
+            self._mismatched(record.tick)
             self._add(
                 record.tick,
                 "-",
@@ -420,12 +425,13 @@ class _Compare:
         if pack is None:
             pack = _PACK[n] = struct.Struct(f"<{n}d")
         self.compared += 1
+        self.compared_before += record.tick < self.until
         decided = self._decisions(record, current, pack) if current is not None else True
         if len(rerun) == n and rerun.tobytes() == pack.pack(*logged):
             if not decided:
-                self.mismatched_ticks += 1
+                self._mismatched(record.tick)
             return
-        self.mismatched_ticks += 1
+        self._mismatched(record.tick)
         for j, (a, b) in enumerate(zip(logged, rerun.tolist(), strict=False)):
             if struct.pack("<d", a) != struct.pack("<d", b):
                 name = self.joints[j] if j < len(self.joints) else str(j)
@@ -433,6 +439,10 @@ class _Compare:
 
     def note(self, kind: str, detail: str, tick: int) -> None:
         return None
+
+    def _mismatched(self, tick: int) -> None:
+        self.mismatched_ticks += 1
+        self.bad_ticks.append(tick)
 
     def _decisions(self, record: TickRecord, logged: TickInput, pack: struct.Struct) -> bool:
         """Whether the tick's desired torques, safety state and phase are the log's (each
@@ -627,6 +637,10 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
     clock.runtime = runtime
     runtime.cpu_clock = _no_time  # stage times are the run's, not the re-run's
     notes: list[str] = []
+    logged = recording.json_meta(ch.META_SUMMARY) or {}
+    raised = _logged_exception(logged)
+    if raised is not None:
+        compare.until = raised[0]
     started = time.perf_counter()
     outcome = "log ended"
     try:
@@ -648,7 +662,6 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
     if leftover and outcome != "log ended":
         notes.append(f"the log goes on for {leftover} ticks after the re-run ended")
     notes += [f"not repeated: {u}" for u in clock.unsupported]
-    logged = recording.json_meta(ch.META_SUMMARY) or {}
     ticks = (clock.current.tick + 1) if clock.current else 0
     frame_mismatches = list(heapq.merge(bus.frame_mismatches, check.mismatches, key=_tick_of))
     logged_outcome = str(logged.get("outcome", ""))
@@ -657,7 +670,7 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         # the run, fed the same frames to its end, ended otherwise than the log's summary
         # says: a summary altered (a time budget said to have completed) passed bit-exact
         outcome_mismatch = f"outcome: logged {logged_outcome!r}, re-run {outcome!r}"
-    return RerunReport(
+    report = RerunReport(
         ticks,
         compare.compared,
         compare.mismatched_ticks,
@@ -671,6 +684,44 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         notes,
         wall,
         outcome_mismatch,
+    )
+    if raised is not None and (runtime.exception is None or runtime.exception.tick != raised[0]):
+        return _up_to_the_exception(report, compare, raised)
+    return report
+
+
+def _logged_exception(logged: dict[str, Any]) -> tuple[int, str] | None:
+    """The tick and the description of the exception the logged run stopped on, if any."""
+    exc = logged.get("exception")
+    if not isinstance(exc, dict) or not isinstance(exc.get("tick"), int):
+        return None
+    what = ": ".join(str(exc.get(k, "?")) for k in ("code", "type", "message"))
+    return int(exc["tick"]), what[:200]
+
+
+def _up_to_the_exception(
+    report: RerunReport, compare: _Compare, raised: tuple[int, str]
+) -> RerunReport:
+    """The report of a re-run compared up to the tick the logged run raised in, which the
+    re-run did not: an exception comes from outside the logged inputs (a bug since fixed,
+    memory, the disk), so from that tick on the two runs part by design, and a re-run that
+    said MISMATCH there (exit 1) read as a log tampered with."""
+    tick, what = raised
+    before = [m for m in report.mismatches if m["tick"] < tick]
+    return replace(
+        report,
+        compared=compare.compared_before,
+        mismatched_ticks=sum(t < tick for t in compare.bad_ticks),
+        mismatches=before,
+        frame_mismatches=[f for f in report.frame_mismatches if _tick_of(f) < tick],
+        decision_mismatches=[d for d in report.decision_mismatches if 0 <= _tick_of(d) < tick],
+        outcome_mismatch="",
+        notes=[
+            *report.notes,
+            f"the run stopped on an exception in tick {tick} ({what}), which the re-run of "
+            f"the logged inputs does not raise: compared up to tick {tick}, the stop after it "
+            "is the run's own",
+        ],
     )
 
 

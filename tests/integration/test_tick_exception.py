@@ -789,3 +789,28 @@ def test_an_exception_before_the_first_tick_is_said_as_handctls_own_fault(
         "handctl, not in the input"
     )
     assert "Traceback (most recent call last)" in err
+
+
+def test_the_rerun_of_a_run_that_stopped_on_an_exception_compares_up_to_it(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The exception came from outside the logged inputs (here a forced one), so the re-run
+    does not raise it: it compares every tick before it, bit-exact, and says where it
+    stopped comparing (it said MISMATCH on the stop's ticks, exit 1, as for a log altered)."""
+    from handctl.recording.rerun import rerun
+
+    log = tmp_path / "run.mcap"
+    with bench(hand, hold, log) as b:
+        due = Trigger(b.runtime, always=False)
+        force("runner", b, due, monkeypatch)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        b.recorder.close(session.summarise_run(result, hand, hold, True, None))
+    assert result.exception is not None
+    raised = result.exception.tick
+    report = rerun(open_recording(log))
+    assert report.ok, report.as_dict()
+    assert report.compared >= raised - b.runtime.first_send_tick - 1
+    said = [n for n in report.notes if "stopped on an exception" in n]
+    assert said and f"compared up to tick {raised}" in said[0]
+    assert "RUNNER_EXCEPTION: ForcedError: forced in the runner stage" in said[0]
