@@ -33,6 +33,7 @@ from handctl.protocol import (
     most_misses_before_watchdog,
     slowest_loop_rate_hz,
 )
+from handctl.schema import description
 
 if TYPE_CHECKING:  # the hand config's protocol is generated with the DLC sizes below
     from handctl.config import BusConfig, HandConfig
@@ -206,7 +207,7 @@ def bus_refusals(
             "longer than the 8 bytes of a classic CAN frame, and handctl sends every message "
             "in one frame (no hand fits classic CAN: Status_n is 12 bytes for any joints)"
         )
-        out.append(("bus.fd", expected, False))
+        out.append(("bus.fd", expected, description("false")))  # as YAML writes it
     if not budget.ok:
         # what would fit goes with what is expected: a found value is cut to one short line
         # in a message, and the hint was cut off there

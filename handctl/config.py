@@ -23,6 +23,7 @@ from handctl.convention import PART_NAME, PART_NAME_RULE
 from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids, protocol_for
 from handctl.protocol import (
     COMMAND_WATCHDOG_S,
+    FEEDBACK_PERIOD_S,
     HEARTBEAT_PERIOD_S,
     MIN_LOOP_RATE_HZ,
     NODE_TIMING_MARGIN_S,
@@ -358,6 +359,19 @@ def _check_misses_before_watchdog(doc: Doc, hand: HandConfig) -> None:
             "and the node's tick)",
             misses,
         )
+    # ticks whose command frames did not go leave the nodes without a command as missed ticks
+    # do: the host's BUS_ERROR must come first (100 were taken, and the nodes latched TIMEOUT,
+    # a fault the next run must reset, while the host said nothing of its bus)
+    failures = hand.safety.max_consecutive_send_failures
+    if failures > most:
+        doc.fail(
+            "safety.max_consecutive_send_failures",
+            f"at most {most} at a {rate:g} Hz loop: the host must stop on commands that did "
+            f"not go before a node's {watchdog_ms:g} ms command watchdog trips ({failures + 1} "
+            f"periods of {1e3 / rate:.3g} ms, with {NODE_TIMING_MARGIN_S * 1e3:g} ms to spare "
+            "for the bus and the node's tick)",
+            failures,
+        )
 
 
 def _parse_safety(doc: Doc, loop_rate_hz: float) -> SafetyConfig:
@@ -369,9 +383,21 @@ def _parse_safety(doc: Doc, loop_rate_hz: float) -> SafetyConfig:
     default_misses = (
         min(d.max_consecutive_misses, misses) if misses >= 1 else d.max_consecutive_misses
     )
+    # the same for ticks whose command frames did not go (``_check_misses_before_watchdog``)
+    default_failures = (
+        min(d.max_consecutive_send_failures, misses)
+        if misses >= 1
+        else d.max_consecutive_send_failures
+    )
     s = SafetyConfig(
+        # longer than the nodes' feedback period and the bus's and their tick's jitter, or a
+        # run stops on FEEDBACK_TIMEOUT from a frame 1.8 ms old on a host with no late tick
         feedback_timeout_s=doc.number(
-            "feedback_timeout_s", default=d.feedback_timeout_s, min=0.001, max=1.0, unit="s"
+            "feedback_timeout_s",
+            default=d.feedback_timeout_s,
+            min=FEEDBACK_PERIOD_S + NODE_TIMING_MARGIN_S,
+            max=1.0,
+            unit="s",
         ),
         # longer than the nodes' heartbeat period, or every run stops on HEARTBEAT_LOST
         # within a tenth of a second of a config that `handctl check` passed
@@ -409,7 +435,7 @@ def _parse_safety(doc: Doc, loop_rate_hz: float) -> SafetyConfig:
             "max_consecutive_misses", default=default_misses, min=1, max=100
         ),
         max_consecutive_send_failures=doc.integer(
-            "max_consecutive_send_failures", default=d.max_consecutive_send_failures, min=1, max=100
+            "max_consecutive_send_failures", default=default_failures, min=1, max=100
         ),
         reject_window_s=doc.number(
             "reject_window_s", default=d.reject_window_s, min=0.001, max=10.0, unit="s"
@@ -418,8 +444,24 @@ def _parse_safety(doc: Doc, loop_rate_hz: float) -> SafetyConfig:
             "max_rejects_in_window", default=d.max_rejects_in_window, min=0, max=100_000
         ),
     )
+    still = s.tdt_stuck_still_s
+    if 0.0 < still < MIN_TDT_STUCK_STILL_S:
+        doc.fail(
+            "tdt_stuck_still_s",
+            f"0 (off) or at least {MIN_TDT_STUCK_STILL_S:g} s: a live sensor's reading stays on "
+            "one step for a few of its 1 ms samples by chance, and at 0.001 s every run "
+            "stopped on TDT_STUCK in its third tick",
+            still,
+        )
     doc.done()
     return s
+
+
+#: s, the shortest ``tdt_stuck_still_s`` but 0: a sensor whose noise is half its step (what the
+#: simulated hand requires) stays on one step a sample with a chance of 0.68, so for 100
+#: samples in a row with one of 2e-17, which the 10^5 windows of a run of nine joints never
+#: meet (50 samples: one run in a few thousand)
+MIN_TDT_STUCK_STILL_S = 0.1
 
 
 def _parse_bus(doc: Doc, min_loop_rate_hz: float) -> BusConfig:

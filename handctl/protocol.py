@@ -77,6 +77,9 @@ MIN_LOOP_RATE_HZ = 2.0 / COMMAND_WATCHDOG_S
 #: s, of the command watchdog, left to what the host's tick count does not see: a frame
 #: waiting behind others on the bus, the node's own 1 ms tick on which it checks the watchdog
 NODE_TIMING_MARGIN_S = 0.002
+#: s, how often a node sends its Feedback, in every state and at any loop rate
+#: (firmware_protocol/PROTOCOL.md): a host's feedback watchdog must wait longer than this
+FEEDBACK_PERIOD_S = 0.001
 
 
 def most_misses_before_watchdog(loop_rate_hz: float) -> int:

@@ -398,6 +398,20 @@ def _check_tdt_within_tolerance(doc: Doc, tdt: TdtParams, hand: HandConfig) -> N
                 description(f"{value:g} N·m"),
             )
     slowest = safety.tdt_lag_s + safety.tdt_window_s / 2
+    fastest = safety.tdt_lag_s - safety.tdt_window_s / 2
+    if tdt.lag < fastest:
+        # the other way: a host that expects the sensor this much slower than it is reads
+        # every ramp wrong for longer than the window (tdt_lag_s 1 s against a sensor of 2 ms
+        # stopped every run on TDT_MISMATCH in its first tenth of a second)
+        doc.fail(
+            "lag",
+            f"at least {fastest:g} s, safety.tdt_lag_s ({safety.tdt_lag_s:g} s, the host's "
+            f"model of the sensor) less half safety.tdt_window_s ({safety.tdt_window_s:g} "
+            "s): the host expects the sensor's reading to lag the command that much, and a "
+            "faster sensor reads each torque ramp 'wrong' for longer than the window; make "
+            "safety.tdt_lag_s the sensor's lag",
+            description(f"{tdt.lag:g} s"),
+        )
     if tdt.lag > slowest:
         doc.fail(
             "lag",

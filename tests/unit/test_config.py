@@ -471,7 +471,7 @@ def _classic(data: dict[str, Any]) -> None:
     ("change", "key", "found"),
     [
         (lambda d: d["bus"].update(loop_rate_hz=10_000), "bus", "191.9 % at 10000 Hz"),
-        (_classic, "bus.fd", "False"),
+        (_classic, "bus.fd", "found false"),
     ],
 )
 def test_run_refuses_a_hand_check_refuses_before_anything_is_sent(
@@ -786,6 +786,31 @@ def test_the_default_stop_on_missed_ticks_fits_the_loop_rate(
     assert load_hand(path).safety.max_consecutive_misses == default
 
 
+@pytest.mark.parametrize(("rate", "failures", "most"), [(1000.0, 8, 7), (400.0, 3, 2)])
+def test_the_host_stops_on_commands_that_did_not_go_before_the_nodes_watchdog(
+    tmp_path: Path, rate: float, failures: int, most: int
+) -> None:
+    """100 consecutive ticks of command frames that did not go were accepted: the nodes
+    latched TIMEOUT (a fault the next run must reset) and the host never said BUS_ERROR.
+    Held to the watchdog as missed ticks are, and its default to the loop rate likewise."""
+    doc = yaml.safe_load(HAND_YAML.read_text(encoding="utf-8"))
+    doc["bus"]["loop_rate_hz"] = rate
+    doc.setdefault("safety", {})["max_consecutive_misses"] = 1
+    doc["safety"]["max_consecutive_send_failures"] = failures
+    path = tmp_path / "hand.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_hand(path)
+    assert info.value.key == "safety.max_consecutive_send_failures"
+    assert f"at most {most} at a {rate:g} Hz loop" in str(info.value)
+    doc["safety"]["max_consecutive_send_failures"] = most
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    assert load_hand(path).safety.max_consecutive_send_failures == most
+    doc["safety"].pop("max_consecutive_send_failures")
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    assert load_hand(path).safety.max_consecutive_send_failures == min(3, most)
+
+
 def test_a_key_that_is_no_string_is_refused_before_anything_is_hashed(tmp_path: Path) -> None:
     """The hash of the config as written was taken before the reading refused a key that is
     no string, and its sort raised a TypeError (the loader fuzz found it)."""
@@ -860,3 +885,31 @@ def test_a_name_longer_than_a_column_is_refused(tmp_path: Path, base: dict[str, 
     err = error_for(tmp_path, base)
     assert err.key == "fingers[0].joints[0].name"
     assert "at most 32 characters" in err.expected
+
+
+@pytest.mark.parametrize(
+    ("key", "refused", "accepted", "expected"),
+    [
+        # the nodes send Feedback every 1 ms: a frame 1.8 ms old stopped a run on a host
+        # with no late tick
+        ("feedback_timeout_s", 0.0029, 0.003, ">= 0.003"),
+        # a live sensor stays on one step a few samples by chance: every run stopped at tick 3
+        ("tdt_stuck_still_s", 0.001, 0.1, "0 (off) or at least 0.1 s"),
+        ("tdt_stuck_still_s", 0.099, 0.0, "0 (off) or at least 0.1 s"),
+    ],
+)
+def test_a_safety_setting_that_stops_every_run_is_refused(
+    tmp_path: Path,
+    base: dict[str, Any],
+    key: str,
+    refused: float,
+    accepted: float,
+    expected: str,
+) -> None:
+    """Each passed ``check`` and stopped every run of a hand that worked (an outside audit)."""
+    base["safety"] = {**base.get("safety", {}), key: refused}
+    err = error_for(tmp_path, base)
+    assert err.key == f"safety.{key}"
+    assert expected in err.expected, err.expected
+    base["safety"][key] = accepted
+    assert getattr(load_hand(write(tmp_path, base)).safety, key) == accepted

@@ -115,6 +115,18 @@ def test_a_tdt_the_host_s_cross_check_cannot_live_with_is_refused(
     assert getattr(parsed.tdt, key) == accepted
 
 
+def test_a_host_that_expects_a_far_slower_sensor_is_refused(hand: HandConfig) -> None:
+    """safety.tdt_lag_s of 1 s against the simulated sensor's 2 ms passed check, and every
+    run stopped on TDT_MISMATCH: the host read each ramp 'wrong' for longer than its window."""
+    slow_host = dataclasses.replace(hand, safety=dataclasses.replace(hand.safety, tdt_lag_s=1.0))
+    with pytest.raises(ConfigError) as err:
+        parse_sim(slow_host)
+    assert err.value.key == "sim.tdt.lag"
+    assert "at least 0.975 s, safety.tdt_lag_s (1 s" in err.value.expected
+    assert "make safety.tdt_lag_s the sensor's lag" in err.value.expected
+    parse_sim(_with_sim(slow_host, lambda s: s["tdt"].update({"lag": 0.975})))
+
+
 def test_the_quietest_tdt_accepted_never_reads_still_long_enough_to_be_stuck(
     hand: HandConfig,
 ) -> None:
