@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import functools
 import math
+import shutil
+import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 from handctl.config import FingerConfig, HandConfig
@@ -13,8 +16,9 @@ from handctl.errors import ConfigError, Description
 from handctl.hand_protocol import node_message, protocol_for
 from handctl.protocol import NODE_COMMANDS, Layout
 from handctl.recording import channels as ch
+from handctl.recording.messages import EXTENDED_ID_FLAG
 from handctl.recording.metadata import recorded_hand, recorded_protocol
-from handctl.recording.reader import Recording, iter_decoded, require_topics
+from handctl.recording.reader import Recording, iter_decoded, open_recording, require_topics
 
 #: buses where no real hand listens: a replay onto them may take the log's limits as its own
 SIMULATED_BUSES = ("virtual", "unix")
@@ -47,12 +51,39 @@ def to_bus(
 
     Frames are paced against their due times (not slept frame to frame), so the time spent
     sending does not add up into drift; a sender more than a period behind shifts the rest of
-    the replay by as much (``shifted_ms``) rather than send a backlog at once."""
+    the replay by as much (``shifted_ms``) rather than send a backlog at once.
+
+    Checked and sent from one copy of the file, taken first into a private directory: the
+    checks read the log, and the sending read it again, so what was written into it in
+    between (a copy still arriving, a file appended to) went onto the bus unchecked."""
+    if not speed > 0 or not math.isfinite(speed):
+        raise ConfigError("--speed", "", "a speed factor > 0 (1 = as recorded)", speed)
+    with tempfile.TemporaryDirectory(prefix="handctl-to-bus-") as private:
+        copy = Path(private) / "replayed.mcap"
+        try:
+            shutil.copyfile(recording.path, copy)
+        except OSError as exc:
+            raise ConfigError(
+                str(recording.path), "", "a log that can be read whole", exc.strerror or str(exc)
+            ) from None
+        snapshot = open_recording(copy)
+        snapshot.path = recording.path  # every message names the log the user gave
+        snapshot.read_from = copy
+        return _to_bus(snapshot, spec, speed, direction, sleep, clock, hand)
+
+
+def _to_bus(
+    recording: Recording,
+    spec: str,
+    speed: float,
+    direction: str,
+    sleep: Callable[[float], None],
+    clock: Callable[[], float],
+    hand: HandConfig | None,
+) -> dict[str, Any]:
     from handctl.online.bus import open_bus
     from handctl.online.busspec import parse_spec
 
-    if not speed > 0 or not math.isfinite(speed):
-        raise ConfigError("--speed", "", "a speed factor > 0 (1 = as recorded)", speed)
     require_topics(recording, (ch.CAN_RX, ch.CAN_TX), "--to-bus")
     recorded = recorded_hand(recording)
     assert recorded is not None
@@ -239,6 +270,10 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
             )
 
 
+#: the most commands of one id a replay may send at once (with none for a loop period before):
+#: a run's stop after an exception sends its zeros and its disable back to back without a
+#: clock, six at the most
+COMMAND_BURST = 8
 #: ns: how long before the first timed tick a frame may be logged (a start-up that waits for
 #: its nodes, at most its enable timeout, before its first timed tick)
 SILENT_START_NS = 60_000_000_000
@@ -291,11 +326,19 @@ def check_commands(
     # wire within a millisecond.
     period_s = period_ns * 1e-9 / speed
     last: dict[int, tuple[int, tuple[float, ...], list[float]]] = {}
+    rate = _CommandRate(period_s, speed)
     checked = 0
     for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
         refuse = functools.partial(_refused, recording, log_time, frame_id, data, is_rx)
         entry = torque.get(frame_id)
         layout = entry[0] if entry is not None else other.get(frame_id)
+        if layout is None and _aliases(frame_id, (*torque, *other)):
+            raise refuse(
+                "",
+                f"no 29-bit frame whose low 11 bits are a command id of {whose} nodes (a "
+                f"controller that keeps 11 bits takes it for 0x{frame_id & 0x7FF:03X})",
+                f"29-bit id 0x{frame_id & 0x1FFFFFFF:X}",
+            )
         if layout is None:
             named = node_message(frame_id)
             if named is not None and named[0] in ("TorqueCommand", "NodeCommand"):
@@ -307,6 +350,15 @@ def check_commands(
                 )
             continue
         checked += 1
+        if not rate.take(frame_id, log_time):
+            raise refuse(
+                "",
+                f"at most one {layout.name} to its node a loop period as sent "
+                f"({period_s * 1e3:.3g} ms at --speed {speed:g}), {COMMAND_BURST} at once at "
+                "most, as a run sends them",
+                f"more, {COMMAND_BURST + 1} within {COMMAND_BURST * period_s * 1e3:.3g} ms "
+                "or faster",
+            )
         if not layout.crc_ok(data):
             raise refuse(
                 "",
@@ -359,6 +411,32 @@ def check_commands(
         # commands dated 0.7 ms back put 1.75 times the rate limit on the wire)
         last[frame_id] = (max(log_time, before_ns), values, budget)
     return checked
+
+
+def _aliases(frame_id: int, commands: Sequence[int]) -> bool:
+    """A 29-bit frame whose low 11 bits are a command's id: a controller or a filter that
+    keeps 11 bits takes it for that command, which no check of the command has seen."""
+    return bool(frame_id & EXTENDED_ID_FLAG) and (frame_id & 0x7FF) in commands
+
+
+class _CommandRate:
+    """As many commands as a run sends: one a loop period (as sent, at ``speed``) per node
+    and message, ``COMMAND_BURST`` at once at most (a stop after an exception sends its zeros
+    and its disable without a clock). The same torque twenty times a tick, or fifty enables,
+    were sent 1 µs apart."""
+
+    def __init__(self, period_s: float, speed: float) -> None:
+        self._per_ns = 1e-9 / speed / period_s  # commands earned a logged ns
+        self._left: dict[int, tuple[float, int]] = {}  # per id: may still send, counted when
+
+    def take(self, frame_id: int, log_time: int) -> bool:
+        """Whether one more command of ``frame_id`` at ``log_time`` is within the rate."""
+        tokens, at = self._left.get(frame_id, (float(COMMAND_BURST), log_time))
+        tokens = min(float(COMMAND_BURST), tokens + max(0, log_time - at) * self._per_ns)
+        if tokens < 1.0:
+            return False
+        self._left[frame_id] = (tokens - 1.0, max(log_time, at))
+        return True
 
 
 def _towards_zero(tau: float, was: float) -> bool:

@@ -26,6 +26,8 @@ from handctl.recording import channels as ch
 
 #: The largest CAN id (29 bits).
 MAX_CAN_ID = 0x1FFFFFFF
+#: The largest standard (11-bit) CAN id.
+MAX_STANDARD_ID = 0x7FF
 #: Set on a 29-bit frame's id as the host holds and logs it (``online.bus.EXTENDED_ID_FLAG``,
 #: SocketCAN's ``CAN_EFF_FLAG``; not imported: the bus module loads python-can)
 EXTENDED_ID_FLAG = 0x80000000
@@ -53,12 +55,15 @@ def _is_bool(value: Any) -> bool:
 
 
 def _is_can_id(value: Any) -> bool:
-    """An 11- or 29-bit id, or a 29-bit one with ``EXTENDED_ID_FLAG``: a foreign 29-bit frame
-    the host received is logged as it held it, and a log with one was refused."""
+    """An 11-bit id, or a 29-bit one with ``EXTENDED_ID_FLAG``, as the host holds and logs
+    every frame (a foreign 29-bit frame it received too, and a log with one was refused). An
+    id above 11 bits without the flag is no frame a bus carried: a replay put 0x901 on the
+    wire, which a controller that keeps 11 bits takes for 0x101, a TorqueCommand."""
     if type(value) is not int:
         return False
-    bare = value ^ EXTENDED_ID_FLAG if value & EXTENDED_ID_FLAG else value
-    return 0 <= bare <= MAX_CAN_ID
+    if value & EXTENDED_ID_FLAG:
+        return 0 <= value ^ EXTENDED_ID_FLAG <= MAX_CAN_ID
+    return 0 <= value <= MAX_STANDARD_ID
 
 
 def _is_hex_frame(value: Any) -> bool:
@@ -82,7 +87,8 @@ _SCALARS: dict[str, tuple[_Test, str]] = {
 _SPECIAL: dict[str, tuple[_Test, str]] = {
     "id": (
         _is_can_id,
-        f"a CAN id, an integer 0..0x{MAX_CAN_ID:X} (a 29-bit one may carry 0x{EXTENDED_ID_FLAG:X})",
+        f"a CAN id, an integer 0..0x{MAX_STANDARD_ID:X}, or a 29-bit one 0..0x{MAX_CAN_ID:X} "
+        f"with 0x{EXTENDED_ID_FLAG:X} set",
     ),
     "data": (_is_hex_frame, f"a frame's payload as hex, at most {MAX_CAN_DATA} bytes"),
 }

@@ -105,6 +105,9 @@ class Recording:
     #: a run still writes the file (its writer holds the file's lock): not cut short, not
     #: yet finished, and each read of it finds more
     being_written: bool = False
+    #: where the messages are read from, when not ``path`` (a private copy of it: ``replay
+    #: --to-bus`` checks and sends from one reading of the file)
+    read_from: Path | None = None
 
     @property
     def topics(self) -> dict[int, str]:
@@ -527,7 +530,7 @@ def iter_messages(
     unpack_record = _RECORD.unpack_from
     unpack_message = _MESSAGE.unpack_from
     message_op, channel_op = int(Opcode.MESSAGE), int(Opcode.CHANNEL)
-    with recording.path.open("rb") as handle:
+    with (recording.read_from or recording.path).open("rb") as handle:
         try:
             for body in _chunk_bodies(handle, recording):
                 data = _chunk_data(body)

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import pytest
 from mcap.reader import make_reader
@@ -860,3 +861,98 @@ def test_an_export_of_a_log_that_does_not_say_when_it_started_says_so(
     exported = json.loads(summary.read_text())["export"]
     assert exported["format"] == "candump" and exported["frames"] > 0
     assert out.read_text().startswith("(0.000000) ")
+
+
+# -- what reaches the bus: one reading of the log, ids as the wire carries them, a run's rate ----
+def test_to_bus_sends_what_it_checked_not_what_the_file_became(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The checks read the file and the sending read it again: the rest of a file still
+    arriving (a copy finishing) between the two went onto the bus unchecked. Checked and sent
+    from one copy, taken first."""
+    from handctl.online.loop import ZERO_TICKS_BEFORE_DISABLE
+    from handctl.recording import frames
+
+    whole = recorded.path.read_bytes()
+    full = open_recording(recorded.path)
+    assert full.chunk_spans is not None and len(full.chunk_spans) > 4
+    offset, length = full.chunk_spans[len(full.chunk_spans) // 2]
+    cut = tmp_path / "arriving.mcap"
+    cut.write_bytes(whole[: offset + length])  # the chunks so far, read front to back
+    arriving = open_recording(cut)
+    expected = sum(1 for _ in logged_frames(arriving))
+    real_check = frames.check_commands
+
+    def check_then_the_rest_arrives(*args: Any, **kwargs: Any) -> int:
+        checked = real_check(*args, **kwargs)
+        with cut.open("ab") as handle:
+            handle.write(whole[offset + length :])
+        return checked
+
+    monkeypatch.setattr(frames, "check_commands", check_then_the_rest_arrives)
+    channel = "hostile-arriving"
+    with open_bus(f"virtual:{channel}", hand.bus) as listener:
+        sent = to_bus(arriving, f"virtual:{channel}", sleep=lambda s: None)
+        heard = listener.drain(limit=10**6)
+    assert sum(1 for _ in logged_frames(open_recording(cut))) > expected  # the file grew
+    # every frame checked, and those only (and the stop of the nodes it left enabled)
+    stop = (ZERO_TICKS_BEFORE_DISABLE + 2) * len(hand.fingers) if "stopped" in sent else 0
+    assert sent["sent"] == expected
+    assert len(heard) == expected + stop
+
+
+def test_a_logged_id_the_wire_cannot_carry_is_refused(recorded: Recorded, tmp_path: Path) -> None:
+    """0x901 without the 29-bit flag is no frame a bus carried; a replay sent it, which a
+    controller keeping 11 bits takes for 0x101, a TorqueCommand no check had seen."""
+    bad = tmp_path / "id901.mcap"
+    rewrite(recorded.path, bad, one_message(ch.CAN_TX, 300, field("id", 0x901)))
+    with pytest.raises(ConfigError) as caught:
+        to_bus(open_recording(bad), "virtual:never-opened")
+    assert ": id: expected a CAN id, an integer 0..0x7FF, or a 29-bit one" in str(caught.value)
+
+
+def test_to_bus_refuses_a_29_bit_frame_that_aliases_a_command(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
+) -> None:
+    layout = protocol.layout("TorqueCommand", 1)
+    index = _nth_command(recorded, layout.frame_id, 200)
+    bad = tmp_path / "ext101.mcap"
+    rewrite(recorded.path, bad, one_message(ch.CAN_TX, index, field("id", 0x80000101)))
+    text = _refused_with_nothing_sent(open_recording(bad), hand, "hostile-alias")
+    assert "no 29-bit frame whose low 11 bits are a command id" in text
+    assert "takes it for 0x101" in text
+
+
+def test_to_bus_refuses_more_commands_than_a_run_sends(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
+) -> None:
+    """The same command twenty times a tick (or fifty enables) was sent 1 µs apart: a run
+    sends one a loop period per node and message, a few at once in a stop at most."""
+    layout = protocol.layout("TorqueCommand", 1)
+    first = _nth_command(recorded, layout.frame_id, 300)
+    with recorded.path.open("rb") as handle:
+        at = [
+            (json.loads(m.data)["tick"], m.log_time)
+            for _, c, m in make_reader(handle).iter_messages(topics=[ch.CAN_TX])
+        ][first]
+
+    def same_tick(topic: str, index: int, raw: bytes) -> bytes:
+        if topic != ch.CAN_TX or not first <= index < first + 40:
+            return raw
+        msg = json.loads(raw)
+        msg["tick"] = at[0]
+        return json.dumps(msg).encode()
+
+    # the 40 frames after it (about 13 ticks of three nodes) all in its tick, at its time
+    moved: dict[str, int] = {}
+
+    def times(topic: str, log_time: int) -> int:
+        if topic != ch.CAN_TX:
+            return log_time
+        k = moved[topic] = moved.get(topic, -1) + 1
+        return at[1] if first <= k < first + 40 else log_time
+
+    bad = tmp_path / "burst.mcap"
+    rewrite(recorded.path, bad, same_tick, times=times)
+    text = _refused_with_nothing_sent(open_recording(bad), hand, "hostile-burst")
+    assert "expected at most one TorqueCommand_1 to its node a loop period" in text
