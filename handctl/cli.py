@@ -1174,7 +1174,21 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 
 # -- replay ------------------------------------------------------------------------------------
+def _printable(value: Any) -> Any:
+    """``value`` with every string in it, keys too, as a terminal can show it (``escaped``):
+    a log's phase names, event details and metadata are the log's to say, and an escape
+    sequence in one recoloured the terminal, set its title or printed a line of its own."""
+    if isinstance(value, str):
+        return escaped(value)
+    if isinstance(value, dict):
+        return {_printable(k): _printable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_printable(v) for v in value]
+    return value
+
+
 def _print_replay_summary(summary: dict[str, Any]) -> None:
+    raw, summary = summary, _printable(summary)
     state = (
         "complete"
         if summary["complete"]
@@ -1238,7 +1252,7 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
             "stepped during it); a re-run compares the frames' content, not their times",
             file=sys.stderr,
         )
-    for name, tick in summary.get("unknown_phases", {}).items():
+    for name, tick in raw.get("unknown_phases", {}).items():
         print(
             f"handctl: warning: {summary['file']}: the phase channel says {shown(name)} at "
             f"tick {tick}, neither a phase of the recorded recipe nor the runner's status: "

@@ -46,6 +46,12 @@ _MESSAGE_HEADER = _MESSAGE.size
 _CHUNK = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, compression name length
 #: Larger than any record handctl writes: a length beyond it is garbage, not a record.
 _RECORD_LIMIT = 1 << 32
+#: bytes, the most a chunk may hold once decompressed: handctl's own hold about 0.35 MB, and
+#: a 49 KB chunk that declared 1.5 GiB of zeros (with a CRC to match) took 1.6 GB to read
+MAX_CHUNK_BYTES = 64 << 20
+#: The last opcode MCAP defines (0x0F, DataEnd); 0x80 and up are user records, which a
+#: handctl log never holds.
+_LAST_OPCODE = 0x0F
 #: Errors that mean "the file ends (or goes bad) here", not "handctl is broken".
 _CUT_SHORT: tuple[type[BaseException], ...] = (
     McapError,
@@ -54,6 +60,7 @@ _CUT_SHORT: tuple[type[BaseException], ...] = (
     EOFError,
     RuntimeError,
     UnicodeDecodeError,
+    OverflowError,
 )
 try:
     import zstandard
@@ -98,6 +105,8 @@ class Recording:
     chunk_spans: list[tuple[int, int]] | None = None
     bad_chunks: list[BadChunk] = field(default_factory=list)
     bad_metadata: list[str] = field(default_factory=list)  # names of indexed records that fail
+    #: the summary's index does not describe the chunks it lists (``_counts_disagree``)
+    bad_index: bool = False
     #: each channel's record and each schema's, by id: the topics, and what ``check_format``
     #: holds a handctl topic's encoding and schema to
     channels: dict[int, Channel] = field(default_factory=dict)
@@ -117,7 +126,7 @@ class Recording:
     @property
     def damaged(self) -> bool:
         """The file has its summary, but some chunks or metadata it indexes do not read."""
-        return bool(self.bad_chunks or self.bad_metadata)
+        return bool(self.bad_chunks or self.bad_metadata or self.bad_index)
 
     @property
     def truncated(self) -> bool:
@@ -294,6 +303,12 @@ def _read_index(handle: BinaryIO) -> _Index | None:
 
 def _read_record(handle: BinaryIO, offset: int, length: int, opcode: int) -> bytes:
     """The body of the record an index says is at ``offset`` (``length`` bytes in all)."""
+    size = os.fstat(handle.fileno()).st_size
+    if not 9 <= length <= _RECORD_LIMIT or offset + length > size:
+        # an index can say anything: a length of 2^63 raised OverflowError, a traceback
+        raise ValueError(
+            f"an index entry of {length} bytes at offset {offset}, past the file's {size} bytes"
+        )
     handle.seek(offset)
     raw = handle.read(length)
     if len(raw) != length:
@@ -313,10 +328,14 @@ def _open_indexed(handle: BinaryIO, recording: Recording, index: _Index) -> None
     recording.schemas = dict(index.schemas)
     recording.chunk_spans = []
     chunks = sorted(index.chunks, key=lambda c: c.chunk_start_offset)
+    held: dict[int, int] = {}  # messages per channel, in the chunks that read
     for number, chunk in enumerate(chunks):
         try:
-            _chunk_data(
-                _read_record(handle, chunk.chunk_start_offset, chunk.chunk_length, Opcode.CHUNK)
+            _count_messages(
+                _chunk_data(
+                    _read_record(handle, chunk.chunk_start_offset, chunk.chunk_length, Opcode.CHUNK)
+                ),
+                held,
             )
         except _CUT_SHORT as exc:
             recording.bad_chunks.append(
@@ -355,11 +374,38 @@ def _open_indexed(handle: BinaryIO, recording: Recording, index: _Index) -> None
             f"chunks read, {len(chunks) - 1 - last} of them after the last "
             "damaged one"
         )
+    elif index.counts and held != {cid: n for cid, n in index.counts.items() if n}:
+        # an index that leaves a chunk out, or lists one twice, was believed: "complete",
+        # with a tenth of the ticks missing, or doubled, and --to-bus sent them so
+        problems.append(_counts_disagree(recording.topics, index.counts, held))
+        recording.bad_index = True
     recording.complete = not problems
     recording.problem = "; ".join(problems)
     if recording.complete:
         topics = recording.topics
         recording.message_counts = {topics.get(cid, str(cid)): n for cid, n in index.counts.items()}
+
+
+def _count_messages(data: bytes, held: dict[int, int]) -> None:
+    """Add the messages of a chunk's records ``data`` to ``held``, by channel."""
+    offset, end = 0, len(data)
+    unpack_record, message_op = _RECORD.unpack_from, int(Opcode.MESSAGE)
+    while offset + 9 <= end:
+        op, length = unpack_record(data, offset)
+        if op == message_op:
+            cid = int.from_bytes(data[offset + 9 : offset + 11], "little")
+            held[cid] = held.get(cid, 0) + 1
+        offset += 9 + length
+
+
+def _counts_disagree(topics: dict[int, str], counted: dict[int, int], held: dict[int, int]) -> str:
+    """What the summary's statistics count against what the indexed chunks hold."""
+    cid = next(c for c in sorted(set(counted) | set(held)) if counted.get(c, 0) != held.get(c, 0))
+    return (
+        f"its summary counts {counted.get(cid, 0)} messages of {topics.get(cid, str(cid))} and "
+        f"the chunks its index lists hold {held.get(cid, 0)}: the index does not describe the "
+        "file (a chunk left out or listed twice)"
+    )
 
 
 def _open_walk(handle: BinaryIO, recording: Recording) -> None:
@@ -466,6 +512,10 @@ class _Walk:
             op, length = _RECORD.unpack(head)
             if length > _RECORD_LIMIT:
                 raise ValueError(f"a record of {length} bytes: not a record boundary")
+            if op == 0 or op > _LAST_OPCODE:
+                # no record: zeros where a power loss left the file's tail unwritten, read
+                # 9 bytes at a time (a 4 GiB tail of zeros took minutes for each pass)
+                raise ValueError(f"no record here (opcode 0x{op:02X})")
             if op in keep:
                 body = handle.read(length)
                 if len(body) < length:
@@ -481,6 +531,10 @@ class _Walk:
 def _chunk_data(body: bytes) -> bytes:
     """The records of a chunk record's body, decompressed and checked against its CRC."""
     _, _, size, crc, name_length = _CHUNK.unpack_from(body)
+    if size > MAX_CHUNK_BYTES:
+        raise ValueError(
+            f"a chunk of {size} bytes decompressed, more than any log's ({MAX_CHUNK_BYTES} at most)"
+        )
     compression = body[_CHUNK.size : _CHUNK.size + name_length].decode()
     at = _CHUNK.size + name_length
     (data_length,) = struct.unpack_from("<Q", body, at)

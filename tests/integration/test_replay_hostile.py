@@ -956,3 +956,117 @@ def test_to_bus_refuses_more_commands_than_a_run_sends(
     rewrite(recorded.path, bad, same_tick, times=times)
     text = _refused_with_nothing_sent(open_recording(bad), hand, "hostile-burst")
     assert "expected at most one TorqueCommand_1 to its node a loop period" in text
+
+
+# -- a file's structure at its limits: a summary that lies, zeros, a chunk that inflates ---------
+def _with_summary(whole: bytes, edit: Callable[[list[bytes]], list[bytes]]) -> bytes:
+    """``whole`` with its summary section's records through ``edit`` (each a whole record),
+    and the footer's summary CRC cleared (0: none to check)."""
+    import struct
+
+    footer_at = len(whole) - len(MAGIC) - 9 - 20
+    summary_start = struct.unpack_from("<Q", whole, footer_at + 9)[0]
+    summary = whole[summary_start:footer_at]
+    records, at = [], 0
+    while at < len(summary):
+        length = struct.unpack_from("<Q", summary, at + 1)[0]
+        records.append(summary[at : at + 9 + length])
+        at += 9 + length
+    footer = bytearray(whole[footer_at:])
+    footer[9 + 16 : 9 + 20] = bytes(4)
+    return whole[:summary_start] + b"".join(edit(records)) + bytes(footer)
+
+
+@pytest.mark.parametrize("how", ["left out", "listed twice"])
+def test_a_summary_whose_index_does_not_describe_the_file_is_damaged(
+    recorded: Recorded, tmp_path: Path, how: str
+) -> None:
+    """An index that left a chunk out, or listed one twice, was believed: 'complete', with a
+    tenth of the ticks missing or doubled."""
+    chunk_index = 0x08
+
+    def edit(records: list[bytes]) -> list[bytes]:
+        k = next(i for i, r in enumerate(records) if r[0] == chunk_index)
+        return (
+            records[:k] + records[k + 1 :]
+            if how == "left out"
+            else records[:k] + records[k : k + 1] + records[k:]
+        )
+
+    bad = tmp_path / "index.mcap"
+    bad.write_bytes(_with_summary(recorded.path.read_bytes(), edit))
+    recording = open_recording(bad)
+    assert not recording.complete and recording.damaged
+    assert "the index does not describe the file (a chunk left out or listed twice)" in (
+        recording.problem
+    )
+    done = handctl("replay", str(bad))
+    assert "DAMAGED: its summary counts" in done.stdout, done.stdout + done.stderr
+
+
+def test_an_index_entry_past_the_end_of_the_file_is_damaged(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """A chunk index entry of 2^63 - 1 bytes raised OverflowError: a traceback."""
+    import struct
+
+    def edit(records: list[bytes]) -> list[bytes]:
+        k = next(i for i, r in enumerate(records) if r[0] == 0x08)
+        entry = bytearray(records[k])
+        # ChunkIndex: message start and end times, chunk start offset, chunk length
+        struct.pack_into("<Q", entry, 9 + 24, (1 << 63) - 1)
+        return [*records[:k], bytes(entry), *records[k + 1 :]]
+
+    bad = tmp_path / "huge.mcap"
+    bad.write_bytes(_with_summary(recorded.path.read_bytes(), edit))
+    recording = open_recording(bad)
+    assert recording.damaged and recording.bad_chunks
+    assert "past the file's" in recording.bad_chunks[0].reason
+    done = handctl("replay", str(bad))
+    assert "Traceback" not in done.stderr and "DAMAGED" in done.stdout
+
+
+def test_a_chunk_that_would_inflate_past_any_log_s_is_damaged(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """A 49 KB chunk that declared 1.5 GiB of zeros took 1.6 GB of memory to read: a chunk's
+    size is bounded before it is decompressed."""
+    import struct
+
+    whole = bytearray(recorded.path.read_bytes())
+    full = open_recording(recorded.path)
+    assert full.chunk_spans
+    offset, _ = full.chunk_spans[0]
+    # Chunk: message start and end times, then the uncompressed size
+    struct.pack_into("<Q", whole, offset + 9 + 16, 3 << 30)
+    bad = tmp_path / "inflating.mcap"
+    bad.write_bytes(bytes(whole))
+    recording = open_recording(bad)
+    assert recording.bad_chunks and recording.bad_chunks[0].number == 0
+    assert "more than any log's" in recording.bad_chunks[0].reason
+
+
+def test_a_tail_of_zeros_ends_the_reading_at_once(recorded: Recorded, tmp_path: Path) -> None:
+    """A power loss leaves a file's tail zeros; read as records of opcode 0 and length 0, nine
+    bytes at a time, a 4 GiB tail took minutes for every pass over the file."""
+    whole = recorded.path.read_bytes()
+    full = open_recording(recorded.path)
+    assert full.chunk_spans
+    offset, length = full.chunk_spans[3]
+    bad = tmp_path / "zeros.mcap"
+    bad.write_bytes(whole[: offset + length] + bytes(8 << 20))
+    recording = open_recording(bad)
+    assert not recording.complete and recording.chunks == 4
+    assert "no record here (opcode 0x00)" in recording.problem
+
+
+def test_names_from_the_log_are_printed_escaped(recorded: Recorded, tmp_path: Path) -> None:
+    """A phase name is the log's to say: an escape sequence in it set the terminal's title,
+    cleared it and printed a line of its own."""
+    forged = "lift\x1b]0;PWNED\x07\x1b[2J\nFAKE: all good"
+    bad = tmp_path / "escapes.mcap"
+    rewrite(recorded.path, bad, one_message(ch.PHASE, 0, field("phase", forged)))
+    done = handctl("replay", str(bad))
+    assert "\x1b" not in done.stdout and "\x07" not in done.stdout
+    assert "\\x1b]0;PWNED\\x07" in done.stdout
+    assert "\nFAKE: all good" not in done.stdout
