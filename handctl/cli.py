@@ -82,6 +82,8 @@ MIN_REPLAY_SPEED = 1e-3
 MAX_REPLAY_SPEED = 1e3
 #: s, the shortest timing check: ten ticks at 1 kHz (1e-300 s gave a verdict on no tick)
 MIN_TIMING_CHECK_S = 0.01
+#: the fewest loop periods a TDT calibration measures for (an offset and a noise need samples)
+CALIBRATION_MIN_PERIODS = 10
 #: s, the timing check's length when --seconds is not given
 TIMING_CHECK_DEFAULT_S = 10.0
 
@@ -1690,14 +1692,34 @@ def _refuse_other_file(output: Path, hand: HandConfig, source: Path) -> None:
     named as the hand is, lost them without a word."""
     from handctl.schema import load_yaml
 
+    if output.is_symlink():
+        # written through, it replaced the file the link points to, wherever that was
+        raise ConfigError(
+            "-o",
+            "",
+            f"a file, not a symbolic link (the calibrated copy would replace {output.resolve()})",
+            str(output),
+        )
     data = _existing_yaml(output)
     if data is None:
         return
     is_hand = _existing_kind(data) == "hand config"
     if is_hand and data.get("name") == hand.name:
-        differs = _first_difference(data, dict(load_yaml(source).data), "")
-        if differs is None:
+        original = dict(load_yaml(source).data)
+        differs = _first_difference(data, original, "")
+        if differs is None and data != original:
             return
+        if differs is None:
+            # the same config, offsets too: no calibration ever wrote it, so it is the hand
+            # config itself under another path (the repository's copy of the shipped one was
+            # replaced so, exit 0)
+            raise ConfigError(
+                "-o",
+                "",
+                f"a new file, or a calibrated copy of {source} (one whose TDT offsets a "
+                "calibration wrote; --write overwrites the hand config itself)",
+                Description(f"{output}, the same config as {source}, its TDT offsets too"),
+            )
         raise ConfigError(
             "-o",
             "",
@@ -1763,8 +1785,48 @@ def _refuse_other_than_a_recipe(output: Path) -> None:
     )
 
 
+def _calibration_limits(args: argparse.Namespace, hand: HandConfig) -> Any:
+    """``calibrate tdt``'s plausibility bounds, each at most what leaves its check on: an
+    offset or a noise past the largest tau_max, or a span past the widest joint range, passes
+    any sensor."""
+    from handctl.bringup.calibrate import CalibrationLimits
+
+    limits = CalibrationLimits(
+        max_span=_positive("--max-span", args.max_span, CalibrationLimits.max_span, "rad"),
+        max_noise=_positive("--max-noise", args.max_noise, CalibrationLimits.max_noise, "N·m"),
+        max_offset=_positive("--max-offset", args.max_offset, CalibrationLimits.max_offset, "N·m"),
+    )
+    widest = max(hand.joints, key=lambda j: j.tau_max)
+    if limits.max_offset > widest.tau_max:
+        raise ConfigError(
+            "--max-offset",
+            "",
+            f"at most {widest.tau_max:g} N·m (the largest tau_max, {widest.name}'s: an offset "
+            "beyond it is a broken sensor)",
+            limits.max_offset,
+        )
+    if limits.max_noise > widest.tau_max:
+        raise ConfigError(
+            "--max-noise",
+            "",
+            f"at most {widest.tau_max:g} N·m (the largest tau_max, {widest.name}'s: a noise beyond "
+            "it passes any sensor, the check is off)",
+            limits.max_noise,
+        )
+    roomiest = max(hand.joints, key=lambda j: j.angle_max - j.angle_min)
+    if limits.max_span > roomiest.angle_max - roomiest.angle_min:
+        raise ConfigError(
+            "--max-span",
+            "",
+            f"at most {roomiest.angle_max - roomiest.angle_min:g} rad (the widest joint range, "
+            f"{roomiest.name}'s: a span beyond it passes any motion, the check is off)",
+            limits.max_span,
+        )
+    return limits
+
+
 def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
-    from handctl.bringup.calibrate import CalibrationLimits, calibrate_tdt
+    from handctl.bringup.calibrate import calibrate_tdt
     from handctl.bringup.hand_edit import format_offset
     from handctl.outfile import check_writable
 
@@ -1822,21 +1884,17 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             "another file than the hand config and its calibrated copy",
             str(args.json),
         )
-    limits = CalibrationLimits(
-        max_span=_positive("--max-span", args.max_span, CalibrationLimits.max_span, "rad"),
-        max_noise=_positive("--max-noise", args.max_noise, CalibrationLimits.max_noise, "N·m"),
-        max_offset=_positive("--max-offset", args.max_offset, CalibrationLimits.max_offset, "N·m"),
-    )
-    widest = max(hand.joints, key=lambda j: j.tau_max)
-    if limits.max_offset > widest.tau_max:
-        raise ConfigError(
-            "--max-offset",
-            "",
-            f"at most {widest.tau_max:g} N·m (the largest tau_max, {widest.name}'s: an offset "
-            "beyond it is a broken sensor)",
-            limits.max_offset,
-        )
+    limits = _calibration_limits(args, hand)
     measure = _seconds_or(args.seconds, 1.0)
+    shortest = CALIBRATION_MIN_PERIODS * hand.bus.period_s
+    if measure < shortest:
+        raise ConfigError(
+            "--seconds",
+            "",
+            f"at least {shortest:g} s, {CALIBRATION_MIN_PERIODS} loop periods (an offset and a "
+            "noise need samples; a shorter one enabled the hand and measured nothing)",
+            measure,
+        )
     settle = 2.0 if args.settle is None else args.settle
     from handctl.online.recipes.schema import MAX_PHASE_S
 

@@ -489,3 +489,42 @@ def test_on_the_unix_bus_a_node_missing_or_in_fault(tmp_path: Path, entry: str, 
         assert stopped_by_load(result.stderr), f"not refused for {says!r}: {result.stderr}"
         stopped.append(result.stderr)
     give_up(f"never refused for {says!r}: every attempt was stopped by the load", stopped)
+
+
+def test_o_refuses_the_hand_config_itself_under_another_path_and_a_symlink(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A copy of the hand config with its offsets as they are is no calibrated copy (none
+    wrote it): `-o` at the repository's copy of the shipped config replaced it, exit 0, and
+    `-o` at a symlink wrote through it into whatever it pointed to."""
+    same = tmp_path / "hiroshima_hand.yaml"
+    shutil.copyfile(HAND_YAML, same)
+    before = same.read_bytes()
+    assert cli.main(["calibrate", "tdt", "-o", str(same)]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "-o: expected a new file, or a calibrated copy of" in err
+    assert "the same config as" in err and "its TDT offsets too" in err
+    link = tmp_path / "link.yaml"
+    link.symlink_to(same)
+    assert cli.main(["calibrate", "tdt", "-o", str(link)]) == cli.EXIT_BAD_INPUT
+    assert "-o: expected a file, not a symbolic link" in capsys.readouterr().err
+    assert same.read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "expected"),
+    [
+        ("--max-noise", "5", "--max-noise: expected at most 0.6 N·m (the largest tau_max"),
+        ("--max-span", "100", "--max-span: expected at most 3.2 rad (the widest joint range"),
+        ("--seconds", "0.0001", "--seconds: expected at least 0.01 s, 10 loop periods"),
+    ],
+)
+def test_a_bound_that_turns_a_check_off_or_measures_nothing_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str, value: str, expected: str
+) -> None:
+    """--max-noise 5 N·m and --max-span 100 rad passed any sensor; --seconds 0.0001 enabled
+    the hand and measured nothing (exit 1). Refused before anything starts."""
+    out = tmp_path / "calibrated.yaml"
+    assert cli.main(["calibrate", "tdt", "-o", str(out), option, value]) == cli.EXIT_BAD_INPUT
+    assert expected in capsys.readouterr().err
+    assert not out.exists()
