@@ -1583,7 +1583,8 @@ MAX_BRING_UP_S = 1e6
 
 
 def _cmd_nodes(args: argparse.Namespace) -> int:
-    from handctl.bringup.nodes import survey
+    from handctl.bringup.idcount import MAX_IDS
+    from handctl.bringup.nodes import id_text, survey
     from handctl.bringup.peer import listening_bus
     from handctl.hand_protocol import protocol_for
 
@@ -1629,7 +1630,12 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
             f"{row.problem or 'ok'}"
         )
     for fid, (what, count) in sorted(result.foreign.items()):
-        print(f"  id 0x{fid:03X}: {count} frames, {what}")
+        print(f"  id {id_text(fid)}: {count} frames, {what}")
+    if result.foreign_more_frames:
+        print(
+            f"  and {result.foreign_more_frames} frames of more ids (only the first "
+            f"{MAX_IDS} ids are counted one by one)"
+        )
     if result.bus_events:
         print("  bus events: " + ", ".join(f"{k} {v}" for k, v in result.bus_events.items()))
     if result.bus_problem:

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from handctl.bringup.idcount import IdCounts
 from handctl.errors import ConfigError
 from handctl.online.bus import EXTENDED_ID_FLAG, BusEvent, HandBus
 from handctl.online.drivers.finger import fault_names
@@ -49,7 +50,7 @@ class BusView:
     def __init__(self, protocol: Protocol) -> None:
         self.protocol = protocol
         self.messages: dict[int, MessageStats] = {}
-        self.unknown: Counter[int] = Counter()
+        self.unknown = IdCounts()
         self.frames = 0
         self.first_ns: int | None = None
         self.last_ns: int | None = None
@@ -70,7 +71,7 @@ class BusView:
         self.last_ns = t_ns
         layout = None if frame_id & EXTENDED_ID_FLAG else self.protocol.by_id.get(frame_id)
         if layout is None:
-            self.unknown[frame_id] += 1
+            self.unknown.add(frame_id)
             return
         stats = self.messages.get(frame_id)
         if stats is None:
@@ -138,8 +139,10 @@ class BusView:
             "unknown_ids": {
                 f"0x{fid & ~EXTENDED_ID_FLAG:03X}"
                 + (" (29-bit)" if fid & EXTENDED_ID_FLAG else ""): n
-                for fid, n in sorted(self.unknown.items())
+                for fid, n in sorted(self.unknown.by_id.items())
             },
+            # frames of unknown ids beyond the first MAX_IDS (``idcount``)
+            **({"unknown_ids_more_frames": self.unknown.others} if self.unknown.others else {}),
         }
 
 
@@ -198,6 +201,9 @@ def table(snapshot: dict[str, Any], title: str) -> Any:
         )
     for fid, count in snapshot["unknown_ids"].items():
         view.add_row(fid, "[yellow]unknown id[/yellow]", str(count), "-", "-", "-")
+    if snapshot.get("unknown_ids_more_frames"):
+        more = str(snapshot["unknown_ids_more_frames"])
+        view.add_row("more ids", "[yellow]unknown ids[/yellow]", more, "-", "-", "-")
     return view
 
 

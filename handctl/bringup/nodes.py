@@ -15,6 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from handctl.bringup.idcount import IdCounts
 from handctl.busload import message_rate
 from handctl.config import HandConfig
 from handctl.hand_protocol import check_protocol, node_message
@@ -91,6 +92,8 @@ class Survey:
     rows: list[NodeRow]
     #: Frames on ids that are none of the configured nodes': id -> (what it is, frames).
     foreign: dict[int, tuple[str, int]] = field(default_factory=dict)
+    #: frames of foreign ids beyond the first ``idcount.MAX_IDS`` (counted together)
+    foreign_more_frames: int = 0
     bus_events: dict[str, int] = field(default_factory=dict)
     #: Frames this listener lost before it read them, as its bus told it (the unix bus does).
     frames_lost: int = 0
@@ -111,7 +114,10 @@ class Survey:
         commands, a node the config lacks, an id the DBC does not have); a bus without error
         events. Before, another host's commands and ids outside the DBC left it true."""
         return (
-            all(not row.problem for row in self.rows) and not self.foreign and not self.bus_problem
+            all(not row.problem for row in self.rows)
+            and not self.foreign
+            and not self.foreign_more_frames
+            and not self.bus_problem
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -122,9 +128,14 @@ class Survey:
             "ok": self.ok,
             "nodes": [row.as_dict() for row in self.rows],
             "foreign_ids": [
-                {"id": f"0x{fid:03X}", "what": what, "frames": n}
+                {"id": id_text(fid), "what": what, "frames": n}
                 for fid, (what, n) in sorted(self.foreign.items())
             ],
+            **(
+                {"foreign_ids_more_frames": self.foreign_more_frames}
+                if self.foreign_more_frames
+                else {}
+            ),
             "bus_events": self.bus_events,
             "bus_problem": self.bus_problem,
             "frames_lost": self.frames_lost,
@@ -161,7 +172,7 @@ def survey(
     nodes = [FingerNode(f, FingerLayouts.for_node(protocol, f.node_id)) for f in hand.fingers]
     dispatch = {fid: node for node in nodes for fid in node.streams}
     counts: dict[int, Counter[str]] = {node.node_id: Counter() for node in nodes}
-    foreign: Counter[int] = Counter()
+    foreign = IdCounts()
     events: Counter[str] = Counter()
     bus.use_clock(clock)
     bus.drain(limit=10**6)  # what waited before we listened says nothing of now
@@ -174,7 +185,7 @@ def survey(
             fid = frame.arbitration_id
             node = dispatch.get(fid)
             if node is None:
-                foreign[fid] += 1
+                foreign.add(fid)
                 continue
             count = counts[node.node_id]
             count["frames"] += 1
@@ -199,8 +210,25 @@ def survey(
         )
         for node in nodes
     ]
-    described = {fid: (describe_id(fid, protocol, node_ids), n) for fid, n in foreign.items()}
-    return Survey(str(bus.spec), elapsed, protocol.version, rows, described, dict(events), lost)
+    described = {fid: (describe_id(fid, protocol, node_ids), n) for fid, n in foreign.by_id.items()}
+    return Survey(
+        str(bus.spec),
+        elapsed,
+        protocol.version,
+        rows,
+        described,
+        foreign.others,
+        dict(events),
+        lost,
+    )
+
+
+def id_text(frame_id: int) -> str:
+    """An id as the wire carries it: a 29-bit one with its 8 digits and said so (the flag that
+    marks it inside handctl is no part of any CAN id)."""
+    if frame_id & EXTENDED_ID_FLAG:
+        return f"0x{frame_id & ~EXTENDED_ID_FLAG:08X} (29-bit)"
+    return f"0x{frame_id:03X}"
 
 
 def _row(

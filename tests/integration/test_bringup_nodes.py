@@ -287,3 +287,42 @@ def test_frames_on_other_ids_are_a_problem(
         other.close()
     assert code == cli.EXIT_FAILED and not report["ok"]
     assert [f["what"] for f in report["foreign_ids"]] == [what]
+
+
+def test_a_flood_of_ids_is_counted_in_a_bounded_table(
+    hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A device babbling on thousands of ids grew the table without end (35 000 lines after
+    10 s, 96 MB): the first MAX_IDS ids are counted one by one, the frames of the rest together;
+    a 29-bit id is shown as the wire carries it (no 0x8000.... of handctl's own flag)."""
+    from handctl.bringup.idcount import MAX_IDS
+    from handctl.online.bus import EXTENDED_ID_FLAG
+
+    spec = f"virtual:{channel}"
+    other = open_bus(spec, hand.bus)
+    stop = threading.Event()
+
+    def flood() -> None:
+        k = 0
+        while not stop.is_set():
+            for _ in range(50):
+                other.send(EXTENDED_ID_FLAG | (0x10000 + k), bytes(8))
+                k += 1
+            time.sleep(0.002)
+
+    sender = threading.Thread(target=flood)
+    try:
+        with running_hand(hand, spec):
+            sender.start()
+            code, report = _nodes(capsys, "--bus", spec)
+    finally:
+        stop.set()
+        if sender.is_alive():
+            sender.join()
+        other.close()
+    assert code == cli.EXIT_FAILED and not report["ok"]
+    assert len(report["foreign_ids"]) == MAX_IDS
+    assert report["foreign_ids_more_frames"] > 0
+    assert all(
+        re.fullmatch(r"0x0001[0-9A-F]{4} \(29-bit\)", f["id"]) for f in report["foreign_ids"]
+    )
