@@ -934,13 +934,32 @@ def _failed_plan_output(result: Any, output: Path, quick: bool) -> Path:
         return output
     if "failed_phases" in (data.get("planned_from") or {}):
         return output  # a failed plan's recipe itself: nothing that runs is lost
-    aside = output.with_name(f"{output.stem}.failed{output.suffix}")
+    aside = _free_aside(output)
     print(
         f"handctl: the plan failed: {output} is a recipe that runs and is kept; the failed "
         f"plan is written to {aside}",
         file=sys.stderr,
     )
     return aside
+
+
+def _free_aside(output: Path) -> Path:
+    """``NAME.failed.yaml`` beside ``output``, or ``NAME.failed.N.yaml`` for the first N free
+    if that name holds anything but a failed plan's recipe: written without a look, it went
+    through a symlink there into the very recipe it said it kept (or the template), and over a
+    read-only file of anything."""
+    for n in range(1, 1000):
+        middle = ".failed" if n == 1 else f".failed.{n}"
+        aside = output.with_name(f"{output.stem}{middle}{output.suffix}")
+        if not aside.exists() and not aside.is_symlink():
+            return aside
+        if aside.is_symlink() or not aside.is_file():
+            continue
+        data = _existing_yaml(aside)
+        earlier = data is not None and "failed_phases" in (data.get("planned_from") or {})
+        if earlier and os.access(aside, os.W_OK):
+            return aside  # an earlier failed plan of it: replaced
+    raise ConfigError("-o", "", "a name beside it for the failed plan", str(output))
 
 
 def _plan_plots(result: Any, directory: Path) -> list[Path]:

@@ -166,6 +166,9 @@ def _check_kept_phases(base: Base, template: Template) -> None:
     which = "every phase is kept" if every else f"the phases before '{base.start}' are kept"
     have = [p.name for p in base.recipe.phases]
     source = base.recipe.source
+    # the phases in order first: a template without one of the base's phases was said as a
+    # phase too many at the end, not as the phase that differs where it does
+    _check_kept_names(base, template, kept, have, which)
     if every and len(have) > len(names):
         # a phase the template does not have would be dropped from the recipe without a word
         raise ConfigError(
@@ -174,6 +177,15 @@ def _check_kept_phases(base: Base, template: Template) -> None:
             f"no phase after '{names[-1]}', the template's last ({which})",
             have[len(names)],
         )
+
+
+def _check_kept_names(
+    base: Base, template: Template, kept: list[str], have: list[str], which: str
+) -> None:
+    """Each kept phase the template's, by name and in order, and of its kind where the base
+    says what planned it (``provenance.kind``): a hold kept as a turn's torques ran every
+    model and failed at the end."""
+    source = base.recipe.source
     for i, name in enumerate(kept):
         if i >= len(have) or have[i] != name:
             raise ConfigError(
@@ -181,6 +193,16 @@ def _check_kept_phases(base: Base, template: Template) -> None:
                 f"phases[{i}].name",
                 f"'{name}', the template's phase {i + 1} ({which})",
                 have[i] if i < len(have) else "no such phase",
+            )
+        kind = base.recipe.phases[i].provenance.get("kind")
+        wanted = template.phases[i].kind
+        if kind is not None and kind != wanted:
+            raise ConfigError(
+                source,
+                f"phases[{i}].provenance.kind",
+                f"'{wanted}', the kind of the template's '{name}' ({which}: a phase of "
+                "another kind is no torque for it; plan it: --from it)",
+                kind,
             )
 
 

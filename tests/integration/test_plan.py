@@ -487,6 +487,29 @@ def test_a_failed_plan_never_replaces_a_recipe_that_runs(tmp_path: Path) -> None
     # a failed plan's own recipe is replaced as ever: nothing that runs is lost
     again = plan_command(str(template), "--hand", str(PLANAR), "-o", str(aside), "--workers", "1")
     assert again.returncode == 1 and "is kept" not in again.stderr
+    # a plan failed again beside it replaces the earlier failed plan there
+    again = plan_command(str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1")
+    assert again.returncode == 1 and f"written to {aside}" in again.stderr
+
+
+def test_a_failed_plan_goes_through_no_link_and_over_no_other_file(tmp_path: Path) -> None:
+    """NAME.failed.yaml was written with no look at what was there: through a symlink into
+    the very recipe it said it kept, and over a read-only file of anything (an outside
+    audit). Such a name is passed over for the next free one."""
+    template = _hold_only(tmp_path)
+    out = tmp_path / "r.yaml"
+    out.write_text(PLANAR_RECIPE.read_text())
+    (tmp_path / "r.failed.yaml").symlink_to(out)
+    notes = tmp_path / "r.failed.2.yaml"
+    notes.write_text("my notes\n")
+    notes.chmod(0o444)
+    done = plan_command(str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1")
+    assert done.returncode == 1, done.stderr
+    assert out.read_text() == PLANAR_RECIPE.read_text()  # kept, through the link too
+    assert notes.read_text() == "my notes\n"
+    aside = tmp_path / "r.failed.3.yaml"
+    assert f"the failed plan is written to {aside}" in done.stderr
+    assert load_recipe(aside, load_hand(PLANAR)).plan_failed
 
 
 def test_a_plot_that_cannot_be_placed_loses_no_plan(tmp_path: Path) -> None:
@@ -550,3 +573,22 @@ def test_schedule_only_with_no_entry_to_plan_is_refused(tmp_path: Path) -> None:
     assert "--schedule-only: expected a phase from 'manipulate_3' on with a schedule entry" in (
         done.stderr
     )
+
+
+def test_a_base_phase_of_another_kind_is_refused_before_any_model_runs(tmp_path: Path) -> None:
+    """A base whose 'envelop' was planned as a hold, kept for a template's turn of that name,
+    ran every model and failed at the end (an outside audit): refused at once, naming it."""
+    data: dict[str, Any] = yaml.safe_load(PLANAR_TEMPLATE.read_text())
+    envelop = next(p for p in data["phases"] if p["name"] == "envelop")
+    envelop.clear()
+    envelop.update({"name": "envelop", "kind": "turn", "turn_deg": 5, "max_s": 1.0})
+    template = tmp_path / "kind.template.yaml"
+    template.write_text(yaml.safe_dump(data, sort_keys=False))
+    out = tmp_path / "r.yaml"
+    done = plan_command(
+        str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1",
+        "--base", str(PLANAR_RECIPE), "--keep-torques",
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert f"{PLANAR_RECIPE}: phases[2].provenance.kind: expected 'turn'" in done.stderr
+    assert "found 'hold'" in done.stderr and not out.exists()
