@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -266,27 +267,41 @@ def test_frames_on_other_ids_are_a_problem(
 ) -> None:
     """Good is 'no line about other ids' (docs/bringup.md): another host's commands and ids
     the DBC does not have were listed, and the survey still said ok, exit 0."""
+    code, report = _nodes_beside_a_sender(hand, channel, capsys, lambda k: [frame_id])
+    assert code == cli.EXIT_FAILED and not report["ok"]
+    assert [f["what"] for f in report["foreign_ids"]] == [what]
+
+
+def _nodes_beside_a_sender(
+    hand: HandConfig,
+    channel: str,
+    capsys: pytest.CaptureFixture[str],
+    ids: Callable[[int], list[int]],
+) -> tuple[int, dict[str, Any]]:
+    """``handctl nodes`` on a simulated hand's virtual channel while another sender puts 8
+    zero bytes on each of ``ids(k)`` every 2 ms (k counting its rounds)."""
     spec = f"virtual:{channel}"
     other = open_bus(spec, hand.bus)
     stop = threading.Event()
 
     def send() -> None:
+        k = 0
         while not stop.is_set():
-            other.send(frame_id, bytes(8))
+            for frame_id in ids(k):
+                other.send(frame_id, bytes(8))
+            k += 1
             time.sleep(0.002)
 
     sender = threading.Thread(target=send)
     try:
         with running_hand(hand, spec):
             sender.start()
-            code, report = _nodes(capsys, "--bus", spec)
+            return _nodes(capsys, "--bus", spec)
     finally:
         stop.set()
         if sender.is_alive():
             sender.join()
         other.close()
-    assert code == cli.EXIT_FAILED and not report["ok"]
-    assert [f["what"] for f in report["foreign_ids"]] == [what]
 
 
 def test_a_flood_of_ids_is_counted_in_a_bounded_table(
@@ -298,28 +313,12 @@ def test_a_flood_of_ids_is_counted_in_a_bounded_table(
     from handctl.bringup.idcount import MAX_IDS
     from handctl.online.bus import EXTENDED_ID_FLAG
 
-    spec = f"virtual:{channel}"
-    other = open_bus(spec, hand.bus)
-    stop = threading.Event()
-
-    def flood() -> None:
-        k = 0
-        while not stop.is_set():
-            for _ in range(50):
-                other.send(EXTENDED_ID_FLAG | (0x10000 + k), bytes(8))
-                k += 1
-            time.sleep(0.002)
-
-    sender = threading.Thread(target=flood)
-    try:
-        with running_hand(hand, spec):
-            sender.start()
-            code, report = _nodes(capsys, "--bus", spec)
-    finally:
-        stop.set()
-        if sender.is_alive():
-            sender.join()
-        other.close()
+    code, report = _nodes_beside_a_sender(
+        hand,
+        channel,
+        capsys,
+        lambda k: [EXTENDED_ID_FLAG | (0x10000 + 50 * k + j) for j in range(50)],
+    )
     assert code == cli.EXIT_FAILED and not report["ok"]
     assert len(report["foreign_ids"]) == MAX_IDS
     assert report["foreign_ids_more_frames"] > 0

@@ -550,6 +550,24 @@ def _cli_run(args: list[str], monkeypatch: pytest.MonkeyPatch) -> tuple[int, can
     return code, listeners[0]
 
 
+def _cli_run_heard(
+    text: str, hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> tuple[int, Wire, dict[str, Any], Path]:
+    """``handctl run recipe`` of the recipe ``text`` with ``--summary-json`` and ``--log``:
+    its exit code, what a listener heard of ``hand``'s frames, the summary, and the log."""
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text(text)
+    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
+    code, listener = _cli_run(
+        [str(recipe), "--summary-json", str(out), "--log", str(log)], monkeypatch
+    )
+    try:
+        wire = hear(listener, hand)
+    finally:
+        listener.shutdown()
+    return code, wire, json.loads(out.read_text()), log
+
+
 def _stopped_after_torque(wire: Wire) -> None:
     """Judged on the wire alone: after each node's last torque, only zeros (at least
     ZERO_TICKS_BEFORE_DISABLE), then a disable."""
@@ -570,18 +588,8 @@ def test_a_tau_max_the_wire_cannot_carry_ends_in_a_safety_stop(
     j1 = replace(f1.joints[0], tau_max=5.0, rate_limit=200.0)
     strong = replace(hand, fingers=(replace(f1, joints=(j1, *f1.joints[1:])), *hand.fingers[1:]))
     monkeypatch.setattr("handctl.config.load_hand", lambda path: strong)
-    recipe = tmp_path / "too_much.yaml"
-    recipe.write_text(TOO_MUCH)
-    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
-    code, listener = _cli_run(
-        [str(recipe), "--summary-json", str(out), "--log", str(log)], monkeypatch
-    )
-    try:
-        wire = hear(listener, strong)
-    finally:
-        listener.shutdown()
+    code, wire, summary, log = _cli_run_heard(TOO_MUCH, strong, tmp_path, monkeypatch)
     assert code == cli.EXIT_SAFETY_STOP
-    summary = json.loads(out.read_text())
     assert summary["outcome"] == "safety_stop"
     assert summary["faults"][0]["code"] == "ENCODE_EXCEPTION"
     assert summary["exception"]["type"] == "ProtocolError"
@@ -648,18 +656,8 @@ def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
 
     monkeypatch.setattr(Recorder, "push", push)
     monkeypatch.setattr(Recorder, "_publish_idle", publish_idle)
-    recipe = tmp_path / "hold.yaml"
-    recipe.write_text(CLOSE_AND_HOLD_1S)
-    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
-    code, listener = _cli_run(
-        [str(recipe), "--summary-json", str(out), "--log", str(log)], monkeypatch
-    )
-    try:
-        wire = hear(listener, hand)
-    finally:
-        listener.shutdown()
+    code, wire, summary, log = _cli_run_heard(CLOSE_AND_HOLD_1S, hand, tmp_path, monkeypatch)
     assert code == cli.EXIT_SAFETY_STOP
-    summary = json.loads(out.read_text())
     assert summary["faults"][0]["code"] == "RECORD_EXCEPTION"
     assert "ForcedError" in summary["recording"]["error"]
     _stopped_after_torque(wire)
@@ -692,20 +690,10 @@ def test_a_system_exit_inside_a_tick_is_a_safety_stop_with_its_summary(
 ) -> None:
     """A library's exit() inside a stage went out as the process' exit code (here 7), with no
     summary and a log of 'no summary': it is a broken stage like any other."""
-    recipe = tmp_path / "hold.yaml"
-    recipe.write_text(CLOSE_AND_HOLD_1S)
-    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
     _raise_in_the_runner_at(300, SystemExit(7), monkeypatch)
-    code, listener = _cli_run(
-        [str(recipe), "--summary-json", str(out), "--log", str(log)], monkeypatch
-    )
-    try:
-        wire = hear(listener, hand)
-    finally:
-        listener.shutdown()
+    code, wire, summary, log = _cli_run_heard(CLOSE_AND_HOLD_1S, hand, tmp_path, monkeypatch)
     assert code == cli.EXIT_SAFETY_STOP
     _stopped_after_torque(wire)
-    summary = json.loads(out.read_text())
     assert summary["outcome"] == "safety_stop"
     assert summary["exception"]["code"] == "RUNNER_EXCEPTION"
     assert summary["exception"]["type"] == "SystemExit"
