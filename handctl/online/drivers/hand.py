@@ -222,32 +222,38 @@ class HandDriver:
         values = torques.tolist()  # one conversion for every node, plain floats after
         bus = self.bus
         batching = bus.batching
-        last = len(self.nodes) - 1
-        # the nodes whose frame has not been seen to go: a frame that did not go (refused, or
-        # the send raised) gives its counter back, so the next frame is in sequence
-        unsent: list[FingerNode] = []
+        nodes = self.nodes
+        last = len(nodes) - 1
+        # nodes[unsent:upto + 1] have frames not yet seen to go (upto: the last whose counter
+        # was used): a frame that did not go (refused, or the send raised; on a batching bus,
+        # every frame of its burst) gives its counter back, so the next frame is in sequence.
+        # Indices, not a list: no allocation a tick.
+        unsent, upto = 0, -1
         try:
             for i, (node, (start, k), pad) in enumerate(
-                zip(self.nodes, self._spans, self._pads, strict=True)
+                zip(nodes, self._spans, self._pads, strict=True)
             ):
                 mine = values[start : start + k]
                 if pad:
                     mine += pad
                 frame_id, data = node.next_command(mine)
-                unsent.append(node)
+                upto = i
                 more = i < last
                 if not bus.send(frame_id, data, more=more):
                     ok = False
-                    for held in unsent:  # a batching bus's failed burst: every frame in it
-                        held.take_back_command()
-                    unsent.clear()
+                    self._take_back(unsent, i)
+                    unsent = i + 1
                 elif not (batching and more):
-                    unsent.clear()
+                    unsent = i + 1
         except BaseException:
-            for held in unsent:
-                held.take_back_command()
+            self._take_back(unsent, upto)
             raise
         return ok
+
+    def _take_back(self, first: int, last: int) -> None:
+        """Nodes ``first``..``last``'s last command frames did not go (``take_back_command``)."""
+        for node in self.nodes[first : last + 1]:
+            node.take_back_command()
 
     # -- the stop that needs no codec -----------------------------------------------------
     def _prepare_stop_frames(self) -> None:

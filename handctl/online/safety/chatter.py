@@ -74,7 +74,11 @@ class ChatterWatch:
         self._period_s = period_s
         self._extreme = np.zeros(n)  # N·m, the command's last extreme
         self._sense = np.ones(n)  # +1 while the command last went up, -1 down
-        self._gap = np.empty(n)  # scratch: the command against its extreme, the sense's way
+        # scratch, written in place every tick: the command against its extreme (the sense's
+        # way), the joints that turned back, those to take a new extreme
+        self._gap = np.empty(n)
+        self._turned_now = np.empty(n, dtype=bool)
+        self._new_extreme = np.empty(n, dtype=bool)
         self._tick = 0
         self._count = [0.0] * n  # half swings, weighted by age, at ``_at``
         self._at = [0] * n  # the tick of each joint's last half swing
@@ -87,13 +91,15 @@ class ChatterWatch:
 
     def observe(self, applied: FloatArray, t_s: float) -> None:
         """The torques sent in the tick at recipe time ``t_s`` (N·m)."""
-        gap = self._gap
+        gap, turned, new = self._gap, self._turned_now, self._new_extreme
         np.subtract(applied, self._extreme, out=gap)
         gap *= self._sense
-        turned = gap <= self._turn
+        np.less_equal(gap, self._turn, out=turned)
         if turned.any():
             self._turned(np.flatnonzero(turned), t_s)
-        np.copyto(self._extreme, applied, where=turned | (gap > 0.0))
+        np.greater(gap, 0.0, out=new)
+        new |= turned
+        np.copyto(self._extreme, applied, where=new)
         self._tick += 1
 
     def _turned(self, joints: npt.NDArray[np.intp], t_s: float) -> None:
