@@ -1195,21 +1195,13 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 
 # -- replay ------------------------------------------------------------------------------------
-def _printable(value: Any) -> Any:
-    """``value`` with every string in it, keys too, as a terminal can show it (``escaped``):
-    a log's phase names, event details and metadata are the log's to say, and an escape
-    sequence in one recoloured the terminal, set its title or printed a line of its own."""
-    if isinstance(value, str):
-        return escaped(value)
-    if isinstance(value, dict):
-        return {_printable(k): _printable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_printable(v) for v in value]
-    return value
-
-
 def _print_replay_summary(summary: dict[str, Any]) -> None:
-    raw, summary = summary, _printable(summary)
+    from handctl.recording.metadata import map_strings
+
+    # every string of it as a terminal can show it: a log's phase names, event details and
+    # metadata are the log's to say, and an escape sequence in one recoloured the terminal,
+    # set its title or printed a line of its own
+    raw, summary = summary, map_strings(summary, escaped)
     state = (
         "complete"
         if summary["complete"]

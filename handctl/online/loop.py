@@ -482,11 +482,16 @@ class Runtime:
             + (f" ({exc})" if str(exc) else "")
             + ": zero torque and a disable were sent at once"
         )
-        with contextlib.suppress(Exception):
-            if self.runner is not None and self.runner.in_phase:
-                self._abort_phase(self._t_s, f"interrupted: {type(exc).__name__}", tick)
+        self._end_phase_quietly(f"interrupted: {type(exc).__name__}", tick)
         with contextlib.suppress(Exception):
             self.interrupted = self._result(Outcome.INTERRUPTED, message)
+
+    def _end_phase_quietly(self, reason: str, tick: int) -> None:
+        """End the phase under way for ``reason`` at ``tick`` (it had no end in the summary),
+        if the runner can: an exception or an interrupt may have come from the runner."""
+        with contextlib.suppress(Exception):
+            if self.runner is not None and self.runner.in_phase:
+                self._abort_phase(self._t_s, reason, tick)
 
     async def _stop_after_exception(self, exc: BaseException) -> tuple[Outcome, str]:
         """The stop after an exception: latch its fault, then zero torque and disable with
@@ -546,10 +551,7 @@ class Runtime:
         then held to the log's end). Whether rows can still be pushed."""
         failure = self.exception
         code = failure.code.name if failure is not None else FaultCode.RUN_EXCEPTION.name
-        raised_in = tk.tick if tk is not None else self.tick
-        with contextlib.suppress(Exception):
-            if self.runner is not None and self.runner.in_phase:
-                self._abort_phase(self._t_s, f"safety stop: {code}", raised_in)
+        self._end_phase_quietly(f"safety stop: {code}", tk.tick if tk is not None else self.tick)
         if self.recorder is None:
             return False
         if tk is not None and self._record.tick != tk.tick:  # its row was not pushed

@@ -326,7 +326,7 @@ def check_commands(
     # wire within a millisecond.
     period_s = period_ns * 1e-9 / speed
     last: dict[int, tuple[int, tuple[float, ...], list[float]]] = {}
-    rate = _CommandRate(period_s, speed)
+    rate = _CommandRate(period_ns)
     checked = 0
     for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
         refuse = functools.partial(_refused, recording, log_time, frame_id, data, is_rx)
@@ -420,13 +420,13 @@ def _aliases(frame_id: int, commands: Sequence[int]) -> bool:
 
 
 class _CommandRate:
-    """As many commands as a run sends: one a loop period (as sent, at ``speed``) per node
-    and message, ``COMMAND_BURST`` at once at most (a stop after an exception sends its zeros
-    and its disable without a clock). The same torque twenty times a tick, or fifty enables,
-    were sent 1 µs apart."""
+    """As many commands as a run sends: one a loop period of the log per node and message
+    (at ``--speed`` s, one a period over s as sent), ``COMMAND_BURST`` at once at most (a stop
+    after an exception sends its zeros and its disable without a clock). The same torque
+    twenty times a tick, or fifty enables, were sent 1 µs apart."""
 
-    def __init__(self, period_s: float, speed: float) -> None:
-        self._per_ns = 1e-9 / speed / period_s  # commands earned a logged ns
+    def __init__(self, period_ns: int) -> None:
+        self._per_ns = 1.0 / period_ns  # commands earned a logged ns
         self._left: dict[int, tuple[float, int]] = {}  # per id: may still send, counted when
 
     def take(self, frame_id: int, log_time: int) -> bool:

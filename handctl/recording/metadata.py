@@ -12,7 +12,7 @@ import hashlib
 import platform
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any
@@ -51,14 +51,20 @@ def valid_text(text: str) -> str:
 
 
 def valid_strings(value: Any) -> Any:
-    """``value`` with every string in it (keys too, in dicts, lists and tuples) made
-    ``valid_text``: what goes into a recording's metadata or the writer's set-up."""
+    """``value`` with every string in it made ``valid_text``: what goes into a recording's
+    metadata or the writer's set-up."""
+    return map_strings(value, valid_text)
+
+
+def map_strings(value: Any, text: Callable[[str], str]) -> Any:
+    """``value`` with ``text`` applied to every string in it, keys too, in dicts, lists and
+    tuples (a tuple comes back a list, as JSON has it)."""
     if isinstance(value, str):
-        return valid_text(value)
+        return text(value)
     if isinstance(value, dict):
-        return {valid_strings(k): valid_strings(v) for k, v in value.items()}
+        return {map_strings(k, text): map_strings(v, text) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [valid_strings(v) for v in value]
+        return [map_strings(v, text) for v in value]
     return value
 
 
