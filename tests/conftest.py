@@ -10,7 +10,7 @@ import os
 import signal
 import subprocess
 import sys
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -110,12 +110,14 @@ def handctl(
     cwd: Path = ROOT,
     env: Mapping[str, str] | None = None,
     timeout: float = 600,
+    preexec_fn: Callable[[], Any] | None = None,
 ) -> subprocess.CompletedProcess[str]:
     """``python -m handctl ARGS`` as a user runs it, from the repository root unless ``cwd``
     says otherwise, its output captured and its exit left to the caller. The repository comes
     first on the path wherever it runs (from the root ``python -m`` puts it there; elsewhere
     PYTHONPATH does), so the code under test is this checkout's, whatever is installed;
-    ``env`` adds to the environment the suite runs in."""
+    ``env`` adds to the environment the suite runs in; ``preexec_fn`` runs in the child
+    before handctl does (limits of its own, ``resource.setrlimit``)."""
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
     return subprocess.run(
         [sys.executable, "-m", "handctl", *args],
@@ -125,6 +127,7 @@ def handctl(
         capture_output=True,
         timeout=timeout,
         check=False,
+        preexec_fn=preexec_fn,
     )
 
 

@@ -211,16 +211,9 @@ def test_a_writer_the_open_files_limit_keeps_from_starting_is_said(tmp_path: Pat
     def few_files() -> None:
         resource.setrlimit(resource.RLIMIT_NOFILE, (14, 14))
 
-    done = subprocess.run(
-        [
-            *(sys.executable, "-m", "handctl", "run", "recipe", str(DEFAULT_RECIPE)),
-            *("--max-seconds", "0.2", "--log", str(log)),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
+    done = handctl(
+        *("run", "recipe", str(DEFAULT_RECIPE), "--max-seconds", "0.2", "--log", str(log)),
         timeout=300,
-        check=False,
         preexec_fn=few_files,
     )
     assert done.returncode == 1, done.stderr

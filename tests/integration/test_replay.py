@@ -73,15 +73,7 @@ def test_a_plot_the_disk_cannot_take_is_said_and_the_rest_is_written(
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
 
     command = ["replay", str(recorded.path), "--plot", str(plot), "--json", str(out)]
-    done = subprocess.run(
-        [sys.executable, "-m", "handctl", *command],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-        preexec_fn=small_files,
-    )
+    done = handctl(*command, timeout=300, preexec_fn=small_files)
     assert done.returncode == 1, done.stdout + done.stderr
     assert "Traceback" not in done.stderr
     assert f"handctl: error: --plot: {plot}: no plot written (File too large)" in done.stderr
