@@ -190,6 +190,13 @@ def _entry(when: Any, **torques: float) -> dict[str, Any]:
             "1.1",
         ),
         (
+            # a lone min at the top leaves no range: the min written is to blame, not a max
+            [_entry({"radius_ratio": {"object": "cyl1", "min": 1.5}})],
+            "phases[1].schedule[0].when.radius_ratio.min",
+            "a ratio smaller than 1.5 (max, not written)",
+            "1.5",
+        ),
+        (
             [_entry({"radius_ratio": {"object": "cyl1"}})],
             "phases[1].schedule[0].when.radius_ratio.min",
             "a bound of the range (min, max or both)",

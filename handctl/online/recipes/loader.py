@@ -692,7 +692,10 @@ def _parse_radius_ratio(
     low = doc.number("min", default=RADIUS_RATIO_MIN, min=RADIUS_RATIO_MIN, max=RADIUS_RATIO_MAX)
     high = doc.number("max", default=RADIUS_RATIO_MAX, min=RADIUS_RATIO_MIN, max=RADIUS_RATIO_MAX)
     if high <= low:
-        doc.fail("max", f"a ratio larger than min ({low:g})", high)
+        # blame the bound that was written: a lone ``min`` at the top leaves no range either
+        if doc.has("max"):
+            doc.fail("max", f"a ratio larger than min ({low:g})", high)
+        doc.fail("min", f"a ratio smaller than {high:g} (max, not written)", low)
     # the bounds may reach past what the estimator measures (an open end), the range not
     fits = (1.0 - RADIUS_RANGE, 1.0 + RADIUS_RANGE)
     if low >= fits[1] or high <= fits[0]:
