@@ -867,6 +867,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     template = load_template(args.template, hand)
     base = _plan_base(args, template, hand)
+    if args.plot is not None:
+        _check_plot_targets(args.plot, [phase.name for phase in template.phases])
     clock = Stopwatch()
     with open_pool(args.workers, args.scheduler) as pool:
         where, cpu_counted = pool.where, pool.cpu_counted
@@ -907,18 +909,22 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         plots, plot_error = [], exc
     output = _failed_plan_output(result, args.output, args.quick)
     _write_output("-o", output, recipe_text(result, command))
-    wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
-    print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {output}")
-    print(f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU ({cpu_counted}) on {where}")
-    for plan in result.phases:
-        print(_planned_phase_line(plan))
-    for path in plots:
-        print(f"  plot {path}")
-    if plot_error is not None:
-        print(f"handctl: error: {plot_error} (the recipe is written)", file=sys.stderr)
-        # a directory whose files cannot be replaced is bad input; a disk that filled is not
-        return EXIT_BAD_INPUT if isinstance(plot_error, ConfigError) else EXIT_FAILED
-    return _plan_exit_code(result, output, args.quick)
+    try:  # the recipe is whole on disk: an interrupt from here on says so
+        wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
+        print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {output}")
+        print(f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU ({cpu_counted}) on {where}")
+        for plan in result.phases:
+            print(_planned_phase_line(plan))
+        for path in plots:
+            print(f"  plot {path}")
+        if plot_error is not None:
+            print(f"handctl: error: {plot_error} (the recipe is written)", file=sys.stderr)
+            # a directory whose files cannot be replaced is bad input; a disk that filled is not
+            return EXIT_BAD_INPUT if isinstance(plot_error, ConfigError) else EXIT_FAILED
+        return _plan_exit_code(result, output, args.quick)
+    except KeyboardInterrupt:
+        print(f"handctl: interrupted; {output} is written whole", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def _failed_plan_output(result: Any, output: Path, quick: bool) -> Path:
@@ -960,6 +966,42 @@ def _free_aside(output: Path) -> Path:
         if earlier and os.access(aside, os.W_OK):
             return aside  # an earlier failed plan of it: replaced
     raise ConfigError("-o", "", "a name beside it for the failed plan", str(output))
+
+
+#: the first bytes of every PNG file: what ``plan --plot`` may replace at its plots' names
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _check_plot_targets(directory: Path, phases: Sequence[str]) -> None:
+    """Refuse, before the search, a ``--plot`` directory where a plot's name is taken by
+    anything but a PNG (an earlier plan's, replaced): a directory in the way was found only
+    after the whole search, and a file of any other kind (a link, a recipe, notes) that
+    happened to bear the name was replaced without a word."""
+    from handctl.experiment.plot import plan_plot_name
+
+    for k, phase in enumerate(phases):
+        target = directory / plan_plot_name(k, phase)
+        if not (target.exists() or target.is_symlink()):
+            continue
+        if target.is_symlink() or not target.is_file():
+            kind = "a symbolic link" if target.is_symlink() else "not a regular file"
+            found = Description(f"{target}: {kind}")
+        else:
+            try:
+                with target.open("rb") as f:
+                    head = f.read(len(PNG_SIGNATURE))
+            except OSError as exc:
+                found = Description(f"{target}: {exc.strerror}")
+            else:
+                if head == PNG_SIGNATURE:
+                    continue  # an earlier plot: replaced
+                found = Description(f"{target}: a file that is not a PNG")
+        raise ConfigError(
+            "--plot",
+            "",
+            "a directory where the plots' names are free or earlier plots (PNG files, replaced)",
+            found,
+        )
 
 
 def _plan_plots(result: Any, directory: Path) -> list[Path]:

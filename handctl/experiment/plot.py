@@ -160,7 +160,7 @@ def plot_plan(result: Any, directory: Path) -> list[Path]:
             title += f", wanted turn {math.degrees(plan.spec.turn):+.0f} deg"
         out.append(
             plot_phase_region(
-                directory / f"{k + 1:02d}_{_file_part(plan.phase.name)}.png",
+                directory / plan_plot_name(k, plan.phase.name),
                 title,
                 plan.analysis,
                 plan.phase.torques,
@@ -168,6 +168,12 @@ def plot_plan(result: Any, directory: Path) -> list[Path]:
             )
         )
     return out
+
+
+def plan_plot_name(index: int, phase: str) -> str:
+    """The file name of the region plot of a plan's phase ``index`` (from 0): known before
+    the search, so that ``plan --plot`` can look at what it would replace before it runs."""
+    return f"{index + 1:02d}_{_file_part(phase)}.png"
 
 
 def _file_part(name: str) -> str:

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
 from handctl.config import HandConfig, load_hand
@@ -512,21 +513,48 @@ def test_a_failed_plan_goes_through_no_link_and_over_no_other_file(tmp_path: Pat
     assert load_recipe(aside, load_hand(PLANAR)).plan_failed
 
 
-def test_a_plot_that_cannot_be_placed_loses_no_plan(tmp_path: Path) -> None:
-    """A directory where a phase's plot goes lost the whole plan (no recipe), with a message
-    naming a temporary path (found by an outside audit)."""
+@pytest.mark.parametrize("kind", ["directory", "link", "notes"])
+def test_a_plot_s_name_taken_by_anything_but_a_png_is_refused_before_the_plan(
+    tmp_path: Path, kind: str
+) -> None:
+    """A directory at a plot's name lost the whole search (found after it), and a file of
+    any other kind bearing the name was replaced without a word (outside audits)."""
     template = _hold_only(tmp_path)
     out, plots = tmp_path / "r.yaml", tmp_path / "plots"
-    (plots / "01_hold.png").mkdir(parents=True)
+    plots.mkdir()
+    taken = plots / "01_hold.png"
+    mine = tmp_path / "mine.txt"
+    mine.write_text("my notes\n")
+    if kind == "directory":
+        taken.mkdir()
+    elif kind == "link":
+        taken.symlink_to(mine)
+    else:
+        taken.write_text("my notes\n")
     done = plan_command(
         str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1", "--plot", str(plots)
     )
     assert done.returncode == 2, done.stderr
-    assert f"--plot: expected a directory whose plot files can be replaced, found {plots}" in (
+    assert "--plot: expected a directory where the plots' names are free or earlier plots" in (
         done.stderr
     )
-    assert "01_hold.png" in done.stderr and ".handctl-plot-" not in done.stderr
-    assert "(the recipe is written)" in done.stderr and out.exists()
+    assert f"found {taken}: " in done.stderr
+    assert "planning on" not in done.stderr and not out.exists()  # before any work
+    assert mine.read_text() == "my notes\n"
+    if kind == "notes":
+        assert taken.read_text() == "my notes\n"
+
+
+def test_an_earlier_plot_is_replaced(tmp_path: Path) -> None:
+    template = _hold_only(tmp_path)
+    out, plots = tmp_path / "r.yaml", tmp_path / "plots"
+    args = (str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1")
+    done = plan_command(*args, "--plot", str(plots))
+    assert done.returncode == 1, done.stderr  # the phase fails: its plot is drawn all the same
+    first = (plots / "01_hold.png").stat()
+    done = plan_command(*args, "--plot", str(plots))
+    assert done.returncode == 1, done.stderr
+    assert (plots / "01_hold.png").stat().st_ino != first.st_ino  # drawn again, moved in
 
 
 def test_plot_directory_is_checked_before_the_plan_and_may_end_in_a_separator(
