@@ -100,13 +100,15 @@ class StopSignals:
     #: SIGXCPU and the rest of ``ENDING``: their default ends the process by the signal, with
     #: the same result as a hang-up's,
     #: and a stray ``kill -USR1`` or a second terminal key is no reason to leave a hand under
-    #: torque. A run started with one of these (or SIGHUP) ignored keeps ignoring it
+    #: torque. A run started with SIGHUP or one of these but SIGQUIT ignored keeps ignoring it
     #: (``HONOURED_IF_IGNORED`` are the ones taken whatever was inherited).
     SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGTSTP, *ENDING)
-    #: SIGINT and SIGTERM are a stop even when inherited ignored (a script's background job
-    #: inherits SIGINT ignored, and its user still means Ctrl-C and ``kill``); SIGTSTP cannot
-    #: be asked for by ignoring it.
-    HONOURED_IF_IGNORED = (signal.SIGINT, signal.SIGTERM, signal.SIGTSTP)
+    #: SIGINT, SIGQUIT and SIGTERM are a stop even when inherited ignored: a shell starts a
+    #: script's background job with SIGINT and SIGQUIT ignored, whatever its user meant, and
+    #: its user still means ``kill -INT`` and ``kill -QUIT`` (a jog started so kept its torque
+    #: through a SIGQUIT); SIGTSTP cannot be asked for by ignoring it. Only SIGHUP ignored is a
+    #: wish (``nohup``), and the rest are ignored only by someone who meant it.
+    HONOURED_IF_IGNORED = (signal.SIGINT, signal.SIGQUIT, signal.SIGTERM, signal.SIGTSTP)
     #: SIGTTOU and SIGTTIN suspend a process as SIGTSTP does: a run in the background of a
     #: terminal set ``stty tostop`` was stopped mid-grasp by its own status line (or by a
     #: ``kill -TTOU``), with its torque on. Ignored, a write to the terminal goes through and

@@ -48,10 +48,10 @@ _channels = itertools.count()
 
 def pytest_configure(config: pytest.Config) -> None:
     """The stop signals back to their defaults when the suite itself was started with them
-    ignored (SIGHUP under ``nohup`` or a runner that ignores it, SIGQUIT as a background job
-    of a script): a run started so keeps ignoring them on purpose (``stopsignals.StopSignals``),
-    so the tests of what a run does when its terminal goes away or Ctrl-\\ is pressed would
-    test that branch instead, and fail. Every worker and every child inherits them."""
+    ignored (SIGHUP under ``nohup`` or a runner that ignores it): a run started so keeps
+    ignoring them on purpose (``stopsignals.StopSignals``), so the tests of what a run does
+    when its terminal goes away would test that branch instead, and fail. Every worker and
+    every child inherits them."""
     from handctl.stopsignals import StopSignals
 
     for sig in set(StopSignals.SIGNALS) - set(StopSignals.HONOURED_IF_IGNORED):
