@@ -2137,7 +2137,9 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     if moved is not None:
         print(
             f"{args.joint}: {result.start_angle:+.4f} -> {result.end_angle:+.4f} rad "
-            f"({moved:+.4f} rad) under {args.torque:+g} N·m; largest |TDT| "
+            f"({moved:+.4f} rad"
+            + (", to the last reading before its encoder failed" if result.encoder_failed else "")
+            + f") under {args.torque:+g} N·m; largest |TDT| "
             f"{result.max_abs_tdt:.4f} N·m; largest |applied| "
             f"{result.report.summary['max_abs_tau_nm'][args.joint]:.4f} N·m"
         )

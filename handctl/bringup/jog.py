@@ -39,6 +39,7 @@ from handctl.online.clock import Tick
 from handctl.online.loop import TickRecord
 from handctl.online.recipes.guard import LimitGuard, SpringBand
 from handctl.online.recipes.schema import Condition, Recipe, TimeoutAction, parse_condition
+from handctl.online.safety.faults import FaultCode
 from handctl.online.safety.recovery import Recovery
 from handctl.session import RunReport, RunRequest, run_recipe
 
@@ -75,9 +76,11 @@ class JogReport:
     joint: str
     torque: float
     start_angle: float | None  # rad, when torque first flowed
-    end_angle: float | None  # rad, at the end of the run
+    end_angle: float | None  # rad, at the end of the run (before its encoder failed, if it did)
     max_abs_tdt: float  # N·m
     recovery: Recovery | None = None  # with ``recover``: what the supervisor saw of it
+    #: the jogged joint's node latched SENSOR: ``end_angle`` is the last reading before it
+    encoder_failed: bool = False
 
     @property
     def moved(self) -> float | None:
@@ -99,8 +102,14 @@ class JogSink:
         show: Callable[[JogLine], None] | None,
         period_s: float,
         every: int | None = None,
+        node: str = "",
     ) -> None:
         self.index = index
+        #: how the supervisor names the jogged joint's node (``node N (FINGER)``): its SENSOR
+        #: fault freezes ``end_angle``, since the node's readings from that tick on are the
+        #: jump it failed on (a saturated encoder read as tens of degrees the joint moved)
+        self.node = node
+        self.encoder_failed = False
         self.show = show
         self.period_s = period_s
         self.every = table_every_ticks(period_s) if every is None else every
@@ -125,7 +134,12 @@ class JogSink:
         if self._first_tick is None:
             self._first_tick = record.tick
             self.start_angle = angle
-        self.end_angle = angle
+        if record.faults and not self.encoder_failed and self._sensor_failed(record):
+            # the node fails in the tick its encoder jumped: ``end_angle`` stays the tick
+            # before's, the last reading of the joint itself
+            self.encoder_failed = True
+        if not self.encoder_failed:
+            self.end_angle = angle
         if np.isfinite(tdt):
             self.max_abs_tdt = max(self.max_abs_tdt, abs(tdt))
         new_phase = record.phase != self._phase
@@ -146,6 +160,16 @@ class JogSink:
             self.show(JogLine(*fields))
         else:
             self._unshown = fields
+
+    def _sensor_failed(self, record: TickRecord) -> bool:
+        if not self.node:
+            return False
+        return any(
+            f.code is FaultCode.NODE_FAULT
+            and f.detail.startswith(self.node + " ")
+            and "SENSOR" in f.detail
+            for f in record.faults
+        )
 
     def finish(self) -> None:
         """Show the last tick's line if it was not: a stop (Ctrl-C, a fault) ended the table
@@ -263,7 +287,8 @@ def jog(
     recipe = jog_recipe(hand, joint, torque, seconds, recover)
     j = joint_index(hand, joint)
     recovery = Recovery(j, 1 if torque > 0 else -1) if recover else None
-    sink = JogSink(j, show, hand.bus.period_s)
+    finger = next(f for f in hand.fingers if joint in {k.name for k in f.joints})
+    sink = JogSink(j, show, hand.bus.period_s, node=f"node {finger.node_id} ({finger.name})")
     report = run_recipe(
         RunRequest(
             hand=hand,
@@ -281,5 +306,12 @@ def jog(
     )
     sink.finish()
     return JogReport(
-        report, joint, torque, sink.start_angle, sink.end_angle, sink.max_abs_tdt, recovery
+        report,
+        joint,
+        torque,
+        sink.start_angle,
+        sink.end_angle,
+        sink.max_abs_tdt,
+        recovery,
+        sink.encoder_failed,
     )

@@ -238,6 +238,29 @@ def test_a_missing_node_stops_it_at_start_up(
     assert "node 3 (f3): no feedback" in capsys.readouterr().err
 
 
+def test_a_jog_whose_encoder_fails_reports_the_motion_before_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An encoder that jumps far (the node latches SENSOR) left its jump in the closing line
+    as motion: tens of degrees the joint never turned (an outside audit)."""
+    faults = tmp_path / "faults.yaml"
+    faults.write_text(
+        "faults:\n  - {kind: encoder_jump, node: 1, joint: 2, counts: 4000, start: 0.3}\n"
+    )
+    args = ["jog", "f1_j2", "--torque", "0.05", "--seconds", "1"]
+    code = cli.main([*args, "--sim-faults", str(faults)])
+    captured = capsys.readouterr()
+    assert code == cli.EXIT_SAFETY_STOP, captured.err
+    assert "node 1 (f1) in FAULT (SENSOR" in captured.err
+    line = next(x for x in captured.out.splitlines() if x.startswith("f1_j2: "))
+    assert ", to the last reading before its encoder failed)" in line
+    moved = float(line.split("(")[1].split(" rad")[0])
+    # 4000 counts is 1.53 rad, more than the joint turns in the whole jog (0.55 rad by then)
+    assert 0.0 < moved < 1.0, line
+    assert cli.main([*args[:4], "--seconds", "0.3"]) == cli.EXIT_OK  # no such words unfailed
+    assert "encoder failed" not in capsys.readouterr().out
+
+
 @REALTIME
 def test_ctrl_c_is_a_controlled_stop_on_the_unix_bus() -> None:
     stopped = []
