@@ -1596,6 +1596,17 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         report["to_bus"] = {"sent": 0, "refused": "the re-run found a mismatch"}
+    elif args.to_bus and recording.damaged:
+        # a chunk dropped whole from the middle: the frames around it would go out as if
+        # one after the other, a gap of commands the run never sent (a log cut short at its
+        # end, by a crash or a power loss, still goes: what it holds is what the run sent)
+        print(
+            f"to-bus: nothing sent: {args.log} is DAMAGED ({recording.problem}); the frames "
+            "of a log with a hole in it are not the run's",
+            file=sys.stderr,
+        )
+        report["to_bus"] = {"sent": 0, "refused": "the log is damaged"}
+        status = EXIT_FAILED
     elif args.to_bus:
         report["to_bus"] = _replay_to_bus(args, recording, on_bus)
     if args.json:

@@ -706,6 +706,12 @@ def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(
     assert done.returncode == 0, done.stdout + done.stderr
     assert f"DAMAGED: chunk {bad} at byte {middle.chunk_start_offset}" in done.stdout
     assert "bit-exact" in done.stdout and "before a damaged chunk" in done.stdout
+    # nor does it go onto a bus: the frames either side of the hole would go out as one
+    # stream the run never sent (it went, exit 0)
+    done = handctl("replay", str(damaged), "--to-bus", f"virtual:damaged-{where}")
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert f"to-bus: nothing sent: {damaged} is DAMAGED (chunk {bad} at byte" in done.stderr
+    assert "frames sent" not in done.stdout
 
 
 def test_a_rerun_does_not_start_after_a_damaged_first_chunk(
