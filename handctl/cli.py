@@ -829,7 +829,7 @@ def _outcome_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
 def _cmd_plan(args: argparse.Namespace) -> int:
     from handctl.executor import ClusterLostError, Stopwatch, check_scheduler, open_pool
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
-    from handctl.planning.template import load_template
+    from handctl.planning.template import load_template, unreachable_turn
     from handctl.progress import Progress, close_active, say
 
     _output_file("-o", args.output)
@@ -866,6 +866,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             )
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     template = load_template(args.template, hand)
+    if (short := unreachable_turn(template)) is not None:
+        print(f"handctl: warning: {short}", file=sys.stderr)
     base = _plan_base(args, template, hand)
     if args.plot is not None:
         _check_plot_targets(args.plot, [phase.name for phase in template.phases])

@@ -256,6 +256,21 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     )
 
 
+def unreachable_turn(template: Template) -> str | None:
+    """What is wrong with a ``min_total_turn_deg`` above the turn the template's phases ask
+    for in all, or None. A warning, not a refusal: a turn phase may turn further than it asks
+    (a tumble), and a template cut short of its turns is planned phase by phase all the same;
+    but a recipe of it that turns as asked fails every run (``experiment.success``)."""
+    asked = sum(abs(math.degrees(p.turn)) for p in template.phases if p.kind == "turn")
+    if template.min_total_turn_deg <= asked:
+        return None
+    return (
+        f"{template.source}: min_total_turn_deg {template.min_total_turn_deg:g} is more than "
+        f"its turn phases ask for in all ({asked:.4g} deg): every run of the recipe that turns "
+        "as asked fails (experiment.success false, exit 1)"
+    )
+
+
 def _check_free_ramps(
     source: str, phases: Sequence[TemplatePhase], hand: HandConfig, end_ramp_s: float
 ) -> None:

@@ -17,7 +17,7 @@ import yaml
 from handctl.config import HandConfig, load_hand
 from handctl.online.recipes.loader import load_recipe
 from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
-from handctl.planning.template import load_template
+from handctl.planning.template import load_template, unreachable_turn
 
 from ..conftest import ROOT
 
@@ -543,6 +543,28 @@ def test_a_plot_s_name_taken_by_anything_but_a_png_is_refused_before_the_plan(
     assert mine.read_text() == "my notes\n"
     if kind == "notes":
         assert taken.read_text() == "my notes\n"
+
+
+def test_a_total_turn_the_template_s_phases_do_not_ask_for_is_warned_of(tmp_path: Path) -> None:
+    """Every run of such a recipe fails its experiment: the plan said nothing (an audit)."""
+    template = _hold_only(tmp_path)
+    data = yaml.safe_load(template.read_text())
+    data["min_total_turn_deg"] = 90
+    template.write_text(yaml.safe_dump(data, sort_keys=False))
+    out = tmp_path / "r.yaml"
+    done = plan_command(str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1")
+    assert (
+        f"handctl: warning: {template}: min_total_turn_deg 90 is more than its turn phases ask "
+        "for in all (0 deg): every run of the recipe that turns as asked fails"
+    ) in done.stderr
+    done = plan_command(str(PLANAR_TEMPLATE), "--hand", str(PLANAR), "-o", str(out), "--quick")
+    assert done.returncode == 0, done.stderr
+    assert "min_total_turn_deg" not in done.stderr
+    swap = load_template(
+        ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml",
+        load_hand(ROOT / "config" / "hands" / "hiroshima_hand.yaml"),
+    )
+    assert swap.min_total_turn_deg > 0 and unreachable_turn(swap) is None
 
 
 def test_an_earlier_plot_is_replaced(tmp_path: Path) -> None:
