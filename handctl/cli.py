@@ -317,6 +317,12 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
     return EXIT_HOST if report.verdict.fails else EXIT_OK
 
 
+#: s, the longest a joint's rate limit may take to slew its whole tau_max before ``check``
+#: warns: the shipped hand takes 0.03 s; at 0.1 N·m/s (3-6 s) the guard's push-back reached
+#: 7 % of what it asked before the joint met its limit
+SLOW_SLEW_S = 0.25
+
+
 def _cmd_check(args: argparse.Namespace) -> int:
     # an option of the other check did nothing, without a word: `check --json t.json` wrote
     # no file, `check --timing --dbc nosuch.dbc` never looked at it
@@ -393,6 +399,17 @@ def _cmd_check(args: argparse.Namespace) -> int:
             f"{m.frame_time_us:>7.1f}us {m.load * 100:>6.2f}%"
         )
     print(f"total {budget.load * 100:.1f} % (limit {MAX_LOAD * 100:.0f} %)")
+    for joint in hand.joints:
+        slew_s = joint.tau_max / joint.rate_limit
+        if slew_s > SLOW_SLEW_S:
+            print(
+                f"handctl: warning: {escaped(str(args.hand))}: {escaped(joint.name)}.rate_limit "
+                f"{joint.rate_limit:g} N·m/s takes {slew_s:.3g} s to reach its tau_max "
+                f"({joint.tau_max:g} N·m): the soft-limit guard's push-back slews as slowly, "
+                "and a joint at speed reaches its limit first (a safe stop, ANGLE_LIMIT, "
+                "where the guard would have held it)",
+                file=sys.stderr,
+            )
     refusals = bus_refusals(hand, protocol, budget)
     if not refusals:
         print("ok")

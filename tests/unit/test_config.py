@@ -362,6 +362,24 @@ def test_check_cli_accepts_default_hand() -> None:
     assert result.stdout.rstrip().endswith("ok")
 
 
+def test_check_warns_of_a_rate_limit_that_starves_the_guard(
+    tmp_path: Path, base: dict[str, Any], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """At 0.1 N·m/s the guard's push-back reached 7 % of what it asked before the joint met
+    its limit (an outside audit): valid, and said."""
+    from handctl import cli
+
+    joint_of(base, 0, 1).update(rate_limit=0.1)
+    path = write(tmp_path, base)
+    assert cli.main(["check", str(path)]) == cli.EXIT_OK
+    err = capsys.readouterr().err
+    name = joint_of(base, 0, 1)["name"]
+    assert f"handctl: warning: {path}: {name}.rate_limit 0.1 N·m/s takes " in err
+    assert err.count("handctl: warning:") == 1
+    assert cli.main(["check", "config/hands/hiroshima_hand.yaml"]) == cli.EXIT_OK
+    assert "warning" not in capsys.readouterr().err
+
+
 def test_check_cli_bad_config_exits_2_with_the_message(
     tmp_path: Path, base: dict[str, Any]
 ) -> None:
