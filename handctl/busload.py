@@ -148,7 +148,7 @@ def hand_budget(
 ) -> BusBudget:
     """The budget of the hand's messages (of ``nodes`` only, if given) on its bus or another.
 
-    The overrides let ``handctl check`` say what *would* fit: one bus per finger, or CAN-FD.
+    The overrides let ``handctl check`` say what *would* fit: CAN-FD, or a faster data phase.
     """
     use_fd = hand.bus.fd if fd is None else fd
     rate = hand.bus.bitrate if bitrate is None else bitrate
@@ -220,10 +220,11 @@ def bus_refusals(
 def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
     """What would bring an over-budget hand within ``MAX_LOAD``, each with its figure.
 
-    On CAN-FD: the highest loop rate on this bus, the fewest buses that fit (the fingers
-    shared out evenly, in config order), and the lowest data-phase rate that fits. On classic
-    CAN only CAN-FD 1/5 Mbit/s: the Feedback and Status frames are longer than a classic frame
-    (``too_long_for_classic``), so no rate or number of classic buses would carry them.
+    On CAN-FD: the highest loop rate on this bus and the lowest data-phase rate that fits. On
+    classic CAN only CAN-FD 1/5 Mbit/s: the Feedback and Status frames are longer than a
+    classic frame (``too_long_for_classic``), so no rate of a classic bus would carry them. Not
+    the fingers shared out over several buses: a hand config has one bus and a run drives one
+    hand, so that hint named a hand handctl could not run.
     """
     if not hand.bus.fd:
         fd = hand_budget(hand, protocol, fd=True, bitrate=1_000_000, data_bitrate=5_000_000)
@@ -246,21 +247,6 @@ def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
         # a slower loop would let the nodes' command watchdog trip between two ticks
         else [f"no loop rate of {slowest_loop_rate_hz():.0f} Hz or more fits on one bus"]
     )
-    nodes = [f.node_id for f in hand.fingers]
-    for buses in range(2, len(nodes) + 1):
-        size = -(-len(nodes) // buses)
-        worst = max(
-            hand_budget(hand, protocol, nodes=set(nodes[i : i + size])).load
-            for i in range(0, len(nodes), size)
-        )
-        if worst <= MAX_LOAD:
-            who = (
-                "one bus per finger"
-                if size == 1
-                else (f"{-(-len(nodes) // size)} buses of at most {size} fingers")
-            )
-            hints.append(f"{who} would carry {worst * 100:.1f} % at most")
-            break
     for rate in FD_DATA_BITRATES:
         if rate > (hand.bus.data_bitrate or 0):
             fd = hand_budget(hand, protocol, data_bitrate=rate)

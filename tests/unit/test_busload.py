@@ -105,7 +105,6 @@ def test_four_fingers_of_four_joints_on_can_fd_are_refused_with_the_figures(tmp_
     assert (
         f"{path}: bus: expected a worst-case load <= 50 % ("
         f"the highest loop rate that fits is {math.floor(budget.highest_loop_rate_hz())} Hz; "
-        f"2 buses of at most 2 fingers would carry {two.load * 100:.1f} % at most; "
         "a data phase of 8 Mbit/s would carry "
         f"{hand_budget(hand, protocol, data_bitrate=8_000_000).load * 100:.1f} %), "
         "found 59.0 % at 1000 Hz"
