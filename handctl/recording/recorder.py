@@ -550,6 +550,7 @@ class Recorder:
             for fd in child_fds:
                 os.close(fd)
         self._ctl_w, self._ready_r = ctl_w, ready_r
+        os.set_blocking(ctl_w, False)  # a writer that takes nothing must not hold a send
         self._states = {name: i for i, name in enumerate(SUPERVISOR_STATE_NAMES)}
         names = list(dict.fromkeys([*RUNNER_NAMES, *phase_names]))
         self._phases = {name: i for i, name in enumerate(names)}
@@ -568,7 +569,8 @@ class Recorder:
                     "metadata": valid_strings(metadata),
                     "live_port": live_port,
                     "cpus": sorted(cpus) if cpus is not None else None,
-                }
+                },
+                READY_TIMEOUT_S,  # the writer reads it once its interpreter has started
             )
         except BaseException:
             self.process.kill()
@@ -618,19 +620,35 @@ class Recorder:
             )
         self._ready = True
 
-    def _send(self, message: dict[str, Any]) -> None:
+    def _send(self, message: dict[str, Any], stall_timeout_s: float = WRITER_STALL_S) -> None:
+        """One message down the control pipe, given up on when the writer has taken none of
+        it for ``stall_timeout_s``.
+
+        Why bounded: the set-up (the hand config, the DBC and the recipe) and the summary
+        are tens of kilobytes, more than a pipe holds, and a writer that reads nothing (a
+        stalled disk, a SIGSTOP) held the send for ever: a run's start hung with no word, and
+        a run's end hung before the wait for the writer that says so and gives up."""
         payload = orjson.dumps(message)
+        view = memoryview(struct.pack("<I", len(payload)) + payload)
         try:
-            os.write(self._ctl_w, struct.pack("<I", len(payload)))
-            view = memoryview(payload)
             while view:
-                view = view[os.write(self._ctl_w, view) :]
+                try:
+                    view = view[os.write(self._ctl_w, view) :]
+                except BlockingIOError:
+                    _, room, _ = select.select([], [self._ctl_w], [], stall_timeout_s)
+                    if not room:
+                        raise HandctlError(
+                            f"{self.path}: the recording writer took nothing of its control "
+                            f"messages for {stall_timeout_s:g} s (stopped or hung)"
+                        ) from None
         except BrokenPipeError:
             raise HandctlError(f"{self.path}: the recording writer is gone") from None
 
-    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+    def add_metadata(
+        self, name: str, data: dict[str, str], stall_timeout_s: float = WRITER_STALL_S
+    ) -> None:
         """An MCAP metadata record (string values), written as soon as the writer reads it."""
-        self._send({"type": "metadata", "name": name, "data": valid_strings(data)})
+        self._send({"type": "metadata", "name": name, "data": valid_strings(data)}, stall_timeout_s)
 
     # -- RecordSink -----------------------------------------------------------------------
     # The hot path. The taps write each frame's row into the frame ring as the bus hands it
@@ -1202,10 +1220,14 @@ class Recorder:
         try:
             if summary is not None:
                 self.add_metadata(
-                    "handctl.summary", {"json": orjson.dumps(valid_strings(summary)).decode()}
+                    "handctl.summary",
+                    {"json": orjson.dumps(valid_strings(summary)).decode()},
+                    stall_timeout_s,
                 )
         except HandctlError as exc:
-            problem = problem or str(exc).removeprefix(f"{self.path}: ")
+            problem = problem or (
+                str(exc).removeprefix(f"{self.path}: ") + ", and the run's summary is not in it"
+            )
         os.close(self._ctl_w)
         err, hung = self._wait_for_writer(stall_timeout_s)
         problem = problem or hung

@@ -623,7 +623,7 @@ def test_a_writer_that_never_had_its_set_up_leaves_no_file(
     (``handctl replay``: "an empty file"). The set-up is bigger than a pipe holds, so handing
     it over waits for the writer to start, the longest wait of a run's start-up."""
 
-    def fails(self: Recorder, message: dict[str, Any]) -> None:
+    def fails(self: Recorder, message: dict[str, Any], stall_timeout_s: float = 0.0) -> None:
         raise failure
 
     monkeypatch.setattr(Recorder, "_send", fails)

@@ -201,6 +201,39 @@ def test_a_hung_writer_is_said_then_given_up_on(
     assert not open_recording(path).complete  # what the writer had flushed, without its end
 
 
+def test_a_hung_writer_holds_no_send_of_a_summary_larger_than_the_pipe(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """The summary goes down a pipe the writer reads; one larger than the pipe holds (a run's
+    with many faults or notes) blocked the close for ever on a writer that read nothing, before
+    the wait that says so and gives up. Now the send too gives up after the stall time."""
+    import threading
+
+    path = tmp_path / "hung.mcap"
+    recorder = _recorder(hand, path)
+    os.kill(recorder.process.pid, signal.SIGSTOP)
+    raised: list[BaseException] = []
+
+    def close() -> None:
+        try:
+            recorder.close({"notes": "x" * 300_000}, stall_timeout_s=2.0)
+        except BaseException as exc:
+            raised.append(exc)
+
+    closing = threading.Thread(target=close, daemon=True)
+    closing.start()
+    closing.join(120)
+    held = closing.is_alive()
+    if recorder.process.returncode is None:
+        os.kill(recorder.process.pid, signal.SIGKILL)  # frees a close still held, if one is
+        closing.join(30)
+    assert not held, "the close was still sending its summary after 120 s"
+    assert len(raised) == 1 and isinstance(raised[0], HandctlError), raised
+    said = str(raised[0])
+    assert "the recording writer took nothing of its control messages for 2 s" in said
+    assert said.endswith("(stopped or hung), and the run's summary is not in it")
+
+
 def test_a_writer_the_open_files_limit_keeps_from_starting_is_said(tmp_path: Path) -> None:
     """Under ``ulimit -n`` 13 to 16 the writer's pipes or process could not be made: an
     ``OSError`` traceback (or, at 12, a message naming /dev/null), and no word of the limit."""
