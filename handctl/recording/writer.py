@@ -77,6 +77,37 @@ from handctl.recording.ring import (
     Rings,
 )
 
+#: share of a ring the writer may be behind by before it holds the live view back (a
+#: quarter: 2 s of ticks at 1 kHz, where the rings hold 8), and the share it must be back
+#: under to serve the view again (half a second of ticks)
+LIVE_PAUSE_SHARE = 0.25
+LIVE_RESUME_SHARE = 1 / 16
+
+
+class LivePace:
+    """Whether the live view is served: it is held back while the writer is behind, and
+    served again once the writer has caught up.
+
+    Why: the live view's cost is the writer's, and grows with its clients (each message is
+    queued for each one); 200 local clients that never read held the writer back until the
+    rings overflowed, and the log lost 2084 ticks, manipulate_4 and the stop among them, in
+    a run that exited 0. The log is what the run is judged by; the view is a convenience, so
+    it gives way first, long before a ring is full."""
+
+    def __init__(self) -> None:
+        self.paused = False
+        self.pauses = 0  # times it was held back
+        self.skipped = 0  # messages not served meanwhile
+
+    def update(self, backlog: float) -> None:
+        """``backlog``: how far behind the writer is, as the fullest ring's share (0..1)."""
+        if not self.paused and backlog > LIVE_PAUSE_SHARE:
+            self.paused = True
+            self.pauses += 1
+        elif self.paused and backlog < LIVE_RESUME_SHARE:
+            self.paused = False
+
+
 if TYPE_CHECKING:
     from handctl.foxglove.live import LiveServer
 
@@ -182,6 +213,7 @@ class Encoder:
         self.can_sync = True  # until a sync says the file cannot be synced (``sync``)
         self.busy_s = 0.0
         self.dropped = [0, 0, 0, 0]
+        self.live_pace = LivePace()
 
     def add(self, topic: str, log_time: int, payload: dict[str, Any], key: int = 0) -> None:
         self.add_raw(topic, log_time, orjson.dumps(payload), key)
@@ -194,7 +226,10 @@ class Encoder:
         self.sequence[channel] = seq + 1
         self.writer.add_message(channel, log_time, data, seq & 0xFFFFFFFF)
         if self.live is not None:
-            self.live.log(topic, log_time, data, key)
+            if self.live_pace.paused:
+                self.live_pace.skipped += 1
+            else:
+                self.live.log(topic, log_time, data, key)
         self.messages += 1
         if self.chunk_log is None:
             self.chunk_log = log_time
@@ -214,6 +249,16 @@ class Encoder:
         frame_head = int(ctl[FRAME_HEAD])
         event_head = int(ctl[EVENT_HEAD])
         pose_head = int(ctl[POSE_HEAD])
+        if self.live is not None:
+            layout = self.layout
+            self.live_pace.update(
+                max(
+                    (tick_head - int(ctl[TICK_TAIL])) / layout.tick_capacity,
+                    (frame_head - int(ctl[FRAME_TAIL])) / layout.frame_capacity,
+                    (event_head - int(ctl[EVENT_TAIL])) / layout.event_capacity,
+                    (pose_head - int(ctl[POSE_TAIL])) / layout.pose_capacity,
+                )
+            )
         busy = False
         if frame_head > ctl[FRAME_TAIL]:
             self._frames(int(ctl[FRAME_TAIL]), frame_head)
@@ -676,6 +721,12 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
         closed = bool(rings.ctl[CLOSED])
         encoder.finish(
             ch.ENDED_CLOSED if closed else "the control process ended without closing the recorder"
+        )
+    if live is not None and encoder.live_pace.pauses:
+        _note(
+            f"the live view was held back {encoder.live_pace.pauses} time(s), "
+            f"{encoder.live_pace.skipped} messages not served: the writer fell behind (its "
+            "clients' queues cost it time), and the log comes first"
         )
     if live is not None and not live.close():
         # The log is whole and closed; only a viewer that stopped reading holds the server.

@@ -766,3 +766,36 @@ def test_a_viewer_that_stops_reading_does_not_hold_the_run_at_its_end(tmp_path: 
     recording = json.loads(summary_path.read_text())["recording"]
     assert "error" not in recording, recording
     assert recording["ticks"] > 10_000 and recording["writer_exit"] == 0
+
+
+def test_many_viewers_that_stop_reading_cost_the_log_nothing(tmp_path: Path) -> None:
+    """Each message is queued for each client in the writer, so 200 local viewers that
+    subscribed to everything and stopped reading held the writer back until its rings
+    overflowed: a lockstep run lost its last 2084 ticks, exit 0 (an outside audit). The live
+    view now gives way while the writer is behind: the log keeps every record."""
+    port = free_port()
+    summary_path = tmp_path / "summary.json"
+    command = [
+        *(sys.executable, "-m", "handctl", "run", "recipe"),
+        str(RECIPE),
+        *("--lockstep", "--log", str(tmp_path / "run.mcap")),
+        *("--summary-json", str(summary_path), "--live", str(port)),
+    ]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    viewers = []
+    with subprocess.Popen(
+        command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    ) as proc:
+        try:
+            viewers = [_StalledViewer(port, proc) for _ in range(200)]
+            _, err = proc.communicate(timeout=600)
+        finally:
+            for viewer in viewers:
+                viewer.sock.close()
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, err.decode()
+    recording = json.loads(summary_path.read_text())["recording"]
+    assert "error" not in recording, recording
+    dropped = {k: v for k, v in recording.items() if k.startswith("dropped_")}
+    assert set(dropped.values()) == {0}, (dropped, recording.get("writer_notes"))

@@ -38,3 +38,18 @@ def test_a_server_samples_the_channels_it_is_given_by_the_list() -> None:
         server.add_channel(topic, "", "", b"", "json")
     assert server.sampled == {t: s for t, s in SAMPLING.items() if t in server.channels}
     assert fx.SCENE not in server.sampled
+
+
+def test_the_live_view_gives_way_while_the_writer_is_behind_and_comes_back_after() -> None:
+    """Held back once the writer is a quarter of a ring behind, served again only once it
+    is back under a sixteenth: between the two it stays as it was (no flapping at one
+    share), and each time it is held back is counted."""
+    from handctl.recording.writer import LIVE_PAUSE_SHARE, LIVE_RESUME_SHARE, LivePace
+
+    pace = LivePace()
+    seen = []
+    for backlog in (0.0, 0.2, LIVE_PAUSE_SHARE, 0.26, 0.9, 0.2, LIVE_RESUME_SHARE, 0.06, 0.2, 0.3):
+        pace.update(backlog)
+        seen.append(pace.paused)
+    assert seen == [False, False, False, True, True, True, True, False, False, True]
+    assert pace.pauses == 2
