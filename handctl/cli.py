@@ -803,21 +803,30 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
             return EXIT_FAILED
         print(f"handctl: and no plot was written to {plotted['path']}", file=sys.stderr)
     recorded = summary.get("recording")
-    if recorded is None or "error" not in recorded:
+    if recorded is None:
         return code
+    if "error" in recorded:
+        why = "is lost or may be incomplete (the warning above says why)"
+    else:
+        # records the writer dropped (it fell behind by its rings' 8 s) are not in the log:
+        # a log with a hole in it, which exited 0 with a parenthesis on the summary's line
+        dropped = sum(int(recorded.get(key, 0)) for key in DROPPED_RECORD_KEYS)
+        if not dropped:
+            return code
+        why = f"lacks {dropped} records the writer dropped when it fell behind"
     if code == EXIT_OK:
         print(
-            f"handctl: failed: the run ended as asked, but its log {recorded['path']} is lost "
-            "or may be incomplete (the warning above says why)",
+            f"handctl: failed: the run ended as asked, but its log {recorded['path']} {why}",
             file=sys.stderr,
         )
         return EXIT_FAILED
-    print(
-        f"handctl: and the run's log {recorded['path']} is lost or may be incomplete (the "
-        "warning above says why)",
-        file=sys.stderr,
-    )
+    print(f"handctl: and the run's log {recorded['path']} {why}", file=sys.stderr)
     return code
+
+
+#: the summary's ``recording`` counts of records the writer dropped (``channels.DROPPED_KEYS``
+#: but the poses, which a log may lack: the simulated hand's truth, not the run's)
+DROPPED_RECORD_KEYS = ("dropped_ticks", "dropped_frames", "dropped_events")
 
 
 def _outcome_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
@@ -1275,6 +1284,11 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
     if summary["complete"] and summary.get("ended") not in (None, ENDED_CLOSED):
         # finished by the writer alone: a killed control process, which only --json said
         state += f" (but {summary['ended']})"
+    dropped = sum(int(summary["drops"].get(key, 0)) for key in DROPPED_RECORD_KEYS)
+    if dropped:
+        # a whole file is not a whole run: the header said "complete" over a log without
+        # the last 2 s of its run, and only the drops' line further down said otherwise
+        state += f", but without {dropped} records the writer dropped during the run"
     print(
         f"{summary['file']}: {summary['recipe'] or '?'} on {summary['hand'] or '?'} "
         f"({summary['mode'] or '?'}), {summary['outcome']}; {summary['duration_s']:.3f} s, "

@@ -262,18 +262,7 @@ def _writer_running(run_pid: int) -> bool:
     """Whether the run's recording writer is still alive (not even a zombie): the recorder
     checks the log's path only after it has reaped the writer, so a log removed while this
     is true is one the check sees."""
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat_line = (entry / "stat").read_text()
-            cmdline = (entry / "cmdline").read_bytes()
-        except OSError:  # gone meanwhile
-            continue
-        state, ppid = stat_line.rpartition(")")[2].split()[:2]
-        if int(ppid) == run_pid and b"handctl.recording.writer" in cmdline and state != "Z":
-            return True
-    return False
+    return _writer_pid(run_pid, alive=True) is not None
 
 
 @pytest.mark.parametrize("end", ["time_budget", "interrupted"])
@@ -406,3 +395,76 @@ def test_what_the_writer_said_of_a_log_it_finished_is_kept(
     assert "the recorded hand config: bus: expected this key" in stats["writer_notes"]
     whole = _recorder(hand, tmp_path / "whole.mcap").close({"outcome": "test"})
     assert "writer_notes" not in whole
+
+
+def _writer_pid(run_pid: int, alive: bool = False) -> int | None:
+    """The pid of the run's recording writer, once it is there (with ``alive``, not a
+    zombie either)."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat_line = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:  # gone meanwhile
+            continue
+        state, ppid = stat_line.rpartition(")")[2].split()[:2]
+        if int(ppid) != run_pid or b"handctl.recording.writer" not in cmdline:
+            continue
+        if not (alive and state == "Z"):
+            return int(entry.name)
+    return None
+
+
+def test_a_run_whose_writer_dropped_records_is_a_failed_result(tmp_path: Path) -> None:
+    """The writer held back (stopped here; a live view's clients did it in an outside audit)
+    while the lockstep run goes on: its rings hold 8 s of ticks and the rest are dropped. The
+    run exited 0 with "(N records dropped)" in a parenthesis, where the README's exit codes
+    call a log that may be incomplete a failed result; and replay headed the log "complete".
+    The writer is let go once the run has ended and waits for it, so it finishes the file."""
+    log = tmp_path / "run.mcap"
+    command = [
+        *(sys.executable, "-m", "handctl", "run", "recipe", str(ROOT / DEFAULT_RECIPE)),
+        *("--lockstep", "--log", str(log), "--summary-json", str(tmp_path / "s.json")),
+    ]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with subprocess.Popen(
+        command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    ) as proc:
+        try:
+            writer = None
+            while writer is None:
+                assert proc.poll() is None, proc.communicate()
+                writer = _writer_pid(proc.pid)
+            # once it has said it is ready, which the run's start waits for: it closes the
+            # descriptor it said it on (its fourth argument)
+            ready_fd = (Path("/proc") / str(writer) / "cmdline").read_bytes().split(b"\0")[-2]
+            while (Path("/proc") / str(writer) / "fd" / ready_fd.decode()).exists():
+                assert proc.poll() is None, proc.communicate()
+            os.kill(writer, signal.SIGSTOP)
+            assert proc.stderr is not None
+            err = ""
+            while "for the recording writer to finish" not in err:  # the run has ended
+                line = proc.stderr.readline()
+                assert line, err
+                err += line
+            os.kill(writer, signal.SIGCONT)
+            out, rest = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    err += rest
+    assert proc.returncode == 1, err
+    recording = json.loads((tmp_path / "s.json").read_text())["recording"]
+    dropped = recording["dropped_ticks"] + recording["dropped_frames"] + recording["dropped_events"]
+    assert recording["dropped_ticks"] > 1000 and "error" not in recording
+    assert (
+        f"handctl: failed: the run ended as asked, but its log {log} lacks {dropped} records "
+        "the writer dropped when it fell behind"
+    ) in err
+    assert "experiment: success" in out  # the run itself did what it was for
+    done = handctl("replay", str(log))
+    assert done.returncode == 0, done.stderr
+    assert f"complete, but without {dropped} records the writer dropped during the run" in (
+        done.stdout
+    )
