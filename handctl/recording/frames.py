@@ -96,6 +96,7 @@ def _to_bus(
     check_pacing(recording, recorded, direction)
     check_commands(recording, recorded, direction, speed)
     if hand is not None:
+        check_shape(recorded, hand)
         check_commands(recording, hand, direction, speed, on_bus=True)
     hand = hand if hand is not None else recorded
     sent = failed = 0
@@ -277,6 +278,30 @@ COMMAND_BURST = 8
 #: ns: how long before the first timed tick a frame may be logged (a start-up that waits for
 #: its nodes, at most its enable timeout, before its first timed tick)
 SILENT_START_NS = 60_000_000_000
+
+
+def shape_text(hand: HandConfig) -> str:
+    """A hand's nodes and their joint counts, as a refusal names them: ``node N (NAME) 3
+    joints, ...``."""
+    return ", ".join(f"node {f.node_id} ({f.name}) {len(f.joints)} joints" for f in hand.fingers)
+
+
+def check_shape(recorded: HandConfig, hand: HandConfig) -> None:
+    """Refuse a ``--hand`` whose nodes are not the recorded hand's, node by node with as many
+    joints each: the frames' checks go by ids and lengths, and a node of 5 joints recorded
+    and one of 4 on the bus share a TorqueCommand's 12 bytes, so the fifth joint's torque went
+    out in what the node on the bus reads as padding, and the log's Feedback frames, of
+    another length than that node's, went out beside them (an outside audit)."""
+    mine = [(f.node_id, len(f.joints)) for f in recorded.fingers]
+    theirs = [(f.node_id, len(f.joints)) for f in hand.fingers]
+    if mine != theirs:
+        raise ConfigError(
+            "--hand",
+            "",
+            f"a hand of the recorded shape ({shape_text(recorded)}), since the log's frames "
+            "are that hand's (nothing was sent)",
+            Description(f"{hand.source}: {shape_text(hand)}"),
+        )
 
 
 def check_commands(

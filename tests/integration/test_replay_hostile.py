@@ -14,6 +14,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
+import yaml
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
@@ -27,7 +28,7 @@ from handctl.recording.reader import MAGIC, Recording, iter_decoded, open_record
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
 
-from ..conftest import handctl
+from ..conftest import ROOT, handctl
 from .mcap_copy import Change, rewrite
 from .rig import short_recipe
 from .test_recording import Recorded, record_run
@@ -1070,3 +1071,37 @@ def test_names_from_the_log_are_printed_escaped(recorded: Recorded, tmp_path: Pa
     assert "\x1b" not in done.stdout and "\x07" not in done.stdout
     assert "\\x1b]0;PWNED\\x07" in done.stdout
     assert "\nFAKE: all good" not in done.stdout
+
+
+def test_to_bus_refuses_a_hand_of_another_shape_than_the_recorded_one(tmp_path: Path) -> None:
+    """A node recorded with 4 joints and one on the bus with 5 share a TorqueCommand's
+    12 bytes (CAN-FD pads 10 to 12): each command went out whole, its fifth torque the
+    padding the recorded node never used, and the log's Feedback frames, shorter than the
+    node's on the bus, beside them (an outside audit, on a 5-joint thumb recorded and a
+    4-joint one on the bus)."""
+    four = ROOT / "config" / "hands" / "four_fingers_four_joints.yaml"
+    log = tmp_path / "four.mcap"
+    recipe = ROOT / "config" / "recipes" / "four_by_four_close.yaml"
+    ran = handctl(
+        *("run", "recipe", str(recipe), "--hand", str(four), "--max-seconds", "0.3"),
+        *("--log", str(log)),
+    )
+    assert ran.returncode == 0, ran.stderr
+    data = yaml.safe_load(four.read_text())
+    data.pop("sim", None)
+    joints = data["fingers"][0]["joints"]
+    joints.append({**joints[-1], "name": joints[-1]["name"] + "_tip"})
+    five = tmp_path / "five_joints_on_node_1.yaml"
+    five.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert handctl("check", str(five)).returncode == 0
+    done = handctl("replay", str(log), "--to-bus", "virtual:hostile-shape", "--hand", str(five))
+    assert done.returncode == 2, done.stdout + done.stderr
+    name = data["fingers"][0]["name"]
+    node = data["fingers"][0]["node_id"]
+    assert f"--hand: expected a hand of the recorded shape (node {node} ({name}) 4 joints" in (
+        done.stderr
+    )
+    assert f"found {five}: node {node} ({name}) 5 joints" in done.stderr
+    assert "to-bus:" not in done.stdout
+    same = handctl("replay", str(log), "--to-bus", "virtual:hostile-shape", "--hand", str(four))
+    assert same.returncode == 0, same.stderr
