@@ -778,6 +778,8 @@ def _experiment_verdict(ex: dict[str, Any]) -> str:
     turned = ex.get("total_rotation_deg")
     if wanted > 0 and turned is not None and turned < wanted:
         missing.append(f"turned {turned:.1f} deg of the {wanted:g} it needs")
+    if ex.get("stopped"):
+        missing.append(f"the run ended in {ex['stopped'].replace('_', ' ')}, not at its end")
     return "FAILED: " + ("; ".join(missing) or "see above")
 
 

@@ -109,3 +109,23 @@ def test_min_total_turn_out_of_range_is_refused_naming_the_key(
     done = handctl("run", "recipe", str(path))
     assert done.returncode == 2
     assert f"{path}: min_total_turn_deg" in done.stderr and "-5" in done.stderr
+
+
+def test_a_safety_stop_is_no_success_whatever_the_objects_did_before_it(tmp_path: Path) -> None:
+    """Node 2 falls silent in the last phase, the pair lifted, held and turned past the
+    recipe's minimum by then: the summary said "experiment: success" over a run that exited 3
+    (an outside audit). Now it says the run was stopped, and the experiment failed."""
+    faults = tmp_path / "faults.yaml"
+    faults.write_text("faults:\n  - {kind: node_silent, node: 2, start: 13.2}\n")
+    out = tmp_path / "out.json"
+    recipe = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+    done = handctl(
+        *("run", "recipe", str(recipe), "--sim-faults", str(faults), "--summary-json", str(out)),
+        timeout=600,
+    )
+    assert done.returncode == 3, done.stderr
+    ex = json.loads(out.read_text())["experiment"]
+    assert ex["lifted"] and not ex["dropped"], ex
+    assert ex["total_rotation_deg"] >= ex["min_total_turn_deg"] > 0
+    assert ex["success"] is False and ex["stopped"] == "safety_stop"
+    assert "experiment: FAILED: the run ended in safety stop, not at its end" in done.stdout
