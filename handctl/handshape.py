@@ -36,6 +36,30 @@ def hand_span(hand: HandConfig) -> tuple[float, float]:
     return (lo + hi) / 2, (hi - lo) / 2
 
 
+def palm_ends(hand: HandConfig) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The two finger bases farthest apart (x, y, m), the one of the smaller x first: the
+    palm's line runs from the first to the second.
+
+    Why it is here: the object estimator lays its seeds along this line in the recipe's
+    order, and its continuity keeps those names, so a recipe's objects must be listed in
+    their order along it, and whoever checks that needs the same line."""
+    bases = [(f.base_x, f.base_y) for f in hand.fingers]
+    first, last = max(
+        ((a, b) for a in bases for b in bases), key=lambda ab: math.dist(ab[0], ab[1])
+    )
+    if first[0] > last[0]:
+        first, last = last, first
+    return first, last
+
+
+def order_along_palm(hand: HandConfig, positions: dict[str, tuple[float, float]]) -> list[str]:
+    """The names of ``positions`` (m, x and y) in their order along the palm's line
+    (``palm_ends``; along x for a hand whose fingers are all based at one point)."""
+    first, last = palm_ends(hand)
+    ux, uy = (last[0] - first[0], last[1] - first[1]) if first != last else (1.0, 0.0)
+    return sorted(positions, key=lambda name: positions[name][0] * ux + positions[name][1] * uy)
+
+
 def flexion_sign(hand: HandConfig, finger: FingerConfig) -> float:
     """+1 when positive torque curls ``finger`` towards the middle of the finger bases (its
     tip swings towards it), -1 when negative torque does; +1 for a finger based at the

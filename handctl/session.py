@@ -227,6 +227,7 @@ def run_recipe(
 
         # the experiment is measured on the simulated objects of the recipe's names
         check_scene_names(req.recipe.source, [o.name for o in req.recipe.objects], req.hand)
+        warnings += _object_order(req)
     sim_faults: FaultSchedule | None = None
     if is_sim and req.sim_faults is not None:
         from handctl.sim.faults import load_scenario
@@ -580,6 +581,29 @@ def _host_summary(
     if host_check is not None:
         summary["host_check"] = host_check
     return host, rivals
+
+
+def _object_order(req: RunRequest) -> list[str]:
+    """A warning when the recipe lists its objects in another order than the simulated hand's
+    scene lays them along the palm: the estimator names the objects in the recipe's order
+    along the palm (``handshape.palm_ends``), so each estimate, and every exit and feedback
+    on it, would read another object's (pair errors of 179 degrees, without a word)."""
+    from handctl.handshape import order_along_palm
+    from handctl.sim.params import parse_sim
+
+    names = [o.name for o in req.recipe.objects]
+    if len(names) < 2:
+        return []
+    scene = {o.name: (o.x, o.y) for o in parse_sim(req.hand).objects}
+    along = order_along_palm(req.hand, {name: scene[name] for name in names})
+    if along == names:
+        return []
+    return [
+        f"{req.recipe.source}: objects are listed {', '.join(names)}, but the simulated "
+        f"hand's scene lays them {', '.join(along)} along the palm (from the finger base of "
+        "the smaller x): the estimator names them in the recipe's order, so each estimate "
+        "reads another object's; list them in their order along the palm"
+    ]
 
 
 def _experiment_summary(

@@ -62,6 +62,7 @@ import numpy as np
 import numpy.typing as npt
 
 from handctl.config import HandConfig
+from handctl.handshape import palm_ends
 from handctl.online.recipes.schema import (
     MAX_OBJECTS,
     Pair,
@@ -161,12 +162,7 @@ class ObjectEstimator:
         period = hand.bus.period_s
         self._speed_gain = period / (STILL_TIME_CONSTANT + period)
         self._per_tick = 1.0 / period
-        bases = [(f.base_x, f.base_y) for f in hand.fingers]
-        first, last = max(
-            ((a, b) for a in bases for b in bases), key=lambda ab: math.dist(ab[0], ab[1])
-        )
-        if first[0] > last[0]:
-            first, last = last, first
+        first, last = palm_ends(hand)
         length = math.dist(first, last)
         self._palm: Segment | None = None
         if length > 0.0:

@@ -129,3 +129,20 @@ def test_a_safety_stop_is_no_success_whatever_the_objects_did_before_it(tmp_path
     assert ex["total_rotation_deg"] >= ex["min_total_turn_deg"] > 0
     assert ex["success"] is False and ex["stopped"] == "safety_stop"
     assert "experiment: FAILED: the run ended in safety stop, not at its end" in done.stdout
+
+
+def test_objects_listed_out_of_their_order_along_the_palm_are_warned_of(tmp_path: Path) -> None:
+    """The estimator names the objects in the recipe's order along the palm: listed the
+    other way round, every estimate read the other object's, without a word (an outside
+    audit: pair errors of 179 degrees)."""
+    path = _short_experiment(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["objects"].reverse()
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    done = handctl("run", "recipe", str(path), "--max-seconds", "0.05")
+    assert (
+        f"handctl: warning: {path}: objects are listed cyl2, cyl1, but the simulated hand's "
+        "scene lays them cyl1, cyl2 along the palm"
+    ) in done.stderr
+    done = handctl("run", "recipe", str(_short_experiment(tmp_path)), "--max-seconds", "0.05")
+    assert "objects are listed" not in done.stderr
