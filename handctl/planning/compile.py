@@ -49,6 +49,7 @@ from handctl.online.recipes.schema import (
     PoseIntegral,
     ScheduledTorques,
     TimeoutAction,
+    consecutive_pairs,
     parse_condition,
 )
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
@@ -153,6 +154,11 @@ class PlanResult:
                 ),
             },
             "objects": [{"name": o.name, "radius": o.radius} for o in t.objects],
+            **(
+                {"pairs": [[t.objects[a].name, t.objects[b].name] for a, b in t.pairs]}
+                if t.pairs != consecutive_pairs(len(t.objects))
+                else {}
+            ),
             "end_ramp_s": t.end_ramp_s,
             **(t.limit_guard.document() if t.limit_guard is not None else {}),
             **({"min_total_turn_deg": t.min_total_turn_deg} if t.min_total_turn_deg > 0 else {}),
@@ -454,7 +460,10 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
     budget = budget or settings.budget
     params = parse_sim(hand)
     model_list = model_set(params, count, settings.seed, settings.spread, hand=hand)
-    worlds = [World.of(hand, m.params, template.objects, template.limit_guard) for m in model_list]
+    worlds = [
+        World.of(hand, m.params, template.objects, template.limit_guard, template.pairs)
+        for m in model_list
+    ]
     snaps: list[Snapshot] = [snapshot_of(w) for w in worlds]
     alive = list(range(len(worlds)))
     previous: tuple[float, ...] = (0.0,) * hand.n_joints
@@ -869,7 +878,10 @@ def _plan_schedule(
         models = sized_models(
             params, entry.models, (settings.seed, index, k), settings.spread, ranges, hand
         )
-        worlds = [World.of(hand, m.params, template.objects, template.limit_guard) for m in models]
+        worlds = [
+            World.of(hand, m.params, template.objects, template.limit_guard, template.pairs)
+            for m in models
+        ]
         snaps = [snapshot_of(w) for w in worlds]
         alive = list(range(len(worlds)))
         lifted = False

@@ -40,10 +40,10 @@ from handctl.online.estimator import ObjectEstimator
 from handctl.online.recipes.backoff import RateBackoff
 from handctl.online.recipes.guard import LimitGuard
 from handctl.online.recipes.runner import Handover, RecipeRunner, RunStatus
-from handctl.online.recipes.schema import Phase, Recipe, RecipeObject
+from handctl.online.recipes.schema import Pair, Phase, Recipe, RecipeObject
 from handctl.online.safety.limits import JointLimits, limit_torque
 from handctl.sim.params import NODE_TICK_S, SimParams
-from handctl.sim.plant import Plant
+from handctl.sim.plant import ObjectPose, Plant
 
 #: m, an object this far below its resting height plus this margin counts as back on the table.
 DROP_MARGIN = 0.005
@@ -104,12 +104,28 @@ class Episode:
         params: SimParams,
         objects: Sequence[RecipeObject],
         guard: LimitGuard | None = None,
+        pairs: Sequence[Pair] = (),
     ) -> None:
         self.hand = hand
         self.guard = guard
         self.params = params
         self.plant = Plant(hand, params)
-        self.estimator = ObjectEstimator(hand, objects)
+        self.estimator = ObjectEstimator(hand, objects, tuple(pairs) or None)
+        # The template's objects, by their place in the scene, and its first pair's: a scene
+        # may hold more objects than the template names (a third rod on the table), and every
+        # lift was scored on the lowest of all of them (never lifted), every turn on the
+        # scene's first two, whichever the template named
+        scene = [o.name for o in params.objects]
+        named = [o.name for o in objects]
+        self._ours = (
+            [scene.index(n) for n in named]
+            if named and all(n in scene for n in named)
+            else list(range(len(scene)))
+        )
+        first = tuple(pairs[0]) if pairs else (0, 1)
+        self._pair: tuple[int, int] | None = (
+            (self._ours[first[0]], self._ours[first[1]]) if len(self._ours) >= 2 else None
+        )
         self.torques: tuple[float, ...] = (0.0,) * hand.n_joints
         self.tick = 0
         self.handover: Handover | None = None
@@ -152,23 +168,33 @@ class Episode:
 
     # -- truth (scoring only) ---------------------------------------------------------------
     def heights(self) -> list[float]:
-        """Each object's centre above its resting height on the table (m)."""
-        return [p.y - rest for p, rest in zip(self.plant.object_poses(), self._rest, strict=True)]
+        """Each of the template's objects' centre above its resting height on the table (m)."""
+        poses = self.plant.object_poses()
+        return [poses[i].y - self._rest[i] for i in self._ours]
+
+    def _pair_poses(self) -> tuple[ObjectPose, ObjectPose]:
+        assert self._pair is not None
+        poses = self.plant.object_poses()
+        return poses[self._pair[0]], poses[self._pair[1]]
 
     def pair_gap(self) -> float:
-        """m, between the surfaces of the first pair (the first two objects); 0 for one."""
-        if len(self._radii) < 2:
+        """m, between the surfaces of the first pair; 0 for one object."""
+        if self._pair is None:
             return 0.0
-        a, b = self.plant.object_poses()[:2]
-        return math.hypot(b.x - a.x, b.y - a.y) - self._radii[0] - self._radii[1]
+        a, b = self._pair_poses()
+        return (
+            math.hypot(b.x - a.x, b.y - a.y)
+            - self._radii[self._pair[0]]
+            - self._radii[self._pair[1]]
+        )
 
     def pair_blocked(self) -> bool:
         """Whether a finger link lies across the segment between the two centres: a pair
         with a link between its objects cannot turn past it. One object is no pair, so
         nothing blocks it (the hold of a one-object recipe asks for an open pair too)."""
-        if len(self._radii) < 2:
+        if self._pair is None:
             return False
-        a, b = self.plant.object_poses()[:2]
+        a, b = self._pair_poses()
         p, q = (a.x, a.y), (b.x, b.y)
         for ax, ay, ux, uy, length, half in self.estimator.segments(self.plant.joint_angles):
             end = (ax + ux * length, ay + uy * length)
@@ -177,16 +203,16 @@ class Episode:
         return False
 
     def in_hand(self) -> bool:
+        poses = self.plant.object_poses()
         return all(
-            abs(p.x - self._mid_x) <= self._half_span + r
-            for p, r in zip(self.plant.object_poses(), self._radii, strict=True)
+            abs(poses[i].x - self._mid_x) <= self._half_span + self._radii[i] for i in self._ours
         )
 
     def true_angle(self) -> float:
         """rad, the first pair's centre line (0 with one object: nothing turns)."""
-        if len(self._radii) < 2:
+        if self._pair is None:
             return 0.0
-        a, b = self.plant.object_poses()[:2]
+        a, b = self._pair_poses()
         return math.atan2(b.y - a.y, b.x - a.x)
 
     def estimate_error_deg(self) -> float:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from handctl.config import HandConfig
 from handctl.online.recipes.guard import GuardSettings
-from handctl.online.recipes.schema import Phase, RecipeObject
+from handctl.online.recipes.schema import Pair, Phase, RecipeObject
 from handctl.planning.episode import Episode, PhaseOutcome, Snapshot
 from handctl.portable import local_hand, portable_hand
 from handctl.sim.params import SimParams
@@ -35,6 +35,7 @@ class World:
     objects: tuple[RecipeObject, ...]
     guard: GuardSettings | None
     digest: str
+    pairs: tuple[Pair, ...] = ()  # by index into ``objects``; (): each object with the next
 
     @classmethod
     def of(
@@ -43,15 +44,16 @@ class World:
         params: SimParams,
         objects: tuple[RecipeObject, ...],
         guard: GuardSettings | None,
+        pairs: tuple[Pair, ...] = (),
     ) -> World:
         portable = portable_hand(hand)
-        digest = hashlib.sha256(pickle.dumps((portable, params, objects, guard))).hexdigest()
-        return cls(portable, params, objects, guard, digest)
+        digest = hashlib.sha256(pickle.dumps((portable, params, objects, guard, pairs))).hexdigest()
+        return cls(portable, params, objects, guard, digest, pairs)
 
     def episode(self) -> Episode:
         hand = local_hand(self.hand)
         guard = self.guard.guard(hand) if self.guard is not None else None
-        return Episode(hand, self.params, self.objects, guard)
+        return Episode(hand, self.params, self.objects, guard, self.pairs)
 
 
 @dataclass(frozen=True)

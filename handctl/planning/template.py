@@ -49,6 +49,7 @@ from handctl.online.recipes.loader import (
     parse_min_total_turn,
     parse_objects,
     parse_paced_ramp,
+    parse_pairs,
     parse_reanalyse,
     parse_schedule_when,
     parse_stall,
@@ -61,6 +62,7 @@ from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
     GraspModel,
     PacedRamp,
+    Pair,
     PerJoint,
     RadiusRatio,
     Reanalyse,
@@ -69,7 +71,6 @@ from handctl.online.recipes.schema import (
     TurnBrake,
     TurnRate,
     TurnStall,
-    consecutive_pairs,
     estimate_names,
 )
 from handctl.planning.models import Spread
@@ -212,6 +213,10 @@ class Template:
     limit_guard: GuardSettings | None = None  # carried into the compiled recipe
     min_total_turn_deg: float = 0.0  # deg; carried into the compiled recipe
     grasp_model: GraspModel | None = None  # what ``reanalyse`` needs; carried likewise
+    #: the pairs the estimator reports, by index into ``objects``; the first is the one the
+    #: turn phases turn and the models are scored on (``pairs``; each object with the next
+    #: when absent); carried into the compiled recipe
+    pairs: tuple[Pair, ...] = ()
 
 
 def load_template(path: str | Path, hand: HandConfig) -> Template:
@@ -229,9 +234,10 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
     guard = parse_limit_guard(doc, hand)
-    min_turn = parse_min_total_turn(doc, len(objects) > 1)
     names = [o.name for o in objects]
-    estimates = estimate_names(objects, consecutive_pairs(len(objects)))
+    pairs = parse_pairs(doc, tuple(objects))
+    min_turn = parse_min_total_turn(doc, bool(pairs))
+    estimates = estimate_names(objects, pairs)
     phases = tuple(
         _phase(p, hand, names, estimates) for p in doc.mappings("phases", min_len=1, max_len=32)
     )
@@ -253,6 +259,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         guard,
         min_turn,
         grasp_model,
+        pairs,
     )
 
 

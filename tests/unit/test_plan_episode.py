@@ -158,3 +158,25 @@ def test_a_phase_reports_its_peak_centre_line_rate(hand: HandConfig) -> None:
     moved = pushed.run_phase(Phase("push", sweep, 0.0, 0.6, TimeoutAction.NEXT, (), ()))
     assert moved.peak_rate_deg_s > 50.0
     assert moved.peak_rate_deg_s >= abs(moved.true_turn_deg) / 0.6
+
+
+def test_an_episode_scores_the_template_s_objects_and_its_first_pair_by_name(
+    hand: HandConfig,
+) -> None:
+    """A scene may hold objects the template does not name: every lift was scored on the
+    lowest of all the scene's objects (a third rod never lifted failed every model), and
+    every turn on the scene's first two, whichever pair the template named (an outside
+    audit of hand shapes)."""
+    params = parse_sim(hand)
+    _, second = params.objects
+    only = Episode(hand, params, [RecipeObject(second.name, second.radius)])
+    both = Episode(hand, params, [RecipeObject(o.name, o.radius) for o in params.objects])
+    poses = both.plant.object_poses()
+    assert only.heights() == [poses[1].y - second.y]
+    assert len(both.heights()) == 2 and only.true_angle() == 0.0 and only.pair_gap() == 0.0
+    objects = [RecipeObject(o.name, o.radius) for o in params.objects]
+    turned = Episode(hand, params, objects, pairs=[(1, 0)])
+    angle = math.atan2(poses[0].y - poses[1].y, poses[0].x - poses[1].x)
+    assert turned.true_angle() == angle
+    assert both.true_angle() == math.atan2(poses[1].y - poses[0].y, poses[1].x - poses[0].x)
+    assert turned.estimator.pairs == ((1, 0),) and both.estimator.pairs == ((0, 1),)

@@ -404,3 +404,25 @@ def test_the_search_box_leaves_room_for_what_the_feedback_adds(hand: HandConfig)
     for b, t in zip(box, tau, strict=True):
         assert abs(0.1 + 1.5 * (b - 0.1)) <= t + 1e-12
         assert abs(0.1 + 1.5 * (-b - 0.1)) <= t + 1e-12
+
+
+def test_a_template_names_its_pairs_as_a_recipe_does_and_the_plan_carries_them(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A template refused ``pairs``, which a recipe takes: a planned recipe of three or four
+    objects could turn only each object with the next (an outside audit)."""
+    from handctl.planning.compile import PlanResult
+
+    data = base()
+    data["pairs"] = [["cyl2", "cyl1"]]
+    template = load_template(write(tmp_path, data), hand)
+    assert template.pairs == ((1, 0),)
+    turns = [p for p in template.phases if p.kind == "turn"]
+    assert turns[0].exit_condition().startswith("estimate.cyl2_cyl1_line_turn < ")
+    document = PlanResult(template, hand, [], [], "sha256:0").recipe_document()
+    assert document["pairs"] == [["cyl2", "cyl1"]]
+    shipped = PlanResult(load_template(TEMPLATE, hand), hand, [], [], "")
+    assert "pairs" not in shipped.recipe_document()
+    data["pairs"] = [["cyl1", "cyl3"]]
+    with pytest.raises(ConfigError, match=r"pairs\[0\]: expected two names of the recipe's"):
+        load_template(write(tmp_path, data), hand)
