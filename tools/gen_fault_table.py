@@ -76,7 +76,8 @@ def _fault_list_section() -> list[str]:
         "",
         "Times are rounded to the nodes' 1 ms tick, and a window lasts one tick at least "
         "(`start` equal to `stop` is one tick); a `start` after the run has ended never fires. "
-        "Two windows of one kind on one target (the same node and joint) may not overlap: the "
+        "Two windows of one kind on one target (the same node and joint, or every node or "
+        "joint and one of them) may not overlap: the "
         "injector's state is the node's, so the first window's end would end the other "
         "(refused, naming both). Babble on identifier 0 is the e-stop's frame, and the nodes "
         "obey it as one. A mistake is refused before anything starts, naming the key (exit 2).",

@@ -692,13 +692,19 @@ def _refuse_overlaps(doc: Doc, entries: Sequence[Scheduled]) -> None:
     """Two windows of one injector on one target may not overlap: the injector's state is the
     node's (a saturation, a counter's repeat), so the first window's end ended the other's,
     and a long fault beside a short one lasted the short one."""
-    seen: dict[tuple[object, ...], list[tuple[int, Scheduled]]] = {}
+    seen: dict[type, list[tuple[int, Scheduled]]] = {}
     for k, entry in enumerate(entries):
         injector = entry.injector
-        # its kind and target, whatever its other keys (a saturation's limit, say)
-        target = (type(injector), getattr(injector, "node", None), getattr(injector, "joint", None))
         end = math.inf if entry.stop is None else entry.stop
-        for j, other in seen.get(target, []):
+        # its kind and target, whatever its other keys (a saturation's limit, say); a window
+        # on every node (or every joint) shares a target with each one's: its end cleared
+        # theirs, so a stuck TDT on one joint inside one on all of them ended with the short
+        # one, and the scenario injected less than it said
+        for j, other in seen.get(type(injector), []):
+            if not (
+                _same(injector, other.injector, "node") and _same(injector, other.injector, "joint")
+            ):
+                continue
             other_end = math.inf if other.stop is None else other.stop
             if entry.start < other_end and other.start < end:
                 doc.fail(
@@ -708,7 +714,14 @@ def _refuse_overlaps(doc: Doc, entries: Sequence[Scheduled]) -> None:
                     "would end both",
                     description(f"{injector.describe()} from {entry.start:g} to {end:g} s"),
                 )
-        seen.setdefault(target, []).append((k, entry))
+        seen.setdefault(type(injector), []).append((k, entry))
+
+
+def _same(a: object, b: object, key: str) -> bool:
+    """Whether two injectors' ``key`` (node, joint) can name one target: equal, or either
+    of them every one (None)."""
+    mine, theirs = getattr(a, key, None), getattr(b, key, None)
+    return mine is None or theirs is None or mine == theirs
 
 
 def _parse_entry(doc: Doc, hand: HandConfig) -> Scheduled:

@@ -124,3 +124,35 @@ faults:
     parse_scenario(parse_yaml(after, "s.yaml"), hand)
     elsewhere = text.replace("joint: 1, limit: 0.02", "joint: 2, limit: 0.02")
     parse_scenario(parse_yaml(elsewhere, "s.yaml"), hand)
+
+
+@pytest.mark.parametrize(
+    ("first", "second"),
+    [
+        (
+            "{kind: tdt_stuck, start: 0.25, stop: 0.30}",
+            "{kind: tdt_stuck, node: 1, joint: 2, start: 0.28, stop: 1.2}",
+        ),
+        (
+            "{kind: tdt_stuck, node: 1, start: 0.25, stop: 0.30}",
+            "{kind: tdt_stuck, node: 1, joint: 2, start: 0.28, stop: 1.2}",
+        ),
+        ("{kind: node_silent, start: 0.2, stop: 0.3}", "{kind: node_silent, node: 1, start: 0.25}"),
+    ],
+)
+def test_a_window_on_every_target_overlaps_one_on_any_of_them(
+    hand: HandConfig, first: str, second: str
+) -> None:
+    """A window on every node (or joint) ends each one's state at its end: a stuck TDT on
+    f1_j2 from 0.28 to 1.2 s inside one on every joint to 0.30 s ended at 0.30 s, and the run
+    that should have stopped on TDT_STUCK exited 0 (an outside audit)."""
+    text = f"faults:\n  - {first}\n  - {second}\n"
+    with pytest.raises(ConfigError) as err:
+        parse_scenario(parse_yaml(text, "s.yaml"), hand)
+    assert err.value.key == "faults[1]"
+    assert "a window that does not overlap faults[0]'s" in err.value.expected
+    # on another node, the one on a single node does not meet it
+    if "node: 1, start: 0.25" in first:
+        parse_scenario(
+            parse_yaml(text.replace("node: 1, joint: 2", "node: 2, joint: 2"), "s.yaml"), hand
+        )
