@@ -998,16 +998,13 @@ def _free_aside(output: Path) -> Path:
     raise ConfigError("-o", "", "a name beside it for the failed plan", str(output))
 
 
-#: the first bytes of every PNG file: what ``plan --plot`` may replace at its plots' names
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
 def _check_plot_targets(directory: Path, phases: Sequence[str]) -> None:
     """Refuse, before the search, a ``--plot`` directory where a plot's name is taken by
-    anything but a PNG (an earlier plan's, replaced): a directory in the way was found only
+    anything but a picture (an earlier plan's, replaced): a directory in the way was found only
     after the whole search, and a file of any other kind (a link, a recipe, notes) that
     happened to bear the name was replaced without a word."""
     from handctl.experiment.plot import plan_plot_name
+    from handctl.outfile import picture_or_nothing
 
     for k, phase in enumerate(phases):
         target = directory / plan_plot_name(k, phase)
@@ -1016,20 +1013,14 @@ def _check_plot_targets(directory: Path, phases: Sequence[str]) -> None:
         if target.is_symlink() or not target.is_file():
             kind = "a symbolic link" if target.is_symlink() else "not a regular file"
             found = Description(f"{target}: {kind}")
+        elif picture_or_nothing(target):
+            continue  # an earlier plot: replaced
         else:
-            try:
-                with target.open("rb") as f:
-                    head = f.read(len(PNG_SIGNATURE))
-            except OSError as exc:
-                found = Description(f"{target}: {exc.strerror}")
-            else:
-                if head == PNG_SIGNATURE:
-                    continue  # an earlier plot: replaced
-                found = Description(f"{target}: a file that is not a PNG")
+            found = Description(f"{target}: a file that is not a picture")
         raise ConfigError(
             "--plot",
             "",
-            "a directory where the plots' names are free or earlier plots (PNG files, replaced)",
+            "a directory where the plots' names are free or earlier plots (pictures, replaced)",
             found,
         )
 

@@ -216,7 +216,43 @@ def check_image(path: Path, option: str) -> Path:
             "a picture file name ending in ." + ", .".join(IMAGE_SUFFIXES),
             path,
         )
+    if not picture_or_nothing(target):
+        # a hand config copied to a name ending in .png was replaced by the plot, exit 0
+        raise ConfigError(
+            option,
+            "",
+            "a new file, or an earlier picture to draw again (an existing file of another "
+            "kind, a hand config say, is not replaced)",
+            Description(f"{path}: an existing file that is not a picture"),
+        )
     return target
+
+
+#: How the picture formats a plot is written in begin: what a plot may replace.
+PICTURE_HEADS = (
+    b"\x89PNG\r\n\x1a\n",
+    b"%PDF",
+    b"<?xml",
+    b"<svg",
+    b"\x1f\x8b",  # svgz
+    b"\xff\xd8\xff",
+    b"II*\x00",
+    b"MM\x00*",
+    b"RIFF",  # webp
+    b"%!PS",
+    b"\xc5\xd0\xd3\xc6",  # a binary EPS
+)
+
+
+def picture_or_nothing(target: Path) -> bool:
+    """Whether ``target`` is absent, empty, or begins as a picture does: what a plot may
+    replace."""
+    try:
+        with target.open("rb") as handle:
+            head = handle.read(16)
+    except OSError:  # not there (yet), or not readable (said when it is written)
+        return True
+    return not head or head.startswith(PICTURE_HEADS)
 
 
 def _read_only(path: Path) -> bool:

@@ -370,3 +370,26 @@ def test_a_bus_inside_the_process_is_said_to_be_one() -> None:
     for args in (["nodes", "--seconds", "0.1"], ["monitor", "--seconds", "0.1"]):
         done = handctl(*args, "--bus", "virtual:first-hour")
         assert f"handctl: warning: {said}" in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("command", PLOTS, ids=lambda c: c[0])
+def test_a_plot_never_replaces_a_file_of_another_kind(
+    tmp_path: Path, command: tuple[str, ...]
+) -> None:
+    """A hand config copied to a name ending in .png was replaced by the plot, exit 0, where
+    every other output refuses to replace a file of another kind (an outside audit); an
+    earlier picture is drawn again."""
+    victim = tmp_path / "hand.png"
+    text = (ROOT / "config" / "hands" / "hiroshima_hand.yaml").read_text()
+    victim.write_text(text)
+    done = handctl(*command, str(victim), cwd=ROOT)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "handctl: error: --plot: expected a new file, or an earlier picture to draw again" in (
+        done.stderr
+    )
+    assert f"found {victim}: an existing file that is not a picture" in done.stderr
+    assert victim.read_text() == text
+    victim.write_bytes(b"\x89PNG\r\n\x1a\n an earlier plot")
+    done = handctl(*command, str(victim), cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert victim.stat().st_size > 1000
