@@ -202,6 +202,7 @@ def parse_sim(hand: HandConfig) -> SimParams:
     _check_tdt_range(tdt_doc, tdt.range, hand)
     _check_tdt_noise(tdt_doc, tdt, hand)
     _check_tdt_within_tolerance(tdt_doc, tdt, hand)
+    _check_drive_and_sensor_lag(actuator, lag, tdt, hand)
     tdt_doc.done()
     enc_doc = doc.mapping("encoder")
     encoder = EncoderParams(
@@ -421,6 +422,29 @@ def _check_tdt_within_tolerance(doc: Doc, tdt: TdtParams, hand: HandConfig) -> N
             "and stops the run on TDT_MISMATCH (on the shipped hand a lag of 0.03 s runs the "
             "swap, 0.04 s stops it)",
             description(f"{tdt.lag:g} s"),
+        )
+
+
+def _check_drive_and_sensor_lag(
+    doc: Doc, lag: tuple[float, ...], tdt: TdtParams, hand: HandConfig
+) -> None:
+    """The sensor reads the torque the drive transmits, so the lag the host's TDT check
+    meets is the drive's and the sensor's together: held to the bound the sensor's lag alone
+    is held to (``safety.tdt_lag_s`` plus half ``safety.tdt_window_s``). A drive lag of 1 s
+    passed ``check`` beside the sensor's 2 ms and stopped every run on TDT_MISMATCH in its
+    first tenth of a second (an outside audit)."""
+    safety = hand.safety
+    slowest = safety.tdt_lag_s + safety.tdt_window_s / 2
+    worst = max(range(len(lag)), key=lambda i: lag[i])
+    if lag[worst] + tdt.lag > slowest + 1e-12:
+        doc.fail(
+            "lag",
+            f"at most {slowest - tdt.lag:g} s, so that with sim.tdt.lag ({tdt.lag:g} s) the "
+            f"torque the sensor reads lags the command by no more than safety.tdt_lag_s "
+            f"({safety.tdt_lag_s:g} s) plus half safety.tdt_window_s "
+            f"({safety.tdt_window_s:g} s): more, and the recipe's torque ramps read wrong for "
+            "longer than the window and stop the run on TDT_MISMATCH",
+            description(f"{lag[worst]:g} s ({hand.joints[worst].name})"),
         )
 
 
