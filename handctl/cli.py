@@ -1196,6 +1196,15 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
             if args.parent_pid <= 0:
                 raise ConfigError("--parent-pid", "", "a process id > 0", args.parent_pid)
+            highest = _pid_max()
+            if highest is not None and args.parent_pid > highest:
+                # no process ever had it: not a parent that ended (exit 130), a mistake
+                raise ConfigError(
+                    "--parent-pid",
+                    "",
+                    f"a process id the system can give (at most {highest}, kernel.pid_max)",
+                    args.parent_pid,
+                )
             if not die_with_parent(args.parent_pid):
                 if process_alive(args.parent_pid):
                     # a live process that is not this one's parent: its end would never be
@@ -1255,6 +1264,14 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         if adopted and parent_ends(args.parent_pid, ORPHAN_WAIT_S if terminated else 0.0):
             remove_orphaned_bus(args.bus, args.summary_json)
     return EXIT_OK
+
+
+def _pid_max() -> int | None:
+    """The largest process id this system gives (``kernel.pid_max``), or None if unknown."""
+    try:
+        return int(Path("/proc/sys/kernel/pid_max").read_text())
+    except (OSError, ValueError):
+        return None
 
 
 # -- replay ------------------------------------------------------------------------------------

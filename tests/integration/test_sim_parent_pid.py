@@ -48,6 +48,18 @@ def test_a_pid_that_is_no_process_id_is_bad_input(shared_bus: Path, pid: int) ->
     assert (shared_bus / PEER).exists()
 
 
+def test_a_pid_no_process_could_have_had_is_bad_input(shared_bus: Path) -> None:
+    """Above the system's largest process id it is no parent that ended (exit 130, "ended
+    before its simulated hand started"), but a mistake (an outside audit)."""
+    highest = int(Path("/proc/sys/kernel/pid_max").read_text())
+    done = sim(shared_bus, highest + 1)
+    assert done.returncode == 2, done.stderr
+    assert f"--parent-pid: expected a process id the system can give (at most {highest}" in (
+        done.stderr
+    )
+    assert (shared_bus / PEER).exists()
+
+
 def test_a_live_process_that_is_not_the_parent_is_bad_input_and_nothing_is_removed(
     shared_bus: Path,
 ) -> None:
