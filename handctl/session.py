@@ -613,16 +613,9 @@ def _experiment_summary(
     if tracker is not None:
         from handctl.experiment.merit import experiment_summary
 
-        experiment = experiment_summary(tracker.trace, req.recipe.min_total_turn_deg)
-        outcome = summary.get("outcome")
-        if outcome not in ("completed", "time_budget"):
-            # the objects may have been lifted, held and kept before a safety stop or an
-            # interrupt, and the summary said "success" over a run that exited 3: a run the
-            # hand was stopped in did not do what it was for (a controlled stop at
-            # --max-seconds was asked for, and says what it had done by then)
-            experiment["success"] = False
-            experiment["stopped"] = outcome
-        summary["experiment"] = experiment
+        summary["experiment"] = experiment_summary(
+            tracker.trace, req.recipe.min_total_turn_deg, summary["outcome"]
+        )
 
 
 def _plot(summary: dict[str, Any], req: RunRequest, warnings: list[str]) -> None:

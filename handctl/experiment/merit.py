@@ -40,8 +40,10 @@ a pair. Definitions:
   manipulation phase, which says which phase tumbles. The analysis behind a recipe is
   quasi-static: a pair that turns faster than some 180 °/s is tumbling, not being turned;
 - ``success``: lifted (and so held), nothing dropped, and a total rotation of at least the
-  recipe's ``min_total_turn_deg`` (0 without a pair). A run whose experiment failed is a
-  failed run (exit 1).
+  recipe's ``min_total_turn_deg`` (0 without a pair), in a run that ended as planned or at its
+  time budget; a run ended by a safety stop or an interrupt is none, whatever the objects did
+  before it, and ``stopped`` names its outcome. A run whose experiment failed is a failed run
+  (exit 1).
 
 Only NumPy here: ``session`` imports this module for every lockstep run.
 """
@@ -204,10 +206,27 @@ def _p95_deg(err: np.ndarray) -> float | None:
     return round(float(np.degrees(np.percentile(err, 95))), 2) if err.size else None
 
 
-def experiment_summary(trace: Trace, min_total_turn_deg: float = 0.0) -> dict[str, Any]:
+#: the run outcomes an experiment may succeed in: the recipe's end, or the time budget asked for
+ENDED_AS_ASKED = ("completed", "time_budget")
+
+
+def experiment_summary(
+    trace: Trace, min_total_turn_deg: float = 0.0, outcome: str = "completed"
+) -> dict[str, Any]:
     """The ``experiment`` block of the run summary (see the module doc); the experiment
     succeeds when the first pair turned ``min_total_turn_deg`` or more besides the objects
-    being lifted, held and kept."""
+    being lifted, held and kept, in a run whose ``outcome`` is one of ``ENDED_AS_ASKED``."""
+    out = _measured(trace, min_total_turn_deg)
+    if outcome not in ENDED_AS_ASKED:
+        # the summary said "success" over a run that exited 3: a run the hand was stopped in
+        # did not do what it was for
+        out["success"] = False
+        out["stopped"] = outcome
+    return out
+
+
+def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
+    """The block from the objects' motion alone."""
     a = trace.arrays()
     n = len(trace.t)
     pair_keys: dict[str, Any] = {
