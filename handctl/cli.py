@@ -756,7 +756,7 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
         print(f"  overview plot: {plot}")
     if "recording" in summary and "error" not in summary["recording"]:
         rec = summary["recording"]
-        dropped = rec["dropped_ticks"] + rec["dropped_frames"] + rec["dropped_events"]
+        dropped = _records_dropped(rec)
         print(
             f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to {rec['path']}"
             + (f" ({dropped} records dropped: the writer fell behind)" if dropped else "")
@@ -812,7 +812,7 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
     else:
         # records the writer dropped (it fell behind by its rings' 8 s) are not in the log:
         # a log with a hole in it, which exited 0 with a parenthesis on the summary's line
-        dropped = sum(int(recorded.get(key, 0)) for key in DROPPED_RECORD_KEYS)
+        dropped = _records_dropped(recorded)
         if not dropped:
             return code
         why = f"lacks {dropped} records the writer dropped when it fell behind"
@@ -826,9 +826,15 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
     return code
 
 
-#: the summary's ``recording`` counts of records the writer dropped (``channels.DROPPED_KEYS``
-#: but the poses, which a log may lack: the simulated hand's truth, not the run's)
+#: the counts of records the writer dropped, in a run's ``recording`` and a replay's
+#: ``drops`` (``channels.DROPPED_KEYS`` but the poses, which a log may lack: the simulated
+#: hand's truth, not the run's)
 DROPPED_RECORD_KEYS = ("dropped_ticks", "dropped_frames", "dropped_events")
+
+
+def _records_dropped(counts: dict[str, Any]) -> int:
+    """The records of the run that the writer dropped and its log lacks."""
+    return sum(int(counts.get(key, 0)) for key in DROPPED_RECORD_KEYS)
 
 
 def _outcome_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
@@ -1294,7 +1300,7 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
     if summary["complete"] and summary.get("ended") not in (None, ENDED_CLOSED):
         # finished by the writer alone: a killed control process, which only --json said
         state += f" (but {summary['ended']})"
-    dropped = sum(int(summary["drops"].get(key, 0)) for key in DROPPED_RECORD_KEYS)
+    dropped = _records_dropped(summary["drops"])
     if dropped:
         # a whole file is not a whole run: the header said "complete" over a log without
         # the last 2 s of its run, and only the drops' line further down said otherwise

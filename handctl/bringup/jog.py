@@ -102,7 +102,8 @@ class JogSink:
         show: Callable[[JogLine], None] | None,
         period_s: float,
         every: int | None = None,
-        node: str = "",
+        *,
+        node: str,
     ) -> None:
         self.index = index
         #: how the supervisor names the jogged joint's node (``node N (FINGER)``): its SENSOR
@@ -162,8 +163,6 @@ class JogSink:
             self._unshown = fields
 
     def _sensor_failed(self, record: TickRecord) -> bool:
-        if not self.node:
-            return False
         return any(
             f.code is FaultCode.NODE_FAULT
             and f.detail.startswith(self.node + " ")

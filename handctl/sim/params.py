@@ -17,7 +17,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from handctl.config import HandConfig, JointConfig
+from handctl.config import HandConfig, JointConfig, SafetyConfig
 from handctl.convention import MAX_OBJECT_RADIUS, NAME_CHARS, OBJECT_NAME
 from handctl.errors import ConfigError
 from handctl.schema import Doc, description
@@ -398,7 +398,7 @@ def _check_tdt_within_tolerance(doc: Doc, tdt: TdtParams, hand: HandConfig) -> N
                 "N·m): a sensor that far off stops nearly every run on TDT_MISMATCH",
                 description(f"{value:g} N·m"),
             )
-    slowest = safety.tdt_lag_s + safety.tdt_window_s / 2
+    slowest = _slowest_tdt(safety)
     fastest = safety.tdt_lag_s - safety.tdt_window_s / 2
     if tdt.lag < fastest:
         # the other way: a host that expects the sensor this much slower than it is reads
@@ -425,6 +425,12 @@ def _check_tdt_within_tolerance(doc: Doc, tdt: TdtParams, hand: HandConfig) -> N
         )
 
 
+def _slowest_tdt(safety: SafetyConfig) -> float:
+    """s, the most the torque the sensor reads may lag the command: the host's model of it
+    (``safety.tdt_lag_s``) plus half the window a mismatch must last."""
+    return safety.tdt_lag_s + safety.tdt_window_s / 2
+
+
 def _check_drive_and_sensor_lag(
     doc: Doc, lag: tuple[float, ...], tdt: TdtParams, hand: HandConfig
 ) -> None:
@@ -434,7 +440,7 @@ def _check_drive_and_sensor_lag(
     passed ``check`` beside the sensor's 2 ms and stopped every run on TDT_MISMATCH in its
     first tenth of a second (an outside audit)."""
     safety = hand.safety
-    slowest = safety.tdt_lag_s + safety.tdt_window_s / 2
+    slowest = _slowest_tdt(safety)
     worst = max(range(len(lag)), key=lambda i: lag[i])
     if lag[worst] + tdt.lag > slowest + 1e-12:
         doc.fail(
