@@ -57,6 +57,18 @@ def pytest_configure(config: pytest.Config) -> None:
     for sig in set(StopSignals.SIGNALS) - set(StopSignals.HONOURED_IF_IGNORED):
         if signal.getsignal(sig) is signal.SIG_IGN:
             signal.signal(sig, signal.SIG_DFL)
+    _compile_once()
+
+
+def _compile_once() -> None:
+    """Bytecode written for the suite's own Python processes, whatever the environment says
+    (PYTHONDONTWRITEBYTECODE, set on many build machines and containers): the suite starts
+    hundreds of them (every ``handctl`` a test runs, the simulated hand's process, the
+    recorder's writer, the planner's workers), and without bytecode each compiles the handctl
+    modules it imports anew, half a second of a short run's 1.1 s. Every worker and every child
+    inherits the environment; ``__pycache__`` is ignored by git."""
+    if os.environ.pop("PYTHONDONTWRITEBYTECODE", None) is not None:
+        sys.dont_write_bytecode = False
 
 
 @pytest.hookimpl(optionalhook=True)
