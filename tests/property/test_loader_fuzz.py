@@ -26,6 +26,9 @@ RECIPE_YAML = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
 EXAMPLES = int(os.environ.get("HANDCTL_FUZZ_EXAMPLES", "2000")) // 10
 HAND_DATA = yaml.safe_load(HAND_YAML.read_text())
 RECIPE_DATA = yaml.safe_load(RECIPE_YAML.read_text())
+#: libyaml's safe dumper where PyYAML has it: the documents of ``yaml.safe_dump``, written
+#: fast enough that this module runs in 21 s instead of 36 (the Python dumper was most of it)
+DUMPER: Any = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 scalars = st.one_of(
     st.none(),
@@ -82,7 +85,7 @@ def mutated(draw: st.DrawFn, original: Any) -> Any:
 
 def hand_from(tmp: Path, data: Any) -> HandConfig:
     path = tmp / "hand.yaml"
-    path.write_text(yaml.safe_dump(data) if not isinstance(data, str) else data)
+    path.write_text(yaml.dump(data, Dumper=DUMPER) if not isinstance(data, str) else data)
     return load_hand(path)
 
 
@@ -112,7 +115,7 @@ def test_mutated_hand_configs(tmp_path: Path, data: Any) -> None:
 @given(mutated(RECIPE_DATA))
 def test_mutated_recipes(tmp_path: Path, hand: HandConfig, data: Any) -> None:
     path = tmp_path / "recipe.yaml"
-    path.write_text(yaml.safe_dump(data))
+    path.write_text(yaml.dump(data, Dumper=DUMPER))
     expect_config_error_or_valid(lambda: load_recipe(path, hand))
 
 
@@ -139,7 +142,7 @@ def test_random_text_as_yaml(text: str) -> None:
 @given(values)
 def test_random_documents_as_recipes(tmp_path: Path, hand: HandConfig, data: Any) -> None:
     path = tmp_path / "recipe.yaml"
-    path.write_text(yaml.safe_dump(data))
+    path.write_text(yaml.dump(data, Dumper=DUMPER))
     expect_config_error_or_valid(lambda: load_recipe(path, hand))
 
 
