@@ -247,8 +247,8 @@ class WorkPool:
                 # one line, as a lost cluster is said: the pool's own traceback said nothing
                 # a user can act on
                 raise HandctlError(
-                    "a local worker process ended abruptly (killed, or out of memory): the "
-                    "work cannot go on"
+                    f"a local worker process {_how_a_worker_ended(self.executor)}: the work "
+                    "cannot go on"
                 ) from None
             raise
 
@@ -361,6 +361,39 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
             manager.join(MANAGER_GRACE_S)
 
     return WorkPool(pool, count, f"{count} local processes", close)
+
+
+#: What ended a local worker, by the signal that did, in the words of the line that says so.
+_ENDED_BY = {
+    signal.SIGKILL: "was killed (SIGKILL: the kernel's out-of-memory killer, a hard CPU time "
+    "limit, or kill -9)",
+    signal.SIGXCPU: "ran out of the CPU time its limit allows (SIGXCPU; ulimit -t)",
+    signal.SIGSEGV: "crashed (SIGSEGV)",
+    signal.SIGBUS: "crashed (SIGBUS)",
+    signal.SIGABRT: "crashed (SIGABRT)",
+}
+
+
+def _how_a_worker_ended(executor: object) -> str:
+    """What ended the local worker whose loss broke the pool, from its processes' exit
+    statuses: once one is gone the pool ends the others with SIGTERM, so any other status is
+    the cause (a CPU time limit, the OOM killer, a crash). A user's own SIGTERM, or a status
+    not yet known, is said as before."""
+    processes: list[BaseProcess] = list((getattr(executor, "_processes", None) or {}).values())
+    for process in processes:
+        process.join(TERMINATE_GRACE_S)
+    for process in processes:
+        code = process.exitcode
+        if code is None or code in (0, -signal.SIGTERM):
+            continue
+        if code > 0:
+            return f"exited with status {code}"
+        try:
+            sig = signal.Signals(-code)
+        except ValueError:
+            return f"was ended by signal {-code}"
+        return _ENDED_BY.get(sig, f"was ended by {sig.name}")
+    return "ended abruptly (killed, or out of memory)"
 
 
 def _dask_pool(address: str) -> WorkPool:

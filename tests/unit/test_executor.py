@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import http.server
 import os
+import resource
 import shutil
 import signal
 import socket
@@ -572,7 +573,29 @@ def test_a_local_worker_killed_is_said_in_one_line(tmp_path: Path) -> None:
     raised = _raised_when_killed(lambda: open_pool(2), tmp_path / "started", kill_the_workers)
     assert len(raised) == 1 and isinstance(raised[0], HandctlError), raised
     assert str(raised[0]) == (
-        "a local worker process ended abruptly (killed, or out of memory): the work cannot go on"
+        "a local worker process was killed (SIGKILL: the kernel's out-of-memory killer, a hard "
+        "CPU time limit, or kill -9): the work cannot go on"
+    )
+
+
+def spin_past_a_cpu_limit(_: int) -> int:
+    """A task whose worker's CPU time limit runs out one second on: the kernel's SIGXCPU."""
+    used = resource.getrusage(resource.RUSAGE_SELF)
+    soft = int(used.ru_utime + used.ru_stime) + 1
+    resource.setrlimit(resource.RLIMIT_CPU, (soft, soft + 60))
+    while True:
+        pass
+
+
+def test_a_local_worker_out_of_its_cpu_time_limit_is_said_so() -> None:
+    """A plan under ``ulimit -t`` lost a worker to SIGXCPU and said "killed, or out of
+    memory", which sent the user looking for memory; the pool ends the other workers with
+    SIGTERM, and that is not the cause either."""
+    with pytest.raises(HandctlError) as raised, open_pool(2) as pool:
+        pool.map(spin_past_a_cpu_limit, [0, 1])
+    assert str(raised.value) == (
+        "a local worker process ran out of the CPU time its limit allows (SIGXCPU; ulimit -t): "
+        "the work cannot go on"
     )
 
 
