@@ -65,7 +65,7 @@ def _compile_once() -> None:
     (PYTHONDONTWRITEBYTECODE, set on many build machines and containers): the suite starts
     hundreds of them (every ``handctl`` a test runs, the simulated hand's process, the
     recorder's writer, the planner's workers), and without bytecode each compiles the handctl
-    modules it imports anew, half a second of a short run's 1.1 s. Every worker and every child
+    modules it imports anew, half a second of a short run's 1.6 s. Every worker and every child
     inherits the environment; ``__pycache__`` is ignored by git."""
     if os.environ.pop("PYTHONDONTWRITEBYTECODE", None) is not None:
         sys.dont_write_bytecode = False
