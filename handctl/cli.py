@@ -826,15 +826,12 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
     return code
 
 
-#: the counts of records the writer dropped, in a run's ``recording`` and a replay's
-#: ``drops`` (``channels.DROPPED_KEYS`` but the poses, which a log may lack: the simulated
-#: hand's truth, not the run's)
-DROPPED_RECORD_KEYS = ("dropped_ticks", "dropped_frames", "dropped_events")
-
-
 def _records_dropped(counts: dict[str, Any]) -> int:
-    """The records of the run that the writer dropped and its log lacks."""
-    return sum(int(counts.get(key, 0)) for key in DROPPED_RECORD_KEYS)
+    """The records of the run that the writer dropped and its log lacks, from a run's
+    ``recording`` or a replay's ``drops``."""
+    from handctl.recording.channels import RUN_DROPPED_KEYS
+
+    return sum(int(counts.get(key, 0)) for key in RUN_DROPPED_KEYS)
 
 
 def _outcome_exit_code(result: RunResult, summary: dict[str, Any]) -> int:

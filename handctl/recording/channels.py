@@ -316,6 +316,9 @@ CHANNELS: tuple[Channel, ...] = (
 #: The channels ``handctl replay --rerun`` needs.
 #: the writer's counts of what it dropped, in ``/recording/stats`` and the end record alike
 DROPPED_KEYS = ("dropped_ticks", "dropped_frames", "dropped_events", "dropped_poses")
+#: those of the run's own records: not the poses, which a log may lack (the simulated hand's
+#: truth, not the run's), so that a run's exit and replay's header count the same records
+RUN_DROPPED_KEYS = tuple(key for key in DROPPED_KEYS if key != "dropped_poses")
 RERUN_TOPICS = (TIMING, TORQUE, JOINT_STATE, SAFETY, PHASE, CAN_RX, CAN_TX, EVENTS)
 
 
