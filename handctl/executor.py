@@ -380,8 +380,9 @@ def _how_a_worker_ended(executor: object) -> str:
     the cause (a CPU time limit, the OOM killer, a crash). A user's own SIGTERM, or a status
     not yet known, is said as before."""
     processes: list[BaseProcess] = list((getattr(executor, "_processes", None) or {}).values())
+    deadline = time.monotonic() + TERMINATE_GRACE_S  # one grace for all, not one each
     for process in processes:
-        process.join(TERMINATE_GRACE_S)
+        process.join(max(0.0, deadline - time.monotonic()))
     for process in processes:
         code = process.exitcode
         if code is None or code in (0, -signal.SIGTERM):
