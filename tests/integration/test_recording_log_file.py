@@ -10,6 +10,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -416,6 +417,10 @@ def _writer_pid(run_pid: int, alive: bool = False) -> int | None:
     return None
 
 
+#: s between looks at the writer's process: polled, not spun, as the run needs the other core
+POLL_S = 0.005
+
+
 def test_a_run_whose_writer_dropped_records_is_a_failed_result(tmp_path: Path) -> None:
     """The writer held back (stopped here; a live view's clients did it in an outside audit)
     while the lockstep run goes on: its rings hold 8 s of ticks and the rest are dropped. The
@@ -436,11 +441,14 @@ def test_a_run_whose_writer_dropped_records_is_a_failed_result(tmp_path: Path) -
             while writer is None:
                 assert proc.poll() is None, proc.communicate()
                 writer = _writer_pid(proc.pid)
+                if writer is None:
+                    time.sleep(POLL_S)
             # once it has said it is ready, which the run's start waits for: it closes the
             # descriptor it said it on (its fourth argument)
             ready_fd = (Path("/proc") / str(writer) / "cmdline").read_bytes().split(b"\0")[-2]
             while (Path("/proc") / str(writer) / "fd" / ready_fd.decode()).exists():
                 assert proc.poll() is None, proc.communicate()
+                time.sleep(POLL_S)
             os.kill(writer, signal.SIGSTOP)
             assert proc.stderr is not None
             err = ""
