@@ -38,8 +38,17 @@ when they cage the object, an ascent along the two tightest when they do not), l
 ``MAX_STEP``. Objects move far less than that per millisecond, so the track never falls
 behind; a lost track (clearance beyond ``RESET_CLEARANCE``) restarts from seeds under the palm,
 inside every cage the hand can form: side by side and touching, in the recipe's order along
-the palm from its end nearer the first finger, centred on the palm's middle. Continuity keeps
-the names: the recipe's first object is the one that started nearest that end.
+the palm from its end of the smaller x (``handshape.palm_ends``), centred on the palm's middle.
+
+The names are settled when the objects are first located (every estimate valid for
+``LOCATE_S`` in a row; no estimate is reported before): the tracks are named in the recipe's
+order along the palm, the order a recipe lists its objects in (``session`` warns of a recipe
+that does not). Continuity names
+them from then on, through a turn that swaps them and through a stretch without a cage. Why
+not continuity from the seeds: until the cages close, the tracks wander through the open hand
+(deep in a link, from one pocket to another), and on a hand whose fingers close on objects
+apart from each other, which pocket each track ends in depended on the tick the estimator
+started on, so the names came out swapped on some runs and not on others.
 
 One to four objects (the recipe's), and for each pair the recipe names (each object with the
 next by default) the angle of the line from the first centre to the second and its running
@@ -108,6 +117,15 @@ MEASURED_TICKS = 150
 #: (A track deep in the links is not restarted: the seeds may be in the links themselves, and
 #: the ascent takes it out of a pocket too small for it as soon as the pocket changes.)
 RESET_CLEARANCE = 0.02
+#: s: the objects count as located once every estimate has been valid this long in a row.
+#: A track passing through a pocket of its size while the fingers close makes the estimate
+#: valid for a few ticks (5-8 ms seen, the cages still 3-4 mm loose), somewhere the object
+#: is not: names settled there would be a guess.
+LOCATE_S = 0.02
+#: s: before the objects are first located, tracks that have rested this long, one of them
+#: deeper in a wall than a contact sinks (``VALID_CLEARANCE``), are stuck (two tracks in one
+#: cage, or one inside a link that no longer moves): every track starts again from its seed.
+STUCK_S = 0.2
 #: m, seeds sit this far below the palm (plus the object's radius), between the fingers.
 SEED_DEPTH = 0.010
 #: rad: an object counts as caged when the directions from its nearly tight contacts (within
@@ -162,6 +180,7 @@ class ObjectEstimator:
         period = hand.bus.period_s
         self._speed_gain = period / (STILL_TIME_CONSTANT + period)
         self._per_tick = 1.0 / period
+        self._period = period
         first, last = palm_ends(hand)
         length = math.dist(first, last)
         self._palm: Segment | None = None
@@ -209,6 +228,9 @@ class ObjectEstimator:
         self.speed = [math.inf] * m
         self._fitted = [0] * m  # ticks each radius has been fitted, up to MEASURED_TICKS
         self.valid = False
+        self._named = False  # whether the names are settled (the objects first located)
+        self._stuck = 0  # ticks the tracks have rested stuck, before the names are settled
+        self._located = 0  # ticks in a row every estimate has been valid, until the names settle
         self._turn = [NAN] * p  # rad, each pair's unwrapped centre-line angle (running)
         self._last_angle = [NAN] * p
         self.last: tuple[float, ...] = (NAN,) * len(self.estimates)
@@ -302,7 +324,15 @@ class ObjectEstimator:
                 self.clearance, self.radii, self.measured_radii, self._fitted, strict=True
             )
         )
+        if not self._named:
+            self._located = self._located + 1 if self.valid else 0
+            if self._located * self._period >= LOCATE_S - 1e-12:
+                self._name_along_palm()
+            else:
+                self.valid = False  # not located yet: no name is known to be the object's
         if not self.valid:
+            if not self._named:
+                self._unstick()
             self.last = (NAN,) * len(self.estimates)
             return self.last
         out: list[float] = []
@@ -359,6 +389,52 @@ class ObjectEstimator:
         self.speed[index] = (
             moved if math.isinf(speed) else speed + (moved - speed) * self._speed_gain
         )
+
+    def _unstick(self) -> None:
+        """Before the objects are first located: tracks at rest with one deep in a wall for
+        ``STUCK_S`` start again from the seeds. The ascent takes a track out of a pocket too
+        small for it when the pocket changes; in a grasp held still it never does, and on a
+        hand that cages its objects apart both tracks could end in one cage, each inside the
+        other, for the rest of the run (no estimate ever valid). Not once the objects have
+        been located: continuity keeps their names from then on, which a restart would lose.
+        Work on the tick: a comparison per object."""
+        if max(self.speed) < STILL_SPEED and min(self.clearance) < -VALID_CLEARANCE:
+            self._stuck += 1
+        else:
+            self._stuck = 0
+        if self._stuck * self._period >= STUCK_S:
+            self._stuck = 0
+            m = len(self.radii)
+            self.centres = list(self._seeds)
+            self.caged, self.closed = [False] * m, [False] * m
+            self.speed = [math.inf] * m
+
+    def _name_along_palm(self) -> None:
+        """Settle the names, once: the tracks in their order along the palm take the recipe's
+        names in its order (each track's state goes with it: its cage measured its radius), and
+        a pair whose line changed starts its turn count again.
+        Tracks closer along the palm than half the smaller radius have no order there (one
+        above the other): then the names stay as continuity gave them."""
+        self._named = True
+        ux, uy = (self._palm[2], self._palm[3]) if self._palm is not None else (1.0, 0.0)
+        along = [x * ux + y * uy for x, y in self.centres]
+        order = sorted(range(len(along)), key=along.__getitem__)
+        if order == list(range(len(along))):
+            return
+        for a, b in itertools.pairwise(order):
+            if along[b] - along[a] < 0.5 * min(self.radii[a], self.radii[b]):
+                return
+        self.centres = [self.centres[k] for k in order]
+        self.radii = [self.radii[k] for k in order]
+        self.measured_radii = [self.measured_radii[k] for k in order]
+        self.clearance = [self.clearance[k] for k in order]
+        self.caged = [self.caged[k] for k in order]
+        self.closed = [self.closed[k] for k in order]
+        self.speed = [self.speed[k] for k in order]
+        self._fitted = [self._fitted[k] for k in order]
+        # each pair's line is another now: its turn counts from here, as after a reset
+        self._turn = [NAN] * len(self.pairs)
+        self._last_angle = [NAN] * len(self.pairs)
 
     def _fit_radii(self) -> None:
         """Move each object's radius towards the one its cage measures: at the deepest point

@@ -64,6 +64,46 @@ def test_boxed_objects_are_found_exactly(hand: HandConfig) -> None:
     assert est.clearance[0] == pytest.approx(0.0, abs=1e-6)
 
 
+@pytest.mark.parametrize("factors", [(1.0, 1.0), (0.8, 1.2)])
+def test_tracks_that_reach_the_cages_in_the_wrong_order_are_named_along_the_palm(
+    hand: HandConfig, factors: tuple[float, float]
+) -> None:
+    """Before the cages close the tracks wander through the open hand, and on a hand that
+    cages its objects apart each track may end in the other's cage: the names are those of
+    the recipe's order along the palm once the objects are first located, not the tracks'
+    (each estimate would read the other object's, a pair error of 180 degrees). Each track's
+    radius goes with its name: the cage that measured it holds that object."""
+    objects = tuple(RecipeObject(f"cyl{k + 1}", f * R) for k, f in enumerate(factors))
+    est = ObjectEstimator(boxed_hand(hand), objects)
+    first, second = (-0.05 + H[0] + R, -R), (0.05 - H[0] - R, -R)
+    est.centres = [second, first]  # each track in the other object's cage
+    out = settle(est, BOX_ANGLES, 1000)
+    assert est.valid
+    assert est.positions(out) == [
+        pytest.approx(first, abs=1e-6),
+        pytest.approx(second, abs=1e-6),
+    ]
+    assert out[0] == pytest.approx(0.0, abs=1e-6)  # the line from object 1 to object 2: +x
+    assert est.radii == pytest.approx([R, R], abs=2e-5)
+
+
+def test_two_tracks_stuck_in_one_cage_start_again_before_the_objects_are_located(
+    hand: HandConfig,
+) -> None:
+    """Two tracks that ended in one cage, each inside the other, rest there while the grasp
+    is held still: the ascent never takes them out, and no estimate would ever be valid. Not
+    yet located, they start again from the seeds, and each finds its own cage."""
+    est = ObjectEstimator(boxed_hand(hand), PAIR)
+    second = (0.05 - H[0] - R, -R)
+    est.centres = [second, (second[0] + 0.001, second[1])]
+    out = settle(est, BOX_ANGLES, 1000)
+    assert est.valid
+    assert est.positions(out) == [
+        pytest.approx((-0.05 + H[0] + R, -R), abs=1e-6),
+        pytest.approx(second, abs=1e-6),
+    ]
+
+
 @pytest.mark.parametrize("factors", [(0.8, 0.8), (1.2, 1.2), (0.8, 1.2)])
 def test_a_cylinder_of_another_radius_is_measured_by_its_cage(
     hand: HandConfig, factors: tuple[float, float]
