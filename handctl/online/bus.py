@@ -43,7 +43,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import can
 
-from handctl.config import BusConfig
+from handctl.config import MAX_STANDARD_ID, BusConfig
 from handctl.errors import BusError, HandctlError, escaped
 from handctl.online import frameflags as ff
 from handctl.online.busspec import (
@@ -397,9 +397,20 @@ class HandBus:
                         f"CAN-FD's {MAX_FRAME_DATA}: dropped",
                     )
                     continue
+                widest = EXTENDED_ID_MASK if flags & ff.EXTENDED else MAX_STANDARD_ID
+                if not 0 <= frame_id <= widest:
+                    # no CAN frame carries it; an emulated bus (a peer on the unix or the
+                    # virtual one) does. Logged as it came, it made the run's own log one
+                    # that ``replay`` refuses; masked to fit, it would be another id's frame
+                    self._event(
+                        BusEventKind.RX_FAILED,
+                        f"a frame with id 0x{frame_id:X}, beyond the "
+                        f"{29 if flags & ff.EXTENDED else 11} bits of its format: dropped",
+                    )
+                    continue
                 self.received += 1
                 if flags & ff.EXTENDED:
-                    frame_id = (frame_id & EXTENDED_ID_MASK) | EXTENDED_ID_FLAG
+                    frame_id |= EXTENDED_ID_FLAG
                 frames.append(Frame(frame_id, data, min(stamp, now), bool(flags & ff.FD)))
         except (can.CanError, OSError, ValueError) as exc:
             self._event(BusEventKind.RX_FAILED, str(exc))

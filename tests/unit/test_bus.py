@@ -163,6 +163,32 @@ def test_an_adapter_echoing_the_hosts_own_frames_hands_back_only_the_others(
         other.shutdown()
 
 
+@pytest.mark.parametrize(
+    ("frame_id", "extended", "said"),
+    [(0x901, False, "0x901, beyond the 11 bits"), (0xFFFFFFFF, True, "0xFFFFFFFF, beyond the 29")],
+)
+def test_a_frame_whose_id_its_format_cannot_carry_is_dropped_and_said(
+    hand: HandConfig, channel: str, frame_id: int, extended: bool, said: str
+) -> None:
+    """A peer on an emulated bus (virtual, unix) can send what no CAN controller would: a
+    standard frame with a 12-bit id, an extended one past 29 bits. Passed on, it went into
+    the run's log as it came, and ``replay`` refused the log the run itself wrote; masked to
+    fit, it would read as another id's frame. Dropped, and said as ``RX_FAILED``; the frame
+    after it is received."""
+    with (
+        open_bus(f"virtual:{channel}", hand.bus) as host,
+        can.Bus(interface="virtual", channel=channel) as peer,
+    ):
+        peer.send(
+            can.Message(arbitration_id=frame_id, is_extended_id=extended, data=b"\x01", check=False)
+        )
+        peer.send(can.Message(arbitration_id=0x181, data=b"\x07", is_extended_id=False))
+        assert [f.arbitration_id for f in host.drain()] == [0x181]
+        events = host.events()
+        assert [e.kind for e in events] == [BusEventKind.RX_FAILED]
+        assert said in events[0].detail
+
+
 def test_send_after_close_is_an_event(hand: HandConfig, channel: str) -> None:
     bus = open_bus(f"virtual:{channel}", hand.bus)
     bus.close()
