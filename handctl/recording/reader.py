@@ -202,6 +202,16 @@ def open_recording(path: str | Path) -> Recording:
     path = Path(path)
     if not path.is_file():
         raise _fail(path, "no such file" if not path.exists() else "not a regular file")
+    try:
+        return _open_recording(path)
+    except OSError as exc:
+        # a file that says it is regular and cannot be read (a disk's or a network file
+        # system's read error, /proc/self/mem): bad input named, as the YAML loaders do
+        expected = "a readable file (a handctl recording)"
+        raise ConfigError(str(path), "", expected, str(exc)) from None
+
+
+def _open_recording(path: Path) -> Recording:
     with path.open("rb") as handle:
         head = handle.read(len(MAGIC))
         if head != MAGIC:
