@@ -129,12 +129,17 @@ def handctl(
     first on the path wherever it runs (from the root ``python -m`` puts it there; elsewhere
     PYTHONPATH does), so the code under test is this checkout's, whatever is installed;
     ``env`` adds to the environment the suite runs in; ``preexec_fn`` runs in the child
-    before handctl does (limits of its own, ``resource.setrlimit``)."""
+    before handctl does (limits of its own, ``resource.setrlimit``). A child with limits of
+    its own writes no bytecode: Python writes a module's cached bytecode with one write and
+    renames it into place whatever that write wrote, so under a file size limit
+    (``RLIMIT_FSIZE``) it left a cut-off file in ``__pycache__`` that every later process of
+    the suite failed to import ("marshal data too short")."""
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    limited = {"PYTHONDONTWRITEBYTECODE": "1"} if preexec_fn is not None else {}
     return subprocess.run(
         [sys.executable, "-m", "handctl", *args],
         cwd=cwd,
-        env={**os.environ, "PYTHONPATH": path, **(env or {})},
+        env={**os.environ, "PYTHONPATH": path, **limited, **(env or {})},
         text=True,
         capture_output=True,
         timeout=timeout,
