@@ -14,6 +14,7 @@ import io
 import os
 import stat
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
@@ -21,11 +22,20 @@ from handctl.errors import HandctlError
 
 
 def write_whole(target: Path, data: bytes) -> None:
-    """``data`` into ``target``, whole or not at all (module docstring). A symbolic link is
-    written through, not replaced; the old file's permissions are kept, a new file gets what
-    ``open`` would have given it (the umask's). The file beside it has a short name of its
-    own: one named after the target went past the file system's longest name for a name that
-    itself fits."""
+    """``data`` into ``target``, whole or not at all (module docstring)."""
+    with whole_file(target) as out, out.open("wb") as file:
+        file.write(data)
+
+
+@contextlib.contextmanager
+def whole_file(target: Path) -> Iterator[Path]:
+    """A path beside ``target`` to write the new version to, in full, by whatever writes it
+    (a python-can log writer opens its own file); on leaving without an error it is flushed to
+    the disk and renamed over ``target``, on an error removed and ``target`` left as it was. A
+    symbolic link is written through, not replaced; the old file's permissions are kept, a new
+    file gets what ``open`` would have given it (the umask's). The file beside it has a short
+    name of its own: one named after the target went past the file system's longest name for a
+    name that itself fits."""
     target = Path(target).resolve()
     if target.exists():
         mode = stat.S_IMODE(target.stat().st_mode)
@@ -34,11 +44,14 @@ def write_whole(target: Path, data: bytes) -> None:
         os.umask(umask)
         mode = 0o666 & ~umask
     fd, tmp = tempfile.mkstemp(prefix=".handctl-", suffix=".tmp", dir=target.parent)
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(data)
-            out.flush()
-            os.fsync(out.fileno())
+        yield Path(tmp)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.chmod(tmp, mode)
         os.replace(tmp, target)
     except BaseException:

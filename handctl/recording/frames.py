@@ -12,13 +12,14 @@ from pathlib import Path
 from typing import Any
 
 from handctl.config import FingerConfig, HandConfig
-from handctl.errors import ConfigError, Description
+from handctl.errors import ConfigError, Description, HandctlError, escaped
 from handctl.hand_protocol import node_message, protocol_for
 from handctl.protocol import NODE_COMMANDS, Layout
 from handctl.recording import channels as ch
 from handctl.recording.messages import EXTENDED_ID_FLAG
 from handctl.recording.metadata import recorded_hand, recorded_protocol
 from handctl.recording.reader import Recording, iter_decoded, open_recording, require_topics
+from handctl.wholefile import whole_file
 
 #: buses where no real hand listens: a replay onto them may take the log's limits as its own
 SIMULATED_BUSES = ("virtual", "unix")
@@ -564,10 +565,14 @@ def export(recording: Recording, fmt: str, out: str) -> dict[str, Any]:
             yield ((started + log_time - first[0]) * 1e-9, frame_id, data, is_rx, fd)
 
     try:
-        count = write_frames(out, fmt, stamped())
+        # whole or not at all: written in place, a full disk left half a log under the name
+        # and the earlier export, which the command may replace, gone
+        with whole_file(Path(out)) as beside:
+            count = write_frames(beside, fmt, stamped())
     except OSError as exc:
-        raise ConfigError(
-            out, "", "a path where the export can be written", exc.strerror or str(exc)
+        raise HandctlError(
+            f"--export: {escaped(out)} could not be written ({exc.strerror or exc}); "
+            "it is unchanged"
         ) from None
     report: dict[str, Any] = {"frames": count, "format": fmt, "path": out}
     if not started:

@@ -81,6 +81,36 @@ def test_a_plot_the_disk_cannot_take_is_said_and_the_rest_is_written(
     assert not plot.exists() and [p.name for p in tmp_path.iterdir()] == [out.name]
 
 
+@pytest.mark.parametrize("fmt", ["candump", "blf"])
+def test_an_export_the_disk_cannot_take_leaves_the_earlier_one_as_it_was(
+    recorded: Recorded, tmp_path: Path, fmt: str
+) -> None:
+    """A full disk during ``--export`` (here a file size limit, which fails the write the
+    same way): the export was written in place, so the earlier export the command replaces
+    was gone and half of the new one stood under its name, and the command said bad input
+    (exit 2). Now the earlier file is as it was, nothing is left beside it, exit 1."""
+    out = tmp_path / f"frames.{fmt}"
+    first = handctl("replay", str(recorded.path), "--export", fmt, str(out), timeout=300)
+    assert first.returncode == 0, first.stderr
+    earlier = out.read_bytes()
+    limit = 4096  # bytes: far less than the run's frames
+    assert len(earlier) > limit
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    done = handctl(
+        "replay", str(recorded.path), "--export", fmt, str(out), timeout=300, preexec_fn=small_files
+    )
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines()[-1] == (
+        f"handctl: error: --export: {out} could not be written (File too large); it is unchanged"
+    )
+    assert out.read_bytes() == earlier
+    assert [p.name for p in tmp_path.iterdir()] == [out.name]
+
+
 # -- re-run -----------------------------------------------------------------------------------
 def test_rerun_is_bit_exact_through_faults_and_an_estop(recorded: Recorded) -> None:
     recording = open_recording(recorded.path)
