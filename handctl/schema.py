@@ -950,10 +950,20 @@ def _did_you_mean(key: str, candidates: Sequence[str]) -> str:
 
 def _bounds_text(min: float | None, max: float | None, min_exclusive: bool) -> str:
     if min is not None and max is not None:
-        left = f"> {min:g}" if min_exclusive else f">= {min:g}"
-        return f" {left} and <= {max:g}"
+        left = f"> {_bound(min)}" if min_exclusive else f">= {_bound(min)}"
+        return f" {left} and <= {_bound(max)}"
     if min is not None:
-        return f" > {min:g}" if min_exclusive else f" >= {min:g}"
+        return f" > {_bound(min)}" if min_exclusive else f" >= {_bound(min)}"
     if max is not None:
-        return f" <= {max:g}"
+        return f" <= {_bound(max)}"
     return ""
+
+
+def _bound(value: float) -> str:
+    """A bound as it is read: a whole number in all its digits, any other as before (six
+    significant digits). Six significant digits of a whole number said "<= 4.29497e+09,
+    found 4294967296", a value past the bound that read as one within it."""
+    whole = isinstance(value, int) or (math.isfinite(value) and value.is_integer())
+    if whole and abs(value) < 1e16:
+        return str(int(value))
+    return f"{value:g}"

@@ -596,3 +596,23 @@ def test_a_recording_s_hand_and_recipe_are_read_as_they_ran_whatever_their_names
     assert parse_recipe(parse_yaml(old, "recipe.yaml"), hand, as_recorded=True).name == (
         "swap_two_cylinders "
     )
+
+
+@pytest.mark.parametrize(
+    ("read", "value", "said"),
+    [
+        (lambda d: d.integer("n", min=0, max=2**32 - 1), 2**32, "<= 4294967295, found 4294967296"),
+        (lambda d: d.integer("n", min=10_000, max=1_000_000), 1_000_001, "<= 1000000, found"),
+        (lambda d: d.number("n", min=0.0, max=1e6), 1e6 + 1, "<= 1000000"),
+        (lambda d: d.number("n", min=0.001, max=10.0), 20.0, ">= 0.001 and <= 10"),
+    ],
+)
+def test_a_bound_is_said_in_all_its_digits(read: Any, value: Any, said: str) -> None:
+    """Six significant digits of a whole-number bound said "<= 4.29497e+09, found
+    4294967296": a value past the bound that read as one within it."""
+    from handctl.errors import ConfigError
+    from handctl.schema import Doc
+
+    with pytest.raises(ConfigError) as info:
+        read(Doc({"n": value}, "f.yaml", ""))
+    assert said in str(info.value)
