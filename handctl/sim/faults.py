@@ -19,7 +19,8 @@ are not ``on``/``off`` because YAML reads those as booleans)::
       - {kind: drop_feedback, node: 2, start: 0.50, stop: 0.52}
       - {kind: tdt_stuck, node: 1, joint: 2, start: 1.0}
 
-``node`` is a node id of the hand config and ``joint`` a joint number 1..3 of that node; left out,
+``node`` is a node id of the hand config and ``joint`` a joint number of that node (1 to its
+number of joints; of every node's, without ``node``); left out,
 an injector acts on every node or joint. Overlapping injectors add up where that makes sense
 (offsets, spikes, jumps); switching off one ``tdt_stuck`` or ``tendon_slack`` releases the joint
 even if another one covers it too.
@@ -734,7 +735,9 @@ def _parse_entry(doc: Doc, hand: HandConfig) -> Scheduled:
     kwargs: dict[str, object] = {}
     node_ids = [f.node_id for f in hand.fingers]
     if doc.has("node"):
-        node = doc.integer("node", min=min(node_ids), max=max(node_ids))
+        # one message for every id the hand has not: bounds said "an integer >= 2 and <= 13"
+        # of a hand whose nodes are 2, 4, 6 and 13, as if any id between were one
+        node = doc.integer("node")
         if node not in node_ids:
             doc.fail("node", "a node id of the hand (" + ", ".join(map(str, node_ids)) + ")", node)
         kwargs["node"] = node

@@ -40,7 +40,9 @@ def test_a_fault_scenario_the_hand_refuses_is_bad_input_and_leaves_the_log_alone
         "--max-seconds", "1", "--log", str(log),
     )  # fmt: skip
     assert done.returncode == 2, done.stderr
-    assert f"{faults}: faults[0].node: expected an integer >= 1 and <= 3, found 9" in (done.stderr)
+    assert f"{faults}: faults[0].node: expected a node id of the hand (1, 2, 3), found 9" in (
+        done.stderr
+    )
     assert "Traceback" not in done.stderr
     assert log.read_bytes() == earlier
     missing = handctl(

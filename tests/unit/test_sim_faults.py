@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -65,7 +66,7 @@ faults:
         ("{kind: drop_feedback, amplitude: 1, start: 1}", "faults[0].amplitude", "unknown key"),
         ("{kind: drop_feedback, start: 1, stop: 0.5}", "faults[0].stop", ">= 1"),
         ("{kind: drop_feedback, start: -1}", "faults[0].start", ">= 0"),
-        ("{kind: node_silent, node: 9, start: 1}", "faults[0].node", "<= 3"),
+        ("{kind: node_silent, node: 9, start: 1}", "faults[0].node", "a node id of the hand"),
         ("{kind: tdt_offset, node: 1, joint: 4, start: 1}", "faults[0].joint", "<= 3"),
         ("{kind: babble, length: 10, start: 1}", "faults[0].length", "CAN-FD payload length"),
         ("{kind: corrupt_crc, message: commands, start: 1}", "faults[0].message", "one of"),
@@ -78,6 +79,27 @@ def test_mistakes_name_the_key(hand: HandConfig, entry: str, key: str, expected:
     assert err.value.file == "bad.yaml"
     assert err.value.key == key
     assert expected in err.value.expected
+
+
+def test_a_node_the_hand_has_not_is_named_against_the_hand_s_ids_whatever_it_is(
+    hand: HandConfig,
+) -> None:
+    """Outside the range of the hand's node ids or inside it, an id the hand has not gets one
+    message, the ids it has: bounds said "an integer >= 2 and <= 13" of a hand whose nodes
+    are 2, 4, 6 and 13, as if 3 were one."""
+    apart = dataclasses.replace(
+        hand,
+        fingers=tuple(
+            dataclasses.replace(f, node_id=n) for f, n in zip(hand.fingers, (2, 6, 13), strict=True)
+        ),
+    )
+    for node in (1, 3, 14):
+        with pytest.raises(ConfigError) as err:
+            parse_scenario(
+                parse_yaml(f"faults:\n  - {{kind: node_silent, node: {node}, start: 1}}\n", "f"),
+                apart,
+            )
+        assert (err.value.expected, err.value.found) == ("a node id of the hand (2, 6, 13)", node)
 
 
 def test_schedule_hands_out_switchings_in_time_order() -> None:
