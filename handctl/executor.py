@@ -381,8 +381,14 @@ def _how_a_worker_ended(executor: object) -> str:
     not yet known, is said as before."""
     processes: list[BaseProcess] = list((getattr(executor, "_processes", None) or {}).values())
     deadline = time.monotonic() + TERMINATE_GRACE_S  # one grace for all, not one each
-    for process in processes:
-        process.join(max(0.0, deadline - time.monotonic()))
+    # Until every status is known, not one join each: the pool's manager thread joins the
+    # same processes, and a join that loses the race to reap one returns at once with its
+    # status not yet set (the other thread sets it a moment later), which said "ended
+    # abruptly" of a worker killed by SIGKILL, now and then on a loaded machine.
+    while any(p.exitcode is None for p in processes) and time.monotonic() < deadline:
+        for process in processes:
+            process.join(max(0.0, min(0.05, deadline - time.monotonic())))
+        time.sleep(0.005)
     for process in processes:
         code = process.exitcode
         if code is None or code in (0, -signal.SIGTERM):
