@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Container, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -85,23 +85,29 @@ def turn_deg(line_angle: npt.ArrayLike) -> npt.NDArray[np.float64]:
     return np.degrees(turn_rad(line_angle))
 
 
+#: The names of the paper's experiment's turn phases (``manipulate_1`` .. ``_4``) begin so: a
+#: phase so named is a manipulation phase (``Phase.manipulates``) whatever its exits.
+MANIPULATE_PREFIX = "manipulate"
+
+
 def phase_turns_deg(
     t: npt.ArrayLike,
     line_angle: npt.ArrayLike,
     phases: Sequence[tuple[str, float, float]],
-    prefix: str = "manipulate",
+    counted: Container[str] | None = None,
 ) -> list[float]:
-    """The turn (deg, ccw +) in each phase named ``prefix...``: the unwrapped centre-line
-    angle at the first sample at or after the phase's end (the last sample if the run ends
-    first) minus at the first sample at or after its start. Consecutive phases' turns add up
-    to the turn over all of them, whatever the sampling."""
+    """The turn (deg, ccw +) in each manipulation phase, those ``counted`` names (the
+    recipe's ``manipulation_phases``; without it, the phases named ``manipulate...``): the
+    unwrapped centre-line angle at the first sample at or after the phase's end (the last
+    sample if the run ends first) minus at the first sample at or after its start.
+    Consecutive phases' turns add up to the turn over all of them, whatever the sampling."""
     times = np.asarray(t, dtype=float)
     turn = turn_deg(line_angle)
     finite = np.isfinite(turn)
     times, turn = times[finite], turn[finite]
     out = []
     for name, start, end in phases:
-        if not name.startswith(prefix):
+        if not (name in counted if counted is not None else name.startswith(MANIPULATE_PREFIX)):
             continue
         first = int(np.searchsorted(times, start - 1e-9))
         last = min(int(np.searchsorted(times, end - 1e-9)), len(times) - 1)

@@ -142,11 +142,10 @@ def _before_manipulation_s(path: Path, recipe: Any) -> float:
     phases' ``max_s`` before it, which must have no exits (else where it begins is not known
     beforehand)."""
     from handctl.errors import ConfigError
-    from handctl.experiment.merit import MANIPULATE_PREFIX
 
     total = 0.0
     for k, phase in enumerate(recipe.phases):
-        if phase.name.startswith(MANIPULATE_PREFIX):
+        if phase.manipulates:
             return total
         if phase.exits:
             raise ConfigError(
@@ -157,7 +156,10 @@ def _before_manipulation_s(path: Path, recipe: Any) -> float:
             )
         total += phase.max_s
     raise ConfigError(
-        str(path), "phases", f"a phase named {MANIPULATE_PREFIX}*", [p.name for p in recipe.phases]
+        str(path),
+        "phases",
+        "a manipulation phase (named manipulate*, planned as a turn, or ending on a turn)",
+        [p.name for p in recipe.phases],
     )
 
 
@@ -187,10 +189,8 @@ def turn_sense(recipe: Any) -> float:
     """-1 for a recipe whose manipulation turns the pair clockwise, +1 counter-clockwise: from
     the first manipulation phase's exit on a turn (waiting for it to fall below its value is
     clockwise); +1 without one."""
-    from handctl.experiment.merit import MANIPULATE_PREFIX
-
     for phase in recipe.phases:
-        sense = phase.turn_sense() if phase.name.startswith(MANIPULATE_PREFIX) else None
+        sense = phase.turn_sense() if phase.manipulates else None
         if sense is not None:
             return float(sense)
     return 1.0

@@ -57,13 +57,18 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from handctl.convention import LIFT_HEIGHT, POSE_EVERY_TICKS, RATE_WINDOW_S, phase_turns_deg
+from handctl.convention import (
+    LIFT_HEIGHT,
+    MANIPULATE_PREFIX,
+    POSE_EVERY_TICKS,
+    RATE_WINDOW_S,
+    phase_turns_deg,
+)
 from handctl.handshape import hand_span
 from handctl.online.recipes.schema import Pair, Recipe
 
 HOLD_S = 2.0  # s
 DROP_HEIGHT = 0.005  # m
-MANIPULATE_PREFIX = "manipulate"
 
 
 class _Pose(Protocol):
@@ -95,6 +100,9 @@ class Trace:
     half_span: float
     pairs: tuple[Pair, ...] = ()
     estimated: tuple[int, ...] = ()
+    #: the recipe's manipulation phases (``Recipe.manipulation_phases``); None: the phases
+    #: named ``manipulate...``
+    manipulation: tuple[str, ...] | None = None
     t: list[float] = field(default_factory=list)
     phase: list[str] = field(default_factory=list)
     poses: list[tuple[float, ...]] = field(default_factory=list)  # x, y, angle per object
@@ -210,6 +218,12 @@ def _p95_deg(err: np.ndarray) -> float | None:
 ENDED_AS_ASKED = ("completed", "time_budget")
 
 
+def _manipulates(trace: Trace, phase: str) -> bool:
+    if trace.manipulation is not None:
+        return phase in trace.manipulation
+    return phase.startswith(MANIPULATE_PREFIX)
+
+
 def experiment_summary(
     trace: Trace, min_total_turn_deg: float = 0.0, outcome: str = "completed"
 ) -> dict[str, Any]:
@@ -255,7 +269,7 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
         return empty
     t, heights, poses = a["t"], a["heights"], a["poses"]
     segments = _segments(trace.phase)
-    manip = [s for s in segments if s[0].startswith(MANIPULATE_PREFIX)]
+    manip = [s for s in segments if _manipulates(trace, s[0])]
     first_manip = manip[0][1] if manip else n
     end_manip = manip[-1][2] if manip else n
     up = heights >= LIFT_HEIGHT
@@ -332,7 +346,7 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
         pairs: dict[str, Any] = {}
         for k, pair in enumerate(trace.pairs):
             angles = trace.line_angle(pair, poses)
-            turns = phase_turns_deg(t[logged], angles[logged], bounds, MANIPULATE_PREFIX)
+            turns = phase_turns_deg(t[logged], angles[logged], bounds, trace.manipulation)
             err = np.abs(
                 (a["estimate"][sel, 2 * k] - np.angle(np.exp(1j * angles[sel])) + math.pi)
                 % (2 * math.pi)
@@ -433,6 +447,7 @@ def track(runtime: Any, sim_hand: Any) -> Tracker:
         half_span,
         pairs,
         tuple(index),
+        recipe.manipulation_phases,
     )
     tracker = Tracker(
         sim_hand.ground_truth,

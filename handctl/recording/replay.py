@@ -15,7 +15,7 @@ from handctl.online.tickstats import histogram_us, percentile_us
 from handctl.recording import channels as ch
 from handctl.recording.reader import Recording
 from handctl.recording.ring import RECORDED_STAGES
-from handctl.recording.series import Series, line_angle, line_pairs
+from handctl.recording.series import Series, line_angle, line_pairs, recorded_recipe_or_none
 
 #: Phase names that are the runner's status rather than a phase of the recipe.
 NOT_PHASES = frozenset({"-", "running", "completed", "aborted", "?"})
@@ -150,10 +150,14 @@ def _pair_figures(
     # first tick where it ended. (Bounds a tick later ended a phase one sample late when its
     # last tick was a logged one's.)
     bounds = [(p["name"], p["start_s"], p["end_s"]) for p in series.phases]
+    # the run's own manipulation phases, as its summary counted them (a log without a recipe
+    # that parses: the phases named manipulate...)
+    recipe = recorded_recipe_or_none(recording)
+    counted = recipe.manipulation_phases if recipe is not None else None
     figures: dict[str, dict[str, Any]] = {}
     for name, a, b in pairs:
         angle = line_angle(series.objects, a, b)
-        turns = phase_turns_deg(series.objects[:, 0], angle, bounds)
+        turns = phase_turns_deg(series.objects[:, 0], angle, bounds, counted)
         figures[name] = {
             "line_angle_rad": {
                 "start": round(float(angle[0]), 5),

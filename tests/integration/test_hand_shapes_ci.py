@@ -215,6 +215,38 @@ def test_the_shapes_recipe_lifts_its_objects_and_its_log_reruns_bit_exact(
     assert set(json.loads(replay.read_text())["summary"]["objects"]) == objects
 
 
+def test_a_turn_phase_named_for_what_it_does_is_measured_as_a_manipulation(
+    tmp_path: Path,
+) -> None:
+    """The summary measured the turn of the phases named ``manipulate...`` only: the planar
+    recipe with its turn phase named ``turn`` said the pair turned nothing, and held for the
+    whole run. Planned as a turn and ending on one, it is measured as the same phase named
+    ``manipulate`` is, in the run's summary and in its log's replay."""
+    text = PLANAR_RECIPE.read_text()
+    assert text.count("- name: manipulate\n") == 1
+    renamed = tmp_path / "renamed.yaml"
+    renamed.write_text(text.replace("- name: manipulate\n", "- name: turn\n"))
+    summaries = []
+    for recipe in (PLANAR_RECIPE, renamed):
+        out, log = tmp_path / f"{recipe.stem}.json", tmp_path / f"{recipe.stem}.mcap"
+        done = handctl(
+            "run", "recipe", str(recipe), "--hand", str(PLANAR), "--lockstep",
+            "--summary-json", str(out), "--log", str(log),
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        summaries.append(json.loads(out.read_text())["experiment"])
+    shipped, named = summaries
+    assert shipped["phase_angles_deg"] and shipped["phase_angles_deg"][0] < -5
+    for key in ("phase_angles_deg", "peak_turn_rate_deg_s", "objects", "success"):
+        assert named[key] == shipped[key], key
+    replay = tmp_path / "replay.json"
+    done = handctl("replay", str(tmp_path / "renamed.mcap"), "--json", str(replay))
+    assert done.returncode == 0, done.stderr
+    assert json.loads(replay.read_text())["summary"]["phase_turns_deg"] == pytest.approx(
+        shipped["phase_angles_deg"], abs=0.05
+    )
+
+
 # -- every shipped hand as `handctl sim`, answering `handctl nodes` --------------------------
 
 

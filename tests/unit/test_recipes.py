@@ -553,3 +553,27 @@ def test_a_phase_key_indented_into_provenance_is_refused(tmp_path: Path, hand: H
     # what handctl plan writes there loads (its own 'schedule' among it)
     deep["provenance"] = {"kind": "free", "schedule": [{"chosen_from": "x"}], "models": {}}
     load_recipe(write(tmp_path, recipe_doc(deep)), hand)
+
+
+def test_a_manipulation_phase_is_told_by_its_name_its_plan_or_its_exit_on_a_turn() -> None:
+    """Which phases the experiment measures the turn of (``Phase.manipulates``): named
+    ``manipulate...``, planned as a turn (``provenance.kind: turn``), or ending on a pair's
+    turn; the phases of the lift and the hold are none of these."""
+    import dataclasses
+
+    hand = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    recipe = load_recipe(ROOT / "config" / "recipes" / "planar_lift_turn.yaml", hand)
+    turn = next(p for p in recipe.phases if p.name == "manipulate")
+    assert recipe.manipulation_phases == ("manipulate",)
+    named = dataclasses.replace(turn, name="turn")
+    planned_only = dataclasses.replace(named, exits=())
+    exit_only = dataclasses.replace(named, provenance={})
+    neither = dataclasses.replace(named, exits=(), provenance={})
+    name_only = dataclasses.replace(neither, name="manipulate_9")
+    assert [p.manipulates for p in (named, planned_only, exit_only, neither, name_only)] == [
+        True, True, True, False, True,
+    ]  # fmt: skip
+    swapped = dataclasses.replace(
+        recipe, phases=tuple(named if p is turn else p for p in recipe.phases)
+    )
+    assert swapped.manipulation_phases == ("turn",)

@@ -23,6 +23,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from handctl.convention import MANIPULATE_PREFIX
 from handctl.online.recipes.guard import LimitGuard
 
 #: The most objects a recipe may grasp and the estimator tracks (the simulated hand's most).
@@ -346,6 +347,20 @@ class Phase:
     #: written threshold
     exit_share: int = 1
 
+    @property
+    def manipulates(self) -> bool:
+        """Whether this is one of the recipe's manipulation phases, whose turn of the pair
+        the experiment measures (each one's turn, the peak rate over them, the hold before
+        the first): named so (``manipulate...``, the paper's experiment's names), planned as
+        a turn phase (``provenance.kind: turn``), or ending on a pair's turn (an exit on a
+        ``line_turn``). By the name alone, a turn phase named for what it does ('turn',
+        'swap') was one the summary said turned the pair nothing, without a word."""
+        return (
+            self.name.startswith(MANIPULATE_PREFIX)
+            or self.provenance.get("kind") == "turn"
+            or self.turn_sense() is not None
+        )
+
     def turn_sense(self) -> float | None:
         """-1 when the phase's first exit on a turn waits for it to fall below its value (a
         clockwise turn), +1 when for it to rise above; None without such an exit."""
@@ -407,6 +422,11 @@ class Recipe:
     #: the phases a failed plan left undone on every model, as ``phase: what``
     #: (``planned_from.failed_phases``); a recipe written to be looked at, not run
     plan_failed: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def manipulation_phases(self) -> tuple[str, ...]:
+        """The names of the manipulation phases (``Phase.manipulates``), in the recipe's order."""
+        return tuple(p.name for p in self.phases if p.manipulates)
 
     @property
     def estimates(self) -> tuple[str, ...]:
