@@ -537,12 +537,13 @@ def _load_checked_hand(path: Path, option: str, dbc: Path | None = None) -> Hand
 
 
 def _cmd_run_recipe(args: argparse.Namespace) -> int:
-    from handctl.stopsignals import StopSignals
+    from handctl.stopsignals import StopSignals, finished
 
     # The run's stop signals before anything else: a signal while the modules of a run load
     # (most of a second, more on a busy machine) is taken once they have, not inside one.
     with StopSignals() as signals:
         code = _run_recipe_under(args, signals)
+        finished()  # the run's result stands from here (``stopsignals.finished``)
     if signals.ignored:
         # taken, not lost: a SIGTERM that exited 0 without a word looked unheard
         print(
@@ -3350,6 +3351,15 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
 
 
 def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+    from handctl.stopsignals import finished
+
+    try:
+        return _said(func, args)
+    finally:
+        finished()
+
+
+def _said(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
     try:
         return func(args)
     except ConfigError as exc:
@@ -3497,7 +3507,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         # 130. ``handctl run`` turns both into its controlled stop once the run begins.
         if threading.current_thread() is not threading.main_thread():  # signals are not ours
             return _run_args(argv)
-        from handctl.stopsignals import ENDING, interrupt
+        from handctl.stopsignals import ENDING, interrupt, working
+
+        working()
 
         before = signal.signal(signal.SIGTERM, interrupt)
         # a terminal that went away, Ctrl-\\ (SIGQUIT: it ended a jog or a replay onto a bus

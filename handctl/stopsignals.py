@@ -59,9 +59,36 @@ def signal_name(number: int) -> str:
         return f"SIGRTMIN+{number - low}" if low and number > low else f"signal {number}"
 
 
+#: The names of the stop signals that came after the command had its result (``finished``):
+#: noted, not raised. Empty while the command works (``working``).
+LATE: list[str] = []
+
+
+class _Command:
+    finished = False  # whether the command has its result (``finished``)
+
+
+def working() -> None:
+    """A command begins (``cli.main``): a stop signal interrupts it again."""
+    _Command.finished = False
+    LATE.clear()
+
+
+def finished() -> None:
+    """The command has its result (its exit code, its files written): a stop signal from
+    here on has nothing left to stop. Raised as an interrupt, one that came as a run's summary
+    was printed turned the run's exit 0 into 130 ("interrupted", over a summary that says
+    completed)."""
+    _Command.finished = True
+
+
 def interrupt(signum: int, frame: object) -> None:
     """A signal as Ctrl-C: an interrupt that unwinds what was started, then exit 130 (the
-    handler of every command's stop signals before, and outside, a run's ``StopSignals``)."""
+    handler of every command's stop signals before, and outside, a run's ``StopSignals``);
+    once the command has its result (``finished``), noted in ``LATE`` instead."""
+    if _Command.finished:
+        LATE.append(signal_name(signum))
+        return
     raise KeyboardInterrupt(signal_name(signum))
 
 

@@ -209,3 +209,45 @@ def test_a_signal_after_the_hand_has_stopped_is_said_and_the_run_finishes(
     err = capsys.readouterr().err
     assert "handctl: SIGTERM came after the hand had stopped" in err
     assert json.loads(summary.read_text())["outcome"] == "time_budget"
+
+
+#: a SIGTERM to the command once it has its result: from a thread, as soon as the run's
+#: summary is written (renamed into place whole), or from the last exit handler, in the
+#: interpreter's own shutdown
+AFTER_THE_RESULT = """
+import atexit, os, signal, sys, threading, time
+
+when, summary = os.environ.pop("HANDCTL_TEST_LATE_SIGNAL", " ").split(" ", 1)
+
+def watch():
+    while not os.path.exists(summary):
+        time.sleep(0.0005)
+    os.kill(os.getpid(), signal.SIGTERM)
+
+if when == "summarised":
+    threading.Thread(target=watch, daemon=True).start()
+elif when == "shutdown":
+    atexit.register(os.kill, os.getpid(), signal.SIGTERM)  # registered first, run last
+"""
+
+
+@pytest.mark.parametrize("when", ["summarised", "shutdown"])
+def test_a_signal_after_the_command_has_its_result_leaves_its_exit(
+    tmp_path: Path, when: str
+) -> None:
+    """A SIGTERM once a run had finished and written its summary: raised as an interrupt as
+    the summary was printed, it turned the run's exit 0 into 130 ('interrupted'), and in the
+    interpreter's shutdown, which puts back every signal's default, it killed the process by
+    the signal (143 in a shell). The result stands."""
+    (tmp_path / "sitecustomize.py").write_text(AFTER_THE_RESULT)
+    summary = tmp_path / "summary.json"
+    path = os.pathsep.join(str(p) for p in (ROOT, tmp_path))
+    done = handctl(
+        "run", "recipe", DEFAULT_RECIPE, "--max-seconds", "0.3", "--summary-json", str(summary),
+        env={"PYTHONPATH": path, "HANDCTL_TEST_LATE_SIGNAL": f"{when} {summary}"},
+        timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert json.loads(summary.read_text())["outcome"] == "time_budget"
+    for said in ("interrupted", "Traceback", "Exception ignored"):
+        assert said not in done.stderr, done.stderr
