@@ -43,12 +43,12 @@ the palm from its end of the smaller x (``handshape.palm_ends``), centred on the
 The names are settled when the objects are first located (every estimate valid for
 ``LOCATE_S`` in a row; no estimate is reported before): the tracks are named in the recipe's
 order along the palm, the order a recipe lists its objects in (``session`` warns of a recipe
-that does not). Continuity names
-them from then on, through a turn that swaps them and through a stretch without a cage. Why
-not continuity from the seeds: until the cages close, the tracks wander through the open hand
-(deep in a link, from one pocket to another), and on a hand whose fingers close on objects
-apart from each other, which pocket each track ends in depended on the tick the estimator
-started on, so the names came out swapped on some runs and not on others.
+that does not). Continuity names them from then on, through a turn that swaps them and
+through a stretch without a cage. Why not continuity from the seeds: until the cages close,
+the tracks wander through the open hand (deep in a link, from one pocket to another), and on
+a hand whose fingers close on objects apart from each other, which pocket each track ends in
+depended on the tick the estimator started on, so the names came out swapped on some runs
+and not on others.
 
 One to four objects (the recipe's), and for each pair the recipe names (each object with the
 next by default) the angle of the line from the first centre to the second and its running
@@ -412,9 +412,9 @@ class ObjectEstimator:
     def _name_along_palm(self) -> None:
         """Settle the names, once: the tracks in their order along the palm take the recipe's
         names in its order (each track's state goes with it: its cage measured its radius), and
-        a pair whose line changed starts its turn count again.
-        Tracks closer along the palm than half the smaller radius have no order there (one
-        above the other): then the names stay as continuity gave them."""
+        a pair whose line changed starts its turn count again. Tracks closer along the palm
+        than half the smaller radius have no order there (one above the other): then the
+        names stay as continuity gave them."""
         self._named = True
         ux, uy = (self._palm[2], self._palm[3]) if self._palm is not None else (1.0, 0.0)
         along = [x * ux + y * uy for x, y in self.centres]
