@@ -42,7 +42,15 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from handctl import __version__
-from handctl.errors import BusError, ConfigError, Description, HandctlError, escaped, shown
+from handctl.errors import (
+    BusError,
+    ConfigError,
+    Description,
+    HandctlError,
+    absent,
+    escaped,
+    shown,
+)
 
 if TYPE_CHECKING:
     from handctl.bringup.jog import JogReport
@@ -99,7 +107,7 @@ def _load_hand(path: Path, option: str, dbc: Path | None = None) -> HandConfig:
             option,
             "",
             "an existing hand config file (HAND.yaml; " + DEFAULT_HAND_HELP + ")",
-            f"{path}: {'not a file' if path.exists() else 'no such file'}",
+            Description(f"{escaped(str(path))}: {'not a file' if path.exists() else absent(path)}"),
         )
     _check_dbc_file(dbc)
     return load_hand(path) if dbc is None else load_hand(path, dbc)
@@ -112,7 +120,7 @@ def _check_dbc_file(dbc: Path | None) -> None:
             "--dbc",
             "",
             "an existing DBC file (PROTOCOL.dbc)",
-            f"{dbc}: {'not a file' if dbc.exists() else 'no such file'}",
+            Description(f"{escaped(str(dbc))}: {'not a file' if dbc.exists() else absent(dbc)}"),
         )
 
 

@@ -9,7 +9,7 @@ code keeps working.
 from __future__ import annotations
 
 import reprlib
-from pathlib import PurePath
+from pathlib import Path, PurePath
 
 
 class HandctlError(Exception):
@@ -67,6 +67,15 @@ class HandctlTimeoutError(HandctlError, TimeoutError):
 
 #: characters of an offending value a message shows
 SHOWN_CHARS = 80
+
+
+def absent(path: Path) -> str:
+    """Why ``path``, which is no file, is none: "no such file", or a symbolic link that leads
+    nowhere (a loop of links, or a link to a name that does not exist), which the file system
+    reports as no file either and was said as "no such file" beside a name the user can see."""
+    if path.is_symlink():
+        return "a symbolic link that leads to no file (a loop of links, or a missing target)"
+    return "no such file"
 
 
 def escaped(text: str) -> str:

@@ -35,7 +35,7 @@ from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, Metadata, MetadataIndex, Schema, Statistics
 
-from handctl.errors import ConfigError, Description
+from handctl.errors import ConfigError, Description, absent
 from handctl.recording import channels as ch
 from handctl.recording.messages import MessageCheck
 
@@ -201,7 +201,7 @@ def open_recording(path: str | Path) -> Recording:
     says so."""
     path = Path(path)
     if not path.is_file():
-        raise _fail(path, "no such file" if not path.exists() else "not a regular file")
+        raise _fail(path, absent(path) if not path.exists() else "not a regular file")
     try:
         return _open_recording(path)
     except OSError as exc:

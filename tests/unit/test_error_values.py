@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from handctl.config import load_hand
-from handctl.errors import DESCRIPTION_CHARS, ConfigError, Description, escaped
+from handctl.errors import DESCRIPTION_CHARS, ConfigError, Description, absent, escaped
+from handctl.recording.reader import open_recording
 
 from ..conftest import HAND_YAML
 
@@ -145,3 +146,17 @@ def test_a_description_handctl_told_is_shown_whole_and_unquoted() -> None:
     text = str(ConfigError("f", "", "e", huge)).split("found ", 1)[1]
     assert len(text) == DESCRIPTION_CHARS - 1 and text.startswith("a") and text.endswith("b")
     assert "..." in text
+
+
+def test_a_link_that_leads_nowhere_is_said_as_one_not_as_no_such_file(tmp_path: Path) -> None:
+    """A loop of symbolic links, or a link to a name that is gone, is no file to the file
+    system, and was said as "no such file" beside a name the user can list. The command
+    that reads a hand config or a recording says what it is."""
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    (tmp_path / "dangling").symlink_to(tmp_path / "gone")
+    for name in ("a", "dangling"):
+        assert absent(tmp_path / name).startswith("a symbolic link that leads to no file")
+    assert absent(tmp_path / "never") == "no such file"
+    with pytest.raises(ConfigError, match="a symbolic link that leads to no file"):
+        open_recording(tmp_path / "a")
