@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,6 +26,9 @@ from handctl.recording import channels as ch
 from handctl.recording.reader import Recording
 from handctl.recording.replay import NOT_PHASES
 from handctl.recording.series import Series, line_angle, line_pairs, recorded_recipe_or_none
+
+if TYPE_CHECKING:
+    from handctl.online.recipes.schema import Recipe
 from handctl.wholefile import save_picture
 
 JOINT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
@@ -161,15 +164,15 @@ def turns_deg(
     ob = series.objects
     if not len(ob):
         return {}
-    pairs = line_pairs(recording, series.object_names)
     recipe = recorded_recipe_or_none(recording) if recording is not None else None
+    pairs = line_pairs(recipe, series.object_names)
     estimated_names: list[str] = []
     estimated = np.zeros((len(ob), 0))
     if recording is not None and recipe is not None and recipe.objects and recipe.pairs:
         estimated_names = [
             ch.pair_name(recipe.objects[a].name, recipe.objects[b].name) for a, b in recipe.pairs
         ]
-        estimated = _estimated_lines(recording, series, ob[:, 0])
+        estimated = _estimated_lines(recording, recipe, series, ob[:, 0])
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name, a, b in pairs:
         true = line_angle(ob, a, b)
@@ -182,7 +185,9 @@ def turns_deg(
     return out
 
 
-def _estimated_lines(recording: Recording, series: Series, at_s: np.ndarray) -> np.ndarray:
+def _estimated_lines(
+    recording: Recording, recipe: Recipe, series: Series, at_s: np.ndarray
+) -> np.ndarray:
     """The estimator's centre-line angles (rad), one column per pair of the recipe, as the
     loop had them at each time of ``at_s`` (s, the series' times): its estimate of the last
     tick before, NaN where it was not valid. The estimator is fed the logged angles of every
@@ -193,8 +198,7 @@ def _estimated_lines(recording: Recording, series: Series, at_s: np.ndarray) -> 
     from handctl.recording.reader import iter_decoded
 
     hand = recorded_hand(recording)
-    recipe = recorded_recipe_or_none(recording)
-    assert hand is not None and recipe is not None
+    assert hand is not None
     estimator = ObjectEstimator(hand, recipe.objects, recipe.pairs)
     count = len(recipe.pairs)
     times: list[int] = []

@@ -5,7 +5,7 @@ re-run is ``rerun``, the frames onto a bus or into a file ``frames``.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -16,6 +16,9 @@ from handctl.recording import channels as ch
 from handctl.recording.reader import Recording
 from handctl.recording.ring import RECORDED_STAGES
 from handctl.recording.series import Series, line_angle, line_pairs, recorded_recipe_or_none
+
+if TYPE_CHECKING:
+    from handctl.online.recipes.schema import Recipe
 
 #: Phase names that are the runner's status rather than a phase of the recipe.
 NOT_PHASES = frozenset({"-", "running", "completed", "aborted", "?"})
@@ -132,14 +135,15 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
             name: {"start": _pose(first, i, series.rest_y), "end": _pose(last, i, series.rest_y)}
             for i, name in enumerate(series.object_names)
         }
-    pairs = line_pairs(recording, series.object_names) if len(series.objects) else []
+    recipe = recorded_recipe_or_none(recording) if len(series.objects) else None
+    pairs = line_pairs(recipe, series.object_names) if len(series.objects) else []
     if pairs:
-        summary |= _pair_figures(recording, series, pairs)
+        summary |= _pair_figures(series, pairs, recipe)
     return summary
 
 
 def _pair_figures(
-    recording: Recording, series: Series, pairs: list[tuple[str, int, int]]
+    series: Series, pairs: list[tuple[str, int, int]], recipe: Recipe | None
 ) -> dict[str, Any]:
     """Each pair's centre line (the recipe's pairs, ``line_pairs``) at the start and the end
     and its turn per phase, under ``pairs`` by name as the experiment summary keys them; the
@@ -152,7 +156,6 @@ def _pair_figures(
     bounds = [(p["name"], p["start_s"], p["end_s"]) for p in series.phases]
     # the run's own manipulation phases, as its summary counted them (a log without a recipe
     # that parses: the phases named manipulate...)
-    recipe = recorded_recipe_or_none(recording)
     counted = recipe.manipulation_phases if recipe is not None else None
     figures: dict[str, dict[str, Any]] = {}
     for name, a, b in pairs:

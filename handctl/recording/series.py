@@ -285,14 +285,14 @@ def recorded_recipe_or_none(recording: Recording) -> Recipe | None:
         return None
 
 
-def line_pairs(recording: Recording | None, names: Sequence[str]) -> list[tuple[str, int, int]]:
+def line_pairs(recipe: Recipe | None, names: Sequence[str]) -> list[tuple[str, int, int]]:
     """The pairs of logged objects whose centre line a replay measures, as ``(name, a, b)``
     with ``a``, ``b`` indices into ``names`` (``Series.object_names``): the recorded
-    recipe's ``pairs``, in its order, or each object with the next for a log whose recipe
+    ``recipe``'s ``pairs`` (``recorded_recipe_or_none``, read once by the caller: a tenth of
+    a second each time), in its order, or each object with the next for a log whose recipe
     names none (or that has none that reads). Not simply the first two objects: a recipe of
     four objects that measures the third with the fourth was summarised by a line it never
     declared."""
-    recipe = recorded_recipe_or_none(recording) if recording is not None else None
     named = (
         [(recipe.objects[a].name, recipe.objects[b].name) for a, b in recipe.pairs]
         if recipe is not None
