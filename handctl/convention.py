@@ -90,6 +90,12 @@ def turn_deg(line_angle: npt.ArrayLike) -> npt.NDArray[np.float64]:
 MANIPULATE_PREFIX = "manipulate"
 
 
+def is_manipulation(phase: str, counted: Container[str] | None = None) -> bool:
+    """Whether ``phase`` is one of the manipulation phases ``counted`` names (a recipe's
+    ``manipulation_phases``), or without them, one named ``manipulate...``."""
+    return phase in counted if counted is not None else phase.startswith(MANIPULATE_PREFIX)
+
+
 def phase_turns_deg(
     t: npt.ArrayLike,
     line_angle: npt.ArrayLike,
@@ -107,7 +113,7 @@ def phase_turns_deg(
     times, turn = times[finite], turn[finite]
     out = []
     for name, start, end in phases:
-        if not (name in counted if counted is not None else name.startswith(MANIPULATE_PREFIX)):
+        if not is_manipulation(name, counted):
             continue
         first = int(np.searchsorted(times, start - 1e-9))
         last = min(int(np.searchsorted(times, end - 1e-9)), len(times) - 1)

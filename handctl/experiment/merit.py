@@ -59,9 +59,9 @@ import numpy as np
 
 from handctl.convention import (
     LIFT_HEIGHT,
-    MANIPULATE_PREFIX,
     POSE_EVERY_TICKS,
     RATE_WINDOW_S,
+    is_manipulation,
     phase_turns_deg,
 )
 from handctl.handshape import hand_span
@@ -218,12 +218,6 @@ def _p95_deg(err: np.ndarray) -> float | None:
 ENDED_AS_ASKED = ("completed", "time_budget")
 
 
-def _manipulates(trace: Trace, phase: str) -> bool:
-    if trace.manipulation is not None:
-        return phase in trace.manipulation
-    return phase.startswith(MANIPULATE_PREFIX)
-
-
 def experiment_summary(
     trace: Trace, min_total_turn_deg: float = 0.0, outcome: str = "completed"
 ) -> dict[str, Any]:
@@ -269,7 +263,7 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
         return empty
     t, heights, poses = a["t"], a["heights"], a["poses"]
     segments = _segments(trace.phase)
-    manip = [s for s in segments if _manipulates(trace, s[0])]
+    manip = [s for s in segments if is_manipulation(s[0], trace.manipulation)]
     first_manip = manip[0][1] if manip else n
     end_manip = manip[-1][2] if manip else n
     up = heights >= LIFT_HEIGHT

@@ -23,7 +23,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from handctl.convention import MANIPULATE_PREFIX
+from handctl.convention import is_manipulation
 from handctl.online.recipes.guard import LimitGuard
 
 #: The most objects a recipe may grasp and the estimator tracks (the simulated hand's most).
@@ -356,7 +356,7 @@ class Phase:
         ``line_turn``). By the name alone, a turn phase named for what it does ('turn',
         'swap') was one the summary said turned the pair nothing, without a word."""
         return (
-            self.name.startswith(MANIPULATE_PREFIX)
+            is_manipulation(self.name)
             or self.provenance.get("kind") == "turn"
             or self.turn_sense() is not None
         )
