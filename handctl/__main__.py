@@ -1,11 +1,10 @@
 """``python -m handctl`` is the ``handctl`` command; ``entry`` is both's first line."""
 
-import contextlib
 import os
 import signal
 import sys
 
-from handctl.stopsignals import ENDING, LATE, interrupt  # the standard library's modules only
+from handctl.stopsignals import ENDING, interrupt  # the standard library's modules only
 
 
 def _standard_descriptors() -> None:
@@ -59,32 +58,14 @@ def entry() -> int:
             signal.signal(sig, interrupt)
     try:
         _load_orjson()
-        from handctl.cli import main
+        from handctl.cli import leave, main
 
         code = main()
     except KeyboardInterrupt:
         print("handctl: interrupted", file=sys.stderr)
         return 130
-    _exit_as_decided(code)
+    leave(code)
     return code
-
-
-def _exit_as_decided(code: int) -> None:
-    """The command has its result: the stop signals are ignored for what is left, the
-    interpreter's own shutdown. That shutdown puts back the default of every signal with a
-    Python handler, and a SIGTERM in its last tens of milliseconds killed the process by the
-    signal (exit -15, 143 in a shell) after a run that had finished and written its summary.
-    One noted on the way (``stopsignals.LATE``) is said, unless the command said it."""
-    for sig in (signal.SIGINT, signal.SIGTERM, *ENDING):
-        if signal.getsignal(sig) is interrupt:
-            signal.signal(sig, signal.SIG_IGN)
-    if LATE and sys.stderr is not None:
-        names = ", ".join(dict.fromkeys(LATE))
-        with contextlib.suppress(OSError, ValueError):  # a stderr that cannot be written
-            print(
-                f"handctl: {names} came after the command had finished; its exit ({code}) stands",
-                file=sys.stderr,
-            )
 
 
 if __name__ == "__main__":

@@ -3362,13 +3362,6 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
     from handctl.stopsignals import finished
 
     try:
-        return _said(func, args)
-    finally:
-        finished()
-
-
-def _said(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
-    try:
         return func(args)
     except ConfigError as exc:
         print(f"handctl: error: {exc}", file=sys.stderr)
@@ -3407,6 +3400,8 @@ def _said(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -
         )
         traceback.print_exception(exc, file=sys.stderr)
         return EXIT_FAILED
+    finally:
+        finished()  # the command has its result (``stopsignals.finished``)
 
 
 class _ReaderMayLeave(io.TextIOBase):
@@ -3538,6 +3533,27 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(signal.SIGINT, before_int)
             for sig, inherited in ending.items():
                 signal.signal(sig, inherited)
+
+
+def leave(code: int) -> None:
+    """What ``__main__.entry`` does once the command has its result (``code``, its exit):
+    the stop signals are ignored for what is left, the interpreter's own shutdown. That
+    shutdown puts back the default of every signal with a Python handler, and a SIGTERM in
+    its last tens of milliseconds killed the process by the signal (exit -15, 143 in a shell)
+    after a run that had finished and written its summary. One noted on the way
+    (``stopsignals.LATE``) is said."""
+    from handctl.stopsignals import ENDING, LATE, interrupt
+
+    for sig in (signal.SIGINT, signal.SIGTERM, *ENDING):
+        if signal.getsignal(sig) is interrupt:
+            signal.signal(sig, signal.SIG_IGN)
+    if LATE and sys.stderr is not None:
+        names = ", ".join(dict.fromkeys(LATE))
+        with contextlib.suppress(OSError, ValueError):  # a stderr that cannot be written
+            print(
+                f"handctl: {names} came after the command had finished; its exit ({code}) stands",
+                file=sys.stderr,
+            )
 
 
 def _run_args(argv: Sequence[str] | None) -> int:
