@@ -180,7 +180,9 @@ class ObjectEstimator:
         period = hand.bus.period_s
         self._speed_gain = period / (STILL_TIME_CONSTANT + period)
         self._per_tick = 1.0 / period
-        self._period = period
+        # the two waits before the objects are located, in ticks of this hand's loop
+        self._locate_ticks = math.ceil(LOCATE_S / period - 1e-9)
+        self._stuck_ticks = math.ceil(STUCK_S / period - 1e-9)
         first, last = palm_ends(hand)
         length = math.dist(first, last)
         self._palm: Segment | None = None
@@ -326,7 +328,7 @@ class ObjectEstimator:
         )
         if not self._named:
             self._located = self._located + 1 if self.valid else 0
-            if self._located * self._period >= LOCATE_S - 1e-12:
+            if self._located >= self._locate_ticks:
                 self._name_along_palm()
             else:
                 self.valid = False  # not located yet: no name is known to be the object's
@@ -402,7 +404,7 @@ class ObjectEstimator:
             self._stuck += 1
         else:
             self._stuck = 0
-        if self._stuck * self._period >= STUCK_S:
+        if self._stuck >= self._stuck_ticks:
             self._stuck = 0
             m = len(self.radii)
             self.centres = list(self._seeds)
