@@ -55,7 +55,7 @@ from yaml import Node as Node  # noqa: PLC0414 - re-exported
 from yaml import ScalarNode as ScalarNode  # noqa: PLC0414 - re-exported
 from yaml import SequenceNode as SequenceNode  # noqa: PLC0414 - re-exported
 
-from handctl.errors import ConfigError, Description, quoted, shown
+from handctl.errors import ConfigError, Description, absent, quoted, shown
 
 _MISSING: Any = object()
 
@@ -95,7 +95,7 @@ def read_input(path: str | Path, expected: str, limit: int) -> bytes:
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
-        raise ConfigError(name, "", "an existing file", "no such file") from None
+        raise ConfigError(name, "", "an existing file", _Text(absent(Path(path)))) from None
     except OSError as exc:
         raise ConfigError(name, "", expected, str(exc)) from None
     try:

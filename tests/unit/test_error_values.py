@@ -11,6 +11,7 @@ import pytest
 from handctl.config import load_hand
 from handctl.errors import DESCRIPTION_CHARS, ConfigError, Description, absent, escaped
 from handctl.recording.reader import open_recording
+from handctl.schema import read_input
 
 from ..conftest import HAND_YAML
 
@@ -160,3 +161,16 @@ def test_a_link_that_leads_nowhere_is_said_as_one_not_as_no_such_file(tmp_path: 
     assert absent(tmp_path / "never") == "no such file"
     with pytest.raises(ConfigError, match="a symbolic link that leads to no file"):
         open_recording(tmp_path / "a")
+
+
+def test_a_recipe_or_template_behind_a_link_that_leads_nowhere_is_said_as_one(
+    tmp_path: Path,
+) -> None:
+    """Every YAML input (a recipe, a template, a fault scenario) is read through one reader,
+    which said "no such file" of a dangling link the user can see in a listing."""
+    (tmp_path / "recipe.yaml").symlink_to(tmp_path / "gone.yaml")
+    with pytest.raises(ConfigError, match="a symbolic link that leads to no file") as caught:
+        read_input(tmp_path / "recipe.yaml", "a recipe", 100)
+    assert "recipe.yaml" in str(caught.value)
+    with pytest.raises(ConfigError, match="no such file"):
+        read_input(tmp_path / "never.yaml", "a recipe", 100)
