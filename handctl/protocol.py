@@ -19,6 +19,7 @@ them fails loudly instead of producing frames the receivers reject):
 from __future__ import annotations
 
 import enum
+import logging
 import math
 import re
 import struct
@@ -28,7 +29,11 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from handctl.errors import ConfigError, ProtocolError
+from handctl.errors import ConfigError, Description, ProtocolError
+
+# cantools warns through logging of two messages on one id; with no handler set up, Python
+# printed that as a bare line before handctl's own message about the same clash
+logging.getLogger("cantools").addHandler(logging.NullHandler())
 
 DEFAULT_DBC = Path(__file__).resolve().parent.parent / "firmware_protocol" / "handctl.dbc"
 
@@ -409,6 +414,18 @@ def parse_protocol(text: str, source: str) -> Protocol:
         raise ConfigError(source, "", "a valid DBC", f"{type(exc).__name__}: {exc}") from None
     send_choices = _enum_choices(db, "HandctlSend")
     layouts = [_compile(message, source, send_choices) for message in db.messages]
+    frame_ids: dict[int, str] = {}
+    for layout in layouts:
+        # before the DataIDs: a DBC names a message's attributes by its frame id, so two
+        # messages on one id share them, and the clash was said as one of DataIDs
+        if layout.frame_id in frame_ids:
+            raise ConfigError(
+                source,
+                f"{layout.name} id",
+                f"a CAN id not used by {frame_ids[layout.frame_id]}",
+                Description(f"0x{layout.frame_id:03X}, {frame_ids[layout.frame_id]}'s"),
+            )
+        frame_ids[layout.frame_id] = layout.name
     data_ids: dict[int, str] = {}
     for layout in layouts:
         if layout.data_id in data_ids:
@@ -440,6 +457,17 @@ def _enum_choices(db: Any, attribute: str) -> list[str]:
 
 def _compile(message: Any, source: str, send_choices: list[str]) -> Layout:
     where = message.name
+    if message.is_extended_frame:
+        # handctl speaks 11-bit ids only (online/bus.py) and takes a 29-bit frame for none of
+        # its own: a DBC that declares one passed every check, and firmware built from it
+        # sends frames the host never reads (every run a HEARTBEAT_LOST, the bus budgeted
+        # for shorter frames than sent)
+        raise ConfigError(
+            source,
+            f"{where} id",
+            "an 11-bit (standard) CAN id",
+            Description(f"the extended (29-bit) id 0x{message.frame_id:08X}"),
+        )
     if message.length not in FD_DLC_SIZES[1:]:
         # a CAN-FD frame carries one of these lengths, 64 bytes at most: a longer one was a
         # traceback from the bus budget (and a C codec was generated for it), one between

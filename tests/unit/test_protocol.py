@@ -182,3 +182,36 @@ def _refused(tmp_path: Path, old: str, new: str) -> ConfigError:
     with pytest.raises(ConfigError) as info:
         load_protocol(path)
     return info.value
+
+
+def test_a_message_on_an_extended_id_is_refused(tmp_path: Path) -> None:
+    """handctl reads 11-bit frames only; a DBC declaring Heartbeat_1 on the 29-bit id 0x701
+    passed check, nodes and the C codec's generator, and firmware built from it sends
+    heartbeats the host never reads (every run a HEARTBEAT_LOST)."""
+    text = DEFAULT_DBC.read_text()
+    extended = 0x701 | 0x80000000  # the DBC's flag of an extended id
+    assert " 1793 " in text
+    path = tmp_path / "bad.dbc"
+    path.write_text(text.replace(" 1793 ", f" {extended} "))
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    assert info.value.key == "Heartbeat_1 id"
+    assert info.value.expected == "an 11-bit (standard) CAN id"
+    assert "found the extended (29-bit) id 0x00000701" in str(info.value)
+
+
+def test_two_messages_on_one_id_are_said_as_such(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A DBC sets a message's attributes by its id, so Feedback_1 moved onto EStop's id 0 took
+    EStop's DataID, and the clash was said as one of DataIDs (after a line cantools printed
+    through logging)."""
+    text = DEFAULT_DBC.read_text()
+    path = tmp_path / "bad.dbc"
+    path.write_text(text.replace(" 385 ", " 0 "))  # the message, its comment, attributes
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    err = info.value
+    assert err.key == "Feedback_1 id" and err.expected == "a CAN id not used by EStop"
+    assert "found 0x000, EStop's" in str(err)
+    assert capfd.readouterr().err == ""
