@@ -30,6 +30,8 @@ NODE_TICK_NS = 1_000_000
 #: past it under gravity and stopped the run at tick 1 (ANGLE_LIMIT), one 1 mrad inside at
 #: tick 6; 10 mrad held
 START_MARGIN = 0.01
+#: rad, what the start's margin forgives of a difference of two decimal angles in binary
+_ROUNDING_RAD = 1e-9
 #: m and kg, the thinnest and the lightest simulated link: MuJoCo refuses a body whose
 #: inertia is below its mjMINVAL (a link of 1e-12 kg, or one 1e-9 m thick, ended a run in a
 #: traceback, exit 1); no finger is thinner than 2 mm or lighter than the lightest object
@@ -466,7 +468,10 @@ def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...]
         )
         where = Doc({}, doc.file, doc.key_path(finger.name))
         for k, (value, joint) in enumerate(zip(values, finger.joints, strict=True)):
-            if not joint.angle_min + START_MARGIN <= value <= joint.angle_max - START_MARGIN:
+            inside = min(value - joint.angle_min, joint.angle_max - value)
+            # to a nanoradian: 0.06 against a limit of 0.05 is 0.00999... in binary, and was
+            # refused where 0.51 against 0.50 was taken
+            if not inside >= START_MARGIN - _ROUNDING_RAD:
                 where.fail(
                     k,
                     f"an angle within the soft limits of {joint.name} "

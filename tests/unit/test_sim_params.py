@@ -480,3 +480,29 @@ def test_a_scene_mujoco_cannot_build_is_bad_input(
     assert err.value.file == hand.source
     assert err.value.key == "sim"
     assert problem in str(err.value.found)
+
+
+def test_a_start_one_margin_inside_a_limit_is_taken_however_the_decimals_round(
+    hand: HandConfig,
+) -> None:
+    """0.06 against a lower limit of 0.05 is 0.00999... rad in binary: it was refused as less
+    than the 0.01 rad margin, where 0.51 against 0.50 was taken."""
+    finger = hand.fingers[1]
+    joint = dataclasses.replace(finger.joints[1], angle_min=0.05)
+    fingers = list(hand.fingers)
+    fingers[1] = dataclasses.replace(finger, joints=(finger.joints[0], joint, *finger.joints[2:]))
+    moved = dataclasses.replace(hand, fingers=tuple(fingers))
+
+    def start(value: float) -> Any:
+        def edit(s: dict[str, Any]) -> None:
+            angles = list(s["initial_angles"][finger.name])
+            angles[1] = value
+            s["initial_angles"] = {**s["initial_angles"], finger.name: angles}
+
+        return edit
+
+    p = parse_sim(_with_sim(moved, start(0.06)))
+    assert p.initial_angles[1][1] == 0.06
+    with pytest.raises(ConfigError) as err:
+        parse_sim(_with_sim(moved, start(0.0599)))
+    assert err.value.key == f"sim.initial_angles.{finger.name}[1]"
