@@ -330,6 +330,7 @@ class Runtime:
             reanalyser=self.reanalyser,
             sizes=self.estimator,
             backoff=RateBackoff.for_hand(self.hand, self.supervisor.dt),
+            period_s=self.supervisor.dt,
         )
 
     def request_estop(self, reason: str = "operator") -> None:

@@ -243,7 +243,9 @@ class Episode:
             "episode", "<episode>", "", (phase,), 1.0, None, False, limit_guard=self.guard
         )
         backoff = RateBackoff.for_hand(self.hand, NODE_TICK_S)  # unless handed over
-        runner = RecipeRunner(recipe, self.hand.n_joints, self.handover, backoff=backoff)
+        runner = RecipeRunner(
+            recipe, self.hand.n_joints, self.handover, backoff=backoff, period_s=NODE_TICK_S
+        )
         plant, est = self.plant, self.estimator
         quantum = self._quantum
         t0 = self.tick

@@ -16,7 +16,7 @@ import yaml
 
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
-from handctl.online.recipes.guard import GUARD_VELOCITY_WINDOW
+from handctl.online.recipes.guard import GUARD_VELOCITY_SPAN_S
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.runner import RecipeRunner
 from handctl.online.recipes.schema import FIRST_PAIR_TURN, Recipe, RecipeObject, estimate_names
@@ -190,15 +190,16 @@ def _move(
     seconds: float,
     t: float = 0.0,
     angle: np.ndarray | None = None,
+    dt: float = DT,
 ) -> tuple[float, np.ndarray, np.ndarray]:
-    """Feed every joint moving at ``speed`` (rad/s); returns the time, the angles, the last
-    torques."""
+    """Feed every joint moving at ``speed`` (rad/s) every ``dt`` (s); returns the time, the
+    angles, the last torques."""
     angle = np.zeros(9) if angle is None else angle
     out = np.zeros(9)
-    for _ in range(round(seconds / DT)):
+    for _ in range(round(seconds / dt)):
         out = runner.step(t, angle, np.zeros(9)).copy()
-        angle = angle + speed * DT
-        t += DT
+        angle = angle + speed * dt
+        t += dt
     return t, angle, out
 
 
@@ -211,16 +212,22 @@ def test_injected_damping_opposes_every_joint_s_velocity(tmp_path: Path, hand: H
     assert np.all(runner.damping == 0.03)
 
 
-def test_injected_damping_acts_on_a_speed_eight_ticks_old_at_most(
-    tmp_path: Path, hand: HandConfig
+@pytest.mark.parametrize("dt", [DT, 0.004])
+def test_injected_damping_acts_on_a_speed_7_ms_old_at_most(
+    tmp_path: Path, hand: HandConfig, dt: float
 ) -> None:
     """A damper acts through the drive's lag plus its velocity's own, and the most a lightly
-    damped joint tolerates falls with that lag: the damping reads the line through the last
-    eight angles (``GUARD_VELOCITY_WINDOW``), whole after eight ticks of a new speed, where a
-    10 ms low-pass would still be at little more than half of it."""
-    runner = RecipeRunner(_recipe(tmp_path, hand, {"joint_damping": 0.03}, objects=False), 9)
-    t, angle, _ = _move(runner, 0.0, 2 * RAMP)
-    _, _, out = _move(runner, 2.0, (GUARD_VELOCITY_WINDOW + 1) * DT, t, angle)
+    damped joint tolerates falls with that lag: the damping reads the line through the angles
+    of the last 7 ms (``GUARD_VELOCITY_SPAN_S``), whole 7 ms after a new speed, where a 10 ms
+    low-pass would still be at little more than half of it. At 250 Hz as at 1 kHz: counted in
+    eight ticks, it was 28 ms long there."""
+    recipe = _recipe(tmp_path, hand, {"joint_damping": 0.03}, objects=False)
+    runner = RecipeRunner(recipe, 9, period_s=dt)
+    t, angle, _ = _move(runner, 0.0, 2 * RAMP, dt=dt)
+    ticks = round(GUARD_VELOCITY_SPAN_S / dt)
+    t, angle, out = _move(runner, 2.0, ticks * dt, t, angle, dt=dt)  # the line not yet whole
+    assert out != pytest.approx(np.array(TORQUES) - 0.03 * 2.0, abs=1e-6)
+    _, _, out = _move(runner, 2.0, dt, t, angle, dt=dt)
     assert out == pytest.approx(np.array(TORQUES) - 0.03 * 2.0, abs=1e-6)
 
 

@@ -22,18 +22,18 @@ Two things decide whether that damper acts in time, and both are the drive's lag
 ×0.5..×2 over the model set) against the joint's own damping (×0.3..×3). A spring acting
 through a lag ``tau`` is a negative damping of about ``gain * tau``; the guard's spring
 (``tau_max / band``, 2 N·m/rad on a distal joint) through 5..10 ms is 0.01..0.02 N·m·s/rad,
-as much as a nominal joint's own damping and several times a lightly damped one's. The
-damper that makes up for it must not add much lag of its own, so it acts on a velocity of
-its own: the slope of a line through the last 8 angles (``velocity.FittedVelocity``), which
-lags by 3.5 ms where the recipe's low-pass lags by 10 ms, and moves by a sixth as much when
-an encoder count comes in. And a finger flung at a limit on a lightly damped hand (the lift
-on a hand whose damping is ×0.3 moves the distal joints at 20 rad/s, three times the
-nominal's) crosses both bands in less than the lag: the damper therefore judges where the
-joint will be ``lookahead`` later at its present speed (``GUARD_LOOKAHEAD_S``), so it meets
-a fast joint early enough to brake it before the spring's band, and a slow one as before.
-A stronger damper (0.016 s) caught the light hands as well but made the nominal run's
-torques chatter (0.0068 N·m a tick at p99), so its strength is the one the nominal was
-tuned with.
+as much as a nominal joint's own damping and several times a lightly damped one's. The damper
+that makes up for it must not add much lag of its own, so it acts on a velocity of its own:
+the slope of a line through the angles of the last 7 ms (8 ticks at 1 kHz,
+``velocity.FittedVelocity``), which lags by 3.5 ms where the recipe's low-pass lags by 10 ms,
+and moves by a sixth as much when an encoder count comes in. And a finger flung at a limit on
+a lightly damped hand (the lift on a hand whose damping is ×0.3 moves the distal joints at 20
+rad/s, three times the nominal's) crosses both bands in less than the lag: the damper
+therefore judges where the joint will be ``lookahead`` later at its present speed
+(``GUARD_LOOKAHEAD_S``), so it meets a fast joint early enough to brake it before the
+spring's band, and a slow one as before. A stronger damper (0.016 s) caught the light hands
+as well but made the nominal run's torques chatter (0.0068 N·m a tick at p99), so its
+strength is the one the nominal was tuned with.
 
 A light joint's spring may need a wider band than the guard's. The same spring through the
 same lag is a faster ring on a lighter link: on a distal joint (6e-5 kg·m²) the 2 N·m/rad
@@ -66,9 +66,18 @@ GUARD_DAMPING_S = 0.008
 #: damper needs to slow the joint, so that a joint flung at its limit on a lightly damped
 #: hand is braked before the spring's band, not inside it
 GUARD_LOOKAHEAD_S = 0.03
-#: ticks, the line the guard's velocities are the slope of (``velocity.FittedVelocity``): it
-#: lags by 3.5 ms, not the recipe's low-pass's 10, and an encoder count moves it by 0.05 rad/s
-GUARD_VELOCITY_WINDOW = 8
+#: s, the span of the line the dampers' velocities are the slope of
+#: (``velocity.FittedVelocity``): eight ticks at 1 kHz, where it lags by 3.5 ms, not the
+#: recipe's low-pass's 10, and an encoder count moves it by 0.05 rad/s. Counted in ticks, it
+#: lagged by 14 ms at 250 Hz, and the guard's damper came too late to hold the spring (a
+#: distal joint's command rang at 20 Hz for seconds where at 500 Hz and up it held)
+GUARD_VELOCITY_SPAN_S = 0.007
+
+
+def fitted_window(period_s: float) -> int:
+    """The ticks of ``GUARD_VELOCITY_SPAN_S`` at a loop period of ``period_s`` (s): the
+    line's span in time, whatever the rate (8 at 1 kHz, 3 at 250 Hz, 15 at 2 kHz)."""
+    return max(2, round(GUARD_VELOCITY_SPAN_S / period_s) + 1)
 
 
 #: the two sides of a joint's range a spring band may be given for
@@ -122,7 +131,6 @@ class LimitGuard:
     tau_max: tuple[float, ...]  # N·m
     damping: tuple[float, ...] = ()  # N·m·s/rad, at full strength inside the band; (): none
     lookahead: float = 0.0  # s, the damper acts on the angle this far ahead at the velocity
-    velocity_window: int = GUARD_VELOCITY_WINDOW  # ticks, of the velocity it damps
 
     @classmethod
     def for_hand(

@@ -74,7 +74,7 @@ import numpy as np
 
 from handctl.arrays import FloatArray
 from handctl.online.recipes.backoff import RateBackoff
-from handctl.online.recipes.guard import GUARD_VELOCITY_WINDOW
+from handctl.online.recipes.guard import fitted_window
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import (
     FIRST_PAIR_TURN,
@@ -144,7 +144,10 @@ class RecipeRunner:
         reanalyser: Reanalyser | None = None,
         sizes: MeasuredSizes | None = None,
         backoff: RateBackoff | None = None,
+        period_s: float = 0.001,
     ) -> None:
+        """``period_s`` (s) is the period of the loop that feeds it, on which the dampers'
+        velocity is a line spanning ``GUARD_VELOCITY_SPAN_S``."""
         self.recipe = recipe
         # the injected damping's gains against the supervisor's rate limit (backoff.py);
         # None: the recipe's damping as it is (a runner driving no supervisor)
@@ -195,10 +198,7 @@ class RecipeRunner:
         # injected damping and the brake): a damper's stable gain on a light link falls with
         # the lag around it, and this one adds 3.5 ms where the low-pass adds 10. Kept for
         # every recipe (about 4 µs a tick): a phase's damping may come in through a handover
-        self._fitted_velocity = FittedVelocity(
-            n_joints,
-            self._guard.velocity_window if self._guard is not None else GUARD_VELOCITY_WINDOW,
-        )
+        self._fitted_velocity = FittedVelocity(n_joints, fitted_window(period_s))
         self._fraction = 1.0  # of the current ramp
         # the turn-rate loop of the current phase: scale, its integral part, the rate
         self.scale = 1.0
