@@ -59,6 +59,7 @@ if TYPE_CHECKING:
     from handctl.planning.replan import Base
     from handctl.planning.template import Template
     from handctl.recording.rerun import RerunReport
+    from handctl.sim.params import SimParams
     from handctl.stopsignals import StopSignals
 
 EXIT_OK = 0
@@ -331,6 +332,34 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
 SLOW_SLEW_S = 0.25
 
 
+def _scene_warnings(hand: HandConfig, scene: SimParams | None) -> list[str]:
+    """What a hand config allows that no run of the experiment can do: the config is sound
+    (bring-up, jog and any recipe without these parts run), but the user would otherwise
+    learn it from every run's failure."""
+    from handctl.convention import LIFT_HEIGHT
+    from handctl.online.recipes.loader import GUARD_BAND_MIN, fits_no_guard
+
+    out = []
+    for joint in hand.joints:
+        span = joint.angle_max - joint.angle_min
+        if fits_no_guard(span):
+            out.append(
+                f"{escaped(joint.name)}'s range of {span:.4g} rad holds no two of the "
+                f"soft-limit guard's narrowest bands ({GUARD_BAND_MIN:g} rad): every recipe "
+                "with a limit_guard_band is refused on this hand"
+            )
+    for obj in scene.objects if scene is not None else ():
+        # the palm's face is y = 0, the objects below it: the most a centre can rise
+        room = -obj.radius - obj.y
+        if room < LIFT_HEIGHT:
+            out.append(
+                f"sim.objects: {escaped(obj.name)} can rise {room * 1e3:.1f} mm before it "
+                f"meets the palm, and the experiment counts an object lifted at "
+                f"{LIFT_HEIGHT * 1e3:g} mm above its rest: no run on this scene succeeds"
+            )
+    return out
+
+
 def _cmd_check(args: argparse.Namespace) -> int:
     # an option of the other check did nothing, without a word: `check --json t.json` wrote
     # no file, `check --timing --dbc nosuch.dbc` never looked at it
@@ -418,6 +447,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
                 "where the guard would have held it)",
                 file=sys.stderr,
             )
+    for warning in _scene_warnings(hand, scene):
+        print(f"handctl: warning: {escaped(str(args.hand))}: {warning}", file=sys.stderr)
     refusals = bus_refusals(hand, protocol, budget)
     if not refusals:
         print("ok")

@@ -380,6 +380,29 @@ def test_check_warns_of_a_rate_limit_that_starves_the_guard(
     assert "warning" not in capsys.readouterr().err
 
 
+def test_check_warns_of_a_scene_no_run_of_the_experiment_can_do(
+    tmp_path: Path, base: dict[str, Any], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A joint whose range holds no two of the guard's narrowest bands, and an object with
+    less room under the palm than the lift the experiment counts, passed check with "ok":
+    every recipe with a guard was then refused, every run on the scene failed, each found
+    out one run at a time. The config is sound (bring-up and a guardless recipe run): said."""
+    from handctl import cli
+
+    joint = joint_of(base, 0, 2)
+    start = base["sim"]["initial_angles"][base["fingers"][0]["name"]][2]
+    joint.update(angle_min=start - 0.015, angle_max=start + 0.015)
+    base["sim"]["objects"][0]["y"] = -0.028
+    path = write(tmp_path, base)
+    assert cli.main(["check", str(path)]) == cli.EXIT_OK
+    err = capsys.readouterr().err
+    name, obj = joint["name"], base["sim"]["objects"][0]["name"]
+    assert f"handctl: warning: {path}: {name}'s range of 0.03 rad holds no two " in err
+    assert "every recipe with a limit_guard_band is refused on this hand" in err
+    assert f"handctl: warning: {path}: sim.objects: {obj} can rise 8.0 mm before it " in err
+    assert err.count("handctl: warning:") == 2
+
+
 def test_check_cli_bad_config_exits_2_with_the_message(
     tmp_path: Path, base: dict[str, Any]
 ) -> None:

@@ -357,3 +357,23 @@ def test_the_band_check_names_the_narrowest_joint_and_holds_at_exactly_half(
             narrow_hand,
         )
     assert err.value.key == "limit_guard_spring_bands.f2_j3"
+
+
+def test_a_joint_no_two_bands_fit_in_is_said_to_take_no_guard(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A range of 0.03 rad holds no two of the narrowest bands (0.02 rad): the refusal
+    offered bands of the joint's own, which were refused in their turn, whatever they were."""
+    import dataclasses
+
+    from handctl.errors import ConfigError
+
+    tight = dataclasses.replace(hand.fingers[0].joints[2], angle_min=0.1, angle_max=0.13)
+    f1 = dataclasses.replace(hand.fingers[0], joints=(*hand.fingers[0].joints[:2], tight))
+    narrow_hand = dataclasses.replace(hand, fingers=(f1, *hand.fingers[1:]))
+    with pytest.raises(ConfigError) as err:
+        load_recipe(_recipe(tmp_path, narrow_hand, limit_guard_band=0.15), narrow_hand)
+    assert "bands of its own" not in err.value.expected
+    assert "no two bands of 0.02 rad fit in it: a recipe for this hand has no " in (
+        err.value.expected
+    )

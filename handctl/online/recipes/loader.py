@@ -59,6 +59,14 @@ MIN_OBJECT_RADIUS = 0.005
 #: rings says so (``safety.chatter``)
 GUARD_BAND_MIN = 0.02
 GUARD_BAND_MAX = 0.5
+
+
+def fits_no_guard(span: float) -> bool:
+    """Whether a joint's range of ``span`` (rad) is too narrow for the guard's two narrowest
+    bands, so that no recipe with a guard can run on its hand."""
+    return span - RANGE_ROUNDING_RAD <= 2 * GUARD_BAND_MIN
+
+
 #: deg, the most ``min_total_turn_deg`` may ask for (a few turns of the pair)
 MAX_TOTAL_TURN_DEG = 1440.0
 #: deg/s, the fastest turn a turn-rate loop may ask for (a quasi-static analysis covers less)
@@ -346,11 +354,17 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
             # the two springs overlapped: every angle of the joint was inside a band, pushed
             # back from one limit into the other (a narrow joint's every run stopped on
             # ANGLE_LIMIT, its recipe and hand config both passing their checks)
+            remedy = (
+                f"or give it bands of its own in {spring_key}"
+                if not fits_no_guard(span)
+                # where no two bands fit, the remedy offered was refused in its turn
+                else f"no two bands of {GUARD_BAND_MIN:g} rad fit in it: a recipe for this "
+                "hand has no limit_guard_band"
+            )
             doc.fail(
                 "limit_guard_band",
                 f"a band whose two sides leave room in every joint's range: below half of "
-                f"{joint.name}'s {span:.4g} rad, the narrowest (in {hand.source}; or give it "
-                f"bands of its own in {spring_key})",
+                f"{joint.name}'s {span:.4g} rad, the narrowest (in {hand.source}; {remedy})",
                 band,
             )
     return GuardSettings(band, tuple(springs))
