@@ -228,6 +228,7 @@ def run_recipe(
         # the experiment is measured on the simulated objects of the recipe's names
         check_scene_names(req.recipe.source, [o.name for o in req.recipe.objects], req.hand)
         warnings += _object_order(req)
+        warnings += _object_sizes(req)
     sim_faults: FaultSchedule | None = None
     if is_sim and req.sim_faults is not None:
         from handctl.sim.faults import load_scenario
@@ -604,6 +605,30 @@ def _object_order(req: RunRequest) -> list[str]:
         "the smaller x): the estimator names them in the recipe's order, so each estimate "
         "reads another object's; list them in their order along the palm"
     ]
+
+
+def _object_sizes(req: RunRequest) -> list[str]:
+    """A warning for each of the recipe's objects whose radius in the simulated hand's scene is
+    further from the recipe's than the estimator fits (``RADIUS_RANGE``): it cannot measure
+    such an object, so every exit and feedback on its estimates reads a wrong one. A recipe
+    written for 20 mm cylinders ran on a scene of 5 and 30 mm ones without a word."""
+    from handctl.online.estimator import RADIUS_RANGE
+    from handctl.sim.params import parse_sim
+
+    scene = {o.name: o.radius for o in parse_sim(req.hand).objects}
+    out = []
+    for obj in req.recipe.objects:
+        actual = scene[obj.name]
+        low, high = obj.radius * (1.0 - RADIUS_RANGE), obj.radius * (1.0 + RADIUS_RANGE)
+        if not low <= actual <= high:
+            out.append(
+                f"{req.recipe.source}: {obj.name}'s radius is {obj.radius * 1e3:g} mm in the "
+                f"recipe and {actual * 1e3:g} mm in the simulated hand's scene: the estimator "
+                f"fits a radius within ±{RADIUS_RANGE * 100:g} % of the recipe's "
+                f"({low * 1e3:.3g} to {high * 1e3:.3g} mm), so it cannot measure this one, "
+                "and its estimates, with every exit and feedback on them, are off"
+            )
+    return out
 
 
 def _experiment_summary(

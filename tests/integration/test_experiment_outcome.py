@@ -146,3 +146,23 @@ def test_objects_listed_out_of_their_order_along_the_palm_are_warned_of(tmp_path
     ) in done.stderr
     done = handctl("run", "recipe", str(_short_experiment(tmp_path)), "--max-seconds", "0.05")
     assert "objects are listed" not in done.stderr
+
+
+def test_objects_of_sizes_the_estimator_cannot_fit_are_warned_of(tmp_path: Path) -> None:
+    """A recipe written for 20 mm cylinders ran on a scene of 5 and 30 mm ones without a word
+    (an outside audit), though the estimator fits a radius within ±40 % of the recipe's."""
+    path = _short_experiment(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    assert [o["radius"] for o in data["objects"]] == [0.02, 0.02]
+    data["objects"][0]["radius"] = 0.035  # the scene's cylinder 1 is 20 mm
+    data["objects"][1]["radius"] = 0.0145
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    done = handctl("run", "recipe", str(path), "--max-seconds", "0.05")
+    assert (
+        f"handctl: warning: {path}: cyl1's radius is 35 mm in the recipe and 20 mm in the "
+        "simulated hand's scene: the estimator fits a radius within ±40 % of the recipe's "
+        "(21 to 49 mm)"
+    ) in done.stderr
+    assert "cyl2's radius" not in done.stderr  # 20 mm is within 40 % of 14.5 mm
+    done = handctl("run", "recipe", str(_short_experiment(tmp_path)), "--max-seconds", "0.05")
+    assert "radius is" not in done.stderr
