@@ -180,6 +180,8 @@ def hand_budget(
 CLASSIC_MAX_BYTES = 8
 #: CAN-FD data-phase rates (bit/s) ``what_would_fit`` tries: common transceiver settings.
 FD_DATA_BITRATES = (2_000_000, 4_000_000, 5_000_000, 8_000_000, 10_000_000)
+#: CAN-FD arbitration rates (bit/s) it tries where no data phase is enough
+FD_ARBITRATION_BITRATES = (250_000, 500_000, 1_000_000)
 
 
 def too_long_for_classic(hand: HandConfig, protocol: Protocol) -> list[str]:
@@ -254,7 +256,20 @@ def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
                 hints.append(
                     f"a data phase of {rate / 1e6:g} Mbit/s would carry {fd.load * 100:.1f} %"
                 )
-                break
+                return hints
+    # a slow arbitration phase (125 kbit/s) is more than any data phase can make up for: the
+    # hint was then a loop rate the watchdog refuses, and nothing else
+    for nominal in FD_ARBITRATION_BITRATES:
+        if nominal > hand.bus.bitrate:
+            for rate in FD_DATA_BITRATES:
+                if rate >= max(nominal, hand.bus.data_bitrate or 0):
+                    fd = hand_budget(hand, protocol, bitrate=nominal, data_bitrate=rate)
+                    if fd.ok:
+                        hints.append(
+                            f"an arbitration phase of {nominal / 1e6:g} Mbit/s and a data "
+                            f"phase of {rate / 1e6:g} Mbit/s would carry {fd.load * 100:.1f} %"
+                        )
+                        return hints
     return hints
 
 

@@ -14,6 +14,7 @@ from handctl.busload import (
     fd_frame_bits,
     frame_time_s,
     hand_budget,
+    what_would_fit,
 )
 from handctl.config import HandConfig, load_hand
 from handctl.hand_protocol import protocol_for
@@ -163,3 +164,23 @@ def test_the_highest_loop_rate_hint_names_the_misses_that_rate_allows(tmp_path: 
         f"the highest loop rate that fits is {math.floor(highest)} Hz (with "
         "safety.max_consecutive_misses at most 1)"
     ) in result.stderr
+
+
+def test_a_slow_arbitration_phase_is_named_as_what_to_change() -> None:
+    """At 125 kbit/s arbitration no data phase carries the default hand: the only hint was a
+    loop rate the nodes' watchdog refuses. It now names the arbitration rate that fits."""
+    import dataclasses
+
+    hand = load_hand(ROOT / "config" / "hands" / "hiroshima_hand.yaml")
+    slow = dataclasses.replace(
+        hand, bus=dataclasses.replace(hand.bus, bitrate=125_000, data_bitrate=125_000)
+    )
+    protocol = protocol_for(slow)
+    hints = what_would_fit(slow, protocol)
+    assert hints[0] == "no loop rate of 250 Hz or more fits on one bus"
+    fit = hand_budget(slow, protocol, bitrate=1_000_000, data_bitrate=4_000_000)
+    assert fit.ok and not hand_budget(slow, protocol, bitrate=500_000, data_bitrate=10_000_000).ok
+    assert hints[1:] == [
+        "an arbitration phase of 1 Mbit/s and a data phase of 4 Mbit/s would carry "
+        f"{fit.load * 100:.1f} %"
+    ]
