@@ -20,13 +20,15 @@ is then the worse of the two, so the seam can make a host fail a check but never
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from handctl.config import HandConfig, SafetyConfig
-from handctl.errors import ConfigError, HandctlError
+from handctl.errors import ConfigError, Description, HandctlError
 from handctl.hostfacts import HostFacts, gather_facts, plan_cpus
 from handctl.online.clock import LOOP_PRIORITY, Hygiene, StallLog
 from handctl.online.misstrace import describe, held_off_ns
@@ -48,6 +50,8 @@ CATCH_UP_CPU_FACTOR = 2.0
 PRECHECK_S = 1.5
 #: The environment variable that names a recorded probe sequence to judge with the measurement.
 INJECT_ENV = "HANDCTL_TIMING_INJECT"
+#: a lateness bin of a probe record: whole µs in ASCII digits
+_BIN = re.compile(r"[0-9]{1,9}", re.ASCII)
 #: Verdicts, best first.
 LEVELS = ("pass", "marginal", "fail")
 #: Share of the loop's period: a bare loop's wake-up this late, short of a stall, is a hiccup
@@ -171,8 +175,12 @@ class ProbeRecord:
             return value
 
         steal = data.get("steal_ms", 0.0)
-        if not isinstance(steal, int | float) or isinstance(steal, bool) or steal < 0:
-            raise ConfigError(source, prefix + "steal_ms", "a number of ms >= 0", steal)
+        if (
+            not isinstance(steal, int | float)
+            or isinstance(steal, bool)
+            or not 0 <= steal < math.inf
+        ):
+            raise ConfigError(source, prefix + "steal_ms", "a finite number of ms >= 0", steal)
         scheduler = data.get("scheduler", {})
         refused = data.get("refused", [])
         if not isinstance(scheduler, dict):
@@ -181,12 +189,30 @@ class ProbeRecord:
             raise ConfigError(source, prefix + "refused", "a list of strings", refused)
 
         period = integer("period_ns", 1)
+        start, end = integer("start_ns"), integer("end_ns")
+        if end < start:
+            raise ConfigError(source, prefix + "end_ns", f"a time >= start_ns ({start})", end)
+        wakeups = integer("wakeups", 1)
         hist_raw = data.get("lateness_hist_us")
-        if not isinstance(hist_raw, dict) or not all(
-            str(k).isdigit() and isinstance(v, int) and v >= 0 for k, v in hist_raw.items()
-        ):
+        hist_key = prefix + "lateness_hist_us"
+        if not isinstance(hist_raw, dict):
+            raise ConfigError(source, hist_key, "a mapping of µs bins to counts", hist_raw)
+        for k, v in hist_raw.items():
+            # ASCII digits, in the probe's range: str.isdigit() took '²', which int() refused
+            # in a traceback
+            if _BIN.fullmatch(k) is None or int(k) > HIST_RANGE_US:
+                raise ConfigError(
+                    source, hist_key, f"bins of whole µs from 0 to {HIST_RANGE_US}", k
+                )
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise ConfigError(source, f"{hist_key}.{k}", "a count >= 0", v)
+        counted = sum(hist_raw.values())
+        if counted > wakeups:  # the probe bins every wake-up once (a record may hold fewer)
             raise ConfigError(
-                source, prefix + "lateness_hist_us", "a mapping of µs bins to counts", hist_raw
+                source,
+                hist_key,
+                f"counts that add up to at most the wakeups ({wakeups})",
+                Description(f"counts that add up to {counted}"),
             )
         stalls = [
             (r[0], r[1], r[2], r[3])
@@ -206,9 +232,9 @@ class ProbeRecord:
         ]
         return cls(
             period_ns=period,
-            start_ns=integer("start_ns"),
-            end_ns=integer("end_ns"),
-            wakeups=integer("wakeups"),
+            start_ns=start,
+            end_ns=end,
+            wakeups=wakeups,
             lateness_hist_us={int(k): v for k, v in hist_raw.items()},
             lateness_max_ns=integer("lateness_max_ns"),
             stalls=tuple(stalls),
@@ -660,8 +686,9 @@ class CheckReport:
         return "\n".join(lines)
 
 
-def injected_records() -> list[ProbeRecord]:
-    """The recorded sequence named by ``HANDCTL_TIMING_INJECT``, if any."""
+def injected_records(period_ns: int) -> list[ProbeRecord]:
+    """The recorded sequence named by ``HANDCTL_TIMING_INJECT``, if any, of a loop of
+    ``period_ns``."""
     path = os.environ.get(INJECT_ENV)
     if not path:
         return []
@@ -677,7 +704,21 @@ def injected_records() -> list[ProbeRecord]:
         data = json.loads(raw)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(path, "", f"valid JSON ({INJECT_ENV})", str(exc)) from None
-    return [ProbeRecord.from_json(data, path)]
+    except RecursionError:  # nested deeper than the decoder goes: no probe writes that
+        raise ConfigError(
+            path, "", f"valid JSON ({INJECT_ENV})", Description("arrays or objects nested too deep")
+        ) from None
+    record = ProbeRecord.from_json(data, path)
+    if record.period_ns != period_ns:
+        # judged against this hand's deadlines, a probe of another loop's period measured
+        # another loop
+        raise ConfigError(
+            path,
+            "period_ns" if "probe" not in data else "probe.period_ns",
+            f"the hand's loop period, {period_ns} ns ({INJECT_ENV})",
+            record.period_ns,
+        )
+    return [record]
 
 
 def timing_check(
@@ -689,7 +730,8 @@ def timing_check(
     ``cpu`` (None: what ``plan_cpus`` gives the loop); otherwise the default scheduler.
     """
     deadlines = Deadlines.of(hand)
-    injected = injected_records()  # a bad file is refused before the measurement
+    # a bad file is refused before the measurement
+    injected = injected_records(deadlines.period_ns)
     facts = gather_facts()
     check_loop_cpu(cpu, facts.cpus)
     if realtime and cpu is None:

@@ -143,6 +143,30 @@ def test_a_bad_recorded_sequence_is_bad_input(tmp_path: Path) -> None:
     assert f"{bad}: probe.stalls[0]: expected [index, due_ns, wake_ns, missed]" in done.stderr
 
 
+def test_a_recorded_sequence_of_another_loop_or_nested_past_json_is_bad_input(
+    tmp_path: Path,
+) -> None:
+    """A probe of another loop's period was judged against this hand's deadlines, and a file
+    nested 100 000 deep ended in a traceback (RecursionError), exit 1."""
+    other = tmp_path / "other.json"
+    data = json.loads(FAILING.read_text())
+    data["probe"]["period_ns"] = 1
+    other.write_text(json.dumps(data))
+    done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(other)})
+    assert done.returncode == 2, done.stderr
+    assert (
+        f"{other}: probe.period_ns: expected the hand's loop period, 1000000 ns ({INJECT_ENV}), "
+        "found 1"
+    ) in done.stderr
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(deep)})
+    assert done.returncode == 2, done.stderr
+    assert f"{deep}: expected valid JSON ({INJECT_ENV}), found arrays or objects nested" in (
+        done.stderr
+    )
+
+
 def test_a_recorded_sequence_that_is_a_fifo_is_refused_not_waited_on(tmp_path: Path) -> None:
     """A FIFO named by the variable held the check in its open() until Ctrl-C; another
     file's mistake did not say the variable had named it."""

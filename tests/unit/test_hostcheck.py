@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -967,3 +968,30 @@ def test_each_own_miss_says_what_the_tick_before_it_did_where_it_was_traced() ->
     stopped = {**figures["handctl_misses"][0], "late_us": 3001640.0, "off_cpu_us": 3000210.0}
     assert "(1 missed, 3001640 µs late)" in _own_miss_text(stopped)
     assert "3000210 µs off it" in _own_miss_text(stopped)
+
+
+@pytest.mark.parametrize(
+    ("change", "key", "found"),
+    [
+        # str.isdigit() took these, and int() refused them in a traceback (exit 1)
+        ({"lateness_hist_us": {"²": 3}}, "lateness_hist_us", "²"),
+        ({"lateness_hist_us": {"١٢": 3}}, "lateness_hist_us", "١٢"),
+        ({"lateness_hist_us": {"9" * 30: 3}}, "lateness_hist_us", "9" * 30),
+        ({"lateness_hist_us": {"20": 10**30}}, "lateness_hist_us", None),
+        ({"lateness_hist_us": {"20": True}}, "lateness_hist_us.20", True),
+        ({"end_ns": START - 1}, "end_ns", START - 1),
+        ({"wakeups": 0}, "wakeups", 0),
+        ({"steal_ms": math.inf}, "steal_ms", math.inf),
+    ],
+)
+def test_a_record_that_no_probe_writes_is_refused(
+    change: dict[str, Any], key: str, found: object
+) -> None:
+    """An injected sequence is what a probe wrote; nonsense passed without a word or ended in
+    a traceback."""
+    good = record([(1, 1.0, 2.0)]).as_json()
+    with pytest.raises(ConfigError) as info:
+        ProbeRecord.from_json({**good, **change}, "old.json")
+    assert info.value.key == key
+    if found is not None:
+        assert info.value.found == found
