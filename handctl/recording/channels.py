@@ -36,6 +36,9 @@ STATS = "/recording/stats"
 #: the channels every run writes, whatever its bus and hand: a complete log without one was
 #: altered, and its summary would say of it what a run without it would ("faults: none")
 CORE_TOPICS = (JOINT_STATE, TORQUE, SAFETY, PHASE, TIMING, EVENTS, CAN_RX, CAN_TX)
+#: the topics of which every tick with the hand running writes one message (``TIMING`` has
+#: one for every tick)
+ACTIVE_TICK_TOPICS = (JOINT_STATE, TORQUE, SAFETY, PHASE)
 
 #: Metadata record names (MCAP metadata: string to string maps).
 META_RUN = "handctl.run"

@@ -97,6 +97,9 @@ class Recording:
     path: Path
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     message_counts: dict[str, int] = field(default_factory=dict)  # complete files only
+    #: whether the file holds a statistics record (``message_counts`` is then its counts,
+    #: of no message at all if it is empty)
+    statistics: bool = False
     chunks: int = 0  # chunks that read
     complete: bool = False  # footer and closing magic read, and every chunk read
     problem: str = ""  # what is missing and why ("" when complete)
@@ -168,15 +171,18 @@ class Recording:
 
 
 def _check_tick_count(recording: Recording) -> None:
-    """A finished file holds the tick rows its end record counts: every message after a
-    tick cut out and the file finished again read as a complete run of that many ticks, its
-    re-run "bit-exact" on them."""
-    if not recording.complete or not recording.message_counts:
+    """A finished file holds the tick rows its end record counts, and as many rows of each
+    channel every running tick writes: every message after a tick cut out and the file
+    finished again read as a complete run of that many ticks, its re-run "bit-exact" on them;
+    a file with a channel's every message taken out, or with none at all, as a complete run
+    whose torques were none."""
+    if not recording.complete or not recording.statistics:
         return
     told = recording.meta(ch.META_END, "ticks")
     if not told:
         return
-    rows = recording.message_counts.get(ch.TIMING, 0)
+    counts = recording.message_counts
+    rows = counts.get(ch.TIMING, 0)
     if recording.meta_int(ch.META_END, "ticks", 0) != rows:
         raise ConfigError(
             str(recording.path),
@@ -184,6 +190,18 @@ def _check_tick_count(recording: Recording) -> None:
             f"the {told} tick rows the end record ({ch.META_END}.ticks) counts",
             f"{rows} rows",
         )
+    held = {topic: counts.get(topic, 0) for topic in ch.ACTIVE_TICK_TOPICS}
+    most = max(held, key=lambda topic: held[topic])
+    for topic, n in held.items():
+        # the channel short of the others is the one said: the others agree with each other
+        if n != held[most] or n > rows:
+            raise ConfigError(
+                str(recording.path),
+                f"channel {topic}",
+                f"a message for each running tick, at most the {rows} tick rows and as many "
+                f"as {most} holds ({held[most]})",
+                Description(f"{n} messages"),
+            )
 
 
 def _fail(path: Path, found: str) -> ConfigError:
@@ -265,6 +283,7 @@ class _Index:
     metadata: list[MetadataIndex]
     channels: dict[int, Channel] = field(default_factory=dict)
     schemas: dict[int, Schema] = field(default_factory=dict)
+    statistics: bool = False
 
 
 _FOOTER_BODY = struct.Struct("<QQI")  # summary start, summary offset start, summary CRC
@@ -304,6 +323,7 @@ def _read_index(handle: BinaryIO) -> _Index | None:
             index.schemas[schema.id] = schema
         elif op == Opcode.STATISTICS:
             index.counts = dict(Statistics.read(_stream(body)).channel_message_counts)
+            index.statistics = True
         elif op == Opcode.CHUNK_INDEX:
             index.chunks.append(ChunkIndex.read(_stream(body)))
         elif op == Opcode.METADATA_INDEX:
@@ -394,6 +414,7 @@ def _open_indexed(handle: BinaryIO, recording: Recording, index: _Index) -> None
     if recording.complete:
         topics = recording.topics
         recording.message_counts = {topics.get(cid, str(cid)): n for cid, n in index.counts.items()}
+        recording.statistics = index.statistics
 
 
 def _count_messages(data: bytes, held: dict[int, int]) -> None:
@@ -448,6 +469,7 @@ def _open_walk(handle: BinaryIO, recording: Recording) -> None:
                 stats = Statistics.read(_stream(body))
                 counts = dict(stats.channel_message_counts)
                 recording.message_counts = {str(k): v for k, v in counts.items()}
+                recording.statistics = True
             elif op == Opcode.FOOTER:
                 recording.complete = handle.read(len(MAGIC)) == MAGIC
                 break

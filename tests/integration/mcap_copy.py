@@ -21,12 +21,14 @@ def rewrite(
     formats: dict[str, tuple[str, str, str]] | None = None,
     times: Callable[[str, int], int] | None = None,
     drop: tuple[str, ...] = (),
+    empty: tuple[str, ...] = (),
 ) -> None:
     """Copy a recording record by record with the mcap library, the messages through
     ``change``, the metadata through ``metadata``, the channels of the topics in ``formats``
     given another (message encoding, schema name, schema encoding), and each message's log
     time through ``times(topic, log_time) -> log_time``; the channels of the topics in
-    ``drop`` are left out, with their messages."""
+    ``drop`` are left out, with their messages, and the messages of those in ``empty``
+    (their channels kept)."""
     with source.open("rb") as handle:
         reader = make_reader(handle)
         summary = reader.get_summary()
@@ -55,7 +57,7 @@ def rewrite(
                 schema_id = writer.register_schema(name, schema_encoding, old.data)
             channel_ids[c.id] = writer.register_channel(c.topic, encoding, schema_id, c.metadata)
         for _, channel, message in messages:
-            if channel.topic in drop:
+            if channel.topic in drop or channel.topic in empty:
                 continue
             index = counts.get(channel.topic, 0)
             counts[channel.topic] = index + 1

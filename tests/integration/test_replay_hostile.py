@@ -794,7 +794,23 @@ def test_a_complete_log_without_a_channel_every_run_writes_is_refused(
         f"expected the channels {topic} for its summary" in done.stderr
         # the end record counts the tick rows the timing channel should hold
         or f"channel {topic}: expected the 1" in done.stderr
+        # and every running tick writes one message to these
+        or f"channel {topic}: expected a message for each running tick" in done.stderr
     ), done.stderr
+
+
+@pytest.mark.parametrize("topic", [*ch.ACTIVE_TICK_TOPICS, ch.TIMING])
+def test_a_complete_log_whose_channel_lost_its_messages_is_refused(
+    recorded: Recorded, tmp_path: Path, topic: str
+) -> None:
+    """The channel kept, its messages taken out and the file finished again: the summary of
+    a log without a torque message said 'complete', exit 0, its table of torques empty."""
+    bad = tmp_path / "emptied.mcap"
+    rewrite(recorded.path, bad, empty=(topic,))
+    done = handctl("replay", str(bad))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"channel {topic}: expected " in done.stderr
+    assert "found 0 messages" in done.stderr or "found '0 rows'" in done.stderr
 
 
 def test_to_bus_sends_nothing_from_a_log_with_a_frame_moved_off_its_tick(
