@@ -703,9 +703,12 @@ def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(
     assert counts[bad + 1 :] and got[-1] == everything[-1]  # the chunks after it are kept
 
     done = handctl("replay", str(damaged), "--rerun")
-    assert done.returncode == 0, done.stdout + done.stderr
+    # what it compared repeats, and the rest was never compared: exit 1 (it was 0, which a
+    # script took for the whole log verified)
+    assert done.returncode == 1, done.stdout + done.stderr
     assert f"DAMAGED: chunk {bad} at byte {middle.chunk_start_offset}" in done.stdout
     assert "bit-exact" in done.stdout and "before a damaged chunk" in done.stdout
+    assert "rerun: FAILED: not the whole log: it is DAMAGED" in done.stderr
     # nor does it go onto a bus: the frames either side of the hole would go out as one
     # stream the run never sent (it went, exit 0)
     done = handctl("replay", str(damaged), "--to-bus", f"virtual:damaged-{where}")
