@@ -1427,6 +1427,10 @@ def _check_replay_options(args: argparse.Namespace) -> None:
         from handctl.foxglove import check_port_free
 
         check_port_free(args.live, "--live")
+    if args.to_bus == "":  # taken for no --to-bus: nothing sent, exit 0
+        raise ConfigError("--to-bus", "", "a bus (unix:DIRECTORY, or a CAN interface)", "")
+    if args.export and not args.export[1]:  # the directory '.'
+        raise ConfigError("--export", "FILE", "a file name", "")
     if args.speed is not None and not (args.to_bus or args.live is not None):
         raise ConfigError(
             "--speed",
@@ -2630,7 +2634,44 @@ def build_parser() -> argparse.ArgumentParser:
     _add_replay(sub)
     _add_layout(sub)
     _add_bringup(sub)
+    _name_empty_paths(parser)
     return parser
+
+
+class _NoName:
+    """An empty file name given for ``option``: argparse made it the directory '.', said in
+    a message naming neither the option nor what was given ("found .: not a file"). Refused
+    when the command runs (``_refuse_empty_names``), with the option."""
+
+    def __init__(self, option: str) -> None:
+        self.option = option
+
+
+def _name_empty_paths(parser: argparse.ArgumentParser) -> None:
+    """Every file-name argument of ``parser`` and its commands takes an empty name as a
+    ``_NoName`` of its option, not as the path '.'."""
+    for action in parser._actions:  # argparse keeps no public list of them
+        if isinstance(action, argparse._SubParsersAction):
+            for command in dict.fromkeys(action.choices.values()):
+                _name_empty_paths(command)
+        elif action.type is Path:
+            action.type = _path_or_none(
+                action.option_strings[0] if action.option_strings else str(action.metavar)
+            )
+
+
+def _path_or_none(option: str) -> Callable[[str], Path | _NoName]:
+    def convert(text: str) -> Path | _NoName:
+        return Path(text) if text else _NoName(option)
+
+    return convert
+
+
+def _refuse_empty_names(args: argparse.Namespace) -> None:
+    """A ``ConfigError`` for an empty file name on the command line (``_NoName``)."""
+    for value in vars(args).values():
+        if isinstance(value, _NoName):
+            raise ConfigError(value.option, "", "a file name", "")
 
 
 def _add_dbc(command: argparse.ArgumentParser, help: str = "") -> None:
@@ -3412,6 +3453,7 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
     from handctl.stopsignals import finished
 
     try:
+        _refuse_empty_names(args)
         return func(args)
     except ConfigError as exc:
         print(f"handctl: error: {exc}", file=sys.stderr)
