@@ -1365,9 +1365,11 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
                 + ("-" if tdt is None else f"{tdt:.4f}")
             )
     for fault in summary["faults"]:
+        # to a line's length: a log's events are the log's to say, and a forged one printed
+        # 10 000 characters a fault
         print(
-            f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']} "
-            f"({fault['t_s']:.3f} s): {fault['detail']}"
+            f"  FAULT {_clipped(fault['code'], 40)} ({_clipped(fault['category'], 20)}) at "
+            f"tick {fault['tick']} ({fault['t_s']:.3f} s): {_clipped(fault['detail'], 400)}"
         )
     if not summary["faults"]:
         print("  faults: none")
@@ -1513,6 +1515,11 @@ def _startup_repeated(result: RerunReport) -> bool:
         "interrupted",
         "time_budget",
     )
+
+
+def _clipped(text: str, most: int) -> str:
+    """``text`` cut to ``most`` characters, the cut said."""
+    return text if len(text) <= most else f"{text[: most - 3]}..."
 
 
 def _print_rerun(result: RerunReport) -> int:

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, escaped
 from handctl.hand_protocol import protocol_for
 from handctl.online import timebudget
 from handctl.online.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, FrameTap, RxTap
@@ -86,9 +86,12 @@ class _Pending:
 
 
 def tick_inputs(  # noqa: C901 - one branch per channel; bus/replay split (issue 16)
-    recording: Recording, check: MessageCheck | None = None
+    recording: Recording,
+    check: MessageCheck | None = None,
+    faults: list[tuple[int, str]] | None = None,
 ) -> tuple[_Pending, Iterator[TickInput]]:
-    """The frames drained before the first tick, and a stream of the logged ticks.
+    """The frames drained before the first tick, and a stream of the logged ticks; the
+    logged faults (tick, code) go into ``faults`` as the stream reads them.
 
     A tick is whole when the next tick's row begins: its frames and events are published
     before that row (``Recorder``), most of them before its own row, and the frames it sends
@@ -159,6 +162,8 @@ def tick_inputs(  # noqa: C901 - one branch per channel; bus/replay split (issue
                         current.joint_state = msg
                 elif topic == ch.EVENTS and msg["kind"] in ("bus", "request", "rejected_frames"):
                     _route(msg, inputs_of(msg["tick"], current), kinds)
+                elif topic == ch.EVENTS and msg["kind"] == "fault" and faults is not None:
+                    faults.append((msg["tick"], msg["name"]))
         if current is not None and closed:
             yield current
 
@@ -400,11 +405,25 @@ class _Compare:
         #: supervisor's state, the phase. A log whose phase or state was rewritten re-ran
         #: "bit-exact" on its torques while replay's phase table showed the rewritten ones.
         self.decisions: list[str] = []
+        #: the faults the re-run raised, (tick, code), as its supervisor latched them
+        self.faults: list[tuple[int, str]] = []
+        self._latched = 0
 
     def begin_tick(self, tick: Tick) -> None:
         return None
 
+    def _note_faults(self) -> None:
+        runtime = self.clock.runtime
+        if runtime is None:
+            return
+        latched = runtime.supervisor.faults
+        if len(latched) < self._latched:  # an explicit reset cleared them
+            self._latched = 0
+        self.faults += [(f.tick, f.code.name) for f in latched[self._latched :]]
+        self._latched = len(latched)
+
     def push(self, record: TickRecord) -> None:
+        self._note_faults()
         current = self.clock.current
         if current is not None:
             self.check.tick(record.tick, current.now_ns, current.joint_state, current.rx)
@@ -505,10 +524,16 @@ class RerunReport:
     notes: list[str]
     wall_s: float
     outcome_mismatch: str = ""  # the run ended otherwise than the log's summary says
+    fault_mismatch: str = ""  # the run latched other faults than the log's events say
 
     @property
     def ok(self) -> bool:
-        return not (self.mismatched_ticks or self.frame_mismatches or self.outcome_mismatch)
+        return not (
+            self.mismatched_ticks
+            or self.frame_mismatches
+            or self.outcome_mismatch
+            or self.fault_mismatch
+        )
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -593,8 +618,11 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
     )
     startup_ticks = recording.meta_int(ch.META_RUN, "startup_ticks", 500)
     bus = ReplayBus()
+    logged_faults: list[tuple[int, str]] = []
     before, inputs = tick_inputs(
-        recording, MessageCheck(str(recording.path), hand.n_joints, len(hand.fingers))
+        recording,
+        MessageCheck(str(recording.path), hand.n_joints, len(hand.fingers)),
+        logged_faults,
     )
     bus.load(-1, before)
     clock = ReplayClock(inputs, bus)
@@ -670,6 +698,8 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         # the run, fed the same frames to its end, ended otherwise than the log's summary
         # says: a summary altered (a time budget said to have completed) passed bit-exact
         outcome_mismatch = f"outcome: logged {logged_outcome!r}, re-run {outcome!r}"
+    compare._note_faults()
+    fault_mismatch = _faults_differ(logged_faults, compare.faults, min(ticks, compare.until))
     report = RerunReport(
         ticks,
         compare.compared,
@@ -677,17 +707,38 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         compare.mismatches,
         bus.frames_compared,
         frame_mismatches,
-        [*compare.decisions, *([outcome_mismatch] if outcome_mismatch else [])],
+        [*compare.decisions, *(m for m in (outcome_mismatch, fault_mismatch) if m)],
         check.compared,
         outcome,
         logged_outcome,
         notes,
         wall,
         outcome_mismatch,
+        fault_mismatch,
     )
     if raised is not None and (runtime.exception is None or runtime.exception.tick != raised[0]):
         return _up_to_the_exception(report, compare, raised)
     return report
+
+
+def _faults_differ(
+    logged: list[tuple[int, str]], rerun: list[tuple[int, str]], before: float
+) -> str:
+    """What differs between the faults the log's events say the run latched and those the
+    re-run latched, on the ticks before ``before`` (those compared), or "". A log whose
+    events were rewritten (a fault that never happened, one taken out) re-ran "bit-exact",
+    its replay printing the forged faults."""
+    ours = [f for f in logged if f[0] < before]
+    theirs = [f for f in rerun if f[0] < before]
+    if ours == theirs:
+        return ""
+
+    def said(faults: list[tuple[int, str]]) -> str:
+        listed = ", ".join(f"{escaped(code[:40])} at tick {tick}" for tick, code in faults[:4])
+        more = f" and {len(faults) - 4} more" if len(faults) > 4 else ""
+        return (listed + more) or "none"
+
+    return f"faults: logged {said(ours)}; re-run {said(theirs)}"
 
 
 def _logged_exception(logged: dict[str, Any]) -> tuple[int, str] | None:

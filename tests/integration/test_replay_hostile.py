@@ -1121,3 +1121,30 @@ def test_to_bus_refuses_a_hand_of_another_shape_than_the_recorded_one(tmp_path: 
     assert "to-bus:" not in done.stdout
     same = handctl("replay", str(log), "--to-bus", "virtual:hostile-shape", "--hand", str(four))
     assert same.returncode == 0, same.stderr
+
+
+def test_a_fault_the_run_never_latched_written_into_its_events_does_not_rerun(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """The log's events rewritten to faults the run never had: the replay printed each, and
+    the re-run said "bit-exact", exit 0, for it compared torques, state and phase only.
+    The forged names are cut on their line."""
+    forged = "ANGLE_LIMIT" + "X" * 500
+
+    def fault(topic: str, index: int, raw: bytes) -> bytes:
+        if topic != ch.EVENTS or index != 0:
+            return raw
+        event = json.loads(raw)
+        return json.dumps(
+            {"tick": event["tick"], "kind": "fault", "name": forged, "category": "ramp",
+             "detail": "forged"}
+        ).encode()  # fmt: skip
+
+    bad = tmp_path / "forged.mcap"
+    rewrite(recorded.path, bad, fault)
+    done = handctl("replay", str(bad), "--rerun")
+    assert done.returncode == 1, done.stdout + done.stderr
+    line = next(x for x in done.stdout.splitlines() if "FAULT ANGLE_LIMIT" in x)
+    assert len(line) < 200 and "XXX..." in line
+    assert "  faults: logged ANGLE_LIMITXXX" in done.stdout and "; re-run none" in done.stdout
+    assert rerun(open_recording(recorded.path)).fault_mismatch == ""
