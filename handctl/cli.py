@@ -794,12 +794,13 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
         )
         print(f"  experiment: {_experiment_verdict(ex)}")
     if plot and "experiment" in summary and "error" not in summary.get("plot", {}):
-        print(f"  overview plot: {plot}")
+        print(f"  overview plot: {escaped(str(plot))}")
     if "recording" in summary and "error" not in summary["recording"]:
         rec = summary["recording"]
         dropped = _records_dropped(rec)
         print(
-            f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to {rec['path']}"
+            f"  recorded {rec['ticks']} ticks, {rec['frames']} frames to "
+            f"{escaped(str(rec['path']))}"
             + (f" ({dropped} records dropped: the writer fell behind)" if dropped else "")
         )
 
@@ -840,11 +841,15 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
         if code == EXIT_OK:
             print(
                 f"handctl: failed: the run ended as asked, but no plot was written to "
-                f"{plotted['path']} ({plotted['error']}: the warning above says why)",
+                f"{escaped(str(plotted['path']))} ({plotted['error']}: the warning above "
+                "says why)",
                 file=sys.stderr,
             )
             return EXIT_FAILED
-        print(f"handctl: and no plot was written to {plotted['path']}", file=sys.stderr)
+        print(
+            f"handctl: and no plot was written to {escaped(str(plotted['path']))}",
+            file=sys.stderr,
+        )
     recorded = summary.get("recording")
     if recorded is None:
         return code
@@ -859,11 +864,12 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
         why = f"lacks {dropped} records the writer dropped when it fell behind"
     if code == EXIT_OK:
         print(
-            f"handctl: failed: the run ended as asked, but its log {recorded['path']} {why}",
+            f"handctl: failed: the run ended as asked, but its log "
+            f"{escaped(str(recorded['path']))} {why}",
             file=sys.stderr,
         )
         return EXIT_FAILED
-    print(f"handctl: and the run's log {recorded['path']} {why}", file=sys.stderr)
+    print(f"handctl: and the run's log {escaped(str(recorded['path']))} {why}", file=sys.stderr)
     return code
 
 

@@ -476,3 +476,15 @@ def test_a_run_whose_writer_dropped_records_is_a_failed_result(tmp_path: Path) -
     assert f"complete, but without {dropped} records the writer dropped during the run" in (
         done.stdout
     )
+
+
+def test_the_run_says_its_log_s_name_escaped(tmp_path: Path) -> None:
+    """A log named with a newline split the run's last line in two, and a byte that is not
+    UTF-8 went to the terminal raw; replay said both escaped."""
+    log = tmp_path / "a\nb.mcap"
+    done = handctl(
+        "run", "recipe", str(DEFAULT_RECIPE), "--max-seconds", "0.05", "--log", str(log)
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert f"frames to {tmp_path}/a\\nb.mcap\n" in done.stdout
+    assert log.exists()
