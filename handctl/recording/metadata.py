@@ -13,6 +13,7 @@ import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
+from functools import lru_cache
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any
@@ -197,10 +198,16 @@ def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | N
             )
         return None
     _check_digest(recording, "yaml", "sha256", text)
-    return parse_hand(
-        parse_yaml(text, f"{recording.path} (its recorded hand config)"),
-        recorded_protocol(recording),
-    )
+    protocol = recorded_protocol(recording)
+    return _parsed_hand(text, protocol, str(recording.path))
+
+
+@lru_cache(maxsize=8)
+def _parsed_hand(text: str, protocol: Protocol | None, path: str) -> HandConfig:
+    """The recorded hand config parsed once per log: a replay asked for it five times (its
+    summary, series, plot, frames and re-run), each a parse of the YAML and the DBC's
+    checks, a fifth of a short log's replay."""
+    return parse_hand(parse_yaml(text, f"{path} (its recorded hand config)"), protocol)
 
 
 def _check_digest(recording: Recording, key: str, digest_key: str, text: str) -> None:
