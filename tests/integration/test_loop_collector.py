@@ -75,9 +75,13 @@ def test_collections_happen_between_ticks_and_free_the_garbage(
         finally:
             gc.callbacks.remove(note)
     assert result.outcome is Outcome.COMPLETED
-    # One full collection before the first tick, the rest between ticks.
-    assert seen[:1] == [before]
-    during = seen[1:]
+    # One full collection before the first tick, the rest between ticks. Python's own
+    # collector may run once or twice before that, while asyncio sets up its loop (when is a
+    # matter of how many objects the process made before this test): none is the run's.
+    assert before in seen, seen
+    start = seen.index(before)
+    assert set(seen[:start]) <= {None}
+    during = seen[start + 1 :]
     assert during, "the run's garbage was never collected"
     inside = sum(1 for code in during if code is not between)
     assert not inside, f"{inside} of {len(during)} collections inside a tick"
