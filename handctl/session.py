@@ -314,6 +314,7 @@ def run_recipe(
             reset_node_faults=req.reset_node_faults,
             max_ticks=NO_TICK_LIMIT,
             startup_timeout_s=peer.startup_s,
+            answer_timeout_s=peer.answer_s,
             estimator=estimator,
             reanalyser=reanalyser,
         )
@@ -415,6 +416,8 @@ class _Peer:
     sim_hand: Any = None
     sim_process: SimProcess | None = None
     startup_s: float = 0.5  # how long the nodes may take to answer
+    #: s, how long the rest may take once one node is heard; None: the whole start-up
+    answer_s: float | None = None
 
 
 def _start_peer(
@@ -443,7 +446,9 @@ def _start_peer(
     directory = stack.enter_context(tempfile.TemporaryDirectory(prefix="handctl-bus-"))
     sim_process = stack.enter_context(SimProcess(req, directory, sim_cpu))
     # The peer imports MuJoCo and builds its model first.
-    return _Peer(BusSpec("unix", directory), sim_process=sim_process, startup_s=20.0)
+    # Once one node is heard the hand is up: a node of it still silent 2 s later is missing
+    # (said after the whole 20 s before)
+    return _Peer(BusSpec("unix", directory), sim_process=sim_process, startup_s=20.0, answer_s=2.0)
 
 
 @dataclass
@@ -774,6 +779,7 @@ def _start_recording(
             seed=req.seed,
             period_ns=round(req.hand.bus.period_s * 1e9),
             startup_ticks=runtime.startup_ticks,
+            answer_ticks=runtime.answer_ticks,
             reset_node_faults=req.reset_node_faults,
             estimator=runtime.estimator is not None,
             sim_faults=str(req.sim_faults or ""),

@@ -94,6 +94,15 @@ EXCEPTION_TEXT_CHARS = 200
 NO_PHASE = "-"
 
 
+def _any_heard(nodes: Sequence[finger.FingerNode], since: int) -> bool:
+    """Whether a frame of any node has come in since ``since`` (ns): the hand is there."""
+    return any(
+        (n.feedback_ns is not None and n.feedback_ns >= since)
+        or (n.heartbeat_ns is not None and n.heartbeat_ns >= since)
+        for n in nodes
+    )
+
+
 def _no_feedback(rejects: dict[str, int]) -> str:
     """Why no feedback of a node was taken at start-up: none came, or frames came and every
     one was rejected (a bad CRC, a second sender on its ids), which points elsewhere than a
@@ -242,6 +251,7 @@ class Runtime:
         status: Callable[[StatusLine], None] | None = None,
         reset_node_faults: bool = False,
         startup_timeout_s: float = 0.5,
+        answer_timeout_s: float | None = None,
         max_ticks: int = 10_000_000,
         window_ticks: int = DEFAULT_WINDOW,
     ) -> None:
@@ -259,6 +269,14 @@ class Runtime:
         self.status = status
         self.reset_node_faults = reset_node_faults
         self.startup_ticks = max(1, round(startup_timeout_s / hand.bus.period_s))
+        # once any node is heard, the rest have this long to answer: a simulated hand in a
+        # process of its own may take the whole start-up to import and build, and a node of
+        # it that stays silent was said only once all of it (20 s) had passed
+        self.answer_ticks = (
+            self.startup_ticks
+            if answer_timeout_s is None
+            else max(1, round(answer_timeout_s / hand.bus.period_s))
+        )
         self.max_ticks = max_ticks
         self.stop_requested = ""
         self.estop_requested = ""
@@ -626,12 +644,17 @@ class Runtime:
         self.driver.discard_pending()
         # the nodes' frames judged at the reject rate before anything is enabled
         rejects = StartupRejects(self.hand.safety, self.hand.bus.period_s, nodes)
-        for _ in range(self.startup_ticks):
+        deadline = self.startup_ticks
+        waited = 0
+        while waited < deadline:
+            waited += 1
             tk = await self._next_tick()
             self._account_idle(tk)
             if since is None:
                 since = tk.now_ns
             self.driver.poll(tk.now_ns)
+            if deadline == self.startup_ticks and _any_heard(nodes, since):
+                deadline = min(deadline, waited + self.answer_ticks)
             rate = rejects.check(tk.tick, nodes)
             if rate:
                 detail = f"{rate} at start-up: no node was enabled"
@@ -669,8 +692,14 @@ class Runtime:
             if faults:
                 return faults
             reset_sent = True
+        return self._not_ready(since, deadline < self.startup_ticks)
+
+    def _not_ready(self, since: int | None, answered: bool) -> str:
+        """The start-up's end with a node not ready (its fault latched): which node, and
+        what of it was not heard since ``since`` (ns); ``answered``: it ended on the nodes'
+        time to answer once one was heard, not on the whole start-up's."""
         silent = []
-        for n in nodes:
+        for n in self.driver.nodes:
             who = f"node {n.node_id} ({n.finger.name})"
             if n.feedback_ns is None or since is None or n.feedback_ns < since:
                 silent.append(f"{who}: {_no_feedback(n.rejects.as_dict())}")
@@ -682,6 +711,11 @@ class Runtime:
                 silent.append(f"{who} is {n.state_name}")
         detail = "; ".join(silent) or "nodes not ready"
         self.supervisor.trip(FaultCode.STARTUP, detail, self.tick)
+        if answered:
+            return (
+                f"nodes not ready within {self.answer_ticks} ticks of the first node heard: "
+                f"{detail}"
+            )
         return f"nodes not ready within {self.startup_ticks} ticks: {detail}"
 
     def _faulted_at_startup(self, faulted: list[finger.FingerNode], tick: int, sent: bool) -> str:

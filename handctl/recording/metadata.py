@@ -137,6 +137,7 @@ def run_metadata(
     period_ns: int,
     startup_ticks: int,
     reset_node_faults: bool,
+    answer_ticks: int | None = None,
     estimator: bool,
     sim_faults: str = "",
 ) -> dict[str, str]:
@@ -147,6 +148,8 @@ def run_metadata(
         "seed": str(seed),
         "period_ns": str(period_ns),
         "startup_ticks": str(startup_ticks),
+        # the nodes' time to answer once one is heard (``Runtime.answer_ticks``)
+        "answer_ticks": str(startup_ticks if answer_ticks is None else answer_ticks),
         "reset_node_faults": str(reset_node_faults),
         "estimator": str(estimator),
         "sim_faults": sim_faults,
@@ -173,6 +176,7 @@ def check_run_metadata(recording: Recording, hand: HandConfig | None) -> None:
         if not run.get(key):
             raise refuse(key, "a whole number >= 0")
         recording.meta_int(ch.META_RUN, key, 0)  # said as every whole number is
+    recording.meta_int(ch.META_RUN, "answer_ticks", 0)  # a log from before it has none
     period_ns = recording.meta_int(ch.META_RUN, "period_ns", -1, minimum=1)
     if hand is not None and period_ns != round(hand.bus.period_s * 1e9):
         raise refuse(

@@ -617,6 +617,7 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         * 1e-9
     )
     startup_ticks = recording.meta_int(ch.META_RUN, "startup_ticks", 500)
+    answer_ticks = recording.meta_int(ch.META_RUN, "answer_ticks", startup_ticks)
     bus = ReplayBus()
     logged_faults: list[tuple[int, str]] = []
     before, inputs = tick_inputs(
@@ -660,6 +661,7 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         ),
         reset_node_faults=run.get("reset_node_faults") == "True",
         startup_timeout_s=startup_ticks * period_s,
+        answer_timeout_s=answer_ticks * period_s,
         max_ticks=1 << 62,
     )
     clock.runtime = runtime

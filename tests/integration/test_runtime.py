@@ -303,3 +303,28 @@ def test_start_up_says_feedback_was_heard_and_rejected_not_that_none_came(
     assert re.search(r"\d+ frames rejected within \d+ ticks \(.*crc \d+\)", result.message)
     assert "no feedback" not in result.message
     assert "node 2" not in result.message and "node 3" not in result.message
+
+
+def test_a_silent_node_is_said_once_the_others_have_had_their_time_to_answer(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """A simulated hand in its own process has the whole start-up (20 s) to import and build
+    itself, and a node of it that never spoke was said only when all of it had passed. Once
+    any node is heard, the others now have ``answer_ticks`` to answer."""
+    for answer in (40, None):
+        with rig(hand, hold) as r:
+            r.sim.activate(inj.NodeSilent(node=1))
+            r.runtime.startup_ticks = 300
+            r.runtime.answer_ticks = 300 if answer is None else answer
+            result = r.run()
+            ticks = r.runtime.tick
+        assert result.outcome is Outcome.STARTUP_FAILED
+        assert [f.code for f in result.faults] == [FaultCode.STARTUP]
+        if answer is None:
+            assert "nodes not ready within 300 ticks: node 1 (f1): no feedback" in result.message
+            assert ticks >= 299
+        else:
+            assert (
+                "nodes not ready within 40 ticks of the first node heard: node 1 (f1): no feedback"
+            ) in result.message
+            assert ticks <= 45
