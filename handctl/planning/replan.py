@@ -31,15 +31,18 @@ class Base:
     #: keep every phase's torques and schedule entries, search nothing (``handctl plan
     #: --keep-torques``): the template's other keys compiled onto the base's torques
     keep_torques: bool = False
+    #: where ``start`` is among the template's phases: the base's phases before it are the
+    #: template's (``_check_kept_phases``). ``start`` itself may be a phase the base lacks
+    #: (one added to the template, or renamed), whose place in the base was looked up in
+    #: vain (a traceback), or passed over (every base phase after it was kept)
+    start_at: int = 0
 
     def kept(self, name: str) -> Phase | None:
         """The base's phase ``name`` if the plan keeps its torques (it comes before
         ``start``, or the plan is of the schedules only, or of nothing)."""
         if self.schedule_only or self.keep_torques:
             return self.phase(name)
-        for phase in self.recipe.phases:
-            if phase.name == self.start:
-                return None
+        for phase in self.recipe.phases[: self.start_at]:
             if phase.name == name:
                 return phase
         return None
@@ -56,7 +59,7 @@ class Base:
         if self.keep_torques:
             return False
         names = [p.name for p in self.recipe.phases]
-        return name not in names or names.index(name) >= names.index(self.start)
+        return name not in names or names.index(name) >= self.start_at
 
     def describe(self) -> dict[str, str | bool]:
         """For the re-planned recipe's ``planned_from``."""
@@ -83,7 +86,7 @@ def load_base(
     recipe = _read_base(path, template, hand)
     if schedule_only:
         _check_something_to_search(template, start)
-    return _checked(Base(recipe, start, schedule_only), template)
+    return _checked(Base(recipe, start, schedule_only, start_at=names.index(start)), template)
 
 
 def load_kept_base(path: Path, template: Template, hand: HandConfig) -> Base:
