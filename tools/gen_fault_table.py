@@ -41,7 +41,11 @@ def _fault_list_section() -> list[str]:
 
     rows = []
     for kind, cls in sorted(INJECTORS.items()):
-        keys = ["node", *(["joint"] if issubclass(cls, _JointFault) else []), *cls.keys]
+        keys = [
+            *([] if cls.bus_wide else ["node"]),
+            *(["joint"] if issubclass(cls, _JointFault) else []),
+            *cls.keys,
+        ]
         # what a key left out means: the injector's own default (a fault list without
         # `node` hit every node, and one without `offset` 0.1 N·m, which the page did not say)
         defaults = {f.name: f.default for f in dataclasses.fields(cls)}
@@ -55,7 +59,8 @@ def _fault_list_section() -> list[str]:
             elif default is not dataclasses.MISSING:
                 said.append(f"default {default:#x}" if k == "bits" else f"default {default}")
             named.append(f"`{k}` ({', '.join(said)})" if said else f"`{k}`")
-        rows.append(f"| `{kind}` | {', '.join(named)} |")
+        whole = "none: of the whole bus" if cls.bus_wide else "none"
+        rows.append(f"| `{kind}` | {', '.join(named) or whole} |")
     return [
         "## Fault lists for the simulated hand",
         "",
@@ -77,9 +82,11 @@ def _fault_list_section() -> list[str]:
         "Times are rounded to the nodes' 1 ms tick, and a window lasts one tick at least "
         "(`start` equal to `stop` is one tick); a `start` after the run has ended never fires. "
         "Two windows of one kind on one target (the same node and joint, or every node or "
-        "joint and one of them) may not overlap: the "
+        "joint and one of them) may not overlap on the ticks they switch at, nor may a "
+        "`counter_repeat` and a `counter_skip` (both set the node's counter step): the "
         "injector's state is the node's, so the first window's end would end the other "
-        "(refused, naming both). Babble on identifier 0 is the e-stop's frame, and the nodes "
+        "(refused, naming both). `babble`, `bus_off` and `error_frames` are of the whole "
+        "bus and take no `node`. Babble on identifier 0 is the e-stop's frame, and the nodes "
         "obey it as one. A mistake is refused before anything starts, naming the key (exit 2).",
         "",
     ]

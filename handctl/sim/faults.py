@@ -82,6 +82,9 @@ class Injector:
     periodic: ClassVar[bool] = False  # has ``tick``: runs once per tick while active
     #: Scenario keys besides kind, node, joint, start and stop (read by ``_READERS``).
     keys: ClassVar[tuple[str, ...]] = ()
+    #: of the whole bus, no node's: a scenario's ``node`` was taken and did nothing (a
+    #: bus-off "of node 2" silenced every node)
+    bus_wide: ClassVar[bool] = False
 
     node: int | None = None
 
@@ -384,6 +387,7 @@ class ErrorFrames(Injector):
 
     kind: ClassVar[str] = "error_frames"
     periodic: ClassVar[bool] = True
+    bus_wide: ClassVar[bool] = True
     keys: ClassVar[tuple[str, ...]] = ("per_tick",)
     per_tick: int = 1
 
@@ -402,6 +406,7 @@ class BusOff(Injector):
 
     kind: ClassVar[str] = "bus_off"
     filters_tx: ClassVar[bool] = True
+    bus_wide: ClassVar[bool] = True
 
     def start(self, ctx: SimContext, now_ns: int) -> None:
         ctx.send_error_frame(0x040)
@@ -420,6 +425,7 @@ class Babble(Injector):
 
     kind: ClassVar[str] = "babble"
     periodic: ClassVar[bool] = True
+    bus_wide: ClassVar[bool] = True
     keys: ClassVar[tuple[str, ...]] = ("id", "per_tick", "length")
     id: int = 0x050
     per_tick: int = 20
@@ -609,6 +615,11 @@ INJECTORS: dict[str, type[Injector]] = {
 }
 
 
+#: injectors whose state is another's: both set a node's counter step, and the end of one
+#: ended the other's window (``_refuse_overlaps`` holds them to one group)
+_SHARED_STATE: dict[type, type] = {CounterRepeat: _CounterFault, CounterSkip: _CounterFault}
+
+
 # -- schedule ----------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Scheduled:
@@ -697,25 +708,40 @@ def _refuse_overlaps(doc: Doc, entries: Sequence[Scheduled]) -> None:
     for k, entry in enumerate(entries):
         injector = entry.injector
         end = math.inf if entry.stop is None else entry.stop
+        on, off = _ticks(entry)
         # its kind and target, whatever its other keys (a saturation's limit, say); a window
         # on every node (or every joint) shares a target with each one's: its end cleared
         # theirs, so a stuck TDT on one joint inside one on all of them ended with the short
         # one, and the scenario injected less than it said
-        for j, other in seen.get(type(injector), []):
+        group = _SHARED_STATE.get(type(injector), type(injector))
+        for j, other in seen.get(group, []):
             if not (
                 _same(injector, other.injector, "node") and _same(injector, other.injector, "joint")
             ):
                 continue
             other_end = math.inf if other.stop is None else other.stop
-            if entry.start < other_end and other.start < end:
+            # on the ticks the schedule switches them (a window lasts one tick at least):
+            # 0.1..0.1 s and 0.1005..0.9 s both came on at tick 100, and the first one's end
+            # at tick 101 ended the second
+            other_on, other_off = _ticks(other)
+            if on < other_off and other_on < off:
                 doc.fail(
                     f"faults[{k}]",
                     f"a window that does not overlap faults[{j}]'s ({other.start:g}"
-                    f"..{other_end:g} s): the same injector on the same target, whose end "
-                    "would end both",
+                    f"..{other_end:g} s) on the 1 ms ticks they switch at: the same "
+                    "injector (or one of its state: counter_repeat and counter_skip) on the "
+                    "same target, whose end would end both",
                     description(f"{injector.describe()} from {entry.start:g} to {end:g} s"),
                 )
-        seen.setdefault(type(injector), []).append((k, entry))
+        seen.setdefault(group, []).append((k, entry))
+
+
+def _ticks(entry: Scheduled) -> tuple[float, float]:
+    """The ticks ``FaultSchedule.add`` switches ``entry`` on and off at (off: inf, never)."""
+    on = round(entry.start * 1e9) // NODE_TICK_NS
+    if entry.stop is None:
+        return on, math.inf
+    return on, max(round(entry.stop * 1e9) // NODE_TICK_NS, on + 1)
 
 
 def _same(a: object, b: object, key: str) -> bool:
@@ -734,6 +760,12 @@ def _parse_entry(doc: Doc, hand: HandConfig) -> Scheduled:
         stop = doc.number("stop", min=start, max=1e6, unit="s")
     kwargs: dict[str, object] = {}
     node_ids = [f.node_id for f in hand.fingers]
+    if cls.bus_wide and doc.has("node"):
+        doc.fail(
+            "node",
+            f"no node: {kind} is of the whole bus (a node that stops sending is node_silent)",
+            doc.raw("node"),
+        )
     if doc.has("node"):
         # one message for every id the hand has not: bounds said "an integer >= 2 and <= 13"
         # of a hand whose nodes are 2, 4, 6 and 13, as if any id between were one

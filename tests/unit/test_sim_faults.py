@@ -178,3 +178,47 @@ def test_a_window_on_every_target_overlaps_one_on_any_of_them(
         parse_scenario(
             parse_yaml(text.replace("node: 1, joint: 2", "node: 2, joint: 2"), "s.yaml"), hand
         )
+
+
+@pytest.mark.parametrize(
+    ("first", "second"),
+    [
+        # both come on at tick 100, and the first one's end at tick 101 ended the second
+        (
+            "{kind: counter_repeat, node: 1, message: heartbeat, start: 0.1, stop: 0.1}",
+            "{kind: counter_repeat, node: 1, message: heartbeat, start: 0.1005, stop: 0.9}",
+        ),
+        # both set the node's counter step: the skip's end ended the repeat after 50 ms
+        (
+            "{kind: counter_repeat, node: 1, message: heartbeat, start: 0.1, stop: 0.9}",
+            "{kind: counter_skip, node: 1, message: heartbeat, start: 0.15, stop: 0.16}",
+        ),
+    ],
+)
+def test_windows_that_share_a_tick_or_a_state_may_not_overlap(
+    hand: HandConfig, first: str, second: str
+) -> None:
+    """Two windows that did not overlap in seconds but did on the ticks they switch on, and
+    two injectors of one state, passed the check, and the scenario injected less than it
+    said: the runs exited 0 where the second window alone stopped on HEARTBEAT_LOST (an
+    outside audit)."""
+    text = f"faults:\n  - {first}\n  - {second}\n"
+    with pytest.raises(ConfigError) as err:
+        parse_scenario(parse_yaml(text, "s.yaml"), hand)
+    assert err.value.key == "faults[1]"
+    assert "a window that does not overlap faults[0]'s" in err.value.expected
+    apart = text.replace("start: 0.1005, stop: 0.9", "start: 0.102, stop: 0.9").replace(
+        "start: 0.15, stop: 0.16", "start: 0.95, stop: 0.96"
+    )
+    parse_scenario(parse_yaml(apart, "s.yaml"), hand)
+
+
+@pytest.mark.parametrize("kind", ["bus_off", "error_frames", "babble"])
+def test_a_fault_of_the_whole_bus_takes_no_node(hand: HandConfig, kind: str) -> None:
+    """``node: 2`` on a bus-off was taken and did nothing: every node fell silent."""
+    text = f"faults:\n  - {{kind: {kind}, node: 2, start: 0.3, stop: 0.31}}\n"
+    with pytest.raises(ConfigError) as err:
+        parse_scenario(parse_yaml(text, "s.yaml"), hand)
+    assert err.value.key == "faults[0].node"
+    assert f"no node: {kind} is of the whole bus" in err.value.expected
+    parse_scenario(parse_yaml(text.replace("node: 2, ", ""), "s.yaml"), hand)
