@@ -373,9 +373,9 @@ def load_scenario(path: str | Path) -> Scenario:
         if name not in names:
             move.fail(name, "an object name out of " + ", ".join(names), name)
         vector = np.array(move.numbers(name, length=dim))
-        if float(np.linalg.norm(vector)) < 1e-12:
+        if not np.any(vector):
             move.fail(name, "a non-zero direction", [float(v) for v in vector])
-        directions[name] = unit(vector)
+        directions[name] = unit(_moderate(vector))
     move.done()
     task.done()
     doc.done()
@@ -462,3 +462,13 @@ def _read_finger(d: Doc, dim: int) -> Finger:
         axes = tuple(vectors)
     d.done()
     return Finger(name, base, rotation, lengths, angles, axes)
+
+
+def _moderate(vector: Array) -> Array:
+    """A direction as given, or scaled to a largest component of 1 where its length would
+    overflow or vanish: [0, 1e200] squared to inf (no torque found, exit 0), and [0, 1e-100]
+    was said to be no direction at all. Any other is left as it was, to the bit."""
+    peak = float(np.max(np.abs(vector)))
+    if 1e-100 < peak < 1e100:
+        return vector
+    return vector / peak

@@ -546,9 +546,13 @@ def _phase(
             if obj not in objects:
                 sub.fail(obj, "an object of the template (" + ", ".join(objects) + ")", obj)
             vec = sub.numbers(obj, length=2)
-            if math.hypot(*vec) < 1e-9:
+            if not any(vec):  # any other length is a direction (made unit where it is used)
                 sub.fail(obj, "a non-zero direction", list(vec))
-            move[obj] = (vec[0], vec[1])
+            peak = max(abs(vec[0]), abs(vec[1]))
+            # where the length would overflow or vanish, scaled to a largest component of 1
+            move[obj] = (
+                (vec[0], vec[1]) if 1e-100 < peak < 1e100 else (vec[0] / peak, vec[1] / peak)
+            )
         sub.done()
     if kind in ("lift", "hold"):
         min_height = doc.number("min_height", min=0.0, max=0.2, unit="m")

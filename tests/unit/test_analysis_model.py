@@ -245,3 +245,18 @@ def test_3d_axes_are_checked(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
         load_scenario(_write(tmp_path, data))
     assert info.value.key == "fingers[0].axes"
+
+
+@pytest.mark.parametrize("size", [1e200, 1e-100, 2.0])
+def test_a_direction_of_any_length_is_that_direction(tmp_path: Path, size: float) -> None:
+    """[0, 1e200] squared to infinity, and the analysis found no torque (exit 0); [0, 1e-100]
+    was refused as "a non-zero direction". Only the zero vector is none."""
+    data = _fig3()
+    task = data["task"]
+    assert isinstance(task, dict)
+    task["move"]["cylinder1"] = [0.0, size]
+    scenario = load_scenario(_write(tmp_path, data))
+    assert scenario.directions["cylinder1"].tolist() == [0.0, 1.0]
+    task["move"]["cylinder1"] = [0.0, 0.0]
+    with pytest.raises(ConfigError, match="a non-zero direction"):
+        load_scenario(_write(tmp_path, data))
