@@ -615,6 +615,14 @@ def test_export_reads_back_with_python_can(
     assert [(f, d) for f, d, _ in back] == [(f, d) for f, d, _ in logged]
     if fmt != "candump":  # candump -L keeps no direction
         assert [rx for *_, rx in back] == [rx for *_, rx in logged]
+    # each frame at its time of day, as a reader with absolute times reads it: the ASC's
+    # date was the export's moment, and its milliseconds lost their leading zeros
+    recording = open_recording(recorded.path)
+    started = int(recording.meta("handctl.command", "started_unix_ns")) * 1e-9
+    options = {"relative_timestamp": False} if fmt == "asc" else {}
+    with reader(str(out), **options) as frames:
+        first = next(iter(frames))
+    assert abs(first.timestamp - started) < 2e-3, (first.timestamp, started)
 
 
 def test_an_export_replaces_only_an_earlier_export_of_its_format(
