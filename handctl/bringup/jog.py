@@ -4,8 +4,9 @@ sign and scale before a recipe relies on them.
 The jog is a recipe of one phase built in memory (the joint ramps to X N·m within its rate
 limit, every other joint gets zero, then the end ramp back to zero) with the soft-limit guard,
 run by the normal Runtime: every torque passes the supervisor with the hand's limits, exactly
-as in a recipe run, and Ctrl-C is its controlled stop. A torque over the joint's ``tau_max`` is
-refused before anything is opened or sent.
+as in a recipe run, and Ctrl-C is its controlled stop. A torque over half of the joint's
+``tau_max`` (``JOG_SHARE``: the guard needs the rest) is refused before anything is opened or
+sent; a recovery may ask the whole ``tau_max``.
 
 The guard acts on every joint, not only the jogged one: a proximal joint's swing swings the
 joints beyond it, and with zero torque a middle joint swung onto its soft limit would stop the
@@ -45,6 +46,14 @@ from handctl.session import RunReport, RunRequest, run_recipe
 
 #: The shortest ramp to and from the jog torque (s), however high the rate limit.
 MIN_RAMP_S = 0.2
+#: of a joint's ``tau_max``, the most a jog asks. The guard's spring, held to ``tau_max`` with
+#: the jog, meets a torque of this share halfway into its band (a middle joint of the shipped
+#: hand at its tau_max, 0.45 N·m, went past its limit; at 0.3 it stopped 0.16 rad inside),
+#: and a proximal joint's swing flings the joints beyond it less hard (one at 0.4 of its
+#: 0.6 N·m flung the middle joint past its limit). At half, every joint of the shipped hand,
+#: both ways, ends inside its limits.
+JOG_SHARE = 0.5
+JOG_SHARE_TEXT = "half"
 #: rad, the soft-limit guard's band (as the default recipe's ``limit_guard_band``).
 GUARD_BAND = 0.15
 #: s, the run-time table's line spacing: of the hand's loop, so that a slower loop does not
@@ -198,6 +207,19 @@ def jog_recipe(
             "--torque",
             "",
             f"|τ| <= {spec.tau_max:g} N·m (tau_max of {joint} in {hand.source})",
+            torque,
+        )
+    most = JOG_SHARE * spec.tau_max
+    if not recover and abs(torque) > most + 1e-9:  # to a nN·m: 2/3 of 0.3 is 0.19999...
+        # every command is held to tau_max, so the guard's push-back against a jog at
+        # tau_max is the jog's own size only at the limit itself: the joint came onto it at
+        # speed, past it, and the jog ended in a latched ANGLE_LIMIT
+        raise ConfigError(
+            "--torque",
+            "",
+            f"|τ| <= {most:.4g} N·m ({JOG_SHARE_TEXT} of {joint}'s tau_max, "
+            f"{spec.tau_max:g} N·m in {hand.source}: the soft-limit guard needs the rest to "
+            "hold the joint off its limit)",
             torque,
         )
     if recover and torque == 0.0:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import itertools
+import math
 import os
 import signal
 import subprocess
@@ -137,6 +138,10 @@ def test_a_negative_torque_in_exponent_form_is_a_value(
     "args, says",
     [
         (["f1_j3", "--torque", "0.31"], "--torque: expected |τ| <= 0.3 N·m (tau_max of f1_j3"),
+        (
+            ["f1_j2", "--torque", "0.45"],
+            "--torque: expected |τ| <= 0.225 N·m (half of f1_j2's tau_max, 0.45 N·m in ",
+        ),
         (["f1_j3", "--torque", "nan"], "--torque: expected |τ| <= 0.3 N·m"),
         (["f9_j1", "--torque", "0.01"], "JOINT: expected a joint of"),
         (["f1_j1", "--torque", "0.01", "--seconds", "-1"], "--seconds"),
@@ -492,11 +497,17 @@ def test_a_hand_without_a_simulated_one_is_refused_before_the_table(
     assert f"{path}: sim: expected this key (required)" in captured.err
 
 
-def test_the_table_ends_on_the_torque_back_at_zero_after_a_stop(hand: HandConfig) -> None:
+def test_the_table_ends_on_the_torque_back_at_zero_after_a_stop(
+    hand: HandConfig, tmp_path: Path
+) -> None:
     """A safety stop (and a Ctrl-C) ended the table on a line of the fault ramp, the torque
     still on: the operator never saw it back at zero, which the bus had."""
+    faults = tmp_path / "spike.yaml"
+    faults.write_text(
+        "faults:\n  - {kind: tdt_spike, node: 1, joint: 1, amplitude: 5.0, start: 0.6}\n"
+    )
     lines: list[Any] = []
-    report = jog(hand, "f1_j1", 0.6, seconds=1.0, show=lines.append)
+    report = jog(hand, "f1_j1", 0.3, seconds=1.0, sim_faults=faults, show=lines.append)
     assert report.report.result.outcome is Outcome.SAFETY_STOP
     assert lines[-1].applied == 0.0 and lines[-1].state == "faulted"
     assert any(line.applied > 0.1 for line in lines)
@@ -525,3 +536,17 @@ def test_a_jog_whose_start_up_failed_prints_no_banner(capsys: pytest.CaptureFixt
     captured = capsys.readouterr()
     assert "no feedback" in captured.err or "not ready" in captured.err, captured.err
     assert "jog f1_j1 with" not in captured.out and "angle rad" not in captured.out
+
+
+@pytest.mark.parametrize(("joint", "torque"), [("f1_j2", 0.225), ("f1_j1", 0.3), ("f1_j3", -0.15)])
+def test_a_jog_at_the_most_it_may_ask_ends_inside_every_limit(
+    hand: HandConfig, joint: str, torque: float
+) -> None:
+    """f1_j2 at its tau_max (0.45 N·m) went past its limit, the guard's push-back meeting the
+    jog only there, and f1_j1 at 0.4 N·m flung f1_j2 past its own: each a latched
+    ANGLE_LIMIT (an outside audit). Half of tau_max, the most a jog now asks, holds."""
+    assert torque == pytest.approx(
+        math.copysign(0.5, torque) * hand.joints[[j.name for j in hand.joints].index(joint)].tau_max
+    )
+    result = jog(hand, joint, torque, seconds=1.5)
+    assert result.report.result.outcome is Outcome.COMPLETED, result.report.result.message
