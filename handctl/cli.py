@@ -2374,7 +2374,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     bus_text = "sim" if args.bus is None else args.bus  # '' is a bad spec, not the default
     _say_in_process_bus("--bus", args.bus)
     try:
-        with listening_bus(bus_text, hand) as bus:
+        with listening_bus(bus_text, hand, waits=True) as bus:
             title = f"handctl monitor {escaped(bus_text)} ({bus.spec}): listening, sending nothing"
             if on_tty:
                 from rich.live import Live

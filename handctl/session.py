@@ -37,7 +37,7 @@ from handctl.hostcheck import (
 from handctl.hostfacts import affinity
 from handctl.online import timebudget
 from handctl.online.bus import HandBus, open_bus
-from handctl.online.busspec import BusSpec, parse_spec
+from handctl.online.busspec import BusSpec, parse_spec, require_peers
 from handctl.online.clock import (
     LOOP_PRIORITY,
     Clock,
@@ -432,6 +432,7 @@ def _start_peer(
     ``req.sim_faults`` as read) and name the bus it is on; any other bus is opened as it is
     named."""
     if spec.interface != "sim":
+        require_peers(spec)
         return _Peer(spec)
     if lockstep:
         from handctl.sim.hand import SimulatedHand
@@ -522,6 +523,7 @@ def _refuse_another_host(spec: BusSpec, hand: HandConfig) -> None:
     bus) is commanding the nodes, and this run must not start beside it."""
     import time
 
+    require_peers(spec)
     commands = {}
     for finger in hand.fingers:
         commands[finger.can_ids.torque_command] = ("TorqueCommand", finger)

@@ -15,14 +15,16 @@ from contextlib import ExitStack, contextmanager
 
 from handctl.config import HandConfig
 from handctl.online.bus import HandBus, open_bus
-from handctl.online.busspec import BusSpec, parse_spec
+from handctl.online.busspec import BusSpec, parse_spec, require_peers
 
 _channels = itertools.count()
 
 
 @contextmanager
-def listening_bus(spec_text: str, hand: HandConfig) -> Iterator[HandBus]:
-    """Open ``spec_text`` to listen on; ``sim`` starts a simulated hand to listen to."""
+def listening_bus(spec_text: str, hand: HandConfig, *, waits: bool = False) -> Iterator[HandBus]:
+    """Open ``spec_text`` to listen on; ``sim`` starts a simulated hand to listen to.
+    ``waits``: the listener stays until a hand comes (``monitor``), and may be the first on a
+    unix bus, which it then makes; a survey (``nodes``) is refused a bus nobody is on."""
     spec = parse_spec(spec_text, hand.bus, hand.source)
     with ExitStack() as stack:
         if spec.interface == "sim":
@@ -35,5 +37,7 @@ def listening_bus(spec_text: str, hand: HandConfig) -> Iterator[HandBus]:
             sim.start()
             stack.callback(sim.stop)
         else:
+            if not waits:
+                require_peers(spec)
             bus = stack.enter_context(open_bus(spec, hand.bus))
         yield bus

@@ -25,7 +25,7 @@ from typing import Any
 import can
 
 from handctl.config import BusConfig
-from handctl.errors import BusError, ConfigError, escaped
+from handctl.errors import BusError, ConfigError, Description, escaped
 
 #: bytes: the kernel's ``IFNAMSIZ``, the NUL included; a name has one byte fewer at most.
 IFNAMSIZ = 16
@@ -84,6 +84,21 @@ def parse_spec(
     if interface == "unix":
         _check_unix_directory(channel, option)
     return BusSpec(interface, channel)
+
+
+def require_peers(spec: BusSpec, option: str = "--bus") -> None:
+    """A unix bus a command only joins (to listen to the nodes, or to drive a hand that is
+    on it) must be there: its directory is made by the first participant, and a mistyped
+    one was made by the command, which then said every node was missing (``nodes``, a
+    "listens only" command, left the directory behind)."""
+    if spec.interface == "unix" and not Path(spec.channel).is_dir():
+        raise ConfigError(
+            option,
+            "channel",
+            "the directory of a unix bus a hand is on (start one with 'handctl sim --bus "
+            "unix:DIRECTORY')",
+            Description(f"{escaped(spec.channel)}: no such directory"),
+        )
 
 
 def _check_unix_directory(channel: str, option: str) -> None:

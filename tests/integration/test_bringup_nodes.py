@@ -325,3 +325,26 @@ def test_a_flood_of_ids_is_counted_in_a_bounded_table(
     assert all(
         re.fullmatch(r"0x0001[0-9A-F]{4} \(29-bit\)", f["id"]) for f in report["foreign_ids"]
     )
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["nodes", "--seconds", "0.2"],
+        ["jog", "f1_j1", "--torque", "0.05"],
+        ["run", "recipe", str(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")],
+    ],
+    ids=["nodes", "jog", "run"],
+)
+def test_a_unix_bus_no_hand_is_on_is_said_and_not_made(
+    tmp_path: Path, argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A mistyped bus directory was made by the command, which then said every node was
+    missing (``nodes``, which only listens, left the directory behind; a run listened out
+    its start-up). ``monitor`` may come first and wait for a hand: it makes the bus."""
+    missing = tmp_path / "no_bus_here"
+    assert cli.main([*argv, "--bus", f"unix:{missing}"]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--bus: channel: expected the directory of a unix bus a hand is on" in err
+    assert f"found {missing}: no such directory" in err
+    assert not missing.exists()
