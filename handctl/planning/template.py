@@ -488,6 +488,9 @@ def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
         return tuple(doc.numbers(key, length=hand.n_joints, unit="N·m"))
     refuse_another_hands_joints(doc, key, hand)
     sub = doc.mapping(key)
+    # a joint of another hand beside the missing one is named as what it is; read one by
+    # one, the missing left_j1 was said to be misspelt as left_j2, a joint that was there
+    sub.expect(hand.joint_names)
     values = tuple(sub.number(n, unit="N·m") for n in hand.joint_names)
     sub.done()
     return values

@@ -426,3 +426,21 @@ def test_a_template_names_its_pairs_as_a_recipe_does_and_the_plan_carries_them(
     data["pairs"] = [["cyl1", "cyl3"]]
     with pytest.raises(ConfigError, match=r"pairs\[0\]: expected two names of the recipe's"):
         load_template(write(tmp_path, data), hand)
+
+
+def test_a_joint_of_another_hand_in_a_template_s_torques_is_named(tmp_path: Path) -> None:
+    """``f1_j1`` written where the planar hand's ``left_j1`` goes: the refusal named the
+    missing ``left_j1`` and guessed ``left_j2``, a joint that was there, as its misspelling."""
+    from handctl.config import load_hand
+
+    planar = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    template = ROOT / "config" / "recipes" / "planar_lift_turn.template.yaml"
+    data: dict[str, Any] = yaml.safe_load(template.read_text())
+    torques = data["phases"][0]["torques"]
+    torques["f1_j1"] = torques.pop("left_j1")
+    path = tmp_path / "t.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError) as err:
+        load_template(path, planar)
+    assert err.value.key == "phases[0].torques.f1_j1"
+    assert "unknown key; did you mean 'left_j1'?" in err.value.expected
