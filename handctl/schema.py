@@ -127,7 +127,12 @@ FILE_KINDS: tuple[tuple[str, frozenset[str], str], ...] = (
         "compile it into a recipe with 'handctl plan TEMPLATE.yaml -o RECIPE.yaml'",
     ),
     ("recipe", frozenset({"recipe", "phases"}), "run it with 'handctl run recipe RECIPE.yaml'"),
-    ("hand config", frozenset({"bus", "fingers"}), "give it as the hand: --hand HAND.yaml"),
+    (
+        "hand config",
+        frozenset({"bus", "fingers"}),
+        # not every command takes a hand (analyze does not): said where it goes
+        "give it where a command takes the hand ('handctl check HAND.yaml', --hand HAND.yaml)",
+    ),
     (
         "analysis scenario",
         frozenset({"dimension", "reading"}),

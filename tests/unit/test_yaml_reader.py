@@ -512,7 +512,8 @@ def test_an_input_that_is_not_a_regular_file_is_refused_without_waiting_on_it(
         (
             "config/hands/hiroshima_hand.yaml",
             "recipe",
-            "expected a recipe, found a hand config; give it as the hand: --hand HAND.yaml",
+            "expected a recipe, found a hand config; give it where a command takes the hand "
+            "('handctl check HAND.yaml', --hand HAND.yaml)",
         ),
         (
             "config/recipes/swap_two_cylinders.yaml",
