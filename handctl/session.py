@@ -247,6 +247,8 @@ def run_recipe(
         # And nobody else commands its nodes: a second run or jog beside one took real-time
         # priority on the first's CPU for its timing check before its driver heard the other
         # host and refused, and the first lost its ticks and latched every node's TIMEOUT.
+        # A unix bus no hand is on is said as such, not made and listened out.
+        require_peers(spec)
         _refuse_another_host(spec, req.hand)
         # Before the bus is opened for the run: a host that cannot hold the deadlines sends
         # nothing.
@@ -432,7 +434,6 @@ def _start_peer(
     ``req.sim_faults`` as read) and name the bus it is on; any other bus is opened as it is
     named."""
     if spec.interface != "sim":
-        require_peers(spec)
         return _Peer(spec)
     if lockstep:
         from handctl.sim.hand import SimulatedHand
@@ -523,7 +524,6 @@ def _refuse_another_host(spec: BusSpec, hand: HandConfig) -> None:
     bus) is commanding the nodes, and this run must not start beside it."""
     import time
 
-    require_peers(spec)
     commands = {}
     for finger in hand.fingers:
         commands[finger.can_ids.torque_command] = ("TorqueCommand", finger)
