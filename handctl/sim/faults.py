@@ -629,6 +629,15 @@ class Scheduled:
     start: float
     stop: float | None = None
 
+    def ticks(self) -> tuple[int, int | None]:
+        """The node ticks it is switched on and off at (off: None, never): the times rounded
+        to the 1 ms tick, and a window within one tick (start == stop) lasts that tick (its
+        off, sorted before its on in the same tick, left the fault on for good)."""
+        on = round(self.start * 1e9) // NODE_TICK_NS
+        if self.stop is None:
+            return on, None
+        return on, max(round(self.stop * 1e9) // NODE_TICK_NS, on + 1)
+
 
 class FaultSchedule:
     """Injectors with their switching times; the simulated hand consults it every tick."""
@@ -658,13 +667,12 @@ class FaultSchedule:
                 f"{injector.describe()}: expected 0 <= start <= stop, found "
                 f"start={start!r}, stop={stop!r}"
             )
-        self.entries.append(Scheduled(injector, start, stop))
-        on = round(start * 1e9) // NODE_TICK_NS
+        entry = Scheduled(injector, start, stop)
+        self.entries.append(entry)
+        on, off = entry.ticks()
         self._insert(on, 1, injector)
-        if stop is not None:
-            # a window within one tick (start == stop) lasts that tick: its off, sorted
-            # before its on in the same tick, left the fault on for good
-            self._insert(max(round(stop * 1e9) // NODE_TICK_NS, on + 1), 0, injector)
+        if off is not None:
+            self._insert(off, 0, injector)
 
     def _insert(self, tick: int, on: int, injector: Injector) -> None:
         # Off events sort before on events of the same tick, so an off and an on at the same
@@ -704,27 +712,27 @@ def _refuse_overlaps(doc: Doc, entries: Sequence[Scheduled]) -> None:
     """Two windows of one injector on one target may not overlap: the injector's state is the
     node's (a saturation, a counter's repeat), so the first window's end ended the other's,
     and a long fault beside a short one lasted the short one."""
-    seen: dict[type, list[tuple[int, Scheduled]]] = {}
+    seen: dict[type, list[tuple[int, Scheduled, int, float]]] = {}
     for k, entry in enumerate(entries):
         injector = entry.injector
         end = math.inf if entry.stop is None else entry.stop
-        on, off = _ticks(entry)
+        # on the ticks the schedule switches them (a window lasts one tick at least):
+        # 0.1..0.1 s and 0.1005..0.9 s both came on at tick 100, and the first one's end at
+        # tick 101 ended the second
+        on, off = entry.ticks()
+        until = math.inf if off is None else off
         # its kind and target, whatever its other keys (a saturation's limit, say); a window
         # on every node (or every joint) shares a target with each one's: its end cleared
         # theirs, so a stuck TDT on one joint inside one on all of them ended with the short
         # one, and the scenario injected less than it said
         group = _SHARED_STATE.get(type(injector), type(injector))
-        for j, other in seen.get(group, []):
+        for j, other, other_on, other_until in seen.get(group, []):
             if not (
                 _same(injector, other.injector, "node") and _same(injector, other.injector, "joint")
             ):
                 continue
-            other_end = math.inf if other.stop is None else other.stop
-            # on the ticks the schedule switches them (a window lasts one tick at least):
-            # 0.1..0.1 s and 0.1005..0.9 s both came on at tick 100, and the first one's end
-            # at tick 101 ended the second
-            other_on, other_off = _ticks(other)
-            if on < other_off and other_on < off:
+            if on < other_until and other_on < until:
+                other_end = math.inf if other.stop is None else other.stop
                 doc.fail(
                     f"faults[{k}]",
                     f"a window that does not overlap faults[{j}]'s ({other.start:g}"
@@ -733,15 +741,7 @@ def _refuse_overlaps(doc: Doc, entries: Sequence[Scheduled]) -> None:
                     "same target, whose end would end both",
                     description(f"{injector.describe()} from {entry.start:g} to {end:g} s"),
                 )
-        seen.setdefault(group, []).append((k, entry))
-
-
-def _ticks(entry: Scheduled) -> tuple[float, float]:
-    """The ticks ``FaultSchedule.add`` switches ``entry`` on and off at (off: inf, never)."""
-    on = round(entry.start * 1e9) // NODE_TICK_NS
-    if entry.stop is None:
-        return on, math.inf
-    return on, max(round(entry.stop * 1e9) // NODE_TICK_NS, on + 1)
+        seen.setdefault(group, []).append((k, entry, on, until))
 
 
 def _same(a: object, b: object, key: str) -> bool:
