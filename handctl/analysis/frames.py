@@ -79,6 +79,15 @@ def unit(v: Array) -> Array:
     return v / float(np.linalg.norm(v))
 
 
+def moderate(v: Array) -> Array:
+    """A non-zero direction as given, or scaled to a largest component of 1 where its length
+    would overflow or vanish in ``unit``: [0, 1e200] squared to inf (an analysis found no
+    torque, exit 0), and [0, 1e-100] was taken for no direction at all. Any other is left
+    as it was, to the bit."""
+    peak = float(np.max(np.abs(v)))
+    return v if 1e-100 < peak < 1e100 else v / peak
+
+
 def tangent_basis(normal: Array) -> Array:
     """Orthonormal tangent directions (columns) of a unit normal: 1 in 2D, 2 in 3D.
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from handctl.analysis.frames import (
     Array,
+    moderate,
     rotation_2d,
     rotation_about,
     rotation_from_vector,
@@ -375,7 +376,7 @@ def load_scenario(path: str | Path) -> Scenario:
         vector = np.array(move.numbers(name, length=dim))
         if not np.any(vector):
             move.fail(name, "a non-zero direction", [float(v) for v in vector])
-        directions[name] = unit(_moderate(vector))
+        directions[name] = unit(moderate(vector))
     move.done()
     task.done()
     doc.done()
@@ -462,13 +463,3 @@ def _read_finger(d: Doc, dim: int) -> Finger:
         axes = tuple(vectors)
     d.done()
     return Finger(name, base, rotation, lengths, angles, axes)
-
-
-def _moderate(vector: Array) -> Array:
-    """A direction as given, or scaled to a largest component of 1 where its length would
-    overflow or vanish: [0, 1e200] squared to inf (no torque found, exit 0), and [0, 1e-100]
-    was said to be no direction at all. Any other is left as it was, to the bit."""
-    peak = float(np.max(np.abs(vector)))
-    if 1e-100 < peak < 1e100:
-        return vector
-    return vector / peak

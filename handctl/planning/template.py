@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from handctl.analysis.frames import moderate
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.online.recipes.guard import GuardSettings
@@ -551,11 +552,8 @@ def _phase(
             vec = sub.numbers(obj, length=2)
             if not any(vec):  # any other length is a direction (made unit where it is used)
                 sub.fail(obj, "a non-zero direction", list(vec))
-            peak = max(abs(vec[0]), abs(vec[1]))
-            # where the length would overflow or vanish, scaled to a largest component of 1
-            move[obj] = (
-                (vec[0], vec[1]) if 1e-100 < peak < 1e100 else (vec[0] / peak, vec[1] / peak)
-            )
+            x, y = moderate(np.array(vec, dtype=float)).tolist()
+            move[obj] = (x, y)
         sub.done()
     if kind in ("lift", "hold"):
         min_height = doc.number("min_height", min=0.0, max=0.2, unit="m")
