@@ -104,15 +104,27 @@ def give_up(what: str, stopped: list[str]) -> NoReturn:
 LOAD_STOPS = ("LOOP_OVERRUN", "FEEDBACK_TIMEOUT", "RX_BACKLOG")
 
 
-def load_stopped(faults: list[dict[str, object]]) -> bool:
+#: How a loop overrun counts the stall it stopped on, and how long a node's command watchdog is
+_OVERRUN_TICKS = re.compile(r"(\d+) consecutive ticks missed")
+_WATCHDOG_MS = re.compile(r"its ([\d.]+) ms watchdog")
+
+
+def load_stopped(faults: list[dict[str, object]], period_s: float = 1e-3) -> bool:
     """Whether a run's faults (its summary's) are a stop the load caused: the first is one of
     ``LOAD_STOPS``, and every later one is too or is a node's own watchdog timing out on the
     same stall (``NODE_FAULT`` ... ``TIMEOUT``: commands stopped coming for as long as the
-    loop was held, which is what the watchdog is for)."""
+    loop was held, which is what the watchdog is for).
+
+    The node may say so first: a loop held after its wake-up read the timer, before it
+    drained the bus, hears the node's timeout in that tick and counts the ticks it missed at
+    the next wake-up. That is the same stall only when the LOOP_OVERRUN comes in that next
+    tick and its missed ticks (``period_s`` each, the tick before them included) span the
+    node's watchdog: a node timing out with the loop on time is not the load's."""
     if not faults:
         return False
     ordered = sorted(faults, key=lambda f: int(str(f.get("tick", 0))))
-    if ordered[0]["code"] not in LOAD_STOPS:
+    first = ordered[0]
+    if first["code"] not in LOAD_STOPS and not _timed_out_on_the_stall(first, ordered, period_s):
         return False
     return all(
         f["code"] in LOAD_STOPS
@@ -121,13 +133,52 @@ def load_stopped(faults: list[dict[str, object]]) -> bool:
     )
 
 
-def stopped_by_load(stderr: str) -> bool:
+def _timed_out_on_the_stall(
+    node: dict[str, object], faults: list[dict[str, object]], period_s: float
+) -> bool:
+    """Whether ``node``, a fault, is a node's watchdog timing out on the stall that a
+    LOOP_OVERRUN of the same or the next tick counted (``load_stopped``)."""
+    detail = str(node.get("detail", ""))
+    watchdog = _WATCHDOG_MS.search(detail)
+    if node["code"] != "NODE_FAULT" or "TIMEOUT" not in detail or watchdog is None:
+        return False
+    tick = int(str(node["tick"]))
+    for f in faults:
+        missed = _OVERRUN_TICKS.search(str(f.get("detail", "")))
+        if f["code"] == "LOOP_OVERRUN" and missed is not None:
+            held_ms = (int(missed.group(1)) + 1) * period_s * 1e3
+            if int(str(f["tick"])) - tick in (0, 1) and held_ms >= float(watchdog.group(1)):
+                return True
+    return False
+
+
+def stopped_by_load(stderr: str, period_s: float = 1e-3) -> bool:
     """Whether a run's stop, as handctl says it on stderr, is one the load causes: in the run
     ("safety stop: RX_BACKLOG at tick ..."), or the start-up's end on one of those
-    (``REFUSE_STARTUP``: "safety stop: receive backlog during start-up ...")."""
+    (``REFUSE_STARTUP``: "safety stop: receive backlog during start-up ..."), or a node's
+    watchdog timing out on the loop's own stall just before the loop counts it
+    (``load_stopped``). ``period_s``: the run's tick period."""
     from handctl.online.loop import REFUSE_STARTUP
 
     during_start_up = [what for code, what in REFUSE_STARTUP.values() if code.name in LOAD_STOPS]
-    return any(f"safety stop: {code}" in stderr for code in LOAD_STOPS) or any(
-        f"safety stop: {what} during start-up" in stderr for what in during_start_up
+    return (
+        any(f"safety stop: {code}" in stderr for code in LOAD_STOPS)
+        or any(f"safety stop: {what} during start-up" in stderr for what in during_start_up)
+        or load_stopped(stop_faults(stderr), period_s)
     )
+
+
+#: One fault of a safety stop's line: "CODE at tick N: detail", each after the first after "; "
+_STOP_FAULT = re.compile(r"(?:safety stop: |; )([A-Z][A-Z_]+) at tick (\d+): ")
+
+
+def stop_faults(stderr: str) -> list[dict[str, object]]:
+    """The faults of the "safety stop: ..." line on a run's stderr, as its summary lists
+    them (code, tick, detail); none without that line."""
+    line = next((ln for ln in stderr.splitlines() if "safety stop: " in ln), "")
+    found = list(_STOP_FAULT.finditer(line))
+    ends = [m.start() for m in found[1:]] + [len(line)] if found else []
+    return [
+        {"code": m.group(1), "tick": int(m.group(2)), "detail": line[m.end() : end]}
+        for m, end in zip(found, ends, strict=True)
+    ]

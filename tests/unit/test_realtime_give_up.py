@@ -11,7 +11,14 @@ import pytest
 from handctl.config import HandConfig
 from handctl.hostcheck import ProbeRecord
 
-from ..integration.realtime import give_up, hand_cpu_text, host_stopped, load_stopped
+from ..integration.realtime import (
+    give_up,
+    hand_cpu_text,
+    host_stopped,
+    load_stopped,
+    stop_faults,
+    stopped_by_load,
+)
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 
@@ -86,3 +93,40 @@ def test_a_node_watchdog_timing_out_on_the_same_stall_is_still_the_loads_stop() 
     assert not load_stopped([overrun, sensor])
     assert not load_stopped([{**timeout, "tick": 600}, overrun])
     assert not load_stopped([])
+
+
+#: A stop seen beside a full test suite: the loop held after its wake-up of tick 1922 read the
+#: timer, the node's watchdog timing out before the loop drained the bus, the 13 ticks counted
+#: at the next wake-up.
+_HELD_BEFORE_THE_DRAIN = (
+    "handctl: warning: the run stopped on LOOP_OVERRUN; the bare timer loop beside it says the "
+    "host was MARGINAL (longest host stall 2.586 ms; missed ticks: 2 the host's, 6 with the "
+    "loop held off its CPU, 7 handctl's)\n"
+    "  handctl: safety stop: NODE_FAULT at tick 1922: node 1 (f1) in FAULT (TIMEOUT): it heard "
+    "no command for its 10 ms watchdog (the host stalled, or its commands did not reach it); "
+    "LOOP_OVERRUN at tick 1923: {missed} consecutive ticks missed\n"
+)
+
+
+def test_a_stop_s_faults_are_read_from_its_line() -> None:
+    faults = stop_faults(_HELD_BEFORE_THE_DRAIN.format(missed=13))
+    assert [(f["code"], f["tick"]) for f in faults] == [
+        ("NODE_FAULT", 1922),
+        ("LOOP_OVERRUN", 1923),
+    ]
+    assert str(faults[0]["detail"]).endswith("did not reach it)")
+    assert faults[1]["detail"] == "13 consecutive ticks missed"
+    assert stop_faults("handctl: error: no such file") == []
+
+
+def test_a_node_timing_out_just_before_the_loop_counts_the_same_stall_is_the_loads() -> None:
+    """Tried again only when the overrun comes in the next tick and spans the watchdog: a loop
+    held 13 ms explains a node that heard nothing for 10 ms, one held 6 ms does not, nor an
+    overrun later than the next tick, nor a node's fault other than its watchdog's."""
+    held = _HELD_BEFORE_THE_DRAIN.format(missed=13)
+    assert stopped_by_load(held)
+    assert not stopped_by_load(_HELD_BEFORE_THE_DRAIN.format(missed=5))
+    assert not stopped_by_load(held, period_s=0.5e-3)  # 13 ticks of 0.5 ms: 7 ms, not 10
+    assert not stopped_by_load(held.replace("tick 1923", "tick 1924"))
+    assert not stopped_by_load(held.replace("(TIMEOUT)", "(SENSOR)"))
+    assert not stopped_by_load(held.replace("; LOOP_OVERRUN at tick 1923: 13 consecutive", " 13"))
