@@ -115,3 +115,25 @@ def test_a_listener_hears_another_host_enable_the_node(node: FingerNode) -> None
     node.receive(fb, _feedback(node, 0, DISABLED, 0), 1)
     node.receive(fb, _feedback(node, 1, ENABLED, 0), 2)
     assert node.contradiction == "" and node.state == ENABLED
+
+
+def test_an_enabled_sent_before_the_fault_may_arrive_after_it(node: FingerNode) -> None:
+    """A node enabled and e-stopped in one of its ticks: the Status ENABLED it queued goes out
+    after the Feedback FAULT, whose identifier wins the bus. That older ENABLED was taken for
+    a contradiction, and the stop said NODE_CONTRADICTION instead of the e-stop. Once the
+    Status stream itself has said FAULT, an ENABLED of it is the node's present again."""
+    fb, st = node.layouts.feedback.frame_id, node.layouts.status.frame_id
+    version = node.layouts.protocol_version
+    node.receive(fb, _feedback(node, 0, DISABLED, 0), 1)
+    node.next_node_command("enable")
+    node.receive(fb, _feedback(node, 1, FAULT, ESTOP), 2)
+    node.receive(st, _status(node, 0, ENABLED, 0, version, (1, 0, 0)), 3)
+    assert node.contradiction == ""
+    assert node.state == FAULT and node.fault_bits == ESTOP  # the FAULT report stands
+    node.receive(st, _status(node, 1, FAULT, ESTOP, version, (1, 0, 0)), 4)
+    node.receive(st, _status(node, 2, ENABLED, 0, version, (1, 0, 0)), 5)
+    assert node.contradiction == "Status says ENABLED after FAULT without a fault reset"
+    assert node.state == FAULT and node.fault_bits == ESTOP
+    # the Feedback stream said FAULT first: an ENABLED of its own after it is no older report
+    node.receive(fb, _feedback(node, 2, ENABLED, 0), 6)
+    assert node.contradictions == 2

@@ -137,6 +137,12 @@ class FingerNode:
         #: host's last enable: until each has, a DISABLED of that stream may be one sent
         #: before the enable (CAN keeps the order within an identifier, not across them).
         self._since_enable: set[str] = set()
+        #: The streams not yet heard saying FAULT since the host took the node for FAULT: until
+        #: each has, an ENABLED of that stream may be one sent before the fault. A node enabled
+        #: and e-stopped in one of its ticks queues a Status ENABLED, then sends a Feedback
+        #: FAULT that wins the bus by its lower identifier and arrives first; that ENABLED was
+        #: taken for the node contradicting itself, and the stop named no e-stop.
+        self._since_fault: set[str] = set()
         #: Whether the node may now go from DISABLED to ENABLED: this host enabled it, and
         #: no stream that had already said ENABLED since has said DISABLED again.
         self._may_enable = False
@@ -277,7 +283,8 @@ class FingerNode:
                 f"latched fault bits ({', '.join(fault_names(bits & LATCHED_BITS))})"
             )
         if self.state == _FAULT and state == _ENABLED:
-            problem = problem or f"{message} says ENABLED after FAULT without a fault reset"
+            if message not in self._since_fault:  # this stream said FAULT before: it is now
+                problem = problem or f"{message} says ENABLED after FAULT without a fault reset"
             state, bits = _FAULT, None  # what the FAULT report said stands
         elif (
             self.state == _DISABLED
@@ -289,6 +296,10 @@ class FingerNode:
                 f"{message} says ENABLED after DISABLED without an enable from this host"
             )
             state = _DISABLED  # what the DISABLED report said stands
+        if state == _FAULT:
+            if self.state != _FAULT:
+                self._since_fault = {"Feedback", "Heartbeat", "Status"}
+            self._since_fault.discard(message)
         if state == _ENABLED:
             self._since_enable.discard(message)
         elif state == _DISABLED and message not in self._since_enable:
