@@ -588,3 +588,24 @@ def test_a_joint_out_of_its_limits_while_running_is_a_fault_whatever_its_torque(
     angle[0] = hand.joints[0].angle_max + 0.01
     assert [f.code for f in running.observe(angle=angle)] == [FaultCode.ANGLE_LIMIT]
     assert sup.stop_notes == []
+
+
+def test_a_node_e_stopped_while_being_enabled_is_an_e_stop_at_once(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    """A node in FAULT refuses the enable until a fault reset: an e-stop during the start-up
+    waited for the enable's deadline and was said as nodes not ENABLED in time ("node 1
+    FAULT"), never as the e-stop it was."""
+    sup = Supervisor(hand)
+    link = Link(hand, protocol)
+    link.tick()
+    sup.start(1)
+    for pair in link.pairs:
+        pair.command("enable", link.now_ns)
+    link.pairs[0].estop(link.now_ns)
+    found = sup.observe(2, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0)
+    first = hand.fingers[0]
+    assert [(f.code, f.detail) for f in found] == [
+        (FaultCode.ESTOP, f"node {first.node_id} ({first.name}) in FAULT (ESTOP)")
+    ]
+    assert sup.state is State.FAULTED

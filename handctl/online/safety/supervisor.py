@@ -43,7 +43,13 @@ from handctl.online.safety.limits import (
     toward_zero_on_grid,
 )
 from handctl.online.safety.recovery import Recovery
-from handctl.online.safety.watchdog import NodeWatch, ReceiveWatch, TdtMonitor, TickWatch
+from handctl.online.safety.watchdog import (
+    NodeWatch,
+    ReceiveWatch,
+    TdtMonitor,
+    TickWatch,
+    node_fault,
+)
 from handctl.protocol import NodeState, Protocol
 
 
@@ -217,7 +223,13 @@ class Supervisor:
             # completed, its command frames counted and nothing more.
             findings += self.receive_watch.check(tick, nodes)
         if self.state is State.ENABLING:
-            if all(node.state == NodeState.ENABLED for node in nodes):
+            faulted = [node for node in nodes if node.state == NodeState.FAULT]
+            if faulted:
+                # a node in FAULT refuses the enable until a fault reset: said at once and
+                # with its bits (an e-stop as ESTOP), not as nodes late to enable at the
+                # deadline
+                findings += [node_fault(node) for node in faulted]
+            elif all(node.state == NodeState.ENABLED for node in nodes):
                 findings += self._arm(tick, nodes, angle)
             elif tick - self._enabling_since > self.enable_deadline_ticks:
                 states = ", ".join(f"node {n.node_id} {n.state_name}" for n in nodes)

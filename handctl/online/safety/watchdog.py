@@ -28,6 +28,23 @@ def ticks_lasting(seconds: float, dt: float) -> int:
     return math.ceil(seconds / dt - 1e-9)
 
 
+def node_fault(node: FingerNode) -> Finding:
+    """A node in FAULT, said with its fault bits: ESTOP if one of them is the e-stop's (an
+    operator's or a node's stop, which must be named as such), NODE_FAULT otherwise."""
+    names = fault_names(node.fault_bits)
+    code = FaultCode.ESTOP if "ESTOP" in names else FaultCode.NODE_FAULT
+    why = ""
+    if "TIMEOUT" in names:
+        # the node's own watchdog: what it says is of the host or the bus (a host frozen
+        # within a tick was read as the node's fault, its LOOP_OVERRUN a tick later)
+        why = (
+            f": it heard no command for its {COMMAND_WATCHDOG_S * 1e3:g} ms "
+            "watchdog (the host stalled, or its commands did not reach it)"
+        )
+    who = f"node {node.node_id} ({node.finger.name})"
+    return code, f"{who} in FAULT ({', '.join(names) or 'no bits'}){why}"
+
+
 class NodeWatch:
     """Feedback age, heartbeat age, device state and reboots of every node."""
 
@@ -67,18 +84,7 @@ class NodeWatch:
             if i < len(self._reboots) and node.reboots > self._reboots[i]:
                 found.append((FaultCode.NODE_REBOOT, f"{who} rebooted"))
             if node.state == FAULT:
-                names = fault_names(node.fault_bits)
-                code = FaultCode.ESTOP if "ESTOP" in names else FaultCode.NODE_FAULT
-                why = ""
-                if "TIMEOUT" in names:
-                    # the node's own watchdog: what it says is of the host or the bus (a host
-                    # frozen within a tick was read as the node's fault, its LOOP_OVERRUN a
-                    # tick later)
-                    why = (
-                        f": it heard no command for its {COMMAND_WATCHDOG_S * 1e3:g} ms "
-                        "watchdog (the host stalled, or its commands did not reach it)"
-                    )
-                found.append((code, f"{who} in FAULT ({', '.join(names) or 'no bits'}){why}"))
+                found.append(node_fault(node))
             elif expect_enabled and node.state != ENABLED:
                 found.append(
                     (FaultCode.NODE_STATE, f"{who} is {node.state_name}, expected ENABLED")
