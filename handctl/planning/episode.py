@@ -14,7 +14,8 @@ decides what a phase does on the hand:
 - the soft joint limits, checked every tick on the measured angles as the safety supervisor
   does (a lift that brushes a limit for a millisecond stops the real run);
 - the supervisor's limiter (``limit_torque``: ±tau_max, then the rate limit), as in every run;
-- the bus's one-tick delay between a command and the nodes applying it.
+- the host's loop at the hand's own rate (each command held for its period on the plant's
+  1 ms ticks), and the bus's one node tick between a command and the nodes applying it.
 
 Ground truth (object poses) is read only to *score* a phase, never to decide anything in it.
 Snapshots (MuJoCo's integration state plus the estimator's track) let a phase start again from
@@ -242,9 +243,13 @@ class Episode:
         recipe = Recipe(
             "episode", "<episode>", "", (phase,), 1.0, None, False, limit_guard=self.guard
         )
-        backoff = RateBackoff.for_hand(self.hand, NODE_TICK_S)  # unless handed over
+        # the host's loop at the hand's own rate, the plant at the nodes' 1 ms tick: a plan
+        # at 1 kHz for a hand at 250 Hz scored a controller that hand does not run
+        period = self.hand.bus.period_s
+        period_ns, node_ns = round(period * 1e9), round(NODE_TICK_S * 1e9)
+        backoff = RateBackoff.for_hand(self.hand, period)  # unless handed over
         runner = RecipeRunner(
-            recipe, self.hand.n_joints, self.handover, backoff=backoff, period_s=NODE_TICK_S
+            recipe, self.hand.n_joints, self.handover, backoff=backoff, period_s=period
         )
         plant, est = self.plant, self.estimator
         quantum = self._quantum
@@ -253,7 +258,7 @@ class Episode:
         previous = first
         turned = 0.0
         # the true centre line every tick, unwrapped, over the last window: the peak rate
-        window = max(1, round(RATE_WINDOW_S / NODE_TICK_S))
+        window = max(1, round(RATE_WINDOW_S / period))
         recent: deque[float] = deque(maxlen=window + 1)
         line, line_last = first, first
         peak = 0.0
@@ -263,7 +268,7 @@ class Episode:
         errors: list[float] = []
         exit_reason = ""
         tick = 0
-        steps = math.ceil((phase.max_s + 2 * NODE_TICK_S) / NODE_TICK_S)
+        steps = math.ceil((phase.max_s + 2 * period) / period)
         zeros = np.zeros(self.hand.n_joints)
         lo_list, hi_list = self._lo, self._hi
         applied = np.array(self.torques, dtype=float)
@@ -291,14 +296,20 @@ class Episode:
             out = self._estimates if tick == 0 and self._estimates is not None else est(angles)
             if math.isnan(est_start) and est.valid and est.pairs:
                 est_start = out[1]
-            desired = runner.step((t0 + tick) * NODE_TICK_S, np.asarray(angles), zeros, out)
+            desired = runner.step((t0 + tick) * period, np.asarray(angles), zeros, out)
             if runner.index > 0 or runner.status is not RunStatus.RUNNING:
                 break
-            # the nodes apply a command one tick after the host computed it (the bus), so the
-            # plant gets the previous tick's torques; the supervisor limits every command
+            # the nodes apply a command one of their ticks after the host computed it (the
+            # bus), so the plant's first tick of this period gets the previous command and
+            # the others this one (none at 1 kHz); the supervisor limits every command
             plant.set_torque_commands(applied)
-            limit_torque(desired, applied, limits, NODE_TICK_S, applied)
-            plant.step()
+            limit_torque(desired, applied, limits, period, applied)
+            at = t0 + tick
+            node_ticks = (at + 1) * period_ns // node_ns - at * period_ns // node_ns
+            for k in range(node_ticks):
+                if k == 1:
+                    plant.set_torque_commands(applied)
+                plant.step()
             if tick % CHECK_EVERY == 0:
                 now = self.true_angle()
                 turned += _wrap(now - previous)
@@ -332,7 +343,7 @@ class Episode:
         )
         return PhaseOutcome(
             exit=exit_reason,
-            duration_s=tick * NODE_TICK_S,
+            duration_s=tick * period,
             true_turn_deg=math.degrees(turned),
             est_turn_deg=math.degrees(est_turn),
             min_height=min_height if min_height < math.inf else min(self.heights()),
@@ -344,7 +355,7 @@ class Episode:
             est_valid=est.valid,
             est_error_deg=self.estimate_error_deg(),
             errors_deg=errors,
-            peak_rate_deg_s=math.degrees(peak / (window * NODE_TICK_S)),
+            peak_rate_deg_s=math.degrees(peak / (window * period)),
         )
 
 

@@ -180,3 +180,38 @@ def test_an_episode_scores_the_template_s_objects_and_its_first_pair_by_name(
     assert turned.true_angle() == angle
     assert both.true_angle() == math.atan2(poses[1].y - poses[0].y, poses[1].x - poses[0].x)
     assert turned.estimator.pairs == ((1, 0),) and both.estimator.pairs == ((0, 1),)
+
+
+def _commands_held(hand: HandConfig) -> tuple[int, int]:
+    """A phase that ramps every joint to a torque on ``hand``: how many 1 ms plant ticks it
+    ran, and how many of them took another command than the tick before."""
+    params = parse_sim(hand)
+    episode = Episode(hand, params, [RecipeObject(o.name, o.radius) for o in params.objects])
+    plant = episode.plant
+    taken: list[tuple[float, ...]] = []
+    step = plant.step
+
+    def counted_step() -> None:
+        taken.append(tuple(float(c) for c in plant._ctrl))
+        step()
+
+    plant.step = counted_step  # type: ignore[method-assign]
+    phase = Phase("ramp", (0.05,) * hand.n_joints, 0.1, 0.1, TimeoutAction.NEXT, (), ())
+    episode.run_phase(phase)
+    changes = sum(1 for a, b in itertools.pairwise(taken) if a != b)
+    return len(taken), changes
+
+
+def test_a_plan_runs_the_host_at_the_hand_s_own_loop_rate(hand: HandConfig) -> None:
+    """A hand at 250 Hz was planned as if its host ran at 1 kHz (a new command every 1 ms
+    tick of the plant, the runner's ramps and the limiter at 1 ms): the recipe planned for it
+    was the 1 kHz one, its scores those of a controller it does not run. Each command is held
+    for the hand's period now: the nodes' first tick of it on the command before."""
+    import dataclasses
+
+    fast_ticks, fast_changes = _commands_held(hand)
+    slow = dataclasses.replace(hand, bus=dataclasses.replace(hand.bus, loop_rate_hz=250.0))
+    slow_ticks, slow_changes = _commands_held(slow)
+    assert abs(slow_ticks - fast_ticks) <= 8  # the same 0.1 s of the plant
+    assert fast_changes >= fast_ticks * 0.9  # a ramp: a new command every tick
+    assert slow_changes <= slow_ticks / 4 + 1  # one a period of four
