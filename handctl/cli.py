@@ -1990,15 +1990,32 @@ def _refuse_other_than_a_recipe(output: Path) -> None:
 def _calibration_limits(args: argparse.Namespace, hand: HandConfig) -> Any:
     """``calibrate tdt``'s plausibility bounds, each at most what leaves its check on: an
     offset or a noise past the largest tau_max, or a span past the widest joint range, passes
-    any sensor."""
+    any sensor. An option left out is its default scaled down to the hand where the hand is
+    smaller (an offset up to the largest tau_max, a tenth of it for the noise, half the widest
+    range for the span): the defaults are a hand of 0.6 N·m and 2 rad joints, and a hand of
+    0.2 N·m or of 0.08 rad joints was refused for options its user never gave."""
     from handctl.bringup.calibrate import CalibrationLimits
 
-    limits = CalibrationLimits(
-        max_span=_positive("--max-span", args.max_span, CalibrationLimits.max_span, "rad"),
-        max_noise=_positive("--max-noise", args.max_noise, CalibrationLimits.max_noise, "N·m"),
-        max_offset=_positive("--max-offset", args.max_offset, CalibrationLimits.max_offset, "N·m"),
-    )
     widest = max(hand.joints, key=lambda j: j.tau_max)
+    roomiest = max(hand.joints, key=lambda j: j.angle_max - j.angle_min)
+    room = roomiest.angle_max - roomiest.angle_min
+    limits = CalibrationLimits(
+        max_span=_positive(
+            "--max-span", args.max_span, min(CalibrationLimits.max_span, room / 2), "rad"
+        ),
+        max_noise=_positive(
+            "--max-noise",
+            args.max_noise,
+            min(CalibrationLimits.max_noise, widest.tau_max / 10),
+            "N·m",
+        ),
+        max_offset=_positive(
+            "--max-offset",
+            args.max_offset,
+            min(CalibrationLimits.max_offset, widest.tau_max),
+            "N·m",
+        ),
+    )
     if limits.max_offset > widest.tau_max:
         raise ConfigError(
             "--max-offset",
@@ -2015,12 +2032,11 @@ def _calibration_limits(args: argparse.Namespace, hand: HandConfig) -> Any:
             "it passes any sensor, the check is off)",
             limits.max_noise,
         )
-    roomiest = max(hand.joints, key=lambda j: j.angle_max - j.angle_min)
-    if limits.max_span > roomiest.angle_max - roomiest.angle_min:
+    if limits.max_span > room:
         raise ConfigError(
             "--max-span",
             "",
-            f"at most {roomiest.angle_max - roomiest.angle_min:g} rad (the widest joint range, "
+            f"at most {room:g} rad (the widest joint range, "
             f"{roomiest.name}'s: a span beyond it passes any motion, the check is off)",
             limits.max_span,
         )
@@ -3272,19 +3288,21 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "--max-span",
         type=_real,
         metavar="RAD",
-        help="a joint that moves more than this [rad] is refused (default 0.1)",
+        help="a joint that moves more than this [rad] is refused (default 0.1, or half the "
+        "widest joint range if less)",
     )
     tdt.add_argument(
         "--max-noise",
         type=_real,
         metavar="NM",
-        help="a noise (1 sigma) above this [N·m] is refused (default 0.02)",
+        help="a noise (1 sigma) above this [N·m] is refused (default 0.02, or a tenth of the "
+        "largest tau_max if less)",
     )
     tdt.add_argument(
         "--max-offset",
         type=_real,
         metavar="NM",
-        help="an offset above this [N·m] is refused (default 0.25)",
+        help="an offset above this [N·m] is refused (default 0.25, or the largest tau_max if less)",
     )
     _add_bringup_run_options(tdt)
     tdt.add_argument(

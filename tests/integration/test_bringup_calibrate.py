@@ -19,6 +19,7 @@ import pytest
 from handctl import cli
 from handctl.bringup.hand_edit import with_tdt_offsets
 from handctl.config import HandConfig, load_hand, parse_hand
+from handctl.errors import ConfigError
 from handctl.online.bus import open_bus
 from handctl.outfile import write_atomically
 from handctl.schema import parse_yaml
@@ -528,3 +529,38 @@ def test_a_bound_that_turns_a_check_off_or_measures_nothing_is_refused(
     assert cli.main(["calibrate", "tdt", "-o", str(out), option, value]) == cli.EXIT_BAD_INPUT
     assert expected in capsys.readouterr().err
     assert not out.exists()
+
+
+def _joints_changed(hand: HandConfig, tau_max: float = 0.0, span: float = 0.0) -> HandConfig:
+    """``hand`` with every joint's tau_max, or its range's width, changed."""
+    import dataclasses
+
+    def joint(j: Any) -> Any:
+        if tau_max:
+            j = dataclasses.replace(j, tau_max=tau_max)
+        return dataclasses.replace(j, angle_max=j.angle_min + span) if span else j
+
+    fingers = tuple(
+        dataclasses.replace(f, joints=tuple(joint(j) for j in f.joints)) for f in hand.fingers
+    )
+    return dataclasses.replace(hand, fingers=fingers)
+
+
+def test_the_defaults_are_scaled_down_to_a_smaller_hand(hand: HandConfig) -> None:
+    """A hand of 0.2 N·m joints, or of joints 0.08 rad wide, was refused for --max-offset
+    (0.25) or --max-span (0.1) that its user never gave; the defaults fit the hand now, and
+    an option given is still held to it."""
+    import argparse
+
+    none = argparse.Namespace(max_span=None, max_noise=None, max_offset=None)
+    shipped = cli._calibration_limits(none, hand)
+    assert (shipped.max_offset, shipped.max_noise, shipped.max_span) == (0.25, 0.02, 0.1)
+    weak = _joints_changed(hand, tau_max=0.2)
+    limits = cli._calibration_limits(none, weak)
+    assert (limits.max_offset, limits.max_noise) == (0.2, 0.02)
+    weaker = _joints_changed(hand, tau_max=0.1)
+    assert cli._calibration_limits(none, weaker).max_noise == pytest.approx(0.01)
+    narrow = _joints_changed(hand, span=0.08)
+    assert cli._calibration_limits(none, narrow).max_span == pytest.approx(0.04)
+    with pytest.raises(ConfigError, match=r"--max-offset: expected at most 0\.2 N·m"):
+        cli._calibration_limits(argparse.Namespace(**{**vars(none), "max_offset": 0.25}), weak)
