@@ -42,6 +42,9 @@ if TYPE_CHECKING:
 #: Shapes closer than this (m) are touching, not overlapping: tolerance for numbers written
 #: to the millimetre that meet exactly (a cylinder resting on the table).
 _TOUCH = 1e-9
+#: m, how far above what holds it an object may start and still rest on it (its place written
+#: to the millimetre).
+SUPPORT_GAP = 0.001
 #: The names the MuJoCo model gives the scene's own bodies and geoms.
 #: ``world`` too: MuJoCo's own body, which a joint or an object of that name clashed with in
 #: MuJoCo's XML parser (an error naming a line of XML the user never wrote)
@@ -97,6 +100,7 @@ def check_placement(hand: HandConfig, params: SimParams, doc: Doc) -> None:
                 f"a centre at least one radius ({obj.radius:g} m) below the palm face (y = 0)",
                 obj.y,
             )
+        _check_support(params, obj, i, links, doc, where)
         for j, other in enumerate(params.objects[:i]):
             gap = math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
             if gap < -_TOUCH:
@@ -251,6 +255,33 @@ def _planar_distance(
 
 def _segment_distance(a: LinkSegment, b: LinkSegment) -> float:
     return _planar_distance((a.x0, a.y0, a.x1, a.y1), (b.x0, b.y0, b.x1, b.y1))
+
+
+def _check_support(
+    params: SimParams, obj: ObjectParams, i: int, links: list[LinkSegment], doc: Doc, where: str
+) -> None:
+    """An object above the table top rests on something: another object below it or a link,
+    within ``SUPPORT_GAP``. One put 15 mm up fell at the first step, and every height above
+    rest (the experiment's lift, replay's) was measured from where it had been put, so a lift
+    needed 25 mm to count 10."""
+    above = obj.y - obj.radius - params.table_height
+    if above <= SUPPORT_GAP:
+        return
+    for other in params.objects[:i] + params.objects[i + 1 :]:
+        gap = math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
+        if other.y < obj.y and gap <= SUPPORT_GAP:
+            return
+    if any(
+        _object_link_distance(obj, link) - obj.radius - link.radius <= SUPPORT_GAP for link in links
+    ):
+        return
+    doc.fail(
+        f"{where}.y",
+        f"a centre one radius above the table top ({params.table_height + obj.radius:g} m, "
+        "resting on it), or an object resting on another or on a link: "
+        f"{above * 1e3:.1f} mm above the table with nothing under it, it falls at the first step",
+        obj.y,
+    )
 
 
 def _object_link_distance(obj: ObjectParams, link: LinkSegment) -> float:

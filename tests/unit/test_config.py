@@ -392,7 +392,12 @@ def test_check_warns_of_a_scene_no_run_of_the_experiment_can_do(
     joint = joint_of(base, 0, 2)
     start = base["sim"]["initial_angles"][base["fingers"][0]["name"]][2]
     joint.update(angle_min=start - 0.015, angle_max=start + 0.015)
-    base["sim"]["objects"][0]["y"] = -0.028
+    # one cylinder resting on the table, its top 8 mm under the palm (one put up there, with
+    # nothing under it, is refused: it falls at the first step)
+    table = base["sim"]["table"]["height"]
+    radius = (-0.008 - table) / 2
+    base["sim"]["objects"] = [{**base["sim"]["objects"][0], "radius": radius, "x": 0.0}]
+    base["sim"]["objects"][0]["y"] = table + radius
     path = write(tmp_path, base)
     assert cli.main(["check", str(path)]) == cli.EXIT_OK
     err = capsys.readouterr().err

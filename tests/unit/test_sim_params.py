@@ -285,6 +285,13 @@ def test_mistakes_name_the_key(hand: HandConfig, edit: Any, key: str, expected: 
             "sim.initial_angles.f1",
             "out of the palm",
         ),
+        # 15 mm above the table with nothing under it: it fell at the first step, and every
+        # height above rest was measured from where it had been put
+        (
+            lambda s: s["objects"][0].update(y=-0.105),
+            "sim.objects[0].y",
+            "15.0 mm above the table with nothing under it",
+        ),
         # straight down, finger 3's tip starts 22 mm into the table (its diameter is 14 mm)
         (
             lambda s: s["initial_angles"].update(f3=[0.0, 0.0, 0.0]),
@@ -506,3 +513,18 @@ def test_a_start_one_margin_inside_a_limit_is_taken_however_the_decimals_round(
     with pytest.raises(ConfigError) as err:
         parse_sim(_with_sim(moved, start(0.0599)))
     assert err.value.key == f"sim.initial_angles.{finger.name}[1]"
+
+
+def test_an_object_may_rest_on_others_above_the_table(hand: HandConfig) -> None:
+    """Only an object with nothing under it is refused: a third cylinder laid on the pair,
+    touching both, rests where it is put."""
+    import math
+
+    def third(s: Any) -> None:
+        a, b = s["objects"][0], s["objects"][1]
+        half = (b["x"] - a["x"]) / 2
+        rise = math.sqrt((2 * a["radius"]) ** 2 - half**2)
+        s["objects"].append({**a, "name": "cyl3", "x": a["x"] + half, "y": a["y"] + rise})
+
+    params = parse_sim(_with_sim(hand, third))
+    assert [o.name for o in params.objects][-1] == "cyl3"
