@@ -23,15 +23,18 @@ def hand_span(hand: HandConfig) -> tuple[float, float]:
     Between the outermost finger bases: fingers curl towards the bases' middle, so they hold
     what lies between them. A hand whose fingers are all based at one x (one finger, or two
     facing each other across the palm's thickness) has no such stretch; its fingers hold an
-    object against the palm on the side a positive torque curls them to, as far as each one's
-    straight length reaches. Without that, every object would have left such a hand before
-    it moved.
+    object against the palm on the side they curl to, as far as each one's straight length
+    reaches. Without that, every object would have left such a hand before it moved. The side
+    is the one the finger flexes to (``flexion_sign``): taken as a positive torque's whatever
+    the finger, one that flexes with negative torque held its object on the other side, and
+    a mirrored hand's object "left the hand" sitting still.
     """
     lo, hi = _bases(hand)
     if hi - lo <= _SAME_X:
         for f in hand.fingers:
             # a counter-clockwise curl from straight moves the tip along -sin(angle) in x
-            reach = -math.sin(f.base_angle) * sum(j.link_length for j in f.joints)
+            length = sum(j.link_length for j in f.joints)
+            reach = -flexion_sign(hand, f) * math.sin(f.base_angle) * length
             lo, hi = min(lo, f.base_x + reach), max(hi, f.base_x + reach)
     return (lo + hi) / 2, (hi - lo) / 2
 
@@ -62,12 +65,16 @@ def order_along_palm(hand: HandConfig, positions: dict[str, tuple[float, float]]
 
 def flexion_sign(hand: HandConfig, finger: FingerConfig) -> float:
     """+1 when positive torque curls ``finger`` towards the middle of the finger bases (its
-    tip swings towards it), -1 when negative torque does; +1 for a finger based at the
-    middle."""
+    tip swings towards it), -1 when negative torque does. A finger based at the middle has
+    no side to curl towards: the one its joint ranges reach further to, summed over the
+    finger (+1 taken for every such finger, a mirrored one-finger hand flexed the wrong way)."""
     lo, hi = _bases(hand)
     # z of (finger direction) x (base -> middle): positive when the middle lies
     # counter-clockwise of the finger
-    towards = -math.sin(finger.base_angle) * ((lo + hi) / 2 - finger.base_x)
+    offset = (lo + hi) / 2 - finger.base_x
+    towards = -math.sin(finger.base_angle) * offset
+    if abs(offset) <= _SAME_X:
+        towards = sum(j.angle_max + j.angle_min for j in finger.joints)
     return -1.0 if towards < 0 else 1.0
 
 

@@ -63,3 +63,31 @@ def test_bases_close_together_still_bound_the_hand_by_themselves(hand: HandConfi
     f1, f2, f3 = hand.fingers
     near = dataclasses.replace(hand, fingers=(f1, f2, dataclasses.replace(f3, base_x=-0.03)))
     assert hand_span(near) == pytest.approx((-0.04, 0.01))
+
+
+@pytest.mark.parametrize("count", [1, 2])
+def test_fingers_based_at_one_x_that_flex_the_other_way_enclose_on_the_other_side(
+    hand: HandConfig, count: int
+) -> None:
+    """The mirror image of the hand above: joint ranges reaching further to negative angles
+    (a finger that flexes with negative torque). Its side was taken as a positive torque's,
+    so an object held still against the palm was judged out of the hand."""
+    one = _one_sided(hand, count)
+    mirrored = dataclasses.replace(
+        one,
+        fingers=tuple(
+            dataclasses.replace(
+                f,
+                joints=tuple(
+                    dataclasses.replace(j, angle_min=-j.angle_max, angle_max=-j.angle_min)
+                    for j in f.joints
+                ),
+            )
+            for f in one.fingers
+        ),
+    )
+    base = one.fingers[0].base_x
+    length = sum(j.link_length for j in one.fingers[0].joints)
+    middle, half = hand_span(mirrored)
+    assert (middle - half, middle + half) == pytest.approx((base - length, base))
+    assert [flexion_sign(mirrored, f) for f in mirrored.fingers] == [-1.0] * count
