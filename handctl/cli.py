@@ -1618,8 +1618,15 @@ def _replay_to_bus(
             recording, args.to_bus, args.speed or 1.0, args.direction or "both", hand=on_bus
         )
     except frames.ReplayInterrupted as exc:
+        why = f" by {exc.why}" if exc.why else ""
         if exc.stopped:
-            print(f"to-bus: interrupted; {exc.stopped}", file=sys.stderr)
+            print(f"to-bus: interrupted{why}; {exc.stopped}", file=sys.stderr)
+        if exc.ignored:
+            print(
+                f"to-bus: {', '.join(exc.ignored)} came while the stop was sent: ignored, so "
+                "that it was sent whole",
+                file=sys.stderr,
+            )
         raise
     if "stopped" in sent:
         print(f"to-bus: the log ended with {sent['stopped']}", file=sys.stderr)

@@ -253,3 +253,51 @@ def held_back() -> Iterator[list[str]]:
     finally:
         for sig, handler in saved.items():
             signal.signal(sig, handler)
+
+
+class Noted:
+    """The stop signals that came over a ``noted_stops`` stretch: the first, and the others."""
+
+    def __init__(self) -> None:
+        self.first = ""
+        self.later: list[str] = []
+
+
+@contextlib.contextmanager
+def noted_stops() -> Iterator[Noted]:
+    """The stop signals (``StopSignals.SIGNALS``, SIGTSTP among them) noted, never raised, over
+    a stretch that drives a hand outside a run: ``replay --to-bus``, which looks at
+    ``first`` between two frames and then sends its stop. Raised as an interrupt, a second
+    Ctrl-C cut the stop itself short (the hand left under the last torques sent, no zero, no
+    disable), and Ctrl-Z suspended the replay mid-stream; SIGTTOU and SIGTTIN are ignored as
+    in a run (``StopSignals.DEAF``). A signal inherited ignored stays so, but for
+    ``StopSignals.HONOURED_IF_IGNORED``. Outside the main thread nothing is noted."""
+    noted = Noted()
+    if threading.current_thread() is not threading.main_thread():
+        yield noted
+        return
+
+    def note(signum: int, frame: object) -> None:
+        name = signal_name(signum)
+        if signum == signal.SIGTSTP:
+            name += " (Ctrl-Z: a replay onto a bus cannot be suspended; stopped instead)"
+        if noted.first:
+            noted.later.append(name)
+        else:
+            noted.first = name
+
+    saved: dict[int, Any] = {}
+    for deaf in StopSignals.DEAF:
+        saved[deaf] = signal.signal(deaf, signal.SIG_IGN)
+    for sig in StopSignals.SIGNALS:
+        inherited = signal.getsignal(sig)
+        if inherited is None or (
+            inherited is signal.SIG_IGN and sig not in StopSignals.HONOURED_IF_IGNORED
+        ):
+            continue
+        saved[sig] = signal.signal(sig, note)
+    try:
+        yield noted
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)

@@ -19,6 +19,7 @@ from handctl.recording import channels as ch
 from handctl.recording.messages import EXTENDED_ID_FLAG
 from handctl.recording.metadata import recorded_hand, recorded_protocol
 from handctl.recording.reader import Recording, iter_decoded, open_recording, require_topics
+from handctl.stopsignals import Noted, noted_stops
 from handctl.wholefile import whole_file
 
 #: buses where no real hand listens: a replay onto them may take the log's limits as its own
@@ -109,7 +110,9 @@ def _to_bus(
     period_s = hand.bus.period_s / speed
     shifted = 0.0
     left = _LeftEnabled(hand)
-    with open_bus(spec, hand.bus) as bus:
+    # the stop signals only noted from here on, and looked at between two frames: raised, a
+    # second one cut the stop short, and Ctrl-Z suspended the replay (``noted_stops``)
+    with open_bus(spec, hand.bus) as bus, noted_stops() as stops:
         start: float | None = None
         first = 0
         try:
@@ -119,21 +122,25 @@ def _to_bus(
                 due = start + (log_time - first) * 1e-9 / speed
                 wait = due - clock()
                 if wait > 0:
-                    sleep(wait)
+                    _nap(wait, due, clock, sleep, stops)
                 else:
                     worst_late = max(worst_late, -wait)
                     if -wait > period_s:
                         start -= wait
                         shifted -= wait
+                if stops.first:
+                    break
                 if bus.send(frame_id, data):
                     sent += 1
                     left.sent(frame_id, data)
                 else:
                     failed += 1
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             # a replay stopped midway (Ctrl-C, SIGTERM) left the hand under the last torques
             # sent, until the nodes' watchdog faulted them: stopped as a run stops
-            raise ReplayInterrupted(left.stop(bus, period_s, sleep)) from None
+            raise ReplayInterrupted(left.stop(bus, period_s, sleep), str(exc)) from None
+        if stops.first:
+            raise ReplayInterrupted(left.stop(bus, period_s, sleep), stops.first, stops.later)
         # so did a log that ends with nodes enabled (a run killed, a log cut short)
         stopped = left.stop(bus, period_s, sleep)
         counts = bus.transport_counts()
@@ -172,13 +179,36 @@ def hand_needed(spec: str) -> ConfigError:
     )
 
 
+#: s, the longest sleep between two looks at a stop signal while a replay waits for a frame's
+#: time: a log's silence (a start-up's seconds) held a Ctrl-C that long.
+NAP_S = 0.05
+
+
+def _nap(
+    wait: float,
+    due: float,
+    clock: Callable[[], float],
+    sleep: Callable[[float], None],
+    stops: Noted,
+) -> None:
+    """Sleep ``wait`` s, until ``due`` on ``clock``, or until a stop signal is noted."""
+    while wait > NAP_S and not stops.first:
+        sleep(NAP_S)
+        wait = due - clock()
+    if wait > 0 and not stops.first:
+        sleep(wait)
+
+
 class ReplayInterrupted(KeyboardInterrupt):
     """A replay onto a bus interrupted; ``stopped`` says what was sent to stop the nodes it
-    had left enabled ("" if none were)."""
+    had left enabled ("" if none were), ``why`` the signal, ``ignored`` the ones that came
+    while the stop was sent."""
 
-    def __init__(self, stopped: str) -> None:
-        super().__init__(stopped)
+    def __init__(self, stopped: str, why: str = "", ignored: Sequence[str] = ()) -> None:
+        super().__init__(why or stopped)
         self.stopped = stopped
+        self.why = why
+        self.ignored = list(ignored)
 
 
 class _LeftEnabled:

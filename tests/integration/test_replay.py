@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import os
 import resource
 import signal
 import subprocess
@@ -27,7 +28,7 @@ from handctl.online.loop import Outcome
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.protocol import load_protocol
 from handctl.recording import channels as ch
-from handctl.recording.frames import logged_frames, to_bus
+from handctl.recording.frames import ReplayInterrupted, logged_frames, to_bus
 from handctl.recording.metadata import run_metadata, start_metadata
 from handctl.recording.reader import iter_decoded, iter_messages, open_recording
 from handctl.recording.recorder import Recorder
@@ -681,7 +682,6 @@ def test_to_bus_stopped_midway_zeroes_and_disables_the_nodes_it_enabled(
     watchdog faulted them. The replay ends as a run's stop does: zero torque to every node
     it left enabled for six periods, then a disable, each on the node's next counter."""
     recording = open_recording(recorded.path)
-    protocol = protocol_for(hand)
     logged = list(logged_frames(recording))
     halfway = (logged[-1][0] - logged[0][0]) * 1e-9 / 2  # s, the nodes enabled, under torque
     now = [0.0]
@@ -696,6 +696,13 @@ def test_to_bus_stopped_midway_zeroes_and_disables_the_nodes_it_enabled(
         with pytest.raises(KeyboardInterrupt):
             to_bus(recording, f"virtual:{channel}", sleep=sleep, clock=lambda: now[0])
         heard = [(f.arbitration_id, f.data) for f in listener.drain(limit=10**7)]
+    _ends_with_the_stop(hand, heard)
+
+
+def _ends_with_the_stop(hand: HandConfig, heard: list[tuple[int, bytes]]) -> None:
+    """``heard`` ends with a run's stop of every node the replay had under torque: six
+    periods of zero torque, then a disable, each on the node's next counter."""
+    protocol = protocol_for(hand)
     nodes = [f.node_id for f in hand.fingers]
     torque = {n: protocol.layout("TorqueCommand", n) for n in nodes}
     command = {n: protocol.layout("NodeCommand", n) for n in nodes}
@@ -711,6 +718,57 @@ def test_to_bus_stopped_midway_zeroes_and_disables_the_nodes_it_enabled(
         assert all(b == (a + 1) & 0xFF for a, b in itertools.pairwise(counters))
         last = [command[n].decode(d) for fid, d in heard if fid == command[n].frame_id][-1]
         assert last[1] == (2.0,)  # disable
+
+
+@pytest.mark.parametrize(
+    ("first", "second"),
+    [(signal.SIGINT, signal.SIGINT), (signal.SIGTSTP, signal.SIGTERM)],
+    ids=["ctrl-c-twice", "ctrl-z-then-sigterm"],
+)
+def test_to_bus_sends_its_stop_whole_whatever_signals_follow(
+    recorded: Recorded, hand: HandConfig, channel: str, first: int, second: int
+) -> None:
+    """A second Ctrl-C (or a SIGTERM) 5 ms after the first cut the replay's stop short: the
+    hand left under the last torques sent, no zero, no disable (an outside probe, 4 runs in
+    4). Ctrl-Z suspended the replay mid-stream, its torque on. Each stop signal is noted
+    now and looked at between two frames; the stop is sent whole, and the ones that came
+    during it are said."""
+    recording = open_recording(recorded.path)
+    logged = list(logged_frames(recording))
+    halfway = (logged[-1][0] - logged[0][0]) * 1e-9 / 2
+    now = [0.0]
+    kills: list[int] = []
+
+    def sleep(seconds: float) -> None:
+        before = now[0]
+        now[0] += seconds
+        if before < halfway <= now[0]:
+            kills.append(first)
+            os.kill(os.getpid(), first)
+        elif now[0] > halfway and len(kills) == 1:  # the stop's first sleep
+            kills.append(second)
+            os.kill(os.getpid(), second)
+
+    class SuspendedError(Exception):
+        pass
+
+    def suspended(signum: int, frame: object) -> None:  # not the worker's own stop
+        raise SuspendedError
+
+    before = signal.signal(signal.SIGTSTP, suspended)
+    try:
+        with open_bus(f"virtual:{channel}", hand.bus) as listener:
+            with pytest.raises(ReplayInterrupted) as stopped:
+                to_bus(recording, f"virtual:{channel}", sleep=sleep, clock=lambda: now[0])
+            heard = [(f.arbitration_id, f.data) for f in listener.drain(limit=10**7)]
+        assert signal.getsignal(signal.SIGTSTP) is suspended  # put back as it was
+    finally:
+        signal.signal(signal.SIGTSTP, before)
+    assert kills == [first, second]
+    assert stopped.value.why.startswith(signal.Signals(first).name)
+    assert stopped.value.ignored == [signal.Signals(second).name]
+    assert "left enabled by the frames sent: zero torque and a disable" in stopped.value.stopped
+    _ends_with_the_stop(hand, heard)
 
 
 def test_to_bus_says_when_nobody_was_on_the_unix_bus(
