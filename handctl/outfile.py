@@ -42,6 +42,17 @@ def check_writable(
         raise ConfigError(option, "", "a file in an existing directory", path)
     if target.exists() and not target.is_file():
         raise ConfigError(option, "", "a regular file (not a directory, a device or a FIFO)", path)
+    stream = _standard_stream(target)
+    if stream:
+        # ``--log /dev/stdout > run.mcap``: the summary printed over the log's start, and
+        # the command said it had recorded every tick, exit 0
+        raise ConfigError(
+            option,
+            "",
+            f"a file other than this command's standard {stream} (what it prints would be "
+            "written into it)",
+            path,
+        )
     if target.exists() and _read_only(target):
         raise ConfigError(option, "", "a file that may be written (it is read-only)", path)
     if _read_only(directory):
@@ -71,6 +82,23 @@ def check_writable(
             Description(f"{path}: an existing file that is not a {export} export"),
         )
     return target
+
+
+def _standard_stream(target: Path) -> str:
+    """Which standard stream of this process ("output" or "error") writes to ``target``; ""
+    for none."""
+    try:
+        file = os.stat(target)
+    except OSError:
+        return ""
+    for fd, name in ((1, "output"), (2, "error")):
+        try:
+            stream = os.fstat(fd)
+        except OSError:  # closed
+            continue
+        if (stream.st_dev, stream.st_ino) == (file.st_dev, file.st_ino):
+            return name
+    return ""
 
 
 #: How each frame export (python-can's log formats) begins: what an export may replace.

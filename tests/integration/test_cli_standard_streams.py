@@ -106,3 +106,27 @@ def test_an_output_encoding_without_the_units_characters_still_gets_the_summary(
     assert (tmp_path / "s.json").stat().st_size > 0
     # '·' is in Latin-1 and written as itself; ASCII has it as its escape
     assert ("N·m" if encoding == "latin-1" else "N\\xb7m") in result.stdout.decode(encoding)
+
+
+def test_an_output_that_is_the_commands_own_stdout_is_refused(tmp_path: Path) -> None:
+    """``--log /dev/stdout > run.mcap``: the summary printed over the log's start, and the
+    run said it had recorded every tick, exit 0; the log did not open."""
+    out = tmp_path / "run.mcap"
+    with out.open("w") as stdout:
+        result = subprocess.run(
+            [
+                *(sys.executable, "-m", "handctl", "run", "recipe", RECIPE),
+                *("--max-seconds", "0.3", "--log", "/dev/stdout"),
+            ],
+            cwd=ROOT,
+            text=True,
+            timeout=300,
+            check=False,
+            stdout=stdout,
+            stderr=subprocess.PIPE,
+        )
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith(
+        "handctl: error: --log: expected a file other than this command's standard output"
+    ), result.stderr
+    assert out.stat().st_size == 0  # nothing ran, nothing printed into it
