@@ -24,6 +24,7 @@ from mcap.writer import Writer
 from handctl.config import HandConfig
 from handctl.hand_protocol import protocol_for
 from handctl.online.bus import BusEvent, BusEventKind, Frame, FrameBus, open_bus
+from handctl.online.clock import Tick
 from handctl.online.loop import Outcome
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.protocol import load_protocol
@@ -926,3 +927,35 @@ def test_the_replay_bus_is_a_frame_bus_whose_taps_hear_the_run(
     ]
     assert replay.flush() is True
     assert (replay.sent, replay.tx_failed, replay.frame_mismatches) == (1, 1, [])
+
+
+def test_ctrl_c_stops_a_rerun_at_once(recorded: Recorded, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With Python's own SIGINT handler in place, asyncio's took over for the re-run and only
+    cancelled its task, which the lockstep ticks took at the end: a Ctrl-C waited out the
+    whole re-run (minutes on a long log; SIGTERM ended it at once)."""
+    import handctl.recording.rerun as rerun_module
+    from handctl.online.loop import Runtime
+
+    after: list[int] = []
+
+    class Interrupted(Runtime):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self.tick_hooks.append(self._count)
+
+        def _count(self, tk: Tick) -> None:
+            if after:
+                after.append(tk.tick)
+            elif tk.tick == 100:
+                after.append(tk.tick)
+                os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(rerun_module, "Runtime", Interrupted)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            rerun(open_recording(recorded.path))
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert after == [100]  # not one tick more
