@@ -44,7 +44,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from handctl.config import load_hand  # noqa: E402
-from handctl.online.loop import StatusLine  # noqa: E402
+from handctl.online.loop import Outcome, StatusLine  # noqa: E402
 from handctl.online.recipes.loader import load_recipe  # noqa: E402
 from handctl.recording import channels as ch  # noqa: E402
 from handctl.recording.reader import iter_decoded, open_recording  # noqa: E402
@@ -226,6 +226,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         in_file, gaps, last = _log_ticks(log)
         mb_written = log.stat().st_size / 1e6
     result = report.result
+    if result.outcome is Outcome.INTERRUPTED:
+        # a soak stopped by a signal measured nothing of what was asked: exit 130 as any
+        # command (it printed its figures, exit 0)
+        raise KeyboardInterrupt(result.message)
     stats = report.summary.get("recording", {})
     dropped = sum(
         int(stats.get(k, 0))
@@ -265,4 +269,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "mb_written": round(mb_written, 1),
         "wall_s": round(wall, 1),
         **host_figures(report, hand, first, running.ns),
+        # a soak that did not run its minutes (a safety stop after 2 s of 30) measured less
+        # than was asked: said, exit 1 (bench.py)
+        "failed": (
+            []
+            if result.outcome is Outcome.COMPLETED
+            else [f"the soak ended on {result.outcome.value} after {wall:.1f} s: {result.message}"]
+        ),
     }
