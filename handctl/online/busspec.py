@@ -121,6 +121,18 @@ def _check_unix_directory(channel: str, option: str) -> None:
             "a directory (each participant's socket is made in it)",
             f"{channel}: not a directory",
         )
+    if path.is_symlink() and not path.exists():
+        # a loop of links, or one to nothing: the bus's making of its directory failed on it
+        # (FileExistsError, a bus error, exit 4)
+        raise ConfigError(
+            option,
+            "channel",
+            "a directory (each participant's socket is made in it)",
+            Description(
+                f"{escaped(channel)}: a symbolic link that leads to no directory (a loop, or "
+                "a link to nothing)"
+            ),
+        )
 
 
 def check_channel(interface: str, channel: str, source: str, key: str) -> None:

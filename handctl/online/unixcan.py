@@ -127,6 +127,11 @@ class UnixDatagramBus(can.BusABC):
                 f"unix bus directory {channel!r}: expected a directory (each participant's "
                 "socket is made in it), found another kind of file"
             )
+        if self.directory.is_symlink() and not self.directory.exists():
+            raise ValueError(
+                f"unix bus directory {channel!r}: expected a directory, found a symbolic link "
+                "that leads to no directory (a loop, or a link to nothing)"
+            )
         self.directory.mkdir(exist_ok=True)
         self.channel_info = f"unix:{channel}"
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

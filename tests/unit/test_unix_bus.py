@@ -607,3 +607,20 @@ def test_only_sockets_in_the_directory_are_sent_to_not_links(
         assert [f.arbitration_id for f in got] == [0x123]
     finally:
         victim.close()
+
+
+def test_a_bus_directory_that_is_a_loop_of_links_is_bad_input(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Two symbolic links to each other: the bus's making of its directory failed on them,
+    a bus error (exit 4) saying only FileExistsError."""
+    from handctl.errors import ConfigError
+    from handctl.online.busspec import parse_spec
+    from handctl.online.unixcan import UnixDatagramBus
+
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    with pytest.raises(ConfigError, match="a symbolic link that leads to no directory"):
+        parse_spec(f"unix:{tmp_path / 'a'}", hand.bus, "test")
+    with pytest.raises(ValueError, match="a symbolic link that leads to no directory"):
+        UnixDatagramBus(str(tmp_path / "a"))
