@@ -7,6 +7,7 @@ nothing; a hand config half written by a crash or a full disk is worse than the 
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import stat
@@ -40,6 +41,14 @@ def check_writable(
     directory = target.parent
     if not directory.is_dir():
         raise ConfigError(option, "", "a file in an existing directory", path)
+    try:
+        os.stat(target)
+    except OSError as exc:
+        if exc.errno == errno.ENAMETOOLONG:
+            # said with the file's name alone, no option, once the work was set up
+            raise ConfigError(
+                option, "", "a file name the system takes (File name too long)", path
+            ) from None
     if target.exists() and not target.is_file():
         raise ConfigError(option, "", "a regular file (not a directory, a device or a FIFO)", path)
     stream = _standard_stream(target)

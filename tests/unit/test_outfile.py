@@ -252,3 +252,12 @@ def test_a_plan_replaces_only_a_recipe(tmp_path: Path, capsys: pytest.CaptureFix
 
     _refuse_other_than_a_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")
     _refuse_other_than_a_recipe(tmp_path / "new.yaml")
+
+
+def test_a_file_name_too_long_names_the_option(tmp_path: Path) -> None:
+    """Said with the file's name alone ("File name too long"), no option, once the work had
+    been set up."""
+    with pytest.raises(ConfigError) as err:
+        check_writable(tmp_path / ("a" * 300 + ".mcap"), "--log", recording=True)
+    assert err.value.file == "--log"
+    assert "a file name the system takes (File name too long)" in str(err.value)
