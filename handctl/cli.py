@@ -351,6 +351,15 @@ def _scene_warnings(hand: HandConfig, scene: SimParams | None) -> list[str]:
                 f"soft-limit guard's narrowest bands ({GUARD_BAND_MIN:g} rad): every recipe "
                 "with a limit_guard_band is refused on this hand"
             )
+    if scene is not None:
+        from handctl.sim.placement import unsupported
+
+        for i, above in unsupported(hand, scene):
+            out.append(
+                f"sim.objects[{i}].y: {escaped(scene.objects[i].name)} starts "
+                f"{above * 1e3:.1f} mm above the table with nothing under it: it falls at "
+                "the first step, and its height above rest is measured from the table"
+            )
     for obj in scene.objects if scene is not None else ():
         # the palm's face is y = 0, the objects below it: the most a centre can rise
         room = -obj.radius - obj.y
@@ -1614,9 +1623,18 @@ def _replay_to_bus(
         f"at {args.speed or 1.0:g}x ..."
     )
     try:
-        sent = frames.to_bus(
-            recording, args.to_bus, args.speed or 1.0, args.direction or "both", hand=on_bus
-        )
+        from handctl.stopsignals import noted_stops
+
+        # the stop signals noted, not raised, while frames go to a hand (``noted_stops``)
+        with noted_stops() as stops:
+            sent = frames.to_bus(
+                recording,
+                args.to_bus,
+                args.speed or 1.0,
+                args.direction or "both",
+                hand=on_bus,
+                stops=stops,
+            )
     except frames.ReplayInterrupted as exc:
         why = f" by {exc.why}" if exc.why else ""
         if exc.stopped:
@@ -1654,8 +1672,10 @@ def _reanalysis_on_tick(hand: HandConfig, recipe: Recipe, estimator: Any) -> Rea
 def _replay_rerun(recording: Recording, report: dict[str, Any]) -> int:
     """``replay --rerun``: the re-run printed and put in ``report``; its exit code."""
     from handctl.recording import rerun
+    from handctl.stopsignals import ctrl_c_at_once
 
-    result = rerun.rerun(recording, _reanalysis_on_tick)
+    with ctrl_c_at_once():
+        result = rerun.rerun(recording, _reanalysis_on_tick)
     report["rerun"] = result.as_dict()
     if _print_rerun(result) != EXIT_OK:
         return EXIT_FAILED

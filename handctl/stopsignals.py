@@ -301,3 +301,21 @@ def noted_stops() -> Iterator[Noted]:
     finally:
         for sig, handler in saved.items():
             signal.signal(sig, handler)
+
+
+@contextlib.contextmanager
+def ctrl_c_at_once() -> Iterator[None]:
+    """SIGINT as the interrupt it is (``interrupt``), at once, over an event loop a command
+    runs to its end, ``replay --rerun``'s. With Python's own handler in place, ``asyncio.run``
+    puts in one that only cancels its task, which the re-run's lockstep ticks took at the
+    end: a Ctrl-C waited out the whole re-run (seconds, minutes on a long log), and its
+    result was then thrown away (SIGTERM ended it at once)."""
+    main = threading.current_thread() is threading.main_thread()
+    if not main or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield
+        return
+    signal.signal(signal.SIGINT, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)

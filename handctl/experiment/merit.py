@@ -66,6 +66,7 @@ from handctl.convention import (
 )
 from handctl.handshape import hand_span
 from handctl.online.recipes.schema import Pair, Recipe
+from handctl.sim.placement import rest_heights
 
 HOLD_S = 2.0  # s
 DROP_HEIGHT = 0.005  # m
@@ -433,7 +434,7 @@ def track(runtime: Any, sim_hand: Any) -> Tracker:
 
     middle, half_span = hand_span(hand)
     trace = Trace(
-        tuple(o.y for o in sim_objects),
+        rest_heights(sim_hand.hand, sim_hand.params),
         middle,
         hand.joint_names,
         names,

@@ -44,6 +44,7 @@ from handctl.online.recipes.runner import Handover, RecipeRunner, RunStatus
 from handctl.online.recipes.schema import Pair, Phase, Recipe, RecipeObject
 from handctl.online.safety.limits import JointLimits, limit_torque
 from handctl.sim.params import NODE_TICK_S, SimParams
+from handctl.sim.placement import rest_heights
 from handctl.sim.plant import ObjectPose, Plant
 
 #: m, an object this far below its resting height plus this margin counts as back on the table.
@@ -136,7 +137,8 @@ class Episode:
         self._quantum = 2 * math.pi / counts
         self._lo = [j.angle_min for j in hand.joints]
         self._hi = [j.angle_max for j in hand.joints]
-        self._rest = [o.y for o in params.objects]
+        # where each object rests: on the table for one put up with nothing under it
+        self._rest = list(rest_heights(hand, params))
         self._radii = [o.radius for o in params.objects]
         # the palm's middle and the farthest finger base from it: out of the hand, as the
         # experiment summary judges it (``handshape.hand_span``)

@@ -9,7 +9,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from handctl.config import FingerConfig, HandConfig
 from handctl.errors import ConfigError, Description, HandctlError, escaped
@@ -19,7 +19,6 @@ from handctl.recording import channels as ch
 from handctl.recording.messages import EXTENDED_ID_FLAG
 from handctl.recording.metadata import recorded_hand, recorded_protocol
 from handctl.recording.reader import Recording, iter_decoded, open_recording, require_topics
-from handctl.stopsignals import Noted, noted_stops
 from handctl.wholefile import whole_file
 
 #: buses where no real hand listens: a replay onto them may take the log's limits as its own
@@ -48,8 +47,13 @@ def to_bus(
     sleep: Callable[[float], None] = time.sleep,
     clock: Callable[[], float] = time.perf_counter,
     hand: HandConfig | None = None,
+    stops: StopNotes | None = None,
 ) -> dict[str, Any]:
     """Send the logged frames onto the bus ``spec`` with their original spacing / ``speed``.
+
+    ``stops`` are the stop signals the command notes rather than raises
+    (``handctl.stopsignals.noted_stops``): looked at between two frames, the first ends the
+    sending with the stop of the nodes left enabled, and no later one cuts that stop short.
 
     Frames are paced against their due times (not slept frame to frame), so the time spent
     sending does not add up into drift; a sender more than a period behind shifts the rest of
@@ -71,7 +75,7 @@ def to_bus(
         snapshot = open_recording(copy)
         snapshot.path = recording.path  # every message names the log the user gave
         snapshot.read_from = copy
-        return _to_bus(snapshot, spec, speed, direction, sleep, clock, hand)
+        return _to_bus(snapshot, spec, speed, direction, sleep, clock, hand, stops or _NoStops())
 
 
 def _to_bus(
@@ -82,6 +86,7 @@ def _to_bus(
     sleep: Callable[[float], None],
     clock: Callable[[], float],
     hand: HandConfig | None,
+    stops: StopNotes,
 ) -> dict[str, Any]:
     from handctl.online.bus import open_bus
     from handctl.online.busspec import parse_spec
@@ -110,9 +115,11 @@ def _to_bus(
     period_s = hand.bus.period_s / speed
     shifted = 0.0
     left = _LeftEnabled(hand)
-    # the stop signals only noted from here on, and looked at between two frames: raised, a
-    # second one cut the stop short, and Ctrl-Z suspended the replay (``noted_stops``)
-    with open_bus(spec, hand.bus) as bus, noted_stops() as stops:
+    if stops.first:  # during the checks: nothing sent yet
+        raise ReplayInterrupted("", stops.first, stops.later)
+    # the stop signals looked at between two frames: raised, a second one cut the stop
+    # short, and Ctrl-Z suspended the replay (``to_bus``)
+    with open_bus(spec, hand.bus) as bus:
         start: float | None = None
         first = 0
         try:
@@ -179,6 +186,22 @@ def hand_needed(spec: str) -> ConfigError:
     )
 
 
+class StopNotes(Protocol):
+    """The stop signals noted while a replay sends (``handctl.stopsignals.Noted``): the
+    first, and the ones after it."""
+
+    first: str
+    later: list[str]
+
+
+class _NoStops:
+    """No signal noted: a replay whose caller takes the signals as interrupts."""
+
+    def __init__(self) -> None:
+        self.first = ""
+        self.later: list[str] = []
+
+
 #: s, the longest sleep between two looks at a stop signal while a replay waits for a frame's
 #: time: a log's silence (a start-up's seconds) held a Ctrl-C that long.
 NAP_S = 0.05
@@ -189,7 +212,7 @@ def _nap(
     due: float,
     clock: Callable[[], float],
     sleep: Callable[[float], None],
-    stops: Noted,
+    stops: StopNotes,
 ) -> None:
     """Sleep ``wait`` s, until ``due`` on ``clock``, or until a stop signal is noted."""
     while wait > NAP_S and not stops.first:

@@ -13,13 +13,10 @@ any difference is listed.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import heapq
 import itertools
 import math
-import signal
 import struct
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -50,7 +47,6 @@ from handctl.recording.metadata import (
 )
 from handctl.recording.reader import Recording, iter_chunks, require_topics
 from handctl.recording.series import json_floats
-from handctl.stopsignals import interrupt
 
 MAX_LISTED = 20
 #: the outcome of a re-run of a log whose run stopped before its runtime was set up, and of
@@ -563,23 +559,6 @@ class RerunReport:
 ReanalysisFactory = Callable[[HandConfig, Recipe, Any], Reanalyser]
 
 
-@contextlib.contextmanager
-def _ctrl_c_at_once() -> Iterator[None]:
-    """SIGINT as the interrupt it is, at once, over the re-run's event loop. With Python's
-    own handler in place, ``asyncio.run`` puts in one that only cancels its task, which the
-    re-run's lockstep ticks took at the end: a Ctrl-C waited out the whole re-run (seconds,
-    minutes on a long log), and its result was then thrown away (SIGTERM ended it at once)."""
-    main = threading.current_thread() is threading.main_thread()
-    if not main or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        yield
-        return
-    signal.signal(signal.SIGINT, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-
-
 def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> RerunReport:
     """Feed the logged feedback through a fresh driver, runner and supervisor; compare.
 
@@ -695,8 +674,7 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
     started = time.perf_counter()
     outcome = "log ended"
     try:
-        with _ctrl_c_at_once():
-            result = timebudget.outcome(asyncio.run(runtime.run()), runtime.stop_requested)
+        result = timebudget.outcome(asyncio.run(runtime.run()), runtime.stop_requested)
         outcome = result.outcome.value
     except _EndOfLogError:
         where = "before a damaged chunk" if recording.damaged else "where the log ends"

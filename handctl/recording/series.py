@@ -355,6 +355,7 @@ def _rest_heights(recording: Recording, series: Series, hand: HandConfig | None)
     summary's reference), or the first logged pose for a log without them. Sets the joints'
     ``tau_max`` from the recorded hand config (``hand``) on the way."""
     from handctl.sim.params import parse_sim
+    from handctl.sim.placement import rest_heights
 
     first = (
         [
@@ -373,5 +374,6 @@ def _rest_heights(recording: Recording, series: Series, hand: HandConfig | None)
         series.fingers = [(f.name, len(f.joints)) for f in hand.fingers]
     if params is None:
         return first
-    initial = {o.name: o.y for o in params.objects}
+    assert hand is not None
+    initial = dict(zip((o.name for o in params.objects), rest_heights(hand, params), strict=True))
     return [initial.get(name, first[i]) for i, name in enumerate(series.object_names)]

@@ -100,7 +100,6 @@ def check_placement(hand: HandConfig, params: SimParams, doc: Doc) -> None:
                 f"a centre at least one radius ({obj.radius:g} m) below the palm face (y = 0)",
                 obj.y,
             )
-        _check_support(params, obj, i, links, doc, where)
         for j, other in enumerate(params.objects[:i]):
             gap = math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
             if gap < -_TOUCH:
@@ -257,30 +256,44 @@ def _segment_distance(a: LinkSegment, b: LinkSegment) -> float:
     return _planar_distance((a.x0, a.y0, a.x1, a.y1), (b.x0, b.y0, b.x1, b.y1))
 
 
-def _check_support(
-    params: SimParams, obj: ObjectParams, i: int, links: list[LinkSegment], doc: Doc, where: str
-) -> None:
-    """An object above the table top rests on something: another object below it or a link,
-    within ``SUPPORT_GAP``. One put 15 mm up fell at the first step, and every height above
-    rest (the experiment's lift, replay's) was measured from where it had been put, so a lift
-    needed 25 mm to count 10."""
-    above = obj.y - obj.radius - params.table_height
-    if above <= SUPPORT_GAP:
-        return
-    for other in params.objects[:i] + params.objects[i + 1 :]:
-        gap = math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
-        if other.y < obj.y and gap <= SUPPORT_GAP:
-            return
-    if any(
-        _object_link_distance(obj, link) - obj.radius - link.radius <= SUPPORT_GAP for link in links
-    ):
-        return
-    doc.fail(
-        f"{where}.y",
-        f"a centre one radius above the table top ({params.table_height + obj.radius:g} m, "
-        "resting on it), or an object resting on another or on a link: "
-        f"{above * 1e3:.1f} mm above the table with nothing under it, it falls at the first step",
-        obj.y,
+def unsupported(hand: HandConfig, params: SimParams) -> list[tuple[int, float]]:
+    """The objects that start above the table top with nothing under them, each with how far
+    above it (m): under gravity, with no object below it and no link within ``SUPPORT_GAP``.
+    Such an object falls at the first step (a scene may mean it to: a small gap keeps it
+    from starting in contact), so it rests on the table, not where it was put."""
+    if params.gravity == 0.0:  # it stays where it is
+        return []
+    links = list(link_segments(hand, params))
+    found = []
+    for i, obj in enumerate(params.objects):
+        above = obj.y - obj.radius - params.table_height
+        if above <= SUPPORT_GAP:
+            continue
+        on_another = any(
+            other.y < obj.y
+            and math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
+            <= SUPPORT_GAP
+            for k, other in enumerate(params.objects)
+            if k != i
+        )
+        on_a_link = any(
+            _object_link_distance(obj, link) - obj.radius - link.radius <= SUPPORT_GAP
+            for link in links
+        )
+        if not on_another and not on_a_link:
+            found.append((i, above))
+    return found
+
+
+def rest_heights(hand: HandConfig, params: SimParams) -> tuple[float, ...]:
+    """m, the centre height each object rests at, which its height above rest is measured
+    from (the experiment's lift, replay's, the plan's): where it was put, but on the table
+    for one with nothing under it (``unsupported``). Measured from where it had been put,
+    an object placed 15 mm up fell at the first step and a lift needed 25 mm to count 10."""
+    falling = {i for i, _ in unsupported(hand, params)}
+    return tuple(
+        params.table_height + o.radius if i in falling else o.y
+        for i, o in enumerate(params.objects)
     )
 
 

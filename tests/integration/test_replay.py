@@ -36,6 +36,7 @@ from handctl.recording.recorder import Recorder
 from handctl.recording.replay import summarise_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
+from handctl.stopsignals import ctrl_c_at_once, noted_stops, working
 
 from ..conftest import ROOT, handctl
 from .mcap_copy import rewrite as copy_recording
@@ -759,8 +760,14 @@ def test_to_bus_sends_its_stop_whole_whatever_signals_follow(
     before = signal.signal(signal.SIGTSTP, suspended)
     try:
         with open_bus(f"virtual:{channel}", hand.bus) as listener:
-            with pytest.raises(ReplayInterrupted) as stopped:
-                to_bus(recording, f"virtual:{channel}", sleep=sleep, clock=lambda: now[0])
+            with pytest.raises(ReplayInterrupted) as stopped, noted_stops() as stops:
+                to_bus(
+                    recording,
+                    f"virtual:{channel}",
+                    sleep=sleep,
+                    clock=lambda: now[0],
+                    stops=stops,
+                )
             heard = [(f.arbitration_id, f.data) for f in listener.drain(limit=10**7)]
         assert signal.getsignal(signal.SIGTSTP) is suspended  # put back as it was
     finally:
@@ -951,9 +958,10 @@ def test_ctrl_c_stops_a_rerun_at_once(recorded: Recorded, monkeypatch: pytest.Mo
                 os.kill(os.getpid(), signal.SIGINT)
 
     monkeypatch.setattr(rerun_module, "Runtime", Interrupted)
+    working()  # as every command begins (``cli.main``): an earlier one here had finished
     before = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        with pytest.raises(KeyboardInterrupt):
+        with pytest.raises(KeyboardInterrupt), ctrl_c_at_once():  # as replay --rerun runs it
             rerun(open_recording(recorded.path))
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:

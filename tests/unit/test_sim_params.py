@@ -285,13 +285,6 @@ def test_mistakes_name_the_key(hand: HandConfig, edit: Any, key: str, expected: 
             "sim.initial_angles.f1",
             "out of the palm",
         ),
-        # 15 mm above the table with nothing under it: it fell at the first step, and every
-        # height above rest was measured from where it had been put
-        (
-            lambda s: s["objects"][0].update(y=-0.105),
-            "sim.objects[0].y",
-            "15.0 mm above the table with nothing under it",
-        ),
         # straight down, finger 3's tip starts 22 mm into the table (its diameter is 14 mm)
         (
             lambda s: s["initial_angles"].update(f3=[0.0, 0.0, 0.0]),
@@ -515,10 +508,16 @@ def test_a_start_one_margin_inside_a_limit_is_taken_however_the_decimals_round(
     assert err.value.key == f"sim.initial_angles.{finger.name}[1]"
 
 
-def test_an_object_may_rest_on_others_above_the_table(hand: HandConfig) -> None:
-    """Only an object with nothing under it is refused: a third cylinder laid on the pair,
-    touching both, rests where it is put."""
+def test_an_object_with_nothing_under_it_rests_on_the_table(hand: HandConfig) -> None:
+    """Put 15 mm up, it falls at the first step: its height above rest was measured from
+    where it had been put, so a lift needed 25 mm to count 10. One laid on the pair, touching
+    both, rests where it is put; without gravity every object stays where it is."""
     import math
+
+    from handctl.sim.placement import rest_heights, unsupported
+
+    def up(s: Any) -> None:
+        s["objects"][0].update(y=s["objects"][0]["y"] + 0.015)
 
     def third(s: Any) -> None:
         a, b = s["objects"][0], s["objects"][1]
@@ -526,5 +525,14 @@ def test_an_object_may_rest_on_others_above_the_table(hand: HandConfig) -> None:
         rise = math.sqrt((2 * a["radius"]) ** 2 - half**2)
         s["objects"].append({**a, "name": "cyl3", "x": a["x"] + half, "y": a["y"] + rise})
 
-    params = parse_sim(_with_sim(hand, third))
-    assert [o.name for o in params.objects][-1] == "cyl3"
+    shipped = parse_sim(hand)
+    raised = parse_sim(_with_sim(hand, up))
+    assert [i for i, _ in unsupported(hand, raised)] == [0]
+    assert unsupported(hand, raised)[0][1] == pytest.approx(0.015)
+    assert rest_heights(hand, raised) == pytest.approx(rest_heights(hand, shipped))
+    assert rest_heights(hand, shipped) == tuple(o.y for o in shipped.objects)
+    stacked = parse_sim(_with_sim(hand, third))
+    assert unsupported(hand, stacked) == []
+    assert rest_heights(hand, stacked) == tuple(o.y for o in stacked.objects)
+    weightless = dataclasses.replace(raised, gravity=0.0)
+    assert rest_heights(hand, weightless) == tuple(o.y for o in raised.objects)
