@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from handctl.config import HandConfig
-from handctl.online.drivers.finger import FingerLayouts, FingerNode
+from handctl.online.drivers.finger import REORDERED_WITHIN_NS, FingerLayouts, FingerNode
 from handctl.protocol import Protocol
 
 DISABLED, ENABLED, FAULT = 0, 1, 2
@@ -137,3 +137,18 @@ def test_an_enabled_sent_before_the_fault_may_arrive_after_it(node: FingerNode) 
     # the Feedback stream said FAULT first: an ENABLED of its own after it is no older report
     node.receive(fb, _feedback(node, 2, ENABLED, 0), 6)
     assert node.contradictions == 2
+
+
+def test_an_enabled_long_after_the_fault_is_no_older_report(node: FingerNode) -> None:
+    """Frames a node queues together leave within its 1 ms tick: a stream that says ENABLED
+    later than that, never having said FAULT, contradicts the FAULT (a forged Heartbeat
+    hiding it), whatever it said before."""
+    fb, hb = node.layouts.feedback.frame_id, node.layouts.heartbeat.frame_id
+    node.receive(fb, _feedback(node, 0, DISABLED, 0), 0)
+    node.next_node_command("enable")
+    node.receive(fb, _feedback(node, 1, FAULT, TIMEOUT), 10_000_000)
+    node.receive(hb, _heartbeat(node, 0, ENABLED), 10_000_000 + REORDERED_WITHIN_NS)
+    assert node.contradiction == ""
+    node.receive(hb, _heartbeat(node, 1, ENABLED), 10_000_001 + REORDERED_WITHIN_NS)
+    assert node.contradiction == "Heartbeat says ENABLED after FAULT without a fault reset"
+    assert node.state == FAULT and node.fault_bits == TIMEOUT

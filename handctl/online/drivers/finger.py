@@ -44,6 +44,13 @@ def fault_names(bits: int) -> list[str]:
     return names
 
 
+#: ns: how long after a node's first FAULT report an ENABLED of another stream (one that has
+#: not said FAULT itself) may still be one it queued before the fault. Frames a node queues in
+#: one of its 1 ms ticks leave in that tick, in the order of their identifiers; a stream that
+#: goes on saying ENABLED after that is contradicting the FAULT (a forged Heartbeat hiding it).
+REORDERED_WITHIN_NS = 1_000_000
+
+
 @dataclass(frozen=True)
 class FingerLayouts:
     """The DBC layouts one finger node uses, looked up once."""
@@ -143,6 +150,7 @@ class FingerNode:
         #: FAULT that wins the bus by its lower identifier and arrives first; that ENABLED was
         #: taken for the node contradicting itself, and the stop named no e-stop.
         self._since_fault: set[str] = set()
+        self._fault_ns = 0  # when the report that the node is in FAULT arrived (host clock)
         #: Whether the node may now go from DISABLED to ENABLED: this host enabled it, and
         #: no stream that had already said ENABLED since has said DISABLED again.
         self._may_enable = False
@@ -223,7 +231,7 @@ class FingerNode:
             if fb.fault_bits == 0 and fb.state == self.state:  # every tick, as a rule
                 self.fault_bits = 0  # all ``_report`` would do: nothing to contradict
             else:
-                self._report(fb.state, fb.fault_bits, "Feedback")
+                self._report(fb.state, fb.fault_bits, "Feedback", arrival_ns)
         elif layout is self.layouts.heartbeat:
             state, uptime = int(values[0]), int(values[1])
             if self.uptime_ms is not None and uptime < self.uptime_ms:
@@ -232,7 +240,7 @@ class FingerNode:
                 self.reboots += 1
             self.uptime_ms = uptime
             self.heartbeat_ns = arrival_ns
-            self._report(state, None, "Heartbeat")
+            self._report(state, None, "Heartbeat", arrival_ns)
         else:
             self.status = values
             self.status_ns = arrival_ns
@@ -240,7 +248,7 @@ class FingerNode:
             self.firmware_version = (int(values[7]), int(values[8]), int(values[9]))
             self.version_ns = arrival_ns
             self._check_version(self.protocol_version)
-            self._report(int(values[0]), int(values[1]), "Status")
+            self._report(int(values[0]), int(values[1]), "Status", arrival_ns)
         return None
 
     @property
@@ -263,7 +271,7 @@ class FingerNode:
             )
         return ""
 
-    def _report(self, state: int, bits: int | None, message: str) -> None:
+    def _report(self, state: int, bits: int | None, message: str, arrival_ns: int = 0) -> None:
         """Fold in what one accepted frame says of the node's state (and fault bits).
 
         The last report does not simply win: each must agree with the protocol and with the
@@ -283,7 +291,10 @@ class FingerNode:
                 f"latched fault bits ({', '.join(fault_names(bits & LATCHED_BITS))})"
             )
         if self.state == _FAULT and state == _ENABLED:
-            if message not in self._since_fault:  # this stream said FAULT before: it is now
+            older = (
+                message in self._since_fault and arrival_ns - self._fault_ns <= REORDERED_WITHIN_NS
+            )
+            if not older:  # this stream said FAULT since, or too long after to be older
                 problem = problem or f"{message} says ENABLED after FAULT without a fault reset"
             state, bits = _FAULT, None  # what the FAULT report said stands
         elif (
@@ -299,6 +310,7 @@ class FingerNode:
         if state == _FAULT:
             if self.state != _FAULT:
                 self._since_fault = {"Feedback", "Heartbeat", "Status"}
+                self._fault_ns = arrival_ns
             self._since_fault.discard(message)
         if state == _ENABLED:
             self._since_enable.discard(message)
