@@ -243,13 +243,22 @@ def held_back() -> Iterator[list[str]]:
         if name not in late:
             late.append(name)
 
-    saved = {}
-    for sig in StopSignals.SIGNALS:
-        # (None: a handler not installed from Python, which cannot be put back)
-        if signal.getsignal(sig) not in (signal.SIG_IGN, None):
-            saved[sig] = signal.signal(sig, note)
-    try:
+    # (None: a handler not installed from Python, which cannot be put back)
+    taken = [
+        sig for sig in StopSignals.SIGNALS if signal.getsignal(sig) not in (signal.SIG_IGN, None)
+    ]
+    with _handled(dict.fromkeys(taken, note)):
         yield late
+
+
+@contextlib.contextmanager
+def _handled(handlers: dict[int, Any]) -> Iterator[None]:
+    """``handlers`` (signal: handler) in place over the block, the ones before put back."""
+    saved: dict[int, Any] = {}
+    try:
+        for sig, handler in handlers.items():
+            saved[sig] = signal.signal(sig, handler)
+        yield
     finally:
         for sig, handler in saved.items():
             signal.signal(sig, handler)
@@ -286,21 +295,15 @@ def noted_stops() -> Iterator[Noted]:
         else:
             noted.first = name
 
-    saved: dict[int, Any] = {}
-    for deaf in StopSignals.DEAF:
-        saved[deaf] = signal.signal(deaf, signal.SIG_IGN)
+    handlers: dict[int, Any] = dict.fromkeys(StopSignals.DEAF, signal.SIG_IGN)
     for sig in StopSignals.SIGNALS:
         inherited = signal.getsignal(sig)
-        if inherited is None or (
-            inherited is signal.SIG_IGN and sig not in StopSignals.HONOURED_IF_IGNORED
+        if inherited is not None and (
+            inherited is not signal.SIG_IGN or sig in StopSignals.HONOURED_IF_IGNORED
         ):
-            continue
-        saved[sig] = signal.signal(sig, note)
-    try:
+            handlers[sig] = note
+    with _handled(handlers):
         yield noted
-    finally:
-        for sig, handler in saved.items():
-            signal.signal(sig, handler)
 
 
 @contextlib.contextmanager

@@ -20,12 +20,21 @@ RECIPE = str(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")
 
 
 def _run(
-    tmp_path: Path, stdout: IO[str] | int, close_stdout: bool = False
+    tmp_path: Path,
+    stdout: IO[str] | int,
+    close_stdout: bool = False,
+    outputs: tuple[str, ...] = (),
 ) -> subprocess.CompletedProcess[str]:
+    """A short run with stdout as given; its log and summary in ``tmp_path`` unless
+    ``outputs`` names them."""
+    outputs = outputs or (
+        *("--log", str(tmp_path / "run.mcap")),
+        *("--summary-json", str(tmp_path / "s.json")),
+    )
     return subprocess.run(
         [
             *(sys.executable, "-m", "handctl", "run", "recipe", RECIPE, "--max-seconds", "0.3"),
-            *("--log", str(tmp_path / "run.mcap"), "--summary-json", str(tmp_path / "s.json")),
+            *outputs,
         ],
         cwd=ROOT,
         text=True,
@@ -113,18 +122,7 @@ def test_an_output_that_is_the_commands_own_stdout_is_refused(tmp_path: Path) ->
     run said it had recorded every tick, exit 0; the log did not open."""
     out = tmp_path / "run.mcap"
     with out.open("w") as stdout:
-        result = subprocess.run(
-            [
-                *(sys.executable, "-m", "handctl", "run", "recipe", RECIPE),
-                *("--max-seconds", "0.3", "--log", "/dev/stdout"),
-            ],
-            cwd=ROOT,
-            text=True,
-            timeout=300,
-            check=False,
-            stdout=stdout,
-            stderr=subprocess.PIPE,
-        )
+        result = _run(tmp_path, stdout, outputs=("--log", "/dev/stdout"))
     assert result.returncode == 2, result.stderr
     assert result.stderr.startswith(
         "handctl: error: --log: expected a file other than this command's standard output"
