@@ -215,6 +215,18 @@ def test_a_bad_schedule_entry_is_refused_naming_the_key(
             "phases[2]",
             "paced_ramp",
         ),
+        # refused in the recipe only once every phase had been planned; the first ended the
+        # plan in a traceback (the pace divides by its ramp)
+        (
+            lambda d: d["phases"][3].update(ramp_s=0),
+            "phases[3].ramp_s",
+            "a ramp longer than 0 s (the paced_ramp moves at its speed)",
+        ),
+        (
+            lambda d: d["phases"][0].update(ramp_s=d["phases"][0]["max_s"] + 1),
+            "phases[0].ramp_s",
+            "a ramp no longer than the phase's max_s",
+        ),
     ],
 )
 def test_bad_templates_are_refused_naming_the_key(
