@@ -38,6 +38,7 @@ from handctl.online.recipes.guard import GuardSettings
 from handctl.online.recipes.loader import (
     MAX_JOINT_DAMPING,
     MAX_SCHEDULE,
+    check_phase_ramp,
     check_ramp,
     check_unique_names,
     parse_brake,
@@ -528,21 +529,6 @@ def _turn_exit(doc: Doc) -> tuple[float, float, int]:
     return exit_fraction, exit_hold, share
 
 
-def _check_phase_ramp(doc: Doc, ramp: float, max_s: float, paced: bool) -> None:
-    """A phase's ramp held as the recipe's is: each was refused there only once every phase
-    had been planned, and a paced phase's ramp of 0 ended the plan in a traceback (the pace
-    divides by it)."""
-    if ramp > max_s + 1e-9:
-        doc.fail(
-            "ramp_s",
-            f"a ramp no longer than the phase's max_s ({max_s:g} s): the phase never reaches "
-            "its torques",
-            ramp,
-        )
-    if paced and ramp == 0:
-        doc.fail("ramp_s", "a ramp longer than 0 s (the paced_ramp moves at its speed)", ramp)
-
-
 def _phase(
     doc: Doc, hand: HandConfig, objects: list[str], estimates: tuple[str, ...]
 ) -> TemplatePhase:
@@ -612,7 +598,9 @@ def _phase(
                 "torque itself)",
                 f"{len(schedule)} entries",
             )
-    _check_phase_ramp(doc, ramp, max_s, paced is not None)
+    # as the recipe's ramp is held (refused there only once every phase had been planned, and
+    # a paced phase's ramp of 0 ended the plan in a traceback)
+    check_phase_ramp(doc, ramp, max_s, paced is not None)
     stiffness: float | None = None
     damping = 0.0
     integral: tuple[float, float, float] | None = None

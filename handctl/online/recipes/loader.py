@@ -487,15 +487,7 @@ def _parse_phase(
     max_s = doc.number("max_s", min=hand.bus.period_s, max=MAX_PHASE_S, unit="s")
     # unsaid, the ramp fits the phase
     ramp = doc.number("ramp_s", default=min(0.1, max_s), min=0.0, max=60.0, unit="s")
-    if ramp > max_s + 1e-9:
-        # the phase ended, on its timeout at the latest, before its torques were in: a
-        # recipe that said 0.5 N·m sent 0.004 and completed
-        doc.fail(
-            "ramp_s",
-            f"a ramp no longer than the phase's max_s ({max_s:g} s): the phase never reaches "
-            "its torques",
-            ramp,
-        )
+    check_phase_ramp(doc, ramp, max_s, paced=False)
     on_timeout = TimeoutAction(
         doc.string("on_timeout", default="abort", choices=[a.value for a in TimeoutAction])
     )
@@ -509,8 +501,7 @@ def _parse_phase(
     fades = parse_damping_fades(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     paced = parse_paced_ramp(doc.mapping("paced_ramp")) if doc.has("paced_ramp") else None
-    if paced is not None and ramp <= 0:
-        doc.fail("ramp_s", "a ramp longer than 0 s (the paced_ramp moves at its speed)", ramp)
+    check_phase_ramp(doc, ramp, max_s, paced=paced is not None)
     margin = parse_torque_margin(doc, hand.joint_names)
     turn_from = doc.string("turn_from") if doc.has("turn_from") else ""
     stall = parse_stall(doc.mapping("stall")) if doc.has("stall") else None
@@ -872,6 +863,22 @@ def _signed_rate(doc: Doc, sign: float | None) -> float:
     return sign * doc.number(
         "rate_deg_s", min=0.0, max=MAX_TURN_RATE_DEG_S, min_exclusive=True, unit="deg/s"
     )
+
+
+def check_phase_ramp(doc: Doc, ramp: float, max_s: float, paced: bool) -> None:
+    """A phase's ``ramp_s`` (a recipe's, a template's: ``handctl.planning.template``) fits
+    it: no longer than its ``max_s`` (the phase ended, on its timeout at the latest, before
+    its torques were in: a recipe that said 0.5 N·m sent 0.004 and completed), and, on a
+    ``paced`` phase, longer than 0 (the pace moves at the ramp's speed)."""
+    if ramp > max_s + 1e-9:
+        doc.fail(
+            "ramp_s",
+            f"a ramp no longer than the phase's max_s ({max_s:g} s): the phase never reaches "
+            "its torques",
+            ramp,
+        )
+    if paced and ramp <= 0:
+        doc.fail("ramp_s", "a ramp longer than 0 s (the paced_ramp moves at its speed)", ramp)
 
 
 def parse_paced_ramp(doc: Doc, sign: float | None = None) -> PacedRamp:
