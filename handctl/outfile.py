@@ -42,16 +42,17 @@ def check_writable(
     if not directory.is_dir():
         raise ConfigError(option, "", "a file in an existing directory", path)
     try:
-        os.stat(target)
+        found: os.stat_result | None = os.stat(target)
     except OSError as exc:
         if exc.errno == errno.ENAMETOOLONG:
             # said with the file's name alone, no option, once the work was set up
             raise ConfigError(
                 option, "", "a file name the system takes (File name too long)", path
             ) from None
+        found = None
     if target.exists() and not target.is_file():
         raise ConfigError(option, "", "a regular file (not a directory, a device or a FIFO)", path)
-    stream = _standard_stream(target)
+    stream = _standard_stream(found) if found is not None else ""
     if stream:
         # ``--log /dev/stdout > run.mcap``: the summary printed over the log's start, and
         # the command said it had recorded every tick, exit 0
@@ -93,13 +94,9 @@ def check_writable(
     return target
 
 
-def _standard_stream(target: Path) -> str:
-    """Which standard stream of this process ("output" or "error") writes to ``target``; ""
-    for none."""
-    try:
-        file = os.stat(target)
-    except OSError:
-        return ""
+def _standard_stream(file: os.stat_result) -> str:
+    """Which standard stream of this process ("output" or "error") writes to the file of
+    ``file`` (its ``os.stat``); "" for none."""
     for fd, name in ((1, "output"), (2, "error")):
         try:
             stream = os.fstat(fd)

@@ -317,8 +317,5 @@ def ctrl_c_at_once() -> Iterator[None]:
     if not main or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         yield
         return
-    signal.signal(signal.SIGINT, interrupt)
-    try:
+    with _handled({signal.SIGINT: interrupt}):
         yield
-    finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)

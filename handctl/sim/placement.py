@@ -101,7 +101,7 @@ def check_placement(hand: HandConfig, params: SimParams, doc: Doc) -> None:
                 obj.y,
             )
         for j, other in enumerate(params.objects[:i]):
-            gap = math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
+            gap = _object_gap(obj, other)
             if gap < -_TOUCH:
                 doc.fail(
                     f"{where}.x",
@@ -270,11 +270,7 @@ def unsupported(hand: HandConfig, params: SimParams) -> list[tuple[int, float]]:
         if above <= SUPPORT_GAP:
             continue
         on_another = any(
-            other.y < obj.y
-            and math.hypot(obj.x - other.x, obj.y - other.y) - obj.radius - other.radius
-            <= SUPPORT_GAP
-            for k, other in enumerate(params.objects)
-            if k != i
+            other.y < obj.y and _object_gap(obj, other) <= SUPPORT_GAP for other in params.objects
         )
         on_a_link = any(
             _object_link_distance(obj, link) - obj.radius - link.radius <= SUPPORT_GAP
@@ -295,6 +291,11 @@ def rest_heights(hand: HandConfig, params: SimParams) -> tuple[float, ...]:
         params.table_height + o.radius if i in falling else o.y
         for i, o in enumerate(params.objects)
     )
+
+
+def _object_gap(a: ObjectParams, b: ObjectParams) -> float:
+    """m between the two objects' surfaces in the hand plane (negative: they overlap)."""
+    return math.hypot(a.x - b.x, a.y - b.y) - a.radius - b.radius
 
 
 def _object_link_distance(obj: ObjectParams, link: LinkSegment) -> float:

@@ -271,7 +271,7 @@ class FingerNode:
             )
         return ""
 
-    def _report(self, state: int, bits: int | None, message: str, arrival_ns: int = 0) -> None:
+    def _report(self, state: int, bits: int | None, message: str, arrival_ns: int) -> None:
         """Fold in what one accepted frame says of the node's state (and fault bits).
 
         The last report does not simply win: each must agree with the protocol and with the
