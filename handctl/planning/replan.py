@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.online.recipes.loader import load_recipe
@@ -86,7 +88,8 @@ def load_base(
     recipe = _read_base(path, template, hand)
     if schedule_only:
         _check_something_to_search(template, start)
-    return _checked(Base(recipe, start, schedule_only, start_at=names.index(start)), template)
+    base = Base(recipe, start, schedule_only, start_at=names.index(start))
+    return _checked(base, template, hand)
 
 
 def load_kept_base(path: Path, template: Template, hand: HandConfig) -> Base:
@@ -95,7 +98,7 @@ def load_kept_base(path: Path, template: Template, hand: HandConfig) -> Base:
     minute, where planning it again searches for the torques for tens of minutes. The base
     is checked as ``load_base`` checks it, each of the template's phases kept."""
     recipe = _read_base(path, template, hand)
-    return _checked(Base(recipe, template.phases[0].name, keep_torques=True), template)
+    return _checked(Base(recipe, template.phases[0].name, keep_torques=True), template, hand)
 
 
 def _read_base(path: Path, template: Template, hand: HandConfig) -> Recipe:
@@ -131,12 +134,47 @@ def _read_base(path: Path, template: Template, hand: HandConfig) -> Recipe:
     return recipe
 
 
-def _checked(base: Base, template: Template) -> Base:
-    """``base``, once the phases it keeps are the template's (``_check_kept_phases``) and
-    every planned schedule entry it is to give is in it (``_check_kept_entries``)."""
+def _checked(base: Base, template: Template, hand: HandConfig) -> Base:
+    """``base``, once the phases it keeps are the template's (``_check_kept_phases``), every
+    planned schedule entry it is to give is in it (``_check_kept_entries``) and the template's
+    torque margins keep its torques within tau_max (``_check_kept_margins``)."""
     _check_kept_phases(base, template)
     _check_kept_entries(base, template)
+    _check_kept_margins(base, template, hand)
     return base
+
+
+def _check_kept_margins(base: Base, template: Template, hand: HandConfig) -> None:
+    """A kept phase runs the base's torques (its own and its schedule's) times the
+    template's ``torque_margin``, which the compiled recipe's loader holds to tau_max: a
+    margin too large for them was refused only after every model had run, naming a
+    ``torques`` key the template does not have. Refused before anything is planned, naming
+    the template's margin and the base's torque."""
+    tau_max = np.array([j.tau_max for j in hand.joints])
+    for i, spec in enumerate(template.phases):
+        kept = base.kept(spec.name)
+        if kept is None or spec.torque_margin == 1.0:
+            continue
+        margin = np.broadcast_to(np.asarray(spec.torque_margin, dtype=float), tau_max.shape)
+        at = [p.name for p in base.recipe.phases].index(spec.name)
+        torques = [("torques", kept.torques)] + [
+            (f"schedule[{k}].torques", e.torques)
+            for k, e in enumerate(kept.schedule)
+            if not base.plans_schedule(spec.name)
+        ]
+        for key, values in torques:
+            held = np.abs(np.asarray(values, dtype=float)) * margin
+            for j in np.flatnonzero(held > tau_max * (1 + 1e-9)):
+                name = hand.joint_names[j]
+                raise ConfigError(
+                    template.source,
+                    f"phases[{i}].torque_margin",
+                    f"a margin that keeps the kept torques within tau_max ({tau_max[j]:g} N·m "
+                    f"of {name} in {hand.source}): {Path(base.recipe.source).name}'s "
+                    f"phases[{at}].{key}.{name} is {values[j]:g} N·m, {held[j]:.4g} N·m "
+                    f"times the margin",
+                    float(margin[j]),
+                )
 
 
 def _check_kept_entries(base: Base, template: Template) -> None:

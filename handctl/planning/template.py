@@ -41,6 +41,7 @@ from handctl.online.recipes.loader import (
     check_phase_ramp,
     check_ramp,
     check_unique_names,
+    check_unshadowed,
     parse_brake,
     parse_damping_fades,
     parse_exit_share,
@@ -463,8 +464,9 @@ def _schedule(doc: Doc, hand: HandConfig, objects: list[str]) -> tuple[ScheduleE
     if not doc.has("schedule"):
         return ()
     out: list[ScheduleEntry] = []
-    for entry in doc.mappings("schedule", min_len=1, max_len=MAX_SCHEDULE):
+    for k, entry in enumerate(doc.mappings("schedule", min_len=1, max_len=MAX_SCHEDULE)):
         when = parse_schedule_when(entry, objects)
+        check_unshadowed(doc, k, when, [e.when for e in out], objects)
         if entry.has("plan") == entry.has("torques"):
             entry.fail(
                 "torques",
@@ -498,19 +500,47 @@ def _torques(doc: Doc, key: str, hand: HandConfig) -> tuple[float, ...]:
     return values
 
 
-def _check_tau_max(doc: Doc, key: str, torques: tuple[float, ...] | None, hand: HandConfig) -> None:
+def _check_tau_max(
+    doc: Doc,
+    key: str,
+    torques: tuple[float, ...] | None,
+    hand: HandConfig,
+    margin: PerJoint = 1.0,
+) -> None:
     """A template's torques (a free phase's, a schedule entry's) go into the recipe as they
     are written, and its seeds start the search: none beyond the joint's tau_max, which the
-    recipe would refuse only after the whole plan (a seed would be clipped without a word)."""
+    recipe would refuse only after the whole plan (a seed would be clipped without a word).
+    The runner holds them times the phase's ``torque_margin``, and the recipe's loader
+    refuses that product past tau_max, so it is held so here too."""
     if torques is None:  # a lift, hold or turn phase without a seed
         return
-    for joint, value in zip(hand.joints, torques, strict=True):
-        if abs(value) > joint.tau_max:
+    factors = np.broadcast_to(np.asarray(margin, dtype=float), (hand.n_joints,))
+    for joint, value, factor in zip(hand.joints, torques, factors.tolist(), strict=True):
+        if abs(value * factor) > joint.tau_max:
+            by = f", the torque times the phase's torque_margin ({factor:g})" if factor != 1 else ""
             doc.fail(
                 f"{key}.{joint.name}",
-                f"|τ| <= {joint.tau_max:g} N·m (tau_max of {joint.name} in {hand.source})",
+                f"|τ| <= {joint.tau_max:g} N·m (tau_max of {joint.name} in {hand.source})"
+                + (f"{by}: {value * factor:.4g} N·m" if by else ""),
                 value,
             )
+
+
+def _check_margined(
+    doc: Doc,
+    hand: HandConfig,
+    margin: PerJoint,
+    torques: tuple[float, ...] | None,
+    schedule: Sequence[ScheduleEntry],
+) -> None:
+    """A phase's written torques (a free phase's, its written schedule entries') times its
+    ``torque_margin``, within tau_max (``_check_tau_max``)."""
+    if margin == 1.0:
+        return
+    _check_tau_max(doc, "torques", torques, hand, margin)
+    for k, entry in enumerate(schedule):
+        if isinstance(entry, ScheduledTorques):
+            _check_tau_max(doc, f"schedule[{k}].torques", entry.torques, hand, margin)
 
 
 def _turn_exit(doc: Doc) -> tuple[float, float, int]:
@@ -619,6 +649,9 @@ def _phase(
     fades = parse_damping_fades(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     margin = parse_torque_margin(doc, hand.joint_names)
+    # a free phase's torques go into the recipe as written; a seed only starts the search,
+    # whose box is tau_max over the margin (``compile.search_box``)
+    _check_margined(doc, hand, margin, seed if kind == "free" else None, schedule)
     doc.done()
     return TemplatePhase(
         name,

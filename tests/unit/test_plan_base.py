@@ -10,7 +10,8 @@ import pytest
 import yaml
 
 from handctl.config import load_hand
-from handctl.planning.replan import load_base
+from handctl.errors import ConfigError
+from handctl.planning.replan import load_base, load_kept_base
 from handctl.planning.template import load_template
 
 from ..conftest import ROOT
@@ -42,3 +43,57 @@ def test_a_phase_added_to_the_template_is_planned_from_and_what_follows_it_too(
     assert [base.plans_schedule(p.name) for p in template.phases] == [
         k >= at for k in range(len(template.phases))
     ]
+
+
+def test_a_margin_the_kept_torques_cannot_take_is_refused_before_the_plan(
+    tmp_path: Path,
+) -> None:
+    """``--keep-torques`` with a template whose ``torque_margin`` takes a kept torque past
+    tau_max: every model ran, and then the compiled recipe was refused naming
+    ``phases[1].torques``, a key the template does not have. Now refused when the base
+    loads, naming the template's margin and the base's torque; a margin the torques can take
+    still loads."""
+    hand = load_hand(PLANAR)
+    data: dict[str, Any] = yaml.safe_load(TEMPLATE.read_text())
+    data["phases"][1]["torque_margin"] = 1.2  # the lift's 0.5123 N·m of left_j1: 0.615 > 0.6
+    path = tmp_path / "planar_lift_turn.template.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    template = load_template(path, hand)
+    with pytest.raises(ConfigError) as info:
+        load_kept_base(RECIPE, template, hand)
+    assert (info.value.file, info.value.key) == (str(path), "phases[1].torque_margin")
+    assert "planar_lift_turn.yaml's phases[1].torques.left_j1 is 0.5123 N·m" in str(info.value)
+    with pytest.raises(ConfigError):  # the phases before --from are kept as well
+        load_base(RECIPE, "manipulate", template, hand)
+    load_base(RECIPE, "lift", template, hand)  # planned again: searched within the margin
+    # 0.564 N·m; left_j2's 0.45 is at its tau_max already
+    data["phases"][1]["torque_margin"] = {
+        "left_j1": 1.1,
+        "left_j2": 1,
+        "right_j1": 1.1,
+        "right_j2": 1,
+    }
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    load_kept_base(RECIPE, load_template(path, hand), hand)
+
+
+def test_a_free_phase_s_torques_times_its_margin_past_tau_max_are_refused_when_it_loads(
+    tmp_path: Path,
+) -> None:
+    """A free phase's torques go into the recipe as written, and the runner holds them times
+    the margin: past tau_max, the plan ran and its recipe was refused. A turn phase's seed
+    only starts the search, whose box is tau_max over the margin: not refused."""
+    hand = load_hand(PLANAR)
+    data: dict[str, Any] = yaml.safe_load(TEMPLATE.read_text())
+    data["phases"][0]["torques"]["left_j2"] = 0.4
+    data["phases"][0]["torque_margin"] = 1.5  # 0.6 > 0.45 of left_j2
+    data["phases"][3]["torque_margin"] = 1.5  # its seed's 0.45 times it: only a seed
+    path = tmp_path / "t.template.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError) as info:
+        load_template(path, hand)
+    assert info.value.key == "phases[0].torques.left_j2"
+    assert "times the phase's torque_margin (1.5): 0.6 N·m" in info.value.expected
+    data["phases"][0]["torque_margin"] = 1.1
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    load_template(path, hand)

@@ -147,7 +147,7 @@ def test_a_schedule_entry_is_written_or_planned(tmp_path: Path, hand: HandConfig
     _schedule(
         data,
         {"when": _WHEN, "plan": {"models": 5}},
-        {"when": _WHEN, "torques": _TORQUES},
+        {"when": {"radius_ratio": {"object": "cyl1", "max": 0.9}}, "torques": _TORQUES},
     )
     planned, written = load_template(write(tmp_path, data), hand).phases[3].schedule
     assert isinstance(planned, PlannedSchedule) and planned.models == 5

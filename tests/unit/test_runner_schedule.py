@@ -346,3 +346,19 @@ def test_an_entry_an_earlier_one_always_holds_for_is_refused(
     # an entry the first does not cover may follow it
     wider = _entry({"radius_ratio": {"object": "cyl1", "min": 1.0, "max": 1.3}})
     _load(tmp_path, hand, _data(schedule=[first, wider]))
+
+
+@pytest.mark.parametrize("planned", [False, True])
+def test_a_template_s_entry_an_earlier_one_always_holds_for_is_refused_when_it_loads(
+    tmp_path: Path, hand: HandConfig, planned: bool
+) -> None:
+    """A template's shadowed entry was refused only by the compiled recipe's loader, after
+    the whole plan had run (minutes); the template now refuses it as the recipe does."""
+    first = _entry({"radius_ratio": {"object": "cyl1", "min": 1.07, "max": 1.3}}, f1_j1=0.2)
+    inner = {"radius_ratio": {"object": "cyl1", "min": 1.1, "max": 1.2}}
+    second = {"when": inner, "plan": {"models": 4}} if planned else _entry(inner, f1_j1=-0.2)
+    with pytest.raises(ConfigError) as info:
+        one_turn_template(tmp_path, hand, OWN, {"schedule": [first, second]})
+    assert info.value.key == "phases[0].schedule[1].when"
+    assert "schedule[0] holds wherever this one does: it is never chosen" in info.value.expected
+    assert info.value.file.endswith("t.template.yaml")

@@ -633,19 +633,30 @@ def parse_schedule(
         when = parse_schedule_when(entry, names)
         torques = parse_torques(entry, hand)
         entry.done()
-        # the first entry that holds is chosen: one whose every measurement an earlier one
-        # also holds for is never chosen (a key that does nothing misleads)
-        shadow = next((j for j, e in enumerate(out) if _within(when, e.when)), None)
-        if shadow is not None:
-            doc.fail(
-                f"schedule[{k}].when",
-                f"ranges not all within schedule[{shadow}]'s (the first entry that holds is "
-                f"chosen, and schedule[{shadow}] holds wherever this one does: it is never "
-                "chosen)",
-                description(_ranges_text(when, names)),
-            )
+        check_unshadowed(doc, k, when, [e.when for e in out], names)
         out.append(ScheduledTorques(when, torques))
     return tuple(out)
+
+
+def check_unshadowed(
+    doc: Doc,
+    k: int,
+    when: Sequence[RadiusRatio],
+    earlier: Sequence[Sequence[RadiusRatio]],
+    names: Sequence[str],
+) -> None:
+    """Refuse ``schedule[k]`` when an earlier entry holds wherever it does: the first entry
+    that holds is chosen, so it would never be (a key that does nothing misleads). A recipe's
+    and a template's schedule alike, a template's before its plan runs."""
+    shadow = next((j for j, e in enumerate(earlier) if _within(when, e)), None)
+    if shadow is not None:
+        doc.fail(
+            f"schedule[{k}].when",
+            f"ranges not all within schedule[{shadow}]'s (the first entry that holds is "
+            f"chosen, and schedule[{shadow}] holds wherever this one does: it is never "
+            "chosen)",
+            description(_ranges_text(when, names)),
+        )
 
 
 def _within(inner: Sequence[RadiusRatio], outer: Sequence[RadiusRatio]) -> bool:
