@@ -172,13 +172,37 @@ def summarise_run(
         ),
         # joints whose command rang: the limits held, the joint took the swing
         **({"chatter": [asdict(r) for r in result.chatter]} if result.chatter else {}),
+        # joints the recipe asked for well past what they may give: the supervisor held them
+        **({"asked_beyond_tau_max_nm": asked} if (asked := asked_beyond(result, hand)) else {}),
         **({"sim": sim} if sim is not None else {}),
     }
 
 
-def _run_warnings(result: RunResult) -> list[str]:
+#: a joint asked for more than its tau_max by this share of it is said; a feedback at its
+#: bound asks a few per cent past it for a few ticks in an ordinary run (the guard's spring
+#: on f1_j2 of the nominal run: 1.3 % for 22 ticks)
+ASKED_SLACK = 0.1
+
+
+def asked_beyond(result: RunResult, hand: HandConfig) -> dict[str, float]:
+    """N·m, each joint the recipe asked for more than ``1 + ASKED_SLACK`` times its tau_max,
+    and the most it asked. The supervisor clamps every torque to tau_max, so nothing unsafe
+    went out; but a pose stiffness or a torque written for another hand that asks a
+    hundred times what a joint can give is a recipe that does not do what it says, and the
+    run said nothing of it (only a replay's desired torques showed it)."""
+    if result.max_asked_tau is None:
+        return {}
+    return {
+        joint.name: round(float(asked), 5)
+        for joint, asked in zip(hand.joints, result.max_asked_tau.tolist(), strict=True)
+        if asked > joint.tau_max * (1 + ASKED_SLACK)
+    }
+
+
+def _run_warnings(result: RunResult, hand: HandConfig) -> list[str]:
     """What the run says beside its outcome: an exception it stopped on, joints that sank out
-    of their limits in its stop, node faults it cleared at start-up."""
+    of their limits in its stop, node faults it cleared at start-up, joints asked for well
+    past their tau_max."""
     said = []
     if result.exception is not None:
         said.append(
@@ -191,6 +215,17 @@ def _run_warnings(result: RunResult) -> list[str]:
     if result.disable_unconfirmed:
         said.append(result.disable_unconfirmed)
     said += [ringing.text() for ringing in result.chatter]
+    asked = asked_beyond(result, hand)
+    if asked:
+        tau_max = {j.name: j.tau_max for j in hand.joints}
+        each = ", ".join(
+            f"{name} {v:.4g} N·m (tau_max {tau_max[name]:g})" for name, v in asked.items()
+        )
+        said.append(
+            f"the recipe asked for more than tau_max, and the supervisor held each joint to "
+            f"it: {each} at the most. A torque, stiffness or gain past what the joint may "
+            "give: the run was not the one the recipe describes"
+        )
     return said
 
 
@@ -339,7 +374,7 @@ def run_recipe(
             _start_recording(recording, runtime, req, peer.spec, lockstep, peer.sim_hand)
         signals.checkpoint()
         result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
-        warnings += _run_warnings(result)
+        warnings += _run_warnings(result, req.hand)
         summary = summarise_run(
             result, req.hand, req.recipe, lockstep, _peer_summary(peer, warnings)
         )

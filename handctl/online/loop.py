@@ -233,6 +233,8 @@ class RunResult:
     disable_unconfirmed: str = ""
     #: joints whose command rang (``safety.chatter``)
     chatter: list[Ringing] = field(default_factory=list)
+    #: N·m, per joint, the largest |desired torque| the recipe asked for (finite values)
+    max_asked_tau: np.ndarray | None = None
 
 
 class Runtime:
@@ -295,6 +297,7 @@ class Runtime:
         self.collector = LoopCollector()
         self._stats = TickStats(len(STAGES), window_ticks)
         self._max_abs = np.zeros(hand.n_joints)
+        self._max_asked = np.zeros(hand.n_joints)  # N·m, what the recipe asked (``asked_beyond``)
         #: joints whose command rings (a feedback too stiff for them)
         self.chatter = ChatterWatch(
             hand.joint_names, np.array([j.tau_max for j in hand.joints]), hand.bus.period_s
@@ -826,6 +829,7 @@ class Runtime:
         if new_faults and self._another_master(new_faults):
             driver.send_estop()
         np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)
+        np.fmax(self._max_asked, np.abs(desired), out=self._max_asked)  # a NaN is a fault
         self.chatter.observe(applied, t_s)
         c4 = cpu()  # the record stage is the recording alone
         if self.recorder is not None:
@@ -1038,6 +1042,7 @@ class Runtime:
             nodes_reset=self.nodes_reset,
             disable_unconfirmed=self.disable_unconfirmed,
             chatter=self.chatter.found(),
+            max_asked_tau=self._max_asked.copy(),
         )
 
 

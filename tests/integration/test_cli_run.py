@@ -48,6 +48,7 @@ def test_main_job_completes_with_a_summary(default_run: DefaultRun) -> None:
     assert [p["name"] for p in summary["phases"]] == wanted
     assert all(p["end_s"] is not None and p["exit"] for p in summary["phases"])
     assert summary["faults"] == []
+    assert "asked_beyond_tau_max_nm" not in summary  # its feedback stays within the joints'
     # every tick of every phase was run, none missed (the recipe's length is the recipe's)
     period_s = load_hand(HAND_YAML).bus.period_s
     last_end_s = max(p["end_s"] for p in summary["phases"])
