@@ -104,12 +104,23 @@ def test_compiled_recipe_for_another_hand_is_refused(tmp_path: Path, hand: HandC
         ("angle.f1_j1 > -1e999 for 0.1", "NUMBER is finite (it reads as -inf)"),
         ("time > 1 for " + "9" * 400, "held for at most 3600 s"),
         ("time > 1 for 3600.5", "held for at most 3600 s"),
+        # a hold in exponent notation, as a threshold may be written: read, and bounded (it
+        # was refused as no condition at all, saying nothing of why)
+        ("time > 1 for 1e20", "held for at most 3600 s"),
+        ("time > 1 for -2e-2", "a condition 'SIGNAL OP NUMBER [for SECONDS]'"),
     ],
 )
 def test_bad_conditions(tmp_path: Path, hand: HandConfig, condition: str, expected: str) -> None:
     err = error(tmp_path, hand, recipe_doc(phase("a", exit=["time > 0.5", condition])))
     assert err.key == "phases[0].exit[1]"
     assert expected in err.expected
+
+
+def test_a_hold_in_exponent_notation_is_read(tmp_path: Path, hand: HandConfig) -> None:
+    recipe = load_recipe(
+        write(tmp_path, recipe_doc(phase("a", exit=["time > 0.5 for 2e-2"]))), hand
+    )
+    assert recipe.phases[0].exits[0].hold_s == 0.02
 
 
 def test_unknown_keys_missing_joints_and_duplicates(tmp_path: Path, hand: HandConfig) -> None:

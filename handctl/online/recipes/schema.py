@@ -66,7 +66,8 @@ MAX_PHASE_S = 3600.0
 _CONDITION = re.compile(
     r"^\s*(?P<signal>time|(?:angle|tdt|estimate)\.[A-Za-z0-9_]+)\s*(?P<op><=|>=|<|>)\s*"
     r"(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)"
-    r"(?:\s+for\s+(?P<hold>\d+\.?\d*|\.\d+))?\s*$"
+    # a hold is written as a threshold is (exponent notation too), without a sign
+    r"(?:\s+for\s+(?P<hold>(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?))?\s*$"
 )
 
 
