@@ -588,3 +588,27 @@ def test_a_manipulation_phase_is_told_by_its_name_its_plan_or_its_exit_on_a_turn
         recipe, phases=tuple(named if p is turn else p for p in recipe.phases)
     )
     assert swapped.manipulation_phases == ("turn",)
+
+
+@pytest.mark.parametrize(
+    ("condition", "holds"),
+    [
+        ("estimate.cyl1_y > 1e300", False),
+        ("estimate.cyl1_x < -2", False),
+        ("estimate.cyl1_y > 0.05", True),  # a lift's height: well within the hand
+        ("estimate.cyl1_x < 2", True),  # always, at once: not this check's business
+    ],
+)
+def test_an_object_s_place_beyond_the_hand_s_reach_is_refused(
+    tmp_path: Path, hand: HandConfig, condition: str, holds: bool
+) -> None:
+    """An object's estimated centre is where finger links cage it: an exit at 1e300 m was
+    accepted and the phase timed out as if it had not been written."""
+    objects = [{"name": "cyl1", "radius": 0.02}]
+    doc = recipe_doc(phase("a", exit=[condition]), objects=objects)
+    if holds:
+        load_recipe(write(tmp_path, doc), hand)
+        return
+    err = error(tmp_path, hand, doc)
+    assert err.key == "phases[0].exit[0]"
+    assert "an object's centre in the palm's frame, never 0.2" in err.expected

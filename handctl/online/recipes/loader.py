@@ -23,6 +23,7 @@ from handctl.online.recipes.runner import RunStatus
 from handctl.online.recipes.schema import (
     MAX_OBJECTS,
     MAX_PHASE_S,
+    OBJECT_ESTIMATES,
     REANALYSIS_USES,
     Condition,
     GraspModel,
@@ -493,8 +494,9 @@ def _parse_phase(
     )
     exits = _parse_conditions(doc, "exit", hand, estimates)
     aborts = _parse_conditions(doc, "abort", hand, estimates)
+    reach = estimate_reach(hand, objects)
     for key, conditions in (("exit", exits), ("abort", aborts)):
-        _refuse_never_holding(doc, key, conditions, max_s, hand)
+        _refuse_never_holding(doc, key, conditions, max_s, hand, reach)
     turn_rate = parse_turn_rate(doc.mapping("turn_rate")) if doc.has("turn_rate") else None
     pose = _parse_pose(doc.mapping("pose"), hand) if doc.has("pose") else None
     joint_damping = parse_joint_damping(doc, hand.joint_names)
@@ -1047,14 +1049,34 @@ def _parse_conditions(
     return tuple(out)
 
 
+def estimate_reach(hand: HandConfig, objects: Sequence[RecipeObject]) -> float:
+    """m, how far from the palm frame's origin an object's estimated centre can be: the
+    estimator places an object only where finger links (and the other objects) cage it, so
+    within the farthest finger's reach, its link's thickness and the objects' diameters."""
+    fingers = max(
+        (
+            math.hypot(f.base_x, f.base_y) + sum(j.link_length + j.half_thickness for j in f.joints)
+            for f in hand.fingers
+        ),
+        default=0.0,
+    )
+    return fingers + 2.0 * sum(o.radius for o in objects)
+
+
 def _refuse_never_holding(
-    doc: Doc, key: str, conditions: Sequence[Condition], max_s: float, hand: HandConfig
+    doc: Doc,
+    key: str,
+    conditions: Sequence[Condition],
+    max_s: float,
+    hand: HandConfig,
+    reach: float = math.inf,
 ) -> None:
     """A condition that cannot hold before the phase ends is refused: it loaded and ran as
-    nothing, the phase timing out as if the exit had not been written."""
+    nothing, the phase timing out as if the exit had not been written. ``reach`` (m): how
+    far an object's estimated centre can be (``estimate_reach``)."""
     sub = Doc({}, doc.file, doc.key_path(key))
     for i, cond in enumerate(conditions):
-        why = _never_holds(cond, max_s, hand)
+        why = _never_holds(cond, max_s, hand, reach)
         if why:
             sub.fail(
                 i,
@@ -1063,8 +1085,9 @@ def _refuse_never_holding(
             )
 
 
-def _never_holds(cond: Condition, max_s: float, hand: HandConfig) -> str:
-    """Why ``cond`` never holds in a phase of ``max_s`` on ``hand`` ('' if it may)."""
+def _never_holds(cond: Condition, max_s: float, hand: HandConfig, reach: float) -> str:
+    """Why ``cond`` never holds in a phase of ``max_s`` on ``hand`` ('' if it may), an
+    object's estimated centre within ``reach`` (m) of the palm frame's origin."""
     # a phase is judged from the tick after it began: its time is a loop period at least
     first = hand.bus.period_s
     above = cond.op in (">", ">=")
@@ -1097,6 +1120,15 @@ def _never_holds(cond: Condition, max_s: float, hand: HandConfig) -> str:
         return (
             f"{signal} is a direction in (-π, π] rad; its turn, unwrapped, is "
             f"{signal.removesuffix('_angle')}_turn"
+        )
+    if (
+        cond.kind is SignalKind.ESTIMATE
+        and signal.endswith(tuple(f"_{s}" for s in OBJECT_ESTIMATES))
+        and ((above and cond.value >= reach) or (not above and cond.value <= -reach))
+    ):
+        return (
+            f"{signal} is an object's centre in the palm's frame, never {reach:.3g} m or more "
+            "from its origin (the fingers' reach and the objects' diameters)"
         )
     if cond.kind is SignalKind.TDT:
         joint = hand.joints[cond.index]
