@@ -180,7 +180,7 @@ def summarise_run(
 
 #: a joint asked for more than its tau_max by this share of it is said; a feedback at its
 #: bound asks a few per cent past it for a few ticks in an ordinary run (the guard's spring
-#: on f1_j2 of the nominal run: 1.3 % for 22 ticks)
+#: on a middle joint of the nominal run: 1.3 % for 22 ticks)
 ASKED_SLACK = 0.1
 
 
