@@ -66,6 +66,9 @@ def test_the_step_is_signed_as_the_recipe_turns(tmp_path: Path, hand: HandConfig
         phase["exit"] = [e.replace(" < -", " > ") for e in phase.get("exit", [])] or None
         if phase["exit"] is None:
             del phase["exit"]
+        for key in ("turn_rate", "paced_ramp"):  # their rates signed as the turn wanted
+            if key in phase:
+                phase[key]["rate_deg_s"] *= -1
     path = tmp_path / "recipe.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     assert _bench().turn_sense(load_recipe(path, hand)) == 1.0

@@ -612,3 +612,26 @@ def test_an_object_s_place_beyond_the_hand_s_reach_is_refused(
     err = error(tmp_path, hand, doc)
     assert err.key == "phases[0].exit[0]"
     assert "an object's centre in the palm's frame, never 0.2" in err.expected
+
+
+@pytest.mark.parametrize("key", ["turn_rate", "paced_ramp"])
+@pytest.mark.parametrize("exit_op", ["<", ">"])
+def test_a_rate_signed_against_the_phase_s_exit_is_refused(
+    tmp_path: Path, hand: HandConfig, key: str, exit_op: str
+) -> None:
+    """A rate is signed as the wanted turn; against the turn the phase's exit waits for, the
+    pair's turn towards the exit read as going back, and the loop or pace did not do what
+    its key said."""
+    objects = [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}]
+    wanted = -1 if exit_op == "<" else 1
+    feedback: dict[str, Any] = {"rate_deg_s": -60 * wanted}
+    if key == "turn_rate":
+        feedback["scale"] = [0.5, 1.5]
+    exit_text = f"estimate.cyl1_cyl2_line_turn {exit_op} {0.7 * wanted}"
+    turn = {**phase("turn", 0.05, exit=[exit_text]), key: feedback}
+    err = error(tmp_path, hand, recipe_doc(turn, objects=objects))
+    assert err.key == f"phases[0].{key}.rate_deg_s"
+    assert f"({exit_text}: {'negative' if wanted < 0 else 'positive'})" in err.expected
+    assert err.found == -60 * wanted
+    feedback["rate_deg_s"] = 60 * wanted
+    load_recipe(write(tmp_path, recipe_doc(turn, objects=objects)), hand)

@@ -21,6 +21,7 @@ from handctl.online.estimator import RADIUS_RANGE
 from handctl.online.recipes.guard import SIDES, GuardSettings, SpringBand
 from handctl.online.recipes.runner import RunStatus
 from handctl.online.recipes.schema import (
+    FIRST_PAIR_TURN,
     MAX_OBJECTS,
     MAX_PHASE_S,
     OBJECT_ESTIMATES,
@@ -199,6 +200,7 @@ def parse_recipe(doc: Doc, hand: HandConfig, *, as_recorded: bool = False) -> Re
                     "the turn of the first pair",
                     f"{len(objects)} objects",
                 )
+        _check_rate_sense(doc.file, i, phase)
         if phase.paced is not None and phase.paced.limit_depth > 0.0 and guard is None:
             raise ConfigError(
                 doc.file,
@@ -555,6 +557,26 @@ def _parse_phase(
 
 #: the most phases an ``exit_share`` may share the rest of a turn among
 MAX_EXIT_SHARE = 16
+
+
+def _check_rate_sense(file: str, i: int, phase: Phase) -> None:
+    """A turn-rate loop's or a paced ramp's rate is signed as the wanted turn, and a phase
+    whose exit waits for the first pair's turn one way wants that way: a rate signed the
+    other way read the pair's turn towards the exit as going back (the loop pushed harder,
+    the pace never held the ramp back), and nothing said so."""
+    cond = next((c for c in phase.exits if c.relative), None)
+    if cond is None or cond.index != FIRST_PAIR_TURN:
+        return
+    sense = phase.turn_sense()
+    for key, loop in (("turn_rate", phase.turn_rate), ("paced_ramp", phase.paced)):
+        if loop is not None and math.copysign(1.0, loop.rate) != sense:
+            raise ConfigError(
+                file,
+                f"phases[{i}].{key}.rate_deg_s",
+                f"a rate signed as the turn the phase's exit waits for ({cond.text}: "
+                f"{'negative' if sense is not None and sense < 0 else 'positive'})",
+                round(math.degrees(loop.rate), 9),
+            )
 
 
 def check_exit_shares(file: str, phases: Sequence[Phase]) -> None:
