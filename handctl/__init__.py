@@ -1,3 +1,3 @@
-"""handctl: grasp two objects with a joint-torque-controlled three-fingered hand over CAN."""
+"""handctl: grasp, lift and manipulate objects with a joint-torque-controlled hand over CAN."""
 
 __version__ = "0.1.0"

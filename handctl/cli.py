@@ -2680,8 +2680,8 @@ def _command(
 def build_parser() -> argparse.ArgumentParser:
     parser: argparse.ArgumentParser = _Parser(
         prog="handctl",
-        description="Grasp and manipulate two objects with a joint-torque-controlled "
-        "three-fingered hand over CAN.",
+        description="Grasp, lift and manipulate objects with a joint-torque-controlled robot "
+        "hand over CAN: any hand its config describes, simulated or real.",
         epilog="examples:\n"
         "  handctl run recipe config/recipes/swap_two_cylinders.yaml --summary-json out.json\n"
         "  handctl replay run.mcap --plot run.png\n"
