@@ -1646,8 +1646,11 @@ def _replay_to_bus(
                 file=sys.stderr,
             )
         raise
+    if "node_fault" in sent:
+        print(f"to-bus: FAILED: {sent['node_fault']}", file=sys.stderr)
     if "stopped" in sent:
-        print(f"to-bus: the log ended with {sent['stopped']}", file=sys.stderr)
+        ended = "the replay ended" if "node_fault" in sent else "the log ended"
+        print(f"to-bus: {ended} with {sent['stopped']}", file=sys.stderr)
     shifted = sent["shifted_ms"]
     print(
         f"to-bus: {sent['sent']} frames sent to {sent['bus']} ({sent['failed']} failed, "
@@ -1773,6 +1776,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         status = EXIT_FAILED
     elif args.to_bus:
         report["to_bus"] = _replay_to_bus(args, recording, on_bus)
+        if "node_fault" in report["to_bus"]:
+            status = EXIT_FAILED  # the hand did not follow the log to its end
     if args.json:
         _write_output("--json", args.json, _json_text(report) + "\n")
     if plot_error is not None:

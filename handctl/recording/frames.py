@@ -89,23 +89,8 @@ def _to_bus(
     stops: StopNotes,
 ) -> dict[str, Any]:
     from handctl.online.bus import open_bus
-    from handctl.online.busspec import parse_spec
 
-    require_topics(recording, (ch.CAN_RX, ch.CAN_TX), "--to-bus")
-    recorded = recorded_hand(recording)
-    assert recorded is not None
-    if hand is None and parse_spec(spec, recorded.bus).interface not in SIMULATED_BUSES:
-        # The recorded hand config is in the log, and its digest is no seal: a log whose
-        # tau_max was raised and whose digest was computed again passed every check against
-        # its own limits. On a bus where a real hand may listen, the limits are the
-        # operator's.
-        raise hand_needed(spec)
-    check_pacing(recording, recorded, direction)
-    check_commands(recording, recorded, direction, speed)
-    if hand is not None:
-        check_shape(recorded, hand)
-        check_commands(recording, hand, direction, speed, on_bus=True)
-    hand = hand if hand is not None else recorded
+    hand = _checked_commands(recording, spec, direction, speed, hand)
     sent = failed = 0
     worst_late = 0.0
     # A sender that fell behind (a stall, a slow machine) and sent its backlog back to back
@@ -115,6 +100,7 @@ def _to_bus(
     period_s = hand.bus.period_s / speed
     shifted = 0.0
     left = _LeftEnabled(hand)
+    heard = _FaultsHeard(hand, left)
     if stops.first:  # during the checks: nothing sent yet
         raise ReplayInterrupted("", stops.first, stops.later)
     # the stop signals looked at between two frames: raised, a second one cut the stop
@@ -122,6 +108,7 @@ def _to_bus(
     with open_bus(spec, hand.bus) as bus:
         start: float | None = None
         first = 0
+        listened = -math.inf
         try:
             for log_time, frame_id, data, _ in logged_frames(recording, direction):
                 if start is None:
@@ -137,6 +124,10 @@ def _to_bus(
                         shifted -= wait
                 if stops.first:
                     break
+                if due - listened >= period_s:  # what the nodes say, once a period
+                    listened = due
+                    if heard.hear(bus.drain()):
+                        break
                 if bus.send(frame_id, data):
                     sent += 1
                     left.sent(frame_id, data)
@@ -148,7 +139,8 @@ def _to_bus(
             raise ReplayInterrupted(left.stop(bus, period_s, sleep), str(exc)) from None
         if stops.first:
             raise ReplayInterrupted(left.stop(bus, period_s, sleep), stops.first, stops.later)
-        # so did a log that ends with nodes enabled (a run killed, a log cut short)
+        # so did a log that ends with nodes enabled (a run killed, a log cut short), and a
+        # replay a node went into FAULT under
         stopped = left.stop(bus, period_s, sleep)
         counts = bus.transport_counts()
     report: dict[str, Any] = {
@@ -162,6 +154,8 @@ def _to_bus(
     }
     if stopped:
         report["stopped"] = stopped
+    if heard.first:
+        report["node_fault"] = heard.first
     if sent and counts.get("datagrams_sent") == 0:
         # The unix bus makes its directory if it is not there, and a send with nobody else
         # in it succeeds: "N frames sent, 0 failed" to a mistyped directory looked like a
@@ -232,6 +226,73 @@ class ReplayInterrupted(KeyboardInterrupt):
         self.stopped = stopped
         self.why = why
         self.ignored = list(ignored)
+
+
+def _checked_commands(
+    recording: Recording, spec: str, direction: str, speed: float, hand: HandConfig | None
+) -> HandConfig:
+    """The hand whose limits bound the replay onto ``spec``, once the log's commands are
+    within them (and within the recorded hand's); refused otherwise, before anything is
+    sent."""
+    from handctl.online.busspec import parse_spec
+
+    require_topics(recording, (ch.CAN_RX, ch.CAN_TX), "--to-bus")
+    recorded = recorded_hand(recording)
+    assert recorded is not None
+    if hand is None and parse_spec(spec, recorded.bus).interface not in SIMULATED_BUSES:
+        # The recorded hand config is in the log, and its digest is no seal: a log whose
+        # tau_max was raised and whose digest was computed again passed every check against
+        # its own limits. On a bus where a real hand may listen, the limits are the
+        # operator's.
+        raise hand_needed(spec)
+    check_pacing(recording, recorded, direction)
+    check_commands(recording, recorded, direction, speed)
+    if hand is not None:
+        check_shape(recorded, hand)
+        check_commands(recording, hand, direction, speed, on_bus=True)
+    return hand if hand is not None else recorded
+
+
+class _FaultsHeard:
+    """A node of the hand on the bus heard in FAULT while the replay had it enabled: the hand
+    stopped following the log (the nodes' command watchdog timed out on a replay that fell
+    behind, on a loaded host), and the replay went on sending to a faulted hand and exited 0,
+    as if it had been replayed. Read from the nodes' Feedback, which carries their state."""
+
+    def __init__(self, hand: HandConfig, left: _LeftEnabled) -> None:
+        from handctl.online.drivers.finger import FingerLayouts
+
+        protocol = protocol_for(hand)
+        self.left = left
+        self.feedback = {}
+        for finger in hand.fingers:
+            layout = FingerLayouts.for_node(protocol, finger.node_id).feedback
+            self.feedback[layout.frame_id] = (finger, layout)
+        #: what the first node heard in FAULT said ("": none)
+        self.first = ""
+
+    def hear(self, frames: Sequence[Any]) -> bool:
+        """Whether a node the replay had enabled said FAULT in ``frames`` (``Frame``s)."""
+        from handctl.online.drivers.finger import fault_names, parse_feedback
+        from handctl.protocol import NodeState
+
+        for frame in frames:
+            found = self.feedback.get(frame.arbitration_id)
+            if found is None:
+                continue
+            finger, layout = found
+            if finger.node_id not in self.left.enabled or not layout.crc_ok(frame.data):
+                continue
+            feedback = parse_feedback(layout.decode(frame.data)[1])
+            if feedback.state == NodeState.FAULT:
+                bits = ", ".join(fault_names(feedback.fault_bits)) or "no fault bits"
+                self.first = (
+                    f"node {finger.node_id} ({finger.name}) went into FAULT ({bits}) while the "
+                    "replay had it enabled: the hand stopped following the log, and the "
+                    "replay stopped there"
+                )
+                return True
+        return False
 
 
 class _LeftEnabled:

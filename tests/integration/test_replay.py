@@ -779,6 +779,88 @@ def test_to_bus_sends_its_stop_whole_whatever_signals_follow(
     _ends_with_the_stop(hand, heard)
 
 
+def test_a_fault_is_heard_only_from_a_node_the_replay_had_enabled(hand: HandConfig) -> None:
+    """What the replay listens for: a node's Feedback saying FAULT while the replay had it
+    enabled. A node still in FAULT from before (the log's own fault reset comes later), a
+    Feedback that fails its CRC and a node ENABLED are not the hand stopping under it."""
+    from handctl.online.drivers.finger import FingerLayouts
+    from handctl.protocol import NodeState
+    from handctl.recording.frames import _FaultsHeard, _LeftEnabled
+
+    protocol = protocol_for(hand)
+    left = _LeftEnabled(hand)
+    heard = _FaultsHeard(hand, left)
+    node = hand.fingers[0].node_id
+    layouts = FingerLayouts.for_node(protocol, node)
+    k = len(hand.fingers[0].joints)
+
+    def feedback(state: NodeState, bits: int = 0) -> Frame:
+        values = (0.0,) * (2 * k) + (int(state), bits)
+        return Frame(layouts.feedback.frame_id, layouts.feedback.encode(0, values))
+
+    timeout = 1  # the TIMEOUT bit (``fault_names``)
+    assert not heard.hear([feedback(NodeState.FAULT, timeout)])  # not enabled by the replay
+    torque = layouts.command
+    left.sent(torque.frame_id, torque.encode(0, (0.0,) * k))  # under the replay's command now
+    bad = feedback(NodeState.FAULT, timeout)
+    assert not heard.hear([bad._replace(data=bad.data[:-1] + bytes([bad.data[-1] ^ 1]))])
+    assert not heard.hear([feedback(NodeState.ENABLED)])
+    assert heard.hear([feedback(NodeState.ENABLED), feedback(NodeState.FAULT, timeout)])
+    assert heard.first.startswith(f"node {node} ({hand.fingers[0].name}) went into FAULT (")
+
+
+@REALTIME
+def test_to_bus_onto_a_hand_that_faults_under_it_stops_and_says_so(
+    recorded: Recorded, hand: HandConfig, tmp_path: Path
+) -> None:
+    """A replay onto a live hand that fell behind (a loaded host) let the nodes' 10 ms command
+    watchdog time out, went on sending to the faulted hand and exited 0 (an outside probe, 2
+    runs in 2). The simulated hand in its own process hears the replay's commands; the
+    replay stalls once for 0.1 s with the nodes under torque: it hears a node's FAULT, stops
+    the nodes it had enabled and says so, and the command exits 1."""
+    bus = tmp_path / "bus"
+    bus.mkdir()
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{bus}", "--seconds", "120"],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        while not any(bus.iterdir()):  # the hand is on the bus
+            assert sim.poll() is None, "the simulated hand ended before it was on the bus"
+            time.sleep(0.05)
+        recording = open_recording(recorded.path)
+        logged = list(logged_frames(recording, "tx"))
+        halfway = (logged[-1][0] - logged[0][0]) * 1e-9 / 2  # s, the nodes under torque
+        began = time.perf_counter()
+        stalled: list[float] = []
+
+        def sleep(seconds: float) -> None:
+            time.sleep(seconds)
+            if not stalled and time.perf_counter() - began > halfway:
+                stalled.append(time.perf_counter() - began)
+                time.sleep(0.1)
+
+        sent = to_bus(recording, f"unix:{bus}", direction="tx", sleep=sleep)
+        done = handctl("replay", str(recorded.path), "--to-bus", f"unix:{bus}", "--direction", "tx")
+    finally:
+        sim.send_signal(signal.SIGINT)
+        try:
+            sim.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            sim.kill()
+            sim.wait()
+    assert "went into FAULT (TIMEOUT" in sent["node_fault"], sent
+    assert sent["sent"] < len(logged)  # stopped there, not sent to its end
+    # the hand left as the nodes it still had enabled were: zero torque, then disabled
+    assert "zero torque and a disable sent after them" in sent["stopped"]
+    # the command on the same hand, now in FAULT from the first replay: its enable does not
+    # clear the fault, and the first Feedback after it says FAULT
+    assert done.returncode == 1, done.stderr
+    assert "to-bus: FAILED: node " in done.stderr and "went into FAULT" in done.stderr
+
+
 def test_to_bus_says_when_nobody_was_on_the_unix_bus(
     recorded: Recorded, hand: HandConfig, tmp_path: Path
 ) -> None:
