@@ -635,3 +635,30 @@ def test_a_rate_signed_against_the_phase_s_exit_is_refused(
     assert err.found == -60 * wanted
     feedback["rate_deg_s"] = 60 * wanted
     load_recipe(write(tmp_path, recipe_doc(turn, objects=objects)), hand)
+
+
+@pytest.mark.parametrize(
+    ("condition", "refused"),
+    [
+        ("estimate.cyl1_cyl2_line_turn > 45", True),  # 45 degrees, written as rad
+        ("estimate.cyl1_cyl2_line_turn < -180", True),
+        ("estimate.cyl1_cyl2_line_turn > 1000 for 0.02", True),
+        ("estimate.cyl1_cyl2_line_turn < -3.1416", False),  # half a turn
+        ("estimate.cyl1_cyl2_line_turn > 6.28", False),  # all but a whole one
+        ("estimate.cyl1_cyl2_line_turn < 45", False),  # holds at once: not this check's
+    ],
+)
+def test_a_turn_of_more_than_a_revolution_in_one_phase_is_refused(
+    tmp_path: Path, hand: HandConfig, condition: str, refused: bool
+) -> None:
+    """A turn in degrees where rad are read: 'line_turn > 1000' loaded, and the phase could
+    only time out and go on, while the same slip on an angle, a line's direction or a torque
+    was refused (an outside probe)."""
+    objects = [{"name": "cyl1", "radius": 0.02}, {"name": "cyl2", "radius": 0.02}]
+    doc = recipe_doc(phase("a", exit=[condition]), objects=objects)
+    if not refused:
+        load_recipe(write(tmp_path, doc), hand)
+        return
+    err = error(tmp_path, hand, doc)
+    assert err.key == "phases[0].exit[0]"
+    assert "more than a whole revolution (6.283 rad) is a turn written in degrees" in err.expected

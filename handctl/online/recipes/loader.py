@@ -1071,6 +1071,10 @@ def _parse_conditions(
     return tuple(out)
 
 
+#: rad, the most a phase's exit or abort may wait for the pair to turn: a whole revolution
+MAX_PHASE_TURN = 2.0 * math.pi
+
+
 def estimate_reach(hand: HandConfig, objects: Sequence[RecipeObject]) -> float:
     """m, how far from the palm frame's origin an object's estimated centre can be: the
     estimator places an object only where finger links (and the other objects) cage it, so
@@ -1142,6 +1146,18 @@ def _never_holds(cond: Condition, max_s: float, hand: HandConfig, reach: float) 
         return (
             f"{signal} is a direction in (-π, π] rad; its turn, unwrapped, is "
             f"{signal.removesuffix('_angle')}_turn"
+        )
+    if (
+        cond.relative
+        and abs(cond.value) > MAX_PHASE_TURN
+        and ((above and cond.value > 0) or (not above and cond.value < 0))
+    ):
+        # the unwrapped turn can pass π, and ``line_angle``'s check does not catch 45 or 180
+        # written in degrees: 45 rad is seven turns of the pair in one phase
+        return (
+            f"{signal} is the pair's turn since the phase began, in rad: a phase that turns it "
+            f"more than a whole revolution ({MAX_PHASE_TURN:.4g} rad) is a turn written in "
+            "degrees (or a phase to split)"
         )
     if (
         cond.kind is SignalKind.ESTIMATE
