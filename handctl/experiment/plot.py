@@ -21,7 +21,12 @@ from handctl.wholefile import save_picture
 
 
 def plot_phase_region(
-    path: Path, title: str, analysis: Any, torques: tuple[float, ...], hand: HandConfig
+    path: Path,
+    title: str,
+    analysis: Any,
+    torques: tuple[float, ...],
+    hand: HandConfig,
+    no_analysis: str = "no analysis for this phase (no wanted motion or no contact)",
 ) -> Path:
     """A phase's robust torque region, Fig. 3 style, with the chosen torque marked.
 
@@ -33,7 +38,8 @@ def plot_phase_region(
     true 2D region and ``τ°`` is ``(1, 1)``. The chosen torque is marked where it projects on
     the plane, with its distance from it: the search moves off the analysis' plane when the
     simulated hand asks for it. Without an analysis torque the plane is the chosen torque's
-    own, and the region is empty (nothing to draw but the limits and the choice)."""
+    own, and the region is empty (nothing to draw but the limits and the choice), which
+    ``no_analysis`` says why."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.patches import Polygon as PolygonPatch
@@ -68,7 +74,7 @@ def plot_phase_region(
     realisable: list[np.ndarray] = []
     note = ""
     if analysis is None or analysis.snapshot is None or not analysis.directions:
-        note = "no analysis for this phase (no wanted motion or no contact)"
+        note = no_analysis
     elif not found:
         note = f"the analysis has no torque: {analysis.reason}"[:110]
     else:
@@ -148,16 +154,7 @@ def plot_plan(result: Any, directory: Path) -> list[Path]:
     hand = result.hand
     out = []
     for k, plan in enumerate(result.phases):
-        prov = plan.provenance
-        score = prov.get("search", {}).get("score")
-        margin = prov.get("analysis", {}).get("margin_N")
-        title = (
-            f"{plan.phase.name} ({plan.spec.kind})"
-            + (f", analysis margin {margin} N" if margin is not None else "")
-            + (f", search score {score}" if score is not None else "")
-        )
-        if plan.spec.kind == "turn":
-            title += f", wanted turn {math.degrees(plan.spec.turn):+.0f} deg"
+        title, why = plan_plot_title(plan)
         out.append(
             plot_phase_region(
                 directory / plan_plot_name(k, plan.phase.name),
@@ -165,9 +162,36 @@ def plot_plan(result: Any, directory: Path) -> list[Path]:
                 plan.analysis,
                 plan.phase.torques,
                 hand,
+                why,
             )
         )
     return out
+
+
+def plan_plot_title(plan: Any) -> tuple[str, str]:
+    """The title of a plan's phase's region plot (a ``PhasePlan``), and what its plot says
+    when it has no analysis. A kept phase's provenance is the base's (``kept_from``): its
+    margin and score are not this plan's, and no analysis ran here to draw a region with; its
+    plot said "analysis margin 1.35 N" over "no analysis for this phase"."""
+    prov = plan.provenance
+    score = prov.get("search", {}).get("score")
+    margin = prov.get("analysis", {}).get("margin_N")
+    kept = prov.get("kept_from")
+    there = " there" if kept else ""
+    title = (
+        f"{plan.phase.name} ({plan.spec.kind})"
+        + (f", kept from {kept}" if kept else "")
+        + (f", analysis margin {margin} N{there}" if margin is not None else "")
+        + (f", search score {score}{there}" if score is not None else "")
+    )
+    if plan.spec.kind == "turn":
+        title += f", wanted turn {math.degrees(plan.spec.turn):+.0f} deg"
+    why = (
+        f"torques kept from {kept}: no analysis ran in this plan, no region drawn"
+        if kept
+        else "no analysis for this phase (no wanted motion or no contact)"
+    )
+    return title, why
 
 
 def plan_plot_name(index: int, phase: str) -> str:
