@@ -219,7 +219,8 @@ def jog_recipe(
             "",
             f"|τ| <= {most:.4g} N·m ({JOG_SHARE_TEXT} of {joint}'s tau_max, "
             f"{spec.tau_max:g} N·m in {hand.source}: the soft-limit guard needs the rest to "
-            "hold the joint off its limit)",
+            "push back from the limit; a heavy or long link may still reach it, and the "
+            "supervisor then stops the jog)",
             torque,
         )
     if recover and torque == 0.0:
