@@ -62,10 +62,27 @@ def entry() -> int:
 
         code = main()
     except KeyboardInterrupt:
+        _quiet()
         print("handctl: interrupted", file=sys.stderr)
         return 130
     leave(code)
     return code
+
+
+def _quiet() -> None:
+    """The stop signals ignored for what is left of an interrupted command (what
+    ``cli.leave`` does after a result, which this path never reached): the interpreter's
+    shutdown puts back their defaults, and one more SIGTERM of a burst then killed the
+    process by the signal (exit 143) after it had said "interrupted". One landing while
+    they are set is taken here, and they are set again."""
+    while True:
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM, *ENDING):
+                if signal.getsignal(sig) is interrupt:
+                    signal.signal(sig, signal.SIG_IGN)
+            return
+        except KeyboardInterrupt:
+            continue
 
 
 if __name__ == "__main__":

@@ -3528,7 +3528,7 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
 
 
 def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
-    from handctl.stopsignals import finished
+    from handctl.stopsignals import finished, raised
 
     try:
         _refuse_empty_names(args)
@@ -3558,6 +3558,12 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
         print(f"handctl: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as exc:  # a bug: said as one, with what to report
+        if raised():  # an interrupt that came out as another error (``stopsignals.raised``)
+            print(
+                f"handctl: interrupted ({raised()}: {type(exc).__name__}: {exc})",
+                file=sys.stderr,
+            )
+            return EXIT_INTERRUPTED
         # not a bare traceback: the first line says what failed and that it is handctl's own
         # fault, not the input's; a run's stop does not pass through here (the loop stops
         # the hand itself on any exception inside it)

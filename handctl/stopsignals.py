@@ -66,12 +66,23 @@ LATE: list[str] = []
 
 class _Command:
     finished = False  # whether the command has its result (``finished``)
+    raised = ""  # the signal ``interrupt`` last raised as an interrupt ("": none)
 
 
 def working() -> None:
     """A command begins (``cli.main``): a stop signal interrupts it again."""
     _Command.finished = False
+    _Command.raised = ""
     LATE.clear()
+
+
+def raised() -> str:
+    """The stop signal this command raised as an interrupt ("": none). An interrupt raised
+    inside an extension module's import comes out as that import's failure (mujoco's
+    ``ImportError: initialization failed``, numpy's advice to reinstall it): a Ctrl-C in the
+    first second of ``nodes`` or ``monitor`` was said as an internal error, exit 1. Such an
+    error after an interrupt is the interrupt."""
+    return _Command.raised
 
 
 def finished() -> None:
@@ -89,7 +100,8 @@ def interrupt(signum: int, frame: object) -> None:
     if _Command.finished:
         LATE.append(signal_name(signum))
         return
-    raise KeyboardInterrupt(signal_name(signum))
+    _Command.raised = signal_name(signum)
+    raise KeyboardInterrupt(_Command.raised)
 
 
 class StopSignals:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import signal
 import threading
 import time
@@ -210,3 +211,34 @@ def test_nothing_suspends_a_run_from_the_terminal() -> None:
             assert signal.getsignal(sig) is signal.SIG_IGN
             signal.raise_signal(sig)  # ignored: this process goes on
     assert {sig: signal.getsignal(sig) for sig in before} == before
+
+
+def test_an_interrupt_that_came_out_as_another_error_is_said_as_the_interrupt(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A Ctrl-C inside an extension module's import comes out as that import's failure
+    (mujoco's pybind11 set-up: "ImportError: initialization failed", the interrupt its
+    cause; numpy's: an ImportError without it): ``nodes`` and ``monitor`` said it as an
+    internal error with a traceback, exit 1, one Ctrl-C in ten in their first second (an
+    outside probe). The command raised an interrupt, so the error is it: exit 130."""
+    import argparse
+
+    from handctl import cli
+    from handctl.stopsignals import interrupt, working
+
+    def imports(args: argparse.Namespace) -> int:
+        with contextlib.suppress(KeyboardInterrupt):  # the import's own handling
+            interrupt(signal.SIGINT, None)
+        raise ImportError("PyCapsule_Import could not import module")  # the cause lost
+
+    def fails(args: argparse.Namespace) -> int:
+        raise ImportError("initialization failed")
+
+    working()
+    assert cli._run(imports, argparse.Namespace()) == cli.EXIT_INTERRUPTED
+    err = capsys.readouterr().err
+    assert err.startswith("handctl: interrupted (SIGINT: ImportError: PyCapsule_Import"), err
+    assert "internal error" not in err and "Traceback" not in err
+    working()  # a command of its own: no interrupt raised in it, the error is a bug
+    assert cli._run(fails, argparse.Namespace()) == cli.EXIT_FAILED
+    assert "handctl: internal error: ImportError: initialization failed" in capsys.readouterr().err
