@@ -23,6 +23,7 @@ import json
 import math
 import os
 import re
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -617,6 +618,15 @@ class Probe(JsonHelper):
     def stop(self) -> ProbeRecord:
         """End the probe (if it still runs) and read what it saw."""
         data = self.finish(_PROBE_START_S + (self.seconds or 0.0), self.seconds is None)
+        if isinstance(data, dict) and data.get("wakeups") == 0:
+            # started up, and stopped before its timer's first expiry (a run that ended on
+            # its first ticks): its record is of nothing, which the record's own check said
+            # as "wakeups: expected an integer >= 1, found 0"
+            raise HandctlError(
+                f"{self.what} measured nothing: handctl stopped it when what it was beside "
+                f"ended, {time.monotonic() - self.started:.1f} s after starting it, before "
+                "its first wake-up"
+            )
         return ProbeRecord.from_json(data, "the timing probe")
 
 

@@ -3,6 +3,7 @@ and never anything handctl did not put there."""
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
@@ -115,3 +116,31 @@ def test_a_helper_that_failed_shows_its_exit_and_what_it_said(tmp_path: Path) ->
         helper.finish(timeout_s=60.0, terminate=False)
     message = str(info.value)
     assert message.startswith("the helper ended with exit 2: ") and "none.json" in message
+
+
+def test_a_probe_stopped_before_its_first_wake_up_says_it_measured_nothing(
+    tmp_path: Path,
+) -> None:
+    """A jog that stopped on its first ticks stopped the timing probe beside it after it had
+    started up and before its timer first expired: its record of no wake-up was refused by
+    the record's own check, said as "the timing probe: wakeups: expected an integer >= 1,
+    found 0" (an outside probe, 4 runs in 35). The record is a real probe's, its wake-ups
+    taken out, as such a probe writes it."""
+    from handctl.hostcheck import Probe
+
+    with Probe(10**6, record_ns=10**6, seconds=0.2) as probe:
+        record = probe.finish(timeout_s=60.0, terminate=False)  # a real probe's record
+    record.update(wakeups=0, lateness_hist_us={}, stalls=[], hiccups=[])
+    written = tmp_path / "record.json"
+    written.write_text(json.dumps(record))
+
+    class Stopped(Probe):
+        def __init__(self) -> None:  # the probe's record as it wrote it, read back
+            JsonHelper.__init__(self, "json.tool", [str(written)], "the timing probe")
+            self.seconds = 0.0
+
+    with Stopped() as stopped, pytest.raises(HandctlError) as info:
+        stopped.stop()
+    message = str(info.value)
+    assert message.startswith("the timing probe measured nothing: handctl stopped it"), message
+    assert "wakeups" not in message
