@@ -2516,6 +2516,14 @@ def _monitor_log(
     if not recording.complete:
         # as replay says it: a view of part of a run read as the whole of one
         state = "DAMAGED" if recording.damaged else "TRUNCATED"
+        if not view.frames:
+            # "frames: 0" and exit 0 read as a run with nothing on its bus
+            print(
+                f"handctl: error: {log} is {state} ({recording.problem}): no frame of it "
+                "could be read",
+                file=sys.stderr,
+            )
+            return EXIT_FAILED
         print(
             f"handctl: warning: {log} is {state} ({recording.problem}): the frames shown are "
             "those that could be read",

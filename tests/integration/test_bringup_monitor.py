@@ -164,6 +164,12 @@ def test_it_reads_the_frames_of_a_recording(
     captured = capsys.readouterr()
     assert _by_name(json.loads(captured.out.splitlines()[-1]))["Feedback_3"]["frames"] > 0
     assert f"handctl: warning: {log} is TRUNCATED (" in captured.err
+    # cut to its magic: "frames: 0" and exit 0 read as a run with nothing on its bus
+    with log.open("r+b") as handle:
+        handle.truncate(8)
+    assert cli.main(["monitor", "--log", str(log)]) == cli.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert f"handctl: error: {log} is TRUNCATED (" in err and "no frame of it could be read" in err
 
 
 def test_a_recording_of_another_hand_is_decoded_with_its_own_protocol(
