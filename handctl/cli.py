@@ -1824,6 +1824,21 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     protocol = protocol_for(hand)
     seconds = _seconds_or(args.seconds, 1.0)
+    # two of the slowest report a node sends on its own: a survey of 1e-9 s heard nothing
+    # and called every node missing, a typo read as a wiring fault
+    slowest = max(
+        protocol.layout(name, f.node_id).cycle_time_ms or 0
+        for f in hand.fingers
+        for name in ("Feedback", "Status", "Heartbeat")
+    )
+    if seconds < 2 * slowest * 1e-3:
+        raise ConfigError(
+            "--seconds",
+            "",
+            f"a survey of at least {2 * slowest * 1e-3:g} s (twice the {slowest} ms the nodes "
+            "take between two of their Status or Heartbeat reports, in the protocol)",
+            seconds,
+        )
     _say_in_process_bus("--bus", args.bus)
     with listening_bus(args.bus, hand) as bus:
         result = survey(hand, protocol, bus, seconds)

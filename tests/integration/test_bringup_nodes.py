@@ -149,6 +149,12 @@ def test_the_table_keeps_its_columns_for_two_digit_node_ids(
 def test_bad_seconds_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["nodes", "--seconds", "0"]) == cli.EXIT_BAD_INPUT
     assert "--seconds" in capsys.readouterr().err
+    # shorter than two of the nodes' Status reports: every node was said missing, a typo
+    # read as a wiring fault (an outside probe)
+    assert cli.main(["nodes", "--seconds", "1e-9"]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--seconds: expected a survey of at least 0.2 s (twice the 100 ms" in err
+    assert "missing" not in err
 
 
 @pytest.mark.parametrize(

@@ -367,7 +367,7 @@ def test_a_bus_inside_the_process_is_said_to_be_one() -> None:
     after its start-up, and neither said that nothing outside the process is on such a bus
     (``sim`` said it; the others now say it too)."""
     said = "--bus virtual:first-hour lives inside this process: nothing in another process"
-    for args in (["nodes", "--seconds", "0.1"], ["monitor", "--seconds", "0.1"]):
+    for args in (["nodes", "--seconds", "0.2"], ["monitor", "--seconds", "0.1"]):
         done = handctl(*args, "--bus", "virtual:first-hour")
         assert f"handctl: warning: {said}" in done.stderr, done.stderr
 
