@@ -64,6 +64,11 @@ CONNECT_TIMEOUT_S = 10.0
 #: how long one may be without any (a worker restarting) before the work is given up
 IDLE_CHECK_S = 2.0
 NO_WORKER_S = 30.0
+#: s: the longest one question to the scheduler is waited for, and the longest a scheduler
+#: that answers none is (frozen, or its machine or the network hung with the connection
+#: open): Dask's own questions wait for ever, and a plan sat at "0/24" for as long
+SCHEDULER_ANSWER_S = 5.0
+SCHEDULER_SILENT_S = 30.0
 #: a scheduler address: scheme, host (a name, IPv4 or a bracketed IPv6) and port, all required
 _SCHEDULER = re.compile(r"^(tcp|tls|ws|wss)://([A-Za-z0-9._-]+|\[[0-9A-Fa-f:.]+\]):(\d{1,5})$")
 _SCHEDULER_FORM = (
@@ -433,7 +438,13 @@ def _dask_pool(address: str) -> WorkPool:
     # pure=False: every submission runs (a pure task of equal inputs would be shared, which is
     # correct but makes a repeated candidate cost nothing and the counts lie)
     executor = client.get_executor(pure=False)
-    workers = len(client.scheduler_info().get("workers", {}))
+    try:
+        workers = _workers_now(client)
+    except TimeoutError:  # it answered the version check a moment ago
+        client.close()
+        raise SchedulerError(
+            address, "a Dask scheduler that answers", f"none in {SCHEDULER_ANSWER_S:g} s"
+        ) from None
 
     quiet: list[tuple[logging.Logger, int]] = []
 
@@ -459,27 +470,6 @@ def _dask_pool(address: str) -> WorkPool:
                 logger.setLevel(logging.CRITICAL + 1)
         return ClusterLostError(address)
 
-    without: float | None = None  # when the cluster was first seen without a worker
-
-    def idle() -> HandctlError | None:
-        nonlocal without
-        try:
-            now_workers = len(client.scheduler_info().get("workers", {}))
-        except Exception:  # the scheduler gone: ``lost`` says so
-            return None
-        if now_workers:
-            without = None
-            return None
-        if without is None:
-            without = time.monotonic()
-        if time.monotonic() - without < NO_WORKER_S:
-            return None
-        return HandctlError(
-            f"--scheduler {address}: the Dask cluster has had no worker for {NO_WORKER_S:g} s "
-            "(they ended, or lost the scheduler): its tasks would wait for one for ever, and "
-            "the work is given up"
-        )
-
     return WorkPool(
         executor,
         workers,
@@ -487,8 +477,56 @@ def _dask_pool(address: str) -> WorkPool:
         close,
         lost,
         cpu_counted="this process only, not the cluster's workers",
-        idle=idle,
+        idle=_Idle(client, address),
     )
+
+
+class _Idle:
+    """Asked while a map on a cluster has no task back: why the work cannot go on, if it
+    cannot. A cluster without a worker for ``NO_WORKER_S`` (its tasks would wait for one for
+    ever), or a scheduler that answers nothing for ``SCHEDULER_SILENT_S``."""
+
+    def __init__(self, client: Any, address: str) -> None:
+        self.client = client
+        self.address = address
+        self.without: float | None = None  # when the cluster was first seen without a worker
+        self.silent: float | None = None  # when the scheduler first did not answer
+
+    def __call__(self) -> HandctlError | None:
+        address = self.address
+        try:
+            now_workers = _workers_now(self.client)
+        except TimeoutError:
+            self.silent = time.monotonic() if self.silent is None else self.silent
+            if time.monotonic() - self.silent < SCHEDULER_SILENT_S:
+                return None
+            return HandctlError(
+                f"--scheduler {address}: the Dask scheduler has not answered for "
+                f"{SCHEDULER_SILENT_S:g} s (frozen, or its machine or the network hung): the "
+                "work is given up; nothing was written"
+            )
+        except Exception:  # the scheduler gone: ``lost`` says so
+            return None
+        self.silent = None
+        if now_workers:
+            self.without = None
+            return None
+        if self.without is None:
+            self.without = time.monotonic()
+        if time.monotonic() - self.without < NO_WORKER_S:
+            return None
+        return HandctlError(
+            f"--scheduler {address}: the Dask cluster has had no worker for {NO_WORKER_S:g} s "
+            "(they ended, or lost the scheduler): its tasks would wait for one for ever, and "
+            "the work is given up"
+        )
+
+
+def _workers_now(client: Any) -> int:
+    """The workers the scheduler knows of now, asked with a timeout (``TimeoutError`` past
+    ``SCHEDULER_ANSWER_S``): ``Client.scheduler_info`` waits for its answer for ever."""
+    info = client.sync(client.scheduler.identity, n_workers=-1, callback_timeout=SCHEDULER_ANSWER_S)
+    return len(info.get("workers", {}))
 
 
 def _security(distributed: Any, address: str) -> Any:

@@ -529,6 +529,38 @@ def test_a_scheduler_lost_while_the_work_runs_is_named(tmp_path: Path) -> None:
     )
 
 
+def test_a_scheduler_that_stops_answering_is_given_up(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scheduler frozen under the plan (SIGSTOP; its machine hung, the network gone with
+    the connection open): Dask's question of how many workers it has waited for ever, and the
+    plan sat at "0/24" with its progress line stopped for twelve minutes (an outside probe).
+    Given up, said, once it has answered nothing for ``SCHEDULER_SILENT_S``."""
+    pytest.importorskip("distributed")
+    monkeypatch.setattr(executor, "SCHEDULER_ANSWER_S", 0.5)
+    monkeypatch.setattr(executor, "SCHEDULER_SILENT_S", 2.0)
+    monkeypatch.setattr(executor, "IDLE_CHECK_S", 0.2)
+    started = tmp_path / "started"
+    with subprocess.Popen(
+        [sys.executable, "-c", ONE_PROCESS_CLUSTER], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    ) as cluster:
+        try:
+            assert cluster.stdout is not None
+            address = cluster.stdout.readline().strip()
+            raised = _raised_when_killed(
+                lambda: open_pool(scheduler=address),
+                started,
+                lambda: os.kill(cluster.pid, signal.SIGSTOP),
+            )
+        finally:
+            cluster.kill()  # a stopped process is killed all the same
+    assert len(raised) == 1 and not isinstance(raised[0], ClusterLostError), raised
+    assert str(raised[0]) == (
+        f"--scheduler {address}: the Dask scheduler has not answered for 2 s (frozen, or its "
+        "machine or the network hung): the work is given up; nothing was written"
+    )
+
+
 def test_a_cluster_left_without_workers_is_given_up(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
