@@ -36,7 +36,7 @@ import numpy as np
 import orjson
 
 from handctl.config import HandConfig
-from handctl.errors import ConfigError, HandctlError
+from handctl.errors import ConfigError, Description, HandctlError
 from handctl.online.bus import MAX_BURST, BusEvent, Frame
 from handctl.online.recipes.runner import RunStatus
 from handctl.online.safety.faults import FAULTS
@@ -65,6 +65,7 @@ from handctl.recording.ring import (
     FRAME_ROW,
     FRAME_TAIL,
     I_NODES,
+    LIVE_REFUSED,
     POSE_HEAD,
     POSE_TAIL,
     RX_FRAME_ROW,
@@ -183,8 +184,10 @@ def _above_stdio(fd: int) -> int:
         os.close(fd)
 
 
-def _open_log(path: Path) -> int:
-    """The log opened for writing and locked for this run alone, then emptied.
+def _open_log(path: Path, empty: bool = True) -> int:
+    """The log opened for writing and locked for this run alone, then emptied (unless not
+    ``empty``: with a live view, the writer empties it once the view's port is bound, so
+    that a port taken since it was checked leaves the previous log as it was).
 
     Not truncated on opening: a second run given the same path while the first is still
     writing it is refused by the lock (bad input, exit 2) and leaves the first's file as it
@@ -215,7 +218,7 @@ def _open_log(path: Path) -> int:
             except OSError:
                 pass  # no locks on this file system: recorded unlocked
             try:
-                os.ftruncate(fd, 0)
+                os.ftruncate(fd, 0 if empty else os.fstat(fd).st_size)  # writable, either way
             except OSError as exc:
                 raise ConfigError(
                     str(path), "", "a file the recording can replace", exc.strerror or str(exc)
@@ -365,7 +368,8 @@ class Recorder:
         self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
         #: The log's descriptor, kept to the end: it holds the file's lock with the writer's
         #: copy, and says at the end whether the path still names the file written.
-        self._log_fd = _open_log(self.path)
+        self._log_fd = _open_log(self.path, empty=live_port is None)
+        self._live_port = live_port
         try:
             self._start_writer(
                 _above_stdio(os.dup(self._log_fd)),
@@ -614,6 +618,16 @@ class Recorder:
         if answer != b"R":
             self.process.kill()
             _, err = self.process.communicate(timeout=10)
+            if self.process.returncode == LIVE_REFUSED:
+                # bad input, as a port taken when the options were checked is: nothing was
+                # sent, and the previous log is as it was
+                raise ConfigError(
+                    "--live",
+                    "",
+                    "a port the live view can serve on (it was free when the options were "
+                    "checked); nothing was sent and the log is as it was",
+                    Description(err.decode(errors="replace").strip() or str(self._live_port)),
+                )
             raise HandctlError(
                 f"{self.path}: the recording writer did not start: "
                 f"{err.decode(errors='replace').strip() or 'no answer'}"

@@ -36,6 +36,9 @@ POSE_HEAD, POSE_TAIL = 6, 7
 DROPPED_TICKS, DROPPED_FRAMES, DROPPED_EVENTS, DROPPED_POSES = 8, 9, 10, 11
 CLOSED = 12  # 1: the loop side closed the recorder on purpose
 CTL_WORDS = 16
+#: the writer's exit status when the live view's port cannot be bound, which the control
+#: process says as bad input (``--live``), the previous log left as it was
+LIVE_REFUSED = 3
 
 # Tick row, integer part: these columns, then node state and node fault bits per node, then
 # feedback_ns per joint. The columns and the node words are all plain ints, so the loop packs

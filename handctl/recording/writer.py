@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import io
 import math
 import mmap
 import os
@@ -63,6 +64,7 @@ from handctl.recording.ring import (
     I_PHASE,
     I_STAGES,
     I_STATE,
+    LIVE_REFUSED,
     N_STAGES,
     POSE_HEAD,
     POSE_TAIL,
@@ -684,17 +686,29 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
 
         live = LiveServer(int(setup["live_port"]))
     with os.fdopen(out_fd, "wb", buffering=1 << 20) as out:
-        encoder = Encoder(rings, out, setup, live)
+        # With a live view the file is not emptied until its port is bound (the control
+        # process left it as it was, ``Recorder``): what the encoder writes first is held
+        # here until then, so that a port another program took since it was checked fails
+        # the start with the previous log untouched (it was emptied, 0 bytes).
+        head = io.BytesIO()
+        encoder = Encoder(rings, head if live is not None else out, setup, live)
         if live is not None:
             # Once every channel is there, and before the ready byte: a port that cannot be
-            # bound fails the start (and leaves the file empty), not the run.
+            # bound fails the start, not the run.
             try:
                 live.start()
             except Exception as exc:  # foxglove's own error type: say what, not where
                 _note(f"the live view cannot serve on 127.0.0.1:{setup['live_port']} ({exc})")
-                out.flush()
+                return LIVE_REFUSED
+            try:
                 out.truncate(0)
+                out.write(head.getvalue())
+                out.flush()
+            except OSError as exc:
+                _note(f"{exc.strerror or exc}: the recording cannot replace the file")
+                live.close()
                 return 1
+            encoder.out = encoder.writer.out = out
         # A control process that died since it sent the set-up cannot read this: the file
         # is still finished below, with what it had (before, the broken pipe ended the
         # writer and left the file without its end)

@@ -799,3 +799,36 @@ def test_many_viewers_that_stop_reading_cost_the_log_nothing(tmp_path: Path) -> 
     assert "error" not in recording, recording
     dropped = {k: v for k, v in recording.items() if k.startswith("dropped_")}
     assert set(dropped.values()) == {0}, (dropped, recording.get("writer_notes"))
+
+
+def test_a_port_taken_before_the_writer_binds_it_leaves_the_previous_log(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Free when the run's options were checked, taken by another program before the
+    recording's writer bound it: the run's previous log, given again as --log, was emptied
+    (0 bytes) and the run exited 1 (an outside probe). Bad input now, naming --live, and
+    the previous log as it was."""
+    from handctl.errors import ConfigError
+    from handctl.recording.metadata import start_metadata
+    from handctl.recording.reader import open_recording
+    from handctl.recording.recorder import Recorder
+
+    log = tmp_path / "run.mcap"
+    previous = b"the previous run's log " * 1000
+    log.write_bytes(previous)
+    port = free_port()
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taker:
+        taker.bind(("127.0.0.1", port))
+        taker.listen()
+        recorder = Recorder(log, hand, start_metadata(hand, None, ("t",)), live_port=port)
+        # closed as a run's start-up closes it, the error in flight kept
+        with pytest.raises(ConfigError) as err, recorder:
+            recorder.wait_ready()
+    assert err.value.file == "--live"
+    assert "nothing was sent and the log is as it was" in err.value.expected
+    assert log.read_bytes() == previous
+    # with the port free, the same log is replaced by the run's, whole
+    recorder = Recorder(log, hand, start_metadata(hand, None, ("test",)), live_port=free_port())
+    recorder.wait_ready()
+    recorder.close({"outcome": "test"})
+    assert open_recording(log).complete
