@@ -623,21 +623,34 @@ def _host_and_port(address: str) -> tuple[str, int]:
 
 
 def _handctl_version() -> Callable[[], str]:
-    """A function that imports handctl and gives its version, made here so that it is
-    pickled by value (it is no module's attribute): by reference, a worker without handctl
-    could not even unpickle it, and would report that as a Dask error, not this one."""
+    """A function that imports handctl and gives its version, the digest of its code and
+    MuJoCo's version (``code_identity``), made here so that it is pickled by value (it is no
+    module's attribute): by reference, a worker without handctl could not even unpickle it,
+    and would report that as a Dask error, not this one."""
 
     def version() -> str:
+        import hashlib
+        from importlib.metadata import version as installed
+        from pathlib import Path
+
         import handctl
 
-        return handctl.__version__
+        root = Path(handctl.__file__).parent
+        digest = hashlib.sha256()
+        for path in sorted(root.rglob("*")):
+            if path.is_file() and "__pycache__" not in path.parts:
+                digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+                digest.update(path.read_bytes())
+        return (
+            f"handctl {handctl.__version__} (code {digest.hexdigest()[:12]}), "
+            f"mujoco {installed('mujoco')}"
+        )
 
     return version
 
 
 def _check_workers(client: Any, address: str) -> None:
     """At least one worker, and this handctl on every one, before any task goes out."""
-    import handctl
 
     try:
         client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
@@ -657,17 +670,20 @@ def _check_workers(client: Any, address: str) -> None:
             "a Dask cluster whose workers answer",
             f"no answer from its workers in {CONNECT_TIMEOUT_S:g} s",
         ) from None
+    # the version alone let a worker on another checkout of the same version plan with
+    # other code, which changed the recipe without a word: its code's digest, and MuJoCo's
+    ours = _handctl_version()()
     wrong = []
     for worker, answer in sorted(answers.items()):
         if isinstance(answer, BaseException):
             wrong.append(f"{worker}: {type(answer).__name__}: {answer}")
-        elif answer != handctl.__version__:
-            wrong.append(f"{worker}: handctl {answer}")
+        elif answer != ours:
+            wrong.append(f"{worker}: {answer}")
     if wrong:
         more = len(wrong) - _WORKERS_NAMED
         named = "; ".join(wrong[:_WORKERS_NAMED]) + (f"; and {more} more" if more > 0 else "")
         raise SchedulerError(
             address,
-            f"handctl {handctl.__version__}, importable, on every worker of the cluster",
+            f"{ours}, importable, on every worker of the cluster",
             f"{len(wrong)} of {len(answers)} workers have not: {named}",
         )

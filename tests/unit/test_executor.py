@@ -21,6 +21,7 @@ from pathlib import Path
 import psutil
 import pytest
 
+import handctl
 from handctl import executor
 from handctl.errors import ConfigError, HandctlError
 from handctl.executor import (
@@ -441,23 +442,43 @@ for name in [n for n in sys.modules if n.split(".")[0] == "handctl"]:
     del sys.modules[name]
 """
 OTHER_VERSION = "import handctl\nhandctl.__version__ = '0.0.1'\n"
+#: handctl of this version from another copy of its code (``OTHER`` is where)
+OTHER_CODE = """
+import sys
+sys.path.insert(0, OTHER)
+for name in [n for n in sys.modules if n.split(".")[0] == "handctl"]:
+    del sys.modules[name]
+"""
 
 
 @pytest.mark.parametrize(
     ("preload", "found"),
     [
         pytest.param(NO_HANDCTL, "ModuleNotFoundError: No module named 'handctl'", id="none"),
-        pytest.param(OTHER_VERSION, ": handctl 0.0.1", id="another version"),
+        pytest.param(OTHER_VERSION, ": handctl 0.0.1 (code ", id="another version"),
+        pytest.param(OTHER_CODE, f": handctl {handctl.__version__} (code ", id="other code"),
     ],
 )
 def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
     tmp_path: Path, preload: str, found: str
 ) -> None:
     """A worker without handctl cannot read a task: Dask logs it there and the work waits for
-    ever. It is found before any task goes out, and named."""
+    ever. It is found before any task goes out, and named. So is a worker of this version
+    running other code (a stale checkout: the version string stays as it is between
+    commits), which planned with that code and changed the recipe without a word (an outside
+    probe: one torque scaled by 1.05 on the worker)."""
     distributed = pytest.importorskip("distributed")
-    import handctl
 
+    if preload is OTHER_CODE:
+        other = tmp_path / "other"
+        shutil.copytree(
+            Path(handctl.__file__).parent,
+            other / "handctl",
+            ignore=shutil.ignore_patterns("__pycache__"),
+        )
+        changed = other / "handctl" / "planning" / "episode.py"
+        changed.write_text(changed.read_text() + "\n# another checkout\n")
+        preload = f"OTHER = {str(other)!r}\n{OTHER_CODE}"
     script = tmp_path / "preload.py"
     script.write_text(preload)
     with distributed.LocalCluster(
@@ -472,9 +493,10 @@ def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
         (worker,) = cluster.scheduler.workers
     assert isinstance(raised, ConfigError), raised
     message = str(raised)
-    assert message.startswith(
-        f"--scheduler: expected handctl {handctl.__version__}, importable, on every worker"
+    assert message.startswith(f"--scheduler: expected handctl {handctl.__version__} (code "), (
+        message
     )
+    assert "importable, on every worker" in message
     assert f"1 of 1 workers have not: {worker}" in message
     assert found in message
 
