@@ -665,13 +665,6 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
         accept_missed_deadlines=args.accept_missed_deadlines,
         live_port=args.live,
     )
-    if args.live is not None:
-        from handctl.foxglove import HOST  # not ``live``: the SDK stays out of the loop's process
-
-        _progress(
-            f"live: Foxglove WebSocket on ws://{HOST}:{args.live} "
-            f"(its layout: handctl layout {shlex.quote(str(args.hand))} -o LAYOUT.json)"
-        )
     status = _status_printer()
     if replaces_log:
         print(

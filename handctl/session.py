@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -831,6 +832,16 @@ def _start_recording(
 
         runtime.tick_hooks.append(sample_poses)
     recording.wait_ready()
+    if req.live_port is not None:
+        # said once the writer has bound its port: said as the run started, a client that
+        # connected when told was refused for a second
+        from handctl.foxglove import HOST  # not ``live``: the SDK stays out of this process
+        from handctl.progress import say
+
+        say(
+            f"live: Foxglove WebSocket on ws://{HOST}:{req.live_port} "
+            f"(its layout: handctl layout {shlex.quote(req.hand.source)} -o LAYOUT.json)"
+        )
 
 
 class SimProcess:

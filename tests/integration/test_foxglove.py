@@ -832,3 +832,28 @@ def test_a_port_taken_before_the_writer_binds_it_leaves_the_previous_log(
     recorder.wait_ready()
     recorder.close({"outcome": "test"})
     assert open_recording(log).complete
+
+
+def test_the_live_line_is_said_once_the_port_is_served(tmp_path: Path) -> None:
+    """The "live: Foxglove WebSocket on ws://..." line came as the command began, a second
+    before the writer bound the port: a client that connected when told was refused (an
+    outside probe). It is said once the port is served."""
+    port = free_port()
+    command = [
+        *(sys.executable, "-m", "handctl", "run", "recipe", str(RECIPE), "--lockstep"),
+        *("--log", str(tmp_path / "run.mcap"), "--live", str(port), "--max-seconds", "1"),
+    ]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with subprocess.Popen(
+        command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    ) as proc:
+        assert proc.stderr is not None
+        said = b""
+        while b"live: Foxglove WebSocket on" not in said:
+            line = proc.stderr.readline()
+            assert line, said.decode()
+            said += line
+        with socket.create_connection(("127.0.0.1", port), timeout=10):
+            pass  # served when said: no retry
+        proc.stderr.read()
+        assert proc.wait(timeout=300) == 0
