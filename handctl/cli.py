@@ -1780,11 +1780,17 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         from handctl.foxglove import HOST
         from handctl.foxglove.live import serve_recording
 
-        _progress(
-            f"live: streaming {args.log} at {args.speed or 1.0:g}x to Foxglove on "
-            f"ws://{HOST}:{args.live} ..."
+        # said once the port is served: said before the recording was read, a client that
+        # connected when told was refused for seconds
+        streamed = serve_recording(
+            Path(args.log),
+            args.live,
+            args.speed or 1.0,
+            started=lambda _: _progress(
+                f"live: streaming {args.log} at {args.speed or 1.0:g}x to Foxglove on "
+                f"ws://{HOST}:{args.live} ..."
+            ),
         )
-        streamed = serve_recording(Path(args.log), args.live, args.speed or 1.0)
         # every message of the log at its pace; a viewer is sent what it subscribed to, the
         # per-tick channels sampled (docs/recording.md): not a count of what it was sent
         print(f"live: {streamed} messages of the log played")

@@ -857,3 +857,23 @@ def test_the_live_line_is_said_once_the_port_is_served(tmp_path: Path) -> None:
             pass  # served when said: no retry
         proc.stderr.read()
         assert proc.wait(timeout=300) == 0
+    # and replay's, which was said before the recording was even read (seconds before)
+    port = free_port()
+    command = [sys.executable, "-m", "handctl", "replay", str(tmp_path / "run.mcap")]
+    with subprocess.Popen(
+        [*command, "--live", str(port), "--speed", "4"],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    ) as proc:
+        assert proc.stderr is not None
+        said = b""
+        while b"live: streaming" not in said:
+            line = proc.stderr.readline()
+            assert line, said.decode()
+            said += line
+        with socket.create_connection(("127.0.0.1", port), timeout=10):
+            pass
+        proc.stderr.read()
+        assert proc.wait(timeout=300) == 0
