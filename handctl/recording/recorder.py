@@ -656,7 +656,20 @@ class Recorder:
                             f"messages for {stall_timeout_s:g} s (stopped or hung)"
                         ) from None
         except BrokenPipeError:
-            raise HandctlError(f"{self.path}: the recording writer is gone") from None
+            raise HandctlError(
+                f"{self.path}: the recording writer is gone{self._why_gone()}"
+            ) from None
+
+    def _why_gone(self) -> str:
+        """``: `` and the last line the writer said, once it has ended (a full disk at the
+        start: "OSError: [Errno 28] No space left on device"); "" if it said nothing. A
+        writer that failed at the start was said as "gone" and no more."""
+        try:
+            _, err = self.process.communicate(timeout=5.0)  # kept: ``close`` reads it again
+        except subprocess.TimeoutExpired:
+            return ""
+        lines = [line for line in err.decode(errors="replace").splitlines() if line.strip()]
+        return f": {lines[-1].strip()}" if lines else ""
 
     def add_metadata(
         self, name: str, data: dict[str, str], stall_timeout_s: float = WRITER_STALL_S

@@ -18,10 +18,20 @@ from ..conftest import DEFAULT_RECIPE, ROOT, handctl
 
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:
+    yield from _tmpfs(tmp_path, "3m")
+
+
+@pytest.fixture
+def tiny_disk(tmp_path: Path) -> Iterator[Path]:
+    """A disk too small for a log's start: its header and set-up records."""
+    yield from _tmpfs(tmp_path, "16k")
+
+
+def _tmpfs(tmp_path: Path, size: str) -> Iterator[Path]:
     mount = tmp_path / "disk"
     mount.mkdir()
     made = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mount)],
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mount)],
         capture_output=True,
         text=True,
         check=False,
@@ -100,3 +110,16 @@ def test_rings_the_host_will_not_give_are_an_error_before_the_run(tmp_path: Path
     assert "Traceback" not in done.stderr
     assert "the recording's rings (" in done.stderr and "could not be made" in done.stderr
     assert "nothing was sent" in done.stderr
+
+
+def test_a_log_whose_disk_is_full_at_the_start_says_why(tiny_disk: Path) -> None:
+    """A disk that fills as the log starts: the run said "the recording writer is gone" and
+    no more (an outside probe, 3 runs in 3). It says the writer's own last word, the
+    system's error; nothing was sent."""
+    log = tiny_disk / "run.mcap"
+    done = handctl("run", "recipe", DEFAULT_RECIPE, "--log", str(log), "--max-seconds", "0.5")
+    assert done.returncode == 1, done.stderr
+    assert (
+        f"handctl: error: {log}: the recording writer is gone: OSError: [Errno 28] No space "
+        "left on device"
+    ) in done.stderr
