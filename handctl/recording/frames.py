@@ -301,8 +301,15 @@ class _LeftEnabled:
     was sent after its last disable."""
 
     def __init__(self, hand: HandConfig) -> None:
-        from handctl.online.drivers.finger import FingerLayouts
+        # what the stop needs, imported before the first frame goes: imported when the stop
+        # began (``handctl.online.loop``, some 25 ms), the zero torque came 25-100 ms after
+        # the last command, and the nodes' 10 ms watchdog had faulted them first
+        from handctl.online.drivers.finger import FingerLayouts, make_command, make_node_command
+        from handctl.online.loop import ZERO_TICKS_BEFORE_DISABLE
 
+        self._command = make_command
+        self._node_command = make_node_command
+        self._zero_ticks = ZERO_TICKS_BEFORE_DISABLE
         protocol = protocol_for(hand)
         self.layouts = {
             f.node_id: FingerLayouts.for_node(protocol, f.node_id) for f in hand.fingers
@@ -332,9 +339,7 @@ class _LeftEnabled:
     def stop(self, bus: Any, period_s: float, sleep: Callable[[float], None]) -> str:
         """Zero torque for as many periods as a run's stop, then disable, to every node left
         enabled; what was done, or "" when no node was."""
-        from handctl.online.drivers.finger import make_command, make_node_command
-        from handctl.online.loop import ZERO_TICKS_BEFORE_DISABLE
-
+        make_command, make_node_command = self._command, self._node_command
         nodes = sorted(self.enabled)
         if not nodes:
             return ""
@@ -343,12 +348,12 @@ class _LeftEnabled:
             counter = self.counters[frame_id] = (self.counters.get(frame_id, -1) + 1) & 0xFF
             return counter
 
-        for tick in range(ZERO_TICKS_BEFORE_DISABLE + 1):
+        for tick in range(self._zero_ticks + 1):
             for node in nodes:
                 layout = self.layouts[node].command
                 zero = (0.0,) * len(layout.signals)
                 bus.send(*make_command(layout, next_counter(layout.frame_id), zero))
-            if tick < ZERO_TICKS_BEFORE_DISABLE:
+            if tick < self._zero_ticks:
                 sleep(period_s)
         for node in nodes:
             layout = self.layouts[node].node_command

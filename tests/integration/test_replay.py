@@ -809,6 +809,38 @@ def test_a_fault_is_heard_only_from_a_node_the_replay_had_enabled(hand: HandConf
     assert heard.first.startswith(f"node {node} ({hand.fingers[0].name}) went into FAULT (")
 
 
+def test_the_replay_s_stop_imports_nothing(
+    hand: HandConfig, channel: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The replay's stop imported the run's loop (for how many zero ticks) when it began,
+    some 25 ms, and the zero torque reached the hand 25-100 ms after the last command: the
+    nodes' 10 ms watchdog had faulted them first, and the replay said it had stopped them
+    (an outside probe, 6 runs in 6). What it needs is there before the first frame goes."""
+    import builtins
+
+    from handctl.recording.frames import _LeftEnabled
+
+    left = _LeftEnabled(hand)
+    layout = protocol_for(hand).layout("TorqueCommand", hand.fingers[0].node_id)
+    left.sent(layout.frame_id, layout.encode(0, (0.1,) * len(hand.fingers[0].joints)))
+
+    def no_import(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError(f"the stop imported {args[0]}")
+
+    with (
+        open_bus(f"virtual:{channel}", hand.bus) as bus,
+        open_bus(f"virtual:{channel}", hand.bus) as listener,
+    ):
+        monkeypatch.setattr(builtins, "__import__", no_import)
+        said = left.stop(bus, hand.bus.period_s, lambda seconds: None)
+        monkeypatch.undo()
+        heard = listener.drain(limit=10**6)
+    assert said.startswith(f"node(s) {hand.fingers[0].node_id} left enabled")
+    assert [f.arbitration_id for f in heard][-1] == protocol_for(hand).layout(
+        "NodeCommand", hand.fingers[0].node_id
+    ).frame_id  # zeros, then the disable
+
+
 @REALTIME
 def test_to_bus_onto_a_hand_that_faults_under_it_stops_and_says_so(
     recorded: Recorded, hand: HandConfig, tmp_path: Path
