@@ -166,6 +166,7 @@ def summarise_run(
             if result.disable_unconfirmed
             else {}
         ),
+        **({"ended_in_fault": result.ended_in_fault} if result.ended_in_fault else {}),
         **(
             {"exception": _exception_summary(result.exception)}
             if result.exception is not None
@@ -215,6 +216,8 @@ def _run_warnings(result: RunResult, hand: HandConfig) -> list[str]:
         said.append(result.nodes_reset)
     if result.disable_unconfirmed:
         said.append(result.disable_unconfirmed)
+    if result.ended_in_fault:
+        said.append(result.ended_in_fault)
     said += [ringing.text() for ringing in result.chatter]
     asked = asked_beyond(result, hand)
     if asked:

@@ -231,6 +231,8 @@ class RunResult:
     nodes_reset: str = ""
     #: nodes not heard DISABLED after the run's disable ("": every one was)
     disable_unconfirmed: str = ""
+    #: nodes in FAULT at the end that no fault of the run stands for ("": none)
+    ended_in_fault: str = ""
     #: joints whose command rang (``safety.chatter``)
     chatter: list[Ringing] = field(default_factory=list)
     #: N·m, per joint, the largest |desired torque| the recipe asked for (finite values)
@@ -286,6 +288,8 @@ class Runtime:
         #: the nodes' faults ``--reset-node-faults`` cleared at start-up ("": none)
         self.nodes_reset = ""
         self.disable_unconfirmed = ""
+        #: nodes in FAULT at the end that no fault of the run stands for ("": none)
+        self.ended_in_fault = ""
         #: a peer process the start-up waits for (the simulated hand of a real-time run):
         #: what it said if it has ended, else ""; asked every start-up tick, so that a hand
         #: that died is said at once and not after the whole start-up timeout (20 s)
@@ -438,6 +442,8 @@ class Runtime:
                 self.request_stop("tick budget exhausted")
         self.driver.node_command("disable")
         await self._confirm_disabled()
+        if not sup.faults:  # a node fault in the run is its stop, said as such
+            self._say_ended_in_fault()
         # the last tick's bus events, which the log has: the summary's count had them not
         self._bus_events += len(self.driver.take_bus_events())
         if sup.faults:
@@ -493,6 +499,29 @@ class Runtime:
             )
         if self.recorder is not None:  # the log says it too: whether the hand may be ENABLED
             self.recorder.note("disable_unconfirmed", self.disable_unconfirmed, self.tick)
+
+    def _say_ended_in_fault(self) -> None:
+        """Nodes in FAULT at the run's end that no fault of the run stands for: latched after
+        the stop took the torque out, before the disable (a watchdog's TIMEOUT as commands
+        stopped coming, an e-stop pressed then). The hand is safe, but the next run is
+        refused until ``--reset-node-faults``; the run said nothing of it, exit 0 and
+        "success", and only the simulated hand's own summary showed it."""
+        from handctl.online.drivers.finger import fault_names
+
+        faulted = [n for n in self.driver.nodes if n.state == int(NodeState.FAULT)]
+        if not faulted or "the e-stop was sent" in self.disable_unconfirmed:
+            return
+        said = ", ".join(
+            f"node {n.node_id} ({n.finger.name}, "
+            f"{'+'.join(fault_names(n.fault_bits)) or 'no fault bits'})"
+            for n in faulted
+        )
+        self.ended_in_fault = (
+            f"{said} in FAULT at the end of the run, latched after its stop had taken the "
+            "torque out; the next run is refused until --reset-node-faults clears it"
+        )
+        if self.recorder is not None:
+            self.recorder.note("ended_in_fault", self.ended_in_fault, self.tick)
 
     def _keep_interrupted(self, exc: BaseException) -> None:
         """What the run did up to a KeyboardInterrupt or a cancellation inside it, as its
@@ -1041,6 +1070,7 @@ class Runtime:
             stop_notes=list(self.supervisor.stop_notes),
             nodes_reset=self.nodes_reset,
             disable_unconfirmed=self.disable_unconfirmed,
+            ended_in_fault=self.ended_in_fault,
             chatter=self.chatter.found(),
             max_asked_tau=self._max_asked.copy(),
         )
