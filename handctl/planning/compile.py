@@ -771,7 +771,9 @@ def search_box(spec: TemplatePhase, hand: HandConfig, previous: Sequence[float])
         np.broadcast_to(np.asarray(spec.torque_margin, dtype=float), tau.shape), 1.0
     )
     if spec.turn_rate is not None:
-        factor = np.maximum(factor, spec.turn_rate.scale_max)
+        # the loop scales the margined torque (``loader._check_feedback_reach``): the
+        # product, not the larger of the two, which planned a recipe its loader refused
+        factor = factor * max(spec.turn_rate.scale_max, 1.0)
     box = tau / factor
     if spec.paced is not None and spec.paced.reach > 1.0:
         reach = spec.paced.reach

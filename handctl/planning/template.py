@@ -42,6 +42,7 @@ from handctl.online.recipes.loader import (
     check_ramp,
     check_unique_names,
     check_unshadowed,
+    hold_outlasts,
     parse_brake,
     parse_damping_fades,
     parse_exit_share,
@@ -506,6 +507,7 @@ def _check_tau_max(
     torques: tuple[float, ...] | None,
     hand: HandConfig,
     margin: PerJoint = 1.0,
+    by_what: str = "the phase's torque_margin",
 ) -> None:
     """A template's torques (a free phase's, a schedule entry's) go into the recipe as they
     are written, and its seeds start the search: none beyond the joint's tau_max, which the
@@ -517,7 +519,7 @@ def _check_tau_max(
     factors = np.broadcast_to(np.asarray(margin, dtype=float), (hand.n_joints,))
     for joint, value, factor in zip(hand.joints, torques, factors.tolist(), strict=True):
         if abs(value * factor) > joint.tau_max:
-            by = f", the torque times the phase's torque_margin ({factor:g})" if factor != 1 else ""
+            by = f", the torque times {by_what} ({factor:g})" if factor != 1 else ""
             doc.fail(
                 f"{key}.{joint.name}",
                 f"|τ| <= {joint.tau_max:g} N·m (tau_max of {joint.name} in {hand.source})"
@@ -530,23 +532,40 @@ def _check_margined(
     doc: Doc,
     hand: HandConfig,
     margin: PerJoint,
+    scale: float,
+    key: str,
     torques: tuple[float, ...] | None,
     schedule: Sequence[ScheduleEntry],
 ) -> None:
-    """A phase's written torques (a free phase's, its written schedule entries') times its
-    ``torque_margin``, within tau_max (``_check_tau_max``)."""
-    if margin == 1.0:
+    """A phase's torques (a free phase's ``torques``, a seed, its written schedule entries')
+    times its ``torque_margin`` and its turn-rate loop's largest ``scale``, within tau_max
+    (``_check_tau_max``), as the recipe's loader holds what the runner asks."""
+    if margin == 1.0 and scale == 1.0:
         return
-    _check_tau_max(doc, "torques", torques, hand, margin)
+    factor = tuple(
+        (np.broadcast_to(np.asarray(margin, dtype=float), (hand.n_joints,)) * scale).tolist()
+    )
+    what = "the phase's torque_margin" + (
+        f" and turn_rate's largest scale ({scale:g})" if scale != 1.0 else ""
+    )
+    _check_tau_max(doc, key, torques, hand, factor, what)
     for k, entry in enumerate(schedule):
         if isinstance(entry, ScheduledTorques):
-            _check_tau_max(doc, f"schedule[{k}].torques", entry.torques, hand, margin)
+            _check_tau_max(doc, f"schedule[{k}].torques", entry.torques, hand, factor, what)
 
 
-def _turn_exit(doc: Doc) -> tuple[float, float, int]:
-    """A turn phase's ``exit_fraction``, ``exit_hold_s`` (s) and ``exit_share``."""
+def _turn_exit(doc: Doc, period_s: float, max_s: float) -> tuple[float, float, int]:
+    """A turn phase's ``exit_fraction``, ``exit_hold_s`` (s) and ``exit_share``; a hold its
+    ``max_s`` leaves no time for is refused now, where the plan's recipe was refused after the
+    whole plan."""
     exit_fraction = doc.number("exit_fraction", default=0.95, min=0.1, max=1.5)
     exit_hold = doc.number("exit_hold_s", default=0.02, min=0.0, max=1.0, unit="s")
+    if hold_outlasts(period_s, exit_hold, max_s):
+        doc.fail(
+            "exit_hold_s",
+            f"a hold the phase's max_s ({max_s:g} s) leaves time for (its exit could never hold)",
+            exit_hold,
+        )
     share = parse_exit_share(doc)
     if share > 1 and doc.has("exit_fraction"):
         # the shared exit is the last sharing phase's, so this phase's fraction is not read
@@ -611,7 +630,7 @@ def _phase(
                 turn_deg,
             )
         turn = math.radians(turn_deg)
-        exit_fraction, exit_hold, share = _turn_exit(doc)
+        exit_fraction, exit_hold, share = _turn_exit(doc, hand.bus.period_s, max_s)
         if doc.has("turn_rate"):
             turn_rate = parse_turn_rate(doc.mapping("turn_rate"), math.copysign(1.0, turn))
         if doc.has("paced_ramp"):
@@ -649,9 +668,11 @@ def _phase(
     fades = parse_damping_fades(doc)
     brake = parse_brake(doc.mapping("brake")) if doc.has("brake") else None
     margin = parse_torque_margin(doc, hand.joint_names)
-    # a free phase's torques go into the recipe as written; a seed only starts the search,
-    # whose box is tau_max over the margin (``compile.search_box``)
-    _check_margined(doc, hand, margin, seed if kind == "free" else None, schedule)
+    # a free phase's torques and a written entry's go into the recipe as written, and a seed
+    # starts the search, whose box is tau_max over the margin and the loop's scale
+    # (``compile.search_box``): one past it was clipped there, and said "from template"
+    scale = max(turn_rate.scale_max, 1.0) if turn_rate is not None else 1.0
+    _check_margined(doc, hand, margin, scale, key, seed, schedule)
     doc.done()
     return TemplatePhase(
         name,

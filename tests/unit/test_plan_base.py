@@ -81,13 +81,14 @@ def test_a_free_phase_s_torques_times_its_margin_past_tau_max_are_refused_when_i
     tmp_path: Path,
 ) -> None:
     """A free phase's torques go into the recipe as written, and the runner holds them times
-    the margin: past tau_max, the plan ran and its recipe was refused. A turn phase's seed
-    only starts the search, whose box is tau_max over the margin: not refused."""
+    the margin: past tau_max, the plan ran and its recipe was refused. A seed times its
+    phase's margin and its turn-rate loop's largest scale is refused as well: the search
+    box is tau_max over both, and the seed was clipped there and said "from template" (an
+    outside probe)."""
     hand = load_hand(PLANAR)
     data: dict[str, Any] = yaml.safe_load(TEMPLATE.read_text())
     data["phases"][0]["torques"]["left_j2"] = 0.4
     data["phases"][0]["torque_margin"] = 1.5  # 0.6 > 0.45 of left_j2
-    data["phases"][3]["torque_margin"] = 1.5  # its seed's 0.45 times it: only a seed
     path = tmp_path / "t.template.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     with pytest.raises(ConfigError) as info:
@@ -95,5 +96,62 @@ def test_a_free_phase_s_torques_times_its_margin_past_tau_max_are_refused_when_i
     assert info.value.key == "phases[0].torques.left_j2"
     assert "times the phase's torque_margin (1.5): 0.6 N·m" in info.value.expected
     data["phases"][0]["torque_margin"] = 1.1
+    seed = data["phases"][3]["seed"]
+    seed["left_j2"] = 0.3
+    data["phases"][3]["torque_margin"] = 1.2
+    data["phases"][3]["turn_rate"] = {"rate_deg_s": 20, "scale": [0.5, 1.5]}  # 0.54 > 0.45
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError) as info:
+        load_template(path, hand)
+    assert info.value.key == "phases[3].seed.left_j2"
+    assert "torque_margin and turn_rate's largest scale (1.5) (1.8): 0.54 N·m" in (
+        info.value.expected
+    )
+    seed["left_j2"] = 0.25  # 0.45
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     load_template(path, hand)
+
+
+def test_a_turn_exit_its_phase_leaves_no_time_to_hold_is_refused_when_it_loads(
+    tmp_path: Path,
+) -> None:
+    """``exit_hold_s: 0.9`` in a phase of ``max_s: 0.5``: refused by the planned recipe's
+    loader after the whole plan, naming ``exit[0]``, a key the template does not have (an
+    outside probe). Refused now as the template loads, naming ``exit_hold_s``."""
+    hand = load_hand(PLANAR)
+    data: dict[str, Any] = yaml.safe_load(TEMPLATE.read_text())
+    turn = data["phases"][3]
+    turn["max_s"], turn["exit_hold_s"] = 0.5, 0.9
+    turn["ramp_s"] = min(turn.get("ramp_s", 0.1), 0.5)
+    path = tmp_path / "t.template.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError) as info:
+        load_template(path, hand)
+    assert info.value.key == "phases[3].exit_hold_s"
+    assert "a hold the phase's max_s (0.5 s) leaves time for" in info.value.expected
+    turn["exit_hold_s"] = 0.4
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    load_template(path, hand)
+
+
+def test_a_written_entry_times_the_loop_s_scale_past_tau_max_is_refused_when_it_loads(
+    tmp_path: Path,
+) -> None:
+    """A written schedule torque of 0.42 N·m in a phase whose turn-rate loop scales it by up
+    to 1.2: 0.504 N·m of a 0.45 N·m joint, refused after the whole plan (an outside probe)."""
+    hand = load_hand(PLANAR)
+    data: dict[str, Any] = yaml.safe_load(TEMPLATE.read_text())
+    turn = data["phases"][3]
+    turn["turn_rate"] = {"rate_deg_s": 20, "scale": [0.5, 1.2]}
+    turn["seed"]["left_j2"] = 0.3  # within the loop's reach: the entry is what is refused
+    torques = dict.fromkeys(turn["seed"], 0.1) | {"left_j2": 0.42}
+    turn["schedule"] = [
+        {"when": {"radius_ratio": {"object": data["objects"][0]["name"], "max": 0.9}},
+         "torques": torques}
+    ]  # fmt: skip
+    path = tmp_path / "t.template.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError) as info:
+        load_template(path, hand)
+    assert info.value.key == "phases[3].schedule[0].torques.left_j2"
+    assert "(1.2): 0.504 N·m" in info.value.expected

@@ -409,6 +409,10 @@ def test_the_search_box_leaves_room_for_what_the_feedback_adds(hand: HandConfig)
         plain, turn_rate=TurnRate(rate=-0.8, scale_min=0.5, scale_max=2.0, gain=1.0, integral=0.0)
     )
     assert search_box(scaled, hand, zero) == pytest.approx([t / 2 for t in tau])
+    # both: the loop scales the margined torque, so the box is tau_max over their product
+    # (over the larger of the two, a plan was refused by its own recipe's loader)
+    both = replace(scaled, torque_margin=1.2)
+    assert search_box(both, hand, zero) == pytest.approx([t / 2.4 for t in tau])
     paced = replace(plain, paced=PacedRamp(rate=-1.5, reach=1.5, back=2.0))
     previous = [0.1] * hand.n_joints
     box = search_box(paced, hand, previous)

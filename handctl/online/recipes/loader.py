@@ -1185,6 +1185,13 @@ def _never_holds(cond: Condition, max_s: float, hand: HandConfig, reach: float) 
     return ""
 
 
+def hold_outlasts(period_s: float, hold_s: float, max_s: float) -> bool:
+    """Whether a condition held for ``hold_s`` from a phase's second tick at the earliest
+    outlasts a phase of ``max_s`` (``_never_holds``): a template's turn exit is refused so
+    before its plan, where its recipe was refused after it."""
+    return _held_from(period_s, 1, hold_s) > _phase_tick(period_s, max_s, strictly=False)
+
+
 def _elapsed(period_s: float, ticks: int) -> float:
     """s, a phase's time ``ticks`` ticks after it began, as the runner reads it: whole
     nanoseconds a period, rounded to the microsecond."""
