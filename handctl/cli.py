@@ -1015,8 +1015,9 @@ def _failed_plan_output(result: Any, output: Path, quick: bool) -> Path:
     """Where a plan is written: ``output``, but for a failed plan (``_plan_exit_code``) over a
     recipe that runs, which it never replaces: ``-o`` the ``--base`` (how a recipe is
     re-planned in place, as the README shows) lost the working recipe to the failed one. That
-    one goes beside it, ``NAME.failed.yaml``."""
-    failed = not quick and any(plan.undone is not None for plan in result.phases)
+    one goes beside it, ``NAME.failed.yaml``. So does a ``--quick`` one's (which only warns,
+    exit 0): it replaced the working recipe all the same."""
+    failed = any(plan.undone is not None for plan in result.phases)
     if not failed or not output.is_file():
         return output
     data = _existing_yaml(output)
@@ -1025,9 +1026,10 @@ def _failed_plan_output(result: Any, output: Path, quick: bool) -> Path:
     if "failed_phases" in (data.get("planned_from") or {}):
         return output  # a failed plan's recipe itself: nothing that runs is lost
     aside = _free_aside(output)
+    what = "a phase of this --quick plan did nothing" if quick else "the plan failed"
     print(
-        f"handctl: the plan failed: {output} is a recipe that runs and is kept; the failed "
-        f"plan is written to {aside}",
+        f"handctl: {what}: {output} is a recipe that runs and is kept; the failed plan is "
+        f"written to {aside}",
         file=sys.stderr,
     )
     return aside

@@ -496,6 +496,18 @@ def test_a_failed_plan_never_replaces_a_recipe_that_runs(tmp_path: Path) -> None
     # a plan failed again beside it replaces the earlier failed plan there
     again = plan_command(str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1")
     assert again.returncode == 1 and f"written to {aside}" in again.stderr
+    # --quick only warns (exit 0), and its failed plan goes beside the recipe too: it
+    # replaced it (an outside probe)
+    aside.unlink()
+    quick = plan_command(
+        str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1", "--quick"
+    )
+    assert quick.returncode == 0, quick.stderr
+    assert out.read_text() == PLANAR_RECIPE.read_text()
+    assert f"{out} is a recipe that runs and is kept; the failed plan is written to {aside}" in (
+        quick.stderr
+    )
+    assert load_recipe(aside, load_hand(PLANAR)).plan_failed
 
 
 def test_a_failed_plan_goes_through_no_link_and_over_no_other_file(tmp_path: Path) -> None:
