@@ -1084,11 +1084,26 @@ def _check_plot_targets(directory: Path, phases: Sequence[str]) -> None:
 def _plan_plots(result: Any, directory: Path) -> list[Path]:
     """The plan's region plots, drawn in a directory of their own inside ``directory`` and
     moved into it once all are drawn; an interrupt leaves none."""
-    import tempfile
 
     from handctl.experiment.plot import plot_plan
 
+    # the directories made for the plots, taken away again if none is placed: an interrupt
+    # while they were drawn left an empty --plot tree behind
+    made = [p for p in (directory, *directory.parents) if not p.exists()]
     directory.mkdir(parents=True, exist_ok=True)
+    try:
+        return _place_plots(result, directory, plot_plan)
+    except BaseException:
+        for path in made:  # deepest first
+            with contextlib.suppress(OSError):  # not empty, or not ours: left
+                path.rmdir()
+        raise
+
+
+def _place_plots(result: Any, directory: Path, plot_plan: Callable[..., list[Path]]) -> list[Path]:
+    """``_plan_plots``'s drawing and placing, into ``directory`` (made)."""
+    import tempfile
+
     with tempfile.TemporaryDirectory(dir=directory, prefix=".handctl-plot-") as aside:
         drawn = plot_plan(result, Path(aside))
         placed = []

@@ -54,3 +54,23 @@ def test_an_empty_file_name_is_refused_naming_its_option(
     err = capsys.readouterr().err
     assert err.startswith(f"handctl: error: {option}: ") and ": expected a " in err
     assert err.rstrip().endswith("found ''")
+
+
+def test_plots_interrupted_leave_no_directory_they_made(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C while a plan's plots were drawn left an empty ``--plot`` tree (``a/b/plots``)
+    behind (an outside probe). The directories made for them go with the interrupt; one that
+    was there before stays."""
+    from handctl.experiment import plot
+
+    def interrupted(result: object, directory: Path) -> list[Path]:
+        (directory / "01_lift.png").write_bytes(b"half drawn")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plot, "plot_plan", interrupted)
+    there = tmp_path / "there"
+    there.mkdir()
+    with pytest.raises(KeyboardInterrupt):
+        cli._plan_plots(object(), there / "a" / "b" / "plots")
+    assert list(there.iterdir()) == []  # a, b and plots gone; there kept
