@@ -33,7 +33,8 @@ import numpy as np
 
 from handctl.analysis.frames import moderate
 from handctl.config import HandConfig
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, Description
+from handctl.online.estimator import RADIUS_RANGE
 from handctl.online.recipes.guard import GuardSettings
 from handctl.online.recipes.loader import (
     MAX_JOINT_DAMPING,
@@ -80,7 +81,7 @@ from handctl.online.recipes.schema import (
 from handctl.planning.models import Spread
 from handctl.planning.search import MAX_TURN_RATE_DEG_S, Budget
 from handctl.schema import Doc, load_yaml
-from handctl.sim.params import check_scene_names
+from handctl.sim.params import check_scene_names, parse_sim
 
 KINDS = ("free", "lift", "hold", "turn")
 #: the most models a planned ``schedule`` entry may ask for
@@ -235,6 +236,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     # every model the phases are planned on is the simulated hand's scene: objects it lacks
     # were planned on as nothing, and the recipe was refused by every run after the search
     check_scene_names(doc.file, [o.name for o in objects], hand)
+    _check_scene_objects(doc.file, objects, hand)
     end_ramp = doc.number("end_ramp_s", default=0.3, min=0.0, max=60.0, unit="s")
     search = _search(doc.mapping("search", default={}))
     guard = parse_limit_guard(doc, hand)
@@ -265,6 +267,38 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         grasp_model,
         pairs,
     )
+
+
+def _check_scene_objects(source: str, objects: Sequence[RecipeObject], hand: HandConfig) -> None:
+    """The template's objects as the scene the plan's models are drawn from has them: each
+    radius within what the estimator fits of the template's (it measures none outside
+    ±``RADIUS_RANGE``), and in their order along the palm (the estimator names them so when
+    it first locates them). A template of 12 mm cylinders on a scene of 45 mm ones planned
+    "2/2 did its job" and its runs had no estimate; one listing the scene's pair right to
+    left ran with every estimate of the pair 180° off."""
+    scene = {o.name: o for o in parse_sim(hand).objects}
+    where = f"sim.objects in {hand.source}"
+    for i, obj in enumerate(objects):
+        actual = scene[obj.name].radius
+        low, high = obj.radius * (1.0 - RADIUS_RANGE), obj.radius * (1.0 + RADIUS_RANGE)
+        if not low <= actual <= high:
+            raise ConfigError(
+                source,
+                f"objects[{i}].radius",
+                f"a radius the estimator can measure the scene's {obj.name} against "
+                f"({actual * 1e3:g} mm in {where}: its fit stays within ±"
+                f"{RADIUS_RANGE * 100:g} % of the template's)",
+                obj.radius,
+            )
+    along = [o.name for o in sorted(objects, key=lambda o: scene[o.name].x)]
+    if along != [o.name for o in objects]:
+        raise ConfigError(
+            source,
+            "objects",
+            f"the objects in their order along the palm in the scene ({', '.join(along)}, by "
+            f"their x in {where}): the estimator names them in that order",
+            Description(", ".join(o.name for o in objects)),
+        )
 
 
 def unreachable_turn(template: Template) -> str | None:

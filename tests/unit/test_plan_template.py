@@ -13,7 +13,7 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.planning.template import load_template
 
-from ..conftest import ROOT
+from ..conftest import HAND_YAML, ROOT
 
 TEMPLATE = ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml"
 
@@ -460,3 +460,28 @@ def test_a_joint_of_another_hand_in_a_template_s_torques_is_named(tmp_path: Path
         load_template(path, planar)
     assert err.value.key == "phases[0].torques.f1_j1"
     assert "unknown key; did you mean 'left_j1'?" in err.value.expected
+
+
+def test_objects_the_scene_has_otherwise_are_refused_before_the_plan(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """A template whose cylinders the estimator cannot measure on the scene the plan's models
+    are drawn from (12 mm against 45 mm) planned "2/2 did its job" and its runs had no
+    estimate; one listing the scene's pair right to left ran with every estimate of the
+    pair 180° off (an outside probe). Both are refused as the template loads."""
+    data = base()
+    scene = {o["name"]: o for o in yaml.safe_load(HAND_YAML.read_text())["sim"]["objects"]}
+    first = data["objects"][0]
+    actual = scene[first["name"]]["radius"]
+    first["radius"] = actual / 2  # its scene's is twice it: past the estimator's +40 %
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key == "objects[0].radius"
+    assert f"({actual * 1e3:g} mm in sim.objects in" in info.value.expected
+    data = base()
+    data["objects"].reverse()
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key == "objects"
+    names = [o["name"] for o in base()["objects"]]
+    assert f"in the scene ({', '.join(names)}, by their x" in info.value.expected
