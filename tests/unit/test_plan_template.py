@@ -485,3 +485,17 @@ def test_objects_the_scene_has_otherwise_are_refused_before_the_plan(
     assert info.value.key == "objects"
     names = [o["name"] for o in base()["objects"]]
     assert f"in the scene ({', '.join(names)}, by their x" in info.value.expected
+
+
+def test_a_reanalysis_asked_against_its_phase_s_turn_is_refused(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """``reanalyse.turn_deg: +8`` in a phase that turns -8 asked the analysis for torques
+    that turn the pair back, and was accepted (an outside probe)."""
+    data = base()
+    turn = next(p for p in data["phases"] if p["kind"] == "turn")
+    turn["reanalyse"] = {"turn_deg": -turn["turn_deg"]}
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), hand)
+    assert info.value.key.endswith(".reanalyse.turn_deg")
+    assert "a turn the phase's way" in info.value.expected

@@ -221,3 +221,22 @@ def test_a_template_s_reanalyse_and_grasp_model_are_carried_into_the_recipe(
     assert [p.reanalyse is None for p in recipe.phases] == [k != 5 for k in range(7)]
     assert recipe.grasp_model == template.grasp_model
     assert recipe.grasp_model is not None and recipe.grasp_model.masses == (0.05, 0.06)
+
+
+def test_a_reanalysis_asked_against_its_exit_s_turn_is_refused(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """The analysis asked for torques that turn the pair the other way from the turn the
+    phase's exit waits for: refused, as a rate signed so is."""
+    path = Path(_recipe(tmp_path, hand, {"turn_deg": -45}).source)  # loads, then changed
+    data = yaml.safe_load(path.read_text())
+    data["phases"][0]["exit"] = ["estimate.a_b_line_turn < -0.7"]
+    data["phases"][0]["reanalyse"]["turn_deg"] = 45
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError) as info:
+        load_recipe(path, hand)
+    assert info.value.key == "phases[0].reanalyse.turn_deg"
+    assert "a turn the way the phase's exit waits for" in info.value.expected
+    data["phases"][0]["reanalyse"]["turn_deg"] = -45
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    load_recipe(path, hand)

@@ -568,15 +568,23 @@ def _check_rate_sense(file: str, i: int, phase: Phase) -> None:
     if cond is None or cond.index != FIRST_PAIR_TURN:
         return
     sense = phase.turn_sense()
+    way = "negative" if sense is not None and sense < 0 else "positive"
     for key, loop in (("turn_rate", phase.turn_rate), ("paced_ramp", phase.paced)):
         if loop is not None and math.copysign(1.0, loop.rate) != sense:
             raise ConfigError(
                 file,
                 f"phases[{i}].{key}.rate_deg_s",
-                f"a rate signed as the turn the phase's exit waits for ({cond.text}: "
-                f"{'negative' if sense is not None and sense < 0 else 'positive'})",
+                f"a rate signed as the turn the phase's exit waits for ({cond.text}: {way})",
                 round(math.degrees(loop.rate), 9),
             )
+    if phase.reanalyse is not None and math.copysign(1.0, phase.reanalyse.turn) != sense:
+        # the analysis asked for torques that turn the pair away from the phase's exit
+        raise ConfigError(
+            file,
+            f"phases[{i}].reanalyse.turn_deg",
+            f"a turn the way the phase's exit waits for ({cond.text}: {way})",
+            round(math.degrees(phase.reanalyse.turn), 9),
+        )
 
 
 def check_exit_shares(file: str, phases: Sequence[Phase]) -> None:
@@ -777,6 +785,18 @@ def parse_reanalyse(doc: Doc, turn: float | None = None) -> Reanalyse:
         )
     if turn_deg == 0.0:
         doc.fail("turn_deg", "a turn other than 0 deg (its sense is what is asked for)", turn_deg)
+    if (
+        turn is not None
+        and turn != 0.0
+        and math.copysign(1.0, turn) != math.copysign(1.0, turn_deg)
+    ):
+        # the analysis was asked for torques that turn the pair back against its own phase
+        doc.fail(
+            "turn_deg",
+            f"a turn the phase's way ({'negative' if turn < 0 else 'positive'}, as its own "
+            f"turn of {math.degrees(turn):g} deg)",
+            turn_deg,
+        )
     delay = doc.number(
         "delay_s",
         default=DEFAULT_REANALYSIS_DELAY_S,
