@@ -588,6 +588,24 @@ def _check_margined(
             _check_tau_max(doc, f"schedule[{k}].torques", entry.torques, hand, factor, what)
 
 
+def _lift_move(sub: Doc, objects: list[str]) -> dict[str, tuple[float, float]]:
+    """A lift's ``move``: each object's direction, with an upward part (gravity is along -y;
+    a lift whose objects were to move down was planned, and said it did its job)."""
+    move: dict[str, tuple[float, float]] = {}
+    for obj in list(sub.keys()):
+        if obj not in objects:
+            sub.fail(obj, "an object of the template (" + ", ".join(objects) + ")", obj)
+        vec = sub.numbers(obj, length=2)
+        if not any(vec):  # any other length is a direction (made unit where it is used)
+            sub.fail(obj, "a non-zero direction", list(vec))
+        if vec[1] <= 0:
+            sub.fail(obj, "a direction with an upward part (y > 0): a lift raises it", list(vec))
+        x, y = moderate(np.array(vec, dtype=float)).tolist()
+        move[obj] = (x, y)
+    sub.done()
+    return move
+
+
 def _turn_exit(doc: Doc, period_s: float, max_s: float) -> tuple[float, float, int]:
     """A turn phase's ``exit_fraction``, ``exit_hold_s`` (s) and ``exit_share``; a hold its
     ``max_s`` leaves no time for is refused now, where the plan's recipe was refused after the
@@ -629,16 +647,7 @@ def _phase(
     exit_fraction = 0.95
     exit_hold = 0.02
     if kind == "lift":
-        sub = doc.mapping("move")
-        for obj in list(sub.keys()):
-            if obj not in objects:
-                sub.fail(obj, "an object of the template (" + ", ".join(objects) + ")", obj)
-            vec = sub.numbers(obj, length=2)
-            if not any(vec):  # any other length is a direction (made unit where it is used)
-                sub.fail(obj, "a non-zero direction", list(vec))
-            x, y = moderate(np.array(vec, dtype=float)).tolist()
-            move[obj] = (x, y)
-        sub.done()
+        move = _lift_move(doc.mapping("move"), objects)
     if kind in ("lift", "hold"):
         min_height = doc.number("min_height", min=0.0, max=0.2, unit="m")
     turn_rate = None

@@ -197,6 +197,12 @@ def test_a_bad_schedule_entry_is_refused_naming_the_key(
             "written for another hand? give its config with --hand",
         ),
         (lambda d: d["phases"][1]["move"].update(cyl9=[0, 1]), "phases[1].move.cyl9", "object"),
+        # a lift whose objects move down (gravity is along -y) planned, and did "its job"
+        (
+            lambda d: d["phases"][1]["move"].update(cyl1=[0, -1]),
+            "phases[1].move.cyl1",
+            "a direction with an upward part (y > 0)",
+        ),
         (lambda d: d["phases"][0].pop("torques"), "phases[0].torques", ""),
         (lambda d: d["search"].update(elite=99, population=4), "search.elite", "population"),
         (
