@@ -37,7 +37,7 @@ import numpy as np
 from handctl.analysis.model import AnalysisError
 from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
-from handctl.errors import ConfigError, escaped
+from handctl.errors import ConfigError, Description, escaped
 from handctl.executor import WorkPool, open_pool
 from handctl.online.recipes.loader import check_against_hand, joint_fingers, parse_recipe
 from handctl.online.recipes.schema import (
@@ -63,6 +63,7 @@ from handctl.planning.search import (
     LIMIT_FAIL,
     LIMIT_MARGIN,
     MIN_TURN_FRACTION,
+    TORQUE_DECIMALS,
     TUMBLE_FAIL_FACTOR,
     Budget,
     Candidate,
@@ -543,7 +544,14 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 [snaps[i] for i in alive],
                 _compiled_phase(spec, seeds[0][1], hand),
                 seeds,
-                search_box(spec, hand, previous),
+                ramp_bounds(
+                    spec,
+                    hand,
+                    search_box(spec, hand, previous),
+                    _held(previous, template.phases[index - 1] if index else None, hand),
+                    _what_follows(template, index, hand, base),
+                    (template.source, f"phases[{index}].ramp_s"),
+                ),
                 scorer,
                 rng,
                 budget,
@@ -782,12 +790,84 @@ def search_box(spec: TemplatePhase, hand: HandConfig, previous: Sequence[float])
     return [float(b) for b in box]
 
 
+#: N·m, a ramp bound is kept this far inside: a torque is written to ``TORQUE_DECIMALS``,
+#: and one rounded up past the bound was refused by the recipe's loader
+RAMP_BOUND_SLACK = 10.0**-TORQUE_DECIMALS
+
+
+def _held(torques: Sequence[float], spec: TemplatePhase | None, hand: HandConfig) -> np.ndarray:
+    """N·m, what the runner holds of ``spec``'s ``torques``: times its ``torque_margin``."""
+    margin = 1.0 if spec is None else spec.torque_margin
+    held: np.ndarray = np.asarray(torques, dtype=float) * np.broadcast_to(
+        np.asarray(margin, dtype=float), (hand.n_joints,)
+    )
+    return held
+
+
+def _what_follows(
+    template: Template, index: int, hand: HandConfig, base: Base | None
+) -> tuple[np.ndarray, float, str] | None:
+    """What phase ``index``'s torque must ramp to, if it is known before its search: the
+    end's zero over ``end_ramp_s`` after the last phase, or the next phase's held torque
+    over its ``ramp_s`` where that phase's torques are written (a free phase's) or kept from
+    ``base``; with the key that sets the ramp. None when the next phase is searched after."""
+    if index == len(template.phases) - 1:
+        return np.zeros(hand.n_joints), template.end_ramp_s, "end_ramp_s"
+    spec = template.phases[index + 1]
+    kept = base.kept(spec.name) if base is not None else None
+    torques = kept.torques if kept is not None else spec.seed if spec.kind == "free" else None
+    if torques is None:
+        return None
+    return _held(torques, spec, hand), spec.ramp_s, f"phases[{index + 1}].ramp_s"
+
+
+def ramp_bounds(
+    spec: TemplatePhase,
+    hand: HandConfig,
+    box: Sequence[float],
+    before: np.ndarray,
+    after: tuple[np.ndarray, float, str] | None,
+    named: tuple[str, str],
+) -> list[float] | tuple[list[float], list[float]]:
+    """The search's bounds on ``spec``'s torques: ``box`` (``search_box``), cut to what the
+    rate limits can ramp to from ``before`` (N·m held before the phase) over its
+    ``ramp_s`` (going back at ``paced_ramp.back`` times its speed, as the loader holds it),
+    and from to ``after`` (what follows it, ``_what_follows``). A plan with an
+    ``end_ramp_s`` or a ``ramp_s`` too short for the torques it searched was refused by its
+    own recipe's loader after the whole plan; searched within them, it never is. ``box``
+    itself when no ramp binds (the search, and so the plan, as before)."""
+    rate = np.array([j.rate_limit for j in hand.joints])
+    margin = np.broadcast_to(np.asarray(spec.torque_margin, dtype=float), rate.shape)
+    high = np.asarray(box, dtype=float)
+    low = -high
+    back = spec.paced.back if spec.paced is not None and spec.paced.back > 1.0 else 1.0
+    ramps = [(before, spec.ramp_s / back)]
+    if after is not None:
+        ramps.append((after[0], after[1]))
+    for other, ramp_s in ramps:
+        reach = rate * ramp_s
+        low = np.maximum(low, (other - reach) / margin + RAMP_BOUND_SLACK)
+        high = np.minimum(high, (other + reach) / margin - RAMP_BOUND_SLACK)
+    if np.all(low <= -np.asarray(box)) and np.all(high >= np.asarray(box)):
+        return list(box)
+    for j in np.flatnonzero(low > high):  # no torque within tau_max ramps both ways
+        source, into = named  # the template's file, and its phase's ramp_s key
+        raise ConfigError(
+            source,
+            into if after is None else f"{into} or {after[2]}",
+            f"ramps the rate limit of {hand.joint_names[j]} ({rate[j]:g} N·m/s) can make "
+            "between the phases' torques within tau_max",
+            Description(f"none leaves a torque for phase '{spec.name}'"),
+        )
+    return [float(v) for v in low], [float(v) for v in high]
+
+
 def _search(
     worlds: Sequence[World],
     snapshots: Sequence[Snapshot],
     trial: Phase,
     seeds: Sequence[tuple[str, tuple[float, ...]]],
-    tau_max: Sequence[float],
+    tau_max: Sequence[float] | tuple[Sequence[float], Sequence[float]],
     scorer: Callable[[PhaseOutcome], float],
     rng: np.random.Generator,
     budget: Budget,

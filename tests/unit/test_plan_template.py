@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 
@@ -505,3 +506,37 @@ def test_a_reanalysis_asked_against_its_phase_s_turn_is_refused(
         load_template(write(tmp_path, data), hand)
     assert info.value.key.endswith(".reanalyse.turn_deg")
     assert "a turn the phase's way" in info.value.expected
+
+
+def test_the_search_is_held_to_ramps_the_rate_limits_can_make(hand: HandConfig) -> None:
+    """An ``end_ramp_s`` (or a phase's ``ramp_s``) too short for the torques the search
+    found: the plan ran whole and its recipe was refused by its own loader, all of it lost
+    (an outside probe, 10 s of a small plan; a shipped plan takes an hour). The search is
+    held to what the rate limits can ramp from the torque before the phase and to what
+    follows it; where no ramp binds, its box is the plan's as before."""
+    from dataclasses import replace
+
+    from handctl.planning.compile import RAMP_BOUND_SLACK, ramp_bounds, search_box
+
+    template = load_template(TEMPLATE, hand)
+    turn = replace(next(p for p in template.phases if p.kind == "turn"), paced=None)
+    zero = np.zeros(hand.n_joints)
+    box = search_box(turn, hand, list(zero))
+    named = ("t.yaml", "phases[3].ramp_s")
+    # the shipped ramps bind nothing: the box itself, the plan unchanged
+    assert ramp_bounds(turn, hand, box, zero, (zero, 0.3, "end_ramp_s"), named) == box
+    # an end ramp of 5 ms at 20 N·m/s leaves ±0.1 N·m to the last phase
+    rate = np.array([j.rate_limit for j in hand.joints])
+    low, high = ramp_bounds(turn, hand, box, zero, (zero, 0.005, "end_ramp_s"), named)
+    np.testing.assert_allclose(high, rate * 0.005 - RAMP_BOUND_SLACK)
+    np.testing.assert_allclose(low, -(rate * 0.005 - RAMP_BOUND_SLACK))
+    # from the torque before it, over its own short ramp: around that torque
+    before = np.full(hand.n_joints, 0.2)
+    low, high = ramp_bounds(replace(turn, ramp_s=0.005), hand, box, before, None, named)
+    np.testing.assert_allclose(high, np.minimum(box, 0.2 + rate * 0.005 - RAMP_BOUND_SLACK))
+    np.testing.assert_allclose(low, 0.2 - rate * 0.005 + RAMP_BOUND_SLACK)
+    # neither ramp can be made by any torque: refused, naming both keys
+    far = np.full(hand.n_joints, 0.3)
+    with pytest.raises(ConfigError) as info:
+        ramp_bounds(replace(turn, ramp_s=0.001), hand, box, far, (-far, 0.001, "end_ramp_s"), named)
+    assert info.value.key == "phases[3].ramp_s or end_ramp_s"
