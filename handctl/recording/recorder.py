@@ -253,6 +253,10 @@ def _shared_memory(size: int) -> int:
     return fd
 
 
+class _WriterGoneError(HandctlError):
+    """The writer's control pipe closed: it ended (its last word is in the message)."""
+
+
 class Recorder:
     """Records one run to ``path``; see the module docstring for how."""
 
@@ -656,7 +660,7 @@ class Recorder:
                             f"messages for {stall_timeout_s:g} s (stopped or hung)"
                         ) from None
         except BrokenPipeError:
-            raise HandctlError(
+            raise _WriterGoneError(
                 f"{self.path}: the recording writer is gone{self._why_gone()}"
             ) from None
 
@@ -1244,17 +1248,7 @@ class Recorder:
         }
         ctl[CLOSED] = 1
         self.closed = True
-        try:
-            if summary is not None:
-                self.add_metadata(
-                    "handctl.summary",
-                    {"json": orjson.dumps(valid_strings(summary)).decode()},
-                    stall_timeout_s,
-                )
-        except HandctlError as exc:
-            problem = problem or (
-                str(exc).removeprefix(f"{self.path}: ") + ", and the run's summary is not in it"
-            )
+        problem = problem or self._hand_over(summary, stall_timeout_s)
         os.close(self._ctl_w)
         err, hung = self._wait_for_writer(stall_timeout_s)
         problem = problem or hung
@@ -1275,6 +1269,21 @@ class Recorder:
         if problem:
             raise HandctlError(f"{self.path}: {problem}")
         return self.stats
+
+    def _hand_over(self, summary: dict[str, Any] | None, stall_timeout_s: float) -> str:
+        """The summary to the writer; what went wrong ("" if nothing did)."""
+        try:
+            if summary is not None:
+                self.add_metadata(
+                    "handctl.summary",
+                    {"json": orjson.dumps(valid_strings(summary)).decode()},
+                    stall_timeout_s,
+                )
+        except _WriterGoneError:  # why it went, from its stderr, is said once, by ``close``
+            return "the recording writer is gone, and the run's summary is not in it"
+        except HandctlError as exc:
+            return str(exc).removeprefix(f"{self.path}: ") + ", and the run's summary is not in it"
+        return ""
 
     def _wait_for_writer(self, stall_timeout_s: float) -> tuple[bytes, str]:
         """Wait for the writer to finish the file: its stderr, and what went wrong if it had
