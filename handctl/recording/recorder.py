@@ -1248,7 +1248,8 @@ class Recorder:
         }
         ctl[CLOSED] = 1
         self.closed = True
-        problem = problem or self._hand_over(summary, stall_timeout_s)
+        handed = self._hand_over(summary, stall_timeout_s)  # whatever went wrong before it
+        problem = problem or handed
         os.close(self._ctl_w)
         err, hung = self._wait_for_writer(stall_timeout_s)
         problem = problem or hung
