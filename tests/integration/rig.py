@@ -6,6 +6,9 @@ from __future__ import annotations
 import asyncio
 import os
 import select
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -190,3 +193,28 @@ def read_until(fd: int, wanted: str | None, timeout_s: float = 120.0) -> str:
             break
         seen += chunk.decode(errors="replace")
     return seen
+
+
+@contextmanager
+def sim_on_unix_bus(bus: Path) -> Iterator[subprocess.Popen[bytes]]:
+    """``handctl sim`` in its own process on the unix bus ``bus`` (made), once it is on the
+    bus; stopped with Ctrl-C at the end (killed if it does not end in a minute)."""
+    bus.mkdir()
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{bus}", "--seconds", "120"],
+        cwd=Path(__file__).resolve().parents[2],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        while not any(bus.iterdir()):  # the hand is on the bus
+            assert sim.poll() is None, "the simulated hand ended before it was on the bus"
+            time.sleep(0.05)
+        yield sim
+    finally:
+        sim.send_signal(signal.SIGINT)
+        try:
+            sim.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            sim.kill()
+            sim.wait()

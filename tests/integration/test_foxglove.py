@@ -834,6 +834,21 @@ def test_a_port_taken_before_the_writer_binds_it_leaves_the_previous_log(
     assert open_recording(log).complete
 
 
+def _served_when_said(proc: subprocess.Popen[bytes], line: bytes, port: int) -> None:
+    """``proc``'s stderr read until ``line``, then ``port`` connected to at once (no
+    retry: served when said); ``proc`` then ends with exit 0."""
+    assert proc.stderr is not None
+    said = b""
+    while line not in said:
+        got = proc.stderr.readline()
+        assert got, said.decode()
+        said += got
+    with socket.create_connection(("127.0.0.1", port), timeout=10):
+        pass
+    proc.stderr.read()
+    assert proc.wait(timeout=300) == 0
+
+
 def test_the_live_line_is_said_once_the_port_is_served(tmp_path: Path) -> None:
     """The "live: Foxglove WebSocket on ws://..." line came as the command began, a second
     before the writer bound the port: a client that connected when told was refused (an
@@ -847,16 +862,7 @@ def test_the_live_line_is_said_once_the_port_is_served(tmp_path: Path) -> None:
     with subprocess.Popen(
         command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
     ) as proc:
-        assert proc.stderr is not None
-        said = b""
-        while b"live: Foxglove WebSocket on" not in said:
-            line = proc.stderr.readline()
-            assert line, said.decode()
-            said += line
-        with socket.create_connection(("127.0.0.1", port), timeout=10):
-            pass  # served when said: no retry
-        proc.stderr.read()
-        assert proc.wait(timeout=300) == 0
+        _served_when_said(proc, b"live: Foxglove WebSocket on", port)
     # and replay's, which was said before the recording was even read (seconds before)
     port = free_port()
     command = [sys.executable, "-m", "handctl", "replay", str(tmp_path / "run.mcap")]
@@ -867,13 +873,4 @@ def test_the_live_line_is_said_once_the_port_is_served(tmp_path: Path) -> None:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     ) as proc:
-        assert proc.stderr is not None
-        said = b""
-        while b"live: streaming" not in said:
-            line = proc.stderr.readline()
-            assert line, said.decode()
-            said += line
-        with socket.create_connection(("127.0.0.1", port), timeout=10):
-            pass
-        proc.stderr.read()
-        assert proc.wait(timeout=300) == 0
+        _served_when_said(proc, b"live: streaming", port)

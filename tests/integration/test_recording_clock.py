@@ -4,9 +4,6 @@ that an export puts every frame on one timeline from the run's wall-clock start.
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -15,8 +12,9 @@ import can
 from handctl.recording import channels as ch
 from handctl.recording.reader import iter_decoded, open_recording
 
-from ..conftest import DEFAULT_RECIPE, ROOT, handctl
+from ..conftest import DEFAULT_RECIPE, handctl
 from .realtime import REALTIME
+from .rig import sim_on_unix_bus
 
 
 @REALTIME
@@ -27,17 +25,7 @@ def test_frames_before_the_first_tick_share_the_ticks_time_base(tmp_path: Path) 
     uptime after it. The run may end in a safety stop on a loaded machine; its log is what is
     looked at."""
     bus = tmp_path / "bus"
-    bus.mkdir()
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{bus}", "--seconds", "120"],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        while not any(bus.iterdir()):  # the hand is on the bus
-            assert sim.poll() is None, "the simulated hand ended before it was on the bus"
-            time.sleep(0.05)
+    with sim_on_unix_bus(bus):
         log = tmp_path / "run.mcap"
         began = time.monotonic_ns()
         run = handctl(
@@ -54,13 +42,6 @@ def test_frames_before_the_first_tick_share_the_ticks_time_base(tmp_path: Path) 
         )
         ran_ns = time.monotonic_ns() - began
         finished_s = time.time()
-    finally:
-        sim.send_signal(signal.SIGINT)
-        try:
-            sim.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
     assert run.returncode in (0, 3), run.stdout + run.stderr
     recording = open_recording(log)
     frames = [(m["tick"], t) for _, t, m in iter_decoded(recording, (ch.CAN_RX, ch.CAN_TX))]

@@ -41,7 +41,7 @@ from handctl.stopsignals import ctrl_c_at_once, noted_stops, working
 from ..conftest import ROOT, handctl
 from .mcap_copy import rewrite as copy_recording
 from .realtime import REALTIME
-from .rig import SHORT, TWO_PHASES, short_recipe, write_recipe
+from .rig import SHORT, TWO_PHASES, short_recipe, sim_on_unix_bus, write_recipe
 from .test_recording import ESTOP_TICK, Recorded, record_run
 
 
@@ -851,17 +851,7 @@ def test_to_bus_onto_a_hand_that_faults_under_it_stops_and_says_so(
     replay stalls once for 0.1 s with the nodes under torque: it hears a node's FAULT, stops
     the nodes it had enabled and says so, and the command exits 1."""
     bus = tmp_path / "bus"
-    bus.mkdir()
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{bus}", "--seconds", "120"],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        while not any(bus.iterdir()):  # the hand is on the bus
-            assert sim.poll() is None, "the simulated hand ended before it was on the bus"
-            time.sleep(0.05)
+    with sim_on_unix_bus(bus):
         recording = open_recording(recorded.path)
         logged = list(logged_frames(recording, "tx"))
         halfway = (logged[-1][0] - logged[0][0]) * 1e-9 / 2  # s, the nodes under torque
@@ -876,13 +866,6 @@ def test_to_bus_onto_a_hand_that_faults_under_it_stops_and_says_so(
 
         sent = to_bus(recording, f"unix:{bus}", direction="tx", sleep=sleep)
         done = handctl("replay", str(recorded.path), "--to-bus", f"unix:{bus}", "--direction", "tx")
-    finally:
-        sim.send_signal(signal.SIGINT)
-        try:
-            sim.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
     assert "went into FAULT (TIMEOUT" in sent["node_fault"], sent
     assert sent["sent"] < len(logged)  # stopped there, not sent to its end
     # the hand left as the nodes it still had enabled were: zero torque, then disabled

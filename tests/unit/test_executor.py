@@ -14,7 +14,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from multiprocessing import resource_tracker
 from pathlib import Path
 
@@ -527,23 +527,27 @@ def _raised_when_killed(
     return raised
 
 
-def test_a_scheduler_lost_while_the_work_runs_is_named(tmp_path: Path) -> None:
-    """The client cancels every task when its scheduler goes: that is the cluster lost, said
-    as such, not the first task's bare ``CancelledError``."""
-    pytest.importorskip("distributed")
-    started = tmp_path / "started"
+@contextlib.contextmanager
+def _one_process_cluster() -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """``ONE_PROCESS_CLUSTER`` started, and its scheduler's address; killed at the end (a
+    stopped process all the same)."""
     with subprocess.Popen(
         [sys.executable, "-c", ONE_PROCESS_CLUSTER], cwd=ROOT, stdout=subprocess.PIPE, text=True
     ) as cluster:
         try:
             assert cluster.stdout is not None
-            address = cluster.stdout.readline().strip()
-            raised = _raised_when_killed(
-                lambda: open_pool(scheduler=address), started, cluster.kill
-            )
+            yield cluster, cluster.stdout.readline().strip()
         finally:
-            if cluster.poll() is None:
-                cluster.kill()
+            cluster.kill()
+
+
+def test_a_scheduler_lost_while_the_work_runs_is_named(tmp_path: Path) -> None:
+    """The client cancels every task when its scheduler goes: that is the cluster lost, said
+    as such, not the first task's bare ``CancelledError``."""
+    pytest.importorskip("distributed")
+    started = tmp_path / "started"
+    with _one_process_cluster() as (cluster, address):
+        raised = _raised_when_killed(lambda: open_pool(scheduler=address), started, cluster.kill)
     assert len(raised) == 1 and isinstance(raised[0], ClusterLostError), raised
     assert str(raised[0]) == (
         f"--scheduler {address}: the Dask scheduler was lost while the work ran "
@@ -563,19 +567,12 @@ def test_a_scheduler_that_stops_answering_is_given_up(
     monkeypatch.setattr(executor, "SCHEDULER_SILENT_S", 2.0)
     monkeypatch.setattr(executor, "IDLE_CHECK_S", 0.2)
     started = tmp_path / "started"
-    with subprocess.Popen(
-        [sys.executable, "-c", ONE_PROCESS_CLUSTER], cwd=ROOT, stdout=subprocess.PIPE, text=True
-    ) as cluster:
-        try:
-            assert cluster.stdout is not None
-            address = cluster.stdout.readline().strip()
-            raised = _raised_when_killed(
-                lambda: open_pool(scheduler=address),
-                started,
-                lambda: os.kill(cluster.pid, signal.SIGSTOP),
-            )
-        finally:
-            cluster.kill()  # a stopped process is killed all the same
+    with _one_process_cluster() as (cluster, address):
+        raised = _raised_when_killed(
+            lambda: open_pool(scheduler=address),
+            started,
+            lambda: os.kill(cluster.pid, signal.SIGSTOP),
+        )
     assert len(raised) == 1 and not isinstance(raised[0], ClusterLostError), raised
     assert str(raised[0]) == (
         f"--scheduler {address}: the Dask scheduler has not answered for 2 s (frozen, or its "
