@@ -4,7 +4,7 @@ import os
 import signal
 import sys
 
-from handctl.stopsignals import ENDING, interrupt  # the standard library's modules only
+from handctl.stopsignals import ENDING, ignore_stops, interrupt  # standard library only
 
 
 def _standard_descriptors() -> None:
@@ -70,16 +70,13 @@ def entry() -> int:
 
 
 def _quiet() -> None:
-    """The stop signals ignored for what is left of an interrupted command (what
-    ``cli.leave`` does after a result, which this path never reached): the interpreter's
-    shutdown puts back their defaults, and one more SIGTERM of a burst then killed the
-    process by the signal (exit 143) after it had said "interrupted". One landing while
-    they are set is taken here, and they are set again."""
+    """``stopsignals.ignore_stops`` for an interrupted command, which never reached
+    ``cli.leave``: one more SIGTERM of a burst killed it by the signal (exit 143) after it had
+    said "interrupted". One landing while they are set is taken here, and they are set
+    again."""
     while True:
         try:
-            for sig in (signal.SIGINT, signal.SIGTERM, *ENDING):
-                if signal.getsignal(sig) is interrupt:
-                    signal.signal(sig, signal.SIG_IGN)
+            ignore_stops()
             return
         except KeyboardInterrupt:
             continue

@@ -1084,15 +1084,12 @@ def _check_plot_targets(directory: Path, phases: Sequence[str]) -> None:
 def _plan_plots(result: Any, directory: Path) -> list[Path]:
     """The plan's region plots, drawn in a directory of their own inside ``directory`` and
     moved into it once all are drawn; an interrupt leaves none."""
-
-    from handctl.experiment.plot import plot_plan
-
     # the directories made for the plots, taken away again if none is placed: an interrupt
     # while they were drawn left an empty --plot tree behind
     made = [p for p in (directory, *directory.parents) if not p.exists()]
     directory.mkdir(parents=True, exist_ok=True)
     try:
-        return _place_plots(result, directory, plot_plan)
+        return _place_plots(result, directory)
     except BaseException:
         for path in made:  # deepest first
             with contextlib.suppress(OSError):  # not empty, or not ours: left
@@ -1100,9 +1097,11 @@ def _plan_plots(result: Any, directory: Path) -> list[Path]:
         raise
 
 
-def _place_plots(result: Any, directory: Path, plot_plan: Callable[..., list[Path]]) -> list[Path]:
+def _place_plots(result: Any, directory: Path) -> list[Path]:
     """``_plan_plots``'s drawing and placing, into ``directory`` (made)."""
     import tempfile
+
+    from handctl.experiment.plot import plot_plan
 
     with tempfile.TemporaryDirectory(dir=directory, prefix=".handctl-plot-") as aside:
         drawn = plot_plan(result, Path(aside))
@@ -3757,11 +3756,9 @@ def leave(code: int) -> None:
     its last tens of milliseconds killed the process by the signal (exit -15, 143 in a shell)
     after a run that had finished and written its summary. One noted on the way
     (``stopsignals.LATE``) is said."""
-    from handctl.stopsignals import ENDING, LATE, interrupt
+    from handctl.stopsignals import LATE, ignore_stops
 
-    for sig in (signal.SIGINT, signal.SIGTERM, *ENDING):
-        if signal.getsignal(sig) is interrupt:
-            signal.signal(sig, signal.SIG_IGN)
+    ignore_stops()
     if LATE and sys.stderr is not None:
         names = ", ".join(dict.fromkeys(LATE))
         with contextlib.suppress(OSError, ValueError):  # a stderr that cannot be written

@@ -624,7 +624,7 @@ def _host_and_port(address: str) -> tuple[str, int]:
 
 def _handctl_version() -> Callable[[], str]:
     """A function that imports handctl and gives its version, the digest of its code and
-    MuJoCo's version (``code_identity``), made here so that it is pickled by value (it is no
+    MuJoCo's version, made here so that it is pickled by value (it is no
     module's attribute): by reference, a worker without handctl could not even unpickle it,
     and would report that as a Dask error, not this one."""
 

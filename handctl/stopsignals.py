@@ -85,6 +85,16 @@ def raised() -> str:
     return _Command.raised
 
 
+def ignore_stops() -> None:
+    """The stop signals this command takes as Ctrl-C (``interrupt``) ignored for what is left
+    of it, the interpreter's shutdown: the shutdown puts back the default of every signal with
+    a Python handler, and a SIGTERM in its last tens of milliseconds killed the process by the
+    signal (exit 143), after a command that had its result or had said "interrupted"."""
+    for sig in (signal.SIGINT, signal.SIGTERM, *ENDING):
+        if signal.getsignal(sig) is interrupt:
+            signal.signal(sig, signal.SIG_IGN)
+
+
 def finished() -> None:
     """The command has its result (its exit code, its files written): a stop signal from
     here on has nothing left to stop. Raised as an interrupt, one that came as a run's summary

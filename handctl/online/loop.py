@@ -290,6 +290,8 @@ class Runtime:
         self.disable_unconfirmed = ""
         #: nodes in FAULT at the end that no fault of the run stands for ("": none)
         self.ended_in_fault = ""
+        #: whether the e-stop went to nodes still ENABLED after the disable
+        self._estop_at_the_end = False
         #: a peer process the start-up waits for (the simulated hand of a real-time run):
         #: what it said if it has ended, else ""; asked every start-up tick, so that a hand
         #: that died is said at once and not after the whole start-up timeout (20 s)
@@ -302,6 +304,7 @@ class Runtime:
         self._stats = TickStats(len(STAGES), window_ticks)
         self._max_abs = np.zeros(hand.n_joints)
         self._max_asked = np.zeros(hand.n_joints)  # N·m, what the recipe asked (``asked_beyond``)
+        self._asked = np.empty(hand.n_joints)  # scratch for it: the tick allocates nothing
         #: joints whose command rings (a feedback too stiff for them)
         self.chatter = ChatterWatch(
             hand.joint_names, np.array([j.tau_max for j in hand.joints]), hand.bus.period_s
@@ -491,7 +494,7 @@ class Runtime:
             # a node that goes on saying ENABLED after the disable disobeys it: the e-stop,
             # which every node honours (PROTOCOL.md), is the last word the host has; it
             # latches FAULT (ESTOP) on every node, for --reset-node-faults to clear
-            sent = self.driver.send_estop()
+            sent = self._estop_at_the_end = self.driver.send_estop()
             names = ", ".join(f"node {n.node_id} ({n.finger.name})" for n in defiant)
             what = "the e-stop was sent" if sent else "the e-stop could not be sent"
             self.disable_unconfirmed += (
@@ -509,7 +512,7 @@ class Runtime:
         from handctl.online.drivers.finger import fault_names
 
         faulted = [n for n in self.driver.nodes if n.state == int(NodeState.FAULT)]
-        if not faulted or "the e-stop was sent" in self.disable_unconfirmed:
+        if not faulted or self._estop_at_the_end:  # the nodes' FAULT is that e-stop's, said
             return
         said = ", ".join(
             f"node {n.node_id} ({n.finger.name}, "
@@ -858,7 +861,8 @@ class Runtime:
         if new_faults and self._another_master(new_faults):
             driver.send_estop()
         np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)
-        np.fmax(self._max_asked, np.abs(desired), out=self._max_asked)  # a NaN is a fault
+        # a NaN is a fault of its own (fmax passes over it)
+        np.fmax(self._max_asked, np.abs(desired, out=self._asked), out=self._max_asked)
         self.chatter.observe(applied, t_s)
         c4 = cpu()  # the record stage is the recording alone
         if self.recorder is not None:

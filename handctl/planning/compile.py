@@ -544,13 +544,15 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 [snaps[i] for i in alive],
                 _compiled_phase(spec, seeds[0][1], hand),
                 seeds,
-                ramp_bounds(
-                    spec,
-                    hand,
-                    search_box(spec, hand, previous),
-                    _held(previous, template.phases[index - 1] if index else None, hand),
-                    _what_follows(template, index, hand, base),
-                    (template.source, f"phases[{index}].ramp_s"),
+                _as_bounds(
+                    ramp_bounds(
+                        spec,
+                        hand,
+                        search_box(spec, hand, previous),
+                        _held(previous, template.phases[index - 1] if index else None, hand),
+                        _what_follows(template, index, hand, base),
+                        (template.source, f"phases[{index}].ramp_s"),
+                    )
                 ),
                 scorer,
                 rng,
@@ -862,12 +864,22 @@ def ramp_bounds(
     return [float(v) for v in low], [float(v) for v in high]
 
 
+def _as_bounds(
+    box: list[float] | tuple[list[float], list[float]],
+) -> tuple[list[float], list[float]]:
+    """The search's ``(low, high)`` from a symmetric box (``search_box``, ``ramp_bounds``
+    where no ramp binds) or from bounds already."""
+    if isinstance(box, tuple):
+        return box
+    return [-b for b in box], box
+
+
 def _search(
     worlds: Sequence[World],
     snapshots: Sequence[Snapshot],
     trial: Phase,
     seeds: Sequence[tuple[str, tuple[float, ...]]],
-    tau_max: Sequence[float] | tuple[Sequence[float], Sequence[float]],
+    bounds: tuple[Sequence[float], Sequence[float]],
     scorer: Callable[[PhaseOutcome], float],
     rng: np.random.Generator,
     budget: Budget,
@@ -891,7 +903,7 @@ def _search(
         snapshots,
         trial,
         seeds,
-        tau_max,
+        bounds,
         scorer,
         rng,
         budget,
@@ -1003,7 +1015,7 @@ def _plan_schedule(
             [snaps[i] for i in alive],
             _compiled_phase(spec, own, hand, schedule=()),
             seeds,
-            search_box(spec, hand, previous),
+            _as_bounds(search_box(spec, hand, previous)),
             scorer,
             rng,
             budget,

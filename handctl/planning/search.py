@@ -210,7 +210,7 @@ def cem(
     snapshots: Sequence[Snapshot],
     phase: Phase,
     seeds: Sequence[tuple[str, Sequence[float]]],
-    tau_max: Sequence[float] | tuple[Sequence[float], Sequence[float]],
+    bounds: tuple[Sequence[float], Sequence[float]],
     scorer: Scorer,
     rng: np.random.Generator,
     budget: Budget,
@@ -225,18 +225,14 @@ def cem(
 ) -> SearchResult:
     """Cross-entropy search around the seeds; returns the best candidate ever evaluated.
 
-    ``tau_max`` bounds each joint's torque, ``|τ| <= tau_max``, or is a pair ``(low, high)``
-    of bounds (``low <= τ <= high``: a ramp the hand's rate limit can make, from the torque
-    before the phase or to the one after it); the spread is half the bounds' width.
+    ``bounds`` are each joint's ``(low, high)`` torques (N·m): ``±tau_max`` less what the
+    phase's feedback adds, cut to the ramps the rate limits can make
+    (``compile.ramp_bounds``); the spread is half their width.
 
     A generation is drawn whole before any of it runs (the draws do not depend on the
     outcomes within it), so its candidates run in parallel and the result is the same on
     any executor."""
-    if isinstance(tau_max, tuple) and len(tau_max) == 2 and np.ndim(tau_max[0]) == 1:
-        low, high = (np.asarray(b, dtype=float) for b in tau_max)
-    else:
-        high = np.asarray(tau_max, dtype=float)
-        low = -high
+    low, high = (np.asarray(b, dtype=float) for b in bounds)
     limit = (high - low) / 2.0  # a symmetric box's own tau_max
     say = progress or (lambda _m: None)
     seeded = evaluate(

@@ -260,22 +260,20 @@ class _FaultsHeard:
     as if it had been replayed. Read from the nodes' Feedback, which carries their state."""
 
     def __init__(self, hand: HandConfig, left: _LeftEnabled) -> None:
-        from handctl.online.drivers.finger import FingerLayouts
+        # once, not once a period as the replay listens
+        from handctl.online.drivers.finger import fault_names, parse_feedback
+        from handctl.protocol import NodeState
 
-        protocol = protocol_for(hand)
+        self._fault_names, self._parse, self._fault = fault_names, parse_feedback, NodeState.FAULT
         self.left = left
-        self.feedback = {}
-        for finger in hand.fingers:
-            layout = FingerLayouts.for_node(protocol, finger.node_id).feedback
-            self.feedback[layout.frame_id] = (finger, layout)
+        layouts = [(finger, left.layouts[finger.node_id].feedback) for finger in hand.fingers]
+        self.feedback = {layout.frame_id: (finger, layout) for finger, layout in layouts}
         #: what the first node heard in FAULT said ("": none)
         self.first = ""
 
     def hear(self, frames: Sequence[Any]) -> bool:
         """Whether a node the replay had enabled said FAULT in ``frames`` (``Frame``s)."""
-        from handctl.online.drivers.finger import fault_names, parse_feedback
-        from handctl.protocol import NodeState
-
+        fault_names, parse_feedback = self._fault_names, self._parse
         for frame in frames:
             found = self.feedback.get(frame.arbitration_id)
             if found is None:
@@ -284,7 +282,7 @@ class _FaultsHeard:
             if finger.node_id not in self.left.enabled or not layout.crc_ok(frame.data):
                 continue
             feedback = parse_feedback(layout.decode(frame.data)[1])
-            if feedback.state == NodeState.FAULT:
+            if feedback.state == self._fault:
                 bits = ", ".join(fault_names(feedback.fault_bits)) or "no fault bits"
                 self.first = (
                     f"node {finger.node_id} ({finger.name}) went into FAULT ({bits}) while the "
