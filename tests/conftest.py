@@ -22,6 +22,8 @@ from handctl.config import HandConfig, load_hand
 from handctl.online.bus import HandBus, open_bus
 from handctl.protocol import Protocol, load_protocol
 
+from .warm_start import WarmStart
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -133,19 +135,41 @@ def handctl(
     its own writes no bytecode: Python writes a module's cached bytecode with one write and
     renames it into place whatever that write wrote, so under a file size limit
     (``RLIMIT_FSIZE``) it left a cut-off file in ``__pycache__`` that every later process of
-    the suite failed to import ("marshal data too short")."""
+    the suite failed to import ("marshal data too short").
+
+    It starts warm (``tests/warm_start.py``): forked, a process of its own, from one that has
+    already imported handctl's command line, which saves the half second of interpreter
+    start-up most of the suite's commands are. A command with ``preexec_fn``, or an ``env``
+    read as an interpreter starts (``PYTHON*``, the locale), starts cold, as does every
+    command with ``HANDCTL_TESTS_COLD=1`` set."""
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
     limited = {"PYTHONDONTWRITEBYTECODE": "1"} if preexec_fn is not None else {}
+    argv = [sys.executable, "-m", "handctl", *args]
+    full = {**os.environ, "PYTHONPATH": path, **limited, **(env or {})}
+    if preexec_fn is None and os.environ.get("HANDCTL_TESTS_COLD") != "1":
+        warm = _warm_start({**os.environ, "PYTHONPATH": path})
+        if warm.takes(full):
+            return warm.run(argv, cwd, full, timeout)
     return subprocess.run(
-        [sys.executable, "-m", "handctl", *args],
+        argv,
         cwd=cwd,
-        env={**os.environ, "PYTHONPATH": path, **limited, **(env or {})},
+        env=full,
         text=True,
         capture_output=True,
         timeout=timeout,
         check=False,
         preexec_fn=preexec_fn,
     )
+
+
+_warm: list[WarmStart] = []
+
+
+def _warm_start(env: Mapping[str, str]) -> WarmStart:
+    """This process's warm-start server, started with the first command."""
+    if not _warm:
+        _warm.append(WarmStart(ROOT, env))
+    return _warm[0]
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from handctl.online.recipes.loader import load_recipe
 from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
 from handctl.planning.template import load_template, unreachable_turn
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 
 TEMPLATE = ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml"
 PREFIX = "# Change the template and plan again: "
@@ -153,14 +153,7 @@ def test_plan_command_writes_the_recipe_and_the_region_plots(tmp_path: Path) -> 
 
 
 def plan_command(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "handctl", "plan", *args],
-        cwd=ROOT,
-        text=True,
-        capture_output=True,
-        timeout=300,
-        check=False,
-    )
+    return handctl("plan", *args, timeout=300)
 
 
 def test_a_replan_keeps_the_base_s_phases_and_plans_the_rest_from_where_they_leave_the_hand(

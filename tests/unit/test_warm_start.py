@@ -1,0 +1,67 @@
+"""The suite's warm start (``tests/warm_start.py``) gives what a cold ``python -m handctl``
+gives: its output, its exit, its working directory and environment; and it is left for a
+cold start where it cannot be the same."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from ..conftest import ROOT, _warm_start, handctl
+
+
+def _both(*args: str, cwd: Path = ROOT) -> tuple[subprocess.CompletedProcess[str], ...]:
+    warm = handctl(*args, cwd=cwd)
+    os.environ["HANDCTL_TESTS_COLD"] = "1"
+    try:
+        cold = handctl(*args, cwd=cwd)
+    finally:
+        del os.environ["HANDCTL_TESTS_COLD"]
+    return warm, cold
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("--version",),
+        ("check", "no-such-hand.yaml"),
+        ("run", "recipe", "config/recipes/swap_two_cylinders.yaml", "--max-seconds", "-1"),
+    ],
+)
+def test_a_warm_command_says_and_exits_as_a_cold_one(args: tuple[str, ...]) -> None:
+    warm, cold = _both(*args)
+    assert (warm.returncode, warm.stdout, warm.stderr) == (
+        cold.returncode,
+        cold.stdout,
+        cold.stderr,
+    )
+
+
+def test_a_warm_command_runs_in_its_own_directory_and_environment(tmp_path: Path) -> None:
+    """A relative path is read from the command's directory; HANDCTL_TIMING_INJECT, read as
+    the command runs, is the command's."""
+    (tmp_path / "hand.yaml").write_text("not: [a, hand\n")
+    warm, cold = _both("check", "hand.yaml", cwd=tmp_path)
+    assert warm.returncode == cold.returncode == 2
+    assert warm.stderr == cold.stderr and "hand.yaml" in warm.stderr
+    missing = tmp_path / "no-such-probe.json"
+    done = handctl("check", "--timing", env={"HANDCTL_TIMING_INJECT": str(missing)})
+    assert done.returncode != 0 and str(missing) in done.stderr
+
+
+def test_an_environment_read_as_python_starts_is_a_cold_start() -> None:
+    warm = _warm_start({**os.environ, "PYTHONPATH": str(ROOT)})
+    assert warm.takes({**warm.env, "HANDCTL_X": "1"})
+    assert not warm.takes({**warm.env, "PYTHONHASHSEED": "7"})
+    assert not warm.takes({**warm.env, "LC_ALL": "C"})
+    without = {k: v for k, v in warm.env.items() if k != "PATH"}
+    assert warm.takes(without)
+
+
+def test_a_command_past_its_timeout_is_killed_and_said_so(tmp_path: Path) -> None:
+    """As ``subprocess.run`` does: ``TimeoutExpired``, and the command gone."""
+    with pytest.raises(subprocess.TimeoutExpired):
+        handctl("sim", "--bus", f"unix:{tmp_path / 'bus'}", timeout=3)
