@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import shutil
 import tempfile
@@ -373,6 +374,7 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
         ticks[int(msg["tick"])] = log_time
     if not ticks:
         return
+    _check_no_hole(recording, sorted(ticks))
     slack = round(hand.bus.period_s * 1e9)
     first, last = min(ticks.values()) - SILENT_START_NS, max(ticks.values()) + slack
     for topic, log_time, msg in iter_decoded(recording, DIRECTION_TOPICS.get(direction, ())):
@@ -386,6 +388,23 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
                 + ("" if due is None else f" ({due} ns, within {slack} ns)")
                 + ", as the recorder stamps it (nothing was sent)",
                 Description(f"log time {log_time} ns"),
+            )
+
+
+def _check_no_hole(recording: Recording, ticks: Sequence[int]) -> None:
+    """Refuse a log whose ticks are not one after the other: a run records every tick, so a
+    tick missing is a hole in the file (a chunk taken out of a log without its summary, or
+    records the writer dropped), and the frames on either side of it would go out as if
+    one period apart. Such a log read as cut short, not damaged, and went onto the bus whole
+    (exit 0), commands on both sides of a 60 ms gap."""
+    for before, after in itertools.pairwise(ticks):
+        if after != before + 1:
+            raise ConfigError(
+                str(recording.path),
+                f"{ch.TIMING} tick {before + 1}",
+                "every tick between the first and the last, as a run records them (nothing "
+                "was sent: the frames on either side of a hole are not the run's)",
+                Description(f"ticks {before + 1}..{after - 1} missing, the log goes on at {after}"),
             )
 
 

@@ -103,8 +103,8 @@ class Recording:
     chunks: int = 0  # chunks that read
     complete: bool = False  # footer and closing magic read, and every chunk read
     problem: str = ""  # what is missing and why ("" when complete)
-    #: Read through the summary's index: ``(offset, length)`` of each chunk that reads. None:
-    #: read front to back.
+    #: ``(offset, length)`` of each chunk that reads, where the summary's index or the first
+    #: pass front to back found it; every later read takes these. None: not opened yet.
     chunk_spans: list[tuple[int, int]] | None = None
     bad_chunks: list[BadChunk] = field(default_factory=list)
     bad_metadata: list[str] = field(default_factory=list)  # names of indexed records that fail
@@ -128,7 +128,8 @@ class Recording:
 
     @property
     def damaged(self) -> bool:
-        """The file has its summary, but some chunks or metadata it indexes do not read."""
+        """Some chunks do not read (where the summary indexes them, or, without one, as whole
+        records front to back), or metadata the summary indexes does not."""
         return bool(self.bad_chunks or self.bad_metadata or self.bad_index)
 
     @property
@@ -442,6 +443,8 @@ def _counts_disagree(topics: dict[int, str], counted: dict[int, int], held: dict
 def _open_walk(handle: BinaryIO, recording: Recording) -> None:
     """The first pass front to back, for a file without a (readable) summary."""
     walk = _Walk(handle)
+    spans: list[tuple[int, int]] = []
+    number = first_ns = 0  # chunks met; the log time of the first one's first message
     try:
         for op, body in walk.records(
             (
@@ -454,8 +457,22 @@ def _open_walk(handle: BinaryIO, recording: Recording) -> None:
             )
         ):
             if op == Opcode.CHUNK:
-                _chunk_data(body)  # a chunk cut short raises here: the walk ends
-                recording.chunks += 1
+                # a whole record whose chunk does not read is damage, not the file's end:
+                # named and stepped over by its length, as the index steps over it. (Ended
+                # here, one flipped bit left every chunk after it unread, and the log was
+                # said to be only cut short.)
+                start, end = _CHUNK.unpack_from(body)[:2] if len(body) >= _CHUNK.size else (0, 0)
+                first_ns = first_ns if number else start
+                try:
+                    _chunk_data(body)
+                except _CUT_SHORT as exc:
+                    recording.bad_chunks.append(
+                        BadChunk(number, walk.offset, 9 + len(body), start, end, _why(exc))
+                    )
+                else:
+                    spans.append((walk.offset, 9 + len(body)))
+                    recording.chunks += 1
+                number += 1
             elif op == Opcode.METADATA:
                 meta = Metadata.read(_stream(body))
                 recording.metadata[meta.name] = dict(meta.metadata)
@@ -477,6 +494,18 @@ def _open_walk(handle: BinaryIO, recording: Recording) -> None:
         recording.problem = (
             f"reading stopped at byte {walk.offset} after "
             f"{recording.chunks} complete chunks ({_why(exc)})"
+        )
+    recording.chunk_spans = spans
+    if recording.bad_chunks:
+        recording.complete = False
+        after = sum(1 for s in spans if s[0] > recording.bad_chunks[-1].offset)
+        recording.problem = "; ".join(
+            [bad.describe(first_ns) for bad in recording.bad_chunks]
+            + [
+                f"its messages are left out; {recording.chunks} of {number} chunks read, "
+                f"{after} of them after the last damaged one"
+            ]
+            + ([recording.problem] if recording.problem else [])
         )
     if recording.message_counts:
         topics = recording.topics

@@ -1148,3 +1148,55 @@ def test_a_fault_the_run_never_latched_written_into_its_events_does_not_rerun(
     assert len(line) < 200 and "XXX..." in line
     assert "  faults: logged ANGLE_LIMITXXX" in done.stdout and "; re-run none" in done.stdout
     assert rerun(open_recording(recorded.path)).fault_mismatch == ""
+
+
+def _without_summary(recorded: Recorded) -> tuple[bytes, list[tuple[int, int]]]:
+    """The recorded file up to the end of its last chunk (a writer killed there), and where
+    its chunks are."""
+    spans = open_recording(recorded.path).chunk_spans
+    assert spans and len(spans) >= 5
+    end = spans[-1][0] + spans[-1][1]
+    return recorded.path.read_bytes()[:end], spans
+
+
+def test_a_damaged_chunk_in_a_log_without_its_summary_is_stepped_over_and_named(
+    recorded: Recorded, tmp_path: Path, channel: str
+) -> None:
+    """Read front to back, one flipped bit in a chunk ended the reading there: the log was
+    said to be cut short (a killed run's, which goes onto a bus) and every chunk after it was
+    left unread."""
+    whole, spans = _without_summary(recorded)
+    damaged = bytearray(whole)
+    offset, length = spans[2]
+    damaged[offset + length - 40] ^= 0x10  # inside the chunk's compressed records
+    bad = tmp_path / "flipped.mcap"
+    bad.write_bytes(bytes(damaged))
+    recording = open_recording(bad)
+    assert recording.damaged and not recording.complete
+    assert [c.number for c in recording.bad_chunks] == [2]
+    assert recording.chunks == len(spans) - 1
+    assert f"{len(spans) - 3} of them after the last damaged one" in recording.problem
+    _refused_nothing_sent_by_the_cli(bad, channel, "is DAMAGED (chunk 2 at byte")
+
+
+def _refused_nothing_sent_by_the_cli(log: Path, channel: str, why: str) -> None:
+    done = handctl("replay", str(log), "--to-bus", f"virtual:{channel}")
+    assert done.returncode != 0 and why in done.stderr, done.stderr
+    assert "frames sent" not in done.stderr + done.stdout
+
+
+def test_a_log_without_its_summary_and_with_a_chunk_taken_out_sends_nothing(
+    recorded: Recorded, hand: HandConfig, tmp_path: Path, channel: str
+) -> None:
+    """Whole chunks and no summary to count them: the file reads as cut short, and its
+    frames went onto the bus with a hole of 60 ms in them (exit 0). A run records every
+    tick, so the ticks say where the hole is."""
+    whole, spans = _without_summary(recorded)
+    offset, length = spans[3]
+    bad = tmp_path / "hole.mcap"
+    bad.write_bytes(whole[:offset] + whole[offset + length :])
+    recording = open_recording(bad)
+    assert recording.truncated  # nothing in the file itself says a chunk is missing
+    text = _refused_with_nothing_sent(recording, hand, channel)
+    assert f"{ch.TIMING} tick " in text and "missing, the log goes on at" in text
+    assert "expected every tick between the first and the last" in text
