@@ -1444,6 +1444,24 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
         )
 
 
+def _check_to_bus_option(args: argparse.Namespace) -> None:
+    """``--to-bus``: a bus that may be replayed onto, and the hand config a real one needs."""
+    from handctl.online.busspec import parse_spec, require_peers
+    from handctl.recording.frames import SIMULATED_BUSES, hand_needed
+
+    # before the summary and the re-run, as every other option (it was found after them,
+    # and named '--bus', an option replay does not have); 'hand' is the hand config's own
+    # bus, where the real hand is
+    spec = None if args.to_bus == "hand" else parse_spec(args.to_bus, option="--to-bus")
+    if spec is not None:
+        # a mistyped unix bus was made by the replay, which sent every frame to nobody
+        # and exited 0, the directory left behind
+        require_peers(spec, "--to-bus")
+    real = spec is None or spec.interface not in SIMULATED_BUSES
+    if real and args.hand is None:
+        raise hand_needed(args.to_bus)
+
+
 def _check_replay_options(args: argparse.Namespace) -> None:
     """Every option of ``replay`` that needs another, or a range, said before the log is read:
     an option that would be ignored is refused rather than silently dropped."""
@@ -1475,17 +1493,7 @@ def _check_replay_options(args: argparse.Namespace) -> None:
             args.to_bus,
         )
     if args.to_bus:
-        from handctl.online.busspec import parse_spec
-        from handctl.recording.frames import SIMULATED_BUSES, hand_needed
-
-        # before the summary and the re-run, as every other option (it was found after them,
-        # and named '--bus', an option replay does not have); 'hand' is the hand config's own
-        # bus, where the real hand is
-        real = args.to_bus == "hand" or (
-            parse_spec(args.to_bus, option="--to-bus").interface not in SIMULATED_BUSES
-        )
-        if real and args.hand is None:
-            raise hand_needed(args.to_bus)
+        _check_to_bus_option(args)
     if args.direction is not None and not args.to_bus:
         raise ConfigError(
             "--direction",

@@ -879,8 +879,9 @@ def test_to_bus_onto_a_hand_that_faults_under_it_stops_and_says_so(
 def test_to_bus_says_when_nobody_was_on_the_unix_bus(
     recorded: Recorded, hand: HandConfig, tmp_path: Path
 ) -> None:
-    """A unix bus directory that does not exist is made, and its sends succeed: to a
-    mistyped directory the replay said "N frames sent, 0 failed" as if a listener had them."""
+    """Sends onto a unix bus nobody is on succeed: to a mistyped directory the replay said
+    "N frames sent, 0 failed" as if a listener had them. The command refuses a directory
+    that is not there."""
     recording = open_recording(recorded.path)
     logged = list(logged_frames(recording))
     now = [0.0]
@@ -905,7 +906,16 @@ def test_to_bus_says_when_nobody_was_on_the_unix_bus(
     assert [(f.arbitration_id, f.data) for f in heard] == [
         (fid, d) for _, fid, d, _ in logged[: len(heard)]
     ]
-    done = handctl("replay", str(recorded.path), "--to-bus", f"unix:{tmp_path / 'typo'}")
+    # the command refuses a bus directory nobody made: it made it, sent every frame to
+    # nobody and exited 0, with only a warning, the directory left behind
+    typo = tmp_path / "typo"
+    done = handctl("replay", str(recorded.path), "--to-bus", f"unix:{typo}")
+    assert done.returncode == 2, done.stderr
+    assert "--to-bus: channel: expected the directory of a unix bus a hand is on" in done.stderr
+    assert "no such directory" in done.stderr and not typo.exists()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    done = handctl("replay", str(recorded.path), "--to-bus", f"unix:{empty}")
     assert done.returncode == 0, done.stderr
     assert "warning: to-bus: no other participant was on" in done.stderr
 
