@@ -17,13 +17,11 @@ sampled the same way.
 from __future__ import annotations
 
 import logging
-import struct
 import sys
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
 
 import foxglove
 import orjson
@@ -34,10 +32,6 @@ from handctl.errors import ConfigError, escaped
 from handctl.foxglove import HOST
 from handctl.foxglove.derived import JOINTS, RX_DECODED, TX_DECODED
 from handctl.recording import channels as ch
-
-if TYPE_CHECKING:
-    from mcap.records import Channel as McapChannel
-    from mcap.records import Schema as McapSchema
 
 #: s, how long closing the live view waits for its clients to let go (``LiveServer.close``)
 CLOSE_TIMEOUT_S = 1.0
@@ -223,16 +217,18 @@ def serve_recording(
     recording = open_recording(path)
     server = LiveServer(port, name=f"handctl replay {path.name}")
     try:
-        with path.open("rb") as stream:
-            for topic, (schema, channel) in _channels(stream).items():
-                server.add_channel(
-                    topic,
-                    schema.name if schema else "",
-                    schema.encoding if schema else "",
-                    bytes(schema.data) if schema else b"",
-                    channel.message_encoding,
-                    dict(channel.metadata),
-                )
+        # the channels the reader found (a damaged file's too: read here again with mcap's
+        # own reader, a chunk that did not decompress was a traceback)
+        for channel in recording.channels.values():
+            schema = recording.schemas.get(channel.schema_id)
+            server.add_channel(
+                channel.topic,
+                schema.name if schema else "",
+                schema.encoding if schema else "",
+                bytes(schema.data) if schema else b"",
+                channel.message_encoding,
+                dict(channel.metadata),
+            )
         server.start()
         if started is not None:
             started(server)
@@ -260,27 +256,3 @@ def _frame_id(data: bytes) -> int:
     except (orjson.JSONDecodeError, AttributeError):
         return 0
     return frame_id if isinstance(frame_id, int) else 0
-
-
-def _channels(stream: BinaryIO) -> dict[str, tuple[McapSchema | None, McapChannel]]:
-    """Every channel and its schema, from the records before the first chunk (the recorder
-    writes them all there, so even a file cut short soon after has them)."""
-    from mcap.exceptions import McapError
-    from mcap.records import Channel as ChannelRecord
-    from mcap.records import Chunk
-    from mcap.records import Schema as SchemaRecord
-    from mcap.stream_reader import StreamReader
-
-    schemas: dict[int, SchemaRecord] = {}
-    out: dict[str, tuple[SchemaRecord | None, ChannelRecord]] = {}
-    try:
-        for record in StreamReader(stream).records:
-            if isinstance(record, SchemaRecord):
-                schemas[record.id] = record
-            elif isinstance(record, ChannelRecord):
-                out[record.topic] = (schemas.get(record.schema_id), record)
-            elif isinstance(record, Chunk):
-                break
-    except (McapError, EOFError, struct.error):
-        pass  # cut before the first chunk: what was read is all there is
-    return out

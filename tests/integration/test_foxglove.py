@@ -496,6 +496,23 @@ def test_replay_live_plays_a_truncated_log_to_its_cut(run: Run, tmp_path: Path) 
     assert len(live.received[fx.SCENE]) >= 3
 
 
+def test_replay_live_plays_a_damaged_log_around_its_damage(run: Run, tmp_path: Path) -> None:
+    """A chunk that does not decompress: the channels were read again with mcap's own reader,
+    which decompressed it, a traceback before anything was served."""
+    from handctl.recording.reader import open_recording
+
+    spans = open_recording(run.path).chunk_spans
+    assert spans and len(spans) >= 3
+    offset, length = spans[1]
+    data = bytearray(run.path.read_bytes())
+    data[offset + length - 40] ^= 0x10
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    live, out = replay_live(damaged, tmp_path)
+    assert b"DAMAGED: chunk 1 at byte" in out
+    assert len(live.received[fx.SCENE]) >= 3
+
+
 #: A short recipe that completes: close gently and hold, no objects to find.
 SHORT_RECIPE = """\
 recipe: close_and_hold
