@@ -3720,8 +3720,11 @@ def _output_for_readers_that_leave() -> Iterator[None]:
 def main(argv: Sequence[str] | None = None) -> int:
     # handctl draws nothing with MuJoCo's OpenGL. Unless told otherwise, ``import mujoco``
     # loads GLFW, which starts a ``python -c`` child to probe its library: a Ctrl-C during
-    # that import left the child behind. Before the first import, and unless the user chose.
-    os.environ.setdefault("MUJOCO_GL", "disable")
+    # that import left the child behind. Before the first import, and whatever the
+    # environment says, as for matplotlib's backend below: a renderer nothing here uses
+    # could only break the import (MUJOCO_GL=osmesa without its library, or a value MuJoCo
+    # does not know, was a traceback in every command that builds the simulated hand).
+    os.environ["MUJOCO_GL"] = "disable"
     # handctl's plots are files drawn on an Agg canvas, never a window, so matplotlib's
     # backend is none of the user's business here; a value matplotlib does not know made its
     # import raise after a whole run, whose summary was then never printed

@@ -1,12 +1,15 @@
 """handctl leaves MuJoCo's OpenGL alone: ``import mujoco`` under the command loads no GLFW (whose
-library probe is a child process that a Ctrl-C during the import would leave behind), unless
-the user chose a renderer."""
+library probe is a child process that a Ctrl-C during the import would leave behind), whatever
+the environment asks for: handctl renders nothing with it, and a renderer it cannot load broke
+the import."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+
+import pytest
 
 #: Runs the command (its help), then imports MuJoCo as the simulated hand does, and says
 #: what it found.
@@ -40,5 +43,9 @@ def test_the_command_imports_mujoco_without_its_opengl() -> None:
     assert _run(env) == ["disable", "False"]
 
 
-def test_a_renderer_the_user_chose_is_kept() -> None:
-    assert _run({**os.environ, "MUJOCO_GL": "glfw"}) == ["glfw", "True"]
+@pytest.mark.parametrize("chosen", ["glfw", "osmesa", "bogus"])
+def test_a_renderer_in_the_environment_is_not_loaded(chosen: str) -> None:
+    """``MUJOCO_GL=osmesa`` without its library was an AttributeError, and a value MuJoCo
+    does not know a RuntimeError, a traceback in every command that builds the simulated
+    hand."""
+    assert _run({**os.environ, "MUJOCO_GL": chosen}) == ["disable", "False"]
