@@ -377,6 +377,10 @@ def run_recipe(
         if recording is not None:
             _start_recording(recording, runtime, req, peer.spec, lockstep, peer.sim_hand)
         signals.checkpoint()
+        if recording is not None:
+            # the run begins: a log at --log before it is this run's from here; a run that
+            # ended before (refused, interrupted, failed to start) left it as it was
+            recording.claim()
         result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
         warnings += _run_warnings(result, req.hand)
         summary = summarise_run(
@@ -753,6 +757,7 @@ def _summary_if_interrupted(
         if recording is not None and not recording.closed:
             with suppress(HandctlError):  # said by the recorder's own exit
                 recording.close(summary)
+            recording.say_if_previous_kept()
         raise RunInterrupted(summary["message"], summary) from exc
 
     return finish
@@ -796,6 +801,7 @@ def _recorder(
         object_pairs=pose_pairs(objects, named),
         live_port=req.live_port,
         cpus=writer_cpus(loop_cpu, sim_cpu),
+        keep_previous=True,
     )
 
 

@@ -29,6 +29,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -206,17 +207,7 @@ def _open_log(path: Path, empty: bool = True) -> int:
         # A device or a pipe is no file to lock or to empty (a lock on /dev/null would be
         # every process's): only a regular file is.
         if stat.S_ISREG(os.fstat(fd).st_mode):
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                raise ConfigError(
-                    str(path),
-                    "",
-                    "a log no other run is writing (give this run another --log)",
-                    "another process writing it now (it holds the file's lock)",
-                ) from None
-            except OSError:
-                pass  # no locks on this file system: recorded unlocked
+            _lock(fd, path)
             try:
                 os.ftruncate(fd, 0 if empty else os.fstat(fd).st_size)  # writable, either way
             except OSError as exc:
@@ -227,6 +218,77 @@ def _open_log(path: Path, empty: bool = True) -> int:
         os.close(fd)
         raise
     return fd
+
+
+@dataclass
+class _Beside:
+    """A log written beside its path until the run begins (``Recorder.claim``): the path's
+    file held and locked for the run (the previous log, or an empty one made for it), and the
+    file the writer fills."""
+
+    target: Path  # the path, its symbolic links followed: where the log goes
+    held: int  # descriptor of the path's file, locked; -1 once claimed
+    temp: Path
+    created: bool  # the path named nothing before: the empty file there is this run's
+    claimed: bool = False
+
+
+def _open_beside(path: Path) -> tuple[int, _Beside] | None:
+    """The log's file beside ``path`` and the path locked (``_Beside``), or None where no
+    file can be made beside it (a device, a directory the run cannot write in): written in
+    place then, as before."""
+    target = Path(os.path.realpath(path))
+    created = True
+    try:
+        try:
+            held = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644)
+        except FileExistsError:
+            created = False
+            held = os.open(target, os.O_WRONLY | os.O_CLOEXEC)
+    except OSError as exc:
+        raise ConfigError(
+            str(path), "", "a path where the recording can be written", exc.strerror or str(exc)
+        ) from None
+    held = _above_stdio(held)
+    if not stat.S_ISREG(os.fstat(held).st_mode):
+        os.close(held)
+        return None
+    temp = target.with_name(f".{target.name}.{os.getpid()}.handctl-partial")
+    try:
+        _lock(held, path)
+        with contextlib.suppress(FileNotFoundError):
+            temp.unlink()  # left by a process of this pid that was killed
+        fd = _above_stdio(os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644))
+    except OSError:
+        os.close(held)
+        if created:
+            with contextlib.suppress(OSError):
+                target.unlink()
+        return None
+    except BaseException:
+        os.close(held)
+        if created:
+            with contextlib.suppress(OSError):
+                target.unlink()
+        raise
+    with contextlib.suppress(OSError):
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    return fd, _Beside(target, held, temp, created)
+
+
+def _lock(fd: int, path: Path) -> None:
+    """The run's lock on the log's path (``_open_log``): another run's is bad input."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise ConfigError(
+            str(path),
+            "",
+            "a log no other run is writing (give this run another --log)",
+            "another process writing it now (it holds the file's lock)",
+        ) from None
+    except OSError:
+        pass  # no locks on this file system: recorded unlocked
 
 
 def _shared_memory(size: int) -> int:
@@ -364,15 +426,24 @@ class Recorder:
         layout: RingLayout | None = None,
         live_port: int | None = None,
         cpus: Collection[int] | None = None,
+        keep_previous: bool = False,
     ) -> None:
-        """``cpus``: where the writer process may run (``writer_cpus``); None: anywhere.
+        """``keep_previous``: a log already at ``path`` stays there until the run begins
+        (``claim``); a run that ends before (refused, interrupted, failed to start) leaves
+        it as it was, and its own recording goes. A refused run used to empty the previous
+        log, or delete it. ``cpus``: where the writer process may run (``writer_cpus``);
+        None: anywhere.
         ``object_pairs``: the pairs of ``object_names`` (indices) whose centre line the pose
         messages carry, the recipe's ``pairs``; None: each object with the next."""
         self.path = Path(path)
         self.layout = layout or RingLayout(hand.n_joints, len(hand.fingers), len(object_names))
         #: The log's descriptor, kept to the end: it holds the file's lock with the writer's
         #: copy, and says at the end whether the path still names the file written.
-        self._log_fd = _open_log(self.path, empty=live_port is None)
+        beside = _open_beside(self.path) if keep_previous else None
+        self._beside = beside[1] if beside is not None else None
+        self._log_fd = (
+            beside[0] if beside is not None else _open_log(self.path, empty=live_port is None)
+        )
         self._live_port = live_port
         try:
             self._start_writer(
@@ -388,9 +459,12 @@ class Recorder:
         except BaseException:
             # The writer never had its set-up, so it wrote nothing: no file, rather than an
             # empty one that no reader (``handctl replay`` included) can open. Unlinked while
-            # this process still holds the lock, so no other run has started on it.
-            with contextlib.suppress(OSError):
-                self.path.unlink()
+            # this process still holds the lock, so no other run has started on it. A log
+            # there before is left as it was.
+            self._drop_beside()
+            if self._beside is None or self._beside.created:
+                with contextlib.suppress(OSError):
+                    (self.path if self._beside is None else self._beside.target).unlink()
             os.close(self._log_fd)
             raise
         self._ready = False
@@ -634,7 +708,7 @@ class Recorder:
                 )
             raise HandctlError(
                 f"{self.path}: the recording writer did not start: "
-                f"{err.decode(errors='replace').strip() or 'no answer'}"
+                f"{err.decode(errors='replace').strip() or 'no answer'}; nothing was sent"
             )
         self._ready = True
 
@@ -660,6 +734,13 @@ class Recorder:
                             f"messages for {stall_timeout_s:g} s (stopped or hung)"
                         ) from None
         except BrokenPipeError:
+            if not getattr(self, "_ready", False):
+                # said as ``wait_ready`` says it: whether the writer went while its set-up
+                # was still being sent or just after was a race (a full disk at the start)
+                raise _WriterGoneError(
+                    f"{self.path}: the recording writer did not start{self._why_gone()}; "
+                    "nothing was sent"
+                ) from None
             raise _WriterGoneError(
                 f"{self.path}: the recording writer is gone{self._why_gone()}"
             ) from None
@@ -1262,7 +1343,16 @@ class Recorder:
             # stderr was read only when it failed, and such a log was short of them silently
             self.stats["writer_notes"] = said
         self.stats["writer_exit"] = self.process.returncode
-        lost = self._lost()
+        lost = ""
+        if self._beside is not None and not self._beside.claimed and not self._beside.created:
+            self._drop_beside()  # the run never began: the log there before stays
+            self.stats["previous_kept"] = True
+        else:
+            try:
+                self.claim()  # a path that named nothing gets what the writer wrote
+            except HandctlError as exc:
+                problem = problem or str(exc).removeprefix(f"{self.path}: ")
+            lost = self._lost()
         os.close(self._log_fd)
         self._release()
         if lost:
@@ -1270,6 +1360,35 @@ class Recorder:
         if problem:
             raise HandctlError(f"{self.path}: {problem}")
         return self.stats
+
+    def claim(self) -> None:
+        """The run begins: from here the recording is the log at its path, whatever was
+        there before (``keep_previous``). Called before the first frame is sent."""
+        beside = self._beside
+        if beside is None or beside.claimed:
+            return
+        try:
+            os.rename(beside.temp, beside.target)
+        except OSError as exc:
+            raise HandctlError(
+                f"{self.path}: the recording could not be put at this path "
+                f"({exc.strerror or exc}; it was written to {beside.temp})"
+            ) from None
+        beside.claimed = True
+        os.close(beside.held)
+        beside.held = -1
+
+    def _drop_beside(self) -> None:
+        """The recording beside the path removed, and the path's file let go (an empty one
+        this run made is the caller's to remove)."""
+        beside = self._beside
+        if beside is None or beside.claimed:
+            return
+        with contextlib.suppress(OSError):
+            beside.temp.unlink()
+        if beside.held >= 0:
+            os.close(beside.held)
+            beside.held = -1
 
     def _hand_over(self, summary: dict[str, Any] | None, stall_timeout_s: float) -> str:
         """The summary to the writer; what went wrong ("" if nothing did)."""
@@ -1431,3 +1550,10 @@ class Recorder:
                 _say(
                     f"handctl: and the run's log {self.path} is lost or may be incomplete: {error}"
                 )
+            return
+        self.say_if_previous_kept()
+
+    def say_if_previous_kept(self) -> None:
+        """One line when the run ended before it began and the log at its path was kept."""
+        if self.stats.get("previous_kept"):
+            _say(f"handctl: {self.path}: the run never began; the log there before is kept")

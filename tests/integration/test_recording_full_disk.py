@@ -115,11 +115,12 @@ def test_rings_the_host_will_not_give_are_an_error_before_the_run(tmp_path: Path
 def test_a_log_whose_disk_is_full_at_the_start_says_why(tiny_disk: Path) -> None:
     """A disk that fills as the log starts: the run said "the recording writer is gone" and
     no more (an outside probe, 3 runs in 3). It says the writer's own last word, the
-    system's error; nothing was sent."""
+    system's error; nothing was sent. The same words whether the writer went while its
+    set-up was sent or just after it (a race)."""
     log = tiny_disk / "run.mcap"
     done = handctl("run", "recipe", DEFAULT_RECIPE, "--log", str(log), "--max-seconds", "0.5")
     assert done.returncode == 1, done.stderr
     assert (
-        f"handctl: error: {log}: the recording writer is gone: OSError: [Errno 28] No space "
-        "left on device"
+        f"handctl: error: {log}: the recording writer did not start: OSError: [Errno 28] No "
+        "space left on device; nothing was sent"
     ) in done.stderr

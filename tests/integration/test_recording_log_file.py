@@ -235,12 +235,19 @@ def test_a_hung_writer_holds_no_send_of_a_summary_larger_than_the_pipe(
     assert said.endswith("(stopped or hung), and the run's summary is not in it")
 
 
-def test_a_writer_the_open_files_limit_keeps_from_starting_is_said(tmp_path: Path) -> None:
+@pytest.mark.parametrize("before", [False, True])
+def test_a_writer_the_open_files_limit_keeps_from_starting_is_said(
+    tmp_path: Path, before: bool
+) -> None:
     """Under ``ulimit -n`` 13 to 16 the writer's pipes or process could not be made: an
-    ``OSError`` traceback (or, at 12, a message naming /dev/null), and no word of the limit."""
+    ``OSError`` traceback (or, at 12, a message naming /dev/null), and no word of the limit.
+    A log at the path before is left as it was (it was deleted)."""
     import resource
 
     log = tmp_path / "run.mcap"
+    previous = b"\x89MCAP0\r\n a previous run's log"
+    if before:
+        log.write_bytes(previous)
 
     def few_files() -> None:
         resource.setrlimit(resource.RLIMIT_NOFILE, (14, 14))
@@ -256,7 +263,40 @@ def test_a_writer_the_open_files_limit_keeps_from_starting_is_said(tmp_path: Pat
         "the recording writer could not be started: Too many open files (the open-files "
         "limit, ulimit -n); nothing was sent"
     ) in done.stderr
-    assert not log.exists()
+    assert (log.read_bytes() == previous) if before else not log.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["run.mcap"] if before else [])
+
+
+def test_a_previous_log_is_replaced_only_once_the_run_begins(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A run refused or failed before it began (its simulated hand not starting, a bus not
+    there, a signal during its start-up) emptied or deleted the log at its path, and left a
+    log of nothing. The recording goes beside the path until the run begins (``claim``),
+    and through a symbolic link as before."""
+    log = tmp_path / "run.mcap"
+    previous = b"\x89MCAP0\r\n a previous run's log"
+    log.write_bytes(previous)
+    never = Recorder(log, hand, start_metadata(hand, None, ("never",)), keep_previous=True)
+    assert log.read_bytes() == previous  # while the run starts
+    stats = never.close({"outcome": "never began"})
+    assert stats["previous_kept"] and log.read_bytes() == previous
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
+    began = Recorder(log, hand, start_metadata(hand, None, ("began",)), keep_previous=True)
+    began.claim()
+    began.close({"outcome": "began"})
+    assert open_recording(log).json_meta("handctl.summary") == {"outcome": "began"}
+    link = tmp_path / "link.mcap"
+    link.symlink_to(log)
+    fresh = tmp_path / "fresh.mcap"
+    for path, outcome in ((link, "through a link"), (fresh, "nothing there before")):
+        recorder = Recorder(path, hand, start_metadata(hand, None, ("x",)), keep_previous=True)
+        if path == link:
+            recorder.claim()
+        recorder.close({"outcome": outcome})  # a path that named nothing: the log is put there
+        assert open_recording(path).json_meta("handctl.summary") == {"outcome": outcome}
+    assert link.is_symlink() and open_recording(log).complete
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fresh.mcap", "link.mcap", "run.mcap"]
 
 
 def _writer_running(run_pid: int) -> bool:
