@@ -4,7 +4,12 @@ import os
 import signal
 import sys
 
-from handctl.stopsignals import ENDING, ignore_stops, interrupt  # standard library only
+from handctl.stopsignals import (  # standard library only
+    ENDING,
+    drives_a_hand,
+    ignore_stops,
+    interrupt,
+)
 
 
 def _standard_descriptors() -> None:
@@ -27,7 +32,7 @@ def _load_orjson() -> None:
     imports it makes, and an interrupt raised inside one (a Ctrl-C in the first half second
     of any command that reads JSON) crashed the process (SIGSEGV). Held back, the signal
     comes right after, as the interrupt it is."""
-    held = {signal.SIGINT, signal.SIGTERM, *ENDING}
+    held = {signal.SIGINT, signal.SIGTERM, signal.SIGTSTP, *ENDING}
     before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:
         import orjson  # noqa: F401  # loaded here for the reason above
@@ -56,6 +61,8 @@ def entry() -> int:
     for sig in ENDING:
         if signal.getsignal(sig) is not signal.SIG_IGN:
             signal.signal(sig, interrupt)
+    if drives_a_hand(sys.argv[1:]):  # Ctrl-Z as well (``stopsignals.DRIVING`` says why)
+        signal.signal(signal.SIGTSTP, interrupt)
     try:
         _load_orjson()
         from handctl.cli import leave, main

@@ -13,7 +13,7 @@ from __future__ import annotations
 import contextlib
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -85,12 +85,26 @@ def raised() -> str:
     return _Command.raised
 
 
+#: The commands that drive a hand: their Ctrl-Z (SIGTSTP) is a stop from the first line
+#: (``__main__.entry``), not only once a run's ``StopSignals`` takes it. Before, one that
+#: came while the command's modules loaded (seconds on a loaded machine) suspended the
+#: process, and once resumed the run went on to drive the hand and exit 0, the operator's
+#: stop lost. Every other command may be suspended as any program is.
+DRIVING = ("run", "jog", "calibrate")
+
+
+def drives_a_hand(argv: Sequence[str]) -> bool:
+    """Whether ``argv`` (without the program's name) is a command of ``DRIVING``: its first
+    word that is not an option."""
+    return next((a for a in argv if not a.startswith("-")), "") in DRIVING
+
+
 def ignore_stops() -> None:
     """The stop signals this command takes as Ctrl-C (``interrupt``) ignored for what is left
     of it, the interpreter's shutdown: the shutdown puts back the default of every signal with
     a Python handler, and a SIGTERM in its last tens of milliseconds killed the process by the
     signal (exit 143), after a command that had its result or had said "interrupted"."""
-    for sig in (signal.SIGINT, signal.SIGTERM, *ENDING):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGTSTP, *ENDING):
         if signal.getsignal(sig) is interrupt:
             signal.signal(sig, signal.SIG_IGN)
 
