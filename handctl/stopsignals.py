@@ -89,14 +89,18 @@ def raised() -> str:
 #: (``__main__.entry``), not only once a run's ``StopSignals`` takes it. Before, one that
 #: came while the command's modules loaded (seconds on a loaded machine) suspended the
 #: process, and once resumed the run went on to drive the hand and exit 0, the operator's
-#: stop lost. Every other command may be suspended as any program is.
+#: stop lost. ``replay --to-bus`` as well. Every other command may be suspended as any
+#: program is.
 DRIVING = ("run", "jog", "calibrate")
 
 
 def drives_a_hand(argv: Sequence[str]) -> bool:
-    """Whether ``argv`` (without the program's name) is a command of ``DRIVING``: its first
-    word that is not an option."""
-    return next((a for a in argv if not a.startswith("-")), "") in DRIVING
+    """Whether ``argv`` (without the program's name) is a command of ``DRIVING`` (its first
+    word that is not an option), or a replay onto a bus."""
+    command = next((a for a in argv if not a.startswith("-")), "")
+    if command == "replay":
+        return any(a == "--to-bus" or a.startswith("--to-bus=") for a in argv)
+    return command in DRIVING
 
 
 def ignore_stops() -> None:

@@ -16,7 +16,7 @@ from handctl.online.drivers.hand import HandDriver
 from handctl.online.loop import Outcome, RunResult, Runtime
 from handctl.online.recipes.loader import load_recipe
 from handctl.protocol import Protocol
-from handctl.stopsignals import StopSignals, held_back, signal_name
+from handctl.stopsignals import StopSignals, drives_a_hand, held_back, signal_name
 
 from ..conftest import ROOT
 
@@ -242,3 +242,26 @@ def test_an_interrupt_that_came_out_as_another_error_is_said_as_the_interrupt(
     working()  # a command of its own: no interrupt raised in it, the error is a bug
     assert cli._run(fails, argparse.Namespace()) == cli.EXIT_FAILED
     assert "handctl: internal error: ImportError: initialization failed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "drives"),
+    [
+        (["run", "recipe", "r.yaml"], True),
+        (["jog", "f1_j2", "--torque", "0.01"], True),
+        (["calibrate", "tdt", "-o", "c.yaml"], True),
+        (["replay", "log.mcap", "--to-bus", "unix:bus"], True),
+        (["replay", "log.mcap", "--to-bus=unix:bus"], True),
+        (["replay", "log.mcap", "--rerun"], False),
+        (["plan", "t.yaml", "-o", "r.yaml"], False),
+        (["--version"], False),
+        ([], False),
+    ],
+)
+def test_the_commands_that_drive_a_hand_take_ctrl_z_from_their_first_line(
+    argv: list[str], drives: bool
+) -> None:
+    """A Ctrl-Z while such a command loaded suspended it, and once resumed it drove the hand
+    (``replay --to-bus`` enabled the nodes and sent 3855 commands after ``fg``); any other
+    command may be suspended."""
+    assert drives_a_hand(argv) is drives
