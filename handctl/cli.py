@@ -669,7 +669,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     if replaces_log:
         print(
             f"handctl: warning: --log: {escaped(str(args.log))} is a recording already; "
-            "this run's replaces it once the run begins",
+            "this run's replaces it",
             file=sys.stderr,
         )
     try:
@@ -1473,8 +1473,11 @@ def _check_replay_options(args: argparse.Namespace) -> None:
         check_port_free(args.live, "--live")
     if args.to_bus == "":  # taken for no --to-bus: nothing sent, exit 0
         raise ConfigError("--to-bus", "", "a bus (unix:DIRECTORY, or a CAN interface)", "")
-    if args.export and not args.export[1]:  # the directory '.'
-        raise ConfigError("--export", "FILE", "a file name", "")
+    if args.export and args.export[1] in ("", "-"):
+        # '' the directory '.'; '-' was written as a file of that name where standard
+        # output was meant, as every other output option refuses it
+        why = " (standard output is not written to: give a file)" if args.export[1] else ""
+        raise ConfigError("--export", "FILE", f"a file name{why}", args.export[1])
     if args.speed is not None and not (args.to_bus or args.live is not None):
         raise ConfigError(
             "--speed",

@@ -280,7 +280,19 @@ class _FaultsHeard:
             if found is None:
                 continue
             finger, layout = found
-            if finger.node_id not in self.left.enabled or not layout.crc_ok(frame.data):
+            if finger.node_id not in self.left.enabled:
+                continue
+            if len(frame.data) != layout.length:
+                # a node of another hand config on the bus (fewer joints a node, another
+                # protocol): the recorded hand's enable was taken, its Feedback never read,
+                # so its FAULT went unheard and the replay sent on to the end, exit 0
+                self.first = (
+                    f"node {finger.node_id} ({finger.name}) answers with a {layout.name} of "
+                    f"{len(frame.data)} bytes where the recorded hand's is {layout.length}: a "
+                    "hand of another config is on the bus, and the replay stopped there"
+                )
+                return True
+            if not layout.crc_ok(frame.data):
                 continue
             feedback = parse_feedback(layout.decode(frame.data)[1])
             if feedback.state == self._fault:

@@ -807,6 +807,17 @@ def test_a_fault_is_heard_only_from_a_node_the_replay_had_enabled(hand: HandConf
     assert not heard.hear([feedback(NodeState.ENABLED)])
     assert heard.hear([feedback(NodeState.ENABLED), feedback(NodeState.FAULT, timeout)])
     assert heard.first.startswith(f"node {node} ({hand.fingers[0].name}) went into FAULT (")
+    # a node of another hand config: a Feedback of another length on the same id, which
+    # never decoded, so that hand's FAULT went unheard (an outside probe: exit 0)
+    other = _FaultsHeard(hand, left)
+    short = feedback(NodeState.ENABLED)
+    assert other.hear([short._replace(data=short.data[:-2])])
+    assert other.first == (
+        f"node {node} ({hand.fingers[0].name}) answers with a {layouts.feedback.name} of "
+        f"{layouts.feedback.length - 2} bytes where the recorded hand's is "
+        f"{layouts.feedback.length}: a hand of another config is on the bus, and the replay "
+        "stopped there"
+    )
 
 
 def test_the_replay_s_stop_imports_nothing(
@@ -1074,3 +1085,15 @@ def test_ctrl_c_stops_a_rerun_at_once(recorded: Recorded, monkeypatch: pytest.Mo
     finally:
         signal.signal(signal.SIGINT, before)
     assert after == [100]  # not one tick more
+
+
+@pytest.mark.parametrize("name", ["", "-"])
+def test_an_export_to_no_file_name_is_refused(
+    recorded: Recorded, tmp_path: Path, name: str
+) -> None:
+    """``--export candump -`` wrote a file named '-' in the current directory, where every
+    other output option refuses it as standard output."""
+    done = handctl("replay", str(recorded.path), "--export", "candump", name, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert "--export: FILE: expected a file name" in done.stderr
+    assert list(tmp_path.iterdir()) == []
