@@ -411,7 +411,10 @@ def parse_protocol(text: str, source: str) -> Protocol:
     try:
         db: Any = cantools.database.load_string(text, database_format="dbc", strict=True)
     except Exception as exc:  # cantools raises many kinds of parse errors
-        raise ConfigError(source, "", "a valid DBC", f"{type(exc).__name__}: {exc}") from None
+        # the parser's whole message (cut to 80 characters, which signals overlap went)
+        raise ConfigError(
+            source, "", "a valid DBC", Description(f"{type(exc).__name__}: {exc}")
+        ) from None
     send_choices = _enum_choices(db, "HandctlSend")
     layouts = [_compile(message, source, send_choices) for message in db.messages]
     frame_ids: dict[int, str] = {}

@@ -95,7 +95,9 @@ def read_input(path: str | Path, expected: str, limit: int) -> bytes:
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
-        raise ConfigError(name, "", "an existing file", _Text(absent(Path(path)))) from None
+        raise ConfigError(
+            name, "", f"an existing file ({expected})", _Text(absent(Path(path)))
+        ) from None
     except OSError as exc:
         raise ConfigError(name, "", expected, str(exc)) from None
     try:

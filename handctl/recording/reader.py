@@ -772,7 +772,8 @@ def require_content(recording: Recording) -> None:
         str(recording.path),
         "",
         "a recording with something in it to read (metadata, a channel or a chunk)",
-        f"none: {recording.problem or 'nothing after the magic bytes'}",
+        # told, not read: whole (cut to 80 characters, the part that said why went)
+        Description(f"none: {recording.problem or 'nothing after the magic bytes'}"),
     )
 
 

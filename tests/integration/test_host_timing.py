@@ -179,6 +179,12 @@ def test_a_recorded_sequence_that_is_a_fifo_is_refused_not_waited_on(tmp_path: P
     text.write_text("timing: no\n")
     done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(text)})
     assert done.returncode == 2 and f"expected valid JSON ({INJECT_ENV})" in done.stderr
+    missing = tmp_path / "no-such.json"
+    done = handctl("check", "--timing", "--seconds", "0.2", env={INJECT_ENV: str(missing)})
+    assert done.returncode == 2, done.stderr
+    assert (
+        f"{missing}: expected an existing file (a readable JSON file ({INJECT_ENV}))" in done.stderr
+    )
 
 
 def test_a_run_on_a_real_bus_is_refused_on_a_failing_host(tmp_path: Path, hand: HandConfig) -> None:

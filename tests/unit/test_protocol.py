@@ -102,6 +102,21 @@ def test_dbc_breaking_the_conventions_is_refused(tmp_path: Path) -> None:
     assert "byte-aligned" in info.value.expected
 
 
+def test_a_dbc_the_parser_refuses_is_said_whole(tmp_path: Path) -> None:
+    """The parser's message was cut to 80 characters in its middle, and which signals
+    overlapped, at its end, went with the cut."""
+    text = DEFAULT_DBC.read_text()
+    bad = text.replace("SG_ Torque1 : 16|16@1- (0.0001,0)", "SG_ Torque1 : 8|16@1- (0.0001,0)", 1)
+    assert bad != text
+    path = tmp_path / "overlap.dbc"
+    path.write_text(bad)
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    message = str(info.value)
+    assert "a valid DBC" in message and "..." not in message
+    assert "The signals Torque1 and Counter are overlapping in message TorqueCommand_1" in (message)
+
+
 @pytest.mark.parametrize(
     "factor, says",
     [("0", "factor 0,"), ("-0.0001", "factor -0.0001,")],
