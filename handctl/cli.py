@@ -669,7 +669,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
     if replaces_log:
         print(
             f"handctl: warning: --log: {escaped(str(args.log))} is a recording already; "
-            "this run's replaces it",
+            "this run's replaces it once the run begins",
             file=sys.stderr,
         )
     try:
