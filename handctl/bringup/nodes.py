@@ -172,6 +172,7 @@ def survey(
     nodes = [FingerNode(f, FingerLayouts.for_node(protocol, f.node_id)) for f in hand.fingers]
     dispatch = {fid: node for node in nodes for fid in node.streams}
     counts: dict[int, Counter[str]] = {node.node_id: Counter() for node in nodes}
+    heard = {node.node_id: _Heard() for node in nodes}
     foreign = IdCounts()
     events: Counter[str] = Counter()
     bus.use_clock(clock)
@@ -191,6 +192,7 @@ def survey(
             count["frames"] += 1
             if node.receive(fid, frame.data, frame.timestamp_ns) is None:
                 count[node.streams[fid][0].kind] += 1
+            heard[node.node_id].hear(node, fid, frame.data)
         for event in bus.events():
             events[event.kind.value] += 1
         now = clock()
@@ -207,6 +209,7 @@ def survey(
             elapsed,
             message_rate(node.layouts.feedback, hand.bus.loop_rate_hz),
             lost,
+            heard[node.node_id],
         )
         for node in nodes
     ]
@@ -231,8 +234,61 @@ def id_text(frame_id: int) -> str:
     return f"0x{frame_id:03X}"
 
 
+class _Heard:
+    """What a node said during the survey besides its last word: the node's state at the end
+    is what the table shows, and a node that was in FAULT and left it with no reset from any
+    host, one that rebooted, or one whose angles were past its limits said "ok", exit 0."""
+
+    def __init__(self) -> None:
+        self.fault_bits: int | None = None  # the bits of the first FAULT heard
+        self.outside = ""  # the first angle heard past its joint's limits
+        self.uptime_ms: int | None = None
+        #: Heartbeats whose uptime went back. Read from every intact Heartbeat, the ones
+        #: refused for their counter too: a rebooted node's counters restart, so its first
+        #: Heartbeat is refused, and the next may already say more uptime than the last one
+        #: the driver took (a node that had been up a short while), and the reboot went
+        #: unsaid (``FingerNode.reboots`` counts what the run's driver takes).
+        self.reboots = 0
+
+    def hear(self, node: FingerNode, frame_id: int, data: bytes) -> None:
+        heartbeat = node.layouts.heartbeat
+        if frame_id == heartbeat.frame_id and heartbeat.crc_ok(data):
+            uptime = int(heartbeat.decode(data)[1][1])
+            if self.uptime_ms is not None and uptime < self.uptime_ms:
+                self.reboots += 1
+            self.uptime_ms = uptime
+        if node.state == NodeState.FAULT and self.fault_bits is None:
+            self.fault_bits = node.fault_bits
+        feedback = node.feedback
+        if feedback is None or self.outside:
+            return
+        for joint, angle in zip(node.finger.joints, feedback.angles, strict=False):
+            if not joint.angle_min <= angle <= joint.angle_max:
+                self.outside = (
+                    f"{joint.name} read {angle:+.3f} rad, past its limits "
+                    f"[{joint.angle_min:+.2f}, {joint.angle_max:+.2f}]"
+                )
+                return
+
+    def problems(self, node: FingerNode) -> list[str]:
+        said = []
+        if self.fault_bits is not None and node.state != NodeState.FAULT:
+            bits = ", ".join(fault_names(self.fault_bits)) or "no bits"
+            said.append(f"was in FAULT ({bits}) during the survey and left it")
+        if self.reboots:
+            said.append(f"rebooted during the survey (its uptime went back, {self.reboots}x)")
+        if self.outside:
+            said.append(self.outside)
+        return said
+
+
 def _row(
-    node: FingerNode, count: Counter[str], elapsed: float, expected_hz: float, lost: int
+    node: FingerNode,
+    count: Counter[str],
+    elapsed: float,
+    expected_hz: float,
+    lost: int,
+    heard: _Heard | None = None,
 ) -> NodeRow:
     present = count["frames"] > 0
     status = node.status
@@ -258,8 +314,9 @@ def _row(
         problem = "ENABLED: another host is driving it, or left it enabled"
     feedback_hz = count["Feedback"] / elapsed
     if present:
-        heard = feedback_problem(node.rejects.as_dict(), feedback_hz, expected_hz, lost)
-        problem = "; ".join(p for p in (problem, heard) if p)
+        rates = feedback_problem(node.rejects.as_dict(), feedback_hz, expected_hz, lost)
+        also = heard.problems(node) if heard is not None else []
+        problem = "; ".join(p for p in (problem, rates, *also) if p)
     return NodeRow(
         node_id=node.node_id,
         name=node.finger.name,

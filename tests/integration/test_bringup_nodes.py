@@ -354,3 +354,55 @@ def test_a_unix_bus_no_hand_is_on_is_said_and_not_made(
     assert "--bus: channel: expected the directory of a unix bus a hand is on" in err
     assert f"found {missing}: no such directory" in err
     assert not missing.exists()
+
+
+def test_a_node_that_faulted_and_rebooted_during_the_survey_is_no_ok(
+    hand: HandConfig, channel: str
+) -> None:
+    """The table shows each node's last word: a node in FAULT that rebooted (and so came back
+    DISABLED, its bits cleared, with no reset from any host) said "ok", exit 0 (an outside
+    probe). The reboot comes once the survey has listened for 0.2 s, from its own sleep."""
+    from handctl.bringup.nodes import survey
+    from handctl.hand_protocol import protocol_for
+
+    spec = f"virtual:{channel}"
+    with running_hand(hand, spec, _sensor_fault_3) as sim, open_bus(spec, hand.bus) as bus:
+        began = time.monotonic()
+        rebooted: list[float] = []
+
+        def sleep(seconds: float) -> None:
+            time.sleep(seconds)
+            if not rebooted and time.monotonic() - began > 0.2:
+                sim.activate(inj.NodeReboot(node=3, downtime=0.02))
+                rebooted.append(time.monotonic() - began)
+
+        found = survey(hand, protocol_for(hand), bus, 1.0, sleep=sleep)
+    row = {r.node_id: r for r in found.rows}[3]
+    assert rebooted and not found.ok
+    assert row.state == "DISABLED", row
+    assert "was in FAULT (SENSOR) during the survey and left it" in row.problem, row
+    assert "rebooted during the survey (its uptime went back, 1x)" in row.problem, row
+    assert {r.node_id: r for r in found.rows}[1].problem == ""
+
+
+def test_an_angle_past_its_joint_s_limits_is_no_ok(hand: HandConfig) -> None:
+    """A node whose f1_j1 read 3.0 rad, outside its [-1.00, 1.90], was listed "ok"."""
+    from handctl.bringup.nodes import _Heard
+    from handctl.hand_protocol import protocol_for
+    from handctl.online.drivers.finger import FingerLayouts, FingerNode
+    from handctl.protocol import NodeState
+
+    finger = hand.fingers[0]
+    node = FingerNode(finger, FingerLayouts.for_node(protocol_for(hand), finger.node_id))
+    layout = node.layouts.feedback
+    k = len(finger.joints)
+    heard = _Heard()
+    for counter, angle in enumerate((0.5, 3.0)):
+        angles = (angle,) + (0.0,) * (k - 1)
+        data = layout.encode(counter, (0.0,) * k + angles + (int(NodeState.DISABLED), 0))
+        node.receive(layout.frame_id, data, counter * 1_000_000)
+        heard.hear(node, layout.frame_id, data)
+    assert heard.problems(node) == [
+        f"{finger.joints[0].name} read +3.000 rad, past its limits "
+        f"[{finger.joints[0].angle_min:+.2f}, {finger.joints[0].angle_max:+.2f}]"
+    ]
