@@ -2395,6 +2395,9 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     stopped = _run_outcome(result.report)
     if stopped is None and result.recovery is not None:
         return _recovery_outcome(result, hand)
+    if stopped is None and result.tdt_problem:
+        print(f"handctl: FAILED: {result.tdt_problem}", file=sys.stderr)
+        return EXIT_FAILED
     return EXIT_OK if stopped is None else stopped
 
 

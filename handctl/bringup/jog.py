@@ -90,6 +90,9 @@ class JogReport:
     recovery: Recovery | None = None  # with ``recover``: what the supervisor saw of it
     #: the jogged joint's node latched SENSOR: ``end_angle`` is the last reading before it
     encoder_failed: bool = False
+    #: the TDT against the torque applied over the hold ("" if it followed, or the hold was
+    #: too short to judge): ``tdt_problem``
+    tdt_problem: str = ""
 
     @property
     def moved(self) -> float | None:
@@ -113,6 +116,7 @@ class JogSink:
         every: int | None = None,
         *,
         node: str,
+        torque: float = 0.0,
     ) -> None:
         self.index = index
         #: how the supervisor names the jogged joint's node (``node N (FINGER)``): its SENSOR
@@ -127,6 +131,12 @@ class JogSink:
         self.start_angle: float | None = None
         self.end_angle: float | None = None
         self.max_abs_tdt = 0.0
+        #: over the ticks the jog's torque was applied whole (the hold): how many, and the
+        #: sums of the applied torque and of the TDT's reading (``tdt_problem``)
+        self.torque = torque
+        self.held = 0
+        self.held_applied = 0.0
+        self.held_tdt = 0.0
         self._first_tick: int | None = None
         #: the last tick's line if it was not shown, as JogLine's fields (made a line only
         #: if it is: a frozen dataclass every tick was work in the tick): shown by ``finish``
@@ -152,6 +162,12 @@ class JogSink:
             self.end_angle = angle
         if np.isfinite(tdt):
             self.max_abs_tdt = max(self.max_abs_tdt, abs(tdt))
+            applied = float(record.applied[j])
+            whole = abs(applied - self.torque) <= 1e-3 * abs(self.torque)  # on the wire's grid
+            if self.torque and whole and not self.encoder_failed:
+                self.held += 1
+                self.held_applied += applied
+                self.held_tdt += tdt
         new_phase = record.phase != self._phase
         self._phase = record.phase
         if self.show is None:
@@ -185,6 +201,34 @@ class JogSink:
         if self.show is not None and self._unshown is not None:
             self.show(JogLine(*self._unshown))
             self._unshown = None
+
+
+#: ticks of the hold a TDT is judged on, at the least (a tenth of a second at 1 kHz): a jog
+#: stopped sooner says nothing of its sensor
+TDT_JUDGED_TICKS = 100
+#: the range the TDT's mean over the hold may be in, as a fraction of the applied torque's:
+#: a sensor of the other sign, of another scale, dead or stuck, or a joint that does not get
+#: its torque (a saturated drive) is outside it
+TDT_FOLLOWS = (0.5, 2.0)
+
+
+def tdt_problem(joint: str, sink: JogSink) -> str:
+    """What is wrong with the TDT of the jogged joint over the hold ("" if nothing). The
+    supervisor's own check allows 0.02 N·m and 15 %, as much as the small torques a jog is
+    run at: a jog at 0.02 N·m whose TDT read 0.005 said "completed", exit 0, and the step
+    of the bring-up meant to find a dead or mis-scaled sensor passed it."""
+    if sink.held < TDT_JUDGED_TICKS:
+        return ""
+    applied, read = sink.held_applied / sink.held, sink.held_tdt / sink.held
+    low, high = TDT_FOLLOWS
+    if read * applied > 0 and low <= read / applied <= high:
+        return ""
+    return (
+        f"{joint}'s TDT read {read:+.4f} N·m on average over the {sink.held} ticks "
+        f"{applied:+.4f} N·m was applied (expected between {low:g} and {high:g} times it): "
+        "a torque sensor that does not follow its joint (its sign, its scale, dead or "
+        "stuck), or a drive that does not give the torque commanded"
+    )
 
 
 def joint_index(hand: HandConfig, joint: str) -> int:
@@ -310,7 +354,9 @@ def jog(
     j = joint_index(hand, joint)
     recovery = Recovery(j, 1 if torque > 0 else -1) if recover else None
     finger = next(f for f in hand.fingers if joint in {k.name for k in f.joints})
-    sink = JogSink(j, show, hand.bus.period_s, node=f"node {finger.node_id} ({finger.name})")
+    sink = JogSink(
+        j, show, hand.bus.period_s, node=f"node {finger.node_id} ({finger.name})", torque=torque
+    )
     report = run_recipe(
         RunRequest(
             hand=hand,
@@ -336,4 +382,5 @@ def jog(
         sink.max_abs_tdt,
         recovery,
         sink.encoder_failed,
+        "" if recover else tdt_problem(joint, sink),
     )

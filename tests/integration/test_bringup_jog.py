@@ -550,3 +550,30 @@ def test_a_jog_at_the_most_it_may_ask_ends_inside_every_limit(
     )
     result = jog(hand, joint, torque, seconds=1.5)
     assert result.report.result.outcome is Outcome.COMPLETED, result.report.result.message
+
+
+@pytest.mark.parametrize(
+    "fault",
+    [
+        "{kind: motor_saturation, node: 1, joint: 1, limit: 0.005, start: 0.0}",
+        "{kind: tdt_offset, node: 1, joint: 1, offset: -0.012, start: 0.0}",
+    ],
+    ids=["saturated", "offset"],
+)
+def test_a_tdt_that_does_not_follow_the_jog_fails_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], fault: str
+) -> None:
+    """The supervisor allows the TDT 0.02 N·m and 15 % off the command, as much as a jog's
+    small torque: a jog at 0.02 N·m whose TDT read a quarter of it said "completed", exit 0
+    (an outside probe), the bring-up step meant to find such a sensor passed it. (A stuck
+    sensor, or one further off, the supervisor stops on.)"""
+    faults = tmp_path / "faults.yaml"
+    faults.write_text(f"faults:\n  - {fault}\n")
+    args = ["jog", "f1_j1", "--torque", "0.02", "--seconds", "0.5"]
+    code = cli.main([*args, "--sim-faults", str(faults)])
+    err = capsys.readouterr().err
+    assert code == cli.EXIT_FAILED, err
+    assert "handctl: FAILED: f1_j1's TDT read " in err
+    assert "was applied (expected between 0.5 and 2 times it)" in err
+    assert cli.main(args) == cli.EXIT_OK  # the same jog on the sound sensor
+    assert "FAILED" not in capsys.readouterr().err
