@@ -47,8 +47,11 @@ from pathlib import Path
 from typing import Any
 
 #: What an interpreter or the libraries handctl's command line imports read from the
-#: environment as they start; a command whose value differs from the server's runs cold
-START_UP_ENV = ("PYTHON", "LC_", "LANG", "OMP_", "OPENBLAS_", "MKL_", "NUMEXPR_", "MUJOCO_", "MPL")
+#: environment as they start; a command whose value differs from the server's runs cold.
+#: Not MUJOCO_GL or MPLBACKEND: handctl's command line sets the one and drops the other
+#: whatever the environment says, and every in-process ``cli.main`` of a test did so in the
+#: worker's own environment, which then sent every later command cold
+START_UP_ENV = ("PYTHON", "LC_", "LANG", "OMP_", "OPENBLAS_", "MKL_", "NUMEXPR_")
 _HEADER = struct.Struct("!I")
 #: What the server imports: the command line, and what loading a hand and running a recipe
 #: on the simulated hand import (numpy, python-can, MuJoCo, the recorder's MCAP); the plots'

@@ -57,6 +57,10 @@ def test_an_environment_read_as_python_starts_is_a_cold_start() -> None:
     assert warm.takes({**warm.env, "HANDCTL_X": "1"})
     assert not warm.takes({**warm.env, "PYTHONHASHSEED": "7"})
     assert not warm.takes({**warm.env, "LC_ALL": "C"})
+    # what handctl's command line sets or drops itself, as an in-process ``cli.main`` of a
+    # test does in the worker's environment: no reason for a cold start
+    assert warm.takes({**warm.env, "MUJOCO_GL": "disable"})
+    assert warm.takes({k: v for k, v in warm.env.items() if k != "MPLBACKEND"})
     without = {k: v for k, v in warm.env.items() if k != "PATH"}
     assert warm.takes(without)
 
