@@ -259,17 +259,13 @@ def _open_beside(path: Path) -> tuple[int, _Beside] | None:
         with contextlib.suppress(FileNotFoundError):
             temp.unlink()  # left by a process of this pid that was killed
         fd = _above_stdio(os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644))
-    except OSError:
+    except BaseException as exc:
         os.close(held)
         if created:
             with contextlib.suppress(OSError):
                 target.unlink()
-        return None
-    except BaseException:
-        os.close(held)
-        if created:
-            with contextlib.suppress(OSError):
-                target.unlink()
+        if isinstance(exc, OSError):  # no file beside it: written in place
+            return None
         raise
     with contextlib.suppress(OSError):
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -212,9 +213,15 @@ def sim_on_unix_bus(bus: Path) -> Iterator[subprocess.Popen[bytes]]:
             time.sleep(0.05)
         yield sim
     finally:
-        sim.send_signal(signal.SIGINT)
-        try:
-            sim.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
+        stop_with_ctrl_c(sim, 60)
+
+
+def stop_with_ctrl_c(process: subprocess.Popen[Any], timeout_s: float) -> None:
+    """A simulated hand's process ended as a user ends it, killed if it has not within
+    ``timeout_s``."""
+    process.send_signal(signal.SIGINT)
+    try:
+        process.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()

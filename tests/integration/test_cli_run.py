@@ -31,7 +31,7 @@ from .realtime import (
     sim_cpu_verdict,
     stopped_by_load,
 )
-from .rig import HOLD_LONG, TWO_PHASES, read_until
+from .rig import HOLD_LONG, TWO_PHASES, read_until, stop_with_ctrl_c
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
 
@@ -554,12 +554,7 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
                 give_up(f"{run} run: every attempt was stopped by the load", failures)
         assert sim.poll() is None, log.read_text()
     finally:
-        sim.send_signal(signal.SIGINT)
-        try:
-            sim.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
+        stop_with_ctrl_c(sim, 30)
 
 
 def _status_on_a_terminal(tmp_path: Path, env: dict[str, str]) -> str:
