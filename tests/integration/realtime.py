@@ -10,13 +10,16 @@ such a run is tried again; the run's own timing probe (the bare timer loop besid
 from __future__ import annotations
 
 import re
-from typing import NoReturn
+from pathlib import Path
+from typing import Any, NoReturn
 
 import pytest
+import yaml
 
-from handctl.config import HandConfig
+from handctl.config import MAX_FEEDBACK_TIMEOUT_S, HandConfig
 from handctl.hostcheck import Deadlines, Probe, ProbeRecord, beside_probe, judge
 from handctl.online.clock import LOOP_PRIORITY
+from handctl.protocol import most_misses_before_watchdog
 
 #: The real-time tests' mark: under pytest-xdist they form one unit of work
 #: (``tests/worker_units.py``), run on one worker one after another, so that no two of them
@@ -40,6 +43,35 @@ MISSED = re.compile(
 )
 #: What a run prints when the simulated hand's CPU stalled longer than the feedback timeout
 SIM_CPU_FAILED = re.compile(r"on the simulated hand's CPU \S+ the host was FAIL")
+
+
+def tolerant_of_load(hand: dict[str, Any]) -> dict[str, Any]:
+    """``hand`` (a hand config as read from YAML) with the most lenient host watchdogs on
+    time that the config check allows: ``max_consecutive_misses`` up to the nodes' command
+    watchdog (``most_misses_before_watchdog``, 7 ticks at 1 kHz, not 3) and
+    ``feedback_timeout_s`` at its ceiling (``MAX_FEEDBACK_TIMEOUT_S``, 0.1 s, not 5 ms).
+
+    For a real-time test whose subject is not timing (the counters of a second host, a
+    controlled stop, a bring-up command): beside the rest of the suite this machine stalls
+    the loop or the simulated hand for 3-9 ms at times, and a default hand stops on that in
+    one attempt of a few (LOOP_OVERRUN, FEEDBACK_TIMEOUT). Whether the run's own probes then
+    put the stop on the host (``give_up``) is their judgement, made on a host that is busy
+    by design; five such stops in a row failed CI. The stops themselves and their limits are
+    tested where they are the subject (``tests/integration/test_host_timing.py``, the
+    runtime's tests), with the default hand. The stop still comes, later: a stall past these
+    limits is retried as before."""
+    rate = float(hand["bus"]["loop_rate_hz"])
+    safety = dict(hand.get("safety") or {})
+    safety["max_consecutive_misses"] = most_misses_before_watchdog(rate)
+    safety["feedback_timeout_s"] = MAX_FEEDBACK_TIMEOUT_S
+    return {**hand, "safety": safety}
+
+
+def tolerant_hand(source: Path, directory: Path) -> Path:
+    """The hand config at ``source`` made ``tolerant_of_load``, written in ``directory``."""
+    path = directory / f"tolerant_{source.name}"
+    path.write_text(yaml.safe_dump(tolerant_of_load(yaml.safe_load(source.read_text()))))
+    return path
 
 
 def sim_cpu_probe(hand: HandConfig, cpu: int | None) -> Probe:

@@ -4,13 +4,17 @@ host is skipped (``tests/integration/realtime.py``); a stop with a tick handctl 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import yaml
 
-from handctl.config import HandConfig
+from handctl.config import MAX_FEEDBACK_TIMEOUT_S, HandConfig, load_hand
 from handctl.hostcheck import ProbeRecord
+from handctl.protocol import most_misses_before_watchdog
 
+from ..conftest import HAND_YAML
 from ..integration.realtime import (
     give_up,
     hand_cpu_text,
@@ -18,6 +22,7 @@ from ..integration.realtime import (
     load_stopped,
     stop_faults,
     stopped_by_load,
+    tolerant_hand,
 )
 
 DATA = Path(__file__).resolve().parent.parent / "data"
@@ -130,3 +135,25 @@ def test_a_node_timing_out_just_before_the_loop_counts_the_same_stall_is_the_loa
     assert not stopped_by_load(held.replace("tick 1923", "tick 1924"))
     assert not stopped_by_load(held.replace("(TIMEOUT)", "(SENSOR)"))
     assert not stopped_by_load(held.replace("; LOOP_OVERRUN at tick 1923: 13 consecutive", " 13"))
+
+
+@pytest.mark.parametrize("rate_hz", [1000.0, 500.0])
+def test_a_hand_tolerant_of_load_is_one_the_config_check_takes(
+    tmp_path: Path, rate_hz: float
+) -> None:
+    """The lenient watchdogs are the most the check allows, not past it: a hand the check
+    refused would fail the real-time tests that use it for a reason of its own."""
+    source = tmp_path / "source" / "hand.yaml"
+    source.parent.mkdir()
+    doc = yaml.safe_load(HAND_YAML.read_text())
+    doc["bus"]["loop_rate_hz"] = rate_hz
+    source.write_text(yaml.safe_dump(doc))
+    default = load_hand(source).safety
+    tolerant = load_hand(tolerant_hand(source, tmp_path)).safety
+    assert tolerant.max_consecutive_misses == most_misses_before_watchdog(rate_hz)
+    assert tolerant.max_consecutive_misses >= default.max_consecutive_misses
+    assert tolerant.feedback_timeout_s == MAX_FEEDBACK_TIMEOUT_S > default.feedback_timeout_s
+    # nothing else of the hand changed
+    assert replace(tolerant, max_consecutive_misses=0, feedback_timeout_s=0) == replace(
+        default, max_consecutive_misses=0, feedback_timeout_s=0
+    )
