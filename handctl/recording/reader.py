@@ -754,6 +754,17 @@ def require_content(recording: Recording) -> None:
                     + (f" (its channels: {listed})" if topics else "")
                 ),
             )
+        if recording.bad_chunks and not recording.chunks:
+            # every chunk damaged: its summary was "0 ticks", a run that did nothing, exit 0
+            raise ConfigError(
+                str(recording.path),
+                "",
+                "a recording with at least one chunk of messages that reads",
+                Description(
+                    f"none: every one of its {len(recording.bad_chunks)} chunk(s) of "
+                    f"messages is damaged ({recording.problem})"
+                ),
+            )
         counted = sum(recording.message_counts.values()) if recording.message_counts else 0
         if counted and not recording.chunks:
             # handctl writes its messages in chunks and reads them there: a log rewritten

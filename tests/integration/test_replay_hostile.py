@@ -7,6 +7,7 @@ a re-run that claims bit-exact on what it did not compare, and nothing onto a bu
 from __future__ import annotations
 
 import json
+import struct
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -1177,6 +1178,31 @@ def test_a_damaged_chunk_in_a_log_without_its_summary_is_stepped_over_and_named(
     assert recording.chunks == len(spans) - 1
     assert f"{len(spans) - 3} of them after the last damaged one" in recording.problem
     _refused_nothing_sent_by_the_cli(bad, channel, "is DAMAGED (chunk 2 at byte")
+
+
+@pytest.mark.parametrize("with_summary", [True, False], ids=["indexed", "walked"])
+def test_a_log_whose_every_chunk_is_damaged_is_refused(
+    recorded: Recorded, tmp_path: Path, with_summary: bool
+) -> None:
+    """Nothing of the run's messages reads: its summary was that of a run of no tick, exit 0,
+    the damage said on a line of its own."""
+    whole, spans = _without_summary(recorded)
+    if with_summary:
+        whole = recorded.path.read_bytes()
+    damaged = bytearray(whole)
+    for offset, _ in spans:
+        # Chunk: message start and end times, then the uncompressed size, past any log's (a
+        # flipped bit in a chunk written without compression or CRC can still read)
+        struct.pack_into("<Q", damaged, offset + 9 + 16, 3 << 30)
+    bad = tmp_path / "all_damaged.mcap"
+    bad.write_bytes(bytes(damaged))
+    recording = open_recording(bad)
+    assert recording.chunks == 0 and len(recording.bad_chunks) == len(spans)
+    done = handctl("replay", str(bad))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert str(bad) in done.stderr
+    assert f"every one of its {len(spans)} chunk(s) of messages is damaged" in done.stderr
+    assert "chunk 0 at byte" in done.stderr and "Traceback" not in done.stderr
 
 
 def _refused_nothing_sent_by_the_cli(log: Path, channel: str, why: str) -> None:
