@@ -54,8 +54,9 @@ from typing import Any
 START_UP_ENV = ("PYTHON", "LC_", "LANG", "OMP_", "OPENBLAS_", "MKL_", "NUMEXPR_")
 _HEADER = struct.Struct("!I")
 #: What the server imports: the command line, and what loading a hand and running a recipe
-#: on the simulated hand import (numpy, python-can, MuJoCo, the recorder's MCAP); the plots'
-#: matplotlib and the planner's scipy are left to the commands that draw and plan
+#: on the simulated hand import (numpy, python-can, MuJoCo, the recorder's MCAP), and what
+#: the commands that draw and plan import besides (matplotlib's figure on its Agg canvas,
+#: the planner's scipy), half a second each that dozens of the suite's commands paid again
 PRELOADED = (
     "orjson",  # handctl's __main__ loads it first
     "handctl.cli",
@@ -64,6 +65,9 @@ PRELOADED = (
     "handctl.session",
     "handctl.sim.plant",
     "handctl.recording.recorder",
+    "matplotlib.figure",
+    "matplotlib.backends.backend_agg",
+    "scipy.optimize",
 )
 
 
@@ -80,6 +84,9 @@ def serve(path: str) -> None:
     # as handctl's command line sets it before its first import of MuJoCo; a command whose
     # environment chooses otherwise starts cold (START_UP_ENV)
     os.environ.setdefault("MUJOCO_GL", "disable")
+    # and as it drops matplotlib's backend (a value matplotlib does not know would end this
+    # server in its import; a command that names one drops it too)
+    os.environ.pop("MPLBACKEND", None)
     for name in PRELOADED:
         importlib.import_module(name)
     # what is loaded stays out of the collector's reach, so that a command's collections

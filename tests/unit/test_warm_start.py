@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from ..conftest import ROOT, _warm_start, handctl
+from ..warm_start import WarmStart
 
 
 def _both(*args: str, cwd: Path = ROOT) -> tuple[subprocess.CompletedProcess[str], ...]:
@@ -69,3 +71,21 @@ def test_a_command_past_its_timeout_is_killed_and_said_so(tmp_path: Path) -> Non
     """As ``subprocess.run`` does: ``TimeoutExpired``, and the command gone."""
     with pytest.raises(subprocess.TimeoutExpired):
         handctl("sim", "--bus", f"unix:{tmp_path / 'bus'}", timeout=3)
+
+
+def test_a_backend_matplotlib_does_not_know_does_not_end_the_server(tmp_path: Path) -> None:
+    """The server imports matplotlib as it starts; a worker's MPLBACKEND of a backend
+    matplotlib does not know would end it there (the suite then failed at its first command),
+    where every command drops it (``handctl.cli.main``)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "no-such-backend"}
+    server = WarmStart(ROOT, env)
+    try:
+        argv = [sys.executable, "-m", "handctl", "--version"]
+        warm = server.run(argv, tmp_path, env, timeout=120)
+        cold = subprocess.run(
+            argv, cwd=tmp_path, env=env, capture_output=True, text=True, check=False, timeout=120
+        )
+    finally:
+        server.close()
+    assert warm.returncode == cold.returncode == 0, warm.stderr + cold.stderr
+    assert warm.stdout == cold.stdout
