@@ -15,7 +15,7 @@ from typing import Any, Protocol
 from handctl.config import FingerConfig, HandConfig
 from handctl.errors import ConfigError, Description, HandctlError, escaped
 from handctl.hand_protocol import node_message, protocol_for
-from handctl.protocol import NODE_COMMANDS, Layout
+from handctl.protocol import COMMAND_WATCHDOG_S, NODE_COMMANDS, Layout
 from handctl.recording import channels as ch
 from handctl.recording.messages import EXTENDED_ID_FLAG
 from handctl.recording.metadata import recorded_hand, recorded_protocol
@@ -387,6 +387,7 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
     if not ticks:
         return
     _check_no_hole(recording, sorted(ticks))
+    _check_no_gap(recording, ticks)
     slack = round(hand.bus.period_s * 1e9)
     first, last = min(ticks.values()) - SILENT_START_NS, max(ticks.values()) + slack
     for topic, log_time, msg in iter_decoded(recording, DIRECTION_TOPICS.get(direction, ())):
@@ -417,6 +418,30 @@ def _check_no_hole(recording: Recording, ticks: Sequence[int]) -> None:
                 "every tick between the first and the last, as a run records them (nothing "
                 "was sent: the frames on either side of a hole are not the run's)",
                 Description(f"ticks {before + 1}..{after - 1} missing, the log goes on at {after}"),
+            )
+
+
+def _check_no_gap(recording: Recording, ticks: dict[int, int]) -> None:
+    """Refuse a log in which one tick comes longer after the one before than the nodes'
+    command watchdog (``COMMAND_WATCHDOG_S``). A run stops on LOOP_OVERRUN before its nodes'
+    watchdog would (``most_misses_before_watchdog``), so a run that went on never logs such
+    a gap; one whose times were edited does. Sent, the nodes held the last torque through
+    the gap: a log whose times jumped three years 0.8 s in went out for 0.8 s, enabled the
+    nodes, and then sent nothing until killed. (A run that did stall that long stopped
+    there on LOOP_OVERRUN, and its nodes timed out: its log's gap is the same refusal.)"""
+    most_ns = round(COMMAND_WATCHDOG_S * 1e9)
+    order = sorted(ticks)
+    for before, after in itertools.pairwise(order):
+        gap = ticks[after] - ticks[before]
+        if not 0 <= gap <= most_ns:
+            raise ConfigError(
+                str(recording.path),
+                f"{ch.TIMING} tick {after}",
+                f"a tick logged within the nodes' {COMMAND_WATCHDOG_S * 1e3:g} ms command "
+                "watchdog after the one before, as a run that went on logs them (nothing was "
+                "sent: through the gap the nodes would hold the last torque until their "
+                "watchdog faulted them)",
+                Description(f"{gap * 1e-9:.9g} s after tick {before}"),
             )
 
 

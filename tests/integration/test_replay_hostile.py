@@ -835,6 +835,35 @@ def test_to_bus_sends_nothing_from_a_log_with_a_frame_moved_off_its_tick(
     assert "(nothing was sent)" in refused
 
 
+@pytest.mark.parametrize("jump_s", [1e8, 0.05])
+def test_to_bus_sends_nothing_from_a_log_whose_times_jump_between_ticks(
+    recorded: Recorded, tmp_path: Path, jump_s: float
+) -> None:
+    """Every message after a tick in the middle moved three years on (or 50 ms, past the
+    nodes' watchdog), each frame still at its tick's time: the frames before the jump were
+    sent, the nodes enabled, and the replay then sent nothing until it was killed (here: its
+    timeout)."""
+    with recorded.path.open("rb") as handle:
+        stamps = sorted(
+            (json.loads(m.data)["tick"], m.log_time)
+            for _, _, m in make_reader(handle).iter_messages(topics=[ch.TIMING])
+        )
+    tick, cut = stamps[len(stamps) // 2]
+
+    def times(topic: str, log_time: int) -> int:
+        return log_time + round(jump_s * 1e9) if log_time > cut else log_time
+
+    bad = tmp_path / "jump.mcap"
+    rewrite(recorded.path, bad, times=times)
+    done = handctl("replay", str(bad), "--to-bus", f"virtual:jump-{jump_s:g}", timeout=120)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "frames sent" not in done.stdout + done.stderr
+    assert f"{ch.TIMING} tick {tick + 1}" in done.stderr
+    assert "within the nodes' 10 ms command watchdog after the one before" in done.stderr
+    gap = jump_s + (stamps[1][1] - stamps[0][1]) * 1e-9
+    assert f"found {gap:.9g} s after tick {tick}" in done.stderr
+
+
 def test_a_log_a_run_still_writes_is_said_so_and_not_re_run(
     recorded: Recorded, tmp_path: Path
 ) -> None:
