@@ -23,6 +23,7 @@ from handctl.sim.hand import SimulatedHand
 
 from ..conftest import ROOT
 from .bringup_peer import HOST_IDS, running_hand
+from .mcap_copy import rewrite
 from .realtime import ATTEMPTS_UNDER_LOAD
 
 
@@ -157,6 +158,19 @@ def test_it_reads_the_frames_of_a_recording(
     feedback = messages["Feedback_3"]
     assert feedback["rate_hz"] == pytest.approx(feedback["frames"] / lines[-1]["t_s"], rel=0.01)
     assert "warning" not in capsys.readouterr().err
+    # the log's times jump three years halfway (an edited log): one snapshot at the jump, not
+    # one for every frame after it until the steps caught up
+    middle = (lines[0]["t_s"] + lines[-1]["t_s"]) / 2
+    first_ns: list[int] = []
+
+    def times(topic: str, log_time: int) -> int:
+        first_ns[:] = first_ns or [log_time]
+        return log_time + 10**17 if log_time - first_ns[0] > middle * 1e9 else log_time
+
+    jumped = tmp_path / "jumped.mcap"
+    rewrite(log, jumped, times=times)
+    assert cli.main(["monitor", "--log", str(jumped), "--every", "0.1"]) == cli.EXIT_OK
+    assert len(capsys.readouterr().out.splitlines()) <= len(lines) + 2
     # cut short (a crash mid-run): the frames up to there, and said, as replay says it
     with log.open("r+b") as handle:
         handle.truncate(log.stat().st_size * 2 // 3)
