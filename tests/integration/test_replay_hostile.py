@@ -864,6 +864,30 @@ def test_to_bus_sends_nothing_from_a_log_whose_times_jump_between_ticks(
     assert f"found {gap:.9g} s after tick {tick}" in done.stderr
 
 
+def test_ticks_moved_past_their_scheduled_times_are_refused(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """Every tick 2^62 on, times as they were: the summary said the run lasted 4.6e15 s and
+    the plot raised OverflowError, a traceback. No run's tick comes sooner after the clock's
+    zero than its number of periods."""
+
+    def later(topic: str, index: int, raw: bytes) -> bytes:
+        msg = json.loads(raw) if raw.startswith(b"{") else {}
+        if "tick" not in msg:
+            return raw
+        msg["tick"] += 1 << 62
+        return json.dumps(msg).encode()
+
+    bad = tmp_path / "later.mcap"
+    rewrite(recorded.path, bad, later)
+    done = handctl("replay", str(bad), "--plot", str(tmp_path / "p.png"))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"{ch.TIMING} message at log time" in done.stderr
+    assert f"found 'tick {1 << 62}'" in done.stderr
+    assert not (tmp_path / "p.png").exists()
+
+
 def test_a_log_a_run_still_writes_is_said_so_and_not_re_run(
     recorded: Recorded, tmp_path: Path
 ) -> None:
