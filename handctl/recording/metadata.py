@@ -22,7 +22,7 @@ import orjson
 
 from handctl import __version__
 from handctl.config import HandConfig, parse_hand
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, Description
 from handctl.hand_protocol import protocol_for
 from handctl.online.recipes.loader import check_against_hand, parse_recipe
 from handctl.online.recipes.schema import Recipe
@@ -192,6 +192,18 @@ def check_run_metadata(recording: Recording, hand: HandConfig | None) -> None:
 def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | None:
     """The hand config a recording's run used, as it was loaded then."""
     text = recording.meta(ch.META_HAND, "yaml")
+    digest = recording.meta(ch.META_HAND, "sha256")
+    if not text and digest:
+        # the record is there, its digest with it, and the text it is the digest of is not:
+        # a record damaged in place (zeros over it read as other keys). Read as a log of no
+        # hand, its summary came out whole and "complete", its phase and torque tables empty.
+        keys = ", ".join(repr(k) for k in recording.metadata.get(ch.META_HAND, {}))
+        raise ConfigError(
+            str(recording.path),
+            f"metadata {ch.META_HAND}.yaml",
+            f"the hand config whose sha256 the run recorded ({digest[:16]}...)",
+            Description(f"none: the record is damaged or edited (its keys: {keys})"),
+        )
     if not text:
         if required:
             raise ConfigError(

@@ -888,6 +888,29 @@ def test_ticks_moved_past_their_scheduled_times_are_refused(
     assert not (tmp_path / "p.png").exists()
 
 
+def test_a_hand_record_whose_config_is_gone_and_its_digest_kept_is_refused(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """Zeros over the hand's metadata record read as its other keys and one named '': the
+    replay read it as a log of no hand, "complete", its phase and torque tables empty, exit
+    0; --rerun said the run's hand config was "nothing"."""
+
+    def without_yaml(name: str, values: dict[str, str]) -> dict[str, str]:
+        if name != ch.META_HAND:
+            return values
+        return {**{k: v for k, v in values.items() if k != "yaml"}, "": "\x00" * 8}
+
+    bad = tmp_path / "no_yaml.mcap"
+    rewrite(recorded.path, bad, metadata=without_yaml)
+    for extra in ((), ("--rerun",)):
+        done = handctl("replay", str(bad), *extra)
+        assert done.returncode == 2, done.stdout + done.stderr
+        assert f"metadata {ch.META_HAND}.yaml: expected the hand config whose sha256" in (
+            done.stderr
+        )
+        assert "the record is damaged or edited (its keys: 'name'" in done.stderr
+
+
 def test_a_log_a_run_still_writes_is_said_so_and_not_re_run(
     recorded: Recorded, tmp_path: Path
 ) -> None:
