@@ -915,7 +915,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from handctl.progress import Progress, close_active, say
 
     _output_file("-o", args.output)
-    _refuse_other_than_a_recipe(args.output)
+    existing = _refuse_other_than_a_recipe(args.output)
     if args.plot is not None:
         from handctl.outfile import check_directory
 
@@ -1001,6 +1001,13 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             print(_planned_phase_line(plan))
         for path in plots:
             print(f"  plot {path}")
+        replaced = _replaced_another(existing, template.recipe, hand)
+        if replaced and output == args.output:
+            print(
+                f"handctl: warning: {escaped(str(output))} held another recipe ({replaced}); "
+                "it is replaced",
+                file=sys.stderr,
+            )
         if plot_error is not None:
             print(f"handctl: error: {plot_error} (the recipe is written)", file=sys.stderr)
             # a directory whose files cannot be replaced is bad input; a disk that filled is not
@@ -1956,6 +1963,22 @@ def _existing_yaml(output: Path) -> dict[str, Any] | None:
         return {}
 
 
+def _replaced_another(existing: dict[str, Any] | None, name: str, hand: HandConfig) -> str:
+    """What a plan's ``-o`` held, if it was a recipe of another name or another hand, said as
+    a warning's part ("" otherwise). A plan is how a recipe is written again, so one is
+    replaced; but a swap recipe of twenty minutes' planning went, replaced by another hand's
+    quick plan, without a word (an outside probe)."""
+    if not existing:
+        return ""
+    other = []
+    if existing.get("recipe") != name:
+        other.append(f"recipe {escaped(str(existing.get('recipe')))}")
+    digest = existing.get("hand_config_hash")
+    if not (isinstance(digest, str) and hand.answers_to(digest)):
+        other.append(f"for another hand ({escaped(str(digest))})")
+    return ", ".join(other)
+
+
 def _existing_kind(data: dict[str, Any]) -> str | None:
     """What handctl file ``data`` (an existing output's YAML) is (``schema.FILE_KINDS``)."""
     from handctl.schema import file_kind
@@ -2050,12 +2073,13 @@ def _first_difference(copy: Any, source: Any, path: str) -> str | None:
     return None
 
 
-def _refuse_other_than_a_recipe(output: Path) -> None:
+def _refuse_other_than_a_recipe(output: Path) -> dict[str, Any] | None:
     """A plan's ``-o`` names a new file or a recipe (re-planned, or planned again): a hand
-    config, a template or notes there were replaced by the recipe, exit 0."""
+    config, a template or notes there were replaced by the recipe, exit 0. The recipe there,
+    if any (``_replaced_another``)."""
     data = _existing_yaml(output)
     if data is None or _existing_kind(data) == "recipe":
-        return
+        return data
     raise ConfigError(
         "-o",
         "",

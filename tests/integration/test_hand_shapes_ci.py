@@ -95,8 +95,10 @@ def test_the_planar_analysis_runs_on_its_own_geometry(tmp_path: Path) -> None:
 def test_the_planar_template_plans_the_committed_recipe(tmp_path: Path) -> None:
     """``handctl plan`` of the lift-and-turn template (two worker processes) writes the recipe
     that is committed, byte for byte after its header: that recipe is what the template asks
-    for on this hand, and planning it stays small enough for CI."""
+    for on this hand, and planning it stays small enough for CI. Written over a recipe of
+    another hand, it says so (a plan of twenty minutes went without a word)."""
     out = tmp_path / "planned.yaml"
+    out.write_text((ROOT / "config" / "recipes" / "swap_two_cylinders.yaml").read_text())
     done = handctl(
         "plan",
         str(PLANAR_TEMPLATE.relative_to(ROOT)),
@@ -108,6 +110,10 @@ def test_the_planar_template_plans_the_committed_recipe(tmp_path: Path) -> None:
         "2",
     )
     assert done.returncode == 0, done.stderr
+    assert (
+        f"handctl: warning: {out} held another recipe (recipe swap_two_cylinders, for another "
+        "hand (sha256:"
+    ) in done.stderr
     header = 2  # "compiled by" and the command, which names the output file
     planned = out.read_text().splitlines()[header:]
     committed = PLANAR_RECIPE.read_text().splitlines()[header:]

@@ -419,6 +419,7 @@ def test_the_header_takes_any_path_back_and_stays_a_comment(
             str(template), "-o", str(out), "--models", "1", "--base", str(base), "--keep-torques"
         )
         assert done.returncode == 0, done.stderr
+        assert "held another recipe" not in done.stderr  # none, then the same one again
         lines = out.read_text().splitlines()
         assert lines[0].startswith("# Compiled by handctl plan from ")
         assert lines[1].startswith(PREFIX) and lines[2].startswith("recipe: ")
