@@ -2877,6 +2877,29 @@ def _add_layout(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     layout.set_defaults(func=_cmd_layout)
 
 
+def _refuse_other_than_a_layout(output: Path) -> None:
+    """``layout -o`` names a new file or a layout to write again: any other JSON there (a
+    run's ``--summary-json``, a timing report) was replaced by the layout, exit 0 (an outside
+    probe). A Foxglove layout is an object of ``version`` and ``content``."""
+    import json
+
+    if not output.is_file():
+        return
+    try:
+        data = json.loads(output.read_bytes())
+    except (OSError, ValueError):
+        return  # what is not JSON, or not readable, the output's own check names
+    if isinstance(data, dict) and {"version", "content"} <= data.keys():
+        return
+    raise ConfigError(
+        "-o",
+        "",
+        "a new file, or a Foxglove layout to write again (an existing JSON file of anything "
+        "else, a run's --summary-json say, is not replaced)",
+        Description(f"{escaped(str(output))}, an existing JSON file that is not a layout"),
+    )
+
+
 def _cmd_layout(args: argparse.Namespace) -> int:
     from handctl.foxglove.layout import layout_json
 
@@ -2885,6 +2908,7 @@ def _cmd_layout(args: argparse.Namespace) -> int:
     # a layout is JSON: an existing file that is not (another hand's config, a recipe,
     # notes) was replaced by it, exit 0
     _output_file("-o", args.output, json_output=True)
+    _refuse_other_than_a_layout(args.output)
     hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
     _write_output("-o", args.output, layout_json(hand))
     print(f"written: {args.output} (the Foxglove layout of {hand.name})")

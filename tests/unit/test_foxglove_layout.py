@@ -70,3 +70,12 @@ def test_the_layout_command_says_what_is_wrong_and_exits_2(
     assert main(["layout", str(hand), "-o", str(tmp_path / "l.json")]) == 0
     assert main(["layout", str(hand), "-o", str(tmp_path / "l.json")]) == 0  # over its own
     assert '"/hand/joints.' in (tmp_path / "l.json").read_text()
+    # JSON, but not a layout (a run's --summary-json): replaced by the layout, exit 0
+    summary = tmp_path / "summary.json"
+    summary.write_text('{"outcome": "completed"}\n')
+    capsys.readouterr()
+    assert main(["layout", str(hand), "-o", str(summary)]) == 2
+    assert f"found {summary}, an existing JSON file that is not a layout" in (
+        capsys.readouterr().err
+    )
+    assert summary.read_text() == '{"outcome": "completed"}\n'
