@@ -169,6 +169,21 @@ def load_yaml(path: str | Path, kind: str | None = None) -> Doc:
     ``kind``: the ``FILE_KINDS`` entry it must be, if it is one of them at all."""
     doc = _load_yaml(path)
     found = file_kind(doc.data) if kind is not None else None
+    if kind == "recipe template" and found is not None and found[0] == "recipe":
+        phases = doc.data.get("phases")
+        if isinstance(phases, list) and any(isinstance(p, dict) and "kind" in p for p in phases):
+            # phases of a kind each are a template's (a recipe's have none): a template
+            # that lost its first line was called a recipe, to run, and the run refused
+            # it on 'phases[0].kind'
+            raise ConfigError(
+                str(path),
+                "template",
+                "this key (required): the name of the template, its first key",
+                _Text(
+                    "nothing: the key is missing; its phases have a kind each, as a "
+                    "template's do (a recipe's have none)"
+                ),
+            )
     if found is not None and found[0] != kind:
         raise ConfigError(str(path), "", _a(str(kind)), _Text(f"{_a(found[0])}; {found[1]}"))
     return doc

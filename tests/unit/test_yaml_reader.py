@@ -550,6 +550,24 @@ def test_a_file_of_another_kind_is_named_as_what_it_is(given: str, load: str, sa
     assert said in str(info.value), str(info.value)
 
 
+def test_a_template_without_its_first_key_is_not_called_a_recipe(tmp_path: Path) -> None:
+    """A template that lost its ``template:`` line was called a recipe, to run with 'handctl
+    run recipe', which then refused it on 'phases[0].kind: expected no such key here'."""
+    from handctl.config import load_hand
+    from handctl.planning.template import load_template
+
+    hand = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    source = ROOT / "config" / "recipes" / "planar_lift_turn.template.yaml"
+    lines = source.read_text().splitlines(keepends=True)
+    cut = tmp_path / "no_first_key.yaml"
+    cut.write_text("".join(line for line in lines if not line.startswith("template:")))
+    with pytest.raises(ConfigError) as info:
+        load_template(cut, hand)
+    assert info.value.key == "template"
+    assert "the key is missing; its phases have a kind each" in str(info.value)
+    assert "run it with" not in str(info.value)
+
+
 def test_the_parser_s_found_is_said_once(tmp_path: Path) -> None:
     """'expected valid YAML at line 1, column 4, found found character ...'"""
     bad = tmp_path / "bad.yaml"
