@@ -184,13 +184,19 @@ def _json_text(value: Any, indent: int | None = 2) -> str:
     return json.dumps(finite(value), indent=indent, default=str, allow_nan=False)
 
 
-def _output_file(option: str, path: Path | None, *, json_output: bool = False) -> None:
+def _output_file(
+    option: str,
+    path: Path | None,
+    *,
+    json_output: bool = False,
+    json_kind: tuple[str, frozenset[str]] | None = None,
+) -> None:
     """An option naming a file to write: refused before any work (a run, a plan) when it
     cannot be written (``outfile.check_writable``), rather than found out at the end."""
     from handctl.outfile import check_writable
 
     if path is not None:
-        check_writable(path, option, json_output=json_output)
+        check_writable(path, option, json_output=json_output, json_kind=json_kind)
 
 
 def _refuse_same_files(outputs: dict[str, Path | None], inputs: dict[str, Path | None]) -> None:
@@ -2877,38 +2883,14 @@ def _add_layout(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     layout.set_defaults(func=_cmd_layout)
 
 
-def _refuse_other_than_a_layout(output: Path) -> None:
-    """``layout -o`` names a new file or a layout to write again: any other JSON there (a
-    run's ``--summary-json``, a timing report) was replaced by the layout, exit 0 (an outside
-    probe). A Foxglove layout is an object of ``version`` and ``content``."""
-    import json
-
-    if not output.is_file():
-        return
-    try:
-        data = json.loads(output.read_bytes())
-    except (OSError, ValueError):
-        return  # what is not JSON, or not readable, the output's own check names
-    if isinstance(data, dict) and {"version", "content"} <= data.keys():
-        return
-    raise ConfigError(
-        "-o",
-        "",
-        "a new file, or a Foxglove layout to write again (an existing JSON file of anything "
-        "else, a run's --summary-json say, is not replaced)",
-        Description(f"{escaped(str(output))}, an existing JSON file that is not a layout"),
-    )
-
-
 def _cmd_layout(args: argparse.Namespace) -> int:
-    from handctl.foxglove.layout import layout_json
+    from handctl.foxglove.layout import LAYOUT_KEYS, layout_json
 
     # a layout written over the hand config lost the hand
     _refuse_same_files({"-o": args.output}, {"HAND.yaml": args.hand, "--dbc": args.dbc})
     # a layout is JSON: an existing file that is not (another hand's config, a recipe,
-    # notes) was replaced by it, exit 0
-    _output_file("-o", args.output, json_output=True)
-    _refuse_other_than_a_layout(args.output)
+    # notes), or JSON of anything else (a run's summary), was replaced by it, exit 0
+    _output_file("-o", args.output, json_kind=("layout", LAYOUT_KEYS))
     hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
     _write_output("-o", args.output, layout_json(hand))
     print(f"written: {args.output} (the Foxglove layout of {hand.name})")

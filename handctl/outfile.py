@@ -24,6 +24,7 @@ def check_writable(
     *,
     recording: bool = False,
     json_output: bool = False,
+    json_kind: tuple[str, frozenset[str]] | None = None,
     export: str | None = None,
 ) -> Path:
     """The file ``path`` names, resolved (a symlink is written through, not replaced), if a
@@ -31,6 +32,9 @@ def check_writable(
     if it exists, is a file that may be written (a read-only hand config stays as it is) and,
     unless the output is a ``recording`` itself, not a recording: a calibrated hand config, a
     plan, a summary or an export written over a run's log lost the log without a word.
+    ``json_kind`` (a name and the top-level keys every such file has) narrows a
+    ``json_output`` to an earlier one of that kind: a layout written over a run's
+    ``--summary-json`` lost the summary, exit 0.
     Otherwise a ``ConfigError`` naming ``option``; asked before a calibration starts."""
     try:
         target = path.resolve()
@@ -73,15 +77,28 @@ def check_writable(
         raise ConfigError(
             option, "", "a file that is not a run's recording (it would replace the log)", path
         )
-    if json_output and not _json_or_nothing(target):
-        # a summary written over a hand config or a recipe replaced it, exit 0
-        raise ConfigError(
-            option,
-            "",
-            "a new file, or an earlier JSON output to write again (an existing file that is "
-            "not JSON, a hand config or a recipe say, is not replaced)",
-            Description(f"{path}: an existing file that is not JSON"),
-        )
+    if json_output or json_kind is not None:
+        try:
+            existing = _existing_json(target)
+        except ValueError:
+            # a summary written over a hand config or a recipe replaced it, exit 0
+            raise ConfigError(
+                option,
+                "",
+                "a new file, or an earlier JSON output to write again (an existing file that "
+                "is not JSON, a hand config or a recipe say, is not replaced)",
+                Description(f"{path}: an existing file that is not JSON"),
+            ) from None
+        if json_kind is not None and existing is not _NOTHING:
+            kind, keys = json_kind
+            if not (isinstance(existing, dict) and keys <= existing.keys()):
+                raise ConfigError(
+                    option,
+                    "",
+                    f"a new file, or an earlier {kind} to write again (an existing JSON file "
+                    "of anything else, a run's --summary-json say, is not replaced)",
+                    Description(f"{path}, an existing JSON file that is not a {kind}"),
+                )
     if export is not None and not _export_or_nothing(target, export):
         # a frame export written over a hand config replaced it, exit 0
         raise ConfigError(
@@ -125,21 +142,22 @@ def _export_or_nothing(target: Path, fmt: str) -> bool:
     return not head.strip() or EXPORT_HEADS[fmt].match(head) is not None
 
 
-def _json_or_nothing(target: Path) -> bool:
-    """Whether ``target`` is absent, empty, or JSON: what a JSON output may replace."""
+#: what ``_existing_json`` finds where there is no JSON to replace
+_NOTHING = object()
+
+
+def _existing_json(target: Path) -> object:
+    """The JSON at ``target``; ``_NOTHING`` where it is absent, empty or not readable (said
+    when it is written). ``ValueError`` where it is a file of anything else."""
     import json
 
     try:
         text = target.read_bytes()
-    except OSError:  # not there (yet), or not readable (said when it is written)
-        return True
+    except OSError:
+        return _NOTHING
     if not text.strip():
-        return True
-    try:
-        json.loads(text)
-    except ValueError:
-        return False
-    return True
+        return _NOTHING
+    return json.loads(text)
 
 
 def _is_recording(target: Path) -> bool:

@@ -108,6 +108,11 @@ def build_layout(hand: HandConfig) -> fl.Layout:
     )
 
 
+#: the top-level keys of every layout ``layout_json`` writes (the SDK's layout JSON): what
+#: tells an earlier layout, which ``handctl layout -o`` may replace, from other JSON
+LAYOUT_KEYS = frozenset({"version", "content"})
+
+
 def layout_json(hand: HandConfig) -> str:
     import json
 
