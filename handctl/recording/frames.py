@@ -386,8 +386,9 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
         ticks[int(msg["tick"])] = log_time
     if not ticks:
         return
-    _check_no_hole(recording, sorted(ticks))
-    _check_no_gap(recording, ticks)
+    order = sorted(ticks)
+    _check_no_hole(recording, order)
+    _check_no_gap(recording, ticks, order)
     slack = round(hand.bus.period_s * 1e9)
     first, last = min(ticks.values()) - SILENT_START_NS, max(ticks.values()) + slack
     for topic, log_time, msg in iter_decoded(recording, DIRECTION_TOPICS.get(direction, ())):
@@ -421,16 +422,16 @@ def _check_no_hole(recording: Recording, ticks: Sequence[int]) -> None:
             )
 
 
-def _check_no_gap(recording: Recording, ticks: dict[int, int]) -> None:
+def _check_no_gap(recording: Recording, ticks: dict[int, int], order: Sequence[int]) -> None:
     """Refuse a log in which one tick comes longer after the one before than the nodes'
     command watchdog (``COMMAND_WATCHDOG_S``). A run stops on LOOP_OVERRUN before its nodes'
     watchdog would (``most_misses_before_watchdog``), so a run that went on never logs such
     a gap; one whose times were edited does. Sent, the nodes held the last torque through
     the gap: a log whose times jumped three years 0.8 s in went out for 0.8 s, enabled the
     nodes, and then sent nothing until killed. (A run that did stall that long stopped
-    there on LOOP_OVERRUN, and its nodes timed out: its log's gap is the same refusal.)"""
+    there on LOOP_OVERRUN, and its nodes timed out: its log's gap is the same refusal.)
+    ``order``: the ticks of ``ticks`` (tick -> log time), sorted."""
     most_ns = round(COMMAND_WATCHDOG_S * 1e9)
-    order = sorted(ticks)
     for before, after in itertools.pairwise(order):
         gap = ticks[after] - ticks[before]
         if not 0 <= gap <= most_ns:

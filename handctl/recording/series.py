@@ -122,20 +122,21 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             t0 = log_time
         t = (log_time - t0) * 1e-9
         if topic == ch.TIMING:
-            if int(msg["tick"]) * period_ns > int(msg["scheduled_ns"]):
+            tick, scheduled_ns = int(msg["tick"]), int(msg["scheduled_ns"])
+            if tick * period_ns > scheduled_ns:
                 # tick 0 scheduled before the clock's zero: no run's (its ticks come a period
                 # apart or more after it). A tick of 2^62 put tick 0 some 10^20 ns before
                 # zero, and the plot's arrays of times overflowed: a traceback.
                 raise ConfigError(
                     str(recording.path),
                     f"{topic} message at log time {log_time} ns: tick",
-                    f"at most its scheduled_ns over the run's period ({msg['scheduled_ns']} ns "
+                    f"at most its scheduled_ns over the run's period ({scheduled_ns} ns "
                     f"/ {period_ns} ns), as a run's ticks come a period apart or more",
-                    f"tick {msg['tick']}",
+                    f"tick {tick}",
                 )
             if tick0 is None:
-                tick0 = int(msg["scheduled_ns"]) - int(msg["tick"]) * period_ns
-            scheduled = (int(msg["scheduled_ns"]) - t0) * 1e-9
+                tick0 = scheduled_ns - tick * period_ns
+            scheduled = (scheduled_ns - t0) * 1e-9
             if ended is not None and msg["tick"] == ended[0]:
                 # the stop's tick's own scheduled time: after missed ticks (real time) it is
                 # later than its number of periods, and the run's clock is the schedule's
