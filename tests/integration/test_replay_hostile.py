@@ -1056,8 +1056,6 @@ def test_to_bus_refuses_more_commands_than_a_run_sends(
 def _with_summary(whole: bytes, edit: Callable[[list[bytes]], list[bytes]]) -> bytes:
     """``whole`` with its summary section's records through ``edit`` (each a whole record),
     and the footer's summary CRC cleared (0: none to check)."""
-    import struct
-
     footer_at = len(whole) - len(MAGIC) - 9 - 20
     summary_start = struct.unpack_from("<Q", whole, footer_at + 9)[0]
     summary = whole[summary_start:footer_at]
@@ -1102,7 +1100,6 @@ def test_an_index_entry_past_the_end_of_the_file_is_damaged(
     recorded: Recorded, tmp_path: Path
 ) -> None:
     """A chunk index entry of 2^63 - 1 bytes raised OverflowError: a traceback."""
-    import struct
 
     def edit(records: list[bytes]) -> list[bytes]:
         k = next(i for i, r in enumerate(records) if r[0] == 0x08)
@@ -1120,19 +1117,22 @@ def test_an_index_entry_past_the_end_of_the_file_is_damaged(
     assert "Traceback" not in done.stderr and "DAMAGED" in done.stdout
 
 
+def _inflating(data: bytearray, offset: int) -> None:
+    """The chunk record at ``offset`` of ``data`` made to declare 3 GiB uncompressed, more than
+    any log's (Chunk: message start and end times, then the uncompressed size): damaged
+    whatever its compression and CRC (a flipped bit in a chunk without either can read)."""
+    struct.pack_into("<Q", data, offset + 9 + 16, 3 << 30)
+
+
 def test_a_chunk_that_would_inflate_past_any_log_s_is_damaged(
     recorded: Recorded, tmp_path: Path
 ) -> None:
     """A 49 KB chunk that declared 1.5 GiB of zeros took 1.6 GB of memory to read: a chunk's
     size is bounded before it is decompressed."""
-    import struct
-
     whole = bytearray(recorded.path.read_bytes())
     full = open_recording(recorded.path)
     assert full.chunk_spans
-    offset, _ = full.chunk_spans[0]
-    # Chunk: message start and end times, then the uncompressed size
-    struct.pack_into("<Q", whole, offset + 9 + 16, 3 << 30)
+    _inflating(whole, full.chunk_spans[0][0])
     bad = tmp_path / "inflating.mcap"
     bad.write_bytes(bytes(whole))
     recording = open_recording(bad)
@@ -1267,9 +1267,7 @@ def test_a_log_whose_every_chunk_is_damaged_is_refused(
         whole = recorded.path.read_bytes()
     damaged = bytearray(whole)
     for offset, _ in spans:
-        # Chunk: message start and end times, then the uncompressed size, past any log's (a
-        # flipped bit in a chunk written without compression or CRC can still read)
-        struct.pack_into("<Q", damaged, offset + 9 + 16, 3 << 30)
+        _inflating(damaged, offset)
     bad = tmp_path / "all_damaged.mcap"
     bad.write_bytes(bytes(damaged))
     recording = open_recording(bad)
