@@ -65,6 +65,46 @@ def test_inside_the_band_the_joint_is_pushed_back_and_at_the_limit_fully(hand: H
     assert out[j] == pytest.approx(joint.tau_max)
 
 
+def test_at_the_limit_the_push_back_is_whole_whatever_the_phase_asks_towards_it(
+    hand: HandConfig,
+) -> None:
+    """A phase that asks a joint's whole tau_max towards a limit (``manipulate_3`` on f1_j3)
+    was only cancelled there by a spring reaching tau_max, and the contact pushed the joint
+    over the limit (``ANGLE_LIMIT``). Deep in the band the spring takes that torque on as
+    well, so the joint at the limit is pushed back with its whole tau_max; in the band's
+    first half, where the lift rests its distal joints, the push is the spring's alone."""
+    band = 0.2
+    guard = LimitGuard.for_hand(hand, band)
+    j = 2  # f1_j3
+    joint = hand.joints[j]
+    tau = joint.tau_max
+    angle = np.array([(x.angle_min + x.angle_max) / 2 for x in hand.joints])
+    desired = np.zeros(9)
+    desired[j] = tau  # all of it towards the upper limit
+    angle[j] = joint.angle_max
+    assert guard.apply(angle, desired, np.empty(9))[j] == pytest.approx(-tau)
+    # three quarters in: the spring's 3/4 and half of what the phase asks, against it
+    angle[j] = joint.angle_max - band / 4
+    assert guard.apply(angle, desired, np.empty(9))[j] == pytest.approx(
+        tau - 0.75 * tau - 0.5 * tau
+    )
+    # a quarter in: the spring's quarter alone, as before
+    angle[j] = joint.angle_max - 0.75 * band
+    assert guard.apply(angle, desired, np.empty(9))[j] == pytest.approx(tau - 0.25 * tau)
+    # a torque away from the limit is never added to: at the limit, the spring's tau_max and
+    # the phase's own push away, clipped to tau_max
+    desired[j] = -0.05
+    angle[j] = joint.angle_max
+    assert guard.apply(angle, desired, np.empty(9))[j] == pytest.approx(-tau)
+    angle[j] = joint.angle_max - band / 4
+    assert guard.apply(angle, desired, np.empty(9))[j] == pytest.approx(-0.05 - 0.75 * tau)
+    # the lower side the same, mirrored
+    desired[j] = -tau
+    angle[j] = joint.angle_min
+    assert guard.apply(angle, desired, np.empty(9))[j] == pytest.approx(tau)
+    assert np.array_equal(np.delete(guard.apply(angle, desired, np.empty(9)), j), np.zeros(8))
+
+
 def test_a_joint_heading_for_a_limit_is_damped_a_band_before_the_spring(hand: HandConfig) -> None:
     band = 0.15
     guard = LimitGuard.for_hand(hand, band, lookahead_s=0.0)
@@ -165,7 +205,8 @@ def test_a_recipe_turns_the_guard_on_and_the_runner_uses_it(
     angle[8] = hand.joints[8].angle_max  # f3_j3 at its upper soft limit
     runner.step(0.0, angle, np.zeros(9))
     out = runner.step(0.02, angle, np.zeros(9)).copy()  # after the ramp
-    assert out[8] == pytest.approx(0.1 - hand.joints[8].tau_max)  # 0.1 plus the full push-back
+    # the whole push-back, whatever the recipe's 0.1 asks towards the limit
+    assert out[8] == pytest.approx(-hand.joints[8].tau_max)
     assert np.allclose(out[:8], 0.1)
     # after the recipe ends nothing is proposed, whatever the angles
     t = 0.02

@@ -6,7 +6,12 @@ supervisor rightly stops the hand when a limit is crossed (a ``SOFT_LIMIT`` faul
 open-loop torque that brushes a limit on one model of the hand stops the run on another. A
 spring inside a band before each limit turns that cliff into a slope: the desired torque gets
 ``tau_max * depth / band`` pushing the joint back, where ``depth`` is how far the joint is
-inside the band, reaching the joint's full ``tau_max`` at the limit itself. It only proposes
+inside the band, reaching the joint's full ``tau_max`` at the limit itself. Over the band's
+second half the spring also takes on, more and more, what the proposed torque asks towards
+the limit (``GUARD_DEEP_FRACTION``), so at the limit the joint is pushed back with the whole
+``tau_max`` even by a phase that asks its ``tau_max`` towards it; a spring that stopped at
+``tau_max`` cancelled such a phase there and no more, and the contact pushed the joint over.
+It only proposes
 torque, like the recipe runner it belongs to: the supervisor still clamps every torque to
 ``tau_max`` and the rate limit and still trips at the limit.
 
@@ -72,6 +77,28 @@ GUARD_LOOKAHEAD_S = 0.03
 #: lagged by 14 ms at 250 Hz, and the guard's damper came too late to hold the spring (a
 #: distal joint's command rang at 20 Hz for seconds where at 500 Hz and up it held)
 GUARD_VELOCITY_SPAN_S = 0.007
+#: how deep into the spring's band (a fraction of it) the spring begins to take on what the
+#: proposed torque asks towards the limit as well, all of it at the limit: there the push is
+#: the guard's whole strength against the joint whatever the phase asks, where the spring
+#: alone only cancelled a phase torque of ``tau_max`` and left the contact to push the joint
+#: over (``ANGLE_LIMIT`` on a distal joint in the experiment's third turn, which asks that
+#: joint's ``tau_max``).
+#: Half the band, so a joint that rests inside the band's first half, as the lift's distal
+#: joints do, is pushed exactly as before; from none of it, the nominal run moved
+GUARD_DEEP_FRACTION = 0.5
+
+
+def _deep_share(spring: float, most: float) -> float:
+    """How much of the torque asked towards the limit the spring takes on where it pushes
+    ``spring`` (N·m) of its ``most`` (N·m, at the limit), which is how deep into its band the
+    joint is: none in the band's first ``GUARD_DEEP_FRACTION``, then growing to all of it at
+    the limit."""
+    if most <= 0.0:
+        return 0.0
+    depth = spring / most
+    if depth <= GUARD_DEEP_FRACTION:
+        return 0.0
+    return min(1.0, (depth - GUARD_DEEP_FRACTION) / (1.0 - GUARD_DEEP_FRACTION))
 
 
 def fitted_window(period_s: float) -> int:
@@ -146,7 +173,8 @@ class LimitGuard:
         with a damping of ``damping_s`` (s) times the spring's gain, looking ``lookahead_s``
         (s) ahead; ``springs`` give a side of a joint a spring band of its own. Its spring
         reaches each joint's ``tau_max`` at the soft limit, or ``push_max`` (N·m) if that is
-        less (and the damper is as much weaker)."""
+        less (and the damper is as much weaker), beyond what the proposed torque asks towards
+        the limit (``GUARD_DEEP_FRACTION``)."""
         joints = hand.joints
         most = [j.tau_max if push_max is None else min(j.tau_max, push_max) for j in joints]
         own: Mapping[tuple[str, str], float] = {(s.joint, s.side): s.band for s in springs}
@@ -193,8 +221,10 @@ class LimitGuard:
             push = 0.0
             if q > spring_hi:
                 push = -self.gain_upper[j] * (q - spring_hi)
+                push -= _deep_share(-push, self.tau_max[j]) * max(0.0, float(desired[j]))
             elif q < spring_lo:
                 push = self.gain_lower[j] * (spring_lo - q)
+                push += _deep_share(push, self.tau_max[j]) * max(0.0, -float(desired[j]))
             if damped:
                 assert velocity is not None
                 v = float(velocity[j])
