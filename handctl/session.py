@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 from handctl.config import HandConfig
 from handctl.convention import POSE_EVERY_TICKS  # the summaries measure the turn on these poses
-from handctl.errors import BusError, ConfigError, HandctlError
+from handctl.errors import ConfigError, HandctlError
 from handctl.hand_protocol import protocol_for
 from handctl.hostcheck import (
     LoopWork,
@@ -554,39 +554,13 @@ def _start_clock(
     return timing
 
 
-#: s, the least a run on a bus listens for another host's commands before anything else: a
-#: host sends a TorqueCommand every tick, a listener (``monitor``) none. Three of a unix bus
-#: sender's re-listings of its participants (``unixcan.PEERS_EVERY_S``): a listener there
-#: is sent to only once the other host has listed it, and 20 ms missed one run in two
-LISTEN_FOR_HOST_S = 0.15
-
-
 def _refuse_another_host(spec: BusSpec, hand: HandConfig) -> None:
-    """``BusError`` when a frame on one of ``hand``'s command identifiers is heard on the bus
-    before this process has sent anything: another host (a run, a jog, a replay onto the
-    bus) is commanding the nodes, and this run must not start beside it."""
-    import time
+    """``BusError`` when another host is heard commanding ``hand``'s nodes on the bus before
+    this run has sent anything (``otherhost.refuse_another_host``)."""
+    from handctl.online.otherhost import refuse_another_host
 
-    commands = {}
-    for finger in hand.fingers:
-        commands[finger.can_ids.torque_command] = ("TorqueCommand", finger)
-        commands[finger.can_ids.node_command] = ("NodeCommand", finger)
     with open_bus(spec, hand.bus) as bus:
-        end = time.monotonic() + max(LISTEN_FOR_HOST_S, 10 * hand.bus.period_s)
-        while True:
-            for frame in bus.drain():
-                heard = commands.get(frame.arbitration_id)
-                if heard is not None:
-                    name, finger = heard
-                    raise BusError(
-                        f"another host is commanding this hand on {spec}: a {name} to "
-                        f"node {finger.node_id} ({finger.name}), id "
-                        f"0x{frame.arbitration_id:03X}, heard before this run sent anything. "
-                        "Stop the other run, jog or replay first (nothing was sent)"
-                    )
-            if time.monotonic() >= end:
-                return
-            time.sleep(hand.bus.period_s / 2)
+        refuse_another_host(bus, hand, str(spec), "this run")
 
 
 def _peer_summary(peer: _Peer, warnings: list[str]) -> dict[str, Any] | None:
