@@ -10,7 +10,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from handctl.config import FingerConfig, HandConfig
 from handctl.errors import ConfigError, Description, HandctlError, escaped
@@ -21,6 +21,9 @@ from handctl.recording.messages import EXTENDED_ID_FLAG
 from handctl.recording.metadata import recorded_hand, recorded_protocol
 from handctl.recording.reader import Recording, iter_decoded, open_recording, require_topics
 from handctl.wholefile import whole_file
+
+if TYPE_CHECKING:  # the bus only where frames are sent: reading a log needs none of it
+    from handctl.online.bus import HandBus
 
 #: buses where no real hand listens: a replay onto them may take the log's limits as its own
 SIMULATED_BUSES = ("virtual", "unix")
@@ -107,6 +110,7 @@ def _to_bus(
     # the stop signals looked at between two frames: raised, a second one cut the stop
     # short, and Ctrl-Z suspended the replay (``to_bus``)
     with open_bus(spec, hand.bus) as bus:
+        _nobody_else(bus, hand, spec, stops)
         start: float | None = None
         first = 0
         listened = -math.inf
@@ -166,6 +170,17 @@ def _to_bus(
             "(is the listener's bus directory this one?)"
         )
     return report
+
+
+def _nobody_else(bus: HandBus, hand: HandConfig, spec: str, stops: StopNotes) -> None:
+    """Nobody else commands the nodes, before the first frame: a replay onto a hand a run
+    drives fought it frame by frame, neither's limits holding for the nodes (``otherhost``).
+    A stop signal while it listened ends the replay as one during the checks: nothing sent."""
+    from handctl.online.otherhost import refuse_another_host
+
+    refuse_another_host(bus, hand, spec, "this replay")
+    if stops.first:
+        raise ReplayInterrupted("", stops.first, stops.later)
 
 
 def hand_needed(spec: str) -> ConfigError:

@@ -931,6 +931,52 @@ def test_to_bus_says_when_nobody_was_on_the_unix_bus(
     assert "warning: to-bus: no other participant was on" in done.stderr
 
 
+@pytest.mark.parametrize("transport", ["virtual", "unix"])
+def test_to_bus_onto_a_hand_another_host_commands_is_refused_before_anything(
+    recorded: Recorded, hand: HandConfig, channel: str, tmp_path: Path, transport: str
+) -> None:
+    """A replay onto a hand a run was driving sent its frames beside the run's, the nodes
+    taking whichever came last and neither's limits holding for them (from s41's list). It
+    now listens first, as a run does, and refuses as a bus in use: nothing sent, exit 4."""
+    import threading
+
+    from handctl.errors import BusError
+
+    spec = f"virtual:{channel}"
+    if transport == "unix":
+        (tmp_path / "bus").mkdir()
+        spec = f"unix:{tmp_path / 'bus'}"
+    layout = protocol_for(hand).layout("NodeCommand", 3)
+    recording = open_recording(recorded.path)
+    other = open_bus(spec, hand.bus)
+    sniffer = open_bus(spec, hand.bus)
+    stop = threading.Event()
+
+    def other_host() -> None:  # a host's node command every tick
+        while not stop.wait(0.001):
+            other.send(layout.frame_id, layout.encode(0, [0]))
+
+    sender = threading.Thread(target=other_host, daemon=True)
+    sender.start()
+    try:
+        for _ in range(3):  # each time, not by luck
+            with pytest.raises(BusError, match="another host is commanding this hand") as caught:
+                to_bus(recording, spec, sleep=lambda _: None)  # the old code: no waits
+            assert "NodeCommand to node 3 (f3)" in str(caught.value)
+            assert "heard before this replay sent anything" in str(caught.value)
+        if transport == "unix":  # the command, from another process
+            done = handctl("replay", str(recorded.path), "--to-bus", spec)
+            assert done.returncode == 4, done.stderr
+            assert "bus error: another host is commanding this hand" in done.stderr
+    finally:
+        stop.set()
+        sender.join()
+    heard = sniffer.drain(limit=10**6)
+    other.close()
+    sniffer.close()
+    assert heard and {f.arbitration_id for f in heard} == {layout.frame_id}  # the other's only
+
+
 # -- bad input --------------------------------------------------------------------------------
 def test_not_an_mcap_file_is_exit_2(tmp_path: Path) -> None:
     bad = tmp_path / "notes.txt"
