@@ -1053,9 +1053,14 @@ def _free_aside(output: Path) -> Path:
     if that name holds anything but a failed plan's recipe: written without a look, it went
     through a symlink there into the very recipe it said it kept (or the template), and over a
     read-only file of anything."""
+    longest = _longest_name(output.parent)
     for n in range(1, 1000):
         middle = ".failed" if n == 1 else f".failed.{n}"
-        aside = output.with_name(f"{output.stem}{middle}{output.suffix}")
+        # the stem cut to fit the file system's longest name: a recipe named near it lost
+        # the whole failed search to a bare "File name too long"
+        room = max(1, longest - len(os.fsencode(f"{middle}{output.suffix}")))
+        stem = os.fsencode(output.stem)[:room].decode(errors="ignore")  # no half a character
+        aside = output.with_name(f"{stem}{middle}{output.suffix}")
         if not aside.exists() and not aside.is_symlink():
             return aside
         if aside.is_symlink() or not aside.is_file():
@@ -1065,6 +1070,15 @@ def _free_aside(output: Path) -> Path:
         if earlier and os.access(aside, os.W_OK):
             return aside  # an earlier failed plan of it: replaced
     raise ConfigError("-o", "", "a name beside it for the failed plan", str(output))
+
+
+def _longest_name(directory: Path) -> int:
+    """The longest file name (bytes) ``directory``'s file system takes: 255 where it does not
+    say."""
+    try:
+        return int(os.pathconf(directory, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
 
 
 def _check_plot_targets(directory: Path, phases: Sequence[str]) -> None:

@@ -504,6 +504,27 @@ def test_a_failed_plan_never_replaces_a_recipe_that_runs(tmp_path: Path) -> None
     assert load_recipe(aside, load_hand(PLANAR)).plan_failed
 
 
+def test_a_failed_plan_beside_a_recipe_named_near_the_longest_name_is_written_shortened(
+    tmp_path: Path,
+) -> None:
+    """``NAME.failed.yaml`` beside a recipe whose name was near the file system's longest
+    lost the whole search to a bare "File name too long" (from s41's list). The stem is cut
+    to fit, and the failed plan is written and named."""
+    import os
+
+    template = _hold_only(tmp_path)
+    longest = os.pathconf(tmp_path, "PC_NAME_MAX")
+    out = tmp_path / ("é" * ((longest - len(".yaml")) // 2) + ".yaml")  # two bytes each
+    out.write_text(PLANAR_RECIPE.read_text())
+    done = plan_command(str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1")
+    assert done.returncode == 1, done.stderr
+    assert out.read_text() == PLANAR_RECIPE.read_text()
+    (aside,) = (p for p in tmp_path.iterdir() if p.name.endswith(".failed.yaml"))
+    assert len(os.fsencode(aside.name)) <= longest and aside.name.startswith("é")
+    assert f"the failed plan is written to {aside}" in done.stderr
+    assert load_recipe(aside, load_hand(PLANAR)).plan_failed
+
+
 def test_a_failed_plan_goes_through_no_link_and_over_no_other_file(tmp_path: Path) -> None:
     """NAME.failed.yaml was written with no look at what was there: through a symlink into
     the very recipe it said it kept, and over a read-only file of anything (an outside
