@@ -5,6 +5,7 @@ re-run is ``rerun``, the frames onto a bus or into a file ``frames``.
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -154,6 +155,13 @@ def _pair_figures(
     # first tick where it ended. (Bounds a tick later ended a phase one sample late when its
     # last tick was a logged one's.)
     bounds = [(p["name"], p["start_s"], p["end_s"]) for p in series.phases]
+    if bounds:
+        # the last phase's turn runs to the log's last pose, as the run's summary counts it:
+        # after a stop (a fault's ramp, an interrupt) the objects go on moving in that phase's
+        # grasp while the torques come down, and the replay of a safety-stopped run said
+        # 19° where its run had said 34° (the pair snapped on in the 55 ms of the ramp)
+        name, start, _ = bounds[-1]
+        bounds[-1] = (name, start, math.inf)
     # the run's own manipulation phases, as its summary counted them (a log without a recipe
     # that parses: the phases named manipulate...)
     counted = recipe.manipulation_phases if recipe is not None else None

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 from handctl.config import HandConfig
@@ -129,6 +130,28 @@ def test_a_safety_stop_is_no_success_whatever_the_objects_did_before_it(tmp_path
     assert ex["total_rotation_deg"] >= ex["min_total_turn_deg"] > 0
     assert ex["success"] is False and ex["stopped"] == "safety_stop"
     assert "experiment: FAILED: the run ended in safety stop, not at its end" in done.stdout
+
+
+def test_a_run_stopped_mid_turn_and_its_replay_count_the_last_phase_alike(tmp_path: Path) -> None:
+    """A run stopped while the pair turns (here its time budget, in ``manipulate_1``) goes on
+    turning it while the torques ramp down, in that phase's grasp. The run's summary counted
+    that to the phase and the replay of its log did not: 1.6° apart here, and 15° on a hand
+    whose pair snapped on through a safety stop's ramp (found in s41, left until now)."""
+    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
+    recipe = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+    done = handctl(
+        *("run", "recipe", str(recipe), "--max-seconds", "6.3"),
+        *("--summary-json", str(out), "--log", str(log)),
+    )
+    assert done.returncode == 0, done.stderr
+    ran = json.loads(out.read_text())["experiment"]["phase_angles_deg"]
+    assert len(ran) == 1 and ran[0] < -20, ran  # stopped in manipulate_1, the pair turning
+    replayed = tmp_path / "replay.json"
+    done = handctl("replay", str(log), "--json", str(replayed))
+    assert done.returncode == 0, done.stderr
+    assert json.loads(replayed.read_text())["summary"]["phase_turns_deg"] == pytest.approx(
+        ran, abs=0.05
+    )
 
 
 def test_objects_listed_out_of_their_order_along_the_palm_are_warned_of(tmp_path: Path) -> None:
