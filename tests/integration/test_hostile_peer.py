@@ -24,6 +24,7 @@ from handctl.protocol import NodeState
 from handctl.sim.faults import Injector, SimContext
 from handctl.sim.firmware import FaultBits
 
+from .another_host import commanding
 from .rig import CLOSE_AND_HOLD_2S, Rig, rig, stopped_at_once
 
 INJECT_AT = 1.0  # s of simulated time: inside the hold phase
@@ -235,11 +236,9 @@ def test_a_run_on_a_bus_another_host_commands_is_refused_before_anything(
     and latched every node's TIMEOUT (found by an outside audit). Now it listens first, and
     refuses as a bus in use: no timing check, nothing sent. On a unix bus too, where a sender
     lists a new participant only every 50 ms (a 20 ms listen missed one run in two)."""
-    import threading
     import uuid
 
     from handctl.errors import BusError
-    from handctl.online.bus import open_bus
     from handctl.session import RunRequest, run_recipe
 
     spec = f"virtual:other-host-{uuid.uuid4().hex}"
@@ -247,28 +246,11 @@ def test_a_run_on_a_bus_another_host_commands_is_refused_before_anything(
         (tmp_path / "bus").mkdir()
         spec = f"unix:{tmp_path / 'bus'}"
     layout = protocol_for(hand).layout("TorqueCommand", 1)
-    other = open_bus(spec, hand.bus)
-    sniffer = open_bus(spec, hand.bus)
-    stop = threading.Event()
-
-    def other_host() -> None:  # a host's torque command every tick
-        while not stop.wait(0.001):
-            other.send(layout.frame_id, layout.encode(0, [0.0] * 3))
-
-    sender = threading.Thread(target=other_host, daemon=True)
-    sender.start()
-    try:
+    with commanding(spec, hand, layout, [0.0] * 3):  # a host's torque command every tick
         for _ in range(3):  # each time, not by luck
             with pytest.raises(BusError, match="another host is commanding this hand") as caught:
                 run_recipe(RunRequest(hand=hand, recipe=hold, bus=spec))
             assert "TorqueCommand to node 1 (f1), id 0x101" in str(caught.value)
-    finally:
-        stop.set()
-        sender.join()
-    heard = sniffer.drain(limit=10**6)
-    other.close()
-    sniffer.close()
-    assert heard and {f.arbitration_id for f in heard} == {layout.frame_id}  # the other's only
 
 
 def test_a_node_that_goes_on_saying_enabled_after_the_disable_gets_the_e_stop(

@@ -39,6 +39,7 @@ from handctl.recording.series import load_series
 from handctl.stopsignals import ctrl_c_at_once, noted_stops, working
 
 from ..conftest import ROOT, handctl
+from .another_host import commanding
 from .mcap_copy import rewrite as copy_recording
 from .realtime import REALTIME
 from .rig import SHORT, TWO_PHASES, short_recipe, sim_on_unix_bus, write_recipe
@@ -938,8 +939,6 @@ def test_to_bus_onto_a_hand_another_host_commands_is_refused_before_anything(
     """A replay onto a hand a run was driving sent its frames beside the run's, the nodes
     taking whichever came last and neither's limits holding for them (from s41's list). It
     now listens first, as a run does, and refuses as a bus in use: nothing sent, exit 4."""
-    import threading
-
     from handctl.errors import BusError
 
     spec = f"virtual:{channel}"
@@ -948,17 +947,7 @@ def test_to_bus_onto_a_hand_another_host_commands_is_refused_before_anything(
         spec = f"unix:{tmp_path / 'bus'}"
     layout = protocol_for(hand).layout("NodeCommand", 3)
     recording = open_recording(recorded.path)
-    other = open_bus(spec, hand.bus)
-    sniffer = open_bus(spec, hand.bus)
-    stop = threading.Event()
-
-    def other_host() -> None:  # a host's node command every tick
-        while not stop.wait(0.001):
-            other.send(layout.frame_id, layout.encode(0, [0]))
-
-    sender = threading.Thread(target=other_host, daemon=True)
-    sender.start()
-    try:
+    with commanding(spec, hand, layout, [0]):  # a host's node command every tick
         for _ in range(3):  # each time, not by luck
             with pytest.raises(BusError, match="another host is commanding this hand") as caught:
                 to_bus(recording, spec, sleep=lambda _: None)  # the old code: no waits
@@ -968,13 +957,6 @@ def test_to_bus_onto_a_hand_another_host_commands_is_refused_before_anything(
             done = handctl("replay", str(recorded.path), "--to-bus", spec)
             assert done.returncode == 4, done.stderr
             assert "bus error: another host is commanding this hand" in done.stderr
-    finally:
-        stop.set()
-        sender.join()
-    heard = sniffer.drain(limit=10**6)
-    other.close()
-    sniffer.close()
-    assert heard and {f.arbitration_id for f in heard} == {layout.frame_id}  # the other's only
 
 
 # -- bad input --------------------------------------------------------------------------------
