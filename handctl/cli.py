@@ -36,7 +36,7 @@ import signal
 import sys
 import textwrap
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
@@ -1457,18 +1457,25 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
             file=sys.stderr,
         )
     for name, pose in summary.get("objects", {}).items():
-        start, end = pose["start"], pose["end"]
-        key = "height_above_rest_m" if "height_above_rest_m" in start else "y_m"
-        print(
-            f"  {name}: height {'above rest ' if key != 'y_m' else ''}"
-            f"{start[key] * 1e3:+.1f} -> {end[key] * 1e3:+.1f} mm, "
-            f"x {start['x_m'] * 1e3:+.1f} -> {end['x_m'] * 1e3:+.1f} mm"
-        )
+        print(_object_line(name, pose))
     for pair, figures in summary.get("pairs", {}).items():
         print(
             f"  turn of the centre line {pair}: per phase {figures['phase_turns_deg']} deg, "
             f"turn {figures['turn_deg']:+.2f} deg (ccw +)"
         )
+
+
+def _object_line(name: str, pose: Mapping[str, Any]) -> str:
+    """An object's line of the replay's summary: where it started and ended (mm). A height a
+    few µm below rest is "+0.0", not "-0.0" (``z``): an object that never left the table read
+    as if it had sunk into it."""
+    start, end = pose["start"], pose["end"]
+    key = "height_above_rest_m" if "height_above_rest_m" in start else "y_m"
+    return (
+        f"  {name}: height {'above rest ' if key != 'y_m' else ''}"
+        f"{start[key] * 1e3:+z.1f} -> {end[key] * 1e3:+z.1f} mm, "
+        f"x {start['x_m'] * 1e3:+z.1f} -> {end['x_m'] * 1e3:+z.1f} mm"
+    )
 
 
 def _check_to_bus_option(args: argparse.Namespace) -> None:

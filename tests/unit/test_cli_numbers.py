@@ -213,3 +213,16 @@ def test_calibrate_says_the_settle_it_takes(
     args = ["calibrate", "tdt", "-o", str(tmp_path / "c.yaml"), "--settle", settle]
     assert cli.main(args) == cli.EXIT_BAD_INPUT
     assert "--settle: expected a time in seconds from 0 to 3600" in capsys.readouterr().err
+
+
+def test_an_object_a_few_micrometres_below_rest_reads_as_zero_not_minus_zero() -> None:
+    """A one-object hand whose cylinder never left the table read "height above rest -0.0 ->
+    -0.0 mm" in its replay (an outside probe): a few µm of contact sink, shown as if the
+    object had sunk into the table. Rounded to zero it is "+0.0"; a tenth of a mm is kept."""
+    pose = {
+        "start": {"height_above_rest_m": -4e-6, "x_m": -1e-6},
+        "end": {"height_above_rest_m": -1e-4, "x_m": 0.0205},
+    }
+    line = cli._object_line("cyl", pose)
+    assert line == "  cyl: height above rest +0.0 -> -0.1 mm, x +0.0 -> +20.5 mm"
+    assert "-0.0" not in cli._object_line("cyl", {"start": pose["start"], "end": pose["start"]})
