@@ -712,7 +712,8 @@ def _job_left_undone(
     heights = _figures([round(o.end_height * 1e3) + 0 for o in outcomes], "{:d}")
     exits = sorted({o.exit for o in outcomes})
     return (
-        f"the objects ended {heights} mm up (its job: at least {spec.min_height * 1e3:.0f} mm, "
+        f"the lowest object ended {heights} mm up, model by model (its job: at least "
+        f"{spec.min_height * 1e3:.0f} mm, "
         f"in the hand), exits: {'; '.join(exits)}"
     )
 

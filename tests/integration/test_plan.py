@@ -453,7 +453,11 @@ def test_a_plan_whose_phase_does_its_job_on_no_model_fails(tmp_path: Path) -> No
     out = tmp_path / "r.yaml"
     done = plan_command(str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1")
     assert done.returncode == 1, done.stderr
-    assert "the plan failed: phase 'hold' (hold): the objects ended 0, 0 mm up" in done.stderr
+    # one figure per model, the lowest object's: "the objects ended 0, 0" read as two objects
+    assert (
+        "the plan failed: phase 'hold' (hold): the lowest object ended 0, 0 mm up, model by "
+        "model" in done.stderr
+    )
     assert "on every one of the 2 model(s)" in done.stderr
     assert "2/2 models hold, 0/2 did its job" in done.stdout
     assert out.exists() and "not to be run" in done.stderr
