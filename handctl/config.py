@@ -529,7 +529,24 @@ def _parse_finger(doc: Doc) -> FingerConfig:
     return FingerConfig(name, node_id, ids, base_x, base_y, base_angle, z, joints)
 
 
+#: every key a joint of a hand config may have: declared, so that a missing one is not
+#: taken for a misspelling of another still to be read (a joint without ``tau_max`` was
+#: told ``device_tau_max`` was "here instead")
+JOINT_KEYS = (
+    "name",
+    "link_length",
+    "tau_max",
+    "device_tau_max",
+    "rate_limit",
+    "angle_min",
+    "angle_max",
+    "tdt",
+    "half_thickness",
+)
+
+
 def _parse_joint(doc: Doc) -> JointConfig:
+    doc.expect(JOINT_KEYS)
     name = doc.string("name")
     link = doc.number("link_length", min=MIN_LINK_LENGTH, max=1.0, unit="m")
     tau_max = doc.number("tau_max", min=0.0, max=100.0, min_exclusive=True, unit="N·m")

@@ -121,6 +121,19 @@ def test_missing_tau_max_has_no_default(tmp_path: Path, base: dict[str, Any]) ->
     err = error_for(tmp_path, base)
     assert err.key == "fingers[1].joints[2].tau_max"
     assert "required" in err.expected
+    # a key of its own still to be read is no misspelling of it: "'device_tau_max' is here
+    # instead (a misspelling of it?)" sent the user to rename the wrong key (s42's list)
+    assert str(err).endswith("found nothing: the key is missing"), str(err)
+
+
+def test_a_misspelt_joint_key_is_named_with_the_key_it_means(
+    tmp_path: Path, base: dict[str, Any]
+) -> None:
+    joint = base["fingers"][1]["joints"][2]
+    joint["tau_maxx"] = joint.pop("tau_max")
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[1].joints[2].tau_maxx"
+    assert "did you mean 'tau_max'?" in err.expected
 
 
 def test_unknown_key_is_refused(tmp_path: Path, base: dict[str, Any]) -> None:

@@ -74,13 +74,15 @@ def test_the_file_and_the_key_are_shown_escaped_as_the_value_is() -> None:
     )
 
 
-def _hand_with_tau_max_key(tmp_path: Path, key: str) -> Path:
-    """The shipped hand with the first joint's tau_max written under ``key`` instead."""
+def _hand_with_key_renamed(tmp_path: Path, where: str, key: str, new: str) -> Path:
+    """The shipped hand with the first finger's (``where`` "finger") or its first joint's
+    (``where`` "joint") ``key`` written under ``new`` instead."""
     import yaml
 
     data = yaml.safe_load(HAND_YAML.read_text(encoding="utf-8"))
-    joint = data["fingers"][0]["joints"][0]
-    joint[key] = joint.pop("tau_max")
+    finger = data["fingers"][0]
+    mapping = finger if where == "finger" else finger["joints"][0]
+    mapping[new] = mapping.pop(key)
     path = tmp_path / "hand.yaml"
     path.write_text(yaml.safe_dump(data), encoding="utf-8")
     return path
@@ -89,15 +91,24 @@ def _hand_with_tau_max_key(tmp_path: Path, key: str) -> Path:
 def test_a_key_of_the_file_is_escaped_where_it_is_the_key_and_where_it_is_a_suggestion(
     tmp_path: Path,
 ) -> None:
-    """The unknown key is the message's key; a misspelt one beside a missing key is named in
-    what was found ("'tau_m\\x1b' is here instead"): neither raw."""
+    """An unknown key is the message's key (a joint's keys are declared: refused at once);
+    a misspelt one beside a missing key, where the keys are not declared (a finger's), is
+    named in what was found ("'node_i\\x1b' is here instead"): neither raw."""
     with pytest.raises(ConfigError) as info:
-        load_hand(_hand_with_tau_max_key(tmp_path, "tau_m\x1b"))
+        load_hand(_hand_with_key_renamed(tmp_path, "joint", "tau_max", "tau_m\x1b"))
     message = str(info.value)
     assert "\x1b" not in message
     assert (
-        r"fingers[0].joints[0].tau_max: expected this key (required), found nothing: the key "
-        r"is missing; 'tau_m\x1b' is here instead (a misspelling of it?)"
+        r"fingers[0].joints[0].tau_m\x1b: expected no such key here (unknown key; did you "
+        r"mean 'tau_max'?)"
+    ) in message
+    with pytest.raises(ConfigError) as info:
+        load_hand(_hand_with_key_renamed(tmp_path, "finger", "node_id", "node_i\x1b"))
+    message = str(info.value)
+    assert "\x1b" not in message
+    assert (
+        r"fingers[0].node_id: expected this key (required), found nothing: the key is "
+        r"missing; 'node_i\x1b' is here instead (a misspelling of it?)"
     ) in message
 
 
