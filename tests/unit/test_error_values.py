@@ -88,28 +88,38 @@ def _hand_with_key_renamed(tmp_path: Path, where: str, key: str, new: str) -> Pa
     return path
 
 
+@pytest.mark.parametrize(
+    ("where", "key", "new", "said"),
+    [
+        # a joint's keys are declared: an unknown one is refused at once, as the message's key
+        (
+            "joint",
+            "tau_max",
+            "tau_m\x1b",
+            r"fingers[0].joints[0].tau_m\x1b: expected no such key here (unknown key; did you "
+            r"mean 'tau_max'?)",
+        ),
+        # a finger's are not: a misspelt one beside the missing key is named in what was found
+        (
+            "finger",
+            "node_id",
+            "node_i\x1b",
+            r"fingers[0].node_id: expected this key (required), found nothing: the key is "
+            r"missing; 'node_i\x1b' is here instead (a misspelling of it?)",
+        ),
+    ],
+    ids=["the key", "a suggestion"],
+)
 def test_a_key_of_the_file_is_escaped_where_it_is_the_key_and_where_it_is_a_suggestion(
-    tmp_path: Path,
+    tmp_path: Path, where: str, key: str, new: str, said: str
 ) -> None:
-    """An unknown key is the message's key (a joint's keys are declared: refused at once);
-    a misspelt one beside a missing key, where the keys are not declared (a finger's), is
-    named in what was found ("'node_i\\x1b' is here instead"): neither raw."""
+    """An unknown key is the message's key; a misspelt one beside a missing key is named in
+    what was found ("'node_i\\x1b' is here instead"): neither raw."""
     with pytest.raises(ConfigError) as info:
-        load_hand(_hand_with_key_renamed(tmp_path, "joint", "tau_max", "tau_m\x1b"))
+        load_hand(_hand_with_key_renamed(tmp_path, where, key, new))
     message = str(info.value)
     assert "\x1b" not in message
-    assert (
-        r"fingers[0].joints[0].tau_m\x1b: expected no such key here (unknown key; did you "
-        r"mean 'tau_max'?)"
-    ) in message
-    with pytest.raises(ConfigError) as info:
-        load_hand(_hand_with_key_renamed(tmp_path, "finger", "node_id", "node_i\x1b"))
-    message = str(info.value)
-    assert "\x1b" not in message
-    assert (
-        r"fingers[0].node_id: expected this key (required), found nothing: the key is "
-        r"missing; 'node_i\x1b' is here instead (a misspelling of it?)"
-    ) in message
+    assert said in message
 
 
 def test_a_did_you_mean_suggestion_is_quoted_as_a_value_is() -> None:
