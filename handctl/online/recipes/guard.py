@@ -11,9 +11,8 @@ second half the spring also takes on, more and more, what the proposed torque as
 the limit (``GUARD_DEEP_FRACTION``), so at the limit the joint is pushed back with the whole
 ``tau_max`` even by a phase that asks its ``tau_max`` towards it; a spring that stopped at
 ``tau_max`` cancelled such a phase there and no more, and the contact pushed the joint over.
-It only proposes
-torque, like the recipe runner it belongs to: the supervisor still clamps every torque to
-``tau_max`` and the rate limit and still trips at the limit.
+It only proposes torque, like the recipe runner it belongs to: the supervisor still clamps
+every torque to ``tau_max`` and the rate limit and still trips at the limit.
 
 A spring alone chatters: a joint that runs into its band at speed (a distal joint flicked by
 a slipping object) is caught by the spring within a few ticks and bounced back, and the torque
@@ -82,9 +81,9 @@ GUARD_VELOCITY_SPAN_S = 0.007
 #: the guard's whole strength against the joint whatever the phase asks, where the spring
 #: alone only cancelled a phase torque of ``tau_max`` and left the contact to push the joint
 #: over (``ANGLE_LIMIT`` on a distal joint in the experiment's third turn, which asks that
-#: joint's ``tau_max``).
-#: Half the band, so a joint that rests inside the band's first half, as the lift's distal
-#: joints do, is pushed exactly as before; from none of it, the nominal run moved
+#: joint's ``tau_max``). Half the band, so a joint that rests inside the band's first half,
+#: as the lift's distal joints do, is pushed exactly as before; from none of it, the nominal
+#: run moved
 GUARD_DEEP_FRACTION = 0.5
 
 
