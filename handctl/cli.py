@@ -3276,10 +3276,11 @@ def _add_plan(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     plan.add_argument(
         "--keep-torques",
         action="store_true",
-        help="with --base, without --from: keep every phase's torques and the torques of "
-        "its planned schedule entries (plan: {models: N}) from --base and search nothing; "
-        "the template's other keys (exits, feedback, guard, written schedule entries) are "
-        "compiled onto them, and every model runs the recipe for the provenance",
+        help="with --base, without --from: keep every searched phase's torques and the "
+        "torques of its planned schedule entries (plan: {models: N}) from --base and search "
+        "nothing; the template's other keys (exits, feedback, guard, written schedule "
+        "entries, a free phase edited there) are compiled onto them, and every model runs the "
+        "recipe for the provenance",
     )
     plan.add_argument(
         "--workers",

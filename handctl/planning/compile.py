@@ -482,7 +482,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 f"'{spec.name}' begins: the phases before it fail (widen the "
                 "search or change the template)"
             )
-        kept = base.kept(spec.name) if base is not None else None
+        kept = base.kept(spec) if base is not None else None
         nominal = episode_of(worlds[alive[0]])
         nominal.restore(snaps[alive[0]])
         if kept is not None:
@@ -817,7 +817,7 @@ def _what_follows(
     if index == len(template.phases) - 1:
         return np.zeros(hand.n_joints), template.end_ramp_s, "end_ramp_s"
     spec = template.phases[index + 1]
-    kept = base.kept(spec.name) if base is not None else None
+    kept = base.kept(spec) if base is not None else None
     torques = kept.torques if kept is not None else spec.seed if spec.kind == "free" else None
     if torques is None:
         return None

@@ -18,7 +18,7 @@ from handctl.config import HandConfig
 from handctl.errors import ConfigError
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Phase, Recipe
-from handctl.planning.template import PlannedSchedule, Template
+from handctl.planning.template import PlannedSchedule, Template, TemplatePhase
 
 
 @dataclass(frozen=True)
@@ -39,15 +39,25 @@ class Base:
     #: vain (a traceback), or passed over (every base phase after it was kept)
     start_at: int = 0
 
-    def kept(self, name: str) -> Phase | None:
-        """The base's phase ``name`` if the plan keeps its torques (it comes before
-        ``start``, or the plan is of the schedules only, or of nothing)."""
+    def kept(self, spec: TemplatePhase) -> Phase | None:
+        """The base's phase of ``spec``'s name if the plan keeps its torques (it comes before
+        ``start``, or the plan is of the schedules only, or of nothing). A free phase only
+        while the template still writes what the base has (``_as_written``): its torques
+        are the template's own, not searched, and kept they compiled an edit of them over
+        with the old values without a word. Unedited, it is kept whole, pose included: the
+        pose is where the nominal hand came to rest when the base was planned, and computed
+        again on today's simulation it moves (the shipped approach's rest by up to 0.07 rad),
+        and with it every phase planned from there."""
+        phase: Phase | None = None
         if self.schedule_only or self.keep_torques:
-            return self.phase(name)
-        for phase in self.recipe.phases[: self.start_at]:
-            if phase.name == name:
-                return phase
-        return None
+            phase = self.phase(spec.name)
+        else:
+            phase = next(
+                (p for p in self.recipe.phases[: self.start_at] if p.name == spec.name), None
+            )
+        if phase is not None and spec.kind == "free" and not _as_written(phase, spec):
+            return None
+        return phase
 
     def phase(self, name: str) -> Phase | None:
         """The base's phase ``name``, kept or not: a re-planned phase's search starts from it
@@ -72,6 +82,28 @@ class Base:
         if self.schedule_only:
             out["schedule_only"] = True
         return out
+
+
+#: N·m, N·m/rad, N·m·s/rad: a compiled recipe's numbers are written to 4 decimals
+WRITTEN_TOLERANCE = 5e-5
+
+
+def _as_written(phase: Phase, spec: TemplatePhase) -> bool:
+    """Whether the base's free ``phase`` is what the template writes for it now: the same
+    torques and the same pose hold's gains (or none)."""
+
+    def near(a: float, b: float) -> bool:
+        return abs(a - b) <= WRITTEN_TOLERANCE
+
+    if spec.seed is None or len(spec.seed) != len(phase.torques):
+        return False
+    if not all(near(a, b) for a, b in zip(spec.seed, phase.torques, strict=True)):
+        return False
+    if spec.pose_stiffness is None or phase.pose is None:
+        return spec.pose_stiffness is None and phase.pose is None
+    return near(spec.pose_stiffness, phase.pose.stiffness) and near(
+        spec.pose_damping, phase.pose.damping
+    )
 
 
 def load_base(
@@ -152,7 +184,7 @@ def _check_kept_margins(base: Base, template: Template, hand: HandConfig) -> Non
     the template's margin and the base's torque."""
     tau_max = np.array([j.tau_max for j in hand.joints])
     for i, spec in enumerate(template.phases):
-        kept = base.kept(spec.name)
+        kept = base.kept(spec)
         if kept is None or spec.torque_margin == 1.0:
             continue
         margin = np.broadcast_to(np.asarray(spec.torque_margin, dtype=float), tau_max.shape)
@@ -223,9 +255,10 @@ def _check_kept_phases(base: Base, template: Template) -> None:
 def _check_kept_names(
     base: Base, template: Template, kept: list[str], have: list[str], which: str
 ) -> None:
-    """Each kept phase the template's, by name and in order, and of its kind where the base
-    says what planned it (``provenance.kind``): a hold kept as a turn's torques ran every
-    model and failed at the end."""
+    """Each kept phase the template's, by name and in order, and of its kind, as the plan
+    that compiled the base wrote it (``provenance.kind``): a hold kept as a turn's torques
+    ran every model and failed at the end. A phase without the kind is refused too: it was
+    taken on trust. A free phase keeps nothing (``Base.kept``): its name only."""
     source = base.recipe.source
     for i, name in enumerate(kept):
         if i >= len(have) or have[i] != name:
@@ -235,9 +268,21 @@ def _check_kept_names(
                 f"'{name}', the template's phase {i + 1} ({which})",
                 have[i] if i < len(have) else "no such phase",
             )
-        kind = base.recipe.phases[i].provenance.get("kind")
         wanted = template.phases[i].kind
-        if kind is not None and kind != wanted:
+        if wanted == "free":  # the template's own torques: nothing of the base's is kept
+            continue
+        kind = base.recipe.phases[i].provenance.get("kind")
+        if kind is None:
+            # a phase without the kind its plan wrote (an edited recipe) might be a hold's
+            # torques kept as a turn's: refused, as a phase of another kind is, not trusted
+            raise ConfigError(
+                source,
+                f"phases[{i}].provenance.kind",
+                f"'{wanted}', the kind of the template's '{name}', as handctl plan writes it "
+                f"({which}: without it the phase may be of any kind; plan it: --from it)",
+                "no kind",
+            )
+        if kind != wanted:
             raise ConfigError(
                 source,
                 f"phases[{i}].provenance.kind",

@@ -198,7 +198,8 @@ def test_a_replan_keeps_the_base_s_phases_and_plans_the_rest_from_where_they_lea
     envelop = base_doc["phases"][2]["torques"]
     moved["phases"][2]["torques"] = {k: round(0.7 * v, 4) for k, v in envelop.items()}
     # a kept phase's provenance is the base file's to say: edited away or garbled, it is
-    # reported as missing (it stopped the plan's report in a KeyError after the search)
+    # reported as missing (it stopped the plan's report in a KeyError after the search); a
+    # searched phase's without its kind is refused (test_plan_base), a free phase's is not
     del moved["phases"][0]["provenance"]
     moved["phases"][1]["provenance"] = {**moved["phases"][1]["provenance"], "analysis": "abc"}
     other = tmp_path / "other_base.yaml"
@@ -321,12 +322,16 @@ def test_a_planned_schedule_entry_is_searched_on_models_of_its_sizes(
 def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
     tmp_path: Path, hand: HandConfig, short_plan: tuple[Path, Path]
 ) -> None:
-    """``--keep-torques``: every phase keeps the base's torques and schedule entries, nothing
-    is searched, and what the template changed besides (an exit, a brake) is in the recipe;
-    the header says how it was made. Without ``--base``, or with ``--from``, it is refused
-    before anything is planned or written."""
+    """``--keep-torques``: every searched phase keeps the base's torques and schedule
+    entries, nothing is searched, and what the template changed besides (an exit, a brake,
+    a free phase's torques, which are the template's own) is in the recipe; the header says
+    how it was made. Without ``--base``, or with ``--from``, it is refused before anything
+    is planned or written."""
     template, full = tmp_path / "short.template.yaml", short_plan[1]
     data = yaml.safe_load(short_plan[0].read_text())
+    assert data["phases"][0]["kind"] == "free"
+    approach = {name: round(0.9 * tau, 4) for name, tau in data["phases"][0]["torques"].items()}
+    data["phases"][0]["torques"] = approach
     data["phases"][3]["exit_fraction"] = 0.8
     data["phases"][3]["brake"] = {"rate_deg_s": 60, "joint_damping": 0.02}
     template.write_text(yaml.safe_dump(data, sort_keys=False))
@@ -340,11 +345,15 @@ def test_keep_torques_compiles_a_changed_template_onto_the_base_s_torques(
     assert "the plan failed: phase 'manipulate_1' (turn)" in done.stderr
     reported = [line for line in done.stdout.splitlines() if "models hold" in line]
     assert len(reported) == 4, done.stdout
-    assert all("kept from base recipe full.yaml (from " in line for line in reported), reported
+    assert "approach" in reported[0] and "from template;" in reported[0], reported
+    assert all("kept from base recipe full.yaml (from " in line for line in reported[1:]), reported
     before, after = yaml.safe_load(full.read_text()), yaml.safe_load(kept.read_text())
     assert after["planned_from"]["keep_torques"] is True
     assert after["planned_from"]["base"] == "full.yaml"
-    for old, new in zip(before["phases"], after["phases"], strict=True):
+    # the free phase's torques: the template's edit, where the base's were compiled over it
+    assert after["phases"][0]["torques"] == approach != before["phases"][0]["torques"]
+    assert after["phases"][0]["provenance"]["chosen_from"] == "template"
+    for old, new in zip(before["phases"][1:], after["phases"][1:], strict=True):
         assert new["torques"] == old["torques"]
         assert new.get("schedule") == old.get("schedule")
         assert new["provenance"]["kept_from"] == "base recipe full.yaml"

@@ -14,7 +14,7 @@ from handctl.errors import ConfigError
 from handctl.planning.replan import load_base, load_kept_base
 from handctl.planning.template import load_template
 
-from ..conftest import ROOT
+from ..conftest import HAND_YAML, ROOT
 
 PLANAR = ROOT / "config" / "hands" / "planar_2f2j.yaml"
 TEMPLATE = ROOT / "config" / "recipes" / "planar_lift_turn.template.yaml"
@@ -37,7 +37,7 @@ def test_a_phase_added_to_the_template_is_planned_from_and_what_follows_it_too(
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     template = load_template(path, hand)
     base = load_base(RECIPE, "extra", template, hand)
-    assert [base.kept(p.name) is not None for p in template.phases] == [
+    assert [base.kept(p) is not None for p in template.phases] == [
         k < at for k in range(len(template.phases))
     ]
     assert [base.plans_schedule(p.name) for p in template.phases] == [
@@ -155,3 +155,65 @@ def test_a_written_entry_times_the_loop_s_scale_past_tau_max_is_refused_when_it_
         load_template(path, hand)
     assert info.value.key == "phases[3].schedule[0].torques.left_j2"
     assert "(1.2): 0.504 N·m" in info.value.expected
+
+
+def test_a_kept_phase_without_the_kind_its_plan_wrote_is_refused(tmp_path: Path) -> None:
+    """A base whose kept phase has no ``provenance.kind`` (an edited recipe) skipped the kind
+    check, so a hold's torques could be kept as a turn's: refused, naming the phase. A free
+    phase keeps nothing of the base's, so its kind is not asked for."""
+    hand = load_hand(PLANAR)
+    template = load_template(TEMPLATE, hand)
+    data: dict[str, Any] = yaml.safe_load(RECIPE.read_text())
+    for phase in data["phases"]:
+        assert phase["provenance"]["kind"]
+    data["phases"][0]["provenance"].pop("kind")  # the approach, free
+    base = tmp_path / "planar_lift_turn.yaml"
+    base.write_text(yaml.safe_dump(data, sort_keys=False))
+    load_kept_base(base, template, hand)
+    data["phases"][2]["provenance"].pop("kind")  # the envelop, a hold
+    base.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError) as info:
+        load_kept_base(base, template, hand)
+    assert (info.value.file, info.value.key) == (str(base), "phases[2].provenance.kind")
+    assert "expected 'hold', the kind of the template's 'envelop'" in str(info.value)
+    assert "found 'no kind'" in str(info.value)
+    with pytest.raises(ConfigError):  # kept before --from as well
+        load_base(base, "manipulate", template, hand)
+    load_base(base, "envelop", template, hand)  # planned again: nothing of it kept
+
+
+SWAP_TEMPLATE = ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml"
+SWAP_RECIPE = ROOT / "config" / "recipes" / "swap_two_cylinders.yaml"
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("torques", {"f1_j1": 0.05}), ("pose", {"stiffness": 0.7}), ("pose", {"damping": 0.01})],
+)
+def test_a_free_phase_is_kept_only_as_the_template_still_writes_it(
+    tmp_path: Path, key: str, value: dict[str, float]
+) -> None:
+    """A free phase's torques are written in the template, not searched: kept from the base
+    (``--keep-torques``, the phases before ``--from``), an edit of them or of its pose
+    hold's gains was compiled over with the base's old values. Unedited, it is kept whole
+    (its pose is where the nominal hand rested when the base was planned)."""
+    hand = load_hand(HAND_YAML)
+    data: dict[str, Any] = yaml.safe_load(SWAP_TEMPLATE.read_text())
+    approach = data["phases"][0]
+    assert approach["kind"] == "free" and "pose" in approach
+    path = tmp_path / "swap_two_cylinders.template.yaml"
+
+    def kept(start: str | None) -> list[bool]:
+        path.write_text(yaml.safe_dump(data, sort_keys=False))
+        template = load_template(path, hand)
+        base = (
+            load_kept_base(SWAP_RECIPE, template, hand)
+            if start is None
+            else load_base(SWAP_RECIPE, start, template, hand)
+        )
+        return [base.kept(p) is not None for p in template.phases[:2]]
+
+    assert kept(None) == kept("manipulate_1") == [True, True]
+    approach[key] = {**approach[key], **value}
+    # the edited free phase is the template's; the searched lift is kept as before
+    assert kept(None) == kept("manipulate_1") == [False, True]
