@@ -53,6 +53,11 @@ HEIGHT_LABEL = "height above rest [mm]"
 #: m, an object's centre this far above rest is lifted: the experiment's judgement and the
 #: line the plots draw are one number
 LIFT_HEIGHT = 0.010
+#: s, lifted and held: every object ``LIFT_HEIGHT`` up this long without a break before the
+#: first manipulation phase. The experiment's judgement and the planner's job of the hold
+#: before the turns are one number: a plan whose hold ended sooner passed, and its recipe
+#: then failed every run's experiment
+HOLD_S = 2.0
 #: s, a centre-line rate is taken over this window, so that one contact impact of a
 #: millisecond is not a peak: the summary's, the bench's and the planner's peak rate alike
 RATE_WINDOW_S = 0.010

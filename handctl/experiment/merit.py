@@ -58,6 +58,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from handctl.convention import (
+    HOLD_S,
     LIFT_HEIGHT,
     POSE_EVERY_TICKS,
     RATE_WINDOW_S,
@@ -68,7 +69,6 @@ from handctl.handshape import hand_span
 from handctl.online.recipes.schema import Pair, Recipe
 from handctl.sim.placement import rest_heights
 
-HOLD_S = 2.0  # s
 DROP_HEIGHT = 0.005  # m
 
 

@@ -37,6 +37,7 @@ import numpy as np
 from handctl.analysis.model import AnalysisError
 from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
+from handctl.convention import HOLD_S, LIFT_HEIGHT, is_manipulation
 from handctl.errors import ConfigError, Description, escaped
 from handctl.executor import WorkPool, open_pool
 from handctl.online.recipes.loader import check_against_hand, joint_fingers, parse_recipe
@@ -689,7 +690,22 @@ def _jobs_done(
             tumble_deg_s=TUMBLE_FAIL_FACTOR * template.search.max_turn_rate_deg_s,
         )
         return [replace(judge, outcomes=[o]).failures == 0 for o in outcomes]
-    return [not o.failed and o.in_hand and o.end_height >= spec.min_height for o in outcomes]
+    hold = HOLD_S if spec is _held_before_turns(template) else 0.0
+    return [
+        not o.failed and o.in_hand and o.end_height >= spec.min_height and o.held_s >= hold - 1e-9
+        for o in outcomes
+    ]
+
+
+def _held_before_turns(template: Template) -> TemplatePhase | None:
+    """The lift or hold that ends the experiment's "lifted and held": the last before the
+    first manipulation phase (``convention.is_manipulation``, as the experiment counts
+    them), or the last of all when none is one. Its job includes the objects up for
+    ``HOLD_S`` by its end: a template whose hold is shorter was planned and passed, and
+    every run of its recipe then failed the experiment."""
+    phases = template.phases
+    first = next((i for i, p in enumerate(phases) if is_manipulation(p.name)), len(phases))
+    return next((p for p in reversed(phases[:first]) if p.kind in ("lift", "hold")), None)
 
 
 def _job_left_undone(
@@ -711,10 +727,17 @@ def _job_left_undone(
         )
     heights = _figures([round(o.end_height * 1e3) + 0 for o in outcomes], "{:d}")
     exits = sorted({o.exit for o in outcomes})
+    held = job = ""
+    if spec is _held_before_turns(template):
+        held_s = _figures([round(o.held_s, 2) for o in outcomes], "{:.2f}")
+        held = f", every object {LIFT_HEIGHT * 1e3:.0f} mm up or more for the last {held_s} s"
+        job = (
+            f", and every object up {HOLD_S:g} s by its end: the experiment's lifted and held "
+            "before the first manipulation phase"
+        )
     return (
-        f"the lowest object ended {heights} mm up, model by model (its job: at least "
-        f"{spec.min_height * 1e3:.0f} mm, "
-        f"in the hand), exits: {'; '.join(exits)}"
+        f"the lowest object ended {heights} mm up, model by model{held} (its job: at least "
+        f"{spec.min_height * 1e3:.0f} mm, in the hand{job}), exits: {'; '.join(exits)}"
     )
 
 

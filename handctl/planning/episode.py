@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.convention import RATE_WINDOW_S
+from handctl.convention import LIFT_HEIGHT, RATE_WINDOW_S
 from handctl.handshape import hand_span
 from handctl.online.estimator import ObjectEstimator
 from handctl.online.recipes.backoff import RateBackoff
@@ -64,6 +64,8 @@ class Snapshot:
     #: the estimator's output for ``tick`` when it already ran there (the tick a phase was left
     #: on, which the next phase runs again): the estimator takes one step a call
     estimates: tuple[float, ...] | None = None
+    #: the tick since which every object has been ``LIFT_HEIGHT`` up (None: not up now)
+    up_since: int | None = None
 
 
 @dataclass
@@ -87,6 +89,9 @@ class PhaseOutcome:
     #: deg/s, the largest true centre-line rate, each over ``RATE_WINDOW_S`` (the summary's
     #: ``peak_turn_rate_deg_s`` measures the same in a run)
     peak_rate_deg_s: float = 0.0
+    #: s, how long every object has been ``LIFT_HEIGHT`` up without a break at the phase's end,
+    #: across the phases before it: the experiment's "lifted and held" (``HOLD_S``)
+    held_s: float = 0.0
 
     @property
     def failed(self) -> bool:
@@ -132,6 +137,7 @@ class Episode:
         self.tick = 0
         self.handover: Handover | None = None
         self._estimates: tuple[float, ...] | None = None
+        self._up_since: int | None = None  # Snapshot.up_since
         self._limits = JointLimits.from_hand(hand)
         counts = params.encoder.counts_per_rev
         self._quantum = 2 * math.pi / counts
@@ -157,6 +163,7 @@ class Episode:
             self.tick,
             copy.deepcopy(self.handover),
             self._estimates,
+            self._up_since,
         )
 
     def restore(self, snap: Snapshot) -> None:
@@ -168,6 +175,7 @@ class Episode:
         self.tick = snap.tick
         self.handover = copy.deepcopy(snap.handover)
         self._estimates = snap.estimates
+        self._up_since = snap.up_since
 
     # -- truth (scoring only) ---------------------------------------------------------------
     def heights(self) -> list[float]:
@@ -223,6 +231,13 @@ class Episode:
         if not self.estimator.valid or not self.estimator.pairs:
             return math.nan
         return abs(math.degrees(_wrap(self.estimator.last[0] - self.true_angle())))
+
+    def _note_up(self, heights: Sequence[float], tick: int) -> None:
+        """Since when every object has been ``LIFT_HEIGHT`` up, at ``tick``."""
+        if min(heights) < LIFT_HEIGHT:
+            self._up_since = None
+        elif self._up_since is None:
+            self._up_since = tick
 
     # -- running ----------------------------------------------------------------------------
     def run_phase(
@@ -318,6 +333,7 @@ class Episode:
                 previous = now
                 heights = self.heights()
                 min_height = min(min_height, *heights)
+                self._note_up(heights, t0 + tick)
                 if record_errors:
                     err = self.estimate_error_deg()
                     if not math.isnan(err):
@@ -358,6 +374,7 @@ class Episode:
             est_error_deg=self.estimate_error_deg(),
             errors_deg=errors,
             peak_rate_deg_s=math.degrees(peak / (window * period)),
+            held_s=0.0 if self._up_since is None else (self.tick - self._up_since) * period,
         )
 
 

@@ -687,3 +687,34 @@ def test_a_base_phase_of_another_kind_is_refused_before_any_model_runs(tmp_path:
     assert done.returncode == 2, done.stderr
     assert f"{PLANAR_RECIPE}: phases[2].provenance.kind: expected 'turn'" in done.stderr
     assert "found 'hold'" in done.stderr and not out.exists()
+
+
+def test_a_hold_shorter_than_the_experiment_s_is_a_job_left_undone(tmp_path: Path) -> None:
+    """The plan judged a hold by its height alone, while the experiment asks every object up
+    2 s before the first manipulation phase: a template whose hold is shorter planned and
+    passed, and every run of its recipe failed (exit 1). The plan now says so on the hold,
+    with how long the objects were up, and the run agrees."""
+    data: dict[str, Any] = yaml.safe_load(PLANAR_TEMPLATE.read_text())
+    envelop = next(p for p in data["phases"] if p["name"] == "envelop")
+    envelop["max_s"] = 0.3
+    template = tmp_path / "short_hold.template.yaml"
+    template.write_text(yaml.safe_dump(data, sort_keys=False))
+    out = tmp_path / "short_hold.yaml"
+    done = plan_command(
+        str(template), "--hand", str(PLANAR), "-o", str(out), "--quick", "--models", "1",
+        "--workers", "1",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr  # --quick only warns of a job undone
+    line = next(x for x in done.stdout.splitlines() if x.split()[:1] == ["envelop"])
+    assert line.endswith("1/1 models hold, 0/1 did its job"), done.stdout
+    warning = re.search(r"phase 'envelop' \(hold\): .* (\d\.\d\d) s \(its job: .*", done.stderr)
+    assert warning is not None, done.stderr
+    assert "every object up 2 s by its end" in warning.group(0)
+    held = float(warning.group(1))
+    assert 0.3 < held < 2.0
+    run = handctl("run", "recipe", str(out), "--hand", str(PLANAR), "--lockstep", timeout=300)
+    assert run.returncode == 1, run.stderr
+    found = re.search(r"lifted False \(held (\d\.\d\d) s\)", run.stdout)
+    assert found is not None, run.stdout
+    # the plan's episode and the run measure the same hold, to the checks' 10 ticks
+    assert float(found.group(1)) == pytest.approx(held, abs=0.03)
