@@ -9,6 +9,7 @@ from handctl.stopsignals import (  # standard library only
     drives_a_hand,
     ignore_stops,
     interrupt,
+    interruption,
 )
 
 
@@ -70,7 +71,7 @@ def entry() -> int:
         code = main()
     except KeyboardInterrupt:
         _quiet()
-        print("handctl: interrupted", file=sys.stderr)
+        print(f"handctl: {interruption()}", file=sys.stderr)
         return 130
     leave(code)
     return code

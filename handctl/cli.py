@@ -3635,7 +3635,7 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
 
 
 def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
-    from handctl.stopsignals import finished, raised
+    from handctl.stopsignals import finished, interruption, raised
 
     try:
         _refuse_empty_names(args)
@@ -3655,7 +3655,7 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
         print(f"handctl: error: {exc}", file=sys.stderr)
         return EXIT_FAILED
     except KeyboardInterrupt:
-        print("handctl: interrupted", file=sys.stderr)
+        print(f"handctl: {interruption()}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except OSError as exc:
         # a file the command was told to read or write that the system refused (a full disk,

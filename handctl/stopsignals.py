@@ -113,6 +113,15 @@ def ignore_stops() -> None:
             signal.signal(sig, signal.SIG_IGN)
 
 
+def interruption() -> str:
+    """The last line of a command a stop signal interrupted: "interrupted", and by which
+    signal when it was not Ctrl-C. A supervisor's SIGTERM, a terminal's SIGHUP and the
+    kernel's SIGXCPU at a real-time limit were all said as a bare "interrupted", as if
+    someone had pressed Ctrl-C: the one who reads the log was left to guess which."""
+    name = _Command.raised
+    return f"interrupted by {name}" if name and name != "SIGINT" else "interrupted"
+
+
 def finished() -> None:
     """The command has its result (its exit code, its files written): a stop signal from
     here on has nothing left to stop. Raised as an interrupt, one that came as a run's summary
@@ -233,6 +242,7 @@ class StopSignals:
             return
         if self.runtime is None or self._loop is None:
             self.noted = f"signal {name}"  # for the next checkpoint (class docstring)
+            _Command.raised = signal_name(signum)  # raised there, as ``interrupt`` raises it
             return
         try:
             self._loop.call_soon_threadsafe(self.runtime.request_stop, f"signal {name}")

@@ -699,7 +699,8 @@ class Runtime:
             # the tick only listens, not in the nodes' enable before the first running tick.
             self.driver.prepare_send()
             if self.stop_requested:
-                return f"stopped during start-up ({self.stop_requested})"
+                # said after "stopped:": "stopped: signal SIGTERM during start-up, ..."
+                return f"{self.stop_requested} during start-up, no node enabled"
             # Judge the nodes on what they say now, not on what a previous run last heard:
             # fresh feedback and a fresh heartbeat from every node (the heartbeat's uptime is
             # the baseline against which a reboot during the run is recognised).

@@ -207,7 +207,7 @@ def test_a_run_stopped_in_its_start_up_re_runs_to_the_same_end(
         stop_at_start=True,
     )  # fmt: skip
     assert run.result.outcome is Outcome.INTERRUPTED, run.result.message
-    assert "stopped during start-up" in run.result.message
+    assert run.result.message.endswith(" during start-up, no node enabled")
     done = handctl("replay", str(run.path), "--rerun")
     assert done.returncode == 0, done.stdout + done.stderr
     assert "rerun: the start-up re-run to the same end (interrupted)" in done.stdout
