@@ -366,6 +366,18 @@ def _scene_warnings(hand: HandConfig, scene: SimParams | None) -> list[str]:
                 f"{above * 1e3:.1f} mm above the table with nothing under it: it falls at "
                 "the first step, and its height above rest is measured from the table"
             )
+    if scene is not None:
+        from handctl.sim.idle import IDLE_S, idle_excursions
+
+        for e in idle_excursions(hand, scene):
+            name = escaped(hand.joint_names[e.joint])
+            out.append(
+                f"with no torque on the simulated hand, {name} goes from its initial "
+                f"{e.start:+.3f} rad past its soft limit {e.limit:+.3f} rad in {e.time_s:.3f} s "
+                f"(idle for {IDLE_S:g} s, gravity and contacts only): a phase of zero torque "
+                "(calibrate tdt's, a recipe's ramp from zero) stops on ANGLE_LIMIT; a start "
+                "pose nearer where it hangs (sim.initial_angles) or a wider range avoids it"
+            )
     for obj in scene.objects if scene is not None else ():
         # the palm's face is y = 0, the objects below it: the most a centre can rise
         room = -obj.radius - obj.y

@@ -418,7 +418,9 @@ def test_check_warns_of_a_scene_no_run_of_the_experiment_can_do(
     assert f"handctl: warning: {path}: {name}'s range of 0.03 rad holds no two " in err
     assert "every recipe with a limit_guard_band is refused on this hand" in err
     assert f"handctl: warning: {path}: sim.objects: {obj} can rise 8.0 mm before it " in err
-    assert err.count("handctl: warning:") == 2
+    # and a range that narrow is left at once by the finger hanging idle (test_check_idle)
+    assert f"with no torque on the simulated hand, {name} goes from its initial" in err
+    assert err.count("handctl: warning:") == 3
 
 
 def test_check_cli_bad_config_exits_2_with_the_message(
