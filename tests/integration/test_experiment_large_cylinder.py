@@ -102,9 +102,10 @@ def test_two_large_cylinders_are_swapped_with_the_torque_planned_for_them(
     ("radius", "measured", "turned"),
     [
         # cylinder 1 measured smaller beside a cylinder 2 measured larger: manipulate_2's
-        # own entry for a small cylinder 1 (manipulate_3's torque, sooner) turns this pair
-        # 60 deg, and manipulate_3 has the half of what is left, 27 deg, to turn (it turned
-        # 39 after a manipulate_2 of 23 before that entry, and the last phase 81 at 235 deg/s)
+        # own entry for a small cylinder 1 (manipulate_3's torque, sooner, finger 1's
+        # lighter) turns this pair 51 deg, and manipulate_3 has the half of what is left, 34
+        # deg, to turn (with finger 1's torque as manipulate_3's, 60 and 27; before the entry,
+        # 23 and 39, and the last phase 81 at 235 deg/s)
         (SMALL_BESIDE_LARGE, "cyl1 radius x0.8", -20.0),
         # cylinder 1 within the estimator's tolerance reads the recipe's radius exactly
         (NEAR_BESIDE_LARGE, "cyl1 radius x1.000, cyl2 radius x1.1", TURNED_DEG),
