@@ -358,6 +358,7 @@ def _scene_warnings(hand: HandConfig, scene: SimParams | None) -> list[str]:
                 "with a limit_guard_band is refused on this hand"
             )
     if scene is not None:
+        from handctl.sim.idle import IDLE_S, idle_excursions
         from handctl.sim.placement import unsupported
 
         for i, above in unsupported(hand, scene):
@@ -366,9 +367,6 @@ def _scene_warnings(hand: HandConfig, scene: SimParams | None) -> list[str]:
                 f"{above * 1e3:.1f} mm above the table with nothing under it: it falls at "
                 "the first step, and its height above rest is measured from the table"
             )
-    if scene is not None:
-        from handctl.sim.idle import IDLE_S, idle_excursions
-
         for e in idle_excursions(hand, scene):
             name = escaped(hand.joint_names[e.joint])
             out.append(

@@ -9,6 +9,7 @@ where a run of the recipe would start them on each model.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,7 +49,6 @@ class Base:
         pose is where the nominal hand came to rest when the base was planned, and computed
         again on today's simulation it moves (the shipped approach's rest by up to 0.07 rad),
         and with it every phase planned from there."""
-        phase: Phase | None = None
         if self.schedule_only or self.keep_torques:
             phase = self.phase(spec.name)
         else:
@@ -93,7 +93,7 @@ def _as_written(phase: Phase, spec: TemplatePhase) -> bool:
     torques and the same pose hold's gains (or none)."""
 
     def near(a: float, b: float) -> bool:
-        return abs(a - b) <= WRITTEN_TOLERANCE
+        return math.isclose(a, b, rel_tol=0.0, abs_tol=WRITTEN_TOLERANCE)
 
     if spec.seed is None or len(spec.seed) != len(phase.torques):
         return False
@@ -258,7 +258,8 @@ def _check_kept_names(
     """Each kept phase the template's, by name and in order, and of its kind, as the plan
     that compiled the base wrote it (``provenance.kind``): a hold kept as a turn's torques
     ran every model and failed at the end. A phase without the kind is refused too: it was
-    taken on trust. A free phase keeps nothing (``Base.kept``): its name only."""
+    taken on trust. A free phase is kept only as the template writes it (``Base.kept``):
+    its name is checked, its kind is not asked for."""
     source = base.recipe.source
     for i, name in enumerate(kept):
         if i >= len(have) or have[i] != name:
@@ -269,7 +270,7 @@ def _check_kept_names(
                 have[i] if i < len(have) else "no such phase",
             )
         wanted = template.phases[i].kind
-        if wanted == "free":  # the template's own torques: nothing of the base's is kept
+        if wanted == "free":  # kept only as the template writes it (Base.kept)
             continue
         kind = base.recipe.phases[i].provenance.get("kind")
         if kind is None:
