@@ -444,7 +444,7 @@ class Runtime:
             if self.tick >= self.max_ticks:
                 self.request_stop("tick budget exhausted")
         self.driver.node_command("disable")
-        await self._confirm_disabled()
+        await self._confirm_disabled(tk.now_ns)
         if not sup.faults:  # a node fault in the run is its stop, said as such
             self._say_ended_in_fault()
         # the last tick's bus events, which the log has: the summary's count had them not
@@ -455,15 +455,26 @@ class Runtime:
             return Outcome.INTERRUPTED, self.stop_requested
         return Outcome.COMPLETED, ""
 
-    async def _confirm_disabled(self) -> None:
-        """Listen after the disable until every node says it is no longer ENABLED, for
-        ``DISABLE_CONFIRM_S`` at most, before the bus is closed. One period alone was waited:
-        above 1 kHz in lockstep the simulated nodes, on their own 1 ms tick, had not run one
-        in it, and the run ended (exit 0 as well) with the hand ENABLED. A node that does not
-        say so in time is said in the summary's warnings: its watchdog is what disables it."""
+    async def _confirm_disabled(self, sent_ns: int) -> None:
+        """Listen after the disable (sent after the tick of ``sent_ns``) until every node's
+        own Feedback, heard since, says it is no longer ENABLED, for ``DISABLE_CONFIRM_S``
+        at most, before the bus is closed (a node none of whose Feedback is heard in that
+        time is taken at its other reports' word). One period alone was waited: above 1 kHz
+        in lockstep the simulated nodes, on their own 1 ms tick, had not run one in it, and
+        the run ended (exit 0 as well) with the hand ENABLED. Any report's DISABLED was
+        taken at first: one forged Heartbeat after the disable hid a node that ignored it,
+        and no e-stop went. A node that does not say so in time is said in the summary's
+        warnings: its watchdog is what disables it."""
         period_s = self.hand.bus.period_s
         ticks = max(1, ticks_lasting(DISABLE_CONFIRM_S, period_s))
         enabled = int(NodeState.ENABLED)
+
+        def heard(n: finger.FingerNode) -> bool:  # a Feedback of it since the disable
+            return n.feedback_ns is not None and n.feedback_ns >= sent_ns
+
+        def confirmed(n: finger.FingerNode) -> bool:
+            return heard(n) and not n.feedback_enabled and n.state != enabled
+
         # a Feedback sent this long after the disable was sent by a node that had had the
         # disable a tick to act on: its ENABLED is not one sent before it
         defiant_after_ns: int | None = None
@@ -473,15 +484,22 @@ class Runtime:
                 defiant_after_ns = tk.now_ns + round(DEFIANT_AFTER_PERIODS * period_s * 1e9)
             self._account_idle(tk)
             self.driver.poll(tk.now_ns)
-            if not any(n.state == enabled for n in self.driver.nodes):
+            if all(confirmed(n) for n in self.driver.nodes):
                 return
-        still = [n for n in self.driver.nodes if n.state == enabled]
+        # a node whose Feedback went unheard all the while (its frames rejected, or lost) is
+        # taken at its other reports' word, at the end of the wait
+        still = [
+            n for n in self.driver.nodes if not confirmed(n) and (heard(n) or n.state == enabled)
+        ]
+        if not still:
+            return
         defiant = [
             n
             for n in still
             if defiant_after_ns is not None
             and n.feedback_ns is not None
             and n.feedback_ns >= defiant_after_ns
+            and n.feedback_enabled
         ]
         said = ", ".join(f"node {n.node_id} ({n.finger.name})" for n in still)
         self.disable_unconfirmed = (
@@ -564,6 +582,7 @@ class Runtime:
         driver.send_zero()
         rows_ok = self._end_phase_on_exception(tk)
         clock_ok = recorder_ok = poll_ok = True
+        disabled_ns: int | None = None  # the tick after which the disable went
         for n in range(1, ZERO_TICKS_BEFORE_DISABLE + 2):  # the ticks after the one that raised
             tk = None
             if clock_ok:
@@ -589,13 +608,14 @@ class Runtime:
                 driver.send_zero()
             if n == ZERO_TICKS_BEFORE_DISABLE:
                 driver.send_disable()
+                disabled_ns = tk.now_ns if tk is not None else None
             if tk is not None and recorder_ok and rows_ok:
                 rows_ok = self._record_stop_tick(tk, state)
-        if clock_ok and recorder_ok and poll_ok:
+        if clock_ok and recorder_ok and poll_ok and disabled_ns is not None:
             # heard disabled, as after any other stop (``disable_unconfirmed`` could not be
             # said after an exception); the hand is stopped whatever this finds
             with contextlib.suppress(Exception):
-                await self._confirm_disabled()
+                await self._confirm_disabled(disabled_ns)
         return Outcome.SAFETY_STOP, self._exception_stop_message()
 
     def _end_phase_on_exception(self, tk: Tick | None) -> bool:

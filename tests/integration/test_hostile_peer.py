@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import ClassVar
 
 import can
+import numpy as np
 import pytest
 
 from handctl.config import HandConfig
@@ -20,7 +21,7 @@ from handctl.online.loop import Outcome
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FaultCode
-from handctl.protocol import NodeState
+from handctl.protocol import Layout, NodeState
 from handctl.sim.faults import Injector, SimContext
 from handctl.sim.firmware import FaultBits
 
@@ -282,3 +283,197 @@ def test_a_node_that_goes_on_saying_enabled_after_the_disable_gets_the_e_stop(
     assert "node 2 (f2) went on saying ENABLED after the disable: the e-stop was sent" in said
     assert r.estops() == 1
     assert stubborn.state == int(NodeState.FAULT) and stubborn.fault_bits & Bits.ESTOP
+
+
+def _sniffed(peer: can.BusABC, last: dict[int, int], heard: dict[int, bytes] | None = None) -> None:
+    """The latest counter heard on each identifier in ``last`` (and the frame, in ``heard``):
+    what a peer that can compute the CRC (no secret) needs to put a frame into a stream the
+    host accepts."""
+    while (msg := peer.recv(timeout=0)) is not None:
+        if msg.arbitration_id in last:
+            last[msg.arbitration_id] = msg.data[1]
+            if heard is not None:
+                heard[msg.arbitration_id] = bytes(msg.data)
+
+
+def _uptime(layout: Layout, heard: dict[int, bytes]) -> int:
+    """The uptime the node's own last Heartbeat said: a forged one that went back would be
+    taken for a reboot, another fault than the one under test."""
+    return int(layout.decode(heard[layout.frame_id])[1][1])
+
+
+def _next(last: dict[int, int], frame_id: int) -> int:
+    last[frame_id] = (last[frame_id] + 1) & 0xFF
+    return last[frame_id]
+
+
+def test_a_forged_heartbeat_does_not_arm_a_node_that_never_enabled(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """Node 2 drops the enable (an interlock, say): its Feedback says DISABLED on every tick.
+    A Heartbeat ENABLED after its frames each tick (a forgery, or firmware that reports the
+    state asked for) armed the torque at once, and a zero-torque run completed on it (found
+    by an outside audit). The torque is armed on each node's own Feedback now, and a
+    DISABLED more than a node tick after the ENABLED is the node's present: nothing but zero
+    reaches the bus, and the run stops on the contradiction."""
+    from handctl.protocol import NODE_COMMANDS
+
+    wire_protocol = protocol_for(hand)
+    heartbeat = wire_protocol.layout("Heartbeat", 2)
+    command = wire_protocol.layout("NodeCommand", 2)
+    with rig(hand, hold, max_seconds=1.0) as r, third_peer(r) as peer:
+        node = r.sim.nodes[1]
+        obey = node._apply
+
+        def no_enable(layout: object, data: bytes, now_ns: int) -> None:
+            if layout is command and command.decode(data)[1][0] == NODE_COMMANDS["enable"]:
+                return
+            obey(layout, data, now_ns)  # type: ignore[arg-type]
+
+        node._apply = no_enable  # type: ignore[method-assign]
+        last = {heartbeat.frame_id: -1}
+        heard: dict[int, bytes] = {}
+        forged: list[tuple[int, bytes]] = []
+
+        def forge() -> None:
+            _sniffed(peer, last, heard)
+            if r.runtime.first_send_tick < 0 or last[heartbeat.frame_id] < 0:
+                return
+            up = _uptime(heartbeat, heard)
+            data = heartbeat.encode(_next(last, heartbeat.frame_id), (1, up))
+            peer.send(frame(heartbeat.frame_id, data))
+            forged.append((heartbeat.frame_id, data))
+
+        r.sim.faults.add(Every(send=forge), 0.0)
+        result = r.run()
+    assert forged
+    assert result.outcome is Outcome.SAFETY_STOP, result.message
+    first = result.faults[0]
+    assert first.code is FaultCode.NODE_CONTRADICTION, [str(f) for f in result.faults]
+    assert "node 2 (f2): Heartbeat says ENABLED after DISABLED" in first.detail
+    assert first.tick - r.runtime.first_send_tick <= 5
+    assert [(a, b) for _, a, _, b in result.supervisor_history][:2] == [
+        ("idle", "enabling"),
+        ("enabling", "faulted"),
+    ]
+    assert not np.any(r.commands())
+
+
+def test_a_forged_disabled_after_the_disable_does_not_hide_a_node_that_ignored_it(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """Node 2 ignores the disable; one Heartbeat DISABLED after it (a forgery, or firmware
+    that reports the state asked for) was taken as the node's word: the run said completed,
+    no e-stop went, and the node latched TIMEOUT on its own (found by an outside audit). The
+    disable is confirmed by each node's own Feedback now."""
+    from handctl.protocol import NODE_COMMANDS
+
+    wire_protocol = protocol_for(hand)
+    heartbeat = wire_protocol.layout("Heartbeat", 2)
+    command = wire_protocol.layout("NodeCommand", 2)
+    with rig(hand, hold, max_seconds=0.5) as r, third_peer(r) as peer:
+        stubborn = r.sim.nodes[1]
+        obey = stubborn._apply
+
+        def ignore_disable(layout: object, data: bytes, now_ns: int) -> None:
+            if layout is command and command.decode(data)[1][0] == NODE_COMMANDS["disable"]:
+                return
+            obey(layout, data, now_ns)  # type: ignore[arg-type]
+
+        stubborn._apply = ignore_disable  # type: ignore[method-assign]
+        last = {heartbeat.frame_id: -1, command.frame_id: -1}
+        heard: dict[int, bytes] = {}
+        forged: list[bytes] = []
+
+        def forge_once() -> None:
+            _sniffed(peer, last, heard)
+            if forged or last[command.frame_id] < 0 or r.runtime.runner is None:
+                return
+            if not r.runtime.runner.done:
+                return  # the enable's NodeCommand was heard; wait for the disable's
+            if r.runtime.driver.nodes[1].state != int(NodeState.ENABLED):
+                return
+            up = _uptime(heartbeat, heard)
+            data = heartbeat.encode(_next(last, heartbeat.frame_id), (0, up))
+            peer.send(frame(heartbeat.frame_id, data))
+            forged.append(data)
+
+        r.sim.faults.add(Every(send=forge_once), 0.0)
+        result = r.run()
+        r.sim.step()  # the nodes take the e-stop on their next tick
+    assert forged
+    said = result.disable_unconfirmed
+    assert said.startswith("node 2 (f2) not heard disabled"), said
+    assert "node 2 (f2) went on saying ENABLED after the disable: the e-stop was sent" in said
+    assert r.estops() == 1
+    assert stubborn.state == int(NodeState.FAULT)
+
+
+def test_a_state_the_protocol_does_not_define_does_not_hide_a_fault(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """Node 2 latches FAULT (SENSOR); after its frames each tick, a Status of state 3 (which
+    the protocol does not define) and a Heartbeat ENABLED. The undefined state took the
+    FAULT's place and the ENABLED was then believed: the fault went unseen until the TDT
+    check stopped the run 55 ms later on a ramp (found by an outside audit)."""
+    wire_protocol = protocol_for(hand)
+    status = wire_protocol.layout("Status", 2)
+    heartbeat = wire_protocol.layout("Heartbeat", 2)
+    with rig(hand, hold) as r, third_peer(r) as peer:
+        node = r.sim.nodes[1]
+        last = {status.frame_id: -1, heartbeat.frame_id: -1}
+        heard: dict[int, bytes] = {}
+
+        def fault_and_hide() -> None:
+            _sniffed(peer, last, heard)
+            if node.state != int(NodeState.FAULT):
+                node._fault(int(FaultBits.SENSOR))  # said by its frames of the next tick
+                return
+            if min(last.values()) < 0:
+                return
+            hidden = (3, 0, 0, 0, 0, 0, wire_protocol.version, 1, 0, 0)
+            peer.send(frame(status.frame_id, status.encode(_next(last, status.frame_id), hidden)))
+            up = (1, _uptime(heartbeat, heard))
+            peer.send(
+                frame(heartbeat.frame_id, heartbeat.encode(_next(last, heartbeat.frame_id), up))
+            )
+
+        r.sim.faults.add(Every(send=fault_and_hide), INJECT_AT)
+        result = r.run()
+    # the FAULT and the undefined state are heard in the same tick: two immediate stops
+    tick = stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
+    assert tick <= INJECT_TICK + 1
+    assert "Status says state 3, which the protocol does not define" in result.faults[0].detail
+    said = {f.code: f for f in result.faults}
+    assert said[FaultCode.NODE_FAULT].tick == tick
+    assert "SENSOR" in said[FaultCode.NODE_FAULT].detail
+
+
+def test_a_forged_feedback_a_counter_ahead_is_a_second_sender(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """One Feedback of node 1 every tenth tick, a counter ahead of the node, with f1_j1 at
+    1.8 rad: the host believed it, rejected the node's own frame of that counter as a
+    repeat, and stayed under the reject-rate limit, so the estimator, the exits and the
+    guard read the forged angle on 380 ticks of a completed run (found by an outside audit).
+    A counter with two contents is two senders: stopped at the node's next frame."""
+    layout = protocol_for(hand).layout("Feedback", 1)
+    joints = (len(layout.signals) - 2) // 2
+    values = [0.0] * joints + [1.8] + [0.0] * (joints - 1) + [int(NodeState.ENABLED), 0]
+    with rig(hand, hold) as r, third_peer(r) as peer:
+        last = {layout.frame_id: -1}
+        sent_at: list[int] = []
+
+        def forge() -> None:
+            _sniffed(peer, last)
+            if last[layout.frame_id] < 0 or r.runtime.tick % 10:
+                return
+            data = layout.encode(_next(last, layout.frame_id), values)
+            peer.send(frame(layout.frame_id, data))
+            sent_at.append(r.runtime.tick)
+
+        r.sim.faults.add(Every(send=forge), INJECT_AT)
+        result = r.run()
+    tick = stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
+    assert sent_at and tick == sent_at[0] + 1, (tick, sent_at)
+    assert f"two Feedback frames (id 0x{layout.frame_id:03X})" in result.faults[0].detail

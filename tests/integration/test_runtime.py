@@ -119,10 +119,12 @@ SCENARIOS = [
         lambda: inj.CorruptCrc(node=3, message="heartbeat"),
         FaultCode.HEARTBEAT_LOST,
     ),
+    # a counter that does not advance while the readings move: one counter with two
+    # contents, which the host cannot tell from a second sender, at the first repeat
     (
         "counter_repeat",
         lambda: inj.CounterRepeat(node=1, message="feedback"),
-        FaultCode.FEEDBACK_TIMEOUT,
+        FaultCode.NODE_CONTRADICTION,
     ),
     ("tdt_stuck", lambda: inj.TdtStuck(node=1, joint=1), FaultCode.TDT_STUCK),
     ("tdt_offset", lambda: inj.TdtOffset(node=3, joint=2, offset=0.3), FaultCode.TDT_MISMATCH),

@@ -21,7 +21,7 @@ from handctl.online.drivers.finger import (
     parse_feedback,
 )
 from handctl.online.drivers.receiver import Reject
-from handctl.protocol import NODE_COMMANDS, NodeState, Protocol
+from handctl.protocol import NODE_COMMANDS, NodeState, Protocol, node_state_name
 
 MS = 1_000_000
 
@@ -221,8 +221,21 @@ def test_state_names_are_the_protocols(node: FingerNode, sender: Sender) -> None
     for state in NodeState:
         node.receive(*sender.heartbeat(state, 1), 0)
         assert node.state_name == state.name
-    node.receive(*sender.heartbeat(9, 1), 0)
-    assert node.state_name == "UNKNOWN"
+    assert node_state_name(9) == "UNKNOWN"
+
+
+def test_a_state_the_protocol_does_not_define_is_never_the_node_s(
+    node: FingerNode, sender: Sender
+) -> None:
+    """A Status of state 3 took a FAULT's place, and a forged Heartbeat ENABLED after it hid
+    the fault for the rest of the run (found by an outside audit): the FAULT stands, and the
+    undefined state is a contradiction, which the supervisor stops on."""
+    node.receive(*sender.heartbeat(NodeState.FAULT, 1), 0)
+    node.receive(*sender.heartbeat(3, 1), 1 * MS)
+    assert node.state_name == "FAULT"
+    assert node.contradiction == "Heartbeat says state 3, which the protocol does not define"
+    node.receive(*sender.heartbeat(NodeState.ENABLED, 1), 2 * MS)
+    assert node.state_name == "FAULT" and node.contradictions == 2
 
 
 def test_command_frames_count_and_wrap(node: FingerNode, protocol: Protocol) -> None:

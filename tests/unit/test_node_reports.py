@@ -77,7 +77,10 @@ def test_a_contradiction_names_the_frame_the_state_and_every_latched_bit(node: F
 def test_a_state_the_protocol_does_not_know_is_named_by_its_number(node: FingerNode) -> None:
     version = node.layouts.protocol_version
     node.receive(node.layouts.status.frame_id, _status(node, 0, 7, TIMEOUT, version, (1, 0, 0)), 2)
-    assert node.contradiction == "Status says state 7 with latched fault bits (TIMEOUT)"
+    assert node.contradiction == (
+        "Status says state 7, which the protocol does not define (fault bits 0x01)"
+    )
+    assert node.state == -1  # never the node's state: still unknown
 
 
 def _heartbeat(node: FingerNode, counter: int, state: int) -> bytes:
@@ -106,6 +109,49 @@ def test_enabled_after_disabled_needs_an_enable_from_this_host(node: FingerNode)
     node.next_node_command("enable")  # enabled again by this host: no contradiction more
     node.receive(fb, _feedback(node, 4, ENABLED, 0), 8)
     assert node.contradictions == 1 and node.state == ENABLED
+
+
+def test_a_disabled_long_after_the_node_said_enabled_is_no_older_report(node: FingerNode) -> None:
+    """A node that never took the enable (its Feedback says DISABLED on every tick) beside a
+    Heartbeat saying ENABLED (a forgery, or firmware that reports the state asked for) was
+    taken for ENABLED for a whole run: each Feedback DISABLED counted as sent before the
+    enable, for as long as the Feedback stream had not said ENABLED. Frames a node queues
+    together leave within its 1 ms tick, so later than that it is the node's present."""
+    fb, hb = node.layouts.feedback.frame_id, node.layouts.heartbeat.frame_id
+    node.receive(fb, _feedback(node, 0, DISABLED, 0), 0)
+    node.next_node_command("enable")
+    node.receive(hb, _heartbeat(node, 0, ENABLED), 10_000_000)
+    node.receive(fb, _feedback(node, 1, DISABLED, 0), 10_000_000 + REORDERED_WITHIN_NS)
+    node.receive(hb, _heartbeat(node, 1, ENABLED), 10_000_000 + REORDERED_WITHIN_NS)
+    assert node.contradiction == ""  # within the tick: may be older than the enable
+    assert not node.feedback_enabled  # and the torque is not armed on it (the supervisor)
+    node.receive(fb, _feedback(node, 2, DISABLED, 0), 10_000_001 + REORDERED_WITHIN_NS)
+    node.receive(hb, _heartbeat(node, 2, ENABLED), 10_000_002 + REORDERED_WITHIN_NS)
+    assert node.contradiction == (
+        "Heartbeat says ENABLED after DISABLED without an enable from this host"
+    )
+    assert node.state == DISABLED
+
+
+def test_one_counter_with_two_contents_is_a_second_sender(node: FingerNode) -> None:
+    """A forged Feedback a counter ahead of the node is accepted, and the node's own frame
+    with that counter is rejected as a repeat: counted as one lost frame, a forgery one
+    frame in ten was believed under the reject-rate limit for a whole run. The same frame
+    heard twice is a repeat and nothing more."""
+    fb = node.layouts.feedback.frame_id
+    node.receive(fb, _feedback(node, 0, ENABLED, 0), 1)
+    node.receive(fb, _feedback(node, 0, ENABLED, 0), 2)
+    assert node.contradiction == "" and node.rejects.total == 1
+    layout = node.layouts.feedback
+    joints = (len(layout.signals) - 2) // 2
+    forged = layout.encode(1, [0.0] * joints + [1.8] + [0.0] * (joints - 1) + [ENABLED, 0])
+    assert node.receive(fb, forged, 3) is None
+    node.receive(fb, _feedback(node, 1, ENABLED, 0), 4)
+    assert node.contradiction == (
+        f"two Feedback frames (id 0x{fb:03X}) with counter 1 and other contents: a second "
+        "sender on this node's identifier (a forged frame, or two nodes set to one id), or a "
+        "node whose counter does not advance"
+    )
 
 
 def test_a_listener_hears_another_host_enable_the_node(node: FingerNode) -> None:

@@ -31,6 +31,7 @@ RESERVED_BITS = 0xE0
 _DISABLED = int(NodeState.DISABLED)  # plain ints on the hot path
 _ENABLED = int(NodeState.ENABLED)
 _FAULT = int(NodeState.FAULT)
+_DEFINED_STATES = frozenset((_DISABLED, _ENABLED, _FAULT))
 
 
 def fault_names(bits: int) -> list[str]:
@@ -144,6 +145,12 @@ class FingerNode:
         #: host's last enable: until each has, a DISABLED of that stream may be one sent
         #: before the enable (CAN keeps the order within an identifier, not across them).
         self._since_enable: set[str] = set()
+        #: When the first ENABLED report since this host's last enable arrived (host clock;
+        #: None before one has). Frames a node queues in one of its ticks leave within it, so
+        #: a DISABLED later than ``REORDERED_WITHIN_NS`` after that is no report from before
+        #: the enable, whichever stream it comes on: a node whose Feedback went on saying
+        #: DISABLED beside a forged Heartbeat ENABLED was taken for enabled for a whole run.
+        self._enabled_ns: int | None = None
         #: The streams not yet heard saying FAULT since the host took the node for FAULT: until
         #: each has, an ENABLED of that stream may be one sent before the fault. A node enabled
         #: and e-stopped in one of its ticks queues a Status ENABLED, then sends a Feedback
@@ -196,6 +203,7 @@ class FingerNode:
         self._commanding = True
         if command == "enable":
             self._since_enable = {"Feedback", "Heartbeat", "Status"}
+            self._enabled_ns = None
             self._may_enable = True
         frame = make_node_command(self.layouts.node_command, self.node_command_counter, command)
         self.node_command_counter = (self.node_command_counter + 1) & 0xFF
@@ -215,6 +223,8 @@ class FingerNode:
         reason = validate(layout, data, counters)
         if reason is not None:
             self.rejects.add(reason)
+            if reason is Reject.COUNTER_REPEAT and data != counters.frame:
+                self._second_sender(layout, data)
             if reason is Reject.LENGTH and layout is self.layouts.status:
                 version = foreign_status_version(layout, data)
                 if version is not None:
@@ -252,6 +262,34 @@ class FingerNode:
         return None
 
     @property
+    def feedback_enabled(self) -> bool:
+        """Whether the node's own 1 kHz Feedback last said ENABLED. What arms the torque and
+        what confirms the disable: the stream that carries the angles and goes with every
+        command, not whichever report came last (a single forged Heartbeat DISABLED after the
+        disable hid a node that had ignored it, and its e-stop was never sent)."""
+        return self.feedback is not None and self.feedback.state == _ENABLED
+
+    def _second_sender(self, layout: Layout, data: bytes) -> None:
+        """A frame with the counter of the one just accepted on its stream, and other
+        contents: two senders on one identifier (a forged frame, or two nodes set to one id),
+        or a node whose counter does not advance, which the host cannot tell apart from them.
+        One of them was believed; the counter rule alone counted the other as a lost frame,
+        so a forgery one frame in ten went on being believed under the reject-rate limit."""
+        lays = self.layouts
+        name = (
+            "Feedback"
+            if layout is lays.feedback
+            else "Status"
+            if layout is lays.status
+            else "Heartbeat"
+        )
+        self._contradicted(
+            f"two {name} frames (id 0x{layout.frame_id:03X}) with counter {data[1]} and "
+            "other contents: a second sender on this node's identifier (a forged frame, "
+            "or two nodes set to one id), or a node whose counter does not advance"
+        )
+
+    @property
     def firmware_text(self) -> str:
         """The firmware version as major.minor.patch, or "?" when no Status said it."""
         fw = self.firmware_version
@@ -283,6 +321,15 @@ class FingerNode:
         it: a node that dropped its torque for a moment, or a forged report, went unseen.
         """
         problem = ""
+        if state not in _DEFINED_STATES:
+            # never the node's state: what the host knew stands, and the stop says why. A
+            # Status of state 3 had taken a FAULT's place, and an ENABLED after it was then
+            # judged against neither the FAULT nor a DISABLED
+            shown = f" (fault bits 0x{bits:02X})" if bits else ""
+            self._contradicted(
+                f"{message} says state {state}, which the protocol does not define{shown}"
+            )
+            return
         if bits is not None and bits & RESERVED_BITS:
             problem = f"{message} sets reserved fault bits 0x{bits & RESERVED_BITS:02X}"
         elif bits is not None and bits & LATCHED_BITS and state != _FAULT:
@@ -314,15 +361,29 @@ class FingerNode:
             self._since_fault.discard(message)
         if state == _ENABLED:
             self._since_enable.discard(message)
-        elif state == _DISABLED and message not in self._since_enable:
-            self._may_enable = False  # not a report from before the enable: a new DISABLED
+            if self._enabled_ns is None:
+                self._enabled_ns = arrival_ns
+        elif state == _DISABLED and not self._sent_before_enable(message, arrival_ns):
+            self._may_enable = False  # a new DISABLED
         if problem:
-            self.contradictions += 1
-            if not self.contradiction:
-                self.contradiction = problem
+            self._contradicted(problem)
         self.state = state
         if bits is not None:
             self.fault_bits = bits
+
+    def _sent_before_enable(self, message: str, arrival_ns: int) -> bool:
+        """Whether a DISABLED of stream ``message`` may be one the node sent before it took
+        this host's enable: its stream has not said ENABLED since, and it came within
+        ``REORDERED_WITHIN_NS`` of the first ENABLED report (or before one)."""
+        if message not in self._since_enable:
+            return False
+        return self._enabled_ns is None or arrival_ns - self._enabled_ns <= REORDERED_WITHIN_NS
+
+    def _contradicted(self, problem: str) -> None:
+        """Count a contradiction; the first since ``clear_contradiction`` is the one said."""
+        self.contradictions += 1
+        if not self.contradiction:
+            self.contradiction = problem
 
     def heard_command(self, frame_id: int, data: bytes) -> None:
         """A frame on one of this node's command identifiers, heard by the host: another

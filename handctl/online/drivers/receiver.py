@@ -30,15 +30,20 @@ class CounterCheck:
     The first frame after start (or ``reset``) is accepted with any counter; later a repeated
     counter is rejected, and any jump other than +1 is rejected and re-synchronised to, so one
     lost frame costs the frame after it and never the whole stream.
+
+    ``frame`` is the last accepted frame itself: a repeat with other contents is not the same
+    frame heard twice but a second sender on the stream's identifier (``FingerNode``).
     """
 
-    __slots__ = ("last",)
+    __slots__ = ("frame", "last")
 
     def __init__(self) -> None:
         self.last: int | None = None
+        self.frame: bytes | None = None
 
     def reset(self) -> None:
         self.last = None
+        self.frame = None
 
     def check(self, counter: int) -> Reject | None:
         last = self.last
@@ -56,7 +61,10 @@ def validate(layout: Layout, data: bytes, counters: CounterCheck) -> Reject | No
         return Reject.LENGTH
     if not layout.crc_ok(data):
         return Reject.CRC
-    return counters.check(data[1])
+    reason = counters.check(data[1])
+    if reason is None:
+        counters.frame = data
+    return reason
 
 
 class RejectCounts:

@@ -229,7 +229,9 @@ class Supervisor:
                 # with its bits (an e-stop as ESTOP), not as nodes late to enable at the
                 # deadline
                 findings += [node_fault(node) for node in faulted]
-            elif all(node.state == NodeState.ENABLED for node in nodes):
+            elif all(node.state == NodeState.ENABLED and node.feedback_enabled for node in nodes):
+                # each node's own Feedback too: any stream's ENABLED had armed the torque
+                # for a node whose Feedback said DISABLED on every tick (a forged Heartbeat)
                 findings += self._arm(tick, nodes, angle)
             elif tick - self._enabling_since > self.enable_deadline_ticks:
                 states = ", ".join(f"node {n.node_id} {n.state_name}" for n in nodes)
