@@ -396,7 +396,17 @@ class Runtime:
                     # stage, and went out as the process' exit code with no summary
                     if isinstance(exc, EndOfTicks) and self.clock.lockstep:
                         raise
-                    outcome, message = await self._stop_after_exception(exc)
+                    try:
+                        outcome, message = await self._stop_after_exception(exc)
+                    except BaseException as interrupt:
+                        # the stop's own ticks interrupted (Ctrl-C in a program that embeds
+                        # the Runtime, a cancelled task): the handler below does not cover
+                        # this one, and one zero frame went with no disable, the nodes left
+                        # ENABLED for their watchdog and no result kept
+                        self.driver.send_zero()
+                        self.driver.send_disable()
+                        self._keep_stop_interrupted(interrupt)
+                        raise
                 except BaseException as exc:
                     # Ctrl-C without a signal handler, a cancelled task: no tick is left to
                     # wait for, so zero and disable at once (in this order on the bus), and
@@ -557,6 +567,17 @@ class Runtime:
         self._end_phase_quietly(f"interrupted: {type(exc).__name__}", tick)
         with contextlib.suppress(Exception):
             self.interrupted = self._result(Outcome.INTERRUPTED, message)
+
+    def _keep_stop_interrupted(self, interrupt: BaseException) -> None:
+        """The result of a run whose stop after an exception was itself interrupted: the
+        exception's safety stop, and that its stop was cut short (``interrupted``, as
+        ``_keep_interrupted``). Never raises."""
+        with contextlib.suppress(Exception):
+            message = (
+                f"{self._exception_stop_message()}; {type(interrupt).__name__} during the "
+                "stop: zero torque and a disable were sent at once"
+            )
+            self.interrupted = self._result(Outcome.SAFETY_STOP, message)
 
     def _end_phase_quietly(self, reason: str, tick: int) -> None:
         """End the phase under way for ``reason`` at ``tick`` (it had no end in the summary),

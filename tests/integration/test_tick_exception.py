@@ -449,6 +449,47 @@ def test_ctrl_c_without_a_signal_handler_zeroes_and_disables_before_it_goes_on(
         assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0], f"node {node}"
 
 
+@pytest.mark.parametrize("interrupt", [KeyboardInterrupt, asyncio.CancelledError])
+def test_an_interrupt_during_the_stop_after_an_exception_still_disables(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, interrupt: type[BaseException]
+) -> None:
+    """Ctrl-C or a cancellation while the stop after an exception waits for its next tick
+    (found by an outside audit): one zero frame went, then no disable and no e-stop, the
+    nodes left ENABLED for their watchdog, and no result kept. Now zero and the disable go
+    at once, as for an interrupt in any tick, and the result is the exception's stop."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        runtime = b.runtime
+        due = Trigger(runtime, always=False)
+
+        def raise_once(tk: Tick) -> None:
+            if due():
+                raise ForcedError("forced in a tick hook")
+
+        runtime.tick_hooks.append(raise_once)
+        wait_tick = runtime.clock.wait_tick
+
+        async def interrupted_in_the_stop() -> Tick:
+            if runtime.exception is not None:
+                raise interrupt
+            return await wait_tick()
+
+        runtime.clock.wait_tick = interrupted_in_the_stop  # type: ignore[method-assign]
+        with pytest.raises(interrupt):
+            asyncio.run(runtime.run())
+        wire = hear(b.listener, hand)
+        b.sim.step()  # the nodes take the disable on their next tick
+    for node, rows in wire.torques.items():
+        assert np.any(rows[-3][1]) and not np.any(rows[-1][1]), f"node {node}: {rows[-3:]}"
+        assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0], f"node {node}"
+    assert [n.state for n in b.sim.nodes] == [int(NodeState.DISABLED)] * len(hand.fingers)
+    kept = runtime.interrupted
+    assert kept is not None and kept.outcome is Outcome.SAFETY_STOP
+    assert "ForcedError: forced in a tick hook" in kept.message, kept.message
+    assert kept.message.endswith(
+        f"; {interrupt.__name__} during the stop: zero torque and a disable were sent at once"
+    )
+
+
 def test_only_a_lockstep_clock_may_end_a_run_without_a_stop(
     hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
