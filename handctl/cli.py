@@ -2922,7 +2922,8 @@ def _cmd_layout(args: argparse.Namespace) -> int:
     # a layout is JSON: an existing file that is not (another hand's config, a recipe,
     # notes), or JSON of anything else (a run's summary), was replaced by it, exit 0
     _output_file("-o", args.output, json_kind=("layout", LAYOUT_KEYS))
-    hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
+    # checked as every command checks it: a hand check refuses was given a layout, exit 0
+    hand = _load_checked_hand(args.hand, "HAND.yaml", args.dbc)
     _write_output("-o", args.output, layout_json(hand))
     print(f"written: {args.output} (the Foxglove layout of {hand.name})")
     return EXIT_OK

@@ -52,10 +52,20 @@ def test_the_layout_command_says_what_is_wrong_and_exits_2(
     hand.write_text((ROOT / "config" / "hands" / "planar_2f2j.yaml").read_text())
     bad = tmp_path / "bad.yaml"
     bad.write_text("fingers: 3\n")
+    classic = ROOT / "config" / "hands" / "hiroshima_hand_classic.yaml"
     cases = [
         ([str(bad), "-o", str(tmp_path / "l.json")], f"{bad}: "),
         ([str(hand), "-o", str(tmp_path / "none" / "l.json")], "-o: expected a file in an"),
         ([str(hand), "-o", str(hand)], "-o: expected another file than HAND.yaml's"),
+        # one config, one verdict: what check refuses (a bus that cannot carry the hand)
+        (
+            [
+                str(classic),
+                "-o",
+                str(tmp_path / "c.json"),
+            ],
+            f"{classic}: bus.fd: expected true (CAN-FD)",
+        ),
     ]
     for argv, said in cases:
         assert main(["layout", *argv]) == 2
