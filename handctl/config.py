@@ -578,6 +578,7 @@ def _check_unique(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
     seen_names: dict[str, str] = {}
     seen_nodes: dict[int, int] = {}
     seen_ids: dict[int, str] = {ESTOP_ID: "the e-stop frame"}
+    owners: dict[int, int] = {}  # CAN id -> the finger index that has it
     for i, finger in enumerate(fingers):
         where = f"fingers[{i}]"
         for name, path in [(finger.name, f"{where}.name")] + [
@@ -599,10 +600,26 @@ def _check_unique(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
                 _fail_at(
                     doc,
                     f"{where}.can_ids.{kind}",
-                    f"a CAN id not used before ({seen_ids[can_id]} has it)",
-                    hex(can_id),
+                    f"a CAN id not used before ({seen_ids[can_id]} has it"
+                    f"{_whose_id(fingers, owners.get(can_id), can_id)})",
+                    description(f"0x{can_id:03X}"),  # written as the config writes ids
                 )
             seen_ids[can_id] = f"{where}.can_ids.{kind}"
+            owners[can_id] = i
+
+
+def _whose_id(fingers: tuple[FingerConfig, ...], owner: int | None, can_id: int) -> str:
+    """Which node the id rule gives a clashing id, when it is not the earlier finger's own:
+    the clash is then that finger's mistake, and the message blamed the later one only (a
+    finger given the next node's ids)."""
+    if owner is None:
+        return ""
+    node = fingers[owner].node_id
+    if can_id in frame_ids(node).values():
+        return ""
+    rule = [n for n in NODE_IDS if can_id in frame_ids(n).values()]
+    said = f"node {rule[0]}'s by the id rule" if rule else "no node's by the id rule"
+    return f", where it is {said}, not its node {node}'s"
 
 
 def _check_names(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:

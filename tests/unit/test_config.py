@@ -257,6 +257,21 @@ def test_duplicate_can_id(tmp_path: Path, base: dict[str, Any]) -> None:
     assert "fingers[0].can_ids.feedback" in err.expected
 
 
+def test_a_finger_given_the_next_node_s_ids_is_named_as_the_one_that_is_wrong(
+    tmp_path: Path, base: dict[str, Any]
+) -> None:
+    """Finger 0 (node 1) given node 2's ids: the clash was said against finger 1 alone, whose
+    ids are right, and the id shown as '0x12' where the config writes 0x012."""
+    base["fingers"][0]["can_ids"] = dict(base["fingers"][1]["can_ids"])
+    err = error_for(tmp_path, base)
+    assert err.key == "fingers[1].can_ids.node_command"
+    assert err.expected == (
+        "a CAN id not used before (fingers[0].can_ids.node_command has it, where it is node "
+        "2's by the id rule, not its node 1's)"
+    )
+    assert str(err.found) == "0x012"
+
+
 def test_can_id_of_estop_is_reserved(tmp_path: Path, base: dict[str, Any]) -> None:
     base["fingers"][0]["can_ids"]["heartbeat"] = 0
     err = error_for(tmp_path, base)
