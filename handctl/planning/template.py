@@ -232,6 +232,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     description = doc.text("description", default="")
     if not doc.has("objects"):
         doc.fail("objects", "the objects the template grasps ([{name, radius}, ...])", "nothing")
+    _refuse_another_hands_template(doc, hand)
     objects = list(parse_objects(doc))
     # every model the phases are planned on is the simulated hand's scene: objects it lacks
     # were planned on as nothing, and the recipe was refused by every run after the search
@@ -267,6 +268,29 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
         grasp_model,
         pairs,
     )
+
+
+#: The keys of a template's phase that map joint names to values.
+_JOINT_KEYED = ("seed", "torques", "joint_damping")
+
+
+def _refuse_another_hands_template(doc: Doc, hand: HandConfig) -> None:
+    """A template written for another hand is said as such, before its objects are held to
+    the hand's scene: a planar template planned with the default hand was refused on its
+    objects' radius ("a radius the estimator can measure the scene's ... against"), and
+    the user sent to tune a size, where ``run recipe`` says "written for another hand? give
+    its config with --hand" (found by an outside audit)."""
+    raw = doc.raw("phases", None)
+    if not isinstance(raw, list):
+        return  # said where the phases are read
+    for i, phase in enumerate(raw):
+        if not isinstance(phase, dict):
+            continue
+        for key in _JOINT_KEYED:
+            if isinstance(phase.get(key), dict):
+                where = f"{doc.key_path('phases')}[{i}]"
+                keyed = {k: v for k, v in phase.items() if isinstance(k, str)}
+                refuse_another_hands_joints(Doc(keyed, doc.file, where), key, hand)
 
 
 def _check_scene_objects(source: str, objects: Sequence[RecipeObject], hand: HandConfig) -> None:

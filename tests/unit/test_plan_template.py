@@ -469,6 +469,30 @@ def test_a_joint_of_another_hand_in_a_template_s_torques_is_named(tmp_path: Path
     assert "unknown key; did you mean 'left_j1'?" in err.value.expected
 
 
+@pytest.mark.parametrize(
+    ("template", "hand_file"),
+    [
+        ("planar_lift_turn.template.yaml", None),
+        ("swap_two_cylinders.template.yaml", "four_fingers_four_joints.yaml"),
+        ("swap_two_cylinders.template.yaml", "planar_2f2j.yaml"),
+    ],
+)
+def test_a_template_for_another_hand_is_said_as_such_before_its_objects(
+    hand: HandConfig, template: str, hand_file: str | None
+) -> None:
+    """The planar template planned with the default hand was refused on an object's radius,
+    and the default template with the four-fingered hand on an object's name: the user was
+    sent to tune a size (found by an outside audit). Said as run recipe says it now."""
+    from handctl.config import load_hand
+
+    other = hand if hand_file is None else load_hand(ROOT / "config" / "hands" / hand_file)
+    with pytest.raises(ConfigError) as info:
+        load_template(ROOT / "config" / "recipes" / template, other)
+    assert info.value.key == "phases[0].torques"
+    assert f"keys that are joints of the hand {other.name} (" in info.value.expected
+    assert "written for another hand? give its config with --hand" in info.value.expected
+
+
 def test_objects_the_scene_has_otherwise_are_refused_before_the_plan(
     tmp_path: Path, hand: HandConfig
 ) -> None:
