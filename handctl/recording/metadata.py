@@ -189,6 +189,18 @@ def check_run_metadata(recording: Recording, hand: HandConfig | None) -> None:
             raise refuse(key, "True or False")
 
 
+def missing_record(recording: Recording, name: str) -> str | Description:
+    """What a metadata record the log lacks is, for a refusal's "found": a damaged record
+    (its bytes fail to read: the header of ``handctl replay`` names where), or nothing.
+    A byte flipped in the hand's record was said as "found nothing", as if the log had
+    been recorded without a hand (found by an outside audit)."""
+    if name in recording.bad_metadata:
+        return Description(
+            f"a damaged record {name!r} (it does not read: handctl replay's header says where)"
+        )
+    return "nothing"
+
+
 def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | None:
     """The hand config a recording's run used, as it was loaded then."""
     text = recording.meta(ch.META_HAND, "yaml")
@@ -210,7 +222,7 @@ def recorded_hand(recording: Recording, required: bool = True) -> HandConfig | N
                 str(recording.path),
                 f"metadata {ch.META_HAND}.yaml",
                 "the hand config the run used (recorded by handctl)",
-                "nothing",
+                missing_record(recording, ch.META_HAND),
             )
         return None
     _check_digest(recording, "yaml", "sha256", text)
@@ -261,7 +273,7 @@ def recorded_recipe(recording: Recording, hand: HandConfig) -> Recipe:
             str(recording.path),
             f"metadata {ch.META_RECIPE}.yaml",
             "the recipe the run used (recorded by handctl)",
-            "nothing",
+            missing_record(recording, ch.META_RECIPE),
         )
     recipe = parse_recipe(
         parse_yaml(text, f"{recording.path} (its recorded recipe)"), hand, as_recorded=True

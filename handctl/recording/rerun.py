@@ -41,6 +41,7 @@ from handctl.recording.feedback_check import FeedbackCheck
 from handctl.recording.messages import MessageCheck
 from handctl.recording.metadata import (
     check_run_metadata,
+    missing_record,
     recorded_hand,
     recorded_protocol,
     recorded_recipe,
@@ -595,7 +596,7 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
             path,
             f"metadata {ch.META_RUN}",
             "how the runtime was set up (recorded by handctl run recipe --log)",
-            "nothing",
+            missing_record(recording, ch.META_RUN),
         )
     dropped = {
         k: recording.meta_int(ch.META_END, k, 0)

@@ -1300,3 +1300,27 @@ def test_a_log_without_its_summary_and_with_a_chunk_taken_out_sends_nothing(
     text = _refused_with_nothing_sent(recording, hand, channel)
     assert f"{ch.TIMING} tick " in text and "missing, the log goes on at" in text
     assert "expected every tick between the first and the last" in text
+
+
+def test_a_damaged_hand_record_is_said_as_damaged_not_as_missing(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """One byte flipped in the hand config's metadata record: ``replay --rerun`` refused the
+    log saying it had found "nothing" there, as if it had been recorded without a hand
+    (found by an outside audit); the record is there and does not read."""
+    data = bytearray(recorded.path.read_bytes())
+    with recorded.path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    record = next(m for m in summary.metadata_indexes if m.name == ch.META_HAND)
+    data[record.offset + record.length // 2] ^= 0xFF
+    bad = tmp_path / "hand-flipped.mcap"
+    bad.write_bytes(bytes(data))
+    assert ch.META_HAND in open_recording(bad).bad_metadata
+    done = handctl("replay", str(bad), "--rerun")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert (
+        f"metadata {ch.META_HAND}.yaml: expected the hand config the run used (recorded by "
+        f"handctl), found a damaged record '{ch.META_HAND}' (it does not read: handctl "
+        "replay's header says where)"
+    ) in done.stderr
