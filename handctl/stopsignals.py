@@ -344,6 +344,9 @@ def noted_stops() -> Iterator[Noted]:
             noted.later.append(name)
         else:
             noted.first = name
+            # the command's last line names it too (``interruption``): it said a bare
+            # "interrupted" after a SIGTERM (found by an outside audit)
+            _Command.raised = signal_name(signum)
 
     handlers: dict[int, Any] = dict.fromkeys(StopSignals.DEAF, signal.SIG_IGN)
     for sig in StopSignals.SIGNALS:

@@ -36,7 +36,7 @@ from handctl.recording.recorder import Recorder
 from handctl.recording.replay import summarise_recording
 from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
-from handctl.stopsignals import ctrl_c_at_once, noted_stops, working
+from handctl.stopsignals import ctrl_c_at_once, interruption, noted_stops, working
 
 from ..conftest import ROOT, handctl
 from .another_host import commanding
@@ -759,6 +759,7 @@ def test_to_bus_sends_its_stop_whole_whatever_signals_follow(
         raise SuspendedError
 
     before = signal.signal(signal.SIGTSTP, suspended)
+    working()  # a command begins: no signal yet
     try:
         with open_bus(f"virtual:{channel}", hand.bus) as listener:
             with pytest.raises(ReplayInterrupted) as stopped, noted_stops() as stops:
@@ -776,6 +777,10 @@ def test_to_bus_sends_its_stop_whole_whatever_signals_follow(
     assert kills == [first, second]
     assert stopped.value.why.startswith(signal.Signals(first).name)
     assert stopped.value.ignored == [signal.Signals(second).name]
+    # the command's last line names the signal but Ctrl-C's (a bare "interrupted" after a
+    # SIGTERM: an outside audit)
+    name = signal.Signals(first).name
+    assert interruption() == ("interrupted" if first == signal.SIGINT else f"interrupted by {name}")
     assert "left enabled by the frames sent: zero torque and a disable" in stopped.value.stopped
     _ends_with_the_stop(hand, heard)
 
