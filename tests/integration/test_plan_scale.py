@@ -79,7 +79,7 @@ def test_a_plan_on_a_dask_cluster_equals_the_local_pools(tmp_path: Path, hand: H
     template = tiny_template(tmp_path)
     remote = tmp_path / "remote.yaml"
     with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, scheduler_port=0
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", scheduler_port=0
     ) as cluster:
         done = subprocess.run(
             plan_command(template, remote, "--scheduler", cluster.scheduler_address),
@@ -231,7 +231,7 @@ class DieAtTheFirstTask(SchedulerPlugin):
 
 cluster = LocalCluster(
     n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
-    dashboard_address=None, scheduler_port=0,
+    dashboard_address=":0", scheduler_port=0,
 )
 cluster.scheduler.add_plugin(DieAtTheFirstTask())
 print(cluster.scheduler_address, flush=True)

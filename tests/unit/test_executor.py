@@ -272,7 +272,7 @@ ONE_PROCESS_CLUSTER = """
 import time
 from distributed import LocalCluster
 cluster = LocalCluster(
-    n_workers=1, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=None,
+    n_workers=1, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=":0",
     scheduler_port=0,
 )
 print(cluster.scheduler_address, flush=True)
@@ -368,7 +368,7 @@ def test_a_tls_cluster_is_used_through_dask_s_own_tls_settings(tmp_path: Path) -
         processes=False,
         protocol="tls",
         security=security,
-        dashboard_address=None,
+        dashboard_address=":0",
         scheduler_port=0,
     ) as cluster:
         address = cluster.scheduler_address
@@ -423,7 +423,7 @@ def test_a_scheduler_without_workers_is_refused(monkeypatch: pytest.MonkeyPatch)
     distributed = pytest.importorskip("distributed")
     monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 1.0)  # none will ever come
     with distributed.LocalCluster(
-        n_workers=0, processes=False, protocol="tcp", dashboard_address=None, scheduler_port=0
+        n_workers=0, processes=False, protocol="tcp", dashboard_address=":0", scheduler_port=0
     ) as cluster:
         raised = _open_in_thread(cluster.scheduler_address)
     assert isinstance(raised, ConfigError), raised
@@ -485,7 +485,7 @@ def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
         n_workers=1,
         threads_per_worker=1,
         processes=True,
-        dashboard_address=None,
+        dashboard_address=":0",
         scheduler_port=0,
         preload=[str(script)],
     ) as cluster:
@@ -590,7 +590,7 @@ def test_a_cluster_left_without_workers_is_given_up(
     monkeypatch.setattr(executor, "IDLE_CHECK_S", 0.2)
     started = tmp_path / "started"
     with distributed.LocalCluster(
-        n_workers=0, processes=False, protocol="tcp", dashboard_address=None, scheduler_port=0
+        n_workers=0, processes=False, protocol="tcp", dashboard_address=":0", scheduler_port=0
     ) as cluster:
         address = cluster.scheduler_address
         # a worker of its own process, without a nanny to start it again
