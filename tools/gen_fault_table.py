@@ -105,8 +105,9 @@ def render() -> str:
         "",
         "- **immediate**: the command frames of the tick that detected the fault already carry "
         "zero torque;",
-        f"- **ramp**: a linear ramp from the last applied torque to zero within "
-        f"{RAMP_BOUND_S * 1e3:g} ms.",
+        "- **ramp**: a ramp from the last applied torque to zero at the rate limit, and "
+        f"within {RAMP_BOUND_S * 1e3:g} ms whatever the rate limit (never slower than a "
+        "controlled stop).",
         "",
         "Recovery is always explicit: faults stay latched until a reset (the Runtime's "
         "`reset()`; on the command line, a new run, with `--reset-node-faults` if the nodes "

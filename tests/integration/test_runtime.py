@@ -5,6 +5,7 @@ two ticks, faults latch, and only an explicit reset brings torque back, from zer
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -170,6 +171,10 @@ def test_fault_is_detected_stopped_and_latched(
             ticks_to_zero = int(np.argmax(ramp == 0))
             assert ramp[ticks_to_zero] == 0
             assert ticks_to_zero <= RAMP_BOUND_S / hand.bus.period_s + 2
+            # and no slower than the rate limit: the line to zero at the bound alone kept a
+            # joint's torque on 35 ticks longer than a stop would have (an outside audit)
+            step = np.array([j.rate_limit for j in hand.joints]) * hand.bus.period_s
+            assert ticks_to_zero <= math.ceil(float(np.max(np.abs(wire[row - 1]) / step))) + 1
         # The nodes end disabled or in their own FAULT: never enabled with torque.
         assert all(n.state != NodeState.ENABLED or not any(n.applied) for n in r.sim.nodes)
 

@@ -6,7 +6,8 @@ Two stop categories, as in the usual stop categories of machine safety:
   where the host can no longer trust what it commands or measures (non-finite torques, lost
   feedback, a node or bus in trouble, e-stop): holding any torque on bad information is worse
   than letting the fingers go limp.
-- ``RAMP``: a linear ramp from the last applied torque to zero within ``RAMP_BOUND_S``. For
+- ``RAMP``: a ramp from the last applied torque to zero at the rate limit, and within
+  ``RAMP_BOUND_S`` whatever the rate limit (never slower than a controlled stop). For
   faults where the information is still good but the situation is not (a joint past its soft
   limit, a torque sensor disagreeing with the command, late ticks): a ramp lets the grasped
   objects settle instead of being dropped by a step.
