@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import pickle
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -67,19 +68,43 @@ class PhaseTask:
     keep_state: bool = False
 
 
-_kept: OrderedDict[str, Episode] = OrderedDict()
+#: Each thread's kept episodes, by the thread's identifier. Per thread, not per process: a
+#: Dask worker runs as many tasks at once as it has threads (``dask worker``'s default is
+#: one per core), and two tasks of one model on one episode ran on one MuJoCo state at once:
+#: plans that exited 0 with other scores than the same plan's on one thread, MuJoCo's
+#: FatalErrors, segfaults, and a plan that waited for ever on a task lost that way (found
+#: by an outside audit).
+_caches: dict[int, OrderedDict[str, Episode]] = {}
+_caches_lock = threading.Lock()
+
+
+def _kept() -> OrderedDict[str, Episode]:
+    """This thread's kept episodes."""
+    ident = threading.get_ident()
+    kept = _caches.get(ident)
+    if kept is None:
+        with _caches_lock:
+            kept = _caches.setdefault(ident, OrderedDict())
+    return kept
+
+
+def kept_models() -> int:
+    """How many episodes this process keeps, over all its threads."""
+    with _caches_lock:
+        return sum(len(kept) for kept in _caches.values())
 
 
 def episode_of(world: World) -> Episode:
-    """This process's episode of ``world`` (built once, kept for the next tasks)."""
-    episode = _kept.get(world.digest)
+    """This thread's episode of ``world`` (built once, kept for its next tasks)."""
+    kept = _kept()
+    episode = kept.get(world.digest)
     if episode is None:
         episode = world.episode()
-        _kept[world.digest] = episode
-        while len(_kept) > KEPT_EPISODES:
-            _kept.popitem(last=False)
+        kept[world.digest] = episode
+        while len(kept) > KEPT_EPISODES:
+            kept.popitem(last=False)
     else:
-        _kept.move_to_end(world.digest)
+        kept.move_to_end(world.digest)
     return episode
 
 
@@ -95,6 +120,7 @@ def snapshot_of(world: World) -> Snapshot:
     """Where ``world`` starts (its configured initial state): from a new episode, since a kept
     one is wherever its last task left it."""
     episode = world.episode()
-    _kept[world.digest] = episode
-    _kept.move_to_end(world.digest)
+    kept = _kept()
+    kept[world.digest] = episode
+    kept.move_to_end(world.digest)
     return episode.snapshot()

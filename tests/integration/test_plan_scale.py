@@ -104,10 +104,32 @@ def test_a_plan_on_a_dask_cluster_equals_the_local_pools(tmp_path: Path, hand: H
     assert body(remote) == recipe_text(local, "cmd").split("\n", 2)[2]
 
 
+def test_each_thread_of_a_worker_has_its_own_episodes(hand: HandConfig) -> None:
+    """A worker of two threads (``dask worker``'s default is one per core) ran two tasks of
+    one model on one kept episode, one MuJoCo state, at once: plans that exited 0 with
+    scores other than the same plan's on one thread, FatalErrors and segfaults (found by an
+    outside audit). Each thread keeps its own; within one the episode is built once."""
+    import threading
+
+    from handctl.planning.phase_task import World, episode_of, kept_models
+    from handctl.sim.params import parse_sim
+
+    template = load_template(TEMPLATE, hand)
+    world = World.of(hand, parse_sim(hand), template.objects, None, template.pairs)
+    mine = episode_of(world)
+    assert episode_of(world) is mine  # kept: built once per thread
+    theirs: list[object] = []
+    other = threading.Thread(target=lambda: theirs.append(episode_of(world)))
+    other.start()
+    other.join()
+    assert theirs and theirs[0] is not mine
+    assert kept_models() >= 2
+
+
 def _kept_models() -> int:
     from handctl.planning import phase_task
 
-    return len(phase_task._kept)
+    return phase_task.kept_models()
 
 
 #: Starts the rest of its command line with SIGINT ignored, as a background job of a script
