@@ -255,6 +255,14 @@ class WorkPool:
                     f"a local worker process {_how_a_worker_ended(self.executor)}: the work "
                     "cannot go on"
                 ) from None
+            if type(exc).__name__ == "KilledWorker":  # distributed's, not imported here
+                # the cluster's own word for a task whose workers died under it again and
+                # again (out of memory, a crash): said as "an internal error, a bug in
+                # handctl" with a traceback (an outside audit)
+                raise HandctlError(
+                    f"{self.where}: workers died under a task again and again, and Dask gave "
+                    f"it up ({exc}); the workers' own logs say why (out of memory, a crash)"
+                ) from None
             raise
 
     def close(self, cancel: bool = False) -> None:
@@ -589,7 +597,9 @@ def _greet(distributed: Any, address: str, security: Any) -> None:
         # Dask retries a name that does not resolve or a port nobody listens on until its
         # timeout; both are known in milliseconds
         socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except OSError as exc:
+    except (OSError, UnicodeError) as exc:
+        # UnicodeError: a name with an empty label (10.0.0..5) fails IDNA encoding before
+        # any lookup, and was said as an internal error with a traceback (an outside audit)
         raise SchedulerError(address, expected, f"{host} does not resolve ({exc})") from None
     try:
         with socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S):

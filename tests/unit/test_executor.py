@@ -229,6 +229,11 @@ def test_a_scheduler_host_that_does_not_resolve_is_named_at_once() -> None:
     assert "found 'tcp://no-such-host.invalid:8786': no-such-host.invalid does not resolve (" in (
         str(raised.value)
     )
+    # a name with an empty label fails its IDNA encoding before any lookup: an internal
+    # error with a traceback (an outside audit)
+    with pytest.raises(ConfigError) as raised:
+        open_pool(scheduler="tcp://10.0.0..5:8786")
+    assert "found 'tcp://10.0.0..5:8786': 10.0.0..5 does not resolve (" in str(raised.value)
 
 
 def test_workers_end_when_their_owner_is_killed() -> None:
@@ -671,3 +676,34 @@ def test_the_resource_tracker_holds_back_the_terminal_s_signals() -> None:
         [sys.executable, "-c", script], check=False, capture_output=True, text=True, timeout=60
     )
     assert done.stdout.strip() == "True", done.stdout + done.stderr
+
+
+def _die() -> None:
+    """A task that takes its worker process down with it, as a crash or the OOM killer does."""
+    os._exit(3)
+
+
+def test_a_task_whose_workers_keep_dying_is_said_in_one_line() -> None:
+    """A worker that died under a task again and again (a crash, out of memory) ended a plan
+    with Dask's KilledWorker said as an internal error of handctl, with a traceback (an
+    outside audit): said as what it is, naming the cluster."""
+    distributed = pytest.importorskip("distributed")
+    import dask
+
+    with (
+        dask.config.set({"distributed.scheduler.allowed-failures": 0}),
+        distributed.LocalCluster(
+            n_workers=1,
+            threads_per_worker=1,
+            processes=True,
+            protocol="tcp",
+            dashboard_address=":0",
+            scheduler_port=0,
+        ) as cluster,
+    ):
+        address = cluster.scheduler_address
+        with open_pool(scheduler=address) as pool, pytest.raises(HandctlError) as raised:
+            pool.map(lambda _: _die(), [0])
+    said = str(raised.value)
+    assert said.startswith(f"the Dask cluster at {address} (1 workers): workers died under a ")
+    assert said.endswith("the workers' own logs say why (out of memory, a crash)")
