@@ -62,6 +62,23 @@ class Every(Injector):
         self.send()
 
 
+def deaf_to(r: Rig, node_id: int, command: str) -> None:
+    """Simulated node ``node_id`` drops every NodeCommand ``command`` (``enable``,
+    ``disable``): firmware that ignores it, or an interlock that keeps it from acting."""
+    from handctl.protocol import NODE_COMMANDS
+
+    node = r.sim.nodes[node_id - 1]
+    layout = protocol_for(r.hand).layout("NodeCommand", node_id)
+    obey = node._apply
+
+    def deaf(lay: Layout, data: bytes, now_ns: int) -> None:
+        if lay is layout and layout.decode(data)[1][0] == NODE_COMMANDS[command]:
+            return
+        obey(lay, data, now_ns)
+
+    setattr(node, "_apply", deaf)  # noqa: B010 (a method replaced on one instance)
+
+
 def frame(frame_id: int, data: bytes) -> can.Message:
     return can.Message(arbitration_id=frame_id, data=data, is_extended_id=False, is_fd=True)
 
@@ -261,20 +278,11 @@ def test_a_node_that_goes_on_saying_enabled_after_the_disable_gets_the_e_stop(
     its watchdog (found by an outside audit): the host now sends the e-stop, which every node
     honours, once that node's Feedback still says ENABLED after it had the disable to act on.
     The nodes that obeyed are no reason for it: see the test above, where none is sent."""
-    from handctl.protocol import NODE_COMMANDS
     from handctl.sim.firmware import FaultBits as Bits
 
     with rig(hand, hold, max_seconds=0.5) as r:
         stubborn = r.sim.nodes[1]
-        command = protocol_for(hand).layout("NodeCommand", 2)
-        obey = stubborn._apply
-
-        def ignore_disable(layout: object, data: bytes, now_ns: int) -> None:
-            if layout is command and command.decode(data)[1][0] == NODE_COMMANDS["disable"]:
-                return
-            obey(layout, data, now_ns)  # type: ignore[arg-type]
-
-        stubborn._apply = ignore_disable  # type: ignore[method-assign]
+        deaf_to(r, 2, "disable")
         result = r.run()
         r.sim.step()  # the nodes take the e-stop on their next tick
     assert result.outcome is Outcome.INTERRUPTED, result.message  # the rig's tick budget
@@ -316,21 +324,9 @@ def test_a_forged_heartbeat_does_not_arm_a_node_that_never_enabled(
     by an outside audit). The torque is armed on each node's own Feedback now, and a
     DISABLED more than a node tick after the ENABLED is the node's present: nothing but zero
     reaches the bus, and the run stops on the contradiction."""
-    from handctl.protocol import NODE_COMMANDS
-
-    wire_protocol = protocol_for(hand)
-    heartbeat = wire_protocol.layout("Heartbeat", 2)
-    command = wire_protocol.layout("NodeCommand", 2)
+    heartbeat = protocol_for(hand).layout("Heartbeat", 2)
     with rig(hand, hold, max_seconds=1.0) as r, third_peer(r) as peer:
-        node = r.sim.nodes[1]
-        obey = node._apply
-
-        def no_enable(layout: object, data: bytes, now_ns: int) -> None:
-            if layout is command and command.decode(data)[1][0] == NODE_COMMANDS["enable"]:
-                return
-            obey(layout, data, now_ns)  # type: ignore[arg-type]
-
-        node._apply = no_enable  # type: ignore[method-assign]
+        deaf_to(r, 2, "enable")
         last = {heartbeat.frame_id: -1}
         heard: dict[int, bytes] = {}
         forged: list[tuple[int, bytes]] = []
@@ -366,21 +362,12 @@ def test_a_forged_disabled_after_the_disable_does_not_hide_a_node_that_ignored_i
     that reports the state asked for) was taken as the node's word: the run said completed,
     no e-stop went, and the node latched TIMEOUT on its own (found by an outside audit). The
     disable is confirmed by each node's own Feedback now."""
-    from handctl.protocol import NODE_COMMANDS
-
     wire_protocol = protocol_for(hand)
     heartbeat = wire_protocol.layout("Heartbeat", 2)
     command = wire_protocol.layout("NodeCommand", 2)
     with rig(hand, hold, max_seconds=0.5) as r, third_peer(r) as peer:
         stubborn = r.sim.nodes[1]
-        obey = stubborn._apply
-
-        def ignore_disable(layout: object, data: bytes, now_ns: int) -> None:
-            if layout is command and command.decode(data)[1][0] == NODE_COMMANDS["disable"]:
-                return
-            obey(layout, data, now_ns)  # type: ignore[arg-type]
-
-        stubborn._apply = ignore_disable  # type: ignore[method-assign]
+        deaf_to(r, 2, "disable")
         last = {heartbeat.frame_id: -1, command.frame_id: -1}
         heard: dict[int, bytes] = {}
         forged: list[bytes] = []
