@@ -38,6 +38,7 @@ from handctl.hostcheck import (
 from handctl.hostfacts import affinity
 from handctl.online import timebudget
 from handctl.online.bus import HandBus, open_bus
+from handctl.online.buslock import BusLock, take_bus
 from handctl.online.busspec import BusSpec, parse_spec, require_peers
 from handctl.online.clock import (
     LOOP_PRIORITY,
@@ -279,23 +280,12 @@ def run_recipe(
         sim_faults = load_scenario(req.sim_faults, req.hand)
     loop_cpu, sim_cpu = run_cpus(req.hygiene) if req.realtime_priority else (None, None)
     host_check: dict[str, Any] | None = None
+    bus_lock = BusLock(None)  # a simulated hand's bus is this run's own
     if not is_sim:
-        # The bus is there, first: opening it sends nothing, and a bus that cannot be opened
-        # is said as such (exit 4) rather than behind a verdict on the host's timing that a
-        # loaded host may or may not give (it was exit 5 or 4 by the host's load).
-        # And nobody else commands its nodes: a second run or jog beside one took real-time
-        # priority on the first's CPU for its timing check before its driver heard the other
-        # host and refused, and the first lost its ticks and latched every node's TIMEOUT.
-        # A unix bus no hand is on is said as such, not made and listened out.
-        require_peers(spec)
-        _refuse_another_host(spec, req.hand)
-        # Before the bus is opened for the run: a host that cannot hold the deadlines sends
-        # nothing.
-        host_check, checked = precheck(
-            req.hand, req.realtime_priority, loop_cpu, req.accept_missed_deadlines
-        )
+        bus_lock, host_check, checked = _before_the_bus(spec, req, loop_cpu)
         warnings += checked
     with ExitStack() as stack:
+        stack.callback(bus_lock.release)  # the last to go: after the disable and the peer
         # First in, last out: from here to the end a signal ends the run as StopSignals says;
         # until the runtime runs, at the checkpoints between the steps of the start-up.
         if signals is None:
@@ -552,6 +542,36 @@ def _start_clock(
         "sim": affinity(peer.sim_process.proc.pid) if peer.sim_process else None,
     }
     return timing
+
+
+def _before_the_bus(
+    spec: BusSpec, req: RunRequest, loop_cpu: int | None
+) -> tuple[BusLock, dict[str, Any] | None, list[str]]:
+    """What a run on a bus (not a simulated hand of its own) settles before it opens the bus
+    for the run: the host lock, held from here to the run's end, nobody else commanding the
+    nodes, and the host's timing check (its verdict and its warnings)."""
+    # The bus is there, first: opening it sends nothing, and a bus that cannot be opened is
+    # said as such (exit 4) rather than behind a verdict on the host's timing that a loaded
+    # host may or may not give (it was exit 5 or 4 by the host's load). A unix bus no hand is
+    # on is said as such, not made and listened out.
+    require_peers(spec)
+    # One handctl host per bus on this machine, taken before the listen: a first run still in
+    # its start-up has sent nothing to hear (``buslock``)
+    bus_lock = take_bus(spec, "this run")
+    try:
+        # And nobody else commands its nodes: a second run or jog beside one took real-time
+        # priority on the first's CPU for its timing check before its driver heard the other
+        # host and refused, and the first lost its ticks and latched every node's TIMEOUT.
+        _refuse_another_host(spec, req.hand)
+        # Before the bus is opened for the run: a host that cannot hold the deadlines sends
+        # nothing.
+        host_check, checked = precheck(
+            req.hand, req.realtime_priority, loop_cpu, req.accept_missed_deadlines
+        )
+    except BaseException:
+        bus_lock.release()
+        raise
+    return bus_lock, host_check, checked
 
 
 def _refuse_another_host(spec: BusSpec, hand: HandConfig) -> None:

@@ -109,7 +109,12 @@ def _to_bus(
         raise ReplayInterrupted("", stops.first, stops.later)
     # the stop signals looked at between two frames: raised, a second one cut the stop
     # short, and Ctrl-Z suspended the replay (``to_bus``)
-    with open_bus(spec, hand.bus) as bus:
+    from handctl.online.buslock import take_bus
+    from handctl.online.busspec import parse_spec
+
+    # one handctl host per bus on this machine, as a run (``buslock``): held to the end
+    bus_spec = parse_spec(spec, hand.bus, hand.source, "--to-bus")
+    with open_bus(spec, hand.bus) as bus, take_bus(bus_spec, "this replay"):
         _nobody_else(bus, hand, spec, stops)
         start: float | None = None
         first = 0
