@@ -246,15 +246,17 @@ def jog_recipe(
     range on the side the torque pushes towards, without the guard."""
     j = joint_index(hand, joint)
     spec = hand.joints[j]
-    if not abs(torque) <= spec.tau_max:  # NaN too
+    most = JOG_SHARE * spec.tau_max
+    # the bound that applies, first: a jog over tau_max was told tau_max, and then refused
+    # at tau_max for the jog's own share of it (found by an outside audit)
+    if recover and not abs(torque) <= spec.tau_max:  # NaN too
         raise ConfigError(
             "--torque",
             "",
             f"|τ| <= {spec.tau_max:g} N·m (tau_max of {joint} in {hand.source})",
             torque,
         )
-    most = JOG_SHARE * spec.tau_max
-    if not recover and abs(torque) > most + 1e-9:  # to a nN·m: 2/3 of 0.3 is 0.19999...
+    if not recover and not abs(torque) <= most + 1e-9:  # to a nN·m: 2/3 of 0.3 is 0.19999...
         # every command is held to tau_max, so the guard's push-back against a jog at
         # tau_max is the jog's own size only at the limit itself: the joint came onto it at
         # speed, past it, and the jog ended in a latched ANGLE_LIMIT

@@ -137,12 +137,21 @@ def test_a_negative_torque_in_exponent_form_is_a_value(
 @pytest.mark.parametrize(
     "args, says",
     [
-        (["f1_j3", "--torque", "0.31"], "--torque: expected |τ| <= 0.3 N·m (tau_max of f1_j3"),
+        # the bound that applies, first: over tau_max, a jog was told tau_max (0.3 here) and
+        # then refused at 0.3 for its own share of it (an outside audit)
+        (
+            ["f1_j3", "--torque", "0.31"],
+            "--torque: expected |τ| <= 0.15 N·m (half of f1_j3's tau_max, 0.3 N·m in ",
+        ),
+        (
+            ["f1_j3", "--torque", "0.31", "--recover"],
+            "--torque: expected |τ| <= 0.3 N·m (tau_max of f1_j3",
+        ),
         (
             ["f1_j2", "--torque", "0.45"],
             "--torque: expected |τ| <= 0.225 N·m (half of f1_j2's tau_max, 0.45 N·m in ",
         ),
-        (["f1_j3", "--torque", "nan"], "--torque: expected |τ| <= 0.3 N·m"),
+        (["f1_j3", "--torque", "nan"], "--torque: expected |τ| <= 0.15 N·m"),
         (["f9_j1", "--torque", "0.01"], "JOINT: expected a joint of"),
         (["f1_j1", "--torque", "0.01", "--seconds", "-1"], "--seconds"),
         (["f1_j1", "--torque", "0.01", "--seconds", "1e9"], "--seconds: expected a time in "),
