@@ -228,8 +228,9 @@ FAULTS: dict[FaultCode, FaultSpec] = {
             FaultCode.NODE_CONTRADICTION,
             StopCategory.IMMEDIATE,
             "a node's reports contradict each other or the protocol: latched or reserved "
-            "fault bits outside FAULT, ENABLED after FAULT without a fault reset, or a Status "
-            "of another protocol version than the host's",
+            "fault bits outside FAULT, ENABLED after FAULT without a fault reset, a state the "
+            "protocol does not define, one counter with two contents (a second sender), or a "
+            "Status of another protocol version than the host's",
         ),
         FaultSpec(
             FaultCode.REJECT_RATE,
