@@ -54,7 +54,7 @@ from handctl.online.loop import Outcome, RecordSink, RunResult, Runtime, StatusL
 from handctl.online.misstrace import MissTrace
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import Recipe
-from handctl.online.safety.faults import FAULTS
+from handctl.online.safety.faults import FAULTS, FaultCode
 from handctl.online.safety.recovery import Recovery
 from handctl.online.tickstats import STAGES, TickWindow, percentile_us
 from handctl.rivals import RivalRecord, RivalWatch
@@ -799,6 +799,38 @@ def _recorder(
     )
 
 
+#: s between two looks at whether the recording writer still runs (``_WriterWatch``)
+WRITER_WATCH_S = 0.1
+
+
+class _WriterWatch:
+    """A tick hook: the recording writer's process ended while the run goes on (killed, out
+    of memory, a crash) is a ramp stop, RECORDING_LOST. The run went on driving the hand
+    unrecorded to its end (minutes on a whole recipe) and said so only then (found by an
+    outside audit). One ``waitpid`` every ``WRITER_WATCH_S``; said once."""
+
+    def __init__(self, recording: Recorder, runtime: Runtime) -> None:
+        self.recording = recording
+        self.runtime = runtime
+        self.every = max(1, round(WRITER_WATCH_S / runtime.hand.bus.period_s))
+        self.said = False
+
+    def __call__(self, tk: Tick) -> None:
+        if self.said or tk.tick % self.every:
+            return
+        code = self.recording.process.poll()
+        if code is None:
+            return
+        self.said = True
+        how = f"signal {-code}" if code < 0 else f"exit {code}"
+        self.runtime.supervisor.trip(
+            FaultCode.RECORDING_LOST,
+            f"{self.recording.path}: the recording writer ended ({how}); the run was stopped "
+            "rather than drive the hand unrecorded",
+            tk.tick,
+        )
+
+
 def _start_recording(
     recording: Recorder,
     runtime: Runtime,
@@ -834,6 +866,8 @@ def _start_recording(
                 recording.poses([(o.x, o.y, o.angle) for o in sim_hand.ground_truth().objects])
 
         runtime.tick_hooks.append(sample_poses)
+    if req.log is not None:  # a log asked for; a plot's own recording stops nothing
+        runtime.tick_hooks.append(_WriterWatch(recording, runtime))
     recording.wait_ready()
     if req.live_port is not None:
         # said once the writer has bound its port: said as the run started, a client that

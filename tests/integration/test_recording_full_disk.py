@@ -47,12 +47,14 @@ def _tmpfs(tmp_path: Path, size: str) -> Iterator[Path]:
 def test_a_log_whose_disk_fills_says_why_and_reads_up_to_there(small_disk: Path) -> None:
     log = small_disk / "run.mcap"
     done = handctl("run", "recipe", DEFAULT_RECIPE, "--log", str(log))
-    # the run itself went on, and ended as asked; its log is incomplete: a failed result
-    assert done.returncode == 1, done.stdout + done.stderr
+    # the run stopped once its writer had ended (RECORDING_LOST, a ramp stop): it went on
+    # driving the hand unrecorded to its end before; its log is incomplete
+    assert done.returncode == 3, done.stdout + done.stderr
     assert "Traceback" not in done.stderr
+    assert "RECORDING_LOST" in done.stderr
     assert done.stderr.strip().splitlines()[-1] == (
-        f"handctl: failed: the run ended as asked, but its log {log} is lost or may be "
-        "incomplete (the warning above says why)"
+        f"handctl: and the run's log {log} is lost or may be incomplete (the warning above "
+        "says why)"
     )
     warning = next(line for line in done.stderr.splitlines() if str(log) in line)
     assert (

@@ -72,6 +72,7 @@ class FaultCode(enum.IntEnum):
     NODE_CONTRADICTION = 31
     REJECT_RATE = 32
     FOREIGN_COMMAND = 33
+    RECORDING_LOST = 34
 
 
 @dataclass(frozen=True)
@@ -237,6 +238,12 @@ FAULTS: dict[FaultCode, FaultSpec] = {
             StopCategory.IMMEDIATE,
             "more frames of one node rejected within the window than the safety section "
             "allows (a replayed or corrupted stream may be hiding what the node says)",
+        ),
+        FaultSpec(
+            FaultCode.RECORDING_LOST,
+            StopCategory.RAMP,
+            "the recording writer of a run with a log ended while the run went on: the rest "
+            "of the run would drive the hand unrecorded",
         ),
         FaultSpec(
             FaultCode.FOREIGN_COMMAND,
