@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import os
+import pty
 import select
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from handctl.online.safety.faults import FaultCode
 from handctl.sim.hand import SimulatedHand
 from handctl.sim.params import SimParams
 
+from ..conftest import ROOT
 from ..dbc import decode
 
 
@@ -225,3 +227,33 @@ def stop_with_ctrl_c(process: subprocess.Popen[Any], timeout_s: float) -> None:
     except subprocess.TimeoutExpired:
         process.kill()
         process.wait()
+
+
+def stopped_while_holding(
+    tmp_path: Path, options: list[str], stop: Callable[[subprocess.Popen[str]], None]
+) -> tuple[int, str, str]:
+    """``handctl run recipe`` of a hold that goes on until stopped, its status line on a
+    terminal; ``stop(process)`` once the line says the phase is under way (not after a guess
+    at how long the imports and the start-up take). The exit code, stdout and what the
+    terminal showed."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    terminal, stderr_end = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), *options],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=stderr_end,
+        text=True,
+    )
+    os.close(stderr_end)
+    try:
+        shown = read_until(terminal, "running")
+        assert "running" in shown, shown
+        stop(proc)
+        stdout, _ = proc.communicate(timeout=60)
+        stderr = shown + read_until(terminal, None, timeout_s=10.0)
+    finally:
+        proc.kill()
+        os.close(terminal)
+    return proc.returncode, stdout, stderr

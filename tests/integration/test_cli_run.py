@@ -33,7 +33,7 @@ from .realtime import (
     tolerant_hand,
     tolerant_of_load,
 )
-from .rig import HOLD_LONG, TWO_PHASES, read_until, stop_with_ctrl_c
+from .rig import HOLD_LONG, TWO_PHASES, read_until, stop_with_ctrl_c, stopped_while_holding
 
 RECIPE = "config/recipes/swap_two_cylinders.yaml"
 
@@ -82,36 +82,6 @@ def test_bad_recipe_exits_2_before_anything_is_sent(tmp_path: Path) -> None:
     assert "0.45 N·m" in done.stderr and f"found {round(0.55 * margin, 9):g}" in done.stderr
 
 
-def _stopped_while_holding(
-    tmp_path: Path, options: list[str], stop: Callable[[subprocess.Popen[str]], None]
-) -> tuple[int, str, str]:
-    """``handctl run recipe`` of a hold that goes on until stopped, its status line on a
-    terminal; ``stop(process)`` once the line says the phase is under way (not after a guess
-    at how long the imports and the start-up take). The exit code, stdout and what the
-    terminal showed."""
-    recipe = tmp_path / "hold.yaml"
-    recipe.write_text(HOLD_LONG)
-    terminal, stderr_end = pty.openpty()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), *options],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=stderr_end,
-        text=True,
-    )
-    os.close(stderr_end)
-    try:
-        shown = read_until(terminal, "running")
-        assert "running" in shown, shown
-        stop(proc)
-        stdout, _ = proc.communicate(timeout=60)
-        stderr = shown + read_until(terminal, None, timeout_s=10.0)
-    finally:
-        proc.kill()
-        os.close(terminal)
-    return proc.returncode, stdout, stderr
-
-
 @pytest.mark.parametrize(
     ("sig", "said"),
     [
@@ -131,7 +101,7 @@ def test_sigint_is_a_controlled_stop(tmp_path: Path, sig: int, said: str) -> Non
     stop sent and no summary, and so did SIGXCPU (exit 152, the last torque left on the bus)
     and a real-time signal. All are the same controlled stop now, and say which it was."""
     out = tmp_path / "out.json"
-    code, _, stderr = _stopped_while_holding(
+    code, _, stderr = stopped_while_holding(
         tmp_path, ["--summary-json", str(out)], lambda proc: proc.send_signal(sig)
     )
     assert code == 130, stderr
@@ -157,7 +127,7 @@ def test_the_kernels_cpu_time_limit_is_a_controlled_stop(tmp_path: Path) -> None
         resource.prlimit(proc.pid, resource.RLIMIT_CPU, (1, resource.RLIM_INFINITY))
 
     options = ["--summary-json", str(out)]
-    code, _, stderr = _stopped_while_holding(tmp_path, options, lower_the_limit)
+    code, _, stderr = stopped_while_holding(tmp_path, options, lower_the_limit)
     assert code == 130, stderr
     summary = json.loads(out.read_text())
     assert summary["outcome"] == "interrupted"
@@ -182,7 +152,7 @@ def test_outputs_lost_after_the_run_keep_its_exit_code_and_its_summary(tmp_path:
         (tmp_path / "summaries").rmdir()
         proc.send_signal(signal.SIGINT)
 
-    code, stdout, stderr = _stopped_while_holding(
+    code, stdout, stderr = stopped_while_holding(
         tmp_path, ["--plot", str(plot), "--summary-json", str(out)], remove_both_then_stop
     )
     assert code == 130, stderr
