@@ -6,51 +6,33 @@ tenth of a second (``session._WriterWatch``)."""
 from __future__ import annotations
 
 import json
-import os
-import pty
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import psutil
 
 from handctl import cli
 
-from ..conftest import ROOT
-from .rig import HOLD_LONG, read_until
+from .rig import stopped_while_holding
+
+
+def kill_the_writer(run: subprocess.Popen[str]) -> None:
+    """SIGKILL to the run's recording writer alone, its control process left running."""
+    writers = [
+        p
+        for p in psutil.Process(run.pid).children(recursive=True)
+        if "handctl.recording.writer" in " ".join(p.cmdline())
+    ]
+    assert len(writers) == 1, writers
+    writers[0].send_signal(signal.SIGKILL)
 
 
 def test_a_run_whose_writer_ends_is_stopped_and_says_why(tmp_path: Path) -> None:
-    recipe = tmp_path / "hold.yaml"
-    recipe.write_text(HOLD_LONG)
     log, out = tmp_path / "run.mcap", tmp_path / "out.json"
-    terminal, stderr_end = pty.openpty()
-    command = [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--log", str(log)]
-    proc = subprocess.Popen(
-        [*command, "--summary-json", str(out), "--max-seconds", "300"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=stderr_end,
-        text=True,
-    )
-    os.close(stderr_end)
-    try:
-        shown = read_until(terminal, "running")  # the hold is under way, torque on
-        assert "running" in shown, shown
-        writers = [
-            p
-            for p in psutil.Process(proc.pid).children(recursive=True)
-            if "handctl.recording.writer" in " ".join(p.cmdline())
-        ]
-        assert len(writers) == 1, writers
-        writers[0].send_signal(signal.SIGKILL)
-        proc.communicate(timeout=120)
-        stderr = shown + read_until(terminal, None, timeout_s=10.0)
-    finally:
-        proc.kill()
-        os.close(terminal)
-    assert proc.returncode == cli.EXIT_SAFETY_STOP, stderr
+    options = ["--log", str(log), "--summary-json", str(out), "--max-seconds", "300"]
+    code, _, stderr = stopped_while_holding(tmp_path, options, kill_the_writer)
+    assert code == cli.EXIT_SAFETY_STOP, stderr
     summary = json.loads(out.read_text())
     assert summary["outcome"] == "safety_stop"
     first = summary["faults"][0]
