@@ -11,6 +11,7 @@ import pytest
 
 from handctl.config import HandConfig
 from handctl.online.drivers.finger import REORDERED_WITHIN_NS, FingerLayouts, FingerNode
+from handctl.online.drivers.receiver import Reject
 from handctl.protocol import Protocol
 
 DISABLED, ENABLED, FAULT = 0, 1, 2
@@ -152,6 +153,23 @@ def test_one_counter_with_two_contents_is_a_second_sender(node: FingerNode) -> N
         "sender on this node's identifier (a forged frame, or two nodes set to one id), or a "
         "node whose counter does not advance"
     )
+
+
+def test_a_counter_come_round_again_after_lost_frames_is_no_second_sender(
+    node: FingerNode,
+) -> None:
+    """A host starved in its start-up loses frames (its receive queue full): after exactly
+    255 lost, the next frame has the counter of the last it took, and other contents. That
+    was taken for a second sender, and a run on a loaded machine stopped on it (CI); it
+    comes 256 ms after, where a forged frame and the node's own come within a tick."""
+    fb = node.layouts.feedback.frame_id
+    node.receive(fb, _feedback(node, 7, ENABLED, 0), 1_000_000)
+    later = 1_000_000 + 256 * 1_000_000
+    assert node.receive(fb, _feedback(node, 7, DISABLED, 0), later) is Reject.COUNTER_REPEAT
+    assert node.contradiction == "" and node.contradictions == 0
+    node.receive(fb, _feedback(node, 8, ENABLED, 0), later + 1_000_000)  # in step again
+    node.receive(fb, _feedback(node, 8, DISABLED, 0), later + 1_500_000)  # within the tick
+    assert node.contradiction.startswith("two Feedback frames")
 
 
 def test_a_listener_hears_another_host_enable_the_node(node: FingerNode) -> None:

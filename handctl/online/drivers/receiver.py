@@ -31,15 +31,17 @@ class CounterCheck:
     counter is rejected, and any jump other than +1 is rejected and re-synchronised to, so one
     lost frame costs the frame after it and never the whole stream.
 
-    ``frame`` is the last accepted frame itself: a repeat with other contents is not the same
-    frame heard twice but a second sender on the stream's identifier (``FingerNode``).
+    ``frame`` is the last accepted frame itself, and ``frame_ns`` when it arrived (its
+    receiver's to set): a repeat with other contents soon after it is not the same frame heard
+    twice but a second sender on the stream's identifier (``FingerNode``).
     """
 
-    __slots__ = ("frame", "last")
+    __slots__ = ("frame", "frame_ns", "last")
 
     def __init__(self) -> None:
         self.last: int | None = None
         self.frame: bytes | None = None
+        self.frame_ns = 0
 
     def reset(self) -> None:
         self.last = None
