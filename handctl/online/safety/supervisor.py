@@ -367,32 +367,31 @@ class Supervisor:
                 target, self.applied, self.limits, self.dt, self.applied
             )
         elif state is State.STOPPING:
-            limit_torque(self._zero, self.applied, self.limits, self.dt, self.applied)
             # and no later than the line from where the stop began to zero at STOP_BOUND_S:
             # the rate limit alone may take a slow-limited hand seconds to let go
             self._stop_k += 1
-            line = self._stop_from * max(0.0, 1.0 - self._stop_k / self._stop_ticks)
-            np.copyto(self.applied, line, where=np.abs(line) < np.abs(self.applied))
-            toward_zero_on_grid(self.applied, self.limits)
-            if not self.applied.any():
-                self.fire(Event.AT_ZERO, tick)
+            self._towards_zero(self._stop_from, self._stop_k / self._stop_ticks, tick)
         elif state is State.FAULT_RAMP:
-            # towards zero at the rate limit, as a stop goes, and no later than the line from
-            # where the fault began to zero at RAMP_BOUND_S. The line alone was slower than
-            # the rate limit on every shipped hand: a joint past its soft limit kept its
-            # outward torque 50 ms and went 0.35 rad past the limit (an outside audit), where
-            # the stop the fault replaced would have let go in 15
-            limit_torque(self._zero, self.applied, self.limits, self.dt, self.applied)
+            # as a stop goes, and no later than the line to zero at RAMP_BOUND_S. The line
+            # alone was slower than the rate limit on every shipped hand: a joint past its
+            # soft limit kept its outward torque 50 ms and went 0.35 rad past the limit (an
+            # outside audit), where the stop the fault replaced would have let go in 15
             self._ramp_k += 1
-            remaining = max(0.0, 1.0 - self._ramp_k / self._ramp_ticks)
-            line = self._ramp_from * remaining
-            np.copyto(self.applied, line, where=np.abs(line) < np.abs(self.applied))
-            toward_zero_on_grid(self.applied, self.limits)
-            if remaining == 0.0 or not self.applied.any():
-                self.fire(Event.AT_ZERO, tick)
+            self._towards_zero(self._ramp_from, self._ramp_k / self._ramp_ticks, tick)
         else:
             self.applied[:] = 0.0
         return self.applied
+
+    def _towards_zero(self, start: FloatArray, done: float, tick: int) -> None:
+        """One tick of a stop or a fault's ramp: ``applied`` towards zero at the rate limit,
+        and no further from it than the line from ``start`` to zero, ``done`` of the way
+        along it (so it is zero by the line's end); AT_ZERO once every joint is there."""
+        limit_torque(self._zero, self.applied, self.limits, self.dt, self.applied)
+        line = start * max(0.0, 1.0 - done)
+        np.copyto(self.applied, line, where=np.abs(line) < np.abs(self.applied))
+        toward_zero_on_grid(self.applied, self.limits)
+        if not self.applied.any():
+            self.fire(Event.AT_ZERO, tick)
 
     def sent(self, ok: bool, tick: int) -> None:
         """Tell the supervisor whether this tick's command frames went out."""
