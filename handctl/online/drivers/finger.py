@@ -246,7 +246,7 @@ class FingerNode:
                     self._check_version(version)
             return reason
         self.accepted += 1
-        counters.frame_ns = arrival_ns
+        counters.frame, counters.frame_ns = data, arrival_ns
         _, values = layout.decode(data)
         if layout is self.layouts.feedback:
             fb = parse_feedback(values)
@@ -289,16 +289,9 @@ class FingerNode:
         or a node whose counter does not advance, which the host cannot tell apart from them.
         One of them was believed; the counter rule alone counted the other as a lost frame,
         so a forgery one frame in ten went on being believed under the reject-rate limit."""
-        lays = self.layouts
-        name = (
-            "Feedback"
-            if layout is lays.feedback
-            else "Status"
-            if layout is lays.status
-            else "Heartbeat"
-        )
+        kind = layout.name.rpartition("_")[0]  # Feedback_1: Feedback
         self._contradicted(
-            f"two {name} frames (id 0x{layout.frame_id:03X}) with counter {data[1]} and "
+            f"two {kind} frames (id 0x{layout.frame_id:03X}) with counter {data[1]} and "
             "other contents: a second sender on this node's identifier (a forged frame, "
             "or two nodes set to one id), or a node whose counter does not advance"
         )

@@ -31,9 +31,10 @@ class CounterCheck:
     counter is rejected, and any jump other than +1 is rejected and re-synchronised to, so one
     lost frame costs the frame after it and never the whole stream.
 
-    ``frame`` is the last accepted frame itself, and ``frame_ns`` when it arrived (its
-    receiver's to set): a repeat with other contents soon after it is not the same frame heard
-    twice but a second sender on the stream's identifier (``FingerNode``).
+    ``frame`` is the last accepted frame itself, and ``frame_ns`` when it arrived (both its
+    receiver's to set, once the frame is accepted): a repeat with other contents soon after
+    it is not the same frame heard twice but a second sender on the stream's identifier
+    (``FingerNode``).
     """
 
     __slots__ = ("frame", "frame_ns", "last")
@@ -63,10 +64,7 @@ def validate(layout: Layout, data: bytes, counters: CounterCheck) -> Reject | No
         return Reject.LENGTH
     if not layout.crc_ok(data):
         return Reject.CRC
-    reason = counters.check(data[1])
-    if reason is None:
-        counters.frame = data
-    return reason
+    return counters.check(data[1])
 
 
 class RejectCounts:
