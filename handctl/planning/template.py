@@ -286,11 +286,10 @@ def _refuse_another_hands_template(doc: Doc, hand: HandConfig) -> None:
     for i, phase in enumerate(raw):
         if not isinstance(phase, dict):
             continue
+        keyed = {k: v for k, v in phase.items() if isinstance(k, str)}
+        sub = Doc(keyed, doc.file, f"{doc.key_path('phases')}[{i}]")
         for key in _JOINT_KEYED:
-            if isinstance(phase.get(key), dict):
-                where = f"{doc.key_path('phases')}[{i}]"
-                keyed = {k: v for k, v in phase.items() if isinstance(k, str)}
-                refuse_another_hands_joints(Doc(keyed, doc.file, where), key, hand)
+            refuse_another_hands_joints(sub, key, hand)  # a mapping by joint names only
 
 
 def _check_scene_objects(source: str, objects: Sequence[RecipeObject], hand: HandConfig) -> None:
