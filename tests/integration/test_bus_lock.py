@@ -75,6 +75,62 @@ def test_a_second_host_is_refused_naming_the_first_and_takes_the_bus_once_it_end
     take_bus(spec, "this run").release()
 
 
+def test_the_lock_file_goes_with_its_holder_and_a_killed_holders_is_taken_over(
+    tmp_path: Path,
+) -> None:
+    """One file per bus ever used was left in the temporary directory (150 in a day of the
+    suite's private unix buses)."""
+    spec = BusSpec("unix", str(tmp_path))
+    path = lock_path(spec)
+    assert path is not None
+    take_bus(spec, "this run").release()
+    assert not path.exists()
+    # a holder killed leaves its file; the next one takes it over and removes it
+    code = (
+        "import os, signal\n"
+        "from handctl.online.buslock import take_bus\n"
+        "from handctl.online.busspec import BusSpec\n"
+        f"lock = take_bus(BusSpec('unix', {str(tmp_path)!r}), 'the holder')\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    killed = subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=False)
+    assert killed.returncode == -9
+    assert path.exists()
+    with take_bus(spec, "this run"):
+        pass
+    assert not path.exists()
+
+
+def test_a_lock_file_removed_between_open_and_lock_is_opened_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A taker that opened the file just before its holder removed it locks a file the path
+    no longer names: a third would then create the path's file anew and hold the bus beside
+    it. Here the holder lets go between this taker's open and its lock."""
+    from handctl.online import buslock
+
+    spec = BusSpec("unix", str(tmp_path))
+    path = lock_path(spec)
+    assert path is not None
+    opened = buslock._open_lock
+    opens: list[int] = []
+
+    def opened_then_removed(spec: BusSpec, path: Path, who: str) -> int:
+        fd = opened(spec, path, who)
+        opens.append(fd)
+        if len(opens) == 1:
+            path.unlink()  # what a holder's release does
+        return fd
+
+    monkeypatch.setattr(buslock, "_open_lock", opened_then_removed)
+    with take_bus(spec, "this run"):
+        assert len(opens) == 2
+        monkeypatch.setattr(buslock, "_open_lock", opened)
+        with pytest.raises(BusError, match="another handctl host holds"):
+            take_bus(spec, "this run")  # the path's file is the one held
+    assert not path.exists()
+
+
 def test_lock_files_by_bus() -> None:
     assert lock_path(BusSpec("virtual", "x")) is None  # inside one process
     assert lock_path(BusSpec("sim", "")) is None
