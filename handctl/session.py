@@ -881,6 +881,11 @@ def _start_recording(
         )
 
 
+#: How long the simulated hand's process has to end on SIGINT, writing its summary, before it
+#: is killed (s). It writes within a second; longer is a process stopped (SIGSTOP) or hung.
+SIM_FINISH_S = 10.0
+
+
 class SimProcess:
     """The simulated hand as a separate process (``handctl sim``) on a unix datagram bus.
 
@@ -930,16 +935,18 @@ class SimProcess:
             with suppress(ProcessLookupError):  # gone already: problem() says why
                 os.sched_setaffinity(self.proc.pid, {cpu})
         self.summary: dict[str, Any] | None = None
+        self.killed = False  # by finish(), after it did not end on SIGINT
 
     def finish(self) -> dict[str, Any] | None:
         """Stop the peer (SIGINT: it writes its ground truth) and read what it wrote."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
             try:
-                self.proc.wait(timeout=10)
+                self.proc.wait(timeout=SIM_FINISH_S)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+                self.killed = True
         if self.summary is None and self.summary_path.exists():
             self.summary = json.loads(self.summary_path.read_text())
         return self.summary
@@ -957,8 +964,16 @@ class SimProcess:
             if self.log_path.exists()
             else []
         )
+        if self.killed:
+            # its -9 is this process's doing: say why, or it reads as the hand's own crash
+            ended = (
+                f"did not end within {SIM_FINISH_S:g} s of SIGINT (stopped or hung?) and "
+                "was killed (SIGKILL), with"
+            )
+        else:
+            ended = f"ended with exit {self.proc.returncode} and"
         return (
-            f"the simulated hand's process ended with exit {self.proc.returncode} and "
+            f"the simulated hand's process {ended} "
             f"{'its summary' if self.summary is not None else 'no summary'}"
             + (": " + " | ".join(tail) if tail else "")
         )

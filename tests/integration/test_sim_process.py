@@ -8,6 +8,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+
+from handctl import session
 from handctl.config import HandConfig
 from handctl.online.recipes.loader import load_recipe
 from handctl.session import RunRequest, SimProcess
@@ -70,3 +73,22 @@ def test_it_stops_on_sigint_even_when_started_with_sigint_ignored(
     assert sim.proc.returncode == 0, "it did not stop on SIGINT: it was killed"
     assert summary is not None
     assert sim.problem() == ""
+
+
+def test_a_hand_that_does_not_end_on_sigint_is_said_as_killed_by_the_host(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stopped hand (SIGSTOP) was killed after the wait and then said as "ended with exit
+    -9", which reads as the hand's own crash (found by an outside audit)."""
+    monkeypatch.setattr(session, "SIM_FINISH_S", 0.5)
+    with SimProcess(_request(hand), str(tmp_path)) as sim:
+        _wait_for(lambda: sim.log_path.exists() and "t=" in sim.log_path.read_text())
+        sim.proc.send_signal(signal.SIGSTOP)
+        assert sim.finish() is None
+    assert sim.proc.returncode == -signal.SIGKILL
+    problem = sim.problem()
+    assert problem.startswith(
+        "the simulated hand's process did not end within 0.5 s of SIGINT (stopped or hung?) "
+        "and was killed (SIGKILL), with no summary"
+    )
+    assert "exit -9" not in problem
