@@ -2708,8 +2708,16 @@ def _port(text: str) -> int:
     """A TCP port for ``--live``; argparse makes the error a usage error (exit 2)."""
     port = _integer_or_none(text)
     if port is None or not 1 <= port <= 65535:
+        # an address given with it or instead of it: the view's address is not a choice
+        where = (
+            " (the live view binds the loopback interface, 127.0.0.1, only: give the port "
+            "alone, and reach it from another machine through an SSH tunnel, "
+            "docs/recording.md)"
+            if any(c in text for c in ".:[]") or text.strip().lower() == "localhost"
+            else ""
+        )
         raise argparse.ArgumentTypeError(
-            f"expected a TCP port 1..65535, found {shown(text)}{_not_ascii(text)}"
+            f"expected a TCP port 1..65535, found {shown(text)}{_not_ascii(text)}{where}"
         )
     return port
 

@@ -446,7 +446,17 @@ def test_live_refuses_bad_input_with_exit_2(
         with pytest.raises(SystemExit) as stop:
             main(["run", "recipe", str(RECIPE), "--hand", str(HAND_YAML), "--live", port])
         assert stop.value.code == 2
-        assert f"expected a TCP port 1..65535, found '{port}'" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert f"expected a TCP port 1..65535, found '{port}'" in err
+        assert "loopback" not in err
+    for address in ("0.0.0.0", "0.0.0.0:8765", "localhost", "[::1]:8765"):
+        # an address: the view's is not a choice, and the message says how to reach it
+        with pytest.raises(SystemExit) as stop:
+            main(["run", "recipe", str(RECIPE), "--hand", str(HAND_YAML), "--live", address])
+        assert stop.value.code == 2
+        err = capsys.readouterr().err
+        assert f"found '{address}' (the live view binds the loopback interface" in err
+        assert "through an SSH tunnel" in err
     assert main(["run", "recipe", str(RECIPE), "--hand", str(HAND_YAML), "--live"]) == 2
     err = capsys.readouterr().err
     assert "--live" in err and "--log RUN.mcap" in err
