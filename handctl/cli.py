@@ -2748,10 +2748,14 @@ class _Parser(argparse.ArgumentParser):
         # argparse reads this private attribute (3.11) where it tells a negative number from
         # an option; a later Python that matches more ("-" then a digit) still matches these
         self._negative_number_matcher = NEGATIVE_NUMBER
+        self.register("action", None, _StoreOnce)  # an option without action=
+        self.register("action", "store", _StoreOnce)
+        self.given: dict[str, str] = {}  # dest -> the option it was given as, in this parse
 
     def parse_known_args(  # type: ignore[override]
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
     ) -> tuple[argparse.Namespace, list[str]]:
+        self.given = {}
         parsed, extras = super().parse_known_args(args, namespace)
         if extras and self._subparsers is None:
             # a command's own options: said here, with its usage, where argparse said them
@@ -2772,6 +2776,39 @@ class _Parser(argparse.ArgumentParser):
             return extra
         how = " options are taken only in full" if begun else ""
         return f"{extra} (did you mean {' or '.join(close)}?{how})"
+
+
+class _StoreOnce(argparse._StoreAction):
+    """An option of one value given twice with two values is refused: argparse kept the last
+    without a word, so ``--bus sim ... --bus socketcan:can0`` drove whichever came last, and
+    ``--max-seconds 5 ... --max-seconds 50`` ran ten times what the first said. Given twice
+    with the same value it is one option."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        given = parser.given if isinstance(parser, _Parser) else {}
+        if self.dest in given and getattr(namespace, self.dest, None) != values:
+            first = getattr(namespace, self.dest, None)
+            raise argparse.ArgumentError(
+                self,
+                f"given twice, as {_shown_value(first)} and then {_shown_value(values)}: "
+                "give it once",
+            )
+        given[self.dest] = option_string or self.dest
+        super().__call__(parser, namespace, values, option_string)
+
+
+def _shown_value(value: Any) -> str:
+    if value is None:
+        return "no value"
+    if isinstance(value, list):
+        return " ".join(_shown_value(v) for v in value)
+    return shown(str(value))
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):

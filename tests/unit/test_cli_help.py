@@ -111,3 +111,44 @@ def test_a_success_that_asked_no_turn_does_not_say_it_turned_zero_degrees() -> N
     assert _experiment_verdict({**held, "min_total_turn_deg": 170.0}) == (
         "success (lifted, held, nothing dropped, at least 170 deg turned)"
     )
+
+
+def test_an_option_of_one_value_given_twice_with_two_values_is_refused(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """argparse kept the last without a word: ``--bus sim ... --bus socketcan:can0`` drove
+    the last one named, ``--max-seconds 5 ... --max-seconds 50`` ran ten times the first."""
+    recipe = "config/recipes/swap_two_cylinders.yaml"
+    for args, said in [
+        (
+            ["run", "recipe", recipe, "--bus", "sim", "--bus", "socketcan:can0"],
+            "argument --bus: given twice, as 'sim' and then 'socketcan:can0': give it once",
+        ),
+        (
+            ["run", "recipe", recipe, "--max-seconds", "5", "--max-seconds=50"],
+            "argument --max-seconds: given twice, as '5.0' and then '50.0': give it once",
+        ),
+        (
+            ["jog", "f1_j1", "--torque", "0.1", "--torque", "-0.1"],
+            "argument --torque: given twice, as '0.1' and then '-0.1'",
+        ),
+        (
+            ["analyze", "torque-set", "s.yaml", "--k", "1", "2", "--k", "1", "3"],
+            "argument --k: given twice, as '1.0' '2.0' and then '1.0' '3.0'",
+        ),
+    ]:
+        with pytest.raises(SystemExit) as info:
+            build_parser().parse_args(args)
+        assert info.value.code == 2
+        err = capsys.readouterr().err
+        assert said in err, err
+        assert err.startswith(f"usage: handctl {args[0]}"), err
+    # the same value twice is one option; every command's options, each twice
+    parsed = build_parser().parse_args(
+        ["run", "recipe", recipe, "--bus", "sim", "--max-seconds", "5", "--bus", "sim"]
+    )
+    assert (parsed.bus, parsed.max_seconds) == ("sim", 5.0)
+    for path, parser in ALL:
+        for action in parser._actions:
+            if action.option_strings and isinstance(action, argparse._StoreAction):
+                assert type(action).__name__ == "_StoreOnce", (path, action.option_strings)
