@@ -5,6 +5,7 @@ valid scene that the simulated hand loads (per-joint dynamics included)."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -151,3 +152,56 @@ def test_a_schedule_entry_s_models_have_objects_of_its_sizes(
         assert b.radius == pytest.approx(params.objects[1].radius * f2)
         assert a.y == pytest.approx(m.params.table_height + a.radius)
         assert _gap(m.params) == pytest.approx(m.scales["gap_m"], abs=1e-9)
+
+
+def _row(params: SimParams, count: int, gap: float) -> SimParams:
+    """``params`` with ``count`` cylinders of the first's size in a row on the table,
+    ``gap`` (m) between neighbours."""
+    first = params.objects[0]
+    objects = tuple(
+        dataclasses.replace(first, name=f"rod{k}", x=k * (2 * first.radius + gap))
+        for k in range(count)
+    )
+    return dataclasses.replace(params, objects=objects)
+
+
+def test_one_object_is_shifted_and_has_no_gap(params: SimParams) -> None:
+    """``placement`` moved only a pair: on a hand of one object its models were the nominal
+    hand, recorded as shifted (found by an outside audit)."""
+    one = dataclasses.replace(params, objects=params.objects[:1])
+    for m in model_set(one, 6, 7000, Spread().only("placement"))[1:]:
+        assert "gap_m" not in m.scales
+        (obj,) = m.params.objects
+        assert obj.x == pytest.approx(one.objects[0].x + m.scales["placement_m"], abs=1e-12)
+
+
+def test_a_row_of_objects_never_starts_inside_each_other(
+    hand: HandConfig, params: SimParams
+) -> None:
+    """Three or more objects were scaled where they stood: four rods 1 mm apart overlapped by
+    up to 2.3 mm and were kicked apart in the first 20 ms (found by an outside audit). They
+    keep their order and gaps now, the gaps moved as a pair's, the row shifted."""
+    row = _row(params, 4, 0.001)
+    for family in ("objects", "placement", "all"):
+        spread = Spread() if family == "all" else Spread().only(family)
+        for m in model_set(row, 8, 7000, spread)[1:]:
+            objects = m.params.objects
+            assert [o.name for o in sorted(objects, key=lambda o: o.x)] == [
+                o.name for o in row.objects
+            ]
+            drawn = m.scales.get("gap_m")
+            for a, b in itertools.pairwise(objects):
+                between = (b.x - b.radius) - (a.x + a.radius)
+                moved = 0.001 if drawn is None else max(0.0, 0.001 + drawn - 0.002)
+                assert between == pytest.approx(moved, abs=1e-12), (family, m.index)
+            left = objects[0].x - objects[0].radius
+            right = objects[-1].x + objects[-1].radius
+            given = (
+                row.objects[0].x
+                - row.objects[0].radius
+                + row.objects[-1].x
+                + row.objects[-1].radius
+            ) / 2
+            assert (left + right) / 2 == pytest.approx(given + m.scales["placement_m"], abs=1e-12)
+            for o in objects:
+                assert o.y == pytest.approx(m.params.table_height + o.radius)
