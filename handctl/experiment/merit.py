@@ -16,7 +16,7 @@ a pair. Definitions:
   purpose). An object has left the hand when no part of it is between the outermost finger
   bases any more: its centre is further along the palm from the palm's middle than the
   farthest finger base plus its own radius (``hand_span``; on a hand whose fingers are all
-  based at one x, further than the fingers reach);
+  based at one x or all curl to one side, further than the fingers reach);
 - ``objects``: each object's ``lifted``, ``held_s``, ``dropped``, final pose and, for an object
   of the recipe, ``estimator_error_m``: the 95th percentile of the distance between its
   estimated and true centres over the ticks of the hold and manipulation phases where the
