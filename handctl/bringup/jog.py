@@ -27,7 +27,7 @@ band. The guard is off for a recovery: at and beyond the limit it asks for the j
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,6 +40,7 @@ from handctl.online.clock import Tick
 from handctl.online.loop import TickRecord
 from handctl.online.recipes.guard import LimitGuard, SpringBand
 from handctl.online.recipes.schema import Condition, Recipe, TimeoutAction, parse_condition
+from handctl.online.safety.chatter import Ringing
 from handctl.online.safety.faults import FaultCode
 from handctl.online.safety.recovery import Recovery
 from handctl.session import RunReport, RunRequest, run_recipe
@@ -212,13 +213,26 @@ TDT_JUDGED_TICKS = 100
 TDT_FOLLOWS = (0.5, 2.0)
 
 
-def tdt_problem(joint: str, sink: JogSink) -> str:
+def tdt_problem(joint: str, sink: JogSink, rang: Sequence[Ringing] = ()) -> str:
     """What is wrong with the TDT of the jogged joint over the hold ("" if nothing). The
     supervisor's own check allows 0.02 N·m and 15 %, as much as the small torques a jog is
     run at: a jog at 0.02 N·m whose TDT read 0.005 said "completed", exit 0, and the step
-    of the bring-up meant to find a dead or mis-scaled sensor passed it."""
+    of the bring-up meant to find a dead or mis-scaled sensor passed it.
+
+    Not judged when the joint's command rang (``rang``, the run's ``chatter``): the mean of a
+    command swinging by more than the jog's torque is not the torque the joint was held at,
+    and a healthy sensor was said not to follow its joint (a hand of large tau_max, whose
+    soft-limit guard is stiff for its links: found by an outside audit). Said as that."""
     if sink.held < TDT_JUDGED_TICKS:
         return ""
+    ringing = [r for r in rang if r.joint == joint]
+    if ringing:
+        return (
+            f"{joint}'s TDT cannot be judged: its command rang (±{ringing[0].amplitude_nm:.3g} "
+            f"N·m, {ringing[0].frequency_hz:.0f} Hz), the soft-limit guard pushing back "
+            "against the jog, so no steady torque was held; jog it with a smaller torque, or "
+            "from further inside its range"
+        )
     applied, read = sink.held_applied / sink.held, sink.held_tdt / sink.held
     low, high = TDT_FOLLOWS
     if read * applied > 0 and low <= read / applied <= high:
@@ -384,5 +398,5 @@ def jog(
         sink.max_abs_tdt,
         recovery,
         sink.encoder_failed,
-        "" if recover else tdt_problem(joint, sink),
+        "" if recover else tdt_problem(joint, sink, report.result.chatter),
     )

@@ -600,3 +600,28 @@ def test_a_tdt_that_does_not_follow_the_jog_fails_it(
     assert "was applied (expected between 0.5 and 2 times it)" in err
     assert cli.main(args) == cli.EXIT_OK  # the same jog on the sound sensor
     assert "FAILED" not in capsys.readouterr().err
+
+
+def test_a_jog_whose_command_rang_does_not_blame_the_sensor(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A joint of large tau_max and a fast rate limit: the soft-limit guard's spring (tau_max
+    over its band) is stiff for the links and rings against the jog, the command swinging
+    between +0.5 and -1 N·m. The mean of that is no torque the joint was held at, and a
+    sound TDT was said not to follow its joint (found by an outside audit)."""
+    doc = yaml.safe_load(HAND_YAML.read_text())
+    joint = doc["fingers"][0]["joints"][1]
+    joint.update(tau_max=2.5, device_tau_max=3.2, rate_limit=6000.0)
+    doc["sim"]["tdt"]["range"] = 3.27  # past the node's saturation
+    motors = doc["sim"]["actuator"]["motor_tau_max"]
+    motors["f1"] = [motors["f1"][0], 4.0, *motors["f1"][2:]]  # the node's saturation binds
+    hand_file = tmp_path / "stiff_guard.yaml"
+    hand_file.write_text(yaml.safe_dump(doc))
+    code = cli.main(
+        ["jog", "f1_j2", "--torque", "0.5", "--seconds", "0.5", "--hand", str(hand_file)]
+    )
+    err = capsys.readouterr().err
+    assert "f1_j2's command rang" in err
+    assert code == cli.EXIT_FAILED, err
+    assert "handctl: FAILED: f1_j2's TDT cannot be judged: its command rang" in err
+    assert "does not follow its joint" not in err
