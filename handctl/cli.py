@@ -49,6 +49,7 @@ from handctl.errors import (
     HandctlError,
     absent,
     escaped,
+    said_by,
     shown,
 )
 
@@ -696,7 +697,7 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
         summary = (
             exc.summary
             if isinstance(exc, RunInterrupted)
-            else interrupted_summary(request, str(exc))
+            else interrupted_summary(request, said_by(exc))
         )
         if isinstance(exc, RunInterrupted) and summary.get("ticks"):
             print(f"handctl: {summary['message']}", file=sys.stderr)

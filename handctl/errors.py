@@ -179,3 +179,13 @@ def _short_repr() -> reprlib.Repr:
 
 
 _SHORT = _short_repr()
+
+
+def said_by(exc: BaseException) -> str:
+    """``str(exc)``, or that it could not be made: an exception's ``__str__`` is its own
+    code, and what handles the exception (a stop, its summary) must not raise in its place:
+    an interrupt whose ``__str__`` raised replaced itself and lost the run's result."""
+    try:
+        return str(exc)
+    except Exception:
+        return "(its message could not be made)"

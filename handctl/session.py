@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 from handctl.config import HandConfig
 from handctl.convention import POSE_EVERY_TICKS  # the summaries measure the turn on these poses
-from handctl.errors import ConfigError, HandctlError
+from handctl.errors import ConfigError, HandctlError, said_by
 from handctl.hand_protocol import protocol_for
 from handctl.hostcheck import (
     LoopWork,
@@ -740,11 +740,14 @@ def _summary_if_interrupted(
     recording: Recorder | None, req: RunRequest, ran: list[Runtime], lockstep: bool
 ) -> Callable[[type[BaseException] | None, BaseException | None, object], bool]:
     def finish(kind: object, exc: BaseException | None, tb: object) -> bool:
-        if not isinstance(exc, KeyboardInterrupt) or isinstance(exc, RunInterrupted):
+        # a CancelledError raised inside a tick ends the run as an interrupt does (the loop
+        # sent zero and a disable at once); it crashed the command with a traceback, no summary
+        interrupt = isinstance(exc, (KeyboardInterrupt, asyncio.CancelledError))
+        if exc is None or not interrupt or isinstance(exc, RunInterrupted):
             return False
         result = ran[0].interrupted if ran else None
         summary = (
-            interrupted_summary(req, str(exc))
+            interrupted_summary(req, said_by(exc))
             if result is None
             else summarise_run(result, req.hand, req.recipe, lockstep, None)
         )

@@ -37,6 +37,7 @@ import numpy as np
 import handctl
 from handctl import protocol as wire
 from handctl.config import HandConfig
+from handctl.errors import said_by
 from handctl.online.bus import BusEvent, BusEventKind
 from handctl.online.clock import Clock, Tick
 from handctl.online.collector import LoopCollector
@@ -559,9 +560,10 @@ class Runtime:
         result (``interrupted``): the run's summary says so, not that nothing was sent. Never
         raises: the interrupt goes on whatever this finds."""
         tick = self.tick
+        said = said_by(exc)  # an interrupt whose __str__ raised replaced itself and its result
         message = (
             f"{type(exc).__name__} in tick {tick}"
-            + (f" ({exc})" if str(exc) else "")
+            + (f" ({said})" if said else "")
             + ": zero torque and a disable were sent at once"
         )
         self._end_phase_quietly(f"interrupted: {type(exc).__name__}", tick)
@@ -1198,10 +1200,7 @@ def _stage_of(exc: BaseException) -> tuple[FaultCode, Tick | None]:
 
 def _describe(exc: BaseException, code: FaultCode, tick: int) -> TickException:
     """What ``exc`` said and where, bounded, whatever its ``__str__`` does."""
-    try:
-        message = str(exc)
-    except Exception:
-        message = "(its message could not be made)"
+    message = said_by(exc)
     if len(message) > EXCEPTION_TEXT_CHARS:
         message = message[: EXCEPTION_TEXT_CHARS - 3] + "..."
     where = "?"

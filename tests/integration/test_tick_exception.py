@@ -742,19 +742,36 @@ def test_a_system_exit_inside_a_tick_is_a_safety_stop_with_its_summary(
     assert logged is not None and logged["outcome"] == "safety_stop"
 
 
+class _SaysNothing(KeyboardInterrupt):
+    """An interrupt whose ``__str__`` raises: the code handling it raised a ValueError in its
+    place, and the run's result was lost (found by an outside audit)."""
+
+    def __str__(self) -> str:
+        raise ValueError("__str__ itself raised")
+
+
+@pytest.mark.parametrize(
+    "interrupt",
+    [KeyboardInterrupt, asyncio.CancelledError, _SaysNothing],
+    ids=["keyboard", "cancelled", "unsayable"],
+)
 def test_an_interrupt_inside_a_tick_says_what_ran_not_that_nothing_was_sent(
     hand: HandConfig,
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
     capsys: pytest.CaptureFixture[str],
+    interrupt: type[BaseException],
 ) -> None:
     """A KeyboardInterrupt inside a tick (Ctrl-C where no signal handler is installed, or code
     raising it) goes on as an interrupt, exit 130; the summary and the log said 'before the
-    first tick: nothing was sent to the hand' after hundreds of ticks of torque."""
+    first tick: nothing was sent to the hand' after hundreds of ticks of torque. A
+    CancelledError raised there (a stage's own asyncio) crashed the command with its
+    traceback, exit 1 and no summary, after the loop had stopped the hand as for an
+    interrupt (found by an outside audit)."""
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(CLOSE_AND_HOLD_1S)
     out, log = tmp_path / "out.json", tmp_path / "run.mcap"
-    _raise_in_the_runner_at(300, KeyboardInterrupt(), monkeypatch)
+    _raise_in_the_runner_at(300, interrupt(), monkeypatch)
     code, listener = _cli_run(
         [str(recipe), "--summary-json", str(out), "--log", str(log)], monkeypatch
     )
@@ -765,11 +782,13 @@ def test_an_interrupt_inside_a_tick_says_what_ran_not_that_nothing_was_sent(
     assert summary["ticks"] > 300
     assert "zero torque and a disable were sent" in summary["message"]
     assert "nothing was sent" not in summary["message"]
-    assert summary["phases"][-1]["exit"] == "interrupted: KeyboardInterrupt"
+    assert summary["phases"][-1]["exit"] == f"interrupted: {interrupt.__name__}"
     logged = open_recording(log).json_meta(ch.META_SUMMARY)
     assert logged is not None and logged["outcome"] == "interrupted"
     assert logged["ticks"] == summary["ticks"]
     assert summary["message"] in capsys.readouterr().err
+    if interrupt is _SaysNothing:
+        assert "(its message could not be made)" in summary["message"]
 
 
 def test_a_node_not_heard_disabled_after_an_exception_is_said(
