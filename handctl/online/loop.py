@@ -293,6 +293,8 @@ class Runtime:
         self.ended_in_fault = ""
         #: whether the e-stop went to nodes still ENABLED after the disable
         self._estop_at_the_end = False
+        #: that the bus refused the disable at the end, twice ("" if it went)
+        self._disable_refused = ""
         #: a peer process the start-up waits for (the simulated hand of a real-time run):
         #: what it said if it has ended, else ""; asked every start-up tick, so that a hand
         #: that died is said at once and not after the whole start-up timeout (20 s)
@@ -454,8 +456,18 @@ class Runtime:
                 break
             if self.tick >= self.max_ticks:
                 self.request_stop("tick budget exhausted")
-        self.driver.node_command("disable")
+        if not self.driver.node_command("disable") and not self.driver.send_disable():
+            # a disable frame the bus refused, and again from the prepared frames (which send
+            # the e-stop after them): said as the bus's, not as nodes that went on ENABLED
+            # after a disable they never had
+            self._disable_refused = "the bus refused the disable at the end, twice, and " + (
+                "the e-stop after it as well"
+                if self.driver.stop_estops_lost
+                else "the e-stop was sent (every node latches FAULT (ESTOP))"
+            )
         await self._confirm_disabled(tk.now_ns)
+        if self._disable_refused and not self.disable_unconfirmed:
+            self.disable_unconfirmed = self._disable_refused  # every node heard stopped
         if not sup.faults:  # a node fault in the run is its stop, said as such
             self._say_ended_in_fault()
         # the last tick's bus events, which the log has: the summary's count had them not
@@ -519,6 +531,9 @@ class Runtime:
             f"for {wire.COMMAND_WATCHDOG_S * 1e3:g} ms sets its torque to zero and latches "
             "FAULT (TIMEOUT), which the next run clears with --reset-node-faults"
         )
+        if self._disable_refused:
+            self.disable_unconfirmed += f" ({self._disable_refused})"
+            defiant = []  # they may never have had it; the e-stop, if any, has gone
         if defiant:
             # a node that goes on saying ENABLED after the disable disobeys it: the e-stop,
             # which every node honours (PROTOCOL.md), is the last word the host has; it
@@ -657,7 +672,15 @@ class Runtime:
 
     def _exception_stop_message(self) -> str:
         message = "; ".join(str(f) for f in self._faults())
-        if self.driver.stop_estops:
+        driver = self.driver
+        if driver.stop_estops and driver.stop_estops_lost == driver.stop_estops:
+            message += (
+                "; a stop frame did not go to every node, and neither did the e-stop sent "
+                "after it: the bus took none of them, so a node that missed its zero and "
+                "disable is stopped only by its own command watchdog (FAULT TIMEOUT, cleared "
+                "with --reset-node-faults)"
+            )
+        elif driver.stop_estops:
             message += (
                 "; a stop frame did not go to every node, so the e-stop was sent: each node "
                 "latches FAULT (ESTOP), which the next run clears with --reset-node-faults"

@@ -399,6 +399,67 @@ def test_a_node_that_cannot_be_sent_to_gets_the_estop(
     assert "--reset-node-faults" in result.message
 
 
+def test_a_stop_whose_frames_and_e_stop_the_bus_refuses_says_so(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After the runner's exception the bus refuses every frame: no zero, no disable and no
+    e-stop went, and the message said "the e-stop was sent: each node latches FAULT (ESTOP)"
+    where only the nodes' own watchdog stopped them (found by an outside audit)."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always=False)
+        force("runner", b, due, monkeypatch)
+        real = b.runtime.driver.bus.send
+
+        def send(frame_id: int, data: bytes, more: bool = False) -> bool:
+            return False if due.fired else real(frame_id, data, more)
+
+        monkeypatch.setattr(b.runtime.driver.bus, "send", send)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        wire = hear(b.listener, hand)
+    assert result.outcome is Outcome.SAFETY_STOP
+    row = result.faults[0].tick - b.runtime.first_send_tick
+    assert all(len(rows) == row for rows in wire.torques.values())  # nothing after it
+    assert not any(wire.disables.values())
+    assert "the e-stop was sent" not in result.message
+    assert "neither did the e-stop sent after it" in result.message
+    assert "its own command watchdog (FAULT TIMEOUT" in result.message
+
+
+def test_a_disable_the_bus_refuses_at_the_end_is_said_as_the_bus_s(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The bus refuses every NodeCommand frame once the run is under way: at the end of a
+    completed run no disable went, and the nodes were said to have gone on ENABLED "after
+    the disable" (found by an outside audit). The prepared disable is tried again, then the
+    e-stop, and the bus's refusal is what is said."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        real = b.runtime.driver.bus.send
+        rt = b.runtime
+        command_ids = {n.layouts.node_command.frame_id for n in rt.driver.nodes}
+
+        def send(frame_id: int, data: bytes, more: bool = False) -> bool:
+            if (
+                frame_id in command_ids
+                and rt.first_send_tick >= 0
+                and rt.tick > rt.first_send_tick + 5
+            ):
+                return False
+            return real(frame_id, data, more)
+
+        monkeypatch.setattr(b.runtime.driver.bus, "send", send)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        wire = hear(b.listener, hand)
+    assert result.outcome is Outcome.COMPLETED
+    assert not any(wire.disables.values())
+    assert "went on saying ENABLED after the disable" not in result.disable_unconfirmed
+    assert "the bus refused the disable at the end, twice, and the e-stop was sent" in (
+        result.disable_unconfirmed
+    )
+    assert all(n.state == NodeState.FAULT for n in b.sim.nodes)  # the e-stop went
+
+
 def test_an_exception_while_enabling_is_a_controlled_stop(
     hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -126,8 +126,11 @@ class HandDriver:
         self.bus_events: list[BusEvent] = []
         self._estop_counter = 0
         #: How many times a stop's prepared frame did not go to every node and the e-stop
-        #: followed (``_send_prepared``): each node latches FAULT (ESTOP) on it.
+        #: followed (``_send_prepared``): each node latches FAULT (ESTOP) on it; and how many
+        #: of those e-stops the bus did not take either (only the nodes' own command
+        #: watchdogs then stop them: said so, not that they were e-stopped)
         self.stop_estops = 0
+        self.stop_estops_lost = 0
         self._estop_layout = protocol.layout("EStop")
         self._prepare_stop_frames()
 
@@ -314,7 +317,8 @@ class HandDriver:
                 ok = False
         if not ok:
             self.stop_estops += 1
-            self.send_estop()
+            if not self.send_estop():
+                self.stop_estops_lost += 1
         return ok
 
     def _send_quietly(self, frame_id: int, data: bytes) -> bool:
