@@ -1034,10 +1034,15 @@ class Runtime:
             # summary, and the replay ended it at the log's last tick. What the runner
             # proposed in this tick is kept for the log (its abort empties the buffer); the
             # supervisor, ramping down, no longer reads it.
-            proposed = desired.copy()
+            proposed = desired.copy() if isinstance(desired, np.ndarray) else desired
             self._abort_phase(t_s, f"safety stop: {sup.faults[0].code.name}", tick)
             desired = proposed
-        return desired, sup.filter(tick, desired, missed), new_faults
+        applied = sup.filter(tick, desired, missed)
+        if sup.refused is FaultCode.WRONG_SHAPE:
+            # no torque vector (its fault says what it was): the tick's bookkeeping and the
+            # record read zero asked, where they raised a second, misplaced fault on it
+            desired = self._zero
+        return desired, applied, new_faults
 
     def _abort_phase(self, t_s: float, reason: str, tick: int) -> None:
         """End the recipe where it is, and say in the log where the phase under way ended and
@@ -1076,6 +1081,11 @@ class Runtime:
         runner.advance(t_s, angle, tdt, estimates)
         self._feedback_start_ns = self.cpu_clock()  # its end is the recipe part's (decide)
         desired = runner.feedback(t_s, angle, estimates)
+        if desired is None:
+            # the supervisor holds the last torque on None (nothing asked); a recipe that
+            # proposes nothing is broken, and was held until the bookkeeping raised on it
+            sup.trip(FaultCode.WRONG_SHAPE, "the recipe proposed no torques (None)", self.tick)
+            return self._zero
         if runner.status is RunStatus.ABORTED and not self.stop_requested:
             sup.trip(FaultCode.RECIPE_ABORT, runner.abort_reason, self.tick)
             if self.recorder is not None and runner.records:

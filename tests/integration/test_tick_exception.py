@@ -460,6 +460,35 @@ def test_a_disable_the_bus_refuses_at_the_end_is_said_as_the_bus_s(
     assert all(n.state == NodeState.FAULT for n in b.sim.nodes)  # the e-stop went
 
 
+@pytest.mark.parametrize(
+    "proposed",
+    [None, [0.01] * 8, [[0.01] * 9], ["0.01"] * 9],
+    ids=["none", "eight", "matrix", "strings"],
+)
+def test_a_recipe_that_proposes_no_torque_vector_is_stopped_on_that_alone(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, proposed: Any
+) -> None:
+    """None was held as the last torque (the supervisor's "nothing asked") until the
+    bookkeeping after the send raised on it; a wrong shape or strings were refused, but that
+    bookkeeping then raised a second fault, SEND_EXCEPTION, which named the wrong stage and
+    took the stop down the exception's path (found by an outside audit)."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always=False)
+        runner = b.runtime.runner
+        assert runner is not None
+        real = runner.feedback
+        monkeypatch.setattr(runner, "feedback", lambda *args: proposed if due() else real(*args))
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        wire = hear(b.listener, hand)
+    assert [f.code for f in result.faults] == [FaultCode.WRONG_SHAPE]
+    assert result.exception is None
+    row = result.faults[0].tick - b.runtime.first_send_tick
+    assert_stopped_on_the_wire(wire, row)
+    complete, _, faults = logged_faults(b.log)
+    assert complete and [f["name"] for f in faults] == ["WRONG_SHAPE"]
+
+
 def test_an_exception_while_enabling_is_a_controlled_stop(
     hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

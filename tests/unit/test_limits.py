@@ -176,17 +176,44 @@ def test_what_is_not_numbers_is_refused_as_such(hand: HandConfig) -> None:
     desired = ["a"] * hand.n_joints
     assert check_desired(desired, hand.n_joints) == (  # type: ignore[arg-type]
         FaultCode.WRONG_SHAPE,
-        f"desired torques are not numbers: {desired!r:.60}",
+        f"desired torques are not real numbers (<U1 values): {desired!r:.60}",
     )
 
 
 @pytest.mark.parametrize("dtype", [str, object])
 def test_an_array_of_what_is_not_numbers_is_refused_as_such(hand: HandConfig, dtype: type) -> None:
     desired: np.ndarray = np.array(["a"] * hand.n_joints, dtype=dtype)
-    assert check_desired(desired, hand.n_joints) == (
-        FaultCode.WRONG_SHAPE,
-        f"desired torques are not numbers: {desired!r:.60}",
-    )
+    found = check_desired(desired, hand.n_joints)
+    assert found is not None and found[0] is FaultCode.WRONG_SHAPE
+    assert found[1].startswith("desired torques are not real numbers (")
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        ["0.1"] * 9,  # numeric strings: they were sent as torques
+        [True] * 9,  # booleans: sent as 1 N·m, clamped to tau_max
+        [0.1 + 0.2j] * 9,  # complex: the imaginary part dropped, with a warning only
+        np.full(9, 0.1 + 0j),
+        np.ones(9, dtype=bool),
+        [0.1] * 8 + [[0.1]],  # ragged
+        {"f1_j1": 0.1},
+    ],
+    ids=["strings", "bools", "complex", "complex_array", "bool_array", "ragged", "dict"],
+)
+def test_only_real_numbers_are_torques(hand: HandConfig, values: object) -> None:
+    """The supervisor's contract is numbers only: numeric strings, booleans and complex
+    values were converted to float64 and sent (found by an outside audit)."""
+    found = check_desired(values, hand.n_joints)  # type: ignore[arg-type]
+    assert found is not None and found[0] is FaultCode.WRONG_SHAPE, found
+    assert found[1].startswith("desired torques are not real numbers (")
+
+
+@pytest.mark.parametrize(
+    "values", [[0.1] * 9, [1] * 9, np.full(9, 0.1, dtype=np.float32), np.arange(9)]
+)
+def test_real_numbers_of_any_kind_are_torques(hand: HandConfig, values: object) -> None:
+    assert check_desired(values, hand.n_joints) is None  # type: ignore[arg-type]
 
 
 def test_vectors_of_another_length_are_never_truncated(

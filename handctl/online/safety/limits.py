@@ -86,10 +86,18 @@ def check_desired(
     if isinstance(desired, np.ndarray) and desired.dtype == np.float64:
         arr = desired
     else:
+        # real numbers only: asked as float64 at once, numeric strings ("0.1") and booleans
+        # became torques and complex values lost their imaginary part with a warning (found
+        # by an outside audit)
         try:
-            arr = np.asarray(desired, dtype=np.float64)
-        except (TypeError, ValueError):
-            return FaultCode.WRONG_SHAPE, f"desired torques are not numbers: {desired!r:.60}"
+            raw = np.asarray(desired)
+        except (TypeError, ValueError):  # ragged
+            raw = np.asarray(None)
+        if raw.dtype.kind not in "iuf":
+            return FaultCode.WRONG_SHAPE, (
+                f"desired torques are not real numbers ({raw.dtype} values): {desired!r:.60}"
+            )
+        arr = raw.astype(np.float64)
     if arr.shape != (n_joints,):
         return FaultCode.WRONG_SHAPE, f"expected {n_joints} torques, found shape {arr.shape}"
     # A NaN or an infinity makes the sum NaN or infinite; a finite sum proves every value

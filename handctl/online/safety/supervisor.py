@@ -128,6 +128,9 @@ class Supervisor:
         self.active_codes: set[FaultCode] = set()
         self.applied = np.zeros(self.n)
         self.limited_joints = 0
+        #: the fault of the desired torques this tick's ``filter`` refused (None: none): the
+        #: caller's bookkeeping must not read a refused vector as torques
+        self.refused: FaultCode | None = None
         self.history: list[tuple[int, State, Event, State]] = []
         self._ramp_from = np.zeros(self.n)
         self._ramp_ticks = max(1, math.floor(RAMP_BOUND_S / self.dt))
@@ -341,6 +344,7 @@ class Supervisor:
         self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int = 0
     ) -> AppliedTorques:
         """The applied torques of this tick (a view the caller must not keep across ticks)."""
+        self.refused = None
         return AppliedTorques(self._filter(tick, desired, missed))
 
     def _filter(
@@ -354,6 +358,7 @@ class Supervisor:
             if desired is None:
                 target = self.applied  # nothing asked: hold
             elif problem is not None:
+                self.refused = problem[0]
                 self.trip(problem[0], problem[1], tick)
                 return self._filter(tick, None, missed)
             else:
