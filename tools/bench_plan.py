@@ -48,11 +48,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def small_template(folder: Path) -> Path:
+    """The shipped template cut short. The turn keeps its whole ramp and half a second more:
+    a phase shorter than its ``ramp_s`` is refused, and a fixed 1 s turn broke this bench
+    (exit 2, measuring nothing) once the template's ramp grew to 1.5 s."""
     data: dict[str, Any] = yaml.safe_load(TEMPLATE.read_text())
     data["search"]["random_seeds"] = 0
     phases = data["phases"]
     phases[2]["max_s"] = 0.5
-    phases[3]["max_s"] = 1.0
+    phases[3]["max_s"] = float(phases[3].get("ramp_s", 0.0)) + 0.5
     data["phases"] = phases[:4]
     path = folder / "small.template.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from handctl.config import HandConfig
+
 from ..conftest import ROOT, load_tool
 
 
@@ -174,6 +176,18 @@ def test_the_plan_bench_checks_its_options_before_any_plan(
     assert load_tool("bench").main(argv) == 2
     err = capsys.readouterr().err
     assert says in err and "plan with" not in err
+
+
+def test_the_plan_bench_s_template_is_one_handctl_plan_takes(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """Its turn was cut to 1 s, shorter than the template's ramp once that grew to 1.5 s: the
+    bench exited 2 at its first plan and measured nothing (found by an outside audit)."""
+    from handctl.planning.template import load_template
+
+    small = load_tool("bench_plan").small_template(tmp_path)
+    template = load_template(small, hand)
+    assert [p.name for p in template.phases] == ["approach", "lift", "envelop", "manipulate_1"]
 
 
 @pytest.mark.parametrize("name", ["analysis", "experiment", "recording"])
