@@ -129,6 +129,7 @@ sys.path.insert(0, str(ROOT))
 
 from handctl.config import HandConfig, load_hand  # noqa: E402
 from handctl.convention import POSE_EVERY_TICKS  # noqa: E402
+from handctl.errors import HandctlError  # noqa: E402
 from handctl.hand_protocol import protocol_for  # noqa: E402
 from handctl.online import bus as bus_module  # noqa: E402
 from handctl.online.bus import open_bus  # noqa: E402
@@ -537,8 +538,15 @@ class Window:
             pass
         self.turns = max(0, round(target_ns / max((_CPU() - started) / 10_000, 1e-3)))
         self.ns: list[int] = []
+        self.every: list[int] = []  # every call's, settling ones included
         self._recent: list[int] = []
         self._calls = 0
+
+    def kept(self) -> list[int]:
+        """The figures: the calls after the settling ones, or, in a run too short to settle
+        (a hold recipe of 2.5 s: the bench's percentile of nothing was a traceback), the last
+        half of the calls, whose length has been set ``WINDOW_EVERY`` calls at a time."""
+        return self.ns if self.ns else self.every[len(self.every) // 2 :]
 
     def __call__(self, tk: Tick) -> None:
         turns = self.turns
@@ -547,6 +555,7 @@ class Window:
             pass
         took = _CPU() - started
         self._calls += 1
+        self.every.append(took)
         if self._calls > WINDOW_SETTLE:
             self.ns.append(took)
         self._recent.append(took)
@@ -577,7 +586,9 @@ def noise_floor(hand_path: str, recipe_path: str, window_ns: float) -> dict[str,
 
     a, b, result, _, _ = _pair(hand, recipe, None, each=add_window)
     added, _ = _paired(a, b, result.stage_ns[:, 3] > 0)
-    floor = np.concatenate([np.array(w.ns, dtype=np.float64) for w in windows]) / 1e3
+    floor = np.concatenate([np.array(w.kept(), dtype=np.float64) for w in windows]) / 1e3
+    if not floor.size:
+        raise HandctlError(f"{recipe_path}: the recipe ran no tick to measure the noise floor in")
     return {
         "paired_noise_us_p99": float(np.percentile(added, 99)) / 1e3,
         "floor_us_p50": float(np.percentile(floor, 50)),

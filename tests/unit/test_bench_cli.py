@@ -231,3 +231,17 @@ def test_figures_that_cannot_be_written_are_a_failure_said_not_a_traceback() -> 
     assert done.returncode == 1, done.stderr
     assert "failed: its figures could not be written" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_the_recording_bench_s_noise_floor_has_figures_in_a_short_run() -> None:
+    """A recipe shorter than the window's settling (3000 ticks: the bring-up hold recipe, 2.5
+    s) left the noise floor without a sample, and the bench ended on a numpy traceback
+    (found by an outside audit)."""
+    bench = load_tool("bench_recording")
+    window = bench.Window(1_000.0)
+    for tick in range(2_500):
+        window(tick)
+    assert window.ns == [] and len(window.kept()) == 1_250
+    for tick in range(2_500, bench.WINDOW_SETTLE + 10):
+        window(tick)
+    assert window.kept() == window.ns and len(window.ns) == 10
