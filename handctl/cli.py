@@ -3526,10 +3526,11 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "limits, and the soft-limit guard. A table of the joint's angle and TDT "
         "torque is printed as it runs. Default bus: the simulated hand, in lockstep.",
         notes="Ctrl-C or SIGTERM: a controlled stop (torque to zero, nodes disabled), exit "
-        "130. A torque over the joint's tau_max is refused (exit 2) before anything "
-        "is sent. --recover brings back a joint resting outside its soft limits "
-        "(no other run can arm then): the supervisor lets that joint, and only it, be "
-        "outside as long as it comes back in (never more than 0.02 rad further out "
+        "130. A torque over half of the joint's tau_max (all of it with --recover) is "
+        "refused (exit 2) before anything is sent. --recover brings back a joint resting "
+        "outside its soft limits (no other run can arm then): the supervisor lets that "
+        "joint, and only it, be outside as long as it comes back in (never more than "
+        "0.02 rad further out "
         "than the farthest in it came), and the jog ends once it is 0.15 rad inside; "
         "exit 1 if it is still outside when --seconds are up.",
     )
