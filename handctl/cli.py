@@ -2194,12 +2194,15 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
         _refuse_same_files({option: output}, {"--dbc": args.dbc, "--sim-faults": args.sim_faults})
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     if args.output is None and not args.write:
-        raise ConfigError(
-            "-o",
-            "",
-            f"a file for the calibrated copy (or --write to overwrite {args.hand})",
-            "nothing",
+        # --write only for a hand of the user's: offered for the shipped config, it was then
+        # refused as the package's (found by an outside audit)
+        instead = (
+            "the default hand config is the package's: give your hand's with --hand to "
+            "overwrite it with --write"
+            if args.hand.resolve() == DEFAULT_HAND
+            else f"or --write to overwrite {args.hand}"
         )
+        raise ConfigError("-o", "", f"a file for the calibrated copy ({instead})", "nothing")
     if args.output is not None and args.write:
         raise ConfigError(
             "--write",

@@ -156,6 +156,12 @@ def test_write_refuses_the_hand_config_shipped_with_handctl(
     err = capsys.readouterr().err
     assert "--write: expected --hand with the hand config of your hand" in err
     assert shipped.read_text() == before
+    # nor is --write offered for it when neither -o nor --write is given
+    assert cli.main(["calibrate", "tdt", "--seconds", "0.2"]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "the default hand config is the package's: give your hand's with --hand" in err
+    assert "or --write to overwrite" not in err
+    assert shipped.read_text() == before
 
 
 def test_write_keeps_what_was_saved_into_the_hand_config_during_the_run(
