@@ -271,6 +271,9 @@ def test_a_compiled_recipe_on_another_hand_says_it_was_compiled_for_another(
         load_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml", planar)
     assert info.value.key == "hand_config_hash"
     assert "compiled for another hand config" in str(info.value)
+    # and how to run it as it is: on its own hand (only "recompile it" was said, which sent a
+    # newcomer who forgot --hand to re-plan; found by an outside audit)
+    assert "written for another hand? give its config with --hand" in str(info.value)
 
 
 def test_the_torque_margin_is_held_to_tau_max_and_the_rate_limit(

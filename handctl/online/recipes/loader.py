@@ -134,11 +134,13 @@ def parse_recipe(doc: Doc, hand: HandConfig, *, as_recorded: bool = False) -> Re
     # before anything that names a joint: on another hand the joints a recipe names are
     # not this hand's, and an unknown joint would hide that the whole recipe is another's
     if digest is not None and not hand.answers_to(digest):
+        # which of the two it is the recipe cannot say: its hand's name is not in it
         raise ConfigError(
             doc.file,
             "hand_config_hash",
-            f"{hand.config_hash}, the hash of {hand.source} (the recipe was "
-            "compiled for another hand config: recompile it for this one)",
+            f"{hand.config_hash}, the hash of {hand.source} (the recipe was compiled for "
+            "another hand config: written for another hand? give its config with --hand; "
+            "for this hand's config as it was before a change? recompile it for this one)",
             digest,
         )
     if not as_recorded:
