@@ -2012,8 +2012,10 @@ def _replaced_another(existing: dict[str, Any] | None, name: str, hand: HandConf
     if existing.get("recipe") != name:
         other.append(f"recipe {escaped(str(existing.get('recipe')))}")
     digest = existing.get("hand_config_hash")
-    if not (isinstance(digest, str) and hand.answers_to(digest)):
-        other.append(f"for another hand ({escaped(str(digest))})")
+    if not isinstance(digest, str):
+        other.append("for no hand config (it has no hand_config_hash)")
+    elif not hand.answers_to(digest):
+        other.append(f"for another hand ({escaped(digest)})")
     return ", ".join(other)
 
 
@@ -2116,6 +2118,17 @@ def _refuse_other_than_a_recipe(output: Path) -> dict[str, Any] | None:
     config, a template or notes there were replaced by the recipe, exit 0. The recipe there,
     if any (``_replaced_another``)."""
     data = _existing_yaml(output)
+    if data is not None and _existing_kind(data) == "recipe" and not data.get("compiled"):
+        # a recipe written by hand is the user's work, not a plan to write again: a bring-up
+        # hold recipe was replaced by a plan, with a warning of "another hand (None)" (found
+        # by an outside audit)
+        raise ConfigError(
+            "-o",
+            "",
+            "a new file, or a recipe handctl plan compiled, to write again (a recipe written "
+            "by hand, without compiled: true, is not replaced: give another -o)",
+            f"recipe {escaped(str(data.get('recipe')))}, written by hand, in {output}",
+        )
     if data is None or _existing_kind(data) == "recipe":
         return data
     raise ConfigError(

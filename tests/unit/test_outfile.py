@@ -252,6 +252,19 @@ def test_a_plan_replaces_only_a_recipe(tmp_path: Path, capsys: pytest.CaptureFix
 
     _refuse_other_than_a_recipe(ROOT / "config" / "recipes" / "swap_two_cylinders.yaml")
     _refuse_other_than_a_recipe(tmp_path / "new.yaml")
+    # a recipe written by hand (a bring-up hold recipe) is the user's, not a plan's to write
+    # again: it was replaced, warned of as "for another hand (None)"
+    hold = tmp_path / "hold.yaml"
+    hold.write_text(
+        "recipe: hold\nphases:\n  - {name: hold, torques: [0, 0, 0, 0, 0, 0, 0, 0, 0], "
+        "ramp_s: 0.2, max_s: 1.0}\n"
+    )
+    before = hold.read_bytes()
+    assert cli.main(["plan", str(template), "-o", str(hold)]) == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "(a recipe written by hand, without compiled: true, is not replaced: give " in err
+    assert "found 'recipe hold, written by hand, in " in err
+    assert hold.read_bytes() == before
 
 
 def test_a_file_name_too_long_names_the_option(tmp_path: Path) -> None:
