@@ -814,7 +814,9 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
             f"dropped {ex['dropped']}, estimator p95 {estimated}"
         )
         print(f"  experiment: {_experiment_verdict(ex)}")
-    if plot and "experiment" in summary and "error" not in summary.get("plot", {}):
+    if plot and "plot" in summary and "error" not in summary["plot"]:
+        # a run without the experiment's summary (a recipe of no objects, a real-time run)
+        # wrote its plot too, and did not say where
         print(f"  overview plot: {escaped(str(plot))}")
     if "recording" in summary and "error" not in summary["recording"]:
         rec = summary["recording"]

@@ -128,3 +128,21 @@ def test_an_output_that_is_the_commands_own_stdout_is_refused(tmp_path: Path) ->
         "handctl: error: --log: expected a file other than this command's standard output"
     ), result.stderr
     assert out.stat().st_size == 0  # nothing ran, nothing printed into it
+
+
+def test_a_run_without_the_experiment_says_where_its_plot_went(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A recipe of no objects (a bring-up hold) has no experiment summary: its plot was
+    written, and the run did not say where (found by an outside audit)."""
+    from handctl import cli
+
+    from .rig import CLOSE_AND_HOLD_1S
+
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(CLOSE_AND_HOLD_1S)
+    plot = tmp_path / "hold.png"
+    assert cli.main(["run", "recipe", str(recipe), "--plot", str(plot)]) == cli.EXIT_OK
+    out = capsys.readouterr().out
+    assert "experiment:" not in out
+    assert f"  overview plot: {plot}" in out and plot.stat().st_size > 0
