@@ -8,6 +8,7 @@ nothing; a hand config half written by a crash or a full disk is worse than the 
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 import re
 import stat
@@ -187,7 +188,31 @@ def check_log_target(path: Path, option: str) -> bool:
             "recording would replace it",
             path,
         )
+    _refuse_locked(target, path)
     return True
+
+
+def _refuse_locked(target: Path, path: Path) -> None:
+    """A recording another run is writing (it holds the file's lock, as the recorder takes
+    it): said before the run, as the recorder would say it at its start. Before, the run
+    first warned that it would replace the log, then refused it."""
+    try:
+        fd = os.open(target, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return  # said where the recording is opened
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise ConfigError(
+            str(path),
+            "",
+            "a log no other run is writing (give this run another --log)",
+            "another process writing it now (it holds the file's lock)",
+        ) from None
+    except OSError:
+        pass  # no locks on this file system
+    finally:
+        os.close(fd)  # and the probe's lock with it
 
 
 def check_directory(path: Path, option: str) -> Path:

@@ -124,6 +124,8 @@ def test_a_second_run_on_a_log_being_written_is_refused_and_the_first_s_file_kep
     assert done.returncode == 2, done.stdout + done.stderr
     assert f"{path}: expected a log no other run is writing" in done.stderr
     assert "Traceback" not in done.stderr
+    # refused alone: it first warned that it would replace the log (an outside audit)
+    assert "is a recording already" not in done.stderr
     assert path.stat().st_size >= written  # not emptied by either
     first.close({"outcome": "test"})
     recording = open_recording(path)
