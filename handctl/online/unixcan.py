@@ -132,6 +132,9 @@ class UnixDatagramBus(can.BusABC):
                 f"unix bus directory {channel!r}: expected a directory, found a symbolic link "
                 "that leads to no directory (a loop, or a link to nothing)"
             )
+        #: whether this participant made the directory: the last one out takes it away again
+        #: if it did (``handctl sim --bus unix:/tmp/hand`` left an empty directory behind)
+        self._made_directory = not self.directory.exists()
         self.directory.mkdir(exist_ok=True)
         self.channel_info = f"unix:{channel}"
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -510,6 +513,9 @@ class UnixDatagramBus(can.BusABC):
             self._links.clear()
             with _suppress_oserror():
                 self._path.unlink()
+            if self._made_directory:
+                with _suppress_oserror():  # another participant's socket still in it: kept
+                    self.directory.rmdir()
         super().shutdown()
 
 

@@ -624,3 +624,27 @@ def test_a_bus_directory_that_is_a_loop_of_links_is_bad_input(
         parse_spec(f"unix:{tmp_path / 'a'}", hand.bus, "test")
     with pytest.raises(ValueError, match="a symbolic link that leads to no directory"):
         UnixDatagramBus(str(tmp_path / "a"))
+
+
+def test_the_participant_that_made_the_directory_takes_it_away_when_it_is_left_empty(
+    tmp_path: Path,
+) -> None:
+    """``handctl sim --bus unix:/tmp/hand`` made the directory and left it behind, empty,
+    after every session (found by an outside audit). One made beforehand is the user's and
+    stays, and so does one another participant is still on (the maker cannot know whether
+    one that joins after it leaves would find it)."""
+    made = tmp_path / "made"
+    maker = UnixDatagramBus(str(made))
+    joined = UnixDatagramBus(str(made))
+    joined.shutdown()
+    assert made.is_dir()  # not the leaver's to take
+    maker.shutdown()
+    assert not made.exists()
+    maker, joined = UnixDatagramBus(str(made)), UnixDatagramBus(str(made))
+    maker.shutdown()
+    assert made.is_dir()  # another is still on it
+    joined.shutdown()
+    given = tmp_path / "given"
+    given.mkdir()
+    UnixDatagramBus(str(given)).shutdown()
+    assert given.is_dir() and not list(given.iterdir())
