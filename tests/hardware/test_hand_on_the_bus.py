@@ -2,7 +2,8 @@
 and ``pytest -m hardware tests/hardware``; ``HANDCTL_HARDWARE_HAND=HAND.yaml`` names the hand
 (default: the packaged one). Without the variable every test here is skipped. A run on a
 host that fails the timing check is refused, as ``handctl run`` refuses it;
-``HANDCTL_HARDWARE_ACCEPT_MISSED_DEADLINES=1`` runs the zero-torque hold anyway.
+``HANDCTL_HARDWARE_ACCEPT_MISSED_DEADLINES=1`` runs the zero-torque hold anyway, and
+``HANDCTL_HARDWARE_RT=1`` runs it at real-time priority, as ``handctl run recipe --rt``.
 
 Nothing here moves the hand: the first test only listens, the second commands zero torque.
 The same tests run against the simulated hand as a peer on any bus
@@ -73,6 +74,9 @@ def test_a_zero_torque_hold_ends_clean(hand: HandConfig, tmp_path: Path) -> None
             recipe=load_recipe(recipe_path, hand),
             bus=BUS,
             accept_missed_deadlines=accept,
+            # as `handctl run recipe --rt`: the hold without it lost ticks to an ordinary
+            # host's scheduling, and nothing asked for it (an outside audit)
+            realtime_priority=os.environ.get("HANDCTL_HARDWARE_RT") == "1",
         )
     )
     assert report.result.outcome is Outcome.COMPLETED, report.result.message
