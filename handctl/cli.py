@@ -245,6 +245,29 @@ def _say_in_process_bus(option: str, spec: str | None) -> None:
         )
 
 
+def _refuse_no_simulated_hand(hand: HandConfig, bus: str) -> None:
+    """A hand config without a ``sim:`` section on the simulated hand's bus: said as the bus
+    not given. It was "sim: expected this key (required)", which sent the user with a real
+    hand's config to write a simulation, where ``--bus`` was forgotten (an outside audit)."""
+    if not hand.sim:
+        raise ConfigError(
+            hand.source,
+            "sim",
+            f"a sim: section for --bus {bus}, the simulated hand (the default bus); for the "
+            "hand itself give its bus: --bus hand (the interface in its config) or e.g. "
+            "--bus socketcan:can0",
+            "no sim: section",
+        )
+
+
+def _refuse_no_simulated_hand_on(hand: HandConfig, bus: str) -> None:
+    """``_refuse_no_simulated_hand`` when ``bus`` is the simulated hand's."""
+    from handctl.online.busspec import parse_spec
+
+    if parse_spec(bus, hand.bus, hand.source).interface == "sim":
+        _refuse_no_simulated_hand(hand, bus)
+
+
 def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
     """``--seed`` (not given: the hand config's ``sim.seed``, as ``handctl sim`` takes it and
     docs/simulation.md says; it was 0 whatever the config said), once the options only the
@@ -256,6 +279,8 @@ def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
 
     _say_in_process_bus("--bus", args.bus)  # run, calibrate and jog all come by here
     on_sim = parse_spec(args.bus, hand.bus, hand.source).interface == "sim"
+    if on_sim:
+        _refuse_no_simulated_hand(hand, args.bus)
     if not on_sim:
         sim_cpu = getattr(args, "sim_cpu", None)
         for option, value in (
@@ -1913,6 +1938,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
             seconds,
         )
     _say_in_process_bus("--bus", args.bus)
+    _refuse_no_simulated_hand_on(hand, args.bus)
     with listening_bus(args.bus, hand) as bus:
         result = survey(hand, protocol, bus, seconds)
     if args.json:
@@ -2400,6 +2426,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         from handctl.sim.params import parse_sim
 
         # a hand without a simulated one was refused under the table's header
+        _refuse_no_simulated_hand(hand, args.bus)
         parse_sim(hand)
     until = " or until it is back inside its soft limits" if args.recover else ""
     banner = [
@@ -2560,6 +2587,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
     view = BusView(protocol_for(hand))
     bus_text = "sim" if args.bus is None else args.bus  # '' is a bad spec, not the default
     _say_in_process_bus("--bus", args.bus)
+    _refuse_no_simulated_hand_on(hand, bus_text)
     try:
         with listening_bus(bus_text, hand, waits=True) as bus:
             title = f"handctl monitor {escaped(bus_text)} ({bus.spec}): listening, sending nothing"

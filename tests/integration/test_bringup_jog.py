@@ -517,7 +517,9 @@ def test_a_hand_without_a_simulated_one_is_refused_before_the_table(
     assert cli.main(["jog", "f1_j1", "--torque", "0.01", "--hand", str(path)]) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
-    assert f"{path}: sim: expected this key (required)" in captured.err
+    assert f"{path}: sim: expected a sim: section for --bus sim, the simulated hand" in (
+        captured.err
+    )
 
 
 def test_the_table_ends_on_the_torque_back_at_zero_after_a_stop(

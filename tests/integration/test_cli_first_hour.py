@@ -393,3 +393,32 @@ def test_a_plot_never_replaces_a_file_of_another_kind(
     done = handctl(*command, str(victim), cwd=ROOT)
     assert done.returncode == 0, done.stderr
     assert victim.stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ("run", "recipe", "config/recipes/swap_two_cylinders.yaml"),
+        ("jog", "f1_j1", "--torque", "0.01"),
+        ("calibrate", "tdt", "-o", "{out}"),
+        ("nodes",),
+        ("monitor", "--seconds", "0.1"),
+    ],
+    ids=["run", "jog", "calibrate", "nodes", "monitor"],
+)
+def test_a_real_hand_s_config_on_the_default_bus_is_told_to_give_its_bus(
+    tmp_path: Path, command: tuple[str, ...]
+) -> None:
+    """A hand config without a ``sim:`` section (a real hand's) with ``--bus`` forgotten was
+    "sim: expected this key (required)", which sent the user to write a simulation (found by
+    an outside audit)."""
+    real = tmp_path / "real_hand.yaml"
+    text = HAND_YAML.read_text()
+    real.write_text(text[: text.index("\nsim:") + 1])
+    args = [a.replace("{out}", str(tmp_path / "cal.yaml")) for a in command]
+    done = handctl(*args, "--hand", str(real))
+    assert done.returncode == 2, done.stderr
+    assert f"{real}: sim: expected a sim: section for --bus sim, the simulated hand" in (
+        done.stderr
+    )
+    assert "--bus hand (the interface in its config)" in done.stderr
