@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.errors import ConfigError, escaped
+from handctl.errors import ConfigError, Description, escaped
 from handctl.hand_protocol import protocol_for
 from handctl.online import timebudget
 from handctl.online.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, FrameTap, RxTap
@@ -113,8 +113,15 @@ def tick_inputs(  # noqa: C901 - one branch per channel; bus/replay split (issue
     closed = recording.complete and recording.meta(ch.META_END, "ended") == ch.ENDED_CLOSED
 
     def inputs_of(k: int, current: TickInput | None) -> TickInput | _Pending:
-        if current is not None and current.tick == k:
-            return current
+        if current is not None:
+            if current.tick == k:
+                return current
+            if k < current.tick:
+                # a tick's frames and events are published before the next tick's row: one
+                # of a tick already handed out was put in since. Frames of tick -1 set in the
+                # middle of a log were never compared, and went onto a bus after a re-run
+                # said bit-exact (found by an outside audit)
+                raise _out_of_place(recording, k, current.tick)
         got = pending.get(k)
         if got is None:
             got = pending[k] = _Pending()
@@ -173,6 +180,17 @@ def tick_inputs(  # noqa: C901 - one branch per channel; bus/replay split (issue
     first = next(stream, None)
     before = pending.pop(-1, None) or _Pending()
     return before, itertools.chain(() if first is None else (first,), stream)
+
+
+def _out_of_place(recording: Recording, tick: int, current: int) -> ConfigError:
+    """A frame or event of tick ``tick`` logged after tick ``current``'s row: a recorder
+    publishes each before the next row, so the log was altered."""
+    return ConfigError(
+        str(recording.path),
+        f"a frame or event of tick {tick}",
+        f"one logged before tick {tick + 1}'s row, as the recorder publishes them",
+        Description(f"one logged after tick {current}'s row"),
+    )
 
 
 def _out_of_sequence(recording: Recording, msg: dict[str, Any], expected: int) -> ConfigError:

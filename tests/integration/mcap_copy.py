@@ -22,13 +22,15 @@ def rewrite(
     times: Callable[[str, int], int] | None = None,
     drop: tuple[str, ...] = (),
     empty: tuple[str, ...] = (),
+    after: Callable[[str, int, bytes], list[bytes]] | None = None,
 ) -> None:
     """Copy a recording record by record with the mcap library, the messages through
     ``change``, the metadata through ``metadata``, the channels of the topics in ``formats``
     given another (message encoding, schema name, schema encoding), and each message's log
     time through ``times(topic, log_time) -> log_time``; the channels of the topics in
     ``drop`` are left out, with their messages, and the messages of those in ``empty``
-    (their channels kept)."""
+    (their channels kept); ``after(topic, index, raw message)`` gives messages to put in
+    after that one, on its channel at its log time."""
     with source.open("rb") as handle:
         reader = make_reader(handle)
         summary = reader.get_summary()
@@ -64,4 +66,6 @@ def rewrite(
             raw = change(channel.topic, index, message.data) if change else message.data
             log_time = times(channel.topic, message.log_time) if times else message.log_time
             writer.add_message(channel_ids[channel.id], log_time, raw, message.publish_time)
+            for extra in after(channel.topic, index, message.data) if after else ():
+                writer.add_message(channel_ids[channel.id], log_time, extra, log_time)
         writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer is untyped

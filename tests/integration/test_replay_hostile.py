@@ -375,6 +375,39 @@ def test_to_bus_sends_nothing_when_the_rerun_asked_with_it_finds_a_mismatch(
     assert heard == []
 
 
+def test_a_command_put_in_among_the_ticks_as_one_before_the_first_is_refused(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
+) -> None:
+    """A frame of tick -1 (the start-up's) put in at the 200th command, a step within every
+    limit after the real one, re-sealed: the re-run never compared frames of a tick it had
+    passed and said bit-exact, and ``--rerun --to-bus`` sent it (found by an outside
+    audit). A run logs no frame of a tick after that tick's successor's row."""
+    layout = protocol.layout("TorqueCommand", 1)
+    index = _nth_command(recorded, layout.frame_id, 200)
+    bad = tmp_path / "inserted.mcap"
+
+    def one_more(topic: str, i: int, raw: bytes) -> list[bytes]:
+        if (topic, i) != (ch.CAN_TX, index):
+            return []
+        msg = json.loads(raw)
+        counter, values = layout.decode(bytes.fromhex(msg["data"]))
+        nudged = [values[0] + 0.001, *values[1:]]
+        msg.update(tick=-1, data=layout.encode((counter + 1) % 256, nudged).hex())
+        return [json.dumps(msg).encode()]
+
+    rewrite(recorded.path, bad, after=one_more)
+    with pytest.raises(ConfigError) as caught:
+        rerun(open_recording(bad))
+    assert "a frame or event of tick -1: expected one logged before tick 0's row" in str(
+        caught.value
+    )
+    text = _refused_with_nothing_sent(open_recording(bad), hand, "hostile-inserted")
+    assert f"{ch.CAN_TX} frame 0x101 of tick -1: expected a frame logged at its tick" in text
+    done = handctl("replay", str(bad), "--rerun", "--to-bus", "virtual:hostile-inserted-cli")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "frames sent" not in done.stdout + done.stderr
+
+
 def _one_frame_replaced(topic: str, index: int, frame_id: int, data: str) -> Change:
     """A change of a log that puts the frame ``frame_id`` ``data`` (hex) in place of message
     ``index`` of ``topic``, the rest as it was."""
