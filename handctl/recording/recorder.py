@@ -44,6 +44,7 @@ from handctl.online.safety.faults import FAULTS
 from handctl.online.safety.supervisor import State
 from handctl.online.taps import TAP_RX
 from handctl.recording import channels as ch
+from handctl.recording.mcapfile import MAGIC as MCAP_MAGIC
 from handctl.recording.metadata import valid_strings, valid_text
 from handctl.recording.ring import (
     CLOSED,
@@ -1492,7 +1493,7 @@ class Recorder:
                 f"({exc.strerror or exc}): it may not be there"
             )
         if there is not None and (there.st_dev, there.st_ino) == (written.st_dev, written.st_ino):
-            return ""
+            return self._emptied()
         where = (
             "nothing is there now"
             if there is None
@@ -1504,6 +1505,30 @@ class Recorder:
             else "the recording is elsewhere (the file or its directory was renamed)"
         )
         return f"expected the recording at this path at the end of the run, but {where}: {kept}"
+
+    def _emptied(self) -> str:
+        """Whether the file at the path, the one the writer wrote, no longer begins as a
+        recording does: emptied in place while the run recorded to it (``: > RUN.mcap``,
+        logrotate's copytruncate), the writer went on at its own offset after a hole of
+        zeros, and the run said it had recorded, exit 0 (found by an outside audit). Empty if
+        it begins as one."""
+        try:
+            fd = os.open(self.path, os.O_RDONLY | os.O_CLOEXEC)
+        except OSError:
+            return ""  # said by the checks of the path above, or not ours to read
+        try:
+            head = os.pread(fd, len(MCAP_MAGIC), 0)
+        except OSError:
+            return ""
+        finally:
+            os.close(fd)
+        if head == MCAP_MAGIC:
+            return ""
+        return (
+            "expected the recording at this path at the end of the run, but the file no "
+            "longer begins as one: it was emptied or written over while the run recorded "
+            "to it (': > FILE', logrotate's copytruncate): the recording is lost"
+        )
 
     def _writer_failed(self, problem: str, said: str) -> str:
         """What to say of a writer that exited with an error (``said``, its stderr) besides

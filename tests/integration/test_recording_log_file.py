@@ -167,6 +167,24 @@ def test_a_log_that_is_not_at_its_path_at_the_end_is_said(
     assert recorder.stats["writer_exit"] == 0  # the writer itself finished
 
 
+def test_a_log_emptied_in_place_during_the_run_is_said_lost(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """``: > RUN.mcap`` (what logrotate's copytruncate does) while the run recorded: the
+    writer went on at its own offset after a hole of zeros, the file was no MCAP any more,
+    and the run said it had recorded, exit 0 (found by an outside audit)."""
+    path = tmp_path / "run.mcap"
+    recorder = _recorder(hand, path)
+    with path.open("r+b") as handle:
+        handle.truncate(0)
+    with pytest.raises(HandctlError) as lost:
+        recorder.close({"outcome": "test"})
+    said = str(lost.value)
+    assert said.startswith(f"{path}: expected the recording at this path at the end of the run")
+    assert "no longer begins as one: it was emptied or written over" in said
+    assert recorder.stats["writer_exit"] == 0
+
+
 def test_a_log_still_at_its_path_is_no_warning(hand: HandConfig, tmp_path: Path) -> None:
     """Through a symbolic link too: the path names the file written."""
     path = tmp_path / "run.mcap"
