@@ -20,6 +20,7 @@ whole file, ``StreamReader`` on a truncated one) read the same files; the tests 
 
 from __future__ import annotations
 
+import glob
 import os
 import struct
 import zlib
@@ -214,6 +215,21 @@ def _fail(path: Path, found: str) -> ConfigError:
     )
 
 
+def _empty_file(path: Path) -> str:
+    """An empty file, and the recording a run killed in its start-up left beside it: the
+    run's writer fills a hidden file next to the path (``.NAME.PID.handctl-partial``) and
+    puts it at the path as the run begins, so a run killed (SIGKILL) before then leaves the
+    path's empty placeholder and the recording beside it, which nothing named (an outside
+    audit)."""
+    beside = sorted(path.parent.glob(f".{glob.escape(path.name)}.*.handctl-partial"))
+    if not beside:
+        return "an empty file"
+    return (
+        f"an empty file, beside the recording of a run killed before it began: {beside[-1]}"
+        " (replay that one)"
+    )
+
+
 def open_recording(path: str | Path) -> Recording:
     """First pass: metadata, channels, chunk count, completeness. Bad input is a ConfigError
     naming the file; a truncated or damaged file is not an error, it is a ``Recording`` that
@@ -234,7 +250,7 @@ def _open_recording(path: Path) -> Recording:
     with path.open("rb") as handle:
         head = handle.read(len(MAGIC))
         if head != MAGIC:
-            raise _fail(path, f"a file starting with {head[:8]!r}" if head else "an empty file")
+            raise _fail(path, f"a file starting with {head[:8]!r}" if head else _empty_file(path))
         recording = Recording(path)
         unreadable = ""
         try:

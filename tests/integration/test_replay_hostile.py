@@ -173,6 +173,27 @@ def test_a_file_where_nothing_reads_is_bad_input(
     assert f"{bad}: expected a recording with something in it to read" in done.stderr
 
 
+def test_an_empty_log_beside_a_killed_run_s_recording_names_it(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """A run killed (SIGKILL) in its start-up leaves the path's empty placeholder and its
+    recording in a hidden file beside it, which replay of the path did not name: "found an
+    empty file" (found by an outside audit)."""
+    log = tmp_path / "x.mcap"
+    log.touch()
+    done = handctl("replay", str(log))
+    assert done.returncode == 2 and done.stderr.rstrip().endswith("found an empty file")
+    beside = tmp_path / ".x.mcap.4321.handctl-partial"
+    beside.write_bytes(recorded.path.read_bytes())
+    done = handctl("replay", str(log))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert (
+        f"found an empty file, beside the recording of a run killed before it began: {beside}"
+        " (replay that one)" in done.stderr
+    )
+    assert handctl("replay", str(beside)).returncode == 0
+
+
 @pytest.mark.parametrize(
     ("form", "found"),
     [
