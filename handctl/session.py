@@ -808,9 +808,12 @@ WRITER_WATCH_S = 0.1
 
 class _WriterWatch:
     """A tick hook: the recording writer's process ended while the run goes on (killed, out
-    of memory, a crash) is a ramp stop, RECORDING_LOST. The run went on driving the hand
-    unrecorded to its end (minutes on a whole recipe) and said so only then (found by an
-    outside audit). One ``waitpid`` every ``WRITER_WATCH_S``; said once."""
+    of memory, a crash), or the records it has not taken overflowed the rings (a writer
+    stopped, a disk that hangs, a live view's clients holding it back), is a ramp stop,
+    RECORDING_LOST. The run went on driving the hand unrecorded to its end (minutes on a
+    whole recipe) and said so only then (found by outside audits: a writer stopped for 12 s
+    lost 4530 ticks of a 13771-tick run, exit 1 at its end). One ``waitpid`` and a read of
+    the drop counts every ``WRITER_WATCH_S``; said once."""
 
     def __init__(self, recording: Recorder, runtime: Runtime) -> None:
         self.recording = recording
@@ -822,14 +825,23 @@ class _WriterWatch:
         if self.said or tk.tick % self.every:
             return
         code = self.recording.process.poll()
-        if code is None:
+        dropped = self.recording.dropped_records()
+        if code is None and not dropped:
             return
         self.said = True
-        how = f"signal {-code}" if code < 0 else f"exit {code}"
+        if code is not None:
+            how = f"signal {-code}" if code < 0 else f"exit {code}"
+            what = f"the recording writer ended ({how})"
+        else:
+            what = (
+                f"the recording writer has not taken the run's records in time ({dropped} "
+                "dropped: its rings overflowed; the writer stopped, its disk hangs, or a "
+                "live view's clients hold it back)"
+            )
         self.runtime.supervisor.trip(
             FaultCode.RECORDING_LOST,
-            f"{self.recording.path}: the recording writer ended ({how}); the run was stopped "
-            "rather than drive the hand unrecorded",
+            f"{self.recording.path}: {what}; the run was stopped rather than drive the hand "
+            "unrecorded",
             tk.tick,
         )
 

@@ -983,6 +983,12 @@ class Recorder:
         self._angle_view, self._tdt_view, self._desired_view, self._applied_view = views
         self._angle, self._tdt, self._desired, self._applied = vectors
 
+    def dropped_records(self) -> int:
+        """Records the rings had no room for so far (ticks, frames, events): the writer has
+        not taken them in time. A few integer reads of the shared control block."""
+        ctl = self._ctl_view
+        return int(ctl[DROPPED_TICKS] + ctl[DROPPED_FRAMES] + ctl[DROPPED_EVENTS])
+
     def note(self, kind: str, detail: str, tick: int) -> None:
         self._event(EV_REQUEST, tick, kind, detail)
 

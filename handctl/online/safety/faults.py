@@ -242,8 +242,9 @@ FAULTS: dict[FaultCode, FaultSpec] = {
         FaultSpec(
             FaultCode.RECORDING_LOST,
             StopCategory.RAMP,
-            "the recording writer of a run with a log ended while the run went on: the rest "
-            "of the run would drive the hand unrecorded",
+            "the recording writer of a run with a log ended while the run went on, or did "
+            "not take the run's records in time (its rings overflowed): the rest of the run "
+            "would drive the hand unrecorded",
         ),
         FaultSpec(
             FaultCode.FOREIGN_COMMAND,
