@@ -1893,7 +1893,22 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         # every message of the log at its pace; a viewer is sent what it subscribed to, the
         # per-tick channels sampled (docs/recording.md): not a count of what it was sent
         print(f"live: {streamed} messages of the log played")
-    return status
+    return _failed_if_damaged(args.log, recording, status)
+
+
+def _failed_if_damaged(log: Path, recording: Any, status: int) -> int:
+    """``status``, or a failed result for a log with a hole in its middle: what was read of
+    it is said, but a summary, a plot, an export or a live view of it is not the run's whole
+    (exit 0 was read as a sound log; found by an outside audit). A log cut short at its end
+    holds all its run wrote, and keeps its 0."""
+    if not recording.damaged or status != EXIT_OK:
+        return status
+    print(
+        f"handctl: failed: {escaped(str(log))} is DAMAGED ({recording.problem}): what is said "
+        "and written of it leaves out what was in the hole",
+        file=sys.stderr,
+    )
+    return EXIT_FAILED
 
 
 # -- bring-up ----------------------------------------------------------------------------------

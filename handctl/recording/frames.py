@@ -771,10 +771,20 @@ def export(recording: Recording, fmt: str, out: str) -> dict[str, Any]:
             "it is unchanged"
         ) from None
     report: dict[str, Any] = {"frames": count, "format": fmt, "path": out}
+    warnings = []
     if not started:
         # stamped from 1970 without a word: the times are the log's own, from its first frame
-        report["warning"] = (
+        warnings.append(
             "the log does not say when its run started (handctl.command.started_unix_ns): "
             "the frames are stamped from 0, the first frame's time"
         )
+    if recording.damaged:
+        # the frames either side of the hole follow one another in the file, as if the run
+        # had sent nothing between them (the export said only how many it wrote)
+        warnings.append(
+            f"the log is DAMAGED ({recording.problem}): the exported frames have a hole "
+            "there, the frames either side of it one after the other"
+        )
+    if warnings:
+        report["warning"] = "; ".join(warnings)
     return report

@@ -415,11 +415,11 @@ def check_log(decoded: dict[str, list[tuple[int, Any]]]) -> None:
             assert log.level == 2  # INFO
 
 
-def replay_live(log: Path, cwd: Path) -> tuple[Live, bytes]:
+def replay_live(log: Path, cwd: Path, code: int = 0) -> tuple[Live, bytes]:
     """``handctl replay LOG --live PORT`` with the viewer-like clients listening; what they
-    received and what the command printed, once it exited 0."""
+    received and what the command printed, once it exited ``code``."""
     live, done = served(["replay", str(log)], cwd, enough=3)
-    assert done.returncode == 0, done.stderr.decode()
+    assert done.returncode == code, done.stderr.decode()
     return live, done.stdout
 
 
@@ -518,7 +518,7 @@ def test_replay_live_plays_a_damaged_log_around_its_damage(run: Run, tmp_path: P
     data[offset + length - 40] ^= 0x10
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(bytes(data))
-    live, out = replay_live(damaged, tmp_path)
+    live, out = replay_live(damaged, tmp_path, code=1)  # played, and said not whole
     assert b"DAMAGED: chunk 1 at byte" in out
     assert len(live.received[fx.SCENE]) >= 3
 

@@ -715,6 +715,16 @@ def test_a_damaged_chunk_is_named_and_the_chunks_after_it_are_read(
     assert done.returncode == 1, done.stdout + done.stderr
     assert f"to-bus: nothing sent: {damaged} is DAMAGED (chunk {bad} at byte" in done.stderr
     assert "frames sent" not in done.stdout
+    # and what is read of it is no sound log: exit 0 from a summary or an export was read as
+    # one, the export's hole unsaid (found by an outside audit)
+    exported = damaged.with_suffix(".log")
+    done = handctl("replay", str(damaged), "--export", "candump", str(exported))
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert f"handctl: failed: {damaged} is DAMAGED (chunk {bad} at byte" in done.stderr
+    assert "export: the log is DAMAGED (chunk" in done.stderr and "have a hole there" in (
+        done.stderr
+    )
+    assert exported.stat().st_size > 0
 
 
 def test_a_rerun_does_not_start_after_a_damaged_first_chunk(
