@@ -1714,6 +1714,7 @@ def _replay_to_bus(
         f"to-bus: checking the logged commands, then replaying the frames onto {args.to_bus} "
         f"at {args.speed or 1.0:g}x ..."
     )
+    direction = args.direction or _to_bus_direction(args.to_bus)
     try:
         from handctl.stopsignals import noted_stops
 
@@ -1723,7 +1724,7 @@ def _replay_to_bus(
                 recording,
                 args.to_bus,
                 args.speed or 1.0,
-                args.direction or "both",
+                direction,
                 hand=on_bus,
                 stops=stops,
             )
@@ -1753,6 +1754,23 @@ def _replay_to_bus(
     if "warning" in sent:
         print(f"handctl: warning: to-bus: {sent['warning']}", file=sys.stderr)
     return sent
+
+
+def _to_bus_direction(spec: str) -> str:
+    """``--to-bus``'s frames when ``--direction`` is not given: both directions on a bus of
+    this machine's own (virtual, unix: a simulated hand's, a tool's test), the host's alone
+    on any other. There the nodes send their own Feedback, Status and Heartbeat, and the
+    logged copies went out under the same identifiers beside them, without a word: two
+    senders of one identifier with other data are bit errors on CAN, error counters rising
+    towards error-passive and bus-off (found by an outside audit). Said when it applies."""
+    if spec.split(":", 1)[0] in ("virtual", "unix"):
+        return "both"
+    print(
+        "to-bus: the host's frames only (--direction tx, the default on a bus a hand may be "
+        "on: its nodes send their own); --direction both sends the logged node frames too",
+        file=sys.stderr,
+    )
+    return "tx"
 
 
 def _reanalysis_on_tick(hand: HandConfig, recipe: Recipe, estimator: Any) -> Reanalyser:
@@ -3726,7 +3744,8 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     rep.add_argument(
         "--direction",
         choices=("both", "rx", "tx"),
-        help="with --to-bus: which logged frames to send (default both)",
+        help="with --to-bus: which logged frames to send (default both on a virtual: or "
+        "unix: bus, tx, the host's alone, on any other: a hand there sends its own)",
     )
     rep.add_argument(
         "--export",

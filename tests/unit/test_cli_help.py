@@ -152,3 +152,19 @@ def test_an_option_of_one_value_given_twice_with_two_values_is_refused(
         for action in parser._actions:
             if action.option_strings and isinstance(action, argparse._StoreAction):
                 assert type(action).__name__ == "_StoreOnce", (path, action.option_strings)
+
+
+def test_to_bus_sends_the_node_frames_by_default_only_on_a_bus_of_this_machine(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """On a real bus the nodes send their own Feedback, Status and Heartbeat: the logged
+    copies went out beside them under the same identifiers by default (both directions),
+    bit errors on CAN (found by an outside audit)."""
+    from handctl.cli import _to_bus_direction
+
+    assert _to_bus_direction("virtual:x") == "both"
+    assert _to_bus_direction("unix:/tmp/hand") == "both"
+    assert capsys.readouterr().err == ""
+    for spec in ("socketcan:can0", "hand", "pcan:PCAN_USBBUS1"):
+        assert _to_bus_direction(spec) == "tx"
+        assert "to-bus: the host's frames only (--direction tx" in capsys.readouterr().err
