@@ -205,6 +205,11 @@ class LiveServer:
         return not stopper.is_alive()
 
 
+#: s of log time, the longest gap between two messages the live replay waits out: a run
+#: records every tick, so a longer one is a log altered or a run stalled, and is played past
+LIVE_GAP_S = 1.0
+
+
 def serve_recording(
     path: Path, port: int, speed: float = 1.0, started: Callable[[LiveServer], None] | None = None
 ) -> int:
@@ -234,10 +239,18 @@ def serve_recording(
             started(server)
         sent = 0
         first_log: int | None = None
+        last_log = 0
         wall0 = 0.0
+        longest = round(LIVE_GAP_S * 1e9)
         for topic, log_time, data in iter_messages(recording):
             if first_log is None:
-                first_log, wall0 = log_time, time.monotonic()
+                first_log, last_log, wall0 = log_time, log_time, time.monotonic()
+            if log_time - last_log > longest:
+                # a gap no run leaves (it records every tick): played past, the rest of the
+                # log moved up. One message at log time 2**64 - 1 held the view for ever
+                # (found by an outside audit)
+                first_log += log_time - last_log - longest
+            last_log = max(last_log, log_time)
             delay = wall0 + (log_time - first_log) * 1e-9 / speed - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
