@@ -1540,13 +1540,16 @@ class Recorder:
         """What to say of a writer that exited with an error (``said``, its stderr) besides
         what the recorder saw of it (``problem``): why it went (a full disk: "OSError:
         [Errno 28] No space left on device"), the last line of its traceback."""
+        code = self.process.returncode
+        how = f"signal {-code}" if code is not None and code < 0 else f"exit {code}"
         if not problem:
-            return f"the writer failed (exit {self.process.returncode}): {said[-2000:]}"
+            # a writer killed says nothing: "failed (exit -9): " ended on an empty reason
+            return f"the writer failed ({how})" + (f": {said[-2000:]}" if said else "")
         if not said:
             return problem
         return (
-            f"{problem} ({said.splitlines()[-1][:300]}); the run went on without it, and the"
-            " file ends where the writer stopped (handctl replay reads it up to there)"
+            f"{problem} ({said.splitlines()[-1][:300]}); the file ends where the writer "
+            "stopped (handctl replay reads it up to there)"
         )
 
     def _release(self) -> None:

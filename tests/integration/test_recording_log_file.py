@@ -185,6 +185,22 @@ def test_a_log_emptied_in_place_during_the_run_is_said_lost(
     assert recorder.stats["writer_exit"] == 0
 
 
+def test_a_writer_killed_is_said_with_its_signal_not_an_empty_reason(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A writer SIGKILLed while the run waited for it at its end was said as "the writer
+    failed (exit -9): " and nothing after the colon (found by an outside audit)."""
+    recorder = _recorder(hand, tmp_path / "run.mcap")
+    recorder.process.kill()
+    recorder.process.wait()
+    assert recorder._writer_failed("", "") == "the writer failed (signal 9)"
+    assert recorder._writer_failed("", "OSError: no space") == (
+        "the writer failed (signal 9): OSError: no space"
+    )
+    with pytest.raises(HandctlError):
+        recorder.close({"outcome": "test"})
+
+
 def test_a_log_still_at_its_path_is_no_warning(hand: HandConfig, tmp_path: Path) -> None:
     """Through a symbolic link too: the path names the file written."""
     path = tmp_path / "run.mcap"
