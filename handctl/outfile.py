@@ -8,7 +8,6 @@ nothing; a hand config half written by a crash or a full disk is worse than the 
 from __future__ import annotations
 
 import errno
-import fcntl
 import os
 import re
 import stat
@@ -200,17 +199,10 @@ def _refuse_locked(target: Path, path: Path) -> None:
         fd = os.open(target, os.O_RDONLY | os.O_CLOEXEC)
     except OSError:
         return  # said where the recording is opened
+    from handctl.recording.loglock import lock_log
+
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        raise ConfigError(
-            str(path),
-            "",
-            "a log no other run is writing (give this run another --log)",
-            "another process writing it now (it holds the file's lock)",
-        ) from None
-    except OSError:
-        pass  # no locks on this file system
+        lock_log(fd, path)
     finally:
         os.close(fd)  # and the probe's lock with it
 

@@ -44,6 +44,7 @@ from handctl.online.safety.faults import FAULTS
 from handctl.online.safety.supervisor import State
 from handctl.online.taps import TAP_RX
 from handctl.recording import channels as ch
+from handctl.recording.loglock import lock_log
 from handctl.recording.mcapfile import MAGIC as MCAP_MAGIC
 from handctl.recording.metadata import valid_strings, valid_text
 from handctl.recording.ring import (
@@ -208,7 +209,7 @@ def _open_log(path: Path, empty: bool = True) -> int:
         # A device or a pipe is no file to lock or to empty (a lock on /dev/null would be
         # every process's): only a regular file is.
         if stat.S_ISREG(os.fstat(fd).st_mode):
-            _lock(fd, path)
+            lock_log(fd, path)
             try:
                 os.ftruncate(fd, 0 if empty else os.fstat(fd).st_size)  # writable, either way
             except OSError as exc:
@@ -256,7 +257,7 @@ def _open_beside(path: Path) -> tuple[int, _Beside] | None:
         return None
     temp = target.with_name(f".{target.name}.{os.getpid()}.handctl-partial")
     try:
-        _lock(held, path)
+        lock_log(held, path)
         with contextlib.suppress(FileNotFoundError):
             temp.unlink()  # left by a process of this pid that was killed
         fd = _above_stdio(os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644))
@@ -271,21 +272,6 @@ def _open_beside(path: Path) -> tuple[int, _Beside] | None:
     with contextlib.suppress(OSError):
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     return fd, _Beside(target, held, temp, created)
-
-
-def _lock(fd: int, path: Path) -> None:
-    """The run's lock on the log's path (``_open_log``): another run's is bad input."""
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        raise ConfigError(
-            str(path),
-            "",
-            "a log no other run is writing (give this run another --log)",
-            "another process writing it now (it holds the file's lock)",
-        ) from None
-    except OSError:
-        pass  # no locks on this file system: recorded unlocked
 
 
 def _shared_memory(size: int) -> int:
