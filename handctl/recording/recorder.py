@@ -1333,9 +1333,12 @@ class Recorder:
             self.stats["writer_notes"] = said
         self.stats["writer_exit"] = self.process.returncode
         lost = ""
-        if self._beside is not None and not self._beside.claimed and not self._beside.created:
-            self._drop_beside()  # the run never began: the log there before stays
-            self.stats["previous_kept"] = True
+        beside = self._beside
+        if beside is not None and not beside.claimed and (not beside.created or self._path_taken()):
+            # the run never began: the log there before stays, and so does a file put there
+            # while it started
+            self._drop_beside()
+            self.stats["previous_kept"] = not beside.created
         else:
             try:
                 self.claim()  # a path that named nothing gets what the writer wrote
@@ -1356,6 +1359,13 @@ class Recorder:
         beside = self._beside
         if beside is None or beside.claimed:
             return
+        # another file put at the path during the start-up (whose file this run held) is
+        # not the run's to replace: it was, without a word (found by an outside audit)
+        if self._path_taken():
+            raise HandctlError(
+                f"{self.path}: another file was put at this path while the run started; it "
+                f"is left as it is, and nothing was sent (the recording so far is {beside.temp})"
+            )
         try:
             os.rename(beside.temp, beside.target)
         except OSError as exc:
@@ -1366,6 +1376,19 @@ class Recorder:
         beside.claimed = True
         os.close(beside.held)
         beside.held = -1
+
+    def _path_taken(self) -> bool:
+        """Whether another file than the one this run holds is at the path now (put there
+        while the run started); one removed is nobody's."""
+        beside = self._beside
+        if beside is None or beside.held < 0:
+            return False
+        try:
+            there = os.stat(beside.target)
+        except OSError:
+            return False
+        held = os.fstat(beside.held)
+        return (there.st_dev, there.st_ino) != (held.st_dev, held.st_ino)
 
     def _drop_beside(self) -> None:
         """The recording beside the path removed, and the path's file let go (an empty one

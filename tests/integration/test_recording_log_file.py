@@ -335,6 +335,27 @@ def test_a_previous_log_is_replaced_only_once_the_run_begins(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fresh.mcap", "link.mcap", "run.mcap"]
 
 
+def test_a_file_put_at_the_log_s_path_while_the_run_starts_is_not_replaced(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A file put at the path between the run's placeholder and its start (``claim``) was
+    replaced by the recording without a word (found by an outside audit): the run is
+    refused there, before anything is sent, and the file is left as it is."""
+    log = tmp_path / "run.mcap"
+    recorder = Recorder(log, hand, start_metadata(hand, None, ("x",)), keep_previous=True)
+    recorder.wait_ready()
+    log.unlink()
+    log.write_text("notes of mine\n")
+    with pytest.raises(HandctlError) as refused:
+        recorder.claim()
+    assert str(refused.value).startswith(
+        f"{log}: another file was put at this path while the run started; it is left as it "
+        "is, and nothing was sent"
+    )
+    recorder.close({"outcome": "never began"})
+    assert log.read_text() == "notes of mine\n"
+
+
 def _writer_running(run_pid: int) -> bool:
     """Whether the run's recording writer is still alive (not even a zombie): the recorder
     checks the log's path only after it has reaped the writer, so a log removed while this
