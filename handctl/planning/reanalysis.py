@@ -14,7 +14,8 @@ wherever it is computed. Two ways to compute it:
   run, so the loop's tick never waits for it nor shares an interpreter lock with it. The
   answer is taken ``delay_s`` after the request; if it is not there then (a host far slower
   than the analysis' tens of ms), the phase keeps its planned torque and its record says
-  ``late``. Only then does a re-run (which computes on the tick) differ from the run.
+  ``late``; the re-run reads that record in the log's summary and keeps the planned torque
+  there too (``rerun._LateAsLogged``), so it repeats such a run as well.
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ import math
 import struct
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -33,7 +33,7 @@ from handctl.online.bus import DRAIN_LIMIT, BusEvent, BusEventKind, Frame, Frame
 from handctl.online.clock import Tick
 from handctl.online.drivers.hand import HandDriver
 from handctl.online.loop import EndOfTicks, Runtime, TickRecord
-from handctl.online.recipes.reanalysis import Reanalyser
+from handctl.online.recipes.reanalysis import Reanalyser, ReanalysisResult
 from handctl.online.recipes.schema import Recipe
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.recording import channels as ch
@@ -578,6 +578,40 @@ class RerunReport:
 ReanalysisFactory = Callable[[HandConfig, Recipe, Any], Reanalyser]
 
 
+def _late_in_the_run(logged: dict[str, Any], recipe: Recipe) -> set[int]:
+    """The recipe's indices of the phases whose analysis the real-time run found not there
+    ``delay_s`` after asking (its summary's phase records: ``late: ...``), and so ran their
+    planned torques."""
+    index = {p.name: k for k, p in enumerate(recipe.phases)}
+    phases = logged.get("phases")
+    records = phases if isinstance(phases, list) else []
+    return {
+        index[p["name"]]
+        for p in records
+        if isinstance(p, dict)
+        and p.get("name") in index
+        and str(p.get("reanalysis", "")).startswith("late:")
+    }
+
+
+class _LateAsLogged:
+    """The re-run's analysis, late where the run's was: the answer is computed on the tick in
+    a re-run, so a real-time run whose answer came after ``delay_s`` (and kept the planned
+    torque) re-ran with the answer and said MISMATCH on a genuine log (found by an outside
+    audit)."""
+
+    def __init__(self, inner: Reanalyser, late: set[int]) -> None:
+        self.inner = inner
+        self.late = late
+
+    def submit(self, phase: int, angles: Sequence[float], estimates: Sequence[float]) -> None:
+        if phase not in self.late:
+            self.inner.submit(phase, angles, estimates)
+
+    def collect(self, phase: int) -> ReanalysisResult | None:
+        return None if phase in self.late else self.inner.collect(phase)
+
+
 def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> RerunReport:
     """Feed the logged feedback through a fresh driver, runner and supervisor; compare.
 
@@ -664,6 +698,15 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
             f"{estimator is not None} (what the recorded recipe implies)",
             run.get("estimator", "nothing"),
         )
+    logged = recording.json_meta(ch.META_SUMMARY) or {}
+    reanalyser = (
+        reanalysis(hand, recipe, estimator)
+        if reanalysis is not None
+        and estimator is not None
+        and any(p.reanalyse is not None for p in recipe.phases)
+        else None
+    )
+    late = _late_in_the_run(logged, recipe)
     runtime = Runtime(
         hand,
         driver,
@@ -671,13 +714,7 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
         recipe,
         recorder=compare,
         estimator=estimator,
-        reanalyser=(
-            reanalysis(hand, recipe, estimator)
-            if reanalysis is not None
-            and estimator is not None
-            and any(p.reanalyse is not None for p in recipe.phases)
-            else None
-        ),
+        reanalyser=_LateAsLogged(reanalyser, late) if reanalyser and late else reanalyser,
         reset_node_faults=run.get("reset_node_faults") == "True",
         startup_timeout_s=startup_ticks * period_s,
         answer_timeout_s=answer_ticks * period_s,
@@ -686,7 +723,6 @@ def rerun(recording: Recording, reanalysis: ReanalysisFactory | None = None) -> 
     clock.runtime = runtime
     runtime.cpu_clock = _no_time  # stage times are the run's, not the re-run's
     notes: list[str] = []
-    logged = recording.json_meta(ch.META_SUMMARY) or {}
     raised = _logged_exception(logged)
     if raised is not None:
         compare.until = raised[0]

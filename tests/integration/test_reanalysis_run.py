@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import yaml
 
 from handctl.recording.reader import open_recording
@@ -69,3 +70,27 @@ def test_a_reanalysed_run_records_its_answer_and_reruns_bit_exact(tmp_path: Path
     assert "bit-exact" in done.stdout
     blind = rerun(open_recording(log))  # no analysis: the phase's planned torque throughout
     assert not blind.ok and blind.mismatched_ticks > 0
+
+
+def test_a_run_whose_answer_came_late_reruns_bit_exact(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """In real time the answer may not be there ``delay_s`` after the request, and the phase
+    keeps its planned torque ("late"); the re-run computed it on the tick and applied it,
+    and a genuine log said MISMATCH (found by an outside audit). The lateness is the run's
+    (a real-time run cannot be made late at will here: the run's answer is held back, in a
+    lockstep run of this process); the re-run, in another process, has the real analysis."""
+    from handctl import cli
+    from handctl.planning import reanalysis
+
+    monkeypatch.setattr(reanalysis.ReanalysisOnTick, "collect", lambda self, phase: None)
+    log, summary = tmp_path / "run.mcap", tmp_path / "summary.json"
+    recipe = str(_reanalysed(tmp_path))
+    code = cli.main(["run", "recipe", recipe, "--log", str(log), "--summary-json", str(summary)])
+    assert code == cli.EXIT_FAILED  # cut short: the experiment fails, the hand is fine
+    monkeypatch.undo()
+    phase = json.loads(summary.read_text())["phases"][3]
+    assert phase["reanalysis"].startswith("late: no answer 0.05 s after the request"), phase
+    done = handctl("replay", str(log), "--rerun")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "bit-exact" in done.stdout
