@@ -770,7 +770,7 @@ class Runtime:
             # Judge the nodes on what they say now, not on what a previous run last heard:
             # fresh feedback and a fresh heartbeat from every node (the heartbeat's uptime is
             # the baseline against which a reboot during the run is recognised).
-            refused = self._refused_at_startup(since)
+            refused = self._refused_at_startup(since, tk.tick)
             if refused is not None:
                 self.supervisor.trip(refused[0], refused[1], tk.tick)
                 return refused[1]
@@ -844,7 +844,7 @@ class Runtime:
                 self.recorder.note("node_reset", self.nodes_reset, tick)
         return ""
 
-    def _refused_at_startup(self, since: int) -> tuple[FaultCode, str] | None:
+    def _refused_at_startup(self, since: int, tick: int) -> tuple[FaultCode, str] | None:
         """Why the nodes must not be enabled, whatever they say of their state (None if
         nothing refuses them): a peer process that ended (the simulated hand of a real-time
         run: said at once, not after the whole start-up timeout), a bus-off or a receive
@@ -853,6 +853,10 @@ class Runtime:
         another sender on the host's command ids (the nodes would hear two hosts)."""
         gone = self.peer_gone() if self.peer_gone is not None else ""
         if gone:
+            if self.recorder is not None:
+                # an input from outside the bus: logged, so that the re-run refuses the
+                # start-up at this tick too (it could not, and a genuine log said MISMATCH)
+                self.recorder.note("peer_gone", gone, tick)
             return FaultCode.STARTUP, gone
         event = next((e for e in self.driver.bus_events if e.kind in REFUSE_STARTUP), None)
         if event is not None:

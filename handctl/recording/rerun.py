@@ -13,6 +13,7 @@ any difference is listed.
 from __future__ import annotations
 
 import asyncio
+import functools
 import heapq
 import itertools
 import math
@@ -388,6 +389,9 @@ class ReplayClock:
                     runtime.request_stop(detail)
                 elif kind == "estop":
                     runtime.request_estop(detail)
+                elif kind == "peer_gone":
+                    # the run's peer process ended in its start-up: what it said, from here
+                    runtime.peer_gone = functools.partial(str, detail)
                 elif kind in ("limit", "node_reset", "phase_end", "disable_unconfirmed"):
                     pass  # the runtime's own notes (a stop's, the start-up's): said again
                 else:

@@ -60,10 +60,10 @@ def test_a_simulated_hand_that_dies_during_start_up_is_said_at_once(tmp_path: Pa
     only that the nodes were not ready."""
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD_LONG)
-    out = tmp_path / "out.json"
+    out, log = tmp_path / "out.json", tmp_path / "run.mcap"
     proc = subprocess.Popen(
         [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--realtime",
-         "--max-seconds", "5", "--summary-json", str(out)],
+         "--max-seconds", "5", "--summary-json", str(out), "--log", str(log)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
@@ -86,6 +86,11 @@ def test_a_simulated_hand_that_dies_during_start_up_is_said_at_once(tmp_path: Pa
     assert proc.returncode == 3, stderr
     assert "the simulated hand's process ended with exit -9" in stderr
     assert "nodes not ready within" not in stderr
+    # and its log re-runs to the same end: the hand's end, an input from outside the bus,
+    # was not in it, and a genuine log said MISMATCH (found by an outside audit)
+    done = handctl("replay", str(log), "--rerun")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "MISMATCH" not in done.stdout
 
 
 def test_a_bus_off_during_start_up_enables_no_node(tmp_path: Path) -> None:
