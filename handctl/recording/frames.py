@@ -115,7 +115,7 @@ def _to_bus(
     # one handctl host per bus on this machine, as a run (``buslock``): held to the end
     bus_spec = parse_spec(spec, hand.bus, hand.source, "--to-bus")
     with open_bus(spec, hand.bus) as bus, take_bus(bus_spec, "this replay"):
-        _nobody_else(bus, hand, spec, stops)
+        _nobody_else(bus, hand, spec, stops, heard)
         start: float | None = None
         first = 0
         listened = -math.inf
@@ -177,15 +177,28 @@ def _to_bus(
     return report
 
 
-def _nobody_else(bus: HandBus, hand: HandConfig, spec: str, stops: StopNotes) -> None:
+def _nobody_else(
+    bus: HandBus, hand: HandConfig, spec: str, stops: StopNotes, heard: _FaultsHeard
+) -> None:
     """Nobody else commands the nodes, before the first frame: a replay onto a hand a run
     drives fought it frame by frame, neither's limits holding for the nodes (``otherhost``).
-    A stop signal while it listened ends the replay as one during the checks: nothing sent."""
+    A stop signal while it listened ends the replay as one during the checks: nothing sent.
+    Nor is a node in FAULT from before: a replay clears no fault (a run's
+    ``--reset-node-faults`` does), and onto a hand a killed run had left faulted it sent its
+    frames, then said a node "went into FAULT while the replay had it enabled" and left
+    enabled by it, both untrue (found by an outside audit)."""
     from handctl.online.otherhost import refuse_another_host
 
-    refuse_another_host(bus, hand, spec, "this replay")
+    faulted: list[str] = []
+    refuse_another_host(bus, hand, spec, "this replay", lambda f: faulted.extend(heard.faulted(f)))
     if stops.first:
         raise ReplayInterrupted("", stops.first, stops.later)
+    if faulted:
+        raise HandctlError(
+            f"{spec}: {', '.join(dict.fromkeys(faulted))} in FAULT before the replay sent "
+            "anything: a replay clears no fault (a run's --reset-node-faults does, once what "
+            "faulted it is understood); nothing was sent"
+        )
 
 
 def hand_needed(spec: str) -> ConfigError:
@@ -291,6 +304,23 @@ class _FaultsHeard:
         self.feedback = {layout.frame_id: (finger, layout) for finger, layout in layouts}
         #: what the first node heard in FAULT said ("": none)
         self.first = ""
+
+    def faulted(self, frames: Sequence[Any]) -> list[str]:
+        """The nodes of the hand ``frames`` (``Frame``s) say are in FAULT, enabled by the
+        replay or not, each as "node N (name, its fault bits)"."""
+        out = []
+        for frame in frames:
+            found = self.feedback.get(frame.arbitration_id)
+            if found is None:
+                continue
+            finger, layout = found
+            if len(frame.data) != layout.length or not layout.crc_ok(frame.data):
+                continue
+            feedback = self._parse(layout.decode(frame.data)[1])
+            if feedback.state == self._fault:
+                bits = "+".join(self._fault_names(feedback.fault_bits)) or "no fault bits"
+                out.append(f"node {finger.node_id} ({finger.name}, {bits})")
+        return out
 
     def hear(self, frames: Sequence[Any]) -> bool:
         """Whether a node the replay had enabled said FAULT in ``frames`` (``Frame``s)."""

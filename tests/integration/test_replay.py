@@ -887,10 +887,12 @@ def test_to_bus_onto_a_hand_that_faults_under_it_stops_and_says_so(
     assert sent["sent"] < len(logged)  # stopped there, not sent to its end
     # the hand left as the nodes it still had enabled were: zero torque, then disabled
     assert "zero torque and a disable sent after them" in sent["stopped"]
-    # the command on the same hand, now in FAULT from the first replay: its enable does not
-    # clear the fault, and the first Feedback after it says FAULT
+    # the command on the same hand, now in FAULT from the first replay: refused before it
+    # sends anything (it sent its frames, then said a node "went into FAULT while the replay
+    # had it enabled" and left enabled by it, both untrue: an outside audit)
     assert done.returncode == 1, done.stderr
-    assert "to-bus: FAILED: node " in done.stderr and "went into FAULT" in done.stderr
+    assert "in FAULT before the replay sent anything: a replay clears no fault" in done.stderr
+    assert "went into FAULT" not in done.stderr and "frames sent" not in done.stdout
 
 
 def test_to_bus_says_when_nobody_was_on_the_unix_bus(
