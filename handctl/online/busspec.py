@@ -91,13 +91,26 @@ def require_peers(spec: BusSpec, option: str = "--bus") -> None:
     on it) must be there: its directory is made by the first participant, and a mistyped
     one was made by the command, which then said every node was missing (``nodes``, a
     "listens only" command, left the directory behind)."""
-    if spec.interface == "unix" and not Path(spec.channel).is_dir():
+    if spec.interface != "unix":
+        return
+    if not Path(spec.channel).is_dir():
         raise ConfigError(
             option,
             "channel",
             "the directory of a unix bus a hand is on (start one with 'handctl sim --bus "
             "unix:DIRECTORY')",
             Description(f"{escaped(spec.channel)}: no such directory"),
+        )
+    from handctl.online.unixcan import anyone_on
+
+    if not anyone_on(Path(spec.channel)):
+        # a directory left by participants that have ended (a killed hand's socket in it)
+        raise ConfigError(
+            option,
+            "channel",
+            "the directory of a unix bus a hand is on (start one with 'handctl sim --bus "
+            "unix:DIRECTORY')",
+            Description(f"{escaped(spec.channel)}: nobody is on it"),
         )
 
 

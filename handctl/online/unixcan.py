@@ -557,3 +557,24 @@ def _is_socket(path: Path) -> bool:
         return stat.S_ISSOCK(os.lstat(path).st_mode)
     except OSError:  # gone since the listing
         return False
+
+
+def anyone_on(directory: Path) -> bool:
+    """Whether a live participant is on the unix bus in ``directory``: one of its sockets
+    takes a connection. A participant killed leaves its socket file, and a bus directory
+    outlives the participants that were on it; a run onto such a directory passed the
+    check that a hand was on it, ran its timing check and listened out its whole start-up
+    (found by an outside audit)."""
+    for path in directory.glob("*.sock"):
+        if not _is_socket(path):
+            continue
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        try:
+            probe.connect(str(path))
+        except OSError:
+            continue  # a participant gone: its socket file stayed
+        else:
+            return True
+        finally:
+            probe.close()
+    return False

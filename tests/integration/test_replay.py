@@ -932,11 +932,16 @@ def test_to_bus_says_when_nobody_was_on_the_unix_bus(
     assert done.returncode == 2, done.stderr
     assert "--to-bus: channel: expected the directory of a unix bus a hand is on" in done.stderr
     assert "no such directory" in done.stderr and not typo.exists()
+    # nor a directory nobody is on (left by participants that ended, a killed one's socket
+    # in it): it was sent to with a warning, and a run onto it listened out its start-up
     empty = tmp_path / "empty"
     empty.mkdir()
+    with open_bus(f"unix:{empty}", hand.bus):
+        pass  # a participant come and gone; a dead one's socket file, too
+    (empty / "4321-0.sock").touch()
     done = handctl("replay", str(recorded.path), "--to-bus", f"unix:{empty}")
-    assert done.returncode == 0, done.stderr
-    assert "warning: to-bus: no other participant was on" in done.stderr
+    assert done.returncode == 2, done.stderr
+    assert f"{empty}: nobody is on it" in done.stderr and "frames sent" not in done.stdout
 
 
 @pytest.mark.parametrize("transport", ["virtual", "unix"])
