@@ -63,19 +63,24 @@ def to_bus(
     sending does not add up into drift; a sender more than a period behind shifts the rest of
     the replay by as much (``shifted_ms``) rather than send a backlog at once.
 
-    Checked and sent from one copy of the file, taken first into a private directory: the
-    checks read the log, and the sending read it again, so what was written into it in
-    between (a copy still arriving, a file appended to) went onto the bus unchecked."""
+    Checked and sent from one copy of the file, taken first: the checks read the log, and the
+    sending read it again, so what was written into it in between (a copy still arriving, a
+    file appended to) went onto the bus unchecked. The copy is a file without a name (in the
+    temporary directory, read through ``/proc/self/fd``), which the system frees however
+    the replay ends: a named one in a private directory stayed behind a replay killed
+    (SIGKILL), 50 MB a minute of run (found by an outside audit)."""
     if not speed > 0 or not math.isfinite(speed):
         raise ConfigError("--speed", "", "a speed factor > 0 (1 = as recorded)", speed)
-    with tempfile.TemporaryDirectory(prefix="handctl-to-bus-") as private:
-        copy = Path(private) / "replayed.mcap"
+    with tempfile.TemporaryFile(prefix="handctl-to-bus-") as private:
         try:
-            shutil.copyfile(recording.path, copy)
+            with recording.path.open("rb") as source:
+                shutil.copyfileobj(source, private)
+            private.flush()
         except OSError as exc:
             raise ConfigError(
                 str(recording.path), "", "a log that can be read whole", exc.strerror or str(exc)
             ) from None
+        copy = Path(f"/proc/self/fd/{private.fileno()}")
         snapshot = open_recording(copy)
         snapshot.path = recording.path  # every message names the log the user gave
         snapshot.read_from = copy
