@@ -2830,12 +2830,12 @@ class _Parser(argparse.ArgumentParser):
         self._negative_number_matcher = NEGATIVE_NUMBER
         self.register("action", None, _StoreOnce)  # an option without action=
         self.register("action", "store", _StoreOnce)
-        self.given: dict[str, str] = {}  # dest -> the option it was given as, in this parse
+        self.given: set[str] = set()  # the destinations given a value in this parse
 
     def parse_known_args(  # type: ignore[override]
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
     ) -> tuple[argparse.Namespace, list[str]]:
-        self.given = {}
+        self.given = set()
         parsed, extras = super().parse_known_args(args, namespace)
         if extras and self._subparsers is None:
             # a command's own options: said here, with its usage, where argparse said them
@@ -2871,15 +2871,15 @@ class _StoreOnce(argparse._StoreAction):
         values: Any,
         option_string: str | None = None,
     ) -> None:
-        given = parser.given if isinstance(parser, _Parser) else {}
-        if self.dest in given and getattr(namespace, self.dest, None) != values:
-            first = getattr(namespace, self.dest, None)
+        given = parser.given if isinstance(parser, _Parser) else set()
+        first = getattr(namespace, self.dest, None)
+        if self.dest in given and first != values:
             raise argparse.ArgumentError(
                 self,
                 f"given twice, as {_shown_value(first)} and then {_shown_value(values)}: "
                 "give it once",
             )
-        given[self.dest] = option_string or self.dest
+        given.add(self.dest)
         super().__call__(parser, namespace, values, option_string)
 
 

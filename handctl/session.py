@@ -830,8 +830,9 @@ class _WriterWatch:
             return
         self.said = True
         if code is not None:
-            how = f"signal {-code}" if code < 0 else f"exit {code}"
-            what = f"the recording writer ended ({how})"
+            from handctl.recording.recorder import how_it_ended  # imported with the recorder
+
+            what = f"the recording writer ended ({how_it_ended(code)})"
         else:
             what = (
                 f"the recording writer has not taken the run's records in time ({dropped} "

@@ -26,13 +26,14 @@ sends.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import re
 import socket
 from pathlib import Path
 
-from handctl.errors import BusError
+from handctl.errors import BusError, printable
 from handctl.online.busspec import BusSpec
 
 #: Bytes of an abstract socket's name, past the leading NUL (108 in ``sun_path``, less one).
@@ -83,7 +84,7 @@ def take_bus(spec: BusSpec, who: str) -> BusLock:
         sock.bind(b"\0" + name.encode())
     except OSError as exc:
         sock.close()
-        if exc.errno == 98:  # EADDRINUSE
+        if exc.errno == errno.EADDRINUSE:
             raise BusError(
                 f"another handctl host holds {spec} on this machine ({_holder(name)}): stop "
                 f"it first, or wait for it to end; {who} sent nothing"
@@ -121,4 +122,4 @@ def _command(pid: str) -> str:
     except OSError:
         return "?"
     text = " ".join(a.decode(errors="replace") for a in raw.split(b"\0") if a)[:400]
-    return "".join(c if c.isprintable() else "?" for c in text) or "?"
+    return printable(text) or "?"

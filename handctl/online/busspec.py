@@ -93,25 +93,22 @@ def require_peers(spec: BusSpec, option: str = "--bus") -> None:
     "listens only" command, left the directory behind)."""
     if spec.interface != "unix":
         return
-    if not Path(spec.channel).is_dir():
-        raise ConfigError(
-            option,
-            "channel",
-            "the directory of a unix bus a hand is on (start one with 'handctl sim --bus "
-            "unix:DIRECTORY')",
-            Description(f"{escaped(spec.channel)}: no such directory"),
-        )
     from handctl.online.unixcan import anyone_on
 
-    if not anyone_on(Path(spec.channel)):
-        # a directory left by participants that have ended (a killed hand's socket in it)
-        raise ConfigError(
-            option,
-            "channel",
-            "the directory of a unix bus a hand is on (start one with 'handctl sim --bus "
-            "unix:DIRECTORY')",
-            Description(f"{escaped(spec.channel)}: nobody is on it"),
-        )
+    directory = Path(spec.channel)
+    if not directory.is_dir():
+        found = "no such directory"
+    elif not anyone_on(directory):
+        found = "nobody is on it"  # its participants ended (a killed hand's socket in it)
+    else:
+        return
+    raise ConfigError(
+        option,
+        "channel",
+        "the directory of a unix bus a hand is on (start one with 'handctl sim --bus "
+        "unix:DIRECTORY')",
+        Description(f"{escaped(spec.channel)}: {found}"),
+    )
 
 
 def _check_unix_directory(channel: str, option: str) -> None:

@@ -316,20 +316,25 @@ class _FaultsHeard:
         out = []
         for frame in frames:
             found = self.feedback.get(frame.arbitration_id)
-            if found is None:
+            if found is None or len(frame.data) != found[1].length:
                 continue
-            finger, layout = found
-            if len(frame.data) != layout.length or not layout.crc_ok(frame.data):
-                continue
-            feedback = self._parse(layout.decode(frame.data)[1])
-            if feedback.state == self._fault:
-                bits = "+".join(self._fault_names(feedback.fault_bits)) or "no fault bits"
-                out.append(f"node {finger.node_id} ({finger.name}, {bits})")
+            bits = self._fault_bits(found[1], frame.data)
+            if bits is not None:
+                out.append(f"node {found[0].node_id} ({found[0].name}, {'+'.join(bits)})")
         return out
+
+    def _fault_bits(self, layout: Layout, data: bytes) -> list[str] | None:
+        """The fault bits' names a Feedback ``data`` of ``layout`` (its length checked) says,
+        if it says FAULT ("no fault bits" for none); None if it does not, or fails its CRC."""
+        if not layout.crc_ok(data):
+            return None
+        feedback = self._parse(layout.decode(data)[1])
+        if feedback.state != self._fault:
+            return None
+        return self._fault_names(feedback.fault_bits) or ["no fault bits"]
 
     def hear(self, frames: Sequence[Any]) -> bool:
         """Whether a node the replay had enabled said FAULT in ``frames`` (``Frame``s)."""
-        fault_names, parse_feedback = self._fault_names, self._parse
         for frame in frames:
             found = self.feedback.get(frame.arbitration_id)
             if found is None:
@@ -347,15 +352,12 @@ class _FaultsHeard:
                     "hand of another config is on the bus, and the replay stopped there"
                 )
                 return True
-            if not layout.crc_ok(frame.data):
-                continue
-            feedback = parse_feedback(layout.decode(frame.data)[1])
-            if feedback.state == self._fault:
-                bits = ", ".join(fault_names(feedback.fault_bits)) or "no fault bits"
+            bits = self._fault_bits(layout, frame.data)
+            if bits is not None:
                 self.first = (
-                    f"node {finger.node_id} ({finger.name}) went into FAULT ({bits}) while the "
-                    "replay had it enabled: the hand stopped following the log, and the "
-                    "replay stopped there"
+                    f"node {finger.node_id} ({finger.name}) went into FAULT ({', '.join(bits)}) "
+                    "while the replay had it enabled: the hand stopped following the log, and "
+                    "the replay stopped there"
                 )
                 return True
         return False

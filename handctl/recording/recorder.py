@@ -274,6 +274,11 @@ def _open_beside(path: Path) -> tuple[int, _Beside] | None:
     return fd, _Beside(target, held, temp, created)
 
 
+def how_it_ended(code: int | None) -> str:
+    """A process's end by its return code, as ``subprocess`` gives it: "signal 9", "exit 1"."""
+    return f"signal {-code}" if code is not None and code < 0 else f"exit {code}"
+
+
 def _shared_memory(size: int) -> int:
     """An anonymous memory file both processes can map: memfd where there is one. One the
     host will not give (a file-size limit below the rings, ``ulimit -f``; no memory) is an
@@ -1549,8 +1554,7 @@ class Recorder:
         """What to say of a writer that exited with an error (``said``, its stderr) besides
         what the recorder saw of it (``problem``): why it went (a full disk: "OSError:
         [Errno 28] No space left on device"), the last line of its traceback."""
-        code = self.process.returncode
-        how = f"signal {-code}" if code is not None and code < 0 else f"exit {code}"
+        how = how_it_ended(self.process.returncode)
         if not problem:
             # a writer killed says nothing: "failed (exit -9): " ended on an empty reason
             return f"the writer failed ({how})" + (f": {said[-2000:]}" if said else "")
