@@ -52,6 +52,7 @@ from handctl.errors import (
     said_by,
     shown,
 )
+from handctl.lossyout import LossyOut
 
 if TYPE_CHECKING:
     from handctl.bringup.jog import JogReport
@@ -541,6 +542,9 @@ def _status_printer() -> Callable[[object], None] | None:
     # a terminal that knows no escape sequences (TERM=dumb: an editor's shell, a serial
     # console) showed the erase as '^[[K' on every line: there, spaces erase instead
     dumb = os.environ.get("TERM") == "dumb"
+    # shown from inside the tick: a line the terminal cannot take now (Ctrl-S, a stalled
+    # SSH session) is dropped, never waited for (``handctl.lossyout``)
+    out = LossyOut(sys.stderr)
 
     def show(line: object) -> None:
         from handctl.online.loop import StatusLine
@@ -550,8 +554,7 @@ def _status_printer() -> Callable[[object], None] | None:
         text = fit_width(status_text(line), width)
         # erased to the line's end: a shorter line leaves nothing of the one before
         end = " " * max(width - 1 - len(text), 0) if dumb else "\x1b[K"
-        print("\r" + text + end, end="", file=sys.stderr)
-        sys.stderr.flush()
+        out.write("\r" + text + end)
 
     return show
 
@@ -2483,13 +2486,18 @@ def _cmd_jog(args: argparse.Namespace) -> int:
             print("\n".join(banner), flush=True)
             banner.clear()
 
+    # the table is shown from inside the tick: a line stdout cannot take now (a pager at
+    # its prompt, Ctrl-S) is dropped, never waited for (``handctl.lossyout``); the banner
+    # waits for a line that goes out, or for the end
+    table = LossyOut(sys.stdout)
+
     def show(line: JogLine) -> None:
-        say_banner()
-        print(
+        row = (
             f"{line.t_s:>7.2f} {line.phase:<9} {line.state:<10} {line.desired:>+9.4f} "
-            f"{line.applied:>+9.4f} {line.angle:>+10.4f} {line.tdt:>+9.4f}",
-            flush=True,
+            f"{line.applied:>+9.4f} {line.angle:>+10.4f} {line.tdt:>+9.4f}\n"
         )
+        if table.write("\n".join([*banner, row]) if banner else row):
+            banner.clear()
 
     result = jog(
         hand,
@@ -2510,6 +2518,13 @@ def _cmd_jog(args: argparse.Namespace) -> int:
 
     if result.report.result.outcome is not Outcome.STARTUP_FAILED:
         say_banner()  # a jog that ran (a failed start-up's error says it did not)
+    if table.dropped:
+        print(
+            f"handctl: note: {table.dropped} of the table's {table.dropped + table.written} "
+            "lines were not shown: stdout could not take them when they came (a stopped "
+            "terminal, or a reader that fell behind), and the jog does not wait for it",
+            file=sys.stderr,
+        )
     moved = result.moved
     if moved is not None:
         print(

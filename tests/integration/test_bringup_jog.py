@@ -33,7 +33,7 @@ from handctl.sim.params import SimParams, parse_sim
 from ..conftest import HAND_YAML, ROOT
 from .bringup_peer import running_hand
 from .realtime import ATTEMPTS_UNDER_LOAD, REALTIME, give_up, stopped_by_load, tolerant_hand
-from .rig import Rig, rig
+from .rig import Rig, read_until, rig
 
 
 def test_one_joint_turns_its_way(hand: HandConfig, capsys: pytest.CaptureFixture[str]) -> None:
@@ -627,3 +627,43 @@ def test_a_jog_whose_command_rang_does_not_blame_the_sensor(
     assert code == cli.EXIT_FAILED, err
     assert "handctl: FAILED: f1_j2's TDT cannot be judged: its command rang" in err
     assert "does not follow its joint" not in err
+
+
+def test_a_reader_that_falls_behind_does_not_stop_the_jog(tmp_path: Path) -> None:
+    """The table is written from inside the tick. Through a pipe whose reader stopped reading
+    (``handctl jog ... | less`` left at its prompt), the write blocked once the pipe was
+    full, and with it the loop: the jogged torque stayed on until the node's watchdog, and
+    the jog's table showed no gap. A pipe of one page, never read while the jog runs, must
+    not hold the jog up: it finishes and says how many lines were not shown (on stderr),
+    and only its closing lines wait for the reader. Lockstep: judged on behaviour alone."""
+    import fcntl
+
+    read_end, write_end = os.pipe()
+    fcntl.fcntl(write_end, 1031, 4096)  # F_SETPIPE_SZ: one page, filled within seconds
+    err_read, err_write = os.pipe()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "handctl", "jog", "f1_j1", "--torque", "0.05", "--seconds", "6"],
+        cwd=ROOT,
+        stdout=write_end,
+        stderr=err_write,
+    )
+    os.close(write_end)
+    os.close(err_write)
+    try:
+        # the note comes before the closing lines to stdout, which wait for the reader
+        said = read_until(err_read, "lines were not shown", timeout_s=60.0)
+        table = b""
+        while chunk := os.read(read_end, 65536):
+            table += chunk
+        said += read_until(err_read, None, timeout_s=10.0)
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+        proc.wait()
+        os.close(read_end)
+        os.close(err_read)
+    assert "lines were not shown" in said, said
+    assert proc.returncode == 0, said
+    shown = table.decode()
+    assert shown.startswith("jog f1_j1"), shown[:200]  # the banner went out with a line
+    assert "f1_j1: " in shown  # and the closing lines, once the reader read

@@ -615,3 +615,54 @@ def test_the_simulated_hand_is_seeded_by_the_hand_config_unless_seed_is_given(
         assert cli.main([*argv, "--summary-json", str(out), *extra]) == cli.EXIT_OK
         seeds.append(json.loads(out.read_text())["sim"]["seed"])
     assert seeds == [7, 3]
+
+
+def test_a_stopped_terminal_does_not_stop_the_loop(tmp_path: Path) -> None:
+    """The status line is written from inside the tick. A terminal stopped with Ctrl-S
+    (XOFF; an SSH session that stalls is the same) blocked that write, and with it the loop:
+    nothing was sent, the torque last sent stayed on until the nodes' watchdogs latched
+    TIMEOUT, and a stop signal could not end the run while the write waited. Lockstep, so
+    this is judged on behaviour alone: with the terminal stopped, Ctrl-C must still bring
+    the run to its controlled stop and finish its log, which only a loop that goes on can
+    do; what the run says at the end waits for the terminal, as it may."""
+    import termios
+
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(HOLD_LONG)
+    log = tmp_path / "run.mcap"
+    out = tmp_path / "out.json"
+    terminal, stderr_end = pty.openpty()
+    command = [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--log", str(log)]
+    proc = subprocess.Popen(
+        [*command, "--summary-json", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=stderr_end,
+        text=True,
+    )
+    try:
+        shown = read_until(terminal, "running")
+        assert "running" in shown, shown
+        termios.tcflow(stderr_end, termios.TCOOFF)  # Ctrl-S
+        time.sleep(0.5)  # a few status lines come due meanwhile
+        proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 60.0
+        # a finished log ends in MCAP's magic (the writer renames it into place at its end)
+        while time.monotonic() < deadline and not (
+            log.exists() and log.read_bytes().endswith(b"\x89MCAP0\r\n")
+        ):
+            time.sleep(0.2)
+        finished = log.exists() and log.read_bytes().endswith(b"\x89MCAP0\r\n")
+        termios.tcflow(stderr_end, termios.TCOON)  # Ctrl-Q
+        stdout, _ = proc.communicate(timeout=60)
+        read_until(terminal, None, timeout_s=10.0)
+    finally:
+        proc.kill()
+        os.close(stderr_end)
+        os.close(terminal)
+    assert finished, "the run's log was not finished while its terminal was stopped"
+    assert proc.returncode == 130, stdout
+    summary = json.loads(out.read_text())
+    assert summary["outcome"] == "interrupted"
+    nodes = summary["sim"]["nodes"]
+    assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0 for n in nodes.values())

@@ -58,6 +58,7 @@ COMPOSITION = (
     "handctl.rivals",
     "handctl.parent_death",
     "handctl.outfile",
+    "handctl.lossyout",
     "handctl.experiment",
     "handctl.harness",
 )
