@@ -507,6 +507,7 @@ class Runtime:
                 defiant_after_ns = tk.now_ns + round(DEFIANT_AFTER_PERIODS * period_s * 1e9)
             self._account_idle(tk)
             self.driver.poll(tk.now_ns)
+            self._foreign_after_the_disable(tk.tick)
             if all(confirmed(n) for n in self.driver.nodes):
                 return
         # a node whose Feedback went unheard all the while (its frames rejected, or lost) is
@@ -546,6 +547,31 @@ class Runtime:
             )
         if self.recorder is not None:  # the log says it too: whether the hand may be ENABLED
             self.recorder.note("disable_unconfirmed", self.disable_unconfirmed, self.tick)
+
+    def _foreign_after_the_disable(self, tick: int) -> None:
+        """Another sender on the nodes' command identifiers while the run listens for its
+        disable is ``FOREIGN_COMMAND`` there too, with the e-stop at once: a second host that
+        waited for this one's disable and then enabled the nodes with its own torques had
+        them for the rest of the wait, which ended on the nodes' DISABLED (heard in the same
+        poll: exit 0, nothing said) or blamed the nodes for an ENABLED that was the other
+        host's doing. The e-stop latches FAULT (ESTOP) on every node, which the other
+        sender cannot lift with an enable (found by an outside audit)."""
+        sup = self.supervisor
+        if FaultCode.FOREIGN_COMMAND in sup.active_codes:
+            return  # said, and the e-stop sent, when it was first heard
+        foreign = [
+            f"node {n.node_id} ({n.finger.name}): {n.foreign_command}"
+            for n in self.driver.nodes
+            if n.foreign_command
+        ]
+        if not foreign:
+            return
+        sup.trip(
+            FaultCode.FOREIGN_COMMAND,
+            "after this run's disable, " + "; ".join(foreign),
+            tick,
+        )
+        self._estop_at_the_end = self.driver.send_estop()
 
     def _say_ended_in_fault(self) -> None:
         """Nodes in FAULT at the run's end that no fault of the run stands for: latched after

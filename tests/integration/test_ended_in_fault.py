@@ -40,3 +40,45 @@ def test_a_node_faulted_after_the_stop_is_said(tmp_path: Path) -> None:
     )
     assert done.returncode == 0, done.stderr
     assert "ended_in_fault" not in json.loads(out.read_text())
+
+
+#: another host's TorqueCommand for node 1 on the bus 8-12 ms into the run's stop, after the
+#: run's disable (at 0.308 s) and while it listens for the nodes' DISABLED
+COMMAND_AFTER_THE_DISABLE = """
+faults:
+  - {kind: babble, id: 0x101, per_tick: 1, length: 8, start: 0.308, stop: 0.312}
+"""
+
+
+def test_another_host_heard_after_the_disable_is_a_foreign_command(tmp_path: Path) -> None:
+    """A second host that waits for this run's disable and then commands the nodes: the
+    wait for the nodes' DISABLED ended on their Feedback (exit 0, nothing said but a count
+    of unexpected frames), or blamed the nodes for an ENABLED that was the other host's,
+    and no e-stop went until the wait was over. It is ``FOREIGN_COMMAND`` there as during
+    the run, with the e-stop in the tick it is heard (exit 3), in the log as well."""
+    faults = tmp_path / "foreign.yaml"
+    faults.write_text(COMMAND_AFTER_THE_DISABLE)
+    out = tmp_path / "summary.json"
+    log = tmp_path / "run.mcap"
+    done = handctl(
+        "run", "recipe", DEFAULT_RECIPE, "--max-seconds", "0.3", "--sim-faults", str(faults),
+        "--summary-json", str(out), "--log", str(log),
+    )  # fmt: skip
+    assert done.returncode == 3, done.stderr
+    summary = json.loads(out.read_text())
+    [fault] = summary["faults"]
+    assert fault["code"] == "FOREIGN_COMMAND"
+    assert fault["detail"].startswith("after this run's disable, node 1 (f1): another sender")
+    dump = tmp_path / "run.log"
+    assert handctl("replay", str(log), "--export", "candump", str(dump)).returncode == 0
+    sent = [line.split()[2] for line in dump.read_text().splitlines() if line.endswith(" T")]
+    disable = max(i for i, frame in enumerate(sent) if frame.startswith("011#"))
+    foreign = [
+        line.split()[2]
+        for line in dump.read_text().splitlines()
+        if line.endswith(" R") and line.split()[2].startswith("101#")
+    ]
+    assert foreign  # the other host's frame is in the log
+    assert [frame for frame in sent[disable:] if frame.startswith("000#")]  # and the e-stop
+    replayed = handctl("replay", str(log))
+    assert "FAULT FOREIGN_COMMAND" in replayed.stdout, replayed.stdout
