@@ -812,8 +812,9 @@ class _WriterWatch:
     stopped, a disk that hangs, a live view's clients holding it back), is a ramp stop,
     RECORDING_LOST. The run went on driving the hand unrecorded to its end (minutes on a
     whole recipe) and said so only then (found by outside audits: a writer stopped for 12 s
-    lost 4530 ticks of a 13771-tick run, exit 1 at its end). One ``waitpid`` and a read of
-    the drop counts every ``WRITER_WATCH_S``; said once."""
+    lost 4530 ticks of a 13771-tick run, exit 1 at its end). The log removed during the run
+    (``rm``, its directory) is the same: the recording has no name left. One ``waitpid``, a
+    read of the drop counts and an ``fstat`` every ``WRITER_WATCH_S``; said once."""
 
     def __init__(self, recording: Recorder, runtime: Runtime) -> None:
         self.recording = recording
@@ -826,13 +827,19 @@ class _WriterWatch:
             return
         code = self.recording.process.poll()
         dropped = self.recording.dropped_records()
-        if code is None and not dropped:
+        removed = self.recording.log_removed()
+        if code is None and not dropped and not removed:
             return
         self.said = True
         if code is not None:
             from handctl.recording.recorder import how_it_ended  # imported with the recorder
 
             what = f"the recording writer ended ({how_it_ended(code)})"
+        elif removed:
+            what = (
+                "the log was removed (or its directory) while the run recorded to it: what "
+                "the writer goes on writing has no name, and is lost when it closes"
+            )
         else:
             what = (
                 f"the recording writer has not taken the run's records in time ({dropped} "

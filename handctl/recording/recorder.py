@@ -980,6 +980,18 @@ class Recorder:
         ctl = self._ctl_view
         return int(ctl[DROPPED_TICKS] + ctl[DROPPED_FRAMES] + ctl[DROPPED_EVENTS])
 
+    def log_removed(self) -> bool:
+        """Whether the file the writer writes has no name left: removed, or its directory,
+        while the run records to it. Whatever the writer goes on writing is then lost when
+        it closes, and the run drove the hand unrecorded to its end (said only then: found
+        by an outside audit). One ``fstat`` of the descriptor the recorder holds, which
+        stays valid whatever is done to the path; a log renamed keeps its recording."""
+        try:
+            held = os.fstat(self._log_fd)
+        except OSError:
+            return False
+        return stat.S_ISREG(held.st_mode) and held.st_nlink == 0
+
     def note(self, kind: str, detail: str, tick: int) -> None:
         self._event(EV_REQUEST, tick, kind, detail)
 

@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -363,23 +364,19 @@ def _writer_running(run_pid: int) -> bool:
     return _writer_pid(run_pid, alive=True) is not None
 
 
-@pytest.mark.parametrize("end", ["time_budget", "interrupted"])
-def test_a_run_whose_log_is_removed_during_it_says_so_in_its_exit(tmp_path: Path, end: str) -> None:
-    """A run that warned that its log was lost exited 0, as if the log could be trusted. Now
-    a lost (or possibly incomplete) log is a failed result, exit 1, said last; a run that
-    stops for a reason of its own (here Ctrl-C, 130) keeps its code and says the log too.
-    Lockstep: the log is removed once the status line (on a terminal) says the phase runs,
-    many simulated seconds before it ends, and only while the writer is still alive, so the
-    end-of-run check comes after it whatever the machine's load."""
+def _run_and_then(
+    tmp_path: Path, log: Path, options: list[str], then: Callable[[subprocess.Popen[bytes]], None]
+) -> tuple[int, str]:
+    """``handctl run recipe`` of a long hold recording to ``log``, its status line on a
+    terminal; ``then(process)`` once the line says the phase runs, many simulated seconds
+    before it ends, and only while the writer is still alive, so the end-of-run check comes
+    after it whatever the machine's load. The exit code and what the terminal showed."""
     recipe = tmp_path / "hold.yaml"
     recipe.write_text(HOLD_LONG)
-    directory = tmp_path / "logs"
-    directory.mkdir()
-    log = directory / "run.mcap"
-    budget = ["--max-seconds", "10"] if end == "time_budget" else []
     terminal, stderr_end = pty.openpty()
+    command = [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--log", str(log)]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--log", str(log), *budget],
+        [*command, *options],
         cwd=ROOT,
         env={
             **os.environ,
@@ -392,24 +389,71 @@ def test_a_run_whose_log_is_removed_during_it_says_so_in_its_exit(tmp_path: Path
     try:
         shown = read_until(terminal, "running")
         assert "running" in shown, shown
-        shutil.rmtree(directory)
-        assert _writer_running(proc.pid), "the run ended before its log could be removed"
-        if end == "interrupted":
-            proc.send_signal(signal.SIGINT)
+        then(proc)
         shown += read_until(terminal, None)
         proc.wait(timeout=60)
     finally:
         proc.kill()
         os.close(terminal)
-    assert proc.returncode == (1 if end == "time_budget" else 130), shown
+    return proc.returncode, shown
+
+
+@pytest.mark.parametrize("end", ["time_budget", "interrupted"])
+def test_a_run_whose_log_is_moved_during_it_says_so_in_its_exit(tmp_path: Path, end: str) -> None:
+    """A run that warned that its log was not at its path exited 0, as if the log could be
+    trusted. Now a log not where the run said (here its directory renamed: the recording
+    is elsewhere, whole) is a failed result, exit 1, said last; a run that stops for a
+    reason of its own (here Ctrl-C, 130) keeps its code and says the log too. Lockstep."""
+    directory = tmp_path / "logs"
+    directory.mkdir()
+    log = directory / "run.mcap"
+
+    def move_the_log(proc: subprocess.Popen[bytes]) -> None:
+        directory.rename(tmp_path / "elsewhere")
+        assert _writer_running(proc.pid), "the run ended before its log could be moved"
+        if end == "interrupted":
+            proc.send_signal(signal.SIGINT)
+
+    budget = ["--max-seconds", "10"] if end == "time_budget" else []
+    code, shown = _run_and_then(tmp_path, log, budget, move_the_log)
+    assert code == (1 if end == "time_budget" else 130), shown
     assert "Traceback" not in shown
     assert f"{log}: expected the recording at this path at the end of the run" in shown
+    assert "the recording is elsewhere" in shown
     last = shown.strip().splitlines()[-1]
     if end == "time_budget":
         assert last.startswith("handctl: failed: the run ended as asked, but its log"), shown
     else:
         assert last.startswith("handctl: and the run's log"), shown
     assert f"{log} is lost or may be incomplete" in last
+
+
+def test_a_run_whose_log_is_removed_during_it_stops(tmp_path: Path) -> None:
+    """A log removed during the run (``rm``, or its directory): what the writer goes on
+    writing has no name and is lost when it closes. The run went on driving the hand
+    unrecorded to its end and said so only then (exit 1; found by an outside audit); it
+    stops now on ``RECORDING_LOST`` at the writer watch's next look (safety.md row 96), many
+    simulated seconds before its budget, and says the log is lost. Lockstep."""
+    directory = tmp_path / "logs"
+    directory.mkdir()
+    log = directory / "run.mcap"
+    out = tmp_path / "out.json"
+
+    def remove_the_log(proc: subprocess.Popen[bytes]) -> None:
+        shutil.rmtree(directory)
+        assert _writer_running(proc.pid), "the run ended before its log could be removed"
+
+    options = ["--max-seconds", "10", "--summary-json", str(out)]
+    code, shown = _run_and_then(tmp_path, log, options, remove_the_log)
+    assert code == 3, shown
+    assert "Traceback" not in shown
+    summary = json.loads(out.read_text())
+    [fault] = summary["faults"]
+    assert fault["code"] == "RECORDING_LOST"
+    assert "the log was removed" in fault["detail"]
+    assert summary["ticks"] < 5000, summary["ticks"]  # long before the budget's 10 s
+    assert f"{log}: expected the recording at this path at the end of the run" in shown
+    assert f"{log} is lost or may be incomplete" in shown.strip().splitlines()[-1]
 
 
 def test_a_log_lost_under_an_exception_in_flight_is_said_too(
