@@ -128,13 +128,49 @@ class BusBudget:
         return max(0.0, (MAX_LOAD - fixed) / per_tick) if per_tick else math.inf
 
 
+#: How the protocol has each node message sent (PROTOCOL.md), whatever a DBC's attributes
+#: say: the host's command every loop tick, a node's Feedback on the node's own 1 ms tick,
+#: its Status and Heartbeat every 100 ms; the rest (NodeCommand, EStop) on events. The
+#: generated DBC writes these (``hand_protocol``).
+PROTOCOL_SEND = {
+    "TorqueCommand": "loop",
+    "Feedback": "cyclic",
+    "Status": "cyclic",
+    "Heartbeat": "cyclic",
+}
+PROTOCOL_CYCLE_MS = {"TorqueCommand": 1, "Feedback": 1, "Status": 100, "Heartbeat": 100}
+
+
+def _kind(layout: Layout) -> str:
+    """The message's kind (``Feedback`` of ``Feedback_3``)."""
+    return layout.name.rpartition("_")[0] if layout.node is not None else layout.name
+
+
+def follows_loop(layout: Layout) -> bool:
+    """Whether the message goes once a loop tick: the protocol's word, the DBC's for a
+    message the protocol does not name."""
+    return PROTOCOL_SEND.get(_kind(layout), layout.send) == "loop"
+
+
 def message_rate(layout: Layout, loop_rate_hz: float) -> float:
-    """Frames per second of a message: loop messages follow the loop, cyclic ones the DBC."""
+    """Frames per second of a message: loop messages follow the loop, cyclic ones the DBC,
+    and never fewer than the protocol sends. The host sends its commands every tick and a
+    node its reports at the protocol's rates whatever a DBC says, so a DBC that called the
+    Feedback an event, or its cycle 1 s, had the budget count a hand at a fifth of its load
+    and pass one over the limit (found by an outside audit); a DBC may count more, never
+    less."""
+    kind = _kind(layout)
+    floor = 0.0
+    if PROTOCOL_SEND.get(kind) == "loop":
+        floor = loop_rate_hz
+    elif kind in PROTOCOL_CYCLE_MS:
+        floor = 1000.0 / PROTOCOL_CYCLE_MS[kind]
+    said = 0.0
     if layout.send == "loop":
-        return loop_rate_hz
-    if layout.send == "cyclic" and layout.cycle_time_ms:
-        return 1000.0 / layout.cycle_time_ms
-    return 0.0
+        said = loop_rate_hz
+    elif layout.send == "cyclic" and layout.cycle_time_ms:
+        said = 1000.0 / layout.cycle_time_ms
+    return max(floor, said)
 
 
 def hand_budget(
@@ -170,7 +206,7 @@ def hand_budget(
                 hz,
                 t * 1e6,
                 t * hz,
-                per_loop=layout.send == "loop",
+                per_loop=follows_loop(layout),
             )
         )
     return BusBudget(use_fd, rate, data_rate, hand.bus.loop_rate_hz, tuple(rows))

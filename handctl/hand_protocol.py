@@ -28,7 +28,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from handctl.busload import fd_dlc_size
+from handctl.busload import PROTOCOL_CYCLE_MS, PROTOCOL_SEND, fd_dlc_size
 from handctl.errors import ConfigError
 from handctl.protocol import (
     STATUS_VERSION_BYTE,
@@ -181,11 +181,11 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
         'BA_ "BusType" "CAN FD";',
         f'BA_ "DataID" BO_ 0 {ESTOP_DATA_ID};',
     ]
-    cycle = {"TorqueCommand": 1, "Feedback": 1, "Status": 100, "Heartbeat": 100}
+    cycle = PROTOCOL_CYCLE_MS
     # HandctlSend: 1 "loop" (the host's loop period), 2 "cyclic" (GenMsgCycleTime). A node
     # sends its Feedback on its own 1 ms tick, whatever the loop rate: the bus budget of a
     # hand with a slower loop counted it at the loop rate, a third of what the wire carried
-    send = {"TorqueCommand": 1, "Feedback": 2, "Status": 2, "Heartbeat": 2}
+    send = {kind: {"loop": 1, "cyclic": 2}[how] for kind, how in PROTOCOL_SEND.items()}
     for node_id, _ in nodes:
         out += [
             f'BA_ "DataID" BO_ {ID_BASES[k] + node_id} {DATA_ID_BASES[k] + node_id};'

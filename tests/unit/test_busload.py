@@ -17,8 +17,8 @@ from handctl.busload import (
     what_would_fit,
 )
 from handctl.config import HandConfig, load_hand
-from handctl.hand_protocol import protocol_for
-from handctl.protocol import Protocol
+from handctl.hand_protocol import generate_dbc, protocol_for
+from handctl.protocol import Protocol, load_protocol
 
 from ..conftest import ROOT, handctl
 from ..shapes import shaped_hand
@@ -184,3 +184,36 @@ def test_a_slow_arbitration_phase_is_named_as_what_to_change() -> None:
         "an arbitration phase of 1 Mbit/s and a data phase of 4 Mbit/s would carry "
         f"{fit.load * 100:.1f} %"
     ]
+
+
+@pytest.mark.parametrize(
+    ("name", "attribute", "value"),
+    [
+        ("Feedback_1", "HandctlSend", "0"),  # an event: counted as never sent
+        ("Feedback_1", "GenMsgCycleTime", "1000"),  # 1 Hz
+        ("TorqueCommand_1", "HandctlSend", "0"),
+        ("Status_1", "GenMsgCycleTime", "0"),
+    ],
+)
+def test_a_dbc_cannot_count_the_protocols_traffic_as_less(
+    tmp_path: Path, hand: HandConfig, name: str, attribute: str, value: str
+) -> None:
+    """The host sends its commands every tick and a node its reports at the protocol's
+    rates, whatever a DBC's attributes say: a DBC that called the Feedback an event, or its
+    cycle 1 s, had the budget count the hand at a fraction of its load, and ``check`` passed
+    a hand over the 50 % limit (found by an outside audit). A DBC may count more, not less."""
+    protocol = protocol_for(hand)
+    text = generate_dbc((f.node_id, len(f.joints)) for f in hand.fingers)
+    frame_id = protocol.by_name[name].frame_id
+    line = next(
+        line for line in text.splitlines() if line.startswith(f'BA_ "{attribute}" BO_ {frame_id} ')
+    )
+    edited = tmp_path / "edited.dbc"
+    edited.write_text(text.replace(line, f'BA_ "{attribute}" BO_ {frame_id} {value};'))
+    before = hand_budget(hand, protocol)
+    after = hand_budget(hand, load_protocol(edited))
+    assert {m.name: m.rate_hz for m in after.messages} == {
+        m.name: m.rate_hz for m in before.messages
+    }
+    assert after.load == before.load
+    assert after.highest_loop_rate_hz() == before.highest_loop_rate_hz()
