@@ -3818,6 +3818,18 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
         print(f"handctl: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as exc:  # a bug: said as one, with what to report
+        if _out_of_memory(exc):
+            # the host's limit, not a bug in handctl (nor the input's): said as such, in
+            # one line; a run stops its hand itself on any exception inside its loop, so a
+            # run that had begun had its hand stopped before this (found by an outside
+            # audit: an allocation after the stop said "internal error ... a bug")
+            print(
+                f"handctl: error: this host ran out of memory ({type(exc).__name__}: {exc}); "
+                "a run that had begun stopped its hand first. Free memory, or raise the "
+                "process's limit (ulimit -v), and try again",
+                file=sys.stderr,
+            )
+            return EXIT_FAILED
         if raised():  # an interrupt that came out as another error (``stopsignals.raised``)
             print(
                 f"handctl: interrupted ({raised()}: {type(exc).__name__}: {exc})",
@@ -3838,6 +3850,14 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
         return EXIT_FAILED
     finally:
         finished()  # the command has its result (``stopsignals.finished``)
+
+
+def _out_of_memory(exc: BaseException) -> bool:
+    """Whether ``exc`` is an allocation that failed: Python's, or MuJoCo's (a ``FatalError``
+    saying so: MuJoCo's own allocator under a memory limit)."""
+    return isinstance(exc, MemoryError) or (
+        type(exc).__name__ == "FatalError" and "allocate memory" in str(exc)
+    )
 
 
 class _ReaderMayLeave(io.TextIOBase):

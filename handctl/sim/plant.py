@@ -214,6 +214,10 @@ class Plant:
         try:
             self.model: Any = mujoco.MjModel.from_xml_string(self.xml)
         except ValueError as exc:
+            if "allocate memory" in str(exc):
+                # MuJoCo's own allocation failed (a memory limit on the process): the host's,
+                # not the hand config's, which was blamed, exit 2 (found by an outside audit)
+                raise MemoryError(f"MuJoCo: {' '.join(str(exc).split())}") from exc
             # parse_sim's bounds keep every scene it accepts buildable; should one still slip
             # through, it is the hand config's numbers, not a crash: MuJoCo's message names
             # the element (a link by its joint's name, an object by its own)
