@@ -274,9 +274,11 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
     ours = list(trace.estimated) if trace.estimated else list(range(len(trace.objects)))
     held_s, lift_start = _held(np.all(up[:, ours], axis=1), t, first_manip)
     lifted = held_s >= HOLD_S - 1e-9
-    # each object's lows and departures, from the lift of all of them on
+    # each object's lows and departures, from the lift of all of them on, once they were
+    # lifted (held HOLD_S): a bounce of a few ms up and back read as a drop beside "lifted:
+    # false" with one object, and not with three (found by an outside audit)
     gone = np.zeros(heights.shape, dtype=bool)
-    if lift_start is not None:
+    if lift_start is not None and lifted:
         after = slice(lift_start, end_manip)
         low = heights[after] < DROP_HEIGHT
         away = np.abs(poses[after][:, 0::3] - trace.palm_x) > trace.half_span + np.array(

@@ -136,6 +136,23 @@ def test_falling_back_to_the_table_is_a_drop() -> None:
     assert ex["dropped"] is True
 
 
+def test_a_bounce_that_was_never_held_is_no_drop() -> None:
+    """Up for 8 ms and back on the table: not lifted, and nothing dropped, since nothing was
+    lifted to drop. A drop counted from the longest stretch up, however short, read as
+    "dropped" beside "lifted: false" when every object bounced together (one object
+    alone), and not when one of several did (found by an outside audit)."""
+    bounce = [
+        ("approach", 1.0, 0.0, 0.0, 0.0),
+        ("lift", 0.008, 0.05, 0.0, 0.0),
+        ("envelop", 2.0, 0.0, 0.0, 0.0),
+        *EXPERIMENT[3:],
+    ]
+    ex = experiment_summary(trace_of(bounce))
+    assert ex["lifted"] is False and ex["held_s"] < 0.01
+    assert ex["dropped"] is False
+    assert not any(o["dropped"] for o in ex["objects"].values())
+
+
 def test_an_empty_trace_has_the_keys_and_nothing_achieved() -> None:
     ex = experiment_summary(empty_trace())
     assert ex["lifted"] is False and ex["phase_angles_deg"] == []
