@@ -416,6 +416,7 @@ def _scene_warnings(hand: HandConfig, scene: SimParams | None) -> list[str]:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
+    args.hand = _hand_given(args)
     # an option of the other check did nothing, without a word: `check --json t.json` wrote
     # no file, `check --timing --dbc nosuch.dbc` never looked at it
     other = (
@@ -3022,15 +3023,37 @@ def _add_dbc(command: argparse.ArgumentParser, help: str = "") -> None:
 
 def _add_hand_argument(command: argparse.ArgumentParser) -> None:
     """The hand config as the command's argument (``check``, ``layout``), the default one if
-    none is given."""
+    none is given; ``--hand`` too, as every other command that takes a hand spells it (the
+    README says so: ``check --hand X.yaml`` was refused as an unknown option)."""
     command.add_argument(
         "hand",
         type=Path,
         nargs="?",
-        default=DEFAULT_HAND,
+        default=None,
         metavar="HAND.yaml",
         help=f"hand config ({DEFAULT_HAND_HELP})",
     )
+    command.add_argument(
+        "--hand",
+        dest="hand_option",
+        type=Path,
+        action=_StoreOnce,
+        metavar="HAND.yaml",
+        help="the same, as the other commands take it",
+    )
+
+
+def _hand_given(args: argparse.Namespace) -> Path:
+    """The hand config of ``_add_hand_argument``: HAND.yaml or ``--hand``, not two."""
+    given, option = args.hand, args.hand_option
+    if given is not None and option is not None and given != option:
+        raise ConfigError(
+            "--hand",
+            "",
+            f"one hand config, as HAND.yaml or as --hand (HAND.yaml is {escaped(str(given))})",
+            str(option),
+        )
+    return given or option or DEFAULT_HAND
 
 
 def _add_layout(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -3057,6 +3080,7 @@ def _add_layout(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
 def _cmd_layout(args: argparse.Namespace) -> int:
     from handctl.foxglove.layout import LAYOUT_KEYS, layout_json
 
+    args.hand = _hand_given(args)
     # a layout written over the hand config lost the hand
     _refuse_same_files({"-o": args.output}, {"HAND.yaml": args.hand, "--dbc": args.dbc})
     # a layout is JSON: an existing file that is not (another hand's config, a recipe,

@@ -390,6 +390,24 @@ def test_check_cli_accepts_default_hand() -> None:
     assert result.stdout.rstrip().endswith("ok")
 
 
+def test_check_and_layout_take_the_hand_as_every_command_does(tmp_path: Path) -> None:
+    """The README: every command takes another hand with ``--hand HAND.yaml``. ``check`` and
+    ``layout`` took it only as their argument, and ``check --hand X.yaml`` was refused as an
+    unrecognised option (found by an outside audit). Both spellings now, one hand at a time."""
+    planar = "config/hands/planar_2f2j.yaml"
+    as_argument = handctl("check", planar)
+    as_option = handctl("check", "--hand", planar)
+    assert as_option.returncode == 0, as_option.stderr
+    assert as_option.stdout == as_argument.stdout
+    two = handctl("check", planar, "--hand", "config/hands/hiroshima_hand.yaml")
+    assert two.returncode == 2
+    assert "--hand: expected one hand config, as HAND.yaml or as --hand" in two.stderr
+    out = tmp_path / "layout.json"
+    done = handctl("layout", "--hand", planar, "-o", str(out))
+    assert done.returncode == 0, done.stderr
+    assert "the Foxglove layout of planar_2f2j" in done.stdout
+
+
 def test_check_warns_of_a_rate_limit_that_starves_the_guard(
     tmp_path: Path, base: dict[str, Any], capsys: pytest.CaptureFixture[str]
 ) -> None:
