@@ -259,14 +259,25 @@ def what_would_fit(hand: HandConfig, protocol: Protocol) -> list[str]:
     """What would bring an over-budget hand within ``MAX_LOAD``, each with its figure.
 
     On CAN-FD: the highest loop rate on this bus and the lowest data-phase rate that fits. On
-    classic CAN only CAN-FD 1/5 Mbit/s: the Feedback and Status frames are longer than a
-    classic frame (``too_long_for_classic``), so no rate of a classic bus would carry them. Not
-    the fingers shared out over several buses: a hand config has one bus and a run drives one
-    hand, so that hint named a hand handctl could not run.
+    classic CAN only CAN-FD at 1 Mbit/s, with the slowest data phase that fits: the Feedback
+    and Status frames are longer than a classic frame (``too_long_for_classic``), so no rate
+    of a classic bus would carry them. Not the fingers shared out over several buses: a hand
+    config has one bus and a run drives one hand, so that hint named a hand handctl could not
+    run.
     """
     if not hand.bus.fd:
-        fd = hand_budget(hand, protocol, fd=True, bitrate=1_000_000, data_bitrate=5_000_000)
-        return [f"CAN-FD 1/5 Mbit/s would carry {fd.load * 100:.1f} %"]
+        # CAN-FD at 1 Mbit/s, with the slowest data phase from 5 Mbit/s on that fits: a hand
+        # that needs 8 was told that 1/5 "would carry 53.2 %", over the limit itself, and
+        # never what would fit (found by an outside audit)
+        tried = [r for r in FD_DATA_BITRATES if r >= 5_000_000]
+        for rate in tried:
+            fd = hand_budget(hand, protocol, fd=True, bitrate=1_000_000, data_bitrate=rate)
+            if fd.ok:
+                return [f"CAN-FD 1/{rate / 1e6:g} Mbit/s would carry {fd.load * 100:.1f} %"]
+        return [
+            f"not even CAN-FD 1/{tried[-1] / 1e6:g} Mbit/s would carry it "
+            f"({fd.load * 100:.1f} %): fewer joints on this bus, or a slower loop on CAN-FD"
+        ]
     budget = hand_budget(hand, protocol)
     highest = budget.highest_loop_rate_hz()
     # whole hertz down: rounded to the nearest, a hint of 1641 Hz for 1640.9 was refused

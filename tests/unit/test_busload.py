@@ -217,3 +217,23 @@ def test_a_dbc_cannot_count_the_protocols_traffic_as_less(
     }
     assert after.load == before.load
     assert after.highest_loop_rate_hz() == before.highest_loop_rate_hz()
+
+
+def test_a_classic_hand_is_told_the_can_fd_data_phase_that_fits(tmp_path: Path) -> None:
+    """Five one-joint nodes at 1 kHz on classic CAN: CAN-FD 1/5 Mbit/s would carry them at
+    over 50 %, and that was the hint, a config check refuses too; the data phase that fits is
+    8 Mbit/s (found by an outside audit). The hint names a rate whose budget passes."""
+
+    def classic(doc: dict[str, object]) -> None:
+        bus = doc["bus"]
+        assert isinstance(bus, dict)
+        bus["fd"] = False
+        bus.pop("data_bitrate", None)
+
+    hand = load_hand(shaped_hand(tmp_path, [1] * 5, edit=classic))
+    protocol = protocol_for(hand)
+    assert not hand_budget(hand, protocol, fd=True, bitrate=1_000_000, data_bitrate=5_000_000).ok
+    [hint] = what_would_fit(hand, protocol)
+    fits = hand_budget(hand, protocol, fd=True, bitrate=1_000_000, data_bitrate=8_000_000)
+    assert fits.ok
+    assert hint == f"CAN-FD 1/8 Mbit/s would carry {fits.load * 100:.1f} %"
