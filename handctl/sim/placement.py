@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from handctl.config import HandConfig
+from handctl.errors import ConfigError
 from handctl.schema import Doc
 
 if TYPE_CHECKING:
@@ -85,6 +86,8 @@ def check_placement(hand: HandConfig, params: SimParams, doc: Doc) -> None:
     """Raise a ``ConfigError`` (``doc`` is the ``sim`` mapping) for a scene that cannot start."""
     _check_names(hand, params, doc)
     links = list(link_segments(hand, params))
+    # first: no other overlap of the scene can be put right while a base is in the palm
+    _check_bases_off_the_palm(hand, params, links)
     for i, obj in enumerate(params.objects):
         where = f"objects[{i}]"
         if obj.y - obj.radius < params.table_height - _TOUCH:
@@ -303,6 +306,33 @@ def _object_link_distance(obj: ObjectParams, link: LinkSegment) -> float:
     planar = _point_segment(obj.x, obj.y, link.x0, link.y0, link.x1, link.y1)
     along_z = max(0.0, abs(link.z) - obj.length / 2)
     return math.hypot(planar, along_z)
+
+
+def _check_bases_off_the_palm(
+    hand: HandConfig, params: SimParams, links: list[LinkSegment]
+) -> None:
+    """A finger whose base is nearer the palm than its first link's radius: the link starts at
+    the base, so it overlaps the palm at every angle. Said of the base, which is what to
+    move; it was said of the initial angles, which no angle could satisfy (found by an
+    outside audit: a middle finger hung from the palm's face at x = 0)."""
+    for f, finger in enumerate(hand.fingers):
+        first = next((link for link in links if link.finger == f), None)
+        if first is None:
+            continue
+        dx = max(abs(finger.base_x) - params.palm_half_width, 0.0)
+        dy = max(-finger.base_y, finger.base_y - params.palm_thickness, 0.0)
+        inside = first.radius - math.hypot(dx, dy)
+        if inside > _TOUCH:
+            raise ConfigError(
+                hand.source,
+                f"fingers[{f}].base",
+                f"a base at least its first link's radius ({first.radius:g} m) from the "
+                f"palm (x within ±{params.palm_half_width:g} m, y 0..{params.palm_thickness:g} "
+                f"m), since the link starts there: {first.name} is {inside:.4g} m inside the "
+                "palm at any angle (below the palm face, y <= "
+                f"{-first.radius:g} m, or beside it)",
+                f"x {finger.base_x:g} m, y {finger.base_y:g} m",
+            )
 
 
 def _segment_box_distance(link: LinkSegment, half_width: float, thickness: float) -> float:

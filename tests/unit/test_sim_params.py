@@ -536,3 +536,24 @@ def test_an_object_with_nothing_under_it_rests_on_the_table(hand: HandConfig) ->
     assert rest_heights(hand, stacked) == tuple(o.y for o in stacked.objects)
     weightless = dataclasses.replace(raised, gravity=0.0)
     assert rest_heights(hand, weightless) == tuple(o.y for o in raised.objects)
+
+
+@pytest.mark.parametrize("angles", [[0.0, 0.0, 0.0], [0.3, 0.5, 0.5], [-0.3, 0.0, 0.0]])
+def test_a_finger_based_on_the_palm_is_said_of_its_base(
+    hand: HandConfig, angles: list[float]
+) -> None:
+    """A finger hung from the palm's face inside its width: its first link starts at the
+    base, so it overlaps the palm at any angle. The refusal named the initial angles, which
+    no angle could satisfy (found by an outside audit); it names the base, what to move."""
+    fingers = list(hand.fingers)
+    fingers[1] = dataclasses.replace(fingers[1], base_x=0.0, base_y=0.0)
+    moved = dataclasses.replace(hand, fingers=tuple(fingers))
+
+    def edit(s: dict[str, Any]) -> None:
+        s["initial_angles"][fingers[1].name] = angles
+
+    with pytest.raises(ConfigError) as err:
+        parse_sim(_with_sim(moved, edit))
+    assert err.value.key == "fingers[1].base"
+    assert "from the palm" in err.value.expected
+    assert err.value.file == hand.source
