@@ -16,7 +16,8 @@ torque reading and signal k + joints-per-node its angle):
   readings of ±device_tau_max lie within the range of the feedback torque signal, so the host
   sees every torque the node can apply instead of a saturated reading;
 - ``angle_min`` and ``angle_max``: strictly inside the range of the feedback angle signal, so a
-  joint past its soft limit reads past it before the reading saturates;
+  joint past its soft limit reads past it before the reading saturates; and the signal's
+  resolution at most ``MAX_ANGLE_RESOLUTION_RAD``, so that it reads past it promptly;
 - zero: the command signal carries 0 N·m exactly (its offset a multiple of its factor), so
   that a stop is a zero torque and not the nearest value to it; the supervisor keeps every
   applied torque on that signal's grid (``handctl/online/safety/limits.py``);
@@ -31,11 +32,21 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, Description
 from handctl.protocol import Layout, Protocol, SignalSpec
 
 if TYPE_CHECKING:
     from handctl.config import FingerConfig, HandConfig, JointConfig
+
+#: rad, the coarsest feedback angle signal (its factor) through which soft limits are watched.
+#: A reading rounds to its grid, so a joint is up to half a step past its limit before it reads
+#: past it, and the soft-limit guard reads the joint's depth in its band from the same reading.
+#: At a tenth of the guard's narrowest band (``GUARD_BAND_MIN`` of
+#: ``handctl/online/recipes/loader.py``, 0.02 rad) that band is ten readings deep, a spring and
+#: not the cliff a narrower band is, and a joint is at most 1 mrad past its limit unseen, a
+#: tenth of the margin the simulated hand starts its joints inside their limits by. A DBC of
+#: 1 rad steps passed check, and a run logged a joint 0.3 rad past its limit as on it.
+MAX_ANGLE_RESOLUTION_RAD = 0.002
 
 
 def check_wire_limits(hand: HandConfig, protocol: Protocol) -> None:
@@ -58,6 +69,7 @@ def check_wire_limits(hand: HandConfig, protocol: Protocol) -> None:
             check = _JointCheck(hand, f"fingers[{i}].joints[{k}]", joint)
             check.torque_limits(command.name, command.signals[k])
             check.reading(feedback.name, feedback.signals[k])
+            _check_angle_resolution(protocol, feedback.name, feedback.signals[per_node + k], joint)
             check.angles(feedback.name, feedback.signals[per_node + k])
             check.rate(command.name, command.signals[k], hand.bus.loop_rate_hz)
 
@@ -71,6 +83,20 @@ def _check_zero(protocol: Protocol, message: str, signal: SignalSpec) -> None:
             "a factor and an offset that carry 0 N·m exactly (the offset a multiple of the "
             "factor): a stop sends zero torque, not the nearest value to it",
             f"factor {signal.scale:g}, offset {signal.offset:g}",
+        )
+
+
+def _check_angle_resolution(
+    protocol: Protocol, message: str, signal: SignalSpec, joint: JointConfig
+) -> None:
+    # a DBC's property, not the joint's: named in the DBC, as the zero of the command signal
+    if signal.scale > MAX_ANGLE_RESOLUTION_RAD * (1 + 1e-9):
+        raise ConfigError(
+            protocol.source,
+            f"{message}.{signal.name}",
+            f"a factor of at most {MAX_ANGLE_RESOLUTION_RAD:g} rad ({joint.name}'s angle): a "
+            "coarser reading shows a joint past its soft limit as still on it",
+            Description(f"factor {signal.scale:g}"),
         )
 
 

@@ -725,6 +725,47 @@ def test_an_angle_limit_the_feedback_signal_cannot_show_crossed_is_refused(
     assert getattr(load_hand(write(tmp_path, base)).fingers[1].joints[2], key) == inside
 
 
+def angle_factor_dbc(tmp_path: Path, factor: float) -> Path:
+    """The packaged DBC with every feedback angle in steps of ``factor`` rad (16 bits)."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    old = '(0.0001,0) [-3.2768|3.2767] "rad"'
+    assert text.count(old) == 9
+    path = tmp_path / "angles.dbc"
+    new = f'({factor:g},0) [{-32768 * factor:.6f}|{32767 * factor:.6f}] "rad"'
+    path.write_text(text.replace(old, new), encoding="cp1252")
+    return path
+
+
+@pytest.mark.parametrize(("factor", "ok"), [(1.0, False), (0.0025, False), (0.002, True)])
+def test_an_angle_signal_too_coarse_to_show_a_joint_past_its_limit_is_refused(
+    tmp_path: Path, factor: float, ok: bool
+) -> None:
+    """At 1 rad a step check said ok, and a run logged f1_j3 at 2.0 rad while it was past its
+    2.3 rad soft limit: no ANGLE_LIMIT came (found by an outside audit)."""
+    path = angle_factor_dbc(tmp_path, factor)
+    if ok:
+        assert load_hand(HAND_YAML, path).fingers[0].joints[0].angle_max == 1.9
+        return
+    with pytest.raises(ConfigError) as info:
+        load_hand(HAND_YAML, path)
+    assert info.value.file == str(path) and info.value.key == "Feedback_1.Angle1"
+    assert "a factor of at most 0.002 rad (f1_j1's angle)" in info.value.expected
+    assert str(info.value).endswith(f"found factor {factor:g}")
+    result = handctl("check", str(HAND_YAML), "--dbc", str(path))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"{path}: Feedback_1.Angle1: expected a factor of at most 0.002 rad" in result.stderr
+
+
+def test_the_coarsest_angle_reading_resolves_the_guard_s_narrowest_band() -> None:
+    """The bound's reason (``MAX_ANGLE_RESOLUTION_RAD``), held to the numbers it is made of."""
+    from handctl.online.recipes.loader import GUARD_BAND_MIN
+    from handctl.sim.params import START_MARGIN
+    from handctl.wirelimits import MAX_ANGLE_RESOLUTION_RAD
+
+    assert MAX_ANGLE_RESOLUTION_RAD <= GUARD_BAND_MIN / 10
+    assert MAX_ANGLE_RESOLUTION_RAD / 2 <= START_MARGIN / 10
+
+
 @pytest.mark.parametrize(
     ("loop_rate_hz", "rate_limit", "ok"),
     [
