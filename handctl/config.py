@@ -20,7 +20,14 @@ from types import MappingProxyType
 from typing import Any
 
 from handctl.convention import PART_NAME, PART_NAME_RULE
-from handctl.hand_protocol import MAX_JOINTS, NODE_IDS, check_protocol, frame_ids, protocol_for
+from handctl.hand_protocol import (
+    ESTOP_ID,
+    MAX_JOINTS,
+    NODE_IDS,
+    check_protocol,
+    frame_ids,
+    protocol_for,
+)
 from handctl.protocol import (
     COMMAND_WATCHDOG_S,
     FEEDBACK_PERIOD_S,
@@ -36,8 +43,6 @@ from handctl.wirelimits import check_wire_limits
 
 #: Highest standard (11-bit) CAN identifier; handctl uses only standard ids.
 MAX_STANDARD_ID = 0x7FF
-#: Identifier of the e-stop frame (fixed in the DBC: the highest priority on the bus).
-ESTOP_ID = 0x000
 #: m, the shortest link: a shorter one is a point, not a link (MuJoCo refuses a link of
 #: 1e-12 m as "fromto points too close", and the estimator's cage has no side there)
 MIN_LINK_LENGTH = 0.001

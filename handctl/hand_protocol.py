@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from handctl.busload import PROTOCOL_CYCLE_MS, PROTOCOL_SEND, fd_dlc_size
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, Description
 from handctl.protocol import (
     STATUS_VERSION_BYTE,
     Layout,
@@ -72,6 +72,9 @@ CAN_ID_KEYS = {
     "Status": "status",
     "Heartbeat": "heartbeat",
 }
+#: The e-stop frame's identifier: the highest priority on the bus, and the one every node acts
+#: on whatever the frame holds (firmware_protocol/PROTOCOL.md, *E-stop*).
+ESTOP_ID = 0x000
 ESTOP_DATA_ID = 0x0F00
 _NUMBERS = ("one", "two", "three", "four", "five", "six")
 _TORQUE = '(0.0001,0) [-3.2768|3.2767] "N.m"'
@@ -130,7 +133,7 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
         f"BU_: HOST {' '.join(fingers)}",
         "",
     ]
-    out += _message(0, "EStop", 3, "HOST", everyone, [("Reason", 16, 8, False, _BYTE)])
+    out += _message(ESTOP_ID, "EStop", 3, "HOST", everyone, [("Reason", 16, 8, False, _BYTE)])
     for kind in ("NodeCommand", "TorqueCommand", "Feedback", "Status", "Heartbeat"):
         for node_id, joints in nodes:
             out += _node_message(kind, node_id, joints)
@@ -150,7 +153,7 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
             f'{"s" if joints > 1 else ""}, {k} encoder{"s" if joints > 1 else ""}.";'
         )
     out.append(
-        'CM_ BO_ 0 "Emergency stop: every node zeroes torque and latches FAULT(ESTOP). '
+        f'CM_ BO_ {ESTOP_ID} "Emergency stop: every node zeroes torque and latches FAULT(ESTOP). '
         'Honoured even with a bad CRC or counter.";'
     )
     comments = {
@@ -179,7 +182,7 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
         'BA_DEF_DEF_  "DataID" 0;',
         'BA_DEF_DEF_  "HandctlSend" "event";',
         'BA_ "BusType" "CAN FD";',
-        f'BA_ "DataID" BO_ 0 {ESTOP_DATA_ID};',
+        f'BA_ "DataID" BO_ {ESTOP_ID} {ESTOP_DATA_ID};',
     ]
     cycle = PROTOCOL_CYCLE_MS
     # HandctlSend: 1 "loop" (the host's loop period), 2 "cyclic" (GenMsgCycleTime). A node
@@ -195,10 +198,10 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
         out += [
             f'BA_ "GenMsgCycleTime" BO_ {ID_BASES[k] + node_id} {ms};' for k, ms in cycle.items()
         ]
-    out.append('BA_ "VFrameFormat" BO_ 0 14;')
+    out.append(f'BA_ "VFrameFormat" BO_ {ESTOP_ID} 14;')
     for node_id, _ in nodes:
         out += [f'BA_ "HandctlSend" BO_ {ID_BASES[k] + node_id} {v};' for k, v in send.items()]
-    out.append('VAL_ 0 Reason 1 "operator" 2 "host_safety" 3 "host_shutdown" ;')
+    out.append(f'VAL_ {ESTOP_ID} Reason 1 "operator" 2 "host_safety" 3 "host_shutdown" ;')
     for node_id, _ in nodes:
         out.append(
             f'VAL_ {ID_BASES["NodeCommand"] + node_id} Command 1 "enable" 2 "disable" '
@@ -325,6 +328,16 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
             "EStop",
             "an EStop message of one signal, Reason",
             "none" if estop is None else ", ".join(estop.signal_names),
+        )
+    if estop.frame_id != ESTOP_ID:
+        # the host sends its e-stop on the DBC's id: on 0x7F0 it lost arbitration to every
+        # frame of the hand, and nodes, which act on 0x000 only, ignored it
+        raise ConfigError(
+            protocol.source,
+            "EStop id",
+            f"0x{ESTOP_ID:03X} (the id every node acts on, the highest priority on the bus: "
+            "firmware_protocol/PROTOCOL.md, E-stop)",
+            Description(f"0x{estop.frame_id:03X}"),
         )
     for i, finger in enumerate(hand.fingers):
         where = f"fingers[{i}]"

@@ -22,9 +22,9 @@ from typing import Any, Protocol
 import orjson
 from foxglove.messages import FrameTransforms, Log, LogLevel, SceneUpdate
 
-from handctl.config import CAN_ID_KINDS, ESTOP_ID, HandConfig, parse_hand
+from handctl.config import CAN_ID_KINDS, HandConfig, parse_hand
 from handctl.foxglove.scene import DEFAULT_OBJECT_LENGTH, HandScene, ObjectShape, timestamp
-from handctl.hand_protocol import protocol_for
+from handctl.hand_protocol import ESTOP_ID, protocol_for
 from handctl.online.estimator import ObjectEstimator
 from handctl.protocol import Layout, parse_protocol
 from handctl.protocol import Protocol as Wire

@@ -238,3 +238,29 @@ def test_a_given_dbc_whose_units_are_not_the_host_s_is_refused(
     assert err.value.file == str(dbc)
     assert "(what the host reads it in; firmware_protocol/PROTOCOL.md)" in err.value.expected
     assert err.value.found == new.split('"')[1]
+
+
+@pytest.mark.parametrize("frame_id", [0x7F0, 0x005])
+def test_a_given_dbc_must_keep_the_estop_on_its_fixed_id(
+    hand: HandConfig, tmp_path: Path, frame_id: int
+) -> None:
+    """An EStop moved to 0x7F0 passed check, and the host sent its e-stop there: behind every
+    frame of the hand in arbitration, and ignored by nodes that act on 0x000 (found by an
+    outside audit)."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    for old in (
+        "BO_ 0 EStop:",
+        "CM_ BO_ 0 ",
+        'BA_ "DataID" BO_ 0 ',
+        'BA_ "VFrameFormat" BO_ 0 ',
+        "VAL_ 0 ",
+    ):
+        assert old in text
+        text = text.replace(old, old.replace(" 0", f" {frame_id}", 1))
+    dbc = tmp_path / "estop.dbc"
+    dbc.write_text(text, encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, dbc)
+    assert err.value.file == str(dbc) and err.value.key == "EStop id"
+    assert err.value.expected.startswith("0x000 ")
+    assert str(err.value).endswith(f"found 0x{frame_id:03X}")
