@@ -31,8 +31,11 @@ from typing import TYPE_CHECKING
 from handctl.busload import PROTOCOL_CYCLE_MS, PROTOCOL_SEND, fd_dlc_size
 from handctl.errors import ConfigError, Description
 from handctl.protocol import (
+    ESTOP_REASONS,
+    NODE_COMMANDS,
     STATUS_VERSION_BYTE,
     Layout,
+    NodeState,
     Protocol,
     crc8,
     load_protocol,
@@ -80,7 +83,7 @@ _NUMBERS = ("one", "two", "three", "four", "five", "six")
 _TORQUE = '(0.0001,0) [-3.2768|3.2767] "N.m"'
 _ANGLE = '(0.0001,0) [-3.2768|3.2767] "rad"'
 _BYTE = '(1,0) [0|255] ""'
-_STATE_CHOICES = '0 "DISABLED" 1 "ENABLED" 2 "FAULT"'
+_STATE_CHOICES = " ".join(f'{s.value} "{s.name}"' for s in NodeState)
 _STATUS_SIGNALS = (
     ("State", '""'),
     ("FaultBits", '""'),
@@ -201,17 +204,18 @@ def generate_dbc(shape: Iterable[tuple[int, int]]) -> str:
     out.append(f'BA_ "VFrameFormat" BO_ {ESTOP_ID} 14;')
     for node_id, _ in nodes:
         out += [f'BA_ "HandctlSend" BO_ {ID_BASES[k] + node_id} {v};' for k, v in send.items()]
-    out.append(f'VAL_ {ESTOP_ID} Reason 1 "operator" 2 "host_safety" 3 "host_shutdown" ;')
+    out.append(f"VAL_ {ESTOP_ID} Reason {_choices(ESTOP_REASONS)} ;")
     for node_id, _ in nodes:
-        out.append(
-            f'VAL_ {ID_BASES["NodeCommand"] + node_id} Command 1 "enable" 2 "disable" '
-            '3 "fault_reset" ;'
-        )
+        out.append(f"VAL_ {ID_BASES['NodeCommand'] + node_id} Command {_choices(NODE_COMMANDS)} ;")
         out += [
             f"VAL_ {ID_BASES[k] + node_id} State {_STATE_CHOICES} ;"
             for k in ("Feedback", "Status", "Heartbeat")
         ]
     return "\n".join(out) + "\n"
+
+
+def _choices(values: dict[str, int]) -> str:
+    return " ".join(f'{value} "{name}"' for name, value in values.items())
 
 
 Signal = tuple[str, int, int, bool, str]  # name, start bit, bits, signed, "(scale,offset) ..."
@@ -339,6 +343,7 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
             "firmware_protocol/PROTOCOL.md, E-stop)",
             Description(f"0x{estop.frame_id:03X}"),
         )
+    _check_enumerated(protocol, estop)
     for i, finger in enumerate(hand.fingers):
         where = f"fingers[{i}]"
         for kind, key in CAN_ID_KEYS.items():
@@ -389,6 +394,7 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
                     ", ".join(layout.signal_names),
                 )
             _check_units(protocol, layout)
+            _check_enumerated(protocol, layout)
         _check_version_signal(protocol, protocol.by_name[f"Status_{finger.node_id}"])
 
 
@@ -409,6 +415,40 @@ def _check_units(protocol: Protocol, layout: Layout) -> None:
                     "firmware_protocol/PROTOCOL.md)",
                     sig.unit,
                 )
+
+
+#: Per signal name, the values the protocol defines for a signal that carries a number as it
+#: is, and what they are (firmware_protocol/PROTOCOL.md). The FaultBits' reserved bits too: a
+#: node that sets one is named (``online/drivers/finger.py``).
+ENUMERATED_SIGNALS = {
+    "State": (int(min(NodeState)), int(max(NodeState)), "the node states"),
+    "FaultBits": (0, 0xFF, "every bit of the fault bits, the reserved ones too"),
+    "Command": (min(NODE_COMMANDS.values()), max(NODE_COMMANDS.values()), "the node commands"),
+    "Reason": (min(ESTOP_REASONS.values()), max(ESTOP_REASONS.values()), "the e-stop reasons"),
+}
+
+
+def _check_enumerated(protocol: Protocol, layout: Layout) -> None:
+    """A state, a command, a reason or fault bits travel as the number they are: scale 1,
+    offset 0, and a range that holds every value the protocol defines. A State of offset -1
+    read a node in FAULT (2) as ENABLED (1); a Command of range 0..1 stopped a run in its
+    start, unable to encode a disable (2), with no file named."""
+    for sig in layout.signals:
+        if sig.name not in ENUMERATED_SIGNALS:
+            continue
+        low, high, what = ENUMERATED_SIGNALS[sig.name]
+        carried = sig.carried_range()
+        if sig.scale == 1 and sig.offset == 0 and carried[0] <= low and high <= carried[1]:
+            continue
+        raise ConfigError(
+            protocol.source,
+            f"{layout.name}.{sig.name}",
+            f"scale 1, offset 0 and a range that holds {low}..{high} ({what}: "
+            "firmware_protocol/PROTOCOL.md)",
+            Description(
+                f"scale {sig.scale:g}, offset {sig.offset:g}, range {carried[0]:g}..{carried[1]:g}"
+            ),
+        )
 
 
 def _check_version_signal(protocol: Protocol, status: Layout) -> None:

@@ -106,6 +106,8 @@ def slowest_loop_rate_hz() -> float:
 
 #: ``Command`` values of NodeCommand frames.
 NODE_COMMANDS = {"enable": 1, "disable": 2, "fault_reset": 3}
+#: ``Reason`` values of EStop frames.
+ESTOP_REASONS = {"operator": 1, "host_safety": 2, "host_shutdown": 3}
 
 
 def _crc_table() -> tuple[int, ...]:

@@ -16,7 +16,7 @@ from handctl.errors import ConfigError
 from handctl.hand_protocol import generate_dbc, generated_protocol, protocol_for
 from handctl.protocol import DEFAULT_DBC, FD_DLC_SIZES, Protocol, load_protocol
 
-from ..conftest import ROOT
+from ..conftest import ROOT, handctl
 from ..shapes import shaped_hand
 
 VECTORS = ROOT / "firmware_protocol" / "vectors.json"
@@ -264,3 +264,45 @@ def test_a_given_dbc_must_keep_the_estop_on_its_fixed_id(
     assert err.value.file == str(dbc) and err.value.key == "EStop id"
     assert err.value.expected.startswith("0x000 ")
     assert str(err.value).endswith(f"found 0x{frame_id:03X}")
+
+
+_STATE = ' SG_ State : 112|8@1+ (1,0) [0|255] "" HOST'
+_FAULT_BITS = ' SG_ FaultBits : 120|8@1+ (1,0) [0|255] "" HOST'
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "key"),
+    [
+        # a node in FAULT (2) read as ENABLED (1)
+        (_STATE, "8@1+ (1,-1) [-1|254]", "Feedback_1.State"),
+        (_STATE, "8@1+ (1,0) [0|1]", "Feedback_1.State"),
+        (' SG_ State : 16|8@1+ (1,0) [0|255] "" HOST', "8@1+ (2,0) [0|510]", "Status_1.State"),
+        (_FAULT_BITS, "8@1+ (0.5,0) [0|127.5]", "Feedback_1.FaultBits"),
+        (_FAULT_BITS, "8@1- (1,0) [-128|127]", "Feedback_1.FaultBits"),
+        # a run's disable (2) could not be encoded: exit 1 in its start, no file named
+        (
+            ' SG_ Command : 16|8@1+ (1,0) [0|255] "" FINGER1',
+            "8@1+ (1,0) [0|1]",
+            "NodeCommand_1.Command",
+        ),
+        (' SG_ Reason : 16|8@1+ (1,0) [0|255] "" FINGER1', "8@1+ (1,0) [0|2]", "EStop.Reason"),
+    ],
+)
+def test_a_given_dbc_must_carry_states_commands_reasons_and_fault_bits_as_they_are(
+    hand: HandConfig, tmp_path: Path, old: str, new: str, key: str
+) -> None:
+    """These signals were never held to scale 1, offset 0 and a range of every value the
+    protocol defines, as ProtocolVersion is (found by an outside audit)."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    assert old in text
+    dbc = tmp_path / "enumerated.dbc"
+    dbc.write_text(text.replace(old, old.replace("8@1+ (1,0) [0|255]", new), 1), encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, dbc)
+    assert err.value.file == str(dbc) and err.value.key == key
+    assert err.value.expected.startswith("scale 1, offset 0 and a range that holds ")
+    lo, hi = new.split("[")[1].rstrip("]").split("|")
+    assert str(err.value.found).endswith(f"range {float(lo):g}..{float(hi):g}")
+    result = handctl("check", "--dbc", str(dbc))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"{dbc}: {key}: expected scale 1, offset 0" in result.stderr
