@@ -37,6 +37,8 @@ logging.getLogger("cantools").addHandler(logging.NullHandler())
 
 DEFAULT_DBC = Path(__file__).resolve().parent.parent / "firmware_protocol" / "handctl.dbc"
 
+#: The largest DataID: 16 bits, low byte then high byte at the start of every CRC.
+MAX_DATA_ID = 0xFFFF
 CRC8_POLY = 0x2F
 CRC8_INIT = 0xFF
 CRC8_XOR_OUT = 0xFF
@@ -537,13 +539,22 @@ def _compile(message: Any, source: str, send_choices: list[str]) -> Layout:
     attrs = message.dbc.attributes if message.dbc else {}
     if "DataID" not in attrs:
         raise ConfigError(source, f"{where}.DataID", "a DataID attribute", "none")
+    data_id = attrs["DataID"].value
+    if not isinstance(data_id, int) or not 0 <= data_id <= MAX_DATA_ID:
+        # the CRC starts with the DataID's two bytes: 99999 or -1 was a traceback there
+        raise ConfigError(
+            source,
+            f"{where}.DataID",
+            f"a whole number 0..{MAX_DATA_ID} (16 bits, the two bytes the CRC starts with)",
+            data_id,
+        )
     send_attr = attrs.get("HandctlSend")
     send = send_choices[send_attr.value] if send_attr is not None else "event"
     return Layout(
         message.name,
         message.frame_id,
         message.length,
-        int(attrs["DataID"].value),
+        data_id,
         send,
         message.cycle_time,
         tuple(specs),

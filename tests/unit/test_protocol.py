@@ -230,3 +230,12 @@ def test_two_messages_on_one_id_are_said_as_such(
     assert err.key == "Feedback_1 id" and err.expected == "a CAN id not used by EStop"
     assert "found 0x000, EStop's" in str(err)
     assert capfd.readouterr().err == ""
+
+
+@pytest.mark.parametrize("data_id", ["99999", "-1"])
+def test_a_data_id_beyond_16_bits_is_refused(tmp_path: Path, data_id: str) -> None:
+    """The CRC starts with the DataID's two bytes: 99999 or -1 was a traceback there ("bytes
+    must be in range(0, 256)", exit 1) (found by an outside audit)."""
+    err = _refused(tmp_path, 'BA_ "DataID" BO_ 257 4129;', f'BA_ "DataID" BO_ 257 {data_id};')
+    assert err.key == "TorqueCommand_1.DataID" and err.found == int(data_id)
+    assert err.expected.startswith("a whole number 0..65535 ")
