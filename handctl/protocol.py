@@ -18,6 +18,7 @@ them fails loudly instead of producing frames the receivers reject):
 
 from __future__ import annotations
 
+import codecs
 import enum
 import logging
 import math
@@ -395,14 +396,31 @@ def foreign_status_version(layout: Layout, data: bytes) -> int | None:
 def load_protocol(path: str | Path = DEFAULT_DBC) -> Protocol:
     """Compile a DBC file into layouts; cached, since the DBC does not change while we run.
 
-    DBC files are Windows-1252 text by convention (cantools reads them so too)."""
+    DBC files are Windows-1252 text by convention (cantools reads them so too); one that starts
+    with a UTF-8 byte order mark, as some editors save, is UTF-8 by that mark. Read as
+    Windows-1252 the mark was three letters before VERSION, and the file was refused as
+    "Invalid syntax" at a place nothing showed wrong."""
     name = str(path)
     try:
-        text = Path(path).read_text(encoding="cp1252")
+        raw = Path(path).read_bytes()
     except FileNotFoundError:
         raise ConfigError(name, "", "an existing DBC file", "no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
         raise ConfigError(name, "", "a readable DBC file", f"{type(exc).__name__}: {exc}") from None
+    bom = raw.startswith(codecs.BOM_UTF8)
+    skip = len(codecs.BOM_UTF8) if bom else 0
+    try:
+        text = raw[skip:].decode("utf-8" if bom else "cp1252")
+    except UnicodeDecodeError as exc:
+        at = skip + exc.start
+        raise ConfigError(
+            name,
+            "",
+            "UTF-8 text (the file starts with a UTF-8 byte order mark)"
+            if bom
+            else "Windows-1252 text",
+            Description(f"byte 0x{raw[at]:02X} at offset {at}"),
+        ) from None
     return parse_protocol(text, name)
 
 

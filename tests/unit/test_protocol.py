@@ -239,3 +239,24 @@ def test_a_data_id_beyond_16_bits_is_refused(tmp_path: Path, data_id: str) -> No
     err = _refused(tmp_path, 'BA_ "DataID" BO_ 257 4129;', f'BA_ "DataID" BO_ 257 {data_id};')
     assert err.key == "TorqueCommand_1.DataID" and err.found == int(data_id)
     assert err.expected.startswith("a whole number 0..65535 ")
+
+
+def test_a_dbc_with_a_utf8_byte_order_mark_is_read_as_utf8(tmp_path: Path) -> None:
+    """Read as Windows-1252, the mark was three letters before VERSION and the file was refused
+    as 'Invalid syntax ... ï»¿VERSION' (found by an outside audit). By the mark it is UTF-8:
+    a comment's µ reads as one, and the mark is not in the text a recording keeps."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252").replace("every 1 ms", "every 1000 µs", 1)
+    path = tmp_path / "bom.dbc"
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    loaded = load_protocol(path)
+    assert loaded.text == text
+    assert [(x.name, x.data_id) for x in loaded.layouts] == [
+        (x.name, x.data_id) for x in load_protocol(DEFAULT_DBC).layouts
+    ]
+    other = tmp_path / "bom_cp1252.dbc"  # the mark, and then no UTF-8
+    other.write_bytes(b"\xef\xbb\xbf" + text.encode("cp1252"))
+    with pytest.raises(ConfigError) as info:
+        load_protocol(other)
+    assert info.value.expected == "UTF-8 text (the file starts with a UTF-8 byte order mark)"
+    at = 3 + text.encode("cp1252").index(b"\xb5")
+    assert str(info.value).endswith(f"found byte 0xB5 at offset {at}")
