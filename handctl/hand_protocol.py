@@ -372,7 +372,10 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
             wire_joints(feedback.signal_names, "Torque"),
             wire_joints(feedback.signal_names, "Angle"),
         )
-        if carried != n or read != (n, n):
+        # messages of as many signals as n joints have are held name by name below, which
+        # says a joint's signal renamed or out of place as such (not as a count of joints)
+        shaped = len(command.signals) == n and len(feedback.signals) == 2 * n + 2
+        if not shaped and (carried != n or read != (n, n)):
             raise ConfigError(
                 hand.source,
                 f"{where}.joints",
@@ -479,9 +482,11 @@ def _check_version_signal(protocol: Protocol, status: Layout) -> None:
 
 
 def wire_joints(signal_names: Iterable[str], prefix: str) -> int:
-    """How many of ``prefix``1, 2, ... lead ``signal_names`` in a row: a message's joints."""
-    names = [s for s in signal_names if s.startswith(prefix)]
+    """How many of ``prefix``1, 2, ... ``signal_names`` has, in any order: a message's joints.
+    Their order is held after (``check_protocol``): counted in order, Torque2 before Torque1
+    was said as a message of no torques at all."""
+    names = set(signal_names)
     count = 0
-    while count < len(names) and names[count] == f"{prefix}{count + 1}":
+    while f"{prefix}{count + 1}" in names:
         count += 1
     return count

@@ -306,3 +306,30 @@ def test_a_given_dbc_must_carry_states_commands_reasons_and_fault_bits_as_they_a
     result = handctl("check", "--dbc", str(dbc))
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"{dbc}: {key}: expected scale 1, offset 0" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("new", "found"),
+    [
+        (("Torque2", "Torque1"), "Torque2, Torque1, Torque3"),  # swapped in place
+        (("Torq1", "Torque2"), "Torq1, Torque2, Torque3"),  # renamed
+    ],
+)
+def test_a_joint_s_signal_out_of_place_is_said_as_such(
+    hand: HandConfig, tmp_path: Path, new: tuple[str, str], found: str
+) -> None:
+    """The host reads a message's signals by place (joint k is the k-th), so two torques
+    swapped are refused; but as "TorqueCommand_1: 0 torques" of a frame with three, said of
+    the hand config (found by an outside audit)."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    old = (" SG_ Torque1 : 16|16@1- ", " SG_ Torque2 : 32|16@1- ")
+    assert all(line in text for line in old)  # TorqueCommand_1's, the first of each
+    for line, name in zip(old, new, strict=True):
+        text = text.replace(line, line.replace(line.split()[1], name), 1)
+    dbc = tmp_path / "swapped.dbc"
+    dbc.write_text(text, encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, dbc)
+    assert err.value.file == str(dbc) and err.value.key == "TorqueCommand_1"
+    assert err.value.expected.startswith("the signals Torque1, Torque2, Torque3 after Crc")
+    assert err.value.found == found
