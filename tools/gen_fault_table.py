@@ -89,6 +89,16 @@ def _fault_list_section() -> list[str]:
         "bus and take no `node`. Babble on identifier 0 is the e-stop's frame, and the nodes "
         "obey it as one. A mistake is refused before anything starts, naming the key (exit 2).",
         "",
+        "`delay_feedback` is seen by the host only as a gap: when the delay begins, a node's "
+        "Feedback stops for `delay` seconds, and a `delay` longer than the hand's "
+        "`safety.feedback_timeout_s` (5 ms by default) during a run is `FEEDBACK_TIMEOUT` "
+        "(the campaign below: 20 ms, switched on mid-run). What follows cannot be seen: "
+        "Feedback carries no time it was sampled at, only its counter, so frames that each "
+        "arrive `delay` late at the usual 1 ms spacing look fresh to the host. A constant "
+        "delay of any length that began before the run listened (`start: 0`), or one "
+        "shorter than `feedback_timeout_s`, is never detected; the run goes on with feedback "
+        "that old.",
+        "",
     ]
 
 
