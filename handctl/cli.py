@@ -2701,7 +2701,7 @@ def _monitor_log(
     view = BusView(protocol)
     step = round(every * 1e9)
     next_ns: int | None = None
-    for frame_id, data, t_ns in from_log(recording):
+    for frame_id, data, t_ns in from_log(recording, view):
         view.observe(frame_id, data, t_ns)
         next_ns = t_ns + step if next_ns is None else next_ns
         if not on_tty and t_ns >= next_ns:

@@ -93,9 +93,13 @@ class BusView:
     def note_events(self, events: Iterable[BusEvent]) -> None:
         """Count what the bus said besides frames (``HandBus.events``)."""
         for event in events:
-            kind = event.kind.value
-            self.bus_events[kind] += 1
-            self.last_event[kind] = event.detail
+            self.note_event(event.kind.value, event.detail)
+
+    def note_event(self, kind: str, detail: str) -> None:
+        """Count one bus event by its kind's name: a recording keeps the name, not the enum
+        (``/events``, kind ``bus``)."""
+        self.bus_events[kind] += 1
+        self.last_event[kind] = detail
 
     def snapshot(self, now_ns: int | None = None, *, whole: bool = False) -> dict[str, Any]:
         """The view as JSON-ready data; rates are over the time since the previous snapshot,
@@ -280,9 +284,17 @@ def log_protocol(
     return protocol
 
 
-def from_log(recording: Recording) -> Iterable[tuple[int, bytes, int]]:
-    """The raw frames of a recording, both directions, in wire order, on the log's clock."""
-    from handctl.recording.frames import logged_frames
+def from_log(recording: Recording, view: BusView | None = None) -> Iterable[tuple[int, bytes, int]]:
+    """The raw frames of a recording, both directions, in wire order, on the log's clock;
+    ``view`` is told of the bus events the run logged (``/events``, kind ``bus``) where they
+    are in the file, as ``listen`` tells a live view. Frames alone said "no bus events" of a
+    run that stopped on a bus-off."""
+    from handctl.recording import channels as ch
+    from handctl.recording.reader import iter_decoded
 
-    for log_ns, frame_id, data, _ in logged_frames(recording):
-        yield frame_id, data, log_ns
+    for topic, log_ns, msg in iter_decoded(recording, (ch.CAN_RX, ch.CAN_TX, ch.EVENTS)):
+        if topic == ch.EVENTS:
+            if view is not None and msg["kind"] == "bus":
+                view.note_event(str(msg["name"]), str(msg["detail"]))
+        elif topic == ch.CAN_RX or msg.get("ok") is not False:  # a refused one never went
+            yield msg["id"], bytes.fromhex(msg["data"]), log_ns

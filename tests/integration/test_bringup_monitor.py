@@ -297,3 +297,29 @@ def test_an_every_beyond_its_bound_names_the_bound(capsys: pytest.CaptureFixture
     """'expected a value > 0 s, found 1000000.0' contradicted itself: the bound is said."""
     assert cli.main(["monitor", "--bus", "virtual:x", "--every", "1e6"]) == cli.EXIT_BAD_INPUT
     assert "--every: expected a value > 0 and < 1e+06 s, found 1000000.0" in capsys.readouterr().err
+
+
+def test_a_recording_shows_the_bus_events_its_run_logged(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The frames alone said "bus_events: {}" of a run that stopped on a bus-off: a log was not
+    shown as the bus was (found by an outside audit)."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(
+        "recipe: hold\nphases:\n  - {name: hold, torques: [0.02, 0, 0, 0, 0, 0, "
+        "0, 0, 0], ramp_s: 0.1, max_s: 0.5, on_timeout: next}\n"
+    )
+    faults = tmp_path / "faults.yaml"
+    faults.write_text(
+        "faults:\n  - {kind: error_frames, per_tick: 2, start: 0.1, stop: 0.11}\n"
+        "  - {kind: bus_off, start: 0.2}\n"
+    )
+    log = tmp_path / "run.mcap"
+    argv = ["run", "recipe", str(recipe), "--sim-faults", str(faults), "--log", str(log)]
+    assert cli.main([*argv, "--max-seconds", "1"]) == cli.EXIT_SAFETY_STOP
+    capsys.readouterr()
+    assert cli.main(["monitor", "--log", str(log)]) == cli.EXIT_OK
+    snapshot = _last(capsys.readouterr().out)
+    assert snapshot["bus_events"]["bus_off"] >= 1 and snapshot["bus_events"]["error_frame"] > 2
+    assert snapshot["last_event"]["bus_off"]
+    assert "bus events: " in _caption(snapshot) and "bus_off" in _caption(snapshot)
