@@ -784,6 +784,14 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
         f"  {summary['ticks']} ticks, {summary['missed_ticks']} missed, lateness p50 "
         f"{late['p50']} µs p99 {late['p99']} µs max {late['max']} µs"
     )
+    rejected = {k: n for k, n in summary["rejected_frames"].items() if n}
+    if rejected:
+        # in the JSON alone, a run with a second sender on a node's id ended exit 0 saying
+        # nothing: a frame the host rejected is one it never applied, and someone sent it
+        print(
+            "  frames rejected by the host's receive checks (never applied): "
+            + ", ".join(f"{k} {n}" for k, n in rejected.items())
+        )
     host = summary.get("host")
     if host and "error" not in host:
         print(

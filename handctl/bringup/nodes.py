@@ -35,6 +35,9 @@ MIN_FEEDBACK_SHARE = 0.5
 #: Bus events that are the listener's own, not the bus's: a drain that met its limit reads
 #: the rest at the next one.
 LISTENER_EVENTS = frozenset({BusEventKind.RX_BACKLOG.value})
+#: Heartbeat streams of one id kept apart (``_Heard``): a node's own, a second sender's,
+#: and room for a reboot's and a lost frame's restart among them.
+MAX_STREAMS = 4
 
 
 @dataclass
@@ -249,13 +252,21 @@ class _Heard:
         #: the driver took (a node that had been up a short while), and the reboot went
         #: unsaid (``FingerNode.reboots`` counts what the run's driver takes).
         self.reboots = 0
+        #: The Heartbeat streams heard, ``(counter, uptime_ms)`` of each one's last frame,
+        #: the latest last (``MAX_STREAMS``). A frame continues a stream when its counter is
+        #: the next and its uptime no less; one that continues none begins another.
+        self._streams: list[tuple[int, int]] = []
+        #: Heartbeats that continued a stream other than the latest: an earlier stream went
+        #: on beside a newer one, which a reboot never does (its old stream ends). Two
+        #: senders on the id (a second node, a participant sending its own Heartbeat): their
+        #: uptimes alternate, and every other one went back; that was said as a reboot, 6x.
+        self.interleaved = 0
 
     def hear(self, node: FingerNode, frame_id: int, data: bytes) -> None:
         heartbeat = node.layouts.heartbeat
         if frame_id == heartbeat.frame_id and heartbeat.crc_ok(data):
             uptime = int(heartbeat.decode(data)[1][1])
-            if self.uptime_ms is not None and uptime < self.uptime_ms:
-                self.reboots += 1
+            self._stream(data[1], uptime)
             self.uptime_ms = uptime
         if node.state == NodeState.FAULT and self.fault_bits is None:
             self.fault_bits = node.fault_bits
@@ -270,12 +281,35 @@ class _Heard:
                 )
                 return
 
+    def _stream(self, counter: int, uptime: int) -> None:
+        """Which Heartbeat stream a frame continues, and whether it is a reboot's."""
+        streams = self._streams
+        for i in range(len(streams) - 1, -1, -1):
+            last_counter, last_uptime = streams[i]
+            if counter == (last_counter + 1) % 256 and uptime >= last_uptime:
+                if i != len(streams) - 1:
+                    self.interleaved += 1
+                del streams[i]
+                break
+        else:
+            if streams and uptime < streams[-1][1]:
+                self.reboots += 1
+        streams.append((counter, uptime))
+        del streams[:-MAX_STREAMS]
+
     def problems(self, node: FingerNode) -> list[str]:
         said = []
         if self.fault_bits is not None and node.state != NodeState.FAULT:
             bits = ", ".join(fault_names(self.fault_bits)) or "no bits"
             said.append(f"was in FAULT ({bits}) during the survey and left it")
-        if self.reboots:
+        if self.interleaved:
+            said.append(
+                f"two senders on {node.layouts.heartbeat.name} (0x"
+                f"{node.layouts.heartbeat.frame_id:03X}): its uptime and counter alternate "
+                f"between streams ({self.interleaved} frames went back to an earlier one); "
+                "another node or host sends on this node's id"
+            )
+        elif self.reboots:
             said.append(f"rebooted during the survey (its uptime went back, {self.reboots}x)")
         if self.outside:
             said.append(self.outside)

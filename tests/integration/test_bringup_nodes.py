@@ -247,6 +247,25 @@ def test_two_senders_of_one_nodes_frames_are_a_problem(
         assert "frames rejected: counter_" in row["problem"]
 
 
+def test_two_senders_on_a_heartbeat_are_said_as_such_not_as_a_reboot(
+    hand: HandConfig, channel: str
+) -> None:
+    """A second hand started 0.3 s after the first: each node's Heartbeat comes from two
+    senders whose uptimes alternate. Every other one went back, and the survey said each node
+    "rebooted during the survey (its uptime went back, 6x)" (found by an outside audit)."""
+    from handctl.bringup.nodes import survey
+    from handctl.hand_protocol import protocol_for
+
+    spec = f"virtual:{channel}"
+    with running_hand(hand, spec), open_bus(spec, hand.bus) as bus:
+        time.sleep(0.3)
+        with running_hand(hand, spec):
+            found = survey(hand, protocol_for(hand), bus, 0.6)
+    for row in found.rows:
+        assert "rebooted" not in row.problem, row
+        assert f"two senders on Heartbeat_{row.node_id} (0x70{row.node_id}):" in row.problem, row
+
+
 def test_a_bus_with_error_frames_is_a_problem(
     hand: HandConfig, channel: str, capsys: pytest.CaptureFixture[str]
 ) -> None:

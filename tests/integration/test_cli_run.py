@@ -666,3 +666,21 @@ def test_a_stopped_terminal_does_not_stop_the_loop(tmp_path: Path) -> None:
     assert summary["outcome"] == "interrupted"
     nodes = summary["sim"]["nodes"]
     assert all(n["state"] == "DISABLED" and n["fault_bits"] == 0 for n in nodes.values())
+
+
+def test_frames_the_host_rejected_are_in_the_printed_summary(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A run with a second sender on a node's ids ended exit 0 with nothing printed of it: its
+    rejected frames were in the JSON summary alone (found by an outside audit)."""
+    from handctl import cli
+
+    faults = tmp_path / "twin.yaml"
+    faults.write_text("faults:\n  - {kind: extended_twin, node: 2, start: 0.1, stop: 0.15}\n")
+    argv = ["run", "recipe", RECIPE, "--sim-faults", str(faults), "--max-seconds", "0.3"]
+    assert cli.main(argv) == cli.EXIT_OK
+    out = capsys.readouterr().out
+    line = "  frames rejected by the host's receive checks (never applied): extended_id "
+    assert line in out, out
+    assert cli.main(["run", "recipe", RECIPE, "--max-seconds", "0.3"]) == cli.EXIT_OK
+    assert "frames rejected" not in capsys.readouterr().out  # none: nothing said
