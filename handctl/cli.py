@@ -1963,6 +1963,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
     from handctl.bringup.nodes import id_text, survey
     from handctl.bringup.peer import listening_bus
     from handctl.hand_protocol import protocol_for
+    from handctl.online.bus import BusEventKind
 
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     protocol = protocol_for(hand)
@@ -2030,6 +2031,9 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
         )
     if result.bus_events:
         print("  bus events: " + ", ".join(f"{k} {v}" for k, v in result.bus_events.items()))
+        if BusEventKind.REMOTE_FRAME.value in result.last_event:
+            # which id: on 0x000 the nodes take it as an e-stop
+            print(f"    last remote frame: {result.last_event[BusEventKind.REMOTE_FRAME.value]}")
     if result.bus_problem:
         print(f"  problem: {result.bus_problem} (docs/bringup.md, step 2)")
     if result.frames_lost:

@@ -100,6 +100,8 @@ class Survey:
     bus_events: dict[str, int] = field(default_factory=dict)
     #: Frames this listener lost before it read them, as its bus told it (the unix bus does).
     frames_lost: int = 0
+    #: The last detail of each kind of bus event: which id a remote frame was on, say.
+    last_event: dict[str, str] = field(default_factory=dict)
 
     @property
     def bus_problem(self) -> str:
@@ -140,6 +142,7 @@ class Survey:
                 else {}
             ),
             "bus_events": self.bus_events,
+            "last_event": self.last_event,
             "bus_problem": self.bus_problem,
             "frames_lost": self.frames_lost,
         }
@@ -178,6 +181,7 @@ def survey(
     heard = {node.node_id: _Heard() for node in nodes}
     foreign = IdCounts()
     events: Counter[str] = Counter()
+    last_event: dict[str, str] = {}
     bus.use_clock(clock)
     bus.drain(limit=10**6)  # what waited before we listened says nothing of now
     bus.events()
@@ -198,6 +202,7 @@ def survey(
             heard[node.node_id].hear(node, fid, frame.data)
         for event in bus.events():
             events[event.kind.value] += 1
+            last_event[event.kind.value] = event.detail
         now = clock()
         if now >= end:
             break
@@ -226,6 +231,7 @@ def survey(
         foreign.others,
         dict(events),
         lost,
+        last_event,
     )
 
 

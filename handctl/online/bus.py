@@ -18,7 +18,9 @@ stays deterministic.
 
 Identifiers: handctl speaks 11-bit identifiers only. A 29-bit (extended) frame keeps its
 identity: its ``arbitration_id`` carries ``EXTENDED_ID_FLAG`` (SocketCAN's ``CAN_EFF_FLAG``),
-so 0x181 sent as an extended frame is 0x80000181 and is never taken for ``Feedback_1``.
+so 0x181 sent as an extended frame is 0x80000181 and is never taken for ``Feedback_1``. A
+remote frame (RTR) is no data frame: it comes out as a ``REMOTE_FRAME`` event, never a
+``Frame`` of 0 bytes.
 
 Receive budget: a real bus carries only so many frames a loop period (``frames_per_period``
 in ``handctl/busload.py``: 27 on the default 1 Mbit/s CAN-FD bus at 1 kHz, 21 on classic CAN).
@@ -147,6 +149,9 @@ class BusEventKind(enum.Enum):
     RX_FAILED = "rx_failed"
     RX_BACKLOG = "rx_backlog"  # a drain reached its limit with frames still waiting
     FOREIGN_FRAME = "foreign_frame"  # counted by callers; kept here so one enum names them all
+    #: a remote frame (RTR): a request for data, which handctl's protocol has none of; not a
+    #: data frame, so never handed on as a ``Frame`` (``BusEvent.frame_id`` says its id)
+    REMOTE_FRAME = "remote_frame"
 
 
 @dataclass(frozen=True, slots=True)
@@ -154,6 +159,10 @@ class BusEvent:
     kind: BusEventKind
     detail: str
     timestamp_ns: int
+    #: the id of the frame the event is of, as a ``Frame``'s (``EXTENDED_ID_FLAG``), if any:
+    #: a remote frame's, which a peer that takes any frame on an id may act on (the nodes'
+    #: e-stop, PROTOCOL.md)
+    frame_id: int | None = None
 
 
 #: What a frame tap is told about the frames sent (``HandBus.tap``): ``handctl.online.taps``.
@@ -408,9 +417,21 @@ class HandBus:
                         f"{29 if flags & ff.EXTENDED else 11} bits of its format: dropped",
                     )
                     continue
-                self.received += 1
                 if flags & ff.EXTENDED:
                     frame_id |= EXTENDED_ID_FLAG
+                if flags & ff.REMOTE:
+                    # no data: handed on as a frame of 0 bytes it was a data frame, and on
+                    # id 0x000 an EStop of none, logged as a data frame
+                    self._events.append(
+                        BusEvent(
+                            BusEventKind.REMOTE_FRAME,
+                            _remote_text(frame_id),
+                            min(stamp, now),
+                            frame_id,
+                        )
+                    )
+                    continue
+                self.received += 1
                 frames.append(Frame(frame_id, data, min(stamp, now), bool(flags & ff.FD)))
         except (can.CanError, OSError, ValueError) as exc:
             self._event(BusEventKind.RX_FAILED, str(exc))
@@ -644,3 +665,15 @@ def open_bus(
             f"{parsed}: cannot open the bus: {type(exc).__name__}: {escaped(str(exc))}{hint}"
         ) from None
     return HandBus(bus, parsed, bus_config.fd)
+
+
+def _remote_text(frame_id: int) -> str:
+    """What a remote frame is, for its event: by its id as the wire carries it."""
+    if frame_id & EXTENDED_ID_FLAG:
+        wire = f"0x{frame_id & EXTENDED_ID_MASK:08X} (29-bit)"
+    else:
+        wire = f"0x{frame_id:03X}"
+    return (
+        f"a remote frame (RTR) on id {wire}: a request for data, which handctl's protocol has "
+        "none of; not taken as a data frame"
+    )

@@ -14,6 +14,10 @@ BRS = 2  # CAN-FD bit-rate switch
 ERROR = 4  # an error frame: the id is the error class (linux/can/error.h)
 ESI = 8  # CAN-FD error state indicator
 EXTENDED = 16  # a 29-bit identifier
+#: A remote frame (RTR): a request for the frame of its id, with no data. Without this bit it
+#: was carried on as a data frame of 0 bytes, and one on id 0x000 reached the nodes as an
+#: EStop of no data and the log as a data frame.
+REMOTE = 32
 #: Not a frame: a transport's word that what it received was malformed and dropped (the unix
 #: bus: a datagram cut by its buffer, or one whose contents do not parse); the data is the
 #: reason, UTF-8. Only the transport itself sets it: no frame on the wire can carry it.
@@ -30,6 +34,7 @@ def message_fields(flags: int) -> dict[str, bool]:
         "bitrate_switch": bool(flags & BRS),
         "is_error_frame": bool(flags & ERROR),
         "error_state_indicator": bool(flags & ESI),
+        "is_remote_frame": bool(flags & REMOTE),
     }
 
 
@@ -41,6 +46,7 @@ class FlaggedFrame(Protocol):
     is_error_frame: bool
     error_state_indicator: bool
     is_extended_id: bool
+    is_remote_frame: bool
 
 
 def flags_of(msg: FlaggedFrame) -> int:
@@ -51,4 +57,5 @@ def flags_of(msg: FlaggedFrame) -> int:
         | (ERROR if msg.is_error_frame else 0)
         | (ESI if msg.error_state_indicator else 0)
         | (EXTENDED if msg.is_extended_id else 0)
+        | (REMOTE if msg.is_remote_frame else 0)
     )

@@ -54,7 +54,7 @@ _LOST_MARK = 0x80
 #: The flag bits a frame on the wire may carry: the CAN ones (``frameflags``, not
 #: ``RX_FAILED``, which is this transport's own word to its ``HandBus``). A wire entry with any
 #: other bit is a ``_LOST_MARK`` or a malformed datagram.
-_CAN_FLAGS = ff.FD | ff.BRS | ff.ERROR | ff.ESI | ff.EXTENDED
+_CAN_FLAGS = ff.FD | ff.BRS | ff.ERROR | ff.ESI | ff.EXTENDED | ff.REMOTE
 _NOT_CAN = 0xFF & ~_CAN_FLAGS
 #: bytes: the receive buffer, a full datagram of a handctl sender: ``_BATCH`` frames of the
 #: longest CAN-FD payload. A longer datagram comes cut short (``MSG_TRUNC``), and is dropped

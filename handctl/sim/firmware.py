@@ -245,6 +245,15 @@ class EmulatedNode:
         if frame_id == self._estop_id:  # stopping is always the safe reading of a bad e-stop
             self._fault(_ESTOP)
 
+    def remote(self, frame_id: int) -> None:
+        """A remote frame (RTR) seen on the bus: it has no data, so it is no command and is
+        not counted as a rejected one (it was taken as a data frame of 0 bytes, a length
+        reject). On id 0x000 it is still an e-stop: PROTOCOL.md has every node obey any frame
+        with that id, whatever it carries (only a 29-bit id 0 is excepted), since stopping is
+        always the safe reading."""
+        if self._down_until is None and frame_id == self._estop_id:
+            self._fault(_ESTOP)
+
     def _new_host_possible(self, now_ns: int) -> bool:
         """Whether a NodeCommand may start a new counter baseline (PROTOCOL.md, "A new host").
 

@@ -41,7 +41,7 @@ import numpy as np
 from handctl.config import HandConfig
 from handctl.errors import ConfigError, escaped
 from handctl.hand_protocol import protocol_for
-from handctl.online.bus import HandBus, open_bus
+from handctl.online.bus import BusEventKind, HandBus, open_bus
 from handctl.online.clock import collector_paused, request_realtime
 from handctl.online.timerfd import PeriodicTimer
 from handctl.protocol import NodeState
@@ -176,6 +176,10 @@ class SimulatedHand:
         events = bus.events()
         if events:
             self.bus_events += len(events)
+            for event in events:
+                if event.kind is BusEventKind.REMOTE_FRAME and event.frame_id is not None:
+                    for node in nodes:
+                        node.remote(event.frame_id)
         applied: list[float] = []
         for node, a, b in self._node_slices:
             node.update(now)

@@ -21,7 +21,9 @@ import yaml
 from handctl import cli
 from handctl.config import HandConfig
 from handctl.online.bus import open_bus
+from handctl.protocol import NodeState
 from handctl.sim import faults as inj
+from handctl.sim.firmware import FaultBits
 from handctl.sim.hand import SimulatedHand
 
 from ..conftest import HAND_YAML, ROOT
@@ -327,6 +329,56 @@ def _nodes_beside_a_sender(
         if sender.is_alive():
             sender.join()
         other.close()
+
+
+def test_a_remote_frame_is_named_as_one_and_is_no_command_to_the_nodes(
+    hand: HandConfig, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Remote frames (RTR) from a python-can program on the unix bus: they reached the nodes
+    and the survey as data frames of 0 bytes, the survey said "NodeCommand_1: sent by another
+    host", and the nodes counted length rejects (found by an outside audit). Now they are
+    named as remote frames, and no node takes one as a frame of its protocol; on id 0x000
+    every node still stops (PROTOCOL.md: any frame with that id is an e-stop)."""
+    import can
+
+    channel = tmp_path / "bus"
+    spec = f"unix:{channel}"
+    stop = threading.Event()
+
+    def send(theirs: can.BusABC) -> None:
+        while not stop.is_set():
+            for frame_id in (0x011, 0x101):  # NodeCommand_1, TorqueCommand_1
+                theirs.send(
+                    can.Message(arbitration_id=frame_id, is_remote_frame=True, is_extended_id=False)
+                )
+            time.sleep(0.01)
+
+    with (
+        running_hand(hand, spec) as sim,
+        can.Bus(interface="unix", channel=str(channel)) as theirs,
+    ):
+        sender = threading.Thread(target=send, args=(theirs,))
+        sender.start()
+        try:
+            code, report = _nodes(capsys, "--bus", spec)
+        finally:
+            stop.set()
+            sender.join()
+        node = sim.nodes[0]
+        assert node.reject_length == 0 and node.state == NodeState.DISABLED
+        theirs.send(can.Message(arbitration_id=0x000, is_remote_frame=True, is_extended_id=False))
+        for _ in range(500):
+            if node.state == NodeState.FAULT:
+                break
+            time.sleep(0.01)
+        assert all(n.state == NodeState.FAULT for n in sim.nodes)
+        assert all(n.fault_bits == FaultBits.ESTOP for n in sim.nodes)
+    assert code == cli.EXIT_FAILED and not report["ok"]
+    assert report["foreign_ids"] == []  # no "NodeCommand_1: sent by another host"
+    assert report["bus_events"]["remote_frame"] > 10
+    assert "a remote frame (RTR) on id 0x" in report["last_event"]["remote_frame"]
+    assert "bus events: remote_frame " in report["bus_problem"]
+    assert all(row["host_rejects"] == {} for row in report["nodes"])
 
 
 def test_a_flood_of_ids_is_counted_in_a_bounded_table(

@@ -163,6 +163,25 @@ def test_an_extended_id_twin_of_feedback_is_rejected_and_counted(
     assert driver.poll().angle[0] == pytest.approx(0.3)
 
 
+def test_a_remote_frame_is_no_data_frame_and_on_a_command_id_is_another_sender(
+    driver: HandDriver, protocol: Protocol, channel: str
+) -> None:
+    """A remote frame (RTR) came out of the bus as a data frame of 0 bytes (found by an
+    outside audit). It is no node's frame now, but still counted, and on a node's command id
+    another sender (safety.md row 45), as a data frame there is."""
+    import can
+
+    with can.Bus(interface="virtual", channel=channel) as other:
+        other.send(can.Message(arbitration_id=0x181, is_remote_frame=True, is_extended_id=False))
+        other.send(can.Message(arbitration_id=0x101, is_remote_frame=True, is_extended_id=False))
+        driver.poll()
+    assert driver.nodes[0].rejects.as_dict()["length"] == 0  # not a Feedback_1 of 0 bytes
+    assert driver.reject_counts()["unexpected_id"] == 2
+    assert [e.kind for e in driver.take_bus_events()] == [BusEventKind.REMOTE_FRAME] * 2
+    said = driver.nodes[0].foreign_command
+    assert said.startswith("another sender on this host's TorqueCommand id 0x101 (a remote frame")
+
+
 def test_the_unix_bus_carries_the_extended_flag(hand: HandConfig, tmp_path: Path) -> None:
     with (
         open_bus(f"unix:{tmp_path / 'bus'}", hand.bus) as rx,

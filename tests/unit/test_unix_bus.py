@@ -252,6 +252,52 @@ def test_python_can_opens_the_unix_bus_by_its_interface_name(tmp_path: Path) -> 
     ]
 
 
+def test_a_remote_frame_stays_one_on_the_unix_bus_and_is_no_data_frame_to_handbus(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A remote frame (RTR) lost its flag on the unix bus's wire and reached every receiver as
+    a data frame of 0 bytes: on id 0x000 an EStop of no data, logged as one (found by an
+    outside audit). It stays a remote frame, and ``HandBus`` says it as an event, never as a
+    ``Frame``."""
+    channel = tmp_path / "bus"
+    with (
+        can.Bus(interface="unix", channel=str(channel)) as theirs,
+        can.Bus(interface="unix", channel=str(channel)) as listener,
+        open_bus(f"unix:{channel}", hand.bus) as ours,
+    ):
+        for frame_id, extended in ((0x000, False), (0x181, False), (0x12345, True)):
+            theirs.send(
+                can.Message(
+                    arbitration_id=frame_id,
+                    is_remote_frame=True,
+                    is_extended_id=extended,
+                    is_fd=False,
+                )
+            )
+        heard = [listener.recv(timeout=5.0) for _ in range(3)]
+        frames: list[Frame] = []
+        events = []
+        for _ in range(50):
+            frames += ours.drain()
+            events += ours.events()
+            if len(events) == 3:
+                break
+            time.sleep(0.01)
+    assert [(m.arbitration_id, m.is_remote_frame) for m in heard if m is not None] == [
+        (0x000, True),
+        (0x181, True),
+        (0x12345, True),
+    ]
+    assert frames == []
+    assert [(e.kind, e.frame_id) for e in events] == [
+        (BusEventKind.REMOTE_FRAME, 0x000),
+        (BusEventKind.REMOTE_FRAME, 0x181),
+        (BusEventKind.REMOTE_FRAME, 0x12345 | EXTENDED_ID_FLAG),
+    ]
+    assert events[0].detail.startswith("a remote frame (RTR) on id 0x000: ")
+    assert "on id 0x00012345 (29-bit)" in events[2].detail
+
+
 def test_handbus_frames_cross_to_and_from_python_can_unchanged(
     hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

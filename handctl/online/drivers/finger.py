@@ -392,16 +392,20 @@ class FingerNode:
         if not self.contradiction:
             self.contradiction = problem
 
-    def heard_command(self, frame_id: int, data: bytes) -> None:
+    def heard_command(self, frame_id: int, data: bytes | None) -> None:
         """A frame on one of this node's command identifiers, heard by the host: another
         sender is commanding the node (a second host, a bring-up tool left running, a forged
-        frame). Never applied, as any unexpected frame; remembered for the supervisor."""
+        frame). Never applied, as any unexpected frame; remembered for the supervisor.
+        ``data`` None: a remote frame (RTR), no command, but another sender on the id."""
         self.foreign_commands += 1
         if not self.foreign_command:
             name = "TorqueCommand" if frame_id == self.layouts.command.frame_id else "NodeCommand"
+            what = (
+                "a remote frame (RTR)" if data is None else f"{len(data)} bytes: {data[:16].hex()}"
+            )
             self.foreign_command = (
                 f"another sender on this host's {name} id 0x{frame_id:03X} "
-                f"({len(data)} bytes: {data[:16].hex()}): a second host or a forged command, "
+                f"({what}): a second host or a forged command, "
                 "which the node may obey instead of this host"
             )
 

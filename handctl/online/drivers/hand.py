@@ -156,6 +156,9 @@ class HandDriver:
         events = self.bus.events()
         if events:
             self.bus_events.extend(events)
+            for event in events:
+                if event.kind is BusEventKind.REMOTE_FRAME and event.frame_id is not None:
+                    self._heard_remote(event.frame_id)
         state = self.state
         folded = self._folded
         node_state, node_faults = state.node_state, state.node_faults
@@ -172,6 +175,17 @@ class HandDriver:
         np.multiply(self._tdt_raw, self._tdt_scale, out=state.tdt)
         state.tdt += self._tdt_offset
         return state
+
+    def _heard_remote(self, frame_id: int) -> None:
+        """A remote frame (RTR): no data frame, so never a node's (the bus hands it on as an
+        event, not a ``Frame``), but a frame on its id all the same: counted as an unexpected
+        one, and on a node's command id another sender on it, as a data frame there is."""
+        self.unexpected.add(
+            Reject.EXTENDED_ID if frame_id & EXTENDED_ID_FLAG else Reject.UNEXPECTED_ID
+        )
+        owner = self._command_owner.get(frame_id)
+        if owner is not None:
+            owner.heard_command(frame_id, None)
 
     def drain_budget(self, now_ns: int) -> int:
         """Frames the poll at ``now_ns`` may drain: what the bus can carry since the previous
