@@ -394,6 +394,7 @@ class Recorder:
         "_ctl_w",
         "_ready_r",
         "_ready",
+        "_start_failed",
         "closed",
         "layout",
         "path",
@@ -456,6 +457,8 @@ class Recorder:
             os.close(self._log_fd)
             raise
         self._ready = False
+        #: the writer was ended before it said it was ready (``wait_ready``): it wrote nothing
+        self._start_failed = False
         self.closed = False
         self.stats: dict[str, Any] = {}
         # Loop-side cursors: the head is ours; the tail is the writer's, re-read only when the
@@ -682,6 +685,7 @@ class Recorder:
         ready, _, _ = select.select([self._ready_r], [], [], timeout_s)
         answer = os.read(self._ready_r, 1) if ready else b""
         if answer != b"R":
+            self._start_failed = True
             self.process.kill()
             _, err = self.process.communicate(timeout=10)
             if self.process.returncode == LIVE_REFUSED:
@@ -1350,13 +1354,7 @@ class Recorder:
             self.stats["writer_notes"] = said
         self.stats["writer_exit"] = self.process.returncode
         lost = ""
-        beside = self._beside
-        if beside is not None and not beside.claimed and (not beside.created or self._path_taken()):
-            # the run never began: the log there before stays, and so does a file put there
-            # while it started
-            self._drop_beside()
-            self.stats["previous_kept"] = not beside.created
-        else:
+        if not self._left_unclaimed():
             try:
                 self.claim()  # a path that named nothing gets what the writer wrote
             except HandctlError as exc:
@@ -1369,6 +1367,27 @@ class Recorder:
         if problem:
             raise HandctlError(f"{self.path}: {problem}")
         return self.stats
+
+    def _left_unclaimed(self) -> bool:
+        """Whether the run never began and its path was left as it was (the recording
+        beside it removed); False: the path is the run's to claim."""
+        beside = self._beside
+        if beside is None or beside.claimed:
+            return False
+        never_written = self._start_failed and beside.created
+        if beside.created and not never_written and not self._path_taken():
+            return False  # a path that named nothing gets what the writer wrote
+        # The log there before stays, and so does a file put there while the run started.
+        # A path that named nothing keeps naming nothing when the writer never started (a
+        # live port another program took): the empty file made to hold it was put there,
+        # 0 bytes, under "the log is as it was" (found by an outside audit). Unlinked while
+        # the lock is still held, as in ``__init__``.
+        if never_written and not self._path_taken():
+            with contextlib.suppress(OSError):
+                beside.target.unlink()
+        self._drop_beside()
+        self.stats["previous_kept"] = not beside.created
+        return True
 
     def claim(self) -> None:
         """The run begins: from here the recording is the log at its path, whatever was

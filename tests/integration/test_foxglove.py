@@ -879,6 +879,33 @@ def test_a_port_taken_before_the_writer_binds_it_leaves_the_previous_log(
     assert open_recording(log).complete
 
 
+def test_a_port_taken_before_the_writer_binds_it_leaves_no_file_at_a_new_path(
+    tmp_path: Path, hand: HandConfig
+) -> None:
+    """The same refusal where --log named nothing: a 0-byte file was left at the path (the
+    empty one made to hold it, put there as the run's), under "the log is as it was" (found
+    by an outside audit). The path names nothing again, and nothing is left beside it. The
+    port is taken before the recorder starts: the run's own check, which would have refused
+    it, is not the recorder's."""
+    from handctl.errors import ConfigError
+    from handctl.recording.metadata import start_metadata
+    from handctl.recording.recorder import Recorder
+
+    log = tmp_path / "new.mcap"
+    port = free_port()
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taker:
+        taker.bind(("127.0.0.1", port))
+        taker.listen()
+        recorder = Recorder(
+            log, hand, start_metadata(hand, None, ("t",)), live_port=port, keep_previous=True
+        )
+        with pytest.raises(ConfigError) as err, recorder:  # as a run's start-up closes it
+            recorder.wait_ready()
+    assert err.value.file == "--live"
+    assert not log.exists() and list(tmp_path.iterdir()) == []
+    assert not recorder.stats.get("previous_kept")
+
+
 def _served_when_said(proc: subprocess.Popen[bytes], line: bytes, port: int) -> None:
     """``proc``'s stderr read until ``line``, then ``port`` connected to at once (no
     retry: served when said); ``proc`` then ends with exit 0."""
