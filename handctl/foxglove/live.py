@@ -28,7 +28,7 @@ import orjson
 from foxglove import Channel, Context, Schema
 from foxglove.websocket import WebSocketServer
 
-from handctl.errors import ConfigError, escaped
+from handctl.errors import ConfigError, Description, escaped
 from handctl.foxglove import HOST
 from handctl.foxglove.derived import JOINTS, RX_DECODED, TX_DECODED
 from handctl.recording import channels as ch
@@ -132,12 +132,14 @@ class LiveServer:
                 name=self.name, host=self.host, port=self.requested_port, context=self.context
             )
         except RuntimeError as exc:
+            # the SDK's reason whole (a ``Description``): cut to a value's length, it lost
+            # its end, the part that says why ("Failed to bind p... Address already in use")
             raise ConfigError(
                 "--live",
                 "",
                 f"a port the live view can listen on at {self.host} (it was free when the "
                 "command began: another program has taken it since)",
-                f"{self.requested_port} ({exc})",
+                Description(f"{self.requested_port} ({exc})"),
             ) from None
 
     @property

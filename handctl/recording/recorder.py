@@ -689,14 +689,20 @@ class Recorder:
             self.process.kill()
             _, err = self.process.communicate(timeout=10)
             if self.process.returncode == LIVE_REFUSED:
+                from handctl.foxglove import HOST  # not ``live``: no SDK in this process
+
                 # bad input, as a port taken when the options were checked is: nothing was
-                # sent, and the previous log is as it was
+                # sent, and the previous log is as it was. Found, the writer's last line: the
+                # port and the SDK's reason (its whole error, nested in this one, was cut
+                # before the reason)
+                said = err.decode(errors="replace").strip().splitlines()
                 raise ConfigError(
                     "--live",
                     "",
-                    "a port the live view can serve on (it was free when the options were "
-                    "checked); nothing was sent and the log is as it was",
-                    Description(err.decode(errors="replace").strip() or str(self._live_port)),
+                    f"a port the live view can listen on at {HOST} (it was free when the "
+                    "options were checked: another program has taken it since); nothing was "
+                    "sent and the log is as it was",
+                    Description(said[-1] if said else str(self._live_port)),
                 )
             raise HandctlError(
                 f"{self.path}: the recording writer did not start: "

@@ -31,6 +31,7 @@ import numpy as np
 import orjson
 
 from handctl import __version__
+from handctl.errors import ConfigError
 from handctl.foxglove.derived import Derived
 from handctl.online.taps import TAP_RX, TAP_TX
 from handctl.recording import channels as ch
@@ -698,7 +699,11 @@ def run(shm_fd: int, ctl_fd: int, out_fd: int, ready_fd: int) -> int:
             try:
                 live.start()
             except Exception as exc:  # foxglove's own error type: say what, not where
-                _note(f"the live view cannot serve on 127.0.0.1:{setup['live_port']} ({exc})")
+                # the port and why alone, the last line: the recorder makes it the found value
+                # of its own refusal (the server's whole message in it was said twice)
+                port = setup["live_port"]
+                why = exc.found if isinstance(exc, ConfigError) else f"{port} ({exc})"
+                _note(" ".join(str(why).splitlines()))
                 return LIVE_REFUSED
             try:
                 out.truncate(0)
