@@ -156,6 +156,9 @@ class Encoder:
         self.writer.flush()
         schema_ids: dict[str, int] = {}
         self.channel: dict[str, int] = {}
+        # each channel's metadata, the log's and the live view's alike: the live view's
+        # were advertised without it, no ``joints`` to name a vector's entries by
+        metadata: dict[str, dict[str, str]] = {}
         for channel in ch.CHANNELS:
             if channel.schema_name not in schema_ids:
                 schema_ids[channel.schema_name] = self.writer.register_schema(
@@ -166,6 +169,7 @@ class Encoder:
                 meta["joints"] = ",".join(setup["joints"])
             if channel.topic == ch.JOINT_STATE:
                 meta["nodes"] = ",".join(setup["nodes"])
+            metadata[channel.topic] = meta
             self.channel[channel.topic] = self.writer.register_channel(
                 channel.topic, ch.MESSAGE_ENCODING, schema_ids[channel.schema_name], meta
             )
@@ -178,6 +182,7 @@ class Encoder:
                     ch.SCHEMA_ENCODING,
                     orjson.dumps(ch.schema_of(channel)),
                     ch.MESSAGE_ENCODING,
+                    metadata[channel.topic],
                 )
         self.derived: _SafeView | None = None
         try:
@@ -190,11 +195,9 @@ class Encoder:
                     schema_ids[derived.schema_name] = self.writer.register_schema(
                         derived.schema_name, derived.schema_encoding, derived.schema_data
                     )
+                meta = {"handctl.format_version": str(ch.FORMAT_VERSION)}
                 self.channel[derived.topic] = self.writer.register_channel(
-                    derived.topic,
-                    derived.message_encoding,
-                    schema_ids[derived.schema_name],
-                    {"handctl.format_version": str(ch.FORMAT_VERSION)},
+                    derived.topic, derived.message_encoding, schema_ids[derived.schema_name], meta
                 )
                 if live is not None:
                     live.add_channel(
@@ -203,6 +206,7 @@ class Encoder:
                         derived.schema_encoding,
                         derived.schema_data,
                         derived.message_encoding,
+                        meta,
                     )
         self.sequence = dict.fromkeys(self.channel.values(), 0)
         self.ticks = self.frames = self.events = self.poses = 0

@@ -240,6 +240,23 @@ def test_live_server_sends_scene_and_joint_messages(run: Run, hand: HandConfig) 
     assert len(live.received[ch.JOINT_STATE]) >= 5  # today's channels are served too
 
 
+def test_the_live_view_advertises_each_channel_with_the_logs_metadata(run: Run) -> None:
+    """``--live`` serves the log's channels, and a vector's entries are named by the channel
+    metadata key ``joints`` (docs/recording.md): a run's live view advertised
+    ``/hand/joint_state`` and ``/control/torque`` with no metadata at all (no ``joints``,
+    ``nodes`` or ``handctl.format_version``), while the log and ``replay --live`` had it
+    (found by an outside audit). What a WebSocket client is advertised is the log's."""
+    with run.path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None
+    logged = {c.topic: dict(c.metadata) for c in summary.channels.values()}
+    advertised = {topic: c.get("metadata", {}) for topic, c in run.live.advertised.items()}
+    assert set(advertised) == set(logged)
+    assert advertised == logged
+    assert "joints" in advertised[ch.JOINT_STATE] and "nodes" in advertised[ch.JOINT_STATE]
+    assert "joints" in advertised[ch.TORQUE]
+
+
 def _schema_bytes(channel: dict[str, Any]) -> bytes:
     """The live protocol carries a binary schema base64-encoded."""
     import base64
