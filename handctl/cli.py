@@ -1916,8 +1916,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             args.live,
             args.speed or 1.0,
             started=lambda _: _progress(
-                f"live: streaming {args.log} at {args.speed or 1.0:g}x to Foxglove on "
-                f"ws://{HOST}:{args.live} ..."
+                f"live: streaming {escaped(str(args.log))} at {args.speed or 1.0:g}x to "
+                f"Foxglove on ws://{HOST}:{args.live} ..."
             ),
         )
         # every message of the log at its pace; a viewer is sent what it subscribed to, the

@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import shlex
 import signal
 import subprocess
 import sys
@@ -39,7 +38,7 @@ from handctl.hostfacts import affinity
 from handctl.online import timebudget
 from handctl.online.bus import HandBus, open_bus
 from handctl.online.buslock import BusLock, take_bus
-from handctl.online.busspec import BusSpec, parse_spec, require_peers
+from handctl.online.busspec import BusSpec, parse_spec, require_peers, shell_word
 from handctl.online.clock import (
     LOOP_PRIORITY,
     Clock,
@@ -898,9 +897,11 @@ def _start_recording(
         from handctl.foxglove import HOST  # not ``live``: the SDK stays out of this process
         from handctl.progress import say
 
+        # the hand's file as a shell word with its control characters escaped: quoted by
+        # ``shlex`` alone, an escape sequence in its name reached the terminal raw
         say(
             f"live: Foxglove WebSocket on ws://{HOST}:{req.live_port} "
-            f"(its layout: handctl layout {shlex.quote(req.hand.source)} -o LAYOUT.json)"
+            f"(its layout: handctl layout {shell_word(req.hand.source)} -o LAYOUT.json)"
         )
 
 

@@ -971,3 +971,36 @@ def test_the_live_line_is_said_once_the_port_is_served(tmp_path: Path) -> None:
         stderr=subprocess.PIPE,
     ) as proc:
         _served_when_said(proc, b"live: streaming", port)
+
+
+def test_the_live_lines_show_no_control_character_of_a_file_name(tmp_path: Path) -> None:
+    """A file name is the user's value: the live lines printed the hand's (quoted by
+    ``shlex``, which leaves control characters as they are) and the replayed log's raw, and
+    an escape sequence in either retitled or recoloured the terminal (found by an outside
+    audit). The layout command stays one the user can paste: ``$'...'``, as bash reads it."""
+    hand = tmp_path / "hand\x1b]0;PWNED\x07.yaml"
+    hand.write_bytes(HAND_YAML.read_bytes())
+    log = tmp_path / "evil\x1b[31mred.mcap"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    said = []
+    for args in (
+        ["run", "recipe", str(RECIPE), "--hand", str(hand), "--lockstep", "--log", str(log)],
+        ["replay", str(log), "--speed", "4"],
+    ):
+        if args[0] == "run":
+            args += ["--max-seconds", "1"]
+        done = subprocess.run(
+            [sys.executable, "-m", "handctl", *args, "--live", str(free_port())],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=False,
+        )
+        assert done.returncode == 0, done.stderr
+        said.append(done.stdout + done.stderr)
+    assert not any(c in "".join(said) for c in "\x1b\x07"), said
+    folder = str(tmp_path)
+    assert f"handctl layout $'{folder}/hand\\x1b]0;PWNED\\x07.yaml' -o LAYOUT.json" in said[0]
+    assert f"live: streaming {folder}/evil\\x1b[31mred.mcap at 4x" in said[1]
