@@ -17,6 +17,7 @@ sampled the same way.
 from __future__ import annotations
 
 import logging
+import re
 import sys
 import threading
 import time
@@ -69,21 +70,41 @@ SAMPLING: dict[str, str] = {
 NOTES_SHOWN = 5
 
 
+#: The WebSocket subprotocol the SDK's server speaks, the only one it takes
+SUBPROTOCOL = "foxglove.sdk.v1"
+#: The SDK's note of a client it refused before the WebSocket began ("Dropping client
+#: 127.0.0.1:42002: handshake failed"); the commonest cause, a viewer that offers only the
+#: protocol's older name, is said beside it (``HANDSHAKE_HINT``)
+HANDSHAKE_FAILED = re.compile(r"^Dropping client \S+: handshake failed")
+HANDSHAKE_HINT = (
+    f" (the live view speaks the WebSocket subprotocol {SUBPROTOCOL} only: a viewer that "
+    "offers only foxglove.websocket.v1, such as Lichtblick before December 2025 or an older "
+    "Foxglove, is refused; docs/recording.md)"
+)
+
+
 class _BoundedNotes(logging.Handler):
     """The SDK's log (Python ``logging`` under ``foxglove``), warnings and errors only, the
-    first ``NOTES_SHOWN`` on stderr, the rest counted."""
+    first ``NOTES_SHOWN`` on stderr, the rest counted. A refused handshake is said with its
+    likely cause, once per server: the SDK's note alone left the operator of a viewer that
+    could not connect with nothing to go on."""
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
         self.shown = 0
         self.more = 0
+        self.hinted = False
 
     def emit(self, record: logging.LogRecord) -> None:
         if self.shown < NOTES_SHOWN:
             self.shown += 1
             # escaped: the note quotes what the client sent, and an escape sequence there
             # retitled and recoloured the operator's terminal
-            sys.stderr.write(f"live view: {escaped(record.getMessage())}\n")
+            note = escaped(record.getMessage())
+            if not self.hinted and HANDSHAKE_FAILED.match(note):
+                self.hinted = True
+                note += HANDSHAKE_HINT
+            sys.stderr.write(f"live view: {note}\n")
         else:
             self.more += 1
 
@@ -95,6 +116,7 @@ def _bounded_notes() -> _BoundedNotes:
     for handler in logger.handlers:
         if isinstance(handler, _BoundedNotes):
             handler.shown = handler.more = 0  # a server's own five (a replay's after a run's)
+            handler.hinted = False
             return handler
     handler = _BoundedNotes()
     logger.addHandler(handler)

@@ -718,6 +718,48 @@ def test_a_client_sending_junk_gets_a_few_lines_on_stderr_not_one_each(
     assert "\x1b" not in capfd.readouterr().err + "\n".join(err)  # no escape reaches a terminal
 
 
+async def _offer(port: int, subprotocol: str) -> int:
+    """The HTTP status of a WebSocket handshake offering ``subprotocol`` alone."""
+    try:
+        async with websockets.connect(
+            f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol(subprotocol)]
+        ):
+            return 101
+    except websockets.InvalidStatus as refused:
+        return int(refused.response.status_code)
+
+
+def test_a_viewer_offering_the_old_subprotocol_is_told_which_one_is_spoken(
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    """The SDK's server takes only clients offering ``foxglove.sdk.v1``; one offering only
+    ``foxglove.websocket.v1`` (older Foxglove, Lichtblick before December 2025) is refused
+    with HTTP 400, and the operator saw only "Dropping client ...: handshake failed" (found
+    by an outside audit). The note now names the subprotocol spoken, once."""
+    from handctl.foxglove.live import LiveServer
+
+    port = free_port()
+    server = LiveServer(port)
+    server.add_channel("/hand/joints", "handctl.Test", "jsonschema", b"{}", "json")
+    server.start()
+    err = ""
+    try:
+        assert asyncio.run(_offer(port, "foxglove.websocket.v1")) == 400
+        assert asyncio.run(_offer(port, "foxglove.websocket.v1")) == 400
+        assert asyncio.run(_offer(port, SUBPROTOCOL)) == 101
+        deadline = time.monotonic() + 60  # the SDK notes it from its own thread
+        while err.count("handshake failed") < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+            err += capfd.readouterr().err
+    finally:
+        assert server.close()
+    said = [line for line in err.splitlines() if "handshake failed" in line]
+    assert len(said) == 2, err
+    assert said[0].startswith("live view: Dropping client 127.0.0.1:")
+    assert "speaks the WebSocket subprotocol foxglove.sdk.v1 only" in said[0]
+    assert said[1].endswith("handshake failed")  # said once
+
+
 def test_a_port_taken_after_the_check_is_said_against_live() -> None:
     """Free when the command began, taken by another program before the server bound it (a
     replay binds after its summary and re-run): that was the SDK's RuntimeError traceback."""
