@@ -2816,14 +2816,22 @@ def _port(text: str) -> int:
     """A TCP port for ``--live``; argparse makes the error a usage error (exit 2)."""
     port = _integer_or_none(text)
     if port is None or not 1 <= port <= 65535:
-        # an address given with it or instead of it: the view's address is not a choice
-        where = (
-            " (the live view binds the loopback interface, 127.0.0.1, only: give the port "
-            "alone, and reach it from another machine through an SSH tunnel, "
-            "docs/recording.md)"
-            if any(c in text for c in ".:[]") or text.strip().lower() == "localhost"
-            else ""
-        )
+        if os.path.exists(text) or text.lower().endswith((".mcap", ".yaml", ".yml")):
+            # the port is optional, and took the file the command was to be given
+            # (``replay --live RUN.mcap``): said as an address before, for its dot
+            where = (
+                " (a file's name: the port of --live is optional, and took the argument "
+                "after it; put --live after the file, or give the port as --live=PORT)"
+            )
+        elif any(c in text for c in ".:[]") or text.strip().lower() == "localhost":
+            # an address given with it or instead of it: the view's address is not a choice
+            where = (
+                " (the live view binds the loopback interface, 127.0.0.1, only: give the "
+                "port alone, and reach it from another machine through an SSH tunnel, "
+                "docs/recording.md)"
+            )
+        else:
+            where = ""
         raise argparse.ArgumentTypeError(
             f"expected a TCP port 1..65535, found {shown(text)}{_not_ascii(text)}{where}"
         )
@@ -2890,7 +2898,17 @@ class _StoreOnce(argparse._StoreAction):
     """An option of one value given twice with two values is refused: argparse kept the last
     without a word, so ``--bus sim ... --bus socketcan:can0`` drove whichever came last, and
     ``--max-seconds 5 ... --max-seconds 50`` ran ten times what the first said. Given twice
-    with the same value it is one option."""
+    with the same value it is one option.
+
+    An optional value left out (``--live`` alone, ``nargs="?"``) is said as that, with the
+    value it stands for: ``--live --live 8788`` was "given twice, as '8765' and then
+    '8788'", a value the user never typed. argparse hands the action its ``const`` itself
+    for a value left out, and a value typed is converted anew, so ``values is self.const``
+    tells them apart."""
+
+    #: how this option was first given (``_as_given``), and in which parse (its ``given``
+    #: set, held here so that it is no other parse's): for the refusal
+    first_given: tuple[set[str], str] | None = None
 
     def __call__(
         self,
@@ -2902,13 +2920,22 @@ class _StoreOnce(argparse._StoreAction):
         given = parser.given if isinstance(parser, _Parser) else set()
         first = getattr(namespace, self.dest, None)
         if self.dest in given and first != values:
+            earlier = self.first_given
             raise argparse.ArgumentError(
                 self,
-                f"given twice, as {_shown_value(first)} and then {_shown_value(values)}: "
-                "give it once",
+                f"given twice, as "
+                f"{earlier[1] if earlier and earlier[0] is given else _shown_value(first)} "
+                f"and then {self._as_given(values, option_string)}: give it once",
             )
+        if self.dest not in given:
+            self.first_given = (given, self._as_given(values, option_string))
         given.add(self.dest)
         super().__call__(parser, namespace, values, option_string)
+
+    def _as_given(self, values: Any, option_string: str | None) -> str:
+        if self.nargs == argparse.OPTIONAL and values is self.const and option_string:
+            return f"{option_string} alone (its default, {values})"
+        return _shown_value(values)
 
 
 def _shown_value(value: Any) -> str:

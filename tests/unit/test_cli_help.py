@@ -154,6 +154,57 @@ def test_an_option_of_one_value_given_twice_with_two_values_is_refused(
                 assert type(action).__name__ == "_StoreOnce", (path, action.option_strings)
 
 
+def test_an_optional_value_left_out_is_said_as_left_out_when_given_twice(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--live --live 8788`` was "given twice, as '8765' and then '8788'", a value the user
+    never typed (found by an outside audit): the first is ``--live`` alone, its default."""
+    for args, said in [
+        (
+            ["replay", "run.mcap", "--live", "--live", "8788"],
+            "given twice, as --live alone (its default, 8765) and then '8788': give it once",
+        ),
+        (
+            ["replay", "run.mcap", "--live", "8788", "--live"],
+            "given twice, as '8788' and then --live alone (its default, 8765): give it once",
+        ),
+    ]:
+        with pytest.raises(SystemExit) as info:
+            build_parser().parse_args(args)
+        assert info.value.code == 2
+        assert said in capsys.readouterr().err
+    # the port typed as the default is the default: one option, and a later parse says what
+    # it was given, not what an earlier one was
+    parsed = build_parser().parse_args(["replay", "run.mcap", "--live", "8765", "--live"])
+    assert parsed.live == 8765
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["replay", "run.mcap", "--live", "8765", "--live", "8788"])
+    assert "given twice, as '8765' and then '8788'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["replay"], ["run", "recipe"]])
+def test_a_file_taken_as_the_live_port_says_to_put_live_after_it(
+    command: list[str], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """``handctl replay --live base.mcap``: the optional port took the file, and the error
+    said to reach the view through an SSH tunnel, for the dot in the name (found by an
+    outside audit). A name that ends as a log or a config does, or names a file, is said as
+    a file taken as the port."""
+    existing = tmp_path / "recipe.txt"
+    existing.write_text("")
+    for name in ("base.mcap", "swap.yaml", "hand.yml", str(existing)):
+        with pytest.raises(SystemExit) as info:
+            build_parser().parse_args([*command, "--live", name])
+        assert info.value.code == 2
+        err = capsys.readouterr().err
+        assert "put --live after the file, or give the port as --live=PORT" in err, err
+        assert "SSH tunnel" not in err
+    with pytest.raises(SystemExit):  # an address is still said as one
+        build_parser().parse_args([*command, "--live", "0.0.0.0:8765"])
+    err = capsys.readouterr().err
+    assert "SSH tunnel" in err and "after the file" not in err
+
+
 def test_to_bus_sends_the_node_frames_by_default_only_on_a_bus_of_this_machine(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
