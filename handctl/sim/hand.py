@@ -342,6 +342,23 @@ class SimulatedHand:
             ],
         }
 
+    def sagged_idle(self) -> list[str]:
+        """The joints past their soft limits while no node is enabled: no host drives the
+        hand, and the fingers hang where gravity and their contacts take them. The shipped
+        hand's distal joints pass their limits after about 45 s so (they rest on the table
+        and creep outward), and every run then refuses to start (ANGLE_LIMIT before any
+        torque): a standalone hand left waiting for a minute said nothing of it (found by an
+        outside audit). Empty while a node is enabled, when a limit is the host's to watch."""
+        if any(n.state == int(NodeState.ENABLED) for n in self.nodes):
+            return []
+        angles = self.plant.joint_angles
+        return [
+            f"{joint.name} at {angles[i]:+.3f} rad, limits [{joint.angle_min:+.2f}, "
+            f"{joint.angle_max:+.2f}]"
+            for i, joint in enumerate(self.hand.joints)
+            if not joint.angle_min <= angles[i] <= joint.angle_max
+        ]
+
     def status_line(self) -> str:
         states = " ".join(
             f"{n.finger.name}={NodeState(n.state).name}"
@@ -448,6 +465,7 @@ def standalone(
             try:
                 deadline = None if seconds is None else started + seconds
                 next_progress = started + PROGRESS_PERIOD_S
+                sagged_said = False
                 while sim.running:
                     now = time.monotonic()
                     wait = (
@@ -461,6 +479,15 @@ def standalone(
                     if progress is not None and time.monotonic() >= next_progress:
                         next_progress += PROGRESS_PERIOD_S
                         progress(sim.status_line())
+                    if progress is not None and not sagged_said and (sagged := sim.sagged_idle()):
+                        sagged_said = True
+                        progress(
+                            "warning: with no torque on it the hand has hung past its soft "
+                            f"limits ({'; '.join(sagged)}): a run on this hand now stops "
+                            "before any torque (ANGLE_LIMIT). Start the simulated hand again "
+                            "just before the run, or bring each joint back with handctl jog "
+                            "JOINT --torque X --recover (docs/bringup.md)"
+                        )
             except KeyboardInterrupt:
                 interrupted = True
             finally:

@@ -54,3 +54,28 @@ def test_a_finger_that_hangs_past_its_limit_is_said_by_check_before_calibrate_me
     assert calibrated.returncode == 3, calibrated.stderr
     assert "ANGLE_LIMIT at tick" in calibrated.stderr and f"{name} at " in calibrated.stderr
     assert not (tmp_path / "c.yaml").exists()
+
+
+def test_a_standalone_hand_says_when_it_has_hung_past_its_limits(tmp_path: Path) -> None:
+    """``handctl sim`` waits for a host with no torque on its fingers, as long as it runs,
+    and they hang where gravity takes them: the shipped hand's distal joints pass their
+    limits after about 45 s, and every run then stops before any torque. The hand said
+    nothing of it (found by an outside audit); it says it once, with what to do. A finger
+    whose range ends 0.1 rad from where it starts, towards where it hangs, passes at once."""
+    data: dict[str, Any] = yaml.safe_load(HAND_YAML.read_text())
+    joint = data["fingers"][0]["joints"][0]
+    start = data["sim"]["initial_angles"][data["fingers"][0]["name"]][0]
+    joint["angle_max"] = start + 0.1
+    path = tmp_path / "hangs.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    bus = tmp_path / "bus"
+    bus.mkdir()
+    done = handctl("sim", "--hand", str(path), "--bus", f"unix:{bus}", "--seconds", "2.5")
+    assert done.returncode == 0, done.stderr
+    said = [line for line in done.stderr.splitlines() if "hung past its soft limits" in line]
+    assert len(said) == 1, done.stderr
+    assert f"({joint['name']} at " in said[0] and "--recover" in said[0]
+    # the shipped hand, as long: nothing said
+    shipped = handctl("sim", "--bus", f"unix:{bus}", "--seconds", "2.5")
+    assert shipped.returncode == 0, shipped.stderr
+    assert "hung past" not in shipped.stderr
