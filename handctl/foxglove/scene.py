@@ -56,6 +56,12 @@ class ObjectShape:
     length: float  # m, along z
 
 
+#: m, the least half side of the drawn table, and how many times the hand's reach (from the
+#: palm's centre to the farthest fingertip or object at the start) it spans at least
+TABLE_HALF_SIDE_MIN_M = 1.0
+TABLE_REACHES = 10.0
+
+
 @dataclass(frozen=True)
 class Scenery:
     """What does not move: the palm box and the table top (absent for a hand without ``sim:``)."""
@@ -64,6 +70,10 @@ class Scenery:
     palm_thickness: float  # m
     palm_half_depth: float  # m, along z
     table_height: float | None  # m, y of the table top
+    #: m, half the drawn table's side. The simulated table is a plane without end, and a
+    #: fixed 0.4 m square left a long finger, or an object pushed away, over its edge and
+    #: resting on nothing (found by an outside audit): the hand's reach many times over
+    table_half_side: float = 0.2
 
 
 def timestamp(ns: int) -> Timestamp:
@@ -131,8 +141,16 @@ class HandScene:
                 )
                 + 0.005
             )
+            reach = max(
+                [abs(f.base_x) + sum(j.link_length for j in f.joints) for f in hand.fingers]
+                + [abs(o.x) + o.radius for o in params.objects]
+            )
             self.scenery = Scenery(
-                params.palm_half_width, params.palm_thickness, half_depth, params.table_height
+                params.palm_half_width,
+                params.palm_thickness,
+                half_depth,
+                params.table_height,
+                max(TABLE_HALF_SIDE_MIN_M, TABLE_REACHES * reach),
             )
 
     # -- kinematics -----------------------------------------------------------------------
@@ -301,7 +319,9 @@ class HandScene:
                     cubes=[
                         CubePrimitive(
                             pose=_pose(0.0, sc.table_height - thickness / 2, 0.0),
-                            size=Vector3(x=0.4, y=thickness, z=0.4),
+                            size=Vector3(
+                                x=2 * sc.table_half_side, y=thickness, z=2 * sc.table_half_side
+                            ),
                             color=_TABLE,
                         )
                     ],

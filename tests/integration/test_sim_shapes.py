@@ -339,6 +339,26 @@ def test_the_drawing_holds_every_finger_stretched_out() -> None:
         assert scene_half_width(Plant(turned, stretched)) >= max(ends)
 
 
+def test_the_foxglove_table_holds_every_finger_stretched_out() -> None:
+    """The simulated table is a plane without end; the drawn one was a fixed 0.4 m square,
+    and a long finger (six links, 0.25 m of them) or an object pushed along the table was
+    drawn over its edge, on nothing (found by an outside audit). It spans the hand's reach
+    many times over."""
+    hand = _load(_odd_hand((6, 1, 6)))
+    params = parse_sim(hand)
+    straight = tuple((0.0,) * len(f.joints) for f in hand.fingers)
+    stretched = dataclasses.replace(params, initial_angles=straight)
+    # every finger pointing sideways, out: as far as the fingers reach along the table
+    turned = dataclasses.replace(
+        hand, fingers=tuple(dataclasses.replace(f, base_angle=0.0) for f in hand.fingers)
+    )
+    reach = max(abs(x) for link in link_segments(turned, stretched) for x in (link.x0, link.x1))
+    scenery = HandScene(hand).scenery
+    assert scenery is not None
+    assert reach > 0.2  # past the fixed square's edge
+    assert scenery.table_half_side >= 2 * reach
+
+
 def test_the_foxglove_scene_draws_each_link_with_its_own_radius() -> None:
     hand = _load(_odd_hand((2, 5, 3)))
     radii = [link.radius for link in parse_sim(hand).links]
