@@ -284,10 +284,14 @@ def _checked_commands(
         # its own limits. On a bus where a real hand may listen, the limits are the
         # operator's.
         raise hand_needed(spec)
+    if hand is not None:
+        # first: a hand of another shape makes every later check's figures another hand's (a
+        # rate limit refused, naming a joint of the log's, where the shapes differed: found
+        # by an outside audit)
+        check_shape(recorded, hand)
     check_pacing(recording, recorded, direction)
     check_commands(recording, recorded, direction, speed)
     if hand is not None:
-        check_shape(recorded, hand)
         check_commands(recording, hand, direction, speed, on_bus=True)
     return hand if hand is not None else recorded
 

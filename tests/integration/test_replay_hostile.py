@@ -1250,6 +1250,14 @@ def test_to_bus_refuses_a_hand_of_another_shape_than_the_recorded_one(tmp_path: 
     )
     assert f"found {five}: node {node} ({name}) 5 joints" in done.stderr
     assert "to-bus:" not in done.stdout
+    # first of the checks: faster, the log's own commands break its rate limit, and that was
+    # said, of a joint of the log's, before the shape (found by an outside audit)
+    fast = handctl(
+        *("replay", str(log), "--to-bus", "virtual:hostile-shape", "--hand", str(five)),
+        *("--speed", "100"),
+    )
+    assert fast.returncode == 2, fast.stdout + fast.stderr
+    assert "--hand: expected a hand of the recorded shape" in fast.stderr, fast.stderr
     same = handctl("replay", str(log), "--to-bus", "virtual:hostile-shape", "--hand", str(four))
     assert same.returncode == 0, same.stderr
 
