@@ -291,6 +291,9 @@ class Episode:
         applied = np.array(self.torques, dtype=float)
         limits = self._limits
         out: tuple[float, ...] = ()
+        # an object already on the table as the phase begins was never lifted: the lift
+        # before it failed, and "fell back" said it had been up (found by an outside audit)
+        never_up = lifted and min(self.heights()) < DROP_MARGIN
         for tick in range(steps):
             now = self.true_angle()
             line += _wrap(now - line_last)
@@ -339,7 +342,11 @@ class Episode:
                     if not math.isnan(err):
                         errors.append(err)
                 if lifted and min(heights) < DROP_MARGIN:
-                    exit_reason = "fail: an object fell back to the table"
+                    exit_reason = (
+                        "fail: an object was never lifted (the lift left it on the table)"
+                        if never_up
+                        else "fail: an object fell back to the table"
+                    )
                     break
                 if not self.in_hand():
                     exit_reason = "fail: an object left the hand"

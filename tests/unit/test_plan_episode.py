@@ -47,6 +47,19 @@ def test_a_phase_on_one_object_has_no_pair_to_block() -> None:
     assert outcome.pair_gap == 0.0 and outcome.true_turn_deg == 0.0
 
 
+def test_a_hold_after_a_lift_that_raised_nothing_says_so() -> None:
+    """A phase entered as after a lift (``lifted``) with the object still on the table: the
+    lift raised nothing, and the phase said "an object fell back to the table", as if it had
+    been up (found by an outside audit: a plan whose lift ended "up 0 mm")."""
+    hand = load_hand(FOUR_BY_FOUR)
+    params = parse_sim(hand)
+    (cylinder,) = params.objects
+    episode = Episode(hand, params, [RecipeObject(cylinder.name, cylinder.radius)])
+    phase = Phase("hold", (0.0,) * hand.n_joints, 0.0, 0.05, TimeoutAction.NEXT, (), ())
+    outcome = episode.run_phase(phase, lifted=True)
+    assert outcome.exit == "fail: an object was never lifted (the lift left it on the table)"
+
+
 class CountedEstimator(ObjectEstimator):
     """The estimator, counting its steps: it takes one a call, and a run one a tick."""
 
