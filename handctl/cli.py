@@ -41,7 +41,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
-from handctl import __version__
+from handctl import __version__, mujoco_opengl_off
 from handctl.errors import (
     BusError,
     ConfigError,
@@ -4015,13 +4015,10 @@ def _output_for_readers_that_leave() -> Iterator[None]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    # handctl draws nothing with MuJoCo's OpenGL. Unless told otherwise, ``import mujoco``
-    # loads GLFW, which starts a ``python -c`` child to probe its library: a Ctrl-C during
-    # that import left the child behind. Before the first import, and whatever the
-    # environment says, as for matplotlib's backend below: a renderer nothing here uses
-    # could only break the import (MUJOCO_GL=osmesa without its library, or a value MuJoCo
-    # does not know, was a traceback in every command that builds the simulated hand).
-    os.environ["MUJOCO_GL"] = "disable"
+    # Before the first import of MuJoCo, and whatever the environment says, as for
+    # matplotlib's backend below (importing handctl did it too; a caller's environment
+    # changed since is set back here)
+    mujoco_opengl_off()
     # handctl's plots are files drawn on an Agg canvas, never a window, so matplotlib's
     # backend is none of the user's business here; a value matplotlib does not know made its
     # import raise after a whole run, whose summary was then never printed

@@ -632,17 +632,31 @@ def _host_and_port(address: str) -> tuple[str, int]:
     return match.group(2).strip("[]"), int(match.group(3))
 
 
+#: the modules whose functions are the offline plane's tasks, and MuJoCo (first, to be named
+#: if it is what fails): what a worker imports to read a task, checked before any goes out
+TASK_MODULES = (
+    "mujoco",
+    "handctl.planning.phase_task",
+    "handctl.harness.seed_run",
+    "handctl.harness.campaign",
+    "handctl.analysis.oracle",
+)
+
+
 def _handctl_version() -> Callable[[], str]:
-    """A function that imports handctl and gives its version, the digest of its code and
-    MuJoCo's version, made here so that it is pickled by value (it is no
-    module's attribute): by reference, a worker without handctl could not even unpickle it,
-    and would report that as a Dask error, not this one."""
+    """A function that imports handctl and what a task imports, and gives handctl's version,
+    the digest of its code and MuJoCo's version, made here so that it is pickled by value (it
+    is no module's attribute): by reference, a worker without handctl could not even unpickle
+    it, and would report that as a Dask error, not this one."""
+    modules = TASK_MODULES
 
     def version() -> str:
         import hashlib
-        from importlib.metadata import version as installed
+        import importlib
         from pathlib import Path
 
+        # importing handctl turns MuJoCo's OpenGL off (``mujoco_opengl_off``), as on every
+        # worker before its first task: MuJoCo is imported here as a task imports it
         import handctl
 
         root = Path(handctl.__file__).parent
@@ -651,10 +665,15 @@ def _handctl_version() -> Callable[[], str]:
             if path.is_file() and "__pycache__" not in path.parts:
                 digest.update(path.relative_to(root).as_posix().encode() + b"\0")
                 digest.update(path.read_bytes())
-        return (
-            f"handctl {handctl.__version__} (code {digest.hexdigest()[:12]}), "
-            f"mujoco {installed('mujoco')}"
-        )
+        ours = f"handctl {handctl.__version__} (code {digest.hexdigest()[:12]})"
+        # imported, not read from the package's metadata: a MuJoCo installed whose import
+        # fails passed, and the worker died of its first task (an outside audit)
+        for name in modules:
+            try:
+                importlib.import_module(name)
+            except Exception as exc:
+                return f"{ours}, but {name} does not import ({type(exc).__name__}: {exc})"
+        return f"{ours}, mujoco {importlib.import_module('mujoco').__version__}"
 
     return version
 

@@ -23,6 +23,9 @@ from handctl.planning.template import load_template
 from ..conftest import ROOT
 
 TEMPLATE = ROOT / "config" / "recipes" / "swap_two_cylinders.template.yaml"
+#: the smallest template that plans, and its hand
+PLANAR = ROOT / "config" / "recipes" / "planar_lift_turn.template.yaml"
+PLANAR_HAND = ROOT / "config" / "hands" / "planar_2f2j.yaml"
 
 
 def tiny_template(tmp_path: Path) -> Path:
@@ -102,6 +105,52 @@ def test_a_plan_on_a_dask_cluster_equals_the_local_pools(tmp_path: Path, hand: H
             load_template(template, hand), hand, models=2, budget=quick_budget(), executor=pool
         )
     assert body(remote) == recipe_text(local, "cmd").split("\n", 2)[2]
+
+
+def test_a_worker_whose_environment_asks_for_an_opengl_mujoco_cannot_load_plans(
+    tmp_path: Path,
+) -> None:
+    """A Dask worker never runs handctl's command line, which turns MuJoCo's OpenGL off: one
+    started with ``MUJOCO_GL=osmesa`` on a machine without OSMesa passed the cluster check,
+    died of its first task (``import mujoco`` raised as the task was unpickled), and the plan
+    said 30 s later that the cluster had no worker (an outside audit). A value MuJoCo does not
+    know fails its import on every machine; the task turns the OpenGL off itself."""
+    distributed = pytest.importorskip("distributed")
+    out = tmp_path / "r.yaml"
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=":0",
+        scheduler_port=0,
+        env={"MUJOCO_GL": "no-such-renderer"},
+    ) as cluster:
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "handctl",
+                "plan",
+                str(PLANAR),
+                "--hand",
+                str(PLANAR_HAND),
+                "-o",
+                str(out),
+                "--quick",
+                "--models",
+                "2",
+                "--scheduler",
+                cluster.scheduler_address,
+            ],
+            cwd=ROOT,
+            text=True,
+            capture_output=True,
+            timeout=300,
+            check=False,
+        )
+    assert done.returncode == 0, done.stderr
+    assert "(1 workers)" in done.stderr
+    assert out.exists()
 
 
 def test_each_thread_of_a_worker_has_its_own_episodes(hand: HandConfig) -> None:

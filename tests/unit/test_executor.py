@@ -455,11 +455,28 @@ for name in [n for n in sys.modules if n.split(".")[0] == "handctl"]:
     del sys.modules[name]
 """
 
+#: a worker whose MuJoCo is installed (its package metadata there) but does not import
+NO_MUJOCO = """
+import importlib.abc, sys
+class Broken(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "mujoco":
+            raise ImportError("libmujoco.so: cannot open shared object file")
+sys.meta_path.insert(0, Broken())
+for name in [n for n in sys.modules if n.split(".")[0] == "mujoco"]:
+    del sys.modules[name]
+"""
+
 
 @pytest.mark.parametrize(
     ("preload", "found"),
     [
         pytest.param(NO_HANDCTL, "ModuleNotFoundError: No module named 'handctl'", id="none"),
+        pytest.param(
+            NO_MUJOCO,
+            ", but mujoco does not import (ImportError: libmujoco.so: cannot open",
+            id="no mujoco",
+        ),
         pytest.param(OTHER_VERSION, ": handctl 0.0.1 (code ", id="another version"),
         pytest.param(OTHER_CODE, f": handctl {handctl.__version__} (code ", id="other code"),
     ],
@@ -471,7 +488,9 @@ def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
     ever. It is found before any task goes out, and named. So is a worker of this version
     running other code (a stale checkout: the version string stays as it is between
     commits), which planned with that code and changed the recipe without a word (an outside
-    probe: one torque scaled by 1.05 on the worker)."""
+    probe: one torque scaled by 1.05 on the worker). So is a worker whose MuJoCo is installed
+    but does not import: its version was read from the package's metadata, and the worker
+    died of its first task (an outside audit)."""
     distributed = pytest.importorskip("distributed")
 
     if preload is OTHER_CODE:
