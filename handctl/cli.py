@@ -965,7 +965,7 @@ def _outcome_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
 
 # -- plan --------------------------------------------------------------------------------------
 def _cmd_plan(args: argparse.Namespace) -> int:
-    from handctl.executor import ClusterLostError, Stopwatch, check_scheduler, open_pool
+    from handctl.executor import ClusterLostError, Stopwatch, check_pool_options, open_pool
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
     from handctl.planning.template import load_template, unreachable_turn
     from handctl.progress import Progress, close_active, say
@@ -990,18 +990,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             f"1 to {MAX_MODELS} models (as the template's search.models)",
             args.models,
         )
-    if args.workers is not None and args.workers < 1:
-        raise ConfigError("--workers", "", "at least 1 worker", args.workers)
-    if args.scheduler is not None:
-        check_scheduler(args.scheduler)
-        if args.workers is not None:
-            raise ConfigError(
-                "--workers",
-                "",
-                "no --workers with --scheduler (the cluster's "
-                "workers are started on their machines)",
-                args.workers,
-            )
+    check_pool_options(args.workers, args.scheduler)  # before the template is loaded
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     template = load_template(args.template, hand)
     if (short := unreachable_turn(template)) is not None:

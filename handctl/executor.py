@@ -316,13 +316,25 @@ def check_scheduler(address: str) -> str:
     return address
 
 
-def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkPool:
-    """A pool of ``workers`` local processes (default: every core), or the Dask cluster whose
-    scheduler is at ``scheduler`` (then ``workers`` is the cluster's business)."""
-    if scheduler is not None:
-        return _dask_pool(check_scheduler(scheduler))
+def check_pool_options(workers: int | None, scheduler: str | None) -> None:
+    """``--workers`` and ``--scheduler`` as ``open_pool`` takes them, or a ``ConfigError``
+    naming the option, before anything is started or connected: one rule for every command
+    and tool that offers them."""
     if workers is not None and workers < 1:
         raise ConfigError("--workers", "", "at least 1 worker", workers)
+    if scheduler is not None:
+        check_scheduler(scheduler)
+        if workers is not None:
+            # here, not in each caller: the bench's experiment took --workers 999 beside
+            # --scheduler without a word where the plan refused it (an outside audit)
+            raise ConfigError(
+                "--workers",
+                "",
+                "no --workers with --scheduler (the cluster's workers are started on their "
+                "machines)",
+                workers,
+            )
+        return
     cores = available_cores()
     if workers is not None and workers > WORKERS_PER_CORE * cores:
         # each worker is a process with its own simulated hand; thousands of them ran the
@@ -335,6 +347,15 @@ def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkP
             "simulated hand's memory; a cluster takes --scheduler)",
             workers,
         )
+
+
+def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkPool:
+    """A pool of ``workers`` local processes (default: every core), or the Dask cluster whose
+    scheduler is at ``scheduler`` (then ``workers`` is the cluster's business, and refused)."""
+    check_pool_options(workers, scheduler)
+    if scheduler is not None:
+        return _dask_pool(scheduler)
+    cores = available_cores()
     count = workers if workers is not None else cores
     if count == 1:
         return WorkPool(InlineExecutor(), 1, "this process", lambda _cancel: None)

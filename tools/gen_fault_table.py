@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from generated import write_or_check
@@ -212,14 +213,22 @@ def main(argv: list[str] | None = None) -> int:
         from dataclasses import asdict
 
         from handctl.config import load_hand
+        from handctl.errors import ConfigError, HandctlError
         from handctl.executor import open_pool
         from handctl.harness.campaign import run_campaign
         from handctl.progress import Progress, say
 
-        hand = load_hand(ROOT / "config" / "hands" / "hiroshima_hand.yaml")
-        with open_pool(args.workers, args.scheduler) as pool:
-            say(f"fault campaign on {pool.where}")
-            results = run_campaign(hand, progress=say, executor=pool, meter=Progress)
+        try:
+            hand = load_hand(ROOT / "config" / "hands" / "hiroshima_hand.yaml")
+            with open_pool(args.workers, args.scheduler) as pool:
+                say(f"fault campaign on {pool.where}")
+                results = run_campaign(hand, progress=say, executor=pool, meter=Progress)
+        except ConfigError as exc:  # bad input (an option, an address): a traceback before
+            print(f"gen_fault_table.py: error: {exc}", file=sys.stderr)
+            return 2
+        except HandctlError as exc:  # a failed result (a cluster lost mid-campaign)
+            print(f"gen_fault_table.py: failed: {exc}", file=sys.stderr)
+            return 1
         CAMPAIGN.write_text(json.dumps([asdict(r) for r in results], indent=1) + "\n")
     text = render()
     return write_or_check(

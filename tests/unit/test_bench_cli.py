@@ -178,6 +178,29 @@ def test_the_plan_bench_checks_its_options_before_any_plan(
     assert says in err and "plan with" not in err
 
 
+def test_the_experiment_bench_refuses_workers_with_a_scheduler(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """It ignored --workers (999 too) beside --scheduler, where handctl plan refused it."""
+    argv = ["experiment", "--seeds", "1", "--workers", "999", "--scheduler", "tcp://127.0.0.1:1"]
+    assert load_tool("bench").main(argv) == 2
+    assert capsys.readouterr().err.startswith(
+        "bench.py experiment: error: --workers: expected no --workers with --scheduler"
+    )
+
+
+def test_the_fault_campaign_refuses_workers_with_a_scheduler(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """As every command does: it was a traceback (exit 1) for a bad option or address."""
+    gen = load_tool("gen_fault_table")
+    argv = ["--campaign", "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"]
+    assert gen.main(argv) == 2
+    assert capsys.readouterr().err.startswith(
+        "gen_fault_table.py: error: --workers: expected no --workers with --scheduler"
+    )
+
+
 def test_the_plan_bench_s_template_is_one_handctl_plan_takes(
     tmp_path: Path, hand: HandConfig
 ) -> None:

@@ -206,6 +206,16 @@ def test_bad_options_are_named() -> None:
     assert check_scheduler("tcp://10.0.0.5:8786") == "tcp://10.0.0.5:8786"
 
 
+def test_workers_with_a_scheduler_are_refused_for_every_caller() -> None:
+    """The plan refused --workers beside --scheduler, but the bench's experiment and the
+    fault campaign took it (--workers 999 too) and ignored it: the rule is the pool's, before
+    anything is connected (nothing listens at this address)."""
+    with pytest.raises(
+        ConfigError, match=r"^--workers: expected no --workers with --scheduler .*, found 2$"
+    ):
+        open_pool(2, "tcp://127.0.0.1:1")
+
+
 def test_an_unreachable_scheduler_is_named() -> None:
     """Nothing listens on the port: known at once and said whole after the address (cut to a
     length, Dask's reason was cut mid-word; and it came only after its retries)."""
