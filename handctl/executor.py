@@ -316,10 +316,13 @@ def check_scheduler(address: str) -> str:
     return address
 
 
-def check_pool_options(workers: int | None, scheduler: str | None) -> None:
+def check_pool_options(
+    workers: int | None, scheduler: str | None, *, offers_scheduler: bool = True
+) -> None:
     """``--workers`` and ``--scheduler`` as ``open_pool`` takes them, or a ``ConfigError``
     naming the option, before anything is started or connected: one rule for every command
-    and tool that offers them."""
+    and tool that offers them. ``offers_scheduler``: whether the caller has a
+    ``--scheduler`` to point a user at (``bench.py plan`` has none)."""
     if workers is not None and workers < 1:
         raise ConfigError("--workers", "", "at least 1 worker", workers)
     if scheduler is not None:
@@ -339,20 +342,24 @@ def check_pool_options(workers: int | None, scheduler: str | None) -> None:
     if workers is not None and workers > WORKERS_PER_CORE * cores:
         # each worker is a process with its own simulated hand; thousands of them ran the
         # machine out of memory (or of processes) before the first task ended
+        cluster = "; a cluster takes --scheduler" if offers_scheduler else ""
         raise ConfigError(
             "--workers",
             "",
             f"at most {WORKERS_PER_CORE * cores} workers ({WORKERS_PER_CORE} per core this "
             f"process may run on, {cores}: more only share the same cores, each with its own "
-            "simulated hand's memory; a cluster takes --scheduler)",
+            f"simulated hand's memory{cluster})",
             workers,
         )
 
 
-def open_pool(workers: int | None = None, scheduler: str | None = None) -> WorkPool:
+def open_pool(
+    workers: int | None = None, scheduler: str | None = None, *, offers_scheduler: bool = True
+) -> WorkPool:
     """A pool of ``workers`` local processes (default: every core), or the Dask cluster whose
-    scheduler is at ``scheduler`` (then ``workers`` is the cluster's business, and refused)."""
-    check_pool_options(workers, scheduler)
+    scheduler is at ``scheduler`` (then ``workers`` is the cluster's business, and refused).
+    ``offers_scheduler`` as ``check_pool_options`` takes it."""
+    check_pool_options(workers, scheduler, offers_scheduler=offers_scheduler)
     if scheduler is not None:
         return _dask_pool(scheduler)
     cores = available_cores()

@@ -30,7 +30,7 @@ from handctl.analysis.exact import exact_torque_set  # noqa: E402
 from handctl.analysis.model import load_scenario  # noqa: E402
 from handctl.analysis.oracle import lp_grid  # noqa: E402
 from handctl.analysis.slices import ratio_slice  # noqa: E402
-from handctl.executor import open_pool  # noqa: E402
+from handctl.executor import check_pool_options, open_pool  # noqa: E402
 from handctl.progress import Progress, say  # noqa: E402
 
 #: One line of ``bench.py --help`` (read from the source there, without importing this).
@@ -65,6 +65,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    # before the first exact set is timed; no cluster to point at (no --scheduler here)
+    check_pool_options(args.workers, None, offers_scheduler=False)
     scenario = load_scenario(args.scenario)
     conditions = build_conditions(scenario.grasp, scenario.directions)
     settings = [tuple(k) for k in args.k] if args.k else list(PAPER_K)
@@ -92,7 +94,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
         say(f"k = {k}: {args.grid}×{args.grid} grid of LPs ...")
         start = time.perf_counter()
-        with open_pool(args.workers) as pool, Progress("LP grid rows", len(ys)) as bar:
+        with (
+            open_pool(args.workers, offers_scheduler=False) as pool,
+            Progress("LP grid rows", len(ys)) as bar,
+        ):
             lp_real, lp_inside = lp_grid(conditions, torque_slice, xs, ys, pool, bar)
         lp_s += time.perf_counter() - start
 

@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 
 from handctl.config import load_hand  # noqa: E402
 from handctl.errors import ConfigError  # noqa: E402
-from handctl.executor import open_pool  # noqa: E402
+from handctl.executor import check_pool_options, open_pool  # noqa: E402
 from handctl.planning.compile import plan_recipe, recipe_text  # noqa: E402
 from handctl.planning.search import Budget  # noqa: E402
 from handctl.planning.template import MAX_MODELS, load_template  # noqa: E402
@@ -67,7 +67,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     # --models 1000 ran where handctl plan takes at most MAX_MODELS
     if not 1 <= args.models <= MAX_MODELS:
         raise ConfigError("--models", "", f"1 to {MAX_MODELS} models, as handctl plan", args.models)
-    open_pool(args.workers).close()
+    # no --scheduler here, so none is pointed at; checked, not a pool started and closed
+    check_pool_options(args.workers, None, offers_scheduler=False)
     hand = load_hand(HAND)
     budget = Budget(
         generations=args.generations, population=args.population, elite=min(4, args.population)
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             say(f"plan with {workers} worker(s)")
             t0 = time.perf_counter()
             try:
-                with open_pool(workers) as pool:
+                with open_pool(workers, offers_scheduler=False) as pool:
                     result = plan_recipe(
                         template,
                         hand,

@@ -178,6 +178,18 @@ def test_the_plan_bench_checks_its_options_before_any_plan(
     assert says in err and "plan with" not in err
 
 
+@pytest.mark.parametrize("name", ["plan", "analysis"])
+def test_a_bench_without_a_scheduler_option_does_not_point_at_one(
+    capsys: pytest.CaptureFixture[str], name: str
+) -> None:
+    """Too many workers was refused with "a cluster takes --scheduler", an option these
+    benchmarks do not have."""
+    assert load_tool("bench").main([name, "--workers", "100000"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"bench.py {name}: error: --workers: expected at most "), err
+    assert "--scheduler" not in err
+
+
 def test_the_experiment_bench_refuses_workers_with_a_scheduler(
     capsys: pytest.CaptureFixture[str],
 ) -> None:

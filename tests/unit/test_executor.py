@@ -197,6 +197,9 @@ def test_bad_options_are_named() -> None:
         ConfigError, match=rf"--workers: expected at most {most} workers .* found {most + 1}"
     ):
         open_pool(most + 1)
+    with pytest.raises(ConfigError, match=r"memory\)") as raised:  # a caller without one
+        open_pool(most + 1, offers_scheduler=False)
+    assert "--scheduler" not in str(raised.value)
     with pytest.raises(
         ConfigError,
         match=r"--scheduler: expected a Dask scheduler address like tcp://HOST:8786 "
