@@ -40,7 +40,10 @@ HAND = ROOT / "config" / "hands" / "hiroshima_hand.yaml"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--workers", type=int, default=2, help="the pool compared with one worker (default 2)"
+        "--workers",
+        type=int,
+        default=2,
+        help="the pool compared with one worker, at least 2 (default 2)",
     )
     parser.add_argument("--models", type=int, default=4, help="perturbed models (default 4)")
     parser.add_argument("--generations", type=int, default=1)
@@ -69,6 +72,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise ConfigError("--models", "", f"1 to {MAX_MODELS} models, as handctl plan", args.models)
     # no --scheduler here, so none is pointed at; checked, not a pool started and closed
     check_pool_options(args.workers, None, offers_scheduler=False)
+    if args.workers < 2:
+        # the pool is compared with one worker: --workers 1 planned twice in this process
+        # and printed a speedup of 1.0, exit 0, having measured nothing (an outside audit)
+        raise ConfigError(
+            "--workers", "", "at least 2 workers (the pool compared with one worker)", args.workers
+        )
     hand = load_hand(HAND)
     budget = Budget(
         generations=args.generations, population=args.population, elite=min(4, args.population)
