@@ -660,15 +660,11 @@ def _host_and_port(address: str) -> tuple[str, int]:
     return match.group(2).strip("[]"), int(match.group(3))
 
 
-#: the modules whose functions are the offline plane's tasks, and MuJoCo (first, to be named
-#: if it is what fails): what a worker imports to read a task, checked before any goes out
-TASK_MODULES = (
-    "mujoco",
-    "handctl.planning.phase_task",
-    "handctl.harness.seed_run",
-    "handctl.harness.campaign",
-    "handctl.analysis.oracle",
-)
+#: MuJoCo (first, to be named if it is what fails) and the modules of a plan's and the
+#: experiment bench's tasks: what a worker imports to read one, checked before any goes out.
+#: Not the fault campaign's or the LP grid's: scipy and the recorder they import cost each
+#: worker some 50 MB more, which a worker with a memory limit may not have to spare
+TASK_MODULES = ("mujoco", "handctl.planning.phase_task", "handctl.harness.seed_run")
 
 
 def _handctl_version() -> Callable[[], str]:
