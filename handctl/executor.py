@@ -45,7 +45,7 @@ from types import TracebackType
 from typing import Any, TypeVar
 
 from handctl.errors import ConfigError, HandctlError
-from handctl.progress import Progress
+from handctl.progress import Progress, say
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -193,7 +193,7 @@ class WorkPool:
         close: Callable[[bool], None],
         lost: Callable[[], ClusterLostError | None] = lambda: None,
         cpu_counted: str = "this process and its local workers",
-        idle: Callable[[], HandctlError | None] = lambda: None,
+        idle: Callable[[], HandctlError | str | None] = lambda: None,
     ) -> None:
         self.executor = executor
         self.workers = workers
@@ -202,7 +202,8 @@ class WorkPool:
         self._close = close
         self._lost = lost
         #: asked while no task comes back: why the work cannot go on, if it cannot (a
-        #: cluster whose workers are all gone, its scheduler still up, waited for ever)
+        #: cluster whose workers are all gone, its scheduler still up, waited for ever), or
+        #: a line to say once of why it waits (a cluster whose workers are all paused)
         self._idle = idle
         self._closed = False
         self.tasks_run = 0  # tasks whose results came back (what a rate is counted in)
@@ -237,10 +238,7 @@ class WorkPool:
                         if progress is not None:
                             progress.advance()
                 except TimeoutError:
-                    if (why := self._idle()) is not None:
-                        raise why from None
-                    if progress is not None:
-                        progress.tick()
+                    self._waited(progress)
             self.tasks_run += len(futures)
             return [f.result() for f in futures]
         except BaseException as exc:
@@ -264,6 +262,18 @@ class WorkPool:
                     f"it up ({exc}); the workers' own logs say why (out of memory, a crash)"
                 ) from None
             raise
+
+    def _waited(self, progress: Progress | None) -> None:
+        """A round of the map with no task back: the pool asked whether the work can go on
+        (raised if not), what it says of why it waits said, and the progress shown."""
+        why = self._idle()
+        if isinstance(why, HandctlError):
+            raise why from None
+        if why is not None:
+            # said once, where "none done for 4:30" alone never said why
+            (progress.note if progress is not None else say)(why)
+        if progress is not None:
+            progress.tick()
 
     def close(self, cancel: bool = False) -> None:
         """Release the workers; with ``cancel``, stop what is still running first."""
@@ -520,18 +530,22 @@ def _dask_pool(address: str) -> WorkPool:
 class _Idle:
     """Asked while a map on a cluster has no task back: why the work cannot go on, if it
     cannot. A cluster without a worker for ``NO_WORKER_S`` (its tasks would wait for one for
-    ever), or a scheduler that answers nothing for ``SCHEDULER_SILENT_S``."""
+    ever), one whose workers are all there but none running (paused: Dask pauses a worker
+    whose memory passes its pause threshold) for as long, or a scheduler that answers
+    nothing for ``SCHEDULER_SILENT_S``. A cluster whose workers have just all stopped
+    running is said once, and once again when one runs again."""
 
     def __init__(self, client: Any, address: str) -> None:
         self.client = client
         self.address = address
         self.without: float | None = None  # when the cluster was first seen without a worker
+        self.halted: float | None = None  # when its workers were first seen none running
         self.silent: float | None = None  # when the scheduler first did not answer
 
-    def __call__(self) -> HandctlError | None:
+    def __call__(self) -> HandctlError | str | None:
         address = self.address
         try:
-            now_workers = _workers_now(self.client)
+            statuses = _worker_statuses(self.client)
         except TimeoutError:
             self.silent = time.monotonic() if self.silent is None else self.silent
             if time.monotonic() - self.silent < SCHEDULER_SILENT_S:
@@ -544,9 +558,10 @@ class _Idle:
         except Exception:  # the scheduler gone: ``lost`` says so
             return None
         self.silent = None
-        if now_workers:
+        if statuses:
             self.without = None
-            return None
+            return self._halted(statuses)
+        self.halted = None
         if self.without is None:
             self.without = time.monotonic()
         if time.monotonic() - self.without < NO_WORKER_S:
@@ -557,12 +572,57 @@ class _Idle:
             "the work is given up"
         )
 
+    def _halted(self, statuses: list[str]) -> HandctlError | str | None:
+        """A cluster with workers none of which runs: a paused worker counted as a worker,
+        and a plan on a cluster whose one worker was paused (its memory above Dask's pause
+        threshold) said "none done for 4:30" for ever, never why (an outside audit)."""
+        if "running" in statuses:
+            was, self.halted = self.halted, None
+            return f"the Dask cluster at {self.address}: a worker runs again" if was else None
+        how = _none_running(statuses)
+        if self.halted is None:
+            self.halted = time.monotonic()
+            return f"the Dask cluster at {self.address}: {how}: no task runs until one runs again"
+        if time.monotonic() - self.halted < NO_WORKER_S:
+            return None
+        return HandctlError(
+            f"--scheduler {self.address}: the Dask cluster has had no running worker for "
+            f"{NO_WORKER_S:g} s, {how}: its tasks would wait for one for ever, and the work is "
+            "given up"
+        )
+
+
+def _none_running(statuses: list[str]) -> str:
+    """What the workers of these statuses, none of them running, are doing, said whole."""
+    counts: dict[str, int] = {}
+    for status in statuses:
+        counts[status] = counts.get(status, 0) + 1
+    if len(counts) > 1:
+        which = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
+        how = f"none of its {len(statuses)} workers is running ({which})"
+    elif len(statuses) == 1:
+        how = f"its one worker is {statuses[0]}"
+    else:
+        how = f"its {len(statuses)} workers are all {statuses[0]}"
+    if "paused" in counts:
+        how += (
+            " (Dask pauses a worker whose memory passes its pause threshold, "
+            "distributed.worker.memory.pause)"
+        )
+    return how
+
+
+def _worker_statuses(client: Any) -> list[str]:
+    """The status of each worker the scheduler knows of now (``running``, ``paused``, ...),
+    asked with a timeout (``TimeoutError`` past ``SCHEDULER_ANSWER_S``):
+    ``Client.scheduler_info`` waits for its answer for ever."""
+    info = client.sync(client.scheduler.identity, n_workers=-1, callback_timeout=SCHEDULER_ANSWER_S)
+    return [str(worker.get("status", "running")) for worker in info.get("workers", {}).values()]
+
 
 def _workers_now(client: Any) -> int:
-    """The workers the scheduler knows of now, asked with a timeout (``TimeoutError`` past
-    ``SCHEDULER_ANSWER_S``): ``Client.scheduler_info`` waits for its answer for ever."""
-    info = client.sync(client.scheduler.identity, n_workers=-1, callback_timeout=SCHEDULER_ANSWER_S)
-    return len(info.get("workers", {}))
+    """How many workers the scheduler knows of now (``_worker_statuses``)."""
+    return len(_worker_statuses(client))
 
 
 def _security(distributed: Any, address: str) -> Any:
@@ -708,10 +768,17 @@ def _check_workers(client: Any, address: str) -> None:
     try:
         client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
     except TimeoutError:
+        # Dask waits for a running worker: one there but paused was said as none
+        try:
+            statuses = _worker_statuses(client)
+        except TimeoutError:
+            statuses = []
         raise SchedulerError(
             address,
             "a Dask cluster with at least one worker",
-            f"none in {CONNECT_TIMEOUT_S:g} s",
+            f"none running in {CONNECT_TIMEOUT_S:g} s: {_none_running(statuses)}"
+            if statuses
+            else f"none in {CONNECT_TIMEOUT_S:g} s",
         ) from None
     try:
         answers: dict[str, Any] = client.run(

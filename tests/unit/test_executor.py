@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import http.server
+import io
 import os
 import resource
 import shutil
@@ -646,6 +647,89 @@ def test_a_cluster_left_without_workers_is_given_up(
     assert str(raised[0]).startswith(
         f"--scheduler {address}: the Dask cluster has had no worker for 1 s"
     )
+
+
+def _pause(dask_worker: object) -> None:
+    """A worker paused as Dask pauses one whose memory passes its pause threshold (run in
+    the worker's event loop by ``Client.run``: the status goes to the scheduler from there)."""
+    from distributed.core import Status
+
+    dask_worker.status = Status.paused  # type: ignore[attr-defined]
+
+
+def test_a_cluster_whose_workers_are_all_paused_is_said_and_given_up(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A paused worker counted as a worker: a plan on a cluster whose one worker was paused
+    (``dask worker --memory-limit 120MB``) said "none done for 4:30" every 10 s for ever and
+    never why (an outside audit). Said once, and given up, said, once the cluster has had no
+    running worker for ``NO_WORKER_S``. The worker is paused through Dask's own status (a
+    real one paused by its memory: too slow and too loose a test on a loaded machine), with
+    no memory limit, so that Dask's memory monitor does not resume it."""
+    distributed = pytest.importorskip("distributed")
+    monkeypatch.setattr(executor, "NO_WORKER_S", 1.0)
+    monkeypatch.setattr(executor, "IDLE_CHECK_S", 0.2)
+    said = io.StringIO()
+    raised: list[BaseException] = []
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp",
+        dashboard_address=":0",
+        scheduler_port=0,
+        memory_limit=0,
+    ) as cluster:
+        address = cluster.scheduler_address
+        pool = open_pool(scheduler=address)  # its worker running: the check passes
+        with distributed.Client(address, set_as_default=False) as client:
+            client.run(_pause)
+
+        def work() -> None:
+            try:
+                with pool:
+                    pool.map(later_first, [(0, 1)], Progress("t", 1, stream=said, terminal=False))
+            except BaseException as exc:
+                raised.append(exc)
+
+        thread = threading.Thread(target=work, daemon=True)
+        thread.start()
+        thread.join(120.0)
+        assert not thread.is_alive(), "the map still waits on a paused worker"
+    assert len(raised) == 1 and not isinstance(raised[0], ClusterLostError), raised
+    assert str(raised[0]) == (
+        f"--scheduler {address}: the Dask cluster has had no running worker for 1 s, its one "
+        "worker is paused (Dask pauses a worker whose memory passes its pause threshold, "
+        "distributed.worker.memory.pause): its tasks would wait for one for ever, and the work "
+        "is given up"
+    )
+    assert f"the Dask cluster at {address}: its one worker is paused (" in said.getvalue()
+
+
+def test_a_cluster_whose_one_worker_is_paused_is_not_said_to_have_none(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Dask waits for a running worker: a cluster whose worker was paused was refused as
+    one with none."""
+    distributed = pytest.importorskip("distributed")
+    monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 1.0)
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp",
+        dashboard_address=":0",
+        scheduler_port=0,
+        memory_limit=0,
+    ) as cluster:
+        with distributed.Client(cluster.scheduler_address, set_as_default=False) as client:
+            client.run(_pause)
+        raised = _open_in_thread(cluster.scheduler_address)
+    assert isinstance(raised, ConfigError), raised
+    assert str(raised).endswith(
+        ": none running in 1 s: its one worker is paused (Dask pauses a worker whose memory "
+        "passes its pause threshold, distributed.worker.memory.pause)"
+    ), raised
 
 
 def test_a_local_worker_killed_is_said_in_one_line(tmp_path: Path) -> None:
