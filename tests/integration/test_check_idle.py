@@ -17,6 +17,20 @@ from handctl.sim.params import parse_sim
 from ..conftest import HAND_YAML, ROOT, handctl
 
 
+def _hanging_hand(tmp_path: Path) -> tuple[Path, dict[str, Any], float]:
+    """The default hand whose first joint's range ends 0.1 rad above where it starts: it
+    starts at -0.55 rad and hangs towards -0.3 under gravity, so the range is crossed at
+    once, and the start is valid. The config's path, the joint (as loaded YAML) and its
+    initial angle (rad)."""
+    data: dict[str, Any] = yaml.safe_load(HAND_YAML.read_text())
+    joint: dict[str, Any] = data["fingers"][0]["joints"][0]
+    start: float = data["sim"]["initial_angles"][data["fingers"][0]["name"]][0]
+    joint["angle_max"] = start + 0.1
+    path = tmp_path / "hangs.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path, joint, start
+
+
 @pytest.mark.parametrize(
     "name", ["hiroshima_hand.yaml", "planar_2f2j.yaml", "four_fingers_four_joints.yaml"]
 )
@@ -28,14 +42,7 @@ def test_the_shipped_hands_stay_within_their_limits_idle(name: str) -> None:
 def test_a_finger_that_hangs_past_its_limit_is_said_by_check_before_calibrate_meets_it(
     tmp_path: Path,
 ) -> None:
-    data: dict[str, Any] = yaml.safe_load(HAND_YAML.read_text())
-    joint = data["fingers"][0]["joints"][0]
-    start = data["sim"]["initial_angles"][data["fingers"][0]["name"]][0]
-    # the finger's first joint starts at -0.55 rad and hangs towards -0.3 under gravity: a
-    # range that ends 0.1 rad above the start is crossed at once, and the start is valid
-    joint["angle_max"] = start + 0.1
-    path = tmp_path / "hangs.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    path, joint, start = _hanging_hand(tmp_path)
     hand = load_hand(path)
     found = idle_excursions(hand, parse_sim(hand))
     assert [e.joint for e in found] == [0]
@@ -62,12 +69,7 @@ def test_a_standalone_hand_says_when_it_has_hung_past_its_limits(tmp_path: Path)
     limits after about 45 s, and every run then stops before any torque. The hand said
     nothing of it (found by an outside audit); it says it once, with what to do. A finger
     whose range ends 0.1 rad from where it starts, towards where it hangs, passes at once."""
-    data: dict[str, Any] = yaml.safe_load(HAND_YAML.read_text())
-    joint = data["fingers"][0]["joints"][0]
-    start = data["sim"]["initial_angles"][data["fingers"][0]["name"]][0]
-    joint["angle_max"] = start + 0.1
-    path = tmp_path / "hangs.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    path, joint, _ = _hanging_hand(tmp_path)
     bus = tmp_path / "bus"
     bus.mkdir()
     done = handctl("sim", "--hand", str(path), "--bus", f"unix:{bus}", "--seconds", "2.5")

@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable, Iterator
 from multiprocessing import resource_tracker
 from pathlib import Path
+from typing import Any
 
 import psutil
 import pytest
@@ -649,6 +650,20 @@ def test_a_cluster_left_without_workers_is_given_up(
     )
 
 
+def _unwatched_cluster(distributed: Any) -> Any:
+    """A one-worker LocalCluster in this process whose memory Dask does not watch
+    (``memory_limit=0``): its monitor would otherwise un-pause a worker paused by hand."""
+    return distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp",
+        dashboard_address=":0",
+        scheduler_port=0,
+        memory_limit=0,
+    )
+
+
 def _pause(dask_worker: object) -> None:
     """A worker paused as Dask pauses one whose memory passes its pause threshold (run in
     the worker's event loop by ``Client.run``: the status goes to the scheduler from there)."""
@@ -671,15 +686,7 @@ def test_a_cluster_whose_workers_are_all_paused_is_said_and_given_up(
     monkeypatch.setattr(executor, "IDLE_CHECK_S", 0.2)
     said = io.StringIO()
     raised: list[BaseException] = []
-    with distributed.LocalCluster(
-        n_workers=1,
-        threads_per_worker=1,
-        processes=False,
-        protocol="tcp",
-        dashboard_address=":0",
-        scheduler_port=0,
-        memory_limit=0,
-    ) as cluster:
+    with _unwatched_cluster(distributed) as cluster:
         address = cluster.scheduler_address
         pool = open_pool(scheduler=address)  # its worker running: the check passes
         with distributed.Client(address, set_as_default=False) as client:
@@ -713,15 +720,7 @@ def test_a_cluster_whose_one_worker_is_paused_is_not_said_to_have_none(
     one with none."""
     distributed = pytest.importorskip("distributed")
     monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 1.0)
-    with distributed.LocalCluster(
-        n_workers=1,
-        threads_per_worker=1,
-        processes=False,
-        protocol="tcp",
-        dashboard_address=":0",
-        scheduler_port=0,
-        memory_limit=0,
-    ) as cluster:
+    with _unwatched_cluster(distributed) as cluster:
         with distributed.Client(cluster.scheduler_address, set_as_default=False) as client:
             client.run(_pause)
         raised = _open_in_thread(cluster.scheduler_address)
