@@ -1178,7 +1178,11 @@ class Recorder:
         return False
 
     def _bus_event(self, event: BusEvent) -> None:
-        self._event(EV_BUS, self._tick, event.kind.value, event.detail, str(event.timestamp_ns))
+        # one heard before the first tick is the first tick's (its poll takes it): stamped
+        # tick -1, it made the whole log unreadable to every reader, whose ticks start at 0
+        # (found by an outside audit: remote frames on the bus while a run started)
+        tick = max(self._tick, 0)
+        self._event(EV_BUS, tick, event.kind.value, event.detail, str(event.timestamp_ns))
 
     def poses(self, poses: Sequence[tuple[float, float, float]]) -> None:
         """Ground truth of the simulated objects at the current tick: (x, y, angle) each.

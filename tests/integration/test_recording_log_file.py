@@ -631,3 +631,23 @@ def test_the_run_says_its_log_s_name_escaped(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert f"frames to {tmp_path}/a\\nb.mcap\n" in done.stdout
     assert log.exists()
+
+
+def test_a_bus_event_before_the_first_tick_leaves_a_readable_log(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A bus event heard while the run starts, before its first tick (a remote frame, an
+    error frame on a busy bus), was stamped tick -1, and every reader refused the whole log:
+    "tick: expected an integer, at least 0, found -1" (found by an outside audit). It is the
+    first tick's, whose poll takes it."""
+    from handctl.online.bus import BusEvent, BusEventKind
+    from handctl.recording import channels as ch
+    from handctl.recording.reader import iter_decoded, open_recording
+
+    path = tmp_path / "run.mcap"
+    recorder = _recorder(hand, path)
+    recorder._bus_event(BusEvent(BusEventKind.REMOTE_FRAME, "remote frame on 0x7FF", 1, 0x7FF))
+    recorder.close({"outcome": "test"})
+    recording = open_recording(path)
+    events = [m for _, _, m in iter_decoded(recording, [ch.EVENTS])]
+    assert [(e["kind"], e["tick"]) for e in events if e["kind"] == "bus"] == [("bus", 0)]
