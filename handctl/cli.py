@@ -536,28 +536,35 @@ def _cmd_analyze_torque_set(args: argparse.Namespace) -> int:
 
 
 # -- run ---------------------------------------------------------------------------------------
-def _status_printer() -> Callable[[object], None] | None:
-    """A live status line on a terminal; nothing when stderr is a file or a pipe."""
-    if not sys.stderr.isatty():
-        return None
-    # a terminal that knows no escape sequences (TERM=dumb: an editor's shell, a serial
-    # console) showed the erase as '^[[K' on every line: there, spaces erase instead
-    dumb = os.environ.get("TERM") == "dumb"
-    # shown from inside the tick: a line the terminal cannot take now (Ctrl-S, a stalled
-    # SSH session) is dropped, never waited for (``handctl.lossyout``)
-    out = LossyOut(sys.stderr)
+class _StatusPrinter:
+    """The live status line on a terminal, shown from inside the tick: a line the terminal
+    cannot take now (Ctrl-S, a stalled SSH session) is dropped, never waited for
+    (``handctl.lossyout``); ``finish`` once the run is over, before anything else is
+    written to stderr."""
 
-    def show(line: object) -> None:
+    def __init__(self) -> None:
+        # a terminal that knows no escape sequences (TERM=dumb: an editor's shell, a serial
+        # console) showed the erase as '^[[K' on every line: there, spaces erase instead
+        self.dumb = os.environ.get("TERM") == "dumb"
+        self.out = LossyOut(sys.stderr)
+
+    def __call__(self, line: object) -> None:
         from handctl.online.loop import StatusLine
 
         assert isinstance(line, StatusLine)
         width = shutil.get_terminal_size().columns
         text = fit_width(status_text(line), width)
         # erased to the line's end: a shorter line leaves nothing of the one before
-        end = " " * max(width - 1 - len(text), 0) if dumb else "\x1b[K"
-        out.write("\r" + text + end)
+        end = " " * max(width - 1 - len(text), 0) if self.dumb else "\x1b[K"
+        self.out.write("\r" + text + end)
 
-    return show
+    def finish(self) -> None:
+        self.out.finish()
+
+
+def _status_printer() -> _StatusPrinter | None:
+    """A live status line on a terminal; nothing when stderr is a file or a pipe."""
+    return _StatusPrinter() if sys.stderr.isatty() else None
 
 
 def fit_width(text: str, columns: int) -> str:
@@ -719,7 +726,11 @@ def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
             file=sys.stderr,
         )
     try:
-        report = run_recipe(request, status=status, signals=signals)
+        try:
+            report = run_recipe(request, status=status, signals=signals)
+        finally:
+            if status is not None:
+                status.finish()
     except KeyboardInterrupt as exc:
         # a stop signal during the start-up, or an interrupt inside a tick (Ctrl-C without
         # the signal handler, a cancelled task): the summary asked for says what ran
@@ -2501,21 +2512,24 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         if table.write("\n".join([*banner, row]) if banner else row):
             banner.clear()
 
-    result = jog(
-        hand,
-        args.joint,
-        args.torque,
-        seconds=seconds,
-        bus=args.bus,
-        lockstep=False if args.realtime else None,
-        realtime_priority=args.rt,
-        seed=_sim_seed(args, hand),
-        sim_faults=args.sim_faults,
-        reset_node_faults=args.reset_node_faults,
-        accept_missed_deadlines=args.accept_missed_deadlines,
-        recover=args.recover,
-        show=show,
-    )
+    try:
+        result = jog(
+            hand,
+            args.joint,
+            args.torque,
+            seconds=seconds,
+            bus=args.bus,
+            lockstep=False if args.realtime else None,
+            realtime_priority=args.rt,
+            seed=_sim_seed(args, hand),
+            sim_faults=args.sim_faults,
+            reset_node_faults=args.reset_node_faults,
+            accept_missed_deadlines=args.accept_missed_deadlines,
+            recover=args.recover,
+            show=show,
+        )
+    finally:
+        table.finish()
     from handctl.online.loop import Outcome
 
     if result.report.result.outcome is not Outcome.STARTUP_FAILED:

@@ -6,65 +6,124 @@ with Ctrl-S (XOFF), an SSH session that stalls, or a pipe into a pager left at i
 (``handctl jog ... | less``) each block a plain ``print`` for as long as they last, and
 a stop signal cannot end the run meanwhile: Python retries the interrupted write after the
 handler. The live status line and jog's table are a view of what the log keeps in full, so
-a line is worth less than a tick: it goes out only when the descriptor can take it at once
-(``poll`` for ``POLLOUT`` with no timeout), and is counted as dropped otherwise.
+a line is worth less than a tick: what the terminal or pipe cannot take at once is dropped,
+and counted.
 
-Why ``poll`` and not a non-blocking descriptor: ``O_NONBLOCK`` is a flag of the open file
-description, which the shell and every other process on the terminal share; a run killed
-before it restored the flag would leave the user's shell with a terminal that fails its
-reads. Why not a thread: a writer thread at the ordinary priority that holds the GIL when
-it is preempted would hold up a SCHED_FIFO loop thread waiting for it.
+How: a terminal or a pipe is opened again, through ``/proc/self/fd``, as an open file
+description of this object's own, non-blocking. Not ``O_NONBLOCK`` on the stream's own
+descriptor: that flag belongs to the open file description, which the shell and every other
+process on the terminal share, and a run killed before it restored the flag would leave the
+user's shell with a terminal that fails its reads. Not ``poll`` before a plain write: a
+terminal polls writable with any room at all, and a line longer than the room (a newline is
+two characters on a terminal) blocked the write all the same (found by an outside audit:
+jog's table on a terminal whose reader stalled). Not a thread: a writer thread at the
+ordinary priority, preempted while it holds the GIL, would hold up a SCHED_FIFO loop.
+
+A line the descriptor took in part is finished before any other (the next call, or
+``finish``), so a line is never cut by another; while part of one waits, new lines are
+dropped. Anything else (a regular file, a socket, a test's capture) is written through the
+stream as it is: a file takes a line at once, and a capture cannot block.
 """
 
 from __future__ import annotations
 
-import io
-import select
+import contextlib
+import errno
+import fcntl
+import os
+import stat
 from typing import IO
 
-#: What says the descriptor can be written, or that writing it will fail at once (a reader
-#: gone, a closed descriptor): the stream's own error handling then takes over.
-_WRITABLE = select.POLLOUT | select.POLLERR | select.POLLHUP | select.POLLNVAL
+#: errnos of a reader gone for good (a closed pipe, a hung-up terminal): nothing more is
+#: written, and nothing is said (a reader leaving is normal; the stream's own wrapper says
+#: the rest at the end)
+_GONE = (errno.EPIPE, errno.EIO, errno.ENXIO)
 
 
 class LossyOut:
-    """``stream`` for lines that are dropped rather than waited for.
-
-    Each line is whole and small (a status line, a table row): a pipe that polls writable
-    has a page free and a terminal has room for a line, so the write that follows does not
-    block. A stream with no descriptor (a test's capture, an in-memory buffer) cannot block
-    and is written as it is.
-    """
+    """``stream`` for lines that are dropped rather than waited for. Call ``finish`` once
+    the lines are done, before anything else is written to the stream."""
 
     def __init__(self, stream: IO[str]) -> None:
         self.stream = stream
         self.written = 0
         self.dropped = 0
-        self._poll: select.poll | None = None
+        self.encoding = str(getattr(stream, "encoding", None) or "utf-8")
+        self._fd = -1  # this object's own non-blocking description, if it has one
+        self._pending = b""  # the part of a line the descriptor has not taken yet
+        self._gone = False
         try:
             fd = stream.fileno()
-        except (OSError, ValueError, io.UnsupportedOperation):
+            mode = os.fstat(fd).st_mode
+        except (OSError, ValueError, AttributeError):
+            return  # no descriptor: an in-memory stream, which cannot block
+        if not (stat.S_ISFIFO(mode) or (stat.S_ISCHR(mode) and os.isatty(fd))):
             return
-        poll = select.poll()
-        poll.register(fd, select.POLLOUT)
-        self._poll = poll
-
-    def ready(self) -> bool:
-        """Whether a line written now would go out without waiting."""
-        if self._poll is None:
-            return True
+        with contextlib.suppress(OSError):
+            stream.flush()  # what was printed before goes first
         try:
-            events = self._poll.poll(0)
-        except OSError:  # EINTR is retried by Python; anything else: let the write say it
-            return True
-        return any(mask & _WRITABLE for _, mask in events)
+            self._fd = os.open(
+                f"/proc/self/fd/{fd}", os.O_WRONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC
+            )
+        except OSError:
+            self._fd = -1  # a pipe whose reader is gone, no /proc: written as a file is
 
     def write(self, text: str) -> bool:
-        """``text`` written and flushed if the stream can take it now; False if dropped."""
-        if not self.ready():
+        """``text`` (one line, or a status line) written now if the descriptor takes it
+        whole or in part; False if it was dropped."""
+        if self._gone:
             self.dropped += 1
             return False
-        self.stream.write(text)
-        self.stream.flush()
+        if self._fd < 0:
+            self.stream.write(text)
+            self.stream.flush()
+            self.written += 1
+            return True
+        if self._pending and not self._push():
+            self.dropped += 1  # a line is still going out: this one is not waited for
+            return False
+        data = text.encode(self.encoding, "backslashreplace")
+        self._pending = data
+        self._push()
+        if self._gone or self._pending == data:  # none of it went: dropped whole
+            self._pending = b""
+            self.dropped += 1
+            return False
         self.written += 1
         return True
+
+    def _push(self) -> bool:
+        """Write what is pending without waiting; whether all of it went."""
+        while self._pending:
+            try:
+                n = os.write(self._fd, self._pending)
+            except BlockingIOError:
+                return False
+            except InterruptedError:
+                continue
+            except OSError as exc:
+                if exc.errno in _GONE:
+                    self._gone = True
+                    self._pending = b""
+                    return False
+                raise
+            self._pending = self._pending[n:]
+        return True
+
+    def finish(self) -> None:
+        """The part of a line still pending written out, waiting for it now (the loop has
+        ended), and this object's descriptor closed: what is written after goes through the
+        stream in order."""
+        if self._fd < 0:
+            return
+        try:
+            if self._pending and not self._gone:
+                flags = fcntl.fcntl(self._fd, fcntl.F_GETFL)
+                fcntl.fcntl(self._fd, fcntl.F_SETFL, flags & ~os.O_NONBLOCK)  # ours alone
+                with contextlib.suppress(OSError):
+                    while self._pending:
+                        self._pending = self._pending[os.write(self._fd, self._pending) :]
+        finally:
+            self._pending = b""
+            os.close(self._fd)
+            self._fd = -1
