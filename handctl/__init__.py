@@ -14,11 +14,3 @@ def mujoco_opengl_off() -> None:
     value MuJoCo does not know) makes the import raise, a traceback in every command that
     builds the simulated hand."""
     os.environ["MUJOCO_GL"] = "disable"
-
-
-# Here, not only in the command line's ``main``: a Dask worker never runs ``main``, and one
-# started with ``MUJOCO_GL=osmesa`` on a machine without OSMesa died of its first task (its
-# ``import mujoco`` raised while the task was unpickled), which the plan could only report
-# 30 s later as a cluster without workers (an outside audit). Every module of handctl that
-# imports MuJoCo is imported after this package's ``__init__``.
-mujoco_opengl_off()

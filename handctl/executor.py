@@ -739,9 +739,16 @@ def _handctl_version() -> Callable[[], str]:
         import importlib
         from pathlib import Path
 
-        # importing handctl turns MuJoCo's OpenGL off (``mujoco_opengl_off``), as on every
-        # worker before its first task: MuJoCo is imported here as a task imports it
         import handctl
+
+        # MuJoCo's OpenGL off in the worker's process, as ``main`` turns it off in handctl's
+        # own, before anything imports MuJoCo: a worker never runs ``main``, and one started
+        # with ``MUJOCO_GL=osmesa`` on a machine without OSMesa died of its first task (its
+        # ``import mujoco`` raised while the task was unpickled), which the plan could only
+        # report 30 s later as a cluster without workers (an outside audit). Here, on the
+        # workers this check reaches, and not at ``import handctl``: that turned it off for
+        # every program that imports handctl, whose own MuJoCo rendering then failed
+        handctl.mujoco_opengl_off()
 
         root = Path(handctl.__file__).parent
         digest = hashlib.sha256()

@@ -11,6 +11,8 @@ import sys
 
 import pytest
 
+from ..conftest import ROOT
+
 #: Runs the command (its help), then imports MuJoCo as the simulated hand does, and says
 #: what it found.
 SCRIPT = """
@@ -49,3 +51,21 @@ def test_a_renderer_in_the_environment_is_not_loaded(chosen: str) -> None:
     does not know a RuntimeError, a traceback in every command that builds the simulated
     hand."""
     assert _run({**os.environ, "MUJOCO_GL": chosen}) == ["disable", "False"]
+
+
+def test_importing_handctl_leaves_a_programs_mujoco_rendering_alone() -> None:
+    """A program that imports handctl as a library and renders with MuJoCo itself: the
+    import turned MuJoCo's OpenGL off for its whole process, and its renderer failed (found
+    by an outside audit). The command line and the Dask workers turn it off; the import
+    does not."""
+    done = subprocess.run(
+        [sys.executable, "-c", "import os, handctl.cli; print(os.environ['MUJOCO_GL'])"],
+        env={**os.environ, "MUJOCO_GL": "egl"},
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "egl"
