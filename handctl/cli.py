@@ -348,9 +348,9 @@ def _cmd_check_timing(args: argparse.Namespace) -> int:
             "where the scheduler puts it)",
             f"--loop-cpu {args.loop_cpu} --no-rt",
         )
-    _refuse_same_files({"--json": args.json}, {"HAND.yaml": args.hand})
+    _refuse_same_files({"--json": args.json}, {args.hand_said: args.hand})
     _output_file("--json", args.json, json_output=True)
-    hand = _load_checked_hand(args.hand, "HAND.yaml")
+    hand = _load_checked_hand(args.hand, args.hand_said)
     check_loop_cpu(args.loop_cpu)  # before the line that says the check has begun
     _progress(
         f"timing check: a bare timer loop at {hand.bus.loop_rate_hz:g} Hz for {seconds:g} s ..."
@@ -445,7 +445,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     from handctl.online.busspec import check_interface
     from handctl.sim.params import parse_sim
 
-    hand = _load_hand(args.hand, "HAND.yaml", args.dbc)
+    hand = _load_hand(args.hand, args.hand_said, args.dbc)
     check_interface(hand.bus, hand.source)
     protocol = protocol_for(hand)
 
@@ -3086,7 +3086,8 @@ def _add_hand_argument(command: argparse.ArgumentParser) -> None:
 
 
 def _hand_given(args: argparse.Namespace) -> Path:
-    """The hand config of ``_add_hand_argument``: HAND.yaml or ``--hand``, not two."""
+    """The hand config of ``_add_hand_argument``: HAND.yaml or ``--hand``, not two. Sets
+    ``args.hand_said``, what a message about it calls it (the one the user gave)."""
     given, option = args.hand, args.hand_option
     if given is not None and option is not None and given != option:
         raise ConfigError(
@@ -3095,6 +3096,7 @@ def _hand_given(args: argparse.Namespace) -> Path:
             f"one hand config, as HAND.yaml or as --hand (HAND.yaml is {escaped(str(given))})",
             str(option),
         )
+    args.hand_said = "--hand" if given is None and option is not None else "HAND.yaml"
     return given or option or DEFAULT_HAND
 
 
@@ -3124,12 +3126,12 @@ def _cmd_layout(args: argparse.Namespace) -> int:
 
     args.hand = _hand_given(args)
     # a layout written over the hand config lost the hand
-    _refuse_same_files({"-o": args.output}, {"HAND.yaml": args.hand, "--dbc": args.dbc})
+    _refuse_same_files({"-o": args.output}, {args.hand_said: args.hand, "--dbc": args.dbc})
     # a layout is JSON: an existing file that is not (another hand's config, a recipe,
     # notes), or JSON of anything else (a run's summary), was replaced by it, exit 0
     _output_file("-o", args.output, json_kind=("layout", LAYOUT_KEYS))
     # checked as every command checks it: a hand check refuses was given a layout, exit 0
-    hand = _load_checked_hand(args.hand, "HAND.yaml", args.dbc)
+    hand = _load_checked_hand(args.hand, args.hand_said, args.dbc)
     _write_output("-o", args.output, layout_json(hand))
     print(f"written: {args.output} (the Foxglove layout of {hand.name})")
     return EXIT_OK

@@ -406,6 +406,10 @@ def test_check_and_layout_take_the_hand_as_every_command_does(tmp_path: Path) ->
     done = handctl("layout", "--hand", planar, "-o", str(out))
     assert done.returncode == 0, done.stderr
     assert "the Foxglove layout of planar_2f2j" in done.stdout
+    # a file missing is said of what the user gave: --hand, not the argument it did not give
+    missing = handctl("check", "--hand", str(tmp_path / "none.yaml"))
+    assert missing.returncode == 2
+    assert missing.stderr.startswith("handctl: error: --hand: expected an existing hand config")
 
 
 def test_check_warns_of_a_rate_limit_that_starves_the_guard(
