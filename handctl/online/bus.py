@@ -47,6 +47,7 @@ import can
 
 from handctl.config import MAX_STANDARD_ID, BusConfig
 from handctl.errors import BusError, HandctlError, escaped
+from handctl.hand_protocol import ESTOP_ID
 from handctl.online import frameflags as ff
 from handctl.online.busspec import (
     NO_SOCKETCAN,
@@ -673,6 +674,14 @@ def _remote_text(frame_id: int) -> str:
         wire = f"0x{frame_id & EXTENDED_ID_MASK:08X} (29-bit)"
     else:
         wire = f"0x{frame_id:03X}"
+    if frame_id == ESTOP_ID:
+        # the nodes act on any frame on the e-stop's id, a remote one too (PROTOCOL.md): said
+        # as harmless, it had e-stopped them (found by an outside audit)
+        return (
+            f"a remote frame (RTR) on id {wire}, the e-stop's: not taken as a data frame by "
+            "the host, but every node acts on any frame on that id (PROTOCOL.md) and latches "
+            "FAULT (ESTOP)"
+        )
     return (
         f"a remote frame (RTR) on id {wire}: a request for data, which handctl's protocol has "
         "none of; not taken as a data frame"

@@ -294,7 +294,11 @@ def test_a_remote_frame_stays_one_on_the_unix_bus_and_is_no_data_frame_to_handbu
         (BusEventKind.REMOTE_FRAME, 0x181),
         (BusEventKind.REMOTE_FRAME, 0x12345 | EXTENDED_ID_FLAG),
     ]
-    assert events[0].detail.startswith("a remote frame (RTR) on id 0x000: ")
+    # on the e-stop's id the nodes act on any frame: said so, not as harmless (found by an
+    # outside audit)
+    assert events[0].detail.startswith("a remote frame (RTR) on id 0x000, the e-stop's: ")
+    assert "every node acts on any frame on that id" in events[0].detail
+    assert events[1].detail.startswith("a remote frame (RTR) on id 0x181: a request for data")
     assert "on id 0x00012345 (29-bit)" in events[2].detail
 
 
