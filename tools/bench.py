@@ -90,14 +90,17 @@ _POSITIVE = (
 _NON_NEGATIVE = ("warmup_s",)
 
 
-def _out_of_range(args: argparse.Namespace) -> str:
-    """What the first shared option out of its range is, said as the CLI says it; "" if none."""
+def _out_of_range(args: argparse.Namespace, least: dict[str, int] | None = None) -> str:
+    """What the first shared option out of its range is, said as the CLI says it; "" if none.
+    ``least``: a benchmark's own lower bound of a count (the plan bench's two workers: told
+    ">= 1" for 0, and then refused 1)."""
     for key, value in vars(args).items():
         if value is None or isinstance(value, bool) or not isinstance(value, int | float):
             continue
         option = "--" + key.replace("_", "-")
-        if key in _COUNTS and not value >= 1:
-            return f"{option}: expected a whole number >= 1, found {value}"
+        fewest = (least or {}).get(key, 1)
+        if key in _COUNTS and not value >= fewest:
+            return f"{option}: expected a whole number >= {fewest}, found {value}"
         if key in _FROM_ZERO and not value >= 0:
             return f"{option}: expected a whole number >= 0, found {value}"
         if key in _POSITIVE and not (math.isfinite(value) and value > 0):
@@ -157,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         if action.help is None and action.option_strings:
             action.help = "(default: %(default)s)"
     args = parser.parse_args(argv[1:])
-    wrong = _out_of_range(args)
+    wrong = _out_of_range(args, getattr(module, "LEAST", None))
     if wrong:
         print(f"bench.py {name}: {wrong}", file=sys.stderr)
         return 2

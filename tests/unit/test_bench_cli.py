@@ -168,7 +168,9 @@ def test_a_cluster_lost_is_a_failed_result_and_a_stop_signal_an_interrupt(
         (["plan", "--models", "1000"], "--models: expected 1 to 100 models"),
         (["plan", "--workers", "100000"], "--workers: expected at most"),
         # it planned twice in this process, speedup 1.0, exit 0: nothing measured
-        (["plan", "--workers", "1"], "--workers: expected at least 2 workers"),
+        (["plan", "--workers", "1"], "--workers: expected a whole number >= 2, found 1"),
+        # told ">= 1", then 1 refused (found by an outside audit)
+        (["plan", "--workers", "0"], "--workers: expected a whole number >= 2, found 0"),
     ],
 )
 def test_the_plan_bench_checks_its_options_before_any_plan(
