@@ -2534,7 +2534,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
 
     if result.report.result.outcome is not Outcome.STARTUP_FAILED:
         say_banner()  # a jog that ran (a failed start-up's error says it did not)
-    if table.dropped:
+    if table.dropped and not table.gone:
         print(
             f"handctl: note: {table.dropped} of the table's {table.dropped + table.written} "
             "lines were not shown: stdout could not take them when they came (a stopped "

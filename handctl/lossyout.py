@@ -92,6 +92,12 @@ class LossyOut:
         self.written += 1
         return True
 
+    @property
+    def gone(self) -> bool:
+        """Whether the reader has gone for good (a closed pipe, a hung-up terminal): what
+        was dropped since is not for want of room, and a reader leaving is not said."""
+        return self._gone
+
     def _push(self) -> bool:
         """Write what is pending without waiting; whether all of it went."""
         while self._pending:

@@ -83,3 +83,20 @@ def test_a_stream_without_a_descriptor_is_written_as_it_is() -> None:
     assert out.write(LINE) and out.write(LINE)
     out.finish()
     assert stream.getvalue() == LINE * 2 and out.dropped == 0
+
+
+def test_a_reader_gone_is_no_line_dropped_for_want_of_room() -> None:
+    """``handctl jog ... | head -2``: the reader leaves, and what is not shown after is not
+    for want of room; jog said "18 of the table's 19 lines were not shown ... a reader that
+    fell behind" of a reader that had gone, which is normal and passes in silence."""
+    read_end, write_end = os.pipe()
+    stream = open(write_end, "w", closefd=False)  # noqa: SIM115 -- closed below
+    try:
+        out = LossyOut(stream)
+        os.close(read_end)
+        assert not out.write(LINE)
+        assert out.gone
+        out.finish()
+    finally:
+        stream.close()
+        os.close(write_end)
