@@ -552,7 +552,10 @@ class _StatusPrinter:
         from handctl.online.loop import StatusLine
 
         assert isinstance(line, StatusLine)
-        width = shutil.get_terminal_size().columns
+        # stderr's terminal, where the line is drawn: stdout's (``shutil``'s first choice)
+        # may be a file, and an 80-column line wrapped on a narrower terminal left a row
+        # behind at every update (found by an outside audit)
+        width = _stderr_columns()
         text = fit_width(status_text(line), width)
         # erased to the line's end: a shorter line leaves nothing of the one before
         end = " " * max(width - 1 - len(text), 0) if self.dumb else "\x1b[K"
@@ -562,9 +565,34 @@ class _StatusPrinter:
         self.out.finish()
 
 
+def _stderr_columns() -> int:
+    """The width of stderr's terminal: ``COLUMNS`` if set, as ``shutil`` reads it, then
+    stderr's own size, then ``shutil``'s answer (stdout's, or 80)."""
+    try:
+        given = int(os.environ.get("COLUMNS", ""))
+    except ValueError:
+        given = 0
+    if given > 0:
+        return given
+    try:
+        columns = os.get_terminal_size(sys.stderr.fileno()).columns
+    except (OSError, ValueError):
+        columns = 0
+    return columns if columns > 0 else shutil.get_terminal_size().columns
+
+
 def _status_printer() -> _StatusPrinter | None:
     """A live status line on a terminal; nothing when stderr is a file or a pipe."""
-    return _StatusPrinter() if sys.stderr.isatty() else None
+    if not sys.stderr.isatty():
+        return None
+    printer = _StatusPrinter()
+    if printer.out.off:
+        print(
+            f"handctl: note: no live status line: stderr is {printer.out.off}, and a run "
+            "never waits for its terminal",
+            file=sys.stderr,
+        )
+    return printer
 
 
 def fit_width(text: str, columns: int) -> str:
@@ -2503,6 +2531,12 @@ def _cmd_jog(args: argparse.Namespace) -> int:
     # its prompt, Ctrl-S) is dropped, never waited for (``handctl.lossyout``); the banner
     # waits for a line that goes out, or for the end
     table = LossyOut(sys.stdout)
+    if table.off:
+        print(
+            f"handctl: note: the table is shown only at the end: stdout is {table.off}, and "
+            "a jog never waits for it",
+            file=sys.stderr,
+        )
 
     def show(line: JogLine) -> None:
         row = (

@@ -19,10 +19,17 @@ two characters on a terminal) blocked the write all the same (found by an outsid
 jog's table on a terminal whose reader stalled). Not a thread: a writer thread at the
 ordinary priority, preempted while it holds the GIL, would hold up a SCHED_FIFO loop.
 
+A socket (stdout under a service manager's journal, a socketpair a supervisor hands out)
+cannot be opened again; it is sent to with ``MSG_DONTWAIT``, a flag of the call alone. A
+terminal or pipe that cannot be opened again (another user's: ``sudo -u robot handctl jog
+... | less``, a system without ``/proc``) has no way to be written without waiting: then
+nothing is written, and ``off`` says why, for the command to say before its loop begins
+(writing blocking there was the failure this module exists for: found by an outside audit).
+
 A line the descriptor took in part is finished before any other (the next call, or
 ``finish``), so a line is never cut by another; while part of one waits, new lines are
-dropped. Anything else (a regular file, a socket, a test's capture) is written through the
-stream as it is: a file takes a line at once, and a capture cannot block.
+dropped. Anything else (a regular file, a device such as /dev/null, a test's capture) is
+written through the stream as it is: it takes a line at once, and a capture cannot block.
 """
 
 from __future__ import annotations
@@ -31,13 +38,14 @@ import contextlib
 import errno
 import fcntl
 import os
+import socket
 import stat
 from typing import IO
 
-#: errnos of a reader gone for good (a closed pipe, a hung-up terminal): nothing more is
-#: written, and nothing is said (a reader leaving is normal; the stream's own wrapper says
-#: the rest at the end)
-_GONE = (errno.EPIPE, errno.EIO, errno.ENXIO)
+#: errnos of a reader gone for good (a closed pipe, a hung-up terminal, a socket reset):
+#: nothing more is written, and nothing is said (a reader leaving is normal; the stream's
+#: own wrapper says the rest at the end)
+_GONE = (errno.EPIPE, errno.EIO, errno.ENXIO, errno.ECONNRESET, errno.ENOTCONN)
 
 
 class LossyOut:
@@ -50,31 +58,49 @@ class LossyOut:
         self.dropped = 0
         self.encoding = str(getattr(stream, "encoding", None) or "utf-8")
         self._fd = -1  # this object's own non-blocking description, if it has one
+        self._sock: socket.socket | None = None  # a socket, sent to without waiting
         self._pending = b""  # the part of a line the descriptor has not taken yet
         self._gone = False
+        #: why nothing is written at all, if so (no way to write without waiting); "" if not
+        self.off = ""
         try:
             fd = stream.fileno()
             mode = os.fstat(fd).st_mode
         except (OSError, ValueError, AttributeError):
             return  # no descriptor: an in-memory stream, which cannot block
+        if stat.S_ISSOCK(mode):
+            with contextlib.suppress(OSError):
+                stream.flush()  # what was printed before goes first
+            try:
+                self._sock = socket.socket(fileno=os.dup(fd))
+            except OSError as exc:
+                self.off = f"a socket this process cannot send to ({exc.strerror or exc})"
+            return
         if not (stat.S_ISFIFO(mode) or (stat.S_ISCHR(mode) and os.isatty(fd))):
             return
         with contextlib.suppress(OSError):
             stream.flush()  # what was printed before goes first
+        kind = "a terminal" if stat.S_ISCHR(mode) else "a pipe"
         try:
             self._fd = os.open(
                 f"/proc/self/fd/{fd}", os.O_WRONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC
             )
-        except OSError:
-            self._fd = -1  # a pipe whose reader is gone, no /proc: written as a file is
+        except OSError as exc:
+            if exc.errno == errno.ENXIO:  # a pipe whose reader is gone: nothing to wait for
+                self._gone = True
+            else:
+                self.off = (
+                    f"{kind} this process cannot open again to write without waiting "
+                    f"({exc.strerror or exc}: another user's, or no /proc)"
+                )
 
     def write(self, text: str) -> bool:
         """``text`` (one line, or a status line) written now if the descriptor takes it
         whole or in part; False if it was dropped."""
-        if self._gone:
+        if self._gone or self.off:
             self.dropped += 1
             return False
-        if self._fd < 0:
+        if self._fd < 0 and self._sock is None:
             self.stream.write(text)
             self.stream.flush()
             self.written += 1
@@ -102,7 +128,10 @@ class LossyOut:
         """Write what is pending without waiting; whether all of it went."""
         while self._pending:
             try:
-                n = os.write(self._fd, self._pending)
+                if self._sock is not None:
+                    n = self._sock.send(self._pending, socket.MSG_DONTWAIT)
+                else:
+                    n = os.write(self._fd, self._pending)
             except BlockingIOError:
                 return False
             except InterruptedError:
@@ -120,6 +149,14 @@ class LossyOut:
         """The part of a line still pending written out, waiting for it now (the loop has
         ended), and this object's descriptor closed: what is written after goes through the
         stream in order."""
+        if self._sock is not None:
+            with contextlib.suppress(OSError):
+                if self._pending and not self._gone:
+                    self._sock.sendall(self._pending)  # blocking: the loop has ended
+            self._pending = b""
+            self._sock.close()
+            self._sock = None
+            return
         if self._fd < 0:
             return
         try:

@@ -539,12 +539,18 @@ def test_two_hosts_in_a_row_on_one_long_running_simulated_hand(tmp_path: Path) -
         stop_with_ctrl_c(sim, 30)
 
 
-def _status_on_a_terminal(tmp_path: Path, env: dict[str, str]) -> str:
-    """What a 1.5 s run of two phases shows on a terminal (its stderr a pty) with ``env``;
-    the run's exit asserted 0."""
+def _status_on_a_terminal(tmp_path: Path, env: dict[str, str], columns: int = 0) -> str:
+    """What a 1.5 s run of two phases shows on a terminal (its stderr a pty, ``columns``
+    wide if given; stdout not a terminal) with ``env``; the run's exit asserted 0."""
     recipe = tmp_path / "two.yaml"
     recipe.write_text(TWO_PHASES)
     terminal, stderr_end = pty.openpty()
+    if columns:
+        import fcntl
+        import struct
+        import termios
+
+        fcntl.ioctl(stderr_end, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
     proc = subprocess.Popen(
         [sys.executable, "-m", "handctl", "run", "recipe", str(recipe), "--max-seconds", "1.5"],
         cwd=ROOT,
@@ -573,6 +579,19 @@ def test_the_status_line_fits_the_terminal(tmp_path: Path) -> None:
     assert all(len(line.removesuffix("\x1b[K")) <= 49 for line in lines), lines
     # the second phase's line says the first timed out: too long for 49 columns, it is cut
     assert any(line.removesuffix("\x1b[K").endswith("…") for line in lines), lines
+
+
+def test_the_status_line_fits_stderrs_terminal_not_stdouts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The line is drawn on stderr's terminal; its width was asked of stdout (then 80), so
+    with stdout to a file every line on a 50-column terminal was 80 wide and wrapped,
+    leaving a row at each update (found by an outside audit)."""
+    monkeypatch.delenv("COLUMNS", raising=False)
+    shown = _status_on_a_terminal(tmp_path, {}, columns=50)
+    lines = [piece for piece in shown.split("\r") if piece.endswith("\x1b[K")]
+    assert len(lines) > 2, shown
+    assert all(len(line.removesuffix("\x1b[K")) <= 49 for line in lines), lines
 
 
 def test_a_terminal_without_escapes_gets_a_status_line_without_them(tmp_path: Path) -> None:

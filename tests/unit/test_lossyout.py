@@ -7,7 +7,10 @@ from __future__ import annotations
 import io
 import os
 import pty
+import socket
 import threading
+
+import pytest
 
 from handctl.lossyout import LossyOut
 
@@ -100,3 +103,57 @@ def test_a_reader_gone_is_no_line_dropped_for_want_of_room() -> None:
     finally:
         stream.close()
         os.close(write_end)
+
+
+def test_a_socket_whose_reader_stalled_never_blocks_a_line() -> None:
+    """stdout a socket (a service manager's journal, a supervisor's socketpair): written
+    through the stream, which blocks, it held jog's loop with its torque on until the nodes'
+    watchdogs (found by an outside audit). Sent to without waiting, as a pipe is written."""
+    ours, theirs = socket.socketpair()
+    ours.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    stream = open(ours.fileno(), "w", closefd=False)  # noqa: SIM115 -- closed below
+    try:
+        out = LossyOut(stream)
+        assert _write_lines(out, 3000), "a line waited for a socket that was not read"
+        assert out.dropped > 0 and out.written > 0
+        out.finish()
+        stream.close()
+        ours.shutdown(socket.SHUT_WR)
+        seen = b""
+        while chunk := theirs.recv(65536):
+            seen += chunk
+        assert seen.split(b"\n")[:-1] == [LINE[:-1].encode()] * out.written
+    finally:
+        ours.close()
+        theirs.close()
+
+
+def test_a_terminal_or_pipe_that_cannot_be_opened_again_is_not_written_at_all(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Another user's terminal or pipe (``sudo -u robot handctl jog ... | less``), or no
+    /proc: it cannot be opened again, and the lines went through the stream, blocking,
+    which is what this module exists to stop (found by an outside audit). Nothing is
+    written then, and ``off`` says why, for the command to say before its loop. The refusal
+    is forced here: a test run as root opens anything."""
+    real_open = os.open
+
+    def refused(path: str, *args: int) -> int:
+        if str(path).startswith("/proc/self/fd/"):
+            raise PermissionError(13, "Permission denied", path)
+        return real_open(path, *args)
+
+    read_end, write_end = os.pipe()
+    stream = open(write_end, "w", closefd=False)  # noqa: SIM115 -- closed below
+    try:
+        monkeypatch.setattr(os, "open", refused)
+        out = LossyOut(stream)
+        monkeypatch.undo()
+        assert out.off.startswith("a pipe this process cannot open again")
+        assert _write_lines(out, 3000)
+        assert out.written == 0 and out.dropped == 3000
+        out.finish()
+    finally:
+        stream.close()
+        os.close(write_end)
+        os.close(read_end)
