@@ -281,6 +281,7 @@ def test_one_worker_advances_the_progress_task_by_task() -> None:
 
     with open_pool(1) as pool:
         assert pool.map(task, [0, 1, 2, 3], bar) == [0, 1, 2, 3]
+    bar.close()  # the process's active progress: left open, it took later tests' notes
     assert seen == [0, 1, 2, 3]
     assert pool.tasks_run == 4
 
@@ -693,11 +694,16 @@ def test_a_cluster_whose_workers_are_all_paused_is_said_and_given_up(
             client.run(_pause)
 
         def work() -> None:
+            bar = Progress("t", 1, stream=said, terminal=False)
             try:
                 with pool:
-                    pool.map(later_first, [(0, 1)], Progress("t", 1, stream=said, terminal=False))
+                    pool.map(later_first, [(0, 1)], bar)
             except BaseException as exc:
                 raised.append(exc)
+            finally:
+                # the process's active progress: left open, it took the notes ``say`` gives
+                # in the tests after this one (their stderr was empty)
+                bar.close()
 
         thread = threading.Thread(target=work, daemon=True)
         thread.start()
