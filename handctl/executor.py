@@ -38,6 +38,7 @@ import signal
 import socket
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from multiprocessing import get_context
 from multiprocessing.process import BaseProcess
@@ -594,9 +595,7 @@ class _Idle:
 
 def _none_running(statuses: list[str]) -> str:
     """What the workers of these statuses, none of them running, are doing, said whole."""
-    counts: dict[str, int] = {}
-    for status in statuses:
-        counts[status] = counts.get(status, 0) + 1
+    counts = Counter(statuses)
     if len(counts) > 1:
         which = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
         how = f"none of its {len(statuses)} workers is running ({which})"

@@ -68,19 +68,18 @@ class LossyOut:
             mode = os.fstat(fd).st_mode
         except (OSError, ValueError, AttributeError):
             return  # no descriptor: an in-memory stream, which cannot block
+        terminal = stat.S_ISCHR(mode) and os.isatty(fd)
+        if not (stat.S_ISSOCK(mode) or stat.S_ISFIFO(mode) or terminal):
+            return
+        with contextlib.suppress(OSError):
+            stream.flush()  # what was printed before goes first
         if stat.S_ISSOCK(mode):
-            with contextlib.suppress(OSError):
-                stream.flush()  # what was printed before goes first
             try:
                 self._sock = socket.socket(fileno=os.dup(fd))
             except OSError as exc:
                 self.off = f"a socket this process cannot send to ({exc.strerror or exc})"
             return
-        if not (stat.S_ISFIFO(mode) or (stat.S_ISCHR(mode) and os.isatty(fd))):
-            return
-        with contextlib.suppress(OSError):
-            stream.flush()  # what was printed before goes first
-        kind = "a terminal" if stat.S_ISCHR(mode) else "a pipe"
+        kind = "a terminal" if terminal else "a pipe"
         try:
             self._fd = os.open(
                 f"/proc/self/fd/{fd}", os.O_WRONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC

@@ -1384,15 +1384,15 @@ class Recorder:
         beside = self._beside
         if beside is None or beside.claimed:
             return False
-        never_written = self._start_failed and beside.created
-        if beside.created and not never_written and not self._path_taken():
+        ours = beside.created and not self._path_taken()  # the file this run put there
+        if ours and not self._start_failed:
             return False  # a path that named nothing gets what the writer wrote
         # The log there before stays, and so does a file put there while the run started.
         # A path that named nothing keeps naming nothing when the writer never started (a
         # live port another program took): the empty file made to hold it was put there,
         # 0 bytes, under "the log is as it was" (found by an outside audit). Unlinked while
         # the lock is still held, as in ``__init__``.
-        if never_written and not self._path_taken():
+        if ours:
             with contextlib.suppress(OSError):
                 beside.target.unlink()
         self._drop_beside()
