@@ -289,12 +289,8 @@ def from_log(recording: Recording, view: BusView | None = None) -> Iterable[tupl
     ``view`` is told of the bus events the run logged (``/events``, kind ``bus``) where they
     are in the file, as ``listen`` tells a live view. Frames alone said "no bus events" of a
     run that stopped on a bus-off."""
-    from handctl.recording import channels as ch
-    from handctl.recording.reader import iter_decoded
+    from handctl.recording.frames import logged_frames
 
-    for topic, log_ns, msg in iter_decoded(recording, (ch.CAN_RX, ch.CAN_TX, ch.EVENTS)):
-        if topic == ch.EVENTS:
-            if view is not None and msg["kind"] == "bus":
-                view.note_event(str(msg["name"]), str(msg["detail"]))
-        elif topic == ch.CAN_RX or msg.get("ok") is not False:  # a refused one never went
-            yield msg["id"], bytes.fromhex(msg["data"]), log_ns
+    told = view.note_event if view is not None else None
+    for log_ns, frame_id, data, _ in logged_frames(recording, bus_events=told):
+        yield frame_id, data, log_ns

@@ -32,12 +32,21 @@ DIRECTION_TOPICS = {"both": (ch.CAN_RX, ch.CAN_TX), "rx": (ch.CAN_RX,), "tx": (c
 
 
 def logged_frames(
-    recording: Recording, direction: str = "both"
+    recording: Recording,
+    direction: str = "both",
+    bus_events: Callable[[str, str], None] | None = None,
 ) -> Iterator[tuple[int, int, bytes, bool]]:
-    """``(log_time_ns, arbitration_id, data, is_rx)`` in the order they were on the wire."""
+    """``(log_time_ns, arbitration_id, data, is_rx)`` in the order they were on the wire;
+    ``bus_events(name, detail)`` is told of each bus event the run logged (``/events``, kind
+    ``bus``) where it is among them, in the same pass (``monitor --log``)."""
     if direction not in DIRECTION_TOPICS:
         raise ConfigError("--direction", "", "both, rx or tx", direction)
-    for topic, log_time, msg in iter_decoded(recording, DIRECTION_TOPICS[direction]):
+    topics = DIRECTION_TOPICS[direction] + ((ch.EVENTS,) if bus_events is not None else ())
+    for topic, log_time, msg in iter_decoded(recording, topics):
+        if topic == ch.EVENTS:
+            if bus_events is not None and msg["kind"] == "bus":
+                bus_events(str(msg["name"]), str(msg["detail"]))
+            continue
         if topic == ch.CAN_TX and msg.get("ok") is False:
             continue  # the bus refused it: it never was on the wire
         yield log_time, msg["id"], bytes.fromhex(msg["data"]), topic == ch.CAN_RX
