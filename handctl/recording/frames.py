@@ -16,6 +16,7 @@ from handctl.config import FingerConfig, HandConfig
 from handctl.errors import ConfigError, Description, HandctlError, escaped
 from handctl.hand_protocol import node_message, protocol_for
 from handctl.protocol import COMMAND_WATCHDOG_S, NODE_COMMANDS, Layout
+from handctl.protocol import Protocol as WireProtocol
 from handctl.recording import channels as ch
 from handctl.recording.messages import EXTENDED_ID_FLAG
 from handctl.recording.metadata import recorded_hand, recorded_protocol
@@ -108,7 +109,14 @@ def _to_bus(
 ) -> dict[str, Any]:
     from handctl.online.bus import open_bus
 
+    given = hand is not None
     hand = _checked_commands(recording, spec, direction, speed, hand)
+    # The stop of the nodes left enabled speaks what the frames sent spoke: the recorded
+    # DBC, unless the hand on the bus was given. From the hand config alone, the DBC the
+    # log recorded was set aside: a node whose DataIDs differed refused the zero torque and
+    # the disable by CRC and held its last torque until its watchdog (found by an outside
+    # audit).
+    protocol = protocol_for(hand) if given else recorded_protocol(recording) or protocol_for(hand)
     sent = failed = 0
     worst_late = 0.0
     # A sender that fell behind (a stall, a slow machine) and sent its backlog back to back
@@ -117,7 +125,7 @@ def _to_bus(
     # tick), the rest of the replay is shifted instead, as late as this frame.
     period_s = hand.bus.period_s / speed
     shifted = 0.0
-    left = _LeftEnabled(hand)
+    left = _LeftEnabled(hand, protocol)
     heard = _FaultsHeard(hand, left)
     if stops.first:  # during the checks: nothing sent yet
         raise ReplayInterrupted("", stops.first, stops.later)
@@ -381,7 +389,7 @@ class _LeftEnabled:
     last ``TorqueCommand`` and ``NodeCommand`` counters, and whether an enable or a torque
     was sent after its last disable."""
 
-    def __init__(self, hand: HandConfig) -> None:
+    def __init__(self, hand: HandConfig, protocol: WireProtocol) -> None:
         # what the stop needs, imported before the first frame goes: imported when the stop
         # began (``handctl.online.loop``, some 25 ms), the zero torque came 25-100 ms after
         # the last command, and the nodes' 10 ms watchdog had faulted them first
@@ -391,7 +399,6 @@ class _LeftEnabled:
         self._command = make_command
         self._node_command = make_node_command
         self._zero_ticks = ZERO_TICKS_BEFORE_DISABLE
-        protocol = protocol_for(hand)
         self.layouts = {
             f.node_id: FingerLayouts.for_node(protocol, f.node_id) for f in hand.fingers
         }

@@ -182,3 +182,59 @@ def test_plan_takes_the_dbc_of_its_hand(tmp_path: Path) -> None:
     done = handctl(*args, "--dbc", str(dbc))
     assert done.returncode == 2
     assert done.stderr.startswith(f"handctl: error: {template}: objects[1].name"), done.stderr
+
+
+def test_a_replay_stopped_midway_stops_the_nodes_in_the_dbc_it_recorded(tmp_path: Path) -> None:
+    """A replay onto a bus stopped midway zeroes and disables the nodes it left enabled. That
+    stop was built from the hand config alone, in the DBC generated from it, not in the one
+    the log recorded: a node whose DataIDs were the recorded DBC's refused the zero torque
+    and the disable by their CRC and held its last torque until its watchdog (found by an
+    outside audit). And a log whose DBC numbers a frame otherwise was refused outright onto a
+    simulated bus, against "the DBC generated" for its hand."""
+    from handctl.online.bus import open_bus
+    from handctl.protocol import load_protocol
+    from handctl.recording.frames import logged_frames, to_bus
+
+    dbc = other_data_ids(tmp_path)
+    log = tmp_path / "run.mcap"
+    run = handctl(
+        "run", "recipe", str(RECIPE), "--hand", str(HAND), "--dbc", str(dbc),
+        "--max-seconds", "0.3", "--log", str(log),
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    recording = open_recording(log)
+    logged = list(logged_frames(recording))
+    halfway = (logged[-1][0] - logged[0][0]) * 1e-9 / 2  # s: the nodes enabled, under torque
+    now = [0.0]
+
+    def sleep(seconds: float) -> None:
+        before = now[0]
+        now[0] += seconds
+        if before < halfway <= now[0]:
+            raise KeyboardInterrupt
+
+    hand = load_hand(HAND, dbc)
+    with open_bus("virtual:recorded-dbc-stop", hand.bus) as listener:
+        with pytest.raises(KeyboardInterrupt):
+            to_bus(recording, "virtual:recorded-dbc-stop", sleep=sleep, clock=lambda: now[0])
+        heard = [(f.arbitration_id, f.data) for f in listener.drain(limit=10**7)]
+    protocol = load_protocol(dbc)
+    for finger in hand.fingers:
+        command = protocol.layout("NodeCommand", finger.node_id)
+        torque = protocol.layout("TorqueCommand", finger.node_id)
+        mine = [d for fid, d in heard if fid == torque.frame_id]
+        assert all(torque.crc_ok(d) for d in mine[-6:])  # the zero torques, in its CRC
+        assert [v for _, v in map(torque.decode, mine[-6:])] == [(0.0,) * 3] * 6
+        last = [d for fid, d in heard if fid == command.frame_id][-1]
+        assert command.crc_ok(last) and command.decode(last)[1] == (2.0,)  # disable
+
+    hand_path, moved, recipe = moved_feedback_id(tmp_path)
+    moved_log = tmp_path / "moved.mcap"
+    done = handctl(
+        "run", "recipe", str(recipe), "--hand", str(hand_path), "--dbc", str(moved),
+        "--log", str(moved_log),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    sent = handctl("replay", str(moved_log), "--to-bus", "virtual:moved-own")
+    assert sent.returncode == 0, sent.stderr
+    assert "frames sent to virtual:moved-own (0 failed" in sent.stdout

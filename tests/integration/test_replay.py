@@ -794,7 +794,7 @@ def test_a_fault_is_heard_only_from_a_node_the_replay_had_enabled(hand: HandConf
     from handctl.recording.frames import _FaultsHeard, _LeftEnabled
 
     protocol = protocol_for(hand)
-    left = _LeftEnabled(hand)
+    left = _LeftEnabled(hand, protocol)
     heard = _FaultsHeard(hand, left)
     node = hand.fingers[0].node_id
     layouts = FingerLayouts.for_node(protocol, node)
@@ -837,7 +837,7 @@ def test_the_replay_s_stop_imports_nothing(
 
     from handctl.recording.frames import _LeftEnabled
 
-    left = _LeftEnabled(hand)
+    left = _LeftEnabled(hand, protocol_for(hand))
     layout = protocol_for(hand).layout("TorqueCommand", hand.fingers[0].node_id)
     left.sent(layout.frame_id, layout.encode(0, (0.1,) * len(hand.fingers[0].joints)))
 
