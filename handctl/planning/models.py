@@ -14,15 +14,17 @@ not know, by family (``FAMILIES``; the defaults of ``Spread`` are the ranges bel
 - ``objects``: each cylinder's mass ±50 % and radius ±20 %, on its own (the recipe's nominal
   radius is then wrong for both, differently);
 - ``placement``: the pair put down ±4 mm off its place along the table, with 0..6 mm between
-  the cylinders (one object shifted alone; three or more shifted as a row, each gap between
-  neighbours moved as the pair's);
+  the cylinders when they are configured 2 mm apart, as the shipped hand's are (a gap
+  configured otherwise moved by as much; one object shifted alone; three or more shifted as a
+  row, each gap between neighbours moved as the pair's);
 - ``start_pose``: every initial joint angle ±0.1 rad (within the soft limits);
 - ``sensors``: the TDT's per-sensor bias and white noise ×0.5..×2 of the configured ones.
 
-Cylinders are always put back on the table at rest, side by side at the drawn gap (a row of
-three or more at their configured gaps, moved as the pair's), so the scene stays valid (no
-start in collision between objects). ``Spread.only(family)`` varies one family and keeps
-the rest nominal, which is how a bench tells which family a recipe is fragile to.
+Cylinders are always put back as high above the table as configured (on it, where the
+configured ones lie on it), side by side at their configured gaps, moved by the drawn one, so
+the scene stays valid (no start in collision between objects) and stays the hand's.
+``Spread.only(family)`` varies one family and keeps the rest nominal, which is how a bench
+tells which family a recipe is fragile to.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Protocol
@@ -39,7 +42,7 @@ import numpy as np
 from handctl.config import HandConfig
 from handctl.sim.params import START_MARGIN, FrictionParams, ObjectParams, SimParams
 
-#: m, the gap left between two cylinders put back side by side when the gap is not varied.
+#: m, the gap of the shipped pair, from which a drawn gap moves any configured one.
 SIDE_GAP = 0.002
 #: each joint's own factor around the hand's, log-uniform within [1 / this, this]
 JOINT_SPREAD = 1.25
@@ -61,7 +64,9 @@ class Spread:
     armature: Range = (0.5, 2.0)  # factor of the reflected motor inertia
     actuator_lag: Range = (0.5, 2.0)  # factor of the tendon drive's time constant
     placement: float = 0.004  # m, ± shift of the objects along the table
-    gap: Range | None = (0.0, 0.006)  # m, between the two cylinders (a row: each gap moved)
+    # m, between the two cylinders of a pair configured SIDE_GAP apart (another configured
+    # gap, or each of a row's, is moved by as much)
+    gap: Range | None = (0.0, 0.006)
     initial_angles: float = 0.1  # rad, ± on every initial joint angle
     tdt_bias: Range = (0.5, 2.0)  # factor of the TDT bias's standard deviation
     tdt_noise: Range = (0.5, 2.0)  # factor of the TDT noise's standard deviation
@@ -235,24 +240,38 @@ def _with(
     radius: list[float],
     shift: float = 0.0,
     gap: float | None = None,
+    configured: SimParams | None = None,
 ) -> SimParams:
-    """The scene with the objects scaled and put back on the table ``shift`` (m) along it
-    from their configured middle: a pair side by side, ``gap`` (m) apart; one object where
-    it was; three or more in their configured order along the table, each neighbour's
+    """The scene with the objects scaled and put back as high above the table as
+    configured, ``shift`` (m) along it from their configured middle: a pair side by side at
+    its configured gap moved by ``gap - SIDE_GAP``; one object where it was; three or more
+    in their configured order along the table, each neighbour's
     configured gap between surfaces moved by what ``gap`` moves a pair's (``SIDE_GAP`` to
     ``gap``, never below touching), so that objects scaled larger never start inside each
     other (an outside audit found four rods overlapping by up to 2.3 mm and kicked apart
-    in the first 20 ms, and one object never shifted)."""
+    in the first 20 ms, and one object never shifted). The gaps and heights kept are those
+    of ``configured`` (``params`` unless given): the hand's, where ``params`` is a model
+    drawn from it already."""
+    given = (configured or params).objects
     objects = []
     mid = sum(o.x for o in params.objects) / len(params.objects) + shift
-    for k, obj in enumerate(params.objects):
+    for k, (obj, placed) in enumerate(zip(params.objects, given, strict=True)):
         r = obj.radius * radius[k]
-        objects.append(
-            dataclasses.replace(obj, radius=r, mass=obj.mass * mass[k], y=params.table_height + r)
-        )
+        # as high above the table as configured: on it for a hand under gravity, where the
+        # configured object lay; a hand in a horizontal plane (gravity 0) held its objects
+        # above the table, and each model set them down on it, beyond the fingers' reach
+        # (found by an outside audit). In nanometres, so that an object on the table is on it
+        # to the bit.
+        above = round(max(0.0, placed.y - placed.radius - params.table_height), 9)
+        y = params.table_height + r + above
+        objects.append(dataclasses.replace(obj, radius=r, mass=obj.mass * mass[k], y=y))
     if len(objects) == 2:
-        if gap is None:
-            gap = SIDE_GAP
+        # the configured gap, moved by what a drawn one moves ``SIDE_GAP``: a pair configured
+        # 20 mm apart was pushed to 2 mm in every model, in families that vary no placement
+        # (found by an outside audit); in nanometres, as the height
+        a, b = given
+        between = round(max(0.0, abs(b.x - a.x) - a.radius - b.radius), 9)
+        gap = between if gap is None else max(0.0, gap + (between - SIDE_GAP))
         a, b = objects
         left, right = (a, b) if a.x <= b.x else (b, a)
         left = dataclasses.replace(left, x=mid - gap / 2 - left.radius)
@@ -261,20 +280,24 @@ def _with(
     elif len(objects) == 1:
         objects = [dataclasses.replace(objects[0], x=objects[0].x + shift)]
     else:
-        objects = _in_a_row(params, objects, shift, gap)
+        objects = _in_a_row(params, objects, shift, gap, given)
     return dataclasses.replace(params, friction=friction, objects=tuple(objects))
 
 
 def _in_a_row(
-    params: SimParams, scaled: list[ObjectParams], shift: float, gap: float | None
+    params: SimParams,
+    scaled: list[ObjectParams],
+    shift: float,
+    gap: float | None,
+    configured: Sequence[ObjectParams],
 ) -> list[ObjectParams]:
     """Three or more objects laid out along the table in their configured order, their
     configured gaps kept (moved by ``gap - SIDE_GAP`` when ``gap`` is drawn), the row's
-    configured middle moved by ``shift``."""
+    middle (``params``') moved by ``shift``; the gaps are ``configured``'s."""
     order = sorted(range(len(scaled)), key=lambda k: params.objects[k].x)
     given = [params.objects[k] for k in order]
     gaps = []
-    for a, b in itertools.pairwise(given):
+    for a, b in itertools.pairwise([configured[k] for k in order]):
         between = max(0.0, (b.x - b.radius) - (a.x + a.radius))
         gaps.append(between if gap is None else max(0.0, between + gap - SIDE_GAP))
     middle = ((given[0].x - given[0].radius) + (given[-1].x + given[-1].radius)) / 2 + shift
@@ -346,6 +369,7 @@ def sized_models(
             factors,
             0.0,
             model.scales.get("gap_m"),
+            params,
         )
         scales = dict(model.scales) | {f"radius.{i + 1}": f for i, f in enumerate(factors)}
         out.append(Model(k, sized, scales))
