@@ -39,8 +39,14 @@ a pair. Definitions:
   physics step does not count as a turn; ``peak_turn_rate_by_phase_deg_s`` the same per
   manipulation phase, which says which phase tumbles. The analysis behind a recipe is
   quasi-static: a pair that turns faster than some 180 °/s is tumbling, not being turned;
+  ``turn_before_manipulation_deg``: how far the true centre line turned from how the pair lay
+  on the table to the first manipulation phase (the lift's tilt), and ``end_from_table_deg``
+  where it was at the end of the last one against how it lay, each within (-180, 180];
 - ``success``: lifted (and so held), nothing dropped, and a total rotation of at least the
-  recipe's ``min_total_turn_deg`` (0 without a pair), in a run that ended as planned or at its
+  recipe's ``min_total_turn_deg`` (0 without a pair), which, if it is a swap (more than 90°
+  and at most 180°), leaves the pair the other way round: more than 90° from how it lay on
+  the table (a pair the lift flipped over, which the manipulation then turned back, is
+  none), in a run that ended as planned or at its
   time budget; a run ended by a safety stop or an interrupt is none, whatever the objects did
   before it, and ``stopped`` names its outcome. A run whose experiment failed is a failed run
   (exit 1).
@@ -324,6 +330,7 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
         "objects": objects,
     }
     total = 0.0
+    swapped = True
     if trace.pairs:
         # on the samples a log keeps (the convention's), so that its replay measures the same
         period = float(t[1] - t[0]) if n > 1 else 1.0
@@ -336,6 +343,9 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
             (name, float(t[s]) - period, float(t[e]) - period if e < n else math.inf)
             for name, s, e in segments
         ]
+        first_start = next(
+            (b[1] for b in bounds if is_manipulation(b[0], trace.manipulation)), math.inf
+        )
         logged = np.round(t / period).astype(np.int64) % POSE_EVERY_TICKS == 0
         in_manip = np.zeros(n, dtype=bool)
         for _, s, e in manip:
@@ -350,9 +360,21 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
                 - math.pi
             )
             ok = valid & np.isfinite(err)
+            # how the pair lay when the manipulation began, and at its end, against how it
+            # lay on the table: a pair the lift flipped over, then turned 180° by the
+            # manipulation, ended in its first order, and was scored a swap (found by an
+            # outside audit: tendon-light fingers, a slippery pair)
+            (before,) = phase_turns_deg(
+                t[logged],
+                angles[logged],
+                [("before", float(t[0]) - period, first_start)],
+                ("before",),
+            )
             figures: dict[str, Any] = {
                 "phase_angles_deg": turns,
                 "turn_deg": round(sum(turns), 2),
+                "turn_before_manipulation_deg": round(_wrapped_deg(before), 2),
+                "end_from_table_deg": round(_wrapped_deg(before + sum(turns)), 2),
                 "total_rotation_deg": round(abs(sum(turns)), 2),
                 "peak_turn_rate_deg_s": round(
                     peak_rate_deg_s(t[first_manip:end_manip], angles[first_manip:end_manip]), 1
@@ -377,8 +399,24 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
                     float(valid.mean()) if valid.size else 0.0, 3
                 )
                 total = figures["total_rotation_deg"]
+                # a turn past a quarter and up to half a revolution is a swap: it leaves the
+                # pair the other way round from how it lay (a longer turn may end anywhere)
+                swapped = not 90.0 < min_total_turn_deg <= 180.0 or (
+                    abs(figures["end_from_table_deg"]) > 90.0
+                )
         out["pairs"] = pairs
-    return {"success": bool(lifted and not dropped and total >= min_total_turn_deg), **out}
+    success = lifted and not dropped and total >= min_total_turn_deg and swapped
+    return {"success": bool(success), **out}
+
+
+def _wrapped_deg(turn_deg: float) -> float:
+    """A turn (deg) as where it leaves the pair: within (-180, 180]."""
+    wrapped = math.fmod(turn_deg, 360.0)
+    if wrapped > 180.0:
+        wrapped -= 360.0
+    elif wrapped <= -180.0:
+        wrapped += 360.0
+    return wrapped
 
 
 class Tracker:

@@ -296,3 +296,41 @@ def test_a_phase_ending_on_a_logged_tick_ends_at_that_sample() -> None:
         tr.add(k * 0.001, phase, [Pose(-dx, y - dy), Pose(dx, y + dy)], [0.0] * 9, None, False)
     turns = experiment_summary(tr)["phase_angles_deg"]
     assert turns[:2] == pytest.approx([-45.0, -90.0], abs=1e-6)
+
+
+@pytest.mark.parametrize("flip_deg", [-180.0, 180.0])
+def test_a_pair_the_lift_flipped_and_the_manipulation_turned_back_is_no_swap(
+    flip_deg: float,
+) -> None:
+    """The lift flipped a slippery pair over, the manipulation turned it 180° and left it in
+    the order it lay in on the table: scored a success, exit 0, its 180° all counted in the
+    manipulation (found by an outside audit). Where the pair ends against how it lay on the
+    table is the swap; a lift that tilts the pair a little (the shipped experiment's, above)
+    still swaps it."""
+    flipped = [
+        ("approach", 1.0, 0.0, 0.0, 0.0),
+        ("lift", 0.5, 0.05, 0.0, flip_deg),
+        ("envelop", 2.0, 0.05, flip_deg, flip_deg),
+        ("manipulate_1", 1.0, 0.05, flip_deg, flip_deg - 90.0),
+        ("manipulate_2", 1.0, 0.05, flip_deg - 90.0, flip_deg - 180.0),
+        ("manipulate_3", 0.2, 0.05, flip_deg - 180.0, flip_deg - 180.0),
+    ]
+    ex = experiment_summary(trace_of(flipped), min_total_turn_deg=135.0)
+    assert ex["lifted"] and not ex["dropped"]
+    assert ex["total_rotation_deg"] == pytest.approx(180.0, abs=0.5)
+    assert ex["turn_before_manipulation_deg"] == pytest.approx(flip_deg, abs=0.5) or (
+        ex["turn_before_manipulation_deg"] == pytest.approx(-flip_deg, abs=0.5)
+    )
+    assert ex["end_from_table_deg"] == pytest.approx(0.0, abs=0.5)
+    assert ex["success"] is False
+    tilted = experiment_summary(trace_of(EXPERIMENT), min_total_turn_deg=135.0)
+    assert tilted["turn_before_manipulation_deg"] == pytest.approx(-20.0, abs=0.5)
+    assert tilted["end_from_table_deg"] == pytest.approx(160.0, abs=0.5)
+    assert tilted["success"] is True
+    # the other way round is more than 90° from how it lay, whatever the turn asked
+    assert experiment_summary(trace_of(EXPERIMENT), min_total_turn_deg=170.0)["success"]
+    assert experiment_summary(trace_of(flipped), min_total_turn_deg=91.0)["success"] is False
+    # a quarter turn, or one past half a revolution, may end anywhere
+    assert experiment_summary(trace_of(flipped), min_total_turn_deg=90.0)["success"] is True
+    full = [*flipped[:-1], ("manipulate_3", 1.0, 0.05, flip_deg - 180.0, flip_deg - 270.0)]
+    assert experiment_summary(trace_of(full), min_total_turn_deg=200.0)["success"] is True
