@@ -75,6 +75,15 @@ MAX_BURST = 32
 #: echoes are taken out by ``HandBus`` (``_EchoFilter``); the host took its own enable for a
 #: second host's (FOREIGN_COMMAND) on every run.
 ECHOING_INTERFACES = frozenset({"udp_multicast"})
+#: python-can interfaces whose ``is_rx`` False marks a frame sent from this computer by any
+#: program, not only this bus's own: SocketCAN (the kernel sets MSG_DONTROUTE on every local
+#: socket's frame and MSG_CONFIRM on the sender's own; python-can reads ``is_rx`` from
+#: MSG_DONTROUTE) and Kvaser's CANlib (``canMSG_LOCAL_TXACK``: sent by another handle on the
+#: channel). handctl opens them with its own messages off, so what they hand over is never its
+#: own: skipped, a second master, a ``cansend`` e-stop or ``handctl sim`` on the same computer
+#: (every frame on a vcan) went unheard. The other interfaces mark ``is_rx`` False on the
+#: echo of this bus's own frames only (gs_usb, pcan, vector, neovi, ...), which is skipped.
+LOCAL_SENDER_INTERFACES = frozenset({"socketcan", "kvaser"})
 #: Frames sent whose echo is still awaited, at most; and how far into them a frame received
 #: is looked for (an echo the network lost is passed over when a later one comes).
 ECHOES_HELD = 4096
@@ -306,6 +315,8 @@ class HandBus:
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
         self._echoes = _EchoFilter() if spec.interface in ECHOING_INTERFACES else None
+        #: Whether ``is_rx`` False is the echo of its own frame (``LOCAL_SENDER_INTERFACES``).
+        self._skip_not_rx = spec.interface not in LOCAL_SENDER_INTERFACES
 
     def prepare_send(self) -> None:
         """Whatever the transport would do on its first send and can do before it (connect to
@@ -343,10 +354,12 @@ class HandBus:
         else:
             received = self._bus.recv(timeout=0)
             # An adapter that echoes what this process sent (python-can marks the echo
-            # ``is_rx`` False: gs_usb, SocketCAN with its own messages on) hands back the
-            # host's own commands, which are neither news of the hand nor another sender's.
+            # ``is_rx`` False: gs_usb, neovi) hands back the host's own commands, which are
+            # neither news of the hand nor another sender's. Not so on SocketCAN, where
+            # ``is_rx`` False is any program's on this computer (``LOCAL_SENDER_INTERFACES``).
             while received is not None and (
-                not received.is_rx or (self._echoes is not None and self._is_echo(received))
+                (self._skip_not_rx and not received.is_rx)
+                or (self._echoes is not None and self._is_echo(received))
             ):
                 received = self._bus.recv(timeout=0)
             if received is None:

@@ -204,6 +204,9 @@ def bus_kwargs(spec: BusSpec, bus_config: BusConfig) -> dict[str, Any]:
     elif spec.interface == "socketcan":
         # Bit rates of a SocketCAN interface are set with `ip link`, not by the process.
         kwargs["fd"] = bus_config.fd
+        # its own frames would come back marked as any other local program's (``is_rx``
+        # False), which HandBus hears (``LOCAL_SENDER_INTERFACES``)
+        kwargs["receive_own_messages"] = False
     elif spec.interface == "udp_multicast":
         kwargs["fd"] = bus_config.fd
         kwargs["receive_own_messages"] = False

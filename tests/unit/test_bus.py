@@ -19,6 +19,8 @@ from handctl.online.busspec import (
     socketcan_setup_command,
 )
 
+from ..local_socketcan import LocalSocketcanBus
+
 
 def test_parse_specs(hand: HandConfig) -> None:
     assert parse_spec("sim") == BusSpec("sim", "")
@@ -51,7 +53,12 @@ def test_a_hand_config_naming_an_interface_python_can_lacks_is_refused(hand: Han
 
 def test_socketcan_kwargs_leave_bitrates_to_the_kernel(hand: HandConfig) -> None:
     kwargs = bus_kwargs(BusSpec("socketcan", "can0"), hand.bus)
-    assert kwargs == {"interface": "socketcan", "channel": "can0", "fd": True}
+    assert kwargs == {
+        "interface": "socketcan",
+        "channel": "can0",
+        "fd": True,
+        "receive_own_messages": False,
+    }
 
 
 def test_other_adapters_get_both_bitrates(hand: HandConfig) -> None:
@@ -158,6 +165,29 @@ def test_an_adapter_echoing_the_hosts_own_frames_hands_back_only_the_others(
         assert host.drain() == []  # the echo of the host's own command is not received
         other.send(can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False))
         assert [f.arbitration_id for f in host.drain()] == [0x181]
+    finally:
+        host.close()
+        other.shutdown()
+
+
+@pytest.mark.parametrize(("interface", "heard"), [("socketcan", True), ("gs_usb", False)])
+def test_a_frame_another_program_on_this_computer_sent_is_heard_on_socketcan(
+    channel: str, interface: str, heard: bool
+) -> None:
+    """SocketCAN marks every frame another socket of this computer sent ``is_rx`` False
+    (the kernel's MSG_DONTROUTE), not only this process's own, which it does not hand back:
+    taken for the host's echo, a second master, an e-stop sent with ``cansend`` and a
+    ``handctl sim`` on the same vcan were never heard. An adapter that marks only the echo
+    of its own frames so (gs_usb) still has it skipped. The SocketCAN bus is a double of its
+    marking only (``tests/local_socketcan.py``): this machine has no SocketCAN."""
+    local = LocalSocketcanBus(channel)
+    other = can.Bus(interface="virtual", channel=channel)
+    host = HandBus(local, BusSpec(interface, "vcan0"), fd=False)
+    try:
+        other.send(can.Message(arbitration_id=0x000, data=bytes(2), is_extended_id=False))
+        other.send(can.Message(arbitration_id=0x101, data=bytes(8), is_extended_id=False))
+        expected = [0x000, 0x101] if heard else []
+        assert [f.arbitration_id for f in host.drain()] == expected
     finally:
         host.close()
         other.shutdown()
