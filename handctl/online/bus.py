@@ -12,9 +12,14 @@ Receive times: every ``Frame`` carries the time it arrived, on the clock of whoe
 (``HandBus.use_clock``: the driver hands over the loop's clock), never the time it was
 drained, so a frame that waited in a queue is seen as old as it is. SocketCAN stamps frames in
 the kernel and the unix bus asks the kernel for the same (``SO_TIMESTAMPNS``); both are
-wall-clock times, converted to the loop's clock when drained. The virtual bus stamps a frame
-as it is put into the receiver's queue, on the receiver's clock itself, so a lockstep run
-stays deterministic.
+wall-clock times, converted to the loop's clock when drained. A stamp is only believed where
+it can be true: after the last drain that emptied the queue (a frame read now was not there
+then) and not after now. Outside that (an adapter stamping from its boot, pcan without
+``uptime``; a wall-clock step between a frame's stamp and its drain, NTP or PTP) or with no
+stamp, the frame is taken to have arrived at that last drain, the earliest it can have: never
+younger than it is, so a stale frame cannot pass the feedback timeout, and at most a period
+older. The virtual bus stamps a frame as it is put into the receiver's queue, on the
+receiver's clock itself, so a lockstep run stays deterministic.
 
 Identifiers: handctl speaks 11-bit identifiers only. A 29-bit (extended) frame keeps its
 identity: its ``arbitration_id`` carries ``EXTENDED_ID_FLAG`` (SocketCAN's ``CAN_EFF_FLAG``),
@@ -307,6 +312,9 @@ class HandBus:
         #: The frame a drain read past its limit, to tell whether frames were left: the
         #: first of the next drain. ``(arrival_ns, arbitration_id, flags, data)``.
         self._lookahead: tuple[int, int, int, bytes] | None = None
+        #: When the last drain that emptied the queue began, on this bus's clock: every frame
+        #: read since arrived after it (``_arrival_ns``). None before the first.
+        self._emptied_ns: int | None = None
         #: The recorder's taps: every frame drained or sent, and every event as it is taken.
         self.tap: FrameTap | None = None
         #: Frames sent at once on a bus that does not batch, not yet tapped: their burst's
@@ -328,21 +336,26 @@ class HandBus:
     def use_clock(self, clock_ns: Callable[[], int]) -> None:
         """Stamp arrivals and events on ``clock_ns`` (the loop's clock) from now on."""
         self._clock_ns = clock_ns
+        self._emptied_ns = None  # a time on the clock before
 
     def _now_ns(self) -> int:
         return self._clock_ns()
 
-    def _receive(self, wall_to_clock_ns: int) -> tuple[int, int, int, bytes] | None:
+    def _receive(
+        self, wall_to_clock_ns: int, earliest_ns: int, now_ns: int
+    ) -> tuple[int, int, int, bytes] | None:
         """The next frame, ``(arrival_ns, arbitration_id, flags, data)`` with its arrival
-        on this bus's clock, or None."""
+        on this bus's clock, or None; ``earliest_ns`` and ``now_ns`` are ``_arrival_ns``'s."""
         if self._frames is not None:
             raw = self._frames.recv_frame()
             if raw is None:
                 return None
             stamp_s, frame_id, flags, data = raw
-            if stamp_s > 0:  # ``_arrival_ns``, inline: this is every frame of a real-time run
-                return round(stamp_s * 1e9) + wall_to_clock_ns, frame_id, flags, data
-            return self._clock_ns(), frame_id, flags, data
+            # ``_arrival_ns``, inline: this is every frame of a real-time run
+            arrival = round(stamp_s * 1e9) + wall_to_clock_ns
+            if not (stamp_s > 0 and earliest_ns <= arrival <= now_ns):
+                arrival = earliest_ns if earliest_ns >= 0 else now_ns
+            return arrival, frame_id, flags, data
         if self._take is not None:
             item = self._take()
             if item is None:
@@ -364,7 +377,8 @@ class HandBus:
                 received = self._bus.recv(timeout=0)
             if received is None:
                 return None
-            msg, stamp = received, self._arrival_ns(received.timestamp, wall_to_clock_ns)
+            msg = received
+            stamp = self._arrival_ns(received.timestamp, wall_to_clock_ns, earliest_ns, now_ns)
         return stamp, msg.arbitration_id, ff.flags_of(msg), bytes(msg.data)
 
     def _is_echo(self, msg: can.Message) -> bool:
@@ -374,28 +388,43 @@ class HandBus:
             frame_id = (frame_id & EXTENDED_ID_MASK) | EXTENDED_ID_FLAG
         return self._echoes.is_echo(frame_id, bytes(msg.data))
 
-    def _arrival_ns(self, stamp_s: float, wall_to_clock_ns: int) -> int:
-        """A wall-clock arrival stamp (s) on this bus's clock; an interface that stamps
-        nothing (0) gets the time of reading."""
-        if stamp_s <= 0:
-            return self._clock_ns()
-        return round(stamp_s * 1e9) + wall_to_clock_ns
+    @staticmethod
+    def _arrival_ns(stamp_s: float, wall_to_clock_ns: int, earliest_ns: int, now_ns: int) -> int:
+        """A wall-clock arrival stamp (s) on this bus's clock, if it can be true: between
+        ``earliest_ns``, when the last drain that emptied the queue began (-1 before the
+        first: any time), and ``now_ns``, when this one began.
+
+        Otherwise ``earliest_ns`` (``now_ns`` before the first drain): the stamp is on another
+        clock (an adapter's from its boot: every frame looked seconds old and the run never
+        started) or the wall clock stepped since it was taken (+0.5 s: a FEEDBACK_TIMEOUT
+        mid-grasp; backwards: a stale frame taken for a fresh one). The earliest time makes
+        the frame look older than it is by a period at most, never younger; the time of
+        reading would hide a wait in the queue. An interface that stamps nothing (0) gets the
+        same."""
+        arrival = round(stamp_s * 1e9) + wall_to_clock_ns
+        if stamp_s > 0 and earliest_ns <= arrival <= now_ns:
+            return arrival
+        return earliest_ns if earliest_ns >= 0 else now_ns
 
     def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]:
         """The frames that have arrived, ``limit`` at most, without waiting; error frames
         become events. Frames still waiting after ``limit`` are an ``RX_BACKLOG`` event."""
         frames: list[Frame] = []
         now = self._clock_ns()
-        # Wall-clock arrival stamps (kernel, adapter) onto this bus's clock; never later than
-        # now, so an adapter whose clock runs ahead cannot make a frame look younger.
+        # Wall-clock arrival stamps (kernel, adapter) onto this bus's clock, where they can
+        # be true (``_arrival_ns``): never later than now, so an adapter whose clock runs
+        # ahead cannot make a frame look younger, nor before the last drain that emptied the
+        # queue (none yet: -1, any time).
         wall_to_clock = now - time.time_ns()
+        earliest = -1 if self._emptied_ns is None else self._emptied_ns
         item, self._lookahead = self._lookahead, None
         count = 0
         try:
             while True:
                 if item is None:
-                    item = self._receive(wall_to_clock)
+                    item = self._receive(wall_to_clock, earliest, now)
                     if item is None:
+                        self._emptied_ns = now  # whatever comes later arrived after now
                         break
                 if count == limit:  # one more was waiting: keep it for the next drain
                     self._lookahead = item

@@ -6,16 +6,18 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
+import can
 import numpy as np
 import pytest
 
 from handctl.busload import frames_per_period, shortest_frame_time_s
 from handctl.config import HandConfig
 from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
+from handctl.online.busspec import BusSpec
 from handctl.online.clock import LockstepClock
 from handctl.online.drivers.hand import AppliedTorques, HandDriver
 from handctl.online.safety.faults import FaultCode
@@ -84,6 +86,88 @@ def test_the_unix_bus_stamps_frames_when_they_arrive(hand: HandConfig, tmp_path:
     # On the host's clock, between the send and the drain, and the wait shows as age.
     assert before <= frames[0].timestamp_ns <= after
     assert drained - frames[0].timestamp_ns >= 25 * MS
+
+
+class StampingAdapter(can.BusABC):
+    """An adapter's receive stamps (s), over python-can's virtual bus: a test double of the
+    stamps only, because none of this machine's buses stamps on another clock or lives
+    through a wall-clock step (the kernel's and the virtual bus's stamps are right).
+    ``stamp(sent)`` is the frame's stamp, given the wall-clock time it was sent."""
+
+    def __init__(self, channel: str, stamp: Callable[[float], float]) -> None:
+        self._wire = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+        self._stamp = stamp
+        super().__init__(channel=channel)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        msg = self._wire.recv(timeout=timeout)
+        if msg is not None:
+            msg.timestamp = self._stamp(msg.timestamp)  # python-can's virtual: time.time()
+        return msg, False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._wire.send(msg, timeout=timeout)
+
+    def shutdown(self) -> None:
+        self._wire.shutdown()
+        super().shutdown()
+
+
+@pytest.mark.parametrize(
+    "stamp",
+    [
+        # pcan without ``uptime``: seconds since the adapter's boot, decades before now
+        pytest.param(lambda sent: time.clock_gettime(time.CLOCK_BOOTTIME), id="since-boot"),
+        # stamped on the wall clock, which NTP then stepped forward (by 10 s) before the drain
+        pytest.param(lambda sent: sent - 10.0, id="wall-clock-stepped-forward"),
+        # and backwards: a frame that waited, stamped "later" than the drain
+        pytest.param(lambda sent: sent + 10.0, id="wall-clock-stepped-back"),
+        pytest.param(lambda sent: 0.0, id="no-stamp"),
+    ],
+)
+def test_a_stamp_that_cannot_be_true_makes_a_frame_as_old_as_it_can_be(
+    hand: HandConfig, channel: str, clock: Clock, stamp: Callable[[float], float]
+) -> None:
+    """A stamp before the last drain that emptied the queue, or after now, is not on the
+    wall clock the drain converts from: an adapter stamping from its boot made every frame
+    look ancient (the run refused to start, "no feedback"), a step of the wall clock
+    mid-run made a fresh frame 0.5 s old (FEEDBACK_TIMEOUT) or a stale one fresh. Such a
+    frame arrived after that drain: it is taken to have arrived then, never later."""
+    adapter = StampingAdapter(channel, stamp)
+    host = HandBus(adapter, BusSpec("pcan", "PCAN_USBBUS1"), fd=False, clock_ns=clock)
+    peer = can.Bus(interface="virtual", channel=channel)
+    try:
+        assert host.drain() == []  # the queue emptied: what comes next arrived after this
+        emptied = clock.now
+        peer.send(can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False))
+        clock.now += 3 * MS  # the host reads it three periods later
+        frames = host.drain()
+        assert [f.timestamp_ns for f in frames] == [emptied]
+        peer.send(can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False))
+        clock.now += MS
+        assert [f.timestamp_ns for f in host.drain()] == [emptied + 3 * MS]
+    finally:
+        host.close()
+        peer.shutdown()
+
+
+def test_a_stamp_that_can_be_true_is_kept(hand: HandConfig, channel: str, clock: Clock) -> None:
+    """A wall-clock stamp between the last drain that emptied the queue and now is the
+    frame's arrival, as the kernel took it (a frame stamped before that drain, by a stamp
+    that takes longer to be read than the drain takes, gets the drain's time)."""
+    adapter = StampingAdapter(channel, lambda sent: sent)
+    host = HandBus(adapter, BusSpec("pcan", "PCAN_USBBUS1"), fd=False, clock_ns=clock)
+    peer = can.Bus(interface="virtual", channel=channel)
+    try:
+        host.drain()
+        emptied = clock.now
+        peer.send(can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False))
+        clock.now += 10_000 * MS  # the frame cannot wait as long in a test
+        (frame,) = host.drain()
+        assert emptied < frame.timestamp_ns <= clock.now
+    finally:
+        host.close()
+        peer.shutdown()
 
 
 def test_a_lockstep_peer_steps_at_the_new_ticks_time() -> None:
