@@ -34,6 +34,12 @@ IFNAMSIZ = 16
 _KERNEL_SPACE = frozenset(b"\t\n\v\f\r \xa0")
 #: ``/sys/class/net/<name>/type`` of a CAN interface (``ARPHRD_CAN``, linux/if_arp.h).
 ARPHRD_CAN = 280
+#: ``/sys/class/net/<name>/mtu`` of a classic CAN interface and of a CAN FD one (bytes: the
+#: kernel's ``CAN_MTU`` and ``CANFD_MTU``, sizeof struct can_frame and canfd_frame).
+CAN_MTU = 16
+CANFD_MTU = 72
+#: ``IFF_UP`` in ``/sys/class/net/<name>/flags`` (linux/if.h): the interface was brought up.
+IFF_UP = 0x1
 #: What a SocketCAN channel must be, said in error messages.
 IFNAME_RULE = (
     f"a Linux interface name (1 to {IFNAMSIZ - 1} bytes, no '/', ':', whitespace or NUL, "
@@ -285,8 +291,9 @@ def check_socketcan(
     has_socketcan: Callable[[], bool] = kernel_has_socketcan,
 ) -> None:
     """Refuse a SocketCAN channel that is no interface name (bad input), on a kernel without
-    SocketCAN, missing, not a CAN interface, or down, with the command that fixes it.
-    ``sysfs`` is ``/sys/class/net``, a directory of a test's making in tests."""
+    SocketCAN, missing, not a CAN interface, classic CAN for a CAN FD hand, down, or up with
+    its controller off the bus, with the command that fixes it. ``sysfs`` is
+    ``/sys/class/net``, a directory of a test's making in tests."""
     if not valid_ifname(channel):
         raise ConfigError("--bus", "channel", IFNAME_RULE, channel)
     node = sysfs / channel
@@ -318,10 +325,44 @@ def check_socketcan(
             "lists the CAN interfaces; an adapter shows one once its driver is loaded); "
             f"then configure it with: {hint}"
         )
-    if _read(node / "operstate") == "down":
+    name = shell_word(channel)
+    mtu = _read(node / "mtu")
+    if bus_config.fd and mtu == str(CAN_MTU):
+        # python-can opens it all the same, and every CAN FD frame sent is refused (EINVAL):
+        # the run failed at start-up with the bus's errors, not saying why. A classic hand on
+        # a CAN FD interface is fine: its frames are classic ones
+        if virtual:
+            fix = f"sudo ip link set {name} down && sudo ip link set {name} mtu {CANFD_MTU}"
+            fix += f" && sudo ip link set {name} up"
+        else:
+            fix = f"sudo ip link set {name} down && {hint}"
+        raise BusError(
+            f"socketcan:{shown}: a classic CAN interface (its mtu is {mtu}), and the hand "
+            f"config's bus is CAN FD (an mtu of {CANFD_MTU}); set it up for CAN FD with: {fix} "
+            "(a controller without CAN FD cannot be: the hand needs one with it)"
+        )
+    if _read(node / "operstate") in ("down", "lowerlayerdown"):
+        if _flags(node) & IFF_UP:
+            # up, but the kernel turned its carrier off: a controller in bus-off (restart-ms
+            # 0, or not restarted yet). `ip link set ... up type can ...` fails on it, busy
+            raise BusError(
+                f"socketcan:{shown}: interface is up but has no carrier: its controller is "
+                f"bus-off (or otherwise off the bus); restart it with: sudo ip link set {name} "
+                f"type can restart (or take it down and up: sudo ip link set {name} down && "
+                f"sudo ip link set {name} up); a controller that goes bus-off again points at "
+                "the wiring, the termination, or a bit rate other than the nodes'"
+            )
         if virtual:  # no bit rates to set on a virtual interface
-            hint = f"sudo ip link set {shell_word(channel)} up"
+            hint = f"sudo ip link set {name} up"
         raise BusError(f"socketcan:{shown}: interface is down; bring it up with: {hint}")
+
+
+def _flags(node: Path) -> int:
+    """The interface's ``flags`` (sysfs writes them in hex, ``0x1003``); 0 if unreadable."""
+    try:
+        return int(_read(node / "flags"), 16)
+    except ValueError:
+        return 0
 
 
 def _read(path: Path) -> str:

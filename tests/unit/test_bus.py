@@ -95,6 +95,59 @@ def test_socketcan_check_against_a_sysfs_tree(hand: HandConfig, tmp_path: Path) 
     check_socketcan("can0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
 
 
+def test_a_classic_can_interface_is_refused_for_a_can_fd_hand(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """python-can opens a classic interface (mtu 16) for CAN FD all the same, and the kernel
+    refuses every CAN FD frame sent on it: the run failed at start-up with the bus's errors,
+    not saying why. Refused before the run, with the mtu expected and found and the command
+    that fixes it; a classic hand on a CAN FD interface is fine (its frames are classic)."""
+    for name in ("can0", "vcan0"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "type").write_text("280\n")
+        (tmp_path / name / "mtu").write_text("16\n")
+        (tmp_path / name / "operstate").write_text("up\n")
+    with pytest.raises(BusError) as info:
+        check_socketcan("can0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
+    said = str(info.value)
+    assert said.startswith("socketcan:can0: a classic CAN interface (its mtu is 16)")
+    assert "CAN FD (an mtu of 72)" in said
+    assert (
+        "sudo ip link set can0 down && sudo ip link set can0 up type can bitrate 1000000 "
+        "dbitrate 5000000 fd on restart-ms 100" in said
+    )
+    with pytest.raises(BusError, match=r"sudo ip link set vcan0 down && sudo ip link set vcan0 "):
+        check_socketcan("vcan0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
+    classic = replace(hand.bus, fd=False, data_bitrate=None)
+    check_socketcan("can0", classic, sysfs=tmp_path, has_socketcan=_yes)
+    (tmp_path / "can0" / "mtu").write_text("72\n")
+    check_socketcan("can0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
+    check_socketcan("can0", classic, sysfs=tmp_path, has_socketcan=_yes)
+
+
+def test_a_controller_in_bus_off_is_not_told_to_bring_an_up_interface_up(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """In bus-off the kernel turns the carrier off: ``operstate`` reads down while the
+    interface is up (IFF_UP in ``flags``). It was told to run ``ip link set can0 up type
+    can ...``, which a running device refuses ("Device or resource busy")."""
+    node = tmp_path / "can0"
+    node.mkdir()
+    (node / "type").write_text("280\n")
+    (node / "mtu").write_text("72\n")
+    (node / "operstate").write_text("down\n")
+    (node / "flags").write_text("0x40081\n")  # IFF_UP | IFF_NOARP | IFF_ECHO, as can0's
+    with pytest.raises(BusError) as info:
+        check_socketcan("can0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
+    said = str(info.value)
+    assert said.startswith("socketcan:can0: interface is up but has no carrier: its controller")
+    assert "bus-off" in said and "sudo ip link set can0 type can restart" in said
+    assert "up type can bitrate" not in said
+    (node / "flags").write_text("0x40080\n")  # brought down: the command that brings it up
+    with pytest.raises(BusError, match=r"interface is down; bring it up with: sudo ip link set"):
+        check_socketcan("can0", hand.bus, sysfs=tmp_path, has_socketcan=_yes)
+
+
 def test_opening_socketcan_here_fails_with_a_hint(hand: HandConfig) -> None:
     # This kernel has no SocketCAN; whatever the reason, the error says what to do.
     with pytest.raises(BusError, match="socketcan:handctl-none"):
