@@ -707,7 +707,24 @@ def open_bus(
         raise BusError(
             f"{parsed}: cannot open the bus: {type(exc).__name__}: {escaped(str(exc))}{hint}"
         ) from None
+    if bus_config.fd and _says_classic(bus):
+        bus.shutdown()
+        raise BusError(
+            f"{parsed}: the hand config's bus is CAN FD (bus.fd: true), and this bus carries "
+            "classic CAN 2.0 frames only (python-can's protocol for it: CAN_20): use an "
+            f"adapter and a python-can interface that do CAN FD, not {parsed.interface}"
+        )
     return HandBus(bus, parsed, bus_config.fd)
+
+
+def _says_classic(bus: can.BusABC) -> bool:
+    """Whether the backend itself said the opened bus is classic CAN 2.0 (``protocol``,
+    python-can 4.x: gs_usb and slcan always, pcan or vector as they could open it). A bus
+    that cannot carry the hand's CAN FD frames fails every send, and the run fails at
+    start-up with the bus's errors, not saying why. Only what the backend set counts:
+    python-can's default for a backend that never says is CAN_20 too (socketcand, a
+    third-party interface), and that is no reason to refuse it."""
+    return "_can_protocol" in vars(bus) and bus.protocol is can.CanProtocol.CAN_20
 
 
 def _remote_text(frame_id: int) -> str:

@@ -154,6 +154,22 @@ def test_opening_socketcan_here_fails_with_a_hint(hand: HandConfig) -> None:
         open_bus("socketcan:handctl-none", hand.bus)
 
 
+def test_a_bus_that_carries_classic_can_only_is_refused_for_a_can_fd_hand(
+    hand: HandConfig, channel: str
+) -> None:
+    """A backend that opens a classic CAN 2.0 bus (python-can's ``protocol``: gs_usb always,
+    an adapter without CAN FD) for a CAN FD hand failed every send, and the run failed at
+    start-up with the bus's errors. Here python-can's virtual bus, told it is classic."""
+    classic_bus = {"protocol": can.CanProtocol.CAN_20}
+    with pytest.raises(BusError) as info:
+        open_bus(f"virtual:{channel}", hand.bus, classic_bus)
+    assert str(info.value).startswith(f"virtual:{channel}: the hand config's bus is CAN FD")
+    assert "classic CAN 2.0 frames only" in str(info.value)
+    classic = replace(hand.bus, fd=False, data_bitrate=None)
+    with open_bus(f"virtual:{channel}", classic, classic_bus) as bus:
+        assert bus.send(0x101, bytes(8))
+
+
 def test_sim_spec_is_not_opened_here(hand: HandConfig) -> None:
     with pytest.raises(BusError, match="resolved by the caller"):
         open_bus("sim", hand.bus)
