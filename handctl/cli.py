@@ -920,7 +920,7 @@ def _experiment_verdict(ex: dict[str, Any]) -> str:
     if wanted > 0 and turned is not None and turned < wanted:
         missing.append(f"turned {turned:.1f} deg of the {wanted:g} it needs")
     end = ex.get("end_from_table_deg")
-    if end is not None and 90.0 < wanted <= 180.0 and abs(end) <= 90.0:
+    if end is not None and not missing and 90.0 < wanted <= 180.0 and abs(end) <= 90.0:
         missing.append(
             f"the pair ended {end:.1f} deg from how it lay on the table, not the other way "
             f"round (it had turned {ex['turn_before_manipulation_deg']:.1f} deg before the "

@@ -183,7 +183,7 @@ def parse_sim(hand: HandConfig) -> SimParams:
     contact.done()
     finger_finger = 0.0
     if between_fingers:
-        finger_finger = friction_doc.number("finger_finger", min=0.0, max=3.0)
+        finger_finger = coefficient(friction_doc, "finger_finger")
     elif friction_doc.has("finger_finger"):
         friction_doc.fail(
             "finger_finger",
@@ -510,8 +510,28 @@ def _parse_object(doc: Doc) -> ObjectParams:
     return obj
 
 
+#: The least Coulomb coefficient of a contact the simulated hand takes. At 1e-5 and below
+#: (MuJoCo's own floor, ``mjMINMU``) a frictionless contact made the solver's answer jump: a
+#: finger's joints leapt half a radian past their stops in one tick under 0.07 N·m, the run
+#: ended on a node's SENSOR fault, and a pair was flung 45 cm in 10 ms (found by an outside
+#: audit; 1e-4 ran). 0.001 is as slippery as a real contact gets, and every pair ran the
+#: experiment with it.
+MIN_FRICTION = 0.001
+
+
 def _parse_friction(doc: Doc) -> FrictionParams:
-    values = {
-        name: doc.number(name, min=0.0, max=3.0) for name in FrictionParams.__dataclass_fields__
-    }
+    values = {name: coefficient(doc, name) for name in FrictionParams.__dataclass_fields__}
     return FrictionParams(**values)
+
+
+def coefficient(doc: Doc, name: str) -> float:
+    """A contact's Coulomb coefficient, ``MIN_FRICTION`` at the least."""
+    value = doc.number(name, min=0.0, max=3.0)
+    if value < MIN_FRICTION:
+        doc.fail(
+            name,
+            f"at least {MIN_FRICTION:g}: the simulator's contacts come apart with no friction "
+            f"at all (write {MIN_FRICTION:g} for a frictionless contact)",
+            f"{value:g}",
+        )
+    return value

@@ -219,6 +219,21 @@ def test_the_quietest_tdt_accepted_never_reads_still_long_enough_to_be_stuck(
             "half_thickness of f1_j3",
         ),
         (lambda s: s["friction"].update(object_object=-0.1), "sim.friction.object_object", ">= 0"),
+        # a frictionless contact came apart in the solver: a finger's joints leapt half a
+        # radian past their stops in one tick, said as a node's SENSOR fault
+        (
+            lambda s: s["friction"].update(finger_object=0.0),
+            "sim.friction.finger_object",
+            "at least 0.001",
+        ),
+        (
+            lambda s: (
+                s["contact"].update(between_fingers=True),
+                s["friction"].update(finger_finger=1e-5),
+            ),
+            "sim.friction.finger_finger",
+            "at least 0.001",
+        ),
         # the node latched SENSOR at the first count its joint moved (NODE_CONTRADICTION)
         (lambda s: s["encoder"].update(max_step=1e-12), "sim.encoder.max_step", "encoder count"),
         (
