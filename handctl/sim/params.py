@@ -471,6 +471,17 @@ def _parse_initial_angles(doc: Doc, hand: HandConfig) -> tuple[tuple[float, ...]
         )
         where = Doc({}, doc.file, doc.key_path(finger.name))
         for k, (value, joint) in enumerate(zip(values, finger.joints, strict=True)):
+            if joint.angle_max - joint.angle_min < 2 * START_MARGIN - _ROUNDING_RAD:
+                # asked for an angle "at least 0.01 rad inside" a range no angle is inside of
+                # by that much (found by an outside audit)
+                where.fail(
+                    k,
+                    f"a joint the simulated hand can start {START_MARGIN:g} rad inside both "
+                    f"soft limits of: {joint.name}'s range [{joint.angle_min:g}, "
+                    f"{joint.angle_max:g}] rad is narrower than {2 * START_MARGIN:g} rad "
+                    "(widen it in the hand config)",
+                    value,
+                )
             inside = min(value - joint.angle_min, joint.angle_max - value)
             # to a nanoradian: 0.06 against a limit of 0.05 is 0.00999... in binary, and was
             # refused where 0.51 against 0.50 was taken

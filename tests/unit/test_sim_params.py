@@ -574,3 +574,24 @@ def test_a_finger_based_on_the_palm_is_said_of_its_base(
     assert err.value.key == "fingers[1].base"
     assert "from the palm" in err.value.expected
     assert err.value.file == hand.source
+
+
+def test_a_joint_too_narrow_to_start_inside_is_said_as_such(hand: HandConfig) -> None:
+    """A joint of ±0.005 rad was asked for a start "at least 0.01 rad inside" its limits,
+    which no angle can meet (found by an outside audit): the range is what is wrong."""
+    finger = hand.fingers[0]
+    narrow = dataclasses.replace(finger.joints[0], angle_min=-0.005, angle_max=0.005)
+    fingers = (
+        dataclasses.replace(finger, joints=(narrow, *finger.joints[1:])),
+        *hand.fingers[1:],
+    )
+
+    def start_at_zero(s: dict[str, Any]) -> None:
+        s["initial_angles"][finger.name][0] = 0.0
+
+    with pytest.raises(ConfigError) as err:
+        parse_sim(_with_sim(dataclasses.replace(hand, fingers=fingers), start_at_zero))
+    assert err.value.key == f"sim.initial_angles.{finger.name}[0]"
+    assert f"{narrow.name}'s range [-0.005, 0.005] rad is narrower than 0.02 rad" in (
+        err.value.expected
+    )
