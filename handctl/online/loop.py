@@ -42,7 +42,13 @@ from handctl.online.bus import BusEvent, BusEventKind
 from handctl.online.clock import Clock, Tick
 from handctl.online.collector import LoopCollector
 from handctl.online.drivers import finger, receiver
-from handctl.online.drivers.hand import AppliedTorques, HandDriver, JointState
+from handctl.online.drivers.hand import (
+    ESTOP_HOST_SAFETY,
+    ESTOP_OPERATOR,
+    AppliedTorques,
+    HandDriver,
+    JointState,
+)
 from handctl.online.misstrace import (
     NOTE_BUS_EVENT,
     NOTE_COLLECT,
@@ -293,6 +299,13 @@ class Runtime:
         self.ended_in_fault = ""
         #: whether the e-stop went to nodes still ENABLED after the disable
         self._estop_at_the_end = False
+        #: The e-stop the nodes are owed, by its reason (``ESTOP_*``; 0: none), and how many
+        #: times the bus refused it: one the bus refuses (a full transmit queue) is sent
+        #: again on every tick after, to the run's end, until one goes (``_owe_estop``).
+        #: Before, the operator's e-stop and a second master's went once: refused, nothing
+        #: was said, and no node latched FAULT (ESTOP) (found by an outside audit).
+        self._estop_owed = 0
+        self._estop_refusals = 0
         #: that the bus refused the disable at the end, twice ("" if it went)
         self._disable_refused = ""
         #: a peer process the start-up waits for (the simulated hand of a real-time run):
@@ -384,6 +397,7 @@ class Runtime:
         self.runner = self._new_runner()
         self.stop_requested = ""
         self.estop_requested = ""
+        self._estop_owed = self._estop_refusals = 0  # the nodes' FAULT was just cleared
         self.exception = None
         return True
 
@@ -473,7 +487,7 @@ class Runtime:
         # the last tick's bus events, which the log has: the summary's count had them not
         self._bus_events += len(self.driver.take_bus_events())
         if sup.faults:
-            return Outcome.SAFETY_STOP, "; ".join(str(f) for f in sup.faults)
+            return Outcome.SAFETY_STOP, "; ".join(str(f) for f in sup.faults) + self._estop_said()
         if self.stop_requested:
             return Outcome.INTERRUPTED, self.stop_requested
         return Outcome.COMPLETED, ""
@@ -507,8 +521,10 @@ class Runtime:
                 defiant_after_ns = tk.now_ns + round(DEFIANT_AFTER_PERIODS * period_s * 1e9)
             self._account_idle(tk)
             self.driver.poll(tk.now_ns)
+            if self._estop_owed:  # refused on an earlier tick: again, until one goes
+                self._owe_estop(self._estop_owed)
             self._foreign_after_the_disable(tk.tick)
-            if all(confirmed(n) for n in self.driver.nodes):
+            if all(confirmed(n) for n in self.driver.nodes) and not self._estop_owed:
                 return
         # a node whose Feedback went unheard all the while (its frames rejected, or lost) is
         # taken at its other reports' word, at the end of the wait
@@ -571,7 +587,38 @@ class Runtime:
             "after this run's disable, " + "; ".join(foreign),
             tick,
         )
-        self._estop_at_the_end = self.driver.send_estop()
+        self._estop_at_the_end = self._owe_estop(ESTOP_HOST_SAFETY)
+
+    def _owe_estop(self, reason: int) -> bool:
+        """Send the e-stop of ``reason`` (``ESTOP_*``); one the bus refuses stays owed, and
+        every tick after sends it again (the running ticks, the zero ticks before the
+        disable and the wait for the nodes' DISABLED), until one goes or the run ends, as a
+        stop frame the bus refuses is followed by the e-stop (docs/safety.md, the stop's
+        frames). Whether it went."""
+        if self.driver.send_estop(reason):
+            self._estop_owed = 0
+            return True
+        self._estop_owed = reason
+        self._estop_refusals += 1
+        return False
+
+    def _estop_said(self) -> str:
+        """What the outcome's message says of an e-stop the bus refused: that it went late,
+        or that it never went, and so no node is latched in FAULT (ESTOP) by it ("" when
+        every e-stop went at once)."""
+        refused = self._estop_refusals
+        if not refused:
+            return ""
+        error = self.driver.last_tx_error
+        why = f" ({error})" if error else ""
+        times = "once" if refused == 1 else f"{refused} times"
+        if not self._estop_owed:
+            return f"; the bus refused the e-stop {times}{why} before it went"
+        return (
+            f"; the e-stop could not be sent: the bus refused it {times}, on every "
+            f"tick to the run's end{why}, so no node latched FAULT (ESTOP) on it: the zero "
+            "torque and the disable are what stopped them"
+        )
 
     def _say_ended_in_fault(self) -> None:
         """Nodes in FAULT at the run's end that no fault of the run stands for: latched after
@@ -697,7 +744,7 @@ class Runtime:
         return True
 
     def _exception_stop_message(self) -> str:
-        message = "; ".join(str(f) for f in self._faults())
+        message = "; ".join(str(f) for f in self._faults()) + self._estop_said()
         driver = self.driver
         if driver.stop_estops and driver.stop_estops_lost == driver.stop_estops:
             message += (
@@ -945,8 +992,10 @@ class Runtime:
         c1 = cpu()
         t_s = (tk.scheduled_ns - (self._t0_ns or 0)) * 1e-9
         self._t_s = t_s
-        if self.estop_requested:
-            driver.estop(reason=1)  # the frame first; ``decide`` latches the fault
+        if self.estop_requested:  # the frame first; ``decide`` latches the fault
+            self._owe_estop(ESTOP_OPERATOR)
+        elif self._estop_owed:  # refused on an earlier tick: again, until one goes
+            self._owe_estop(self._estop_owed)
         desired, applied, new_faults = self.decide(
             tk.tick, tk.now_ns, tk.missed, t_s, state.angle, state.tdt, events
         )
@@ -956,7 +1005,7 @@ class Runtime:
         ok = driver.send(applied)
         sup.sent(ok, tk.tick)
         if new_faults and self._another_master(new_faults):
-            driver.send_estop()
+            self._owe_estop(ESTOP_HOST_SAFETY)
         np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)
         # a NaN is a fault of its own (fmax passes over it)
         np.fmax(self._max_asked, np.abs(desired, out=self._asked), out=self._max_asked)

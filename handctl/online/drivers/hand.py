@@ -32,7 +32,11 @@ AppliedTorques = NewType("AppliedTorques", FloatArray)
 #: Every value a frame's rolling ``Counter`` takes: 8 bits (``handctl/protocol.py`` refuses a
 #: DBC with any other width).
 COUNTER_VALUES = 256
-#: The e-stop reason the prepared e-stop frames carry: host safety (PROTOCOL.md).
+#: The bus events of a frame the host could not send.
+TX_REFUSED = frozenset({BusEventKind.TX_QUEUE_FULL, BusEventKind.TX_FAILED})
+#: The e-stop reasons (PROTOCOL.md): the operator's, and host safety, which the stop's
+#: prepared e-stop frames carry.
+ESTOP_OPERATOR = 1
 ESTOP_HOST_SAFETY = 2
 
 
@@ -131,6 +135,9 @@ class HandDriver:
         #: watchdogs then stop them: said so, not that they were e-stopped)
         self.stop_estops = 0
         self.stop_estops_lost = 0
+        #: What the bus said of the last frame it refused, as the polls have heard it ("":
+        #: none): a frame that did not go is said with the bus's reason, not as the nodes'
+        self.last_tx_error = ""
         self._estop_layout = protocol.layout("EStop")
         self._prepare_stop_frames()
 
@@ -159,6 +166,8 @@ class HandDriver:
             for event in events:
                 if event.kind is BusEventKind.REMOTE_FRAME and event.frame_id is not None:
                     self._heard_remote(event.frame_id)
+                elif event.kind in TX_REFUSED:
+                    self.last_tx_error = f"{event.kind.value}: {event.detail}"
         state = self.state
         folded = self._folded
         node_state, node_faults = state.node_state, state.node_faults
@@ -299,9 +308,10 @@ class HandDriver:
             )
             for n in self.nodes
         ]
-        self._estop_frames = tuple(
-            self._estop_layout.encode(c, (ESTOP_HOST_SAFETY,)) for c in range(COUNTER_VALUES)
-        )
+        self._estop_frames = {
+            reason: tuple(self._estop_layout.encode(c, (reason,)) for c in range(COUNTER_VALUES))
+            for reason in (ESTOP_OPERATOR, ESTOP_HOST_SAFETY)
+        }
 
     def send_zero(self) -> bool:
         """Zero torque to every node from the prepared frames, without the codec.
@@ -342,11 +352,13 @@ class HandDriver:
         except Exception:  # the stop goes on to the next frame, whatever this was
             return False
 
-    def send_estop(self) -> bool:
-        """The prepared e-stop frame (host safety), without the codec; never raises."""
+    def send_estop(self, reason: int = ESTOP_HOST_SAFETY) -> bool:
+        """The prepared e-stop frame (host safety, or the operator's), without the codec;
+        never raises: a caller that must see it go sends it again (``Runtime``'s owed
+        e-stop)."""
         counter = self._estop_counter % COUNTER_VALUES
         self._estop_counter = (counter + 1) % COUNTER_VALUES
-        return self._send_quietly(self._estop_layout.frame_id, self._estop_frames[counter])
+        return self._send_quietly(self._estop_layout.frame_id, self._estop_frames[reason][counter])
 
     def node_command(self, command: str, nodes: Iterable[int] | None = None) -> bool:
         """Send enable / disable / fault_reset to the given node ids (all by default)."""

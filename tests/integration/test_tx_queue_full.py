@@ -1,0 +1,135 @@
+"""A full transmit queue against the runtime and the simulated hand in lockstep: the host's
+bus refuses chosen frames as python-can's SocketCAN bus does when the interface's queue is
+full (``CanOperationError``, errno ENOBUFS; a real can0 holds 10 frames). Each frame that
+matters for stopping or starting the hand is sent again on the ticks after until it goes, and
+one that never goes is said as the bus's refusal (found by an outside audit)."""
+
+from __future__ import annotations
+
+import errno
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+import can
+import pytest
+
+from handctl.config import HandConfig
+from handctl.hand_protocol import protocol_for
+from handctl.online.loop import Outcome
+from handctl.online.recipes.loader import load_recipe
+from handctl.online.recipes.schema import Recipe
+from handctl.online.safety.faults import FaultCode
+from handctl.protocol import NodeState
+from handctl.sim.firmware import FaultBits
+
+from .rig import CLOSE_AND_HOLD_2S, Rig, rig
+from .test_hostile_peer import INJECT_AT, Every, frame, third_peer
+
+ESTOP_ID = 0x000
+#: ticks after the first command: inside the hold, torque flowing
+AT_TICKS = 1000
+
+
+@pytest.fixture(scope="module")
+def hold(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recipe:
+    path = tmp_path_factory.mktemp("recipes") / "hold.yaml"
+    path.write_text(CLOSE_AND_HOLD_2S)
+    return load_recipe(path, hand)
+
+
+@contextmanager
+def queue_full(r: Rig, refuse: Callable[[int], bool]) -> Iterator[list[int]]:
+    """The host's transport raises ENOBUFS for each frame whose id ``refuse`` says, as
+    SocketCAN does with a full queue; yields the ids of the frames it refused."""
+    bus = r.runtime.driver.bus
+    real = bus._send_frame  # type: ignore[attr-defined]
+    assert real is not None, "the rig's bus sends frame by frame"
+    refused: list[int] = []
+
+    def send_frame(frame_id: int, flags: int, data: bytes) -> None:
+        if refuse(frame_id):
+            refused.append(frame_id)
+            raise can.CanOperationError(
+                "Failed to transmit: No buffer space available", errno.ENOBUFS
+            )
+        real(frame_id, flags, data)
+
+    bus._send_frame = send_frame  # type: ignore[attr-defined]
+    try:
+        yield refused
+    finally:
+        bus._send_frame = real  # type: ignore[attr-defined]
+
+
+def estop_at(r: Rig, ticks: int) -> None:
+    """The operator's e-stop, ``ticks`` after the first command."""
+    runtime = r.runtime
+
+    def hook(tk: object) -> None:
+        if runtime.tick - runtime.first_send_tick == ticks:
+            runtime.request_estop("operator")
+
+    runtime.tick_hooks.append(hook)
+
+
+def latched_estop(r: Rig) -> bool:
+    return all(
+        n.state == int(NodeState.FAULT) and n.fault_bits & int(FaultBits.ESTOP) for n in r.sim.nodes
+    )
+
+
+def test_an_operator_estop_the_bus_refuses_once_goes_on_the_next_tick(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """The queue is full as the operator's e-stop goes: it went once, and the nodes ended
+    DISABLED, not latched in FAULT (ESTOP), with nothing said."""
+    with rig(hand, hold) as r:
+        estop_at(r, AT_TICKS)
+        with queue_full(r, lambda i: i == ESTOP_ID and not refused) as refused:
+            result = r.run()
+    assert refused == [ESTOP_ID]
+    assert result.outcome is Outcome.SAFETY_STOP
+    assert result.faults[0].code is FaultCode.ESTOP
+    assert r.estops() == 1
+    assert latched_estop(r)
+    assert "the bus refused the e-stop once (tx_queue_full: " in result.message
+    assert "before it went" in result.message
+
+
+def test_an_operator_estop_the_bus_never_takes_is_said(hand: HandConfig, hold: Recipe) -> None:
+    """The e-stop is sent on every tick to the run's end, and that none went is said."""
+    with rig(hand, hold) as r:
+        estop_at(r, AT_TICKS)
+        with queue_full(r, lambda i: i == ESTOP_ID) as refused:
+            result = r.run()
+    assert len(refused) > 1
+    assert r.estops() == 0
+    assert result.outcome is Outcome.SAFETY_STOP
+    assert "the e-stop could not be sent: the bus refused it" in result.message
+    assert "No buffer space available" in result.message
+    assert "no node latched FAULT (ESTOP)" in result.message
+    # the zero torque and the disable still went
+    assert all(n.state == int(NodeState.DISABLED) and not any(n.applied) for n in r.sim.nodes)
+
+
+def test_a_second_master_s_estop_the_bus_refuses_once_still_latches_the_nodes(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """A second master on the host's command ids, and the queue full for the e-stop that
+    answers it: no e-stop reached the wire and the nodes were left unlatched, for the other
+    master to enable again."""
+    layout = protocol_for(hand).layout("TorqueCommand", 1)
+    with rig(hand, hold) as r, third_peer(r) as peer:
+        host_node = r.runtime.driver.nodes[0]
+
+        def second_master() -> None:
+            data = layout.encode(host_node.command_counter, [0.5, 0.4, 0.3])
+            peer.send(frame(layout.frame_id, data))
+
+        r.sim.faults.add(Every(send=second_master), INJECT_AT)
+        with queue_full(r, lambda i: i == ESTOP_ID and not refused) as refused:
+            result = r.run()
+    assert refused == [ESTOP_ID]
+    assert result.faults[0].code is FaultCode.FOREIGN_COMMAND
+    assert r.estops() == 1
+    assert latched_estop(r)
