@@ -110,6 +110,11 @@ def _any_heard(nodes: Sequence[finger.FingerNode], since: int) -> bool:
     )
 
 
+def _times(n: int) -> str:
+    """How many times something happened, in words a person reads: "once", "twice", "3 times"."""
+    return {1: "once", 2: "twice"}.get(n, f"{n} times")
+
+
 def _no_feedback(rejects: dict[str, int]) -> str:
     """Why no feedback of a node was taken at start-up: none came, or frames came and every
     one was rejected (a bad CRC, a second sender on its ids), which points elsewhere than a
@@ -306,8 +311,15 @@ class Runtime:
         #: was said, and no node latched FAULT (ESTOP) (found by an outside audit).
         self._estop_owed = 0
         self._estop_refusals = 0
-        #: that the bus refused the disable at the end, twice ("" if it went)
-        self._disable_refused = ""
+        #: The disable at the end: whether the nodes are still owed it (a frame of it
+        #: refused, and no e-stop in its place), how many times the bus refused it, and
+        #: whether an e-stop went in its place. One the bus refuses is sent again on every
+        #: tick of the wait for the nodes' DISABLED: it was tried three times within
+        #: microseconds, and against a full transmit queue the run ended "completed", exit
+        #: 0, with the nodes ENABLED (found by an outside audit).
+        self._disable_owed = False
+        self._disable_refusals = 0
+        self._disable_estopped = False
         #: a peer process the start-up waits for (the simulated hand of a real-time run):
         #: what it said if it has ended, else ""; asked every start-up tick, so that a hand
         #: that died is said at once and not after the whole start-up timeout (20 s)
@@ -470,18 +482,23 @@ class Runtime:
                 break
             if self.tick >= self.max_ticks:
                 self.request_stop("tick budget exhausted")
-        if not self.driver.node_command("disable") and not self.driver.send_disable():
-            # a disable frame the bus refused, and again from the prepared frames (which send
-            # the e-stop after them): said as the bus's, not as nodes that went on ENABLED
-            # after a disable they never had
-            self._disable_refused = "the bus refused the disable at the end, twice, and " + (
-                "the e-stop after it as well"
-                if self.driver.stop_estops_lost
-                else "the e-stop was sent (every node latches FAULT (ESTOP))"
-            )
+        self._disable_owed = self._disable_estopped = False
+        self._disable_refusals = 0
+        if not self.driver.node_command("disable"):
+            # a disable frame the bus refused: again from the prepared frames (which send the
+            # e-stop after them), and on the ticks of the wait until it or the e-stop goes;
+            # said as the bus's, not as nodes that went on ENABLED after a disable they
+            # never had
+            self._disable_refusals = 1
+            self._disable_owed = not self._send_disable()
         await self._confirm_disabled(tk.now_ns)
-        if self._disable_refused and not self.disable_unconfirmed:
-            self.disable_unconfirmed = self._disable_refused  # every node heard stopped
+        refused = self._disable_refused()
+        if self._disable_owed or self._disable_estopped:
+            if not self.disable_unconfirmed:  # every node heard stopped, not by the disable
+                self.disable_unconfirmed = refused
+            # the disable never went to every node: the run did not end as it should, on a
+            # bus that failed (README: exit 3), whatever the nodes were heard to say
+            sup.trip(FaultCode.BUS_ERROR, refused, self.tick)
         if not sup.faults:  # a node fault in the run is its stop, said as such
             self._say_ended_in_fault()
         # the last tick's bus events, which the log has: the summary's count had them not
@@ -523,6 +540,8 @@ class Runtime:
             self.driver.poll(tk.now_ns)
             if self._estop_owed:  # refused on an earlier tick: again, until one goes
                 self._owe_estop(self._estop_owed)
+            if self._disable_owed:  # likewise the disable, until it or the e-stop goes
+                self._disable_owed = not self._send_disable()
             self._foreign_after_the_disable(tk.tick)
             if all(confirmed(n) for n in self.driver.nodes) and not self._estop_owed:
                 return
@@ -548,8 +567,8 @@ class Runtime:
             f"for {wire.COMMAND_WATCHDOG_S * 1e3:g} ms sets its torque to zero and latches "
             "FAULT (TIMEOUT), which the next run clears with --reset-node-faults"
         )
-        if self._disable_refused:
-            self.disable_unconfirmed += f" ({self._disable_refused})"
+        if self._disable_refusals:
+            self.disable_unconfirmed += f" ({self._disable_refused()})"
             defiant = []  # they may never have had it; the e-stop, if any, has gone
         if defiant:
             # a node that goes on saying ENABLED after the disable disobeys it: the e-stop,
@@ -589,6 +608,41 @@ class Runtime:
         )
         self._estop_at_the_end = self._owe_estop(ESTOP_HOST_SAFETY)
 
+    def _send_disable(self) -> bool:
+        """The prepared disable to every node, the e-stop after it if a frame of it did not
+        go (``HandDriver.send_disable``); whether the nodes have had one or the other."""
+        driver = self.driver
+        lost = driver.stop_estops_lost
+        if driver.send_disable():
+            return True
+        self._disable_refusals += 1
+        if driver.stop_estops_lost == lost:  # the e-stop went in its place
+            self._disable_estopped = True
+            return True
+        return False
+
+    def _disable_refused(self) -> str:
+        """What the bus did to the disable at the end ("": it went at once)."""
+        refused = self._disable_refusals
+        if not refused:
+            return ""
+        error = self.driver.last_tx_error
+        times = _times(refused) + (f" ({error})" if error else "")
+        if self._disable_estopped:
+            return (
+                f"the bus refused the disable at the end {times}, and the e-stop was sent in "
+                "its place: every node latches FAULT (ESTOP), which the next run clears with "
+                "--reset-node-faults"
+            )
+        if self._disable_owed:
+            return (
+                f"the bus refused the disable at the end {times}, and the e-stop after it, on "
+                "every tick of the wait for the nodes' DISABLED: a node still ENABLED stops "
+                f"only when it has heard no command for {wire.COMMAND_WATCHDOG_S * 1e3:g} ms, "
+                "and latches FAULT (TIMEOUT), which the next run clears with --reset-node-faults"
+            )
+        return f"the bus refused the disable at the end {times} before it went"
+
     def _owe_estop(self, reason: int) -> bool:
         """Send the e-stop of ``reason`` (``ESTOP_*``); one the bus refuses stays owed, and
         every tick after sends it again (the running ticks, the zero ticks before the
@@ -611,7 +665,7 @@ class Runtime:
             return ""
         error = self.driver.last_tx_error
         why = f" ({error})" if error else ""
-        times = "once" if refused == 1 else f"{refused} times"
+        times = _times(refused)
         if not self._estop_owed:
             return f"; the bus refused the e-stop {times}{why} before it went"
         return (

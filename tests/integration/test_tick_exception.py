@@ -432,7 +432,8 @@ def test_a_disable_the_bus_refuses_at_the_end_is_said_as_the_bus_s(
     """The bus refuses every NodeCommand frame once the run is under way: at the end of a
     completed run no disable went, and the nodes were said to have gone on ENABLED "after
     the disable" (found by an outside audit). The prepared disable is tried again, then the
-    e-stop, and the bus's refusal is what is said."""
+    e-stop, and the bus's refusal is what is said: a bus that failed, a safety stop (it
+    ended "completed", exit 0, found by an outside audit too)."""
     with bench(hand, hold, tmp_path / "run.mcap") as b:
         real = b.runtime.driver.bus.send
         rt = b.runtime
@@ -451,12 +452,14 @@ def test_a_disable_the_bus_refuses_at_the_end_is_said_as_the_bus_s(
         result = asyncio.run(b.runtime.run())
         monkeypatch.undo()
         wire = hear(b.listener, hand)
-    assert result.outcome is Outcome.COMPLETED
+    assert result.outcome is Outcome.SAFETY_STOP
+    [fault] = result.faults
+    assert fault.code is FaultCode.BUS_ERROR
     assert not any(wire.disables.values())
     assert "went on saying ENABLED after the disable" not in result.disable_unconfirmed
-    assert "the bus refused the disable at the end, twice, and the e-stop was sent" in (
-        result.disable_unconfirmed
-    )
+    said = "the bus refused the disable at the end twice, and the e-stop was sent in its place"
+    assert said in result.disable_unconfirmed
+    assert said in fault.detail
     assert all(n.state == NodeState.FAULT for n in b.sim.nodes)  # the e-stop went
 
 

@@ -13,6 +13,7 @@ from contextlib import contextmanager
 import can
 import pytest
 
+from handctl import cli
 from handctl.config import HandConfig
 from handctl.hand_protocol import protocol_for
 from handctl.online.loop import Outcome
@@ -133,3 +134,57 @@ def test_a_second_master_s_estop_the_bus_refuses_once_still_latches_the_nodes(
     assert result.faults[0].code is FaultCode.FOREIGN_COMMAND
     assert r.estops() == 1
     assert latched_estop(r)
+
+
+def refuse_the_disable(r: Rig, times: int | None) -> Callable[[int], bool]:
+    """Refuse the NodeCommand frames after the enable (the disable at the end: codec,
+    prepared) and the e-stop after them, the first ``times`` frames of them (None: all)."""
+    runtime = r.runtime
+    commands = {n.layouts.node_command.frame_id for n in runtime.driver.nodes}
+    refused = [0]
+
+    def refuse(frame_id: int) -> bool:
+        if runtime.first_send_tick < 0 or frame_id not in commands | {ESTOP_ID}:
+            return False
+        if times is not None and refused[0] >= times:
+            return False
+        refused[0] += 1
+        return True
+
+    return refuse
+
+
+def test_a_disable_the_bus_refuses_at_the_end_goes_on_a_later_tick(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """The queue is full as the recipe ends: the disable (codec, then prepared) and the
+    e-stop after it, all within microseconds, were refused, nothing was sent in the wait
+    for the nodes' DISABLED, and the run ended "completed", exit 0, the nodes ENABLED. It is
+    sent again on the next tick of the wait, and goes."""
+    with rig(hand, hold) as r:
+        nodes = len(r.runtime.driver.nodes)
+        with queue_full(r, refuse_the_disable(r, 2 * nodes + 1)) as refused:
+            result = r.run()
+    assert len(refused) == 2 * nodes + 1
+    assert r.estops() == 0
+    assert result.outcome is Outcome.COMPLETED, result.message
+    assert result.disable_unconfirmed == ""
+    assert [n.state for n in r.sim.nodes] == [int(NodeState.DISABLED)] * nodes
+
+
+def test_a_disable_the_bus_never_takes_is_a_safety_stop(hand: HandConfig, hold: Recipe) -> None:
+    """The disable and the e-stop after it refused on every try: the nodes may be ENABLED,
+    the run is not "completed" (exit 3: a bus that failed during a run, README)."""
+    with rig(hand, hold) as r, queue_full(r, refuse_the_disable(r, None)) as refused:
+        result = r.run()
+    assert len(refused) > 2 * len(r.sim.nodes) + 1  # sent again in the wait
+    assert r.estops() == 0
+    assert result.outcome is Outcome.SAFETY_STOP
+    [fault] = result.faults
+    assert fault.code is FaultCode.BUS_ERROR
+    assert fault.detail.startswith("the bus refused the disable at the end ")
+    assert "(tx_queue_full: Failed to transmit: No buffer space available" in fault.detail
+    assert "and the e-stop after it, on every tick of the wait" in fault.detail
+    assert "--reset-node-faults" in fault.detail
+    assert "the bus refused the disable at the end" in result.disable_unconfirmed
+    assert cli._outcome_exit_code(result, {}) == cli.EXIT_SAFETY_STOP
