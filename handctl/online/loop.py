@@ -320,6 +320,11 @@ class Runtime:
         self._disable_owed = False
         self._disable_refusals = 0
         self._disable_estopped = False
+        #: The nodes whose enable the bus refused, and how many times it refused one: sent
+        #: again on every tick of the enabling until it goes (the supervisor's enable
+        #: deadline bounds it); one that never went is said as the bus's, not the nodes'.
+        self._enable_owed: list[int] = []
+        self._enable_refusals = 0
         #: a peer process the start-up waits for (the simulated hand of a real-time run):
         #: what it said if it has ended, else ""; asked every start-up tick, so that a hand
         #: that died is said at once and not after the whole start-up timeout (20 s)
@@ -465,7 +470,9 @@ class Runtime:
         # 2. Enable, with zero torque every tick from now on (the device watchdog is armed).
         tick = self.tick
         sup.start(tick)
-        self.driver.node_command("enable")
+        self._enable_owed = self.driver.node_command_unsent("enable")
+        self._enable_refusals = 1 if self._enable_owed else 0
+        sup.enable_unsent = ""
         if self.trace is not None:  # in the last start-up tick's interval
             self.trace.note(NOTE_STATE)
             self._traced_state = sup.state
@@ -607,6 +614,32 @@ class Runtime:
             tick,
         )
         self._estop_at_the_end = self._owe_estop(ESTOP_HOST_SAFETY)
+
+    def _enable_again(self) -> None:
+        """Send the enable again to the nodes the bus refused it to, while the supervisor
+        waits for them to say ENABLED; nothing once it has stopped waiting."""
+        if self.supervisor.state is not State.ENABLING:
+            self._enable_owed = []
+            return
+        self._enable_owed = self.driver.node_command_unsent("enable", self._enable_owed)
+        if self._enable_owed:
+            self._enable_refusals += 1
+        else:
+            self.supervisor.enable_unsent = ""
+
+    def _enable_refused(self) -> str:
+        """The enable frames that never left the host, and what the bus said of them."""
+        names = ", ".join(
+            f"node {n.node_id} ({n.finger.name})"
+            for n in self.driver.nodes
+            if n.node_id in self._enable_owed
+        )
+        error = self.driver.last_tx_error
+        return (
+            f"the bus refused the enable of {names} {_times(self._enable_refusals)}"
+            + (f" ({error})" if error else "")
+            + ": it never left the host"
+        )
 
     def _send_disable(self) -> bool:
         """The prepared disable to every node, the e-stop after it if a frame of it did not
@@ -1050,9 +1083,13 @@ class Runtime:
             self._owe_estop(ESTOP_OPERATOR)
         elif self._estop_owed:  # refused on an earlier tick: again, until one goes
             self._owe_estop(self._estop_owed)
+        if self._enable_owed:  # what the enable deadline says, if it comes in this tick
+            sup.enable_unsent = self._enable_refused()
         desired, applied, new_faults = self.decide(
             tk.tick, tk.now_ns, tk.missed, t_s, state.angle, state.tdt, events
         )
+        if self._enable_owed:  # after the tick's checks: no enable once a stop is decided
+            self._enable_again()
         c2, c3 = self._recipe_done_ns, cpu()
         if len(sup.stop_notes) > self._stop_notes_said:  # grows only in a controlled stop
             self._say_stop_notes(tk.tick)

@@ -498,15 +498,15 @@ def test_an_exception_while_enabling_is_a_controlled_stop(
     """Outside the tick's stages (here: the enable, which the first node got), the stop is
     the same: RUN_EXCEPTION, zero to every node, then a disable."""
     with bench(hand, hold, tmp_path / "run.mcap") as b:
-        real = b.runtime.driver.node_command
+        real = b.runtime.driver.node_command_unsent
 
-        def node_command(command: str, nodes: Any = None) -> bool:
-            real(command, [hand.fingers[0].node_id] if command == "enable" else nodes)
+        def node_command_unsent(command: str, nodes: Any = None) -> list[int]:
+            unsent = real(command, [hand.fingers[0].node_id] if command == "enable" else nodes)
             if command == "enable":
                 raise ForcedError("forced while enabling")
-            return True
+            return unsent
 
-        monkeypatch.setattr(b.runtime.driver, "node_command", node_command)
+        monkeypatch.setattr(b.runtime.driver, "node_command_unsent", node_command_unsent)
         result = asyncio.run(b.runtime.run())
         monkeypatch.undo()
         wire = hear(b.listener, hand)

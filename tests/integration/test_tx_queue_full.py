@@ -188,3 +188,54 @@ def test_a_disable_the_bus_never_takes_is_a_safety_stop(hand: HandConfig, hold: 
     assert "--reset-node-faults" in fault.detail
     assert "the bus refused the disable at the end" in result.disable_unconfirmed
     assert cli._outcome_exit_code(result, {}) == cli.EXIT_SAFETY_STOP
+
+
+def refuse_the_enable(r: Rig, times: int | None) -> Callable[[int], bool]:
+    """Refuse the NodeCommand frames before the first running tick (the enable), the first
+    ``times`` of them (None: every NodeCommand frame, the disable at the end too)."""
+    runtime = r.runtime
+    commands = {n.layouts.node_command.frame_id for n in runtime.driver.nodes}
+    refused = [0]
+
+    def refuse(frame_id: int) -> bool:
+        if frame_id not in commands or (times is not None and refused[0] >= times):
+            return False
+        refused[0] += 1
+        return True
+
+    return refuse
+
+
+def test_an_enable_the_bus_refuses_is_sent_again_until_it_goes(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """The queue is full as the nodes are enabled: the enable went once, and the run
+    stopped at the enable deadline blaming the nodes ('nodes not ENABLED in time: node 1
+    DISABLED ...')."""
+    with rig(hand, hold) as r:
+        nodes = len(r.runtime.driver.nodes)
+        with queue_full(r, refuse_the_enable(r, nodes)) as refused:
+            result = r.run()
+    assert len(refused) == nodes
+    assert result.outcome is Outcome.COMPLETED, result.message
+    assert [p["exit"] for p in result.phases] == ["timeout", "timeout"]
+
+
+def test_an_enable_the_bus_never_takes_is_said_as_the_bus_s(hand: HandConfig, hold: Recipe) -> None:
+    """Sent again on every tick of the enabling, refused every time: the run stops at the
+    enable deadline on the bus (BUS_ERROR, naming what the bus said), not on nodes 'not
+    ENABLED in time', and no torque went."""
+    with rig(hand, hold) as r, queue_full(r, refuse_the_enable(r, None)) as refused:
+        result = r.run()
+    deadline = r.runtime.supervisor.enable_deadline_ticks
+    assert len(refused) >= deadline * len(r.sim.nodes)  # sent again on every tick
+    assert result.outcome is Outcome.SAFETY_STOP
+    first = result.faults[0]
+    assert first.code is FaultCode.BUS_ERROR, result.message
+    assert first.detail.startswith(
+        "the bus refused the enable of node 1 (f1), node 2 (f2), node 3 (f3) "
+    )
+    assert "(tx_queue_full: Failed to transmit: No buffer space available" in first.detail
+    assert "it never left the host" in first.detail
+    assert "not ENABLED in time" not in result.message
+    assert not r.commands().any()

@@ -459,6 +459,30 @@ def test_nodes_not_enabled_within_the_deadline_are_a_startup_fault(
     assert sup.state is State.FAULTED
 
 
+def test_an_enable_that_never_left_the_host_is_the_bus_s_at_the_deadline(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    """Nodes whose enable the bus refused were never asked: at the deadline it is the bus's
+    refusal as the caller says it (``BUS_ERROR``), not nodes late to enable (found by an
+    outside audit)."""
+    sup = Supervisor(hand)
+    link = Link(hand, protocol)
+    deadline = sup.enable_deadline_ticks
+    sup.start(5)
+    sup.enable_unsent = "the bus refused the enable of node 1 (f1)"
+    for tick in range(5, 5 + deadline + 1):
+        assert sup.observe(tick, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0) == []
+    found = sup.observe(6 + deadline, link.tick(), link.hosts, np.zeros(sup.n), np.zeros(sup.n), 0)
+    assert [(f.code, f.detail) for f in found] == [
+        (
+            FaultCode.BUS_ERROR,
+            "the bus refused the enable of node 1 (f1); at the deadline "
+            + ", ".join(f"node {f.node_id} DISABLED" for f in hand.fingers),
+        )
+    ]
+    assert sup.state is State.FAULTED
+
+
 def test_one_node_short_of_enabled_keeps_the_supervisor_enabling(
     hand: HandConfig, protocol: Protocol
 ) -> None:

@@ -361,16 +361,22 @@ class HandDriver:
         return self._send_quietly(self._estop_layout.frame_id, self._estop_frames[reason][counter])
 
     def node_command(self, command: str, nodes: Iterable[int] | None = None) -> bool:
-        """Send enable / disable / fault_reset to the given node ids (all by default)."""
+        """Send enable / disable / fault_reset to the given node ids (all by default);
+        whether every frame went."""
+        return not self.node_command_unsent(command, nodes)
+
+    def node_command_unsent(self, command: str, nodes: Iterable[int] | None = None) -> list[int]:
+        """``node_command``, returning the ids of the nodes whose frame did not go, for a
+        caller that sends it again to those alone (each frame that went used its counter)."""
         wanted = None if nodes is None else set(nodes)
-        ok = True
+        unsent = []
         for node in self.nodes:
             if wanted is None or node.node_id in wanted:
                 frame_id, data = node.next_node_command(command)
                 if not self.bus.send(frame_id, data):
                     node.take_back_node_command()
-                    ok = False
-        return ok
+                    unsent.append(node.node_id)
+        return unsent
 
     def estop(self, reason: int = 2) -> bool:
         """Broadcast the e-stop frame (reason 1 operator, 2 host safety, 3 host shutdown)."""

@@ -139,6 +139,11 @@ class Supervisor:
         self._stop_ticks = max(1, math.floor(STOP_BOUND_S / self.dt))
         self._stop_k = 0
         self._enabling_since = 0
+        #: The enable frames the bus refused and the host has not got out since, as the
+        #: caller says them ("": every one went): nodes that never had the enable are not
+        #: late to enable, and the deadline says the bus's refusal (``BUS_ERROR``), not
+        #: the nodes' states as if they had ignored it (found by an outside audit).
+        self.enable_unsent = ""
         self._zero = np.zeros(self.n)  # the STOPPING state's target, never written
         #: one joint allowed back in from outside its soft limits (recovery.py); None: none
         self.recovery: Recovery | None = None
@@ -239,7 +244,12 @@ class Supervisor:
                 findings += self._arm(tick, nodes, angle)
             elif tick - self._enabling_since > self.enable_deadline_ticks:
                 states = ", ".join(f"node {n.node_id} {n.state_name}" for n in nodes)
-                findings.append((FaultCode.STARTUP, f"nodes not ENABLED in time: {states}"))
+                if self.enable_unsent:
+                    findings.append(
+                        (FaultCode.BUS_ERROR, f"{self.enable_unsent}; at the deadline {states}")
+                    )
+                else:
+                    findings.append((FaultCode.STARTUP, f"nodes not ENABLED in time: {states}"))
         if self.state in ARMED:
             findings += self.node_watch.check(now_ns, nodes, expect_enabled=True)
             findings += self.tdt.update(self.applied, tdt)
