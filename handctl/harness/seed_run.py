@@ -72,6 +72,9 @@ def run_seed(task: SeedRun) -> dict[str, Any]:
         "lifted": ex.get("lifted"),
         "dropped": ex.get("dropped"),
         "total_rotation_deg": total,
+        # the lift's tilt, and where the pair ended against how it lay on the table
+        "turn_before_manipulation_deg": ex.get("turn_before_manipulation_deg"),
+        "end_from_table_deg": ex.get("end_from_table_deg"),
         "phase_angles_deg": ex.get("phase_angles_deg"),
         "peak_turn_rate_deg_s": ex.get("peak_turn_rate_deg_s"),
         "peak_turn_rate_by_phase_deg_s": ex.get("peak_turn_rate_by_phase_deg_s"),
