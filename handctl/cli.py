@@ -55,6 +55,7 @@ from handctl.errors import (
 from handctl.lossyout import LossyOut
 
 if TYPE_CHECKING:
+    from handctl.bringup.calibrate import Calibration
     from handctl.bringup.jog import JogReport
     from handctl.config import HandConfig
     from handctl.online.loop import RunResult
@@ -2310,8 +2311,8 @@ def _calibration_limits(args: argparse.Namespace, hand: HandConfig) -> Any:
 
 def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     from handctl.bringup.calibrate import calibrate_tdt
-    from handctl.bringup.hand_edit import format_offset
     from handctl.outfile import check_writable
+    from handctl.stopsignals import StopSignals
 
     # before the DBC is read: one that -o or --json names would be replaced at the end (the
     # two against each other and the hand config are asked below, with what --write means)
@@ -2392,25 +2393,54 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             settle,
         )
     text = args.hand.read_text(encoding="utf-8")
-    calibration = calibrate_tdt(
-        hand,
-        bus=args.bus,
-        settle_s=settle,
-        measure_s=measure,
-        limits=limits,
-        lockstep=False if args.realtime else None,
-        seed=_sim_seed(args, hand),
-        sim_faults=args.sim_faults,
-        reset_node_faults=args.reset_node_faults,
-        realtime_priority=args.rt,
-        accept_missed_deadlines=args.accept_missed_deadlines,
-    )
+    # The stop signals taken over here, up to the write, not inside the run: one that came
+    # after the hand had stopped (the simulated hand's process ending, half a second) was
+    # dropped there, and --write then overwrote the hand config, exit 0, the stop unsaid
+    # (found by an outside audit). The calibration's result is the file it writes: a stop
+    # before that write writes nothing (``_write_calibration``).
+    with StopSignals() as signals:
+        calibration = calibrate_tdt(
+            hand,
+            bus=args.bus,
+            settle_s=settle,
+            measure_s=measure,
+            limits=limits,
+            lockstep=False if args.realtime else None,
+            seed=_sim_seed(args, hand),
+            sim_faults=args.sim_faults,
+            reset_node_faults=args.reset_node_faults,
+            realtime_priority=args.rt,
+            accept_missed_deadlines=args.accept_missed_deadlines,
+            signals=signals,
+        )
+        return _calibration_result(args, hand, text, calibration, written, signals, settle)
+
+
+def _calibration_result(
+    args: argparse.Namespace,
+    hand: HandConfig,
+    text: str,
+    calibration: Calibration,
+    written: Path,
+    signals: StopSignals,
+    settle: float,
+) -> int:
+    """What a calibration that ran (``settle`` s, then ``--seconds``) says and writes, and
+    its exit code."""
+    from handctl.bringup.hand_edit import format_offset
+
     stopped = _run_outcome(calibration.report)
     if stopped is not None:
+        if signals.ignored:  # the run's own stop, or its fault, is the result
+            print(
+                f"handctl: {', '.join(dict.fromkeys(signals.ignored))} came after the hand "
+                "had stopped: ignored",
+                file=sys.stderr,
+            )
         return stopped
     print(
         f"TDT offsets of {hand.name} at zero torque, {calibration.samples} samples "
-        f"({measure:g} s after {settle:g} s to settle):"
+        f"({_seconds_or(args.seconds, 1.0):g} s after {settle:g} s to settle):"
     )
     print(
         f"{'joint':<8} {'offset before':>13} {'offset after':>12} {'mean':>9} {'noise':>8} "
@@ -2421,6 +2451,8 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             f"{j.name:<8} {j.old_offset:>+13.4f} {float(format_offset(j.new_offset)):>+12.4f} "
             f"{j.mean:>+9.4f} {j.noise:>8.4f} {j.angle_span:>6.4f} rad  {j.problem or 'ok'}"
         )
+    if signals.ignored:
+        return _stopped_before_written(signals.ignored, "nothing written")
     if args.json:
         _write_output(
             "--json",
@@ -2439,7 +2471,19 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILED
-    return _write_calibration(args, hand, text, calibration.offsets, written)
+    return _write_calibration(args, hand, text, calibration.offsets, written, signals.ignored)
+
+
+def _stopped_before_written(names: list[str], what: str) -> int:
+    """Exit 130 for the stop signals ``names`` that came once the hand had stopped but before
+    the calibration was written: its result is the file, so ``what`` (nothing, or the hand
+    config) was not written."""
+    print(
+        f"handctl: {', '.join(dict.fromkeys(names))} came after the hand had stopped, before "
+        f"the calibration was written: {what} (the offsets measured are above)",
+        file=sys.stderr,
+    )
+    return EXIT_INTERRUPTED
 
 
 def _write_calibration(
@@ -2448,9 +2492,12 @@ def _write_calibration(
     text: str,
     offsets: dict[str, float],
     written: Path,
+    stops: list[str],
 ) -> int:
     """The calibrated hand config written (``-o`` or ``--write``) from ``text``, the hand
-    config as it was read before the run, with ``offsets`` (N·m by joint)."""
+    config as it was read before the run, with ``offsets`` (N·m by joint); not if a stop
+    signal came before the write (``stops``, the calibration's ``StopSignals.ignored``, looked
+    at once they are held back)."""
     from handctl.bringup.hand_edit import with_tdt_offsets
     from handctl.config import load_hand
     from handctl.stopsignals import held_back
@@ -2468,6 +2515,8 @@ def _write_calibration(
             file=sys.stderr,
         )
     with held_back() as late:
+        if stops:
+            return _stopped_before_written(stops, f"{target} not written")
         if args.write and _read_or_none(args.hand) != text:
             # written from the text read before the run, it would undo whatever was saved
             # into the file since
@@ -2500,6 +2549,7 @@ def _read_or_none(path: Path) -> str | None:
 
 def _cmd_jog(args: argparse.Namespace) -> int:
     from handctl.bringup.jog import JogLine, jog, jog_recipe
+    from handctl.stopsignals import StopSignals
 
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     seconds = _seconds_or(args.seconds, 2.0)
@@ -2553,22 +2603,27 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         if table.write("\n".join([*banner, row]) if banner else row):
             banner.clear()
 
+    # the jog's stop signals taken over here, not inside the run: one that came after the hand
+    # had stopped (the simulated hand's process ending, half a second) was dropped there, and
+    # the jog exited 0 without a word (found by an outside audit)
     try:
-        result = jog(
-            hand,
-            args.joint,
-            args.torque,
-            seconds=seconds,
-            bus=args.bus,
-            lockstep=False if args.realtime else None,
-            realtime_priority=args.rt,
-            seed=_sim_seed(args, hand),
-            sim_faults=args.sim_faults,
-            reset_node_faults=args.reset_node_faults,
-            accept_missed_deadlines=args.accept_missed_deadlines,
-            recover=args.recover,
-            show=show,
-        )
+        with StopSignals() as signals:
+            result = jog(
+                hand,
+                args.joint,
+                args.torque,
+                seconds=seconds,
+                bus=args.bus,
+                lockstep=False if args.realtime else None,
+                realtime_priority=args.rt,
+                seed=_sim_seed(args, hand),
+                sim_faults=args.sim_faults,
+                reset_node_faults=args.reset_node_faults,
+                accept_missed_deadlines=args.accept_missed_deadlines,
+                recover=args.recover,
+                show=show,
+                signals=signals,
+            )
     finally:
         table.finish()
     from handctl.online.loop import Outcome
@@ -2580,6 +2635,13 @@ def _cmd_jog(args: argparse.Namespace) -> int:
             f"handctl: note: {table.dropped} of the table's {table.dropped + table.written} "
             "lines were not shown: stdout could not take them when they came (a stopped "
             "terminal, or a reader that fell behind), and the jog does not wait for it",
+            file=sys.stderr,
+        )
+    if signals.ignored:
+        # the jog's result is what it measured, which the stop could no longer change
+        print(
+            f"handctl: {', '.join(dict.fromkeys(signals.ignored))} came after the hand had "
+            "stopped, while the jog was finished: ignored, the jog's result stands",
             file=sys.stderr,
         )
     moved = result.moved

@@ -38,6 +38,7 @@ from handctl.online.clock import Tick
 from handctl.online.loop import TickRecord
 from handctl.online.recipes.schema import Recipe
 from handctl.session import RunReport, RunRequest, run_recipe
+from handctl.stopsignals import StopSignals
 
 SETTLE = "settle"
 MEASURE = "measure"
@@ -207,8 +208,11 @@ def calibrate_tdt(
     reset_node_faults: bool = False,
     accept_missed_deadlines: bool = False,
     realtime_priority: bool = False,
+    signals: StopSignals | None = None,
 ) -> Calibration:
-    """Run the zero-torque measurement on ``bus`` and judge it; writes nothing."""
+    """Run the zero-torque measurement on ``bus`` and judge it; writes nothing. ``signals``:
+    the stop signals taken over by the caller, who must see the ones that came after the hand
+    had stopped (``StopSignals.ignored``) before it writes; None: taken over here."""
     run_hand = calibration_hand(hand, limits)
     recipe = calibration_recipe(run_hand, settle_s, measure_s)
     sampler = TdtSampler(hand.n_joints)
@@ -225,5 +229,6 @@ def calibrate_tdt(
             realtime_priority=realtime_priority,
         ),
         recorder=sampler,
+        signals=signals,
     )
     return Calibration(report, sampler.count, judge(hand, sampler, limits))

@@ -44,6 +44,7 @@ from handctl.online.safety.chatter import Ringing
 from handctl.online.safety.faults import FaultCode
 from handctl.online.safety.recovery import Recovery
 from handctl.session import RunReport, RunRequest, run_recipe
+from handctl.stopsignals import StopSignals
 
 #: The shortest ramp to and from the jog torque (s), however high the rate limit.
 MIN_RAMP_S = 0.2
@@ -363,9 +364,12 @@ def jog(
     accept_missed_deadlines: bool = False,
     recover: bool = False,
     show: Callable[[JogLine], None] | None = None,
+    signals: StopSignals | None = None,
 ) -> JogReport:
     """Jog ``joint`` with ``torque`` N·m for ``seconds`` after the ramp, on ``bus``; with
-    ``recover``, until it is back inside its soft limits (at most as long)."""
+    ``recover``, until it is back inside its soft limits (at most as long). ``signals``: the
+    stop signals taken over by the caller, who says the ones that came after the hand had
+    stopped (``StopSignals.ignored``); None: taken over, and those dropped, here."""
     recipe = jog_recipe(hand, joint, torque, seconds, recover)
     j = joint_index(hand, joint)
     recovery = Recovery(j, 1 if torque > 0 else -1) if recover else None
@@ -387,6 +391,7 @@ def jog(
             recovery=recovery,
         ),
         recorder=sink,
+        signals=signals,
     )
     sink.finish()
     return JogReport(

@@ -273,6 +273,50 @@ def test_write_replaces_the_file_whole_keeping_its_mode(tmp_path: Path) -> None:
     assert load_hand(copy).joints[0].tdt.offset != 0.0
 
 
+@pytest.mark.parametrize("moment", ["summarise_run", "with_tdt_offsets"])
+def test_a_stop_signal_once_the_hand_has_stopped_writes_nothing(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    moment: str,
+) -> None:
+    """A SIGTERM after the hand had stopped, before the command's end (its run's summary
+    being made; in real time, the simulated hand's process ending) was dropped inside the
+    run: --write overwrote the hand config, exit 0, the stop unsaid (found by an outside
+    audit). A calibration's result is the file it writes: a stop before it writes nothing,
+    or, once --json is written (the edit of the hand config being made), not the hand
+    config."""
+    import signal
+
+    from handctl import session
+    from handctl.bringup import hand_edit
+
+    owner: Any = session if moment == "summarise_run" else hand_edit
+    original = getattr(owner, moment)
+
+    def signalled(*args: Any, **kwargs: Any) -> Any:
+        signal.raise_signal(signal.SIGTERM)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(owner, moment, signalled)
+    copy = tmp_path / "hand.yaml"
+    shutil.copy(HAND_YAML, copy)
+    before = copy.read_bytes()
+    report = tmp_path / "m.json"
+    args = ["calibrate", "tdt", "--hand", str(copy), "--write", "--seconds", "0.2"]
+    assert cli.main([*args, "--json", str(report)]) == cli.EXIT_INTERRUPTED
+    captured = capsys.readouterr()
+    said = "nothing written" if moment == "summarise_run" else f"{copy} not written"
+    assert (
+        "handctl: SIGTERM came after the hand had stopped, before the calibration was "
+        f"written: {said}" in captured.err
+    ), captured.err
+    assert "offset after" in captured.out  # what was measured is shown
+    assert copy.read_bytes() == before
+    assert report.exists() is (moment != "summarise_run")
+    assert {p.name for p in tmp_path.iterdir()} <= {"hand.yaml", "m.json"}
+
+
 def test_a_write_that_fails_leaves_the_old_file_and_nothing_else(tmp_path: Path) -> None:
     target = tmp_path / "hand.yaml"
     target.write_text("old\n")

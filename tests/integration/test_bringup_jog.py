@@ -538,6 +538,32 @@ def test_the_table_ends_on_the_torque_back_at_zero_after_a_stop(
     assert any(line.applied > 0.1 for line in lines)
 
 
+def test_a_stop_signal_once_the_hand_has_stopped_is_said(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A SIGTERM after the hand had stopped, before the command's end (its run's summary
+    being made; in real time, the simulated hand's process ending) was dropped inside the
+    run: exit 0 without a word, where ``run`` says it (found by an outside audit). The jog's
+    result stands, and the signal is said."""
+    from handctl import session
+
+    original = session.summarise_run
+
+    def signalled(*args: Any, **kwargs: Any) -> Any:
+        signal.raise_signal(signal.SIGTERM)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(session, "summarise_run", signalled)
+    code = cli.main(["jog", "f1_j2", "--torque", "0.05", "--seconds", "0.2"])
+    captured = capsys.readouterr()
+    assert code == cli.EXIT_OK, captured.err
+    assert "f1_j2: " in captured.out  # the jog's result
+    assert (
+        "handctl: SIGTERM came after the hand had stopped, while the jog was finished: "
+        "ignored, the jog's result stands" in captured.err
+    ), captured.err
+
+
 def test_a_jog_refused_before_it_runs_prints_no_banner(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
