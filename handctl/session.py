@@ -908,6 +908,9 @@ def _start_recording(
 #: How long the simulated hand's process has to end on SIGINT, writing its summary, before it
 #: is killed (s). It writes within a second; longer is a process stopped (SIGSTOP) or hung.
 SIM_FINISH_S = 10.0
+#: How the simulated hand's process ends on this process's SIGINT before it listens:
+#: ``handctl sim``'s exit 130, or, while the interpreter itself starts, by the signal.
+STOPPED_UNHEARD = (130, -signal.SIGINT)
 
 
 class SimProcess:
@@ -959,11 +962,13 @@ class SimProcess:
             with suppress(ProcessLookupError):  # gone already: problem() says why
                 os.sched_setaffinity(self.proc.pid, {cpu})
         self.summary: dict[str, Any] | None = None
+        self.stopped = False  # by finish(): its SIGINT sent while the process was alive
         self.killed = False  # by finish(), after it did not end on SIGINT
 
     def finish(self) -> dict[str, Any] | None:
         """Stop the peer (SIGINT: it writes its ground truth) and read what it wrote."""
         if self.proc.poll() is None:
+            self.stopped = True
             self.proc.send_signal(signal.SIGINT)
             try:
                 self.proc.wait(timeout=SIM_FINISH_S)
@@ -982,6 +987,19 @@ class SimProcess:
     def problem(self) -> str:
         """Empty if the simulated hand ended well; else its exit and the end of its log."""
         if self.summary is not None and self.proc.returncode == 0:
+            return ""
+        if (
+            self.stopped
+            and not self.killed
+            and self.summary is None
+            and self.proc.returncode in STOPPED_UNHEARD
+        ):
+            # this process's SIGINT ended it before it listened (a run stopped during its
+            # start-up; a hand that listened writes its summary): the stop was the host's,
+            # not the hand's failure. It was said as one ("ended with exit 130 and no
+            # summary: handctl: interrupted", found by an outside audit). One that ended by
+            # itself is still said, and so is one that listened and then ended on 130 (a
+            # SIGTERM of its own, then this process's SIGINT while it waited for it)
             return ""
         tail = (
             self.log_path.read_text(errors="replace").strip().splitlines()[-5:]

@@ -7,6 +7,7 @@ import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -92,3 +93,77 @@ def test_a_hand_that_does_not_end_on_sigint_is_said_as_killed_by_the_host(
         "and was killed (SIGKILL), with no summary"
     )
     assert "exit -9" not in problem
+
+
+#: ``sitecustomize`` of the simulated hand's process: it holds the hand at the first import
+#: of MuJoCo (``handctl sim``'s signals already its own, before it listens), after saying so
+#: in the file HANDCTL_TEST_HOLD names, until a signal ends it.
+HOLD_BEFORE_LISTENING = """
+import os, sys, time
+
+held = os.environ.pop("HANDCTL_TEST_HOLD", "")
+if held:
+
+    class Hold:
+        def find_spec(self, fullname, path=None, target=None):
+            if fullname == "mujoco":
+                sys.meta_path.remove(self)
+                open(held, "w").close()
+                while True:
+                    time.sleep(1)
+            return None
+
+    sys.meta_path.insert(0, Hold())
+"""
+
+
+def test_a_run_stopped_before_its_hand_listens_does_not_blame_the_hand(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A SIGTERM to a real-time run once its simulated hand was started, before the first
+    tick: the host stops the hand with its SIGINT, the hand ends with exit 130 as it does
+    before it listens, and that was said as the hand's failure ("warning: the simulated
+    hand's process ended with exit 130 and no summary: handctl: interrupted") over the run's
+    own "stopped: signal SIGTERM during start-up" (found by an outside audit). The hand is
+    held where it does not listen yet, and the signal comes as the runtime begins."""
+    import os
+
+    from handctl import cli
+    from handctl.online.loop import Runtime
+
+    from ..conftest import DEFAULT_RECIPE
+
+    (tmp_path / "sitecustomize.py").write_text(HOLD_BEFORE_LISTENING)
+    held = tmp_path / "held"
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(str(p) for p in (ROOT, tmp_path)))
+    monkeypatch.setenv("HANDCTL_TEST_HOLD", str(held))
+    original = Runtime.run
+
+    async def signalled(self: Runtime) -> Any:
+        _wait_for(held.exists)
+        signal.raise_signal(signal.SIGTERM)
+        return await original(self)
+
+    monkeypatch.setattr(Runtime, "run", signalled)
+    args = ["run", "recipe", str(ROOT / DEFAULT_RECIPE), "--realtime", "--max-seconds", "5"]
+    code = cli.main(args)
+    err = capsys.readouterr().err
+    assert code == cli.EXIT_INTERRUPTED, err
+    assert "stopped: signal SIGTERM during start-up, no node enabled" in err, err
+    assert "simulated hand" not in err, err
+
+
+def test_a_hand_ended_by_a_signal_of_its_own_is_still_said_when_the_host_stops_it(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """A listening hand given SIGTERM directly writes its summary and waits for its host;
+    the host's SIGINT then ends it with 130. That is no stop of the host's before the hand
+    listened (which is not said): the hand stopped by itself, and is said."""
+    with SimProcess(_request(hand), str(tmp_path)) as sim:
+        _wait_for(lambda: sim.log_path.exists() and "t=" in sim.log_path.read_text())
+        sim.proc.send_signal(signal.SIGTERM)
+        _wait_for(sim.summary_path.exists)
+        summary = sim.finish()
+    assert summary is not None
+    problem = sim.problem()
+    assert problem.startswith("the simulated hand's process"), problem
