@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import glob
 import itertools
 import mmap
 import os
@@ -255,11 +256,12 @@ def _open_beside(path: Path) -> tuple[int, _Beside] | None:
     if not stat.S_ISREG(os.fstat(held).st_mode):
         os.close(held)
         return None
-    temp = target.with_name(f".{target.name}.{os.getpid()}.handctl-partial")
+    temp = target.with_name(f".{target.name}.{os.getpid()}{PARTIAL_SUFFIX}")
     try:
         lock_log(held, path)
         with contextlib.suppress(FileNotFoundError):
             temp.unlink()  # left by a process of this pid that was killed
+        _remove_stale_partials(target)
         fd = _above_stdio(os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644))
     except BaseException as exc:
         os.close(held)
@@ -272,6 +274,75 @@ def _open_beside(path: Path) -> tuple[int, _Beside] | None:
     with contextlib.suppress(OSError):
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     return fd, _Beside(target, held, temp, created)
+
+
+#: The end of the name of a recording written beside its path (``.NAME.PID.handctl-partial``)
+PARTIAL_SUFFIX = ".handctl-partial"
+
+
+def _remove_stale_partials(target: Path) -> None:
+    """The recordings beside ``target`` that runs killed in their start-up left, removed and
+    said. A run killed (SIGKILL) before it began leaves one (nothing was sent: it holds the
+    start-up only), and every later run on the path went on beside it, for good (found by an
+    outside audit). Called with ``target`` locked for this run: no other run starts on it
+    now. One a live writer may still fill is kept (``_partial_in_use``)."""
+    prefix = f".{target.name}."
+    for partial in target.parent.glob(f"{glob.escape(prefix)}*{PARTIAL_SUFFIX}"):
+        pid = partial.name[len(prefix) : -len(PARTIAL_SUFFIX)]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue  # not a run's name; this process's own was removed already
+        try:
+            fd = os.open(partial, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+        except OSError:
+            continue  # gone, a link, or not ours to open: left as it is
+        try:
+            if _partial_in_use(fd, partial, int(pid)):
+                continue
+            os.unlink(partial)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+        _say(
+            f"handctl: removed {partial}: left beside this log by a run killed before it "
+            f"began (process {pid}); nothing writes it any more"
+        )
+
+
+def _partial_in_use(fd: int, partial: Path, pid: int) -> bool:
+    """Whether the recording ``partial`` (open as ``fd``) may still be written, so is not to
+    be removed: by a writer, which holds the lock its run took on it for as long as it
+    writes, whoever has this pid now (a pid is given again); by process ``pid`` while it is
+    alive and has it open (between making it and taking that lock, or on a file system
+    without locks); by anything this cannot tell (a lock refused for another reason, a
+    process whose open files this one may not see). Else, this process has its lock."""
+    from handctl.parent_death import process_alive
+
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        opened = os.fstat(fd)
+        there = os.stat(partial, follow_symlinks=False)
+    except OSError:
+        return True  # locked by its writer (EWOULDBLOCK), or no lock to be had
+    if not stat.S_ISREG(opened.st_mode) or (there.st_dev, there.st_ino) != (
+        opened.st_dev,
+        opened.st_ino,
+    ):
+        return True  # not a recording, or another file at the name since it was opened
+    if not process_alive(pid):
+        return False
+    try:
+        fds = os.listdir(f"/proc/{pid}/fd")
+    except FileNotFoundError:
+        return False  # ended since
+    except OSError:
+        return True
+    for name in fds:
+        with contextlib.suppress(OSError):
+            held = os.stat(f"/proc/{pid}/fd/{name}")
+            if (held.st_dev, held.st_ino) == (opened.st_dev, opened.st_ino):
+                return True
+    return False
 
 
 def how_it_ended(code: int | None) -> str:

@@ -651,3 +651,115 @@ def test_a_bus_event_before_the_first_tick_leaves_a_readable_log(
     recording = open_recording(path)
     events = [m for _, _, m in iter_decoded(recording, [ch.EVENTS])]
     assert [(e["kind"], e["tick"]) for e in events if e["kind"] == "bus"] == [("bus", 0)]
+
+
+#: A run's start-up up to its log (``Recorder`` with the previous log kept, its writer
+#: started), in a process of its own, killed by the test once it says "ready"
+STARTED_AND_HELD = """
+import sys
+from pathlib import Path
+from handctl.config import load_hand
+from handctl.recording.metadata import start_metadata
+from handctl.recording.recorder import Recorder
+
+hand = load_hand(Path(sys.argv[1]))
+recorder = Recorder(Path(sys.argv[2]), hand, start_metadata(hand, None, ("killed",)),
+                    keep_previous=True)
+recorder.wait_ready()
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+#: A process holding a file open (``locked``: with the lock a run's writer takes on it)
+#: until its stdin closes
+HOLDING = """
+import fcntl, os, sys
+fd = os.open(sys.argv[1], os.O_WRONLY | os.O_CREAT, 0o644)
+if sys.argv[2] == "locked":
+    fcntl.flock(fd, fcntl.LOCK_EX)
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+def _started(code: str, *args: str) -> subprocess.Popen[str]:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, *args],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env={
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+        },
+    )
+    assert proc.stdout is not None and proc.stdout.readline() == "ready\n"
+    return proc
+
+
+def _unlocked(path: Path, timeout_s: float = 60.0) -> None:
+    """Until nobody holds the lock on ``path`` (a killed run's writer finishes the file)."""
+    import fcntl
+
+    deadline = time.monotonic() + timeout_s
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return
+            except BlockingIOError:
+                assert time.monotonic() < deadline, f"{path} still locked"
+                time.sleep(0.05)
+    finally:
+        os.close(fd)
+
+
+def test_a_killed_run_s_recording_beside_its_log_goes_with_the_next_run_on_it(
+    hand: HandConfig, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A run killed (SIGKILL) in its start-up leaves its recording beside the log, and every
+    later run on the same log went on beside it: the hidden files piled up for good (found
+    by an outside audit). The next run removes one nothing writes any more, and says so;
+    one a live process writes (its writer's lock on it, or its run's process holding it
+    open) stays, and so does another log's."""
+    log = tmp_path / "run.mcap"
+    killed = _started(STARTED_AND_HELD, str(HAND_YAML), str(log))
+    left = tmp_path / f".run.mcap.{killed.pid}.handctl-partial"
+    assert left.exists()
+    killed.kill()
+    killed.communicate()
+    _unlocked(left)  # its writer, seeing its run gone, finishes the file and ends
+    assert left.exists()
+    holders = []
+    try:
+        # a writer whose run is gone (a pid no process has), and a run's process in the
+        # moment between making its file and locking it
+        gone = subprocess.Popen([sys.executable, "-c", ""])
+        gone.wait()
+        kept = []
+        for how, pid in (("locked", gone.pid), ("open", None)):
+            holders.append(_started(HOLDING, str(tmp_path / f"{how}.tmp"), how))
+            kept.append(tmp_path / f".run.mcap.{pid or holders[-1].pid}.handctl-partial")
+            (tmp_path / f"{how}.tmp").rename(kept[-1])
+        # a live process of the name's pid that does not write it (a pid given again)
+        holders.append(_started(HOLDING, str(tmp_path / "unrelated.tmp"), "open"))
+        reused = tmp_path / f".run.mcap.{holders[-1].pid}.handctl-partial"
+        shutil.copy(left, reused)
+        other_log = tmp_path / f".other.mcap.{killed.pid}.handctl-partial"
+        shutil.copy(left, other_log)
+        capsys.readouterr()
+        recorder = Recorder(log, hand, start_metadata(hand, None, ("next",)), keep_previous=True)
+        recorder.wait_ready()
+        recorder.claim()
+        recorder.close({"outcome": "next"})
+        err = capsys.readouterr().err
+    finally:
+        for holder in holders:
+            holder.communicate("")
+    for removed in (left, reused):
+        assert not removed.exists()
+        said = f"handctl: removed {removed}: left beside this log by a run killed before it began"
+        assert said in err, err
+    assert all(p.exists() for p in kept) and other_log.exists()
+    assert open_recording(log).json_meta("handctl.summary") == {"outcome": "next"}
