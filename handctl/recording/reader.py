@@ -621,6 +621,13 @@ def _chunk_data(body: bytes) -> bytes:
     if compression == "zstd":
         if zstandard is None:  # pragma: no cover
             raise ValueError("zstd chunks need the zstandard package")
+        framed = zstandard.frame_content_size(packed)
+        if framed not in (-1, size):
+            # max_output_size holds only a frame that does not say its size: one that says
+            # it is taken at its word, and 8 KB declaring 256 MiB allocated 256 MiB
+            raise ValueError(
+                f"a zstd chunk whose frame declares {framed} bytes, and the chunk {size}"
+            )
         data: bytes = zstandard.ZstdDecompressor().decompress(packed, max_output_size=size)
     elif compression == "lz4":
         data = _lz4(packed, size)

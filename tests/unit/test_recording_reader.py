@@ -85,3 +85,24 @@ def test_an_lz4_log_another_mcap_writer_made_reads(tmp_path: Path) -> None:
     recording = open_recording(path)
     assert recording.complete and recording.chunks == 1
     assert [data for _, _, data in iter_messages(recording)] == [b'{"i": %d}' % i for i in range(3)]
+
+
+def test_a_zstd_chunk_whose_frame_says_more_than_the_chunk_is_not_decompressed(
+    tmp_path: Path,
+) -> None:
+    """zstandard's ``max_output_size`` bounds only a frame that does not say its size: one
+    that does is taken at its word, and a chunk declaring 1000 bytes whose frame said 32 MiB
+    allocated 32 MiB before its length was compared."""
+    import zstandard
+
+    bomb = tmp_path / "bomb.mcap"
+    _one_chunk_file(bomb, "zstd", zstandard.ZstdCompressor().compress(bytes(32 << 20)), 1000)
+    tracemalloc.start()
+    try:
+        recording = open_recording(bomb)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert recording.bad_chunks and recording.chunks == 0
+    assert f"frame declares {32 << 20} bytes, and the chunk 1000" in recording.bad_chunks[0].reason
+    assert peak < 8 << 20, f"{peak} bytes allocated reading it"
