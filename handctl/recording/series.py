@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from handctl.arrays import FloatArray
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, Description
 from handctl.recording import channels as ch
 from handctl.recording.messages import MessageCheck
 from handctl.recording.metadata import recorded_hand
@@ -333,16 +333,19 @@ def _check_applied(
 ) -> None:
     """Refuse an applied torque over the recorded hand's ``tau_max``: the supervisor never
     applies more, so such a log was not written by a run (the summary reported a largest
-    applied torque of 1e40 N·m as a fact)."""
+    applied torque of 1e40 N·m as a fact). Nor a NaN (the writer's null): no NaN is over a
+    limit, and one passed the summary while 1e9 was refused (an outside audit)."""
     for j, (value, limit) in enumerate(zip(applied, limits, strict=True)):
-        if abs(value) > limit:
+        if not abs(value) <= limit:
             raise ConfigError(
                 str(recording.path),
                 f"{ch.TORQUE} message at log time {log_time} ns (tick {msg['tick']}): "
                 f"applied_nm[{j}] ({joints[j]})",
-                f"at most the recorded hand's tau_max, {limit / (1 + 1e-9):g} N·m, as the "
-                "supervisor applies",
-                value,
+                f"a number, at most the recorded hand's tau_max, {limit / (1 + 1e-9):g} N·m, "
+                "as the supervisor applies",
+                Description("null (NaN), which the supervisor never applies")
+                if math.isnan(value)
+                else value,
             )
 
 

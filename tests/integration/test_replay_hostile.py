@@ -102,6 +102,8 @@ def field(key: str, value: object) -> Callable[[bytes], bytes]:
         (ch.CAN_RX, field("data", "0"), "data", "a frame's payload as hex"),
         # more than the supervisor ever applies: the summary reported 1e40 N·m as a fact
         (ch.TORQUE, field("applied_nm", [1e40] * 9), "applied_nm[0] (f1_j1)", "tau_max"),
+        # nor a NaN (the writer's null), which no comparison finds over the limit: it passed
+        (ch.TORQUE, field("applied_nm", [0.0, None, *[0.0] * 7]), "applied_nm[1] (f1_j2)", "NaN"),
     ],
 )
 def test_a_message_not_of_its_channel_is_named(
@@ -791,7 +793,8 @@ def test_a_torque_column_without_a_number_is_summarised_and_its_json_is_json(
     """Every ``/control/torque`` value of one column nulled: the applied one ended the
     summary in a numpy traceback, exit 1; the desired one wrote ``NaN`` into ``--json``,
     which is not JSON. The column has no largest value: it is left out, and what JSON
-    cannot say is ``null``."""
+    cannot say is ``null``. An applied torque that is no number is one the supervisor never
+    applies: refused as one over tau_max is, by name."""
 
     def change(topic: str, index: int, raw: bytes) -> bytes:
         if topic != ch.TORQUE:
@@ -803,8 +806,13 @@ def test_a_torque_column_without_a_number_is_summarised_and_its_json_is_json(
     rewrite(recorded.path, bad, change)
     out = tmp_path / "summary.json"
     done = handctl("replay", str(bad), "--json", str(out))
-    assert done.returncode == 0, done.stdout + done.stderr
     assert "Traceback" not in done.stderr and "RuntimeWarning" not in done.stderr
+    if key == "applied_nm":
+        assert done.returncode == 2, done.stdout + done.stderr
+        assert "): applied_nm[0] (f1_j1): expected a number, at most" in done.stderr
+        assert "found null (NaN)" in done.stderr and not out.exists()
+        return
+    assert done.returncode == 0, done.stdout + done.stderr
 
     def refuse(constant: str) -> object:
         raise AssertionError(f"{constant} in the JSON output")
