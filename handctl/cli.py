@@ -2836,19 +2836,24 @@ def _monitor_log(
     else:
         emit(final)
     if not recording.complete:
-        # as replay says it: a view of part of a run read as the whole of one
-        state = "DAMAGED" if recording.damaged else "TRUNCATED"
+        # as replay says it: a view of part of a run read as the whole of one. A log its run
+        # still writes is neither cut short nor damaged (it was called TRUNCATED)
+        state = (
+            "BEING WRITTEN by a run"
+            if recording.being_written
+            else f"{'DAMAGED' if recording.damaged else 'TRUNCATED'} ({recording.problem})"
+        )
         if not view.frames:
             # "frames: 0" and exit 0 read as a run with nothing on its bus
             print(
-                f"handctl: error: {log} is {state} ({recording.problem}): no frame of it "
-                "could be read",
+                f"handctl: error: {log} is {state}: no frame of it could be read"
+                + (" yet" if recording.being_written else ""),
                 file=sys.stderr,
             )
             return EXIT_FAILED
         print(
-            f"handctl: warning: {log} is {state} ({recording.problem}): the frames shown are "
-            "those that could be read",
+            f"handctl: warning: {log} is {state}: the frames shown are "
+            + ("what it holds so far" if recording.being_written else "those that could be read"),
             file=sys.stderr,
         )
     return EXIT_OK

@@ -999,6 +999,30 @@ def test_a_log_a_run_still_writes_is_said_so_and_not_re_run(
     assert "TRUNCATED" in done.stdout
 
 
+def test_monitor_says_a_log_a_run_still_writes_as_replay_says_it(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """``monitor --log`` called a log its run was still writing TRUNCATED, where ``replay``
+    of the same file said BEING WRITTEN (an outside audit, a run stopped mid-run)."""
+    import fcntl
+
+    cut = tmp_path / "live.mcap"
+    data = recorded.path.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    with cut.open("ab") as writer:
+        fcntl.flock(writer.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        done = handctl("monitor", "--log", str(cut))
+        assert done.returncode == 0, done.stderr
+        assert json.loads(done.stdout.splitlines()[-1])["frames"] > 0
+        assert (
+            f"handctl: warning: {cut} is BEING WRITTEN by a run: the frames shown are what it "
+            "holds so far" in done.stderr
+        )
+        assert "TRUNCATED" not in done.stderr
+    done = handctl("monitor", "--log", str(cut))  # the lock gone, and the file cut
+    assert f"handctl: warning: {cut} is TRUNCATED (" in done.stderr
+
+
 def test_an_export_of_a_log_that_does_not_say_when_it_started_says_so(
     recorded: Recorded, tmp_path: Path
 ) -> None:
