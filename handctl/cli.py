@@ -2748,7 +2748,7 @@ def _cmd_monitor(args: argparse.Namespace) -> int:
         print(_json_text(snapshot, indent=None), flush=True)
 
     if args.log is not None:
-        return _monitor_log(args, every, on_tty, emit)
+        return _monitor_log(args, seconds, every, on_tty, emit)
     hand_path = DEFAULT_HAND if args.hand is None else args.hand
     hand = _load_checked_hand(hand_path, "--hand", args.dbc)
     view = BusView(protocol_for(hand))
@@ -2797,14 +2797,17 @@ def _reader_stays() -> bool:
 
 def _monitor_log(
     args: argparse.Namespace,
+    seconds: float | None,
     every: float,
     on_tty: bool,
     emit: Callable[[dict[str, object]], None],
 ) -> int:
     """``handctl monitor --log``: a recording's raw frames through the same view, snapshots
-    every ``every`` s of log time when piped, the whole at the end. The frames are decoded
-    with the protocol the recording keeps (``log_protocol``): --hand and --dbc only matter
-    for a recording that keeps none, and one that is not the recorded hand is refused."""
+    every ``every`` s of log time when piped, the whole at the end; with ``seconds``, the
+    frames of that much log time from the first, as ``every`` is of log time (--seconds was
+    ignored, and a log of 10 s shown whole after --seconds 1). The frames are decoded with the
+    protocol the recording keeps (``log_protocol``): --hand and --dbc only matter for a
+    recording that keeps none, and one that is not the recorded hand is refused."""
     from handctl.bringup.monitor import BusView, from_log, log_protocol, table
     from handctl.recording.reader import check_format, open_recording
 
@@ -2819,7 +2822,12 @@ def _monitor_log(
     view = BusView(protocol)
     step = round(every * 1e9)
     next_ns: int | None = None
+    first_ns: int | None = None
+    span_ns = None if seconds is None else round(seconds * 1e9)
     for frame_id, data, t_ns in from_log(recording, view):
+        first_ns = t_ns if first_ns is None else first_ns
+        if span_ns is not None and t_ns - first_ns > span_ns:
+            break
         view.observe(frame_id, data, t_ns)
         next_ns = t_ns + step if next_ns is None else next_ns
         if not on_tty and t_ns >= next_ns:
@@ -3848,7 +3856,8 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "(one snapshot every --every seconds, and a last one) when piped. Sends "
         "nothing. On --bus sim (the default) a simulated hand is started in this "
         "process to listen to.",
-        notes="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end.",
+        notes="Ends after --seconds, or with Ctrl-C (exit 0); a log is read to its end, "
+        "or through its first --seconds of log time.",
     )
     mon.add_argument(
         "--bus",
@@ -3870,7 +3879,11 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "protocol the recording keeps",
     )
     mon.add_argument(
-        "--seconds", type=_real, metavar="S", help="stop after this long [s] (default: at Ctrl-C)"
+        "--seconds",
+        type=_real,
+        metavar="S",
+        help="stop after this long [s] (default: at Ctrl-C; of log time with --log, from its "
+        "first frame, default: the whole log)",
     )
     mon.add_argument(
         "--every",

@@ -186,6 +186,32 @@ def test_it_reads_the_frames_of_a_recording(
     assert f"handctl: error: {log} is TRUNCATED (" in err and "no frame of it could be read" in err
 
 
+def test_seconds_with_a_log_is_of_log_time_as_every_is(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--seconds 1`` on a log of 10 s printed every snapshot to its end, exit 0: it was
+    ignored with --log, where --every is of log time (an outside audit)."""
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(
+        "recipe: hold\nphases:\n  - {name: hold, torques: [0.02, 0, 0, 0, 0, 0, "
+        "0, 0, 0], ramp_s: 0.1, max_s: 0.2, on_timeout: next}\n"
+    )
+    log = tmp_path / "run.mcap"
+    assert cli.main(["run", "recipe", str(recipe), "--log", str(log)]) == cli.EXIT_OK
+    capsys.readouterr()
+    assert cli.main(["monitor", "--log", str(log), "--every", "0.05"]) == cli.EXIT_OK
+    whole = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert whole[-1]["t_s"] > 0.3
+    code = cli.main(["monitor", "--log", str(log), "--every", "0.05", "--seconds", "0.1"])
+    assert code == cli.EXIT_OK
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert 2 <= len(lines) < len(whole)
+    assert all(line["t_s"] <= 0.1 for line in lines)
+    assert lines[-1]["frames"] < whole[-1]["frames"]
+    # the first 0.1 s of the log, frame for frame as the whole log's view had it then
+    assert lines[0] == whole[0]
+
+
 def test_a_recording_of_another_hand_is_decoded_with_its_own_protocol(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
