@@ -123,6 +123,16 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
         t = (log_time - t0) * 1e-9
         if topic == ch.TIMING:
             tick, scheduled_ns = int(msg["tick"]), int(msg["scheduled_ns"])
+            if scheduled_ns < 0:
+                # no clock of a run's reads below zero (CLOCK_MONOTONIC, or simulated time
+                # from 0): a time of -1e18 was refused below as a bad tick, 'tick 800'
+                raise ConfigError(
+                    str(recording.path),
+                    f"{topic} message at log time {log_time} ns (tick {tick}): scheduled_ns",
+                    "a time on the loop's clock, at least 0 (CLOCK_MONOTONIC, or simulated "
+                    "time from 0)",
+                    scheduled_ns,
+                )
             if tick * period_ns > scheduled_ns:
                 # tick 0 scheduled before the clock's zero: no run's (its ticks come a period
                 # apart or more after it). A tick of 2^62 put tick 0 some 10^20 ns before

@@ -947,6 +947,22 @@ def test_ticks_moved_past_their_scheduled_times_are_refused(
     assert "Traceback" not in done.stderr
     assert f"{ch.TIMING} message at log time" in done.stderr
     assert f"found 'tick {1 << 62}'" in done.stderr
+
+
+def test_a_tick_scheduled_before_the_clock_s_zero_is_refused_by_its_time(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """A tick row whose scheduled_ns was made -1e18 was refused as a bad tick ("expected at
+    most its scheduled_ns over the run's period ..., found 'tick 300'"): the field at fault
+    is its time, below any run's clock."""
+    bad = tmp_path / "negative.mcap"
+    rewrite(recorded.path, bad, one_message(ch.TIMING, 300, field("scheduled_ns", -(10**18))))
+    with pytest.raises(ConfigError) as caught:
+        load_series(open_recording(bad))
+    text = str(caught.value)
+    assert f"{ch.TIMING} message at log time " in text
+    assert "(tick 300): scheduled_ns: expected a time on the loop's clock, at least 0" in text
+    assert f"found {-(10**18)}" in text
     assert not (tmp_path / "p.png").exists()
 
 
