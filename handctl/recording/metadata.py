@@ -241,10 +241,18 @@ def _parsed_hand(text: str, protocol: Protocol | None, path: str) -> HandConfig:
 def _check_digest(recording: Recording, key: str, digest_key: str, text: str) -> None:
     """Refuse a recorded text that is not the one the run recorded the digest of: a hand or
     DBC edited in the log would re-run, replay onto a bus and decode with limits and ids the
-    run never had. (A log from before the digest was recorded has none to check.)"""
+    run never had. A text without its digest is refused too: every handctl log records the
+    digest beside the text (the hand's since format version 1 began, the DBC's since the
+    DBC was recorded), and a log whose digest was deleted was taken for one from before the
+    digest, its hand's tau_max edited and accepted (an outside audit)."""
     recorded = recording.meta(ch.META_HAND, digest_key)
     if not recorded:
-        return
+        raise ConfigError(
+            str(recording.path),
+            f"metadata {ch.META_HAND}.{digest_key}",
+            f"the sha256 of {key} the run recorded beside it (every handctl log has it)",
+            Description("none: the record was edited after the run"),
+        )
     actual = hashlib.sha256(text.encode()).hexdigest()
     if actual != recorded:
         raise ConfigError(

@@ -288,6 +288,32 @@ def test_a_hand_or_protocol_edited_in_the_log_is_refused(
     assert f"{bad}: metadata {ch.META_HAND}.{key}: expected the text whose sha256" in done.stderr
 
 
+@pytest.mark.parametrize(("key", "digest"), [("yaml", "sha256"), ("dbc", "dbc_sha256")])
+def test_a_hand_or_protocol_edited_with_its_digest_taken_out_is_refused(
+    recorded: Recorded, tmp_path: Path, key: str, digest: str
+) -> None:
+    """The digest deleted and tau_max raised: the log was read as one from before the digest
+    was recorded, and the edited hand accepted by the summary and the re-run alike. No
+    handctl log has the text without its digest."""
+    bad = tmp_path / "undigested.mcap"
+
+    def metadata(name: str, values: dict[str, str]) -> dict[str, str]:
+        if name != ch.META_HAND:
+            return values
+        edited = values[key].replace("tau_max: 0.60", "tau_max: 0.70", 1) + "\n"
+        return {k: v for k, v in values.items() if k != digest} | {key: edited}
+
+    rewrite(recorded.path, bad, metadata=metadata)
+    for extra in ((), ("--rerun",)):
+        done = handctl("replay", str(bad), *extra)
+        assert done.returncode == 2, done.stdout + done.stderr
+        assert (
+            f"{bad}: metadata {ch.META_HAND}.{digest}: expected the sha256 of {key} the run "
+            "recorded beside it (every handctl log has it), found none: the record was edited "
+            "after the run"
+        ) in done.stderr
+
+
 # -- tick rows out of sequence ----------------------------------------------------------------
 @pytest.mark.parametrize("tick", [299, 400])  # a negative tick: the message check above
 def test_a_tick_row_out_of_sequence_in_a_whole_log_is_refused(
