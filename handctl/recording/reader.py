@@ -220,14 +220,25 @@ def _empty_file(path: Path) -> str:
     run's writer fills a hidden file next to the path (``.NAME.PID.handctl-partial``) and
     puts it at the path as the run begins, so a run killed (SIGKILL) before then leaves the
     path's empty placeholder and the recording beside it, which nothing named (an outside
-    audit)."""
-    beside = sorted(path.parent.glob(f".{glob.escape(path.name)}.*.handctl-partial"))
+    audit). Of several (runs killed one after another), the newest by its time of change:
+    the last by name sorted PIDs as text, and named an older run's of PID 999 over 10000's."""
+    beside = list(path.parent.glob(f".{glob.escape(path.name)}.*.handctl-partial"))
     if not beside:
         return "an empty file"
+    newest = max(beside, key=lambda p: (_mtime_ns(p), p.name))
+    which = f"the newest of {len(beside)}: " if len(beside) > 1 else ""
     return (
-        f"an empty file, beside the recording of a run killed before it began: {beside[-1]}"
-        " (replay that one)"
+        f"an empty file, beside the recording of a run killed before it began: {newest} "
+        f"({which}replay that one)"
     )
+
+
+def _mtime_ns(path: Path) -> int:
+    """``path``'s time of last change, or -1 for one gone since it was listed."""
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return -1
 
 
 def open_recording(path: str | Path) -> Recording:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import struct
 import tracemalloc
 from pathlib import Path
@@ -106,3 +107,20 @@ def test_a_zstd_chunk_whose_frame_says_more_than_the_chunk_is_not_decompressed(
     assert recording.bad_chunks and recording.chunks == 0
     assert f"frame declares {32 << 20} bytes, and the chunk 1000" in recording.bad_chunks[0].reason
     assert peak < 8 << 20, f"{peak} bytes allocated reading it"
+
+
+def test_an_empty_log_beside_several_killed_runs_names_the_newest(tmp_path: Path) -> None:
+    """Two runs killed in their start-up, PIDs 999 and then 10000: the last by name (PIDs
+    sorted as text) named 999's, the older."""
+    log = tmp_path / "x.mcap"
+    log.touch()
+    older = tmp_path / ".x.mcap.999.handctl-partial"
+    newer = tmp_path / ".x.mcap.10000.handctl-partial"
+    for at, partial in enumerate((older, newer)):
+        partial.write_bytes(MAGIC)
+        os.utime(partial, ns=(10**18 + at * 10**9, 10**18 + at * 10**9))
+    with pytest.raises(ConfigError) as info:
+        open_recording(log)
+    assert f"a run killed before it began: {newer} (the newest of 2: replay that one)" in str(
+        info.value
+    )
