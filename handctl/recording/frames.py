@@ -12,9 +12,12 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
+
 from handctl.config import FingerConfig, HandConfig
 from handctl.errors import ConfigError, Description, HandctlError, escaped
 from handctl.hand_protocol import node_message, protocol_for
+from handctl.online.safety.limits import JointLimits, angle_violations, outside_text
 from handctl.protocol import COMMAND_WATCHDOG_S, NODE_COMMANDS, Layout
 from handctl.protocol import Protocol as WireProtocol
 from handctl.recording import channels as ch
@@ -208,7 +211,9 @@ def _nobody_else(
     Nor is a node in FAULT from before: a replay clears no fault (a run's
     ``--reset-node-faults`` does), and onto a hand a killed run had left faulted it sent its
     frames, then said a node "went into FAULT while the replay had it enabled" and left
-    enabled by it, both untrue (found by an outside audit)."""
+    enabled by it, both untrue (found by an outside audit). Nor a joint resting outside its
+    soft limits, which stops any run before any torque: a replay onto a hand whose fingers
+    had sagged past a limit enabled every node and sent its torques (an outside audit)."""
     from handctl.online.otherhost import refuse_another_host
 
     faulted: list[str] = []
@@ -220,6 +225,13 @@ def _nobody_else(
             f"{spec}: {', '.join(dict.fromkeys(faulted))} in FAULT before the replay sent "
             "anything: a replay clears no fault (a run's --reset-node-faults does, once what "
             "faulted it is understood); nothing was sent"
+        )
+    outside = heard.outside_before()
+    if outside:
+        # as a run refuses to arm (safety.md #19): the hand at rest outside, nothing sent
+        raise HandctlError(
+            f"{spec}: a joint of the hand on the bus rests outside its soft limits: {outside}; "
+            "no replay drives a hand from there, as no run does (nothing was sent)"
         )
 
 
@@ -314,10 +326,16 @@ def _checked_commands(
 
 
 class _FaultsHeard:
-    """A node of the hand on the bus heard in FAULT while the replay had it enabled: the hand
-    stopped following the log (the nodes' command watchdog timed out on a replay that fell
-    behind, on a loaded host), and the replay went on sending to a faulted hand and exited 0,
-    as if it had been replayed. Read from the nodes' Feedback, which carries their state."""
+    """What the nodes of the hand on the bus say of themselves in their Feedback (its state,
+    its joints' angles), as far as it stops a replay.
+
+    A node heard in FAULT while the replay had it enabled: the hand stopped following the log
+    (the nodes' command watchdog timed out on a replay that fell behind, on a loaded host),
+    and the replay went on sending to a faulted hand and exited 0, as if it had been
+    replayed. A joint outside its soft limits (the hand's on the bus), before the first frame
+    or while the replay had its node enabled: the replay watched no angle, and onto a hand
+    whose fingers hung past a limit it enabled every node and sent its torques, exit 0, where
+    a run stops before any torque (found by an outside audit)."""
 
     def __init__(self, hand: HandConfig, left: _LeftEnabled) -> None:
         # once, not once a period as the replay listens
@@ -328,34 +346,53 @@ class _FaultsHeard:
         self.left = left
         layouts = [(finger, left.layouts[finger.node_id].feedback) for finger in hand.fingers]
         self.feedback = {layout.frame_id: (finger, layout) for finger, layout in layouts}
-        #: what the first node heard in FAULT said ("": none)
+        #: the bus hand's soft limits, and each node's first joint among them
+        self.limits = JointLimits.from_hand(hand, left.protocol)
+        starts = itertools.accumulate((len(f.joints) for f in hand.fingers), initial=0)
+        self._first_joint = dict(zip((f.node_id for f in hand.fingers), starts, strict=False))
+        #: rad, each joint's angle as its node's last good Feedback said (NaN: none heard yet)
+        self.angles = np.full(len(self.limits.names), math.nan)
+        #: what the first node heard in FAULT, or the first joint outside, said ("": none)
         self.first = ""
 
     def faulted(self, frames: Sequence[Any]) -> list[str]:
         """The nodes of the hand ``frames`` (``Frame``s) say are in FAULT, enabled by the
-        replay or not, each as "node N (name, its fault bits)"."""
+        replay or not, each as "node N (name, its fault bits)"; the angles they say kept."""
         out = []
         for frame in frames:
             found = self.feedback.get(frame.arbitration_id)
             if found is None or len(frame.data) != found[1].length:
                 continue
-            bits = self._fault_bits(found[1], frame.data)
+            bits = self._read(found[0], found[1], frame.data)
             if bits is not None:
                 out.append(f"node {found[0].node_id} ({found[0].name}, {'+'.join(bits)})")
         return out
 
-    def _fault_bits(self, layout: Layout, data: bytes) -> list[str] | None:
-        """The fault bits' names a Feedback ``data`` of ``layout`` (its length checked) says,
-        if it says FAULT ("no fault bits" for none); None if it does not, or fails its CRC."""
+    def outside_before(self) -> str:
+        """The joints outside their soft limits by the Feedback heard so far, as a run says
+        them before any torque (with the command that brings each back); "" if none."""
+        outside = angle_violations(self.angles, self.limits)
+        if not outside:
+            return ""
+        return outside_text(outside[0], self.angles, self.limits, True)
+
+    def _read(self, finger: FingerConfig, layout: Layout, data: bytes) -> list[str] | None:
+        """The angles a Feedback ``data`` of ``layout`` (its length checked) says kept, and
+        the names of the fault bits it says if it says FAULT ("no fault bits" for none); None
+        if it does not, or fails its CRC (then nothing of it is kept)."""
         if not layout.crc_ok(data):
             return None
         feedback = self._parse(layout.decode(data)[1])
+        first = self._first_joint[finger.node_id]
+        joints = len(finger.joints)
+        self.angles[first : first + joints] = feedback.angles[:joints]
         if feedback.state != self._fault:
             return None
         return self._fault_names(feedback.fault_bits) or ["no fault bits"]
 
     def hear(self, frames: Sequence[Any]) -> bool:
-        """Whether a node the replay had enabled said FAULT in ``frames`` (``Frame``s)."""
+        """Whether a node the replay had enabled said FAULT in ``frames`` (``Frame``s), or a
+        joint of one outside its soft limits."""
         for frame in frames:
             found = self.feedback.get(frame.arbitration_id)
             if found is None:
@@ -373,7 +410,9 @@ class _FaultsHeard:
                     "hand of another config is on the bus, and the replay stopped there"
                 )
                 return True
-            bits = self._fault_bits(layout, frame.data)
+            if not layout.crc_ok(frame.data):
+                continue
+            bits = self._read(finger, layout, frame.data)
             if bits is not None:
                 self.first = (
                     f"node {finger.node_id} ({finger.name}) went into FAULT ({', '.join(bits)}) "
@@ -381,6 +420,17 @@ class _FaultsHeard:
                     "the replay stopped there"
                 )
                 return True
+            first = self._first_joint[finger.node_id]
+            lows, highs = self.limits.angle_min_list, self.limits.angle_max_list
+            for j in range(first, first + len(finger.joints)):
+                if self.angles[j] < lows[j] or self.angles[j] > highs[j]:
+                    self.first = (
+                        f"{outside_text(j, self.angles, self.limits, False)}: a joint of "
+                        f"node {finger.node_id} ({finger.name}) left its soft limits while the "
+                        "replay had the node enabled, as a run stops on ANGLE_LIMIT, and the "
+                        "replay stopped there"
+                    )
+                    return True
         return False
 
 
@@ -399,6 +449,8 @@ class _LeftEnabled:
         self._command = make_command
         self._node_command = make_node_command
         self._zero_ticks = ZERO_TICKS_BEFORE_DISABLE
+        #: the protocol the nodes speak (the recorded DBC's, or the one of ``--hand``)
+        self.protocol = protocol
         self.layouts = {
             f.node_id: FingerLayouts.for_node(protocol, f.node_id) for f in hand.fingers
         }

@@ -18,10 +18,11 @@ from typing import Any
 
 import can
 import pytest
+import yaml
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from handctl.config import HandConfig
+from handctl.config import HandConfig, load_hand
 from handctl.hand_protocol import protocol_for
 from handctl.online.bus import BusEvent, BusEventKind, Frame, FrameBus, open_bus
 from handctl.online.clock import Tick
@@ -38,8 +39,9 @@ from handctl.recording.rerun import rerun
 from handctl.recording.series import load_series
 from handctl.stopsignals import ctrl_c_at_once, interruption, noted_stops, working
 
-from ..conftest import ROOT, handctl
+from ..conftest import HAND_YAML, ROOT, handctl
 from .another_host import commanding
+from .bringup_peer import HOST_IDS, running_hand
 from .mcap_copy import rewrite as copy_recording
 from .realtime import REALTIME
 from .rig import SHORT, TWO_PHASES, short_recipe, sim_on_unix_bus, write_recipe
@@ -856,6 +858,85 @@ def test_the_replay_s_stop_imports_nothing(
     assert [f.arbitration_id for f in heard][-1] == protocol_for(hand).layout(
         "NodeCommand", hand.fingers[0].node_id
     ).frame_id  # zeros, then the disable
+
+
+def test_to_bus_onto_a_hand_resting_outside_its_soft_limits_sends_nothing(
+    recorded: Recorded, hand: HandConfig, channel: str
+) -> None:
+    """A joint resting outside its soft limits stops any run before any torque (safety.md
+    #19); a replay onto such a hand (a simulated hand whose fingers had sagged past a limit)
+    enabled every node and sent its torques, exit 0 (an outside audit). It refuses as a run
+    does, naming the joint, its angle and limits and how to bring it back: nothing sent."""
+    from handctl.errors import ConfigError, HandctlError
+
+    from .test_bringup_jog import resting_outside
+
+    spec = f"virtual:{channel}"
+    recording = open_recording(recorded.path)
+    with (
+        running_hand(hand, spec, params=resting_outside(hand)),
+        open_bus(spec, hand.bus) as listener,
+    ):
+        with pytest.raises(HandctlError) as refused:
+            to_bus(recording, spec, direction="tx")
+        heard = listener.drain(limit=10**6)
+    assert not isinstance(refused.value, ConfigError)  # exit 1, as a node in FAULT before
+    said = str(refused.value)
+    assert said.startswith(f"{spec}: a joint of the hand on the bus rests outside its soft")
+    assert "f1_j3 at -0.9" in said and "limits [-0.900, +2.300]" in said
+    assert "bring it back with `handctl jog f1_j3 --torque +X --recover`" in said
+    assert said.endswith("(nothing was sent)")
+    assert heard and not [f for f in heard if f.arbitration_id in HOST_IDS]
+
+
+def test_to_bus_stops_when_a_joint_it_drives_leaves_its_soft_limits(
+    hand: HandConfig, channel: str, tmp_path: Path
+) -> None:
+    """The replay watched no angle while it sent: a joint driven past its soft limit went on
+    under the log's torques. The simulated hand steps in lockstep with the replay's clock;
+    on the hand on the bus (``--hand``, its f1_j1 allowed 10 mrad above where it is when the
+    replay begins, which it passes midway) the replay stops there as a run stops on
+    ANGLE_LIMIT: the joint, its angle and limits said, zero torque and a disable to the nodes
+    it had enabled, and the command's exit 1 (``node_fault``)."""
+    from handctl.sim.hand import SimulatedHand
+
+    clean = record_run(hand, short_recipe(hand, tmp_path), tmp_path / "run.mcap", troubles=False)
+    recording = open_recording(clean.path)
+    logged = list(logged_frames(recording, "tx"))
+    spec = f"virtual:{channel}"
+    with open_bus(spec, hand.bus) as its_bus, open_bus(spec, hand.bus) as listener:
+        sim = SimulatedHand(hand, its_bus)
+        for _ in range(500):  # under way: it sags from its initial angles as it starts
+            sim.step()
+        limit = round(float(sim.plant.joint_angles[0]) + 0.01, 4)  # rad
+        doc = yaml.safe_load(HAND_YAML.read_text())
+        doc["fingers"][0]["joints"][0]["angle_max"] = limit
+        path = tmp_path / "narrow.yaml"
+        path.write_text(yaml.safe_dump(doc))
+        now = [sim.ticks * 1e-3]  # s, the hand's time
+
+        def sleep(seconds: float) -> None:  # the hand's time goes as the replay's
+            now[0] += seconds
+            while sim.ticks * 1e-3 < now[0]:
+                sim.step()
+
+        listener.drain(limit=10**7)
+        sent = to_bus(
+            recording, spec, direction="tx", hand=load_hand(path), sleep=sleep, clock=lambda: now[0]
+        )
+        heard = [
+            (f.arbitration_id, f.data)
+            for f in listener.drain(limit=10**7)
+            if f.arbitration_id in HOST_IDS
+        ]
+    assert sent["node_fault"].startswith("f1_j1 at -0.36"), sent
+    assert (
+        f", {limit:+.3f}]: a joint of node 1 (f1) left its soft limits while"
+        in (sent["node_fault"])
+    )
+    assert sent["sent"] < len(logged)  # stopped there, not sent to its end
+    assert "zero torque and a disable sent after them" in sent["stopped"]
+    _ends_with_the_stop(hand, heard)
 
 
 @REALTIME

@@ -176,3 +176,29 @@ def angle_violations(angle: FloatArray, limits: JointLimits) -> list[int]:
         )
         if q < lo or q > hi
     ]
+
+
+def outside_text(j: int, angle: FloatArray, limits: JointLimits, before_torque: bool) -> str:
+    """Joint ``j`` outside its soft limits, as a refusal says it: its angle and limits, and,
+    ``before_torque`` (none has flowed yet), the command that brings it back. Shared by the
+    run's ANGLE_LIMIT and a replay onto a bus, so that a hand resting outside is told the
+    same way whichever of them found it. (An angle of NaN is no joint outside: one not heard.)
+
+    Outside before any torque flowed, no run can arm until it is back, and this message is
+    the only place the user learns how; every joint outside is named (a hand left at zero
+    torque sags several at once, and one named seemed the only one)."""
+    detail = (
+        f"{limits.names[j]} at {angle[j]:+.3f} rad, limits "
+        f"[{limits.angle_min[j]:+.3f}, {limits.angle_max[j]:+.3f}]"
+    )
+    if before_torque:
+        sign = "-" if angle[j] > limits.angle_max[j] else "+"
+        others = [limits.names[k] for k in angle_violations(angle, limits) if k != j]
+        detail += (
+            (f" ({', '.join(others)} outside too)" if others else "")
+            + f", before any torque: bring it back with `handctl jog {limits.names[j]} "
+            f"--torque {sign}X --recover`"
+            + (", then each of the others" if others else "")
+            + " (docs/bringup.md)"
+        )
+    return detail

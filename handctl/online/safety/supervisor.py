@@ -41,6 +41,7 @@ from handctl.online.safety.limits import (
     angle_violations,
     check_desired,
     limit_torque,
+    outside_text,
     toward_zero_on_grid,
 )
 from handctl.online.safety.recovery import Recovery
@@ -330,25 +331,8 @@ class Supervisor:
         )
 
     def _outside(self, j: int, angle: FloatArray, tick: int) -> str:
-        limits = self.limits
-        detail = (
-            f"{limits.names[j]} at {angle[j]:+.3f} rad, limits "
-            f"[{limits.angle_min[j]:+.3f}, {limits.angle_max[j]:+.3f}]"
-        )
-        if tick == self._armed_tick:
-            # Outside before any torque flowed: no run can arm until it is back, and the
-            # message is the only place the user learns how (every joint outside: a hand left
-            # at zero torque sags several at once, and one named seemed the only one).
-            sign = "-" if angle[j] > limits.angle_max[j] else "+"
-            others = [limits.names[k] for k in angle_violations(angle, limits) if k != j]
-            detail += (
-                (f" ({', '.join(others)} outside too)" if others else "")
-                + f", before any torque: bring it back with `handctl jog {limits.names[j]} "
-                f"--torque {sign}X --recover`"
-                + (", then each of the others" if others else "")
-                + " (docs/bringup.md)"
-            )
-        return detail
+        # outside before any torque flowed (the armed tick): the message says how to recover
+        return outside_text(j, angle, self.limits, tick == self._armed_tick)
 
     def filter(
         self, tick: int, desired: Sequence[float] | FloatArray | None, missed: int = 0
