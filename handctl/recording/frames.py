@@ -211,7 +211,9 @@ def _nobody_else(
     Nor is a node in FAULT from before: a replay clears no fault (a run's
     ``--reset-node-faults`` does), and onto a hand a killed run had left faulted it sent its
     frames, then said a node "went into FAULT while the replay had it enabled" and left
-    enabled by it, both untrue (found by an outside audit). Nor a joint resting outside its
+    enabled by it, both untrue (found by an outside audit). Nor a node of another hand
+    config (a Feedback of another length on its id): the replay enabled it and sent torques
+    before it noticed (an outside audit). Nor a joint resting outside its
     soft limits, which stops any run before any torque: a replay onto a hand whose fingers
     had sagged past a limit enabled every node and sent its torques (an outside audit)."""
     from handctl.online.otherhost import refuse_another_host
@@ -220,6 +222,12 @@ def _nobody_else(
     refuse_another_host(bus, hand, spec, "this replay", lambda f: faulted.extend(heard.faulted(f)))
     if stops.first:
         raise ReplayInterrupted("", stops.first, stops.later)
+    if heard.stranger:
+        # first: the FAULT and the angles of a node of another config are not read
+        raise HandctlError(
+            f"{spec}: {heard.stranger}, heard before the replay sent anything: its frames are "
+            "not that hand's (nothing was sent)"
+        )
     if faulted:
         raise HandctlError(
             f"{spec}: {', '.join(dict.fromkeys(faulted))} in FAULT before the replay sent "
@@ -354,6 +362,9 @@ class _FaultsHeard:
         self.angles = np.full(len(self.limits.names), math.nan)
         #: what the first node heard in FAULT, or the first joint outside, said ("": none)
         self.first = ""
+        #: a node heard answering with a Feedback of another length (another hand config),
+        #: before the first frame ("": none)
+        self.stranger = ""
 
     def faulted(self, frames: Sequence[Any]) -> list[str]:
         """The nodes of the hand ``frames`` (``Frame``s) say are in FAULT, enabled by the
@@ -361,7 +372,12 @@ class _FaultsHeard:
         out = []
         for frame in frames:
             found = self.feedback.get(frame.arbitration_id)
-            if found is None or len(frame.data) != found[1].length:
+            if found is None:
+                continue
+            if len(frame.data) != found[1].length:
+                # skipped, such a node was enabled and sent torques before the replay
+                # noticed it, once it listened to the nodes it had enabled
+                self.stranger = self.stranger or _another_config(*found, len(frame.data))
                 continue
             bits = self._read(found[0], found[1], frame.data)
             if bits is not None:
@@ -405,9 +421,8 @@ class _FaultsHeard:
                 # protocol): the recorded hand's enable was taken, its Feedback never read,
                 # so its FAULT went unheard and the replay sent on to the end, exit 0
                 self.first = (
-                    f"node {finger.node_id} ({finger.name}) answers with a {layout.name} of "
-                    f"{len(frame.data)} bytes where the recorded hand's is {layout.length}: a "
-                    "hand of another config is on the bus, and the replay stopped there"
+                    f"{_another_config(finger, layout, len(frame.data))}, and the replay "
+                    "stopped there"
                 )
                 return True
             if not layout.crc_ok(frame.data):
@@ -432,6 +447,16 @@ class _FaultsHeard:
                     )
                     return True
         return False
+
+
+def _another_config(finger: FingerConfig, layout: Layout, length: int) -> str:
+    """A node that answers with a Feedback of ``length`` bytes, not its ``layout``'s, as the
+    replay says it: a hand of another config is on the bus."""
+    return (
+        f"node {finger.node_id} ({finger.name}) answers with a {layout.name} of {length} "
+        f"bytes where the recorded hand's is {layout.length}: a hand of another config is on "
+        "the bus"
+    )
 
 
 class _LeftEnabled:

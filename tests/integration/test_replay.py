@@ -8,6 +8,7 @@ import itertools
 import json
 import math
 import os
+import re
 import resource
 import signal
 import subprocess
@@ -886,6 +887,34 @@ def test_to_bus_onto_a_hand_resting_outside_its_soft_limits_sends_nothing(
     assert "f1_j3 at -0.9" in said and "limits [-0.900, +2.300]" in said
     assert "bring it back with `handctl jog f1_j3 --torque +X --recover`" in said
     assert said.endswith("(nothing was sent)")
+    assert heard and not [f for f in heard if f.arbitration_id in HOST_IDS]
+
+
+def test_to_bus_onto_a_hand_of_another_config_sends_nothing(
+    recorded: Recorded, hand: HandConfig, channel: str
+) -> None:
+    """A hand of another config on the bus (two joints a node where the log's had three): the
+    replay skipped its Feedback, of another length, while it listened, and noticed only
+    from the nodes it had enabled, once the enable and some torques had gone (an outside
+    probe: node 1 ENABLED, 7 TorqueCommands). Heard before the first frame, it refuses:
+    nothing sent, exit 1."""
+    from handctl.errors import ConfigError, HandctlError
+
+    other = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    spec = f"virtual:{channel}"
+    recording = open_recording(recorded.path)
+    with running_hand(other, spec), open_bus(spec, hand.bus) as listener:
+        with pytest.raises(HandctlError) as refused:
+            to_bus(recording, spec, direction="tx")
+        heard = listener.drain(limit=10**6)
+    assert not isinstance(refused.value, ConfigError)  # exit 1, as a node in FAULT before
+    # node 1's or node 2's, whichever the replay heard first
+    said = re.sub(r"node ([12]) \(f\1\) answers with a Feedback_\1 ", "node N ", str(refused.value))
+    assert said == (
+        f"{spec}: node N of 12 bytes where the recorded hand's is 16: a hand of another "
+        "config is on the bus, heard before the replay sent anything: its frames are not "
+        "that hand's (nothing was sent)"
+    )
     assert heard and not [f for f in heard if f.arbitration_id in HOST_IDS]
 
 
