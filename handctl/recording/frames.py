@@ -328,6 +328,7 @@ def _checked_commands(
         check_shape(recorded, hand)
     check_pacing(recording, recorded, direction)
     check_commands(recording, recorded, direction, speed)
+    check_command_gaps(recording, recorded, direction, speed)
     if hand is not None:
         check_commands(recording, hand, direction, speed, on_bus=True)
     return hand if hand is not None else recorded
@@ -767,6 +768,53 @@ def check_commands(
         # commands dated 0.7 ms back put 1.75 times the rate limit on the wire)
         last[frame_id] = (max(log_time, before_ns), values, budget)
     return checked
+
+
+def check_command_gaps(
+    recording: Recording, hand: HandConfig, direction: str = "both", speed: float = 1.0
+) -> None:
+    """Refuse, before anything is sent, a ``--speed`` that spaces the commands to a node the
+    log has enabled further apart on the wire than the nodes' command watchdog
+    (``COMMAND_WATCHDOG_S``): each node would time out and latch a fault. Commands a run sent
+    1 ms apart went out more than 10 ms apart below ``--speed 0.1``, and every node faulted
+    at once; the gap between ticks was held to the watchdog (``_check_no_gap``) only as
+    logged, never as sent. The commands' own times are read (from a node's enable or first
+    command to its disable), ``hand`` being the recorded one whose frames they are (its
+    ``NodeCommand`` values checked by ``check_commands`` first)."""
+    protocol = recorded_protocol(recording) or protocol_for(hand)
+    node_commands = {
+        f.can_ids.node_command: (f.node_id, protocol.layout("NodeCommand", f.node_id))
+        for f in hand.fingers
+    }
+    torques = {f.can_ids.torque_command: f.node_id for f in hand.fingers}
+    since: dict[int, int] = {}  # ns, each enabled node's last command
+    widest = 0  # ns, the longest a node the log had enabled went without a command
+    for log_time, frame_id, data, _ in logged_frames(recording, direction):
+        node = torques.get(frame_id)
+        disable = False
+        if node is None and frame_id in node_commands:
+            node, layout = node_commands[frame_id]
+            disable = layout.decode(data)[1][0] == NODE_COMMANDS["disable"]
+        if node is None:
+            continue
+        if node in since:
+            widest = max(widest, log_time - since[node])
+        if disable:
+            del since[node]  # a node disabled has no watchdog to feed
+        else:
+            since[node] = log_time
+    most_ns = round(COMMAND_WATCHDOG_S * 1e9)
+    if widest > most_ns * speed:
+        slowest = -(-widest * 1000 // most_ns) / 1000  # rounded up to a thousandth
+        raise ConfigError(
+            "--speed",
+            "",
+            f"{slowest:g} or faster (nothing was sent): the log's commands to a node it has "
+            f"enabled come up to {widest * 1e-6:g} ms apart, and slowed further they reach "
+            f"the nodes more than their {COMMAND_WATCHDOG_S * 1e3:g} ms command watchdog "
+            "apart, which faults every node",
+            speed,
+        )
 
 
 def _aliases(frame_id: int, commands: Sequence[int]) -> bool:

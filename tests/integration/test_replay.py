@@ -680,6 +680,32 @@ def test_to_bus_sends_every_frame_with_its_spacing(
     assert now[0] == pytest.approx(span / 4.0, rel=1e-6)
 
 
+def test_to_bus_slowed_past_the_nodes_watchdog_is_refused(
+    recorded: Recorded, hand: HandConfig, channel: str
+) -> None:
+    """Below ``--speed 0.1`` the run's commands, 1 ms apart, went out more than the nodes'
+    10 ms command watchdog apart: every node faulted (an outside audit). Refused before
+    anything is sent, naming the slowest speed the log allows (exit 2); that one goes."""
+    from handctl.errors import ConfigError
+
+    recording = open_recording(recorded.path)
+    now = [0.0]
+
+    def sleep(seconds: float) -> None:  # the spacing, without the wait
+        now[0] += seconds
+
+    with open_bus(f"virtual:{channel}", hand.bus) as listener:
+        with pytest.raises(ConfigError) as refused:
+            to_bus(recording, f"virtual:{channel}", speed=0.05, sleep=sleep, clock=lambda: now[0])
+        assert not listener.drain(limit=10**7)
+        sent = to_bus(recording, f"virtual:{channel}", speed=0.1, sleep=sleep, clock=lambda: now[0])
+    said = str(refused.value)
+    assert said.startswith("--speed: expected 0.1 or faster (nothing was sent): the log's")
+    assert "commands to a node it has enabled come up to 1 ms apart" in said
+    assert said.endswith("found 0.05")
+    assert sent["sent"] == len(list(logged_frames(recording)))
+
+
 def test_to_bus_stopped_midway_zeroes_and_disables_the_nodes_it_enabled(
     recorded: Recorded, hand: HandConfig, channel: str
 ) -> None:
