@@ -540,6 +540,7 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
     for _, log_time, msg in iter_decoded(recording, (ch.TIMING,)):
         ticks[int(msg["tick"])] = log_time
     if not ticks:
+        _check_no_commands(recording, hand, direction)
         return
     order = sorted(ticks)
     _check_no_hole(recording, order)
@@ -559,6 +560,26 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
                 + ("" if due is None else f" ({due} ns, within {slack} ns)")
                 + ", as the recorder stamps it (nothing was sent)",
                 Description(f"log time {log_time} ns"),
+            )
+
+
+def _check_no_commands(recording: Recording, hand: HandConfig, direction: str) -> None:
+    """Refuse a log of no tick row that holds a command frame: a run sends its commands on
+    its ticks and logs a row for each (a start-up sends at most its enable before the first),
+    so only a log whose rows were taken out has them, and with no row no frame's time was
+    held to anything: a log whose ``/loop/timing`` channel was dropped (and its end record's
+    tick count with it) and whose frames were moved 30 s on went out, enabled the nodes and
+    then sent nothing for 30 s (an outside audit)."""
+    commands = {f.can_ids.torque_command for f in hand.fingers}
+    commands |= {f.can_ids.node_command for f in hand.fingers}
+    for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
+        if frame_id in commands:
+            raise ConfigError(
+                str(recording.path),
+                f"channel {ch.TIMING}",
+                "a tick row for every tick a run sent its commands on (nothing was sent: "
+                "without them no frame's time is held to its tick's)",
+                Description(f"none, and the {_frame_at(log_time, frame_id, data, is_rx)}"),
             )
 
 
@@ -780,7 +801,8 @@ def check_command_gaps(
     at once; the gap between ticks was held to the watchdog (``_check_no_gap``) only as
     logged, never as sent. The commands' own times are read (from a node's enable or first
     command to its disable), ``hand`` being the recorded one whose frames they are (its
-    ``NodeCommand`` values checked by ``check_commands`` first)."""
+    ``NodeCommand`` values checked by ``check_commands`` first). A gap past the watchdog as
+    logged is the log's own, refused as such whatever its tick rows say."""
     protocol = recorded_protocol(recording) or protocol_for(hand)
     node_commands = {
         f.can_ids.node_command: (f.node_id, protocol.layout("NodeCommand", f.node_id))
@@ -789,7 +811,8 @@ def check_command_gaps(
     torques = {f.can_ids.torque_command: f.node_id for f in hand.fingers}
     since: dict[int, int] = {}  # ns, each enabled node's last command
     widest = 0  # ns, the longest a node the log had enabled went without a command
-    for log_time, frame_id, data, _ in logged_frames(recording, direction):
+    most_ns = round(COMMAND_WATCHDOG_S * 1e9)
+    for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
         node = torques.get(frame_id)
         disable = False
         if node is None and frame_id in node_commands:
@@ -797,13 +820,24 @@ def check_command_gaps(
             disable = layout.decode(data)[1][0] == NODE_COMMANDS["disable"]
         if node is None:
             continue
-        if node in since:
-            widest = max(widest, log_time - since[node])
+        gap = log_time - since[node] if node in since else 0
+        if gap > most_ns:
+            # as logged: the ticks' rows hold each frame to its tick, but not a frame that
+            # is missing (a node's commands taken out for 20 ms, every other check passed)
+            raise ConfigError(
+                str(recording.path),
+                _frame_at(log_time, frame_id, data, is_rx),
+                f"a command to node {node} within the nodes' {COMMAND_WATCHDOG_S * 1e3:g} ms "
+                "command watchdog after its previous one while the log has it enabled, as a "
+                "run sends them (nothing was sent: through the gap the node would hold its "
+                "last torque until its watchdog faulted it)",
+                Description(f"{gap * 1e-9:.9g} s after the one before"),
+            )
+        widest = max(widest, gap)
         if disable:
             del since[node]  # a node disabled has no watchdog to feed
         else:
             since[node] = log_time
-    most_ns = round(COMMAND_WATCHDOG_S * 1e9)
     if widest > most_ns * speed:
         slowest = -(-widest * 1000 // most_ns) / 1000  # rounded up to a thousandth
         raise ConfigError(

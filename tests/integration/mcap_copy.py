@@ -23,6 +23,7 @@ def rewrite(
     drop: tuple[str, ...] = (),
     empty: tuple[str, ...] = (),
     after: Callable[[str, int, bytes], list[bytes]] | None = None,
+    keep: Callable[[str, bytes], bool] | None = None,
 ) -> None:
     """Copy a recording record by record with the mcap library, the messages through
     ``change``, the metadata through ``metadata``, the channels of the topics in ``formats``
@@ -30,7 +31,8 @@ def rewrite(
     time through ``times(topic, log_time) -> log_time``; the channels of the topics in
     ``drop`` are left out, with their messages, and the messages of those in ``empty``
     (their channels kept); ``after(topic, index, raw message)`` gives messages to put in
-    after that one, on its channel at its log time."""
+    after that one, on its channel at its log time; ``keep(topic, raw message)`` false leaves
+    that message out."""
     with source.open("rb") as handle:
         reader = make_reader(handle)
         summary = reader.get_summary()
@@ -60,6 +62,8 @@ def rewrite(
             channel_ids[c.id] = writer.register_channel(c.topic, encoding, schema_id, c.metadata)
         for _, channel, message in messages:
             if channel.topic in drop or channel.topic in empty:
+                continue
+            if keep is not None and not keep(channel.topic, message.data):
                 continue
             index = counts.get(channel.topic, 0)
             counts[channel.topic] = index + 1

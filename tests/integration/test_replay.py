@@ -55,6 +55,10 @@ def recorded(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Reco
     return record_run(hand, short_recipe(hand, directory), directory / "run.mcap")
 
 
+#: the logged frames' channels
+FRAMES = (ch.CAN_RX, ch.CAN_TX)
+
+
 def rewrite(source: Path, target: Path, change: Any) -> None:
     """Copy a recording message by message, each JSON message through ``change(topic,
     message) -> message`` (the Foxglove protobuf ones as they are)."""
@@ -704,6 +708,68 @@ def test_to_bus_slowed_past_the_nodes_watchdog_is_refused(
     assert "commands to a node it has enabled come up to 1 ms apart" in said
     assert said.endswith("found 0.05")
     assert sent["sent"] == len(list(logged_frames(recording)))
+
+
+def test_to_bus_refuses_command_frames_without_tick_rows(
+    recorded: Recorded, hand: HandConfig, channel: str, tmp_path: Path
+) -> None:
+    """The pacing checks (safety.md #88, #99) read the tick rows, and a log with none was not
+    checked at all: its ``/loop/timing`` channel dropped, with the end record's tick count,
+    and its frames moved 30 s on halfway, it went out, enabled the nodes and then sent
+    nothing for 30 s (an outside audit). A run logs a row for every tick it commands on:
+    refused, exit 2, nothing sent."""
+    from handctl.errors import ConfigError
+
+    with recorded.path.open("rb") as handle:
+        stamps = [m.log_time for _, _, m in make_reader(handle).iter_messages(topics=[ch.TIMING])]
+    cut = sorted(stamps)[len(stamps) // 2]
+
+    def no_ticks(name: str, values: dict[str, str]) -> dict[str, str]:
+        return {k: v for k, v in values.items() if not (name == ch.META_END and k == "ticks")}
+
+    bad = tmp_path / "no_ticks.mcap"
+    copy_recording(
+        recorded.path,
+        bad,
+        metadata=no_ticks,
+        drop=(ch.TIMING,),
+        times=lambda topic, t: t + 30 * 10**9 if t > cut and topic in FRAMES else t,
+    )
+    now = [0.0]
+
+    def sleep(seconds: float) -> None:  # the spacing, without the wait
+        now[0] += seconds
+
+    with open_bus(f"virtual:{channel}", hand.bus) as listener:
+        with pytest.raises(ConfigError) as refused:
+            to_bus(open_recording(bad), f"virtual:{channel}", sleep=sleep, clock=lambda: now[0])
+        assert not listener.drain(limit=10**7)
+    said = str(refused.value)
+    assert said.startswith(f"{bad}: channel {ch.TIMING}: expected a tick row for every tick")
+    assert "found none, and the /can/tx frame 0x011 " in said  # the first enable
+
+
+def test_to_bus_refuses_a_node_left_without_commands_past_its_watchdog(
+    recorded: Recorded, hand: HandConfig, tmp_path: Path
+) -> None:
+    """Node 1's TorqueCommands of 20 ticks taken out, every tick row and every other frame
+    as logged: each frame left is at its tick's time, and every check passed, but node 1
+    would go 21 ms without a command, past its 10 ms watchdog. The gap between a node's
+    commands is read from the frames themselves: refused, exit 2, nothing sent."""
+    torque = protocol_for(hand).layout("TorqueCommand", 1).frame_id
+
+    def keep(topic: str, raw: bytes) -> bool:
+        msg = json.loads(raw) if topic == ch.CAN_TX else {}
+        return not (msg.get("id") == torque and 300 <= msg["tick"] < 320)
+
+    bad = tmp_path / "gap.mcap"
+    copy_recording(recorded.path, bad, keep=keep)
+    done = handctl("replay", str(bad), "--to-bus", "virtual:gap")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "frames sent" not in done.stdout + done.stderr
+    assert f"/can/tx frame 0x{torque:03X} " in done.stderr
+    assert "expected a command to node 1 within the nodes' 10 ms command watchdog" in done.stderr
+    assert "found 0.021 s after the one before" in done.stderr
 
 
 def test_to_bus_stopped_midway_zeroes_and_disables_the_nodes_it_enabled(
