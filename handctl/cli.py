@@ -1282,6 +1282,7 @@ def _plan_exit_code(result: Any, output: Path, quick: bool) -> int:
     phase sat. It is written all the same, to be looked at or re-planned from (--base);
     ``--quick``, the smallest search, is a smoke test of the pipeline, and only warns."""
     undone = [plan for plan in result.phases if plan.undone is not None]
+    keys: list[str] = []  # the ramps that held a failed phase's search short of its seeds
     for plan in undone:
         print(
             f"handctl: {'warning' if quick else 'the plan failed'}: phase "
@@ -1289,11 +1290,20 @@ def _plan_exit_code(result: Any, output: Path, quick: bool) -> int:
             f"{len(plan.outcomes)} model(s)",
             file=sys.stderr,
         )
+        for cut in plan.ramp_cuts:
+            print(
+                f"handctl: phase '{plan.phase.name}' was searched within its ramps: {cut.text()}",
+                file=sys.stderr,
+            )
+            keys += [cut.key] if cut.key not in keys else []
     if undone and not quick:
+        # a ramp that held the search is named first: the advice to widen the search alone
+        # sent the user to search longer within ±0.02 N·m an end_ramp_s of 1 ms left
+        ramps = f"lengthen {' and '.join(keys)}, " if keys else ""
         print(
             f"handctl: {output} is written to be looked at or re-planned from, not to be "
-            "run: widen the search (search.models, generations, population), seed the "
-            "phase's torques, or change the template",
+            f"run: {ramps}widen the search (search.models, generations, population), seed "
+            "the phase's torques, or change the template",
             file=sys.stderr,
         )
         return EXIT_FAILED

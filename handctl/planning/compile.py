@@ -121,6 +121,8 @@ class PhasePlan:
     #: what the phase left undone on every model (``_job_left_undone``); None: it did its
     #: job on one at least, or it has none
     undone: str | None = None
+    #: where the template's ramps held the phase's search short of its seeds (``ramp_cuts``)
+    ramp_cuts: tuple[RampCut, ...] = ()
 
 
 @dataclass
@@ -501,6 +503,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 else f"  analysis: none ({analysis.reason})"
             )
         chosen: Candidate | None = None
+        cuts: list[RampCut] = []
         search_doc: dict[str, Any] | None = None
         bar: Progress | None = None
         pose = None
@@ -526,6 +529,7 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 seeds.append(("previous phase", previous))
             if not seeds:
                 seeds.append(("zero", previous))
+            starts = list(seeds)  # the random ones below are no measure of a ramp's cut
             for k in range(settings.random_seeds):
                 seeds.append((f"random flexion {k + 1}", _flexion_seed(hand, rng)))
             replanned = base.phase(spec.name) if base is not None else None
@@ -533,28 +537,29 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 # last, so that the plan keeps the base's torque only if nothing else drawn
                 # ranks as high
                 seeds.append(("base recipe", replanned.torques))
+                starts.append(seeds[-1])
             margin, fail = _limit_bounds(template)
             scorer = (
                 turn_scorer(spec.turn, spec.max_s, margin, settings.max_turn_rate_deg_s)
                 if spec.kind == "turn"
                 else hold_scorer(spec.min_height, open_pair=True, limit_margin=margin)
             )
+            held = _held(previous, template.phases[index - 1] if index else None, hand)
+            follows = _what_follows(template, index, hand, base)
+            into = f"phases[{index}].ramp_s"
+            bounds = ramp_bounds(
+                spec, hand, search_box(spec, hand, previous), held, follows, (template.source, into)
+            )
+            cuts = ramp_cuts(spec, hand, held, follows, into, starts)
+            for cut in cuts:
+                say(f"  warning: {cut.text()}")
             # the chosen torque runs once more on every model, on the same bar
             result, bar = _search(
                 [worlds[i] for i in alive],
                 [snaps[i] for i in alive],
                 _compiled_phase(spec, seeds[0][1], hand),
                 seeds,
-                _as_bounds(
-                    ramp_bounds(
-                        spec,
-                        hand,
-                        search_box(spec, hand, previous),
-                        _held(previous, template.phases[index - 1] if index else None, hand),
-                        _what_follows(template, index, hand, base),
-                        (template.source, f"phases[{index}].ramp_s"),
-                    )
-                ),
+                _as_bounds(bounds),
                 scorer,
                 rng,
                 budget,
@@ -586,6 +591,8 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
                 "models": len(alive),
                 "successes": chosen.successes,
             }
+            if cuts:
+                search_doc["held_by_ramps"] = [cut.text() for cut in cuts]
         if pose is not None and spec.pose_integral is not None:
             # a kept hold gets its rest pose too: the template may add the integral to it
             nominal.restore(snaps[alive[0]])
@@ -659,7 +666,11 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
             provenance["models"]["peak_rate_deg_s"] = [round(o.peak_rate_deg_s) for o in outcomes]
         done = _jobs_done(spec, outcomes, template)
         undone = _job_left_undone(spec, outcomes, template, done)
-        plans.append(PhasePlan(spec, phase, analysis, chosen, outcomes, provenance, done, undone))
+        plans.append(
+            PhasePlan(
+                spec, phase, analysis, chosen, outcomes, provenance, done, undone, tuple(cuts)
+            )
+        )
         alive = survivors
         previous = phase.torques
         if spec.kind == "lift":
@@ -847,6 +858,31 @@ def _what_follows(
     return _held(torques, spec, hand), spec.ramp_s, f"phases[{index + 1}].ramp_s"
 
 
+def _ramp_intervals(
+    spec: TemplatePhase,
+    hand: HandConfig,
+    before: np.ndarray,
+    after: tuple[np.ndarray, float, str] | None,
+    into: str,
+) -> list[tuple[str, float, np.ndarray, np.ndarray]]:
+    """Per ramp that binds ``spec``'s torques (its own ``ramp_s`` from ``before``, and the
+    one to ``after``): its key, its length (s, as written) and the torques (N·m, low and
+    high per joint) the rate limits can ramp over it (``ramp_bounds``)."""
+    rate = np.array([j.rate_limit for j in hand.joints])
+    margin = np.broadcast_to(np.asarray(spec.torque_margin, dtype=float), rate.shape)
+    back = spec.paced.back if spec.paced is not None and spec.paced.back > 1.0 else 1.0
+    ramps = [(into, spec.ramp_s, before, spec.ramp_s / back)]
+    if after is not None:
+        ramps.append((after[2], after[1], after[0], after[1]))
+    out = []
+    for key, written, other, ramp_s in ramps:
+        reach = rate * ramp_s
+        low = (other - reach) / margin + RAMP_BOUND_SLACK
+        high = (other + reach) / margin - RAMP_BOUND_SLACK
+        out.append((key, written, low, high))
+    return out
+
+
 def ramp_bounds(
     spec: TemplatePhase,
     hand: HandConfig,
@@ -863,21 +899,15 @@ def ramp_bounds(
     own recipe's loader after the whole plan; searched within them, it never is. ``box``
     itself when no ramp binds (the search, and so the plan, as before)."""
     rate = np.array([j.rate_limit for j in hand.joints])
-    margin = np.broadcast_to(np.asarray(spec.torque_margin, dtype=float), rate.shape)
     high = np.asarray(box, dtype=float)
     low = -high
-    back = spec.paced.back if spec.paced is not None and spec.paced.back > 1.0 else 1.0
-    ramps = [(before, spec.ramp_s / back)]
-    if after is not None:
-        ramps.append((after[0], after[1]))
-    for other, ramp_s in ramps:
-        reach = rate * ramp_s
-        low = np.maximum(low, (other - reach) / margin + RAMP_BOUND_SLACK)
-        high = np.minimum(high, (other + reach) / margin - RAMP_BOUND_SLACK)
+    source, into = named  # the template's file, and its phase's ramp_s key
+    for _, _, ramp_low, ramp_high in _ramp_intervals(spec, hand, before, after, into):
+        low = np.maximum(low, ramp_low)
+        high = np.minimum(high, ramp_high)
     if np.all(low <= -np.asarray(box)) and np.all(high >= np.asarray(box)):
         return list(box)
     for j in np.flatnonzero(low > high):  # no torque within tau_max ramps both ways
-        source, into = named  # the template's file, and its phase's ramp_s key
         raise ConfigError(
             source,
             into if after is None else f"{into} or {after[2]}",
@@ -886,6 +916,54 @@ def ramp_bounds(
             Description(f"none leaves a torque for phase '{spec.name}'"),
         )
     return [float(v) for v in low], [float(v) for v in high]
+
+
+@dataclass(frozen=True)
+class RampCut:
+    """A joint whose torque a ramp (``ramp_bounds``) holds short of a torque the phase's
+    search starts from. Why said: the bound is the template's ramp, not the search's; an
+    ``end_ramp_s`` of 1 ms left the planar turn ±0.02 N·m, the plan failed, and its advice
+    was to widen the search, never naming the key (found by an outside audit)."""
+
+    key: str  # the template's key that sets the ramp
+    ramp_s: float  # s, as the template writes it
+    joint: str
+    low: float  # N·m
+    high: float  # N·m
+    start: str  # the seed it holds out (``analysis``, ``template``, ...)
+    value: float  # N·m, that seed's torque on ``joint``
+
+    def text(self) -> str:
+        return (
+            f"{self.key} ({self.ramp_s:g} s) holds {self.joint} within "
+            f"[{self.low:.4g}, {self.high:.4g}] N·m, short of {self.value:.4g} N·m, the "
+            f"{self.start} seed"
+        )
+
+
+def ramp_cuts(
+    spec: TemplatePhase,
+    hand: HandConfig,
+    before: np.ndarray,
+    after: tuple[np.ndarray, float, str] | None,
+    into: str,
+    starts: Sequence[tuple[str, Sequence[float]]],
+) -> list[RampCut]:
+    """Where a ramp of ``ramp_bounds`` leaves a joint less than a torque the search starts
+    from (``starts``: the analysis', the template's seed, the previous phase's, a base
+    recipe's; the random ones are no measure), one per ramp and joint, the seed furthest
+    out: where a bound below tau_max leaves the seeds, the ramps bind nothing the search
+    would have tried."""
+    cuts: list[RampCut] = []
+    for key, written, low, high in _ramp_intervals(spec, hand, before, after, into):
+        for j, joint in enumerate(hand.joint_names):
+            outside = [(o, float(t[j])) for o, t in starts if not low[j] <= t[j] <= high[j]]
+            if outside:
+                origin, value = max(outside, key=lambda s: abs(s[1]))
+                cuts.append(
+                    RampCut(key, written, joint, float(low[j]), float(high[j]), origin, value)
+                )
+    return cuts
 
 
 def _as_bounds(

@@ -718,3 +718,23 @@ def test_a_hold_shorter_than_the_experiment_s_is_a_job_left_undone(tmp_path: Pat
     assert found is not None, run.stdout
     # the plan's episode and the run measure the same hold, to the checks' 10 ticks
     assert float(found.group(1)) == pytest.approx(held, abs=0.03)
+
+
+def test_a_failed_plan_names_the_ramp_that_held_its_search(tmp_path: Path) -> None:
+    """An end_ramp_s of 1 ms held the planar turn's torques to ±0.02 N·m without a word: the
+    plan failed and advised a wider search, never naming the key (found by an outside audit).
+    The ramp, the joint and the bound are said, and the advice names the key."""
+    data: dict[str, Any] = yaml.safe_load(PLANAR_TEMPLATE.read_text())
+    data["end_ramp_s"] = 0.001
+    template = tmp_path / "short_end.template.yaml"
+    template.write_text(yaml.safe_dump(data, sort_keys=False))
+    out = tmp_path / "r.yaml"
+    done = plan_command(
+        str(template), "--hand", str(PLANAR), "-o", str(out), "--workers", "1", "--models", "1"
+    )
+    assert done.returncode == 1, done.stderr
+    said = "end_ramp_s (0.001 s) holds left_j2 within [-0.0199, 0.0199] N·m, short of 0.45 N·m"
+    assert f"phase 'manipulate' was searched within its ramps: {said}" in done.stderr
+    assert "not to be run: lengthen end_ramp_s, widen the search" in done.stderr
+    search = yaml.safe_load(out.read_text())["phases"][-1]["provenance"]["search"]
+    assert any(said in line for line in search["held_by_ramps"])

@@ -564,3 +564,30 @@ def test_the_search_is_held_to_ramps_the_rate_limits_can_make(hand: HandConfig) 
     with pytest.raises(ConfigError) as info:
         ramp_bounds(replace(turn, ramp_s=0.001), hand, box, far, (-far, 0.001, "end_ramp_s"), named)
     assert info.value.key == "phases[3].ramp_s or end_ramp_s"
+
+
+def test_a_ramp_that_holds_the_search_short_of_its_seeds_is_named(hand: HandConfig) -> None:
+    """The bounds ``ramp_bounds`` sets were never said: a short end_ramp_s failed a plan
+    whose advice named the search, not the key (found by an outside audit). Each joint a
+    ramp holds short of a seed is named with the key, the ramp and the bound; the shipped
+    ramps hold none."""
+    from dataclasses import replace
+
+    from handctl.planning.compile import ramp_cuts
+
+    template = load_template(TEMPLATE, hand)
+    turn = replace(next(p for p in template.phases if p.kind == "turn"), paced=None)
+    zero = np.zeros(hand.n_joints)
+    seed = np.full(hand.n_joints, 0.05)
+    seed[1] = 0.4
+    starts = [("template", list(seed))]
+    assert ramp_cuts(turn, hand, zero, (zero, 0.3, "end_ramp_s"), "phases[3].ramp_s", starts) == []
+    cuts = ramp_cuts(turn, hand, zero, (zero, 0.005, "end_ramp_s"), "phases[3].ramp_s", starts)
+    rate = hand.joints[1].rate_limit
+    assert [c.joint for c in cuts] == [hand.joint_names[1]]  # 0.05 N·m is within the ramp
+    assert cuts[0].key == "end_ramp_s" and cuts[0].high == pytest.approx(rate * 0.005 - 1e-4)
+    assert cuts[0].text().startswith(f"end_ramp_s (0.005 s) holds {hand.joint_names[1]} within")
+    assert "short of 0.4 N·m, the template seed" in cuts[0].text()
+    # the phase's own ramp from the torque before it
+    own = ramp_cuts(replace(turn, ramp_s=0.005), hand, zero, None, "phases[3].ramp_s", starts)
+    assert [(c.key, c.joint) for c in own] == [("phases[3].ramp_s", hand.joint_names[1])]
