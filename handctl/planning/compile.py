@@ -38,7 +38,7 @@ from handctl.analysis.model import AnalysisError
 from handctl.analysis.planner import plan_torques
 from handctl.config import HandConfig
 from handctl.convention import HOLD_S, LIFT_HEIGHT, is_manipulation
-from handctl.errors import ConfigError, Description, escaped
+from handctl.errors import ConfigError, escaped
 from handctl.executor import WorkPool, open_pool
 from handctl.online.recipes.loader import check_against_hand, joint_fingers, parse_recipe
 from handctl.online.recipes.schema import (
@@ -64,7 +64,6 @@ from handctl.planning.search import (
     LIMIT_FAIL,
     LIMIT_MARGIN,
     MIN_TURN_FRACTION,
-    TORQUE_DECIMALS,
     TUMBLE_FAIL_FACTOR,
     Budget,
     Candidate,
@@ -74,7 +73,13 @@ from handctl.planning.search import (
     turn_scorer,
     written_torques,
 )
-from handctl.planning.template import PlannedSchedule, Template, TemplatePhase
+from handctl.planning.template import (
+    PlannedSchedule,
+    Template,
+    TemplatePhase,
+    no_ramp_left,
+    ramp_intervals,
+)
 from handctl.progress import Progress
 from handctl.schema import dump_yaml, parse_yaml
 from handctl.sim.params import SimParams, parse_sim
@@ -827,11 +832,6 @@ def search_box(spec: TemplatePhase, hand: HandConfig, previous: Sequence[float])
     return [float(b) for b in box]
 
 
-#: N·m, a ramp bound is kept this far inside: a torque is written to ``TORQUE_DECIMALS``,
-#: and one rounded up past the bound was refused by the recipe's loader
-RAMP_BOUND_SLACK = 10.0**-TORQUE_DECIMALS
-
-
 def _held(torques: Sequence[float], spec: TemplatePhase | None, hand: HandConfig) -> np.ndarray:
     """N·m, what the runner holds of ``spec``'s ``torques``: times its ``torque_margin``."""
     margin = 1.0 if spec is None else spec.torque_margin
@@ -858,31 +858,6 @@ def _what_follows(
     return _held(torques, spec, hand), spec.ramp_s, f"phases[{index + 1}].ramp_s"
 
 
-def _ramp_intervals(
-    spec: TemplatePhase,
-    hand: HandConfig,
-    before: np.ndarray,
-    after: tuple[np.ndarray, float, str] | None,
-    into: str,
-) -> list[tuple[str, float, np.ndarray, np.ndarray]]:
-    """Per ramp that binds ``spec``'s torques (its own ``ramp_s`` from ``before``, and the
-    one to ``after``): its key, its length (s, as written) and the torques (N·m, low and
-    high per joint) the rate limits can ramp over it (``ramp_bounds``)."""
-    rate = np.array([j.rate_limit for j in hand.joints])
-    margin = np.broadcast_to(np.asarray(spec.torque_margin, dtype=float), rate.shape)
-    back = spec.paced.back if spec.paced is not None and spec.paced.back > 1.0 else 1.0
-    ramps = [(into, spec.ramp_s, before, spec.ramp_s / back)]
-    if after is not None:
-        ramps.append((after[2], after[1], after[0], after[1]))
-    out = []
-    for key, written, other, ramp_s in ramps:
-        reach = rate * ramp_s
-        low = (other - reach) / margin + RAMP_BOUND_SLACK
-        high = (other + reach) / margin - RAMP_BOUND_SLACK
-        out.append((key, written, low, high))
-    return out
-
-
 def ramp_bounds(
     spec: TemplatePhase,
     hand: HandConfig,
@@ -898,23 +873,16 @@ def ramp_bounds(
     ``end_ramp_s`` or a ``ramp_s`` too short for the torques it searched was refused by its
     own recipe's loader after the whole plan; searched within them, it never is. ``box``
     itself when no ramp binds (the search, and so the plan, as before)."""
-    rate = np.array([j.rate_limit for j in hand.joints])
     high = np.asarray(box, dtype=float)
     low = -high
     source, into = named  # the template's file, and its phase's ramp_s key
-    for _, _, ramp_low, ramp_high in _ramp_intervals(spec, hand, before, after, into):
+    for _, _, ramp_low, ramp_high in ramp_intervals(spec, hand, before, after, into):
         low = np.maximum(low, ramp_low)
         high = np.minimum(high, ramp_high)
     if np.all(low <= -np.asarray(box)) and np.all(high >= np.asarray(box)):
         return list(box)
     for j in np.flatnonzero(low > high):  # no torque within tau_max ramps both ways
-        raise ConfigError(
-            source,
-            into if after is None else f"{into} or {after[2]}",
-            f"ramps the rate limit of {hand.joint_names[j]} ({rate[j]:g} N·m/s) can make "
-            "between the phases' torques within tau_max",
-            Description(f"none leaves a torque for phase '{spec.name}'"),
-        )
+        raise no_ramp_left(source, into, after[2] if after else None, hand, int(j), spec.name)
     return [float(v) for v in low], [float(v) for v in high]
 
 
@@ -955,7 +923,7 @@ def ramp_cuts(
     out: where a bound below tau_max leaves the seeds, the ramps bind nothing the search
     would have tried."""
     cuts: list[RampCut] = []
-    for key, written, low, high in _ramp_intervals(spec, hand, before, after, into):
+    for key, written, low, high in ramp_intervals(spec, hand, before, after, into):
         for j, joint in enumerate(hand.joint_names):
             outside = [(o, float(t[j])) for o, t in starts if not low[j] <= t[j] <= high[j]]
             if outside:

@@ -388,6 +388,40 @@ def test_an_end_ramp_of_zero_is_refused_before_any_search(tmp_path: Path, hand: 
     assert load_template(write(tmp_path, data), hand).end_ramp_s == 0.3
 
 
+@pytest.mark.parametrize(
+    ("phase", "ramp", "key"),
+    [
+        (1, 0.0, "phases[1].ramp_s"),  # a lift from the free approach's torques
+        (2, 0.0, "phases[2].ramp_s"),  # a hold after the searched lift
+        (3, 0.0, "phases[3].ramp_s or end_ramp_s"),  # the last phase, after a searched one
+        (2, 1e-6, "phases[2].ramp_s"),  # too short to leave a written torque's last digit
+    ],
+)
+def test_a_searched_phase_s_ramp_that_leaves_no_torque_is_refused_before_any_search(
+    tmp_path: Path, phase: int, ramp: float, key: str
+) -> None:
+    """A ramp_s of 0 into a phase the plan searches, after another searched phase, was
+    refused by the search's bounds only once the phases before it had been planned (12 to
+    17 minutes of the swap's lift; found by an outside audit). Refused as the template
+    loads, with the message the search gives (``compile.ramp_bounds``)."""
+    from handctl.config import load_hand
+
+    planar = load_hand(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    data = yaml.safe_load(
+        (ROOT / "config" / "recipes" / "planar_lift_turn.template.yaml").read_text()
+    )
+    assert load_template(write(tmp_path, data), planar)  # the shipped ramps leave room
+    data["phases"][phase]["ramp_s"] = ramp
+    with pytest.raises(ConfigError) as info:
+        load_template(write(tmp_path, data), planar)
+    assert info.value.key == key
+    name = data["phases"][phase]["name"]
+    assert str(info.value).endswith(
+        "expected ramps the rate limit of left_j1 (20 N·m/s) can make between the phases' "
+        f"torques within tau_max, found none leaves a torque for phase '{name}'"
+    )
+
+
 def test_the_search_box_leaves_room_for_what_the_feedback_adds(hand: HandConfig) -> None:
     """The search gives a phase no torque its own feedback takes past tau_max when it runs
     (the loader refuses that recipe): the lift's torque_margin, a turn-rate loop's largest
@@ -540,7 +574,8 @@ def test_the_search_is_held_to_ramps_the_rate_limits_can_make(hand: HandConfig) 
     follows it; where no ramp binds, its box is the plan's as before."""
     from dataclasses import replace
 
-    from handctl.planning.compile import RAMP_BOUND_SLACK, ramp_bounds, search_box
+    from handctl.planning.compile import ramp_bounds, search_box
+    from handctl.planning.template import RAMP_BOUND_SLACK
 
     template = load_template(TEMPLATE, hand)
     turn = replace(next(p for p in template.phases if p.kind == "turn"), paced=None)
