@@ -1016,6 +1016,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from handctl.planning.compile import plan_recipe, quick_budget, recipe_text
     from handctl.planning.template import load_template, unreachable_turn
     from handctl.progress import Progress, close_active, say
+    from handctl.stopsignals import finished, held_back
 
     _output_file("-o", args.output)
     existing = _refuse_other_than_a_recipe(args.output)
@@ -1083,9 +1084,14 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         plots = _plan_plots(result, args.plot) if args.plot else []
     except HandctlError as exc:  # the plan is not lost to a plot that cannot be placed
         plots, plot_error = [], exc
-    output = _failed_plan_output(result, args.output, args.quick)
-    _write_output("-o", output, recipe_text(result, command))
-    try:  # the recipe is whole on disk: an interrupt from here on says so
+    text = recipe_text(result, command)
+    # from the write on, a stop signal is noted and said, not raised: one that came as the
+    # phases' lines were printed exited 130 after the recipe was written, skipping the lines
+    # and a failed plan's exit 1 (and one just after the write, before the lines, said only
+    # "interrupted"); README: a stop signal once the command has its result changes no exit
+    with held_back() as late:
+        output = _failed_plan_output(result, args.output, args.quick)
+        _write_output("-o", output, text)
         wall_s, cpu_s = clock.read()  # the pool is closed: its local workers' CPU is counted
         print(f"recipe {template.recipe} planned for {hand.name} ({hand.config_hash}) -> {output}")
         print(f"  in {wall_s:.0f} s wall, {cpu_s:.0f} s CPU ({cpu_counted}) on {where}")
@@ -1103,11 +1109,17 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         if plot_error is not None:
             print(f"handctl: error: {plot_error} (the recipe is written)", file=sys.stderr)
             # a directory whose files cannot be replaced is bad input; a disk that filled is not
-            return EXIT_BAD_INPUT if isinstance(plot_error, ConfigError) else EXIT_FAILED
-        return _plan_exit_code(result, output, args.quick)
-    except KeyboardInterrupt:
-        print(f"handctl: interrupted; {output} is written whole", file=sys.stderr)
-        return EXIT_INTERRUPTED
+            code = EXIT_BAD_INPUT if isinstance(plot_error, ConfigError) else EXIT_FAILED
+        else:
+            code = _plan_exit_code(result, output, args.quick)
+        finished()  # the plan's result stands: a signal from here on is ``stopsignals.LATE``
+    if late:
+        print(
+            f"handctl: {', '.join(late)} came once {escaped(str(output))} was being written: "
+            f"ignored, the plan's exit ({code}) stands",
+            file=sys.stderr,
+        )
+    return code
 
 
 def _failed_plan_output(result: Any, output: Path, quick: bool) -> Path:

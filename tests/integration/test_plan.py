@@ -738,3 +738,48 @@ def test_a_failed_plan_names_the_ramp_that_held_its_search(tmp_path: Path) -> No
     assert "not to be run: lengthen end_ramp_s, widen the search" in done.stderr
     search = yaml.safe_load(out.read_text())["phases"][-1]["provenance"]["search"]
     assert any(said in line for line in search["held_by_ramps"])
+
+
+@pytest.mark.parametrize("moment", ["write", "lines"])
+def test_a_stop_signal_once_the_recipe_is_written_changes_no_exit(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    moment: str,
+) -> None:
+    """A SIGTERM once the recipe was written exited 130 with "interrupted; ... is written
+    whole", without the phases' lines and with a failed plan never said to have failed (found
+    by an outside audit); one just after the write, before those lines, said only
+    "interrupted". README: a stop signal once the command has its result is said and changes
+    no exit. The signal is a real one, sent to this process at the moment under test (the
+    write, the first phase's line), which is all the hook does."""
+    import os
+    import signal
+
+    from handctl import cli, outfile
+
+    def signalled(real: Any) -> Any:
+        def call(*args: Any) -> Any:
+            value = real(*args)
+            os.kill(os.getpid(), signal.SIGTERM)  # handled before this returns
+            return value
+
+        return call
+
+    if moment == "write":
+        monkeypatch.setattr(outfile, "write_atomically", signalled(outfile.write_atomically))
+    else:
+        monkeypatch.setattr(cli, "_planned_phase_line", signalled(cli._planned_phase_line))
+    out = tmp_path / "r.yaml"
+    args = [str(_hold_only(tmp_path)), "--hand", str(PLANAR), "-o", str(out), "--workers", "1"]
+    code = cli.main(["plan", *args])
+    said = capsys.readouterr()
+    assert code == 1, said.err  # the failed plan's own exit
+    assert "hold             hold" in said.out  # the phase's line, printed
+    assert "the plan failed: phase 'hold'" in said.err
+    assert (
+        f"handctl: SIGTERM came once {out} was being written: ignored, the plan's exit (1) "
+        "stands" in said.err
+    )
+    assert "interrupted" not in said.err
+    assert load_recipe(out, load_hand(PLANAR)).plan_failed
