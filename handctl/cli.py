@@ -1276,7 +1276,8 @@ def _plan_base(args: argparse.Namespace, template: Template, hand: HandConfig) -
         )
     if args.base is not None and not args.base.is_file():
         # an empty --base is Path("."): the loader's own message named '.', not the option
-        raise ConfigError("--base", "", "a compiled recipe file", str(args.base))
+        # the Path, shown whole: a string was cut to 80 characters, the file's name with it
+        raise ConfigError("--base", "", "a compiled recipe file", args.base)
     if args.keep_torques:
         from handctl.planning.replan import load_kept_base
 
@@ -2262,7 +2263,12 @@ def _refuse_other_than_a_recipe(output: Path) -> dict[str, Any] | None:
             "",
             "a new file, or a recipe handctl plan compiled, to write again (a recipe written "
             "by hand, without compiled: true, is not replaced: give another -o)",
-            f"recipe {escaped(str(data.get('recipe')))}, written by hand, in {output}",
+            # a Description, not a string cut to 80 characters: the file's name, at the end
+            # of a long path, was the part left out (found by an outside audit)
+            Description(
+                f"recipe {escaped(str(data.get('recipe')))}, written by hand, in "
+                f"{escaped(str(output))}"
+            ),
         )
     if data is None or _existing_kind(data) == "recipe":
         return data
@@ -2271,7 +2277,7 @@ def _refuse_other_than_a_recipe(output: Path) -> dict[str, Any] | None:
         "",
         "a new file, or a recipe to write again (an existing file of anything else, a hand "
         "config or a template say, is not replaced)",
-        f"{output}, an existing file that is not a recipe",
+        Description(f"{escaped(str(output))}, an existing file that is not a recipe"),
     )
 
 

@@ -263,8 +263,43 @@ def test_a_plan_replaces_only_a_recipe(tmp_path: Path, capsys: pytest.CaptureFix
     assert cli.main(["plan", str(template), "-o", str(hold)]) == cli.EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "(a recipe written by hand, without compiled: true, is not replaced: give " in err
-    assert "found 'recipe hold, written by hand, in " in err
+    assert f"found recipe hold, written by hand, in {hold}" in err
     assert hold.read_bytes() == before
+
+
+def test_a_plan_s_refused_output_or_base_is_named_whole(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``-o`` over a file that is no recipe, or one written by hand, and a ``--base`` that is
+    no file were said with the path cut to 80 characters: in a project's tree the file's
+    name, the part that tells which, was the part left out (found by an outside audit)."""
+    from handctl import cli
+
+    template = str(ROOT / "config" / "recipes" / "planar_lift_turn.template.yaml")
+    planar = str(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+    deep = tmp_path / ("a_rather_long_directory_name_for_recipes" * 2) / "and_another_level"
+    deep.mkdir(parents=True)
+    notes = deep / "notes_kept_by_the_team.yaml"
+    notes.write_text("what: I keep\n")
+    hold = deep / "hold_written_by_hand.yaml"
+    hold.write_text(
+        "recipe: hold\nphases:\n  - {name: hold, torques: [0, 0, 0, 0], ramp_s: 0.2, max_s: 1.0}\n"
+    )
+    for victim, found in (
+        (notes, f"found {notes}, an existing file that is not a recipe"),
+        (hold, f"found recipe hold, written by hand, in {hold}"),
+    ):
+        assert len(str(victim)) > 80
+        code = cli.main(["plan", template, "--hand", planar, "-o", str(victim)])
+        assert code == cli.EXIT_BAD_INPUT
+        assert found in capsys.readouterr().err
+    missing = deep / "the_base_recipe_planned_last_week.yaml"
+    out = str(tmp_path / "r.yaml")
+    args = ["--hand", planar, "-o", out, "--from", "manipulate", "--base", str(missing)]
+    assert cli.main(["plan", template, *args]) == cli.EXIT_BAD_INPUT
+    assert f"--base: expected a compiled recipe file, found '{missing}'" in (
+        capsys.readouterr().err
+    )
 
 
 def test_a_file_name_too_long_names_the_option(tmp_path: Path) -> None:
