@@ -655,19 +655,25 @@ def _check_tau_max(
     torques: tuple[float, ...] | None,
     hand: HandConfig,
     margin: PerJoint = 1.0,
-    by_what: str = "the phase's torque_margin",
+    scale: float = 1.0,
 ) -> None:
     """A template's torques (a free phase's, a schedule entry's) go into the recipe as they
     are written, and its seeds start the search: none beyond the joint's tau_max, which the
     recipe would refuse only after the whole plan (a seed would be clipped without a word).
     The runner holds them times the phase's ``torque_margin``, and the recipe's loader
-    refuses that product past tau_max, so it is held so here too."""
+    refuses that product past tau_max, so it is held so here too; and times a turn-rate
+    loop's largest ``scale``, which scales the margined torque. Each factor is said once, by
+    its key (the scale was said twice, "(1.2) (1.2)", and with a margin the second figure
+    was the product, unnamed; found by an outside audit)."""
     if torques is None:  # a lift, hold or turn phase without a seed
         return
-    factors = np.broadcast_to(np.asarray(margin, dtype=float), (hand.n_joints,))
-    for joint, value, factor in zip(hand.joints, torques, factors.tolist(), strict=True):
+    margins = np.broadcast_to(np.asarray(margin, dtype=float), (hand.n_joints,))
+    for joint, value, each in zip(hand.joints, torques, margins.tolist(), strict=True):
+        factor = each * scale
         if abs(value * factor) > joint.tau_max:
-            by = f", the torque times {by_what} ({factor:g})" if factor != 1 else ""
+            parts = [f"the phase's torque_margin ({each:g})"] if each != 1 else []
+            parts += [f"turn_rate's largest scale ({scale:g})"] if scale != 1 else []
+            by = f", the torque times {' and '.join(parts)}" if parts else ""
             doc.fail(
                 f"{key}.{joint.name}",
                 f"|τ| <= {joint.tau_max:g} N·m (tau_max of {joint.name} in {hand.source})"
@@ -690,16 +696,10 @@ def _check_margined(
     (``_check_tau_max``), as the recipe's loader holds what the runner asks."""
     if margin == 1.0 and scale == 1.0:
         return
-    factor = tuple(
-        (np.broadcast_to(np.asarray(margin, dtype=float), (hand.n_joints,)) * scale).tolist()
-    )
-    what = "the phase's torque_margin" + (
-        f" and turn_rate's largest scale ({scale:g})" if scale != 1.0 else ""
-    )
-    _check_tau_max(doc, key, torques, hand, factor, what)
+    _check_tau_max(doc, key, torques, hand, margin, scale)
     for k, entry in enumerate(schedule):
         if isinstance(entry, ScheduledTorques):
-            _check_tau_max(doc, f"schedule[{k}].torques", entry.torques, hand, factor, what)
+            _check_tau_max(doc, f"schedule[{k}].torques", entry.torques, hand, margin, scale)
 
 
 def _lift_move(sub: Doc, objects: list[str]) -> dict[str, tuple[float, float]]:

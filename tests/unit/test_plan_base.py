@@ -104,9 +104,22 @@ def test_a_free_phase_s_torques_times_its_margin_past_tau_max_are_refused_when_i
     with pytest.raises(ConfigError) as info:
         load_template(path, hand)
     assert info.value.key == "phases[3].seed.left_j2"
-    assert "torque_margin and turn_rate's largest scale (1.5) (1.8): 0.54 N·m" in (
-        info.value.expected
+    # each factor once, by its key (the scale was said twice, the product unnamed)
+    assert (
+        "the torque times the phase's torque_margin (1.2) and turn_rate's largest scale "
+        "(1.5): 0.54 N·m" in info.value.expected
     )
+    data["phases"][3]["torque_margin"] = 1.0
+    data["phases"][3]["turn_rate"]["scale"] = [0.5, 1.2]
+    seed["left_j2"] = 0.45  # 0.54 > 0.45
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError) as info:
+        load_template(path, hand)
+    assert info.value.expected.endswith(
+        "planar_2f2j.yaml), the torque times turn_rate's largest scale (1.2): 0.54 N·m"
+    )
+    data["phases"][3]["torque_margin"] = 1.2
+    data["phases"][3]["turn_rate"]["scale"] = [0.5, 1.5]
     seed["left_j2"] = 0.25  # 0.45
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     load_template(path, hand)
