@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.errors import ConfigError
-from handctl.online.recipes.loader import load_recipe
+from handctl.errors import ConfigError, Description
+from handctl.online.recipes.loader import check_against_hand, parse_recipe
 from handctl.online.recipes.schema import Phase, Recipe
 from handctl.planning.template import PlannedSchedule, Template, TemplatePhase
+from handctl.schema import load_yaml
 
 
 @dataclass(frozen=True)
@@ -136,10 +137,19 @@ def load_kept_base(path: Path, template: Template, hand: HandConfig) -> Base:
 def _read_base(path: Path, template: Template, hand: HandConfig) -> Recipe:
     """The recipe at ``path``, if it was compiled from ``template``'s recipe for ``hand``,
     with the template's objects."""
-    recipe = load_recipe(path, hand)
+    doc = load_yaml(path, "recipe")
+    # a recipe without the key was said to have ``compiled: False``, a value it does not hold
+    given = doc.has("compiled")
+    recipe = parse_recipe(doc, hand)
+    check_against_hand(recipe, hand)
     source = str(path)
     if not recipe.compiled:
-        raise ConfigError(source, "compiled", "a recipe compiled by handctl plan (true)", False)
+        raise ConfigError(
+            source,
+            "compiled",
+            "a recipe compiled by handctl plan (true)",
+            False if given else Description("nothing: the key is missing"),
+        )
     if recipe.name != template.recipe:
         raise ConfigError(
             source,

@@ -230,3 +230,24 @@ def test_a_free_phase_is_kept_only_as_the_template_still_writes_it(
     approach[key] = {**approach[key], **value}
     # the edited free phase is the template's; the searched lift is kept as before
     assert kept(None) == kept("manipulate_1") == [False, True]
+
+
+def test_a_base_without_the_compiled_key_is_said_to_lack_it(tmp_path: Path) -> None:
+    """A base recipe whose ``compiled`` key was deleted was said to have ``compiled: False``
+    ("found False"), a value it does not hold (found by an outside audit)."""
+    hand = load_hand(PLANAR)
+    template = load_template(TEMPLATE, hand)
+    data: dict[str, Any] = yaml.safe_load(RECIPE.read_text())
+    path = tmp_path / "base.yaml"
+    for value, found in ((None, "found nothing: the key is missing"), (False, "found False")):
+        if value is None:
+            del data["compiled"]
+        else:
+            data["compiled"] = value
+        path.write_text(yaml.safe_dump(data, sort_keys=False))
+        with pytest.raises(ConfigError) as info:
+            load_base(path, "manipulate", template, hand)
+        assert info.value.key == "compiled"
+        assert str(info.value).endswith(
+            f"expected a recipe compiled by handctl plan (true), {found}"
+        )
