@@ -17,9 +17,10 @@ it can be true: after the last drain that emptied the queue (a frame read now wa
 then) and not after now. Outside that (an adapter stamping from its boot, pcan without
 ``uptime``; a wall-clock step between a frame's stamp and its drain, NTP or PTP) or with no
 stamp, the frame is taken to have arrived at that last drain, the earliest it can have: never
-younger than it is, so a stale frame cannot pass the feedback timeout, and at most a period
-older. The virtual bus stamps a frame as it is put into the receiver's queue, on the
-receiver's clock itself, so a lockstep run stays deterministic.
+younger than it is, so a stale frame cannot pass the feedback timeout, and older by the time
+between two drains at most. A frame that came while the drain read is taken at the drain's
+own time, as every frame at the latest. The virtual bus stamps a frame as it is put into the
+receiver's queue, on the receiver's clock itself, so a lockstep run stays deterministic.
 
 Identifiers: handctl speaks 11-bit identifiers only. A 29-bit (extended) frame keeps its
 identity: its ``arbitration_id`` carries ``EXTENDED_ID_FLAG`` (SocketCAN's ``CAN_EFF_FLAG``),
@@ -313,7 +314,7 @@ class HandBus:
         #: first of the next drain. ``(arrival_ns, arbitration_id, flags, data)``.
         self._lookahead: tuple[int, int, int, bytes] | None = None
         #: When the last drain that emptied the queue began, on this bus's clock: every frame
-        #: read since arrived after it (``_arrival_ns``). None before the first.
+        #: read since arrived after it (``_late_arrival_ns``). None before the first.
         self._emptied_ns: int | None = None
         #: The recorder's taps: every frame drained or sent, and every event as it is taken.
         self.tap: FrameTap | None = None
@@ -345,16 +346,17 @@ class HandBus:
         self, wall_to_clock_ns: int, earliest_ns: int, now_ns: int
     ) -> tuple[int, int, int, bytes] | None:
         """The next frame, ``(arrival_ns, arbitration_id, flags, data)`` with its arrival
-        on this bus's clock, or None; ``earliest_ns`` and ``now_ns`` are ``_arrival_ns``'s."""
+        on this bus's clock, or None; ``earliest_ns`` and ``now_ns`` are ``_late_arrival_ns``'s."""
         if self._frames is not None:
             raw = self._frames.recv_frame()
             if raw is None:
                 return None
             stamp_s, frame_id, flags, data = raw
-            # ``_arrival_ns``, inline: this is every frame of a real-time run
+            # the stamp believed inline where it can be true: this is every frame of a
+            # real-time run
             arrival = round(stamp_s * 1e9) + wall_to_clock_ns
             if not (stamp_s > 0 and earliest_ns <= arrival <= now_ns):
-                arrival = earliest_ns if earliest_ns >= 0 else now_ns
+                arrival = self._late_arrival_ns(stamp_s, arrival, earliest_ns, now_ns)
             return arrival, frame_id, flags, data
         if self._take is not None:
             item = self._take()
@@ -378,7 +380,9 @@ class HandBus:
             if received is None:
                 return None
             msg = received
-            stamp = self._arrival_ns(received.timestamp, wall_to_clock_ns, earliest_ns, now_ns)
+            stamp = round(received.timestamp * 1e9) + wall_to_clock_ns
+            if not (received.timestamp > 0 and earliest_ns <= stamp <= now_ns):
+                stamp = self._late_arrival_ns(received.timestamp, stamp, earliest_ns, now_ns)
         return stamp, msg.arbitration_id, ff.flags_of(msg), bytes(msg.data)
 
     def _is_echo(self, msg: can.Message) -> bool:
@@ -388,22 +392,24 @@ class HandBus:
             frame_id = (frame_id & EXTENDED_ID_MASK) | EXTENDED_ID_FLAG
         return self._echoes.is_echo(frame_id, bytes(msg.data))
 
-    @staticmethod
-    def _arrival_ns(stamp_s: float, wall_to_clock_ns: int, earliest_ns: int, now_ns: int) -> int:
-        """A wall-clock arrival stamp (s) on this bus's clock, if it can be true: between
-        ``earliest_ns``, when the last drain that emptied the queue began (-1 before the
-        first: any time), and ``now_ns``, when this one began.
+    def _late_arrival_ns(self, stamp_s: float, arrival: int, earliest_ns: int, now_ns: int) -> int:
+        """The arrival of a frame whose stamp (s; ``arrival`` on this bus's clock) is not
+        between ``earliest_ns``, when the last drain that emptied the queue began (-1 before
+        the first: any time), and ``now_ns``, when this one began.
 
-        Otherwise ``earliest_ns`` (``now_ns`` before the first drain): the stamp is on another
-        clock (an adapter's from its boot: every frame looked seconds old and the run never
-        started) or the wall clock stepped since it was taken (+0.5 s: a FEEDBACK_TIMEOUT
-        mid-grasp; backwards: a stale frame taken for a fresh one). The earliest time makes
-        the frame look older than it is by a period at most, never younger; the time of
-        reading would hide a wait in the queue. An interface that stamps nothing (0) gets the
-        same."""
-        arrival = round(stamp_s * 1e9) + wall_to_clock_ns
-        if stamp_s > 0 and earliest_ns <= arrival <= now_ns:
-            return arrival
+        A frame that came while this drain read the frames before it has a stamp after
+        ``now_ns`` and before its reading: it arrived as the drain began, as every frame the
+        drain reads is taken to at the latest (taken for the last drain's, it was a whole
+        drain interval older than it is, and at 250 Hz one tick a millisecond late was a
+        FEEDBACK_TIMEOUT: found by an outside audit). Any other stamp is on another clock (an
+        adapter's from its boot: every frame looked seconds old and the run never started)
+        or the wall clock stepped since it was taken (+0.5 s: a FEEDBACK_TIMEOUT mid-grasp;
+        backwards: a stale frame taken for a fresh one), and the frame gets ``earliest_ns``
+        (``now_ns`` before the first drain): older than it is by a drain interval at most,
+        never younger; the time of reading would hide a wait in the queue. An interface that
+        stamps nothing (0) gets the same."""
+        if stamp_s > 0 and now_ns < arrival <= self._clock_ns():
+            return now_ns
         return earliest_ns if earliest_ns >= 0 else now_ns
 
     def drain(self, limit: int = DRAIN_LIMIT) -> list[Frame]:
@@ -412,7 +418,7 @@ class HandBus:
         frames: list[Frame] = []
         now = self._clock_ns()
         # Wall-clock arrival stamps (kernel, adapter) onto this bus's clock, where they can
-        # be true (``_arrival_ns``): never later than now, so an adapter whose clock runs
+        # be true (``_late_arrival_ns``): never later than now, so an adapter whose clock runs
         # ahead cannot make a frame look younger, nor before the last drain that emptied the
         # queue (none yet: -1, any time).
         wall_to_clock = now - time.time_ns()

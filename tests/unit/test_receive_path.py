@@ -170,6 +170,56 @@ def test_a_stamp_that_can_be_true_is_kept(hand: HandConfig, channel: str, clock:
         peer.shutdown()
 
 
+class ArrivingWhileRead(StampingAdapter):
+    """The adapter's queue gets one more frame (``late``, sent by ``peer``) while the host
+    reads the first one: a frame that arrives during a drain, as the nodes' 1 ms Feedback
+    does at any loop rate."""
+
+    def __init__(self, channel: str, peer: can.BusABC, late: can.Message) -> None:
+        super().__init__(channel, lambda sent: sent)
+        self.peer, self.late = peer, late
+        self.armed = False
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self.armed:
+            self.armed = False
+            self.peer.send(self.late)
+        return super()._recv_internal(timeout)
+
+
+def test_a_frame_that_arrives_while_the_drain_reads_is_as_young_as_it_is(channel: str) -> None:
+    """A frame that reached the host after its drain began (and before the queue ran empty)
+    has a stamp after the drain's own time; it was taken for a bad stamp and given the last
+    drain's time, a whole drain interval older than it is: at 250 Hz, one tick a
+    millisecond late was a FEEDBACK_TIMEOUT (found by an outside audit). A stamp after the
+    drain began and before the frame was read is as good as the drain's own time."""
+    peer = can.Bus(interface="virtual", channel=channel)
+    late = can.Message(arbitration_id=0x182, data=bytes(8), is_extended_id=False)
+    adapter = ArrivingWhileRead(channel, peer, late)
+    began: list[int] = []
+
+    def clock() -> int:
+        now = time.monotonic_ns()
+        began.append(now)
+        return now
+
+    host = HandBus(adapter, BusSpec("pcan", "PCAN_USBBUS1"), fd=False, clock_ns=clock)
+    try:
+        assert host.drain() == []
+        peer.send(can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False))
+        adapter.armed = True
+        began.clear()
+        first, second = host.drain()
+        drain_began = began[0]
+        assert first.arbitration_id == 0x181 and second.arbitration_id == 0x182
+        # the drain's own time, as every frame it reads at the latest; not the last drain's
+        assert second.timestamp_ns == drain_began
+        assert first.timestamp_ns <= drain_began
+    finally:
+        host.close()
+        peer.shutdown()
+
+
 def test_a_lockstep_peer_steps_at_the_new_ticks_time() -> None:
     seen: list[int] = []
     lockstep = LockstepClock(0.001, lambda: seen.append(lockstep.now_ns()))
