@@ -40,7 +40,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from handctl.config import HandConfig
-from handctl.sim.params import START_MARGIN, FrictionParams, ObjectParams, SimParams
+from handctl.sim.params import (
+    MIN_FRICTION,
+    START_MARGIN,
+    FrictionParams,
+    ObjectParams,
+    SimParams,
+)
 
 #: m, the gap of the shipped pair, from which a drawn gap moves any configured one.
 SIDE_GAP = 0.002
@@ -183,7 +189,10 @@ def perturb(params: SimParams, rng: Draws, spread: Spread, hand: HandConfig | No
     for key in FrictionParams.__dataclass_fields__:
         factor = float(rng.uniform(1.0 - spread.friction, 1.0 + spread.friction))
         scales[f"friction.{key}"] = factor
-        values[key] = getattr(fr, key) * factor
+        # never below the least coefficient the simulated hand takes: a hand whose contact is
+        # as slippery as it may be (0.001) had half its models refused, in its own file's
+        # name, and the planner simulated the others below it (found by an outside audit)
+        values[key] = max(getattr(fr, key) * factor, MIN_FRICTION)
     masses = [float(rng.uniform(1.0 - spread.mass, 1.0 + spread.mass)) for _ in params.objects]
     radii = [float(rng.uniform(1.0 - spread.radius, 1.0 + spread.radius)) for _ in params.objects]
     for k, (m, r) in enumerate(zip(masses, radii, strict=True)):

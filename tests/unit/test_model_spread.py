@@ -246,3 +246,19 @@ def test_a_pair_keeps_its_configured_gap_and_height(params: SimParams) -> None:
         assert _gap(m.params) == pytest.approx(expected, abs=1e-9), m.index
         for obj, height in zip(m.params.objects, heights, strict=True):
             assert obj.y - obj.radius - m.params.table_height == pytest.approx(height)
+
+
+def test_a_contact_as_slippery_as_it_may_be_stays_so_in_every_model(
+    hand: HandConfig, params: SimParams
+) -> None:
+    """A hand whose table is as slippery as the simulated hand takes (0.001) had half its
+    models drawn below that, refused in its own file's name when run, and simulated so by
+    the planner (found by an outside audit): every model's coefficient is at least it."""
+    from handctl.sim.params import MIN_FRICTION, parse_sim
+
+    slippery = dataclasses.replace(
+        params, friction=dataclasses.replace(params.friction, object_table=MIN_FRICTION)
+    )
+    for m in model_set(slippery, 12, 7200, Spread().only("contact"), hand=hand)[1:]:
+        assert m.params.friction.object_table >= MIN_FRICTION
+        parse_sim(hand_with(hand, m.params, seed=m.index))  # the model runs
