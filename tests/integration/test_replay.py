@@ -688,8 +688,10 @@ def test_to_bus_slowed_past_the_nodes_watchdog_is_refused(
     recorded: Recorded, hand: HandConfig, channel: str
 ) -> None:
     """Below ``--speed 0.1`` the run's commands, 1 ms apart, went out more than the nodes'
-    10 ms command watchdog apart: every node faulted (an outside audit). Refused before
-    anything is sent, naming the slowest speed the log allows (exit 2); that one goes."""
+    10 ms command watchdog apart: every node faulted (an outside audit). At 0.1 itself, the
+    watchdog exactly, they faulted too (their own 1 ms tick and the bus take 2 ms of it: an
+    outside audit of that refusal). Refused before anything is sent, naming the slowest speed
+    the log allows, 8 ms apart (exit 2); that one goes."""
     from handctl.errors import ConfigError
 
     recording = open_recording(recorded.path)
@@ -700,13 +702,16 @@ def test_to_bus_slowed_past_the_nodes_watchdog_is_refused(
 
     with open_bus(f"virtual:{channel}", hand.bus) as listener:
         with pytest.raises(ConfigError) as refused:
-            to_bus(recording, f"virtual:{channel}", speed=0.05, sleep=sleep, clock=lambda: now[0])
+            to_bus(recording, f"virtual:{channel}", speed=0.1, sleep=sleep, clock=lambda: now[0])
         assert not listener.drain(limit=10**7)
-        sent = to_bus(recording, f"virtual:{channel}", speed=0.1, sleep=sleep, clock=lambda: now[0])
+        sent = to_bus(
+            recording, f"virtual:{channel}", speed=0.125, sleep=sleep, clock=lambda: now[0]
+        )
     said = str(refused.value)
-    assert said.startswith("--speed: expected 0.1 or faster (nothing was sent): the log's")
+    assert said.startswith("--speed: expected 0.125 or faster (nothing was sent): the log's")
     assert "commands to a node it has enabled come up to 1 ms apart" in said
-    assert said.endswith("found 0.05")
+    assert "more than 8 ms apart, within 2 ms of their 10 ms command watchdog" in said
+    assert said.endswith("found 0.1")
     assert sent["sent"] == len(list(logged_frames(recording)))
 
 
