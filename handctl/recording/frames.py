@@ -438,13 +438,22 @@ class _FaultsHeard:
                 return True
             first = self._first_joint[finger.node_id]
             lows, highs = self.limits.angle_min_list, self.limits.angle_max_list
-            for j in range(first, first + len(finger.joints)):
-                if self.angles[j] < lows[j] or self.angles[j] > highs[j]:
+            # A joint outside is the replay's to stop when the torque it last sent the joint
+            # pushes it further out: a joint that sinks out under no torque, or one towards
+            # its range, is not driven there by the replay, as a run's controlled stop does
+            # not fault a joint that sinks out while its torques ramp out (row 64). Stopped on
+            # any joint outside, the replay of a run's end ramp onto a hand that sags ended
+            # in a stop, exit 1, where the run had ended well (found by an outside audit).
+            torques = self.left.torques.get(finger.node_id, ())
+            for k, j in enumerate(range(first, first + len(finger.joints))):
+                torque = torques[k] if k < len(torques) else 0.0
+                below, above = self.angles[j] < lows[j], self.angles[j] > highs[j]
+                if (below and torque < 0.0) or (above and torque > 0.0):
                     self.first = (
                         f"{outside_text(j, self.angles, self.limits, False)}: a joint of "
-                        f"node {finger.node_id} ({finger.name}) left its soft limits while the "
-                        "replay had the node enabled, as a run stops on ANGLE_LIMIT, and the "
-                        "replay stopped there"
+                        f"node {finger.node_id} ({finger.name}) left its soft limits with the "
+                        f"replay's torque ({torque:+.4g} N·m) pushing it further, as a run "
+                        "stops on ANGLE_LIMIT, and the replay stopped there"
                     )
                     return True
         return False
@@ -488,6 +497,8 @@ class _LeftEnabled:
         }
         self.counters: dict[int, int] = {}
         self.enabled: set[int] = set()
+        #: each node's torques (N·m) as its last TorqueCommand sent carried them
+        self.torques: dict[int, tuple[float, ...]] = {}
 
     def sent(self, frame_id: int, data: bytes) -> None:
         found = self.of_id.get(frame_id)
@@ -497,6 +508,8 @@ class _LeftEnabled:
         layouts = self.layouts[node]
         counter, values = (layouts.node_command if is_command else layouts.command).decode(data)
         self.counters[frame_id] = counter
+        if not is_command:
+            self.torques[node] = values  # N·m, per joint slot, as last sent
         if is_command and int(values[0]) == NODE_COMMANDS["disable"]:
             self.enabled.discard(node)
         elif not is_command or int(values[0]) == NODE_COMMANDS["enable"]:

@@ -926,6 +926,46 @@ def test_a_fault_is_heard_only_from_a_node_the_replay_had_enabled(hand: HandConf
     )
 
 
+def test_a_joint_outside_is_the_replay_s_to_stop_only_under_its_torque_outwards(
+    hand: HandConfig,
+) -> None:
+    """A replay stopped on any joint outside its soft limits, where a run's controlled stop
+    does not fault a joint that sinks out while its torques ramp out (row 64): the replay of
+    a run's end onto a hand that sags ended in a stop, exit 1, where the run had ended well
+    (an outside audit). A joint outside is the replay's to stop when the torque it last sent
+    that joint pushes it further out; under none, or one towards its range, it is not."""
+    from handctl.online.drivers.finger import FingerLayouts
+    from handctl.protocol import NodeState
+    from handctl.recording.frames import _FaultsHeard, _LeftEnabled
+
+    protocol = protocol_for(hand)
+    left = _LeftEnabled(hand, protocol)
+    heard = _FaultsHeard(hand, left)
+    finger = hand.fingers[0]
+    joint = finger.joints[0]
+    layouts = FingerLayouts.for_node(protocol, finger.node_id)
+    k = len(finger.joints)
+    below = joint.angle_min - 0.05  # rad: sunk out past its lower limit
+
+    def feedback() -> Frame:
+        angles = (below,) + (0.0,) * (k - 1)  # after the TDT torques, as the layout has them
+        values = (0.0,) * k + angles + (int(NodeState.ENABLED), 0)
+        return Frame(layouts.feedback.frame_id, layouts.feedback.encode(0, values))
+
+    def torque(first: float) -> None:
+        command = layouts.command
+        left.sent(command.frame_id, command.encode(0, (first,) + (0.0,) * (k - 1)))
+
+    torque(0.0)  # enabled, its torques ramped out
+    assert not heard.hear([feedback()])
+    torque(abs(joint.tau_max) / 4)  # towards its range
+    assert not heard.hear([feedback()])
+    torque(-abs(joint.tau_max) / 4)  # further out: the replay drives it there
+    assert heard.hear([feedback()])
+    assert heard.first.startswith(f"{joint.name} at ")
+    assert "with the replay's torque (-" in heard.first
+
+
 def test_the_replay_s_stop_imports_nothing(
     hand: HandConfig, channel: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -1057,8 +1097,8 @@ def test_to_bus_stops_when_a_joint_it_drives_leaves_its_soft_limits(
         ]
     assert sent["node_fault"].startswith("f1_j1 at -0.36"), sent
     assert (
-        f", {limit:+.3f}]: a joint of node 1 (f1) left its soft limits while"
-        in (sent["node_fault"])
+        f", {limit:+.3f}]: a joint of node 1 (f1) left its soft limits with the replay's "
+        "torque (+" in (sent["node_fault"])
     )
     assert sent["sent"] < len(logged)  # stopped there, not sent to its end
     assert "zero torque and a disable sent after them" in sent["stopped"]
