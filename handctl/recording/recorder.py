@@ -1481,7 +1481,8 @@ class Recorder:
         if self._path_taken():
             raise HandctlError(
                 f"{self.path}: another file was put at this path while the run started; it "
-                f"is left as it is, and nothing was sent (the recording so far is {beside.temp})"
+                "is left as it is, and nothing was sent (the recording of the start-up, "
+                "which sent nothing either, is not kept)"
             )
         try:
             os.rename(beside.temp, beside.target)
