@@ -316,8 +316,6 @@ def _partial_in_use(fd: int, partial: Path, pid: int) -> bool:
     alive and has it open (between making it and taking that lock, or on a file system
     without locks); by anything this cannot tell (a lock refused for another reason, a
     process whose open files this one may not see). Else, this process has its lock."""
-    from handctl.parent_death import process_alive
-
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         opened = os.fstat(fd)
@@ -329,8 +327,12 @@ def _partial_in_use(fd: int, partial: Path, pid: int) -> bool:
         opened.st_ino,
     ):
         return True  # not a recording, or another file at the name since it was opened
-    if not process_alive(pid):
+    try:
+        os.kill(pid, 0)  # whether it exists; one that ended and waits to be reaped has no files
+    except ProcessLookupError:
         return False
+    except (PermissionError, OverflowError):
+        pass  # another user's, or no pid at all: its open files tell, or nothing does
     try:
         fds = os.listdir(f"/proc/{pid}/fd")
     except FileNotFoundError:
