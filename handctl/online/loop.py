@@ -472,7 +472,7 @@ class Runtime:
         sup.start(tick)
         self._enable_owed = self.driver.node_command_unsent("enable")
         self._enable_refusals = 1 if self._enable_owed else 0
-        sup.enable_unsent = ""
+        sup.enable_unsent = self._enable_refused() if self._enable_owed else ""
         if self.trace is not None:  # in the last start-up tick's interval
             self.trace.note(NOTE_STATE)
             self._traced_state = sup.state
@@ -617,15 +617,17 @@ class Runtime:
 
     def _enable_again(self) -> None:
         """Send the enable again to the nodes the bus refused it to, while the supervisor
-        waits for them to say ENABLED; nothing once it has stopped waiting."""
-        if self.supervisor.state is not State.ENABLING:
+        waits for them to say ENABLED (nothing once it has stopped waiting), and tell it what
+        its enable deadline says if it comes before the enable goes."""
+        sup = self.supervisor
+        if sup.state is not State.ENABLING:
             self._enable_owed = []
+            sup.enable_unsent = ""
             return
         self._enable_owed = self.driver.node_command_unsent("enable", self._enable_owed)
         if self._enable_owed:
             self._enable_refusals += 1
-        else:
-            self.supervisor.enable_unsent = ""
+        sup.enable_unsent = self._enable_refused() if self._enable_owed else ""
 
     def _enable_refused(self) -> str:
         """The enable frames that never left the host, and what the bus said of them."""
@@ -1083,8 +1085,6 @@ class Runtime:
             self._owe_estop(ESTOP_OPERATOR)
         elif self._estop_owed:  # refused on an earlier tick: again, until one goes
             self._owe_estop(self._estop_owed)
-        if self._enable_owed:  # what the enable deadline says, if it comes in this tick
-            sup.enable_unsent = self._enable_refused()
         desired, applied, new_faults = self.decide(
             tk.tick, tk.now_ns, tk.missed, t_s, state.angle, state.tdt, events
         )
