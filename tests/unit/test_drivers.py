@@ -19,7 +19,7 @@ from handctl.errors import ConfigError
 from handctl.hand_protocol import check_protocol
 from handctl.online.bus import HandBus
 from handctl.online.drivers.finger import fault_names
-from handctl.online.drivers.hand import AppliedTorques, HandDriver
+from handctl.online.drivers.hand import ESTOP_OPERATOR, AppliedTorques, HandDriver
 from handctl.protocol import Protocol
 
 from ..dbc import decode, load_dbc
@@ -83,7 +83,7 @@ def test_node_commands_and_estop(
     peer = bus_pair[1]
     driver.node_command("enable", nodes=[2])
     driver.node_command("fault_reset")
-    driver.estop(reason=1)
+    driver.send_estop(ESTOP_OPERATOR)
     frames = peer.drain()
     names = [db.get_message_by_frame_id(f.arbitration_id).name for f in frames]
     assert names == ["NodeCommand_2", "NodeCommand_1", "NodeCommand_2", "NodeCommand_3", "EStop"]

@@ -378,12 +378,6 @@ class HandDriver:
                     unsent.append(node.node_id)
         return unsent
 
-    def estop(self, reason: int = 2) -> bool:
-        """Broadcast the e-stop frame (reason 1 operator, 2 host safety, 3 host shutdown)."""
-        data = self._estop_layout.encode(self._estop_counter, (reason,))
-        self._estop_counter = (self._estop_counter + 1) & 0xFF
-        return self.bus.send(self._estop_layout.frame_id, data)
-
     def reject_counts(self) -> dict[str, int]:
         """All rejections, host side: by kind over every node, plus unexpected ids."""
         total = RejectCounts()
