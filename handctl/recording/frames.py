@@ -380,6 +380,8 @@ class _FaultsHeard:
                 # noticed it, once it listened to the nodes it had enabled
                 self.stranger = self.stranger or _another_config(*found, len(frame.data))
                 continue
+            if not found[1].crc_ok(frame.data):
+                continue
             bits = self._read(found[0], found[1], frame.data)
             if bits is not None:
                 out.append(f"node {found[0].node_id} ({found[0].name}, {'+'.join(bits)})")
@@ -394,11 +396,9 @@ class _FaultsHeard:
         return outside_text(outside[0], self.angles, self.limits, True)
 
     def _read(self, finger: FingerConfig, layout: Layout, data: bytes) -> list[str] | None:
-        """The angles a Feedback ``data`` of ``layout`` (its length checked) says kept, and
-        the names of the fault bits it says if it says FAULT ("no fault bits" for none); None
-        if it does not, or fails its CRC (then nothing of it is kept)."""
-        if not layout.crc_ok(data):
-            return None
+        """The angles a Feedback ``data`` of ``layout`` (its length and CRC checked) says
+        kept, and the names of the fault bits it says if it says FAULT ("no fault bits" for
+        none); None if it does not."""
         feedback = self._parse(layout.decode(data)[1])
         first = self._first_joint[finger.node_id]
         joints = len(finger.joints)
