@@ -679,12 +679,20 @@ def _cmd_run_recipe(args: argparse.Namespace) -> int:
         finished()  # the run's result stands from here (``stopsignals.finished``)
     if signals.ignored:
         # taken, not lost: a SIGTERM that exited 0 without a word looked unheard
-        print(
-            f"handctl: {', '.join(dict.fromkeys(signals.ignored))} came after the hand had "
-            "stopped, while the run's log and summary were finished: they were finished first",
-            file=sys.stderr,
+        _came_after_the_stop(
+            signals.ignored,
+            ", while the run's log and summary were finished: they were finished first",
         )
     return code
+
+
+def _came_after_the_stop(names: Sequence[str], then: str) -> None:
+    """Say the stop signals ``names`` that came once the hand had stopped, and ``then``, what
+    became of them: taken, not lost (a SIGTERM that exited without a word looked unheard)."""
+    print(
+        f"handctl: {', '.join(dict.fromkeys(names))} came after the hand had stopped{then}",
+        file=sys.stderr,
+    )
 
 
 def _run_recipe_under(args: argparse.Namespace, signals: StopSignals) -> int:
@@ -2460,11 +2468,7 @@ def _calibration_result(
     stopped = _run_outcome(calibration.report)
     if stopped is not None:
         if signals.ignored:  # the run's own stop, or its fault, is the result
-            print(
-                f"handctl: {', '.join(dict.fromkeys(signals.ignored))} came after the hand "
-                "had stopped: ignored",
-                file=sys.stderr,
-            )
+            _came_after_the_stop(signals.ignored, ": ignored")
         return stopped
     print(
         f"TDT offsets of {hand.name} at zero torque, {calibration.samples} samples "
@@ -2506,10 +2510,8 @@ def _stopped_before_written(names: list[str], what: str) -> int:
     """Exit 130 for the stop signals ``names`` that came once the hand had stopped but before
     the calibration was written: its result is the file, so ``what`` (nothing, or the hand
     config) was not written."""
-    print(
-        f"handctl: {', '.join(dict.fromkeys(names))} came after the hand had stopped, before "
-        f"the calibration was written: {what} (the offsets measured are above)",
-        file=sys.stderr,
+    _came_after_the_stop(
+        names, f", before the calibration was written: {what} (the offsets measured are above)"
     )
     return EXIT_INTERRUPTED
 
@@ -2667,10 +2669,8 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         )
     if signals.ignored:
         # the jog's result is what it measured, which the stop could no longer change
-        print(
-            f"handctl: {', '.join(dict.fromkeys(signals.ignored))} came after the hand had "
-            "stopped, while the jog was finished: ignored, the jog's result stands",
-            file=sys.stderr,
+        _came_after_the_stop(
+            signals.ignored, ", while the jog was finished: ignored, the jog's result stands"
         )
     moved = result.moved
     if moved is not None:
