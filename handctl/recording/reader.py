@@ -20,7 +20,6 @@ whole file, ``StreamReader`` on a truncated one) read the same files; the tests 
 
 from __future__ import annotations
 
-import glob
 import os
 import struct
 import zlib
@@ -38,6 +37,7 @@ from mcap.records import Channel, ChunkIndex, Metadata, MetadataIndex, Schema, S
 
 from handctl.errors import ConfigError, Description, absent
 from handctl.recording import channels as ch
+from handctl.recording.loglock import partials_beside
 from handctl.recording.messages import MessageCheck
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -222,7 +222,7 @@ def _empty_file(path: Path) -> str:
     path's empty placeholder and the recording beside it, which nothing named (an outside
     audit). Of several (runs killed one after another), the newest by its time of change:
     the last by name sorted PIDs as text, and named an older run's of PID 999 over 10000's."""
-    beside = list(path.parent.glob(f".{glob.escape(path.name)}.*.handctl-partial"))
+    beside = partials_beside(path)
     if not beside:
         return "an empty file"
     newest = max(beside, key=lambda p: (_mtime_ns(p), p.name))

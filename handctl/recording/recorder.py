@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
-import glob
 import itertools
 import mmap
 import os
@@ -45,7 +44,7 @@ from handctl.online.safety.faults import FAULTS
 from handctl.online.safety.supervisor import State
 from handctl.online.taps import TAP_RX
 from handctl.recording import channels as ch
-from handctl.recording.loglock import lock_log
+from handctl.recording.loglock import PARTIAL_SUFFIX, lock_log, partials_beside
 from handctl.recording.mcapfile import MAGIC as MCAP_MAGIC
 from handctl.recording.metadata import valid_strings, valid_text
 from handctl.recording.ring import (
@@ -276,10 +275,6 @@ def _open_beside(path: Path) -> tuple[int, _Beside] | None:
     return fd, _Beside(target, held, temp, created)
 
 
-#: The end of the name of a recording written beside its path (``.NAME.PID.handctl-partial``)
-PARTIAL_SUFFIX = ".handctl-partial"
-
-
 def _remove_stale_partials(target: Path) -> None:
     """The recordings beside ``target`` that runs killed in their start-up left, removed and
     said. A run killed (SIGKILL) before it began leaves one (nothing was sent: it holds the
@@ -287,7 +282,7 @@ def _remove_stale_partials(target: Path) -> None:
     outside audit). Called with ``target`` locked for this run: no other run starts on it
     now. One a live writer may still fill is kept (``_partial_in_use``)."""
     prefix = f".{target.name}."
-    for partial in target.parent.glob(f"{glob.escape(prefix)}*{PARTIAL_SUFFIX}"):
+    for partial in partials_beside(target):
         pid = partial.name[len(prefix) : -len(PARTIAL_SUFFIX)]
         if not pid.isdigit() or int(pid) == os.getpid():
             continue  # not a run's name; this process's own was removed already
