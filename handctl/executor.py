@@ -493,7 +493,13 @@ def _dask_pool(address: str) -> WorkPool:
             address, "a Dask scheduler that answers", f"none in {SCHEDULER_ANSWER_S:g} s"
         ) from None
 
-    quiet: list[tuple[logging.Logger, int]] = []
+    # A connection that breaks is logged by the client's background sender with a traceback
+    # as it breaks, which can be before ``lost`` is first asked (a scheduler killed under a
+    # loaded plan): the error raised there says it in one line, so that logger, which logs
+    # nothing else, is held from the start
+    batched = logging.getLogger("distributed.batched")
+    quiet: list[tuple[logging.Logger, int]] = [(batched, batched.level)]
+    batched.setLevel(logging.CRITICAL + 1)
 
     def close(cancel: bool) -> None:
         try:
@@ -510,7 +516,7 @@ def _dask_pool(address: str) -> WorkPool:
             return None
         # its giving up, or being closed while it tries, is logged with a traceback: the
         # error raised here says it all, in one line, so the log is held until it is closed
-        if not quiet:
+        if len(quiet) == 1:
             for name in _DASK_CLIENT_LOGGERS:
                 logger = logging.getLogger(name)
                 quiet.append((logger, logger.level))
