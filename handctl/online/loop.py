@@ -804,11 +804,8 @@ class Runtime:
                     self._bus_events += len(driver.take_bus_events())
                 except Exception:  # polling only feeds the log here: not needed to stop
                     poll_ok = False
-            if n <= ZERO_TICKS_BEFORE_DISABLE:
-                driver.send_zero()
-            if n == ZERO_TICKS_BEFORE_DISABLE:
-                driver.send_disable()
-                disabled_ns = tk.now_ns if tk is not None else None
+            if self._stop_frames(n) and tk is not None:
+                disabled_ns = tk.now_ns
             if tk is not None and recorder_ok and rows_ok:
                 rows_ok = self._record_stop_tick(tk, state)
         if clock_ok and recorder_ok and poll_ok and disabled_ns is not None:
@@ -816,7 +813,29 @@ class Runtime:
             # said after an exception); the hand is stopped whatever this finds
             with contextlib.suppress(Exception):
                 await self._confirm_disabled(disabled_ns)
+        if (self._disable_owed or self._disable_estopped) and not self.disable_unconfirmed:
+            # every node heard stopped, but not by the disable (its watchdog's TIMEOUT, or the
+            # e-stop in the disable's place): the summary says what the bus did to it
+            self.disable_unconfirmed = self._disable_refused()
         return Outcome.SAFETY_STOP, self._exception_stop_message()
+
+    def _stop_frames(self, n: int) -> bool:
+        """The frames of the ``n``-th tick after the one that raised: zero torque up to
+        ``ZERO_TICKS_BEFORE_DISABLE``, the disable on that tick; whether this was the
+        disable's tick. A disable the bus refuses, and the e-stop after it, is owed: sent
+        again on the ticks after and through the wait for the nodes' DISABLED, as at the end
+        of any other run (it went once, and the nodes stayed ENABLED at zero torque until
+        their watchdog acted, nothing said)."""
+        if n <= ZERO_TICKS_BEFORE_DISABLE:
+            self.driver.send_zero()
+        if n == ZERO_TICKS_BEFORE_DISABLE:
+            self._disable_refusals = 0
+            self._disable_estopped = False
+            self._disable_owed = not self._send_disable()
+            return True
+        if n > ZERO_TICKS_BEFORE_DISABLE and self._disable_owed:
+            self._disable_owed = not self._send_disable()
+        return False
 
     def _end_phase_on_exception(self, tk: Tick | None) -> bool:
         """End the phase under way on the exception (it had no end in the summary), and push
@@ -835,19 +854,24 @@ class Runtime:
     def _exception_stop_message(self) -> str:
         message = "; ".join(str(f) for f in self._faults()) + self._estop_said()
         driver = self.driver
+        refused = self._disable_refused()
         if driver.stop_estops and driver.stop_estops_lost == driver.stop_estops:
             message += (
-                "; a stop frame did not go to every node, and neither did the e-stop sent "
-                "after it: the bus took none of them, so a node that missed its zero and "
-                "disable is stopped only by its own command watchdog (FAULT TIMEOUT, cleared "
-                "with --reset-node-faults)"
+                "; a stop frame did not go to every node, and neither did the e-stop sent after it"
+            )
+            if refused and not self._disable_owed:  # the disable went on a later tick
+                return f"{message}; {refused}"
+            message += (
+                ": the bus took none of them, so a node that missed its zero and disable is "
+                "stopped only by its own command watchdog (FAULT TIMEOUT, cleared with "
+                "--reset-node-faults)"
             )
         elif driver.stop_estops:
             message += (
                 "; a stop frame did not go to every node, so the e-stop was sent: each node "
                 "latches FAULT (ESTOP), which the next run clears with --reset-node-faults"
             )
-        return message
+        return f"{message}; {refused}" if refused else message
 
     def _record_stop_tick(self, tk: Tick, state: JointState | None) -> bool:
         """The row of a tick of the stop after an exception, as a fault stop's: zero torque

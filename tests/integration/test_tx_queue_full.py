@@ -239,3 +239,61 @@ def test_an_enable_the_bus_never_takes_is_said_as_the_bus_s(hand: HandConfig, ho
     assert "it never left the host" in first.detail
     assert "not ENABLED in time" not in result.message
     assert not r.commands().any()
+
+
+def runner_raises_at(r: Rig, ticks: int) -> None:
+    """The recipe's runner raises ``ticks`` after the first command, once: the stop after an
+    exception, which sends its frames without the codec (``Runtime._stop_after_exception``)."""
+    runtime = r.runtime
+    runner = runtime.runner
+    assert runner is not None
+    real = runner.advance
+    fired: list[int] = []
+
+    def advance(*args: object, **kwargs: object) -> object:
+        if runtime.tick - runtime.first_send_tick >= ticks and not fired:
+            fired.append(runtime.tick)
+            raise RuntimeError("forced in the runner")
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    runner.advance = advance  # type: ignore[method-assign,assignment]
+
+
+def test_a_disable_the_bus_refuses_after_an_exception_goes_on_a_later_tick(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """The queue is full as the stop after an exception disables the nodes: its disable and
+    the e-stop after it went once each, were refused, and the nodes were left ENABLED (at
+    zero torque) for their watchdog to latch FAULT (TIMEOUT), nothing said. It is sent again
+    on the ticks after, as at the end of any other run, and goes."""
+    with rig(hand, hold) as r:
+        nodes = len(r.runtime.driver.nodes)
+        runner_raises_at(r, AT_TICKS)
+        with queue_full(r, refuse_the_disable(r, nodes + 1)) as refused:
+            result = r.run()
+    assert len(refused) == nodes + 1
+    assert result.outcome is Outcome.SAFETY_STOP
+    assert result.exception is not None
+    assert r.estops() == 0
+    assert result.disable_unconfirmed == ""
+    assert "the bus refused the disable at the end once (tx_queue_full: " in result.message
+    assert "before it went" in result.message
+    assert [n.state for n in r.sim.nodes] == [int(NodeState.DISABLED)] * nodes
+
+
+def test_a_disable_the_bus_never_takes_after_an_exception_is_said(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """Refused on every try after an exception: sent again through the wait, and the
+    message says the nodes may be ENABLED until their watchdog acts."""
+    with rig(hand, hold) as r:
+        nodes = len(r.runtime.driver.nodes)
+        runner_raises_at(r, AT_TICKS)
+        with queue_full(r, refuse_the_disable(r, None)) as refused:
+            result = r.run()
+    assert len(refused) > 2 * (nodes + 1)  # sent again after the first tick's try
+    assert result.outcome is Outcome.SAFETY_STOP
+    assert r.estops() == 0
+    assert "and the e-stop after it, on every tick of the wait" in result.message
+    assert "the bus refused the disable at the end" in result.disable_unconfirmed
+    assert cli._outcome_exit_code(result, {}) == cli.EXIT_SAFETY_STOP
