@@ -214,6 +214,7 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
             objects.add(values)
         elif topic == ch.STATS:
             series.stats = msg
+    _check_tick_rows(recording, timing.size, frames, torque.size + joint.size)
     if phase_name:
         series.phases.append(
             {"name": phase_name, "start_s": phase_start, "end_s": last_t, "tick": phase_tick}
@@ -252,6 +253,30 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     series.frames = frames
     _check_drops(recording, series.stats)
     return series
+
+
+def _check_tick_rows(
+    recording: Recording, rows: int, frames: dict[str, int], tick_messages: int
+) -> None:
+    """Refuse a log of frames (or torques, joint states) and no tick row: a run logs a row
+    for every tick from its first listening one on, and polls and sends only in ticks, so
+    such a log is not a run's, or lost its rows (``/loop/timing`` emptied with the end
+    record's count of it). It was summarised as "0 ticks, complete", exit 0, beside its
+    frames and a table of torques, where ``replay --to-bus`` refused it (an outside audit).
+    A log a run is still writing may hold its first tick's frames a moment before that
+    tick's row (the writer puts frames out before the rows that follow them)."""
+    if rows or recording.being_written or not (frames["rx"] or frames["tx"] or tick_messages):
+        return
+    raise ConfigError(
+        str(recording.path),
+        f"channel {ch.TIMING}",
+        "a tick row for every tick whose frames, torques or joint states the log holds, as "
+        "a run logs them (a log without them is not a run's, or lost them)",
+        Description(
+            f"none, beside {frames['rx']} frames received, {frames['tx']} sent and "
+            f"{tick_messages} messages of {ch.TORQUE} and {ch.JOINT_STATE}"
+        ),
+    )
 
 
 def _check_drops(recording: Recording, stats: dict[str, Any]) -> None:

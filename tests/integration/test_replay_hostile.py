@@ -902,6 +902,29 @@ def test_a_complete_log_whose_channel_lost_its_messages_is_refused(
     assert "found 0 messages" in done.stderr or "found '0 rows'" in done.stderr
 
 
+def test_a_log_with_frames_and_no_tick_row_is_not_summarised_as_a_run(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """Its tick rows taken out, and the end record's count of them with them: the summary
+    said '0 ticks, complete', exit 0, beside 3000 frames and a table of torques, as if
+    nothing were missing, where ``--to-bus`` refuses the same log (safety.md #88). A run logs
+    a row for every tick it polls or sends on: bad input, naming the file."""
+
+    def no_count(name: str, values: dict[str, str]) -> dict[str, str]:
+        return {k: v for k, v in values.items() if not (name == ch.META_END and k == "ticks")}
+
+    bad = tmp_path / "no_ticks.mcap"
+    rewrite(recorded.path, bad, metadata=no_count, empty=(ch.TIMING,))
+    plot = tmp_path / "no_ticks.png"
+    done = handctl("replay", str(bad), "--plot", str(plot))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    said = f"handctl: error: {bad}: channel {ch.TIMING}: expected a tick row for every tick"
+    assert said in done.stderr, done.stderr
+    assert " frames received, " in done.stderr
+    assert "0 ticks" not in done.stdout and not plot.exists()
+
+
 def test_to_bus_sends_nothing_from_a_log_with_a_frame_moved_off_its_tick(
     recorded: Recorded, tmp_path: Path, hand: HandConfig
 ) -> None:
