@@ -80,7 +80,9 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
     timing, torque, joint = _Rows(9), _Rows(1 + 2 * n), _Rows(1 + 2 * n)
     objects: _Rows | None = None
     series = Series(joints)
-    hand = _recorded_hand(recording)
+    # None for a log without one: then no limits to hold the torques to, and no scene. One
+    # that does not read, or not as its digest says, is refused (it was read as none here)
+    hand = recorded_hand(recording, required=False)
     limits = (
         [j.tau_max * (1 + 1e-9) for j in hand.joints]
         if hand is not None and hand.n_joints == n
@@ -297,18 +299,9 @@ def _check_drops(recording: Recording, stats: dict[str, Any]) -> None:
             )
 
 
-def _recorded_hand(recording: Recording) -> HandConfig | None:
-    """The recorded hand config, or None for a log without one or whose hand does not read
-    (then the summary has no limits to hold the torques to, and no scene)."""
-    try:
-        return recorded_hand(recording, required=False)
-    except ConfigError:
-        return None
-
-
 def _phase_names(recording: Recording) -> frozenset[str] | None:
     """What the phase channel may say: the recorded recipe's phases and the runner's own
-    statuses; None for a log without a recipe that reads (nothing to hold the names to)."""
+    statuses; None for a log without a recipe (nothing to hold the names to)."""
     from handctl.online.recipes.runner import RunStatus
     from handctl.recording.replay import NOT_PHASES
 
@@ -321,15 +314,17 @@ def _phase_names(recording: Recording) -> frozenset[str] | None:
 
 
 def recorded_recipe_or_none(recording: Recording) -> Recipe | None:
-    """The recording's recipe, or None when it has none that parses for its hand."""
-    from handctl.errors import HandctlError
+    """The recording's recipe, or None for a log without one (no recipe record, or no hand
+    to read it for). One that is there and does not read for the recorded hand is refused as
+    the re-run refuses it: every refusal was caught here, and the summary and the plot of a
+    log whose recipe was given another hand config's hash (the digest of the hand it was
+    compiled for) went on as for a log of no recipe, exit 0 (an outside audit)."""
     from handctl.recording.metadata import recorded_recipe
 
-    try:
-        hand = recorded_hand(recording, required=False)
-        return recorded_recipe(recording, hand) if hand is not None else None
-    except HandctlError:
+    hand = recorded_hand(recording, required=False)
+    if hand is None or not recording.meta(ch.META_RECIPE, "yaml"):
         return None
+    return recorded_recipe(recording, hand)
 
 
 def line_pairs(recipe: Recipe | None, names: Sequence[str]) -> list[tuple[str, int, int]]:

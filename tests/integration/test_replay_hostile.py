@@ -314,6 +314,32 @@ def test_a_hand_or_protocol_edited_with_its_digest_taken_out_is_refused(
         ) in done.stderr
 
 
+def test_a_recipe_recorded_for_another_hand_is_refused_by_the_summary_and_the_plot(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """The recorded recipe given another hand config's hash: the re-run refuses it, but the
+    summary and the plot caught that refusal and went on as for a log without a recipe (its
+    phases held to nothing, its pairs guessed), exit 0. Bad input, naming the file."""
+    bad = tmp_path / "other_hand.mcap"
+    other = "sha256:" + "0" * 64
+
+    def metadata(name: str, values: dict[str, str]) -> dict[str, str]:
+        if name != ch.META_RECIPE:
+            return values
+        return values | {"yaml": values["yaml"] + f"hand_config_hash: '{other}'\n"}
+
+    rewrite(recorded.path, bad, metadata=metadata)
+    plot = tmp_path / "other_hand.png"
+    done = handctl("replay", str(bad), "--plot", str(plot))
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"handctl: error: {bad} (its recorded recipe): hand_config_hash: expected " in (
+        done.stderr
+    )
+    assert f"found '{other}'" in done.stderr
+    assert not plot.exists()
+
+
 # -- tick rows out of sequence ----------------------------------------------------------------
 @pytest.mark.parametrize("tick", [299, 400])  # a negative tick: the message check above
 def test_a_tick_row_out_of_sequence_in_a_whole_log_is_refused(
