@@ -168,6 +168,16 @@ class SignalSpec:
         ends = (lo * self.scale + self.offset, hi * self.scale + self.offset)
         return min(ends), max(ends)
 
+    def decoded_range(self) -> tuple[float, float]:
+        """The physical values a decode of the signal can give (low, high): all its bits
+        hold, the DBC's range aside, since ``decode`` clips nothing. No value read off the
+        wire lies outside it, so a log's value beyond it was never read (a joint angle of
+        1e9 rad: ``handctl/recording/series.py``). Computed as ``decode`` scales, so its
+        ends are exactly the values a decode of the extreme raw values gives."""
+        lo, hi = _bit_bounds(self)
+        ends = (lo * self.scale + self.offset, hi * self.scale + self.offset)
+        return min(ends), max(ends)
+
 
 _STRUCT_CODES = {
     (8, False): "B",
@@ -329,12 +339,15 @@ class Layout:
         self.fast_source = source
 
 
+def _bit_bounds(sig: SignalSpec) -> tuple[int, int]:
+    """The raw range the signal's bits hold."""
+    bits = sig.size_bits
+    return (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if sig.signed else (0, (1 << bits) - 1)
+
+
 def _raw_bounds(sig: SignalSpec) -> tuple[float, float]:
     """The raw range a value may take: the DBC's physical range within what the bits hold."""
-    bits = sig.size_bits
-    lo_bits, hi_bits = (
-        (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if sig.signed else (0, (1 << bits) - 1)
-    )
+    lo_bits, hi_bits = _bit_bounds(sig)
     if sig.minimum == sig.maximum == 0:  # no range given in the DBC: the bits decide
         return lo_bits, hi_bits
     lo = math.ceil(round((sig.minimum - sig.offset) / sig.scale, 6))

@@ -11,9 +11,10 @@ import numpy as np
 
 from handctl.arrays import FloatArray
 from handctl.errors import ConfigError, Description
+from handctl.hand_protocol import protocol_for
 from handctl.recording import channels as ch
 from handctl.recording.messages import MessageCheck
-from handctl.recording.metadata import recorded_hand
+from handctl.recording.metadata import recorded_hand, recorded_protocol
 from handctl.recording.reader import Recording, iter_decoded, iter_messages
 from handctl.recording.ring import RECORDED_STAGES
 
@@ -88,6 +89,7 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
         if hand is not None and hand.n_joints == n
         else None
     )
+    angles = _angle_ranges(recording, hand) if hand is not None and hand.n_joints == n else None
     t0: int | None = None
     tick0: int | None = None  # tick 0's scheduled time (ns)
     period_ns = recording.meta_int(ch.META_RUN, "period_ns", 1_000_000, minimum=1)
@@ -171,7 +173,10 @@ def load_series(recording: Recording) -> Series:  # noqa: C901 - one branch per 
                 _check_applied(recording, log_time, msg, applied, limits, joints)
             torque.add([t, *json_floats(msg["desired_nm"]), *applied])
         elif topic == ch.JOINT_STATE:
-            joint.add([t, *json_floats(msg["tdt_torque_nm"]), *json_floats(msg["angle_rad"])])
+            angle = json_floats(msg["angle_rad"])
+            if angles is not None:
+                _check_angles(recording, log_time, msg, angle, angles, joints)
+            joint.add([t, *json_floats(msg["tdt_torque_nm"]), *angle])
         elif topic == ch.PHASE:
             name = msg["phase"]
             if names is not None and name not in names:
@@ -376,6 +381,51 @@ def _check_applied(
                 Description("null (NaN), which the supervisor never applies")
                 if math.isnan(value)
                 else value,
+            )
+
+
+#: What a joint's angle is read off: the Feedback message of its node, and its signal there
+AngleRange = tuple[str, float, float]
+
+
+def _angle_ranges(recording: Recording, hand: HandConfig) -> list[AngleRange]:
+    """Each joint's Feedback angle signal (``Feedback_n.Anglek``) and the angles a decode of
+    it can give (rad), in the recorded protocol (the packaged one the hand generates for a
+    log from before it was recorded). The bound of a logged angle that a run's log can never
+    pass, whatever its hand or DBC: the host's angles are those decodes, a joint past its
+    soft limits included (``wirelimits`` keeps the limits inside the signal's range), so
+    even a broken or hostile node reads within it. A joint's limits and a margin would be
+    a guess of how far a real joint can overshoot."""
+    protocol = recorded_protocol(recording) or protocol_for(hand)
+    ranges: list[AngleRange] = []
+    for finger in hand.fingers:
+        layout = protocol.layout("Feedback", finger.node_id)
+        signals = {s.name: s for s in layout.signals}
+        for k in range(len(finger.joints)):
+            lo, hi = signals[f"Angle{k + 1}"].decoded_range()
+            ranges.append((f"{layout.name}.Angle{k + 1}", lo, hi))
+    return ranges
+
+
+def _check_angles(
+    recording: Recording,
+    log_time: int,
+    msg: dict[str, Any],
+    angles: list[float],
+    ranges: list[AngleRange],
+    joints: list[str],
+) -> None:
+    """Refuse a joint angle no Feedback frame can carry (``_angle_ranges``): a garbled or
+    edited log's 1e9 rad was summarised and plotted as a joint's angle. A null (NaN) is the
+    writer's for a number it could not write, and passes: it claims no angle."""
+    for j, (value, (signal, lo, hi)) in enumerate(zip(angles, ranges, strict=True)):
+        if not lo <= value <= hi and not math.isnan(value):
+            raise ConfigError(
+                str(recording.path),
+                f"{ch.JOINT_STATE} message at log time {log_time} ns (tick {msg['tick']}): "
+                f"angle_rad[{j}] ({joints[j]})",
+                f"an angle {signal} can carry, {lo:g}..{hi:g} rad (a run reads it there)",
+                value,
             )
 
 

@@ -928,6 +928,36 @@ def test_a_complete_log_whose_channel_lost_its_messages_is_refused(
     assert "found 0 messages" in done.stderr or "found '0 rows'" in done.stderr
 
 
+@pytest.mark.parametrize(("value", "shown"), [(1e9, "1000000000.0"), (-3.3, "-3.3")])
+def test_a_joint_angle_no_feedback_frame_can_carry_is_refused(
+    recorded: Recorded, tmp_path: Path, value: float, shown: str
+) -> None:
+    """A joint's angle of 1e9 rad in one message (a garbled or edited log) was summarised and
+    plotted as its angle, exit 0. The host reads its angles off the Feedback frames, so none
+    a run logs is beyond what the angle signal's bits carry (here 16 bits of 0.0001 rad): bad
+    input, naming the message, the joint and both values, before a re-run or anything sent."""
+    bad = tmp_path / "angle.mcap"
+    rewrite(recorded.path, bad, one_message(ch.JOINT_STATE, 300, angle_of(1, value)))
+    done = handctl("replay", str(bad), "--rerun", "--to-bus", "virtual:angle")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"handctl: error: {bad}: {ch.JOINT_STATE} message at log time " in done.stderr
+    assert (
+        "angle_rad[1] (f1_j2): expected an angle Feedback_1.Angle2 can carry, "
+        f"-3.2768..3.2767 rad (a run reads it there), found {shown}"
+    ) in done.stderr
+    assert "frames sent" not in done.stdout + done.stderr and "rerun:" not in done.stdout
+
+
+def angle_of(joint: int, value: float) -> Callable[[bytes], bytes]:
+    def alter(raw: bytes) -> bytes:
+        msg = json.loads(raw)
+        msg["angle_rad"][joint] = value
+        return json.dumps(msg).encode()
+
+    return alter
+
+
 def test_a_log_with_frames_and_no_tick_row_is_not_summarised_as_a_run(
     recorded: Recorded, tmp_path: Path
 ) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from handctl.errors import ConfigError, ProtocolError
-from handctl.protocol import DEFAULT_DBC, NodeState, crc8, load_protocol
+from handctl.protocol import DEFAULT_DBC, NodeState, SignalSpec, crc8, load_protocol
 from handctl.protocol import Protocol as Proto
 
 
@@ -77,6 +77,25 @@ def test_out_of_range_is_refused_not_wrapped(protocol: Proto, value: float) -> N
     layout = protocol.layout("TorqueCommand", 2)
     with pytest.raises(ProtocolError, match=r"TorqueCommand_2\.Torque2: expected a value in"):
         layout.encode(0, (0.0, value, 0.0))
+
+
+def test_a_decode_gives_no_value_beyond_the_signal_s_decoded_range(protocol: Proto) -> None:
+    """A log's value beyond ``decoded_range`` was never read off the wire (a joint angle of
+    1e9 rad): its ends are what the extreme raw values decode to, exactly, whatever range
+    the DBC declares, since a decode clips nothing."""
+    layout = protocol.layout("Feedback", 1)
+    angle = layout.signals[3]
+    assert angle.name == "Angle1" and angle.offset_byte == 8
+    data = bytearray(layout.encode(0, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1, 0)))
+    ends = []
+    for raw in (-(1 << 15), (1 << 15) - 1):
+        data[8:10] = raw.to_bytes(2, "little", signed=True)
+        ends.append(layout.decode(bytes(data))[1][3])
+    assert tuple(ends) == angle.decoded_range() == (-3.2768, 3.2767)
+    # a DBC's range narrower than the bits: what is carried within it, what decodes beyond
+    narrow = SignalSpec("X", 0, 8, False, 0.5, 1.0, 0.0, 10.0, "")
+    assert narrow.carried_range() == (1.0, 10.0)
+    assert narrow.decoded_range() == (1.0, 128.5)
 
 
 def test_wrong_number_of_values(protocol: Proto) -> None:
