@@ -2597,7 +2597,8 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         f"jog {args.joint} with {args.torque:+g} N·m for {seconds:g} s{until} on "
         f"{escaped(args.bus)}, "
         + (
-            "every other joint at zero (the soft-limit guard is off in a recovery) "
+            "every other joint at zero (the soft-limit guard is off in a recovery, but "
+            f"for the limit the torque pushes {args.joint} towards) "
             if args.recover
             else "every other joint at zero unless the soft-limit guard pushes it back "
         )

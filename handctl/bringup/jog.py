@@ -20,13 +20,18 @@ stop at speed, on its mechanical stop), which no other run can arm with. The sup
 allows that joint, and only it, outside its limits as long as it comes back in
 (``handctl/online/safety/recovery.py``); the phase ends as soon as the joint is ``GUARD_BAND``
 inside its range, so that the next run's soft-limit guard starts with it at rest outside its
-band. The guard is off for a recovery: at and beyond the limit it asks for the joint's whole
-``tau_max``, a shove where a recovery wants the small torque the user chose.
+band. The guard is off for a recovery but on one side of one joint: at and beyond the limit
+the joint comes from it asks for the joint's whole ``tau_max``, a shove where a recovery wants
+the small torque the user chose. The side the torque pushes the joint towards keeps it
+(``recovery_guard``): the end ramp after the exit is ``MIN_RAMP_S`` at least, and under the
+torque still in it a joint that came in at speed went on through its range into the other
+soft limit (``ANGLE_LIMIT``, exit 3, on a range of 0.6 rad).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -258,7 +263,8 @@ def jog_recipe(
 ) -> Recipe:
     """The one-phase jog; refused (``ConfigError``) over ``tau_max``, naming the limit. With
     ``recover``: the phase ``recover``, which ends once the joint is ``GUARD_BAND`` inside its
-    range on the side the torque pushes towards, without the guard."""
+    range on the side the torque pushes towards, guarded only from the limit the torque
+    pushes it towards (``recovery_guard``)."""
     j = joint_index(hand, joint)
     spec = hand.joints[j]
     most = JOG_SHARE * spec.tau_max
@@ -315,6 +321,7 @@ def jog_recipe(
         hand,
         [back],
         ramp,
+        guard=recovery_guard(hand, joint, torque),
     )
 
 
@@ -335,6 +342,32 @@ def jog_guard(hand: HandConfig, torque: float) -> LimitGuard:
         for side in ("lower", "upper")
     ]
     return LimitGuard.for_hand(hand, GUARD_BAND, springs=springs, push_max=2 * abs(torque))
+
+
+def recovery_guard(hand: HandConfig, joint: str, torque: float) -> LimitGuard:
+    """The recovery's guard: the jog's (``jog_guard``) on the recovered joint's far side
+    alone, the limit its ``torque`` pushes it towards; every other side of every joint is
+    unguarded (its band at infinity).
+
+    The phase ends ``GUARD_BAND`` inside, and the end ramp's torque, still pushing, carried a
+    joint that came in at speed through a range of 0.6 rad into its other limit (found by an
+    outside audit). Only that side: the near one would shove a joint still outside with up
+    to twice the recovery's torque, and another joint resting outside (a sagging finger) is
+    held by the supervisor's ratchet, not pushed."""
+    full = jog_guard(hand, torque)
+    j = joint_index(hand, joint)
+    down = torque < 0  # towards the lower limit
+
+    def kept(values: tuple[float, ...], side_kept: bool, off: float) -> tuple[float, ...]:
+        return tuple(v if k == j and side_kept else off for k, v in enumerate(values))
+
+    return dataclasses.replace(
+        full,
+        lower=kept(full.lower, down, -math.inf),
+        spring_lower=kept(full.spring_lower, down, -math.inf),
+        upper=kept(full.upper, not down, math.inf),
+        spring_upper=kept(full.spring_upper, not down, math.inf),
+    )
 
 
 def recovered_condition(hand: HandConfig, joint: str, torque: float) -> Condition:

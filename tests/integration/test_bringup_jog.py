@@ -431,6 +431,27 @@ def test_recover_brings_it_back_inside_and_ends_there(hand: HandConfig) -> None:
     assert 0 < commands[:, J3].max() <= PUSH  # no more than asked for: the guard is off
 
 
+def test_a_recovery_that_comes_in_at_speed_ends_inside_the_far_limit(tmp_path: Path) -> None:
+    """The phase ends 0.15 rad inside, and the end ramp after it (0.2 s at least) had no
+    guard: under the torque still in it, a joint of a 0.55 rad range that came in at speed
+    went on into its other soft limit, a latched ANGLE_LIMIT (exit 3; found by an outside
+    audit). The guard on the side the torque pushes towards holds it inside."""
+    doc = yaml.safe_load(HAND_YAML.read_text(encoding="utf-8"))
+    doc["fingers"][0]["joints"][J3]["angle_max"] = -0.35
+    doc["sim"]["initial_angles"]["f1"][J3] = -0.5  # inside, for the config; the run's outside
+    path = tmp_path / "narrow.yaml"
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    narrow = load_hand(path)
+    spec = narrow.joints[J3]
+    recovery = Recovery(J3, +1)
+    _, result, angles = recovery_run(narrow, spec.tau_max, recovery)
+    assert result.outcome is Outcome.COMPLETED, result.message
+    assert recovery.needed and recovery.back_tick > 0
+    assert result.phases[0]["exit"].startswith("angle.f1_j3 >")
+    assert max(angles) < spec.angle_max, max(angles)
+    assert spec.angle_min <= angles[-1] <= spec.angle_max
+
+
 def test_recover_the_wrong_way_is_refused_before_any_torque(hand: HandConfig) -> None:
     bench, result, _ = recovery_run(hand, -PUSH, Recovery(J3, -1))
     assert result.outcome is Outcome.SAFETY_STOP
@@ -450,7 +471,10 @@ def test_recover_says_when_there_was_nothing_to_recover(
     out = capsys.readouterr().out
     assert "f1_j1 was inside its soft limits [-1, +1.9] rad" in out
     # the guard is off in a recovery: the banner said it might push the other joints
-    assert "every other joint at zero (the soft-limit guard is off in a recovery)" in out
+    assert (
+        "every other joint at zero (the soft-limit guard is off in a recovery, but for the "
+        "limit the torque pushes f1_j1 towards)"
+    ) in out
 
 
 RECOVER = [sys.executable, "-m", "handctl", "jog", "f1_j3", "--torque", str(PUSH), "--recover"]
