@@ -13,7 +13,7 @@ import copy
 import hashlib
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -576,6 +576,25 @@ def _parse_joint(doc: Doc) -> JointConfig:
 
 #: keys a log's per-tick joint message (``/hand/joints``) has beside the joints' names
 RESERVED_JOINT_NAMES = ("tick",)
+#: The scene's own parts, each with what it is: the simulated hand's model names its bodies
+#: by them (``world`` is MuJoCo's own), and a log's Foxglove frame tree is rooted at
+#: ``world`` (``handctl/foxglove/scene.py``). Each finger's base adds ``<finger>_base``.
+SCENE_NAMES = {
+    "world": "the scene's root frame",
+    "palm": "the scene's palm",
+    "table": "the scene's table",
+}
+
+
+def scene_names(fingers: Sequence[FingerConfig]) -> dict[str, str]:
+    """Every name the scene takes for itself, with what has it: ``SCENE_NAMES`` and each
+    finger's ``<finger>_base``. A joint's frame and its simulated body carry the joint's
+    name, so a joint named like one of these is two things under one name: a model that
+    does not build, or a frame tree with a cycle (a joint ``world``) or a frame with two
+    parents (a joint ``<finger>_base``), in every log of the hand, simulated or not."""
+    taken = {f"{f.name}_base": f"the base of {f.name}" for f in fingers}
+    taken |= SCENE_NAMES
+    return taken
 
 
 def _check_unique(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
@@ -629,7 +648,10 @@ def _whose_id(fingers: tuple[FingerConfig, ...], owner: int | None, can_id: int)
 
 def _check_names(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
     """Finger and joint names by ``PART_NAME``, as objects' are by ``OBJECT_NAME``: a joint
-    a recipe condition cannot name cannot be waited on, and names are printed as they are."""
+    a recipe condition cannot name cannot be waited on, and names are printed as they are.
+    And no joint is named like the scene (``scene_names``): refused for the simulated hand
+    alone, a hand without ``sim:`` recorded a frame tree that was no tree."""
+    taken = scene_names(fingers)
     for i, finger in enumerate(fingers):
         if not PART_NAME.match(finger.name):
             _fail_at(
@@ -644,7 +666,7 @@ def _check_names(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
                 _fail_at(
                     doc,
                     f"fingers[{i}].joints[{k}].name",
-                    f"{PART_NAME_RULE} (e.g. index_base): recipe conditions name a joint by it "
+                    f"{PART_NAME_RULE} (e.g. index_j1): recipe conditions name a joint by it "
                     "(angle.NAME, tdt.NAME)",
                     joint.name,
                 )
@@ -656,6 +678,15 @@ def _check_names(doc: Doc, fingers: tuple[FingerConfig, ...]) -> None:
                     f"fingers[{i}].joints[{k}].name",
                     f"a name other than {', '.join(RESERVED_JOINT_NAMES)} (a log's joint "
                     "messages carry that key beside the joints' names)",
+                    joint.name,
+                )
+            if joint.name in taken:
+                _fail_at(
+                    doc,
+                    f"fingers[{i}].joints[{k}].name",
+                    f"a name the scene does not take ({joint.name!r} is {taken[joint.name]}: "
+                    "a log's frame tree, world -> <finger>_base -> <joint>, and the simulated "
+                    "hand name the joint's frame and body by it)",
                     joint.name,
                 )
 

@@ -6,7 +6,8 @@ checked once, when the section is read, and refused with the key to change:
 
 - every object's name is its own: MuJoCo names each body, geom and joint, and an object called
   like a link (or ``palm``) would be a model that does not build, or a contact on the wrong body;
-  for the same reason no joint may be called ``palm``, ``table`` or ``<finger>_base``;
+  for the same reason no joint may be called ``palm``, ``table``, ``world`` or
+  ``<finger>_base`` (``config.scene_names``, which the hand config refuses for every hand);
 - objects lie between the table and the palm face, clear of one another;
 - each object is within reach of at least one finger (its surface nearer to the finger's base
   than the finger is long, and the finger beside it along z);
@@ -33,7 +34,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from handctl.config import HandConfig
+from handctl.config import HandConfig, scene_names
 from handctl.errors import ConfigError
 from handctl.schema import Doc
 
@@ -46,10 +47,6 @@ _TOUCH = 1e-9
 #: m, how far above what holds it an object may start and still rest on it (its place written
 #: to the millimetre).
 SUPPORT_GAP = 0.001
-#: The names the MuJoCo model gives the scene's own bodies and geoms.
-#: ``world`` too: MuJoCo's own body, which a joint or an object of that name clashed with in
-#: MuJoCo's XML parser (an error naming a line of XML the user never wrote)
-_SCENE_NAMES = ("palm", "table", "world")
 #: Object joints are named after the object with these suffixes (``handctl/sim/plant.py``).
 OBJECT_JOINT_SUFFIXES = ("_x", "_y", "_rz")
 
@@ -153,8 +150,11 @@ def check_placement(hand: HandConfig, params: SimParams, doc: Doc) -> None:
 
 
 def _check_names(hand: HandConfig, params: SimParams, doc: Doc) -> None:
-    taken = {f"{f.name}_base": f"the base of {f.name}" for f in hand.fingers}
-    taken |= {name: "the scene" for name in _SCENE_NAMES}
+    # the MuJoCo model names the scene's bodies and geoms so (``world`` is MuJoCo's own
+    # body: a joint or object of that name clashed in its XML parser, an error naming a line
+    # of XML the user never wrote). A hand config read to run refuses such a joint already
+    # (``config.scene_names``); a recording's hand is read with the names it ran with
+    taken = scene_names(hand.fingers)
     top = Doc({}, doc.file, "")
     for i, finger in enumerate(hand.fingers):
         for k, joint in enumerate(finger.joints):

@@ -73,6 +73,25 @@ def pool_has(pool: descriptor_pool.DescriptorPool, name: str) -> bool:
     return True
 
 
+def test_every_frame_of_the_tree_but_the_joints_is_a_name_the_scene_takes(
+    hand: HandConfig,
+) -> None:
+    """The frames ``HandScene.transforms`` puts in ``/foxglove/tf``, other than the joints',
+    are the names the hand config keeps joints off (``config.scene_names``): a joint named
+    like one made a cycle or a frame of two parents. A frame added to the tree is added
+    there."""
+    from handctl.config import scene_names
+    from handctl.foxglove.scene import HandScene
+
+    message = HandScene(hand).transforms(0, [0.0] * hand.n_joints)
+    schema = message.get_schema()
+    tree = decoder(schema.name, schema.data).FromString(message.encode()).transforms
+    frames = {t.parent_frame_id for t in tree} | {t.child_frame_id for t in tree}
+    assert frames - set(hand.joint_names) <= set(scene_names(hand.fingers))
+    children = [t.child_frame_id for t in tree]
+    assert len(children) == len(set(children))  # one parent each
+
+
 @dataclass
 class Live:
     advertised: dict[str, dict[str, Any]] = field(default_factory=dict)

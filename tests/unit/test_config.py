@@ -299,6 +299,20 @@ def test_a_joint_may_not_take_a_key_of_the_log_s_joint_messages(
     assert "a name other than tick" in err.expected
 
 
+@pytest.mark.parametrize("name", ["world", "palm", "table", "f1_base", "f2_base"])
+def test_a_joint_may_not_take_a_name_of_the_scene_even_without_a_simulated_hand(
+    tmp_path: Path, base: dict[str, Any], name: str
+) -> None:
+    """Only the simulated hand refused these: a hand without ``sim:`` ran with a joint named
+    ``world`` or ``f1_base``, and every log of it had a Foxglove frame tree with a cycle or a
+    frame of two parents (found by an outside audit)."""
+    del base["sim"]
+    joint_of(base, 1, 2)["name"] = name
+    err = error_for(tmp_path, base)
+    assert (err.key, err.found) == ("fingers[1].joints[2].name", name)
+    assert err.expected.startswith(f"a name the scene does not take ({name!r} is ")
+
+
 #: names check took: no recipe condition could name the first three (``angle.NAME`` is
 #: ``[A-Za-z0-9_]+``), and the escape sequence and the newlines were printed raw by check,
 #: nodes and a run's summary
