@@ -21,8 +21,9 @@ not know, by family (``FAMILIES``; the defaults of ``Spread`` are the ranges bel
 - ``sensors``: the TDT's per-sensor bias and white noise ×0.5..×2 of the configured ones.
 
 Cylinders are always put back as high above the table as configured (on it, where the
-configured ones lie on it), side by side at their configured gaps, moved by the drawn one, so
-the scene stays valid (no start in collision between objects) and stays the hand's.
+configured ones lie on it), side by side at their configured gaps, moved by the drawn one, and
+one resting on others back on them, at its configured gaps from them, so the scene stays valid
+(no start in collision between objects) and stays the hand's.
 ``Spread.only(family)`` varies one family and keeps the rest nominal, which is how a bench
 tells which family a recipe is fragile to.
 """
@@ -47,6 +48,7 @@ from handctl.sim.params import (
     ObjectParams,
     SimParams,
 )
+from handctl.sim.placement import resting_on
 
 #: m, the gap of the shipped pair, from which a drawn gap moves any configured one.
 SIDE_GAP = 0.002
@@ -204,7 +206,9 @@ def perturb(params: SimParams, rng: Draws, spread: Spread, hand: HandConfig | No
     shift = float(rng.uniform(-spread.placement, spread.placement))
     gap = float(rng.uniform(*spread.gap)) if spread.gap is not None else None
     scales["placement_m"] = shift
-    if gap is not None and len(params.objects) >= 2:  # one object has no gap to vary
+    # one object on the table has no gap to vary (those on others follow what holds them)
+    on_the_table = len(params.objects) - len(resting_on(params.objects, params.table_height))
+    if gap is not None and on_the_table >= 2:
         scales["gap_m"] = gap
     initial = params.initial_angles
     if hand is not None and spread.initial_angles > 0:
@@ -258,12 +262,13 @@ def _with(
     configured gap between surfaces moved by what ``gap`` moves a pair's (``SIDE_GAP`` to
     ``gap``, never below touching), so that objects scaled larger never start inside each
     other (an outside audit found four rods overlapping by up to 2.3 mm and kicked apart
-    in the first 20 ms, and one object never shifted). The gaps and heights kept are those
-    of ``configured`` (``params`` unless given): the hand's, where ``params`` is a model
-    drawn from it already."""
+    in the first 20 ms, and one object never shifted). An object resting on others
+    (``placement.resting_on``) is no part of that row: it is put back on what holds it
+    (``_on_top``). The gaps and heights kept are those of ``configured`` (``params`` unless
+    given): the hand's, where ``params`` is a model drawn from it already."""
     given = (configured or params).objects
-    objects = []
-    mid = sum(o.x for o in params.objects) / len(params.objects) + shift
+    stacked = resting_on(given, params.table_height)
+    scaled = []
     for k, (obj, placed) in enumerate(zip(params.objects, given, strict=True)):
         r = obj.radius * radius[k]
         # as high above the table as configured: on it for a hand under gravity, where the
@@ -273,7 +278,37 @@ def _with(
         # to the bit.
         above = round(max(0.0, placed.y - placed.radius - params.table_height), 9)
         y = params.table_height + r + above
-        objects.append(dataclasses.replace(obj, radius=r, mass=obj.mass * mass[k], y=y))
+        scaled.append(dataclasses.replace(obj, radius=r, mass=obj.mass * mass[k], y=y))
+    row = [k for k in range(len(scaled)) if k not in stacked]
+    objects = list(scaled)
+    laid = _laid_out(
+        [params.objects[k] for k in row],
+        [scaled[k] for k in row],
+        shift,
+        gap,
+        [given[k] for k in row],
+    )
+    for k, obj in zip(row, laid, strict=True):
+        objects[k] = obj
+    # from the bottom up: what holds an object lies lower, and is placed before it
+    for k in sorted(stacked, key=lambda k: given[k].y):
+        below = [(given[i], objects[i]) for i in stacked[k][:2]]
+        objects[k] = _on_top(objects[k], given[k], below)
+    return dataclasses.replace(params, friction=friction, objects=tuple(objects))
+
+
+def _laid_out(
+    current: Sequence[ObjectParams],
+    objects: list[ObjectParams],
+    shift: float,
+    gap: float | None,
+    given: Sequence[ObjectParams],
+) -> list[ObjectParams]:
+    """The objects on the table (or free), scaled (``objects``), laid out along it: from
+    where they are (``current``), at the gaps and heights of ``given`` (``_with``)."""
+    if not objects:
+        return []
+    mid = sum(o.x for o in current) / len(current) + shift
     if len(objects) == 2:
         # the configured gap, moved by what a drawn one moves ``SIDE_GAP``: a pair configured
         # 20 mm apart was pushed to 2 mm in every model, in families that vary no placement
@@ -285,16 +320,14 @@ def _with(
         left, right = (a, b) if a.x <= b.x else (b, a)
         left = dataclasses.replace(left, x=mid - gap / 2 - left.radius)
         right = dataclasses.replace(right, x=mid + gap / 2 + right.radius)
-        objects = [left, right] if a.x <= b.x else [right, left]
-    elif len(objects) == 1:
-        objects = [dataclasses.replace(objects[0], x=objects[0].x + shift)]
-    else:
-        objects = _in_a_row(params, objects, shift, gap, given)
-    return dataclasses.replace(params, friction=friction, objects=tuple(objects))
+        return [left, right] if a.x <= b.x else [right, left]
+    if len(objects) == 1:
+        return [dataclasses.replace(objects[0], x=objects[0].x + shift)]
+    return _in_a_row(current, objects, shift, gap, given)
 
 
 def _in_a_row(
-    params: SimParams,
+    current: Sequence[ObjectParams],
     scaled: list[ObjectParams],
     shift: float,
     gap: float | None,
@@ -302,9 +335,9 @@ def _in_a_row(
 ) -> list[ObjectParams]:
     """Three or more objects laid out along the table in their configured order, their
     configured gaps kept (moved by ``gap - SIDE_GAP`` when ``gap`` is drawn), the row's
-    middle (``params``') moved by ``shift``; the gaps are ``configured``'s."""
-    order = sorted(range(len(scaled)), key=lambda k: params.objects[k].x)
-    given = [params.objects[k] for k in order]
+    middle (``current``'s) moved by ``shift``; the gaps are ``configured``'s."""
+    order = sorted(range(len(scaled)), key=lambda k: current[k].x)
+    given = [current[k] for k in order]
     gaps = []
     for a, b in itertools.pairwise([configured[k] for k in order]):
         between = max(0.0, (b.x - b.radius) - (a.x + a.radius))
@@ -317,6 +350,59 @@ def _in_a_row(
         out[k] = dataclasses.replace(scaled[k], x=edge + scaled[k].radius)
         edge += 2 * scaled[k].radius + (gaps[n] if n < len(gaps) else 0.0)
     return out
+
+
+def _on_top(
+    obj: ObjectParams,
+    placed: ObjectParams,
+    below: Sequence[tuple[ObjectParams, ObjectParams]],
+) -> ObjectParams:
+    """``obj`` (scaled) put back on what holds it: ``below``, each as configured and as
+    already put back in this model, nearest first. Laid out in the row along the table, an
+    object stacked on another was set beside it, at its own height, over nothing: it fell at
+    the first step, and every model but the nominal one was a scene not the hand's (found by
+    an outside audit).
+
+    Each contact keeps its configured gap between surfaces, so the object moves with what
+    holds it, by the change of that one's radius and its own: along the line of their
+    centres on one object, and where the two circles of such centres meet on two (the side
+    it was configured on), or as on the nearest alone where they do not (two grown apart
+    beyond its reach: then it clears the other one)."""
+
+    def reach(conf: ObjectParams, now: ObjectParams) -> float:
+        apart = math.hypot(placed.x - conf.x, placed.y - conf.y)
+        return apart - conf.radius - placed.radius + now.radius + obj.radius
+
+    (conf_a, a), *rest = below
+    reach_a = reach(conf_a, a)
+    if rest:
+        conf_b, b = rest[0]
+        side = (conf_b.x - conf_a.x) * (placed.y - conf_a.y) - (conf_b.y - conf_a.y) * (
+            placed.x - conf_a.x
+        )
+        met = _circles_meet(a, reach_a, b, reach(conf_b, b), 1.0 if side >= 0 else -1.0)
+        if met is not None:
+            return dataclasses.replace(obj, x=met[0], y=met[1])
+    apart = math.hypot(placed.x - conf_a.x, placed.y - conf_a.y)
+    ux, uy = (placed.x - conf_a.x) / apart, (placed.y - conf_a.y) / apart
+    return dataclasses.replace(obj, x=a.x + ux * reach_a, y=a.y + uy * reach_a)
+
+
+def _circles_meet(
+    a: ObjectParams, ra: float, b: ObjectParams, rb: float, side: float
+) -> tuple[float, float] | None:
+    """Where the circles of radius ``ra`` about ``a``'s centre and ``rb`` about ``b``'s meet,
+    on the ``side`` (+1: left) of the line from ``a`` to ``b``; None where they do not."""
+    dx, dy = b.x - a.x, b.y - a.y
+    apart = math.hypot(dx, dy)
+    if apart == 0.0 or apart > ra + rb or apart < abs(ra - rb):
+        return None
+    along = (ra * ra - rb * rb + apart * apart) / (2 * apart)
+    across = side * math.sqrt(max(0.0, ra * ra - along * along))
+    return (
+        a.x + (along * dx - across * dy) / apart,
+        a.y + (along * dy + across * dx) / apart,
+    )
 
 
 def model_set(

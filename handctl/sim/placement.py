@@ -30,7 +30,7 @@ axes combined with the gap along z between their extents.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -267,21 +267,38 @@ def unsupported(hand: HandConfig, params: SimParams) -> list[tuple[int, float]]:
     if params.gravity == 0.0:  # it stays where it is
         return []
     links = list(link_segments(hand, params))
+    on_another = resting_on(params.objects, params.table_height)
     found = []
     for i, obj in enumerate(params.objects):
         above = obj.y - obj.radius - params.table_height
-        if above <= SUPPORT_GAP:
+        if above <= SUPPORT_GAP or i in on_another:
             continue
-        on_another = any(
-            other.y < obj.y and _object_gap(obj, other) <= SUPPORT_GAP for other in params.objects
-        )
         on_a_link = any(
             _object_link_distance(obj, link) - obj.radius - link.radius <= SUPPORT_GAP
             for link in links
         )
-        if not on_another and not on_a_link:
+        if not on_a_link:
             found.append((i, above))
     return found
+
+
+def resting_on(objects: Sequence[ObjectParams], table_height: float) -> dict[int, tuple[int, ...]]:
+    """The objects that rest on others: each one's index, with the objects below it within
+    ``SUPPORT_GAP`` of its surface, nearest first. One on the table (within ``SUPPORT_GAP``
+    of its top) rests on the table, whatever touches it: two cylinders of two radii side by
+    side on it are a row, not a stack."""
+    out = {}
+    for i, obj in enumerate(objects):
+        if obj.y - obj.radius - table_height <= SUPPORT_GAP:
+            continue
+        below = sorted(
+            (gap, k)
+            for k, other in enumerate(objects)
+            if other.y < obj.y and (gap := _object_gap(obj, other)) <= SUPPORT_GAP
+        )
+        if below:
+            out[i] = tuple(k for _, k in below)
+    return out
 
 
 def rest_heights(hand: HandConfig, params: SimParams) -> tuple[float, ...]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -20,7 +21,8 @@ from handctl.planning.models import (
     perturb,
     sized_models,
 )
-from handctl.sim.params import SimParams, parse_sim
+from handctl.sim.params import ObjectParams, SimParams, parse_sim
+from handctl.sim.placement import resting_on, unsupported
 from handctl.sim.plant import Plant
 
 
@@ -246,6 +248,63 @@ def test_a_pair_keeps_its_configured_gap_and_height(params: SimParams) -> None:
         assert _gap(m.params) == pytest.approx(expected, abs=1e-9), m.index
         for obj, height in zip(m.params.objects, heights, strict=True):
             assert obj.y - obj.radius - m.params.table_height == pytest.approx(height)
+
+
+#: m between the surfaces of an object and the one it rests on (``check`` allows 1 mm)
+ON_TOP = 0.0005
+
+
+def _surface_gap(a: ObjectParams, b: ObjectParams) -> float:
+    return math.hypot(a.x - b.x, a.y - b.y) - a.radius - b.radius
+
+
+def _stacked(params: SimParams, bottoms: int) -> SimParams:
+    """``params`` with ``bottoms`` (1 or 2) cylinders on the table, 1 mm apart, and one more
+    resting on them, ``ON_TOP`` from each: a stack, or a pyramid."""
+    first = params.objects[0]
+    r = first.radius
+    pitch = (2 * r + 0.001) / 2 if bottoms == 2 else 0.0
+    on = [dataclasses.replace(first, name=f"on{k}", x=x) for k, x in enumerate((-pitch, pitch))]
+    rise = math.sqrt((2 * r + ON_TOP) ** 2 - pitch**2)
+    top = dataclasses.replace(first, name="top", x=0.0, y=first.y + rise)
+    return dataclasses.replace(params, objects=(*on[:bottoms], top))
+
+
+@pytest.mark.parametrize("bottoms", [1, 2], ids=["stack", "pyramid"])
+def test_an_object_resting_on_others_stays_on_them_in_every_model(
+    hand: HandConfig, params: SimParams, bottoms: int
+) -> None:
+    """Every model laid the objects out in a row along the table, an object stacked on
+    another too: set beside it at its own height, over nothing, it fell at the first step,
+    even in models that varied nothing, and only the nominal one was the hand's scene (found
+    by an outside audit). With nothing drawn a model is the configured scene; a drawn radius
+    or gap moves the object on top with what holds it, each contact at its configured gap."""
+    stack = _stacked(params, bottoms)
+    assert resting_on(stack.objects, stack.table_height) == {bottoms: tuple(range(bottoms))}
+    assert unsupported(hand, stack) == []
+    for m in model_set(stack, 3, 7000, Spread.nominal())[1:]:
+        for obj, given in zip(m.params.objects, stack.objects, strict=True):
+            assert (obj.x, obj.y) == pytest.approx((given.x, given.y), abs=1e-12)
+    models = [
+        m
+        for family in ("objects", "placement", "all")
+        for m in model_set(stack, 8, 7000, Spread() if family == "all" else Spread().only(family))[
+            1:
+        ]
+    ]
+    models += sized_models(stack, 4, 7, Spread(), {0: (1.1, 1.2)})
+    for m in models:
+        *below, top = m.params.objects
+        for obj in below:  # on the table, as configured
+            assert obj.y - obj.radius == pytest.approx(m.params.table_height, abs=1e-9)
+            assert _surface_gap(top, obj) == pytest.approx(ON_TOP, abs=1e-12), m.scales
+        assert unsupported(hand, m.params) == [], m.scales
+    if bottoms == 1:  # shifted with its bottom, straight above it
+        for m in models:
+            bottom, top = m.params.objects
+            assert bottom.x == pytest.approx(m.scales["placement_m"], abs=1e-12)
+            assert top.x == pytest.approx(bottom.x, abs=1e-12)
+            assert "gap_m" not in m.scales  # one object on the table: no gap to vary
 
 
 def test_a_contact_as_slippery_as_it_may_be_stays_so_in_every_model(
