@@ -318,6 +318,12 @@ def _laid_out(
         gap = between if gap is None else max(0.0, gap + (between - SIDE_GAP))
         a, b = objects
         left, right = (a, b) if a.x <= b.x else (b, a)
+        # about the middle of the gap, not of the centres: those of two radii are not the
+        # same point, and a pair of two radii moved by half their difference in every
+        # model, even one that drew nothing (found beside an outside audit's stack); of one
+        # radius, it adds exactly zero, and the shipped hands' models are what they were
+        was_left, was_right = (current[0], current[1]) if a.x <= b.x else (current[1], current[0])
+        mid += (was_left.radius - was_right.radius) / 2
         left = dataclasses.replace(left, x=mid - gap / 2 - left.radius)
         right = dataclasses.replace(right, x=mid + gap / 2 + right.radius)
         return [left, right] if a.x <= b.x else [right, left]

@@ -250,6 +250,25 @@ def test_a_pair_keeps_its_configured_gap_and_height(params: SimParams) -> None:
             assert obj.y - obj.radius - m.params.table_height == pytest.approx(height)
 
 
+def test_a_pair_of_two_radii_is_where_it_was_in_a_model_that_draws_nothing(
+    params: SimParams,
+) -> None:
+    """The pair was laid out about the middle of its centres, which for two radii is not the
+    middle of its gap: a pair of 20 and 25 mm moved 2.5 mm in every model, even one that
+    varied nothing, and a drawn shift or gap moved it from there."""
+    a, b = params.objects
+    big = dataclasses.replace(b, radius=0.025, x=b.x + 0.005, y=b.y + 0.005)
+    pair = dataclasses.replace(params, objects=(a, big))
+    for m in model_set(pair, 3, 7000, Spread.nominal())[1:]:
+        for obj, given in zip(m.params.objects, pair.objects, strict=True):
+            assert (obj.x, obj.y) == pytest.approx((given.x, given.y), abs=1e-12)
+    for m in model_set(pair, 6, 7000, Spread().only("placement"))[1:]:
+        left, right = m.params.objects
+        middle = (left.x + left.radius + right.x - right.radius) / 2
+        was = (a.x + a.radius + big.x - big.radius) / 2
+        assert middle == pytest.approx(was + m.scales["placement_m"], abs=1e-12)
+
+
 #: m between the surfaces of an object and the one it rests on (``check`` allows 1 mm)
 ON_TOP = 0.0005
 
