@@ -244,6 +244,10 @@ class FrameBus(Protocol):
 
     def flush(self) -> bool: ...
 
+    def drop_burst(self) -> int:
+        """Drop the frames ``send(..., more=True)`` holds for the burst under way, unsent and
+        untapped; how many (always 0 on a bus that is not ``batching``)."""
+
     def events(self) -> list[BusEvent]: ...
 
     def close(self) -> None: ...
@@ -591,6 +595,20 @@ class HandBus:
         if self.tap is not None and burst:
             self.tap(burst, TAP_TX if ok else TAP_TX_FAILED)
         return ok
+
+    def drop_burst(self) -> int:
+        """Drop the frames held for the burst under way, unsent and untapped: how many.
+
+        For a sender whose burst broke off (``HandDriver.send``, an exception between its
+        frames), which gives their counters back: held, they went with the next send, the
+        stop's first zero torque, so a node got the torque of the tick that raised after the
+        exception and rejected the zero that followed on the same counter (found by an
+        outside audit). They never reached the bus, so nothing counts or taps them.
+        """
+        dropped = len(self._burst)
+        self._burst = []
+        self._burst_messages = []
+        return dropped
 
     def _tx_error(self, exc: Exception) -> None:
         if isinstance(exc, can.CanOperationError):

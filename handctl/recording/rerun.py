@@ -327,6 +327,10 @@ class ReplayBus:
         self._tap_sent()
         return True
 
+    def drop_burst(self) -> int:
+        """Nothing is held: each frame's fate is the log's as it is sent."""
+        return 0
+
     def events(self) -> list[BusEvent]:
         events, self._events = self._events, []
         if self.event_tap is not None:

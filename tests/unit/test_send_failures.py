@@ -144,3 +144,38 @@ def test_a_disable_that_did_not_go_is_sent_again_in_sequence(
     nodes.tick()
     assert nodes.counter_rejects == [0] * len(nodes.nodes)
     assert [n.state for n in nodes.nodes] == [NodeState.DISABLED] * len(nodes.nodes)
+
+
+class _BrokenError(RuntimeError):
+    """What the test forces in the middle of a tick's sends."""
+
+
+def test_an_exception_between_a_tick_s_frames_sends_none_of_them_after_it(
+    hand: HandConfig, running: tuple[HandDriver, Nodes], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The second node's command raises in the codec: on the unix bus the first node's frame
+    was held for the tick's burst, its counter given back, and it went with the stop's first
+    zero, on the same counter (the node took the torque of the tick that raised and rejected
+    the zero; found by an outside audit). Nothing of that tick goes after the exception, and
+    the tap hears only what went."""
+    driver, nodes = running
+    driver.send(AppliedTorques(np.full(hand.n_joints, 0.01)))
+    nodes.tick()
+    heard: list[tuple[int, bytes]] = []
+    driver.bus.tap = lambda frames, direction: heard.extend(frames)
+
+    def broken(*args: Any) -> bytes:
+        raise _BrokenError("forced in the codec")
+
+    monkeypatch.setattr(driver.nodes[1].layouts.command, "encode", broken)
+    with pytest.raises(_BrokenError):
+        driver.send(AppliedTorques(np.full(hand.n_joints, 0.02)))
+    monkeypatch.undo()
+    assert driver.send_zero() is True  # as the stop after an exception does, at once
+    nodes.tick()
+    assert nodes.counter_rejects == [0] * len(nodes.nodes)
+    assert [n.applied for n in nodes.nodes] == [[0.0] * len(n.applied) for n in nodes.nodes]
+    first = hand.fingers[0].can_ids.torque_command
+    sent_first = [data for frame_id, data in heard if frame_id == first]
+    unix = driver.bus.batching
+    assert len(sent_first) == (1 if unix else 2)  # the zero; on the virtual bus 0.02 went first

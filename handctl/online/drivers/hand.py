@@ -272,6 +272,9 @@ class HandDriver:
                 elif not (batching and more):
                     unsent = i + 1
         except BaseException:
+            # A batching bus still holds the frames of the nodes whose counters go back: they
+            # must not go with the stop's first frame (the tick that raised sends nothing more)
+            bus.drop_burst()
             self._take_back(unsent, upto)
             raise
         return ok
