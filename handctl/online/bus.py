@@ -224,11 +224,17 @@ class FrameBus(Protocol):
     """What the driver and the recorder ask of a bus: the frames that arrived, one frame sent,
     the events since the last call, and the recorder's taps. ``HandBus`` implements it over
     python-can; the re-run's ``ReplayBus`` over a recording. None of it raises: a failure is a
-    False or an event."""
+    False or an event, and what a tap raises is held in ``tap_error``."""
 
     tap: FrameTap | None
     rx_tap: RxTap | None
     event_tap: Callable[[BusEvent], None] | None
+    #: The first exception a tap raised, held for the taps' owner to take and raise in its
+    #: own stage (the recorder, in its push: a RECORD_EXCEPTION); None: none. Let out of
+    #: ``send``, it made the sender take a frame that went for one that did not: its counter
+    #: given back, the node rejected the next frame, the stop's zero torque (found by an
+    #: outside audit).
+    tap_error: Exception | None
     #: Whether ``send(..., more=True)`` holds a frame for its burst (its True says nothing of
     #: the frame's fate, the burst's last send or ``flush`` does) rather than sending it.
     batching: bool
@@ -327,6 +333,7 @@ class HandBus:
         self._tapped: list[tuple[int, bytes]] = []
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
+        self.tap_error: Exception | None = None
         self._echoes = _EchoFilter() if spec.interface in ECHOING_INTERFACES else None
         #: Whether ``is_rx`` False is the echo of its own frame (``LOCAL_SENDER_INTERFACES``).
         self._skip_not_rx = spec.interface not in LOCAL_SENDER_INTERFACES
@@ -491,7 +498,10 @@ class HandBus:
         if frames and self.rx_tap is not None:
             if self._tapped:  # sent before this drain: tapped before it, in bus order
                 self._tap_sent()
-            self.rx_tap(frames)
+            try:
+                self.rx_tap(frames)
+            except Exception as exc:  # the frames were drained all the same
+                self._tap_failed(exc)
         return frames
 
     def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool:
@@ -524,10 +534,9 @@ class HandBus:
         except (can.CanError, OSError, ValueError) as exc:
             self._tx_error(exc)
             self.tx_failed += 1
-            if self.tap is not None:
-                if self._tapped:
-                    self._tap_sent()
-                self.tap([(arbitration_id, data)], TAP_TX_FAILED)
+            if self._tapped:
+                self._tap_sent()
+            self._tell_tap([(arbitration_id, data)], TAP_TX_FAILED)
             return False
         self.sent += 1
         if self.tap is not None:
@@ -535,14 +544,29 @@ class HandBus:
             tapped.append((arbitration_id, data))
             if not more or len(tapped) >= MAX_BURST:  # ``_tap_sent``, inline: every tick's
                 self._tapped = []
-                self.tap(tapped, TAP_TX)
+                try:
+                    self.tap(tapped, TAP_TX)
+                except Exception as exc:  # the frame went: its counter is used up
+                    self._tap_failed(exc)
         return True
 
     def _tap_sent(self) -> None:
         """Hand the frames sent and not yet tapped to ``tap``."""
         tapped, self._tapped = self._tapped, []
+        self._tell_tap(tapped, TAP_TX)
+
+    def _tell_tap(self, frames: list[tuple[int, bytes]], direction: int) -> None:
+        """``tap(frames, direction)``, if there is a tap; what it raises is held."""
         if self.tap is not None:
-            self.tap(tapped, TAP_TX)
+            try:
+                self.tap(frames, direction)
+            except Exception as exc:
+                self._tap_failed(exc)
+
+    def _tap_failed(self, exc: Exception) -> None:
+        """Hold the first exception a tap raised for the taps' owner (``tap_error``)."""
+        if self.tap_error is None:
+            self.tap_error = exc
 
     def _message(self, arbitration_id: int, data: bytes) -> can.Message:
         """The python-can Message of a frame this bus sends (a transport that takes Messages)."""
@@ -592,8 +616,8 @@ class HandBus:
             self.sent += len(burst)
         else:
             self.tx_failed += len(burst)
-        if self.tap is not None and burst:
-            self.tap(burst, TAP_TX if ok else TAP_TX_FAILED)
+        if burst:
+            self._tell_tap(burst, TAP_TX if ok else TAP_TX_FAILED)
         return ok
 
     def drop_burst(self) -> int:
@@ -653,7 +677,10 @@ class HandBus:
         events, self._events = self._events, []
         if self.event_tap is not None:
             for event in events:
-                self.event_tap(event)
+                try:
+                    self.event_tap(event)
+                except Exception as exc:  # the events are the caller's all the same
+                    self._tap_failed(exc)
         return events
 
     def close(self) -> None:

@@ -37,8 +37,8 @@ import numpy as np
 import orjson
 
 from handctl.config import HandConfig
-from handctl.errors import ConfigError, Description, HandctlError
-from handctl.online.bus import MAX_BURST, BusEvent, Frame
+from handctl.errors import ConfigError, Description, HandctlError, said_by
+from handctl.online.bus import MAX_BURST, BusEvent, Frame, FrameBus
 from handctl.online.recipes.runner import RunStatus
 from handctl.online.safety.faults import FAULTS
 from handctl.online.safety.supervisor import State
@@ -401,6 +401,7 @@ class Recorder:
         "_row",
         "_sup",
         "_joints",
+        "_bus",
         "_last_phase",
         "_faults",
         "_history",
@@ -607,6 +608,9 @@ class Recorder:
         #: joint state (None: no runtime attached).
         self._sup: Supervisor | None = None
         self._joints: JointState | None = None
+        #: The bus whose taps are this recorder's: what they raise it holds (``tap_error``),
+        #: and ``push`` raises it, in the record stage.
+        self._bus: FrameBus | None = None
         #: The last tick's supervisor state name and phase name, as the runtime handed them
         #: over (the same string objects tick after tick), and their numbers in the row.
         self._state_name = ""
@@ -727,7 +731,7 @@ class Recorder:
         self._runtime = runtime
         self._sup = runtime.supervisor
         self._joints = runtime.driver.state
-        bus = runtime.driver.bus
+        bus = self._bus = runtime.driver.bus
         bus.tap = self._sent
         # Until the first tick begins, the drains (the start-up's discard of what queued
         # before the run) are stamped with the clock's time now, on the ticks' own time base:
@@ -880,6 +884,7 @@ class Recorder:
         joints = self._joints
         if row < 0 or sup is None or joints is None:
             self._push_rarely(record)
+            self._raise_tap_error()
             return
         faults = len(sup.faults)
         phase = record.phase
@@ -970,6 +975,20 @@ class Recorder:
         self._row = -1
         self._head = head = self._head + 1
         ctl[TICK_HEAD] = head
+        bus = self._bus
+        if bus is not None and bus.tap_error is not None:
+            self._raise_tap_error()
+
+    def _raise_tap_error(self) -> None:
+        """Raise what a tap of this recorder raised since the last push (the bus holds it,
+        ``FrameBus.tap_error``), once the tick's row is written: the recorder's failure, in
+        the record stage, where the runtime names it (RECORD_EXCEPTION). Let out where it
+        came from, the bus's ``send``, it was the send stage's, and the frame that went was
+        taken for one the bus refused (found by an outside audit)."""
+        bus = self._bus
+        if bus is not None and bus.tap_error is not None:
+            failure, bus.tap_error = bus.tap_error, None
+            raise failure
 
     def _push_rarely(self, record: TickRecord) -> None:
         """``push`` without a row (the tick ring was full) or without an attached runtime:
@@ -1385,11 +1404,8 @@ class Recorder:
             problem = (
                 f"the last events could not be recorded ({type(exc).__name__}: {str(exc)[:300]})"
             )
-        if self._runtime is not None:
-            bus = self._runtime.driver.bus
-            bus.tap = None
-            bus.rx_tap = None
-            bus.event_tap = None
+        untapped = self._detach()  # the taps come off whatever went wrong before
+        problem = problem or untapped
         try:
             if self._pose_list is not None:
                 self._copy_poses()
@@ -1445,6 +1461,23 @@ class Recorder:
         if problem:
             raise HandctlError(f"{self.path}: {problem}")
         return self.stats
+
+    def _detach(self) -> str:
+        """Take the taps off the runtime's bus; what one raised since the last push, said
+        (after the last push nothing else says it), or ""."""
+        if self._runtime is None:
+            return ""
+        bus = self._runtime.driver.bus
+        bus.tap = None
+        bus.rx_tap = None
+        bus.event_tap = None
+        failed, bus.tap_error = bus.tap_error, None
+        if failed is None:
+            return ""
+        return (
+            f"a tap of the recorder failed after the last tick's row ({type(failed).__name__}: "
+            f"{said_by(failed)[:300]}): frames or bus events from then on may be missing"
+        )
 
     def _left_unclaimed(self) -> bool:
         """Whether the run never began and its path was left as it was (the recording

@@ -240,6 +240,7 @@ class ReplayBus:
         self.tap: FrameTap | None = None
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
+        self.tap_error: Exception | None = None
         #: Each frame's fate is the log's, frame by frame, a burst's too (``HandBus`` taps a
         #: failed burst's every frame as failed).
         self.batching = False
@@ -284,7 +285,10 @@ class ReplayBus:
         self.received += len(frames)
         if frames and self.rx_tap is not None:
             self._tap_sent()
-            self.rx_tap(frames)
+            try:
+                self.rx_tap(frames)
+            except Exception as exc:  # held, as a ``HandBus`` holds it
+                self._tap_failed(exc)
         return frames
 
     def send(self, arbitration_id: int, data: bytes, more: bool = False) -> bool:
@@ -320,7 +324,14 @@ class ReplayBus:
     def _tap_sent(self) -> None:
         tapped, self._tapped = self._tapped, []
         if self.tap is not None and tapped:
-            self.tap(tapped, self._tapped_direction)
+            try:
+                self.tap(tapped, self._tapped_direction)
+            except Exception as exc:
+                self._tap_failed(exc)
+
+    def _tap_failed(self, exc: Exception) -> None:
+        if self.tap_error is None:
+            self.tap_error = exc
 
     def flush(self) -> bool:
         """Sends are compared as they come: only the burst's tap is due."""
@@ -335,7 +346,10 @@ class ReplayBus:
         events, self._events = self._events, []
         if self.event_tap is not None:
             for event in events:
-                self.event_tap(event)
+                try:
+                    self.event_tap(event)
+                except Exception as exc:
+                    self._tap_failed(exc)
         return events
 
     def close(self) -> None:

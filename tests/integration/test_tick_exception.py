@@ -26,6 +26,7 @@ import pytest
 
 from handctl import cli, session
 from handctl.config import HandConfig
+from handctl.errors import HandctlError
 from handctl.online.bus import open_bus
 from handctl.online.busspec import BusSpec
 from handctl.online.clock import LockstepClock, Tick
@@ -800,6 +801,49 @@ def test_a_recorder_that_breaks_inside_still_leaves_a_finished_log(
     assert [(f["name"], f["tick"]) for f in faults] == [("RECORD_EXCEPTION", broken_from)]
     logged = open_recording(log).json_meta(ch.META_SUMMARY)
     assert logged is not None and logged["outcome"] == "safety_stop"
+
+
+@pytest.mark.parametrize("always", [False, True], ids=["once", "every_call"])
+def test_a_recorder_tap_that_raises_is_the_record_stage_s_and_its_frames_went(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, always: bool
+) -> None:
+    """The recorder's transmit tap raises after the bus took the frames (and it recorded
+    them). Its exception came out of the bus's send: the run stopped as SEND_EXCEPTION, the
+    frames that went were counted as refused and their counters given back, so a node
+    rejected the stop's zero torque and held its torque a tick longer; raised at every call,
+    every stop frame was taken for refused and brought an e-stop, and the nodes ended in FAULT
+    (found by an outside audit). It is the recorder's failure, and the frames went."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always)
+        bus = b.runtime.driver.bus
+        recorded = bus.tap
+        assert recorded is not None
+
+        def tap(frames: list[tuple[int, bytes]], direction: int) -> None:
+            recorded(frames, direction)
+            if due():
+                raise ForcedError("forced in the recorder's tap")
+
+        monkeypatch.setattr(bus, "tap", tap)
+        result = asyncio.run(b.runtime.run())
+        monkeypatch.undo()
+        if always:  # the stop's frames were tapped after the last row: said at the end
+            with pytest.raises(HandctlError, match="a tap of the recorder failed after"):
+                b.recorder.close()
+        else:
+            b.recorder.close()
+        wire = hear(b.listener, hand)
+    assert due.fired and result.outcome is Outcome.SAFETY_STOP, result.message
+    assert [f.code for f in result.faults] == [FaultCode.RECORD_EXCEPTION], result.faults
+    failure = result.exception
+    assert failure is not None and failure.message == "forced in the recorder's tap"
+    assert bus.tx_failed == 0  # type: ignore[attr-defined]
+    assert not wire.estops and "e-stop" not in result.message and "refused" not in result.message
+    assert_stopped_on_the_wire(wire, result.faults[0].tick - b.runtime.first_send_tick)
+    assert [n.reject_counter for n in b.sim.nodes] == [0] * len(b.sim.nodes)
+    assert all(not any(n.applied) and n.state == NodeState.DISABLED for n in b.sim.nodes)
+    _, _, faults = logged_faults(tmp_path / "run.mcap")
+    assert [f["name"] for f in faults] == ["RECORD_EXCEPTION"]
 
 
 def _raise_in_the_runner_at(tick: int, exc: BaseException, mp: pytest.MonkeyPatch) -> None:

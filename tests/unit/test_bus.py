@@ -10,7 +10,7 @@ import pytest
 
 from handctl.config import HandConfig
 from handctl.errors import BusError, ConfigError
-from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, HandBus, open_bus
+from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, Frame, HandBus, open_bus
 from handctl.online.busspec import (
     BusSpec,
     bus_kwargs,
@@ -187,6 +187,39 @@ def test_frames_cross_the_virtual_bus(bus_pair: tuple[HandBus, HandBus]) -> None
     assert all(f.is_fd for f in frames)
     assert host.drain() == []  # own frames are not echoed
     assert peer.drain() == []  # drained means empty, without waiting
+
+
+class _TapError(RuntimeError):
+    """What the test's taps raise."""
+
+
+@pytest.mark.parametrize("kind", ["virtual", "unix"])
+def test_a_tap_that_raises_leaves_the_frames_their_fate_and_is_held(
+    hand: HandConfig, channel: str, tmp_path: Path, kind: str
+) -> None:
+    """A tap's exception came out of ``send`` after the bus took the frame, and the sender
+    took the frame for refused (found by an outside audit): the frames went, are counted as
+    sent, and the first exception is held for the tap's owner."""
+    spec = f"virtual:{channel}" if kind == "virtual" else f"unix:{tmp_path / 'bus'}"
+    with open_bus(spec, hand.bus) as peer, open_bus(spec, hand.bus) as host:
+        host.prepare_send()
+        first, second = _TapError("tx"), _TapError("rx")
+
+        def tap(frames: list[tuple[int, bytes]], direction: int) -> None:
+            raise first
+
+        def rx_tap(frames: list[Frame]) -> None:
+            raise second
+
+        host.tap, host.rx_tap = tap, rx_tap
+        assert host.send(0x101, b"\x01", more=True)
+        assert host.send(0x102, b"\x02")
+        assert (host.sent, host.tx_failed) == (2, 0)
+        assert host.tap_error is first
+        assert [f.arbitration_id for f in peer.drain()] == [0x101, 0x102]
+        peer.send(0x181, b"\x03")
+        assert [f.arbitration_id for f in host.drain()] == [0x181]  # drained all the same
+        assert host.tap_error is first  # the first is kept
 
 
 def test_drain_is_bounded(bus_pair: tuple[HandBus, HandBus]) -> None:
