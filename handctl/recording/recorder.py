@@ -165,6 +165,38 @@ def writer_cpus(loop_cpu: int | None, sim_cpu: int | None = None) -> list[int] |
     return sorted(rest) if rest else None
 
 
+#: What stands for the bytes an event's text lost from the middle of a field.
+_CUT = b"..."
+
+
+def _event_text(fields: Sequence[str]) -> bytes:
+    """An event's fields as its row holds them: UTF-8, ``EVENT_BYTES`` at most.
+
+    A text too long loses bytes from the middle of its longest field, at character
+    boundaries: a field's ends say the most (a fault's exception type, and its place "(in
+    ...)"), and the fields after it stay whole. Cut at the 480th byte, a fault whose message
+    was 200 non-ASCII characters (three bytes each) ended in a broken character, its place
+    gone, though its message was cut to fit (found by an outside audit). A character UTF-8
+    cannot carry (a lone surrogate, a byte of a path that was not UTF-8) is written escaped:
+    the event is recorded, never raised on.
+    """
+    text = SEP.join(fields).encode(errors="backslashreplace")
+    over = len(text) - EVENT_BYTES
+    if over <= 0:
+        return text
+    encoded = [field.encode(errors="backslashreplace") for field in fields]
+    longest = max(range(len(encoded)), key=lambda i: len(encoded[i]))
+    field = encoded[longest]
+    keep = len(field) - over - len(_CUT)
+    if keep < 2:  # the other fields alone do not fit: the beginning, whole characters
+        return text[:EVENT_BYTES].decode(errors="ignore").encode()
+    # a character cut at either end is left out whole (the decoder drops its bytes)
+    head = field[: keep - keep // 2].decode(errors="ignore").encode()
+    tail = field[len(field) - keep // 2 :].decode(errors="ignore").encode()
+    encoded[longest] = head + _CUT + tail
+    return SEP.encode().join(encoded)
+
+
 def _say(text: str) -> None:
     """A line on stderr that cannot fail the close: a run whose stderr is gone still stops
     and finishes its log."""
@@ -1325,7 +1357,7 @@ class Recorder:
         ):
             return
         row = head & self._event_mask
-        text = SEP.join(fields).encode()[:EVENT_BYTES]
+        text = _event_text(fields)
         _EVENT.pack_into(self._buf, self._event_base + row * 32, self._now, tick, kind, len(text))
         start = self._event_data + row * EVENT_BYTES
         self._buf[start : start + len(text)] = text

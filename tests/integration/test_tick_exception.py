@@ -631,6 +631,32 @@ def test_a_huge_exception_message_is_cut_and_its_place_kept(
     )
 
 
+def test_a_non_ascii_exception_message_is_cut_on_characters_and_its_place_kept(
+    hand: HandConfig, hold: Recipe, tmp_path: Path
+) -> None:
+    """A message of 300 characters of three bytes each: cut to its characters, the fault fits
+    its event in the log with its place, no character broken (the event was cut at its 480th
+    byte: in the middle of a character, its place gone; found by an outside audit)."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        due = Trigger(b.runtime, always=False)
+
+        def hook(tk: Tick) -> None:
+            if due():
+                raise ForcedError("\u20ac" * 300)
+
+        b.runtime.tick_hooks.append(hook)
+        result = asyncio.run(b.runtime.run())
+        b.recorder.close()
+    assert result.exception is not None
+    _, _, faults = logged_faults(tmp_path / "run.mcap")
+    detail = faults[0]["detail"]
+    assert detail.startswith("ForcedError: \u20ac\u20ac") and "\ufffd" not in detail
+    assert set(detail.split(" (in ")[0].removeprefix("ForcedError: ")) <= {"\u20ac", "."}
+    assert detail.endswith(
+        f"(in hook (tests/integration/{Path(__file__).name}:{hook.__code__.co_firstlineno + 2}))"
+    )
+
+
 # -- the two reproductions of the issue, through the command line ------------------------------
 TOO_MUCH = """
 recipe: too_much
