@@ -437,17 +437,13 @@ class Runtime:
                         # the Runtime, a cancelled task): the handler below does not cover
                         # this one, and one zero frame went with no disable, the nodes left
                         # ENABLED for their watchdog and no result kept
-                        self.driver.send_zero()
-                        self.driver.send_disable()
-                        self._keep_stop_interrupted(interrupt)
+                        self._keep_stop_interrupted(interrupt, self._stop_at_once())
                         raise
                 except BaseException as exc:
                     # Ctrl-C without a signal handler, a cancelled task: no tick is left to
                     # wait for, so zero and disable at once (in this order on the bus), and
                     # what ran is kept for the summary (``interrupted``) before it goes on
-                    self.driver.send_zero()
-                    self.driver.send_disable()
-                    self._keep_interrupted(exc)
+                    self._keep_interrupted(exc, self._stop_at_once())
                     raise
         finally:
             self.clock.close()
@@ -732,29 +728,60 @@ class Runtime:
         if self.recorder is not None:
             self.recorder.note("ended_in_fault", self.ended_in_fault, self.tick)
 
-    def _keep_interrupted(self, exc: BaseException) -> None:
+    def _stop_at_once(self) -> str:
+        """Zero torque and the disable to every node at once, for an interrupt that leaves
+        no tick to wait for (the e-stop after a frame the bus refused, ``send_prepared``);
+        what went, in words. The interrupt's result said "zero torque and a disable were
+        sent at once" when the bus had refused them all and the nodes held their last
+        torque until their watchdog (found by an outside audit). Never raises."""
+        driver = self.driver
+        estops, lost = driver.stop_estops, driver.stop_estops_lost
+        zero, disable = driver.send_zero(), driver.send_disable()
+        if zero and disable:
+            return "zero torque and a disable were sent at once"
+        with contextlib.suppress(Exception):
+            refused = " and ".join(
+                what for what, ok in (("the zero torque", zero), ("the disable", disable)) if not ok
+            )
+            error = driver.last_tx_error
+            said = (
+                "zero torque and a disable were tried at once, but the bus refused "
+                f"{refused} to a node" + (f" ({error})" if error else "")
+            )
+            if driver.stop_estops_lost - lost < driver.stop_estops - estops:
+                return (
+                    f"{said}, so the e-stop was sent: each node latches FAULT (ESTOP), which "
+                    "the next run clears with --reset-node-faults"
+                )
+            return (
+                f"{said}, and the e-stop after it, with no tick left to send them again: a "
+                "node that missed them is stopped only by its own command watchdog (FAULT "
+                "TIMEOUT, cleared with --reset-node-faults)"
+            )
+        return "zero torque and a disable were tried at once; the bus refused a frame of them"
+
+    def _keep_interrupted(self, exc: BaseException, sent: str) -> None:
         """What the run did up to a KeyboardInterrupt or a cancellation inside it, as its
-        result (``interrupted``): the run's summary says so, not that nothing was sent. Never
-        raises: the interrupt goes on whatever this finds."""
+        result (``interrupted``): the run's summary says so, not that nothing was sent, and
+        ``sent`` (``_stop_at_once``) says what the bus took of the stop. Never raises: the
+        interrupt goes on whatever this finds."""
         tick = self.tick
         said = said_by(exc)  # an interrupt whose __str__ raised replaced itself and its result
         message = (
-            f"{type(exc).__name__} in tick {tick}"
-            + (f" ({said})" if said else "")
-            + ": zero torque and a disable were sent at once"
+            f"{type(exc).__name__} in tick {tick}" + (f" ({said})" if said else "") + f": {sent}"
         )
         self._end_phase_quietly(f"interrupted: {type(exc).__name__}", tick)
         with contextlib.suppress(Exception):
             self.interrupted = self._result(Outcome.INTERRUPTED, message)
 
-    def _keep_stop_interrupted(self, interrupt: BaseException) -> None:
+    def _keep_stop_interrupted(self, interrupt: BaseException, sent: str) -> None:
         """The result of a run whose stop after an exception was itself interrupted: the
         exception's safety stop, and that its stop was cut short (``interrupted``, as
         ``_keep_interrupted``). Never raises."""
         with contextlib.suppress(Exception):
             message = (
                 f"{self._exception_stop_message()}; {type(interrupt).__name__} during the "
-                "stop: zero torque and a disable were sent at once"
+                f"stop: {sent}"
             )
             self.interrupted = self._result(Outcome.SAFETY_STOP, message)
 

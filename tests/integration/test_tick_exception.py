@@ -543,6 +543,50 @@ def test_ctrl_c_without_a_signal_handler_zeroes_and_disables_before_it_goes_on(
         assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0], f"node {node}"
 
 
+@pytest.mark.parametrize("estop_goes", [False, True], ids=["nothing_goes", "estop_goes"])
+def test_an_interrupt_whose_stop_the_bus_refuses_says_so(
+    hand: HandConfig,
+    hold: Recipe,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    estop_goes: bool,
+) -> None:
+    """Ctrl-C inside a tick while the bus refuses the nodes' frames: the run said "zero
+    torque and a disable were sent at once" when none went and the nodes held their last
+    torque until their watchdog (found by an outside audit). What the bus did is said."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        rt = b.runtime
+        due = Trigger(rt, always=False)
+
+        def interrupt(tk: Tick) -> None:
+            if due():
+                raise KeyboardInterrupt
+
+        rt.tick_hooks.append(interrupt)
+        real = rt.driver.bus.send
+
+        def send(frame_id: int, data: bytes, more: bool = False) -> bool:
+            if due.fired and not (estop_goes and frame_id == 0):
+                return False
+            return real(frame_id, data, more)
+
+        monkeypatch.setattr(rt.driver.bus, "send", send)
+        with pytest.raises(KeyboardInterrupt):
+            asyncio.run(rt.run())
+        monkeypatch.undo()
+        wire = hear(b.listener, hand)
+    assert not any(wire.disables.values())
+    assert bool(wire.estops) is estop_goes
+    kept = rt.interrupted
+    assert kept is not None and kept.outcome is Outcome.INTERRUPTED
+    assert "were sent at once" not in kept.message, kept.message
+    assert "the bus refused the zero torque and the disable to a node" in kept.message
+    if estop_goes:
+        assert "so the e-stop was sent: each node latches FAULT (ESTOP)" in kept.message
+    else:
+        assert "stopped only by its own command watchdog" in kept.message
+
+
 @pytest.mark.parametrize("interrupt", [KeyboardInterrupt, asyncio.CancelledError])
 def test_an_interrupt_during_the_stop_after_an_exception_still_disables(
     hand: HandConfig, hold: Recipe, tmp_path: Path, interrupt: type[BaseException]
