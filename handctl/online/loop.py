@@ -92,6 +92,9 @@ REFUSE_STARTUP = {
 #: A tick of the stop after an exception waits this long at most for the clock; a clock that
 #: does not answer is given up and the rest of the stop's frames go at once, in order.
 STOP_TICK_TIMEOUT_S = 0.1
+#: What ends a run as an interrupt (zero and a disable at once, then it goes on) and not as a
+#: broken stage's safety stop: every other BaseException is a stage's (``Runtime.run``).
+INTERRUPTS = (KeyboardInterrupt, asyncio.CancelledError)
 #: An exception's message is cut to this many characters, so that the fault with its place
 #: fits in one event of the log (480 bytes) and a message never carries a huge object.
 EXCEPTION_TEXT_CHARS = 200
@@ -424,27 +427,29 @@ class Runtime:
             with self.collector.running():  # the stop's ticks too
                 try:
                     outcome, message = await self._run()
-                except (Exception, SystemExit) as exc:  # any stage: a safety stop (module doc)
+                except INTERRUPTS as exc:
+                    # Ctrl-C without a signal handler, a cancelled task: no tick is left to
+                    # wait for, so zero and disable at once (in this order on the bus), and
+                    # what ran is kept for the summary (``interrupted``) before it goes on
+                    self._keep_interrupted(exc, self._stop_at_once())
+                    raise
+                except BaseException as exc:  # any stage: a safety stop (module doc)
                     # SystemExit too: nothing in a tick asks the process to end (a stop signal
                     # is a request to the loop); a library's exit() inside one is a broken
-                    # stage, and went out as the process' exit code with no summary
+                    # stage, and went out as the process' exit code with no summary. So is
+                    # any other BaseException but an interrupt (a GeneratorExit, a library's
+                    # own): it crashed the command, exit 1, with no summary and no zero ticks
                     if isinstance(exc, EndOfTicks) and self.clock.lockstep:
                         raise
                     try:
                         outcome, message = await self._stop_after_exception(exc)
                     except BaseException as interrupt:
                         # the stop's own ticks interrupted (Ctrl-C in a program that embeds
-                        # the Runtime, a cancelled task): the handler below does not cover
+                        # the Runtime, a cancelled task): the handler above does not cover
                         # this one, and one zero frame went with no disable, the nodes left
                         # ENABLED for their watchdog and no result kept
                         self._keep_stop_interrupted(interrupt, self._stop_at_once())
                         raise
-                except BaseException as exc:
-                    # Ctrl-C without a signal handler, a cancelled task: no tick is left to
-                    # wait for, so zero and disable at once (in this order on the bus), and
-                    # what ran is kept for the summary (``interrupted``) before it goes on
-                    self._keep_interrupted(exc, self._stop_at_once())
-                    raise
         finally:
             self.clock.close()
         return self._result(outcome, message)

@@ -949,6 +949,30 @@ def test_a_system_exit_inside_a_tick_is_a_safety_stop_with_its_summary(
     assert logged is not None and logged["outcome"] == "safety_stop"
 
 
+class _LibrarysOwn(BaseException):
+    """A BaseException of a library's own, neither an interrupt nor an exit."""
+
+
+@pytest.mark.parametrize(
+    "raised", [GeneratorExit(), _LibrarysOwn("a library's own")], ids=["generator_exit", "own"]
+)
+def test_any_other_base_exception_inside_a_tick_is_a_safety_stop_with_its_summary(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, raised: BaseException
+) -> None:
+    """A GeneratorExit or another BaseException that is no interrupt, raised in a stage,
+    crashed the command: a bare traceback, exit 1, no summary, a log of 'no summary', and
+    zero and disable back to back with no zero ticks (found by an outside audit)."""
+    _raise_in_the_runner_at(300, raised, monkeypatch)
+    code, wire, summary, log = _cli_run_heard(CLOSE_AND_HOLD_1S, hand, tmp_path, monkeypatch)
+    assert code == cli.EXIT_SAFETY_STOP
+    _stopped_after_torque(wire)
+    assert summary["outcome"] == "safety_stop"
+    assert summary["exception"]["code"] == "RUNNER_EXCEPTION"
+    assert summary["exception"]["type"] == type(raised).__name__
+    logged = open_recording(log).json_meta(ch.META_SUMMARY)
+    assert logged is not None and logged["outcome"] == "safety_stop"
+
+
 class _SaysNothing(KeyboardInterrupt):
     """An interrupt whose ``__str__`` raises: the code handling it raised a ValueError in its
     place, and the run's result was lost (found by an outside audit)."""
