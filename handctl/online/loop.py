@@ -132,6 +132,17 @@ def _no_feedback(rejects: dict[str, int]) -> str:
     )
 
 
+class _Survive:
+    """``contextlib.suppress`` of whatever is raised but an interrupt (``INTERRUPTS``, which
+    go on): for the parts of a stop that the stop does not need, SystemExit included."""
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind: object, exc: BaseException | None, tb: object) -> bool:
+        return exc is not None and not isinstance(exc, INTERRUPTS)
+
+
 class EndOfTicks(Exception):  # noqa: N818 - an end, not an error
     """A lockstep clock has no more ticks to give (a re-run reaching the end of its log): the
     run ends where it stands, sending nothing more, and this propagates to the caller.
@@ -793,7 +804,7 @@ class Runtime:
     def _end_phase_quietly(self, reason: str, tick: int) -> None:
         """End the phase under way for ``reason`` at ``tick`` (it had no end in the summary),
         if the runner can: an exception or an interrupt may have come from the runner."""
-        with contextlib.suppress(Exception):
+        with _Survive():
             if self.runner is not None and self.runner.in_phase:
                 self._abort_phase(self._t_s, reason, tick)
 
@@ -817,24 +828,29 @@ class Runtime:
         disabled_ns: int | None = None  # the tick after which the disable went
         for n in range(1, ZERO_TICKS_BEFORE_DISABLE + 2):  # the ticks after the one that raised
             tk = None
+            # Each part is left out at its first failure, whatever it raised but an
+            # interrupt: a SystemExit that recurred every tick went out through the
+            # interrupt's handler, the process exiting with its code and no summary.
             if clock_ok:
-                try:
-                    tk = await asyncio.wait_for(self.clock.wait_tick(), STOP_TICK_TIMEOUT_S)
-                except Exception:  # it gave up pacing: the frames go without it
-                    clock_ok = False
+                tk = await self._stop_tick()
+                clock_ok = tk is not None  # it gave up pacing: the frames go without it
             if tk is not None:
                 self._count_stop_tick(tk)
                 if recorder_ok and self.recorder is not None:
                     try:
                         self.recorder.begin_tick(tk)
-                    except Exception:  # later frames go with the last tick it began
+                    except INTERRUPTS:
+                        raise
+                    except BaseException:  # later frames go with the last tick it began
                         recorder_ok = False
             state = None
             if poll_ok:
                 try:
                     state = driver.poll(tk.now_ns if tk is not None else None)
                     self._bus_events += len(driver.take_bus_events())
-                except Exception:  # polling only feeds the log here: not needed to stop
+                except INTERRUPTS:
+                    raise
+                except BaseException:  # polling only feeds the log here: not needed to stop
                     poll_ok = False
             if self._stop_frames(n) and tk is not None:
                 disabled_ns = tk.now_ns
@@ -843,13 +859,26 @@ class Runtime:
         if clock_ok and recorder_ok and poll_ok and disabled_ns is not None:
             # heard disabled, as after any other stop (``disable_unconfirmed`` could not be
             # said after an exception); the hand is stopped whatever this finds
-            with contextlib.suppress(Exception):
+            with _Survive():
                 await self._confirm_disabled(disabled_ns)
         if (self._disable_owed or self._disable_estopped) and not self.disable_unconfirmed:
             # every node heard stopped, but not by the disable (its watchdog's TIMEOUT, or the
             # e-stop in the disable's place): the summary says what the bus did to it
             self.disable_unconfirmed = self._disable_refused()
         return Outcome.SAFETY_STOP, self._exception_stop_message()
+
+    async def _stop_tick(self) -> Tick | None:
+        """The clock's next tick for the stop after an exception, ``STOP_TICK_TIMEOUT_S`` at
+        most; None if it raised anything but an interrupt, or gave nothing in time. Waited
+        for in this task: ``asyncio.wait_for`` ran it in a task of its own, out of which a
+        SystemExit left the event loop itself."""
+        try:
+            async with asyncio.timeout(STOP_TICK_TIMEOUT_S):
+                return await self.clock.wait_tick()
+        except INTERRUPTS:
+            raise
+        except BaseException:
+            return None
 
     def _stop_frames(self, n: int) -> bool:
         """The frames of the ``n``-th tick after the one that raised: zero torque up to
@@ -922,14 +951,16 @@ class Runtime:
             record.faults = []
             assert self.recorder is not None
             self.recorder.push(record)
-        except Exception:
+        except INTERRUPTS:
+            raise
+        except BaseException:
             return False
         return True
 
     def _count_stop_tick(self, tk: Tick) -> None:
         """Count a tick of the stop; the accounting may be what raised, and the stop does
         not need it."""
-        with contextlib.suppress(Exception):
+        with _Survive():
             self._store(tk, (0,) * len(STAGES))
 
     def _latch_exception(self, exc: BaseException) -> Tick | None:
@@ -943,7 +974,7 @@ class Runtime:
         failure = _describe(exc, code, tick)
         self.exception = failure
         # A supervisor that cannot take the fault is itself broken: ``_faults`` reports it.
-        with contextlib.suppress(Exception):
+        with _Survive():
             self.supervisor.trip(code, failure.detail, tick)
         return tk
 

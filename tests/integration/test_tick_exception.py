@@ -949,6 +949,48 @@ def test_a_system_exit_inside_a_tick_is_a_safety_stop_with_its_summary(
     assert logged is not None and logged["outcome"] == "safety_stop"
 
 
+@pytest.mark.parametrize("stage", ["poll", "clock"])
+def test_a_system_exit_on_every_call_still_ends_in_the_stop_with_its_summary(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, stage: str
+) -> None:
+    """The poll or the clock raises SystemExit(0) from one call on: the stop after the
+    first one tried it again, and the second went out through the interrupt's handler, the
+    process exiting 0 with no word and no summary, zero and disable back to back (the clock's
+    from a task of ``asyncio.wait_for``'s own, out of the event loop) (found by an outside
+    audit). The stop drops it, as any exception that recurs."""
+    from handctl.online.clock import LockstepClock
+
+    calls = [0]
+    if stage == "poll":
+        real_poll = HandDriver.poll
+
+        def poll(self: HandDriver, *args: Any, **kwargs: Any) -> Any:
+            calls[0] += 1
+            if calls[0] >= 300:
+                raise SystemExit(0)
+            return real_poll(self, *args, **kwargs)
+
+        monkeypatch.setattr(HandDriver, "poll", poll)
+    else:
+        real_wait = LockstepClock.wait_tick
+
+        async def wait_tick(self: LockstepClock) -> Tick:
+            calls[0] += 1
+            if calls[0] >= 300:
+                raise SystemExit(0)
+            return await real_wait(self)
+
+        monkeypatch.setattr(LockstepClock, "wait_tick", wait_tick)
+    code, wire, summary, log = _cli_run_heard(CLOSE_AND_HOLD_1S, hand, tmp_path, monkeypatch)
+    assert code == cli.EXIT_SAFETY_STOP
+    _stopped_after_torque(wire)
+    assert summary["outcome"] == "safety_stop"
+    assert summary["exception"]["code"] == f"{stage.upper()}_EXCEPTION"
+    assert summary["exception"]["type"] == "SystemExit"
+    logged = open_recording(log).json_meta(ch.META_SUMMARY)
+    assert logged is not None and logged["outcome"] == "safety_stop"
+
+
 class _LibrarysOwn(BaseException):
     """A BaseException of a library's own, neither an interrupt nor an exit."""
 
