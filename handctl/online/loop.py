@@ -462,8 +462,24 @@ class Runtime:
                         self._keep_stop_interrupted(interrupt, self._stop_at_once())
                         raise
         finally:
+            closed = self._close_clock()
+        return self._result(
+            outcome, f"{message}; {closed}" if message and closed else message or closed
+        )
+
+    def _close_clock(self) -> str:
+        """Close the clock; what its close raised, for the run's message ("": nothing). It
+        replaced the run's result, a safety stop's included (an internal error, exit 1, no
+        summary), and the clock that broke is the likeliest not to close either (a real-time
+        clock takes its timer out of the event loop). An interrupt goes on."""
+        try:
             self.clock.close()
-        return self._result(outcome, message)
+        except INTERRUPTS:
+            raise
+        except BaseException as exc:
+            said = said_by(exc)[:EXCEPTION_TEXT_CHARS]
+            return f"closing the clock raised {type(exc).__name__}" + (f": {said}" if said else "")
+        return ""
 
     async def _run(self) -> tuple[Outcome, str]:
         sup = self.supervisor

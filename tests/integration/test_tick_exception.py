@@ -991,6 +991,36 @@ def test_a_system_exit_on_every_call_still_ends_in_the_stop_with_its_summary(
     assert logged is not None and logged["outcome"] == "safety_stop"
 
 
+def test_a_clock_that_cannot_close_either_keeps_the_stop_s_result(
+    hand: HandConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The clock raises from one tick on, and its close raises too (as a real-time clock's
+    can, taking its broken timer out of the loop): the close's exception replaced the safety
+    stop with an internal error, exit 1, no summary (found by an outside audit)."""
+    from handctl.online.clock import LockstepClock
+
+    real_wait, calls = LockstepClock.wait_tick, [0]
+
+    async def wait_tick(self: LockstepClock) -> Tick:
+        calls[0] += 1
+        if calls[0] >= 300:
+            raise ForcedError("forced in the clock")
+        return await real_wait(self)
+
+    def close(self: LockstepClock) -> None:
+        raise ForcedError("forced in the clock's close")
+
+    monkeypatch.setattr(LockstepClock, "wait_tick", wait_tick)
+    monkeypatch.setattr(LockstepClock, "close", close)
+    code, wire, summary, log = _cli_run_heard(CLOSE_AND_HOLD_1S, hand, tmp_path, monkeypatch)
+    assert code == cli.EXIT_SAFETY_STOP
+    _stopped_after_torque(wire)
+    assert summary["exception"]["code"] == "CLOCK_EXCEPTION"
+    assert "closing the clock raised ForcedError: forced in the clock's close" in summary["message"]
+    logged = open_recording(log).json_meta(ch.META_SUMMARY)
+    assert logged is not None and logged["outcome"] == "safety_stop"
+
+
 class _LibrarysOwn(BaseException):
     """A BaseException of a library's own, neither an interrupt nor an exit."""
 
