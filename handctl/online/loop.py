@@ -92,6 +92,12 @@ REFUSE_STARTUP = {
 #: A tick of the stop after an exception waits this long at most for the clock; a clock that
 #: does not answer is given up and the rest of the stop's frames go at once, in order.
 STOP_TICK_TIMEOUT_S = 0.1
+#: A clock that gives no tick for this long (s) while the run waits for one has stopped: its
+#: fault (``CLOCK_EXCEPTION``, ``ClockSilentError``) and the stop after an exception. A real-time
+#: clock whose timer callback raised was waited for forever, deaf to the stop signals (found
+#: by an outside audit). Seconds, far above any stall of a loaded host (tens of ms); the time
+#: the process did not run (SIGSTOP, a blocked loop) is not counted (``Runtime._watch_clock``).
+CLOCK_SILENT_S = 2.0
 #: What ends a run as an interrupt (zero and a disable at once, then it goes on) and not as a
 #: broken stage's safety stop: every other BaseException is a stage's (``Runtime.run``).
 INTERRUPTS = (KeyboardInterrupt, asyncio.CancelledError)
@@ -141,6 +147,10 @@ class _Survive:
 
     def __exit__(self, kind: object, exc: BaseException | None, tb: object) -> bool:
         return exc is not None and not isinstance(exc, INTERRUPTS)
+
+
+class ClockSilentError(Exception):
+    """The clock gave no tick for ``Runtime.clock_silent_s`` while the run waited for one."""
 
 
 class EndOfTicks(Exception):  # noqa: N818 - an end, not an error
@@ -308,6 +318,14 @@ class Runtime:
             else max(1, round(answer_timeout_s / hand.bus.period_s))
         )
         self.max_ticks = max_ticks
+        #: s, how long the clock may give no tick (``CLOCK_SILENT_S``; a test shortens it)
+        self.clock_silent_s = CLOCK_SILENT_S
+        #: ticks the clock has given, whether the run waits for one now, and whether the
+        #: watch found it silent (``_watch_clock``)
+        self._clock_ticks = 0
+        self._clock_waiting = False
+        self._clock_silent = False
+        self._clock_watch: asyncio.TimerHandle | None = None
         self.stop_requested = ""
         self.estop_requested = ""
         self._stop_notes_said = 0  # of ``supervisor.stop_notes``, in the log
@@ -434,6 +452,9 @@ class Runtime:
 
     # -- the run --------------------------------------------------------------------------
     async def run(self) -> RunResult:
+        loop = asyncio.get_running_loop()
+        due = loop.time() + self.clock_silent_s
+        self._clock_watch = loop.call_at(due, self._watch_clock, asyncio.current_task(), -1, due)
         try:
             with self.collector.running():  # the stop's ticks too
                 try:
@@ -462,6 +483,8 @@ class Runtime:
                         self._keep_stop_interrupted(interrupt, self._stop_at_once())
                         raise
         finally:
+            if self._clock_watch is not None:
+                self._clock_watch.cancel()
             closed = self._close_clock()
         return self._result(
             outcome, f"{message}; {closed}" if message and closed else message or closed
@@ -1151,10 +1174,41 @@ class Runtime:
         the garbage the ticks before it left is collected here too, if it is time to."""
         if self.collector.after_tick() and self.trace is not None:
             self.trace.note(NOTE_COLLECT)
-        tk = await self.clock.wait_tick()
+        self._clock_waiting = True
+        try:
+            tk = await self.clock.wait_tick()
+        except asyncio.CancelledError:
+            task = asyncio.current_task()
+            if not self._clock_silent or task is None or task.uncancel():
+                raise  # a cancellation of the run's own
+            self._clock_silent = False
+            raise ClockSilentError(
+                f"no tick from the clock for {self.clock_silent_s:g} s (a timer that stopped, "
+                "or whose callback raised: asyncio's own log says what)"
+            ) from None
+        finally:
+            self._clock_waiting = False
+        self._clock_ticks += 1
         if self.recorder is not None:
             self.recorder.begin_tick(tk)
         return tk
+
+    def _watch_clock(self, task: asyncio.Task[Any] | None, seen: int, due: float) -> None:
+        """Every ``clock_silent_s`` while the run lasts: a run waiting for its clock that has
+        had no tick since the last look (``seen``) is stopped as the clock's fault
+        (``ClockSilentError`` from ``_next_tick``). A look that comes late by half of that or more
+        found a process that did not run (SIGSTOP, a loop held up), not a silent clock: the
+        clock gets the whole time again, from now, and the missed ticks are judged as ever."""
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        ticks = self._clock_ticks
+        late = now - due >= self.clock_silent_s / 2
+        if task is not None and self._clock_waiting and ticks == seen and not late:
+            self._clock_silent = True
+            task.cancel()
+            return
+        due = now + self.clock_silent_s
+        self._clock_watch = loop.call_at(due, self._watch_clock, task, ticks, due)
 
     def _account_idle(self, tk: Tick) -> None:
         """A tick with no stages (start-up, the last): counted, and traced, since the first

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -649,6 +650,62 @@ def test_only_a_lockstep_clock_may_end_a_run_without_a_stop(
         wire = hear(b.listener, hand)
     assert [f.code for f in result.faults] == [FaultCode.CLOCK_EXCEPTION]
     assert_stopped_on_the_wire(wire, result.faults[0].tick - b.runtime.first_send_tick)
+
+
+def test_a_clock_that_gives_no_more_ticks_is_a_clock_fault_not_a_hang(
+    hand: HandConfig, hold: Recipe, tmp_path: Path
+) -> None:
+    """The clock stops giving ticks (a real-time clock whose timer callback raised, which
+    asyncio logs and swallows): the run waited for it forever, deaf to the stop signals
+    (found by an outside audit). A clock silent for ``clock_silent_s`` is the clock's fault,
+    and the stop's frames go without it."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        rt = b.runtime
+        rt.clock_silent_s = 0.3  # CLOCK_SILENT_S, seconds, in a run
+        due = Trigger(rt, always=True)
+        real_wait = rt.clock.wait_tick
+
+        async def wait_tick() -> Tick:
+            if due():
+                await asyncio.get_running_loop().create_future()  # never comes
+            return await real_wait()
+
+        rt.clock.wait_tick = wait_tick  # type: ignore[method-assign]
+        result = asyncio.run(rt.run())
+        wire = hear(b.listener, hand)
+    assert result.outcome is Outcome.SAFETY_STOP
+    failure = result.exception
+    assert failure is not None and failure.code is FaultCode.CLOCK_EXCEPTION, failure
+    assert failure.type == "ClockSilentError"
+    assert_stopped_on_the_wire(wire, result.faults[0].tick - rt.first_send_tick)
+
+
+def test_a_loop_held_up_while_it_waits_for_its_clock_is_not_a_silent_clock(
+    hand: HandConfig, hold: Recipe, tmp_path: Path
+) -> None:
+    """The process does not run for longer than ``clock_silent_s`` while it waits for its
+    tick (a SIGSTOP and SIGCONT, here a callback that holds the event loop): its clock did
+    not fall silent, and the run goes on (a multi-second pause is judged by its missed
+    ticks, as ever)."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        rt = b.runtime
+        rt.clock_silent_s = 0.3
+        due = Trigger(rt, always=False)
+        real_wait = rt.clock.wait_tick
+
+        async def wait_tick() -> Tick:
+            if due():
+                loop = asyncio.get_running_loop()
+                loop.call_later(0.25, time.sleep, 1.0)  # the process held, mid-wait
+                tick_due = loop.create_future()
+                loop.call_later(0.28, tick_due.set_result, None)  # due while it is held
+                await tick_due
+            return await real_wait()
+
+        rt.clock.wait_tick = wait_tick  # type: ignore[method-assign]
+        result = asyncio.run(rt.run())
+    assert due.fired
+    assert result.outcome is Outcome.COMPLETED, result.message
 
 
 def test_a_huge_exception_message_is_cut_and_its_place_kept(
