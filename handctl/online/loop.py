@@ -1005,6 +1005,7 @@ class Runtime:
     def _latch_exception(self, exc: BaseException) -> Tick | None:
         """Turn ``exc`` into the fault of its stage, latched (and kept in ``exception``);
         return the tick under way when it was raised, if known. Never raises."""
+        exc = _as_raised(exc)
         try:
             code, tk = _stage_of(exc)
         except Exception:  # a traceback that cannot be read still stops the hand
@@ -1500,6 +1501,21 @@ _RECIPES_DIR = os.path.dirname(recipe_runner.__file__) + os.sep
 def _in_codec(frame: FrameType) -> bool:
     name = frame.f_code.co_filename
     return name in _CODEC_FILES or name.startswith("<layout ")  # compiled per DBC message
+
+
+def _as_raised(exc: BaseException) -> BaseException:
+    """The exception as the stage raised it: a StopIteration that leaves a coroutine (or a
+    generator) is a RuntimeError there (PEP 479), whose traceback begins above the tick, and
+    the run's fault was RUN_EXCEPTION at no tick (and the tick that raised went uncounted);
+    its cause has the stage, the tick and the place (found by an outside audit)."""
+    cause = exc.__cause__
+    if (
+        type(exc) is RuntimeError
+        and isinstance(cause, (StopIteration, StopAsyncIteration))
+        and cause.__traceback__ is not None
+    ):
+        return cause
+    return exc
 
 
 def _stage_of(exc: BaseException) -> tuple[FaultCode, Tick | None]:

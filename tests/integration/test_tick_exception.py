@@ -652,6 +652,37 @@ def test_only_a_lockstep_clock_may_end_a_run_without_a_stop(
     assert_stopped_on_the_wire(wire, result.faults[0].tick - b.runtime.first_send_tick)
 
 
+def test_a_stop_iteration_in_a_stage_keeps_its_stage_and_its_tick(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A StopIteration raised in a stage leaves the tick's coroutine as a RuntimeError (PEP
+    479) whose traceback begins above the tick: the fault was RUN_EXCEPTION "coroutine
+    raised StopIteration (in _run ...)", and the tick that raised went uncounted, one less
+    than the log's (found by an outside audit)."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        rt = b.runtime
+        due = Trigger(rt, always=False)
+        assert rt.runner is not None
+        real = rt.runner.advance
+
+        def advance(*args: Any, **kwargs: Any) -> None:
+            if due():
+                raise StopIteration("forced in the runner stage")
+            real(*args, **kwargs)
+
+        monkeypatch.setattr(rt.runner, "advance", advance)
+        result = asyncio.run(rt.run())
+        monkeypatch.undo()
+        b.recorder.close(session.summarise_run(result, hand, hold, True, None))
+    failure = result.exception
+    assert failure is not None and failure.code is FaultCode.RUNNER_EXCEPTION, failure
+    assert failure.type == "StopIteration" and failure.message == "forced in the runner stage"
+    assert failure.where.startswith("advance (tests/integration/")
+    _, ticks, faults = logged_faults(tmp_path / "run.mcap")
+    assert ticks == result.ticks
+    assert [(f["name"], f["tick"]) for f in faults] == [("RUNNER_EXCEPTION", failure.tick)]
+
+
 def test_a_clock_that_gives_no_more_ticks_is_a_clock_fault_not_a_hang(
     hand: HandConfig, hold: Recipe, tmp_path: Path
 ) -> None:
