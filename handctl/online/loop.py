@@ -327,6 +327,9 @@ class Runtime:
         self._clock_silent = False
         self._clock_watch: asyncio.TimerHandle | None = None
         self.stop_requested = ""
+        #: the stops asked for during the stop after an exception (None: not in one), said in
+        #: its message: they went unsaid, the signals of README's last line lost
+        self._asked_in_stop: list[str] | None = None
         self.estop_requested = ""
         self._stop_notes_said = 0  # of ``supervisor.stop_notes``, in the log
         #: the nodes' faults ``--reset-node-faults`` cleared at start-up ("": none)
@@ -406,6 +409,8 @@ class Runtime:
     # -- requests from outside (signal handlers, tests) -----------------------------------
     def request_stop(self, reason: str = "interrupted") -> None:
         """A controlled stop: zero torque, nodes disabled, the run ends as INTERRUPTED."""
+        if self._asked_in_stop is not None:  # a stop under way already, whatever is asked
+            self._asked_in_stop.append(reason)
         if not self.stop_requested:
             self.stop_requested = reason
             if self.recorder is not None:
@@ -445,6 +450,7 @@ class Runtime:
         self.driver.node_command("fault_reset")
         self.runner = self._new_runner()
         self.stop_requested = ""
+        self._asked_in_stop = None
         self.estop_requested = ""
         self._estop_owed = self._estop_refusals = 0  # the nodes' FAULT was just cleared
         self.exception = None
@@ -858,6 +864,7 @@ class Runtime:
         try each); without the clock the remaining frames go at once, in the same order.
         """
         tk = self._latch_exception(exc)
+        self._asked_in_stop = []
         driver = self.driver
         if tk is not None and self.tick == tk.tick:  # the tick that raised was not counted
             self._count_stop_tick(tk)
@@ -904,7 +911,17 @@ class Runtime:
             # every node heard stopped, but not by the disable (its watchdog's TIMEOUT, or the
             # e-stop in the disable's place): the summary says what the bus did to it
             self.disable_unconfirmed = self._disable_refused()
-        return Outcome.SAFETY_STOP, self._exception_stop_message()
+        return Outcome.SAFETY_STOP, self._exception_stop_message() + self._asked_said()
+
+    def _asked_said(self) -> str:
+        """The stops asked for during the stop after an exception, for its message ("":
+        none): it goes on to its end whatever is asked, and says what was."""
+        asked = self._asked_in_stop
+        if not asked:
+            return ""
+        return (
+            f"; {', '.join(dict.fromkeys(asked))} came during this stop, which went on to its end"
+        )
 
     async def _stop_tick(self) -> Tick | None:
         """The clock's next tick for the stop after an exception, ``STOP_TICK_TIMEOUT_S`` at

@@ -1109,6 +1109,48 @@ def test_a_clock_that_cannot_close_either_keeps_the_stop_s_result(
     assert logged is not None and logged["outcome"] == "safety_stop"
 
 
+def test_stop_signals_during_the_stop_after_an_exception_are_said(
+    hand: HandConfig,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """SIGINT and SIGTERM while the stop after an exception runs its ticks: the stop wins, as
+    it should, but neither signal was said anywhere (found by an outside audit); README's
+    last line names the signal."""
+    import os
+    import signal
+
+    from handctl.online.clock import LockstepClock
+
+    _raise_in_the_runner_at(300, ForcedError("forced in the runner"), monkeypatch)
+    real_wait, stopping = LockstepClock.wait_tick, [0]
+    from handctl.online.recipes.runner import RecipeRunner
+
+    real_abort = RecipeRunner.abort
+
+    def abort(self: RecipeRunner, *args: Any, **kwargs: Any) -> None:
+        stopping[0] = 1  # the phase ends on the exception as its stop begins
+        real_abort(self, *args, **kwargs)
+
+    async def wait_tick(self: LockstepClock) -> Tick:
+        if stopping[0]:
+            stopping[0] += 1
+            if stopping[0] in (2, 3):  # the stop's first two ticks
+                os.kill(os.getpid(), signal.SIGINT if stopping[0] == 2 else signal.SIGTERM)
+        return await real_wait(self)
+
+    monkeypatch.setattr(RecipeRunner, "abort", abort)
+    monkeypatch.setattr(LockstepClock, "wait_tick", wait_tick)
+    code, wire, summary, _ = _cli_run_heard(CLOSE_AND_HOLD_1S, hand, tmp_path, monkeypatch)
+    assert code == cli.EXIT_SAFETY_STOP
+    _stopped_after_torque(wire)
+    said = "signal SIGINT, signal SIGTERM came during this stop, which went on to its end"
+    assert said in summary["message"]
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("handctl: safety stop: ") and said in last
+
+
 class _LibrarysOwn(BaseException):
     """A BaseException of a library's own, neither an interrupt nor an exit."""
 
