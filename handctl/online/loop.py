@@ -459,19 +459,21 @@ class Runtime:
     # -- the run --------------------------------------------------------------------------
     async def run(self) -> RunResult:
         loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
         due = loop.time() + self.clock_silent_s
-        self._clock_watch = loop.call_at(due, self._watch_clock, asyncio.current_task(), -1, due)
+        self._clock_watch = loop.call_at(due, self._watch_clock, task, -1, due)
         try:
             with self.collector.running():  # the stop's ticks too
                 try:
                     outcome, message = await self._run()
-                except INTERRUPTS as exc:
-                    # Ctrl-C without a signal handler, a cancelled task: no tick is left to
-                    # wait for, so zero and disable at once (in this order on the bus), and
-                    # what ran is kept for the summary (``interrupted``) before it goes on
-                    self._keep_interrupted(exc, self._stop_at_once())
-                    raise
                 except BaseException as exc:  # any stage: a safety stop (module doc)
+                    if _interrupts(exc, task):
+                        # Ctrl-C without a signal handler, a cancelled task, the run's
+                        # coroutine closed: no tick is left to wait for, so zero and disable
+                        # at once (in this order on the bus), and what ran is kept for the
+                        # summary (``interrupted``) before it goes on
+                        self._keep_interrupted(exc, self._stop_at_once())
+                        raise
                     # SystemExit too: nothing in a tick asks the process to end (a stop signal
                     # is a request to the loop); a library's exit() inside one is a broken
                     # stage, and went out as the process' exit code with no summary. So is
@@ -483,9 +485,9 @@ class Runtime:
                         outcome, message = await self._stop_after_exception(exc)
                     except BaseException as interrupt:
                         # the stop's own ticks interrupted (Ctrl-C in a program that embeds
-                        # the Runtime, a cancelled task): the handler above does not cover
-                        # this one, and one zero frame went with no disable, the nodes left
-                        # ENABLED for their watchdog and no result kept
+                        # the Runtime, a cancelled task): the interrupt's branch above does
+                        # not cover this one, and one zero frame went with no disable, the
+                        # nodes left ENABLED for their watchdog and no result kept
                         self._keep_stop_interrupted(interrupt, self._stop_at_once())
                         raise
         finally:
@@ -1518,6 +1520,21 @@ _RECIPES_DIR = os.path.dirname(recipe_runner.__file__) + os.sep
 def _in_codec(frame: FrameType) -> bool:
     name = frame.f_code.co_filename
     return name in _CODEC_FILES or name.startswith("<layout ")  # compiled per DBC message
+
+
+def _interrupts(exc: BaseException, task: asyncio.Task[Any] | None) -> bool:
+    """Whether ``exc`` ends the run of ``task`` as an interrupt: ``INTERRUPTS``, or the
+    GeneratorExit of its coroutine closed from outside (its task gone with its loop), which
+    no tick can be awaited after; the same raised by a stage in the run's own task is that
+    stage's fault."""
+    if isinstance(exc, INTERRUPTS):
+        return True
+    if not isinstance(exc, GeneratorExit):
+        return False
+    try:
+        return asyncio.current_task() is not task
+    except RuntimeError:  # no event loop runs: closed from outside
+        return True
 
 
 def _as_raised(exc: BaseException) -> BaseException:

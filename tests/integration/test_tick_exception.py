@@ -588,6 +588,39 @@ def test_an_interrupt_whose_stop_the_bus_refuses_says_so(
         assert "stopped only by its own command watchdog" in kept.message
 
 
+def test_a_run_whose_coroutine_is_closed_from_outside_zeroes_and_disables(
+    hand: HandConfig, hold: Recipe, tmp_path: Path
+) -> None:
+    """The run's coroutine closed from outside (its task gone with its loop) gets a
+    GeneratorExit at its await: an interrupt, not a stage's fault, since no tick can be
+    awaited after it; zero and disable go at once, and the close goes on."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        rt = b.runtime
+        due = Trigger(rt, always=False)
+        loop = asyncio.new_event_loop()
+
+        def leave(tk: Tick) -> None:
+            if due():
+                loop.stop()  # the loop ends with the run's task pending
+
+        rt.tick_hooks.append(leave)
+        run = rt.run()
+        try:
+            task = loop.create_task(run)
+            loop.run_forever()
+            assert not task.done()
+            run.close()
+        finally:
+            loop.close()
+        wire = hear(b.listener, hand)
+    for node, rows in wire.torques.items():
+        assert np.any(rows[-2][1]) and not np.any(rows[-1][1]), f"node {node}: {rows[-3:]}"
+        assert wire.disables[node] and wire.disables[node][-1] > rows[-1][0], f"node {node}"
+    kept = rt.interrupted
+    assert kept is not None and kept.outcome is Outcome.INTERRUPTED
+    assert kept.message.startswith("GeneratorExit in tick "), kept.message
+
+
 @pytest.mark.parametrize("interrupt", [KeyboardInterrupt, asyncio.CancelledError])
 def test_an_interrupt_during_the_stop_after_an_exception_still_disables(
     hand: HandConfig, hold: Recipe, tmp_path: Path, interrupt: type[BaseException]
