@@ -1515,6 +1515,9 @@ class Runtime:
 _CODEC_FILES = frozenset({finger.__file__, receiver.__file__, wire.__file__})
 _SAFETY_DIR = os.path.dirname(safety_faults.__file__) + os.sep
 _RECIPES_DIR = os.path.dirname(recipe_runner.__file__) + os.sep
+#: the recording plane's folder, by path: the online plane does not import it. A note to the
+#: log that raised inside ``decide`` (a phase's end at a stop) was said as the supervisor's
+_RECORDING_DIR = os.path.join(os.path.dirname(os.path.dirname(__file__)), "recording") + os.sep
 
 
 def _in_codec(frame: FrameType) -> bool:
@@ -1564,6 +1567,8 @@ def _stage_of(exc: BaseException) -> tuple[FaultCode, Tick | None]:
     if at is None:
         return FaultCode.RUN_EXCEPTION, tick
     frame, below = frames[at], frames[at + 1 :]
+    if any(f.f_code.co_filename.startswith(_RECORDING_DIR) for f in below):
+        return FaultCode.RECORD_EXCEPTION, tick  # the recorder's, whichever stage called it
     bound = frame.f_locals
     callee = below[0].f_code.co_filename if below else ""
     code = frame.f_code

@@ -12,6 +12,7 @@ fault, and the log has the fault event with the exception's text.
 from __future__ import annotations
 
 import asyncio
+import errno
 import itertools
 import json
 import time
@@ -1362,3 +1363,33 @@ def test_the_rerun_of_a_run_that_stopped_on_an_exception_compares_up_to_it(
     said = [n for n in report.notes if "stopped on an exception" in n]
     assert said and f"compared up to tick {raised}" in said[0]
     assert "RUNNER_EXCEPTION: ForcedError: forced in the runner stage" in said[0]
+
+
+def test_a_note_to_the_log_that_raises_is_the_record_stage_s(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The recorder's note of a phase's end, written inside ``decide`` when a stop ends the
+    phase, raised and was said as SUPERVISOR_EXCEPTION: the stage is named by the code it
+    came from, and the recorder is the record stage's (found by an outside audit)."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        rt = b.runtime
+        due = Trigger(rt, always=False)
+
+        def stop(tk: Tick) -> None:
+            if due():
+                rt.request_stop("test")
+
+        rt.tick_hooks.append(stop)
+        real = b.recorder._event
+
+        def event(kind: int, tick: int, name: str, *args: Any) -> None:
+            if name == "phase_end":  # inside the recorder's own note
+                raise OSError(errno.EIO, "forced in the recorder's note")
+            real(kind, tick, name, *args)
+
+        monkeypatch.setattr(b.recorder, "_event", event)
+        result = asyncio.run(rt.run())
+        monkeypatch.undo()
+    failure = result.exception
+    assert failure is not None and failure.code is FaultCode.RECORD_EXCEPTION, failure
+    assert result.outcome is Outcome.SAFETY_STOP
