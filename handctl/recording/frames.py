@@ -697,12 +697,14 @@ def check_commands(
     whose = "--hand's" if on_bus else "the recorded hand's"
     torque: dict[int, tuple[Layout, FingerConfig]] = {}
     other: dict[int, Layout] = {}
+    stream: dict[int, int] = {}  # each node's NodeCommand id: its TorqueCommand id
     for finger in hand.fingers:
         torque[finger.can_ids.torque_command] = (
             protocol.layout("TorqueCommand", finger.node_id),
             finger,
         )
         other[finger.can_ids.node_command] = protocol.layout("NodeCommand", finger.node_id)
+        stream[finger.can_ids.node_command] = finger.can_ids.torque_command
     # the log's own ticks (their spacing and lateness are what the slack is for), or the
     # hand's on the bus if its loop is faster: a log re-sealed to say 250 Hz was given four
     # times the slack of the 1 kHz hand it went to
@@ -717,6 +719,7 @@ def check_commands(
     # wire within a millisecond.
     period_s = period_ns * 1e-9 / speed
     last: dict[int, tuple[int, tuple[float, ...], list[float]]] = {}
+    nodes = _NodeStates(stream)
     rate = _CommandRate(period_ns)
     checked = 0
     for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
@@ -758,42 +761,30 @@ def check_commands(
                 + ("a bad CRC" if len(data) == layout.length else "a wrong length"),
             )
         if entry is None:
-            # a NodeCommand: enable and disable, as the run sent them; never a fault reset,
-            # which clears what a node latched for a reason and is a person's decision for
-            # the run in front of them (``run --reset-node-faults``), not a replay's: one
-            # recorded so, or written into a log, went onto the bus unasked. Nor a command
-            # value the protocol does not define.
-            _, (command,) = layout.decode(data)
-            if command not in (NODE_COMMANDS["enable"], NODE_COMMANDS["disable"]):
-                raise ConfigError(
-                    str(recording.path),
-                    f"{_frame_at(log_time, frame_id, data, is_rx)}: Command",
-                    f"enable ({NODE_COMMANDS['enable']}) or disable ({NODE_COMMANDS['disable']}) "
-                    f"(nothing was sent): a replay never resets the faults a node latched, nor "
-                    f"sends a command the protocol does not define; a run does, asked "
-                    f"(`handctl run recipe ... --reset-node-faults`)",
-                    Description(
-                        "a fault reset"
-                        if command == NODE_COMMANDS["fault_reset"]
-                        else f"{command:g}"
-                    ),
-                )
+            where = _frame_at(log_time, frame_id, data, is_rx)
+            stream_id = nodes.command(frame_id, _node_command(recording, where, data, layout))
+            if stream_id is not None:
+                last.pop(stream_id, None)  # zero applied from here: the next a first command
             continue
         _, values = layout.decode(data)
         finger = entry[1]
         rates = [j.rate_limit for j in finger.joints]
-        if frame_id in last:
-            before_ns, before, budget = last[frame_id]
-            dt = max(0, log_time - before_ns) * 1e-9 / speed
-        else:  # a node's first command: from zero, the bucket full
-            before, budget, dt = (0.0,) * len(values), [0.0] * len(rates), 2 * period_s
-            before_ns = log_time
+        # a node's first command (since its last disable or enable too): from zero, the
+        # bucket full
+        first = (log_time, (0.0,) * len(values), [2 * r * period_s for r in rates])
+        before_ns, before, budget = last.get(frame_id, first)
+        dt = max(0, log_time - before_ns) * 1e-9 / speed
         budget = [min(2 * r * period_s, b + r * dt) for r, b in zip(rates, budget, strict=True)]
         problem = _torque_problem(layout, finger, values, before, budget, speed, period_s)
         if problem is not None and on_bus:
             problem = (problem[0], f"{problem[1]} in --hand {hand.source}", problem[2])
         if problem is not None:
             raise refuse(*problem)
+        if nodes.baseline(frame_id):
+            # not applied: the node stays at zero, and the command after it is judged from
+            # there (from this one, the node stepped from zero by that command's change and
+            # this one's together)
+            values = (0.0,) * len(values)
         for i, (tau, was) in enumerate(zip(values, before, strict=False)):
             if i < len(budget) and not _towards_zero(tau, was):
                 budget[i] = max(0.0, budget[i] - abs(tau - was))
@@ -872,6 +863,61 @@ def check_command_gaps(
         )
 
 
+def _node_command(recording: Recording, where: str, data: bytes, layout: Layout) -> float:
+    """The ``Command`` of a NodeCommand ``data`` of ``layout``, enable or disable, as the run
+    sent them; never a fault reset, which clears what a node latched for a reason and is a
+    person's decision for the run in front of them (``run --reset-node-faults``), not a
+    replay's: one recorded so, or written into a log, went onto the bus unasked. Nor a
+    command value the protocol does not define. ``where``: the frame, as ``_frame_at``."""
+    _, (command,) = layout.decode(data)
+    if command not in (NODE_COMMANDS["enable"], NODE_COMMANDS["disable"]):
+        raise ConfigError(
+            str(recording.path),
+            f"{where}: Command",
+            f"enable ({NODE_COMMANDS['enable']}) or disable ({NODE_COMMANDS['disable']}) "
+            f"(nothing was sent): a replay never resets the faults a node latched, nor "
+            f"sends a command the protocol does not define; a run does, asked "
+            f"(`handctl run recipe ... --reset-node-faults`)",
+            Description(
+                "a fault reset" if command == NODE_COMMANDS["fault_reset"] else f"{command:g}"
+            ),
+        )
+    return command
+
+
+class _NodeStates:
+    """What each node does with the log's commands as far as its applied torque goes: whether
+    the frames so far leave it ENABLED (a replay finds its nodes DISABLED, ``_nobody_else``),
+    and whether its next TorqueCommand is the one an enable makes its stream's baseline,
+    never applied (PROTOCOL.md, "A new host"). A node disabled, or enabled again, applies
+    zero whatever it was last sent, so its next commands are judged from zero: judged from
+    the last command before, a disable and an enable in place of two commands took a node
+    from 0 to 0.31 N·m in one frame (found by an outside audit)."""
+
+    def __init__(self, streams: dict[int, int]) -> None:
+        self._stream = streams  # each node's NodeCommand id: its TorqueCommand id
+        self._enabled: set[int] = set()  # TorqueCommand ids
+        self._opening: set[int] = set()
+
+    def command(self, frame_id: int, command: float) -> int | None:
+        """The TorqueCommand id of the node the ``command`` on NodeCommand id ``frame_id``
+        disables or enables, its applied torque zero from here; None if it changes nothing
+        (an enable of an enabled node keeps its torque and its stream)."""
+        stream_id = self._stream[frame_id]
+        enable = command == NODE_COMMANDS["enable"]
+        if enable == (stream_id in self._enabled):
+            return None
+        for states in (self._enabled, self._opening):
+            (states.add if enable else states.discard)(stream_id)
+        return stream_id
+
+    def baseline(self, frame_id: int) -> bool:
+        """Whether the TorqueCommand on ``frame_id`` is its stream's baseline, not applied."""
+        opening = frame_id in self._opening
+        self._opening.discard(frame_id)
+        return opening
+
+
 def _aliases(frame_id: int, commands: Sequence[int]) -> bool:
     """A 29-bit frame whose low 11 bits are a command's id: a controller or a filter that
     keeps 11 bits takes it for that command, which no check of the command has seen."""
@@ -934,7 +980,8 @@ def _torque_problem(
         if not _towards_zero(tau, was) and abs(tau - was) > step:
             return (
                 label,
-                f"a change of at most {step:.6g} N·m from the previous command's {was:g} N·m "
+                f"a change of at most {step:.6g} N·m from the node's {was:g} N·m, its last "
+                "command's or zero after a disable or an enable "
                 f"(what its rate limit {joint.rate_limit:g} N·m/s has left since the "
                 f"commands before, at most two periods' worth, {2 * period_s * 1e3:g} ms"
                 + (

@@ -596,10 +596,12 @@ def _commands(
     torques: list[float],
     logged_hand: HandConfig | None = None,
     on_bus: bool = False,
+    extra: dict[int, tuple[int, bytes]] | None = None,
 ) -> int:
     """``check_commands`` on a log whose only frames are node 1's commands to f1_j1, at
     ``times_ns``: what the rate limit makes of their timing alone (the log's hand
-    ``logged_hand``, ``hand`` by default; ``on_bus``: ``hand`` is --hand's)."""
+    ``logged_hand``, ``hand`` by default; ``on_bus``: ``hand`` is --hand's), and the frames
+    ``extra`` (log time: ``(id, data)``) put in before the commands of their time."""
     from handctl.recording import frames
 
     layout = protocol.layout("TorqueCommand", 1)
@@ -607,6 +609,9 @@ def _commands(
         (t, layout.frame_id, layout.encode(k % 256, [tau, 0.0, 0.0]), False)
         for k, (t, tau) in enumerate(zip(times_ns, torques, strict=True))
     ]
+    for at, (frame_id, data) in sorted((extra or {}).items(), reverse=True):
+        where = next((i for i, f in enumerate(logged) if f[0] >= at), len(logged))
+        logged.insert(where, (at, frame_id, data, False))
     monkeypatch.setattr(frames, "logged_frames", lambda recording, direction="both": logged)
     monkeypatch.setattr(frames, "recorded_protocol", lambda recording: protocol)
     monkeypatch.setattr(frames, "recorded_hand", lambda recording: logged_hand or hand)
@@ -754,6 +759,92 @@ def test_drops_the_writer_counted_on_the_way_cannot_vanish_from_its_end(
         f"{bad}: metadata handctl.recording_end.dropped_ticks: expected at least the 3 that "
         f"{ch.STATS} counted, found '0'"
     ) in done.stderr
+
+
+def _logged_tx(path: Path) -> list[tuple[int, int, bytes]]:
+    """``(log time, id, data)`` of every frame of ``/can/tx``, in the log's order."""
+    with path.open("rb") as handle:
+        return [
+            (m.log_time, (msg := json.loads(m.data))["id"], bytes.fromhex(msg["data"]))
+            for _, c, m in make_reader(handle).iter_messages(topics=[ch.CAN_TX])
+        ]
+
+
+def _largest_step_applied(
+    hand: HandConfig, protocol: Protocol, node: int, frames: list[tuple[int, int, bytes]]
+) -> float:
+    """N·m, the largest change of a joint's applied torque that one of ``frames`` makes in
+    node ``node``'s firmware (the simulated hand's), fed them in order."""
+    from handctl.sim.firmware import EmulatedNode
+
+    finger = next(f for f in hand.fingers if f.node_id == node)
+    emulated = EmulatedNode(finger, protocol, tdt_range=3.0, encoder_max_step=1.0)
+    emulated.boot(0)
+    largest = 0.0
+    for log_time, frame_id, data in frames:
+        before = list(emulated.applied)
+        emulated.receive(frame_id, data, log_time)
+        largest = max(largest, *(abs(a - b) for a, b in zip(emulated.applied, before, strict=True)))
+    return largest
+
+
+def test_a_disable_and_an_enable_put_in_a_log_start_the_node_again_from_zero(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
+) -> None:
+    """Each TorqueCommand was judged from the node's previous one whatever NodeCommands came
+    between: two commands at node 3's largest torque replaced by a disable and an enable (the
+    counters in sequence) went out, and the node, which applies zero once disabled and takes
+    the first command after an enable as its stream's baseline, stepped from zero to that
+    torque in one frame (found by an outside audit)."""
+    torque, node = protocol.layout("TorqueCommand", 3), protocol.layout("NodeCommand", 3)
+    tx = _logged_tx(recorded.path)
+    commands = [i for i, (_, f, _) in enumerate(tx) if f == torque.frame_id]
+    largest = [max(map(abs, torque.decode(tx[i][2])[1])) for i in commands[:-20]]
+    k = largest.index(max(largest))
+    ours = [i for i, (_, f, _) in enumerate(tx) if f == node.frame_id]
+    first = node.decode(tx[ours[0]][2])[0]
+    # the two in place of the commands, the run's NodeCommands after them renumbered
+    commanded = {commands[k]: NODE_COMMANDS["disable"], commands[k + 1]: NODE_COMMANDS["enable"]}
+    commanded |= {i: int(node.decode(tx[i][2])[1][0]) for i in ours[1:]}
+    counters = {i: first + 1 + n for n, i in enumerate(sorted(commanded))}
+
+    def reenabled(topic: str, index: int, raw: bytes) -> bytes:
+        if topic != ch.CAN_TX or index not in commanded:
+            return raw
+        data = node.encode(counters[index] % 256, (commanded[index],)).hex()
+        return json.dumps(json.loads(raw) | {"id": node.frame_id, "data": data}).encode()
+
+    bad = tmp_path / "reenabled.mcap"
+    rewrite(recorded.path, bad, reenabled)
+    # what the log would do to the node: from zero to near its largest torque in one frame,
+    # more than the two ticks' worth the check allows a node's first command
+    step = hand.fingers[2].joints[0].rate_limit * hand.bus.period_s  # one tick's at most
+    assert _largest_step_applied(hand, protocol, 3, _logged_tx(bad)) > 3 * step
+    text = _refused_with_nothing_sent(open_recording(bad), hand, "hostile-reenabled")
+    assert f"{ch.CAN_TX} frame 0x{torque.frame_id:03X} " in text, text
+    assert "expected a change of at most" in text and "from the node's 0 N·m" in text, text
+    # the log as the run wrote it: a tick's step at most, the enable's baseline too
+    assert _largest_step_applied(hand, protocol, 3, tx) <= step + 1e-9
+
+
+def test_torques_sent_to_a_disabled_node_are_no_ramp_for_after_its_enable(
+    monkeypatch: pytest.MonkeyPatch, hand: HandConfig, protocol: Protocol
+) -> None:
+    """A node ignores the TorqueCommands it gets while DISABLED: a log that ramped them up
+    before the enable, each step within the rate limit, then sent the full torque twice
+    after it, took the node from zero to it in one frame."""
+    step = hand.fingers[0].joints[0].rate_limit * hand.bus.period_s
+    period_ns = round(hand.bus.period_s * 1e9)
+    node = protocol.layout("NodeCommand", 1)
+    enable = (node.frame_id, node.encode(0, (NODE_COMMANDS["enable"],)))
+    ramp = [step * (k + 1) for k in range(15)]
+    times = [k * period_ns for k in range(17)]
+    with pytest.raises(ConfigError, match="from the node's 0 N·m"):
+        before = [*ramp, ramp[-1], ramp[-1]]
+        _commands(monkeypatch, protocol, hand, times, before, extra={15 * period_ns: enable})
+    # ramped after the enable, as a run does: the same torques go out
+    after = [0.0, *ramp, ramp[-1]]
+    assert _commands(monkeypatch, protocol, hand, times, after, extra={0: enable}) == 18
 
 
 def test_a_command_dated_back_gives_the_next_no_more_time(
