@@ -760,13 +760,15 @@ def check_commands(
                 f"{len(data)} bytes, "
                 + ("a bad CRC" if len(data) == layout.length else "a wrong length"),
             )
+        where = functools.partial(_frame_at, log_time, frame_id, data, is_rx)  # when refused
+        counter, values = layout.decode(data)
         if entry is None:
-            where = _frame_at(log_time, frame_id, data, is_rx)
-            stream_id = nodes.command(frame_id, _node_command(recording, where, data, layout))
+            command = _node_command(recording, where, values[0])
+            nodes.in_sequence(recording, where, layout.name, frame_id, counter)
+            stream_id = nodes.command(frame_id, command)
             if stream_id is not None:
                 last.pop(stream_id, None)  # zero applied from here: the next a first command
             continue
-        _, values = layout.decode(data)
         finger = entry[1]
         rates = [j.rate_limit for j in finger.joints]
         # a node's first command (since its last disable or enable too): from zero, the
@@ -780,6 +782,7 @@ def check_commands(
             problem = (problem[0], f"{problem[1]} in --hand {hand.source}", problem[2])
         if problem is not None:
             raise refuse(*problem)
+        nodes.in_sequence(recording, where, layout.name, frame_id, counter)
         if nodes.baseline(frame_id):
             # not applied: the node stays at zero, and the command after it is judged from
             # there (from this one, the node stepped from zero by that command's change and
@@ -863,17 +866,16 @@ def check_command_gaps(
         )
 
 
-def _node_command(recording: Recording, where: str, data: bytes, layout: Layout) -> float:
-    """The ``Command`` of a NodeCommand ``data`` of ``layout``, enable or disable, as the run
-    sent them; never a fault reset, which clears what a node latched for a reason and is a
-    person's decision for the run in front of them (``run --reset-node-faults``), not a
-    replay's: one recorded so, or written into a log, went onto the bus unasked. Nor a
-    command value the protocol does not define. ``where``: the frame, as ``_frame_at``."""
-    _, (command,) = layout.decode(data)
+def _node_command(recording: Recording, where: Callable[[], str], command: float) -> float:
+    """A NodeCommand's ``command``, enable or disable, as the run sent them; never a fault
+    reset, which clears what a node latched for a reason and is a person's decision for the
+    run in front of them (``run --reset-node-faults``), not a replay's: one recorded so, or
+    written into a log, went onto the bus unasked. Nor a command value the protocol does not
+    define. ``where``: the frame, as ``_frame_at``."""
     if command not in (NODE_COMMANDS["enable"], NODE_COMMANDS["disable"]):
         raise ConfigError(
             str(recording.path),
-            f"{where}: Command",
+            f"{where()}: Command",
             f"enable ({NODE_COMMANDS['enable']}) or disable ({NODE_COMMANDS['disable']}) "
             f"(nothing was sent): a replay never resets the faults a node latched, nor "
             f"sends a command the protocol does not define; a run does, asked "
@@ -898,6 +900,31 @@ class _NodeStates:
         self._stream = streams  # each node's NodeCommand id: its TorqueCommand id
         self._enabled: set[int] = set()  # TorqueCommand ids
         self._opening: set[int] = set()
+        self._counters: dict[int, int] = {}  # each command id: its last frame's counter
+
+    def in_sequence(
+        self, recording: Recording, where: Callable[[], str], name: str, frame_id: int, counter: int
+    ) -> None:
+        """Refuse a command whose counter is not the one after the previous frame's of its id
+        (the first of each id any): a node takes a command only at its next counter and keeps
+        what it applies through any other, so the commands after one out of sequence would
+        be judged from a torque it never applied. Commands 101-109 of a ramp two counters
+        apart, each within the rate limit, then one at the next counter: the node held zero
+        through them and took the tenth's 0.2 N·m in one step (found by an outside audit).
+        A run never logs one: a frame the bus refused is logged as not sent, and gives its
+        counter back (``HandDriver.send``)."""
+        previous = self._counters.get(frame_id)
+        self._counters[frame_id] = counter
+        if previous is not None and counter != (previous + 1) & 0xFF:  # 8 bits, PROTOCOL.md
+            raise ConfigError(
+                str(recording.path),
+                f"{where()}: Counter",
+                f"{(previous + 1) & 0xFF}, the one after the previous {name}'s, as a run sends "
+                "them (nothing was sent): a node takes no command at another counter and "
+                "keeps the torque it applies, so the commands after it would be judged from a "
+                "torque the node never applied",
+                counter,
+            )
 
     def command(self, frame_id: int, command: float) -> int | None:
         """The TorqueCommand id of the node the ``command`` on NodeCommand id ``frame_id``

@@ -759,16 +759,27 @@ def test_to_bus_refuses_a_node_left_without_commands_past_its_watchdog(
 ) -> None:
     """Node 1's TorqueCommands of 20 ticks taken out, every tick row and every other frame
     as logged: each frame left is at its tick's time, and every check passed, but node 1
-    would go 21 ms without a command, past its 10 ms watchdog. The gap between a node's
-    commands is read from the frames themselves: refused, exit 2, nothing sent."""
-    torque = protocol_for(hand).layout("TorqueCommand", 1).frame_id
+    would go 21 ms without a command, past its 10 ms watchdog (the counters after the gap
+    renumbered, in sequence as a node takes them). The gap between a node's commands is
+    read from the frames themselves: refused, exit 2, nothing sent."""
+    layout = protocol_for(hand).layout("TorqueCommand", 1)
+    torque = layout.frame_id
 
     def keep(topic: str, raw: bytes) -> bool:
         msg = json.loads(raw) if topic == ch.CAN_TX else {}
         return not (msg.get("id") == torque and 300 <= msg["tick"] < 320)
 
+    def renumbered(topic: str, index: int, raw: bytes) -> bytes:
+        msg = json.loads(raw) if topic == ch.CAN_TX else {}
+        if msg.get("id") != torque or msg["tick"] < 320:
+            return raw
+        counter, values = layout.decode(bytes.fromhex(msg["data"]))
+        return json.dumps(
+            msg | {"data": layout.encode((counter - 20) % 256, values).hex()}
+        ).encode()
+
     bad = tmp_path / "gap.mcap"
-    copy_recording(recorded.path, bad, keep=keep)
+    copy_recording(recorded.path, bad, renumbered, keep=keep)
     done = handctl("replay", str(bad), "--to-bus", "virtual:gap")
     assert done.returncode == 2, done.stdout + done.stderr
     assert "frames sent" not in done.stdout + done.stderr

@@ -827,6 +827,50 @@ def test_a_disable_and_an_enable_put_in_a_log_start_the_node_again_from_zero(
     assert _largest_step_applied(hand, protocol, 3, tx) <= step + 1e-9
 
 
+def test_commands_the_node_would_reject_for_their_counter_are_refused(
+    recorded: Recorded, tmp_path: Path, hand: HandConfig, protocol: Protocol
+) -> None:
+    """The check took every logged command as applied, but a node rejects one whose counter
+    does not follow the last it took, and keeps its torque: f1_j1 ramped a tick's step a
+    command to 0.2 N·m with commands 101-109 two counters apart went out, and the node held
+    zero through them, then took 0.2 N·m in one step at the tenth, at the next counter
+    (found by an outside audit). A run logs its commands in sequence."""
+    layout = protocol.layout("TorqueCommand", 1)
+    step = hand.fingers[0].joints[0].rate_limit * hand.bus.period_s
+    seen: list[int] = []
+
+    def ramped(skip: bool) -> Change:
+        def change(topic: str, index: int, raw: bytes) -> bytes:
+            if topic != ch.CAN_TX or (msg := json.loads(raw))["id"] != layout.frame_id:
+                return raw
+            k = len(seen)
+            seen.append(k)
+            counter, values = layout.decode(bytes.fromhex(msg["data"]))
+            up = max(0, min(k - 100, 120 - k))  # 0.2 N·m at the 110th command, zero again at 120
+            if skip and 101 <= k <= 109:
+                counter += k - 100  # two apart from the 100th's
+            elif skip and k >= 110:
+                counter += 9  # the 110th at the one after the 109th's
+            data = layout.encode(counter % 256, [round(up * step, 4), *values[1:]])
+            return json.dumps(msg | {"data": data.hex()}).encode()
+
+        return change
+
+    bad, good = tmp_path / "skipped.mcap", tmp_path / "in_sequence.mcap"
+    rewrite(recorded.path, bad, ramped(skip=True))
+    seen.clear()
+    rewrite(recorded.path, good, ramped(skip=False))
+    # what the logs do to the node: the skipped counters make the ramp one 0.2 N·m step
+    assert _largest_step_applied(hand, protocol, 1, _logged_tx(bad)) > 9 * step
+    assert _largest_step_applied(hand, protocol, 1, _logged_tx(good)) <= step + 1e-9
+    text = _refused_with_nothing_sent(open_recording(bad), hand, "hostile-skipped")
+    assert f"{ch.CAN_TX} frame 0x{layout.frame_id:03X} " in text, text
+    assert ": Counter: expected " in text and "the one after the previous TorqueCommand_1's" in text
+    with open_bus("virtual:hostile-in-sequence", hand.bus) as listener:
+        sent = to_bus(open_recording(good), "virtual:hostile-in-sequence")
+        assert sent["sent"] == len(listener.drain(limit=10**7)) > 0
+
+
 def test_torques_sent_to_a_disabled_node_are_no_ramp_for_after_its_enable(
     monkeypatch: pytest.MonkeyPatch, hand: HandConfig, protocol: Protocol
 ) -> None:
