@@ -17,7 +17,12 @@ import numpy as np
 from handctl.config import FingerConfig, HandConfig
 from handctl.errors import ConfigError, Description, HandctlError, escaped
 from handctl.hand_protocol import node_message, protocol_for
-from handctl.online.safety.limits import JointLimits, angle_violations, outside_text
+from handctl.online.safety.limits import (
+    GRID_SLACK,
+    JointLimits,
+    angle_violations,
+    outside_text,
+)
 from handctl.protocol import COMMAND_WATCHDOG_S, NODE_COMMANDS, NODE_TIMING_MARGIN_S, Layout
 from handctl.protocol import Protocol as WireProtocol
 from handctl.recording import channels as ch
@@ -770,7 +775,11 @@ def check_commands(
                 last.pop(stream_id, None)  # zero applied from here: the next a first command
             continue
         finger = entry[1]
-        rates = [j.rate_limit for j in finger.joints]
+        # each joint's rate limit in counts of its signal's resolution a second: the budget
+        # is kept in counts, the supervisor keeping every torque on that grid (``_torque_problem``)
+        rates = [
+            j.rate_limit / s.scale for j, s in zip(finger.joints, layout.signals, strict=False)
+        ]
         # a node's first command (since its last disable or enable too): from zero, the
         # bucket full
         first = (log_time, (0.0,) * len(values), [2 * r * period_s for r in rates])
@@ -790,7 +799,7 @@ def check_commands(
             values = (0.0,) * len(values)
         for i, (tau, was) in enumerate(zip(values, before, strict=False)):
             if i < len(budget) and not _towards_zero(tau, was):
-                budget[i] = max(0.0, budget[i] - abs(tau - was))
+                budget[i] = max(0.0, budget[i] - _counts(tau - was, layout.signals[i].scale))
         # the budget's clock never runs back: a command dated before the one it follows
         # gets nothing, and the next is measured from the later of the two (from the earlier,
         # commands dated 0.7 ms back put 1.75 times the rate limit on the wire)
@@ -971,6 +980,12 @@ class _CommandRate:
         return True
 
 
+def _counts(change: float, scale: float) -> int:
+    """A change between two values of a signal of resolution ``scale``, in whole counts of
+    it: both are on its grid (a frame carries nothing else), so the count is exact."""
+    return abs(round(change / scale))
+
+
 def _towards_zero(tau: float, was: float) -> bool:
     """A change a stop makes, which no rate limit holds back."""
     return 0 <= tau <= was or was <= tau <= 0
@@ -987,9 +1002,17 @@ def _torque_problem(
 ) -> tuple[str, str, float] | None:
     """What the supervisor would not have let through in one TorqueCommand (the signal, what
     it expects, the value), or None: a torque beyond a joint's ``tau_max``, a change beyond
-    what its rate limit has left it (``budget``, N·m, ``check_commands``) unless towards zero,
-    a torque for a joint the finger lacks."""
-    resolution = min((s.scale for s in layout.signals), default=0.0)
+    what its rate limit has left it (``budget``, in counts of the signal's resolution,
+    ``check_commands``) unless towards zero, a torque for a joint the finger lacks.
+
+    Judged on the signal's grid, with no slack a frame: the supervisor keeps every torque it
+    applies on that grid within both limits (safety.md, row 63), so a run's frames need none.
+    The resolution a frame spared (for logs of an encoder that rounded to the nearest) let a
+    joint of rate limit 0.1 N·m/s at 1 kHz, whose step a tick is one resolution, ramp at
+    twice that, and the half a resolution spared over ``tau_max`` let 0.05 N·m go out where
+    ``tau_max`` was 0.04996 (found by an outside audit). ``GRID_SLACK`` of a count is
+    floating-point rest, not a torque: a rate limit of 0.3 N·m/s gives 2.9999999999999996
+    counts a millisecond, and the supervisor's 3."""
     for i, (signal, tau, was) in enumerate(zip(layout.signals, values, before, strict=True)):
         if i >= len(finger.joints):
             if tau != 0:
@@ -998,13 +1021,13 @@ def _torque_problem(
             continue
         joint = finger.joints[i]
         label = f"{signal.name} ({joint.name})"
-        if not abs(tau) <= joint.tau_max + resolution / 2:
+        if not abs(tau) / signal.scale <= joint.tau_max / signal.scale + GRID_SLACK:
             return label, f"a torque within ±{joint.tau_max:g} N·m (its tau_max)", tau
-        # one resolution to spare for a log whose encoder rounded to the nearest (before the
-        # supervisor kept the grid); faster than logged none: one resolution a frame passed
-        # at any speed on a joint whose step a tick is about one resolution
-        step = budget[i] + (resolution if speed <= 1.0 else 0.0)
-        if not _towards_zero(tau, was) and abs(tau - was) > step:
+        if (
+            not _towards_zero(tau, was)
+            and _counts(tau - was, signal.scale) > budget[i] + GRID_SLACK
+        ):
+            step = math.floor(budget[i] + GRID_SLACK) * signal.scale  # N·m, the largest on its grid
             return (
                 label,
                 f"a change of at most {step:.6g} N·m from the node's {was:g} N·m, its last "
@@ -1017,7 +1040,7 @@ def _torque_problem(
                     if speed != 1.0
                     else ""
                 )
-                + ")",
+                + f", in whole {signal.scale:g} N·m steps of its signal)",
                 tau,
             )
     return None

@@ -571,12 +571,13 @@ def test_a_bad_message_the_re_run_meets_while_running_is_still_bad_input(
     assert ": data: expected a frame's payload as hex, at most 64 bytes, found 'zz'" in text
 
 
-def test_faster_than_logged_one_resolution_a_frame_is_no_spare(
+def test_one_resolution_a_frame_is_no_spare_at_any_speed(
     hand: HandConfig, protocol: Protocol
 ) -> None:
     """The one resolution a frame spared for a log whose encoder rounded to the nearest let
-    0.0001 N·m a frame through at any speed: on a joint whose step a tick is about one
-    resolution, a replay at --speed 50 put 50 times its rate limit on the wire."""
+    0.0001 N·m a frame through: faster than logged, on a joint whose step a tick is about one
+    resolution, a replay at --speed 50 put 50 times its rate limit on the wire; as logged,
+    twice it (found by an outside audit). The supervisor keeps the grid: no frame needs it."""
     from handctl.recording.frames import _torque_problem
 
     layout = protocol.layout("TorqueCommand", 1)
@@ -584,8 +585,9 @@ def test_faster_than_logged_one_resolution_a_frame_is_no_spare(
     resolution = layout.signals[0].scale
     before, after = (0.0, 0.0, 0.0), (resolution, 0.0, 0.0)
     nothing_left = [0.0, 0.0, 0.0]
-    assert _torque_problem(layout, finger, after, before, nothing_left, 1.0) is None
+    assert _torque_problem(layout, finger, after, before, nothing_left, 1.0) is not None
     assert _torque_problem(layout, finger, after, before, nothing_left, 50.0) is not None
+    assert _torque_problem(layout, finger, after, before, [1.0, 0.0, 0.0], 1.0) is None
 
 
 def _commands(
@@ -889,6 +891,52 @@ def test_torques_sent_to_a_disabled_node_are_no_ramp_for_after_its_enable(
     # ramped after the enable, as a run does: the same torques go out
     after = [0.0, *ramp, ramp[-1]]
     assert _commands(monkeypatch, protocol, hand, times, after, extra={0: enable}) == 18
+
+
+def _f1_j1_as(hand: HandConfig, tau_max: float, rate_limit: float) -> HandConfig:
+    """``hand`` with f1_j1's ``tau_max`` (N·m) and ``rate_limit`` (N·m/s)."""
+    first = hand.fingers[0]
+    joint = replace(first.joints[0], tau_max=tau_max, rate_limit=rate_limit)
+    finger = replace(first, joints=(joint, *first.joints[1:]))
+    return replace(hand, fingers=(finger, *hand.fingers[1:]))
+
+
+@pytest.mark.parametrize("rate_limit", [0.1, 0.15, 0.3, 1.0])
+def test_the_commands_are_held_to_both_limits_on_the_signal_s_grid(
+    monkeypatch: pytest.MonkeyPatch, hand: HandConfig, protocol: Protocol, rate_limit: float
+) -> None:
+    """Each frame had a resolution to spare over its rate limit's budget, and half a
+    resolution over tau_max: on f1_j1 with a rate limit of 0.1 N·m/s (one resolution a tick
+    at 1 kHz) and a tau_max of 0.04996 N·m, a log raised by the largest step the check took
+    reached 0.0500 N·m in 318 commands where the supervisor takes 500 to 0.0499 (found by an
+    outside audit). The supervisor keeps both limits on the grid; so does the check, with
+    only floating-point rest to spare (a rate of 0.3 N·m/s is 2.9999999999999996 counts a
+    tick, the supervisor's step 3)."""
+    import numpy as np
+
+    from handctl.online.safety.limits import JointLimits, limit_torque
+
+    slow = _f1_j1_as(hand, tau_max=0.04996, rate_limit=rate_limit)
+    limits = JointLimits.from_hand(slow, protocol)
+    scale = protocol.layout("TorqueCommand", 1).signals[0].scale
+    applied, desired = np.zeros(len(limits.names)), np.zeros(len(limits.names))
+    desired[0] = 1.0  # N·m, past tau_max: the supervisor's ramp to it, on its grid
+    ramp = []
+    for _ in range(600):
+        limit_torque(desired, applied, limits, slow.bus.period_s, applied)
+        ramp.append(float(applied[0]))
+    assert round(ramp[-1] / scale) == 499  # 0.0499 N·m, tau_max on the grid
+    period_ns = round(slow.bus.period_s * 1e9)
+    times = [k * period_ns for k in range(len(ramp))]
+    assert _commands(monkeypatch, protocol, slow, times, ramp) == len(ramp)
+    # a count a tick faster than the supervisor ramps
+    steps = round(ramp[-1] / scale) // ramp.index(ramp[-1]) + 1
+    faster = [min(499, steps * (k + 1)) * scale for k in range(len(ramp))]
+    with pytest.raises(ConfigError, match="expected a change of at most"):
+        _commands(monkeypatch, protocol, slow, times, faster)
+    # one count over tau_max at the end of the supervisor's ramp
+    with pytest.raises(ConfigError, match=r"expected a torque within ±0\.04996 N·m"):
+        _commands(monkeypatch, protocol, slow, times, [*ramp[:-1], 500 * scale])
 
 
 def test_a_command_dated_back_gives_the_next_no_more_time(
