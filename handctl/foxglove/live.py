@@ -36,9 +36,14 @@ from handctl.recording import channels as ch
 
 #: s, how long closing the live view waits for its clients to let go (``LiveServer.close``)
 CLOSE_TIMEOUT_S = 1.0
+#: s, how long closing the live view gives its clients' queues to be sent before it stops
+#: the server (no client reading: not at all); the SDK says nothing of what is still queued
+SEND_GRACE_S = 0.25
 #: The live view's sampling of a per-tick channel: 100 Hz of log time, still a smooth plot
 #: (the 3D scene is written at 50 Hz anyway).
 SAMPLE_PERIOD_NS = 10_000_000
+#: A log time no message reaches (nothing held is due)
+_NEVER = 2**64
 #: Keys remembered for the sampling before they are forgotten all at once (frame ids from a
 #: bus that babbles ever new ones must not grow the writer without bound).
 MAX_SAMPLED_KEYS = 4096
@@ -142,6 +147,12 @@ class LiveServer:
         #: the message last served.
         self.sampled: dict[str, str] = {}
         self._served: dict[tuple[str, int], int] = {}
+        #: Per topic and key, the newest message not served (its log time and payload); per
+        #: topic, the log time from which one of them may be due (``_send_quiet``). Dropped,
+        #: a run's last ticks were never served: the view stayed on 'stopping' and a torque
+        #: that was not zero while the log ended idle, every torque zero.
+        self._held: dict[str, dict[int, tuple[int, bytes]]] = {}
+        self._due: dict[str, int] = {}
         self.notes = _bounded_notes()
 
     def start(self) -> None:
@@ -194,18 +205,79 @@ class LiveServer:
         """Serve one message to the clients subscribed to ``topic``, if any. On a sampled
         topic, a message is served when it is ``SAMPLE_PERIOD_NS`` after the last one served
         with the same key (``key``, the frame id, on a frame channel), or at the same log
-        time (a tick's messages stay together)."""
+        time (a tick's messages stay together). One in between is held, the newest of each
+        key: served when its key has been quiet for a period of its topic's log time (a
+        frame no longer sent), or by ``send_held`` (the end, the view served again), so
+        that the view ends where the log does."""
         # The sampling first, a dictionary's work, which turns away nine in ten messages of a
         # per-tick channel before the call into the SDK that asks for its subscribers.
         sampling = self.sampled.get(topic)
         if sampling is not None:
-            slot = (topic, key if sampling == PER_FRAME else 0)
+            if log_time >= self._due.get(topic, _NEVER):
+                self._send_quiet(topic, log_time)
+            if sampling != PER_FRAME:
+                key = 0
+            slot = (topic, key)
             last = self._served.get(slot)
             if last is not None and last < log_time < last + SAMPLE_PERIOD_NS:
+                self.hold(topic, log_time, payload, key)
                 return
             if len(self._served) >= MAX_SAMPLED_KEYS:  # a bus babbling ever new ids
                 self._served.clear()
+                self._held.clear()
+                self._due.clear()
             self._served[slot] = log_time
+            held = self._held.get(topic)
+            if held:
+                held.pop(key, None)  # this one is newer
+        self._send(topic, log_time, payload)
+
+    def hold(self, topic: str, log_time: int, payload: bytes, key: int = 0) -> None:
+        """Keep the message, unserved, as the newest of its topic (and key, on a frame
+        channel) until ``send_held``. The writer hands it every message this way while it
+        holds the view back (``LivePace``), so that the view, served again, shows where the
+        run is and not where it was."""
+        if self.sampled.get(topic) != PER_FRAME:
+            key = 0
+        held = self._held.setdefault(topic, {})
+        if len(held) >= MAX_SAMPLED_KEYS and key not in held:  # ever new ids, as ``_served``
+            held.clear()
+        held[key] = (log_time, payload)
+        self._due[topic] = min(self._due.get(topic, _NEVER), log_time + SAMPLE_PERIOD_NS)
+
+    def send_held(self) -> None:
+        """Serve every message held, now, oldest first (a topic's last message is then its
+        newest, which a viewer shows): when the view is served again, and before the server
+        closes."""
+        held = sorted(
+            (log_time, topic, key, payload)
+            for topic, by_key in self._held.items()
+            for key, (log_time, payload) in by_key.items()
+        )
+        self._held.clear()
+        self._due.clear()
+        for log_time, topic, key, payload in held:
+            if topic in self.sampled:
+                self._served[(topic, key)] = log_time
+            self._send(topic, log_time, payload)
+
+    def _send_quiet(self, topic: str, now: int) -> None:
+        """Serve each held message of ``topic`` whose key has sent nothing for a period up
+        to ``now`` (a log time of the same topic, whose messages come in log-time order): it
+        is the newest of its key there is. A key that goes on is never served from here:
+        its next message, within the period, takes the held one's place."""
+        held = self._held[topic]
+        due = _NEVER
+        for key, (log_time, payload) in list(held.items()):
+            if log_time + SAMPLE_PERIOD_NS <= now:
+                del held[key]
+                self._served[(topic, key)] = log_time
+                self._send(topic, log_time, payload)
+            else:
+                due = min(due, log_time + SAMPLE_PERIOD_NS)
+        self._due[topic] = due
+
+    def _send(self, topic: str, log_time: int, payload: bytes) -> None:
         channel = self.channels.get(topic)
         if channel is None or not channel.has_sinks():
             return
@@ -220,6 +292,11 @@ class LiveServer:
         stop is waited for a bounded time and then left to the process's end."""
         if self.server is None:
             return True
+        self.send_held()  # the newest of each channel: the view ends where the log ends
+        if any(channel.has_sinks() for channel in self.channels.values()):
+            # The SDK's stop closes each connection at once, what is queued for it unsent:
+            # the run's last messages, just served, were lost one run in three.
+            time.sleep(SEND_GRACE_S)
         stopper = threading.Thread(target=self.server.stop, name="live-stop", daemon=True)
         stopper.start()
         stopper.join(timeout_s)

@@ -102,13 +102,18 @@ class LivePace:
         self.pauses = 0  # times it was held back
         self.skipped = 0  # messages not served meanwhile
 
-    def update(self, backlog: float) -> None:
-        """``backlog``: how far behind the writer is, as the fullest ring's share (0..1)."""
+    def update(self, backlog: float) -> bool:
+        """``backlog``: how far behind the writer is, as the fullest ring's share (0..1).
+        True when the view is served again: the newest message of each channel, held
+        meanwhile, is then to be served (``LiveServer.send_held``), or the view stays on what
+        it showed before it was held back until the channel's next message."""
         if not self.paused and backlog > LIVE_PAUSE_SHARE:
             self.paused = True
             self.pauses += 1
         elif self.paused and backlog < LIVE_RESUME_SHARE:
             self.paused = False
+            return True
+        return False
 
 
 if TYPE_CHECKING:
@@ -235,6 +240,7 @@ class Encoder:
         if self.live is not None:
             if self.live_pace.paused:
                 self.live_pace.skipped += 1
+                self.live.hold(topic, log_time, data, key)
             else:
                 self.live.log(topic, log_time, data, key)
         self.messages += 1
@@ -258,7 +264,7 @@ class Encoder:
         pose_head = int(ctl[POSE_HEAD])
         if self.live is not None:
             layout = self.layout
-            self.live_pace.update(
+            resumed = self.live_pace.update(
                 max(
                     (tick_head - int(ctl[TICK_TAIL])) / layout.tick_capacity,
                     (frame_head - int(ctl[FRAME_TAIL])) / layout.frame_capacity,
@@ -266,6 +272,8 @@ class Encoder:
                     (pose_head - int(ctl[POSE_TAIL])) / layout.pose_capacity,
                 )
             )
+            if resumed:
+                self.live.send_held()
         busy = False
         if frame_head > ctl[FRAME_TAIL]:
             self._frames(int(ctl[FRAME_TAIL]), frame_head)

@@ -17,7 +17,7 @@ import subprocess
 import sys
 import time
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -649,21 +649,113 @@ def test_a_live_run_with_a_client_completes_and_records_every_tick(
     steps = {b - a for a, b in itertools.pairwise(recorded[ch.JOINT_STATE])}
     assert steps == {1_000_000}
     # The viewer got a scene, and the per-tick channels sampled: per frame id on the frame
-    # channels, consecutive messages the same tick or a sampling period apart.
+    # channels, consecutive messages the same tick or a sampling period apart, but for the
+    # newest of a key before it went quiet for a period (a frame no longer sent, the end).
     assert live.received[fx.SCENE], {t: len(v) for t, v in live.received.items()}
     for topic in SAMPLED:
         assert live.received[topic], topic
+        quiet = _newest_before_quiet(path, topic, SAMPLE_PERIOD_NS)
         by_key: dict[int, list[int]] = defaultdict(list)
         for payload, log_time in zip(live.received[topic], live.log_times[topic], strict=True):
-            key = json.loads(payload)["id"] if topic in (ch.CAN_RX, fx.RX_DECODED) else 0
-            by_key[key].append(log_time)
+            by_key[_key(topic, payload)].append(log_time)
         for key, times in by_key.items():
-            gaps = [b - a for a, b in itertools.pairwise(times)]
-            assert all(g == 0 or g >= SAMPLE_PERIOD_NS for g in gaps), (topic, key, gaps[:20])
+            early = [
+                (a, b)
+                for a, b in itertools.pairwise(times)
+                if 0 < b - a < SAMPLE_PERIOD_NS and b not in quiet[key]
+            ]
+            assert not early, (topic, key, early[:20])
     # Each kind of frame reaches the viewer: the 1 kHz feedback and the 10 Hz heartbeats.
     ids = {json.loads(m)["id"] for m in live.received[ch.CAN_RX]}
     for kind in ("feedback", "heartbeat"):
         assert {f.can_ids.as_dict()[kind] for f in hand.fingers} <= ids, (kind, sorted(ids))
+
+
+#: Every channel a run's writer serves, recorded and derived.
+EVERY_TOPIC = (
+    *(c.topic for c in ch.CHANNELS),
+    *(fx.SCENE, fx.TRANSFORMS, fx.LOG, fx.JOINTS, fx.RX_DECODED, fx.TX_DECODED),
+)
+
+
+def _newest(topic: str, pairs: Iterable[tuple[bytes, int]]) -> dict[int, tuple[int, bytes]]:
+    """The newest (log time, payload) of each key of ``topic``: its frame id on a frame
+    channel (as the live view samples it), else one."""
+    newest: dict[int, tuple[int, bytes]] = {}
+    for payload, log_time in pairs:
+        key = _key(topic, payload)
+        if key not in newest or log_time >= newest[key][0]:
+            newest[key] = (log_time, payload)
+    return newest
+
+
+def test_the_live_view_ends_where_the_log_ends(tmp_path: Path) -> None:
+    """The sampling dropped a message within a period of the last one served and never
+    served the newest: the view of a run that had ended stayed on up to 9 ticks before its
+    end, /safety/state 'stopping' and a torque that was not zero, while the log ended idle,
+    every torque zero (found by an outside audit). A client of every channel, listening to
+    the end of a lockstep run, last got of each channel (and frame id) what the log has
+    last."""
+    recipe = tmp_path / "close_and_hold.yaml"
+    recipe.write_text(SHORT_RECIPE)
+    path = tmp_path / "run.mcap"
+    live, done = served(
+        [
+            *("run", "recipe", str(recipe), "--hand", str(HAND_YAML)),
+            *("--lockstep", "--log", str(path)),
+        ],
+        tmp_path,
+        enough=1 << 30,
+        clients=(EVERY_TOPIC,),
+    )
+    assert done.returncode == 0, done.stderr.decode()
+    states = [m for _, c, m in mcap_messages(path) if c.topic == ch.SAFETY]
+    state = json.loads(max(states, key=lambda m: m.log_time).data)
+    assert state["state"] == "idle", state
+    _assert_ends_as(live, path)
+
+
+def _assert_ends_as(live: Live, path: Path) -> None:
+    """What the client got last of each sampled channel (and frame id) is the log's last."""
+    from handctl.foxglove.live import SAMPLING
+
+    logged: dict[str, list[tuple[bytes, int]]] = defaultdict(list)
+    for _, channel, message in mcap_messages(path):
+        logged[channel.topic].append((bytes(message.data), message.log_time))
+    for topic in SAMPLING:
+        shown = _newest(topic, zip(live.received[topic], live.log_times[topic], strict=True))
+        assert shown == _newest(topic, logged[topic]), topic
+
+
+def test_replay_live_ends_where_the_log_ends(run: Run, tmp_path: Path) -> None:
+    """``replay --live`` held back the log's last messages of each sampled channel as a
+    run's live view did, and ended the view before them (an outside audit)."""
+    live, done = served(["replay", str(run.path)], tmp_path, enough=1 << 30, clients=(EVERY_TOPIC,))
+    assert done.returncode == 0, done.stderr.decode()
+    _assert_ends_as(live, run.path)
+
+
+def _key(topic: str, payload: bytes) -> int:
+    """The key the live view samples a message of ``topic`` by: its frame id on a frame
+    channel, else one for all."""
+    from handctl.foxglove.live import PER_FRAME, SAMPLING
+
+    return int(json.loads(payload)["id"]) if SAMPLING.get(topic) == PER_FRAME else 0
+
+
+def _newest_before_quiet(path: Path, topic: str, period_ns: int) -> dict[int, set[int]]:
+    """Per key of ``topic`` in the log at ``path``, the log times of its messages after
+    which the key sent nothing for ``period_ns`` (its last among them)."""
+    times: dict[int, list[int]] = defaultdict(list)
+    for _, channel, message in mcap_messages(path):
+        if channel.topic == topic:
+            times[_key(topic, message.data)].append(message.log_time)
+    quiet: dict[int, set[int]] = defaultdict(set)
+    for key, each in times.items():
+        for a, b in itertools.pairwise([*each, each[-1] + period_ns]):
+            if b - a >= period_ns:
+                quiet[key].add(a)
+    return quiet
 
 
 async def _first_advertise(port: int) -> set[str]:
@@ -695,6 +787,81 @@ def test_the_live_server_listens_only_once_its_channels_are_there() -> None:
         assert asyncio.run(_first_advertise(port)) == topics
     finally:
         server.close()
+
+
+#: The topic whose one message ends what ``_subscribed`` collects
+END = "/end"
+
+
+async def _subscribed(server: Any, feed: Any) -> list[tuple[str, int, bytes]]:
+    """A client of every channel of ``server`` (a ``LiveServer``): once the server has it
+    for each channel, ``feed(server)`` logs; what it received up to the message on ``END``,
+    as (topic, log time, payload) in the order received."""
+    async with websockets.connect(
+        f"ws://127.0.0.1:{server.port}", subprotocols=[SUBPROTOCOL], max_size=None
+    ) as ws:
+        topics: dict[int, str] = {}
+        while not topics:
+            raw = await asyncio.wait_for(ws.recv(), 30.0)
+            if isinstance(raw, str) and json.loads(raw)["op"] == "advertise":
+                topics = {c["id"]: c["topic"] for c in json.loads(raw)["channels"]}
+        subs = [{"id": i, "channelId": i} for i in topics]
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+        while not all(c.has_sinks() for c in server.channels.values()):
+            await asyncio.sleep(0.01)  # the SDK takes the subscription on its own thread
+        feed(server)
+        got: list[tuple[str, int, bytes]] = []
+        while not got or got[-1][0] != END:
+            raw = await asyncio.wait_for(ws.recv(), 30.0)
+            if isinstance(raw, bytes) and raw[0] == 0x01:
+                sub, log_time = struct.unpack_from("<IQ", raw, 1)
+                got.append((topics[sub], log_time, bytes(raw[13:])))
+        return got
+
+
+def test_a_frame_no_longer_sent_and_a_view_held_back_are_served_their_newest() -> None:
+    """The newest message of a key the sampling held back is served once its key has been
+    quiet for a period of its topic's log time (a frame id no longer sent, while others go
+    on), and every message held while the writer held the view back (``hold``) is served,
+    the newest of each topic and key, oldest first, when it is served again (``send_held``):
+    both were lost, and the view stayed on older values for good (an outside audit)."""
+    from handctl.foxglove.live import SAMPLE_PERIOD_NS, LiveServer
+
+    ms = SAMPLE_PERIOD_NS // 10
+
+    def frame(frame_id: int, t: int) -> bytes:
+        return json.dumps({"id": frame_id, "t": t}).encode()
+
+    def feed(server: LiveServer) -> None:
+        for t in range(0, 40 * ms, ms):  # id 1 every tick; id 2 for 5 ticks only
+            server.log(ch.CAN_RX, t, frame(1, t), 1)
+            if t < 5 * ms:
+                server.log(ch.CAN_RX, t, frame(2, t), 2)
+        for t in range(40 * ms, 44 * ms, ms):  # the view held back
+            server.hold(ch.CAN_RX, t, frame(1, t), 1)
+            server.hold(ch.SAFETY, t, b'{"state": "%d"}' % t)
+            server.hold(fx.SCENE, t, b"scene %d" % t)
+        server.send_held()
+        server.log(END, 44 * ms, b"end")
+
+    server = LiveServer(free_port())
+    for topic in (ch.CAN_RX, ch.SAFETY, fx.SCENE, END):
+        server.add_channel(topic, "handctl.Test", "jsonschema", b"{}", "json")
+    server.start()
+    try:
+        got = asyncio.run(_subscribed(server, feed))
+    finally:
+        server.close()
+    frames = [(json.loads(p)["id"], t // ms) for topic, t, p in got if topic == ch.CAN_RX]
+    # id 2's newest (tick 4), once id 1's ticks are a period past it; id 1's newest after
+    # the view was held back (tick 43), and nothing of id 1 at 36..39 before it
+    assert frames == [(1, 0), (2, 0), (1, 10), (2, 4), (1, 20), (1, 30), (1, 43)], frames
+    held = [(topic, t // ms, p) for topic, t, p in got if topic != ch.CAN_RX]
+    assert held[-1] == (END, 44, b"end")
+    assert sorted(held[:-1]) == [
+        (fx.SCENE, 43, b"scene %d" % (43 * ms)),
+        (ch.SAFETY, 43, b'{"state": "%d"}' % (43 * ms)),
+    ], held
 
 
 async def _junk(port: int, count: int) -> None:

@@ -48,8 +48,12 @@ def test_the_live_view_gives_way_while_the_writer_is_behind_and_comes_back_after
 
     pace = LivePace()
     seen = []
+    resumed = []
     for backlog in (0.0, 0.2, LIVE_PAUSE_SHARE, 0.26, 0.9, 0.2, LIVE_RESUME_SHARE, 0.06, 0.2, 0.3):
-        pace.update(backlog)
+        resumed.append(pace.update(backlog))
         seen.append(pace.paused)
     assert seen == [False, False, False, True, True, True, True, False, False, True]
     assert pace.pauses == 2
+    # said once, when it is served again: the writer then serves what it held meanwhile,
+    # the newest of each channel (``LiveServer.send_held``), which was never served
+    assert resumed == [False] * 7 + [True, False, False]
