@@ -39,6 +39,13 @@ CLOSE_TIMEOUT_S = 1.0
 #: s, how long closing the live view gives its clients' queues to be sent before it stops
 #: the server (no client reading: not at all); the SDK says nothing of what is still queued
 SEND_GRACE_S = 0.25
+#: Messages queued per client, the newest (the SDK drops the oldest; its default, 1024,
+#: was some 0.9 MB a client in the writer, 176 MB for 200 local clients that stopped
+#: reading): a tenth of a second of the view (some 2200 messages a second), enough for a
+#: viewer that reads and keeps up. The SDK has no limit on the number of clients and no
+#: timeout for a handshake never finished (docs/recording.md): each costs the writer this
+#: much until the server closes.
+LIVE_BACKLOG = 256
 #: The live view's sampling of a per-tick channel: 100 Hz of log time, still a smooth plot
 #: (the 3D scene is written at 50 Hz anyway).
 SAMPLE_PERIOD_NS = 10_000_000
@@ -162,7 +169,11 @@ class LiveServer:
         the SDK's traceback)."""
         try:
             self.server = foxglove.start_server(
-                name=self.name, host=self.host, port=self.requested_port, context=self.context
+                name=self.name,
+                host=self.host,
+                port=self.requested_port,
+                context=self.context,
+                message_backlog_size=LIVE_BACKLOG,
             )
         except RuntimeError as exc:
             # the SDK's reason whole (a ``Description``): cut to a value's length, it lost

@@ -864,6 +864,69 @@ def test_a_frame_no_longer_sent_and_a_view_held_back_are_served_their_newest() -
     ], held
 
 
+#: The payload of each message of the backlog test: large, so that the kernel's socket
+#: buffers hold few of them beside the server's queue
+BIG = 1 << 16
+
+
+async def _stalled_then_read(server: Any, count: int) -> list[int]:
+    """A client of every channel of ``server`` that reads nothing while ``count`` messages
+    of ``BIG`` bytes are served (its event loop is busy serving them), then reads up to the
+    last; the numbers of the messages it got."""
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.connect(("127.0.0.1", server.port))
+    async with websockets.connect(
+        f"ws://127.0.0.1:{server.port}",
+        sock=sock,
+        subprotocols=[SUBPROTOCOL],
+        max_size=None,
+        max_queue=1,
+    ) as ws:
+        while True:
+            raw = await asyncio.wait_for(ws.recv(), 30.0)
+            if isinstance(raw, str) and json.loads(raw)["op"] == "advertise":
+                channels = json.loads(raw)["channels"]
+                break
+        subs = [{"id": c["id"], "channelId": c["id"]} for c in channels]
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+        while not all(c.has_sinks() for c in server.channels.values()):
+            await asyncio.sleep(0.01)
+        for k in range(count):  # nothing is read meanwhile: the loop is here
+            server.log("/big", k, b"%08d" % k + bytes(BIG - 8))
+        got: list[int] = []
+        while not got or got[-1] != count - 1:
+            raw = await asyncio.wait_for(ws.recv(), 30.0)
+            if isinstance(raw, bytes) and raw[0] == 0x01:
+                got.append(int(raw[13:21]))
+        return got
+
+
+def test_a_client_that_stops_reading_costs_the_writer_a_bounded_queue() -> None:
+    """Each client that stopped reading cost the writer the SDK's default backlog, 1024
+    messages (some 0.9 MB: 200 such clients, 176 MB), when the live view never needs more
+    than a fraction of a second of it (an outside audit). A client's queue holds at most
+    ``LIVE_BACKLOG`` messages, the newest, and the oldest are dropped: what a stalled client
+    gets once it reads again is that many and what its socket buffers held, the last one
+    served among them."""
+    from handctl.foxglove.live import LIVE_BACKLOG, LiveServer
+
+    server = LiveServer(free_port())
+    server.add_channel("/big", "handctl.Test", "jsonschema", b"{}", "json")
+    server.start()
+    count = 3 * 1024
+    try:
+        got = asyncio.run(_stalled_then_read(server, count))
+    finally:
+        server.close()
+    # what the kernel can hold of it (the server's send buffer at its most, the client's
+    # receive buffer) and what is on its way in the SDK's and the client's hands
+    wmem_max = int(Path("/proc/sys/net/ipv4/tcp_wmem").read_text().split()[2])
+    in_buffers = (wmem_max + 4 * BIG) // BIG + 4
+    assert got == sorted(got) and got[-1] == count - 1
+    assert len(got) <= LIVE_BACKLOG + in_buffers, (len(got), in_buffers)
+
+
 async def _junk(port: int, count: int) -> None:
     async with websockets.connect(
         f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None
