@@ -85,38 +85,42 @@ NOTES_SHOWN = 5
 #: The WebSocket subprotocol the SDK's server speaks, the only one it takes
 SUBPROTOCOL = "foxglove.sdk.v1"
 #: The SDK's note of a client it refused before the WebSocket began ("Dropping client
-#: 127.0.0.1:42002: handshake failed"); the commonest cause, a viewer that offers only the
-#: protocol's older name, is said beside it (``HANDSHAKE_HINT``)
+#: 127.0.0.1:42002: handshake failed"), whatever the cause: a viewer offering only the
+#: protocol's older name, a port probe, a connection closed before its request. The note
+#: does not say which, so the refusals are counted and said once, at the end, with the
+#: likeliest cause a viewer's operator can do something about (``HANDSHAKE_HINT``)
 HANDSHAKE_FAILED = re.compile(r"^Dropping client \S+: handshake failed")
 HANDSHAKE_HINT = (
-    f" (the live view speaks the WebSocket subprotocol {SUBPROTOCOL} only: a viewer that "
+    f"the live view speaks the WebSocket subprotocol {SUBPROTOCOL} only: a viewer that "
     "offers only foxglove.websocket.v1, such as Lichtblick before December 2025 or an older "
-    "Foxglove, is refused; docs/recording.md)"
+    "Foxglove, is refused, and so is a connection that sent no WebSocket request "
+    "(docs/recording.md)"
 )
 
 
 class _BoundedNotes(logging.Handler):
     """The SDK's log (Python ``logging`` under ``foxglove``), warnings and errors only, the
-    first ``NOTES_SHOWN`` on stderr, the rest counted. A refused handshake is said with its
-    likely cause, once per server: the SDK's note alone left the operator of a viewer that
-    could not connect with nothing to go on."""
+    first ``NOTES_SHOWN`` on stderr, the rest counted. Refused handshakes are counted too,
+    and said with their likely cause at the end (``LiveServer.close``): the SDK's note
+    alone left the operator of a viewer that could not connect with nothing to go on, and
+    the cause beside the first note went to whatever was refused first (a port probe, a
+    connection closed at once), the viewer's own note left bare or among the uncounted."""
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
         self.shown = 0
         self.more = 0
-        self.hinted = False
+        self.refused = 0
 
     def emit(self, record: logging.LogRecord) -> None:
+        message = record.getMessage()
+        if HANDSHAKE_FAILED.match(message):
+            self.refused += 1
         if self.shown < NOTES_SHOWN:
             self.shown += 1
             # escaped: the note quotes what the client sent, and an escape sequence there
             # retitled and recoloured the operator's terminal
-            note = escaped(record.getMessage())
-            if not self.hinted and HANDSHAKE_FAILED.match(note):
-                self.hinted = True
-                note += HANDSHAKE_HINT
-            sys.stderr.write(f"live view: {note}\n")
+            sys.stderr.write(f"live view: {escaped(message)}\n")
         else:
             self.more += 1
 
@@ -127,8 +131,8 @@ def _bounded_notes() -> _BoundedNotes:
     logger = logging.getLogger("foxglove")
     for handler in logger.handlers:
         if isinstance(handler, _BoundedNotes):
-            handler.shown = handler.more = 0  # a server's own five (a replay's after a run's)
-            handler.hinted = False
+            # a server's own five (a replay's after a run's)
+            handler.shown = handler.more = handler.refused = 0
             return handler
     handler = _BoundedNotes()
     logger.addHandler(handler)
@@ -311,6 +315,12 @@ class LiveServer:
         stopper = threading.Thread(target=self.server.stop, name="live-stop", daemon=True)
         stopper.start()
         stopper.join(timeout_s)
+        if self.notes.refused:
+            sys.stderr.write(
+                f"live view: {self.notes.refused} connection(s) refused at the WebSocket "
+                f"handshake; {HANDSHAKE_HINT}\n"
+            )
+            self.notes.refused = 0
         if self.notes.more:
             sys.stderr.write(f"live view: {self.notes.more} more notes of its clients not shown\n")
             self.notes.more = 0

@@ -984,7 +984,10 @@ def test_a_viewer_offering_the_old_subprotocol_is_told_which_one_is_spoken(
     """The SDK's server takes only clients offering ``foxglove.sdk.v1``; one offering only
     ``foxglove.websocket.v1`` (older Foxglove, Lichtblick before December 2025) is refused
     with HTTP 400, and the operator saw only "Dropping client ...: handshake failed" (found
-    by an outside audit). The note now names the subprotocol spoken, once."""
+    by an outside audit). The SDK's note is the same whatever the cause, and the
+    subprotocol said beside the first went to a connection that had sent nothing, the
+    viewer's own note left bare (an outside audit): the refusals are counted and said once
+    at the end, with the subprotocol spoken."""
     from handctl.foxglove.live import LiveServer
 
     port = free_port()
@@ -993,20 +996,26 @@ def test_a_viewer_offering_the_old_subprotocol_is_told_which_one_is_spoken(
     server.start()
     err = ""
     try:
+        socket.create_connection(("127.0.0.1", port), timeout=10).close()  # sent nothing
         assert asyncio.run(_offer(port, "foxglove.websocket.v1")) == 400
         assert asyncio.run(_offer(port, "foxglove.websocket.v1")) == 400
         assert asyncio.run(_offer(port, SUBPROTOCOL)) == 101
         deadline = time.monotonic() + 60  # the SDK notes it from its own thread
-        while err.count("handshake failed") < 2 and time.monotonic() < deadline:
+        while err.count("handshake failed") < 3 and time.monotonic() < deadline:
             time.sleep(0.05)
             err += capfd.readouterr().err
     finally:
         assert server.close()
+    err += capfd.readouterr().err
     said = [line for line in err.splitlines() if "handshake failed" in line]
-    assert len(said) == 2, err
-    assert said[0].startswith("live view: Dropping client 127.0.0.1:")
-    assert "speaks the WebSocket subprotocol foxglove.sdk.v1 only" in said[0]
-    assert said[1].endswith("handshake failed")  # said once
+    assert len(said) == 3, err
+    for line in said:  # the SDK's note, as it is: it does not say why
+        assert line.startswith("live view: Dropping client 127.0.0.1:"), line
+        assert line.endswith("handshake failed"), line
+    end = [line for line in err.splitlines() if "refused at the WebSocket handshake" in line]
+    assert end == [err.splitlines()[-1]], err
+    assert end[0].startswith("live view: 3 connection(s) refused at the WebSocket handshake")
+    assert "speaks the WebSocket subprotocol foxglove.sdk.v1 only" in end[0]
 
 
 def test_a_port_taken_after_the_check_is_said_against_live() -> None:
