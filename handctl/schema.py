@@ -38,6 +38,7 @@ What a file means cannot surprise:
 from __future__ import annotations
 
 import difflib
+import hashlib
 import math
 import os
 import re
@@ -200,7 +201,9 @@ def _load_yaml(path: str | Path) -> Doc:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ConfigError(name, "", "a readable UTF-8 file", str(exc)) from None
-    return parse_yaml(text, name)
+    doc = parse_yaml(text, name)
+    doc.sha256 = hashlib.sha256(data).hexdigest()
+    return doc
 
 
 def parse_yaml(text: str, name: str) -> Doc:
@@ -704,6 +707,10 @@ class Doc:
         self.data = data
         self.file = file
         self.path = path
+        #: the SHA-256 (hex) of the bytes this document was parsed from, for a file's top
+        #: level ("" otherwise): what a record of the input names, since the file itself may
+        #: have changed by the time the record is written
+        self.sha256 = ""
         self._used: set[str] = set()
         self._allowed: frozenset[str] | None = None
 

@@ -24,7 +24,6 @@ score and where the chosen torque came from, and the hand-config hash.
 
 from __future__ import annotations
 
-import hashlib
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -680,7 +679,9 @@ def plan_recipe(  # noqa: C901 - the planning pipeline; to split (issue 16)
         previous = phase.torques
         if spec.kind == "lift":
             lifted = True
-    digest = hashlib.sha256(Path(template.source).read_bytes()).hexdigest()[:16]
+    # the bytes the template was parsed from, not the file as it is now: a plan takes
+    # minutes, and the file may have been edited meanwhile
+    digest = template.sha256[:16]
     return PlanResult(template, hand, plans, model_list, f"sha256:{digest}", base)
 
 

@@ -209,6 +209,10 @@ class SearchSettings:
 @dataclass(frozen=True)
 class Template:
     source: str
+    #: the SHA-256 (hex) of the bytes this template was parsed from: what the compiled recipe
+    #: records (``template_sha256``). The file read again after the search named the
+    #: template as it was then, edited meanwhile or not (an outside audit)
+    sha256: str
     recipe: str
     description: str
     objects: tuple[RecipeObject, ...]
@@ -258,6 +262,7 @@ def load_template(path: str | Path, hand: HandConfig) -> Template:
     doc.done()
     return Template(
         doc.file,
+        doc.sha256,
         recipe,
         description,
         tuple(objects),

@@ -3,6 +3,7 @@ the loader accepts, provenance on every phase, the same text twice, and the plot
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 import shlex
@@ -452,6 +453,21 @@ def _hold_only(tmp_path: Path) -> Path:
     path = tmp_path / "hold_only.template.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
+
+
+def test_the_recipe_records_the_template_as_it_was_planned_from(tmp_path: Path) -> None:
+    """The template's digest was read from its file once the search was done: a template
+    edited while it was planned (its seed changed) was recorded as the edited one, which
+    the recipe was not planned from (an outside audit)."""
+    template = _hold_only(tmp_path)
+    planned_from = template.read_bytes()
+    planar = load_hand(PLANAR)
+    loaded = load_template(template, planar)
+    template.write_text(template.read_text().replace("  seed: 3\n", "  seed: 4\n"))
+    assert template.read_bytes() != planned_from
+    result = plan_recipe(loaded, planar, models=1, budget=quick_budget())
+    recorded = result.recipe_document()["planned_from"]["template_sha256"]
+    assert recorded == f"sha256:{hashlib.sha256(planned_from).hexdigest()[:16]}"
 
 
 def test_a_plan_whose_phase_does_its_job_on_no_model_fails(tmp_path: Path) -> None:
