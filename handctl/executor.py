@@ -774,6 +774,63 @@ def _handctl_version() -> Callable[[], str]:
     return version
 
 
+def _named(worker: str, info: dict[str, Any]) -> str:
+    """A worker's address, and its name where it has one of its own (``dask worker --name``,
+    a ``LocalCluster``'s number): what its log and its machine's process list show."""
+    name = str(info.get("name", worker))
+    return worker if name == worker else f"{worker} (name {name})"
+
+
+def _some(said: list[str]) -> str:
+    """The first ``_WORKERS_NAMED`` of ``said``, and how many more."""
+    more = len(said) - _WORKERS_NAMED
+    return "; ".join(said[:_WORKERS_NAMED]) + (f"; and {more} more" if more > 0 else "")
+
+
+def _ask_each_worker(client: Any, address: str) -> dict[str, Any]:
+    """Each worker's answer to the version check (its exception, if it raised), every worker
+    asked on its own, all at once, within ``CONNECT_TIMEOUT_S``. One question to them all
+    timed out as a whole: one frozen worker (SIGSTOP, its machine hung) hid the answers the
+    others gave, and the plan was refused "no answer from its workers", never which (an
+    outside audit). A worker that does not answer is named, with how many did."""
+    try:
+        info = client.sync(
+            client.scheduler.identity, n_workers=-1, callback_timeout=CONNECT_TIMEOUT_S
+        )
+    except TimeoutError:
+        raise SchedulerError(
+            address, "a Dask scheduler that answers", f"none in {CONNECT_TIMEOUT_S:g} s"
+        ) from None
+    workers: dict[str, dict[str, Any]] = dict(info.get("workers", {}))
+    version = _handctl_version()
+
+    async def ask(worker: str) -> Any:
+        try:
+            # asynchronous: the question itself, to await here in the client's own loop
+            question = client.run(version, workers=[worker], on_error="return", asynchronous=True)
+            answer = await asyncio.wait_for(question, CONNECT_TIMEOUT_S)
+        except TimeoutError:
+            return None
+        except Exception as exc:  # the scheduler's own question to it failed (gone since)
+            return exc
+        return answer.get(worker, KeyError(f"{worker} is no longer in the cluster"))
+
+    async def ask_all() -> list[Any]:
+        return list(await asyncio.gather(*(ask(worker) for worker in workers)))
+
+    answers = dict(zip(workers, client.sync(ask_all), strict=True))
+    silent = [_named(w, workers[w]) for w, answer in sorted(answers.items()) if answer is None]
+    if silent:
+        raise SchedulerError(
+            address,
+            "a Dask cluster whose workers answer",
+            f"{len(workers) - len(silent)} of {len(workers)} workers answered the version check "
+            f"in {CONNECT_TIMEOUT_S:g} s; no answer from {_some(silent)} (frozen, or its "
+            "machine or the network hung)",
+        )
+    return answers
+
+
 def _check_workers(client: Any, address: str) -> None:
     """At least one worker, and this handctl on every one, before any task goes out."""
 
@@ -792,16 +849,7 @@ def _check_workers(client: Any, address: str) -> None:
             if statuses
             else f"none in {CONNECT_TIMEOUT_S:g} s",
         ) from None
-    try:
-        answers: dict[str, Any] = client.run(
-            _handctl_version(), on_error="return", callback_timeout=CONNECT_TIMEOUT_S
-        )
-    except TimeoutError:
-        raise SchedulerError(
-            address,
-            "a Dask cluster whose workers answer",
-            f"no answer from its workers in {CONNECT_TIMEOUT_S:g} s",
-        ) from None
+    answers = _ask_each_worker(client, address)
     # the version alone let a worker on another checkout of the same version plan with
     # other code, which changed the recipe without a word: its code's digest, and MuJoCo's
     ours = _handctl_version()()
@@ -812,10 +860,8 @@ def _check_workers(client: Any, address: str) -> None:
         elif answer != ours:
             wrong.append(f"{worker}: {answer}")
     if wrong:
-        more = len(wrong) - _WORKERS_NAMED
-        named = "; ".join(wrong[:_WORKERS_NAMED]) + (f"; and {more} more" if more > 0 else "")
         raise SchedulerError(
             address,
             f"{ours}, importable, on every worker of the cluster",
-            f"{len(wrong)} of {len(answers)} workers have not: {named}",
+            f"{len(wrong)} of {len(answers)} workers have not: {_some(wrong)}",
         )

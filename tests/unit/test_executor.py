@@ -541,6 +541,43 @@ def test_a_cluster_whose_worker_lacks_this_handctl_is_refused(
     assert found in message
 
 
+def test_a_worker_that_does_not_answer_the_check_is_named(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """One of two workers frozen (SIGSTOP; its machine hung): the check asked them all in
+    one question, which timed out as a whole, and the plan was refused "no answer from its
+    workers" without naming which, the other's answer thrown away (an outside audit). Each
+    is asked on its own; the frozen one is named, with how many answered."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        protocol="tcp",
+        dashboard_address=":0",
+        scheduler_port=0,
+    ) as cluster:
+        address = cluster.scheduler_address
+        open_pool(scheduler=address).close()  # both answer: what a task imports, imported
+        with distributed.Client(address, set_as_default=False) as client:
+            pids: dict[str, int] = client.run(os.getpid)
+        frozen, pid = sorted(pids.items())[0]
+        name = cluster.scheduler.workers[frozen].name
+        # the other answers in some 0.05 s: a bound a hundred times that is no race
+        monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 5.0)
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            raised = _open_in_thread(address)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+    assert isinstance(raised, ConfigError), raised
+    assert str(raised) == (
+        f"--scheduler: expected a Dask cluster whose workers answer, found '{address}': 1 of 2 "
+        f"workers answered the version check in 5 s; no answer from {frozen} (name {name}) "
+        "(frozen, or its machine or the network hung)"
+    )
+
+
 def _raised_when_killed(
     open_it: Callable[[], WorkPool], started: Path, kill: Callable[[], None]
 ) -> list[BaseException]:
