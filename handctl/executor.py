@@ -108,6 +108,70 @@ class ClusterLostError(HandctlError):
         )
 
 
+class WorkerMemoryError(HandctlError):
+    """A task that ran out of memory on a Dask worker: the worker's memory, on its machine,
+    not this host's. A ``MemoryError`` of a task reached the command as it was, which said
+    "this host ran out of memory ... raise the process's limit (ulimit -v)", sending the
+    user to the wrong machine (an outside audit)."""
+
+    def __init__(self, address: str, worker: str, found: str) -> None:
+        self.address = address
+        self.worker = worker
+        super().__init__(
+            f"the Dask cluster at {address}: a task ran out of memory on its worker {worker} "
+            f"({found}): that worker's memory, not this host's. Give the cluster's workers "
+            "more (dask worker --memory-limit, or fewer --nworkers on that machine), and see "
+            "the worker's log"
+        )
+
+
+class _OnDaskWorker:
+    """A task as a Dask worker runs it: what it raises says which worker it ran on, which
+    Dask does not tell the client. Pickled by reference (this module is importable on every
+    worker: the version check saw to it), with the task's own function inside."""
+
+    def __init__(self, fn: Callable[[Any], Any], address: str) -> None:
+        self.fn = fn
+        self.address = address
+        # the task's own name, which Dask keys its tasks by (its dashboard, a worker's log)
+        self.__name__ = getattr(fn, "__name__", type(fn).__name__)
+
+    def __call__(self, item: Any) -> Any:
+        try:
+            return self.fn(item)
+        except MemoryError as exc:
+            raise WorkerMemoryError(self.address, _this_worker(), _said(exc)) from None
+        except HandctlError:
+            raise  # the same on any worker: bad input is the input's, wherever it ran
+        except Exception as exc:
+            if type(exc).__name__ == "FatalError" and "allocate memory" in str(exc):
+                # MuJoCo's own allocator out of memory, as the command says it of its own
+                raise WorkerMemoryError(self.address, _this_worker(), _said(exc)) from None
+            # the worker's traceback ends in the command's: this note with it
+            exc.add_note(
+                f"(raised by a task on the worker {_this_worker()} of the Dask cluster at "
+                f"{self.address})"
+            )
+            raise
+
+
+def _this_worker() -> str:
+    """The address and name of the Dask worker this runs on (``_named``), from inside a task."""
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+    except (ImportError, ValueError):  # not in a worker: no name to give
+        return "(unknown)"
+    return _named(str(worker.address), {"name": worker.name})
+
+
+def _said(exc: BaseException) -> str:
+    """An exception as one line says it: its type, and its text if it has one."""
+    text = str(exc)
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
 #: the most local workers per core a pool starts (more share the cores and only cost memory)
 WORKERS_PER_CORE = 4
 
@@ -195,6 +259,7 @@ class WorkPool:
         lost: Callable[[], ClusterLostError | None] = lambda: None,
         cpu_counted: str = "this process and its local workers",
         idle: Callable[[], HandctlError | str | None] = lambda: None,
+        task: Callable[[Callable[[Any], Any]], Callable[[Any], Any]] = lambda fn: fn,
     ) -> None:
         self.executor = executor
         self.workers = workers
@@ -206,6 +271,9 @@ class WorkPool:
         #: cluster whose workers are all gone, its scheduler still up, waited for ever), or
         #: a line to say once of why it waits (a cluster whose workers are all paused)
         self._idle = idle
+        #: what a task's function is sent to the workers as (a Dask worker's names itself
+        #: in what the task raises)
+        self._task = task
         self._closed = False
         self.tasks_run = 0  # tasks whose results came back (what a rate is counted in)
 
@@ -226,7 +294,8 @@ class WorkPool:
                 if progress is not None:
                     progress.advance()
             return results
-        futures = [self.executor.submit(fn, item) for item in items]
+        run = self._task(fn)
+        futures = [self.executor.submit(run, item) for item in items]
         try:
             pending = set(futures)
             while pending:
@@ -531,6 +600,7 @@ def _dask_pool(address: str) -> WorkPool:
         lost,
         cpu_counted="this process only, not the cluster's workers",
         idle=_Idle(client, address),
+        task=lambda fn: _OnDaskWorker(fn, address),
     )
 
 

@@ -14,7 +14,7 @@ import yaml
 from handctl.analysis.model import AnalysisError
 from handctl.config import load_hand
 from handctl.errors import BusError, ConfigError, HandctlError, ProtocolError
-from handctl.executor import ClusterLostError, SchedulerError, open_pool
+from handctl.executor import ClusterLostError, SchedulerError, WorkerMemoryError, open_pool
 from handctl.hostcheck import HostTimingError
 
 from ..conftest import HAND_YAML
@@ -26,6 +26,7 @@ from ..conftest import HAND_YAML
         ConfigError("hand.yaml", "fingers[0].joints[1].tau_max", "a number > 0", -1.0),
         SchedulerError("tcp://127.0.0.1:1", "a Dask scheduler", "connection refused"),
         ClusterLostError("tcp://127.0.0.1:1", "mid-plan", "nothing was written"),
+        WorkerMemoryError("tcp://127.0.0.1:1", "tcp://127.0.0.1:2 (name 0)", "MemoryError"),
         AnalysisError("singular contact system"),
         BusError("no such interface"),
         ProtocolError("frame 0x101: 3 bytes"),

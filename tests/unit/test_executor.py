@@ -578,6 +578,47 @@ def test_a_worker_that_does_not_answer_the_check_is_named(
     )
 
 
+def out_of_memory_on_one(i: int) -> int:
+    """A task whose allocation fails on its worker, as one past the worker's memory does."""
+    if i == 1:
+        raise MemoryError("injected")
+    return i
+
+
+def test_a_task_out_of_memory_on_a_worker_names_the_worker_not_this_host() -> None:
+    """A task's ``MemoryError`` on a cluster worker reached the command as it was, which
+    said "this host ran out of memory ... raise the process's limit (ulimit -v)" (an outside
+    audit): the memory was the worker's. Said as the worker's, naming it and the cluster;
+    any other error of a task names them in a note its traceback ends with."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp",
+        dashboard_address=":0",
+        scheduler_port=0,
+    ) as cluster:
+        address = cluster.scheduler_address
+        ((worker, state),) = cluster.scheduler.workers.items()
+        with open_pool(scheduler=address) as pool:
+            with pytest.raises(executor.WorkerMemoryError) as raised:
+                pool.map(out_of_memory_on_one, [0, 1, 2])
+            with pytest.raises(ValueError, match=r"^task 3 cannot") as other:
+                pool.map(fail_on_three, [3])
+    assert (raised.value.address, raised.value.worker) == (address, f"{worker} (name {state.name})")
+    assert str(raised.value) == (
+        f"the Dask cluster at {address}: a task ran out of memory on its worker {worker} (name "
+        f"{state.name}) (MemoryError: injected): that worker's memory, not this host's. Give "
+        "the cluster's workers more (dask worker --memory-limit, or fewer --nworkers on that "
+        "machine), and see the worker's log"
+    )
+    assert other.value.__notes__ == [
+        f"(raised by a task on the worker {worker} (name {state.name}) of the Dask cluster at "
+        f"{address})"
+    ]
+
+
 def _raised_when_killed(
     open_it: Callable[[], WorkPool], started: Path, kill: Callable[[], None]
 ) -> list[BaseException]:
