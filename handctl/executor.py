@@ -295,8 +295,11 @@ class WorkPool:
                     progress.advance()
             return results
         run = self._task(fn)
-        futures = [self.executor.submit(run, item) for item in items]
+        futures: list[cf.Future[R]] = []
         try:
+            # inside: a cluster's client that gave up on its scheduler before this map (lost
+            # between two) refuses the first submission, which is the cluster lost too
+            futures.extend(self.executor.submit(run, item) for item in items)
             pending = set(futures)
             while pending:
                 # in rounds of IDLE_CHECK_S, each O(tasks left), between which the pool is
@@ -570,11 +573,21 @@ def _dask_pool(address: str) -> WorkPool:
     quiet: list[tuple[logging.Logger, int]] = [(batched, batched.level)]
     batched.setLevel(logging.CRITICAL + 1)
 
+    # The client's giving up on a scheduler lost between two maps is logged as it gives up,
+    # before any map asks: the next map's ``ClusterLostError`` says it in one line
+    gave_up = _GaveUp()
+    client_logger = logging.getLogger("distributed.client")
+    client_logger.addFilter(gave_up)
+
     def close(cancel: bool) -> None:
         try:
-            executor.shutdown(wait=not cancel)
+            # a client that gave up on its scheduler cancels nothing more there (the
+            # scheduler took its tasks with it), and said so with a second traceback
+            with contextlib.suppress(distributed.client.ClosedClientError):
+                executor.shutdown(wait=not cancel)
             client.close()
         finally:
+            client_logger.removeFilter(gave_up)
             for logger, level in quiet:
                 logger.setLevel(level)
 
@@ -602,6 +615,15 @@ def _dask_pool(address: str) -> WorkPool:
         idle=_Idle(client, address),
         task=lambda fn: _OnDaskWorker(fn, address),
     )
+
+
+class _GaveUp(logging.Filter):
+    """Holds back Dask's client's "Failed to reconnect to scheduler ..., closing client":
+    the map that finds its cluster gone says so (``ClusterLostError``), and a scheduler lost
+    after the last map cost nothing."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Failed to reconnect to scheduler")
 
 
 class _Idle:

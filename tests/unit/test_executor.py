@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import http.server
 import io
+import logging
 import os
 import resource
 import shutil
@@ -671,6 +672,49 @@ def test_a_scheduler_lost_while_the_work_runs_is_named(tmp_path: Path) -> None:
         f"--scheduler {address}: the Dask scheduler was lost while the work ran "
         "(the connection to it closed)"
     )
+
+
+class _Records(logging.Handler):
+    """What a logger logged, kept to be looked at."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def test_a_scheduler_lost_between_two_maps_is_named_in_one_line() -> None:
+    """A scheduler lost before a map, long enough for the client to give up on it (10 s):
+    the map's first submission raised Dask's ``ClosedClientError``, the pool's close a
+    second one as it cancelled, and Dask logged its "Failed to reconnect" error before
+    either (an outside audit). The cluster lost, said once; the close is quiet (a second
+    error from it would be what ``pytest.raises`` sees)."""
+    pytest.importorskip("distributed")
+    said = _Records()
+    client_logger = logging.getLogger("distributed.client")
+    client_logger.addHandler(said)
+    try:
+        with _one_process_cluster() as (cluster, address):
+            pool = open_pool(scheduler=address)
+            with pytest.raises(ClusterLostError) as raised, pool:  # closed as cancelled
+                assert pool.map(abs, [-1, -2]) == [1, 2]
+                cluster.kill()
+                cluster.wait()
+                client: Any = pool.executor._client  # type: ignore[attr-defined]
+                deadline = time.monotonic() + 120.0
+                while client.status != "closed" and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                assert client.status == "closed"  # it gave up: the case of the audit
+                pool.map(abs, [-3])
+    finally:
+        client_logger.removeHandler(said)
+    assert str(raised.value) == (
+        f"--scheduler {address}: the Dask scheduler was lost while the work ran "
+        "(the connection to it closed)"
+    )
+    assert [r.getMessage() for r in said.records if "reconnect" in r.getMessage()] == []
 
 
 def test_a_scheduler_that_stops_answering_is_given_up(
