@@ -608,7 +608,7 @@ def _dask_pool(address: str) -> WorkPool:
     return WorkPool(
         executor,
         workers,
-        f"the Dask cluster at {address} ({workers} workers)",
+        f"the Dask cluster at {address} ({workers} worker{'' if workers == 1 else 's'})",
         close,
         lost,
         cpu_counted="this process only, not the cluster's workers",
@@ -739,12 +739,7 @@ def _security(distributed: Any, address: str) -> Any:
     except (OSError, ValueError) as exc:  # a file named there missing, or not a cert or key
         # ssl's errors do not say which file: the settings are named with the reason
         files = ", ".join(
-            f"{what} {getattr(security, attr)}"
-            for what, attr in (
-                ("CA file", "tls_ca_file"),
-                ("client cert", "tls_client_cert"),
-                ("client key", "tls_client_key"),
-            )
+            f"{what} {getattr(security, attr) or '(not set)'}" for what, attr, _ in _TLS_SETTINGS
         )
         raise SchedulerError(
             address,
@@ -752,12 +747,35 @@ def _security(distributed: Any, address: str) -> Any:
             f"{type(exc).__name__}: {exc} (of {files})",
         ) from None
     if context is None:
+        # Dask makes no context unless both the CA file and the client certificate are set
+        # (the key may be in the certificate's file): which is missing, by both its names,
+        # where "no CA file and client certificate" left the user to guess
+        unset = [
+            f"the {what} ({setting}, {_dask_env(setting)})"
+            for what, attr, setting in _TLS_SETTINGS[:2]
+            if not getattr(security, attr)
+        ]
         raise SchedulerError(
             address,
             f"Dask's TLS settings for a TLS address: {tls_vars}",
-            "no CA file and client certificate in Dask's configuration",
+            f"{' and '.join(unset)} {'is' if len(unset) == 1 else 'are'} not set in Dask's "
+            "configuration",
         )
     return security
+
+
+#: Dask's TLS settings for a client: what a message calls each, its attribute of
+#: ``distributed.Security`` and its key in Dask's configuration
+_TLS_SETTINGS = (
+    ("CA file", "tls_ca_file", "distributed.comm.tls.ca-file"),
+    ("client cert", "tls_client_cert", "distributed.comm.tls.client.cert"),
+    ("client key", "tls_client_key", "distributed.comm.tls.client.key"),
+)
+
+
+def _dask_env(setting: str) -> str:
+    """The environment variable that sets a key of Dask's configuration."""
+    return "DASK_" + setting.upper().replace(".", "__").replace("-", "_")
 
 
 def _greet(distributed: Any, address: str, security: Any) -> None:

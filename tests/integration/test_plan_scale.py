@@ -149,7 +149,7 @@ def test_a_worker_whose_environment_asks_for_an_opengl_mujoco_cannot_load_plans(
             check=False,
         )
     assert done.returncode == 0, done.stderr
-    assert "(1 workers)" in done.stderr
+    assert "(1 worker)" in done.stderr
     assert out.exists()
 
 

@@ -348,6 +348,30 @@ def test_a_tls_address_without_dask_s_tls_settings_is_refused_at_once() -> None:
     assert str(raised.value).startswith("--scheduler: expected Dask's TLS settings")
     assert "DASK_DISTRIBUTED__COMM__TLS__CA_FILE" in str(raised.value)
     assert "found 'tls://127.0.0.1:9'" in str(raised.value)
+    assert str(raised.value).endswith(
+        ": the CA file (distributed.comm.tls.ca-file, DASK_DISTRIBUTED__COMM__TLS__CA_FILE) and "
+        "the client cert (distributed.comm.tls.client.cert, "
+        "DASK_DISTRIBUTED__COMM__TLS__CLIENT__CERT) are not set in Dask's configuration"
+    )
+
+
+def test_a_tls_address_with_one_of_dask_s_tls_settings_missing_names_it(tmp_path: Path) -> None:
+    """ "no CA file and client certificate" was said whichever of the two was missing, with
+    the three settings after it: the one not set is named (an outside audit)."""
+    pytest.importorskip("distributed")
+    import dask.config
+
+    ca = tmp_path / "ca.pem"
+    ca.write_text("not read: the settings are refused before any file is")
+    with (
+        dask.config.set({"distributed.comm.tls.ca-file": str(ca)}),
+        pytest.raises(ConfigError) as raised,
+    ):
+        open_pool(scheduler="tls://127.0.0.1:9")
+    assert str(raised.value).endswith(
+        ": the client cert (distributed.comm.tls.client.cert, "
+        "DASK_DISTRIBUTED__COMM__TLS__CLIENT__CERT) is not set in Dask's configuration"
+    )
 
 
 def _self_signed(tmp_path: Path) -> tuple[str, str]:
@@ -948,5 +972,5 @@ def test_a_task_whose_workers_keep_dying_is_said_in_one_line() -> None:
         with open_pool(scheduler=address) as pool, pytest.raises(HandctlError) as raised:
             pool.map(lambda _: _die(), [0])
     said = str(raised.value)
-    assert said.startswith(f"the Dask cluster at {address} (1 workers): workers died under a ")
+    assert said.startswith(f"the Dask cluster at {address} (1 worker): workers died under a ")
     assert said.endswith("the workers' own logs say why (out of memory, a crash)")
