@@ -155,6 +155,80 @@ def test_one_counter_with_two_contents_is_a_second_sender(node: FingerNode) -> N
     )
 
 
+def _forged(node: FingerNode, counter: int) -> bytes:
+    layout = node.layouts.feedback
+    joints = (len(layout.signals) - 2) // 2
+    return layout.encode(counter, [0.0] * joints + [1.8] + [0.0] * (joints - 1) + [ENABLED, 0])
+
+
+def test_a_forged_feedback_two_counters_ahead_is_a_second_sender(node: FingerNode) -> None:
+    """Two forged Feedback frames right after the node's own of counter 0, with counters 1
+    and 2: both were accepted, the node's own 1 then came after the forged 2 and counted as
+    a skip (the counter went back), and its own 2 was accepted in sequence beside the forged
+    2, one reject a round, under the reject-rate limit (found by an outside audit). The
+    node's frame of a counter already accepted with other contents is the contradiction."""
+    fb = node.layouts.feedback.frame_id
+    ms = 1_000_000
+    node.receive(fb, _feedback(node, 0, ENABLED, 0), 1 * ms)
+    assert node.receive(fb, _forged(node, 1), 1 * ms + 10) is None
+    assert node.receive(fb, _forged(node, 2), 1 * ms + 20) is None
+    assert node.contradiction == ""
+    assert node.receive(fb, _feedback(node, 1, ENABLED, 0), 2 * ms) is Reject.COUNTER_REPEAT
+    assert node.contradiction.startswith(f"two Feedback frames (id 0x{fb:03X}) with counter 1")
+    # and the node's own frame that would be in sequence again is never applied
+    assert node.receive(fb, _feedback(node, 2, ENABLED, 0), 3 * ms) is Reject.COUNTER_REPEAT
+    assert node.feedback is not None and node.feedback.angles[0] == pytest.approx(1.8)
+    assert node.contradictions == 2
+
+
+def test_the_frame_accepted_after_a_forged_jump_is_compared_too(node: FingerNode) -> None:
+    """A forged jump (rejected, and re-synchronised to) and a forged frame after it: the
+    node's own next frame is a skip back, the ones after it are in sequence again, and the
+    one with the forged frame's counter is the contradiction, however the counter rule took
+    it."""
+    fb = node.layouts.feedback.frame_id
+    ms = 1_000_000
+    node.receive(fb, _feedback(node, 5, ENABLED, 0), 1 * ms)
+    assert node.receive(fb, _forged(node, 7), 1 * ms + 10) is Reject.COUNTER_SKIP
+    assert node.receive(fb, _forged(node, 8), 1 * ms + 20) is None
+    assert node.receive(fb, _feedback(node, 6, ENABLED, 0), 2 * ms) is Reject.COUNTER_SKIP
+    assert node.receive(fb, _feedback(node, 7, ENABLED, 0), 3 * ms) is None
+    assert node.contradiction == ""  # the forged 7 was never accepted: nothing to contradict
+    assert node.receive(fb, _feedback(node, 8, ENABLED, 0), 4 * ms) is Reject.COUNTER_REPEAT
+    assert node.contradiction.startswith(f"two Feedback frames (id 0x{fb:03X}) with counter 8")
+
+
+def test_a_lost_frame_is_resynchronised_to_with_no_contradiction(node: FingerNode) -> None:
+    """A real node's stream after a lost frame: one skip, rejected, then in sequence again,
+    with nothing to contradict (every counter has one content)."""
+    fb = node.layouts.feedback.frame_id
+    ms = 1_000_000
+    node.receive(fb, _feedback(node, 0, ENABLED, 0), 1 * ms)
+    node.receive(fb, _feedback(node, 1, ENABLED, 0), 2 * ms)
+    assert node.receive(fb, _feedback(node, 3, ENABLED, 0), 4 * ms) is Reject.COUNTER_SKIP
+    assert node.receive(fb, _feedback(node, 4, ENABLED, 0), 5 * ms) is None
+    assert node.receive(fb, _feedback(node, 4, ENABLED, 0), 5 * ms + 1) is Reject.COUNTER_REPEAT
+    assert node.contradiction == "" and node.contradictions == 0
+
+
+def test_a_stream_begun_again_at_0_contradicts_none_before_it(node: FingerNode) -> None:
+    """A rebooted node counts from 0 again (PROTOCOL.md): its frames 0, 1, 2 after the boot
+    have other contents than its 0, 1, 2 before, and are no second sender. A forged 0 amid
+    the stream is no such restart: the node's next frame is not 1, and is compared."""
+    fb = node.layouts.feedback.frame_id
+    ms = 1_000_000
+    for counter in range(4):
+        node.receive(fb, _feedback(node, counter, ENABLED, 0), (1 + counter) * ms)
+    assert node.receive(fb, _feedback(node, 0, DISABLED, 0), 30 * ms) is Reject.COUNTER_SKIP
+    assert node.receive(fb, _feedback(node, 1, DISABLED, 0), 31 * ms) is None
+    assert node.receive(fb, _feedback(node, 2, DISABLED, 0), 32 * ms) is None
+    assert node.contradiction == "" and node.state == DISABLED
+    assert node.receive(fb, _forged(node, 3), 32 * ms + 10) is None
+    assert node.receive(fb, _forged(node, 0), 32 * ms + 20) is Reject.COUNTER_SKIP
+    assert node.receive(fb, _feedback(node, 3, DISABLED, 0), 33 * ms) is Reject.COUNTER_REPEAT
+    assert node.contradiction.startswith(f"two Feedback frames (id 0x{fb:03X}) with counter 3")
+
+
 def test_a_counter_come_round_again_after_lost_frames_is_no_second_sender(
     node: FingerNode,
 ) -> None:

@@ -57,7 +57,8 @@ REORDERED_WITHIN_NS = 1_000_000
 #: is the counter come round again after frames were lost: 256 of a 1 kHz stream take 256
 #: ms, and a run's host, starved under load in its start-up, lost just that many (its
 #: receive queue full) and was stopped on a contradiction (CI). A forged frame and the node's
-#: own of that counter arrive within one of the node's 1 ms ticks of each other.
+#: own of that counter arrive within one of the node's 1 ms ticks of each other, or as many
+#: as the forgery ran ahead of the node.
 SECOND_SENDER_WITHIN_NS = 100_000_000
 
 
@@ -230,14 +231,15 @@ class FingerNode:
         """
         layout, counters = self.streams[frame_id]
         reason = validate(layout, data, counters)
+        if (
+            reason is None or reason is Reject.COUNTER_REPEAT or reason is Reject.COUNTER_SKIP
+        ) and counters.contradicts(data, arrival_ns, SECOND_SENDER_WITHIN_NS):
+            # whichever the counter rule took it for: in sequence, a repeat, or a counter
+            # gone back behind a forged one; never applied
+            self._second_sender(layout, data)
+            reason = Reject.COUNTER_REPEAT
         if reason is not None:
             self.rejects.add(reason)
-            if (
-                reason is Reject.COUNTER_REPEAT
-                and data != counters.frame
-                and arrival_ns - counters.frame_ns <= SECOND_SENDER_WITHIN_NS
-            ):
-                self._second_sender(layout, data)
             if reason is Reject.LENGTH and layout is self.layouts.status:
                 version = foreign_status_version(layout, data)
                 if version is not None:
@@ -246,7 +248,7 @@ class FingerNode:
                     self._check_version(version)
             return reason
         self.accepted += 1
-        counters.frame, counters.frame_ns = data, arrival_ns
+        counters.accepted(data, arrival_ns)
         _, values = layout.decode(data)
         if layout is self.layouts.feedback:
             fb = parse_feedback(values)
@@ -284,11 +286,12 @@ class FingerNode:
         return self.feedback is not None and self.feedback.state == _ENABLED
 
     def _second_sender(self, layout: Layout, data: bytes) -> None:
-        """A frame with the counter of the one just accepted on its stream, and other
-        contents: two senders on one identifier (a forged frame, or two nodes set to one id),
-        or a node whose counter does not advance, which the host cannot tell apart from them.
-        One of them was believed; the counter rule alone counted the other as a lost frame,
-        so a forgery one frame in ten went on being believed under the reject-rate limit."""
+        """A frame with the counter of one accepted shortly before on its stream (the last,
+        or one the stream has since gone back behind), and other contents: two senders on
+        one identifier (a forged frame, or two nodes set to one id), or a node whose counter
+        does not advance, which the host cannot tell apart from them. One of them was
+        believed; the counter rule alone counted the other as a lost frame, so a forgery one
+        frame in ten went on being believed under the reject-rate limit."""
         kind = layout.name.rpartition("_")[0]  # Feedback_1: Feedback
         self._contradicted(
             f"two {kind} frames (id 0x{layout.frame_id:03X}) with counter {data[1]} and "

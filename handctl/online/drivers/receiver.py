@@ -22,6 +22,8 @@ class Reject(enum.IntEnum):
 
 
 REJECT_KINDS = tuple(Reject)
+#: How many values the rolling counter (one byte) takes.
+COUNTER_VALUES = 256
 
 
 class CounterCheck:
@@ -31,31 +33,63 @@ class CounterCheck:
     counter is rejected, and any jump other than +1 is rejected and re-synchronised to, so one
     lost frame costs the frame after it and never the whole stream.
 
-    ``frame`` is the last accepted frame itself, and ``frame_ns`` when it arrived (both its
-    receiver's to set, once the frame is accepted): a repeat with other contents soon after
-    it is not the same frame heard twice but a second sender on the stream's identifier
-    (``FingerNode``).
+    It also remembers, for each counter value, the last frame accepted with it and when it
+    arrived (``accepted``, its receiver's to call): a frame with the counter of one accepted
+    shortly before and other contents is not the same frame heard twice but a second sender
+    on the stream's identifier (``FingerNode``). The last accepted frame alone was compared,
+    and only on a repeat: a forged frame two counters ahead made the node's own frame of the
+    first counter a skip (the counter went back), and its frame of the second one was then
+    accepted in sequence, beside the forged one of that counter, ten times a second under
+    the reject-rate limit (found by an outside audit). One slot per counter value: the
+    history is bounded by the counter's range and indexed by it, so a look-up allocates
+    nothing. A node starts its counters at 0 after boot (PROTOCOL.md): a skip to 0 followed
+    by 1 is a stream begun again, whose frames contradict none from before it.
     """
 
-    __slots__ = ("frame", "frame_ns", "last")
+    __slots__ = ("_after_zero", "_frames", "_frames_ns", "last")
 
     def __init__(self) -> None:
         self.last: int | None = None
-        self.frame: bytes | None = None
-        self.frame_ns = 0
+        self._after_zero = False  # the last frame was a skip to counter 0
+        self._frames: list[bytes | None] = [None] * COUNTER_VALUES
+        self._frames_ns = [0] * COUNTER_VALUES
 
     def reset(self) -> None:
         self.last = None
-        self.frame = None
+        self._after_zero = False
+        self._frames[:] = [None] * COUNTER_VALUES
 
     def check(self, counter: int) -> Reject | None:
         last = self.last
         self.last = counter
+        if self._after_zero:
+            self._after_zero = False
+            if counter == 1:  # 0, 1: the stream began again (a reboot)
+                self._frames[:] = [None] * COUNTER_VALUES
         if last is None or counter == (last + 1) & 0xFF:
             return None
         if counter == last:
             return Reject.COUNTER_REPEAT
+        self._after_zero = counter == 0
         return Reject.COUNTER_SKIP
+
+    def accepted(self, data: bytes, arrival_ns: int) -> None:
+        """Remember ``data`` (an accepted frame, counter in byte 1) as its counter's frame."""
+        self._frames[data[1]] = data
+        self._frames_ns[data[1]] = arrival_ns
+
+    def contradicts(self, data: bytes, arrival_ns: int, within_ns: int) -> bool:
+        """Whether an intact frame has the counter of a frame accepted no more than
+        ``within_ns`` before it, and other contents. A skip to 0 (rejected in any case) is
+        judged by the frame after it: a 1 makes it a stream begun again."""
+        counter = data[1]
+        earlier = self._frames[counter]
+        return (
+            not self._after_zero
+            and earlier is not None
+            and earlier != data
+            and arrival_ns - self._frames_ns[counter] <= within_ns
+        )
 
 
 def validate(layout: Layout, data: bytes, counters: CounterCheck) -> Reject | None:
