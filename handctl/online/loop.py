@@ -583,17 +583,48 @@ class Runtime:
         in lockstep the simulated nodes, on their own 1 ms tick, had not run one in it, and
         the run ended (exit 0 as well) with the hand ENABLED. Any report's DISABLED was
         taken at first: one forged Heartbeat after the disable hid a node that ignored it,
-        and no e-stop went. A node that does not say so in time is said in the summary's
-        warnings: its watchdog is what disables it."""
+        and no e-stop went. Then one Feedback's: a forged Feedback DISABLED with the node's
+        next counter hid it the same way, the wait over before the node's own frame of that
+        counter came to contradict it (found by an outside audit). So a node's DISABLED is
+        confirmed by a later Feedback that says so too, a node tick on, when its own frame of
+        the counter has had time to come, and a node contradicted since the disable is
+        never confirmed (``_contradicted_after_the_disable``). A node that does not say so in
+        time is said in the summary's warnings: its watchdog is what disables it."""
         period_s = self.hand.bus.period_s
         ticks = max(1, ticks_lasting(DISABLE_CONFIRM_S, period_s))
         enabled = int(NodeState.ENABLED)
+        nodes = self.driver.nodes
+        # before the wait: a node contradicted already has stopped the run on it, and may
+        # go on contradicting itself (each Status of another protocol does): its first
+        # contradiction in the wait is what the wait stops on
+        contradictions = [n.contradictions if not n.contradiction else -1 for n in nodes]
+        #: when the first Feedback not ENABLED heard of each node since the disable arrived
+        first_ns: list[int | None] = [None] * len(nodes)
+        stopped_on_contradiction = False
 
         def heard(n: finger.FingerNode) -> bool:  # a Feedback of it since the disable
             return n.feedback_ns is not None and n.feedback_ns >= sent_ns
 
-        def confirmed(n: finger.FingerNode) -> bool:
-            return heard(n) and not n.feedback_enabled and n.state != enabled
+        def observe() -> None:  # after each poll
+            for i, n in enumerate(nodes):
+                if not heard(n) or n.feedback_enabled:
+                    first_ns[i] = None
+                elif first_ns[i] is None:
+                    first_ns[i] = n.feedback_ns
+
+        def contradicted(i: int) -> bool:
+            return contradictions[i] >= 0 and nodes[i].contradictions > contradictions[i]
+
+        def confirmed(i: int) -> bool:
+            n, first = nodes[i], first_ns[i]
+            return (
+                first is not None
+                and n.feedback_ns is not None
+                and n.feedback_ns - first >= finger.REORDERED_WITHIN_NS
+                and not n.feedback_enabled
+                and n.state != enabled
+                and not contradicted(i)
+            )
 
         # a Feedback sent this long after the disable was sent by a node that had had the
         # disable a tick to act on: its ENABLED is not one sent before it
@@ -604,35 +635,64 @@ class Runtime:
                 defiant_after_ns = tk.now_ns + round(DEFIANT_AFTER_PERIODS * period_s * 1e9)
             self._account_idle(tk)
             self.driver.poll(tk.now_ns)
+            observe()
             if self._estop_owed:  # refused on an earlier tick: again, until one goes
                 self._owe_estop(self._estop_owed)
             if self._disable_owed:  # likewise the disable, until it or the e-stop goes
                 self._disable_owed = not self._send_disable()
             self._foreign_after_the_disable(tk.tick)
-            if all(confirmed(n) for n in self.driver.nodes) and not self._estop_owed:
+            if not stopped_on_contradiction:
+                stopped_on_contradiction = self._contradicted_after_the_disable(
+                    tk.tick, contradictions
+                )
+            if all(confirmed(i) for i in range(len(nodes))) and not self._estop_owed:
                 return
         # a node whose Feedback went unheard all the while (its frames rejected, or lost) is
         # taken at its other reports' word, at the end of the wait
         still = [
-            n for n in self.driver.nodes if not confirmed(n) and (heard(n) or n.state == enabled)
+            i
+            for i, n in enumerate(nodes)
+            if not confirmed(i) and (heard(n) or n.state == enabled or contradicted(i))
         ]
         if not still:
             return
         defiant = [
-            n
-            for n in still
+            i
+            for i in still
             if defiant_after_ns is not None
-            and n.feedback_ns is not None
+            and (n := nodes[i]).feedback_ns is not None
             and n.feedback_ns >= defiant_after_ns
             and n.feedback_enabled
         ]
-        said = ", ".join(f"node {n.node_id} ({n.finger.name})" for n in still)
+        said = [i for i in still if contradicted(i)]
+        self._say_unconfirmed(still, said, defiant, ticks * period_s)
+
+    def _say_unconfirmed(
+        self,
+        still: list[int],
+        contradicted: list[int],
+        defiant: list[int],
+        waited_s: float,
+    ) -> None:
+        """Say which nodes (indices into the driver's) the wait for the disable did not
+        confirm and why, and send the e-stop to the ``defiant`` ones."""
+        nodes = self.driver.nodes
+
+        def names(indices: list[int]) -> str:
+            return ", ".join(f"node {nodes[i].node_id} ({nodes[i].finger.name})" for i in indices)
+
         self.disable_unconfirmed = (
-            f"{said} not heard disabled within {ticks * period_s * 1e3:g} ms of "
+            f"{names(still)} not heard disabled within {waited_s * 1e3:g} ms of "
             "the disable (last heard ENABLED, or silent since); a node that hears no command "
             f"for {wire.COMMAND_WATCHDOG_S * 1e3:g} ms sets its torque to zero and latches "
             "FAULT (TIMEOUT), which the next run clears with --reset-node-faults"
         )
+        if contradicted:  # the e-stop went, or was owed, when the contradiction was heard
+            what = "the e-stop was sent" if self._estop_at_the_end else "the e-stop is owed"
+            self.disable_unconfirmed += (
+                f"; {names(contradicted)} contradicted after the disable (NODE_CONTRADICTION), "
+                f"so no DISABLED of it is believed: {what}"
+            )
         if self._disable_refusals:
             self.disable_unconfirmed += f" ({self._disable_refused()})"
             defiant = []  # they may never have had it; the e-stop, if any, has gone
@@ -640,14 +700,41 @@ class Runtime:
             # a node that goes on saying ENABLED after the disable disobeys it: the e-stop,
             # which every node honours (PROTOCOL.md), is the last word the host has; it
             # latches FAULT (ESTOP) on every node, for --reset-node-faults to clear
-            sent = self._estop_at_the_end = self.driver.send_estop()
-            names = ", ".join(f"node {n.node_id} ({n.finger.name})" for n in defiant)
-            what = "the e-stop was sent" if sent else "the e-stop could not be sent"
+            if not (contradicted and self._estop_at_the_end):  # else it went at the contradiction
+                self._estop_at_the_end = self.driver.send_estop()
+            what = (
+                "the e-stop was sent" if self._estop_at_the_end else "the e-stop could not be sent"
+            )
             self.disable_unconfirmed += (
-                f"; {names} went on saying ENABLED after the disable: {what}"
+                f"; {names(defiant)} went on saying ENABLED after the disable: {what}"
             )
         if self.recorder is not None:  # the log says it too: whether the hand may be ENABLED
             self.recorder.note("disable_unconfirmed", self.disable_unconfirmed, self.tick)
+
+    def _contradicted_after_the_disable(self, tick: int, before: Sequence[int]) -> bool:
+        """A node contradicted while the run listens for its disable (a Feedback with the
+        counter of one accepted and other contents, row 92 of docs/safety.md) is
+        ``NODE_CONTRADICTION`` there too, with the e-stop at once: one of its two streams is
+        not the node's, and the DISABLED may be the forged one, sent to hide a node that
+        ignored the disable (found by an outside audit). ``before``: each node's count of
+        contradictions when the wait began (-1: contradicted before it, and said then).
+        Whether it stopped on one (once is enough)."""
+        nodes = self.driver.nodes
+        new = [
+            n
+            for n, count in zip(nodes, before, strict=True)
+            if count >= 0 and n.contradictions > count
+        ]
+        if not new:
+            return False
+        self.supervisor.trip(
+            FaultCode.NODE_CONTRADICTION,
+            "after this run's disable, "
+            + "; ".join(f"node {n.node_id} ({n.finger.name}): {n.contradiction}" for n in new),
+            tick,
+        )
+        self._estop_at_the_end = self._owe_estop(ESTOP_HOST_SAFETY)
+        return True
 
     def _foreign_after_the_disable(self, tick: int) -> None:
         """Another sender on the nodes' command identifiers while the run listens for its

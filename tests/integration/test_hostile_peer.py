@@ -498,3 +498,50 @@ def test_a_forged_feedback_two_counters_ahead_is_a_second_sender(
     tick = stopped_at_once(r, result, FaultCode.NODE_CONTRADICTION)
     assert sent_at and tick == sent_at[0] + 1, (tick, sent_at)
     assert f"two Feedback frames (id 0x{layout.frame_id:03X})" in result.faults[0].detail
+
+
+def test_a_forged_feedback_disabled_after_the_disable_does_not_hide_a_node_that_ignored_it(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """Node 2 ignores the disable; one Feedback DISABLED with its next counter, right after
+    the disable: the wait took it for the node's word at once and ended, the node's own
+    frame of that counter (ENABLED) came a tick too late to contradict it, the run said
+    completed, no e-stop went, and node 2 stayed ENABLED (found by an outside audit). A
+    DISABLED is confirmed by a later Feedback now, and the contradiction is heard."""
+    wire_protocol = protocol_for(hand)
+    feedback = wire_protocol.layout("Feedback", 2)
+    command = wire_protocol.layout("NodeCommand", 2)
+    with rig(hand, hold, max_seconds=0.5) as r, third_peer(r) as peer:
+        stubborn = r.sim.nodes[1]
+        deaf_to(r, 2, "disable")
+        last = {feedback.frame_id: -1, command.frame_id: -1}
+        heard: dict[int, bytes] = {}
+        commands: list[int] = []
+        forged: list[bytes] = []
+
+        def forge_once() -> None:
+            before = last[command.frame_id]
+            _sniffed(peer, last, heard)
+            if last[command.frame_id] != before:
+                commands.append(last[command.frame_id])
+            if forged or len(commands) < 2 or feedback.frame_id not in heard:
+                return  # the enable, then the disable
+            values = list(feedback.decode(heard[feedback.frame_id])[1])
+            values[-2] = int(NodeState.DISABLED)
+            data = feedback.encode(_next(last, feedback.frame_id), values)
+            peer.send(frame(feedback.frame_id, data))
+            forged.append(data)
+
+        r.sim.faults.add(Every(send=forge_once), 0.0)
+        result = r.run()
+        r.sim.step()  # the nodes take the e-stop on their next tick
+    assert forged
+    assert result.outcome is Outcome.SAFETY_STOP, result.message
+    first = result.faults[0]
+    assert first.code is FaultCode.NODE_CONTRADICTION, [str(f) for f in result.faults]
+    assert first.detail.startswith("after this run's disable, node 2 (f2): two Feedback")
+    said = result.disable_unconfirmed
+    assert said.startswith("node 2 (f2) not heard disabled"), said
+    assert "node 2 (f2) contradicted after the disable" in said
+    assert r.estops() == 1
+    assert stubborn.state == int(NodeState.FAULT)
