@@ -598,6 +598,7 @@ class Runtime:
         # go on contradicting itself (each Status of another protocol does): its first
         # contradiction in the wait is what the wait stops on
         contradictions = [n.contradictions if not n.contradiction else -1 for n in nodes]
+        rejects = [n.rejects.total for n in nodes]
         #: when the first Feedback not ENABLED heard of each node since the disable arrived
         first_ns: list[int | None] = [None] * len(nodes)
         stopped_on_contradiction = False
@@ -665,17 +666,19 @@ class Runtime:
             and n.feedback_enabled
         ]
         said = [i for i in still if contradicted(i)]
-        self._say_unconfirmed(still, said, defiant, ticks * period_s)
+        self._say_unconfirmed(still, said, defiant, rejects, ticks * period_s)
 
     def _say_unconfirmed(
         self,
         still: list[int],
         contradicted: list[int],
         defiant: list[int],
+        rejects: list[int],
         waited_s: float,
     ) -> None:
         """Say which nodes (indices into the driver's) the wait for the disable did not
-        confirm and why, and send the e-stop to the ``defiant`` ones."""
+        confirm and why, and send the e-stop to the ``defiant`` ones: ``rejects`` are the
+        nodes' reject totals when the wait began."""
         nodes = self.driver.nodes
 
         def names(indices: list[int]) -> str:
@@ -699,15 +702,28 @@ class Runtime:
         if defiant:
             # a node that goes on saying ENABLED after the disable disobeys it: the e-stop,
             # which every node honours (PROTOCOL.md), is the last word the host has; it
-            # latches FAULT (ESTOP) on every node, for --reset-node-faults to clear
+            # latches FAULT (ESTOP) on every node, for --reset-node-faults to clear. A node
+            # whose frames were being rejected meanwhile (a replayed stream, REJECT_RATE)
+            # may not have said that ENABLED itself: the e-stop all the same, but it is not
+            # blamed for a disobedience the host cannot tell from the replay
             if not (contradicted and self._estop_at_the_end):  # else it went at the contradiction
                 self._estop_at_the_end = self.driver.send_estop()
             what = (
                 "the e-stop was sent" if self._estop_at_the_end else "the e-stop could not be sent"
             )
-            self.disable_unconfirmed += (
-                f"; {names(defiant)} went on saying ENABLED after the disable: {what}"
-            )
+            disobeyed = [i for i in defiant if nodes[i].rejects.total == rejects[i]]
+            doubted = [i for i in defiant if nodes[i].rejects.total != rejects[i]]
+            if disobeyed:
+                self.disable_unconfirmed += (
+                    f"; {names(disobeyed)} went on saying ENABLED after the disable: {what}"
+                )
+            if doubted:
+                counts = ", ".join(str(nodes[i].rejects.total - rejects[i]) for i in doubted)
+                self.disable_unconfirmed += (
+                    f"; {names(doubted)} could not be confirmed disabled: frames of it were "
+                    f"being rejected after the disable ({counts}), so the ENABLED heard may be "
+                    f"replayed or forged, not the node's own: {what}"
+                )
         if self.recorder is not None:  # the log says it too: whether the hand may be ENABLED
             self.recorder.note("disable_unconfirmed", self.disable_unconfirmed, self.tick)
 

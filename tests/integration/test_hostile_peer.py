@@ -545,3 +545,28 @@ def test_a_forged_feedback_disabled_after_the_disable_does_not_hide_a_node_that_
     assert "node 2 (f2) contradicted after the disable" in said
     assert r.estops() == 1
     assert stubborn.state == int(NodeState.FAULT)
+
+
+def test_a_node_whose_stream_was_replayed_is_not_blamed_for_the_replay_s_enabled(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """Node 1's Feedback replayed 50 ms late: the run stops on REJECT_RATE, and after the
+    disable the replayed frames still say ENABLED. The e-stop is the safe answer, but the
+    node that obeyed the disable was blamed for going on saying ENABLED, in frames the host
+    had judged untrustworthy (found by an outside audit). It is said as what it is."""
+    from handctl.sim import faults as inj
+
+    with rig(hand, hold) as r:
+        r.sim.faults.add(inj.ReplayFrames(node=1, delay=0.05), INJECT_AT)
+        result = r.run()
+    assert result.faults[0].code is FaultCode.REJECT_RATE, [str(f) for f in result.faults]
+    said = result.disable_unconfirmed
+    assert "went on saying ENABLED" not in said, said
+    assert (
+        "node 1 (f1) could not be confirmed disabled: frames of it were being rejected after "
+        "the disable ("
+    ) in said, said
+    assert said.endswith(
+        "so the ENABLED heard may be replayed or forged, not the node's own: the e-stop was sent"
+    ), said
+    assert r.estops() == 1
