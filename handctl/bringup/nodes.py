@@ -20,7 +20,7 @@ from handctl.busload import message_rate
 from handctl.config import HandConfig
 from handctl.hand_protocol import check_protocol, node_message
 from handctl.online.bus import EXTENDED_ID_FLAG, BusEventKind, HandBus
-from handctl.online.drivers.finger import FingerLayouts, FingerNode, fault_names
+from handctl.online.drivers.finger import FingerLayouts, FingerNode, fault_names, rebooted
 from handctl.protocol import NodeState, Protocol
 
 #: Messages a finger node sends (the host's receive streams of a node).
@@ -199,7 +199,7 @@ def survey(
             count["frames"] += 1
             if node.receive(fid, frame.data, frame.timestamp_ns) is None:
                 count[node.streams[fid][0].kind] += 1
-            heard[node.node_id].hear(node, fid, frame.data)
+            heard[node.node_id].hear(node, fid, frame.data, frame.timestamp_ns)
         for event in bus.events():
             events[event.kind.value] += 1
             last_event[event.kind.value] = event.detail
@@ -258,21 +258,22 @@ class _Heard:
         #: the driver took (a node that had been up a short while), and the reboot went
         #: unsaid (``FingerNode.reboots`` counts what the run's driver takes).
         self.reboots = 0
-        #: The Heartbeat streams heard, ``(counter, uptime_ms)`` of each one's last frame,
-        #: the latest last (``MAX_STREAMS``). A frame continues a stream when its counter is
-        #: the next and its uptime no less; one that continues none begins another.
-        self._streams: list[tuple[int, int]] = []
+        #: The Heartbeat streams heard, ``(counter, uptime_ms, arrival_ns)`` of each one's
+        #: last frame, the latest last (``MAX_STREAMS``). A frame continues a stream when its
+        #: counter is the next and its uptime no less (or wrapped, ``finger.rebooted``); one
+        #: that continues none begins another.
+        self._streams: list[tuple[int, int, int]] = []
         #: Heartbeats that continued a stream other than the latest: an earlier stream went
         #: on beside a newer one, which a reboot never does (its old stream ends). Two
         #: senders on the id (a second node, a participant sending its own Heartbeat): their
         #: uptimes alternate, and every other one went back; that was said as a reboot, 6x.
         self.interleaved = 0
 
-    def hear(self, node: FingerNode, frame_id: int, data: bytes) -> None:
+    def hear(self, node: FingerNode, frame_id: int, data: bytes, arrival_ns: int) -> None:
         heartbeat = node.layouts.heartbeat
         if frame_id == heartbeat.frame_id and heartbeat.crc_ok(data):
             uptime = int(heartbeat.decode(data)[1][1])
-            self._stream(data[1], uptime)
+            self._stream(data[1], uptime, arrival_ns)
             self.uptime_ms = uptime
         if node.state == NodeState.FAULT and self.fault_bits is None:
             self.fault_bits = node.fault_bits
@@ -287,20 +288,22 @@ class _Heard:
                 )
                 return
 
-    def _stream(self, counter: int, uptime: int) -> None:
+    def _stream(self, counter: int, uptime: int, arrival_ns: int) -> None:
         """Which Heartbeat stream a frame continues, and whether it is a reboot's."""
         streams = self._streams
         for i in range(len(streams) - 1, -1, -1):
-            last_counter, last_uptime = streams[i]
-            if counter == (last_counter + 1) % 256 and uptime >= last_uptime:
+            last_counter, last_uptime, last_ns = streams[i]
+            if counter == (last_counter + 1) % 256 and not rebooted(
+                last_uptime, uptime, arrival_ns - last_ns
+            ):
                 if i != len(streams) - 1:
                     self.interleaved += 1
                 del streams[i]
                 break
         else:
-            if streams and uptime < streams[-1][1]:
+            if streams and rebooted(streams[-1][1], uptime, arrival_ns - streams[-1][2]):
                 self.reboots += 1
-        streams.append((counter, uptime))
+        streams.append((counter, uptime, arrival_ns))
         del streams[:-MAX_STREAMS]
 
     def problems(self, node: FingerNode) -> list[str]:

@@ -472,8 +472,27 @@ def test_an_angle_past_its_joint_s_limits_is_no_ok(hand: HandConfig) -> None:
         angles = (angle,) + (0.0,) * (k - 1)
         data = layout.encode(counter, (0.0,) * k + angles + (int(NodeState.DISABLED), 0))
         node.receive(layout.frame_id, data, counter * 1_000_000)
-        heard.hear(node, layout.frame_id, data)
+        heard.hear(node, layout.frame_id, data, counter * 1_000_000)
     assert heard.problems(node) == [
         f"{finger.joints[0].name} read +3.000 rad, past its limits "
         f"[{finger.joints[0].angle_min:+.2f}, {finger.joints[0].angle_max:+.2f}]"
     ]
+
+
+def test_an_uptime_that_wraps_is_no_reboot_in_the_survey(hand: HandConfig) -> None:
+    """A node 49.7 days up: its uint32 uptime of ms wraps to 0, which the survey said as a
+    reboot (found by an outside audit). A drop the host's clock accounts for is the wrap."""
+    from handctl.bringup.nodes import _Heard
+    from handctl.hand_protocol import protocol_for
+    from handctl.online.drivers.finger import FingerLayouts, FingerNode
+
+    finger = hand.fingers[0]
+    node = FingerNode(finger, FingerLayouts.for_node(protocol_for(hand), finger.node_id))
+    layout = node.layouts.heartbeat
+    heard = _Heard()
+    top = (1 << 32) - 50
+    for counter, (uptime, at_ms) in enumerate(((top, 1000), (50, 1100), (150, 1200))):
+        heard.hear(node, layout.frame_id, layout.encode(counter, (1, uptime)), at_ms * 1_000_000)
+    assert heard.reboots == 0 and heard.interleaved == 0
+    heard.hear(node, layout.frame_id, layout.encode(0, (0, 40)), 1300 * 1_000_000)
+    assert heard.reboots == 1

@@ -172,6 +172,27 @@ def test_every_reboot_is_counted(node: FingerNode, sender: Sender) -> None:
     assert node.uptime_ms == 100
 
 
+def test_an_uptime_that_wraps_is_no_reboot(node: FingerNode, sender: Sender) -> None:
+    """The uptime is a uint32 of ms: 49.7 days after boot it wraps to 0, and a run then
+    stopped on NODE_REBOOT (found by an outside audit). A drop that the host's clock
+    accounts for, counted past 2**32, is the wrap; a drop it does not is a reboot, near the
+    wrap too."""
+    top = (1 << 32) - 50
+
+    def heartbeat(uptime: int, at_ms: int, counter: int | None = None) -> Reject | None:
+        return node.receive(*sender.heartbeat(1, uptime, counter), at_ms * MS)
+
+    assert heartbeat(top, 1000) is None
+    assert heartbeat(50, 1100) is None  # top + 100 ms, wrapped
+    assert (node.reboots, node.uptime_ms) == (0, 50)
+    assert heartbeat(150, 1200) is None
+    assert heartbeat(40, 1300) is None  # back, and no wrap would give 40
+    assert node.reboots == 1
+    assert heartbeat(top, 1400) is None
+    assert heartbeat(30_000, 1500) is None  # 30 s past the wrap, 100 ms on the host's clock
+    assert node.reboots == 2
+
+
 @pytest.mark.parametrize(
     ("damage", "reason"),
     [

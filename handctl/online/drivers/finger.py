@@ -62,6 +62,28 @@ REORDERED_WITHIN_NS = 1_000_000
 SECOND_SENDER_WITHIN_NS = 100_000_000
 
 
+#: ms: the range of a Heartbeat's uptime, a uint32 of ms (PROTOCOL.md): it wraps to 0 after
+#: 49.7 days.
+UPTIME_RANGE_MS = 1 << 32
+#: ms: how much a node's uptime may have gone on past its wrap beyond what the host's clock
+#: says passed between two of its Heartbeats (their delivery, the two clocks' rates), for the
+#: drop to be the wrap and not a reboot. A node that reboots within this of its wrap is taken
+#: for one that wrapped: once in 49.7 days of uptime, for one second.
+UPTIME_WRAP_SLACK_MS = 1000
+
+
+def rebooted(last_ms: int, uptime_ms: int, elapsed_ns: int) -> bool:
+    """Whether a Heartbeat's uptime ``uptime_ms``, ``elapsed_ns`` on the host's clock after
+    one that said ``last_ms``, says the node rebooted. A smaller uptime was a reboot, so a
+    node whose uptime wrapped past 2**32 ms stopped the run as rebooted (found by an outside
+    audit): a drop is the wrap when the uptime, counted past 2**32, went on about as far as
+    the host's clock did; any other drop is a reboot."""
+    if uptime_ms >= last_ms:
+        return False
+    went_on_ms = (uptime_ms - last_ms) % UPTIME_RANGE_MS
+    return went_on_ms > elapsed_ns / 1e6 + UPTIME_WRAP_SLACK_MS
+
+
 @dataclass(frozen=True)
 class FingerLayouts:
     """The DBC layouts one finger node uses, looked up once."""
@@ -260,9 +282,15 @@ class FingerNode:
                 self._report(fb.state, fb.fault_bits, "Feedback", arrival_ns)
         elif layout is self.layouts.heartbeat:
             state, uptime = int(values[0]), int(values[1])
-            if self.uptime_ms is not None and uptime < self.uptime_ms:
-                # Uptime went backwards: the node rebooted (and came back DISABLED). Its
-                # counters restarted; each stream re-synchronises after one rejected frame.
+            last_ns = self.heartbeat_ns
+            if (
+                self.uptime_ms is not None
+                and last_ns is not None
+                and rebooted(self.uptime_ms, uptime, arrival_ns - last_ns)
+            ):
+                # Uptime went backwards, not by its wrap: the node rebooted (and came back
+                # DISABLED). Its counters restarted; each stream re-synchronises after one
+                # rejected frame.
                 self.reboots += 1
             self.uptime_ms = uptime
             self.heartbeat_ns = arrival_ns
