@@ -225,6 +225,11 @@ CHANNELS: tuple[Channel, ...] = (
                     "description": "rejected or dropped records since the last event",
                 },
                 "bus_time_ns": {**_INT, "description": "when the bus layer saw a bus event (ns)"},
+                "id": {
+                    **_INT,
+                    "description": "the frame id of a bus event of one frame (a remote frame); "
+                    "a 29-bit one with 0x80000000 set",
+                },
             },
             ["tick", "kind", "name", "detail"],
         ),

@@ -1301,7 +1301,11 @@ class Recorder:
         # tick -1, it made the whole log unreadable to every reader, whose ticks start at 0
         # (found by an outside audit: remote frames on the bus while a run started)
         tick = max(self._tick, 0)
-        self._event(EV_BUS, tick, event.kind.value, event.detail, str(event.timestamp_ns))
+        # and the frame id of a remote frame: the re-run hears it as the run did (a
+        # foreign id, or another sender on a command id); without it the re-run counted
+        # nothing, and a run stopped on FOREIGN_COMMAND re-ran as one that went on
+        frame_id = "" if event.frame_id is None else str(event.frame_id)
+        self._event(EV_BUS, tick, event.kind.value, event.detail, str(event.timestamp_ns), frame_id)
 
     def poses(self, poses: Sequence[tuple[float, float, float]]) -> None:
         """Ground truth of the simulated objects at the current tick: (x, y, angle) each.

@@ -219,6 +219,7 @@ def _route(
                 kinds.get(msg["name"], BusEventKind.ERROR_FRAME),
                 msg["detail"],
                 msg.get("bus_time_ns", 0),
+                msg.get("id"),  # a remote frame's, which the driver hears as the run did
             )
         )
     elif kind == "request":

@@ -606,13 +606,16 @@ def _event_payload(kind: int, tick: int, fields: list[str]) -> dict[str, Any] | 
             "detail": field(2),
         }
     if kind == EV_BUS:
-        return {
+        bus: dict[str, Any] = {
             "tick": tick,
             "kind": "bus",
             "name": field(0),
             "detail": field(1),
             "bus_time_ns": int(field(2) or 0),
         }
+        if field(3):  # the frame's id, of a remote frame
+            bus["id"] = int(field(3))
+        return bus
     if kind == EV_REJECT:
         return {
             "tick": tick,

@@ -570,3 +570,64 @@ def test_a_node_whose_stream_was_replayed_is_not_blamed_for_the_replay_s_enabled
         "so the ENABLED heard may be replayed or forged, not the node's own: the e-stop was sent"
     ), said
     assert r.estops() == 1
+
+
+@pytest.mark.parametrize(("frame_id", "stops"), [(0x055, False), (0x101, True)])
+def test_a_remote_frame_is_re_run_as_the_run_heard_it(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, frame_id: int, stops: bool
+) -> None:
+    """One remote frame (RTR) from a third peer, on a foreign id or on the host's
+    TorqueCommand_1 id (FOREIGN_COMMAND, row 102). The log kept the event but not its id,
+    so the re-run heard no frame: "unexpected_id rejects: logged 1, re-run 0", and a run
+    stopped on FOREIGN_COMMAND re-ran as one that went on (found by an outside audit)."""
+    from handctl.recording import channels as ch
+    from handctl.recording.metadata import run_metadata, start_metadata
+    from handctl.recording.reader import iter_decoded, open_recording
+    from handctl.recording.recorder import Recorder
+    from handctl.recording.rerun import rerun
+
+    log = tmp_path / "remote.mcap"
+    with rig(hand, hold, max_seconds=1.2) as r, third_peer(r) as peer:
+        recorder = Recorder(
+            log,
+            hand,
+            start_metadata(hand, hold, ["test", "remote frame"]),
+            phase_names=[p.name for p in hold.phases],
+        )
+        r.runtime.recorder = recorder
+        recorder.attach(r.runtime)
+        recorder.add_metadata(
+            ch.META_RUN,
+            run_metadata(
+                mode="lockstep",
+                bus="virtual",
+                seed=0,
+                period_ns=round(hand.bus.period_s * 1e9),
+                startup_ticks=r.runtime.startup_ticks,
+                reset_node_faults=False,
+                estimator=False,
+                sim_faults="remote frame",
+            ),
+        )
+        sent: list[int] = []
+
+        def remote() -> None:
+            if not sent:
+                peer.send(
+                    can.Message(arbitration_id=frame_id, is_remote_frame=True, is_extended_id=False)
+                )
+                sent.append(r.runtime.tick)
+
+        r.sim.faults.add(Every(send=remote), INJECT_AT)
+        with recorder:
+            result = r.run()
+            recorder.wait_ready()
+            recorder.close({"outcome": result.outcome.value})
+    assert sent and result.node_rejects["unexpected_id"] == 1
+    assert (FaultCode.FOREIGN_COMMAND in {f.code for f in result.faults}) is stops
+    recording = open_recording(log)
+    bus = [m for _, _, m in iter_decoded(recording, [ch.EVENTS]) if m["kind"] == "bus"]
+    assert [(m["name"], m.get("id")) for m in bus] == [("remote_frame", frame_id)]
+    report = rerun(recording)
+    assert report.ok, (report.mismatches[:3], report.frame_mismatches[:3])
+    assert report.outcome == report.logged_outcome
