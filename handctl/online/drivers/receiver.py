@@ -43,16 +43,22 @@ class CounterCheck:
     the reject-rate limit (found by an outside audit). One slot per counter value: the
     history is bounded by the counter's range and indexed by it, so a look-up allocates
     nothing. A node starts its counters at 0 after boot (PROTOCOL.md): a skip to 0 followed
-    by 1 is a stream begun again, whose frames contradict none from before it.
+    by 1 is a stream begun again, whose frames contradict none from before it. And a frame
+    accepted half the counter's range of accepted frames ago or more is one the counter has
+    come round from, however soon: a simulated hand starved on a loaded machine catches up
+    its 1 ms ticks in a burst, 256 frames within 100 ms, and every frame of the next round
+    was taken for a second sender (REJECT_RATE at start-up).
     """
 
-    __slots__ = ("_after_zero", "_frames", "_frames_ns", "last")
+    __slots__ = ("_accepted", "_after_zero", "_frames", "_frames_ns", "_frames_seq", "last")
 
     def __init__(self) -> None:
         self.last: int | None = None
         self._after_zero = False  # the last frame was a skip to counter 0
+        self._accepted = 0  # frames accepted on the stream
         self._frames: list[bytes | None] = [None] * COUNTER_VALUES
         self._frames_ns = [0] * COUNTER_VALUES
+        self._frames_seq = [0] * COUNTER_VALUES  # ``_accepted`` when each was
 
     def reset(self) -> None:
         self.last = None
@@ -75,13 +81,16 @@ class CounterCheck:
 
     def accepted(self, data: bytes, arrival_ns: int) -> None:
         """Remember ``data`` (an accepted frame, counter in byte 1) as its counter's frame."""
+        self._accepted += 1
         self._frames[data[1]] = data
         self._frames_ns[data[1]] = arrival_ns
+        self._frames_seq[data[1]] = self._accepted
 
     def contradicts(self, data: bytes, arrival_ns: int, within_ns: int) -> bool:
         """Whether an intact frame has the counter of a frame accepted no more than
-        ``within_ns`` before it, and other contents. A skip to 0 (rejected in any case) is
-        judged by the frame after it: a 1 makes it a stream begun again."""
+        ``within_ns`` before it, and fewer than half the counter's range of accepted frames
+        ago, and other contents. A skip to 0 (rejected in any case) is judged by the frame
+        after it: a 1 makes it a stream begun again."""
         counter = data[1]
         earlier = self._frames[counter]
         return (
@@ -89,6 +98,7 @@ class CounterCheck:
             and earlier is not None
             and earlier != data
             and arrival_ns - self._frames_ns[counter] <= within_ns
+            and self._accepted - self._frames_seq[counter] < COUNTER_VALUES // 2
         )
 
 
