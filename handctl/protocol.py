@@ -68,8 +68,14 @@ def node_state_name(value: int, unknown: str = "UNKNOWN") -> str:
 
 
 #: The DBC's ``VERSION`` string: "handctl protocol N", N the integer every node reports in its
-#: Status (``ProtocolVersion``) and the host compares with its own.
-_VERSION = re.compile(r"^handctl protocol (\d+)$")
+#: Status (``ProtocolVersion``) and the host compares with its own. ASCII digits only: ``\d``
+#: took any script's digits, and ``int`` of thousands of them raised a ValueError (a traceback).
+_VERSION = re.compile(r"handctl protocol ([0-9]+)")
+#: The largest N: ``ProtocolVersion`` is one byte (firmware_protocol/PROTOCOL.md), so a node
+#: could never report a larger one, and every run stopped on its first Status.
+MAX_PROTOCOL_VERSION = 0xFF
+#: What a message's ``HandctlSend`` attribute names: how it is sent (``busload.py``).
+SEND_CHOICES = ("event", "loop", "cyclic")
 #: the data lengths a CAN-FD frame can have (its DLC codes), bytes
 FD_DLC_SIZES = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 #: s, how often a node sends its Heartbeat (firmware_protocol/PROTOCOL.md): a host's heartbeat
@@ -450,7 +456,7 @@ def parse_protocol(text: str, source: str) -> Protocol:
         raise ConfigError(
             source, "", "a valid DBC", Description(f"{type(exc).__name__}: {exc}")
         ) from None
-    send_choices = _enum_choices(db, "HandctlSend")
+    send_choices = _enum_choices(db, "HandctlSend", source)
     layouts = [_compile(message, source, send_choices) for message in db.messages]
     frame_ids: dict[int, str] = {}
     for layout in layouts:
@@ -480,17 +486,35 @@ def parse_protocol(text: str, source: str) -> Protocol:
 def _protocol_version(text: str | None, source: str) -> int:
     """The N of ``VERSION "handctl protocol N"``: what nodes and host compare, so it must be
     there and be a number."""
-    match = _VERSION.match(text or "")
-    if match is None:
+    match = _VERSION.fullmatch(text or "")
+    # the length first: ``int`` of a number of more than 4300 digits raises
+    if match is None or len(match[1]) > 3 or int(match[1]) > MAX_PROTOCOL_VERSION:
         raise ConfigError(
-            source, "VERSION", '"handctl protocol N" with N a whole number', text or "nothing"
+            source,
+            "VERSION",
+            f'"handctl protocol N" with N a whole number 0..{MAX_PROTOCOL_VERSION} (what every '
+            "node sends in the one byte of its Status' ProtocolVersion: "
+            "firmware_protocol/PROTOCOL.md)",
+            text or "nothing",
         )
     return int(match[1])
 
 
-def _enum_choices(db: Any, attribute: str) -> list[str]:
+def _enum_choices(db: Any, attribute: str, source: str) -> list[str]:
+    """The names of the ENUM ``attribute``'s values, by value; none if the DBC does not
+    define it. An INT or STRING definition was a traceback where a message's value was looked
+    up in its choices (an IndexError, a TypeError)."""
     definition = db.dbc.attribute_definitions.get(attribute) if db.dbc else None
-    return list(definition.choices) if definition is not None else []
+    if definition is None:
+        return []
+    if definition.type_name != "ENUM" or not definition.choices:
+        raise ConfigError(
+            source,
+            f"BA_DEF_ {attribute}",
+            "an ENUM attribute: " + ",".join(f'"{choice}"' for choice in SEND_CHOICES),
+            Description(f"{definition.type_name} {definition.choices or ''}".strip()),
+        )
+    return [str(choice) for choice in definition.choices]
 
 
 def _compile(message: Any, source: str, send_choices: list[str]) -> Layout:
@@ -580,7 +604,7 @@ def _compile(message: Any, source: str, send_choices: list[str]) -> Layout:
             data_id,
         )
     send_attr = attrs.get("HandctlSend")
-    send = send_choices[send_attr.value] if send_attr is not None else "event"
+    send = "event" if send_attr is None else _send(send_attr.value, where, source, send_choices)
     return Layout(
         message.name,
         message.frame_id,
@@ -591,3 +615,18 @@ def _compile(message: Any, source: str, send_choices: list[str]) -> Layout:
         tuple(specs),
         message.comment or "",
     )
+
+
+def _send(value: object, where: str, source: str, choices: list[str]) -> str:
+    """The name of a message's ``HandctlSend`` value, an index into the ENUM's ``choices``.
+    One past them was an IndexError (a traceback), and -1 was read as the last choice by
+    Python's negative indexing, "cyclic", which the DBC never said."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < len(choices):
+        raise ConfigError(
+            source,
+            f"{where}.HandctlSend",
+            "one of the attribute's values: "
+            + ", ".join(f'{i} "{choice}"' for i, choice in enumerate(choices)),
+            value,
+        )
+    return choices[value]

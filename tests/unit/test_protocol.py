@@ -3,6 +3,7 @@ PROTOCOL.md names."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -279,3 +280,56 @@ def test_a_dbc_with_a_utf8_byte_order_mark_is_read_as_utf8(tmp_path: Path) -> No
     assert info.value.expected == "UTF-8 text (the file starts with a UTF-8 byte order mark)"
     at = 3 + text.encode("cp1252").index(b"\xb5")
     assert str(info.value).endswith(f"found byte 0xB5 at offset {at}")
+
+
+@pytest.mark.parametrize("value", ["7", "-1"])
+def test_a_send_attribute_outside_its_choices_is_refused(tmp_path: Path, value: str) -> None:
+    """7 was an IndexError (a traceback, exit 1); -1 was read as "cyclic" by Python's negative
+    indexing (found by an outside audit)."""
+    old = 'BA_ "HandctlSend" BO_ 257 1;'
+    err = _refused(tmp_path, old, f'BA_ "HandctlSend" BO_ 257 {value};')
+    assert err.key == "TorqueCommand_1.HandctlSend" and err.found == int(value)
+    assert err.expected == 'one of the attribute\'s values: 0 "event", 1 "loop", 2 "cyclic"'
+
+
+@pytest.mark.parametrize(
+    "definition, values",
+    [("INT 0 10", ("1", "2")), ("STRING", ('"loop"', '"cyclic"'))],
+)
+def test_a_send_attribute_that_is_no_enum_is_refused(
+    tmp_path: Path, definition: str, values: tuple[str, str]
+) -> None:
+    """An INT definition was an IndexError, a STRING one a TypeError: tracebacks, exit 1
+    (found by an outside audit)."""
+    text = DEFAULT_DBC.read_text()
+    old = 'BA_DEF_ BO_  "HandctlSend" ENUM  "event","loop","cyclic";'
+    assert old in text
+    text = text.replace(old, f'BA_DEF_ BO_  "HandctlSend" {definition};')
+    if definition.startswith("INT"):
+        text = text.replace('BA_DEF_DEF_  "HandctlSend" "event";', 'BA_DEF_DEF_  "HandctlSend" 0;')
+    for number, value in zip(("1;", "2;"), values, strict=True):
+        text = re.sub(rf'(BA_ "HandctlSend" BO_ \d+) {number}', rf"\1 {value};", text)
+    path = tmp_path / "bad.dbc"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    assert info.value.key == "BA_DEF_ HandctlSend"
+    assert info.value.expected == 'an ENUM attribute: "event","loop","cyclic"'
+    assert str(info.value).endswith(f"found {definition.split(maxsplit=1)[0]}")
+
+
+@pytest.mark.parametrize(
+    "number", ["9" * 5000, "300", "\u0662"], ids=["5000 digits", "300", "arabic-indic"]
+)
+def test_a_version_number_a_status_cannot_carry_is_refused(tmp_path: Path, number: str) -> None:
+    """5000 digits were a ValueError from ``int`` (a traceback, exit 1); 300 passed check and
+    stopped every run on its first Status (ProtocolVersion is one byte); an Arabic-Indic 2 was
+    read as 2 (found by an outside audit)."""
+    text = DEFAULT_DBC.read_text().replace("handctl protocol 2", f"handctl protocol {number}")
+    path = tmp_path / "bad.dbc"
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    with pytest.raises(ConfigError) as info:
+        load_protocol(path)
+    assert info.value.key == "VERSION"
+    assert info.value.expected.startswith('"handctl protocol N" with N a whole number 0..255 ')
+    assert len(str(info.value)) < 400
