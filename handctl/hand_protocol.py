@@ -428,14 +428,26 @@ ENUMERATED_SIGNALS = {
     "FaultBits": (0, 0xFF, "every bit of the fault bits, the reserved ones too"),
     "Command": (min(NODE_COMMANDS.values()), max(NODE_COMMANDS.values()), "the node commands"),
     "Reason": (min(ESTOP_REASONS.values()), max(ESTOP_REASONS.values()), "the e-stop reasons"),
+    # what a node counts and reports in Status and Heartbeat: a DBC whose CommandAge was
+    # signed (-128..127) or whose FirmwareMajor was 300..400 passed check, and every run
+    # stopped on the first Status a node could not encode. A 16-bit Uptime wrapped after 65 s,
+    # which the host reads as a reboot
+    "RejectCrc": (0, 0xFF, "the rejected frames, a count saturating at 255"),
+    "RejectCounter": (0, 0xFF, "the rejected frames, a count saturating at 255"),
+    "RejectLength": (0, 0xFF, "the rejected frames, a count saturating at 255"),
+    "CommandAge": (0, 0xFF, "ms since the last accepted command, saturating at 255"),
+    "FirmwareMajor": (0, 0xFF, "a firmware release number, one byte"),
+    "FirmwareMinor": (0, 0xFF, "a firmware release number, one byte"),
+    "FirmwarePatch": (0, 0xFF, "a firmware release number, one byte"),
+    "Uptime": (0, 0xFFFFFFFF, "ms since boot, 32 bits: a smaller value is a reboot"),
 }
 
 
 def _check_enumerated(protocol: Protocol, layout: Layout) -> None:
-    """A state, a command, a reason or fault bits travel as the number they are: scale 1,
-    offset 0, and a range that holds every value the protocol defines. A State of offset -1
-    read a node in FAULT (2) as ENABLED (1); a Command of range 0..1 stopped a run in its
-    start, unable to encode a disable (2), with no file named."""
+    """A state, a command, a reason, fault bits or a count a node reports travel as the
+    number they are: scale 1, offset 0, and a range that holds every value the protocol
+    defines. A State of offset -1 read a node in FAULT (2) as ENABLED (1); a Command of range
+    0..1 stopped a run in its start, unable to encode a disable (2), with no file named."""
     for sig in layout.signals:
         if sig.name not in ENUMERATED_SIGNALS:
             continue
@@ -470,6 +482,17 @@ def _check_version_signal(protocol: Protocol, status: Layout) -> None:
             f"byte {sig.offset_byte}, {sig.size_bits} bits "
             f"{'signed' if sig.signed else 'unsigned'}, scale {sig.scale:g}, offset "
             f"{sig.offset:g}",
+        )
+    low, high = sig.carried_range()
+    if (low, high) != (0, 0xFF):
+        # a range of [0|1] passed check, and every run stopped on the first Status a node of
+        # this DBC's version could not encode; the whole byte names a node of any version
+        raise ConfigError(
+            protocol.source,
+            f"{status.name}.ProtocolVersion",
+            "the range 0..255 (the whole byte, a node of any version named by it: "
+            f"firmware_protocol/PROTOCOL.md, Versions; this DBC's is {protocol.version})",
+            Description(f"range {low:g}..{high:g}"),
         )
     if protocol.version < 2:
         raise ConfigError(

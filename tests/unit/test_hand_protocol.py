@@ -309,6 +309,55 @@ def test_a_given_dbc_must_carry_states_commands_reasons_and_fault_bits_as_they_a
 
 
 @pytest.mark.parametrize(
+    ("key", "old", "new", "carried"),
+    [
+        ("CommandAge", "56|8@1+ (1,0) [0|255]", "56|8@1- (1,0) [-128|127]", 255),
+        ("FirmwareMajor", "72|8@1+ (1,0) [0|255]", "72|8@1+ (1,0) [300|400]", 255),
+        ("RejectCrc", "32|8@1+ (1,0) [0|255]", "32|8@1+ (2,0) [0|510]", 255),
+        ("Uptime", "24|32@1+ (1,0) [0|4294967295]", "24|16@1+ (1,0) [0|65535]", 4294967295),
+    ],
+)
+def test_a_given_dbc_must_carry_what_a_node_reports(
+    hand: HandConfig, tmp_path: Path, key: str, old: str, new: str, carried: int
+) -> None:
+    """A signed CommandAge or a FirmwareMajor of 300..400 passed check, and every run stopped
+    at tick 0 on the first Status a node could not encode (exit 3); a 16-bit Uptime wraps
+    after 65 s, which the host reads as a reboot (found by an outside audit)."""
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    line = f" SG_ {key} : {old} "
+    assert line in text  # node 1's, the first
+    dbc = tmp_path / "reports.dbc"
+    dbc.write_text(text.replace(line, f" SG_ {key} : {new} ", 1), encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, dbc)
+    where = f"{'Heartbeat_1' if key == 'Uptime' else 'Status_1'}.{key}"
+    assert err.value.file == str(dbc) and err.value.key == where
+    assert err.value.expected.startswith(f"scale 1, offset 0 and a range that holds 0..{carried} ")
+    result = handctl("check", "--dbc", str(dbc))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"{dbc}: {where}: expected scale 1, offset 0" in result.stderr
+
+
+@pytest.mark.parametrize("version_range", ["[0|1]", "[1|255]"])
+def test_a_given_dbc_s_protocol_version_must_hold_every_version(
+    hand: HandConfig, tmp_path: Path, version_range: str
+) -> None:
+    """A ProtocolVersion of [0|1] passed check, and every run stopped at tick 0 on the first
+    Status a node of version 2 could not encode (found by an outside audit)."""
+    old = ' SG_ ProtocolVersion : 64|8@1+ (1,0) [0|255] ""'
+    text = DEFAULT_DBC.read_text(encoding="cp1252")
+    assert old in text
+    dbc = tmp_path / "version.dbc"
+    dbc.write_text(text.replace(old, old.replace("[0|255]", version_range), 1), encoding="cp1252")
+    with pytest.raises(ConfigError) as err:
+        protocol_for(hand, dbc)
+    assert err.value.key == "Status_1.ProtocolVersion"
+    assert err.value.expected.startswith("the range 0..255 ")
+    lo, hi = version_range.strip("[]").split("|")
+    assert str(err.value).endswith(f"found range {lo}..{hi}")
+
+
+@pytest.mark.parametrize(
     ("new", "found"),
     [
         (("Torque2", "Torque1"), "Torque2, Torque1, Torque3"),  # swapped in place
