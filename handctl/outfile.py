@@ -80,14 +80,14 @@ def check_writable(
     if json_output or json_kind is not None:
         try:
             existing = _existing_json(target)
-        except ValueError:
+        except _NotJsonError as exc:
             # a summary written over a hand config or a recipe replaced it, exit 0
             raise ConfigError(
                 option,
                 "",
                 "a new file, or an earlier JSON output to write again (an existing file that "
                 "is not JSON, a hand config or a recipe say, is not replaced)",
-                Description(f"{path}: an existing file that is not JSON"),
+                Description(f"{path}: an existing file that is not JSON{exc}"),
             ) from None
         if json_kind is not None and existing is not _NOTHING:
             kind, keys = json_kind
@@ -144,20 +144,38 @@ def _export_or_nothing(target: Path, fmt: str) -> bool:
 
 #: what ``_existing_json`` finds where there is no JSON to replace
 _NOTHING = object()
+#: bytes of an existing file read to learn whether it is an earlier JSON output: hundreds of
+#: times the largest handctl writes (a run's summary, a Foxglove layout: kilobytes). The file
+#: was read whole, however large, before anything was done
+EXISTING_JSON_BYTES = 4 * 1024 * 1024
+
+
+class _NotJsonError(Exception):
+    """An existing file that is no earlier JSON output; its text, if any, says more."""
 
 
 def _existing_json(target: Path) -> object:
     """The JSON at ``target``; ``_NOTHING`` where it is absent, empty or not readable (said
-    when it is written). ``ValueError`` where it is a file of anything else."""
+    when it is written). ``_NotJsonError`` where it is a file of anything else, or JSON no
+    output of handctl is: larger than ``EXISTING_JSON_BYTES``, or nested deeper than the
+    parser's recursion goes (a RecursionError, a traceback, exit 1)."""
     import json
 
     try:
-        text = target.read_bytes()
+        with target.open("rb") as handle:
+            text = handle.read(EXISTING_JSON_BYTES + 1)
     except OSError:
         return _NOTHING
     if not text.strip():
         return _NOTHING
-    return json.loads(text)
+    if len(text) > EXISTING_JSON_BYTES:
+        raise _NotJsonError(f" handctl writes (more than {EXISTING_JSON_BYTES} bytes)")
+    try:
+        return json.loads(text)
+    except ValueError:
+        raise _NotJsonError("") from None
+    except RecursionError:
+        raise _NotJsonError(" handctl writes (nested deeper than its reader goes)") from None
 
 
 def _is_recording(target: Path) -> bool:

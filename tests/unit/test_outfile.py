@@ -309,3 +309,29 @@ def test_a_file_name_too_long_names_the_option(tmp_path: Path) -> None:
         check_writable(tmp_path / ("a" * 300 + ".mcap"), "--log", recording=True)
     assert err.value.file == "--log"
     assert "a file name the system takes (File name too long)" in str(err.value)
+
+
+def test_an_existing_json_output_too_deep_or_too_large_is_bad_input(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """JSON nested 200000 deep at a JSON output was a RecursionError from the check (a
+    traceback, exit 1), and a file there was read whole however large (found by an outside
+    audit). Neither is an output handctl writes: refused, and left as it was."""
+    from handctl import cli
+    from handctl.outfile import EXISTING_JSON_BYTES
+
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 200_000 + "]" * 200_000)
+    large = tmp_path / "large.json"
+    large.write_text("[" + "0," * (EXISTING_JSON_BYTES // 2) + "0]")
+    for victim, says in ((deep, "nested deeper"), (large, f"more than {EXISTING_JSON_BYTES}")):
+        before = victim.read_bytes()
+        with pytest.raises(ConfigError) as info:
+            check_writable(victim, "--json", json_output=True)
+        assert f"{victim}: an existing file that is not JSON handctl writes ({says}" in str(
+            info.value
+        )
+        hand = str(ROOT / "config" / "hands" / "planar_2f2j.yaml")
+        assert cli.main(["layout", hand, "-o", str(victim)]) == cli.EXIT_BAD_INPUT
+        assert "-o: expected a new file, or an earlier JSON output" in capsys.readouterr().err
+        assert victim.read_bytes() == before
