@@ -31,12 +31,18 @@ from pathlib import Path
 from typing import Any
 
 from handctl.errors import ConfigError, Description, ProtocolError
+from handctl.schema import read_input
 
 # cantools warns through logging of two messages on one id; with no handler set up, Python
 # printed that as a bare line before handctl's own message about the same clash
 logging.getLogger("cantools").addHandler(logging.NullHandler())
 
 DEFAULT_DBC = Path(__file__).resolve().parent.parent / "firmware_protocol" / "handctl.dbc"
+#: bytes of a DBC: 17 times the largest one a hand generates (15 nodes of six joints, 58 KiB),
+#: room for a hand-written one's comments. cantools holds hundreds of bytes per byte it
+#: parses: a DBC padded to 10 MB took 13 s and 2.2 GB, and one of 100 MB ran out of memory,
+#: which was then said as a syntax error
+MAX_DBC_BYTES = 1024 * 1024
 
 #: The largest DataID: 16 bits, low byte then high byte at the start of every CRC.
 MAX_DATA_ID = 0xFFFF
@@ -420,12 +426,8 @@ def load_protocol(path: str | Path = DEFAULT_DBC) -> Protocol:
     Windows-1252 the mark was three letters before VERSION, and the file was refused as
     "Invalid syntax" at a place nothing showed wrong."""
     name = str(path)
-    try:
-        raw = Path(path).read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(name, "", "an existing DBC file", "no such file") from None
-    except OSError as exc:
-        raise ConfigError(name, "", "a readable DBC file", f"{type(exc).__name__}: {exc}") from None
+    raw = read_input(path, "a readable DBC file", MAX_DBC_BYTES)
+    _check_size(len(raw), name)
     bom = raw.startswith(codecs.BOM_UTF8)
     skip = len(codecs.BOM_UTF8) if bom else 0
     try:
@@ -449,6 +451,7 @@ def parse_protocol(text: str, source: str) -> Protocol:
     hand's generated DBC is parsed once however many commands ask for it."""
     import cantools  # only here: the hot path never touches cantools
 
+    _check_size(len(text), source)  # a recording's DBC, which no file read bounded
     try:
         db: Any = cantools.database.load_string(text, database_format="dbc", strict=True)
     except Exception as exc:  # cantools raises many kinds of parse errors
@@ -481,6 +484,18 @@ def parse_protocol(text: str, source: str) -> Protocol:
             )
         data_ids[layout.data_id] = layout.name
     return Protocol(layouts, source, _protocol_version(db.version, source), text)
+
+
+def _check_size(size: int, source: str) -> None:
+    """Refuse a DBC longer than ``MAX_DBC_BYTES`` (bytes, or characters of its text, which
+    are no more) before cantools parses it."""
+    if size > MAX_DBC_BYTES:
+        raise ConfigError(
+            source,
+            "",
+            f"a DBC of at most {MAX_DBC_BYTES} bytes (a hand's generated one is under 64 KiB)",
+            Description(f"more than {MAX_DBC_BYTES} bytes"),
+        )
 
 
 def _protocol_version(text: str | None, source: str) -> int:
