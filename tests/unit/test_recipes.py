@@ -108,6 +108,15 @@ def test_compiled_recipe_for_another_hand_is_refused(tmp_path: Path, hand: HandC
         # was refused as no condition at all, saying nothing of why)
         ("time > 1 for 1e20", "held for at most 3600 s"),
         ("time > 1 for -2e-2", "a condition 'SIGNAL OP NUMBER [for SECONDS]'"),
+        # a line break was taken and printed in the summary, a stray line after the
+        # condition's; any script's digits were read as the number: ASCII digits and spaces
+        # only (found by an outside audit)
+        ("time > 0.4\n", "a condition 'SIGNAL OP NUMBER"),
+        ("time > 0.4\r", "a condition 'SIGNAL OP NUMBER"),
+        ("time\u00a0> 0.4", "a condition 'SIGNAL OP NUMBER"),
+        ("time >\x0b0.4", "a condition 'SIGNAL OP NUMBER"),
+        ("time > \u0660.\u0664", "a condition 'SIGNAL OP NUMBER"),
+        ("time > 0.4 for \uff11", "a condition 'SIGNAL OP NUMBER"),
     ],
 )
 def test_bad_conditions(tmp_path: Path, hand: HandConfig, condition: str, expected: str) -> None:

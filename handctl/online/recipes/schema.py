@@ -63,11 +63,14 @@ OPERATORS: dict[str, Callable[[float, float], bool]] = {
 #: s, the longest a phase may last (its ``max_s``); a condition cannot hold for longer
 MAX_PHASE_S = 3600.0
 
+#: ASCII digits and spaces only, the whole text (``fullmatch``): ``\d`` took any script's
+#: digits (an Arabic-Indic "٠.٤" was read as 0.4), and ``\s`` and ``$`` let a line break, a
+#: form feed or a Unicode space through, which the summary then printed as they were
 _CONDITION = re.compile(
-    r"^\s*(?P<signal>time|(?:angle|tdt|estimate)\.[A-Za-z0-9_]+)\s*(?P<op><=|>=|<|>)\s*"
-    r"(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)"
+    r" *(?P<signal>time|(?:angle|tdt|estimate)\.[A-Za-z0-9_]+) *(?P<op><=|>=|<|>) *"
+    r"(?P<value>[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?)"
     # a hold is written as a threshold is (exponent notation too), without a sign
-    r"(?:\s+for\s+(?P<hold>(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?))?\s*$"
+    r"(?: +for +(?P<hold>(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?))? *"
 )
 
 
@@ -452,7 +455,7 @@ def parse_condition(
 ) -> Condition | str:
     """A ``Condition``, or the reason the text is not one (for the loader's message).
     ``estimates``: the names of the recipe's estimates (``estimate_names``), in their order."""
-    match = _CONDITION.match(text)
+    match = _CONDITION.fullmatch(text)
     if match is None:
         example = f"angle.{joint_names[0]} > 1.2 for 0.02" if joint_names else "time > 1.0"
         return f"a condition 'SIGNAL OP NUMBER [for SECONDS]', e.g. '{example}'"
