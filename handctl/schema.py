@@ -677,10 +677,12 @@ _Dumper.add_representer(str, _represent_str)
 
 def _type_name(value: object) -> str:
     """What a value of the wrong type is, as a description (``list``, ``str 'x'``): shown as
-    it is in a message, not quoted as if it were the value ("found 'list'")."""
+    it is in a message, not quoted as if it were the value ("found 'list'"). The value is
+    ``shown``, cut to ``SHOWN_CHARS``: its whole repr, in a description cut only at 1000
+    characters, made a message of 200000 sevens 1113 characters long."""
     if value is None:
         return _Text("nothing (null)")
-    text = f"{type(value).__name__} {value!r}" if _is_scalar(value) else type(value).__name__
+    text = f"{type(value).__name__} {shown(value)}" if _is_scalar(value) else type(value).__name__
     return _Text(text)
 
 

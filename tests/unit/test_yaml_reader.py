@@ -635,3 +635,35 @@ def test_a_bound_is_said_in_all_its_digits(read: Any, value: Any, said: str) -> 
     with pytest.raises(ConfigError) as info:
         read(Doc({"n": value}, "f.yaml", ""))
     assert said in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "key", "kind"),
+    [
+        (
+            "  loop_rate_hz: 1000",
+            '  loop_rate_hz: "' + "7" * 200_000 + '"',
+            "bus.loop_rate_hz",
+            "str",
+        ),
+        ("name: planar_2f2j", "name: " + "7" * 100, "name", "int"),
+    ],
+    ids=["string", "integer"],
+)
+def test_a_value_of_the_wrong_type_is_shown_cut_to_80_characters(
+    tmp_path: Path, old: str, new: str, key: str, kind: str
+) -> None:
+    """A string of 200000 sevens where a number belongs was shown to 1000 characters, a
+    message of 1113 (found by an outside audit); no message shows more than 80 of a value."""
+    from handctl.errors import SHOWN_CHARS
+
+    text = (ROOT / "config" / "hands" / "planar_2f2j.yaml").read_text(encoding="utf-8")
+    assert f"\n{old}\n" in text
+    path = tmp_path / "hand.yaml"
+    path.write_text(text.replace(f"\n{old}\n", f"\n{new}\n", 1), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_hand(path)
+    assert info.value.key == key
+    found = str(info.value).split(", found ", 1)[1]
+    assert found.startswith(f"{kind} ") and "777..." in found
+    assert len(found) <= len(kind) + 1 + SHOWN_CHARS
