@@ -200,7 +200,15 @@ def _load_yaml(path: str | Path) -> Doc:
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise ConfigError(name, "", "a readable UTF-8 file", str(exc)) from None
+        # said at its line and column, as every other mistake in a YAML file is: the
+        # decoder's "position 1014" was a byte offset no editor shows
+        before = _LINE_BREAKS.split(data[: exc.start].decode("utf-8"))
+        raise ConfigError(
+            name,
+            "",
+            f"UTF-8 text at line {len(before)}, column {len(before[-1]) + 1}",
+            _Text(f"byte 0x{data[exc.start]:02X} ({exc.reason})"),
+        ) from None
     doc = parse_yaml(text, name)
     doc.sha256 = hashlib.sha256(data).hexdigest()
     return doc

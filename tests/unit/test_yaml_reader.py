@@ -667,3 +667,18 @@ def test_a_value_of_the_wrong_type_is_shown_cut_to_80_characters(
     found = str(info.value).split(", found ", 1)[1]
     assert found.startswith(f"{kind} ") and "777..." in found
     assert len(found) <= len(kind) + 1 + SHOWN_CHARS
+
+
+def test_a_byte_that_is_not_utf8_is_said_at_its_line_and_column(tmp_path: Path) -> None:
+    """It was said by the decoder's byte offset ("position 1014"), where every other mistake
+    in a YAML file is said at its line and column (found by an outside audit). Columns count
+    characters: the ä before the byte is one."""
+    text = (ROOT / "config" / "hands" / "planar_2f2j.yaml").read_bytes()
+    lines = text.split(b"\n")
+    line = lines.index(b"name: planar_2f2j") + 1
+    path = tmp_path / "hand.yaml"
+    path.write_bytes(text.replace(b"name: planar_2f2j", "name: planär".encode() + b"\xff", 1))
+    with pytest.raises(ConfigError) as info:
+        load_hand(path)
+    assert info.value.expected == f"UTF-8 text at line {line}, column 13"
+    assert str(info.value).endswith("found byte 0xFF (invalid start byte)")
