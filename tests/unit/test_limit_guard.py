@@ -307,6 +307,18 @@ def test_a_side_with_a_spring_band_of_its_own_is_pushed_back_more_softly(
             "limit_guard_spring_bands.f1_j3.lower",
             0.9,
         ),
+        # empty mappings, of joints or of a joint's sides: taken, and did nothing (found by
+        # an outside audit)
+        (
+            {"limit_guard_band": 0.15, "limit_guard_spring_bands": {}},
+            "limit_guard_spring_bands",
+            {},
+        ),
+        (
+            {"limit_guard_band": 0.15, "limit_guard_spring_bands": {"f1_j3": {}}},
+            "limit_guard_spring_bands.f1_j3",
+            {},
+        ),
     ],
 )
 def test_a_bad_spring_band_is_refused_naming_the_key(

@@ -328,6 +328,10 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
     bands = doc.mapping(spring_key, default={})
     joints = {j.name: j for j in hand.joints}
     bands.expect(joints)
+    # an empty mapping, of joints or of a joint's sides, was taken and did nothing (a key
+    # that does nothing misleads)
+    if doc.has(spring_key) and not list(bands.keys()):
+        doc.fail(spring_key, "a joint's spring bands ({JOINT: {lower: rad, upper: rad}})", {})
     for name in list(bands.keys()):
         sides = bands.mapping(name)
         sides.expect(SIDES)
@@ -336,6 +340,8 @@ def parse_limit_guard(doc: Doc, hand: HandConfig) -> GuardSettings | None:
             for side in SIDES
             if sides.has(side)
         }
+        if not own:
+            bands.fail(name, "a spring band for lower, upper or both (rad)", {})
         sides.done()
         springs.extend(SpringBand(name, side, width) for side, width in own.items())
         joint = joints[name]
