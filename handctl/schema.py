@@ -639,13 +639,21 @@ class _Builder:
 
     def merge(self, value: _Node, path: str, merged: dict[Any, tuple[str, Any]]) -> None:
         sources = value.items if value.kind == "seq" else [value]
-        for source in sources:
+        for i, source in enumerate(sources):
             if source.kind != "map":
                 self.fail(
                     _join(path, "<<"),
                     "a mapping or a list of mappings to merge",
                     f"a {'list' if source.kind == 'seq' else 'value'} at line "
                     f"{source.line}, column {source.column}",
+                )
+            if any(other is source for other in sources[:i]):
+                # an alias is the anchored node itself, so its every key was said as
+                # supplied "from line 5, column 8 and from line 5, column 8"
+                self.fail(
+                    _join(path, "<<"),
+                    "each mapping merged once",
+                    f"the mapping at line {source.line}, column {source.column}, twice",
                 )
             for key, (line, item) in self.entries(source, path).items():
                 if key in merged:

@@ -90,6 +90,14 @@ def test_a_key_two_merged_mappings_supply_is_refused() -> None:
     assert "line 1, column 8" in str(err) and "line 2, column 8" in str(err)
 
 
+def test_a_mapping_merged_twice_is_refused_naming_it_once() -> None:
+    """It was refused as a key two merged mappings supply, "from line 1, column 8 and from
+    line 1, column 8" (found by an outside audit)."""
+    err = error("a: &a {t: 1, u: 1}\nc: {<<: [*a, *a], v: 3}\n")
+    assert err.key == "c.<<" and err.expected == "each mapping merged once"
+    assert str(err).endswith("found the mapping at line 1, column 4, twice")
+
+
 def test_a_merge_inside_a_merged_mapping_is_resolved_there_first() -> None:
     doc = parse_yaml("a: &a {t: 1, u: 1}\nb: &b {<<: *a, t: 2}\nc: {<<: *b, u: 3}\n", "d")
     assert doc.data["c"] == {"t": 2, "u": 3}
