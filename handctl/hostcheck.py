@@ -30,7 +30,7 @@ from typing import Any
 
 from handctl.config import HandConfig, SafetyConfig
 from handctl.errors import ConfigError, Description, HandctlError
-from handctl.hostfacts import HostFacts, gather_facts, plan_cpus
+from handctl.hostfacts import HostFacts, gather_facts, ordinary_scheduling, plan_cpus
 from handctl.online.clock import LOOP_PRIORITY, Hygiene, StallLog
 from handctl.online.misstrace import describe, held_off_ns
 from handctl.online.safety.faults import Fault, FaultCode
@@ -614,6 +614,10 @@ class Probe(JsonHelper):
             args += ["--hiccup-ns", str(hiccup_ns)]
         self.seconds = seconds
         super().__init__("handctl.hostprobe", args, "the timing probe")
+        if priority is None:
+            # at once, not after its imports at a caller's SCHED_FIFO: it raises none itself
+            # (and puts itself at SCHED_OTHER too, which covers a priority it was refused)
+            ordinary_scheduling(self.proc.pid)
 
     def stop(self) -> ProbeRecord:
         """End the probe (if it still runs) and read what it saw."""

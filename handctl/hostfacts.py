@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import platform
 import resource
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -119,6 +120,20 @@ def plan_cpus(allowed: set[int], isolated: set[int]) -> tuple[int | None, int | 
         return None, None
     loop = max(isolated & allowed) if isolated & allowed else max(allowed)
     return loop, min(allowed - {loop})
+
+
+def ordinary_scheduling(pid: int) -> None:
+    """Put process ``pid`` (0: this thread) at the ordinary scheduler, SCHED_OTHER.
+
+    A child inherits its parent's policy: under a caller's ``chrt -f 90`` (or a service unit's
+    real-time policy) the helpers of a run (the simulated hand, the bare timer loop, the
+    rivals' watcher) ran at SCHED_FIFO 90, above the control loop, and the watcher blamed the
+    run's own simulated hand as a real-time rival. Each gets the scheduling handctl means it to
+    have: this, unless handctl raises it itself (``--rt``, the bare loop's priority).
+    Lowering one's own child needs no privilege; a process already gone is left alone.
+    """
+    with suppress(OSError, AttributeError):  # gone already, or no such call on this system
+        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
 
 
 def affinity(pid: int) -> list[int] | None:

@@ -38,6 +38,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from handctl.hostfacts import ordinary_scheduling
 from handctl.online.clock import StallLog, request_realtime
 from handctl.online.timerfd import PeriodicTimer
 from handctl.parent_death import stop_on_signals
@@ -297,7 +298,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--period-ns", type=int, required=True)
     parser.add_argument("--seconds", type=float, help="default: until SIGTERM or SIGINT")
     parser.add_argument("--record-ns", type=int, help="keep stalls this long (default: the period)")
-    parser.add_argument("--priority", type=int, help="SCHED_FIFO priority (default: none)")
+    parser.add_argument(
+        "--priority", type=int, help="SCHED_FIFO priority (default: the ordinary scheduler)"
+    )
     parser.add_argument("--cpu", type=int, help="pin to this CPU")
     parser.add_argument("--no-lock-memory", action="store_true")
     parser.add_argument("--parent-pid", type=int, help="end when this process ends")
@@ -322,6 +325,11 @@ def main(argv: list[str] | None = None) -> int:
     stop = stop_on_signals()
     if args.parent_pid is not None and not _end_with_parent(args.parent_pid):
         return 0
+    # What it inherited is not what it measures: under a caller's ``chrt -f 90`` a probe
+    # without --priority ran at SCHED_FIFO 90, above the loop it was to share the host with,
+    # and one whose --priority was refused stayed there. The ordinary scheduler, unless
+    # ``become_realtime`` gets it the priority asked for.
+    ordinary_scheduling(0)
     # Before the priority is raised: a collection, like locking memory, at SCHED_FIFO would
     # hold the control loop on this CPU for milliseconds.
     gc.collect()

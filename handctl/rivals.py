@@ -15,9 +15,14 @@ rival ran, is the rival's (``handctl.hostcheck.attribute``). Kernel threads are 
 kernel's per-CPU threads above any user priority (migration, the watchdog) run for
 microseconds, and they are the host's in the probe's figures already.
 
+handctl's own processes are never rivals: a run's simulated hand, bare loops, recording writer
+and workers are its children (``--family``, the run's process id, and every process descended
+from it, are left out), and what they cost the loop is the run's own. Under a caller's ``chrt -f
+90`` the simulated hand inherited SCHED_FIFO 90 and was blamed as a rival of its own run.
+
 ``python -m handctl.rivals --cpu C --priority P [--interval S] [--exclude PID ...]
-[--parent-pid PID]`` runs until SIGTERM, SIGINT or the parent's end, then writes one JSON object
-to stdout (``RivalRecord.from_json`` reads it).
+[--family PID] [--parent-pid PID]`` runs until SIGTERM, SIGINT or the parent's end, then writes
+one JSON object to stdout (``RivalRecord.from_json`` reads it).
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from handctl.errors import ConfigError
-from handctl.hostfacts import parse_cpu_list
+from handctl.hostfacts import ordinary_scheduling, parse_cpu_list
 from handctl.parent_death import JsonHelper, die_with_parent, stop_on_signals
 
 #: s: how often the watcher looks. A scan reads a few hundred small files (a few ms of CPU),
@@ -43,6 +48,9 @@ INTERVAL_S = 0.5
 #: in the middle of a look, or importing handctl on a loaded machine).
 _STOP_TIMEOUT_S = 30.0
 _PF_KTHREAD = 0x00200000
+#: Parents followed up from a task before giving up on finding ``family`` (a process tree is
+#: rarely a dozen deep; this bounds a look at a /proc that changes under it).
+_MAX_ANCESTRY = 64
 _POLICIES = {1: "SCHED_FIFO", 2: "SCHED_RR"}
 
 
@@ -91,14 +99,31 @@ def _listed(path: str) -> list[str]:
         return []
 
 
+def descends_from(pid: str, family: int, proc: Path = Path("/proc")) -> bool:
+    """Whether process ``pid`` is ``family`` or descended from it (its parents read from
+    /proc; a process gone on the way is taken as not of the family)."""
+    root, wanted, at = str(proc), str(family), pid
+    for _ in range(_MAX_ANCESTRY):
+        if at == wanted:
+            return True
+        stat = _read(f"{root}/{at}/task/{at}/stat")
+        parsed = _stat_fields(stat) if stat is not None else None
+        if parsed is None or len(parsed[1]) < 2 or parsed[1][1] in ("0", at):
+            return False
+        at = parsed[1][1]
+    return False
+
+
 def find_rivals(
     cpu: int | None,
     priority: int,
     exclude: Iterable[int] = (),
     proc: Path = Path("/proc"),
+    family: int | None = None,
 ) -> list[Rival]:
     """Every user task at SCHED_FIFO or SCHED_RR, priority >= ``priority``, allowed on ``cpu``
-    (any CPU when None), whose process is not in ``exclude``.
+    (any CPU when None), whose process is not in ``exclude`` nor ``family`` or descended from
+    it (handctl's own: a run and its children).
 
     Only each task's ``stat`` is read (plain ``os`` calls: a look at a few hundred tasks costs
     a few ms); ``status`` and ``schedstat`` only for the few at a real-time priority.
@@ -131,6 +156,9 @@ def find_rivals(
             )
             if cpu is not None and allowed and cpu not in allowed:
                 continue
+            if family is not None and descends_from(pid, family, proc):
+                skip.add(pid)  # every thread of it
+                break
             schedstat = (_read(task + "/schedstat") or "0").split()
             found.append(
                 Rival(
@@ -219,17 +247,20 @@ def watch(
     stop: list[bool],
     seconds: float | None = None,
     proc: Path = Path("/proc"),
+    family: int | None = None,
 ) -> RivalRecord:
     """Look every ``interval_s`` until ``stop[0]`` (or ``seconds``) and keep what ran."""
     start = last = time.monotonic_ns()
-    seen: dict[int, int] = {r.tid: r.runtime_ns for r in find_rivals(cpu, priority, exclude, proc)}
+    seen: dict[int, int] = {
+        r.tid: r.runtime_ns for r in find_rivals(cpu, priority, exclude, proc, family)
+    }
     names: dict[int, str] = {}
     spans: list[tuple[int, int, int, int]] = []
     end = None if seconds is None else start + round(seconds * 1e9)
     while not stop[0] and (end is None or last < end):
         time.sleep(interval_s)
         now = time.monotonic_ns()
-        current = find_rivals(cpu, priority, exclude, proc)
+        current = find_rivals(cpu, priority, exclude, proc, family)
         for rival in current:
             names[rival.tid] = rival.label()
             before = seen.get(rival.tid)
@@ -243,9 +274,17 @@ def watch(
 
 
 class RivalWatch(JsonHelper):
-    """The watcher as a child process, at the ordinary scheduler, from start to ``stop``."""
+    """The watcher as a child process, at the ordinary scheduler, from start to ``stop``.
 
-    def __init__(self, cpu: int | None, priority: int, exclude: Iterable[int]) -> None:
+    ``family``: a process whose descendants are not rivals (a run passes its own id)."""
+
+    def __init__(
+        self,
+        cpu: int | None,
+        priority: int,
+        exclude: Iterable[int],
+        family: int | None = None,
+    ) -> None:
         args = [
             "--priority",
             str(priority),
@@ -256,7 +295,11 @@ class RivalWatch(JsonHelper):
         ]
         if cpu is not None:
             args += ["--cpu", str(cpu)]
+        if family is not None:
+            args += ["--family", str(family)]
         super().__init__("handctl.rivals", args, "the real-time rivals' watcher")
+        # at once, not after its imports at a caller's SCHED_FIFO (it does so itself as well)
+        ordinary_scheduling(self.proc.pid)
 
     def stop(self) -> RivalRecord:
         """End the watcher and read what it saw."""
@@ -274,13 +317,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--interval", type=float, default=INTERVAL_S, help="s between looks")
     parser.add_argument("--seconds", type=float, help="default: until SIGTERM or SIGINT")
     parser.add_argument("--exclude", type=int, nargs="*", default=[], help="process ids to skip")
+    parser.add_argument(
+        "--family", type=int, help="skip this process and every process descended from it"
+    )
     parser.add_argument("--parent-pid", type=int, help="end when this process ends")
     args = parser.parse_args(argv)
     stop = stop_on_signals()
+    # at the ordinary scheduler whatever it inherited: a watcher at a caller's SCHED_FIFO 90
+    # would itself hold the loop it watches for
+    ordinary_scheduling(0)
     exclude = set(args.exclude) | {os.getpid()}
     if args.parent_pid is not None and not die_with_parent(args.parent_pid):
         return 0
-    record = watch(args.cpu, args.priority, exclude, args.interval, stop, args.seconds)
+    record = watch(
+        args.cpu, args.priority, exclude, args.interval, stop, args.seconds, family=args.family
+    )
     json.dump(record.as_json(), sys.stdout)
     sys.stdout.write("\n")
     return 0

@@ -34,7 +34,7 @@ from handctl.hostcheck import (
     precheck,
     run_cpus,
 )
-from handctl.hostfacts import affinity
+from handctl.hostfacts import affinity, ordinary_scheduling
 from handctl.online import timebudget
 from handctl.online.bus import HandBus, open_bus
 from handctl.online.buslock import BusLock, take_bus
@@ -527,6 +527,8 @@ def _start_clock(
             loop_cpu,
             LOOP_PRIORITY if req.realtime_priority else 1,
             [p.proc.pid for p in (timing.probe, timing.peer_probe) if p is not None],
+            # the simulated hand, the writer, the workers: this run's own, never its rivals
+            family=os.getpid(),
         )
     )
     if req.realtime_priority:
@@ -957,6 +959,11 @@ class SimProcess:
             self.proc = subprocess.Popen(
                 cmd, stdout=subprocess.DEVNULL, stderr=log, start_new_session=True
             )
+        if not req.realtime_priority:
+            # Not the scheduling this process was started with (a caller's ``chrt -f 90``):
+            # a hand above the loop it serves, blamed as the loop's real-time rival. With
+            # --rt it sets its own (SIM_RT_PRIORITY), which this must not race to undo.
+            ordinary_scheduling(self.proc.pid)
         if cpu is not None:
             # Now, while the child has one thread: the node timer thread it starts inherits it.
             with suppress(ProcessLookupError):  # gone already: problem() says why

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from handctl.config import HandConfig
-from handctl.hostcheck import INJECT_ENV
+from handctl.hostcheck import INJECT_ENV, Probe
 from handctl.online.bus import open_bus
 
 from ..conftest import ROOT, handctl
@@ -406,6 +406,9 @@ def test_the_watcher_sees_a_real_time_rival_run_on_the_loops_cpu() -> None:
         with RivalWatch(1, 1, [rival.pid]) as watch:  # excluded: not seen
             time.sleep(0.6)
             unseen = watch.stop()
+        with RivalWatch(0, 1, [], family=os.getpid()) as watch:  # this process's: not seen
+            time.sleep(1.3)
+            own = watch.stop()
     finally:
         rival.kill()
         rival.communicate()
@@ -416,6 +419,35 @@ def test_the_watcher_sees_a_real_time_rival_run_on_the_loops_cpu() -> None:
     # Another real-time task of the machine may have run in the same look as well.
     assert label in seen.active(ran[0][0], ran[0][1])
     assert rival.pid not in unseen.rivals
+    assert rival.pid not in own.rivals
+
+
+@REALTIME  # at SCHED_FIFO for a moment: not beside the other real-time tests
+def test_helpers_leave_a_callers_real_time_policy_behind(tmp_path: Path, hand: HandConfig) -> None:
+    """Under a caller's ``chrt -f 90`` the bare loop without --rt, the rivals' watcher and the
+    simulated hand without --rt inherited SCHED_FIFO 90: above the loop they serve, and the
+    hand then blamed as the run's rival. Each is at the ordinary scheduler from its start."""
+    from handctl.online.recipes.loader import load_recipe
+    from handctl.rivals import RivalWatch
+    from handctl.session import RunRequest, SimProcess
+
+    request = RunRequest(hand=hand, recipe=load_recipe(ROOT / RECIPE, hand))
+    with contextlib.ExitStack() as stack:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        except PermissionError:
+            pytest.skip("real-time priority refused here")
+        try:  # at SCHED_FIFO only while the helpers start (they inherit it from fork on)
+            probe = stack.enter_context(Probe(1_000_000, record_ns=500_000, seconds=0.3))
+            watch = stack.enter_context(RivalWatch(None, 1, []))
+            sim = stack.enter_context(SimProcess(request, str(tmp_path)))
+        finally:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        for helper in (probe.proc, watch.proc, sim.proc):
+            assert os.sched_getscheduler(helper.pid) == os.SCHED_OTHER, helper.args
+        assert probe.stop().scheduler["policy"] == "SCHED_OTHER"
+        watch.close()
+        watch.proc.communicate()  # its pipes closed: it measured nothing worth reading
 
 
 def _children(pid: int) -> list[int]:

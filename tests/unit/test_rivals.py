@@ -27,12 +27,13 @@ def task(
     cpus: str = "0-1",
     flags: int = 0x400000,
     runtime_ns: int = 5_000_000,
+    ppid: int = 1,
 ) -> None:
     """A task as the kernel lays it out: stat (policy field 41, rt_priority 40, flags 9),
     status (Cpus_allowed_list) and schedstat (CPU time in ns first)."""
     d = proc / str(pid) / "task" / str(tid)
     d.mkdir(parents=True)
-    after = ["S", "1", str(pid), str(pid), "0", "-1", str(flags)] + ["0"] * 29
+    after = ["S", str(ppid), str(pid), str(pid), "0", "-1", str(flags)] + ["0"] * 29
     after += ["1", str(priority), str(policy), "0", "0", "0"]  # processor, rt_priority, policy
     (d / "stat").write_text(f"{tid} ({name}) " + " ".join(after) + "\n")
     (d / "status").write_text(f"Name:\t{name}\nCpus_allowed_list:\t{cpus}\n")
@@ -70,6 +71,20 @@ def test_rivals_are_user_tasks_at_the_loops_priority_or_above_allowed_on_its_cpu
 def test_a_task_that_ends_while_looked_at_is_passed_over(proc: Path) -> None:
     (proc / "20" / "task" / "21" / "stat").unlink()
     assert [r.tid for r in find_rivals(1, 80, exclude=[60], proc=proc)] == [20]
+
+
+def test_a_runs_own_processes_are_never_its_rivals(proc: Path) -> None:
+    """Under a caller's ``chrt -f 90`` a run's simulated hand inherited SCHED_FIFO 90 and was
+    named as the run's own rival: the run (``family``) and all it started are left out, to any
+    depth, and only they."""
+    task(proc, 100, 100, "handctl run", policy=1, priority=90, ppid=50)
+    task(proc, 101, 101, "handctl sim", policy=1, priority=90, ppid=100)
+    task(proc, 101, 102, "node timer", policy=1, priority=90, ppid=100)
+    task(proc, 103, 103, "pool worker", policy=1, priority=90, ppid=101)  # a grandchild
+    task(proc, 104, 104, "stranger", policy=1, priority=90, ppid=50)  # the run's sibling
+    found = find_rivals(1, 80, exclude=[60], proc=proc, family=100)
+    assert sorted(r.tid for r in found) == [20, 21, 104]
+    assert {101, 102, 103} <= {r.tid for r in find_rivals(1, 80, exclude=[60], proc=proc)}
 
 
 def record(stall_ms: list[tuple[float, float]]) -> ProbeRecord:
