@@ -276,7 +276,9 @@ def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
     simulated hand takes are known to be for it: on another bus ``--seed`` and
     ``--sim-faults`` went unused without a word, and a run the user meant to disturb ran
     undisturbed (``--lockstep`` there was refused). ``--loop-cpu`` and ``--sim-cpu`` place the
-    threads ``--rt`` makes real-time: without it they too did nothing."""
+    threads ``--rt`` makes real-time: without it they too did nothing. And ``--rt`` itself
+    raises, pins and locks a real-time loop, which lockstep (the simulated hand's default)
+    has none of: ``run recipe --rt --loop-cpu 0`` ran at SCHED_OTHER on every CPU, exit 0."""
     from handctl.online.busspec import parse_spec
 
     _say_in_process_bus("--bus", args.bus)  # run, calibrate and jog all come by here
@@ -297,6 +299,23 @@ def _sim_seed(args: argparse.Namespace, hand: HandConfig) -> int:
                     "the simulated hand (--bus sim): only it takes " + option,
                     f"{value} with --bus {args.bus}",
                 )
+    if on_sim and args.rt and not args.realtime:
+        given = " ".join(
+            f"{option} {value}" if value is not None else option
+            for option, value in (
+                ("--rt", None),
+                ("--loop-cpu", getattr(args, "loop_cpu", None)),
+                ("--sim-cpu", getattr(args, "sim_cpu", None)),
+            )
+            if option == "--rt" or value is not None
+        )
+        raise ConfigError(
+            "--rt",
+            "",
+            "--realtime as well: on the simulated hand a run is stepped in lockstep unless "
+            "--realtime, and lockstep has no real-time loop to raise, pin or lock",
+            f"{given} in lockstep",
+        )
     if not args.rt:
         for option in ("--loop-cpu", "--sim-cpu"):
             value = getattr(args, option[2:].replace("-", "_"), None)
@@ -3488,7 +3507,7 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         action="store_true",
         help="ask for SCHED_FIFO, locked and prefaulted memory, and on >= 2 CPUs "
         "separate CPUs for the loop and the simulated hand (says so when "
-        "refused)",
+        "refused); on the simulated hand with --realtime only",
     )
     rec.add_argument(
         "--loop-cpu",
@@ -3679,7 +3698,8 @@ def _add_bringup_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--rt",
         action="store_true",
-        help="ask for SCHED_FIFO and locked memory (says so when refused)",
+        help="ask for SCHED_FIFO and locked memory (says so when refused); on the "
+        "simulated hand with --realtime only",
     )
     p.add_argument(
         "--seed", type=_seed, help="simulated hand seed (default: the hand config's sim.seed)"

@@ -616,6 +616,27 @@ def test_a_cpu_without_rt_is_refused(option: str, capsys: pytest.CaptureFixture[
     assert f"{option}: expected --rt as well" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("options", "found"),
+    [
+        (["--rt", "--loop-cpu", "0"], "found '--rt --loop-cpu 0 in lockstep'"),
+        (["--rt", "--sim-cpu", "0", "--lockstep"], "found '--rt --sim-cpu 0 in lockstep'"),
+        (["--rt"], "found '--rt in lockstep'"),
+    ],
+)
+def test_rt_in_lockstep_is_refused(
+    options: list[str], found: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Lockstep (the simulated hand's default) has no real-time loop: ``--rt --loop-cpu 0``
+    ran at SCHED_OTHER on every CPU with no memory locked, exit 0, without a word."""
+    from handctl import cli
+
+    code = cli.main(["run", "recipe", str(ROOT / RECIPE), *options, "--max-seconds", "0.1"])
+    assert code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--rt: expected --realtime as well" in err and found in err, err
+
+
 def test_the_simulated_hand_is_seeded_by_the_hand_config_unless_seed_is_given(
     tmp_path: Path,
 ) -> None:

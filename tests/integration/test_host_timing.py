@@ -291,7 +291,7 @@ def test_a_real_time_run_says_what_the_host_did_when_it_stops(tmp_path: Path) ->
 
 
 def test_cpus_outside_the_machine_are_bad_input() -> None:
-    done = handctl("run", "recipe", RECIPE, "--rt", "--loop-cpu", "4096")
+    done = handctl("run", "recipe", RECIPE, "--realtime", "--rt", "--loop-cpu", "4096")
     assert done.returncode == 2
     assert "--loop-cpu: expected one of the CPUs this process may use" in done.stderr
     assert "found 4096" in done.stderr
