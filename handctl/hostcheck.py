@@ -23,6 +23,7 @@ import json
 import math
 import os
 import re
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -769,8 +770,46 @@ def timing_check(
         verdict = worse(verdict, v)
     if rivals:
         verdict = worse(verdict, rival_verdict(rivals, verdict.figures))
-    return CheckReport(
-        verdict, tuple(records), facts, tuple(advice(facts, measured, realtime, rivals)), realtime
+    tips = advice(facts, measured, realtime, rivals)
+    beside = beside_refused() if realtime and "SCHED_FIFO" in measured.scheduler.values() else ""
+    if beside:
+        # the check's bare loop got the loop's 80; a run's needs 81, and below the loop it
+        # would make the run's verdict and attribution void (``below_the_loop``)
+        verdict = worse(verdict, Verdict("marginal", (beside,), verdict.figures))
+        tips.append(
+            f"real-time priority {BESIDE_PRIORITY} for the bare loop beside a run: 'ulimit -r "
+            f"{BESIDE_PRIORITY}' via rtprio in /etc/security/limits.conf, or CAP_SYS_NICE"
+        )
+    return CheckReport(verdict, tuple(records), facts, tuple(tips), realtime)
+
+
+#: The bare loop beside a run: one above the control loop (``beside_probe``).
+BESIDE_PRIORITY = LOOP_PRIORITY + 1
+
+
+def beside_refused(priority: int = BESIDE_PRIORITY) -> str:
+    """Why SCHED_FIFO ``priority`` would be refused to the bare loop beside a run, or "".
+
+    Asked by a thread of its own that ends at once (``sched_setscheduler`` sets the calling
+    thread), so this process's own scheduling is untouched: a check that got the loop's 80
+    passed a host that refused the 81 the run's bare loop asks for, whose run then blamed
+    handctl's misses on the host."""
+    said: list[str] = []
+
+    def ask() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except (OSError, AttributeError) as exc:
+            said.append(str(exc))
+
+    asker = threading.Thread(target=ask, name="handctl-rtprio")
+    asker.start()
+    asker.join()
+    if not said:
+        return ""
+    return (
+        f"SCHED_FIFO priority {priority} refused ({said[0]}): a run's bare timer loop asks for "
+        "it, one above the loop, to say whose its missed ticks were; below the loop it cannot"
     )
 
 
@@ -821,6 +860,9 @@ class LoopWork:
     #: beside it and the host's own real-time tasks can preempt: only then is the time it was
     #: held off the CPU the host's (``unheld_missed``).
     realtime: bool = False
+    #: Its SCHED_FIFO or SCHED_RR priority (0: none), which the bare loop must be above
+    #: (``below_the_loop``).
+    priority: int = 0
 
     def late_start_missed(self, start_ns: int, due_ns: int, period_ns: int) -> int:
         """How many deadlines from ``due_ns`` on a tick of the usual CPU time begun at
@@ -986,6 +1028,38 @@ def attribute(
     return counts
 
 
+def below_the_loop(record: ProbeRecord, work: LoopWork | None) -> str:
+    """Why the bare loop beside a run was not above the control loop on its CPU, or "" if it
+    was (or the loop was not real-time either: then the two share the ordinary scheduler,
+    docs/timing.md's "Limits").
+
+    The attribution rests on the bare loop preempting the loop: below it, the loop's own
+    ticks hold it, and handctl's misses read as the host's stalls. A host that grants the
+    loop's SCHED_FIFO 80 but not the bare loop's 81 (rtprio 80 in limits.conf) showed
+    "163 the host's, 0 handctl's" with the refusal only in the JSON's ``host.refused``.
+    """
+    if work is None or not work.realtime:
+        return ""
+    policy = record.scheduler.get("policy", "?")
+    priority = record.scheduler.get("priority", 0)
+    above = isinstance(priority, int) and priority > work.priority
+    if policy in ("SCHED_FIFO", "SCHED_RR") and above:
+        return ""
+    refused = "".join(f"; {r}" for r in record.refused if "SCHED_FIFO" in r)
+    return (
+        f"the bare timer loop beside the run ran at {policy} {priority}, not above the "
+        f"control loop's real-time priority {work.priority}{refused}: the loop's own ticks "
+        "held it, so its stalls are not the host's alone and whose the missed ticks were "
+        "cannot be said (all counted unobserved)"
+    )
+
+
+def _void(shares: dict[str, int]) -> dict[str, int]:
+    """Every missed tick as judged by no one: a bare loop below the loop saw handctl's own."""
+    total = sum(v for k, v in shares.items() if k != "missed_handctl_after_host")
+    return {k: total if k == "missed_unobserved" else 0 for k in shares}
+
+
 def _held(host_stalls: list[tuple[int, int]], start: int, end: int) -> int:
     """ns of ``[start, end]`` during which the bare loop was stalled."""
     return sum(max(0, min(end, h_wake) - max(start, h_due)) for h_due, h_wake in host_stalls)
@@ -1065,7 +1139,7 @@ def beside_probe(
     realtime: bool,
     cpu: int | None,
     lock_memory: bool,
-    priority: int = LOOP_PRIORITY + 1,
+    priority: int = BESIDE_PRIORITY,
 ) -> Probe:
     """The bare timer loop beside a real-time run, on the loop's CPU one priority above it
     (or on the simulated hand's CPU, above the hand).
@@ -1136,9 +1210,14 @@ def host_summary(
     own: list[int] = []
     shares = attribute(loop_stalls.rows(), record, deadlines.period_ns, own, rivals, work)
     shares["missed_unobserved"] += loop_stalls.overflow_missed
+    void = below_the_loop(record, work)
+    if void:
+        shares, own = _void(shares), []
+        warnings.append(void)
     summary = {
         "verdict": verdict.level,
         "reasons": list(verdict.reasons),
+        **({"attribution_void": void} if void else {}),
         **verdict.figures,
         **shares,
         "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
@@ -1173,7 +1252,9 @@ def host_summary(
         }
     )
     if stopped_on:
-        warnings.append(stop_warning(stopped_on, verdict, shares, summary["rivals"], peer_text))
+        warnings.append(
+            stop_warning(stopped_on, verdict, shares, summary["rivals"], peer_text, bool(void))
+        )
     return record, rivals, summary
 
 
@@ -1183,10 +1264,21 @@ def stop_warning(
     shares: Mapping[str, int],
     rivals: Sequence[str],
     peer_text: str = "",
+    below: bool = False,
 ) -> str:
     """The warning of a run that stopped on ``stopped_on`` (LOOP_OVERRUN, FEEDBACK_TIMEOUT):
     the bare loop's verdict on the host beside it, and whose the missed ticks were
-    (``attribute``'s ``shares``), every kind that has any said."""
+    (``attribute``'s ``shares``), every kind that has any said. ``below``: the bare loop ran
+    below the loop (``below_the_loop``), so its verdict is no verdict on the host."""
+    if below:
+        return (
+            f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it ran "
+            f"below the loop, so it says nothing of the host (its own verdict "
+            f"{verdict.level.upper()} includes the loop's ticks) nor of whose the "
+            f"{shares['missed_unobserved']} missed ticks were"
+            + peer_text
+            + "; see 'handctl check --timing' and docs/timing.md"
+        )
     return (
         f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it says "
         f"the host was {verdict.level.upper()}"

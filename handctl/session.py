@@ -386,6 +386,7 @@ def run_recipe(
                 runtime.trace.usual_run_delay_ns() if runtime.trace is not None else -1,
                 # the loop's thread is this one, which kept its scheduling after the run
                 os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR),
+                os.sched_getparam(0).sched_priority,
             )
             if isinstance(clock, RealtimeClock)
             else None

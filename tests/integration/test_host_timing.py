@@ -489,3 +489,31 @@ def test_a_check_whose_probe_is_stopped_from_outside_gives_no_verdict() -> None:
     assert proc.returncode == 1, out + err
     assert "the timing probe was stopped after" in err and "of the 30 s asked" in err
     assert not any(word in out for word in ("PASS", "MARGINAL", "FAIL"))  # no verdict
+
+
+def test_a_bare_loop_below_the_loop_says_nothing_of_whose_the_misses_were(
+    hand: HandConfig,
+) -> None:
+    """A host that grants the loop SCHED_FIFO 80 but not the bare loop its 81 left the bare
+    loop at SCHED_OTHER below the loop, whose own ticks then held it: "163 the host's, 0
+    handctl's", the refusal only in the JSON. A bare loop below a real-time loop judges
+    nobody's misses, and says so."""
+    from handctl.hostcheck import LoopWork, host_summary
+    from handctl.online.clock import LOOP_PRIORITY, StallLog
+    from handctl.online.safety.faults import Fault, FaultCode
+
+    now = time.monotonic_ns()
+    loop = StallLog(500_000)
+    loop.add(5, now, now + 120 * 10**9, 120_000)  # spans the whole of the bare loop's run
+    warnings: list[str] = []
+    work = LoopWork({}, 300_000, realtime=True, priority=LOOP_PRIORITY)
+    with Probe(1_000_000, record_ns=500_000, seconds=0.3) as probe:  # SCHED_OTHER: no priority
+        record, _, summary = host_summary(
+            hand, probe, loop, [Fault(FaultCode.LOOP_OVERRUN, "", 5)], warnings, work=work
+        )
+    assert record is not None and record.scheduler["policy"] == "SCHED_OTHER"
+    assert summary["missed_unobserved"] == 120_000
+    assert summary["missed_host"] == summary["missed_handctl"] == 0
+    assert "not above the control loop's real-time priority 80" in summary["attribution_void"]
+    assert summary["attribution_void"] in warnings
+    assert any("ran below the loop, so it says nothing of the host" in w for w in warnings)

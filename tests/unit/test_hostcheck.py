@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -995,3 +996,36 @@ def test_a_record_that_no_probe_writes_is_refused(
     assert info.value.key == key
     if found is not None:
         assert info.value.found == found
+
+
+def test_a_bare_loop_is_judged_beside_the_loop_only_when_above_it() -> None:
+    """The attribution rests on the bare loop preempting a real-time loop; at or below its
+    priority, or refused its own, it is void (``below_the_loop``)."""
+    from handctl.hostcheck import below_the_loop
+
+    work = LoopWork({}, USUAL_NS, realtime=True, priority=80)
+    above = record([], scheduler={"policy": "SCHED_FIFO", "priority": 81})
+    assert below_the_loop(above, work) == ""
+    assert below_the_loop(above, None) == ""  # nothing measured of the loop: no claim
+    refused = "SCHED_FIFO priority 81 refused ([Errno 1] Operation not permitted)"
+    other = record([], scheduler={"policy": "SCHED_OTHER", "priority": 0}, refused=[refused])
+    said = below_the_loop(other, work)
+    assert said.startswith("the bare timer loop beside the run ran at SCHED_OTHER 0, not above")
+    assert refused in said
+    level = record([], scheduler={"policy": "SCHED_FIFO", "priority": 80})
+    assert below_the_loop(level, work) != ""
+    # a loop at the ordinary scheduler shares it with the bare loop: as documented, judged
+    assert below_the_loop(other, LoopWork({}, USUAL_NS)) == ""
+
+
+def test_the_check_asks_for_the_priority_of_the_bare_loop_beside_a_run() -> None:
+    """The check's own bare loop runs at the loop's 80; a run's asks for 81. A host that
+    refuses 81 passed the check and voided every run's attribution (``beside_refused``)."""
+    from handctl.hostcheck import BESIDE_PRIORITY, beside_refused
+
+    assert BESIDE_PRIORITY == 81
+    said = beside_refused(100)  # beyond SCHED_FIFO's 1-99: refused on any host
+    assert said.startswith("SCHED_FIFO priority 100 refused (") and "one above the loop" in said
+    before = os.sched_getscheduler(0)
+    beside_refused(1)
+    assert os.sched_getscheduler(0) == before  # asked by a thread of its own
