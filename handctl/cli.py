@@ -1382,8 +1382,7 @@ def _planned_phase_line(plan: Any) -> str:
 
 # -- sim ---------------------------------------------------------------------------------------
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from handctl.parent_death import parent_ends, remove_orphaned_bus
-    from handctl.stopsignals import ENDING, signal_name
+    from handctl.stopsignals import ENDING, interrupt, signal_name
 
     _positive_seconds("--seconds", args.seconds)
     # the ground truth is written after the whole run: a path that cannot take it is said
@@ -1405,7 +1404,9 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         # and a second interrupt would cut short the clean-up the first one began.
         terminated.append(signal_name(signum))
         if len(terminated) == 1:
-            raise KeyboardInterrupt(terminated[0])
+            # as every command's stop signal: the last line names it ("interrupted by
+            # SIGXCPU"), not a bare "interrupted" as if Ctrl-C
+            interrupt(signum, frame)
 
     signal.signal(signal.SIGTERM, terminate)
     # and the others whose default ends the process, as for a run (stopsignals.ENDING; SIGHUP
@@ -1492,11 +1493,26 @@ def _cmd_sim(args: argparse.Namespace) -> int:
             raise KeyboardInterrupt(str(exc)) from exc
         raise
     finally:
-        # SIGTERM is also the parent-death signal, which can come while the host is still
-        # going down: then wait for it to be gone.
-        if adopted and parent_ends(args.parent_pid, ORPHAN_WAIT_S if terminated else 0.0):
-            remove_orphaned_bus(args.bus, args.summary_json)
+        _sim_ended(args, adopted, terminated[:1])
     return EXIT_OK
+
+
+def _sim_ended(args: argparse.Namespace, adopted: bool, stopped_by: list[str]) -> None:
+    """What a simulated hand says and tidies as it ends, ``stopped_by`` the first stop signal
+    (if any): a SIGXCPU at a real-time limit is named as that limit, and a host gone for good
+    leaves its bus directory to this hand."""
+    from handctl.hostfacts import rttime_note
+    from handctl.parent_death import parent_ends, remove_orphaned_bus
+
+    if stopped_by == ["SIGXCPU"]:
+        for line in rttime_note():  # the kernel's, at a real-time limit: which one
+            print(f"handctl: {line}", file=sys.stderr)
+    # SIGTERM is also the parent-death signal, which can come while the host is still going
+    # down: then wait for it to be gone. Only SIGTERM: a hand ended by SIGXCPU waited 10 s
+    # for a parent that was alive, and held the host's start-up that long.
+    waited = ORPHAN_WAIT_S if stopped_by == ["SIGTERM"] else 0.0
+    if adopted and parent_ends(args.parent_pid, waited):
+        remove_orphaned_bus(args.bus, args.summary_json)
 
 
 def _pid_max() -> int | None:

@@ -136,6 +136,25 @@ def ordinary_scheduling(pid: int) -> None:
         os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
 
 
+def rttime_note() -> list[str]:
+    """What a SIGXCPU means when this thread runs at a real-time policy: the soft
+    ``RLIMIT_RTTIME`` (µs of CPU time at SCHED_FIFO or SCHED_RR without a blocking call),
+    with its value; nothing otherwise (then it is ``ulimit -t``, or someone's ``kill``).
+    Said, since "interrupted by SIGXCPU" points nowhere near ``prlimit --rttime``."""
+    if os.sched_getscheduler(0) not in (os.SCHED_FIFO, os.SCHED_RR):
+        return []
+    soft, hard = resource.getrlimit(resource.RLIMIT_RTTIME)
+    if soft == resource.RLIM_INFINITY:
+        return []
+    shown = "unlimited" if hard == resource.RLIM_INFINITY else f"{hard} µs"
+    return [
+        f"SIGXCPU at {'SCHED_FIFO' if os.sched_getscheduler(0) == os.SCHED_FIFO else 'SCHED_RR'}"
+        f": the soft RLIMIT_RTTIME is {soft} µs ({soft / 1e3:g} ms; hard {shown}) of CPU "
+        "time at a real-time priority without blocking, and the kernel sends SIGXCPU past "
+        "it; raise it ('prlimit --rttime', LimitRTTIME= of a service unit) or run without --rt"
+    ]
+
+
 def affinity(pid: int) -> list[int] | None:
     """The CPUs a process (0: this thread) may run on; None if it is gone."""
     try:

@@ -34,7 +34,7 @@ from handctl.hostcheck import (
     precheck,
     run_cpus,
 )
-from handctl.hostfacts import affinity, ordinary_scheduling
+from handctl.hostfacts import affinity, ordinary_scheduling, rttime_note
 from handctl.online import timebudget
 from handctl.online.bus import HandBus, open_bus
 from handctl.online.buslock import BusLock, take_bus
@@ -47,6 +47,7 @@ from handctl.online.clock import (
     RealtimeClock,
     request_realtime,
 )
+from handctl.online.collector import settle_heap
 from handctl.online.drivers.hand import HandDriver
 from handctl.online.estimator import ObjectEstimator
 from handctl.online.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
@@ -219,6 +220,8 @@ def _run_warnings(result: RunResult, hand: HandConfig) -> list[str]:
     if result.ended_in_fault:
         said.append(result.ended_in_fault)
     said += [ringing.text() for ringing in result.chatter]
+    if "SIGXCPU" in result.message:
+        said += rttime_note()  # at a real-time policy: which limit, and its value
     asked = asked_beyond(result, hand)
     if asked:
         tau_max = {j.name: j.tau_max for j in hand.joints}
@@ -330,7 +333,7 @@ def run_recipe(
         signals.checkpoint()
         bus: HandBus = stack.enter_context(open_bus(peer.spec, req.hand.bus))
         signals.checkpoint()
-        timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu, warnings)
+        timing = _start_clock(stack, req, peer, lockstep, loop_cpu, sim_cpu)
         signals.checkpoint()
         clock = timing.clock
         driver = HandDriver(req.hand, protocol, bus, clock_ns=clock.now_ns)
@@ -370,6 +373,7 @@ def run_recipe(
             # the run begins: a log at --log before it is this run's from here; a run that
             # ended before (refused, interrupted, failed to start) left it as it was
             recording.claim()
+        _raise_priority(req, loop_cpu, timing, peer, warnings)
         result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
         warnings += _run_warnings(result, req.hand)
         summary = summarise_run(
@@ -505,10 +509,9 @@ def _start_clock(
     lockstep: bool,
     loop_cpu: int | None,
     sim_cpu: int | None,
-    warnings: list[str],
 ) -> _Timing:
-    """The simulated hand's steps in lockstep; in real time a timer clock, the probes beside
-    it and, with ``--rt``, the scheduling asked for (what could not be had is a warning)."""
+    """The simulated hand's steps in lockstep; in real time a timer clock and the probes
+    beside it (the scheduling comes last, ``_raise_priority``)."""
     if lockstep:
         return _Timing(LockstepClock(req.hand.bus.period_s, peer.sim_hand.step))
     timing = _Timing(RealtimeClock(req.hand.bus.period_s))
@@ -532,7 +535,23 @@ def _start_clock(
             family=os.getpid(),
         )
     )
+    return timing
+
+
+def _raise_priority(
+    req: RunRequest, loop_cpu: int | None, timing: _Timing, peer: _Peer, warnings: list[str]
+) -> None:
+    """With ``--rt``, the scheduling asked for, the last step before the first tick (what
+    could not be had is a warning); and the CPUs the loop and the hand got.
+
+    Last, after the heap is settled (``settle_heap``): every start-up step after the priority
+    was raised (the runtime built, the recording started, the start-up heap collected in full)
+    ran at SCHED_FIFO without blocking, tens of ms that held the CPU from every task below, and
+    that a soft RLIMIT_RTTIME of 20 ms ended with SIGXCPU before the first tick."""
+    if not isinstance(timing.clock, RealtimeClock):
+        return  # lockstep: nothing to raise or place
     if req.realtime_priority:
+        settle_heap()
         warnings += request_realtime(
             LOOP_PRIORITY,
             cpu=loop_cpu,
@@ -543,7 +562,6 @@ def _start_clock(
         "loop": affinity(0),
         "sim": affinity(peer.sim_process.proc.pid) if peer.sim_process else None,
     }
-    return timing
 
 
 def _before_the_bus(

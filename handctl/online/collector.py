@@ -20,6 +20,12 @@ So for the length of a run (``LoopCollector.running``):
 Cyclic garbage is still collected, at most a tick later than CPython would have, and only where
 the tick's own work is done. Afterwards the collector is as it was (enabled or not, the
 frozen objects handed back to the oldest generation).
+
+A run at SCHED_FIFO settles its heap (``settle_heap``: the full collection and the freeze)
+before it raises its priority, as docs/timing.md has all long start-up work done: the full
+collection of ``running`` then walks only what was allocated since, not tens of ms of the
+imports' objects at SCHED_FIFO, which alone ran past a soft ``RLIMIT_RTTIME`` of 20 ms (the
+kernel's SIGXCPU, the run stopped before its first tick).
 """
 
 from __future__ import annotations
@@ -32,6 +38,13 @@ from collections.abc import Iterator
 YOUNG_THRESHOLD = 700
 #: Young collections per collection of the middle generation, and middle per full, as CPython.
 OLDER_EVERY = 10
+
+
+def settle_heap() -> None:
+    """One full collection, then everything alive frozen: what ``LoopCollector.running``
+    does first, done before the priority is raised so that its own is short."""
+    gc.collect()
+    gc.freeze()
 
 
 class LoopCollector:

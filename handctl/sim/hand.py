@@ -453,14 +453,17 @@ def standalone(
     interrupted = False
     try:
         sim = SimulatedHand(hand, bus, seed=seed, faults=faults)
-        if realtime:
-            # Asked here, by the thread that starts the timer thread, which inherits it.
-            for refused in request_realtime(SIM_RT_PRIORITY):
-                if progress is not None:
-                    progress(f"warning: {refused}")
         started = time.monotonic()
         # the node timer must not wait for a full garbage collection
         with collector_paused():
+            if realtime:
+                # Asked here, by the thread that starts the timer thread, which inherits it;
+                # after the collector's full collection (tens of ms of CPU): at SCHED_FIFO it
+                # held the CPU that long without blocking, and a soft RLIMIT_RTTIME of 20 ms
+                # ended the hand with SIGXCPU before its first tick.
+                for refused in request_realtime(SIM_RT_PRIORITY):
+                    if progress is not None:
+                        progress(f"warning: {refused}")
             sim.start()
             try:
                 deadline = None if seconds is None else started + seconds

@@ -8,6 +8,7 @@ other peers' included."""
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -85,3 +86,47 @@ def test_a_parent_gone_before_the_hand_started_is_said_and_removes_nothing(
     assert f"process {gone.pid} ended before its simulated hand started" in done.stderr
     assert "Traceback" not in done.stderr
     assert (shared_bus / PEER).exists()
+
+
+def test_a_real_time_hand_ended_by_sigxcpu_names_the_limit(tmp_path: Path) -> None:
+    """The kernel's SIGXCPU at a soft RLIMIT_RTTIME ended a ``--rt`` hand without a word of
+    the limit: "interrupted", nothing pointing to ``prlimit --rttime``. It names the limit and
+    its value."""
+    import resource
+    import time
+
+    from ..conftest import ROOT
+
+    bus, log = tmp_path / "bus", tmp_path / "sim.log"
+    parent = ["--parent-pid", str(os.getpid())]
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    with log.open("w") as err:
+        hand = subprocess.Popen(
+            [sys.executable, "-m", "handctl", "sim", "--bus", f"unix:{bus}", "--rt", *parent],
+            cwd=ROOT,
+            env={**os.environ, "PYTHONPATH": path, "PYTHONDONTWRITEBYTECODE": "1"},
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+        )
+    try:
+        deadline = time.monotonic() + 120
+        while not log.read_text().strip():  # its first progress line: it ticks
+            assert hand.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.1)
+        said = log.read_text()
+        if "SCHED_FIFO priority" in said and "refused" in said:
+            pytest.skip("real-time priority refused here")
+        # a soft limit well above what the hand uses between two blocking calls
+        resource.prlimit(hand.pid, resource.RLIMIT_RTTIME, (10_000_000, resource.RLIM_INFINITY))
+        hand.send_signal(signal.SIGXCPU)
+        code = hand.wait(timeout=120)
+    finally:
+        if hand.poll() is None:
+            hand.kill()
+            hand.wait()
+    lines = log.read_text().strip().splitlines()
+    assert code == 0, lines  # a stop while it ticks, as Ctrl-C: its summary, then exit 0
+    assert any(
+        "SIGXCPU at SCHED_FIFO: the soft RLIMIT_RTTIME is 10000000 µs (10000 ms;" in line
+        for line in lines
+    ), lines
