@@ -495,7 +495,11 @@ def judge(record: ProbeRecord, deadlines: Deadlines) -> Verdict:
 
 
 def worse(a: Verdict, b: Verdict) -> Verdict:
-    return a if LEVELS.index(a.level) >= LEVELS.index(b.level) else b
+    """The worse of the two, with ``a``'s figures; on a tie with the reasons of both: a
+    MARGINAL host with a real-time rival on the loop's CPU lost the rival from its reasons."""
+    if a.level == b.level:
+        return Verdict(a.level, tuple(dict.fromkeys(a.reasons + b.reasons)), a.figures)
+    return a if LEVELS.index(a.level) > LEVELS.index(b.level) else b
 
 
 def advice(
@@ -689,6 +693,11 @@ class CheckReport:
             f"{f['longest_slow_cpu_ms']:g} ms, {f['slow_cpu_lost_ms']:g} ms lost in all",
         ]
         lines += [f"  because {r}" for r in self.records[0][1].reasons]
+        # and what the headline rests on besides the measurement (a real-time rival, the
+        # bare loop's priority refused), said before only in the advice if at all; the
+        # injected records' reasons have lines of their own below
+        said = {r for _, verdict in self.records for r in verdict.reasons}
+        lines += [f"  because {r}" for r in self.verdict.reasons if r not in said]
         for record, verdict in self.records[1:]:
             lines.append(
                 f"  injected from {record.source} ({INJECT_ENV}): "

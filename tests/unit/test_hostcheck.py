@@ -1029,3 +1029,26 @@ def test_the_check_asks_for_the_priority_of_the_bare_loop_beside_a_run() -> None
     before = os.sched_getscheduler(0)
     beside_refused(1)
     assert os.sched_getscheduler(0) == before  # asked by a thread of its own
+
+
+def test_a_rival_is_among_the_reasons_of_the_check_in_text_and_json(
+    deadlines: Deadlines,
+) -> None:
+    """A check MARGINAL because of a real-time rival had no 'because' line (the text said the
+    measured record's reasons only), and a measured MARGINAL lost the rival from the JSON's
+    reasons too (``worse`` kept the first verdict on a tie)."""
+    from handctl.hostcheck import CheckReport, rival_verdict, worse
+    from handctl.rivals import Rival
+
+    rival = Rival(7, 7, "spin", "SCHED_FIFO", 85, (1,), 0)
+    for stalls in ([], [(100, 50.0, 1.5)]):  # a quiet host, then a marginal one
+        measured = record(stalls, scheduler={"policy": "SCHED_FIFO", "priority": 80})
+        judged = judge(measured, deadlines)
+        verdict = worse(judged, rival_verdict([rival], judged.figures))
+        report = CheckReport(verdict, ((measured, judged),), facts(), (), True)
+        assert report.verdict.level == "marginal"
+        said = "1 real-time task(s) at the loop's priority or above may run on its CPU: spin"
+        assert any(said in r for r in report.as_json()["reasons"])
+        because = [line for line in report.text().splitlines() if line.startswith("  because")]
+        assert any(said in line for line in because), report.text()
+        assert len(because) == len(set(because)) == len(verdict.reasons)
