@@ -1052,3 +1052,32 @@ def test_a_rival_is_among_the_reasons_of_the_check_in_text_and_json(
         because = [line for line in report.text().splitlines() if line.startswith("  because")]
         assert any(said in line for line in because), report.text()
         assert len(because) == len(set(because)) == len(verdict.reasons)
+
+
+def test_a_wake_up_seen_late_and_slow_to_switch_loses_its_time_once(
+    deadlines: Deadlines,
+) -> None:
+    """A hiccup and a slow switch of one wake-up look at the same interval, its deadline to
+    the wake-up: summed, a wake-up 0.3 ms late whose switch cost 0.3 ms over the usual "lost"
+    0.6 ms, more than the interval's wall time, and a PASS host read MARGINAL. The larger of
+    the two; a slow piece of work after the wake-up is a time of its own, and adds."""
+    due = START + 500 * MS
+    work = {"reference_ns": 6_000, "switch_reference_ns": 30_000, "slow": []}
+    both = record(
+        [],
+        hiccup_ns=100_000,
+        hiccups=[[500, due, due + 300_000]],
+        work={**work, "slow_switches": [[500, due, due + 300_000, 330_000]]},
+    )
+    assert both.slow_cpu_intervals() == [(due, due + 300_000, 300_000)]
+    verdict = judge(both, deadlines)
+    assert verdict.figures["slow_cpu_lost_ms"] == 0.3
+    assert verdict.level == "pass", verdict.reasons
+    piece = [500, due + 310_000, due + 420_000, 110_000]  # 104 µs over its usual 6 µs
+    with_piece = record(
+        [],
+        hiccup_ns=100_000,
+        hiccups=[[500, due, due + 300_000]],
+        work={**work, "slow": [piece], "slow_switches": [[500, due, due + 300_000, 130_000]]},
+    )
+    assert with_piece.slow_cpu_intervals() == [(due, due + 420_000, 300_000 + 104_000)]
