@@ -1096,6 +1096,21 @@ def _slowed(hits: list[tuple[int, int]], look_ns: int, start: int, end: int) -> 
 # -- a run's host: its CPUs, the check before it, the bare loop beside it -----------------------
 #: The summary lists the ticks of at most this many of handctl's own misses.
 MAX_LISTED_TICKS = 20
+#: The bare loop beside a run, started with it, ran for less than this share of the run:
+#: what it saw is no verdict on the host (it starts in a process of its own, and a run that
+#: stopped on its first ticks was judged "PASS" on 14 ms of 145).
+MIN_OBSERVED_SHARE = 0.5
+
+
+def observed_text(observed_s: float, run_s: float | None) -> str:
+    """Why the bare loop's figures are no verdict on a run's host (it ran too little of the
+    run), or "" when they are."""
+    if run_s is None or run_s <= 0 or observed_s >= MIN_OBSERVED_SHARE * run_s:
+        return ""
+    return (
+        f"the bare timer loop beside the run ran {observed_s:.3g} s of the run's "
+        f"{run_s:.3g} s ({observed_s / run_s:.0%}): too little to say what the host was"
+    )
 
 
 def check_loop_cpu(cpu: int | None, cpus: Sequence[int] | None = None) -> None:
@@ -1206,6 +1221,7 @@ def host_summary(
     peer_probe: Probe | None = None,
     rival_watch: RivalWatch | None = None,
     work: LoopWork | None = None,
+    run_s: float | None = None,
 ) -> tuple[ProbeRecord | None, RivalRecord | None, dict[str, Any]]:
     """What the bare loop beside a run saw, and whose the run's missed ticks were; a warning
     with the host's verdict when the run stopped on LOOP_OVERRUN or FEEDBACK_TIMEOUT.
@@ -1214,7 +1230,8 @@ def host_summary(
     in a feedback that came late, which the loop's CPU does not see. ``rival_watch`` saw the
     real-time tasks that could hold the loop where the probe above it would not notice.
     ``work`` is what the loop measured of its catch-up ticks and its usual tick, against which
-    a catch-up tick is judged (``attribute``); None judges none.
+    a catch-up tick is judged (``attribute``); None judges none. ``run_s``: how long the run
+    ran, against which the bare loop's share of it is said (``observed_text``).
     """
     try:
         record = probe.stop()
@@ -1232,10 +1249,13 @@ def host_summary(
     if void:
         shares, own = _void(shares), []
         warnings.append(void)
+    short = observed_text(verdict.figures["seconds"], run_s)
     summary = {
         "verdict": verdict.level,
         "reasons": list(verdict.reasons),
         **({"attribution_void": void} if void else {}),
+        **({"run_s": round(run_s, 3)} if run_s is not None else {}),
+        **({"too_short": short} if short else {}),
         **verdict.figures,
         **shares,
         "handctl_missed_at_ticks": own[:MAX_LISTED_TICKS],
@@ -1271,7 +1291,9 @@ def host_summary(
     )
     if stopped_on:
         warnings.append(
-            stop_warning(stopped_on, verdict, shares, summary["rivals"], peer_text, bool(void))
+            stop_warning(
+                stopped_on, verdict, shares, summary["rivals"], peer_text, bool(void), short
+            )
         )
     return record, rivals, summary
 
@@ -1283,11 +1305,13 @@ def stop_warning(
     rivals: Sequence[str],
     peer_text: str = "",
     below: bool = False,
+    short: str = "",
 ) -> str:
     """The warning of a run that stopped on ``stopped_on`` (LOOP_OVERRUN, FEEDBACK_TIMEOUT):
     the bare loop's verdict on the host beside it, and whose the missed ticks were
     (``attribute``'s ``shares``), every kind that has any said. ``below``: the bare loop ran
-    below the loop (``below_the_loop``), so its verdict is no verdict on the host."""
+    below the loop (``below_the_loop``), so its verdict is no verdict on the host; nor is it
+    when it ran too little of the run (``short``, ``observed_text``)."""
     if below:
         return (
             f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it ran "
@@ -1297,10 +1321,15 @@ def stop_warning(
             + peer_text
             + "; see 'handctl check --timing' and docs/timing.md"
         )
+    said = (
+        f"{short} (it saw it {verdict.level.upper()}"
+        if short
+        else f"the bare timer loop beside it says the host was {verdict.level.upper()}"
+    )
     return (
-        f"the run stopped on {', '.join(stopped_on)}; the bare timer loop beside it says "
-        f"the host was {verdict.level.upper()}"
+        f"the run stopped on {', '.join(stopped_on)}; {said}"
         + "".join(f"; {r}" for r in verdict.reasons)
+        + (")" if short else "")
         + f" (longest host stall {verdict.figures['longest_stall_ms']:g} ms; missed ticks: "
         f"{shares['missed_host']} the host's, "
         + (

@@ -641,6 +641,7 @@ def _host_summary(
             timing.peer_probe,
             timing.rival_watch,
             loop_work,
+            result.ticks * req.hand.bus.period_s,
         )
         summary["host"]["cpus"] = timing.cpus
     if host_check is not None:

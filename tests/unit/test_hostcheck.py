@@ -1081,3 +1081,24 @@ def test_a_wake_up_seen_late_and_slow_to_switch_loses_its_time_once(
         work={**work, "slow": [piece], "slow_switches": [[500, due, due + 300_000, 130_000]]},
     )
     assert with_piece.slow_cpu_intervals() == [(due, due + 420_000, 300_000 + 104_000)]
+
+
+def test_a_verdict_on_a_small_share_of_a_run_is_not_called_one() -> None:
+    """A run stopped at tick 134 said "the bare timer loop beside it says the host was PASS"
+    on 14 ms of bare loop (27 wake-ups of a 145-tick run): how much of the run it saw is said,
+    and too little of it is no verdict (``observed_text``)."""
+    from handctl.hostcheck import MIN_OBSERVED_SHARE, observed_text
+
+    host = record([], seconds=0.014, period_ns=MS // 2)
+    verdict = judge(host, Deadlines(MS, 5, 20 * MS))
+    short = observed_text(verdict.figures["seconds"], 0.145)
+    assert short == (
+        "the bare timer loop beside the run ran 0.014 s of the run's 0.145 s (10%): too "
+        "little to say what the host was"
+    )
+    shares = attribute([], host, MS)
+    text = stop_warning(["LOOP_OVERRUN"], verdict, shares, [], short=short)
+    assert "says the host was" not in text
+    assert f"{short} (it saw it PASS)" in text
+    assert observed_text(MIN_OBSERVED_SHARE * 10.0, 10.0) == ""  # half the run or more
+    assert observed_text(0.014, None) == ""  # nothing to compare with
