@@ -533,7 +533,15 @@ def advice(
             tip += "; at least boot this one with preempt=full"
         tips.append(tip)
     got = record.scheduler.get("policy", "?")
-    if realtime and got != "SCHED_FIFO":
+    if realtime and got != "SCHED_FIFO" and facts.privileged and facts.rt_runtime is not None:
+        # CAP_SYS_NICE and still refused: not the limits, the cgroup's real-time budget
+        where, budget = facts.rt_runtime
+        tips.append(
+            f"real-time time for this process's cgroup (got {got} with CAP_SYS_NICE; "
+            f"{where} is {budget} µs): give the group a real-time budget (cpu.rt_runtime_us "
+            "above 0, within its parent's), or run in a group that has one"
+        )
+    elif realtime and got != "SCHED_FIFO":
         tips.append(
             f"real-time priority for the loop (got {got}; RLIMIT_RTPRIO is "
             f"{_show_limit(facts.rtprio_limit)}): 'ulimit -r {LOOP_PRIORITY + 1}' via "

@@ -28,6 +28,9 @@ class HostFacts:
     isolated: tuple[int, ...]  # /sys/devices/system/cpu/isolated
     governors: dict[int, str]  # cpufreq scaling_governor per CPU ({} if no cpufreq)
     virtual_machine: bool  # the CPU says it runs under a hypervisor
+    #: cgroup v1: this process's cpu group's real-time budget, (its cpu.rt_runtime_us file,
+    #: µs per period); None where there is none (cgroup v2 has no real-time groups)
+    rt_runtime: tuple[str, int] | None = None
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -41,6 +44,7 @@ class HostFacts:
             "isolated": list(self.isolated),
             "governors": {str(k): v for k, v in self.governors.items()},
             "virtual_machine": self.virtual_machine,
+            "rt_runtime_us": None if self.rt_runtime is None else list(self.rt_runtime),
         }
 
 
@@ -106,7 +110,26 @@ def gather_facts() -> HostFacts:
         isolated=parse_cpu_list(_read("/sys/devices/system/cpu/isolated") or ""),
         governors=governors,
         virtual_machine=" hypervisor" in cpuinfo,
+        rt_runtime=rt_runtime(),
     )
+
+
+def rt_runtime(
+    cgroups: Path = Path("/proc/self/cgroup"), root: Path = Path("/sys/fs/cgroup")
+) -> tuple[str, int] | None:
+    """This process's cgroup v1 cpu group's ``cpu.rt_runtime_us`` (the file, its value): a
+    group with 0 refuses SCHED_FIFO even to a process with CAP_SYS_NICE, whose refusal was
+    then said as 'ulimit -r' or CAP_SYS_NICE, which it had. None where not found."""
+    for line in (_read(str(cgroups)) or "").splitlines():
+        _, controllers, group = [*line.split(":", 2), "", ""][:3]
+        if "cpu" not in controllers.split(","):
+            continue
+        for mount in dict.fromkeys((controllers, "cpu", "cpu,cpuacct", "cpuacct,cpu")):
+            path = root / mount / group.strip("/") / "cpu.rt_runtime_us"
+            value = _read(str(path))
+            if value is not None and value.lstrip("-").isdigit():
+                return str(path), int(value)
+    return None
 
 
 def plan_cpus(allowed: set[int], isolated: set[int]) -> tuple[int | None, int | None]:

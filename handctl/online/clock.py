@@ -399,6 +399,7 @@ def request_realtime(
     except (OSError, AttributeError) as exc:
         refused.append(
             f"SCHED_FIFO priority {priority} refused ({exc}); grant it with "
-            "'ulimit -r' / limits.conf rtprio, or run with CAP_SYS_NICE"
+            "'ulimit -r' / limits.conf rtprio, or run with CAP_SYS_NICE (with either, a cgroup "
+            "v1 cpu group whose cpu.rt_runtime_us is 0 still refuses it)"
         )
     return refused

@@ -1102,3 +1102,27 @@ def test_a_verdict_on_a_small_share_of_a_run_is_not_called_one() -> None:
     assert f"{short} (it saw it PASS)" in text
     assert observed_text(MIN_OBSERVED_SHARE * 10.0, 10.0) == ""  # half the run or more
     assert observed_text(0.014, None) == ""  # nothing to compare with
+
+
+def test_sched_fifo_refused_with_cap_sys_nice_names_the_cgroups_budget(tmp_path: Path) -> None:
+    """In a cgroup v1 cpu group with cpu.rt_runtime_us = 0, SCHED_FIFO is refused even with
+    CAP_SYS_NICE, and the advice said to grant it with 'ulimit -r' or CAP_SYS_NICE, which
+    the process had: it names the group's real-time budget, as found from /proc/self/cgroup."""
+    from handctl.hostfacts import rt_runtime
+
+    cgroups = tmp_path / "cgroup"
+    cgroups.write_text("12:pids:/user.slice\n4:cpu,cpuacct:/batch/rt0\n0::/user.slice\n")
+    group = tmp_path / "fs" / "cpu,cpuacct" / "batch" / "rt0"
+    group.mkdir(parents=True)
+    (group / "cpu.rt_runtime_us").write_text("0\n")
+    found = rt_runtime(cgroups, tmp_path / "fs")
+    assert found == (str(group / "cpu.rt_runtime_us"), 0)
+    assert rt_runtime(tmp_path / "absent", tmp_path / "fs") is None  # cgroup v2, or none
+
+    refused = record([], scheduler={"policy": "SCHED_OTHER", "priority": 0})
+    tips = "\n".join(advice(facts(privileged=True, rt_runtime=found), refused, realtime=True))
+    assert f"{group / 'cpu.rt_runtime_us'} is 0 µs" in tips
+    assert "with CAP_SYS_NICE" in tips and "ulimit -r" not in tips
+    # without the privilege the limits are what to change, as before
+    tips = "\n".join(advice(facts(rt_runtime=found), refused, realtime=True))
+    assert "ulimit -r" in tips and "cpu.rt_runtime_us" not in tips
