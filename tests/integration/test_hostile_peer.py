@@ -17,7 +17,8 @@ import pytest
 
 from handctl.config import HandConfig
 from handctl.hand_protocol import protocol_for
-from handctl.online.loop import Outcome
+from handctl.online.clock import Tick
+from handctl.online.loop import ZERO_TICKS_BEFORE_DISABLE, Outcome
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
 from handctl.online.safety.faults import FaultCode
@@ -291,6 +292,38 @@ def test_a_node_that_goes_on_saying_enabled_after_the_disable_gets_the_e_stop(
     assert "node 2 (f2) went on saying ENABLED after the disable: the e-stop was sent" in said
     assert r.estops() == 1
     assert stubborn.state == int(NodeState.FAULT) and stubborn.fault_bits & Bits.ESTOP
+
+
+def test_a_node_that_disobeys_the_disable_with_a_feedback_lost_is_still_said_to(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """As above, with one of the deaf node's Feedback frames lost on the bus during the wait
+    for its DISABLED: the one skipped counter made it read as a replayed or forged stream
+    ("could not be confirmed disabled: frames of it were being rejected"), when it is a node
+    that disobeyed (found by an outside audit). A lost frame costs one skip, nothing more."""
+    from handctl.sim.faults import DropFeedback
+
+    with rig(hand, hold, max_seconds=0.5) as r:
+        deaf_to(r, 2, "disable")
+        rt = r.runtime
+        lost: list[int] = []
+
+        def lose_one(tk: Tick) -> None:
+            if rt.stop_requested and not lost:
+                lost.append(tk.tick)
+                # in the wait for DISABLED: the zero ticks, the disable, then some periods
+                period = r.hand.bus.period_s
+                at = tk.now_ns * 1e-9 + (ZERO_TICKS_BEFORE_DISABLE + 4) * period
+                r.sim.faults.add(DropFeedback(node=2), at, at)
+
+        rt.tick_hooks.append(lose_one)
+        result = r.run()
+        skipped = rt.driver.nodes[1].rejects.as_dict()["counter_skip"]
+    assert lost and skipped == 1, (lost, skipped)
+    said = result.disable_unconfirmed
+    assert "node 2 (f2) went on saying ENABLED after the disable: the e-stop was sent" in said
+    assert "could not be confirmed" not in said, said
+    assert r.estops() == 1
 
 
 def _sniffed(peer: can.BusABC, last: dict[int, int], heard: dict[int, bytes] | None = None) -> None:

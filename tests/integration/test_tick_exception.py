@@ -1393,3 +1393,65 @@ def test_a_note_to_the_log_that_raises_is_the_record_stage_s(
     failure = result.exception
     assert failure is not None and failure.code is FaultCode.RECORD_EXCEPTION, failure
     assert result.outcome is Outcome.SAFETY_STOP
+
+
+def test_a_clock_silent_again_in_the_wait_for_the_disable_is_caught_again(
+    hand: HandConfig, hold: Recipe, tmp_path: Path
+) -> None:
+    """The clock falls silent, gives the stop's ticks, and falls silent again while the run
+    waits for the nodes' DISABLED: the watch had fired once and was not armed again, and the
+    run hung there, deaf to stop signals (found by an outside audit)."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        rt = b.runtime
+        rt.clock_silent_s = 0.3
+        due = Trigger(rt, always=True)
+        real_wait = rt.clock.wait_tick
+        calls = [0]
+
+        async def wait_tick() -> Tick:
+            if due():
+                calls[0] += 1
+                # silent at first, then the stop's ticks, then silent for good
+                if calls[0] == 1 or calls[0] > ZERO_TICKS_BEFORE_DISABLE + 2:
+                    await asyncio.get_running_loop().create_future()
+            return await real_wait()
+
+        rt.clock.wait_tick = wait_tick  # type: ignore[method-assign]
+
+        async def bounded() -> Any:
+            # seconds of the test's own: a hang is a failure, not a stuck suite
+            return await asyncio.wait_for(rt.run(), 60.0)
+
+        result = asyncio.run(bounded())
+    assert calls[0] > ZERO_TICKS_BEFORE_DISABLE + 2  # the wait for DISABLED read it again
+    assert result.outcome is Outcome.SAFETY_STOP
+    failure = result.exception
+    assert failure is not None and failure.code is FaultCode.CLOCK_EXCEPTION, failure
+
+
+def test_a_stage_s_own_runtime_error_from_a_stop_iteration_is_its_own(
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stage that says ``raise RuntimeError(...) from stop`` over an exhausted iterator was
+    reported as the bare StopIteration it chained, at no stage (found by an outside audit):
+    only Python's own wording of PEP 479 is unwrapped."""
+    with bench(hand, hold, tmp_path / "run.mcap") as b:
+        rt = b.runtime
+        due = Trigger(rt, always=False)
+        assert rt.runner is not None
+        real = rt.runner.advance
+
+        def advance(*args: Any, **kwargs: Any) -> None:
+            if due():
+                try:
+                    next(iter(()))
+                except StopIteration as stop:
+                    raise RuntimeError("calibration table exhausted") from stop
+            real(*args, **kwargs)
+
+        monkeypatch.setattr(rt.runner, "advance", advance)
+        result = asyncio.run(rt.run())
+        monkeypatch.undo()
+    failure = result.exception
+    assert failure is not None and failure.code is FaultCode.RUNNER_EXCEPTION, failure
+    assert failure.type == "RuntimeError" and failure.message == "calibration table exhausted"
