@@ -234,7 +234,7 @@ class FrameBus(Protocol):
     #: ``send``, it made the sender take a frame that went for one that did not: its counter
     #: given back, the node rejected the next frame, the stop's zero torque (found by an
     #: outside audit).
-    tap_error: Exception | None
+    tap_error: BaseException | None
     #: Whether ``send(..., more=True)`` holds a frame for its burst (its True says nothing of
     #: the frame's fate, the burst's last send or ``flush`` does) rather than sending it.
     batching: bool
@@ -333,7 +333,7 @@ class HandBus:
         self._tapped: list[tuple[int, bytes]] = []
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
-        self.tap_error: Exception | None = None
+        self.tap_error: BaseException | None = None
         self._echoes = _EchoFilter() if spec.interface in ECHOING_INTERFACES else None
         #: Whether ``is_rx`` False is the echo of its own frame (``LOCAL_SENDER_INTERFACES``).
         self._skip_not_rx = spec.interface not in LOCAL_SENDER_INTERFACES
@@ -500,7 +500,7 @@ class HandBus:
                 self._tap_sent()
             try:
                 self.rx_tap(frames)
-            except Exception as exc:  # the frames were drained all the same
+            except BaseException as exc:  # the frames were drained all the same
                 self._tap_failed(exc)
         return frames
 
@@ -546,7 +546,7 @@ class HandBus:
                 self._tapped = []
                 try:
                     self.tap(tapped, TAP_TX)
-                except Exception as exc:  # the frame went: its counter is used up
+                except BaseException as exc:  # the frame went: its counter is used up
                     self._tap_failed(exc)
         return True
 
@@ -560,11 +560,14 @@ class HandBus:
         if self.tap is not None:
             try:
                 self.tap(frames, direction)
-            except Exception as exc:
+            except BaseException as exc:
                 self._tap_failed(exc)
 
-    def _tap_failed(self, exc: Exception) -> None:
-        """Hold the first exception a tap raised for the taps' owner (``tap_error``)."""
+    def _tap_failed(self, exc: BaseException) -> None:
+        """Hold the first exception a tap raised for the taps' owner (``tap_error``), whatever
+        it is: a SystemExit or an interrupt let out of ``send`` gave back the counter of a
+        frame that went, as any exception did (found by an outside audit). The owner raises
+        it at the end of the tick's record (``Recorder.push``)."""
         if self.tap_error is None:
             self.tap_error = exc
 
@@ -679,7 +682,7 @@ class HandBus:
             for event in events:
                 try:
                     self.event_tap(event)
-                except Exception as exc:  # the events are the caller's all the same
+                except BaseException as exc:  # the events are the caller's all the same
                     self._tap_failed(exc)
         return events
 

@@ -241,7 +241,7 @@ class ReplayBus:
         self.tap: FrameTap | None = None
         self.rx_tap: RxTap | None = None
         self.event_tap: Callable[[BusEvent], None] | None = None
-        self.tap_error: Exception | None = None
+        self.tap_error: BaseException | None = None
         #: Each frame's fate is the log's, frame by frame, a burst's too (``HandBus`` taps a
         #: failed burst's every frame as failed).
         self.batching = False
@@ -288,7 +288,7 @@ class ReplayBus:
             self._tap_sent()
             try:
                 self.rx_tap(frames)
-            except Exception as exc:  # held, as a ``HandBus`` holds it
+            except BaseException as exc:  # held, as a ``HandBus`` holds it
                 self._tap_failed(exc)
         return frames
 
@@ -327,10 +327,10 @@ class ReplayBus:
         if self.tap is not None and tapped:
             try:
                 self.tap(tapped, self._tapped_direction)
-            except Exception as exc:
+            except BaseException as exc:
                 self._tap_failed(exc)
 
-    def _tap_failed(self, exc: Exception) -> None:
+    def _tap_failed(self, exc: BaseException) -> None:
         if self.tap_error is None:
             self.tap_error = exc
 
@@ -349,7 +349,7 @@ class ReplayBus:
             for event in events:
                 try:
                     self.event_tap(event)
-                except Exception as exc:
+                except BaseException as exc:
                     self._tap_failed(exc)
         return events
 
