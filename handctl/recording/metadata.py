@@ -275,6 +275,15 @@ def recorded_protocol(recording: Recording) -> Protocol | None:
 
 def recorded_recipe(recording: Recording, hand: HandConfig) -> Recipe:
     """The recipe a recording's run used, checked against its hand as it was then."""
+    recipe = parse_recorded_recipe(recording, hand)
+    check_against_hand(recipe, hand)
+    return recipe
+
+
+def parse_recorded_recipe(recording: Recording, hand: HandConfig) -> Recipe:
+    """The recipe a recording's run used, read for its hand but not yet held to its hand
+    config's digest (``check_against_hand``): a reader that can do without a recipe tells a
+    recipe of older rules from one compiled for another hand."""
     text = recording.meta(ch.META_RECIPE, "yaml")
     if not text:
         raise ConfigError(
@@ -283,8 +292,6 @@ def recorded_recipe(recording: Recording, hand: HandConfig) -> Recipe:
             "the recipe the run used (recorded by handctl)",
             missing_record(recording, ch.META_RECIPE),
         )
-    recipe = parse_recipe(
+    return parse_recipe(
         parse_yaml(text, f"{recording.path} (its recorded recipe)"), hand, as_recorded=True
     )
-    check_against_hand(recipe, hand)
-    return recipe

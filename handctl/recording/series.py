@@ -320,16 +320,26 @@ def _phase_names(recording: Recording) -> frozenset[str] | None:
 
 def recorded_recipe_or_none(recording: Recording) -> Recipe | None:
     """The recording's recipe, or None for a log without one (no recipe record, or no hand
-    to read it for). One that is there and does not read for the recorded hand is refused as
-    the re-run refuses it: every refusal was caught here, and the summary and the plot of a
-    log whose recipe was given another hand config's hash (the digest of the hand it was
-    compiled for) went on as for a log of no recipe, exit 0 (an outside audit)."""
-    from handctl.recording.metadata import recorded_recipe
+    to read it for) or with one that today's rules no longer read (a log of an earlier
+    handctl: its frames and its summary stay readable; the re-run, which needs the recipe,
+    refuses it). One that reads but was compiled for another hand config (its digest) is
+    refused as the re-run refuses it: the summary and the plot of such a log went on as for
+    a log of no recipe, exit 0 (an outside audit); and refusing every recipe that did not
+    read made a log of an earlier handctl unreadable (an audit of that fix)."""
+    from handctl.online.recipes.loader import check_against_hand
+    from handctl.recording.metadata import parse_recorded_recipe
 
     hand = recorded_hand(recording, required=False)
     if hand is None or not recording.meta(ch.META_RECIPE, "yaml"):
         return None
-    return recorded_recipe(recording, hand)
+    try:
+        recipe = parse_recorded_recipe(recording, hand)
+    except ConfigError as exc:
+        if exc.key.endswith("hand_config_hash"):
+            raise  # compiled for another hand: read for that hand's digest, and refused
+        return None
+    check_against_hand(recipe, hand)
+    return recipe
 
 
 def line_pairs(recipe: Recipe | None, names: Sequence[str]) -> list[tuple[str, int, int]]:

@@ -340,6 +340,31 @@ def test_a_recipe_recorded_for_another_hand_is_refused_by_the_summary_and_the_pl
     assert not plot.exists()
 
 
+def test_a_recipe_today_s_rules_no_longer_read_leaves_the_summary_and_the_plot_readable(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """A log of an earlier handctl whose recipe today's rules refuse (an empty
+    ``limit_guard_spring_bands``, accepted then): refusing every recorded recipe that did
+    not read made such a log's summary, plot and export exit 2 (an audit of the fix above).
+    Its frames and summary stay readable, as for a log without a recipe; the re-run, which
+    needs the recipe, refuses it."""
+    old = tmp_path / "old_rules.mcap"
+
+    def metadata(name: str, values: dict[str, str]) -> dict[str, str]:
+        if name != ch.META_RECIPE:
+            return values
+        return values | {"yaml": values["yaml"] + "limit_guard_spring_bands: {}\n"}
+
+    rewrite(recorded.path, old, metadata=metadata)
+    plot = tmp_path / "old_rules.png"
+    done = handctl("replay", str(old), "--plot", str(plot))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert plot.exists()
+    again = handctl("replay", str(old), "--rerun")
+    assert again.returncode == 2, again.stdout + again.stderr
+    assert "limit_guard_spring_bands" in again.stderr
+
+
 # -- tick rows out of sequence ----------------------------------------------------------------
 @pytest.mark.parametrize("tick", [299, 400])  # a negative tick: the message check above
 def test_a_tick_row_out_of_sequence_in_a_whole_log_is_refused(
