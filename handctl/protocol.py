@@ -507,8 +507,9 @@ def _protocol_version(text: str | None, source: str) -> int:
         raise ConfigError(
             source,
             "VERSION",
-            f'"handctl protocol N" with N a whole number 0..{MAX_PROTOCOL_VERSION} (what every '
-            "node sends in the one byte of its Status' ProtocolVersion: "
+            f'"handctl protocol N" with N a whole number 0..{MAX_PROTOCOL_VERSION} in at most '
+            "three ASCII digits (what every node sends in the one byte of its Status' "
+            "ProtocolVersion: "
             "firmware_protocol/PROTOCOL.md)",
             text or "nothing",
         )

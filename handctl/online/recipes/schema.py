@@ -458,7 +458,10 @@ def parse_condition(
     match = _CONDITION.fullmatch(text)
     if match is None:
         example = f"angle.{joint_names[0]} > 1.2 for 0.02" if joint_names else "time > 1.0"
-        return f"a condition 'SIGNAL OP NUMBER [for SECONDS]', e.g. '{example}'"
+        return (
+            f"a condition 'SIGNAL OP NUMBER [for SECONDS]' in ASCII digits and plain spaces "
+            f"(no tab, line break or other script's digits), e.g. '{example}'"
+        )
     signal = match["signal"]
     hold = float(match["hold"]) if match["hold"] else 0.0
     value = float(match["value"])
