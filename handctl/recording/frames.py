@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import functools
 import itertools
 import math
@@ -44,10 +45,13 @@ def logged_frames(
     recording: Recording,
     direction: str = "both",
     bus_events: Callable[[str, str], None] | None = None,
+    refused: Callable[[int, int], None] | None = None,
 ) -> Iterator[tuple[int, int, bytes, bool]]:
     """``(log_time_ns, arbitration_id, data, is_rx)`` in the order they were on the wire;
     ``bus_events(name, detail)`` is told of each bus event the run logged (``/events``, kind
-    ``bus``) where it is among them, in the same pass (``monitor --log``)."""
+    ``bus``) where it is among them, in the same pass (``monitor --log``), and
+    ``refused(log_time_ns, arbitration_id)`` of each frame the bus refused, which never was
+    on the wire (``check_commands``)."""
     if direction not in DIRECTION_TOPICS:
         raise ConfigError("--direction", "", "both, rx or tx", direction)
     topics = DIRECTION_TOPICS[direction] + ((ch.EVENTS,) if bus_events is not None else ())
@@ -57,6 +61,8 @@ def logged_frames(
                 bus_events(str(msg["name"]), str(msg["detail"]))
             continue
         if topic == ch.CAN_TX and msg.get("ok") is False:
+            if refused is not None:
+                refused(log_time, msg["id"])
             continue  # the bus refused it: it never was on the wire
         yield log_time, msg["id"], bytes.fromhex(msg["data"]), topic == ch.CAN_RX
 
@@ -727,7 +733,14 @@ def check_commands(
     nodes = _NodeStates(stream)
     rate = _CommandRate(period_ns)
     checked = 0
-    for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
+    # the commands the bus refused since each id's last that went: the supervisor took each
+    # for applied and stepped on from it, so the node, which kept its last torque, takes
+    # their steps with the next that goes. A run whose bus refused two commands in a row
+    # was refused here for a frame the supervisor had let through (an outside audit)
+    refused: collections.Counter[int] = collections.Counter()
+    for log_time, frame_id, data, is_rx in logged_frames(
+        recording, direction, refused=lambda _, frame_id: refused.update((frame_id,))
+    ):
         refuse = functools.partial(_refused, recording, log_time, frame_id, data, is_rx)
         entry = torque.get(frame_id)
         layout = entry[0] if entry is not None else other.get(frame_id)
@@ -785,7 +798,10 @@ def check_commands(
         first = (log_time, (0.0,) * len(values), [2 * r * period_s for r in rates])
         before_ns, before, budget = last.get(frame_id, first)
         dt = max(0, log_time - before_ns) * 1e-9 / speed
-        budget = [min(2 * r * period_s, b + r * dt) for r, b in zip(rates, budget, strict=True)]
+        periods = 2 + refused.pop(frame_id, 0)
+        budget = [
+            min(periods * r * period_s, b + r * dt) for r, b in zip(rates, budget, strict=True)
+        ]
         problem = _torque_problem(layout, finger, values, before, budget, speed, period_s)
         if problem is not None and on_bus:
             problem = (problem[0], f"{problem[1]} in --hand {hand.source}", problem[2])

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
@@ -624,22 +624,39 @@ def _commands(
     logged_hand: HandConfig | None = None,
     on_bus: bool = False,
     extra: dict[int, tuple[int, bytes]] | None = None,
+    refused: frozenset[int] = frozenset(),
 ) -> int:
     """``check_commands`` on a log whose only frames are node 1's commands to f1_j1, at
     ``times_ns``: what the rate limit makes of their timing alone (the log's hand
     ``logged_hand``, ``hand`` by default; ``on_bus``: ``hand`` is --hand's), and the frames
-    ``extra`` (log time: ``(id, data)``) put in before the commands of their time."""
+    ``extra`` (log time: ``(id, data)``) put in before the commands of their time. The
+    commands at the indices ``refused`` were refused by the bus (logged as not sent, their
+    counters given back to the next)."""
     from handctl.recording import frames
 
     layout = protocol.layout("TorqueCommand", 1)
-    logged = [
-        (t, layout.frame_id, layout.encode(k % 256, [tau, 0.0, 0.0]), False)
-        for k, (t, tau) in enumerate(zip(times_ns, torques, strict=True))
-    ]
+    logged: list[tuple[int, int, bytes, bool]] = []
+    went: list[bool] = []
+    counter = 0
+    for k, (t, tau) in enumerate(zip(times_ns, torques, strict=True)):
+        logged.append((t, layout.frame_id, layout.encode(counter % 256, [tau, 0.0, 0.0]), False))
+        went.append(k not in refused)
+        counter += k not in refused
     for at, (frame_id, data) in sorted((extra or {}).items(), reverse=True):
         where = next((i for i, f in enumerate(logged) if f[0] >= at), len(logged))
         logged.insert(where, (at, frame_id, data, False))
-    monkeypatch.setattr(frames, "logged_frames", lambda recording, direction="both": logged)
+        went.insert(where, True)
+
+    def logged_frames(
+        recording: object, direction: str = "both", refused: Any = None
+    ) -> Iterator[tuple[int, int, bytes, bool]]:
+        for frame, sent in zip(logged, went, strict=True):
+            if sent:
+                yield frame
+            elif refused is not None:
+                refused(frame[0], frame[1])
+
+    monkeypatch.setattr(frames, "logged_frames", logged_frames)
     monkeypatch.setattr(frames, "recorded_protocol", lambda recording: protocol)
     monkeypatch.setattr(frames, "recorded_hand", lambda recording: logged_hand or hand)
     log = SimpleNamespace(path=Path("commands.mcap"))  # all the refusal reads of it
@@ -662,6 +679,25 @@ def test_commands_stacked_at_one_log_time_are_held_to_the_rate_limit_together(
     # the same steps a period apart are what the supervisor sends
     period_ns = round(hand.bus.period_s * 1e9)
     assert _commands(monkeypatch, protocol, hand, [k * period_ns for k in range(20)], torques)
+
+
+def test_commands_the_bus_refused_give_the_next_that_went_their_steps(
+    monkeypatch: pytest.MonkeyPatch, hand: HandConfig, protocol: Protocol
+) -> None:
+    """A run's bus refused two commands in a row while f1_j1 ramped at its rate limit: the
+    supervisor took each for applied and stepped on from it, and the next that went carried
+    three steps from the last the node had; the run ended "completed", and the replay
+    refused its log for a frame the supervisor had let through (an outside audit). The steps
+    of refused commands are the next sent one's; a log's own gap is not."""
+    step = hand.fingers[0].joints[0].rate_limit * hand.bus.period_s
+    period_ns = round(hand.bus.period_s * 1e9)
+    times = [k * period_ns for k in range(8)]
+    torques = [step * (k + 1) for k in range(8)]
+    assert _commands(monkeypatch, protocol, hand, times, torques, refused=frozenset({3, 4})) == 6
+    # the same torques with nothing refused between: three steps in a period are not
+    ramp = [tau for k, tau in enumerate(torques) if k not in (3, 4)]
+    with pytest.raises(ConfigError):
+        _commands(monkeypatch, protocol, hand, [k * period_ns for k in range(6)], ramp)
 
 
 def test_a_late_tick_and_the_one_after_it_are_what_a_real_time_run_sends(
