@@ -568,7 +568,7 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
         return
     order = sorted(ticks)
     _check_no_hole(recording, order)
-    _check_no_gap(recording, ticks, order)
+    _check_no_gap(recording, ticks, order, _first_command_ns(recording, hand, direction))
     slack = round(hand.bus.period_s * 1e9)
     # a frame of no logged tick is one of the start-up's, before the first tick: one dated
     # among the ticks was put in (a run logs none there; frames of tick -1 set at 3 s went out)
@@ -624,17 +624,37 @@ def _check_no_hole(recording: Recording, ticks: Sequence[int]) -> None:
             )
 
 
-def _check_no_gap(recording: Recording, ticks: dict[int, int], order: Sequence[int]) -> None:
+def _first_command_ns(recording: Recording, hand: HandConfig, direction: str) -> int | None:
+    """The log time of the first command frame (an enable, a torque) the log holds, or None."""
+    commands = {f.can_ids.torque_command for f in hand.fingers}
+    commands |= {f.can_ids.node_command for f in hand.fingers}
+    for log_time, frame_id, _, _ in logged_frames(recording, direction):
+        if frame_id in commands:
+            return log_time
+    return None
+
+
+def _check_no_gap(
+    recording: Recording,
+    ticks: dict[int, int],
+    order: Sequence[int],
+    first_command_ns: int | None = None,
+) -> None:
     """Refuse a log in which one tick comes longer after the one before than the nodes'
-    command watchdog (``COMMAND_WATCHDOG_S``). A run stops on LOOP_OVERRUN before its nodes'
+    command watchdog (``COMMAND_WATCHDOG_S``), once a command has been sent
+    (``first_command_ns``). A run stops on LOOP_OVERRUN before its nodes'
     watchdog would (``most_misses_before_watchdog``), so a run that went on never logs such
     a gap; one whose times were edited does. Sent, the nodes held the last torque through
     the gap: a log whose times jumped three years 0.8 s in went out for 0.8 s, enabled the
     nodes, and then sent nothing until killed. (A run that did stall that long stopped
     there on LOOP_OVERRUN, and its nodes timed out: its log's gap is the same refusal.)
-    ``order``: the ticks of ``ticks`` (tick -> log time), sorted."""
+    A gap before the first command holds no torque and no enabled node: a real-time run's
+    start-up, listening to its nodes on a loaded host, stalls so, and its log was refused
+    (an outside audit). ``order``: the ticks of ``ticks`` (tick -> log time), sorted."""
     most_ns = round(COMMAND_WATCHDOG_S * 1e9)
     for before, after in itertools.pairwise(order):
+        if first_command_ns is None or ticks[after] <= first_command_ns:
+            continue  # nothing sent yet: nothing held through the gap
         gap = ticks[after] - ticks[before]
         if not 0 <= gap <= most_ns:
             raise ConfigError(

@@ -1275,6 +1275,29 @@ def test_to_bus_sends_nothing_from_a_log_whose_times_jump_between_ticks(
     assert f"found {gap:.9g} s after tick {tick}" in done.stderr
 
 
+def test_a_stall_before_the_first_command_is_no_gap_the_nodes_hold_torque_through(
+    recorded: Recorded, hand: HandConfig
+) -> None:
+    """A real-time run's start-up listens to its nodes before it enables them, and a loaded
+    host stalls it past the nodes' 10 ms watchdog: no node is enabled and no torque is held
+    through it, but the replay refused the log as one whose ticks jump (an outside audit).
+    The same stall once a command went is refused, as above."""
+    from handctl.recording import frames
+
+    ms = 1_000_000
+    ticks = {0: 0, 1: 1 * ms, 2: 15 * ms, 3: 16 * ms, 4: 17 * ms}  # 14 ms from tick 1 to 2
+    order = sorted(ticks)
+    frames._check_no_gap(open_recording(recorded.path), ticks, order, 15 * ms)  # enabled at 2
+    with pytest.raises(ConfigError) as caught:
+        frames._check_no_gap(open_recording(recorded.path), ticks, order, 1 * ms)
+    assert caught.value.key == f"{ch.TIMING} tick 2"
+    # the first command of a whole log is found where it was logged
+    first = frames._first_command_ns(open_recording(recorded.path), hand, "both")
+    with recorded.path.open("rb") as handle:
+        sent = [m.log_time for _, _, m in make_reader(handle).iter_messages([ch.CAN_TX])]
+    assert first == min(sent)
+
+
 def test_ticks_moved_past_their_scheduled_times_are_refused(
     recorded: Recorded, tmp_path: Path
 ) -> None:
