@@ -36,6 +36,7 @@ from handctl.online.drivers.hand import HandDriver
 from handctl.online.loop import EndOfTicks, Runtime, TickRecord
 from handctl.online.recipes.reanalysis import Reanalyser, ReanalysisResult
 from handctl.online.recipes.schema import Recipe
+from handctl.online.safety.faults import FaultCode
 from handctl.online.taps import TAP_TX, TAP_TX_FAILED
 from handctl.recording import channels as ch
 from handctl.recording.feedback_check import FeedbackCheck
@@ -55,6 +56,8 @@ MAX_LISTED = 20
 #: one whose run stopped before its first tick
 NOT_STARTED = "the run ended before its runtime was set up"
 NO_TICK = "the run ended before its first tick"
+#: how a frame the log has and the re-run did not send ends its mismatch's text
+RERUN_DID_NOT_SEND = " that the re-run did not send"
 
 
 @dataclass
@@ -263,7 +266,7 @@ class ReplayBus:
         for frame_id, data, _ in self._tx:
             self._mismatch(
                 f"tick {self.tick}: the log has frame 0x{frame_id:03X} "
-                f"{data.hex()} that the re-run did not send"
+                f"{data.hex()}{RERUN_DID_NOT_SEND}"
             )
         self.tick = tick
         self._rx = deque(inputs.rx)
@@ -839,12 +842,21 @@ def _up_to_the_exception(
     said MISMATCH there (exit 1) read as a log tampered with."""
     tick, what = raised
     before = [m for m in report.mismatches if m["tick"] < tick]
+    # a clock's exception comes before its tick begins: the stop's frames are logged in the
+    # tick before, as frames the re-run, which goes on ticking, did not send (they made a
+    # clock's fault re-run as MISMATCH, exit 1: an outside audit)
+    stop_tick = tick - 1 if what.startswith(f"{FaultCode.CLOCK_EXCEPTION.name}:") else None
+
+    def kept(text: str) -> bool:
+        at = _tick_of(text)
+        return at < tick and not (at == stop_tick and text.endswith(RERUN_DID_NOT_SEND))
+
     return replace(
         report,
         compared=compare.compared_before,
         mismatched_ticks=sum(t < tick for t in compare.bad_ticks),
         mismatches=before,
-        frame_mismatches=[f for f in report.frame_mismatches if _tick_of(f) < tick],
+        frame_mismatches=[f for f in report.frame_mismatches if kept(f)],
         decision_mismatches=[d for d in report.decision_mismatches if 0 <= _tick_of(d) < tick],
         outcome_mismatch="",
         notes=[

@@ -1340,18 +1340,21 @@ def test_the_host_out_of_memory_is_said_as_such(
     assert "Traceback" not in err
 
 
+@pytest.mark.parametrize("stage", ["runner", "clock"])
 def test_the_rerun_of_a_run_that_stopped_on_an_exception_compares_up_to_it(
-    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    hand: HandConfig, hold: Recipe, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, stage: str
 ) -> None:
     """The exception came from outside the logged inputs (here a forced one), so the re-run
     does not raise it: it compares every tick before it, bit-exact, and says where it
-    stopped comparing (it said MISMATCH on the stop's ticks, exit 1, as for a log altered)."""
+    stopped comparing (it said MISMATCH on the stop's ticks, exit 1, as for a log altered).
+    A clock's exception comes before its tick began: the stop's frames are logged in the
+    tick before, and were said as frames the re-run did not send (an outside audit)."""
     from handctl.recording.rerun import rerun
 
     log = tmp_path / "run.mcap"
     with bench(hand, hold, log) as b:
         due = Trigger(b.runtime, always=False)
-        force("runner", b, due, monkeypatch)
+        force(stage, b, due, monkeypatch)
         result = asyncio.run(b.runtime.run())
         monkeypatch.undo()
         b.recorder.close(session.summarise_run(result, hand, hold, True, None))
@@ -1362,7 +1365,8 @@ def test_the_rerun_of_a_run_that_stopped_on_an_exception_compares_up_to_it(
     assert report.compared >= raised - b.runtime.first_send_tick - 1
     said = [n for n in report.notes if "stopped on an exception" in n]
     assert said and f"compared up to tick {raised}" in said[0]
-    assert "RUNNER_EXCEPTION: ForcedError: forced in the runner stage" in said[0]
+    code = STAGE_FAULTS[stage].name
+    assert f"{code}: ForcedError: forced in the {stage} stage" in said[0]
 
 
 def test_a_note_to_the_log_that_raises_is_the_record_stage_s(
