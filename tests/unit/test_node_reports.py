@@ -229,6 +229,26 @@ def test_a_stream_begun_again_at_0_contradicts_none_before_it(node: FingerNode) 
     assert node.contradiction.startswith(f"two Feedback frames (id 0x{fb:03X}) with counter 3")
 
 
+@pytest.mark.parametrize("lost", [1, 2, 3])
+def test_a_stream_begun_again_with_its_first_frames_lost_contradicts_none(
+    node: FingerNode, lost: int
+) -> None:
+    """A node reboots and its first frames after the boot are lost on the bus: the host
+    hears it begin at 1 (or 2, 3), DISABLED. Only a skip to 0 followed by 1 was a stream
+    begun again, so its next frames contradicted those of the same counters from before the
+    boot, and a reboot stopped the run as a second sender (found by an outside audit)."""
+    fb = node.layouts.feedback.frame_id
+    ms = 1_000_000
+    for counter in range(20):
+        assert node.receive(fb, _feedback(node, counter, ENABLED, 0), (1 + counter) * ms) is None
+    t = 30 * ms
+    assert node.receive(fb, _feedback(node, lost, DISABLED, 0), t) is Reject.COUNTER_SKIP
+    for k in range(1, 6):
+        assert node.receive(fb, _feedback(node, lost + k, DISABLED, 0), t + k * ms) is None
+    assert node.contradiction == "" and node.contradictions == 0
+    assert node.state == DISABLED
+
+
 def test_a_stream_that_comes_round_in_a_burst_is_no_second_sender(node: FingerNode) -> None:
     """A simulated hand starved on a loaded machine catches up its 1 ms ticks in a burst: its
     counter comes round within 100 ms, every frame of the next round with other contents

@@ -13,7 +13,13 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from handctl.config import FingerConfig
-from handctl.online.drivers.receiver import CounterCheck, Reject, RejectCounts, validate
+from handctl.online.drivers.receiver import (
+    RESTART_COUNTERS,
+    CounterCheck,
+    Reject,
+    RejectCounts,
+    validate,
+)
 from handctl.protocol import (
     NODE_COMMANDS,
     Layout,
@@ -263,9 +269,11 @@ class FingerNode:
         layout, counters = self.streams[frame_id]
         reason = validate(layout, data, counters)
         if (
-            reason is None or reason is Reject.COUNTER_REPEAT or reason is Reject.COUNTER_SKIP
-        ) and counters.contradicts(
-            data, arrival_ns, SECOND_SENDER_WITHIN_NS, SECOND_SENDER_WITHIN_FRAMES
+            (reason is None or reason is Reject.COUNTER_REPEAT or reason is Reject.COUNTER_SKIP)
+            and counters.contradicts(
+                data, arrival_ns, SECOND_SENDER_WITHIN_NS, SECOND_SENDER_WITHIN_FRAMES
+            )
+            and not self._rebooted_stream(layout, counters, data)
         ):
             # whichever the counter rule took it for: in sequence, a repeat, or a counter
             # gone back behind a forged one; never applied
@@ -323,6 +331,32 @@ class FingerNode:
         command, not whichever report came last (a single forged Heartbeat DISABLED after the
         disable hid a node that had ignored it, and its e-stop was never sent)."""
         return self.feedback is not None and self.feedback.state == _ENABLED
+
+    def _rebooted_stream(self, layout: Layout, counters: CounterCheck, data: bytes) -> bool:
+        """Whether a frame that contradicts an earlier one of its counter is a rebooted node's
+        stream begun again, whose first frames were lost on the bus: a skip back to one of
+        the stream's first counters (``RESTART_COUNTERS``) saying the node is not ENABLED
+        where the earlier said ENABLED (a node boots DISABLED). Then the stream's history is
+        set aside (``CounterCheck.begin_again``) and its state is what stops the run. A skip to 0
+        followed by 1 alone was a stream begun again: with the boot's first frame lost, the
+        node's 1 contradicted its 1 from before the boot, and a reboot was said as a second
+        sender (found by an outside audit). A forger cannot use it to hide: the frame that
+        arrives second is the one judged, and in a run the node's own say ENABLED."""
+        counter = data[1]
+        earlier = counters.frame_of(counter)
+        before = counters.before
+        if counter >= RESTART_COUNTERS or earlier is None or before is None or counter >= before:
+            return False  # not a skip back to a stream's first counters
+        at = 2 * len(self.finger.joints) if layout is self.layouts.feedback else 0
+        try:
+            now_state = int(layout.decode(data)[1][at])
+            was_state = int(layout.decode(earlier)[1][at])
+        except (ValueError, IndexError):
+            return False
+        if was_state != _ENABLED or now_state == _ENABLED:
+            return False
+        counters.begin_again()
+        return True
 
     def _second_sender(self, layout: Layout, data: bytes) -> None:
         """A frame with the counter of one accepted shortly before on its stream (the last,

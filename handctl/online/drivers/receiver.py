@@ -22,6 +22,9 @@ class Reject(enum.IntEnum):
 
 
 REJECT_KINDS = tuple(Reject)
+#: A node counts from 0 after boot: a frame of one of these first counters may be a rebooted
+#: node's stream begun again, its first frames lost on the bus (``FingerNode``)
+RESTART_COUNTERS = 4
 #: How many values the rolling counter (one byte) takes.
 COUNTER_VALUES = 256
 
@@ -52,10 +55,19 @@ class CounterCheck:
     (``FingerNode``), far below the range.
     """
 
-    __slots__ = ("_accepted", "_after_zero", "_frames", "_frames_ns", "_frames_seq", "last")
+    __slots__ = (
+        "_accepted",
+        "_after_zero",
+        "_frames",
+        "_frames_ns",
+        "_frames_seq",
+        "before",
+        "last",
+    )
 
     def __init__(self) -> None:
         self.last: int | None = None
+        self.before: int | None = None  # ``last`` before the latest frame
         self._after_zero = False  # the last frame was a skip to counter 0
         self._accepted = 0  # frames accepted on the stream
         self._frames: list[bytes | None] = [None] * COUNTER_VALUES
@@ -68,7 +80,7 @@ class CounterCheck:
         self._frames[:] = [None] * COUNTER_VALUES
 
     def check(self, counter: int) -> Reject | None:
-        last = self.last
+        last = self.before = self.last
         self.last = counter
         if self._after_zero:
             self._after_zero = False
@@ -80,6 +92,15 @@ class CounterCheck:
             return Reject.COUNTER_REPEAT
         self._after_zero = counter == 0
         return Reject.COUNTER_SKIP
+
+    def frame_of(self, counter: int) -> bytes | None:
+        """The last frame accepted with ``counter``, if any."""
+        return self._frames[counter]
+
+    def begin_again(self) -> None:
+        """The stream began again (a node's reboot, ``FingerNode._rebooted_stream``): no
+        frame before this one is compared with those after it."""
+        self._frames[:] = [None] * COUNTER_VALUES
 
     def accepted(self, data: bytes, arrival_ns: int) -> None:
         """Remember ``data`` (an accepted frame, counter in byte 1) as its counter's frame."""
