@@ -2383,7 +2383,7 @@ def _calibration_limits(args: argparse.Namespace, hand: HandConfig) -> Any:
 def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
     from handctl.bringup.calibrate import calibrate_tdt
     from handctl.outfile import check_writable
-    from handctl.stopsignals import StopSignals
+    from handctl.stopsignals import StopSignals, finished
 
     # before the DBC is read: one that -o or --json names would be replaced at the end (the
     # two against each other and the hand config are asked below, with what --write means)
@@ -2484,7 +2484,12 @@ def _cmd_calibrate_tdt(args: argparse.Namespace) -> int:
             accept_missed_deadlines=args.accept_missed_deadlines,
             signals=signals,
         )
-        return _calibration_result(args, hand, text, calibration, written, signals, settle)
+        code = _calibration_result(args, hand, text, calibration, written, signals, settle)
+        # the result stands (the file written, or not): a stop signal from here on is said
+        # and changes no exit; one in the gap before the command's end turned it into 130
+        # (found by an outside audit)
+        finished()
+    return code
 
 
 def _calibration_result(
@@ -2614,7 +2619,7 @@ def _read_or_none(path: Path) -> str | None:
 
 def _cmd_jog(args: argparse.Namespace) -> int:
     from handctl.bringup.jog import JogLine, jog, jog_recipe
-    from handctl.stopsignals import StopSignals
+    from handctl.stopsignals import StopSignals, finished
 
     hand = _load_checked_hand(args.hand, "--hand", args.dbc)
     seconds = _seconds_or(args.seconds, 2.0)
@@ -2690,6 +2695,11 @@ def _cmd_jog(args: argparse.Namespace) -> int:
                 show=show,
                 signals=signals,
             )
+            # the jog's result is what it did, which stands once the hand has stopped: a stop
+            # signal while it is said (a stopped terminal holds that for as long as it likes)
+            # turned a jog's exit 0 or 1 into 130 "interrupted", its result lines lost (found
+            # by an outside audit)
+            finished()
     finally:
         table.finish()
     from handctl.online.loop import Outcome
@@ -4235,7 +4245,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # SIGINT too, explicitly: a process started with it ignored (a background job of a
         # non-interactive shell, a supervisor's child) inherits SIG_IGN, and Python then
         # leaves it so; a plan or a check would go on through every Ctrl-C and kill -INT.
-        before_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+        # ``interrupt``, not Python's own handler: once the command has its result
+        # (``stopsignals.finished``) a Ctrl-C is said and changes no exit, as the others are;
+        # Python's raised it all the same, and a jog's result became 130 (an outside audit).
+        before_int = signal.signal(signal.SIGINT, interrupt)
         try:
             return _run_args(argv)
         finally:

@@ -317,6 +317,35 @@ def test_a_stop_signal_once_the_hand_has_stopped_writes_nothing(
     assert {p.name for p in tmp_path.iterdir()} <= {"hand.yaml", "m.json"}
 
 
+@pytest.mark.parametrize("name", ["SIGINT", "SIGTERM"])
+def test_a_stop_signal_once_the_calibration_is_written_changes_no_exit(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    name: str,
+) -> None:
+    """A stop signal once the calibrated copy was written, as the calibration's stop signals
+    were put back, turned its exit 0 into 130 "interrupted" over a file written (found by an
+    outside audit). It is said, and the result stands."""
+    import signal
+
+    from handctl import stopsignals
+
+    original = stopsignals.StopSignals.__exit__
+
+    def signalled(self: stopsignals.StopSignals, *exc: Any) -> None:
+        original(self, *exc)
+        signal.raise_signal(signal.Signals[name])
+
+    monkeypatch.setattr(stopsignals.StopSignals, "__exit__", signalled)
+    copy = tmp_path / "copy.yaml"
+    args = ["calibrate", "tdt", "-o", str(copy), "--seconds", "0.2"]
+    assert cli.main(args) == cli.EXIT_OK, capsys.readouterr().err
+    assert f"written: {copy}" in capsys.readouterr().out
+    assert load_hand(copy).name
+    assert [name] == stopsignals.LATE
+
+
 def test_a_write_that_fails_leaves_the_old_file_and_nothing_else(tmp_path: Path) -> None:
     target = tmp_path / "hand.yaml"
     target.write_text("old\n")

@@ -588,6 +588,51 @@ def test_a_stop_signal_once_the_hand_has_stopped_is_said(
     ), captured.err
 
 
+@pytest.mark.parametrize(
+    ("sig", "faults", "code"),
+    [
+        (signal.SIGINT, None, cli.EXIT_OK),
+        (signal.SIGTERM, None, cli.EXIT_OK),
+        (signal.SIGINT, "{kind: motor_saturation, node: 1, joint: 2, limit: 0.012, start: 0.0}", 1),
+    ],
+)
+def test_a_stop_signal_while_the_jog_s_result_is_said_changes_no_exit(
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+    sig: signal.Signals,
+    faults: str | None,
+    code: int,
+) -> None:
+    """A Ctrl-C once the hand had stopped, while the result was said (a stopped terminal
+    holds that for as long as it likes), turned the jog's exit 0, or its FAILED exit 1, into
+    130 "interrupted", its result lines lost (found by an outside audit). The signal comes
+    here right after the jog's stop signals are put back, the hand stopped."""
+    from handctl import stopsignals
+
+    original = stopsignals.StopSignals.__exit__
+
+    def signalled(self: stopsignals.StopSignals, *exc: Any) -> None:
+        original(self, *exc)
+        signal.raise_signal(sig)
+
+    monkeypatch.setattr(stopsignals.StopSignals, "__exit__", signalled)
+    args = ["jog", "f1_j2", "--torque", "0.03", "--seconds", "0.2"]
+    if faults is not None:
+        scenario = tmp_path / "sat.yaml"
+        scenario.write_text(f"faults:\n  - {faults}\n")
+        args += ["--sim-faults", str(scenario)]
+    assert cli.main(args) == code
+    captured = capsys.readouterr()
+    assert "f1_j2: " in captured.out, captured.err  # the jog's result, said
+    assert [sig.name] == stopsignals.LATE
+    cli.leave(code)
+    assert (
+        f"handctl: {sig.name} came after the command had finished; its exit ({code}) stands"
+        in capsys.readouterr().err
+    )
+
+
 def test_a_jog_refused_before_it_runs_prints_no_banner(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
