@@ -144,6 +144,11 @@ class JogSink:
         self.held = 0
         self.held_applied = 0.0
         self.held_tdt = 0.0
+        #: the ticks of the jog's phase its torque was not applied whole (the ramp, or the
+        #: soft-limit guard holding it back), and the largest |applied| over them: a jog the
+        #: guard held below its torque throughout had no hold, and was judged on nothing
+        self.held_back = 0
+        self.held_back_max = 0.0
         self._first_tick: int | None = None
         #: the last tick's line if it was not shown, as JogLine's fields (made a line only
         #: if it is: a frozen dataclass every tick was work in the tick): shown by ``finish``
@@ -175,6 +180,9 @@ class JogSink:
                 self.held += 1
                 self.held_applied += applied
                 self.held_tdt += tdt
+            elif self.torque and record.phase == JOG_PHASE and not self.encoder_failed:
+                self.held_back += 1
+                self.held_back_max = max(self.held_back_max, abs(applied))
         new_phase = record.phase != self._phase
         self._phase = record.phase
         if self.show is None:
@@ -210,6 +218,8 @@ class JogSink:
             self._unshown = None
 
 
+#: the name of a jog's one phase (a recovery's is ``recover``)
+JOG_PHASE = "jog"
 #: ticks of the hold a TDT is judged on, at the least (a tenth of a second at 1 kHz): a jog
 #: stopped sooner says nothing of its sensor
 TDT_JUDGED_TICKS = 100
@@ -228,9 +238,21 @@ def tdt_problem(joint: str, sink: JogSink, rang: Sequence[Ringing] = ()) -> str:
     Not judged when the joint's command rang (``rang``, the run's ``chatter``): the mean of a
     command swinging by more than the jog's torque is not the torque the joint was held at,
     and a healthy sensor was said not to follow its joint (a hand of large tau_max, whose
-    soft-limit guard is stiff for its links: found by an outside audit). Said as that."""
+    soft-limit guard is stiff for its links: found by an outside audit). Said as that.
+
+    Nor when the torque asked was never held long enough because the soft-limit guard held
+    the joint below it for as long (a jog run into the guard's band): said as that too. It
+    passed in silence, exit 0, whatever the sensor read (found by an outside audit); a jog
+    only stopped sooner than ``TDT_JUDGED_TICKS`` says nothing of its sensor."""
     if sink.held < TDT_JUDGED_TICKS:
-        return ""
+        if sink.held_back < TDT_JUDGED_TICKS:
+            return ""
+        return (
+            f"{joint}'s TDT cannot be judged: its applied torque was held off the "
+            f"{sink.torque:+g} N·m asked for {sink.held_back} ticks of the jog (the soft-limit "
+            f"guard pushing back; at most {sink.held_back_max:.4f} N·m), so no steady torque "
+            "was held; jog it with a smaller torque, or from further inside its range"
+        )
     ringing = [r for r in rang if r.joint == joint]
     if ringing:
         return (
@@ -307,7 +329,7 @@ def jog_recipe(
             f"jog_{joint}",
             f"{torque:+g} N·m on {joint}, zero elsewhere",
             hand,
-            [phase("jog", torques, ramp, ramp + seconds)],
+            [phase(JOG_PHASE, torques, ramp, ramp + seconds)],
             ramp,
             guard=jog_guard(hand, torque),
         )

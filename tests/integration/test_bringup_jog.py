@@ -724,6 +724,28 @@ def test_a_jog_whose_command_rang_does_not_blame_the_sensor(
     assert "does not follow its joint" not in err
 
 
+@pytest.mark.parametrize("torque", ["-0.06", "-0.3"])
+def test_a_jog_the_guard_holds_below_its_torque_cannot_be_judged(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], torque: str
+) -> None:
+    """f1_j1 jogged into its lower soft limit: the guard holds the applied torque off the
+    one asked for the whole jog, no tick counted as the hold, and the TDT, here reading
+    0.014 N·m high (under half the torque applied at -0.3 N·m), was judged on nothing: exit
+    0 without a word (found by an outside audit). It cannot be judged, and is said so."""
+    faults = tmp_path / "offset.yaml"
+    faults.write_text(
+        "faults:\n  - {kind: tdt_offset, node: 1, joint: 1, offset: 0.014, start: 0.0}\n"
+    )
+    args = ["jog", "f1_j1", "--torque", torque, "--seconds", "1", "--sim-faults", str(faults)]
+    code = cli.main(args)
+    err = capsys.readouterr().err
+    assert code == cli.EXIT_FAILED, err
+    assert (
+        f"handctl: FAILED: f1_j1's TDT cannot be judged: its applied torque was held off the "
+        f"{float(torque):+g} N·m asked" in err
+    )
+
+
 def test_a_reader_that_falls_behind_does_not_stop_the_jog(tmp_path: Path) -> None:
     """The table is written from inside the tick. Through a pipe whose reader stopped reading
     (``handctl jog ... | less`` left at its prompt), the write blocked once the pipe was
