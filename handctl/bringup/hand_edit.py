@@ -141,9 +141,18 @@ def _joint_edit(
             raise _CannotEditError(f"{name}: its flow mapping ends on a line of its own")
         return before, before, f", {entry}"
     first_key = joint.value[0][0]
-    last_value = joint.value[-1][1]
-    line_end = text.find("\n", last_value.end_mark.index)
-    if line_end < 0 or "\n" in text[last_value.start_mark.index : last_value.end_mark.index]:
+    last_key, last_value = joint.value[-1]
+    if last_value.start_mark.index < last_key.end_mark.index:
+        # an alias (``<<: *flexor``): its node is the anchored one, whose marks are where
+        # the anchor is defined, lines above; the key's own line is this mapping's last.
+        # Placed after the anchor's line, the new tdt broke the file (found by an outside
+        # audit). The alias after the key on its line is the whole value.
+        line_end = text.find("\n", last_key.end_mark.index)
+    else:
+        line_end = text.find("\n", last_value.end_mark.index)
+        if "\n" in text[last_value.start_mark.index : last_value.end_mark.index]:
+            line_end = -1
+    if line_end < 0:
         raise _CannotEditError(f"{name}: its last key does not end its line")
     indent = " " * first_key.start_mark.column
     return line_end + 1, line_end + 1, f"{indent}{entry}\n"
@@ -169,7 +178,11 @@ def _verify(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> None:
         # otherwise refused every calibration of such a hand after it had measured
         got = parse_hand(parse_yaml(text, hand.source), dbc=hand.dbc)
     except ConfigError as exc:
-        raise _CannotEditError(f"the edited text does not read back: {exc}") from None
+        # the edited text's fault, not the file's: named as the hand config, the message sent
+        # the user to a line of their own file that reads well (found by an outside audit)
+        where = "the edited text" if exc.file == hand.source else exc.file
+        said = ConfigError(where, exc.key, exc.expected, exc.found)
+        raise _CannotEditError(f"handctl's edit of it does not read back: {said}") from None
     for old, new in zip(hand.joints, got.joints, strict=True):
         want = dataclasses.replace(old, tdt=dataclasses.replace(old.tdt, offset=offsets[old.name]))
         if new != want:

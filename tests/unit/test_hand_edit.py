@@ -69,3 +69,50 @@ def test_offsets_no_hand_config_can_carry_are_refused_not_written(hand: HandConf
     offsets = {j.name: 0.0 for j in hand.joints} | {"f2_j3": -5.0}
     with pytest.raises(ValueError, match="with the new offsets it does not read back"):
         with_tdt_offsets(HAND_YAML.read_text(), hand, offsets)
+
+
+def test_a_block_joint_whose_merge_key_is_its_last_gets_its_tdt_in_place(
+    hand: HandConfig,
+) -> None:
+    """The new tdt went after the line where the anchor ``<<: *flexor`` names is defined,
+    lines above (the alias's node is the anchored one): the edit did not read back, the file
+    was dumped without its comments, and the warning blamed a line of the user's file that
+    reads well (found by an outside audit). It goes after the merge key's own line."""
+    text = HAND_YAML.read_text()
+    flow = (
+        "      - {<<: *flexor, name: f1_j2, link_length: 0.050, half_thickness: 0.0075, "
+        "tau_max: 0.45, device_tau_max: 0.60, angle_min: -0.90, angle_max: 2.30}\n"
+    )
+    block = (
+        "      - name: f1_j2        # middle joint\n"
+        "        link_length: 0.050\n"
+        "        half_thickness: 0.0075\n"
+        "        tau_max: 0.45\n"
+        "        device_tau_max: 0.60\n"
+        "        angle_min: -0.90\n"
+        "        angle_max: 2.30\n"
+        "        <<: *flexor          # the rest as f1_j1\n"
+    )
+    assert flow in text
+    text = text.replace(flow, block)
+    assert parse_hand(parse_yaml(text, "t")).joints == hand.joints  # the same hand
+    offsets = _offsets(hand)
+    edited = with_tdt_offsets(text, hand, offsets)
+    assert not edited.dumped, edited.why
+    added = f"tdt: {{scale: 1.0, offset: {offsets['f1_j2']:.4f}}}\n"
+    assert "        <<: *flexor          # the rest as f1_j1\n        " + added in edited.text
+    _reads_back(edited.text, hand, offsets)
+
+
+def test_an_edit_that_does_not_read_back_blames_the_edit_not_the_file(
+    hand: HandConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The warning said the user's hand config was not valid YAML at a line of it that
+    reads well (found by an outside audit): the text that does not read back is the edit's."""
+    from handctl.bringup import hand_edit
+
+    monkeypatch.setattr(hand_edit, "_edit", lambda text, hand, offsets: text + "x: [\n")
+    edited = with_tdt_offsets(HAND_YAML.read_text(), hand, _offsets(hand))
+    assert edited.dumped
+    assert edited.why.startswith("handctl's edit of it does not read back: the edited text: ")
+    assert hand.source not in edited.why
