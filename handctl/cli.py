@@ -2568,7 +2568,7 @@ def _write_calibration(
     config as it was read before the run, with ``offsets`` (N·m by joint); not if a stop
     signal came before the write (``stops``, the calibration's ``StopSignals.ignored``, looked
     at once they are held back)."""
-    from handctl.bringup.hand_edit import with_tdt_offsets
+    from handctl.bringup.hand_edit import with_line_ends, with_tdt_offsets
     from handctl.config import load_hand
     from handctl.stopsignals import held_back
 
@@ -2594,9 +2594,14 @@ def _write_calibration(
                 f"--write: {args.hand} changed while the calibration ran; nothing written "
                 "(the offsets measured are above; calibrate again)"
             )
+        # read with its line ends made \n: each line's own put back (``with_line_ends``); a
+        # dump has no lines of the original, and takes \r\n if the original had any
+        raw = args.hand.read_bytes().decode("utf-8", errors="surrogateescape")
         out = edited.text
-        if b"\r\n" in args.hand.read_bytes():  # read with its line ends made \n: put back
+        if edited.dumped and "\r\n" in raw:
             out = out.replace("\n", "\r\n")
+        elif not edited.dumped:
+            out = with_line_ends(raw, out)
         _write_output("-o" if args.output is not None else "--write", written, out)
         new_hash = load_hand(target, args.dbc).config_hash
         print(f"written: {target}" + (" (the original, --write)" if target == args.hand else ""))

@@ -16,6 +16,8 @@ the comments and the layout; ``EditedHand.dumped`` says so, and the command warn
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -156,6 +158,39 @@ def _joint_edit(
         raise _CannotEditError(f"{name}: its last key does not end its line")
     indent = " " * first_key.start_mark.column
     return line_end + 1, line_end + 1, f"{indent}{entry}\n"
+
+
+#: a line and its own ending (none on a last line without one)
+_LINE = re.compile(r"([^\r\n]*)(\r\n|\r|\n|$)")
+
+
+def _lines(text: str) -> list[tuple[str, str]]:
+    found = [(m.group(1), m.group(2)) for m in _LINE.finditer(text)]
+    return found[:-1] if found and found[-1] == ("", "") else found
+
+
+def with_line_ends(raw: str, edited: str) -> str:
+    """``edited`` (made from ``raw`` read with its line ends made \\n) with each line's own
+    ending of ``raw`` put back: a line the edit kept keeps its ending, and a line it added
+    or changed takes the ending of the line before it in ``raw`` (the one after, at the
+    top). Every line was given \\r\\n when any line had one, and a file of mixed endings
+    came back rewritten on every line but those (found by an outside audit)."""
+    if "\r" not in raw:
+        return edited
+    old, new = _lines(raw), _lines(edited)
+    matcher = difflib.SequenceMatcher(None, [b for b, _ in old], [b for b, _ in new], False)
+    out: list[str] = []
+    for tag, i1, i2, j1, j2 in matcher.get_opcodes():
+        for k in range(j1, j2):
+            body, end = new[k]
+            i = i1 + k - j1
+            if end and tag in ("equal", "replace") and i < i2 and old[i][1]:
+                end = old[i][1]
+            elif end:
+                near = old[i1 - 1] if i1 > 0 else old[i1] if i1 < len(old) else ("", "\n")
+                end = near[1] or end
+            out.append(body + end)
+    return "".join(out)
 
 
 def _dump(text: str, hand: HandConfig, offsets: Mapping[str, float]) -> str:

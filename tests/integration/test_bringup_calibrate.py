@@ -201,6 +201,21 @@ def test_a_hand_config_with_crlf_line_ends_keeps_them(tmp_path: Path) -> None:
     assert load_hand(out).joints[0].tdt.offset != 0.0
 
 
+def test_a_hand_config_with_mixed_line_ends_keeps_each_line_s(tmp_path: Path) -> None:
+    """CRLF on the first five lines only: every line of the copy was given CRLF, not byte for
+    byte the original but for the offsets (found by an outside audit)."""
+    lines = HAND_YAML.read_bytes().split(b"\n")
+    copy = tmp_path / "hand.yaml"
+    copy.write_bytes(b"\r\n".join(lines[:6]) + b"\n" + b"\n".join(lines[6:]))
+    out = tmp_path / "calibrated.yaml"
+    args = ["calibrate", "tdt", "--hand", str(copy), "-o", str(out), "--seconds", "0.2"]
+    assert cli.main(args) == cli.EXIT_OK
+    written = out.read_bytes()
+    assert written.count(b"\r\n") == 5
+    assert written.split(b"\n")[:5] == copy.read_bytes().split(b"\n")[:5]
+    assert load_hand(out).joints[0].tdt.offset != 0.0
+
+
 def _read_only_hand(tmp_path: Path) -> list[str]:
     copy = tmp_path / "hand.yaml"
     shutil.copy(HAND_YAML, copy)

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 import yaml
 
-from handctl.bringup.hand_edit import with_tdt_offsets
+from handctl.bringup.hand_edit import with_line_ends, with_tdt_offsets
 from handctl.config import HandConfig, parse_hand
 from handctl.schema import parse_yaml
 
@@ -116,3 +116,10 @@ def test_an_edit_that_does_not_read_back_blames_the_edit_not_the_file(
     assert edited.dumped
     assert edited.why.startswith("handctl's edit of it does not read back: the edited text: ")
     assert hand.source not in edited.why
+
+
+def test_each_line_keeps_its_own_ending_and_a_new_one_takes_its_neighbour_s() -> None:
+    raw = "a: 1\r\nb: 2\r\nc: 3\nd: 4\n"
+    edited = "a: 1\nb: 5\nc: 3\n  x: 9\nd: 4\n"
+    assert with_line_ends(raw, edited) == "a: 1\r\nb: 5\r\nc: 3\n  x: 9\nd: 4\n"
+    assert with_line_ends("a: 1\nb: 2", "a: 1\nb: 3") == "a: 1\nb: 3"
