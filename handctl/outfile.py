@@ -7,6 +7,7 @@ nothing; a hand config half written by a crash or a full disk is worse than the 
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import re
@@ -45,16 +46,10 @@ def check_writable(
     directory = target.parent
     if not directory.is_dir():
         raise ConfigError(option, "", "a file in an existing directory", path)
-    try:
-        found: os.stat_result | None = os.stat(target)
-    except OSError as exc:
-        if exc.errno == errno.ENAMETOOLONG:
-            # said with the file's name alone, no option, once the work was set up
-            raise ConfigError(
-                option, "", "a file name the system takes (File name too long)", path
-            ) from None
-        found = None
-    if target.exists() and not target.is_file():
+    found = _stat_or_none(target, path, option)
+    if (target.exists() and not target.is_file()) or (
+        found is not None and not stat.S_ISREG(found.st_mode) and not _standard_stream(found)
+    ):
         raise ConfigError(option, "", "a regular file (not a directory, a device or a FIFO)", path)
     stream = _standard_stream(found) if found is not None else ""
     if stream:
@@ -109,6 +104,28 @@ def check_writable(
             Description(f"{path}: an existing file that is not a {export} export"),
         )
     return target
+
+
+def _stat_or_none(target: Path, path: Path, option: str) -> os.stat_result | None:
+    """The ``os.stat`` of the file ``path`` names (``target``, resolved), or None if there is
+    none yet; a ``ConfigError`` naming ``option`` for a name the system refuses."""
+    try:
+        return os.stat(target)
+    except OSError as exc:
+        if exc.errno == errno.ENAMETOOLONG:
+            # said with the file's name alone, no option, once the work was set up
+            raise ConfigError(
+                option, "", "a file name the system takes (File name too long)", path
+            ) from None
+    if target == path:
+        return None
+    # ``/dev/stdout`` on a pipe resolves to ``/proc/PID/fd/pipe:[N]``, no file of any
+    # directory, while the link itself leads to the pipe: taken as a new file there, it was
+    # refused as one in a read-only directory, not as the command's own stdout (found by an
+    # outside audit)
+    with contextlib.suppress(OSError):
+        return os.stat(path)
+    return None
 
 
 def _standard_stream(file: os.stat_result) -> str:

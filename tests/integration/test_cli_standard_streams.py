@@ -146,3 +146,27 @@ def test_a_run_without_the_experiment_says_where_its_plot_went(
     out = capsys.readouterr().out
     assert "experiment:" not in out
     assert f"  overview plot: {plot}" in out and plot.stat().st_size > 0
+
+
+def test_a_json_output_that_is_the_commands_own_stdout_on_a_pipe_is_said_so(
+    tmp_path: Path,
+) -> None:
+    """``calibrate tdt -o x.yaml --json /dev/stdout | cat``: /dev/stdout on a pipe resolves
+    to no file of any directory, and was refused as a file in a read-only directory, not as
+    the command's own standard output (found by an outside audit). Refused before it runs."""
+    result = subprocess.run(
+        [
+            *(sys.executable, "-m", "handctl", "calibrate", "tdt"),
+            *("-o", str(tmp_path / "x.yaml"), "--json", "/dev/stdout"),
+        ],
+        cwd=ROOT,
+        text=True,
+        timeout=300,
+        check=False,
+        capture_output=True,
+    )
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith(
+        "handctl: error: --json: expected a file other than this command's standard output"
+    ), result.stderr
+    assert result.stdout == ""
