@@ -2538,8 +2538,18 @@ def _calibration_result(
             + "\n",
         )
     if calibration.problems:
+        # the measurements of a refused calibration are kept (--json): what was refused is
+        # the hand config, and "nothing written" over a --json written was untrue (found by
+        # an outside audit)
+        target = args.hand if args.output is None else args.output
+        written_what = (
+            "nothing written"
+            if not args.json
+            else f"{escaped(str(target))} not written (the measurements are in "
+            f"{escaped(str(args.json))})"
+        )
         print(
-            "handctl: calibration refused, nothing written: " + "; ".join(calibration.problems),
+            f"handctl: calibration refused, {written_what}: " + "; ".join(calibration.problems),
             file=sys.stderr,
         )
         return EXIT_FAILED

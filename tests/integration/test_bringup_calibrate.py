@@ -384,6 +384,26 @@ def test_a_joint_that_moves_is_refused_by_name(
     assert not out.exists()
 
 
+def test_a_refused_calibration_says_its_json_was_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Refused with --json: "nothing written", and the JSON was (found by an outside audit).
+    Its measurements are kept, and said to be."""
+    faults = _scenario(tmp_path, "{kind: encoder_jump, node: 2, joint: 2, counts: 400, start: 0.5}")
+    out, report = tmp_path / "calibrated.yaml", tmp_path / "m.json"
+    args = ["calibrate", "tdt", "-o", str(out), "--settle", "0.2", "--seconds", "0.5"]
+    code = cli.main([*args, "--sim-faults", str(faults), "--json", str(report)])
+    err = capsys.readouterr().err
+    assert code == cli.EXIT_FAILED
+    assert (
+        f"calibration refused, {out} not written (the measurements are in {report}): "
+        "f2_j2: moved 0.15" in err
+    ), err
+    assert not out.exists()
+    joints = json.loads(report.read_text())["joints"]
+    assert [j["joint"] for j in joints if j["problem"]] == ["f2_j2"]
+
+
 def test_an_offset_beyond_the_joints_tau_max_is_refused_whatever_max_offset_says(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
