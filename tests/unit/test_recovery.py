@@ -7,6 +7,8 @@ every one report ENABLED, with the measured angles of that tick.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -263,3 +265,33 @@ def test_no_angle_goes_unchecked_further_out_than_the_ratchet(steps: list[float]
         if found:
             return
         farthest_in = min(farthest_in, q)
+
+
+def _angle_and_bound(detail: str) -> tuple[str, str]:
+    """The angle a fault's detail says the joint is at, and the bound it says it went past."""
+    found = re.search(r" at ([-+0-9.]+) rad.*\(([-+0-9.]+) rad", detail)
+    assert found is not None, detail
+    return found.group(1), found.group(2)
+
+
+def test_an_angle_just_past_its_bound_is_said_apart_from_it(
+    hand: HandConfig, protocol: Protocol
+) -> None:
+    """A tenth of a milliradian past the bound, the recovered joint's angle and its bound,
+    and a resting joint's, printed to 3 decimals, read the same, "at -0.968 rad ...
+    (-0.968 rad ...)" (found by an outside audit)."""
+    top = hand.joints[J].angle_max
+    angle = at(hand, top + 0.05)
+    other = 5
+    angle[other] = hand.joints[other].angle_max + 0.01
+    recovery = Recovery(J, -1)
+    armed = Armed(hand, protocol, angle, recovery)
+    angle[other] = recovery.resting[other] + 0.0001  # the resting one, just past its ratchet
+    (fault,) = armed.see(angle)
+    said, bound = _angle_and_bound(fault.detail)
+    assert float(said) > float(bound)
+    recovery = Recovery(J, -1)
+    armed = Armed(hand, protocol, at(hand, top + 0.05), recovery)
+    (fault,) = armed.see(at(hand, recovery.bound + 0.0001))  # the recovered one
+    said, bound = _angle_and_bound(fault.detail)
+    assert float(said) > float(bound)

@@ -116,10 +116,11 @@ class Recovery:
             return None
         moved = _ratchet(bound, q, below=bound < lo)
         if moved is None:
+            at, rested = _apart(q, bound)
             return (
-                f"{limits.names[k]} at {q:+.3f} rad, resting outside its limits "
+                f"{limits.names[k]} at {at} rad, resting outside its limits "
                 f"[{lo:+.3f}, {hi:+.3f}] while {limits.names[self.joint]} is recovered, and "
-                f"further out than it rested ({bound:+.3f} rad with {RECOVERY_SLACK:g} rad to "
+                f"further out than it rested ({rested} rad with {RECOVERY_SLACK:g} rad to "
                 "spare)"
             )
         self.resting[k] = moved
@@ -141,8 +142,21 @@ class Recovery:
 
     def _out(self, q: float, limits: JointLimits) -> str:
         j = self.joint
+        at, bound = _apart(q, self.bound)
         return (
-            f"{limits.names[j]} at {q:+.3f} rad, further out than its recovery allows "
-            f"({self.bound:+.3f} rad, {RECOVERY_SLACK:g} rad beyond the farthest in it came; "
+            f"{limits.names[j]} at {at} rad, further out than its recovery allows "
+            f"({bound} rad, {RECOVERY_SLACK:g} rad beyond the farthest in it came; "
             f"limits [{limits.angle_min_list[j]:+.3f}, {limits.angle_max_list[j]:+.3f}])"
         )
+
+
+def _apart(angle: float, bound: float) -> tuple[str, str]:
+    """``angle`` and the ``bound`` it went past (rad), signed, with the fewest decimals from
+    3 on (to 9) that tell them apart: at 3 a joint a fraction of a milliradian past its
+    bound read "at -0.968 rad ... (-0.968 rad ...)", as if it had not gone past it (found by
+    an outside audit)."""
+    for decimals in range(3, 10):
+        said = f"{angle:+.{decimals}f}", f"{bound:+.{decimals}f}"
+        if said[0] != said[1]:
+            break
+    return said
