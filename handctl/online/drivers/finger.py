@@ -13,13 +13,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from handctl.config import FingerConfig
-from handctl.online.drivers.receiver import (
-    RESTART_COUNTERS,
-    CounterCheck,
-    Reject,
-    RejectCounts,
-    validate,
-)
+from handctl.online.drivers.receiver import CounterCheck, Reject, RejectCounts, validate
 from handctl.protocol import (
     NODE_COMMANDS,
     Layout,
@@ -63,18 +57,8 @@ REORDERED_WITHIN_NS = 1_000_000
 #: is the counter come round again after frames were lost: 256 of a 1 kHz stream take 256
 #: ms, and a run's host, starved under load in its start-up, lost just that many (its
 #: receive queue full) and was stopped on a contradiction (CI). A forged frame and the node's
-#: own of that counter arrive within one of the node's 1 ms ticks of each other, or as many
-#: as the forgery ran ahead of the node.
+#: own of that counter arrive within one of the node's 1 ms ticks of each other.
 SECOND_SENDER_WITHIN_NS = 100_000_000
-#: frames: and fewer than this many frames accepted on the stream since. A forged frame is
-#: accepted as the node's next, so the node's own of its counter comes as many frames after
-#: it as the forgery ran ahead (two in the audit's case). A simulated hand starved on a
-#: loaded machine catches up its ticks in a burst, its counter round within 100 ms, and a
-#: host starved with it lost over a hundred of them from its full receive queue: the round's
-#: frames it did take were 117 and more frames back (a jog on the unix bus stopped on
-#: REJECT_RATE at start-up, CI). A forgery that runs further ahead than this is still a
-#: skip back, one reject a round, and is believed for the rest of its poll.
-SECOND_SENDER_WITHIN_FRAMES = 32
 
 
 #: ms: the range of a Heartbeat's uptime, a uint32 of ms (PROTOCOL.md): it wraps to 0 after
@@ -268,19 +252,14 @@ class FingerNode:
         """
         layout, counters = self.streams[frame_id]
         reason = validate(layout, data, counters)
-        if (
-            (reason is None or reason is Reject.COUNTER_REPEAT or reason is Reject.COUNTER_SKIP)
-            and counters.contradicts(
-                data, arrival_ns, SECOND_SENDER_WITHIN_NS, SECOND_SENDER_WITHIN_FRAMES
-            )
-            and not self._rebooted_stream(layout, counters, data)
-        ):
-            # whichever the counter rule took it for: in sequence, a repeat, or a counter
-            # gone back behind a forged one; never applied
-            self._second_sender(layout, data)
-            reason = Reject.COUNTER_REPEAT
         if reason is not None:
             self.rejects.add(reason)
+            if (
+                reason is Reject.COUNTER_REPEAT
+                and data != counters.frame
+                and arrival_ns - counters.frame_ns <= SECOND_SENDER_WITHIN_NS
+            ):
+                self._second_sender(layout, data)
             if reason is Reject.LENGTH and layout is self.layouts.status:
                 version = foreign_status_version(layout, data)
                 if version is not None:
@@ -289,7 +268,7 @@ class FingerNode:
                     self._check_version(version)
             return reason
         self.accepted += 1
-        counters.accepted(data, arrival_ns)
+        counters.frame, counters.frame_ns = data, arrival_ns
         _, values = layout.decode(data)
         if layout is self.layouts.feedback:
             fb = parse_feedback(values)
@@ -332,39 +311,12 @@ class FingerNode:
         disable hid a node that had ignored it, and its e-stop was never sent)."""
         return self.feedback is not None and self.feedback.state == _ENABLED
 
-    def _rebooted_stream(self, layout: Layout, counters: CounterCheck, data: bytes) -> bool:
-        """Whether a frame that contradicts an earlier one of its counter is a rebooted node's
-        stream begun again, whose first frames were lost on the bus: a skip back to one of
-        the stream's first counters (``RESTART_COUNTERS``) saying the node is not ENABLED
-        where the earlier said ENABLED (a node boots DISABLED). Then the stream's history is
-        set aside (``CounterCheck.begin_again``) and its state is what stops the run. A skip to 0
-        followed by 1 alone was a stream begun again: with the boot's first frame lost, the
-        node's 1 contradicted its 1 from before the boot, and a reboot was said as a second
-        sender (found by an outside audit). A forger cannot use it to hide: the frame that
-        arrives second is the one judged, and in a run the node's own say ENABLED."""
-        counter = data[1]
-        earlier = counters.frame_of(counter)
-        before = counters.before
-        if counter >= RESTART_COUNTERS or earlier is None or before is None or counter >= before:
-            return False  # not a skip back to a stream's first counters
-        at = 2 * len(self.finger.joints) if layout is self.layouts.feedback else 0
-        try:
-            now_state = int(layout.decode(data)[1][at])
-            was_state = int(layout.decode(earlier)[1][at])
-        except (ValueError, IndexError):
-            return False
-        if was_state != _ENABLED or now_state == _ENABLED:
-            return False
-        counters.begin_again()
-        return True
-
     def _second_sender(self, layout: Layout, data: bytes) -> None:
-        """A frame with the counter of one accepted shortly before on its stream (the last,
-        or one the stream has since gone back behind), and other contents: two senders on
-        one identifier (a forged frame, or two nodes set to one id), or a node whose counter
-        does not advance, which the host cannot tell apart from them. One of them was
-        believed; the counter rule alone counted the other as a lost frame, so a forgery one
-        frame in ten went on being believed under the reject-rate limit."""
+        """A frame with the counter of the one just accepted on its stream, and other
+        contents: two senders on one identifier (a forged frame, or two nodes set to one id),
+        or a node whose counter does not advance, which the host cannot tell apart from them.
+        One of them was believed; the counter rule alone counted the other as a lost frame,
+        so a forgery one frame in ten went on being believed under the reject-rate limit."""
         kind = layout.name.rpartition("_")[0]  # Feedback_1: Feedback
         self._contradicted(
             f"two {kind} frames (id 0x{layout.frame_id:03X}) with counter {data[1]} and "
