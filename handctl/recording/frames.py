@@ -587,6 +587,13 @@ def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both"
             )
 
 
+def _command_ids(hand: HandConfig) -> set[int]:
+    """The identifiers a host commands ``hand``'s nodes on (TorqueCommand, NodeCommand)."""
+    return {f.can_ids.torque_command for f in hand.fingers} | {
+        f.can_ids.node_command for f in hand.fingers
+    }
+
+
 def _check_no_commands(recording: Recording, hand: HandConfig, direction: str) -> None:
     """Refuse a log of no tick row that holds a command frame: a run sends its commands on
     its ticks and logs a row for each (a start-up sends at most its enable before the first),
@@ -594,8 +601,7 @@ def _check_no_commands(recording: Recording, hand: HandConfig, direction: str) -
     held to anything: a log whose ``/loop/timing`` channel was dropped (and its end record's
     tick count with it) and whose frames were moved 30 s on went out, enabled the nodes and
     then sent nothing for 30 s (an outside audit)."""
-    commands = {f.can_ids.torque_command for f in hand.fingers}
-    commands |= {f.can_ids.node_command for f in hand.fingers}
+    commands = _command_ids(hand)
     for log_time, frame_id, data, is_rx in logged_frames(recording, direction):
         if frame_id in commands:
             raise ConfigError(
@@ -626,8 +632,7 @@ def _check_no_hole(recording: Recording, ticks: Sequence[int]) -> None:
 
 def _first_command_ns(recording: Recording, hand: HandConfig, direction: str) -> int | None:
     """The log time of the first command frame (an enable, a torque) the log holds, or None."""
-    commands = {f.can_ids.torque_command for f in hand.fingers}
-    commands |= {f.can_ids.node_command for f in hand.fingers}
+    commands = _command_ids(hand)
     for log_time, frame_id, _, _ in logged_frames(recording, direction):
         if frame_id in commands:
             return log_time
