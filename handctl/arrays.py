@@ -9,3 +9,5 @@ import numpy.typing as npt
 
 #: A float64 array: angles (rad), torques (N·m), times (s) and the like.
 FloatArray = npt.NDArray[np.float64]
+#: A bool array: per joint, whether something holds of it.
+BoolArray = npt.NDArray[np.bool_]

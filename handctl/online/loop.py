@@ -1375,7 +1375,7 @@ class Runtime:
         if len(sup.stop_notes) > self._stop_notes_said:  # grows only in a controlled stop
             self._say_stop_notes(tk.tick)
         ok = driver.send(applied)
-        sup.sent(ok, tk.tick)
+        sup.sent(ok, tk.tick, driver.unsent_joints)
         if new_faults and self._another_master(new_faults):
             self._owe_estop(ESTOP_HOST_SAFETY)
         np.maximum(self._max_abs, np.abs(applied), out=self._max_abs)

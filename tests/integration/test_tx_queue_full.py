@@ -6,11 +6,14 @@ one that never goes is said as the bus's refusal (found by an outside audit)."""
 
 from __future__ import annotations
 
+import asyncio
 import errno
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import can
+import numpy as np
 import pytest
 
 from handctl import cli
@@ -23,6 +26,7 @@ from handctl.online.safety.faults import FaultCode
 from handctl.protocol import NodeState
 from handctl.sim.firmware import FaultBits
 
+from ..dbc import decode
 from .rig import CLOSE_AND_HOLD_2S, Rig, rig
 from .test_hostile_peer import INJECT_AT, Every, frame, third_peer
 
@@ -297,3 +301,75 @@ def test_a_disable_the_bus_never_takes_after_an_exception_is_said(
     assert "and the e-stop after it, on every tick of the wait" in result.message
     assert "the bus refused the disable at the end" in result.disable_unconfirmed
     assert cli._outcome_exit_code(result, {}) == cli.EXIT_SAFETY_STOP
+
+
+#: One phase whose first joint ramps at its rate limit (20 N·m/s: 0.1 N·m in 0.005 s).
+STEP_1S = """
+recipe: step
+phases:
+  - name: step
+    torques: [0.1, 0.05, 0.03, 0.06, 0.05, 0.03, -0.06, -0.05, -0.03]
+    ramp_s: 0.005
+    max_s: 0.2
+    on_timeout: next
+"""
+
+
+def test_a_command_the_bus_refuses_is_not_stepped_over_by_the_next(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """The queue is full for node 1's torque command on two ticks in a row while its
+    first joint ramps at the rate limit: the frame after them stepped that joint three
+    rate steps at once (the limiter went on from torques that never left the host). Each
+    frame the node gets now is within one rate step of the one before."""
+    path = tmp_path / "step.yaml"
+    path.write_text(STEP_1S)
+    recipe = load_recipe(path, hand)
+    step = hand.joints[0].rate_limit * hand.bus.period_s
+    with rig(hand, recipe) as r:
+        runtime = r.runtime
+        command_id = runtime.driver.nodes[0].layouts.command.frame_id
+
+        def refuse(frame_id: int) -> bool:
+            return frame_id == command_id and 2 <= runtime.tick - runtime.first_send_tick <= 3
+
+        with queue_full(r, refuse) as refused:
+            result = r.run()
+    assert refused == [command_id, command_id]
+    assert result.outcome is Outcome.COMPLETED, result.message
+    first = [decode(i, d)["Torque1"] for i, d in r.wire if i == command_id]
+    assert max(first) == pytest.approx(0.1)  # the ramp went through the refusals
+    steps = np.diff([0.0, *first])
+    assert steps.max() <= step + 1e-9, steps[:12]
+
+
+def test_a_run_whose_bus_refused_commands_reruns_bit_exact(
+    hand: HandConfig, tmp_path: Path
+) -> None:
+    """The joints of a refused command keep what their node holds: the re-run, whose bus
+    answers each send as the run's did, comes to the same applied torques tick by tick."""
+    from handctl import session
+    from handctl.recording.reader import open_recording
+    from handctl.recording.rerun import rerun
+
+    from .test_tick_exception import bench
+
+    path = tmp_path / "step.yaml"
+    path.write_text(STEP_1S)
+    recipe = load_recipe(path, hand)
+    log = tmp_path / "run.mcap"
+    with bench(hand, recipe, log) as b:
+        runtime = b.runtime
+        command_id = runtime.driver.nodes[0].layouts.command.frame_id
+
+        def refuse(frame_id: int) -> bool:
+            return frame_id == command_id and 2 <= runtime.tick - runtime.first_send_tick <= 3
+
+        with queue_full(b, refuse) as refused:  # type: ignore[arg-type]
+            result = asyncio.run(runtime.run())
+        b.recorder.close(session.summarise_run(result, hand, recipe, True, None))
+    assert len(refused) == 2
+    assert result.outcome is Outcome.COMPLETED, result.message
+    report = rerun(open_recording(log))
+    assert report.ok, report.as_dict()
+    assert report.compared > 3

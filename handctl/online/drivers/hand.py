@@ -102,6 +102,11 @@ class HandDriver:
         #: Per node: where its joints start, how many, and the feedback last folded in.
         self._spans = [(sl.start, sl.stop - sl.start) for sl in self._slices]
         self._folded: list[object] = [None] * len(self.nodes)
+        #: Per joint: whether this tick's command frame of its node did not go (``send``).
+        #: The supervisor puts those joints back to what their node still holds, so the next
+        #: frame steps one rate step from it, not one per tick the bus refused.
+        self.unsent_joints = np.zeros(n, dtype=bool)
+        self._all_went = True  # ``unsent_joints`` all False: nothing to clear a tick
         # The angles and the calibrated torques side by side in one block: a recorder copies
         # both into its row with one call (``handctl.recording.recorder``).
         joints = np.zeros((2, n))
@@ -245,6 +250,9 @@ class HandDriver:
         Returns False when any frame could not be sent (the bus event says why).
         """
         ok = True
+        if not self._all_went:
+            self.unsent_joints[:] = False
+            self._all_went = True
         values = torques.tolist()  # one conversion for every node, plain floats after
         bus = self.bus
         batching = bus.batching
@@ -280,9 +288,14 @@ class HandDriver:
         return ok
 
     def _take_back(self, first: int, last: int) -> None:
-        """Nodes ``first``..``last``'s last command frames did not go (``take_back_command``)."""
-        for node in self.nodes[first : last + 1]:
+        """Nodes ``first``..``last``'s last command frames did not go (``take_back_command``),
+        and their joints are this tick's ``unsent_joints``."""
+        for node, (start, k) in zip(
+            self.nodes[first : last + 1], self._spans[first : last + 1], strict=True
+        ):
             node.take_back_command()
+            self.unsent_joints[start : start + k] = True
+            self._all_went = False
 
     # -- the stop that needs no codec -----------------------------------------------------
     def _prepare_stop_frames(self) -> None:

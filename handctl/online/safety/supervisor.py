@@ -30,7 +30,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from handctl.arrays import FloatArray
+from handctl.arrays import BoolArray, FloatArray
 from handctl.config import HandConfig
 from handctl.online.bus import BusEvent, BusEventKind
 from handctl.online.drivers.finger import FingerNode
@@ -128,6 +128,8 @@ class Supervisor:
         self.faults: list[Fault] = []  # latched, in order of detection
         self.active_codes: set[FaultCode] = set()
         self.applied = np.zeros(self.n)
+        #: ``applied`` as the tick began: what the nodes hold (``sent``)
+        self._held = np.zeros(self.n)
         self.limited_joints = 0
         #: the fault of the desired torques this tick's ``filter`` refused (None: none): the
         #: caller's bookkeeping must not read a refused vector as torques
@@ -362,6 +364,7 @@ class Supervisor:
                 # rate limiter over an interval it did not see.
                 return self.applied
             # Straight into ``applied``: the limiter reads the last applied torques first.
+            np.copyto(self._held, self.applied)
             self.limited_joints = limit_torque(
                 target, self.applied, self.limits, self.dt, self.applied
             )
@@ -392,8 +395,21 @@ class Supervisor:
         if not self.applied.any():
             self.fire(Event.AT_ZERO, tick)
 
-    def sent(self, ok: bool, tick: int) -> None:
-        """Tell the supervisor whether this tick's command frames went out."""
+    def sent(self, ok: bool, tick: int, unsent: BoolArray | None = None) -> None:
+        """Tell the supervisor whether this tick's command frames went out, and (``unsent``,
+        per joint) which did not.
+
+        A joint whose frame did not go keeps, in ``applied``, the torque its node still
+        holds: the rate limit then steps the next frame from it. Before, the limiter went on
+        from the torque that never left the host, and after k frames refused in a row the
+        node took k + 1 rate steps in one frame (3 at the default
+        ``max_consecutive_send_failures``, up to 100 where a hand config raised it; found by
+        an outside audit). Only while running: a stop's or a fault's ramp goes towards zero,
+        where a larger step is a smaller torque, and its end must not wait on a frame the
+        stop sends again anyway.
+        """
+        if not ok and unsent is not None and self.state is State.RUNNING:
+            np.copyto(self.applied, self._held, where=unsent)
         for code, detail in self.ticks.sent(ok):
             self.trip(code, detail, tick)
 
