@@ -673,3 +673,43 @@ def test_a_node_e_stopped_while_being_enabled_is_an_e_stop_at_once(
         (FaultCode.ESTOP, f"node {first.node_id} ({first.name}) in FAULT (ESTOP)")
     ]
     assert sup.state is State.FAULTED
+
+
+def test_a_refused_command_leaves_its_joints_at_what_the_node_holds(
+    hand: HandConfig, running: Running
+) -> None:
+    """The frame after k refused ones stepped k + 1 rate steps; a late tick's refused frame
+    (which repeats the last command) must leave the joints at that command, not the one
+    before it."""
+    sup, top, step = running.sup, tau_max(hand), rate_step(hand)
+    t = running.tick
+    first = sup.filter(t + 1, 2 * top).copy()
+    sup.sent(True, t + 1, np.zeros(sup.n, dtype=bool))
+    assert first == pytest.approx(step)
+    unsent = np.zeros(sup.n, dtype=bool)
+    unsent[0] = True
+    sup.filter(t + 2, 2 * top)
+    sup.sent(False, t + 2, unsent)
+    held = sup.applied.copy()
+    assert held[0] == first[0]  # node 0's joint holds the first frame
+    assert held[1:] == pytest.approx(2 * step[1:])  # the others' frames went
+    # a late tick repeats, and every frame of it is refused: still what the nodes hold
+    assert sup.filter(t + 3, 2 * top, missed=1).tolist() == held.tolist()
+    sup.sent(False, t + 3, np.ones(sup.n, dtype=bool))
+    assert sup.applied.tolist() == held.tolist()
+    after = sup.filter(t + 4, 2 * top)
+    assert after[0] == pytest.approx(2 * step[0])  # one step on from the node's torque
+    assert sup.state is State.RUNNING
+
+
+def test_a_stop_s_refused_frame_does_not_hold_the_ramp_back(
+    hand: HandConfig, running: Running
+) -> None:
+    """The stop steps only towards zero: its ramp goes on whether a frame of it went."""
+    sup = running.sup
+    target = hold(running, signed_torque(hand))
+    sup.stop(running.tick)
+    ramped = sup.filter(running.tick + 1, None).copy()
+    sup.sent(False, running.tick + 1, np.ones(sup.n, dtype=bool))
+    assert sup.applied.tolist() == ramped.tolist()
+    assert np.all(np.abs(ramped) <= np.abs(target))

@@ -130,6 +130,7 @@ class Supervisor:
         self.applied = np.zeros(self.n)
         #: ``applied`` as the tick began: what the nodes hold (``sent``)
         self._held = np.zeros(self.n)
+        self._held_tick = -1  # the tick ``_held`` was taken in: only that tick's send reverts
         self.limited_joints = 0
         #: the fault of the desired torques this tick's ``filter`` refused (None: none): the
         #: caller's bookkeeping must not read a refused vector as torques
@@ -359,12 +360,13 @@ class Supervisor:
                 return self._filter(tick, None, missed)
             else:
                 target = np.asarray(desired, dtype=np.float64)
+            np.copyto(self._held, self.applied)
+            self._held_tick = tick
             if missed > 0:
                 # A late tick repeats the last applied command once, rather than stepping the
                 # rate limiter over an interval it did not see.
                 return self.applied
             # Straight into ``applied``: the limiter reads the last applied torques first.
-            np.copyto(self._held, self.applied)
             self.limited_joints = limit_torque(
                 target, self.applied, self.limits, self.dt, self.applied
             )
@@ -404,11 +406,11 @@ class Supervisor:
         from the torque that never left the host, and after k frames refused in a row the
         node took k + 1 rate steps in one frame (3 at the default
         ``max_consecutive_send_failures``, up to 100 where a hand config raised it; found by
-        an outside audit). Only while running: a stop's or a fault's ramp goes towards zero,
-        where a larger step is a smaller torque, and its end must not wait on a frame the
-        stop sends again anyway.
+        an outside audit). Only where this tick's filter ran the hand (``_held_tick``): a
+        stop's or a fault's ramp goes towards zero, where a larger step is a smaller torque,
+        and its end must not wait on a frame the stop sends again anyway.
         """
-        if not ok and unsent is not None and self.state is State.RUNNING:
+        if not ok and unsent is not None and self._held_tick == tick:
             np.copyto(self.applied, self._held, where=unsent)
         for code, detail in self.ticks.sent(ok):
             self.trip(code, detail, tick)
