@@ -166,6 +166,8 @@ class RealtimeClock:
         self._cpu_tick = -2  # the last wake-up the thread CPU time was read at, the time then,
         self._cpu_ns = 0  # and whether that wake-up was stalled
         self._cpu_stalled = False
+        #: what the timer's callback raised: the next wait raises it (``_on_readable``)
+        self._failure: Exception | None = None
 
     def now_ns(self) -> int:
         return time.monotonic_ns()
@@ -176,6 +178,21 @@ class RealtimeClock:
         self._loop.add_reader(self._timer.fileno(), self._on_readable)
 
     def _on_readable(self) -> None:
+        """The timer's callback. One that raises takes itself off the loop and hands its
+        exception to the tick waiting (or the next to wait): left to asyncio, it was logged
+        and swallowed, and the timer, still readable, called it again at once, thousands of
+        "Exception in callback" a second for the 2 s until the run's watch found the clock
+        silent (``CLOCK_SILENT_S``). The run now stops on the clock's own exception at once."""
+        try:
+            self._read()
+        except Exception as exc:
+            self._failure = exc
+            if self._loop is not None and self._timer is not None:
+                self._loop.remove_reader(self._timer.fileno())
+            if self._waiter is not None and not self._waiter.done():
+                self._waiter.set_exception(exc)
+
+    def _read(self) -> None:
         assert self._timer is not None
         n = self._timer.read()
         if n == 0:
@@ -191,6 +208,8 @@ class RealtimeClock:
         if self._timer is None:
             self.start()
         assert self._loop is not None and self._timer is not None
+        if self._failure is not None:
+            raise self._failure
         if self._pending:
             n, self._pending = self._pending, 0
         else:

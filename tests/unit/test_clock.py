@@ -3,11 +3,14 @@ exactly once per tick."""
 
 from __future__ import annotations
 
+import asyncio
 import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import pytest
 
 from handctl.online.clock import (
     USUAL_SAMPLE_EVERY,
@@ -228,3 +231,30 @@ def test_realtime_pins_the_cpu_and_keeps_a_prefaulted_heap() -> None:
     assert granted == "True True"  # pinned (no privilege needed), heap reserve kept
     assert refusal.startswith("pinning to CPU 4096 refused")
     assert _hygiene_child(prefault=False)[0] == "True False"
+
+
+async def test_a_timer_callback_that_raises_ends_the_wait_with_its_exception() -> None:
+    """The timer's callback raised: asyncio logged it and called it again at once, as the
+    timer stayed readable, thousands of times a second, and the wait never ended (the run
+    found the clock silent 2 s later). The wait now raises the callback's exception, and the
+    callback is off the loop."""
+    loop = asyncio.get_running_loop()
+    logged: list[dict[str, object]] = []
+    loop.set_exception_handler(lambda _loop, context: logged.append(context))
+    clock = RealtimeClock(0.001)
+    try:
+        await clock.wait_tick()
+        assert clock._timer is not None
+
+        def broken() -> int:
+            raise OSError(9, "Bad file descriptor")
+
+        clock._timer.read = broken  # type: ignore[method-assign]
+        with pytest.raises(OSError, match="Bad file descriptor"):
+            await asyncio.wait_for(clock.wait_tick(), timeout=5.0)
+        with pytest.raises(OSError, match="Bad file descriptor"):  # and every wait after
+            await asyncio.wait_for(clock.wait_tick(), timeout=5.0)
+        await asyncio.sleep(0.01)  # ten periods: a callback still on the loop would run
+        assert logged == []
+    finally:
+        clock.close()
