@@ -59,6 +59,7 @@ from handctl.online.safety.recovery import Recovery
 from handctl.online.tickstats import STAGES, TickWindow, percentile_us
 from handctl.rivals import RivalRecord, RivalWatch
 from handctl.stopsignals import StopSignals
+from handctl.summary_guard import SummaryParts, least_summary
 
 if TYPE_CHECKING:
     from handctl.online.clock import Tick
@@ -375,32 +376,33 @@ def run_recipe(
             recording.claim()
         _raise_priority(req, loop_cpu, timing, peer, warnings)
         result = timebudget.outcome(asyncio.run(signals.run(runtime)), runtime.stop_requested)
-        warnings += _run_warnings(result, req.hand)
-        summary = summarise_run(
-            result, req.hand, req.recipe, lockstep, _peer_summary(peer, warnings)
-        )
+        # Each part of the account below may fail only by a bug of handctl's, with the hand
+        # already stopped: it is said in the summary (``summary_errors``, exit 1) and the
+        # rest is made, so the outcome, the summary file and the log's summary are not lost
+        # with it (they were: a traceback, exit 1, a log of "no summary").
+        parts = SummaryParts()
+        warnings += parts.make("warnings", lambda: _run_warnings(result, req.hand), [])
+        sim = parts.make("sim", lambda: _peer_summary(peer, warnings), None)
+        summary = parts.make(
+            "summary",
+            lambda: summarise_run(result, req.hand, req.recipe, lockstep, sim),
+            None,
+        ) or least_summary(result, req.hand, req.recipe, lockstep, sim)
         # what the loop measured of its catch-up ticks and its usual one (``attribute``)
-        loop_work = (
-            LoopWork(
-                clock.stalls.work_ns(),
-                # a run stopped too soon for a sample after its first command: the start-up
-                # ticks' (they only listen, so the usual is understated, never excused more)
-                clock.usual.median_ns(runtime.first_send_tick) or clock.usual.median_ns(),
-                runtime.trace.rows() if runtime.trace is not None else {},
-                runtime.trace.usual_run_delay_ns() if runtime.trace is not None else -1,
-                # the loop's thread is this one, which kept its scheduling after the run
-                os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR),
-                os.sched_getparam(0).sched_priority,
-            )
-            if isinstance(clock, RealtimeClock)
-            else None
+        loop_work = parts.make("loop_work", lambda: _loop_work(clock, runtime), None)
+        no_host: tuple[ProbeRecord | None, RivalRecord | None] = (None, None)
+        host, rivals = parts.make(
+            "host",
+            lambda: _host_summary(summary, req, timing, result, host_check, warnings, loop_work),
+            no_host,
         )
-        host, rivals = _host_summary(summary, req, timing, result, host_check, warnings, loop_work)
-        _experiment_summary(summary, req, tracker, warnings)
+        parts.make("experiment", lambda: _experiment_summary(summary, req, tracker, warnings), None)
+        parts.said_in(summary, warnings)
         if recording is not None:
             _close_recording(recording, summary, req, warnings)
             if req.plot is not None:
-                _plot(summary, req, warnings)
+                parts.make("plot", lambda: _plot(summary, req, warnings), None)
+                parts.said_in(summary, warnings)
     return RunReport(
         result,
         summary,
@@ -601,6 +603,24 @@ def _refuse_another_host(spec: BusSpec, hand: HandConfig) -> None:
 
     with open_bus(spec, hand.bus) as bus:
         refuse_another_host(bus, hand, str(spec), "this run")
+
+
+def _loop_work(clock: Clock, runtime: Runtime) -> LoopWork | None:
+    """What a real-time loop measured of its catch-up ticks and its usual one; None in
+    lockstep."""
+    if not isinstance(clock, RealtimeClock):
+        return None
+    return LoopWork(
+        clock.stalls.work_ns(),
+        # a run stopped too soon for a sample after its first command: the start-up ticks'
+        # (they only listen, so the usual is understated, never excused more)
+        clock.usual.median_ns(runtime.first_send_tick) or clock.usual.median_ns(),
+        runtime.trace.rows() if runtime.trace is not None else {},
+        runtime.trace.usual_run_delay_ns() if runtime.trace is not None else -1,
+        # the loop's thread is this one, which kept its scheduling after the run
+        os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR),
+        os.sched_getparam(0).sched_priority,
+    )
 
 
 def _peer_summary(peer: _Peer, warnings: list[str]) -> dict[str, Any] | None:
