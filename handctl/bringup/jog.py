@@ -148,7 +148,10 @@ class JogSink:
         #: soft-limit guard holding it back), and the largest |applied| over them: a jog the
         #: guard held below its torque throughout had no hold, and was judged on nothing
         self.held_back = 0
-        self.held_back_max = 0.0
+        #: N·m, the least and the most torque applied while it was off the one asked: the
+        #: guard's spring holds a joint below it, and its damper may push one past it
+        self.held_back_low = math.inf
+        self.held_back_high = -math.inf
         self._first_tick: int | None = None
         #: the last tick's line if it was not shown, as JogLine's fields (made a line only
         #: if it is: a frozen dataclass every tick was work in the tick): shown by ``finish``
@@ -182,7 +185,8 @@ class JogSink:
                 self.held_tdt += tdt
             elif self.torque and record.phase == JOG_PHASE and not self.encoder_failed:
                 self.held_back += 1
-                self.held_back_max = max(self.held_back_max, abs(applied))
+                self.held_back_low = min(self.held_back_low, applied)
+                self.held_back_high = max(self.held_back_high, applied)
         new_phase = record.phase != self._phase
         self._phase = record.phase
         if self.show is None:
@@ -250,8 +254,9 @@ def tdt_problem(joint: str, sink: JogSink, rang: Sequence[Ringing] = ()) -> str:
         return (
             f"{joint}'s TDT cannot be judged: its applied torque was held off the "
             f"{sink.torque:+g} N·m asked for {sink.held_back} ticks of the jog (the soft-limit "
-            f"guard pushing back; at most {sink.held_back_max:.4f} N·m), so no steady torque "
-            "was held; jog it with a smaller torque, or from further inside its range"
+            f"guard acting on the joint: from {sink.held_back_low:+.4f} to "
+            f"{sink.held_back_high:+.4f} N·m), so no steady torque was held; jog it with a "
+            "smaller torque, or from further inside its range"
         )
     ringing = [r for r in rang if r.joint == joint]
     if ringing:

@@ -10,6 +10,7 @@ import dataclasses
 import itertools
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -744,6 +745,14 @@ def test_a_jog_the_guard_holds_below_its_torque_cannot_be_judged(
         f"handctl: FAILED: f1_j1's TDT cannot be judged: its applied torque was held off the "
         f"{float(torque):+g} N·m asked" in err
     )
+    # what was applied instead, with its sign: the guard holds the joint up from its lower
+    # limit, and may push it the other way (it was said "at most" a magnitude, which read
+    # as a torque past the one asked in its direction)
+    found = re.search(r"acting on the joint: from ([+-][0-9.]+) to ([+-][0-9.]+) N·m\)", err)
+    assert found, err
+    low, high = float(found[1]), float(found[2])
+    assert float(torque) <= low <= high
+    assert high > float(torque)
 
 
 def test_a_reader_that_falls_behind_does_not_stop_the_jog(tmp_path: Path) -> None:
