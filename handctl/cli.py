@@ -2749,13 +2749,16 @@ def _cmd_jog(args: argparse.Namespace) -> int:
         )
     moved = result.moved
     if moved is not None:
+        largest = result.report.summary["max_abs_tau_nm"][args.joint]
+        # a recovery of a joint already inside applies nothing: "under +0.03 N·m" beside a
+        # joint that sank the other way read as a joint that turns against its torque
+        under = f"under {args.torque:+g} N·m" if largest else "with no torque applied"
         print(
             f"{args.joint}: {result.start_angle:+.4f} -> {result.end_angle:+.4f} rad "
             f"({moved:+.4f} rad"
             + (", to the last reading before its encoder failed" if result.encoder_failed else "")
-            + f") under {args.torque:+g} N·m; largest |TDT| "
-            f"{result.max_abs_tdt:.4f} N·m; largest |applied| "
-            f"{result.report.summary['max_abs_tau_nm'][args.joint]:.4f} N·m"
+            + f") {under}; largest |TDT| "
+            f"{result.max_abs_tdt:.4f} N·m; largest |applied| {largest:.4f} N·m"
         )
     # the soft-limit guard pushes back any joint the jog swings towards a limit, by the sign
     # the hand config gives it: said, since a jog is where those signs are checked

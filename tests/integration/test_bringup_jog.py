@@ -471,6 +471,9 @@ def test_recover_says_when_there_was_nothing_to_recover(
     assert cli.main(["jog", "f1_j1", "--torque", "0.05", "--recover"]) == cli.EXIT_OK
     out = capsys.readouterr().out
     assert "f1_j1 was inside its soft limits [-1, +1.9] rad" in out
+    # nothing was applied, and the jog's line says so (it said "under +0.05 N·m")
+    assert ") with no torque applied; largest |TDT| " in out
+    assert "largest |applied| 0.0000 N·m" in out
     # the guard is off in a recovery: the banner said it might push the other joints
     assert (
         "every other joint at zero (the soft-limit guard is off in a recovery, but for the "
