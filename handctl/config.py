@@ -72,6 +72,10 @@ class JointConfig:
     # from the line through the joint axes (0: the paper's ideal line links). The object
     # estimator needs it to place an enveloped object from the joint angles alone.
     half_thickness: float = 0.0
+    #: whether the config wrote ``half_thickness`` (a written 0 is a claim about the link the
+    #: simulation must agree with; a left-out one is not): the value alone cannot tell them
+    #: apart. Not compared: how a value was written does not make another hand.
+    half_thickness_given: bool = field(default=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -567,10 +571,20 @@ def _parse_joint(doc: Doc) -> JointConfig:
     scale = tdt_doc.number("scale", min=0.1, max=10.0)
     offset = tdt_doc.number("offset", min=-10.0, max=10.0, unit="N·m")
     tdt_doc.done()
+    given = doc.has("half_thickness")
     half_thickness = doc.number("half_thickness", default=0.0, min=0.0, max=0.1, unit="m")
     doc.done()
     return JointConfig(
-        name, link, tau_max, device, rate, lo, hi, TdtCalibration(scale, offset), half_thickness
+        name,
+        link,
+        tau_max,
+        device,
+        rate,
+        lo,
+        hi,
+        TdtCalibration(scale, offset),
+        half_thickness,
+        half_thickness_given=given,
     )
 
 

@@ -277,7 +277,9 @@ def _parse_links(doc: Doc, hand: HandConfig) -> tuple[LinkParams, ...]:
 
     A joint that gives ``half_thickness`` (the estimator's link thickness) must be simulated
     with that radius: the two are one fact, and a simulation thicker or thinner than the
-    estimator believes would fool every test of the estimator."""
+    estimator believes would fool every test of the estimator. A written 0 gives it too (a
+    line link, which no simulated link is): taken for "not given", the estimator worked with
+    line links beside 12 mm simulated ones and ``check`` said ok."""
     doc.expect(f.name for f in hand.fingers)
     links = []
     for i, finger in enumerate(hand.fingers):
@@ -290,12 +292,19 @@ def _parse_links(doc: Doc, hand: HandConfig) -> tuple[LinkParams, ...]:
                 mass=link_doc.number("mass", min=MIN_LINK_MASS, max=10.0, unit="kg"),
             )
             link_doc.done()
-            if joint.half_thickness > 0 and abs(link.radius - joint.half_thickness) > 1e-12:
+            given = joint.half_thickness_given or joint.half_thickness > 0
+            if given and abs(link.radius - joint.half_thickness) > 1e-12:
                 link_doc.fail(
                     "radius",
                     f"the half_thickness of {joint.name} "
                     f"({joint.half_thickness:g} m, fingers[{i}].joints[{k}]): the "
-                    "estimator and the simulation must see one link",
+                    "estimator and the simulation must see one link"
+                    + (
+                        f" (a written 0 is a line link, and a simulated link's radius is "
+                        f"at least {MIN_LINK_RADIUS:g} m: write the link's half thickness)"
+                        if joint.half_thickness == 0
+                        else ""
+                    ),
                     link.radius,
                 )
             links.append(link)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 from handctl.config import HandConfig, load_hand
 from handctl.errors import ConfigError
@@ -15,7 +17,7 @@ from handctl.planning.models import Spread, hand_with, perturb
 from handctl.sim.params import parse_sim
 from handctl.sim.plant import Plant
 
-from ..conftest import ROOT
+from ..conftest import HAND_YAML, ROOT
 
 PLANAR = ROOT / "config" / "hands" / "planar_2f2j.yaml"
 
@@ -595,3 +597,36 @@ def test_a_joint_too_narrow_to_start_inside_is_said_as_such(hand: HandConfig) ->
     assert f"{narrow.name}'s range [-0.005, 0.005] rad is narrower than 0.02 rad" in (
         err.value.expected
     )
+
+
+def _hand_with_first_joint(tmp_path: Path, edit: Any) -> HandConfig:
+    """The shipped hand, its first joint edited as written in the file (not as read)."""
+    data = yaml.safe_load(HAND_YAML.read_text())
+    edit(data["fingers"][0]["joints"][0])
+    path = tmp_path / "hand.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return load_hand(path)
+
+
+def test_a_written_half_thickness_of_0_is_held_to_the_simulated_link(tmp_path: Path) -> None:
+    """``half_thickness: 0`` was taken for "not given" and never compared: ``check`` said ok
+    of a hand whose estimator saw line links and whose simulation 12 mm ones (found by an
+    outside audit). Written, a 0 is a claim like any other, and no simulated link meets it."""
+    hand = _hand_with_first_joint(tmp_path, lambda j: j.update(half_thickness=0.0))
+    finger, joint = hand.fingers[0], hand.fingers[0].joints[0]
+    with pytest.raises(ConfigError) as err:
+        parse_sim(hand)
+    assert err.value.file == str(tmp_path / "hand.yaml")
+    assert err.value.key == f"sim.links.{finger.name}[0].radius"
+    expected = err.value.expected
+    assert f"the half_thickness of {joint.name} (0 m, fingers[0].joints[0])" in expected
+    assert "a written 0 is a line link" in expected
+    assert err.value.found == hand.sim["links"][finger.name][0]["radius"] > 0
+
+
+def test_a_half_thickness_left_out_is_not_held_to_the_simulated_link(tmp_path: Path) -> None:
+    """docs/simulation.md: the two must be equal "where the joint gives half_thickness"; a
+    joint that leaves it out keeps the paper's line link for the estimator."""
+    hand = _hand_with_first_joint(tmp_path, lambda j: j.pop("half_thickness"))
+    assert hand.fingers[0].joints[0].half_thickness == 0.0
+    parse_sim(hand)
