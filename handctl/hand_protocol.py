@@ -307,7 +307,28 @@ def hand_shape(hand: HandConfig) -> list[tuple[int, int]]:
 
 def generated_protocol(hand: HandConfig) -> Protocol:
     """The protocol generated for ``hand``'s fingers (cached by its text)."""
-    return parse_protocol(generate_dbc(hand_shape(hand)), f"the DBC generated for {hand.source}")
+    return parse_protocol(generate_dbc(hand_shape(hand)), _generated_source(hand))
+
+
+def _generated_source(hand: HandConfig) -> str:
+    return f"the DBC generated for {hand.source}"
+
+
+def _other_ids_way_out(hand: HandConfig, protocol: Protocol) -> str:
+    """The way out for a configured id the generated DBC does not have, said where it is
+    refused: "expected 0x011 (... in the DBC generated for ...)" alone read as a rule with
+    no way around it, and ``tools/gen_dbc.py --hand`` refuses the same hand with the same
+    words, so the DBC such ids need was nowhere to be had. gen_dbc writes the generated ids
+    only: its DBC of the hand without ``can_ids`` is the one to change (every ``BO_``,
+    ``CM_``, ``BA_`` and ``VAL_`` line of a frame names its id)."""
+    if protocol.source != _generated_source(hand):
+        return ""  # a DBC given or recorded: its ids are the ones to write
+    return (
+        "; other ids need a DBC file that has them, given with --dbc FILE: leave can_ids "
+        "out for the generated ones, or write the generated DBC of a copy of the hand "
+        "without can_ids (python tools/gen_dbc.py --hand COPY.yaml --out FILE) and change "
+        "the ids of its frames there"
+    )
 
 
 def protocol_for(hand: HandConfig, dbc: str | Path | None = None) -> Protocol:
@@ -361,7 +382,8 @@ def check_protocol(hand: HandConfig, protocol: Protocol) -> None:
                 raise ConfigError(
                     hand.source,
                     f"{where}.can_ids.{key}",
-                    f"0x{layout.frame_id:03X} ({name} in {protocol.source})",
+                    f"0x{layout.frame_id:03X} ({name} in {protocol.source}"
+                    f"{_other_ids_way_out(hand, protocol)})",
                     description(f"0x{configured:03X}"),  # an id, written as the expected one
                 )
         n = len(finger.joints)

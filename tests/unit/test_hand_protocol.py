@@ -4,6 +4,9 @@ other shapes get frames by the same rules, and a DBC given instead is held again
 from __future__ import annotations
 
 import json
+import re
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -166,6 +169,54 @@ def test_can_ids_follow_the_node_and_a_wrong_one_is_named(tmp_path: Path) -> Non
     assert err.value.key == "fingers[1].can_ids.feedback"
     # the id found written as the one expected, not quoted as a string ('0x188')
     assert "0x189" in err.value.expected and str(err.value).endswith("found 0x188")
+
+
+def gen_dbc(*args: str) -> subprocess.CompletedProcess[str]:
+    tool = str(ROOT / "tools" / "gen_dbc.py")
+    return subprocess.run(
+        [sys.executable, tool, *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+        check=False,
+    )
+
+
+def test_an_id_of_ones_own_is_told_the_way_to_the_dbc_it_needs(tmp_path: Path) -> None:
+    """A can_id off the generated rule was refused as "expected 0x189 (... in the DBC
+    generated for ...)", which named no way out, and tools/gen_dbc.py --hand refused the same
+    hand with the same words (found by an outside audit): the message says how to get the
+    DBC such ids need, and that way is followed here to a hand that loads."""
+
+    def own(doc: dict[str, Any]) -> None:
+        doc["fingers"][1]["can_ids"] = {"feedback": 0x188}
+
+    path = shaped_hand(tmp_path, [4, 2], [7, 9], own)
+    with pytest.raises(ConfigError) as err:
+        load_hand(path)
+    assert err.value.key == "fingers[1].can_ids.feedback"
+    expected = err.value.expected
+    assert "other ids need a DBC file that has them, given with --dbc FILE" in expected
+    assert "python tools/gen_dbc.py --hand COPY.yaml --out FILE" in expected
+    own_dbc = tmp_path / "own.dbc"
+    refused = gen_dbc("--hand", str(path), "--out", str(own_dbc))
+    assert refused.returncode == 2 and "given with --dbc FILE" in refused.stderr
+
+    # the way out: the generated DBC of a copy without can_ids, its frame's id changed there
+    (tmp_path / "copy").mkdir()
+    copy = shaped_hand(tmp_path / "copy", [4, 2], [7, 9])
+    generated = tmp_path / "generated.dbc"
+    written = gen_dbc("--hand", str(copy), "--out", str(generated))
+    assert written.returncode == 0, written.stderr
+    text = generated.read_text(encoding="cp1252")
+    own_dbc.write_text(re.sub(rf"\b{0x189}\b", str(0x188), text), encoding="cp1252")
+    assert load_hand(path, own_dbc).fingers[1].can_ids.feedback == 0x188
+
+    # a DBC given is the one whose ids to write: no word of generating one
+    with pytest.raises(ConfigError) as err:
+        load_hand(path, generated)
+    assert err.value.expected == f"0x189 (Feedback_9 in {generated})"
 
 
 def test_a_given_dbc_must_carry_the_hand(tmp_path: Path) -> None:
