@@ -167,6 +167,37 @@ def test_every_command_of_a_hand_that_needs_its_dbc_takes_it(tmp_path: Path) -> 
     assert load_hand(out, dbc).fingers[0].can_ids.feedback == 0x1A1
 
 
+def test_monitor_reads_a_log_for_its_hand_in_the_dbc_the_log_keeps(tmp_path: Path) -> None:
+    """monitor --log with --hand of a hand that only its DBC carries was refused against the
+    DBC generated from it, though the log keeps that DBC (and --dbc of the same file was
+    taken; found by an outside audit): the hand is read in the recorded DBC."""
+    hand, dbc, recipe = moved_feedback_id(tmp_path)
+    log = tmp_path / "run.mcap"
+    run = handctl(
+        "run", "recipe", str(recipe), "--hand", str(hand), "--dbc", str(dbc), "--log", str(log)
+    )
+    assert run.returncode == 0, run.stderr
+    shown = handctl("monitor", "--log", str(log), "--hand", str(hand))
+    assert shown.returncode == 0, shown.stderr
+    last = json.loads(shown.stdout.splitlines()[-1])
+    feedback = {m["message"]: m for m in last["messages"]}["Feedback_1"]
+    assert feedback["id"] == "0x1A1" and feedback["frames"] > 100 and feedback["rejects"] == {}
+    assert handctl("monitor", "--log", str(log), "--dbc", str(dbc)).stdout == shown.stdout
+
+    # another hand in the same DBC is still not the recorded one
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump({**yaml.safe_load(hand.read_text()), "name": "other"}))
+    refused = handctl("monitor", "--log", str(log), "--hand", str(other))
+    assert refused.returncode == 2
+    assert f"--hand: expected the hand {log} was recorded with" in refused.stderr
+    # and a hand the recorded DBC does not carry either is refused as before
+    moved = tmp_path / "moved_again.yaml"
+    moved.write_text(hand.read_text().replace("feedback: 0x1A1", "feedback: 0x1B1"))
+    refused = handctl("monitor", "--log", str(log), "--hand", str(moved))
+    assert refused.returncode == 2
+    assert f"{moved}: fingers[0].can_ids.feedback: expected 0x181" in refused.stderr
+
+
 def test_plan_takes_the_dbc_of_its_hand(tmp_path: Path) -> None:
     """plan had no --dbc: a hand whose can_ids only its DBC carries could not be planned for.
     (A template it then refuses shows the hand was read; the plan itself is the search's.)"""
