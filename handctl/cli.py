@@ -2918,10 +2918,24 @@ def _monitor_log(
     from handctl.recording.reader import check_format, open_recording
 
     log: Path = args.log
+    hand, refused = None, None
+    if args.hand is not None:
+        try:
+            hand = _load_checked_hand(args.hand, "--hand", args.dbc)
+        except ConfigError as exc:
+            if args.dbc is not None:
+                raise
+            refused = exc  # perhaps a hand of the DBC the recording keeps (below)
     _check_dbc_file(args.dbc)
-    recording = open_recording(log)  # a file that is no recording is refused by name
-    check_format(recording)
-    hand = None if args.hand is None else _monitor_log_hand(args.hand, args.dbc, recording)
+    try:
+        recording = open_recording(log)  # a file that is no recording is refused by name
+        check_format(recording)
+    except HandctlError:
+        if refused is not None:
+            raise refused from None  # the hand first, as every command refuses it
+        raise
+    if refused is not None:
+        hand = _monitor_log_hand(args.hand, refused, recording)
     protocol = log_protocol(
         recording, hand, args.dbc, lambda: _load_hand(DEFAULT_HAND, "--hand", args.dbc)
     )
@@ -2973,34 +2987,27 @@ def _monitor_log(
     return EXIT_OK
 
 
-def _monitor_log_hand(path: Path, dbc: Path | None, recording: Recording) -> HandConfig:
-    """``monitor --log``'s --hand, refused as every command refuses a hand config
-    (``_load_checked_hand``), but for a recording whose run spoke a DBC of its own. Given no
-    --dbc, a hand that only that DBC carries (can_ids of its own) was refused against the DBC
-    generated from it, though the log keeps the DBC its frames were sent in, and --dbc of that
-    very DBC was taken. Such a hand is read against the recorded DBC, as the recording's own
-    hand is read. Nothing is decoded with it: the recorded DBC decodes, and ``log_protocol``
-    refuses any hand but the recorded one (by its config hash)."""
+def _monitor_log_hand(path: Path, refused: ConfigError, recording: Recording) -> HandConfig:
+    """``monitor --log``'s --hand that ``_load_checked_hand`` refused (``refused``), given no
+    --dbc, for a recording whose run spoke a DBC of its own: a hand that only that DBC
+    carries (can_ids of its own) was refused against the DBC generated from it, though the
+    log keeps the DBC its frames were sent in, and --dbc of that very DBC was taken. Such a
+    hand is read against the recorded DBC, as the recording's own hand is read. Nothing is
+    decoded with it: the recorded DBC decodes, and ``log_protocol`` refuses any hand but the
+    recorded one (by its config hash). Anything else keeps the first refusal."""
     from handctl.config import parse_hand
     from handctl.hand_protocol import generated_protocol
     from handctl.recording.metadata import recorded_hand, recorded_protocol
     from handctl.schema import load_yaml
 
+    recorded = recorded_hand(recording, required=False)
+    protocol = None if recorded is None else recorded_protocol(recording)
+    if protocol is None or recorded is None or protocol.text == generated_protocol(recorded).text:
+        raise refused  # the run spoke the generated DBC: the refusal stands
     try:
-        return _load_checked_hand(path, "--hand", dbc)
-    except ConfigError as refused:
-        recorded = None if dbc is not None else recorded_hand(recording, required=False)
-        protocol = None if recorded is None else recorded_protocol(recording)
-        if (
-            protocol is None
-            or recorded is None
-            or protocol.text == generated_protocol(recorded).text
-        ):
-            raise  # the run spoke the generated DBC (or --dbc was given): the refusal stands
-        try:
-            return parse_hand(load_yaml(path, "hand config"), protocol)
-        except ConfigError:
-            raise refused from None  # not a hand of the recorded DBC either: as refused first
+        return parse_hand(load_yaml(path, "hand config"), protocol)
+    except ConfigError:
+        raise refused from None  # not a hand of the recorded DBC either: as refused first
 
 
 # -- parser --------------------------------------------------------------------------------------
