@@ -50,6 +50,7 @@ COMPOSITION = (
     "handctl.__main__",
     "handctl.cli",
     "handctl.session",
+    "handctl.summary_guard",
     "handctl.stopsignals",
     "handctl.bringup",
     "handctl.hostcheck",
