@@ -5,6 +5,7 @@ two ticks of detection."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -630,3 +631,35 @@ def test_a_remote_frame_is_re_run_as_the_run_heard_it(
     report = rerun(recording)
     assert report.ok, (report.mismatches[:3], report.frame_mismatches[:3])
     assert report.outcome == report.logged_outcome
+
+
+def test_a_heartbeat_lost_to_a_second_sender_says_its_frames_came_and_were_rejected(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """A second sender on Heartbeat_2 (another node 2, a bootloader), 10 Hz on its own
+    counter: from then on every Heartbeat of node 2 is a counter skip, the node's and the
+    other's alike, and the run stops on HEARTBEAT_LOST. The stop said only "last heartbeat
+    351 ms ago" of a node whose Heartbeats never stopped, which sends the operator to its
+    power and wiring; it says they came and were rejected, with the counts."""
+    layout = protocol_for(hand).layout("Heartbeat", 2)
+    with rig(hand, hold) as r, third_peer(r) as peer:
+        calls = [0]
+
+        def twin() -> None:
+            calls[0] += 1
+            if calls[0] % 100 == 37:
+                data = layout.encode((90 + calls[0] // 100) % 256, [0, 1000 + calls[0]])
+                peer.send(frame(layout.frame_id, data))
+
+        r.sim.faults.add(Every(send=twin), INJECT_AT)
+        result = r.run()
+    first = result.faults[0]
+    assert first.code is FaultCode.HEARTBEAT_LOST, [str(f) for f in result.faults]
+    assert first.detail.startswith("node 2 (f2): last heartbeat "), first.detail
+    said = re.search(
+        r"; (\d+) Heartbeat frames heard since and rejected \(counter_skip \1\), none "
+        r"accepted: not a silent node; `handctl nodes` shows them$",
+        first.detail,
+    )
+    assert said is not None, first.detail
+    assert 4 <= int(said[1]) <= result.node_rejects["counter_skip"]

@@ -151,6 +151,13 @@ class FingerNode:
             for layout in (layouts.feedback, layouts.status, layouts.heartbeat)
         }
         self.rejects = RejectCounts()
+        #: Per stream id: its frames rejected since its last accepted one, by kind, and that
+        #: accepted frame itself (``CounterCheck.frame``), which they count from. Kept in the
+        #: reject path alone (the accepted one is the 1 kHz path): counts whose frame is not
+        #: the stream's last accepted object any more are of an earlier gap, and start again.
+        #: Whether a node's Heartbeat went silent or came and was all rejected (a second
+        #: sender on its id) is two different stops, with two places to look (``NodeWatch``).
+        self._rejected_since: dict[int, tuple[bytes | None, RejectCounts]] = {}
         self.accepted = 0
         self.command_counter = 0
         self.node_command_counter = 0
@@ -214,6 +221,7 @@ class FingerNode:
         """
         for _, counters in self.streams.values():
             counters.reset()
+        self._rejected_since.clear()
 
     @property
     def state_name(self) -> str:
@@ -254,6 +262,10 @@ class FingerNode:
         reason = validate(layout, data, counters)
         if reason is not None:
             self.rejects.add(reason)
+            since = self._rejected_since.get(frame_id)
+            if since is None or since[0] is not counters.frame:
+                since = self._rejected_since[frame_id] = (counters.frame, RejectCounts())
+            since[1].add(reason)
             if (
                 reason is Reject.COUNTER_REPEAT
                 and data != counters.frame
@@ -302,6 +314,15 @@ class FingerNode:
             self._check_version(self.protocol_version)
             self._report(int(values[0]), int(values[1]), "Status", arrival_ns)
         return None
+
+    def rejected_since_accepted(self, layout: Layout) -> dict[str, int]:
+        """The frames of ``layout``'s stream (one of this node's) rejected since the last one
+        of it that was accepted (or since the run began listening, when none was), by kind:
+        only the kinds that occurred, empty when none."""
+        since = self._rejected_since.get(layout.frame_id)
+        if since is None or since[0] is not self.streams[layout.frame_id][1].frame:
+            return {}
+        return {kind: n for kind, n in since[1].as_dict().items() if n}
 
     @property
     def feedback_enabled(self) -> bool:

@@ -13,7 +13,7 @@ from handctl.arrays import FloatArray
 from handctl.config import SafetyConfig
 from handctl.online.drivers.finger import FingerNode, fault_names
 from handctl.online.safety.faults import FaultCode
-from handctl.protocol import COMMAND_WATCHDOG_S, NodeState
+from handctl.protocol import COMMAND_WATCHDOG_S, Layout, NodeState
 
 ENABLED = int(NodeState.ENABLED)  # plain ints: compared for every node every tick
 FAULT = int(NodeState.FAULT)
@@ -43,6 +43,24 @@ def node_fault(node: FingerNode) -> Finding:
         )
     who = f"node {node.node_id} ({node.finger.name})"
     return code, f"{who} in FAULT ({', '.join(names) or 'no bits'}){why}"
+
+
+def rejected_since(node: FingerNode, layout: Layout) -> str:
+    """What a timeout of ``layout``'s stream adds when frames of it came and were rejected
+    since the last one accepted ("" when none came): a stream that went on arriving, every
+    frame refused (a second sender on its id, bad CRCs), is no silent node, and the stop
+    said "last heartbeat 351 ms ago" of a node whose Heartbeats never stopped, sending the
+    operator to its power and wiring. Said with the counts, as the start-up says it of a
+    node none of whose Feedback it could take (``loop._no_feedback``)."""
+    heard = node.rejected_since_accepted(layout)
+    if not heard:
+        return ""
+    kinds = ", ".join(f"{kind} {n}" for kind, n in heard.items())
+    name = layout.name.rpartition("_")[0]  # Heartbeat_2: Heartbeat
+    return (
+        f"; {sum(heard.values())} {name} frames heard since and rejected ({kinds}), none "
+        "accepted: not a silent node; `handctl nodes` shows them"
+    )
 
 
 class NodeWatch:
@@ -77,10 +95,22 @@ class NodeWatch:
             who = f"node {node.node_id} ({node.finger.name})"
             if fb is None or now_ns - fb > feedback_timeout:
                 age = "never" if fb is None else f"{(now_ns - fb) / 1e6:.1f} ms ago"
-                found.append((FaultCode.FEEDBACK_TIMEOUT, f"{who}: last valid feedback {age}"))
+                found.append(
+                    (
+                        FaultCode.FEEDBACK_TIMEOUT,
+                        f"{who}: last valid feedback {age}"
+                        + rejected_since(node, node.layouts.feedback),
+                    )
+                )
             if hb is None or now_ns - hb > heartbeat_timeout:
                 age = "never" if hb is None else f"{(now_ns - hb) / 1e6:.0f} ms ago"
-                found.append((FaultCode.HEARTBEAT_LOST, f"{who}: last heartbeat {age}"))
+                found.append(
+                    (
+                        FaultCode.HEARTBEAT_LOST,
+                        f"{who}: last heartbeat {age}"
+                        + rejected_since(node, node.layouts.heartbeat),
+                    )
+                )
             if i < len(self._reboots) and node.reboots > self._reboots[i]:
                 found.append((FaultCode.NODE_REBOOT, f"{who} rebooted"))
             if node.state == FAULT:
