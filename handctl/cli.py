@@ -859,6 +859,16 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
             "  frames rejected by the host's receive checks (never applied): "
             + ", ".join(f"{k} {n}" for k, n in rejected.items())
         )
+    events = summary.get("bus_events")
+    if events:
+        # the summary keeps their count alone (a log has each, on /events): an error-passive
+        # flood of 42220 ended with nothing printed of it, where the log's replay said it
+        rec = summary.get("recording")
+        print(
+            "  bus events (error frames, bus-state changes, refused, dropped and remote "
+            f"frames): {events}"
+            + ("; each is in the log's /events" if rec and "error" not in rec else "")
+        )
     host = summary.get("host")
     if host and "error" not in host:
         print(

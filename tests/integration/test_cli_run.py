@@ -724,3 +724,27 @@ def test_frames_the_host_rejected_are_in_the_printed_summary(
     assert line in out, out
     assert cli.main(["run", "recipe", RECIPE, "--max-seconds", "0.3"]) == cli.EXIT_OK
     assert "frames rejected" not in capsys.readouterr().out  # none: nothing said
+
+
+def test_bus_events_are_in_the_printed_summary(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An error-frame flood on the bus: the JSON summary counted its bus events, the printed
+    one said nothing of them, and only the log's replay did (found by an outside audit)."""
+    from handctl import cli
+
+    faults = tmp_path / "errors.yaml"
+    faults.write_text("faults:\n  - {kind: error_frames, per_tick: 5, start: 0.1, stop: 0.15}\n")
+    out, log = tmp_path / "summary.json", tmp_path / "run.mcap"
+    argv = ["run", "recipe", RECIPE, "--sim-faults", str(faults), "--max-seconds", "0.3"]
+    assert cli.main([*argv, "--summary-json", str(out), "--log", str(log)]) == cli.EXIT_OK
+    printed = capsys.readouterr().out
+    count = json.loads(out.read_text())["bus_events"]
+    assert count > 0
+    line = (
+        "  bus events (error frames, bus-state changes, refused, dropped and remote frames): "
+        f"{count}; each is in the log's /events\n"
+    )
+    assert line in printed, printed
+    assert cli.main(["run", "recipe", RECIPE, "--max-seconds", "0.3"]) == cli.EXIT_OK
+    assert "bus events" not in capsys.readouterr().out  # none: nothing said
