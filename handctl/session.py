@@ -169,6 +169,7 @@ def summarise_run(
             else {}
         ),
         **({"ended_in_fault": result.ended_in_fault} if result.ended_in_fault else {}),
+        **({"estop_heard": result.estop_heard} if result.estop_heard else {}),
         **(
             {"exception": _exception_summary(result.exception)}
             if result.exception is not None
@@ -220,6 +221,8 @@ def _run_warnings(result: RunResult, hand: HandConfig) -> list[str]:
         said.append(result.disable_unconfirmed)
     if result.ended_in_fault:
         said.append(result.ended_in_fault)
+    if result.estop_heard:
+        said.append(result.estop_heard)
     said += [ringing.text() for ringing in result.chatter]
     if "SIGXCPU" in result.message:
         said += rttime_note()  # at a real-time policy: which limit, and its value

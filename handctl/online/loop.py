@@ -269,6 +269,8 @@ class RunResult:
     disable_unconfirmed: str = ""
     #: nodes in FAULT at the end that no fault of the run stands for ("": none)
     ended_in_fault: str = ""
+    #: e-stop frames another sender put on the bus, which every node obeys ("": none)
+    estop_heard: str = ""
     #: joints whose command rang (``safety.chatter``)
     chatter: list[Ringing] = field(default_factory=list)
     #: N·m, per joint, the largest |desired torque| the recipe asked for (finite values)
@@ -893,6 +895,20 @@ class Runtime:
         )
         if self.recorder is not None:
             self.recorder.note("ended_in_fault", self.ended_in_fault, self.tick)
+
+    def _estop_heard(self) -> str:
+        """The e-stop frames of another sender the run heard, in words ("": none): every
+        node latches FAULT (ESTOP) on one, and the run's stop (or its ``ended_in_fault``)
+        named the nodes' FAULT alone, the frame that caused it only counted as an unexpected
+        id, so the operator looked for a node that had stopped itself."""
+        driver = self.driver
+        if not driver.estops_heard:
+            return ""
+        more = f", {driver.estops_heard} in all" if driver.estops_heard > 1 else ""
+        return (
+            f"{driver.estop_heard} was heard{more}: every node latches FAULT (ESTOP) on it, "
+            "which the next run clears with --reset-node-faults"
+        )
 
     def _stop_at_once(self) -> str:
         """Zero torque and the disable to every node at once, for an interrupt that leaves
@@ -1603,6 +1619,7 @@ class Runtime:
             nodes_reset=self.nodes_reset,
             disable_unconfirmed=self.disable_unconfirmed,
             ended_in_fault=self.ended_in_fault,
+            estop_heard=self._estop_heard(),
             chatter=self.chatter.found(),
             max_asked_tau=self._max_asked.copy(),
         )

@@ -34,12 +34,18 @@ def test_a_node_faulted_after_the_stop_is_said(tmp_path: Path) -> None:
     assert said.startswith("node 1 (f1, ESTOP), node 2 (f2, ESTOP), node 3 (f3, ESTOP) in FAULT")
     assert "--reset-node-faults" in said
     assert f"handctl: warning: {said}" in done.stderr
+    # and where the e-stop came from: another sender (the babble's frame, not a valid one)
+    heard = summary["estop_heard"]
+    assert heard.startswith("an e-stop frame (id 0x000, malformed, 3 bytes: "), heard
+    assert "from another sender was heard" in heard
+    assert f"handctl: warning: {heard}" in done.stderr
     # without the e-stop, nothing is said
     done = handctl(
         "run", "recipe", DEFAULT_RECIPE, "--max-seconds", "0.3", "--summary-json", str(out)
     )
     assert done.returncode == 0, done.stderr
     assert "ended_in_fault" not in json.loads(out.read_text())
+    assert "estop_heard" not in json.loads(out.read_text())
 
 
 #: another host's TorqueCommand for node 1 on the bus 8-12 ms into the run's stop, after the

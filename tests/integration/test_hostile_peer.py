@@ -663,3 +663,38 @@ def test_a_heartbeat_lost_to_a_second_sender_says_its_frames_came_and_were_rejec
     )
     assert said is not None, first.detail
     assert 4 <= int(said[1]) <= result.node_rejects["counter_skip"]
+
+
+def test_an_e_stop_of_another_sender_is_said_with_every_node_it_stopped(
+    hand: HandConfig, hold: Recipe
+) -> None:
+    """One e-stop frame (the operator's) from a third peer mid-run: every node latches FAULT
+    (ESTOP) in the same node tick, yet the stop named "node 1 (f1) in FAULT (ESTOP)" alone
+    (the supervisor latches a code once, and node 2's and 3's findings were dropped), and
+    the frame itself showed only as `unexpected_id 1`. The stop names every node, and the
+    run says the e-stop came from another sender."""
+    from handctl.protocol import ESTOP_REASONS
+
+    layout = protocol_for(hand).layout("EStop")
+    with rig(hand, hold) as r, third_peer(r) as peer:
+        sent: list[int] = []
+
+        def press() -> None:
+            if not sent:
+                peer.send(frame(layout.frame_id, layout.encode(7, [ESTOP_REASONS["operator"]])))
+                sent.append(r.runtime.tick)
+
+        r.sim.faults.add(Every(send=press), INJECT_AT)
+        result = r.run()
+    first = result.faults[0]
+    assert first.code is FaultCode.ESTOP, [str(f) for f in result.faults]
+    assert first.detail == (
+        "node 1 (f1) in FAULT (ESTOP); node 2 (f2) in FAULT (ESTOP); node 3 (f3) in FAULT (ESTOP)"
+    )
+    assert result.estop_heard == (
+        "an e-stop frame (id 0x000, reason 1, operator) from another sender was heard: "
+        "every node latches FAULT (ESTOP) on it, which the next run clears with "
+        "--reset-node-faults"
+    )
+    assert result.node_rejects["unexpected_id"] == 1  # counted as before, never applied
+    assert [n.state for n in r.sim.nodes] == [int(NodeState.FAULT)] * 3

@@ -23,7 +23,7 @@ from handctl.hand_protocol import check_protocol
 from handctl.online.bus import DRAIN_LIMIT, EXTENDED_ID_FLAG, BusEvent, BusEventKind, FrameBus
 from handctl.online.drivers.finger import FingerLayouts, FingerNode
 from handctl.online.drivers.receiver import Reject, RejectCounts
-from handctl.protocol import NODE_COMMANDS, Protocol
+from handctl.protocol import ESTOP_REASONS, NODE_COMMANDS, Protocol
 
 #: Torques that came out of the safety supervisor. Only ``handctl/online/safety/supervisor.py``
 #: makes one (a test checks), and ``HandDriver.send`` takes nothing else, so the type checker proves
@@ -144,6 +144,13 @@ class HandDriver:
         #: none): a frame that did not go is said with the bus's reason, not as the nodes'
         self.last_tx_error = ""
         self._estop_layout = protocol.layout("EStop")
+        #: E-stop frames heard on the bus, and the first of them in words ("": none). The host
+        #: never hears its own frames (``FingerNode.command_ids``), so each is another
+        #: sender's: an e-stop button, a node, a second host (PROTOCOL.md: "host (or any
+        #: node) → all"). Every node latches FAULT (ESTOP) on one; the run's stop named the
+        #: nodes' FAULT and counted the frame as an unexpected id, nothing more.
+        self.estops_heard = 0
+        self.estop_heard = ""
         self._prepare_stop_frames()
 
     def poll(self, now_ns: int | None = None) -> JointState:
@@ -163,6 +170,8 @@ class HandDriver:
                 owner = self._command_owner.get(frame_id)
                 if owner is not None:
                     owner.heard_command(frame_id, frame.data)
+                elif frame_id == self._estop_layout.frame_id:
+                    self._heard_estop(frame.data)
                 continue
             node.receive(frame_id, frame.data, frame.timestamp_ns)
         events = self.bus.events()
@@ -189,6 +198,23 @@ class HandDriver:
         np.multiply(self._tdt_raw, self._tdt_scale, out=state.tdt)
         state.tdt += self._tdt_offset
         return state
+
+    def _heard_estop(self, data: bytes) -> None:
+        """An e-stop frame of another sender: counted, and the first said with its reason
+        (the nodes honour it even malformed, PROTOCOL.md, so a malformed one is said too)."""
+        self.estops_heard += 1
+        if self.estop_heard:
+            return
+        layout = self._estop_layout
+        if len(data) == layout.length and layout.crc_ok(data):
+            value = int(layout.decode(data)[1][0])
+            name = next((k for k, v in ESTOP_REASONS.items() if v == value), "")
+            what = f"reason {value}" + (f", {name}" if name else "")
+        else:
+            what = f"malformed, {len(data)} bytes: {data[:16].hex()}"
+        self.estop_heard = (
+            f"an e-stop frame (id 0x{layout.frame_id:03X}, {what}) from another sender"
+        )
 
     def _heard_remote(self, frame_id: int) -> None:
         """A remote frame (RTR): no data frame, so never a node's (the bus hands it on as an

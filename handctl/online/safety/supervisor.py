@@ -50,7 +50,7 @@ from handctl.online.safety.watchdog import (
     ReceiveWatch,
     TdtMonitor,
     TickWatch,
-    node_fault,
+    node_faults,
 )
 from handctl.protocol import NodeState, Protocol
 
@@ -241,7 +241,7 @@ class Supervisor:
                 # a node in FAULT refuses the enable until a fault reset: said at once and
                 # with its bits (an e-stop as ESTOP), not as nodes late to enable at the
                 # deadline
-                findings += [node_fault(node) for node in faulted]
+                findings += node_faults(faulted)
             elif all(node.state == NodeState.ENABLED and node.feedback_enabled for node in nodes):
                 # each node's own Feedback too: any stream's ENABLED had armed the torque
                 # for a node whose Feedback said DISABLED on every tick (a forged Heartbeat)

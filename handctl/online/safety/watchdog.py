@@ -45,6 +45,29 @@ def node_fault(node: FingerNode) -> Finding:
     return code, f"{who} in FAULT ({', '.join(names) or 'no bits'}){why}"
 
 
+def add_node_fault(found: list[Finding], node: FingerNode) -> None:
+    """Add ``node_fault(node)`` to ``found``, joined to a finding of its code already there.
+
+    Why: the supervisor latches a code once, so a second node's finding of the same code in
+    the same tick was dropped. An e-stop frame latches every node in FAULT (ESTOP) in the
+    same node tick, and the stop named the first node in FAULT (ESTOP) alone, as if one node
+    had stopped itself."""
+    code, detail = node_fault(node)
+    for k, (known, said) in enumerate(found):
+        if known is code:
+            found[k] = (code, f"{said}; {detail}")
+            return
+    found.append((code, detail))
+
+
+def node_faults(nodes: Sequence[FingerNode]) -> list[Finding]:
+    """``node_fault`` of each of ``nodes``, one finding per code naming every node of it."""
+    found: list[Finding] = []
+    for node in nodes:
+        add_node_fault(found, node)
+    return found
+
+
 def rejected_since(node: FingerNode, layout: Layout) -> str:
     """What a timeout of ``layout``'s stream adds when frames of it came and were rejected
     since the last one accepted ("" when none came): a stream that went on arriving, every
@@ -114,7 +137,7 @@ class NodeWatch:
             if i < len(self._reboots) and node.reboots > self._reboots[i]:
                 found.append((FaultCode.NODE_REBOOT, f"{who} rebooted"))
             if node.state == FAULT:
-                found.append(node_fault(node))
+                add_node_fault(found, node)
             elif expect_enabled and node.state != ENABLED:
                 found.append(
                     (FaultCode.NODE_STATE, f"{who} is {node.state_name}, expected ENABLED")
