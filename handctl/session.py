@@ -170,6 +170,7 @@ def summarise_run(
         ),
         **({"ended_in_fault": result.ended_in_fault} if result.ended_in_fault else {}),
         **({"estop_heard": result.estop_heard} if result.estop_heard else {}),
+        **({"rebooted": result.rebooted} if result.rebooted else {}),
         **(
             {"exception": _exception_summary(result.exception)}
             if result.exception is not None
@@ -223,6 +224,8 @@ def _run_warnings(result: RunResult, hand: HandConfig) -> list[str]:
         said.append(result.ended_in_fault)
     if result.estop_heard:
         said.append(result.estop_heard)
+    if result.rebooted:
+        said.append(result.rebooted)
     said += [ringing.text() for ringing in result.chatter]
     if "SIGXCPU" in result.message:
         said += rttime_note()  # at a real-time policy: which limit, and its value

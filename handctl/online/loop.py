@@ -271,6 +271,8 @@ class RunResult:
     ended_in_fault: str = ""
     #: e-stop frames another sender put on the bus, which every node obeys ("": none)
     estop_heard: str = ""
+    #: nodes a Heartbeat says rebooted after the torque was armed, that no fault names
+    rebooted: str = ""
     #: joints whose command rang (``safety.chatter``)
     chatter: list[Ringing] = field(default_factory=list)
     #: N·m, per joint, the largest |desired torque| the recipe asked for (finite values)
@@ -339,6 +341,8 @@ class Runtime:
         self.disable_unconfirmed = ""
         #: nodes in FAULT at the end that no fault of the run stands for ("": none)
         self.ended_in_fault = ""
+        #: nodes rebooted after the torque was armed that no fault names ("": none)
+        self.rebooted = ""
         #: whether the e-stop went to nodes still ENABLED after the disable
         self._estop_at_the_end = False
         #: The e-stop the nodes are owed, by its reason (``ESTOP_*``; 0: none), and how many
@@ -569,6 +573,7 @@ class Runtime:
             sup.trip(FaultCode.BUS_ERROR, refused, self.tick)
         if not sup.faults:  # a node fault in the run is its stop, said as such
             self._say_ended_in_fault()
+        self._say_rebooted()
         # the last tick's bus events, which the log has: the summary's count had them not
         self._bus_events += len(self.driver.take_bus_events())
         if sup.faults:
@@ -895,6 +900,26 @@ class Runtime:
         )
         if self.recorder is not None:
             self.recorder.note("ended_in_fault", self.ended_in_fault, self.tick)
+
+    def _say_rebooted(self) -> None:
+        """Nodes a Heartbeat says rebooted after the torque was armed, when no
+        ``NODE_REBOOT`` of the run says it: one that rebooted in the stop's zero ticks or
+        the wait for the disable was never mentioned (completed, exit 0, a count of counter
+        skips alone), and one that rebooted while armed stopped the run as DISABLED
+        (``NODE_STATE``), its reboot unsaid. A node comes back from a reboot DISABLED, its
+        torque zero, so this is said, not a fault: it tells why the node stopped, or of
+        a power supply or firmware to look at."""
+        sup = self.supervisor
+        if FaultCode.NODE_REBOOT in sup.active_codes:
+            return
+        said = sup.node_watch.rebooted_since_armed(self.driver.nodes)
+        if not said:
+            return
+        self.rebooted = (
+            "; ".join(said) + ": rebooted after the torque was armed, which no fault of the "
+            "run names (a node boots DISABLED, at zero torque; if it did not reboot, another "
+            "sender is on its Heartbeat id: `handctl nodes` shows it)"
+        )
 
     def _estop_heard(self) -> str:
         """The e-stop frames of another sender the run heard, in words ("": none): every
@@ -1620,6 +1645,7 @@ class Runtime:
             disable_unconfirmed=self.disable_unconfirmed,
             ended_in_fault=self.ended_in_fault,
             estop_heard=self._estop_heard(),
+            rebooted=self.rebooted,
             chatter=self.chatter.found(),
             max_asked_tau=self._max_asked.copy(),
         )

@@ -8,6 +8,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from ..conftest import DEFAULT_RECIPE, handctl
 
 #: an e-stop frame on the bus (identifier 0, as another host sends it) 4-5 ms after the run's
@@ -46,6 +48,7 @@ def test_a_node_faulted_after_the_stop_is_said(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert "ended_in_fault" not in json.loads(out.read_text())
     assert "estop_heard" not in json.loads(out.read_text())
+    assert "rebooted" not in json.loads(out.read_text())
 
 
 #: another host's TorqueCommand for node 1 on the bus 8-12 ms into the run's stop, after the
@@ -88,3 +91,37 @@ def test_another_host_heard_after_the_disable_is_a_foreign_command(tmp_path: Pat
     assert [frame for frame in sent[disable:] if frame.startswith("000#")]  # and the e-stop
     replayed = handctl("replay", str(log))
     assert "FAULT FOREIGN_COMMAND" in replayed.stdout, replayed.stdout
+
+
+@pytest.mark.parametrize(
+    "at",
+    [
+        0.305,  # in the zero ticks between the stop (idle at 0.303 s) and the disable
+        0.309,  # in the wait for the nodes' DISABLED, after the disable (sent at 0.308 s)
+    ],
+)
+def test_a_node_rebooted_in_the_run_s_stop_is_said(tmp_path: Path, at: float) -> None:
+    """Node 2 reboots after the time budget's stop has taken the torque out. Its counters
+    restart, so its first Heartbeat after the boot is rejected as a counter skip, and the
+    run ended as if nothing had happened, exit 0, "counter_skip 3" its only trace (found by
+    an outside audit). The hand is safe (a node boots DISABLED), so the exit stays 0; the
+    reboot is said, a warning and the summary's ``rebooted``."""
+    faults = tmp_path / "reboot.yaml"
+    faults.write_text(
+        f"faults:\n  - {{kind: node_reboot, node: 2, downtime: 0.0, start: {at}, stop: {at}}}\n"
+    )
+    out = tmp_path / "summary.json"
+    done = handctl(
+        "run", "recipe", DEFAULT_RECIPE, "--max-seconds", "0.3",
+        "--sim-faults", str(faults), "--summary-json", str(out),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(out.read_text())
+    assert summary["outcome"] == "time_budget" and summary["faults"] == []
+    assert summary["sim"]["nodes"]["f2"]["reboots"] == 1
+    said = summary["rebooted"]
+    assert said.startswith(
+        "node 2 (f2): a Heartbeat of it with its uptime gone back to 0 ms, rejected for its "
+        "counter (which a reboot restarts): rebooted after the torque was armed"
+    ), said
+    assert f"handctl: warning: {said}" in done.stderr

@@ -32,6 +32,7 @@ _DISABLED = int(NodeState.DISABLED)  # plain ints on the hot path
 _ENABLED = int(NodeState.ENABLED)
 _FAULT = int(NodeState.FAULT)
 _DEFINED_STATES = frozenset((_DISABLED, _ENABLED, _FAULT))
+_COUNTER_REJECTS = frozenset((Reject.COUNTER_SKIP, Reject.COUNTER_REPEAT))
 
 
 def fault_names(bits: int) -> list[str]:
@@ -204,6 +205,14 @@ class FingerNode:
         self.heartbeat_ns: int | None = None
         self.uptime_ms: int | None = None
         self.reboots = 0
+        #: Heartbeats rejected for their counter whose uptime says the node rebooted, and the
+        #: last such uptime (ms). Never applied: a node's counters restart at its boot, so the
+        #: first Heartbeat after a reboot is a counter skip, and ``reboots`` counts the reboot
+        #: only at the next, 100 ms on. A node that rebooted in a run's last 100 ms (its
+        #: stop's zero ticks, the wait for its disable) went unsaid (found by an outside
+        #: audit); this is what the run says it by (``NodeWatch.rebooted_since_armed``).
+        self.reboots_in_rejects = 0
+        self.rejected_uptime_ms = 0
         self.status: tuple[float, ...] | None = None
         self.status_ns: int | None = None
         #: What the node's last intact Status said of its versions (a Status of another
@@ -266,6 +275,8 @@ class FingerNode:
             if since is None or since[0] is not counters.frame:
                 since = self._rejected_since[frame_id] = (counters.frame, RejectCounts())
             since[1].add(reason)
+            if layout is self.layouts.heartbeat and reason in _COUNTER_REJECTS:
+                self._reboot_in_reject(layout, data, arrival_ns)
             if (
                 reason is Reject.COUNTER_REPEAT
                 and data != counters.frame
@@ -314,6 +325,18 @@ class FingerNode:
             self._check_version(self.protocol_version)
             self._report(int(values[0]), int(values[1]), "Status", arrival_ns)
         return None
+
+    def _reboot_in_reject(self, layout: Layout, data: bytes, arrival_ns: int) -> None:
+        """A Heartbeat rejected for its counter (so intact: length and CRC passed): count it
+        in ``reboots_in_rejects`` if its uptime says the node rebooted since the last one
+        accepted. Nothing of it is applied; it is what the run's end says."""
+        last_ms, last_ns = self.uptime_ms, self.heartbeat_ns
+        if last_ms is None or last_ns is None:
+            return
+        uptime = int(layout.decode(data)[1][1])
+        if rebooted(last_ms, uptime, arrival_ns - last_ns):
+            self.reboots_in_rejects += 1
+            self.rejected_uptime_ms = uptime
 
     def rejected_since_accepted(self, layout: Layout) -> dict[str, int]:
         """The frames of ``layout``'s stream (one of this node's) rejected since the last one

@@ -93,10 +93,32 @@ class NodeWatch:
         self.feedback_timeout_ns = int(safety.feedback_timeout_s * 1e9)
         self.heartbeat_timeout_ns = int(safety.heartbeat_timeout_s * 1e9)
         self._reboots: list[int] = []
+        self._reboots_in_rejects: list[int] = []
 
     def arm(self, nodes: Sequence[FingerNode]) -> None:
         """Remember the reboot counts at the moment torque starts to flow."""
         self._reboots = [node.reboots for node in nodes]
+        self._reboots_in_rejects = [node.reboots_in_rejects for node in nodes]
+
+    def rebooted_since_armed(self, nodes: Sequence[FingerNode]) -> list[str]:
+        """Each node a Heartbeat says rebooted since ``arm``, in words (none if never armed).
+
+        Checked at a run's end, not each tick: ``check`` runs while the torque is armed only,
+        and the first Heartbeat after a reboot is rejected (the node's counters restart), so
+        a node that rebooted in the stop's zero ticks or the wait for the disable was seen by
+        nothing but a count of counter skips, and the run said "completed"."""
+        said = []
+        for i, node in enumerate(nodes[: len(self._reboots)]):
+            who = f"node {node.node_id} ({node.finger.name})"
+            if node.reboots > self._reboots[i]:
+                said.append(f"{who}: its Heartbeat's uptime went back")
+            elif node.reboots_in_rejects > self._reboots_in_rejects[i]:
+                said.append(
+                    f"{who}: a Heartbeat of it with its uptime gone back to "
+                    f"{node.rejected_uptime_ms} ms, rejected for its counter (which a reboot "
+                    "restarts)"
+                )
+        return said
 
     def check(
         self, now_ns: int, nodes: Sequence[FingerNode], expect_enabled: bool
