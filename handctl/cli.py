@@ -859,6 +859,12 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
             "  frames rejected by the host's receive checks (never applied): "
             + ", ".join(f"{k} {n}" for k, n in rejected.items())
         )
+    lost = summary.get("frames_lost")
+    if lost:
+        print(
+            f"  frames the host's own receive queue lost (it read them too late): {lost}; "
+            "each loss shows as a counter skip of the node whose frame it was, not the node's"
+        )
     events = summary.get("bus_events")
     if events:
         # the summary keeps their count alone (a log has each, on /events): an error-passive

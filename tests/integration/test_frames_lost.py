@@ -8,15 +8,21 @@ stopped or starved does, until the bus drops frames for it."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
+import pytest
+
+from handctl import cli
 from handctl.config import HandConfig
 from handctl.online.bus import open_bus
 from handctl.online.drivers.hand import HandDriver
 from handctl.protocol import Protocol
 from handctl.session import _frames_lost
 from handctl.sim.hand import SimulatedHand
+
+from ..conftest import ROOT
 
 #: node ticks the host does not read for: the hand sends some 3 frames a tick, and the unix
 #: bus holds 64 for a receiver that does not read, past its socket's few datagrams
@@ -49,3 +55,21 @@ def test_frames_the_hosts_receive_queue_lost_are_in_the_summary(
     assert summary == {"frames_lost": dropped}
     skips = sum(n.rejects.as_dict()["counter_skip"] for n in driver.nodes)
     assert skips > 0  # what the run said alone, as if the nodes had skipped them
+
+
+def test_frames_lost_are_printed_beside_the_rejects(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The printed summary says them, beside the counter skips they show as."""
+    out = tmp_path / "summary.json"
+    argv = ["run", "recipe", str(ROOT / "config/recipes/swap_two_cylinders.yaml")]
+    assert cli.main([*argv, "--max-seconds", "0.05", "--summary-json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    capsys.readouterr()
+    cli._print_run_summary(summary, None)
+    assert "lost" not in capsys.readouterr().out
+    cli._print_run_summary({**summary, "frames_lost": 7}, None)
+    assert (
+        "  frames the host's own receive queue lost (it read them too late): 7; each loss "
+        "shows as a counter skip of the node whose frame it was, not the node's"
+    ) in capsys.readouterr().out
