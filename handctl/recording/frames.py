@@ -131,14 +131,11 @@ def _to_bus(
     # the disable by CRC and held its last torque until its watchdog (found by an outside
     # audit).
     protocol = protocol_for(hand) if given else recorded_protocol(recording) or protocol_for(hand)
-    sent = failed = 0
-    worst_late = 0.0
     # A sender that fell behind (a stall, a slow machine) and sent its backlog back to back
     # broke on the wire the rate limit the commands were checked against on their logged
     # spacing. Behind by more than a period (the slack ``check_commands`` gives a late
     # tick), the rest of the replay is shifted instead, as late as this frame.
-    period_s = hand.bus.period_s / speed
-    shifted = 0.0
+    tally = _Tally(hand.bus.period_s, speed)
     left = _LeftEnabled(hand, protocol)
     heard = _FaultsHeard(hand, left)
     if stops.first:  # during the checks: nothing sent yet
@@ -150,35 +147,12 @@ def _to_bus(
 
     # one handctl host per bus on this machine, as a run (``buslock``): held to the end
     bus_spec = parse_spec(spec, hand.bus, hand.source, "--to-bus")
+    period_s = tally.period_s
     with open_bus(spec, hand.bus) as bus, take_bus(bus_spec, "this replay"):
         _nobody_else(bus, hand, spec, stops, heard)
-        start: float | None = None
-        first = 0
-        listened = -math.inf
+        frames = logged_frames(recording, direction)
         try:
-            for log_time, frame_id, data, _ in logged_frames(recording, direction):
-                if start is None:
-                    start, first = clock(), log_time
-                due = start + (log_time - first) * 1e-9 / speed
-                wait = due - clock()
-                if wait > 0:
-                    _nap(wait, due, clock, sleep, stops)
-                else:
-                    worst_late = max(worst_late, -wait)
-                    if -wait > period_s:
-                        start -= wait
-                        shifted -= wait
-                if stops.first:
-                    break
-                if due - listened >= period_s:  # what the nodes say, once a period
-                    listened = due
-                    if heard.hear(bus.drain()):
-                        break
-                if bus.send(frame_id, data):
-                    sent += 1
-                    left.sent(frame_id, data)
-                else:
-                    failed += 1
+            _send_frames(frames, bus, tally, clock, sleep, stops, heard)
         except KeyboardInterrupt as exc:
             # a replay stopped midway (Ctrl-C, SIGTERM) left the hand under the last torques
             # sent, until the nodes' watchdog faulted them: stopped as a run stops
@@ -190,10 +164,10 @@ def _to_bus(
         stopped = left.stop(bus, period_s, sleep)
         counts = bus.transport_counts()
     report: dict[str, Any] = {
-        "sent": sent,
-        "failed": failed,
-        "worst_late_ms": round(worst_late * 1e3, 3),
-        "shifted_ms": round(shifted * 1e3, 3),
+        "sent": tally.sent,
+        "failed": tally.failed,
+        "worst_late_ms": round(tally.worst_late * 1e3, 3),
+        "shifted_ms": round(tally.shifted * 1e3, 3),
         "bus": spec,
         "speed": speed,
         "direction": direction,
@@ -201,8 +175,8 @@ def _to_bus(
     if stopped:
         report["stopped"] = stopped
     if heard.first:
-        report["node_fault"] = heard.first
-    if sent and counts.get("datagrams_sent") == 0:
+        report["node_fault"] = heard.first + (left.estop_said() if heard.foreign else "")
+    if tally.sent and counts.get("datagrams_sent") == 0:
         # The unix bus makes its directory if it is not there, and a send with nobody else
         # in it succeeds: "N frames sent, 0 failed" to a mistyped directory looked like a
         # replay somebody had heard. (A CAN bus without a listener has no ACK, and says so.)
@@ -211,6 +185,58 @@ def _to_bus(
             "(is the listener's bus directory this one?)"
         )
     return report
+
+
+class _Tally:
+    """What a replay sent: frames that went and that the bus refused, how late it was."""
+
+    def __init__(self, period_s: float, speed: float) -> None:
+        self.speed = speed
+        self.period_s = period_s / speed  # s, a loop period as sent
+        self.sent = self.failed = 0
+        self.worst_late = self.shifted = 0.0  # s
+
+
+def _send_frames(
+    frames: Iterator[tuple[int, int, bytes, bool]],
+    bus: HandBus,
+    tally: _Tally,
+    clock: Callable[[], float],
+    sleep: Callable[[float], None],
+    stops: StopNotes,
+    heard: _FaultsHeard,
+) -> None:
+    """Send ``frames`` (``logged_frames``) at their times, listening to the nodes once a
+    period, until the last, a stop signal, or what the nodes say stops the replay."""
+    left, period_s = heard.left, tally.period_s
+    start: float | None = None
+    first = 0
+    listened = -math.inf
+    for log_time, frame_id, data, _ in frames:
+        if start is None:
+            start, first = clock(), log_time
+        due = start + (log_time - first) * 1e-9 / tally.speed
+        wait = due - clock()
+        if wait > 0:
+            _nap(wait, due, clock, sleep, stops)
+        else:
+            tally.worst_late = max(tally.worst_late, -wait)
+            if -wait > period_s:
+                start -= wait
+                tally.shifted -= wait
+        if stops.first:
+            break
+        if due - listened >= period_s:  # what the nodes say, once a period
+            listened = due
+            if heard.hear(bus.drain(), bus.events()):
+                if heard.foreign:
+                    left.estop(bus)  # at once, before the stop's zeros (row 45)
+                break
+        if bus.send(frame_id, data):
+            tally.sent += 1
+            left.sent(frame_id, data)
+        else:
+            tally.failed += 1
 
 
 def _nobody_else(
@@ -377,6 +403,13 @@ class _FaultsHeard:
         #: a node heard answering with a Feedback of another length (another hand config),
         #: before the first frame ("": none)
         self.stranger = ""
+        #: the hand's command identifiers: each one's message name and node
+        self.commands = {
+            frame_id: (("NodeCommand" if is_command else "TorqueCommand"), node)
+            for frame_id, (node, is_command) in left.of_id.items()
+        }
+        #: what another sender on one of them was first heard sending ("": none)
+        self.foreign = ""
 
     def faulted(self, frames: Sequence[Any]) -> list[str]:
         """The nodes of the hand ``frames`` (``Frame``s) say are in FAULT, enabled by the
@@ -418,9 +451,12 @@ class _FaultsHeard:
             return None
         return self._fault_names(feedback.fault_bits) or ["no fault bits"]
 
-    def hear(self, frames: Sequence[Any]) -> bool:
+    def hear(self, frames: Sequence[Any], events: Sequence[Any] = ()) -> bool:
         """Whether a node the replay had enabled said FAULT in ``frames`` (``Frame``s), or a
-        joint of one outside its soft limits."""
+        joint of one outside its soft limits, or another sender was heard on one of the
+        hand's command identifiers (a frame, or a remote frame among the bus's ``events``)."""
+        if self._another_sender(frames, events):
+            return True
         for frame in frames:
             found = self.feedback.get(frame.arbitration_id)
             if found is None:
@@ -469,6 +505,35 @@ class _FaultsHeard:
                     return True
         return False
 
+    def _another_sender(self, frames: Sequence[Any], events: Sequence[Any]) -> bool:
+        """Whether a frame on one of the hand's command identifiers is among ``frames``, or
+        a remote frame on one among ``events``: the replay does not hear its own, so another
+        host (or a forged command) commands the nodes beside it, and the nodes take whichever
+        comes at their next counter. Listened for only before the first frame, a second
+        host that began during the replay had node 1 for some 235 ticks, the replay's own
+        commands rejected, until the node's reject limit latched it (an outside audit)."""
+        from handctl.online.bus import BusEventKind
+
+        heard = [(f.arbitration_id, f.data) for f in frames if f.arbitration_id in self.commands]
+        heard += [
+            (e.frame_id, None)
+            for e in events
+            if e.kind is BusEventKind.REMOTE_FRAME and e.frame_id in self.commands
+        ]
+        if not heard:
+            return False
+        frame_id, data = heard[0]
+        name, node = self.commands[frame_id]
+        finger = self.left.fingers[node]
+        what = "a remote frame (RTR)" if data is None else f"{len(data)} bytes: {data[:16].hex()}"
+        self.foreign = (
+            f"another sender on the hand's {name} id 0x{frame_id:03X} of node {node} "
+            f"({finger.name}) while the replay sent ({what}): a second host or a forged "
+            "command, which the nodes may obey instead of the replay's"
+        )
+        self.first = f"{self.foreign}; the replay stopped there, as a run stops on FOREIGN_COMMAND"
+        return True
+
 
 def _another_config(finger: FingerConfig, layout: Layout, length: int) -> str:
     """A node that answers with a Feedback of ``length`` bytes, not its ``layout``'s, as the
@@ -491,10 +556,21 @@ class _LeftEnabled:
         # the last command, and the nodes' 10 ms watchdog had faulted them first
         from handctl.online.drivers.finger import FingerLayouts, make_command, make_node_command
         from handctl.online.loop import ZERO_TICKS_BEFORE_DISABLE
+        from handctl.protocol import ESTOP_REASONS
 
         self._command = make_command
         self._node_command = make_node_command
         self._zero_ticks = ZERO_TICKS_BEFORE_DISABLE
+        #: the e-stop, which every node latches whatever it is told next (PROTOCOL.md)
+        self._estop_layout = protocol.layout("EStop")
+        self._estop_frames = tuple(
+            self._estop_layout.encode(c, (ESTOP_REASONS["host_safety"],)) for c in range(256)
+        )
+        self._estop_counter = 0
+        #: e-stops that went, and whether one the bus refused is owed
+        self.estops = 0
+        self.estop_owed = False
+        self.fingers = {f.node_id: f for f in hand.fingers}
         #: the protocol the nodes speak (the recorded DBC's, or the one of ``--hand``)
         self.protocol = protocol
         self.layouts = {
@@ -526,10 +602,35 @@ class _LeftEnabled:
         elif not is_command or int(values[0]) == NODE_COMMANDS["enable"]:
             self.enabled.add(node)
 
+    def estop(self, bus: Any) -> bool:
+        """Send the e-stop (host safety), prepared: whether it went. One the bus refused is
+        owed, and the stop's ticks send it again until one goes."""
+        frame = self._estop_frames[self._estop_counter]
+        try:
+            went = bool(bus.send(self._estop_layout.frame_id, frame))
+        except Exception:  # the stop goes on whatever the bus does
+            went = False
+        if went:
+            self._estop_counter = (self._estop_counter + 1) & 0xFF
+            self.estops += 1
+        self.estop_owed = not went and not self.estops
+        return went
+
+    def estop_said(self) -> str:
+        """What became of the e-stop, as the replay's failure says it."""
+        if self.estops:
+            return (
+                "; the e-stop was sent: every node latches FAULT (ESTOP), which the other "
+                "sender cannot lift with an enable (a run's --reset-node-faults clears it)"
+            )
+        return "; the e-stop could not be sent (the bus refused it)"
+
     def stop(self, bus: Any, period_s: float, sleep: Callable[[float], None]) -> str:
         """Zero torque for as many periods as a run's stop, then disable, to every node left
-        enabled; what was done, or "" when no node was."""
+        enabled; what was done, or "" when no node was. An e-stop owed goes on each tick."""
         make_command, make_node_command = self._command, self._node_command
+        if self.estop_owed:
+            self.estop(bus)
         nodes = sorted(self.enabled)
         if not nodes:
             return ""
@@ -545,6 +646,8 @@ class _LeftEnabled:
                 bus.send(*make_command(layout, next_counter(layout.frame_id), zero))
             if tick < self._zero_ticks:
                 sleep(period_s)
+            if self.estop_owed:
+                self.estop(bus)
         for node in nodes:
             layout = self.layouts[node].node_command
             bus.send(*make_node_command(layout, next_counter(layout.frame_id), "disable"))

@@ -1,0 +1,126 @@
+"""``handctl replay --to-bus`` onto a hand that does not follow the log: another host that
+begins commanding it during the replay, a node that ignores the disable, a node that reboots,
+a peer's frames on a node's Feedback id. The simulated hand steps in lockstep with the
+replay's clock (its ``sleep``), so what it hears and says is the same on a loaded machine."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import pytest
+
+from handctl.config import HandConfig
+from handctl.hand_protocol import protocol_for
+from handctl.online.bus import Frame, HandBus, open_bus
+from handctl.protocol import NodeState
+from handctl.recording.frames import logged_frames, to_bus
+from handctl.recording.reader import Recording, open_recording
+from handctl.sim.firmware import FaultBits
+from handctl.sim.hand import SimulatedHand
+
+from .rig import short_recipe
+from .test_recording import Recorded, record_run
+
+#: what a peer does on each of the hand's ticks: (the hand, its tick since the replay
+#: began, the peer's bus, every frame the peer has heard so far)
+EachTick = Callable[[SimulatedHand, int, HandBus, list[Frame]], None]
+
+
+@pytest.fixture(scope="module")
+def recorded(hand: HandConfig, tmp_path_factory: pytest.TempPathFactory) -> Recorded:
+    directory = tmp_path_factory.mktemp("live")
+    return record_run(hand, short_recipe(hand, directory), directory / "run.mcap", troubles=False)
+
+
+class Lockstep:
+    """The simulated hand on ``spec``, stepped as the replay's clock goes, and a peer on the
+    same bus that acts on each of its ticks."""
+
+    def __init__(self, sim: SimulatedHand, peer: HandBus, each_tick: EachTick | None) -> None:
+        self.sim = sim
+        self.peer = peer
+        self.heard: list[Frame] = []  # by the peer: the replay's frames and the hand's
+        self.each_tick = each_tick
+        self.now = sim.ticks * 1e-3  # s, the hand's time
+        self.began = sim.ticks
+
+    def clock(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+        while self.sim.ticks * 1e-3 < self.now:
+            self.sim.step()
+            self.heard += self.peer.drain(limit=10**6)
+            if self.each_tick is not None:
+                self.each_tick(self.sim, self.sim.ticks - self.began, self.peer, self.heard)
+
+    def replay(self, recording: Recording, spec: str) -> dict[str, Any]:
+        """The log's host frames onto ``spec``, paced by the hand's time."""
+        return to_bus(recording, spec, direction="tx", sleep=self.sleep, clock=self.clock)
+
+
+@contextmanager
+def lockstep(
+    hand: HandConfig,
+    spec: str,
+    each_tick: EachTick | None = None,
+    prepare: Callable[[SimulatedHand], None] | None = None,
+) -> Iterator[Lockstep]:
+    """The hand under way (a few ticks: its nodes speaking) and its peer, on ``spec``."""
+    with open_bus(spec, hand.bus) as its_bus, open_bus(spec, hand.bus) as peer:
+        sim = SimulatedHand(hand, its_bus)
+        if prepare is not None:
+            prepare(sim)
+        for _ in range(20):
+            sim.step()
+        peer.drain(limit=10**6)
+        yield Lockstep(sim, peer, each_tick)
+
+
+def _after(frames: list[Frame], frame_id: int) -> int:
+    """The counter after the last frame of ``frame_id`` among ``frames`` (0: none yet)."""
+    last = next((f for f in reversed(frames) if f.arbitration_id == frame_id), None)
+    return 0 if last is None else (last.data[1] + 1) & 0xFF
+
+
+def test_another_host_that_begins_commanding_during_the_replay_is_an_e_stop(
+    recorded: Recorded, hand: HandConfig, channel: str
+) -> None:
+    """A second host that began sending TorqueCommands to node 1, each a counter ahead of
+    the replay's, was never noticed: the replay listened for another host only before its
+    first frame, and node 1 took the other host's torques and rejected the replay's for
+    some 235 ticks, until its own reject limit latched it (an outside audit). A frame on one
+    of the hand's command identifiers during the replay is another host, as in a run
+    (FOREIGN_COMMAND, docs/safety.md row 45): the e-stop at once, the replay stopped there,
+    and said (exit 1) naming the identifier."""
+    protocol = protocol_for(hand)
+    torque = protocol.layout("TorqueCommand", 1)
+    estopped: list[bool] = []  # at each frame the other host sent: whether it heard an e-stop
+
+    def other_host(sim: SimulatedHand, tick: int, peer: HandBus, heard: list[Frame]) -> None:
+        if tick >= 300:  # the nodes enabled, under the log's torques
+            peer.send(torque.frame_id, torque.encode(_after(heard, torque.frame_id), (0.05,) * 3))
+            estopped.append(any(f.arbitration_id == 0 for f in heard))
+
+    recording = open_recording(recorded.path)
+    logged = list(logged_frames(recording, "tx"))
+    spec = f"virtual:{channel}"
+    with lockstep(hand, spec, other_host) as hand_on_bus:
+        sent = hand_on_bus.replay(recording, spec)
+        hand_on_bus.sim.step()  # the nodes take the e-stop on their tick
+        nodes = hand_on_bus.sim.nodes
+        estops = [f for f in hand_on_bus.heard if f.arbitration_id == 0]
+    said = sent.get("node_fault", "")
+    assert said.startswith(
+        "another sender on the hand's TorqueCommand id 0x101 of node 1 (f1) while the replay "
+        f"sent ({torque.length} bytes: "
+    ), sent
+    assert "as a run stops on FOREIGN_COMMAND; the e-stop was sent" in said
+    assert estopped[:2] == [False, True]  # the e-stop came with the replay's next look
+    assert sent["sent"] < len(logged)  # stopped there, not sent to its end
+    assert len(estops) == 1
+    for node in nodes:
+        assert node.state == int(NodeState.FAULT) and node.fault_bits & FaultBits.ESTOP
