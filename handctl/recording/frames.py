@@ -137,7 +137,7 @@ def _to_bus(
     # tick), the rest of the replay is shifted instead, as late as this frame.
     tally = _Tally(hand.bus.period_s, speed)
     left = _LeftEnabled(hand, protocol)
-    heard = _FaultsHeard(hand, left)
+    heard = _FaultsHeard(hand, left, clock)
     if stops.first:  # during the checks: nothing sent yet
         raise ReplayInterrupted("", stops.first, stops.later)
     # the stop signals looked at between two frames: raised, a second one cut the stop
@@ -249,8 +249,9 @@ def _nobody_else(
     ``--reset-node-faults`` does), and onto a hand a killed run had left faulted it sent its
     frames, then said a node "went into FAULT while the replay had it enabled" and left
     enabled by it, both untrue (found by an outside audit). Nor a node of another hand
-    config (a Feedback of another length on its id): the replay enabled it and sent torques
-    before it noticed (an outside audit). Nor a joint resting outside its
+    config (its Feedback stream of another length): the replay enabled it and sent torques
+    before it noticed (an outside audit); nor more rejected Feedback frames than the hand's
+    reject limit, as a run's start-up refuses them. Nor a joint resting outside its
     soft limits, which stops any run before any torque: a replay onto a hand whose fingers
     had sagged past a limit enabled every node and sent its torques (an outside audit)."""
     from handctl.online.otherhost import refuse_another_host
@@ -264,6 +265,11 @@ def _nobody_else(
         raise HandctlError(
             f"{spec}: {heard.stranger}, heard before the replay sent anything: its frames are "
             "not that hand's (nothing was sent)"
+        )
+    if heard.rejected.said:
+        raise HandctlError(
+            f"{spec}: {heard.rejected.said}; heard before the replay sent anything (nothing "
+            "was sent)"
         )
     if faulted:
         raise HandctlError(
@@ -381,9 +387,17 @@ class _FaultsHeard:
     replayed. A joint outside its soft limits (the hand's on the bus), before the first frame
     or while the replay had its node enabled: the replay watched no angle, and onto a hand
     whose fingers hung past a limit it enabled every node and sent its torques, exit 0, where
-    a run stops before any torque (found by an outside audit)."""
+    a run stops before any torque (found by an outside audit).
 
-    def __init__(self, hand: HandConfig, left: _LeftEnabled) -> None:
+    A Feedback that is not to be read (another length, a bad CRC) is a rejected frame, held
+    to the hand's reject limit as a run holds them (REJECT_RATE, ``_Rejected``)."""
+
+    def __init__(
+        self,
+        hand: HandConfig,
+        left: _LeftEnabled,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
         # once, not once a period as the replay listens
         from handctl.online.drivers.finger import fault_names, parse_feedback
         from handctl.protocol import NodeState
@@ -410,6 +424,7 @@ class _FaultsHeard:
         }
         #: what another sender on one of them was first heard sending ("": none)
         self.foreign = ""
+        self.rejected = _Rejected(hand, clock)
 
     def faulted(self, frames: Sequence[Any]) -> list[str]:
         """The nodes of the hand ``frames`` (``Frame``s) say are in FAULT, enabled by the
@@ -419,12 +434,11 @@ class _FaultsHeard:
             found = self.feedback.get(frame.arbitration_id)
             if found is None:
                 continue
-            if len(frame.data) != found[1].length:
-                # skipped, such a node was enabled and sent torques before the replay
-                # noticed it, once it listened to the nodes it had enabled
-                self.stranger = self.stranger or _another_config(*found, len(frame.data))
-                continue
-            if not found[1].crc_ok(frame.data):
+            # one of another length skipped, a node of another config was enabled and sent
+            # torques before the replay noticed it, once it listened to the nodes it had
+            # enabled; now ``stranger``, once its stream keeps that length
+            if not self.rejected.accepted(*found, frame.data):
+                self.stranger = self.rejected.stranger
                 continue
             bits = self._read(found[0], found[1], frame.data)
             if bits is not None:
@@ -462,18 +476,18 @@ class _FaultsHeard:
             if found is None:
                 continue
             finger, layout = found
-            if finger.node_id not in self.left.enabled:
-                continue
-            if len(frame.data) != layout.length:
+            if not self.rejected.accepted(finger, layout, frame.data):
                 # a node of another hand config on the bus (fewer joints a node, another
                 # protocol): the recorded hand's enable was taken, its Feedback never read,
-                # so its FAULT went unheard and the replay sent on to the end, exit 0
-                self.first = (
-                    f"{_another_config(finger, layout, len(frame.data))}, and the replay "
-                    "stopped there"
-                )
-                return True
-            if not layout.crc_ok(frame.data):
+                # so its FAULT went unheard and the replay sent on to the end, exit 0. Said
+                # so of one frame of another length, any peer's on the id stopped the
+                # replay, blaming another hand config (an outside audit): that is said once
+                # the node's own stream keeps the length, the rest held to the reject limit
+                if self.rejected.said:
+                    self.first = f"{self.rejected.said}, and the replay stopped there"
+                    return True
+                continue
+            if finger.node_id not in self.left.enabled:
                 continue
             bits = self._read(finger, layout, frame.data)
             if bits is not None:
@@ -533,6 +547,72 @@ class _FaultsHeard:
         )
         self.first = f"{self.foreign}; the replay stopped there, as a run stops on FOREIGN_COMMAND"
         return True
+
+
+#: wrong-length Feedback frames of one node in a row, each at the counter after the one
+#: before and no frame of the right length between, that are taken for its own stream: a
+#: node of another config (a peer's frame, or a few, on the id are rejects)
+ANOTHER_CONFIG_RUN = 5
+
+
+class _Rejected:
+    """The Feedback frames a replay does not read (another length, a bad CRC), counted per
+    node against the hand's reject limit as a run counts them (more than
+    ``safety.max_rejects_in_window`` within ``safety.reject_window_s`` is REJECT_RATE, row
+    44), and a node whose own stream keeps another length, which is another hand config's.
+    Once said (``said``), a replay stops there."""
+
+    def __init__(self, hand: HandConfig, clock: Callable[[], float]) -> None:
+        self._clock = clock
+        self.limit = hand.safety.max_rejects_in_window
+        self.window_s = hand.safety.reject_window_s
+        self._times: dict[int, collections.deque[tuple[float, str]]] = {}
+        #: per node, its run of frames of one wrong length: the length, how many, the
+        #: last one's counter (None: too short to carry one)
+        self._runs: dict[int, tuple[int, int, int | None]] = {}
+        #: the first node heard keeping another length in its stream ("": none)
+        self.stranger = ""
+        #: what stops a replay: the stranger, or the first node over the reject limit
+        self.said = ""
+
+    def accepted(self, finger: FingerConfig, layout: Layout, data: bytes) -> bool:
+        """Whether ``data``, a Feedback of ``finger``'s on ``layout``, is one to read; one
+        that is not is counted."""
+        node = finger.node_id
+        if len(data) == layout.length and layout.crc_ok(data):
+            self._runs.pop(node, None)
+            return True
+        kind = "crc"
+        if len(data) != layout.length:
+            kind = "length"
+            counter = data[1] if len(data) > 1 else None
+            length, count, last = self._runs.get(node, (-1, 0, None))
+            own = (
+                length == len(data)
+                and counter is not None
+                and last is not None
+                and counter == (last + 1) & 0xFF
+            )
+            count = count + 1 if own else 1
+            self._runs[node] = (len(data), count, counter)
+            if count >= ANOTHER_CONFIG_RUN and not self.said:
+                self.stranger = self.said = _another_config(finger, layout, len(data))
+        now = self._clock()
+        times = self._times.setdefault(node, collections.deque())
+        times.append((now, kind))
+        while now - times[0][0] > self.window_s:
+            times.popleft()
+        if len(times) > self.limit and not self.said:
+            kinds = collections.Counter(k for _, k in times)
+            self.said = (
+                f"node {node} ({finger.name}): {len(times)} of its {layout.name} frames "
+                f"rejected within {self.window_s:g} s ("
+                + ", ".join(f"{k} {v}" for k, v in sorted(kinds.items()))
+                + f"; at most {self.limit}, the hand's safety.max_rejects_in_window): frames "
+                "on its identifier that are not its own, or its own corrupted, hide what it "
+                "says, as a run stops on REJECT_RATE"
+            )
+        return False
 
 
 def _another_config(finger: FingerConfig, layout: Layout, length: int) -> str:

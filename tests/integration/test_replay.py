@@ -925,10 +925,15 @@ def test_a_fault_is_heard_only_from_a_node_the_replay_had_enabled(hand: HandConf
     assert heard.hear([feedback(NodeState.ENABLED), feedback(NodeState.FAULT, timeout)])
     assert heard.first.startswith(f"node {node} ({hand.fingers[0].name}) went into FAULT (")
     # a node of another hand config: a Feedback of another length on the same id, which
-    # never decoded, so that hand's FAULT went unheard (an outside probe: exit 0)
+    # never decoded, so that hand's FAULT went unheard (an outside probe: exit 0). Its own
+    # stream, each at the next counter; one such frame alone is a reject, any peer's
     other = _FaultsHeard(hand, left)
-    short = feedback(NodeState.ENABLED)
-    assert other.hear([short._replace(data=short.data[:-2])])
+    values = (0.0,) * (2 * k) + (int(NodeState.ENABLED), 0)
+    stream = [
+        Frame(layouts.feedback.frame_id, layouts.feedback.encode(c, values)[:-2]) for c in range(5)
+    ]
+    assert not other.hear(stream[:1]) and not other.hear(stream[2:])  # a skip: not its own
+    assert other.hear(stream)
     assert other.first == (
         f"node {node} ({hand.fingers[0].name}) answers with a {layouts.feedback.name} of "
         f"{layouts.feedback.length - 2} bytes where the recorded hand's is "

@@ -124,3 +124,41 @@ def test_another_host_that_begins_commanding_during_the_replay_is_an_e_stop(
     assert len(estops) == 1
     for node in nodes:
         assert node.state == int(NodeState.FAULT) and node.fault_bits & FaultBits.ESTOP
+
+
+@pytest.mark.parametrize("burst", [1, 11])
+def test_a_peer_s_frames_of_another_length_on_a_feedback_id_are_rejects(
+    recorded: Recorded, hand: HandConfig, channel: str, burst: int
+) -> None:
+    """One frame of 8 bytes on node 1's Feedback id, from any peer, stopped the replay
+    blaming "a hand of another config on the bus" (an outside audit); a run counts it as a
+    rejected frame against the hand's reject limit. So does the replay now: one goes by, and
+    more than ``safety.max_rejects_in_window`` within ``reject_window_s`` stops it, said as
+    the rejects they are. (Another config is a node whose own stream keeps that length:
+    ``test_to_bus_onto_a_hand_of_another_config_sends_nothing``.)"""
+    feedback = protocol_for(hand).layout("Feedback", 1)
+    limit = hand.safety.max_rejects_in_window
+    assert burst in (1, limit + 1)
+
+    def peer_frames(sim: SimulatedHand, tick: int, peer: HandBus, heard: list[Frame]) -> None:
+        if tick == 500:  # the nodes enabled, under the log's torques
+            for _ in range(burst):
+                peer.send(feedback.frame_id, bytes(8))
+
+    recording = open_recording(recorded.path)
+    logged = list(logged_frames(recording, "tx"))
+    spec = f"virtual:{channel}"
+    with lockstep(hand, spec, peer_frames) as hand_on_bus:
+        sent = hand_on_bus.replay(recording, spec)
+    if burst == 1:
+        assert "node_fault" not in sent, sent
+        assert sent["sent"] == len(logged)
+        return
+    said = sent["node_fault"]
+    assert said.startswith(
+        f"node 1 (f1): {burst} of its Feedback_1 frames rejected within "
+        f"{hand.safety.reject_window_s:g} s (length {burst}; at most {limit}, "
+    ), said
+    assert "as a run stops on REJECT_RATE, and the replay stopped there" in said
+    assert "another config" not in said
+    assert sent["sent"] < len(logged)
