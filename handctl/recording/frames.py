@@ -399,13 +399,17 @@ class _FaultsHeard:
         clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         # once, not once a period as the replay listens
-        from handctl.online.drivers.finger import fault_names, parse_feedback
+        from handctl.online.drivers.finger import fault_names, parse_feedback, rebooted
         from handctl.protocol import NodeState
 
         self._fault_names, self._parse, self._fault = fault_names, parse_feedback, NodeState.FAULT
+        self._enabled, self._rebooted, self._clock = NodeState.ENABLED, rebooted, clock
         self.left = left
-        layouts = [(finger, left.layouts[finger.node_id].feedback) for finger in hand.fingers]
-        self.feedback = {layout.frame_id: (finger, layout) for finger, layout in layouts}
+        layouts = [(finger, left.layouts[finger.node_id]) for finger in hand.fingers]
+        self.feedback = {ls.feedback.frame_id: (finger, ls.feedback) for finger, ls in layouts}
+        self.heartbeat = {ls.heartbeat.frame_id: (finger, ls.heartbeat) for finger, ls in layouts}
+        #: each node's last Heartbeat uptime (ms) and when it was heard (s, on the clock)
+        self._uptimes: dict[int, tuple[int, float]] = {}
         #: the bus hand's soft limits, and each node's first joint among them
         self.limits = JointLimits.from_hand(hand, left.protocol)
         starts = itertools.accumulate((len(f.joints) for f in hand.fingers), initial=0)
@@ -440,7 +444,7 @@ class _FaultsHeard:
             if not self.rejected.accepted(*found, frame.data):
                 self.stranger = self.rejected.stranger
                 continue
-            bits = self._read(found[0], found[1], frame.data)
+            _, bits = self._read(found[0], found[1], frame.data)
             if bits is not None:
                 out.append(f"node {found[0].node_id} ({found[0].name}, {'+'.join(bits)})")
         return out
@@ -453,71 +457,119 @@ class _FaultsHeard:
             return ""
         return outside_text(outside[0], self.angles, self.limits, True)
 
-    def _read(self, finger: FingerConfig, layout: Layout, data: bytes) -> list[str] | None:
+    def _read(
+        self, finger: FingerConfig, layout: Layout, data: bytes
+    ) -> tuple[int, list[str] | None]:
         """The angles a Feedback ``data`` of ``layout`` (its length and CRC checked) says
-        kept, and the names of the fault bits it says if it says FAULT ("no fault bits" for
-        none); None if it does not."""
+        kept; the node's state it says, and the names of the fault bits it says if it says
+        FAULT ("no fault bits" for none), None if it does not."""
         feedback = self._parse(layout.decode(data)[1])
         first = self._first_joint[finger.node_id]
         joints = len(finger.joints)
         self.angles[first : first + joints] = feedback.angles[:joints]
         if feedback.state != self._fault:
-            return None
-        return self._fault_names(feedback.fault_bits) or ["no fault bits"]
+            return feedback.state, None
+        return feedback.state, self._fault_names(feedback.fault_bits) or ["no fault bits"]
 
     def hear(self, frames: Sequence[Any], events: Sequence[Any] = ()) -> bool:
-        """Whether a node the replay had enabled said FAULT in ``frames`` (``Frame``s), or a
-        joint of one outside its soft limits, or another sender was heard on one of the
-        hand's command identifiers (a frame, or a remote frame among the bus's ``events``)."""
+        """Whether a node the replay had enabled said FAULT in ``frames`` (``Frame``s), or
+        DISABLED after it had said ENABLED, or rebooted, or a joint of one outside its soft
+        limits; or a node's Feedback frames were rejected past the reject limit; or another
+        sender was heard on one of the hand's command identifiers (a frame, or a remote frame
+        among the bus's ``events``). What it was is ``first``."""
         if self._another_sender(frames, events):
             return True
         for frame in frames:
             found = self.feedback.get(frame.arbitration_id)
-            if found is None:
+            if found is not None:
+                said = self._feedback(*found, frame.data)
+            elif frame.arbitration_id in self.heartbeat:
+                said = self._heartbeat(*self.heartbeat[frame.arbitration_id], frame.data)
+            else:
                 continue
-            finger, layout = found
-            if not self.rejected.accepted(finger, layout, frame.data):
-                # a node of another hand config on the bus (fewer joints a node, another
-                # protocol): the recorded hand's enable was taken, its Feedback never read,
-                # so its FAULT went unheard and the replay sent on to the end, exit 0. Said
-                # so of one frame of another length, any peer's on the id stopped the
-                # replay, blaming another hand config (an outside audit): that is said once
-                # the node's own stream keeps the length, the rest held to the reject limit
-                if self.rejected.said:
-                    self.first = f"{self.rejected.said}, and the replay stopped there"
-                    return True
-                continue
-            if finger.node_id not in self.left.enabled:
-                continue
-            bits = self._read(finger, layout, frame.data)
-            if bits is not None:
-                self.first = (
-                    f"node {finger.node_id} ({finger.name}) went into FAULT ({', '.join(bits)}) "
-                    "while the replay had it enabled: the hand stopped following the log, and "
-                    "the replay stopped there"
-                )
+            if said:
+                self.first = said
                 return True
-            first = self._first_joint[finger.node_id]
-            lows, highs = self.limits.angle_min_list, self.limits.angle_max_list
-            # A joint outside is the replay's to stop when the torque it last sent the joint
-            # pushes it further out: a joint that sinks out under no torque, or one towards
-            # its range, is not driven there by the replay, as a run's controlled stop does
-            # not fault a joint that sinks out while its torques ramp out (row 64). Stopped on
-            # any joint outside, the replay of a run's end ramp onto a hand that sags ended
-            # in a stop, exit 1, where the run had ended well (found by an outside audit).
-            torques = self.left.torques.get(finger.node_id, ())
-            for k, j in enumerate(range(first, first + len(finger.joints))):
-                torque = torques[k] if k < len(torques) else 0.0
-                below, above = self.angles[j] < lows[j], self.angles[j] > highs[j]
-                if (below and torque < 0.0) or (above and torque > 0.0):
-                    self.first = (
-                        f"{outside_text(j, self.angles, self.limits, False)}: a joint of "
-                        f"node {finger.node_id} ({finger.name}) left its soft limits with the "
-                        f"replay's torque ({torque:+.4g} N·m) pushing it further, as a run "
-                        "stops on ANGLE_LIMIT, and the replay stopped there"
-                    )
-                    return True
         return False
+
+    def _feedback(self, finger: FingerConfig, layout: Layout, data: bytes) -> str:
+        """What stops the replay in a Feedback ``data`` of ``finger``'s ("": nothing)."""
+        if not self.rejected.accepted(finger, layout, data):
+            # a node of another hand config on the bus (fewer joints a node, another
+            # protocol): the recorded hand's enable was taken, its Feedback never read,
+            # so its FAULT went unheard and the replay sent on to the end, exit 0. Said
+            # so of one frame of another length, any peer's on the id stopped the
+            # replay, blaming another hand config (an outside audit): that is said once
+            # the node's own stream keeps the length, the rest held to the reject limit
+            return (
+                f"{self.rejected.said}, and the replay stopped there" if self.rejected.said else ""
+            )
+        node = finger.node_id
+        if node not in self.left.enabled:
+            return ""
+        state, bits = self._read(finger, layout, data)
+        if bits is not None:
+            return (
+                f"node {node} ({finger.name}) went into FAULT ({', '.join(bits)}) "
+                "while the replay had it enabled: the hand stopped following the log, and "
+                "the replay stopped there"
+            )
+        if state == self._enabled:
+            self.left.said_enabled.add(node)
+        elif node in self.left.said_enabled:
+            # A node that rebooted comes back DISABLED and takes none of the log's
+            # torques: the replay sent the rest of the log to it and exited 0 (an outside
+            # audit). Not a DISABLED from before the enable: the node has said ENABLED since
+            # the replay's last node command to it (``_LeftEnabled.said_enabled``).
+            return (
+                f"node {node} ({finger.name}) said DISABLED while the replay had it enabled, "
+                "after it had said ENABLED: it rebooted, or something else disabled it, and "
+                "takes none of the log's torques; the replay stopped there"
+            )
+        return self._outside(finger)
+
+    def _heartbeat(self, finger: FingerConfig, layout: Layout, data: bytes) -> str:
+        """What stops the replay in a Heartbeat ``data`` of ``finger``'s: its uptime gone
+        back while the replay had the node enabled, a reboot ("": nothing)."""
+        if not layout.crc_ok(data):
+            return ""
+        node, now = finger.node_id, self._clock()
+        uptime = int(layout.decode(data)[1][1])
+        last = self._uptimes.get(node)
+        self._uptimes[node] = (uptime, now)
+        if last is None or node not in self.left.enabled:
+            return ""
+        if not self._rebooted(last[0], uptime, round((now - last[1]) * 1e9)):
+            return ""
+        return (
+            f"node {node} ({finger.name}) rebooted while the replay had it enabled (its "
+            f"uptime went back from {last[0]} ms to {uptime} ms): it comes back DISABLED and "
+            "takes none of the log's torques; the replay stopped there"
+        )
+
+    def _outside(self, finger: FingerConfig) -> str:
+        """A joint of ``finger`` outside its soft limits under the replay's torque pushing it
+        further out, as the replay says it ("": none)."""
+        first = self._first_joint[finger.node_id]
+        lows, highs = self.limits.angle_min_list, self.limits.angle_max_list
+        # A joint outside is the replay's to stop when the torque it last sent the joint
+        # pushes it further out: a joint that sinks out under no torque, or one towards
+        # its range, is not driven there by the replay, as a run's controlled stop does
+        # not fault a joint that sinks out while its torques ramp out (row 64). Stopped on
+        # any joint outside, the replay of a run's end ramp onto a hand that sags ended
+        # in a stop, exit 1, where the run had ended well (found by an outside audit).
+        torques = self.left.torques.get(finger.node_id, ())
+        for k, j in enumerate(range(first, first + len(finger.joints))):
+            torque = torques[k] if k < len(torques) else 0.0
+            below, above = self.angles[j] < lows[j], self.angles[j] > highs[j]
+            if (below and torque < 0.0) or (above and torque > 0.0):
+                return (
+                    f"{outside_text(j, self.angles, self.limits, False)}: a joint of "
+                    f"node {finger.node_id} ({finger.name}) left its soft limits with the "
+                    f"replay's torque ({torque:+.4g} N·m) pushing it further, as a run "
+                    "stops on ANGLE_LIMIT, and the replay stopped there"
+                )
+        return ""
 
     def _another_sender(self, frames: Sequence[Any], events: Sequence[Any]) -> bool:
         """Whether a frame on one of the hand's command identifiers is among ``frames``, or
@@ -666,6 +718,9 @@ class _LeftEnabled:
         self.enabled: set[int] = set()
         #: each node's torques (N·m) as its last TorqueCommand sent carried them
         self.torques: dict[int, tuple[float, ...]] = {}
+        #: the nodes whose Feedback said ENABLED since the replay's last node command to
+        #: them: a DISABLED after that is not one sent before the enable (``_FaultsHeard``)
+        self.said_enabled: set[int] = set()
 
     def sent(self, frame_id: int, data: bytes) -> None:
         found = self.of_id.get(frame_id)
@@ -677,6 +732,8 @@ class _LeftEnabled:
         self.counters[frame_id] = counter
         if not is_command:
             self.torques[node] = values  # N·m, per joint slot, as last sent
+        else:
+            self.said_enabled.discard(node)
         if is_command and int(values[0]) == NODE_COMMANDS["disable"]:
             self.enabled.discard(node)
         elif not is_command or int(values[0]) == NODE_COMMANDS["enable"]:

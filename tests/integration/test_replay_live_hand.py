@@ -162,3 +162,57 @@ def test_a_peer_s_frames_of_another_length_on_a_feedback_id_are_rejects(
     assert "as a run stops on REJECT_RATE, and the replay stopped there" in said
     assert "another config" not in said
     assert sent["sent"] < len(logged)
+
+
+def test_a_node_that_reboots_during_the_replay_ends_it(
+    recorded: Recorded, hand: HandConfig, channel: str
+) -> None:
+    """A node that rebooted in the middle of a replay came back DISABLED and took none of
+    the rest of the log's torques, and the replay sent it to its end and exited 0 (an outside
+    audit). A node the replay had enabled, heard ENABLED, that says DISABLED (not after the
+    log's own disable) ends the replay there, said (exit 1), with the replay's stop."""
+
+    def reboot(sim: SimulatedHand, tick: int, peer: HandBus, heard: list[Frame]) -> None:
+        if tick == 500:  # the nodes enabled, under the log's torques
+            sim.nodes[1].reboot(sim.ticks * 1_000_000, 5_000_000)
+
+    recording = open_recording(recorded.path)
+    logged = list(logged_frames(recording, "tx"))
+    spec = f"virtual:{channel}"
+    with lockstep(hand, spec, reboot) as hand_on_bus:
+        sent = hand_on_bus.replay(recording, spec)
+        rebooted = hand_on_bus.sim.nodes[1].reboots
+    assert rebooted == 1
+    assert sent.get("node_fault", "").startswith(
+        "node 2 (f2) said DISABLED while the replay had it enabled, after it had said "
+        "ENABLED: it rebooted, or something else disabled it"
+    ), sent
+    assert sent["sent"] < len(logged)  # stopped there, not sent to its end
+    assert "zero torque and a disable sent after them" in sent["stopped"]
+
+
+def test_a_node_whose_uptime_goes_back_during_the_replay_rebooted(hand: HandConfig) -> None:
+    """The other sign of a reboot, as a run reads it: a Heartbeat whose uptime went back
+    (not by its wrap) from a node the replay had enabled."""
+    from handctl.recording.frames import _FaultsHeard, _LeftEnabled
+
+    protocol = protocol_for(hand)
+    left = _LeftEnabled(hand, protocol)
+    now = [0.0]
+    heard = _FaultsHeard(hand, left, lambda: now[0])
+    heartbeat = protocol.layout("Heartbeat", 3)
+    torque = protocol.layout("TorqueCommand", 3)
+
+    def uptime(counter: int, ms: int) -> Frame:
+        return Frame(heartbeat.frame_id, heartbeat.encode(counter, (int(NodeState.ENABLED), ms)))
+
+    assert not heard.hear([uptime(0, 900)])  # not enabled by the replay: its own business
+    left.sent(torque.frame_id, torque.encode(0, (0.0,) * len(torque.signals)))
+    now[0] = 0.1
+    assert not heard.hear([uptime(1, 1000)])
+    now[0] = 0.2
+    assert heard.hear([uptime(2, 30)])
+    assert heard.first.startswith(
+        "node 3 (f3) rebooted while the replay had it enabled (its uptime went back from "
+        "1000 ms to 30 ms)"
+    )
