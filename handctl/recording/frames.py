@@ -151,17 +151,24 @@ def _to_bus(
     with open_bus(spec, hand.bus) as bus, take_bus(bus_spec, "this replay"):
         _nobody_else(bus, hand, spec, stops, heard)
         frames = logged_frames(recording, direction)
+
+        def stop() -> tuple[str, str, str]:
+            """The replay's stop of the nodes it left enabled, then the wait for every
+            node's DISABLED: what was sent, what failed, what is only said."""
+            stopped = left.stop(bus, period_s, sleep)
+            return (stopped, *_confirm_disabled(bus, heard, hand.bus.period_s, sleep))
+
         try:
             _send_frames(frames, bus, tally, clock, sleep, stops, heard)
         except KeyboardInterrupt as exc:
             # a replay stopped midway (Ctrl-C, SIGTERM) left the hand under the last torques
             # sent, until the nodes' watchdog faulted them: stopped as a run stops
-            raise ReplayInterrupted(left.stop(bus, period_s, sleep), str(exc)) from None
+            raise ReplayInterrupted(_said(*stop(), heard), str(exc)) from None
         if stops.first:
-            raise ReplayInterrupted(left.stop(bus, period_s, sleep), stops.first, stops.later)
+            raise ReplayInterrupted(_said(*stop(), heard), stops.first, stops.later)
         # so did a log that ends with nodes enabled (a run killed, a log cut short), and a
         # replay a node went into FAULT under
-        stopped = left.stop(bus, period_s, sleep)
+        stopped, failed, warning = stop()
         counts = bus.transport_counts()
     report: dict[str, Any] = {
         "sent": tally.sent,
@@ -174,17 +181,26 @@ def _to_bus(
     }
     if stopped:
         report["stopped"] = stopped
-    if heard.first:
-        report["node_fault"] = heard.first + (left.estop_said() if heard.foreign else "")
+    failures = heard.told() + ([failed] if failed else [])
+    if failures:
+        report["node_fault"] = "; ".join(failures)
+    warnings = [warning] if warning else []
     if tally.sent and counts.get("datagrams_sent") == 0:
         # The unix bus makes its directory if it is not there, and a send with nobody else
         # in it succeeds: "N frames sent, 0 failed" to a mistyped directory looked like a
         # replay somebody had heard. (A CAN bus without a listener has no ACK, and says so.)
-        report["warning"] = (
+        warnings.append(
             f"no other participant was on {spec}: nobody received the frames "
             "(is the listener's bus directory this one?)"
         )
+    if warnings:
+        report["warning"] = "; ".join(warnings)
     return report
+
+
+def _said(stopped: str, failed: str, warning: str, heard: _FaultsHeard) -> str:
+    """What a replay interrupted says of its stop: what it sent, what failed, in one."""
+    return "; ".join(x for x in (stopped, *heard.told(), failed, warning) if x)
 
 
 class _Tally:
@@ -416,8 +432,13 @@ class _FaultsHeard:
         self._first_joint = dict(zip((f.node_id for f in hand.fingers), starts, strict=False))
         #: rad, each joint's angle as its node's last good Feedback said (NaN: none heard yet)
         self.angles = np.full(len(self.limits.names), math.nan)
-        #: what the first node heard in FAULT, or the first joint outside, said ("": none)
-        self.first = ""
+        #: what stopped the replay (a node in FAULT, a joint outside, ...) and what was
+        #: heard after it (another sender during the wait for DISABLED), in order
+        self.reasons: list[str] = []
+        #: how many times the replay listened, and each node's last two good Feedback states
+        #: with the listen that heard each (the wait for DISABLED reads them)
+        self.listens = 0
+        self.recent: dict[int, collections.deque[tuple[int, int]]] = {}
         #: a node heard answering with a Feedback of another length (another hand config),
         #: before the first frame ("": none)
         self.stranger = ""
@@ -426,8 +447,10 @@ class _FaultsHeard:
             frame_id: (("NodeCommand" if is_command else "TorqueCommand"), node)
             for frame_id, (node, is_command) in left.of_id.items()
         }
-        #: what another sender on one of them was first heard sending ("": none)
-        self.foreign = ""
+        #: what another sender on one of them was first heard sending ("": none), and the
+        #: reason it is among ``reasons``
+        self.foreign = self._foreign_said = ""
+        self._rejects_told = False
         self.rejected = _Rejected(hand, clock)
 
     def faulted(self, frames: Sequence[Any]) -> list[str]:
@@ -477,6 +500,7 @@ class _FaultsHeard:
         limits; or a node's Feedback frames were rejected past the reject limit; or another
         sender was heard on one of the hand's command identifiers (a frame, or a remote frame
         among the bus's ``events``). What it was is ``first``."""
+        self.listens += 1
         if self._another_sender(frames, events):
             return True
         for frame in frames:
@@ -488,9 +512,38 @@ class _FaultsHeard:
             else:
                 continue
             if said:
-                self.first = said
+                self.reasons.append(said)
                 return True
         return False
+
+    @property
+    def first(self) -> str:
+        """What stopped the replay ("": nothing the nodes said)."""
+        return self.reasons[0] if self.reasons else ""
+
+    def told(self) -> list[str]:
+        """Every reason heard, another sender's with what became of the e-stop."""
+        return [
+            r + (self.left.estop_said() if r == self._foreign_said else "") for r in self.reasons
+        ]
+
+    def disabled_since(self, node: int, listen: int) -> bool:
+        """Whether ``node``'s last good Feedback, heard after ``listen``, says it is not
+        ENABLED."""
+        recent = self.recent.get(node)
+        if not recent:
+            return False
+        at, state = recent[-1]
+        return at > listen and state != self._enabled
+
+    def enabled_since(self, node: int, listen: int) -> bool:
+        """Whether ``node``'s last two good Feedback, both heard after ``listen``, say it is
+        ENABLED: the second was sent after the node had heard what came before the first."""
+        recent = self.recent.get(node, ())
+        return len(recent) == 2 and all(at > listen and s == self._enabled for at, s in recent)
+
+    def names(self, nodes: Sequence[int]) -> str:
+        return ", ".join(f"node {n} ({self.left.fingers[n].name})" for n in nodes)
 
     def _feedback(self, finger: FingerConfig, layout: Layout, data: bytes) -> str:
         """What stops the replay in a Feedback ``data`` of ``finger``'s ("": nothing)."""
@@ -501,13 +554,15 @@ class _FaultsHeard:
             # so of one frame of another length, any peer's on the id stopped the
             # replay, blaming another hand config (an outside audit): that is said once
             # the node's own stream keeps the length, the rest held to the reject limit
-            return (
-                f"{self.rejected.said}, and the replay stopped there" if self.rejected.said else ""
-            )
+            if not self.rejected.said or self._rejects_told:
+                return ""
+            self._rejects_told = True
+            return f"{self.rejected.said}, and the replay stopped there"
         node = finger.node_id
+        state, bits = self._read(finger, layout, data)
+        self.recent.setdefault(node, collections.deque(maxlen=2)).append((self.listens, state))
         if node not in self.left.enabled:
             return ""
-        state, bits = self._read(finger, layout, data)
         if bits is not None:
             return (
                 f"node {node} ({finger.name}) went into FAULT ({', '.join(bits)}) "
@@ -580,6 +635,8 @@ class _FaultsHeard:
         commands rejected, until the node's reject limit latched it (an outside audit)."""
         from handctl.online.bus import BusEventKind
 
+        if self.foreign:
+            return False  # said, and the e-stop sent, when it was first heard
         heard = [(f.arbitration_id, f.data) for f in frames if f.arbitration_id in self.commands]
         heard += [
             (e.frame_id, None)
@@ -597,7 +654,8 @@ class _FaultsHeard:
             f"({finger.name}) while the replay sent ({what}): a second host or a forged "
             "command, which the nodes may obey instead of the replay's"
         )
-        self.first = f"{self.foreign}; the replay stopped there, as a run stops on FOREIGN_COMMAND"
+        self._foreign_said = f"{self.foreign}, as a run stops on FOREIGN_COMMAND"
+        self.reasons.append(self._foreign_said)
         return True
 
 
@@ -687,12 +745,24 @@ class _LeftEnabled:
         # began (``handctl.online.loop``, some 25 ms), the zero torque came 25-100 ms after
         # the last command, and the nodes' 10 ms watchdog had faulted them first
         from handctl.online.drivers.finger import FingerLayouts, make_command, make_node_command
-        from handctl.online.loop import ZERO_TICKS_BEFORE_DISABLE
+        from handctl.online.loop import (
+            DEFIANT_AFTER_PERIODS,
+            DISABLE_CONFIRM_S,
+            ZERO_TICKS_BEFORE_DISABLE,
+        )
+        from handctl.online.safety.watchdog import ticks_lasting
         from handctl.protocol import ESTOP_REASONS
 
         self._command = make_command
         self._node_command = make_node_command
         self._zero_ticks = ZERO_TICKS_BEFORE_DISABLE
+        self.defiant_after = DEFIANT_AFTER_PERIODS
+        self.confirm_polls = functools.partial(ticks_lasting, DISABLE_CONFIRM_S)
+        #: the nodes the frames sent enabled at any time: whose DISABLED the end waits for
+        self.ever: set[int] = set()
+        #: the nodes whose disable the bus refused, owed until it or an e-stop goes
+        self.disable_owed: set[int] = set()
+        self.disable_refusals = 0
         #: the e-stop, which every node latches whatever it is told next (PROTOCOL.md)
         self._estop_layout = protocol.layout("EStop")
         self._estop_frames = tuple(
@@ -738,10 +808,12 @@ class _LeftEnabled:
             self.enabled.discard(node)
         elif not is_command or int(values[0]) == NODE_COMMANDS["enable"]:
             self.enabled.add(node)
+            self.ever.add(node)
 
-    def estop(self, bus: Any) -> bool:
+    def estop(self, bus: Any, owed: bool = True) -> bool:
         """Send the e-stop (host safety), prepared: whether it went. One the bus refused is
-        owed, and the stop's ticks send it again until one goes."""
+        ``owed``, and the stop's ticks send it again until one goes; the one after a stop
+        frame the bus refused is not: that frame is sent again, and the e-stop after it."""
         frame = self._estop_frames[self._estop_counter]
         try:
             went = bool(bus.send(self._estop_layout.frame_id, frame))
@@ -750,49 +822,171 @@ class _LeftEnabled:
         if went:
             self._estop_counter = (self._estop_counter + 1) & 0xFF
             self.estops += 1
-        self.estop_owed = not went and not self.estops
+        self.estop_owed = owed and not went and not self.estops
         return went
 
     def estop_said(self) -> str:
         """What became of the e-stop, as the replay's failure says it."""
         if self.estops:
             return (
-                "; the e-stop was sent: every node latches FAULT (ESTOP), which the other "
-                "sender cannot lift with an enable (a run's --reset-node-faults clears it)"
+                "; the e-stop was sent: every node latches FAULT (ESTOP), which no enable "
+                "lifts (a run's --reset-node-faults clears it)"
             )
         return "; the e-stop could not be sent (the bus refused it)"
 
     def stop(self, bus: Any, period_s: float, sleep: Callable[[float], None]) -> str:
         """Zero torque for as many periods as a run's stop, then disable, to every node left
-        enabled; what was done, or "" when no node was. An e-stop owed goes on each tick."""
-        make_command, make_node_command = self._command, self._node_command
+        enabled; what was done, or "" when no node was. An e-stop owed goes on each tick.
+
+        Each frame the bus refuses keeps its counter for the next (the node would take the
+        next for a skip), and the e-stop follows it, as a run's stop frames do; a disable
+        refused is owed until it or an e-stop goes (``resend``). Sent blind, a refused
+        disable left the node ENABLED and the replay said it had stopped it."""
         if self.estop_owed:
             self.estop(bus)
         nodes = sorted(self.enabled)
         if not nodes:
             return ""
-
-        def next_counter(frame_id: int) -> int:
-            counter = self.counters[frame_id] = (self.counters.get(frame_id, -1) + 1) & 0xFF
-            return counter
-
+        zero_refused = 0
         for tick in range(self._zero_ticks + 1):
             for node in nodes:
                 layout = self.layouts[node].command
                 zero = (0.0,) * len(layout.signals)
-                bus.send(*make_command(layout, next_counter(layout.frame_id), zero))
+                if not self._send(bus, layout, zero):
+                    zero_refused += 1
+                    self._estop_after_a_refusal(bus)
             if tick < self._zero_ticks:
                 sleep(period_s)
             if self.estop_owed:
                 self.estop(bus)
-        for node in nodes:
-            layout = self.layouts[node].node_command
-            bus.send(*make_node_command(layout, next_counter(layout.frame_id), "disable"))
+        self.disable_owed = set(nodes)
+        self.resend(bus)
         self.enabled.clear()
-        return (
+        said = (
             f"node(s) {', '.join(map(str, nodes))} left enabled by the frames sent: zero "
             "torque and a disable sent after them, as a run's stop does"
         )
+        if zero_refused:
+            said += f" (the bus refused {zero_refused} of the zero-torque frames)"
+        return said
+
+    def resend(self, bus: Any) -> None:
+        """The disable to the nodes still owed it, each on its next counter, and the e-stop
+        after any the bus refuses, until one or the other goes."""
+        for node in sorted(self.disable_owed):
+            layout = self.layouts[node].node_command
+            if self._send(bus, layout, "disable"):
+                self.disable_owed.discard(node)
+        if self.disable_owed:
+            self.disable_refusals += 1
+            self._estop_after_a_refusal(bus)
+        if self.estops:
+            self.disable_owed.clear()  # the e-stop went in its place: every node latches it
+
+    def _send(self, bus: Any, layout: Layout, what: tuple[float, ...] | str) -> bool:
+        """A zero torque (``what`` the torques) or a node command (its name) on ``layout``,
+        at the next counter, which only a frame that went uses up."""
+        frame_id = layout.frame_id
+        counter = (self.counters.get(frame_id, -1) + 1) & 0xFF
+        if isinstance(what, str):
+            frame = self._node_command(layout, counter, what)
+        else:
+            frame = self._command(layout, counter, what)
+        try:
+            went = bool(bus.send(*frame))
+        except Exception:  # the stop goes on whatever the bus does
+            went = False
+        if went:
+            self.counters[frame_id] = counter
+        return went
+
+    def _estop_after_a_refusal(self, bus: Any) -> None:
+        """The e-stop after a stop frame the bus refused, unless one has gone already."""
+        if not self.estops:
+            self.estop(bus, owed=False)
+
+
+#: frames a drain of the wait for DISABLED may take: all there are
+_EVERY_FRAME = 1 << 30
+
+
+def _confirm_disabled(
+    bus: HandBus, heard: _FaultsHeard, period_s: float, sleep: Callable[[float], None]
+) -> tuple[str, str]:
+    """Listen after the replay's last frame or its stop, as a run does after its disable
+    (``Runtime._confirm_disabled``), until every node the replay enabled and heard from says
+    it is no longer ENABLED, for ``DISABLE_CONFIRM_S`` (and a few periods past
+    ``DEFIANT_AFTER_PERIODS``) at most; a disable the bus refused is sent again meanwhile.
+    What failed (a node that goes on saying ENABLED, which gets the e-stop; a disable that
+    never went; another sender heard) and what is only said (a node not heard disabled in
+    time, which its watchdog stops), "" each when none.
+
+    A node that ignored the log's disable was left ENABLED, the replay saying nothing and
+    exiting 0, until its watchdog latched FAULT (TIMEOUT) (an outside audit)."""
+    left = heard.left
+    nodes = [n for n in sorted(left.ever) if n in heard.recent]
+    if not nodes and not left.disable_owed:
+        return "", ""  # no node of the hand heard: nobody to confirm (a listener, a tool)
+    polls = max(left.confirm_polls(period_s), left.defiant_after + 3)
+
+    # Every frame waiting heard first, and every one in each poll: a replay that fell behind
+    # has a backlog of the nodes' frames from before the disable, which a drain of a
+    # bounded number left for the polls after, the nodes taken for defiant on their old
+    # ENABLED (found running it against a simulated hand on a loaded host)
+    def listen() -> None:
+        heard.hear(bus.drain(limit=_EVERY_FRAME), bus.events())
+        if heard.foreign and not left.estops:  # heard now, or its e-stop refused before
+            left.estop(bus)
+
+    listen()
+    start = heard.listens
+    failed: list[str] = []
+    # A node heard ENABLED past the threshold has disobeyed, whatever it says after: its
+    # command watchdog latches FAULT (TIMEOUT) 10 ms after the last command, which a wait
+    # that ran late (a loaded host) heard, and took for the node stopped (exit 0)
+    defiant: set[int] = set()
+    for _ in range(polls):
+        sleep(period_s)
+        if left.estop_owed:
+            left.estop(bus)
+        if left.disable_owed:
+            left.resend(bus)
+        listen()
+        defiant.update(n for n in nodes if heard.enabled_since(n, start + left.defiant_after))
+        if not left.disable_owed and all(
+            n in defiant or heard.disabled_since(n, start) for n in nodes
+        ):
+            break
+    if left.disable_owed:
+        failed.append(
+            f"the bus refused the disable of node(s) {', '.join(map(str, left.disable_owed))} "
+            f"{left.disable_refusals} time(s), and the e-stop after it: a node still ENABLED "
+            "stops only when its command watchdog latches FAULT (TIMEOUT)"
+        )
+    if defiant:
+        for _ in range(polls):  # the last word the replay has: until the bus takes it
+            if left.estop(bus):
+                break
+            sleep(period_s)
+        failed.append(
+            f"{heard.names(sorted(defiant))} went on saying ENABLED after the disable"
+            + left.estop_said()
+        )
+    quiet = [n for n in nodes if n not in defiant and not heard.disabled_since(n, start)]
+    warnings = []
+    if left.disable_refusals and not left.disable_owed:
+        warnings.append(
+            f"the bus refused the stop's disable {left.disable_refusals} time(s) before it "
+            "went" + (" or the e-stop in its place" if left.estops else "")
+        )
+    if quiet:
+        warnings.append(
+            f"{heard.names(quiet)} not heard disabled within {polls * period_s * 1e3:g} ms of "
+            "the disable (last heard ENABLED, or silent since); a node that hears no command "
+            f"for {COMMAND_WATCHDOG_S * 1e3:g} ms sets its torque to zero and latches FAULT "
+            "(TIMEOUT), which the next run clears with --reset-node-faults"
+        )
+    return "; ".join(failed), "; ".join(warnings)
 
 
 def check_pacing(recording: Recording, hand: HandConfig, direction: str = "both") -> None:

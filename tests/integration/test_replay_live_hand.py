@@ -5,16 +5,18 @@ replay's clock (its ``sleep``), so what it hears and says is the same on a loade
 
 from __future__ import annotations
 
+import errno
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+import can
 import pytest
 
 from handctl.config import HandConfig
 from handctl.hand_protocol import protocol_for
 from handctl.online.bus import Frame, HandBus, open_bus
-from handctl.protocol import NodeState
+from handctl.protocol import NODE_COMMANDS, Layout, NodeState
 from handctl.recording.frames import logged_frames, to_bus
 from handctl.recording.reader import Recording, open_recording
 from handctl.sim.firmware import FaultBits
@@ -56,6 +58,11 @@ class Lockstep:
             self.heard += self.peer.drain(limit=10**6)
             if self.each_tick is not None:
                 self.each_tick(self.sim, self.sim.ticks - self.began, self.peer, self.heard)
+
+    def settle(self) -> None:
+        """One more tick of the hand (the nodes take what the replay sent last), and what
+        the peer heard meanwhile."""
+        self.sleep(1e-3)
 
     def replay(self, recording: Recording, spec: str) -> dict[str, Any]:
         """The log's host frames onto ``spec``, paced by the hand's time."""
@@ -110,7 +117,7 @@ def test_another_host_that_begins_commanding_during_the_replay_is_an_e_stop(
     spec = f"virtual:{channel}"
     with lockstep(hand, spec, other_host) as hand_on_bus:
         sent = hand_on_bus.replay(recording, spec)
-        hand_on_bus.sim.step()  # the nodes take the e-stop on their tick
+        hand_on_bus.settle()  # the nodes take the e-stop on their tick
         nodes = hand_on_bus.sim.nodes
         estops = [f for f in hand_on_bus.heard if f.arbitration_id == 0]
     said = sent.get("node_fault", "")
@@ -216,3 +223,106 @@ def test_a_node_whose_uptime_goes_back_during_the_replay_rebooted(hand: HandConf
         "node 3 (f3) rebooted while the replay had it enabled (its uptime went back from "
         "1000 ms to 30 ms)"
     )
+
+
+def _deaf_to_the_disable(node_id: int) -> Callable[[SimulatedHand], None]:
+    """Simulated node ``node_id`` drops every disable: firmware that ignores it."""
+
+    def prepare(sim: SimulatedHand) -> None:
+        node = sim.nodes[node_id - 1]
+        layout = sim.protocol.layout("NodeCommand", node_id)
+        obey = node._apply
+
+        def deaf(lay: Layout, data: bytes, now_ns: int) -> None:
+            if lay is layout and layout.decode(data)[1][0] == NODE_COMMANDS["disable"]:
+                return
+            obey(lay, data, now_ns)
+
+        setattr(node, "_apply", deaf)  # noqa: B010 (a method replaced on one instance)
+
+    return prepare
+
+
+def test_a_node_that_ignores_the_log_s_disable_gets_the_e_stop(
+    recorded: Recorded, hand: HandConfig, channel: str
+) -> None:
+    """A node that ignored the log's disable was left ENABLED, and the replay exited 0
+    saying nothing, until the node's watchdog latched FAULT (TIMEOUT) (an outside audit).
+    The replay now waits for every node it enabled to say DISABLED, as a run does (row 75):
+    one that goes on saying ENABLED gets the e-stop, and the replay says so (exit 1)."""
+    recording = open_recording(recorded.path)
+    logged = list(logged_frames(recording, "tx"))
+    spec = f"virtual:{channel}"
+    with lockstep(hand, spec, prepare=_deaf_to_the_disable(2)) as hand_on_bus:
+        sent = hand_on_bus.replay(recording, spec)
+        hand_on_bus.settle()  # the nodes take the e-stop on their tick
+        stubborn = hand_on_bus.sim.nodes[1]
+        estops = [f for f in hand_on_bus.heard if f.arbitration_id == 0]
+    assert sent["sent"] == len(logged)  # the whole log went
+    assert sent.get("node_fault", "").startswith(
+        "node 2 (f2) went on saying ENABLED after the disable; the e-stop was sent: every "
+        "node latches FAULT (ESTOP)"
+    ), sent
+    assert "stopped" not in sent  # the log disabled the nodes itself
+    assert len(estops) == 1
+    assert stubborn.state == int(NodeState.FAULT) and stubborn.fault_bits & FaultBits.ESTOP
+
+
+@pytest.mark.parametrize("refusals", [7, None], ids=["refused-then-taken", "never-taken"])
+def test_a_disable_the_bus_refuses_is_sent_again(
+    recorded: Recorded,
+    hand: HandConfig,
+    channel: str,
+    monkeypatch: pytest.MonkeyPatch,
+    refusals: int | None,
+) -> None:
+    """The replay's stop sent its disable without looking at what the bus did with it: a
+    full transmit queue left the nodes ENABLED, and the replay said it had disabled them.
+    The host's transport refuses the disables (the log's three, the stop's three) and the
+    e-stop after them, as SocketCAN does with a full queue (ENOBUFS): the disable is sent
+    again while the replay waits for the nodes' DISABLED, and goes; refused on every try,
+    the replay says so (exit 1)."""
+    import handctl.online.bus as bus_module
+
+    commands = {protocol_for(hand).layout("NodeCommand", f.node_id).frame_id for f in hand.fingers}
+    refused: list[int] = []
+    real_open = bus_module.open_bus
+
+    def open_full(spec: str, *args: Any, **kwargs: Any) -> HandBus:
+        bus = real_open(spec, *args, **kwargs)
+        send_frame = bus._send_frame
+        assert send_frame is not None, "the virtual bus sends frame by frame"
+
+        def full(frame_id: int, flags: int, data: bytes) -> None:
+            disable = frame_id in commands and data[2] == NODE_COMMANDS["disable"]
+            if (disable or frame_id == 0) and (refusals is None or len(refused) < refusals):
+                refused.append(frame_id)
+                raise can.CanOperationError("No buffer space available", errno.ENOBUFS)
+            send_frame(frame_id, flags, data)
+
+        bus._send_frame = full  # type: ignore[assignment]
+        return bus
+
+    recording = open_recording(recorded.path)
+    spec = f"virtual:{channel}"
+    with lockstep(hand, spec) as hand_on_bus:
+        monkeypatch.setattr(bus_module, "open_bus", open_full)
+        sent = hand_on_bus.replay(recording, spec)
+        monkeypatch.undo()
+        states = [node.state for node in hand_on_bus.sim.nodes]
+    assert sent["failed"] == len(hand.fingers)  # the log's own disables
+    assert "zero torque and a disable sent after them" in sent["stopped"]
+    if refusals is not None:
+        assert len(refused) == refusals
+        assert "node_fault" not in sent, sent
+        assert "the bus refused the stop's disable 1 time(s) before it went" in sent["warning"]
+        assert states == [int(NodeState.DISABLED)] * len(hand.fingers)
+        return
+    assert len(refused) > refusals_of_one_try(hand)  # sent again while it waited
+    assert sent["node_fault"].startswith("the bus refused the disable of node(s) 1, 2, 3 "), sent
+    assert "and the e-stop after it: a node still ENABLED stops only when" in sent["node_fault"]
+
+
+def refusals_of_one_try(hand: HandConfig) -> int:
+    """The frames refused once the log's disables, the stop's and the e-stop were."""
+    return 2 * len(hand.fingers) + 1
