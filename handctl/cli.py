@@ -4162,43 +4162,66 @@ def _run(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) ->
     except OSError as exc:
         # a file the command was told to read or write that the system refused (a full disk,
         # a file turned read-only since the options were checked): its name and the reason
-        if exc.filename is None:
-            raise
-        print(f"handctl: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except Exception as exc:  # a bug: said as one, with what to report
-        if _out_of_memory(exc):
-            # the host's limit, not a bug in handctl (nor the input's): said as such, in
-            # one line; a run stops its hand itself on any exception inside its loop, so a
-            # run that had begun had its hand stopped before this (found by an outside
-            # audit: an allocation after the stop said "internal error ... a bug")
-            print(
-                f"handctl: error: this host ran out of memory ({type(exc).__name__}: {exc}); "
-                "a run that had begun stopped its hand first. Free memory, or raise the "
-                "process's limit (ulimit -v), and try again",
-                file=sys.stderr,
-            )
+        if exc.filename is not None:
+            print(f"handctl: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        if exc.errno is not None and exc.strerror and not raised():
+            # the system's refusal of a write to a file already open, which carries no name
+            # (a full disk under a file being written): its reason, not a bare traceback
+            print(f"handctl: error: {_system_refusal(exc)}", file=sys.stderr)
             return EXIT_FAILED
-        if raised():  # an interrupt that came out as another error (``stopsignals.raised``)
-            print(
-                f"handctl: interrupted ({raised()}: {type(exc).__name__}: {exc})",
-                file=sys.stderr,
-            )
-            return EXIT_INTERRUPTED
-        # not a bare traceback: the first line says what failed and that it is handctl's own
-        # fault, not the input's; a run's stop does not pass through here (the loop stops
-        # the hand itself on any exception inside it)
-        import traceback
-
-        print(
-            f"handctl: internal error: {type(exc).__name__}: {exc} (a bug in handctl, not in "
-            "the input; please report it with the traceback below)",
-            file=sys.stderr,
-        )
-        traceback.print_exception(exc, file=sys.stderr)
-        return EXIT_FAILED
+        return _unexpected(exc)
+    except Exception as exc:  # a bug: said as one, with what to report
+        return _unexpected(exc)
     finally:
         finished()  # the command has its result (``stopsignals.finished``)
+
+
+def _system_refusal(exc: OSError) -> str:
+    """An ``OSError`` the system raised, without a file's name: its reason and its errno's
+    name (``ENOSPC``), which is what to search for."""
+    import errno
+
+    name = errno.errorcode.get(exc.errno or 0)
+    code = f", {name}" if name else ""
+    return f"the system refused a read or a write ({exc.strerror}{code})"
+
+
+def _unexpected(exc: Exception) -> int:
+    """An exception no handctl error explains: the host out of memory, an interrupt come out
+    as another error, or else a bug, said as one with its traceback."""
+    from handctl.stopsignals import raised
+
+    if _out_of_memory(exc):
+        # the host's limit, not a bug in handctl (nor the input's): said as such, in
+        # one line; a run stops its hand itself on any exception inside its loop, so a
+        # run that had begun had its hand stopped before this (found by an outside
+        # audit: an allocation after the stop said "internal error ... a bug")
+        print(
+            f"handctl: error: this host ran out of memory ({type(exc).__name__}: {exc}); "
+            "a run that had begun stopped its hand first. Free memory, or raise the "
+            "process's limit (ulimit -v), and try again",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
+    if raised():  # an interrupt that came out as another error (``stopsignals.raised``)
+        print(
+            f"handctl: interrupted ({raised()}: {type(exc).__name__}: {exc})",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    # not a bare traceback: the first line says what failed and that it is handctl's own
+    # fault, not the input's; a run's stop does not pass through here (the loop stops
+    # the hand itself on any exception inside it)
+    import traceback
+
+    print(
+        f"handctl: internal error: {type(exc).__name__}: {exc} (a bug in handctl, not in "
+        "the input; please report it with the traceback below)",
+        file=sys.stderr,
+    )
+    traceback.print_exception(exc, file=sys.stderr)
+    return EXIT_FAILED
 
 
 def _out_of_memory(exc: BaseException) -> bool:

@@ -20,7 +20,8 @@ from handctl.analysis.exact import exact_torque_set
 from handctl.analysis.model import load_scenario
 from handctl.analysis.planner import plan_for_conditions
 from handctl.analysis.slices import ratio_slice
-from handctl.errors import ConfigError
+from handctl.errors import ConfigError, HandctlError
+from handctl.wholefile import write_whole
 
 GRID_POINTS = 121
 
@@ -102,7 +103,7 @@ def torque_set_report(
             },
             "units": {"tau": "N·m", "area": "(N·m)²", "margin": "N"},
         }
-        json_path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
+        _write_json(json_path, document)
         written.append(str(json_path))
     if plot_path is not None:
         say(f"drawing {plot_path}")
@@ -136,6 +137,19 @@ def torque_set_report(
     if written:
         lines.append("  wrote " + ", ".join(written))
     return "\n".join(lines)
+
+
+def _write_json(path: Path, document: dict[str, Any]) -> None:
+    """The ``--json`` document whole or not at all (``wholefile``): written in place, a full
+    disk left a cut-off file where the earlier one was, and a bare traceback. A failure is the
+    command's (exit 1: the work was done, its file was not written), said as every other
+    output's."""
+    try:
+        write_whole(path, (json.dumps(document, indent=1) + "\n").encode("utf-8"))
+    except OSError as exc:
+        raise HandctlError(
+            f"--json: {path} could not be written ({exc.strerror or exc}); it is unchanged"
+        ) from None
 
 
 def _rounded(poly: np.ndarray[Any, Any]) -> list[list[float]]:

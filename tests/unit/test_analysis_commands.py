@@ -2,16 +2,23 @@
 
 from __future__ import annotations
 
+import argparse
+import errno
 import json
+import os
+import resource
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
+from handctl import cli
 from handctl.analysis.commands import torque_set_report
 from handctl.analysis.polygons import area
 from handctl.errors import ConfigError
+
+from ..conftest import handctl
 
 ROOT = Path(__file__).resolve().parents[2]
 FIG3 = ROOT / "config" / "analysis" / "paper_fig3.yaml"
@@ -77,3 +84,50 @@ def test_bad_scenario_and_unfit_grasp(tmp_path: Path) -> None:
         torque_set_report(path, (0.9, 0.1), None, None)
     assert info.value.file == str(path) and info.value.key == "fingers"
     assert "joint(s)" in str(info.value)
+
+
+def test_a_json_the_disk_cannot_take_leaves_the_earlier_one_as_it_was(tmp_path: Path) -> None:
+    """A full disk under ``--json`` (here a file size limit, ``ulimit -f``, which fails the
+    write the same way): the JSON was written in place, so a cut-off file stood where the
+    earlier one was, and the command ended in a bare traceback. Now one line, exit 1, the
+    earlier file as it was and nothing left beside it."""
+    out = tmp_path / "set.json"
+    earlier = b'{"earlier": "region"}\n'
+    out.write_bytes(earlier)
+    limit = 16_000  # bytes: the document's grid alone is ten times this
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    command = ["analyze", "torque-set", str(FIG3), "--k", "0.9", "0.1", "--json", str(out)]
+    done = handctl(*command, timeout=300, preexec_fn=small_files)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines()[-1] == (
+        f"handctl: error: --json: {out} could not be written (File too large); it is unchanged"
+    )
+    assert out.read_bytes() == earlier
+    assert [p.name for p in tmp_path.iterdir()] == [out.name]
+
+
+def test_a_system_refusal_without_a_file_name_is_said_not_raised(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """An ``OSError`` the system raised with no file's name (a write to a file already open
+    on a full disk) came out of the command line as a bare traceback. Now its reason and its
+    errno's name, exit 1; an ``OSError`` no system call raised stays a bug, said as one."""
+
+    def full(_args: argparse.Namespace) -> int:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def bug(_args: argparse.Namespace) -> int:
+        raise OSError("no errno: raised by handctl's own code")
+
+    assert cli._run(full, argparse.Namespace()) == cli.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert err == (
+        "handctl: error: the system refused a read or a write (No space left on device, ENOSPC)\n"
+    )
+    assert cli._run(bug, argparse.Namespace()) == cli.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert err.startswith("handctl: internal error: OSError: no errno") and "Traceback" in err
