@@ -180,6 +180,7 @@ def _check_tick_count(recording: Recording) -> None:
     whose torques were none."""
     if not recording.complete or not recording.statistics:
         return
+    _check_frame_count(recording)
     told = recording.meta(ch.META_END, "ticks")
     if not told:
         return
@@ -204,6 +205,29 @@ def _check_tick_count(recording: Recording) -> None:
                 f"as {most} holds ({held[most]})",
                 Description(f"{n} messages"),
             )
+
+
+def _check_frame_count(recording: Recording) -> None:
+    """A finished file holds the frames its end record counts, on /can/rx and /can/tx between
+    them: the writer counts every frame it writes, a refused one too (on /can/tx, ok false),
+    and none it dropped (those are ``dropped_frames``), as it has since its first version. A
+    file with every sent frame taken out, or each written twice, read as a complete run, and
+    ``--export`` wrote the twice-written frames, exit 0. A file whose end record has no count
+    (one its control process ended before the set-up) is not checked, nor one without either
+    channel at all: ``require_topics`` names that one."""
+    told = recording.meta(ch.META_END, "frames")
+    have = set(recording.topics.values())
+    if not told or ch.CAN_RX not in have or ch.CAN_TX not in have:
+        return
+    counts = recording.message_counts
+    rx, tx = counts.get(ch.CAN_RX, 0), counts.get(ch.CAN_TX, 0)
+    if recording.meta_int(ch.META_END, "frames", -1) != rx + tx:
+        raise ConfigError(
+            str(recording.path),
+            f"channels {ch.CAN_RX} and {ch.CAN_TX}",
+            f"the {told} frames the end record ({ch.META_END}.frames) counts, between them",
+            Description(f"{rx} on {ch.CAN_RX} and {tx} on {ch.CAN_TX}, {rx + tx} in all"),
+        )
 
 
 def _fail(path: Path, found: str) -> ConfigError:

@@ -758,10 +758,11 @@ def test_to_bus_refuses_a_node_left_without_commands_past_its_watchdog(
     recorded: Recorded, hand: HandConfig, tmp_path: Path
 ) -> None:
     """Node 1's TorqueCommands of 20 ticks taken out, every tick row and every other frame
-    as logged: each frame left is at its tick's time, and every check passed, but node 1
-    would go 21 ms without a command, past its 10 ms watchdog (the counters after the gap
-    renumbered, in sequence as a node takes them). The gap between a node's commands is
-    read from the frames themselves: refused, exit 2, nothing sent."""
+    as logged, the end record counting the frames left: each frame left is at its tick's
+    time, and every check passed, but node 1 would go 21 ms without a command, past its
+    10 ms watchdog (the counters after the gap renumbered, in sequence as a node takes
+    them). The gap between a node's commands is read from the frames themselves: refused,
+    exit 2, nothing sent."""
     layout = protocol_for(hand).layout("TorqueCommand", 1)
     torque = layout.frame_id
 
@@ -778,8 +779,14 @@ def test_to_bus_refuses_a_node_left_without_commands_past_its_watchdog(
             msg | {"data": layout.encode((counter - 20) % 256, values).hex()}
         ).encode()
 
+    def counted(name: str, values: dict[str, str]) -> dict[str, str]:
+        # the end record counts the frames left, as the run's writer would have
+        if name != ch.META_END:
+            return values
+        return values | {"frames": str(int(values["frames"]) - 20)}
+
     bad = tmp_path / "gap.mcap"
-    copy_recording(recorded.path, bad, renumbered, keep=keep)
+    copy_recording(recorded.path, bad, renumbered, metadata=counted, keep=keep)
     done = handctl("replay", str(bad), "--to-bus", "virtual:gap")
     assert done.returncode == 2, done.stdout + done.stderr
     assert "frames sent" not in done.stdout + done.stderr

@@ -805,6 +805,39 @@ def test_a_log_holding_other_tick_rows_than_its_end_counts_is_refused(
     assert "bit-exact" not in done.stdout
 
 
+def _twice(topic: str, index: int, raw: bytes) -> list[bytes]:
+    return [raw] if topic == ch.CAN_TX else []
+
+
+@pytest.mark.parametrize(
+    ("how", "found"),
+    [
+        ({"keep": lambda topic, raw: topic != ch.CAN_TX}, "0 on /can/tx"),
+        ({"after": _twice}, "on /can/tx"),
+    ],
+    ids=["sent-taken-out", "sent-twice"],
+)
+def test_a_log_holding_other_frames_than_its_end_counts_is_refused(
+    recorded: Recorded, tmp_path: Path, how: dict[str, Any], found: str
+) -> None:
+    """Every sent frame taken out, or each written twice, and the file finished again: the
+    summary said 'complete', exit 0, and ``--export`` wrote the twice-written frames. The
+    end record counts the frames the writer wrote, refused ones too, on both channels."""
+    told = open_recording(recorded.path).meta(ch.META_END, "frames")
+    bad = tmp_path / "frames.mcap"
+    rewrite(recorded.path, bad, **how)
+    out = tmp_path / "frames.log"
+    for extra in ((), ("--export", "candump", str(out))):
+        done = handctl("replay", str(bad), *extra)
+        assert done.returncode == 2, done.stdout + done.stderr
+        assert (
+            f"handctl: error: {bad}: channels /can/rx and /can/tx: expected the {told} frames "
+            "the end record (handctl.recording_end.frames) counts, between them, found "
+        ) in done.stderr
+        assert found in done.stderr and "complete" not in done.stdout
+    assert not out.exists()
+
+
 def test_drops_the_writer_counted_on_the_way_cannot_vanish_from_its_end(
     recorded: Recorded, tmp_path: Path
 ) -> None:

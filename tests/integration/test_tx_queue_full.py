@@ -349,7 +349,8 @@ def test_a_run_whose_bus_refused_commands_reruns_bit_exact(
     """The joints of a refused command keep what their node holds: the re-run, whose bus
     answers each send as the run's did, comes to the same applied torques tick by tick."""
     from handctl import session
-    from handctl.recording.reader import open_recording
+    from handctl.recording import channels as ch
+    from handctl.recording.reader import check_format, iter_decoded, open_recording
     from handctl.recording.rerun import rerun
 
     from .test_tick_exception import bench
@@ -370,6 +371,12 @@ def test_a_run_whose_bus_refused_commands_reruns_bit_exact(
         b.recorder.close(session.summarise_run(result, hand, recipe, True, None))
     assert len(refused) == 2
     assert result.outcome is Outcome.COMPLETED, result.message
-    report = rerun(open_recording(log))
+    recording = open_recording(log)
+    # the refused frames are logged on /can/tx, ok false, and counted in the end record's
+    # frames: the log reads as the healthy one it is
+    check_format(recording)
+    sent = [m["ok"] for _, _, m in iter_decoded(recording, (ch.CAN_TX,))]
+    assert sent.count(False) == 2
+    report = rerun(recording)
     assert report.ok, report.as_dict()
     assert report.compared > 3
