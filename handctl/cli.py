@@ -656,9 +656,11 @@ def _own_miss_text(miss: dict[str, Any]) -> str:
         + (f" ({over:g}x its usual)" if over is not None else "")
     )
     if miss["run_delay_us"] is not None:
+        usual = miss["usual_run_delay_us"]
         text += (
-            f", waited {miss['run_delay_us']:.0f} µs for the CPU (usual "
-            f"{miss['usual_run_delay_us']}), {miss['off_cpu_us']:.0f} µs off it"
+            f", waited {miss['run_delay_us']:.0f} µs for the CPU"
+            + (f" (usual {usual:.1f} µs)" if usual is not None else "")
+            + f", {miss['off_cpu_us']:.0f} µs off it"
         )
     text += f", {miss['voluntary_switches']} voluntary switch(es), {miss['page_faults']} fault(s)"
     return text + (f"; in it: {', '.join(miss['notes'])}" if miss["notes"] else "")

@@ -258,7 +258,9 @@ def describe(row: dict[str, int], usual_ns: int, usual_delay_ns: int = -1) -> di
         "stages_cpu_us": round(row["stages_ns"] / 1e3, 1),
         "run_delay_us": round(delay / 1e3, 1) if delay >= 0 else None,
         "usual_run_delay_us": round(usual_delay_ns / 1e3, 1) if usual_delay_ns >= 0 else None,
-        "off_cpu_us": round((wall - cpu - delay) / 1e3, 1) if delay >= 0 else None,
+        # the CPU time (getrusage) and the run_delay (schedstat) are two clocks' counts: a
+        # tick that was never off the CPU came out a microsecond or so below zero
+        "off_cpu_us": round(max(0, wall - cpu - delay) / 1e3, 1) if delay >= 0 else None,
         "voluntary_switches": row["voluntary"],
         "involuntary_switches": row["involuntary"],
         "page_faults": row["faults"],

@@ -962,13 +962,22 @@ def test_each_own_miss_says_what_the_tick_before_it_did_where_it_was_traced() ->
     # and as a run prints it beside its summary
     assert _own_miss_text(figures["handctl_misses"][0]) == (
         "handctl's miss at tick 667 (1 missed, 1300 µs late): the tick before ran 1900 µs of "
-        "CPU (6.33x its usual), waited 90 µs for the CPU (usual 45.0), 270 µs off it, 0 "
+        "CPU (6.33x its usual), waited 90 µs for the CPU (usual 45.0 µs), 270 µs off it, 0 "
         "voluntary switch(es), 0 fault(s); in it: phase, collection"
     )
     # a process stopped for 3 s (SIGSTOP) in whole microseconds, not "3.00164e+06"
     stopped = {**figures["handctl_misses"][0], "late_us": 3001640.0, "off_cpu_us": 3000210.0}
     assert "(1 missed, 3001640 µs late)" in _own_miss_text(stopped)
     assert "3000210 µs off it" in _own_miss_text(stopped)
+    # a tick never off the CPU whose CPU time and run_delay (two clocks' counts) add up to a
+    # microsecond past its wall time: off it for 0 µs, not -1
+    busy = {**traced, "cpu_ns": 2_160_500, "run_delay_ns": 100_300}
+    shown = work_figures(LoopWork({}, 300_000, {667: busy}, 45_000), [667])["handctl_misses"][0]
+    assert shown["off_cpu_us"] == 0.0
+    assert "waited 100 µs for the CPU (usual 45.0 µs), 0 µs off it," in _own_miss_text(shown)
+    # a usual wait not measured yet is left out, not said as "usual None"
+    unknown = {**figures["handctl_misses"][0], "usual_run_delay_us": None}
+    assert "waited 90 µs for the CPU, 270 µs off it," in _own_miss_text(unknown)
 
 
 @pytest.mark.parametrize(
