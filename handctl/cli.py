@@ -3061,16 +3061,29 @@ def _integer(text: str) -> int:
 
 
 def _real(text: str) -> float:
-    """A number option's argparse type: ``float`` but for the digits of other scripts, which
-    it takes as ``int`` does (a full-width '０.５' was 0.5). Its other spellings (``nan``,
-    ``inf``, ``1e-3``) are each option's own check to refuse or take."""
+    """A signed number option's argparse type (a torque, a ratio): ``_number``."""
+    return _number(text, "0.5, -1e-3")
+
+
+def _amount(text: str) -> float:
+    """The argparse type of a number option that is never below 0 (a time, a speed, a
+    limit): ``_number``, its examples of such numbers. "--max-seconds 1s" was told "e.g.
+    0.5, -1e-3", an example the option refuses (an outside audit). A negative number still
+    reaches the option's own check, which says what it takes."""
+    return _number(text, "0.5, 2, 1e-3")
+
+
+def _number(text: str, examples: str) -> float:
+    """``float`` but for the digits of other scripts, which it takes as ``int`` does (a
+    full-width '０.５' was 0.5). Its other spellings (``nan``, ``inf``, ``1e-3``) are each
+    option's own check to refuse or take."""
     try:
         if text.isascii():
             return float(text)
     except ValueError:
         pass
     raise argparse.ArgumentTypeError(
-        f"expected a number (e.g. 0.5, -1e-3), found {shown(text)}{_not_ascii(text)}"
+        f"expected a number (e.g. {examples}), found {shown(text)}{_not_ascii(text)}"
     )
 
 
@@ -3442,7 +3455,7 @@ def _add_check(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     )
     timing.add_argument(
         "--seconds",
-        type=_real,
+        type=_amount,
         metavar="S",
         help=f"length of the timing check [s], >= {MIN_TIMING_CHECK_S:g} and <= 3600 "
         f"(default {TIMING_CHECK_DEFAULT_S:g})",
@@ -3538,7 +3551,7 @@ def _add_sim(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     sim.add_argument(
         "--seconds",
-        type=_real,
+        type=_amount,
         metavar="S",
         help="stop after this long [s], > 0 (default: at Ctrl-C)",
     )
@@ -3663,7 +3676,7 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     rec.add_argument(
         "--max-seconds",
-        type=_real,
+        type=_amount,
         metavar="S",
         help="time budget [s], > 0: stop (controlled) after this long, outcome "
         "time_budget, exit 0 (default: no limit; lockstep counts simulated "
@@ -3866,7 +3879,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         help=f"hand config ({DEFAULT_HAND_HELP})",
     )
     nodes.add_argument(
-        "--seconds", type=_real, metavar="S", help="how long to listen [s] (default 1)"
+        "--seconds", type=_amount, metavar="S", help="how long to listen [s] (default 1)"
     )
     nodes.add_argument("--json", action="store_true", help="print the result as JSON")
     nodes.set_defaults(func=_cmd_nodes)
@@ -3918,30 +3931,32 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         default="sim",
         help="sim (default), hand, socketcan:can0, unix:DIR, INTERFACE:CHANNEL",
     )
-    tdt.add_argument("--seconds", type=_real, metavar="S", help="measurement time [s] (default 1)")
+    tdt.add_argument(
+        "--seconds", type=_amount, metavar="S", help="measurement time [s] (default 1)"
+    )
     tdt.add_argument(
         "--settle",
-        type=_real,
+        type=_amount,
         metavar="S",
         help="time at zero torque before measuring [s] (default 2)",
     )
     tdt.add_argument(
         "--max-span",
-        type=_real,
+        type=_amount,
         metavar="RAD",
         help="a joint that moves more than this [rad] is refused (default 0.1, or half the "
         "widest joint range if less)",
     )
     tdt.add_argument(
         "--max-noise",
-        type=_real,
+        type=_amount,
         metavar="NM",
         help="a noise (1 sigma) above this [N·m] is refused (default 0.02, or a tenth of the "
         "largest tau_max if less)",
     )
     tdt.add_argument(
         "--max-offset",
-        type=_real,
+        type=_amount,
         metavar="NM",
         help="an offset above this [N·m] is refused (default 0.25, or the largest tau_max if less)",
     )
@@ -3985,7 +4000,7 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "--torque", type=_real, required=True, metavar="X", help="torque [N·m], signed"
     )
     jog.add_argument(
-        "--seconds", type=_real, metavar="S", help="how long to hold it [s] (default 2)"
+        "--seconds", type=_amount, metavar="S", help="how long to hold it [s] (default 2)"
     )
     _add_dbc(jog)
     jog.add_argument(
@@ -4042,14 +4057,14 @@ def _add_bringup(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     )
     mon.add_argument(
         "--seconds",
-        type=_real,
+        type=_amount,
         metavar="S",
         help="stop after this long [s] (default: at Ctrl-C; of log time with --log, from its "
         "first frame, default: the whole log)",
     )
     mon.add_argument(
         "--every",
-        type=_real,
+        type=_amount,
         metavar="S",
         help="time between JSON snapshots [s] (default 1; of log time with --log)",
     )
@@ -4103,7 +4118,7 @@ def _add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     rep.add_argument(
         "--speed",
-        type=_real,
+        type=_amount,
         metavar="X",
         help="with --to-bus or --live: time scale [× recorded speed] (2 = twice as fast)",
     )

@@ -44,8 +44,62 @@ def _options(
             yield words, action
 
 
+#: Every number option of every command: the command, what else it requires, the option,
+#: whether it takes a negative number (a signed torque, a ratio) or is a time, a speed or a
+#: limit, never below 0.
+NUMBER_OPTIONS = [
+    (("check",), ("--timing",), "--seconds", False),
+    (("analyze", "torque-set"), ("s.yaml",), "--k", True),
+    (("sim",), ("--bus", "virtual:x"), "--seconds", False),
+    (("run", "recipe"), ("r.yaml",), "--max-seconds", False),
+    (("nodes",), (), "--seconds", False),
+    (("calibrate", "tdt"), (), "--seconds", False),
+    (("calibrate", "tdt"), (), "--settle", False),
+    (("calibrate", "tdt"), (), "--max-span", False),
+    (("calibrate", "tdt"), (), "--max-noise", False),
+    (("calibrate", "tdt"), (), "--max-offset", False),
+    (("jog",), ("f1_j2",), "--torque", True),
+    (("jog",), ("f1_j2", "--torque", "0.05"), "--seconds", False),
+    (("monitor",), (), "--seconds", False),
+    (("monitor",), (), "--every", False),
+    (("replay",), ("run.mcap",), "--speed", False),
+]
+
+
+def test_every_number_option_is_listed_as_signed_or_not() -> None:
+    found = {
+        (words, action.option_strings[0])
+        for words, action in _options(cli.build_parser())
+        if action.type in (cli._real, cli._amount)
+    }
+    assert found == {(command, option) for command, _, option, _ in NUMBER_OPTIONS}
+
+
+@pytest.mark.parametrize(
+    ("command", "required", "option", "signed"),
+    NUMBER_OPTIONS,
+    ids=[f"{' '.join(command)} {option}" for command, _, option, _ in NUMBER_OPTIONS],
+)
+def test_a_number_option_s_examples_are_numbers_it_takes(
+    command: tuple[str, ...],
+    required: tuple[str, ...],
+    option: str,
+    signed: bool,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--max-seconds 1s`` was told "expected a number (e.g. 0.5, -1e-3)", an example that
+    option refuses (it must be > 0): a negative example only for an option that takes one."""
+    values = ["1s", "1s"] if option == "--k" else ["1s"]
+    with pytest.raises(SystemExit) as done:
+        cli.build_parser().parse_args([*command, *required, option, *values])
+    assert done.value.code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    examples = "0.5, -1e-3" if signed else "0.5, 2, 1e-3"
+    assert f"argument {option}: expected a number (e.g. {examples}), found '1s'" in err, err
+
+
 def test_no_option_is_parsed_by_int_or_float_themselves() -> None:
-    """A new number option uses a shared type (``cli._integer``, ``cli._real``), not ``int``
+    """A new number option uses a shared type (``cli._integer``, ``cli._amount``), not ``int``
     or ``float``, which take what no user types as a number (digits of other scripts); and
     every integer option is in the table the tests below walk."""
     found = set()
