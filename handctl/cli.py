@@ -1643,6 +1643,10 @@ def _print_replay_summary(summary: dict[str, Any]) -> None:
     for name, pose in summary.get("objects", {}).items():
         print(_object_line(name, pose))
     for pair, figures in summary.get("pairs", {}).items():
+        if not figures["phase_turns_deg"]:
+            # no manipulation phase ran (a hold, a lift, a run stopped before one): there is
+            # no turn to say, and "per phase [] deg, turn +0.00 deg" read as one measured
+            continue
         print(
             f"  turn of the centre line {pair}: per phase {figures['phase_turns_deg']} deg, "
             f"turn {figures['turn_deg']:+.2f} deg (ccw +)"

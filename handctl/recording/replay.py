@@ -137,7 +137,12 @@ def summarise_recording(recording: Recording, series: Series) -> dict[str, Any]:
             for i, name in enumerate(series.object_names)
         }
     recipe = recorded_recipe_or_none(recording) if len(series.objects) else None
-    pairs = line_pairs(recipe, series.object_names) if len(series.objects) else []
+    # a recipe that declares no pair (one of no objects, on a scene that has some) measures
+    # none, as its run's experiment does: the replay's summary said the turn of a centre line
+    # between the scene's objects that the recipe never named; a log whose recipe does not
+    # read measures each logged object with the next
+    declared = recipe is None or bool(recipe.pairs)
+    pairs = line_pairs(recipe, series.object_names) if len(series.objects) and declared else []
     if pairs:
         summary |= _pair_figures(series, pairs, recipe)
     return summary

@@ -164,7 +164,8 @@ def test_the_log_and_its_replay_measure_the_pairs_the_recipe_declares(
     hand = hand_with(tmp_path, THREE)
     cli.main(["run", "recipe", str(recipe), "--hand", str(hand), "--log", str(log)])
     assert cli.main(["replay", str(log), "--json", str(out)]) == cli.EXIT_OK
-    assert "turn of the centre line right/left: per phase" in capsys.readouterr().out
+    # the one phase left is no manipulation: the lines are measured, no turn is said
+    assert "turn of the centre line" not in capsys.readouterr().out
     summary = json.loads(out.read_text())["summary"]
     assert list(summary["pairs"]) == ["right/left", "left/middle"]
     assert summary["objects_line_pair"] == "right/left"
@@ -217,3 +218,42 @@ def test_the_recipes_load_against_the_default_hand(recipe: str) -> None:
     """Their torques and ramps are within the default hand's limits (``check_against_hand``)."""
     loaded = load_recipe(RECIPES / recipe, load_hand(HAND_YAML))
     assert 1 <= len(loaded.objects) <= 4
+
+
+def test_a_recipe_of_no_objects_has_no_centre_line_in_its_replay(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A hold written by hand, declaring no objects, on the default hand, whose scene has
+    two: the replay's summary said "turn of the centre line cyl1/cyl2: per phase [] deg,
+    turn +0.00 deg", a line the recipe never declared, turned in no phase. Its run measures
+    no pair; nor does its replay."""
+    joints = len(load_hand(HAND_YAML).joint_names)
+    recipe = tmp_path / "hold.yaml"
+    recipe.write_text(
+        yaml.safe_dump(
+            {
+                "recipe": "hold_no_objects",
+                "description": "a hold that declares no objects",
+                "end_ramp_s": 0.1,
+                "phases": [
+                    {
+                        "name": "hold",
+                        "torques": [0.02] * joints,
+                        "ramp_s": 0.1,
+                        "max_s": 0.3,
+                        "on_timeout": "next",
+                    }
+                ],
+            },
+            sort_keys=False,
+        )
+    )
+    log, out = tmp_path / "run.mcap", tmp_path / "replay.json"
+    assert cli.main(["run", "recipe", str(recipe), "--log", str(log)]) == cli.EXIT_OK
+    capsys.readouterr()
+    assert cli.main(["replay", str(log), "--json", str(out)]) == cli.EXIT_OK
+    printed = capsys.readouterr().out
+    summary = json.loads(out.read_text())["summary"]
+    assert len(summary["objects"]) == 2  # the scene's cylinders, logged all the same
+    assert "turn of the centre line" not in printed
+    assert "pairs" not in summary and "turn_deg" not in summary
