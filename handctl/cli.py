@@ -973,8 +973,19 @@ def _experiment_verdict(ex: dict[str, Any]) -> str:
             "manipulation)"
         )
     if ex.get("stopped"):
-        missing.append(f"the run ended in {ex['stopped'].replace('_', ' ')}, not at its end")
+        stopped = ex["stopped"]
+        missing.append(_STOPPED_WORDS.get(stopped, f"the run ended ({stopped}) before its end"))
     return "FAILED: " + ("; ".join(missing) or "see above")
+
+
+#: How an experiment's run that did not end as asked ended (its ``stopped``, a run's
+#: ``Outcome``), in words: "the run ended in interrupted, not at its end" was the outcome's
+#: name pasted into one sentence for all.
+_STOPPED_WORDS = {
+    "safety_stop": "the run ended in a safety stop, before its end",
+    "interrupted": "the run was interrupted before its end",
+    "startup_failed": "the run never started",
+}
 
 
 def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:

@@ -129,7 +129,7 @@ def test_a_safety_stop_is_no_success_whatever_the_objects_did_before_it(tmp_path
     assert ex["lifted"] and not ex["dropped"], ex
     assert ex["total_rotation_deg"] >= ex["min_total_turn_deg"] > 0
     assert ex["success"] is False and ex["stopped"] == "safety_stop"
-    assert "experiment: FAILED: the run ended in safety stop, not at its end" in done.stdout
+    assert "experiment: FAILED: the run ended in a safety stop, before its end" in done.stdout
 
 
 def test_a_run_stopped_mid_turn_and_its_replay_count_the_last_phase_alike(tmp_path: Path) -> None:

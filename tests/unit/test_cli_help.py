@@ -113,6 +113,32 @@ def test_a_success_that_asked_no_turn_does_not_say_it_turned_zero_degrees() -> N
     )
 
 
+@pytest.mark.parametrize(
+    ("outcome", "said"),
+    [
+        ("safety_stop", "the run ended in a safety stop, before its end"),
+        ("interrupted", "the run was interrupted before its end"),
+        ("startup_failed", "the run never started"),
+    ],
+)
+def test_an_experiment_whose_run_was_stopped_says_how_in_words(outcome: str, said: str) -> None:
+    """An interrupted run's experiment said "the run ended in interrupted, not at its end":
+    the outcome's name pasted into one sentence for all. Every outcome but the two a run
+    ends as asked in has words of its own."""
+    from handctl.cli import _experiment_verdict
+    from handctl.experiment.merit import ENDED_AS_ASKED
+    from handctl.online.loop import Outcome
+
+    assert {o.value for o in Outcome} - set(ENDED_AS_ASKED) == {
+        "safety_stop",
+        "interrupted",
+        "startup_failed",
+    }
+    held = {"success": False, "lifted": True, "dropped": False, "held_s": 2.0}
+    verdict = _experiment_verdict({**held, "min_total_turn_deg": 0.0, "stopped": outcome})
+    assert verdict == f"FAILED: {said}"
+
+
 def test_an_option_of_one_value_given_twice_with_two_values_is_refused(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
