@@ -8,6 +8,7 @@ code keeps working.
 
 from __future__ import annotations
 
+import os
 import reprlib
 from pathlib import Path, PurePath
 
@@ -72,10 +73,28 @@ SHOWN_CHARS = 80
 def absent(path: Path) -> str:
     """Why ``path``, which is no file, is none: "no such file", or a symbolic link that leads
     nowhere (a loop of links, or a link to a name that does not exist), which the file system
-    reports as no file either and was said as "no such file" beside a name the user can see."""
-    if path.is_symlink():
-        return "a symbolic link that leads to no file (a loop of links, or a missing target)"
-    return "no such file"
+    reports as no file either and was said as "no such file" beside a name the user can see.
+    A relative path says the directory it was looked for in: a command run from elsewhere
+    than the repository (``cd /tmp && handctl run recipe config/recipes/...``) said "no
+    such file" of a file the user could see, from where they meant it."""
+    why = (
+        "a symbolic link that leads to no file (a loop of links, or a missing target)"
+        if path.is_symlink()
+        else "no such file"
+    )
+    return why + _relative_to_here(path)
+
+
+def _relative_to_here(path: Path) -> str:
+    """What to add to a relative ``path``'s "no such file": the directory it was looked for
+    in, the current one; nothing for an absolute path."""
+    if path.is_absolute():
+        return ""
+    try:
+        here = os.getcwd()
+    except OSError:  # the directory was removed under the command
+        return " (relative to the current directory, which no longer exists)"
+    return f" (relative to {escaped(here)})"
 
 
 def escaped(text: str) -> str:

@@ -184,6 +184,32 @@ def test_a_link_that_leads_nowhere_is_said_as_one_not_as_no_such_file(tmp_path: 
         open_recording(tmp_path / "a")
 
 
+def test_a_relative_path_that_is_no_file_says_where_it_was_looked_for(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``cd /tmp && handctl run recipe config/recipes/...`` said "found no such file" of a
+    file the user could see from the repository, without saying from where it was looked
+    for. A relative path now names the current directory; an absolute one needs none."""
+    here = tmp_path / "elsewhere"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    where = f" (relative to {os.getcwd()})"
+    assert where == f" (relative to {here.resolve()})"
+    with pytest.raises(ConfigError) as caught:
+        read_input(Path("config/recipes/swap.yaml"), "a recipe", 100)
+    assert str(caught.value) == (
+        "config/recipes/swap.yaml: expected an existing file (a recipe), found no such file" + where
+    )
+    with pytest.raises(ConfigError) as caught:
+        open_recording("run.mcap")
+    assert str(caught.value).endswith("found no such file" + where)
+    (here / "dangling").symlink_to(here / "gone")
+    assert absent(Path("dangling")).endswith("missing target)" + where)
+    with pytest.raises(ConfigError) as caught:
+        read_input(here / "swap.yaml", "a recipe", 100)
+    assert str(caught.value).endswith("found no such file")
+
+
 def test_a_recipe_or_template_behind_a_link_that_leads_nowhere_is_said_as_one(
     tmp_path: Path,
 ) -> None:
