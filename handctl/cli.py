@@ -1951,18 +1951,28 @@ def _replay_rerun(recording: Recording, report: dict[str, Any]) -> int:
     with ctrl_c_at_once():
         result = rerun.rerun(recording, _reanalysis_on_tick)
     report["rerun"] = result.as_dict()
+    # a finished file that reads whole is all the run wrote (a SIGKILL of the control
+    # process alone leaves one: its writer finishes the file); any other is not
+    report["rerun"]["whole_log"] = recording.complete and not recording.damaged
     if _print_rerun(result) != EXIT_OK:
         return EXIT_FAILED
     if recording.damaged:
         # what it compared repeats, but a script that read exit 0 as "verified" took the
-        # ticks past the hole as verified too (a log cut short at its end is another matter:
-        # what it holds is all the run wrote)
+        # ticks past the hole as verified too
         print(
             "rerun: FAILED: not the whole log: it is DAMAGED, and the ticks from its first "
             "damaged chunk on were not compared",
             file=sys.stderr,
         )
-        report["rerun"]["whole_log"] = False
+        return EXIT_FAILED
+    if not recording.complete:
+        # the writer did not finish it (killed, a full disk): the run may have gone on past
+        # its end (a fault, the stop ramp) that nothing compared; it was "verified", exit 0
+        print(
+            "rerun: FAILED: not the whole log: it is TRUNCATED (its writer did not finish "
+            "it), and whatever the run did after its end was not compared",
+            file=sys.stderr,
+        )
         return EXIT_FAILED
     return EXIT_OK
 

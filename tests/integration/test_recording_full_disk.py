@@ -66,6 +66,12 @@ def test_a_log_whose_disk_fills_says_why_and_reads_up_to_there(small_disk: Path)
     replay = handctl("replay", str(log))
     assert replay.returncode == 0, replay.stdout + replay.stderr
     assert "TRUNCATED" in replay.stdout
+    # its re-run repeats what the log holds, but the run's fault and stop ramp are not in
+    # it: not the whole log (it said "verified", exit 0, "outcome log ended")
+    rerun = handctl("replay", str(log), "--rerun")
+    assert rerun.returncode == 1, rerun.stdout + rerun.stderr
+    assert "bit-exact" in rerun.stdout
+    assert "rerun: FAILED: not the whole log: it is TRUNCATED" in rerun.stderr
 
 
 def test_a_plot_whose_recording_fills_the_disk_is_a_failed_result(

@@ -605,9 +605,18 @@ def test_truncated_file_is_summarised_and_rerun_as_far_as_it_goes(
     report = rerun(recording)
     assert report.ok and report.compared > 0
     assert any("where the log ends" in note for note in report.notes)
-    done = handctl("replay", str(cut), "--rerun")
-    assert done.returncode == 0, done.stderr
-    assert "TRUNCATED" in done.stdout
+    # what it holds repeats, but its writer did not finish it: the run went on past the cut
+    # (a full disk's RECORDING_LOST stop ramp, say) and that was never compared; it was
+    # "verified", exit 0, with no word of the rest
+    out = tmp_path / "cut.json"
+    done = handctl("replay", str(cut), "--rerun", "--json", str(out))
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "TRUNCATED" in done.stdout and "bit-exact" in done.stdout
+    assert "rerun: FAILED: not the whole log: it is TRUNCATED" in done.stderr
+    assert json.loads(out.read_text())["rerun"]["whole_log"] is False
+    whole = tmp_path / "whole.json"
+    assert handctl("replay", str(recorded.path), "--rerun", "--json", str(whole)).returncode == 0
+    assert json.loads(whole.read_text())["rerun"]["whole_log"] is True
 
 
 # -- frames out -------------------------------------------------------------------------------
