@@ -172,19 +172,38 @@ def _output_dir(text: str) -> Path:
 def _json_text(value: Any, indent: int | None = 2) -> str:
     """``value`` as JSON that any reader takes: a NaN or an infinity (a value a log lacks, a
     figure of nothing) is written ``null``, where ``json.dumps`` wrote ``NaN``, which is not
-    JSON and which strict readers (``jq``, browsers, most languages) refuse."""
+    JSON and which strict readers (``jq``, browsers, most languages) refuse. A string that is
+    not valid UTF-8 (a path with a byte of another encoding, which Python holds as a lone
+    surrogate) has that byte as ``\\xNN``, as the recording's metadata has it: written as it
+    was, ``"\\udcff"``, strict readers (orjson, Rust, Go) refused the whole file."""
     import json
 
     def finite(v: Any) -> Any:
+        if isinstance(v, str):
+            return _utf8_text(v)
         if isinstance(v, float):
             return v if math.isfinite(v) else None
         if isinstance(v, dict):
-            return {k: finite(x) for k, x in v.items()}
+            return {finite(k): finite(x) for k, x in v.items()}
         if isinstance(v, (list, tuple)):
             return [finite(x) for x in v]
         return v
 
-    return json.dumps(finite(value), indent=indent, default=str, allow_nan=False)
+    return json.dumps(
+        finite(value), indent=indent, default=lambda v: _utf8_text(str(v)), allow_nan=False
+    )
+
+
+def _utf8_text(text: str) -> str:
+    """``text`` as ``metadata.valid_text`` makes it, imported only for the rare string that
+    needs it (the module costs a command that never records 0.2 s)."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        from handctl.recording.metadata import valid_text
+
+        return valid_text(text)
+    return text
 
 
 def _output_file(

@@ -763,3 +763,25 @@ def test_a_killed_run_s_recording_beside_its_log_goes_with_the_next_run_on_it(
         assert said in err, err
     assert all(p.exists() for p in kept) and other_log.exists()
     assert open_recording(log).json_meta("handctl.summary") == {"outcome": "next"}
+
+
+def test_the_summaries_of_a_log_whose_path_is_not_utf_8_are_strict_json(tmp_path: Path) -> None:
+    """``--summary-json`` and ``replay --json`` wrote such a path as ``"\\udcff"``, a lone
+    surrogate that strict JSON readers (orjson, Rust's, Go's) refuse with the whole file; now
+    the byte is ``\\xff``, as the metadata have it."""
+    import orjson
+
+    log = tmp_path / os.fsdecode(b"we\xffird.mcap")
+    shown = str(tmp_path / "we\\xffird.mcap")
+    run_json, replay_json = tmp_path / "run.json", tmp_path / "replay.json"
+    done = handctl(
+        "run", "recipe", DEFAULT_RECIPE, "--log", str(log), "--max-seconds", "0.2",
+        "--summary-json", str(run_json),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    done = handctl("replay", str(log), "--json", str(replay_json))
+    assert done.returncode == 0, done.stdout + done.stderr
+    run = orjson.loads(run_json.read_bytes())
+    assert run["recording"]["path"] == shown
+    replay = orjson.loads(replay_json.read_bytes())
+    assert replay["summary"]["file"] == shown
