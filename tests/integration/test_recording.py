@@ -497,6 +497,45 @@ def test_a_full_ring_drops_and_counts_and_never_blocks(
     assert stats[-1]["dropped_ticks"] == end["dropped_ticks"]
 
 
+def test_a_writer_that_catches_up_writes_chunks_of_50_ms_each(
+    hand: HandConfig, tmp_path: Path, recorded: Recorded
+) -> None:
+    """The writer stopped (SIGSTOP) for the whole run, rings large enough to hold it, and let
+    go at its end: its backlog went into the file as one chunk of the whole run (4 s, 19.7 MB
+    after a 6 s stop of a default run), where a chunk holds at most ``CHUNK_NS`` of log time,
+    and a CRC error or the writer's death then cost all of it. Now each slice of that much
+    goes out a chunk, its frames and events before its rows: the log is the run's, and
+    re-runs bit-exact."""
+    from handctl.recording.rerun import rerun
+    from handctl.recording.writer import CHUNK_NS
+
+    run = record_run(hand, short_recipe(hand, tmp_path), tmp_path / "held.mcap", pause_writer=True)
+    assert run.result.ticks == recorded.result.ticks
+    with run.path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary is not None
+    spans = [c.message_end_time - c.message_start_time for c in summary.chunk_indexes]
+    assert len(spans) >= run.result.ticks * 1_000_000 // CHUNK_NS and max(spans) < CHUNK_NS
+    recording = open_recording(run.path)
+    assert recording.complete and recording.meta(ch.META_END, "dropped_ticks") == "0"
+    report = rerun(recording)
+    assert (
+        report.ok
+        and report.compared > 0
+        and report.compared == rerun(open_recording(recorded.path)).compared
+    ), report.as_dict()
+
+    def by_topic(path: Path) -> dict[str, list[Any]]:
+        found: dict[str, list[Any]] = {}
+        for topic, log_time, message in iter_decoded(open_recording(path), JSON_TOPICS):
+            message.pop("stage_cpu_ns", None)  # the run's CPU time, another each run
+            if topic != ch.STATS:  # one a chunk
+                found.setdefault(topic, []).append((log_time, message))
+        return found
+
+    assert by_topic(run.path) == by_topic(recorded.path)
+
+
 # -- durability ------------------------------------------------------------------------------
 CHILD = """
 import os, signal, sys
