@@ -17,10 +17,11 @@ a pair. Definitions:
   bases any more: its centre is further along the palm from the palm's middle than the
   farthest finger base plus its own radius (``hand_span``; on a hand whose fingers are all
   based at one x or all curl to one side, further than the fingers reach);
-- ``objects``: each object's ``lifted``, ``held_s``, ``dropped``, final pose and, for an object
-  of the recipe, ``estimator_error_m``: the 95th percentile of the distance between its
-  estimated and true centres over the ticks of the hold and manipulation phases where the
-  estimate was valid;
+- ``objects``: each object's ``lifted``, ``held_s``, ``dropped``, final pose (the last pose
+  sample a log carries, where the replay of the run's log ends it) and, for an object of the
+  recipe, ``estimator_error_m``: the 95th percentile of the distance between its estimated
+  and true centres over the ticks of the hold and manipulation phases where the estimate was
+  valid;
 - the pair figures, of the recipe's first pair (the centre line from its first object's
   centre to its second's; every pair's turn is also under ``pairs``):
   ``phase_angles_deg``: for each manipulation phase (a phase whose name starts with
@@ -297,7 +298,12 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
     sel = slice(start, end_manip)
     valid = a["valid"][sel]
     objects: dict[str, Any] = {}
-    last = poses[-1]
+    # the last sample a log carries (every POSE_EVERY_TICKS-th tick's, convention.py): the
+    # replay of the run's log reads its end there, and the trace's own last tick put this
+    # summary's final pose up to 9 ticks later, objects still moving in the end ramp (2.5°
+    # and 1.3 mm from the replay's end pose of the same run)
+    end = _last_logged(t)
+    last = poses[end]
     for i, name in enumerate(trace.objects):
         own_s, _ = _held(up[:, i], t, first_manip)
         objects[name] = {
@@ -308,7 +314,7 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
                 "x_m": round(float(last[3 * i]), 5),
                 "y_m": round(float(last[3 * i + 1]), 5),
                 "angle_rad": round(float(last[3 * i + 2]), 5),
-                "height_above_rest_m": round(float(heights[-1, i]), 5),
+                "height_above_rest_m": round(float(heights[end, i]), 5),
             },
             "estimator_error_m": None,
         }
@@ -407,6 +413,16 @@ def _measured(trace: Trace, min_total_turn_deg: float) -> dict[str, Any]:
         out["pairs"] = pairs
     success = lifted and not dropped and total >= min_total_turn_deg and swapped
     return {"success": bool(success), **out}
+
+
+def _last_logged(t: np.ndarray) -> int:
+    """The index of the trace's last sample that a log carries too (its tick a multiple of
+    ``POSE_EVERY_TICKS``, ``t`` being the ticks' times from tick 0), or its last for a trace
+    with none."""
+    n = len(t)
+    period = float(t[1] - t[0]) if n > 1 else 1.0
+    logged = np.flatnonzero(np.round(t / period).astype(np.int64) % POSE_EVERY_TICKS == 0)
+    return int(logged[-1]) if len(logged) else n - 1
 
 
 def _wrapped_deg(turn_deg: float) -> float:

@@ -47,6 +47,12 @@ def test_run_and_replay_agree(default_run: DefaultRun, tmp_path: Path) -> None:
     # heights above rest, as the run measures lifting: 0 where they rested at the start
     for pose in replayed["objects"].values():
         assert pose["start"]["height_above_rest_m"] == pytest.approx(0.0, abs=2e-3)
+    # and where the objects ended, at the last pose the log carries: the run's summary took
+    # its every-tick trace's last, up to 9 ticks later in the end ramp, where the objects
+    # still move (cyl1 4.34604 rad against the replay's 4.30196, 1.3 mm apart)
+    assert {n: o["end"] for n, o in replayed["objects"].items()} == {
+        n: o["final"] for n, o in ex["objects"].items()
+    }
     assert default_run.plot.stat().st_size > 10_000
     assert (tmp_path / "replay.png").stat().st_size > 10_000
     # the two plots are one picture: the same panels, traces, legends and title, pixel for pixel
