@@ -13,6 +13,7 @@ import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from functools import lru_cache
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -235,7 +236,31 @@ def _parsed_hand(text: str, protocol: Protocol | None, path: str) -> HandConfig:
     """The recorded hand config parsed once per log: a replay asked for it five times (its
     summary, series, plot, frames and re-run), each a parse of the YAML and the DBC's
     checks, a fifth of a short log's replay."""
-    return parse_hand(parse_yaml(text, f"{path} (its recorded hand config)"), protocol)
+    return _as_recorded(
+        parse_hand(parse_yaml(text, f"{path} (its recorded hand config)"), protocol)
+    )
+
+
+def _as_recorded(hand: HandConfig) -> HandConfig:
+    """``hand`` read by the rules of the handctl that recorded it, where a later rule would
+    refuse what that one ran: a written ``half_thickness: 0`` beside a ``sim.links`` radius
+    was taken for "not given" until the rule that holds it to the radius came, and a log of
+    such a hand lost its simulated hand with it (no turn, no torque panels in its plot, and
+    ``monitor --log`` refused it; found by an outside audit of that rule). The run was what
+    it was: its log reads as it did."""
+    if not any(j.half_thickness_given and j.half_thickness == 0 for j in hand.joints):
+        return hand
+    fingers = tuple(
+        replace(
+            finger,
+            joints=tuple(
+                replace(j, half_thickness_given=False) if j.half_thickness == 0 else j
+                for j in finger.joints
+            ),
+        )
+        for finger in hand.fingers
+    )
+    return replace(hand, fingers=fingers)
 
 
 def _check_digest(recording: Recording, key: str, digest_key: str, text: str) -> None:

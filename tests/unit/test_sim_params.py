@@ -624,6 +624,24 @@ def test_a_written_half_thickness_of_0_is_held_to_the_simulated_link(tmp_path: P
     assert err.value.found == hand.sim["links"][finger.name][0]["radius"] > 0
 
 
+def test_a_recorded_hand_with_a_written_half_thickness_of_0_reads_as_it_ran() -> None:
+    """A log recorded before that rule, of a hand writing ``half_thickness: 0`` beside its
+    ``sim.links``: its recorded hand lost its simulated hand (no turn in its replay, no
+    torque panels in its plot; found by an outside audit of the rule). It reads as it ran."""
+    from handctl.config import parse_hand
+    from handctl.recording.metadata import _parsed_hand
+    from handctl.schema import parse_yaml
+
+    data = yaml.safe_load(HAND_YAML.read_text())
+    data["fingers"][0]["joints"][0]["half_thickness"] = 0.0
+    text = yaml.safe_dump(data)
+    with pytest.raises(ConfigError):  # today's rule, for a hand config given now
+        parse_sim(parse_hand(parse_yaml(text, "hand.yaml"), None))
+    recorded = _parsed_hand(text, None, "old.mcap")
+    assert recorded.joints[0].half_thickness == 0.0
+    assert parse_sim(recorded).links  # its simulated hand, as the run had it
+
+
 def test_a_half_thickness_left_out_is_not_held_to_the_simulated_link(tmp_path: Path) -> None:
     """docs/simulation.md: the two must be equal "where the joint gives half_thickness"; a
     joint that leaves it out keeps the paper's line link for the estimator."""
