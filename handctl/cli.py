@@ -867,7 +867,7 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
             f"  FAULT {fault['code']} ({fault['category']}) at tick {fault['tick']}: "
             f"{fault['detail']}"
         )
-    late = summary["lateness_us"]
+    late = {k: "?" if v is None else v for k, v in summary["lateness_us"].items()}
     print(
         f"  {summary['ticks']} ticks, {summary['missed_ticks']} missed, lateness p50 "
         f"{late['p50']} µs p99 {late['p99']} µs max {late['max']} µs"
@@ -884,7 +884,8 @@ def _print_run_summary(summary: dict[str, Any], plot: Path | None) -> None:
     if lost:
         print(
             f"  frames the host's own receive queue lost (it read them too late): {lost}; "
-            "each loss shows as a counter skip of the node whose frame it was, not the node's"
+            "they show among the counter skips (one skip for each run of frames lost of a "
+            "node), which are then the host's, not the node's"
         )
     events = summary.get("bus_events")
     if events:
@@ -1016,15 +1017,16 @@ def _run_exit_code(result: RunResult, summary: dict[str, Any]) -> int:
     not written because the run's recording failed. Neither makes another code 1: a safety
     stop, a bus error or an interrupt says more, and is kept."""
     code = _outcome_exit_code(result, summary)
-    failed_parts = [e["part"] for e in summary.get("summary_errors", [])]
-    if failed_parts:
+    from handctl.summary_guard import failed_parts
+
+    names = failed_parts(summary)
+    if names:
         # a bug of handctl's in the account made after the hand stopped: said above with
         # its traceback; the outcome stands, the summary is short of those parts
-        names = ", ".join(failed_parts)
         if code == EXIT_OK:
             print(
-                f"handctl: failed: the run ended as asked, but its summary lacks what "
-                f"could not be made ({names}: the warnings above say why)",
+                f"handctl: failed: the run ended as asked, but its summary lacks {names} "
+                "(a bug of handctl's: the warnings above say why)",
                 file=sys.stderr,
             )
             code = EXIT_FAILED
@@ -2238,9 +2240,13 @@ def _run_outcome(report: Any) -> int | None:
 
     for warning in report.warnings:
         print(f"handctl: warning: {warning}", file=sys.stderr)
-    if report.result.outcome is Outcome.COMPLETED:
+    # a summary short of a part (a bug of handctl's, said above) is a failed result even
+    # of a run that completed: it ended exit 0, or in a traceback where the bring-up read
+    # a figure the part would have made (found by an outside audit)
+    errors = {"summary_errors": report.summary.get("summary_errors", [])}
+    if report.result.outcome is Outcome.COMPLETED and not errors["summary_errors"]:
         return None
-    return _run_exit_code(report.result, {})
+    return _run_exit_code(report.result, errors)
 
 
 def _existing_yaml(output: Path) -> dict[str, Any] | None:

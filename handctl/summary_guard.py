@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import traceback
 from collections.abc import Callable
+from contextlib import suppress
 from typing import Any, TypeVar
 
 from handctl.config import HandConfig
@@ -58,11 +59,45 @@ class SummaryParts:
         summary["summary_errors"] = list(self.errors)
         for error in self.errors[self._said :]:
             warnings.append(
-                f"the run's {error['part']} could not be made: {error['error']} (a bug in "
+                f"{_part_name(error['part'])} could not be made: {error['error']} (a bug in "
                 "handctl, not in the input; the hand had stopped; please report it with "
                 "this traceback)\n" + error["traceback"]
             )
         self._said = len(self.errors)
+
+
+#: What the parts of a run's account are called where their failure is said.
+PART_NAMES = {
+    "warnings": "the run's warnings",
+    "sim": "the simulated hand's account",
+    "summary": "the summary itself",
+    "frames_lost": "the frames the host lost",
+    "loop_work": "the loop's own timing",
+    "host": "the host's timing",
+    "experiment": "the experiment's figures",
+    "plot": "the plot",
+}
+
+
+def _part_name(part: str) -> str:
+    return PART_NAMES.get(part, f"the run's {part}")
+
+
+def failed_parts(summary: dict[str, Any]) -> str:
+    """The parts of ``summary`` that could not be made, in words ("" if none)."""
+    return "; ".join(_part_name(str(e.get("part"))) for e in summary.get("summary_errors", []))
+
+
+def require_whole(summary: dict[str, Any], what: str) -> None:
+    """For a tool that reads a run's summary as its result (the experiment bench, the soak
+    and loop benchmarks): a summary short of a part is a bug of handctl's, raised with its
+    tracebacks, never read as the run's result (a failed experiment, a missing figure)."""
+    errors = summary.get("summary_errors")
+    if errors:
+        raise RuntimeError(
+            f"{what}: the run's summary lacks {failed_parts(summary)}, by a bug of "
+            "handctl's:\n" + "\n".join(e["traceback"] for e in errors)
+        )
 
 
 def least_summary(
@@ -73,8 +108,10 @@ def least_summary(
     sim: dict[str, Any] | None,
 ) -> dict[str, Any]:
     """The summary's keys from what the run result holds as plain values, for a summary that
-    could not be made: how the run ended, why, its faults and its ticks."""
-    return {
+    could not be made: how the run ended, why, its phases, its faults, its ticks, its
+    largest torques, and every note a script reads to know whether the hand may still be
+    enabled or faulted. Each is taken on its own: one that fails is left out."""
+    summary: dict[str, Any] = {
         "completed": result.outcome is Outcome.COMPLETED,
         "outcome": result.outcome.value,
         "message": result.message,
@@ -84,7 +121,23 @@ def least_summary(
         "mode": "lockstep" if lockstep else "realtime",
         "phases": [],
         "timed_out_phases": [],
-        "faults": [
+        "faults": [],
+        "ticks": result.ticks,
+        "missed_ticks": result.missed_ticks,
+        "lateness_us": {"p50": None, "p99": None, "max": None},
+        "stage_cpu_us_p99": {},
+        "max_abs_tau_nm": {},
+        "rejected_frames": {},
+        "bus_events": result.bus_events,
+    }
+    plain: dict[str, Callable[[], Any]] = {
+        "phases": lambda: [
+            {**p, "timed_out": str(p["exit"]).startswith("timeout")} for p in result.phases
+        ],
+        "timed_out_phases": lambda: [
+            p["name"] for p in result.phases if str(p["exit"]).startswith("timeout")
+        ],
+        "faults": lambda: [
             {
                 "code": f.code.name,
                 "category": FAULTS[f.code].category.name.lower(),
@@ -93,12 +146,24 @@ def least_summary(
             }
             for f in result.faults
         ],
-        "ticks": result.ticks,
-        "missed_ticks": result.missed_ticks,
-        "lateness_us": {"p50": None, "p99": None, "max": None},
-        "stage_cpu_us_p99": {},
-        "max_abs_tau_nm": {},
-        "rejected_frames": dict(result.node_rejects),
-        "bus_events": result.bus_events,
-        **({"sim": sim} if sim is not None else {}),
+        "max_abs_tau_nm": lambda: {
+            name: round(float(v), 5)
+            for name, v in zip(hand.joint_names, result.max_abs_tau, strict=True)
+        },
+        "rejected_frames": lambda: dict(result.node_rejects),
     }
+    for key, make in plain.items():
+        with suppress(Exception):  # left as it stands above: this is the summary of a failure
+            summary[key] = make()
+    notes = {
+        "left_limits_in_stop": result.stop_notes,
+        "nodes_reset": result.nodes_reset,
+        "disable_unconfirmed": result.disable_unconfirmed,
+        "ended_in_fault": result.ended_in_fault,
+        "estop_heard": result.estop_heard,
+        "rebooted": result.rebooted,
+    }
+    summary.update({key: note for key, note in notes.items() if note})
+    if sim is not None:
+        summary["sim"] = sim
+    return summary

@@ -65,6 +65,7 @@ from handctl.online.loop import Outcome, StatusLine
 from handctl.online.recipes.loader import load_recipe
 from handctl.online.recipes.schema import Recipe
 from handctl.session import RunReport, RunRequest, run_recipe
+from handctl.summary_guard import require_whole
 
 #: One line of ``bench.py --help`` (read from the source there, without importing this).
 SUMMARY = "the real-time loop's lateness and misses; the tick's CPU beside a baseline tree"
@@ -423,6 +424,7 @@ def _one(
         ),
         status=running,
     )
+    require_whole(report.summary, "the loop benchmark's run")
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     result = report.result

@@ -49,6 +49,7 @@ from handctl.online.recipes.loader import load_recipe  # noqa: E402
 from handctl.recording import channels as ch  # noqa: E402
 from handctl.recording.reader import iter_decoded, open_recording  # noqa: E402
 from handctl.session import RunRequest, run_recipe  # noqa: E402
+from handctl.summary_guard import require_whole  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "tools"))
 from bench_loop import RunningSince, host_figures  # noqa: E402
@@ -220,6 +221,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             status=status,
         )
         wall = time.monotonic() - started
+        require_whole(report.summary, "the soak's run")
         for warning in [*report.warnings, *refused]:
             print(f"warning: {warning}", file=sys.stderr)
         print("reading the recording back ...", file=sys.stderr)

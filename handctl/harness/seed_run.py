@@ -41,6 +41,7 @@ def run_seed(task: SeedRun) -> dict[str, Any]:
     from handctl.planning.models import Spread, hand_with, perturb
     from handctl.session import RunRequest, run_recipe
     from handctl.sim.params import parse_sim
+    from handctl.summary_guard import require_whole
 
     hand = local_hand(task.hand)
     seed = task.seed
@@ -58,6 +59,8 @@ def run_seed(task: SeedRun) -> dict[str, Any]:
         )
     )
     wall = time.monotonic() - t0
+    # a bug of handctl's in the run's account is no failed manipulation: raised, as it was
+    require_whole(report.summary, f"seed {seed} ({task.family})")
     ex = report.summary.get("experiment", {})
     ok = bool(report.summary["completed"] and ex.get("success"))
     total = ex.get("total_rotation_deg") or 0.0

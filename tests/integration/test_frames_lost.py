@@ -70,6 +70,7 @@ def test_frames_lost_are_printed_beside_the_rejects(
     assert "lost" not in capsys.readouterr().out
     cli._print_run_summary({**summary, "frames_lost": 7}, None)
     assert (
-        "  frames the host's own receive queue lost (it read them too late): 7; each loss "
-        "shows as a counter skip of the node whose frame it was, not the node's"
+        "  frames the host's own receive queue lost (it read them too late): 7; they show "
+        "among the counter skips (one skip for each run of frames lost of a node), which are "
+        "then the host's, not the node's"
     ) in capsys.readouterr().out
