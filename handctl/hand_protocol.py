@@ -324,10 +324,11 @@ def _other_ids_way_out(hand: HandConfig, protocol: Protocol) -> str:
     if protocol.source != _generated_source(hand):
         return ""  # a DBC given or recorded: its ids are the ones to write
     return (
-        "; other ids need a DBC file that has them, given with --dbc FILE: leave can_ids "
-        "out for the generated ones, or write the generated DBC of a copy of the hand "
-        "without can_ids (python tools/gen_dbc.py --hand COPY.yaml --out FILE) and change "
-        "the ids of its frames there"
+        "; other ids need a DBC file that has them, given to handctl's commands with --dbc "
+        "FILE: leave can_ids out for the generated ones, or write the generated DBC of a "
+        "copy of the hand without can_ids (python tools/gen_dbc.py --hand COPY.yaml --out "
+        "FILE) and change the ids of its frames there (a DBC writes ids in decimal, 0x181 "
+        "as 385, on every BO_, CM_, BA_ and VAL_ line of the frame)"
     )
 
 

@@ -197,11 +197,15 @@ def test_an_id_of_ones_own_is_told_the_way_to_the_dbc_it_needs(tmp_path: Path) -
         load_hand(path)
     assert err.value.key == "fingers[1].can_ids.feedback"
     expected = err.value.expected
-    assert "other ids need a DBC file that has them, given with --dbc FILE" in expected
+    assert (
+        "other ids need a DBC file that has them, given to handctl's commands with --dbc FILE"
+        in expected
+    )
+    assert "a DBC writes ids in decimal, 0x181 as 385" in expected
     assert "python tools/gen_dbc.py --hand COPY.yaml --out FILE" in expected
     own_dbc = tmp_path / "own.dbc"
     refused = gen_dbc("--hand", str(path), "--out", str(own_dbc))
-    assert refused.returncode == 2 and "given with --dbc FILE" in refused.stderr
+    assert refused.returncode == 2 and "with --dbc FILE" in refused.stderr
 
     # the way out: the generated DBC of a copy without can_ids, its frame's id changed there
     (tmp_path / "copy").mkdir()
