@@ -16,6 +16,7 @@ import can
 import numpy as np
 import pytest
 
+from handctl import cli
 from handctl.config import HandConfig
 from handctl.hand_protocol import protocol_for
 from handctl.online.clock import Tick
@@ -27,6 +28,7 @@ from handctl.protocol import Layout, NodeState
 from handctl.sim.faults import Injector, SimContext
 from handctl.sim.firmware import FaultBits
 
+from ..conftest import ROOT
 from .another_host import commanding
 from .rig import CLOSE_AND_HOLD_2S, Rig, rig, stopped_at_once
 
@@ -658,11 +660,38 @@ def test_a_heartbeat_lost_to_a_second_sender_says_its_frames_came_and_were_rejec
     assert first.detail.startswith("node 2 (f2): last heartbeat "), first.detail
     said = re.search(
         r"; (\d+) Heartbeat frames heard since and rejected \(counter_skip \1\), none "
-        r"accepted: not a silent node; `handctl nodes` shows them$",
+        r"accepted, the last [0-9.]+ ms ago: not a silent node; `handctl nodes` shows them$",
         first.detail,
     )
     assert said is not None, first.detail
     assert 4 <= int(said[1]) <= result.node_rejects["counter_skip"]
+
+
+def test_a_node_silent_after_a_rejected_frame_is_said_to_have_fallen_silent(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One corrupted Feedback, then none for 50 ms (a node browning out): the timeout said
+    "not a silent node; `handctl nodes` shows them" of a node that had gone silent, sending
+    the operator to look for a second sender (found by an outside audit)."""
+    faults = tmp_path / "faults.yaml"
+    faults.write_text(
+        "faults:\n"
+        "  - {kind: corrupt_crc, node: 2, message: feedback, start: 1.000, stop: 1.0015}\n"
+        "  - {kind: drop_feedback, node: 2, start: 1.0015, stop: 1.05}\n"
+    )
+    argv = ["run", "recipe", str(ROOT / "config/recipes/swap_two_cylinders.yaml")]
+    code = cli.main([*argv, "--max-seconds", "1.5", "--sim-faults", str(faults)])
+    err = capsys.readouterr().err
+    assert code == cli.EXIT_SAFETY_STOP, err
+    said = re.search(
+        r"FEEDBACK_TIMEOUT at tick \d+: node 2 \(f2\): last valid feedback [0-9.]+ ms ago; "
+        r"1 Feedback frame heard since and rejected \(crc 1\), none accepted, the last "
+        r"([0-9.]+) ms ago: the node fell silent after them",
+        err,
+    )
+    assert said is not None, err
+    assert float(said[1]) > 2.5  # half the stream's timeout: it had stopped coming
+    assert "not a silent node" not in err
 
 
 def test_an_e_stop_of_another_sender_is_said_with_every_node_it_stopped(
@@ -698,3 +727,24 @@ def test_an_e_stop_of_another_sender_is_said_with_every_node_it_stopped(
     )
     assert result.node_rejects["unexpected_id"] == 1  # counted as before, never applied
     assert [n.state for n in r.sim.nodes] == [int(NodeState.FAULT)] * 3
+
+
+def test_an_e_stop_sent_as_a_remote_frame_is_said_too(hand: HandConfig, hold: Recipe) -> None:
+    """A remote frame (RTR) on the e-stop id: the nodes latch FAULT (ESTOP) on it as on a
+    data frame, and the run did not say an e-stop was heard (found by an outside audit)."""
+    with rig(hand, hold) as r, third_peer(r) as peer:
+        sent: list[int] = []
+
+        def press() -> None:
+            if not sent:
+                peer.send(
+                    can.Message(arbitration_id=0x000, is_remote_frame=True, is_extended_id=False)
+                )
+                sent.append(r.runtime.tick)
+
+        r.sim.faults.add(Every(send=press), INJECT_AT)
+        result = r.run()
+    assert result.faults[0].code is FaultCode.ESTOP, [str(f) for f in result.faults]
+    assert result.estop_heard.startswith(
+        "an e-stop frame (id 0x000, a remote frame (RTR)) from another sender was heard"
+    )

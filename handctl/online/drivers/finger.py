@@ -159,6 +159,9 @@ class FingerNode:
         #: Whether a node's Heartbeat went silent or came and was all rejected (a second
         #: sender on its id) is two different stops, with two places to look (``NodeWatch``).
         self._rejected_since: dict[int, tuple[bytes | None, RejectCounts]] = {}
+        #: per stream id: when its last rejected frame arrived (ns): a stream whose rejected
+        #: frames stopped coming too fell silent after them, which is another stop to say
+        self._rejected_last_ns: dict[int, int] = {}
         self.accepted = 0
         self.command_counter = 0
         self.node_command_counter = 0
@@ -275,6 +278,7 @@ class FingerNode:
             if since is None or since[0] is not counters.frame:
                 since = self._rejected_since[frame_id] = (counters.frame, RejectCounts())
             since[1].add(reason)
+            self._rejected_last_ns[frame_id] = arrival_ns
             if layout is self.layouts.heartbeat and reason in _COUNTER_REJECTS:
                 self._reboot_in_reject(layout, data, arrival_ns)
             if (
@@ -338,14 +342,16 @@ class FingerNode:
             self.reboots_in_rejects += 1
             self.rejected_uptime_ms = uptime
 
-    def rejected_since_accepted(self, layout: Layout) -> dict[str, int]:
+    def rejected_since_accepted(self, layout: Layout) -> tuple[dict[str, int], int]:
         """The frames of ``layout``'s stream (one of this node's) rejected since the last one
         of it that was accepted (or since the run began listening, when none was), by kind:
-        only the kinds that occurred, empty when none."""
+        only the kinds that occurred, empty when none; and when the last of them arrived
+        (ns; 0 when none)."""
         since = self._rejected_since.get(layout.frame_id)
         if since is None or since[0] is not self.streams[layout.frame_id][1].frame:
-            return {}
-        return {kind: n for kind, n in since[1].as_dict().items() if n}
+            return {}, 0
+        counts = {kind: n for kind, n in since[1].as_dict().items() if n}
+        return counts, self._rejected_last_ns.get(layout.frame_id, 0)
 
     @property
     def feedback_enabled(self) -> bool:

@@ -199,14 +199,17 @@ class HandDriver:
         state.tdt += self._tdt_offset
         return state
 
-    def _heard_estop(self, data: bytes) -> None:
+    def _heard_estop(self, data: bytes | None) -> None:
         """An e-stop frame of another sender: counted, and the first said with its reason
-        (the nodes honour it even malformed, PROTOCOL.md, so a malformed one is said too)."""
+        (the nodes honour it even malformed, PROTOCOL.md, so a malformed one is said too, and
+        a remote frame, ``data`` None, on its id)."""
         self.estops_heard += 1
         if self.estop_heard:
             return
         layout = self._estop_layout
-        if len(data) == layout.length and layout.crc_ok(data):
+        if data is None:
+            what = "a remote frame (RTR)"
+        elif len(data) == layout.length and layout.crc_ok(data):
             value = int(layout.decode(data)[1][0])
             name = next((k for k, v in ESTOP_REASONS.items() if v == value), "")
             what = f"reason {value}" + (f", {name}" if name else "")
@@ -226,6 +229,10 @@ class HandDriver:
         owner = self._command_owner.get(frame_id)
         if owner is not None:
             owner.heard_command(frame_id, None)
+        elif frame_id == self._estop_layout.frame_id:
+            # the nodes latch ESTOP on a remote frame there too: said as a data frame is
+            # (found by an outside audit)
+            self._heard_estop(None)
 
     def drain_budget(self, now_ns: int) -> int:
         """Frames the poll at ``now_ns`` may drain: what the bus can carry since the previous

@@ -68,22 +68,30 @@ def node_faults(nodes: Sequence[FingerNode]) -> list[Finding]:
     return found
 
 
-def rejected_since(node: FingerNode, layout: Layout) -> str:
+def rejected_since(node: FingerNode, layout: Layout, now_ns: int, timeout_ns: int) -> str:
     """What a timeout of ``layout``'s stream adds when frames of it came and were rejected
     since the last one accepted ("" when none came): a stream that went on arriving, every
     frame refused (a second sender on its id, bad CRCs), is no silent node, and the stop
     said "last heartbeat 351 ms ago" of a node whose Heartbeats never stopped, sending the
     operator to its power and wiring. Said with the counts, as the start-up says it of a
-    node none of whose Feedback it could take (``loop._no_feedback``)."""
-    heard = node.rejected_since_accepted(layout)
+    node none of whose Feedback it could take (``loop._no_feedback``). Only a stream whose
+    rejected frames still came within half of ``timeout_ns`` before ``now_ns`` is said to
+    be no silent node: one that fell silent after a bad frame or two (a brown-out) is said
+    as that, with when its last frame came (found by an outside audit of the first
+    wording)."""
+    heard, last_ns = node.rejected_since_accepted(layout)
     if not heard:
         return ""
     kinds = ", ".join(f"{kind} {n}" for kind, n in heard.items())
     name = layout.name.rpartition("_")[0]  # Heartbeat_2: Heartbeat
-    return (
-        f"; {sum(heard.values())} {name} frames heard since and rejected ({kinds}), none "
-        "accepted: not a silent node; `handctl nodes` shows them"
+    count = sum(heard.values())
+    said = (
+        f"; {count} {name} frame{'s' if count != 1 else ''} heard since and rejected "
+        f"({kinds}), none accepted, the last {(now_ns - last_ns) / 1e6:.1f} ms ago"
     )
+    if 2 * (now_ns - last_ns) <= timeout_ns:  # still coming, a frame at least each half of it
+        return said + ": not a silent node; `handctl nodes` shows them"
+    return said + ": the node fell silent after them"
 
 
 class NodeWatch:
@@ -144,7 +152,7 @@ class NodeWatch:
                     (
                         FaultCode.FEEDBACK_TIMEOUT,
                         f"{who}: last valid feedback {age}"
-                        + rejected_since(node, node.layouts.feedback),
+                        + rejected_since(node, node.layouts.feedback, now_ns, feedback_timeout),
                     )
                 )
             if hb is None or now_ns - hb > heartbeat_timeout:
@@ -153,7 +161,7 @@ class NodeWatch:
                     (
                         FaultCode.HEARTBEAT_LOST,
                         f"{who}: last heartbeat {age}"
-                        + rejected_since(node, node.layouts.heartbeat),
+                        + rejected_since(node, node.layouts.heartbeat, now_ns, heartbeat_timeout),
                     )
                 )
             if i < len(self._reboots) and node.reboots > self._reboots[i]:
