@@ -3120,7 +3120,7 @@ def _amount(text: str) -> float:
     limit): ``_number``, its examples of such numbers. "--max-seconds 1s" was told "e.g.
     0.5, -1e-3", an example the option refuses (an outside audit). A negative number still
     reaches the option's own check, which says what it takes."""
-    return _number(text, "0.5, 2, 1e-3")
+    return _number(text, "0.5, 2")
 
 
 def _number(text: str, examples: str) -> float:
