@@ -50,7 +50,7 @@ from handctl.online.clock import (
 from handctl.online.collector import settle_heap
 from handctl.online.drivers.hand import HandDriver
 from handctl.online.estimator import ObjectEstimator
-from handctl.online.loop import Outcome, RecordSink, RunResult, Runtime, StatusLine, TickException
+from handctl.online.loop import RecordSink, RunResult, Runtime, StatusLine, TickException
 from handctl.online.misstrace import MissTrace
 from handctl.online.recipes.reanalysis import Reanalyser
 from handctl.online.recipes.schema import Recipe
@@ -59,7 +59,7 @@ from handctl.online.safety.recovery import Recovery
 from handctl.online.tickstats import STAGES, TickWindow, percentile_us
 from handctl.rivals import RivalRecord, RivalWatch
 from handctl.stopsignals import StopSignals
-from handctl.summary_guard import SummaryParts, least_summary
+from handctl.summary_guard import SummaryParts, least_summary, summary_head
 
 if TYPE_CHECKING:
     from handctl.online.clock import Tick
@@ -127,13 +127,7 @@ def summarise_run(
     """The summary JSON: the fields the runtime issue names, and a few an engineer wants."""
     stages = STAGES
     return {
-        "completed": result.outcome is Outcome.COMPLETED,
-        "outcome": result.outcome.value,
-        "message": result.message,
-        "recipe": recipe.name,
-        "hand": hand.name,
-        "hand_config_hash": hand.config_hash,
-        "mode": "lockstep" if lockstep else "realtime",
+        **summary_head(result, hand, recipe, lockstep),
         # a phase that ran out its max_s did not do what its exits wait for: say so plainly
         "phases": [{**p, "timed_out": p["exit"].startswith("timeout")} for p in result.phases],
         "timed_out_phases": [p["name"] for p in result.phases if p["exit"].startswith("timeout")],

@@ -100,6 +100,21 @@ def require_whole(summary: dict[str, Any], what: str) -> None:
         )
 
 
+def summary_head(
+    result: RunResult, hand: HandConfig, recipe: Recipe, lockstep: bool
+) -> dict[str, Any]:
+    """The keys every run summary begins with: how the run ended, what ran, and where."""
+    return {
+        "completed": result.outcome is Outcome.COMPLETED,
+        "outcome": result.outcome.value,
+        "message": result.message,
+        "recipe": recipe.name,
+        "hand": hand.name,
+        "hand_config_hash": hand.config_hash,
+        "mode": "lockstep" if lockstep else "realtime",
+    }
+
+
 def least_summary(
     result: RunResult,
     hand: HandConfig,
@@ -112,13 +127,7 @@ def least_summary(
     largest torques, and every note a script reads to know whether the hand may still be
     enabled or faulted. Each is taken on its own: one that fails is left out."""
     summary: dict[str, Any] = {
-        "completed": result.outcome is Outcome.COMPLETED,
-        "outcome": result.outcome.value,
-        "message": result.message,
-        "recipe": recipe.name,
-        "hand": hand.name,
-        "hand_config_hash": hand.config_hash,
-        "mode": "lockstep" if lockstep else "realtime",
+        **summary_head(result, hand, recipe, lockstep),
         "phases": [],
         "timed_out_phases": [],
         "faults": [],
