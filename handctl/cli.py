@@ -243,12 +243,14 @@ def _write_output(option: str, path: Path, text: str) -> None:
     failure at the end (a full disk, a directory gone since it was checked) is said by name,
     exit 1: the work was done, its file was not written."""
     from handctl.outfile import write_atomically
+    from handctl.wholefile import left_as_it_was
 
+    existed = path.exists()
     try:
         write_atomically(path.resolve(), text)
     except OSError as exc:
         raise HandctlError(
-            f"{option}: {path} could not be written ({exc}); it is unchanged"
+            f"{option}: {path} could not be written ({exc}); {left_as_it_was(existed)}"
         ) from None
 
 

@@ -95,3 +95,10 @@ def save_picture(figure: Picture, target: Path) -> None:
         write_whole(target, drawn.getvalue())
     except OSError as exc:
         raise PictureNotWrittenError(target, exc.strerror or str(exc)) from None
+
+
+def left_as_it_was(existed: bool) -> str:
+    """What a failed whole-file write left at its path, for its message: the earlier file
+    as it was, or nothing. "it is unchanged" was said of a file that had never been there
+    (found by an outside audit)."""
+    return "it is unchanged" if existed else "no file was made there"

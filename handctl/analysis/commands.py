@@ -21,7 +21,7 @@ from handctl.analysis.model import load_scenario
 from handctl.analysis.planner import plan_for_conditions
 from handctl.analysis.slices import ratio_slice
 from handctl.errors import ConfigError, HandctlError
-from handctl.wholefile import write_whole
+from handctl.wholefile import left_as_it_was, write_whole
 
 GRID_POINTS = 121
 
@@ -144,11 +144,13 @@ def _write_json(path: Path, document: dict[str, Any]) -> None:
     disk left a cut-off file where the earlier one was, and a bare traceback. A failure is the
     command's (exit 1: the work was done, its file was not written), said as every other
     output's."""
+    existed = path.exists()
     try:
         write_whole(path, (json.dumps(document, indent=1) + "\n").encode("utf-8"))
     except OSError as exc:
         raise HandctlError(
-            f"--json: {path} could not be written ({exc.strerror or exc}); it is unchanged"
+            f"--json: {path} could not be written ({exc.strerror or exc}); "
+            + left_as_it_was(existed)
         ) from None
 
 

@@ -30,7 +30,7 @@ from handctl.recording import channels as ch
 from handctl.recording.messages import EXTENDED_ID_FLAG
 from handctl.recording.metadata import recorded_hand, recorded_protocol
 from handctl.recording.reader import Recording, iter_decoded, open_recording, require_topics
-from handctl.wholefile import whole_file
+from handctl.wholefile import left_as_it_was, whole_file
 
 if TYPE_CHECKING:  # the bus only where frames are sent: reading a log needs none of it
     from handctl.online.bus import HandBus
@@ -1569,6 +1569,7 @@ def export(recording: Recording, fmt: str, out: str) -> dict[str, Any]:
                 first.append(log_time)
             yield ((started + log_time - first[0]) * 1e-9, frame_id, data, is_rx, fd)
 
+    existed = Path(out).exists()
     try:
         # whole or not at all: written in place, a full disk left half a log under the name
         # and the earlier export, which the command may replace, gone
@@ -1577,7 +1578,7 @@ def export(recording: Recording, fmt: str, out: str) -> dict[str, Any]:
     except OSError as exc:
         raise HandctlError(
             f"--export: {escaped(out)} could not be written ({exc.strerror or exc}); "
-            "it is unchanged"
+            + left_as_it_was(existed)
         ) from None
     report: dict[str, Any] = {"frames": count, "format": fmt, "path": out}
     warnings = []

@@ -110,6 +110,25 @@ def test_a_json_the_disk_cannot_take_leaves_the_earlier_one_as_it_was(tmp_path: 
     assert [p.name for p in tmp_path.iterdir()] == [out.name]
 
 
+def test_a_json_the_disk_cannot_take_where_none_was_says_none_was_made(tmp_path: Path) -> None:
+    """The same failure onto a path with no file: "it is unchanged" was said of a file that
+    had never been there (found by an outside audit)."""
+    out = tmp_path / "new.json"
+    limit = 16_000
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    command = ["analyze", "torque-set", str(FIG3), "--k", "0.9", "0.1", "--json", str(out)]
+    done = handctl(*command, timeout=300, preexec_fn=small_files)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.stderr.strip().splitlines()[-1] == (
+        f"handctl: error: --json: {out} could not be written (File too large); "
+        "no file was made there"
+    )
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_system_refusal_without_a_file_name_is_said_not_raised(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
