@@ -621,7 +621,7 @@ class Runtime:
                     first_ns[i] = n.feedback_ns
 
         def contradicted(i: int) -> bool:
-            return contradictions[i] >= 0 and nodes[i].contradictions > contradictions[i]
+            return _contradicted_since(nodes[i], contradictions[i])
 
         def confirmed(i: int) -> bool:
             n, first = nodes[i], first_ns[i]
@@ -743,11 +743,7 @@ class Runtime:
         contradictions when the wait began (-1: contradicted before it, and said then).
         Whether it stopped on one (once is enough)."""
         nodes = self.driver.nodes
-        new = [
-            n
-            for n, count in zip(nodes, before, strict=True)
-            if count >= 0 and n.contradictions > count
-        ]
+        new = [n for n, count in zip(nodes, before, strict=True) if _contradicted_since(n, count)]
         if not new:
             return False
         self.supervisor.trip(
@@ -1685,6 +1681,12 @@ def _interrupts(exc: BaseException, task: asyncio.Task[Any] | None) -> bool:
         return asyncio.current_task() is not task
     except RuntimeError:  # no event loop runs: closed from outside
         return True
+
+
+def _contradicted_since(node: finger.FingerNode, before: int) -> bool:
+    """Whether ``node`` contradicted itself since its count of contradictions was ``before``
+    (-1: it had been already, and was said then)."""
+    return before >= 0 and node.contradictions > before
 
 
 def _rejects_so_far(node: finger.FingerNode) -> tuple[int, int]:

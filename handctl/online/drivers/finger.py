@@ -84,6 +84,19 @@ def rebooted(last_ms: int, uptime_ms: int, elapsed_ns: int) -> bool:
     return went_on_ms > elapsed_ns / 1e6 + UPTIME_WRAP_SLACK_MS
 
 
+class _RejectedSince:
+    """The frames of one stream rejected since ``after``, its last accepted frame (the
+    object ``CounterCheck.frame`` holds; None: none yet), by kind, and when the last of them
+    arrived (ns)."""
+
+    __slots__ = ("after", "counts", "last_ns")
+
+    def __init__(self, after: bytes | None) -> None:
+        self.after = after
+        self.counts = RejectCounts()
+        self.last_ns = 0
+
+
 @dataclass(frozen=True)
 class FingerLayouts:
     """The DBC layouts one finger node uses, looked up once."""
@@ -152,16 +165,12 @@ class FingerNode:
             for layout in (layouts.feedback, layouts.status, layouts.heartbeat)
         }
         self.rejects = RejectCounts()
-        #: Per stream id: its frames rejected since its last accepted one, by kind, and that
-        #: accepted frame itself (``CounterCheck.frame``), which they count from. Kept in the
-        #: reject path alone (the accepted one is the 1 kHz path): counts whose frame is not
-        #: the stream's last accepted object any more are of an earlier gap, and start again.
+        #: Per stream id: its frames rejected since its last accepted one. Kept in the reject
+        #: path alone (the accepted one is the 1 kHz path): counts whose frame is not the
+        #: stream's last accepted object any more are of an earlier gap, and start again.
         #: Whether a node's Heartbeat went silent or came and was all rejected (a second
         #: sender on its id) is two different stops, with two places to look (``NodeWatch``).
-        self._rejected_since: dict[int, tuple[bytes | None, RejectCounts]] = {}
-        #: per stream id: when its last rejected frame arrived (ns): a stream whose rejected
-        #: frames stopped coming too fell silent after them, which is another stop to say
-        self._rejected_last_ns: dict[int, int] = {}
+        self._rejected_since: dict[int, _RejectedSince] = {}
         self.accepted = 0
         self.command_counter = 0
         self.node_command_counter = 0
@@ -275,10 +284,10 @@ class FingerNode:
         if reason is not None:
             self.rejects.add(reason)
             since = self._rejected_since.get(frame_id)
-            if since is None or since[0] is not counters.frame:
-                since = self._rejected_since[frame_id] = (counters.frame, RejectCounts())
-            since[1].add(reason)
-            self._rejected_last_ns[frame_id] = arrival_ns
+            if since is None or since.after is not counters.frame:
+                since = self._rejected_since[frame_id] = _RejectedSince(counters.frame)
+            since.counts.add(reason)
+            since.last_ns = arrival_ns
             if layout is self.layouts.heartbeat and reason in _COUNTER_REJECTS:
                 self._reboot_in_reject(layout, data, arrival_ns)
             if (
@@ -348,10 +357,9 @@ class FingerNode:
         only the kinds that occurred, empty when none; and when the last of them arrived
         (ns; 0 when none)."""
         since = self._rejected_since.get(layout.frame_id)
-        if since is None or since[0] is not self.streams[layout.frame_id][1].frame:
+        if since is None or since.after is not self.streams[layout.frame_id][1].frame:
             return {}, 0
-        counts = {kind: n for kind, n in since[1].as_dict().items() if n}
-        return counts, self._rejected_last_ns.get(layout.frame_id, 0)
+        return {kind: n for kind, n in since.counts.as_dict().items() if n}, since.last_ns
 
     @property
     def feedback_enabled(self) -> bool:
