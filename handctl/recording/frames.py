@@ -815,10 +815,7 @@ class _LeftEnabled:
         ``owed``, and the stop's ticks send it again until one goes; the one after a stop
         frame the bus refused is not: that frame is sent again, and the e-stop after it."""
         frame = self._estop_frames[self._estop_counter]
-        try:
-            went = bool(bus.send(self._estop_layout.frame_id, frame))
-        except Exception:  # the stop goes on whatever the bus does
-            went = False
+        went = _went(bus, self._estop_layout.frame_id, frame)
         if went:
             self._estop_counter = (self._estop_counter + 1) & 0xFF
             self.estops += 1
@@ -892,10 +889,7 @@ class _LeftEnabled:
             frame = self._node_command(layout, counter, what)
         else:
             frame = self._command(layout, counter, what)
-        try:
-            went = bool(bus.send(*frame))
-        except Exception:  # the stop goes on whatever the bus does
-            went = False
+        went = _went(bus, *frame)
         if went:
             self.counters[frame_id] = counter
         return went
@@ -904,6 +898,15 @@ class _LeftEnabled:
         """The e-stop after a stop frame the bus refused, unless one has gone already."""
         if not self.estops:
             self.estop(bus, owed=False)
+
+
+def _went(bus: Any, frame_id: int, data: bytes) -> bool:
+    """Whether the bus took a frame of the replay's stop: the stop goes on whatever the bus
+    does, a send that raised included."""
+    try:
+        return bool(bus.send(frame_id, data))
+    except Exception:
+        return False
 
 
 #: frames a drain of the wait for DISABLED may take: all there are
@@ -1077,7 +1080,7 @@ def _check_no_gap(
     recording: Recording,
     ticks: dict[int, int],
     order: Sequence[int],
-    first_command_ns: int | None = None,
+    first_command_ns: int | None,
 ) -> None:
     """Refuse a log in which one tick comes longer after the one before than the nodes'
     command watchdog (``COMMAND_WATCHDOG_S``), once a command has been sent
