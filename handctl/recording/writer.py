@@ -322,14 +322,17 @@ class Encoder:
         rings, layout = self.rings, self.layout
         ctl = rings.ctl
         tail, head = int(ctl[TICK_TAIL]), int(ctl[TICK_HEAD])
-        if head - tail < 2:
+        mask = layout.tick_capacity - 1
+        # the common drain, of a few ms of ticks, reads two times and nothing more
+        if (
+            head - tail < 2
+            or rings.tick_i[(head - 1) & mask, 2] - rings.tick_i[tail & mask, 2] < CHUNK_NS
+        ):
             return None
         now = rings.tick_i[self._take(tail, head, layout.tick_capacity), 2]
-        if int(now[-1]) - int(now[0]) < CHUNK_NS:
-            return None
         cut = tail + int(np.searchsorted(now, int(now[0]) + CHUNK_NS))
         cut = min(max(cut, tail + 1), head - 1)
-        last = int(rings.tick_i[(cut - 1) & (layout.tick_capacity - 1), 0])
+        last = int(rings.tick_i[(cut - 1) & mask, 0])
         return (
             self._frames_through(last, int(ctl[FRAME_HEAD])),
             self._through(
