@@ -273,6 +273,11 @@ class Encoder:
             self._drain_to(*cut)
             self.maybe_flush(force=True)
             busy = True
+            # a backlog the loop keeps adding to (a lockstep run) keeps the writer here: the
+            # live view gives way as it would between drains, or stalled viewers hold the
+            # writer back until its rings overflow
+            if self.live is not None:
+                self._pace_live()
         tick_head = int(ctl[TICK_HEAD])
         heads = (int(ctl[FRAME_HEAD]), int(ctl[EVENT_HEAD]), int(ctl[POSE_HEAD]), tick_head)
         return self._drain_to(*heads) or busy
